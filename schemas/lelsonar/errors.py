@@ -1,0 +1,60 @@
+"""The one exception tree of lelsonar.
+
+Every error raised on purpose derives from :class:`LelsonarError`, so a service
+can catch the whole family in one place, count it, log it and keep serving.
+Messages say what was wrong and, where there is one, the fix.
+"""
+
+from __future__ import annotations
+
+
+class LelsonarError(Exception):
+    """Root of every lelsonar error."""
+
+
+# --- configuration and identifiers -------------------------------------------------
+class ConfigError(LelsonarError):
+    """A configuration value, flag or TOML entry is invalid."""
+
+
+class InvalidIdentifierError(ConfigError):
+    """An identifier that would go into a Zenoh key expression is unsafe."""
+
+
+# --- decoding what came from the wire or a file -----------------------------------
+class DecodeError(LelsonarError):
+    """A payload could not be turned into a valid message."""
+
+
+class SchemaVersionError(DecodeError):
+    """The message carries a schema version this build does not speak."""
+
+
+class PayloadTooLargeError(DecodeError):
+    """A payload or a declared length exceeds the configured bound."""
+
+
+class TruncatedDataError(DecodeError):
+    """Packed data is shorter or longer than its declared length."""
+
+
+class NonFiniteValueError(DecodeError):
+    """A field that must be a finite number is NaN or infinite."""
+
+
+class InvalidMessageError(DecodeError):
+    """A field is out of range or inconsistent with another field."""
+
+
+# --- devices -----------------------------------------------------------------------
+class DeviceError(LelsonarError):
+    """The motor or the sensor board failed."""
+
+
+class DeviceTimeoutError(DeviceError):
+    """A device did not answer in time, even after the retries."""
+
+
+# --- recordings --------------------------------------------------------------------
+class RecordingError(LelsonarError):
+    """An MCAP recording cannot be written or read."""

@@ -1,0 +1,146 @@
+"""The energy indicator that finds the corner (paper §4, eq. 10–14).
+
+Pure functions: arrays in, typed results out, no I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.errors import ConfigError
+
+
+def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
+    """Signal energy of each waveform, the paper's eq. (10).
+
+    ``E_i^γ = ∫ w²(t) dt``, integrated by the rectangle rule.
+
+    Parameters
+    ----------
+    waveforms : (..., n_samples) array
+        Echo signal, V.
+    sample_rate : float
+        Hz.
+
+    Returns
+    -------
+    (...) array
+        Energy, V²·s.
+    """
+    w = np.asarray(waveforms, dtype=np.float64)
+    return np.einsum("...i,...i->...", w, w) / float(sample_rate)
+
+
+def total_energy(sensor_energy: np.ndarray) -> np.ndarray:
+    """Total energy of a step over its capsules, the paper's eq. (11).
+
+    Parameters
+    ----------
+    sensor_energy : (..., n_capsules) array
+        ``E_i^γ`` from :func:`waveform_energy`, V²·s.
+    """
+    return np.sum(np.asarray(sensor_energy, dtype=np.float64), axis=-1)
+
+
+@dataclass(frozen=True)
+class EnergyModel:
+    """Expected face-on energy against range, the paper's eq. (12).
+
+    ``E0(d) = 1 / (φ0·d² + φ1·d + φ2)`` with ``d`` in metres and ``E0`` in V²·s,
+    so φ0 is in 1/(V²·s·m²), φ1 in 1/(V²·s·m) and φ2 in 1/(V²·s).  The paper's
+    printed φ (eq. 13) use centimetres and its own amplifier; calibrate your own
+    with :func:`fit_energy_model`.
+    """
+
+    phi0: float
+    phi1: float
+    phi2: float
+    d_min: float = 0.9
+    d_max: float = 1.8
+
+    def __post_init__(self) -> None:
+        values = (self.phi0, self.phi1, self.phi2, self.d_min, self.d_max)
+        if not all(np.isfinite(values)):
+            raise ConfigError(f"energy model parameters must be finite, got {values}")
+        if not 0 < self.d_min < self.d_max:
+            raise ConfigError(f"energy model range must satisfy 0 < d_min < d_max, got {self.d_min}, {self.d_max}")
+        d = np.linspace(self.d_min, self.d_max, 32)
+        if np.any(self._denominator(d) <= 0):
+            raise ConfigError(
+                "energy model gives a non-positive energy inside its range "
+                f"[{self.d_min}, {self.d_max}] m; recalibrate with `lelsonar calibrate`"
+            )
+
+    def _denominator(self, d: np.ndarray) -> np.ndarray:
+        return self.phi0 * d * d + self.phi1 * d + self.phi2
+
+    def expected_energy(self, distance: np.ndarray | float) -> np.ndarray:
+        """``E0(d)`` in V²·s, eq. (12).  Ranges are clipped to the calibrated interval,
+        where the quadratic is known to stay positive."""
+        d = np.clip(np.asarray(distance, dtype=np.float64), self.d_min, self.d_max)
+        return 1.0 / self._denominator(d)
+
+
+def fit_energy_model(distance: np.ndarray, energy: np.ndarray) -> EnergyModel:
+    """Least-squares calibration of eq. (12) from face-on shots, eq. (13)–(14).
+
+    Solves ``A φ = B`` with the Vandermonde ``A = [d², d, 1]`` and ``B = 1/E``.
+
+    Parameters
+    ----------
+    distance : (k,) array
+        Measured wall distances, m (the paper uses six between 0.9 and 1.8 m).
+    energy : (k,) array
+        Total energy ``E^{0°}`` of each shot, V²·s.
+
+    Raises
+    ------
+    ConfigError
+        With fewer than three distinct distances or non-positive energies.
+    """
+    d = np.asarray(distance, dtype=np.float64).ravel()
+    e = np.asarray(energy, dtype=np.float64).ravel()
+    if d.shape != e.shape:
+        raise ConfigError(f"need one energy per distance, got {d.size} distances and {e.size} energies")
+    if np.unique(d).size < 3:
+        raise ConfigError("the energy model needs shots at three or more distinct distances")
+    if not (np.all(np.isfinite(d)) and np.all(np.isfinite(e)) and np.all(e > 0) and np.all(d > 0)):
+        raise ConfigError("calibration distances and energies must be finite and positive")
+    a = np.stack([d * d, d, np.ones_like(d)], axis=1)
+    phi, *_ = np.linalg.lstsq(a, 1.0 / e, rcond=None)
+    return EnergyModel(float(phi[0]), float(phi[1]), float(phi[2]), d_min=float(d.min()), d_max=float(d.max()))
+
+
+def median_range(distance: np.ndarray) -> np.ndarray:
+    """``d_m``: the median of each step's valid ranges (NaN = no echo), paper §4.
+
+    Parameters
+    ----------
+    distance : (n_steps, n_capsules) array, m
+
+    Returns
+    -------
+    (n_steps,) array
+        NaN for a step with no valid range.
+    """
+    d = np.asarray(distance, dtype=np.float64)
+    out = np.full(d.shape[:-1], np.nan)
+    valid = np.isfinite(d).any(axis=-1)
+    if valid.any():
+        out[valid] = np.nanmedian(d[valid], axis=-1)
+    return out
+
+
+def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel) -> np.ndarray:
+    """The indicator ``R = E^γ / E0(d_m)`` of each step (paper §4, Fig. 6).
+
+    Steps with no valid range get R = 0: they cannot be the corner, whose
+    double bounce always returns an echo.
+    """
+    d_m = median_range(distance)
+    r = np.zeros_like(np.asarray(step_energy, dtype=np.float64))
+    ok = np.isfinite(d_m)
+    r[ok] = np.asarray(step_energy, dtype=np.float64)[ok] / model.expected_energy(d_m[ok])
+    return r
