@@ -14,7 +14,7 @@ import sys
 
 #: Modules that contribute subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
-    "lelsonar.cli_contract",
+    "lelsonar.commands",
 )
 
 

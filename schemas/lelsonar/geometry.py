@@ -106,3 +106,27 @@ def beam_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray
     distance = np.asarray(distance, dtype=float)
     origins = geometry.capsule_positions(gamma)
     return origins + distance[..., None] * boresight(gamma)[..., None, :]
+
+
+def beam_points_from_capsules(
+    positions: np.ndarray, boresights: np.ndarray, gamma: np.ndarray, distance: np.ndarray
+) -> np.ndarray:
+    """Eq. (9) for capsules given in the array frame, as a ``ScanStart`` lists them.
+
+    Parameters
+    ----------
+    positions, boresights : (n_capsules, 3) arrays
+        Capsule positions (m) and unit beam directions in the array frame.
+    gamma : (...) array
+        Rotation about x, rad.
+    distance : (..., n_capsules) array
+        Ranges, m.
+
+    Returns
+    -------
+    (..., n_capsules, 3) array
+    """
+    rot = rotation_x(gamma)
+    origins = np.einsum("...ij,kj->...ki", rot, np.asarray(positions, dtype=float))
+    beams = np.einsum("...ij,kj->...ki", rot, np.asarray(boresights, dtype=float))
+    return origins + np.asarray(distance, dtype=float)[..., None] * beams

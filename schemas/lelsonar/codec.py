@@ -1,0 +1,270 @@
+"""Bytes ⇄ validated messages, and numpy arrays ⇄ packed waveforms.
+
+Every payload that enters lelsonar, from Zenoh or from a file, goes through
+:func:`decode`.  It bounds the size before parsing, parses, then validates the
+schema version, the identifiers, the lengths and the finiteness of numbers, and
+raises a :class:`~lelsonar.errors.DecodeError` subclass that says what was wrong.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TypeVar
+
+import numpy as np
+from google.protobuf.message import DecodeError as _ProtobufDecodeError
+from google.protobuf.message import Message
+
+from lelsonar import SCHEMA_VERSION
+from lelsonar.errors import (
+    ConfigError,
+    DecodeError,
+    InvalidIdentifierError,
+    InvalidMessageError,
+    NonFiniteValueError,
+    PayloadTooLargeError,
+    SchemaVersionError,
+    TruncatedDataError,
+)
+from lelsonar.keys import validate_identifier
+from lelsonar.v1 import reconstruction_pb2, scan_pb2
+
+ScanStart = scan_pb2.ScanStart
+Sample = scan_pb2.Sample
+ScanEnd = scan_pb2.ScanEnd
+Reconstruction = reconstruction_pb2.Reconstruction
+Waveform = scan_pb2.Waveform
+
+#: The top-level messages of the contract, by their full protobuf name.
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.DESCRIPTOR.full_name: cls for cls in (ScanStart, Sample, ScanEnd, Reconstruction)
+}
+
+M = TypeVar("M", bound=Message)
+
+_ITEM_SIZE = {
+    scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE: 4,
+    scan_pb2.WAVEFORM_ENCODING_INT16_LE: 2,
+}
+_MAX_RANGE_M = 100.0  # far beyond any 40 kHz echo; larger is a corrupt value
+
+
+@dataclass(frozen=True)
+class DecodeLimits:
+    """Bounds on everything whose size comes from the wire.
+
+    Parameters
+    ----------
+    max_payload_bytes : int
+        Largest payload parsed at all.
+    max_waveform_samples : int
+        Largest waveform accepted, per capsule.
+    max_sensors : int
+        Most sensor readings in one sample.
+    max_steps : int
+        Most steps in one scan.
+    """
+
+    max_payload_bytes: int = 4 * 1024 * 1024
+    max_waveform_samples: int = 65_536
+    max_sensors: int = 16
+    max_steps: int = 100_000
+
+    def __post_init__(self) -> None:
+        for name in ("max_payload_bytes", "max_waveform_samples", "max_sensors", "max_steps"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"DecodeLimits.{name} must be positive")
+
+
+DEFAULT_LIMITS = DecodeLimits()
+
+
+# --- waveforms -----------------------------------------------------------------------
+def pack_waveform(
+    volts: np.ndarray,
+    sample_rate: float,
+    t0: float = 0.0,
+    *,
+    int16_scale: float | None = None,
+) -> Waveform:
+    """Pack one waveform as little-endian bytes, without per-sample Python work.
+
+    Parameters
+    ----------
+    volts : (n,) array
+        Samples, V.
+    sample_rate : float
+        Hz.
+    t0 : float
+        Time of the first sample after firing, s.
+    int16_scale : float, optional
+        V per count.  When given, samples are stored as int16 (half the bytes);
+        otherwise as float32.
+    """
+    v = np.asarray(volts)
+    if v.ndim != 1:
+        raise ConfigError(f"a waveform must be one-dimensional, got shape {v.shape}")
+    if int16_scale is None:
+        data = v.astype("<f4", copy=False).tobytes()
+        return Waveform(encoding=scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE, data=data,
+                        sample_rate=sample_rate, t0=t0, sample_count=v.size)
+    counts = np.clip(np.rint(v / int16_scale), -32768, 32767).astype("<i2")
+    return Waveform(encoding=scan_pb2.WAVEFORM_ENCODING_INT16_LE, data=counts.tobytes(), scale=int16_scale,
+                    sample_rate=sample_rate, t0=t0, sample_count=v.size)
+
+
+def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
+    """Validated samples of a packed waveform as float32 volts, shape ``(sample_count,)``."""
+    _check_waveform(waveform, limits, where="waveform")
+    if waveform.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE:
+        return np.frombuffer(waveform.data, dtype="<f4").astype(np.float32, copy=False)
+    return np.frombuffer(waveform.data, dtype="<i2").astype(np.float32) * np.float32(waveform.scale)
+
+
+def _check_waveform(w: Waveform, limits: DecodeLimits, where: str) -> None:
+    if w.sample_count > limits.max_waveform_samples:
+        raise PayloadTooLargeError(
+            f"{where} declares {w.sample_count} samples; the limit is {limits.max_waveform_samples}"
+        )
+    size = _ITEM_SIZE.get(w.encoding)
+    if size is None:
+        raise InvalidMessageError(f"{where} has unknown encoding {w.encoding}")
+    if len(w.data) != w.sample_count * size:
+        raise TruncatedDataError(
+            f"{where} declares {w.sample_count} samples ({w.sample_count * size} bytes) but carries {len(w.data)} bytes"
+        )
+    _finite(where + ".sample_rate", w.sample_rate)
+    _finite(where + ".t0", w.t0)
+    if w.sample_rate <= 0:
+        raise InvalidMessageError(f"{where}.sample_rate must be positive, got {w.sample_rate}")
+    if w.encoding == scan_pb2.WAVEFORM_ENCODING_INT16_LE:
+        _finite(where + ".scale", w.scale)
+        if w.scale <= 0:
+            raise InvalidMessageError(f"{where}.scale must be positive for int16 data, got {w.scale}")
+    elif not np.isfinite(np.frombuffer(w.data, dtype="<f4")).all():
+        raise NonFiniteValueError(f"{where} holds NaN or infinite samples")
+
+
+# --- messages ------------------------------------------------------------------------
+def encoding_name(message: Message) -> str:
+    """The Zenoh encoding string that names this message's type."""
+    return f"application/protobuf;{message.DESCRIPTOR.full_name}"
+
+
+def type_from_encoding(encoding: str) -> type[Message]:
+    """The message class named by a Zenoh encoding string, or a DecodeError."""
+    media, _, schema = str(encoding).partition(";")
+    if media != "application/protobuf" or schema not in MESSAGE_TYPES:
+        raise InvalidMessageError(f"unexpected encoding {str(encoding)[:80]!r}; expected one of "
+                                  + ", ".join(f"application/protobuf;{n}" for n in MESSAGE_TYPES))
+    return MESSAGE_TYPES[schema]
+
+
+def decode(payload: bytes, message_type: type[M], limits: DecodeLimits = DEFAULT_LIMITS) -> M:
+    """Parse and validate one top-level message.
+
+    Raises
+    ------
+    DecodeError
+        A subclass that says what was wrong: too large, unparseable, wrong
+        schema version, bad identifier, truncated or non-finite data.
+    """
+    if len(payload) > limits.max_payload_bytes:
+        raise PayloadTooLargeError(f"payload of {len(payload)} bytes exceeds the limit of {limits.max_payload_bytes}")
+    message = message_type()
+    try:
+        message.ParseFromString(bytes(payload))
+    except _ProtobufDecodeError as exc:
+        raise DecodeError(f"not a valid {message_type.DESCRIPTOR.full_name}: {exc}") from None
+    validate(message, limits)
+    return message
+
+
+def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
+    """Check a message of the contract; raise a DecodeError subclass if it is invalid."""
+    name = message.DESCRIPTOR.full_name
+    if message.schema_version != SCHEMA_VERSION:
+        raise SchemaVersionError(
+            f"{name} has schema version {message.schema_version}; this build speaks {SCHEMA_VERSION} "
+            "(upgrade the older side)"
+        )
+    try:
+        validate_identifier(message.scanner_id)
+    except InvalidIdentifierError as exc:
+        raise InvalidMessageError(f"{name}: {exc}") from None
+    _VALIDATORS[type(message)](message, limits)
+
+
+def _finite(where: str, *values: float) -> None:
+    if not all(math.isfinite(v) for v in values):
+        raise NonFiniteValueError(f"{where} must be finite, got {values if len(values) > 1 else values[0]}")
+
+
+def _vector(where: str, v) -> None:
+    _finite(where, v.x, v.y, v.z)
+
+
+def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
+    if not 1 <= len(m.capsules) <= limits.max_sensors:
+        raise InvalidMessageError(f"ScanStart lists {len(m.capsules)} capsules; expected 1 to {limits.max_sensors}")
+    for i, c in enumerate(m.capsules):
+        _vector(f"ScanStart.capsules[{i}].position", c.position)
+        _vector(f"ScanStart.capsules[{i}].boresight", c.boresight)
+    _vector("ScanStart.rotation_axis", m.rotation_axis)
+    _finite("ScanStart schedule and acoustics", m.radial_offset, m.gamma_start, m.gamma_stop,
+            m.sound_speed, m.air_temperature, m.sample_rate)
+    if not 1 <= m.steps <= limits.max_steps:
+        raise InvalidMessageError(f"ScanStart.steps is {m.steps}; expected 1 to {limits.max_steps}")
+    if m.window_samples > limits.max_waveform_samples:
+        raise PayloadTooLargeError(
+            f"ScanStart.window_samples is {m.window_samples}; the limit is {limits.max_waveform_samples}")
+    if not 200.0 < m.sound_speed < 500.0:
+        raise InvalidMessageError(f"ScanStart.sound_speed {m.sound_speed} m/s is not a speed of sound in air")
+    if m.sample_rate <= 0:
+        raise InvalidMessageError("ScanStart.sample_rate must be positive")
+    e = m.energy_model
+    _finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
+
+
+def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
+    if not 1 <= len(m.sensors) <= limits.max_sensors:
+        raise InvalidMessageError(f"Sample carries {len(m.sensors)} sensor readings; expected 1 to {limits.max_sensors}")
+    if m.step >= limits.max_steps:
+        raise InvalidMessageError(f"Sample.step {m.step} exceeds the limit of {limits.max_steps}")
+    _finite("Sample.gamma_commanded/gamma_measured", m.gamma_commanded, m.gamma_measured)
+    _finite("Sample.motor", m.motor.load, m.motor.voltage, m.motor.temperature)
+    for i, s in enumerate(m.sensors):
+        where = f"Sample.sensors[{i}]"
+        _finite(f"{where}.time_of_flight/distance", s.time_of_flight, s.distance)
+        if s.echo_valid and not (0.0 < s.distance < _MAX_RANGE_M and s.time_of_flight > 0.0):
+            raise InvalidMessageError(
+                f"{where} is marked valid but has distance {s.distance} m and time of flight {s.time_of_flight} s")
+        _check_waveform(s.waveform, limits, where=f"{where}.waveform")
+
+
+def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:
+    if m.status not in (scan_pb2.SCAN_STATUS_COMPLETE, scan_pb2.SCAN_STATUS_ABORTED):
+        raise InvalidMessageError(f"ScanEnd.status {m.status} is neither COMPLETE nor ABORTED")
+
+
+def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
+    _finite("Reconstruction.critical_angle", m.critical_angle)
+    if len(m.planes) > limits.max_sensors:
+        raise InvalidMessageError(f"Reconstruction carries {len(m.planes)} planes")
+    for i, p in enumerate(m.planes):
+        where = f"Reconstruction.planes[{i}]"
+        _vector(f"{where}.normal", p.normal)
+        _finite(f"{where}.offset/sigma/lel_cost", p.offset, p.sigma, p.sigma_relative, p.lel_cost)
+        if abs(math.hypot(p.normal.x, p.normal.y, p.normal.z) - 1.0) > 1e-6:
+            raise InvalidMessageError(f"{where}.normal is not a unit vector")
+        if len(p.theta_covariance) not in (0, 9):
+            raise InvalidMessageError(f"{where}.theta_covariance must hold 0 or 9 numbers")
+
+
+_VALIDATORS = {
+    ScanStart: _validate_scan_start,
+    Sample: _validate_sample,
+    ScanEnd: _validate_scan_end,
+    Reconstruction: _validate_reconstruction,
+}

@@ -1,0 +1,119 @@
+"""`lelsonar version`, `lelsonar schemas` and `lelsonar router`: the contract and the network."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("version", help="print the package and wire-contract versions")
+    p.set_defaults(run=run_version)
+
+    p = sub.add_parser("schemas", help="print the wire contract: messages, fields, units and key expressions")
+    p.add_argument("--prefix", default="lelsonar", help="key-expression prefix to show (default: lelsonar)")
+    p.add_argument("--scanner", default="<scanner_id>", help="scanner id to show in the keys")
+    p.set_defaults(run=run_schemas)
+
+    p = sub.add_parser("router", help="run a Zenoh router that services and planners connect to as clients")
+    p.add_argument("--listen", "-l", action="append", metavar="ENDPOINT",
+                   help="endpoint to listen on; repeatable (default: tcp/127.0.0.1:7447)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file to start from")
+    p.set_defaults(run=run_router)
+
+
+def run_version(args: argparse.Namespace) -> int:
+    import lelsonar
+
+    print(f"lelsonar {lelsonar.__version__} (wire contract lelsonar.v1, schema version {lelsonar.SCHEMA_VERSION})")
+    return 0
+
+
+def contract_tables(prefix: str = "lelsonar", scanner: str = "<scanner_id>"):
+    """The key table and one field table per message, as rich Tables."""
+    from rich.table import Table
+
+    from lelsonar import codec, recording
+
+    keys = Table(title="Zenoh key expressions", title_justify="left")
+    for col in ("key expression", "payload (Zenoh encoding schema)", "MCAP topic"):
+        keys.add_column(col, overflow="fold")
+    base = f"{prefix}/{scanner}"
+    keys.add_row(f"{base}/sample", "lelsonar.v1.Sample", recording.TOPICS[codec.Sample])
+    keys.add_row(f"{base}/scan", "lelsonar.v1.ScanStart | ScanEnd",
+                 f"{recording.TOPICS[codec.ScanStart]}, {recording.TOPICS[codec.ScanEnd]}")
+    keys.add_row(f"{base}/planes", "lelsonar.v1.Reconstruction (get → latest)", recording.TOPICS[codec.Reconstruction])
+    keys.add_row(f"{base}/alive/<service>", "liveliness token", "—")
+    tables = [keys]
+    comments = field_comments()
+    for cls in codec.MESSAGE_TYPES.values():
+        t = Table(title=cls.DESCRIPTOR.full_name, title_justify="left")
+        t.add_column("#", justify="right")
+        t.add_column("field")
+        t.add_column("type")
+        t.add_column("unit / meaning", overflow="fold")
+        for f in cls.DESCRIPTOR.fields:
+            kind = f.message_type.full_name if f.message_type else (f.enum_type.full_name if f.enum_type else f.type)
+            if not f.message_type and not f.enum_type:
+                kind = _SCALAR_NAMES.get(f.type, str(f.type))
+            t.add_row(str(f.number), f.name, ("repeated " if _is_repeated(f) else "") + str(kind),
+                      comments.get((cls.DESCRIPTOR.name, f.name), ""))
+        tables.append(t)
+    return tables
+
+
+def field_comments() -> dict[tuple[str, str], str]:
+    """Trailing ``// comment`` of each field in the shipped .proto files, by (message, field)."""
+    import re
+    from importlib.resources import files
+
+    comments: dict[tuple[str, str], str] = {}
+    field_line = re.compile(r"^\s*(?:repeated\s+|optional\s+)?[\w.]+\s+(\w+)\s*=\s*\d+;\s*//\s*(.*)$")
+    for proto in files("lelsonar.v1").iterdir():
+        if not proto.name.endswith(".proto"):
+            continue
+        message = ""
+        for line in proto.read_text().splitlines():
+            if m := re.match(r"^message\s+(\w+)", line):
+                message = m.group(1)
+            elif m := field_line.match(line):
+                comments[(message, m.group(1))] = m.group(2)
+    return comments
+
+
+def _is_repeated(field) -> bool:
+    return bool(getattr(field, "is_repeated", False)) or getattr(field, "label", None) == 3
+
+
+_SCALAR_NAMES = {1: "double", 2: "float", 3: "int64", 4: "uint64", 5: "int32", 8: "bool", 9: "string",
+                 12: "bytes", 13: "uint32"}
+
+
+def run_schemas(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from lelsonar.keys import validate_prefix
+
+    validate_prefix(args.prefix)
+    console = Console() if Console().is_terminal else Console(width=120)
+    for table in contract_tables(args.prefix, args.scanner):
+        console.print(table)
+    console.print("Units: SI (m, rad, s, K, V, Hz); timestamps are Unix-epoch ns. Details: schemas/README.md")
+    return 0
+
+
+def run_router(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from lelsonar.transport import ZenohSettings, open_session
+
+    settings = ZenohSettings(mode="router", connect=(), listen=tuple(args.listen or ("tcp/127.0.0.1:7447",)),
+                             config_file=Path(args.zenoh_config) if args.zenoh_config else None)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with open_session(settings):
+        print(f"lelsonar router listening on {', '.join(settings.listen)}; Ctrl-C to stop", flush=True)
+        stop.wait()
+    return 0

@@ -1,0 +1,218 @@
+"""MCAP recordings: the lelsonar channels plus Foxglove channels that viewers draw.
+
+A recording holds, in log-time order (log time = acquisition time):
+
+==============================  ================================  ==========================
+topic                           schema                            what
+==============================  ================================  ==========================
+``/lelsonar/scan_start``        ``lelsonar.v1.ScanStart``         one per scan
+``/lelsonar/sample``            ``lelsonar.v1.Sample``            one per step
+``/lelsonar/scan_end``          ``lelsonar.v1.ScanEnd``           one per scan
+``/lelsonar/reconstruction``    ``lelsonar.v1.Reconstruction``    estimates, when recorded
+``/tf``                         ``foxglove.FrameTransform``       world → array, per step
+``/lelsonar/points``            ``foxglove.PointCloud``           raw points of the step (eq. 9)
+``/log``                        ``foxglove.Log``                  events
+==============================  ================================  ==========================
+
+``rerun file.mcap`` shows ``/tf`` as a Transform3D and the points as Points3D.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from google.protobuf.message import Message
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.writer import CompressionType
+from mcap_protobuf.writer import Writer
+
+from lelsonar import codec
+from lelsonar.errors import DecodeError, RecordingError
+from lelsonar.geometry import beam_points_from_capsules
+
+TOPICS: dict[type[Message], str] = {
+    codec.ScanStart: "/lelsonar/scan_start",
+    codec.Sample: "/lelsonar/sample",
+    codec.ScanEnd: "/lelsonar/scan_end",
+    codec.Reconstruction: "/lelsonar/reconstruction",
+}
+TOPIC_TF = "/tf"
+TOPIC_POINTS = "/lelsonar/points"
+TOPIC_LOG = "/log"
+WORLD_FRAME = "world"
+ARRAY_FRAME = "array"
+
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class McapRecorder:
+    """Write a lelsonar recording; always finishes the file, even on an exception.
+
+    Use as a context manager::
+
+        with McapRecorder(path, metadata={"scanner_id": "s1"}) as rec:
+            rec.write(scan_start)
+            rec.write(sample)      # also writes /tf and /lelsonar/points
+            rec.log("INFO", "scan complete", t_ns)
+
+    Parameters
+    ----------
+    path : Path
+    compression : {"zstd", "lz4", "none"}
+    metadata : mapping of str to str
+        Stored as one ``lelsonar.config`` metadata record (e.g. the configuration).
+    """
+
+    def __init__(self, path: Path | str, *, compression: str = "zstd",
+                 metadata: Mapping[str, str] | None = None) -> None:
+        if compression not in COMPRESSIONS:
+            raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in finish()
+        self._writer = Writer(self._file, compression=COMPRESSIONS[compression])
+        self._starts: dict[tuple[str, int], codec.ScanStart] = {}
+        self._finished = False
+        self.messages_written = 0
+        if metadata:
+            self._writer.add_metadata("lelsonar.config", {str(k): str(v) for k, v in metadata.items()})
+
+    def __enter__(self) -> McapRecorder:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.finish()
+
+    def finish(self) -> None:
+        """Write the summary and footer and close the file; safe to call twice."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._writer.finish()
+        finally:
+            self._file.close()
+
+    # --- writing ---------------------------------------------------------------------
+    def write(self, message: Message, log_time_ns: int | None = None) -> None:
+        """Record one contract message; a Sample also gets its /tf and /lelsonar/points."""
+        if self._finished:
+            raise RecordingError(f"{self.path} is already finished")
+        topic = TOPICS.get(type(message))
+        if topic is None:
+            raise RecordingError(f"{type(message).__name__} is not a lelsonar contract message")
+        t = log_time_ns if log_time_ns is not None else _message_time(message)
+        self._writer.write_message(topic, message, log_time=t, publish_time=t)
+        self.messages_written += 1
+        if isinstance(message, codec.ScanStart):
+            self._starts[(message.scanner_id, message.scan_id)] = message
+        elif isinstance(message, codec.Sample):
+            self._write_pose_and_points(message, t)
+
+    def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
+        """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
+        t = log_time_ns if log_time_ns is not None else time.time_ns()
+        msg = Log(level=Log.Level.Value(level.upper()), message=text, name=name)
+        msg.timestamp.FromNanoseconds(t)
+        msg.file = ""
+        self._writer.write_message(TOPIC_LOG, msg, log_time=t, publish_time=t)
+
+    def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
+        tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=ARRAY_FRAME)
+        tf.timestamp.FromNanoseconds(t)
+        # Every sub-message is set: an unset one breaks `rerun mcap convert` (design §5).
+        tf.translation.SetInParent()
+        half = 0.5 * sample.gamma_measured
+        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = math.sin(half), 0.0, 0.0, math.cos(half)
+        self._writer.write_message(TOPIC_TF, tf, log_time=t, publish_time=t)
+
+        start = self._starts.get((sample.scanner_id, sample.scan_id))
+        valid = [s for s in sample.sensors if s.echo_valid]
+        if start is None or not valid:
+            return
+        by_id = {c.capsule_id: c for c in start.capsules}
+        rows = [(by_id[s.capsule_id], s.distance) for s in valid if s.capsule_id in by_id]
+        if not rows:
+            return
+        pos = np.array([[c.position.x, c.position.y, c.position.z] for c, _ in rows])
+        bore = np.array([[c.boresight.x, c.boresight.y, c.boresight.z] for c, _ in rows])
+        pts = beam_points_from_capsules(pos, bore, sample.gamma_measured, np.array([d for _, d in rows]))
+        self._writer.write_message(TOPIC_POINTS, point_cloud(pts, t), log_time=t, publish_time=t)
+
+
+def point_cloud(points: np.ndarray, t_ns: int, frame_id: str = WORLD_FRAME) -> PointCloud:
+    """A ``foxglove.PointCloud`` of xyz float32 points, every sub-message set."""
+    pts = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)
+    msg = PointCloud(frame_id=frame_id, point_stride=12, data=pts.tobytes())
+    msg.timestamp.FromNanoseconds(t_ns)
+    msg.pose.position.SetInParent()
+    msg.pose.orientation.w = 1.0
+    for i, axis in enumerate("xyz"):
+        msg.fields.append(PackedElementField(name=axis, offset=4 * i, type=PackedElementField.FLOAT32))
+    return msg
+
+
+def _message_time(message: Message) -> int:
+    for field in ("acquisition_time_ns", "start_time_ns", "end_time_ns", "stamp_ns"):
+        if hasattr(message, field) and getattr(message, field):
+            return int(getattr(message, field))
+    return time.time_ns()
+
+
+# --- reading -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RecordedPayload:
+    """One contract message as stored: its type name and raw bytes, not yet decoded.
+
+    Replay decodes these through :func:`lelsonar.codec.decode`, the same path as live data.
+    """
+
+    log_time_ns: int
+    topic: str
+    type_name: str
+    payload: bytes
+
+
+def iter_payloads(path: Path | str) -> Iterator[RecordedPayload]:
+    """Yield the contract messages of a recording in log-time order, undecoded.
+
+    Raises
+    ------
+    RecordingError
+        If the file is missing or is not an MCAP file.
+    """
+    topics = list(TOPICS.values())
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f)
+            for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
+                yield RecordedPayload(message.log_time, channel.topic, schema.name if schema else "", message.data)
+    except FileNotFoundError:
+        raise RecordingError(f"no recording at {path}") from None
+    except (McapError, ValueError, EOFError) as exc:
+        raise RecordingError(f"{path} is not a readable MCAP file ({exc}); was it finished?") from None
+
+
+def read_messages(path: Path | str, limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
+    """Decoded, validated contract messages in log-time order; a bad record raises DecodeError."""
+    for rec in iter_payloads(path):
+        cls = codec.MESSAGE_TYPES.get(rec.type_name)
+        if cls is None:
+            raise DecodeError(f"{rec.topic} holds {rec.type_name!r}, not a lelsonar.v1 message")
+        yield codec.decode(rec.payload, cls, limits)
+
+
+def read_metadata(path: Path | str) -> dict[str, dict[str, str]]:
+    """All metadata records of a recording, by name."""
+    with open(path, "rb") as f:
+        return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}

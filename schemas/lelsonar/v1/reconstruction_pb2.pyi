@@ -1,0 +1,100 @@
+from lelsonar.v1 import common_pb2 as _common_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class EstimateStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ESTIMATE_STATUS_UNSPECIFIED: _ClassVar[EstimateStatus]
+    ESTIMATE_STATUS_PROVISIONAL: _ClassVar[EstimateStatus]
+    ESTIMATE_STATUS_FINAL: _ClassVar[EstimateStatus]
+    ESTIMATE_STATUS_FINAL_TIMEOUT: _ClassVar[EstimateStatus]
+ESTIMATE_STATUS_UNSPECIFIED: EstimateStatus
+ESTIMATE_STATUS_PROVISIONAL: EstimateStatus
+ESTIMATE_STATUS_FINAL: EstimateStatus
+ESTIMATE_STATUS_FINAL_TIMEOUT: EstimateStatus
+
+class PlaneEstimate(_message.Message):
+    __slots__ = ("label", "method", "normal", "offset", "theta", "sigma_relative", "sigma", "inlier_count", "point_count", "lel_cost", "theta_covariance", "normal_stderr", "offset_stderr", "patch")
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    METHOD_FIELD_NUMBER: _ClassVar[int]
+    NORMAL_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    THETA_FIELD_NUMBER: _ClassVar[int]
+    SIGMA_RELATIVE_FIELD_NUMBER: _ClassVar[int]
+    SIGMA_FIELD_NUMBER: _ClassVar[int]
+    INLIER_COUNT_FIELD_NUMBER: _ClassVar[int]
+    POINT_COUNT_FIELD_NUMBER: _ClassVar[int]
+    LEL_COST_FIELD_NUMBER: _ClassVar[int]
+    THETA_COVARIANCE_FIELD_NUMBER: _ClassVar[int]
+    NORMAL_STDERR_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_STDERR_FIELD_NUMBER: _ClassVar[int]
+    PATCH_FIELD_NUMBER: _ClassVar[int]
+    label: str
+    method: str
+    normal: _common_pb2.Vector3
+    offset: float
+    theta: _common_pb2.Vector3
+    sigma_relative: float
+    sigma: float
+    inlier_count: int
+    point_count: int
+    lel_cost: float
+    theta_covariance: _containers.RepeatedScalarFieldContainer[float]
+    normal_stderr: float
+    offset_stderr: float
+    patch: _containers.RepeatedCompositeFieldContainer[_common_pb2.Vector3]
+    def __init__(self, label: _Optional[str] = ..., method: _Optional[str] = ..., normal: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., offset: _Optional[float] = ..., theta: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., sigma_relative: _Optional[float] = ..., sigma: _Optional[float] = ..., inlier_count: _Optional[int] = ..., point_count: _Optional[int] = ..., lel_cost: _Optional[float] = ..., theta_covariance: _Optional[_Iterable[float]] = ..., normal_stderr: _Optional[float] = ..., offset_stderr: _Optional[float] = ..., patch: _Optional[_Iterable[_Union[_common_pb2.Vector3, _Mapping]]] = ...) -> None: ...
+
+class Line(_message.Message):
+    __slots__ = ("point", "direction")
+    POINT_FIELD_NUMBER: _ClassVar[int]
+    DIRECTION_FIELD_NUMBER: _ClassVar[int]
+    point: _common_pb2.Vector3
+    direction: _common_pb2.Vector3
+    def __init__(self, point: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., direction: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ...) -> None: ...
+
+class ComputeTimings(_message.Message):
+    __slots__ = ("segmentation", "fit", "total")
+    SEGMENTATION_FIELD_NUMBER: _ClassVar[int]
+    FIT_FIELD_NUMBER: _ClassVar[int]
+    TOTAL_FIELD_NUMBER: _ClassVar[int]
+    segmentation: float
+    fit: float
+    total: float
+    def __init__(self, segmentation: _Optional[float] = ..., fit: _Optional[float] = ..., total: _Optional[float] = ...) -> None: ...
+
+class Reconstruction(_message.Message):
+    __slots__ = ("schema_version", "scanner_id", "scan_id", "last_step", "status", "stamp_ns", "critical_step", "critical_angle", "planes", "corner_edge", "timings", "samples_used", "failures")
+    SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
+    SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
+    SCAN_ID_FIELD_NUMBER: _ClassVar[int]
+    LAST_STEP_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    STAMP_NS_FIELD_NUMBER: _ClassVar[int]
+    CRITICAL_STEP_FIELD_NUMBER: _ClassVar[int]
+    CRITICAL_ANGLE_FIELD_NUMBER: _ClassVar[int]
+    PLANES_FIELD_NUMBER: _ClassVar[int]
+    CORNER_EDGE_FIELD_NUMBER: _ClassVar[int]
+    TIMINGS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_USED_FIELD_NUMBER: _ClassVar[int]
+    FAILURES_FIELD_NUMBER: _ClassVar[int]
+    schema_version: int
+    scanner_id: str
+    scan_id: int
+    last_step: int
+    status: EstimateStatus
+    stamp_ns: int
+    critical_step: int
+    critical_angle: float
+    planes: _containers.RepeatedCompositeFieldContainer[PlaneEstimate]
+    corner_edge: Line
+    timings: ComputeTimings
+    samples_used: int
+    failures: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., last_step: _Optional[int] = ..., status: _Optional[_Union[EstimateStatus, str]] = ..., stamp_ns: _Optional[int] = ..., critical_step: _Optional[int] = ..., critical_angle: _Optional[float] = ..., planes: _Optional[_Iterable[_Union[PlaneEstimate, _Mapping]]] = ..., corner_edge: _Optional[_Union[Line, _Mapping]] = ..., timings: _Optional[_Union[ComputeTimings, _Mapping]] = ..., samples_used: _Optional[int] = ..., failures: _Optional[_Iterable[str]] = ...) -> None: ...

@@ -1,0 +1,146 @@
+"""Codec round trips and the typed errors of every bad payload."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from lelsonar import codec
+from lelsonar.errors import (
+    DecodeError,
+    InvalidIdentifierError,
+    InvalidMessageError,
+    NonFiniteValueError,
+    PayloadTooLargeError,
+    SchemaVersionError,
+    TruncatedDataError,
+)
+from lelsonar.keys import ScannerKeys, validate_identifier, validate_prefix
+
+from .conftest import make_sample, make_scan_start
+
+finite_f32 = st.floats(-1e3, 1e3, allow_nan=False, width=32)
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float32, st.integers(0, 5000), elements=finite_f32), st.floats(1e3, 1e7), st.floats(-1, 1))
+def test_float32_waveform_round_trips_exactly(volts, fs, t0):
+    w = codec.pack_waveform(volts, fs, t0)
+    back = codec.unpack_waveform(codec.Waveform.FromString(w.SerializeToString()))
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(back, volts)
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float32, st.integers(1, 3000), elements=st.floats(-3, 3, width=32)))
+def test_int16_waveform_round_trips_within_half_a_count(volts):
+    scale = 3.0 / 32767
+    back = codec.unpack_waveform(codec.pack_waveform(volts, 2e5, int16_scale=scale))
+    assert np.max(np.abs(back - volts)) <= scale / 2 + 1e-7
+    assert len(codec.pack_waveform(volts, 2e5, int16_scale=scale).data) == 2 * volts.size
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000), st.integers(0, 2**63), st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,20}", fullmatch=True))
+def test_sample_round_trips_through_bytes(step, scan_id, scanner):
+    s = make_sample(step=step, scanner_id=scanner, scan_id=scan_id)
+    back = codec.decode(s.SerializeToString(), codec.Sample)
+    assert back == s
+    assert codec.type_from_encoding(codec.encoding_name(back)) is codec.Sample
+
+
+def test_every_contract_message_round_trips():
+    for msg in (make_scan_start(), make_sample(), codec.ScanEnd(schema_version=1, scanner_id="s1", scan_id=7, status=1)):
+        assert codec.decode(msg.SerializeToString(), type(msg)) == msg
+
+
+def test_wrong_schema_version_is_rejected():
+    s = make_sample()
+    s.schema_version = 2
+    with pytest.raises(SchemaVersionError, match="schema version 2"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_random_bytes_are_a_decode_error():
+    rng = np.random.default_rng(1)
+    with pytest.raises(DecodeError):
+        for _ in range(50):
+            codec.decode(rng.bytes(200), codec.Sample)
+
+
+def test_oversize_payload_is_rejected_before_parsing():
+    limits = codec.DecodeLimits(max_payload_bytes=1000)
+    with pytest.raises(PayloadTooLargeError, match="exceeds the limit"):
+        codec.decode(make_sample().SerializeToString(), codec.Sample, limits)
+
+
+def test_huge_declared_waveform_length_is_rejected():
+    s = make_sample()
+    s.sensors[1].waveform.sample_count = 10**9
+    with pytest.raises(PayloadTooLargeError, match="declares 1000000000 samples"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_truncated_waveform_is_rejected():
+    s = make_sample()
+    s.sensors[2].waveform.data = s.sensors[2].waveform.data[:-3]
+    with pytest.raises(TruncatedDataError, match=r"sensors\[2\]"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+@pytest.mark.parametrize("field", ["distance", "time_of_flight"])
+def test_nan_range_is_rejected(field):
+    s = make_sample()
+    setattr(s.sensors[0], field, math.nan)
+    with pytest.raises(NonFiniteValueError, match="finite"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_nan_waveform_sample_is_rejected():
+    s = make_sample()
+    v = codec.unpack_waveform(s.sensors[3].waveform).copy()
+    v[10] = np.nan
+    s.sensors[3].waveform.CopyFrom(codec.pack_waveform(v, 2e5))
+    with pytest.raises(NonFiniteValueError, match="NaN"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_valid_echo_needs_a_positive_range():
+    s = make_sample()
+    s.sensors[0].distance = -1.0
+    with pytest.raises(InvalidMessageError, match="marked valid"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_unknown_encoding_names_the_expected_ones():
+    with pytest.raises(InvalidMessageError, match="lelsonar.v1.Sample"):
+        codec.type_from_encoding("application/json")
+
+
+@pytest.mark.parametrize("bad", ["", "a/b", "a*", "$x", "a#", "q?", "x" * 65, "-lead", "sp ace"])
+def test_invalid_scanner_ids_are_rejected(bad):
+    with pytest.raises(InvalidIdentifierError):
+        validate_identifier(bad)
+    s = make_sample()
+    s.scanner_id = bad
+    with pytest.raises(InvalidMessageError):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_key_expressions():
+    keys = ScannerKeys("robot7/lelsonar", "scanner-1")
+    assert keys.sample == "robot7/lelsonar/scanner-1/sample"
+    assert keys.scan == "robot7/lelsonar/scanner-1/scan"
+    assert keys.planes == "robot7/lelsonar/scanner-1/planes"
+    assert keys.alive("acquire") == "robot7/lelsonar/scanner-1/alive/acquire"
+    assert ScannerKeys().sample == "lelsonar/*/sample"
+    assert ScannerKeys().scanner_of("lelsonar/abc/sample") == "abc"
+    with pytest.raises(InvalidIdentifierError):
+        validate_prefix("robot7//lelsonar")
+    with pytest.raises(InvalidIdentifierError):
+        ScannerKeys(scanner_id="a/b")
