@@ -15,6 +15,9 @@ import sys
 #: Modules that contribute subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
     "lelsonar.commands",
+    "lelsonar.acquire.cli",
+    "lelsonar.acquire.emulate.cli",
+    "lelsonar.reconstruct.cli",
 )
 
 

@@ -1,0 +1,42 @@
+"""Physically based simulator of the rotating ultrasonic scanner (issue 3).
+
+Pure computation: a :class:`Scene` of finite panels, the four-capsule array on
+an AX-12, air acoustics, echoes, times of flight and digitised waveforms, with
+ground truth kept next to each sample.
+
+>>> from lelsonar.acquire.sim import preset, simulate_scan
+>>> scan = simulate_scan(preset("paper-test1"), seed=0)
+"""
+
+from .acoustics import Acoustics, Receiver, piston_directivity, sound_speed
+from .calibrate import (
+    DEFAULT_ENERGY_MODEL,
+    PAPER_CALIBRATION_DISTANCES,
+    CalibrationResult,
+    SimulatedWallShots,
+    calibrate,
+    calibrate_simulator,
+    default_energy_model,
+)
+from .config import Servo, SimConfig
+from .presets import preset, preset_names
+from .scan import (
+    EchoSource,
+    EchoTable,
+    ScanTruth,
+    SimulatedScan,
+    SimulatedStep,
+    TruePlane,
+    echo_table,
+    simulate_scan,
+    simulate_step,
+)
+from .scene import Edge, Panel, Scene
+
+__all__ = [
+    "DEFAULT_ENERGY_MODEL", "PAPER_CALIBRATION_DISTANCES",
+    "Acoustics", "CalibrationResult", "EchoSource", "EchoTable", "Edge", "Panel", "Receiver", "ScanTruth",
+    "Scene", "Servo", "SimConfig", "SimulatedScan", "SimulatedStep", "SimulatedWallShots", "TruePlane",
+    "calibrate", "calibrate_simulator", "default_energy_model", "echo_table", "piston_directivity",
+    "preset", "preset_names", "simulate_scan", "simulate_step", "sound_speed",
+]

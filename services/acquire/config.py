@@ -1,0 +1,110 @@
+"""Configuration of the acquisition service: frozen, validated on creation.
+
+Filled from a TOML file and flags by :mod:`lelsonar.acquire.cli` only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from lelsonar.acquire.backends import DEVICES
+from lelsonar.errors import ConfigError
+from lelsonar.keys import validate_identifier, validate_prefix
+from lelsonar.reconstruct.energy import EnergyModel
+
+
+@dataclass(frozen=True)
+class AcquireConfig:
+    """What `lelsonar acquire` does.
+
+    Parameters
+    ----------
+    scanner_id : str
+        Goes into every key expression; letters, digits, ``_ . -``.
+    prefix : str
+        Key-expression prefix, e.g. ``robot7/lelsonar``.
+    device : {"sim", "emulated", "serial"}
+    preset : str
+        Simulator preset that sets the scene (sim, emulated) and the default schedule.
+    steps, gamma_start, gamma_stop : optional
+        Override the preset's schedule (rad).
+    radial_offset : float, optional
+        Override the capsules' distance from the axis, m.
+    motor_port, sensor_port : str, optional
+        Serial devices for ``device="serial"``.
+    out_dir : Path
+    mcap_name : str
+        File name of the recording; several scans get ``-<n>`` before the suffix.
+    record : bool
+    scans : int
+    interval : float
+        s between scans.
+    seed : int
+        Seeds the simulator.
+    waveform_int16 : bool
+        Send waveforms as int16 with a scale (half the bytes) instead of float32.
+    compression : {"zstd", "lz4", "none"}
+    energy_model : EnergyModel, optional
+        φ of eq. (12); default: the simulator's calibration.
+    motor_speed : float
+        Servo speed during a scan, rad/s (0 = the servo's maximum).
+    """
+
+    scanner_id: str = "scanner1"
+    prefix: str = "lelsonar"
+    device: str = "emulated"
+    preset: str = "paper-test1"
+    steps: int | None = None
+    gamma_start: float | None = None
+    gamma_stop: float | None = None
+    radial_offset: float | None = None
+    motor_port: str | None = None
+    sensor_port: str | None = None
+    out_dir: Path = Path("out")
+    mcap_name: str = "scan.mcap"
+    record: bool = True
+    scans: int = 1
+    interval: float = 0.0
+    seed: int = 0
+    waveform_int16: bool = False
+    compression: str = "zstd"
+    energy_model: EnergyModel | None = None
+    motor_speed: float = 0.0
+
+    def __post_init__(self) -> None:
+        validate_identifier(self.scanner_id)
+        validate_prefix(self.prefix)
+        if self.device not in DEVICES:
+            raise ConfigError(f"--device must be one of {', '.join(DEVICES)}, got {self.device!r}")
+        if self.device == "serial" and not (self.motor_port and self.sensor_port):
+            raise ConfigError("--device serial needs --motor-port and --sensor-port (e.g. /dev/ttyUSB0, /dev/ttyACM0)")
+        if self.steps is not None and not 2 <= self.steps <= 4096:
+            raise ConfigError(f"steps must be in [2, 4096], got {self.steps}")
+        for name in ("gamma_start", "gamma_stop"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(v) and abs(v) <= math.radians(150)):
+                raise ConfigError(f"{name} must be within ±150° (the AX-12 turns 300°), got {math.degrees(v):.1f}°")
+        if self.scans < 1 or self.interval < 0:
+            raise ConfigError("scans must be >= 1 and interval >= 0 s")
+        if not self.mcap_name.endswith(".mcap") or "/" in self.mcap_name:
+            raise ConfigError(f"mcap_name must be a file name ending in .mcap, got {self.mcap_name!r}")
+        if self.compression not in ("zstd", "lz4", "none"):
+            raise ConfigError(f"compression must be zstd, lz4 or none, got {self.compression!r}")
+        if not (math.isfinite(self.motor_speed) and self.motor_speed >= 0):
+            raise ConfigError("motor_speed must be >= 0 rad/s (0 = maximum)")
+        object.__setattr__(self, "out_dir", Path(self.out_dir))
+
+    def mcap_path(self, index: int) -> Path:
+        if self.scans == 1:
+            return self.out_dir / self.mcap_name
+        stem = self.mcap_name[: -len(".mcap")]
+        return self.out_dir / f"{stem}-{index + 1}.mcap"
+
+    def as_metadata(self) -> dict[str, str]:
+        """The configuration as MCAP metadata (strings)."""
+        out = {k: str(v) for k, v in asdict(self).items() if k != "energy_model"}
+        if self.energy_model is not None:
+            out["energy_model"] = str(asdict(self.energy_model))
+        return out

@@ -1,0 +1,574 @@
+"""The scanner's motor: a small :class:`Motor` protocol and its AX-12 driver.
+
+This is the only module that imports ``dynamixel_sdk``.  The SDK is used
+unmodified, with protocol 1.0 at 1 Mbps.  Two SDK traits shape the driver
+(design §6):
+
+* **Timeouts.**  The SDK's packet timeout is ``2 × LATENCY_TIMER + 2 ms`` plus the
+  line time; ``LATENCY_TIMER`` is a module global (16 ms, an FTDI adapter's default
+  latency).  Rather than mutate that global, :class:`_PortHandler` subclasses the
+  SDK's ``PortHandler`` and uses :attr:`MotorConfig.latency_timer_ms`.  It also
+  waits for reply bytes with ``select`` instead of the SDK's spin on a
+  non-blocking read, which would starve an emulator or a sensor thread of CPU.
+* **Stale replies.**  Replies are matched by ID only, so after a timeout a late
+  reply can be taken as the answer to the *next* request.  After any timeout or
+  corrupt reply the driver waits out :attr:`MotorConfig.stale_guard_s`, clears the
+  input, and only then retries (reads and absolute writes are idempotent) or raises.
+  A read whose reply has the wrong number of bytes is treated the same way.
+
+Every status packet's ERR byte is decoded into a typed :class:`MotorStatusError`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import select
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Protocol, Self, TypeVar, runtime_checkable
+
+from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
+
+from lelsonar.acquire.devices import ax12
+from lelsonar.acquire.devices.ax12 import ErrorBit
+from lelsonar.errors import ConfigError, DeviceError, DeviceTimeoutError
+
+T = TypeVar("T")
+_log = logging.getLogger(__name__)
+
+
+# --- errors --------------------------------------------------------------------------
+class MotorError(DeviceError):
+    """The motor failed or refused a command."""
+
+
+class MotorTimeoutError(DeviceTimeoutError, MotorError):
+    """The servo did not answer (or its answers stayed corrupt) after the retries."""
+
+
+class MotorCommunicationError(MotorError):
+    """The port failed (busy, write failed): not something a retry fixes."""
+
+
+class WrongModelError(MotorError):
+    """Something answered PING, but it is not an AX-12."""
+
+
+class GammaOutOfRangeError(MotorError):
+    """A requested γ is outside the configured range or the servo's angle limits."""
+
+
+class MotorNotSettledError(MotorError):
+    """The servo was still moving (or stopped elsewhere) when the move deadline passed."""
+
+
+class MotorStatusError(MotorError):
+    """The servo set error bits in its status packet.
+
+    Attributes
+    ----------
+    bits : int
+        The raw ERR byte.
+    names : tuple of str
+        Decoded names of every set bit, e.g. ``("angle_limit", "overload")``.
+    """
+
+    #: The bit a subclass stands for (the base class: none in particular).
+    bit: ErrorBit | None = None
+
+    def __init__(self, bits: int, context: str) -> None:
+        self.bits = bits
+        self.names = ax12.error_bit_names(bits)
+        super().__init__(f"{context}: servo reports {', '.join(self.names)} (ERR=0x{bits:02X}). {self.fix}")
+
+    fix = ""
+
+
+class InputVoltageError(MotorStatusError):
+    bit = ErrorBit.INPUT_VOLTAGE
+    fix = "Check the supply: the voltage is outside the Min/Max Voltage Limit (addresses 12/13)."
+
+
+class AngleLimitError(MotorStatusError):
+    bit = ErrorBit.ANGLE_LIMIT
+    fix = "The goal is outside the CW/CCW angle limits (addresses 6/8); narrow the γ range."
+
+
+class OverheatingError(MotorStatusError):
+    bit = ErrorBit.OVERHEATING
+    fix = "Let the servo cool below its Temperature Limit (address 11) and reduce the load."
+
+
+class MotorRangeError(MotorStatusError):
+    bit = ErrorBit.RANGE
+    fix = "A written value is out of the register's range or the address is read-only."
+
+
+class MotorChecksumError(MotorStatusError):
+    bit = ErrorBit.CHECKSUM
+    fix = "The servo received a corrupt instruction: check cabling and termination."
+
+
+class OverloadError(MotorStatusError):
+    bit = ErrorBit.OVERLOAD
+    fix = "The servo dropped torque: free the mechanism, then re-enable torque (reconnect)."
+
+
+class InstructionError(MotorStatusError):
+    bit = ErrorBit.INSTRUCTION
+    fix = "Undefined instruction, or ACTION without REG_WRITE."
+
+
+# Most severe first: when several bits are set, the first one present names the error.
+_STATUS_ERRORS: tuple[type[MotorStatusError], ...] = (
+    OverloadError,
+    OverheatingError,
+    InputVoltageError,
+    AngleLimitError,
+    MotorRangeError,
+    MotorChecksumError,
+    InstructionError,
+)
+
+
+def status_error(bits: int, context: str) -> MotorStatusError:
+    """The typed error for an ERR byte (``bits`` must be non-zero)."""
+    for cls in _STATUS_ERRORS:
+        if cls.bit is not None and bits & cls.bit:
+            return cls(bits, context)
+    return MotorStatusError(bits, context)
+
+
+# --- configuration and readings -------------------------------------------------------
+@dataclass(frozen=True)
+class MotorConfig:
+    """How to reach and drive the servo.
+
+    Parameters
+    ----------
+    port : str
+        Serial device, e.g. ``/dev/ttyUSB0`` or an emulator's pty path.
+    motor_id : int
+        Servo ID (1 from the factory).
+    baudrate : int
+        Must match the servo's Baud Rate register; 1 Mbps is the AX-12 default.
+    gamma_min, gamma_max : float
+        Allowed scanner angles γ (rad); a move outside raises before anything is sent.
+    zero_raw : int
+        Raw position at γ = 0 (mount calibration); γ is CCW positive.
+    moving_speed : int
+        Moving Speed register value written at connect (0 = no-load speed).
+    latency_timer_ms : float
+        The SDK's LATENCY_TIMER: the packet timeout is ``2 × this + 2 ms``.  16 ms
+        matches an FTDI adapter's default latency; set the adapter's latency to 1 ms
+        and this to 2 ms for fast scans.
+    retries : int
+        Extra attempts after a timeout or corrupt reply.
+    stale_guard_s : float or None
+        How long to wait after a timeout before clearing the port, so that a late
+        reply lands in the bin rather than in the next answer: replies up to
+        ``packet timeout + stale_guard_s`` late are binned, later ones cannot be told
+        from a fresh answer.  None: two packet timeouts.  0 disables the guard (only
+        to demonstrate the hazard).
+    move_margin_s : float
+        Added to the computed travel time to bound a move (compliance, acceleration).
+    move_slack : float
+        Multiplies the computed travel time when bounding a move.
+    poll_interval_s : float
+        Longest sleep between Moving polls once the expected travel time has passed.
+    no_load_rpm : float
+        Speed cap of the travel-time model (see ``ax12``).
+    """
+
+    port: str
+    motor_id: int = 1
+    baudrate: int = 1_000_000
+    gamma_min: float = math.radians(-10.0)
+    gamma_max: float = math.radians(110.0)
+    zero_raw: int = ax12.CENTER_RAW
+    moving_speed: int = 0
+    latency_timer_ms: float = 16.0
+    retries: int = 3
+    stale_guard_s: float | None = None
+    move_margin_s: float = 0.25
+    move_slack: float = 1.5
+    poll_interval_s: float = 0.002
+    no_load_rpm: float = ax12.NO_LOAD_RPM
+
+    def __post_init__(self) -> None:
+        checks = (
+            (bool(self.port), "port must be a device path"),
+            (0 <= self.motor_id <= 253, "motor_id must be 0..253"),
+            (self.baudrate > 0, "baudrate must be positive"),
+            (
+                math.isfinite(self.gamma_min) and math.isfinite(self.gamma_max) and self.gamma_min < self.gamma_max,
+                "need finite gamma_min < gamma_max",
+            ),
+            (0 <= self.zero_raw <= ax12.POSITION_MAX, "zero_raw must be 0..1023"),
+            (0 <= self.moving_speed <= 1023, "moving_speed must be 0..1023"),
+            (self.latency_timer_ms >= 0, "latency_timer_ms must be >= 0"),
+            (self.retries >= 0, "retries must be >= 0"),
+            (self.stale_guard_s is None or self.stale_guard_s >= 0, "stale_guard_s must be >= 0"),
+            (self.move_margin_s >= 0 and self.move_slack >= 1, "need move_margin_s >= 0 and move_slack >= 1"),
+            (self.poll_interval_s > 0, "poll_interval_s must be positive"),
+            (self.no_load_rpm > 0, "no_load_rpm must be positive"),
+        )
+        for ok, message in checks:
+            if not ok:
+                raise ConfigError(f"MotorConfig: {message}")
+
+    @property
+    def packet_timeout_s(self) -> float:
+        """The SDK's timeout for a short status packet with this latency."""
+        return (2.0 * self.latency_timer_ms + 2.0) / 1000.0
+
+
+@dataclass(frozen=True)
+class MotorPosition:
+    """A position read back from the servo.
+
+    Attributes
+    ----------
+    raw : int
+        Present Position (0..1023): log this, the angle steps quantise (design §6).
+    gamma : float
+        The scanner angle γ (rad) it stands for.
+    status : MotorStatus
+        Load, voltage and temperature from the same read.
+    """
+
+    raw: int
+    gamma: float
+    status: MotorStatus
+
+
+@dataclass(frozen=True)
+class MotorStatus:
+    """Health readings of the servo.
+
+    Attributes
+    ----------
+    load : float
+        Present Load as a signed fraction of max torque (CCW positive).
+    voltage_v : float
+        Supply voltage, V.
+    temperature_c : float
+        Internal temperature, °C.
+    """
+
+    load: float
+    voltage_v: float
+    temperature_c: float
+
+
+@runtime_checkable
+class Motor(Protocol):
+    """What the acquisition loop needs from the motor.
+
+    Angles are the scanner angle γ in radians.  Implementations are context
+    managers: torque on at ``__enter__`` (or construction), off at ``close()``.
+    """
+
+    @property
+    def gamma_range(self) -> tuple[float, float]:
+        """The γ interval moves are allowed in (configured range ∩ servo limits)."""
+        ...
+
+    def ping(self) -> int:
+        """Model number of the servo (12 for an AX-12)."""
+        ...
+
+    def move_to(self, gamma: float) -> MotorPosition:
+        """Move to ``gamma``, wait until stopped, return the position read back (the measured γ) and status."""
+        ...
+
+    def position(self) -> MotorPosition:
+        """Present position read back from the servo, with status."""
+        ...
+
+    def status(self) -> MotorStatus:
+        """Load, voltage and temperature."""
+        ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> Self: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
+# --- the SDK port, tuned ------------------------------------------------------------
+class _PortHandler(PortHandler):
+    """The SDK's PortHandler with a per-instance latency and a blocking wait for bytes."""
+
+    def __init__(self, port_name: str, latency_timer_ms: float) -> None:
+        super().__init__(port_name)
+        self.latency_timer_ms = latency_timer_ms
+
+    def setPacketTimeout(self, packet_length: int) -> None:  # noqa: N802 (SDK name)
+        # Same formula as the SDK, with our latency instead of the module global.
+        self.packet_start_time = self.getCurrentTime()
+        self.packet_timeout = self.tx_time_per_byte * packet_length + self.latency_timer_ms * 2.0 + 2.0
+
+    def readPort(self, length: int) -> bytes:  # noqa: N802 (SDK name)
+        data = self.ser.read(length)
+        if data:
+            return data
+        # Nothing yet: sleep in select until bytes arrive or the packet times out,
+        # instead of letting the SDK's rx loop spin at 100 % CPU.
+        remaining_ms = self.packet_timeout - self.getTimeSinceStart()
+        if remaining_ms > 0:
+            select.select([self.ser.fileno()], [], [], remaining_ms / 1000.0)
+            return self.ser.read(length)
+        return data
+
+
+# --- the driver ------------------------------------------------------------------------
+class DynamixelMotor:
+    """An AX-12 on a protocol-1.0 bus, through the unmodified dynamixel-sdk.
+
+    At construction it opens the port, pings (model 12 required), reads the angle
+    limits and the Status Return Level, writes Moving Speed and enables torque.
+    :meth:`close` (or leaving the ``with`` block) disables torque and closes the port.
+
+    Parameters
+    ----------
+    config : MotorConfig
+
+    Raises
+    ------
+    MotorCommunicationError
+        The port cannot be opened.
+    WrongModelError
+        The device is not an AX-12.
+    MotorTimeoutError, MotorStatusError
+        As for every transaction.
+    """
+
+    def __init__(self, config: MotorConfig) -> None:
+        self.config = config
+        self._guard_s = 2.0 * config.packet_timeout_s if config.stale_guard_s is None else config.stale_guard_s
+        self._port = _PortHandler(config.port, config.latency_timer_ms)
+        self._packets = PacketHandler(1.0)
+        self._torque_on = False
+        self._ack_writes = True
+        #: Transactions retried after a timeout or corrupt reply (diagnostics).
+        self.retries_used = 0
+        try:
+            # setBaudRate opens the port (the SDK's openPort would open it at its default first).
+            opened = self._port.setBaudRate(config.baudrate)
+        except OSError as exc:  # pyserial's SerialException is an OSError
+            raise MotorCommunicationError(f"cannot open motor port {config.port!r}: {exc}") from exc
+        if not opened:
+            raise MotorCommunicationError(f"cannot open motor port {config.port!r} at {config.baudrate} baud")
+        try:
+            self._connect()
+        except BaseException:
+            self._port.closePort()
+            raise
+
+    def _connect(self) -> None:
+        model = self.ping()
+        if model != ax12.MODEL_NUMBER:
+            raise WrongModelError(
+                f"device {self.config.motor_id} on {self.config.port} is model {model}, not an AX-12 "
+                f"({ax12.MODEL_NUMBER}); check the ID and the port"
+            )
+        srl = self.read_register("status_return_level")
+        # At level 1 the servo does not acknowledge writes: send them without waiting.
+        self._ack_writes = srl >= 2
+        cw = self.read_register("cw_angle_limit")
+        ccw = self.read_register("ccw_angle_limit")
+        c = self.config
+        lo = max(c.gamma_min, ax12.gamma_from_raw(cw, c.zero_raw))
+        hi = min(c.gamma_max, ax12.gamma_from_raw(ccw, c.zero_raw))
+        if lo > hi:
+            raise GammaOutOfRangeError(
+                f"configured γ range [{math.degrees(c.gamma_min):.1f}°, {math.degrees(c.gamma_max):.1f}°] "
+                f"does not meet the servo's angle limits (raw {cw}..{ccw} with zero_raw={c.zero_raw})"
+            )
+        self._gamma_range = (lo, hi)
+        self._limits_raw = (cw, ccw)
+        self.write_register("moving_speed", c.moving_speed)
+        self.write_register("torque_enable", 1)
+        self._torque_on = True
+        self._present_raw = self.read_register("present_position")
+
+    # --- lifecycle ------------------------------------------------------------------------
+    def close(self) -> None:
+        """Disable torque (best effort) and close the port; idempotent."""
+        if not self._port.is_open:
+            return
+        try:
+            if self._torque_on:
+                self._torque_on = False
+                self.write_register("torque_enable", 0)
+        except MotorError as exc:
+            # Do not mask the error that brought us here; the servo may be unpowered.
+            _log.warning("could not disable torque on %s: %s", self.config.port, exc)
+        finally:
+            self._port.closePort()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    # --- Motor protocol ----------------------------------------------------------------
+    @property
+    def gamma_range(self) -> tuple[float, float]:
+        return self._gamma_range
+
+    def ping(self) -> int:
+        """Model number (12 for an AX-12)."""
+        return self._transact("PING", lambda: self._packets.ping(self._port, self.config.motor_id))
+
+    def position(self) -> MotorPosition:
+        """Present Position read back from the servo, its γ, and the status."""
+        return self._snapshot()[0]
+
+    def move_to(self, gamma: float) -> MotorPosition:
+        """Move to ``gamma`` (rad) and wait until the servo stops.
+
+        The wait sleeps for the travel time computed from the distance and the
+        speed model, then polls; each poll is one read of addresses 36–46
+        (position, speed, load, voltage, temperature, moving) and, while still
+        moving, sleeps for the travel left.  It gives up after
+        ``move_slack × travel + move_margin_s``.
+
+        Returns
+        -------
+        MotorPosition
+            Present Position once stopped: the measured γ, quantised to 0.29°, with the status.
+
+        Raises
+        ------
+        GammaOutOfRangeError
+            ``gamma`` is outside :attr:`gamma_range` (nothing is sent).
+        MotorNotSettledError
+            Still moving at the deadline.
+        MotorStatusError, MotorTimeoutError
+        """
+        lo, hi = self._gamma_range
+        if not (math.isfinite(gamma) and lo - 1e-12 <= gamma <= hi + 1e-12):
+            raise GammaOutOfRangeError(
+                f"γ = {math.degrees(gamma):.2f}° is outside [{math.degrees(lo):.2f}°, {math.degrees(hi):.2f}°]"
+            )
+        c = self.config
+        goal = min(max(ax12.raw_from_gamma(gamma, c.zero_raw), self._limits_raw[0]), self._limits_raw[1])
+        units_per_s = ax12.speed_units_per_s(c.moving_speed, c.no_load_rpm)
+        travel = abs(goal - self._present_raw) / units_per_s
+        self.write_register("goal_position", goal)
+        # The servo started when the write arrived, i.e. before now: sleeping `travel` from here is enough.
+        start = time.monotonic()
+        deadline = start + c.move_slack * travel + c.move_margin_s
+        time.sleep(travel)  # an earlier poll would only load the bus
+        while True:
+            position, moving = self._snapshot()
+            if not moving:
+                return position
+            now = time.monotonic()
+            if now >= deadline:
+                raise MotorNotSettledError(
+                    f"servo still moving {now - start:.3f} s after a goal of {goal} (at {position.raw}, "
+                    f"expected {travel:.3f} s); check the load and Moving Speed"
+                )
+            # Sleep for the travel left (a tick at least, a poll interval at most).
+            left = abs(goal - position.raw) / units_per_s
+            time.sleep(min(max(left, 2e-4), c.poll_interval_s, deadline - now))
+
+    def status(self) -> MotorStatus:
+        """Present Load, Voltage and Temperature, in one 4-byte read (addresses 40–43)."""
+        data = self._read_block(ax12.register("present_load").address, 4)
+        return self._status_from(data)
+
+    @staticmethod
+    def _status_from(data: list[int]) -> MotorStatus:
+        return MotorStatus(
+            load=ax12.signed_load(data[0] | data[1] << 8), voltage_v=data[2] / 10.0, temperature_c=float(data[3])
+        )
+
+    def _snapshot(self) -> tuple[MotorPosition, bool]:
+        """One read of Present Position .. Moving (36–46, 11 bytes; 45 is reserved)."""
+        base = ax12.register("present_position").address
+        data = self._read_block(base, ax12.register("moving").end - base)
+        self._present_raw = data[0] | data[1] << 8
+        load_at = ax12.register("present_load").address - base
+        position = MotorPosition(
+            raw=self._present_raw,
+            gamma=ax12.gamma_from_raw(self._present_raw, self.config.zero_raw),
+            status=self._status_from(data[load_at : load_at + 4]),
+        )
+        return position, bool(data[ax12.register("moving").address - base])
+
+    # --- register access ------------------------------------------------------------------
+    def read_register(self, name: str) -> int:
+        """Read one control-table register by name."""
+        reg = ax12.register(name)
+        data = self._read_block(reg.address, reg.size)
+        return int.from_bytes(bytes(data), "little")
+
+    def write_register(self, name: str, value: int) -> None:
+        """Write one control-table register by name (an absolute write: safe to retry)."""
+        reg = ax12.register(name)
+        if reg.access is ax12.Access.R:
+            raise MotorRangeError(int(ErrorBit.RANGE), f"write {name}: register is read-only")
+        payload = list(int(value).to_bytes(reg.size, "little"))
+        motor_id = self.config.motor_id
+        if self._ack_writes:
+            self._transact(
+                f"WRITE {name}={value}",
+                lambda: (None, *self._packets.writeTxRx(self._port, motor_id, reg.address, reg.size, payload)),
+            )
+        else:
+            result = self._packets.writeTxOnly(self._port, motor_id, reg.address, reg.size, payload)
+            if result != COMM_SUCCESS:
+                raise MotorCommunicationError(f"WRITE {name}: {self._packets.getTxRxResult(result)}")
+
+    def _read_block(self, address: int, size: int) -> list[int]:
+        def read() -> tuple[list[int], int, int]:
+            data, result, error = self._packets.readTxRx(self._port, self.config.motor_id, address, size)
+            if result == COMM_SUCCESS and len(data) != size:
+                # A reply of the wrong size is someone else's (stale) answer.
+                return data, COMM_RX_CORRUPT, error
+            return data, result, error
+
+        return self._transact(f"READ {address}+{size}", read)
+
+    def _transact(self, what: str, call: Callable[[], tuple[T, int, int]]) -> T:
+        """Run an idempotent SDK call with retries, the stale-reply guard and ERR decoding."""
+        attempts = self.config.retries + 1
+        last = ""
+        for attempt in range(attempts):
+            value, result, error = call()
+            if result == COMM_SUCCESS:
+                if error:
+                    if error & ErrorBit.CHECKSUM and attempt + 1 < attempts:
+                        # The servo saw a corrupt instruction and did nothing: resend.
+                        self.retries_used += 1
+                        continue
+                    raise status_error(error, f"{what} on motor {self.config.motor_id}")
+                return value
+            last = self._packets.getTxRxResult(result)
+            if result not in (COMM_RX_TIMEOUT, COMM_RX_CORRUPT):
+                raise MotorCommunicationError(f"{what} on {self.config.port}: {last}")
+            # A reply may still be on its way: let it arrive and bin it before going on.
+            self._settle()
+            if attempt + 1 < attempts:
+                self.retries_used += 1
+        raise MotorTimeoutError(
+            f"{what} on motor {self.config.motor_id} at {self.config.port}: {last} after {attempts} attempts; "
+            "check power, ID, baud rate and cabling"
+        )
+
+    def _settle(self) -> None:
+        if self._guard_s > 0:
+            time.sleep(self._guard_s)
+        self._port.clearPort()
+

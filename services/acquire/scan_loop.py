@@ -1,0 +1,125 @@
+"""The scan loop: ScanStart, one Sample per step, ScanEnd — recorded, then published.
+
+Recording comes first and does not depend on the network: a Zenoh failure is
+logged and counted, and the MCAP file stays complete.  A stop request (SIGINT,
+SIGTERM) is honoured between steps: the current step finishes, ``ScanEnd``
+says ``ABORTED`` with the reason, and the caller finishes the file.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import zenoh
+from google.protobuf.message import Message
+
+from lelsonar import codec
+from lelsonar.acquire import messages
+from lelsonar.acquire.scanner import Scanner
+from lelsonar.errors import DeviceError
+from lelsonar.keys import ScannerKeys
+from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.recording import McapRecorder
+
+_log = logging.getLogger(__name__)
+
+
+class ScanPublisher:
+    """Puts contract messages on their Zenoh keys; samples use congestion control BLOCK."""
+
+    def __init__(self, session: zenoh.Session, keys: ScannerKeys) -> None:
+        block = zenoh.CongestionControl.BLOCK
+        self._sample = session.declare_publisher(
+            keys.sample, encoding=zenoh.Encoding(codec.encoding_name(codec.Sample())), congestion_control=block)
+        # Start and end are rare and must not be dropped either.
+        self._scan = session.declare_publisher(keys.scan, congestion_control=block,
+                                               priority=zenoh.Priority.INTERACTIVE_HIGH)
+
+    def publish(self, message: Message) -> None:
+        payload = message.SerializeToString()
+        if isinstance(message, codec.Sample):
+            self._sample.put(payload)
+        else:
+            self._scan.put(payload, encoding=zenoh.Encoding(codec.encoding_name(message)))
+
+    def close(self) -> None:
+        self._sample.undeclare()
+        self._scan.undeclare()
+
+
+@dataclass
+class ScanOutput:
+    """Where a scan's messages go: an MCAP file first, then Zenoh."""
+
+    recorder: McapRecorder | None = None
+    publisher: ScanPublisher | None = None
+    publish_failures: int = 0
+    sent: list[str] = field(default_factory=list)
+
+    def emit(self, message: Message) -> None:
+        if self.recorder is not None:
+            self.recorder.write(message)
+        if self.publisher is not None:
+            try:
+                self.publisher.publish(message)
+            except zenoh.ZError as exc:  # the network is down: the file still has it
+                self.publish_failures += 1
+                _log.warning("publish failed (%d so far): %s", self.publish_failures, exc)
+
+    def log(self, level: str, text: str) -> None:
+        getattr(_log, level.lower(), _log.info)(text)
+        if self.recorder is not None:
+            self.recorder.log(level, text)
+
+
+def gamma_schedule(gamma_start: float, gamma_stop: float, steps: int) -> np.ndarray:
+    """The commanded angles, rad: ``steps`` evenly spaced from start to stop inclusive."""
+    return np.linspace(gamma_start, gamma_stop, steps)
+
+
+@dataclass(frozen=True)
+class ScanIdentity:
+    scanner_id: str
+    scan_id: int
+
+
+def run_scan(scanner: Scanner, schedule: np.ndarray, who: ScanIdentity, energy_model: EnergyModel,
+             output: ScanOutput, stop: threading.Event, *,
+             on_step: Callable[[int, float], None] | None = None,
+             int16_scale: float | None = None) -> codec.ScanEnd:
+    """Acquire one scan; return its ``ScanEnd`` (complete or aborted, never raising on device faults)."""
+    info = scanner.info
+    output.emit(messages.scan_start(who.scanner_id, who.scan_id, time.time_ns(), info, schedule, energy_model))
+    output.log("INFO", f"scan {who.scan_id} of {who.scanner_id} started: {len(schedule)} steps, "
+                       f"γ {np.rad2deg(schedule[0]):.1f}° → {np.rad2deg(schedule[-1]):.1f}°, device {info.device}")
+    sent = missing = 0
+    reason = ""
+    for step, gamma in enumerate(schedule):
+        if stop.is_set():
+            reason = f"stopped by request before step {step}"
+            break
+        try:
+            shot = scanner.measure(step, float(gamma))
+        except DeviceError as exc:
+            reason = f"device failure at step {step}: {exc}"
+            output.log("ERROR", reason)
+            break
+        output.emit(messages.sample(who.scanner_id, who.scan_id, step, float(gamma), shot, info,
+                                    int16_scale=int16_scale))
+        sent += 1
+        missing += int(np.count_nonzero(~(np.isfinite(shot.time_of_flight) & (shot.time_of_flight > 0))))
+        if on_step is not None:
+            on_step(step, shot.gamma_measured)
+    complete = sent == len(schedule)
+    end = messages.scan_end(who.scanner_id, who.scan_id, time.time_ns(), complete=complete, reason=reason,
+                            steps_planned=len(schedule), samples_sent=sent, echoes_missing=missing)
+    output.log("INFO" if complete else "WARNING",
+               f"scan {who.scan_id} {'complete' if complete else 'aborted'}: {sent}/{len(schedule)} samples"
+               + (f" ({reason})" if reason else ""))
+    output.emit(end)
+    return end

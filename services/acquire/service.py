@@ -1,0 +1,111 @@
+"""`lelsonar acquire`: scan, record every message to MCAP, publish it on Zenoh.
+
+The scanner, the Zenoh session and each recording are opened in ``with``
+blocks, so a fault, SIGINT or SIGTERM still leaves finished MCAP files, closed
+ports and the servo's torque off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import threading
+import time
+from contextlib import ExitStack
+from dataclasses import dataclass
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+from lelsonar import codec
+from lelsonar.acquire.config import AcquireConfig
+from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
+from lelsonar.acquire.sim import SimConfig, preset
+from lelsonar.keys import ScannerKeys
+from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.recording import McapRecorder
+from lelsonar.transport import ZenohSettings, open_session
+
+_log = logging.getLogger(__name__)
+
+#: V per count when waveforms travel as int16: ±5 V full scale, finer than a 12-bit ADC.
+INT16_SCALE = 5.0 / 32767
+
+
+def sim_config(cfg: AcquireConfig) -> SimConfig:
+    """The preset, with the schedule and geometry overrides of ``cfg``."""
+    sim = preset(cfg.preset)
+    changes = {k: v for k, v in (("steps", cfg.steps), ("gamma_start", cfg.gamma_start),
+                                 ("gamma_stop", cfg.gamma_stop)) if v is not None}
+    if cfg.radial_offset is not None:
+        changes["geometry"] = dataclasses.replace(sim.geometry, radial_offset=cfg.radial_offset)
+    return dataclasses.replace(sim, **changes) if changes else sim
+
+
+def energy_model(cfg: AcquireConfig) -> EnergyModel:
+    if cfg.energy_model is not None:
+        return cfg.energy_model
+    from lelsonar.acquire.sim.calibrate import default_energy_model
+
+    return default_energy_model()
+
+
+@dataclass
+class AcquisitionReport:
+    ends: list[codec.ScanEnd]
+    paths: list
+    publish_failures: int
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.ends) and all(e.status == 1 for e in self.ends)
+
+
+def run_acquisition(cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threading.Event,
+                    console: Console | None = None) -> AcquisitionReport:
+    """Run ``cfg.scans`` scans; return what happened.  Never leaves a file unfinished."""
+    from lelsonar.acquire.backends import open_scanner
+
+    console = console or Console(stderr=True)
+    sim = sim_config(cfg)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    model = energy_model(cfg)
+    keys = ScannerKeys(cfg.prefix, cfg.scanner_id)
+    report = AcquisitionReport([], [], 0)
+    with ExitStack() as stack:
+        scanner = stack.enter_context(open_scanner(cfg, sim))
+        publisher = None
+        if zenoh is not None:
+            session = stack.enter_context(open_session(zenoh))
+            stack.callback(session.liveliness().declare_token(keys.alive("acquire")).undeclare)
+            publisher = ScanPublisher(session, keys)
+            stack.callback(publisher.close)
+        for index in range(cfg.scans):
+            scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
+            path = cfg.mcap_path(index) if cfg.record else None
+            with ExitStack() as scan_stack:
+                recorder = (scan_stack.enter_context(McapRecorder(path, compression=cfg.compression,
+                                                                  metadata=cfg.as_metadata()))
+                            if path else None)
+                output = ScanOutput(recorder, publisher)
+                progress = scan_stack.enter_context(Progress(
+                    TextColumn(f"scan {index + 1}/{cfg.scans}"), BarColumn(), MofNCompleteColumn(),
+                    TextColumn("γ {task.fields[gamma]:>6.1f}°"), TimeElapsedColumn(), TextColumn("ETA"),
+                    TimeRemainingColumn(), console=console, transient=False))
+                task = progress.add_task("scan", total=len(schedule), gamma=math.degrees(schedule[0]))
+                end = run_scan(scanner, schedule, ScanIdentity(cfg.scanner_id, scan_id), model, output, stop,
+                               on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
+                               int16_scale=INT16_SCALE if cfg.waveform_int16 else None)
+                report.publish_failures += output.publish_failures
+            report.ends.append(end)
+            if path:
+                report.paths.append(path)
+            status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
+            console.print(f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
+                          f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else ""))
+            if end.status != 1 or stop.is_set():
+                break
+            if index + 1 < cfg.scans and stop.wait(cfg.interval):
+                break
+    return report

@@ -1,0 +1,83 @@
+"""Data points and the paper's reflection-direction correction (§3–4, eq. 9, Fig. 7).
+
+A mirror echo from a flat wall travels along the wall's normal, not along the
+boresight, and its range is the perpendicular distance from the capsule to the
+wall (design notes §8).  Plotting it along the boresight (eq. 9) bends the wall
+into an arc (the paper's "curvature", Fig. 3).  The paper corrects the ranges
+assuming the subset lies on an axis-aligned plane — ``y = const`` before the
+corner, ``z = const`` after — and places each point where its beam meets that
+plane, at range ``d / cos α`` with α the angle between the boresight and the
+plane's normal.  On an axis-aligned wall this puts every mirror echo exactly on
+the wall; on a tilted wall it is biased (the tilt is lost), which is what
+:func:`lelsonar.reconstruct.fit.constant_depth_fit` fixes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lelsonar.errors import ConfigError
+from lelsonar.geometry import ArrayGeometry, beam_points, boresight
+
+__all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "mirror_points", "beam_points"]
+
+#: Normal of plane ``a`` assumed by the paper's correction (plane y = const).
+AXIS_Y = np.array([0.0, 1.0, 0.0])
+#: Normal of plane ``b`` assumed by the paper's correction (plane z = const).
+AXIS_Z = np.array([0.0, 0.0, 1.0])
+
+
+def corrected_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
+                     axis: np.ndarray, *, max_angle: float = np.deg2rad(80.0)) -> np.ndarray:
+    """The paper's corrected data points (§4, Fig. 7).
+
+    ``v = p_c + (d / cos α) · b(γ)`` with ``b = (0, cos γ, sin γ)`` the
+    boresight and ``cos α = b · axis``.  Equivalently, the component of ``v``
+    along ``axis`` is ``axis · p_c + d``, the wall position implied by a mirror
+    echo from a wall with that normal.
+
+    Parameters
+    ----------
+    geometry : ArrayGeometry
+    gamma : (n_steps,) array, rad
+    distance : (n_steps, n_capsules) array, m (NaN = no echo)
+    axis : (3,) array
+        The assumed normal (``AXIS_Y`` for plane ``a``, ``AXIS_Z`` for ``b``).
+    max_angle : float
+        Beams more than this far from ``axis`` (rad) give NaN: ``1/cos α``
+        explodes there and no mirror echo can come from such a wall anyway.
+
+    Returns
+    -------
+    (n_steps, n_capsules, 3) array
+        NaN where there is no echo or the beam is too oblique.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    if d.shape != g.shape + (geometry.n_capsules,):
+        raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
+    ax = np.asarray(axis, dtype=np.float64)
+    ax = ax / np.linalg.norm(ax)
+    b = boresight(g)  # (n, 3)
+    cos_a = b @ ax
+    ok = cos_a > np.cos(max_angle)
+    scale = np.where(ok, 1.0 / np.where(ok, cos_a, 1.0), np.nan)
+    return geometry.capsule_positions(g) + (d * scale[:, None])[..., None] * b[:, None, :]
+
+
+def mirror_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
+                  normal: np.ndarray) -> np.ndarray:
+    """Foot points of mirror echoes on a wall with unit ``normal``: ``p_c + d · n``.
+
+    The mirror-echo condition ``n · p_c + d = h`` (design notes §8) puts these
+    points exactly on the wall ``n · x = h``.  Used by the constant-depth model
+    and as the benchmark's oracle points.
+
+    Returns
+    -------
+    (n_steps, n_capsules, 3) array
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    n = np.asarray(normal, dtype=np.float64)
+    return geometry.capsule_positions(g) + d[..., None] * (n / np.linalg.norm(n))

@@ -1,0 +1,466 @@
+"""Plane fitting blocks: LS, fitting errors, MAD, pre-filter, covariance, the
+constant-depth model, the outlier-cluster guard, and :class:`PlaneFit` assembly.
+
+Paper references: LS is eq. (15); the fitting error is eq. (20); MAD and σ are
+eq. (21)–(22); the pre-filter is §5.3.  Two plane models share one residual:
+
+* **paper model** — points ``v`` (the paper's corrected points, §4) on the plane
+  ``θ · v = 1``; metric residual ``(θ · v − 1) / |θ|``;
+* **constant-depth model** — the mirror-echo condition ``n · p_c + d = h``
+  (design notes §8): the perpendicular distance from the capsule ``p_c`` to the
+  wall equals the measured range ``d``.  With ``θ = n / h`` its metric residual
+  is ``(θ · p_c − 1) / |θ| + d``, i.e. the paper model with the capsules as
+  points, shifted by the range.  It needs no assumption on the wall's
+  direction, so it stays unbiased on tilted walls where the paper's correction
+  (which assumes ``n`` is an axis) is not.
+
+In both cases the relative error of eq. (20) is the metric residual times
+``|θ| = 1/h``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.errors import ConfigError
+from lelsonar.geometry import ArrayGeometry, boresight
+
+from .correct import corrected_points
+from .lel import entropy_of_residuals, newton_minimize
+from .results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
+
+__all__ = [
+    "MAD_K",
+    "PlaneData",
+    "plane_data",
+    "check_points",
+    "ls_theta",
+    "fitting_errors",
+    "metric_residuals",
+    "mad",
+    "mad_sigma",
+    "prefilter_mask",
+    "theta_covariance",
+    "normal_offset_stderr",
+    "observed_patch",
+    "constant_depth_fit",
+    "constant_depth_ls",
+    "mirror_consistent",
+    "inlier_count",
+    "make_plane_fit",
+]
+
+#: The constant of eq. (22): σ = k·MAD for normally distributed errors.
+MAD_K = 1.4826
+
+
+def _ro(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True)
+class PlaneData:
+    """The valid points of one subset, with what each model needs.
+
+    Parameters
+    ----------
+    label : str
+        ``"a"`` or ``"b"``.
+    axis : (3,) array
+        The normal assumed by the paper's correction (``y`` for a, ``z`` for b).
+    points : (N, 3) array
+        The paper's corrected points ``v_i`` (§4), m.
+    capsules : (N, 3) array
+        Capsule position ``p_c`` of each point, m.
+    distance : (N,) array
+        Measured range ``d`` of each point, m.
+    beam : (N, 3) array
+        Unit boresight of each point.
+    step : (N,) int array
+        Step index of each point in the scan.
+    """
+
+    label: str
+    axis: np.ndarray
+    points: np.ndarray
+    capsules: np.ndarray
+    distance: np.ndarray
+    beam: np.ndarray
+    step: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("axis", "points", "capsules", "distance", "beam"):
+            object.__setattr__(self, name, _ro(getattr(self, name)))
+        object.__setattr__(self, "step", _ro(self.step, np.intp))
+        n = self.points.shape[0]
+        if self.points.shape != (n, 3) or self.capsules.shape != (n, 3) or self.beam.shape != (n, 3) \
+                or self.distance.shape != (n,) or self.step.shape != (n,):
+            raise ConfigError("PlaneData arrays must agree: points, capsules, beam (N, 3); distance, step (N,)")
+        if not (np.all(np.isfinite(self.points)) and np.all(np.isfinite(self.capsules))
+                and np.all(np.isfinite(self.distance))):
+            raise ConfigError("PlaneData holds only valid (finite) points")
+
+    @property
+    def n(self) -> int:
+        return int(self.points.shape[0])
+
+    def subset(self, mask: np.ndarray) -> PlaneData:
+        m = np.asarray(mask, dtype=bool)
+        return PlaneData(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
+                         self.beam[m], self.step[m])
+
+
+def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray,
+               label: str, axis: np.ndarray) -> PlaneData:
+    """Gather the valid points of the given steps (eq. 9 and the §4 correction).
+
+    Parameters
+    ----------
+    geometry : ArrayGeometry
+    gamma : (n_steps,) array, rad
+    distance : (n_steps, n_capsules) array, m (NaN = no echo)
+    steps : (k,) int array
+        The subset's step indices (from :func:`lelsonar.reconstruct.split.split_subsets`).
+    label : str
+    axis : (3,) array
+        The paper's assumed normal for this subset.
+    """
+    steps = np.asarray(steps, dtype=np.intp)
+    g = np.asarray(gamma, dtype=np.float64)[steps]
+    d = np.asarray(distance, dtype=np.float64)[steps]
+    v = corrected_points(geometry, g, d, axis)
+    pc = geometry.capsule_positions(g)
+    b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
+    st = np.broadcast_to(steps[:, None], d.shape)
+    ok = np.isfinite(d) & (d > 0) & np.all(np.isfinite(v), axis=-1)
+    return PlaneData(label, np.asarray(axis, dtype=np.float64), v[ok], pc[ok], d[ok], b[ok], st[ok])
+
+
+def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
+    """A typed failure if ``points`` cannot define a plane ``θ · v = 1``, else None.
+
+    Too few points (< ``min_points``); collinear or coincident points (second
+    singular value of the centred cloud < 1e-6 of the first, or < 1 mm RMS);
+    or a best plane through the scanner (|h| < 1 mm), which eq. (1) cannot
+    represent.
+    """
+    v = np.asarray(points, dtype=np.float64)
+    n = v.shape[0]
+    if n < max(min_points, 4):
+        return FitFailure(FailureReason.TOO_FEW_POINTS, f"{n} valid points, need {max(min_points, 4)}", label, n)
+    sv = np.linalg.svd(v - v.mean(axis=0), compute_uv=False) / np.sqrt(n)
+    if sv[1] < max(1e-6 * sv[0], 1e-3):
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
+                          f"points are collinear or coincident (spread {sv[0]:.3g} m × {sv[1]:.3g} m)", label, n)
+    return None
+
+
+def ls_theta(points: np.ndarray) -> np.ndarray:
+    """Least-squares θ, eq. (15): ``θ = (GᵀG)⁻¹ Gᵀ u``.
+
+    Solved with :func:`numpy.linalg.lstsq` (the same minimiser, better
+    conditioned than forming ``GᵀG``).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The rows of ``G``, m.
+
+    Returns
+    -------
+    (3,) array, 1/m
+    """
+    g = np.asarray(points, dtype=np.float64)
+    theta, *_ = np.linalg.lstsq(g, np.ones(g.shape[0]), rcond=None)
+    return theta
+
+
+def fitting_errors(points: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The fitting error ``e_i = v_i · θ − 1`` of eq. (20), unitless."""
+    return np.asarray(points, dtype=np.float64) @ np.asarray(theta, dtype=np.float64) - 1.0
+
+
+def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0) -> np.ndarray:
+    """Signed metric residuals ``(θ · x − 1)/|θ| + shift``, m.
+
+    With ``points`` the corrected points and ``shift = 0`` this is the
+    point-to-plane distance (paper model); with the capsule positions and
+    ``shift = d`` it is the mirror-echo residual ``n · p_c + d − h``
+    (constant-depth model).
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    return (np.asarray(points, dtype=np.float64) @ t - 1.0) / np.linalg.norm(t) + shift
+
+
+def mad(e: np.ndarray) -> float:
+    """Median absolute deviation ``median(|e_i − μ|)``, μ the median, eq. (21)."""
+    e = np.asarray(e, dtype=np.float64)
+    if e.size == 0:
+        raise ConfigError("MAD of an empty set")
+    return float(np.median(np.abs(e - np.median(e))))
+
+
+def mad_sigma(e: np.ndarray) -> float:
+    """σ = 1.4826 · MAD, eq. (22)."""
+    return MAD_K * mad(e)
+
+
+def prefilter_mask(e: np.ndarray, fraction: float = 0.1) -> np.ndarray:
+    """The paper's pre-filter (§5.3): keep ``|e_i| ≤ fraction · max |e|``.
+
+    Parameters
+    ----------
+    e : (N,) array
+        Fitting errors of eq. (20) (any unit; only ratios matter).
+    fraction : float
+        The paper uses 10 %.
+    """
+    if not 0 < fraction <= 1:
+        raise ConfigError(f"pre-filter fraction must be in (0, 1], got {fraction}")
+    a = np.abs(np.asarray(e, dtype=np.float64))
+    return a <= fraction * a.max()
+
+
+def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0,
+                     mask: np.ndarray | None = None) -> np.ndarray:
+    """Covariance of θ from the inlier residuals (Gauss-Newton, 1/m²).
+
+    ``C = σ² (JᵀJ)⁻¹`` with ``J = ∂r/∂θ`` of the metric residual
+    (:func:`metric_residuals`) and ``σ² = Σ r² / (m − 3)`` over the ``m``
+    inliers.  For the paper model at the solution this is
+    ``σ_e² (VᵀV)⁻¹``, the textbook covariance of eq. (15).  For the
+    constant-depth model ``J`` uses the capsule positions, so the covariance
+    honestly reflects the short lever arm that pins the normal down.
+
+    Returns a (3, 3) symmetric matrix; ``inf`` on the diagonal where the
+    inliers do not constrain θ (fewer than 4 inliers or a singular ``JᵀJ``).
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    x = np.asarray(points, dtype=np.float64)
+    m = np.ones(x.shape[0], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    x = x[m]
+    sh = np.broadcast_to(np.asarray(shift, dtype=np.float64), m.shape)[m]
+    k = x.shape[0]
+    nt = float(np.linalg.norm(t))
+    q = x @ t - 1.0
+    r = q / nt + sh
+    jac = x / nt - np.outer(q, t) / nt**3
+    if k <= 3:
+        return np.diag(np.full(3, np.inf))
+    s2 = float(r @ r) / (k - 3)
+    jtj = jac.T @ jac
+    if np.linalg.cond(jtj) > 1e15:
+        return np.diag(np.full(3, np.inf))
+    cov = s2 * np.linalg.inv(jtj)
+    return 0.5 * (cov + cov.T)
+
+
+def normal_offset_stderr(theta: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+    """Standard errors of the normal direction (rad) and offset (m) from ``cov(θ)``.
+
+    ``n = θ/|θ|`` has Jacobian ``(I − n nᵀ)/|θ|``; the returned angle error is
+    the root of the trace of ``cov(n)`` (the RMS tilt of the normal).
+    ``h = 1/|θ|`` has gradient ``−h² n``.
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    c = np.asarray(cov, dtype=np.float64)
+    if not np.all(np.isfinite(c)):
+        return float("inf"), float("inf")
+    nt = float(np.linalg.norm(t))
+    n = t / nt
+    h = 1.0 / nt
+    jn = (np.eye(3) - np.outer(n, n)) / nt
+    var_n = float(np.trace(jn @ c @ jn.T))
+    var_h = float(h**4 * (n @ c @ n))
+    return float(np.sqrt(max(var_n, 0.0))), float(np.sqrt(max(var_h, 0.0)))
+
+
+def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
+    """Corners of the bounding rectangle of ``foot`` points projected on the plane.
+
+    The rectangle's sides follow the rotation axis x (projected on the plane)
+    and ``n × x``.  Returns (4, 3) corners in order around the rectangle, m.
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    p = np.asarray(foot, dtype=np.float64)
+    p = p - np.outer(p @ n - offset, n)
+    ex = np.array([1.0, 0.0, 0.0])
+    u = ex - (ex @ n) * n
+    if np.linalg.norm(u) < 1e-6:
+        u = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    a, b = p @ u, p @ w
+    o = offset * n
+    corners = [(a.min(), b.min()), (a.max(), b.min()), (a.max(), b.max()), (a.min(), b.max())]
+    return np.array([o + ca * u + cb * w for ca, cb in corners])
+
+
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(n)))] = 1.0
+    e1 = np.cross(n, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float,
+                      mask: np.ndarray | None = None, *, max_outer: int = 20,
+                      tol: float = 1e-12) -> tuple[np.ndarray, float, int]:
+    """Least squares for the constant-depth model: ``min Σ (n · p_c + d − h)²``, ``|n| = 1``.
+
+    Gauss-Newton on the sphere: linearise ``n = normalise(n₀ + u₁e₁ + u₂e₂)``
+    in the tangent plane at ``n₀`` — the residual is then affine in
+    ``(u₁, u₂, h)`` — solve by LS, renormalise, repeat.
+
+    Returns
+    -------
+    normal, offset, iterations
+    """
+    p = np.asarray(capsules, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    if mask is not None:
+        p, d = p[np.asarray(mask, dtype=bool)], d[np.asarray(mask, dtype=bool)]
+    n = np.asarray(normal0, dtype=np.float64) / np.linalg.norm(normal0)
+    h = float(offset0)
+    it = 0
+    for it in range(1, max_outer + 1):
+        e1, e2 = _tangent_basis(n)
+        a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
+        c = p @ n + d - h
+        z, *_ = np.linalg.lstsq(a, -c, rcond=None)
+        n_new = n + z[0] * e1 + z[1] * e2
+        n = n_new / np.linalg.norm(n_new)
+        h += float(z[2])
+        if float(np.abs(z[:2]).max()) < tol and abs(float(z[2])) < tol:
+            break
+    return n, h, it
+
+
+def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float, *,
+                       max_outer: int = 10, max_tilt_step: float = 0.05,
+                       tol: float = 1e-10) -> tuple[np.ndarray, float, float, int, int, bool]:
+    """LEL fit of the constant-depth model ``n · p_c + d = h`` (eq. 6, 8 on its residuals).
+
+    Minimises ``H`` of the residuals ``r_i = n · p_i + d_i − h`` over the unit
+    normal ``n`` and ``h``: in the tangent plane at the current ``n`` the
+    residual is affine in ``z = (u₁, u₂, h)``, so each outer step minimises
+    ``H`` of that affine model with :func:`lelsonar.reconstruct.lel.newton_minimize`
+    (exact Hessian), then renormalises ``n``.  Renormalising changes the
+    residuals only to second order, so 2–4 outer steps converge.
+
+    Parameters
+    ----------
+    capsules : (N, 3) array
+        ``p_c``, m.
+    distance : (N,) array
+        ``d``, m.
+    normal0, offset0
+        Start, e.g. the paper-corrected LEL or LS plane.
+    max_outer : int
+    max_tilt_step : float
+        Cap on one Newton step in the tangent coordinates (rad, and m for h).
+    tol : float
+        Stop when the outer step is below ``tol``.
+
+    Returns
+    -------
+    normal, offset, H, iterations, evaluations, converged
+    """
+    p = np.asarray(capsules, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    n = np.asarray(normal0, dtype=np.float64) / np.linalg.norm(normal0)
+    h = float(offset0)
+    its = evs = 0
+    converged = False
+    for _ in range(max_outer):
+        e1, e2 = _tangent_basis(n)
+        a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
+        c = p @ n + d - h
+        z, _, nit, nev, ok = newton_minimize(np.zeros(3), a, offset=c, max_step=max_tilt_step, gtol=1e-14)
+        its += nit
+        evs += nev
+        n_new = n + z[0] * e1 + z[1] * e2
+        n = n_new / np.linalg.norm(n_new)
+        h += float(z[2])
+        if float(np.abs(z).max()) < tol:
+            converged = ok
+            break
+    hh = entropy_of_residuals(p @ n + d - h)
+    return n, h, hh, its, evs, converged
+
+
+def mirror_consistent(normal: np.ndarray, beam: np.ndarray, half_angle: float) -> bool:
+    """The mirror-echo condition: a wall echoes only if its normal lies in the beam.
+
+    True if ``normal`` is within ``half_angle`` (rad) of at least one of the
+    subset's boresights ``beam`` (N, 3).
+    """
+    b = np.asarray(beam, dtype=np.float64)
+    if b.size == 0:
+        return False
+    return bool(np.max(b @ np.asarray(normal, dtype=np.float64)) >= np.cos(half_angle))
+
+
+def inlier_count(residuals_m: np.ndarray, tolerance: float) -> int:
+    """Points with a metric residual within ``tolerance`` (m)."""
+    return int(np.count_nonzero(np.abs(np.asarray(residuals_m)) <= tolerance))
+
+
+def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_mask: np.ndarray,
+                   diagnostics: SolverDiagnostics, model: str = "paper") -> PlaneFit | FitFailure:
+    """Assemble a :class:`PlaneFit` for ``θ`` (eq. 1) on ``data``.
+
+    Parameters
+    ----------
+    data : PlaneData
+    theta : (3,) array
+        The estimate, 1/m.
+    method : str
+    inlier_mask : (N,) bool array
+        The points the final fit used.
+    diagnostics : SolverDiagnostics
+    model : {"paper", "constant-depth"}
+        Which residual defines ``e_i``: the corrected points (eq. 20) or the
+        mirror-echo condition (``e_i = (n · p_c + d − h)/h``).  The covariance
+        uses the same residual.
+
+    Returns
+    -------
+    PlaneFit, or FitFailure (SOLVER_FAILED) if θ is not a usable plane.
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    nt = float(np.linalg.norm(t)) if np.all(np.isfinite(t)) else float("nan")
+    if not (np.isfinite(nt) and 1e-3 < nt < 1e3):
+        return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
+    n, h = t / nt, 1.0 / nt
+    if model == "paper":
+        x, shift = data.points, 0.0
+    elif model == "constant-depth":
+        x, shift = data.capsules, data.distance
+    else:
+        raise ConfigError(f"unknown plane model {model!r}")
+    r_m = metric_residuals(t, x, shift)
+    e = r_m * nt  # eq. (20): e_i = v_i · θ − 1 (paper model exactly)
+    mask = np.asarray(inlier_mask, dtype=bool)
+    if mask.shape != (data.n,):
+        raise ConfigError(f"inlier mask must have shape ({data.n},), got {mask.shape}")
+    if np.count_nonzero(mask) < 3:
+        return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
+    cov = theta_covariance(t, x, shift, mask)
+    se_n, se_h = normal_offset_stderr(t, cov)
+    if not (np.isfinite(se_n) and np.isfinite(se_h)):
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
+                          f"{method}: the inliers do not constrain the plane", data.label, data.n)
+    foot = data.capsules[mask] + data.distance[mask, None] * n if model == "constant-depth" else data.points[mask]
+    return PlaneFit(
+        label=data.label, method=method, normal=n, offset=h,
+        entropy=entropy_of_residuals(e) if data.n >= 2 else 0.0,
+        sigma_relative=mad_sigma(e[mask]), sigma=mad_sigma(r_m[mask]),
+        inlier_mask=mask, sorted_residuals=np.sort(e), theta_covariance=cov,
+        normal_stderr=se_n, offset_stderr=se_h, patch=observed_patch(n, h, foot), diagnostics=diagnostics,
+    )

@@ -1,0 +1,143 @@
+"""The one way in for live and recorded data: decode, validate, route to its scan.
+
+A payload arrives with its type name (the Zenoh encoding's schema, or the MCAP
+schema name).  It is decoded and validated by :func:`lelsonar.codec.decode`,
+then routed to the :class:`ScanAssembly` of its (scanner, scan).  Whatever is
+wrong is counted by error type and reported — never raised to the caller — so a
+service keeps serving.  Samples that arrive before their ``ScanStart`` wait in
+a bounded buffer.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter, OrderedDict
+from dataclasses import dataclass, field
+
+from lelsonar import codec
+from lelsonar.errors import DecodeError, InvalidMessageError, LelsonarError
+from lelsonar.reconstruct.assembly import ScanAssembly
+
+_log = logging.getLogger(__name__)
+
+ScanKey = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A payload that could not be used, and why."""
+
+    error: str      # the error class, e.g. "TruncatedDataError", "UnknownScan"
+    detail: str
+
+
+@dataclass(frozen=True)
+class Accepted:
+    """A message that changed a scan: its kind is "start", "sample" or "end"."""
+
+    kind: str
+    scan: ScanAssembly
+    step: int | None = None
+
+
+@dataclass
+class Ingest:
+    """Routes validated messages to scans, keyed by (scanner, scan).
+
+    Parameters
+    ----------
+    limits : DecodeLimits
+    max_scans : int
+        Scans kept at once; the oldest are forgotten first.
+    max_pending : int
+        Samples held, over all scans, while their ScanStart has not arrived.
+    """
+
+    limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+    max_scans: int = 256
+    max_pending: int = 4096
+    scans: OrderedDict[ScanKey, ScanAssembly] = field(default_factory=OrderedDict)
+    pending: OrderedDict[ScanKey, list[codec.Sample]] = field(default_factory=OrderedDict)
+    rejected: Counter[str] = field(default_factory=Counter)
+    accepted: int = 0
+
+    @property
+    def n_pending(self) -> int:
+        return sum(len(v) for v in self.pending.values())
+
+    def accept(self, type_name: str, payload: bytes) -> list[Accepted | Rejected]:
+        """Decode one payload and apply it; return what changed (or why nothing did)."""
+        try:
+            cls = codec.MESSAGE_TYPES.get(type_name)
+            if cls is None or cls is codec.Reconstruction:
+                raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
+            message = codec.decode(payload, cls, self.limits)
+            return self.apply(message)
+        except LelsonarError as exc:
+            return [self._reject(type(exc).__name__, str(exc))]
+
+    def apply(self, message) -> list[Accepted | Rejected]:
+        """Apply an already validated message."""
+        key = (message.scanner_id, message.scan_id)
+        if isinstance(message, codec.ScanStart):
+            return self._start(key, message)
+        scan = self.scans.get(key)
+        if isinstance(message, codec.Sample):
+            if scan is None:
+                return self._hold(key, message)
+            return [self._add(scan, message)]
+        if scan is None:  # ScanEnd
+            return [self._reject("UnknownScan", f"ScanEnd for unknown scan {key}")]
+        scan.end = message
+        self.accepted += 1
+        return [Accepted("end", scan)]
+
+    def forget(self, key: ScanKey) -> None:
+        self.scans.pop(key, None)
+
+    def drop_pending(self, key: ScanKey) -> list[Rejected]:
+        """Give up on samples whose ScanStart never came (called on timeout)."""
+        held = self.pending.pop(key, [])
+        return [self._reject("UnknownScan", f"{len(held)} samples of scan {key} never got a ScanStart")] if held else []
+
+    # --- internals -------------------------------------------------------------------
+    def _start(self, key: ScanKey, start: codec.ScanStart) -> list[Accepted | Rejected]:
+        if key in self.scans:
+            return [self._reject("DuplicateScanStart", f"second ScanStart for scan {key} ignored")]
+        try:
+            scan = ScanAssembly(start)
+        except LelsonarError as exc:
+            return [self._reject(type(exc).__name__, f"ScanStart {key}: {exc}")]
+        self.scans[key] = scan
+        while len(self.scans) > self.max_scans:
+            old, _ = self.scans.popitem(last=False)
+            _log.warning("forgetting scan %s: more than %d scans open", old, self.max_scans)
+        self.accepted += 1
+        events: list[Accepted | Rejected] = [Accepted("start", scan)]
+        for sample in self.pending.pop(key, []):
+            events.append(self._add(scan, sample))
+        return events
+
+    def _add(self, scan: ScanAssembly, sample: codec.Sample) -> Accepted | Rejected:
+        try:
+            if not scan.add(sample):
+                return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
+        except DecodeError as exc:
+            return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
+        self.accepted += 1
+        return Accepted("sample", scan, sample.step)
+
+    def _hold(self, key: ScanKey, sample: codec.Sample) -> list[Accepted | Rejected]:
+        if key not in self.pending:
+            _log.info("holding samples of scan %s until its ScanStart arrives", key)
+        self.pending.setdefault(key, []).append(sample)
+        out: list[Accepted | Rejected] = []
+        while self.n_pending > self.max_pending:
+            old = next(iter(self.pending))
+            out += self.drop_pending(old)
+        return out
+
+    def _reject(self, error: str, detail: str) -> Rejected:
+        self.rejected[error] += 1
+        _log.warning("rejected input (%s, %d so far): %s", error, self.rejected[error], detail)
+        return Rejected(error, detail)

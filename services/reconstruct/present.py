@@ -1,0 +1,78 @@
+"""Estimates for people and scripts: rich tables and JSON lines (no I/O beyond returning text)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from google.protobuf.json_format import MessageToDict
+from rich.table import Table
+
+from lelsonar import codec
+from lelsonar.reconstruct.wire import STATUS
+
+_STATUS_NAME = {v: k for k, v in STATUS.items()}
+
+
+def status_name(msg: codec.Reconstruction) -> str:
+    return _STATUS_NAME.get(msg.status, "unknown")
+
+
+def to_json(msg: codec.Reconstruction) -> str:
+    """One JSON line: the message's fields (SI units) with proto field names."""
+    d = MessageToDict(msg, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+    d["status"] = status_name(msg)
+    return json.dumps(d, separators=(",", ":"), sort_keys=True)
+
+
+def _vec(v) -> np.ndarray:
+    return np.array([v.x, v.y, v.z])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two unit normals, degrees."""
+    return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
+
+
+def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, float]] | None = None,
+                 title: str | None = None) -> Table:
+    """One row per plane estimate; with ``truth`` (label → (normal, offset)), the errors in ° and cm."""
+    crit = (f"critical step {msg.critical_step} at γ = {np.rad2deg(msg.critical_angle):.1f}°"
+            if msg.HasField("critical_step") else "corner not found yet")
+    t = Table(title=title or f"{msg.scanner_id} scan {msg.scan_id} — {status_name(msg)}, "
+                             f"{msg.samples_used} samples, {crit}", title_justify="left")
+    for col in ("plane", "method", "normal n", "offset h (cm)", "σ (mm)", "inliers", "H"):
+        t.add_column(col, justify="right" if col not in ("plane", "method", "normal n") else "left")
+    if truth:
+        t.add_column("Δ normal (°)", justify="right")
+        t.add_column("Δ offset (cm)", justify="right")
+    rows = sorted(msg.planes, key=lambda p: (p.label, p.method))
+    for p in rows:
+        n = _vec(p.normal)
+        cells = [p.label, p.method, f"({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f})", f"{p.offset * 100:.2f}",
+                 f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}"]
+        if truth:
+            tn, th = truth.get(p.label, (None, None))
+            cells += ([f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""])
+        t.add_row(*cells)
+    if truth:
+        for label, (tn, th) in sorted(truth.items()):
+            t.add_row(label, "truth", f"({tn[0]:+.4f}, {tn[1]:+.4f}, {tn[2]:+.4f})", f"{th * 100:.2f}",
+                      "", "", "", "0", "0", style="dim")
+    for f in msg.failures:
+        t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
+    return t
+
+
+def plane_equations(msg: codec.Reconstruction, method: str) -> list[str]:
+    """The paper's way of writing a plane (eq. 16–19, cm): ``y = a x + b z + c`` for a, ``z = a x + b y + c`` for b."""
+    out = []
+    for p in msg.planes:
+        if p.method != method:
+            continue
+        n, h = _vec(p.normal), p.offset * 100
+        if p.label == "a" and abs(n[1]) > 1e-9:
+            out.append(f"y = {-n[0] / n[1]:+.6f}x {-n[2] / n[1]:+.6f}z {h / n[1]:+.4f}")
+        elif p.label == "b" and abs(n[2]) > 1e-9:
+            out.append(f"z = {-n[0] / n[2]:+.6f}x {-n[1] / n[2]:+.6f}y {h / n[2]:+.4f}")
+    return out

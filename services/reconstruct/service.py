@@ -1,0 +1,296 @@
+"""The live reconstruction: incremental estimates per scan, from any source.
+
+Everything enters through :meth:`ReconstructionService.handle` as (type name,
+payload bytes), whether it came from Zenoh or from an MCAP file, so live and
+replayed data take the same path and give the same final estimate.
+
+Per scan (paper §4–5, made incremental):
+
+1. after each sample, E^γ, E0(d_m) and R are updated;
+2. once the critical peak is *confirmed* — R at its maximum is well above the
+   scan's typical R and enough steps have followed it — plane a (the subset
+   before the peak) is estimated;
+3. as later samples arrive, plane b is re-estimated every ``refit_every``
+   steps, warm-started from its previous estimate;
+4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
+   silence, the whole scan is reconstructed from scratch with the chosen
+   method and the comparison methods, and published as final.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from lelsonar import codec
+from lelsonar.errors import ConfigError
+from lelsonar.reconstruct import fit as F
+from lelsonar.reconstruct import wire
+from lelsonar.reconstruct.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
+from lelsonar.reconstruct.energy import energy_ratio, median_range
+from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
+from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
+from lelsonar.reconstruct.split import critical_step, split_subsets
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """How the service estimates.
+
+    Parameters
+    ----------
+    method : str
+        The estimator of record (a key of ``pipeline.METHODS``).
+    compare_methods : tuple of str
+        Also run at the end of each scan, published next to ``method``.
+    refit_every : int
+        Steps between provisional re-estimates of plane b.
+    confirm_steps : int
+        Steps that must follow the R peak before it is trusted.
+    confirm_ratio : float
+        The peak must exceed this multiple of the median R so far.
+    scan_timeout : float
+        s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
+    end_grace : float
+        s to wait, after ScanEnd, for samples still in flight.
+    limits : DecodeLimits
+    """
+
+    method: str = DEFAULT_METHOD
+    compare_methods: tuple[str, ...] = ("ls", "paper")
+    refit_every: int = 4
+    confirm_steps: int = 6
+    confirm_ratio: float = 1.5
+    scan_timeout: float = 10.0
+    end_grace: float = 1.0
+    limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+
+    def __post_init__(self) -> None:
+        for name in (self.method, *self.compare_methods):
+            if name not in METHODS:
+                raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
+        if self.refit_every < 1 or self.confirm_steps < 1:
+            raise ConfigError("refit_every and confirm_steps must be >= 1")
+        if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
+            raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
+
+
+class Observer(Protocol):
+    """Receives what the service sees and decides (e.g. the Rerun logger)."""
+
+    def scan_started(self, scan: ScanAssembly) -> None: ...
+
+    def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None: ...
+
+    def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
+                 results: dict[str, ScanReconstruction] | None, partial: "Partial") -> None: ...
+
+    def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
+
+
+@dataclass
+class Partial:
+    """The incremental state of one scan."""
+
+    critical: int | None = None        # confirmed critical step (schedule index)
+    plane_a: PlaneResult | None = None
+    plane_b: PlaneResult | None = None
+    steps_at_fit: int = 0
+    last_activity: float = 0.0
+    ended_at: float | None = None
+    final: codec.Reconstruction | None = None
+
+
+@dataclass
+class ServiceStats:
+    estimates: int = 0
+    finals: int = 0
+    timeouts: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+
+
+class ReconstructionService:
+    """Turns a stream of contract payloads into Reconstruction messages."""
+
+    def __init__(self, config: ReconstructConfig = ReconstructConfig(), *,
+                 publish: Callable[[codec.Reconstruction], None] | None = None,
+                 observer: Observer | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = config
+        self.ingest = Ingest(limits=config.limits)
+        self._publish = publish
+        self._observer = observer
+        self._clock = clock
+        self._partials: dict[ScanKey, Partial] = {}
+        self._options = FitOptions()
+        #: The newest estimate per scanner (what a `get` on the planes key returns).
+        self.latest: dict[str, codec.Reconstruction] = {}
+        #: Final estimates, per scan, in the order they were made.
+        self.finals: dict[ScanKey, codec.Reconstruction] = {}
+        self.stats = ServiceStats()
+
+    # --- input ---------------------------------------------------------------------------
+    def handle(self, type_name: str, payload: bytes) -> list[codec.Reconstruction]:
+        """Apply one payload; return the estimates it produced (also published)."""
+        out: list[codec.Reconstruction] = []
+        for event in self.ingest.accept(type_name, payload):
+            if isinstance(event, Rejected):
+                self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
+                continue
+            out += self._on_accepted(event)
+        self.stats.rejected = dict(self.ingest.rejected)
+        return out
+
+    def tick(self) -> list[codec.Reconstruction]:
+        """Finalise scans whose ScanEnd came (after the grace) or that went silent."""
+        now = self._clock()
+        out: list[codec.Reconstruction] = []
+        for key, p in list(self._partials.items()):
+            scan = self.ingest.scans.get(key)
+            if scan is None or p.final is not None:
+                continue
+            if p.ended_at is not None and now - p.ended_at >= self.config.end_grace:
+                out.append(self._finalise(scan, p, "final"))
+            elif p.ended_at is None and now - p.last_activity >= self.config.scan_timeout:
+                self._event("WARNING", f"scan {key} silent for {self.config.scan_timeout:.1f} s without a "
+                                       "ScanEnd; finalising it as FINAL_TIMEOUT")
+                self.stats.timeouts += 1
+                out.append(self._finalise(scan, p, "final_timeout"))
+        for key in list(self.ingest.pending):
+            # Samples whose ScanStart never came are dropped (and counted) after the same timeout.
+            if now - self._partials.setdefault(key, Partial(last_activity=now)).last_activity >= self.config.scan_timeout:
+                for rej in self.ingest.drop_pending(key):
+                    self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
+                self._partials.pop(key, None)
+        self.stats.rejected = dict(self.ingest.rejected)
+        return out
+
+    def finish(self) -> list[codec.Reconstruction]:
+        """End of input (a replay reached the end of its file): finalise every open scan now."""
+        out = []
+        for key, p in list(self._partials.items()):
+            scan = self.ingest.scans.get(key)
+            if scan is not None and p.final is None:
+                status = "final" if scan.end is not None else "final_timeout"
+                if status == "final_timeout":
+                    self._event("WARNING", f"scan {key} has no ScanEnd; finalised as FINAL_TIMEOUT")
+                    self.stats.timeouts += 1
+                out.append(self._finalise(scan, p, status))
+        return out
+
+    # --- the incremental estimate ---------------------------------------------------------
+    def _on_accepted(self, event: Accepted) -> list[codec.Reconstruction]:
+        scan = event.scan
+        p = self._partials.setdefault(scan.key, Partial())
+        p.last_activity = self._clock()
+        if event.kind == "start":
+            if self._observer:
+                self._observer.scan_started(scan)
+            self._event("INFO", f"scan {scan.key} started: {scan.start.steps} steps", scan.start.start_time_ns)
+            return []
+        if event.kind == "end":
+            p.ended_at = self._clock()
+            end = scan.end
+            self._event("INFO", f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"
+                                f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
+                        end.end_time_ns)
+            return [self._finalise(scan, p, "final")] if scan.complete else []
+        if p.final is not None:
+            return []  # a straggler after the final estimate: counted in the assembly, not re-estimated
+        out = self._update(scan, p, event.step)
+        if p.ended_at is not None and scan.complete:
+            out.append(self._finalise(scan, p, "final"))
+        return out
+
+    def _update(self, scan: ScanAssembly, p: Partial, step: int) -> list[codec.Reconstruction]:
+        steps, gamma, distance, energy = scan.arrays()
+        ratio = energy_ratio(energy, distance, scan.energy_model)
+        if self._observer and scan.latest is not None and scan.latest.step == step:
+            i = int(np.searchsorted(steps, step))
+            d_m = median_range(distance[i:i + 1])[0]
+            expected = float(scan.energy_model.expected_energy(d_m)) if np.isfinite(d_m) else 0.0
+            self._observer.step(scan, scan.latest, float(energy[i]), expected, float(ratio[i]))
+        if p.critical is None:
+            peak = critical_step(ratio)
+            if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
+                return []
+            if ratio[peak] < self.config.confirm_ratio * float(np.median(ratio)):
+                return []
+            p.critical = int(steps[peak])
+            self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
+                                f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
+            data_a = self._plane_data(scan, "a", p.critical)
+            p.plane_a = fit_plane(data_a, self.config.method, options=self._options)
+        elif len(steps) - p.steps_at_fit < self.config.refit_every:
+            return []
+        t0 = time.perf_counter()
+        warm = p.plane_b.theta if isinstance(p.plane_b, PlaneFit) else None
+        p.plane_b = fit_plane(self._plane_data(scan, "b", p.critical), self.config.method, warm_start=warm,
+                              options=self._options)
+        p.steps_at_fit = len(steps)
+        fit_s = time.perf_counter() - t0
+        edge = corner_edge(p.plane_a, p.plane_b)
+        msg = wire.reconstruction_message(
+            scan.start.scanner_id, scan.start.scan_id, status="provisional", last_step=int(steps[-1]),
+            samples_used=len(steps), critical_step=p.critical, critical_angle=float(scan.gamma[p.critical]),
+            planes=(p.plane_a, p.plane_b), edge=edge, timings=(0.0, fit_s, fit_s))
+        if self._observer:
+            self._observer.estimate(scan, msg, None, p)
+        return [self._emit(msg)]
+
+    def _plane_data(self, scan: ScanAssembly, label: str, critical: int) -> F.PlaneData:
+        steps = np.flatnonzero(scan.received)
+        chosen = steps[steps < critical] if label == "a" else steps[steps > critical]
+        return F.plane_data(scan.geometry, scan.gamma, scan.distance, chosen, label,
+                            AXIS_Y if label == "a" else AXIS_Z)
+
+    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> codec.Reconstruction:
+        steps, gamma, distance, _ = scan.arrays()
+        results: dict[str, ScanReconstruction] = {}
+        for method in (self.config.method, *self.config.compare_methods):
+            # From scratch, no warm start: the final estimate depends only on the data.
+            results[method] = reconstruct(gamma, distance, scan.sensor_energy[steps], scan.geometry,
+                                          scan.energy_model, method, options=self._options)
+        main = results[self.config.method]
+        crit = int(steps[main.critical_step]) if main.critical_step is not None else None
+        planes: list[PlaneResult] = [main.plane_a, main.plane_b]
+        for method in self.config.compare_methods:
+            planes += [pl for pl in results[method].planes if isinstance(pl, PlaneFit)]
+        t = main.timings
+        msg = wire.reconstruction_message(
+            scan.start.scanner_id, scan.start.scan_id, status=status,
+            last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
+            critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
+            timings=(t.segmentation, t.fit, t.total))
+        p.final = msg
+        self.finals[scan.key] = msg
+        self.stats.finals += 1
+        summary = "; ".join(
+            f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
+            f"h={pl.offset * 100:.1f} cm" for pl in msg.planes if pl.method == self.config.method)
+        self._event("INFO" if not msg.failures else "WARNING",
+                    f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
+                    + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""))
+        if self._observer:
+            self._observer.estimate(scan, msg, results, p)
+        return self._emit(msg)
+
+    def _emit(self, msg: codec.Reconstruction) -> codec.Reconstruction:
+        self.latest[msg.scanner_id] = msg
+        self.stats.estimates += 1
+        if self._publish is not None:
+            self._publish(msg)
+        return msg
+
+    def _event(self, level: str, text: str, time_ns: int | None = None) -> None:
+        getattr(_log, level.lower(), _log.info)(text)
+        if self._observer:
+            self._observer.event(level, text, time_ns)

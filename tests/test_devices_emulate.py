@@ -1,0 +1,156 @@
+"""The emulated rig: both real drivers against both emulators, linked by the servo angle; the CLI."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from lelsonar.acquire.devices import ax12
+from lelsonar.acquire.devices import sensor_frame as sf
+from lelsonar.acquire.devices.motor import DynamixelMotor, MotorConfig
+from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
+from lelsonar.acquire.emulate import cli
+from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
+from lelsonar.acquire.emulate.sensor_board_emulator import echo_shot_source, sim_shot_source
+
+FS = 200_000
+
+
+def test_scan_with_both_devices_is_within_1_25x_the_physical_bound() -> None:
+    """184 steps over 120°: travel at 59 rpm plus a 5 ms acoustic window per step."""
+    n = 1000
+    steps = [math.radians(-10.0 + 120.0 * i / 183) for i in range(184)]
+    source = echo_shot_source(0.5, noise_v=0.01, seed=1)  # a 2.9 ms echo inside the 5 ms window
+    with cli.emulated_rig(source, AX12EmulatorConfig(return_delay=0), zero_raw=400) as rig:
+        motor_cfg = MotorConfig(port=rig.motor.path, latency_timer_ms=2.0, zero_raw=400)
+        board_cfg = SensorBoardConfig(port=rig.board.path, n_samples=n, fs_hz=FS)
+        with DynamixelMotor(motor_cfg) as motor, SerialSensorBoard(board_cfg) as board:
+            previous = motor.move_to(steps[0]).raw
+            bound = 0.0
+            measured = []
+            start = time.perf_counter()
+            for step, gamma in enumerate(steps):
+                goal = ax12.raw_from_gamma(gamma, 400)
+                bound += ax12.travel_time_s(previous, goal, 0) + n / FS
+                previous = goal
+                position = motor.move_to(gamma)
+                acq = board.fire(step)
+                measured.append(position.gamma)
+                # The board fired at the angle the servo reports.
+                assert rig.board.shots[-1] == (step, position.gamma)
+                assert acq.step == step and np.isfinite(acq.tof_s).all()
+            elapsed = time.perf_counter() - start
+    assert np.all(np.diff(measured) > 0)
+    assert measured[-1] == pytest.approx(math.radians(110.0), abs=ax12.RAD_PER_UNIT)
+    assert elapsed <= 1.25 * bound, (elapsed, bound)
+
+
+def test_sim_shot_source_adapts_the_simulator(monkeypatch) -> None:
+    from lelsonar.acquire import sim
+
+    calls = []
+
+    def fake_simulate_step(cfg, gamma, rng):
+        calls.append((cfg.window_samples, cfg.sample_rate, gamma))
+        tof = np.array([0.005, np.nan, 0.0058, 0.006])
+        waves = np.full((4, cfg.window_samples), 0.25, dtype=np.float32)
+        return SimpleNamespace(tof=tof, distance=tof * 171.6, waveforms=waves, echo_source=None)
+
+    from dataclasses import dataclass
+
+    @dataclass(frozen=True)
+    class FakeConfig:
+        sample_rate: float = 200_000.0
+        window_samples: int = 3500
+
+    monkeypatch.setattr(sim, "simulate_step", fake_simulate_step, raising=False)
+    source = sim_shot_source(FakeConfig(), np.random.default_rng(0))
+    tof_ns, waves = source(3, 0.5, 64, 100_000.0)
+    assert calls == [(64, 100_000.0, 0.5)]
+    np.testing.assert_array_equal(tof_ns, [5_000_000, sf.NO_ECHO, 5_800_000, 6_000_000])
+    assert waves.shape == (4, 64) and waves.dtype == np.float32
+
+
+def test_with_the_real_simulator_when_present() -> None:
+    sim = pytest.importorskip("lelsonar.acquire.sim")
+    if not hasattr(sim, "simulate_step") or not hasattr(sim, "preset"):
+        pytest.skip("lelsonar.acquire.sim has no simulate_step/preset yet")
+    cfg = sim.preset("paper-test1")
+    source = sim_shot_source(cfg, np.random.default_rng(0))
+    with cli.emulated_rig(source, AX12EmulatorConfig(return_delay=0)) as rig:
+        board_cfg = SensorBoardConfig(
+            port=rig.board.path,
+            n_samples=int(cfg.window_samples),
+            fs_hz=int(cfg.sample_rate),
+            max_payload_bytes=max(256 * 1024, sf.acq_payload_size(int(cfg.window_samples))),
+        )
+        with DynamixelMotor(MotorConfig(port=rig.motor.path, latency_timer_ms=2.0)) as motor:
+            with SerialSensorBoard(board_cfg) as board:
+                motor.move_to(0.0)
+                acq = board.fire(0)
+    assert acq.waveforms.shape == (4, int(cfg.window_samples))
+    assert np.isfinite(acq.waveforms).all()
+
+
+def test_cli_registers_and_runs_until_signalled(capsys) -> None:
+    parser = argparse.ArgumentParser()
+    cli.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["emulate", "--source", "echo", "--json", "--seed", "3"])
+    # signal handlers can only be installed from the main thread: run the CLI there, stop it from a timer.
+    timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGTERM))
+    timer.start()
+    try:
+        rc = args.run(args)
+    finally:
+        timer.cancel()
+    assert rc == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    paths = json.loads(out[-1])
+    assert paths["source"] == "echo:1.0m" and paths["motor"].startswith("/dev/pts/")
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handlers restored
+
+
+def test_cli_in_a_subprocess_serves_the_real_drivers() -> None:
+    code = (
+        "import argparse, sys\n"
+        "from lelsonar.acquire.emulate import cli\n"
+        "p = argparse.ArgumentParser(); cli.register(p.add_subparsers(dest='command'))\n"
+        "a = p.parse_args(sys.argv[1:]); sys.exit(a.run(a))\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, "emulate", "--source", "echo", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        line = ""
+        while not line.startswith("{"):
+            line = proc.stdout.readline()
+            assert line, "emulate exited before printing its paths"
+        paths = json.loads(line)
+        with DynamixelMotor(MotorConfig(port=paths["motor"], latency_timer_ms=2.0)) as motor:
+            assert motor.ping() == 12
+            gamma = motor.move_to(math.radians(20.0)).gamma
+        with SerialSensorBoard(SensorBoardConfig(port=paths["sensor_board"], n_samples=1500, fs_hz=FS)) as board:
+            acq = board.fire(0)
+        assert gamma == pytest.approx(math.radians(20.0), abs=ax12.RAD_PER_UNIT)
+        assert acq.tof_s == pytest.approx(np.full(4, 2 / 343.2))
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=5) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()
