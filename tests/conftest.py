@@ -46,3 +46,33 @@ def make_sample(step: int = 0, scanner_id: str = "s1", scan_id: int = 7, n_sampl
 def zenoh_socket(tmp_path):
     """A unix-socket path private to this test (no TCP port, no multicast)."""
     return tmp_path / "z.sock"
+
+
+def simulated_messages(preset_name: str = "paper-test1", seed: int = 0, *, scanner_id: str = "s1",
+                       scan_id: int = 1, steps: int | None = None) -> list:
+    """ScanStart, Samples and ScanEnd of one simulated scan, built as the acquisition service builds them."""
+    import dataclasses
+
+    from lelsonar.acquire import messages
+    from lelsonar.acquire.backends import SimScanner
+    from lelsonar.acquire.scan_loop import gamma_schedule
+    from lelsonar.acquire.sim import preset
+    from lelsonar.acquire.sim.calibrate import default_energy_model
+
+    sim = preset(preset_name)
+    if steps is not None:
+        sim = dataclasses.replace(sim, steps=steps)
+    scanner = SimScanner(sim, seed)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    out = [messages.scan_start(scanner_id, scan_id, 1_700_000_000_000_000_000, scanner.info, schedule,
+                               default_energy_model())]
+    for step, gamma in enumerate(schedule):
+        out.append(messages.sample(scanner_id, scan_id, step, float(gamma), scanner.measure(step, float(gamma)),
+                                   scanner.info))
+    out.append(messages.scan_end(scanner_id, scan_id, out[-1].acquisition_time_ns + 1, complete=True, reason="",
+                                 steps_planned=len(schedule), samples_sent=len(schedule), echoes_missing=0))
+    return out
+
+
+def type_name(message) -> str:
+    return message.DESCRIPTOR.full_name

@@ -13,7 +13,7 @@ import numpy as np
 from lelsonar.acquire.devices.motor import DynamixelMotor, Motor, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoard, SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
-from lelsonar.acquire.emulate.cli import emulated_rig
+from lelsonar.acquire.emulate.cli import EmulatedRig, emulated_rig
 from lelsonar.acquire.emulate.sensor_board_emulator import SensorBoardEmulatorConfig, sim_shot_source
 from lelsonar.acquire.scanner import MotorReading, ScannerInfo, StepMeasurement
 from lelsonar.acquire.sim import SimConfig, simulate_step
@@ -59,12 +59,17 @@ class SimScanner:
 
 
 class DeviceScanner:
-    """The real drivers: move the servo, wait until still, fire the board (emulated or hardware)."""
+    """The real drivers: move the servo, wait until still, fire the board (emulated or hardware).
 
-    def __init__(self, motor: Motor, board: SensorBoard, info: ScannerInfo) -> None:
+    ``rig`` is the emulated servo and board behind the ports, if they are emulated
+    (for fault injection and diagnostics); None on hardware.
+    """
+
+    def __init__(self, motor: Motor, board: SensorBoard, info: ScannerInfo, rig: EmulatedRig | None = None) -> None:
         self.motor = motor
         self.board = board
         self.info = info
+        self.rig = rig
 
     def measure(self, step: int, gamma_commanded: float) -> StepMeasurement:
         pos = self.motor.move_to(gamma_commanded)
@@ -91,6 +96,7 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig) -> Iterator[SimScanner | De
         yield SimScanner(sim, cfg.seed)
         return
     with ExitStack() as stack:
+        rig = None
         if cfg.device == "emulated":
             rig = stack.enter_context(emulated_rig(
                 sim_shot_source(sim, np.random.default_rng(cfg.seed)),
@@ -108,4 +114,4 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig) -> Iterator[SimScanner | De
             zero_raw=int(sim.servo.to_raw(0.0)))))
         board = stack.enter_context(SerialSensorBoard(SensorBoardConfig(
             port=sensor_port, n_samples=sim.window_samples, fs_hz=int(sim.sample_rate))))
-        yield DeviceScanner(motor, board, sim_info(sim, cfg.device))
+        yield DeviceScanner(motor, board, sim_info(sim, cfg.device), rig)

@@ -28,7 +28,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
 
 from .correct import corrected_points
-from .lel import entropy_of_residuals, newton_minimize
+from .lel import PERFECT_FIT, entropy_of_residuals, newton_minimize
 from .results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
 
 __all__ = [
@@ -381,6 +381,9 @@ def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.n
         e1, e2 = _tangent_basis(n)
         a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
         c = p @ n + d - h
+        if np.all(np.abs(c) <= PERFECT_FIT * max(abs(h), 1.0)):  # D = 0 (eq. 6): a perfect fit
+            converged = True
+            break
         z, _, nit, nev, ok = newton_minimize(np.zeros(3), a, offset=c, max_step=max_tilt_step, gtol=1e-14)
         its += nit
         evs += nev
@@ -390,7 +393,8 @@ def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.n
         if float(np.abs(z).max()) < tol:
             converged = ok
             break
-    hh = entropy_of_residuals(p @ n + d - h)
+    r = p @ n + d - h
+    hh = 0.0 if np.all(np.abs(r) <= PERFECT_FIT * max(abs(h), 1.0)) else entropy_of_residuals(r)
     return n, h, hh, its, evs, converged
 
 

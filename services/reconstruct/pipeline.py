@@ -267,7 +267,10 @@ def _guarded_lel(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions,
     least ``min_inlier_fraction`` of the points and at least 90 % of the best
     inlier count among the minima.  Otherwise a competing minimum is sought
     from a seeded RANSAC plane, and the mirror-consistent minimum with the
-    most inliers wins (least ``H`` on a tie).  Every decision is logged in the
+    most inliers wins (least ``H`` on a tie).  If no minimum satisfies the
+    mirror-echo condition the subset holds no wall seen face-on (typically a
+    partial scan that has not reached the corner) and the plane is a
+    ``DEGENERATE_GEOMETRY`` failure.  Every decision is logged in the
     diagnostics' notes.
     """
     v = data.points
@@ -306,12 +309,19 @@ def _guarded_lel(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions,
                         evaluations=res.evaluations + alt.evaluations, time_s=res.time_s + alt.time_s,
                         candidates=np.asarray(cands), candidate_entropy=np.asarray(hs))
     pick = max(range(len(cands)), key=lambda i: (scores[i][0], scores[i][1], -hs[i]))
+    if not scores[pick][0]:
+        raise _Inconsistent(f"no LEL minimum has its normal within {np.rad2deg(opts.beam_half_angle):.0f}° of a "
+                            "boresight of the subset: no wall seen face-on (is the corner reached yet?)")
     if pick == best:
         notes.append("guard: no better minimum found; kept the least-H one")
     else:
         notes.append(f"guard: switched to minimum {pick} (mirror-consistent={scores[pick][0]}, "
                      f"inliers={scores[pick][1]}/{data.n}, H {hs[best]:.4f} -> {hs[pick]:.4f})")
     return cands[pick], replace(total, theta=cands[pick], entropy=hs[pick]), tuple(notes)
+
+
+class _Inconsistent(Exception):
+    """No candidate plane satisfies the mirror-echo condition."""
 
 
 def _rng(opts: FitOptions, label: str) -> np.random.Generator:
@@ -532,6 +542,8 @@ def fit_plane(data: F.PlaneData, method: str = DEFAULT_METHOD, *, warm_start: np
         return fail
     try:
         return m.fit_plane(data, warm_start, opts)
+    except _Inconsistent as exc:
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY, f"{method}: {exc}", data.label, data.n)
     except np.linalg.LinAlgError as exc:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: {exc}", data.label, data.n)
 

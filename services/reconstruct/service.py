@@ -130,6 +130,7 @@ class ReconstructionService:
         self._observer = observer
         self._clock = clock
         self._partials: dict[ScanKey, Partial] = {}
+        self._pending_since: dict[ScanKey, float] = {}  # samples held while their ScanStart is missing
         self._options = FitOptions()
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
@@ -146,6 +147,8 @@ class ReconstructionService:
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue
             out += self._on_accepted(event)
+        for key in self.ingest.pending:
+            self._pending_since.setdefault(key, self._clock())
         self.stats.rejected = dict(self.ingest.rejected)
         return out
 
@@ -164,12 +167,14 @@ class ReconstructionService:
                                        "ScanEnd; finalising it as FINAL_TIMEOUT")
                 self.stats.timeouts += 1
                 out.append(self._finalise(scan, p, "final_timeout"))
-        for key in list(self.ingest.pending):
-            # Samples whose ScanStart never came are dropped (and counted) after the same timeout.
-            if now - self._partials.setdefault(key, Partial(last_activity=now)).last_activity >= self.config.scan_timeout:
+        for key, since in list(self._pending_since.items()):
+            if key not in self.ingest.pending:
+                del self._pending_since[key]  # its ScanStart came
+            elif now - since >= self.config.scan_timeout:
+                # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
+                del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
-                self._partials.pop(key, None)
         self.stats.rejected = dict(self.ingest.rejected)
         return out
 

@@ -1,0 +1,113 @@
+"""The acquisition service end to end: emulated devices through the real drivers, MCAP and Zenoh."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+import zenoh
+
+from lelsonar import codec, recording
+from lelsonar.acquire.backends import open_scanner
+from lelsonar.acquire.config import AcquireConfig
+from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, gamma_schedule, run_scan
+from lelsonar.acquire.service import energy_model, run_acquisition, sim_config
+from lelsonar.keys import ScannerKeys
+from lelsonar.transport import hermetic_settings, open_session
+
+from .test_contract_mcap import RERUN
+
+
+def collect(sub, stop_after: int, got: list, done: threading.Event) -> None:
+    for s in sub:
+        cls = codec.type_from_encoding(str(s.encoding))
+        got.append(codec.decode(s.payload.to_bytes(), cls))
+        if len(got) >= stop_after:
+            done.set()
+            return
+
+
+def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket):
+    cfg = AcquireConfig(scanner_id="rig1", device="emulated", out_dir=tmp_path)
+    steps = sim_config(cfg).steps
+    keys = ScannerKeys("lelsonar", "rig1")
+    got: list = []
+    done = threading.Event()
+    with open_session(hermetic_settings(zenoh_socket, listen=True)) as hub:
+        sub_samples = hub.declare_subscriber(keys.sample, zenoh.handlers.FifoChannel(1024))
+        sub_scan = hub.declare_subscriber(keys.scan, zenoh.handlers.FifoChannel(16))
+        scan_events: list = []
+        scan_done = threading.Event()
+        threads = [threading.Thread(target=collect, args=(sub_samples, steps, got, done), daemon=True),
+                   threading.Thread(target=collect, args=(sub_scan, 2, scan_events, scan_done), daemon=True)]
+        for t in threads:
+            t.start()
+        report = run_acquisition(cfg, hermetic_settings(zenoh_socket, listen=False), threading.Event())
+        assert done.wait(30) and scan_done.wait(30)
+    assert report.ok and report.publish_failures == 0
+    recorded = list(recording.read_messages(report.paths[0]))
+    assert isinstance(recorded[0], codec.ScanStart) and isinstance(recorded[-1], codec.ScanEnd)
+    samples = recorded[1:-1]
+    assert [s.step for s in samples] == list(range(steps))
+    assert [s.step for s in got] == list(range(steps))
+    assert got == samples
+    assert [type(m) for m in scan_events] == [codec.ScanStart, codec.ScanEnd]
+    assert recorded[-1].status == codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type.values_by_name[
+        "SCAN_STATUS_COMPLETE"].number
+    # The measured angle is the servo's read-back, on the AX-12's 0.29° grid, near the commanded one.
+    for s in samples:
+        assert abs(s.gamma_measured - s.gamma_commanded) < 0.006
+    for cmd in ([RERUN, "mcap", "check", str(report.paths[0])],
+                [RERUN, "mcap", "convert", str(report.paths[0]), "-o", str(tmp_path / "x.rrd")],
+                [RERUN, "rrd", "verify", str(tmp_path / "x.rrd")]):
+        done_cmd = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        assert done_cmd.returncode == 0, done_cmd.stderr
+
+
+def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_path):
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=40)
+    sim = sim_config(cfg)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    path = tmp_path / "fault.mcap"
+    with open_scanner(cfg, sim) as scanner, recording.McapRecorder(path) as rec:
+
+        def overload_at_step_12(step: int, _gamma: float) -> None:
+            if step == 12:
+                scanner.rig.motor.inject_overload()
+
+        end = run_scan(scanner, schedule, ScanIdentity("s1", 5), energy_model(cfg), ScanOutput(rec, None),
+                       threading.Event(), on_step=overload_at_step_12)
+    assert end.status == 2 and "overload" in end.reason.lower() and "step 13" in end.reason
+    recorded = list(recording.read_messages(path))
+    assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(13))
+    assert recorded[-1] == end and end.samples_sent == 13
+
+
+def test_sigint_mid_scan_leaves_a_finished_recording_that_ends_in_an_aborted_scan_end(tmp_path, zenoh_socket):
+    keys = ScannerKeys("lelsonar", "scanner1")
+    got: list = []
+    twenty = threading.Event()
+    with open_session(hermetic_settings(zenoh_socket, listen=True)) as hub:
+        sub = hub.declare_subscriber(keys.sample, zenoh.handlers.FifoChannel(1024))
+        threading.Thread(target=collect, args=(sub, 20, got, twenty), daemon=True).start()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "lelsonar", "acquire", "--device", "emulated", "--out", str(tmp_path),
+             "--mode", "client", "--connect", f"unixsock-stream/{zenoh_socket}"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "120"})
+        try:
+            assert twenty.wait(60), "the scan did not start"
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=60)
+        finally:
+            proc.kill()
+    assert proc.returncode == 1, err
+    recorded = list(recording.read_messages(tmp_path / "scan.mcap"))
+    end = recorded[-1]
+    assert isinstance(end, codec.ScanEnd) and end.status == 2 and "stopped by request" in end.reason
+    samples = [m for m in recorded if isinstance(m, codec.Sample)]
+    assert 20 <= len(samples) == end.samples_sent < 184
+    assert [s.step for s in samples] == list(range(len(samples)))

@@ -1,0 +1,137 @@
+"""The reconstruction service: incremental estimates, ordering, bad input, timeouts."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lelsonar import codec
+from lelsonar.reconstruct import present
+from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+
+from .conftest import simulated_messages, type_name
+
+
+@pytest.fixture(scope="module")
+def scan_messages():
+    return simulated_messages("paper-test1", seed=3)
+
+
+def feed(service: ReconstructionService, messages) -> list[codec.Reconstruction]:
+    out = []
+    for m in messages:
+        out += service.handle(type_name(m), m.SerializeToString())
+    return out
+
+
+def finals(estimates):
+    return [e for e in estimates if present.status_name(e).startswith("final")]
+
+
+def comparable(msg: codec.Reconstruction) -> codec.Reconstruction:
+    """The estimate without its wall-clock fields."""
+    m = codec.Reconstruction()
+    m.CopyFrom(msg)
+    m.ClearField("stamp_ns")
+    m.ClearField("timings")
+    return m
+
+
+def test_provisional_estimates_then_one_final(scan_messages):
+    service = ReconstructionService()
+    estimates = feed(service, scan_messages)
+    provisional = [e for e in estimates if present.status_name(e) == "provisional"]
+    assert provisional, "no provisional estimate before the end of the scan"
+    assert all(p.HasField("critical_step") for p in provisional)
+    # Provisional estimates follow the scan: later ones use more samples.
+    used = [p.samples_used for p in provisional]
+    assert used == sorted(used) and used[0] < used[-1]
+    (final,) = finals(estimates)
+    assert final.samples_used == 184
+    assert {(p.label, p.method) for p in final.planes} >= {("a", service.config.method), ("b", service.config.method)}
+    assert final.HasField("corner_edge")
+    assert service.latest["s1"] == final
+
+
+def test_final_estimate_does_not_depend_on_arrival_order(scan_messages):
+    in_order = finals(feed(ReconstructionService(), scan_messages))
+    start, samples, end = scan_messages[0], scan_messages[1:-1], scan_messages[-1]
+    rng = np.random.default_rng(7)
+    shuffled = [samples[i] for i in rng.permutation(len(samples))]
+    # Samples before their ScanStart, duplicates, and the end before the last samples.
+    mixed = shuffled[:5] + [start] + shuffled[5:150] + [end] + shuffled[150:] + shuffled[:10]
+    service = ReconstructionService()
+    out_of_order = finals(feed(service, mixed))
+    assert len(out_of_order) == 1
+    assert comparable(out_of_order[0]) == comparable(in_order[0])
+    assert service.ingest.rejected["DuplicateSample"] == 10
+
+
+def test_malformed_payloads_are_counted_and_valid_samples_keep_flowing(scan_messages):
+    service = ReconstructionService()
+    good = [m.SerializeToString() for m in scan_messages]
+    sample_type = type_name(codec.Sample())
+    rng = np.random.default_rng(0)
+
+    def mutated(fn):
+        s = codec.Sample.FromString(good[20])
+        fn(s)
+        return s.SerializeToString()
+
+    bad = [
+        rng.bytes(300),                                                          # random bytes
+        mutated(lambda s: setattr(s, "schema_version", 9)),                      # wrong schema version
+        mutated(lambda s: setattr(s.sensors[0].waveform, "data", s.sensors[0].waveform.data[:-8])),  # truncated
+        mutated(lambda s: setattr(s.sensors[1], "distance", math.nan)),          # NaN range
+        mutated(lambda s: setattr(s.sensors[2].waveform, "sample_count", 2**31)),  # huge declared length
+    ]
+    for i, payload in enumerate(good):
+        service.handle(type_name(scan_messages[i]), payload)
+        if i == 30:
+            for b in bad:
+                assert service.handle(sample_type, b) == []
+    assert service.ingest.rejected == {"DecodeError": 1, "SchemaVersionError": 1, "TruncatedDataError": 1,
+                                      "NonFiniteValueError": 1, "PayloadTooLargeError": 1}
+    assert len(service.finals) == 1 and next(iter(service.finals.values())).samples_used == 184
+
+
+def test_samples_of_an_unknown_scan_are_dropped_and_counted_on_timeout(scan_messages):
+    now = [0.0]
+    service = ReconstructionService(ReconstructConfig(scan_timeout=5.0), clock=lambda: now[0])
+    stray = codec.Sample.FromString(scan_messages[10].SerializeToString())
+    stray.scan_id = 999
+    service.handle(type_name(stray), stray.SerializeToString())
+    assert service.ingest.n_pending == 1 and not service.ingest.rejected
+    now[0] = 6.0
+    service.tick()
+    assert service.ingest.rejected["UnknownScan"] == 1 and service.ingest.n_pending == 0
+    end = codec.ScanEnd.FromString(scan_messages[-1].SerializeToString())
+    end.scan_id = 998
+    service.handle(type_name(end), end.SerializeToString())
+    assert service.ingest.rejected["UnknownScan"] == 2
+
+
+def test_scan_without_scan_end_is_finalised_on_timeout(scan_messages):
+    now = [0.0]
+    service = ReconstructionService(ReconstructConfig(scan_timeout=3.0), clock=lambda: now[0])
+    estimates = feed(service, scan_messages[:-1])
+    assert not finals(estimates)
+    now[0] = 2.9
+    assert service.tick() == []
+    now[0] = 3.1
+    (final,) = service.tick()
+    assert present.status_name(final) == "final_timeout"
+    assert final.samples_used == 184 and service.stats.timeouts == 1
+    assert service.tick() == []  # finalised once
+
+
+def test_several_scanners_are_kept_apart():
+    a = simulated_messages("paper-test1", seed=1, scanner_id="left", steps=120)
+    b = simulated_messages("tilted", seed=2, scanner_id="right", steps=120)
+    service = ReconstructionService()
+    interleaved = [m for pair in zip(a, b) for m in pair]
+    got = finals(feed(service, interleaved))
+    assert {g.scanner_id for g in got} == {"left", "right"}
+    assert set(service.latest) == {"left", "right"}

@@ -1,0 +1,164 @@
+"""The simulator reproduces what the paper reports for its L-shaped corner (§3–§5.1)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from lelsonar.acquire.sim import (
+    DEFAULT_ENERGY_MODEL,
+    EchoSource,
+    Scene,
+    calibrate,
+    calibrate_simulator,
+    preset,
+    simulate_scan,
+)
+from lelsonar.geometry import boresight
+from lelsonar.reconstruct.energy import energy_ratio
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return simulate_scan(preset("paper-test1"), seed=0)
+
+
+def _ls_normal(points: np.ndarray) -> np.ndarray:
+    """Unit normal of the plain LS plane θ·v = 1, eq. (15)."""
+    points = points[np.isfinite(points).all(axis=1)]
+    theta, *_ = np.linalg.lstsq(points, np.ones(len(points)), rcond=None)
+    return theta / np.linalg.norm(theta)
+
+
+def _angle_deg(n: np.ndarray, m: np.ndarray) -> float:
+    return math.degrees(math.acos(min(1.0, abs(float(n @ m)))))
+
+
+def test_energy_has_peaks_near_0_34_and_90_degrees(scan):
+    energy = scan.step_energy()
+    gamma = np.degrees(scan.gamma_measured)
+    for centre, half in ((0.0, 12.0), (34.0, 10.0), (90.0, 15.0)):
+        window = np.flatnonzero(np.abs(gamma - centre) <= half)
+        k = window[np.argmax(energy[window])]
+        assert window[0] < k < window[-1], f"no local peak of E near {centre}°"
+        assert abs(gamma[k] - centre) <= 3.0
+
+
+def test_argmax_r_finds_the_critical_step_for_95_of_100_seeds():
+    cfg = preset("paper-test1")
+    hits = 0
+    for seed in range(100):
+        s = simulate_scan(cfg, seed=seed)
+        ratio = energy_ratio(s.step_energy(), s.distance, DEFAULT_ENERGY_MODEL)
+        hits += abs(int(np.argmax(ratio)) - s.truth.critical_step) <= 1
+    assert hits >= 95
+
+
+def test_truth_critical_angle_and_step(scan):
+    assert math.degrees(scan.truth.critical_angle) == pytest.approx(33.97, abs=0.1)
+    k = scan.truth.critical_step
+    assert abs(scan.gamma_measured[k] - scan.truth.critical_angle) <= math.radians(0.66) / 2 + 1e-9
+    assert np.all(scan.truth.echo_source[k] == EchoSource.CORNER)
+
+
+def test_raw_points_arc_in_front_of_plane_a(scan):
+    points = scan.points()
+    gamma = np.degrees(scan.gamma_measured)
+    r = scan.geometry.radial_offset
+    in_front = {}
+    for target in (20.0, 25.0, 30.0):
+        k = int(np.argmin(np.abs(gamma - target)))
+        assert np.all(scan.truth.echo_source[k] == EchoSource.PLANE_A)
+        g = scan.gamma_measured[k]
+        # a mirror echo plotted along the beam lands (1.57 − r cosγ)(1 − cosγ) in front of the wall
+        expected = (1.57 - r * math.cos(g)) * (1 - math.cos(g))
+        gap = 1.57 - points[k, :, 1]
+        assert np.allclose(gap, expected, atol=0.01)
+        in_front[target] = gap.mean()
+    assert in_front[20.0] == pytest.approx(0.095, abs=0.01)
+    assert in_front[30.0] == pytest.approx(0.21, abs=0.015)
+    assert in_front[20.0] < in_front[25.0] < in_front[30.0]
+
+
+def test_multipath_cluster_behind_the_corner(scan):
+    points = scan.points()
+    gamma = np.degrees(scan.gamma_measured)
+    critical = math.degrees(scan.truth.critical_angle)
+    behind = (points[..., 1] > 1.57 + 0.02) | (points[..., 2] > 1.06 + 0.02)
+    steps = np.flatnonzero(behind.any(axis=1))
+    assert behind.sum() >= 60
+    # the cluster starts at the critical angle and stays near it
+    assert gamma[steps].min() == pytest.approx(critical, abs=2.0)
+    assert gamma[steps].max() < critical + 30
+    # ranges there are the edge distance, not the wall distances
+    assert np.allclose(scan.distance[behind], math.hypot(1.57, 1.06) - scan.geometry.radial_offset, atol=0.015)
+    assert np.all(scan.truth.echo_source[behind] == EchoSource.CORNER)
+
+
+def test_plain_least_squares_on_the_paper_subsets_is_biased(scan):
+    ratio = energy_ratio(scan.step_energy(), scan.distance, DEFAULT_ENERGY_MODEL)
+    k = int(np.argmax(ratio))
+    steps = np.arange(scan.n_steps)
+    first, second = steps < k, steps > k  # the four points of the critical step are left out
+    n_a, n_b = (p.normal for p in scan.truth.planes)
+    raw = scan.points()
+    g = scan.gamma_measured
+    caps = scan.geometry.capsule_positions(g)
+    beam = boresight(g)[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # correction to the assumed plane: range along the beam d/cos α, α from the plane's axis
+        corr_a = caps + (scan.distance / np.cos(g)[:, None])[..., None] * beam
+        corr_b = caps + (scan.distance / np.sin(g)[:, None])[..., None] * beam
+    raw_a = _angle_deg(_ls_normal(raw[first].reshape(-1, 3)), n_a)
+    raw_b = _angle_deg(_ls_normal(raw[second].reshape(-1, 3)), n_b)
+    cor_a = _angle_deg(_ls_normal(corr_a[first].reshape(-1, 3)), n_a)
+    cor_b = _angle_deg(_ls_normal(corr_b[second].reshape(-1, 3)), n_b)
+    assert raw_a > 4 and raw_b > 4
+    assert cor_b > 10  # the paper: 17° (eq. 16, z-plane)
+    assert cor_a > 1
+    # an oracle that keeps only the true mirror echoes is not biased: the outliers cause it
+    mirror_b = corr_b[second][scan.truth.echo_source[second] == EchoSource.PLANE_B]
+    assert _angle_deg(_ls_normal(mirror_b), n_b) < 0.5
+
+
+def test_tilted_scene_gives_tilted_truth_and_consistent_echoes():
+    tilt = math.radians(3.0)
+    cfg = dataclasses.replace(preset("paper-test1"), scene=Scene.l_corner(tilt_a_z=tilt, tilt_b_x=math.radians(-2)))
+    scan = simulate_scan(cfg, seed=0, with_waveforms=False)
+    a, b = scan.truth.planes
+    assert (a.label, b.label) == ("a", "b")
+    assert _angle_deg(a.normal, np.array([0.0, 1.0, 0.0])) == pytest.approx(3.0, abs=1e-6)
+    assert _angle_deg(b.normal, np.array([0.0, 0.0, 1.0])) == pytest.approx(2.0, abs=1e-6)
+    assert np.allclose(a.corners @ a.normal, a.offset) and np.allclose(b.corners @ b.normal, b.offset)
+    # every mirror echo is the perpendicular distance to its true plane: capsule + d·n lies on it
+    caps = scan.geometry.capsule_positions(scan.truth.gamma_true)
+    for plane, code in ((a, EchoSource.PLANE_A), (b, EchoSource.PLANE_B)):
+        sel = scan.truth.echo_source == code
+        assert sel.sum() > 100
+        feet = caps[sel] + scan.distance[sel][:, None] * plane.normal
+        assert np.allclose(feet @ plane.normal, plane.offset, atol=0.012)
+        assert _angle_deg(_ls_normal(feet), plane.normal) < 0.5
+
+
+def test_default_energy_model_is_what_the_calibration_gives():
+    cfg = preset("paper-test1")
+    d = np.linspace(0.9, 1.8, 10)
+    for seed in (0, 1):
+        result = calibrate_simulator(cfg, seed=seed)
+        assert len(result.distances) == 6 and result.distances.min() == 0.9 and result.distances.max() == 1.8
+        assert np.all(np.abs(result.residuals()) < 0.05)
+        assert np.allclose(result.model.expected_energy(d), DEFAULT_ENERGY_MODEL.expected_energy(d), rtol=0.05)
+    # energy falls with range: spreading and absorption
+    assert np.all(np.diff(DEFAULT_ENERGY_MODEL.expected_energy(d)) < 0)
+
+
+def test_calibrate_recovers_a_known_model_from_any_shot_source():
+    class Exact:
+        def total_energy(self, distance: float) -> float:
+            return 1.0 / (2.0 * distance**2 + 3.0 * distance + 0.5)
+
+    model = calibrate(Exact()).model
+    assert (model.phi0, model.phi1, model.phi2) == pytest.approx((2.0, 3.0, 0.5), rel=1e-9)
