@@ -66,12 +66,14 @@ def test_fire_waits_for_the_acoustic_window() -> None:
     with SensorBoardEmulator(echo_shot_source(1.0)) as emu:
         with SerialSensorBoard(SensorBoardConfig(port=emu.path, n_samples=3500, fs_hz=FS)) as drv:
             drv.fire(0)
-            start = time.perf_counter()
+            times = []
             for step in range(10):
+                start = time.perf_counter()
                 acq = drv.fire(step)
-            per_shot = (time.perf_counter() - start) / 10
+                times.append(time.perf_counter() - start)
     window = 3500 / FS
-    assert window <= per_shot < 1.25 * window, per_shot
+    # Never before the window ends; typically well within 1.25 × (the median shrugs off a busy neighbour).
+    assert min(times) >= window and float(np.median(times)) < 1.25 * window, times
     np.testing.assert_allclose(acq.tof_s, 2 / 343.2, rtol=1e-6)
     # The stand-in's burst starts at the TOF sample.
     first = int(np.argmax(np.abs(acq.waveforms[0]) > 0.05))

@@ -213,7 +213,6 @@ def test_partial_scans_and_warm_starts() -> None:
     part = reconstruct(s.gamma[half], s.distance[half], s.sensor_energy[half], GEO, MODEL)
     # The best R so far is not the corner; the "b" subset holds wall-a echoes seen at
     # γ < 30°, which no plane facing +z can have returned: the mirror-echo check says so.
-    assert isinstance(part.plane_b, FitFailure) and "mirror" not in str(part.plane_b) or True
     assert isinstance(part.plane_b, FitFailure) and part.plane_b.reason is FailureReason.DEGENERATE_GEOMETRY
     assert isinstance(part.plane_a, PlaneFit)
     full = _run(s, DEFAULT_METHOD)

@@ -16,8 +16,11 @@ import sys
 COMMAND_MODULES = (
     "lelsonar.commands",
     "lelsonar.acquire.cli",
+    "lelsonar.acquire.sim.cli",
     "lelsonar.acquire.emulate.cli",
     "lelsonar.reconstruct.cli",
+    "lelsonar.tools.demo",
+    "lelsonar.tools.bench",
 )
 
 

@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--until-scans", type=int, default=0, metavar="N",
                    help="live: exit after N final estimates (default: run until Ctrl-C)")
     p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the estimates to an MCAP file")
+    p.add_argument("--truth-preset", metavar="PRESET",
+                   help="draw the true planes of a simulator preset in Rerun (e.g. paper-test1)")
     _add_estimator_arguments(p)
     _add_rerun_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
@@ -69,6 +71,8 @@ def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("rerun")
     g.add_argument("--rrd", type=Path, metavar="FILE.rrd", help="save the Rerun recording to a file")
     g.add_argument("--serve", type=int, metavar="PORT", help="serve the recording over gRPC for a remote viewer")
+    g.add_argument("--serve-bind", default="127.0.0.1", metavar="IP",
+                   help="address --serve listens on (default: 127.0.0.1; 0.0.0.0 exposes it to the network)")
     g.add_argument("--spawn", action="store_true", help="spawn a local Rerun viewer")
 
 
@@ -91,12 +95,12 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
         return None
     from lelsonar.reconstruct.rerun_observer import open_rerun
 
-    return stack.enter_context(open_rerun(rrd=args.rrd, serve_port=args.serve, spawn=args.spawn,
-                                          application_id=application_id))
+    return stack.enter_context(open_rerun(rrd=args.rrd, serve_port=args.serve, serve_bind=args.serve_bind, spawn=args.spawn,
+                                          application_id=application_id, truth_preset=args.truth_preset,
+                                          main_method=args.method))
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
-    from rich.console import Console
 
     from lelsonar.keys import ScannerKeys
     from lelsonar.reconstruct import present
@@ -107,7 +111,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     config = _config(args)
-    console = Console(stderr=True)
+    console = present.console(stderr=True)
     finals = threading.Event()
     n_final = 0
 
@@ -151,7 +155,6 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
 
 def run_review(args: argparse.Namespace) -> int:
-    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from lelsonar.reconstruct import present
@@ -162,8 +165,9 @@ def run_review(args: argparse.Namespace) -> int:
 
     out = args.output or args.source.with_suffix(".rrd")
     total = sum(1 for _ in iter_payloads(args.source))
-    console = Console(stderr=True)
-    with open_rerun(rrd=out, application_id="lelsonar", truth_preset=args.truth_preset) as observer, \
+    console = present.console(stderr=True)
+    with open_rerun(rrd=out, application_id="lelsonar", truth_preset=args.truth_preset,
+                    main_method=args.method) as observer, \
             Progress(TextColumn("review"), BarColumn(), TextColumn("{task.completed}/{task.total} messages"),
                      TimeRemainingColumn(), console=console, transient=True) as progress:
         task = progress.add_task("replay", total=total)
@@ -177,7 +181,6 @@ def run_review(args: argparse.Namespace) -> int:
 
 def run_planner(args: argparse.Namespace) -> int:
     import zenoh
-    from rich.console import Console
 
     from lelsonar import codec
     from lelsonar.errors import LelsonarError
@@ -186,7 +189,7 @@ def run_planner(args: argparse.Namespace) -> int:
     from lelsonar.transport import open_session, zenoh_settings_from_args
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
-    console = Console()
+    console = present.console()
     stop = _stop_on_signals()
     done = threading.Event()
     finals = 0

@@ -6,12 +6,19 @@ import json
 
 import numpy as np
 from google.protobuf.json_format import MessageToDict
+from rich.console import Console
 from rich.table import Table
 
 from lelsonar import codec
 from lelsonar.reconstruct.wire import STATUS
 
 _STATUS_NAME = {v: k for k, v in STATUS.items()}
+
+
+def console(stderr: bool = False) -> Console:
+    """A console that keeps tables readable when the output is a pipe or a CI log (no terminal width)."""
+    c = Console(stderr=stderr)
+    return c if c.is_terminal else Console(stderr=stderr, width=120)
 
 
 def status_name(msg: codec.Reconstruction) -> str:
@@ -41,24 +48,27 @@ def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, f
             if msg.HasField("critical_step") else "corner not found yet")
     t = Table(title=title or f"{msg.scanner_id} scan {msg.scan_id} — {status_name(msg)}, "
                              f"{msg.samples_used} samples, {crit}", title_justify="left")
-    for col in ("plane", "method", "normal n", "offset h (cm)", "σ (mm)", "inliers", "H"):
-        t.add_column(col, justify="right" if col not in ("plane", "method", "normal n") else "left")
+    t.add_column("plane")
+    t.add_column("method")
+    t.add_column("normal n", no_wrap=True)
+    t.add_column("h (cm)", justify="right")
     if truth:
-        t.add_column("Δ normal (°)", justify="right")
-        t.add_column("Δ offset (cm)", justify="right")
-    rows = sorted(msg.planes, key=lambda p: (p.label, p.method))
-    for p in rows:
+        t.add_column("Δn (°)", justify="right")
+        t.add_column("Δh (cm)", justify="right")
+    for col in ("σ (mm)", "inliers", "H"):
+        t.add_column(col, justify="right")
+    for p in sorted(msg.planes, key=lambda p: (p.label, p.method)):
         n = _vec(p.normal)
-        cells = [p.label, p.method, f"({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f})", f"{p.offset * 100:.2f}",
-                 f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}"]
+        cells = [p.label, p.method, f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}", f"{p.offset * 100:.2f}"]
         if truth:
             tn, th = truth.get(p.label, (None, None))
             cells += ([f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""])
+        cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}"]
         t.add_row(*cells)
     if truth:
         for label, (tn, th) in sorted(truth.items()):
-            t.add_row(label, "truth", f"({tn[0]:+.4f}, {tn[1]:+.4f}, {tn[2]:+.4f})", f"{th * 100:.2f}",
-                      "", "", "", "0", "0", style="dim")
+            t.add_row(label, "truth", f"{tn[0]:+.3f} {tn[1]:+.3f} {tn[2]:+.3f}", f"{th * 100:.2f}",
+                      "", "", "", "", "", style="dim")
     for f in msg.failures:
         t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
     return t

@@ -174,7 +174,7 @@ def default_blueprint(root: str = "/") -> rrb.Blueprint:
     column = rrb.Vertical(
         rrb.TimeSeriesView(name="energy E^γ and E0(d_m)", origin=at("plots", "energy")),
         rrb.TimeSeriesView(name="ratio R = E^γ / E0(d_m)", origin=at("plots", "ratio")),
-        rrb.Spatial2DView(name="waveforms of the step (x ms; capsule i at y = i·spacing, volts up)",
+        rrb.Spatial2DView(name="waveforms of the step (ms; volts up, capsule i at i·spacing)",
                           origin=at("plots", "waveforms")),
         rrb.Horizontal(
             rrb.BarChartView(name="sorted errors e_i, plane a", origin=at("plots", "errors", "a")),
@@ -263,6 +263,11 @@ class ScanLogger:
     Serialisation cost does not depend on the number of points here; the file
     grows by about 12 bytes · points so far per step (≈1.2 MB for 220 steps).
 
+    Several scans in one recording write to different entities.  On the
+    ``step`` and ``gamma_cdeg`` timelines they overlay (handy to compare two
+    scans; hide one in the blueprint panel otherwise); on ``acq_time`` they
+    follow each other, and an earlier scan's last state stays drawn.
+
     Not thread-safe: call one logger from one thread (Rerun's time cursor is
     per thread, and each method sets all of its timelines itself).
     """
@@ -297,6 +302,10 @@ class ScanLogger:
         self._clock: tuple[int | None, float | None, int | None] = (None, None, None)
         self._marked_critical: int | None = None
         self._reported: dict[str, str] = {}   # what was last said about each plane/edge failure
+        self._drawn: set[tuple[str, str]] = set()   # (method, label) patches on screen
+        self._strip_key: tuple[int, int, float, float] | None = None
+        self._strip_x = np.empty(0, dtype=np.float32)
+        self._baselines = np.empty((0, 1), dtype=np.float32)
 
         rec.log(self.world, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log(self.energy, rr.SeriesLines(names=["E^γ", "E0(d_m)"], colors=[(60, 140, 255), (160, 160, 160)]),
@@ -342,7 +351,8 @@ class ScanLogger:
             Free text for the event log (software, sound speed, ...).
         """
         rec = self.rec
-        caps = np.asarray(capsule_positions_array_frame, dtype=np.float64).reshape(-1, 3)
+        # Copies: Rerun would otherwise keep a view of the caller's array until it flushes.
+        caps = np.array(capsule_positions_array_frame, dtype=np.float64).reshape(-1, 3)
         k = caps.shape[0]
         names = [_capsule_name(i) for i in range(k)]
         rec.log(f"{self.array}/capsules", rr.Points3D(caps, radii=0.012, colors=_CAPSULE_RGB, labels=names),
@@ -353,17 +363,6 @@ class ScanLogger:
         colors = [_WAVEFORM_COLORS[i % len(_WAVEFORM_COLORS)] for i in range(k)]
         rec.log(self.waveforms, rr.LineStrips2D.from_fields(labels=names, colors=colors), static=True)
 
-        self._at(0, gamma_start, t_ns)
-        # On the acquisition-time timeline, hide what earlier scans of this scanner left
-        # on latest-at entities, so the world shows one scan at a time.  Only acq_time:
-        # on step/γ the scans overlay by design (to compare them).
-        rec.reset_time()
-        rec.set_time(TIME_TIMELINE, timestamp=np.datetime64(int(t_ns), "ns"))
-        for path in (_join(self.root, "world", self._scanner, "scans"),
-                     _join(self.root, "plots", "waveforms", self._scanner),
-                     _join(self.root, "plots", "errors", "a", self._scanner),
-                     _join(self.root, "plots", "errors", "b", self._scanner)):
-            rec.log(path, rr.Clear(recursive=True))
         self._at(0, gamma_start, t_ns)
         text = (f"scan {self.scan_id} of {self.scanner_id} started: γ {math.degrees(gamma_start):.1f}° → "
                 f"{math.degrees(gamma_stop):.1f}° in {steps} steps, {k} capsules")
@@ -420,16 +419,30 @@ class ScanLogger:
 
         w = np.asarray(waveforms, dtype=np.float32)
         if w.ndim == 2 and w.shape[1] > 0 and sample_rate > 0:
-            strips = np.empty((w.shape[0], w.shape[1], 2), dtype=np.float32)
-            strips[:, :, 0] = (t0 + np.arange(w.shape[1]) / sample_rate) * 1e3
-            # 2D views point y down: negate so positive volts go up, stack capsule i at i·spacing.
-            strips[:, :, 1] = np.arange(w.shape[0], dtype=np.float32)[:, None] * self.waveform_spacing - w
-            rec.log(self.waveforms, rr.LineStrips2D(strips))
+            rec.log(self.waveforms, rr.LineStrips2D(self._waveform_strips(w, float(sample_rate), float(t0))))
 
         rec.log(self.energy, rr.Scalars([energy, expected_energy]))
         rec.log(self.ratio, rr.Scalars(ratio))
 
+    def _waveform_strips(self, w: np.ndarray, sample_rate: float, t0: float) -> np.ndarray:
+        """(k, n, 2) float32 strips: x = time after the ping in ms, y = stacked, negated volts."""
+        k, n = w.shape
+        key = (k, n, sample_rate, t0)
+        if self._strip_key != key:   # the window is the same for a whole scan: compute the axes once
+            self._strip_key = key
+            self._strip_x = ((t0 + np.arange(n) / sample_rate) * 1e3).astype(np.float32)
+            self._baselines = np.arange(k, dtype=np.float32)[:, None] * np.float32(self.waveform_spacing)
+        # A fresh array every time: Rerun keeps a zero-copy view of what it is given until
+        # the batch is flushed, so reusing a buffer would rewrite earlier steps' waveforms.
+        strips = np.empty((k, n, 2), dtype=np.float32)
+        strips[:, :, 0] = self._strip_x
+        # 2D views point y down: negate so positive volts go up; capsule i sits at y = i·spacing.
+        np.subtract(self._baselines, w, out=strips[:, :, 1])
+        return strips
+
     def _append_cloud(self, pts: np.ndarray) -> None:
+        # Rerun holds zero-copy views of logged slices until it flushes: only ever write
+        # rows past the logged ones, and grow into a new buffer, never in place.
         n = self._n_cloud + pts.shape[0]
         if n > self._cloud.shape[0]:
             grown = np.empty((max(n, 2 * self._cloud.shape[0], 256), 3), dtype=np.float32)
@@ -478,11 +491,20 @@ class ScanLogger:
                     rr.Points3D(sub.points[ok], colors=colors, radii=radii))
 
         fits = [p for p in planes if isinstance(p, PlaneFit)]
-        for p in planes:
-            if isinstance(p, PlaneFit):
-                self._log_plane(p)
-            else:
-                self._log_failure(p, final)
+        for p in fits:
+            self._log_plane(p)
+            self._drawn.add((p.method, p.label))
+        fitted = {(p.method, p.label) for p in fits}
+        for f in planes:
+            if isinstance(f, FitFailure):
+                # A FitFailure does not name its method: take down every patch of that
+                # label this estimate did not redraw, so no stale plane stays on screen.
+                for method, label in sorted(self._drawn):
+                    if label == f.label and (method, label) not in fitted:
+                        rec.log(self._plane_path(method, label), rr.Clear(recursive=True))
+                        rec.log(self._errors_path(method, label), rr.Clear(recursive=False))
+                        self._drawn.discard((method, label))
+                self._warn_once(f"plane/{f.label}", f"plane fit failed: {f}", final)
 
         if isinstance(edge, EdgeLine):
             self._reported.pop("edge", None)
@@ -517,20 +539,16 @@ class ScanLogger:
         rec = self.rec
         rgb = method_color(p.method)
         path = self._plane_path(p.method, p.label)
-        self._reported.pop(f"{p.method}/{p.label}", None)
         rec.log(path, rr.Mesh3D(vertex_positions=p.patch, triangle_indices=[[0, 1, 2], [0, 2, 3]],
                                 vertex_normals=np.tile(p.normal, (4, 1)), albedo_factor=(*rgb, _PLANE_ALPHA),
                                 face_rendering="DoubleSided"))
         rec.log(f"{path}/normal", rr.Arrows3D(origins=[p.patch.mean(axis=0)], vectors=[p.normal * _NORMAL_LENGTH],
                                               colors=rgb, radii=0.005, labels=f"{p.method} {p.label}"))
-        errors = _join(self.root, "plots", "errors", rr.escape_entity_path_part(p.label), self._scanner,
-                       self._scan, rr.escape_entity_path_part(p.method))
-        rec.log(errors, rr.BarChart(p.sorted_residuals, color=rgb))
+        rec.log(self._errors_path(p.method, p.label), rr.BarChart(p.sorted_residuals, color=rgb))
 
-    def _log_failure(self, f: FitFailure, final: bool) -> None:
-        # A FitFailure does not say which method failed; the label is all we have.
-        label = f.label or "?"
-        self._warn_once(f"?/{label}", f"plane fit failed: {f}", final)
+    def _errors_path(self, method: str, label: str) -> str:
+        return _join(self.root, "plots", "errors", rr.escape_entity_path_part(label), self._scanner, self._scan,
+                     rr.escape_entity_path_part(method))
 
     def _warn_once(self, key: str, text: str, final: bool) -> None:
         """A warning, unless the same one was already given (estimates repeat every few steps)."""
@@ -587,7 +605,7 @@ class ScanLogger:
             around the patch, m.
         """
         for label, normal, offset, corners in planes:
-            corners = np.asarray(corners, dtype=np.float64).reshape(4, 3)
+            corners = np.array(corners, dtype=np.float64).reshape(4, 3)   # a copy, see scan_started
             n = np.asarray(normal, dtype=np.float64).reshape(3)
             path = _join(self.root, "world", self._scanner, "truth", rr.escape_entity_path_part(label))
             self.rec.log(path, rr.Mesh3D(vertex_positions=corners, triangle_indices=[[0, 1, 2], [0, 2, 3]],

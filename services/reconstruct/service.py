@@ -102,6 +102,8 @@ class Partial:
     """The incremental state of one scan."""
 
     critical: int | None = None        # confirmed critical step (schedule index)
+    data_a: F.PlaneData | None = None   # the points behind plane_a / plane_b
+    data_b: F.PlaneData | None = None
     plane_a: PlaneResult | None = None
     plane_b: PlaneResult | None = None
     steps_at_fit: int = 0
@@ -232,14 +234,14 @@ class ReconstructionService:
             p.critical = int(steps[peak])
             self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
                                 f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
-            data_a = self._plane_data(scan, "a", p.critical)
-            p.plane_a = fit_plane(data_a, self.config.method, options=self._options)
+            p.data_a = self._plane_data(scan, "a", p.critical)
+            p.plane_a = fit_plane(p.data_a, self.config.method, options=self._options)
         elif len(steps) - p.steps_at_fit < self.config.refit_every:
             return []
         t0 = time.perf_counter()
         warm = p.plane_b.theta if isinstance(p.plane_b, PlaneFit) else None
-        p.plane_b = fit_plane(self._plane_data(scan, "b", p.critical), self.config.method, warm_start=warm,
-                              options=self._options)
+        p.data_b = self._plane_data(scan, "b", p.critical)
+        p.plane_b = fit_plane(p.data_b, self.config.method, warm_start=warm, options=self._options)
         p.steps_at_fit = len(steps)
         fit_s = time.perf_counter() - t0
         edge = corner_edge(p.plane_a, p.plane_b)

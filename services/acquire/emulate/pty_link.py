@@ -176,6 +176,8 @@ class PtyDevice:
                     while self._queue and self._queue[0][0] <= now:
                         pending += self._queue.popleft()[1]
                     next_due = self._queue[0][0] if self._queue else None
+                if pending:
+                    self._write_some(master, pending)  # at once: a select first would only add latency
                 timeout = None if next_due is None else max(0.0, next_due - now)
                 readable, writable, _ = select.select(
                     [master, self._wake_r], [master] if pending else [], [], timeout
@@ -192,11 +194,16 @@ class PtyDevice:
                         data = b""
                     if data:
                         self._on_input(data, time.monotonic())
-                if pending and (master in writable or not pending):
-                    try:
-                        written = os.write(master, pending)
-                        del pending[:written]
-                    except BlockingIOError:
-                        pass
+                if pending and master in writable:
+                    self._write_some(master, pending)
         except BaseException as exc:  # surfaced by stop(); a dead emulator must not pass silently
             self._failure = exc
+
+    @staticmethod
+    def _write_some(fd: int, pending: bytearray) -> None:
+        """Write what the pty accepts now; keep the rest for the next writable select."""
+        try:
+            written = os.write(fd, pending)
+        except BlockingIOError:
+            return
+        del pending[:written]

@@ -13,6 +13,7 @@ from .calibrate import (
     DEFAULT_ENERGY_MODEL,
     PAPER_CALIBRATION_DISTANCES,
     CalibrationResult,
+    EnergyShotSource,
     SimulatedWallShots,
     calibrate,
     calibrate_simulator,
@@ -35,7 +36,7 @@ from .scene import Edge, Panel, Scene
 
 __all__ = [
     "DEFAULT_ENERGY_MODEL", "PAPER_CALIBRATION_DISTANCES",
-    "Acoustics", "CalibrationResult", "EchoSource", "EchoTable", "Edge", "Panel", "Receiver", "ScanTruth",
+    "Acoustics", "CalibrationResult", "EchoSource", "EnergyShotSource", "EchoTable", "Edge", "Panel", "Receiver", "ScanTruth",
     "Scene", "Servo", "SimConfig", "SimulatedScan", "SimulatedStep", "SimulatedWallShots", "TruePlane",
     "calibrate", "calibrate_simulator", "default_energy_model", "echo_table", "piston_directivity",
     "preset", "preset_names", "simulate_scan", "simulate_step", "sound_speed",

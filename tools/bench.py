@@ -1,0 +1,60 @@
+"""`lelsonar bench NAME`: the benchmarks, each a module with ``add_arguments(parser)`` and ``run(args)``.
+
+Benchmarks measure; tests assert.  Each prints its table with the machine it
+ran on, and ratios are measured side by side in one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import platform
+
+BENCHES = {
+    "sim": ("lelsonar.tools.bench_sim", "simulating a full scan with waveforms"),
+    "estimators": ("lelsonar.tools.bench_estimators", "accuracy and speed of every estimator against the oracle"),
+    "acquire": ("lelsonar.tools.bench_acquire", "emulated scan wall time against the physical bound"),
+    "ingest": ("lelsonar.tools.bench_ingest", "Zenoh ingest rate, update latency and MCAP replay speed"),
+}
+
+
+def machine() -> str:
+    """One line naming the machine, for every benchmark table."""
+    import os
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="run a benchmark (sim, estimators, acquire, ingest, or all)")
+    names = p.add_subparsers(dest="bench", required=True, metavar="NAME")
+    for name, (module, summary) in BENCHES.items():
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError:
+            continue  # a benchmark not written yet
+        q = names.add_parser(name, help=summary, description=summary)
+        mod.add_arguments(q)
+        q.set_defaults(run=mod.run)
+    q = names.add_parser("all", help="every benchmark with its defaults")
+    q.set_defaults(run=run_all)
+
+
+def run_all(args: argparse.Namespace) -> int:
+    status = 0
+    for name, (module, _summary) in BENCHES.items():
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError:
+            continue
+        parser = argparse.ArgumentParser(prog=f"lelsonar bench {name}")
+        mod.add_arguments(parser)
+        print(f"\n=== lelsonar bench {name} ===", flush=True)
+        status |= int(mod.run(parser.parse_args([])) or 0)
+    return status
