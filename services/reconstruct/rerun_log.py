@@ -81,6 +81,7 @@ __all__ = [
     "ANGLE_TIMELINE",
     "TIME_TIMELINE",
     "METHOD_COLORS",
+    "method_color",
     "make_recording",
     "default_blueprint",
     "SubsetView",
@@ -94,7 +95,7 @@ TIME_TIMELINE = "acq_time"
 
 #: Per-method colours (RGB); methods not listed get a stable colour from the palette.
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {
-    "ls": (255, 140, 0),       # orange, as the brief and the paper's LS figures
+    "ls": (255, 140, 0),       # orange
     "lel": (40, 190, 70),      # green
     "paper": (0, 180, 210),    # cyan
     "ransac": (220, 60, 200),  # magenta
@@ -403,8 +404,10 @@ class ScanLogger:
         self._t_ns[step] = int(t_ns)
         self._ratio[step] = float(ratio)
 
-        half = 0.5 * float(gamma)
-        rec.log(self.array, rr.Transform3D(quaternion=[math.sin(half), 0.0, 0.0, math.cos(half)]))
+        if math.isfinite(gamma):   # an unread encoder leaves the pose where it was
+            # Rotation about x by γ, parent (world) from child (array): p_world = R_x(γ) p_array.
+            half = 0.5 * float(gamma)
+            rec.log(self.array, rr.Transform3D(quaternion=[math.sin(half), 0.0, 0.0, math.cos(half)]))
 
         pts = np.asarray(raw_points, dtype=np.float64).reshape(-1, 3)
         echo = np.isfinite(pts).all(axis=1)
@@ -528,7 +531,6 @@ class ScanLogger:
                     lines.append(f"  {p.label}: failed, {p.reason.value}")
             if isinstance(edge, EdgeLine):
                 lines.append(f"  edge angle {math.degrees(edge.angle):.2f}°")
-            self._at(step, self._gamma.get(step), t_ns)
             rec.log(self.log_path, rr.TextLog("\n".join(lines), level=rr.TextLogLevel.INFO))
 
     def _plane_path(self, method: str, label: str) -> str:

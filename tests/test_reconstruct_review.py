@@ -1,0 +1,43 @@
+"""`lelsonar review`: a recording reconstructed offline into an .rrd with the layout embedded."""
+
+from __future__ import annotations
+
+import subprocess
+
+from rerun.chunk import RrdReader
+
+from lelsonar import recording
+from lelsonar.__main__ import main
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
+
+from .conftest import simulated_messages
+from .test_contract_mcap import RERUN
+
+
+def test_review_writes_an_rrd_with_the_scan_the_estimates_and_the_blueprint(tmp_path):
+    mcap, rrd = tmp_path / "scan.mcap", tmp_path / "scan.rrd"
+    with recording.McapRecorder(mcap) as rec:
+        for m in simulated_messages("paper-test1", seed=4, scanner_id="rig", scan_id=9):
+            rec.write(m)
+    assert main(["review", str(mcap), "-o", str(rrd), "--truth-preset", "paper-test1"]) == 0
+    assert subprocess.run([RERUN, "rrd", "verify", str(rrd)], capture_output=True, timeout=120).returncode == 0
+
+    columns: dict[str, set[str]] = {}
+    for chunk in RrdReader(rrd).store().stream().to_chunks():
+        columns.setdefault(chunk.entity_path, set()).update(chunk.to_record_batch().schema.names)
+
+    def has(path_part: str, archetype: str) -> bool:
+        return any(path_part in path and any(c.startswith(archetype + ":") for c in cols)
+                   for path, cols in columns.items())
+
+    assert has("/world/rig/array", "Transform3D")            # the array pose
+    assert has("/world/rig/scans/scan_9/raw", "Points3D")    # raw points (eq. 9)
+    assert has("/corrected/a", "Points3D") and has("/corrected/b", "Points3D")
+    assert has("/planes/ls/a", "Mesh3D") and has(f"/planes/{DEFAULT_METHOD}/b", "Mesh3D")
+    assert has("/truth/a", "Mesh3D")
+    assert has("/normal", "Arrows3D") and has("/edge", "LineStrips3D")
+    assert has("/plots/energy/rig", "Scalars") and has("/plots/ratio/rig", "Scalars")
+    assert has("/plots/waveforms/rig", "LineStrips2D")
+    assert has("/plots/errors/", "BarChart")
+    assert has("/log/rig", "TextLog")
+    assert RrdReader(rrd).blueprints(), "the default blueprint is not embedded"
