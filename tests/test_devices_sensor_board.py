@@ -59,7 +59,7 @@ def test_fire_returns_volts_and_seconds(board) -> None:
     np.testing.assert_allclose(acq.tof_s, 7e-6)
     assert acq.waveforms.dtype == np.float32 and acq.waveforms.shape == (4, N)
     np.testing.assert_allclose(acq.waveforms, expected_volts(7), rtol=1e-6)
-    assert emu.shots == [(7, 0.25)]
+    assert list(emu.shots) == [(7, 0.25)]
 
 
 def test_fire_waits_for_the_acoustic_window() -> None:

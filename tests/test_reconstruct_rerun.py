@@ -100,7 +100,7 @@ def log_scan(rec: rr.RecordingStream, scanner_id: str = "s1", scan_id: int = 7, 
     gamma = np.deg2rad(np.linspace(-10.0, 110.0, N_STEPS))
     logger.scan_started(t_start_ns, gamma[0], gamma[-1], N_STEPS, geometry.capsules_in_array_frame(),
                         "synthetic corner")
-    sent = {"n_points": [], "waveforms": [], "ratio": [], "gamma": gamma, "logger": logger}
+    sent = {"n_points": [], "waveforms": [], "ratio": [], "gamma": gamma}
     for k, g in enumerate(gamma):
         d = corner_ranges(geometry, g) + rng.normal(0.0, 0.003, 4)
         d[rng.random(4) < 0.2] = np.nan                       # no echo on some capsules
@@ -114,7 +114,7 @@ def log_scan(rec: rr.RecordingStream, scanner_id: str = "s1", scan_id: int = 7, 
         sent["n_points"].append(int(np.isfinite(d).sum()))
         sent["waveforms"].append(waves)
         sent["ratio"].append(ratio)
-        if k == 9:   # a partial estimate: plane b is not seen yet
+        if k == 9:   # a partial estimate: ls already fits plane b, another method fails on it
             logger.estimate(k, t_start_ns + k * STEP_NS,
                             [plane_fit("ls", "a", rng), plane_fit("lel", "a", rng), plane_fit("ls", "b", rng),
                              FitFailure(FailureReason.TOO_FEW_POINTS, "3 < 8 points", "b", 3)],
@@ -128,7 +128,8 @@ def log_scan(rec: rr.RecordingStream, scanner_id: str = "s1", scan_id: int = 7, 
     sent["critical"] = 6
     logger.estimate(last, t_start_ns + last * STEP_NS, fits, edge, subsets, critical_step=6,
                     critical_gamma=float(gamma[6]), final=True)
-    logger.truth([(lab, n, h, fits[i].patch) for i, (lab, n, h) in enumerate((("a", N_A, H_A), ("b", N_B, H_B)))])
+    lel = {f.label: f for f in fits if f.method == "lel"}   # untilted: their patches lie on the true walls
+    logger.truth([("a", N_A, H_A, lel["a"].patch), ("b", N_B, H_B, lel["b"].patch)])
     logger.event("warning", "synthetic scan done")
     sent["fits"] = fits
     return sent

@@ -76,7 +76,7 @@ def load_toml(path: Path) -> dict:
         if kind is None:
             raise ConfigError(f"{path}: unknown key {key!r} in [acquire]; known: {', '.join(_TOML_KEYS)}")
         if not isinstance(value, kind) and not (kind is float and isinstance(value, int)):
-            raise ConfigError(f"{path}: [acquire].{key} must be a {kind.__name__}, got {value!r}")
+            raise ConfigError(f"{path}: [acquire].{key} must be of type {kind.__name__}, got {value!r}")
     return table
 
 

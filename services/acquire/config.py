@@ -48,8 +48,6 @@ class AcquireConfig:
     compression : {"zstd", "lz4", "none"}
     energy_model : EnergyModel, optional
         φ of eq. (12); default: the simulator's calibration.
-    motor_speed : float
-        Servo speed during a scan, rad/s (0 = the servo's maximum).
     """
 
     scanner_id: str = "scanner1"
@@ -71,7 +69,6 @@ class AcquireConfig:
     waveform_int16: bool = False
     compression: str = "zstd"
     energy_model: EnergyModel | None = None
-    motor_speed: float = 0.0
 
     def __post_init__(self) -> None:
         validate_identifier(self.scanner_id)
@@ -92,8 +89,6 @@ class AcquireConfig:
             raise ConfigError(f"mcap_name must be a file name ending in .mcap, got {self.mcap_name!r}")
         if self.compression not in ("zstd", "lz4", "none"):
             raise ConfigError(f"compression must be zstd, lz4 or none, got {self.compression!r}")
-        if not (math.isfinite(self.motor_speed) and self.motor_speed >= 0):
-            raise ConfigError("motor_speed must be >= 0 rad/s (0 = maximum)")
         object.__setattr__(self, "out_dir", Path(self.out_dir))
 
     def mcap_path(self, index: int) -> Path:

@@ -468,8 +468,9 @@ class ScanLogger:
         t_ns : int
             Acquisition time of that step, ns.
         planes : sequence of PlaneFit or FitFailure
-            Any number of methods; a failure clears that method's old patch
-            and is reported once as a warning (again when final).
+            Any number of methods.  A failure (which names no method) takes
+            down the old patches of its label that this estimate did not
+            redraw, and is reported once as a warning (again when final).
         edge : EdgeLine, FitFailure or None
             ``None`` leaves the edge as it was.
         subsets : sequence of SubsetView

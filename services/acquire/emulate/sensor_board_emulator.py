@@ -24,6 +24,7 @@ probabilities and seed.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import math
 import threading
@@ -131,8 +132,8 @@ class SensorBoardEmulator(PtyDevice):
         self.frames_sent = 0
         self.corrupted = 0
         self.errors_sent = 0
-        #: (step, gamma) of every shot actually fired, for tests.
-        self.shots: list[tuple[int, float]] = []
+        #: (step, gamma) of the latest shots actually fired (bounded: the CLI runs for days).
+        self.shots: collections.deque[tuple[int, float]] = collections.deque(maxlen=4096)
 
     # --- fault injection -----------------------------------------------------------------
     def inject_corruption(self, n: int = 1, where: Literal["payload", "header"] = "payload") -> None:
@@ -341,7 +342,9 @@ def sim_shot_source(sim_config: Any, rng: np.random.Generator) -> ShotSource:
             configs[key] = cfg
         shot = sim.simulate_step(cfg, gamma, rng)
         tof = np.asarray(shot.tof, dtype=np.float64)
-        tof_ns = np.where(np.isfinite(tof), np.round(np.nan_to_num(tof) * 1e9), sf.NO_ECHO).astype(np.uint32)
+        # NaN (no echo) and anything the u32 field cannot hold become NO_ECHO.
+        ns = np.round(np.nan_to_num(tof, nan=-1.0) * 1e9)
+        tof_ns = np.where(np.isfinite(tof) & (ns >= 0) & (ns < sf.NO_ECHO), ns, sf.NO_ECHO).astype(np.uint32)
         return tof_ns, np.asarray(shot.waveforms, dtype=np.float32)
 
     return source
