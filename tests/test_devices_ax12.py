@@ -185,7 +185,7 @@ def test_motion_takes_time_at_the_moving_speed(servo) -> None:
     expected = ax12.travel_time_s(512, 612, 200)
     assert expected == pytest.approx(0.22, abs=0.01)
     while emu.read_register("moving"):
-        assert time.monotonic() - start < 2 * expected + 0.1
+        assert time.monotonic() - start < 10 * expected + 1.0, "the emulated servo never stopped"
         time.sleep(0.01)
     assert time.monotonic() - start >= expected * 0.95
     assert emu.present_position() == 612

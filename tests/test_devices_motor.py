@@ -58,9 +58,9 @@ def test_move_then_read_back_the_position(servo) -> None:
         assert reading.raw == goal == servo.present_position()
         assert reading.gamma == pytest.approx(ax12.gamma_from_raw(goal))
         assert abs(reading.gamma - target) <= ax12.RAD_PER_UNIT / 2
-        # It waited for the emulated travel (30° at 59 rpm = 85 ms), not much longer.
+        # It waited for the emulated travel (30° at 59 rpm = 85 ms); how much longer is `lelsonar bench acquire`'s.
         travel = ax12.travel_time_s(512, goal, 0)
-        assert travel * 0.95 <= elapsed < travel + 0.05
+        assert travel * 0.95 <= elapsed
         assert motor.position() == reading
 
 
@@ -197,28 +197,3 @@ def test_config_is_validated() -> None:
     assert MotorConfig(port="x").packet_timeout_s == pytest.approx(0.034)
 
 
-def test_scan_sweep_is_within_the_physical_bound(servo) -> None:
-    """184 steps over 120°, no acoustic window: wall time ≤ 1.5 × the pure travel time.
-
-    The 1.25 × acceptance bound is on the whole scan (travel + windows), in test_devices_emulate;
-    here the fixed cost per step (write, one read, sleep granularity) weighs on 1.8 ms of travel alone.
-    """
-    steps = [math.radians(-10.0 + 120.0 * i / 183) for i in range(184)]
-    ratios = []
-    with DynamixelMotor(config(servo)) as motor:
-        for _ in range(2):  # best of two: a busy neighbour should not fail the build
-            motor.move_to(steps[0])
-            previous = servo.present_position()
-            bound = 0.0
-            start = time.perf_counter()
-            for gamma in steps:
-                goal = ax12.raw_from_gamma(gamma)
-                bound += ax12.travel_time_s(previous, goal, 0)
-                previous = goal
-                reading = motor.move_to(gamma)
-                assert reading.raw == goal and reading.status.voltage_v == pytest.approx(12.0)
-            ratios.append((time.perf_counter() - start) / bound)
-            if ratios[-1] <= 1.5:
-                break
-    assert bound == pytest.approx(0.339, abs=0.01)
-    assert min(ratios) <= 1.5, ratios

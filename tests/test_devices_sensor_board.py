@@ -72,8 +72,8 @@ def test_fire_waits_for_the_acoustic_window() -> None:
                 acq = drv.fire(step)
                 times.append(time.perf_counter() - start)
     window = 3500 / FS
-    # Never before the window ends; typically well within 1.25 × (the median shrugs off a busy neighbour).
-    assert min(times) >= window and float(np.median(times)) < 1.25 * window, times
+    # Never before the window ends (how soon after is `lelsonar bench acquire`'s to measure).
+    assert min(times) >= window, times
     np.testing.assert_allclose(acq.tof_s, 2 / 343.2, rtol=1e-6)
     # The stand-in's burst starts at the TOF sample.
     first = int(np.argmax(np.abs(acq.waveforms[0]) > 0.05))

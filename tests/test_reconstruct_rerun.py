@@ -368,3 +368,26 @@ def test_subset_view_checks_its_shapes():
     view = SubsetView("a", points, [True, False, True])
     points[0, 0] = 1.0
     assert view.points[0, 0] == 0.0 and not view.points.flags.writeable
+
+
+def test_long_waveforms_are_drawn_as_their_envelope(tmp_path):
+    path = tmp_path / "envelope.rrd"
+    rec = make_recording(recording_id="envelope")
+    rec.save(path)
+    rng = np.random.default_rng(5)
+    geometry = ArrayGeometry()
+    logger = ScanLogger(rec, "s1", 1, waveform_points=1000)
+    n = 3500
+    waves = rng.normal(0.0, 0.05, (4, n))
+    waves[2, 1234] = 0.9                                           # one sharp peak must survive
+    logger.step(0, T_START_NS, 0.0, np.full((4, 3), np.nan), geometry.capsule_positions(0.0), waves,
+                SAMPLE_RATE, T0, 1.0, 1.0, 1.0)
+    rec.flush()
+    rec.disconnect()
+    s = np.array(column(read_rrd(path)["/plots/waveforms/s1/scan_1"], "LineStrips2D:strips")[0], dtype=float)
+    assert s.shape == (4, 1000, 2)
+    volts = np.arange(4)[:, None] - s[:, :, 1]
+    np.testing.assert_allclose(volts.max(axis=1), waves.max(axis=1), atol=1e-6)
+    np.testing.assert_allclose(volts.min(axis=1), waves.min(axis=1), atol=1e-6)
+    assert np.all(np.diff(s[0, :, 0]) >= 0)                        # time still runs forward
+    assert s[0, 0, 0] == pytest.approx(T0 * 1e3) and s[0, -1, 0] == pytest.approx((T0 + (n - 1) / SAMPLE_RATE) * 1e3)

@@ -101,7 +101,7 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig) -> Iterator[SimScanner | De
             rig = stack.enter_context(emulated_rig(
                 sim_shot_source(sim, np.random.default_rng(cfg.seed)),
                 AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start))),
-                SensorBoardEmulatorConfig()))
+                SensorBoardEmulatorConfig(), zero_raw=int(sim.servo.to_raw(0.0))))
             motor_port, sensor_port = rig.motor.path, rig.board.path
             # A pty has no USB latency: a short packet timeout keeps the scan near the physical bound.
             latency_ms = 2.0

@@ -252,6 +252,11 @@ class ScanLogger:
         :func:`default_blueprint`.
     waveform_spacing : float
         Vertical distance between the capsules' waveform baselines, V.
+    waveform_points : int or None
+        Longer waveforms are drawn as their min/max envelope with about this
+        many vertices (``None``: every sample).  At 200 kHz a 40 kHz echo has
+        five samples a cycle, so at any screen width the trace is its envelope
+        anyway; full 3500-sample windows would make waveforms ~95 % of the file.
 
     Notes
     -----
@@ -274,9 +279,12 @@ class ScanLogger:
     """
 
     def __init__(self, rec: rr.RecordingStream, scanner_id: str, scan_id: int, *, root: str = "/",
-                 waveform_spacing: float = 1.0) -> None:
+                 waveform_spacing: float = 1.0, waveform_points: int | None = 1000) -> None:
         if not (np.isfinite(waveform_spacing) and waveform_spacing > 0):
             raise ConfigError(f"waveform_spacing must be > 0 V, got {waveform_spacing!r}")
+        if waveform_points is not None and waveform_points < 16:
+            raise ConfigError(f"waveform_points must be >= 16 or None, got {waveform_points!r}")
+        self.waveform_points = waveform_points
         self.rec = rec
         self.scanner_id = str(scanner_id)
         self.scan_id = int(scan_id)
@@ -306,6 +314,7 @@ class ScanLogger:
         self._drawn: set[tuple[str, str]] = set()   # (method, label) patches on screen
         self._strip_key: tuple[int, int, float, float] | None = None
         self._strip_x = np.empty(0, dtype=np.float32)
+        self._bin = 1
         self._baselines = np.empty((0, 1), dtype=np.float32)
 
         rec.log(self.world, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -428,16 +437,29 @@ class ScanLogger:
         rec.log(self.ratio, rr.Scalars(ratio))
 
     def _waveform_strips(self, w: np.ndarray, sample_rate: float, t0: float) -> np.ndarray:
-        """(k, n, 2) float32 strips: x = time after the ping in ms, y = stacked, negated volts."""
+        """(k, m, 2) float32 strips: x = time after the ping in ms, y = stacked, negated volts."""
         k, n = w.shape
         key = (k, n, sample_rate, t0)
         if self._strip_key != key:   # the window is the same for a whole scan: compute the axes once
             self._strip_key = key
-            self._strip_x = ((t0 + np.arange(n) / sample_rate) * 1e3).astype(np.float32)
+            t_ms = (t0 + np.arange(n) / sample_rate) * 1e3
+            self._bin = 1 if self.waveform_points is None else max(1, -(-2 * n // self.waveform_points))
+            if self._bin > 1:
+                # Each bin becomes two vertices, its min then its max, at the bin's first
+                # and last sample times: the envelope keeps every peak of the echo.  The
+                # last n mod bin samples (< bin, tens of µs after the window) are dropped.
+                n_bins = n // self._bin
+                t_bins = t_ms[: n_bins * self._bin].reshape(n_bins, self._bin)
+                t_ms = np.stack([t_bins[:, 0], t_bins[:, -1]], axis=1).reshape(-1)
+            self._strip_x = t_ms.astype(np.float32)
             self._baselines = np.arange(k, dtype=np.float32)[:, None] * np.float32(self.waveform_spacing)
+        if self._bin > 1:
+            n_bins = n // self._bin
+            binned = w[:, : n_bins * self._bin].reshape(k, n_bins, self._bin)
+            w = np.stack([binned.min(axis=2), binned.max(axis=2)], axis=2).reshape(k, -1)
         # A fresh array every time: Rerun keeps a zero-copy view of what it is given until
         # the batch is flushed, so reusing a buffer would rewrite earlier steps' waveforms.
-        strips = np.empty((k, n, 2), dtype=np.float32)
+        strips = np.empty((k, w.shape[1], 2), dtype=np.float32)
         strips[:, :, 0] = self._strip_x
         # 2D views point y down: negate so positive volts go up; capsule i sits at y = i·spacing.
         np.subtract(self._baselines, w, out=strips[:, :, 1])
