@@ -233,6 +233,24 @@ def _centidegrees(gamma: float) -> int:
     return int(round(math.degrees(gamma) * 100.0))
 
 
+def _min_max_envelope(w: np.ndarray, bin_: int) -> np.ndarray:
+    """(k, n) → (k, 2·(n // bin_)): each bin's min then max.
+
+    Element-wise passes over the bin's columns: numpy's ``min(axis=-1)`` over a
+    short last axis is about 7× slower, and this runs at every step.
+    """
+    k, n = w.shape
+    binned = w[:, : (n // bin_) * bin_].reshape(k, n // bin_, bin_)
+    out = np.empty((k, n // bin_, 2), dtype=np.float32)
+    lo, hi = out[:, :, 0], out[:, :, 1]
+    lo[...] = binned[:, :, 0]
+    hi[...] = binned[:, :, 0]
+    for j in range(1, bin_):
+        np.minimum(lo, binned[:, :, j], out=lo)
+        np.maximum(hi, binned[:, :, j], out=hi)
+    return out.reshape(k, -1)
+
+
 def _capsule_name(i: int) -> str:
     # The paper names the capsules A, B, C, D (Fig. 1).
     return chr(ord("A") + i) if i < 26 else str(i)
@@ -454,9 +472,7 @@ class ScanLogger:
             self._strip_x = t_ms.astype(np.float32)
             self._baselines = np.arange(k, dtype=np.float32)[:, None] * np.float32(self.waveform_spacing)
         if self._bin > 1:
-            n_bins = n // self._bin
-            binned = w[:, : n_bins * self._bin].reshape(k, n_bins, self._bin)
-            w = np.stack([binned.min(axis=2), binned.max(axis=2)], axis=2).reshape(k, -1)
+            w = _min_max_envelope(w, self._bin)
         # A fresh array every time: Rerun keeps a zero-copy view of what it is given until
         # the batch is flushed, so reusing a buffer would rewrite earlier steps' waveforms.
         strips = np.empty((k, w.shape[1], 2), dtype=np.float32)
