@@ -44,7 +44,8 @@ def test_entropy_is_in_unit_interval(r: np.ndarray) -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(arrays(np.float64, st.integers(2, 60), elements=st.floats(-10, 10)),
+@given(arrays(np.float64, st.integers(2, 60),
+              elements=st.floats(-10, 10).filter(lambda x: x == 0 or abs(x) > 1e-150)),
        st.floats(1e-6, 1e6).map(lambda c: c) | st.floats(-1e6, -1e-6))
 def test_entropy_is_invariant_to_scaling_the_residuals(r: np.ndarray, c: float) -> None:
     assert entropy_of_residuals(c * r) == pytest.approx(entropy_of_residuals(r), abs=1e-9)
@@ -180,7 +181,8 @@ def test_fast_lel_reaches_the_nelder_mead_minimum(seed: int) -> None:
 def test_fast_lel_keeps_the_best_of_several_starts() -> None:
     v, _ = plane_with_outliers(np.random.default_rng(7), frac=0.2)
     one = lel_fit_fast(v)
-    many = lel_fit_fast(v, extra_starts=six_starts(np.linalg.lstsq(v, np.ones(len(v)), rcond=None)[0])[1:])
+    many = lel_fit_fast(v, extra_starts=six_starts(np.linalg.lstsq(v, np.ones(len(v)), rcond=None)[0])[1:],
+                        front=False)
     assert many.starts == 6 and many.candidates.shape == (6, 3)
     assert many.entropy <= one.entropy + 1e-15
     assert many.entropy == pytest.approx(many.candidate_entropy.min())

@@ -168,11 +168,12 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
         for label, steps, axis in (("a", split.steps_a, AXIS_Y), ("b", split.steps_b, AXIS_Z)):
             data = F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, steps, label, axis)
             t_ls = F.ls_theta(data.points)
-            one = lel_fit_fast(data.points, t_ls)
-            six = lel_fit_fast(data.points, t_ls, extra_starts=six_starts(t_ls)[1:])
+            one = lel_fit_fast(data.points, t_ls, front=False)
+            two = lel_fit_fast(data.points, t_ls)
+            six = lel_fit_fast(data.points, t_ls, extra_starts=six_starts(t_ls)[1:], front=False)
             nm = lel_fit_nelder_mead(data.points, t_ls)
             tp = planes[label]
-            rows.append({**base, "method": "_hcheck", "plane": label, "H_fast1": one.entropy,
+            rows.append({**base, "method": "_hcheck", "plane": label, "H_fast1": one.entropy, "H_fast2": two.entropy,
                          "H_fast6": six.entropy, "H_nm": nm.entropy, "n": data.n,
                          "angle_fast1": _plane_errors(one.theta / np.linalg.norm(one.theta),
                                                       1 / np.linalg.norm(one.theta), tp.normal, tp.offset,
@@ -210,10 +211,12 @@ def _timings(repeats: int) -> dict[str, float]:
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     model = default_energy_model()
     return {
-        "fast LEL, 1 start (300 pts)": med(lambda: lel_fit_fast(v, t_ls), repeats),
-        "fast LEL, 6 starts (300 pts)": med(lambda: lel_fit_fast(v, t_ls, extra_starts=six_starts(t_ls)[1:]),
-                                            repeats),
-        "fast LEL, BFGS 1 start (300 pts)": med(lambda: lel_fit_fast(v, t_ls, solver="bfgs"), repeats),
+        "fast LEL, θ_LS + front starts (default, 300 pts)": med(lambda: lel_fit_fast(v, t_ls), repeats),
+        "fast LEL, θ_LS only (300 pts)": med(lambda: lel_fit_fast(v, t_ls, front=False), repeats),
+        "fast LEL, the paper's 6 starts (300 pts)":
+            med(lambda: lel_fit_fast(v, t_ls, extra_starts=six_starts(t_ls)[1:], front=False), repeats),
+        "fast LEL, SciPy BFGS, θ_LS + front (300 pts)": med(lambda: lel_fit_fast(v, t_ls, solver="bfgs"),
+                                                             repeats),
         "six-start Nelder-Mead (300 pts)": med(lambda: lel_fit_nelder_mead(v, t_ls), max(3, repeats // 10)),
         f"full scan, {DEFAULT_METHOD} ({scan.n_steps} steps)":
             med(lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model), repeats),
@@ -270,7 +273,7 @@ def run(args: argparse.Namespace) -> int:
     for col in ("scene", "method", "angle °", "offset cm", "patch cm", "patch/oracle", "catastr.", "fail",
                 "crit ±1", "ms/scan"):
         table.add_column(col, justify="right" if col not in ("scene", "method") else "left")
-    verdict_ok = True
+    misses: list[str] = []
     summary: dict[str, Any] = {}
     for scene in args.scenes:
         sr = [r for r in rows if r["scene"] == scene and r["method"] != "_hcheck"]
@@ -295,9 +298,13 @@ def run(args: argparse.Namespace) -> int:
                           "—" if method.startswith("oracle") else f"{100 * np.mean(crit_ok):.0f} %",
                           "—" if method.startswith("oracle") else f"{ms:.1f}", style=style)
             if method == DEFAULT_METHOD:
-                verdict_ok &= cat == 0 and (not crit_ok or all(crit_ok))
-                if scene.startswith("paper"):
-                    verdict_ok &= ratio <= 1.3
+                if cat:
+                    misses.append(f"{scene}: {cat} catastrophic plane fits")
+                if crit_ok and not all(crit_ok):
+                    misses.append(f"{scene}: critical step off by more than 1 in "
+                                  f"{sum(not c for c in crit_ok)} of {len(crit_ok)} scans")
+                if scene.startswith("paper") and not ratio <= 1.3:
+                    misses.append(f"{scene}: median patch error {ratio:.2f}× the oracle's (target ≤ 1.3×)")
         table.add_section()
     console.print(table)
 
@@ -310,15 +317,17 @@ def run(args: argparse.Namespace) -> int:
     hc = [r for r in rows if r["method"] == "_hcheck"]
     if hc:
         worse1 = [r for r in hc if r["H_fast1"] > r["H_nm"] * (1 + 1e-9)]
+        worse2 = [r for r in hc if r["H_fast2"] > r["H_nm"] * (1 + 1e-9)]
         worse6 = [r for r in hc if r["H_fast6"] > r["H_nm"] * (1 + 1e-9)]
-        gap = max((r["H_fast6"] - r["H_nm"]) / r["H_nm"] for r in hc)
-        console.print(f"H check on {len(hc)} plane subsets: fast LEL from θ_LS above the six-start Nelder-Mead H "
-                      f"(1e-9 rel.) in {len(worse1)}; fast LEL from the six starts in {len(worse6)} "
-                      f"(largest relative excess {gap:.2e}).  Angles: fast(θ_LS) median "
+        gap = max((r["H_fast2"] - r["H_nm"]) / r["H_nm"] for r in hc)
+        console.print(f"H check on {len(hc)} plane subsets, cases above the six-start Nelder-Mead H (1e-9 rel.): "
+                      f"fast LEL θ_LS only {len(worse1)}, θ_LS + front (default) {len(worse2)} (largest relative "
+                      f"excess {gap:.2e}), the paper's six starts {len(worse6)}.  Angles: fast(θ_LS) median "
                       f"{_p([r['angle_fast1'] for r in hc], 50):.3f}°, NM {_p([r['angle_nm'] for r in hc], 50):.3f}°; "
                       f"NM > 2° in {sum(r['angle_nm'] > 2 for r in hc)}, fast(θ_LS) > 2° in "
                       f"{sum(r['angle_fast1'] > 2 for r in hc)}")
-        verdict_ok &= not worse6
+        if worse2:
+            misses.append(f"fast LEL above the Nelder-Mead H in {len(worse2)} subsets")
 
     tt = Table(title="Timings (median, serial)")
     tt.add_column("what")
@@ -326,13 +335,13 @@ def run(args: argparse.Namespace) -> int:
     for k, v in timings.items():
         tt.add_row(k, f"{1e3 * v:.2f} ms")
     console.print(tt)
-    console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets its targets[/]" if verdict_ok
-                                                            else "[red]misses a target[/]"))
+    console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets its targets[/]" if not misses
+                                                            else "[red]misses: " + "; ".join(misses) + "[/]"))
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
             json.dump({"rows": rows, "timings": timings,
                        "summary": {f"{k[0]}|{k[1]}": v for k, v in summary.items()}}, f, default=float)
-    return 0 if verdict_ok else 1
+    return 0 if not misses else 1
 
 
 def main(argv: list[str] | None = None) -> int:

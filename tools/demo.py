@@ -84,6 +84,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
             session.liveliness().declare_subscriber("lelsonar/**", on_token, history=True)
             recon = spawn("reconstruct", ["reconstruct", "--json", "--until-scans", "1", "--rrd", str(rrd),
+                                          "--compare", "ls,paper,fcm-ransac",
                                           "--truth-preset", args.preset, *link],
                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
             planner = spawn("planner", ["planner", "--json", "--until-final", "1", "--timeout", "120", *link],

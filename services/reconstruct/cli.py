@@ -61,8 +61,8 @@ def _add_estimator_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("estimation")
     g.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(METHODS),
                    help=f"estimator of record (default: {DEFAULT_METHOD})")
-    g.add_argument("--compare", default="ls,paper", metavar="M1,M2",
-                   help="also run these at the end of each scan (default: ls,paper; '' for none)")
+    g.add_argument("--compare", default="ls", metavar="M1,M2",
+                   help="also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
     g.add_argument("--scan-timeout", type=float, default=10.0, metavar="S",
                    help="finalise a scan after S seconds of silence without ScanEnd (default: 10)")
 

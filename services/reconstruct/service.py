@@ -66,7 +66,7 @@ class ReconstructConfig:
     """
 
     method: str = DEFAULT_METHOD
-    compare_methods: tuple[str, ...] = ("ls", "paper")
+    compare_methods: tuple[str, ...] = ("ls",)
     refit_every: int = 4
     confirm_steps: int = 6
     confirm_ratio: float = 1.5
@@ -226,7 +226,7 @@ class ReconstructionService:
             expected = float(scan.energy_model.expected_energy(d_m)) if np.isfinite(d_m) else 0.0
             self._observer.step(scan, scan.latest, float(energy[i]), expected, float(ratio[i]))
         if p.critical is None:
-            peak = critical_step(ratio)
+            peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
             if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
                 return []
             if ratio[peak] < self.config.confirm_ratio * float(np.median(ratio)):
