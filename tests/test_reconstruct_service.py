@@ -61,12 +61,12 @@ def test_final_estimate_does_not_depend_on_arrival_order(scan_messages):
     rng = np.random.default_rng(7)
     shuffled = [samples[i] for i in rng.permutation(len(samples))]
     # Samples before their ScanStart, duplicates, and the end before the last samples.
-    mixed = shuffled[:5] + [start] + shuffled[5:150] + [end] + shuffled[150:] + shuffled[:10]
+    mixed = shuffled[:5] + [start] + shuffled[5:150] + shuffled[20:23] + [end] + shuffled[150:] + shuffled[:10]
     service = ReconstructionService()
     out_of_order = finals(feed(service, mixed))
     assert len(out_of_order) == 1
     assert comparable(out_of_order[0]) == comparable(in_order[0])
-    assert service.ingest.rejected["DuplicateSample"] == 10
+    assert service.ingest.rejected == {"DuplicateSample": 3, "LateMessage": 10}
 
 
 def test_malformed_payloads_are_counted_and_valid_samples_keep_flowing(scan_messages):
@@ -135,3 +135,21 @@ def test_several_scanners_are_kept_apart():
     got = finals(feed(service, interleaved))
     assert {g.scanner_id for g in got} == {"left", "right"}
     assert set(service.latest) == {"left", "right"}
+
+
+def test_a_backlog_costs_one_refit_not_one_per_sample(scan_messages):
+    now = [0.0]
+    service = ReconstructionService(clock=lambda: now[0])
+    start, samples = scan_messages[0], scan_messages[1:-1]
+    service.handle(type_name(start), start.SerializeToString())
+    burst = []
+    for m in samples[:120]:
+        burst += service.handle(type_name(m), m.SerializeToString(), busy=True)
+    assert burst == []  # the clock did not move: everything waited for the backlog
+    (caught_up,) = service.tick()
+    assert present.status_name(caught_up) == "provisional" and caught_up.samples_used == 120
+    now[0] = 0.3  # past max_provisional_delay: even a busy service refits now
+    more = []
+    for m in samples[120:130]:
+        more += service.handle(type_name(m), m.SerializeToString(), busy=True)
+    assert [e.samples_used for e in more] == [120 + service.config.refit_every]

@@ -36,9 +36,8 @@ class ScanPublisher:
         block = zenoh.CongestionControl.BLOCK
         self._sample = session.declare_publisher(
             keys.sample, encoding=zenoh.Encoding(codec.encoding_name(codec.Sample())), congestion_control=block)
-        # Start and end are rare and must not be dropped either.
-        self._scan = session.declare_publisher(keys.scan, congestion_control=block,
-                                               priority=zenoh.Priority.INTERACTIVE_HIGH)
+        # Same priority as the samples, so start, samples and end stay in order on the link.
+        self._scan = session.declare_publisher(keys.scan, congestion_control=block)
 
     def publish(self, message: Message) -> None:
         payload = message.SerializeToString()

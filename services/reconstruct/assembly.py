@@ -15,7 +15,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.energy import EnergyModel, total_energy, waveform_energy
+from lelsonar.reconstruct.energy import EnergyModel, median_range, total_energy, waveform_energy
 
 
 def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
@@ -56,6 +56,9 @@ class ScanAssembly:
     gamma: np.ndarray = field(init=False)            # (steps,) rad, NaN until received
     distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
     sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s
+    step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. 11
+    expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. 12
+    ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m); 0 without a valid range
     time_ns: np.ndarray = field(init=False)          # (steps,)
     received: np.ndarray = field(init=False)         # (steps,) bool
     end: codec.ScanEnd | None = None
@@ -69,6 +72,9 @@ class ScanAssembly:
         self.gamma = np.full(n, np.nan)
         self.distance = np.full((n, k), np.nan)
         self.sensor_energy = np.zeros((n, k))
+        self.step_energy = np.zeros(n)
+        self.expected_energy = np.zeros(n)
+        self.ratio = np.zeros(n)
         self.time_ns = np.zeros(n, dtype=np.int64)
         self.received = np.zeros(n, dtype=bool)
 
@@ -117,6 +123,12 @@ class ScanAssembly:
         self.gamma[step] = sample.gamma_measured
         self.distance[step] = distance
         self.sensor_energy[step] = waveform_energy(waveforms, rate)
+        # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
+        self.step_energy[step] = total_energy(self.sensor_energy[step])
+        d_m = median_range(distance[None, :])[0]
+        if np.isfinite(d_m):
+            self.expected_energy[step] = float(self.energy_model.expected_energy(d_m))
+            self.ratio[step] = self.step_energy[step] / self.expected_energy[step]
         self.time_ns[step] = sample.acquisition_time_ns
         self.received[step] = True
         self.latest = StepView(step, sample.acquisition_time_ns, sample.gamma_measured, distance, waveforms, rate,
@@ -124,9 +136,9 @@ class ScanAssembly:
         return True
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """``(steps, gamma, distance, step_energy)`` of the received steps, in step order."""
+        """``(steps, gamma, distance, ratio)`` of the received steps, in step order."""
         steps = np.flatnonzero(self.received)
-        return steps, self.gamma[steps], self.distance[steps], total_energy(self.sensor_energy[steps])
+        return steps, self.gamma[steps], self.distance[steps], self.ratio[steps]
 
     def raw_points(self, step: int) -> np.ndarray:
         """Eq. (9) points of one received step, (k, 3); NaN rows where no echo."""

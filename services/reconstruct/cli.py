@@ -76,11 +76,12 @@ def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--spawn", action="store_true", help="spawn a local Rerun viewer")
 
 
-def _config(args: argparse.Namespace):
+def _config(args: argparse.Namespace, *, provisional: bool = True):
     from lelsonar.reconstruct.service import ReconstructConfig
 
     compare = tuple(m for m in args.compare.split(",") if m and m != args.method)
-    return ReconstructConfig(method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout)
+    return ReconstructConfig(method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout,
+                             provisional=provisional)
 
 
 def _stop_on_signals() -> threading.Event:
@@ -110,7 +111,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from lelsonar.transport import open_session, zenoh_settings_from_args
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
-    config = _config(args)
+    # A batch replay needs no provisional estimates: the finals are computed from scratch anyway.
+    config = _config(args, provisional=args.source is None or args.publish or bool(args.rrd))
     console = present.console(stderr=True)
     finals = threading.Event()
     n_final = 0

@@ -56,7 +56,9 @@ class Ingest:
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
     max_scans: int = 256
     max_pending: int = 4096
+    max_closed: int = 4096
     scans: OrderedDict[ScanKey, ScanAssembly] = field(default_factory=OrderedDict)
+    closed: OrderedDict[ScanKey, None] = field(default_factory=OrderedDict)
     pending: OrderedDict[ScanKey, list[codec.Sample]] = field(default_factory=OrderedDict)
     rejected: Counter[str] = field(default_factory=Counter)
     accepted: int = 0
@@ -79,6 +81,8 @@ class Ingest:
     def apply(self, message) -> list[Accepted | Rejected]:
         """Apply an already validated message."""
         key = (message.scanner_id, message.scan_id)
+        if key in self.closed:
+            return [self._reject("LateMessage", f"{type(message).__name__} for scan {key}, already finalised")]
         if isinstance(message, codec.ScanStart):
             return self._start(key, message)
         scan = self.scans.get(key)
@@ -92,8 +96,13 @@ class Ingest:
         self.accepted += 1
         return [Accepted("end", scan)]
 
-    def forget(self, key: ScanKey) -> None:
+    def close(self, key: ScanKey) -> None:
+        """The scan is finalised: drop its data; later messages for it are rejected as late."""
         self.scans.pop(key, None)
+        self.pending.pop(key, None)
+        self.closed[key] = None
+        while len(self.closed) > self.max_closed:
+            self.closed.popitem(last=False)
 
     def drop_pending(self, key: ScanKey) -> list[Rejected]:
         """Give up on samples whose ScanStart never came (called on timeout)."""

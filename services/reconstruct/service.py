@@ -11,7 +11,9 @@ Per scan (paper §4–5, made incremental):
    scan's typical R and enough steps have followed it — plane a (the subset
    before the peak) is estimated;
 3. as later samples arrive, plane b is re-estimated every ``refit_every``
-   steps, warm-started from its previous estimate;
+   steps, warm-started from its previous estimate — but while a backlog waits
+   (``handle(..., busy=True)``) only every ``max_provisional_delay``, so a
+   burst costs one refit, not one per sample;
 4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
    silence, the whole scan is reconstructed from scratch with the chosen
    method and the comparison methods, and published as final.
@@ -33,7 +35,6 @@ from lelsonar.reconstruct import fit as F
 from lelsonar.reconstruct import wire
 from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
-from lelsonar.reconstruct.energy import energy_ratio, median_range
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
@@ -58,6 +59,11 @@ class ReconstructConfig:
         Steps that must follow the R peak before it is trusted.
     confirm_ratio : float
         The peak must exceed this multiple of the median R so far.
+    provisional : bool
+        Publish provisional estimates while a scan arrives (off for a batch replay,
+        whose finals do not depend on them).
+    max_provisional_delay : float
+        s; under a backlog, a scan still gets a provisional estimate this often.
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -70,6 +76,9 @@ class ReconstructConfig:
     refit_every: int = 4
     confirm_steps: int = 6
     confirm_ratio: float = 1.5
+    provisional: bool = True
+    max_provisional_delay: float = 0.25
+    keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
@@ -107,9 +116,9 @@ class Partial:
     plane_a: PlaneResult | None = None
     plane_b: PlaneResult | None = None
     steps_at_fit: int = 0
+    estimated_at: float = 0.0
     last_activity: float = 0.0
     ended_at: float | None = None
-    final: codec.Reconstruction | None = None
 
 
 @dataclass
@@ -137,31 +146,37 @@ class ReconstructionService:
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
         #: Final estimates, per scan, in the order they were made.
-        self.finals: dict[ScanKey, codec.Reconstruction] = {}
+        self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
         self.stats = ServiceStats()
 
     # --- input ---------------------------------------------------------------------------
-    def handle(self, type_name: str, payload: bytes) -> list[codec.Reconstruction]:
-        """Apply one payload; return the estimates it produced (also published)."""
+    def handle(self, type_name: str, payload: bytes, *, busy: bool = False) -> list[codec.Reconstruction]:
+        """Apply one payload; return the estimates it produced (also published).
+
+        ``busy``: more payloads are already waiting, so a provisional refit can wait
+        for them (see ``max_provisional_delay``); :meth:`tick` catches up.
+        """
         out: list[codec.Reconstruction] = []
         for event in self.ingest.accept(type_name, payload):
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue
-            out += self._on_accepted(event)
+            out += self._on_accepted(event, busy)
         for key in self.ingest.pending:
             self._pending_since.setdefault(key, self._clock())
         self.stats.rejected = dict(self.ingest.rejected)
         return out
 
     def tick(self) -> list[codec.Reconstruction]:
-        """Finalise scans whose ScanEnd came (after the grace) or that went silent."""
+        """Catch up on deferred provisional estimates; finalise scans whose ScanEnd came
+        (after the grace) or that went silent."""
         now = self._clock()
         out: list[codec.Reconstruction] = []
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
-            if scan is None or p.final is not None:
+            if scan is None:
                 continue
+            out += self._provisional(scan, p)
             if p.ended_at is not None and now - p.ended_at >= self.config.end_grace:
                 out.append(self._finalise(scan, p, "final"))
             elif p.ended_at is None and now - p.last_activity >= self.config.scan_timeout:
@@ -185,7 +200,7 @@ class ReconstructionService:
         out = []
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
-            if scan is not None and p.final is None:
+            if scan is not None:
                 status = "final" if scan.end is not None else "final_timeout"
                 if status == "final_timeout":
                     self._event("WARNING", f"scan {key} has no ScanEnd; finalised as FINAL_TIMEOUT")
@@ -194,7 +209,7 @@ class ReconstructionService:
         return out
 
     # --- the incremental estimate ---------------------------------------------------------
-    def _on_accepted(self, event: Accepted) -> list[codec.Reconstruction]:
+    def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
         scan = event.scan
         p = self._partials.setdefault(scan.key, Partial())
         p.last_activity = self._clock()
@@ -210,21 +225,21 @@ class ReconstructionService:
                                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                         end.end_time_ns)
             return [self._finalise(scan, p, "final")] if scan.complete else []
-        if p.final is not None:
-            return []  # a straggler after the final estimate: counted in the assembly, not re-estimated
-        out = self._update(scan, p, event.step)
-        if p.ended_at is not None and scan.complete:
-            out.append(self._finalise(scan, p, "final"))
-        return out
-
-    def _update(self, scan: ScanAssembly, p: Partial, step: int) -> list[codec.Reconstruction]:
-        steps, gamma, distance, energy = scan.arrays()
-        ratio = energy_ratio(energy, distance, scan.energy_model)
+        step = event.step
         if self._observer and scan.latest is not None and scan.latest.step == step:
-            i = int(np.searchsorted(steps, step))
-            d_m = median_range(distance[i:i + 1])[0]
-            expected = float(scan.energy_model.expected_energy(d_m)) if np.isfinite(d_m) else 0.0
-            self._observer.step(scan, scan.latest, float(energy[i]), expected, float(ratio[i]))
+            self._observer.step(scan, scan.latest, float(scan.step_energy[step]),
+                                float(scan.expected_energy[step]), float(scan.ratio[step]))
+        if p.ended_at is not None and scan.complete:
+            return [self._finalise(scan, p, "final")]
+        if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
+            return []  # the backlog's later samples will be in the next refit
+        return self._provisional(scan, p)
+
+    def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
+        """Confirm the corner, then (re)fit plane b when enough new steps have come."""
+        if not self.config.provisional:
+            return []
+        steps, _, _, ratio = scan.arrays()
         if p.critical is None:
             peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
             if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
@@ -238,6 +253,7 @@ class ReconstructionService:
             p.plane_a = fit_plane(p.data_a, self.config.method, options=self._options)
         elif len(steps) - p.steps_at_fit < self.config.refit_every:
             return []
+        p.estimated_at = self._clock()
         t0 = time.perf_counter()
         warm = p.plane_b.theta if isinstance(p.plane_b, PlaneFit) else None
         p.data_b = self._plane_data(scan, "b", p.critical)
@@ -277,8 +293,12 @@ class ReconstructionService:
             last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
             critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
             timings=(t.segmentation, t.fit, t.total))
-        p.final = msg
+        # The scan is done: forget its state; a straggler is then rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
         self.finals[scan.key] = msg
+        while len(self.finals) > self.config.keep_finals:
+            self.finals.pop(next(iter(self.finals)))
         self.stats.finals += 1
         summary = "; ".join(
             f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -91,16 +92,18 @@ class LiveSource:
     """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
-                 stop: threading.Event, *, fifo_capacity: int = 4096, tick_s: float = 0.1,
+                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
                  record: McapRecorder | None = None) -> None:
         self._service = service
         self._stop = stop
         self._tick_s = tick_s
         self._record = record
+        # Bounded: a full queue blocks the drain threads, the FIFOs fill, and Zenoh's BLOCK
+        # congestion control slows the publisher instead of this process growing without bound.
         self._queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=fifo_capacity)
         self._subscribers = [
             session.declare_subscriber(keys.sample, zenoh.handlers.FifoChannel(fifo_capacity)),
-            session.declare_subscriber(keys.scan, zenoh.handlers.FifoChannel(256)),
+            session.declare_subscriber(keys.scan, zenoh.handlers.FifoChannel(64)),
         ]
         self._threads = [threading.Thread(target=self._drain, args=(s,), name=f"drain-{i}", daemon=True)
                          for i, s in enumerate(self._subscribers)]
@@ -116,7 +119,10 @@ class LiveSource:
         self._stop.set()
         for s in self._subscribers:
             s.undeclare()  # ends the drain threads' recv()
-        self._queue.put(_STOP)
+        try:
+            self._queue.put_nowait(_STOP)
+        except queue.Full:
+            pass  # the processing thread sees the stop flag within one tick
         for t in self._threads:
             t.join(timeout=5)
 
@@ -128,21 +134,26 @@ class LiveSource:
             pass  # undeclared during shutdown
 
     def _process(self) -> None:
-        while True:
+        last_tick = 0.0
+        while not self._stop.is_set():
             try:
-                encoding, payload = self._queue.get(timeout=self._tick_s)
+                item = self._queue.get(timeout=self._tick_s)
             except queue.Empty:
-                encoding, payload = None, b""
-            if (encoding, payload) == _STOP:
+                item = None
+            if item == _STOP:
                 return
             try:
-                if encoding is not None:
-                    media, _, type_name = encoding.partition(";")
-                    for msg in self._service.handle(type_name if media == "application/protobuf" else encoding,
-                                                    payload):
+                if item is not None:
+                    media, _, type_name = item[0].partition(";")
+                    # With more payloads waiting, a provisional refit waits for them too.
+                    for msg in self._service.handle(type_name if media == "application/protobuf" else item[0],
+                                                    item[1], busy=not self._queue.empty()):
                         self._record_estimate(msg)
-                for msg in self._service.tick():
-                    self._record_estimate(msg)
+                now = time.monotonic()
+                if self._queue.empty() or now - last_tick >= self._tick_s:
+                    last_tick = now
+                    for msg in self._service.tick():
+                        self._record_estimate(msg)
             except LelsonarError as exc:  # e.g. a publish that failed validation: log, count, keep serving
                 self.errors += 1
                 _log.error("processing failed: %s", exc)
