@@ -114,9 +114,14 @@ def pack_waveform(
                     sample_rate=sample_rate, t0=t0, sample_count=v.size)
 
 
-def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS) -> np.ndarray:
-    """Validated samples of a packed waveform as float32 volts, shape ``(sample_count,)``."""
-    _check_waveform(waveform, limits, where="waveform")
+def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS, *,
+                    validated: bool = False) -> np.ndarray:
+    """Validated samples of a packed waveform as float32 volts, shape ``(sample_count,)``.
+
+    ``validated=True`` skips the checks for a waveform of a message that :func:`decode` returned.
+    """
+    if not validated:
+        _check_waveform(waveform, limits, where="waveform")
     if waveform.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE:
         return np.frombuffer(waveform.data, dtype="<f4").astype(np.float32, copy=False)
     # Scale in float64, round once to float32: at most half a count plus half a float32 ulp off.

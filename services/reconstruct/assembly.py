@@ -114,7 +114,7 @@ class ScanAssembly:
         for s in sample.sensors:
             if s.echo_valid:
                 distance[s.capsule_id] = s.distance
-            waves[s.capsule_id] = codec.unpack_waveform(s.waveform)
+            waves[s.capsule_id] = codec.unpack_waveform(s.waveform, validated=True)  # ingest decoded it
         lengths = {w.size for w in waves}
         if len(lengths) != 1:
             raise InvalidMessageError(f"sample {step} has waveforms of different lengths {sorted(lengths)}")

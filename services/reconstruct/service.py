@@ -293,9 +293,6 @@ class ReconstructionService:
             last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
             critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
             timings=(t.segmentation, t.fit, t.total))
-        # The scan is done: forget its state; a straggler is then rejected as late.
-        self._partials.pop(scan.key, None)
-        self.ingest.close(scan.key)
         self.finals[scan.key] = msg
         while len(self.finals) > self.config.keep_finals:
             self.finals.pop(next(iter(self.finals)))
@@ -308,7 +305,11 @@ class ReconstructionService:
                     + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""))
         if self._observer:
             self._observer.estimate(scan, msg, results, p)
-        return self._emit(msg)
+        self._emit(msg)
+        # The scan is done: forget its state; a straggler is then rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
+        return msg
 
     def _emit(self, msg: codec.Reconstruction) -> codec.Reconstruction:
         self.latest[msg.scanner_id] = msg
