@@ -8,7 +8,6 @@ import subprocess
 import sys
 import threading
 
-import pytest
 import zenoh
 
 from lelsonar import codec, recording

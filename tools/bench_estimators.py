@@ -44,12 +44,13 @@ import dataclasses
 import json
 import math
 import os
-import platform
 import time
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
+
+from lelsonar.tools.bench import machine
 
 DEFAULT_SCENES = ("paper-test1", "paper-test2", "tilted", "tilted-roll5", "tilted-b8")
 
@@ -225,17 +226,6 @@ def _timings(repeats: int) -> dict[str, float]:
     }
 
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def _p(x: list[float], q: float) -> float:
     a = np.asarray([v for v in x if np.isfinite(v)])
     return float(np.percentile(a, q)) if a.size else float("nan")
@@ -267,8 +257,7 @@ def run(args: argparse.Namespace) -> int:
     timings = _timings(args.timing_repeats)
 
     console.print(f"[bold]lelsonar bench estimators[/] — {len(seeds)} seeds × {len(args.scenes)} scenes, "
-                  f"nproc={os.cpu_count()}, CPU: {_cpu_model()}, Python {platform.python_version()}, "
-                  f"numpy {np.__version__}; accuracy runs {wall:.0f} s on {args.jobs} workers")
+                  f"{machine()}, numpy {np.__version__}; accuracy runs {wall:.0f} s on {args.jobs} workers")
     table = Table(title="Plane errors per scene and method (planes a and b pooled; median / p95)")
     for col in ("scene", "method", "angle °", "offset cm", "patch cm", "patch/oracle", "catastr.", "fail",
                 "crit ±1", "ms/scan"):

@@ -6,8 +6,6 @@ A module with ``add_arguments(parser)`` and ``run(args) -> int``.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import time
 
@@ -19,21 +17,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget", type=float, default=0.5, help="target seconds per scan (default: %(default)s)")
 
 
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lelsonar.acquire.sim import preset, simulate_scan
+    from lelsonar.tools.bench import machine
     from lelsonar.errors import ConfigError
 
     if args.runs < 1:
@@ -50,8 +38,7 @@ def run(args: argparse.Namespace) -> int:
         rows.append((with_waveforms, statistics.median(times), min(times), max(times)))
 
     n_samples = cfg.steps * cfg.geometry.n_capsules * cfg.window_samples
-    print(f"machine: {_cpu_model()}, {os.cpu_count()} CPUs, {platform.system()} {platform.release()}")
-    print(f"python {platform.python_version()}, numpy {np.__version__}")
+    print(f"machine: {machine()}, numpy {np.__version__}")
     print(f"preset {args.preset}: {cfg.steps} steps × {cfg.geometry.n_capsules} capsules × "
           f"{cfg.window_samples} samples ({n_samples / 1e6:.2f} M samples), {args.runs} runs")
     print(f"{'waveforms':>10} {'median s':>10} {'min s':>8} {'max s':>8}")

@@ -218,7 +218,7 @@ def run_planner(args: argparse.Namespace) -> int:
 
     with open_session(zenoh_settings_from_args(args)) as session:
         sub = session.declare_subscriber(keys.planes, zenoh.handlers.FifoChannel(256))
-        token = session.liveliness().declare_token(keys.alive("planner"))  # held until the session closes
+        token = session.liveliness().declare_token(keys.alive("planner"))
 
         def drain() -> None:
             try:
@@ -239,6 +239,7 @@ def run_planner(args: argparse.Namespace) -> int:
         while not (stop.is_set() or done.is_set()):
             stop.wait(0.2)
         sub.undeclare()
+        token.undeclare()
     if args.until_final and not done.is_set():
         print(f"planner: no final estimate within {args.timeout:.0f} s", file=sys.stderr)
         return 1

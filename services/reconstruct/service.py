@@ -37,8 +37,8 @@ from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
-from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
-from lelsonar.reconstruct.split import critical_step, split_subsets
+from lelsonar.reconstruct.results import PlaneFit, PlaneResult, ScanReconstruction
+from lelsonar.reconstruct.split import critical_step
 
 _log = logging.getLogger(__name__)
 
