@@ -54,9 +54,8 @@ def contract_tables(prefix: str = "lelsonar", scanner: str = "<scanner_id>"):
         t.add_column("type")
         t.add_column("unit / meaning", overflow="fold")
         for f in cls.DESCRIPTOR.fields:
-            kind = f.message_type.full_name if f.message_type else (f.enum_type.full_name if f.enum_type else f.type)
-            if not f.message_type and not f.enum_type:
-                kind = _SCALAR_NAMES.get(f.type, str(f.type))
+            named = f.message_type or f.enum_type
+            kind = named.full_name if named else _SCALAR_NAMES.get(f.type, str(f.type))
             t.add_row(str(f.number), f.name, ("repeated " if _is_repeated(f) else "") + str(kind),
                       comments.get((cls.DESCRIPTOR.name, f.name), ""))
         tables.append(t)

@@ -12,7 +12,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import zenoh
@@ -58,7 +58,6 @@ class ScanOutput:
     recorder: McapRecorder | None = None
     publisher: ScanPublisher | None = None
     publish_failures: int = 0
-    sent: list[str] = field(default_factory=list)
 
     def emit(self, message: Message) -> None:
         if self.recorder is not None:

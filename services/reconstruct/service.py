@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -125,8 +125,7 @@ class Partial:
 class ServiceStats:
     estimates: int = 0
     finals: int = 0
-    timeouts: int = 0
-    rejected: dict[str, int] = field(default_factory=dict)
+    timeouts: int = 0  # rejected input is counted by error type in ingest.rejected
 
 
 class ReconstructionService:
@@ -164,7 +163,6 @@ class ReconstructionService:
             out += self._on_accepted(event, busy)
         for key in self.ingest.pending:
             self._pending_since.setdefault(key, self._clock())
-        self.stats.rejected = dict(self.ingest.rejected)
         return out
 
     def tick(self) -> list[codec.Reconstruction]:
@@ -192,7 +190,6 @@ class ReconstructionService:
                 del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
-        self.stats.rejected = dict(self.ingest.rejected)
         return out
 
     def finish(self) -> list[codec.Reconstruction]:
