@@ -69,6 +69,8 @@ from lelsonar.geometry import ArrayGeometry, beam_points
 
 from . import fit as F
 from .baseline import fuzzy_c_means, ransac_plane
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, fit_corner_model,
+                           scan_points)
 from .correct import AXIS_Y, AXIS_Z, corrected_points
 from .energy import EnergyModel, energy_ratio, total_energy
 from .lel import LelResult, lel_fit_fast, lel_fit_nelder_mead, six_starts
@@ -138,6 +140,8 @@ class FitOptions:
     critical_peak_fraction: float = 0.04
     seed: int = 0
     ransac_iterations: int = 200
+    corner_beam_half_angle: float = float(np.deg2rad(50.0))
+    corner_tolerance: float = 0.02
 
     def __post_init__(self) -> None:
         if not 0 < self.prefilter_fraction <= 1:
@@ -173,9 +177,10 @@ class Method:
     fit_plane : callable or None
         Fits one subset (:data:`PlaneEstimator`); the pipeline splits the scan.
     fit_scan : callable or None
-        Fits the whole scan itself (``"fcm-ransac"``, which does its own
-        segmentation): ``(gamma, distance, ratio, geometry, options) ->
-        (plane_a, plane_b)``.
+        Fits the whole scan itself (``"corner"`` and ``"fcm-ransac"``, which do
+        their own segmentation): ``(gamma, distance, ratio, geometry, options)
+        -> (plane_a, plane_b, critical_step or None)``; a critical step
+        replaces the energy peak's (None keeps it).
     """
 
     name: str
@@ -409,6 +414,50 @@ def _fit_constant_depth(data: F.PlaneData, warm: np.ndarray | None, opts: FitOpt
                             model="constant-depth")
 
 
+def _tilt_checked(data: F.PlaneData, first: PlaneFit, opts: FitOptions, method: str, *,
+                  prefilter: bool = True) -> PlaneResult:
+    """Keep ``first``'s corrected-points normal unless a χ² test shows a tilted wall (see ``"adaptive"``).
+
+    Fits the constant-depth LS on ``first``'s inliers; if the corrected-points
+    normal is more than ``opts.tilt_test_sigma`` σ from it, returns the
+    constant-depth plane, else ``first``'s normal with the offset from the
+    mirror-echo condition over the inliers.  ``prefilter`` re-selects the
+    constant-depth inliers with the §5.3 pre-filter (for subsets that still hold
+    outliers); without it the inliers stay ``first``'s.
+    """
+    t0 = time.perf_counter()
+    mask = first.inlier_mask
+    n_cd, h_cd, nit = F.constant_depth_ls(data.capsules, data.distance, first.normal, first.offset, mask)
+    r = data.capsules @ n_cd + data.distance - h_cd
+    mask_cd = F.prefilter_mask(r, opts.prefilter_fraction) if prefilter else mask
+    if np.count_nonzero(mask_cd) >= 4:
+        n_cd, h_cd, nit2 = F.constant_depth_ls(data.capsules, data.distance, n_cd, h_cd, mask_cd)
+        nit += nit2
+    else:
+        mask_cd = mask
+    theta_cd = n_cd / h_cd
+    cov = F.theta_covariance(theta_cd, data.capsules, data.distance, mask_cd)
+    jn = (np.eye(3) - np.outer(n_cd, n_cd)) * h_cd
+    cov_n = jn @ cov @ jn.T
+    dn = first.normal - n_cd
+    chi2 = float(dn @ np.linalg.pinv(cov_n, rcond=1e-10, hermitian=True) @ dn) if np.all(np.isfinite(cov_n)) else 0.0
+    tilted = chi2 > opts.tilt_test_sigma**2 and F.mirror_consistent(n_cd, data.beam, opts.beam_half_angle)
+    angle = np.rad2deg(np.arccos(np.clip(first.normal @ n_cd, -1.0, 1.0)))
+    note = (f"tilt test: corrected-points normal {angle:.2f}° from the constant-depth normal, "
+            f"chi2 = {chi2:.1f} -> " + ("constant-depth plane" if tilted else "corrected-points normal, "
+                                        "mirror-echo offset"))
+    d = first.diagnostics
+    diag = SolverDiagnostics(solver=d.solver + "; constant-depth gauss-newton", starts=d.starts,
+                             iterations=d.iterations + nit, evaluations=d.evaluations + nit,
+                             time_s=d.time_s + time.perf_counter() - t0, converged=d.converged,
+                             notes=d.notes + (note,))
+    if tilted:
+        return F.make_plane_fit(data, theta_cd, method=method, inlier_mask=mask_cd, diagnostics=diag,
+                                model="constant-depth")
+    h = float(np.mean(data.capsules[mask] @ first.normal + data.distance[mask]))
+    return F.make_plane_fit(data, first.normal / h, method=method, inlier_mask=mask, diagnostics=diag)
+
+
 def _fit_adaptive(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> PlaneResult:
     """``"lel-refit-ls"`` on the corrected points, checked against the mirror-echo model.
 
@@ -429,45 +478,101 @@ def _fit_adaptive(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) 
        correction's offset bias on walls it gets the direction of (e.g. a wall
        yawed about z, where the corrected points sit on a plane ~2 mm too near).
     """
-    t0 = time.perf_counter()
     first = _fit_lel_refit_ls(data, warm, opts)
     if not isinstance(first, PlaneFit):
         return first
-    mask = first.inlier_mask
-    n_cd, h_cd, nit = F.constant_depth_ls(data.capsules, data.distance, first.normal, first.offset, mask)
-    r = data.capsules @ n_cd + data.distance - h_cd
-    mask_cd = F.prefilter_mask(r, opts.prefilter_fraction)
-    if np.count_nonzero(mask_cd) >= 4:
-        n_cd, h_cd, nit2 = F.constant_depth_ls(data.capsules, data.distance, n_cd, h_cd, mask_cd)
-        nit += nit2
+    return _tilt_checked(data, first, opts, "adaptive")
+
+
+# --------------------------------------------------------------------------- joint corner model (scan level)
+
+def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
+                 note: str) -> PlaneResult:
+    """One wall of the joint model, refined on its own echoes.
+
+    The paper-corrected points (§4) give the most precise normal when the wall
+    is axis-aligned; the joint model (mirror and edge echoes together) is
+    unbiased whatever the tilt.  If the LS normal of the corrected points
+    (eq. 15) agrees with the joint normal within ``opts.tilt_test_sigma`` of the
+    joint standard error, keep it with the offset from the mirror-echo
+    condition; otherwise keep the joint wall.  Either way the reported
+    standard errors are the joint model's at least: the corrected points
+    cannot see a tilt below that, so their own covariance would overclaim.
+    """
+    mask = np.ones(data.n, dtype=bool)
+    theta_p = F.ls_theta(data.points)
+    n_p = theta_p / np.linalg.norm(theta_p)
+    se_n, se_h = wall_se
+    angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
+    agree = np.isfinite(se_n) and angle <= opts.tilt_test_sigma * se_n
+    if agree:
+        h = float(np.mean(data.capsules @ n_p + data.distance))
+        theta, model = n_p / h, "paper"
     else:
-        mask_cd = mask
-    theta_cd = n_cd / h_cd
-    cov = F.theta_covariance(theta_cd, data.capsules, data.distance, mask_cd)
-    jn = (np.eye(3) - np.outer(n_cd, n_cd)) * h_cd
-    cov_n = jn @ cov @ jn.T
-    dn = first.normal - n_cd
-    chi2 = float(dn @ np.linalg.pinv(cov_n, rcond=1e-10, hermitian=True) @ dn) if np.all(np.isfinite(cov_n)) else 0.0
-    tilted = chi2 > opts.tilt_test_sigma**2 and F.mirror_consistent(n_cd, data.beam, opts.beam_half_angle)
-    angle = np.rad2deg(np.arccos(np.clip(first.normal @ n_cd, -1.0, 1.0)))
-    note = (f"tilt test: corrected-points normal {angle:.2f}° from the constant-depth normal, "
-            f"chi2 = {chi2:.1f} -> " + ("constant-depth plane" if tilted else "corrected-points normal, "
-                                        "mirror-echo offset"))
-    d = first.diagnostics
-    diag = SolverDiagnostics(solver=d.solver + "; constant-depth gauss-newton", starts=d.starts,
-                             iterations=d.iterations + nit, evaluations=d.evaluations + nit,
-                             time_s=time.perf_counter() - t0, converged=d.converged, notes=d.notes + (note,))
-    if tilted:
-        return F.make_plane_fit(data, theta_cd, method="adaptive", inlier_mask=mask_cd, diagnostics=diag,
-                                model="constant-depth")
-    h = float(np.mean(data.capsules[mask] @ first.normal + data.distance[mask]))
-    return F.make_plane_fit(data, first.normal / h, method="adaptive", inlier_mask=mask, diagnostics=diag)
+        theta, model = wall.normal / wall.offset, "constant-depth"
+    verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
+    diag = _diag("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
+                                                    f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°) -> "
+                                                    + verdict))
+    fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
+    if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
+        fit = replace(fit, normal_stderr=max(fit.normal_stderr, se_n), offset_stderr=max(fit.offset_stderr, se_h))
+    return fit
+
+
+def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
+                opts: FitOptions) -> tuple[PlaneResult, PlaneResult, int | None]:
+    """Both walls and the edge from all the echoes (:mod:`lelsonar.reconstruct.corner_model`).
+
+    The joint model labels every echo (wall a, wall b, edge, outlier); each
+    wall is then refined on its own echoes exactly as ``"adaptive"`` refines
+    its inliers: LS on the paper-corrected points (§4, eq. 15), the χ² tilt
+    test against the constant-depth model, the mirror-echo offset.  The
+    critical step is where the boresight points at the fitted edge, which
+    does not scatter with the energy noise.  Where the joint model finds no
+    bands (too few echoes), it falls back to ``"adaptive"`` on the energy split.
+    """
+    t0 = time.perf_counter()
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    pts = scan_points(geometry, g, d)
+    model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
+                             tolerance=opts.corner_tolerance, min_points=opts.min_points)
+    if model is None:
+        crit = critical_step(ratio, opts.critical_peak_fraction)
+        split = split_subsets(g, crit)
+        out = [fit_plane(F.plane_data(geometry, g, d, steps, label, axis), "adaptive", options=opts)
+               for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
+        return out[0], out[1], crit
+    crit = None
+    line = edge_line(model.wall_a, model.wall_b)
+    if line is not None:
+        point, direction = line
+        if abs(direction[0]) > 1e-9:
+            point = point - direction * (point[0] / direction[0])
+        crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
+    note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
+            f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
+            f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    out: list[PlaneResult] = []
+    for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
+        sel = np.full(d.shape, np.nan)
+        m = model.labels == k
+        sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
+        data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        fail = F.check_points(data.points, label, opts.min_points)
+        if fail is not None:
+            out.append(FitFailure(fail.reason, f"corner: {int(np.count_nonzero(m))} echoes of wall {label}; "
+                                  + fail.detail, label, fail.n_points))
+            continue
+        out.append(_corner_wall(data, wall, model.wall_stderr(k), opts, t0, note))
+    return out[0], out[1], crit
 
 
 # --------------------------------------------------------------------------- baseline (scan level)
 
 def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-                    opts: FitOptions) -> tuple[PlaneResult, PlaneResult]:
+                    opts: FitOptions) -> tuple[PlaneResult, PlaneResult, None]:
     """FCM with three clusters + RANSAC (paper §5.4, ref. [8]).
 
     Features per point: the raw point's y and z (eq. 9) and the R of its step,
@@ -489,7 +594,8 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
     ok = np.isfinite(d) & (d > 0) & np.isfinite(rr)
     if np.count_nonzero(ok) < 3 * opts.min_points:
         f = FitFailure(FailureReason.TOO_FEW_POINTS, f"fcm-ransac: {np.count_nonzero(ok)} valid points", "", 0)
-        return (FitFailure(f.reason, f.detail, "a", f.n_points), FitFailure(f.reason, f.detail, "b", f.n_points))
+        return (FitFailure(f.reason, f.detail, "a", f.n_points), FitFailure(f.reason, f.detail, "b", f.n_points),
+                None)
     raw = beam_points(geometry, g, np.where(ok, d, 0.0))
     feats = np.stack([raw[..., 1][ok], raw[..., 2][ok], rr[ok]], axis=1)
     sd = feats.std(axis=0)
@@ -517,7 +623,7 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
         out.append(F.make_plane_fit(data, rs.normal / rs.offset, method="fcm-ransac", inlier_mask=rs.inliers,
                                     diagnostics=_diag("fcm+ransac", t0, starts=rs.iterations,
                                                       iterations=fcm.iterations, converged=fcm.converged)))
-    return out[0], out[1]
+    return out[0], out[1], None
 
 
 # --------------------------------------------------------------------------- registry
@@ -535,6 +641,8 @@ register_method(Method("constant-depth", "mirror-echo model n·p_c + d = h: LEL,
                        fit_plane=_fit_constant_depth))
 register_method(Method("adaptive", "lel-refit-ls, or the constant-depth LS fit where a χ² test shows a tilted wall",
                        fit_plane=_fit_adaptive))
+register_method(Method("corner", "joint model of both walls and the edge over all echoes, then adaptive refits",
+                       fit_scan=_fit_corner))
 register_method(Method("fcm-ransac", "paper §5.4 baseline: FCM (3 clusters) + RANSAC", fit_scan=_fit_fcm_ransac))
 
 #: The method :func:`reconstruct` uses by default (chosen by the benchmark).
@@ -676,7 +784,8 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
                                   Timings(t1 - t0, 0.0, 0.0, t1 - t0))
     if m.fit_scan is not None:
         t1 = time.perf_counter()
-        pa, pb = m.fit_scan(g, d, ratio, geometry, opts)
+        pa, pb, crit_fit = m.fit_scan(g, d, ratio, geometry, opts)
+        crit = crit if crit_fit is None else crit_fit
         t2 = time.perf_counter()
         ta = pa.diagnostics.time_s if isinstance(pa, PlaneFit) else 0.0
         edge = corner_edge(pa, pb)
