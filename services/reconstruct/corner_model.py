@@ -234,7 +234,8 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     A wall seen near face-on puts its echoes at ``w ≈ h`` whatever the step;
     the corner cluster makes a band at the edge's distance.  Peaks of the
     smoothed histogram (bins of ``bin_width``) with at least ``min_count``
-    echoes, each refined as the median of ``w`` within 1.5 bins.
+    echoes, each refined as the median of ``w`` within 2 bins (the smoothing
+    turns a one-bin spike into a three-bin plateau whose right end is the peak).
     """
     w = np.asarray(w, dtype=np.float64)
     w = w[np.isfinite(w)]
@@ -251,8 +252,9 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     centres = []
     for p in peaks:
         c = 0.5 * (edges[p] + edges[p + 1])
-        near = np.abs(w - c) <= 1.5 * bin_width
-        centres.append(float(np.median(w[near])))
+        near = np.abs(w - c) <= 2.0 * bin_width
+        if np.any(near):
+            centres.append(float(np.median(w[near])))
     return np.asarray(centres)
 
 

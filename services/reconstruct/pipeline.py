@@ -76,6 +76,7 @@ from .energy import EnergyModel, energy_ratio, total_energy
 from .lel import LelResult, lel_fit_fast, lel_fit_nelder_mead, six_starts
 from .results import (EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult, ScanReconstruction,
                       SolverDiagnostics, Timings)
+from .quality import assess_plane
 from .split import critical_step, split_subsets
 
 __all__ = [
@@ -565,7 +566,8 @@ def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geom
             out.append(FitFailure(fail.reason, f"corner: {int(np.count_nonzero(m))} echoes of wall {label}; "
                                   + fail.detail, label, fail.n_points))
             continue
-        out.append(_corner_wall(data, wall, model.wall_stderr(k), opts, t0, note))
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note)
+        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE)) if isinstance(fit, PlaneFit) else fit)
     return out[0], out[1], crit
 
 
@@ -646,7 +648,7 @@ register_method(Method("corner", "joint model of both walls and the edge over al
 register_method(Method("fcm-ransac", "paper §5.4 baseline: FCM (3 clusters) + RANSAC", fit_scan=_fit_fcm_ransac))
 
 #: The method :func:`reconstruct` uses by default (chosen by the benchmark).
-DEFAULT_METHOD = "adaptive"
+DEFAULT_METHOD = "corner"
 
 
 # --------------------------------------------------------------------------- public API
@@ -709,7 +711,21 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
     direction = cr / s
     a = np.stack([na, nb, direction])
     point = np.linalg.solve(a, np.array([plane_a.offset, plane_b.offset, 0.0]))
-    return EdgeLine(point=point, direction=direction, angle=angle)
+    # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
+    # and turns it by δ / sin(angle).
+    point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
+                             + (plane_a.offset * plane_a.normal_stderr)**2
+                             + (plane_b.offset * plane_b.normal_stderr)**2) / s)
+    direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
+    return EdgeLine(point=point, direction=direction, angle=angle, point_stderr=point_se,
+                    direction_stderr=direction_se)
+
+
+def _assessed(plane: PlaneResult, gamma: np.ndarray) -> PlaneResult:
+    """The plane with its trust verdict (:mod:`lelsonar.reconstruct.quality`), unless it has one."""
+    if isinstance(plane, PlaneFit) and not plane.quality:
+        return assess_plane(plane, gamma)
+    return plane
 
 
 def _validate_inputs(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray,
@@ -785,6 +801,7 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
     if m.fit_scan is not None:
         t1 = time.perf_counter()
         pa, pb, crit_fit = m.fit_scan(g, d, ratio, geometry, opts)
+        pa, pb = _assessed(pa, g), _assessed(pb, g)
         crit = crit if crit_fit is None else crit_fit
         t2 = time.perf_counter()
         ta = pa.diagnostics.time_s if isinstance(pa, PlaneFit) else 0.0
@@ -798,6 +815,7 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
     pa = fit_plane(data_a, method, warm_start=warm_a, options=opts)
     t2 = time.perf_counter()
     pb = fit_plane(data_b, method, warm_start=warm_b, options=opts)
+    pa, pb = _assessed(pa, g), _assessed(pb, g)
     t3 = time.perf_counter()
     edge = corner_edge(pa, pb)
     return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
