@@ -156,20 +156,24 @@ def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
     return pts.capsule @ wall.normal + pts.distance - wall.offset
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    # np.cross costs ~20 µs of argument handling per call; this is on the solver's hot path.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
               ) -> tuple[np.ndarray, np.ndarray] | None:
     """Point (nearest the origin) and unit direction of the line where two walls meet.
 
+    With ``e = n_a × n_b`` the point is ``(h_a (n_b × e) + h_b (e × n_a)) / |e|²``.
     None if the walls are within ``min_angle`` of parallel (no corner).
     """
-    e = np.cross(wall_a.normal, wall_b.normal)
-    s = float(np.linalg.norm(e))
-    if s < np.sin(min_angle):
+    e = _cross(wall_a.normal, wall_b.normal)
+    s2 = float(e @ e)
+    if s2 < np.sin(min_angle) ** 2:
         return None
-    e = e / s
-    point = np.linalg.solve(np.stack([wall_a.normal, wall_b.normal, e]),
-                            np.array([wall_a.offset, wall_b.offset, 0.0]))
-    return point, e
+    point = (wall_a.offset * _cross(wall_b.normal, e) + wall_b.offset * _cross(e, wall_a.normal)) / s2
+    return point, e / np.sqrt(s2)
 
 
 def edge_residuals(point: np.ndarray, direction: np.ndarray, pts: ScanPoints,
@@ -183,8 +187,19 @@ def edge_residuals(point: np.ndarray, direction: np.ndarray, pts: ScanPoints,
     """
     rel = point - pts.capsule
     perp = rel - np.outer(rel @ direction, direction)
-    dist = np.linalg.norm(perp, axis=1)
+    dist = np.sqrt(np.einsum("ij,ij->i", perp, perp))
     return pts.distance - dist * np.sin(opening), perp / np.maximum(dist, 1e-9)[:, None]
+
+
+def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    line = edge_line(wall_a, wall_b, min_angle=0.0)
+    if line is None:
+        return np.full(distance.shape, np.inf)
+    point, direction = line
+    rel = point - capsule
+    t = rel @ direction
+    dist2 = np.einsum("ij,ij->i", rel, rel) - t * t
+    return distance - np.sqrt(np.maximum(dist2, 0.0)) * np.sin(_opening(wall_a, wall_b))
 
 
 def _opening(wall_a: Wall, wall_b: Wall) -> float:
@@ -261,89 +276,97 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
 def _tangent(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     helper = np.zeros(3)
     helper[int(np.argmin(np.abs(n)))] = 1.0
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
+    e1 = _cross(n, helper)
+    e1 /= np.sqrt(e1 @ e1)
+    return e1, _cross(n, e1)
 
 
-def _perturbed(walls: tuple[Wall, Wall], z: np.ndarray, basis: list[tuple[np.ndarray, np.ndarray]]
-               ) -> tuple[Wall, Wall]:
-    out = []
-    for k, w in enumerate(walls):
-        e1, e2 = basis[k]
-        n = w.normal + z[3 * k] * e1 + z[3 * k + 1] * e2
-        out.append(Wall(n / np.linalg.norm(n), w.offset + float(z[3 * k + 2])))
-    return out[0], out[1]
+def _moved(wall: Wall, z: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> Wall:
+    n = wall.normal + z[0] * basis[0] + z[1] * basis[1]
+    return Wall(n / np.sqrt(n @ n), wall.offset + float(z[2]))
 
 
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
     """Range residuals (m) of the labelled echoes under their models: wall a, wall b, then the edge."""
-    parts = [mirror_residuals(wall_a, pts)[labels == ECHO_WALL_A], mirror_residuals(wall_b, pts)[labels == ECHO_WALL_B]]
-    edge = labels == ECHO_EDGE
-    line = edge_line(wall_a, wall_b)
-    if np.any(edge) and line is not None:
-        sub = ScanPoints(pts.step[edge], pts.capsule_index[edge], pts.gamma[edge], pts.capsule[edge],
-                         pts.distance[edge], pts.beam[edge])
-        parts.append(edge_residuals(*line, sub, _opening(wall_a, wall_b))[0])
-    return np.concatenate(parts)
+    ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
+    return np.concatenate([pts.capsule[ma] @ wall_a.normal + pts.distance[ma] - wall_a.offset,
+                           pts.capsule[mb] @ wall_b.normal + pts.distance[mb] - wall_b.offset,
+                           _edge_range_residuals(wall_a, wall_b, pts.capsule[me], pts.distance[me])])
 
 
 def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray, *, iterations: int = 3,
-                       step: float = 1e-6) -> tuple[tuple[Wall, Wall], np.ndarray]:
+                       step: float = 1e-7) -> tuple[tuple[Wall, Wall], np.ndarray]:
     """Least squares of all labelled echoes over both walls at once (6 parameters).
 
     Each wall is ``n = normalise(n₀ + u₁e₁ + u₂e₂)``, ``h``; the edge echoes tie
     the two walls together through their intersection, which pins down the
     pitch that each wall's own echoes (a few-cm lever arm) barely constrain.
-    Levenberg-damped Gauss-Newton with a forward-difference Jacobian.
+    Levenberg-damped Gauss-Newton; the mirror rows' Jacobian is exact
+    (``∂r/∂u = p_c·e``, ``∂r/∂h = −1``), the edge rows' by forward differences.
 
-    Returns the walls and the (6, 6) covariance of ``(u₁, u₂, h)`` per wall
-    (``σ² (JᵀJ)⁻¹``, σ² from the residuals).
+    Returns the walls and the (6, 6) covariance of ``(u₁, u₂, h)`` of wall a
+    then wall b (``σ² (JᵀJ)⁻¹``, σ² from the residuals; ``inf`` if
+    unconstrained).
     """
-    walls = (wall_a, wall_b)
-    lam = 1e-6
+    ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
+    pa, da = pts.capsule[ma], pts.distance[ma]
+    pb, db = pts.capsule[mb], pts.distance[mb]
+    pe, de = pts.capsule[me], pts.distance[me]
+    na_, nb_, ne_ = len(da), len(db), len(de)
+    m = na_ + nb_ + ne_
+    walls = [wall_a, wall_b]
+    eye = np.eye(3)
+
+    def residuals(wa: Wall, wb: Wall) -> np.ndarray:
+        return np.concatenate([pa @ wa.normal + da - wa.offset, pb @ wb.normal + db - wb.offset,
+                               _edge_range_residuals(wa, wb, pe, de)])
+
+    def jacobian(wa: Wall, wb: Wall, r: np.ndarray) -> tuple[np.ndarray, list]:
+        basis = [_tangent(wa.normal), _tangent(wb.normal)]
+        jac = np.zeros((m, 6))
+        for k, (p, lo, hi) in enumerate(((pa, 0, na_), (pb, na_, na_ + nb_))):
+            jac[lo:hi, 3 * k] = p @ basis[k][0]
+            jac[lo:hi, 3 * k + 1] = p @ basis[k][1]
+            jac[lo:hi, 3 * k + 2] = -1.0
+        if ne_:
+            re = r[na_ + nb_:]
+            for j in range(6):
+                k, z = divmod(j, 3)
+                moved = [wa, wb]
+                moved[k] = _moved(moved[k], step * eye[z], basis[k])
+                jac[na_ + nb_:, j] = (_edge_range_residuals(moved[0], moved[1], pe, de) - re) / step
+        return jac, basis
+
     cov = np.full((6, 6), np.inf)
+    if m < 7:
+        return (wall_a, wall_b), cov
+    lam = 1e-6
+    r = residuals(*walls)
     for _ in range(iterations):
-        basis = [_tangent(w.normal) for w in walls]
-        r0 = joint_residuals(*walls, pts, labels)
-        if r0.size < 7:
-            return walls, cov
-        jac = np.empty((r0.size, 6))
-        for j in range(6):
-            z = np.zeros(6)
-            z[j] = step
-            jac[:, j] = (joint_residuals(*_perturbed(walls, z, basis), pts, labels) - r0) / step
-        jtj = jac.T @ jac
-        g = jac.T @ r0
-        c0 = float(r0 @ r0)
-        for _ in range(8):
+        if not np.all(np.isfinite(r)):
+            return (wall_a, wall_b), cov
+        jac, basis = jacobian(walls[0], walls[1], r)
+        jtj, g, c0 = jac.T @ jac, jac.T @ r, float(r @ r)
+        for _ in range(6):
             try:
                 dz = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            trial = _perturbed(walls, dz, basis)
-            r1 = joint_residuals(*trial, pts, labels)
-            if r1.size == r0.size and float(r1 @ r1) <= c0:
-                walls, lam = trial, max(lam / 10, 1e-9)
+            trial = [_moved(walls[0], dz[:3], basis[0]), _moved(walls[1], dz[3:], basis[1])]
+            r1 = residuals(*trial)
+            if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
+                walls, r, lam = trial, r1, max(lam / 10, 1e-9)
                 break
             lam *= 10
         else:
             break
-    r = joint_residuals(*walls, pts, labels)
-    basis = [_tangent(w.normal) for w in walls]
-    jac = np.empty((r.size, 6))
-    for j in range(6):
-        z = np.zeros(6)
-        z[j] = step
-        jac[:, j] = (joint_residuals(*_perturbed(walls, z, basis), pts, labels) - r) / step
-    dof = r.size - 6
-    if dof > 0:
-        try:
-            cov = float(r @ r) / dof * np.linalg.inv(jac.T @ jac)
-        except np.linalg.LinAlgError:
-            pass
-    return walls, cov
+    jac, _ = jacobian(walls[0], walls[1], r)
+    try:
+        cov = float(r @ r) / (m - 6) * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        pass
+    return (walls[0], walls[1]), cov
 
 
 def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple[float, float], ...],
@@ -366,7 +389,8 @@ def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple
 
 def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
                      beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
-                     max_bands: int = 3, min_points: int = 8, max_tilt: float = np.deg2rad(15.0),
+                     max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
+                     max_tilt: float = np.deg2rad(15.0),
                      extra: tuple[tuple[Wall, Wall], ...] = ()) -> CornerModel | None:
     """The two walls and their edge that best explain all the echoes.
 
@@ -385,6 +409,8 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
         several times the range noise plus what a few degrees of tilt spread.
     max_bands : int
         Bands tried per wall.
+    max_refined : int
+        Band pairs refined (the lowest-cost ones at the loosest tolerance).
     min_points : int
         Fewest echoes a wall is refitted on.
     max_tilt : float
@@ -408,8 +434,13 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     hyps = [(a, b) for a in candidates[0] for b in candidates[1]] + list(extra)
     if not hyps:
         return None
-    best: tuple[float, Wall, Wall] | None = None
     schedule = ((2.5 * tolerance, 8 * tolerance), (1.5 * tolerance, 3 * tolerance), (tolerance, tolerance))
+    if len(hyps) > max_refined:
+        # Rank by the MSAC cost at the loosest stage (the nominal normals are off by up to the tilt), refine the best.
+        loose = [_msac_cost(assign_echoes(a, b, pts, schedule[0][0], beam_half_angle, schedule[0][1])[1],
+                            schedule[0][0]) for a, b in hyps]
+        hyps = [hyps[i] for i in np.argsort(loose, kind="stable")[:max_refined]]
+    best: tuple[float, Wall, Wall] | None = None
     for a, b in hyps:
         wa, wb = _refine(a, b, pts, schedule, beam_half_angle, min_points, (axis_a, axis_b), max_tilt)
         _, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
