@@ -17,7 +17,7 @@ import numpy as np
 
 from .results import PlaneFit
 
-__all__ = ["QualityLimits", "assess_plane", "GOOD", "DEGRADED", "UNRELIABLE"]
+__all__ = ["QualityLimits", "assess_plane", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
 _RANK = {GOOD: 0, DEGRADED: 1, UNRELIABLE: 2}
@@ -114,3 +114,26 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
     return replace(plane, quality=verdict, quality_reasons=tuple(reasons))
+
+
+def cross_check(plane: PlaneFit, reference: PlaneFit, *, max_angle: float = float(np.deg2rad(3.0)),
+                max_distance: float = 0.02) -> PlaneFit:
+    """``plane`` degraded if it disagrees with a good ``reference`` estimate of the same wall.
+
+    A compared method can lock onto the corner cluster and still fit it
+    cleanly (a tight, well-populated, wrong plane); its own residuals cannot
+    show that.  The reference (the method of record) is trusted only when its
+    own verdict is good.  The disagreement is measured where it matters: the
+    largest distance between the two planes over the reference's observed
+    patch, and the angle between the normals.
+    """
+    if plane is reference or reference.quality != GOOD or plane.label != reference.label:
+        return plane
+    angle = float(np.arccos(np.clip(plane.normal @ reference.normal, -1.0, 1.0)))
+    gap = float(np.max(np.abs(reference.patch @ plane.normal - plane.offset)))
+    if angle <= max_angle and gap <= max_distance:
+        return plane
+    reason = (f"disagrees with {reference.method} (good) by {100 * gap:.1f} cm and {np.rad2deg(angle):.1f}° "
+              "over the observed patch")
+    level = DEGRADED if plane.quality == GOOD else plane.quality
+    return replace(plane, quality=level, quality_reasons=plane.quality_reasons + (reason,))

@@ -37,6 +37,7 @@ from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
+from lelsonar.reconstruct.quality import cross_check
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step
 
@@ -126,6 +127,19 @@ class ServiceStats:
     estimates: int = 0
     finals: int = 0
     timeouts: int = 0  # rejected input is counted by error type in ingest.rejected
+
+
+def _compared(plane: PlaneResult, method: str, main: ScanReconstruction) -> PlaneResult:
+    """A compared method's plane, checked against the method of record's; a failure names its method.
+
+    A compared method that fails is reported, never silently dropped; one
+    that disagrees with a good plane of record is degraded (it may have
+    locked onto the corner cluster, which its own residuals cannot show).
+    """
+    if not isinstance(plane, PlaneFit):
+        return FitFailure(plane.reason, f"{method}: {plane.detail}", plane.label, plane.n_points)
+    reference = main.plane_a if plane.label == "a" else main.plane_b
+    return cross_check(plane, reference) if isinstance(reference, PlaneFit) else plane
 
 
 class ReconstructionService:
@@ -285,10 +299,7 @@ class ReconstructionService:
         crit = int(steps[main.critical_step]) if main.critical_step is not None else None
         planes: list[PlaneResult] = [main.plane_a, main.plane_b]
         for method in self.config.compare_methods:
-            # A compared method that fails is reported as a failure, never silently dropped.
-            planes += [pl if isinstance(pl, PlaneFit) else FitFailure(pl.reason, f"{method}: {pl.detail}", pl.label,
-                                                                      pl.n_points)
-                       for pl in results[method].planes]
+            planes += [_compared(pl, method, main) for pl in results[method].planes]
         t = main.timings
         msg = wire.reconstruction_message(
             scan.start.scanner_id, scan.start.scan_id, status=status,
