@@ -545,13 +545,6 @@ def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geom
         out = [fit_plane(F.plane_data(geometry, g, d, steps, label, axis), "adaptive", options=opts)
                for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
         return out[0], out[1], crit
-    crit = None
-    line = edge_line(model.wall_a, model.wall_b)
-    if line is not None:
-        point, direction = line
-        if abs(direction[0]) > 1e-9:
-            point = point - direction * (point[0] / direction[0])
-        crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
             f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
             f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
@@ -568,6 +561,16 @@ def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geom
             continue
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE)) if isinstance(fit, PlaneFit) else fit)
+    # The critical step: where the boresight points at the edge of the final planes.  The common
+    # roll of both walls about x barely changes any range, so the corrected-points normals (which
+    # assume the walls are axis-aligned unless the data say otherwise) pin it better than the joint fit.
+    edge = corner_edge(out[0], out[1])
+    crit = None
+    if isinstance(edge, EdgeLine):
+        point = edge.point
+        if abs(edge.direction[0]) > 1e-9:
+            point = point - edge.direction * (point[0] / edge.direction[0])
+        crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
     return out[0], out[1], crit
 
 

@@ -52,12 +52,12 @@ class QualityLimits:
     """
 
     range_noise: float = 0.006
-    degraded_sigma: float = 2.0
-    unreliable_sigma: float = 4.0
+    degraded_sigma: float = 1.5
+    unreliable_sigma: float = 2.5
     min_echoes: int = 12
     few_echoes: int = 30
     max_inlier_loss: float = 0.6
-    max_normal_stderr: float = float(np.deg2rad(1.0))
+    max_normal_stderr: float = float(np.deg2rad(3.0))
     max_offset_stderr: float = 0.005
     face_on_angle: float = float(np.deg2rad(12.0))
 
