@@ -129,11 +129,11 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_bridge(args: argparse.Namespace) -> int:
-    from lelsonar.bridge.rmw_zenoh import RmwZenohNode
+    from lelsonar.bridge.rmw_zenoh import RmwZenohNode, open_ros_session
     from lelsonar.keys import ScannerKeys
     from lelsonar.reconstruct.service import ReconstructionService
     from lelsonar.reconstruct.sources import LiveSource, replay_mcap
-    from lelsonar.transport import open_session, zenoh_settings_from_args
+    from lelsonar.transport import zenoh_settings_from_args
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -142,7 +142,7 @@ def run_bridge(args: argparse.Namespace) -> int:
     n_final = 0
 
     with ExitStack() as stack:
-        session = stack.enter_context(open_session(zenoh_settings_from_args(args)))
+        session = stack.enter_context(open_ros_session(zenoh_settings_from_args(args)))
         node = stack.enter_context(RmwZenohNode(session, name=args.node_name, namespace=args.namespace,
                                                 domain_id=args.domain_id))
 
@@ -167,6 +167,8 @@ def run_bridge(args: argparse.Namespace) -> int:
         keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
         print(f"ros2-bridge: listening on {keys.sample} and {keys.scan}", flush=True)
         with LiveSource(session, keys, service, stop):
+            # declared once subscribed, like every lelsonar service: `<prefix>/<scanner>/alive/ros2-bridge`
+            stack.callback(session.liveliness().declare_token(keys.alive("ros2-bridge")).undeclare)
             while not (stop.is_set() or finals.is_set()):
                 stop.wait(0.2)
     return 0

@@ -40,6 +40,8 @@ import re
 import struct
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import zenoh
@@ -47,6 +49,7 @@ import zenoh.ext
 
 from lelsonar.bridge import ros2
 from lelsonar.errors import ConfigError
+from lelsonar.transport import TransportError, ZenohSettings
 
 ADMIN_SPACE = "@ros2_lv"
 RMW_ZENOH_DEFAULT_DEPTH = 42
@@ -56,6 +59,27 @@ GID_SIZE = 16
 _NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _NAMESPACE = re.compile(r"/|(/[A-Za-z_][A-Za-z0-9_]*)+")
 _TOPIC = re.compile(r"(/[A-Za-z_][A-Za-z0-9_]*)+")
+
+
+@contextmanager
+def open_ros_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
+    """A Zenoh session as rmw_zenoh configures its own: the lelsonar settings plus timestamping.
+
+    rmw_zenoh enables ``timestamping`` in both of its default configs, and a zenoh-ext
+    AdvancedPublisher (TRANSIENT_LOCAL topics) needs it.
+    """
+    cfg = settings.to_config()
+    cfg.insert_json5("timestamping/enabled", "true")
+    try:
+        session = zenoh.open(cfg)
+    except zenoh.ZError as exc:
+        raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}; is the robot's router "
+                             f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect)}?"
+                             ) from None
+    try:
+        yield session
+    finally:
+        session.close()
 
 
 def dds_type_name(msgtype: str) -> str:
