@@ -3,14 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import signal
 import threading
 from contextlib import ExitStack
 from pathlib import Path
-
-_log = logging.getLogger("lelsonar.bridge")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -138,7 +135,6 @@ def run_bridge(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    finals = threading.Event()
     n_final = 0
 
     with ExitStack() as stack:
@@ -152,7 +148,7 @@ def run_bridge(args: argparse.Namespace) -> int:
             if message.topic == "/lelsonar/estimate" and '"status":"final' in message.message.data:
                 n_final += 1
                 if args.until_scans and n_final >= args.until_scans:
-                    finals.set()
+                    stop.set()
 
         service = ReconstructionService(_service_config(args, provisional=args.source is None),
                                         observer=_view(args, emit, args.source))
@@ -169,6 +165,5 @@ def run_bridge(args: argparse.Namespace) -> int:
         with LiveSource(session, keys, service, stop):
             # declared once subscribed, like every lelsonar service: `<prefix>/<scanner>/alive/ros2-bridge`
             stack.callback(session.liveliness().declare_token(keys.alive("ros2-bridge")).undeclare)
-            while not (stop.is_set() or finals.is_set()):
-                stop.wait(0.2)
+            stop.wait()  # Ctrl-C, SIGTERM or --until-scans
     return 0
