@@ -83,10 +83,13 @@ def test_topics_types_counts_and_qos(bag, recording):
     with AnyReader([bag], default_typestore=typestore("jazzy")) as reader:
         got = {c.topic: (c.msgtype, c.msgcount) for c in reader.connections}
         qos = {c.topic: c.ext.offered_qos_profiles[0] for c in reader.connections}
+        digests = {c.topic: c.digest for c in reader.connections}
         assert reader.message_count == sum(n for _, n in expected.values())
     assert got == expected
     assert qos["/tf_static"].durability == QosDurability.TRANSIENT_LOCAL and qos["/tf_static"].depth == 1
     assert qos["/tf"].durability == QosDurability.VOLATILE
+    # metadata.yaml's type_description_hash, as Jazzy's `ros2 topic info -v /tf` prints it
+    assert digests["/tf"] == "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
     assert "version: 9" in (bag / "metadata.yaml").read_text()
     assert (bag / "bag.mcap").is_file()
 
