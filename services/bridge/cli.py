@@ -96,7 +96,7 @@ def _truth(args: argparse.Namespace, source: Path | None):
 
     try:
         planes = [TruePlane(p.label, p.normal, p.offset, p.corners) for p in true_planes(preset(preset_name))]
-    except (ConfigError, KeyError):
+    except ConfigError:
         if only_simulated:
             return None
         raise

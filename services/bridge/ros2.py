@@ -18,6 +18,8 @@ topic                           type                                QoS        w
 ==============================  ==================================  =========  ==============================================
 
 (TL = RELIABLE, TRANSIENT_LOCAL, KEEP_LAST depth; V = RELIABLE, VOLATILE, KEEP_LAST depth.)
+Several scanners share these topics; their frame ids (and the estimate's
+``scanner_id``) tell them apart.
 
 Frames (``<s>`` is the scanner id; tf2 frame ids may hold ``.`` and ``-``):
 
