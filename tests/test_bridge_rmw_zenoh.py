@@ -56,9 +56,14 @@ def test_key_and_tokens_match_rmw_zenohs_design_doc_examples():
                               "std_msgs/msg/String", h, ros2.TopicQos(7)) == (
         "@ros2_lv/0/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
         "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,")
-    # tf2's /tf (depth 100) as a public rmw_zenoh client writes it; TRANSIENT_LOCAL is enum value 1
+    # tf2's /tf (depth 100) as a public rmw_zenoh client writes it
     assert rz.qos_chunk(ros2.TopicQos(100)) == "::,100:,:,:,,"
-    assert rz.qos_chunk(ros2.TopicQos(1, transient_local=True)) == ":1:,1:,:,:,,"
+    # robot_state_publisher's latched /robot_description token, as a public rmw_zenoh client's test
+    # quotes it: TRANSIENT_LOCAL (enum value 1), depth 1
+    assert rz.publisher_token(0, "2e44", 0, 13, "/", "robot_state_publisher", "/robot_description",
+                              "std_msgs/msg/String", "RIHS01_df668c", ros2.TopicQos(1, transient_local=True)) == \
+        ("@ros2_lv/0/2e44/0/13/MP/%/%/robot_state_publisher/%robot_description/std_msgs::msg::dds_::String_/"
+         "RIHS01_df668c/:1:,1:,:,:,,")
     assert rz.qos_chunk(ros2.TopicQos(42)) == "::,:,:,:,,"
     assert rz.mangle("/robot1/ns") == "%robot1%ns" and rz.mangle("") == "%"
 
