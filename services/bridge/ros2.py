@@ -300,7 +300,6 @@ class Ros2View:
             raise ConfigError(f"the field of view must be in (0, 180°), got {math.degrees(self.field_of_view):.1f}°")
         self.parent_frame = parent_frame
         self._raw: dict[tuple[str, int], list[np.ndarray]] = {}
-        self._range_limits: dict[tuple[str, int], tuple[float, float]] = {}
 
     @staticmethod
     def frame(scanner: str, name: str) -> str:
