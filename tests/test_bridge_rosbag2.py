@@ -262,3 +262,17 @@ def test_humble_bag_is_version_8_without_range_variance(tmp_path):
     assert "version: 8" in (out / "metadata.yaml").read_text()
     rng = [m for top, _, _, m in read_bag(out, "humble") if top == "/lelsonar/range/capsule0"]
     assert len(rng) == 40 and not hasattr(rng[0], "variance")
+
+
+def test_bag_mcap_is_what_rosbag2s_mcap_plugin_reads(bag):
+    """Read with the plain `mcap` reader: ros2msg schemas, cdr channels, offered QoS in channel metadata."""
+    from mcap.reader import make_reader
+
+    with open(bag / "bag.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+    names = {s.name for s in summary.schemas.values()}
+    assert {"tf2_msgs/msg/TFMessage", "sensor_msgs/msg/Range", "visualization_msgs/msg/MarkerArray"} <= names
+    (static,) = [c for c in summary.channels.values() if c.topic == "/tf_static"]
+    assert "durability: transient_local" in static.metadata["offered_qos_profiles"]
