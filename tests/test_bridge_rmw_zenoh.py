@@ -80,6 +80,13 @@ def test_attachment_is_zenohs_own_serialisation_of_seq_time_gid():
     assert rz.parse_attachment(att) == (1, 0x0102030405060708, gid)
 
 
+def test_gid_is_the_one_rmw_zenoh_derives():
+    """A talker token hashed by rmw_zenoh_cpp's own simplified_xxhash3.cpp, as a public client's test quotes it."""
+    token = ("@ros2_lv/0/abcdef0123456789abcdef0123456789/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
+             "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,")
+    assert rz.gid_of(token).hex() == "5d93eb0aa1fed6741fd0751922ffa030"
+
+
 def test_cdr_bytes_match_hand_serialisation():
     b = ros2._Builder("jazzy")
     # std_msgs/String "hello": encapsulation CDR_LE, u32 length with the NUL, the bytes

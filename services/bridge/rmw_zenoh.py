@@ -21,21 +21,19 @@ Targets ``rmw_zenoh_cpp`` ≥ 0.2.4 (Jazzy) and 0.6 (Kilted), whose design
   16-byte publisher GID.  A sample without it is dropped by rmw_zenoh.
 * **Payload:** CDR with its 4-byte encapsulation header (``00 01 00 00``), no
   Zenoh encoding.
+* **GID:** XXH3-128 (seed 0) of the entity's liveliness token, ``low64`` then
+  ``high64``, each little-endian — what rmw_zenoh derives for its own entities
+  and for remote ones it learns from tokens (``ros2 topic info -v``).  Stock
+  XXH3-128 (PyPI ``xxhash``) equals rmw_zenoh's ``simplified_XXH3_128bits``.
 
 ``TRANSIENT_LOCAL`` topics (``/tf_static``, the planes, the estimate) go out
 through a zenoh-ext ``AdvancedPublisher`` with a cache of ``depth`` samples and
 publisher detection, as rmw_zenoh declares them, so a late subscriber's history
 query can fetch them.
-
-Our GIDs are the first 16 bytes of BLAKE2b of the publisher token; rmw_zenoh
-computes XXH3-128 of the token.  A GID is opaque to subscribers (it identifies
-the publisher in ``message_info``), so this only shows as a different GID in
-``ros2 topic info -v`` than in a received message's info.
 """
 
 from __future__ import annotations
 
-import hashlib
 import re
 import struct
 import threading
@@ -44,6 +42,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
+import xxhash
 import zenoh
 import zenoh.ext
 
@@ -120,7 +119,8 @@ def publisher_token(domain_id: int, zid: str, node_id: int, entity_id: int, name
 
 
 def gid_of(token: str) -> bytes:
-    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()
+    """The 16-byte GID rmw_zenoh derives from a liveliness token."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")  # low64 LE, high64 LE
 
 
 def attachment(sequence_number: int, source_timestamp_ns: int, gid: bytes) -> bytes:
