@@ -2,7 +2,7 @@
 
 Targets ``rmw_zenoh_cpp`` ≥ 0.2.4 (Jazzy) and 0.6 (Kilted), whose design
 (ros2/rmw_zenoh ``docs/design.md``, ``liveliness_utils.cpp``,
-``attachment_helpers.cpp``) fixes four things a publisher must get right:
+``attachment_helpers.cpp``) fixes what a publisher must get right:
 
 * **Data key:** ``<domain>/<topic without its leading and trailing slash>/<DDS type>/<RIHS01 hash>``,
   e.g. ``0/chatter/std_msgs::msg::dds_::String_/RIHS01_df66…``.  A subscriber
