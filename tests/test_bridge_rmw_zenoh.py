@@ -154,7 +154,7 @@ def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
         robot.liveliness().declare_subscriber("@ros2_lv/0/**", on_token, history=True)
         with rz.open_ros_session(hermetic_settings(sock, listen=False)) as bridge_session, \
                 rz.RmwZenohNode(bridge_session, name="lelsonar_bridge") as node:
-            view = ros2.Ros2View(node.publish, main_method="adaptive")
+            view = ros2.Ros2View(node.publish, main_method="corner")
             service = ReconstructionService(ReconstructConfig(compare_methods=("ls",), provisional=False),
                                             observer=view)
             replay_mcap(path, service)

@@ -210,7 +210,7 @@ def test_estimate_and_markers(messages, recording):
     assert t == recording[1][-1].end_time_ns
     assert (est["scanner_id"], int(est["scan_id"]), est["status"]) == ("s1", 1, "final")
     assert est["samples_used"] == len(samples)
-    assert {(p["method"], p["label"]) for p in est["planes"]} == {(m, lab) for m in ("adaptive", "ls")
+    assert {(p["method"], p["label"]) for p in est["planes"]} == {(m, lab) for m in ("corner", "ls")
                                                                     for lab in "ab"}
 
     ((_, arr),) = by_topic(messages, "/lelsonar/planes")
@@ -232,7 +232,7 @@ def test_estimate_and_markers(messages, recording):
         assert {(round(v.x, 9), round(v.y, 9), round(v.z, 9)) for v in m.points} == \
                {tuple(np.round(c, 9)) for c in tp.corners}
     for label in "ab":  # and the estimate is close to the truth the sim drew
-        n = np.array([planes["adaptive" + label]["normal"][k] for k in "xyz"])
+        n = np.array([planes["corner" + label]["normal"][k] for k in "xyz"])
         assert math.degrees(math.acos(min(1.0, abs(n @ truth[label].normal)))) < 2.0
     (edge,) = [m for m in markers if m.ns == "edge"]
     e = est["corner_edge"]

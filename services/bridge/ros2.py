@@ -46,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import shutil
-import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -59,12 +58,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError, RecordingError
-from lelsonar.reconstruct import fit as F
 from lelsonar.reconstruct.assembly import ScanAssembly, StepView
-from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.pipeline import FitOptions
+from lelsonar.reconstruct.palette import method_color
 from lelsonar.reconstruct.results import PlaneFit, ScanReconstruction
-from lelsonar.reconstruct.split import split_subsets
+from lelsonar.reconstruct.wire import QUALITY_NAME
 
 __all__ = [
     "DISTROS", "TOPIC_TF", "TOPIC_TF_STATIC", "TOPIC_POINTS_RAW", "TOPIC_POINTS_CORRECTED", "TOPIC_PLANES",
@@ -238,16 +236,13 @@ CORRECTED_POINT = np.dtype({"names": ["x", "y", "z", "step", "subset", "inlier"]
 # visualization_msgs/Marker types and actions
 ARROW, LINE_LIST, TEXT_VIEW_FACING, TRIANGLE_LIST, DELETEALL = 0, 5, 9, 11, 3
 
-_METHOD_RGB = {"adaptive": (0.12, 0.47, 0.71), "ls": (1.0, 0.5, 0.05), "paper": (0.17, 0.63, 0.17),
-               "lel": (0.58, 0.4, 0.74), "lel-nm": (0.55, 0.34, 0.29), "fcm-ransac": (0.89, 0.47, 0.76)}
-_PALETTE = ((0.74, 0.74, 0.13), (0.09, 0.75, 0.81), (0.84, 0.15, 0.16), (0.5, 0.5, 0.0))
 _TRUTH_RGB = (0.6, 0.6, 0.6)
 _EDGE_RGB = (1.0, 0.1, 0.1)
-_QUALITY = {1: "good", 2: "degraded", 3: "unreliable"}
 
 
 def method_rgb(method: str) -> tuple[float, float, float]:
-    return _METHOD_RGB.get(method, _PALETTE[zlib.crc32(method.encode()) % len(_PALETTE)])
+    r, g, b = method_color(method)
+    return r / 255, g / 255, b / 255
 
 
 def _quat_x(angle: float) -> tuple[float, float, float, float]:
@@ -375,18 +370,11 @@ class Ros2View:
     # helpers -----------------------------------------------------------------------------
     @staticmethod
     def _final_subsets(scan: ScanAssembly, main: ScanReconstruction) -> list:
-        if main.critical_step is None:
-            return []
-        _, gamma, distance, _ = scan.arrays()
-        split = split_subsets(gamma, main.critical_step)  # the split reconstruct() made
+        # The points each plane was fitted on, as reconstruct() chose them; plane_data numbers
+        # steps within the received ones, so report schedule steps.
         steps = np.flatnonzero(scan.received)
-        out = []
-        for idx, label, axis, plane in ((split.steps_a, "a", AXIS_Y, main.plane_a),
-                                        (split.steps_b, "b", AXIS_Z, main.plane_b)):
-            data = F.plane_data(scan.geometry, gamma, distance, idx, label, axis)
-            # plane_data numbers steps within the received ones; report schedule steps
-            out.append((dataclasses.replace(data, step=steps[data.step]) if data.n else data, plane))
-        return out
+        return [(dataclasses.replace(data, step=steps[data.step]) if data.n else data, plane)
+                for data, plane in ((main.data_a, main.plane_a), (main.data_b, main.plane_b)) if data is not None]
 
     def _markers(self, scan: ScanAssembly, message: codec.Reconstruction, t: int, frame: str) -> list:
         b = self._b
@@ -405,7 +393,7 @@ class Ros2View:
                 markers.append(b.marker(
                     t, frame, f"label/{plane.method}", i, TEXT_VIEW_FACING, rgb=rgb, scale=(0, 0, 0.05),
                     position=centre, text=f"{plane.method} {plane.label}: h = {plane.offset:.3f} m, "
-                                          f"{_QUALITY.get(plane.quality, 'unrated')}"))
+                                          f"{QUALITY_NAME.get(plane.quality, 'unknown')}"))
         truth = self._truth(scan) if self._truth else None
         for i, tp in enumerate(truth or ()):
             c = np.asarray(tp.corners, dtype=float)

@@ -69,7 +69,7 @@ from lelsonar.geometry import ArrayGeometry, beam_points
 
 from . import fit as F
 from .baseline import fuzzy_c_means, ransac_plane
-from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, fit_corner_model,
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, fit_corner_model,
                            scan_points)
 from .correct import AXIS_Y, AXIS_Z, corrected_points
 from .energy import EnergyModel, energy_ratio, total_energy
@@ -81,6 +81,7 @@ from .split import critical_step, split_subsets
 
 __all__ = [
     "FitOptions",
+    "ScanFit",
     "Method",
     "METHODS",
     "DEFAULT_METHOD",
@@ -187,11 +188,31 @@ class Method:
     name: str
     summary: str
     fit_plane: PlaneEstimator | None = None
-    fit_scan: Callable[..., tuple[PlaneResult, PlaneResult]] | None = None
+    fit_scan: Callable[..., ScanFit] | None = None
 
     def __post_init__(self) -> None:
         if (self.fit_plane is None) == (self.fit_scan is None):
             raise ConfigError(f"method {self.name!r} needs exactly one of fit_plane and fit_scan")
+
+
+@dataclass(frozen=True)
+class ScanFit:
+    """What a scan-level method (``Method.fit_scan``) returns.
+
+    Parameters
+    ----------
+    plane_a, plane_b : PlaneFit or FitFailure
+    data_a, data_b : PlaneData or None
+        The points each plane was fitted on (its ``inlier_mask`` indexes them).
+    critical_step : int or None
+        Replaces the energy peak's critical step; None keeps it.
+    """
+
+    plane_a: PlaneResult
+    plane_b: PlaneResult
+    data_a: F.PlaneData | None = None
+    data_b: F.PlaneData | None = None
+    critical_step: int | None = None
 
 
 _REGISTRY: dict[str, Method] = {}
@@ -522,7 +543,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
 
 
 def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-                opts: FitOptions) -> tuple[PlaneResult, PlaneResult, int | None]:
+                opts: FitOptions) -> ScanFit:
     """Both walls and the edge from all the echoes (:mod:`lelsonar.reconstruct.corner_model`).
 
     The joint model labels every echo (wall a, wall b, edge, outlier); each
@@ -542,18 +563,21 @@ def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geom
     if model is None:
         crit = critical_step(ratio, opts.critical_peak_fraction)
         split = split_subsets(g, crit)
-        out = [fit_plane(F.plane_data(geometry, g, d, steps, label, axis), "adaptive", options=opts)
-               for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
-        return out[0], out[1], crit
+        data = [F.plane_data(geometry, g, d, steps, label, axis)
+                for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
+        out = [fit_plane(dd, "adaptive", options=opts) for dd in data]
+        return ScanFit(out[0], out[1], data[0], data[1], crit)
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
             f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
             f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
     out: list[PlaneResult] = []
+    datas: list[F.PlaneData] = []
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         sel = np.full(d.shape, np.nan)
         m = model.labels == k
         sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
         data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:
             out.append(FitFailure(fail.reason, f"corner: {int(np.count_nonzero(m))} echoes of wall {label}; "
@@ -571,13 +595,13 @@ def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geom
         if abs(edge.direction[0]) > 1e-9:
             point = point - edge.direction * (point[0] / edge.direction[0])
         crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
-    return out[0], out[1], crit
+    return ScanFit(out[0], out[1], datas[0], datas[1], crit)
 
 
 # --------------------------------------------------------------------------- baseline (scan level)
 
 def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-                    opts: FitOptions) -> tuple[PlaneResult, PlaneResult, None]:
+                    opts: FitOptions) -> ScanFit:
     """FCM with three clusters + RANSAC (paper §5.4, ref. [8]).
 
     Features per point: the raw point's y and z (eq. 9) and the R of its step,
@@ -599,8 +623,8 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
     ok = np.isfinite(d) & (d > 0) & np.isfinite(rr)
     if np.count_nonzero(ok) < 3 * opts.min_points:
         f = FitFailure(FailureReason.TOO_FEW_POINTS, f"fcm-ransac: {np.count_nonzero(ok)} valid points", "", 0)
-        return (FitFailure(f.reason, f.detail, "a", f.n_points), FitFailure(f.reason, f.detail, "b", f.n_points),
-                None)
+        return ScanFit(FitFailure(f.reason, f.detail, "a", f.n_points),
+                       FitFailure(f.reason, f.detail, "b", f.n_points))
     raw = beam_points(geometry, g, np.where(ok, d, 0.0))
     feats = np.stack([raw[..., 1][ok], raw[..., 2][ok], rr[ok]], axis=1)
     sd = feats.std(axis=0)
@@ -612,11 +636,13 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
     mean_g = [gg[ok][fcm.labels == k].mean() if np.any(fcm.labels == k) else np.inf for k in rest]
     order = [rest[i] for i in np.argsort(mean_g)]
     out: list[PlaneResult] = []
+    datas: list[F.PlaneData] = []
     for label, cluster, axis in zip(("a", "b"), order, (AXIS_Y, AXIS_Z)):
         sel = np.zeros(d.shape, dtype=bool)
         sel[ok] = fcm.labels == cluster
         st = np.unique(steps[sel])
         data = F.plane_data(geometry, g, np.where(sel, d, np.nan), st, label, axis)
+        datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:
             out.append(fail)
@@ -628,7 +654,7 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
         out.append(F.make_plane_fit(data, rs.normal / rs.offset, method="fcm-ransac", inlier_mask=rs.inliers,
                                     diagnostics=_diag("fcm+ransac", t0, starts=rs.iterations,
                                                       iterations=fcm.iterations, converged=fcm.converged)))
-    return out[0], out[1], None
+    return ScanFit(out[0], out[1], datas[0], datas[1])
 
 
 # --------------------------------------------------------------------------- registry
@@ -803,14 +829,15 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
                                   Timings(t1 - t0, 0.0, 0.0, t1 - t0))
     if m.fit_scan is not None:
         t1 = time.perf_counter()
-        pa, pb, crit_fit = m.fit_scan(g, d, ratio, geometry, opts)
-        pa, pb = _assessed(pa, g), _assessed(pb, g)
-        crit = crit if crit_fit is None else crit_fit
+        sf = m.fit_scan(g, d, ratio, geometry, opts)
+        pa, pb = _assessed(sf.plane_a, g), _assessed(sf.plane_b, g)
+        crit = crit if sf.critical_step is None else sf.critical_step
         t2 = time.perf_counter()
         ta = pa.diagnostics.time_s if isinstance(pa, PlaneFit) else 0.0
         edge = corner_edge(pa, pb)
         return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
-                                  Timings(t1 - t0, ta, max(t2 - t1 - ta, 0.0), time.perf_counter() - t0))
+                                  Timings(t1 - t0, ta, max(t2 - t1 - ta, 0.0), time.perf_counter() - t0),
+                                  sf.data_a, sf.data_b)
     split = split_subsets(g, crit)
     data_a = F.plane_data(geometry, g, d, split.steps_a, "a", AXIS_Y)
     data_b = F.plane_data(geometry, g, d, split.steps_b, "b", AXIS_Z)
@@ -822,7 +849,7 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
     t3 = time.perf_counter()
     edge = corner_edge(pa, pb)
     return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
-                              Timings(t1 - t0, t2 - t1, t3 - t2, time.perf_counter() - t0))
+                              Timings(t1 - t0, t2 - t1, t3 - t2, time.perf_counter() - t0), data_a, data_b)
 
 
 # Re-exported for callers that want the raw points.

@@ -79,6 +79,7 @@ import rerun.blueprint as rrb
 
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.results import EdgeLine, FitFailure, PlaneFit
+from lelsonar.reconstruct.palette import METHOD_COLORS, method_color, quality_color
 
 __all__ = [
     "STEP_TIMELINE",
@@ -98,12 +99,6 @@ ANGLE_TIMELINE = "gamma_cdeg"
 TIME_TIMELINE = "acq_time"
 
 #: Per-method colours (RGB); methods not listed get a stable colour from the palette.
-METHOD_COLORS: dict[str, tuple[int, int, int]] = {
-    "ls": (255, 140, 0),       # orange
-    "lel": (40, 190, 70),      # green
-    "paper": (0, 180, 210),    # cyan
-    "ransac": (220, 60, 200),  # magenta
-}
 _PALETTE = [(230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100)]
 _PLANE_ALPHA = 110                       # patches stay see-through so points behind them show
 _TRUTH_RGBA = (160, 160, 160, 80)
@@ -228,11 +223,6 @@ class SubsetView:
         object.__setattr__(self, "inlier_mask", mask)
 
 
-#: Outline colours of the trust verdict.
-_QUALITY_RGB = {"good": (40, 200, 80), "degraded": (255, 170, 0), "unreliable": (230, 30, 30)}
-_UNASSESSED_RGB = (150, 150, 150)
-
-
 def _cone(normal: np.ndarray, half_angle: float, n: int = 8) -> np.ndarray:
     """``n`` unit vectors at ``half_angle`` (rad) around ``normal``: the edge of its uncertainty cone."""
     helper = np.zeros(3)
@@ -244,11 +234,6 @@ def _cone(normal: np.ndarray, half_angle: float, n: int = 8) -> np.ndarray:
     a = min(float(half_angle), np.pi / 4)
     return (np.cos(a) * normal[None, :]
             + np.sin(a) * (np.cos(phi)[:, None] * e1[None, :] + np.sin(phi)[:, None] * e2[None, :]))
-
-
-def method_color(method: str) -> tuple[int, int, int]:
-    """The colour of an estimator's planes: fixed for known methods, stable for others."""
-    return METHOD_COLORS.get(method, _PALETTE[zlib.crc32(method.encode()) % len(_PALETTE)])
 
 
 def _centidegrees(gamma: float) -> int:
@@ -616,7 +601,7 @@ class ScanLogger:
                                               labels=f"{p.method} {p.label} ({p.quality or 'unassessed'})"))
         # The verdict as the patch's outline: green good, amber degraded, red unreliable.
         outline = np.vstack([p.patch, p.patch[:1]])
-        rec.log(f"{path}/quality", rr.LineStrips3D([outline], colors=_QUALITY_RGB.get(p.quality, _UNASSESSED_RGB),
+        rec.log(f"{path}/quality", rr.LineStrips3D([outline], colors=quality_color(p.quality),
                                                    radii=0.004, labels=p.quality or "unassessed"))
         # The uncertainty: the offset band (patch outline at ±2σ_h) and the normal cone (half-angle 2σ_n).
         band = [outline + k * 2.0 * p.offset_stderr * p.normal for k in (-1.0, 1.0)]

@@ -320,6 +320,10 @@ class ScanReconstruction:
         ``a`` is the plane seen before the corner (the subset at smaller γ).
     edge : EdgeLine or FitFailure
     timings : Timings
+    data_a, data_b : lelsonar.reconstruct.fit.PlaneData or None
+        The points each plane was fitted on, in the order its ``inlier_mask``
+        indexes (the energy split's halves, or the echoes the joint corner
+        model gave each wall).  Step indices are those of the input arrays.
     """
 
     method: str
@@ -330,6 +334,8 @@ class ScanReconstruction:
     plane_b: PlaneResult
     edge: EdgeLine | FitFailure
     timings: Timings
+    data_a: object | None = None  # PlaneData; typed loosely: fit.py imports this module
+    data_b: object | None = None
 
     def __post_init__(self) -> None:
         if self.n_steps < 0:
