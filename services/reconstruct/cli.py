@@ -247,8 +247,11 @@ def run_planner(args: argparse.Namespace) -> int:
             timer.start()
         while not (stop.is_set() or done.is_set()):
             stop.wait(0.2)
-        sub.undeclare()
+        sub.undeclare()  # ends the drain loop: its channel closes
         token.undeclare()
+        # A daemon thread still inside Zenoh's native recv when the interpreter exits is cancelled
+        # mid-unwind and aborts the process ("FATAL: exception not rethrown"): let it finish first.
+        worker.join(timeout=5.0)
     if args.until_final and not done.is_set():
         print(f"planner: no final estimate within {args.timeout:.0f} s", file=sys.stderr)
         return 1
