@@ -82,7 +82,7 @@ def load_toml(path: Path) -> dict:
 
 def config_from_args(args: argparse.Namespace):
     from lelsonar.acquire.config import AcquireConfig
-    from lelsonar.reconstruct.energy import EnergyModel
+    from lelsonar.energy_model import EnergyModel
 
     values = load_toml(args.config) if args.config else {}
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",

@@ -12,7 +12,7 @@ from pathlib import Path
 from lelsonar.acquire.backends import DEVICES
 from lelsonar.errors import ConfigError
 from lelsonar.keys import validate_identifier, validate_prefix
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from lelsonar.acquire import messages
 from lelsonar.acquire.scanner import Scanner
 from lelsonar.errors import DeviceError
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 from lelsonar.recording import McapRecorder
 
 _log = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
 from lelsonar.acquire.sim import SimConfig, preset
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 from lelsonar.recording import McapRecorder
 from lelsonar.transport import ZenohSettings, open_session
 
