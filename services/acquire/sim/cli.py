@@ -41,12 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _simulate(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.energy import energy_ratio
 
-    from .calibrate import DEFAULT_ENERGY_MODEL
+    from .calibrate import default_energy_model
     from .presets import preset
     from .scan import EchoSource, simulate_scan
 
     scan = simulate_scan(preset(args.preset), seed=args.seed)
-    ratio = energy_ratio(scan.step_energy(), scan.distance, DEFAULT_ENERGY_MODEL)
+    ratio = energy_ratio(scan.step_energy(), scan.distance, default_energy_model())
     k = int(np.argmax(ratio))
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
     print(f"preset {args.preset}, seed {args.seed}: {scan.n_steps} steps × {scan.geometry.n_capsules} capsules, "
