@@ -286,32 +286,37 @@ class Recording:
 
 
 def describe_damage(s: Salvage) -> str:
-    """What happened to a file, as a clause: ``is damaged: 2 chunks (≈20 messages) unreadable after byte N``."""
+    """What happened to a file, as a clause for a one-line warning.
+
+    e.g. ``is damaged: 1 chunk (3 messages) unreadable after byte 688187`` or
+    ``is damaged: cut at byte 1498671 mid-record (≈3 messages), unfinished`` or
+    ``is unfinished (no footer: the writer was stopped or killed), nothing lost``.
+    """
     parts = []
     chunks = [d for d in s.damage if d.kind in ("chunk", "record")]
     tail = [d for d in s.damage if d.kind == "tail"]
-    lost, exact = s.messages_lost()
     if chunks:
         n = sum(d.messages_lost for d in chunks)
         approx = "" if all(d.messages is not None for d in chunks) else "≈"
         label = "chunk" if len(chunks) == 1 else "chunks"
         parts.append(f"{len(chunks)} {label} ({approx}{n} messages) unreadable after byte {chunks[0].offset}")
     if tail:
-        d = tail[0]
-        parts.append(f"cut at byte {d.offset} inside a record (≈{d.messages_lost} messages, "
-                     f"the last {d.length} bytes)")
+        parts.append(f"cut at byte {tail[0].offset} mid-record (≈{tail[0].messages_lost} messages)")
     if any(d.kind == "header" for d in s.damage):
         parts.append("the leading magic has flipped bits")
     if any(d.kind == "summary" for d in s.damage):
-        parts.append("its index (summary) is unreadable")
+        parts.append("its index is unreadable")
     if s.orphans:
         parts.append(f"{s.orphans} messages on channels whose definition was lost")
-    if not s.finished:
-        parts.append("not finished (no footer: the writer was stopped or killed)")
+    lost, exact = s.messages_lost()
     if exact and lost and not chunks and not tail:
         parts.append(f"{lost} messages missing")
-    verb = "is damaged" if (chunks or tail or s.orphans or lost) else "is incomplete"
-    return f"{verb}: {'; '.join(parts)}"
+    if not parts:
+        return ("is unfinished (no footer: the writer was stopped or killed), nothing lost" if not s.finished
+                else "is intact")
+    lossless = not (chunks or tail or s.orphans or lost)
+    return (f"is damaged: {', '.join(parts)}" + ("" if s.finished else ", unfinished")
+            + (", no message lost" if lossless else ""))
 
 
 def open_recording(path: Path | str | Recording) -> Recording:
