@@ -293,13 +293,18 @@ def describe_damage(s: Salvage) -> str:
     ``is unfinished (no footer: the writer was stopped or killed), nothing lost``.
     """
     parts = []
-    chunks = [d for d in s.damage if d.kind in ("chunk", "record")]
+    chunks = [d for d in s.damage if d.kind == "chunk"]
+    records = [d for d in s.damage if d.kind == "record"]
     tail = [d for d in s.damage if d.kind == "tail"]
+    lost, exact = s.messages_lost()
     if chunks:
-        n = sum(d.messages_lost for d in chunks)
-        approx = "" if all(d.messages is not None for d in chunks) else "≈"
+        n = lost if s.statistics_counts is not None else sum(d.messages_lost for d in chunks)
+        approx = "" if exact or all(d.messages is not None for d in chunks) else "≈"
         label = "chunk" if len(chunks) == 1 else "chunks"
         parts.append(f"{len(chunks)} {label} ({approx}{n} messages) unreadable after byte {chunks[0].offset}")
+    if records:
+        label = "other record" if len(records) == 1 else "other records"
+        parts.append(f"{len(records)} {label} unreadable after byte {records[0].offset}")
     if tail:
         parts.append(f"cut at byte {tail[0].offset} mid-record (≈{tail[0].messages_lost} messages)")
     if any(d.kind == "header" for d in s.damage):
@@ -308,13 +313,12 @@ def describe_damage(s: Salvage) -> str:
         parts.append("its index is unreadable")
     if s.orphans:
         parts.append(f"{s.orphans} messages on channels whose definition was lost")
-    lost, exact = s.messages_lost()
-    if exact and lost and not chunks and not tail:
-        parts.append(f"{lost} messages missing")
+    if lost and not chunks and not tail:
+        parts.append(f"{'' if exact else '≈'}{lost} messages lost")
     if not parts:
         return ("is unfinished (no footer: the writer was stopped or killed), nothing lost" if not s.finished
                 else "is intact")
-    lossless = not (chunks or tail or s.orphans or lost)
+    lossless = not (lost or s.orphans or tail)
     return (f"is damaged: {', '.join(parts)}" + ("" if s.finished else ", unfinished")
             + (", no message lost" if lossless else ""))
 

@@ -139,6 +139,7 @@ class Salvage:
     data_end_seen: bool = False
     statistics_counts: dict[int, int] | None = None  # channel id → messages, from an intact Statistics record
     orphans: int = 0  # intact messages whose channel definition was lost
+    summary_start: int | None = None  # from an intact footer
 
     @property
     def intact(self) -> bool:
@@ -374,77 +375,128 @@ def salvage(path: Path | str) -> Salvage:
             buf.close()
 
 
+class _Walk:
+    """State of one pass over the file: running averages for estimates, and the summary's start if known."""
+
+    def __init__(self, buf, size: int, out: Salvage) -> None:
+        self.buf, self.size, self.out = buf, size, out
+        self.good_bytes = self.good_messages = self.good_raw = 0
+        self.summary_start = out.summary_start = _summary_start(buf, size)
+
+    def estimate(self, nbytes: int) -> int:
+        return round(nbytes * self.good_messages / self.good_bytes) if self.good_bytes else 0
+
+    def take_chunk(self, pos: int, records: list, usize: int, length: int) -> None:
+        out = self.out
+        out.chunks_read += 1
+        n = 0
+        for rop, rec in records:
+            if rop == OP_SCHEMA:
+                out.schemas.setdefault(rec.id, rec)
+            elif rop == OP_CHANNEL:
+                out.channels.setdefault(rec.id, rec)
+            else:
+                cid, seq, t_log, t_pub, data = rec
+                out.messages.append(RawMessage(cid, seq, t_log, t_pub, data, pos))
+                n += 1
+        self.good_bytes += 9 + length
+        self.good_raw += usize
+        self.good_messages += n
+
+    def damaged(self, pos: int, reason: str) -> int | None:
+        """Record damage starting at ``pos``; return where reading resumes (the next intact chunk), or None."""
+        buf, size, out = self.buf, self.size, self.out
+        if self.summary_start is not None and pos >= self.summary_start:
+            # In the summary section: no message can be lost here, and _read_summary reads it via the footer.
+            out.damage.append(Damage(pos, size - pos, "summary", f"summary section unreadable at byte {pos}", 0))
+            return None
+        nxt = _resync(buf, size, pos + 1)
+        if nxt is not None:
+            out.damage.append(_lost(buf, pos, nxt, reason, self.estimate(nxt - pos)))
+            return nxt
+        if out.data_end_seen:
+            out.damage.append(Damage(pos, size - pos, "summary", f"summary section unreadable at byte {pos}", 0))
+            return None
+        op = _RECORD_HEAD.unpack_from(buf, pos)[0] if pos + 9 <= size else 0
+        est = max(1, self.estimate(size - pos)) if self.good_bytes else 0
+        if op == OP_CHUNK and pos + 9 + _CHUNK_HEAD.size <= size and self.good_raw:
+            usize = _CHUNK_HEAD.unpack_from(buf, pos + 9)[2]
+            if usize <= MAX_CHUNK_BYTES:
+                est = max(1, round(usize * self.good_messages / self.good_raw))
+        out.damage.append(Damage(pos, size - pos, "tail", reason, None, est))
+        return None
+
+
 def _walk(buf, size: int, out: Salvage) -> None:
+    w = _Walk(buf, size, out)
     pos = len(MAGIC)
-    good_bytes = good_messages = 0  # compressed bytes and messages of intact chunks, for estimates
-    good_raw = 0
     while pos < size:
         if pos + 9 > size:
-            out.damage.append(_tail(pos, size, "the file ends inside a record header", good_bytes, good_messages))
+            w.damaged(pos, "the file ends inside a record header")
             return
         op, length = _RECORD_HEAD.unpack_from(buf, pos)
         body = pos + 9
-        if out.data_end_seen and (body + length > size or not OP_HEADER <= op <= OP_DATA_END):
-            # Past the data section: no message can be lost here, and the footer path reads the summary.
-            out.damage.append(Damage(pos, size - pos, "summary", f"summary section unreadable at byte {pos}", 0))
-            return
-        if body + length > size or not OP_HEADER <= op <= OP_DATA_END:
-            nxt = _resync(buf, size, pos + 1)
-            if nxt is None:
-                reason = "the file ends inside a record (cut, or the writer was killed)" if op == OP_CHUNK else \
-                    f"record at byte {pos} is not readable (opcode {op:#04x}, length {length})"
-                d = _tail(pos, size, reason, good_bytes, good_messages)
-                if op == OP_CHUNK and body + _CHUNK_HEAD.size <= size and good_raw:
-                    usize = _CHUNK_HEAD.unpack_from(buf, body)[2]
-                    if usize <= MAX_CHUNK_BYTES:
-                        d = Damage(d.offset, d.length, d.kind, d.reason, None,
-                                   max(1, round(usize * good_messages / good_raw)))
-                out.damage.append(d)
-                return
-            out.damage.append(_lost(buf, pos, nxt, f"record at byte {pos} is not readable", good_bytes, good_messages))
-            pos = nxt
-            continue
-        if op == OP_CHUNK:
+        if body + length > size:
+            nxt = w.damaged(pos, "the file ends inside a record (cut, or the writer was killed)" if op == OP_CHUNK
+                            else f"record at byte {pos} runs past the end (opcode {op:#04x}, length {length})")
+        elif op == OP_CHUNK or _looks_like_chunk(buf, body, length):
             try:
                 records, usize = _chunk_records(buf, body, length)
             except (_Bad, struct.error) as exc:
-                nxt = _resync(buf, size, pos + 1)
-                end = nxt if nxt is not None else size
-                d = _lost(buf, pos, end, f"chunk at byte {pos}: {exc}", good_bytes, good_messages)
-                out.damage.append(Damage(d.offset, d.length, "chunk", d.reason, d.messages,
-                                         d.messages_estimate, d.by_channel))
-                if nxt is None:
+                nxt = w.damaged(pos, f"chunk at byte {pos}: {exc}")
+            else:
+                if op != OP_CHUNK:  # a damaged opcode in front of an intact chunk: nothing lost
+                    out.damage.append(Damage(pos, 1, "record", f"opcode at byte {pos} damaged ({op:#04x}); "
+                                                              "the chunk behind it is intact", 0))
+                w.take_chunk(pos, records, usize, length)
+                nxt = body + length
+        else:
+            try:
+                _top_level(buf, op, pos, body, length, out)
+            except (_Bad, struct.error) as exc:
+                nxt = w.damaged(pos, f"record at byte {pos} ({op:#04x}): {exc}")
+            else:
+                if op == OP_FOOTER:
                     return
-                pos = nxt
-                continue
-            out.chunks_read += 1
-            n = 0
-            for rop, rec in records:
-                if rop == OP_SCHEMA:
-                    out.schemas.setdefault(rec.id, rec)
-                elif rop == OP_CHANNEL:
-                    out.channels.setdefault(rec.id, rec)
-                else:
-                    cid, seq, t_log, t_pub, data = rec
-                    out.messages.append(RawMessage(cid, seq, t_log, t_pub, data, pos))
-                    n += 1
-            good_bytes += 9 + length
-            good_raw += usize
-            good_messages += n
-            pos = body + length
-            continue
-        try:
-            _top_level(buf, op, pos, body, length, out)
-        except (_Bad, struct.error) as exc:
-            out.damage.append(Damage(pos, 9 + length, "record", f"record at byte {pos} ({op:#04x}): {exc}", 0))
-        if op == OP_FOOTER:
+                nxt = body + length
+        if nxt is None:
             return
-        pos = body + length
+        pos = nxt
+
+
+def _looks_like_chunk(buf, body: int, length: int) -> bool:
+    """Cheap test: does this record's content have a chunk's layout (known compression, lengths that add up)?"""
+    head = _CHUNK_HEAD.size
+    if length < head + 4 + 8:
+        return False
+    cl = _U32.unpack_from(buf, body + head)[0]
+    if cl not in (0, 3, 4) or bytes(buf[body + head + 4:body + head + 4 + cl]) not in (b"", b"lz4", b"zstd"):
+        return False
+    at = body + head + 4 + cl
+    return at + 8 <= body + length and at + 8 + _U64.unpack_from(buf, at)[0] == body + length
+
+
+def _summary_start(buf, size: int) -> int | None:
+    """Where the summary section starts, from an intact footer; None if there is none."""
+    foot = size - len(MAGIC) - 9 - 20
+    if foot < len(MAGIC) or bytes(buf[size - len(MAGIC):]) != MAGIC:
+        return None
+    op, length = _RECORD_HEAD.unpack_from(buf, foot)
+    if op != OP_FOOTER or length != 20:
+        return None
+    start = _U64.unpack_from(buf, foot + 9)[0]
+    return start if len(MAGIC) <= start <= foot else None
 
 
 def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> None:
+    """Parse one record outside chunks strictly (its content must fill its length exactly)."""
     c = _Cursor(buf, body, body + length)
-    if op == OP_SCHEMA:
+    if op == OP_HEADER:
+        c.string(), c.string()
+    elif op == OP_FOOTER:
+        c.take(20)
+        out.finished = body + length + len(MAGIC) == len(buf) and bytes(buf[body + length:]) == MAGIC
+    elif op == OP_SCHEMA:
         s = _schema(c)
         out.schemas.setdefault(s.id, s)
     elif op == OP_CHANNEL:
@@ -452,44 +504,69 @@ def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> 
         out.channels.setdefault(ch.id, ch)
     elif op == OP_MESSAGE:
         cid, seq, t_log, t_pub = _MESSAGE_HEAD.unpack(c.take(_MESSAGE_HEAD.size))
+        if cid not in out.channels:  # the spec puts a channel before its messages: this is not a message
+            raise _Bad(f"message on channel {cid}, which is not defined before it")
+        if out.data_end_seen or (out.summary_start is not None and pos >= out.summary_start):
+            raise _Bad("a message record in the summary section")
         out.messages.append(RawMessage(cid, seq, t_log, t_pub, bytes(buf[c.pos:c.end]), pos))
-    elif op == OP_METADATA:
-        name = c.string()
-        out.metadata[name] = c.str_map()
+        c.pos = c.end
+    elif op == OP_MESSAGE_INDEX:
+        _message_index_count(buf, body, length)
+        c.pos = c.end
+    elif op == OP_CHUNK_INDEX:
+        c.take(32)
+        n = c.u32()
+        if n % 10:
+            raise _Bad("chunk index offsets are not whole entries")
+        c.take(n + 8)
+        c.string()
+        c.take(16)
     elif op == OP_ATTACHMENT:
         t_log, t_create = c.u64(), c.u64()
         name, media = c.string(), c.string()
         data = bytes(c.take(c.u64()))
         crc = c.u32()
-        if crc and zlib.crc32(buf[pos:c.pos - 4]) != crc:
+        if crc and zlib.crc32(buf[body:c.pos - 4]) != crc:
             raise _Bad("attachment CRC mismatch")
         out.attachments.append((t_log, t_create, name, media, data))
-    elif op == OP_DATA_END:
-        out.data_end_seen = True
+    elif op == OP_ATTACHMENT_INDEX:
+        c.take(40)
+        c.string(), c.string()
     elif op == OP_STATISTICS:
         c.take(8 + 2 + 4 * 4 + 16)
         n = c.u32()
         inner = _Cursor(buf, c.pos, c.pos + n)
+        if n % 10 or inner.end > c.end:
+            raise _Bad("statistics counts are not whole entries")
         counts = {}
         while inner.pos < inner.end:
             cid = inner.u16()
             counts[cid] = inner.u64()
+        c.pos = inner.end
         out.statistics_counts = counts
-    elif op == OP_FOOTER:
-        out.finished = body + length + len(MAGIC) == len(buf) and bytes(buf[body + length:]) == MAGIC
+    elif op == OP_METADATA:
+        name = c.string()
+        out.metadata[name] = c.str_map()
+    elif op == OP_METADATA_INDEX:
+        c.take(16)
+        c.string()
+    elif op == OP_SUMMARY_OFFSET:
+        c.take(17)
+    elif op == OP_DATA_END:
+        c.take(4)
+        out.data_end_seen = True
+    else:
+        raise _Bad(f"unknown opcode {op:#04x}")
+    if c.pos != c.end:
+        raise _Bad(f"{length - (c.pos - body)} bytes left over in the record")
 
 
 def _read_summary(buf, size: int, out: Salvage) -> None:
     """Channels and schemas from the summary section, through the footer, if both are intact."""
+    summary_start = _summary_start(buf, size)
+    if not summary_start:
+        return
     foot = size - len(MAGIC) - 9 - 20
-    if foot < len(MAGIC) or bytes(buf[size - len(MAGIC):]) != MAGIC:
-        return
-    op, length = _RECORD_HEAD.unpack_from(buf, foot)
-    if op != OP_FOOTER or length != 20:
-        return
-    summary_start, _offsets_start, _crc = struct.unpack_from("<QQI", buf, foot + 9)
-    if not summary_start or not len(MAGIC) <= summary_start < foot:
-        return
     pos = summary_start
     try:
         while pos < foot:
@@ -547,20 +624,17 @@ def _index_after(buf, size: int, pos: int) -> tuple[int | None, dict[int, int]]:
     return (sum(counts.values()) if counts else None), counts
 
 
-def _lost(buf, start: int, end: int, reason: str, good_bytes: int, good_messages: int) -> Damage:
+def _lost(buf, start: int, end: int, reason: str, estimate: int) -> Damage:
     """Damage over [start, end): exact counts from the message index after the chunk when it is intact."""
     size = len(buf)
+    kind = "record"
     if start + 9 <= size:
         op, length = _RECORD_HEAD.unpack_from(buf, start)
         after = start + 9 + length
-        if op == OP_CHUNK and after <= end:
-            n, by_channel = _index_after(buf, size, after)
-            if n is not None:
-                return Damage(start, end - start, "chunk", reason, n, n, by_channel)
-    est = round((end - start) * good_messages / good_bytes) if good_bytes else 0
-    return Damage(start, end - start, "chunk", reason, None, est)
-
-
-def _tail(start: int, size: int, reason: str, good_bytes: int, good_messages: int) -> Damage:
-    est = max(1, round((size - start) * good_messages / good_bytes)) if good_bytes else 0
-    return Damage(start, size - start, "tail", reason, None, est)
+        if op == OP_CHUNK or (after <= size and _looks_like_chunk(buf, start + 9, length)):
+            kind = "chunk"
+            if after <= end:
+                n, by_channel = _index_after(buf, size, after)
+                if n is not None:
+                    return Damage(start, end - start, kind, reason, n, n, by_channel)
+    return Damage(start, end - start, kind, reason, None, estimate)
