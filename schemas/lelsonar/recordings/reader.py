@@ -438,12 +438,12 @@ def _walk(buf, size: int, out: Salvage) -> None:
         body = pos + 9
         if body + length > size:
             nxt = w.damaged(pos, "the file ends inside a record (cut, or the writer was killed)" if op == OP_CHUNK
-                            else f"record at byte {pos} runs past the end (opcode {op:#04x}, length {length})")
+                            else f"record runs past the end of the file (opcode {op:#04x}, length {length})")
         elif op == OP_CHUNK or _looks_like_chunk(buf, body, length):
             try:
                 records, usize = _chunk_records(buf, body, length)
             except (_Bad, struct.error) as exc:
-                nxt = w.damaged(pos, f"chunk at byte {pos}: {exc}")
+                nxt = w.damaged(pos, str(exc))
             else:
                 if op != OP_CHUNK:  # a damaged opcode in front of an intact chunk: nothing lost
                     out.damage.append(Damage(pos, 1, "record", f"opcode at byte {pos} damaged ({op:#04x}); "
@@ -454,7 +454,7 @@ def _walk(buf, size: int, out: Salvage) -> None:
             try:
                 _top_level(buf, op, pos, body, length, out)
             except (_Bad, struct.error) as exc:
-                nxt = w.damaged(pos, f"record at byte {pos} ({op:#04x}): {exc}")
+                nxt = w.damaged(pos, f"record with opcode {op:#04x}: {exc}")
             else:
                 if op == OP_FOOTER:
                     return
