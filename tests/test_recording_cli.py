@@ -187,6 +187,24 @@ def test_info_names_the_missing_step_and_the_damage(scan, tmp_path, capsys):
     assert lost["/lelsonar/sample"] == 1 and lost["/lelsonar/scan_end"] == 0
 
 
+def test_a_killed_file_whose_first_sample_chunk_is_damaged_keeps_the_later_samples(scan, tmp_path, capsys):
+    # The Sample channel is defined in step 0's chunk only; the file has no summary to repeat it.
+    path, _msgs, spans = scan
+    data = bytearray(path.read_bytes()[:spans[20][1]])
+    data[(spans[0][0] + spans[0][1]) // 2] ^= 0x01
+    target = tmp_path / "killed.mcap"
+    target.write_bytes(bytes(data))
+    (s,) = info_json(capsys, target)["scans"]
+    assert s["missing_steps"] == [0, *range(21, STEPS)] and s["steps_received"] == 20
+    rc, _out, err = run(capsys, "recover", target, "-o", tmp_path / "fixed.mcap")
+    assert rc == 0, err
+    with open(tmp_path / "fixed.mcap", "rb") as f:
+        steps = sorted(codec.Sample.FromString(m.data).step
+                       for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"]))
+    assert steps == list(range(1, 21))
+    assert [type(m) for m in recording.read_messages(tmp_path / "fixed.mcap")][:2] == [codec.ScanStart, codec.Sample]
+
+
 def test_info_of_a_cut_file_and_of_skipped_steps(scan, tmp_path, capsys):
     info = info_json(capsys, cut(scan, tmp_path, after_step=99))
     (s,) = info["scans"]

@@ -56,6 +56,12 @@ TOPIC_LOG = "/log"
 WORLD_FRAME = "world"
 ARRAY_FRAME = "array"
 
+#: Metadata record naming each channel, ``lelsonar.channel.<id>`` → {"topic": ..., "schema": ...}.
+CHANNEL_METADATA = "lelsonar.channel."
+#: The protobuf types a lelsonar recording may hold, by full name (to rebuild a lost schema record).
+RECORDED_TYPES: dict[str, type[Message]] = {
+    **codec.MESSAGE_TYPES, **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, PointCloud, Log)}}
+
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -150,6 +156,10 @@ class McapRecorder:
         if channel is None:
             schema = register_schema(self._writer, type(message))
             channel = self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema)
+            # The channel record rides in the chunk of its first message; this copy outside any chunk names
+            # the channel's later messages if that one chunk is damaged (see open_recording).
+            self._writer.add_metadata(f"{CHANNEL_METADATA}{channel}",
+                                      {"topic": topic, "schema": type(message).DESCRIPTOR.full_name})
         self._writer.add_message(channel, log_time=t, data=message.SerializeToString(), publish_time=t)
 
     # --- writing ---------------------------------------------------------------------
@@ -335,7 +345,33 @@ def open_recording(path: Path | str | Recording) -> Recording:
     """
     if isinstance(path, Recording):
         return path
-    return Recording(salvage(path))
+    s = salvage(path)
+    if s.orphans:
+        _adopt_orphans(s)
+    return Recording(s)
+
+
+def _adopt_orphans(s: Salvage) -> None:
+    """Name the channels whose definition was in a damaged chunk, from the recorder's channel metadata.
+
+    The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
+    """
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    from lelsonar.recordings.reader import ChannelInfo, SchemaInfo
+
+    by_name = {schema.name: sid for sid, schema in s.schemas.items()}
+    for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
+        md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})
+        cls = RECORDED_TYPES.get(md.get("schema", ""))
+        if cls is None or not md.get("topic"):
+            continue
+        name = cls.DESCRIPTOR.full_name
+        if name not in by_name:
+            sid = by_name[name] = max(s.schemas, default=0) + 1
+            s.schemas[sid] = SchemaInfo(sid, name, "protobuf", build_file_descriptor_set(cls).SerializeToString())
+        s.channels[cid] = ChannelInfo(cid, by_name[name], md["topic"], "protobuf", {})
+    s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
 def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:

@@ -17,7 +17,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
 from lelsonar.errors import RecordingError
-from lelsonar.recordings.reader import Salvage, salvage
+from lelsonar.recording import CHANNEL_METADATA, open_recording
+from lelsonar.recordings.reader import Salvage
 
 _COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -66,7 +67,7 @@ def recover(src: Path | str, dst: Path | str, *, compression: str = "zstd") -> R
         raise RecordingError(f"compression must be one of {', '.join(_COMPRESSIONS)}, got {compression!r}")
     if dst.exists() and src.exists() and dst.resolve() == src.resolve():
         raise RecordingError(f"recover would overwrite its input {src}; give another output path with -o")
-    s = salvage(src)
+    s = open_recording(src).salvage  # with lost channel records renamed from the recorder's channel metadata
     tmp = dst.with_name(f".{dst.name}.partial")
     try:
         dst.parent.mkdir(parents=True, exist_ok=True)
@@ -85,7 +86,8 @@ def _write(s: Salvage, f, compression: CompressionType) -> tuple[int, int]:
     writer = McapWriter(f, compression=compression)
     writer.start(library="lelsonar recover")
     for name, data in s.metadata.items():
-        writer.add_metadata(name, data)
+        if not name.startswith(CHANNEL_METADATA):  # channel ids change: written afresh below
+            writer.add_metadata(name, data)
     for t_log, t_create, name, media, data in s.attachments:
         writer.add_attachment(create_time=t_create, log_time=t_log, name=name, media_type=media, data=data)
     schema_ids: dict[int, int] = {}
@@ -100,6 +102,8 @@ def _write(s: Salvage, f, compression: CompressionType) -> tuple[int, int]:
                 schema_ids[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
             schema_id = schema_ids[schema.id]
         channel_ids[cid] = writer.register_channel(ch.topic, ch.message_encoding, schema_id, dict(ch.metadata))
+        if f"{CHANNEL_METADATA}{cid}" in s.metadata:
+            writer.add_metadata(f"{CHANNEL_METADATA}{channel_ids[cid]}", s.metadata[f"{CHANNEL_METADATA}{cid}"])
     n = 0
     for m in s.in_log_time_order():
         new = channel_ids.get(m.channel_id)

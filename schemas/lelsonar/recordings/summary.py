@@ -14,7 +14,7 @@ from pathlib import Path
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
 from lelsonar import codec
-from lelsonar.recording import TOPICS, Recording, describe_damage, open_recording
+from lelsonar.recording import CHANNEL_METADATA, TOPICS, Recording, describe_damage, open_recording
 from lelsonar.recordings.reader import Damage
 
 _SCAN_STATUS = codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type
@@ -224,7 +224,8 @@ def summarize(path: Path | str | Recording) -> FileSummary:
         messages_lost_exact=exact, start_ns=min(times) if times else None, end_ns=max(times) if times else None,
         device=device, scanners=sorted({k[0] for k in scans} | {k[0] for k in estimates}), channels=channels,
         scans=[scans[k] for k in sorted(scans)], estimates=[_estimate(estimates[k]) for k in sorted(estimates)],
-        undecodable=undecodable, metadata=dict(s.metadata))
+        undecodable=undecodable,
+        metadata={k: v for k, v in s.metadata.items() if not k.startswith(CHANNEL_METADATA)})
 
 
 def _damage_dict(d: Damage, s) -> dict:
