@@ -100,9 +100,11 @@ def run(args: argparse.Namespace) -> int:
 
     from lelsonar.recordings.reader import salvage
     from lelsonar.tools.bench import machine
+    from lelsonar.tools.bench_acquire import host_busy, host_line
 
     console = Console()
     console = console if console.is_terminal else Console(width=120)
+    busy = host_busy()
     msgs = scan_messages(args.preset, args.steps, args.seed)
     steps = len(msgs) - 2
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
@@ -132,7 +134,8 @@ def run(args: argparse.Namespace) -> int:
                           f"{med / base:.2f}", f"{sizes[(comp, name)] / 1e6:.2f}",
                           f"{1e3 * statistics.median(reads[(comp, name)]):.1f}")
     console.print(table)
-    console.print(f"machine: {machine()}; files on {fs}")
+    console.print(f"machine: {machine()}; files on {fs}; {host_line(busy)}")
+    console.print("fsync's cost is the disk's: on a shared or loaded host it varies several-fold between runs")
     console.print(f"command: {command_line(args)}")
     return 0
 
