@@ -63,6 +63,10 @@ def test_every_message_is_with_the_os_before_it_is_published(tmp_path, durable):
 def test_fsync_flag_syncs_every_step(tmp_path, monkeypatch):
     args = build_parser().parse_args(["acquire", "--device", "sim", "--fsync", "--out", str(tmp_path)])
     assert config_from_args(args).fsync
+    (tmp_path / "rig.toml").write_text("[acquire]\nfsync = true\n")
+    args = build_parser().parse_args(["acquire", "--config", str(tmp_path / "rig.toml")])
+    assert config_from_args(args).fsync
+    assert not config_from_args(build_parser().parse_args(["acquire"])).fsync
     calls = []
     real = os.fsync
     monkeypatch.setattr(os, "fsync", lambda fd: (calls.append(fd), real(fd)))
