@@ -25,6 +25,7 @@ from __future__ import annotations
 import mmap
 import os
 import struct
+import threading
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -45,6 +46,7 @@ _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _RECORD_HEAD = struct.Struct("<BQ")
 _CHUNK_HEAD = struct.Struct("<QQQI")  # message_start_time, message_end_time, uncompressed_size, uncompressed_crc
 _MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel_id, sequence, log_time, publish_time
+_INDEX_HEAD = struct.Struct("<HI")  # message index: channel_id, byte length of the entries
 
 
 class _Bad(Exception):
@@ -237,18 +239,24 @@ def _channel(c: _Cursor) -> ChannelInfo:
     return ChannelInfo(c.u16(), c.u16(), c.string(), c.string(), c.str_map())
 
 
+_LOCAL = threading.local()  # one zstd decompressor per thread (they are not thread-safe, and costly to create)
+
+
 def _decompress(compression: str, data, size: int) -> bytes:
     if compression == "":
         return bytes(data)
     try:
         if compression == "zstd":
-            import zstandard
+            zstd = getattr(_LOCAL, "zstd", None)
+            if zstd is None:
+                import zstandard
 
-            return zstandard.ZstdDecompressor().decompress(bytes(data), max_output_size=size)
+                zstd = _LOCAL.zstd = zstandard.ZstdDecompressor()
+            return zstd.decompress(data, max_output_size=size)
         if compression == "lz4":
             import lz4.frame
 
-            return lz4.frame.decompress(bytes(data))
+            return lz4.frame.decompress(data)
     except Exception as exc:  # noqa: BLE001 - every codec failure is damage, whatever the library raises
         raise _Bad(f"{compression} decompression failed: {type(exc).__name__}") from None
     raise _Bad(f"unknown compression {compression!r}")
@@ -288,10 +296,10 @@ def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object
 
 
 def _message_index_count(buf, start: int, length: int) -> tuple[int, int]:
-    c = _Cursor(buf, start, start + length)
-    channel_id = c.u16()
-    n = c.u32()
-    if n % 16 or c.pos + n != c.end:
+    if length < 6:
+        raise _Bad("message index too short")
+    channel_id, n = _INDEX_HEAD.unpack_from(buf, start)
+    if n % 16 or 6 + n != length:
         raise _Bad("message index length is not a whole number of entries")
     return channel_id, n // 16
 
