@@ -61,7 +61,7 @@ class ScanOutput:
 
     def emit(self, message: Message) -> None:
         if self.recorder is not None:
-            self.recorder.write(message)
+            self.recorder.write(message)  # returns once the step is with the OS: durable before published
         if self.publisher is not None:
             try:
                 self.publisher.publish(message)
