@@ -27,7 +27,9 @@ from lelsonar.reconstruct import wire
 from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B,
                                                fit_corner_model, scan_points)
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
-from lelsonar.reconstruct.energy import waveform_energy
+from lelsonar.acquire.sim import piston_directivity
+from lelsonar.reconstruct.corner_model import amplitude_pitch
+from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
 from lelsonar.reconstruct.results import FailureReason, FitFailure, PlaneFit
@@ -51,12 +53,15 @@ def _scene_config(*, distance_a: float = 1.57, distance_b: float = 1.06, gamma: 
                                                              corner_gain=corner_gain))
 
 
-def _reconstruct(cfg, seed: int, method: str = DEFAULT_METHOD):  # noqa: ANN001, ANN202
+def _reconstruct(cfg, seed: int, method: str = DEFAULT_METHOD, *, amplitudes: bool = True):  # noqa: ANN001, ANN202
+    """Reconstruct as the service does: waveform energies, the echoes' own amplitudes, the rig's E0."""
     scan = simulate_scan(cfg, seed=seed)
     # The rig is calibrated once, on a face-on wall (paper §4, eq. 12), with the same capsules.
     model = calibrate_simulator(dataclasses.replace(preset("paper-test1"), acoustics=cfg.acoustics), seed=0).model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    return scan, reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof) if amplitudes else None
+    return scan, reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method,
+                             echo_amplitude=amp)
 
 
 def _patch_error(scan, label: str, plane: PlaneFit) -> float:  # noqa: ANN001
@@ -99,11 +104,12 @@ HARD_SCENES = {
 }
 
 
+@pytest.mark.parametrize("amplitudes", [True, False], ids=["with-amplitudes", "ranges-only"])
 @pytest.mark.parametrize("name", sorted(HARD_SCENES))
-def test_the_default_finds_both_walls_of_corners_the_paper_never_scanned(name: str) -> None:
+def test_the_default_finds_both_walls_of_corners_the_paper_never_scanned(name: str, amplitudes: bool) -> None:
     cfg = _scene_config(**HARD_SCENES[name])
     for seed in (0, 1):
-        scan, rec = _reconstruct(cfg, seed)
+        scan, rec = _reconstruct(cfg, seed, amplitudes=amplitudes)
         for label, plane in (("a", rec.plane_a), ("b", rec.plane_b)):
             truth = {p.label: p for p in scan.truth.planes}[label]
             assert isinstance(plane, PlaneFit), f"{name}, seed {seed}: {plane}"
@@ -111,6 +117,48 @@ def test_the_default_finds_both_walls_of_corners_the_paper_never_scanned(name: s
             assert _patch_error(scan, label, plane) < PATCH_LIMIT, (name, seed, label)
             assert _angle(plane.normal, truth.normal) <= Z_LIMIT * plane.normal_stderr, (name, seed, label)
             assert abs(plane.offset - truth.offset) <= Z_LIMIT * plane.offset_stderr, (name, seed, label)
+
+
+def test_the_echo_amplitudes_resolve_the_tilt_the_ranges_cannot() -> None:
+    """Both walls pitched about x (rotation axis): ranges alone barely see it, the amplitudes' peak does."""
+    cfg = _scene_config(tilts=dict(tilt_a_x=math.radians(4), tilt_b_x=math.radians(-3)))
+    for seed in (0, 1, 2):
+        scan, with_amp = _reconstruct(cfg, seed)
+        _, ranges_only = _reconstruct(cfg, seed, amplitudes=False)
+        for label in "ab":
+            truth = {p.label: p for p in scan.truth.planes}[label]
+            a = with_amp.plane_a if label == "a" else with_amp.plane_b
+            r = ranges_only.plane_a if label == "a" else ranges_only.plane_b
+            assert "echoes strongest" in " ".join(a.diagnostics.notes)
+            # Calibrated: within 5 of its own (small) standard error, and far more precise than the ranges alone.
+            assert _angle(a.normal, truth.normal) <= Z_LIMIT * a.normal_stderr
+            assert a.normal_stderr < r.normal_stderr / 3
+
+
+def test_amplitude_pitch_finds_the_peak_of_a_piston_beam() -> None:
+    rng = np.random.default_rng(7)
+    phi = math.radians(3.7)
+    gamma = np.repeat(np.radians(np.linspace(-10, 30, 61)), 4)
+    ka = 2 * math.pi * 40_000 / 343.2 * 0.008
+    amp = piston_directivity(np.abs(gamma - phi), ka) ** 2 / (2 * 1.5)
+    amp *= np.exp(rng.normal(0, 0.05, amp.shape))  # 5 % amplitude noise
+    est, se = amplitude_pitch(gamma, amp, np.full(gamma.shape, 1.5))
+    assert abs(est - phi) <= Z_LIMIT * se and se < math.radians(0.2)
+    # A truncated sweep that never passes the peak gives no direction rather than a wrong one.
+    right = gamma > phi + math.radians(2)
+    assert amplitude_pitch(gamma[right], amp[right], np.full(int(right.sum()), 1.5)) is None
+
+
+def test_echo_amplitude_is_the_first_echo_not_a_later_one() -> None:
+    fs, t0 = 200_000.0, 0.0
+    t = np.arange(2000) / fs
+    first, later = 0.004, 0.0048  # the corner's echo 0.8 ms (14 cm) after the wall's
+    w = 0.2 * np.exp(-((t - first - 1e-4) / 1e-4) ** 2) * np.sin(2 * math.pi * 40_000 * t)
+    w += 0.9 * np.exp(-((t - later - 1e-4) / 1e-4) ** 2) * np.sin(2 * math.pi * 40_000 * t)
+    amp = echo_amplitude(w[None, :], fs, t0, np.array([first]))
+    # 5 samples per 40 kHz cycle: the largest sample is within π/5 of the crest, so ≥ cos(π/5) of it.
+    assert 0.2 * math.cos(math.pi * 40_000 / fs) <= amp[0] <= 0.2
+    assert np.isnan(echo_amplitude(w[None, :], fs, t0, np.array([np.nan]))[0])
 
 
 def test_the_energy_split_fails_where_the_corner_model_does_not() -> None:

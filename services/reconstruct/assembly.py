@@ -15,7 +15,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.energy import EnergyModel, median_range, total_energy, waveform_energy
+from lelsonar.reconstruct.energy import EnergyModel, echo_amplitude, median_range, total_energy, waveform_energy
 
 
 def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
@@ -56,6 +56,7 @@ class ScanAssembly:
     gamma: np.ndarray = field(init=False)            # (steps,) rad, NaN until received
     distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
     sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s
+    echo_amplitude: np.ndarray = field(init=False)   # (steps, k) V, peak of the first echo alone, NaN: none
     step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. 11
     expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. 12
     ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m); 0 without a valid range
@@ -72,6 +73,7 @@ class ScanAssembly:
         self.gamma = np.full(n, np.nan)
         self.distance = np.full((n, k), np.nan)
         self.sensor_energy = np.zeros((n, k))
+        self.echo_amplitude = np.full((n, k), np.nan)
         self.step_energy = np.zeros(n)
         self.expected_energy = np.zeros(n)
         self.ratio = np.zeros(n)
@@ -110,10 +112,12 @@ class ScanAssembly:
         if sorted(ids) != list(range(k)):
             raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
         distance = np.full(k, np.nan)
+        tof = np.full(k, np.nan)
         waves = [None] * k
         for s in sample.sensors:
             if s.echo_valid:
                 distance[s.capsule_id] = s.distance
+                tof[s.capsule_id] = s.time_of_flight
             waves[s.capsule_id] = codec.unpack_waveform(s.waveform, validated=True)  # ingest decoded it
         lengths = {w.size for w in waves}
         if len(lengths) != 1:
@@ -123,6 +127,7 @@ class ScanAssembly:
         self.gamma[step] = sample.gamma_measured
         self.distance[step] = distance
         self.sensor_energy[step] = waveform_energy(waveforms, rate)
+        self.echo_amplitude[step] = echo_amplitude(waveforms, rate, sample.sensors[0].waveform.t0, tof)
         # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
         self.step_energy[step] = total_energy(self.sensor_energy[step])
         d_m = median_range(distance[None, :])[0]

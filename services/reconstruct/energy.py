@@ -10,7 +10,7 @@ import numpy as np
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 
-__all__ = ["EnergyModel", "waveform_energy", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
+__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "waveform_energy", "echo_amplitude", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
 
 
 def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -32,6 +32,51 @@ def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
     """
     w = np.asarray(waveforms, dtype=np.float64)
     return np.einsum("...i,...i->...", w, w) / float(sample_rate)
+
+
+#: Where :func:`echo_amplitude` looks, s after the time of flight: the comparator fires on the
+#: echo's rising edge, and a 40 kHz transceiver's echo peaks within ~0.2 ms of its onset.  Short, so
+#: a later echo (the corner's, a few cm further) does not leak in.
+ECHO_PEAK_WINDOW = (0.0, 4.0e-4)
+
+
+def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_trip: np.ndarray,
+                   window: tuple[float, float] = ECHO_PEAK_WINDOW) -> np.ndarray:
+    """Peak amplitude of the first echo alone: the largest ``|w|`` just after its time of flight.
+
+    The paper's ``E_i^γ`` (eq. 10) integrates the whole waveform, so a step
+    whose first echo is a wall still rings with the corner's echo later on.
+    The peak right after the time of flight belongs to the echo that set the
+    range; it follows the beam pattern ``D(ψ)²`` of the angle between the beam
+    and the wall's normal (design notes §8).
+
+    Parameters
+    ----------
+    waveforms : (..., n_samples) array
+        V.
+    sample_rate : float
+        Hz.
+    t0 : float
+        Time of the first sample after firing, s.
+    round_trip : (...) array
+        Time of flight of the first echo, s (NaN: no echo).
+    window : (float, float)
+        Start and end of the search after the time of flight, s.
+
+    Returns
+    -------
+    (...) array
+        V; NaN where there is no echo or the window leaves the waveform.
+    """
+    w = np.abs(np.asarray(waveforms, dtype=np.float64))
+    tof = np.asarray(round_trip, dtype=np.float64)
+    n = w.shape[-1]
+    ok = np.isfinite(tof)
+    start = np.clip(np.rint((np.where(ok, tof, 0.0) + window[0] - t0) * sample_rate), 0, n).astype(np.intp)
+    width = max(int(round((window[1] - window[0]) * sample_rate)), 1)
+    idx = np.minimum(start[..., None] + np.arange(width), n - 1)
+    peak = np.take_along_axis(w, idx, axis=-1).max(axis=-1)
+    return np.where(ok & (start < n), peak, np.nan)
 
 
 def total_energy(sensor_energy: np.ndarray) -> np.ndarray:

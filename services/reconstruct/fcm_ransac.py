@@ -24,7 +24,7 @@ __all__ = ["fit_fcm_ransac"]
 
 
 def fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-                    opts: FitOptions) -> ScanFit:
+                    opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
     """FCM with three clusters + RANSAC (paper §5.4, ref. [8]).
 
     Features per point: the raw point's y and z (eq. 9) and the R of its step,

@@ -161,6 +161,10 @@ def fit_plane(data: F.PlaneData, method: str = DEFAULT_METHOD, *, warm_start: np
     warm_start : (3,) array, optional
         A previous θ for this plane (extra LEL start).
     options : FitOptions, optional
+    echo_amplitude : (n_steps, n_capsules) array, optional
+        Peak amplitude of each capsule's first echo alone, V (NaN: none), from
+        :func:`lelsonar.reconstruct.energy.echo_amplitude`.  ``"corner"`` takes
+        each wall's direction from where its echoes are strongest.
     """
     m = _method(method)
     if m.fit_plane is None:
@@ -202,7 +206,7 @@ def _validate_inputs(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.
 def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray, geometry: ArrayGeometry,
                 energy_model: EnergyModel, method: str = DEFAULT_METHOD, *,
                 warm_start: tuple[np.ndarray | None, np.ndarray | None] | None = None,
-                options: FitOptions | None = None) -> ScanReconstruction:
+                options: FitOptions | None = None, echo_amplitude: np.ndarray | None = None) -> ScanReconstruction:
     """Reconstruct the two planes of an L-shaped corner from a (partial) scan (paper §4–5).
 
     Parameters
@@ -254,7 +258,8 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
                                   Timings(t1 - t0, 0.0, 0.0, t1 - t0))
     if m.fit_scan is not None:
         t1 = time.perf_counter()
-        sf = m.fit_scan(g, d, ratio, geometry, opts)
+        ee = None if echo_amplitude is None else np.asarray(echo_amplitude, dtype=np.float64).reshape(d.shape)
+        sf = m.fit_scan(g, d, ratio, geometry, opts, echo_amplitude=ee)
         pa, pb = _assessed(sf.plane_a, g), _assessed(sf.plane_b, g)
         crit = crit if sf.critical_step is None else sf.critical_step
         t2 = time.perf_counter()

@@ -294,7 +294,8 @@ class ReconstructionService:
         for method in (self.config.method, *self.config.compare_methods):
             # From scratch, no warm start: the final estimate depends only on the data.
             results[method] = reconstruct(gamma, distance, scan.sensor_energy[steps], scan.geometry,
-                                          scan.energy_model, method, options=self._options)
+                                          scan.energy_model, method, options=self._options,
+                                          echo_amplitude=scan.echo_amplitude[steps])
         main = results[self.config.method]
         crit = int(steps[main.critical_step]) if main.critical_step is not None else None
         planes: list[PlaneResult] = [main.plane_a, main.plane_b]
