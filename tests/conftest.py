@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -76,3 +80,27 @@ def simulated_messages(preset_name: str = "paper-test1", seed: int = 0, *, scann
 
 def type_name(message) -> str:
     return message.DESCRIPTOR.full_name
+
+
+#: A busy loop that bounds itself (so a crashed test run cannot leave it behind) and says when it spins.
+_HOG = "import sys, time\nend = time.monotonic() + {limit}\nprint('spinning', flush=True)\nwhile time.monotonic() < end: pass\n"
+
+
+@pytest.fixture
+def cpu_hog():
+    """Every core this process may use saturated by another process, for this test only.
+
+    One busy-looping Python process per core (bounded to 120 s on its own), started before the
+    test body and killed when it ends.  Device timing must hold on a loaded host (issue 10 §5).
+    """
+    procs = [subprocess.Popen([sys.executable, "-c", _HOG.format(limit=120)], stdout=subprocess.PIPE, text=True)
+             for _ in range(len(os.sched_getaffinity(0)))]
+    try:
+        for proc in procs:
+            assert proc.stdout.readline().strip() == "spinning"  # it is on a core now
+        yield len(procs)
+    finally:
+        for proc in procs:
+            proc.kill()
+            proc.wait()
+            proc.stdout.close()
