@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 
+import pytest
 import zenoh
 
 from lelsonar import codec, recording
@@ -17,6 +18,7 @@ from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, gamma_schedule,
 from lelsonar.acquire.service import energy_model, run_acquisition, sim_config
 from lelsonar.keys import ScannerKeys
 from lelsonar.transport import hermetic_settings, open_session
+from lelsonar.v1 import scan_pb2
 
 from .test_contract_mcap import RERUN
 
@@ -84,6 +86,39 @@ def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_pat
     recorded = list(recording.read_messages(path))
     assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(13))
     assert recorded[-1] == end and end.samples_sent == 13
+
+
+def _undecodable_from_step_12(scanner) -> None:
+    """From now on the board frames every ACQ with a bit depth of 17: well framed, undecodable."""
+    from .test_devices_sensor_board import _with_bits
+
+    board = scanner.rig.board
+    send = board._send
+    board._send = lambda frame, due: send(_with_bits(frame, 17), due)
+
+
+@pytest.mark.parametrize(("fault", "reason"), [
+    (_undecodable_from_step_12, "cannot be decoded"),
+    (lambda scanner: scanner.rig.board.stop(), "serial I/O"),  # the board unplugged
+], ids=["decode-error", "serial-error"])
+def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason):
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=20)
+    sim = sim_config(cfg)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    path = tmp_path / "fault.mcap"
+    with open_scanner(cfg, sim) as scanner, recording.McapRecorder(path) as rec:
+
+        def fault_after_step_11(step: int, _gamma: float) -> None:
+            if step == 11:
+                fault(scanner)
+
+        end = run_scan(scanner, schedule, ScanIdentity("s1", 6), energy_model(cfg), ScanOutput(rec, None),
+                       threading.Event(), on_step=fault_after_step_11)
+    assert end.status == scan_pb2.SCAN_STATUS_ABORTED
+    assert "device failure at step 12" in end.reason and reason in end.reason
+    recorded = list(recording.read_messages(path))
+    assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(12))
+    assert recorded[-1] == end and end.samples_sent == 12
 
 
 def test_sigint_mid_scan_leaves_a_finished_recording_that_ends_in_an_aborted_scan_end(tmp_path, zenoh_socket):
