@@ -88,6 +88,51 @@ def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_pat
     assert recorded[-1] == end and end.samples_sent == 13
 
 
+def test_the_servo_status_byte_reaches_every_sample(tmp_path):
+    """The AX-12's ERR byte of each step's read-back is carried in Sample.motor.error_bits: here a
+    supply that sags below the Min Voltage Limit for steps 6-9 (tolerated, so the scan goes on)."""
+    import numpy as np
+
+    from lelsonar.acquire.backends import DeviceScanner, sim_info
+    from lelsonar.acquire.devices.ax12 import ErrorBit
+    from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
+    from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
+    from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
+    from lelsonar.acquire.emulate.cli import emulated_rig
+    from lelsonar.acquire.emulate.sensor_board_emulator import sim_shot_source
+
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=16)
+    sim = sim_config(cfg)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    zero_raw = int(sim.servo.to_raw(0.0))
+    lo, hi = sorted((sim.gamma_start, sim.gamma_stop))
+    with emulated_rig(sim_shot_source(sim, np.random.default_rng(0)),
+                      AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start))),
+                      zero_raw=zero_raw) as rig, \
+            DynamixelMotor(MotorConfig(port=rig.motor.path, gamma_min=lo, gamma_max=hi, latency_timer_ms=2.0,
+                                       stale_guard_s=EMULATED_STALE_GUARD_S, zero_raw=zero_raw,
+                                       tolerated_error_bits=int(ErrorBit.INPUT_VOLTAGE))) as motor, \
+            SerialSensorBoard(SensorBoardConfig(port=rig.board.path, n_samples=sim.window_samples,
+                                                fs_hz=int(sim.sample_rate))) as board:
+        scanner = DeviceScanner(motor, board, sim_info(sim, "emulated"), rig)
+
+        def supply(step: int, _gamma: float) -> None:
+            if step == 5:
+                rig.motor.set_register("present_voltage", 55)  # 5.5 V < the 6.0 V limit
+            elif step == 9:
+                rig.motor.set_register("present_voltage", 120)
+
+        collected: list = []
+        output = ScanOutput()
+        output.emit = collected.append
+        end = run_scan(scanner, schedule, ScanIdentity("s1", 8), energy_model(cfg), output, threading.Event(),
+                       on_step=supply)
+    assert end.status == scan_pb2.SCAN_STATUS_COMPLETE, end.reason
+    samples = [m for m in collected if isinstance(m, codec.Sample)]
+    assert [s.motor.error_bits for s in samples] == [0] * 6 + [int(ErrorBit.INPUT_VOLTAGE)] * 4 + [0] * 6
+    assert [s.motor.voltage for s in samples][5:11] == pytest.approx([12.0, 5.5, 5.5, 5.5, 5.5, 12.0])
+
+
 def _undecodable_from_step_12(scanner) -> None:
     """From now on the board frames every ACQ with a bit depth of 17: well framed, undecodable."""
     from .test_devices_sensor_board import _with_bits

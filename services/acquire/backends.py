@@ -79,7 +79,7 @@ class DeviceScanner:
         return StepMeasurement(
             gamma_measured=pos.gamma,
             motor=MotorReading(present_position_raw=pos.raw, load=s.load, voltage=s.voltage_v,
-                               temperature=s.temperature_c + 273.15),
+                               temperature=s.temperature_c + 273.15, error_bits=pos.error_bits),
             time_of_flight=shot.tof_s, waveforms=shot.waveforms, t0=0.0, acquisition_time_ns=t_ns)
 
     def close(self) -> None:

@@ -200,6 +200,11 @@ class MotorConfig:
         Longest sleep between Moving polls once the expected travel time has passed.
     no_load_rpm : float
         Speed cap of the travel-time model (see ``ax12``).
+    tolerated_error_bits : int
+        ERR bits that are reported, not raised: the transaction succeeds and the bits are
+        carried in :attr:`MotorPosition.error_bits` (and so in every ``Sample.motor``).
+        E.g. ``ErrorBit.INPUT_VOLTAGE`` to keep scanning on a sagging supply, which the
+        servo itself survives.  0 (the default): every set bit raises its typed error.
     """
 
     port: str
@@ -216,6 +221,7 @@ class MotorConfig:
     move_slack: float = 1.5
     poll_interval_s: float = 0.002
     no_load_rpm: float = ax12.NO_LOAD_RPM
+    tolerated_error_bits: int = 0
 
     def __post_init__(self) -> None:
         checks = (
@@ -234,6 +240,7 @@ class MotorConfig:
             (self.move_margin_s >= 0 and self.move_slack >= 1, "need move_margin_s >= 0 and move_slack >= 1"),
             (self.poll_interval_s > 0, "poll_interval_s must be positive"),
             (self.no_load_rpm > 0, "no_load_rpm must be positive"),
+            (0 <= self.tolerated_error_bits <= 0x7F, "tolerated_error_bits must be 0..0x7F"),
         )
         for ok, message in checks:
             if not ok:
@@ -257,11 +264,15 @@ class MotorPosition:
         The scanner angle γ (rad) it stands for.
     status : MotorStatus
         Load, voltage and temperature from the same read.
+    error_bits : int
+        The ERR byte of that read's status packet: 0, or bits the configuration tolerates
+        (:attr:`MotorConfig.tolerated_error_bits`); any other bit raised instead.
     """
 
     raw: int
     gamma: float
     status: MotorStatus
+    error_bits: int = 0
 
 
 @dataclass(frozen=True)
@@ -380,6 +391,8 @@ class DynamixelMotor:
         self.late_replies = 0
         #: Extra replies to an earlier, resent request that were binned.
         self.stale_replies_binned = 0
+        #: ERR byte of the last status packet accepted (tolerated bits only, else it raised).
+        self.last_error_bits = 0
         try:
             # setBaudRate opens the port (the SDK's openPort would open it at its default first).
             opened = self._port.setBaudRate(config.baudrate)
@@ -536,6 +549,7 @@ class DynamixelMotor:
             raw=self._present_raw,
             gamma=ax12.gamma_from_raw(self._present_raw, self.config.zero_raw),
             status=self._status_from(data[load_at : load_at + 4]),
+            error_bits=self.last_error_bits,
         )
         return position, bool(data[ax12.register("moving").address - base])
 
@@ -600,12 +614,13 @@ class DynamixelMotor:
                 if in_flight:
                     self._bin_stale_reply()
                     in_flight = False
-                if error:
+                if error & ~self.config.tolerated_error_bits:
                     if error & ErrorBit.CHECKSUM and attempt + 1 < attempts:
                         # The servo saw a corrupt instruction and did nothing: resend.
                         self.retries_used += 1
                         continue
                     raise status_error(error, f"{what} on motor {self.config.motor_id}")
+                self.last_error_bits = error
                 return value
             last = self._packets.getTxRxResult(result)
             if result not in (COMM_RX_TIMEOUT, COMM_RX_CORRUPT):
