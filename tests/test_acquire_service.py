@@ -32,6 +32,7 @@ def collect(sub, stop_after: int, got: list, done: threading.Event) -> None:
             return
 
 
+@pytest.mark.slow
 def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket):
     cfg = AcquireConfig(scanner_id="rig1", device="emulated", out_dir=tmp_path)
     steps = sim_config(cfg).steps
@@ -166,6 +167,7 @@ def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason):
     assert recorded[-1] == end and end.samples_sent == 12
 
 
+@pytest.mark.slow
 def test_sigint_mid_scan_leaves_a_finished_recording_that_ends_in_an_aborted_scan_end(tmp_path, zenoh_socket):
     keys = ScannerKeys("lelsonar", "scanner1")
     got: list = []

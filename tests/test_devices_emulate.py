@@ -58,6 +58,7 @@ def _timed_scan(rig: cli.EmulatedRig, n: int) -> tuple[float, float]:
     return elapsed, bound
 
 
+@pytest.mark.slow
 def test_scan_with_both_devices_fires_at_the_angle_the_servo_reports() -> None:
     """184 steps over 120° through both real drivers; the wall time against the physical
     bound is measured by `lelsonar bench acquire`, not asserted here."""
@@ -154,6 +155,7 @@ def test_cli_registers_and_runs_until_signalled(capsys, monkeypatch) -> None:
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handlers restored
 
 
+@pytest.mark.slow
 def test_cli_in_a_subprocess_serves_the_real_drivers() -> None:
     code = (
         "import argparse, sys\n"
