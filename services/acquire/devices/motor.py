@@ -24,7 +24,9 @@ unmodified, with protocol 1.0 at 1 Mbps.  Two SDK traits shape the driver
   answer; a pty emulator's thread can be starved for 100+ ms on a loaded host,
   hence the long window the emulated backend uses (:data:`EMULATED_STALE_GUARD_S`).
 
-Every status packet's ERR byte is decoded into a typed :class:`MotorStatusError`.
+Every status packet's ERR byte is decoded into a typed :class:`MotorStatusError`, except
+the bits :attr:`MotorConfig.tolerated_error_bits` lets through, which are carried in
+:attr:`MotorPosition.error_bits` (and so in ``Sample.motor.error_bits``).
 """
 
 from __future__ import annotations
