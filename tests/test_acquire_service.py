@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 
+import pytest
 import zenoh
 
 from lelsonar import codec, recording
@@ -17,6 +18,7 @@ from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, gamma_schedule,
 from lelsonar.acquire.service import energy_model, run_acquisition, sim_config
 from lelsonar.keys import ScannerKeys
 from lelsonar.transport import hermetic_settings, open_session
+from lelsonar.v1 import scan_pb2
 
 from .test_contract_mcap import RERUN
 
@@ -30,6 +32,7 @@ def collect(sub, stop_after: int, got: list, done: threading.Event) -> None:
             return
 
 
+@pytest.mark.slow
 def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket):
     cfg = AcquireConfig(scanner_id="rig1", device="emulated", out_dir=tmp_path)
     steps = sim_config(cfg).steps
@@ -86,6 +89,85 @@ def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_pat
     assert recorded[-1] == end and end.samples_sent == 13
 
 
+def test_the_servo_status_byte_reaches_every_sample(tmp_path):
+    """The AX-12's ERR byte of each step's read-back is carried in Sample.motor.error_bits: here a
+    supply that sags below the Min Voltage Limit for steps 6-9 (tolerated, so the scan goes on)."""
+    import numpy as np
+
+    from lelsonar.acquire.backends import DeviceScanner, sim_info
+    from lelsonar.acquire.devices.ax12 import ErrorBit
+    from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
+    from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
+    from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
+    from lelsonar.acquire.emulate.cli import emulated_rig
+    from lelsonar.acquire.emulate.sensor_board_emulator import sim_shot_source
+
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=16)
+    sim = sim_config(cfg)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    zero_raw = int(sim.servo.to_raw(0.0))
+    lo, hi = sorted((sim.gamma_start, sim.gamma_stop))
+    with emulated_rig(sim_shot_source(sim, np.random.default_rng(0)),
+                      AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start))),
+                      zero_raw=zero_raw) as rig, \
+            DynamixelMotor(MotorConfig(port=rig.motor.path, gamma_min=lo, gamma_max=hi, latency_timer_ms=2.0,
+                                       stale_guard_s=EMULATED_STALE_GUARD_S, zero_raw=zero_raw,
+                                       tolerated_error_bits=int(ErrorBit.INPUT_VOLTAGE))) as motor, \
+            SerialSensorBoard(SensorBoardConfig(port=rig.board.path, n_samples=sim.window_samples,
+                                                fs_hz=int(sim.sample_rate))) as board:
+        scanner = DeviceScanner(motor, board, sim_info(sim, "emulated"), rig)
+
+        def supply(step: int, _gamma: float) -> None:
+            if step == 5:
+                rig.motor.set_register("present_voltage", 55)  # 5.5 V < the 6.0 V limit
+            elif step == 9:
+                rig.motor.set_register("present_voltage", 120)
+
+        collected: list = []
+        output = ScanOutput()
+        output.emit = collected.append
+        end = run_scan(scanner, schedule, ScanIdentity("s1", 8), energy_model(cfg), output, threading.Event(),
+                       on_step=supply)
+    assert end.status == scan_pb2.SCAN_STATUS_COMPLETE, end.reason
+    samples = [m for m in collected if isinstance(m, codec.Sample)]
+    assert [s.motor.error_bits for s in samples] == [0] * 6 + [int(ErrorBit.INPUT_VOLTAGE)] * 4 + [0] * 6
+    assert [s.motor.voltage for s in samples][5:11] == pytest.approx([12.0, 5.5, 5.5, 5.5, 5.5, 12.0])
+
+
+def _undecodable_from_step_12(scanner) -> None:
+    """From now on the board frames every ACQ with a bit depth of 17: well framed, undecodable."""
+    from .test_devices_sensor_board import _with_bits
+
+    board = scanner.rig.board
+    send = board._send
+    board._send = lambda frame, due: send(_with_bits(frame, 17), due)
+
+
+@pytest.mark.parametrize(("fault", "reason"), [
+    (_undecodable_from_step_12, "cannot be decoded"),
+    (lambda scanner: scanner.rig.board.stop(), "serial I/O"),  # the board unplugged
+], ids=["decode-error", "serial-error"])
+def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason):
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=20)
+    sim = sim_config(cfg)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    path = tmp_path / "fault.mcap"
+    with open_scanner(cfg, sim) as scanner, recording.McapRecorder(path) as rec:
+
+        def fault_after_step_11(step: int, _gamma: float) -> None:
+            if step == 11:
+                fault(scanner)
+
+        end = run_scan(scanner, schedule, ScanIdentity("s1", 6), energy_model(cfg), ScanOutput(rec, None),
+                       threading.Event(), on_step=fault_after_step_11)
+    assert end.status == scan_pb2.SCAN_STATUS_ABORTED
+    assert "device failure at step 12" in end.reason and reason in end.reason
+    recorded = list(recording.read_messages(path))
+    assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(12))
+    assert recorded[-1] == end and end.samples_sent == 12
+
+
+@pytest.mark.slow
 def test_sigint_mid_scan_leaves_a_finished_recording_that_ends_in_an_aborted_scan_end(tmp_path, zenoh_socket):
     keys = ScannerKeys("lelsonar", "scanner1")
     got: list = []

@@ -67,11 +67,13 @@ def test_wrong_schema_version_is_rejected():
         codec.decode(s.SerializeToString(), codec.Sample)
 
 
-def test_random_bytes_are_a_decode_error():
+@pytest.mark.parametrize("message_type", [codec.Sample, codec.ScanStart, codec.ScanEnd, codec.Reconstruction])
+def test_random_bytes_are_a_decode_error(message_type):
     rng = np.random.default_rng(1)
-    with pytest.raises(DecodeError):
-        for _ in range(50):
-            codec.decode(rng.bytes(200), codec.Sample)
+    for i in range(50):
+        payload = rng.bytes(int(rng.integers(1, 400)))
+        with pytest.raises(DecodeError):  # every one of them, not just the first
+            codec.decode(payload, message_type)
 
 
 def test_oversize_payload_is_rejected_before_parsing():

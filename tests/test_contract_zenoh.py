@@ -1,4 +1,5 @@
-"""Zenoh pub/sub, get/queryable and liveliness between two hermetic sessions (one unix socket, no multicast)."""
+"""Zenoh between two hermetic sessions (one unix socket, no multicast): samples, the project's
+PlanesServer (publish and get-latest), the acquisition service's liveliness token."""
 
 from __future__ import annotations
 
@@ -8,8 +9,9 @@ import pytest
 import zenoh
 
 from lelsonar import codec
-from lelsonar.errors import ConfigError
+from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
+from lelsonar.reconstruct.sources import PlanesServer
 from lelsonar.transport import TransportError, ZenohSettings, hermetic_settings, open_session
 
 from .conftest import make_sample
@@ -38,40 +40,94 @@ def test_sample_published_by_one_session_arrives_validated_at_the_other(zenoh_so
         assert got == sent
 
 
-def test_get_returns_the_latest_from_a_queryable(zenoh_socket):
-    keys = ScannerKeys("lelsonar", "s1")
-    latest = codec.Reconstruction(schema_version=1, scanner_id="s1", scan_id=3, last_step=42)
+def estimate(scanner_id: str, scan_id: int, last_step: int) -> codec.Reconstruction:
+    return codec.Reconstruction(schema_version=1, scanner_id=scanner_id, scan_id=scan_id, last_step=last_step)
 
-    def answer(query: zenoh.Query) -> None:
-        query.reply(keys.planes, latest.SerializeToString(), encoding=zenoh.Encoding(codec.encoding_name(latest)))
 
+def planes_querier(session: zenoh.Session, key: str) -> zenoh.Querier:
+    """A querier on ``key`` that returns once a queryable for it is reachable (matching status),
+    instead of retrying a `get` until the declaration has propagated."""
+    querier = session.declare_querier(key, timeout=10.0)
+    matched = threading.Event()
+    querier.declare_matching_listener(lambda status: status.matching and matched.set())
+    assert matched.wait(10), f"no queryable for {key}"
+    return querier
+
+
+def replies(querier: zenoh.Querier) -> dict[str, codec.Reconstruction]:
+    got = {}
+    for r in querier.get():
+        assert r.ok is not None, r.err
+        got[str(r.ok.key_expr)] = codec.decode(r.ok.payload.to_bytes(), codec.Reconstruction)
+    return got
+
+
+def test_planes_server_answers_a_get_with_the_latest_estimate_per_scanner(zenoh_socket):
+    """The project's PlanesServer, over the service's own `latest` table: a `get` on the planes key
+    returns the newest estimate of every scanner (or of the one asked for), and follows updates."""
+    latest = {"s1": estimate("s1", 3, 42), "s2": estimate("s2", 9, 7)}
     with open_session(hermetic_settings(zenoh_socket, listen=True)) as server, \
             open_session(hermetic_settings(zenoh_socket, listen=False)) as client:
-        server.declare_queryable(keys.planes, answer)
-        replies = []
-        for _ in range(100):  # the queryable's declaration propagates asynchronously
-            replies = [r.ok for r in client.get(ScannerKeys().planes, timeout=2.0) if r.ok is not None]
-            if replies:
-                break
-        assert len(replies) == 1
-        got = codec.decode(replies[0].payload.to_bytes(), codec.Reconstruction)
-        assert got == latest and str(replies[0].key_expr) == "lelsonar/s1/planes"
+        planes = PlanesServer(server, ScannerKeys(), latest)
+        try:
+            every = planes_querier(client, ScannerKeys().planes)
+            assert replies(every) == {"lelsonar/s1/planes": latest["s1"], "lelsonar/s2/planes": latest["s2"]}
+            only_s2 = planes_querier(client, ScannerKeys("lelsonar", "s2").planes)
+            assert replies(only_s2) == {"lelsonar/s2/planes": latest["s2"]}
+            latest["s1"] = estimate("s1", 4, 5)  # a newer scan's estimate replaces the old one
+            assert replies(every)["lelsonar/s1/planes"] == estimate("s1", 4, 5)
+        finally:
+            planes.close()
 
 
-def test_liveliness_token_is_seen_and_its_loss_too(zenoh_socket):
-    keys = ScannerKeys("lelsonar", "s1")
-    alive, gone = threading.Event(), threading.Event()
+def test_planes_server_publishes_each_estimate_on_its_scanner_key(zenoh_socket):
+    with open_session(hermetic_settings(zenoh_socket, listen=True)) as server, \
+            open_session(hermetic_settings(zenoh_socket, listen=False)) as client:
+        sub = client.declare_subscriber(ScannerKeys().planes, zenoh.handlers.FifoChannel(16))
+        # The subscription has reached the server once a publisher there matches it.
+        probe = server.declare_publisher(ScannerKeys().planes)
+        matched = threading.Event()
+        probe.declare_matching_listener(lambda status: status.matching and matched.set())
+        assert matched.wait(10)
+        planes = PlanesServer(server, ScannerKeys(), {})
+        try:
+            sent = [estimate("s1", 1, 10), estimate("s2", 1, 3), estimate("s1", 1, 20)]
+            for msg in sent:
+                planes.publish(msg)
+            got = []
+            for _ in sent:
+                z = sub.recv()
+                assert codec.type_from_encoding(str(z.encoding)) is codec.Reconstruction
+                got.append((str(z.key_expr), codec.decode(z.payload.to_bytes(), codec.Reconstruction)))
+            assert got == [(f"lelsonar/{m.scanner_id}/planes", m) for m in sent]
+            with pytest.raises(InvalidIdentifierError):
+                planes.publish(estimate("../s1", 1, 1))  # never a key outside the scanner's own
+        finally:
+            planes.close()
+            probe.undeclare()
+
+
+def test_the_acquire_service_is_alive_while_it_runs_and_gone_after(tmp_path, zenoh_socket):
+    """The liveliness token the acquisition service declares (not one made by the test)."""
+    from lelsonar.acquire.config import AcquireConfig
+    from lelsonar.acquire.service import run_acquisition
+
+    events: list[tuple[str, zenoh.SampleKind]] = []
+    gone = threading.Event()
 
     def on_change(sample: zenoh.Sample) -> None:
-        (alive if sample.kind == zenoh.SampleKind.PUT else gone).set()
+        events.append((str(sample.key_expr), sample.kind))
+        if sample.kind == zenoh.SampleKind.DELETE:
+            gone.set()
 
     with open_session(hermetic_settings(zenoh_socket, listen=True)) as watcher:
-        watcher.liveliness().declare_subscriber(keys.alive(), on_change, history=True)
-        with open_session(hermetic_settings(zenoh_socket, listen=False)) as service:
-            token = service.liveliness().declare_token(keys.alive("acquire"))
-            assert alive.wait(10)
-            token.undeclare()
-            assert gone.wait(10)
+        watcher.liveliness().declare_subscriber(ScannerKeys().alive(), on_change, history=True)
+        cfg = AcquireConfig(scanner_id="rig7", device="sim", steps=8, record=False, out_dir=tmp_path)
+        report = run_acquisition(cfg, hermetic_settings(zenoh_socket, listen=False), threading.Event())
+        assert report.ok
+        assert gone.wait(10)
+    assert events == [("lelsonar/rig7/alive/acquire", zenoh.SampleKind.PUT),
+                      ("lelsonar/rig7/alive/acquire", zenoh.SampleKind.DELETE)]
 
 
 def test_client_without_router_names_the_fix(tmp_path):

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from types import SimpleNamespace
 
@@ -18,7 +18,7 @@ import pytest
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices import sensor_frame as sf
-from lelsonar.acquire.devices.motor import DynamixelMotor, MotorConfig
+from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.emulate import cli
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
@@ -27,10 +27,15 @@ from lelsonar.acquire.emulate.sensor_board_emulator import echo_shot_source, sim
 FS = 200_000
 
 
+def emulated_motor(path: str, **kw) -> MotorConfig:
+    """As the emulated backend drives it: a 6 ms packet timeout, a long late-reply window."""
+    return MotorConfig(port=path, latency_timer_ms=2.0, stale_guard_s=EMULATED_STALE_GUARD_S, **kw)
+
+
 def _timed_scan(rig: cli.EmulatedRig, n: int) -> tuple[float, float]:
     """Run a 184-step scan through both real drivers; returns (wall time, physical bound)."""
     steps = [math.radians(-10.0 + 120.0 * i / 183) for i in range(184)]
-    motor_cfg = MotorConfig(port=rig.motor.path, latency_timer_ms=2.0, zero_raw=400)
+    motor_cfg = emulated_motor(rig.motor.path, zero_raw=400)
     board_cfg = SensorBoardConfig(port=rig.board.path, n_samples=n, fs_hz=FS)
     with DynamixelMotor(motor_cfg) as motor, SerialSensorBoard(board_cfg) as board:
         previous = motor.move_to(steps[0]).raw
@@ -53,6 +58,7 @@ def _timed_scan(rig: cli.EmulatedRig, n: int) -> tuple[float, float]:
     return elapsed, bound
 
 
+@pytest.mark.slow
 def test_scan_with_both_devices_fires_at_the_angle_the_servo_reports() -> None:
     """184 steps over 120° through both real drivers; the wall time against the physical
     bound is measured by `lelsonar bench acquire`, not asserted here."""
@@ -88,10 +94,15 @@ def test_sim_shot_source_adapts_the_simulator(monkeypatch) -> None:
     assert waves.shape == (4, 64) and waves.dtype == np.float32
 
 
-def test_with_the_real_simulator_when_present() -> None:
-    sim = pytest.importorskip("lelsonar.acquire.sim")
-    if not hasattr(sim, "simulate_step") or not hasattr(sim, "preset"):
-        pytest.skip("lelsonar.acquire.sim has no simulate_step/preset yet")
+def test_the_board_fires_the_real_simulator_at_the_servo_angle() -> None:
+    """The simulator's shot reaches the driver intact, and it is the scene's echo.
+
+    Independent truth: (1) the simulator itself, called with the same seed at the angle the servo
+    reports: the TOF to the ns the frame carries, the waveforms to the ADC's step; (2) the scene:
+    at γ = 0 every beam meets wall a (y = 1.57 m) from capsules at y = 0.03 m, 1.54 m away.
+    """
+    from lelsonar.acquire import sim  # a broken simulator import must fail here, not skip
+
     cfg = sim.preset("paper-test1")
     source = sim_shot_source(cfg, np.random.default_rng(0))
     with cli.emulated_rig(source, AX12EmulatorConfig(return_delay=0)) as rig:
@@ -101,32 +112,50 @@ def test_with_the_real_simulator_when_present() -> None:
             fs_hz=int(cfg.sample_rate),
             max_payload_bytes=max(256 * 1024, sf.acq_payload_size(int(cfg.window_samples))),
         )
-        with DynamixelMotor(MotorConfig(port=rig.motor.path, latency_timer_ms=2.0)) as motor:
+        with DynamixelMotor(emulated_motor(rig.motor.path)) as motor:
             with SerialSensorBoard(board_cfg) as board:
-                motor.move_to(0.0)
+                gamma = motor.move_to(0.0).gamma
                 acq = board.fire(0)
-    assert acq.waveforms.shape == (4, int(cfg.window_samples))
-    assert np.isfinite(acq.waveforms).all()
+        assert list(rig.board.shots) == [(0, gamma)] and gamma == 0.0
+    expected = sim.simulate_step(cfg, gamma, np.random.default_rng(0))
+    np.testing.assert_array_equal(acq.tof_s, np.round(expected.tof * 1e9) * 1e-9)
+    lsb = board_cfg.full_scale_v / 2 ** (12 - 1)  # the emulated board's 12-bit ADC
+    clipped = np.clip(expected.waveforms, -board_cfg.full_scale_v, board_cfg.full_scale_v - lsb)
+    np.testing.assert_allclose(acq.waveforms, clipped, rtol=0, atol=lsb / 2 + 1e-6)
+    assert np.ptp(acq.waveforms) > 100 * lsb  # an echo, not silence
+    # Range from the TOF: the noise model allows 4σ of comparator jitter (σ = tof_jitter, 2 mm)
+    # plus one cycle slip (λ/2 = c / 2f, 4.3 mm).
+    c = cfg.sound_speed
+    tolerance = 4 * cfg.receiver.tof_jitter + c / (2 * cfg.acoustics.frequency)
+    np.testing.assert_allclose(c * acq.tof_s / 2, 1.57 - 0.03, rtol=0, atol=tolerance)
 
 
-def test_cli_registers_and_runs_until_signalled(capsys) -> None:
+def test_cli_registers_and_runs_until_signalled(capsys, monkeypatch) -> None:
     parser = argparse.ArgumentParser()
     cli.register(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["emulate", "--source", "echo", "--json", "--seed", "3"])
-    # signal handlers can only be installed from the main thread: run the CLI there, stop it from a timer.
-    timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGTERM))
-    timer.start()
-    try:
-        rc = args.run(args)
-    finally:
-        timer.cancel()
-    assert rc == 0
+    # Signal handlers can only be installed from the main thread: run the CLI there, and send
+    # SIGTERM once its rig is up (its handlers are installed before), not after a guessed delay.
+    real_rig = cli.emulated_rig
+    served = []
+
+    @contextlib.contextmanager
+    def rig_then_terminate(*a, **kw):
+        with real_rig(*a, **kw) as rig:
+            served.append(rig.motor.running and rig.board.running)
+            os.kill(os.getpid(), signal.SIGTERM)
+            yield rig
+
+    monkeypatch.setattr(cli, "emulated_rig", rig_then_terminate)
+    rc = args.run(args)
+    assert rc == 0 and served == [True]
     out = capsys.readouterr().out.strip().splitlines()
     paths = json.loads(out[-1])
     assert paths["source"] == "echo:1.0m" and paths["motor"].startswith("/dev/pts/")
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handlers restored
 
 
+@pytest.mark.slow
 def test_cli_in_a_subprocess_serves_the_real_drivers() -> None:
     code = (
         "import argparse, sys\n"
@@ -146,7 +175,7 @@ def test_cli_in_a_subprocess_serves_the_real_drivers() -> None:
             line = proc.stdout.readline()
             assert line, "emulate exited before printing its paths"
         paths = json.loads(line)
-        with DynamixelMotor(MotorConfig(port=paths["motor"], latency_timer_ms=2.0)) as motor:
+        with DynamixelMotor(emulated_motor(paths["motor"])) as motor:
             assert motor.ping() == 12
             gamma = motor.move_to(math.radians(20.0)).gamma
         with SerialSensorBoard(SensorBoardConfig(port=paths["sensor_board"], n_samples=1500, fs_hz=FS)) as board:

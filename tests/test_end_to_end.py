@@ -8,9 +8,15 @@ import subprocess
 import sys
 import threading
 
+import pytest
 import zenoh
+from google.protobuf import json_format
 
+from lelsonar import codec
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
 from lelsonar.transport import ZenohSettings, open_session
+
+from .conftest import assert_matches_the_scene
 
 LELSONAR = [sys.executable, "-m", "lelsonar"]
 ENV = {**os.environ, "COLUMNS": "120"}
@@ -24,6 +30,7 @@ def without_clock(estimate: dict) -> dict:
     return {k: v for k, v in estimate.items() if k not in ("stamp_ns", "timings")}
 
 
+@pytest.mark.slow
 def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path):
     endpoint = f"unixsock-stream/{tmp_path}/z.sock"
     link = ["--mode", "client", "--connect", endpoint]
@@ -62,6 +69,9 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
     assert len(planner_finals) == 1 and len(live) == 1
     assert planner_finals[0] == live[0]
     assert live[0]["samples_used"] == 184 and {p["label"] for p in live[0]["planes"]} == {"a", "b"}
+    # What the planner got is the scene the simulated scanner looked at, within the noise model's bounds.
+    estimate = json_format.ParseDict({k: v for k, v in live[0].items() if k != "status"}, codec.Reconstruction())
+    assert_matches_the_scene(estimate, DEFAULT_METHOD, "paper-test1")  # acquire's default preset
 
     replay = subprocess.run(LELSONAR + ["reconstruct", "--source", str(tmp_path / "scan.mcap"), "--json"],
                             capture_output=True, text=True, timeout=120, env=ENV)

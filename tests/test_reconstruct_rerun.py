@@ -76,7 +76,7 @@ def corner_ranges(geometry: ArrayGeometry, gamma: float) -> np.ndarray:
 
 
 def plane_fit(method: str, label: str, rng: np.random.Generator, n_points: int = 40,
-              tilt: float = 0.0) -> PlaneFit:
+              tilt: float = 0.0, points_out: dict | None = None) -> PlaneFit:
     base, h = (N_A, H_A) if label == "a" else (N_B, H_B)
     normal = base + np.array([0.0, 0.0, tilt]) if label == "a" else base + np.array([0.0, tilt, 0.0])
     normal /= np.linalg.norm(normal)
@@ -85,8 +85,14 @@ def plane_fit(method: str, label: str, rng: np.random.Generator, n_points: int =
     o = h * normal
     patch = np.array([o + a * u + b * w for a, b in ((-0.15, -0.4), (0.15, -0.4), (0.15, 0.4), (-0.15, 0.4))])
     mask = rng.random(n_points) > 0.15
+    # Points scattered about the true wall; the fit's residuals are theirs against the fitted plane.
+    points = rng.uniform(-0.4, 0.4, (n_points, 1)) * w + rng.uniform(-0.15, 0.15, (n_points, 1)) * u \
+        + (h + rng.normal(0, 0.01, (n_points, 1))) * (N_A if label == "a" else N_B)
+    if points_out is not None:
+        points_out[(method, label)] = points
+    residuals = points @ normal - h
     return PlaneFit(label=label, method=method, normal=normal, offset=h, entropy=0.4, sigma_relative=0.002,
-                    sigma=0.002 * h, inlier_mask=mask, sorted_residuals=np.sort(rng.normal(0, 0.01, n_points)),
+                    sigma=0.002 * h, inlier_mask=mask, sorted_residuals=np.sort(residuals),
                     theta_covariance=np.eye(3) * 1e-8, normal_stderr=1e-3, offset_stderr=1e-3, patch=patch,
                     diagnostics=SolverDiagnostics("lstsq"))
 
@@ -121,7 +127,9 @@ def log_scan(rec: rr.RecordingStream, scanner_id: str = "s1", scan_id: int = 7, 
                             None, [SubsetView("a", rng.normal([0, H_A, 0.3], 0.05, (40, 3)), rng.random(40) > 0.2)],
                             critical_step=None, critical_gamma=None, final=False)
     last = N_STEPS - 1
-    fits = [plane_fit(m, lab, rng, tilt=t) for m, t in (("ls", 0.05), ("lel", 0.0)) for lab in ("a", "b")]
+    sent["fit_points"] = {}
+    fits = [plane_fit(m, lab, rng, tilt=t, points_out=sent["fit_points"])
+            for m, t in (("ls", 0.05), ("lel", 0.0)) for lab in ("a", "b")]
     subsets = [SubsetView(lab, rng.normal(o, 0.05, (40, 3)), rng.random(40) > 0.2)
                for lab, o in (("a", [0, H_A, 0.3]), ("b", [0, 0.6, H_B]))]
     edge = EdgeLine(point=np.array([0.0, H_A, H_B]), direction=np.array([1.0, 0.0, 0.0]), angle=math.pi / 2)
@@ -242,8 +250,13 @@ def test_estimates_draw_planes_edge_and_flag_outliers(scan_rrd):
     lel_rgba = column(mesh, "Mesh3D:albedo_factor")[-1]
     assert ls_rgba != lel_rgba                                     # methods are told apart by colour
 
-    errors = column(ents["/plots/errors/a/s1/scan_7/lel"], "BarChart:values")[-1]
-    assert errors is not None
+    # The bar charts are each final fit's sorted errors e_i, recomputed here from its points.
+    for method, label in (("lel", "a"), ("lel", "b"), ("ls", "a"), ("ls", "b")):
+        f = next(f for f in sent["fits"] if (f.method, f.label) == (method, label))
+        (bars,) = column(ents[f"/plots/errors/{label}/s1/scan_7/{method}"], "BarChart:values")[-1]
+        expected = np.sort(sent["fit_points"][(method, label)] @ f.normal - f.offset)
+        assert bars["shape"] == [len(expected)]
+        np.testing.assert_allclose(bars["buffer"], expected, rtol=0, atol=1e-12)
 
     seg = np.array(column(ents[f"{scan}/edge"], "LineStrips3D:strips")[-1][0])
     assert seg.shape == (2, 3)

@@ -11,7 +11,7 @@ from lelsonar import codec
 from lelsonar.reconstruct import present
 from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
 
-from .conftest import simulated_messages, type_name
+from .conftest import assert_matches_the_scene, simulated_messages, type_name
 
 
 @pytest.fixture(scope="module")
@@ -53,6 +53,10 @@ def test_provisional_estimates_then_one_final(scan_messages):
     assert {(p.label, p.method) for p in final.planes} >= {("a", service.config.method), ("b", service.config.method)}
     assert final.HasField("corner_edge")
     assert service.latest["s1"] == final
+    # Accurate against the scene (planes, critical angle, corner edge), not just well formed;
+    # and so is the last provisional estimate.
+    assert_matches_the_scene(final, service.config.method)
+    assert_matches_the_scene(provisional[-1], service.config.method)
 
 
 def test_final_estimate_does_not_depend_on_arrival_order(scan_messages):
@@ -132,9 +136,13 @@ def test_several_scanners_are_kept_apart():
     b = simulated_messages("tilted", seed=2, scanner_id="right", steps=120)
     service = ReconstructionService()
     interleaved = [m for pair in zip(a, b) for m in pair]
-    got = finals(feed(service, interleaved))
-    assert {g.scanner_id for g in got} == {"left", "right"}
+    got = {g.scanner_id: g for g in finals(feed(service, interleaved))}
+    assert set(got) == {"left", "right"}
     assert set(service.latest) == {"left", "right"}
+    # Each scanner's estimate is of its own scene: the same alone as interleaved.
+    for scanner_id, messages in (("left", a), ("right", b)):
+        (alone,) = finals(feed(ReconstructionService(), messages))
+        assert comparable(got[scanner_id]) == comparable(alone)
 
 
 def test_a_backlog_costs_one_refit_not_one_per_sample(scan_messages):

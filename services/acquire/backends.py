@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lelsonar.acquire.devices.motor import DynamixelMotor, Motor, MotorConfig
+from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, Motor, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoard, SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.cli import EmulatedRig, emulated_rig
@@ -79,7 +79,7 @@ class DeviceScanner:
         return StepMeasurement(
             gamma_measured=pos.gamma,
             motor=MotorReading(present_position_raw=pos.raw, load=s.load, voltage=s.voltage_v,
-                               temperature=s.temperature_c + 273.15),
+                               temperature=s.temperature_c + 273.15, error_bits=pos.error_bits),
             time_of_flight=shot.tof_s, waveforms=shot.waveforms, t0=0.0, acquisition_time_ns=t_ns)
 
     def close(self) -> None:
@@ -103,14 +103,15 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig) -> Iterator[SimScanner | De
                 AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start))),
                 SensorBoardEmulatorConfig(), zero_raw=int(sim.servo.to_raw(0.0))))
             motor_port, sensor_port = rig.motor.path, rig.board.path
-            # A pty has no USB latency: a short packet timeout keeps the scan near the physical bound.
-            latency_ms = 2.0
+            # A pty has no USB latency: a short packet timeout keeps the scan near the physical bound,
+            # and a long late-reply window absorbs the emulator thread's scheduling delays on a loaded host.
+            latency_ms, guard_s = 2.0, EMULATED_STALE_GUARD_S
         else:
             motor_port, sensor_port = cfg.motor_port, cfg.sensor_port
-            latency_ms = 16.0  # an FTDI adapter's default latency
+            latency_ms, guard_s = 16.0, None  # an FTDI adapter's default latency; the default window
         lo, hi = sorted((sim.gamma_start, sim.gamma_stop))
         motor = stack.enter_context(DynamixelMotor(MotorConfig(
-            port=motor_port, gamma_min=lo, gamma_max=hi, latency_timer_ms=latency_ms,
+            port=motor_port, gamma_min=lo, gamma_max=hi, latency_timer_ms=latency_ms, stale_guard_s=guard_s,
             zero_raw=int(sim.servo.to_raw(0.0)))))
         board = stack.enter_context(SerialSensorBoard(SensorBoardConfig(
             port=sensor_port, n_samples=sim.window_samples, fs_hz=int(sim.sample_rate))))

@@ -11,12 +11,22 @@ unmodified, with protocol 1.0 at 1 Mbps.  Two SDK traits shape the driver
   waits for reply bytes with ``select`` instead of the SDK's spin on a
   non-blocking read, which would starve an emulator or a sensor thread of CPU.
 * **Stale replies.**  Replies are matched by ID only, so after a timeout a late
-  reply can be taken as the answer to the *next* request.  After any timeout or
-  corrupt reply the driver waits out :attr:`MotorConfig.stale_guard_s`, clears the
-  input, and only then retries (reads and absolute writes are idempotent) or raises.
-  A read whose reply has the wrong number of bytes is treated the same way.
+  reply can be taken as the answer to the *next* request.  The driver never has two
+  requests outstanding if it can help it: after an SDK timeout it keeps listening
+  for :attr:`MotorConfig.stale_guard_s` ("waits the timeout out"), and a reply that
+  comes in that window *is* the answer to the one request in flight, so it is used.
+  Only when the window passes in silence is the request presumed lost: the input is
+  cleared and the request sent again (reads and absolute writes are idempotent).
+  If a resend is answered, the first request's reply may still come: the driver
+  listens for it once more and bins it before going on.  A corrupt reply, or a read
+  whose reply has the wrong number of bytes (someone else's), is waited out and
+  binned the same way.  Replies later than the window cannot be told from a fresh
+  answer; a pty emulator's thread can be starved for 100+ ms on a loaded host,
+  hence the long window the emulated backend uses (:data:`EMULATED_STALE_GUARD_S`).
 
-Every status packet's ERR byte is decoded into a typed :class:`MotorStatusError`.
+Every status packet's ERR byte is decoded into a typed :class:`MotorStatusError`, except
+the bits :attr:`MotorConfig.tolerated_error_bits` lets through, which are carried in
+:attr:`MotorPosition.error_bits` (and so in ``Sample.motor.error_bits``).
 """
 
 from __future__ import annotations
@@ -31,6 +41,8 @@ from types import TracebackType
 from typing import Protocol, Self, TypeVar, runtime_checkable
 
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
+from dynamixel_sdk.protocol1_packet_handler import INST_PING, PKT_ERROR, PKT_ID, PKT_INSTRUCTION, PKT_LENGTH, \
+    PKT_PARAMETER0
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices.ax12 import ErrorBit
@@ -38,6 +50,12 @@ from lelsonar.errors import ConfigError, DeviceError, DeviceTimeoutError
 
 T = TypeVar("T")
 _log = logging.getLogger(__name__)
+
+#: Late-reply window for a servo emulated on a pty in this process (s).  The emulator's
+#: thread is scheduled by the host: with both cores saturated by other processes its
+#: reply to a 6-byte request was measured up to 164 ms late (issue 10 §5), far past the
+#: SDK's packet timeout.  A window this long costs nothing unless a reply is really lost.
+EMULATED_STALE_GUARD_S = 1.0
 
 
 # --- errors --------------------------------------------------------------------------
@@ -168,11 +186,14 @@ class MotorConfig:
     retries : int
         Extra attempts after a timeout or corrupt reply.
     stale_guard_s : float or None
-        How long to wait after a timeout before clearing the port, so that a late
-        reply lands in the bin rather than in the next answer: replies up to
-        ``packet timeout + stale_guard_s`` late are binned, later ones cannot be told
-        from a fresh answer.  None: two packet timeouts.  0 disables the guard (only
-        to demonstrate the hazard).
+        The late-reply window: how long to keep listening after the SDK's packet
+        timeout (a reply in it answers the request in flight), and after a corrupt
+        reply or an answered resend (a reply in it is binned), before the port is
+        cleared.  Replies up to ``packet timeout + stale_guard_s`` late are handled;
+        later ones cannot be told from a fresh answer.  None: two packet timeouts
+        (a USB adapter buffers the reply whatever the host's load); use
+        :data:`EMULATED_STALE_GUARD_S` for an emulator in this process.  0 disables
+        the guard (only to demonstrate the hazard).
     move_margin_s : float
         Added to the computed travel time to bound a move (compliance, acceleration).
     move_slack : float
@@ -181,6 +202,11 @@ class MotorConfig:
         Longest sleep between Moving polls once the expected travel time has passed.
     no_load_rpm : float
         Speed cap of the travel-time model (see ``ax12``).
+    tolerated_error_bits : int
+        ERR bits that are reported, not raised: the transaction succeeds and the bits are
+        carried in :attr:`MotorPosition.error_bits` (and so in every ``Sample.motor``).
+        E.g. ``ErrorBit.INPUT_VOLTAGE`` to keep scanning on a sagging supply, which the
+        servo itself survives.  0 (the default): every set bit raises its typed error.
     """
 
     port: str
@@ -197,6 +223,7 @@ class MotorConfig:
     move_slack: float = 1.5
     poll_interval_s: float = 0.002
     no_load_rpm: float = ax12.NO_LOAD_RPM
+    tolerated_error_bits: int = 0
 
     def __post_init__(self) -> None:
         checks = (
@@ -215,6 +242,7 @@ class MotorConfig:
             (self.move_margin_s >= 0 and self.move_slack >= 1, "need move_margin_s >= 0 and move_slack >= 1"),
             (self.poll_interval_s > 0, "poll_interval_s must be positive"),
             (self.no_load_rpm > 0, "no_load_rpm must be positive"),
+            (0 <= self.tolerated_error_bits <= 0x7F, "tolerated_error_bits must be 0..0x7F"),
         )
         for ok, message in checks:
             if not ok:
@@ -238,11 +266,15 @@ class MotorPosition:
         The scanner angle γ (rad) it stands for.
     status : MotorStatus
         Load, voltage and temperature from the same read.
+    error_bits : int
+        The ERR byte of that read's status packet: 0, or bits the configuration tolerates
+        (:attr:`MotorConfig.tolerated_error_bits`); any other bit raised instead.
     """
 
     raw: int
     gamma: float
     status: MotorStatus
+    error_bits: int = 0
 
 
 @dataclass(frozen=True)
@@ -357,6 +389,12 @@ class DynamixelMotor:
         self._ack_writes = True
         #: Transactions retried after a timeout or corrupt reply (diagnostics).
         self.retries_used = 0
+        #: Replies that came after the SDK's packet timeout, inside the late-reply window.
+        self.late_replies = 0
+        #: Extra replies to an earlier, resent request that were binned.
+        self.stale_replies_binned = 0
+        #: ERR byte of the last status packet accepted (tolerated bits only, else it raised).
+        self.last_error_bits = 0
         try:
             # setBaudRate opens the port (the SDK's openPort would open it at its default first).
             opened = self._port.setBaudRate(config.baudrate)
@@ -427,7 +465,16 @@ class DynamixelMotor:
 
     def ping(self) -> int:
         """Model number (12 for an AX-12)."""
-        return self._transact("PING", lambda: self._packets.ping(self._port, self.config.motor_id))
+        # The SDK's ping() is PING then READ of the model number, in one call; here the two are
+        # separate transactions, so that each gets the retry and late-reply handling.
+        def ping() -> tuple[None, int, int]:
+            tx = [0] * 6
+            tx[PKT_ID], tx[PKT_LENGTH], tx[PKT_INSTRUCTION] = self.config.motor_id, 2, INST_PING
+            _, result, error = self._packets.txRxPacket(self._port, tx)
+            return None, result, error
+
+        self._transact("PING", ping, lambda rx: (None, COMM_SUCCESS))
+        return self.read_register("model_number")
 
     def position(self) -> MotorPosition:
         """Present Position read back from the servo, its γ, and the status."""
@@ -504,6 +551,7 @@ class DynamixelMotor:
             raw=self._present_raw,
             gamma=ax12.gamma_from_raw(self._present_raw, self.config.zero_raw),
             status=self._status_from(data[load_at : load_at + 4]),
+            error_bits=self.last_error_bits,
         )
         return position, bool(data[ax12.register("moving").address - base])
 
@@ -525,6 +573,7 @@ class DynamixelMotor:
             self._transact(
                 f"WRITE {name}={value}",
                 lambda: (None, *self._packets.writeTxRx(self._port, motor_id, reg.address, reg.size, payload)),
+                lambda rx: (None, COMM_SUCCESS),
             )
         else:
             result = self._packets.writeTxOnly(self._port, motor_id, reg.address, reg.size, payload)
@@ -539,27 +588,52 @@ class DynamixelMotor:
                 return data, COMM_RX_CORRUPT, error
             return data, result, error
 
-        return self._transact(f"READ {address}+{size}", read)
+        def parse(rx: list[int]) -> tuple[list[int], int]:
+            data = list(rx[PKT_PARAMETER0 : PKT_PARAMETER0 + size])
+            return data, (COMM_SUCCESS if rx[PKT_LENGTH] == size + 2 else COMM_RX_CORRUPT)
 
-    def _transact(self, what: str, call: Callable[[], tuple[T, int, int]]) -> T:
-        """Run an idempotent SDK call with retries, the stale-reply guard and ERR decoding."""
+        return self._transact(f"READ {address}+{size}", read, parse)
+
+    def _transact(self, what: str, call: Callable[[], tuple[T, int, int]],
+                  parse: Callable[[list[int]], tuple[T, int]]) -> T:
+        """Run an idempotent SDK call with retries, the late-reply window and ERR decoding.
+
+        ``call`` sends the request and waits the SDK's packet timeout; ``parse`` turns a
+        status packet that came later into ``(value, result)``.
+        """
         attempts = self.config.retries + 1
         last = ""
+        in_flight = False  # an earlier request of this transaction may still be answered
         for attempt in range(attempts):
             value, result, error = call()
+            if result == COMM_RX_TIMEOUT and self._guard_s > 0:
+                # Silence so far.  Only this request is outstanding, so a reply that comes
+                # now is its answer: wait the timeout out for it rather than resend.
+                value, result, error = self._listen(parse)
+                if result == COMM_SUCCESS:
+                    self.late_replies += 1
             if result == COMM_SUCCESS:
-                if error:
+                if in_flight:
+                    self._bin_stale_reply()
+                    in_flight = False
+                if error & ~self.config.tolerated_error_bits:
                     if error & ErrorBit.CHECKSUM and attempt + 1 < attempts:
                         # The servo saw a corrupt instruction and did nothing: resend.
                         self.retries_used += 1
                         continue
                     raise status_error(error, f"{what} on motor {self.config.motor_id}")
+                self.last_error_bits = error
                 return value
             last = self._packets.getTxRxResult(result)
             if result not in (COMM_RX_TIMEOUT, COMM_RX_CORRUPT):
                 raise MotorCommunicationError(f"{what} on {self.config.port}: {last}")
-            # A reply may still be on its way: let it arrive and bin it before going on.
-            self._settle()
+            if result == COMM_RX_TIMEOUT:
+                # The window passed in silence: presumed lost, but it may still come.
+                in_flight = True
+                self._port.clearPort()
+            else:
+                # A corrupt reply: let the rest of it (or of someone else's) arrive and bin it.
+                self._settle()
             if attempt + 1 < attempts:
                 self.retries_used += 1
         raise MotorTimeoutError(
@@ -567,8 +641,27 @@ class DynamixelMotor:
             "check power, ID, baud rate and cabling"
         )
 
+    def _listen(self, parse: Callable[[list[int]], tuple[T, int]]) -> tuple[T | None, int, int]:
+        """Wait up to the late-reply window for a status packet from our servo."""
+        self._port.setPacketTimeoutMillis(self._guard_s * 1000.0)
+        while True:
+            rx, result = self._packets.rxPacket(self._port)
+            if result != COMM_SUCCESS:
+                return None, result, 0
+            if rx[PKT_ID] == self.config.motor_id:
+                value, result = parse(rx)
+                return value, result, rx[PKT_ERROR]
+
+    def _bin_stale_reply(self) -> None:
+        """After an answered resend: the first request's reply may still come; bin it."""
+        if self._guard_s <= 0:
+            return
+        _, result, _ = self._listen(lambda rx: (None, COMM_SUCCESS))
+        if result == COMM_SUCCESS:
+            self.stale_replies_binned += 1
+        self._port.clearPort()
+
     def _settle(self) -> None:
         if self._guard_s > 0:
             time.sleep(self._guard_s)
         self._port.clearPort()
-

@@ -11,6 +11,12 @@ again with the RESEND flag, so the board sends the acquisition it already has
 instead of firing again; after a timeout it flushes the input and asks again
 the same way (a board that never got the FIRE fires).  Both are bounded by
 :attr:`SensorBoardConfig.retries`.
+
+Everything :meth:`SerialSensorBoard.fire` raises is a :class:`SensorBoardError`, so a
+:class:`~lelsonar.errors.DeviceError`: an answer that cannot be decoded is a
+:class:`SensorBoardDecodeError` (also a :class:`~lelsonar.errors.DecodeError`), a port
+that fails is a :class:`SensorBoardCommunicationError`.  The scan loop then ends the
+scan with ``ScanEnd(ABORTED)`` instead of letting the error escape.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ import numpy as np
 import serial
 
 from lelsonar.acquire.devices import sensor_frame as sf
-from lelsonar.errors import ConfigError, DeviceError, DeviceTimeoutError
+from lelsonar.errors import ConfigError, DecodeError, DeviceError, DeviceTimeoutError
 
 
 # --- errors ---------------------------------------------------------------------------
@@ -57,6 +63,15 @@ class SensorBoardReportedError(SensorBoardError):
 
 class SensorBoardProtocolError(SensorBoardError):
     """The board sent a well-framed answer that does not fit the request."""
+
+
+class SensorBoardDecodeError(SensorBoardError, DecodeError):
+    """The board's answer cannot be decoded: another frame version, a declared length over the
+    bound, or an ACQ whose fields are invalid.  The codec's error is the ``__cause__``."""
+
+
+class SensorBoardCommunicationError(SensorBoardError):
+    """The serial port failed (unplugged, I/O error, closed): not something a retry fixes."""
 
 
 # --- configuration and results --------------------------------------------------------
@@ -236,11 +251,34 @@ class SerialSensorBoard:
             No valid ACQ after the retries.
         SensorBoardReportedError
             The board answered ERR (other than a CRC complaint, which is retried).
-        FrameTooLargeError
-            The answer declares a payload over ``max_payload_bytes``.
-        DecodeError
-            The ACQ is well framed but invalid (wrong sizes, channel count...).
+        SensorBoardDecodeError
+            The answer declares a payload over ``max_payload_bytes``
+            (cause: :class:`~.sensor_frame.FrameTooLargeError`), has another frame version,
+            or is a well-framed but invalid ACQ (wrong sizes, channel count...).
+        SensorBoardCommunicationError
+            The port failed.
         """
+        try:
+            return self._fire(step)
+        except SensorBoardError:
+            raise
+        except DecodeError as exc:
+            self._flush_quietly()
+            raise SensorBoardDecodeError(
+                f"FIRE step {step}: the answer on {self.config.port} cannot be decoded: {exc}"
+            ) from exc
+        except (serial.SerialException, OSError) as exc:  # SerialException is an OSError; both for clarity
+            raise SensorBoardCommunicationError(
+                f"FIRE step {step}: serial I/O on {self.config.port} failed: {exc}; check the cable and the board"
+            ) from exc
+
+    def _flush_quietly(self) -> None:
+        try:
+            self._flush()
+        except (serial.SerialException, OSError):
+            self._parser.reset()
+
+    def _fire(self, step: int) -> Acquisition:
         c = self.config
         flags = sf.FireFlag.WAVEFORMS
         for request in range(1, c.retries + 2):
@@ -256,7 +294,7 @@ class SerialSensorBoard:
                 continue
             except sf.FrameTooLargeError:
                 self._flush()
-                raise
+                raise  # a DecodeError: fire() raises it as a SensorBoardDecodeError
             if frame is None:
                 self.timeout_retries += 1
                 self._flush()  # bin whatever half-frame is left before asking again

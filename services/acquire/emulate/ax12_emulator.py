@@ -13,7 +13,13 @@ difference from a servo behind a USB2Dynamixel, apart from timing:
   input voltage and overheating (from Present Voltage / Temperature vs the limits),
   overload (injected: sets bit 5 and drops torque until Torque Enable is written 1);
 * fault injection: don't answer the next N packets, answer the next N late
-  (to exercise a driver's stale-reply guard), garbage bytes before the next replies.
+  (to exercise a driver's stale-reply guard), garbage bytes before the next replies;
+  and, for tests that must not depend on the host's scheduling, hold the next
+  replies until released (:meth:`AX12Emulator.hold_next`), or until the next packet
+  arrives, so that the late reply crosses the next request on the line.
+
+Motion runs on the ``clock`` given at construction (a test can drive it by hand);
+reply timing runs on the monotonic clock of the device thread.
 
 Not modelled: acceleration, compliance, the line time of 1 Mbps (10 µs/byte),
 Lock (stored, not enforced), baud changes (stored only).
@@ -139,6 +145,9 @@ class AX12Emulator(PtyDevice):
         self._late_s = 0.0
         self._garbage_next = 0
         self._garbage_bytes = 0
+        self._hold_next = 0
+        self._hold_until_next_packet = False
+        self._held: list[bytes] = []
         self._rx = bytearray()
         #: Packets parsed (valid or not), for tests to wait on.
         self.packets_seen = 0
@@ -195,6 +204,30 @@ class AX12Emulator(PtyDevice):
         """Send ``nbytes`` random bytes (never FF) before each of the next ``n`` replies."""
         with self._lock:
             self._garbage_next, self._garbage_bytes = n, nbytes
+
+    def hold_next(self, n: int = 1, *, until_next_packet: bool = False) -> None:
+        """Hold the replies to the next ``n`` packets (they are executed) until :meth:`release_held`,
+        or, with ``until_next_packet``, until the next packet arrives: the held replies then go out
+        just before that packet's own reply, as a late reply that crosses the next request would."""
+        with self._lock:
+            self._hold_next, self._hold_until_next_packet = n, until_next_packet
+
+    def release_held(self) -> None:
+        """Send the held replies now, and hold no more (a hold not yet used is cancelled)."""
+        with self._lock:
+            self._hold_next = 0
+            self._flush_held(time.monotonic())
+
+    @property
+    def held(self) -> int:
+        """Replies held now."""
+        with self._lock:
+            return len(self._held)
+
+    def _flush_held(self, now: float) -> None:
+        held, self._held = self._held, []
+        for packet in held:
+            self._schedule(packet, now)
 
     def wait_packets(self, count: int, timeout: float = 2.0) -> bool:
         """Block until at least ``count`` packets have been seen in total."""
@@ -289,11 +322,13 @@ class AX12Emulator(PtyDevice):
         with self._lock:
             self.packets_seen += 1
             self.packet_event.notify_all()
+            if self._held and self._hold_until_next_packet:
+                self._flush_held(now)
             my_id = self._get(ax12.register("id"))
             broadcast = motor_id == ax12.BROADCAST_ID
             if not broadcast and motor_id != my_id:
                 return
-            self._update_motion(now)
+            self._update_motion(self._clock())
             if checksum(packet[2:-1]) != packet[-1]:
                 # The servo cannot trust the instruction: report, do nothing.
                 if not broadcast:
@@ -390,4 +425,9 @@ class AX12Emulator(PtyDevice):
             self._garbage_next -= 1
             garbage = self._rng.integers(0, 0xFF, size=self._garbage_bytes, dtype=np.uint8).tobytes()
             packet = garbage + packet
+        if self._hold_next > 0:
+            self._hold_next -= 1
+            self._held.append(packet)
+            self.packet_event.notify_all()
+            return
         self._schedule(packet, due)
