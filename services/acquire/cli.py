@@ -16,7 +16,7 @@ _TOML_KEYS = {
     "scanner_id": str, "prefix": str, "device": str, "preset": str, "steps": int, "gamma_start_deg": float,
     "gamma_stop_deg": float, "radial_offset": float, "motor_port": str, "sensor_port": str, "out_dir": str,
     "mcap_name": str, "record": bool, "scans": int, "interval": float, "seed": int, "waveform_int16": bool,
-    "compression": str, "energy_phi": list,
+    "compression": str, "energy_phi": list, "serve_log_for": float,
 }
 
 
@@ -58,6 +58,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--energy-phi", nargs=3, type=float, metavar=("PHI0", "PHI1", "PHI2"),
                    help="energy model of eq. (12) in SI units (default: the simulator's calibration; "
                         "see `lelsonar calibrate`)")
+    p.add_argument("--serve-log-for", type=float, metavar="S",
+                   help="keep answering log queries (<prefix>/<scanner>/log/<scan_id>) for S seconds after the "
+                        "last scan, so reconstructors that missed steps recover them (default: 10; 0: only "
+                        "while scanning)")
     add_zenoh_arguments(p, default_mode="peer")
     p.set_defaults(run=run_acquire)
 
@@ -86,7 +90,8 @@ def config_from_args(args: argparse.Namespace):
 
     values = load_toml(args.config) if args.config else {}
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
-                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression"):
+                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression",
+                "serve_log_for"):
         if getattr(args, key, None) is not None:
             values[key] = getattr(args, key)
     if args.prefix:
@@ -119,7 +124,7 @@ def run_acquire(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     if zenoh is not None:
         console.print(f"acquire: publishing on {cfg.prefix}/{cfg.scanner_id}/{{sample,scan}} "
-                      f"({zenoh.mode}, {', '.join(zenoh.connect + zenoh.listen) or 'local only'})")
+                      f"({zenoh.describe()})")
     report = run_acquisition(cfg, zenoh, stop, console)
     if report.paths:
         console.print(f"open the recording with: rerun {' '.join(str(p) for p in report.paths)}")

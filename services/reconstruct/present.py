@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lelsonar import codec
-from lelsonar.reconstruct.wire import STATUS
+from lelsonar.reconstruct.wire import STATUS, TERMINAL, accounting_text
 
 _STATUS_NAME = {v: k for k, v in STATUS.items()}
 
@@ -23,6 +23,11 @@ def console(stderr: bool = False) -> Console:
 
 def status_name(msg: codec.Reconstruction) -> str:
     return _STATUS_NAME.get(msg.status, "unknown")
+
+
+def is_terminal(msg: codec.Reconstruction) -> bool:
+    """No other estimate of this scan will come (final, final_timeout or incomplete)."""
+    return status_name(msg) in TERMINAL
 
 
 def to_json(msg: codec.Reconstruction) -> str:
@@ -71,7 +76,24 @@ def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, f
                       "", "", "", "", "", style="dim")
     for f in msg.failures:
         t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
+    if msg.HasField("accounting"):
+        t.caption = f"samples: {accounting_text(msg.accounting)}" + (
+            f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else "")
+        t.caption_justify = "left"
+        if msg.missing_steps:
+            t.caption_style = "yellow"
     return t
+
+
+def _runs(steps) -> str:
+    out: list[list[int]] = []
+    for s in steps:
+        if out and s == out[-1][1] + 1:
+            out[-1][1] = s
+        else:
+            out.append([s, s])
+    text = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in out[:20])
+    return text + (f", … ({len(out) - 20} more runs)" if len(out) > 20 else "")
 
 
 def plane_equations(msg: codec.Reconstruction, method: str) -> list[str]:
