@@ -209,7 +209,6 @@ class LogServer:
             return
         self.stats["queries"] += 1
         for cls, payload in found:
-            # BLOCK: a reply is what was lost once already; never drop it on a busy link.
-            query.reply(key, payload, encoding=zenoh.Encoding(codec.encoding_name(cls())),
-                        congestion_control=zenoh.CongestionControl.BLOCK)
+            # (Zenoh 1.10 ignores a congestion control on replies; they follow the queryable's defaults.)
+            query.reply(key, payload, encoding=zenoh.Encoding(codec.encoding_name(cls())))
             self.stats["replies"] += 1

@@ -104,7 +104,8 @@ class LiveSource:
 
     Use as a context manager inside an open session.  Samples and scan events go
     through one queue in arrival order: the acquirer publishes them from one
-    session at one priority, so Zenoh delivers them in publication order and a
+    session at one priority, so Zenoh delivers them in publication order, and
+    direct (not threaded) callbacks keep that order across the two keys: a
     ``ScanEnd`` is handled after every sample it counts (two queues drained by
     two threads let it overtake them under load).
 
@@ -127,7 +128,12 @@ class LiveSource:
         self._queue: queue.Queue[tuple[str, bytes, str]] = queue.Queue(maxsize=fifo_capacity)
         self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery) if recovery is not None
                           else None)
-        self._subscribers = [session.declare_subscriber(key, self._on_sample) for key in (keys.sample, keys.scan)]
+        # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
+        # keys.  A plain Python callback (or a FIFO handler per key) gets a thread per subscriber, and
+        # then a ScanEnd can overtake the samples still queued behind the other subscriber's thread.
+        self._subscribers = [
+            session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
+            for key in (keys.sample, keys.scan)]
         self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
