@@ -68,6 +68,8 @@ class Ingest:
     #: What a bound pushed out, by reason (nothing leaves a table uncounted).
     evicted: Counter[str] = field(default_factory=Counter)
     accepted: int = 0
+    #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
+    recovered_after_close: int = 0
 
     @property
     def n_pending(self) -> int:
@@ -88,6 +90,11 @@ class Ingest:
         """Apply an already validated message (``origin``: "live" or "recovered")."""
         key = (message.scanner_id, message.scan_id)
         if key in self.closed:
+            if origin == "recovered":
+                # A recovery reply that came after the verdict (asked twice, or the live copy won):
+                # nothing was lost, so it is counted apart from rejected input.
+                self.recovered_after_close += 1
+                return []
             return [self._reject("LateMessage", f"{type(message).__name__} for scan {key}, already finalised")]
         if isinstance(message, codec.ScanStart):
             return self._start(key, message)

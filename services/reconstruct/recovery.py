@@ -120,12 +120,16 @@ class LogRecoveryClient:
     """Runs recovery requests on one worker thread; delivers checked payloads.
 
     ``deliver(type_name, payload, origin)`` receives each good reply; it may
-    block (the live source's bounded queue).  Use as a context manager.
+    block (the live source's bounded queue).  ``wanted(request)``, checked
+    before each query, skips requests that no longer matter.  Use as a
+    context manager.
     """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys,
-                 deliver: Callable[[str, bytes, str], None], config: RecoveryConfig = RecoveryConfig()) -> None:
+                 deliver: Callable[[str, bytes, str], None], config: RecoveryConfig = RecoveryConfig(), *,
+                 wanted: Callable[[RecoveryRequest], bool] | None = None) -> None:
         self._session = session
+        self._wanted = wanted
         self._keys = keys
         self._deliver = deliver
         self.config = config
@@ -181,6 +185,9 @@ class LogRecoveryClient:
         key = ScannerKeys(self._keys.prefix, req.scanner_id).log(req.scan_id)
         for selector, rng, want_start, want_end in selectors(self._keys, req, self.config.max_steps_per_query):
             if self._closed.is_set():
+                return
+            if self._wanted is not None and not self._wanted(req):
+                self.stats["skipped: scan already has its verdict"] += 1
                 return
             self.stats["queries"] += 1
             allowed = (rng[1] - rng[0] + 1 if rng else 0) + int(want_start) + int(want_end)

@@ -311,7 +311,8 @@ class ReconstructionService:
                         "duplicates": s.duplicates, "missing": s.missing},
             "rejected": dict(self.ingest.rejected),
             "evicted": dict(self.ingest.evicted + s.evicted),
-            "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused},
+            "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused,
+                         "replies_after_verdict": self.ingest.recovered_after_close},
             "open_scans": len(self.ingest.scans), "pending_samples": self.ingest.n_pending,
         }
 
@@ -328,6 +329,10 @@ class ReconstructionService:
         if self.recover is None or self.config.recovery_attempts == 0:
             return True
         return r.attempts >= self.config.recovery_attempts and now - r.last_at >= self.config.recovery_interval
+
+    def still_wanted(self, request: RecoveryRequest) -> bool:
+        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
+        return (request.scanner_id, request.scan_id) not in self.ingest.closed
 
     def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
         r.attempts += 1

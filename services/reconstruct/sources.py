@@ -126,8 +126,8 @@ class LiveSource:
         # Bounded: a full queue blocks Zenoh's callback, and congestion control BLOCK slows the
         # publisher instead of this process growing without bound.
         self._queue: queue.Queue[tuple[str, bytes, str]] = queue.Queue(maxsize=fifo_capacity)
-        self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery) if recovery is not None
-                          else None)
+        self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
+                          if recovery is not None else None)
         # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
         # keys.  A plain Python callback (or a FIFO handler per key) gets a thread per subscriber, and
         # then a ScanEnd can overtake the samples still queued behind the other subscriber's thread.
