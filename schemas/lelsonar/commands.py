@@ -45,6 +45,8 @@ def contract_tables(prefix: str = "lelsonar", scanner: str = "<scanner_id>"):
                  f"{recording.TOPICS[codec.ScanStart]}, {recording.TOPICS[codec.ScanEnd]}")
     keys.add_row(f"{base}/planes", "lelsonar.v1.Reconstruction (get → latest)", recording.TOPICS[codec.Reconstruction])
     keys.add_row(f"{base}/alive/<service>", "liveliness token", "—")
+    keys.add_row(f"{base}/log/<scan_id>?steps=A-B;start=1;end=1",
+                 "queryable (acquire): the recorded ScanStart | Sample | ScanEnd", "—")
     tables = [keys]
     comments = field_comments()
     for cls in codec.MESSAGE_TYPES.values():
