@@ -46,7 +46,7 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
             planner = start(["planner", "--json", "--until-final", "1", "--timeout", "120", *link])
             procs += [recon, planner]
             assert both.wait(60), f"services did not come up: {seen}"
-            acquire = start(["acquire", "--device", "sim", "--out", str(tmp_path), *link])
+            acquire = start(["acquire", "--device", "sim", "--out", str(tmp_path), "--serve-log-for", "0", *link])
             procs.append(acquire)
             assert acquire.wait(120) == 0, acquire.stderr.read()
             planner_out, planner_err = planner.communicate(timeout=120)
