@@ -177,3 +177,26 @@ def test_log_keys_queries_and_the_served_log_are_validated_and_bounded():
     assert [c for c, _ in log.lookup(3, (0, 5), True, True)] == [codec.ScanStart, codec.Sample, codec.ScanEnd]
     clock.t = 10.5
     assert log.lookup(3, (0, 0), False, False) is None and log.evicted["ended longer ago than keep_for"] == 1
+
+
+def test_planes_publishers_are_bounded_and_the_planner_table_shows_the_accounting():
+    from lelsonar.reconstruct import wire
+    from lelsonar.reconstruct.sources import PlanesServer
+    from lelsonar.transport import ZenohSettings, open_session
+
+    acc = wire.accounting_message(published=184, received_live=170, recovered=10, duplicates=2,
+                                  rejected={"InvalidMessageError": 1}, missing=4)
+    msgs = [wire.reconstruction_message(sid, 5, status="incomplete", last_step=183, samples_used=180,
+                                        critical_step=None, critical_angle=0.0, planes=[], edge=None,
+                                        timings=(0, 0, 0), missing_steps=[3, 4, 5, 90], accounting=acc)
+            for sid in ("a", "b", "c")]
+    caption = present.planes_table(msgs[0]).caption
+    assert "published 184, live 170, recovered 10, duplicates 2, rejected 1" in caption
+    assert caption.endswith("missing 4; missing steps 3-5, 90")
+    with open_session(ZenohSettings(mode="peer", connect=(), listen=())) as session:  # isolated
+        server = PlanesServer(session, ScannerKeys("lelsonar", "*"), {}, max_publishers=2)
+        for m in msgs:
+            server.publish(m)
+        assert list(server._publishers) == ["b", "c"]
+        assert server.evicted == {"planes publisher undeclared (max_publishers)": 1}
+        server.close()
