@@ -91,6 +91,19 @@ def test_late_reconstructor_catches_up_on_a_scan_in_progress(scan, zenoh_socket)
     assert estimate_only(final) == estimate_only(replayed_final(scan))
 
 
+def test_reconstructor_started_after_the_last_sample_recovers_the_whole_scan_from_its_scan_end(scan, zenoh_socket):
+    with Rig(zenoh_socket) as rig:
+        acq = rig.acquirer("rig")
+        acq.send(scan[:-1])
+        rig.start_reconstructor()
+        acq.send(scan[-1:])
+        assert rig.done.wait(30), f"no terminal estimate; stats {rig.service.stats_dict()}"
+    (final,) = rig.terminal
+    assert present.status_name(final) == "final"
+    assert accounting(final) == (STEPS, 0, STEPS, 0, {}, 0)
+    assert estimate_only(final) == estimate_only(replayed_final(scan))
+
+
 def test_scan_end_lost_with_the_tail_is_recovered_after_silence(scan, zenoh_socket):
     tail = set(range(100, STEPS))
     config = ReconstructConfig(provisional=False, recovery_after=0.3, recovery_interval=0.3)

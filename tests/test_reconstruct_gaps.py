@@ -138,8 +138,9 @@ def test_a_forged_scan_start_costs_nothing_until_its_samples_come():
 
 def test_every_message_of_a_thousand_scanners_is_accounted_for_within_the_bounds():
     n = 1000
-    config = ReconstructConfig(provisional=False, max_scans=16, max_scanners=8)
-    service = ReconstructionService(config)
+    clock = Clock()
+    config = ReconstructConfig(provisional=False, max_scans=16, max_scanners=8, scan_timeout=5.0)
+    service = ReconstructionService(config, clock=clock)
     starts = [make_scan_start(scanner_id=f"id{i}", scan_id=1, steps=3) for i in range(n)]
     ends = [codec.ScanEnd(schema_version=1, scanner_id=f"id{i}", scan_id=1, status=1, samples_sent=0,
                           steps_planned=3) for i in range(n)]
@@ -148,7 +149,11 @@ def test_every_message_of_a_thousand_scanners_is_accounted_for_within_the_bounds
     assert len(service.ingest.scans) == 0 and len(service.latest) == 8
     assert len(out) == 16  # the 16 scans the table held
     assert service.ingest.evicted == {"open scan forgotten (max_scans)": n - 16}
-    assert service.ingest.rejected == {"UnknownScan": n - 16}  # their ScanEnds, counted
+    # The ScanEnds of the forgotten scans wait for a ScanStart that never comes, then are counted.
+    assert service.ingest.n_pending == n - 16 and not service.ingest.rejected
+    clock.t = 5.0
+    service.tick()
+    assert service.ingest.rejected == {"UnknownScan": n - 16} and service.ingest.n_pending == 0
     assert service.stats.evicted == {"latest estimate of a scanner forgotten (max_scanners)": 16 - 8}
 
 

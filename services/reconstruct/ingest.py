@@ -54,7 +54,7 @@ class Ingest:
     max_scans : int
         Scans kept at once; the oldest are forgotten first.
     max_pending : int
-        Samples held, over all scans, while their ScanStart has not arrived.
+        Messages (samples, and a ScanEnd) held, over all scans, while their ScanStart has not arrived.
     """
 
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
@@ -63,7 +63,8 @@ class Ingest:
     max_closed: int = 4096
     scans: OrderedDict[ScanKey, ScanAssembly] = field(default_factory=OrderedDict)
     closed: OrderedDict[ScanKey, None] = field(default_factory=OrderedDict)
-    pending: OrderedDict[ScanKey, list[codec.Sample]] = field(default_factory=OrderedDict)
+    #: Messages waiting for their ScanStart, with their origin: samples, and possibly the ScanEnd.
+    pending: OrderedDict[ScanKey, list[tuple[codec.Sample | codec.ScanEnd, str]]] = field(default_factory=OrderedDict)
     rejected: Counter[str] = field(default_factory=Counter)
     #: What a bound pushed out, by reason (nothing leaves a table uncounted).
     evicted: Counter[str] = field(default_factory=Counter)
@@ -103,8 +104,8 @@ class Ingest:
             if scan is None:
                 return self._hold(key, message, origin)
             return [self._add(scan, message, origin)]
-        if scan is None:  # ScanEnd
-            return [self._reject("UnknownScan", f"ScanEnd for unknown scan {key}")]
+        if scan is None:  # a ScanEnd before its ScanStart: held like a sample (a late start may recover it)
+            return self._hold(key, message, origin)
         if scan.end is not None:
             scan.rejected["DuplicateScanEnd"] += 1
             return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
@@ -128,7 +129,7 @@ class Ingest:
     def drop_pending(self, key: ScanKey) -> list[Rejected]:
         """Give up on samples whose ScanStart never came (called on timeout)."""
         held = self.pending.pop(key, [])
-        return [self._reject("UnknownScan", f"{len(held)} samples of scan {key} never got a ScanStart")] if held else []
+        return [self._reject("UnknownScan", f"{len(held)} messages of scan {key} never got a ScanStart")] if held else []
 
     # --- internals -------------------------------------------------------------------
     def _start(self, key: ScanKey, start: codec.ScanStart) -> list[Accepted | Rejected]:
@@ -146,8 +147,11 @@ class Ingest:
                          old, dropped.n_received, self.max_scans)
         self.accepted += 1
         events: list[Accepted | Rejected] = [Accepted("start", scan)]
-        for sample, origin in self.pending.pop(key, []):
-            events.append(self._add(scan, sample, origin))
+        for held, origin in self.pending.pop(key, []):
+            if isinstance(held, codec.Sample):
+                events.append(self._add(scan, held, origin))
+            else:  # the ScanEnd, now that its scan is known
+                events += self.apply(held, origin=origin)
         return events
 
     def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live") -> Accepted | Rejected:
@@ -160,10 +164,14 @@ class Ingest:
         self.accepted += 1
         return Accepted("sample", scan, sample.step)
 
-    def _hold(self, key: ScanKey, sample: codec.Sample, origin: str = "live") -> list[Accepted | Rejected]:
+    def _hold(self, key: ScanKey, message: codec.Sample | codec.ScanEnd,
+              origin: str = "live") -> list[Accepted | Rejected]:
         if key not in self.pending:
-            _log.info("holding samples of scan %s until its ScanStart arrives", key)
-        self.pending.setdefault(key, []).append((sample, origin))
+            _log.info("holding messages of scan %s until its ScanStart arrives", key)
+        held = self.pending.setdefault(key, [])
+        if isinstance(message, codec.ScanEnd) and any(isinstance(m, codec.ScanEnd) for m, _ in held):
+            return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
+        held.append((message, origin))
         out: list[Accepted | Rejected] = []
         while self.n_pending > self.max_pending:
             old = next(iter(self.pending))

@@ -24,8 +24,8 @@ Gaps and when a final may be published:
   ``ScanEnd.samples_sent``); with a ``recover`` hook (live) it asks the
   acquirer's log for them: at ``ScanEnd`` with steps missing, after
   ``recovery_after`` of silence without a ScanEnd (the rest and the ScanEnd),
-  and at the first sample of a scan it never saw start (the ScanStart and the
-  earlier steps — a reconstructor that starts late catches up);
+  and at the first sample or the ScanEnd of a scan it never saw start (the
+  ScanStart and the earlier steps — a reconstructor that starts late catches up);
 - at most ``recovery_attempts`` requests ``recovery_interval`` apart without
   progress (any new step starts the budget again);
 - ``FINAL`` only when every step the ScanEnd counts is in; otherwise, once
@@ -353,13 +353,17 @@ class ReconstructionService:
             self.stats.recovery_refused += 1
 
     def _ask_for_start(self, key: ScanKey, now: float) -> None:
+        """A scan met in the middle: ask for its ScanStart and the steps before what is held
+        (all the steps its ScanEnd counts, when the ScanEnd is what is held)."""
         _, r = self._pending_since[key]
-        held = [s.step for s, _ in self.ingest.pending.get(key, [])]
+        held = self.ingest.pending.get(key, [])
         self._note_progress(r, len(held))
         if not held or not self._can_ask(r, now):
             return
-        have = set(held)
-        wanted = tuple(s for s in range(max(held) + 1) if s not in have)
+        have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
+        ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
+        upto = int(ends[0].samples_sent) if ends else max(have) + 1
+        wanted = tuple(s for s in range(upto) if s not in have)
         self._ask(r, RecoveryRequest(*key, steps=wanted, want_start=True), now, len(held))
 
     # --- the incremental estimate ---------------------------------------------------------
