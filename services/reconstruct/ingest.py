@@ -71,10 +71,13 @@ class Ingest:
     accepted: int = 0
     #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
     recovered_after_close: int = 0
+    #: Keys that started waiting for their ScanStart since the caller last emptied this list.
+    newly_pending: list[ScanKey] = field(default_factory=list)
+    _held: int = 0
 
     @property
     def n_pending(self) -> int:
-        return sum(len(v) for v in self.pending.values())
+        return self._held
 
     def accept(self, type_name: str, payload: bytes, *, origin: str = "live") -> list[Accepted | Rejected]:
         """Decode one payload and apply it; return what changed (or why nothing did)."""
@@ -120,7 +123,7 @@ class Ingest:
     def close(self, key: ScanKey) -> None:
         """The scan is finalised: drop its data; later messages for it are rejected as late."""
         self.scans.pop(key, None)
-        self.pending.pop(key, None)
+        self._held -= len(self.pending.pop(key, []))
         self.closed[key] = None
         while len(self.closed) > self.max_closed:
             self.closed.popitem(last=False)
@@ -129,6 +132,7 @@ class Ingest:
     def drop_pending(self, key: ScanKey) -> list[Rejected]:
         """Give up on samples whose ScanStart never came (called on timeout)."""
         held = self.pending.pop(key, [])
+        self._held -= len(held)
         return [self._reject("UnknownScan", f"{len(held)} messages of scan {key} never got a ScanStart")] if held else []
 
     # --- internals -------------------------------------------------------------------
@@ -147,7 +151,9 @@ class Ingest:
                          old, dropped.n_received, self.max_scans)
         self.accepted += 1
         events: list[Accepted | Rejected] = [Accepted("start", scan)]
-        for held, origin in self.pending.pop(key, []):
+        waiting = self.pending.pop(key, [])
+        self._held -= len(waiting)
+        for held, origin in waiting:
             if isinstance(held, codec.Sample):
                 events.append(self._add(scan, held, origin))
             else:  # the ScanEnd, now that its scan is known
@@ -168,10 +174,13 @@ class Ingest:
               origin: str = "live") -> list[Accepted | Rejected]:
         if key not in self.pending:
             _log.info("holding messages of scan %s until its ScanStart arrives", key)
+            if len(self.newly_pending) < self.max_pending:  # bounded even if no one empties it
+                self.newly_pending.append(key)
         held = self.pending.setdefault(key, [])
         if isinstance(message, codec.ScanEnd) and any(isinstance(m, codec.ScanEnd) for m, _ in held):
             return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
         held.append((message, origin))
+        self._held += 1
         out: list[Accepted | Rejected] = []
         while self.n_pending > self.max_pending:
             old = next(iter(self.pending))

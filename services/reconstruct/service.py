@@ -231,8 +231,9 @@ class ReconstructionService:
                 continue
             out += self._on_accepted(event, busy)
         now = self._clock()
-        for key in self.ingest.pending:
-            if key not in self._pending_since:
+        fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
+        for key in fresh:
+            if key in self.ingest.pending and key not in self._pending_since:
                 # A scan met in the middle (this reconstructor started late, or its ScanStart was lost):
                 # ask the log for the ScanStart and the steps before.
                 self._pending_since[key] = (now, RecoveryState())
