@@ -174,7 +174,7 @@ class Partial:
 
 @dataclass
 class ServiceStats:
-    """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; see ``as_dict``)."""
+    """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; all of it: ``stats_dict``)."""
 
     estimates: int = 0
     finals: int = 0      # every terminal estimate: final, final_timeout, incomplete
