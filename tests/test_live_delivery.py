@@ -161,3 +161,42 @@ def test_live_source_worker_survives_an_unexpected_exception(scan, zenoh_socket)
     (final,) = rig.terminal
     assert present.status_name(final) == "final"
     assert accounting(final) == (STEPS, STEPS - 1, 1, 0, {}, 0)  # step 10 came back from the log
+
+
+def test_recovery_replies_are_checked_against_the_key_and_the_request(scan, zenoh_socket):
+    """A queryable that answers wrongly (another scan, a step not asked, garbage, a wildcard key)
+    gets only its one good reply through; the rest is counted by reason."""
+    import zenoh
+
+    from lelsonar.keys import ScannerKeys
+    from lelsonar.reconstruct.recovery import LogRecoveryClient, RecoveryRequest
+    from lelsonar.transport import ZenohSettings, open_session
+
+    keys = ScannerKeys("lelsonar", "rig")
+    good = scan[1 + 5]
+    other_scan = codec.Sample()
+    other_scan.CopyFrom(good)
+    other_scan.scan_id = 99
+    enc = zenoh.Encoding(codec.encoding_name(codec.Sample()))
+
+    def answer(query: zenoh.Query) -> None:
+        key = keys.log(42)
+        query.reply(key, good.SerializeToString(), encoding=enc)                  # asked: step 5
+        query.reply(key, other_scan.SerializeToString(), encoding=enc)            # another scan's payload
+        query.reply(key, scan[1 + 50].SerializeToString(), encoding=enc)          # step 50 was not asked
+        query.reply(key, b"\x08\x01garbage", encoding=enc)                        # does not decode
+        query.reply(key, scan[0].SerializeToString(), encoding=enc)               # one reply too many
+
+    delivered: list[tuple[str, bytes, str]] = []
+    with open_session(ZenohSettings(mode="peer", connect=(), listen=())) as session:  # isolated
+        queryable = session.declare_queryable(keys.log("*"), answer)
+        with LogRecoveryClient(session, ScannerKeys("lelsonar", "*"),
+                               lambda *a: delivered.append(a), RecoveryConfig(query_timeout=1.0)) as client:
+            assert client.request(RecoveryRequest("rig", 42, steps=(4, 5, 6, 7)))  # at most 4 replies taken
+            assert client.wait_idle(10)
+        queryable.undeclare()
+    assert delivered == [("lelsonar.v1.Sample", good.SerializeToString(), "recovered")]
+    assert client.stats["rejected: identity mismatch"] == 1 and client.stats["rejected: step not asked"] == 1
+    assert client.stats["rejected: DecodeError"] + client.stats["rejected: InvalidMessageError"] + \
+        client.stats["rejected: SchemaVersionError"] == 1
+    assert client.stats["rejected: unexpected type"] == 0 and client.stats["rejected: more replies than asked"] == 1

@@ -126,6 +126,11 @@ def run_acquire(args: argparse.Namespace) -> int:
         console.print(f"acquire: publishing on {cfg.prefix}/{cfg.scanner_id}/{{sample,scan}} "
                       f"({zenoh.describe()})")
     report = run_acquisition(cfg, zenoh, stop, console)
+    if report.log_stats:
+        console.print(f"acquire: the log answered {report.log_stats.get('queries', 0)} queries with "
+                      f"{report.log_stats.get('replies', 0)} messages; other outcomes: "
+                      f"{ {k: v for k, v in report.log_stats.items() if k not in ('queries', 'replies')} }",
+                      highlight=False)
     if report.paths:
         console.print(f"open the recording with: rerun {' '.join(str(p) for p in report.paths)}")
     return 0 if report.ok else 1

@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -136,6 +137,8 @@ class LogRecoveryClient:
         self._requests: queue.Queue[RecoveryRequest | None] = queue.Queue(maxsize=config.max_queued)
         self._thread = threading.Thread(target=self._run, name="recovery", daemon=True)
         self._closed = threading.Event()
+        self._cv = threading.Condition()
+        self._outstanding = 0  # requests queued or being served
         #: Queries, replies, delivered payloads, refusals and bad replies, by name.
         self.stats: Counter[str] = Counter()
 
@@ -160,13 +163,26 @@ class LogRecoveryClient:
             self.stats["refused: client closed"] += 1
             return False
         try:
-            self._requests.put_nowait(request)
+            with self._cv:
+                self._requests.put_nowait(request)
+                self._outstanding += 1
         except queue.Full:
             self.stats[f"refused: queue full (max_queued={self.config.max_queued})"] += 1
             _log.warning("recovery request for scan (%s, %d) refused: %d requests already wait",
                          request.scanner_id, request.scan_id, self.config.max_queued)
             return False
         self.stats["requests"] += 1
+        return True
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until every queued request has been served; False on timeout."""
+        deadline = time.monotonic() + timeout
+        with self._cv:
+            while self._outstanding:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cv.wait(left)
         return True
 
     # --- worker --------------------------------------------------------------------------
@@ -180,6 +196,10 @@ class LogRecoveryClient:
             except Exception:  # noqa: BLE001 - a bug in one request must not end recovery for all scans
                 self.stats["errors: unexpected"] += 1
                 _log.exception("recovery of scan (%s, %d) failed; carrying on", req.scanner_id, req.scan_id)
+            finally:
+                with self._cv:
+                    self._outstanding -= 1
+                    self._cv.notify_all()
 
     def _serve(self, req: RecoveryRequest) -> None:
         key = ScannerKeys(self._keys.prefix, req.scanner_id).log(req.scan_id)
