@@ -205,7 +205,7 @@ class LogServer:
         if found is None:
             self.stats["refused: scan not held"] += 1
             query.reply_err(f"scan {scan_id} is not (or no longer) in the log of {scanner}; held: "
-                            f"{self._log.scan_ids[-8:]}")
+                            f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)")
             return
         self.stats["queries"] += 1
         for cls, payload in found:

@@ -485,9 +485,14 @@ class ReconstructionService:
         self._event("INFO" if not msg.failures else "WARNING",
                     f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
                     + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""))
+        hint = ""
+        if missing.size and status == "incomplete":
+            hint = ("; the acquirer's log did not supply them (is acquire serving it? raise acquire "
+                    "--serve-log-for or reconstruct --recovery-attempts)" if self.recover is not None else
+                    "; nothing could recover them here (a replay, or live with --recovery-attempts 0)")
         self._event("INFO" if not missing.size else "WARNING",
                     f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
-                    + (f"; missing steps {_ranges_text(missing)}" if missing.size else ""))
+                    + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""))
         if self._observer:
             self._observer.estimate(scan, msg, results, p)
         self._emit(msg)
