@@ -34,7 +34,7 @@ def collect(sub, stop_after: int, got: list, done: threading.Event) -> None:
 
 @pytest.mark.slow
 def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket):
-    cfg = AcquireConfig(scanner_id="rig1", device="emulated", out_dir=tmp_path)
+    cfg = AcquireConfig(scanner_id="rig1", device="emulated", out_dir=tmp_path, serve_log_for=0)
     steps = sim_config(cfg).steps
     keys = ScannerKeys("lelsonar", "rig1")
     got: list = []

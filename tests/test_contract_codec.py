@@ -47,7 +47,7 @@ def test_int16_waveform_round_trips_within_half_a_count(volts):
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, 10_000), st.integers(0, 2**63), st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,20}", fullmatch=True))
+@given(st.integers(0, codec.DEFAULT_LIMITS.max_steps - 1), st.integers(0, 2**63), st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,20}", fullmatch=True))
 def test_sample_round_trips_through_bytes(step, scan_id, scanner):
     s = make_sample(step=step, scanner_id=scanner, scan_id=scan_id)
     back = codec.decode(s.SerializeToString(), codec.Sample)

@@ -10,9 +10,9 @@ import threading
 
 import pytest
 import zenoh
-from google.protobuf import json_format
 
-from lelsonar import codec
+
+from lelsonar.reconstruct import present
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
 from lelsonar.transport import ZenohSettings, open_session
 
@@ -53,7 +53,7 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
             planner = start(["planner", "--json", "--until-final", "1", "--timeout", "120", *link])
             procs += [recon, planner]
             assert both.wait(60), f"services did not come up: {seen}"
-            acquire = start(["acquire", "--device", "sim", "--out", str(tmp_path), *link])
+            acquire = start(["acquire", "--device", "sim", "--out", str(tmp_path), "--serve-log-for", "0", *link])
             procs.append(acquire)
             assert acquire.wait(120) == 0, acquire.stderr.read()
             planner_out, planner_err = planner.communicate(timeout=120)
@@ -70,7 +70,7 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
     assert planner_finals[0] == live[0]
     assert live[0]["samples_used"] == 184 and {p["label"] for p in live[0]["planes"]} == {"a", "b"}
     # What the planner got is the scene the simulated scanner looked at, within the noise model's bounds.
-    estimate = json_format.ParseDict({k: v for k, v in live[0].items() if k != "status"}, codec.Reconstruction())
+    estimate = present.from_json(live[0])
     assert_matches_the_scene(estimate, DEFAULT_METHOD, "paper-test1")  # acquire's default preset
 
     replay = subprocess.run(LELSONAR + ["reconstruct", "--source", str(tmp_path / "scan.mcap"), "--json"],

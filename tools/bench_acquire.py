@@ -254,6 +254,7 @@ def one_run(device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, s
 
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-acquire-") as tmp, ExitStack() as stack:
         cfg = AcquireConfig(device=device, preset=args.preset, steps=steps if steps is not None else args.steps,
+                            serve_log_for=0.0,
                             seed=args.seed, record=True, out_dir=Path(tmp))
         quiet = Console(file=io.StringIO(), width=120)
         delivered = [0]

@@ -231,8 +231,8 @@ def _timed_service_class():
     class TimedIngest(Ingest):
         last_events: list = []
 
-        def accept(self, type_name, payload):
-            events = super().accept(type_name, payload)
+        def accept(self, type_name, payload, **kwargs):
+            events = super().accept(type_name, payload, **kwargs)
             self.last_events = events
             return events
 
@@ -263,10 +263,10 @@ def _timed_service_class():
                     self.sample_latency_ns.append(now_ns - int(ev.scan.time_ns[ev.step]))
             return out
 
-        def tick(self):
+        def tick(self, **kwargs):
             self._finals_made = False
             t0 = time.perf_counter()
-            out = super().tick()
+            out = super().tick(**kwargs)
             if out:
                 self.busy.setdefault("final (tick)", []).append(time.perf_counter() - t0)
             return out

@@ -94,7 +94,7 @@ def run_demo(args: argparse.Namespace) -> int:
                 return 1
             acquire = spawn("acquire", ["acquire", "--device", args.device, "--preset", args.preset,
                                         "--seed", str(args.seed), "--out", str(out), "--mcap-name", mcap.name,
-                                        *link])
+                                        "--serve-log-for", "2", *link])
             if acquire.wait(300) != 0:
                 console.print("[red]acquisition failed")
                 return 1

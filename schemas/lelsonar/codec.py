@@ -63,7 +63,12 @@ class DecodeLimits:
     max_sensors : int
         Most sensor readings in one sample.
     max_steps : int
-        Most steps in one scan.
+        Most steps in one scan (``ScanStart.steps``, ``Sample.step``,
+        ``ScanEnd.samples_sent``).  The AX-12 resolves 1024 positions over
+        300°, so a scan has at most 1024 distinct angles; 4096 leaves room for
+        repeated angles and keeps what one forged ScanStart can make a
+        reconstructor hold bounded (the assembly also grows with the steps that
+        actually arrive, never with the step count a ScanStart claims).
     max_planes : int
         Most plane estimates in one ``Reconstruction``: two planes for each of
         the method of record and every compared method (11 registered today),
@@ -75,7 +80,7 @@ class DecodeLimits:
     max_payload_bytes: int = 4 * 1024 * 1024
     max_waveform_samples: int = 65_536
     max_sensors: int = 16
-    max_steps: int = 100_000
+    max_steps: int = 4096
     max_planes: int = 64
     max_reasons: int = 64
 
@@ -261,6 +266,9 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
 def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:
     if m.status not in (scan_pb2.SCAN_STATUS_COMPLETE, scan_pb2.SCAN_STATUS_ABORTED):
         raise InvalidMessageError(f"ScanEnd.status {m.status} is neither COMPLETE nor ABORTED")
+    if m.samples_sent > limits.max_steps or m.steps_planned > limits.max_steps:
+        raise InvalidMessageError(f"ScanEnd counts {m.samples_sent} samples sent of {m.steps_planned} planned; "
+                                  f"the limit is {limits.max_steps} steps")
 
 
 def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:

@@ -45,6 +45,8 @@ def contract_tables(prefix: str = "lelsonar", scanner: str = "<scanner_id>"):
                  f"{recording.TOPICS[codec.ScanStart]}, {recording.TOPICS[codec.ScanEnd]}")
     keys.add_row(f"{base}/planes", "lelsonar.v1.Reconstruction (get → latest)", recording.TOPICS[codec.Reconstruction])
     keys.add_row(f"{base}/alive/<service>", "liveliness token", "—")
+    keys.add_row(f"{base}/log/<scan_id>?steps=A-B;start=1;end=1",
+                 "queryable (acquire): the recorded ScanStart | Sample | ScanEnd", "—")
     tables = [keys]
     comments = field_comments()
     for cls in codec.MESSAGE_TYPES.values():
@@ -107,12 +109,15 @@ def run_router(args: argparse.Namespace) -> int:
 
     from lelsonar.transport import ZenohSettings, open_session
 
-    settings = ZenohSettings(mode="router", connect=(), listen=tuple(args.listen or ("tcp/127.0.0.1:7447",)),
-                             config_file=Path(args.zenoh_config) if args.zenoh_config else None)
+    file = Path(args.zenoh_config) if args.zenoh_config else None
+    # Typed flags override the file; the defaults apply only without a file (see lelsonar.transport).
+    settings = ZenohSettings(mode="router", connect=None if file else (),
+                             listen=tuple(args.listen) if args.listen else (None if file else ("tcp/127.0.0.1:7447",)),
+                             config_file=file)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(settings):
-        print(f"lelsonar router listening on {', '.join(settings.listen)}; Ctrl-C to stop", flush=True)
+        print(f"lelsonar router listening ({settings.describe()}); Ctrl-C to stop", flush=True)
         stop.wait()
     return 0

@@ -7,7 +7,14 @@ key expression                        payload                     who puts it
 ``<prefix>/<scanner>/scan``           ``ScanStart`` / ``ScanEnd``  acquire
 ``<prefix>/<scanner>/planes``         ``Reconstruction``          reconstruct (+ get)
 ``<prefix>/<scanner>/alive/<svc>``    liveliness token            every service
+``<prefix>/<scanner>/log/<scan_id>``  queryable: recorded scan    acquire (get only)
 ====================================  ==========================  =================
+
+A ``get`` on ``<prefix>/<scanner>/log/<scan_id>?steps=A-B;start=1;end=1``
+returns what the acquirer recorded of that scan: the samples of steps A to B
+(inclusive, at most :data:`MAX_LOG_STEPS_PER_QUERY`), and the ScanStart /
+ScanEnd when asked for.  Each reply is one message, on the concrete key, with
+its type in the encoding.  Use consolidation NONE: every reply has the same key.
 
 The payload type travels in the Zenoh encoding, ``application/protobuf;<full name>``.
 """
@@ -20,6 +27,9 @@ from dataclasses import dataclass
 from lelsonar.errors import InvalidIdentifierError
 
 DEFAULT_PREFIX = "lelsonar"
+#: Most samples one log query may ask for (the acquirer refuses larger ranges).
+MAX_LOG_STEPS_PER_QUERY = 64
+_UINT64_MAX = 2**64 - 1
 MAX_ID_LENGTH = 64
 MAX_PREFIX_LENGTH = 200
 
@@ -88,9 +98,42 @@ class ScannerKeys:
             validate_identifier(service, what="service name")
         return self._key(f"alive/{service}")
 
+    def log(self, scan_id: int | str = "*") -> str:
+        """The log queryable of one scan (``scan_id`` an unsigned 64-bit integer) or of all (``"*"``)."""
+        if scan_id != "*":
+            scan_id = validate_scan_id(scan_id)
+        return self._key(f"log/{scan_id}")
+
+    def scan_of_log_key(self, key: str) -> tuple[str, int]:
+        """(scanner, scan_id) of a concrete log key under this prefix."""
+        scanner = self.scanner_of(key)
+        rest = key[len(self.prefix) + 1 + len(scanner):]
+        if not rest.startswith("/log/") or "/" in rest[len("/log/"):]:
+            raise InvalidIdentifierError(f"key {key!r} is not a log key <prefix>/<scanner>/log/<scan_id>")
+        return scanner, validate_scan_id(rest[len("/log/"):])
+
     def scanner_of(self, key: str) -> str:
         """The scanner id inside a concrete key received under this prefix."""
         head = self.prefix + "/"
         if not key.startswith(head):
             raise InvalidIdentifierError(f"key {key!r} is not under prefix {self.prefix!r}")
         return validate_identifier(key[len(head):].split("/", 1)[0])
+
+
+def validate_scan_id(value: int | str) -> int:
+    """A scan id as an int: an unsigned 64-bit integer, given as an int or as its decimal digits.
+
+    Raises
+    ------
+    InvalidIdentifierError
+        Anything else (signs, spaces, Zenoh specials, out of range).
+    """
+    if isinstance(value, bool):
+        raise InvalidIdentifierError(f"scan id must be an integer, got {value!r}")
+    if isinstance(value, str):
+        if not value.isascii() or not value.isdigit() or len(value) > 20:
+            raise InvalidIdentifierError(f"scan id {value[:40]!r} must be decimal digits (an unsigned 64-bit integer)")
+        value = int(value)
+    if not isinstance(value, int) or not 0 <= value <= _UINT64_MAX:
+        raise InvalidIdentifierError(f"scan id {value!r} must be an unsigned 64-bit integer")
+    return value

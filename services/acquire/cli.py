@@ -16,7 +16,7 @@ _TOML_KEYS = {
     "scanner_id": str, "prefix": str, "device": str, "preset": str, "steps": int, "gamma_start_deg": float,
     "gamma_stop_deg": float, "radial_offset": float, "motor_port": str, "sensor_port": str, "out_dir": str,
     "mcap_name": str, "record": bool, "scans": int, "interval": float, "seed": int, "waveform_int16": bool,
-    "compression": str, "energy_phi": list, "fsync": bool,
+    "compression": str, "energy_phi": list, "fsync": bool, "serve_log_for": float,
 }
 
 
@@ -62,6 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--energy-phi", nargs=3, type=float, metavar=("PHI0", "PHI1", "PHI2"),
                    help="energy model of eq. (12) in SI units (default: the simulator's calibration; "
                         "see `lelsonar calibrate`)")
+    p.add_argument("--serve-log-for", type=float, metavar="S",
+                   help="keep answering log queries (<prefix>/<scanner>/log/<scan_id>) for S seconds after the "
+                        "last scan, so reconstructors that missed steps recover them (default: 10; 0: only "
+                        "while scanning)")
     add_zenoh_arguments(p, default_mode="peer")
     p.set_defaults(run=run_acquire)
 
@@ -90,7 +94,8 @@ def config_from_args(args: argparse.Namespace):
 
     values = load_toml(args.config) if args.config else {}
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
-                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression", "fsync"):
+                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression", "fsync",
+                "serve_log_for"):
         if getattr(args, key, None) is not None:
             values[key] = getattr(args, key)
     if args.prefix:
@@ -123,8 +128,13 @@ def run_acquire(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     if zenoh is not None:
         console.print(f"acquire: publishing on {cfg.prefix}/{cfg.scanner_id}/{{sample,scan}} "
-                      f"({zenoh.mode}, {', '.join(zenoh.connect + zenoh.listen) or 'local only'})")
+                      f"({zenoh.describe()})")
     report = run_acquisition(cfg, zenoh, stop, console)
+    if report.log_stats:
+        console.print(f"acquire: the log answered {report.log_stats.get('queries', 0)} queries with "
+                      f"{report.log_stats.get('replies', 0)} messages; other outcomes: "
+                      f"{ {k: v for k, v in report.log_stats.items() if k not in ('queries', 'replies')} }",
+                      highlight=False)
     if report.paths:
         console.print(f"open the recording with: rerun {' '.join(str(p) for p in report.paths)}")
     return 0 if report.ok else 1

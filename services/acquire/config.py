@@ -52,6 +52,10 @@ class AcquireConfig:
         OS before it is published).
     energy_model : EnergyModel, optional
         φ of eq. (12); default: the simulator's calibration.
+    serve_log_for : float
+        s to keep answering log queries (``<prefix>/<scanner>/log/<scan_id>``) after the last scan
+        ends, so a reconstructor that missed steps can still recover them; also how long an ended
+        scan stays in the served log.  0 serves only while scanning.
     """
 
     scanner_id: str = "scanner1"
@@ -74,6 +78,7 @@ class AcquireConfig:
     compression: str = "zstd"
     fsync: bool = False
     energy_model: EnergyModel | None = None
+    serve_log_for: float = 10.0
 
     def __post_init__(self) -> None:
         validate_identifier(self.scanner_id)
@@ -88,6 +93,8 @@ class AcquireConfig:
             v = getattr(self, name)
             if v is not None and not (math.isfinite(v) and abs(v) <= math.radians(150)):
                 raise ConfigError(f"{name} must be within ±150° (the AX-12 turns 300°), got {math.degrees(v):.1f}°")
+        if not (math.isfinite(self.serve_log_for) and self.serve_log_for >= 0):
+            raise ConfigError(f"serve_log_for must be >= 0 s, got {self.serve_log_for}")
         if self.scans < 1 or self.interval < 0:
             raise ConfigError("scans must be >= 1 and interval >= 0 s")
         if not self.mcap_name.endswith(".mcap") or "/" in self.mcap_name:

@@ -20,6 +20,7 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.acquire import messages
+from lelsonar.acquire.log_server import ScanLog
 from lelsonar.acquire.scanner import Scanner
 from lelsonar.errors import DeviceError
 from lelsonar.keys import ScannerKeys
@@ -53,15 +54,22 @@ class ScanPublisher:
 
 @dataclass
 class ScanOutput:
-    """Where a scan's messages go: an MCAP file first, then Zenoh."""
+    """Where a scan's messages go: an MCAP file first, then the served log, then Zenoh.
+
+    ``scan_log`` keeps what was recorded so :class:`~lelsonar.acquire.log_server.LogServer`
+    can serve it to a reconstructor that missed it.
+    """
 
     recorder: McapRecorder | None = None
     publisher: ScanPublisher | None = None
     publish_failures: int = 0
+    scan_log: ScanLog | None = None
 
     def emit(self, message: Message) -> None:
         if self.recorder is not None:
             self.recorder.write(message)  # returns once the step is with the OS: durable before published
+        if self.scan_log is not None:
+            self.scan_log.add(message)
         if self.publisher is not None:
             try:
                 self.publisher.publish(message)

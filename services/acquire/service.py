@@ -20,6 +20,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
+from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
 from lelsonar.acquire.sim import SimConfig, preset
 from lelsonar.keys import ScannerKeys
@@ -51,11 +52,22 @@ def energy_model(cfg: AcquireConfig) -> EnergyModel:
     return default_energy_model()
 
 
+def _quietly(what: str, fn) -> None:
+    """Run a Zenoh clean-up step; after a partition it may fail, which must not crash acquire."""
+    import zenoh as _zenoh
+
+    try:
+        fn()
+    except _zenoh.ZError as exc:
+        _log.warning("%s failed (the network may be down; the recording is complete): %s", what, exc)
+
+
 @dataclass
 class AcquisitionReport:
     ends: list[codec.ScanEnd]
     paths: list
     publish_failures: int
+    log_stats: dict | None = None
 
     @property
     def ok(self) -> bool:
@@ -73,39 +85,53 @@ def run_acquisition(cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threa
     model = energy_model(cfg)
     keys = ScannerKeys(cfg.prefix, cfg.scanner_id)
     report = AcquisitionReport([], [], 0)
+    log = ScanLog(keep_for=cfg.serve_log_for) if zenoh is not None else None
     with ExitStack() as stack:
-        scanner = stack.enter_context(open_scanner(cfg, sim))
         publisher = None
+        server = None
         if zenoh is not None:
             session = stack.enter_context(open_session(zenoh))
-            stack.callback(session.liveliness().declare_token(keys.alive("acquire")).undeclare)
+            token = session.liveliness().declare_token(keys.alive("acquire"))
+            stack.callback(_quietly, "undeclaring the liveliness token", token.undeclare)
+            # Serve the log before the first scan: a reconstructor may ask as soon as it sees a sample.
+            server = stack.enter_context(LogServer(session, keys, log))
             publisher = ScanPublisher(session, keys)
-            stack.callback(publisher.close)
-        for index in range(cfg.scans):
-            scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
-            path = cfg.mcap_path(index) if cfg.record else None
-            with ExitStack() as scan_stack:
-                recorder = (scan_stack.enter_context(McapRecorder(path, compression=cfg.compression,
-                                                                  metadata=cfg.as_metadata(), fsync=cfg.fsync))
-                            if path else None)
-                output = ScanOutput(recorder, publisher)
-                progress = scan_stack.enter_context(Progress(
-                    TextColumn(f"scan {index + 1}/{cfg.scans}"), BarColumn(), MofNCompleteColumn(),
-                    TextColumn("γ {task.fields[gamma]:>6.1f}°"), TimeElapsedColumn(), TextColumn("ETA"),
-                    TimeRemainingColumn(), console=console, transient=False))
-                task = progress.add_task("scan", total=len(schedule), gamma=math.degrees(schedule[0]))
-                end = run_scan(scanner, schedule, ScanIdentity(cfg.scanner_id, scan_id), model, output, stop,
-                               on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
-                               int16_scale=INT16_SCALE if cfg.waveform_int16 else None)
-                report.publish_failures += output.publish_failures
-            report.ends.append(end)
-            if path:
-                report.paths.append(path)
-            status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
-            console.print(f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
-                          f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else ""))
-            if end.status != 1 or stop.is_set():
-                break
-            if index + 1 < cfg.scans and stop.wait(cfg.interval):
-                break
+            stack.callback(_quietly, "undeclaring the publishers", publisher.close)
+        with open_scanner(cfg, sim) as scanner:
+            for index in range(cfg.scans):
+                scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
+                path = cfg.mcap_path(index) if cfg.record else None
+                with ExitStack() as scan_stack:
+                    recorder = (scan_stack.enter_context(McapRecorder(path, compression=cfg.compression,
+                                                                      metadata=cfg.as_metadata(), fsync=cfg.fsync))
+                                if path else None)
+                    output = ScanOutput(recorder, publisher, scan_log=log)
+                    progress = scan_stack.enter_context(Progress(
+                        TextColumn(f"scan {index + 1}/{cfg.scans}"), BarColumn(), MofNCompleteColumn(),
+                        TextColumn("γ {task.fields[gamma]:>6.1f}°"), TimeElapsedColumn(), TextColumn("ETA"),
+                        TimeRemainingColumn(), console=console, transient=False))
+                    task = progress.add_task("scan", total=len(schedule), gamma=math.degrees(schedule[0]))
+                    end = run_scan(scanner, schedule, ScanIdentity(cfg.scanner_id, scan_id), model, output, stop,
+                                   on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
+                                   int16_scale=INT16_SCALE if cfg.waveform_int16 else None)
+                    report.publish_failures += output.publish_failures
+                report.ends.append(end)
+                if path:
+                    report.paths.append(path)
+                status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
+                console.print(f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
+                              f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else ""))
+                if end.status != 1 or stop.is_set():
+                    break
+                if index + 1 < cfg.scans and stop.wait(cfg.interval):
+                    break
+        if server is not None and cfg.serve_log_for > 0 and not stop.is_set():
+            # The scanner is released (torque off); keep answering reconstructors that missed steps.
+            _log.info("serving the log of the last scans for %.1f s (--serve-log-for; Ctrl-C ends it)",
+                      cfg.serve_log_for)
+            console.print(f"acquire: serving the log of the last scans for {cfg.serve_log_for:g} s "
+                          "(--serve-log-for; Ctrl-C ends it)")
+            stop.wait(cfg.serve_log_for)
+        if server is not None:
+            report.log_stats = dict(server.stats)
     return report

@@ -4,10 +4,17 @@ Samples are placed by step index, so arrival order does not matter; a second
 copy of a step is dropped.  Per step the assembly keeps what the math needs —
 measured γ, ranges, the energy of each capsule (eq. 10) — and the waveforms of
 the latest step only, for display.
+
+The per-step arrays grow with the highest step that actually arrived (doubling,
+capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
+until its samples come.  The assembly knows which steps it lacks
+(:meth:`ScanAssembly.missing_steps`) and where each step came from (the live
+stream or the acquirer's log), for the per-scan accounting.
 """
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,23 +69,42 @@ class ScanAssembly:
     ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m); 0 without a valid range
     time_ns: np.ndarray = field(init=False)          # (steps,)
     received: np.ndarray = field(init=False)         # (steps,) bool
+    recovered_mask: np.ndarray = field(init=False)   # (steps,) bool: the step came from the acquirer's log
     end: codec.ScanEnd | None = None
     duplicates: int = 0
+    #: Messages of this scan that were refused, by reason (the wire's ScanAccounting.rejected).
+    rejected: Counter = field(default_factory=Counter)
     latest: StepView | None = None
+
+    #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
+    INITIAL_ROWS = 256
 
     def __post_init__(self) -> None:
         self.geometry = geometry_from_start(self.start)
         self.energy_model = energy_model_from_start(self.start)
-        n, k = self.start.steps, self.geometry.n_capsules
-        self.gamma = np.full(n, np.nan)
-        self.distance = np.full((n, k), np.nan)
-        self.sensor_energy = np.zeros((n, k))
-        self.echo_amplitude = np.full((n, k), np.nan)
-        self.step_energy = np.zeros(n)
-        self.expected_energy = np.zeros(n)
-        self.ratio = np.zeros(n)
-        self.time_ns = np.zeros(n, dtype=np.int64)
-        self.received = np.zeros(n, dtype=bool)
+        self._allocate(min(self.start.steps, self.INITIAL_ROWS))
+
+    def _allocate(self, n: int) -> None:
+        """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty)."""
+        k = self.geometry.n_capsules
+
+        def grown(name: str, tail: tuple[int, ...], fill, dtype=float) -> np.ndarray:
+            new = np.full((n, *tail), fill, dtype=dtype)
+            old = getattr(self, name, None)
+            if isinstance(old, np.ndarray):
+                new[:len(old)] = old
+            return new
+
+        self.gamma = grown("gamma", (), np.nan)
+        self.distance = grown("distance", (k,), np.nan)
+        self.sensor_energy = grown("sensor_energy", (k,), 0.0)
+        self.echo_amplitude = grown("echo_amplitude", (k,), np.nan)
+        self.step_energy = grown("step_energy", (), 0.0)
+        self.expected_energy = grown("expected_energy", (), 0.0)
+        self.ratio = grown("ratio", (), 0.0)
+        self.time_ns = grown("time_ns", (), 0, np.int64)
+        self.received = grown("received", (), False, bool)
+        self.recovered_mask = grown("recovered_mask", (), False, bool)
 
     @property
     def key(self) -> tuple[str, int]:
@@ -89,12 +115,38 @@ class ScanAssembly:
         return int(np.count_nonzero(self.received))
 
     @property
-    def complete(self) -> bool:
-        """All the samples that the ScanEnd announced have arrived."""
-        return self.end is not None and self.n_received >= self.end.samples_sent
+    def n_recovered(self) -> int:
+        return int(np.count_nonzero(self.recovered_mask))
 
-    def add(self, sample: codec.Sample) -> bool:
-        """Place a sample; return False for a duplicate step.
+    @property
+    def expected_steps(self) -> int:
+        """Steps this scan should have: ``ScanEnd.samples_sent`` once known (the scan loop sends steps
+        0..samples_sent-1), else the whole schedule of the ScanStart."""
+        if self.end is not None:
+            return min(int(self.end.samples_sent), int(self.start.steps))
+        return int(self.start.steps)
+
+    def missing_steps(self, upto: int | None = None) -> np.ndarray:
+        """Steps below ``upto`` (default :attr:`expected_steps`) that have not arrived, ascending."""
+        n = self.expected_steps if upto is None else min(int(upto), int(self.start.steps))
+        have = np.zeros(n, dtype=bool)
+        m = min(n, len(self.received))
+        have[:m] = self.received[:m]
+        return np.flatnonzero(~have)
+
+    @property
+    def highest_step(self) -> int:
+        """The highest step received, -1 before any."""
+        steps = np.flatnonzero(self.received)
+        return int(steps[-1]) if len(steps) else -1
+
+    @property
+    def complete(self) -> bool:
+        """The ScanEnd came and every step it counts has arrived."""
+        return self.end is not None and len(self.missing_steps()) == 0
+
+    def add(self, sample: codec.Sample, origin: str = "live") -> bool:
+        """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
 
         Raises
         ------
@@ -104,6 +156,8 @@ class ScanAssembly:
         step = sample.step
         if step >= self.start.steps:
             raise InvalidMessageError(f"step {step} is outside the schedule of {self.start.steps} steps")
+        if step >= len(self.received):
+            self._allocate(min(int(self.start.steps), max(2 * len(self.received), step + 1)))
         if self.received[step]:
             self.duplicates += 1
             return False
@@ -136,6 +190,7 @@ class ScanAssembly:
             self.ratio[step] = self.step_energy[step] / self.expected_energy[step]
         self.time_ns[step] = sample.acquisition_time_ns
         self.received[step] = True
+        self.recovered_mask[step] = origin == "recovered"
         self.latest = StepView(step, sample.acquisition_time_ns, sample.gamma_measured, distance, waveforms, rate,
                                sample.sensors[0].waveform.t0)
         return True

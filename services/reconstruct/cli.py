@@ -23,7 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--source", type=Path, metavar="FILE.mcap",
                    help="replay a recording instead of subscribing to Zenoh")
     p.add_argument("--scanner", default="*", help="only this scanner id (default: all)")
-    p.add_argument("--json", action="store_true", help="print final estimates as JSON lines (SI units)")
+    p.add_argument("--json", action="store_true",
+                   help="print terminal estimates (final, final_timeout, incomplete) as JSON lines (SI units), "
+                        "and, on stderr, one line {\"stats\": {...}} with the service's accounting")
     p.add_argument("--publish", action="store_true",
                    help="with --source: also publish the estimates on Zenoh (live mode always publishes)")
     p.add_argument("--until-scans", type=int, default=0, metavar="N",
@@ -31,6 +33,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the estimates to an MCAP file")
     p.add_argument("--truth-preset", metavar="PRESET",
                    help="draw the true planes of a simulator preset in Rerun (e.g. paper-test1)")
+    g = p.add_argument_group("gap recovery (live)", "Missing steps are asked from the acquirer's log "
+                             "(<prefix>/<scanner>/log/<scan_id>); a scan still lacking steps after the attempts "
+                             "is published INCOMPLETE with its missing_steps, never FINAL.")
+    g.add_argument("--recovery-attempts", type=int, default=5, metavar="N",
+                   help="requests per scan without progress before giving up (default: 5; 0 disables recovery)")
+    g.add_argument("--recovery-interval", type=float, default=1.0, metavar="S",
+                   help="seconds between requests for one scan (default: 1)")
+    g.add_argument("--recovery-after", type=float, default=1.0, metavar="S",
+                   help="seconds of silence before an open scan without ScanEnd asks the log for the rest "
+                        "(default: 1)")
     _add_estimator_arguments(p)
     _add_rerun_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
@@ -80,8 +92,10 @@ def _config(args: argparse.Namespace, *, provisional: bool = True):
     from lelsonar.reconstruct.service import ReconstructConfig
 
     compare = tuple(m for m in args.compare.split(",") if m and m != args.method)
+    recovery = {k: getattr(args, k) for k in ("recovery_attempts", "recovery_interval", "recovery_after")
+                if getattr(args, k, None) is not None}
     return ReconstructConfig(method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout,
-                             provisional=provisional)
+                             provisional=provisional, **recovery)
 
 
 def _stop_on_signals() -> threading.Event:
@@ -116,6 +130,7 @@ def _open_source(path: Path):
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
+    import json
 
     from lelsonar.keys import ScannerKeys
     from lelsonar.reconstruct import present
@@ -133,7 +148,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     def report(msg) -> None:
         nonlocal n_final
-        if present.status_name(msg).startswith("final"):
+        if present.is_terminal(msg):
             n_final += 1
             if args.json:
                 print(present.to_json(msg), flush=True)
@@ -161,6 +176,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 for msg in service.finals.values():
                     recorder.write(msg)
             _log.info("replayed %d payloads from %s; rejected: %s", n, args.source, dict(service.ingest.rejected))
+            stats = service.stats_dict()
+            _print_stats(console, stats, args.json, json)
             if not service.finals:
                 return 1
             # A scan whose method of record produced no plane is a failure a script must see.
@@ -173,11 +190,31 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             return 0
         stop = _stop_on_signals()
         console.print(f"reconstruct: listening on {keys.sample} and {keys.scan}; estimates on {keys.planes}")
-        with LiveSource(session, keys, service, stop, record=recorder):
+        from lelsonar.reconstruct.recovery import RecoveryConfig
+
+        recovery = RecoveryConfig() if config.recovery_attempts > 0 else None
+        with LiveSource(session, keys, service, stop, record=recorder, recovery=recovery) as live:
             while not stop.is_set() and not finals.is_set():
                 stop.wait(0.2)
-        console.print(f"reconstruct: {service.stats.finals} final estimates, rejected {dict(service.ingest.rejected)}")
+        stats = service.stats_dict()
+        stats["worker_errors"] = dict(live.error_types)
+        stats["recovery"].update(live.recovery_stats)
+        stats["evicted"].update(server.evicted)
+        _print_stats(console, stats, args.json, json)
     return 0
+
+
+def _print_stats(console, stats: dict, as_json: bool, json) -> None:
+    """The service's accounting on exit: a line for people on stderr, and a JSON line with --json."""
+    s = stats["samples"]
+    console.print(
+        f"reconstruct: {stats['finals']} terminal estimates ({stats['incomplete']} incomplete, "
+        f"{stats['final_timeouts']} final_timeout); samples: published {s['published']}, live "
+        f"{s['received_live']}, recovered {s['recovered']}, duplicates {s['duplicates']}, missing {s['missing']}; "
+        f"rejected {stats['rejected']}; evicted {stats['evicted']}; recovery {stats['recovery']}"
+        + (f"; worker errors {stats['worker_errors']}" if stats.get("worker_errors") else ""), highlight=False)
+    if as_json:  # on stderr: stdout carries only estimates, one per line
+        print(json.dumps({"stats": stats}, sort_keys=True, separators=(",", ":")), file=sys.stderr, flush=True)
 
 
 def run_review(args: argparse.Namespace) -> int:
@@ -235,7 +272,7 @@ def run_planner(args: argparse.Namespace) -> int:
                 console.print(present.planes_table(msg, title=None) if present.status_name(msg) != "provisional"
                               else f"{origin}: {msg.scanner_id} scan {msg.scan_id} provisional, "
                                    f"{msg.samples_used} samples, {len(msg.planes)} planes")
-            if present.status_name(msg).startswith("final"):
+            if present.is_terminal(msg):
                 finals += 1
                 if args.until_final and finals >= args.until_final:
                     done.set()

@@ -6,6 +6,10 @@ then routed to the :class:`ScanAssembly` of its (scanner, scan).  Whatever is
 wrong is counted by error type and reported — never raised to the caller — so a
 service keeps serving.  Samples that arrive before their ``ScanStart`` wait in
 a bounded buffer.
+
+Every table here is keyed by wire data and bounded; what a bound pushes out is
+counted in :attr:`Ingest.evicted` by reason.  A message carries its origin:
+"live" (the stream) or "recovered" (the acquirer's log), for the accounting.
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ class Ingest:
     max_scans : int
         Scans kept at once; the oldest are forgotten first.
     max_pending : int
-        Samples held, over all scans, while their ScanStart has not arrived.
+        Messages (samples, and a ScanEnd) held, over all scans, while their ScanStart has not arrived.
     """
 
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
@@ -59,39 +63,59 @@ class Ingest:
     max_closed: int = 4096
     scans: OrderedDict[ScanKey, ScanAssembly] = field(default_factory=OrderedDict)
     closed: OrderedDict[ScanKey, None] = field(default_factory=OrderedDict)
-    pending: OrderedDict[ScanKey, list[codec.Sample]] = field(default_factory=OrderedDict)
+    #: Messages waiting for their ScanStart, with their origin: samples, and possibly the ScanEnd.
+    pending: OrderedDict[ScanKey, list[tuple[codec.Sample | codec.ScanEnd, str]]] = field(default_factory=OrderedDict)
     rejected: Counter[str] = field(default_factory=Counter)
+    #: What a bound pushed out, by reason (nothing leaves a table uncounted).
+    evicted: Counter[str] = field(default_factory=Counter)
     accepted: int = 0
+    #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
+    recovered_after_close: int = 0
+    #: Keys that started waiting for their ScanStart since the caller last emptied this list.
+    newly_pending: list[ScanKey] = field(default_factory=list)
+    _held: int = 0
 
     @property
     def n_pending(self) -> int:
-        return sum(len(v) for v in self.pending.values())
+        return self._held
 
-    def accept(self, type_name: str, payload: bytes) -> list[Accepted | Rejected]:
+    def accept(self, type_name: str, payload: bytes, *, origin: str = "live") -> list[Accepted | Rejected]:
         """Decode one payload and apply it; return what changed (or why nothing did)."""
         try:
             cls = codec.MESSAGE_TYPES.get(type_name)
             if cls is None or cls is codec.Reconstruction:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
             message = codec.decode(payload, cls, self.limits)
-            return self.apply(message)
+            return self.apply(message, origin=origin)
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, str(exc))]
 
-    def apply(self, message) -> list[Accepted | Rejected]:
-        """Apply an already validated message."""
+    def apply(self, message, *, origin: str = "live") -> list[Accepted | Rejected]:
+        """Apply an already validated message (``origin``: "live" or "recovered")."""
         key = (message.scanner_id, message.scan_id)
         if key in self.closed:
+            if origin == "recovered":
+                # A recovery reply that came after the verdict (asked twice, or the live copy won):
+                # nothing was lost, so it is counted apart from rejected input.
+                self.recovered_after_close += 1
+                return []
             return [self._reject("LateMessage", f"{type(message).__name__} for scan {key}, already finalised")]
         if isinstance(message, codec.ScanStart):
             return self._start(key, message)
         scan = self.scans.get(key)
         if isinstance(message, codec.Sample):
             if scan is None:
-                return self._hold(key, message)
-            return [self._add(scan, message)]
-        if scan is None:  # ScanEnd
-            return [self._reject("UnknownScan", f"ScanEnd for unknown scan {key}")]
+                return self._hold(key, message, origin)
+            return [self._add(scan, message, origin)]
+        if scan is None:  # a ScanEnd before its ScanStart: held like a sample (a late start may recover it)
+            return self._hold(key, message, origin)
+        if scan.end is not None:
+            scan.rejected["DuplicateScanEnd"] += 1
+            return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
+        if message.samples_sent > scan.start.steps:
+            scan.rejected["InvalidMessageError"] += 1
+            return [self._reject("InvalidMessageError", f"ScanEnd of scan {key} counts {message.samples_sent} "
+                                                        f"samples; its ScanStart planned {scan.start.steps}")]
         scan.end = message
         self.accepted += 1
         return [Accepted("end", scan)]
@@ -99,15 +123,17 @@ class Ingest:
     def close(self, key: ScanKey) -> None:
         """The scan is finalised: drop its data; later messages for it are rejected as late."""
         self.scans.pop(key, None)
-        self.pending.pop(key, None)
+        self._held -= len(self.pending.pop(key, []))
         self.closed[key] = None
         while len(self.closed) > self.max_closed:
             self.closed.popitem(last=False)
+            self.evicted["closed scan forgotten (max_closed)"] += 1
 
     def drop_pending(self, key: ScanKey) -> list[Rejected]:
         """Give up on samples whose ScanStart never came (called on timeout)."""
         held = self.pending.pop(key, [])
-        return [self._reject("UnknownScan", f"{len(held)} samples of scan {key} never got a ScanStart")] if held else []
+        self._held -= len(held)
+        return [self._reject("UnknownScan", f"{len(held)} messages of scan {key} never got a ScanStart")] if held else []
 
     # --- internals -------------------------------------------------------------------
     def _start(self, key: ScanKey, start: codec.ScanStart) -> list[Accepted | Rejected]:
@@ -119,27 +145,42 @@ class Ingest:
             return [self._reject(type(exc).__name__, f"ScanStart {key}: {exc}")]
         self.scans[key] = scan
         while len(self.scans) > self.max_scans:
-            old, _ = self.scans.popitem(last=False)
-            _log.warning("forgetting scan %s: more than %d scans open", old, self.max_scans)
+            old, dropped = self.scans.popitem(last=False)
+            self.evicted["open scan forgotten (max_scans)"] += 1
+            _log.warning("forgetting scan %s with %d samples: more than %d scans open (counted in evicted)",
+                         old, dropped.n_received, self.max_scans)
         self.accepted += 1
         events: list[Accepted | Rejected] = [Accepted("start", scan)]
-        for sample in self.pending.pop(key, []):
-            events.append(self._add(scan, sample))
+        waiting = self.pending.pop(key, [])
+        self._held -= len(waiting)
+        for held, origin in waiting:
+            if isinstance(held, codec.Sample):
+                events.append(self._add(scan, held, origin))
+            else:  # the ScanEnd, now that its scan is known
+                events += self.apply(held, origin=origin)
         return events
 
-    def _add(self, scan: ScanAssembly, sample: codec.Sample) -> Accepted | Rejected:
+    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live") -> Accepted | Rejected:
         try:
-            if not scan.add(sample):
+            if not scan.add(sample, origin):
                 return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
         except DecodeError as exc:
+            scan.rejected[type(exc).__name__] += 1
             return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
         self.accepted += 1
         return Accepted("sample", scan, sample.step)
 
-    def _hold(self, key: ScanKey, sample: codec.Sample) -> list[Accepted | Rejected]:
+    def _hold(self, key: ScanKey, message: codec.Sample | codec.ScanEnd,
+              origin: str = "live") -> list[Accepted | Rejected]:
         if key not in self.pending:
-            _log.info("holding samples of scan %s until its ScanStart arrives", key)
-        self.pending.setdefault(key, []).append(sample)
+            _log.info("holding messages of scan %s until its ScanStart arrives", key)
+            if len(self.newly_pending) < self.max_pending:  # bounded even if no one empties it
+                self.newly_pending.append(key)
+        held = self.pending.setdefault(key, [])
+        if isinstance(message, codec.ScanEnd) and any(isinstance(m, codec.ScanEnd) for m, _ in held):
+            return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
+        held.append((message, origin))
+        self._held += 1
         out: list[Accepted | Rejected] = []
         while self.n_pending > self.max_pending:
             old = next(iter(self.pending))

@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lelsonar import codec
-from lelsonar.reconstruct.wire import QUALITY_NAME, STATUS
+from lelsonar.reconstruct.wire import QUALITY_NAME, STATUS, TERMINAL, accounting_text
 
 _STATUS_NAME = {v: k for k, v in STATUS.items()}
 
@@ -25,6 +25,11 @@ def status_name(msg: codec.Reconstruction) -> str:
     return _STATUS_NAME.get(msg.status, "unknown")
 
 
+def is_terminal(msg: codec.Reconstruction) -> bool:
+    """No other estimate of this scan will come (final, final_timeout or incomplete)."""
+    return status_name(msg) in TERMINAL
+
+
 def to_json(msg: codec.Reconstruction) -> str:
     """One JSON line: the message's fields (SI units) with proto field names."""
     d = MessageToDict(msg, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
@@ -32,6 +37,19 @@ def to_json(msg: codec.Reconstruction) -> str:
     for plane, pd in zip(msg.planes, d.get("planes", [])):
         pd["quality"] = QUALITY_NAME.get(plane.quality, "unknown")
     return json.dumps(d, separators=(",", ":"), sort_keys=True)
+
+
+def from_json(line: str | dict) -> codec.Reconstruction:
+    """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back)."""
+    from google.protobuf.json_format import ParseDict
+
+    from lelsonar.reconstruct.wire import QUALITY
+
+    d = json.loads(line) if isinstance(line, str) else dict(line)
+    d["status"] = STATUS.get(d.get("status"), 0)
+    d["planes"] = [{**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
+                   for p in d.get("planes", [])]
+    return ParseDict(d, codec.Reconstruction())
 
 
 def _vec(v) -> np.ndarray:
@@ -75,6 +93,12 @@ def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, f
                       "", "", "", "", "", "", style="dim")
     for f in msg.failures:
         t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
+    if msg.HasField("accounting"):
+        t.caption = f"samples: {accounting_text(msg.accounting)}" + (
+            f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else "")
+        t.caption_justify = "left"
+        if msg.missing_steps:
+            t.caption_style = "yellow"
     return t
 
 
@@ -88,6 +112,15 @@ def quality_cell(plane) -> str:
     if plane.quality_reasons:
         text += ": " + "; ".join(plane.quality_reasons)
     return text
+def _runs(steps) -> str:
+    out: list[list[int]] = []
+    for s in steps:
+        if out and s == out[-1][1] + 1:
+            out[-1][1] = s
+        else:
+            out.append([s, s])
+    text = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in out[:20])
+    return text + (f", … ({len(out) - 20} more runs)" if len(out) > 20 else "")
 
 
 def plane_equations(msg: codec.Reconstruction, method: str) -> list[str]:

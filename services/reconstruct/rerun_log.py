@@ -584,6 +584,15 @@ class ScanLogger:
             rec.log(self.log_path, rr.TextLog("\n".join(lines), level=rr.TextLogLevel.WARN if untrusted
                                               else rr.TextLogLevel.INFO))
 
+    def accounting(self, status: str, text: str, missing_steps: Sequence[int] = ()) -> None:
+        """One TextLog line with where every sample of the scan went (WARN when steps are missing)."""
+        line = f"accounting ({status}): {text}"
+        if len(missing_steps):
+            shown = ", ".join(str(int(s)) for s in list(missing_steps)[:40])
+            line += f"; missing steps {shown}{' …' if len(missing_steps) > 40 else ''}"
+        self.rec.log(self.log_path, rr.TextLog(line, level=rr.TextLogLevel.WARN if len(missing_steps)
+                                               else rr.TextLogLevel.INFO))
+
     def _plane_path(self, method: str, label: str) -> str:
         return (f"{self.scan_world}/planes/{rr.escape_entity_path_part(method)}/"
                 f"{rr.escape_entity_path_part(label)}")

@@ -76,6 +76,11 @@ class RerunObserver:
         step = int(message.last_step)
         self._logger(scan).estimate(step, int(scan.time_ns[step]), planes, edge, [s for s in subsets if s],
                                     crit, float(scan.gamma[crit]) if crit is not None else None, final)
+        if final and message.HasField("accounting"):
+            from lelsonar.reconstruct import present, wire
+
+            self._logger(scan).accounting(present.status_name(message), wire.accounting_text(message.accounting),
+                                          list(message.missing_steps))
 
     def event(self, level: str, text: str, time_ns: int | None = None) -> None:
         if self._last is not None:

@@ -17,14 +17,30 @@ Per scan (paper §4–5, made incremental):
 4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
    silence, the whole scan is reconstructed from scratch with the chosen
    method and the comparison methods, and published as final.
+
+Gaps and when a final may be published:
+
+- the service knows which steps a scan lacks (step indices, ``ScanStart.steps``,
+  ``ScanEnd.samples_sent``); with a ``recover`` hook (live) it asks the
+  acquirer's log for them: at ``ScanEnd`` with steps missing, after
+  ``recovery_after`` of silence without a ScanEnd (the rest and the ScanEnd),
+  and at the first sample or the ScanEnd of a scan it never saw start (the
+  ScanStart and the earlier steps — a reconstructor that starts late catches up);
+- at most ``recovery_attempts`` requests ``recovery_interval`` apart without
+  progress (any new step starts the budget again);
+- ``FINAL`` only when every step the ScanEnd counts is in; otherwise, once
+  recovery is exhausted, ``INCOMPLETE`` with ``missing_steps``; a scan whose
+  ScanEnd never came is ``FINAL_TIMEOUT``, also with its ``missing_steps``;
+- every terminal estimate carries the scan's exact ``accounting``.
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -38,6 +54,7 @@ from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
 from lelsonar.reconstruct.quality import cross_check
+from lelsonar.reconstruct.recovery import RecoveryRequest
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step
 
@@ -68,7 +85,20 @@ class ReconstructConfig:
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
-        s to wait, after ScanEnd, for samples still in flight.
+        s to wait, after a ScanEnd with steps missing, before publishing INCOMPLETE when no
+        recovery is possible (no ``recover`` hook).
+    recovery_attempts : int
+        Requests to the acquirer's log per scan without progress before giving up (0: never ask).
+    recovery_interval : float
+        s between two requests for the same scan.
+    recovery_after : float
+        s of silence after which an open scan without ScanEnd asks the log for the rest.
+    max_scans : int
+        Scans assembled at once; the oldest is forgotten first (counted).
+    max_pending : int
+        Samples held, over all scans, while their ScanStart is missing (counted when dropped).
+    max_scanners : int
+        Scanners whose latest estimate is kept (a `get` on planes answers from it).
     limits : DecodeLimits
     """
 
@@ -82,6 +112,12 @@ class ReconstructConfig:
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
+    recovery_attempts: int = 5
+    recovery_interval: float = 1.0
+    recovery_after: float = 1.0
+    max_scans: int = 256
+    max_pending: int = 4096
+    max_scanners: int = 256
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
 
     def __post_init__(self) -> None:
@@ -92,6 +128,10 @@ class ReconstructConfig:
             raise ConfigError("refit_every and confirm_steps must be >= 1")
         if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
             raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
+        if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
+            raise ConfigError("recovery_attempts must be >= 0, recovery_interval and recovery_after > 0 s")
+        if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
+            raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
 
 
 class Observer(Protocol):
@@ -108,6 +148,16 @@ class Observer(Protocol):
 
 
 @dataclass
+class RecoveryState:
+    """Requests made to the acquirer's log for one scan."""
+
+    attempts: int = 0               # since the last progress
+    last_at: float | None = None    # clock of the last request
+    mark: int = -1                  # steps held at the last request (more now = progress)
+    requests: int = 0               # in all
+
+
+@dataclass
 class Partial:
     """The incremental state of one scan."""
 
@@ -120,13 +170,26 @@ class Partial:
     estimated_at: float = 0.0
     last_activity: float = 0.0
     ended_at: float | None = None
+    recovery: RecoveryState = field(default_factory=RecoveryState)
 
 
 @dataclass
 class ServiceStats:
+    """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; all of it: ``stats_dict``)."""
+
     estimates: int = 0
-    finals: int = 0
-    timeouts: int = 0  # rejected input is counted by error type in ingest.rejected
+    finals: int = 0      # every terminal estimate: final, final_timeout, incomplete
+    timeouts: int = 0
+    incomplete: int = 0
+    published: int = 0
+    received_live: int = 0
+    recovered: int = 0
+    duplicates: int = 0
+    missing: int = 0
+    recovery_requests: int = 0
+    recovery_refused: int = 0
+    #: What a bound pushed out of the service's own tables, by reason.
+    evicted: Counter = field(default_factory=Counter)
 
 
 def _compared(plane: PlaneResult, method: str, main: ScanReconstruction) -> PlaneResult:
@@ -147,17 +210,22 @@ class ReconstructionService:
 
     def __init__(self, config: ReconstructConfig = ReconstructConfig(), *,
                  publish: Callable[[codec.Reconstruction], None] | None = None,
-                 observer: Observer | None = None, clock: Callable[[], float] = time.monotonic) -> None:
+                 observer: Observer | None = None, clock: Callable[[], float] = time.monotonic,
+                 recover: Callable[[RecoveryRequest], bool] | None = None) -> None:
         self.config = config
-        self.ingest = Ingest(limits=config.limits)
+        self.ingest = Ingest(limits=config.limits, max_scans=config.max_scans, max_pending=config.max_pending)
         self._publish = publish
         self._observer = observer
         self._clock = clock
+        #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
+        self.recover = recover
         self._partials: dict[ScanKey, Partial] = {}
-        self._pending_since: dict[ScanKey, float] = {}  # samples held while their ScanStart is missing
+        # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
+        self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         self._options = FitOptions()
-        # Provisional refits fit one half at a time; a scan-level method of record ("corner") runs at the end.
-        self._plane_method = self.config.method if METHODS[self.config.method].fit_plane else "adaptive"
+        #: The method of the provisional refits, which fit one half at a time: the method of record, or
+        #: "adaptive" when that is a scan-level method ("corner"), which runs on the whole scan at the end.
+        self.provisional_method = self.config.method if METHODS[self.config.method].fit_plane else "adaptive"
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
         #: Final estimates, per scan, in the order they were made.
@@ -165,43 +233,72 @@ class ReconstructionService:
         self.stats = ServiceStats()
 
     # --- input ---------------------------------------------------------------------------
-    def handle(self, type_name: str, payload: bytes, *, busy: bool = False) -> list[codec.Reconstruction]:
+    def handle(self, type_name: str, payload: bytes, *, busy: bool = False,
+               origin: str = "live") -> list[codec.Reconstruction]:
         """Apply one payload; return the estimates it produced (also published).
 
         ``busy``: more payloads are already waiting, so a provisional refit can wait
         for them (see ``max_provisional_delay``); :meth:`tick` catches up.
+        ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
         """
         out: list[codec.Reconstruction] = []
-        for event in self.ingest.accept(type_name, payload):
+        for event in self.ingest.accept(type_name, payload, origin=origin):
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue
             out += self._on_accepted(event, busy)
-        for key in self.ingest.pending:
-            self._pending_since.setdefault(key, self._clock())
+        now = self._clock()
+        fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
+        for key in fresh:
+            if key in self.ingest.pending and key not in self._pending_since:
+                # A scan met in the middle (this reconstructor started late, or its ScanStart was lost):
+                # ask the log for the ScanStart and the steps before.
+                self._pending_since[key] = (now, RecoveryState())
+                self._ask_for_start(key, now)
         return out
 
-    def tick(self) -> list[codec.Reconstruction]:
-        """Catch up on deferred provisional estimates; finalise scans whose ScanEnd came
-        (after the grace) or that went silent."""
+    def tick(self, *, busy: bool = False) -> list[codec.Reconstruction]:
+        """Catch up on deferred provisional estimates; ask the log for what scans lack; finalise
+        scans that are complete, whose recovery is exhausted, or that went silent.
+
+        ``busy``: a backlog waits, so silence means this service is behind, not that the
+        scanner stopped: no silence-based request or timeout then.
+        """
         now = self._clock()
+        cfg = self.config
         out: list[codec.Reconstruction] = []
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
-            if scan is None:
+            if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
+                del self._partials[key]
                 continue
             out += self._provisional(scan, p)
-            if p.ended_at is not None and now - p.ended_at >= self.config.end_grace:
-                out.append(self._finalise(scan, p, "final"))
-            elif p.ended_at is None and now - p.last_activity >= self.config.scan_timeout:
-                self._event("WARNING", f"scan {key} silent for {self.config.scan_timeout:.1f} s without a "
-                                       "ScanEnd; finalising it as FINAL_TIMEOUT")
-                self.stats.timeouts += 1
-                out.append(self._finalise(scan, p, "final_timeout"))
-        for key, since in list(self._pending_since.items()):
+            r = p.recovery
+            self._note_progress(r, scan.n_received)
+            if p.ended_at is not None:
+                missing = scan.missing_steps()
+                if not len(missing):
+                    out.append(self._finalise(scan, p, "final"))
+                elif self._can_ask(r, now):
+                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
+                elif self._exhausted(r, now) and now - p.ended_at >= cfg.end_grace:
+                    out.append(self._finalise(scan, p, "incomplete"))
+            elif not busy:
+                silent = now - p.last_activity
+                if silent >= cfg.recovery_after and self._can_ask(r, now):
+                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()),
+                                                 want_end=True), now, scan.n_received)
+                elif silent >= cfg.scan_timeout and self._exhausted(r, now):
+                    self._event("WARNING", f"scan {key} silent for {silent:.1f} s without a ScanEnd; "
+                                           "finalising it as FINAL_TIMEOUT")
+                    self.stats.timeouts += 1
+                    out.append(self._finalise(scan, p, "final_timeout"))
+        for key, (since, r) in list(self._pending_since.items()):
             if key not in self.ingest.pending:
-                del self._pending_since[key]  # its ScanStart came
-            elif now - since >= self.config.scan_timeout:
+                del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
+            elif self._can_ask(r, now):
+                self._ask_for_start(key, now)
+            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now):
                 # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
                 del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
@@ -214,12 +311,78 @@ class ReconstructionService:
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is not None:
-                status = "final" if scan.end is not None else "final_timeout"
-                if status == "final_timeout":
+                if scan.end is None:
+                    status = "final_timeout"
                     self._event("WARNING", f"scan {key} has no ScanEnd; finalised as FINAL_TIMEOUT")
                     self.stats.timeouts += 1
+                else:
+                    status = "final" if scan.complete else "incomplete"
                 out.append(self._finalise(scan, p, status))
         return out
+
+    def stats_dict(self) -> dict:
+        """Everything counted so far, for the exit line and ``--json``."""
+        s = self.stats
+        return {
+            "estimates": s.estimates, "finals": s.finals, "final_timeouts": s.timeouts, "incomplete": s.incomplete,
+            "samples": {"published": s.published, "received_live": s.received_live, "recovered": s.recovered,
+                        "duplicates": s.duplicates, "missing": s.missing},
+            "rejected": dict(self.ingest.rejected),
+            "evicted": dict(self.ingest.evicted + s.evicted),
+            "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused,
+                         "replies_after_verdict": self.ingest.recovered_after_close},
+            "open_scans": len(self.ingest.scans), "pending_samples": self.ingest.n_pending,
+        }
+
+    # --- recovery ------------------------------------------------------------------------
+    def _note_progress(self, r: RecoveryState, held: int) -> None:
+        if r.mark >= 0 and held > r.mark:
+            r.attempts, r.mark = 0, held  # new steps came: the budget starts again
+
+    def _can_ask(self, r: RecoveryState, now: float) -> bool:
+        return (self.recover is not None and r.attempts < self.config.recovery_attempts
+                and (r.last_at is None or now - r.last_at >= self.config.recovery_interval))
+
+    def _exhausted(self, r: RecoveryState, now: float) -> bool:
+        if self.recover is None or self.config.recovery_attempts == 0:
+            return True
+        return r.attempts >= self.config.recovery_attempts and now - r.last_at >= self.config.recovery_interval
+
+    def still_wanted(self, request: RecoveryRequest) -> bool:
+        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
+        return (request.scanner_id, request.scan_id) not in self.ingest.closed
+
+    def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
+        r.attempts += 1
+        r.requests += 1
+        r.last_at, r.mark = now, held
+        self.stats.recovery_requests += 1
+        what = ", ".join(x for x in (f"{len(request.steps)} steps" if request.steps else "",
+                                    "ScanStart" if request.want_start else "",
+                                    "ScanEnd" if request.want_end else "") if x)
+        self._event("INFO", f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
+                            f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})")
+        try:
+            ok = self.recover(request)
+        except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
+            _log.exception("recovery request failed; counted as refused")
+            ok = False
+        if not ok:
+            self.stats.recovery_refused += 1
+
+    def _ask_for_start(self, key: ScanKey, now: float) -> None:
+        """A scan met in the middle: ask for its ScanStart and the steps before what is held
+        (all the steps its ScanEnd counts, when the ScanEnd is what is held)."""
+        _, r = self._pending_since[key]
+        held = self.ingest.pending.get(key, [])
+        self._note_progress(r, len(held))
+        if not held or not self._can_ask(r, now):
+            return
+        have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
+        ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
+        upto = int(ends[0].samples_sent) if ends else max(have) + 1
+        wanted = tuple(s for s in range(upto) if s not in have)
+        self._ask(r, RecoveryRequest(*key, steps=wanted, want_start=True), now, len(held))
 
     # --- the incremental estimate ---------------------------------------------------------
     def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
@@ -237,7 +400,15 @@ class ReconstructionService:
             self._event("INFO", f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"
                                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                         end.end_time_ns)
-            return [self._finalise(scan, p, "final")] if scan.complete else []
+            if scan.complete:
+                return [self._finalise(scan, p, "final")]
+            missing = scan.missing_steps()
+            self._event("WARNING", f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
+                                   f"missing: {_ranges_text(missing)}", end.end_time_ns)
+            if self._can_ask(p.recovery, p.ended_at):
+                self._ask(p.recovery, RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
+                          p.ended_at, scan.n_received)
+            return []
         step = event.step
         if self._observer and scan.latest is not None and scan.latest.step == step:
             self._observer.step(scan, scan.latest, float(scan.step_energy[step]),
@@ -263,14 +434,14 @@ class ReconstructionService:
             self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
                                 f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
             p.data_a = self._plane_data(scan, "a", p.critical)
-            p.plane_a = fit_plane(p.data_a, self._plane_method, options=self._options)
+            p.plane_a = fit_plane(p.data_a, self.provisional_method, options=self._options)
         elif len(steps) - p.steps_at_fit < self.config.refit_every:
             return []
         p.estimated_at = self._clock()
         t0 = time.perf_counter()
         warm = p.plane_b.theta if isinstance(p.plane_b, PlaneFit) else None
         p.data_b = self._plane_data(scan, "b", p.critical)
-        p.plane_b = fit_plane(p.data_b, self._plane_method, warm_start=warm, options=self._options)
+        p.plane_b = fit_plane(p.data_b, self.provisional_method, warm_start=warm, options=self._options)
         p.steps_at_fit = len(steps)
         fit_s = time.perf_counter() - t0
         edge = corner_edge(p.plane_a, p.plane_b)
@@ -289,6 +460,13 @@ class ReconstructionService:
                             AXIS_Y if label == "a" else AXIS_Z)
 
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> codec.Reconstruction:
+        missing = scan.missing_steps()
+        if status == "final" and len(missing):
+            status = "incomplete"  # never FINAL with steps missing
+        acc = wire.accounting_message(
+            published=int(scan.end.samples_sent) if scan.end is not None else 0,
+            received_live=scan.n_received - scan.n_recovered, recovered=scan.n_recovered,
+            duplicates=scan.duplicates, rejected=dict(scan.rejected), missing=len(missing))
         steps, gamma, distance, _ = scan.arrays()
         results: dict[str, ScanReconstruction] = {}
         for method in (self.config.method, *self.config.compare_methods):
@@ -306,17 +484,33 @@ class ReconstructionService:
             scan.start.scanner_id, scan.start.scan_id, status=status,
             last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
             critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
-            timings=(t.segmentation, t.fit, t.total))
+            timings=(t.segmentation, t.fit, t.total), missing_steps=missing, accounting=acc)
         self.finals[scan.key] = msg
         while len(self.finals) > self.config.keep_finals:
             self.finals.pop(next(iter(self.finals)))
-        self.stats.finals += 1
+            self.stats.evicted["final kept for lookup forgotten (keep_finals)"] += 1
+        st = self.stats
+        st.finals += 1
+        st.incomplete += status == "incomplete"
+        st.published += acc.published
+        st.received_live += acc.received_live
+        st.recovered += acc.recovered
+        st.duplicates += acc.duplicates
+        st.missing += acc.missing
         summary = "; ".join(
             f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
             f"h={pl.offset * 100:.1f} cm" for pl in msg.planes if pl.method == self.config.method)
         self._event("INFO" if not msg.failures else "WARNING",
                     f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
                     + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""))
+        hint = ""
+        if missing.size and status == "incomplete":
+            hint = ("; the acquirer's log did not supply them (is acquire serving it? raise acquire "
+                    "--serve-log-for or reconstruct --recovery-attempts)" if self.recover is not None else
+                    "; nothing could recover them here (a replay, or live with --recovery-attempts 0)")
+        self._event("INFO" if not missing.size else "WARNING",
+                    f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
+                    + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""))
         if self._observer:
             self._observer.estimate(scan, msg, results, p)
         self._emit(msg)
@@ -326,7 +520,11 @@ class ReconstructionService:
         return msg
 
     def _emit(self, msg: codec.Reconstruction) -> codec.Reconstruction:
+        self.latest.pop(msg.scanner_id, None)  # most recently updated last
         self.latest[msg.scanner_id] = msg
+        while len(self.latest) > self.config.max_scanners:
+            self.latest.pop(next(iter(self.latest)))
+            self.stats.evicted["latest estimate of a scanner forgotten (max_scanners)"] += 1
         self.stats.estimates += 1
         if self._publish is not None:
             self._publish(msg)
@@ -336,3 +534,15 @@ class ReconstructionService:
         getattr(_log, level.lower(), _log.info)(text)
         if self._observer:
             self._observer.event(level, text, time_ns)
+
+
+def _ranges_text(steps) -> str:
+    """``3-7, 12, 40-41`` for a sorted array of steps (at most 20 runs shown)."""
+    runs: list[list[int]] = []
+    for s in (int(x) for x in steps):
+        if runs and s == runs[-1][1] + 1:
+            runs[-1][1] = s
+        else:
+            runs.append([s, s])
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:20])
+    return text + (f", … ({len(runs) - 20} more runs)" if len(runs) > 20 else "")

@@ -1,10 +1,11 @@
 """Where payloads come from — a Zenoh subscription or an MCAP file — and where estimates go.
 
 Both sources hand (type name, payload bytes) to the same
-:meth:`ReconstructionService.handle`.  Zenoh callbacks never do the math: FIFO
-subscribers are drained by worker threads into one queue, and one processing
-thread applies it, so a slow fit back-pressures through the FIFO instead of
-stalling Zenoh's own threads.
+:meth:`ReconstructionService.handle`.  Zenoh callbacks never do the math: they
+put each payload on one bounded queue, in arrival order, and one processing
+thread applies it; a full queue blocks the callback, which back-pressures the
+publisher through congestion control BLOCK.  Replies recovered from the
+acquirer's log (:mod:`lelsonar.reconstruct.recovery`) enter the same queue.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import logging
 import queue
 import threading
 import time
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 
@@ -22,11 +24,12 @@ from lelsonar import codec
 from lelsonar.errors import LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
 from lelsonar.recording import McapRecorder, iter_payloads
+from lelsonar.reconstruct.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.service import ReconstructionService
 
 _log = logging.getLogger(__name__)
 
-_STOP = ("", b"")  # queue sentinel
+_STOP = ("", b"", "")  # queue sentinel
 
 
 def replay_mcap(path: Path | str, service: ReconstructionService,
@@ -48,14 +51,21 @@ def replay_mcap(path: Path | str, service: ReconstructionService,
 
 
 class PlanesServer:
-    """Publishes estimates on ``<prefix>/<scanner>/planes``; a ``get`` there returns the latest."""
+    """Publishes estimates on ``<prefix>/<scanner>/planes``; a ``get`` there returns the latest.
 
-    def __init__(self, session: zenoh.Session, keys: ScannerKeys, latest: dict[str, codec.Reconstruction]) -> None:
+    At most ``max_publishers`` publishers are declared at once; the least recently used
+    is undeclared first (counted in :attr:`evicted`).
+    """
+
+    def __init__(self, session: zenoh.Session, keys: ScannerKeys, latest: dict[str, codec.Reconstruction], *,
+                 max_publishers: int = 256) -> None:
         self._session = session
         self._keys = keys
         self._latest = latest
         self._lock = threading.Lock()
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._max_publishers = max_publishers
+        self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
+        self.evicted: Counter[str] = Counter()
         self._queryable = session.declare_queryable(keys.planes, self._answer)
 
     def publish(self, message: codec.Reconstruction) -> None:
@@ -67,6 +77,11 @@ class PlanesServer:
                     ScannerKeys(self._keys.prefix, scanner).planes, congestion_control=zenoh.CongestionControl.BLOCK,
                     encoding=zenoh.Encoding(codec.encoding_name(message)))
                 self._publishers[scanner] = pub
+                while len(self._publishers) > self._max_publishers:
+                    _, old = self._publishers.popitem(last=False)
+                    old.undeclare()
+                    self.evicted["planes publisher undeclared (max_publishers)"] += 1
+            self._publishers.move_to_end(scanner)
         pub.put(message.SerializeToString())
 
     def _answer(self, query: zenoh.Query) -> None:
@@ -87,51 +102,84 @@ class PlanesServer:
 class LiveSource:
     """Subscribes to samples and scan events and feeds them to the service on one thread.
 
-    Use as a context manager inside an open session; :meth:`join` returns when
-    ``stop`` is set.
+    Use as a context manager inside an open session.  Samples and scan events go
+    through one queue in arrival order: the acquirer publishes them from one
+    session at one priority, so Zenoh delivers them in publication order, and
+    direct (not threaded) callbacks keep that order across the two keys: a
+    ``ScanEnd`` is handled after every sample it counts (two queues drained by
+    two threads let it overtake them under load).
+
+    With ``recovery`` (the default), the service asks the acquirer's log for
+    what a scan lacks (:class:`~lelsonar.reconstruct.recovery.LogRecoveryClient`).
+    An exception of any type while processing is logged with its traceback,
+    counted in :attr:`errors` (by type in :attr:`error_types`), and the worker
+    carries on with the next payload.
     """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
                  stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
-                 record: McapRecorder | None = None) -> None:
+                 record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig()) -> None:
         self._service = service
         self._stop = stop
         self._tick_s = tick_s
         self._record = record
-        # Bounded: a full queue blocks the drain threads, the FIFOs fill, and Zenoh's BLOCK
-        # congestion control slows the publisher instead of this process growing without bound.
-        self._queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=fifo_capacity)
+        # Bounded: a full queue blocks Zenoh's callback, and congestion control BLOCK slows the
+        # publisher instead of this process growing without bound.
+        self._queue: queue.Queue[tuple[str, bytes, str]] = queue.Queue(maxsize=fifo_capacity)
+        self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
+                          if recovery is not None else None)
+        # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
+        # keys.  A plain Python callback (or a FIFO handler per key) gets a thread per subscriber, and
+        # then a ScanEnd can overtake the samples still queued behind the other subscriber's thread.
         self._subscribers = [
-            session.declare_subscriber(keys.sample, zenoh.handlers.FifoChannel(fifo_capacity)),
-            session.declare_subscriber(keys.scan, zenoh.handlers.FifoChannel(64)),
-        ]
-        self._threads = [threading.Thread(target=self._drain, args=(s,), name=f"drain-{i}", daemon=True)
-                         for i, s in enumerate(self._subscribers)]
-        self._threads.append(threading.Thread(target=self._process, name="reconstruct", daemon=True))
+            session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
+            for key in (keys.sample, keys.scan)]
+        self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
         self.errors = 0
+        self.error_types: Counter[str] = Counter()
+
+    @property
+    def recovery_stats(self) -> dict[str, int]:
+        return dict(self._recovery.stats) if self._recovery is not None else {}
 
     def __enter__(self) -> LiveSource:
-        for t in self._threads:
-            t.start()
+        if self._recovery is not None:
+            self._recovery.__enter__()
+            self._service.recover = self._recovery.request
+        self._thread.start()
         return self
 
     def __exit__(self, *exc_info) -> None:
         self._stop.set()
         for s in self._subscribers:
-            s.undeclare()  # ends the drain threads' recv()
+            s.undeclare()
+        if self._recovery is not None:
+            self._service.recover = None
+            self._recovery.close()
         try:
             self._queue.put_nowait(_STOP)
         except queue.Full:
             pass  # the processing thread sees the stop flag within one tick
-        for t in self._threads:
-            t.join(timeout=5)
+        self._thread.join(timeout=5)
 
-    def _drain(self, subscriber: zenoh.Subscriber) -> None:
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
         try:
-            for sample in subscriber:
-                self._queue.put((str(sample.encoding), sample.payload.to_bytes()))
-        except zenoh.ZError:
-            pass  # undeclared during shutdown
+            self._enqueue(str(sample.encoding), sample.payload.to_bytes(), "live")
+        except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
+            self.errors += 1
+            self.error_types["callback"] += 1
+            _log.exception("could not queue a received payload; counted")
+
+    def _enqueue(self, encoding: str, payload: bytes, origin: str) -> None:
+        if origin != "live":
+            encoding = f"application/protobuf;{encoding}"  # recovery hands over the type name
+        while not self._stop.is_set():
+            try:
+                self._queue.put((encoding, payload, origin), timeout=self._tick_s)
+                return
+            except queue.Full:
+                continue
 
     def _process(self) -> None:
         last_tick = 0.0
@@ -144,19 +192,26 @@ class LiveSource:
                 return
             try:
                 if item is not None:
-                    media, _, type_name = item[0].partition(";")
+                    encoding, payload, origin = item
+                    media, _, type_name = encoding.partition(";")
                     # With more payloads waiting, a provisional refit waits for them too.
-                    for msg in self._service.handle(type_name if media == "application/protobuf" else item[0],
-                                                    item[1], busy=not self._queue.empty()):
+                    for msg in self._service.handle(type_name if media == "application/protobuf" else encoding,
+                                                    payload, busy=not self._queue.empty(), origin=origin):
                         self._record_estimate(msg)
                 now = time.monotonic()
                 if self._queue.empty() or now - last_tick >= self._tick_s:
                     last_tick = now
-                    for msg in self._service.tick():
+                    for msg in self._service.tick(busy=not self._queue.empty()):
                         self._record_estimate(msg)
             except LelsonarError as exc:  # e.g. a publish that failed validation: log, count, keep serving
                 self.errors += 1
+                self.error_types[type(exc).__name__] += 1
                 _log.error("processing failed: %s", exc)
+            except Exception as exc:  # noqa: BLE001 - a bug must not end the service silently: log, count, go on
+                self.errors += 1
+                self.error_types[type(exc).__name__] += 1
+                _log.exception("processing failed with an unexpected %s (%d errors so far); carrying on",
+                               type(exc).__name__, self.errors)
 
     def _record_estimate(self, msg: codec.Reconstruction) -> None:
         if self._record is not None:

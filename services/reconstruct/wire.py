@@ -24,7 +24,10 @@ STATUS = {
     "provisional": pb.ESTIMATE_STATUS_PROVISIONAL,
     "final": pb.ESTIMATE_STATUS_FINAL,
     "final_timeout": pb.ESTIMATE_STATUS_FINAL_TIMEOUT,
+    "incomplete": pb.ESTIMATE_STATUS_INCOMPLETE,
 }
+#: Statuses after which no other estimate of the scan comes.
+TERMINAL = frozenset({"final", "final_timeout", "incomplete"})
 
 
 def _set(vec, xyz) -> None:
@@ -49,7 +52,8 @@ def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
 def reconstruction_message(scanner_id: str, scan_id: int, *, status: str, last_step: int, samples_used: int,
                            critical_step: int | None, critical_angle: float, planes: Iterable[PlaneResult],
                            edge: EdgeLine | FitFailure | None, timings: tuple[float, float, float],
-                           stamp_ns: int | None = None) -> codec.Reconstruction:
+                           stamp_ns: int | None = None, missing_steps: Iterable[int] = (),
+                           accounting: pb.ScanAccounting | None = None) -> codec.Reconstruction:
     """Build a validated-to-be ``Reconstruction``.
 
     ``critical_step`` is a step index of the scan's schedule (not of the
@@ -76,4 +80,26 @@ def reconstruction_message(scanner_id: str, scan_id: int, *, status: str, last_s
     elif isinstance(edge, FitFailure):
         msg.failures.append(str(edge))
     msg.timings.segmentation, msg.timings.fit, msg.timings.total = (float(t) for t in timings)
+    msg.missing_steps.extend(int(s) for s in missing_steps)
+    if accounting is not None:
+        msg.accounting.CopyFrom(accounting)
     return msg
+
+
+def accounting_message(*, published: int, received_live: int, recovered: int, duplicates: int,
+                       rejected: dict[str, int], missing: int) -> pb.ScanAccounting:
+    """Where every sample of one scan went (see ``ScanAccounting`` in reconstruction.proto)."""
+    acc = pb.ScanAccounting(published=published, received_live=received_live, recovered=recovered,
+                            duplicates=duplicates, missing=missing)
+    for reason, n in sorted(rejected.items()):
+        if n:
+            acc.rejected[reason] = int(n)
+    return acc
+
+
+def accounting_text(acc: pb.ScanAccounting) -> str:
+    """One line, e.g. ``published 184, live 180, recovered 4, duplicates 0, rejected 0, missing 0``."""
+    rejected = sum(acc.rejected.values())
+    detail = f" ({', '.join(f'{k} {v}' for k, v in sorted(acc.rejected.items()))})" if rejected else ""
+    return (f"published {acc.published}, live {acc.received_live}, recovered {acc.recovered}, "
+            f"duplicates {acc.duplicates}, rejected {rejected}{detail}, missing {acc.missing}")
