@@ -58,3 +58,12 @@ class DeviceTimeoutError(DeviceError):
 # --- recordings --------------------------------------------------------------------
 class RecordingError(LelsonarError):
     """An MCAP recording cannot be written or read."""
+
+
+# --- security and identity ---------------------------------------------------------
+class SecurityError(ConfigError):
+    """Certificates, keys or a secure configuration are missing, invalid, or would be overwritten."""
+
+
+class ScannerMismatchError(InvalidMessageError):
+    """The scanner id in the Zenoh key differs from the scanner id in the payload (a forgery or a bug)."""

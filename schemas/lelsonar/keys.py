@@ -94,3 +94,7 @@ class ScannerKeys:
         if not key.startswith(head):
             raise InvalidIdentifierError(f"key {key!r} is not under prefix {self.prefix!r}")
         return validate_identifier(key[len(head):].split("/", 1)[0])
+
+    def scanner_chunk(self, key: str) -> str:
+        """The chunk of a received key where the scanner id sits, unvalidated (compare it, don't trust it)."""
+        return key.removeprefix(self.prefix + "/").split("/", 1)[0]

@@ -44,6 +44,9 @@ class ZenohSettings:
         A Zenoh JSON5 configuration; the fields above override what it says.
     multicast_scouting : bool
         Off by default: discovery by multicast leaks beyond the host.
+    overlay : tuple of (str, str)
+        (JSON5 path, JSON value) pairs inserted last, over everything else, e.g. the
+        mutual-TLS and access-control overlay of :func:`lelsonar.secure.secure_settings`.
     """
 
     mode: str = "peer"
@@ -51,6 +54,7 @@ class ZenohSettings:
     listen: tuple[str, ...] = ()
     config_file: Path | None = None
     multicast_scouting: bool = False
+    overlay: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -71,6 +75,8 @@ class ZenohSettings:
         cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
         cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        for path, value in self.overlay:
+            cfg.insert_json5(path, value)
         return cfg
 
 

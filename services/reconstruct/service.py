@@ -149,14 +149,16 @@ class ReconstructionService:
         self.stats = ServiceStats()
 
     # --- input ---------------------------------------------------------------------------
-    def handle(self, type_name: str, payload: bytes, *, busy: bool = False) -> list[codec.Reconstruction]:
+    def handle(self, type_name: str, payload: bytes, *, busy: bool = False,
+               key_scanner: str | None = None) -> list[codec.Reconstruction]:
         """Apply one payload; return the estimates it produced (also published).
 
         ``busy``: more payloads are already waiting, so a provisional refit can wait
         for them (see ``max_provisional_delay``); :meth:`tick` catches up.
+        ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
         """
         out: list[codec.Reconstruction] = []
-        for event in self.ingest.accept(type_name, payload):
+        for event in self.ingest.accept(type_name, payload, key_scanner):
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue

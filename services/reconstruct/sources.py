@@ -95,12 +95,13 @@ class LiveSource:
                  stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
                  record: McapRecorder | None = None) -> None:
         self._service = service
+        self._keys = keys
         self._stop = stop
         self._tick_s = tick_s
         self._record = record
         # Bounded: a full queue blocks the drain threads, the FIFOs fill, and Zenoh's BLOCK
         # congestion control slows the publisher instead of this process growing without bound.
-        self._queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=fifo_capacity)
+        self._queue: queue.Queue[tuple[str, bytes] | tuple[str, bytes, str]] = queue.Queue(maxsize=fifo_capacity)
         self._subscribers = [
             session.declare_subscriber(keys.sample, zenoh.handlers.FifoChannel(fifo_capacity)),
             session.declare_subscriber(keys.scan, zenoh.handlers.FifoChannel(64)),
@@ -129,7 +130,7 @@ class LiveSource:
     def _drain(self, subscriber: zenoh.Subscriber) -> None:
         try:
             for sample in subscriber:
-                self._queue.put((str(sample.encoding), sample.payload.to_bytes()))
+                self._queue.put((str(sample.encoding), sample.payload.to_bytes(), str(sample.key_expr)))
         except zenoh.ZError:
             pass  # undeclared during shutdown
 
@@ -147,7 +148,8 @@ class LiveSource:
                     media, _, type_name = item[0].partition(";")
                     # With more payloads waiting, a provisional refit waits for them too.
                     for msg in self._service.handle(type_name if media == "application/protobuf" else item[0],
-                                                    item[1], busy=not self._queue.empty()):
+                                                    item[1], busy=not self._queue.empty(),
+                                                    key_scanner=self._keys.scanner_chunk(item[2])):
                         self._record_estimate(msg)
                 now = time.monotonic()
                 if self._queue.empty() or now - last_tick >= self._tick_s:
