@@ -204,6 +204,7 @@ def run_planner(args: argparse.Namespace) -> int:
     from lelsonar.errors import LelsonarError
     from lelsonar.keys import ScannerKeys
     from lelsonar.reconstruct import present, wire
+    from lelsonar.transport import open_session
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     settings = _zenoh_settings(args, "planner", keys.prefix)
