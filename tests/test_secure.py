@@ -206,6 +206,26 @@ def test_a_scanner_cannot_publish_as_another_scanner(certs, router):
         own.close()
 
 
+def test_only_a_scanners_own_acquire_answers_for_its_log(certs, router):
+    with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
+            open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1, \
+            open_session(client(certs, router, secure.PLANNER)) as planner:
+        own = acquire1.declare_queryable("lelsonar/scanner1/log/**",
+                                         lambda q: q.reply("lelsonar/scanner1/log/5", b"step 5"))
+        other = acquire1.declare_queryable("lelsonar/scanner2/log/**",
+                                           lambda q: q.reply("lelsonar/scanner2/log/5", b"forged"))
+
+        def ask(session, selector: str) -> list[bytes]:
+            return [r.ok.payload.to_bytes() for r in session.get(selector, timeout=5) if r.ok is not None]
+
+        assert ask(recon, "lelsonar/scanner1/log/**") == [b"step 5"]
+        assert ask(recon, "lelsonar/*/log/**") == [b"step 5"]
+        assert ask(recon, "lelsonar/scanner2/log/**") == []
+        assert ask(planner, "lelsonar/scanner1/log/**") == []  # planners read planes only
+        own.undeclare()
+        other.undeclare()
+
+
 # --- identity checks, security off ----------------------------------------------------------
 def test_ingest_rejects_and_counts_a_payload_that_claims_another_scanner():
     ingest = Ingest()

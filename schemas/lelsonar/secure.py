@@ -268,7 +268,8 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             _rule(f"{role}-put", "ingress", ["put"], [f"{own}/sample", f"{own}/scan"]),
             _rule(f"{role}-token", "ingress", ["liveliness_token"], [f"{own}/alive/**"]),
             _rule(f"{role}-serve-log", "ingress", ["declare_queryable", "reply"], [f"{own}/log/**"]),
-            _rule(f"{role}-log-queries", "egress", ["query"], [f"{own}/log/**"]),
+            # Queries for every scanner's log reach it too; it can only answer for its own.
+            _rule(f"{role}-log-queries", "egress", ["query"], [f"{p}/*/log/**", f"{own}/log/**"]),
             # A declared publisher sends only once it learns of matching subscribers.
             _rule(f"{role}-learn-subscribers", "egress", ["declare_subscriber"],
                   [f"{p}/*/sample", f"{p}/*/scan", f"{own}/sample", f"{own}/scan"]),
@@ -357,7 +358,9 @@ def secure_settings(settings, directory: Path | str, role: str, prefix: str | No
     if mode == "client":
         if not connect:
             raise SecurityError("a secure client needs the router's endpoint: --connect tls/HOST:7447")
-        listen = ()
+        if listen:
+            raise SecurityError("with --secure every process but the router is a client and listens on nothing; "
+                                "drop --listen (a listening peer would accept links that bypass the access rules)")
     return dataclasses.replace(settings, mode=mode, connect=connect if mode == "client" else (), listen=listen,
                                overlay=overlay(directory, role, prefix or DEFAULT_PREFIX))
 
