@@ -90,6 +90,9 @@ def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
         if settings.mode == "client":
             hint = (f"; is a router listening on {', '.join(settings.connect)}? "
                     "Start one with `lelsonar router`, or pass --mode peer")
+        if settings.overlay and settings.mode == "client":  # --secure
+            hint = (f"; is `lelsonar router --secure DIR` listening on {', '.join(settings.connect)}, with the same "
+                    "CA as this process's certificate, and does its certificate name the host you dial?")
         raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}{hint}") from None
     try:
         yield session
