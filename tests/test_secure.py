@@ -85,7 +85,7 @@ def test_init_writes_private_keys_0600_signed_by_the_ca_and_never_overwrites(tmp
     from cryptography import x509
 
     d = tmp_path / "certs"
-    created = secure.init(d, ["scanner1"])
+    created = secure.init(d, ["scanner1"], hosts=["robot7.local", "10.0.0.7"])
     keys = [p for p in created if p.suffix == ".key"]
     assert sorted(p.stem for p in keys) == ["acquire-scanner1", "ca", "planner", "reconstruct", "router"]
     for key in keys:
@@ -97,7 +97,8 @@ def test_init_writes_private_keys_0600_signed_by_the_ca_and_never_overwrites(tmp
         assert secure.common_name(cert) == role
     san = x509.load_pem_x509_certificate((d / "router.pem").read_bytes()).extensions.get_extension_for_class(
         x509.SubjectAlternativeName).value
-    assert "localhost" in san.get_values_for_type(x509.DNSName)
+    assert san.get_values_for_type(x509.DNSName) == ["localhost", "robot7.local"]
+    assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["127.0.0.1", "10.0.0.7"]
 
     before = {p: p.read_bytes() for p in d.iterdir()}
     with pytest.raises(SecurityError, match="add-scanner"):
@@ -283,6 +284,31 @@ def test_the_planner_refuses_an_estimate_on_another_scanners_key():
     assert wire.decode_estimate("lelsonar/scanner1/planes", payload, "lelsonar").scanner_id == "scanner1"
     with pytest.raises(ScannerMismatchError, match="scanner2"):
         wire.decode_estimate("lelsonar/scanner2/planes", payload, "lelsonar")
+
+
+def test_the_planner_process_drops_an_estimate_on_another_scanners_key_without_security(zenoh_socket):
+    from lelsonar.transport import hermetic_settings
+
+    endpoint = f"unixsock-stream/{zenoh_socket}"
+    with open_session(hermetic_settings(zenoh_socket, listen=True)) as session:
+        up = threading.Event()
+        session.liveliness().declare_subscriber("lelsonar/*/alive/planner", lambda _s: up.set(), history=True)
+        planner = subprocess.Popen([sys.executable, "-m", "lelsonar", "planner", "--json", "--until-final", "1",
+                                    "--timeout", "60", "--connect", endpoint],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert up.wait(30), "the planner did not come up"
+            pub2 = session.declare_publisher(KEYS2.planes)
+            wait_matching(pub2)
+            pub2.put(estimate("scanner1", offset=9.99).SerializeToString())  # scanner1's estimate, scanner2's key
+            session.put(KEYS1.planes, estimate("scanner1", offset=1.57).SerializeToString())
+            out, err = planner.communicate(timeout=60)
+        finally:
+            planner.kill()
+    assert planner.returncode == 0, err
+    (shown,) = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert shown["planes"][0]["offset"] == 1.57
+    assert "ScannerMismatchError" in err and "'scanner2'" in err
 
 
 # --- the whole demo, both ways --------------------------------------------------------------

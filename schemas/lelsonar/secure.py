@@ -31,9 +31,13 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from lelsonar.errors import SecurityError
 from lelsonar.keys import DEFAULT_PREFIX, validate_identifier, validate_prefix
+
+if TYPE_CHECKING:
+    from lelsonar.transport import ZenohSettings
 
 ROUTER, RECONSTRUCT, PLANNER = "router", "reconstruct", "planner"
 ACQUIRE_PREFIX = "acquire-"
@@ -198,9 +202,11 @@ def _issue(d: SecureDir, role: str, *, hosts: Iterable[str] = (), days: int = DE
     return [d.cert(role), d.key(role)]
 
 
-def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = DEFAULT_HOSTS,
+def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = (),
          days: int = DEFAULT_DAYS) -> list[Path]:
     """Create a CA and the certificates of the router, reconstruct, planner and one acquire per scanner.
+
+    The router's certificate names ``localhost``, ``127.0.0.1`` and ``hosts`` (what remote clients dial).
 
     Raises
     ------
@@ -234,7 +240,8 @@ def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = DE
     _write(d.ca_key, _key_pem(key), private=True)
     _write(d.ca_cert, ca.public_bytes(serialization.Encoding.PEM), private=False)
     created = [d.ca_cert, d.ca_key]
-    created += _issue(d, ROUTER, hosts=hosts, days=days)
+    # Services on the router's own host dial it by loopback; --host adds the names others dial.
+    created += _issue(d, ROUTER, hosts=dict.fromkeys((*DEFAULT_HOSTS, *hosts)), days=days)
     for role in (RECONSTRUCT, PLANNER, *(acquire_role(s) for s in scanners)):
         created += _issue(d, role, days=days)
     return created
@@ -346,8 +353,9 @@ def overlay(directory: Path | str, role: str, prefix: str = DEFAULT_PREFIX) -> t
     return tuple((path, json.dumps(value)) for path, value in pairs)
 
 
-def secure_settings(settings, directory: Path | str, role: str, prefix: str | None = None):
-    """``settings`` (a :class:`~lelsonar.transport.ZenohSettings`) switched to mutual TLS as ``role``.
+def secure_settings(settings: ZenohSettings, directory: Path | str, role: str,
+                    prefix: str | None = None) -> ZenohSettings:
+    """``settings`` switched to mutual TLS as ``role``.
 
     Every role but the router becomes a *client*: the router enforces the access
     rules, and a peer would accept connections that bypass them.
@@ -413,7 +421,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.add_argument("--scanner", action="append", required=True, metavar="ID", help="a scanner id; repeatable")
     q.add_argument("--host", action="append", metavar="NAME_OR_IP",
                    help=f"a name or address clients dial the router by; repeatable "
-                        f"(default: {', '.join(DEFAULT_HOSTS)})")
+                        f"({', '.join(DEFAULT_HOSTS)} are always included)")
     q.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity of the role certificates "
                                                                   f"(default: {DEFAULT_DAYS})")
     q.set_defaults(run=_run_init)
@@ -435,7 +443,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run_init(args: argparse.Namespace) -> int:
-    created = init(args.dir, args.scanner, hosts=tuple(args.host or DEFAULT_HOSTS), days=args.days)
+    created = init(args.dir, args.scanner, hosts=tuple(args.host or ()), days=args.days)
     for path in created:
         print(f"created {path}")
     print(f"start the router with: lelsonar router --secure {args.dir} --listen tls/0.0.0.0:7447\n"
