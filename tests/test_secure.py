@@ -206,6 +206,15 @@ def test_a_scanner_cannot_publish_as_another_scanner(certs, router):
         forger.close()
         own.close()
 
+        # Liveliness too: it cannot pretend that scanner2's acquire is alive.
+        tokens = recon.liveliness().declare_subscriber("lelsonar/*/alive/**", zenoh.handlers.FifoChannel(16))
+        fake = acquire1.liveliness().declare_token(KEYS2.alive("acquire"))
+        real = acquire1.liveliness().declare_token(KEYS1.alive("acquire"))
+        assert str(tokens.recv().key_expr) == KEYS1.alive("acquire")
+        assert tokens.try_recv() is None
+        fake.undeclare()
+        real.undeclare()
+
 
 def test_only_a_scanners_own_acquire_answers_for_its_log(certs, router):
     with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
