@@ -103,17 +103,21 @@ def test_init_writes_private_keys_0600_signed_by_the_ca_and_never_overwrites(tmp
     before = {p: p.read_bytes() for p in d.iterdir()}
     with pytest.raises(SecurityError, match="add-scanner"):
         secure.init(d, ["scanner1"])
-    with pytest.raises(SecurityError, match="--rotate"):
+    with pytest.raises(SecurityError, match="secure rotate"):
         secure.add_scanner(d, "scanner1")
     assert {p: p.read_bytes() for p in d.iterdir()} == before
 
-    secure.add_scanner(d, "scanner2")
+    assert main(["secure", "add-scanner", str(d), "scanner2"]) == 0
     assert secure.SecureDir(d).scanners() == ("scanner1", "scanner2")
-    old_key = (d / "acquire-scanner1.key").read_bytes()
-    secure.add_scanner(d, "scanner1", rotate=True)
-    assert (d / "acquire-scanner1.key").read_bytes() != old_key
-    assert stat.S_IMODE((d / "acquire-scanner1.key").stat().st_mode) == 0o600
-    secure.SecureDir(d).require("acquire-scanner1")  # the rotated certificate is still the CA's
+    for role in ("acquire-scanner1", "router"):
+        old_key, old_cert = (d / f"{role}.key").read_bytes(), (d / f"{role}.pem").read_bytes()
+        assert main(["secure", "rotate", str(d), role]) == 0
+        assert (d / f"{role}.key").read_bytes() != old_key and (d / f"{role}.pem").read_bytes() != old_cert
+        assert stat.S_IMODE((d / f"{role}.key").stat().st_mode) == 0o600
+        secure.SecureDir(d).require(role)  # the same CA, the same common name
+    rotated = x509.load_pem_x509_certificate((d / "router.pem").read_bytes())
+    assert rotated.extensions.get_extension_for_class(x509.SubjectAlternativeName).value == san  # same hosts
+    assert not list(d.glob("*.new"))
 
 
 def test_a_missing_certificate_names_the_command_that_makes_it(certs):

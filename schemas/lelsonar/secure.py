@@ -17,7 +17,7 @@ A sender needs an *ingress* rule for a message and the receiver the matching
 *egress* rule; a declared publisher also needs an egress ``declare_subscriber``
 rule, or it never learns that anyone listens (design notes §11).
 
-Private keys are written 0600 and never replaced unless asked (``--rotate``).
+Private keys are written 0600 and replaced only by :func:`rotate` (``lelsonar secure rotate``).
 """
 
 from __future__ import annotations
@@ -109,8 +109,8 @@ class SecureDir:
         now = dt.datetime.now(dt.timezone.utc)
         if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
             raise SecurityError(f"{self.cert(role)} is valid only from {cert.not_valid_before_utc:%Y-%m-%d} to "
-                                f"{cert.not_valid_after_utc:%Y-%m-%d}; rotate it with `lelsonar secure add-scanner "
-                                f"{self.path} ID --rotate` (or re-run init into a new directory for other roles)")
+                                f"{cert.not_valid_after_utc:%Y-%m-%d}; rotate it with `lelsonar secure rotate "
+                                f"{self.path} {role}`")
         if common_name(cert) != role:
             raise SecurityError(f"{self.cert(role)} has common name {common_name(cert)!r}, not {role!r}; "
                                 "the access rules are keyed by it, so re-issue the certificate")
@@ -143,7 +143,8 @@ def _write(path: Path, data: bytes, *, private: bool, replace: bool = False) -> 
         fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if private else 0o644)
     except FileExistsError:
         raise SecurityError(f"{target} already exists; lelsonar never overwrites keys or certificates silently "
-                            "(rotate a scanner with `lelsonar secure add-scanner DIR ID --rotate`)") from None
+                            "(replace a role's with `lelsonar secure rotate DIR ROLE`; remove a stale .new "
+                            "file)") from None
     with os.fdopen(fd, "wb") as f:
         if private:
             os.fchmod(f.fileno(), 0o600)  # whatever the umask said
@@ -196,7 +197,7 @@ def _issue(d: SecureDir, role: str, *, hosts: Iterable[str] = (), days: int = DE
 
     if not replace and (d.key(role).exists() or d.cert(role).exists()):
         raise SecurityError(f"{d.cert(role)} or its key already exists; lelsonar never overwrites them silently "
-                            f"(rotate with `lelsonar secure add-scanner {d.path} ID --rotate`)")
+                            f"(to replace them: `lelsonar secure rotate {d.path} {role}`)")
     _write(d.key(role), _key_pem(key), private=True, replace=replace)
     _write(d.cert(role), cert.public_bytes(serialization.Encoding.PEM), private=False, replace=replace)
     return [d.cert(role), d.key(role)]
@@ -247,16 +248,42 @@ def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = ()
     return created
 
 
-def add_scanner(path: Path | str, scanner_id: str, *, rotate: bool = False, days: int = DEFAULT_DAYS) -> list[Path]:
-    """Issue ``acquire-<id>``'s certificate; with ``rotate``, replace an existing one (new key too)."""
+def add_scanner(path: Path | str, scanner_id: str, *, days: int = DEFAULT_DAYS) -> list[Path]:
+    """Issue ``acquire-<id>``'s certificate (the router's rules include it once restarted)."""
     d = SecureDir(Path(path))
     role = acquire_role(scanner_id)
-    exists = d.cert(role).exists() or d.key(role).exists()
-    if exists and not rotate:
-        raise SecurityError(f"{d.cert(role)} already exists; pass --rotate to replace its key and certificate")
-    if rotate and not exists:
-        raise SecurityError(f"{d.cert(role)} does not exist, so there is nothing to rotate; drop --rotate")
-    return _issue(d, role, days=days, replace=rotate)
+    if d.cert(role).exists() or d.key(role).exists():
+        raise SecurityError(f"{d.cert(role)} already exists; to replace its key and certificate run "
+                            f"`lelsonar secure rotate {d.path} {role}`")
+    return _issue(d, role, days=days)
+
+
+def rotate(path: Path | str, role: str, *, hosts: Iterable[str] | None = None,
+           days: int = DEFAULT_DAYS) -> list[Path]:
+    """Replace a role's key and certificate with new ones from the same CA; the common name stays.
+
+    The router's new certificate names the same hosts as the old one unless ``hosts`` is given
+    (loopback is always named).
+    """
+    from cryptography import x509
+
+    d = SecureDir(Path(path))
+    validate_role(role)
+    if not d.cert(role).exists():
+        raise SecurityError(f"{d.cert(role)} does not exist, so there is nothing to rotate; issue it with "
+                            + (f"`lelsonar secure add-scanner {d.path} {role[len(ACQUIRE_PREFIX):]}`"
+                               if role.startswith(ACQUIRE_PREFIX) else "`lelsonar secure init` into a new directory"))
+    if role == ROUTER:
+        if hosts is None:
+            old = x509.load_pem_x509_certificate(d.cert(role).read_bytes())
+            try:
+                san = old.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+                hosts = [*san.get_values_for_type(x509.DNSName),
+                         *(str(ip) for ip in san.get_values_for_type(x509.IPAddress))]
+            except x509.ExtensionNotFound:
+                hosts = []
+        hosts = dict.fromkeys((*DEFAULT_HOSTS, *hosts))
+    return _issue(d, role, hosts=hosts or (), days=days, replace=True)
 
 
 # --- access control ----------------------------------------------------------------------
@@ -403,7 +430,7 @@ deployment secure:
   lelsonar acquire --secure pki --connect tls/robot7.local:7447   (reconstruct, planner likewise)
 
 Roles: router, reconstruct, planner, acquire-<scanner id>. Private keys are 0600
-and never overwritten without --rotate. Keep ca.key off the robots.
+and never overwritten but by `lelsonar secure rotate`. Keep ca.key off the robots.
 """
 
 def add_secure_argument(parser: argparse.ArgumentParser) -> None:
@@ -428,9 +455,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     q = ss.add_parser("add-scanner", help="issue the certificate of another scanner (restart the router after)")
     q.add_argument("dir", type=Path)
     q.add_argument("scanner_id", metavar="ID")
-    q.add_argument("--rotate", action="store_true", help="replace an existing scanner's key and certificate")
     q.add_argument("--days", type=int, default=DEFAULT_DAYS)
     q.set_defaults(run=_run_add_scanner)
+    q = ss.add_parser("rotate", help="replace a role's key and certificate (same CA, same common name)")
+    q.add_argument("dir", type=Path)
+    q.add_argument("role", help="router, reconstruct, planner or acquire-<scanner id>")
+    q.add_argument("--host", action="append", metavar="NAME_OR_IP",
+                   help="router: the names it is dialled by (default: those of the old certificate)")
+    q.add_argument("--days", type=int, default=DEFAULT_DAYS)
+    q.set_defaults(run=_run_rotate)
     q = ss.add_parser("config", help="print the Zenoh JSON5 config of a role")
     q.add_argument("dir", type=Path)
     q.add_argument("--role", required=True, help="router, reconstruct, planner or acquire-<scanner id>")
@@ -452,10 +485,16 @@ def _run_init(args: argparse.Namespace) -> int:
 
 
 def _run_add_scanner(args: argparse.Namespace) -> int:
-    for path in add_scanner(args.dir, args.scanner_id, rotate=args.rotate, days=args.days):
-        print(f"{'replaced' if args.rotate else 'created'} {path}")
-    print("restart `lelsonar router --secure` so that its access rules include this scanner"
-          if not args.rotate else "restart the scanner's acquire with the new files; the access rules are unchanged")
+    for path in add_scanner(args.dir, args.scanner_id, days=args.days):
+        print(f"created {path}")
+    print("restart `lelsonar router --secure` so that its access rules include this scanner")
+    return 0
+
+
+def _run_rotate(args: argparse.Namespace) -> int:
+    for path in rotate(args.dir, args.role, hosts=args.host, days=args.days):
+        print(f"replaced {path}")
+    print(f"copy them to the machine that runs {args.role} and restart it; the access rules are unchanged")
     return 0
 
 
