@@ -225,6 +225,10 @@ def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = ()
     if d.ca_key.exists() or d.ca_cert.exists():
         raise SecurityError(f"{d.path} already holds a CA; add scanners with `lelsonar secure add-scanner "
                             f"{d.path} ID`, or init into a new directory to start over (nothing was overwritten)")
+    roles = (ROUTER, RECONSTRUCT, PLANNER, *(acquire_role(s) for s in scanners))
+    if taken := [str(p) for r in roles for p in (d.cert(r), d.key(r)) if p.exists()]:
+        raise SecurityError(f"{', '.join(taken)} already exist without a CA here; init into a new directory "
+                            "(nothing was overwritten)")
     d.path.mkdir(parents=True, exist_ok=True, mode=0o700)
     key = _new_key()
     now = dt.datetime.now(dt.timezone.utc)
@@ -243,7 +247,7 @@ def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = ()
     created = [d.ca_cert, d.ca_key]
     # Services on the router's own host dial it by loopback; --host adds the names others dial.
     created += _issue(d, ROUTER, hosts=dict.fromkeys((*DEFAULT_HOSTS, *hosts)), days=days)
-    for role in (RECONSTRUCT, PLANNER, *(acquire_role(s) for s in scanners)):
+    for role in roles[1:]:
         created += _issue(d, role, days=days)
     return created
 
