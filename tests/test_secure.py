@@ -71,7 +71,7 @@ def estimate(scanner: str = "scanner1", offset: float = 1.57) -> codec.Reconstru
 
 
 def wait_matching(publisher) -> None:
-    """Until the publisher knows of a subscriber (the router forwarded its declaration)."""
+    """Until the publisher (or querier) knows of a subscriber (queryable): the router forwarded its declaration."""
     matched = threading.Event()
     listener = publisher.declare_matching_listener(lambda status: status.matching and matched.set())
     if publisher.matching_status.matching:
@@ -232,6 +232,9 @@ def test_only_a_scanners_own_acquire_answers_for_its_log(certs, router):
         def ask(session, selector: str) -> list[bytes]:
             return [r.ok.payload.to_bytes() for r in session.get(selector, timeout=5) if r.ok is not None]
 
+        querier = recon.declare_querier("lelsonar/scanner1/log/**")  # a querier sees the queryable, as a
+        wait_matching(querier)                                          # publisher sees its subscribers
+        assert [r.ok.payload.to_bytes() for r in querier.get() if r.ok is not None] == [b"step 5"]
         assert ask(recon, "lelsonar/scanner1/log/**") == [b"step 5"]
         assert ask(recon, "lelsonar/*/log/**") == [b"step 5"]
         assert ask(recon, "lelsonar/scanner2/log/**") == []

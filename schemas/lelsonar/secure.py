@@ -320,7 +320,8 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             _rule("reconstruct-planes-queries", "egress", ["query"], [f"{p}/*/planes"]),
             _rule("reconstruct-learn-subscribers", "egress", ["declare_subscriber"], [f"{p}/*/planes"]),
             _rule("reconstruct-query-logs", "ingress", ["query"], [f"{p}/*/log/**"]),
-            _rule("reconstruct-log-replies", "egress", ["reply"], [f"{p}/*/log/**"]),
+            # Like publishers and subscribers: a querier's matching status needs the queryables' declarations.
+            _rule("reconstruct-log-replies", "egress", ["reply", "declare_queryable"], [f"{p}/*/log/**"]),
             _rule("reconstruct-token", "ingress", ["liveliness_token"], [f"{p}/*/alive/reconstruct"]),
             _rule("reconstruct-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
                   [f"{p}/*/alive/**"]),
@@ -329,7 +330,7 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
     if role == PLANNER:
         return [
             _rule("planner-subscribe", "ingress", ["declare_subscriber", "query"], [f"{p}/*/planes"]),
-            _rule("planner-receive", "egress", ["put", "reply"], [f"{p}/*/planes"]),
+            _rule("planner-receive", "egress", ["put", "reply", "declare_queryable"], [f"{p}/*/planes"]),
             _rule("planner-token", "ingress", ["liveliness_token"], [f"{p}/*/alive/planner"]),
             _rule("planner-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
                   [f"{p}/*/alive/**"]),
