@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import socket
 import stat
 import subprocess
@@ -70,13 +71,32 @@ def estimate(scanner: str = "scanner1", offset: float = 1.57) -> codec.Reconstru
     return msg
 
 
+class Inbox:
+    """What a subscriber receives, awaited with a bound (a lost message fails the test, never hangs it)."""
+
+    def __init__(self) -> None:
+        self._queue: queue.Queue[zenoh.Sample] = queue.Queue()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        self._queue.put(sample)
+
+    def next(self, timeout: float = 20.0) -> zenoh.Sample:
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            raise AssertionError(f"nothing arrived within {timeout} s") from None
+
+    def empty(self) -> bool:
+        return self._queue.empty()
+
+
 def wait_matching(publisher) -> None:
     """Until the publisher (or querier) knows of a subscriber (queryable): the router forwarded its declaration."""
     matched = threading.Event()
     listener = publisher.declare_matching_listener(lambda status: status.matching and matched.set())
     if publisher.matching_status.matching:
         matched.set()
-    assert matched.wait(10), "the subscriber's declaration never reached the publisher"
+    assert matched.wait(30), "the subscriber's declaration never reached the publisher"
     listener.undeclare()
 
 
@@ -169,7 +189,8 @@ def test_a_planner_cannot_forge_an_estimate(certs, router):
     with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
             open_session(client(certs, router, secure.PLANNER)) as planner, \
             open_session(client(certs, router, secure.PLANNER)) as rogue:
-        sub = planner.declare_subscriber(KEYS1.planes, zenoh.handlers.FifoChannel(16))
+        inbox = Inbox()
+        planner.declare_subscriber(KEYS1.planes, inbox)
         server = PlanesServer(recon, ScannerKeys(), {"scanner1": legit})  # answers gets, as reconstruct does
         pub = recon.declare_publisher(KEYS1.planes)  # a declared publisher, like PlanesServer's
         wait_matching(pub)
@@ -182,9 +203,9 @@ def test_a_planner_cannot_forge_an_estimate(certs, router):
         assert replies == [legit.SerializeToString()]
         pub.put(legit.SerializeToString())
 
-        first = sub.recv()
+        first = inbox.next()
         assert codec.decode(first.payload.to_bytes(), codec.Reconstruction).planes[0].offset == 1.57
-        assert sub.try_recv() is None
+        assert inbox.empty()
         server.close()
 
 
@@ -193,7 +214,8 @@ def test_a_scanner_cannot_publish_as_another_scanner(certs, router):
 
     with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
             open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1:
-        sub = recon.declare_subscriber(ScannerKeys().sample, zenoh.handlers.FifoChannel(16))
+        inbox = Inbox()
+        recon.declare_subscriber(ScannerKeys().sample, inbox)
         probe = acquire1.declare_publisher(KEYS1.sample)
         wait_matching(probe)
 
@@ -203,21 +225,24 @@ def test_a_scanner_cannot_publish_as_another_scanner(certs, router):
         own = ScanPublisher(acquire1, KEYS1)  # then its own key, on the same link: it would arrive after
         own.publish(make_sample(step=5, scanner_id="scanner1"))
 
-        first = sub.recv()
+        first = inbox.next()
         assert str(first.key_expr) == KEYS1.sample
         assert codec.decode(first.payload.to_bytes(), codec.Sample).step == 5
-        assert sub.try_recv() is None
+        assert inbox.empty()
         forger.close()
         own.close()
 
         # Liveliness too: it cannot pretend that scanner2's acquire is alive.
-        tokens = recon.liveliness().declare_subscriber("lelsonar/*/alive/**", zenoh.handlers.FifoChannel(16))
+        tokens = Inbox()
+        recon.liveliness().declare_subscriber("lelsonar/*/alive/**", tokens, history=True)
+        probe = acquire1.liveliness().declare_token(KEYS1.alive("probe"))
+        assert str(tokens.next().key_expr) == KEYS1.alive("probe")  # the watch is in place at the router
         fake = acquire1.liveliness().declare_token(KEYS2.alive("acquire"))
-        real = acquire1.liveliness().declare_token(KEYS1.alive("acquire"))
-        assert str(tokens.recv().key_expr) == KEYS1.alive("acquire")
-        assert tokens.try_recv() is None
-        fake.undeclare()
-        real.undeclare()
+        real = acquire1.liveliness().declare_token(KEYS1.alive("acquire"))  # same link, after the fake
+        assert str(tokens.next().key_expr) == KEYS1.alive("acquire")
+        assert tokens.empty()
+        for token in (probe, fake, real):
+            token.undeclare()
 
 
 def test_only_a_scanners_own_acquire_answers_for_its_log(certs, router):
@@ -286,12 +311,12 @@ def test_live_reconstruct_rejects_a_scan_forged_under_another_key_without_securi
             wait_matching(pub)
             pub.put(make_scan_start(scanner_id="scanner1").SerializeToString(),
                     encoding=zenoh.Encoding(codec.encoding_name(codec.ScanStart())))
-            assert rejected.wait(10), events
+            assert rejected.wait(30), events
             legit = rogue.declare_publisher(KEYS1.scan)
             wait_matching(legit)
             legit.put(make_scan_start(scanner_id="scanner1").SerializeToString(),
                       encoding=zenoh.Encoding(codec.encoding_name(codec.ScanStart())))
-            assert started.wait(10), events
+            assert started.wait(30), events
     assert service.ingest.rejected["ScannerMismatchError"] == 1
 
 

@@ -56,7 +56,8 @@ def run_demo(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     mcap, rrd = out / "scan.mcap", out / "scan.rrd"
     endpoint = f"{'tls' if args.secure else 'tcp'}/127.0.0.1:{_free_tcp_port()}"
-    link = ["--mode", "client", "--connect", endpoint]
+    secure_flags = ["--secure", str(args.secure)] if args.secure else []
+    link = ["--mode", "client", "--connect", endpoint, *secure_flags]
     watcher = ZenohSettings(mode="client", connect=(endpoint,))
     if args.secure:
         from lelsonar.secure import PLANNER, SecureDir, init, secure_settings
@@ -64,7 +65,6 @@ def run_demo(args: argparse.Namespace) -> int:
         if not SecureDir(args.secure).ca_cert.exists():
             init(args.secure, ["scanner1"])
             console.print(f"[dim]created a CA and role certificates in {args.secure}")
-        link += ["--secure", str(args.secure)]
         watcher = secure_settings(watcher, args.secure, PLANNER)  # watching liveliness is a planner's right
     lelsonar = [sys.executable, "-m", "lelsonar"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -82,7 +82,7 @@ def run_demo(args: argparse.Namespace) -> int:
         return proc
 
     try:
-        router = spawn("router", ["router", "--listen", endpoint, *link[4:]], stdout=subprocess.PIPE)
+        router = spawn("router", ["router", "--listen", endpoint, *secure_flags], stdout=subprocess.PIPE)
         if "listening" not in (router.stdout.readline() or ""):
             console.print("[red]the Zenoh router did not start")
             return 1
