@@ -260,7 +260,8 @@ def run_planner(args: argparse.Namespace) -> int:
             timer.start()
         while not (stop.is_set() or done.is_set()):
             stop.wait(0.2)
-        sub.undeclare()
+        sub.undeclare()  # ends the worker's iteration
+        worker.join(timeout=5)  # a daemon thread still inside Zenoh at interpreter exit aborts the process
         token.undeclare()
     if rejected:
         print(f"planner: rejected estimates: {dict(rejected)}", file=sys.stderr)
