@@ -30,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", default="emulated", choices=("emulated", "sim"),
                    help="emulated devices through the real drivers (default), or the simulator directly")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--secure", type=Path, metavar="DIR",
+                   help="run everything over mutual TLS with per-role access control, with the certificates in DIR "
+                        "(made now for scanner1 if DIR holds no CA)")
     p.set_defaults(run=run_demo)
 
 
@@ -52,13 +55,23 @@ def run_demo(args: argparse.Namespace) -> int:
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     mcap, rrd = out / "scan.mcap", out / "scan.rrd"
-    endpoint = f"tcp/127.0.0.1:{_free_tcp_port()}"
-    link = ["--mode", "client", "--connect", endpoint]
+    endpoint = f"{'tls' if args.secure else 'tcp'}/127.0.0.1:{_free_tcp_port()}"
+    secure_flags = ["--secure", str(args.secure)] if args.secure else []
+    link = ["--mode", "client", "--connect", endpoint, *secure_flags]
+    watcher = ZenohSettings(mode="client", connect=(endpoint,))
+    if args.secure:
+        from lelsonar.secure import PLANNER, SecureDir, init, secure_settings
+
+        if not SecureDir(args.secure).ca_cert.exists():
+            init(args.secure, ["scanner1"])
+            console.print(f"[dim]created a CA and role certificates in {args.secure}")
+        watcher = secure_settings(watcher, args.secure, PLANNER)  # watching liveliness is a planner's right
     lelsonar = [sys.executable, "-m", "lelsonar"]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     truth = {p.label: (p.normal, p.offset) for p in true_planes(preset(args.preset))}
 
-    console.rule(f"lelsonar demo — scene {args.preset}, device {args.device}, Zenoh on {endpoint}")
+    console.rule(f"lelsonar demo — scene {args.preset}, device {args.device}, Zenoh on {endpoint}"
+                 + (" (mutual TLS + access control)" if args.secure else ""))
     t_start = time.monotonic()
     procs: list[subprocess.Popen] = []
 
@@ -69,11 +82,11 @@ def run_demo(args: argparse.Namespace) -> int:
         return proc
 
     try:
-        router = spawn("router", ["router", "--listen", endpoint], stdout=subprocess.PIPE)
+        router = spawn("router", ["router", "--listen", endpoint, *secure_flags], stdout=subprocess.PIPE)
         if "listening" not in (router.stdout.readline() or ""):
             console.print("[red]the Zenoh router did not start")
             return 1
-        with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as session:
+        with open_session(watcher) as session:
             ready = threading.Event()
             seen: set[str] = set()
 
@@ -82,7 +95,7 @@ def run_demo(args: argparse.Namespace) -> int:
                 if {"reconstruct", "planner"} <= seen:
                     ready.set()
 
-            session.liveliness().declare_subscriber("lelsonar/**", on_token, history=True)
+            session.liveliness().declare_subscriber("lelsonar/*/alive/*", on_token, history=True)
             recon = spawn("reconstruct", ["reconstruct", "--json", "--until-scans", "1", "--rrd", str(rrd),
                                           "--compare", "ls,paper,fcm-ransac",
                                           "--truth-preset", args.preset, *link],

@@ -15,6 +15,7 @@ import sys
 #: Modules that contribute subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
     "lelsonar.commands",
+    "lelsonar.secure",
     "lelsonar.acquire.cli",
     "lelsonar.acquire.sim.cli",
     "lelsonar.acquire.emulate.cli",

@@ -20,6 +20,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--listen", "-l", action="append", metavar="ENDPOINT",
                    help="endpoint to listen on; repeatable (default: tcp/127.0.0.1:7447)")
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file to start from")
+    p.add_argument("--secure", metavar="DIR",
+                   help="mutual TLS with DIR/router.pem and per-role access control, deny by default "
+                        "(DIR made by `lelsonar secure init`); tcp/ endpoints become tls/")
+    p.add_argument("--prefix", default="lelsonar", help="key-expression prefix the access rules cover "
+                                                         "(default: lelsonar)")
     p.set_defaults(run=run_router)
 
 
@@ -114,10 +119,17 @@ def run_router(args: argparse.Namespace) -> int:
     settings = ZenohSettings(mode="router", connect=None if file else (),
                              listen=tuple(args.listen) if args.listen else (None if file else ("tcp/127.0.0.1:7447",)),
                              config_file=file)
+    note = ""
+    if args.secure:
+        from lelsonar.secure import ROUTER, SecureDir, secure_settings
+
+        settings = secure_settings(settings, args.secure, ROUTER, args.prefix)
+        note = (" (mutual TLS; deny by default, allowing reconstruct, planner and "
+                f"{', '.join('acquire-' + s for s in SecureDir(Path(args.secure)).scanners())})")
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with open_session(settings):
-        print(f"lelsonar router listening ({settings.describe()}); Ctrl-C to stop", flush=True)
+        print(f"lelsonar router listening ({settings.describe()}){note}; Ctrl-C to stop", flush=True)
         stop.wait()
     return 0

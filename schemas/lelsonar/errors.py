@@ -70,3 +70,12 @@ class NotMcapError(RecordingError):
 
 class NoScansError(RecordingError):
     """The file is MCAP but holds no lelsonar scans (foreign channels only, or every scan unreadable)."""
+
+
+# --- security and identity ---------------------------------------------------------
+class SecurityError(ConfigError):
+    """Certificates, keys or a secure configuration are missing, invalid, or would be overwritten."""
+
+
+class ScannerMismatchError(InvalidMessageError):
+    """The scanner id in the Zenoh key differs from the scanner id in the payload (a forgery or a bug)."""

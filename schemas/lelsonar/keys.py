@@ -119,6 +119,9 @@ class ScannerKeys:
             raise InvalidIdentifierError(f"key {key!r} is not under prefix {self.prefix!r}")
         return validate_identifier(key[len(head):].split("/", 1)[0])
 
+    def scanner_chunk(self, key: str) -> str:
+        """The chunk of a received key where the scanner id sits, unvalidated (compare it, don't trust it)."""
+        return key.removeprefix(self.prefix + "/").split("/", 1)[0]
 
 def validate_scan_id(value: int | str) -> int:
     """A scan id as an int: an unsigned 64-bit integer, given as an int or as its decimal digits.

@@ -59,6 +59,9 @@ class ZenohSettings:
         A Zenoh JSON5 configuration; the fields above that are not None override what it says.
     multicast_scouting : bool or None
         None: off, unless the config file sets it (discovery by multicast leaks beyond the host).
+    overlay : tuple of (str, str)
+        (JSON5 path, JSON value) pairs inserted last, over everything else, e.g. the
+        mutual-TLS and access-control overlay of :func:`lelsonar.secure.secure_settings`.
 
     Without a config file, a field left None takes the embedded default: a peer
     connecting to ``tcp/127.0.0.1:7447``, listening nowhere.
@@ -69,6 +72,7 @@ class ZenohSettings:
     listen: tuple[str, ...] | None = ()
     config_file: Path | None = None
     multicast_scouting: bool | None = None
+    overlay: tuple[tuple[str, str], ...] = ()
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
@@ -107,6 +111,8 @@ class ZenohSettings:
             cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         elif not (self.config_file and _file_sets_multicast(Path(self.config_file))):
             cfg.insert_json5("scouting/multicast/enabled", "false")
+        for path, value in self.overlay:
+            cfg.insert_json5(path, value)
         return cfg
 
     def describe(self) -> str:
@@ -145,6 +151,9 @@ def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
         if settings.mode == "client":
             hint = (f"; is a router listening on {', '.join(settings.connect)}? "
                     "Start one with `lelsonar router`, or pass --mode peer")
+        if settings.overlay and settings.mode == "client":  # --secure
+            hint = (f"; is `lelsonar router --secure DIR` listening on {', '.join(settings.connect)}, with the same "
+                    "CA as this process's certificate, and does its certificate name the host you dial?")
         raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}{hint}") from None
     try:
         yield session

@@ -23,6 +23,7 @@ _TOML_KEYS = {
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.acquire.backends import DEVICES
     from lelsonar.acquire.sim import preset_names
+    from lelsonar.secure import add_secure_argument
     from lelsonar.transport import add_zenoh_arguments
 
     p = sub.add_parser(
@@ -67,6 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "last scan, so reconstructors that missed steps recover them (default: 10; 0: only "
                         "while scanning)")
     add_zenoh_arguments(p, default_mode="peer")
+    add_secure_argument(p)
     p.set_defaults(run=run_acquire)
 
 
@@ -122,6 +124,11 @@ def run_acquire(args: argparse.Namespace) -> int:
 
     cfg = config_from_args(args)
     zenoh = None if args.no_zenoh else zenoh_settings_from_args(args)
+    if zenoh is not None and args.secure is not None:
+        from lelsonar.secure import acquire_role, secure_settings
+
+        # A client of the secure router: only the router's access rules let it publish, and only its own keys.
+        zenoh = secure_settings(zenoh, args.secure, acquire_role(cfg.scanner_id), cfg.prefix)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

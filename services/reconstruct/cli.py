@@ -14,6 +14,7 @@ _log = logging.getLogger("lelsonar.reconstruct")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.secure import add_secure_argument
     from lelsonar.transport import add_zenoh_arguments
 
     p = sub.add_parser(
@@ -46,6 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_estimator_arguments(p)
     _add_rerun_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
+    add_secure_argument(p)
     p.set_defaults(run=run_reconstruct)
 
     p = sub.add_parser("review", help="reconstruct a recording offline into a Rerun .rrd with the default layout")
@@ -64,6 +66,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--timeout", type=float, default=0.0, metavar="S",
                    help="give up after S seconds without a final estimate (default: never)")
     add_zenoh_arguments(p, default_mode="client")
+    add_secure_argument(p)
     p.set_defaults(run=run_planner)
 
 
@@ -96,6 +99,18 @@ def _config(args: argparse.Namespace, *, provisional: bool = True):
                 if getattr(args, k, None) is not None}
     return ReconstructConfig(method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout,
                              provisional=provisional, **recovery)
+
+
+def _zenoh_settings(args: argparse.Namespace, role: str, prefix: str):
+    """The session settings from the flags, switched to mutual TLS as ``role`` with --secure."""
+    from lelsonar.transport import zenoh_settings_from_args
+
+    settings = zenoh_settings_from_args(args)
+    if getattr(args, "secure", None) is None:
+        return settings
+    from lelsonar.secure import secure_settings
+
+    return secure_settings(settings, args.secure, role, prefix)
 
 
 def _stop_on_signals() -> threading.Event:
@@ -137,7 +152,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.service import ReconstructionService
     from lelsonar.reconstruct.sources import LiveSource, PlanesServer, replay_mcap
     from lelsonar.recording import McapRecorder
-    from lelsonar.transport import open_session, zenoh_settings_from_args
+    from lelsonar.transport import open_session
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     # A batch replay needs no provisional estimates: the finals are computed from scratch anyway.
@@ -165,7 +180,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         service = ReconstructionService(config, publish=lambda msg: [fn(msg) for fn in publish_to],
                                         observer=observer)
         if args.source is None or args.publish:
-            session = stack.enter_context(open_session(zenoh_settings_from_args(args)))
+            session = stack.enter_context(open_session(_zenoh_settings(args, "reconstruct", keys.prefix)))
             server = PlanesServer(session, keys, service.latest)  # a get answers from the service's own table
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
@@ -245,25 +260,32 @@ def run_review(args: argparse.Namespace) -> int:
 def run_planner(args: argparse.Namespace) -> int:
     import zenoh
 
-    from lelsonar import codec
+    from collections import Counter
+
     from lelsonar.errors import LelsonarError
     from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct import present
-    from lelsonar.transport import open_session, zenoh_settings_from_args
+    from lelsonar.reconstruct import present, wire
+    from lelsonar.transport import open_session
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
+    settings = _zenoh_settings(args, "planner", keys.prefix)
     console = present.console()
     stop = _stop_on_signals()
     done = threading.Event()
     finals = 0
     lock = threading.Lock()
 
-    def show(payload: bytes, origin: str) -> None:
+    rejected: Counter[str] = Counter()
+
+    def show(key: str, payload: bytes, origin: str) -> None:
         nonlocal finals
         try:
-            msg = codec.decode(payload, codec.Reconstruction)
+            msg = wire.decode_estimate(key, payload, keys.prefix)
         except LelsonarError as exc:
-            console.print(f"[yellow]planner: ignored a bad estimate: {exc}", highlight=False)
+            with lock:
+                rejected[type(exc).__name__] += 1
+            print(f"planner: rejected an estimate ({type(exc).__name__}, {rejected[type(exc).__name__]} so far): "
+                  f"{exc}", file=sys.stderr, flush=True)
             return
         with lock:
             if args.json:
@@ -277,14 +299,14 @@ def run_planner(args: argparse.Namespace) -> int:
                 if args.until_final and finals >= args.until_final:
                     done.set()
 
-    with open_session(zenoh_settings_from_args(args)) as session:
+    with open_session(settings) as session:
         sub = session.declare_subscriber(keys.planes, zenoh.handlers.FifoChannel(256))
         token = session.liveliness().declare_token(keys.alive("planner"))
 
         def drain() -> None:
             try:
                 for s in sub:
-                    show(s.payload.to_bytes(), "update")
+                    show(str(s.key_expr), s.payload.to_bytes(), "update")
             except zenoh.ZError:
                 pass
 
@@ -292,7 +314,7 @@ def run_planner(args: argparse.Namespace) -> int:
         worker.start()
         for reply in session.get(keys.planes, timeout=2.0):  # the latest, if any, on start
             if reply.ok is not None:
-                show(reply.ok.payload.to_bytes(), "latest")
+                show(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), "latest")
         if args.timeout:
             timer = threading.Timer(args.timeout, stop.set)
             timer.daemon = True
@@ -304,6 +326,8 @@ def run_planner(args: argparse.Namespace) -> int:
         # A daemon thread still inside Zenoh's native recv when the interpreter exits is cancelled
         # mid-unwind and aborts the process ("FATAL: exception not rethrown"): let it finish first.
         worker.join(timeout=5.0)
+    if rejected:
+        print(f"planner: rejected estimates: {dict(rejected)}", file=sys.stderr)
     if args.until_final and not done.is_set():
         print(f"planner: no final estimate within {args.timeout:.0f} s", file=sys.stderr)
         return 1

@@ -19,7 +19,7 @@ from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 from lelsonar import codec
-from lelsonar.errors import DecodeError, InvalidMessageError, LelsonarError
+from lelsonar.errors import DecodeError, InvalidMessageError, LelsonarError, ScannerMismatchError
 from lelsonar.reconstruct.assembly import ScanAssembly
 
 _log = logging.getLogger(__name__)
@@ -79,13 +79,23 @@ class Ingest:
     def n_pending(self) -> int:
         return self._held
 
-    def accept(self, type_name: str, payload: bytes, *, origin: str = "live") -> list[Accepted | Rejected]:
-        """Decode one payload and apply it; return what changed (or why nothing did)."""
+    def accept(self, type_name: str, payload: bytes, *, origin: str = "live",
+               key_scanner: str | None = None) -> list[Accepted | Rejected]:
+        """Decode one payload and apply it; return what changed (or why nothing did).
+
+        ``key_scanner``: the scanner id in the key the payload came on (live data);
+        a payload that claims another scanner is rejected as ``ScannerMismatchError``.
+        """
         try:
             cls = codec.MESSAGE_TYPES.get(type_name)
             if cls is None or cls is codec.Reconstruction:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
             message = codec.decode(payload, cls, self.limits)
+            if key_scanner is not None and message.scanner_id != key_scanner:
+                raise ScannerMismatchError(
+                    f"{cls.DESCRIPTOR.name} claims scanner {message.scanner_id!r} but came on the key of scanner "
+                    f"{key_scanner[:80]!r}; dropped (a forgery, or a publisher misconfigured with the wrong "
+                    "--scanner-id)")
             return self.apply(message, origin=origin)
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, str(exc))]

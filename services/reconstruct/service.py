@@ -234,15 +234,16 @@ class ReconstructionService:
 
     # --- input ---------------------------------------------------------------------------
     def handle(self, type_name: str, payload: bytes, *, busy: bool = False,
-               origin: str = "live") -> list[codec.Reconstruction]:
+               origin: str = "live", key_scanner: str | None = None) -> list[codec.Reconstruction]:
         """Apply one payload; return the estimates it produced (also published).
 
         ``busy``: more payloads are already waiting, so a provisional refit can wait
         for them (see ``max_provisional_delay``); :meth:`tick` catches up.
         ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
+        ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
         """
         out: list[codec.Reconstruction] = []
-        for event in self.ingest.accept(type_name, payload, origin=origin):
+        for event in self.ingest.accept(type_name, payload, origin=origin, key_scanner=key_scanner):
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue

@@ -120,12 +120,13 @@ class LiveSource:
                  stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
                  record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig()) -> None:
         self._service = service
+        self._keys = keys
         self._stop = stop
         self._tick_s = tick_s
         self._record = record
         # Bounded: a full queue blocks Zenoh's callback, and congestion control BLOCK slows the
         # publisher instead of this process growing without bound.
-        self._queue: queue.Queue[tuple[str, bytes, str]] = queue.Queue(maxsize=fifo_capacity)
+        self._queue: queue.Queue[tuple[str, bytes, str, str | None]] = queue.Queue(maxsize=fifo_capacity)
         self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
                           if recovery is not None else None)
         # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
@@ -165,18 +166,22 @@ class LiveSource:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
         try:
-            self._enqueue(str(sample.encoding), sample.payload.to_bytes(), "live")
+            # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
+            # speak for another scanner.
+            self._enqueue(str(sample.encoding), sample.payload.to_bytes(), "live",
+                          self._keys.scanner_chunk(str(sample.key_expr)))
         except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
             self.errors += 1
             self.error_types["callback"] += 1
             _log.exception("could not queue a received payload; counted")
 
-    def _enqueue(self, encoding: str, payload: bytes, origin: str) -> None:
+    def _enqueue(self, encoding: str, payload: bytes, origin: str, key_scanner: str | None = None) -> None:
+        # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
         if origin != "live":
             encoding = f"application/protobuf;{encoding}"  # recovery hands over the type name
         while not self._stop.is_set():
             try:
-                self._queue.put((encoding, payload, origin), timeout=self._tick_s)
+                self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s)
                 return
             except queue.Full:
                 continue
@@ -192,11 +197,12 @@ class LiveSource:
                 return
             try:
                 if item is not None:
-                    encoding, payload, origin = item
+                    encoding, payload, origin, key_scanner = item
                     media, _, type_name = encoding.partition(";")
                     # With more payloads waiting, a provisional refit waits for them too.
                     for msg in self._service.handle(type_name if media == "application/protobuf" else encoding,
-                                                    payload, busy=not self._queue.empty(), origin=origin):
+                                                    payload, busy=not self._queue.empty(), origin=origin,
+                                                    key_scanner=key_scanner):
                         self._record_estimate(msg)
                 now = time.monotonic()
                 if self._queue.empty() or now - last_tick >= self._tick_s:

@@ -103,3 +103,22 @@ def accounting_text(acc: pb.ScanAccounting) -> str:
     detail = f" ({', '.join(f'{k} {v}' for k, v in sorted(acc.rejected.items()))})" if rejected else ""
     return (f"published {acc.published}, live {acc.received_live}, recovered {acc.recovered}, "
             f"duplicates {acc.duplicates}, rejected {rejected}{detail}, missing {acc.missing}")
+def decode_estimate(key: str, payload: bytes, prefix: str) -> codec.Reconstruction:
+    """A Reconstruction received on ``key``, validated, whose scanner id must be the key's.
+
+    Raises
+    ------
+    DecodeError
+        The payload is not a valid Reconstruction.
+    ScannerMismatchError
+        It claims another scanner than the planes key it came on (a forgery or a misconfiguration).
+    """
+    from lelsonar.errors import ScannerMismatchError
+    from lelsonar.keys import ScannerKeys
+
+    message = codec.decode(payload, codec.Reconstruction)
+    on_key = ScannerKeys(prefix).scanner_chunk(key)
+    if message.scanner_id != on_key:
+        raise ScannerMismatchError(f"an estimate for scanner {message.scanner_id!r} came on the planes key of "
+                                   f"scanner {on_key[:80]!r}; ignored (a forgery, or a misconfigured publisher)")
+    return message

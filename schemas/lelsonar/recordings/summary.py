@@ -154,7 +154,6 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     """
     rec = open_recording(path)
     s = rec.salvage
-    by_topic = {ch.topic: cid for cid, ch in s.channels.items()}
     scans: dict[tuple[str, int], ScanSummary] = {}
     steps: dict[tuple[str, int], list[int]] = {}
     estimates: dict[tuple[str, int], codec.Reconstruction] = {}
