@@ -30,9 +30,11 @@ The energy model: a real rig is calibrated once, with its own capsules and
 receiver, by the paper's six face-on shots (0.9–1.8 m).  The benchmark does the
 same for every draw — ``calibrate_simulator(cfg)`` of the draw's acoustics and
 receiver (see :func:`calibrated_energy_model`, cached) — rather than pass the
-default simulator's ``E0(d)``, which is wrong for another capsule radius or
-noise level.  Walls outside 0.9–1.8 m then rely on the model's extrapolation,
-as they would on a real robot.
+default simulator's ``E0(d)``, which is wrong for another receiver or
+amplitude noise.  (Face-on shots see the on-axis gain ``D(0) = 1``, so in
+this simulator the capsule radius and the corner gain leave ``E0`` unchanged;
+the calibration still runs per rig, as a user's would.)  Walls outside
+0.9–1.8 m then rely on the model's extrapolation, as on a real robot.
 """
 
 from __future__ import annotations

@@ -1,0 +1,146 @@
+"""The family benchmark's definitions (failure, z-score) and the MCAP path that reproduces its scenes."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lelsonar.acquire.sim import simulate_scan
+from lelsonar.acquire.sim.record import record_scan
+from lelsonar.acquire.sim.scenes import calibrated_energy_model, draw_scene
+from lelsonar.reconstruct.energy import waveform_energy
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
+from lelsonar.recording import read_metadata
+from lelsonar.tools import bench_families as B
+
+LELSONAR = [sys.executable, "-m", "lelsonar"]
+
+
+@pytest.mark.parametrize(("patch", "oracle", "fails"), [
+    (2.5, 0.5, True),      # > 2 cm and > 3×
+    (2.5, 1.0, False),     # > 2 cm but only 2.5× the oracle
+    (1.9, 0.01, False),    # 190× the oracle but under 2 cm
+    (6.1, 2.0, True),
+    (6.0, 2.0, False),     # exactly 3×: not above
+    (float("nan"), 0.1, False),
+    (3.0, float("nan"), False),
+])
+def test_failure_needs_both_thresholds(patch, oracle, fails):
+    assert B.is_failure(patch, oracle) is fails
+
+
+def test_z_score_and_quality_names():
+    assert B.z_score(0.02, 0.01) == pytest.approx(2.0)
+    assert B.z_score(-0.03, 0.01) == pytest.approx(-3.0)
+    assert math.isnan(B.z_score(0.01, 0.0)) and math.isnan(B.z_score(float("nan"), 1.0))
+    assert B.quality_name(None) is None
+    assert B.quality_name("GOOD") == "good"
+    assert B.quality_name("PLANE_QUALITY_DEGRADED") == "degraded"
+
+    class Q:  # an enum-like with a string value
+        value = "unreliable"
+
+    assert B.quality_name(Q()) == "unreliable"
+
+
+def test_plane_errors_patch_is_the_largest_distance_over_the_true_patch():
+    n = np.array([0.0, 1.0, 0.0])
+    tilted = np.array([0.0, math.cos(0.01), math.sin(0.01)])
+    patch = np.array([[0, 1.0, -0.5], [0, 1.0, 0.5]])
+    ang, off, pe = B.plane_errors(tilted, 1.0, n, 1.0, patch)
+    assert ang == pytest.approx(math.degrees(0.01))
+    assert off == 0.0
+    assert pe == pytest.approx(100 * max(abs(math.cos(0.01) + z * math.sin(0.01) - 1.0) for z in (-0.5, 0.5)))
+
+
+def _row(**kw):
+    base = {"family": "f", "seed": 0, "method": "m", "label": "a", "observed": True, "ok": True, "failure": False,
+            "oracle_fails": False, "angle_deg": 0.1, "offset_cm": 0.1, "patch_cm": 0.2, "oracle_patch_cm": 0.1,
+            "z_angle": 0.5, "z_offset": -0.5, "quality": None, "time_plane_ms": 1.0, "time_scan_ms": 2.0}
+    return {**base, **kw}
+
+
+def test_summary_counts_failures_z_and_quality():
+    rows = [_row(seed=i, z_angle=z, z_offset=-z) for i, z in enumerate((0.2, 0.5, 0.8, 4.0))]
+    rows += [_row(seed=9, failure=True, patch_cm=5.0, z_angle=10.0, z_offset=10.0, quality="good"),
+             _row(seed=10, failure=True, oracle_fails=True, patch_cm=5.0, oracle_patch_cm=2.5, quality="degraded"),
+             _row(seed=11, ok=False, patch_cm=float("nan")), _row(seed=12, observed=False)]
+    s = B.summarize(rows)
+    assert (s["planes"], s["unobserved"], s["missing"]) == (7, 1, 1)
+    assert s["failures"] == 2 and s["failures_oracle_avoids"] == 1 and s["failures_good"] == 1
+    assert s["z_angle_med"] == pytest.approx(0.65) and s["z_angle_gt3"] == pytest.approx(2 / 6)
+    assert s["z_offset_gt3"] == pytest.approx(2 / 6)
+    assert B.summarize([_row()])["failures_good"] is None  # no quality attribute yet: n/a
+
+
+def test_family_scan_rows_follow_the_definitions():
+    scene, rows = B.family_scan("paper", 0, [DEFAULT_METHOD], anchor=False, dump_dir=None)
+    assert scene["family"] == "paper" and scene["crit_true"] > 0
+    assert {r["label"] for r in rows} == {"a", "b"}
+    for r in rows:
+        assert r["observed"] and r["ok"]
+        assert r["failure"] == B.is_failure(r["patch_cm"], r["oracle_patch_cm"])
+        assert r["z_angle"] == pytest.approx(math.radians(r["angle_deg"]) / math.radians(r["normal_stderr_deg"]))
+        assert r["z_offset"] == pytest.approx(r["offset_cm"] / r["offset_stderr_cm"])
+        assert r["oracle_patch_cm"] < 0.5 and r["patch_cm"] < 2.0  # the paper's L is easy
+        assert 0 <= r["inlier_corner_share"] <= 1
+
+
+def test_tiny_run_writes_json(tmp_path):
+    from lelsonar.tools.bench_estimators import add_arguments
+
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    out = tmp_path / "b.json"
+    args = p.parse_args(["--families", "paper", "--seeds", "1", "--jobs", "1", "--no-anchor",
+                         "--methods", DEFAULT_METHOD, "--json", str(out)])
+    B.run_families(args)
+    data = json.loads(out.read_text())
+    assert data["families"] == ["paper"] and len(data["rows"]) == 2 and len(data["scenes"]) == 1
+    assert {s["method"] for s in data["summary"]} == {DEFAULT_METHOD}
+
+
+def _final(stdout: str) -> dict:
+    return json.loads([line for line in stdout.splitlines() if line.startswith("{")][-1])
+
+
+def test_simulate_family_mcap_round_trips_through_reconstruct(tmp_path):
+    path = tmp_path / "scene.mcap"
+    sim = subprocess.run([*LELSONAR, "simulate", "--family", "partial", "--seed", "3", "--mcap", str(path)],
+                         capture_output=True, text=True, timeout=60)
+    assert sim.returncode == 0, sim.stderr
+    assert "partial #3" in sim.stdout
+    rec = subprocess.run([*LELSONAR, "reconstruct", "--source", str(path), "--json", "--compare", ""],
+                         capture_output=True, text=True, timeout=60)
+    assert rec.returncode == 0, rec.stderr
+    final = _final(rec.stdout)
+
+    draw = draw_scene("partial", 3)
+    scan = simulate_scan(draw.config, seed=3)
+    want = reconstruct(scan.gamma_measured, scan.distance, waveform_energy(scan.waveforms, scan.sample_rate),
+                       scan.geometry, calibrated_energy_model(draw.config))
+    assert final["critical_step"] == want.critical_step
+    got = {p["label"]: p for p in final["planes"]}
+    for label, plane in (("a", want.plane_a), ("b", want.plane_b)):
+        n = got[label]["normal"]
+        assert np.allclose([n["x"], n["y"], n["z"]], plane.normal, atol=1e-9)
+        assert got[label]["offset"] == pytest.approx(plane.offset, abs=1e-9)
+    meta = read_metadata(path)["lelsonar.config"]
+    assert meta["family"] == "partial" and meta["seed"] == "3"
+    truth = json.loads(meta["truth_planes"])
+    assert truth["a"]["offset"] == pytest.approx(1.57)
+
+
+def test_record_scan_is_what_dump_failures_writes(tmp_path):
+    draw = draw_scene("noise", 1)
+    scan = simulate_scan(draw.config, seed=1)
+    end = record_scan(scan, tmp_path / "d" / "noise-1.mcap", calibrated_energy_model(draw.config),
+                      metadata={"family": "noise"})
+    assert end.samples_sent == scan.n_steps and Path(tmp_path / "d" / "noise-1.mcap").stat().st_size > 0
