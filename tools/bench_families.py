@@ -248,12 +248,16 @@ def _warm_up(methods: list[str]) -> None:
         _WARM.add(m)
 
 
-def family_scan(family: str, seed: int, methods: list[str], anchor: bool,
-                dump_dir: str | None) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Draw, simulate and reconstruct one scene; the scene's summary and one row per method and plane."""
+def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_dir: str | None,
+                calibration: str = "paper") -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Draw, simulate and reconstruct one scene; the scene's summary and one row per method and plane.
+
+    ``calibration``: ``"paper"`` (six shots, 0.9–1.8 m, as ``lelsonar calibrate``) or ``"wide"``
+    (0.6–2.7 m, the families' span) — see :func:`lelsonar.acquire.sim.scenes.calibrated_energy_model`.
+    """
     _warm_up(methods)
     from lelsonar.acquire.sim import EchoSource, simulate_scan
-    from lelsonar.acquire.sim.scenes import calibrated_energy_model, draw_scene
+    from lelsonar.acquire.sim.scenes import WIDE_CALIBRATION_DISTANCES, calibrated_energy_model, draw_scene
     from lelsonar.reconstruct import fit as F
     from lelsonar.reconstruct.energy import waveform_energy
     from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
@@ -262,7 +266,7 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool,
     draw = draw_scene(family, seed)
     cfg = draw.config
     scan = simulate_scan(cfg, seed=seed)
-    model = calibrated_energy_model(cfg)
+    model = calibrated_energy_model(cfg, WIDE_CALIBRATION_DISTANCES if calibration == "wide" else None)
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
@@ -481,7 +485,7 @@ def run_families(args: argparse.Namespace) -> int:
     console.print(f"[bold]{command}[/]")
     console.print(f"{machine()}, numpy {np.__version__}; {len(seeds)} seeds × {len(families)} families, "
                   f"methods {', '.join(methods)}" + (f", anchor {ANCHOR}" if anchor else "")
-                  + f"; {args.jobs} workers")
+                  + f"; {args.jobs} workers; energy model: {args.calibration} calibration of each rig")
     if anchor_note is not None:
         console.print(f"[yellow]note: the Open3D anchor is skipped ({anchor_note}); install the bench extra "
                       "(pip install -e '.[bench]') and libusb-1.0-0[/]")
@@ -494,7 +498,8 @@ def run_families(args: argparse.Namespace) -> int:
         task = progress.add_task("scenes", total=len(jobs))
         if args.jobs > 1:
             with ProcessPoolExecutor(args.jobs) as ex:
-                futures = [ex.submit(family_scan, f, s, methods, anchor, args.dump_failures) for f, s in jobs]
+                futures = [ex.submit(family_scan, f, s, methods, anchor, args.dump_failures,
+                                     args.calibration) for f, s in jobs]
                 for fut in as_completed(futures):
                     scene, r = fut.result()
                     scenes.append(scene)
@@ -502,7 +507,7 @@ def run_families(args: argparse.Namespace) -> int:
                     progress.advance(task)
         else:
             for f, s in jobs:
-                scene, r = family_scan(f, s, methods, anchor, args.dump_failures)
+                scene, r = family_scan(f, s, methods, anchor, args.dump_failures, args.calibration)
                 scenes.append(scene)
                 rows.extend(r)
                 progress.advance(task)
@@ -594,7 +599,7 @@ def run_families(args: argparse.Namespace) -> int:
         with open(out, "w", encoding="utf-8") as f:
             json.dump({"command": command, "machine": machine(), "families": list(families),
                        "seeds": [seeds.start, seeds.stop], "methods": all_methods, "default_method": DEFAULT_METHOD,
-                       "wall_s": wall, "jobs": args.jobs, "scenes": scenes,
+                       "wall_s": wall, "jobs": args.jobs, "calibration": args.calibration, "scenes": scenes,
                        "summary": [{"family": k[0], "method": k[1], **v} for k, v in summary.items()],
                        "targets": [{"family": fam, **checks} for fam, checks in targets],
                        "rows": rows}, f, default=_json_default, allow_nan=True)
@@ -622,6 +627,9 @@ def add_family_arguments(parser: argparse.ArgumentParser) -> None:
                         "paper, distance, tilted, partial, steps, beam, corner, noise, mixed")
     g.add_argument("--with-paper", action="store_true", help="also run the slow 'paper' method (Nelder-Mead)")
     g.add_argument("--no-anchor", action="store_true", help="skip the Open3D segment_plane anchor")
+    g.add_argument("--calibration", choices=("paper", "wide"), default="paper",
+                   help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
+                        "(default), or eight at 0.6-2.7 m covering the families' walls")
     g.add_argument("--dump-failures", metavar="DIR",
                    help="write every scene with a failing plane as DIR/<family>-<seed>.mcap "
                         "(replay with lelsonar reconstruct --source FILE --json)")

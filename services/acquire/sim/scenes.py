@@ -363,20 +363,28 @@ def check_config(cfg: SimConfig) -> list[str]:
 
 
 # ---------------------------------------------------------------------------- energy model
+#: Calibration distances of the ``wide`` choice: the families' whole span of wall distances, m.
+WIDE_CALIBRATION_DISTANCES: tuple[float, ...] = (0.6, 0.9, 1.2, 1.5, 1.8, 2.1, 2.4, 2.7)
+
+
 @functools.lru_cache(maxsize=64)
 def _calibrated(acoustics: Acoustics, receiver: Receiver, window_samples: int, sample_rate: float,
-                temperature: float, radial_offset: float, reflectivity: float):
+                temperature: float, radial_offset: float, reflectivity: float, distances: tuple[float, ...]):
     from .calibrate import calibrate_simulator
 
     cfg = SimConfig(acoustics=acoustics, receiver=receiver, window_samples=window_samples,
                     sample_rate=sample_rate, temperature=temperature)
     cfg = dataclasses.replace(cfg, geometry=dataclasses.replace(cfg.geometry, radial_offset=radial_offset),
                               scene=Scene.wall(1.0, reflectivity=reflectivity))
-    return calibrate_simulator(cfg, seed=0).model
+    return calibrate_simulator(cfg, seed=0, distances=distances).model
 
 
-def calibrated_energy_model(cfg: SimConfig):
+def calibrated_energy_model(cfg: SimConfig, distances: tuple[float, ...] | None = None):
     """``E0(d)`` a user of this rig would have: the paper's six-shot calibration of ``cfg``'s rig.
+
+    ``distances`` default to the paper's six (0.9–1.8 m, what ``lelsonar
+    calibrate`` does); :data:`WIDE_CALIBRATION_DISTANCES` spans the families'
+    walls.  The model clips ranges to the calibrated interval.
 
     The rig is everything but the scene: acoustics (capsule radius, corner
     gain), receiver (noise), window, sample rate, air and radial offset; the
@@ -389,4 +397,10 @@ def calibrated_energy_model(cfg: SimConfig):
     """
     return _calibrated(cfg.acoustics, cfg.receiver, int(cfg.window_samples), float(cfg.sample_rate),
                        float(cfg.temperature), float(cfg.geometry.radial_offset),
-                       float(cfg.scene.panels[0].reflectivity))
+                       float(cfg.scene.panels[0].reflectivity), tuple(distances or _paper_distances()))
+
+
+def _paper_distances() -> tuple[float, ...]:
+    from .calibrate import PAPER_CALIBRATION_DISTANCES
+
+    return PAPER_CALIBRATION_DISTANCES
