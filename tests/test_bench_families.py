@@ -144,3 +144,17 @@ def test_record_scan_is_what_dump_failures_writes(tmp_path):
     end = record_scan(scan, tmp_path / "d" / "noise-1.mcap", calibrated_energy_model(draw.config),
                       metadata={"family": "noise"})
     assert end.samples_sent == scan.n_steps and Path(tmp_path / "d" / "noise-1.mcap").stat().st_size > 0
+
+
+def test_dump_failures_writes_the_failing_scene_that_reconstruct_replays(tmp_path, monkeypatch):
+    monkeypatch.setattr(B, "is_failure", lambda patch, oracle: math.isfinite(patch))  # every fitted plane "fails"
+    scene, rows = B.family_scan("corner", 2, [DEFAULT_METHOD], anchor=False, dump_dir=str(tmp_path))
+    path = Path(scene["dump"])
+    assert path == tmp_path / "corner-2.mcap" and path.exists()
+    meta = read_metadata(path)["lelsonar.config"]
+    assert meta["failures"] == f"{DEFAULT_METHOD}:a,{DEFAULT_METHOD}:b" and meta["description"].startswith("corner #2")
+    rec = subprocess.run([*LELSONAR, "reconstruct", "--source", str(path), "--json", "--compare", ""],
+                         capture_output=True, text=True, timeout=60)
+    assert rec.returncode == 0, rec.stderr
+    got = {p["label"]: p["offset"] for p in _final(rec.stdout)["planes"]}
+    assert got == {r["label"]: pytest.approx(r["offset"], abs=1e-12) for r in rows}
