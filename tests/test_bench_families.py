@@ -158,3 +158,18 @@ def test_dump_failures_writes_the_failing_scene_that_reconstruct_replays(tmp_pat
     assert rec.returncode == 0, rec.stderr
     got = {p["label"]: p["offset"] for p in _final(rec.stdout)["planes"]}
     assert got == {r["label"]: pytest.approx(r["offset"], abs=1e-12) for r in rows}
+
+
+def test_failure_flags_name_the_patterns():
+    base = {"label": "a", "true_normal": [0.0, 1.0, 0.0], "other_normal": [0.0, 0.0, 1.0], "true_offset": 1.57,
+            "edge_range": 1.89, "n_mirror": 300, "crit": 50, "crit_true": 50, "uses_split": True,
+            "normal": [0.0, 1.0, 0.0], "offset": 1.60, "inlier_corner_share": 0.0}
+    assert B.failure_flags(base) == ["unexplained"]
+    assert B.failure_flags({**base, "crit": 10}) == ["critical step"]
+    assert B.failure_flags({**base, "crit": 10, "uses_split": False}) == ["unexplained"]
+    assert B.failure_flags({**base, "offset": 1.85}) == ["corner cluster"]
+    assert B.failure_flags({**base, "inlier_corner_share": 0.5}) == ["corner cluster"]
+    assert B.failure_flags({**base, "normal": [0.0, 0.6, 0.8]}) == ["planes swapped"]
+    assert B.failure_flags({**base, "true_normal": [0.0, math.cos(0.05), math.sin(0.05)]}) == ["tilted wall"]
+    assert B.failure_flags({**base, "n_mirror": 5, "crit": 0}) == ["critical step", "few mirror echoes"]
+    assert B.quality_name(1) == "good" and B.quality_name(3) == "unreliable"

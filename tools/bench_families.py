@@ -105,6 +105,8 @@ def quality_name(quality: object) -> str | None:
     """``"good"``, ``"degraded"``, ``"unreliable"`` … from an enum, a string or a wire name; None if absent."""
     if quality is None:
         return None
+    if isinstance(quality, (int, np.integer)) and not hasattr(quality, "name"):  # the wire's PlaneQuality number
+        return {0: "unspecified", 1: "good", 2: "degraded", 3: "unreliable"}.get(int(quality), str(quality))
     value = getattr(quality, "value", quality)
     if not isinstance(value, str):
         value = getattr(quality, "name", str(quality))
@@ -162,23 +164,43 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     }
 
 
-def failure_pattern(row: dict[str, Any]) -> str:
-    """A coarse class of a failing row, for the patterns table.
+#: Failure flags, in the order the patterns table shows them.
+FLAGS = ("critical step", "corner cluster", "planes swapped", "tilted wall", "few mirror echoes", "unexplained")
 
-    ``critical step`` (the split is more than :data:`CRIT_TOLERANCE` steps
-    off), ``corner cluster`` (corner echoes are ≥ :data:`CORNER_SHARE` of the
-    inliers), ``few mirror echoes`` (fewer than 12 true mirror echoes of the
-    plane), else ``other``.
+
+def failure_flags(row: dict[str, Any]) -> list[str]:
+    """Why a failing row may have failed (several can hold); ``["unexplained"]`` if none does.
+
+    * ``critical step``: a method that fits the critical-step subsets split
+      more than :data:`CRIT_TOLERANCE` steps from the true critical step;
+    * ``corner cluster``: corner echoes are ≥ :data:`CORNER_SHARE` of the
+      inliers, or the fitted offset is nearer the edge's range from the
+      rotation axis than the true offset (the corner echoes all sit there);
+    * ``planes swapped``: the fitted normal is nearer the other plane's;
+    * ``tilted wall``: the true wall is > 1° off the paper's axis (y for a,
+      z for b), which the paper's correction assumes;
+    * ``few mirror echoes``: fewer than 12 true mirror echoes of the plane.
     """
+    flags = []
     crit, true = row.get("crit"), row.get("crit_true")
-    if crit is not None and true is not None and true >= 0 and abs(crit - true) > CRIT_TOLERANCE:
-        return "critical step"
+    if (row.get("uses_split") and crit is not None and true is not None and true >= 0
+            and abs(crit - true) > CRIT_TOLERANCE):
+        flags.append("critical step")
     share = row.get("inlier_corner_share")
-    if share is not None and math.isfinite(share) and share >= CORNER_SHARE:
-        return "corner cluster"
+    h, h_true, edge = row.get("offset"), row.get("true_offset"), row.get("edge_range")
+    near_edge = (h is not None and h_true is not None and edge is not None
+                 and abs(h - edge) < abs(h - h_true))
+    if (share is not None and math.isfinite(share) and share >= CORNER_SHARE) or near_edge:
+        flags.append("corner cluster")
+    n, other = row.get("normal"), row.get("other_normal")
+    if n is not None and other is not None and np.dot(n, other) > np.dot(n, row["true_normal"]):
+        flags.append("planes swapped")
+    axis = (0.0, 1.0, 0.0) if row.get("label") == "a" else (0.0, 0.0, 1.0)
+    if math.degrees(math.acos(min(1.0, abs(float(np.dot(row["true_normal"], axis)))))) > 1.0:
+        flags.append("tilted wall")
     if row.get("n_mirror", 0) < 12:
-        return "few mirror echoes"
-    return "other"
+        flags.append("few mirror echoes")
+    return flags or ["unexplained"]
 
 
 # ---------------------------------------------------------------------------- one scan
@@ -294,7 +316,10 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
             except Exception:  # noqa: BLE001 — degenerate oracle: the plane is unobserved
                 oracle[label] = None
 
-    base = {"family": family, "seed": seed, "crit_true": int(truth.critical_step)}
+    edge = cfg.scene.edges[0]
+    at_x0 = edge.point - edge.direction * (edge.point[0] / edge.direction[0])
+    scene["edge_range"] = float(np.hypot(at_x0[1], at_x0[2]))
+    base = {"family": family, "seed": seed, "crit_true": int(truth.critical_step), "edge_range": scene["edge_range"]}
     rows: list[dict[str, Any]] = []
 
     def add_row(method: str, label: str, res: Any, crit: int | None, t_scan: float, t_plane: float,
@@ -302,6 +327,8 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
         tp = planes[label]
         orc = oracle[label]
         row = {**base, "method": method, "label": label, "crit": crit, "n_mirror": n_mirror[label],
+               "uses_split": steps is not None or method == ANCHOR,
+               "other_normal": [float(v) for v in planes["b" if label == "a" else "a"].normal],
                "observed": orc is not None, "true_normal": [float(v) for v in tp.normal],
                "true_offset": float(tp.offset), "time_scan_ms": 1e3 * t_scan,
                "oracle_angle_deg": orc[0] if orc else float("nan"),
@@ -314,7 +341,7 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
             row.update(angle_deg=float("nan"), offset_cm=float("nan"), patch_cm=float("nan"), failure=False,
                        z_angle=float("nan"), z_offset=float("nan"), quality=None, quality_reasons=[],
                        normal_stderr_deg=float("nan"), offset_stderr_cm=float("nan"), time_plane_ms=float("nan"),
-                       why=str(res))
+                       why=str(res), flags=[])
             rows.append(row)
             return
         if isinstance(res, tuple):  # the anchor: (normal, h, se_n, se_h, seconds)
@@ -348,6 +375,7 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
                    z_angle=z_score(math.radians(ang), se_n), z_offset=z_score(off / 100.0, se_h),
                    quality=quality, quality_reasons=reasons, time_plane_ms=1e3 * t_plane,
                    normal=[float(v) for v in normal], offset=float(offset))
+        row["flags"] = failure_flags(row) if row["failure"] else []
         rows.append(row)
 
     crits: dict[str, int | None] = {}
@@ -604,13 +632,17 @@ def run_families(args: argparse.Namespace) -> int:
     patterns: dict[str, dict[str, int]] = {}
     for r in rows:
         if r.get("failure"):
-            patterns.setdefault(r["method"], {}).setdefault(failure_pattern(r), 0)
-            patterns[r["method"]][failure_pattern(r)] += 1
+            for flag in r["flags"]:
+                patterns.setdefault(r["method"], {}).setdefault(flag, 0)
+                patterns[r["method"]][flag] += 1
     if patterns:
-        kinds = ("critical step", "corner cluster", "few mirror echoes", "other")
-        pt = Table(title="Failure patterns (first match: critical step > 2 steps off; ≥ 30 % corner echoes "
-                         "among the inliers; < 12 true mirror echoes; other)", title_justify="left")
+        kinds = FLAGS
+        pt = Table(title="Failure patterns (a failure can have several): critical step > 2 steps off (split "
+                         "methods); corner cluster (≥ 30 % corner inliers, or the plane at the edge's range); "
+                         "planes swapped; tilted wall (> 1° off the paper's axis); < 12 mirror echoes",
+                   title_justify="left")
         pt.add_column("method")
+        pt.add_column("failures", justify="right")
         for k in kinds:
             pt.add_column(k, justify="right")
         pt.add_column("worst families", justify="left")
@@ -623,7 +655,7 @@ def run_families(args: argparse.Namespace) -> int:
                 if r["method"] == method and r.get("failure"):
                     by_fam[r["family"]] = by_fam.get(r["family"], 0) + 1
             worst = ", ".join(f"{f} {n}" for f, n in sorted(by_fam.items(), key=lambda kv: -kv[1])[:4])
-            pt.add_row(method, *(str(p.get(k, 0)) for k in kinds), worst)
+            pt.add_row(method, str(sum(by_fam.values())), *(str(p.get(k, 0)) for k in kinds), worst)
         console.print(pt)
 
     targets = _targets(summary, families, DEFAULT_METHOD)
