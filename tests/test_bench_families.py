@@ -173,3 +173,28 @@ def test_failure_flags_name_the_patterns():
     assert B.failure_flags({**base, "true_normal": [0.0, math.cos(0.05), math.sin(0.05)]}) == ["tilted wall"]
     assert B.failure_flags({**base, "n_mirror": 5, "crit": 0}) == ["critical step", "few mirror echoes"]
     assert B.quality_name(1) == "good" and B.quality_name(3) == "unreliable"
+
+
+def test_open3d_anchor_is_deterministic_and_refits_the_wall():
+    pytest.importorskip("open3d")
+    rng = np.random.default_rng(0)
+    wall = np.c_[rng.uniform(-0.5, 0.5, 300), np.full(300, 1.5) + 0.002 * rng.standard_normal(300),
+                 rng.uniform(-0.5, 0.5, 300)]
+    cluster = np.c_[rng.uniform(-0.1, 0.1, 150), rng.uniform(1.6, 1.9, 150), rng.uniform(0.4, 0.6, 150)]
+    pts = np.vstack([wall, cluster])
+    first = [B._open3d_anchor(pts) for _ in range(5)]
+    assert all(np.array_equal(e.normal, first[0].normal) for e in first)
+    assert first[0].offset == pytest.approx(1.5, abs=0.002) and abs(first[0].normal[1]) > 0.9999
+    assert first[0].extra["n_inliers"] >= 290
+
+
+def test_ls_plane_standard_errors_match_the_scatter():
+    rng = np.random.default_rng(3)
+    errs, ses = [], []
+    for _ in range(200):
+        pts = np.c_[rng.uniform(-0.3, 0.3, 60), 1.2 + 0.003 * rng.standard_normal(60), rng.uniform(-0.3, 0.3, 60)]
+        n, h, se_n, se_h = B.ls_plane(pts)
+        errs.append(h - 1.2 if n[1] > 0 else -h - 1.2)
+        ses.append(se_h)
+    z = np.asarray(errs) / np.asarray(ses)
+    assert 0.8 < np.std(z) < 1.2

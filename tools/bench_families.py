@@ -27,7 +27,8 @@ Per plane (a and b pooled):
   (wall time of ``reconstruct``), measured inside the worker processes.
 
 The external anchor ``open3d`` is Open3D's ``segment_plane`` (seeded, 1 cm,
-3 points, 1000 iterations) followed by an LS refit of its inliers, on the same
+3 points, all 1000 iterations — its early stop is not deterministic across
+threads) followed by an LS refit of its inliers, on the same
 corrected subsets as the project's pipeline (split at the default method's
 critical step); it needs the ``bench`` extra and is skipped with a note if
 Open3D cannot be imported.
@@ -46,6 +47,7 @@ import shlex
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -247,8 +249,8 @@ def ls_plane(points: np.ndarray) -> tuple[np.ndarray, float, float, float]:
 
 
 # ---------------------------------------------------------------------------- one scan
-def _open3d_anchor(points: np.ndarray) -> tuple[np.ndarray, float, float, float, float] | None:
-    """Open3D RANSAC (seeded, 1 cm, 1000 iterations) + LS refit: (normal, h, normal_stderr, offset_stderr, s)."""
+def _open3d_anchor(points: np.ndarray) -> Estimate | None:
+    """Open3D RANSAC (seeded, 1 cm, 3 points, 1000 iterations), then LS on its inliers; None if too few points."""
     import open3d as o3d
 
     if len(points) < 8:
@@ -256,12 +258,15 @@ def _open3d_anchor(points: np.ndarray) -> tuple[np.ndarray, float, float, float,
     t0 = time.perf_counter()
     o3d.utility.random.seed(0)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, dtype=np.float64, order="C")))
-    _model, inliers = cloud.segment_plane(distance_threshold=0.01, ransac_n=3, num_iterations=1000)
+    # probability=1 runs all 1000 iterations: Open3D's early stop depends on its threads' timing, so seeded
+    # runs differ with it (isl-org/Open3D#7270); without it the seeded result is the same every run.
+    _model, inliers = cloud.segment_plane(distance_threshold=0.01, ransac_n=3, num_iterations=1000, probability=1.0)
     kept = points[np.asarray(inliers, dtype=np.intp)]
     if len(kept) < 3:
         return None
     normal, h, se_n, se_h = ls_plane(kept)
-    return normal, h, se_n, se_h, time.perf_counter() - t0
+    return Estimate(normal, h, se_n, se_h, time.perf_counter() - t0, extra={"n_points": len(points),
+                                                                           "n_inliers": len(kept)})
 
 
 def _subset_sources(scan: Any, steps: np.ndarray, label: str) -> np.ndarray:
@@ -305,6 +310,127 @@ def _warm_up(methods: list[str]) -> None:
         _WARM.add(m)
 
 
+@dataclass(frozen=True, eq=False)
+class SceneTruth:
+    """What the bench compares a scan's planes with.
+
+    Attributes
+    ----------
+    planes : dict
+        Label → :class:`lelsonar.acquire.sim.TruePlane`.
+    patch : dict
+        Label → (k, 3) true foot points of that plane's mirror echoes, m.
+    oracle : dict
+        Label → (angle °, offset cm, patch cm) of the oracle, or None with
+        fewer than 3 mirror echoes (the plane is then "unobserved").
+    n_mirror : dict
+        Label → number of true mirror echoes.
+    edge_range : float
+        Distance of the edge from the rotation axis at x = 0, m (where the
+        corner echoes put a plane).
+    """
+
+    planes: dict[str, Any]
+    patch: dict[str, np.ndarray]
+    oracle: dict[str, tuple[float, float, float] | None]
+    n_mirror: dict[str, int]
+    edge_range: float
+
+
+def scene_truth(scan: Any) -> SceneTruth:
+    """Patches, oracle errors and mirror-echo counts of a :class:`SimulatedScan` (planes a and b)."""
+    from lelsonar.acquire.sim import EchoSource
+
+    truth = scan.truth
+    planes = {p.label: p for p in truth.planes}
+    pc = scan.geometry.capsule_positions(scan.gamma_measured)
+    patch, oracle, n_mirror = {}, {}, {}
+    for label, src in (("a", EchoSource.PLANE_A), ("b", EchoSource.PLANE_B)):
+        tp = planes[label]
+        m = (truth.echo_source == src) & np.isfinite(scan.distance)
+        n_mirror[label] = int(m.sum())
+        patch[label] = pc[m] + (tp.offset - pc[m] @ tp.normal)[:, None] * tp.normal
+        oracle[label] = None
+        if m.sum() >= 3:
+            n_o, h_o, _, _ = ls_plane(pc[m] + scan.distance[m][:, None] * tp.normal)
+            oracle[label] = plane_errors(n_o, h_o, tp.normal, tp.offset, patch[label])
+    edge = scan.config.scene.edges[0]
+    at_x0 = edge.point - edge.direction * (edge.point[0] / edge.direction[0])
+    return SceneTruth(planes, patch, oracle, n_mirror, float(np.hypot(at_x0[1], at_x0[2])))
+
+
+@dataclass(frozen=True, eq=False)
+class Estimate:
+    """One method's plane, reduced to what the bench scores (a PlaneFit or the anchor's fit)."""
+
+    normal: np.ndarray
+    offset: float
+    normal_stderr: float
+    offset_stderr: float
+    time_s: float
+    quality: str | None = None
+    reasons: tuple[str, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _from_plane_fit(res: Any, scan: Any, steps: np.ndarray | None) -> Estimate:
+    """An :class:`Estimate` of a ``PlaneFit`` (read with ``getattr`` where the contract is still moving)."""
+    from lelsonar.acquire.sim import EchoSource
+
+    diag = getattr(res, "diagnostics", None)
+    mask = np.asarray(getattr(res, "inlier_mask", np.zeros(0, dtype=bool)), dtype=bool)
+    extra: dict[str, Any] = {"n_points": int(getattr(res, "n_points", mask.size)),
+                             "n_inliers": int(np.count_nonzero(mask)),
+                             "sigma_mm": 1e3 * float(getattr(res, "sigma", float("nan"))),
+                             "notes": [str(n) for n in getattr(diag, "notes", ())]}
+    try:
+        src = _subset_sources(scan, steps, res.label) if steps is not None else None
+    except Exception:  # noqa: BLE001 — diagnostics only; the reconstruct internals may move
+        src = None
+    if src is not None and src.shape == mask.shape:
+        inl = src[mask]
+        extra["subset_corner_share"] = float(np.mean(src == EchoSource.CORNER)) if src.size else 0.0
+        extra["inlier_corner_share"] = float(np.mean(inl == EchoSource.CORNER)) if inl.size else float("nan")
+    reasons = getattr(res, "quality_reasons", None) or getattr(res, "reasons", None) or ()
+    return Estimate(normal=np.asarray(res.normal, dtype=float), offset=float(res.offset),
+                    normal_stderr=float(res.normal_stderr), offset_stderr=float(res.offset_stderr),
+                    time_s=float(getattr(diag, "time_s", float("nan"))),
+                    quality=quality_name(getattr(res, "quality", None)),
+                    reasons=tuple(str(r) for r in reasons), extra=extra)
+
+
+def plane_row(base: dict[str, Any], truth: SceneTruth, method: str, label: str, est: Estimate | str,
+              crit: int | None, time_scan_s: float, uses_split: bool) -> dict[str, Any]:
+    """One JSON row: the plane's errors, standard errors, z-scores, quality and oracle (``est`` a str: no plane)."""
+    tp = truth.planes[label]
+    orc = truth.oracle[label]
+    nan = float("nan")
+    row = {**base, "method": method, "label": label, "crit": crit, "n_mirror": truth.n_mirror[label],
+           "uses_split": uses_split, "observed": orc is not None,
+           "true_normal": [float(v) for v in tp.normal], "true_offset": float(tp.offset),
+           "other_normal": [float(v) for v in truth.planes["b" if label == "a" else "a"].normal],
+           "time_scan_ms": 1e3 * time_scan_s,
+           "oracle_angle_deg": orc[0] if orc else nan, "oracle_offset_cm": orc[1] if orc else nan,
+           "oracle_patch_cm": orc[2] if orc else nan, "oracle_fails": bool(orc is not None and orc[2] > FAIL_PATCH_CM),
+           "ok": not isinstance(est, str)}
+    if isinstance(est, str):
+        row.update(angle_deg=nan, offset_cm=nan, patch_cm=nan, failure=False, z_angle=nan, z_offset=nan,
+                   quality=None, quality_reasons=[], normal_stderr_deg=nan, offset_stderr_cm=nan,
+                   time_plane_ms=nan, why=est, flags=[])
+        return row
+    ang, off, pe = plane_errors(est.normal, est.offset, tp.normal, tp.offset, truth.patch[label])
+    se_n, se_h = est.normal_stderr, est.offset_stderr
+    row.update(est.extra)
+    row.update(angle_deg=ang, offset_cm=off, patch_cm=pe, failure=is_failure(pe, row["oracle_patch_cm"]),
+               normal_stderr_deg=math.degrees(se_n) if math.isfinite(se_n) else nan,
+               offset_stderr_cm=100.0 * se_h if math.isfinite(se_h) else nan,
+               z_angle=z_score(math.radians(ang), se_n), z_offset=z_score(off / 100.0, se_h),
+               quality=est.quality, quality_reasons=list(est.reasons), time_plane_ms=1e3 * est.time_s,
+               normal=[float(v) for v in est.normal], offset=float(est.offset))
+    row["flags"] = failure_flags(row) if row["failure"] else []
+    return row
+
+
 def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_dir: str | None,
                 calibration: str = "paper") -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Draw, simulate and reconstruct one scene; the scene's summary and one row per method and plane.
@@ -323,89 +449,15 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     scan = simulate_scan(cfg, seed=seed)
     model = calibrated_energy_model(cfg, WIDE_CALIBRATION_DISTANCES if calibration == "wide" else None)
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    truth = scan.truth
-    planes = {p.label: p for p in truth.planes}
-    pc = scan.geometry.capsule_positions(scan.gamma_measured)
-    sources = {"a": EchoSource.PLANE_A, "b": EchoSource.PLANE_B}
-    counts = np.bincount(truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
-    scene = {"family": family, "seed": seed, "description": draw.description, "crit_true": int(truth.critical_step),
-             "n_steps": int(scan.n_steps), "window_samples": int(cfg.window_samples),
+    truth = scene_truth(scan)
+    counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
+    scene = {"family": family, "seed": seed, "description": draw.description,
+             "crit_true": int(scan.truth.critical_step), "n_steps": int(scan.n_steps),
+             "window_samples": int(cfg.window_samples), "edge_range": truth.edge_range,
              "echoes": {s.name.lower(): int(counts[s]) for s in EchoSource},
              "energy_model": [model.phi0, model.phi1, model.phi2, model.d_min, model.d_max]}
-
-    patch, oracle, n_mirror = {}, {}, {}
-    for label, src in sources.items():
-        tp = planes[label]
-        m = (truth.echo_source == src) & np.isfinite(scan.distance)
-        n_mirror[label] = int(m.sum())
-        patch[label] = pc[m] + (tp.offset - pc[m] @ tp.normal)[:, None] * tp.normal
-        oracle[label] = None
-        if m.sum() >= 3:
-            pts = pc[m] + scan.distance[m][:, None] * tp.normal
-            n_o, h_o, _, _ = ls_plane(pts)
-            oracle[label] = plane_errors(n_o, h_o, tp.normal, tp.offset, patch[label])
-
-    edge = cfg.scene.edges[0]
-    at_x0 = edge.point - edge.direction * (edge.point[0] / edge.direction[0])
-    scene["edge_range"] = float(np.hypot(at_x0[1], at_x0[2]))
-    base = {"family": family, "seed": seed, "crit_true": int(truth.critical_step), "edge_range": scene["edge_range"]}
+    base = {"family": family, "seed": seed, "crit_true": scene["crit_true"], "edge_range": truth.edge_range}
     rows: list[dict[str, Any]] = []
-
-    def add_row(method: str, label: str, res: Any, crit: int | None, t_scan: float, t_plane: float,
-                steps: np.ndarray | None) -> None:
-        tp = planes[label]
-        orc = oracle[label]
-        row = {**base, "method": method, "label": label, "crit": crit, "n_mirror": n_mirror[label],
-               "uses_split": steps is not None or method == ANCHOR,
-               "other_normal": [float(v) for v in planes["b" if label == "a" else "a"].normal],
-               "observed": orc is not None, "true_normal": [float(v) for v in tp.normal],
-               "true_offset": float(tp.offset), "time_scan_ms": 1e3 * t_scan,
-               "oracle_angle_deg": orc[0] if orc else float("nan"),
-               "oracle_offset_cm": orc[1] if orc else float("nan"),
-               "oracle_patch_cm": orc[2] if orc else float("nan"),
-               "oracle_fails": bool(orc is not None and orc[2] > FAIL_PATCH_CM)}
-        fitted = isinstance(res, tuple) or (hasattr(res, "normal") and hasattr(res, "offset"))
-        row["ok"] = fitted
-        if not fitted:
-            row.update(angle_deg=float("nan"), offset_cm=float("nan"), patch_cm=float("nan"), failure=False,
-                       z_angle=float("nan"), z_offset=float("nan"), quality=None, quality_reasons=[],
-                       normal_stderr_deg=float("nan"), offset_stderr_cm=float("nan"), time_plane_ms=float("nan"),
-                       why=str(res), flags=[])
-            rows.append(row)
-            return
-        if isinstance(res, tuple):  # the anchor: (normal, h, se_n, se_h, seconds)
-            normal, offset, se_n, se_h, t_plane = res
-            quality, reasons, extra = None, [], {}
-        else:
-            normal, offset, se_n, se_h = res.normal, res.offset, res.normal_stderr, res.offset_stderr
-            quality = quality_name(getattr(res, "quality", None))
-            reasons = [str(x) for x in (getattr(res, "quality_reasons", None) or getattr(res, "reasons", None) or ())]
-            diag = res.diagnostics
-            t_plane = float(getattr(diag, "time_s", t_plane))
-            extra = {"n_points": int(res.n_points) if hasattr(res, "n_points") else len(res.inlier_mask),
-                     "n_inliers": int(np.count_nonzero(res.inlier_mask)), "sigma_mm": 1e3 * float(res.sigma),
-                     "notes": [str(n) for n in getattr(diag, "notes", ())]}
-            try:
-                src = _subset_sources(scan, steps, label) if steps is not None else None
-            except Exception:  # noqa: BLE001 — diagnostics only; the reconstruct internals may move
-                src = None
-            if src is not None:
-                if src.shape == res.inlier_mask.shape:
-                    inl = src[res.inlier_mask]
-                    extra["subset_corner_share"] = float(np.mean(src == EchoSource.CORNER)) if src.size else 0.0
-                    extra["inlier_corner_share"] = (float(np.mean(inl == EchoSource.CORNER))
-                                                    if inl.size else float("nan"))
-        ang, off, pe = plane_errors(np.asarray(normal), float(offset), tp.normal, tp.offset, patch[label])
-        row.update(extra)
-        row.update(angle_deg=ang, offset_cm=off, patch_cm=pe,
-                   failure=is_failure(pe, row["oracle_patch_cm"]),
-                   normal_stderr_deg=math.degrees(se_n) if math.isfinite(se_n) else float("nan"),
-                   offset_stderr_cm=100.0 * se_h if math.isfinite(se_h) else float("nan"),
-                   z_angle=z_score(math.radians(ang), se_n), z_offset=z_score(off / 100.0, se_h),
-                   quality=quality, quality_reasons=reasons, time_plane_ms=1e3 * t_plane,
-                   normal=[float(v) for v in normal], offset=float(offset))
-        row["flags"] = failure_flags(row) if row["failure"] else []
-        rows.append(row)
 
     crits: dict[str, int | None] = {}
     for method in methods:
@@ -414,32 +466,29 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
             rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
         except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
             dt = time.perf_counter() - t0
-            for label in ("a", "b"):
-                add_row(method, label, f"{type(exc).__name__}: {exc}", None, dt, float("nan"), None)
+            rows += [plane_row(base, truth, method, label, f"{type(exc).__name__}: {exc}", None, dt, False)
+                     for label in ("a", "b")]
             continue
         dt = time.perf_counter() - t0
         crits[method] = rec.critical_step
-        split = _split(scan, rec.critical_step)
+        split = _split(scan, rec.critical_step) if _fits_subsets(method) else {}
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
-            steps = split.get(label) if _fits_subsets(method) else None
-            add_row(method, label, res, rec.critical_step, dt, float("nan"), steps)
+            fitted = hasattr(res, "normal") and hasattr(res, "offset")
+            est = _from_plane_fit(res, scan, split.get(label)) if fitted else str(res)
+            rows.append(plane_row(base, truth, method, label, est, rec.critical_step, dt, bool(split)))
 
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
-    if anchor and default_crit is not None and _split(scan, default_crit):
+    split = _split(scan, default_crit) if anchor else {}
+    if split:
         from lelsonar.reconstruct import fit as F
         from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 
-        split = _split(scan, default_crit)
-        t_scan = 0.0
-        results = {}
+        ests: dict[str, Estimate | str] = {}
         for label, axis in (("a", AXIS_Y), ("b", AXIS_Z)):
             data = F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, split[label], label, axis)
-            t0 = time.perf_counter()
-            res = _open3d_anchor(data.points)
-            t_scan += time.perf_counter() - t0
-            results[label] = res if res is not None else "too few points"
-        for label, res in results.items():
-            add_row(ANCHOR, label, res, default_crit, t_scan, float("nan"), None)
+            ests[label] = _open3d_anchor(data.points) or "too few points"
+        t_scan = sum(e.time_s for e in ests.values() if isinstance(e, Estimate))
+        rows += [plane_row(base, truth, ANCHOR, label, e, default_crit, t_scan, True) for label, e in ests.items()]
 
     if dump_dir and any(r["failure"] for r in rows):
         from lelsonar.acquire.sim.record import record_scan
