@@ -66,7 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulator presets, or tilted-roll5 (the L rolled 5° about x), "
                              "tilted-b8 (plane b pitched 8°), tilted-a5z (plane a yawed 5° about z)")
     parser.add_argument("--methods", nargs="+", default=None,
-                        help="methods to run (default: all registered)")
+                        help="methods to run (default: all registered; with --families: the default method, "
+                             "fcm-ransac and lel-refit-ls)")
     parser.add_argument("--skip-slow", action="store_true",
                         help="skip the Nelder-Mead methods (paper, lel-nm) and the H check")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes for accuracy runs")
