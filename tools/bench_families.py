@@ -140,6 +140,8 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     quality = [r["quality"] for r in fails]
     has_quality = any(r["quality"] is not None for r in fitted)
     scans = {(r["family"], r["seed"]): r["time_scan_ms"] for r in rows}
+    crit = [abs(r["crit"] - r["crit_true"]) <= CRIT_TOLERANCE for r in rows
+            if r["label"] == "a" and r.get("crit") is not None and r["crit_true"] >= 0]
 
     def frac_above(z: np.ndarray, k: float) -> float:
         z = z[np.isfinite(z)]
@@ -160,6 +162,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "z_angle_med": percentile(zn, 50), "z_angle_gt3": frac_above(zn, 3.0),
         "z_offset_med": percentile(zh, 50), "z_offset_gt3": frac_above(zh, 3.0),
         "failures_good": sum(q == "good" for q in quality) if has_quality else None,
+        "crit_ok": float(np.mean(crit)) if crit else float("nan"),
         "ms_plane": percentile([r["time_plane_ms"] for r in fitted], 50),
         "ms_scan": percentile(list(scans.values()), 50),
         "ms_scan_p95": percentile(list(scans.values()), 95),
@@ -686,7 +689,7 @@ def run_families(args: argparse.Namespace) -> int:
     table = Table(title=f"Plane errors per scene family and method (planes a and b pooled; median / p95; "
                         f"{len(seeds)} seeds, {wall:.0f} s)", title_justify="left")
     cols = ("family", "method", "planes", "angle °", "|Δh| cm", "patch cm", "oracle cm", "ratio",
-            "fail", "¬orc", "miss", "|z_n|, >3", "|z_h|, >3", "f&good", "ms/pl", "ms/scan", "serial")
+            "fail", "¬orc", "miss", "|z_n|, >3", "|z_h|, >3", "f&good", "crit±2", "ms/pl", "ms/scan", "serial")
     for c in cols:
         table.add_column(c, justify="left" if c in ("family", "method") else "right")
     for fam in (*families, "all"):
@@ -702,14 +705,15 @@ def run_families(args: argparse.Namespace) -> int:
                           _fmt(s["ratio_med"]), str(s["failures"]), str(s["failures_oracle_avoids"]),
                           str(s["missing"]), f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])}",
                           f"{_fmt(s['z_offset_med'])}, {_pct(s['z_offset_gt3'])}",
-                          "n/a" if s["failures_good"] is None else str(s["failures_good"]),
+                          "n/a" if s["failures_good"] is None else str(s["failures_good"]), _pct(s["crit_ok"]),
                           _fmt(s["ms_plane"]), _fmt(s["ms_scan"], 1), _fmt(s["ms_scan_serial"], 1), style=style)
         table.add_section()
     console.print(table)
     console.print("planes: observed planes (+ planes with < 3 true mirror echoes, left out); ratio: median of the "
                   "per-plane patch/oracle ratios; fail: patch > 2 cm and > 3× the oracle's; ¬orc: failures where "
                   "the oracle's patch ≤ 2 cm; miss: no plane returned; |z|: median |error / reported standard "
-                  "error| and the share > 3 (normal angle, offset); f&good: failures whose quality says good; "
+                  "error| and the share > 3 (normal angle, offset); f&good: failures whose quality says good; crit±2: scans "
+                  "whose critical step is within 2 steps of the true one (only meaningful for methods that split there); "
                   "times: median per plane (solver) and per scan (reconstruct) in the workers; serial: "
                   "reconstruct of the family's first scene run alone (best of repeats; 'all': the slowest family).")
 
