@@ -35,6 +35,12 @@ Open3D cannot be imported.
 
 Planes with fewer than 3 true mirror echoes have no oracle and no patch; they
 are counted ("unobserved") and left out of the statistics.
+
+``--json OUT`` writes strict JSON (NaN → null): the command, machine, scenes
+(description, true critical step, echo counts, energy model), the summary and
+one row per family, seed, method and plane (errors, standard errors,
+z-scores, quality, oracle errors, critical step, corner-echo shares of the
+subset and of the inliers, solver notes, failure flags).
 """
 
 from __future__ import annotations
@@ -765,16 +771,29 @@ def run_families(args: argparse.Namespace) -> int:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
         with open(out, "w", encoding="utf-8") as f:
-            json.dump({"command": command, "machine": machine(), "families": list(families),
+            json.dump(_finite({"command": command, "machine": machine(), "families": list(families),
                        "seeds": [seeds.start, seeds.stop], "methods": all_methods, "default_method": DEFAULT_METHOD,
                        "wall_s": wall, "jobs": args.jobs, "serial_ms": serial, "calibration": args.calibration, "scenes": scenes,
                        "summary": [{"family": k[0], "method": k[1], **v} for k, v in summary.items()],
                        "targets": [{"family": fam, **checks} for fam, checks in targets],
-                       "rows": rows}, f, default=_json_default, allow_nan=True)
+                       "rows": rows}), f, default=_json_default, allow_nan=False)
         console.print(f"wrote {out} ({len(rows)} plane rows)")
     console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets issue 9's targets on every family[/]"
                                                             if not misses else f"[red]misses {len(misses)} targets[/]"))
     return 0 if not misses else 1
+
+
+def _finite(o: Any) -> Any:
+    """``o`` with every NaN or infinity replaced by None (strict JSON: jq and browsers read it)."""
+    if isinstance(o, float):
+        return o if math.isfinite(o) else None
+    if isinstance(o, np.floating):
+        return float(o) if np.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_finite(v) for v in o]
+    return o
 
 
 def _json_default(o: Any) -> Any:
