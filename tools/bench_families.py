@@ -480,11 +480,13 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
             continue
         dt = time.perf_counter() - t0
         crits[method] = rec.critical_step
-        split = _split(scan, rec.critical_step) if _fits_subsets(method) else {}
+        split = _split(scan, rec.critical_step)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
             est = _from_plane_fit(res, scan, split.get(label)) if fitted else str(res)
-            rows.append(plane_row(base, truth, method, label, est, rec.critical_step, dt, bool(split)))
+            # A plane whose inliers map one to one onto the critical-step subset was fitted on that subset.
+            uses_split = isinstance(est, Estimate) and "subset_corner_share" in est.extra
+            rows.append(plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split))
 
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
     split = _split(scan, default_crit) if anchor else {}
@@ -509,14 +511,6 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
                               "failures": ",".join(failing)})
         scene["dump"] = str(path)
     return scene, rows
-
-
-def _fits_subsets(method: str) -> bool:
-    """Whether the method fits the critical-step subsets (plane methods), so inliers map to subset points."""
-    from lelsonar.reconstruct.pipeline import METHODS
-
-    m = METHODS.get(method)
-    return m is not None and getattr(m, "fit_plane", None) is not None
 
 
 def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
