@@ -532,8 +532,9 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
 
     The worker times of the accuracy runs share the cores with each other (and
     with anything else on the host); these are the numbers to hold against a
-    time budget.  Each method runs once to warm up, then ``repeats`` times;
-    the minimum is the least disturbed by other load on a shared host.
+    time budget.  Each method runs once to warm up, then ``repeats`` times
+    (fewer once a method has taken 1 s); the minimum is the least disturbed by
+    other load on a shared host.
     """
     from lelsonar.acquire.sim import simulate_scan
     from lelsonar.acquire.sim.scenes import WIDE_CALIBRATION_DISTANCES, calibrated_energy_model, draw_scene
@@ -546,7 +547,7 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     out = {}
     for method in methods:
-        ts = []
+        ts: list[float] = []
         for _ in range(repeats + 1):
             t0 = time.perf_counter()
             try:
@@ -554,6 +555,8 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
             except Exception:  # noqa: BLE001 — reported by the accuracy run
                 break
             ts.append(time.perf_counter() - t0)
+            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper: ~0.5 s) gets two measured runs
+                break
         out[method] = 1e3 * float(np.min(ts[1:])) if len(ts) > 1 else float("nan")
     return out
 
