@@ -14,7 +14,7 @@ import pytest
 
 from lelsonar.acquire.sim import simulate_scan
 from lelsonar.acquire.sim.record import record_scan
-from lelsonar.acquire.sim.scenes import calibrated_energy_model, draw_scene
+from lelsonar.acquire.sim.scenes import calibrated_energy_model, draw_scene, simulate_family_scene
 from lelsonar.reconstruct.energy import waveform_energy
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.recording import read_metadata
@@ -122,10 +122,10 @@ def test_simulate_family_mcap_round_trips_through_reconstruct(tmp_path):
     assert rec.returncode == 0, rec.stderr
     final = _final(rec.stdout)
 
-    draw = draw_scene("partial", 3)
-    scan = simulate_scan(draw.config, seed=3)
+    fs = simulate_family_scene("partial", 3)
+    scan = fs.scan
     want = reconstruct(scan.gamma_measured, scan.distance, waveform_energy(scan.waveforms, scan.sample_rate),
-                       scan.geometry, calibrated_energy_model(draw.config))
+                       scan.geometry, fs.energy_model)
     assert final["critical_step"] == want.critical_step
     got = {p["label"]: p for p in final["planes"]}
     for label, plane in (("a", want.plane_a), ("b", want.plane_b)):

@@ -448,15 +448,14 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     (0.6–2.7 m, the families' span) — see :func:`lelsonar.acquire.sim.scenes.calibrated_energy_model`.
     """
     _warm_up(methods)
-    from lelsonar.acquire.sim import EchoSource, simulate_scan
-    from lelsonar.acquire.sim.scenes import WIDE_CALIBRATION_DISTANCES, calibrated_energy_model, draw_scene
+    from lelsonar.acquire.sim import EchoSource
+    from lelsonar.acquire.sim.scenes import simulate_family_scene
     from lelsonar.reconstruct.energy import waveform_energy
     from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 
-    draw = draw_scene(family, seed)
+    fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
+    draw, scan, model = fs.draw, fs.scan, fs.energy_model
     cfg = draw.config
-    scan = simulate_scan(cfg, seed=seed)
-    model = calibrated_energy_model(cfg, WIDE_CALIBRATION_DISTANCES if calibration == "wide" else None)
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     truth = scene_truth(scan)
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
@@ -536,14 +535,12 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
     (fewer once a method has taken 1 s); the minimum is the least disturbed by
     other load on a shared host.
     """
-    from lelsonar.acquire.sim import simulate_scan
-    from lelsonar.acquire.sim.scenes import WIDE_CALIBRATION_DISTANCES, calibrated_energy_model, draw_scene
+    from lelsonar.acquire.sim.scenes import simulate_family_scene
     from lelsonar.reconstruct.energy import waveform_energy
     from lelsonar.reconstruct.pipeline import reconstruct
 
-    cfg = draw_scene(family, seed).config
-    scan = simulate_scan(cfg, seed=seed)
-    model = calibrated_energy_model(cfg, WIDE_CALIBRATION_DISTANCES if calibration == "wide" else None)
+    fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
+    scan, model = fs.scan, fs.energy_model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     out = {}
     for method in methods:

@@ -52,14 +52,14 @@ def _simulate(args: argparse.Namespace) -> int:
     from .scan import EchoSource, simulate_scan
 
     if args.family:
-        from .scenes import calibrated_energy_model, draw_scene
+        from .scenes import simulate_family_scene
 
-        draw = draw_scene(args.family, args.seed)
-        cfg, model, name = draw.config, calibrated_energy_model(draw.config), f"family {args.family}"
-        print(draw.description)
+        fs = simulate_family_scene(args.family, args.seed)
+        scan, model, name = fs.scan, fs.energy_model, f"family {args.family}"
+        print(fs.draw.description)
     else:
-        cfg, model, name = preset(args.preset), DEFAULT_ENERGY_MODEL, f"preset {args.preset}"
-    scan = simulate_scan(cfg, seed=args.seed)
+        scan = simulate_scan(preset(args.preset), seed=args.seed)
+        model, name = DEFAULT_ENERGY_MODEL, f"preset {args.preset}"
     ratio = energy_ratio(scan.step_energy(), scan.distance, model)
     k = int(np.argmax(ratio))
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))

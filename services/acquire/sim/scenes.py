@@ -404,3 +404,36 @@ def _paper_distances() -> tuple[float, ...]:
     from .calibrate import PAPER_CALIBRATION_DISTANCES
 
     return PAPER_CALIBRATION_DISTANCES
+
+
+@dataclass(frozen=True, eq=False)
+class FamilyScan:
+    """A family scene, its simulated scan and the energy model of its rig (for tests and benchmarks).
+
+    Attributes
+    ----------
+    draw : SceneDraw
+    scan : SimulatedScan
+        ``simulate_scan(draw.config, seed)``: ground truth in ``scan.truth``.
+    energy_model : EnergyModel
+        :func:`calibrated_energy_model` of the rig.
+    """
+
+    draw: SceneDraw
+    scan: object
+    energy_model: object
+
+
+def simulate_family_scene(family: str, seed: int, *, wide_calibration: bool = False,
+                          with_waveforms: bool = True) -> FamilyScan:
+    """Scene ``seed`` of ``family``, simulated with the same seed, and its rig's calibrated ``E0(d)``.
+
+    Exactly what ``lelsonar bench estimators --families`` reconstructs and what
+    ``lelsonar simulate --family F --seed N --mcap OUT`` records.
+    """
+    from .scan import simulate_scan
+
+    draw = draw_scene(family, seed)
+    scan = simulate_scan(draw.config, seed=seed, with_waveforms=with_waveforms)
+    model = calibrated_energy_model(draw.config, WIDE_CALIBRATION_DISTANCES if wide_calibration else None)
+    return FamilyScan(draw=draw, scan=scan, energy_model=model)
