@@ -64,15 +64,24 @@ class DecodeLimits:
         Most sensor readings in one sample.
     max_steps : int
         Most steps in one scan.
+    max_planes : int
+        Most plane estimates in one ``Reconstruction``: two planes for each of
+        the method of record and every compared method (11 registered today),
+        with room to grow.
+    max_reasons : int
+        Most quality reasons per plane, and most failures per reconstruction.
     """
 
     max_payload_bytes: int = 4 * 1024 * 1024
     max_waveform_samples: int = 65_536
     max_sensors: int = 16
     max_steps: int = 100_000
+    max_planes: int = 64
+    max_reasons: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("max_payload_bytes", "max_waveform_samples", "max_sensors", "max_steps"):
+        for name in ("max_payload_bytes", "max_waveform_samples", "max_sensors", "max_steps", "max_planes",
+                     "max_reasons"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"DecodeLimits.{name} must be positive")
 
@@ -256,8 +265,10 @@ def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:
 
 def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
     _finite("Reconstruction.critical_angle", m.critical_angle)
-    if len(m.planes) > limits.max_sensors:
-        raise InvalidMessageError(f"Reconstruction carries {len(m.planes)} planes")
+    if len(m.planes) > limits.max_planes:
+        raise InvalidMessageError(f"Reconstruction carries {len(m.planes)} planes; at most {limits.max_planes}")
+    if len(m.failures) > limits.max_reasons:
+        raise InvalidMessageError(f"Reconstruction carries {len(m.failures)} failures; at most {limits.max_reasons}")
     for i, p in enumerate(m.planes):
         where = f"Reconstruction.planes[{i}]"
         _vector(f"{where}.normal", p.normal)
@@ -266,6 +277,9 @@ def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
             raise InvalidMessageError(f"{where}.normal is not a unit vector")
         if len(p.theta_covariance) not in (0, 9):
             raise InvalidMessageError(f"{where}.theta_covariance must hold 0 or 9 numbers")
+        if len(p.quality_reasons) > limits.max_reasons:
+            raise InvalidMessageError(f"{where} carries {len(p.quality_reasons)} quality reasons; "
+                                      f"at most {limits.max_reasons}")
 
 
 _VALIDATORS = {

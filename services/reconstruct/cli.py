@@ -146,7 +146,16 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 for msg in service.finals.values():
                     recorder.write(msg)
             _log.info("replayed %d payloads from %s; rejected: %s", n, args.source, dict(service.ingest.rejected))
-            return 0 if service.finals else 1
+            if not service.finals:
+                return 1
+            # A scan whose method of record produced no plane is a failure a script must see.
+            missing = [f"{m.scanner_id} scan {m.scan_id} plane {label}" for m in service.finals.values()
+                       for label in ("a", "b")
+                       if not any(p.label == label and p.method == config.method for p in m.planes)]
+            if missing:
+                console.print(f"reconstruct: {config.method} produced no plane for {', '.join(missing)}")
+                return 1
+            return 0
         stop = _stop_on_signals()
         console.print(f"reconstruct: listening on {keys.sample} and {keys.scan}; estimates on {keys.planes}")
         with LiveSource(session, keys, service, stop, record=recorder):

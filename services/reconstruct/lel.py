@@ -56,6 +56,22 @@ __all__ = [
 ]
 
 
+def _cost_terms(r: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The one implementation of eq. (6): ``H``, ``D = Σ s`` and ``log s_i`` for residuals ``r``, ``s = r²``.
+
+    ``H = (log D − S/D) / log N`` with ``S = Σ s log s``.  ``log s_i`` is floored
+    at ``log(1e-30 D)``: ``s log s`` is 0 at ``s = 0`` either way, and the floor
+    keeps the derivatives finite.  ``H = 0`` when ``D = 0`` and ``inf`` when
+    ``D`` is not finite.
+    """
+    s = r * r
+    d = float(s.sum())
+    if d == 0.0 or not np.isfinite(d):
+        return (0.0 if d == 0.0 else np.inf), d, np.zeros_like(s)
+    logs = np.log(np.maximum(s, 1e-30 * d))
+    return (np.log(d) - float(s @ logs) / d) / np.log(r.size), d, logs
+
+
 def entropy_of_residuals(residuals: np.ndarray) -> float:
     """The entropy-like cost ``H`` of a residual vector, eq. (6).
 
@@ -84,10 +100,7 @@ def entropy_of_residuals(residuals: np.ndarray) -> float:
     scale = float(np.max(np.abs(r)))
     if scale == 0.0:
         return 0.0
-    s = (r / scale) ** 2
-    d = float(s.sum())
-    logs = np.log(s, out=np.zeros_like(s), where=s > 0)
-    h = (np.log(d) - float(s @ logs) / d) / np.log(n)
+    h, _, _ = _cost_terms(r / scale)
     return float(min(max(h, 0.0), 1.0))
 
 
@@ -124,16 +137,11 @@ def residual_gradient(residuals: np.ndarray) -> tuple[float, np.ndarray]:
     parametrisation.  Returns ``(0, 0)`` when ``D = 0``.
     """
     r = np.asarray(residuals, dtype=np.float64)
-    n = r.size
-    s = r * r
-    d = float(s.sum())
+    h, d, logs = _cost_terms(r)
     if d == 0.0 or not np.isfinite(d):
         return 0.0, np.zeros_like(r)
-    logs = np.log(s, out=np.zeros_like(s), where=s > 0)
-    big_s = float(s @ logs)
-    inv_log_n = 1.0 / np.log(n)
-    h = (np.log(d) - big_s / d) * inv_log_n
-    g = (2.0 * inv_log_n / d) * r * (big_s / d - logs)
+    a = float((r * r) @ logs) / d
+    g = (2.0 / (d * np.log(r.size))) * r * (a - logs)
     return float(h), g
 
 
@@ -177,12 +185,10 @@ def _egh(theta: np.ndarray, v: np.ndarray, vt: np.ndarray,
          c: float | np.ndarray = -1.0) -> tuple[float, np.ndarray, np.ndarray]:
     # H, gradient and Hessian for the affine residuals r = V θ + c (c = −1: eq. 2).
     r = v @ theta + c
-    s = r * r
-    d = float(s.sum())
+    h, d, logs = _cost_terms(r)
     if d == 0.0 or not np.isfinite(d):
         return 0.0, np.zeros(3), np.zeros((3, 3))
-    logs = np.log(np.maximum(s, 1e-30 * d))  # s·log s is 0 at s = 0 either way
-    a = float(s @ logs) / d
+    a = float((r * r) @ logs) / d
     inv_l = 1.0 / np.log(r.size)
     b = logs - a
     c1 = vt @ r
@@ -192,17 +198,11 @@ def _egh(theta: np.ndarray, v: np.ndarray, vt: np.ndarray,
     hess = (vt * (k * (-b - 2.0))) @ v
     m = cb[:, None] * c1
     hess += (2.0 * k / d) * (m + m.T + c1[:, None] * c1)
-    return (np.log(d) - a) * inv_l, grad, hess
+    return h, grad, hess
 
 
 def _h(theta: np.ndarray, v: np.ndarray, c: float | np.ndarray = -1.0) -> float:
-    r = v @ theta + c
-    s = r * r
-    d = float(s.sum())
-    if d == 0.0 or not np.isfinite(d):
-        return 0.0 if d == 0.0 else np.inf
-    logs = np.log(np.maximum(s, 1e-300))
-    return (np.log(d) - float(s @ logs) / d) / np.log(r.size)
+    return _cost_terms(v @ theta + c)[0]
 
 
 def newton_minimize(theta0: np.ndarray, points: np.ndarray, *, gtol: float = 1e-12,

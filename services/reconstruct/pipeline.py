@@ -69,15 +69,19 @@ from lelsonar.geometry import ArrayGeometry, beam_points
 
 from . import fit as F
 from .baseline import fuzzy_c_means, ransac_plane
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, fit_corner_model,
+                           scan_points)
 from .correct import AXIS_Y, AXIS_Z, corrected_points
 from .energy import EnergyModel, energy_ratio, total_energy
 from .lel import LelResult, lel_fit_fast, lel_fit_nelder_mead, six_starts
 from .results import (EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult, ScanReconstruction,
                       SolverDiagnostics, Timings)
+from .quality import assess_plane
 from .split import critical_step, split_subsets
 
 __all__ = [
     "FitOptions",
+    "ScanFit",
     "Method",
     "METHODS",
     "DEFAULT_METHOD",
@@ -138,6 +142,8 @@ class FitOptions:
     critical_peak_fraction: float = 0.04
     seed: int = 0
     ransac_iterations: int = 200
+    corner_beam_half_angle: float = float(np.deg2rad(50.0))
+    corner_tolerance: float = 0.02
 
     def __post_init__(self) -> None:
         if not 0 < self.prefilter_fraction <= 1:
@@ -173,19 +179,40 @@ class Method:
     fit_plane : callable or None
         Fits one subset (:data:`PlaneEstimator`); the pipeline splits the scan.
     fit_scan : callable or None
-        Fits the whole scan itself (``"fcm-ransac"``, which does its own
-        segmentation): ``(gamma, distance, ratio, geometry, options) ->
-        (plane_a, plane_b)``.
+        Fits the whole scan itself (``"corner"`` and ``"fcm-ransac"``, which do
+        their own segmentation): ``(gamma, distance, ratio, geometry, options)
+        -> (plane_a, plane_b, critical_step or None)``; a critical step
+        replaces the energy peak's (None keeps it).
     """
 
     name: str
     summary: str
     fit_plane: PlaneEstimator | None = None
-    fit_scan: Callable[..., tuple[PlaneResult, PlaneResult]] | None = None
+    fit_scan: Callable[..., ScanFit] | None = None
 
     def __post_init__(self) -> None:
         if (self.fit_plane is None) == (self.fit_scan is None):
             raise ConfigError(f"method {self.name!r} needs exactly one of fit_plane and fit_scan")
+
+
+@dataclass(frozen=True)
+class ScanFit:
+    """What a scan-level method (``Method.fit_scan``) returns.
+
+    Parameters
+    ----------
+    plane_a, plane_b : PlaneFit or FitFailure
+    data_a, data_b : PlaneData or None
+        The points each plane was fitted on (its ``inlier_mask`` indexes them).
+    critical_step : int or None
+        Replaces the energy peak's critical step; None keeps it.
+    """
+
+    plane_a: PlaneResult
+    plane_b: PlaneResult
+    data_a: F.PlaneData | None = None
+    data_b: F.PlaneData | None = None
+    critical_step: int | None = None
 
 
 _REGISTRY: dict[str, Method] = {}
@@ -409,6 +436,50 @@ def _fit_constant_depth(data: F.PlaneData, warm: np.ndarray | None, opts: FitOpt
                             model="constant-depth")
 
 
+def _tilt_checked(data: F.PlaneData, first: PlaneFit, opts: FitOptions, method: str, *,
+                  prefilter: bool = True) -> PlaneResult:
+    """Keep ``first``'s corrected-points normal unless a χ² test shows a tilted wall (see ``"adaptive"``).
+
+    Fits the constant-depth LS on ``first``'s inliers; if the corrected-points
+    normal is more than ``opts.tilt_test_sigma`` σ from it, returns the
+    constant-depth plane, else ``first``'s normal with the offset from the
+    mirror-echo condition over the inliers.  ``prefilter`` re-selects the
+    constant-depth inliers with the §5.3 pre-filter (for subsets that still hold
+    outliers); without it the inliers stay ``first``'s.
+    """
+    t0 = time.perf_counter()
+    mask = first.inlier_mask
+    n_cd, h_cd, nit = F.constant_depth_ls(data.capsules, data.distance, first.normal, first.offset, mask)
+    r = data.capsules @ n_cd + data.distance - h_cd
+    mask_cd = F.prefilter_mask(r, opts.prefilter_fraction) if prefilter else mask
+    if np.count_nonzero(mask_cd) >= 4:
+        n_cd, h_cd, nit2 = F.constant_depth_ls(data.capsules, data.distance, n_cd, h_cd, mask_cd)
+        nit += nit2
+    else:
+        mask_cd = mask
+    theta_cd = n_cd / h_cd
+    cov = F.theta_covariance(theta_cd, data.capsules, data.distance, mask_cd)
+    jn = (np.eye(3) - np.outer(n_cd, n_cd)) * h_cd
+    cov_n = jn @ cov @ jn.T
+    dn = first.normal - n_cd
+    chi2 = float(dn @ np.linalg.pinv(cov_n, rcond=1e-10, hermitian=True) @ dn) if np.all(np.isfinite(cov_n)) else 0.0
+    tilted = chi2 > opts.tilt_test_sigma**2 and F.mirror_consistent(n_cd, data.beam, opts.beam_half_angle)
+    angle = np.rad2deg(np.arccos(np.clip(first.normal @ n_cd, -1.0, 1.0)))
+    note = (f"tilt test: corrected-points normal {angle:.2f}° from the constant-depth normal, "
+            f"chi2 = {chi2:.1f} -> " + ("constant-depth plane" if tilted else "corrected-points normal, "
+                                        "mirror-echo offset"))
+    d = first.diagnostics
+    diag = SolverDiagnostics(solver=d.solver + "; constant-depth gauss-newton", starts=d.starts,
+                             iterations=d.iterations + nit, evaluations=d.evaluations + nit,
+                             time_s=d.time_s + time.perf_counter() - t0, converged=d.converged,
+                             notes=d.notes + (note,))
+    if tilted:
+        return F.make_plane_fit(data, theta_cd, method=method, inlier_mask=mask_cd, diagnostics=diag,
+                                model="constant-depth")
+    h = float(np.mean(data.capsules[mask] @ first.normal + data.distance[mask]))
+    return F.make_plane_fit(data, first.normal / h, method=method, inlier_mask=mask, diagnostics=diag)
+
+
 def _fit_adaptive(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> PlaneResult:
     """``"lel-refit-ls"`` on the corrected points, checked against the mirror-echo model.
 
@@ -429,45 +500,108 @@ def _fit_adaptive(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) 
        correction's offset bias on walls it gets the direction of (e.g. a wall
        yawed about z, where the corrected points sit on a plane ~2 mm too near).
     """
-    t0 = time.perf_counter()
     first = _fit_lel_refit_ls(data, warm, opts)
     if not isinstance(first, PlaneFit):
         return first
-    mask = first.inlier_mask
-    n_cd, h_cd, nit = F.constant_depth_ls(data.capsules, data.distance, first.normal, first.offset, mask)
-    r = data.capsules @ n_cd + data.distance - h_cd
-    mask_cd = F.prefilter_mask(r, opts.prefilter_fraction)
-    if np.count_nonzero(mask_cd) >= 4:
-        n_cd, h_cd, nit2 = F.constant_depth_ls(data.capsules, data.distance, n_cd, h_cd, mask_cd)
-        nit += nit2
+    return _tilt_checked(data, first, opts, "adaptive")
+
+
+# --------------------------------------------------------------------------- joint corner model (scan level)
+
+def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
+                 note: str) -> PlaneResult:
+    """One wall of the joint model, refined on its own echoes.
+
+    The paper-corrected points (§4) give the most precise normal when the wall
+    is axis-aligned; the joint model (mirror and edge echoes together) is
+    unbiased whatever the tilt.  If the LS normal of the corrected points
+    (eq. 15) agrees with the joint normal within ``opts.tilt_test_sigma`` of the
+    joint standard error, keep it with the offset from the mirror-echo
+    condition; otherwise keep the joint wall.  Either way the reported
+    standard errors are the joint model's at least: the corrected points
+    cannot see a tilt below that, so their own covariance would overclaim.
+    """
+    mask = np.ones(data.n, dtype=bool)
+    theta_p = F.ls_theta(data.points)
+    n_p = theta_p / np.linalg.norm(theta_p)
+    se_n, se_h = wall_se
+    angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
+    agree = np.isfinite(se_n) and angle <= opts.tilt_test_sigma * se_n
+    if agree:
+        h = float(np.mean(data.capsules @ n_p + data.distance))
+        theta, model = n_p / h, "paper"
     else:
-        mask_cd = mask
-    theta_cd = n_cd / h_cd
-    cov = F.theta_covariance(theta_cd, data.capsules, data.distance, mask_cd)
-    jn = (np.eye(3) - np.outer(n_cd, n_cd)) * h_cd
-    cov_n = jn @ cov @ jn.T
-    dn = first.normal - n_cd
-    chi2 = float(dn @ np.linalg.pinv(cov_n, rcond=1e-10, hermitian=True) @ dn) if np.all(np.isfinite(cov_n)) else 0.0
-    tilted = chi2 > opts.tilt_test_sigma**2 and F.mirror_consistent(n_cd, data.beam, opts.beam_half_angle)
-    angle = np.rad2deg(np.arccos(np.clip(first.normal @ n_cd, -1.0, 1.0)))
-    note = (f"tilt test: corrected-points normal {angle:.2f}° from the constant-depth normal, "
-            f"chi2 = {chi2:.1f} -> " + ("constant-depth plane" if tilted else "corrected-points normal, "
-                                        "mirror-echo offset"))
-    d = first.diagnostics
-    diag = SolverDiagnostics(solver=d.solver + "; constant-depth gauss-newton", starts=d.starts,
-                             iterations=d.iterations + nit, evaluations=d.evaluations + nit,
-                             time_s=time.perf_counter() - t0, converged=d.converged, notes=d.notes + (note,))
-    if tilted:
-        return F.make_plane_fit(data, theta_cd, method="adaptive", inlier_mask=mask_cd, diagnostics=diag,
-                                model="constant-depth")
-    h = float(np.mean(data.capsules[mask] @ first.normal + data.distance[mask]))
-    return F.make_plane_fit(data, first.normal / h, method="adaptive", inlier_mask=mask, diagnostics=diag)
+        theta, model = wall.normal / wall.offset, "constant-depth"
+    verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
+    diag = _diag("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
+                                                    f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°) -> "
+                                                    + verdict))
+    fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
+    if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
+        fit = replace(fit, normal_stderr=max(fit.normal_stderr, se_n), offset_stderr=max(fit.offset_stderr, se_h))
+    return fit
+
+
+def _fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
+                opts: FitOptions) -> ScanFit:
+    """Both walls and the edge from all the echoes (:mod:`lelsonar.reconstruct.corner_model`).
+
+    The joint model labels every echo (wall a, wall b, edge, outlier); each
+    wall is then refined on its own echoes exactly as ``"adaptive"`` refines
+    its inliers: LS on the paper-corrected points (§4, eq. 15), the χ² tilt
+    test against the constant-depth model, the mirror-echo offset.  The
+    critical step is where the boresight points at the fitted edge, which
+    does not scatter with the energy noise.  Where the joint model finds no
+    bands (too few echoes), it falls back to ``"adaptive"`` on the energy split.
+    """
+    t0 = time.perf_counter()
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    pts = scan_points(geometry, g, d)
+    model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
+                             tolerance=opts.corner_tolerance, min_points=opts.min_points)
+    if model is None:
+        crit = critical_step(ratio, opts.critical_peak_fraction)
+        split = split_subsets(g, crit)
+        data = [F.plane_data(geometry, g, d, steps, label, axis)
+                for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
+        out = [fit_plane(dd, "adaptive", options=opts) for dd in data]
+        return ScanFit(out[0], out[1], data[0], data[1], crit)
+    note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
+            f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
+            f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    out: list[PlaneResult] = []
+    datas: list[F.PlaneData] = []
+    for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
+        sel = np.full(d.shape, np.nan)
+        m = model.labels == k
+        sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
+        data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        datas.append(data)
+        fail = F.check_points(data.points, label, opts.min_points)
+        if fail is not None:
+            out.append(FitFailure(fail.reason, f"corner: {int(np.count_nonzero(m))} echoes of wall {label}; "
+                                  + fail.detail, label, fail.n_points))
+            continue
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note)
+        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE)) if isinstance(fit, PlaneFit) else fit)
+    # The critical step: where the boresight points at the edge of the final planes.  The common
+    # roll of both walls about x barely changes any range, so the corrected-points normals (which
+    # assume the walls are axis-aligned unless the data say otherwise) pin it better than the joint fit.
+    edge = corner_edge(out[0], out[1])
+    crit = None
+    if isinstance(edge, EdgeLine):
+        point = edge.point
+        if abs(edge.direction[0]) > 1e-9:
+            point = point - edge.direction * (point[0] / edge.direction[0])
+        crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
+    return ScanFit(out[0], out[1], datas[0], datas[1], crit)
 
 
 # --------------------------------------------------------------------------- baseline (scan level)
 
 def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-                    opts: FitOptions) -> tuple[PlaneResult, PlaneResult]:
+                    opts: FitOptions) -> ScanFit:
     """FCM with three clusters + RANSAC (paper §5.4, ref. [8]).
 
     Features per point: the raw point's y and z (eq. 9) and the R of its step,
@@ -489,7 +623,8 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
     ok = np.isfinite(d) & (d > 0) & np.isfinite(rr)
     if np.count_nonzero(ok) < 3 * opts.min_points:
         f = FitFailure(FailureReason.TOO_FEW_POINTS, f"fcm-ransac: {np.count_nonzero(ok)} valid points", "", 0)
-        return (FitFailure(f.reason, f.detail, "a", f.n_points), FitFailure(f.reason, f.detail, "b", f.n_points))
+        return ScanFit(FitFailure(f.reason, f.detail, "a", f.n_points),
+                       FitFailure(f.reason, f.detail, "b", f.n_points))
     raw = beam_points(geometry, g, np.where(ok, d, 0.0))
     feats = np.stack([raw[..., 1][ok], raw[..., 2][ok], rr[ok]], axis=1)
     sd = feats.std(axis=0)
@@ -501,11 +636,13 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
     mean_g = [gg[ok][fcm.labels == k].mean() if np.any(fcm.labels == k) else np.inf for k in rest]
     order = [rest[i] for i in np.argsort(mean_g)]
     out: list[PlaneResult] = []
+    datas: list[F.PlaneData] = []
     for label, cluster, axis in zip(("a", "b"), order, (AXIS_Y, AXIS_Z)):
         sel = np.zeros(d.shape, dtype=bool)
         sel[ok] = fcm.labels == cluster
         st = np.unique(steps[sel])
         data = F.plane_data(geometry, g, np.where(sel, d, np.nan), st, label, axis)
+        datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:
             out.append(fail)
@@ -517,7 +654,7 @@ def _fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, 
         out.append(F.make_plane_fit(data, rs.normal / rs.offset, method="fcm-ransac", inlier_mask=rs.inliers,
                                     diagnostics=_diag("fcm+ransac", t0, starts=rs.iterations,
                                                       iterations=fcm.iterations, converged=fcm.converged)))
-    return out[0], out[1]
+    return ScanFit(out[0], out[1], datas[0], datas[1])
 
 
 # --------------------------------------------------------------------------- registry
@@ -535,10 +672,12 @@ register_method(Method("constant-depth", "mirror-echo model n·p_c + d = h: LEL,
                        fit_plane=_fit_constant_depth))
 register_method(Method("adaptive", "lel-refit-ls, or the constant-depth LS fit where a χ² test shows a tilted wall",
                        fit_plane=_fit_adaptive))
+register_method(Method("corner", "joint model of both walls and the edge over all echoes, then adaptive refits",
+                       fit_scan=_fit_corner))
 register_method(Method("fcm-ransac", "paper §5.4 baseline: FCM (3 clusters) + RANSAC", fit_scan=_fit_fcm_ransac))
 
 #: The method :func:`reconstruct` uses by default (chosen by the benchmark).
-DEFAULT_METHOD = "adaptive"
+DEFAULT_METHOD = "corner"
 
 
 # --------------------------------------------------------------------------- public API
@@ -601,7 +740,21 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
     direction = cr / s
     a = np.stack([na, nb, direction])
     point = np.linalg.solve(a, np.array([plane_a.offset, plane_b.offset, 0.0]))
-    return EdgeLine(point=point, direction=direction, angle=angle)
+    # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
+    # and turns it by δ / sin(angle).
+    point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
+                             + (plane_a.offset * plane_a.normal_stderr)**2
+                             + (plane_b.offset * plane_b.normal_stderr)**2) / s)
+    direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
+    return EdgeLine(point=point, direction=direction, angle=angle, point_stderr=point_se,
+                    direction_stderr=direction_se)
+
+
+def _assessed(plane: PlaneResult, gamma: np.ndarray) -> PlaneResult:
+    """The plane with its trust verdict (:mod:`lelsonar.reconstruct.quality`), unless it has one."""
+    if isinstance(plane, PlaneFit) and not plane.quality:
+        return assess_plane(plane, gamma)
+    return plane
 
 
 def _validate_inputs(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray,
@@ -676,12 +829,15 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
                                   Timings(t1 - t0, 0.0, 0.0, t1 - t0))
     if m.fit_scan is not None:
         t1 = time.perf_counter()
-        pa, pb = m.fit_scan(g, d, ratio, geometry, opts)
+        sf = m.fit_scan(g, d, ratio, geometry, opts)
+        pa, pb = _assessed(sf.plane_a, g), _assessed(sf.plane_b, g)
+        crit = crit if sf.critical_step is None else sf.critical_step
         t2 = time.perf_counter()
         ta = pa.diagnostics.time_s if isinstance(pa, PlaneFit) else 0.0
         edge = corner_edge(pa, pb)
         return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
-                                  Timings(t1 - t0, ta, max(t2 - t1 - ta, 0.0), time.perf_counter() - t0))
+                                  Timings(t1 - t0, ta, max(t2 - t1 - ta, 0.0), time.perf_counter() - t0),
+                                  sf.data_a, sf.data_b)
     split = split_subsets(g, crit)
     data_a = F.plane_data(geometry, g, d, split.steps_a, "a", AXIS_Y)
     data_b = F.plane_data(geometry, g, d, split.steps_b, "b", AXIS_Z)
@@ -689,10 +845,11 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
     pa = fit_plane(data_a, method, warm_start=warm_a, options=opts)
     t2 = time.perf_counter()
     pb = fit_plane(data_b, method, warm_start=warm_b, options=opts)
+    pa, pb = _assessed(pa, g), _assessed(pb, g)
     t3 = time.perf_counter()
     edge = corner_edge(pa, pb)
     return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
-                              Timings(t1 - t0, t2 - t1, t3 - t2, time.perf_counter() - t0))
+                              Timings(t1 - t0, t2 - t1, t3 - t2, time.perf_counter() - t0), data_a, data_b)
 
 
 # Re-exported for callers that want the raw points.

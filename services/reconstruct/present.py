@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.table import Table
 
 from lelsonar import codec
-from lelsonar.reconstruct.wire import STATUS
+from lelsonar.reconstruct.wire import QUALITY_NAME, STATUS
 
 _STATUS_NAME = {v: k for k, v in STATUS.items()}
 
@@ -29,6 +29,8 @@ def to_json(msg: codec.Reconstruction) -> str:
     """One JSON line: the message's fields (SI units) with proto field names."""
     d = MessageToDict(msg, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
     d["status"] = status_name(msg)
+    for plane, pd in zip(msg.planes, d.get("planes", [])):
+        pd["quality"] = QUALITY_NAME.get(plane.quality, "unknown")
     return json.dumps(d, separators=(",", ":"), sort_keys=True)
 
 
@@ -57,21 +59,35 @@ def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, f
         t.add_column("Δh (cm)", justify="right")
     for col in ("σ (mm)", "inliers", "H"):
         t.add_column(col, justify="right")
+    t.add_column("quality")
     for p in sorted(msg.planes, key=lambda p: (p.label, p.method)):
         n = _vec(p.normal)
         cells = [p.label, p.method, f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}", f"{p.offset * 100:.2f}"]
         if truth:
             tn, th = truth.get(p.label, (None, None))
             cells += ([f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""])
-        cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}"]
+        cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}",
+                  quality_cell(p)]
         t.add_row(*cells)
     if truth:
         for label, (tn, th) in sorted(truth.items()):
             t.add_row(label, "truth", f"{tn[0]:+.3f} {tn[1]:+.3f} {tn[2]:+.3f}", f"{th * 100:.2f}",
-                      "", "", "", "", "", style="dim")
+                      "", "", "", "", "", "", style="dim")
     for f in msg.failures:
         t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
     return t
+
+
+_QUALITY_STYLE = {"good": "green", "degraded": "yellow", "unreliable": "bold red"}
+
+
+def quality_cell(plane) -> str:
+    """The verdict, coloured, with its reasons (rich markup)."""
+    name = QUALITY_NAME.get(plane.quality, "unknown")
+    text = f"[{_QUALITY_STYLE.get(name, 'dim')}]{name}[/]"
+    if plane.quality_reasons:
+        text += ": " + "; ".join(plane.quality_reasons)
+    return text
 
 
 def plane_equations(msg: codec.Reconstruction, method: str) -> list[str]:

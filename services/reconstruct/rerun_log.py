@@ -47,8 +47,12 @@ scans (and scanners) in one recording never write to the same entity::
     world/{scanner}/scans/{scan}/beams             Arrows3D, capsule → echo of the current step
     world/{scanner}/scans/{scan}/corrected/{label} Points3D, outliers red and bigger
     world/{scanner}/scans/{scan}/planes/{method}/{label}         Mesh3D patch
-    world/{scanner}/scans/{scan}/planes/{method}/{label}/normal  Arrows3D
-    world/{scanner}/scans/{scan}/edge              LineStrips3D
+    world/{scanner}/scans/{scan}/planes/{method}/{label}/normal  Arrows3D, labelled with the verdict
+    world/{scanner}/scans/{scan}/planes/{method}/{label}/quality LineStrips3D outline: green good,
+                                                   amber degraded, red unreliable
+    world/{scanner}/scans/{scan}/planes/{method}/{label}/uncertainty/offset_band  the patch at ±2σ_h
+    world/{scanner}/scans/{scan}/planes/{method}/{label}/uncertainty/normal_cone  Arrows3D at 2σ_n
+    world/{scanner}/scans/{scan}/edge              LineStrips3D, labelled with its ± mm
     world/{scanner}/scans/{scan}/critical          LineStrips3D, the critical direction
     plots/energy/{scanner}/{scan}                  Scalars [E^γ, E0(d_m)]
     plots/ratio/{scanner}/{scan}/R                 Scalars
@@ -75,6 +79,7 @@ import rerun.blueprint as rrb
 
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.results import EdgeLine, FitFailure, PlaneFit
+from lelsonar.reconstruct.palette import METHOD_COLORS, method_color, quality_color
 
 __all__ = [
     "STEP_TIMELINE",
@@ -94,12 +99,6 @@ ANGLE_TIMELINE = "gamma_cdeg"
 TIME_TIMELINE = "acq_time"
 
 #: Per-method colours (RGB); methods not listed get a stable colour from the palette.
-METHOD_COLORS: dict[str, tuple[int, int, int]] = {
-    "ls": (255, 140, 0),       # orange
-    "lel": (40, 190, 70),      # green
-    "paper": (0, 180, 210),    # cyan
-    "ransac": (220, 60, 200),  # magenta
-}
 _PALETTE = [(230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100)]
 _PLANE_ALPHA = 110                       # patches stay see-through so points behind them show
 _TRUTH_RGBA = (160, 160, 160, 80)
@@ -224,9 +223,17 @@ class SubsetView:
         object.__setattr__(self, "inlier_mask", mask)
 
 
-def method_color(method: str) -> tuple[int, int, int]:
-    """The colour of an estimator's planes: fixed for known methods, stable for others."""
-    return METHOD_COLORS.get(method, _PALETTE[zlib.crc32(method.encode()) % len(_PALETTE)])
+def _cone(normal: np.ndarray, half_angle: float, n: int = 8) -> np.ndarray:
+    """``n`` unit vectors at ``half_angle`` (rad) around ``normal``: the edge of its uncertainty cone."""
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(normal)))] = 1.0
+    e1 = np.cross(normal, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    a = min(float(half_angle), np.pi / 4)
+    return (np.cos(a) * normal[None, :]
+            + np.sin(a) * (np.cos(phi)[:, None] * e1[None, :] + np.sin(phi)[:, None] * e2[None, :]))
 
 
 def _centidegrees(gamma: float) -> int:
@@ -563,14 +570,19 @@ class ScanLogger:
             for p in planes:
                 if isinstance(p, PlaneFit):
                     n = p.normal
-                    lines.append(f"  {p.method} {p.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}), "
-                                 f"h = {p.offset:.4f} m, σ = {p.sigma * 1e3:.1f} mm, "
-                                 f"{p.n_inliers}/{p.n_points} inliers")
+                    lines.append(f"  {p.method} {p.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}) "
+                                 f"± {math.degrees(p.normal_stderr):.2f}°, h = {p.offset:.4f} "
+                                 f"± {p.offset_stderr * 1e3:.1f} mm, σ = {p.sigma * 1e3:.1f} mm, "
+                                 f"{p.n_inliers}/{p.n_points} inliers, {p.quality or 'unassessed'}"
+                                 + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else ""))
                 else:
                     lines.append(f"  {p.label}: failed, {p.reason.value}")
             if isinstance(edge, EdgeLine):
-                lines.append(f"  edge angle {math.degrees(edge.angle):.2f}°")
-            rec.log(self.log_path, rr.TextLog("\n".join(lines), level=rr.TextLogLevel.INFO))
+                lines.append(f"  edge angle {math.degrees(edge.angle):.2f}°, point ± {edge.point_stderr * 1e3:.1f} mm, "
+                             f"direction ± {math.degrees(edge.direction_stderr):.2f}°")
+            untrusted = any(isinstance(p, PlaneFit) and p.quality in ("degraded", "unreliable") for p in planes)
+            rec.log(self.log_path, rr.TextLog("\n".join(lines), level=rr.TextLogLevel.WARN if untrusted
+                                              else rr.TextLogLevel.INFO))
 
     def _plane_path(self, method: str, label: str) -> str:
         return (f"{self.scan_world}/planes/{rr.escape_entity_path_part(method)}/"
@@ -583,8 +595,20 @@ class ScanLogger:
         rec.log(path, rr.Mesh3D(vertex_positions=p.patch, triangle_indices=[[0, 1, 2], [0, 2, 3]],
                                 vertex_normals=np.tile(p.normal, (4, 1)), albedo_factor=(*rgb, _PLANE_ALPHA),
                                 face_rendering="DoubleSided"))
-        rec.log(f"{path}/normal", rr.Arrows3D(origins=[p.patch.mean(axis=0)], vectors=[p.normal * _NORMAL_LENGTH],
-                                              colors=rgb, radii=0.005, labels=f"{p.method} {p.label}"))
+        centre = p.patch.mean(axis=0)
+        rec.log(f"{path}/normal", rr.Arrows3D(origins=[centre], vectors=[p.normal * _NORMAL_LENGTH],
+                                              colors=rgb, radii=0.005,
+                                              labels=f"{p.method} {p.label} ({p.quality or 'unassessed'})"))
+        # The verdict as the patch's outline: green good, amber degraded, red unreliable.
+        outline = np.vstack([p.patch, p.patch[:1]])
+        rec.log(f"{path}/quality", rr.LineStrips3D([outline], colors=quality_color(p.quality),
+                                                   radii=0.004, labels=p.quality or "unassessed"))
+        # The uncertainty: the offset band (patch outline at ±2σ_h) and the normal cone (half-angle 2σ_n).
+        band = [outline + k * 2.0 * p.offset_stderr * p.normal for k in (-1.0, 1.0)]
+        rec.log(f"{path}/uncertainty/offset_band", rr.LineStrips3D(band, colors=rgb, radii=0.0015))
+        rec.log(f"{path}/uncertainty/normal_cone", rr.Arrows3D(origins=np.tile(centre, (8, 1)),
+                                                               vectors=_cone(p.normal, 2.0 * p.normal_stderr)
+                                                               * _NORMAL_LENGTH, colors=rgb, radii=0.0015))
         rec.log(self._errors_path(p.method, p.label), rr.BarChart(p.sorted_residuals, color=rgb))
 
     def _errors_path(self, method: str, label: str) -> str:
@@ -608,8 +632,10 @@ class ScanLogger:
             if hi_p - lo_p > 1e-3:
                 lo, hi = lo_p, hi_p
         seg = edge.point + np.outer([lo, hi], edge.direction)
-        self.rec.log(f"{self.scan_world}/edge", rr.LineStrips3D([seg], colors=_EDGE_RGB, radii=0.004,
-                                                                labels=f"edge {math.degrees(edge.angle):.1f}°"))
+        label = f"edge {math.degrees(edge.angle):.1f}°"
+        if math.isfinite(edge.point_stderr):
+            label += f" ± {edge.point_stderr * 1e3:.0f} mm"
+        self.rec.log(f"{self.scan_world}/edge", rr.LineStrips3D([seg], colors=_EDGE_RGB, radii=0.004, labels=label))
 
     def _log_critical(self, critical_step: int, critical_gamma: float, final: bool) -> None:
         rec = self.rec

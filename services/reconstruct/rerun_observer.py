@@ -12,11 +12,9 @@ import rerun as rr
 from lelsonar import codec
 from lelsonar.reconstruct import fit as F
 from lelsonar.reconstruct.assembly import ScanAssembly, StepView
-from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
 from lelsonar.reconstruct.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.service import Partial
-from lelsonar.reconstruct.split import split_subsets
 
 
 class RerunObserver:
@@ -93,13 +91,8 @@ class RerunObserver:
         return SubsetView(data.label, np.asarray(data.points), np.asarray(mask))
 
     def _final_subsets(self, scan: ScanAssembly, main: ScanReconstruction) -> list[SubsetView | None]:
-        if main.critical_step is None:
-            return []
-        _, gamma, distance, _ = scan.arrays()
-        split = split_subsets(gamma, main.critical_step)  # the same split reconstruct() made
-        return [self._subset(F.plane_data(scan.geometry, gamma, distance, steps, label, axis), plane)
-                for steps, label, axis, plane in ((split.steps_a, "a", AXIS_Y, main.plane_a),
-                                                  (split.steps_b, "b", AXIS_Z, main.plane_b))]
+        # The points each plane was fitted on, as reconstruct() chose them.
+        return [self._subset(main.data_a, main.plane_a), self._subset(main.data_b, main.plane_b)]
 
 
 def preset_truth(name: str) -> list[tuple[str, np.ndarray, float, np.ndarray]]:

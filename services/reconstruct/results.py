@@ -165,6 +165,11 @@ class PlaneFit:
         Corners of the observed patch: the bounding rectangle, in the plane, of
         the inliers' foot points, m.
     diagnostics : SolverDiagnostics
+    quality : str
+        The trust verdict, ``"good"``, ``"degraded"`` or ``"unreliable"``
+        (:mod:`lelsonar.reconstruct.quality`); ``""`` until assessed.
+    quality_reasons : tuple of str
+        Why it is not good.
     """
 
     label: str
@@ -181,8 +186,13 @@ class PlaneFit:
     offset_stderr: float
     patch: np.ndarray
     diagnostics: SolverDiagnostics = field(default_factory=lambda: SolverDiagnostics("unknown"))
+    quality: str = ""
+    quality_reasons: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        if self.quality not in ("", "good", "degraded", "unreliable"):
+            raise ConfigError(f"PlaneFit.quality must be good, degraded or unreliable, got {self.quality!r}")
+        object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
         n = _frozen_array(self, "normal", (3,))
         if abs(float(np.linalg.norm(n)) - 1.0) > 1e-9:
             raise ConfigError(f"PlaneFit.normal must be a unit vector, |n| = {np.linalg.norm(n)}")
@@ -245,11 +255,18 @@ class EdgeLine:
         Unit direction, ``n_a × n_b`` normalised.
     angle : float
         Angle between the two planes' normals, rad (π/2 for the paper's corner).
+    point_stderr : float
+        Standard error of the point across the line, m (first order, from the
+        planes' standard errors; NaN if unknown).
+    direction_stderr : float
+        Standard error of the direction, rad.
     """
 
     point: np.ndarray
     direction: np.ndarray
     angle: float
+    point_stderr: float = float("nan")
+    direction_stderr: float = float("nan")
 
     def __post_init__(self) -> None:
         _frozen_array(self, "point", (3,))
@@ -303,6 +320,10 @@ class ScanReconstruction:
         ``a`` is the plane seen before the corner (the subset at smaller γ).
     edge : EdgeLine or FitFailure
     timings : Timings
+    data_a, data_b : lelsonar.reconstruct.fit.PlaneData or None
+        The points each plane was fitted on, in the order its ``inlier_mask``
+        indexes (the energy split's halves, or the echoes the joint corner
+        model gave each wall).  Step indices are those of the input arrays.
     """
 
     method: str
@@ -313,6 +334,8 @@ class ScanReconstruction:
     plane_b: PlaneResult
     edge: EdgeLine | FitFailure
     timings: Timings
+    data_a: object | None = None  # PlaneData; typed loosely: fit.py imports this module
+    data_b: object | None = None
 
     def __post_init__(self) -> None:
         if self.n_steps < 0:

@@ -37,7 +37,8 @@ from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
-from lelsonar.reconstruct.results import PlaneFit, PlaneResult, ScanReconstruction
+from lelsonar.reconstruct.quality import cross_check
+from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step
 
 _log = logging.getLogger(__name__)
@@ -128,6 +129,19 @@ class ServiceStats:
     timeouts: int = 0  # rejected input is counted by error type in ingest.rejected
 
 
+def _compared(plane: PlaneResult, method: str, main: ScanReconstruction) -> PlaneResult:
+    """A compared method's plane, checked against the method of record's; a failure names its method.
+
+    A compared method that fails is reported, never silently dropped; one
+    that disagrees with a good plane of record is degraded (it may have
+    locked onto the corner cluster, which its own residuals cannot show).
+    """
+    if not isinstance(plane, PlaneFit):
+        return FitFailure(plane.reason, f"{method}: {plane.detail}", plane.label, plane.n_points)
+    reference = main.plane_a if plane.label == "a" else main.plane_b
+    return cross_check(plane, reference) if isinstance(reference, PlaneFit) else plane
+
+
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
@@ -142,6 +156,8 @@ class ReconstructionService:
         self._partials: dict[ScanKey, Partial] = {}
         self._pending_since: dict[ScanKey, float] = {}  # samples held while their ScanStart is missing
         self._options = FitOptions()
+        # Provisional refits fit one half at a time; a scan-level method of record ("corner") runs at the end.
+        self._plane_method = self.config.method if METHODS[self.config.method].fit_plane else "adaptive"
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
         #: Final estimates, per scan, in the order they were made.
@@ -247,14 +263,14 @@ class ReconstructionService:
             self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
                                 f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
             p.data_a = self._plane_data(scan, "a", p.critical)
-            p.plane_a = fit_plane(p.data_a, self.config.method, options=self._options)
+            p.plane_a = fit_plane(p.data_a, self._plane_method, options=self._options)
         elif len(steps) - p.steps_at_fit < self.config.refit_every:
             return []
         p.estimated_at = self._clock()
         t0 = time.perf_counter()
         warm = p.plane_b.theta if isinstance(p.plane_b, PlaneFit) else None
         p.data_b = self._plane_data(scan, "b", p.critical)
-        p.plane_b = fit_plane(p.data_b, self.config.method, warm_start=warm, options=self._options)
+        p.plane_b = fit_plane(p.data_b, self._plane_method, warm_start=warm, options=self._options)
         p.steps_at_fit = len(steps)
         fit_s = time.perf_counter() - t0
         edge = corner_edge(p.plane_a, p.plane_b)
@@ -283,7 +299,7 @@ class ReconstructionService:
         crit = int(steps[main.critical_step]) if main.critical_step is not None else None
         planes: list[PlaneResult] = [main.plane_a, main.plane_b]
         for method in self.config.compare_methods:
-            planes += [pl for pl in results[method].planes if isinstance(pl, PlaneFit)]
+            planes += [_compared(pl, method, main) for pl in results[method].planes]
         t = main.timings
         msg = wire.reconstruction_message(
             scan.start.scanner_id, scan.start.scan_id, status=status,

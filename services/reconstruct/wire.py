@@ -11,6 +11,15 @@ from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.reconstruct.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
 from lelsonar.v1 import reconstruction_pb2 as pb
 
+QUALITY = {
+    "": pb.PLANE_QUALITY_UNSPECIFIED,
+    "good": pb.PLANE_QUALITY_GOOD,
+    "degraded": pb.PLANE_QUALITY_DEGRADED,
+    "unreliable": pb.PLANE_QUALITY_UNRELIABLE,
+}
+#: Short names of the quality enum, as ``--json`` and the planner print them.
+QUALITY_NAME = {v: (k or "unassessed") for k, v in QUALITY.items()}
+
 STATUS = {
     "provisional": pb.ESTIMATE_STATUS_PROVISIONAL,
     "final": pb.ESTIMATE_STATUS_FINAL,
@@ -27,6 +36,7 @@ def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
         label=plane.label, method=plane.method, offset=plane.offset, sigma_relative=plane.sigma_relative,
         sigma=plane.sigma, inlier_count=plane.n_inliers, point_count=plane.n_points, lel_cost=plane.entropy,
         normal_stderr=plane.normal_stderr, offset_stderr=plane.offset_stderr,
+        quality=QUALITY[plane.quality], quality_reasons=list(plane.quality_reasons),
     )
     _set(msg.normal, plane.normal)
     _set(msg.theta, plane.theta)
@@ -61,6 +71,8 @@ def reconstruction_message(scanner_id: str, scan_id: int, *, status: str, last_s
     if isinstance(edge, EdgeLine):
         _set(msg.corner_edge.point, edge.point)
         _set(msg.corner_edge.direction, edge.direction)
+        msg.corner_edge.point_stderr = float(edge.point_stderr)
+        msg.corner_edge.direction_stderr = float(edge.direction_stderr)
     elif isinstance(edge, FitFailure):
         msg.failures.append(str(edge))
     msg.timings.segmentation, msg.timings.fit, msg.timings.total = (float(t) for t in timings)

@@ -1,0 +1,456 @@
+"""The whole L explains every echo: a joint model of both walls and their edge.
+
+The paper splits the scan at the energy peak and fits each half on its own,
+treating the corner's double-bounce echoes as outliers.  That breaks when a
+half holds more corner echoes than wall echoes (a sweep that covers little of
+a wall, a far wall, a corner at an unusual angle): the corner echoes all share
+one range, the distance to the edge, so the mirror-echo condition fits them for
+*any* normal and LEL locks onto them (its breakdown point is 35–45 % one-sided
+outliers, design notes §9).
+
+Here the corner echoes are signal.  Two walls ``n_a·x = h_a``, ``n_b·x = h_b``
+predict every echo a capsule at ``p_c`` can return (design notes §8):
+
+* a mirror echo from wall ``k`` at range ``h_k − n_k·p_c``, if the wall's normal
+  lies within the beam;
+* the double bounce from the edge where the walls meet, at the distance from
+  ``p_c`` to that line, if the edge lies within the beam;
+* or an outlier.
+
+Hypotheses are the dense bands of the mirror-implied wall position
+``w = n₀·p_c + d`` (``n₀`` the paper's assumed axis of each wall, §4), so no
+random sampling is needed and the result is deterministic.  Each pair of bands
+is refined by alternating assignment (each echo to the model that explains it
+best) and constant-depth least squares, then scored with the MSAC cost over
+*all* echoes.  The true pair explains the wall echoes of both walls and the
+corner cluster through the edge; a pair that mistakes the corner cluster for a
+wall leaves the real wall's echoes unexplained and its edge explains nothing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.geometry import ArrayGeometry, boresight
+
+
+__all__ = [
+    "ScanPoints",
+    "Wall",
+    "CornerModel",
+    "scan_points",
+    "mirror_residuals",
+    "edge_line",
+    "edge_residuals",
+    "assign_echoes",
+    "joint_residuals",
+    "joint_gauss_newton",
+    "band_offsets",
+    "fit_corner_model",
+    "ECHO_WALL_A",
+    "ECHO_WALL_B",
+    "ECHO_EDGE",
+    "ECHO_OUTLIER",
+]
+
+ECHO_WALL_A, ECHO_WALL_B, ECHO_EDGE, ECHO_OUTLIER = 0, 1, 2, -1
+
+
+@dataclass(frozen=True)
+class ScanPoints:
+    """Every valid echo of a scan, flattened.
+
+    Attributes
+    ----------
+    step : (N,) int array
+    capsule_index : (N,) int array
+    gamma : (N,) array, rad
+    capsule : (N, 3) array
+        Capsule position ``p_c`` of the echo, m.
+    distance : (N,) array
+        Range ``d``, m.
+    beam : (N, 3) array
+        Unit boresight.
+    """
+
+    step: np.ndarray
+    capsule_index: np.ndarray
+    gamma: np.ndarray
+    capsule: np.ndarray
+    distance: np.ndarray
+    beam: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return int(self.distance.shape[0])
+
+
+@dataclass(frozen=True)
+class Wall:
+    """A plane ``normal · x = offset`` (unit normal away from the scanner, m)."""
+
+    normal: np.ndarray
+    offset: float
+
+
+@dataclass(frozen=True)
+class CornerModel:
+    """The best joint explanation of a scan's echoes.
+
+    Attributes
+    ----------
+    wall_a, wall_b : Wall
+    labels : (N,) int array
+        :data:`ECHO_WALL_A`, :data:`ECHO_WALL_B`, :data:`ECHO_EDGE` or
+        :data:`ECHO_OUTLIER` for each echo of the :class:`ScanPoints`.
+    residuals : (N,) array
+        Range residual of each echo under its label's model, m (NaN for outliers).
+    tolerance : float
+        Inlier tolerance of the final assignment, m.
+    cost : float
+        MSAC cost of the model (m²), lower is better.
+    hypotheses : int
+        Band pairs tried.
+    covariance : (6, 6) array
+        Of the tangent-plane tilt ``(u₁, u₂)`` (rad) and offset (m) of wall a,
+        then wall b, from the joint least squares (``inf`` where unconstrained).
+    """
+
+    wall_a: Wall
+    wall_b: Wall
+    labels: np.ndarray
+    residuals: np.ndarray
+    tolerance: float
+    cost: float
+    hypotheses: int
+    covariance: np.ndarray
+
+    def wall_stderr(self, k: int) -> tuple[float, float]:
+        """RMS tilt (rad) and offset standard error (m) of wall ``k`` (0 = a, 1 = b)."""
+        c = self.covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3]
+        if not np.all(np.isfinite(c)):
+            return float("inf"), float("inf")
+        return float(np.sqrt(max(c[0, 0] + c[1, 1], 0.0))), float(np.sqrt(max(c[2, 2], 0.0)))
+
+    def count(self, label: int) -> int:
+        return int(np.count_nonzero(self.labels == label))
+
+
+def scan_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray) -> ScanPoints:
+    """Flatten the valid echoes of a scan (finite, positive ranges)."""
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    pc = geometry.capsule_positions(g)
+    b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
+    ok = np.isfinite(d) & (d > 0)
+    steps = np.broadcast_to(np.arange(g.shape[0])[:, None], d.shape)
+    caps = np.broadcast_to(np.arange(d.shape[1])[None, :], d.shape)
+    gg = np.broadcast_to(g[:, None], d.shape)
+    return ScanPoints(steps[ok].astype(np.intp), caps[ok].astype(np.intp), gg[ok], pc[ok], d[ok], b[ok])
+
+
+def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
+    """Residual of the mirror-echo condition ``n·p_c + d − h`` of every echo, m (design notes §8)."""
+    return pts.capsule @ wall.normal + pts.distance - wall.offset
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    # np.cross costs ~20 µs of argument handling per call; this is on the solver's hot path.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
+              ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Point (nearest the origin) and unit direction of the line where two walls meet.
+
+    With ``e = n_a × n_b`` the point is ``(h_a (n_b × e) + h_b (e × n_a)) / |e|²``.
+    None if the walls are within ``min_angle`` of parallel (no corner).
+    """
+    e = _cross(wall_a.normal, wall_b.normal)
+    s2 = float(e @ e)
+    if s2 < np.sin(min_angle) ** 2:
+        return None
+    point = (wall_a.offset * _cross(wall_b.normal, e) + wall_b.offset * _cross(e, wall_a.normal)) / s2
+    return point, e / np.sqrt(s2)
+
+
+def edge_residuals(point: np.ndarray, direction: np.ndarray, pts: ScanPoints,
+                   opening: float = np.pi / 2) -> tuple[np.ndarray, np.ndarray]:
+    """Range residual of the double bounce, ``d − ρ·sin(opening)`` (m), and the unit direction to the edge.
+
+    Two reflections in a dihedral of interior angle ``opening`` rotate the
+    capsule's image by ``2·opening`` about the edge, so the echo returns from
+    ``ρ·sin(opening)``, ρ the capsule's distance to the edge line — exactly ρ
+    for a 90° corner, which retro-reflects (design notes §8).
+    """
+    rel = point - pts.capsule
+    perp = rel - np.outer(rel @ direction, direction)
+    dist = np.sqrt(np.einsum("ij,ij->i", perp, perp))
+    return pts.distance - dist * np.sin(opening), perp / np.maximum(dist, 1e-9)[:, None]
+
+
+def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    line = edge_line(wall_a, wall_b, min_angle=0.0)
+    if line is None:
+        return np.full(distance.shape, np.inf)
+    point, direction = line
+    rel = point - capsule
+    t = rel @ direction
+    dist2 = np.einsum("ij,ij->i", rel, rel) - t * t
+    return distance - np.sqrt(np.maximum(dist2, 0.0)) * np.sin(_opening(wall_a, wall_b))
+
+
+def _opening(wall_a: Wall, wall_b: Wall) -> float:
+    """Interior angle of the dihedral that holds the scanner (both normals point out of it), rad."""
+    return float(np.pi - np.arccos(np.clip(wall_a.normal @ wall_b.normal, -1.0, 1.0)))
+
+
+def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
+                  beam_half_angle: float, edge_tolerance: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Give each echo to the model that explains it best, within ``tolerance``.
+
+    A wall can explain an echo only if its normal is within ``beam_half_angle``
+    of the boresight, the edge only if the edge is; an echo no model explains
+    within ``tolerance`` (m) is an outlier.  ``edge_tolerance`` (default
+    ``tolerance``) applies to the edge: wider while the walls are still rough,
+    since a pitch error δ moves the edge by about ``h·δ``.
+
+    Returns
+    -------
+    labels : (N,) int array
+    residuals : (N,) array, m (NaN for outliers)
+    """
+    cos_t = np.cos(beam_half_angle)
+    r = np.full((3, pts.n), np.inf)
+    for k, wall in enumerate((wall_a, wall_b)):
+        rk = mirror_residuals(wall, pts)
+        r[k] = np.where(pts.beam @ wall.normal >= cos_t, rk, np.inf)
+    line = edge_line(wall_a, wall_b)
+    if line is not None:
+        re, u = edge_residuals(*line, pts, _opening(wall_a, wall_b))
+        r[2] = np.where(np.einsum("ij,ij->i", pts.beam, u) >= cos_t, re, np.inf)
+    best = np.argmin(np.abs(r), axis=0)
+    res = r[best, np.arange(pts.n)]
+    tol = np.where(best == ECHO_EDGE, tolerance if edge_tolerance is None else edge_tolerance, tolerance)
+    labels = np.where(np.abs(res) <= tol, best, ECHO_OUTLIER)
+    return labels, np.where(labels == ECHO_OUTLIER, np.nan, res)
+
+
+def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
+    r = np.where(np.isfinite(residuals), residuals, tolerance)
+    return float(np.sum(np.minimum(r * r, tolerance * tolerance)))
+
+
+def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, min_count: int = 6) -> np.ndarray:
+    """Centres of the densest bands of mirror-implied wall positions ``w`` (m), densest first.
+
+    A wall seen near face-on puts its echoes at ``w ≈ h`` whatever the step;
+    the corner cluster makes a band at the edge's distance.  Peaks of the
+    smoothed histogram (bins of ``bin_width``) with at least ``min_count``
+    echoes, each refined as the median of ``w`` within 2 bins (the smoothing
+    turns a one-bin spike into a three-bin plateau whose right end is the peak).
+    """
+    w = np.asarray(w, dtype=np.float64)
+    w = w[np.isfinite(w)]
+    if w.size < min_count:
+        return np.zeros(0)
+    lo, hi = float(w.min()), float(w.max())
+    nb = max(int(np.ceil((hi - lo) / bin_width)), 1)
+    counts, edges = np.histogram(w, bins=nb, range=(lo, lo + nb * bin_width))
+    smooth = np.convolve(np.pad(counts, 1), [1, 1, 1], mode="valid")
+    left = np.concatenate([[-1], smooth[:-1]])
+    right = np.concatenate([smooth[1:], [-1]])
+    peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= min_count))
+    peaks = peaks[np.argsort(-smooth[peaks], kind="stable")][:max_bands]
+    centres = []
+    for p in peaks:
+        c = 0.5 * (edges[p] + edges[p + 1])
+        near = np.abs(w - c) <= 2.0 * bin_width
+        if np.any(near):
+            centres.append(float(np.median(w[near])))
+    return np.asarray(centres)
+
+
+def _tangent(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(n)))] = 1.0
+    e1 = _cross(n, helper)
+    e1 /= np.sqrt(e1 @ e1)
+    return e1, _cross(n, e1)
+
+
+def _moved(wall: Wall, z: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> Wall:
+    n = wall.normal + z[0] * basis[0] + z[1] * basis[1]
+    return Wall(n / np.sqrt(n @ n), wall.offset + float(z[2]))
+
+
+def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
+    """Range residuals (m) of the labelled echoes under their models: wall a, wall b, then the edge."""
+    ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
+    return np.concatenate([pts.capsule[ma] @ wall_a.normal + pts.distance[ma] - wall_a.offset,
+                           pts.capsule[mb] @ wall_b.normal + pts.distance[mb] - wall_b.offset,
+                           _edge_range_residuals(wall_a, wall_b, pts.capsule[me], pts.distance[me])])
+
+
+def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray, *, iterations: int = 3,
+                       step: float = 1e-7) -> tuple[tuple[Wall, Wall], np.ndarray]:
+    """Least squares of all labelled echoes over both walls at once (6 parameters).
+
+    Each wall is ``n = normalise(n₀ + u₁e₁ + u₂e₂)``, ``h``; the edge echoes tie
+    the two walls together through their intersection, which pins down the
+    pitch that each wall's own echoes (a few-cm lever arm) barely constrain.
+    Levenberg-damped Gauss-Newton; the mirror rows' Jacobian is exact
+    (``∂r/∂u = p_c·e``, ``∂r/∂h = −1``), the edge rows' by forward differences.
+
+    Returns the walls and the (6, 6) covariance of ``(u₁, u₂, h)`` of wall a
+    then wall b (``σ² (JᵀJ)⁻¹``, σ² from the residuals; ``inf`` if
+    unconstrained).
+    """
+    ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
+    pa, da = pts.capsule[ma], pts.distance[ma]
+    pb, db = pts.capsule[mb], pts.distance[mb]
+    pe, de = pts.capsule[me], pts.distance[me]
+    na_, nb_, ne_ = len(da), len(db), len(de)
+    m = na_ + nb_ + ne_
+    walls = [wall_a, wall_b]
+    eye = np.eye(3)
+
+    def residuals(wa: Wall, wb: Wall) -> np.ndarray:
+        return np.concatenate([pa @ wa.normal + da - wa.offset, pb @ wb.normal + db - wb.offset,
+                               _edge_range_residuals(wa, wb, pe, de)])
+
+    def jacobian(wa: Wall, wb: Wall, r: np.ndarray) -> tuple[np.ndarray, list]:
+        basis = [_tangent(wa.normal), _tangent(wb.normal)]
+        jac = np.zeros((m, 6))
+        for k, (p, lo, hi) in enumerate(((pa, 0, na_), (pb, na_, na_ + nb_))):
+            jac[lo:hi, 3 * k] = p @ basis[k][0]
+            jac[lo:hi, 3 * k + 1] = p @ basis[k][1]
+            jac[lo:hi, 3 * k + 2] = -1.0
+        if ne_:
+            re = r[na_ + nb_:]
+            for j in range(6):
+                k, z = divmod(j, 3)
+                moved = [wa, wb]
+                moved[k] = _moved(moved[k], step * eye[z], basis[k])
+                jac[na_ + nb_:, j] = (_edge_range_residuals(moved[0], moved[1], pe, de) - re) / step
+        return jac, basis
+
+    cov = np.full((6, 6), np.inf)
+    if m < 7:
+        return (wall_a, wall_b), cov
+    lam = 1e-6
+    r = residuals(*walls)
+    for _ in range(iterations):
+        if not np.all(np.isfinite(r)):
+            return (wall_a, wall_b), cov
+        jac, basis = jacobian(walls[0], walls[1], r)
+        jtj, g, c0 = jac.T @ jac, jac.T @ r, float(r @ r)
+        for _ in range(6):
+            try:
+                dz = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            trial = [_moved(walls[0], dz[:3], basis[0]), _moved(walls[1], dz[3:], basis[1])]
+            r1 = residuals(*trial)
+            if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
+                walls, r, lam = trial, r1, max(lam / 10, 1e-9)
+                break
+            lam *= 10
+        else:
+            break
+    jac, _ = jacobian(walls[0], walls[1], r)
+    try:
+        cov = float(r @ r) / (m - 6) * np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        pass
+    return (walls[0], walls[1]), cov
+
+
+def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple[float, float], ...],
+            beam_half_angle: float, min_points: int, axes: tuple[np.ndarray, np.ndarray],
+            max_tilt: float) -> tuple[Wall, Wall]:
+    for tol, tol_edge in tolerances:
+        labels, _ = assign_echoes(wall_a, wall_b, pts, tol, beam_half_angle, tol_edge)
+        for k in (ECHO_WALL_A, ECHO_WALL_B):
+            if np.count_nonzero(labels == k) < min_points:
+                labels = np.where(labels == k, ECHO_OUTLIER, labels)  # too few to move this wall
+        (na, nb), _ = joint_gauss_newton(wall_a, wall_b, pts, labels, iterations=1)
+        # Keep each wall within max_tilt of its nominal axis: beyond, the solver is chasing the other
+        # wall's or the edge's echoes.
+        if na.normal @ axes[0] >= np.cos(max_tilt) and na.offset > 0:
+            wall_a = na
+        if nb.normal @ axes[1] >= np.cos(max_tilt) and nb.offset > 0:
+            wall_b = nb
+    return wall_a, wall_b
+
+
+def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
+                     beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
+                     max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
+                     max_tilt: float = np.deg2rad(15.0),
+                     extra: tuple[tuple[Wall, Wall], ...] = ()) -> CornerModel | None:
+    """The two walls and their edge that best explain all the echoes.
+
+    Parameters
+    ----------
+    pts : ScanPoints
+    axis_a, axis_b : (3,) arrays
+        The walls' nominal normals (the paper's ``y`` and ``z``); hypotheses
+        start there and are refined freely.
+    beam_half_angle : float
+        rad.  Largest angle between a boresight and a wall normal (or the
+        direction to the edge) at which an echo is accepted; wide, since it
+        only rules explanations out.
+    tolerance : float
+        m.  Inlier tolerance of the scoring (MSAC) and the final assignment:
+        several times the range noise plus what a few degrees of tilt spread.
+    max_bands : int
+        Bands tried per wall.
+    max_refined : int
+        Band pairs refined (the lowest-cost ones at the loosest tolerance).
+    min_points : int
+        Fewest echoes a wall is refitted on.
+    max_tilt : float
+        rad.  Largest angle between a wall's normal and its nominal axis.
+    extra : tuple of (Wall, Wall)
+        More hypotheses, e.g. the energy split's per-half fits.
+
+    Returns
+    -------
+    CornerModel, or None if neither wall has a band of echoes.
+    """
+    cos_t = np.cos(beam_half_angle)
+    axis_a = np.asarray(axis_a, dtype=np.float64) / np.linalg.norm(axis_a)
+    axis_b = np.asarray(axis_b, dtype=np.float64) / np.linalg.norm(axis_b)
+    candidates = []
+    for axis in (axis_a, axis_b):
+        seen = pts.beam @ axis >= cos_t
+        w = pts.capsule[seen] @ axis + pts.distance[seen]
+        candidates.append([Wall(np.asarray(axis, dtype=np.float64), float(h))
+                           for h in band_offsets(w, max_bands=max_bands, min_count=min_points) if h > 0])
+    hyps = [(a, b) for a in candidates[0] for b in candidates[1]] + list(extra)
+    if not hyps:
+        return None
+    schedule = ((2.5 * tolerance, 8 * tolerance), (1.5 * tolerance, 3 * tolerance), (tolerance, tolerance))
+    if len(hyps) > max_refined:
+        # Rank by the MSAC cost at the loosest stage (the nominal normals are off by up to the tilt), refine the best.
+        loose = [_msac_cost(assign_echoes(a, b, pts, schedule[0][0], beam_half_angle, schedule[0][1])[1],
+                            schedule[0][0]) for a, b in hyps]
+        hyps = [hyps[i] for i in np.argsort(loose, kind="stable")[:max_refined]]
+    best: tuple[float, Wall, Wall] | None = None
+    for a, b in hyps:
+        wa, wb = _refine(a, b, pts, schedule, beam_half_angle, min_points, (axis_a, axis_b), max_tilt)
+        _, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
+        cost = _msac_cost(res, tolerance)
+        if best is None or cost < best[0]:
+            best = (cost, wa, wb)
+    cost, wa, wb = best
+    labels, _ = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
+    (fa, fb), cov = joint_gauss_newton(wa, wb, pts, labels, iterations=2)
+    if fa.normal @ axis_a >= np.cos(max_tilt) and fb.normal @ axis_b >= np.cos(max_tilt):
+        wa, wb = fa, fb
+    labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
+    return CornerModel(wa, wb, labels, res, tolerance, cost, len(hyps), cov)

@@ -1,0 +1,139 @@
+"""The trust verdict on every plane: ``good``, ``degraded`` or ``unreliable``, with reasons.
+
+A planner must never receive a wrong plane that claims to be good.  Each check
+below looks for a way a fit can be wrong while its own residuals look fine,
+and for the signs of a fit that is not what it claims.  Thresholds come from
+the measurement model (design notes §8): ultrasonic range noise is 1–6 mm
+(plus ±4.3 mm cycle slips), so a wall fitted to its own echoes has a
+residual σ of at most ~6 mm; a plane whose σ is several times that runs
+through echoes of more than one surface.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .results import PlaneFit
+
+__all__ = ["QualityLimits", "assess_plane", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
+
+GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
+_RANK = {GOOD: 0, DEGRADED: 1, UNRELIABLE: 2}
+
+
+@dataclass(frozen=True)
+class QualityLimits:
+    """Where each check draws its lines.
+
+    Parameters
+    ----------
+    range_noise : float
+        m.  The largest range noise σ expected of a healthy sensor (6 mm).
+    degraded_sigma, unreliable_sigma : float
+        Residual σ over ``range_noise`` above which a plane is degraded /
+        unreliable (a compromise between two surfaces).
+    min_echoes, few_echoes : int
+        Fewer wall echoes than ``min_echoes`` is unreliable, than
+        ``few_echoes`` degraded.
+    max_inlier_loss : float
+        Largest share of the subset's points a plane may reject before it is
+        degraded (the corner cluster may have won).
+    max_normal_stderr : float
+        rad.  A normal less certain than this is degraded (tilt unresolved).
+    max_offset_stderr : float
+        m.
+    face_on_angle : float
+        rad.  If no beam of the scan came within this of the wall's normal,
+        its face-on echo was never seen: degraded, and unreliable when the
+        edge was not seen either (nothing ties the wall to the corner, and a
+        corner cluster looks like a wall at the edge's range).
+    """
+
+    range_noise: float = 0.006
+    degraded_sigma: float = 1.5
+    unreliable_sigma: float = 2.5
+    min_echoes: int = 12
+    few_echoes: int = 30
+    max_inlier_loss: float = 0.6
+    max_normal_stderr: float = float(np.deg2rad(3.0))
+    max_offset_stderr: float = 0.005
+    face_on_angle: float = float(np.deg2rad(12.0))
+
+
+def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | None = None,
+                 limits: QualityLimits | None = None) -> PlaneFit:
+    """``plane`` with its verdict and reasons filled in.
+
+    Parameters
+    ----------
+    plane : PlaneFit
+    scan_gamma : (n_steps,) array
+        Every step's γ (rad), to know which directions the scan looked in.
+    edge_echoes : int, optional
+        Echoes the joint model explained by the corner edge (None: not known,
+        e.g. a per-subset method).
+    limits : QualityLimits, optional
+    """
+    lim = limits or QualityLimits()
+    verdict, reasons = GOOD, []
+
+    def flag(level: str, reason: str) -> None:
+        nonlocal verdict
+        reasons.append(reason)
+        if _RANK[level] > _RANK[verdict]:
+            verdict = level
+
+    if plane.sigma > lim.unreliable_sigma * lim.range_noise:
+        flag(UNRELIABLE, f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.unreliable_sigma:g}× the range noise: "
+                         "the plane runs through echoes of more than one surface")
+    elif plane.sigma > lim.degraded_sigma * lim.range_noise:
+        flag(DEGRADED, f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.degraded_sigma:g}× the range noise")
+    k = plane.n_inliers
+    if k < lim.min_echoes:
+        flag(UNRELIABLE, f"only {k} wall echoes")
+    elif k < lim.few_echoes:
+        flag(DEGRADED, f"only {k} wall echoes")
+    loss = 1.0 - k / max(plane.n_points, 1)
+    if loss > lim.max_inlier_loss:
+        flag(DEGRADED, f"{100 * loss:.0f} % of the subset rejected as outliers: the corner cluster may dominate it")
+    if plane.normal_stderr > lim.max_normal_stderr:
+        flag(DEGRADED, f"tilt unresolved: normal ±{np.rad2deg(plane.normal_stderr):.1f}°")
+    if plane.offset_stderr > lim.max_offset_stderr:
+        flag(DEGRADED, f"offset ±{1000 * plane.offset_stderr:.1f} mm")
+    g = np.asarray(scan_gamma, dtype=np.float64)
+    g = g[np.isfinite(g)]
+    if g.size:
+        beams = np.stack([np.zeros_like(g), np.cos(g), np.sin(g)], axis=1)
+        nearest = float(np.arccos(np.clip(np.max(beams @ plane.normal), -1.0, 1.0)))
+        if nearest > lim.face_on_angle:
+            level = UNRELIABLE if edge_echoes is not None and edge_echoes == 0 else DEGRADED
+            flag(level, f"wall never seen face-on: the nearest beam is {np.rad2deg(nearest):.0f}° from its normal"
+                 + ("; no edge echoes tie it to the corner" if level == UNRELIABLE else ""))
+    if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
+        flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
+    return replace(plane, quality=verdict, quality_reasons=tuple(reasons))
+
+
+def cross_check(plane: PlaneFit, reference: PlaneFit, *, max_angle: float = float(np.deg2rad(3.0)),
+                max_distance: float = 0.02) -> PlaneFit:
+    """``plane`` degraded if it disagrees with a good ``reference`` estimate of the same wall.
+
+    A compared method can lock onto the corner cluster and still fit it
+    cleanly (a tight, well-populated, wrong plane); its own residuals cannot
+    show that.  The reference (the method of record) is trusted only when its
+    own verdict is good.  The disagreement is measured where it matters: the
+    largest distance between the two planes over the reference's observed
+    patch, and the angle between the normals.
+    """
+    if plane is reference or reference.quality != GOOD or plane.label != reference.label:
+        return plane
+    angle = float(np.arccos(np.clip(plane.normal @ reference.normal, -1.0, 1.0)))
+    gap = float(np.max(np.abs(reference.patch @ plane.normal - plane.offset)))
+    if angle <= max_angle and gap <= max_distance:
+        return plane
+    reason = (f"disagrees with {reference.method} (good) by {100 * gap:.1f} cm and {np.rad2deg(angle):.1f}° "
+              "over the observed patch")
+    level = DEGRADED if plane.quality == GOOD else plane.quality
+    return replace(plane, quality=level, quality_reasons=plane.quality_reasons + (reason,))

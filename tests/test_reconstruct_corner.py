@@ -1,0 +1,225 @@
+"""The joint corner model and the trust verdict, checked against the physical simulator's ground truth.
+
+Every scene here is simulated with waveforms (``lelsonar.acquire.sim``) and
+reconstructed from the ranges, the waveform energies and the calibrated
+``E0(d)``, as the service does; the truth is the scene's geometry and the
+simulator's record of which surface produced each echo.
+
+Tolerances come from the measurement model: range noise σ_r = 2 mm
+(``Receiver.tof_jitter``) plus ±4.3 mm cycle slips.  A plane estimated from N
+echoes has an offset error of order σ_r/√N (< 1 mm), so a wall within 2 cm
+over its observed patch is a loose, safe bound; where a plane reports
+standard errors, the error must lie within 5 of them (a 5σ event has
+probability < 10⁻⁵ for a calibrated estimate).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from lelsonar import codec
+from lelsonar.acquire.sim import EchoSource, Scene, calibrate_simulator, preset, simulate_scan
+from lelsonar.reconstruct import wire
+from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B,
+                                               fit_corner_model, scan_points)
+from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
+from lelsonar.reconstruct.energy import waveform_energy
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
+from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
+from lelsonar.reconstruct.results import FailureReason, FitFailure, PlaneFit
+
+#: One wall echo within a 2 cm patch error is what the benchmark calls a success (issue 9).
+PATCH_LIMIT = 0.02
+#: Standard errors: a calibrated estimate is within 5 of them but once in ~10⁵.
+Z_LIMIT = 5.0
+
+
+def _scene_config(*, distance_a: float = 1.57, distance_b: float = 1.06, gamma: tuple[float, float] = (-10, 110),
+                  steps: int = 184, tilts: dict | None = None, capsule_radius: float = 0.007,
+                  corner_gain: float = 1.5) -> object:
+    base = preset("paper-test1")
+    scene = Scene.l_corner(distance_a, distance_b, width=3.0, height_a=3.5, height_b=3.5, **(tilts or {}))
+    longest = math.hypot(distance_a, distance_b) + 0.5  # the edge echo plus margin, m
+    window = max(base.window_samples, int(2 * longest / base.sound_speed * base.sample_rate) + 100)
+    return dataclasses.replace(base, scene=scene, gamma_start=math.radians(gamma[0]),
+                               gamma_stop=math.radians(gamma[1]), steps=steps, window_samples=window,
+                               acoustics=dataclasses.replace(base.acoustics, capsule_radius=capsule_radius,
+                                                             corner_gain=corner_gain))
+
+
+def _reconstruct(cfg, seed: int, method: str = DEFAULT_METHOD):  # noqa: ANN001, ANN202
+    scan = simulate_scan(cfg, seed=seed)
+    # The rig is calibrated once, on a face-on wall (paper §4, eq. 12), with the same capsules.
+    model = calibrate_simulator(dataclasses.replace(preset("paper-test1"), acoustics=cfg.acoustics), seed=0).model
+    energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    return scan, reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
+
+
+def _patch_error(scan, label: str, plane: PlaneFit) -> float:  # noqa: ANN001
+    """Largest distance between the fitted and the true plane over the true wall echoes' foot points, m."""
+    truth = {p.label: p for p in scan.truth.planes}[label]
+    src = EchoSource.PLANE_A if label == "a" else EchoSource.PLANE_B
+    m = scan.truth.echo_source == src
+    pc = scan.geometry.capsule_positions(scan.gamma_measured)[m]
+    foot = pc + (truth.offset - pc @ truth.normal)[:, None] * truth.normal
+    return float(np.max(np.abs(foot @ plane.normal - plane.offset)))
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.arccos(np.clip(a @ b, -1.0, 1.0)))
+
+
+def test_every_echo_is_labelled_as_the_simulator_produced_it() -> None:
+    scan = simulate_scan(preset("paper-test1"), seed=0)
+    pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
+    model = fit_corner_model(pts, AXIS_Y, AXIS_Z)
+    assert model is not None
+    src = scan.truth.echo_source[pts.step, pts.capsule_index]
+    # Wall echoes are within σ_r + one cycle slip (≈ 1 cm) of their wall; the 2 cm tolerance takes them all.
+    for label, truth in ((ECHO_WALL_A, EchoSource.PLANE_A), (ECHO_WALL_B, EchoSource.PLANE_B),
+                         (ECHO_EDGE, EchoSource.CORNER)):
+        mine = model.labels[src == truth]
+        assert np.mean(mine == label) >= 0.99, (label, np.unique(mine, return_counts=True))
+    assert model.count(ECHO_OUTLIER) <= 0.01 * pts.n
+
+
+# Scenes the paper never scanned, each a failure class of the energy-split estimators (issue 9).
+HARD_SCENES = {
+    "far walls, energy peak off the corner": dict(distance_a=2.2, distance_b=1.68),
+    "near walls, corner at 55°": dict(distance_a=0.7, distance_b=1.0),
+    "partial sweep, corner cluster dominates b": dict(gamma=(3, 79)),
+    "late start, corner cluster dominates a": dict(gamma=(10, 105)),
+    "both walls tilted about two axes": dict(tilts=dict(tilt_a_x=math.radians(4), tilt_a_z=math.radians(-5),
+                                                        tilt_b_x=math.radians(-3), tilt_b_y=math.radians(5))),
+    "small capsules, strong corner, few steps": dict(capsule_radius=0.006, corner_gain=2.5, steps=95),
+}
+
+
+@pytest.mark.parametrize("name", sorted(HARD_SCENES))
+def test_the_default_finds_both_walls_of_corners_the_paper_never_scanned(name: str) -> None:
+    cfg = _scene_config(**HARD_SCENES[name])
+    for seed in (0, 1):
+        scan, rec = _reconstruct(cfg, seed)
+        for label, plane in (("a", rec.plane_a), ("b", rec.plane_b)):
+            truth = {p.label: p for p in scan.truth.planes}[label]
+            assert isinstance(plane, PlaneFit), f"{name}, seed {seed}: {plane}"
+            assert plane.quality == GOOD, (name, seed, label, plane.quality_reasons)
+            assert _patch_error(scan, label, plane) < PATCH_LIMIT, (name, seed, label)
+            assert _angle(plane.normal, truth.normal) <= Z_LIMIT * plane.normal_stderr, (name, seed, label)
+            assert abs(plane.offset - truth.offset) <= Z_LIMIT * plane.offset_stderr, (name, seed, label)
+
+
+def test_the_energy_split_fails_where_the_corner_model_does_not() -> None:
+    """The regression this model fixes: far walls move the energy peak off the corner."""
+    cfg = _scene_config(**HARD_SCENES["far walls, energy peak off the corner"])
+    scan, old = _reconstruct(cfg, 0, "adaptive")
+    worst = max(_patch_error(scan, lab, p) for lab, p in (("a", old.plane_a), ("b", old.plane_b))
+                if isinstance(p, PlaneFit))
+    assert worst > PATCH_LIMIT
+
+
+def test_critical_step_comes_from_the_edge_and_holds_under_energy_noise() -> None:
+    cfg = preset("paper-test1")
+    for seed in range(6):
+        scan, rec = _reconstruct(cfg, seed)
+        # One AX-12 unit is 0.29°, a step 0.66°: the edge's direction is known to well under a step.
+        assert abs(rec.critical_step - scan.truth.critical_step) <= 1, seed
+
+
+def test_a_wall_the_scan_never_faced_is_never_called_good() -> None:
+    # Wall b at 2.3 m faces γ = 90°; the sweep stops at 62°, so no beam came near its normal
+    # and the echoes after the corner are the edge's, at the edge's range.
+    cfg = _scene_config(distance_a=1.4, distance_b=2.3, gamma=(-10, 62))
+    scan, rec = _reconstruct(cfg, 0)
+    assert not np.any(scan.truth.echo_source == EchoSource.PLANE_B)  # the premise: no echo of wall b
+    b = rec.plane_b
+    assert isinstance(b, FitFailure) or b.quality in (DEGRADED, UNRELIABLE), b
+    # Wall a is right; without the edge nothing confirms the corner, so it may be called degraded, not worse.
+    a = rec.plane_a
+    assert isinstance(a, PlaneFit) and a.quality != UNRELIABLE and _patch_error(scan, "a", a) < PATCH_LIMIT
+
+
+def test_the_corner_method_is_deterministic() -> None:
+    cfg = _scene_config(**HARD_SCENES["partial sweep, corner cluster dominates b"])
+    _, one = _reconstruct(cfg, 3)
+    _, two = _reconstruct(cfg, 3)
+    for p, q in zip(one.planes, two.planes):
+        np.testing.assert_array_equal(p.normal, q.normal)
+        assert p.offset == q.offset and p.quality == q.quality
+
+
+# ----------------------------------------------------------------------------- the verdict itself
+
+def _plane(**kw) -> PlaneFit:  # noqa: ANN003
+    n = 300
+    base = dict(label="a", method="test", normal=np.array([0.0, 1.0, 0.0]), offset=1.5, entropy=0.5,
+                sigma_relative=0.002 / 1.5, sigma=0.002, inlier_mask=np.ones(n, bool),
+                sorted_residuals=np.linspace(-1e-3, 1e-3, n), theta_covariance=np.eye(3) * 1e-8,
+                normal_stderr=math.radians(0.1), offset_stderr=0.0003,
+                patch=np.array([[-0.1, 1.5, -0.05], [0.1, 1.5, -0.05], [0.1, 1.5, 0.05], [-0.1, 1.5, 0.05]]))
+    base.update(kw)
+    return PlaneFit(**base)
+
+
+GAMMA = np.radians(np.linspace(-10, 110, 184))
+
+
+def test_a_clean_wall_seen_face_on_is_good() -> None:
+    p = assess_plane(_plane(), GAMMA)
+    assert p.quality == GOOD and p.quality_reasons == ()
+
+
+@pytest.mark.parametrize("change, level, words", [
+    (dict(sigma=0.020), UNRELIABLE, "more than one surface"),   # a compromise between wall and corner echoes
+    (dict(sigma=0.015), DEGRADED, "residual σ"),
+    (dict(inlier_mask=np.r_[np.ones(10, bool), np.zeros(290, bool)]), UNRELIABLE, "only 10 wall echoes"),
+    (dict(normal_stderr=math.radians(4.0)), DEGRADED, "tilt unresolved"),
+    (dict(normal=np.array([0.0, math.cos(math.radians(40)), -math.sin(math.radians(40))])), DEGRADED, "face-on"),
+])
+def test_each_sign_of_an_untrustworthy_plane_lowers_the_verdict(change: dict, level: str, words: str) -> None:
+    p = assess_plane(_plane(**change), GAMMA)
+    assert p.quality == level and any(words in r for r in p.quality_reasons), p.quality_reasons
+
+
+def test_a_plane_never_faced_and_untied_to_the_edge_is_unreliable() -> None:
+    tilted = np.array([0.0, math.cos(math.radians(40)), -math.sin(math.radians(40))])
+    assert assess_plane(_plane(normal=tilted), GAMMA, edge_echoes=0).quality == UNRELIABLE
+
+
+def test_a_clean_plane_that_disagrees_with_a_good_reference_is_degraded() -> None:
+    reference = assess_plane(_plane(), GAMMA)
+    other = assess_plane(_plane(method="other", offset=1.9), GAMMA)  # the corner cluster, fitted cleanly
+    assert other.quality == GOOD
+    checked = cross_check(other, reference)
+    assert checked.quality == DEGRADED and "disagrees with test" in checked.quality_reasons[-1]
+    same = assess_plane(_plane(method="other", offset=1.5005), GAMMA)
+    assert cross_check(same, reference).quality == GOOD
+
+
+def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() -> None:
+    planes = [dataclasses.replace(assess_plane(_plane(sigma=0.02), GAMMA), method=f"m{i}", label="ab"[i % 2])
+              for i in range(18)]  # all registered methods compared: 18 planes
+    msg = wire.reconstruction_message("s1", 1, status="final", last_step=10, samples_used=11, critical_step=5,
+                                      critical_angle=0.6, planes=planes, edge=None, timings=(0.0, 0.0, 0.0))
+    back = codec.decode(msg.SerializeToString(), codec.Reconstruction)
+    assert [p.quality for p in back.planes] == [wire.QUALITY[UNRELIABLE]] * 18
+    assert "more than one surface" in back.planes[0].quality_reasons[0]
+    too_many = wire.reconstruction_message("s1", 1, status="final", last_step=10, samples_used=11,
+                                           critical_step=5, critical_angle=0.6, planes=planes * 4, edge=None,
+                                           timings=(0.0, 0.0, 0.0))
+    with pytest.raises(codec.InvalidMessageError, match="planes"):
+        codec.decode(too_many.SerializeToString(), codec.Reconstruction)
+
+
+def test_a_compared_method_that_fails_is_reported_by_name() -> None:
+    from lelsonar.reconstruct.service import _compared
+
+    cfg = _scene_config(gamma=(-10, 25))  # the corner is barely reached: plane b cannot be fitted
+    _, main = _reconstruct(cfg, 0)
+    failed = FitFailure(FailureReason.TOO_FEW_POINTS, "3 valid points", "b", 3)
+    out = _compared(failed, "lel", main)
+    assert isinstance(out, FitFailure) and str(out).count("lel: 3 valid points") == 1
