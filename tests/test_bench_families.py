@@ -40,7 +40,7 @@ def test_z_score_and_quality_names():
     assert B.z_score(0.02, 0.01) == pytest.approx(2.0)
     assert B.z_score(-0.03, 0.01) == pytest.approx(-3.0)
     assert math.isnan(B.z_score(0.01, 0.0)) and math.isnan(B.z_score(float("nan"), 1.0))
-    assert B.quality_name(None) is None
+    assert B.quality_name(None) is None and B.quality_name("") is None  # "": not assessed
     assert B.quality_name("GOOD") == "good"
     assert B.quality_name("PLANE_QUALITY_DEGRADED") == "degraded"
 
@@ -90,7 +90,7 @@ def test_family_scan_rows_follow_the_definitions():
         assert r["z_angle"] == pytest.approx(math.radians(r["angle_deg"]) / math.radians(r["normal_stderr_deg"]))
         assert r["z_offset"] == pytest.approx(r["offset_cm"] / r["offset_stderr_cm"])
         assert r["oracle_patch_cm"] < 0.5 and r["patch_cm"] < 2.0  # the paper's L is easy
-        assert 0 <= r["inlier_corner_share"] <= 1
+        assert 0 <= r["inlier_corner_share"] <= 1 and 0 <= r["subset_corner_share"] <= 1
 
 
 def test_tiny_run_writes_json(tmp_path):

@@ -111,7 +111,7 @@ def plane_errors(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: 
 
 def quality_name(quality: object) -> str | None:
     """``"good"``, ``"degraded"``, ``"unreliable"`` … from an enum, a string or a wire name; None if absent."""
-    if quality is None:
+    if quality is None or (isinstance(quality, str) and not quality):  # "": not assessed
         return None
     if isinstance(quality, (int, np.integer)) and not hasattr(quality, "name"):  # the wire's PlaneQuality number
         return {0: "unspecified", 1: "good", 2: "degraded", 3: "unreliable"}.get(int(quality), str(quality))
@@ -382,8 +382,26 @@ class Estimate:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def _from_plane_fit(res: Any, scan: Any, steps: np.ndarray | None) -> Estimate:
-    """An :class:`Estimate` of a ``PlaneFit`` (read with ``getattr`` where the contract is still moving)."""
+def _point_sources(scan: Any, data: Any) -> np.ndarray | None:
+    """EchoSource of each point of a ``PlaneData`` (matched by step and range), or None if they do not match."""
+    steps = np.asarray(getattr(data, "step", ()), dtype=np.intp)
+    d = np.asarray(getattr(data, "distance", ()), dtype=np.float64)
+    if steps.shape != d.shape or steps.ndim != 1 or (steps.size and steps.max() >= scan.n_steps):
+        return None
+    match = scan.distance[steps] == d[:, None]
+    if not match.any(axis=1).all():
+        return None
+    return scan.truth.echo_source[steps, match.argmax(axis=1)]
+
+
+def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) -> Estimate:
+    """An :class:`Estimate` of a ``PlaneFit`` (read with ``getattr`` where the contract is still moving).
+
+    The true source of each point the plane was fitted on comes from the
+    reconstruction's ``data_a``/``data_b`` when present, else from the
+    critical-step subset ``steps`` rebuilt here; ``extra["fitted_on_split"]``
+    says whether those points are that subset (so the critical step decided them).
+    """
     from lelsonar.acquire.sim import EchoSource
 
     diag = getattr(res, "diagnostics", None)
@@ -392,10 +410,17 @@ def _from_plane_fit(res: Any, scan: Any, steps: np.ndarray | None) -> Estimate:
                              "n_inliers": int(np.count_nonzero(mask)),
                              "sigma_mm": 1e3 * float(getattr(res, "sigma", float("nan"))),
                              "notes": [str(n) for n in getattr(diag, "notes", ())]}
-    try:
-        src = _subset_sources(scan, steps, res.label) if steps is not None else None
-    except Exception:  # noqa: BLE001 — diagnostics only; the reconstruct internals may move
-        src = None
+    try:  # diagnostics only: the reconstruct internals may move
+        split_src = _subset_sources(scan, steps, res.label) if steps is not None and len(steps) else None
+    except Exception:  # noqa: BLE001
+        split_src = None
+    src = _point_sources(scan, data) if data is not None else None
+    if src is not None and src.shape == mask.shape:
+        on_split = (steps is not None and split_src is not None and split_src.shape == src.shape
+                    and np.array_equal(np.unique(np.asarray(data.step)), np.unique(_valid_steps(scan, steps))))
+    else:
+        src, on_split = split_src, split_src is not None and split_src.shape == mask.shape
+    extra["fitted_on_split"] = bool(on_split)
     if src is not None and src.shape == mask.shape:
         inl = src[mask]
         extra["subset_corner_share"] = float(np.mean(src == EchoSource.CORNER)) if src.size else 0.0
@@ -406,6 +431,13 @@ def _from_plane_fit(res: Any, scan: Any, steps: np.ndarray | None) -> Estimate:
                     time_s=float(getattr(diag, "time_s", float("nan"))),
                     quality=quality_name(getattr(res, "quality", None)),
                     reasons=tuple(str(r) for r in reasons), extra=extra)
+
+
+def _valid_steps(scan: Any, steps: np.ndarray) -> np.ndarray:
+    """The steps of ``steps`` with at least one valid range."""
+    steps = np.asarray(steps, dtype=np.intp)
+    d = scan.distance[steps]
+    return steps[np.any(np.isfinite(d) & (d > 0), axis=1)]
 
 
 def plane_row(base: dict[str, Any], truth: SceneTruth, method: str, label: str, est: Estimate | str,
@@ -482,9 +514,9 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
         split = _split(scan, rec.critical_step)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
-            est = _from_plane_fit(res, scan, split.get(label)) if fitted else str(res)
-            # A plane whose inliers map one to one onto the critical-step subset was fitted on that subset.
-            uses_split = isinstance(est, Estimate) and "subset_corner_share" in est.extra
+            data = getattr(rec, f"data_{label}", None)
+            est = _from_plane_fit(res, scan, data, split.get(label)) if fitted else str(res)
+            uses_split = isinstance(est, Estimate) and est.extra["fitted_on_split"]
             rows.append(plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split))
 
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
