@@ -99,9 +99,14 @@ def test_tiny_run_writes_json(tmp_path):
     p = argparse.ArgumentParser()
     add_arguments(p)
     out = tmp_path / "b.json"
-    args = p.parse_args(["--families", "paper", "--seeds", "1", "--jobs", "1", "--no-anchor",
-                         "--methods", DEFAULT_METHOD, "--json", str(out)])
+    md = tmp_path / "b.md"
+    args = p.parse_args(["--families", "paper", "--seeds", "1", "--jobs", "1", "--no-anchor", "--timing-repeats", "1",
+                         "--methods", DEFAULT_METHOD, "--json", str(out), "--markdown", str(md)])
     B.run_families(args)
+    table = md.read_text().splitlines()
+    assert table[0].startswith("`") and table[2].startswith("| family |")
+    assert [line.split(" | ")[:2] for line in table[4:]] == [["| paper", f"**`{DEFAULT_METHOD}`**"],
+                                                             ["| all", f"**`{DEFAULT_METHOD}`**"]]
     data = json.loads(out.read_text())
     assert data["families"] == ["paper"] and len(data["rows"]) == 2 and len(data["scenes"]) == 1
     assert {s["method"] for s in data["summary"]} == {DEFAULT_METHOD}

@@ -798,6 +798,12 @@ def run_families(args: argparse.Namespace) -> int:
     if dumps:
         console.print(f"dumped {len(dumps)} failing scenes to {args.dump_failures}; reproduce one with: "
                       f"lelsonar reconstruct --source {dumps[0]} --json --compare {','.join(methods)}")
+    if getattr(args, "markdown", None):
+        out = Path(args.markdown)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(markdown_table(summary, families, all_methods, DEFAULT_METHOD, command, machine()),
+                       encoding="utf-8")
+        console.print(f"wrote {out} (Markdown, for the README)")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -812,6 +818,31 @@ def run_families(args: argparse.Namespace) -> int:
     console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets issue 9's targets on every family[/]"
                                                             if not misses else f"[red]misses {len(misses)} targets[/]"))
     return 0 if not misses else 1
+
+
+def markdown_table(summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], methods: list[str],
+                   default: str, command: str, machine_line: str) -> str:
+    """The summary as a Markdown table with the command and machine it came from (for the README)."""
+    lines = [f"`{command}` ({machine_line}). Medians / p95 over planes a and b; failure: patch > 2 cm and "
+             "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
+             "and the share > 3.", "",
+             r"| family | method | angle ° | \|Δh\| cm | patch cm | patch / oracle | failures (oracle avoids) "
+             r"| no plane | \|z\| normal | \|z\| offset | failures claiming good | ms / scan |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for fam in (*families, "all"):
+        for method in methods:
+            s = summary.get((fam, method))
+            if s is None:
+                continue
+            name = f"**`{method}`**" if method == default else f"`{method}`"
+            lines.append(
+                f"| {fam} | {name} | {_pair(s['angle_med'], s['angle_p95'])} | "
+                f"{_pair(s['offset_med'], s['offset_p95'])} | {_pair(s['patch_med'], s['patch_p95'])} | "
+                f"{_fmt(s['ratio_med'])} | {s['failures']} ({s['failures_oracle_avoids']}) | {s['missing']} | "
+                f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])} | {_fmt(s['z_offset_med'])}, "
+                f"{_pct(s['z_offset_gt3'])} | {'n/a' if s['failures_good'] is None else s['failures_good']} | "
+                f"{_fmt(_scan_ms(s), 1)} |")
+    return "\n".join(lines) + "\n"
 
 
 def _finite(o: Any) -> Any:
@@ -848,6 +879,7 @@ def add_family_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--calibration", choices=("paper", "wide"), default="paper",
                    help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
                         "(default), or eight at 0.6-2.7 m covering the families' walls")
+    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table (README)")
     g.add_argument("--dump-failures", metavar="DIR",
                    help="write every scene with a failing plane as DIR/<family>-<seed>.mcap "
                         "(replay with lelsonar reconstruct --source FILE --json)")
