@@ -145,6 +145,12 @@ class SceneDraw:
     params: SceneParams
     config: SimConfig
 
+    def __post_init__(self) -> None:
+        if self.family not in FAMILIES:
+            raise ConfigError(f"unknown scene family {self.family!r}; choose one of {', '.join(FAMILIES)}")
+        if not isinstance(self.params, SceneParams) or not isinstance(self.config, SimConfig):
+            raise ConfigError("SceneDraw needs SceneParams and a SimConfig")
+
     @property
     def description(self) -> str:
         """``family #seed: <params>``."""
