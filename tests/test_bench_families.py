@@ -203,3 +203,11 @@ def test_ls_plane_standard_errors_match_the_scatter():
         ses.append(se_h)
     z = np.asarray(errs) / np.asarray(ses)
     assert 0.8 < np.std(z) < 1.2
+
+
+def test_edge_errors_direction_and_across_the_line():
+    d = np.array([1.0, 0.0, 0.0])
+    tilted = np.array([math.cos(0.02), math.sin(0.02), 0.0])
+    ang, across = B.edge_errors(np.array([0.3, 1.57, 1.10]), -tilted, np.array([0.0, 1.57, 1.06]), d)
+    assert ang == pytest.approx(math.degrees(0.02))  # sign-free
+    assert across == pytest.approx(4.0)  # 4 cm across; the 30 cm along the line do not count

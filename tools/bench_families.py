@@ -24,7 +24,10 @@ Per plane (a and b pooled):
 * **good-but-failed**: failures whose plane claims ``quality`` GOOD (read with
   ``getattr``; "n/a" while ``PlaneFit`` has no ``quality``);
 * **time**: per plane (the solver's ``diagnostics.time_s``) and per scan
-  (wall time of ``reconstruct``), measured inside the worker processes.
+  (wall time of ``reconstruct``), measured inside the worker processes;
+* **edge** (per scan): direction error (°) and the distance across the true
+  edge line of the estimated edge's point (cm), with z-scores against
+  ``EdgeLine.direction_stderr`` and ``point_stderr``.
 
 The external anchor ``open3d`` is Open3D's ``segment_plane`` (seeded, 1 cm,
 3 points, all 1000 iterations — its early stop is not deterministic across
@@ -170,10 +173,25 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "z_offset_med": percentile(zh, 50), "z_offset_gt3": frac_above(zh, 3.0),
         "failures_good": sum(q == "good" for q in quality) if has_quality else None,
         "crit_ok": float(np.mean(crit)) if crit else float("nan"),
+        **_edge_summary([r for r in rows if r["label"] == "a" and r.get("edge_ok")]),
         "ms_plane": percentile([r["time_plane_ms"] for r in fitted], 50),
         "ms_scan": percentile(list(scans.values()), 50),
         "ms_scan_p95": percentile(list(scans.values()), 95),
     }
+
+
+def _edge_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Edge statistics over one row per scan that has an edge."""
+    zd = np.abs([r["z_edge_dir"] for r in rows], dtype=float)
+    zp = np.abs([r["z_edge_point"] for r in rows], dtype=float)
+    return {"edges": len(rows),
+            "edge_dir_med": percentile([r["edge_dir_deg"] for r in rows], 50),
+            "edge_dir_p95": percentile([r["edge_dir_deg"] for r in rows], 95),
+            "edge_point_med": percentile([r["edge_point_cm"] for r in rows], 50),
+            "edge_point_p95": percentile([r["edge_point_cm"] for r in rows], 95),
+            "z_edge_dir_med": percentile(zd, 50), "z_edge_point_med": percentile(zp, 50),
+            "z_edge_gt3": float(np.mean(np.concatenate([zd[np.isfinite(zd)], zp[np.isfinite(zp)]]) > 3))
+            if np.isfinite(zd).any() or np.isfinite(zp).any() else float("nan")}
 
 
 #: Failure flags, in the order the patterns table shows them.
@@ -338,6 +356,8 @@ class SceneTruth:
     edge_range : float
         Distance of the edge from the rotation axis at x = 0, m (where the
         corner echoes put a plane).
+    edge_point, edge_direction : (3,) arrays
+        The true edge line (a point on it, m; its unit direction).
     """
 
     planes: dict[str, Any]
@@ -345,6 +365,8 @@ class SceneTruth:
     oracle: dict[str, tuple[float, float, float] | None]
     n_mirror: dict[str, int]
     edge_range: float
+    edge_point: np.ndarray
+    edge_direction: np.ndarray
 
 
 def scene_truth(scan: Any) -> SceneTruth:
@@ -366,7 +388,22 @@ def scene_truth(scan: Any) -> SceneTruth:
             oracle[label] = plane_errors(n_o, h_o, tp.normal, tp.offset, patch[label])
     edge = scan.config.scene.edges[0]
     at_x0 = edge.point - edge.direction * (edge.point[0] / edge.direction[0])
-    return SceneTruth(planes, patch, oracle, n_mirror, float(np.hypot(at_x0[1], at_x0[2])))
+    return SceneTruth(planes, patch, oracle, n_mirror, float(np.hypot(at_x0[1], at_x0[2])), at_x0,
+                      np.asarray(edge.direction, dtype=float))
+
+
+def edge_errors(point: np.ndarray, direction: np.ndarray, true_point: np.ndarray,
+                true_direction: np.ndarray) -> tuple[float, float]:
+    """Errors of an estimated edge line: direction (°, sign-free) and position (cm).
+
+    The position error is the distance of the estimated line's point from the
+    true line, i.e. the error across the line where the estimate puts it.
+    """
+    c = abs(float(np.dot(direction, true_direction)))
+    ang = math.degrees(math.acos(min(1.0, c)))
+    rel = np.asarray(point, dtype=float) - true_point
+    across = rel - np.dot(rel, true_direction) * true_direction
+    return ang, 100.0 * float(np.linalg.norm(across))
 
 
 @dataclass(frozen=True, eq=False)
@@ -432,6 +469,19 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
                     time_s=float(getattr(diag, "time_s", float("nan"))),
                     quality=quality_name(getattr(res, "quality", None)),
                     reasons=tuple(str(r) for r in reasons), extra=extra)
+
+
+def _edge_fields(edge: Any, truth: SceneTruth) -> dict[str, Any]:
+    """The scan's edge errors and z-scores as row fields (NaN when the method has no edge)."""
+    nan = float("nan")
+    if not (hasattr(edge, "point") and hasattr(edge, "direction")):
+        return {"edge_ok": False, "edge_dir_deg": nan, "edge_point_cm": nan, "z_edge_dir": nan, "z_edge_point": nan}
+    ang, dist = edge_errors(np.asarray(edge.point), np.asarray(edge.direction), truth.edge_point,
+                            truth.edge_direction)
+    se_d = float(getattr(edge, "direction_stderr", nan))
+    se_p = float(getattr(edge, "point_stderr", nan))
+    return {"edge_ok": True, "edge_dir_deg": ang, "edge_point_cm": dist,
+            "z_edge_dir": z_score(math.radians(ang), se_d), "z_edge_point": z_score(dist / 100.0, se_p)}
 
 
 def _valid_steps(scan: Any, steps: np.ndarray) -> np.ndarray:
@@ -513,12 +563,13 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
         dt = time.perf_counter() - t0
         crits[method] = rec.critical_step
         split = _split(scan, rec.critical_step)
+        edge = _edge_fields(rec.edge, truth)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
             data = getattr(rec, f"data_{label}", None)
             est = _from_plane_fit(res, scan, data, split.get(label)) if fitted else str(res)
             uses_split = isinstance(est, Estimate) and est.extra["fitted_on_split"]
-            rows.append(plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split))
+            rows.append({**plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split), **edge})
 
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
     split = _split(scan, default_crit) if anchor else {}
@@ -779,6 +830,22 @@ def run_families(args: argparse.Namespace) -> int:
             worst = ", ".join(f"{f} {n}" for f, n in sorted(by_fam.items(), key=lambda kv: -kv[1])[:4])
             pt.add_row(method, str(sum(by_fam.values())), *(str(p.get(k, 0)) for k in kinds), worst)
         console.print(pt)
+
+    et = Table(title="Corner edge per family and method (median / p95; |z| = error / reported standard error)",
+               title_justify="left")
+    for c in ("family", "method", "scans", "direction °", "across cm", "|z| dir", "|z| across", "|z|>3"):
+        et.add_column(c, justify="left" if c in ("family", "method") else "right")
+    for fam in (*families, "all"):
+        for method in methods:
+            s = summary.get((fam, method))
+            if s is None or not s["edges"]:
+                continue
+            et.add_row(fam, method, str(s["edges"]), _pair(s["edge_dir_med"], s["edge_dir_p95"]),
+                       _pair(s["edge_point_med"], s["edge_point_p95"]), _fmt(s["z_edge_dir_med"]),
+                       _fmt(s["z_edge_point_med"]), _pct(s["z_edge_gt3"]),
+                       style="bold" if method == DEFAULT_METHOD else None)
+        et.add_section()
+    console.print(et)
 
     targets = _targets(summary, families, DEFAULT_METHOD)
     misses = [f"{fam}: {k}" for fam, checks in targets for k, ok in checks.items() if not ok]
