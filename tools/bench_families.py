@@ -22,9 +22,11 @@ Per plane (a and b pooled):
   ``PlaneFit.normal_stderr``, the RMS tilt: E[z²] = 1, median ≈ 0.83 when
   calibrated) and the offset (``(h − h_true)/offset_stderr``: median |z| ≈ 0.67);
 * **good-but-failed**: failures whose plane claims ``quality`` GOOD (read with
-  ``getattr``; "n/a" while ``PlaneFit`` has no ``quality``);
+  ``getattr``; "n/a" while no plane of that method carries an assessed quality);
 * **time**: per plane (the solver's ``diagnostics.time_s``) and per scan
-  (wall time of ``reconstruct``), measured inside the worker processes;
+  (wall time of ``reconstruct``), measured inside the worker processes, and
+  ``serial``: the best of repeated ``reconstruct`` calls on each family's first
+  scene, run alone after the accuracy runs (the number for a time budget);
 * **edge** (per scan): direction error (°) and the distance across the true
   edge line of the estimated edge's point (cm), with z-scores against
   ``EdgeLine.direction_stderr`` and ``point_stderr``.
