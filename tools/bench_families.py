@@ -174,6 +174,7 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "z_angle_med": percentile(zn, 50), "z_angle_gt3": frac_above(zn, 3.0),
         "z_offset_med": percentile(zh, 50), "z_offset_gt3": frac_above(zh, 3.0),
         "failures_good": sum(q == "good" for q in quality) if has_quality else None,
+        "failures_good_service": (sum(r.get("quality_service") == "good" for r in fails) if has_quality else None),
         "crit_ok": float(np.mean(crit)) if crit else float("nan"),
         **_edge_summary([r for r in rows if r["label"] == "a" and r.get("edge_ok")]),
         "ms_plane": percentile([r["time_plane_ms"] for r in fitted], 50),
@@ -473,6 +474,27 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
                     reasons=tuple(str(r) for r in reasons), extra=extra)
 
 
+def _add_cross_checked_quality(rows: list[dict[str, Any]], fits: dict[tuple[str, str], Any], default: str) -> None:
+    """Set ``quality_service`` on each row: the verdict ``reconstruct --compare`` shows.
+
+    The service cross-checks a compared method's plane against the method of
+    record's (``lelsonar.reconstruct.quality.cross_check``); ``quality`` stays
+    the method's own verdict, what a planner gets with it as the method of record.
+    """
+    try:
+        from lelsonar.reconstruct.quality import cross_check
+    except ImportError:
+        cross_check = None
+    for r in rows:
+        res, ref = fits.get((r["method"], r["label"])), fits.get((default, r["label"]))
+        r["quality_service"] = r.get("quality")
+        if cross_check is not None and res is not None and ref is not None and r["method"] != default:
+            try:
+                r["quality_service"] = quality_name(getattr(cross_check(res, ref), "quality", None))
+            except Exception:  # noqa: BLE001 — the contract may move; the own verdict stays
+                pass
+
+
 def _edge_fields(edge: Any, truth: SceneTruth) -> dict[str, Any]:
     """The scan's edge errors and z-scores as row fields (NaN when the method has no edge)."""
     nan = float("nan")
@@ -553,6 +575,7 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     rows: list[dict[str, Any]] = []
 
     crits: dict[str, int | None] = {}
+    fits: dict[tuple[str, str], Any] = {}
     for method in methods:
         t0 = time.perf_counter()
         try:
@@ -568,11 +591,13 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
         edge = _edge_fields(rec.edge, truth)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
+            fits[(method, label)] = res if fitted else None
             data = getattr(rec, f"data_{label}", None)
             est = _from_plane_fit(res, scan, data, split.get(label)) if fitted else str(res)
             uses_split = isinstance(est, Estimate) and est.extra["fitted_on_split"]
             rows.append({**plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split), **edge})
 
+    _add_cross_checked_quality(rows, fits, DEFAULT_METHOD)
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
     split = _split(scan, default_crit) if anchor else {}
     if split:
@@ -663,6 +688,14 @@ def _fmt(x: float | None, digits: int = 2) -> str:
     if not math.isfinite(x):
         return "—"
     return f"{x:.{digits if abs(x) < 10 else 1 if abs(x) < 100 else 0}f}"
+
+
+def _good(s: dict[str, Any]) -> str:
+    """Failures claiming good: the method's own verdict, and in brackets after the service's cross-check if fewer."""
+    own, svc = s["failures_good"], s.get("failures_good_service")
+    if own is None:
+        return "n/a"
+    return f"{own}" if svc is None or svc == own else f"{own} ({svc})"
 
 
 def _pct(x: float) -> str:
@@ -792,14 +825,15 @@ def run_families(args: argparse.Namespace) -> int:
                           _fmt(s["ratio_med"]), str(s["failures"]), str(s["failures_oracle_avoids"]),
                           str(s["missing"]), f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])}",
                           f"{_fmt(s['z_offset_med'])}, {_pct(s['z_offset_gt3'])}",
-                          "n/a" if s["failures_good"] is None else str(s["failures_good"]), _pct(s["crit_ok"]),
+                          _good(s), _pct(s["crit_ok"]),
                           _fmt(s["ms_plane"]), _fmt(s["ms_scan"], 1), _fmt(s["ms_scan_serial"], 1), style=style)
         table.add_section()
     console.print(table)
     console.print("planes: observed planes (+ planes with < 3 true mirror echoes, left out); ratio: median of the "
                   "per-plane patch/oracle ratios; fail: patch > 2 cm and > 3× the oracle's; ¬orc: failures where "
                   "the oracle's patch ≤ 2 cm; miss: no plane returned; |z|: median |error / reported standard "
-                  "error| and the share > 3 (normal angle, offset); f&good: failures whose quality says good; crit±2: scans "
+                  "error| and the share > 3 (normal angle, offset); f&good: failures whose own quality says good (in brackets: "
+                  "after reconstruct --compare's cross-check against the method of record); crit±2: scans "
                   "whose critical step is within 2 steps of the true one (only meaningful for methods that split there); "
                   "times: median per plane (solver) and per scan (reconstruct) in the workers; serial: "
                   "reconstruct of the family's first scene run alone (best of repeats; 'all': the slowest family).")
