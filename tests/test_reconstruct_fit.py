@@ -14,7 +14,7 @@ from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct import fit as F
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z, corrected_points, mirror_points
 from lelsonar.reconstruct.results import FailureReason, FitFailure, PlaneFit
-from lelsonar.reconstruct.synthetic import WALL_A, WALL_B, synthetic_corner_scan, tilted_normal
+from tests.synthetic import WALL_A, WALL_B, synthetic_corner_scan, tilted_normal
 
 GEO = ArrayGeometry()
 

@@ -16,7 +16,7 @@ from lelsonar.reconstruct.energy import EnergyModel
 from lelsonar.reconstruct.pipeline import (DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct)
 from lelsonar.reconstruct.results import EdgeLine, FailureReason, FitFailure, PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step, split_subsets
-from lelsonar.reconstruct.synthetic import synthetic_corner_scan, tilted_normal
+from tests.synthetic import synthetic_corner_scan, tilted_normal
 
 GEO = ArrayGeometry()
 MODEL = EnergyModel(phi0=2.0, phi1=1.0, phi2=0.5)

@@ -17,7 +17,7 @@ from lelsonar.acquire.sim import (
     preset,
     simulate_scan,
 )
-from lelsonar.geometry import boresight
+from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z, corrected_points
 from lelsonar.reconstruct.energy import energy_ratio
 
 
@@ -37,24 +37,55 @@ def _angle_deg(n: np.ndarray, m: np.ndarray) -> float:
     return math.degrees(math.acos(min(1.0, abs(float(n @ m)))))
 
 
-def test_energy_has_peaks_near_0_34_and_90_degrees(scan):
+def test_energy_peaks_where_the_beams_face_the_walls_and_the_edge(scan):
     energy = scan.step_energy()
     gamma = np.degrees(scan.gamma_measured)
-    for centre, half in ((0.0, 12.0), (34.0, 10.0), (90.0, 15.0)):
+    # Geometry: wall a faces γ = 0, wall b γ = 90°, the edge atan2(1.06, 1.57).  Near a peak the
+    # two-way piston response is D⁴ ≈ 1 − (ka·ψ)²/2 (ka = 5.13 for 7 mm at 40 kHz); with ~2 % energy
+    # jitter the argmax can sit where (ka·ψ)²/2 < 4 %, i.e. |ψ| < 2.2°, plus half a 0.66° step.
+    tol = math.degrees(math.sqrt(2 * 0.04) / 5.13) + 0.66 / 2
+    for centre, half in ((0.0, 12.0), (math.degrees(math.atan2(1.06, 1.57)), 10.0), (90.0, 15.0)):
         window = np.flatnonzero(np.abs(gamma - centre) <= half)
         k = window[np.argmax(energy[window])]
-        assert window[0] < k < window[-1], f"no local peak of E near {centre}°"
-        assert abs(gamma[k] - centre) <= 3.0
+        assert window[0] < k < window[-1], f"no local peak of E near {centre:.1f}°"
+        assert abs(gamma[k] - centre) <= tol
 
 
-def test_argmax_r_finds_the_critical_step_for_95_of_100_seeds():
+def _with_corner_gain(gain: float):
     cfg = preset("paper-test1")
-    hits = 0
-    for seed in range(100):
+    return dataclasses.replace(cfg, acoustics=dataclasses.replace(cfg.acoustics, corner_gain=gain))
+
+
+def test_argmax_r_needs_a_corner_brighter_than_a_face_on_wall():
+    """The paper's indicator (eq. 10–12) works only if the double bounce outshines a face-on wall.
+
+    With the simulator's default corner gain (1.5) argmax R finds the critical step; with a
+    corner no brighter than a wall at its range (gain 1.0, the geometric-optics estimate of
+    design notes §8) it lands on the wall b peak instead.  The default estimator does not rely
+    on it (next test).
+    """
+    for gain, expect_hit in ((1.5, True), (1.0, False)):
+        cfg = _with_corner_gain(gain)
+        hits = 0
+        for seed in range(10):
+            s = simulate_scan(cfg, seed=seed)
+            ratio = energy_ratio(s.step_energy(), s.distance, DEFAULT_ENERGY_MODEL)
+            hits += abs(int(np.argmax(ratio)) - s.truth.critical_step) <= 1
+        assert (hits >= 9) if expect_hit else (hits <= 1), (gain, hits)
+
+
+@pytest.mark.parametrize("gain", [1.0, 1.5, 2.5])
+def test_the_default_finds_the_critical_step_whatever_the_corner_gain(gain: float):
+    from lelsonar.reconstruct.energy import waveform_energy
+    from lelsonar.reconstruct.pipeline import reconstruct
+
+    cfg = _with_corner_gain(gain)
+    for seed in range(4):
         s = simulate_scan(cfg, seed=seed)
-        ratio = energy_ratio(s.step_energy(), s.distance, DEFAULT_ENERGY_MODEL)
-        hits += abs(int(np.argmax(ratio)) - s.truth.critical_step) <= 1
-    assert hits >= 95
+        rec = reconstruct(s.gamma_measured, s.distance, waveform_energy(s.waveforms, s.sample_rate), s.geometry,
+                          DEFAULT_ENERGY_MODEL)
+        # The edge of the fitted planes fixes the direction to well under one 0.66° step.
+        assert abs(rec.critical_step - s.truth.critical_step) <= 1, (gain, seed)
 
 
 def test_truth_critical_angle_and_step(scan):
@@ -106,12 +137,14 @@ def test_plain_least_squares_on_the_paper_subsets_is_biased(scan):
     n_a, n_b = (p.normal for p in scan.truth.planes)
     raw = scan.points()
     g = scan.gamma_measured
-    caps = scan.geometry.capsule_positions(g)
-    beam = boresight(g)[:, None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # correction to the assumed plane: range along the beam d/cos α, α from the plane's axis
-        corr_a = caps + (scan.distance / np.cos(g)[:, None])[..., None] * beam
-        corr_b = caps + (scan.distance / np.sin(g)[:, None])[..., None] * beam
+    corr_a = corrected_points(scan.geometry, g, scan.distance, AXIS_Y)
+    corr_b = corrected_points(scan.geometry, g, scan.distance, AXIS_Z)
+    # The correction is exact for true mirror echoes of an axis-aligned wall: they land on it, to within
+    # the range noise (2 mm jitter, 3σ, plus a ±4.3 mm cycle slip) — checked against the scene, not a formula.
+    for corr, src, axis, h in ((corr_a, EchoSource.PLANE_A, 1, 1.57), (corr_b, EchoSource.PLANE_B, 2, 1.06)):
+        on_wall = corr[scan.truth.echo_source == src]
+        on_wall = on_wall[np.all(np.isfinite(on_wall), axis=1)]
+        assert len(on_wall) > 100 and np.all(np.abs(on_wall[:, axis] - h) < 3 * 0.002 + 0.0043)
     raw_a = _angle_deg(_ls_normal(raw[first].reshape(-1, 3)), n_a)
     raw_b = _angle_deg(_ls_normal(raw[second].reshape(-1, 3)), n_b)
     cor_a = _angle_deg(_ls_normal(corr_a[first].reshape(-1, 3)), n_a)
@@ -150,16 +183,29 @@ def test_tilted_scene_gives_tilted_truth_and_consistent_echoes():
     assert np.allclose(scan.truth.echo_range[sel], to_edge * math.sin(edge.opening))
 
 
-def test_default_energy_model_is_what_the_calibration_gives():
+def test_calibrated_energy_model_follows_spreading_and_absorption():
+    """E0(d) from the six-shot calibration obeys the physics of the simulated echo, not a pasted table.
+
+    A face-on wall returns amplitude ∝ 10^(−α·2d/20)/(2d) (design notes §8), so energy
+    E(d) = K·g(d) + C with g = 10^(−α·2d/10)/(2d)² and C the range-independent ring-down and
+    noise energy of the window.  The paper's quadratic in 1/E (eq. 12) must reproduce that law
+    over the calibrated range; the fit residual bound (3 %) is the quadratic's own approximation
+    error there, far below the 45 % swing of E·(2d)² over the range.
+    """
     cfg = preset("paper-test1")
+    alpha = cfg.acoustics.absorption_db_per_m
     d = np.linspace(0.9, 1.8, 10)
+    g = 10 ** (-alpha * 2 * d / 10) / (2 * d) ** 2
     for seed in (0, 1):
         result = calibrate_simulator(cfg, seed=seed)
         assert len(result.distances) == 6 and result.distances.min() == 0.9 and result.distances.max() == 1.8
         assert np.all(np.abs(result.residuals()) < 0.05)
-        assert np.allclose(result.model.expected_energy(d), DEFAULT_ENERGY_MODEL.expected_energy(d), rtol=0.05)
-    # energy falls with range: spreading and absorption
-    assert np.all(np.diff(DEFAULT_ENERGY_MODEL.expected_energy(d)) < 0)
+        e0 = result.model.expected_energy(d)
+        (k, c), *_ = np.linalg.lstsq(np.stack([g, np.ones_like(d)], axis=1), e0, rcond=None)
+        assert k > 0 and c >= 0
+        assert np.max(np.abs(k * g + c - e0) / e0) < 0.03
+    # and the default model is exactly the calibration's, seed 0
+    assert DEFAULT_ENERGY_MODEL == calibrate_simulator(cfg, seed=0).model
 
 
 def test_calibrate_recovers_a_known_model_from_any_shot_source():

@@ -15,6 +15,7 @@ BENCHES = {
     "estimators": ("lelsonar.tools.bench_estimators", "accuracy and speed of every estimator against the oracle"),
     "acquire": ("lelsonar.tools.bench_acquire", "emulated scan wall time against the physical bound"),
     "ingest": ("lelsonar.tools.bench_ingest", "Zenoh ingest rate, update latency and MCAP replay speed"),
+    "recording": ("lelsonar.tools.bench_recording", "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks"),
 }
 
 

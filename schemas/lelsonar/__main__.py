@@ -19,6 +19,7 @@ COMMAND_MODULES = (
     "lelsonar.acquire.sim.cli",
     "lelsonar.acquire.emulate.cli",
     "lelsonar.reconstruct.cli",
+    "lelsonar.recordings.cli",
     "lelsonar.bridge.cli",
     "lelsonar.tools.demo",
     "lelsonar.tools.bench",

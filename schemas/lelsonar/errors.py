@@ -58,3 +58,15 @@ class DeviceTimeoutError(DeviceError):
 # --- recordings --------------------------------------------------------------------
 class RecordingError(LelsonarError):
     """An MCAP recording cannot be written or read."""
+
+
+class RecordingNotFoundError(RecordingError):
+    """The recording's path does not exist or is a directory."""
+
+
+class NotMcapError(RecordingError):
+    """The file is not an MCAP file (e.g. a text file): it lacks the MCAP magic."""
+
+
+class NoScansError(RecordingError):
+    """The file is MCAP but holds no lelsonar scans (foreign channels only, or every scan unreadable)."""

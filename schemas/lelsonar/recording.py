@@ -19,7 +19,9 @@ topic                           schema                            what
 
 from __future__ import annotations
 
+import logging
 import math
+import os
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -31,14 +33,16 @@ from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from google.protobuf.message import Message
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 from mcap.writer import CompressionType
-from mcap_protobuf.writer import Writer
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import register_schema
 
-from lelsonar import codec
-from lelsonar.errors import DecodeError, RecordingError
+from lelsonar import __version__, codec
+from lelsonar.errors import DecodeError, NoScansError, RecordingError
 from lelsonar.geometry import beam_points_from_capsules
+from lelsonar.recordings.reader import Salvage, salvage
+
+_log = logging.getLogger(__name__)
 
 TOPICS: dict[type[Message], str] = {
     codec.ScanStart: "/lelsonar/scan_start",
@@ -52,11 +56,26 @@ TOPIC_LOG = "/log"
 WORLD_FRAME = "world"
 ARRAY_FRAME = "array"
 
+#: Metadata record naming each channel, ``lelsonar.channel.<id>`` → {"topic": ..., "schema": ...}.
+CHANNEL_METADATA = "lelsonar.channel."
+#: The protobuf types a lelsonar recording may hold, by full name (to rebuild a lost schema record).
+RECORDED_TYPES: dict[str, type[Message]] = {
+    **codec.MESSAGE_TYPES, **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, PointCloud, Log)}}
+
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
 class McapRecorder:
     """Write a lelsonar recording; always finishes the file, even on an exception.
+
+    Durable before published: every :meth:`write` and :meth:`log` closes its own
+    MCAP chunk (a Sample, its /tf and its points are one chunk: one step) and
+    hands it to the operating system before returning, so a caller that
+    publishes after ``write`` never publishes what the file lacks.  A process
+    killed at any moment (``kill -9``) loses at most the message being written;
+    :func:`lelsonar.recordings.recover.recover` turns the unfinished file into
+    an indexed one.  ``fsync=True`` also forces each step to the disk (power
+    loss), at the cost ``lelsonar bench recording`` measures.
 
     Use as a context manager::
 
@@ -71,21 +90,39 @@ class McapRecorder:
     compression : {"zstd", "lz4", "none"}
     metadata : mapping of str to str
         Stored as one ``lelsonar.config`` metadata record (e.g. the configuration).
+    fsync : bool
+        ``os.fsync`` after every step (default False: the OS page cache survives
+        a killed process, not a power cut).
+    durable : bool
+        True (default): one chunk per step, flushed to the OS.  False: 1 MiB
+        chunks written when full, the behaviour before durability; a killed
+        writer then loses the whole chunk in progress.  Kept for the benchmark.
     """
 
     def __init__(self, path: Path | str, *, compression: str = "zstd",
-                 metadata: Mapping[str, str] | None = None) -> None:
+                 metadata: Mapping[str, str] | None = None, fsync: bool = False, durable: bool = True) -> None:
         if compression not in COMPRESSIONS:
             raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")  # noqa: SIM115 - closed in finish()
-        self._writer = Writer(self._file, compression=COMPRESSIONS[compression])
+        self._writer = McapWriter(self._file, compression=COMPRESSIONS[compression])
+        self._writer.start(library=f"lelsonar {__version__}")
+        self._channels: dict[str, int] = {}
+        self._fsync = fsync
+        self._durable = durable or fsync
         self._starts: dict[tuple[str, int], codec.ScanStart] = {}
         self._finished = False
         self.messages_written = 0
         if metadata:
             self._writer.add_metadata("lelsonar.config", {str(k): str(v) for k, v in metadata.items()})
+        self._commit()
+        if fsync:  # the new directory entry too, once
+            dir_fd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
 
     def __enter__(self) -> McapRecorder:
         return self
@@ -100,8 +137,30 @@ class McapRecorder:
         self._finished = True
         try:
             self._writer.finish()
+            self._file.flush()
+            if self._fsync:
+                os.fsync(self._file.fileno())
         finally:
             self._file.close()
+
+    def _commit(self) -> None:
+        """Close the chunk in progress and hand it to the OS (and the disk, with fsync)."""
+        if not self._durable:
+            return
+        self._writer.flush()  # finishes the chunk, writes its message index, flushes the stream
+        if self._fsync:
+            os.fsync(self._file.fileno())
+
+    def _put(self, topic: str, message: Message, t: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            schema = register_schema(self._writer, type(message))
+            channel = self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema)
+            # The channel record rides in the chunk of its first message; this copy outside any chunk names
+            # the channel's later messages if that one chunk is damaged (see open_recording).
+            self._writer.add_metadata(f"{CHANNEL_METADATA}{channel}",
+                                      {"topic": topic, "schema": type(message).DESCRIPTOR.full_name})
+        self._writer.add_message(channel, log_time=t, data=message.SerializeToString(), publish_time=t)
 
     # --- writing ---------------------------------------------------------------------
     def write(self, message: Message, log_time_ns: int | None = None) -> None:
@@ -112,12 +171,13 @@ class McapRecorder:
         if topic is None:
             raise RecordingError(f"{type(message).__name__} is not a lelsonar contract message")
         t = log_time_ns if log_time_ns is not None else _message_time(message)
-        self._writer.write_message(topic, message, log_time=t, publish_time=t)
+        self._put(topic, message, t)
         self.messages_written += 1
         if isinstance(message, codec.ScanStart):
             self._starts[(message.scanner_id, message.scan_id)] = message
         elif isinstance(message, codec.Sample):
             self._write_pose_and_points(message, t)
+        self._commit()
 
     def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
         """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
@@ -125,7 +185,8 @@ class McapRecorder:
         msg = Log(level=Log.Level.Value(level.upper()), message=text, name=name)
         msg.timestamp.FromNanoseconds(t)
         msg.file = ""
-        self._writer.write_message(TOPIC_LOG, msg, log_time=t, publish_time=t)
+        self._put(TOPIC_LOG, msg, t)
+        self._commit()
 
     def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
         tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=ARRAY_FRAME)
@@ -134,7 +195,7 @@ class McapRecorder:
         tf.translation.SetInParent()
         half = 0.5 * sample.gamma_measured
         tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = math.sin(half), 0.0, 0.0, math.cos(half)
-        self._writer.write_message(TOPIC_TF, tf, log_time=t, publish_time=t)
+        self._put(TOPIC_TF, tf, t)
 
         start = self._starts.get((sample.scanner_id, sample.scan_id))
         valid = [s for s in sample.sensors if s.echo_valid]
@@ -147,7 +208,7 @@ class McapRecorder:
         pos = np.array([[c.position.x, c.position.y, c.position.z] for c, _ in rows])
         bore = np.array([[c.boresight.x, c.boresight.y, c.boresight.z] for c, _ in rows])
         pts = beam_points_from_capsules(pos, bore, sample.gamma_measured, np.array([d for _, d in rows]))
-        self._writer.write_message(TOPIC_POINTS, point_cloud(pts, t), log_time=t, publish_time=t)
+        self._put(TOPIC_POINTS, point_cloud(pts, t), t)
 
 
 def point_cloud(points: np.ndarray, t_ns: int, frame_id: str = WORLD_FRAME) -> PointCloud:
@@ -183,27 +244,158 @@ class RecordedPayload:
     payload: bytes
 
 
-def iter_payloads(path: Path | str) -> Iterator[RecordedPayload]:
+@dataclass(frozen=True)
+class Recording:
+    """A recording as read by the tolerant reader: what survived, and what did not.
+
+    Build with :func:`open_recording`; iterate the contract payloads with
+    :func:`iter_payloads` (which takes a Recording or a path).
+    """
+
+    salvage: Salvage
+
+    @property
+    def path(self) -> Path:
+        return self.salvage.path
+
+    def payloads(self) -> list[RecordedPayload]:
+        """The contract messages in log-time order, undecoded."""
+        s = self.salvage
+        wanted = {cid for cid, ch in s.channels.items() if ch.topic in _CONTRACT_TOPICS}
+        return [RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
+                for m in s.in_log_time_order() if m.channel_id in wanted]
+
+    def count(self, topic: str) -> int:
+        ids = {cid for cid, ch in self.salvage.channels.items() if ch.topic == topic}
+        return sum(1 for m in self.salvage.messages if m.channel_id in ids)
+
+    @property
+    def has_scans(self) -> bool:
+        return any(self.count(TOPICS[cls]) for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd))
+
+    def damage_warning(self) -> str | None:
+        """One line saying what was lost, or None for an intact, finished file.
+
+        e.g. ``warning: scan.mcap is damaged: 1 chunk (≈10 messages) unreadable after byte 81234; 118 samples
+        salvaged``.
+        """
+        s = self.salvage
+        if s.intact:
+            return None
+        return f"warning: {s.path} {describe_damage(s)}; {self.count(TOPICS[codec.Sample])} samples salvaged"
+
+    def require_scans(self) -> Recording:
+        """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost)."""
+        if self.has_scans:
+            return self
+        s = self.salvage
+        held = sorted({ch.topic for ch in s.channels.values()})
+        what = f"its channels are {', '.join(held)}" if held else "it has no readable channels"
+        lost = f"; {describe_damage(s)}" if not s.intact else ""
+        raise NoScansError(f"no lelsonar scans in {s.path}: {what}{lost}")
+
+
+def describe_damage(s: Salvage) -> str:
+    """What happened to a file, as a clause for a one-line warning.
+
+    e.g. ``is damaged: 1 chunk (3 messages) unreadable after byte 688187`` or
+    ``is damaged: cut at byte 1498671 mid-record (≈3 messages), unfinished`` or
+    ``is unfinished (no footer: the writer was stopped or killed), nothing lost``.
+    """
+    parts = []
+    chunks = [d for d in s.damage if d.kind == "chunk"]
+    records = [d for d in s.damage if d.kind == "record"]
+    tail = [d for d in s.damage if d.kind == "tail"]
+    lost, exact = s.messages_lost()
+    if chunks:
+        n = lost if s.statistics_counts is not None else sum(d.messages_lost for d in chunks)
+        approx = "" if exact or all(d.messages is not None for d in chunks) else "≈"
+        label = "chunk" if len(chunks) == 1 else "chunks"
+        parts.append(f"{len(chunks)} {label} ({approx}{n} messages) unreadable after byte {chunks[0].offset}")
+    if records:
+        label = "other record" if len(records) == 1 else "other records"
+        parts.append(f"{len(records)} {label} unreadable after byte {records[0].offset}")
+    if tail:
+        parts.append(f"cut at byte {tail[0].offset} mid-record (≈{tail[0].messages_lost} messages)")
+    if any(d.kind == "header" for d in s.damage):
+        parts.append("the leading magic has flipped bits")
+    if any(d.kind == "summary" for d in s.damage):
+        parts.append("its index is unreadable")
+    if s.orphans:
+        parts.append(f"{s.orphans} messages on channels whose definition was lost")
+    if lost and not chunks and not tail:
+        parts.append(f"{'' if exact else '≈'}{lost} messages lost")
+    if not parts:
+        return ("is unfinished (no footer: the writer was stopped or killed), nothing lost" if not s.finished
+                else "is intact")
+    lossless = not (lost or s.orphans or tail)
+    return (f"is damaged: {', '.join(parts)}" + ("" if s.finished else ", unfinished")
+            + (", no message lost" if lossless else ""))
+
+
+def open_recording(path: Path | str | Recording) -> Recording:
+    """Read a recording tolerantly: every intact message, and an account of the damage.
+
+    Raises
+    ------
+    RecordingNotFoundError
+        Missing path or a directory.
+    NotMcapError
+        The file is not an MCAP file.
+    """
+    if isinstance(path, Recording):
+        return path
+    s = salvage(path)
+    if s.orphans:
+        _adopt_orphans(s)
+    return Recording(s)
+
+
+def _adopt_orphans(s: Salvage) -> None:
+    """Name the channels whose definition was in a damaged chunk, from the recorder's channel metadata.
+
+    The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
+    """
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    from lelsonar.recordings.reader import ChannelInfo, SchemaInfo
+
+    by_name = {schema.name: sid for sid, schema in s.schemas.items()}
+    for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
+        md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})
+        cls = RECORDED_TYPES.get(md.get("schema", ""))
+        if cls is None or not md.get("topic"):
+            continue
+        name = cls.DESCRIPTOR.full_name
+        if name not in by_name:
+            sid = by_name[name] = max(s.schemas, default=0) + 1
+            s.schemas[sid] = SchemaInfo(sid, name, "protobuf", build_file_descriptor_set(cls).SerializeToString())
+        s.channels[cid] = ChannelInfo(cid, by_name[name], md["topic"], "protobuf", {})
+    s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
+
+
+def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
     """Yield the contract messages of a recording in log-time order, undecoded.
+
+    A damaged or unfinished file yields every intact message and logs one
+    warning (pass an opened :class:`Recording` to report the damage yourself:
+    then nothing is logged).
 
     Raises
     ------
     RecordingError
-        If the file is missing or is not an MCAP file.
+        If the file is missing, a directory or not an MCAP file
+        (:class:`~lelsonar.errors.RecordingNotFoundError`,
+        :class:`~lelsonar.errors.NotMcapError`).
     """
-    topics = list(TOPICS.values())
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=True):
-                yield RecordedPayload(message.log_time, channel.topic, schema.name if schema else "", message.data)
-    except FileNotFoundError:
-        raise RecordingError(f"no recording at {path}") from None
-    except (McapError, ValueError, EOFError) as exc:
-        raise RecordingError(f"{path} is not a readable MCAP file ({exc}); was it finished?") from None
+    rec = open_recording(path)
+    if not isinstance(path, Recording) and (line := rec.damage_warning()):
+        _log.warning("%s", line.removeprefix("warning: "))
+    yield from rec.payloads()
 
 
-def read_messages(path: Path | str, limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
+def read_messages(path: Path | str | Recording,
+                  limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
     """Decoded, validated contract messages in log-time order; a bad record raises DecodeError."""
     for rec in iter_payloads(path):
         cls = codec.MESSAGE_TYPES.get(rec.type_name)
@@ -212,7 +404,9 @@ def read_messages(path: Path | str, limits: codec.DecodeLimits = codec.DEFAULT_L
         yield codec.decode(rec.payload, cls, limits)
 
 
-def read_metadata(path: Path | str) -> dict[str, dict[str, str]]:
+def read_metadata(path: Path | str | Recording) -> dict[str, dict[str, str]]:
     """All metadata records of a recording, by name."""
-    with open(path, "rb") as f:
-        return {m.name: dict(m.metadata) for m in make_reader(f).iter_metadata()}
+    return dict(open_recording(path).salvage.metadata)
+
+
+_CONTRACT_TOPICS = frozenset(TOPICS.values())

@@ -16,7 +16,7 @@ _TOML_KEYS = {
     "scanner_id": str, "prefix": str, "device": str, "preset": str, "steps": int, "gamma_start_deg": float,
     "gamma_stop_deg": float, "radial_offset": float, "motor_port": str, "sensor_port": str, "out_dir": str,
     "mcap_name": str, "record": bool, "scans": int, "interval": float, "seed": int, "waveform_int16": bool,
-    "compression": str, "energy_phi": list,
+    "compression": str, "energy_phi": list, "fsync": bool,
 }
 
 
@@ -55,6 +55,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--int16", dest="waveform_int16", action="store_true", default=None,
                    help="send waveforms as int16 plus a scale (half the bytes of float32)")
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), help="MCAP chunk compression (default: zstd)")
+    p.add_argument("--fsync", action="store_true", default=None,
+                   help="fsync the recording after every step, so it survives a power cut too (every step is "
+                        "always written to the OS before it is published; `lelsonar bench recording` measures "
+                        "the cost)")
     p.add_argument("--energy-phi", nargs=3, type=float, metavar=("PHI0", "PHI1", "PHI2"),
                    help="energy model of eq. (12) in SI units (default: the simulator's calibration; "
                         "see `lelsonar calibrate`)")
@@ -82,11 +86,11 @@ def load_toml(path: Path) -> dict:
 
 def config_from_args(args: argparse.Namespace):
     from lelsonar.acquire.config import AcquireConfig
-    from lelsonar.reconstruct.energy import EnergyModel
+    from lelsonar.energy_model import EnergyModel
 
     values = load_toml(args.config) if args.config else {}
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
-                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression"):
+                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression", "fsync"):
         if getattr(args, key, None) is not None:
             values[key] = getattr(args, key)
     if args.prefix:

@@ -12,7 +12,7 @@ from pathlib import Path
 from lelsonar.acquire.backends import DEVICES
 from lelsonar.errors import ConfigError
 from lelsonar.keys import validate_identifier, validate_prefix
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 
 
 @dataclass(frozen=True)
@@ -46,6 +46,10 @@ class AcquireConfig:
     waveform_int16 : bool
         Send waveforms as int16 with a scale (half the bytes) instead of float32.
     compression : {"zstd", "lz4", "none"}
+    fsync : bool
+        ``fsync`` the recording after every step: durable on disk across a power
+        cut, not only across a killed process (every step is always handed to the
+        OS before it is published).
     energy_model : EnergyModel, optional
         φ of eq. (12); default: the simulator's calibration.
     """
@@ -68,6 +72,7 @@ class AcquireConfig:
     seed: int = 0
     waveform_int16: bool = False
     compression: str = "zstd"
+    fsync: bool = False
     energy_model: EnergyModel | None = None
 
     def __post_init__(self) -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import lelsonar
 from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.acquire.scanner import ScannerInfo, StepMeasurement
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 from lelsonar.v1 import scan_pb2
 
 

@@ -23,7 +23,7 @@ from lelsonar.acquire import messages
 from lelsonar.acquire.scanner import Scanner
 from lelsonar.errors import DeviceError
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 from lelsonar.recording import McapRecorder
 
 _log = logging.getLogger(__name__)
@@ -61,7 +61,7 @@ class ScanOutput:
 
     def emit(self, message: Message) -> None:
         if self.recorder is not None:
-            self.recorder.write(message)
+            self.recorder.write(message)  # returns once the step is with the OS: durable before published
         if self.publisher is not None:
             try:
                 self.publisher.publish(message)

@@ -23,7 +23,7 @@ from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
 from lelsonar.acquire.sim import SimConfig, preset
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 from lelsonar.recording import McapRecorder
 from lelsonar.transport import ZenohSettings, open_session
 
@@ -86,7 +86,7 @@ def run_acquisition(cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threa
             path = cfg.mcap_path(index) if cfg.record else None
             with ExitStack() as scan_stack:
                 recorder = (scan_stack.enter_context(McapRecorder(path, compression=cfg.compression,
-                                                                  metadata=cfg.as_metadata()))
+                                                                  metadata=cfg.as_metadata(), fsync=cfg.fsync))
                             if path else None)
                 output = ScanOutput(recorder, publisher)
                 progress = scan_stack.enter_context(Progress(

@@ -101,6 +101,20 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
                                           main_method=args.method))
 
 
+def _open_source(path: Path):
+    """The recording to replay, read tolerantly: one warning line on stderr if it is damaged or unfinished.
+
+    Raises the typed :class:`~lelsonar.errors.RecordingError` subclasses (one line, exit 2) for a missing path,
+    a directory, a file that is not MCAP, and one without lelsonar scans.
+    """
+    from lelsonar.recording import open_recording
+
+    source = open_recording(path).require_scans()
+    if (line := source.damage_warning()) is not None:
+        print(line, file=sys.stderr, flush=True)
+    return source
+
+
 def run_reconstruct(args: argparse.Namespace) -> int:
 
     from lelsonar.keys import ScannerKeys
@@ -128,6 +142,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if args.until_scans and n_final >= args.until_scans:
                 finals.set()
 
+    source = _open_source(args.source) if args.source is not None else None
     with ExitStack() as stack:
         observer = _rerun_observer(args, stack)
         recorder = stack.enter_context(McapRecorder(args.record)) if args.record else None
@@ -141,7 +156,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             publish_to.insert(0, server.publish)
             stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
         if args.source is not None:
-            n = replay_mcap(args.source, service)
+            n = replay_mcap(source, service)
             if recorder:
                 for msg in service.finals.values():
                     recorder.write(msg)
@@ -172,10 +187,10 @@ def run_review(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.rerun_observer import open_rerun
     from lelsonar.reconstruct.service import ReconstructionService
     from lelsonar.reconstruct.sources import replay_mcap
-    from lelsonar.recording import iter_payloads
 
+    source = _open_source(args.source)
     out = args.output or args.source.with_suffix(".rrd")
-    total = sum(1 for _ in iter_payloads(args.source))
+    total = len(source.payloads())
     console = present.console(stderr=True)
     with open_rerun(rrd=out, application_id="lelsonar", truth_preset=args.truth_preset,
                     main_method=args.method) as observer, \
@@ -183,7 +198,7 @@ def run_review(args: argparse.Namespace) -> int:
                      TimeRemainingColumn(), console=console, transient=True) as progress:
         task = progress.add_task("replay", total=total)
         service = ReconstructionService(_config(args), observer=observer)
-        replay_mcap(args.source, service, on_payload=lambda _t: progress.advance(task))
+        replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
     for msg in service.finals.values():
         console.print(present.planes_table(msg))
     console.print(f"wrote {out} — open it with: rerun {out}")
@@ -247,8 +262,11 @@ def run_planner(args: argparse.Namespace) -> int:
             timer.start()
         while not (stop.is_set() or done.is_set()):
             stop.wait(0.2)
-        sub.undeclare()
+        sub.undeclare()  # ends the drain loop: its channel closes
         token.undeclare()
+        # A daemon thread still inside Zenoh's native recv when the interpreter exits is cancelled
+        # mid-unwind and aborts the process ("FATAL: exception not rethrown"): let it finish first.
+        worker.join(timeout=5.0)
     if args.until_final and not done.is_set():
         print(f"planner: no final estimate within {args.timeout:.0f} s", file=sys.stderr)
         return 1

@@ -31,9 +31,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import time
+from dataclasses import replace
+
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight
+
+from . import fit as F
+from .correct import AXIS_Y, AXIS_Z
+from .estimators import diagnostics, fit_adaptive, run_estimator
+from .options import FitOptions, ScanFit
+from .quality import assess_plane
+from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
+from .split import critical_step, split_subsets
 
 
 __all__ = [
@@ -53,6 +64,8 @@ __all__ = [
     "ECHO_WALL_B",
     "ECHO_EDGE",
     "ECHO_OUTLIER",
+    "corner_edge",
+    "fit_corner",
 ]
 
 ECHO_WALL_A, ECHO_WALL_B, ECHO_EDGE, ECHO_OUTLIER = 0, 1, 2, -1
@@ -454,3 +467,127 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
         wa, wb = fa, fb
     labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
     return CornerModel(wa, wb, labels, res, tolerance, cost, len(hyps), cov)
+
+
+# --------------------------------------------------------------------------- the method "corner"
+
+def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float = np.deg2rad(5.0)
+                ) -> EdgeLine | FitFailure:
+    """The line where the two planes meet.
+
+    Direction ``n_a × n_b`` (normalised); point: the point of the line closest
+    to the origin, solving ``n_a·x = h_a``, ``n_b·x = h_b``, ``dir·x = 0``.
+
+    Returns FitFailure if a plane is missing or the planes are within
+    ``min_angle`` of parallel.
+    """
+    if not isinstance(plane_a, PlaneFit) or not isinstance(plane_b, PlaneFit):
+        return FitFailure(FailureReason.TOO_FEW_POINTS, "the edge needs both planes", "edge", 0)
+    na, nb = plane_a.normal, plane_b.normal
+    cr = np.cross(na, nb)
+    s = float(np.linalg.norm(cr))
+    angle = float(np.arccos(np.clip(na @ nb, -1.0, 1.0)))
+    if s < np.sin(min_angle):
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
+                          f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel", "edge", 0)
+    direction = cr / s
+    a = np.stack([na, nb, direction])
+    point = np.linalg.solve(a, np.array([plane_a.offset, plane_b.offset, 0.0]))
+    # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
+    # and turns it by δ / sin(angle).
+    point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
+                             + (plane_a.offset * plane_a.normal_stderr)**2
+                             + (plane_b.offset * plane_b.normal_stderr)**2) / s)
+    direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
+    return EdgeLine(point=point, direction=direction, angle=angle, point_stderr=point_se,
+                    direction_stderr=direction_se)
+
+
+def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
+                 note: str) -> PlaneResult:
+    """One wall of the joint model, refined on its own echoes.
+
+    The paper-corrected points (§4) give the most precise normal when the wall
+    is axis-aligned; the joint model (mirror and edge echoes together) is
+    unbiased whatever the tilt.  If the LS normal of the corrected points
+    (eq. 15) agrees with the joint normal within ``opts.tilt_test_sigma`` of the
+    joint standard error, keep it with the offset from the mirror-echo
+    condition; otherwise keep the joint wall.  Either way the reported
+    standard errors are the joint model's at least: the corrected points
+    cannot see a tilt below that, so their own covariance would overclaim.
+    """
+    mask = np.ones(data.n, dtype=bool)
+    theta_p = F.ls_theta(data.points)
+    n_p = theta_p / np.linalg.norm(theta_p)
+    se_n, se_h = wall_se
+    angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
+    agree = np.isfinite(se_n) and angle <= opts.tilt_test_sigma * se_n
+    if agree:
+        h = float(np.mean(data.capsules @ n_p + data.distance))
+        theta, model = n_p / h, "paper"
+    else:
+        theta, model = wall.normal / wall.offset, "constant-depth"
+    verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
+    diag = diagnostics("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
+                                                    f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°) -> "
+                                                    + verdict))
+    fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
+    if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
+        fit = replace(fit, normal_stderr=max(fit.normal_stderr, se_n), offset_stderr=max(fit.offset_stderr, se_h))
+    return fit
+
+
+def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
+                opts: FitOptions) -> ScanFit:
+    """Both walls and the edge from all the echoes (:mod:`lelsonar.reconstruct.corner_model`).
+
+    The joint model labels every echo (wall a, wall b, edge, outlier); each
+    wall is then refined on its own echoes exactly as ``"adaptive"`` refines
+    its inliers: LS on the paper-corrected points (§4, eq. 15), the χ² tilt
+    test against the constant-depth model, the mirror-echo offset.  The
+    critical step is where the boresight points at the fitted edge, which
+    does not scatter with the energy noise.  Where the joint model finds no
+    bands (too few echoes), it falls back to ``"adaptive"`` on the energy split.
+    """
+    t0 = time.perf_counter()
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    pts = scan_points(geometry, g, d)
+    model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
+                             tolerance=opts.corner_tolerance, min_points=opts.min_points)
+    if model is None:
+        crit = critical_step(ratio, opts.critical_peak_fraction)
+        split = split_subsets(g, crit)
+        data = [F.plane_data(geometry, g, d, steps, label, axis)
+                for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
+        out = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in data]
+        return ScanFit(out[0], out[1], data[0], data[1], crit)
+    note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
+            f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
+            f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    out: list[PlaneResult] = []
+    datas: list[F.PlaneData] = []
+    for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
+        sel = np.full(d.shape, np.nan)
+        m = model.labels == k
+        sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
+        data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        datas.append(data)
+        fail = F.check_points(data.points, label, opts.min_points)
+        if fail is not None:
+            out.append(FitFailure(fail.reason, f"corner: {int(np.count_nonzero(m))} echoes of wall {label}; "
+                                  + fail.detail, label, fail.n_points))
+            continue
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note)
+        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE)) if isinstance(fit, PlaneFit) else fit)
+    # The critical step: where the boresight points at the edge of the final planes.  The common
+    # roll of both walls about x barely changes any range, so the corrected-points normals (which
+    # assume the walls are axis-aligned unless the data say otherwise) pin it better than the joint fit.
+    edge = corner_edge(out[0], out[1])
+    crit = None
+    if isinstance(edge, EdgeLine):
+        point = edge.point
+        if abs(edge.direction[0]) > 1e-9:
+            point = point - edge.direction * (point[0] / edge.direction[0])
+        crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
+    return ScanFit(out[0], out[1], datas[0], datas[1], crit)

@@ -10,7 +10,6 @@ ground truth kept next to each sample.
 
 from .acoustics import Acoustics, Receiver, piston_directivity, sound_speed
 from .calibrate import (
-    DEFAULT_ENERGY_MODEL,
     PAPER_CALIBRATION_DISTANCES,
     CalibrationResult,
     EnergyShotSource,
@@ -43,3 +42,10 @@ __all__ = [
     "calibrate", "calibrate_simulator", "default_energy_model", "echo_table", "piston_directivity",
     "preset", "preset_names", "simulate_scan", "simulate_step", "sound_speed",
 ]
+
+
+def __getattr__(name: str):  # noqa: ANN202
+    # DEFAULT_ENERGY_MODEL is calibrated on first use (calibrate.default_energy_model), not at import.
+    if name == "DEFAULT_ENERGY_MODEL":
+        return default_energy_model()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

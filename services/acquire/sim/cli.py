@@ -47,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _simulate(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.energy import energy_ratio
 
-    from .calibrate import DEFAULT_ENERGY_MODEL
+    from .calibrate import default_energy_model
     from .presets import preset
     from .scan import EchoSource, simulate_scan
 
@@ -59,7 +59,7 @@ def _simulate(args: argparse.Namespace) -> int:
         print(fs.draw.description)
     else:
         scan = simulate_scan(preset(args.preset), seed=args.seed)
-        model, name = DEFAULT_ENERGY_MODEL, f"preset {args.preset}"
+        model, name = default_energy_model(), f"preset {args.preset}"
     ratio = energy_ratio(scan.step_energy(), scan.distance, model)
     k = int(np.argmax(ratio))
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))

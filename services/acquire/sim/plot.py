@@ -11,7 +11,7 @@ import numpy as np
 
 from lelsonar.reconstruct.energy import EnergyModel, energy_ratio, median_range
 
-from .calibrate import DEFAULT_ENERGY_MODEL
+from .calibrate import default_energy_model
 from .scan import EchoSource, SimulatedScan, TruePlane
 
 _SOURCE_STYLE = {
@@ -51,7 +51,7 @@ def scan_figure(scan: SimulatedScan, model: EnergyModel | None = None):
     scan : SimulatedScan
         Must carry waveforms.
     model : EnergyModel, optional
-        ``E0(d)``; default :data:`DEFAULT_ENERGY_MODEL`.
+        ``E0(d)``; default :func:`default_energy_model`.
 
     Returns
     -------
@@ -60,7 +60,7 @@ def scan_figure(scan: SimulatedScan, model: EnergyModel | None = None):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    model = model or DEFAULT_ENERGY_MODEL
+    model = model or default_energy_model()
     gamma_deg = np.degrees(scan.gamma_measured)
     energy = scan.step_energy()
     ratio = energy_ratio(energy, scan.distance, model)

@@ -1,4 +1,4 @@
-"""A tiny geometric L-corner scan generator for tests and examples (no waveforms).
+"""A tiny geometric L-corner scan generator for the tests (no waveforms).
 
 Not a simulator (that is :mod:`lelsonar.acquire.sim`): just the mirror-echo and
 corner-echo geometry of the design notes §8, so the reconstruction math can be
@@ -19,7 +19,7 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight
 
-from .energy import EnergyModel
+from lelsonar.energy_model import EnergyModel
 
 __all__ = ["WALL_A", "WALL_B", "CORNER", "NONE", "SyntheticScan", "synthetic_corner_scan", "tilted_normal"]
 

@@ -1,0 +1,241 @@
+"""`reconstruct --source`, `review`, `info` and `recover` on damaged and wrong files: one line, never a traceback.
+
+The damage is placed with the recorder's own promise: every write is flushed,
+so the file size after writing step k is where step k's chunk ends.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
+
+from lelsonar import codec, recording
+from lelsonar.__main__ import main as lelsonar_main
+from lelsonar.v1 import reconstruction_pb2
+
+from .conftest import simulated_messages
+
+STEPS = 184  # the paper-test1 schedule: enough for a corner and both planes
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory) -> tuple[Path, list, list[tuple[int, int]]]:
+    """A full recorded scan, its messages, and (start, end) of each sample step's bytes in the file."""
+    path = tmp_path_factory.mktemp("cli") / "scan.mcap"
+    msgs = simulated_messages()
+    spans = []
+    with recording.McapRecorder(path, metadata={"device": "sim"}) as rec:
+        for msg in msgs:
+            before = path.stat().st_size
+            rec.write(msg)
+            if isinstance(msg, codec.Sample):
+                spans.append((before, path.stat().st_size))
+    assert len(spans) == STEPS
+    return path, msgs, spans
+
+
+def run(capsys, *argv) -> tuple[int, str, str]:
+    rc = lelsonar_main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def flipped(scan, tmp_path: Path, step: int) -> Path:
+    path, _msgs, spans = scan
+    start, end = spans[step]
+    data = bytearray(path.read_bytes())
+    data[(start + end) // 2] ^= 0x04
+    out = tmp_path / "flipped.mcap"
+    out.write_bytes(bytes(data))
+    return out
+
+
+def cut(scan, tmp_path: Path, after_step: int, extra: int = 50) -> Path:
+    path, _msgs, spans = scan
+    out = tmp_path / "cut.mcap"
+    out.write_bytes(path.read_bytes()[:spans[after_step][1] + extra])
+    return out
+
+
+def warnings(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("warning:")]
+
+
+# --- file errors ----------------------------------------------------------------------------------
+def foreign_mcap(path: Path) -> Path:
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start()
+        ch = w.register_channel("/camera/info", "json", 0)
+        w.add_message(ch, log_time=1, data=b"{}", publish_time=1)
+        w.finish()
+    return path
+
+
+BAD_FILES = {
+    "missing": (lambda d: d / "missing.mcap", "no recording at"),
+    "directory": (lambda d: d, "is a directory"),
+    "text file": (lambda d: (d / "notes.mcap").write_text("hello\n") and d / "notes.mcap", "not a readable MCAP"),
+    "empty file": (lambda d: (d / "empty.mcap").write_bytes(b"") or d / "empty.mcap", "is empty"),
+}
+COMMANDS = {
+    "reconstruct": lambda f, d: ["reconstruct", "--source", f, "--json"],
+    "review": lambda f, d: ["review", f, "-o", d / "out.rrd"],
+    "info": lambda f, d: ["info", f],
+    "recover": lambda f, d: ["recover", f, "-o", d / "out.mcap"],
+}
+
+
+def assert_one_error_line(rc: int, err: str, command: str, phrase: str) -> None:
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert rc == 2 and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith(f"lelsonar {command}: error: ") and phrase in lines[0], err
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("case", BAD_FILES)
+def test_a_bad_path_is_one_error_line_and_exit_2(tmp_path, capsys, command, case):
+    make, phrase = BAD_FILES[case]
+    target = make(tmp_path)
+    rc, _out, err = run(capsys, *COMMANDS[command](target, tmp_path))
+    assert_one_error_line(rc, err, command, phrase)
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "review"])
+def test_foreign_channels_only_is_no_lelsonar_scans(tmp_path, capsys, command):
+    target = foreign_mcap(tmp_path / "camera.mcap")
+    rc, _out, err = run(capsys, *COMMANDS[command](target, tmp_path))
+    assert_one_error_line(rc, err, command, f"no lelsonar scans in {target}: its channels are /camera/info")
+    rc, out, _err = run(capsys, "info", target)  # info describes it, it is not an error
+    assert rc == 0 and "no lelsonar scans" in out
+
+
+@pytest.mark.parametrize("command", ["reconstruct", "review", "recover"])
+def test_a_file_with_nothing_left_is_one_error_line(scan, tmp_path, capsys, command):
+    target = tmp_path / "stub.mcap"
+    target.write_bytes(scan[0].read_bytes()[:30])  # the magic and half a header
+    rc, _out, err = run(capsys, *COMMANDS[command](target, tmp_path))
+    phrase = "nothing to recover" if command == "recover" else "no lelsonar scans in"
+    assert_one_error_line(rc, err, command, phrase)
+
+
+# --- damaged files still give estimates, with one warning line ------------------------------------
+def test_reconstruct_source_on_a_bit_flip_warns_once_and_estimates(scan, tmp_path, capsys):
+    target = flipped(scan, tmp_path, step=120)
+    rc, out, err = run(capsys, "reconstruct", "--source", target, "--json")
+    assert rc == 0 and "Traceback" not in err
+    assert len(warnings(err)) == 1
+    assert re.fullmatch(rf"warning: {re.escape(str(target))} is damaged: 1 chunk \(3 messages\) unreadable after "
+                        rf"byte {scan[2][120][0]}; {STEPS - 1} samples salvaged", warnings(err)[0])
+    finals = [json.loads(line) for line in out.splitlines()]
+    assert len(finals) == 1 and finals[0]["samples_used"] == STEPS - 1 and len(finals[0]["planes"]) >= 2
+
+
+def test_review_of_a_cut_file_warns_once_and_writes_the_rrd(scan, tmp_path, capsys):
+    target = cut(scan, tmp_path, after_step=150)
+    rc, _out, err = run(capsys, "review", target, "-o", tmp_path / "cut.rrd")
+    assert rc == 0 and "Traceback" not in err and (tmp_path / "cut.rrd").stat().st_size > 0
+    (line,) = warnings(err)
+    assert "cut at byte" in line and line.endswith(f"; {151} samples salvaged")
+
+
+def test_recover_cli_writes_what_survived_of_a_bit_flip(scan, tmp_path, capsys):
+    target = flipped(scan, tmp_path, step=7)
+    rc, _out, err = run(capsys, "recover", target, "-o", tmp_path / "fixed.mcap")
+    assert rc == 0 and err.startswith(f"recovered {3 * STEPS - 3 + 2} messages ({STEPS - 1} samples)")
+    with open(tmp_path / "fixed.mcap", "rb") as f:
+        steps = sorted(codec.Sample.FromString(m.data).step
+                       for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"]))
+    assert steps == [s for s in range(STEPS) if s != 7]
+
+
+# --- lelsonar info ---------------------------------------------------------------------------------
+def info_json(capsys, path: Path) -> dict:
+    rc, out, err = run(capsys, "info", path, "--json")
+    assert rc == 0, err
+    return json.loads(out)
+
+
+def test_info_of_an_intact_scan(scan, capsys):
+    path, msgs, _ = scan
+    info = info_json(capsys, path)
+    assert info["intact"] and info["finished"] and info["messages_lost"] == 0 and info["damage"] == []
+    (s,) = info["scans"]
+    assert (s["scanner_id"], s["scan_id"], s["status"], s["device"]) == ("s1", 1, "complete", "sim")
+    assert (s["steps_received"], s["steps_planned"], s["missing_steps"]) == (STEPS, STEPS, [])
+    counts = {c["topic"]: c["messages"] for c in info["channels"]}
+    assert counts == {"/lelsonar/scan_start": 1, "/lelsonar/sample": STEPS, "/tf": STEPS, "/lelsonar/points": STEPS,
+                      "/lelsonar/scan_end": 1}
+    assert info["duration_s"] == pytest.approx((msgs[-1].end_time_ns - msgs[0].start_time_ns) / 1e9)
+    rc, out, _ = run(capsys, "info", path)
+    assert rc == 0 and f"{STEPS}/{STEPS}" in out and "finished, intact" in out
+
+
+def test_info_names_the_missing_step_and_the_damage(scan, tmp_path, capsys):
+    info = info_json(capsys, flipped(scan, tmp_path, step=42))
+    (s,) = info["scans"]
+    assert s["missing_steps"] == [42] and s["steps_received"] == STEPS - 1 and s["status"] == "complete"
+    (d,) = info["damage"]
+    assert d["kind"] == "chunk" and d["offset"] == scan[2][42][0] and d["exact"]
+    assert d["by_topic"] == {"/lelsonar/sample": 1, "/tf": 1, "/lelsonar/points": 1}
+    lost = {c["topic"]: c["lost"] for c in info["channels"]}
+    assert lost["/lelsonar/sample"] == 1 and lost["/lelsonar/scan_end"] == 0
+
+
+def test_a_killed_file_whose_first_sample_chunk_is_damaged_keeps_the_later_samples(scan, tmp_path, capsys):
+    # The Sample channel is defined in step 0's chunk only; the file has no summary to repeat it.
+    path, _msgs, spans = scan
+    data = bytearray(path.read_bytes()[:spans[20][1]])
+    data[(spans[0][0] + spans[0][1]) // 2] ^= 0x01
+    target = tmp_path / "killed.mcap"
+    target.write_bytes(bytes(data))
+    (s,) = info_json(capsys, target)["scans"]
+    assert s["missing_steps"] == [0, *range(21, STEPS)] and s["steps_received"] == 20
+    rc, _out, err = run(capsys, "recover", target, "-o", tmp_path / "fixed.mcap")
+    assert rc == 0, err
+    with open(tmp_path / "fixed.mcap", "rb") as f:
+        steps = sorted(codec.Sample.FromString(m.data).step
+                       for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"]))
+    assert steps == list(range(1, 21))
+    assert [type(m) for m in recording.read_messages(tmp_path / "fixed.mcap")][:2] == [codec.ScanStart, codec.Sample]
+
+
+def test_info_of_a_cut_file_and_of_skipped_steps(scan, tmp_path, capsys):
+    info = info_json(capsys, cut(scan, tmp_path, after_step=99))
+    (s,) = info["scans"]
+    assert not info["finished"] and s["status"] == "no ScanEnd"
+    assert s["missing_steps"] == list(range(100, STEPS)) and s["steps_planned"] == STEPS
+    path = tmp_path / "skipped.mcap"
+    with recording.McapRecorder(path) as rec:
+        for msg in scan[1]:
+            if not (isinstance(msg, codec.Sample) and msg.step in (3, 4)):
+                rec.write(msg)
+    (s,) = info_json(capsys, path)["scans"]
+    assert s["missing_steps"] == [3, 4] and s["steps_received"] == STEPS - 2
+
+
+def test_info_shows_recorded_estimates(tmp_path, capsys):
+    est = reconstruction_pb2.Reconstruction(schema_version=1, scanner_id="s1", scan_id=1, stamp_ns=5,
+                                            status=reconstruction_pb2.ESTIMATE_STATUS_FINAL, samples_used=180,
+                                            critical_step=68)
+    p = est.planes.add(label="b", method="adaptive", offset=1.06, sigma=0.002, inlier_count=300, point_count=320)
+    p.normal.z = 1.0
+    path = tmp_path / "estimates.mcap"
+    with recording.McapRecorder(path) as rec:
+        rec.write(est)
+    (e,) = info_json(capsys, path)["estimates"]
+    assert (e["status"], e["samples_used"], e["critical_step"]) == ("final", 180, 68)
+    assert e["planes"][0]["normal"] == [0.0, 0.0, 1.0] and e["planes"][0]["offset"] == 1.06
+    rc, out, _ = run(capsys, "info", path)
+    assert rc == 0 and "adaptive" in out and "106.00" in out
+
+
+def test_info_reports_every_file_and_fails_only_for_the_bad_one(scan, tmp_path, capsys):
+    rc, out, err = run(capsys, "info", tmp_path / "missing.mcap", scan[0], "--json")
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and "no recording at" in err
+    assert json.loads(out)["scans"][0]["steps_received"] == STEPS
