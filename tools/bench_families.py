@@ -930,7 +930,7 @@ def markdown_table(summary: dict[tuple[str, str], dict[str, Any]], families: tup
              "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
              "and the share > 3.", "",
              r"| family | method | angle ° | \|Δh\| cm | patch cm | patch / oracle | failures (oracle avoids) "
-             r"| no plane | \|z\| normal | \|z\| offset | failures claiming good | ms / scan |",
+             r"| no plane | \|z\| normal | \|z\| offset | failures claiming good (after cross-check) | ms / scan |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for fam in (*families, "all"):
         for method in methods:
@@ -943,7 +943,7 @@ def markdown_table(summary: dict[tuple[str, str], dict[str, Any]], families: tup
                 f"{_pair(s['offset_med'], s['offset_p95'])} | {_pair(s['patch_med'], s['patch_p95'])} | "
                 f"{_fmt(s['ratio_med'])} | {s['failures']} ({s['failures_oracle_avoids']}) | {s['missing']} | "
                 f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])} | {_fmt(s['z_offset_med'])}, "
-                f"{_pct(s['z_offset_gt3'])} | {'n/a' if s['failures_good'] is None else s['failures_good']} | "
+                f"{_pct(s['z_offset_gt3'])} | {_good(s)} | "
                 f"{_fmt(_scan_ms(s), 1)} |")
     return "\n".join(lines) + "\n"
 
