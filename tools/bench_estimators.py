@@ -1,5 +1,8 @@
 """``lelsonar bench estimators``: accuracy and speed of every reconstruction method on simulated scans.
 
+``--families`` runs the seeded scene families of issue 9 instead
+(:mod:`lelsonar.tools.bench_families`).  Without it:
+
 For each scene (the paper's two tests and tilted L corners) and each seed, the
 simulator (:mod:`lelsonar.acquire.sim`) produces a scan; every method in
 :data:`lelsonar.reconstruct.pipeline.METHODS` reconstructs it with the
@@ -63,12 +66,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="simulator presets, or tilted-roll5 (the L rolled 5° about x), "
                              "tilted-b8 (plane b pitched 8°), tilted-a5z (plane a yawed 5° about z)")
     parser.add_argument("--methods", nargs="+", default=None,
-                        help="methods to run (default: all registered)")
+                        help="methods to run (default: all registered; with --families: the default method, "
+                             "fcm-ransac and lel-refit-ls)")
     parser.add_argument("--skip-slow", action="store_true",
                         help="skip the Nelder-Mead methods (paper, lel-nm) and the H check")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes for accuracy runs")
     parser.add_argument("--timing-repeats", type=int, default=50)
     parser.add_argument("--json", metavar="PATH", help="also write every per-plane number as JSON")
+    from lelsonar.tools.bench_families import add_family_arguments
+
+    add_family_arguments(parser)
 
 
 def _scene_config(name: str) -> Any:
@@ -232,7 +239,14 @@ def _p(x: list[float], q: float) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the benchmark and print the tables; 0 if the default method meets its targets, 1 otherwise."""
+    """Run the benchmark and print the tables; 0 if the default method meets its targets, 1 otherwise.
+
+    With ``--families``, run :func:`lelsonar.tools.bench_families.run_families` instead of the presets.
+    """
+    if getattr(args, "families", None):
+        from lelsonar.tools.bench_families import run_families
+
+        return run_families(args)
     from rich.console import Console
     from rich.table import Table
 

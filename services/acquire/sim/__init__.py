@@ -32,9 +32,11 @@ from .scan import (
     simulate_step,
 )
 from .scene import Edge, Panel, Scene
+from .scenes import FAMILIES, SceneDraw, draw_scene, sample_scene, simulate_family_scene
 
 __all__ = [
-    "DEFAULT_ENERGY_MODEL", "PAPER_CALIBRATION_DISTANCES",
+    "DEFAULT_ENERGY_MODEL", "FAMILIES", "PAPER_CALIBRATION_DISTANCES", "SceneDraw",
+    "draw_scene", "sample_scene", "simulate_family_scene",
     "Acoustics", "CalibrationResult", "EchoSource", "EnergyShotSource", "EchoTable", "Edge", "Panel", "Receiver", "ScanTruth",
     "Scene", "Servo", "SimConfig", "SimulatedScan", "SimulatedStep", "SimulatedWallShots", "TruePlane",
     "calibrate", "calibrate_simulator", "default_energy_model", "echo_table", "piston_directivity",

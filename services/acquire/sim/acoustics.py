@@ -170,6 +170,12 @@ class Receiver:
         (±λ/2 = ±4.3 mm of range), split evenly between the two.
     noise_std : float
         White noise at the ADC input, V.
+    amplitude_noise : float
+        Relative standard deviation of a multiplicative factor on every echo
+        amplitude, drawn once per shot and capsule (log-normal,
+        ``exp(σ·N − σ²/2)``, mean 1): coupling, capsule orientation and air
+        turbulence.  The echo *energy* then varies by about ``2σ``.  0 (the
+        default) draws nothing, so existing seeds give the same bytes.
     ringdown_amplitude, ringdown_time : float
         Transmit ring-down at t = 0: ``A·exp(−t/τ)·sin(2πft)``, V and s.
     adc_bits : int
@@ -185,6 +191,7 @@ class Receiver:
     tof_jitter: float = 0.002
     cycle_slip_probability: float = 0.02
     noise_std: float = 0.002
+    amplitude_noise: float = 0.0
     ringdown_amplitude: float = 0.6
     ringdown_time: float = 0.1e-3
     adc_bits: int = 12
@@ -192,7 +199,7 @@ class Receiver:
 
     def __post_init__(self) -> None:
         _check_finite(self, ("echo_gain", "threshold", "blanking_time", "envelope_time", "tof_jitter",
-                             "cycle_slip_probability", "noise_std", "ringdown_amplitude",
+                             "cycle_slip_probability", "noise_std", "amplitude_noise", "ringdown_amplitude",
                              "ringdown_time", "adc_range"))
         if self.echo_gain <= 0:
             raise ConfigError(f"echo_gain must be > 0 V·m, got {self.echo_gain}")
@@ -206,6 +213,8 @@ class Receiver:
             raise ConfigError(f"tof_jitter must be in [0, 0.1] m, got {self.tof_jitter}")
         if not 0 <= self.cycle_slip_probability <= 1:
             raise ConfigError(f"cycle_slip_probability must be in [0, 1], got {self.cycle_slip_probability}")
+        if not 0 <= self.amplitude_noise <= 1:
+            raise ConfigError(f"amplitude_noise must be in [0, 1] (relative), got {self.amplitude_noise}")
         if self.noise_std < 0 or self.ringdown_amplitude < 0 or self.ringdown_time <= 0:
             raise ConfigError("noise_std and ringdown_amplitude must be ≥ 0 and ringdown_time > 0")
         if not (isinstance(self.adc_bits, int) and 4 <= self.adc_bits <= 24):

@@ -20,10 +20,16 @@ from lelsonar.errors import ConfigError
 
 def register(sub: argparse._SubParsersAction) -> None:
     from .presets import preset_names
+    from .scenes import FAMILIES
 
     p = sub.add_parser("simulate", help="simulate a scan of an L-shaped corner (physics-based)")
     p.add_argument("--preset", default="paper-test1", choices=preset_names(), help="scene and scan (default: %(default)s)")
+    p.add_argument("--family", choices=FAMILIES,
+                   help="draw the scene from a benchmark scene family instead of a preset (with --seed)")
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bytes")
+    p.add_argument("--mcap", metavar="OUT.mcap",
+                   help="also record the scan as `lelsonar acquire --device sim` would, with the rig's calibrated "
+                        "energy model; `lelsonar reconstruct --source OUT.mcap --json` reconstructs it")
     p.add_argument("--plot", metavar="PATH", help="write a figure of points, energies and R (PNG/PDF/SVG)")
     p.set_defaults(run=_simulate)
 
@@ -45,11 +51,19 @@ def _simulate(args: argparse.Namespace) -> int:
     from .presets import preset
     from .scan import EchoSource, simulate_scan
 
-    scan = simulate_scan(preset(args.preset), seed=args.seed)
-    ratio = energy_ratio(scan.step_energy(), scan.distance, default_energy_model())
+    if args.family:
+        from .scenes import simulate_family_scene
+
+        fs = simulate_family_scene(args.family, args.seed)
+        scan, model, name = fs.scan, fs.energy_model, f"family {args.family}"
+        print(fs.draw.description)
+    else:
+        scan = simulate_scan(preset(args.preset), seed=args.seed)
+        model, name = default_energy_model(), f"preset {args.preset}"
+    ratio = energy_ratio(scan.step_energy(), scan.distance, model)
     k = int(np.argmax(ratio))
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
-    print(f"preset {args.preset}, seed {args.seed}: {scan.n_steps} steps × {scan.geometry.n_capsules} capsules, "
+    print(f"{name}, seed {args.seed}: {scan.n_steps} steps × {scan.geometry.n_capsules} capsules, "
           f"{scan.waveforms.shape[-1]} samples at {scan.sample_rate / 1e3:.0f} kS/s, c = {scan.sound_speed:.1f} m/s")
     print("echo that set the TOF: " + ", ".join(f"{s.name.lower()} {counts[s]}" for s in EchoSource if counts[s]))
     print(f"critical angle {np.degrees(scan.truth.critical_angle):.2f}° (step {scan.truth.critical_step}); "
@@ -57,6 +71,12 @@ def _simulate(args: argparse.Namespace) -> int:
     for plane in scan.truth.planes:
         n = plane.normal
         print(f"plane {plane.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}), n·p = {plane.offset:.4f} m")
+    if args.mcap:
+        from .record import record_scan
+
+        meta = {"family": args.family or "", "preset": "" if args.family else args.preset, "seed": str(args.seed)}
+        end = record_scan(scan, args.mcap, model, scan_id=args.seed + 1, metadata=meta)
+        print(f"recorded {end.samples_sent} samples to {args.mcap}")
     if args.plot:
         from .plot import save_scan_figure
 

@@ -316,6 +316,21 @@ def _first_echo(cfg: SimConfig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarr
     return np.where(found, first_range, np.nan), source.astype(np.int8), index.astype(np.int16)
 
 
+def _amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> EchoTable:
+    """Scale every echo of a capsule's shot by one log-normal factor (``Receiver.amplitude_noise``).
+
+    Draws nothing when the noise is 0, so the random stream (and every existing
+    seed's bytes) is unchanged.  The factor is ``exp(σ·N − σ²/2)``: mean 1,
+    relative standard deviation ≈ σ.
+    """
+    sigma = cfg.receiver.amplitude_noise
+    if sigma <= 0:
+        return echoes
+    factor = np.exp(sigma * rng.standard_normal(echoes.amplitude.shape[:2]) - sigma * sigma / 2)
+    return EchoTable(range=echoes.range, amplitude=echoes.amplitude * factor[..., None], source=echoes.source,
+                     index=echoes.index)
+
+
 def _time_of_flight(cfg: SimConfig, echo_range: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Timing noise on the comparator: Gaussian jitter plus ±1-cycle slips (±λ/2 of range)."""
     c = cfg.sound_speed
@@ -441,7 +456,7 @@ def simulate_scan(cfg: SimConfig, seed: int | np.random.Generator | None = 0, *,
     raw = np.clip(cfg.servo.to_raw(gamma_true), 0, 1023)
     gamma_measured = cfg.servo.to_gamma(raw)
 
-    echoes = echo_table(cfg, gamma_true)
+    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
     echo_range, source, index = _first_echo(cfg, echoes)
     tof = _time_of_flight(cfg, echo_range, rng)
     c = cfg.sound_speed
@@ -469,7 +484,7 @@ def simulate_step(cfg: SimConfig, gamma_measured: float, rng: np.random.Generato
     step, without the servo draw.
     """
     gamma = np.array([float(gamma_measured)])
-    echoes = echo_table(cfg, gamma)
+    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma), rng)
     echo_range, source, index = _first_echo(cfg, echoes)
     tof = _time_of_flight(cfg, echo_range, rng)
     waveforms = _waveforms(cfg, echoes, rng)
