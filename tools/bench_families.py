@@ -325,7 +325,7 @@ _WARM: set[str] = set()
 def _warm_up(methods: list[str]) -> None:
     """Run each method once per process on a paper scan, so first-call costs (imports, caches) stay out of the times."""
     from lelsonar.acquire.sim import default_energy_model, preset, simulate_scan
-    from lelsonar.reconstruct.energy import waveform_energy
+    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.pipeline import reconstruct
 
     todo = [m for m in methods if m not in _WARM]
@@ -333,9 +333,11 @@ def _warm_up(methods: list[str]) -> None:
         return
     scan = simulate_scan(preset("paper-test1"), seed=12345)
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     for m in todo:
         try:
-            reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), method=m)
+            reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), method=m,
+                        echo_amplitude=amplitude)
         except Exception:  # noqa: BLE001 — the measured run reports it
             pass
         _WARM.add(m)
@@ -557,13 +559,15 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     _warm_up(methods)
     from lelsonar.acquire.sim import EchoSource
     from lelsonar.acquire.sim.scenes import simulate_family_scene
-    from lelsonar.reconstruct.energy import waveform_energy
+    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     draw, scan, model = fs.draw, fs.scan, fs.energy_model
     cfg = draw.config
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    # The first echoes' own amplitudes, as the reconstruction service computes them from each Sample.
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     truth = scene_truth(scan)
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
     scene = {"family": family, "seed": seed, "description": draw.description,
@@ -579,7 +583,8 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     for method in methods:
         t0 = time.perf_counter()
         try:
-            rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
+            rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method,
+                              echo_amplitude=amplitude)
         except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
             dt = time.perf_counter() - t0
             rows += [plane_row(base, truth, method, label, f"{type(exc).__name__}: {exc}", None, dt, False)
