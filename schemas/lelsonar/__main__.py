@@ -46,6 +46,27 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        return _stdout_closed()
+
+
+def _stdout_closed() -> int:
+    """The reader of stdout went away (``lelsonar reconstruct --json | head``): exit quietly.
+
+    Python would print a traceback, then another one when it flushes stdout at
+    exit; pointing stdout at /dev/null stops the second.  128 + SIGPIPE, as a
+    shell tool killed by the signal would report.
+    """
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+    finally:
+        os.close(devnull)
+    return 141
 
 
 if __name__ == "__main__":

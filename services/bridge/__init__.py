@@ -1,0 +1,1 @@
+"""Adapters to other ecosystems (Foxglove, ROS 2): one module per ecosystem."""
