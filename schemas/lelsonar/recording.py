@@ -12,17 +12,27 @@ topic                           schema                            what
 ``/tf``                         ``foxglove.FrameTransform``       world → array, per step
 ``/lelsonar/points``            ``foxglove.PointCloud``           raw points of the step (eq. 9)
 ``/log``                        ``foxglove.Log``                  events
+``/tf_capsules``                ``foxglove.FrameTransforms``      array → capsule_X, per scan
+``/lelsonar/array``             ``foxglove.SceneUpdate``          the capsules and their beams
+``/lelsonar/scan_points``       ``foxglove.PointCloud``           every raw point of the scan so far
+``/lelsonar/step``              JSON ``lelsonar.StepScalars``     γ, ranges, energies (plottable)
+``/lelsonar/planes``            ``foxglove.SceneUpdate``          estimated planes, when recorded
 ==============================  ================================  ==========================
 
-``rerun file.mcap`` shows ``/tf`` as a Transform3D and the points as Points3D.
+The viewer channels come from :mod:`lelsonar.visual`.  Each scan also adds a
+``lelsonar.recording`` metadata record naming it (``name``, scanner, scan,
+device, software).  ``rerun file.mcap`` shows ``/tf`` as a Transform3D and the
+points as Points3D; Foxglove shows everything, and plots ``/lelsonar/step``.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +46,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType
 from mcap_protobuf.writer import Writer
 
-from lelsonar import codec
+from lelsonar import codec, visual
 from lelsonar.errors import DecodeError, RecordingError
 from lelsonar.geometry import beam_points_from_capsules
 
@@ -118,6 +128,7 @@ class McapRecorder:
             self._starts[(message.scanner_id, message.scan_id)] = message
         elif isinstance(message, codec.Sample):
             self._write_pose_and_points(message, t)
+        self._write_views(message, t)
 
     def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
         """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
@@ -126,6 +137,42 @@ class McapRecorder:
         msg.timestamp.FromNanoseconds(t)
         msg.file = ""
         self._writer.write_message(TOPIC_LOG, msg, log_time=t, publish_time=t)
+
+    # --- what viewers draw, beside the contract (lelsonar.visual) -------------------------
+    @cached_property
+    def _views(self) -> _ViewState:
+        return _ViewState()
+
+    def _write_views(self, message: Message, t: int) -> None:
+        """The viewer channels of a contract message: a recording opened alone shows the scan."""
+        w, views = self._writer, self._views
+        if isinstance(message, codec.ScanStart):
+            views.cloud.scan_started(message)
+            w.write_message(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(message, t), log_time=t, publish_time=t)
+            w.write_message(visual.TOPIC_ARRAY, visual.array_model(message, t), log_time=t, publish_time=t)
+            w.add_metadata("lelsonar.recording", recording_name_metadata(message))
+        elif isinstance(message, codec.Sample):
+            cloud = views.cloud.add(message, t)
+            if cloud is not None:
+                w.write_message(visual.TOPIC_SCAN_POINTS, cloud, log_time=t, publish_time=t)
+            self.write_json(visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA,
+                            visual.step_scalars(message), t)
+        elif isinstance(message, codec.ScanEnd):
+            views.cloud.scan_ended(message.scanner_id, message.scan_id)
+        elif isinstance(message, codec.Reconstruction):
+            w.write_message(visual.TOPIC_PLANES, views.planes.update(message, t), log_time=t, publish_time=t)
+
+    def write_json(self, topic: str, schema_name: str, schema: dict, payload: dict, log_time_ns: int) -> None:
+        """Record a JSON message on a channel with a named JSON schema (Foxglove plots its numbers)."""
+        if self._finished:
+            raise RecordingError(f"{self.path} is already finished")
+        raw = self._writer._writer  # the mcap.writer.Writer under mcap-protobuf-support's Writer
+        channel = self._views.json_channels.get(topic)
+        if channel is None:
+            schema_id = raw.register_schema(schema_name, "jsonschema", visual.json_schema_bytes(schema))
+            channel = self._views.json_channels[topic] = raw.register_channel(topic, "json", schema_id)
+        raw.add_message(channel, log_time=log_time_ns, data=json.dumps(payload).encode(),
+                        publish_time=log_time_ns)
 
     def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
         tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=ARRAY_FRAME)
@@ -148,6 +195,21 @@ class McapRecorder:
         bore = np.array([[c.boresight.x, c.boresight.y, c.boresight.z] for c, _ in rows])
         pts = beam_points_from_capsules(pos, bore, sample.gamma_measured, np.array([d for _, d in rows]))
         self._writer.write_message(TOPIC_POINTS, point_cloud(pts, t), log_time=t, publish_time=t)
+
+
+@dataclass
+class _ViewState:
+    cloud: visual.ScanCloud = field(default_factory=visual.ScanCloud)
+    planes: visual.PlaneScene = field(default_factory=visual.PlaneScene)
+    json_channels: dict[str, int] = field(default_factory=dict)
+
+
+def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
+    """The ``lelsonar.recording`` metadata record of a scan: a human name and what it was."""
+    return {"name": f"lelsonar {start.scanner_id} scan {start.scan_id}", "scanner_id": start.scanner_id,
+            "scan_id": str(start.scan_id), "device": start.device or "unknown",
+            "software_version": start.software_version, "start_time_ns": str(start.start_time_ns),
+            "steps": str(start.steps)}
 
 
 def point_cloud(points: np.ndarray, t_ns: int, frame_id: str = WORLD_FRAME) -> PointCloud:
