@@ -169,3 +169,28 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
     logs = [m.message for _, m in got["/log"]]
     assert any(text.startswith("scan 3 of rig") for text in logs)
     assert any(text.startswith("critical step") for text in logs)
+
+
+def test_shipped_layout_is_current_and_names_served_topics():
+    from lelsonar.bridge.foxglove import _PROTO_TOPICS, layout_json
+    from lelsonar.visual import TOPIC_ENERGY, TOPIC_STEP
+
+    shipped = Path(__file__).parents[1] / "examples" / "foxglove-layout.json"
+    assert shipped.read_text() == layout_json(), "regenerate: python -m lelsonar.bridge.foxglove > " + str(shipped)
+    layout = json.loads(shipped.read_text())
+    panels = []
+
+    def walk(node):
+        if node.get("type") == "panel":
+            panels.append(node)
+        for item in node.get("items", []):
+            walk(item["content"])
+
+    walk(layout["content"])
+    assert {p["panelType"] for p in panels} == {"ThreeDee", "Plot", "Log"}
+    topics = set(_PROTO_TOPICS) | {TOPIC_ENERGY, TOPIC_STEP}
+    for p in panels:
+        for t in p["config"].get("topics", {}):
+            assert t in topics
+        for s in p["config"].get("paths", []):
+            assert s["value"].split(".", 1)[0] in topics

@@ -249,3 +249,54 @@ def open_foxglove(address: str, *, truth_preset: str | None = None) -> Iterator[
         yield FoxgloveObserver(server, truth)
     finally:
         server.close()
+
+
+def layout_json() -> str:
+    """The Foxglove layout shipped as ``examples/foxglove-layout.json`` (built with ``foxglove.layouts``).
+
+    Regenerate the file with ``python -m lelsonar.bridge.foxglove > examples/foxglove-layout.json``.
+
+    A 3D view (the scan's points coloured by step, the planes, the truth, the array
+    and its capsule frames, following the world frame), plots of E^γ against E0(d_m)
+    and of R with the critical step, and the log.  Works live and on a recording:
+    the topics are the same.
+    """
+    import json
+
+    import foxglove.layouts as fl
+
+    points = fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=6.0, color_mode="colormap",
+                                                    color_field="step", color_map="turbo")
+    scene = fl.ThreeDeePanel(title="scan", config=fl.ThreeDeeConfig(
+        follow_tf=visual.WORLD_FRAME,
+        camera_state=fl.ThreeDeeCameraState(distance=5.0, perspective=True, phi=60.0, theta_offset=45.0,
+                                            target=(0.0, 0.8, 0.5)),
+        topics={
+            visual.TOPIC_SCAN_POINTS: points,
+            visual.TOPIC_PLANES: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
+            TOPIC_TRUTH: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
+            visual.TOPIC_ARRAY: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
+        }))
+
+    def series(field: str, label: str, color: str, topic: str = visual.TOPIC_ENERGY) -> fl.PlotSeries:
+        return fl.PlotSeries(value=f"{topic}.{field}", label=label, color=color, enabled=True)
+
+    energy = fl.PlotPanel(title="energy E^γ and E0(d_m), V²·s", config=fl.PlotConfig(
+        paths=[series("energy", "E^γ", "#1f77b4"), series("expected_energy", "E0(d_m)", "#ff7f0e"),
+               # An acquisition recording has no reconstruction, but its own per-step energies:
+               series("energy", "E^γ (acquisition)", "#9467bd", visual.TOPIC_STEP)],
+        show_legend=True, x_axis_val="timestamp"))
+    ratio = fl.PlotPanel(title="ratio R and the critical step", config=fl.PlotConfig(
+        paths=[series("ratio", "R", "#2ca02c"), series("critical_step", "critical step", "#d62728")],
+        show_legend=True, x_axis_val="timestamp"))
+    log = fl.LogPanel(title="log", config=fl.LogConfig(topic_to_render=visual.TOPIC_LOG))
+    layout = fl.Layout(content=fl.SplitContainer(direction="row", items=[
+        fl.SplitItem(proportion=3, content=scene),
+        fl.SplitItem(proportion=2, content=fl.SplitContainer(direction="column", items=[
+            fl.SplitItem(content=energy), fl.SplitItem(content=ratio), fl.SplitItem(content=log)])),
+    ]))
+    return json.dumps(json.loads(layout.to_json()), indent=2, ensure_ascii=False) + "\n"
+
+
+if __name__ == "__main__":
+    print(layout_json(), end="")
