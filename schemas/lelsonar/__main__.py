@@ -32,13 +32,21 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub)
+    from lelsonar.config_file import add_config_arguments
+
+    add_config_arguments(sub)  # every command reads --config; flags override it
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    from lelsonar.config_file import parse_args
     from lelsonar.errors import LelsonarError
 
-    args = build_parser().parse_args(argv)
+    try:
+        args = parse_args(build_parser(), argv)
+    except LelsonarError as exc:
+        print(f"lelsonar: error: {exc}", file=sys.stderr)
+        return 2
     try:
         return int(args.run(args) or 0)
     except LelsonarError as exc:

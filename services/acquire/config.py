@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from lelsonar.acquire.backends import DEVICES
+from lelsonar.acquire.rig import Rig, require_for_serial, serial_overrides
 from lelsonar.errors import ConfigError
 from lelsonar.keys import validate_identifier, validate_prefix
 from lelsonar.reconstruct.energy import EnergyModel
@@ -47,7 +48,10 @@ class AcquireConfig:
         Send waveforms as int16 with a scale (half the bytes) instead of float32.
     compression : {"zstd", "lz4", "none"}
     energy_model : EnergyModel, optional
-        φ of eq. (12); default: the simulator's calibration.
+        φ of eq. (12); default: the rig's (serial) or the simulator's calibration.
+    rig : Rig, optional
+        The rig tables of ``--config`` (:mod:`lelsonar.acquire.rig`); ``device="serial"``
+        takes everything from it (flags override), never from a simulator preset.
     """
 
     scanner_id: str = "scanner1"
@@ -69,14 +73,15 @@ class AcquireConfig:
     waveform_int16: bool = False
     compression: str = "zstd"
     energy_model: EnergyModel | None = None
+    rig: Rig | None = None
 
     def __post_init__(self) -> None:
         validate_identifier(self.scanner_id)
         validate_prefix(self.prefix)
         if self.device not in DEVICES:
             raise ConfigError(f"--device must be one of {', '.join(DEVICES)}, got {self.device!r}")
-        if self.device == "serial" and not (self.motor_port and self.sensor_port):
-            raise ConfigError("--device serial needs --motor-port and --sensor-port (e.g. /dev/ttyUSB0, /dev/ttyACM0)")
+        if self.device == "serial":
+            require_for_serial(self.rig, serial_overrides(self))
         if self.steps is not None and not 2 <= self.steps <= 4096:
             raise ConfigError(f"steps must be in [2, 4096], got {self.steps}")
         for name in ("gamma_start", "gamma_stop"):
@@ -99,7 +104,10 @@ class AcquireConfig:
 
     def as_metadata(self) -> dict[str, str]:
         """The configuration as MCAP metadata (strings)."""
-        out = {k: str(v) for k, v in asdict(self).items() if k != "energy_model"}
+        out = {k: str(v) for k, v in asdict(self).items() if k not in ("energy_model", "rig")}
+        if self.rig is not None:
+            out["rig"] = str(self.rig.path)
+            out.update({f"rig.{t}.{k}": str(v) for t, kv in self.rig.values.items() for k, v in kv.items()})
         if self.energy_model is not None:
             out["energy_model"] = str(asdict(self.energy_model))
         return out
