@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -261,7 +262,7 @@ def iter_payloads(path: Path | str) -> Iterator[RecordedPayload]:
                 yield RecordedPayload(message.log_time, channel.topic, schema.name if schema else "", message.data)
     except FileNotFoundError:
         raise RecordingError(f"no recording at {path}") from None
-    except (McapError, ValueError, EOFError) as exc:
+    except (McapError, ValueError, EOFError, struct.error, OSError) as exc:  # short or truncated files too
         raise RecordingError(f"{path} is not a readable MCAP file ({exc}); was it finished?") from None
 
 
