@@ -194,3 +194,14 @@ def test_shipped_layout_is_current_and_names_served_topics():
             assert t in topics
         for s in p["config"].get("paths", []):
             assert s["value"].split(".", 1)[0] in topics
+
+
+def test_a_busy_port_is_one_clear_error():
+    from lelsonar.bridge.foxglove import FoxgloveServer
+
+    first = FoxgloveServer("127.0.0.1", 0)
+    try:
+        with pytest.raises(ConfigError, match="cannot serve Foxglove on 127.0.0.1"):
+            FoxgloveServer("127.0.0.1", first.port)
+    finally:
+        first.close()

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -102,8 +102,6 @@ def quality_name(quality: int) -> str:
 
 def method_color(method: str) -> tuple[int, int, int]:
     """The colour of an estimator: fixed for the known ones, stable for others."""
-    import zlib
-
     return METHOD_COLORS.get(method, _PALETTE[zlib.crc32(method.encode()) % len(_PALETTE)])
 
 
@@ -484,8 +482,3 @@ def log_message(level: str, text: str, t_ns: int, name: str = "lelsonar") -> Log
     msg = Log(level=Log.Level.Value(_LOG_LEVELS.get(level.lower(), "INFO")), message=text, name=name, file="")
     msg.timestamp.FromNanoseconds(int(t_ns))
     return msg
-
-
-def protobuf_types() -> Iterable[type[Message]]:
-    """The foxglove types this module builds (for registering schemas up front)."""
-    return (FrameTransform, FrameTransforms, SceneUpdate, PointCloud, Log)

@@ -103,7 +103,7 @@ class FoxgloveServer:
         try:
             self._server = foxglove.start_server(name=name, host=host, port=port, context=self.context,
                                                  server_listener=self.subscriptions)
-        except Exception as exc:  # foxglove-sdk raises its own error types for bind failures
+        except RuntimeError as exc:  # foxglove-sdk 0.30: "FoxgloveError: Failed to bind port: ..."
             raise ConfigError(f"cannot serve Foxglove on {host}:{port}: {exc}") from None
         self.host = host
         self._channels: dict[str, foxglove.Channel] = {}
