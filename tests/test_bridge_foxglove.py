@@ -60,7 +60,7 @@ def source(tmp_path_factory):
 
 def _serve(source_path: Path) -> tuple[subprocess.Popen, str]:
     proc = subprocess.Popen([LELSONAR, "reconstruct", "--source", str(source_path), "--foxglove", "127.0.0.1:0",
-                             "--foxglove-wait", "60", "--json", "--compare", "ls"],
+                             "--foxglove-wait", "60", "--json", "--compare", "ls", "--truth-preset", "paper-test1"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "COLUMNS": "200"})
     for line in proc.stderr:  # blocks until the server announces itself
@@ -117,7 +117,8 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
     start, samples = msgs[0], [m for m in msgs if isinstance(m, codec.Sample)]
 
     # Capsule frames and the array pose.
-    (_, tfs), = got["/tf_capsules"]
+    assert len(got["/tf_capsules"]) == 1 + len(samples)  # again at every step, for late viewers
+    _, tfs = got["/tf_capsules"][-1]
     assert [t.child_frame_id for t in tfs.transforms] == [f"capsule_{c}" for c in "ABCD"]
     assert [(t.translation.x, t.translation.y) for t in tfs.transforms] == \
         [(c.position.x, c.position.y) for c in start.capsules]
@@ -166,6 +167,16 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
         q = np.array([o.x, o.y, o.z])
         arrow = np.array([1.0, 0, 0]) + 2 * o.w * np.cross(q, [1.0, 0, 0]) + 2 * np.cross(q, np.cross(q, [1.0, 0, 0]))
         np.testing.assert_allclose(arrow, n, atol=1e-9)
+    # The true planes of the preset, grey, where the simulator put them.
+    from lelsonar.acquire.sim import preset
+    from lelsonar.acquire.sim.scan import true_planes
+
+    _, truth_scene = got["/lelsonar/truth"][-1]
+    drawn = {e.id: e for e in truth_scene.entities}
+    for plane in true_planes(preset("paper-test1")):
+        e = drawn[f"rig/truth/{plane.label}"]
+        np.testing.assert_allclose([(q.x, q.y, q.z) for q in e.lines[0].points], plane.corners)
+        assert e.texts[0].text == f"truth {plane.label}: h = {plane.offset:.3f} m"
     logs = [m.message for _, m in got["/log"]]
     assert any(text.startswith("scan 3 of rig") for text in logs)
     assert any(text.startswith("critical step") for text in logs)

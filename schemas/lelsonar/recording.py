@@ -167,7 +167,8 @@ class McapRecorder:
         """Record a JSON message on a channel with a named JSON schema (Foxglove plots its numbers)."""
         if self._finished:
             raise RecordingError(f"{self.path} is already finished")
-        raw = self._writer._writer  # the mcap.writer.Writer under mcap-protobuf-support's Writer
+        # The mcap.writer.Writer under mcap-protobuf-support's Writer (or the writer itself, if it is one).
+        raw = getattr(self._writer, "_writer", self._writer)
         channel = self._views.json_channels.get(topic)
         if channel is None:
             schema_id = raw.register_schema(schema_name, "jsonschema", visual.json_schema_bytes(schema))

@@ -164,17 +164,24 @@ class FoxgloveObserver:
         t = s.start_time_ns
         self._last_t = t
         self._points[scan.key] = {}
-        self.server.log(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(s, t), t)
-        self.server.log(visual.TOPIC_ARRAY, visual.array_model(s, t), t)
+        self._statics(scan, t)
         self.server.log(visual.TOPIC_TF, visual.array_transform(s.gamma_start, t), t)
-        if self.truth:
-            self.server.log(TOPIC_TRUTH, truth_scene(self.truth, s.scanner_id, t), t)
         self.event("info", f"scan {s.scan_id} of {s.scanner_id}: {s.steps} steps, device {s.device or 'unknown'}, "
                            f"c = {s.sound_speed:.1f} m/s", t)
+
+    def _statics(self, scan: ScanAssembly, t: int) -> None:
+        # The WebSocket keeps no latest value per topic: sent again at every step, so that a
+        # viewer that connects mid-scan still gets the capsule frames, the array and the truth.
+        s = scan.start
+        self.server.log(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(s, t), t)
+        self.server.log(visual.TOPIC_ARRAY, visual.array_model(s, t), t)
+        if self.truth:
+            self.server.log(TOPIC_TRUTH, truth_scene(self.truth, s.scanner_id, t), t)
 
     def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None:
         t = view.time_ns
         self._last_t = t
+        self._statics(scan, t)
         self.server.log(visual.TOPIC_TF, visual.array_transform(view.gamma, t), t)
         steps = self._points.setdefault(scan.key, {})
         pts = scan.raw_points(view.step)
