@@ -123,6 +123,8 @@ def test_the_rig_file_drives_device_serial_end_to_end(tmp_path):
     np.testing.assert_allclose([s.gamma_measured for s in samples],
                                np.radians(np.linspace(-5, 100, 5)), atol=math.radians(300 / 1024))
     assert not (tmp_path / "ignored").exists()
+    meta = recording.read_metadata(tmp_path / "out" / "scan.mcap")["lelsonar.config"]
+    assert "preset" not in meta and meta["rig.servo.zero_raw"] == "512" and meta["device"] == "serial"
 
 
 def test_every_command_reads_config_and_only_explicit_flags_win(tmp_path):

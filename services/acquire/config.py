@@ -104,7 +104,8 @@ class AcquireConfig:
 
     def as_metadata(self) -> dict[str, str]:
         """The configuration as MCAP metadata (strings)."""
-        out = {k: str(v) for k, v in asdict(self).items() if k not in ("energy_model", "rig")}
+        skip = {"energy_model", "rig"} | ({"preset", "seed"} if self.device == "serial" else set())  # sim only
+        out = {k: str(v) for k, v in asdict(self).items() if k not in skip}
         if self.rig is not None:
             out["rig"] = str(self.rig.path)
             out.update({f"rig.{t}.{k}": str(v) for t, kv in self.rig.values.items() for k, v in kv.items()})
