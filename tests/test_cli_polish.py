@@ -72,3 +72,19 @@ def test_bench_progress_yields_every_item():
 
     assert list(progress(range(5), "x")) == [0, 1, 2, 3, 4]
     assert list(progress(iter("abc"), "y", total=3)) == ["a", "b", "c"]
+
+
+def test_a_worker_thread_that_loses_stdout_stops_the_command_cleanly():
+    script = (
+        "import signal, sys, threading\n"
+        "from lelsonar.__main__ import _end_quietly_when_a_thread_loses_stdout\n"
+        "stop = threading.Event()\n"
+        "signal.signal(signal.SIGTERM, lambda *_: stop.set())\n"
+        "closed = _end_quietly_when_a_thread_loses_stdout()\n"
+        "def worker():\n"
+        "    raise BrokenPipeError(32, 'Broken pipe')\n"
+        "threading.Thread(target=worker).start()\n"
+        "print('stopped' if stop.wait(60) and closed.is_set() else 'hung', file=sys.stderr)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.stderr.strip() == "stopped" and done.returncode == 0

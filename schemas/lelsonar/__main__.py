@@ -47,8 +47,10 @@ def main(argv: list[str] | None = None) -> int:
     except LelsonarError as exc:
         print(f"lelsonar: error: {exc}", file=sys.stderr)
         return 2
+    pipe_closed = _end_quietly_when_a_thread_loses_stdout()
     try:
-        return int(args.run(args) or 0)
+        code = int(args.run(args) or 0)
+        return 141 if pipe_closed.is_set() else code
     except LelsonarError as exc:
         print(f"lelsonar {args.command}: error: {exc}", file=sys.stderr)
         return 2
@@ -56,6 +58,32 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return _stdout_closed()
+
+
+def _end_quietly_when_a_thread_loses_stdout():
+    """A worker thread that prints (``planner --json``, live ``reconstruct --json``) and finds stdout closed
+    stops the command as SIGTERM does (files finished, torque off), without a traceback.
+
+    Returns the event that says it happened (the exit code is then 141).
+    """
+    import signal
+    import threading
+
+    closed = threading.Event()
+    previous = threading.excepthook
+
+    def hook(info) -> None:
+        if info.exc_type is not None and issubclass(info.exc_type, BrokenPipeError):
+            if not closed.is_set():
+                closed.set()
+                _stdout_closed()
+                # To the main thread, where the command's own handler stops it cleanly.
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+            return
+        previous(info)
+
+    threading.excepthook = hook
+    return closed
 
 
 def _stdout_closed() -> int:
