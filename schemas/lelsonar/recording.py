@@ -28,7 +28,6 @@ points as Points3D; Foxglove shows everything, and plots ``/lelsonar/step``.
 from __future__ import annotations
 
 import json
-import math
 import struct
 import time
 from collections.abc import Iterator, Mapping
@@ -36,11 +35,6 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
-import numpy as np
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from foxglove_schemas_protobuf.Log_pb2 import Log
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
-from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from google.protobuf.message import Message
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
@@ -49,7 +43,6 @@ from mcap_protobuf.writer import Writer
 
 from lelsonar import codec, visual
 from lelsonar.errors import DecodeError, RecordingError
-from lelsonar.geometry import beam_points_from_capsules
 
 TOPICS: dict[type[Message], str] = {
     codec.ScanStart: "/lelsonar/scan_start",
@@ -60,8 +53,8 @@ TOPICS: dict[type[Message], str] = {
 TOPIC_TF = "/tf"
 TOPIC_POINTS = "/lelsonar/points"
 TOPIC_LOG = "/log"
-WORLD_FRAME = "world"
-ARRAY_FRAME = "array"
+WORLD_FRAME = visual.WORLD_FRAME
+ARRAY_FRAME = visual.ARRAY_FRAME
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -134,10 +127,7 @@ class McapRecorder:
     def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
         """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
         t = log_time_ns if log_time_ns is not None else time.time_ns()
-        msg = Log(level=Log.Level.Value(level.upper()), message=text, name=name)
-        msg.timestamp.FromNanoseconds(t)
-        msg.file = ""
-        self._writer.write_message(TOPIC_LOG, msg, log_time=t, publish_time=t)
+        self._writer.write_message(TOPIC_LOG, visual.log_message(level, text, t, name), log_time=t, publish_time=t)
 
     # --- what viewers draw, beside the contract (lelsonar.visual) -------------------------
     @cached_property
@@ -177,26 +167,14 @@ class McapRecorder:
                         publish_time=log_time_ns)
 
     def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
-        tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=ARRAY_FRAME)
-        tf.timestamp.FromNanoseconds(t)
-        # Every sub-message is set: an unset one breaks `rerun mcap convert` (design §5).
-        tf.translation.SetInParent()
-        half = 0.5 * sample.gamma_measured
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = math.sin(half), 0.0, 0.0, math.cos(half)
-        self._writer.write_message(TOPIC_TF, tf, log_time=t, publish_time=t)
-
+        self._writer.write_message(TOPIC_TF, visual.array_transform(sample.gamma_measured, t), log_time=t,
+                                   publish_time=t)
         start = self._starts.get((sample.scanner_id, sample.scan_id))
-        valid = [s for s in sample.sensors if s.echo_valid]
-        if start is None or not valid:
+        if start is None:
             return
-        by_id = {c.capsule_id: c for c in start.capsules}
-        rows = [(by_id[s.capsule_id], s.distance) for s in valid if s.capsule_id in by_id]
-        if not rows:
-            return
-        pos = np.array([[c.position.x, c.position.y, c.position.z] for c, _ in rows])
-        bore = np.array([[c.boresight.x, c.boresight.y, c.boresight.z] for c, _ in rows])
-        pts = beam_points_from_capsules(pos, bore, sample.gamma_measured, np.array([d for _, d in rows]))
-        self._writer.write_message(TOPIC_POINTS, point_cloud(pts, t), log_time=t, publish_time=t)
+        pts, _capsules = visual.sample_points(start, sample)
+        if len(pts):
+            self._writer.write_message(TOPIC_POINTS, visual.point_cloud(pts, t), log_time=t, publish_time=t)
 
 
 @dataclass
@@ -212,18 +190,6 @@ def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
             "scan_id": str(start.scan_id), "device": start.device or "unknown",
             "software_version": start.software_version, "start_time_ns": str(start.start_time_ns),
             "steps": str(start.steps)}
-
-
-def point_cloud(points: np.ndarray, t_ns: int, frame_id: str = WORLD_FRAME) -> PointCloud:
-    """A ``foxglove.PointCloud`` of xyz float32 points, every sub-message set."""
-    pts = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)
-    msg = PointCloud(frame_id=frame_id, point_stride=12, data=pts.tobytes())
-    msg.timestamp.FromNanoseconds(t_ns)
-    msg.pose.position.SetInParent()
-    msg.pose.orientation.w = 1.0
-    for i, axis in enumerate("xyz"):
-        msg.fields.append(PackedElementField(name=axis, offset=4 * i, type=PackedElementField.FLOAT32))
-    return msg
 
 
 def _message_time(message: Message) -> int:
