@@ -208,3 +208,19 @@ def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch,
     e0 = 1.0 / (got["phi"][0] * d ** 2 + got["phi"][1] * d + got["phi"][2])
     np.testing.assert_allclose(e0, ref.expected_energy(d), rtol=0.05)
     assert "# calibrated " in rig.read_text() and "[schedule]" in rig.read_text()
+
+
+def test_the_example_rig_configures_every_command_it_has_tables_for():
+    from lelsonar.acquire.cli import config_from_args
+    from lelsonar.acquire.rig import serial_setup
+
+    a = parse_args(build_parser(), ["reconstruct", "--config", str(EXAMPLE)])
+    assert (a.method, a.compare, a.prefix) == ("adaptive", "ls", "lelsonar")
+    cfg = config_from_args(parse_args(build_parser(), ["acquire", "--config", str(EXAMPLE)]))
+    setup = serial_setup(cfg)
+    assert cfg.device == "serial" and setup.motor.port == "/dev/ttyUSB0" and setup.board.port == "/dev/ttyACM0"
+    assert setup.steps == 184 and setup.info.geometry.capsule_x == (-0.12, -0.04, 0.04, 0.12)
+    assert setup.energy_model.d_min == 0.9 and setup.motor.zero_raw == 512
+    for command in ("planner", "router", "review", "emulate", "simulate", "calibrate", "demo"):
+        argv = [command, "--config", str(EXAMPLE)] + (["x.mcap"] if command == "review" else [])
+        parse_args(build_parser(), argv)  # no unknown keys, nothing required missing
