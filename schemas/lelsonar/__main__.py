@@ -47,6 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     except LelsonarError as exc:
         print(f"lelsonar: error: {exc}", file=sys.stderr)
         return 2
+    import threading
+
+    hook = threading.excepthook
     pipe_closed = _end_quietly_when_a_thread_loses_stdout()
     try:
         code = int(args.run(args) or 0)
@@ -58,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except BrokenPipeError:
         return _stdout_closed()
+    finally:
+        threading.excepthook = hook
 
 
 def _end_quietly_when_a_thread_loses_stdout():
