@@ -208,3 +208,17 @@ def test_record_adds_planes_coloured_by_method_and_quality_and_deletes_stale_one
     assert [e.id for e in u2.entities] == ["s1/7/plane/ls/a"]
     assert _rgb(u2.entities[0].lines[0].color) == (245, 170, 0)
     assert sorted(d.id for d in u2.deletions) == ["s1/7/edge", "s1/7/plane/lel/a", "s1/7/plane/ls/b"]
+
+
+def test_a_new_scan_replaces_the_planes_of_the_last_one():
+    scene = visual.PlaneScene()
+    first = _estimate([("a", "ls", reconstruction_pb2.PLANE_QUALITY_GOOD, (0, 1, 0), 1.57)])
+    scene.update(first)
+    second = _estimate([("b", "lel", reconstruction_pb2.PLANE_QUALITY_GOOD, (0, 0, 1), 1.06)], edge=False)
+    second.scan_id = 8
+    other = _estimate([("a", "ls", reconstruction_pb2.PLANE_QUALITY_GOOD, (0, 1, 0), 1.57)], edge=False)
+    other.scanner_id = "s2"
+    assert not scene.update(other).deletions
+    update = scene.update(second)
+    assert [e.id for e in update.entities] == ["s1/8/plane/lel/b"]
+    assert sorted(d.id for d in update.deletions) == ["s1/7/edge", "s1/7/plane/ls/a"]

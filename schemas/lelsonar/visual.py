@@ -448,7 +448,8 @@ def _edge_entity(msg: codec.Reconstruction, t_ns: int, half_length: float = 0.5)
 
 
 class PlaneScene:
-    """Turns each estimate into a ``SceneUpdate``: its planes and edge, and deletions of what it no longer has.
+    """Turns each estimate into a ``SceneUpdate``: its planes and edge, and deletions of what it no longer has
+    (and of the planes of the scanner's previous scan).
 
     One instance per output (live server or file): it remembers which entities it drew.
     """
@@ -462,8 +463,11 @@ class PlaneScene:
                     if e is not None]
         key = (msg.scanner_id, msg.scan_id)
         ids = {e.id for e in entities}
-        gone = sorted(self._drawn.get(key, set()) - ids)
+        gone = set(self._drawn.get(key, set()) - ids)
+        for other in [k for k in self._drawn if k[0] == msg.scanner_id and k != key]:
+            gone |= self._drawn.pop(other)  # a new scan of this scanner replaces the last one's planes
         self._drawn[key] = ids
+        gone = sorted(gone)
         out = SceneUpdate(entities=entities)
         for entity_id in gone:
             d = SceneEntityDeletion(type=SceneEntityDeletion.MATCHING_ID, id=entity_id)
