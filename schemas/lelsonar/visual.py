@@ -57,7 +57,6 @@ from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message
 
 from lelsonar import codec
-from lelsonar.geometry import beam_points_from_capsules
 from lelsonar.v1 import reconstruction_pb2
 
 WORLD_FRAME = "world"
@@ -245,10 +244,12 @@ def sample_points(start: codec.ScanStart, sample: codec.Sample) -> tuple[np.ndar
     rows = [(by_id[s.capsule_id], s.distance) for s in sample.sensors if s.echo_valid and s.capsule_id in by_id]
     if not rows:
         return np.empty((0, 3)), np.empty(0, dtype=int)
-    pos = np.array([[c.position.x, c.position.y, c.position.z] for c, _ in rows])
-    bore = np.array([[c.boresight.x, c.boresight.y, c.boresight.z] for c, _ in rows])
-    pts = beam_points_from_capsules(pos, bore, sample.gamma_measured, np.array([d for _, d in rows]))
-    return pts, np.array([c.capsule_id for c, _ in rows])
+    local = np.array([[c.position.x + d * c.boresight.x, c.position.y + d * c.boresight.y,
+                       c.position.z + d * c.boresight.z] for c, d in rows])
+    # Eq. (9) as beam_points_from_capsules computes it, for one γ (its general form costs 0.3 ms a call).
+    cg, sg = math.cos(sample.gamma_measured), math.sin(sample.gamma_measured)
+    rot = np.array([[1.0, 0.0, 0.0], [0.0, cg, -sg], [0.0, sg, cg]])
+    return local @ rot.T, np.array([c.capsule_id for c, _ in rows])
 
 
 @dataclass
