@@ -137,6 +137,9 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
                 cap = start.capsules[r.capsule_id]
                 truth.append(rot @ (np.array([cap.position.x, cap.position.y, cap.position.z])
                                     + r.distance * np.array([cap.boresight.x, cap.boresight.y, cap.boresight.z])))
+    latest = got["/lelsonar/points"][-1][1]
+    np.testing.assert_allclose(np.frombuffer(latest.data, "<f4").reshape(-1, 3),
+                               np.array(truth[-sum(r.echo_valid for r in samples[-1].sensors):]), atol=2e-6)
     last = clouds[-1][1]
     xyz = np.frombuffer(last.data, "<f4").reshape(-1, last.point_stride // 4)[:, :3]
     np.testing.assert_allclose(xyz, np.array(truth), atol=2e-6)

@@ -51,7 +51,7 @@ TOPICS: dict[type[Message], str] = {
     codec.Reconstruction: "/lelsonar/reconstruction",
 }
 TOPIC_TF = "/tf"
-TOPIC_POINTS = "/lelsonar/points"
+TOPIC_POINTS = visual.TOPIC_POINTS
 TOPIC_LOG = "/log"
 WORLD_FRAME = visual.WORLD_FRAME
 ARRAY_FRAME = visual.ARRAY_FRAME

@@ -22,6 +22,7 @@ topic                       schema                         what
 ``/tf``                     ``foxglove.FrameTransform``    world → array, per step (recording)
 ``/tf_capsules``            ``foxglove.FrameTransforms``   array → capsule_X, per scan
 ``/lelsonar/array``         ``foxglove.SceneUpdate``       capsules and beams, in the array frame
+``/lelsonar/points``        ``foxglove.PointCloud``        the raw points of the latest step
 ``/lelsonar/scan_points``   ``foxglove.PointCloud``        every raw point of the scan so far
 ``/lelsonar/step``          JSON ``lelsonar.StepScalars``  γ, ranges and energies of the step
 ``/lelsonar/energy``        JSON ``lelsonar.EnergyScalars`` E^γ, E0(d_m), R, critical step
@@ -65,6 +66,7 @@ ARRAY_FRAME = "array"
 TOPIC_TF = "/tf"
 TOPIC_CAPSULE_TF = "/tf_capsules"
 TOPIC_ARRAY = "/lelsonar/array"
+TOPIC_POINTS = "/lelsonar/points"
 TOPIC_SCAN_POINTS = "/lelsonar/scan_points"
 TOPIC_STEP = "/lelsonar/step"
 TOPIC_ENERGY = "/lelsonar/energy"

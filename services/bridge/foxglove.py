@@ -7,7 +7,8 @@ the live view and a recording opened in Foxglove look the same.  Open
 ``ws://HOST:PORT``.
 
 Topics: ``/tf`` (world → array, per step), ``/tf_capsules`` (array → each
-capsule), ``/lelsonar/array`` (the capsules), ``/lelsonar/scan_points`` (every
+capsule), ``/lelsonar/array`` (the capsules), ``/lelsonar/points`` (the latest
+step's points), ``/lelsonar/scan_points`` (every
 raw point of the scan so far), ``/lelsonar/planes`` (planes, normals, labels,
 the edge, coloured by method and by quality), ``/lelsonar/truth`` (the true
 planes of a simulated scene), ``/lelsonar/energy`` (E^γ, E0(d_m), R and the
@@ -42,6 +43,7 @@ _PROTO_TOPICS: dict[str, type[Message]] = {
     visual.TOPIC_TF: visual.FrameTransform,
     visual.TOPIC_CAPSULE_TF: visual.FrameTransforms,
     visual.TOPIC_ARRAY: visual.SceneUpdate,
+    visual.TOPIC_POINTS: visual.PointCloud,
     visual.TOPIC_SCAN_POINTS: visual.PointCloud,
     visual.TOPIC_PLANES: visual.SceneUpdate,
     TOPIC_TRUTH: visual.SceneUpdate,
@@ -191,6 +193,8 @@ class FoxgloveObserver:
         step_ids = np.concatenate([np.full(len(steps[k]), k) for k in order]) if order else np.empty(0)
         caps = np.concatenate([np.arange(len(steps[k])) for k in order]) if order else np.empty(0)
         ok = np.isfinite(allpts).all(axis=1)
+        latest = np.isfinite(pts).all(axis=1)
+        self.server.log(visual.TOPIC_POINTS, visual.point_cloud(pts[latest], t), t)
         self.server.log(visual.TOPIC_SCAN_POINTS,
                         visual.point_cloud(allpts[ok], t, step=step_ids[ok], capsule=caps[ok]), t)
         self.server.log_json(visual.TOPIC_ENERGY, visual.energy_scalars(
@@ -280,6 +284,9 @@ def layout_json() -> str:
                                             target=(0.0, 0.8, 0.5)),
         topics={
             visual.TOPIC_SCAN_POINTS: points,
+            # The latest step's points, bigger and white: where the beams land now.
+            visual.TOPIC_POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=12.0,
+                                                                        color_mode="flat", flat_color="#ffffff"),
             visual.TOPIC_PLANES: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
             TOPIC_TRUTH: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
             visual.TOPIC_ARRAY: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
