@@ -192,16 +192,20 @@ def test_shipped_layout_is_current_and_names_served_topics():
     shipped = Path(__file__).parents[1] / "examples" / "foxglove-layout.json"
     assert shipped.read_text() == layout_json(), "regenerate: python -m lelsonar.bridge.foxglove > " + str(shipped)
     layout = json.loads(shipped.read_text())
-    panels = []
+    config = layout["configById"]
+    ids = []
 
     def walk(node):
-        if node.get("type") == "panel":
-            panels.append(node)
-        for item in node.get("items", []):
-            walk(item["content"])
+        if isinstance(node, str):
+            ids.append(node)
+        else:
+            walk(node["first"])
+            walk(node["second"])
 
-    walk(layout["content"])
-    assert {p["panelType"] for p in panels} == {"ThreeDee", "Plot", "Log"}
+    walk(layout["layout"])
+    assert sorted(ids) == sorted(config)
+    assert {i.split("!")[0] for i in ids} == {"3D", "Plot", "RosOut"}
+    panels = [{"config": config[i]} for i in ids]
     topics = set(_PROTO_TOPICS) | {TOPIC_ENERGY, TOPIC_STEP}
     for p in panels:
         for t in p["config"].get("topics", {}):

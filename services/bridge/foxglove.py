@@ -263,54 +263,71 @@ def open_foxglove(address: str, *, truth_preset: str | None = None) -> Iterator[
 
 
 def layout_json() -> str:
-    """The Foxglove layout shipped as ``examples/foxglove-layout.json`` (built with ``foxglove.layouts``).
+    """The Foxglove layout shipped as ``examples/foxglove-layout.json``, in the format the app exports and imports.
 
+    A 3D view (the scan's points coloured by step, the latest step's points, the
+    planes, the truth, the array and its capsule frames, following the world
+    frame), plots of E^γ against E0(d_m) and of R with the critical step, and the
+    log.  Works live and on a recording: the topics are the same.  (foxglove-sdk's
+    ``foxglove.layouts`` builds the notebook widget's format, not this one.)
     Regenerate the file with ``python -m lelsonar.bridge.foxglove > examples/foxglove-layout.json``.
-
-    A 3D view (the scan's points coloured by step, the planes, the truth, the array
-    and its capsule frames, following the world frame), plots of E^γ against E0(d_m)
-    and of R with the critical step, and the log.  Works live and on a recording:
-    the topics are the same.
     """
     import json
 
-    import foxglove.layouts as fl
+    def series(topic: str, field: str, label: str, color: str) -> dict:
+        return {"value": f"{topic}.{field}", "enabled": True, "timestampMethod": "receiveTime", "label": label,
+                "color": color}
 
-    points = fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=6.0, color_mode="colormap",
-                                                    color_field="step", color_map="turbo")
-    scene = fl.ThreeDeePanel(title="scan", config=fl.ThreeDeeConfig(
-        follow_tf=visual.WORLD_FRAME,
-        camera_state=fl.ThreeDeeCameraState(distance=5.0, perspective=True, phi=60.0, theta_offset=45.0,
-                                            target=(0.0, 0.8, 0.5)),
-        topics={
-            visual.TOPIC_SCAN_POINTS: points,
-            # The latest step's points, bigger and white: where the beams land now.
-            visual.TOPIC_POINTS: fl.BaseRendererPointCloudTopicSettings(visible=True, point_size=12.0,
-                                                                        color_mode="flat", flat_color="#ffffff"),
-            visual.TOPIC_PLANES: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
-            TOPIC_TRUTH: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
-            visual.TOPIC_ARRAY: fl.BaseRendererSceneUpdateTopicSettings(visible=True),
-        }))
+    def plot(title: str, paths: list[dict]) -> dict:
+        return {"paths": paths, "showLegend": True, "legendDisplay": "floating", "showXAxisLabels": True,
+                "showYAxisLabels": True, "isSynced": True, "xAxisVal": "timestamp", "foxglovePanelTitle": title}
 
-    def series(field: str, label: str, color: str, topic: str = visual.TOPIC_ENERGY) -> fl.PlotSeries:
-        return fl.PlotSeries(value=f"{topic}.{field}", label=label, color=color, enabled=True)
-
-    energy = fl.PlotPanel(title="energy E^γ and E0(d_m), V²·s", config=fl.PlotConfig(
-        paths=[series("energy", "E^γ", "#1f77b4"), series("expected_energy", "E0(d_m)", "#ff7f0e"),
-               # An acquisition recording has no reconstruction, but its own per-step energies:
-               series("energy", "E^γ (acquisition)", "#9467bd", visual.TOPIC_STEP)],
-        show_legend=True, x_axis_val="timestamp"))
-    ratio = fl.PlotPanel(title="ratio R and the critical step", config=fl.PlotConfig(
-        paths=[series("ratio", "R", "#2ca02c"), series("critical_step", "critical step", "#d62728")],
-        show_legend=True, x_axis_val="timestamp"))
-    log = fl.LogPanel(title="log", config=fl.LogConfig(topic_to_render=visual.TOPIC_LOG))
-    layout = fl.Layout(content=fl.SplitContainer(direction="row", items=[
-        fl.SplitItem(proportion=3, content=scene),
-        fl.SplitItem(proportion=2, content=fl.SplitContainer(direction="column", items=[
-            fl.SplitItem(content=energy), fl.SplitItem(content=ratio), fl.SplitItem(content=log)])),
-    ]))
-    return json.dumps(json.loads(layout.to_json()), indent=2, ensure_ascii=False) + "\n"
-
+    scene_topic = {"visible": True}
+    config = {
+        "3D!lelsonar": {
+            "foxglovePanelTitle": "scan",
+            "followTf": visual.WORLD_FRAME,
+            "followMode": "follow-pose",
+            "cameraState": {"distance": 5.0, "perspective": True, "phi": 60.0, "thetaOffset": 45.0,
+                            "target": [0.0, 0.8, 0.5], "targetOffset": [0.0, 0.0, 0.0],
+                            "targetOrientation": [0.0, 0.0, 0.0, 1.0], "fovy": 45.0, "near": 0.01, "far": 5000.0},
+            "scene": {"transforms": {"showLabel": True, "axisScale": 0.5}},
+            "transforms": {},
+            "layers": {"grid": {"visible": True, "layerId": "foxglove.Grid", "frameId": visual.WORLD_FRAME,
+                                "size": 4, "divisions": 8, "position": [0, 0, 0], "rotation": [0, 0, 0]}},
+            "topics": {
+                visual.TOPIC_SCAN_POINTS: {"visible": True, "pointSize": 6, "colorMode": "colormap",
+                                           "colorField": "step", "colorMap": "turbo"},
+                # The latest step's points, bigger and white: where the beams land now.
+                visual.TOPIC_POINTS: {"visible": True, "pointSize": 12, "colorMode": "flat",
+                                      "flatColor": "#ffffff"},
+                visual.TOPIC_PLANES: scene_topic,
+                TOPIC_TRUTH: scene_topic,
+                visual.TOPIC_ARRAY: scene_topic,
+            },
+        },
+        "Plot!energy": plot("energy E^γ and E0(d_m), V²·s", [
+            series(visual.TOPIC_ENERGY, "energy", "E^γ", "#1f77b4"),
+            series(visual.TOPIC_ENERGY, "expected_energy", "E0(d_m)", "#ff7f0e"),
+            # An acquisition recording has no reconstruction, but its own per-step energies:
+            series(visual.TOPIC_STEP, "energy", "E^γ (acquisition)", "#9467bd")]),
+        "Plot!ratio": plot("ratio R and the critical step", [
+            series(visual.TOPIC_ENERGY, "ratio", "R", "#2ca02c"),
+            series(visual.TOPIC_ENERGY, "critical_step", "critical step", "#d62728")]),
+        "RosOut!log": {"foxglovePanelTitle": "log", "searchTerms": [], "minLogLevel": 1,
+                       "topicToRender": visual.TOPIC_LOG},
+    }
+    layout = {
+        "configById": config,
+        "globalVariables": {},
+        "userNodes": {},
+        "playbackConfig": {"speed": 1.0},
+        "layout": {"first": "3D!lelsonar", "direction": "row", "splitPercentage": 60,
+                   "second": {"first": "Plot!energy", "direction": "column", "splitPercentage": 33,
+                              "second": {"first": "Plot!ratio", "second": "RosOut!log", "direction": "column",
+                                         "splitPercentage": 50}}},
+    }
+    return json.dumps(layout, indent=2, ensure_ascii=False) + "\n"
 
 if __name__ == "__main__":
     print(layout_json(), end="")
