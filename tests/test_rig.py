@@ -221,6 +221,10 @@ def test_the_example_rig_configures_every_command_it_has_tables_for():
     assert cfg.device == "serial" and setup.motor.port == "/dev/ttyUSB0" and setup.board.port == "/dev/ttyACM0"
     assert setup.steps == 184 and setup.info.geometry.capsule_x == (-0.12, -0.04, 0.04, 0.12)
     assert setup.energy_model.d_min == 0.9 and setup.motor.zero_raw == 512
+    # The schedule applies to the simulated devices too; flags still win.
+    cfg = config_from_args(parse_args(build_parser(), ["acquire", "--config", str(EXAMPLE), "--device", "sim",
+                                                       "--gamma-stop", "90"]))
+    assert (cfg.steps, cfg.gamma_start, cfg.gamma_stop) == (184, math.radians(-10.0), math.radians(90.0))
     for command in ("planner", "router", "review", "emulate", "simulate", "calibrate", "demo"):
         argv = [command, "--config", str(EXAMPLE)] + (["x.mcap"] if command == "review" else [])
         parse_args(build_parser(), argv)  # no unknown keys, nothing required missing

@@ -94,6 +94,7 @@ def config_from_args(args: argparse.Namespace):
         clash = [k for k in ("steps", "gamma_start_deg", "gamma_stop_deg") if k in values and k in rig.values["schedule"]]
         if clash:
             raise ConfigError(f"{args.config}: {', '.join(clash)} given in both [acquire] and [schedule]; keep one")
+        values.update(rig.values["schedule"])  # the schedule applies to every device
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
                 "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression"):
         if getattr(args, key, None) is not None:
