@@ -35,7 +35,6 @@ from __future__ import annotations
 import json
 import math
 import zlib
-from dataclasses import dataclass, field
 
 import numpy as np
 from foxglove_schemas_protobuf.ArrowPrimitive_pb2 import ArrowPrimitive
@@ -254,17 +253,23 @@ def sample_points(start: codec.ScanStart, sample: codec.Sample) -> tuple[np.ndar
     return local @ rot.T, np.array([c.capsule_id for c, _ in rows])
 
 
-@dataclass
 class ScanCloud:
-    """The raw points of each scan so far: :meth:`add` returns the cloud of the whole scan up to a sample."""
+    """The raw points of each scan so far: :meth:`add` returns the cloud of the whole scan up to a sample.
 
-    _starts: dict[tuple[str, int], codec.ScanStart] = field(default_factory=dict)
-    _rows: dict[tuple[str, int], list[np.ndarray]] = field(default_factory=dict)
+    Each scan's points live in one float32 buffer (x, y, z, step, capsule) that grows by
+    doubling, so adding a step costs the same at step 1 and step 1000.
+    """
+
+    def __init__(self) -> None:
+        self._starts: dict[tuple[str, int], codec.ScanStart] = {}
+        self._buffers: dict[tuple[str, int], np.ndarray] = {}
+        self._counts: dict[tuple[str, int], int] = {}
 
     def scan_started(self, start: codec.ScanStart) -> None:
         key = (start.scanner_id, start.scan_id)
         self._starts[key] = start
-        self._rows[key] = []
+        self._buffers[key] = np.empty((max(4, 4 * int(start.steps or 1)), len(CLOUD_FIELDS)), dtype="<f4")
+        self._counts[key] = 0
 
     def add(self, sample: codec.Sample, t_ns: int | None = None) -> PointCloud | None:
         """The cloud of the scan with this sample's points added; None before its ScanStart."""
@@ -273,16 +278,25 @@ class ScanCloud:
         if start is None:
             return None
         pts, caps = sample_points(start, sample)
-        rows = self._rows[key]
-        if len(pts):
-            rows.append(np.column_stack([pts, np.full(len(pts), sample.step), caps]))
-        allpts = np.concatenate(rows) if rows else np.empty((0, 5))
-        return point_cloud(allpts[:, :3], sample.acquisition_time_ns if t_ns is None else t_ns,
-                           step=allpts[:, 3], capsule=allpts[:, 4])
+        buf, n = self._buffers[key], self._counts[key]
+        if n + len(pts) > len(buf):
+            buf = self._buffers[key] = np.concatenate([buf, np.empty_like(buf)])
+        rows = buf[n:n + len(pts)]
+        rows[:, :3] = pts
+        rows[:, 3] = sample.step
+        rows[:, 4] = caps
+        n = self._counts[key] = n + len(pts)
+        msg = PointCloud(frame_id=WORLD_FRAME, point_stride=4 * len(CLOUD_FIELDS), data=buf[:n].tobytes())
+        msg.timestamp.FromNanoseconds(int(sample.acquisition_time_ns if t_ns is None else t_ns))
+        msg.pose.position.SetInParent()
+        msg.pose.orientation.w = 1.0
+        for i, name in enumerate(CLOUD_FIELDS):
+            msg.fields.append(PackedElementField(name=name, offset=4 * i, type=PackedElementField.FLOAT32))
+        return msg
 
     def scan_ended(self, scanner_id: str, scan_id: int) -> None:
-        self._starts.pop((scanner_id, scan_id), None)
-        self._rows.pop((scanner_id, scan_id), None)
+        for table in (self._starts, self._buffers, self._counts):
+            table.pop((scanner_id, scan_id), None)
 
 
 # --- plottable scalars ---------------------------------------------------------------------
