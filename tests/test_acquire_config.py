@@ -40,7 +40,7 @@ def test_bad_toml_names_the_problem(tmp_path, body, message):
 
 
 def test_bad_values_are_rejected_with_the_fix():
-    with pytest.raises(ConfigError, match="--motor-port and --sensor-port"):
+    with pytest.raises(ConfigError, match="never from a simulator preset; missing: array.capsule_x"):
         parse("--device", "serial")
     with pytest.raises(InvalidIdentifierError):
         parse("--scanner-id", "robot/7")

@@ -15,7 +15,7 @@ import pytest
 from lelsonar.acquire.sim import simulate_scan
 from lelsonar.acquire.sim.record import record_scan
 from lelsonar.acquire.sim.scenes import calibrated_energy_model, draw_scene, simulate_family_scene
-from lelsonar.reconstruct.energy import waveform_energy
+from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.recording import read_metadata
 from lelsonar.tools import bench_families as B
@@ -129,8 +129,10 @@ def test_simulate_family_mcap_round_trips_through_reconstruct(tmp_path):
 
     fs = simulate_family_scene("partial", 3)
     scan = fs.scan
+    # As the service computes them from each recorded Sample: energies and the first echoes' amplitudes.
     want = reconstruct(scan.gamma_measured, scan.distance, waveform_energy(scan.waveforms, scan.sample_rate),
-                       scan.geometry, fs.energy_model)
+                       scan.geometry, fs.energy_model,
+                       echo_amplitude=echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof))
     assert final["critical_step"] == want.critical_step
     got = {p["label"]: p for p in final["planes"]}
     for label, plane in (("a", want.plane_a), ("b", want.plane_b)):

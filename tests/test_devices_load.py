@@ -14,7 +14,7 @@ import pytest
 from lelsonar.acquire.backends import open_scanner
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.devices import ax12
-from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, gamma_schedule, run_scan
+from lelsonar.acquire.scan_loop import ScanIdentity, gamma_schedule, run_scan
 from lelsonar.acquire.service import energy_model, sim_config
 from lelsonar.v1 import scan_pb2
 

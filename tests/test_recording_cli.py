@@ -21,6 +21,9 @@ from lelsonar.v1 import reconstruction_pb2
 from .conftest import simulated_messages
 
 STEPS = 184  # the paper-test1 schedule: enough for a corner and both planes
+#: What the recorder writes for each step (one chunk), and once per scan.
+PER_STEP = ("/lelsonar/sample", "/tf", "/lelsonar/points", "/lelsonar/scan_points", "/lelsonar/step")
+PER_SCAN = ("/lelsonar/scan_start", "/tf_capsules", "/lelsonar/array", "/lelsonar/scan_end")
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +133,8 @@ def test_reconstruct_source_on_a_bit_flip_warns_once_and_estimates(scan, tmp_pat
     rc, out, err = run(capsys, "reconstruct", "--source", target, "--json")
     assert rc == 0 and "Traceback" not in err
     assert len(warnings(err)) == 1
-    assert re.fullmatch(rf"warning: {re.escape(str(target))} is damaged: 1 chunk \(3 messages\) unreadable after "
+    assert re.fullmatch(rf"warning: {re.escape(str(target))} is damaged: 1 chunk \({len(PER_STEP)} messages\) "
+                        rf"unreadable after "
                         rf"byte {scan[2][120][0]}; {STEPS - 1} samples salvaged", warnings(err)[0])
     finals = [json.loads(line) for line in out.splitlines()]
     assert len(finals) == 1 and finals[0]["samples_used"] == STEPS - 1 and len(finals[0]["planes"]) >= 2
@@ -147,7 +151,9 @@ def test_review_of_a_cut_file_warns_once_and_writes_the_rrd(scan, tmp_path, caps
 def test_recover_cli_writes_what_survived_of_a_bit_flip(scan, tmp_path, capsys):
     target = flipped(scan, tmp_path, step=7)
     rc, _out, err = run(capsys, "recover", target, "-o", tmp_path / "fixed.mcap")
-    assert rc == 0 and err.startswith(f"recovered {3 * STEPS - 3 + 2} messages ({STEPS - 1} samples)")
+    # Every step's chunk but step 7's, plus ScanStart with its two viewer channels and ScanEnd.
+    total = len(PER_STEP) * (STEPS - 1) + len(PER_SCAN)
+    assert rc == 0 and err.startswith(f"recovered {total} messages ({STEPS - 1} samples)")
     with open(tmp_path / "fixed.mcap", "rb") as f:
         steps = sorted(codec.Sample.FromString(m.data).step
                        for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"]))
@@ -169,8 +175,7 @@ def test_info_of_an_intact_scan(scan, capsys):
     assert (s["scanner_id"], s["scan_id"], s["status"], s["device"]) == ("s1", 1, "complete", "sim")
     assert (s["steps_received"], s["steps_planned"], s["missing_steps"]) == (STEPS, STEPS, [])
     counts = {c["topic"]: c["messages"] for c in info["channels"]}
-    assert counts == {"/lelsonar/scan_start": 1, "/lelsonar/sample": STEPS, "/tf": STEPS, "/lelsonar/points": STEPS,
-                      "/lelsonar/scan_end": 1}
+    assert counts == {**{t: STEPS for t in PER_STEP}, **{t: 1 for t in PER_SCAN}}
     assert info["duration_s"] == pytest.approx((msgs[-1].end_time_ns - msgs[0].start_time_ns) / 1e9)
     rc, out, _ = run(capsys, "info", path)
     assert rc == 0 and f"{STEPS}/{STEPS}" in out and "finished, intact" in out
@@ -182,7 +187,7 @@ def test_info_names_the_missing_step_and_the_damage(scan, tmp_path, capsys):
     assert s["missing_steps"] == [42] and s["steps_received"] == STEPS - 1 and s["status"] == "complete"
     (d,) = info["damage"]
     assert d["kind"] == "chunk" and d["offset"] == scan[2][42][0] and d["exact"]
-    assert d["by_topic"] == {"/lelsonar/sample": 1, "/tf": 1, "/lelsonar/points": 1}
+    assert d["by_topic"] == {t: 1 for t in PER_STEP}
     lost = {c["topic"]: c["lost"] for c in info["channels"]}
     assert lost["/lelsonar/sample"] == 1 and lost["/lelsonar/scan_end"] == 0
 

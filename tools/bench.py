@@ -9,6 +9,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import platform
+from collections.abc import Iterable, Iterator
+from typing import TypeVar
+
+T = TypeVar("T")
 
 BENCHES = {
     "sim": ("lelsonar.tools.bench_sim", "simulating a full scan with waveforms"),
@@ -32,6 +36,21 @@ def machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, {platform.system()}"
 
 
+def progress(items: Iterable[T], label: str, total: int | None = None) -> Iterator[T]:
+    """Yield ``items`` while a progress bar on stderr counts them (transient: the tables stay clean)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    if total is None and hasattr(items, "__len__"):
+        total = len(items)  # type: ignore[arg-type]
+    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task(label, total=total)
+        for item in items:
+            yield item
+            bar.advance(task)
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("bench", help="run a benchmark (sim, estimators, acquire, ingest, or all)")
     names = p.add_subparsers(dest="bench", required=True, metavar="NAME")
@@ -49,7 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_all(args: argparse.Namespace) -> int:
     status = 0
-    for name, (module, _summary) in BENCHES.items():
+    for name, (module, _summary) in BENCHES.items():  # each benchmark shows its own progress
         try:
             mod = importlib.import_module(module)
         except ModuleNotFoundError:

@@ -295,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lelsonar.acquire.config import AcquireConfig
     from lelsonar.errors import ConfigError
-    from lelsonar.tools.bench import machine
+    from lelsonar.tools.bench import machine, progress
 
     if args.runs < 1:
         raise ConfigError(f"--runs must be >= 1, got {args.runs}")
@@ -310,7 +310,7 @@ def run(args: argparse.Namespace) -> int:
 
     rows = [Row("emulated")] + ([] if args.no_zenoh else [Row("emulated+zenoh")]) + [Row("sim")]
     components = []
-    for _ in range(args.runs):  # interleaved, so drift hits every backend alike
+    for _ in progress(range(args.runs), "runs"):  # interleaved, so drift hits every backend alike
         for row in rows:
             device = "sim" if row.label == "sim" else "emulated"
             row.results.append(one_run(device, args, zenoh_pub=row.label.endswith("zenoh")))

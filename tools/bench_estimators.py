@@ -53,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from lelsonar.tools.bench import machine
+from lelsonar.tools.bench import machine, progress
 
 DEFAULT_SCENES = ("paper-test1", "paper-test2", "tilted", "tilted-roll5", "tilted-b8")
 
@@ -262,10 +262,10 @@ def run(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
-            for r in ex.map(_one_scan, *zip(*jobs), chunksize=2):
+            for r in progress(ex.map(_one_scan, *zip(*jobs), chunksize=2), "scans", total=len(jobs)):
                 rows.extend(r)
     else:
-        for j in jobs:
+        for j in progress(jobs, "scans"):
             rows.extend(_one_scan(*j))
     wall = time.perf_counter() - t0
     timings = _timings(args.timing_repeats)

@@ -578,7 +578,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lelsonar.errors import ConfigError
     from lelsonar.reconstruct.service import ReconstructConfig
-    from lelsonar.tools.bench import machine
+    from lelsonar.tools.bench import machine, progress
     from lelsonar.tools.bench_acquire import host_busy, host_line
 
     defaults = ReconstructConfig()
@@ -589,7 +589,9 @@ def run(args: argparse.Namespace) -> int:
     busy = host_busy()
     t_bench = time.perf_counter()
 
+    phases = iter(progress(["sustained ingest", "latency", "replay"], "phases"))
     # (a) sustained ingest
+    next(phases)
     pub_a, con_a = run_phase(args, "rate")
     done = sorted(con_a["done_mono"])
     n = len(done)
@@ -604,6 +606,7 @@ def run(args: argparse.Namespace) -> int:
         return f"{1e3 * b[bucket][1] / b[bucket][0]:.1f}" if bucket in b else "—"
 
     # (b) latency
+    next(phases)
     pub_b, con_b = run_phase(args, "latency")
     lat_sample = [ns / 1e6 for ns in con_b["sample_latency_ns"]]
     lat_prov = _lat_ms(con_b["estimate_latency"], "provisional")
@@ -612,6 +615,7 @@ def run(args: argparse.Namespace) -> int:
     e2e_final = _lat_ms(pub_b["e2e"], "final")
 
     # (c) replay
+    next(phases)
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-replay-") as tmp:
         path = Path(tmp) / "replay.mcap"
         n_replay = record_scans(path, args.preset, args.scans)
@@ -625,6 +629,7 @@ def run(args: argparse.Namespace) -> int:
             profile_stash = (path.read_bytes(), n_replay)
         else:
             profile_stash = None
+    next(phases, None)  # the bar counts the last phase and goes
     wall = time.perf_counter() - t_bench
 
     console.print(f"[bold]lelsonar bench ingest[/] — preset {args.preset}, Sample = 4 × 3500 float32 "

@@ -21,7 +21,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lelsonar.acquire.sim import preset, simulate_scan
-    from lelsonar.tools.bench import machine
+    from lelsonar.tools.bench import machine, progress
     from lelsonar.errors import ConfigError
 
     if args.runs < 1:
@@ -31,7 +31,7 @@ def run(args: argparse.Namespace) -> int:
     rows = []
     for with_waveforms in (True, False):
         times = []
-        for i in range(args.runs):
+        for i in progress(range(args.runs), f"scans {'with' if with_waveforms else 'without'} waveforms"):
             t = time.perf_counter()
             simulate_scan(cfg, seed=args.seed + i, with_waveforms=with_waveforms)
             times.append(time.perf_counter() - t)

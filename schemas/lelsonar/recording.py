@@ -12,34 +12,43 @@ topic                           schema                            what
 ``/tf``                         ``foxglove.FrameTransform``       world → array, per step
 ``/lelsonar/points``            ``foxglove.PointCloud``           raw points of the step (eq. 9)
 ``/log``                        ``foxglove.Log``                  events
+``/tf_capsules``                ``foxglove.FrameTransforms``      array → capsule_X, per scan
+``/lelsonar/array``             ``foxglove.SceneUpdate``          the capsules and their beams
+``/lelsonar/scan_points``       ``foxglove.PointCloud``           every raw point of the scan so far
+``/lelsonar/step``              JSON ``lelsonar.StepScalars``     γ, ranges, energies (plottable)
+``/lelsonar/planes``            ``foxglove.SceneUpdate``          estimated planes, when recorded
 ==============================  ================================  ==========================
 
-``rerun file.mcap`` shows ``/tf`` as a Transform3D and the points as Points3D.
+The viewer channels come from :mod:`lelsonar.visual`.  Each scan also adds a
+``lelsonar.recording`` metadata record naming it (``name``, scanner, scan,
+device, software).  ``rerun file.mcap`` shows ``/tf`` as a Transform3D and the
+points as Points3D; Foxglove shows everything, and plots ``/lelsonar/step``.
+A step's contract message and its viewer messages share one chunk.
 """
 
 from __future__ import annotations
 
+import json
 import logging
-import math
 import os
 import time
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
-import numpy as np
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.Log_pb2 import Log
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.message import Message
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
-from lelsonar import __version__, codec
+from lelsonar import __version__, codec, visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.geometry import beam_points_from_capsules
 from lelsonar.recordings.reader import Salvage, salvage
 
 _log = logging.getLogger(__name__)
@@ -51,16 +60,16 @@ TOPICS: dict[type[Message], str] = {
     codec.Reconstruction: "/lelsonar/reconstruction",
 }
 TOPIC_TF = "/tf"
-TOPIC_POINTS = "/lelsonar/points"
+TOPIC_POINTS = visual.TOPIC_POINTS
 TOPIC_LOG = "/log"
-WORLD_FRAME = "world"
-ARRAY_FRAME = "array"
+WORLD_FRAME = visual.WORLD_FRAME
+ARRAY_FRAME = visual.ARRAY_FRAME
 
 #: Metadata record naming each channel, ``lelsonar.channel.<id>`` → {"topic": ..., "schema": ...}.
 CHANNEL_METADATA = "lelsonar.channel."
 #: The protobuf types a lelsonar recording may hold, by full name (to rebuild a lost schema record).
 RECORDED_TYPES: dict[str, type[Message]] = {
-    **codec.MESSAGE_TYPES, **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, PointCloud, Log)}}
+    **codec.MESSAGE_TYPES, **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, FrameTransforms, PointCloud, Log, SceneUpdate)}}
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -177,56 +186,79 @@ class McapRecorder:
             self._starts[(message.scanner_id, message.scan_id)] = message
         elif isinstance(message, codec.Sample):
             self._write_pose_and_points(message, t)
+        self._write_views(message, t)
         self._commit()
 
     def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
         """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
         t = log_time_ns if log_time_ns is not None else time.time_ns()
-        msg = Log(level=Log.Level.Value(level.upper()), message=text, name=name)
-        msg.timestamp.FromNanoseconds(t)
-        msg.file = ""
-        self._put(TOPIC_LOG, msg, t)
+        self._put(TOPIC_LOG, visual.log_message(level, text, t, name), t)
         self._commit()
 
+    # --- what viewers draw, beside the contract (lelsonar.visual) -------------------------
+    @cached_property
+    def _views(self) -> _ViewState:
+        return _ViewState()
+
+    def _write_views(self, message: Message, t: int) -> None:
+        """The viewer channels of a contract message: a recording opened alone shows the scan."""
+        views = self._views
+        if isinstance(message, codec.ScanStart):
+            views.cloud.scan_started(message)
+            self._put(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(message, t), t)
+            self._put(visual.TOPIC_ARRAY, visual.array_model(message, t), t)
+            self._writer.add_metadata("lelsonar.recording", recording_name_metadata(message))
+        elif isinstance(message, codec.Sample):
+            cloud = views.cloud.add(message, t)
+            if cloud is not None:
+                self._put(visual.TOPIC_SCAN_POINTS, cloud, t)
+            self.write_json(visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA,
+                            visual.step_scalars(message), t)
+        elif isinstance(message, codec.ScanEnd):
+            views.cloud.scan_ended(message.scanner_id, message.scan_id)
+        elif isinstance(message, codec.Reconstruction):
+            self._put(visual.TOPIC_PLANES, views.planes.update(message, t), t)
+
+    def write_json(self, topic: str, schema_name: str, schema: dict, payload: dict, log_time_ns: int) -> None:
+        """Record a JSON message on a channel with a named JSON schema (Foxglove plots its numbers)."""
+        if self._finished:
+            raise RecordingError(f"{self.path} is already finished")
+        channel = self._views.json_channels.get(topic)
+        if channel is None:
+            schema_id = self._writer.register_schema(schema_name, "jsonschema", visual.json_schema_bytes(schema))
+            channel = self._views.json_channels[topic] = self._writer.register_channel(topic, "json", schema_id)
+        self._writer.add_message(channel, log_time=log_time_ns, data=json.dumps(payload).encode(),
+                                 publish_time=log_time_ns)
+
     def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
-        tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=ARRAY_FRAME)
-        tf.timestamp.FromNanoseconds(t)
-        # Every sub-message is set: an unset one breaks `rerun mcap convert` (design §5).
-        tf.translation.SetInParent()
-        half = 0.5 * sample.gamma_measured
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = math.sin(half), 0.0, 0.0, math.cos(half)
-        self._put(TOPIC_TF, tf, t)
-
+        self._put(TOPIC_TF, visual.array_transform(sample.gamma_measured, t), t)
         start = self._starts.get((sample.scanner_id, sample.scan_id))
-        valid = [s for s in sample.sensors if s.echo_valid]
-        if start is None or not valid:
+        if start is None:
             return
-        by_id = {c.capsule_id: c for c in start.capsules}
-        rows = [(by_id[s.capsule_id], s.distance) for s in valid if s.capsule_id in by_id]
-        if not rows:
-            return
-        pos = np.array([[c.position.x, c.position.y, c.position.z] for c, _ in rows])
-        bore = np.array([[c.boresight.x, c.boresight.y, c.boresight.z] for c, _ in rows])
-        pts = beam_points_from_capsules(pos, bore, sample.gamma_measured, np.array([d for _, d in rows]))
-        self._put(TOPIC_POINTS, point_cloud(pts, t), t)
+        pts, _capsules = visual.sample_points(start, sample)
+        if len(pts):
+            self._put(TOPIC_POINTS, visual.point_cloud(pts, t), t)
 
 
-def point_cloud(points: np.ndarray, t_ns: int, frame_id: str = WORLD_FRAME) -> PointCloud:
-    """A ``foxglove.PointCloud`` of xyz float32 points, every sub-message set."""
-    pts = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)
-    msg = PointCloud(frame_id=frame_id, point_stride=12, data=pts.tobytes())
-    msg.timestamp.FromNanoseconds(t_ns)
-    msg.pose.position.SetInParent()
-    msg.pose.orientation.w = 1.0
-    for i, axis in enumerate("xyz"):
-        msg.fields.append(PackedElementField(name=axis, offset=4 * i, type=PackedElementField.FLOAT32))
-    return msg
+@dataclass
+class _ViewState:
+    cloud: visual.ScanCloud = field(default_factory=visual.ScanCloud)
+    planes: visual.PlaneScene = field(default_factory=visual.PlaneScene)
+    json_channels: dict[str, int] = field(default_factory=dict)
+
+
+def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
+    """The ``lelsonar.recording`` metadata record of a scan: a human name and what it was."""
+    return {"name": f"lelsonar {start.scanner_id} scan {start.scan_id}", "scanner_id": start.scanner_id,
+            "scan_id": str(start.scan_id), "device": start.device or "unknown",
+            "software_version": start.software_version, "start_time_ns": str(start.start_time_ns),
+            "steps": str(start.steps)}
 
 
 def _message_time(message: Message) -> int:
-    for field in ("acquisition_time_ns", "start_time_ns", "end_time_ns", "stamp_ns"):
-        if hasattr(message, field) and getattr(message, field):
-            return int(getattr(message, field))
+    for name in ("acquisition_time_ns", "start_time_ns", "end_time_ns", "stamp_ns"):
+        if hasattr(message, name) and getattr(message, name):
+            return int(getattr(message, name))
     return time.time_ns()
 
 

@@ -90,8 +90,23 @@ class DeviceScanner:
 
 
 @contextmanager
-def open_scanner(cfg: AcquireConfig, sim: SimConfig) -> Iterator[SimScanner | DeviceScanner]:
-    """The scanner ``cfg.device`` names, closed (torque off, ports closed) on exit."""
+def open_scanner(cfg: AcquireConfig, sim: SimConfig | None) -> Iterator[SimScanner | DeviceScanner]:
+    """The scanner ``cfg.device`` names, closed (torque off, ports closed) on exit.
+
+    ``sim`` drives ``sim`` and ``emulated``; ``serial`` takes everything from the rig
+    (:func:`lelsonar.acquire.rig.serial_setup`) and ignores it.
+    """
+    if cfg.device == "serial":
+        from lelsonar.acquire.rig import serial_setup
+
+        setup = serial_setup(cfg)
+        with ExitStack() as stack:
+            motor = stack.enter_context(DynamixelMotor(setup.motor))
+            board = stack.enter_context(SerialSensorBoard(setup.board))
+            yield DeviceScanner(motor, board, setup.info, None)
+        return
+    if sim is None:
+        raise ValueError(f"--device {cfg.device} needs a simulator configuration")
     if cfg.device == "sim":
         yield SimScanner(sim, cfg.seed)
         return
@@ -107,8 +122,7 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig) -> Iterator[SimScanner | De
             # and a long late-reply window absorbs the emulator thread's scheduling delays on a loaded host.
             latency_ms, guard_s = 2.0, EMULATED_STALE_GUARD_S
         else:
-            motor_port, sensor_port = cfg.motor_port, cfg.sensor_port
-            latency_ms, guard_s = 16.0, None  # an FTDI adapter's default latency; the default window
+            raise ValueError(f"unknown device {cfg.device!r}")
         lo, hi = sorted((sim.gamma_start, sim.gamma_stop))
         motor = stack.enter_context(DynamixelMotor(MotorConfig(
             port=motor_port, gamma_min=lo, gamma_max=hi, latency_timer_ms=latency_ms, stale_guard_s=guard_s,

@@ -34,7 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "the current step, send ScanEnd(aborted) and close the file properly. Flags override the "
                     "[acquire] table of --config.")
     p.add_argument("--config", type=Path, metavar="FILE.toml",
-                   help=f"TOML file with an [acquire] table; keys: {', '.join(_TOML_KEYS)}")
+                   help=f"TOML rig file (examples/rig.toml): an [acquire] table with keys {', '.join(_TOML_KEYS)}, "
+                        "and the rig tables [array] [servo] [sensor_board] [air] [energy_model] [schedule] that "
+                        "--device serial takes everything from")
     p.add_argument("--scanner-id", help="scanner id in key expressions and messages (default: scanner1)")
     p.add_argument("--device", choices=DEVICES, help="what to drive (default: emulated)")
     p.add_argument("--preset", choices=preset_names(),
@@ -69,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "while scanning)")
     add_zenoh_arguments(p, default_mode="peer")
     add_secure_argument(p)
-    p.set_defaults(run=run_acquire)
+    p.set_defaults(run=run_acquire, _own_config_table=True)  # [acquire] and the rig tables: config_from_args
 
 
 def load_toml(path: Path) -> dict:
@@ -94,7 +96,15 @@ def config_from_args(args: argparse.Namespace):
     from lelsonar.acquire.config import AcquireConfig
     from lelsonar.energy_model import EnergyModel
 
+    from lelsonar.acquire.rig import load_rig
+
     values = load_toml(args.config) if args.config else {}
+    rig = load_rig(args.config) if args.config else None
+    if rig is not None and rig.values.get("schedule"):
+        clash = [k for k in ("steps", "gamma_start_deg", "gamma_stop_deg") if k in values and k in rig.values["schedule"]]
+        if clash:
+            raise ConfigError(f"{args.config}: {', '.join(clash)} given in both [acquire] and [schedule]; keep one")
+        values.update(rig.values["schedule"])  # the schedule applies to every device
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
                 "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression", "fsync",
                 "serve_log_for"):
@@ -113,7 +123,7 @@ def config_from_args(args: argparse.Namespace):
         if len(phi) != 3:
             raise ConfigError("energy_phi needs three numbers: phi0 phi1 phi2")
         values["energy_model"] = EnergyModel(*map(float, phi))
-    return AcquireConfig(**values)
+    return AcquireConfig(**values, rig=rig)
 
 
 def run_acquire(args: argparse.Namespace) -> int:

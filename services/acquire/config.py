@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from lelsonar.acquire.backends import DEVICES
+from lelsonar.acquire.rig import Rig, require_for_serial, serial_overrides
 from lelsonar.errors import ConfigError
 from lelsonar.keys import validate_identifier, validate_prefix
 from lelsonar.energy_model import EnergyModel
@@ -56,6 +57,10 @@ class AcquireConfig:
         s to keep answering log queries (``<prefix>/<scanner>/log/<scan_id>``) after the last scan
         ends, so a reconstructor that missed steps can still recover them; also how long an ended
         scan stays in the served log.  0 serves only while scanning.
+        φ of eq. (12); default: the rig's (serial) or the simulator's calibration.
+    rig : Rig, optional
+        The rig tables of ``--config`` (:mod:`lelsonar.acquire.rig`); ``device="serial"``
+        takes everything from it (flags override), never from a simulator preset.
     """
 
     scanner_id: str = "scanner1"
@@ -79,14 +84,15 @@ class AcquireConfig:
     fsync: bool = False
     energy_model: EnergyModel | None = None
     serve_log_for: float = 10.0
+    rig: Rig | None = None
 
     def __post_init__(self) -> None:
         validate_identifier(self.scanner_id)
         validate_prefix(self.prefix)
         if self.device not in DEVICES:
             raise ConfigError(f"--device must be one of {', '.join(DEVICES)}, got {self.device!r}")
-        if self.device == "serial" and not (self.motor_port and self.sensor_port):
-            raise ConfigError("--device serial needs --motor-port and --sensor-port (e.g. /dev/ttyUSB0, /dev/ttyACM0)")
+        if self.device == "serial":
+            require_for_serial(self.rig, serial_overrides(self))
         if self.steps is not None and not 2 <= self.steps <= 4096:
             raise ConfigError(f"steps must be in [2, 4096], got {self.steps}")
         for name in ("gamma_start", "gamma_stop"):
@@ -111,7 +117,11 @@ class AcquireConfig:
 
     def as_metadata(self) -> dict[str, str]:
         """The configuration as MCAP metadata (strings)."""
-        out = {k: str(v) for k, v in asdict(self).items() if k != "energy_model"}
+        skip = {"energy_model", "rig"} | ({"preset", "seed"} if self.device == "serial" else set())  # sim only
+        out = {k: str(v) for k, v in asdict(self).items() if k not in skip}
+        if self.rig is not None:
+            out["rig"] = str(self.rig.path)
+            out.update({f"rig.{t}.{k}": str(v) for t, kv in self.rig.values.items() for k, v in kv.items()})
         if self.energy_model is not None:
             out["energy_model"] = str(asdict(self.energy_model))
         return out

@@ -80,9 +80,16 @@ def run_acquisition(cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threa
     from lelsonar.acquire.backends import open_scanner
 
     console = console or Console(stderr=True)
-    sim = sim_config(cfg)
-    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
-    model = energy_model(cfg)
+    if cfg.device == "serial":  # the rig file and flags only, never a simulator preset
+        from lelsonar.acquire.rig import serial_setup
+
+        setup, sim = serial_setup(cfg), None
+        schedule = gamma_schedule(setup.gamma_start, setup.gamma_stop, setup.steps)
+        model = setup.energy_model
+    else:
+        sim = sim_config(cfg)
+        schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+        model = energy_model(cfg)
     keys = ScannerKeys(cfg.prefix, cfg.scanner_id)
     report = AcquisitionReport([], [], 0)
     log = ScanLog(keep_for=cfg.serve_log_for) if zenoh is not None else None

@@ -7,5 +7,7 @@ One module per ecosystem:
   ROS 2 topics;
 * :mod:`lelsonar.bridge.rmw_zenoh` — the same topics live on rmw_zenoh key
   expressions;
+* :mod:`lelsonar.bridge.foxglove` — the live Foxglove WebSocket view (the only
+  module importing ``foxglove``);
 * :mod:`lelsonar.bridge.cli` — ``lelsonar export`` and ``lelsonar ros2-bridge``.
 """

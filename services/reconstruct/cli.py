@@ -46,6 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(default: 1)")
     _add_estimator_arguments(p)
     _add_rerun_arguments(p)
+    _add_foxglove_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
     p.set_defaults(run=run_reconstruct)
@@ -89,6 +90,26 @@ def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--serve-bind", default="127.0.0.1", metavar="IP",
                    help="address --serve listens on (default: 127.0.0.1; 0.0.0.0 exposes it to the network)")
     g.add_argument("--spawn", action="store_true", help="spawn a local Rerun viewer")
+
+
+def _add_foxglove_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("foxglove")
+    g.add_argument("--foxglove", metavar="[HOST:]PORT",
+                   help="serve a live Foxglove WebSocket (e.g. 8765, or 0.0.0.0:8765 for the network; port 0 picks "
+                        "one); open examples/foxglove-layout.json in Foxglove and connect to ws://HOST:PORT")
+    g.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
+                   help="with --source: wait up to S s for a Foxglove client to subscribe before replaying, "
+                        "then keep serving until Ctrl-C (default: replay at once)")
+
+
+def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
+    if not getattr(args, "foxglove", None):
+        return None
+    from lelsonar.bridge.foxglove import open_foxglove
+
+    observer = stack.enter_context(open_foxglove(args.foxglove, truth_preset=args.truth_preset))
+    console.print(f"reconstruct: Foxglove live on {observer.server.url}", highlight=False)
+    return observer
 
 
 def _config(args: argparse.Namespace, *, provisional: bool = True):
@@ -156,7 +177,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     # A batch replay needs no provisional estimates: the finals are computed from scratch anyway.
-    config = _config(args, provisional=args.source is None or args.publish or bool(args.rrd))
+    config = _config(args, provisional=args.source is None or args.publish or bool(args.rrd) or bool(args.foxglove))
     console = present.console(stderr=True)
     finals = threading.Event()
     n_final = 0
@@ -174,7 +195,10 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     source = _open_source(args.source) if args.source is not None else None
     with ExitStack() as stack:
-        observer = _rerun_observer(args, stack)
+        from lelsonar.reconstruct.observers import combine
+
+        fox = _foxglove_observer(args, stack, console)
+        observer = combine(_rerun_observer(args, stack), fox)
         recorder = stack.enter_context(McapRecorder(args.record)) if args.record else None
         publish_to = [report]
         service = ReconstructionService(config, publish=lambda msg: [fn(msg) for fn in publish_to],
@@ -186,6 +210,12 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             publish_to.insert(0, server.publish)
             stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
         if args.source is not None:
+            stop = _stop_on_signals() if fox is not None else None
+            if fox is not None and args.foxglove_wait > 0:
+                from lelsonar.visual import TOPIC_PLANES
+
+                console.print("reconstruct: waiting for a Foxglove client to subscribe", highlight=False)
+                fox.server.wait_for_subscribers([TOPIC_PLANES], args.foxglove_wait)
             n = replay_mcap(source, service)
             if recorder:
                 for msg in service.finals.values():
@@ -193,6 +223,10 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             _log.info("replayed %d payloads from %s; rejected: %s", n, args.source, dict(service.ingest.rejected))
             stats = service.stats_dict()
             _print_stats(console, stats, args.json, json)
+            if fox is not None and args.foxglove_wait > 0:
+                console.print(f"reconstruct: replay done, {len(service.finals)} final estimates; "
+                              "serving Foxglove until Ctrl-C", highlight=False)
+                stop.wait()
             if not service.finals:
                 return 1
             # A scan whose method of record produced no plane is a failure a script must see.

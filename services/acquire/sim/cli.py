@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -41,7 +42,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="wall distances in m (default: six from 0.9 to 1.8)")
     c.add_argument("--manual", action="store_true",
                    help="read 'distance_m energy_V2s' pairs from stdin instead of simulating")
-    c.set_defaults(run=_calibrate)
+    c.add_argument("--device", choices=("sim", "serial"), default="sim",
+                   help="sim: the simulator (default); serial: guide six face-on shots on the real rig of "
+                        "--config and write φ into its [energy_model] table")
+    c.add_argument("--config", type=Path, metavar="RIG.toml",
+                   help="the rig file (examples/rig.toml): ports, servo, board, air; --device serial rewrites "
+                        "its [energy_model]")
+    c.add_argument("--motor-port", help="override [servo].port")
+    c.add_argument("--sensor-port", help="override [sensor_board].port")
+    c.add_argument("--dry-run", action="store_true", help="--device serial: fit and print, leave the file alone")
+    c.set_defaults(run=_calibrate, _own_config_table=True)
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -90,6 +100,8 @@ def _calibrate(args: argparse.Namespace) -> int:
     from .calibrate import PAPER_CALIBRATION_DISTANCES, CalibrationResult, calibrate_simulator
     from .presets import preset
 
+    if args.device == "serial":
+        return _calibrate_serial(args)
     if args.manual:
         d, e = _read_pairs(sys.stdin)
         result = CalibrationResult(distances=d, energies=e, model=fit_energy_model(d, e))
@@ -105,6 +117,33 @@ def _calibrate(args: argparse.Namespace) -> int:
         print(f"  {d:6.3f}  {e:10.4e}  {m.expected_energy(d):10.4e}  {r:+7.2%}")
     print(f"phi0 = {m.phi0:.6g} 1/(V²·s·m²)\nphi1 = {m.phi1:.6g} 1/(V²·s·m)\nphi2 = {m.phi2:.6g} 1/(V²·s)")
     print(f"valid for d in [{m.d_min:.3f}, {m.d_max:.3f}] m")
+    return 0
+
+
+def _calibrate_serial(args: argparse.Namespace) -> int:
+    from lelsonar.acquire.calibrate_rig import calibrate_serial
+
+    from .calibrate import PAPER_CALIBRATION_DISTANCES
+
+    if args.config is None:
+        raise ConfigError("calibrate --device serial needs the rig file: --config rig.toml (see examples/rig.toml)")
+    distances = tuple(args.distances) if args.distances else PAPER_CALIBRATION_DISTANCES
+
+    def ask(prompt: str) -> str:
+        print(prompt, end="", flush=True)
+        line = sys.stdin.readline()
+        if not line:
+            raise ConfigError("no answer on stdin; the rig file is unchanged")
+        return line
+
+    shots, m = calibrate_serial(args.config, distances, ask, print, motor_port=args.motor_port,
+                                sensor_port=args.sensor_port, write=not args.dry_run)
+    print("   d (m)    E (V²·s)    fit (V²·s)   misfit")
+    for s in shots:
+        fit = m.expected_energy(s.distance)
+        print(f"  {s.distance:6.3f}  {s.energy:10.4e}  {fit:10.4e}  {s.energy / fit - 1:+7.2%}")
+    print(f"phi = [{m.phi0:.6g}, {m.phi1:.6g}, {m.phi2:.6g}], valid for d in [{m.d_min:.3f}, {m.d_max:.3f}] m")
+    print(f"{'would write' if args.dry_run else 'wrote'} [energy_model] in {args.config}")
     return 0
 
 

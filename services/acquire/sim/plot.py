@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.energy import EnergyModel, energy_ratio, median_range
 
 from .calibrate import default_energy_model
@@ -57,8 +58,11 @@ def scan_figure(scan: SimulatedScan, model: EnergyModel | None = None):
     -------
     matplotlib.figure.Figure
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    try:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+    except ModuleNotFoundError:
+        raise ConfigError("figures need matplotlib, an optional extra: pip install 'lelsonar[plot]'") from None
 
     model = model or default_energy_model()
     gamma_deg = np.degrees(scan.gamma_measured)
