@@ -310,7 +310,7 @@ def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndar
 
 
 def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray, *, iterations: int = 3,
-                       step: float = 1e-7) -> tuple[tuple[Wall, Wall], np.ndarray]:
+                       step: float = 1e-7, covariance: bool = True) -> tuple[tuple[Wall, Wall], np.ndarray]:
     """Least squares of all labelled echoes over both walls at once (6 parameters).
 
     Each wall is ``n = normalise(n₀ + u₁e₁ + u₂e₂)``, ``h``; the edge echoes tie
@@ -321,7 +321,7 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
 
     Returns the walls and the (6, 6) covariance of ``(u₁, u₂, h)`` of wall a
     then wall b (``σ² (JᵀJ)⁻¹``, σ² from the residuals; ``inf`` if
-    unconstrained).
+    unconstrained or not asked for with ``covariance=False``).
     """
     ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
     pa, da = pts.capsule[ma], pts.distance[ma]
@@ -376,6 +376,8 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
             lam *= 10
         else:
             break
+    if not covariance:
+        return (walls[0], walls[1]), cov
     jac, _ = jacobian(walls[0], walls[1], r)
     try:
         cov = float(r @ r) / (m - 6) * np.linalg.inv(jac.T @ jac)
@@ -392,7 +394,7 @@ def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple
         for k in (ECHO_WALL_A, ECHO_WALL_B):
             if np.count_nonzero(labels == k) < min_points:
                 labels = np.where(labels == k, ECHO_OUTLIER, labels)  # too few to move this wall
-        (na, nb), _ = joint_gauss_newton(wall_a, wall_b, pts, labels, iterations=1)
+        (na, nb), _ = joint_gauss_newton(wall_a, wall_b, pts, labels, iterations=1, covariance=False)
         # Keep each wall within max_tilt of its nominal axis: beyond, the solver is chasing the other
         # wall's or the edge's echoes.
         if na.normal @ axes[0] >= np.cos(max_tilt) and na.offset > 0:
@@ -405,7 +407,7 @@ def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple
 def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
                      beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
                      max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
-                     max_tilt: float = np.deg2rad(15.0),
+                     max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02,
                      extra: tuple[tuple[Wall, Wall], ...] = ()) -> CornerModel | None:
     """The two walls and their edge that best explain all the echoes.
 
@@ -430,6 +432,9 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
         Fewest echoes a wall is refitted on.
     max_tilt : float
         rad.  Largest angle between a wall's normal and its nominal axis.
+    good_enough : float
+        Stop trying band pairs once one leaves at most this share of the
+        echoes unexplained.
     extra : tuple of (Wall, Wall)
         More hypotheses, e.g. the energy split's per-half fits.
 
@@ -458,10 +463,12 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     best: tuple[float, Wall, Wall] | None = None
     for a, b in hyps:
         wa, wb = _refine(a, b, pts, schedule, beam_half_angle, min_points, (axis_a, axis_b), max_tilt)
-        _, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
+        labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
         cost = _msac_cost(res, tolerance)
         if best is None or cost < best[0]:
             best = (cost, wa, wb)
+        if np.count_nonzero(labels == ECHO_OUTLIER) <= good_enough * pts.n:
+            break  # the most promising pair already explains (nearly) every echo: no other can do better
     cost, wa, wb = best
     labels, _ = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
     (fa, fb), cov = joint_gauss_newton(wa, wb, pts, labels, iterations=2)
