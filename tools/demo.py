@@ -131,13 +131,7 @@ def run_demo(args: argparse.Namespace) -> int:
     if not finals:
         console.print("[red]the planner received no final estimate")
         return 1
-    from google.protobuf.json_format import ParseDict
-
-    from lelsonar.reconstruct.wire import STATUS
-
-    final = ParseDict({k: v for k, v in finals[-1].items() if k != "status"}, codec.Reconstruction(),
-                      ignore_unknown_fields=True)
-    final.status = STATUS[finals[-1]["status"]]  # the JSON carries the short name
+    final = present.from_json(finals[-1])
     console.print(present.planes_table(final, truth, title="Final estimate received by the planner "
                                        f"(critical angle {final.critical_angle * 57.29578:.1f}°)"))
     _print_equations(console, final, truth)

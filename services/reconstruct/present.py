@@ -93,12 +93,16 @@ def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, f
                       "", "", "", "", "", "", style="dim")
     for f in msg.failures:
         t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
+    caption = [f"* {p.label} {p.method}: {'; '.join(p.quality_reasons)}"
+               for p in sorted(msg.planes, key=lambda p: (p.label, p.method)) if p.quality_reasons]
     if msg.HasField("accounting"):
-        t.caption = f"samples: {accounting_text(msg.accounting)}" + (
-            f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else "")
-        t.caption_justify = "left"
+        caption.append(f"samples: {accounting_text(msg.accounting)}" + (
+            f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else ""))
         if msg.missing_steps:
             t.caption_style = "yellow"
+    if caption:
+        t.caption = "\n".join(caption)
+        t.caption_justify = "left"
     return t
 
 
@@ -106,12 +110,9 @@ _QUALITY_STYLE = {"good": "green", "degraded": "yellow", "unreliable": "bold red
 
 
 def quality_cell(plane) -> str:
-    """The verdict, coloured, with its reasons (rich markup)."""
+    """The verdict, coloured (rich markup); its reasons follow the table (:func:`planes_table`)."""
     name = QUALITY_NAME.get(plane.quality, "unknown")
-    text = f"[{_QUALITY_STYLE.get(name, 'dim')}]{name}[/]"
-    if plane.quality_reasons:
-        text += ": " + "; ".join(plane.quality_reasons)
-    return text
+    return f"[{_QUALITY_STYLE.get(name, 'dim')}]{name}[/]" + ("*" if plane.quality_reasons else "")
 def _runs(steps) -> str:
     out: list[list[int]] = []
     for s in steps:
