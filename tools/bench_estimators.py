@@ -109,7 +109,7 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
     from lelsonar.acquire.sim import EchoSource, default_energy_model, simulate_scan
     from lelsonar.reconstruct import fit as F
     from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
-    from lelsonar.reconstruct.energy import energy_ratio, total_energy, waveform_energy
+    from lelsonar.reconstruct.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
     from lelsonar.reconstruct.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
     from lelsonar.reconstruct.pipeline import FitOptions, reconstruct
     from lelsonar.reconstruct.results import PlaneFit
@@ -119,6 +119,8 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
     scan = simulate_scan(cfg, seed=seed)
     model = default_energy_model()
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    # The first echoes' own amplitudes, as the reconstruction service computes them from each Sample.
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
     pc = scan.geometry.capsule_positions(scan.gamma_measured)
@@ -155,7 +157,8 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
 
     for method in methods:
         t0 = time.perf_counter()
-        rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
+        rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method,
+                          echo_amplitude=amplitude)
         dt = time.perf_counter() - t0
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             tp = planes[label]
@@ -195,7 +198,7 @@ def _timings(repeats: int) -> dict[str, float]:
     from lelsonar.acquire.sim import default_energy_model, preset, simulate_scan
     from lelsonar.reconstruct import fit as F
     from lelsonar.reconstruct.correct import AXIS_Z
-    from lelsonar.reconstruct.energy import waveform_energy
+    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
     from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 
@@ -217,6 +220,8 @@ def _timings(repeats: int) -> dict[str, float]:
         return float(np.median(ts))
 
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    # The first echoes' own amplitudes, as the reconstruction service computes them from each Sample.
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     model = default_energy_model()
     return {
         "fast LEL, θ_LS + front starts (default, 300 pts)": med(lambda: lel_fit_fast(v, t_ls), repeats),
@@ -227,7 +232,8 @@ def _timings(repeats: int) -> dict[str, float]:
                                                              repeats),
         "six-start Nelder-Mead (300 pts)": med(lambda: lel_fit_nelder_mead(v, t_ls), max(3, repeats // 10)),
         f"full scan, {DEFAULT_METHOD} ({scan.n_steps} steps)":
-            med(lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model), repeats),
+            med(lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model,
+                                    echo_amplitude=amplitude), repeats),
         "full scan, paper": med(lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry,
                                                     model, method="paper"), max(3, repeats // 10)),
     }

@@ -171,7 +171,10 @@ class ScanAssembly:
         for s in sample.sensors:
             if s.echo_valid:
                 distance[s.capsule_id] = s.distance
-                tof[s.capsule_id] = s.time_of_flight
+                # The round trip, where the echo sits in the waveform; a recorder that leaves it
+                # unset still gave the range, and the speed of sound is in the ScanStart.
+                tof[s.capsule_id] = (s.time_of_flight if s.time_of_flight > 0
+                                     else 2.0 * s.distance / self.start.sound_speed)
             waves[s.capsule_id] = codec.unpack_waveform(s.waveform, validated=True)  # ingest decoded it
         lengths = {w.size for w in waves}
         if len(lengths) != 1:

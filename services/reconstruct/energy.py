@@ -71,7 +71,9 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     w = np.abs(np.asarray(waveforms, dtype=np.float64))
     tof = np.asarray(round_trip, dtype=np.float64)
     n = w.shape[-1]
-    ok = np.isfinite(tof)
+    if n == 0:  # no waveform recorded: no amplitude
+        return np.full(w.shape[:-1], np.nan)
+    ok = np.isfinite(tof) & (tof > 0)
     start = np.clip(np.rint((np.where(ok, tof, 0.0) + window[0] - t0) * sample_rate), 0, n).astype(np.intp)
     width = max(int(round((window[1] - window[0]) * sample_rate)), 1)
     idx = np.minimum(start[..., None] + np.arange(width), n - 1)
