@@ -271,3 +271,23 @@ def test_a_compared_method_that_fails_is_reported_by_name() -> None:
     failed = FitFailure(FailureReason.TOO_FEW_POINTS, "3 valid points", "b", 3)
     out = _compared(failed, "lel", main)
     assert isinstance(out, FitFailure) and str(out).count("lel: 3 valid points") == 1
+
+
+def test_replay_exits_non_zero_when_the_method_of_record_gives_no_plane(tmp_path, capsys) -> None:
+    """A script running ``reconstruct --source X --json`` must see the missing plane: the JSON says why, exit 1."""
+    import json
+
+    from lelsonar.__main__ import main
+    from lelsonar.acquire.sim.record import record_scan
+
+    cfg = _scene_config(gamma=(-10, 40), steps=80)  # the sweep stops just past the corner: no wall b at all
+    scan = simulate_scan(cfg, seed=0)
+    assert not np.any(scan.truth.echo_source == EchoSource.PLANE_B)
+    model = calibrate_simulator(dataclasses.replace(preset("paper-test1"), acoustics=cfg.acoustics), seed=0).model
+    path = tmp_path / "short.mcap"
+    record_scan(scan, path, model)
+    assert main(["reconstruct", "--source", str(path), "--json", "--compare", "ls"]) == 1
+    out, err = capsys.readouterr()
+    (final,) = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    assert not [p for p in final["planes"] if p["method"] == DEFAULT_METHOD and p["label"] == "b"]
+    assert any("plane b" in f for f in final["failures"]) and f"{DEFAULT_METHOD} produced no plane" in err
