@@ -135,19 +135,25 @@ def test_constant_depth_lel_rejects_one_sided_outliers() -> None:
     assert abs(h2 - 1.57) < 0.002 and angle_deg(n2, n_true) < 1.0
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_constant_depth_is_unbiased_where_the_paper_correction_is_not(seed: int) -> None:
-    """A wall tilted 8° about x: the paper's axis-aligned correction loses the tilt."""
-    data, n_true = _wall_a_data(8.0, 0.001, seed)
-    paper = F.ls_theta(data.points)
-    assert angle_deg(paper, n_true) > 6.0  # biased: the tilt is (nearly) all lost
-    n, h, _ = F.constant_depth_ls(data.capsules, data.distance, paper / np.linalg.norm(paper),
-                                  1 / np.linalg.norm(paper))
-    assert angle_deg(n, n_true) < 1.5
-    assert h == pytest.approx(1.57, abs=0.003)
-    cov = F.theta_covariance(n / h, data.capsules, data.distance)
-    se_n, _ = F.normal_offset_stderr(n / h, cov)
-    assert angle_deg(n, n_true) < 4 * np.rad2deg(se_n)  # and its error bar covers it
+def test_constant_depth_is_unbiased_where_the_paper_correction_is_not() -> None:
+    """A wall tilted 8° about x: the paper's axis-aligned correction loses the tilt, the mirror-echo model does not.
+
+    Unbiased means calibrated: over 30 noise seeds the error divided by the reported standard error
+    (the RMS tilt, so a 2-dof error's median ratio is √(ln 4)/√2 ≈ 0.83) has a median in [0.5, 1.2]
+    and at most 10 % beyond 3 (Rayleigh: 1 %); the corrected points' normal misses by most of the tilt.
+    """
+    z = []
+    for seed in range(30):
+        data, n_true = _wall_a_data(8.0, 0.001, seed)
+        paper = F.ls_theta(data.points)
+        assert angle_deg(paper, n_true) > 6.0  # biased: the tilt is (nearly) all lost
+        n, h, _ = F.constant_depth_ls(data.capsules, data.distance, paper / np.linalg.norm(paper),
+                                      1 / np.linalg.norm(paper))
+        cov = F.theta_covariance(n / h, data.capsules, data.distance)
+        se_n, se_h = F.normal_offset_stderr(n / h, cov)
+        assert abs(h - 1.57) <= 5 * se_h
+        z.append(np.deg2rad(angle_deg(n, n_true)) / se_n)
+    assert 0.5 <= np.median(z) <= 1.2 and np.mean(np.asarray(z) > 3) <= 0.1, np.round(z, 2)
 
 
 def test_make_plane_fit_fills_every_field() -> None:

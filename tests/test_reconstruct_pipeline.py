@@ -112,27 +112,65 @@ def test_registry_has_the_paper_and_the_default() -> None:
         _run(_scan(), "nope")
 
 
+@pytest.fixture(scope="module")
+def paper_scans():
+    """The paper's corner from the physical simulator (waveforms, calibrated E0), two noise seeds."""
+    from lelsonar.acquire.sim import default_energy_model, preset, simulate_scan
+    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
+
+    out = []
+    for seed in (1, 2):
+        scan = simulate_scan(preset("paper-test1"), seed=seed)
+        out.append((scan, dict(gamma=scan.gamma_measured, distance=scan.distance,
+                               sensor_energy=waveform_energy(scan.waveforms, scan.sample_rate),
+                               geometry=scan.geometry, energy_model=default_energy_model(),
+                               echo_amplitude=echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof))))
+    return out
+
+
+#: Methods whose reported standard errors are calibrated on the paper's scenes (lelsonar bench estimators:
+#: median |error/σ| 0.6-0.8, none beyond 2.1 in 16 planes).  The LEL refits after the §5.3 pre-filter
+#: (``paper``, ``lel-refit-lel``) compute σ from the truncated residuals and overclaim 3-7x; LS is biased.
+CALIBRATED = ("corner", "adaptive", "lel-refit-ls", "lel", "constant-depth", "fcm-ransac")
+
+
 @pytest.mark.parametrize("method", FAST_METHODS)
-def test_every_method_recovers_an_axis_aligned_corner(method: str) -> None:
-    s = _scan(1)
-    rec = _run(s, method)
-    assert abs(rec.critical_step - s.critical_step) <= 1
-    for p, n, h in zip(rec.planes, s.normals, s.offsets):
-        assert isinstance(p, PlaneFit), str(p)
-        tol = 2.5 if method == "constant-depth" else (25.0 if method == "ls" else 0.5)
-        assert angle_deg(p.normal, n) < tol, method
-        if method != "ls":
-            assert abs(p.offset - h) < 0.005
-        assert p.method == method and p.diagnostics.time_s > 0
-    assert isinstance(rec.edge, EdgeLine)
+def test_every_method_against_the_paper_corner(method: str, paper_scans) -> None:
+    for scan, inputs in paper_scans:
+        rec = reconstruct(method=method, **inputs)
+        truth = {p.label: p for p in scan.truth.planes}
+        for p in rec.planes:
+            assert isinstance(p, PlaneFit), str(p)
+            assert p.method == method and p.diagnostics.time_s > 0
+            t = truth[p.label]
+            angle = np.deg2rad(angle_deg(p.normal, t.normal))
+            if method == "ls":
+                continue
+            # The observed patch spans ~24 cm × 6 cm; σ_r = 2 mm over ≥ 200 echoes puts a robust fit within
+            # 5σ_r/√n < 1 mm of it; 1 cm (5σ_r) leaves room for the inefficient refits.
+            assert abs(p.offset - t.offset) < 0.01, (method, p.label)
+            if method in CALIBRATED:
+                assert angle <= 5 * p.normal_stderr and abs(p.offset - t.offset) <= 5 * p.offset_stderr, \
+                    (method, p.label, np.rad2deg(angle), np.rad2deg(p.normal_stderr))
+        if method == "ls":
+            # LS on the paper's subsets runs through the multipath cluster: 17° on plane b in the paper's
+            # eq. 16 — and the verdict says so.
+            b = rec.plane_b
+            assert angle_deg(b.normal, truth["b"].normal) > 10 and b.quality == "unreliable"
+        assert isinstance(rec.edge, EdgeLine)
 
 
-def test_paper_method_runs_the_six_start_nelder_mead() -> None:
-    s = _scan(2, n_steps=90)
-    rec = _run(s, "paper")
-    for p, n in zip(rec.planes, s.normals):
+def test_paper_method_runs_the_six_start_nelder_mead(paper_scans) -> None:
+    scan, inputs = paper_scans[0]
+    rec = reconstruct(method="paper", **inputs)
+    truth = {p.label: p for p in scan.truth.planes}
+    for p in rec.planes:
         assert isinstance(p, PlaneFit) and p.diagnostics.starts == 12  # six before and six after the pre-filter
-        assert angle_deg(p.normal, n) < 1.0
+        # The corrected points pin an axis-aligned wall's normal to ~0.02° (σ_r/(spread·√n)); the paper's
+        # LEL refit on the 10 % pre-filtered points drifts along the weakly constrained direction by up to
+        # ~0.4° (the README's p95): 0.5° catches a broken refit, not that known drift.
+        assert angle_deg(p.normal, truth[p.label].normal) < 0.5
+        assert abs(p.offset - truth[p.label].offset) < 0.01
 
 
 def test_noise_free_scan_is_recovered_exactly_and_the_edge_is_the_true_one() -> None:
@@ -154,6 +192,8 @@ def test_constant_depth_fixes_a_tilted_wall_that_biases_the_paper_correction() -
         for m in errs:
             errs[m].append(angle_deg(_run(s, m).plane_a.normal, s.normals[0]))
     assert min(errs["lel-refit-ls"]) > 6.0  # the axis-aligned correction loses the tilt
+    # The mirror-echo model's normal rests on the capsules' 3 cm lever arm: with σ_r = 1 mm over ~300
+    # echoes its RMS tilt error is ~0.3°, so 1.5° is 5σ (test_reconstruct_fit checks the calibration).
     assert max(errs["constant-depth"]) < 1.5
     assert max(errs["adaptive"]) < 1.5  # the tilt test switches to the mirror-echo model
 
