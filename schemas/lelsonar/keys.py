@@ -113,11 +113,10 @@ class ScannerKeys:
         return scanner, validate_scan_id(rest[len("/log/"):])
 
     def scanner_of(self, key: str) -> str:
-        """The scanner id inside a concrete key received under this prefix."""
-        head = self.prefix + "/"
-        if not key.startswith(head):
+        """The scanner id inside a concrete key received under this prefix, validated."""
+        if not key.startswith(self.prefix + "/"):
             raise InvalidIdentifierError(f"key {key!r} is not under prefix {self.prefix!r}")
-        return validate_identifier(key[len(head):].split("/", 1)[0])
+        return validate_identifier(self.scanner_chunk(key))
 
     def scanner_chunk(self, key: str) -> str:
         """The chunk of a received key where the scanner id sits, unvalidated (compare it, don't trust it)."""
