@@ -291,3 +291,10 @@ def test_replay_exits_non_zero_when_the_method_of_record_gives_no_plane(tmp_path
     (final,) = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     assert not [p for p in final["planes"] if p["method"] == DEFAULT_METHOD and p["label"] == "b"]
     assert any("plane b" in f for f in final["failures"]) and f"{DEFAULT_METHOD} produced no plane" in err
+
+
+def test_amplitudes_without_a_beam_pattern_give_no_direction() -> None:
+    rng = np.random.default_rng(3)
+    gamma = np.repeat(np.radians(np.linspace(-10, 30, 61)), 4)
+    flat = np.exp(rng.normal(0, 0.05, gamma.shape))  # every echo as strong: nothing to find
+    assert amplitude_pitch(gamma, flat, np.full(gamma.shape, 1.5)) is None

@@ -556,7 +556,9 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     except (np.linalg.LinAlgError, ValueError):
         return None
     a2, b1 = float(coef[0]), float(coef[1])
-    if not a2 < 0:
+    # A peak, and a significant one: amplitudes that do not fall off (a receiver without a beam
+    # pattern, saturation everywhere) give a curvature lost in its own error.
+    if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(float(cov[0, 0]), 0.0))):
         return None
     phi = -b1 / (2.0 * a2)
     steps = np.unique(g[top])
