@@ -407,8 +407,7 @@ def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple
 def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
                      beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
                      max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
-                     max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02,
-                     extra: tuple[tuple[Wall, Wall], ...] = ()) -> CornerModel | None:
+                     max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02) -> CornerModel | None:
     """The two walls and their edge that best explain all the echoes.
 
     Parameters
@@ -435,8 +434,6 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     good_enough : float
         Stop trying band pairs once one leaves at most this share of the
         echoes unexplained.
-    extra : tuple of (Wall, Wall)
-        More hypotheses, e.g. the energy split's per-half fits.
 
     Returns
     -------
@@ -451,7 +448,7 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
         w = pts.capsule[seen] @ axis + pts.distance[seen]
         candidates.append([Wall(np.asarray(axis, dtype=np.float64), float(h))
                            for h in band_offsets(w, max_bands=max_bands, min_count=min_points) if h > 0])
-    hyps = [(a, b) for a in candidates[0] for b in candidates[1]] + list(extra)
+    hyps = [(a, b) for a in candidates[0] for b in candidates[1]]
     if not hyps:
         return None
     schedule = ((2.5 * tolerance, 8 * tolerance), (1.5 * tolerance, 3 * tolerance), (tolerance, tolerance))

@@ -21,7 +21,7 @@ from .options import FitOptions
 from .results import FailureReason, FitFailure, PlaneFit, PlaneResult, SolverDiagnostics
 
 __all__ = [
-    "PlaneEstimator", "Inconsistent", "diagnostics", "run_estimator", "tilt_checked",
+    "PlaneEstimator", "Inconsistent", "diagnostics", "run_estimator",
     "fit_ls", "fit_lel_nm", "fit_paper", "fit_lel", "fit_lel_refit_lel", "fit_lel_refit_ls",
     "fit_constant_depth", "fit_adaptive",
 ]
@@ -250,22 +250,19 @@ def fit_constant_depth(data: F.PlaneData, warm: np.ndarray | None, opts: FitOpti
                             model="constant-depth")
 
 
-def tilt_checked(data: F.PlaneData, first: PlaneFit, opts: FitOptions, method: str, *,
-                  prefilter: bool = True) -> PlaneResult:
+def _tilt_checked(data: F.PlaneData, first: PlaneFit, opts: FitOptions, method: str) -> PlaneResult:
     """Keep ``first``'s corrected-points normal unless a χ² test shows a tilted wall (see ``"adaptive"``).
 
     Fits the constant-depth LS on ``first``'s inliers; if the corrected-points
     normal is more than ``opts.tilt_test_sigma`` σ from it, returns the
     constant-depth plane, else ``first``'s normal with the offset from the
-    mirror-echo condition over the inliers.  ``prefilter`` re-selects the
-    constant-depth inliers with the §5.3 pre-filter (for subsets that still hold
-    outliers); without it the inliers stay ``first``'s.
+    mirror-echo condition over the inliers.
     """
     t0 = time.perf_counter()
     mask = first.inlier_mask
     n_cd, h_cd, nit = F.constant_depth_ls(data.capsules, data.distance, first.normal, first.offset, mask)
     r = data.capsules @ n_cd + data.distance - h_cd
-    mask_cd = F.prefilter_mask(r, opts.prefilter_fraction) if prefilter else mask
+    mask_cd = F.prefilter_mask(r, opts.prefilter_fraction)
     if np.count_nonzero(mask_cd) >= 4:
         n_cd, h_cd, nit2 = F.constant_depth_ls(data.capsules, data.distance, n_cd, h_cd, mask_cd)
         nit += nit2
@@ -317,4 +314,4 @@ def fit_adaptive(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -
     first = fit_lel_refit_ls(data, warm, opts)
     if not isinstance(first, PlaneFit):
         return first
-    return tilt_checked(data, first, opts, "adaptive")
+    return _tilt_checked(data, first, opts, "adaptive")
