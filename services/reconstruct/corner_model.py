@@ -677,15 +677,23 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
 
 def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
                opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
-    """Both walls and the edge from all the echoes (:mod:`lelsonar.reconstruct.corner_model`).
+    """The method ``"corner"``: both walls and the edge from all the echoes.
 
-    The joint model labels every echo (wall a, wall b, edge, outlier); each
-    wall is then refined on its own echoes exactly as ``"adaptive"`` refines
-    its inliers: LS on the paper-corrected points (§4, eq. 15), the χ² tilt
-    test against the constant-depth model, the mirror-echo offset.  The
-    critical step is where the boresight points at the fitted edge, which
-    does not scatter with the energy noise.  Where the joint model finds no
-    bands (too few echoes), it falls back to ``"adaptive"`` on the energy split.
+    The joint model (:func:`fit_corner_model`) labels every echo (wall a,
+    wall b, edge, outlier); each wall is then refined on its own echoes
+    (:func:`_corner_wall`: its direction from the echoes' amplitudes where
+    ``echo_amplitude`` is given and the peak was swept, else from the
+    paper-corrected points checked against the joint fit) and given its trust
+    verdict.  The critical step is where the boresight points at the final
+    planes' edge, which does not scatter with the energy noise.  Where no wall
+    shows a band of echoes, it falls back to ``"adaptive"`` on the energy split.
+
+    Parameters
+    ----------
+    gamma, distance, ratio, geometry, opts
+        As for every scan-level method (:class:`lelsonar.reconstruct.pipeline.Method`).
+    echo_amplitude : (n_steps, n_capsules) array, optional
+        Peak amplitude of each capsule's first echo alone, V.
     """
     t0 = time.perf_counter()
     g = np.asarray(gamma, dtype=np.float64)
@@ -722,9 +730,9 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
                          pts.distance[m], pts.capsule[m])
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE)) if isinstance(fit, PlaneFit) else fit)
-    # The critical step: where the boresight points at the edge of the final planes.  The common
-    # roll of both walls about x barely changes any range, so the corrected-points normals (which
-    # assume the walls are axis-aligned unless the data say otherwise) pin it better than the joint fit.
+    # The critical step: where the boresight points at the edge of the final planes.  A common roll
+    # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the
+    # corrected points) place the edge's direction better than the joint fit's.
     edge = corner_edge(out[0], out[1])
     crit = None
     if isinstance(edge, EdgeLine):
