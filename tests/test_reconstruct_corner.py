@@ -298,3 +298,8 @@ def test_amplitudes_without_a_beam_pattern_give_no_direction() -> None:
     gamma = np.repeat(np.radians(np.linspace(-10, 30, 61)), 4)
     flat = np.exp(rng.normal(0, 0.05, gamma.shape))  # every echo as strong: nothing to find
     assert amplitude_pitch(gamma, flat, np.full(gamma.shape, 1.5)) is None
+
+
+def test_a_reason_the_estimator_found_makes_the_plane_unreliable() -> None:
+    p = assess_plane(_plane(), GAMMA, unreliable=("its direction is ambiguous",))
+    assert p.quality == UNRELIABLE and p.quality_reasons[0] == "its direction is ambiguous"

@@ -611,8 +611,8 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
 
 
 def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
-                 note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
-                 ) -> PlaneResult:
+                 note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+                 flags: list[str], max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
     """One wall of the joint model, refined on its own echoes.
 
     With the echoes' own energies, the wall's direction in the rotation plane
@@ -631,7 +631,8 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     cannot see a tilt below that, so their own covariance would overclaim.
 
     ``amplitude`` holds the wall's echoes as ``(gamma, peak amplitude,
-    distance, capsules)``, or None.  The amplitude direction is kept only if it
+    distance, capsules)``, or None.  Reasons to call the plane unreliable are
+    appended to ``flags`` (a disagreement over ``max_disagreement``, rad).  The amplitude direction is kept only if it
     agrees with the joint model's (unbiased, if imprecise) within
     ``opts.tilt_test_sigma`` of the joint standard error: a later echo leaking
     into the amplitudes would pull the peak off the wall's normal.
@@ -665,6 +666,11 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         theta, model = n_p / h, "paper"
     else:
         theta, model = wall.normal / wall.offset, "constant-depth"
+        if angle > max_disagreement:
+            # Neither can be trusted: a wall tilted this far is outside what the corrected points describe,
+            # and a joint fit this far off its axis has likely taken the edge's echoes for the wall's.
+            flags.append(f"its direction is ambiguous: the corrected points and the joint fit differ by "
+                         f"{np.rad2deg(angle):.1f}°")
     verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
     diag = diagnostics("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
                                                     f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°) -> "
@@ -728,8 +734,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         if echo_amplitude is not None:
             amplitude = (pts.gamma[m], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[m], pts.capsule_index[m]],
                          pts.distance[m], pts.capsule[m])
-        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude)
-        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE)) if isinstance(fit, PlaneFit) else fit)
+        flags: list[str] = []
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
+        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), unreliable=tuple(flags))
+                   if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the
     # corrected points) place the edge's direction better than the joint fit's.

@@ -63,7 +63,7 @@ class QualityLimits:
 
 
 def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | None = None,
-                 limits: QualityLimits | None = None) -> PlaneFit:
+                 unreliable: tuple[str, ...] = (), limits: QualityLimits | None = None) -> PlaneFit:
     """``plane`` with its verdict and reasons filled in.
 
     Parameters
@@ -74,6 +74,8 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     edge_echoes : int, optional
         Echoes the joint model explained by the corner edge (None: not known,
         e.g. a per-subset method).
+    unreliable : tuple of str
+        Reasons the estimator itself found to distrust the plane.
     limits : QualityLimits, optional
     """
     lim = limits or QualityLimits()
@@ -85,6 +87,8 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
         if _RANK[level] > _RANK[verdict]:
             verdict = level
 
+    for reason in unreliable:
+        flag(UNRELIABLE, reason)
     if plane.sigma > lim.unreliable_sigma * lim.range_noise:
         flag(UNRELIABLE, f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.unreliable_sigma:g}× the range noise: "
                          "the plane runs through echoes of more than one surface")
