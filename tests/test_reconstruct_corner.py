@@ -28,7 +28,7 @@ from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WAL
                                                fit_corner_model, scan_points)
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.acquire.sim import piston_directivity
-from lelsonar.reconstruct.corner_model import amplitude_pitch
+from lelsonar.reconstruct.corner import amplitude_pitch
 from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check

@@ -44,7 +44,6 @@ def _free_tcp_port() -> int:
 
 def run_demo(args: argparse.Namespace) -> int:
 
-    from lelsonar import codec
     from lelsonar.acquire.sim import preset
     from lelsonar.acquire.sim.scan import true_planes
     from lelsonar.errors import LelsonarError

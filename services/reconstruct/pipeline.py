@@ -25,7 +25,7 @@ Methods (``METHODS``, name → :class:`Method`), one module per family:
     ``n · p_c + d = h``, no axis-aligned assumption; ``"adaptive"`` —
     ``"lel-refit-ls"``'s normal with the mirror-echo offset, or the
     constant-depth plane where a χ² test shows a tilted wall.
-:mod:`~lelsonar.reconstruct.corner_model` (whole scan)
+:mod:`~lelsonar.reconstruct.corner` (whole scan, on :mod:`~lelsonar.reconstruct.corner_model`)
     ``"corner"`` — both walls and the edge explain every echo jointly; each
     wall is then refined on its own echoes.
 :mod:`~lelsonar.reconstruct.fcm_ransac` (whole scan)
@@ -59,7 +59,7 @@ from lelsonar.geometry import ArrayGeometry, beam_points
 from . import estimators as E
 from . import fit as F
 from .fcm_ransac import fit_fcm_ransac
-from .corner_model import corner_edge, fit_corner
+from .corner import corner_edge, fit_corner
 from .correct import AXIS_Y, AXIS_Z, corrected_points
 from .energy import EnergyModel, energy_ratio, total_energy
 from .estimators import PlaneEstimator

@@ -1,0 +1,305 @@
+"""The method ``"corner"``: the joint corner model, then each wall refined on its own echoes.
+
+:mod:`lelsonar.reconstruct.corner_model` labels every echo of the scan (wall a,
+wall b, the edge, outlier) and fits both walls jointly.  Here each wall gets
+its final plane — its direction in the rotation plane from where its echoes
+are strongest (:func:`amplitude_pitch`), its yaw and offset from the ranges
+(:func:`fixed_pitch_wall`), or the paper-corrected points checked against the
+joint fit where the sweep never passed the amplitude peak — and its trust
+verdict; the critical step is where the boresight meets the final planes'
+edge (:func:`corner_edge`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from lelsonar.geometry import ArrayGeometry
+
+from . import fit as F
+from .corner_model import ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, fit_corner_model, scan_points
+from .correct import AXIS_Y, AXIS_Z
+from .estimators import diagnostics, fit_adaptive, run_estimator
+from .options import FitOptions, ScanFit
+from .quality import assess_plane
+from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
+from .split import critical_step, split_subsets
+
+__all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "fit_corner"]
+
+
+def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float = np.deg2rad(5.0)
+                ) -> EdgeLine | FitFailure:
+    """The line where the two planes meet.
+
+    Direction ``n_a × n_b`` (normalised); point: the point of the line closest
+    to the origin, solving ``n_a·x = h_a``, ``n_b·x = h_b``, ``dir·x = 0``.
+
+    Returns FitFailure if a plane is missing or the planes are within
+    ``min_angle`` of parallel.
+    """
+    if not isinstance(plane_a, PlaneFit) or not isinstance(plane_b, PlaneFit):
+        return FitFailure(FailureReason.TOO_FEW_POINTS, "the edge needs both planes", "edge", 0)
+    na, nb = plane_a.normal, plane_b.normal
+    cr = np.cross(na, nb)
+    s = float(np.linalg.norm(cr))
+    angle = float(np.arccos(np.clip(na @ nb, -1.0, 1.0)))
+    if s < np.sin(min_angle):
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
+                          f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel", "edge", 0)
+    direction = cr / s
+    a = np.stack([na, nb, direction])
+    point = np.linalg.solve(a, np.array([plane_a.offset, plane_b.offset, 0.0]))
+    # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
+    # and turns it by δ / sin(angle).
+    point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
+                             + (plane_a.offset * plane_a.normal_stderr)**2
+                             + (plane_b.offset * plane_b.normal_stderr)**2) / s)
+    direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
+    return EdgeLine(point=point, direction=direction, angle=angle, point_stderr=point_se,
+                    direction_stderr=direction_se)
+
+
+def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarray, *, top_db: float = 10.0,
+                    min_steps_each_side: int = 2) -> tuple[float, float] | None:
+    """The direction a wall faces in the rotation plane, from where its echoes are strongest.
+
+    A mirror echo's amplitude is ``∝ D(ψ)²/(2d)`` (design notes §8), ψ the
+    angle between the beam and the wall's normal, so amplitude times ``d``
+    peaks where the boresight ``(0, cos γ, sin γ)`` faces the wall.  Near the
+    peak ``log D²`` is a parabola in γ whatever the capsule, so the vertex of
+    ``log(A·d) = aγ² + bγ + c`` fitted to the echoes within ``top_db`` of the
+    strongest is the wall's direction ``φ = −b/2a`` (``n ∝ (·, cos φ, sin φ)``).
+    The ranges barely constrain this angle (a few-cm lever arm) and cannot see
+    a common roll of both walls at all; the amplitudes pin it down.
+
+    Parameters
+    ----------
+    gamma, amplitude, distance : (N,) arrays
+        γ (rad), the echo's own peak amplitude
+        (:func:`lelsonar.reconstruct.energy.echo_amplitude`, V) and range (m)
+        of one wall's echoes.
+    top_db : float
+        Echoes within this many dB of the strongest enter the fit.
+    min_steps_each_side : int
+        The peak must be inside the observed directions: at least this many
+        distinct γ on each side of the vertex.
+
+    Returns
+    -------
+    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep)
+    or the fit is not a peak.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    e = np.asarray(amplitude, dtype=np.float64) * np.asarray(distance, dtype=np.float64)
+    ok = np.isfinite(g) & np.isfinite(e) & (e > 0)
+    if np.count_nonzero(ok) < 8:
+        return None
+    g, le = g[ok], np.log(e[ok])
+    top = le >= le.max() - top_db * np.log(10.0) / 20.0  # dB of amplitude
+    if np.unique(g[top]).size < 2 * min_steps_each_side + 1:
+        return None
+    try:
+        coef, cov = np.polyfit(g[top], le[top], 2, cov=True)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    a2, b1 = float(coef[0]), float(coef[1])
+    # A peak, and a significant one: amplitudes that do not fall off (a receiver without a beam
+    # pattern, saturation everywhere) give a curvature lost in its own error.
+    if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(float(cov[0, 0]), 0.0))):
+        return None
+    phi = -b1 / (2.0 * a2)
+    steps = np.unique(g[top])
+    if np.count_nonzero(steps < phi) < min_steps_each_side or np.count_nonzero(steps > phi) < min_steps_each_side:
+        return None
+    jac = np.array([b1 / (2.0 * a2 * a2), -1.0 / (2.0 * a2)])
+    var = float(jac @ cov[:2, :2] @ jac)
+    if not (np.isfinite(var) and var >= 0):
+        return None
+    return float(phi), float(np.sqrt(var))
+
+
+def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi_se: float, normal0: np.ndarray,
+                     iterations: int = 4) -> tuple[Wall, float, float]:
+    """The wall facing direction ``φ`` that best meets the mirror-echo condition ``n·p_c + d = h``.
+
+    ``n = (sin ψ, cos ψ cos φ, cos ψ sin φ)``: the ranges fix the yaw ψ (the
+    capsules span 24 cm along x) and the offset h, the amplitudes fix φ.
+    Gauss-Newton in (ψ, h).
+
+    Returns
+    -------
+    wall, normal standard error (rad, RMS of the yaw and φ errors), offset standard error (m)
+    """
+    p = np.asarray(capsules, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    cp, sp = np.cos(phi), np.sin(phi)
+    psi = float(np.arcsin(np.clip(normal0[0], -1.0, 1.0)))
+
+    def normal(y: float) -> np.ndarray:
+        return np.array([np.sin(y), np.cos(y) * cp, np.cos(y) * sp])
+
+    h = float(np.mean(p @ normal(psi) + d))
+    for _ in range(iterations):
+        n = normal(psi)
+        r = p @ n + d - h
+        dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
+        jac = np.stack([p @ dn, -np.ones_like(d)], axis=1)
+        z, *_ = np.linalg.lstsq(jac, -r, rcond=None)
+        psi += float(z[0])
+        h += float(z[1])
+    n = normal(psi)
+    r = p @ n + d - h
+    dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
+    jac = np.stack([p @ dn, -np.ones_like(d)], axis=1)
+    dof = max(d.size - 2, 1)
+    cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
+    # φ's own error moves h through the capsules' lever arm: ∂r/∂φ = p·∂n/∂φ.
+    dh_dphi = float(np.mean(p @ np.array([0.0, -np.cos(psi) * sp, np.cos(psi) * cp])))
+    se_n = float(np.sqrt(max(cov[0, 0], 0.0) + phi_se**2))
+    se_h = float(np.sqrt(max(cov[1, 1], 0.0) + (dh_dphi * phi_se) ** 2))
+    return Wall(n, h), se_n, se_h
+
+
+def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
+                 note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+                 flags: list[str], max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
+    """One wall of the joint model, refined on its own echoes.
+
+    With the echoes' own energies, the wall's direction in the rotation plane
+    comes from where they are strongest (:func:`amplitude_pitch`) and its yaw
+    and offset from the ranges (:func:`fixed_pitch_wall`): unbiased whatever
+    the tilt, and as precise as the corrected points on axis-aligned walls.
+
+    Without them (no waveforms, or the peak outside the sweep): the
+    paper-corrected points (§4) give the most precise normal when the wall is
+    axis-aligned; the joint model (mirror and edge echoes together) is
+    unbiased whatever the tilt.  If the LS normal of the corrected points
+    (eq. 15) agrees with the joint normal within ``opts.tilt_test_sigma`` of the
+    joint standard error, keep it with the offset from the mirror-echo
+    condition; otherwise keep the joint wall.  Either way the reported
+    standard errors are the joint model's at least: the corrected points
+    cannot see a tilt below that, so their own covariance would overclaim.
+
+    ``amplitude`` holds the wall's echoes as ``(gamma, peak amplitude,
+    distance, capsules)``, or None.  Reasons to call the plane unreliable are
+    appended to ``flags`` (a disagreement over ``max_disagreement``, rad).  The amplitude direction is kept only if it
+    agrees with the joint model's (unbiased, if imprecise) within
+    ``opts.tilt_test_sigma`` of the joint standard error: a later echo leaking
+    into the amplitudes would pull the peak off the wall's normal.
+    """
+    mask = np.ones(data.n, dtype=bool)
+    se_joint, se_h_joint = wall_se
+    pitch = amplitude_pitch(*amplitude[:3]) if amplitude is not None else None
+    fitted = None
+    if pitch is not None:
+        phi, phi_se = pitch
+        fitted, se_n, se_h = fixed_pitch_wall(amplitude[3], amplitude[2], phi, phi_se, wall.normal)
+        off = float(np.arccos(np.clip(fitted.normal @ wall.normal, -1.0, 1.0)))
+        if not (np.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
+            fitted = None
+    if fitted is not None:
+        diag = diagnostics("corner model; amplitude pitch; gauss-newton", t0,
+                           notes=(note, f"echoes strongest at γ = {np.rad2deg(phi):.2f}° ± {np.rad2deg(phi_se):.2f}°: "
+                                        "the wall's direction; yaw and offset from the ranges"))
+        fit = F.make_plane_fit(data, fitted.normal / fitted.offset, method="corner", inlier_mask=mask,
+                               diagnostics=diag, model="constant-depth")
+        if isinstance(fit, PlaneFit):
+            fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
+        return fit
+    theta_p = F.ls_theta(data.points)
+    n_p = theta_p / np.linalg.norm(theta_p)
+    se_n, se_h = se_joint, se_h_joint
+    angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
+    agree = np.isfinite(se_n) and angle <= opts.tilt_test_sigma * se_n
+    if agree:
+        h = float(np.mean(data.capsules @ n_p + data.distance))
+        theta, model = n_p / h, "paper"
+    else:
+        theta, model = wall.normal / wall.offset, "constant-depth"
+        if angle > max_disagreement:
+            # Neither can be trusted: a wall tilted this far is outside what the corrected points describe,
+            # and a joint fit this far off its axis has likely taken the edge's echoes for the wall's.
+            flags.append(f"its direction is ambiguous: the corrected points and the joint fit differ by "
+                         f"{np.rad2deg(angle):.1f}°")
+    verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
+    diag = diagnostics("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
+                                                    f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°) -> "
+                                                    + verdict))
+    fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
+    if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
+        fit = replace(fit, normal_stderr=max(fit.normal_stderr, se_n), offset_stderr=max(fit.offset_stderr, se_h))
+    return fit
+
+
+def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
+               opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
+    """The method ``"corner"``: both walls and the edge from all the echoes.
+
+    The joint model (:func:`fit_corner_model`) labels every echo (wall a,
+    wall b, edge, outlier); each wall is then refined on its own echoes
+    (:func:`_corner_wall`: its direction from the echoes' amplitudes where
+    ``echo_amplitude`` is given and the peak was swept, else from the
+    paper-corrected points checked against the joint fit) and given its trust
+    verdict.  The critical step is where the boresight points at the final
+    planes' edge, which does not scatter with the energy noise.  Where no wall
+    shows a band of echoes, it falls back to ``"adaptive"`` on the energy split.
+
+    Parameters
+    ----------
+    gamma, distance, ratio, geometry, opts
+        As for every scan-level method (:class:`lelsonar.reconstruct.pipeline.Method`).
+    echo_amplitude : (n_steps, n_capsules) array, optional
+        Peak amplitude of each capsule's first echo alone, V.
+    """
+    t0 = time.perf_counter()
+    g = np.asarray(gamma, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    pts = scan_points(geometry, g, d)
+    model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
+                             tolerance=opts.corner_tolerance, min_points=opts.min_points)
+    if model is None:
+        crit = critical_step(ratio, opts.critical_peak_fraction)
+        split = split_subsets(g, crit)
+        data = [F.plane_data(geometry, g, d, steps, label, axis)
+                for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
+        out = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in data]
+        return ScanFit(out[0], out[1], data[0], data[1], crit)
+    note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
+            f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
+            f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    out: list[PlaneResult] = []
+    datas: list[F.PlaneData] = []
+    for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
+        sel = np.full(d.shape, np.nan)
+        m = model.labels == k
+        sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
+        data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        datas.append(data)
+        fail = F.check_points(data.points, label, opts.min_points)
+        if fail is not None:
+            out.append(FitFailure(fail.reason, f"corner: {int(np.count_nonzero(m))} echoes of wall {label}; "
+                                  + fail.detail, label, fail.n_points))
+            continue
+        amplitude = None
+        if echo_amplitude is not None:
+            amplitude = (pts.gamma[m], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[m], pts.capsule_index[m]],
+                         pts.distance[m], pts.capsule[m])
+        flags: list[str] = []
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
+        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), unreliable=tuple(flags))
+                   if isinstance(fit, PlaneFit) else fit)
+    # The critical step: where the boresight points at the edge of the final planes.  A common roll
+    # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the
+    # corrected points) place the edge's direction better than the joint fit's.
+    edge = corner_edge(out[0], out[1])
+    crit = None
+    if isinstance(edge, EdgeLine):
+        point = edge.point
+        if abs(edge.direction[0]) > 1e-9:
+            point = point - edge.direction * (point[0] / edge.direction[0])
+        crit = int(np.argmin(np.abs(g - np.arctan2(point[2], point[1]))))
+    return ScanFit(out[0], out[1], datas[0], datas[1], crit)
