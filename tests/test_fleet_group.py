@@ -285,3 +285,74 @@ def test_a_member_killed_mid_scan_its_scans_still_get_one_complete_final(tmp_pat
     assert a.stats["scans adopted"] == len(b_scanners)
     # b's scans were completed from the acquirers' logs: the steps b had taken were recovered.
     assert a.service.stats.recovered >= cut * len(b_scanners) - len(b_scanners)
+
+
+# --- the watcher's decisions, without a network ------------------------------------------------
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    def __init__(self, key: str, kind=zenoh.SampleKind.PUT, payload: bytes = b"") -> None:
+        self.key_expr, self.kind, self.payload = key, kind, _Payload(payload)
+
+
+def _watcher(me: str, others: dict[str, int]) -> tuple[GroupMembership, list]:
+    group = GroupMembership(None, PREFIX, GroupConfig("g", me, settle=0.0), clock_ns=lambda: 0)
+    fed: list = []
+    group.attach(lambda enc, payload, origin, scanner: fed.append((enc.rpartition(".")[2], scanner, origin)))
+    group._done_pub = type("P", (), {"put": lambda self, data: None})()
+    for m, joined in others.items():
+        group._on_token(_Sample(f"{PREFIX}/_group/g/member/{m}/{joined}"))
+    return group, fed
+
+
+def _scan_msgs(scanner: str):
+    msgs = renamed(simulated_messages("paper-test1", seed=1, steps=8), scanner)
+    return msgs[0], msgs[-1]
+
+
+def test_a_dead_members_ended_scan_without_a_final_is_adopted_and_one_with_a_final_is_not():
+    group, fed = _watcher("a", {"b": 0})
+    b_owned = [s for s in (f"s{i}" for i in range(40)) if owner(s, ["a", "b"]) == "b"][:2]
+    for s in b_owned:
+        start, end = _scan_msgs(s)
+        for m in (start, end):
+            assert not group.admit(s, "scan", codec.encoding_name(m), _Payload(m.SerializeToString()))
+        assert not group.admit(s, "sample", "", None)
+    assert group.stats["dropped: other member"] == 6
+    # b published the final of the first scanner's scan (its done mark came), then died.
+    group._on_done(_Sample(f"{PREFIX}/_group/g/done", payload=f"{b_owned[0]}/1".encode()))
+    group._on_token(_Sample(f"{PREFIX}/_group/g/member/b/0", zenoh.SampleKind.DELETE))
+    assert group.members == {"a": 0}
+    # Only the scan without a final is adopted: its kept ScanStart and ScanEnd go to the source.
+    assert fed == [("ScanStart", b_owned[1], "live"), ("ScanEnd", b_owned[1], "live")]
+    assert group.stats["scans adopted"] == 1
+    assert group.admit(b_owned[1], "sample", "", None) and group.answers_for(b_owned[0])
+
+
+def test_a_member_that_joins_mid_scan_leaves_that_scan_to_its_owner_and_takes_the_next():
+    old, _ = _watcher("old", {})
+    old.joined_ns = 0
+    s = next(s for s in (f"s{i}" for i in range(40)) if owner(s, ["old", "new"]) == "new")
+    start, _end = _scan_msgs(s)
+    start.start_time_ns = 1_000
+    assert old.admit(s, "scan", codec.encoding_name(start), _Payload(start.SerializeToString()))
+    old._on_token(_Sample(f"{PREFIX}/_group/g/member/new/2000"))   # joins mid-scan
+    assert old.admit(s, "sample", "", None)                          # old keeps the scan it started
+    nxt = codec.ScanStart()
+    nxt.CopyFrom(start)
+    nxt.scan_id, nxt.start_time_ns = 2, 3_000
+    assert not old.admit(s, "scan", codec.encoding_name(nxt), _Payload(nxt.SerializeToString()))  # the next: new's
+    assert not old.admit(s, "sample", "", None)
+    # The same member id from another process is a conflict, reported.
+    old._on_token(_Sample(f"{PREFIX}/_group/g/member/old/5"))
+    assert old.stats["conflict: member id used by another process"] == 1
+    # Malformed tokens and marks are counted, never raised into Zenoh's thread.
+    old._on_token(_Sample(f"{PREFIX}/_group/g/member/x*y/zz"))
+    old._on_done(_Sample(f"{PREFIX}/_group/g/done", payload=b"\xff"))
+    assert old.stats["rejected: malformed member token"] == 1 and old.stats["rejected: malformed done mark"] == 1

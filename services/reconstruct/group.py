@@ -326,6 +326,10 @@ class GroupMembership:
         with self.changed:
             if sample.kind == zenoh.SampleKind.PUT:
                 if member == self.me:
+                    if joined != self.joined_ns:  # two processes with one id would both process its share
+                        self.stats["conflict: member id used by another process"] += 1
+                        _log.error("group %s: another process joined as member %s; give each member a unique "
+                                   "--member-id (or leave it to the default)", self.config.group, member)
                     return
                 if member not in self.members and len(self.members) >= self.config.max_members:
                     self.stats["refused: member over max_members"] += 1
@@ -357,8 +361,11 @@ class GroupMembership:
                     continue
                 self.stats["scans adopted"] += 1
                 _log.info("group %s: adopting scan (%s, %d) of member %s", self.config.group, scanner, scan_id, gone)
+                if self._enqueue is None:
+                    self.stats["adoption without a live source (recovered at its next payload)"] += 1
+                    continue
                 for kept in (rec.start, rec.end):
-                    if kept is not None and self._enqueue is not None:
+                    if kept is not None:
                         self._enqueue(kept[0], kept[1], "live", scanner)
 
     def stats_dict(self) -> dict:
