@@ -233,6 +233,10 @@ def test_two_members_each_scanner_final_arrives_exactly_once(tmp_path, scan):
         assert finals.done.wait(40), f"finals: {sorted(finals.by_scan)}"
         # Wait for both members to finish (a duplicate would come from the other member's own final).
         assert a.service.stats.finals + b.service.stats.finals == len(scanners)
+        # A get on every scanner's planes is answered once per scanner, by whichever member owns it.
+        replies = [str(r.ok.key_expr) for r in acq.get(f"{PREFIX}/*/planes", timeout=5,
+                                                       consolidation=zenoh.ConsolidationMode.NONE) if r.ok]
+        assert sorted(replies) == [f"{PREFIX}/{s}/planes" for s in scanners]
     assert sorted(finals.by_scan) == [(s, 1) for s in scanners]
     for key, msgs in finals.by_scan.items():
         assert len(msgs) == 1, f"{key}: {len(msgs)} finals"
