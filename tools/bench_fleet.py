@@ -42,6 +42,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -59,8 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=0,
                         help="steps per scan (default: the preset's, 184 for paper-test1)")
     parser.add_argument("--preset", default="paper-test1", help="simulator preset (default: %(default)s)")
-    parser.add_argument("--failover", choices=("auto", "on", "off"), default="auto",
-                        help="also run the case where one worker is SIGKILLed mid-scan (auto: when --workers >= 2)")
+    parser.add_argument("--failover", choices=("auto", "on", "off", "only"), default="auto",
+                        help="also run the case where one worker is SIGKILLed mid-scan (auto: when --workers >= 2; "
+                             "only: that case alone)")
     parser.add_argument("--no-provisional", action="store_true", help="workers publish finals only")
     parser.add_argument("--timeout", type=float, default=180.0,
                         help="s to wait for the finals after the last put (default: %(default)s)")
@@ -163,7 +165,8 @@ def worker_main(args: argparse.Namespace) -> int:
         "member": args.member, "processed_ns": processed_ns, "provisional_ns": provisional_ns,
         "first": min(handled, default=None), "last": max(handled, default=None), "samples": len(handled),
         "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime), "wall_s": wall,
-        "service": service.stats_dict(), "group": gstats, "errors": dict(live.error_types)}), flush=True)
+        "service": {**service.stats_dict(), "recovery": {**service.stats_dict()["recovery"], **live.recovery_stats}},
+        "group": gstats, "errors": dict(live.error_types)}), flush=True)
     return 0
 
 
@@ -358,6 +361,10 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in reports},
         "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in reports},
         "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in reports},
+        "statuses": dict(Counter(statuses)),
+        "recovery": {r["member"]: r["service"]["recovery"] for r in reports},
+        "rejected": {r["member"]: r["service"]["rejected"] for r in reports},
+        "worker_errors": {r["member"]: r["errors"] for r in reports},
         "publisher": pub, "elapsed_s": time.monotonic() - t_start,
     }
 
@@ -375,7 +382,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.scanners < 1 or args.workers < 1 or not args.rate > 0 or args.scans < 1:
         raise SystemExit("bench fleet: --scanners, --workers and --scans must be >= 1 and --rate > 0")
-    cases = [False] + ([True] if args.failover == "on" or (args.failover == "auto" and args.workers >= 2) else [])
+    cases = ([] if args.failover == "only" else [False]) + (
+        [True] if args.failover in ("on", "only") or (args.failover == "auto" and args.workers >= 2) else [])
     console = Console()
     load = os.getloadavg()
     console.print(f"command: {command_line(args)}\nmachine: {machine()}\nload average before: "
@@ -417,8 +425,9 @@ def run(args: argparse.Namespace) -> int:
         table.add_row(name, *(fn(r) for r in results))
     console.print(table)
     for r in results:
-        console.print(f"{r['case']}: adopted {r['adopted']}, recovered samples {r['recovered']}, dropped as other "
-                      f"member {r['dropped_other_member']}", highlight=False)
+        console.print(f"{r['case']}: terminal statuses (status:missing steps) {r['statuses']}; adopted "
+                      f"{r['adopted']}; recovered samples {r['recovered']}; dropped as other member "
+                      f"{r['dropped_other_member']}", highlight=False)
     load = os.getloadavg()
     console.print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2 cores shared with other work "
                   "here: figures are of this run only)", highlight=False)
