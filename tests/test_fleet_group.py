@@ -360,3 +360,26 @@ def test_a_member_that_joins_mid_scan_leaves_that_scan_to_its_owner_and_takes_th
     old._on_token(_Sample(f"{PREFIX}/_group/g/member/x*y/zz"))
     old._on_done(_Sample(f"{PREFIX}/_group/g/done", payload=b"\xff"))
     assert old.stats["rejected: malformed member token"] == 1 and old.stats["rejected: malformed done mark"] == 1
+
+
+def test_under_a_backlog_an_ended_scans_recovery_neither_retries_nor_gives_up(scan):
+    """A member that adopted many scans is behind: the replies to its requests wait in its queue."""
+    from lelsonar.reconstruct.recovery import RecoveryRequest
+
+    now = [0.0]
+    asked: list[RecoveryRequest] = []
+    service = ReconstructionService(ReconstructConfig(provisional=False, compare_methods=(), recovery_attempts=2,
+                                                      recovery_interval=0.5), clock=lambda: now[0],
+                                    recover=lambda r: asked.append(r) or True)
+    for m in scan:
+        if not (isinstance(m, codec.Sample) and m.step < 50):
+            service.handle(m.DESCRIPTOR.full_name, m.SerializeToString())
+    assert len(asked) == 1  # at the ScanEnd
+    for t in range(1, 40):
+        now[0] = t
+        assert service.tick(busy=True) == []
+    assert len(asked) == 1
+    for m in scan[1:51]:  # the replies, once the backlog is through
+        service.handle(m.DESCRIPTOR.full_name, m.SerializeToString(), origin="recovered")
+    (final,) = [e for e in service.tick() if present.is_terminal(e)] or [service.finals[("s1", 1)]]
+    assert present.status_name(final) == "final" and final.accounting.recovered == 50
