@@ -66,7 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-provisional", action="store_true", help="workers publish finals only")
     parser.add_argument("--timeout", type=float, default=180.0,
                         help="s to wait for the finals after the last put (default: %(default)s)")
-    parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="runs per case; the table shows medians, and sums for incomplete and duplicated finals "
+                             "(default: %(default)s)")
+    parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON (every run)")
     # Internal: the child processes.
     parser.add_argument("--role", choices=("worker", "publisher"), help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
@@ -76,6 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def command_line(args: argparse.Namespace) -> str:
     return (f"lelsonar bench fleet --scanners {args.scanners} --workers {args.workers} --rate {args.rate:g} "
             f"--scans {args.scans}" + (f" --steps {args.steps}" if args.steps else "")
+            + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
             + f" --preset {args.preset} --failover {args.failover}"
             + (" --no-provisional" if args.no_provisional else ""))
 
@@ -369,6 +373,30 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
     }
 
 
+def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One case over its runs: medians of the figures, sums of the failures (every run kept in "runs")."""
+    def med(values):
+        values = [v for v in values if v is not None]
+        return statistics.median(values) if values else None
+
+    out: dict[str, Any] = {"runs": runs, "kill_one": runs[0]["kill_one"], "expected_finals": runs[0]["expected_finals"]}
+    out["handled_per_s"] = med([r["handled_per_s"] for r in runs])
+    for key in ("processed_ms", "provisional_ms"):
+        out[key] = {q: med([r[key][q] for r in runs]) for q in ("p50", "p99")}
+    out["scans_with_final"] = min(r["scans_with_final"] for r in runs)
+    out["incomplete_finals"] = sum(r["incomplete_finals"] for r in runs)
+    out["duplicated_finals"] = sum(r["duplicated_finals"] for r in runs)
+    members = sorted({m for r in runs for m in r["cpu_per_worker"]})
+    out["cpu_per_worker"] = {m: med([r["cpu_per_worker"].get(m) for r in runs]) for m in members}
+    pubs = [r["publisher"] for r in runs if r["publisher"]]
+    out["publisher"] = {k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {})}
+    out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
+    out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
+    for key in ("recovered", "dropped_other_member"):
+        out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     if args.role == "worker":
         return worker_main(args)
@@ -380,8 +408,8 @@ def run(args: argparse.Namespace) -> int:
 
     from lelsonar.tools.bench import machine
 
-    if args.scanners < 1 or args.workers < 1 or not args.rate > 0 or args.scans < 1:
-        raise SystemExit("bench fleet: --scanners, --workers and --scans must be >= 1 and --rate > 0")
+    if args.scanners < 1 or args.workers < 1 or not args.rate > 0 or args.scans < 1 or args.repeat < 1:
+        raise SystemExit("bench fleet: --scanners, --workers, --scans and --repeat must be >= 1 and --rate > 0")
     cases = ([] if args.failover == "only" else [False]) + (
         [True] if args.failover in ("on", "only") or (args.failover == "auto" and args.workers >= 2) else [])
     console = Console()
@@ -391,13 +419,19 @@ def run(args: argparse.Namespace) -> int:
     results = []
     for kill in cases:
         label = "failover (one worker SIGKILLed mid-scan)" if kill else "steady"
-        with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TextColumn("finals"),
-                      TimeElapsedColumn(), console=Console(stderr=True), transient=True) as bar:
-            task = bar.add_task(label, total=args.scanners * args.scans)
-            res = run_case(args, kill_one=kill, progress=lambda done, total: bar.update(task, completed=done))
+        runs = []
+        for k in range(args.repeat):
+            with Progress(TextColumn(f"{label}, run {k + 1}/{args.repeat}"), BarColumn(), MofNCompleteColumn(),
+                          TextColumn("finals"), TimeElapsedColumn(), console=Console(stderr=True),
+                          transient=True) as bar:
+                task = bar.add_task(label, total=args.scanners * args.scans)
+                runs.append(run_case(args, kill_one=kill,
+                                     progress=lambda done, total: bar.update(task, completed=done)))
+        res = summarise(runs)
         res["case"] = label
         results.append(res)
-    table = Table(title=f"bench fleet: {args.scanners} scanners × {args.rate:g} Hz, {args.workers} workers")
+    table = Table(title=f"bench fleet: {args.scanners} scanners × {args.rate:g} Hz, {args.workers} workers"
+                        + (f" (medians of {args.repeat} runs)" if args.repeat > 1 else ""))
     table.add_column("")
     for r in results:
         table.add_column("failover" if r["kill_one"] else "steady", justify="right")
@@ -415,11 +449,12 @@ def run(args: argparse.Namespace) -> int:
         ("scans with a final", lambda r: f"{r['scans_with_final']} / {r['expected_finals']}"),
         ("incomplete finals (must be 0)", lambda r: str(r["incomplete_finals"])),
         ("duplicated finals (must be 0)", lambda r: str(r["duplicated_finals"])),
-        ("CPU per worker", lambda r: " ".join(f"{v * 100:.0f}%" for v in r["cpu_per_worker"].values())),
+        ("CPU per worker (of one core)", lambda r: " ".join(f"{v * 100:.0f}%" for v in r["cpu_per_worker"].values()
+                                                            if v is not None)),
         ("publisher lag p50 / p99 / max, s", lambda r: f"{pub(r, 'lag_p50'):.2f} / {pub(r, 'lag_p99'):.2f} / "
                                                        f"{pub(r, 'lag_max'):.2f}"),
         ("publishing took / schedule, s", lambda r: f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f}"),
-        ("scans adopted (failover)", lambda r: str(sum(r["adopted"].values()))),
+        ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
     for name, fn in rows:
         table.add_row(name, *(fn(r) for r in results))
