@@ -383,3 +383,47 @@ def test_under_a_backlog_an_ended_scans_recovery_neither_retries_nor_gives_up(sc
         service.handle(m.DESCRIPTOR.full_name, m.SerializeToString(), origin="recovered")
     (final,) = [e for e in service.tick() if present.is_terminal(e)] or [service.finals[("s1", 1)]]
     assert present.status_name(final) == "final" and final.accounting.recovered == 50
+
+
+def test_a_member_that_joins_mid_scan_takes_its_share_at_the_next_scan(tmp_path, scan):
+    import time
+
+    endpoint = f"unixsock-stream/{tmp_path}/router.sock"
+    scanners = scanners_split(["a", "b", "c"], 1)
+    first = {s: renamed(scan, s) for s in scanners}
+    second = {}
+    for s in scanners:
+        msgs = renamed(scan, s)
+        for m in msgs:
+            m.scan_id = 2
+        second[s] = msgs
+    with ExitStack() as stack:
+        stack.enter_context(open_session(router_settings(endpoint)))
+        a = start_member(stack, endpoint, "a")
+        b = start_member(stack, endpoint, "b")
+        assert a.wait_members(2, 20) and b.wait_members(2, 20)
+        acq = stack.enter_context(open_session(client(endpoint)))
+        finals = Finals(acq, expect=2 * len(scanners))
+        acquirers = {s: Acquirer(acq, s) for s in scanners}
+        for x in acquirers.values():
+            stack.callback(x.close)
+        wait_subscribed(acq, 2)
+        for s, x in acquirers.items():
+            x.send(first[s][:1 + STEPS // 2])
+        c = start_member(stack, endpoint, "c")  # joins mid-scan
+        assert all(m.wait_members(3, 20) for m in (a, b, c))
+        wait_subscribed(acq, 3)
+        for s, x in acquirers.items():
+            x.send(first[s][1 + STEPS // 2:])
+        for s, x in acquirers.items():
+            second[s][0].start_time_ns = time.time_ns()  # after c joined (settle 0): c takes part
+            x.send(second[s])
+        assert finals.done.wait(40), f"finals: {sorted(finals.by_scan)}"
+        with finals.cv:
+            assert finals.cv.wait_for(lambda: a.service.stats.finals + b.service.stats.finals
+                                      + c.service.stats.finals == 2 * len(scanners), 10)
+    assert all(len(v) == 1 and present.status_name(v[0]) == "final" for v in finals.by_scan.values())
+    assert sorted(finals.by_scan) == sorted((s, k) for s in scanners for k in (1, 2))
+    # c left the scans that had started to their owners, and took its share of the next ones.
+    assert {m.scan_id for m in c.service.finals.values()} == {2} and c.service.stats.finals == 1
+    assert a.service.stats.finals + b.service.stats.finals == 2 * len(scanners) - 1
