@@ -372,3 +372,26 @@ def test_secure_demo_prints_the_same_planes_as_the_plain_demo(tmp_path):
     planes = _planes_printed(runs["plain"])
     assert len([line for line in planes if DEFAULT_METHOD in line]) >= 2
     assert _planes_printed(runs["secure"]) == planes
+
+
+def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_mark_finals(certs, router):
+    from lelsonar.reconstruct.group import GroupConfig, GroupMembership, group_keys
+
+    _, done_key = group_keys("lelsonar", "g")
+    with open_session(client(certs, router, secure.RECONSTRUCT)) as s_a, \
+            open_session(client(certs, router, secure.PLANNER)) as rogue:
+        marks = Inbox()
+        s_a.declare_subscriber(done_key, marks)
+        with GroupMembership(s_a, "lelsonar", GroupConfig("g", "a", settle=0.0)) as a:
+            # The planner tries to join the group and to mark a scan done: the router drops both.
+            rogue.liveliness().declare_token("lelsonar/_group/g/member/rogue/1")
+            rogue.put(done_key, b"scanner1/1")
+            with open_session(client(certs, router, secure.RECONSTRUCT)) as s_b, \
+                    GroupMembership(s_b, "lelsonar", GroupConfig("g", "b", settle=0.0)) as b:
+                assert a.wait_members(2, 20) and b.wait_members(2, 20)
+                pub = s_b.declare_publisher(done_key)
+                wait_matching(pub)
+                pub.put(b"scanner2/1")
+                assert marks.next().payload.to_bytes() == b"scanner2/1"
+                assert sorted(a.members) == ["a", "b"] and sorted(b.members) == ["a", "b"]
+                assert marks.empty()

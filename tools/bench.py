@@ -20,6 +20,7 @@ BENCHES = {
     "acquire": ("lelsonar.tools.bench_acquire", "emulated scan wall time against the physical bound"),
     "ingest": ("lelsonar.tools.bench_ingest", "Zenoh ingest rate, update latency and MCAP replay speed"),
     "recording": ("lelsonar.tools.bench_recording", "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks"),
+    "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
 }
 
 
@@ -52,7 +53,7 @@ def progress(items: Iterable[T], label: str, total: int | None = None) -> Iterat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="run a benchmark (sim, estimators, acquire, ingest, or all)")
+    p = sub.add_parser("bench", help="run a benchmark (sim, estimators, acquire, ingest, recording, fleet, or all)")
     names = p.add_subparsers(dest="bench", required=True, metavar="NAME")
     for name, (module, summary) in BENCHES.items():
         try:

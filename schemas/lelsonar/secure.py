@@ -327,6 +327,12 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             _rule("reconstruct-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
                   [f"{p}/*/alive/**"]),
             _rule("reconstruct-see-tokens", "egress", ["liveliness_token"], [f"{p}/*/alive/**"]),
+            # reconstruct --group: members' tokens, and the marks of the finals each member published.
+            _rule("reconstruct-group-token", "ingress", ["liveliness_token", "declare_liveliness_subscriber",
+                                                          "liveliness_query"], [f"{p}/_group/*/member/**"]),
+            _rule("reconstruct-group-see-tokens", "egress", ["liveliness_token"], [f"{p}/_group/*/member/**"]),
+            _rule("reconstruct-group-done", "ingress", ["put", "declare_subscriber"], [f"{p}/_group/*/done"]),
+            _rule("reconstruct-group-done-receive", "egress", ["put", "declare_subscriber"], [f"{p}/_group/*/done"]),
         ]
     if role == PLANNER:
         return [

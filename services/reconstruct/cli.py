@@ -44,6 +44,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     g.add_argument("--recovery-after", type=float, default=1.0, metavar="S",
                    help="seconds of silence before an open scan without ScanEnd asks the log for the rest "
                         "(default: 1)")
+    g = p.add_argument_group("scaling out (live)", "Reconstructors with the same --group share the scanners of "
+                             "their prefix, each scanner processed by one member (rendezvous hashing over the "
+                             "members' liveliness tokens). A member keeps a scan it started until its final; "
+                             "a joining member takes its share at the scans that start after it settled; the "
+                             "scans of a member that dies are completed by the others from the acquirers' logs.")
+    g.add_argument("--group", metavar="NAME", help="share the scanners with the other members of group NAME")
+    g.add_argument("--member-id", metavar="ID", help="this member's id, unique in the group (default: host-pid-random)")
+    g.add_argument("--group-settle", type=float, default=2.0, metavar="S",
+                   help="a joining member takes part in scans starting S s after it joined; members' clocks must "
+                        "agree within S (default: 2)")
     _add_estimator_arguments(p)
     _add_rerun_arguments(p)
     _add_foxglove_arguments(p)
@@ -122,6 +132,21 @@ def _config(args: argparse.Namespace, *, provisional: bool = True):
                              provisional=provisional, **recovery)
 
 
+def _group_config(args: argparse.Namespace):
+    """The group membership from --group / --member-id / --group-settle (None without --group)."""
+    from lelsonar.errors import ConfigError
+    from lelsonar.reconstruct.group import GroupConfig
+
+    if not getattr(args, "group", None):
+        if getattr(args, "member_id", None):
+            raise ConfigError("--member-id needs --group NAME")
+        return None
+    if args.source is not None:
+        raise ConfigError("--group shares live scanners; drop --source (a replay is not shared)")
+    extra = {"member_id": args.member_id} if args.member_id else {}
+    return GroupConfig(group=args.group, settle=args.group_settle, **extra)
+
+
 def _zenoh_settings(args: argparse.Namespace, role: str, prefix: str):
     """The session settings from the flags, switched to mutual TLS as ``role`` with --secure."""
     from lelsonar.transport import zenoh_settings_from_args
@@ -194,6 +219,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 finals.set()
 
     source = _open_source(args.source) if args.source is not None else None
+    group_config = _group_config(args)
     with ExitStack() as stack:
         from lelsonar.reconstruct.observers import combine
 
@@ -205,7 +231,16 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                                         observer=observer)
         if args.source is None or args.publish:
             session = stack.enter_context(open_session(_zenoh_settings(args, "reconstruct", keys.prefix)))
-            server = PlanesServer(session, keys, service.latest)  # a get answers from the service's own table
+            group = None
+            if group_config is not None and args.source is None:
+                from lelsonar.reconstruct.group import GroupMembership
+
+                # Entered before the live source, so it leaves after it: no final once the token is gone.
+                group = stack.enter_context(GroupMembership(session, keys.prefix, group_config))
+                publish_to.append(group.on_estimate)
+            # A get answers from the service's own table (in a group: for the scanners this member owns).
+            server = PlanesServer(session, keys, service.latest,
+                                  answers_for=group.answers_for if group is not None else None)
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
             stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
@@ -242,10 +277,14 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         from lelsonar.reconstruct.recovery import RecoveryConfig
 
         recovery = RecoveryConfig() if config.recovery_attempts > 0 else None
-        with LiveSource(session, keys, service, stop, record=recorder, recovery=recovery) as live:
+        if group is not None:
+            console.print(f"reconstruct: member {group.me} of group {group_config.group}", highlight=False)
+        with LiveSource(session, keys, service, stop, record=recorder, recovery=recovery, group=group) as live:
             while not stop.is_set() and not finals.is_set():
                 stop.wait(0.2)
         stats = service.stats_dict()
+        if group is not None:
+            stats["group"] = group.stats_dict()
         stats["worker_errors"] = dict(live.error_types)
         stats["recovery"].update(live.recovery_stats)
         stats["evicted"].update(server.evicted)
@@ -261,7 +300,8 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
         f"{stats['final_timeouts']} final_timeout); samples: published {s['published']}, live "
         f"{s['received_live']}, recovered {s['recovered']}, duplicates {s['duplicates']}, missing {s['missing']}; "
         f"rejected {stats['rejected']}; evicted {stats['evicted']}; recovery {stats['recovery']}"
-        + (f"; worker errors {stats['worker_errors']}" if stats.get("worker_errors") else ""), highlight=False)
+        + (f"; worker errors {stats['worker_errors']}" if stats.get("worker_errors") else "")
+        + (f"; group {stats['group']}" if stats.get("group") else ""), highlight=False)
     if as_json:  # on stderr: stdout carries only estimates, one per line
         print(json.dumps({"stats": stats}, sort_keys=True, separators=(",", ":")), file=sys.stderr, flush=True)
 

@@ -263,7 +263,8 @@ class ReconstructionService:
         scans that are complete, whose recovery is exhausted, or that went silent.
 
         ``busy``: a backlog waits, so silence means this service is behind, not that the
-        scanner stopped: no silence-based request or timeout then.
+        scanner stopped: no silence-based request or timeout then; and an ended scan's
+        recovery neither retries nor gives up (its replies may be waiting in the backlog).
         """
         now = self._clock()
         cfg = self.config
@@ -280,6 +281,8 @@ class ReconstructionService:
                 missing = scan.missing_steps()
                 if not len(missing):
                     out.append(self._finalise(scan, p, "final"))
+                elif busy:
+                    pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
                 elif self._can_ask(r, now):
                     self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
                 elif self._exhausted(r, now) and now - p.ended_at >= cfg.end_grace:

@@ -24,6 +24,7 @@ from lelsonar import codec
 from lelsonar.errors import LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
 from lelsonar.recording import McapRecorder, iter_payloads
+from lelsonar.reconstruct.group import GroupMembership
 from lelsonar.reconstruct.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.service import ReconstructionService
 
@@ -58,8 +59,10 @@ class PlanesServer:
     """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys, latest: dict[str, codec.Reconstruction], *,
-                 max_publishers: int = 256) -> None:
+                 max_publishers: int = 256, answers_for: Callable[[str], bool] | None = None) -> None:
         self._session = session
+        #: In a group, a member answers a get only for the scanners it currently owns.
+        self._answers_for = answers_for
         self._keys = keys
         self._latest = latest
         self._lock = threading.Lock()
@@ -89,6 +92,8 @@ class PlanesServer:
         with self._lock:
             latest = list(self._latest.items())
         for scanner, message in latest:
+            if self._answers_for is not None and not self._answers_for(scanner):
+                continue
             key = ScannerKeys(self._keys.prefix, scanner).planes
             if zenoh.KeyExpr(key).intersects(asked):
                 query.reply(key, message.SerializeToString(), encoding=zenoh.Encoding(codec.encoding_name(message)))
@@ -118,8 +123,11 @@ class LiveSource:
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
                  stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
-                 record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig()) -> None:
+                 record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig(),
+                 group: GroupMembership | None = None) -> None:
         self._service = service
+        # With a group, payloads of scanners another member owns are dropped in the callback (counted there).
+        self._group = group
         self._keys = keys
         self._stop = stop
         self._tick_s = tick_s
@@ -144,6 +152,8 @@ class LiveSource:
         return dict(self._recovery.stats) if self._recovery is not None else {}
 
     def __enter__(self) -> LiveSource:
+        if self._group is not None:
+            self._group.attach(self._enqueue)  # adopted scans' kept ScanStart / ScanEnd go through the queue
         if self._recovery is not None:
             self._recovery.__enter__()
             self._service.recover = self._recovery.request
@@ -154,6 +164,8 @@ class LiveSource:
         self._stop.set()
         for s in self._subscribers:
             s.undeclare()
+        if self._group is not None:
+            self._group.attach(None)
         if self._recovery is not None:
             self._service.recover = None
             self._recovery.close()
@@ -166,10 +178,15 @@ class LiveSource:
     def _on_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
         try:
+            key = str(sample.key_expr)
+            scanner = self._keys.scanner_chunk(key)
+            encoding = str(sample.encoding)
+            if self._group is not None and not self._group.admit(scanner, key.rpartition("/")[2], encoding,
+                                                                 sample.payload):
+                return  # another member's scanner: dropped before decoding, counted by the group
             # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
             # speak for another scanner.
-            self._enqueue(str(sample.encoding), sample.payload.to_bytes(), "live",
-                          self._keys.scanner_chunk(str(sample.key_expr)))
+            self._enqueue(encoding, sample.payload.to_bytes(), "live", scanner)
         except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
             self.errors += 1
             self.error_types["callback"] += 1

@@ -1,0 +1,479 @@
+"""``lelsonar bench fleet``: N scanners, W reconstructors in one group, through a Zenoh router (issue 12 §4).
+
+Processes, all ``python -m lelsonar ...`` children started and always reaped here:
+
+- a router (``lelsonar router``) on a private unix socket;
+- W workers, each wired as ``lelsonar reconstruct --group fleet`` wires itself
+  (:class:`~lelsonar.reconstruct.group.GroupMembership`,
+  :class:`~lelsonar.reconstruct.sources.LiveSource`,
+  :class:`~lelsonar.reconstruct.sources.PlanesServer`, the default
+  :class:`~lelsonar.reconstruct.service.ReconstructConfig`, provisional
+  estimates on), plus a probe that timestamps what they process;
+- one publisher process with N scanners: each has the acquisition service's
+  :class:`~lelsonar.acquire.scan_loop.ScanOutput` (a served
+  :class:`~lelsonar.acquire.log_server.ScanLog`, a
+  :class:`~lelsonar.acquire.log_server.LogServer`, a ``ScanPublisher`` with
+  congestion control BLOCK), and puts real simulated ``Sample`` payloads
+  (:mod:`lelsonar.acquire.sim`, built once) at ``--rate`` Hz per scanner, the
+  scanners' phases spread over the period.  Each ``acquisition_time_ns`` is the
+  wall clock just before its put;
+- this process: subscribes to ``<prefix>/*/planes`` and counts terminal
+  estimates per scan (duplicates, incomplete).
+
+Reported: handled samples/s (live samples processed by all workers over the
+time from the first put to the last processed), p50/p99 put → processed
+(``handle`` returned) and put → provisional estimate published (of the sample
+named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
+worker (user + system over its wall time), and how far the publisher fell
+behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
+again and SIGKILLs one worker in the middle of the first scans: every scan
+must still get exactly one complete final.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+PREFIX = "lelsonar"
+GROUP = "fleet"
+_READY = "FLEET-READY "
+_RESULT = "FLEET-RESULT "
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scanners", type=int, default=10, help="simulated scanners (default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=2, help="reconstructors in the group (default: %(default)s)")
+    parser.add_argument("--rate", type=float, default=50.0, help="samples/s per scanner (default: %(default)s)")
+    parser.add_argument("--scans", type=int, default=2, help="scans per scanner (default: %(default)s)")
+    parser.add_argument("--steps", type=int, default=0,
+                        help="steps per scan (default: the preset's, 184 for paper-test1)")
+    parser.add_argument("--preset", default="paper-test1", help="simulator preset (default: %(default)s)")
+    parser.add_argument("--failover", choices=("auto", "on", "off", "only"), default="auto",
+                        help="also run the case where one worker is SIGKILLed mid-scan (auto: when --workers >= 2; "
+                             "only: that case alone)")
+    parser.add_argument("--no-provisional", action="store_true", help="workers publish finals only")
+    parser.add_argument("--timeout", type=float, default=180.0,
+                        help="s to wait for the finals after the last put (default: %(default)s)")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="runs per case; the table shows medians, and sums for incomplete and duplicated finals "
+                             "(default: %(default)s)")
+    parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON (every run)")
+    # Internal: the child processes.
+    parser.add_argument("--role", choices=("worker", "publisher"), help=argparse.SUPPRESS)
+    parser.add_argument("--endpoint", help=argparse.SUPPRESS)
+    parser.add_argument("--member", help=argparse.SUPPRESS)
+
+
+def command_line(args: argparse.Namespace) -> str:
+    return (f"lelsonar bench fleet --scanners {args.scanners} --workers {args.workers} --rate {args.rate:g} "
+            f"--scans {args.scans}" + (f" --steps {args.steps}" if args.steps else "")
+            + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
+            + f" --preset {args.preset} --failover {args.failover}"
+            + (" --no-provisional" if args.no_provisional else ""))
+
+
+def _settings(endpoint: str):
+    from lelsonar.transport import ZenohSettings
+
+    return ZenohSettings(mode="client", connect=(endpoint,))
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    if not values:
+        return None
+    v = sorted(values)
+    return v[min(len(v) - 1, int(round(q / 100 * (len(v) - 1))))]
+
+
+# --- a worker ------------------------------------------------------------------------------
+def worker_main(args: argparse.Namespace) -> int:
+    import resource
+
+    from lelsonar.keys import ScannerKeys
+    from lelsonar.reconstruct import present
+    from lelsonar.reconstruct.group import GroupConfig, GroupMembership
+    from lelsonar.reconstruct.ingest import Accepted
+    from lelsonar.reconstruct.recovery import RecoveryConfig
+    from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.sources import LiveSource, PlanesServer
+    from lelsonar.transport import open_session
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    keys = ScannerKeys(PREFIX, "*")
+    processed_ns: list[int] = []
+    provisional_ns: list[int] = []
+    handled: list[float] = []   # monotonic time of each live sample processed
+    forward: list = []
+
+    def publish(msg) -> None:
+        for fn in forward:
+            fn(msg)
+        if not present.is_terminal(msg):
+            scan = service.ingest.scans.get((msg.scanner_id, msg.scan_id))
+            if scan is not None:
+                provisional_ns.append(time.time_ns() - int(scan.time_ns[msg.last_step]))
+
+    service = ReconstructionService(ReconstructConfig(provisional=not args.no_provisional), publish=publish)
+    accept = service.ingest.accept
+    last: list = []
+
+    def probe_accept(type_name, payload, **kw):
+        events = accept(type_name, payload, **kw)
+        last[:] = events if kw.get("origin", "live") == "live" else []
+        return events
+
+    service.ingest.accept = probe_accept
+    handle = service.handle
+
+    def probe_handle(type_name, payload, **kw):
+        last.clear()
+        out = handle(type_name, payload, **kw)
+        now_ns, now = time.time_ns(), time.monotonic()
+        for ev in last:
+            if isinstance(ev, Accepted) and ev.kind == "sample":
+                processed_ns.append(now_ns - int(ev.scan.time_ns[ev.step]))
+                handled.append(now)
+        return out
+
+    service.handle = probe_handle
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    wall0 = time.monotonic()
+    with open_session(_settings(args.endpoint)) as session:
+        with GroupMembership(session, PREFIX, GroupConfig(GROUP, args.member, settle=0.5)) as group:
+            server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
+            forward += [server.publish, group.on_estimate]
+            with LiveSource(session, keys, service, stop, recovery=RecoveryConfig(), group=group) as live:
+                token = session.liveliness().declare_token(f"{PREFIX}/{args.member}/alive/bench-worker")
+                group.wait_members(args.workers, 60)
+                print(_READY + json.dumps({"members": len(group.members)}), flush=True)
+                stop.wait()
+                token.undeclare()
+            server.close()
+            gstats = group.stats_dict()
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    wall = time.monotonic() - wall0
+    print(_RESULT + json.dumps({
+        "member": args.member, "processed_ns": processed_ns, "provisional_ns": provisional_ns,
+        "first": min(handled, default=None), "last": max(handled, default=None), "samples": len(handled),
+        "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime), "wall_s": wall,
+        "service": {**service.stats_dict(), "recovery": {**service.stats_dict()["recovery"], **live.recovery_stats}},
+        "group": gstats, "errors": dict(live.error_types)}), flush=True)
+    return 0
+
+
+# --- the publisher ---------------------------------------------------------------------------
+def publisher_main(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from lelsonar.acquire import messages
+    from lelsonar.acquire.backends import SimScanner
+    from lelsonar.acquire.log_server import LogServer, ScanLog
+    from lelsonar.acquire.scan_loop import ScanOutput, ScanPublisher, gamma_schedule
+    from lelsonar.acquire.sim import preset
+    from lelsonar.acquire.sim.calibrate import default_energy_model
+    from lelsonar.keys import ScannerKeys
+    from lelsonar.transport import open_session
+
+    sim = preset(args.preset)
+    if args.steps:
+        sim = dataclasses.replace(sim, steps=args.steps)
+    scanner = SimScanner(sim, 0)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    shots = [scanner.measure(step, float(g)) for step, g in enumerate(schedule)]
+    samples = [messages.sample("s", 1, step, float(g), shot, scanner.info)
+               for step, (g, shot) in enumerate(zip(schedule, shots))]
+    em = default_energy_model()
+    names = [f"scanner{i:03d}" for i in range(args.scanners)]
+    n, period = len(names), 1.0 / args.rate
+    lag: list[float] = []
+    with open_session(_settings(args.endpoint)) as session:
+        outputs = {}
+        servers = []
+        for sid in names:
+            keys = ScannerKeys(PREFIX, sid)
+            log = ScanLog(max_scans=2, keep_for=600.0)  # the scan in progress and the one before
+            servers.append(LogServer(session, keys, log).__enter__())
+            outputs[sid] = ScanOutput(publisher=ScanPublisher(session, keys), scan_log=log)
+        # Nothing before the workers' subscriptions are known here (a put before them would be lost).
+        probe = session.declare_publisher(ScannerKeys(PREFIX, names[-1]).sample)
+        deadline = time.monotonic() + 60
+        while not probe.matching_status.matching and time.monotonic() < deadline:
+            time.sleep(0.01)
+        probe.undeclare()
+        print(_READY + "{}", flush=True)
+        t0 = time.monotonic()
+        tick = 0
+        base = time.time_ns() // 1_000_000
+        for k in range(args.scans):
+            scan_id = base + k
+            # One tick per message of a scan (start, samples, end); scanner i at phase i / (n · rate).
+            for j in range(len(samples) + 2):
+                for i, sid in enumerate(names):
+                    due = t0 + (tick + i / n) * period
+                    delay = due - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    lag.append(max(0.0, time.monotonic() - due))
+                    if j == 0:
+                        msg = messages.scan_start(sid, scan_id, time.time_ns(), scanner.info, schedule, em)
+                    elif j <= len(samples):
+                        msg = samples[j - 1]
+                        msg.scanner_id, msg.scan_id = sid, scan_id
+                        msg.acquisition_time_ns = time.time_ns()
+                    else:
+                        msg = messages.scan_end(sid, scan_id, time.time_ns(), complete=True, reason="",
+                                                steps_planned=len(schedule), samples_sent=len(schedule),
+                                                echoes_missing=0)
+                    outputs[sid].emit(msg)
+                tick += 1
+        wall = time.monotonic() - t0
+        print(_RESULT + json.dumps({
+            "schedule_s": tick * period, "wall_s": wall, "lag_p50": _pct(lag, 50), "lag_p99": _pct(lag, 99),
+            "lag_max": max(lag), "puts": len(lag), "publish_failures": sum(o.publish_failures
+                                                                           for o in outputs.values())}), flush=True)
+        # Keep serving the logs until told to stop (recovery after a failover needs them).
+        sys.stdin.read()
+        for s in servers:
+            s.close()
+        for o in outputs.values():
+            o.publisher.close()
+    return 0
+
+
+# --- the orchestration -----------------------------------------------------------------------
+def _child(args: list[str], stdin=None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "lelsonar", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.DEVNULL, stdin=stdin, text=True)
+
+
+def _read_tagged(proc: subprocess.Popen, tag: str, timeout: float) -> dict | None:
+    """The JSON after ``tag`` on the child's stdout (other lines skipped); None if it ends first."""
+    result: list = []
+
+    def read() -> None:
+        for line in proc.stdout:
+            if line.startswith(tag):
+                result.append(json.loads(line[len(tag):]))
+                return
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    t.join(timeout)
+    return result[0] if result else None
+
+
+def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict[str, Any]:
+    import zenoh
+
+    from lelsonar import codec
+    from lelsonar.reconstruct import present
+    from lelsonar.transport import ZenohSettings, open_session
+
+    procs: list[subprocess.Popen] = []
+    bench = ["bench", "fleet", "--scanners", str(args.scanners), "--workers", str(args.workers),
+             "--rate", str(args.rate), "--scans", str(args.scans), "--steps", str(args.steps),
+             "--preset", args.preset] + (["--no-provisional"] if args.no_provisional else [])
+    finals: dict[tuple[str, int], list[str]] = {}
+    lock = threading.Lock()
+    got = threading.Condition(lock)
+    with tempfile.TemporaryDirectory(prefix="lelsonar-fleet-") as tmp:
+        endpoint = f"unixsock-stream/{tmp}/router.sock"
+        try:
+            router = _child(["router", "--listen", endpoint])
+            procs.append(router)
+            if "listening" not in (router.stdout.readline() or ""):
+                raise SystemExit("bench fleet: the router did not start")
+            with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as session:
+                def on_planes(sample: zenoh.Sample) -> None:
+                    msg = codec.Reconstruction.FromString(sample.payload.to_bytes())
+                    if present.is_terminal(msg):
+                        with got:
+                            finals.setdefault((msg.scanner_id, msg.scan_id), []).append(
+                                f"{present.status_name(msg)}:{len(msg.missing_steps)}")
+                            got.notify_all()
+
+                sub = session.declare_subscriber(f"{PREFIX}/*/planes", on_planes)
+                workers = [_child(bench + ["--role", "worker", "--endpoint", endpoint, "--member", f"w{i}"])
+                           for i in range(args.workers)]
+                procs += workers
+                for w in workers:
+                    if _read_tagged(w, _READY, 90) is None:
+                        raise SystemExit("bench fleet: a worker did not come up")
+                time.sleep(0.6)  # the group's settle time (0.5 s): every member takes part in the first scans
+                publisher = _child(bench + ["--role", "publisher", "--endpoint", endpoint], stdin=subprocess.PIPE)
+                procs.append(publisher)
+                if _read_tagged(publisher, _READY, 120) is None:
+                    raise SystemExit("bench fleet: the publisher did not come up")
+                t_start = time.monotonic()
+                killed = None
+                if kill_one:
+                    steps = args.steps or 184
+                    time.sleep(steps / 2 / args.rate)  # mid-way through the first scans
+                    workers[0].send_signal(signal.SIGKILL)
+                    killed = "w0"
+                pub = _read_tagged(publisher, _RESULT, args.scans * (args.steps or 184) / args.rate * 20 + 120)
+                expected = args.scanners * args.scans
+                deadline = time.monotonic() + args.timeout
+                with got:
+                    while len(finals) < expected and time.monotonic() < deadline:
+                        got.wait(0.2)
+                        if progress is not None:
+                            progress(len(finals), expected)
+                time.sleep(1.0)  # a duplicate would come late: give it a chance to show
+                reports = []
+                for w in workers:
+                    if w.poll() is None:
+                        w.send_signal(signal.SIGTERM)
+                        reports.append(_read_tagged(w, _RESULT, 60))
+                sub.undeclare()
+                publisher.stdin.close()
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                p.wait()
+    reports = [r for r in reports if r]
+    processed = [x / 1e6 for r in reports for x in r["processed_ns"]]
+    provisional = [x / 1e6 for r in reports for x in r["provisional_ns"]]
+    firsts = [r["first"] for r in reports if r["first"] is not None]
+    lasts = [r["last"] for r in reports if r["last"] is not None]
+    samples = sum(r["samples"] for r in reports)
+    statuses = [s for v in finals.values() for s in v]
+    return {
+        "kill_one": killed, "expected_finals": expected, "scans_with_final": len(finals),
+        "duplicated_finals": sum(len(v) - 1 for v in finals.values()),
+        "incomplete_finals": sum(1 for s in statuses if not s.startswith("final:") or not s.endswith(":0"))
+        + (expected - len(finals)),
+        "handled_per_s": samples / (max(lasts) - min(firsts)) if len(firsts) and max(lasts) > min(firsts) else 0.0,
+        "samples_processed": samples,
+        "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
+        "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
+        "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in reports},
+        "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in reports},
+        "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in reports},
+        "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in reports},
+        "statuses": dict(Counter(statuses)),
+        "recovery": {r["member"]: r["service"]["recovery"] for r in reports},
+        "rejected": {r["member"]: r["service"]["rejected"] for r in reports},
+        "worker_errors": {r["member"]: r["errors"] for r in reports},
+        "publisher": pub, "elapsed_s": time.monotonic() - t_start,
+    }
+
+
+def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One case over its runs: medians of the figures, sums of the failures (every run kept in "runs")."""
+    def med(values):
+        values = [v for v in values if v is not None]
+        return statistics.median(values) if values else None
+
+    out: dict[str, Any] = {"runs": runs, "kill_one": runs[0]["kill_one"], "expected_finals": runs[0]["expected_finals"]}
+    out["handled_per_s"] = med([r["handled_per_s"] for r in runs])
+    for key in ("processed_ms", "provisional_ms"):
+        out[key] = {q: med([r[key][q] for r in runs]) for q in ("p50", "p99")}
+    out["scans_with_final"] = min(r["scans_with_final"] for r in runs)
+    out["incomplete_finals"] = sum(r["incomplete_finals"] for r in runs)
+    out["duplicated_finals"] = sum(r["duplicated_finals"] for r in runs)
+    members = sorted({m for r in runs for m in r["cpu_per_worker"]})
+    out["cpu_per_worker"] = {m: med([r["cpu_per_worker"].get(m) for r in runs]) for m in members}
+    pubs = [r["publisher"] for r in runs if r["publisher"]]
+    out["publisher"] = {k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {})}
+    out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
+    out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
+    for key in ("recovered", "dropped_other_member"):
+        out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.role == "worker":
+        return worker_main(args)
+    if args.role == "publisher":
+        return publisher_main(args)
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from lelsonar.tools.bench import machine
+
+    if args.scanners < 1 or args.workers < 1 or not args.rate > 0 or args.scans < 1 or args.repeat < 1:
+        raise SystemExit("bench fleet: --scanners, --workers, --scans and --repeat must be >= 1 and --rate > 0")
+    cases = ([] if args.failover == "only" else [False]) + (
+        [True] if args.failover in ("on", "only") or (args.failover == "auto" and args.workers >= 2) else [])
+    console = Console()
+    load = os.getloadavg()
+    console.print(f"command: {command_line(args)}\nmachine: {machine()}\nload average before: "
+                  f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}", highlight=False)
+    results = []
+    for kill in cases:
+        label = "failover (one worker SIGKILLed mid-scan)" if kill else "steady"
+        runs = []
+        for k in range(args.repeat):
+            with Progress(TextColumn(f"{label}, run {k + 1}/{args.repeat}"), BarColumn(), MofNCompleteColumn(),
+                          TextColumn("finals"), TimeElapsedColumn(), console=Console(stderr=True),
+                          transient=True) as bar:
+                task = bar.add_task(label, total=args.scanners * args.scans)
+                runs.append(run_case(args, kill_one=kill,
+                                     progress=lambda done, total: bar.update(task, completed=done)))
+        res = summarise(runs)
+        res["case"] = label
+        results.append(res)
+    table = Table(title=f"bench fleet: {args.scanners} scanners × {args.rate:g} Hz, {args.workers} workers"
+                        + (f" (medians of {args.repeat} runs)" if args.repeat > 1 else ""))
+    table.add_column("")
+    for r in results:
+        table.add_column("failover" if r["kill_one"] else "steady", justify="right")
+
+    def ms(d):
+        return " / ".join("—" if d[k] is None else f"{d[k]:.0f}" for k in ("p50", "p99"))
+
+    def pub(r, key):
+        return (r["publisher"] or {}).get(key, float("nan"))
+
+    rows = [
+        ("handled samples/s", lambda r: f"{r['handled_per_s']:.0f}"),
+        ("put→processed p50 / p99, ms", lambda r: ms(r["processed_ms"])),
+        ("put→provisional p50 / p99, ms", lambda r: ms(r["provisional_ms"])),
+        ("scans with a final", lambda r: f"{r['scans_with_final']} / {r['expected_finals']}"),
+        ("incomplete finals (must be 0)", lambda r: str(r["incomplete_finals"])),
+        ("duplicated finals (must be 0)", lambda r: str(r["duplicated_finals"])),
+        ("CPU per worker (of one core)", lambda r: " ".join(f"{v * 100:.0f}%" for v in r["cpu_per_worker"].values()
+                                                            if v is not None)),
+        ("publisher lag p50 / p99 / max, s", lambda r: f"{pub(r, 'lag_p50'):.2f} / {pub(r, 'lag_p99'):.2f} / "
+                                                       f"{pub(r, 'lag_max'):.2f}"),
+        ("publishing took / schedule, s", lambda r: f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f}"),
+        ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
+    ]
+    for name, fn in rows:
+        table.add_row(name, *(fn(r) for r in results))
+    console.print(table)
+    for r in results:
+        console.print(f"{r['case']}: terminal statuses (status:missing steps) {r['statuses']}; adopted "
+                      f"{r['adopted']}; recovered samples {r['recovered']}; dropped as other member "
+                      f"{r['dropped_other_member']}", highlight=False)
+    load = os.getloadavg()
+    console.print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2 cores shared with other work "
+                  "here: figures are of this run only)", highlight=False)
+    if args.json:
+        args.json.write_text(json.dumps({"command": command_line(args), "machine": machine(), "cases": results},
+                                        indent=1))
+    bad = any(r["incomplete_finals"] or r["duplicated_finals"] for r in results)
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    sys.exit(run(p.parse_args()))
