@@ -14,9 +14,10 @@ sufficient statistics of the plane's inliers (``Σ v vᵀ``, ``Σ v``, ``Σ p_c`
 3. solves the 3 × 3 normal equations (eq. 15 on the inliers) for the normal,
    and takes the offset from the mirror-echo condition ``h = mean(n·p_c + d)``
    over the inliers — what ``"adaptive"`` does on an axis-aligned wall;
-4. checks the update (the *trust check*): enough inliers, most new points
-   accepted, the normal within the beam of a boresight (the mirror-echo
-   condition), the inliers' RMS residual within the tolerance.
+4. checks the update (the *trust check*): enough inliers; of the points
+   since the last exact fit, at least half the share of inliers that fit
+   had; the normal within the beam of a boresight (the mirror-echo
+   condition); the inliers' RMS residual within the tolerance.
 
 An exact fit — the provisional method from scratch, warm-started from the last
 estimate — runs only (a) for the first estimate, (b) when the trust check
@@ -24,11 +25,15 @@ fails, (c) when the plane's points have doubled since the last exact fit (so a
 scan pays O(n) in all: amortised O(new samples) per update), or (d) when the last
 exact fit chose the constant-depth (tilted-wall) model, which the
 corrected-points sums do not represent: then the next exact fit waits until
-the points have grown by a quarter, and the estimate stays meanwhile.  The exact fit first runs *without* the
+the points have grown by half, and the estimate stays meanwhile.  The exact fit first runs *without* the
 outlier-cluster guard (its RANSAC fallback is the expensive part); only if that
-fit fails the same trust check does the guarded fit run.  After a fit that
+fit fails the guard's own test (mirror-consistent, ``min_inlier_fraction`` of
+the points within ``inlier_tolerance``) does the guarded fit run, and what it
+returns is trusted if it is mirror-consistent.  After a fit that
 fails the trust check even guarded, the next exact fit waits until the points
-have grown by a quarter.
+have grown by half (:data:`RETRY_GROWTH`); and no fit at all is tried before a
+beam has faced the wall (within ``beam_half_angle`` + :data:`FACING_MARGIN` of
+its nominal normal): the estimate is then a typed failure, at no cost.
 
 The final estimate of a scan never uses any of this: it is computed from
 scratch (:meth:`ReconstructionService._finalise`).
@@ -50,9 +55,18 @@ from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
 from .options import FitOptions
-from .results import FitFailure, PlaneFit, PlaneResult, SolverDiagnostics
+from .results import FailureReason, FitFailure, PlaneFit, PlaneResult, SolverDiagnostics
 
-__all__ = ["IncrementalPlane", "IncrementalStats"]
+__all__ = ["IncrementalPlane", "IncrementalStats", "FACING_MARGIN", "RETRY_GROWTH"]
+
+#: rad.  No exact fit is tried before some beam of the plane's points has come within
+#: ``FitOptions.beam_half_angle`` + this margin of the plane's nominal normal (its correction axis):
+#: the mirror-echo condition (the guard's own test) rejects any plane no beam faced, and a wall more
+#: than this far off its nominal axis is beyond the joint model's ``max_tilt`` (15°) as well.
+FACING_MARGIN = float(np.deg2rad(15.0))
+#: After an exact fit that fails the trust check (the wall not yet seen face-on, typically), the next
+#: one waits until the plane's points have grown by this factor.
+RETRY_GROWTH = 1.5
 
 
 @dataclass
@@ -66,6 +80,7 @@ class IncrementalStats:
     trust_failures: int = 0   # incremental updates that failed the trust check (an exact fit followed)
     untrusted: int = 0        # exact fits that failed the trust check even guarded (e.g. wall b not yet face-on)
     waited: int = 0           # re-estimates that kept the last plane, waiting for more points after an untrusted fit
+    not_facing: int = 0       # re-estimates skipped: no beam has faced the wall yet (a typed failure, no fit)
 
 
 class IncrementalPlane:
@@ -106,6 +121,8 @@ class IncrementalPlane:
         self._retry_at = 0          # after a failed exact fit: points needed before the next one
         self._offered = self._accepted = 0   # new points since the last exact fit
         self._best_beam: np.ndarray | None = None
+        self._facing = -1.0         # the largest beam · axis so far
+        self._seed_fraction = 1.0   # inliers / points at the last exact fit
         self.plane: PlaneResult | None = None
         #: The points behind :attr:`plane` (for observers that draw them).
         self.last_data: F.PlaneData | None = None
@@ -158,6 +175,16 @@ class IncrementalPlane:
         new = F.plane_data(self.geometry, gamma, distance, new_steps, self.label, self.axis) \
             if len(new_steps) else None
         sl = self._append(new) if new is not None and new.n else slice(self.n, self.n)
+        if sl.stop > sl.start:
+            self._facing = max(self._facing, float(np.max(self._beam[sl] @ self.axis)))
+        if self._facing < np.cos(self.options.beam_half_angle + FACING_MARGIN):
+            self.stats.not_facing += 1
+            self.plane = FitFailure(
+                FailureReason.DEGENERATE_GEOMETRY,
+                f"provisional: no beam has come within {np.rad2deg(self.options.beam_half_angle + FACING_MARGIN):.0f}° "
+                "of the wall's nominal normal yet (is the corner reached yet?)", self.label, self.n)
+            self.last_data = None
+            return self.plane
         incremental = self._theta_ls is not None and self.n < 2 * self._exact_at
         if incremental:
             trusted = self._incremental(sl, t0)
@@ -194,7 +221,7 @@ class IncrementalPlane:
             return False
         n = theta / nt
         # The trust check: most new points fit, the normal faces a beam, the inliers sit within the tolerance.
-        if self._offered >= o.min_points and self._accepted < o.min_inlier_fraction * self._offered:
+        if self._offered >= o.min_points and self._accepted < 0.5 * self._seed_fraction * self._offered:
             return False
         cands = beams if self._best_beam is None else np.vstack([self._best_beam[None, :], beams])
         if not F.mirror_consistent(n, cands, o.beam_half_angle) \
@@ -235,17 +262,22 @@ class IncrementalPlane:
         warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
         fit = fit_plane(data, self.method, warm_start=warm, options=self._unguarded)
         self.stats.exact += 1
-        if not self._trusted(fit, data) and self.options.guard:
+        trusted = self._trusted(fit, data)
+        if not trusted and self.options.guard:
+            # The guard's own test failed: run the guard (RANSAC for a competing minimum).  What it
+            # returns it has vetted (mirror-consistent, the most inliers among the minima it found).
             fit = fit_plane(data, self.method, warm_start=warm, options=self.options)
             self.stats.guarded += 1
+            trusted = isinstance(fit, PlaneFit) and F.mirror_consistent(fit.normal, data.beam,
+                                                                        self.options.beam_half_angle)
         self.plane = fit
         self._exact_at = self.n
         self._offered = self._accepted = 0
         self._theta_ls = None
         self._reset_sums()
         self._inlier[:self.n] = False
-        self._retry_at = max(self.n + 1, int(np.ceil(1.25 * self.n)))  # if no update can follow this fit
-        if not self._trusted(fit, data):
+        self._retry_at = max(self.n + 1, int(np.ceil(RETRY_GROWTH * self.n)))  # if no update can follow this fit
+        if not trusted:
             self.stats.untrusted += 1
             return fit
         # Seed the sums with the fit's inliers, if the fit is the corrected-points LS of those inliers
@@ -263,6 +295,7 @@ class IncrementalPlane:
             self._reset_sums()  # a tilted wall: the next update is an exact fit again
             return fit
         self._inlier[:self.n] = mask
+        self._seed_fraction = self._k / max(self.n, 1)
         self._theta_ls = theta_ls
         self._retry_at = 0
         self._best_beam = data.beam[int(np.argmax(data.beam @ fit.normal))]

@@ -444,6 +444,8 @@ class ReconstructionService:
         """Confirm the corner, then (re)fit plane b when enough new steps have come."""
         if not self.config.provisional:
             return []
+        if p.critical is not None and scan.n_received - p.steps_at_fit < self.config.refit_every:
+            return []  # cheap: no array work per sample between refits
         steps, _, _, ratio = scan.arrays()
         if p.critical is None:
             peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
