@@ -18,7 +18,9 @@ Three measurements, side by side in one run and one table:
     parent process, right after the run (printed beside the result).
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting
     ``--rate`` samples/s (default 50: one every 20 ms, as issue 12 measures),
-    staggered, ``--scans`` scans each, back to back.  Each ``Sample``'s ``acquisition_time_ns`` and
+    ``--scans`` scans each, back to back; not synchronised (scanner j runs j/N
+    of a scan behind the first, so their corners and finals do not all fall on
+    the same instant).  Each ``Sample``'s ``acquisition_time_ns`` and
     each ``ScanEnd``'s ``end_time_ns`` is stamped with ``time.time_ns()`` just
     before its put.  The consumer reports, per sample, put → ``handle``
     returned ("processed"); per provisional estimate, put of the sample named
@@ -186,29 +188,34 @@ def publisher_main(args: argparse.Namespace) -> int:
                     scans += 1
                 rounds += 1
         else:
-            # Every scanner puts one sample each 1/--rate s (staggered across the period), its scans
-            # back to back; scan ids differ per scanner.
+            # Every scanner puts one sample each 1/--rate s, its --scans scans back to back; the scanners
+            # are not synchronised: scanner j runs j/N of a scan behind scanner 0 (staggered within the
+            # period too), as independent robots would.  Scan ids differ per scanner.
             period = 1.0 / args.rate
             lag = period / n_scanners
-            i = 0
-            for k in range(args.scans):
-                scan_id = scan_base + k
-                for sid in scanners:
-                    _stamp(start, sid, scan_id, "start_time_ns")
-                    pubs[sid].publish(start)
-                for sample in samples:
-                    for j, sid in enumerate(scanners):
-                        delay = t_first + i * period + j * lag - time.monotonic()
-                        if delay > 0:
-                            time.sleep(delay)
-                        put_ns[(sid, scan_id, sample.step)] = _stamp(sample, sid, scan_id, "acquisition_time_ns")
-                        pubs[sid].publish(sample)
-                        puts += 1
-                    i += 1
-                for sid in scanners:
-                    end_ns[(sid, scan_id)] = _stamp(end, sid, scan_id, "end_time_ns")
-                    pubs[sid].publish(end)
-                    scans += 1
+            steps = len(samples)
+            offset = [round(j * steps / n_scanners) for j in range(n_scanners)]
+            total = args.scans * steps
+            for i in range(total + max(offset)):
+                for j, sid in enumerate(scanners):
+                    k, step = divmod(i - offset[j], steps)
+                    if not 0 <= k < args.scans:
+                        continue
+                    scan_id = scan_base + k
+                    if step == 0:
+                        _stamp(start, sid, scan_id, "start_time_ns")
+                        pubs[sid].publish(start)
+                    delay = t_first + i * period + j * lag - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    sample = samples[step]
+                    put_ns[(sid, scan_id, sample.step)] = _stamp(sample, sid, scan_id, "acquisition_time_ns")
+                    pubs[sid].publish(sample)
+                    puts += 1
+                    if step == steps - 1:
+                        end_ns[(sid, scan_id)] = _stamp(end, sid, scan_id, "end_time_ns")
+                        pubs[sid].publish(end)
+                        scans += 1
         put_s = time.monotonic() - t_first
         session.put(DONE_KEY, json.dumps({"samples": puts, "scans": scans}),
                     congestion_control=zenoh.CongestionControl.BLOCK)
@@ -395,7 +402,7 @@ class _Lines:
 
 def run_phase(args: argparse.Namespace, phase: str) -> tuple[dict, dict]:
     """Start a consumer and a publisher on a private socket; return their results."""
-    budget = args.seconds + 40.0 if phase == "rate" else args.scans * 256 / args.rate + 40.0
+    budget = args.seconds + 40.0 if phase == "rate" else (args.scans + 1) * 256 / args.rate + 40.0
     procs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-ingest-") as tmp:
         tmpdir = Path(tmp)
