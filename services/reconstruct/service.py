@@ -188,6 +188,8 @@ class Partial:
     #: The provisional planes, re-estimated in O(new points) (:mod:`lelsonar.reconstruct.incremental`).
     inc_a: IncrementalPlane | None = None
     inc_b: IncrementalPlane | None = None
+    #: A provisional refit waited for a backlog (tick() catches up).
+    deferred: bool = False
     last_activity: float = 0.0
     ended_at: float | None = None
     recovery: RecoveryState = field(default_factory=RecoveryState)
@@ -293,7 +295,9 @@ class ReconstructionService:
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
                 del self._partials[key]
                 continue
-            out += self._provisional(scan, p)
+            if p.deferred:  # only scans whose provisional refit waited for a backlog: O(1) for the others
+                p.deferred = False
+                out += self._provisional(scan, p)
             r = p.recovery
             self._note_progress(r, scan.n_received)
             if p.ended_at is not None:
@@ -437,6 +441,7 @@ class ReconstructionService:
         if p.ended_at is not None and scan.complete:
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
+            p.deferred = True  # tick() catches up
             return []  # the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
