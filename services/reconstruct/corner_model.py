@@ -31,7 +31,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import math
 import time
 from dataclasses import replace
 
@@ -207,8 +206,7 @@ def edge_residuals(point: np.ndarray, direction: np.ndarray, pts: ScanPoints,
     return pts.distance - dist * np.sin(opening), perp / np.maximum(dist, 1e-9)[:, None]
 
 
-def _edge_range_residuals_reference(wall_a: Wall, wall_b: Wall, capsule: np.ndarray,
-                                    distance: np.ndarray) -> np.ndarray:
+def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
     line = edge_line(wall_a, wall_b, min_angle=0.0)
     if line is None:
         return np.full(distance.shape, np.inf)
@@ -217,30 +215,6 @@ def _edge_range_residuals_reference(wall_a: Wall, wall_b: Wall, capsule: np.ndar
     t = rel @ direction
     dist2 = np.einsum("ij,ij->i", rel, rel) - t * t
     return distance - np.sqrt(np.maximum(dist2, 0.0)) * np.sin(_opening(wall_a, wall_b))
-
-
-def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
-    # The solver's hot path (the edge rows and their finite-difference Jacobian): the line and the
-    # opening from Python floats (edge_line's and _opening's formulas, operation for operation), the
-    # per-echo part vectorised.
-    a0, a1, a2 = wall_a.normal.tolist()
-    b0, b1, b2 = wall_b.normal.tolist()
-    e0, e1, e2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-    s2 = e0 * e0 + e1 * e1 + e2 * e2
-    if s2 == 0.0:  # exactly parallel walls: the reference arithmetic (numpy's division by zero)
-        return _edge_range_residuals_reference(wall_a, wall_b, capsule, distance)
-    ha, hb = wall_a.offset, wall_b.offset
-    # h_a (n_b × e) + h_b (e × n_a), over |e|²
-    point = np.array([(ha * (b1 * e2 - b2 * e1) + hb * (e1 * a2 - e2 * a1)) / s2,
-                      (ha * (b2 * e0 - b0 * e2) + hb * (e2 * a0 - e0 * a2)) / s2,
-                      (ha * (b0 * e1 - b1 * e0) + hb * (e0 * a1 - e1 * a0)) / s2])
-    norm = math.sqrt(s2)
-    direction = np.array([e0 / norm, e1 / norm, e2 / norm])
-    rel = point - capsule
-    t = rel @ direction
-    dist2 = np.einsum("ij,ij->i", rel, rel) - t * t
-    cos_ab = min(max(a0 * b0 + a1 * b1 + a2 * b2, -1.0), 1.0)
-    return distance - np.sqrt(np.maximum(dist2, 0.0)) * math.sin(math.pi - math.acos(cos_ab))
 
 
 def _opening(wall_a: Wall, wall_b: Wall) -> float:
