@@ -58,7 +58,7 @@ from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.incremental import IncrementalPlane
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct
 from lelsonar.reconstruct.quality import cross_check
 from lelsonar.reconstruct.recovery import RecoveryRequest
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
