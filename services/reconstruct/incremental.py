@@ -25,11 +25,11 @@ fails, (c) when the plane's points have doubled since the last exact fit (so a
 scan pays O(n) in all: amortised O(new samples) per update), or (d) when the last
 exact fit chose the constant-depth (tilted-wall) model, which the
 corrected-points sums do not represent: then the next exact fit waits until
-the points have grown by half, and the estimate stays meanwhile.  The exact fit first runs *without* the
-outlier-cluster guard (its RANSAC fallback is the expensive part); only if that
-fit fails the guard's own test (mirror-consistent, ``min_inlier_fraction`` of
-the points within ``inlier_tolerance``) does the guarded fit run, and what it
-returns is trusted if it is mirror-consistent.  After a fit that
+the points have grown by half, and the estimate stays meanwhile.  The outlier-cluster guard's
+RANSAC (the expensive part) runs inside an exact fit only when its least-H
+minimum fails the guard's own test (mirror-consistent, ``min_inlier_fraction``
+of the points within ``inlier_tolerance``); what the guard returns it has
+vetted, and the fit is trusted if it is mirror-consistent.  After a fit that
 fails the trust check even guarded, the next exact fit waits until the points
 have grown by half (:data:`RETRY_GROWTH`); and no fit at all is tried before a
 beam has faced the wall (within ``beam_half_angle`` + :data:`FACING_MARGIN` of
@@ -47,7 +47,7 @@ new ones.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -76,7 +76,7 @@ class IncrementalStats:
     calls: int = 0            # re-estimates asked for
     updates: int = 0          # O(new points) updates that passed the trust check
     exact: int = 0            # exact fits without the guard
-    guarded: int = 0          # exact fits that needed the guard (the trust check failed unguarded)
+    guarded: int = 0          # exact fits whose least-H minimum failed the guard's test (its RANSAC ran)
     trust_failures: int = 0   # incremental updates that failed the trust check (an exact fit followed)
     untrusted: int = 0        # exact fits that failed the trust check even guarded (e.g. wall b not yet face-on)
     waited: int = 0           # re-estimates that kept the last plane, waiting for more points after an untrusted fit
@@ -105,7 +105,6 @@ class IncrementalPlane:
                  steps: int) -> None:
         self.geometry, self.label, self.axis = geometry, label, np.asarray(axis, dtype=np.float64)
         self.method, self.options = method, options
-        self._unguarded = replace(options, guard=False)
         self.included = np.zeros(int(steps), dtype=bool)
         self.n = 0
         cap = 64
@@ -246,6 +245,7 @@ class IncrementalPlane:
         return True
 
     def _trusted(self, fit: PlaneResult, data: F.PlaneData) -> bool:
+        # Used when FitOptions.guard is off: the guard's test, applied to the fit.
         """The guard's own acceptance test, on a fit made without it."""
         o = self.options
         if not isinstance(fit, PlaneFit):
@@ -260,16 +260,18 @@ class IncrementalPlane:
 
         data = self.last_data = self.data()
         warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
-        fit = fit_plane(data, self.method, warm_start=warm, options=self._unguarded)
+        # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test
+        # (mirror-consistent, min_inlier_fraction of the points within inlier_tolerance): the fast LEL is
+        # not run twice.  What the guard returns it has vetted.
+        fit = fit_plane(data, self.method, warm_start=warm, options=self.options)
         self.stats.exact += 1
-        trusted = self._trusted(fit, data)
-        if not trusted and self.options.guard:
-            # The guard's own test failed: run the guard (RANSAC for a competing minimum).  What it
-            # returns it has vetted (mirror-consistent, the most inliers among the minima it found).
-            fit = fit_plane(data, self.method, warm_start=warm, options=self.options)
+        if _guard_ran(fit):
             self.stats.guarded += 1
+        if self.options.guard:
             trusted = isinstance(fit, PlaneFit) and F.mirror_consistent(fit.normal, data.beam,
                                                                         self.options.beam_half_angle)
+        else:
+            trusted = self._trusted(fit, data)
         self.plane = fit
         self._exact_at = self.n
         self._offered = self._accepted = 0
@@ -300,3 +302,10 @@ class IncrementalPlane:
         self._retry_at = 0
         self._best_beam = data.beam[int(np.argmax(data.beam @ fit.normal))]
         return fit
+
+
+def _guard_ran(fit: PlaneResult) -> bool:
+    """Whether the outlier-cluster guard's fallback ran in this fit (its notes, or its typed failure)."""
+    if isinstance(fit, PlaneFit):
+        return any(n.startswith("guard:") for n in fit.diagnostics.notes)
+    return "no LEL minimum has its normal within" in fit.detail
