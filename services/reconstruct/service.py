@@ -15,8 +15,8 @@ Per scan (paper §4–5, made incremental):
    0.08 s: ≤ 12.5 provisional estimates a second per scan), in O(new samples)
    (:mod:`lelsonar.reconstruct.incremental`: the inliers' least-squares sums,
    a trust check, and an exact warm-started refit only when the check fails or
-   the points have doubled; the outlier-cluster guard only if the unguarded
-   refit fails the check) — and while a backlog waits
+   the points have doubled; the outlier-cluster guard's RANSAC only when the
+   refit's least-H minimum fails the guard's test) — and while a backlog waits
    (``handle(..., busy=True)``) only every ``max_provisional_delay``, so a
    burst costs one refit, not one per sample;
 4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
