@@ -89,7 +89,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fifo", type=int, default=256,
                         help="LiveSource fifo_capacity in the consumer; bounds what is buffered when the "
                              "publisher outruns it (default: %(default)s)")
-    parser.add_argument("--replay-runs", type=int, default=3, help="timed replays; median (default: %(default)s)")
+    parser.add_argument("--replay-runs", type=int, default=5,
+                        help="timed rounds of the replay rows and their floor, interleaved; medians "
+                             "(default: %(default)s)")
     parser.add_argument("--profile", action="store_true", help="also print a cProfile breakdown of one replay")
     # Internal: the child processes.
     parser.add_argument("--role", choices=("consumer", "publisher"), help=argparse.SUPPRESS)
@@ -680,10 +682,16 @@ def run(args: argparse.Namespace) -> int:
         n_replay = record_scans(path, args.preset, args.scans)
         time_replay(path, 1)  # warm-up
         # (c) is what `lelsonar reconstruct --source FILE.mcap` runs: finals only, no provisional estimates.
-        replay_s, replay_finals = time_replay(path, args.replay_runs, provisional=False)
-        replay_prov_s, _ = time_replay(path, args.replay_runs)
-        ingest_s = time_ingest_only(path, args.replay_runs)
-        read_decode_s = time_read_decode(path, args.replay_runs)
+        # Interleaved, one run of each per round, so a neighbour's load hits the result and its floor alike.
+        rounds: dict[str, list[float]] = {"replay": [], "prov": [], "ingest": [], "floor": []}
+        for _ in range(args.replay_runs):
+            t, replay_finals = time_replay(path, 1, provisional=False)
+            rounds["replay"].append(t)
+            rounds["prov"].append(time_replay(path, 1)[0])
+            rounds["ingest"].append(time_ingest_only(path, 1))
+            rounds["floor"].append(time_read_decode(path, 1))
+        replay_s, replay_prov_s, ingest_s, read_decode_s = (statistics.median(rounds[k])
+                                                            for k in ("replay", "prov", "ingest", "floor"))
         size_mb = path.stat().st_size / 1e6
         if args.profile:
             profile_stash = (path.read_bytes(), n_replay)
