@@ -113,6 +113,24 @@ def test_nan_waveform_sample_is_rejected():
         codec.decode(s.SerializeToString(), codec.Sample)
 
 
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("sensor", [0, 1, 3])
+def test_a_non_finite_sample_in_any_waveform_is_rejected_and_named(sensor, bad):
+    # The float32 waveforms of a Sample are checked in one pass; the error still names the culprit,
+    # also when another capsule's waveform is int16 (not part of that pass).
+    s = make_sample()
+    s.sensors[2].waveform.CopyFrom(codec.pack_waveform(codec.unpack_waveform(s.sensors[2].waveform), 2e5,
+                                                       int16_scale=1e-3))
+    v = codec.unpack_waveform(s.sensors[sensor].waveform).copy()
+    v[-1] = bad
+    s.sensors[sensor].waveform.CopyFrom(codec.pack_waveform(v, 2e5))
+    with pytest.raises(NonFiniteValueError, match=rf"sensors\[{sensor}\].waveform holds NaN"):
+        codec.decode(s.SerializeToString(), codec.Sample)
+    v[-1] = 0.0
+    s.sensors[sensor].waveform.CopyFrom(codec.pack_waveform(v, 2e5))
+    assert codec.decode(s.SerializeToString(), codec.Sample) == s
+
+
 def test_valid_echo_needs_a_positive_range():
     s = make_sample()
     s.sensors[0].distance = -1.0

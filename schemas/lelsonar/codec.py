@@ -142,7 +142,9 @@ def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS, *
     return (np.frombuffer(waveform.data, dtype="<i2") * waveform.scale).astype(np.float32)
 
 
-def _check_waveform(w: Waveform, limits: DecodeLimits, where: str) -> None:
+def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: bool = True) -> None:
+    """Check one waveform; ``samples=False`` leaves the finiteness of float32 samples to the caller
+    (:func:`_validate_sample` checks a sample's waveforms in one pass)."""
     if w.sample_count > limits.max_waveform_samples:
         raise PayloadTooLargeError(
             f"{where} declares {w.sample_count} samples; the limit is {limits.max_waveform_samples}"
@@ -162,7 +164,7 @@ def _check_waveform(w: Waveform, limits: DecodeLimits, where: str) -> None:
         _finite(where + ".scale", w.scale)
         if w.scale <= 0:
             raise InvalidMessageError(f"{where}.scale must be positive for int16 data, got {w.scale}")
-    elif not np.isfinite(np.frombuffer(w.data, dtype="<f4")).all():
+    elif samples and not np.isfinite(np.frombuffer(w.data, dtype="<f4")).all():
         raise NonFiniteValueError(f"{where} holds NaN or infinite samples")
 
 
@@ -254,13 +256,24 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
         raise InvalidMessageError(f"Sample.step {m.step} exceeds the limit of {limits.max_steps}")
     _finite("Sample.gamma_commanded/gamma_measured", m.gamma_commanded, m.gamma_measured)
     _finite("Sample.motor", m.motor.load, m.motor.voltage, m.motor.temperature)
+    float32 = []
     for i, s in enumerate(m.sensors):
-        where = f"Sample.sensors[{i}]"
-        _finite(f"{where}.time_of_flight/distance", s.time_of_flight, s.distance)
+        if not (math.isfinite(s.time_of_flight) and math.isfinite(s.distance)):
+            _finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
         if s.echo_valid and not (0.0 < s.distance < _MAX_RANGE_M and s.time_of_flight > 0.0):
             raise InvalidMessageError(
-                f"{where} is marked valid but has distance {s.distance} m and time of flight {s.time_of_flight} s")
-        _check_waveform(s.waveform, limits, where=f"{where}.waveform")
+                f"Sample.sensors[{i}] is marked valid but has distance {s.distance} m and time of flight "
+                f"{s.time_of_flight} s")
+        w = s.waveform
+        _check_waveform(w, limits, where=f"Sample.sensors[{i}].waveform", samples=False)
+        if w.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE:
+            float32.append(w.data)
+    # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
+    if float32 and not np.isfinite(np.frombuffer(b"".join(float32), dtype="<f4")).all():
+        for i, s in enumerate(m.sensors):
+            if s.waveform.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE \
+                    and not np.isfinite(np.frombuffer(s.waveform.data, dtype="<f4")).all():
+                raise NonFiniteValueError(f"Sample.sensors[{i}].waveform holds NaN or infinite samples")
 
 
 def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:

@@ -14,6 +14,7 @@ stream or the acquirer's log), for the per-scan accounting.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -22,7 +23,34 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.energy import EnergyModel, echo_amplitude, median_range, total_energy, waveform_energy
+from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW, EnergyModel
+
+
+def _median_of_valid(distance: np.ndarray) -> float:
+    """:func:`~lelsonar.reconstruct.energy.median_range` of one step, without numpy's per-call overhead:
+    the same arithmetic on the same numbers (the mean of the two middle valid ranges), so the same bits."""
+    valid = sorted(float(x) for x in distance if x == x)
+    c = len(valid)
+    if not c:
+        return math.nan
+    return 0.5 * (valid[(c - 1) // 2] + valid[c // 2])
+
+
+def _echo_peaks(w64: np.ndarray, sample_rate: float, t0: float, tof: list[float]) -> np.ndarray:
+    """:func:`~lelsonar.reconstruct.energy.echo_amplitude` of one step's (k, n) waveforms, sliced per capsule
+    instead of gathered (the same windows, the same values)."""
+    n = w64.shape[-1]
+    lo, hi = ECHO_PEAK_WINDOW
+    width = max(int(round((hi - lo) * sample_rate)), 1)
+    out = np.full(w64.shape[0], np.nan)
+    for i, t in enumerate(tof):
+        if not t > 0:  # NaN (no echo) or no time of flight, as echo_amplitude
+            continue
+        start = min(max(float(np.rint((t + lo - t0) * sample_rate)), 0.0), float(n))
+        a = int(start)
+        if a < n:
+            out[i] = float(np.abs(w64[i, a:min(a + width, n)]).max())
+    return out
 
 
 def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
@@ -162,40 +190,45 @@ class ScanAssembly:
             self.duplicates += 1
             return False
         k = self.geometry.n_capsules
-        ids = [s.capsule_id for s in sample.sensors]
+        sensors = sample.sensors
+        ids = [s.capsule_id for s in sensors]
         if sorted(ids) != list(range(k)):
             raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
+        counts = {s.waveform.sample_count for s in sensors}
+        if len(counts) != 1:
+            raise InvalidMessageError(f"sample {step} has waveforms of different lengths {sorted(counts)}")
+        first = sensors[0].waveform
+        rate, t0 = first.sample_rate, first.t0
+        # One (k, n) float32 array of the waveforms (ingest decoded and validated them), then one float64
+        # copy that serves both the energies and the echo peaks: each waveform is converted once.
+        waveforms = np.empty((k, counts.pop()), dtype=np.float32)
         distance = np.full(k, np.nan)
-        tof = np.full(k, np.nan)
-        waves = [None] * k
-        for s in sample.sensors:
+        tof = [math.nan] * k
+        for s in sensors:
+            i = s.capsule_id
+            waveforms[i] = codec.unpack_waveform(s.waveform, validated=True)
             if s.echo_valid:
-                distance[s.capsule_id] = s.distance
+                distance[i] = s.distance
                 # The round trip, where the echo sits in the waveform; a recorder that leaves it
                 # unset still gave the range, and the speed of sound is in the ScanStart.
-                tof[s.capsule_id] = (s.time_of_flight if s.time_of_flight > 0
-                                     else 2.0 * s.distance / self.start.sound_speed)
-            waves[s.capsule_id] = codec.unpack_waveform(s.waveform, validated=True)  # ingest decoded it
-        lengths = {w.size for w in waves}
-        if len(lengths) != 1:
-            raise InvalidMessageError(f"sample {step} has waveforms of different lengths {sorted(lengths)}")
-        rate = sample.sensors[0].waveform.sample_rate
-        waveforms = np.stack(waves)
+                tof[i] = (s.time_of_flight if s.time_of_flight > 0
+                          else 2.0 * s.distance / self.start.sound_speed)
+        w64 = waveforms.astype(np.float64)
+        energy = np.einsum("...i,...i->...", w64, w64) / float(rate)   # = waveform_energy(waveforms, rate)
         self.gamma[step] = sample.gamma_measured
         self.distance[step] = distance
-        self.sensor_energy[step] = waveform_energy(waveforms, rate)
-        self.echo_amplitude[step] = echo_amplitude(waveforms, rate, sample.sensors[0].waveform.t0, tof)
+        self.sensor_energy[step] = energy
+        self.echo_amplitude[step] = _echo_peaks(w64, rate, t0, tof)
         # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
-        self.step_energy[step] = total_energy(self.sensor_energy[step])
-        d_m = median_range(distance[None, :])[0]
-        if np.isfinite(d_m):
-            self.expected_energy[step] = float(self.energy_model.expected_energy(d_m))
-            self.ratio[step] = self.step_energy[step] / self.expected_energy[step]
+        self.step_energy[step] = total = float(np.sum(energy))
+        d_m = _median_of_valid(distance)
+        if d_m == d_m:  # not NaN
+            self.expected_energy[step] = expected = float(self.energy_model.expected_energy(d_m))
+            self.ratio[step] = total / expected
         self.time_ns[step] = sample.acquisition_time_ns
         self.received[step] = True
         self.recovered_mask[step] = origin == "recovered"
-        self.latest = StepView(step, sample.acquisition_time_ns, sample.gamma_measured, distance, waveforms, rate,
-                               sample.sensors[0].waveform.t0)
+        self.latest = StepView(step, sample.acquisition_time_ns, sample.gamma_measured, distance, waveforms, rate, t0)
         return True
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

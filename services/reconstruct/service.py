@@ -11,7 +11,12 @@ Per scan (paper §4–5, made incremental):
    scan's typical R and enough steps have followed it — plane a (the subset
    before the peak) is estimated;
 3. as later samples arrive, plane b is re-estimated every ``refit_every``
-   steps, warm-started from its previous estimate — but while a backlog waits
+   steps, at most once per ``provisional_period`` of scan time (default
+   0.08 s: ≤ 12.5 provisional estimates a second per scan), in O(new samples)
+   (:mod:`lelsonar.reconstruct.incremental`: the inliers' least-squares sums,
+   a trust check, and an exact warm-started refit only when the check fails or
+   the points have doubled; the outlier-cluster guard's RANSAC only when the
+   refit's least-H minimum fails the guard's test) — and while a backlog waits
    (``handle(..., busy=True)``) only every ``max_provisional_delay``, so a
    burst costs one refit, not one per sample;
 4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
@@ -51,8 +56,9 @@ from lelsonar.reconstruct import fit as F
 from lelsonar.reconstruct import wire
 from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
+from lelsonar.reconstruct.incremental import IncrementalPlane
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, fit_plane, reconstruct
+from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct
 from lelsonar.reconstruct.quality import cross_check
 from lelsonar.reconstruct.recovery import RecoveryRequest
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
@@ -73,6 +79,12 @@ class ReconstructConfig:
         Also run at the end of each scan, published next to ``method``.
     refit_every : int
         Steps between provisional re-estimates of plane b.
+    provisional_period : float
+        s of scan time (the samples' ``acquisition_time_ns``): a scan gets at most one provisional
+        estimate per period (default 0.08 s: at most 12.5 a second per scan, i.e. every
+        ``refit_every`` = 4 steps of a 50 Hz scanner; a faster scanner, or a burst of recovered
+        steps, is held to the same rate).  Scan time, not the wall clock, so a replay gives the
+        same provisional estimates at any speed.  0 disables it.
     confirm_steps : int
         Steps that must follow the R peak before it is trusted.
     confirm_ratio : float
@@ -105,6 +117,7 @@ class ReconstructConfig:
     method: str = DEFAULT_METHOD
     compare_methods: tuple[str, ...] = ("ls",)
     refit_every: int = 4
+    provisional_period: float = 0.08
     confirm_steps: int = 6
     confirm_ratio: float = 1.5
     provisional: bool = True
@@ -126,6 +139,8 @@ class ReconstructConfig:
                 raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
         if self.refit_every < 1 or self.confirm_steps < 1:
             raise ConfigError("refit_every and confirm_steps must be >= 1")
+        if not self.provisional_period >= 0:
+            raise ConfigError("provisional_period must be >= 0 s")
         if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
             raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
         if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
@@ -168,6 +183,13 @@ class Partial:
     plane_b: PlaneResult | None = None
     steps_at_fit: int = 0
     estimated_at: float = 0.0
+    #: acquisition_time_ns of the newest step at the last provisional estimate (the per-scan rate limit).
+    provisional_ns: int = 0
+    #: The provisional planes, re-estimated in O(new points) (:mod:`lelsonar.reconstruct.incremental`).
+    inc_a: IncrementalPlane | None = None
+    inc_b: IncrementalPlane | None = None
+    #: A provisional refit waited for a backlog (tick() catches up).
+    deferred: bool = False
     last_activity: float = 0.0
     ended_at: float | None = None
     recovery: RecoveryState = field(default_factory=RecoveryState)
@@ -274,7 +296,9 @@ class ReconstructionService:
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
                 del self._partials[key]
                 continue
-            out += self._provisional(scan, p)
+            if p.deferred:  # only scans whose provisional refit waited for a backlog: O(1) for the others
+                p.deferred = False
+                out += self._provisional(scan, p)
             r = p.recovery
             self._note_progress(r, scan.n_received)
             if p.ended_at is not None:
@@ -420,6 +444,7 @@ class ReconstructionService:
         if p.ended_at is not None and scan.complete:
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
+            p.deferred = True  # tick() catches up
             return []  # the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
@@ -427,6 +452,8 @@ class ReconstructionService:
         """Confirm the corner, then (re)fit plane b when enough new steps have come."""
         if not self.config.provisional:
             return []
+        if p.critical is not None and scan.n_received - p.steps_at_fit < self.config.refit_every:
+            return []  # cheap: no array work per sample between refits
         steps, _, _, ratio = scan.arrays()
         if p.critical is None:
             peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
@@ -437,15 +464,26 @@ class ReconstructionService:
             p.critical = int(steps[peak])
             self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
                                 f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
-            p.data_a = self._plane_data(scan, "a", p.critical)
-            p.plane_a = fit_plane(p.data_a, self.provisional_method, options=self._options)
+            p.inc_a = IncrementalPlane(scan.geometry, "a", AXIS_Y, self.provisional_method, self._options,
+                                       scan.start.steps)
+            p.plane_a = p.inc_a.update(scan.gamma, scan.distance, steps[steps < p.critical])
+            p.data_a = p.inc_a.last_data
         elif len(steps) - p.steps_at_fit < self.config.refit_every:
             return []
+        newest_ns = int(scan.time_ns[steps[-1]]) if scan.latest is None else int(scan.latest.time_ns)
+        if 0 < newest_ns - p.provisional_ns < self.config.provisional_period * 1e9:
+            return []  # the per-scan rate limit (scan time)
+        p.provisional_ns = max(p.provisional_ns, newest_ns)
         p.estimated_at = self._clock()
         t0 = time.perf_counter()
-        warm = p.plane_b.theta if isinstance(p.plane_b, PlaneFit) else None
-        p.data_b = self._plane_data(scan, "b", p.critical)
-        p.plane_b = fit_plane(p.data_b, self.provisional_method, warm_start=warm, options=self._options)
+        if p.inc_b is None:
+            p.inc_b = IncrementalPlane(scan.geometry, "b", AXIS_Z, self.provisional_method, self._options,
+                                       scan.start.steps)
+        m = len(scan.received)
+        new = np.flatnonzero(scan.received & ~p.inc_b.included[:m])
+        # Plane b: the new steps after the corner, in O(new points) unless the trust check fails.
+        p.plane_b = p.inc_b.update(scan.gamma, scan.distance, new[new > p.critical])
+        p.data_b = p.inc_b.last_data
         p.steps_at_fit = len(steps)
         fit_s = time.perf_counter() - t0
         edge = corner_edge(p.plane_a, p.plane_b)
@@ -456,12 +494,6 @@ class ReconstructionService:
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
-
-    def _plane_data(self, scan: ScanAssembly, label: str, critical: int) -> F.PlaneData:
-        steps = np.flatnonzero(scan.received)
-        chosen = steps[steps < critical] if label == "a" else steps[steps > critical]
-        return F.plane_data(scan.geometry, scan.gamma, scan.distance, chosen, label,
-                            AXIS_Y if label == "a" else AXIS_Z)
 
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> codec.Reconstruction:
         missing = scan.missing_steps()

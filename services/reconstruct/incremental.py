@@ -1,0 +1,311 @@
+"""Cheap provisional estimates of a plane while its scan arrives (issue 12 §2).
+
+The live service re-estimates plane b as samples come.  Refitting it from
+scratch each time costs O(points) with the solver's constant (fast LEL,
+pre-filter, LS refit, the χ² tilt test) and, when the least-H minimum looks
+suspicious, the outlier-cluster guard's RANSAC — and the scan's points grow, so
+a scan pays O(n²).  :class:`IncrementalPlane` instead keeps the least-squares
+sufficient statistics of the plane's inliers (``Σ v vᵀ``, ``Σ v``, ``Σ p_c``,
+``Σ d``, their count) and, per update:
+
+1. computes the corrected points of the *new* steps only (eq. 9, §4);
+2. gives each new point to the inliers if it lies within
+   ``FitOptions.inlier_tolerance`` of the current plane, and adds it to the sums;
+3. solves the 3 × 3 normal equations (eq. 15 on the inliers) for the normal,
+   and takes the offset from the mirror-echo condition ``h = mean(n·p_c + d)``
+   over the inliers — what ``"adaptive"`` does on an axis-aligned wall;
+4. checks the update (the *trust check*): enough inliers; of the points
+   since the last exact fit, at least half the share of inliers that fit
+   had; the normal within the beam of a boresight (the mirror-echo
+   condition); the inliers' RMS residual within the tolerance.
+
+An exact fit — the provisional method from scratch, warm-started from the last
+estimate — runs only (a) for the first estimate, (b) when the trust check
+fails, (c) when the plane's points have doubled since the last exact fit (so a
+scan pays O(n) in all: amortised O(new samples) per update), or (d) when the last
+exact fit chose the constant-depth (tilted-wall) model, which the
+corrected-points sums do not represent: then the next exact fit waits until
+the points have grown by half, and the estimate stays meanwhile.  The outlier-cluster guard's
+RANSAC (the expensive part) runs inside an exact fit only when its least-H
+minimum fails the guard's own test (mirror-consistent, ``min_inlier_fraction``
+of the points within ``inlier_tolerance``); what the guard returns it has
+vetted, and the fit is trusted if it is mirror-consistent.  After a fit that
+fails the trust check even guarded, the next exact fit waits until the points
+have grown by half (:data:`RETRY_GROWTH`); and no fit at all is tried before a
+beam has faced the wall (within ``beam_half_angle`` + :data:`FACING_MARGIN` of
+its nominal normal): the estimate is then a typed failure, at no cost.
+
+The final estimate of a scan never uses any of this: it is computed from
+scratch (:meth:`ReconstructionService._finalise`).
+
+Building the :class:`~lelsonar.reconstruct.results.PlaneFit` the message
+carries (σ by MAD, H over all points, the observed patch, the residuals) is
+one vectorised pass over the plane's points; the fit itself touches only the
+new ones.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.geometry import ArrayGeometry
+
+from . import fit as F
+from .options import FitOptions
+from .results import FailureReason, FitFailure, PlaneFit, PlaneResult, SolverDiagnostics
+
+__all__ = ["IncrementalPlane", "IncrementalStats", "FACING_MARGIN", "RETRY_GROWTH"]
+
+#: rad.  No exact fit is tried before some beam of the plane's points has come within
+#: ``FitOptions.beam_half_angle`` + this margin of the plane's nominal normal (its correction axis):
+#: the mirror-echo condition (the guard's own test) rejects any plane no beam faced, and a wall more
+#: than this far off its nominal axis is beyond the joint model's ``max_tilt`` (15°) as well.
+FACING_MARGIN = float(np.deg2rad(15.0))
+#: After an exact fit that fails the trust check (the wall not yet seen face-on, typically), the next
+#: one waits until the plane's points have grown by this factor.
+RETRY_GROWTH = 1.5
+
+
+@dataclass
+class IncrementalStats:
+    """How the provisional estimates of one plane were made."""
+
+    calls: int = 0            # re-estimates asked for
+    updates: int = 0          # O(new points) updates that passed the trust check
+    exact: int = 0            # exact fits without the guard
+    guarded: int = 0          # exact fits whose least-H minimum failed the guard's test (its RANSAC ran)
+    trust_failures: int = 0   # incremental updates that failed the trust check (an exact fit followed)
+    untrusted: int = 0        # exact fits that failed the trust check even guarded (e.g. wall b not yet face-on)
+    waited: int = 0           # re-estimates that kept the last plane, waiting for more points after an untrusted fit
+    not_facing: int = 0       # re-estimates skipped: no beam has faced the wall yet (a typed failure, no fit)
+
+
+class IncrementalPlane:
+    """One plane of a scan in progress, re-estimated in O(new points).
+
+    Parameters
+    ----------
+    geometry : ArrayGeometry
+    label : str
+        ``"a"`` or ``"b"``.
+    axis : (3,) array
+        The paper's assumed normal of the plane (the correction's axis).
+    method : str
+        The provisional method (a per-subset method of ``pipeline.METHODS``)
+        used for the exact fits.
+    options : FitOptions
+    steps : int
+        Steps of the scan's schedule.
+    """
+
+    def __init__(self, geometry: ArrayGeometry, label: str, axis: np.ndarray, method: str, options: FitOptions,
+                 steps: int) -> None:
+        self.geometry, self.label, self.axis = geometry, label, np.asarray(axis, dtype=np.float64)
+        self.method, self.options = method, options
+        self.included = np.zeros(int(steps), dtype=bool)
+        self.n = 0
+        cap = 64
+        self._v = np.empty((cap, 3))
+        self._pc = np.empty((cap, 3))
+        self._d = np.empty(cap)
+        self._beam = np.empty((cap, 3))
+        self._step = np.empty(cap, dtype=np.intp)
+        self._inlier = np.zeros(cap, dtype=bool)
+        self._reset_sums()
+        self._theta_ls: np.ndarray | None = None  # the LS θ of the inliers; None: the next update is exact
+        self._exact_at = 0          # points at the last exact fit
+        self._retry_at = 0          # after a failed exact fit: points needed before the next one
+        self._offered = self._accepted = 0   # new points since the last exact fit
+        self._best_beam: np.ndarray | None = None
+        self._facing = -1.0         # the largest beam · axis so far
+        self._seed_fraction = 1.0   # inliers / points at the last exact fit
+        self.plane: PlaneResult | None = None
+        #: The points behind :attr:`plane` (for observers that draw them).
+        self.last_data: F.PlaneData | None = None
+        self.stats = IncrementalStats()
+
+    # --- data -------------------------------------------------------------------------------
+    def _reset_sums(self) -> None:
+        self._S = np.zeros((3, 3))
+        self._s = np.zeros(3)
+        self._P = np.zeros(3)
+        self._D = 0.0
+        self._k = 0
+
+    def _add_to_sums(self, v: np.ndarray, pc: np.ndarray, d: np.ndarray) -> None:
+        self._S += v.T @ v
+        self._s += v.sum(axis=0)
+        self._P += pc.sum(axis=0)
+        self._D += float(d.sum())
+        self._k += int(d.shape[0])
+
+    def _append(self, data: F.PlaneData) -> slice:
+        m = data.n
+        if self.n + m > len(self._d):
+            cap = max(2 * len(self._d), self.n + m)
+            for name in ("_v", "_pc", "_d", "_beam", "_step", "_inlier"):
+                old = getattr(self, name)
+                new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
+                new[:self.n] = old[:self.n]
+                setattr(self, name, new)
+        sl = slice(self.n, self.n + m)
+        self._v[sl], self._pc[sl], self._d[sl] = data.points, data.capsules, data.distance
+        self._beam[sl], self._step[sl] = data.beam, data.step
+        self._inlier[sl] = False
+        self.n += m
+        return sl
+
+    def data(self) -> F.PlaneData:
+        """The plane's points so far, in arrival order."""
+        n = self.n
+        return F.PlaneData(self.label, self.axis, self._v[:n], self._pc[:n], self._d[:n], self._beam[:n],
+                           self._step[:n])
+
+    # --- the estimate -----------------------------------------------------------------------
+    def update(self, gamma: np.ndarray, distance: np.ndarray, new_steps: np.ndarray) -> PlaneResult:
+        """Add the points of ``new_steps`` (received, not added before) and re-estimate."""
+        self.stats.calls += 1
+        new_steps = np.asarray(new_steps, dtype=np.intp)
+        self.included[new_steps] = True
+        t0 = time.perf_counter()
+        new = F.plane_data(self.geometry, gamma, distance, new_steps, self.label, self.axis) \
+            if len(new_steps) else None
+        sl = self._append(new) if new is not None and new.n else slice(self.n, self.n)
+        if sl.stop > sl.start:
+            self._facing = max(self._facing, float(np.max(self._beam[sl] @ self.axis)))
+        if self._facing < np.cos(self.options.beam_half_angle + FACING_MARGIN):
+            self.stats.not_facing += 1
+            self.plane = FitFailure(
+                FailureReason.DEGENERATE_GEOMETRY,
+                f"provisional: no beam has come within {np.rad2deg(self.options.beam_half_angle + FACING_MARGIN):.0f}° "
+                "of the wall's nominal normal yet (is the corner reached yet?)", self.label, self.n)
+            self.last_data = None
+            return self.plane
+        incremental = self._theta_ls is not None and self.n < 2 * self._exact_at
+        if incremental:
+            trusted = self._incremental(sl, t0)
+            if trusted:
+                return self.plane
+            self.stats.trust_failures += 1
+        elif self._theta_ls is None and self.n < self._retry_at and self.plane is not None:
+            self.stats.waited += 1
+            return self.plane  # the last exact fit failed its trust check: wait for more points
+        return self._exact(t0)
+
+    def _incremental(self, sl: slice, t0: float) -> bool:
+        o = self.options
+        theta = self._theta_ls
+        v, pc, d = self._v[sl], self._pc[sl], self._d[sl]
+        if len(d):
+            r = (v @ theta - 1.0) / np.linalg.norm(theta)
+            ok = np.abs(r) <= o.inlier_tolerance
+            self._inlier[sl] = ok
+            self._add_to_sums(v[ok], pc[ok], d[ok])
+            self._offered += len(d)
+            self._accepted += int(np.count_nonzero(ok))
+            beams = self._beam[sl]
+        else:
+            beams = np.zeros((0, 3))
+        if self._k < max(o.min_points, 4):
+            return False
+        try:
+            theta = np.linalg.solve(self._S, self._s)
+        except np.linalg.LinAlgError:
+            return False
+        nt = float(np.linalg.norm(theta))
+        if not (np.all(np.isfinite(theta)) and 1e-3 < nt < 1e3):
+            return False
+        n = theta / nt
+        # The trust check: most new points fit, the normal faces a beam, the inliers sit within the tolerance.
+        if self._offered >= o.min_points and self._accepted < 0.5 * self._seed_fraction * self._offered:
+            return False
+        cands = beams if self._best_beam is None else np.vstack([self._best_beam[None, :], beams])
+        if not F.mirror_consistent(n, cands, o.beam_half_angle) \
+                and not F.mirror_consistent(n, self._beam[:self.n], o.beam_half_angle):
+            return False
+        rss = float(theta @ self._S @ theta - 2.0 * theta @ self._s + self._k)
+        if not np.sqrt(max(rss, 0.0) / self._k) / nt <= o.inlier_tolerance:
+            return False
+        self._theta_ls = theta
+        h = float((n @ self._P + self._D) / self._k)
+        diag = SolverDiagnostics(
+            solver="incremental: LS on the inliers' sums, mirror-echo offset", time_s=time.perf_counter() - t0,
+            notes=(f"incremental update: {self._k} inliers of {self.n} points; {self._accepted} of the "
+                   f"{self._offered} points since the last exact fit at {self._exact_at} accepted",))
+        self.last_data = self.data()
+        fit = F.make_plane_fit(self.last_data, n / h, method=self.method,
+                               inlier_mask=self._inlier[:self.n].copy(), diagnostics=diag)
+        if not isinstance(fit, PlaneFit):
+            return False
+        self.plane = fit
+        self.stats.updates += 1
+        return True
+
+    def _trusted(self, fit: PlaneResult, data: F.PlaneData) -> bool:
+        # Used when FitOptions.guard is off: the guard's test, applied to the fit.
+        """The guard's own acceptance test, on a fit made without it."""
+        o = self.options
+        if not isinstance(fit, PlaneFit):
+            return False
+        if not F.mirror_consistent(fit.normal, data.beam, o.beam_half_angle):
+            return False
+        k = F.inlier_count(F.metric_residuals(fit.theta, data.points), o.inlier_tolerance)
+        return k >= o.min_inlier_fraction * data.n
+
+    def _exact(self, t0: float) -> PlaneResult:
+        from .pipeline import fit_plane  # pipeline imports the estimators this module sits beside
+
+        data = self.last_data = self.data()
+        warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
+        # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test
+        # (mirror-consistent, min_inlier_fraction of the points within inlier_tolerance): the fast LEL is
+        # not run twice.  What the guard returns it has vetted.
+        fit = fit_plane(data, self.method, warm_start=warm, options=self.options)
+        self.stats.exact += 1
+        if _guard_ran(fit):
+            self.stats.guarded += 1
+        if self.options.guard:
+            trusted = isinstance(fit, PlaneFit) and F.mirror_consistent(fit.normal, data.beam,
+                                                                        self.options.beam_half_angle)
+        else:
+            trusted = self._trusted(fit, data)
+        self.plane = fit
+        self._exact_at = self.n
+        self._offered = self._accepted = 0
+        self._theta_ls = None
+        self._reset_sums()
+        self._inlier[:self.n] = False
+        self._retry_at = max(self.n + 1, int(np.ceil(RETRY_GROWTH * self.n)))  # if no update can follow this fit
+        if not trusted:
+            self.stats.untrusted += 1
+            return fit
+        # Seed the sums with the fit's inliers, if the fit is the corrected-points LS of those inliers
+        # (not the constant-depth plane of a tilted wall, which the sums do not represent).
+        mask = fit.inlier_mask
+        v = data.points[mask]
+        self._add_to_sums(v, data.capsules[mask], data.distance[mask])
+        try:
+            theta_ls = np.linalg.solve(self._S, self._s)
+        except np.linalg.LinAlgError:
+            self._reset_sums()
+            return fit
+        n_ls = theta_ls / np.linalg.norm(theta_ls)
+        if float(n_ls @ fit.normal) < np.cos(1e-6):
+            self._reset_sums()  # a tilted wall: the next update is an exact fit again
+            return fit
+        self._inlier[:self.n] = mask
+        self._seed_fraction = self._k / max(self.n, 1)
+        self._theta_ls = theta_ls
+        self._retry_at = 0
+        self._best_beam = data.beam[int(np.argmax(data.beam @ fit.normal))]
+        return fit
+
+
+def _guard_ran(fit: PlaneResult) -> bool:
+    """Whether the outlier-cluster guard's fallback ran in this fit (its notes, or its typed failure)."""
+    if isinstance(fit, PlaneFit):
+        return any(n.startswith("guard:") for n in fit.diagnostics.notes)
+    return "no LEL minimum has its normal within" in fit.detail
