@@ -169,10 +169,14 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
                  flags: list[str], max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
     """One wall of the joint model, refined on its own echoes.
 
-    With the echoes' own energies, the wall's direction in the rotation plane
-    comes from where they are strongest (:func:`amplitude_pitch`) and its yaw
-    and offset from the ranges (:func:`fixed_pitch_wall`): unbiased whatever
-    the tilt, and as precise as the corrected points on axis-aligned walls.
+    With the echoes' own amplitudes, the wall's direction in the rotation
+    plane comes from where they are strongest (:func:`amplitude_pitch`) and
+    its yaw and offset from the ranges (:func:`fixed_pitch_wall`): unbiased
+    whatever the tilt, and as precise as the corrected points on axis-aligned
+    walls.  It is kept only if it agrees with the joint model's direction
+    (unbiased, if imprecise) within ``opts.tilt_test_sigma`` of their combined
+    standard error: a later echo leaking into the amplitudes would pull the
+    peak off the wall's normal.
 
     Without them (no waveforms, or the peak outside the sweep): the
     paper-corrected points (§4) give the most precise normal when the wall is
@@ -186,10 +190,8 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
 
     ``amplitude`` holds the wall's echoes as ``(gamma, peak amplitude,
     distance, capsules)``, or None.  Reasons to call the plane unreliable are
-    appended to ``flags`` (a disagreement over ``max_disagreement``, rad).  The amplitude direction is kept only if it
-    agrees with the joint model's (unbiased, if imprecise) within
-    ``opts.tilt_test_sigma`` of the joint standard error: a later echo leaking
-    into the amplitudes would pull the peak off the wall's normal.
+    appended to ``flags``: corrected points and joint fit more than
+    ``max_disagreement`` (rad) apart.
     """
     mask = np.ones(data.n, dtype=bool)
     se_joint, se_h_joint = wall_se
