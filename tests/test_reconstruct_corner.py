@@ -301,5 +301,14 @@ def test_amplitudes_without_a_beam_pattern_give_no_direction() -> None:
 
 
 def test_a_reason_the_estimator_found_makes_the_plane_unreliable() -> None:
-    p = assess_plane(_plane(), GAMMA, unreliable=("its direction is ambiguous",))
+    p = assess_plane(_plane(), GAMMA, findings=((UNRELIABLE, "its direction is ambiguous"),))
     assert p.quality == UNRELIABLE and p.quality_reasons[0] == "its direction is ambiguous"
+
+
+def test_a_model_that_leaves_echoes_unexplained_distrusts_its_planes() -> None:
+    from lelsonar.reconstruct.quality import unexplained_finding
+
+    assert unexplained_finding(0.005) == ()  # a healthy scan: slips and stray echoes
+    assert unexplained_finding(0.08)[0][0] == DEGRADED
+    ((level, reason),) = unexplained_finding(0.3)
+    assert level == UNRELIABLE and "30 %" in reason

@@ -24,7 +24,7 @@ from .corner_model import ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wal
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .options import FitOptions, ScanFit
-from .quality import assess_plane
+from .quality import UNRELIABLE, assess_plane, unexplained_finding
 from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from .split import critical_step, split_subsets
 
@@ -292,7 +292,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
                          pts.distance[m], pts.capsule[m])
         flags: list[str] = []
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
-        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), unreliable=tuple(flags))
+        findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
+        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the

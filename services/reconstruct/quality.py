@@ -17,7 +17,7 @@ import numpy as np
 
 from .results import PlaneFit
 
-__all__ = ["QualityLimits", "assess_plane", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
+__all__ = ["QualityLimits", "assess_plane", "unexplained_finding", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
 _RANK = {GOOD: 0, DEGRADED: 1, UNRELIABLE: 2}
@@ -49,6 +49,11 @@ class QualityLimits:
         its face-on echo was never seen: degraded, and unreliable when the
         edge was not seen either (nothing ties the wall to the corner, and a
         corner cluster looks like a wall at the edge's range).
+    degraded_unexplained, unreliable_unexplained : float
+        Share of the scan's echoes that neither wall nor their edge explains
+        (the corner model's outliers): a healthy L scan leaves under 1 %; a
+        model that leaves a wall's echoes unexplained has taken something else
+        for that wall.
     """
 
     range_noise: float = 0.006
@@ -60,10 +65,23 @@ class QualityLimits:
     max_normal_stderr: float = float(np.deg2rad(3.0))
     max_offset_stderr: float = 0.005
     face_on_angle: float = float(np.deg2rad(12.0))
+    degraded_unexplained: float = 0.05
+    unreliable_unexplained: float = 0.15
+
+
+def unexplained_finding(share: float, limits: QualityLimits | None = None) -> tuple[tuple[str, str], ...]:
+    """The finding against every plane of a scan whose model leaves ``share`` of the echoes unexplained."""
+    lim = limits or QualityLimits()
+    text = f"{100 * share:.0f} % of the scan's echoes fit neither wall nor their edge"
+    if share > lim.unreliable_unexplained:
+        return ((UNRELIABLE, text + ": the walls explain the wrong echoes"),)
+    if share > lim.degraded_unexplained:
+        return ((DEGRADED, text),)
+    return ()
 
 
 def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | None = None,
-                 unreliable: tuple[str, ...] = (), limits: QualityLimits | None = None) -> PlaneFit:
+                 findings: tuple[tuple[str, str], ...] = (), limits: QualityLimits | None = None) -> PlaneFit:
     """``plane`` with its verdict and reasons filled in.
 
     Parameters
@@ -74,8 +92,9 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     edge_echoes : int, optional
         Echoes the joint model explained by the corner edge (None: not known,
         e.g. a per-subset method).
-    unreliable : tuple of str
-        Reasons the estimator itself found to distrust the plane.
+    findings : tuple of (level, reason)
+        What the estimator itself found against the plane (level
+        ``"degraded"`` or ``"unreliable"``).
     limits : QualityLimits, optional
     """
     lim = limits or QualityLimits()
@@ -87,8 +106,8 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
         if _RANK[level] > _RANK[verdict]:
             verdict = level
 
-    for reason in unreliable:
-        flag(UNRELIABLE, reason)
+    for level, reason in findings:
+        flag(level, reason)
     if plane.sigma > lim.unreliable_sigma * lim.range_noise:
         flag(UNRELIABLE, f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.unreliable_sigma:g}× the range noise: "
                          "the plane runs through echoes of more than one surface")
