@@ -59,7 +59,7 @@ from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.incremental import IncrementalPlane
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct
-from lelsonar.reconstruct.quality import cross_check
+from lelsonar.reconstruct.quality import assess_plane, cross_check
 from lelsonar.reconstruct.recovery import RecoveryRequest
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step
@@ -485,6 +485,10 @@ class ReconstructionService:
         p.plane_b = p.inc_b.update(scan.gamma, scan.distance, new[new > p.critical])
         p.data_b = p.inc_b.last_data
         p.steps_at_fit = len(steps)
+        # A provisional plane carries its verdict too (the final's is the method of record's own).
+        gamma_so_far = scan.gamma[steps]
+        p.plane_a, p.plane_b = (assess_plane(pl, gamma_so_far) if isinstance(pl, PlaneFit) and not pl.quality else pl
+                                for pl in (p.plane_a, p.plane_b))
         fit_s = time.perf_counter() - t0
         edge = corner_edge(p.plane_a, p.plane_b)
         msg = wire.reconstruction_message(
