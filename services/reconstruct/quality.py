@@ -15,6 +15,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lelsonar.errors import ConfigError
+
 from .results import PlaneFit
 
 __all__ = ["QualityLimits", "assess_plane", "unexplained_finding", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
@@ -67,6 +69,16 @@ class QualityLimits:
     face_on_angle: float = float(np.deg2rad(12.0))
     degraded_unexplained: float = 0.05
     unreliable_unexplained: float = 0.15
+
+    def __post_init__(self) -> None:
+        for name in ("range_noise", "degraded_sigma", "max_normal_stderr", "max_offset_stderr", "face_on_angle"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"QualityLimits.{name} must be > 0, got {getattr(self, name)!r}")
+        if not (self.unreliable_sigma >= self.degraded_sigma and self.few_echoes >= self.min_echoes >= 0
+                and 0 <= self.degraded_unexplained <= self.unreliable_unexplained <= 1
+                and 0 <= self.max_inlier_loss <= 1):
+            raise ConfigError("QualityLimits: each unreliable line must lie beyond its degraded line, "
+                              "and shares must be in [0, 1]")
 
 
 def unexplained_finding(share: float, limits: QualityLimits | None = None) -> tuple[tuple[str, str], ...]:
