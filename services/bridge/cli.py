@@ -47,13 +47,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS
+    from lelsonar.reconstruct.cli import add_method_arguments
 
     g = p.add_argument_group("estimation and drawing")
-    g.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(METHODS),
-                   help=f"estimator of record (default: {DEFAULT_METHOD})")
-    g.add_argument("--compare", default="ls", metavar="M1,M2",
-                   help="also draw these methods' planes (default: ls; '' for none)")
+    add_method_arguments(g, "also draw these methods' planes (default: ls; '' for none)")
     g.add_argument("--truth-preset", metavar="PRESET",
                    help="draw the true planes of this simulator preset (default: the recording's own preset "
                         "when its device is sim or emulated)")
@@ -66,10 +63,10 @@ def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _service_config(args: argparse.Namespace, *, provisional: bool):
+    from lelsonar.reconstruct.cli import compared_methods
     from lelsonar.reconstruct.service import ReconstructConfig
 
-    compare = tuple(m for m in args.compare.split(",") if m and m != args.method)
-    return ReconstructConfig(method=args.method, compare_methods=compare, provisional=provisional)
+    return ReconstructConfig(method=args.method, compare_methods=compared_methods(args), provisional=provisional)
 
 
 def _truth(args: argparse.Namespace, source: Path | None):

@@ -81,14 +81,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_planner)
 
 
-def _add_estimator_arguments(p: argparse.ArgumentParser) -> None:
+def add_method_arguments(g, compare_help: str) -> None:
+    """``--method`` and ``--compare``, for every command that reconstructs (see :func:`compared_methods`)."""
     from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS
 
-    g = p.add_argument_group("estimation")
     g.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(METHODS),
                    help=f"estimator of record (default: {DEFAULT_METHOD})")
-    g.add_argument("--compare", default="ls", metavar="M1,M2",
-                   help="also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
+    g.add_argument("--compare", default="ls", metavar="M1,M2", help=compare_help)
+
+
+def compared_methods(args: argparse.Namespace) -> tuple[str, ...]:
+    """The ``--compare`` list, without the method of record."""
+    return tuple(m for m in args.compare.split(",") if m and m != args.method)
+
+
+def _add_estimator_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("estimation")
+    add_method_arguments(g, "also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
     g.add_argument("--scan-timeout", type=float, default=10.0, metavar="S",
                    help="finalise a scan after S seconds of silence without ScanEnd (default: 10)")
 
@@ -125,7 +134,7 @@ def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
 def _config(args: argparse.Namespace, *, provisional: bool = True):
     from lelsonar.reconstruct.service import ReconstructConfig
 
-    compare = tuple(m for m in args.compare.split(",") if m and m != args.method)
+    compare = compared_methods(args)
     recovery = {k: getattr(args, k) for k in ("recovery_attempts", "recovery_interval", "recovery_after")
                 if getattr(args, k, None) is not None}
     return ReconstructConfig(method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout,
