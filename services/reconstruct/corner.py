@@ -20,7 +20,8 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
-from .corner_model import ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, fit_corner_model, scan_points
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, fit_corner_model,
+                           scan_points)
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .options import FitOptions, ScanFit
@@ -35,8 +36,9 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
                 ) -> EdgeLine | FitFailure:
     """The line where the two planes meet.
 
-    Direction ``n_a × n_b`` (normalised); point: the point of the line closest
-    to the origin, solving ``n_a·x = h_a``, ``n_b·x = h_b``, ``dir·x = 0``.
+    Direction ``n_a × n_b`` (normalised) and the point of the line closest to
+    the origin, as :func:`lelsonar.reconstruct.corner_model.edge_line` gives
+    them, with first-order standard errors.
 
     Returns FitFailure if a plane is missing or the planes are within
     ``min_angle`` of parallel.
@@ -44,15 +46,13 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
     if not isinstance(plane_a, PlaneFit) or not isinstance(plane_b, PlaneFit):
         return FitFailure(FailureReason.TOO_FEW_POINTS, "the edge needs both planes", "edge", 0)
     na, nb = plane_a.normal, plane_b.normal
-    cr = np.cross(na, nb)
-    s = float(np.linalg.norm(cr))
     angle = float(np.arccos(np.clip(na @ nb, -1.0, 1.0)))
-    if s < np.sin(min_angle):
+    line = edge_line(Wall(na, plane_a.offset), Wall(nb, plane_b.offset), min_angle)
+    if line is None:
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel", "edge", 0)
-    direction = cr / s
-    a = np.stack([na, nb, direction])
-    point = np.linalg.solve(a, np.array([plane_a.offset, plane_b.offset, 0.0]))
+    point, direction = line
+    s = float(np.sin(angle))
     # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
     # and turns it by δ / sin(angle).
     point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
