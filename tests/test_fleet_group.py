@@ -214,6 +214,26 @@ def wait_subscribed(acq_session: zenoh.Session, n: int) -> None:
     sub.undeclare()
 
 
+def test_a_joining_member_knows_the_members_alive_before_it_judges_any_payload(tmp_path):
+    # Judging before the others' tokens arrive, a newcomer would think itself alone and take
+    # the payloads of a scan its elders own (a flake CI once caught): joining asks and waits.
+    endpoint = f"unixsock-stream/{tmp_path}/router.sock"
+    with ExitStack() as stack:
+        stack.enter_context(open_session(router_settings(endpoint)))
+        elders = []
+        for m in ("a", "b", "c"):
+            session = stack.enter_context(open_session(client(endpoint)))
+            elders.append(stack.enter_context(GroupMembership(session, PREFIX, GroupConfig("g", m, settle=0.0))))
+        assert all(e.wait_members(3, 20) for e in elders)
+        newcomer = stack.enter_context(GroupMembership(stack.enter_context(open_session(client(endpoint))), PREFIX,
+                                                       GroupConfig("g", "d", settle=0.0)))
+        # No waiting here: what __enter__ returned with is what the first payload is judged by.
+        assert sorted(newcomer.members) == ["a", "b", "c", "d"]
+        assert newcomer.stats["members joined"] == 3
+        scanner = next(s for s in (f"s{i}" for i in range(100)) if owner(s, ["a", "b", "c", "d"]) == "d")
+        assert newcomer.owner_of(scanner) != "d"  # a scan it never saw start is its elders'
+
+
 def test_two_members_each_scanner_final_arrives_exactly_once(tmp_path, scan):
     endpoint = f"unixsock-stream/{tmp_path}/router.sock"
     scanners = scanners_split(["a", "b"], 2)

@@ -121,6 +121,8 @@ class GroupConfig:
         Scanners followed; the least recently heard is forgotten (counted).
     keep_scans : int
         Scans followed per scanner (a backlogged owner may still hold older ones).
+    join_timeout : float
+        s; how long joining waits for the members alive to answer.
     """
 
     group: str
@@ -129,6 +131,7 @@ class GroupConfig:
     max_members: int = 64
     max_scanners: int = 1024
     keep_scans: int = 4
+    join_timeout: float = 5.0
 
     def __post_init__(self) -> None:
         try:
@@ -138,6 +141,8 @@ class GroupConfig:
             raise InvalidIdentifierError(f"{exc} (reconstruct --group NAME / --member-id ID)") from None
         if not self.settle >= 0:
             raise ConfigError(f"group settle must be >= 0 s, got {self.settle} (reconstruct --group-settle S)")
+        if not self.join_timeout > 0:
+            raise ConfigError(f"group join_timeout must be > 0 s, got {self.join_timeout}")
         if min(self.max_members, self.max_scanners, self.keep_scans) < 1:
             raise ConfigError("group max_members, max_scanners and keep_scans must be >= 1")
 
@@ -195,7 +200,24 @@ class GroupMembership:
         self._entities.append(s.declare_subscriber(self._done_key, self._on_done))
         self._entities.append(s.liveliness().declare_subscriber(self._member_key, self._on_token, history=True))
         self._entities.append(s.liveliness().declare_token(self._token_key))
+        self._learn_members()
         return self
+
+    def _learn_members(self) -> None:
+        """Ask for the members alive now, and wait for the answer, before any payload is judged.
+
+        The subscriber's history arrives in the background; a member that judged payloads
+        before it would think itself alone and take scans that are its elders'.
+        """
+        try:
+            replies = self._session.liveliness().get(self._member_key, timeout=self.config.join_timeout)
+            for reply in replies:
+                if reply.ok is not None:
+                    self._on_token(reply.ok)
+        except zenoh.ZError as exc:
+            self.stats["errors: member query"] += 1
+            _log.warning("group %s: the members alive could not be asked (%s); relying on their tokens as they "
+                         "arrive", self.config.group, exc)
 
     def __exit__(self, *exc_info) -> None:
         self.close()
@@ -331,6 +353,8 @@ class GroupMembership:
                         _log.error("group %s: another process joined as member %s; give each member a unique "
                                    "--member-id (or leave it to the default)", self.config.group, member)
                     return
+                if self.members.get(member) == joined:
+                    return  # seen twice: by the subscriber's history and by the join query
                 if member not in self.members and len(self.members) >= self.config.max_members:
                     self.stats["refused: member over max_members"] += 1
                     _log.warning("group %s: ignoring member %s (more than %d members)", self.config.group, member,
