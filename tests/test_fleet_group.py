@@ -199,6 +199,11 @@ def start_member(stack: ExitStack, endpoint: str, member: str) -> GroupMembershi
 
 def wait_subscribed(acq_session: zenoh.Session, n: int) -> None:
     """Until ``n`` sessions subscribe to every scanner's sample key (the members' sources are up)."""
+    wait_alive(acq_session, f"{PREFIX}/*/alive/test-member", n)
+
+
+def wait_alive(acq_session: zenoh.Session, key: str, n: int) -> None:
+    """Until ``n`` liveliness tokens on ``key`` are up."""
     ready = threading.Event()
     seen: Counter[str] = Counter()
     lock = threading.Lock()
@@ -209,7 +214,7 @@ def wait_subscribed(acq_session: zenoh.Session, n: int) -> None:
             if sum(seen.values()) >= n:
                 ready.set()
 
-    sub = acq_session.liveliness().declare_subscriber(f"{PREFIX}/*/alive/test-member", on_token, history=True)
+    sub = acq_session.liveliness().declare_subscriber(key, on_token, history=True)
     assert ready.wait(30), f"members not up: {dict(seen)}"
     sub.undeclare()
 
@@ -286,7 +291,8 @@ def test_a_member_killed_mid_scan_its_scans_still_get_one_complete_final(tmp_pat
         acquirers = {s: Acquirer(acq, s) for s in scanners}
         for x in acquirers.values():
             stack.callback(x.close)
-        # b may miss the first messages (its token precedes its subscribers): it catches up from the log.
+        # b's "alive" token means it listens; sent before, a whole scan's start could pass it by unheard.
+        wait_alive(acq, f"{PREFIX}/*/alive/reconstruct", 1)
         messages = {s: renamed(scan, s) for s in scanners}
         for s, x in acquirers.items():
             x.send(messages[s][:1 + cut])  # ScanStart and the first `cut` steps

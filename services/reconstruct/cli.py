@@ -238,6 +238,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         publish_to = [report]
         service = ReconstructionService(config, publish=lambda msg: [fn(msg) for fn in publish_to],
                                         observer=observer)
+        session = None
         if args.source is None or args.publish:
             session = stack.enter_context(open_session(_zenoh_settings(args, "reconstruct", keys.prefix)))
             group = None
@@ -252,7 +253,6 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                                   answers_for=group.answers_for if group is not None else None)
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
-            stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
         if args.source is not None:
             stop = _stop_on_signals() if fox is not None else None
             if fox is not None and args.foxglove_wait > 0:
@@ -260,6 +260,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
                 console.print("reconstruct: waiting for a Foxglove client to subscribe", highlight=False)
                 fox.server.wait_for_subscribers([TOPIC_PLANES], args.foxglove_wait)
+            if session is not None:
+                stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
             n = replay_mcap(source, service)
             if recorder:
                 for msg in service.finals.values():
@@ -288,7 +290,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         recovery = RecoveryConfig() if config.recovery_attempts > 0 else None
         if group is not None:
             console.print(f"reconstruct: member {group.me} of group {group_config.group}", highlight=False)
-        with LiveSource(session, keys, service, stop, record=recorder, recovery=recovery, group=group) as live:
+        with LiveSource(session, keys, service, stop, record=recorder, recovery=recovery, group=group) as live, \
+                session.liveliness().declare_token(keys.alive("reconstruct")):  # alive = listening
             while not stop.is_set() and not finals.is_set():
                 stop.wait(0.2)
         stats = service.stats_dict()
