@@ -135,7 +135,10 @@ def partition_mid_scan(tmp_path: Path, down_s: float) -> None:
 
             _drain(watcher.stdout, [], count)
             recon_err: list[str] = []
-            _drain(recon.stderr, recon_err, lambda line: "listening on" in line and listening.set())
+            recon_lines: list[str] = []
+            # Both of reconstruct's pipes are drained by threads (communicate() would close them under one).
+            recon_drains = [_drain(recon.stderr, recon_err, lambda line: "listening on" in line and listening.set()),
+                            _drain(recon.stdout, recon_lines)]
             assert watching.wait(60) and listening.wait(60), f"not up: {''.join(recon_err)[-2000:]}"
             acquire = _lelsonar(ns_a, "acquire", "--device", "emulated", "--out", str(tmp_path),
                                 "--zenoh-config", str(tmp_path / "acq.json5"), "--serve-log-for", str(down_s + 60),
@@ -146,7 +149,10 @@ def partition_mid_scan(tmp_path: Path, down_s: float) -> None:
             # The fault itself is timed: the link stays down for down_s seconds, mid-scan.
             threading.Event().wait(down_s)
             assert _ip("-n", ns_a, "link", "set", dev_a, "up").returncode == 0
-            recon_out, _ = recon.communicate(timeout=down_s + 90)
+            recon.wait(timeout=down_s + 90)
+            for t in recon_drains:
+                t.join(timeout=30)
+            recon_out = "".join(recon_lines)
             assert recon.returncode == 0, "".join(recon_err)[-3000:]
             acquire.send_signal(signal.SIGINT)  # ends --serve-log-for
             acq_out, acq_err = acquire.communicate(timeout=60)
