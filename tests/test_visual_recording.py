@@ -17,7 +17,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 from rerun.chunk import RrdReader
 
-from lelsonar import codec, recording, visual
+from lelsonar import codec, palette, recording, visual
 from lelsonar.reconstruct.energy import total_energy, waveform_energy
 from lelsonar.v1 import reconstruction_pb2
 
@@ -189,9 +189,13 @@ def test_record_adds_planes_coloured_by_method_and_quality_and_deletes_stale_one
     u1, u2 = SceneUpdate.FromString(m1.data), SceneUpdate.FromString(m2.data)
     by_id = {e.id: e for e in u1.entities}
     assert set(by_id) == {"s1/7/plane/ls/a", "s1/7/plane/ls/b", "s1/7/plane/lel/a", "s1/7/edge"}
-    expect = {"s1/7/plane/ls/a": ((255, 140, 0), (40, 200, 60), "GOOD"),
-              "s1/7/plane/ls/b": ((255, 140, 0), (230, 30, 30), "UNRELIABLE"),
-              "s1/7/plane/lel/a": ((40, 190, 70), (150, 150, 150), "UNKNOWN")}
+    # One palette for every viewer: Foxglove draws what Rerun and the ROS 2 markers draw.
+    ls, lel = palette.METHOD_COLORS["ls"], palette.METHOD_COLORS["lel"]
+    q = palette.QUALITY_COLORS
+    expect = {"s1/7/plane/ls/a": (ls, q["good"], "good"),
+              "s1/7/plane/ls/b": (ls, q["unreliable"], "unreliable"),
+              "s1/7/plane/lel/a": (lel, palette.UNASSESSED_COLOR, "unassessed")}
+    assert len({ls, lel, *q.values(), palette.UNASSESSED_COLOR}) == 6  # distinguishable
     for eid, (fill, outline, quality) in expect.items():
         e = by_id[eid]
         assert _rgb(e.triangles[0].color) == fill and _rgb(e.lines[0].color) == outline
@@ -206,7 +210,7 @@ def test_record_adds_planes_coloured_by_method_and_quality_and_deletes_stale_one
     assert (edge[0].y, edge[0].z) == (1.57, 1.06) and edge[1].x - edge[0].x == 1.0
     # The second estimate redraws ls/a in amber and deletes what it no longer has.
     assert [e.id for e in u2.entities] == ["s1/7/plane/ls/a"]
-    assert _rgb(u2.entities[0].lines[0].color) == (245, 170, 0)
+    assert _rgb(u2.entities[0].lines[0].color) == q["degraded"]
     assert sorted(d.id for d in u2.deletions) == ["s1/7/edge", "s1/7/plane/lel/a", "s1/7/plane/ls/b"]
 
 

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import json
 import math
-import zlib
 
 import numpy as np
 from foxglove_schemas_protobuf.ArrowPrimitive_pb2 import ArrowPrimitive
@@ -57,6 +56,7 @@ from google.protobuf import descriptor_pb2
 from google.protobuf.message import Message
 
 from lelsonar import codec
+from lelsonar.palette import QUALITY_NAME, method_color, quality_color
 from lelsonar.v1 import reconstruction_pb2
 
 WORLD_FRAME = "world"
@@ -72,37 +72,9 @@ TOPIC_ENERGY = "/lelsonar/energy"
 TOPIC_PLANES = "/lelsonar/planes"
 TOPIC_LOG = "/log"
 
-#: Colours of the estimators' patches (RGB 0–255), as in the Rerun review.
-METHOD_COLORS: dict[str, tuple[int, int, int]] = {
-    "ls": (255, 140, 0), "lel": (40, 190, 70), "paper": (0, 180, 210), "ransac": (220, 60, 200),
-}
-_PALETTE = [(230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100)]
-
-#: Outline colour of a patch by its quality verdict; UNSPECIFIED (not assessed) is grey.
-QUALITY_COLORS: dict[int, tuple[int, int, int]] = {
-    reconstruction_pb2.PLANE_QUALITY_UNSPECIFIED: (150, 150, 150),
-    reconstruction_pb2.PLANE_QUALITY_GOOD: (40, 200, 60),
-    reconstruction_pb2.PLANE_QUALITY_DEGRADED: (245, 170, 0),
-    reconstruction_pb2.PLANE_QUALITY_UNRELIABLE: (230, 30, 30),
-}
 _PATCH_ALPHA = 0.45
 _NORMAL_LENGTH = 0.25   # m
 _EDGE_RGB = (255, 255, 255)
-
-
-def quality_name(quality: int) -> str:
-    """``GOOD``, ``DEGRADED``, ``UNRELIABLE`` or ``UNKNOWN`` (UNSPECIFIED: not assessed)."""
-    if quality == reconstruction_pb2.PLANE_QUALITY_UNSPECIFIED:
-        return "UNKNOWN"
-    try:
-        return reconstruction_pb2.PlaneQuality.Name(quality).removeprefix("PLANE_QUALITY_")
-    except ValueError:
-        return "UNKNOWN"
-
-
-def method_color(method: str) -> tuple[int, int, int]:
-    """The colour of an estimator: fixed for the known ones, stable for others."""
-    return METHOD_COLORS.get(method, _PALETTE[zlib.crc32(method.encode()) % len(_PALETTE)])
 
 
 def capsule_frame(capsule_id: int) -> str:
@@ -401,8 +373,8 @@ def _plane_entity(msg: codec.Reconstruction, p: reconstruction_pb2.PlaneEstimate
     patch = np.array([_vec(v) for v in p.patch])
     if len(patch) < 3 or not np.all(np.isfinite(patch)):
         return None
-    rgb, qrgb = method_color(p.method), QUALITY_COLORS.get(p.quality, QUALITY_COLORS[0])
-    quality = quality_name(p.quality)
+    rgb, qrgb = method_color(p.method), quality_color(p.quality)
+    quality = QUALITY_NAME.get(p.quality, "unknown")
     ent = SceneEntity(frame_id=WORLD_FRAME, id=plane_entity_id(msg.scanner_id, msg.scan_id, p.method, p.label))
     ent.timestamp.FromNanoseconds(int(t_ns))
     ent.lifetime.SetInParent()

@@ -32,6 +32,7 @@ import numpy as np
 from google.protobuf.message import Message
 
 from lelsonar import codec, visual
+from lelsonar.palette import QUALITY_NAME
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 
@@ -222,7 +223,7 @@ class FoxgloveObserver:
             lines = [f"final estimate of scan {message.scan_id} after step {step}"]
             for p in message.planes:
                 lines.append(f"  {p.method} {p.label}: h = {p.offset:.4f} m, σ = {p.sigma * 1e3:.1f} mm, "
-                             f"{visual.quality_name(p.quality)}"
+                             f"{QUALITY_NAME.get(p.quality, 'unknown')}"
                              + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else ""))
             lines += [f"  {f}" for f in message.failures]
             self.event("info", "\n".join(lines), t)

@@ -60,7 +60,7 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.reconstruct.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.pipeline import FitOptions
-from lelsonar.reconstruct.palette import method_color
+from lelsonar.palette import method_color
 from lelsonar.reconstruct.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.wire import QUALITY_NAME
 

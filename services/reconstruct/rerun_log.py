@@ -79,7 +79,7 @@ import rerun.blueprint as rrb
 
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.results import EdgeLine, FitFailure, PlaneFit
-from lelsonar.reconstruct.palette import METHOD_COLORS, method_color, quality_color
+from lelsonar.palette import METHOD_COLORS, method_color, quality_color
 
 __all__ = [
     "STEP_TIMELINE",

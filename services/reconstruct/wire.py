@@ -8,17 +8,10 @@ from collections.abc import Iterable
 import numpy as np
 
 from lelsonar import SCHEMA_VERSION, codec
+from lelsonar.palette import QUALITY, QUALITY_NAME  # noqa: F401 - the wire's verdict names, re-exported
 from lelsonar.reconstruct.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
 from lelsonar.v1 import reconstruction_pb2 as pb
 
-QUALITY = {
-    "": pb.PLANE_QUALITY_UNSPECIFIED,
-    "good": pb.PLANE_QUALITY_GOOD,
-    "degraded": pb.PLANE_QUALITY_DEGRADED,
-    "unreliable": pb.PLANE_QUALITY_UNRELIABLE,
-}
-#: Short names of the quality enum, as ``--json`` and the planner print them.
-QUALITY_NAME = {v: (k or "unassessed") for k, v in QUALITY.items()}
 
 STATUS = {
     "provisional": pb.ESTIMATE_STATUS_PROVISIONAL,

@@ -1,4 +1,5 @@
-"""The colours every viewer uses (Rerun, Foxglove, ROS 2 markers): one per method and one per verdict.
+"""What every viewer shows of an estimate (Rerun, Foxglove, ROS 2 markers, the console): one colour per
+method, and one name and colour per trust verdict.
 
 RGB in 0–255; viewers that take 0–1 divide by 255.
 """
@@ -7,7 +8,19 @@ from __future__ import annotations
 
 import zlib
 
-__all__ = ["METHOD_COLORS", "QUALITY_COLORS", "UNASSESSED_COLOR", "method_color", "quality_color"]
+from lelsonar.v1 import reconstruction_pb2 as pb
+
+__all__ = ["METHOD_COLORS", "QUALITY", "QUALITY_NAME", "QUALITY_COLORS", "UNASSESSED_COLOR", "method_color",
+           "quality_color"]
+
+#: The verdict's short names (``--json``, the planner, labels) and their wire values.
+QUALITY = {
+    "": pb.PLANE_QUALITY_UNSPECIFIED,
+    "good": pb.PLANE_QUALITY_GOOD,
+    "degraded": pb.PLANE_QUALITY_DEGRADED,
+    "unreliable": pb.PLANE_QUALITY_UNRELIABLE,
+}
+QUALITY_NAME = {v: (k or "unassessed") for k, v in QUALITY.items()}
 
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {
     "corner": (30, 120, 255),  # blue: the method of record
@@ -29,6 +42,6 @@ def method_color(method: str) -> tuple[int, int, int]:
     return METHOD_COLORS.get(method, _PALETTE[zlib.crc32(method.encode()) % len(_PALETTE)])
 
 
-def quality_color(quality: str) -> tuple[int, int, int]:
-    """The colour of a verdict (``"good"``, ``"degraded"``, ``"unreliable"``; grey otherwise)."""
-    return QUALITY_COLORS.get(quality, UNASSESSED_COLOR)
+def quality_color(quality: str | int) -> tuple[int, int, int]:
+    """The colour of a verdict, by name (``"good"``, …) or wire value; grey when not assessed or unknown."""
+    return QUALITY_COLORS.get(QUALITY_NAME.get(quality, quality), UNASSESSED_COLOR)
