@@ -14,7 +14,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
 
-from lelsonar import codec, recording
+from lelsonar import codec, recording, visual
 from lelsonar.__main__ import main as lelsonar_main
 from lelsonar.v1 import reconstruction_pb2
 
@@ -116,6 +116,36 @@ def test_foreign_channels_only_is_no_lelsonar_scans(tmp_path, capsys, command):
     assert_one_error_line(rc, err, command, f"no lelsonar scans in {target}: its channels are /camera/info")
     rc, out, _err = run(capsys, "info", target)  # info describes it, it is not an error
     assert rc == 0 and "no lelsonar scans" in out
+
+
+def test_another_writer_of_the_schema_on_its_own_topics_gives_the_same_estimate(scan, tmp_path, capsys):
+    # A simulator or bridge that writes lelsonar.v1 messages with mcap's plain writer, on topics of its
+    # own and with no viewer channels, is read by the schema names of its channels.
+    path, msgs, _spans = scan
+    other = tmp_path / "other.mcap"
+    with open(other, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="another simulator")
+        channels = {}
+        for cls, topic in ((codec.ScanStart, "/rig7/start"), (codec.Sample, "/rig7/ultrasound"),
+                           (codec.ScanEnd, "/rig7/end")):
+            schema = w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", visual.file_descriptor_set(cls))
+            channels[cls] = w.register_channel(topic, "protobuf", schema)
+        for i, msg in enumerate(msgs):
+            w.add_message(channels[type(msg)], log_time=i, publish_time=i, data=msg.SerializeToString())
+        w.finish()
+    rc, theirs, _ = run(capsys, "reconstruct", "--source", other, "--json")
+    assert rc == 0
+    rc, ours, _ = run(capsys, "reconstruct", "--source", path, "--json")
+    assert rc == 0
+
+    def estimate(out: str) -> dict:
+        (line,) = [x for x in out.splitlines() if x.startswith("{")]
+        return {k: v for k, v in json.loads(line).items() if k not in ("stamp_ns", "timings")}
+
+    got = estimate(theirs)
+    assert got["status"] == "final" and got["accounting"]["missing"] == 0
+    assert got == estimate(ours)
 
 
 @pytest.mark.parametrize("command", ["reconstruct", "review", "recover"])

@@ -290,20 +290,39 @@ class Recording:
     def path(self) -> Path:
         return self.salvage.path
 
+    def contract_channels(self) -> dict[int, type[Message]]:
+        """The channels that hold contract messages, and the message type of each.
+
+        A channel is the contract's by its protobuf schema name (``lelsonar.v1.Sample`` …), whatever
+        its topic: another writer of the schema (a simulator, a bridge) may name its topics otherwise.
+        Every payload is still decoded and validated by the consumer.
+        """
+        s = self.salvage
+        out = {}
+        for cid, ch in s.channels.items():
+            cls = codec.MESSAGE_TYPES.get(s.schema_name(cid))
+            if cls is not None and ch.message_encoding == "protobuf":
+                out[cid] = cls
+        return out
+
     def payloads(self) -> list[RecordedPayload]:
         """The contract messages in log-time order, undecoded."""
         s = self.salvage
-        wanted = {cid for cid, ch in s.channels.items() if ch.topic in _CONTRACT_TOPICS}
+        wanted = self.contract_channels()
         return [RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
                 for m in s.in_log_time_order() if m.channel_id in wanted]
 
-    def count(self, topic: str) -> int:
-        ids = {cid for cid, ch in self.salvage.channels.items() if ch.topic == topic}
+    def count(self, kind: str | type[Message]) -> int:
+        """Messages on a topic, or of a contract message type (on whichever topics)."""
+        if isinstance(kind, str):
+            ids = {cid for cid, ch in self.salvage.channels.items() if ch.topic == kind}
+        else:
+            ids = {cid for cid, cls in self.contract_channels().items() if cls is kind}
         return sum(1 for m in self.salvage.messages if m.channel_id in ids)
 
     @property
     def has_scans(self) -> bool:
-        return any(self.count(TOPICS[cls]) for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd))
+        return any(self.count(cls) for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd))
 
     def damage_warning(self) -> str | None:
         """One line saying what was lost, or None for an intact, finished file.
@@ -314,7 +333,7 @@ class Recording:
         s = self.salvage
         if s.intact:
             return None
-        return f"warning: {s.path} {describe_damage(s)}; {self.count(TOPICS[codec.Sample])} samples salvaged"
+        return f"warning: {s.path} {describe_damage(s)}; {self.count(codec.Sample)} samples salvaged"
 
     def require_scans(self) -> Recording:
         """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost)."""
@@ -441,4 +460,3 @@ def read_metadata(path: Path | str | Recording) -> dict[str, dict[str, str]]:
     return dict(open_recording(path).salvage.metadata)
 
 
-_CONTRACT_TOPICS = frozenset(TOPICS.values())

@@ -36,7 +36,7 @@ def run_recover(args: argparse.Namespace) -> int:
 
     from lelsonar import codec
     from lelsonar.errors import RecordingError
-    from lelsonar.recording import TOPICS, Recording, describe_damage
+    from lelsonar.recording import Recording, describe_damage
     from lelsonar.recordings.recover import recover
 
     report = recover(args.source, args.output, compression=args.compression)
@@ -55,7 +55,7 @@ def run_recover(args: argparse.Namespace) -> int:
     if summary is None or indexed != report.messages_written:
         raise RecordingError(f"the recovered {args.output} reads back {indexed} of {report.messages_written} "
                              "messages; please report this")
-    samples = Recording(s).count(TOPICS[codec.Sample])
+    samples = Recording(s).count(codec.Sample)
     state = "intact" if s.intact else describe_damage(s)
     print(f"recovered {report.messages_written} messages ({samples} samples) on {report.channels_written} channels "
           f"from {args.source} into {args.output}; the input {state}", file=sys.stderr)
