@@ -146,6 +146,8 @@ def test_another_writer_of_the_schema_on_its_own_topics_gives_the_same_estimate(
     got = estimate(theirs)
     assert got["status"] == "final" and got["accounting"]["missing"] == 0
     assert got == estimate(ours)
+    rc, described, _ = run(capsys, "info", other)
+    assert rc == 0 and "no lelsonar scans" not in described and str(STEPS) in described
 
 
 @pytest.mark.parametrize("command", ["reconstruct", "review", "recover"])

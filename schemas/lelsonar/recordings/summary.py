@@ -14,7 +14,7 @@ from pathlib import Path
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
 from lelsonar import codec
-from lelsonar.recording import CHANNEL_METADATA, TOPICS, Recording, describe_damage, open_recording
+from lelsonar.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
 from lelsonar.recordings.reader import Damage
 
 _SCAN_STATUS = codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type
@@ -162,9 +162,9 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     def scan(scanner_id: str, scan_id: int) -> ScanSummary:
         return scans.setdefault((scanner_id, scan_id), ScanSummary(scanner_id, scan_id))
 
-    topic_type = {TOPICS[cls]: cls for cls in TOPICS}
+    channel_type = rec.contract_channels()
     for m in s.in_log_time_order():
-        cls = topic_type.get(s.topic(m.channel_id))
+        cls = channel_type.get(m.channel_id)
         if cls is None:
             continue
         try:
