@@ -150,6 +150,20 @@ def test_another_writer_of_the_schema_on_its_own_topics_gives_the_same_estimate(
     assert rc == 0 and "no lelsonar scans" not in described and str(STEPS) in described
 
 
+def test_a_scan_without_its_scan_start_is_reported_not_silently_skipped(scan, tmp_path, capsys, caplog):
+    _path, msgs, _spans = scan
+    target = tmp_path / "headless.mcap"
+    with recording.McapRecorder(target) as rec:
+        for msg in msgs:
+            if not isinstance(msg, codec.ScanStart):
+                rec.write(msg)
+    rc, out, err = run(capsys, "reconstruct", "--source", target, "--json")
+    assert rc == 1 and "Traceback" not in err
+    assert f"scan ('s1', 1): {STEPS + 1} messages but never its ScanStart" in caplog.text
+    stats = json.loads(out.splitlines()[-1])["stats"]
+    assert stats["scans_without_start"] == 1 and stats["finals"] == 0
+
+
 @pytest.mark.parametrize("command", ["reconstruct", "review", "recover"])
 def test_a_file_with_nothing_left_is_one_error_line(scan, tmp_path, capsys, command):
     target = tmp_path / "stub.mcap"
