@@ -210,6 +210,8 @@ class ServiceStats:
     missing: int = 0
     recovery_requests: int = 0
     recovery_refused: int = 0
+    #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
+    without_start: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
     evicted: Counter = field(default_factory=Counter)
 
@@ -346,6 +348,11 @@ class ReconstructionService:
                 else:
                     status = "final" if scan.complete else "incomplete"
                 out.append(self._finalise(scan, p, status))
+        for key, held in self.ingest.pending.items():
+            # No ScanStart, no array geometry or schedule: nothing can be estimated, and saying so is the result.
+            self.stats.without_start += 1
+            self._event("ERROR", f"scan {key}: {len(held)} messages but never its ScanStart (which carries the "
+                                 "array geometry and the schedule); not reconstructed")
         return out
 
     def stats_dict(self) -> dict:
@@ -360,6 +367,7 @@ class ReconstructionService:
             "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused,
                          "replies_after_verdict": self.ingest.recovered_after_close},
             "open_scans": len(self.ingest.scans), "pending_samples": self.ingest.n_pending,
+            "scans_without_start": s.without_start,
         }
 
     # --- recovery ------------------------------------------------------------------------
