@@ -21,7 +21,7 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
 from lelsonar.reconstruct import present
-from lelsonar.reconstruct.group import GroupConfig, GroupMembership, eligible, group_keys, owner
+from lelsonar.reconstruct.group import GroupConfig, GroupMembership, eligible, finals_key, group_keys, owner
 from lelsonar.reconstruct.recovery import RecoveryConfig
 from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
 from lelsonar.reconstruct.sources import LiveSource, PlanesServer
@@ -98,6 +98,7 @@ def test_the_reconstruct_role_may_use_the_group_keys_and_the_others_may_not():
 
     members, done = group_keys(PREFIX, "g")
     token = members.replace("*/*", "m1/123")
+    finals = finals_key(PREFIX, "g", "m1")
 
     def allowed(role, message, flow, key):
         return any(message in r["messages"] and flow in r["flows"]
@@ -107,7 +108,10 @@ def test_the_reconstruct_role_may_use_the_group_keys_and_the_others_may_not():
     for message, flow, key in (("liveliness_token", "ingress", token), ("declare_liveliness_subscriber", "ingress",
                                                                         members),
                                ("liveliness_token", "egress", token), ("put", "ingress", done),
-                               ("declare_subscriber", "ingress", done), ("put", "egress", done)):
+                               ("declare_subscriber", "ingress", done), ("put", "egress", done),
+                               ("declare_queryable", "ingress", finals), ("query", "ingress", finals),
+                               ("reply", "ingress", finals), ("query", "egress", finals),
+                               ("reply", "egress", finals)):
         assert allowed(RECONSTRUCT, message, flow, key), (message, flow, key)
         assert not allowed(PLANNER, message, flow, key) and not allowed(acquire_role("s1"), message, flow, key)
 
@@ -182,8 +186,9 @@ def start_member(stack: ExitStack, endpoint: str, member: str) -> GroupMembershi
     server = None
 
     def publish(msg):
-        server.publish(msg)
-        group.on_estimate(msg)
+        if group.may_publish(msg):
+            server.publish(msg)
+            group.on_estimate(msg)
 
     service = ReconstructionService(ReconstructConfig(provisional=False, compare_methods=()), publish=publish)
     server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
@@ -386,6 +391,66 @@ def test_a_member_that_joins_mid_scan_leaves_that_scan_to_its_owner_and_takes_th
     old._on_token(_Sample(f"{PREFIX}/_group/g/member/x*y/zz"))
     old._on_done(_Sample(f"{PREFIX}/_group/g/done", payload=b"\xff"))
     assert old.stats["rejected: malformed member token"] == 1 and old.stats["rejected: malformed done mark"] == 1
+
+
+def _final(scanner: str, scan_id: int, status: str = "final") -> codec.Reconstruction:
+    from lelsonar.reconstruct.wire import STATUS
+
+    return codec.Reconstruction(scanner_id=scanner, scan_id=scan_id, status=STATUS[status])
+
+
+def test_after_a_healed_partition_the_scans_taken_from_a_member_go_back_to_it_and_are_fenced():
+    # The partition looked like a death: a adopted b's scan.  b's token returns unchanged (the same process).
+    group, fed = _watcher("a", {"b": 7})
+    s = next(s for s in (f"s{i}" for i in range(40)) if owner(s, ["a", "b"]) == "b")
+    start, _end = _scan_msgs(s)
+    assert not group.admit(s, "scan", codec.encoding_name(start), _Payload(start.SerializeToString()))
+    group._on_token(_Sample(f"{PREFIX}/_group/g/member/b/7", zenoh.SampleKind.DELETE))
+    assert group.stats["scans adopted"] == 1 and group.may_publish(_final(s, start.scan_id, "provisional"))
+    group._on_token(_Sample(f"{PREFIX}/_group/g/member/b/7"))
+    assert group.stats["scans handed back"] == 1 and not group.admit(s, "sample", "", None)
+    # What a computed of it before the heal is not published: b owns the scan again.
+    assert not group.may_publish(_final(s, start.scan_id))
+    assert not group.may_publish(_final(s, start.scan_id, "provisional"))
+    assert group.stats["fenced: estimate of a scan another member owns"] == 2
+    # A restarted b (another token) is a new member: what a adopted stays a's.
+    other, _ = _watcher("a", {"b": 7})
+    assert not other.admit(s, "scan", codec.encoding_name(start), _Payload(start.SerializeToString()))
+    other._on_token(_Sample(f"{PREFIX}/_group/g/member/b/7", zenoh.SampleKind.DELETE))
+    other._on_token(_Sample(f"{PREFIX}/_group/g/member/b/9"))
+    assert other.stats["scans handed back"] == 0
+    other._published_elsewhere = lambda scanner, scan_id: False  # no network here: nobody else published it
+    assert other.may_publish(_final(s, start.scan_id))
+
+
+def test_a_final_another_member_published_while_its_mark_was_lost_is_fenced(tmp_path):
+    endpoint = f"unixsock-stream/{tmp_path}/router.sock"
+    with ExitStack() as stack:
+        stack.enter_context(open_session(router_settings(endpoint)))
+
+        def member(m: str) -> GroupMembership:
+            session = stack.enter_context(open_session(client(endpoint)))
+            return stack.enter_context(GroupMembership(session, PREFIX, GroupConfig("g", m, settle=0.0)))
+
+        a = member("a")
+        s = next(s for s in (f"s{i}" for i in range(40)) if owner(s, ["a", "b"]) == "b")
+        start, _end = _scan_msgs(s)
+        a.on_estimate(_final(s, start.scan_id))  # published while b was cut off: b never gets the mark
+        b = member("b")
+        assert b.wait_members(2, 20)
+        assert b.admit(s, "scan", codec.encoding_name(start), _Payload(start.SerializeToString()))  # b's scan
+        member("c")  # the membership changes while the scan runs
+        assert b.wait_members(3, 20)
+        assert not b.may_publish(_final(s, start.scan_id))
+        assert b.stats["fenced: final another member already published"] == 1
+        # A final nobody published goes out, after the same question.
+        nxt = codec.ScanStart()
+        nxt.CopyFrom(start)
+        nxt.scan_id += 1
+        assert b.admit(s, "scan", codec.encoding_name(nxt), _Payload(nxt.SerializeToString()))
+        member("d")
+        assert b.wait_members(4, 20)
+        assert b.may_publish(_final(s, nxt.scan_id))
 
 
 def test_under_a_backlog_an_ended_scans_recovery_neither_retries_nor_gives_up(scan):

@@ -333,6 +333,11 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             _rule("reconstruct-group-see-tokens", "egress", ["liveliness_token"], [f"{p}/_group/*/member/**"]),
             _rule("reconstruct-group-done", "ingress", ["put", "declare_subscriber"], [f"{p}/_group/*/done"]),
             _rule("reconstruct-group-done-receive", "egress", ["put", "declare_subscriber"], [f"{p}/_group/*/done"]),
+            # The fence after a partition: each member's table of the finals it published.
+            _rule("reconstruct-group-finals", "ingress", ["declare_queryable", "reply", "query"],
+                  [f"{p}/_group/*/finals/*"]),
+            _rule("reconstruct-group-finals-receive", "egress", ["declare_queryable", "reply", "query"],
+                  [f"{p}/_group/*/finals/*"]),
         ]
     if role == PLANNER:
         return [

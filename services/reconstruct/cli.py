@@ -236,8 +236,14 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         observer = combine(_rerun_observer(args, stack), fox)
         recorder = stack.enter_context(McapRecorder(args.record)) if args.record else None
         publish_to = [report]
-        service = ReconstructionService(config, publish=lambda msg: [fn(msg) for fn in publish_to],
-                                        observer=observer)
+        fence: list = []  # in a group: GroupMembership.may_publish
+
+        def publish(msg) -> None:
+            if all(may(msg) for may in fence):
+                for fn in publish_to:
+                    fn(msg)
+
+        service = ReconstructionService(config, publish=publish, observer=observer)
         session = None
         if args.source is None or args.publish:
             session = stack.enter_context(open_session(_zenoh_settings(args, "reconstruct", keys.prefix)))
@@ -248,6 +254,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 # Entered before the live source, so it leaves after it: no final once the token is gone.
                 group = stack.enter_context(GroupMembership(session, keys.prefix, group_config))
                 publish_to.append(group.on_estimate)
+                fence.append(group.may_publish)
             # A get answers from the service's own table (in a group: for the scanners this member owns).
             server = PlanesServer(session, keys, service.latest,
                                   answers_for=group.answers_for if group is not None else None)

@@ -28,8 +28,21 @@ Which members a scan is assigned among (:func:`eligible`) — the handover rule:
   A member marks each final it publishes on ``<prefix>/_group/<group>/done``;
   a scan marked done is never adopted (no second final).
 
-Keys: ``<prefix>/_group/<group>/member/<member_id>/<joined_ns>`` (liveliness)
-and ``<prefix>/_group/<group>/done`` (payload ``<scanner>/<scan_id>``).
+The fence (after a partition, both sides believe the other dead and adopt its
+scans): a member publishes an estimate only of a scan it owns now
+(:meth:`GroupMembership.may_publish`).  When a member it had given up for gone
+comes back (the same token: the same process, a healed partition), the
+unfinished scans taken from it are handed back.  And before the final of a
+scan whose membership changed while it ran, the member asks the others'
+tables of published finals (a ``get``; the done marks sent during a partition
+were lost) and publishes only if no other member has.  Estimates of a scan
+are the same whoever computes them (the final is a replay of the log), so what
+the fence prevents is a second final, not a different one.
+
+Keys: ``<prefix>/_group/<group>/member/<member_id>/<joined_ns>`` (liveliness),
+``<prefix>/_group/<group>/done`` (payload ``<scanner>/<scan_id>``) and
+``<prefix>/_group/<group>/finals/<member_id>`` (queryable: ``?scanner=S;scan=N``
+is answered ``done`` if that member published the scan's final).
 
 Payloads of scanners a member does not own are dropped in Zenoh's callback,
 before decoding (the scanner id is in the key), and counted as "other
@@ -122,7 +135,10 @@ class GroupConfig:
     keep_scans : int
         Scans followed per scanner (a backlogged owner may still hold older ones).
     join_timeout : float
-        s; how long joining waits for the members alive to answer.
+        s; how long joining waits for the members alive to answer, and the fence for the
+        others' tables of finals.
+    keep_finals : int
+        Finals remembered (and answered for) in this member's table.
     """
 
     group: str
@@ -132,6 +148,7 @@ class GroupConfig:
     max_scanners: int = 1024
     keep_scans: int = 4
     join_timeout: float = 5.0
+    keep_finals: int = 4096
 
     def __post_init__(self) -> None:
         try:
@@ -143,14 +160,19 @@ class GroupConfig:
             raise ConfigError(f"group settle must be >= 0 s, got {self.settle} (reconstruct --group-settle S)")
         if not self.join_timeout > 0:
             raise ConfigError(f"group join_timeout must be > 0 s, got {self.join_timeout}")
-        if min(self.max_members, self.max_scanners, self.keep_scans) < 1:
-            raise ConfigError("group max_members, max_scanners and keep_scans must be >= 1")
+        if min(self.max_members, self.max_scanners, self.keep_scans, self.keep_finals) < 1:
+            raise ConfigError("group max_members, max_scanners, keep_scans and keep_finals must be >= 1")
 
 
 def group_keys(prefix: str, group: str) -> tuple[str, str]:
     """(member token wildcard, done key) of a group."""
     base = f"{validate_prefix(prefix)}/{GROUP_CHUNK}/{validate_identifier(group, what='group name')}"
     return f"{base}/member/*/*", f"{base}/done"
+
+
+def finals_key(prefix: str, group: str, member: str = "*") -> str:
+    """The key of a member's table of published finals (``*``: every member's)."""
+    return group_keys(prefix, group)[1].removesuffix("/done") + f"/finals/{member}"
 
 
 @dataclass
@@ -162,6 +184,8 @@ class _Scan:
     start: tuple[str, bytes] | None = None   # (encoding, payload) as received
     end: tuple[str, bytes] | None = None
     done: bool = False
+    epoch: int = 0                  # membership changes seen when the scan was first heard of
+    taken_from: str | None = None   # the member it was adopted from (handed back if that one returns)
 
 
 # --- the Zenoh part ----------------------------------------------------------------------
@@ -190,7 +214,13 @@ class GroupMembership:
         self.stats: Counter[str] = Counter()
         self._member_key, self._done_key = group_keys(prefix, config.group)
         self._token_key = self._member_key.replace("*/*", f"{self.me}/{self.joined_ns}")
+        self._finals_key = finals_key(prefix, config.group, self.me)
         self._entities: list = []
+        self._epoch = 0   # membership changes so far
+        #: Members given up for gone, with the token they had (bounded like the members).
+        self._departed: OrderedDict[str, int] = OrderedDict()
+        #: The finals this member published: (scanner, scan_id), oldest first.
+        self._published: OrderedDict[tuple[str, int], None] = OrderedDict()
 
     # --- lifecycle ---
     def __enter__(self) -> GroupMembership:
@@ -198,6 +228,7 @@ class GroupMembership:
         self._done_pub = s.declare_publisher(self._done_key)
         self._entities.append(self._done_pub)
         self._entities.append(s.declare_subscriber(self._done_key, self._on_done))
+        self._entities.append(s.declare_queryable(self._finals_key, self._answer_finals))
         self._entities.append(s.liveliness().declare_subscriber(self._member_key, self._on_token, history=True))
         self._entities.append(s.liveliness().declare_token(self._token_key))
         self._learn_members()
@@ -298,13 +329,13 @@ class GroupMembership:
             rec = scans.get(msg.scan_id)
             if rec is None:
                 who = owner(scanner, eligible(self.members, start_ns, self.me, self._settle_ns))
-                rec = scans[msg.scan_id] = _Scan(who, start_ns)
+                rec = scans[msg.scan_id] = _Scan(who, start_ns, epoch=self._epoch)
             rec.start = (encoding, data)
         else:
             rec = scans.get(msg.scan_id)
             if rec is None:
                 who = owner(scanner, eligible(self.members, None, self.me, self._settle_ns))
-                rec = scans[msg.scan_id] = _Scan(who)
+                rec = scans[msg.scan_id] = _Scan(who, epoch=self._epoch)
             rec.end = (encoding, data)
         scans.move_to_end(msg.scan_id)
         while len(scans) > self.config.keep_scans:
@@ -313,10 +344,70 @@ class GroupMembership:
         return rec.owner == self.me
 
     # --- finals ---
+    def may_publish(self, message: codec.Reconstruction) -> bool:
+        """The fence: whether this member should publish ``message`` (see the module's notes).
+
+        Not of a scan another member owns now; and, for a final of a scan whose membership
+        changed while it ran, not if another member's table says it published that final.
+        """
+        key = (message.scanner_id, message.scan_id)
+        with self._lock:
+            rec = self._scans.get(key[0], {}).get(key[1])
+            if rec is None:
+                return True
+            if rec.owner != self.me:
+                self.stats["fenced: estimate of a scan another member owns"] += 1
+                return False
+            if present.is_terminal(message) and rec.done and key not in self._published:
+                self.stats["fenced: final another member already published"] += 1  # its done mark came
+                return False
+            disturbed = rec.epoch != self._epoch
+        if present.is_terminal(message) and disturbed and self._published_elsewhere(*key):
+            self.stats["fenced: final another member already published"] += 1
+            with self._lock:
+                rec.done = True
+            return False
+        return True
+
     def on_estimate(self, message: codec.Reconstruction) -> None:
         """Call after publishing an estimate: a terminal one is marked done for the group."""
         if present.is_terminal(message):
+            with self._lock:
+                self._published[(message.scanner_id, message.scan_id)] = None
+                while len(self._published) > self.config.keep_finals:
+                    self._published.popitem(last=False)
             self._done_pub.put(f"{message.scanner_id}/{message.scan_id}".encode())
+
+    def _published_elsewhere(self, scanner: str, scan_id: int) -> bool:
+        """Ask every other member's table whether it published this final (waits ≤ join_timeout)."""
+        try:
+            replies = self._session.get(f"{finals_key(self.prefix, self.config.group)}?scanner={scanner};scan={scan_id}",
+                                        timeout=self.config.join_timeout)
+            for reply in replies:
+                ok = reply.ok
+                if ok is not None and not str(ok.key_expr).endswith(f"/{self.me}") \
+                        and ok.payload.to_bytes() == b"done":
+                    return True
+        except zenoh.ZError as exc:
+            self.stats["errors: finals query"] += 1
+            _log.warning("group %s: could not ask the others' finals of (%s, %d): %s; publishing",
+                         self.config.group, scanner, scan_id, exc)
+        return False
+
+    def _answer_finals(self, query: zenoh.Query) -> None:
+        try:
+            params = query.parameters
+            key = (validate_identifier(params.get("scanner") or ""), int(params.get("scan") or ""))
+        except (InvalidIdentifierError, ValueError, TypeError):
+            self.stats["rejected: malformed finals query"] += 1
+            return  # dropping the query ends it with no reply
+        try:
+            with self._lock:
+                done = key in self._published
+            if done:
+                query.reply(self._finals_key, b"done")
+        except zenoh.ZError:  # the querier is gone
+            self.stats["errors: finals reply"] += 1
 
     def _on_done(self, sample: zenoh.Sample) -> None:
         try:
@@ -361,14 +452,30 @@ class GroupMembership:
                                  self.config.max_members)
                     return
                 self.members[member] = max(joined, self.members.get(member, joined))
+                self._epoch += 1
                 self.stats["members joined"] += 1
                 _log.info("group %s: member %s joined (%d members)", self.config.group, member, len(self.members))
+                if self._departed.pop(member, None) == joined:
+                    self._hand_back(member)
             elif member != self.me and self.members.get(member) == joined:
                 del self.members[member]
+                self._epoch += 1
+                self._departed[member] = joined
+                while len(self._departed) > self.config.max_members:
+                    self._departed.popitem(last=False)
                 self.stats["members left"] += 1
                 _log.info("group %s: member %s left (%d members)", self.config.group, member, len(self.members))
                 self._reassign(member)
             self.changed.notify_all()
+
+    def _hand_back(self, member: str) -> None:
+        """A member given up for gone is back (a healed partition): its unfinished scans return to it."""
+        for scans in self._scans.values():
+            for rec in scans.values():
+                if rec.taken_from == member and not rec.done:
+                    if rec.owner == self.me:
+                        self.stats["scans handed back"] += 1
+                    rec.owner, rec.taken_from = member, None
 
     def _reassign(self, gone: str) -> None:
         """The scans of a member that left, without a final, go to the members left; adopt ours."""
@@ -381,6 +488,7 @@ class GroupMembership:
                     continue
                 rec.owner = owner(scanner, eligible(self.members, rec.start_ns, self.me, self._settle_ns)
                                   if rec.start_ns is not None else list(self.members))
+                rec.taken_from = gone
                 if rec.owner != self.me or rec.done:
                     continue
                 self.stats["scans adopted"] += 1
