@@ -364,6 +364,8 @@ class GroupMembership:
             disturbed = rec.epoch != self._epoch
         if present.is_terminal(message) and disturbed and self._published_elsewhere(*key):
             self.stats["fenced: final another member already published"] += 1
+            _log.warning("group %s: fenced: the final of (%s, %d) was already published by another member "
+                         "(a partition made each side take the other's scans)", self.config.group, *key)
             with self._lock:
                 rec.done = True
             return False
