@@ -375,7 +375,7 @@ def test_secure_demo_prints_the_same_planes_as_the_plain_demo(tmp_path):
 
 
 def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_mark_finals(certs, router):
-    from lelsonar.reconstruct.group import GroupConfig, GroupMembership, group_keys
+    from lelsonar.reconstruct.group import GroupConfig, GroupMembership, finals_key, group_keys
 
     _, done_key = group_keys("lelsonar", "g")
     with open_session(client(certs, router, secure.RECONSTRUCT)) as s_a, \
@@ -388,6 +388,7 @@ def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_m
             rogue.put(done_key, b"scanner1/1")
             with open_session(client(certs, router, secure.RECONSTRUCT)) as s_b, \
                     GroupMembership(s_b, "lelsonar", GroupConfig("g", "b", settle=0.0)) as b:
+                assert sorted(b.members) == ["a", "b"]  # the join query passes the access control
                 assert a.wait_members(2, 20) and b.wait_members(2, 20)
                 pub = s_b.declare_publisher(done_key)
                 wait_matching(pub)
@@ -395,3 +396,8 @@ def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_m
                 assert marks.next().payload.to_bytes() == b"scanner2/1"
                 assert sorted(a.members) == ["a", "b"] and sorted(b.members) == ["a", "b"]
                 assert marks.empty()
+                # The fence's question reaches a's table of finals; the planner's does not.
+                a.on_estimate(codec.Reconstruction(scanner_id="scanner3", scan_id=1,
+                                                   status=reconstruction_pb2.ESTIMATE_STATUS_FINAL))
+                assert b._published_elsewhere("scanner3", 1) and not b._published_elsewhere("scanner3", 2)
+                assert not list(rogue.get(finals_key("lelsonar", "g") + "?scanner=scanner3;scan=1", timeout=2.0))
