@@ -179,32 +179,34 @@ class ScanAssembly:
             return False
         k = self.geometry.n_capsules
         sensors = sample.sensors
-        ids = [s.capsule_id for s in sensors]
-        if ids != self._capsule_ids:
+        if [s.capsule_id for s in sensors] != self._capsule_ids:
+            ids = [s.capsule_id for s in sensors]
             if sorted(ids) != self._capsule_ids:
                 raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
             sensors = sorted(sensors, key=lambda s: s.capsule_id)
-        waves = [s.waveform for s in sensors]
-        n = waves[0].sample_count
-        if any(w.sample_count != n for w in waves):
-            raise InvalidMessageError(f"sample {step} has waveforms of different lengths "
-                                      f"{sorted({w.sample_count for w in waves})}")
-        rate, t0 = waves[0].sample_rate, waves[0].t0
-        # One (k, n) float32 array of the waveforms (ingest decoded and validated them); for float32 data a
-        # read-only view of the joined bytes: one copy in all.
-        if all(w.encoding == _FLOAT32 for w in waves):
-            waveforms = np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(k, n)
-        else:
-            waveforms = np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
+        # One pass over the readings: the waveforms, and each echo's range and round trip.
+        waves = []
         ranges = [math.nan] * k
         tof = [math.nan] * k
         for i, s in enumerate(sensors):
+            waves.append(s.waveform)
             if s.echo_valid:
                 ranges[i] = d = s.distance
                 # The round trip, where the echo sits in the waveform; a recorder that leaves it
                 # unset still gave the range, and the speed of sound is in the ScanStart.
                 t = s.time_of_flight
                 tof[i] = t if t > 0 else 2.0 * d / self.start.sound_speed
+        first = waves[0]
+        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
+        if any(w.sample_count != n for w in waves):
+            raise InvalidMessageError(f"sample {step} has waveforms of different lengths "
+                                      f"{sorted({w.sample_count for w in waves})}")
+        # One (k, n) float32 array of the waveforms (ingest decoded and validated them); for float32 data a
+        # read-only view of the joined bytes: one copy in all.
+        if all(w.encoding == _FLOAT32 for w in waves):
+            waveforms = np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(k, n)
+        else:
+            waveforms = np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
         distance = np.array(ranges)
         energy = waveform_energy(waveforms, rate)
         self.gamma[step] = sample.gamma_measured

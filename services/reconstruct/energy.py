@@ -38,6 +38,8 @@ def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
     return np.vecdot(w, w) / float(sample_rate)
 
 
+_largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper (called per waveform)
+
 #: Where :func:`echo_amplitude` looks, s after the time of flight: the comparator fires on the
 #: echo's rising edge, and a 40 kHz transceiver's echo peaks within ~0.2 ms of its onset.  Short, so
 #: a later echo (the corner's, a few cm further) does not leak in.
@@ -96,7 +98,7 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
             continue
         a = round(x) if x > 0.0 else 0  # the nearest sample, half to even (as np.rint), clipped at 0
         if a < n:
-            flat[i] = np.abs(rows[i, a:a + width]).max()
+            flat[i] = _largest(np.abs(rows[i, a:a + width]))
     return out
 
 
