@@ -31,6 +31,9 @@ def test_assembly_matches_the_whole_scan_functions_bit_for_bit():
                         for s in sorted(m.sensors, key=lambda s: s.capsule_id)])
         w = m.sensors[0].waveform
         np.testing.assert_array_equal(scan.sensor_energy[m.step], waveform_energy(waves, w.sample_rate))
+        # and eq. (10) by the rectangle rule, summed independently
+        np.testing.assert_allclose(scan.sensor_energy[m.step], (waves.astype(np.float64) ** 2).sum(axis=1) / w.sample_rate,
+                                   rtol=1e-12)
         np.testing.assert_array_equal(scan.echo_amplitude[m.step], _peak_by_definition(waves, w.sample_rate, w.t0, tof))
     # Some echoes have no range (NaN) and some do: both branches are covered.
     assert np.isnan(scan.distance[steps]).any() and np.isfinite(scan.distance[steps]).any()

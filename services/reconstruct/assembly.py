@@ -21,10 +21,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.v1 import scan_pb2
 from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
 from lelsonar.reconstruct.energy import EnergyModel, echo_amplitude, waveform_energy
+from lelsonar.v1 import scan_pb2
 
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
