@@ -165,3 +165,54 @@ def test_key_expressions():
         validate_prefix("robot7//lelsonar")
     with pytest.raises(InvalidIdentifierError):
         ScannerKeys(scanner_id="a/b")
+
+
+# The Sample validator screens each sensor with a few comparisons and one sum (finite only if every term is),
+# and falls back to the exact field-by-field checks for anything the screen does not pass.  Both directions:
+# every bad field is still refused with its own typed error, and valid extremes the screen cannot vouch for
+# (sums that overflow, int16 data) are still accepted.
+def _set(s: codec.Sample, path: str, value) -> None:
+    *parents, name = path.split(".")
+    obj = s
+    for p in parents:
+        obj = obj[int(p)] if p.isdigit() else getattr(obj, p)
+    setattr(obj, name, value)
+
+
+@pytest.mark.parametrize(("path", "value", "error", "match"), [
+    ("gamma_measured", math.inf, NonFiniteValueError, "gamma"),
+    ("motor.voltage", math.nan, NonFiniteValueError, "motor"),
+    ("sensors.1.time_of_flight", -math.inf, NonFiniteValueError, r"sensors\[1\].time_of_flight"),
+    ("sensors.2.waveform.t0", math.nan, NonFiniteValueError, r"sensors\[2\].waveform.t0"),
+    ("sensors.3.waveform.sample_rate", math.inf, NonFiniteValueError, r"sensors\[3\].waveform.sample_rate"),
+    ("sensors.3.waveform.sample_rate", 0.0, InvalidMessageError, r"sensors\[3\].waveform.sample_rate must be"),
+    ("sensors.0.waveform.sample_count", 63, TruncatedDataError, r"sensors\[0\]"),
+    ("sensors.0.waveform.encoding", 7, InvalidMessageError, "unknown encoding"),
+    ("sensors.1.distance", 100.0, InvalidMessageError, r"sensors\[1\] is marked valid"),
+    ("sensors.1.time_of_flight", 0.0, InvalidMessageError, r"sensors\[1\] is marked valid"),
+])
+def test_every_sensor_field_is_still_checked(path, value, error, match):
+    s = make_sample()
+    _set(s, path, value)
+    with pytest.raises(error, match=match):
+        codec.decode(s.SerializeToString(), codec.Sample)
+
+
+def test_valid_extremes_the_screen_cannot_vouch_for_are_accepted():
+    s = make_sample()
+    # Finite numbers whose sums overflow (the screen's sum of a sensor's numbers), and the largest float32.
+    s.sensors[0].waveform.t0 = 1.7e308
+    s.sensors[0].waveform.sample_rate = 1.7e308
+    s.gamma_commanded, s.gamma_measured = 1.7e308, 1.7e308
+    v = codec.unpack_waveform(s.sensors[1].waveform).copy()
+    v[:] = 3e38  # finite float32; Σ w² overflows float32
+    s.sensors[1].waveform.CopyFrom(codec.pack_waveform(v, 2e5))
+    # A sensor without an echo may carry any finite range; an int16 waveform goes the exact way.
+    s.sensors[2].echo_valid, s.sensors[2].distance, s.sensors[2].time_of_flight = False, -5.0, 0.0
+    s.sensors[3].waveform.CopyFrom(codec.pack_waveform(codec.unpack_waveform(s.sensors[3].waveform), 2e5,
+                                                       int16_scale=1e-3))
+    assert codec.decode(s.SerializeToString(), codec.Sample) == s
+    # ... and int16 data with a bad scale is still refused.
+    s.sensors[3].waveform.scale = 0.0
+    with pytest.raises(InvalidMessageError, match=r"sensors\[3\].waveform.scale must be positive"):
+        codec.decode(s.SerializeToString(), codec.Sample)

@@ -7,7 +7,7 @@ import numpy as np
 
 from lelsonar import codec
 from lelsonar.reconstruct.assembly import ScanAssembly
-from lelsonar.reconstruct.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
+from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW, echo_amplitude, energy_ratio, total_energy, waveform_energy
 
 from .conftest import simulated_messages
 
@@ -31,7 +31,10 @@ def test_assembly_matches_the_whole_scan_functions_bit_for_bit():
                         for s in sorted(m.sensors, key=lambda s: s.capsule_id)])
         w = m.sensors[0].waveform
         np.testing.assert_array_equal(scan.sensor_energy[m.step], waveform_energy(waves, w.sample_rate))
-        np.testing.assert_array_equal(scan.echo_amplitude[m.step], echo_amplitude(waves, w.sample_rate, w.t0, tof))
+        # and eq. (10) by the rectangle rule, summed independently
+        np.testing.assert_allclose(scan.sensor_energy[m.step], (waves.astype(np.float64) ** 2).sum(axis=1) / w.sample_rate,
+                                   rtol=1e-12)
+        np.testing.assert_array_equal(scan.echo_amplitude[m.step], _peak_by_definition(waves, w.sample_rate, w.t0, tof))
     # Some echoes have no range (NaN) and some do: both branches are covered.
     assert np.isnan(scan.distance[steps]).any() and np.isfinite(scan.distance[steps]).any()
     assert np.isnan(scan.distance[steps]).all(axis=1).any()
@@ -40,15 +43,46 @@ def test_assembly_matches_the_whole_scan_functions_bit_for_bit():
                                   energy_ratio(scan.step_energy[steps], scan.distance[steps], scan.energy_model))
 
 
-def test_echo_peak_windows_at_the_waveform_edges():
-    from lelsonar.reconstruct.assembly import _echo_peaks
+def _peak_by_definition(w: np.ndarray, rate: float, t0: float, tof: np.ndarray,
+                        window=ECHO_PEAK_WINDOW) -> np.ndarray:
+    """echo_amplitude's definition written out the slow way, in float64: max |w| over the samples
+    rint((tof + lo - t0)·rate) (clipped to [0, n]) and the next rint((hi - lo)·rate) - 1, clipped at the end;
+    NaN without an echo or when the window starts at or after the end."""
+    w = np.abs(np.asarray(w, dtype=np.float64))
+    n = w.shape[-1]
+    ok = np.isfinite(tof) & (tof > 0)
+    start = np.clip(np.rint((np.where(ok, tof, 0.0) + window[0] - t0) * rate), 0, n).astype(np.intp)
+    width = max(int(round((window[1] - window[0]) * rate)), 1)
+    idx = np.minimum(start[..., None] + np.arange(width), n - 1)
+    peak = np.take_along_axis(w, idx, axis=-1).max(axis=-1)
+    return np.where(ok & (start < n), peak, np.nan)
 
+
+def test_echo_peak_windows_at_the_waveform_edges():
     rng = np.random.default_rng(0)
-    w = rng.standard_normal((4, 500)).astype(np.float32).astype(np.float64)
-    rate, t0 = 1e6, 1e-4
-    # Before the window (clipped to 0), inside, running off the end, and at/after the end.
-    tof = [5e-5, 3e-4, t0 + 480e-6, t0 + 500e-6]
-    got = _echo_peaks(w, rate, t0, tof)
-    want = echo_amplitude(w, rate, t0, np.array(tof))
-    np.testing.assert_array_equal(got, want)
-    assert np.isnan(got[3]) and np.isfinite(got[:3]).all()
+    rate, t0 = 2.0 ** 20, 2.0 ** -12  # powers of two: the edge times below are exact
+    for n in (500, 501):
+        # Before the window (clipped to 0), inside, running off the end, at the end, no echo, +inf, none; and a
+        # start of exactly n - 0.5 samples (rint rounds half to even: inside for an odd n, outside for an even).
+        tof = np.array([5e-5, 3e-4, t0 + (n - 20) / rate, t0 + n / rate, np.nan, np.inf, 0.0, t0 + (n - 0.5) / rate])
+        assert (tof[-1] - t0) * rate == n - 0.5
+        w32 = rng.standard_normal((len(tof), n)).astype(np.float32)
+        got = echo_amplitude(w32, rate, t0, tof)
+        np.testing.assert_array_equal(got, _peak_by_definition(w32, rate, t0, tof))
+        # float32 in or float64 in, the same numbers (|w| and max are exact in either)
+        np.testing.assert_array_equal(echo_amplitude(w32.astype(np.float64), rate, t0, tof), got)
+        assert np.isfinite(got[:3]).all() and np.isnan(got[3:7]).all()
+        assert np.isfinite(got[7]) == (n % 2 == 1)
+
+
+def test_echo_amplitude_of_a_whole_scan_is_that_of_each_step():
+    rng = np.random.default_rng(1)
+    rate, t0 = 2e5, 0.0
+    w = rng.standard_normal((30, 4, 700)).astype(np.float32)
+    tof = rng.uniform(-1e-3, 4e-3, (30, 4))
+    tof[rng.random((30, 4)) < 0.2] = np.nan
+    whole = echo_amplitude(w, rate, t0, tof)
+    np.testing.assert_array_equal(whole, _peak_by_definition(w, rate, t0, tof))
+    for i in range(30):
+        np.testing.assert_array_equal(echo_amplitude(w[i], rate, t0, tof[i]), whole[i])
+        np.testing.assert_array_equal(waveform_energy(w[i], rate), waveform_energy(w, rate)[i])

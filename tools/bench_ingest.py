@@ -14,8 +14,14 @@ Three measurements, side by side in one run and one table:
     number of samples whose ``handle`` returned per second, between the 10th
     and the 90th percentile of the samples (the start-up and the final drain
     left out).  Target ≥ 1,000 samples/s and ≥ 0.8× the decode + validate
-    floor: :func:`lelsonar.codec.decode` alone on the same payloads, in the
-    parent process, right after the run (printed beside the result).
+    floor: :func:`lelsonar.codec.decode` alone on the same payloads (whole
+    scans, ScanStart to ScanEnd; samples counted), in the parent process,
+    right after the run (printed beside the result).
+(a′) the **ingest stage** alone — decode, validate, route, assemble
+    (:meth:`~lelsonar.reconstruct.ingest.Ingest.accept`: everything the
+    service does before estimation) — on the floor's payloads, one run of each
+    per round, medians of 5; same target against the same floor.  The details
+    give the time ``Ingest.accept`` took per sample inside (a)'s consumer.
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting
     ``--rate`` samples/s (default 50: one every 20 ms, as issue 12 measures),
     ``--scans`` scans each, back to back; not synchronised (scanner j runs j/N
@@ -68,6 +74,7 @@ TARGET_REPLAY = 3000.0
 #: each floor measured in the same run.
 TARGET_FLOOR_RATIO = 0.8
 DONE_KEY = "lelsonar-bench/ingest/done"
+SAMPLE_TYPE = "lelsonar.v1.Sample"
 PREFIX = "lelsonar"
 _RESULT = "RESULT "
 _READY = "READY"
@@ -254,9 +261,13 @@ def _timed_service_class():
 
     class TimedIngest(Ingest):
         last_events: list = []
+        sample_accept_s: list = [0, 0.0]  # Sample payloads accepted, and the time spent in accept on them
 
         def accept(self, type_name, payload, **kwargs):
+            t0 = time.perf_counter()
             events = super().accept(type_name, payload, **kwargs)
+            if type_name == SAMPLE_TYPE:
+                self.sample_accept_s = [self.sample_accept_s[0] + 1, self.sample_accept_s[1] + time.perf_counter() - t0]
             self.last_events = events
             return events
 
@@ -352,7 +363,7 @@ def consumer_main(args: argparse.Namespace) -> int:
         "samples": len(service.done_mono), "finals": service.stats.finals, "done": done, "timed_out": timed_out,
         "rejected": dict(service.ingest.rejected), "errors": source.errors, "done_mono": service.done_mono,
         "sample_latency_ns": service.sample_latency_ns, "estimate_latency": service.estimate_latency,
-        "busy": busy}), flush=True)
+        "busy": busy, "sample_accept_s": service.ingest.sample_accept_s}), flush=True)
     return 0
 
 
@@ -509,21 +520,46 @@ def time_read_decode(path: Path, runs: int) -> float:
     return statistics.median(times)
 
 
-def decode_floor(preset_name: str, runs: int, n: int = 400) -> float:
-    """Samples/s that :func:`lelsonar.codec.decode` (parse + every validation) sustains on this scan's
-    ``Sample`` payloads, in this process: the ingest's floor (median of ``runs``)."""
+def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, bytes]]:
+    """(type name, payload) of whole scans of one scanner, ScanStart … ScanEnd, ``n`` samples or a little more."""
     from lelsonar import codec
 
-    _, samples, _ = build_scan(preset_name)
-    payloads = [s.SerializeToString() for s in samples]
-    payloads = (payloads * (n // len(payloads) + 1))[:n]
-    rates = []
+    start, samples, end = build_scan(preset_name)
+    out: list[tuple[str, bytes]] = []
+    scan_id = 0
+    while sum(1 for name, _ in out if name == codec.Sample.DESCRIPTOR.full_name) < n:
+        scan_id += 1
+        for m in (start, *samples, end):
+            m.scan_id = scan_id
+            out.append((m.DESCRIPTOR.full_name, m.SerializeToString()))
+    return out
+
+
+def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[float, float]:
+    """Samples/s of (floor) :func:`lelsonar.codec.decode` (parse + every validation) and of (stage)
+    :meth:`~lelsonar.reconstruct.ingest.Ingest.accept` — decode, validate, route, assemble: everything the
+    service does before estimation — over the same payloads (whole scans, ScanStart to ScanEnd), in this
+    process, one run of each per round (medians of ``runs``)."""
+    from lelsonar import codec
+    from lelsonar.reconstruct.ingest import Ingest
+
+    payloads = ingest_stage_payloads(preset_name, n)
+    classes = [codec.MESSAGE_TYPES[name] for name, _ in payloads]
+    samples = sum(1 for cls in classes if cls is codec.Sample)
+    floor, stage = [], []
     for _ in range(runs):
         t = time.perf_counter()
-        for b in payloads:
-            codec.decode(b, codec.Sample)
-        rates.append(n / (time.perf_counter() - t))
-    return statistics.median(rates)
+        for cls, (_, b) in zip(classes, payloads):
+            codec.decode(b, cls)
+        floor.append(samples / (time.perf_counter() - t))
+        ingest = Ingest()
+        t = time.perf_counter()
+        for name, b in payloads:
+            ingest.accept(name, b)
+        stage.append(samples / (time.perf_counter() - t))
+        if ingest.rejected or ingest.accepted != len(payloads):
+            raise RuntimeError(f"the ingest stage refused bench payloads: {dict(ingest.rejected)}")
+    return statistics.median(floor), statistics.median(stage)
 
 
 def profile_replay(path: Path, samples: int, console) -> None:
@@ -558,19 +594,16 @@ def profile_replay(path: Path, samples: int, console) -> None:
                     calls, ct = calls + nc, ct + cct
         return int(calls), ct
 
-    upd = ("reconstruct/service.py", "_update")
+    upd = ("reconstruct/service.py", "_provisional")
     parts = [
         ("replay_mcap (everything)", "reconstruct/sources.py", "replay_mcap", None),
         ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
         ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
-        ("    ScanAssembly.add (unpack, waveform energy)", "reconstruct/assembly.py", "add", None),
-        ("  _update (per sample: R, split, provisional fit)", *upd, None),
-        ("    energy_ratio over all steps received", "reconstruct/energy.py", "energy_ratio", upd),
-        ("      median_range (np.nanmedian)", "reconstruct/energy.py", "median_range", None),
+        ("    ScanAssembly.add (waveforms, energies, echo peaks)", "reconstruct/assembly.py", "add", None),
+        ("  _provisional (corner check, provisional refit)", *upd, None),
         ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
-        ("    _plane_data (points of a plane)", "reconstruct/service.py", "_plane_data", upd),
-        ("    fit_plane, provisional (every refit_every steps)", "reconstruct/pipeline.py", "fit_plane", upd),
+        ("    IncrementalPlane.update (provisional planes)", "reconstruct/incremental.py", "update", upd),
         ("  _finalise (after ScanEnd: main + compare methods)", "reconstruct/service.py", "_finalise", None),
         ("    reconstruct (each method, from scratch)", "reconstruct/pipeline.py", "reconstruct", None),
     ]
@@ -592,8 +625,15 @@ def profile_replay(path: Path, samples: int, console) -> None:
         tt.add_row(f"{fn}  ({'/'.join(Path(f).parts[-2:])}:{line})", str(v[1]), f"{v[2]:.3f}")
     console.print(tt)
 
-    # What one final costs per method, without the profiler (as _finalise calls them).
-    scan = next(iter(service.ingest.scans.values()))
+    # What one final costs per method, without the profiler (as _finalise calls them), on the first scan of the
+    # file assembled again (the service forgets each scan once it is final).
+    from lelsonar.reconstruct.ingest import Ingest
+    from lelsonar.recording import iter_payloads
+
+    kept = Ingest()
+    for rec in iter_payloads(path):
+        kept.accept(rec.type_name, rec.payload)
+    scan = next(iter(kept.scans.values()))
     steps, gamma, distance, _ = scan.arrays()
     cfg = service.config
     ft = Table(title=f"One final estimate per method, wall (median of 3, no profiler; {len(steps)} steps)")
@@ -661,7 +701,9 @@ def run(args: argparse.Namespace) -> int:
     busy_s = sum(v[1] for v in con_a["busy"].values())
     b = con_a["busy"]
 
-    floor_a = decode_floor(args.preset, 5)  # the same run, right after (a), on the same payloads
+    # The floor and the ingest stage alone, the same run, right after (a), on the same payloads, interleaved.
+    floor_a, stage_a = ingest_stage_vs_floor(args.preset, 5)
+    live_accepts, live_accept_s = con_a["sample_accept_s"]
 
     def mean_ms(bucket: str) -> str:
         return f"{1e3 * b[bucket][1] / b[bucket][0]:.1f}" if bucket in b else "—"
@@ -722,6 +764,14 @@ def run(args: argparse.Namespace) -> int:
         f"{mean_ms('Sample')}, with provisional refit {mean_ms('provisional')}, with final {mean_ms('final')}; "
         f"rejected {con_a['rejected'] or 0}, errors {con_a['errors']}"
         + ("; [red]consumer timed out[/]" if con_a["timed_out"] else ""))
+    ok_stage = stage_a >= TARGET_FLOOR_RATIO * floor_a
+    table.add_row(
+        "(a′) ingest stage alone: decode + validate + route + assemble (Ingest.accept)", f"{stage_a:,.0f} samples/s",
+        f"{floor_a:,.0f}/s decode+validate", f"{stage_a / floor_a:.2f}×", f"≥ {TARGET_FLOOR_RATIO}× floor",
+        _verdict(ok_stage),
+        "everything before estimation, on the floor's payloads (whole scans), interleaved with it in this process; "
+        f"in (a)'s consumer, Ingest.accept took {1e6 * live_accept_s / max(1, live_accepts):.0f} µs a sample "
+        f"({live_accepts / live_accept_s if live_accept_s else float('nan'):,.0f}/s while in it)")
     p50, p99 = _pct(lat_sample, 50), _pct(lat_sample, 99)
     ok_lat_s = p99 <= TARGET_P99_MS
     table.add_row(
@@ -761,7 +811,7 @@ def run(args: argparse.Namespace) -> int:
             p = Path(tmp) / "replay.mcap"
             p.write_bytes(profile_stash[0])
             profile_replay(p, profile_stash[1], console)
-    return 0 if (ok_rate and ok_lat_s and ok_lat_e and ok_replay) else 1
+    return 0 if (ok_rate and ok_stage and ok_lat_s and ok_lat_e and ok_replay) else 1
 
 
 def main(argv: list[str] | None = None) -> int:

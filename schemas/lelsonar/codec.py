@@ -48,6 +48,7 @@ _ITEM_SIZE = {
     scan_pb2.WAVEFORM_ENCODING_INT16_LE: 2,
 }
 _MAX_RANGE_M = 100.0  # far beyond any 40 kHz echo; larger is a corrupt value
+_FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
 
 
 @dataclass(frozen=True)
@@ -250,30 +251,45 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
 
 
 def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
-    if not 1 <= len(m.sensors) <= limits.max_sensors:
-        raise InvalidMessageError(f"Sample carries {len(m.sensors)} sensor readings; expected 1 to {limits.max_sensors}")
+    # Every check of the contract, in two tiers: a screen of a few comparisons per sensor that a valid float32
+    # sample passes (one sum is finite only if each term is; each comparison is one of the exact checks), and,
+    # for anything the screen does not pass (int16 data, a malformed field, an overflowing sum), the exact
+    # checks field by field, which name the culprit.  The screen never accepts what the exact checks refuse.
+    sensors = m.sensors
+    if not 1 <= len(sensors) <= limits.max_sensors:
+        raise InvalidMessageError(f"Sample carries {len(sensors)} sensor readings; expected 1 to {limits.max_sensors}")
     if m.step >= limits.max_steps:
         raise InvalidMessageError(f"Sample.step {m.step} exceeds the limit of {limits.max_steps}")
-    _finite("Sample.gamma_commanded/gamma_measured", m.gamma_commanded, m.gamma_measured)
-    _finite("Sample.motor", m.motor.load, m.motor.voltage, m.motor.temperature)
+    motor = m.motor
+    if not math.isfinite(m.gamma_commanded + m.gamma_measured + motor.load + motor.voltage + motor.temperature):
+        _finite("Sample.gamma_commanded/gamma_measured", m.gamma_commanded, m.gamma_measured)
+        _finite("Sample.motor", motor.load, motor.voltage, motor.temperature)
     float32 = []
-    for i, s in enumerate(m.sensors):
-        if not (math.isfinite(s.time_of_flight) and math.isfinite(s.distance)):
-            _finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
-        if s.echo_valid and not (0.0 < s.distance < _MAX_RANGE_M and s.time_of_flight > 0.0):
-            raise InvalidMessageError(
-                f"Sample.sensors[{i}] is marked valid but has distance {s.distance} m and time of flight "
-                f"{s.time_of_flight} s")
+    max_samples = limits.max_waveform_samples
+    for i, s in enumerate(sensors):
         w = s.waveform
-        _check_waveform(w, limits, where=f"Sample.sensors[{i}].waveform", samples=False)
-        if w.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE:
-            float32.append(w.data)
+        data, count, rate, tof, distance = w.data, w.sample_count, w.sample_rate, s.time_of_flight, s.distance
+        if not (w.encoding == _FLOAT32 and count <= max_samples and len(data) == 4 * count and rate > 0.0
+                and math.isfinite(tof + distance + rate + w.t0)
+                and (not s.echo_valid or (0.0 < distance < _MAX_RANGE_M and tof > 0.0))):
+            _check_sensor(i, s, limits)  # raises, or the sensor is valid (e.g. int16 data)
+        if w.encoding == _FLOAT32:
+            float32.append(data)
     # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
     if float32 and not np.isfinite(np.frombuffer(b"".join(float32), dtype="<f4")).all():
-        for i, s in enumerate(m.sensors):
-            if s.waveform.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE \
-                    and not np.isfinite(np.frombuffer(s.waveform.data, dtype="<f4")).all():
+        for i, s in enumerate(sensors):
+            if s.waveform.encoding == _FLOAT32 and not np.isfinite(np.frombuffer(s.waveform.data, dtype="<f4")).all():
                 raise NonFiniteValueError(f"Sample.sensors[{i}].waveform holds NaN or infinite samples")
+
+
+def _check_sensor(i: int, s, limits: DecodeLimits) -> None:
+    """The exact checks of one sensor reading (all but the finiteness of float32 samples)."""
+    _finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
+    if s.echo_valid and not (0.0 < s.distance < _MAX_RANGE_M and s.time_of_flight > 0.0):
+        raise InvalidMessageError(
+            f"Sample.sensors[{i}] is marked valid but has distance {s.distance} m and time of flight "
+            f"{s.time_of_flight} s")
+    _check_waveform(s.waveform, limits, where=f"Sample.sensors[{i}].waveform", samples=False)
 
 
 def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:

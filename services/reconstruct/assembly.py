@@ -23,34 +23,21 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW, EnergyModel
+from lelsonar.reconstruct.energy import EnergyModel, echo_amplitude, waveform_energy
+from lelsonar.v1 import scan_pb2
 
 
-def _median_of_valid(distance: np.ndarray) -> float:
+_FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
+
+
+def _median_of_valid(distance: list[float]) -> float:
     """:func:`~lelsonar.reconstruct.energy.median_range` of one step, without numpy's per-call overhead:
     the same arithmetic on the same numbers (the mean of the two middle valid ranges), so the same bits."""
-    valid = sorted(float(x) for x in distance if x == x)
+    valid = sorted(x for x in distance if x == x)
     c = len(valid)
     if not c:
         return math.nan
     return 0.5 * (valid[(c - 1) // 2] + valid[c // 2])
-
-
-def _echo_peaks(w64: np.ndarray, sample_rate: float, t0: float, tof: list[float]) -> np.ndarray:
-    """:func:`~lelsonar.reconstruct.energy.echo_amplitude` of one step's (k, n) waveforms, sliced per capsule
-    instead of gathered (the same windows, the same values)."""
-    n = w64.shape[-1]
-    lo, hi = ECHO_PEAK_WINDOW
-    width = max(int(round((hi - lo) * sample_rate)), 1)
-    out = np.full(w64.shape[0], np.nan)
-    for i, t in enumerate(tof):
-        if not t > 0:  # NaN (no echo) or no time of flight, as echo_amplitude
-            continue
-        start = min(max(float(np.rint((t + lo - t0) * sample_rate)), 0.0), float(n))
-        a = int(start)
-        if a < n:
-            out[i] = float(np.abs(w64[i, a:min(a + width, n)]).max())
-    return out
 
 
 def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
@@ -109,6 +96,7 @@ class ScanAssembly:
 
     def __post_init__(self) -> None:
         self.geometry = geometry_from_start(self.start)
+        self._capsule_ids = list(range(self.geometry.n_capsules))
         self.energy_model = energy_model_from_start(self.start)
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
@@ -191,37 +179,43 @@ class ScanAssembly:
             return False
         k = self.geometry.n_capsules
         sensors = sample.sensors
-        ids = [s.capsule_id for s in sensors]
-        if sorted(ids) != list(range(k)):
-            raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
-        counts = {s.waveform.sample_count for s in sensors}
-        if len(counts) != 1:
-            raise InvalidMessageError(f"sample {step} has waveforms of different lengths {sorted(counts)}")
-        first = sensors[0].waveform
-        rate, t0 = first.sample_rate, first.t0
-        # One (k, n) float32 array of the waveforms (ingest decoded and validated them), then one float64
-        # copy that serves both the energies and the echo peaks: each waveform is converted once.
-        waveforms = np.empty((k, counts.pop()), dtype=np.float32)
-        distance = np.full(k, np.nan)
+        if [s.capsule_id for s in sensors] != self._capsule_ids:
+            ids = [s.capsule_id for s in sensors]
+            if sorted(ids) != self._capsule_ids:
+                raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
+            sensors = sorted(sensors, key=lambda s: s.capsule_id)
+        # One pass over the readings: the waveforms, and each echo's range and round trip.
+        waves = []
+        ranges = [math.nan] * k
         tof = [math.nan] * k
-        for s in sensors:
-            i = s.capsule_id
-            waveforms[i] = codec.unpack_waveform(s.waveform, validated=True)
+        for i, s in enumerate(sensors):
+            waves.append(s.waveform)
             if s.echo_valid:
-                distance[i] = s.distance
+                ranges[i] = d = s.distance
                 # The round trip, where the echo sits in the waveform; a recorder that leaves it
                 # unset still gave the range, and the speed of sound is in the ScanStart.
-                tof[i] = (s.time_of_flight if s.time_of_flight > 0
-                          else 2.0 * s.distance / self.start.sound_speed)
-        w64 = waveforms.astype(np.float64)
-        energy = np.einsum("...i,...i->...", w64, w64) / float(rate)   # = waveform_energy(waveforms, rate)
+                t = s.time_of_flight
+                tof[i] = t if t > 0 else 2.0 * d / self.start.sound_speed
+        first = waves[0]
+        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
+        if any(w.sample_count != n for w in waves):
+            raise InvalidMessageError(f"sample {step} has waveforms of different lengths "
+                                      f"{sorted({w.sample_count for w in waves})}")
+        # One (k, n) float32 array of the waveforms (ingest decoded and validated them); for float32 data a
+        # read-only view of the joined bytes: one copy in all.
+        if all(w.encoding == _FLOAT32 for w in waves):
+            waveforms = np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(k, n)
+        else:
+            waveforms = np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
+        distance = np.array(ranges)
+        energy = waveform_energy(waveforms, rate)
         self.gamma[step] = sample.gamma_measured
         self.distance[step] = distance
         self.sensor_energy[step] = energy
-        self.echo_amplitude[step] = _echo_peaks(w64, rate, t0, tof)
+        self.echo_amplitude[step] = echo_amplitude(waveforms, rate, t0, tof)
         # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
-        self.step_energy[step] = total = float(np.sum(energy))
-        d_m = _median_of_valid(distance)
+        self.step_energy[step] = total = float(energy.sum())
+        d_m = _median_of_valid(ranges)
         if d_m == d_m:  # not NaN
             self.expected_energy[step] = expected = float(self.energy_model.expected_energy(d_m))
             self.ratio[step] = total / expected

