@@ -78,7 +78,8 @@ class ReconstructConfig:
     compare_methods : tuple of str
         Also run at the end of each scan, published next to ``method``.
     refit_every : int
-        Steps between provisional re-estimates of plane b.
+        Steps between provisional re-estimates of plane b (and, before the corner is confirmed,
+        between looks for its peak).
     provisional_period : float
         s of scan time (the samples' ``acquisition_time_ns``): a scan gets at most one provisional
         estimate per period (default 0.08 s: at most 12.5 a second per scan, i.e. every
@@ -181,7 +182,7 @@ class Partial:
     data_b: F.PlaneData | None = None
     plane_a: PlaneResult | None = None
     plane_b: PlaneResult | None = None
-    steps_at_fit: int = 0
+    steps_at_fit: int = 0              # steps received at the last refit (before the corner: the last look for it)
     estimated_at: float = 0.0
     #: acquisition_time_ns of the newest step at the last provisional estimate (the per-scan rate limit).
     provisional_ns: int = 0
@@ -452,10 +453,11 @@ class ReconstructionService:
         """Confirm the corner, then (re)fit plane b when enough new steps have come."""
         if not self.config.provisional:
             return []
-        if p.critical is not None and scan.n_received - p.steps_at_fit < self.config.refit_every:
-            return []  # cheap: no array work per sample between refits
+        if scan.n_received - p.steps_at_fit < self.config.refit_every:
+            return []  # cheap: no array work per sample between refits, nor between looks for the corner
         steps, _, _, ratio = scan.arrays()
         if p.critical is None:
+            p.steps_at_fit = len(steps)  # the corner's peak is looked for every refit_every steps (O(steps) each)
             peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
             if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
                 return []
@@ -468,8 +470,6 @@ class ReconstructionService:
                                        scan.start.steps)
             p.plane_a = p.inc_a.update(scan.gamma, scan.distance, steps[steps < p.critical])
             p.data_a = p.inc_a.last_data
-        elif len(steps) - p.steps_at_fit < self.config.refit_every:
-            return []
         newest_ns = int(scan.time_ns[steps[-1]]) if scan.latest is None else int(scan.latest.time_ns)
         if 0 < newest_ns - p.provisional_ns < self.config.provisional_period * 1e9:
             return []  # the per-scan rate limit (scan time)
