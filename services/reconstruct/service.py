@@ -245,6 +245,8 @@ class ReconstructionService:
         self._partials: dict[ScanKey, Partial] = {}
         # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
+        # Scans whose provisional refit waited for a backlog (tick() catches up on them).
+        self._deferred: set[ScanKey] = set()
         self._options = FitOptions()
         #: The method of the provisional refits, which fit one half at a time: the method of record, or
         #: "adaptive" when that is a scan-level method ("corner"), which runs on the whole scan at the end.
@@ -292,6 +294,7 @@ class ReconstructionService:
         now = self._clock()
         cfg = self.config
         out: list[codec.Reconstruction] = []
+        self._deferred.clear()  # every deferred refit is caught up on below
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
@@ -333,6 +336,11 @@ class ReconstructionService:
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
         return out
+
+    @property
+    def has_deferred(self) -> bool:
+        """Whether a provisional refit waits for :meth:`tick` (it waited for a backlog that has drained)."""
+        return bool(self._deferred)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now."""
@@ -446,6 +454,7 @@ class ReconstructionService:
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
+            self._deferred.add(scan.key)
             return []  # the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
