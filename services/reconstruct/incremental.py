@@ -47,7 +47,7 @@ new ones.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -57,7 +57,8 @@ from . import fit as F
 from .options import FitOptions
 from .results import FailureReason, FitFailure, PlaneFit, PlaneResult, SolverDiagnostics
 
-__all__ = ["IncrementalPlane", "IncrementalStats", "FACING_MARGIN", "RETRY_GROWTH"]
+__all__ = ["IncrementalPlane", "IncrementalStats", "FACING_MARGIN", "RETRY_GROWTH", "PROVISIONAL_RANSAC_ITERATIONS",
+           "ransac_iterations"]
 
 #: rad.  No exact fit is tried before some beam of the plane's points has come within
 #: ``FitOptions.beam_half_angle`` + this margin of the plane's nominal normal (its correction axis):
@@ -67,6 +68,21 @@ FACING_MARGIN = float(np.deg2rad(15.0))
 #: After an exact fit that fails the trust check (the wall not yet seen face-on, typically), the next
 #: one waits until the plane's points have grown by this factor.
 RETRY_GROWTH = 1.5
+
+
+def ransac_iterations(inlier_share: float, failure: float) -> int:
+    """RANSAC draws needed to draw three inliers at least once with probability ``1 − failure``.
+
+    ``N = ⌈log(failure) / log(1 − w³)⌉`` for an inlier share ``w`` (Fischler & Bolles' bound).
+    """
+    return int(np.ceil(np.log(failure) / np.log1p(-inlier_share**3)))
+
+
+#: The outlier-cluster guard's RANSAC draws in a provisional exact fit.  A provisional fit is tried only
+#: once the beams facing the wall have given ``min_inlier_fraction`` (½) of the plane's echoes, so about
+#: half the points are the wall's: 52 draws find it with probability 0.999 (the final, from scratch, keeps
+#: ``FitOptions.ransac_iterations``).  A miss costs an untrusted fit, retried as the wall's echoes grow.
+PROVISIONAL_RANSAC_ITERATIONS = ransac_iterations(0.5, 1e-3)
 
 
 @dataclass
@@ -106,6 +122,8 @@ class IncrementalPlane:
                  steps: int) -> None:
         self.geometry, self.label, self.axis = geometry, label, np.asarray(axis, dtype=np.float64)
         self.method, self.options = method, options
+        self._fit_options = replace(options, ransac_iterations=min(options.ransac_iterations,
+                                                                   PROVISIONAL_RANSAC_ITERATIONS))
         self.included = np.zeros(int(steps), dtype=bool)
         self.n = 0
         cap = 64
@@ -341,7 +359,7 @@ class IncrementalPlane:
         # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test
         # (mirror-consistent, min_inlier_fraction of the points within inlier_tolerance): the fast LEL is
         # not run twice.  What the guard returns it has vetted.
-        fit = fit_plane(data, self.method, warm_start=warm, options=self.options)
+        fit = fit_plane(data, self.method, warm_start=warm, options=self._fit_options)
         self.stats.exact += 1
         if _guard_ran(fit):
             self.stats.guarded += 1
