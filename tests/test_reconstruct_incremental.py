@@ -10,7 +10,7 @@ from lelsonar import codec
 from lelsonar.acquire.sim import preset
 from lelsonar.reconstruct import present
 from lelsonar.reconstruct.correct import AXIS_Z
-from lelsonar.reconstruct.incremental import FACING_MARGIN, RETRY_GROWTH, IncrementalPlane
+from lelsonar.reconstruct.incremental import FACING_MARGIN, RETRY_GROWTH, IncrementalPlane, ransac_iterations
 from lelsonar.reconstruct.pipeline import FitOptions, fit_plane
 from lelsonar.reconstruct.results import PlaneFit
 from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
@@ -193,3 +193,9 @@ def test_doubled_points_are_reclassified_without_an_exact_fit(scan_messages):
     for k in (0, 1):
         assert abs(plane.normal[k] - normal[k]) <= 5 * sigma_p / (root_n * np.std(inliers[:, k])), plane.normal
     assert abs(plane.offset - h) <= 5 * sigma_p / root_n
+
+
+@pytest.mark.parametrize("share, miss", [(0.5, 1e-3), (0.3, 1e-2), (0.8, 1e-6)])
+def test_provisional_ransac_draws_are_the_fewest_that_find_the_wall(share, miss):
+    n = ransac_iterations(share, miss)
+    assert (1 - share**3) ** n <= miss < (1 - share**3) ** (n - 1)
