@@ -7,14 +7,15 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
+from lelsonar.acquire.sim import preset
 from lelsonar.reconstruct import present
 from lelsonar.reconstruct.correct import AXIS_Z
-from lelsonar.reconstruct.incremental import RETRY_GROWTH, IncrementalPlane
+from lelsonar.reconstruct.incremental import FACING_MARGIN, RETRY_GROWTH, IncrementalPlane, ransac_iterations
 from lelsonar.reconstruct.pipeline import FitOptions, fit_plane
 from lelsonar.reconstruct.results import PlaneFit
 from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
 
-from .conftest import assert_matches_the_scene, simulated_messages, type_name
+from .conftest import assert_matches_the_scene, scene_truth, simulated_messages, type_name
 
 
 @pytest.fixture(scope="module")
@@ -123,3 +124,78 @@ def test_provisional_estimates_are_rate_limited_in_scan_time(scan_messages):
     assert [e.last_step for e in again] == [e.last_step for e in every_5ms]
     with pytest.raises(Exception):
         ReconstructConfig(provisional_period=-1)
+
+
+@pytest.mark.parametrize("preset_name", ["paper-test1", "paper-test2"])
+def test_provisional_planes_match_the_scene_late_in_the_scan_and_are_never_another_surface(preset_name):
+    """Against the simulator's truth: every provisional estimate of the last 15 % of the scan within the
+    noise model's bounds (``assert_matches_the_scene``), and no provisional plane b, at any step, that is
+    not wall b (its normal further from the truth than a wall may tilt, FACING_MARGIN) — early in the sweep
+    the only plane in subset b is the corner's echoes, which must be reported as a failure, not as wall b."""
+    messages = _restamped(simulated_messages(preset_name, seed=2), 20_000_000)  # 50 Hz
+    service = ReconstructionService()
+    prov = _provisional(_feed(service, messages))
+    steps = len(messages) - 2
+    late = [e for e in prov if e.last_step >= 0.85 * steps]
+    assert len(late) >= 5
+    for estimate in late:
+        assert_matches_the_scene(estimate, service.provisional_method, preset_name)
+    normal_b, h_b = scene_truth(preset_name)["b"]
+    seen_b = 0
+    for estimate in prov:
+        for pl in estimate.planes:
+            if pl.label == "b":
+                seen_b += 1
+                n = np.array([pl.normal.x, pl.normal.y, pl.normal.z])
+                assert np.degrees(np.arccos(np.clip(n @ normal_b, -1, 1))) < np.degrees(FACING_MARGIN), \
+                    f"step {estimate.last_step}: plane b {n} is not wall b {normal_b}"
+    assert seen_b >= len(late)
+
+
+def test_no_exact_fit_of_plane_b_before_the_beams_facing_it_give_most_of_its_echoes(scan_messages):
+    service = ReconstructionService(ReconstructConfig(provisional_period=0))
+    _feed(service, scan_messages[:-1])
+    (p,) = service._partials.values()
+    st = p.inc_b.stats
+    # Before the gate opens the estimate is a typed failure at no cost; after it, one untrusted try at most
+    # (the corner's echoes still weigh), then the wall; then O(new points) updates.
+    assert st.exact <= 2 and st.not_facing > 10 and st.updates >= 5
+    assert isinstance(p.inc_b.plane, PlaneFit)
+
+
+def test_doubled_points_are_reclassified_without_an_exact_fit(scan_messages):
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    _feed(service, scan_messages[:-1])
+    (scan,) = service.ingest.scans.values()
+    steps = np.flatnonzero(scan.received)
+    # Wall b seen face-on: the steps whose beam is within the beam half-angle of its normal.
+    face_on = steps[np.sin(scan.gamma[steps]) >= np.cos(FitOptions().beam_half_angle)]
+    inc = IncrementalPlane(scan.geometry, "b", AXIS_Z, "adaptive", FitOptions(), scan.start.steps)
+    inc.update(scan.gamma, scan.distance, face_on[:10])
+    assert inc.stats.exact == 1 and inc._theta_ls is not None
+    at_exact = inc.n
+    for k in range(10, len(face_on), 4):
+        inc.update(scan.gamma, scan.distance, face_on[k:k + 4])
+        if inc.n >= 2 * at_exact:
+            break
+    assert inc.n >= 2 * at_exact
+    assert inc.stats.refreshes == 1 and inc.stats.exact == 1
+    # Against the scene: 5σ of the noise model's error of a mean over the inliers (as assert_matches_the_scene,
+    # with the spreads of these inliers: the capsules along x, the beams' hits across).
+    plane = inc.plane
+    assert isinstance(plane, PlaneFit) and plane.n_inliers > 0.9 * inc.n
+    normal, h = scene_truth("paper-test1")["b"]
+    cfg = preset("paper-test1")
+    far = float(np.hypot(scene_truth("paper-test1")["a"][1], h))
+    sigma_p = float(np.hypot(cfg.receiver.tof_jitter, far * cfg.servo.position_error))
+    inliers = inc.data().points[plane.inlier_mask]
+    root_n = np.sqrt(plane.n_inliers)
+    for k in (0, 1):
+        assert abs(plane.normal[k] - normal[k]) <= 5 * sigma_p / (root_n * np.std(inliers[:, k])), plane.normal
+    assert abs(plane.offset - h) <= 5 * sigma_p / root_n
+
+
+@pytest.mark.parametrize("share, miss", [(0.5, 1e-3), (0.3, 1e-2), (0.8, 1e-6)])
+def test_provisional_ransac_draws_are_the_fewest_that_find_the_wall(share, miss):
+    n = ransac_iterations(share, miss)
+    assert (1 - share**3) ** n <= miss < (1 - share**3) ** (n - 1)

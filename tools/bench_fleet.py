@@ -24,7 +24,8 @@ Reported: handled samples/s (live samples processed by all workers over the
 time from the first put to the last processed), p50/p99 put → processed
 (``handle`` returned) and put → provisional estimate published (of the sample
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
-worker (user + system over its wall time), and how far the publisher fell
+worker (user + system over its wall time), CPU of each process while busy (a worker from its first
+to its last live sample, the publisher over its puts, the router meanwhile), and how far the publisher fell
 behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
 again and SIGKILLs one worker in the middle of the first scans: every scan
 must still get exactly one complete final.
@@ -138,6 +139,8 @@ def worker_main(args: argparse.Namespace) -> int:
     service.ingest.accept = probe_accept
     handle = service.handle
 
+    busy_cpu: list[float] = []  # process CPU (all threads) when the first and the latest live sample were handled
+
     def probe_handle(type_name, payload, **kw):
         last.clear()
         out = handle(type_name, payload, **kw)
@@ -146,6 +149,7 @@ def worker_main(args: argparse.Namespace) -> int:
             if isinstance(ev, Accepted) and ev.kind == "sample":
                 processed_ns.append(now_ns - int(ev.scan.time_ns[ev.step]))
                 handled.append(now)
+                busy_cpu[min(len(busy_cpu), 1):] = [time.process_time()]
         return out
 
     service.handle = probe_handle
@@ -169,6 +173,7 @@ def worker_main(args: argparse.Namespace) -> int:
         "member": args.member, "processed_ns": processed_ns, "provisional_ns": provisional_ns,
         "first": min(handled, default=None), "last": max(handled, default=None), "samples": len(handled),
         "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime), "wall_s": wall,
+        "busy_cpu_s": busy_cpu[-1] - busy_cpu[0] if len(busy_cpu) == 2 else None,
         "service": {**service.stats_dict(), "recovery": {**service.stats_dict()["recovery"], **live.recovery_stats}},
         "group": gstats, "errors": dict(live.error_types)}), flush=True)
     return 0
@@ -214,7 +219,7 @@ def publisher_main(args: argparse.Namespace) -> int:
             time.sleep(0.01)
         probe.undeclare()
         print(_READY + "{}", flush=True)
-        t0 = time.monotonic()
+        t0, cpu0 = time.monotonic(), time.process_time()
         tick = 0
         base = time.time_ns() // 1_000_000
         for k in range(args.scans):
@@ -239,9 +244,9 @@ def publisher_main(args: argparse.Namespace) -> int:
                                                 echoes_missing=0)
                     outputs[sid].emit(msg)
                 tick += 1
-        wall = time.monotonic() - t0
+        wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
         print(_RESULT + json.dumps({
-            "schedule_s": tick * period, "wall_s": wall, "lag_p50": _pct(lag, 50), "lag_p99": _pct(lag, 99),
+            "schedule_s": tick * period, "wall_s": wall, "cpu_s": cpu, "lag_p50": _pct(lag, 50), "lag_p99": _pct(lag, 99),
             "lag_max": max(lag), "puts": len(lag), "publish_failures": sum(o.publish_failures
                                                                            for o in outputs.values())}), flush=True)
         # Keep serving the logs until told to stop (recovery after a failover needs them).
@@ -254,6 +259,15 @@ def publisher_main(args: argparse.Namespace) -> int:
 
 
 # --- the orchestration -----------------------------------------------------------------------
+def _proc_cpu_s(pid: int) -> float | None:
+    """CPU (user + system) a process has used so far, from /proc (None where there is no /proc)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def _child(args: list[str], stdin=None) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "lelsonar", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.DEVNULL, stdin=stdin, text=True)
@@ -317,7 +331,7 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                 procs.append(publisher)
                 if _read_tagged(publisher, _READY, 120) is None:
                     raise SystemExit("bench fleet: the publisher did not come up")
-                t_start = time.monotonic()
+                t_start, router_cpu0 = time.monotonic(), _proc_cpu_s(router.pid)
                 killed = None
                 if kill_one:
                     steps = args.steps or 184
@@ -325,6 +339,7 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                     workers[0].send_signal(signal.SIGKILL)
                     killed = "w0"
                 pub = _read_tagged(publisher, _RESULT, args.scans * (args.steps or 184) / args.rate * 20 + 120)
+                router_cpu1, router_wall = _proc_cpu_s(router.pid), time.monotonic() - t_start
                 expected = args.scanners * args.scans
                 deadline = time.monotonic() + args.timeout
                 with got:
@@ -362,6 +377,13 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
         "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
         "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in reports},
+        # Over the window each was busy: a worker from its first to its last live sample handled, the
+        # publisher over its puts, the router over the publisher's puts.
+        "busy_cpu": {**{r["member"]: r["busy_cpu_s"] / (r["last"] - r["first"]) for r in reports
+                        if r.get("busy_cpu_s") is not None and r["last"] > r["first"]},
+                     **({"publisher": pub["cpu_s"] / pub["wall_s"]} if pub and pub.get("wall_s") else {}),
+                     **({"router": (router_cpu1 - router_cpu0) / router_wall}
+                        if router_cpu0 is not None and router_cpu1 is not None and router_wall > 0 else {})},
         "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in reports},
         "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in reports},
         "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in reports},
@@ -388,6 +410,8 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     out["duplicated_finals"] = sum(r["duplicated_finals"] for r in runs)
     members = sorted({m for r in runs for m in r["cpu_per_worker"]})
     out["cpu_per_worker"] = {m: med([r["cpu_per_worker"].get(m) for r in runs]) for m in members}
+    procs = sorted({m for r in runs for m in r["busy_cpu"]})
+    out["busy_cpu"] = {m: med([r["busy_cpu"].get(m) for r in runs]) for m in procs}
     pubs = [r["publisher"] for r in runs if r["publisher"]]
     out["publisher"] = {k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {})}
     out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
@@ -450,6 +474,8 @@ def run(args: argparse.Namespace) -> int:
         ("incomplete finals (must be 0)", lambda r: str(r["incomplete_finals"])),
         ("duplicated finals (must be 0)", lambda r: str(r["duplicated_finals"])),
         ("CPU per worker (of one core)", lambda r: " ".join(f"{v * 100:.0f}%" for v in r["cpu_per_worker"].values()
+                                                            if v is not None)),
+        ("CPU while busy (of one core)", lambda r: " ".join(f"{m} {v * 100:.0f}%" for m, v in r["busy_cpu"].items()
                                                             if v is not None)),
         ("publisher lag p50 / p99 / max, s", lambda r: f"{pub(r, 'lag_p50'):.2f} / {pub(r, 'lag_p99'):.2f} / "
                                                        f"{pub(r, 'lag_max'):.2f}"),

@@ -78,7 +78,8 @@ class ReconstructConfig:
     compare_methods : tuple of str
         Also run at the end of each scan, published next to ``method``.
     refit_every : int
-        Steps between provisional re-estimates of plane b.
+        Steps between provisional re-estimates of plane b (and, before the corner is confirmed,
+        between looks for its peak).
     provisional_period : float
         s of scan time (the samples' ``acquisition_time_ns``): a scan gets at most one provisional
         estimate per period (default 0.08 s: at most 12.5 a second per scan, i.e. every
@@ -181,7 +182,7 @@ class Partial:
     data_b: F.PlaneData | None = None
     plane_a: PlaneResult | None = None
     plane_b: PlaneResult | None = None
-    steps_at_fit: int = 0
+    steps_at_fit: int = 0              # steps received at the last refit (before the corner: the last look for it)
     estimated_at: float = 0.0
     #: acquisition_time_ns of the newest step at the last provisional estimate (the per-scan rate limit).
     provisional_ns: int = 0
@@ -246,6 +247,8 @@ class ReconstructionService:
         self._partials: dict[ScanKey, Partial] = {}
         # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
+        # Scans whose provisional refit waited for a backlog (tick() catches up on them).
+        self._deferred: set[ScanKey] = set()
         self._options = FitOptions()
         #: The method of the provisional refits, which fit one half at a time: the method of record, or
         #: "adaptive" when that is a scan-level method ("corner"), which runs on the whole scan at the end.
@@ -293,6 +296,7 @@ class ReconstructionService:
         now = self._clock()
         cfg = self.config
         out: list[codec.Reconstruction] = []
+        self._deferred.clear()  # every deferred refit is caught up on below
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
@@ -334,6 +338,11 @@ class ReconstructionService:
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
         return out
+
+    @property
+    def has_deferred(self) -> bool:
+        """Whether a provisional refit waits for :meth:`tick` (it waited for a backlog that has drained)."""
+        return bool(self._deferred)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now."""
@@ -453,6 +462,7 @@ class ReconstructionService:
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
+            self._deferred.add(scan.key)
             return []  # the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
@@ -460,10 +470,11 @@ class ReconstructionService:
         """Confirm the corner, then (re)fit plane b when enough new steps have come."""
         if not self.config.provisional:
             return []
-        if p.critical is not None and scan.n_received - p.steps_at_fit < self.config.refit_every:
-            return []  # cheap: no array work per sample between refits
+        if scan.n_received - p.steps_at_fit < self.config.refit_every:
+            return []  # cheap: no array work per sample between refits, nor between looks for the corner
         steps, _, _, ratio = scan.arrays()
         if p.critical is None:
+            p.steps_at_fit = len(steps)  # the corner's peak is looked for every refit_every steps (O(steps) each)
             peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
             if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
                 return []
@@ -476,8 +487,6 @@ class ReconstructionService:
                                        scan.start.steps)
             p.plane_a = p.inc_a.update(scan.gamma, scan.distance, steps[steps < p.critical])
             p.data_a = p.inc_a.last_data
-        elif len(steps) - p.steps_at_fit < self.config.refit_every:
-            return []
         newest_ns = int(scan.time_ns[steps[-1]]) if scan.latest is None else int(scan.latest.time_ns)
         if 0 < newest_ns - p.provisional_ns < self.config.provisional_period * 1e9:
             return []  # the per-scan rate limit (scan time)
