@@ -118,8 +118,11 @@ def worker_main(args: argparse.Namespace) -> int:
     provisional_ns: list[int] = []
     handled: list[float] = []   # monotonic time of each live sample processed
     forward: list = []
+    fence: list = []   # GroupMembership.may_publish, as `reconstruct --group` wires it
 
     def publish(msg) -> None:
+        if not all(may(msg) for may in fence):
+            return
         for fn in forward:
             fn(msg)
         if not present.is_terminal(msg):
@@ -159,6 +162,7 @@ def worker_main(args: argparse.Namespace) -> int:
         with GroupMembership(session, PREFIX, GroupConfig(GROUP, args.member, settle=0.5)) as group:
             server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
             forward += [server.publish, group.on_estimate]
+            fence.append(group.may_publish)
             with LiveSource(session, keys, service, stop, recovery=RecoveryConfig(), group=group) as live:
                 token = session.liveliness().declare_token(f"{PREFIX}/{args.member}/alive/bench-worker")
                 group.wait_members(args.workers, 60)
