@@ -229,9 +229,11 @@ class GroupMembership:
         self._entities.append(self._done_pub)
         self._entities.append(s.declare_subscriber(self._done_key, self._on_done))
         self._entities.append(s.declare_queryable(self._finals_key, self._answer_finals))
+        # Asked before this session declares anything on the member keys: with its own token or
+        # liveliness subscriber already there, the query was seen to end at once, unanswered.
+        self._learn_members()
         self._entities.append(s.liveliness().declare_subscriber(self._member_key, self._on_token, history=True))
         self._entities.append(s.liveliness().declare_token(self._token_key))
-        self._learn_members()
         return self
 
     def _learn_members(self) -> None:
