@@ -46,6 +46,7 @@ from dynamixel_sdk.protocol1_packet_handler import INST_PING, PKT_ERROR, PKT_ID,
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices.ax12 import ErrorBit
+from lelsonar.acquire.devices.link import Link
 from lelsonar.errors import ConfigError, DeviceError, DeviceTimeoutError
 
 T = TypeVar("T")
@@ -247,6 +248,11 @@ class MotorConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"MotorConfig: {message}")
+
+    @property
+    def link(self) -> Link:
+        """The bus: a UART at :attr:`baudrate` (10 µs per byte at 1 Mbps)."""
+        return Link.uart(self.baudrate)
 
     @property
     def packet_timeout_s(self) -> float:
@@ -543,8 +549,8 @@ class DynamixelMotor:
 
     def _snapshot(self) -> tuple[MotorPosition, bool]:
         """One read of Present Position .. Moving (36–46, 11 bytes; 45 is reserved)."""
-        base = ax12.register("present_position").address
-        data = self._read_block(base, ax12.register("moving").end - base)
+        base = ax12.MOVE_READBACK_ADDRESS
+        data = self._read_block(base, ax12.MOVE_READBACK_BYTES)
         self._present_raw = data[0] | data[1] << 8
         load_at = ax12.register("present_load").address - base
         position = MotorPosition(
