@@ -89,10 +89,16 @@ class DeviceScanner:
                 while_listening: Callable[[], None] | None = None) -> StepMeasurement:
         pos = self._arrive(gamma_commanded)
         t_ns = time.time_ns()
+        heard = self.rig.board.fires + 1 if self.rig is not None else 0
         pending = self.board.send_fire(step)
         ahead = None
         if self.pipeline:
             if while_listening is not None:
+                if self.rig is not None:
+                    # The emulators are threads of this process: let the board's take the FIRE (its window
+                    # starts when it does) before the host's work holds the GIL for a millisecond; a board
+                    # of its own hears it at once.  Bounded: a lost FIRE is the driver's business.
+                    self.rig.board.wait_fires(heard, timeout=self.board.config.window_s / 2)
                 while_listening()  # the host's own work, while the capsules listen
             if next_gamma is not None:
                 ahead = lambda: self._move_ahead(next_gamma)  # noqa: E731
