@@ -154,8 +154,7 @@ def test_after_the_window_a_re_requested_shot_must_be_the_same_shot(board_kept_t
     """The servo moves once the answer's header is in; if the frame then fails its CRC, the driver asks
     again, and only a resend of that shot (status RESENT) will do: a board that fired anew fired at the
     angle the servo has moved to."""
-    link_cfg = SensorBoardEmulatorConfig(link=SENSOR_BOARD_USB)  # paced: the header comes before the rest
-    with SensorBoardEmulator(_counting_source, config=link_cfg) as emu, \
+    with SensorBoardEmulator(_counting_source, config=SensorBoardEmulatorConfig(link=SENSOR_BOARD_USB)) as emu, \
             SerialSensorBoard(SensorBoardConfig(port=emu.path, n_samples=400, fs_hz=200_000)) as board:
         emu.inject_corruption(1, "payload")
         moved: list[int] = []

@@ -325,9 +325,9 @@ class SerialSensorBoard:
         ----------
         shot : PendingShot
         after_window : callable, optional
-            Called once, as soon as the header of an ACQ for this shot has arrived (the board
-            has listened for its window and is sending), or with the whole ACQ if it came at
-            once; what it raises is raised as is.
+            Called once, as soon as the (sound) header of an ACQ for this shot has arrived: the
+            board has listened for its window and is sending, whether or not the frame then
+            passes its CRC.  What it raises is raised as is.
 
         Raises
         ------
@@ -424,7 +424,7 @@ class SerialSensorBoard:
 
         A CRC failure is raised only for a frame that could be ours: a corrupt
         frame with another SEQ is just a lost stale frame.  ``window_over`` runs once
-        the header of our ACQ is in.  At the deadline, what already waits in the port
+        the header of our ACQ is in (whether or not the rest then checks out).  At the deadline, what already waits in the port
         is read before giving up (the host may have been busy, not the board late).
         """
         parser = self._parser
@@ -435,6 +435,8 @@ class SerialSensorBoard:
                     frame = parser.next_frame()
                 except sf.FrameCrcError as exc:
                     if exc.seq == seq:
+                        if exc.frame_type == sf.FrameType.ACQ:
+                            window_over()  # its header was sound: the board had listened and was sending
                         raise
                     self.stale_frames += 1
                     continue
