@@ -172,3 +172,29 @@ def test_after_the_window_a_re_requested_shot_must_be_the_same_shot(board_kept_t
             with pytest.raises(SensorBoardProtocolError, match="RESENT"):
                 board.receive(shot, after_window=servo_moves)
     assert moved == [1]  # once, after the first FIRE's window
+
+
+def test_a_sample_measured_before_an_unexpected_error_is_still_recorded():
+    """The pipelined loop holds each sample until the next shot listens; if something other than a device
+    fault ends the loop before that (a bug, an interrupt), the held sample still goes out first."""
+    from lelsonar.acquire.backends import SimScanner
+
+    cfg = AcquireConfig(device="sim", steps=10)
+    sim = sim_config(cfg)
+    inner = SimScanner(sim, seed=1)
+
+    class Breaks:
+        info = inner.info
+
+        def measure(self, step, gamma, *, next_gamma=None, while_listening=None):
+            if step == 5:
+                raise RuntimeError("a bug in the scanner")
+            if while_listening is not None:
+                while_listening()  # works while listening, like the pipelined device scanner
+            return inner.measure(step, gamma)
+
+    out = Collect()
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    with pytest.raises(RuntimeError, match="a bug"):
+        run_scan(Breaks(), schedule, ScanIdentity("s", 1), energy_model(cfg), out, threading.Event())
+    assert [m.step for m in out.messages[1:]] == [0, 1, 2, 3, 4]

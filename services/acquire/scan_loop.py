@@ -150,6 +150,9 @@ def run_scan(scanner: Scanner, schedule: np.ndarray, who: ScanIdentity, energy_m
             reason = f"device failure at step {step}: {exc}"
             output.log("ERROR", reason)
             break
+        except BaseException:
+            emit_measured()  # whatever else stops the loop, what was measured is recorded
+            raise
         emit_measured()
         measured = (step, float(gamma), shot)
         if not listened:  # a scanner that does not work while listening: out at once, as ever

@@ -46,7 +46,6 @@ from dynamixel_sdk.protocol1_packet_handler import INST_PING, PKT_ERROR, PKT_ID,
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices.ax12 import ErrorBit
-from lelsonar.acquire.devices.link import Link
 from lelsonar.errors import ConfigError, DeviceError, DeviceTimeoutError
 
 T = TypeVar("T")
@@ -248,11 +247,6 @@ class MotorConfig:
         for ok, message in checks:
             if not ok:
                 raise ConfigError(f"MotorConfig: {message}")
-
-    @property
-    def link(self) -> Link:
-        """The bus: a UART at :attr:`baudrate` (10 µs per byte at 1 Mbps)."""
-        return Link.uart(self.baudrate)
 
     @property
     def packet_timeout_s(self) -> float:
