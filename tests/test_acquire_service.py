@@ -70,8 +70,13 @@ def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket
         assert done_cmd.returncode == 0, done_cmd.stderr
 
 
-def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_path):
-    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=40)
+@pytest.mark.parametrize(("pipeline", "failing_step"), [(False, 13), (True, 14)], ids=["sequential", "pipelined"])
+def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_path, pipeline, failing_step):
+    """The servo overloads once sample 12 is out; the first move commanded after that fails, and every
+    sample before it is recorded.  Sequential: that is the move to step 13.  Pipelined: the move to
+    step 13 was made while step 12's frame crossed the link, and sample 12 goes out during step 13's
+    window, so the move that meets the overload is step 14's (made during step 13's transfer)."""
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=40, pipeline=pipeline)
     sim = sim_config(cfg)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     path = tmp_path / "fault.mcap"
@@ -83,15 +88,18 @@ def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_pat
 
         end = run_scan(scanner, schedule, ScanIdentity("s1", 5), energy_model(cfg), ScanOutput(rec, None),
                        threading.Event(), on_step=overload_at_step_12)
-    assert end.status == 2 and "overload" in end.reason.lower() and "step 13" in end.reason
+    assert end.status == 2 and "overload" in end.reason.lower() and f"step {failing_step}:" in end.reason
     recorded = list(recording.read_messages(path))
-    assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(13))
-    assert recorded[-1] == end and end.samples_sent == 13
+    assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(failing_step))
+    assert recorded[-1] == end and end.samples_sent == failing_step
 
 
-def test_the_servo_status_byte_reaches_every_sample(tmp_path):
+@pytest.mark.parametrize("pipeline", [False, True], ids=["sequential", "pipelined"])
+def test_the_servo_status_byte_reaches_every_sample(tmp_path, pipeline):
     """The AX-12's ERR byte of each step's read-back is carried in Sample.motor.error_bits: here a
-    supply that sags below the Min Voltage Limit for steps 6-9 (tolerated, so the scan goes on)."""
+    supply that sags below the Min Voltage Limit while samples 5-8 go out (tolerated, so the scan goes
+    on).  The read-backs that see it are those of the moves made then: steps 6-9 one after the other;
+    pipelined, steps 7-10 (the move to step 6 was made during step 5's transfer, before sample 5 went out)."""
     import numpy as np
 
     from lelsonar.acquire.backends import DeviceScanner, sim_info
@@ -115,7 +123,7 @@ def test_the_servo_status_byte_reaches_every_sample(tmp_path):
                                        tolerated_error_bits=int(ErrorBit.INPUT_VOLTAGE))) as motor, \
             SerialSensorBoard(SensorBoardConfig(port=rig.board.path, n_samples=sim.window_samples,
                                                 fs_hz=int(sim.sample_rate))) as board:
-        scanner = DeviceScanner(motor, board, sim_info(sim, "emulated"), rig)
+        scanner = DeviceScanner(motor, board, sim_info(sim, "emulated"), rig, pipeline=pipeline)
 
         def supply(step: int, _gamma: float) -> None:
             if step == 5:
@@ -130,36 +138,45 @@ def test_the_servo_status_byte_reaches_every_sample(tmp_path):
                        on_step=supply)
     assert end.status == scan_pb2.SCAN_STATUS_COMPLETE, end.reason
     samples = [m for m in collected if isinstance(m, codec.Sample)]
-    assert [s.motor.error_bits for s in samples] == [0] * 6 + [int(ErrorBit.INPUT_VOLTAGE)] * 4 + [0] * 6
-    assert [s.motor.voltage for s in samples][5:11] == pytest.approx([12.0, 5.5, 5.5, 5.5, 5.5, 12.0])
+    first = 7 if pipeline else 6
+    assert [s.motor.error_bits for s in samples] == \
+        [0] * first + [int(ErrorBit.INPUT_VOLTAGE)] * 4 + [0] * (12 - first)
+    assert [s.motor.voltage for s in samples][first - 1:first + 5] == pytest.approx([12.0, 5.5, 5.5, 5.5, 5.5, 12.0])
 
 
 def _undecodable_from_step_12(scanner) -> None:
-    """From now on the board frames every ACQ with a bit depth of 17: well framed, undecodable."""
+    """The board frames the ACQ of step 12 on with a bit depth of 17: well framed, undecodable."""
     from .test_devices_sensor_board import _with_bits
 
     board = scanner.rig.board
     send = board._send
-    board._send = lambda frame, due: send(_with_bits(frame, 17), due)
+
+    def send_from_step_12(frame: bytes, due: float) -> None:
+        is_acq = frame[3] == 0x81
+        send(_with_bits(frame, 17) if is_acq and int.from_bytes(frame[12:14], "little") >= 12 else frame, due)
+
+    board._send = send_from_step_12
 
 
+def _unplugged_after_step_11(scanner) -> None:
+    """The board is unplugged once sample 11 is out, i.e. while step 12's shot is in flight at the latest."""
+    return lambda step, _gamma: scanner.rig.board.stop() if step == 11 else None
+
+
+@pytest.mark.parametrize("pipeline", [False, True], ids=["sequential", "pipelined"])
 @pytest.mark.parametrize(("fault", "reason"), [
     (_undecodable_from_step_12, "cannot be decoded"),
-    (lambda scanner: scanner.rig.board.stop(), "serial I/O"),  # the board unplugged
+    (_unplugged_after_step_11, "serial I/O"),
 ], ids=["decode-error", "serial-error"])
-def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason):
-    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=20)
+def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason, pipeline):
+    cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=20, pipeline=pipeline)
     sim = sim_config(cfg)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     path = tmp_path / "fault.mcap"
     with open_scanner(cfg, sim) as scanner, recording.McapRecorder(path) as rec:
-
-        def fault_after_step_11(step: int, _gamma: float) -> None:
-            if step == 11:
-                fault(scanner)
-
+        on_step = fault(scanner)  # installed now, or a hook that strikes after sample 11
         end = run_scan(scanner, schedule, ScanIdentity("s1", 6), energy_model(cfg), ScanOutput(rec, None),
-                       threading.Event(), on_step=fault_after_step_11)
+                       threading.Event(), on_step=on_step)
     assert end.status == scan_pb2.SCAN_STATUS_ABORTED
     assert "device failure at step 12" in end.reason and reason in end.reason
     recorded = list(recording.read_messages(path))

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from lelsonar.acquire.devices import sensor_frame as sf
+from lelsonar.acquire.devices.link import Link
 from lelsonar.acquire.devices.sensor_board import (
     SensorBoard,
     SensorBoardConfig,
@@ -31,7 +32,10 @@ N, FS = 400, 200_000  # a 2 ms window keeps the tests quick
 
 
 def board_config(emu: SensorBoardEmulator, **kw) -> SensorBoardConfig:
-    return SensorBoardConfig(port=emu.path, n_samples=kw.pop("n_samples", N), fs_hz=FS, timeout_margin_s=0.02, **kw)
+    # Short timeouts keep the retry tests quick; the line time of a 1 Mbaud UART (not USB's 12× less)
+    # keeps them clear of a busy host's delays, as these tests were tuned.
+    return SensorBoardConfig(port=emu.path, n_samples=kw.pop("n_samples", N), fs_hz=FS, timeout_margin_s=0.02,
+                             link=kw.pop("link", Link.uart(1_000_000)), **kw)
 
 
 def counting_source(step: int, gamma: float, n: int, fs: float) -> tuple[np.ndarray, np.ndarray]:

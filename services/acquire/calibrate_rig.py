@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lelsonar.acquire.rig import Rig, load_rig, write_energy_model
+from lelsonar.acquire.rig import Rig, load_rig, rig_links, write_energy_model
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
 
@@ -80,7 +80,7 @@ def calibrate_serial(rig_path: Path, distances: tuple[float, ...], ask: Callable
     board_cfg = SensorBoardConfig(port=sensor_port or g("sensor_board.port"),
                                   n_samples=int(g("sensor_board.window_samples")), fs_hz=int(round(sample_rate)),
                                   full_scale_v=float(g("sensor_board.full_scale_v", 1.65)),
-                                  baudrate=int(g("sensor_board.baudrate", 1_000_000)))
+                                  baudrate=int(g("sensor_board.baudrate", 1_000_000)), link=rig_links(rig)[1])
     shots: list[Shot] = []
     with DynamixelMotor(motor_cfg) as motor, SerialSensorBoard(board_cfg) as board:
         pos = motor.move_to(0.0)

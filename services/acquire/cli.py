@@ -16,7 +16,7 @@ _TOML_KEYS = {
     "scanner_id": str, "prefix": str, "device": str, "preset": str, "steps": int, "gamma_start_deg": float,
     "gamma_stop_deg": float, "radial_offset": float, "motor_port": str, "sensor_port": str, "out_dir": str,
     "mcap_name": str, "record": bool, "scans": int, "interval": float, "seed": int, "waveform_int16": bool,
-    "compression": str, "energy_phi": list, "fsync": bool, "serve_log_for": float,
+    "compression": str, "energy_phi": list, "fsync": bool, "serve_log_for": float, "pipeline": bool,
 }
 
 
@@ -69,6 +69,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="keep answering log queries (<prefix>/<scanner>/log/<scan_id>) for S seconds after the "
                         "last scan, so reconstructors that missed steps recover them (default: 10; 0: only "
                         "while scanning)")
+    p.add_argument("--no-pipeline", dest="pipeline", action="store_false", default=None,
+                   help="one step after the other: do not move the servo while the board sends the last shot "
+                        "(`lelsonar bench acquire` compares the two)")
     add_zenoh_arguments(p, default_mode="peer")
     add_secure_argument(p)
     p.set_defaults(run=run_acquire, _own_config_table=True)  # [acquire] and the rig tables: config_from_args
@@ -107,7 +110,7 @@ def config_from_args(args: argparse.Namespace):
         values.update(rig.values["schedule"])  # the schedule applies to every device
     for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
                 "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression", "fsync",
-                "serve_log_for"):
+                "serve_log_for", "pipeline"):
         if getattr(args, key, None) is not None:
             values[key] = getattr(args, key)
     if args.prefix:

@@ -60,7 +60,16 @@ class AcquireConfig:
         φ of eq. (12); default: the rig's (serial) or the simulator's calibration.
     rig : Rig, optional
         The rig tables of ``--config`` (:mod:`lelsonar.acquire.rig`); ``device="serial"``
-        takes everything from it (flags override), never from a simulator preset.
+        takes everything from it (flags override), never from a simulator preset.  The
+        emulated devices take their links from it (:func:`~lelsonar.acquire.rig.rig_links`).
+    pipeline : bool
+        Move the servo to the next step while the board sends the current shot's frame
+        (never during an acoustic window), and record and publish each sample while the
+        next shot listens.  False: one step after the other (for comparison).
+    paced_links : bool
+        ``device="emulated"``: the emulators send and receive at the links' rates, so the
+        scan pays the line time a real one would.  False: as fast as the ptys move bytes
+        (quick tests).
     """
 
     scanner_id: str = "scanner1"
@@ -85,6 +94,8 @@ class AcquireConfig:
     energy_model: EnergyModel | None = None
     serve_log_for: float = 10.0
     rig: Rig | None = None
+    pipeline: bool = True
+    paced_links: bool = True
 
     def __post_init__(self) -> None:
         validate_identifier(self.scanner_id)

@@ -4,7 +4,7 @@
 
     [array]         capsule_x (m, along the rotation axis), radial_offset (m)
     [servo]         port, id, baudrate, zero_raw, gamma_min_deg, gamma_max_deg, moving_speed, latency_timer_ms
-    [sensor_board]  port, sample_rate (Hz), window_samples, full_scale_v, baudrate
+    [sensor_board]  port, sample_rate (Hz), window_samples, full_scale_v, link ("usb-fs" or "uart"), baudrate
     [air]           temperature_c or sound_speed (m/s)
     [energy_model]  phi = [phi0, phi1, phi2], d_min, d_max (m): E0(d) = 1/(phi0 d² + phi1 d + phi2)
     [schedule]      gamma_start_deg, gamma_stop_deg, steps
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from lelsonar.acquire.devices.link import LINK_KINDS, Link
 from lelsonar.errors import ConfigError
 
 #: Every table and key of a rig file with its type (float also accepts an int).
@@ -31,7 +32,7 @@ RIG_KEYS: dict[str, dict[str, type]] = {
     "servo": {"port": str, "id": int, "baudrate": int, "zero_raw": int, "gamma_min_deg": float,
               "gamma_max_deg": float, "moving_speed": int, "latency_timer_ms": float},
     "sensor_board": {"port": str, "sample_rate": float, "window_samples": int, "full_scale_v": float,
-                     "baudrate": int},
+                     "link": str, "baudrate": int},
     "air": {"temperature_c": float, "sound_speed": float},
     "energy_model": {"phi": list, "d_min": float, "d_max": float},
     "schedule": {"gamma_start_deg": float, "gamma_stop_deg": float, "steps": int},
@@ -86,6 +87,20 @@ class Rig:
         return float(c), float(t_c) + 273.15
 
 
+def rig_links(rig: Rig | None) -> tuple[Link, Link]:
+    """(AX-12 bus, sensor board link) of a rig file, or the defaults without one.
+
+    The servo's bus is a UART at ``[servo] baudrate`` (1 Mbps, the factory setting); the
+    board's link is ``[sensor_board] link``: ``usb-fs`` (the default, a USB CDC board) or
+    ``uart`` at ``[sensor_board] baudrate``.  The emulated backend paces its emulators with
+    them and the physical bound charges every byte at their rates.
+    """
+    g = (rig or Rig(None, {})).get
+    motor = Link.uart(int(g("servo.baudrate", 1_000_000)))
+    board = Link.named(str(g("sensor_board.link", "usb-fs")), int(g("sensor_board.baudrate", 1_000_000)))
+    return motor, board
+
+
 def _where(path: Path | None, text: str) -> str:
     return f"{path}: {text}" if path else text
 
@@ -137,6 +152,13 @@ def _validate(rig: Rig) -> None:
     zero = rig.get("servo.zero_raw")
     if zero is not None and not 0 <= zero <= 1023:
         raise ConfigError(_where(p, f"[servo].zero_raw must be in 0..1023 (AX-12 units), got {zero}"))
+    link = rig.get("sensor_board.link")
+    if link is not None and link not in LINK_KINDS:
+        raise ConfigError(_where(p, f"[sensor_board].link must be one of {', '.join(LINK_KINDS)}, got {link!r}"))
+    for table in ("servo", "sensor_board"):
+        baud = rig.get(f"{table}.baudrate")
+        if baud is not None and baud <= 0:
+            raise ConfigError(_where(p, f"[{table}].baudrate must be positive, got {baud}"))
     t_c, c = rig.get("air.temperature_c"), rig.get("air.sound_speed")
     if t_c is not None and not -40.0 <= t_c <= 60.0:
         raise ConfigError(_where(p, f"[air].temperature_c must be in [-40, 60] °C, got {t_c}"))
@@ -234,7 +256,7 @@ def serial_setup(cfg) -> SerialSetup:
                         latency_timer_ms=float(g("servo.latency_timer_ms", 16.0)))
     board = SensorBoardConfig(port=cfg.sensor_port or g("sensor_board.port"), n_samples=window,
                               fs_hz=int(round(sample_rate)), full_scale_v=float(g("sensor_board.full_scale_v", 1.65)),
-                              baudrate=int(g("sensor_board.baudrate", 1_000_000)))
+                              baudrate=int(g("sensor_board.baudrate", 1_000_000)), link=rig_links(rig)[1])
     d_min, d_max = g("energy_model.d_min", 0.9), g("energy_model.d_max", 1.8)
     if cfg.energy_model is not None:
         m = cfg.energy_model

@@ -4,6 +4,13 @@ Recording comes first and does not depend on the network: a Zenoh failure is
 logged and counted, and the MCAP file stays complete.  A stop request (SIGINT,
 SIGTERM) is honoured between steps: the current step finishes, ``ScanEnd``
 says ``ABORTED`` with the reason, and the caller finishes the file.
+
+Pipelining: each sample is built, recorded and published while the next shot's
+capsules listen (the scanner calls ``while_listening`` during the acoustic window,
+when the host has nothing else to do), and the scanner may move the servo to the
+next step while the board sends the current frame.  Every sample is still recorded
+before it is published, in step order, and the samples measured before a fault are
+all emitted before ``ScanEnd``.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from google.protobuf.message import Message
 from lelsonar import codec
 from lelsonar.acquire import messages
 from lelsonar.acquire.log_server import ScanLog
-from lelsonar.acquire.scanner import Scanner
+from lelsonar.acquire.scanner import Scanner, StepMeasurement
 from lelsonar.errors import DeviceError
 from lelsonar.keys import ScannerKeys
 from lelsonar.energy_model import EnergyModel
@@ -98,29 +105,59 @@ def run_scan(scanner: Scanner, schedule: np.ndarray, who: ScanIdentity, energy_m
              output: ScanOutput, stop: threading.Event, *,
              on_step: Callable[[int, float], None] | None = None,
              int16_scale: float | None = None) -> codec.ScanEnd:
-    """Acquire one scan; return its ``ScanEnd`` (complete or aborted, never raising on device faults)."""
+    """Acquire one scan; return its ``ScanEnd`` (complete or aborted, never raising on device faults).
+
+    ``on_step(step, gamma_measured)`` is called once each sample is emitted (in the pipelined
+    loop, during the next step's acoustic window).
+    """
     info = scanner.info
     output.emit(messages.scan_start(who.scanner_id, who.scan_id, time.time_ns(), info, schedule, energy_model))
     output.log("INFO", f"scan {who.scan_id} of {who.scanner_id} started: {len(schedule)} steps, "
                        f"γ {np.rad2deg(schedule[0]):.1f}° → {np.rad2deg(schedule[-1]):.1f}°, device {info.device}")
     sent = missing = 0
     reason = ""
-    for step, gamma in enumerate(schedule):
-        if stop.is_set():
-            reason = f"stopped by request before step {step}"
-            break
-        try:
-            shot = scanner.measure(step, float(gamma))
-        except DeviceError as exc:
-            reason = f"device failure at step {step}: {exc}"
-            output.log("ERROR", reason)
-            break
-        output.emit(messages.sample(who.scanner_id, who.scan_id, step, float(gamma), shot, info,
-                                    int16_scale=int16_scale))
+    measured: tuple[int, float, StepMeasurement] | None = None  # the last shot, not yet emitted
+
+    def emit_measured() -> None:
+        nonlocal measured, sent, missing
+        if measured is None:
+            return
+        step, gamma, shot = measured
+        measured = None
+        output.emit(messages.sample(who.scanner_id, who.scan_id, step, gamma, shot, info, int16_scale=int16_scale))
         sent += 1
         missing += int(np.count_nonzero(~(np.isfinite(shot.time_of_flight) & (shot.time_of_flight > 0))))
         if on_step is not None:
             on_step(step, shot.gamma_measured)
+
+    listened = False
+
+    def while_listening() -> None:
+        nonlocal listened
+        listened = True
+        emit_measured()
+
+    for step, gamma in enumerate(schedule):
+        if stop.is_set():
+            reason = f"stopped by request before step {step}"
+            break
+        next_gamma = float(schedule[step + 1]) if step + 1 < len(schedule) else None
+        listened = False
+        try:
+            shot = scanner.measure(step, float(gamma), next_gamma=next_gamma, while_listening=while_listening)
+        except DeviceError as exc:
+            emit_measured()  # the step before the fault was measured whole: it is kept
+            reason = f"device failure at step {step}: {exc}"
+            output.log("ERROR", reason)
+            break
+        except BaseException:
+            emit_measured()  # whatever else stops the loop, what was measured is recorded
+            raise
+        emit_measured()
+        measured = (step, float(gamma), shot)
+        if not listened:  # a scanner that does not work while listening: out at once, as ever
+            emit_measured()
+    emit_measured()
     complete = sent == len(schedule)
     end = messages.scan_end(who.scanner_id, who.scan_id, time.time_ns(), complete=complete, reason=reason,
                             steps_planned=len(schedule), samples_sent=sent, echoes_missing=missing)

@@ -8,6 +8,7 @@ to hardware (``serial``).  The scan loop cannot tell them apart.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -71,8 +72,15 @@ class Scanner(Protocol):
 
     info: ScannerInfo
 
-    def measure(self, step: int, gamma_commanded: float) -> StepMeasurement:
-        """Move to ``gamma_commanded`` (rad), wait until still, fire, return the shot."""
+    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
+                while_listening: Callable[[], None] | None = None) -> StepMeasurement:
+        """Move to ``gamma_commanded`` (rad), wait until still, fire, return the shot.
+
+        ``next_gamma``: the next step's angle, which a scanner may move to once this shot's
+        acoustic window is over (never during it).  ``while_listening``: the caller's work,
+        which a scanner may run while the capsules listen; if it does not, the caller runs
+        it after.  What either raises is raised as is.
+        """
         ...
 
     def close(self) -> None:

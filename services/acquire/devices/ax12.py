@@ -229,3 +229,22 @@ def signed_load(raw: int) -> float:
     """Present Load as a signed fraction of max torque (CCW positive, bit 10 = CW)."""
     magnitude = (raw & 0x3FF) / 1023.0
     return -magnitude if raw & DIRECTION_BIT else magnitude
+
+
+#: Bytes of a protocol-1.0 packet around its parameters: FF FF ID LEN INSTR/ERR … CKSUM (design §6).
+PACKET_OVERHEAD = 6
+
+
+def packet_size(n_params: int) -> int:
+    """Bytes on the bus of a protocol-1.0 packet with ``n_params`` parameters.
+
+    An instruction's parameters: READ has 2 (address, length), WRITE 1 + the data; a
+    status packet's are the data read (none for PING or a WRITE's acknowledgement).
+    """
+    return PACKET_OVERHEAD + n_params
+
+
+#: What the driver reads back in one READ per poll of a move: Present Position .. Moving (36–46, 11 bytes;
+#: 45 is reserved), so each sample gets position, load, voltage and temperature from the read that saw it stop.
+MOVE_READBACK_ADDRESS = register("present_position").address
+MOVE_READBACK_BYTES = register("moving").end - MOVE_READBACK_ADDRESS

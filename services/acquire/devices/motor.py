@@ -543,8 +543,8 @@ class DynamixelMotor:
 
     def _snapshot(self) -> tuple[MotorPosition, bool]:
         """One read of Present Position .. Moving (36–46, 11 bytes; 45 is reserved)."""
-        base = ax12.register("present_position").address
-        data = self._read_block(base, ax12.register("moving").end - base)
+        base = ax12.MOVE_READBACK_ADDRESS
+        data = self._read_block(base, ax12.MOVE_READBACK_BYTES)
         self._present_raw = data[0] | data[1] << 8
         load_at = ax12.register("present_load").address - base
         position = MotorPosition(

@@ -12,6 +12,14 @@ instead of firing again; after a timeout it flushes the input and asks again
 the same way (a board that never got the FIRE fires).  Both are bounded by
 :attr:`SensorBoardConfig.retries`.
 
+A shot can also be taken in two calls, :meth:`SerialSensorBoard.send_fire` then
+:meth:`SerialSensorBoard.receive`, so the host can work while the board listens, and
+``receive(after_window=...)`` runs a callable once the answer's header has arrived: the
+board sends the ACQ only after the acoustic window, so from then on the servo may move
+while the frame is still crossing the link (the scanner's pipelining).  If the answer
+must then be asked for again, it must be a resend (status RESENT): a board that fired
+anew would have fired at the new angle, and that is a :class:`SensorBoardProtocolError`.
+
 Everything :meth:`SerialSensorBoard.fire` raises is a :class:`SensorBoardError`, so a
 :class:`~lelsonar.errors.DeviceError`: an answer that cannot be decoded is a
 :class:`SensorBoardDecodeError` (also a :class:`~lelsonar.errors.DecodeError`), a port
@@ -23,6 +31,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Protocol, Self, runtime_checkable
@@ -31,6 +40,7 @@ import numpy as np
 import serial
 
 from lelsonar.acquire.devices import sensor_frame as sf
+from lelsonar.acquire.devices.link import SENSOR_BOARD_USB, Link
 from lelsonar.errors import ConfigError, DecodeError, DeviceError, DeviceTimeoutError
 
 
@@ -90,7 +100,10 @@ class SensorBoardConfig:
     mask : int
         Capsules to fire, bit i = channel i.
     baudrate : int
-        Used for the line-time part of the answer timeout.
+        Opens the port at this rate (a USB-CDC board ignores it).
+    link : Link
+        What the bytes cross: USB full speed (default) or a UART; its rate is the line-time
+        part of the answer timeout.
     full_scale_v : float
         Volts at the ADC's positive rail relative to mid-scale (see :class:`~.sensor_frame.WaveScale`).
     max_payload_bytes : int
@@ -99,7 +112,9 @@ class SensorBoardConfig:
     retries : int
         Extra requests after a corrupt answer or a timeout.
     timeout_margin_s : float
-        Added to the acoustic window and the line time to bound the wait for an answer.
+        Added to the acoustic window and the line time to bound the wait for an answer: USB
+        latency and the host's scheduling (an emulator thread on a loaded host answers 100+ ms
+        late, issue 10 §5); a lost answer costs this much.
     """
 
     port: str
@@ -107,10 +122,11 @@ class SensorBoardConfig:
     fs_hz: int = 200_000
     mask: int = 0x0F
     baudrate: int = 1_000_000
+    link: Link = SENSOR_BOARD_USB
     full_scale_v: float = 1.65
     max_payload_bytes: int = 256 * 1024
     retries: int = 3
-    timeout_margin_s: float = 0.05
+    timeout_margin_s: float = 0.25
 
     def __post_init__(self) -> None:
         checks = (
@@ -138,10 +154,14 @@ class SensorBoardConfig:
         return self.n_samples / self.fs_hz
 
     @property
+    def acq_frame_bytes(self) -> int:
+        """Bytes on the wire of one ACQ with waveforms."""
+        return sf.frame_size(sf.acq_payload_size(self.n_samples))
+
+    @property
     def answer_timeout_s(self) -> float:
-        """Longest wait for an ACQ: window + line time at ``baudrate`` (10 bits/byte) + margin."""
-        frame = sf.HEADER_SIZE + sf.acq_payload_size(self.n_samples) + sf.TRAILER_SIZE
-        return self.window_s + frame * 10.0 / self.baudrate + self.timeout_margin_s
+        """Longest wait for an ACQ: window + its line time on the link + margin."""
+        return self.window_s + self.link.seconds(self.acq_frame_bytes) + self.timeout_margin_s
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,12 +198,36 @@ class Acquisition:
     requests: int = 1
 
 
+@dataclass(frozen=True)
+class PendingShot:
+    """A FIRE sent and not yet answered (:meth:`SerialSensorBoard.send_fire`).
+
+    Attributes
+    ----------
+    step, seq : int
+    deadline : float
+        Monotonic s by which the answer is due (the board's window, line time and margin).
+    """
+
+    step: int
+    seq: int
+    deadline: float
+
+
 @runtime_checkable
 class SensorBoard(Protocol):
     """What the acquisition loop needs from the sensor board."""
 
     def fire(self, step: int) -> Acquisition:
         """Fire all configured capsules for ``step`` and return the shot."""
+        ...
+
+    def send_fire(self, step: int) -> PendingShot:
+        """Fire for ``step`` and return at once; :meth:`receive` collects the shot."""
+        ...
+
+    def receive(self, shot: PendingShot, *, after_window: Callable[[], None] | None = None) -> Acquisition:
+        """Wait for the shot; call ``after_window`` once its answer has begun (the window is over)."""
         ...
 
     def close(self) -> None: ...
@@ -243,7 +287,7 @@ class SerialSensorBoard:
         return self._parser.discarded
 
     def fire(self, step: int) -> Acquisition:
-        """Fire the capsules for ``step`` and wait for the acquisition.
+        """Fire the capsules for ``step`` and wait for the acquisition: :meth:`send_fire` then :meth:`receive`.
 
         Raises
         ------
@@ -258,19 +302,55 @@ class SerialSensorBoard:
         SensorBoardCommunicationError
             The port failed.
         """
+        return self.receive(self.send_fire(step))
+
+    def send_fire(self, step: int) -> PendingShot:
+        """Send FIRE for ``step`` and return without waiting; pass the result to :meth:`receive`.
+
+        Raises
+        ------
+        SensorBoardCommunicationError
+            The port failed.
+        """
         try:
-            return self._fire(step)
+            seq = self._request(step, sf.FireFlag.WAVEFORMS)
+        except (serial.SerialException, OSError) as exc:
+            raise self._port_failed(step, exc) from exc
+        return PendingShot(step, seq, time.monotonic() + self.config.answer_timeout_s)
+
+    def receive(self, shot: PendingShot, *, after_window: Callable[[], None] | None = None) -> Acquisition:
+        """Wait for the answer to ``shot``, asking again as the module docstring says.
+
+        Parameters
+        ----------
+        shot : PendingShot
+        after_window : callable, optional
+            Called once, as soon as the (sound) header of an ACQ for this shot has arrived: the
+            board has listened for its window and is sending, whether or not the frame then
+            passes its CRC.  What it raises is raised as is.
+
+        Raises
+        ------
+        As :meth:`fire`; and :class:`SensorBoardProtocolError` if, after ``after_window`` ran,
+        a re-requested answer is a fresh shot instead of a resend.
+        """
+        try:
+            return self._receive(shot, after_window)
+        except _HookFailed as exc:
+            raise exc.__cause__ from None  # the caller's own error, not the board's
         except SensorBoardError:
             raise
         except DecodeError as exc:
             self._flush_quietly()
             raise SensorBoardDecodeError(
-                f"FIRE step {step}: the answer on {self.config.port} cannot be decoded: {exc}"
+                f"FIRE step {shot.step}: the answer on {self.config.port} cannot be decoded: {exc}"
             ) from exc
         except (serial.SerialException, OSError) as exc:  # SerialException is an OSError; both for clarity
-            raise SensorBoardCommunicationError(
-                f"FIRE step {step}: serial I/O on {self.config.port} failed: {exc}; check the cable and the board"
-            ) from exc
+            raise self._port_failed(shot.step, exc) from exc
+
+    def _port_failed(self, step: int, exc: BaseException) -> SensorBoardCommunicationError:
+        return SensorBoardCommunicationError(
+            f"FIRE step {step}: serial I/O on {self.config.port} failed: {exc}; check the cable and the board")
 
     def _flush_quietly(self) -> None:
         try:
@@ -278,15 +358,29 @@ class SerialSensorBoard:
         except (serial.SerialException, OSError):
             self._parser.reset()
 
-    def _fire(self, step: int) -> Acquisition:
+    def _request(self, step: int, flags: int) -> int:
+        """Write one FIRE with a fresh SEQ; returns the SEQ."""
         c = self.config
+        seq = self._next_seq()
+        fire = sf.FireRequest(step=step, mask=c.mask, flags=int(flags), n_samples=c.n_samples, fs_hz=c.fs_hz)
+        self._ser.write(sf.encode_fire(seq, fire))
+        return seq
+
+    def _receive(self, shot: PendingShot, after_window: Callable[[], None] | None) -> Acquisition:
+        c = self.config
+        step, seq = shot.step, shot.seq
+        # The host may have been busy since it fired (that is what send_fire is for): give the
+        # answer at least its line time from now, as the board may have waited for us to read.
+        deadline = max(shot.deadline, time.monotonic() + c.link.seconds(c.acq_frame_bytes) + c.timeout_margin_s)
         flags = sf.FireFlag.WAVEFORMS
+        window_over = _Once(after_window)
         for request in range(1, c.retries + 2):
-            seq = self._next_seq()
-            fire = sf.FireRequest(step=step, mask=c.mask, flags=int(flags), n_samples=c.n_samples, fs_hz=c.fs_hz)
-            self._ser.write(sf.encode_fire(seq, fire))
+            if request > 1:
+                seq = self._request(step, flags)
+                deadline = time.monotonic() + c.answer_timeout_s
+            window_over.current_request = request
             try:
-                frame = self._await(seq, time.monotonic() + c.answer_timeout_s)
+                frame = self._await(seq, deadline, window_over)
             except sf.FrameCrcError:
                 # The board has the shot; ask for the same data again rather than re-firing.
                 self.crc_retries += 1
@@ -294,7 +388,7 @@ class SerialSensorBoard:
                 continue
             except sf.FrameTooLargeError:
                 self._flush()
-                raise  # a DecodeError: fire() raises it as a SensorBoardDecodeError
+                raise  # a DecodeError: receive() raises it as a SensorBoardDecodeError
             if frame is None:
                 self.timeout_retries += 1
                 self._flush()  # bin whatever half-frame is left before asking again
@@ -306,7 +400,12 @@ class SerialSensorBoard:
                     self.crc_retries += 1
                     continue
                 raise SensorBoardReportedError(report.code, report.text, f"FIRE step {step} (seq {seq})")
-            return self._to_acquisition(frame, step, seq, request)
+            acq = self._to_acquisition(frame, step, seq, request)
+            if window_over.called_before(request) and not acq.status & sf.AcqStatus.RESENT:
+                raise SensorBoardProtocolError(
+                    f"FIRE step {step}: asked again after the servo had moved on, the board fired anew instead of "
+                    "resending the shot it had (status without RESENT): that shot is at the wrong angle")
+            return acq
         raise SensorBoardTimeoutError(
             f"no valid answer from the sensor board on {c.port} for step {step} after {c.retries + 1} requests; "
             "check the cable and the board's power"
@@ -320,29 +419,43 @@ class SerialSensorBoard:
         self._ser.reset_input_buffer()
         self._parser.reset()
 
-    def _await(self, seq: int, deadline: float) -> sf.Frame | None:
+    def _await(self, seq: int, deadline: float, window_over: _Once) -> sf.Frame | None:
         """Read until a frame with ``seq`` arrives (returned) or the deadline passes (None).
 
         A CRC failure is raised only for a frame that could be ours: a corrupt
-        frame with another SEQ is just a lost stale frame.
+        frame with another SEQ is just a lost stale frame.  ``window_over`` runs once
+        the header of our ACQ is in (whether or not the rest then checks out).  At the deadline, what already waits in the port
+        is read before giving up (the host may have been busy, not the board late).
         """
         parser = self._parser
+        drained = False
         while True:
             while True:
                 try:
                     frame = parser.next_frame()
                 except sf.FrameCrcError as exc:
                     if exc.seq == seq:
+                        if exc.frame_type == sf.FrameType.ACQ:
+                            window_over()  # its header was sound: the board had listened and was sending
                         raise
                     self.stale_frames += 1
                     continue
                 if frame is None:
                     break
                 if frame.seq == seq and frame.type in (sf.FrameType.ACQ, sf.FrameType.ERR):
+                    if frame.type == sf.FrameType.ACQ:
+                        window_over()
                     return frame
                 self.stale_frames += 1  # an answer to an earlier request, or not an answer at all
+            if window_over.pending and parser.pending_header() == (sf.FrameType.ACQ, seq):
+                window_over()
             if time.monotonic() >= deadline:
-                return None
+                waiting = self._ser.in_waiting
+                if drained or not waiting:
+                    return None
+                drained = True
+                parser.feed(self._ser.read(waiting))
+                continue
             # Block for at least one byte (up to the poll period), then take all that is waiting.
             data = self._ser.read(max(1, self._ser.in_waiting))
             if data:
@@ -369,3 +482,31 @@ class SerialSensorBoard:
             requests=requests,
         )
 
+
+
+class _HookFailed(Exception):
+    """Carries what a caller's ``after_window`` raised through the driver's own error mapping."""
+
+
+class _Once:
+    """Runs the caller's ``after_window`` at most once and remembers during which request it ran."""
+
+    def __init__(self, fn: Callable[[], None] | None) -> None:
+        self._fn = fn
+        self._request = 0
+        self.pending = fn is not None
+        self.current_request = 1
+
+    def __call__(self) -> None:
+        if not self.pending:
+            return
+        self.pending = False
+        self._request = self.current_request
+        try:
+            self._fn()
+        except Exception as exc:  # noqa: BLE001 - re-raised as is by receive()
+            raise _HookFailed() from exc
+
+    def called_before(self, request: int) -> bool:
+        """Whether it ran during a request earlier than ``request``."""
+        return 0 < self._request < request

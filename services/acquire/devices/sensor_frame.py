@@ -209,6 +209,15 @@ def acq_payload_size(n_samples: int, n_ch: int = N_CHANNELS) -> int:
     return ACQ_HEADER_SIZE + 2 * n_ch * n_samples
 
 
+#: Payload bytes of a FIRE.
+FIRE_PAYLOAD_SIZE = _FIRE.size
+
+
+def frame_size(payload_size: int) -> int:
+    """Bytes on the wire of a frame with ``payload_size`` payload bytes: header + payload + CRC32."""
+    return HEADER_SIZE + payload_size + TRAILER_SIZE
+
+
 # --- encoding --------------------------------------------------------------------
 def encode_frame(frame_type: int, seq: int, payload: bytes, version: int = VERSION) -> bytes:
     """Frame a payload: header with HCRC, payload, CRC32."""
@@ -322,6 +331,21 @@ class FrameParser:
     @property
     def buffered(self) -> int:
         return len(self._buf)
+
+    def pending_header(self) -> tuple[int, int] | None:
+        """``(type, seq)`` of the frame whose header has arrived, and checked out, but not all of its payload.
+
+        Valid after :meth:`next_frame` returned None (it leaves the buffer at such a header, or
+        short of one); None if no sound header is waiting.  A receiver learns from it that the
+        sender has begun a frame: for an ACQ, that the acoustic window it carries is over.
+        """
+        buf = self._buf
+        if len(buf) < HEADER_SIZE or buf[:2] != SYNC:
+            return None
+        _, _, frame_type, seq, _, hcrc = _HEADER.unpack_from(buf)
+        if binascii.crc_hqx(bytes(buf[2:10]), 0xFFFF) != hcrc:
+            return None
+        return frame_type, seq
 
     def _drop(self, n: int) -> None:
         del self._buf[:n]

@@ -21,12 +21,18 @@ difference from a servo behind a USB2Dynamixel, apart from timing:
 Motion runs on the ``clock`` given at construction (a test can drive it by hand);
 reply timing runs on the monotonic clock of the device thread.
 
-Not modelled: acceleration, compliance, the line time of 1 Mbps (10 µs/byte),
-Lock (stored, not enforced), baud changes (stored only).
+With :attr:`AX12EmulatorConfig.link` (the backend's and ``lelsonar emulate``'s choice:
+the 1 Mbps bus, 10 µs per byte) an instruction is acted on once its last byte has crossed
+the bus and a status packet takes its line time to arrive (:mod:`.pty_link`); without
+one the pty is unpaced.
+
+Not modelled: acceleration, compliance, the bus's half duplex (the driver never talks
+over a reply), Lock (stored, not enforced), baud changes (stored only).
 """
 
 from __future__ import annotations
 
+import collections
 import threading
 import time
 from collections.abc import Callable
@@ -36,6 +42,7 @@ import numpy as np
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices.ax12 import ErrorBit, Instruction
+from lelsonar.acquire.devices.link import Link
 from lelsonar.acquire.emulate.pty_link import PtyDevice
 from lelsonar.errors import ConfigError
 
@@ -65,6 +72,8 @@ class AX12EmulatorConfig:
         Present Temperature, °C.
     seed : int
         Seed of the garbage-byte generator.
+    link : Link, optional
+        Pace the bus at this link (e.g. :data:`~lelsonar.acquire.devices.link.AX12_BUS`); None: unpaced.
     """
 
     motor_id: int = 1
@@ -77,6 +86,7 @@ class AX12EmulatorConfig:
     voltage_dv: int = 120
     temperature_c: int = 35
     seed: int = 0
+    link: Link | None = None
 
     def __post_init__(self) -> None:
         checks = (
@@ -114,8 +124,8 @@ class AX12Emulator(PtyDevice):
     """
 
     def __init__(self, config: AX12EmulatorConfig | None = None, *, clock: Callable[[], float] = time.monotonic):
-        super().__init__("ax12")
         self.config = config or AX12EmulatorConfig()
+        super().__init__("ax12", self.config.link)
         self._clock = clock
         self._lock = threading.RLock()
         self._rng = np.random.default_rng(self.config.seed)
@@ -149,6 +159,8 @@ class AX12Emulator(PtyDevice):
         self._hold_until_next_packet = False
         self._held: list[bytes] = []
         self._rx = bytearray()
+        #: (start, end) of the latest moves on the motion clock: when the servo travels (bounded).
+        self.moves: collections.deque[tuple[float, float]] = collections.deque(maxlen=4096)
         #: Packets parsed (valid or not), for tests to wait on.
         self.packets_seen = 0
         self.packet_event = threading.Condition(self._lock)
@@ -407,6 +419,9 @@ class AX12Emulator(PtyDevice):
             # Restart the linear motion from where we are now, towards the (new) goal.
             self._from_raw = float(self._get(ax12.register("present_position")))
             self._t0 = self._clock()
+            goal = self._get(goal_reg)
+            if self._get(ax12.register("torque_enable")) and goal != round(self._from_raw):
+                self.moves.append((self._t0, self._t0 + abs(goal - self._from_raw) / self._speed()))
         return 0
 
     def _reply(self, my_id: int, error: int, params: bytes, code: int, now: float) -> None:

@@ -11,6 +11,15 @@ emulator reads and writes the *master* fd.  Three details make this reliable
   each time a driver closes and reopens the port;
 * the master is non-blocking and written through select, because a 28 KB
   sensor frame does not fit in the pty buffer in one go.
+
+A pty moves bytes as fast as the kernel copies them; a real link does not.  Given a
+:class:`~lelsonar.acquire.devices.link.Link`, :class:`PtyDevice` paces both directions
+at its rate: a request reaches the device only once its last byte would have crossed
+the link, and an answer leaves in the link's chunks (a USB frame's worth), each written
+when its last byte would have arrived.  The pacing follows the device's own timeline,
+not the thread's: a thread that wakes late writes every chunk that is due at once, as
+the kernel would have buffered them, so scheduling delays do not add up over a frame.
+Without a link (``None``) the pty is unpaced, for tests that want speed.
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ import tty
 from types import TracebackType
 from typing import Self
 
+from lelsonar.acquire.devices.link import Link
 from lelsonar.errors import DeviceError
 
 
@@ -75,14 +85,26 @@ class PtyDevice:
     Scheduled chunks go out in order (a late chunk delays the ones behind it,
     as on a real serial line).
 
+    Parameters
+    ----------
+    name : str
+        Names the thread (``<name>-emulator``) and the errors.
+    link : Link, optional
+        Pace input and output at this link's rate (see the module docstring); None: unpaced.
+
     Use as a context manager, or call :meth:`start` and :meth:`stop`.
     """
 
     #: Bytes read from the master per os.read.
     _READ_SIZE = 65536
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, link: Link | None = None) -> None:
         self._name = name
+        self.link = link
+        #: When the line is next free in each direction (monotonic s): the pacing's own clock.
+        self._tx_free = 0.0
+        self._rx_free = 0.0
+        self._rx_queue: collections.deque[tuple[float, bytes]] = collections.deque()
         self._pty: RawPty | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -147,15 +169,37 @@ class PtyDevice:
         raise NotImplementedError
 
     def _schedule(self, data: bytes, due: float) -> None:
-        """Queue bytes to go out at monotonic time ``due`` (after anything queued before)."""
+        """Queue bytes to start out at monotonic time ``due`` (after anything queued before).
+
+        With a link, the bytes cross it at its rate from ``due`` (or from when the line is
+        free): each chunk is queued for the time its last byte arrives.
+        """
         if not data:
             return
         with self._queue_lock:
             due = max(due, self._last_due)
-            self._last_due = due
-            self._queue.append((due, data))
+            if self.link is None:
+                self._queue.append((due, data))
+                self._last_due = due
+            else:
+                rate, step = self.link.bytes_per_s, self.link.chunk_bytes
+                start = max(due, self._tx_free)
+                for lo in range(0, len(data), step):
+                    chunk = data[lo : lo + step]
+                    self._queue.append((start + (lo + len(chunk)) / rate, chunk))
+                self._tx_free = start + len(data) / rate
+                self._last_due = self._tx_free
         if threading.current_thread() is not self._thread:
             self._wake()
+
+    def _received(self, data: bytes, now: float) -> None:
+        """Bytes read from the master at ``now``: handled when their last byte would have crossed the link."""
+        if self.link is None:
+            self._on_input(data, now)
+            return
+        arrival = max(now, self._rx_free) + self.link.seconds(len(data))
+        self._rx_free = arrival
+        self._rx_queue.append((arrival, data))
 
     def _wake(self) -> None:
         if self._wake_w >= 0:
@@ -172,10 +216,16 @@ class PtyDevice:
         try:
             while not self._stop.is_set():
                 now = time.monotonic()
+                rx = self._rx_queue
+                while rx and rx[0][0] <= now:
+                    arrival, data = rx.popleft()
+                    self._on_input(data, arrival)
                 with self._queue_lock:
                     while self._queue and self._queue[0][0] <= now:
                         pending += self._queue.popleft()[1]
                     next_due = self._queue[0][0] if self._queue else None
+                if rx and (next_due is None or rx[0][0] < next_due):
+                    next_due = rx[0][0]
                 if pending:
                     self._write_some(master, pending)  # at once: a select first would only add latency
                 timeout = None if next_due is None else max(0.0, next_due - now)
@@ -193,7 +243,7 @@ class PtyDevice:
                     except BlockingIOError:
                         data = b""
                     if data:
-                        self._on_input(data, time.monotonic())
+                        self._received(data, time.monotonic())
                 if pending and master in writable:
                     self._write_some(master, pending)
         except BaseException as exc:  # surfaced by stop(); a dead emulator must not pass silently

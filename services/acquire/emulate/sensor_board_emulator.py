@@ -15,7 +15,9 @@ servo is really at.  :func:`sim_shot_source` wraps the acoustic simulator;
 
 Timing: with ``realtime`` (the default) the ACQ leaves no earlier than the
 acoustic window ``n_samples / fs_hz`` after the FIRE arrived, as on the real
-board; computing the shot overlaps that wait.
+board; computing the shot overlaps that wait.  With a ``link`` (the backend's and
+``lelsonar emulate``'s choice: USB full speed) the FIRE arrives and the ACQ leaves
+at the link's rate (:mod:`.pty_link`): a 28 KB frame takes 23 ms after the window.
 
 Fault injection: bit flips in the next frames (payload or header), garbage
 bytes before frames, dropped answers; or random ones with the configured
@@ -36,6 +38,7 @@ from typing import Any, Literal
 import numpy as np
 
 from lelsonar.acquire.devices import sensor_frame as sf
+from lelsonar.acquire.devices.link import Link
 from lelsonar.acquire.emulate.pty_link import PtyDevice
 from lelsonar.errors import ConfigError, DecodeError
 
@@ -65,6 +68,8 @@ class SensorBoardEmulatorConfig:
         Longest random garbage burst.
     seed : int
         Seed of the fault generator.
+    link : Link, optional
+        Pace the port at this link (e.g. :data:`~lelsonar.acquire.devices.link.SENSOR_BOARD_USB`); None: unpaced.
     """
 
     adc_bits: int = 12
@@ -75,6 +80,7 @@ class SensorBoardEmulatorConfig:
     garbage_probability: float = 0.0
     garbage_max_bytes: int = 64
     seed: int = 0
+    link: Link | None = None
 
     def __post_init__(self) -> None:
         checks = (
@@ -111,8 +117,8 @@ class SensorBoardEmulator(PtyDevice):
         *,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        super().__init__("sensor-board")
         self.config = config or SensorBoardEmulatorConfig()
+        super().__init__("sensor-board", self.config.link)
         self._shot_source = shot_source
         self._gamma_source = gamma_source or (lambda: 0.0)
         self._clock = clock
@@ -134,6 +140,8 @@ class SensorBoardEmulator(PtyDevice):
         self.errors_sent = 0
         #: (step, gamma) of the latest shots actually fired (bounded: the CLI runs for days).
         self.shots: collections.deque[tuple[int, float]] = collections.deque(maxlen=4096)
+        #: (step, start, end) of their acoustic windows, monotonic s: the servo must be still in each.
+        self.windows: collections.deque[tuple[int, float, float]] = collections.deque(maxlen=4096)
 
     # --- fault injection -----------------------------------------------------------------
     def inject_corruption(self, n: int = 1, where: Literal["payload", "header"] = "payload") -> None:
@@ -218,6 +226,7 @@ class SensorBoardEmulator(PtyDevice):
             return
         self._last = acq
         due = now + (n / fire.fs_hz if self.config.realtime else 0.0)
+        self.windows.append((fire.step, now, now + n / fire.fs_hz))
         self._send(sf.encode_acq(frame.seq, acq), due)
 
     def _acquire(self, fire: sf.FireRequest, n: int, now: float) -> sf.AcqFrame:

@@ -39,7 +39,9 @@ class ScanReplay:
         self.scan = scan
         self.info = sim_info(scan.config, "sim")
 
-    def measure(self, step: int, gamma_commanded: float):
+    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
+                while_listening=None):
+        """Shot ``step`` as recorded (nothing to move, nothing to listen to: the hints are not needed)."""
         from lelsonar.acquire.scanner import MotorReading, StepMeasurement
 
         s = self.scan
