@@ -432,7 +432,9 @@ class ReconstructionService:
     # --- the incremental estimate ---------------------------------------------------------
     def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
         scan = event.scan
-        p = self._partials.setdefault(scan.key, Partial())
+        p = self._partials.get(scan.key)
+        if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
+            p = self._partials[scan.key] = Partial()
         p.last_activity = self._clock()
         if event.kind == "start":
             if self._observer:
