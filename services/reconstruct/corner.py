@@ -203,6 +203,11 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         off = float(np.arccos(np.clip(fitted.normal @ wall.normal, -1.0, 1.0)))
         if not (np.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
             fitted = None
+            if np.isfinite(se_joint):
+                # The amplitudes are the only sensor of the wall's direction in the rotation plane that a
+                # common roll cannot fool; a joint fit they contradict has not found that direction.
+                flags.append(f"its echoes are strongest at γ = {np.rad2deg(phi):.1f}°, {np.rad2deg(off):.1f}° from "
+                             f"the joint fit's normal (over {opts.tilt_test_sigma:g}σ)")
     if fitted is not None:
         diag = diagnostics("corner model; amplitude pitch; gauss-newton", t0,
                            notes=(note, f"echoes strongest at γ = {np.rad2deg(phi):.2f}° ± {np.rad2deg(phi_se):.2f}°: "
@@ -291,6 +296,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             amplitude = (pts.gamma[m], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[m], pts.capsule_index[m]],
                          pts.distance[m], pts.capsule[m])
         flags: list[str] = []
+        if model.outside[k]:
+            flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)
