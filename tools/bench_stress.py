@@ -1,4 +1,4 @@
-"""``lelsonar bench stress``: scans *outside* the bench families, run through the real CLI path.
+"""``lelsonar bench estimators --stress all``: scans *outside* the bench families, run through the real CLI path.
 
 The project is judged on scenes from an independent simulator, recorded in
 our schema and replayed with ``lelsonar reconstruct --source X.mcap --json``.
@@ -490,7 +490,8 @@ def add_stress_arguments(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("stress sweep (scenes outside the families, through reconstruct --source)")
     g.add_argument("--stress", nargs="+", metavar="NAME",
                    help=f"run the stress sweep: 'all' or names from {', '.join(FAMILIES)}")
-    g.add_argument("--keep", metavar="DIR", help="keep the recordings of scans with a bug (crash, claims good) in DIR")
+    g.add_argument("--keep", metavar="DIR", help="with --stress: keep the recordings of scans with a bug "
+                                                 "(crash, claims good) in DIR")
 
 
 def main(argv: list[str] | None = None) -> int:

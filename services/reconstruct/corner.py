@@ -20,12 +20,12 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
-from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, fit_corner_model,
-                           scan_points)
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, edge_shared_share,
+                           fit_corner_model, scan_points)
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .options import FitOptions, ScanFit
-from .quality import UNRELIABLE, assess_plane, unexplained_finding
+from .quality import DEGRADED, UNRELIABLE, QualityLimits, assess_plane, unexplained_finding
 from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from .split import critical_step, split_subsets
 
@@ -300,6 +300,12 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
+        shared = edge_shared_share(model, pts, k, opts.corner_beam_half_angle)
+        # Echoes the edge explains as well sit within the tolerance of either model: a share s of them can
+        # move the offset by up to s × tolerance, which must stay inside the offset a good plane may miss by.
+        if shared > QualityLimits().max_offset_stderr / model.tolerance:
+            findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
+                                    f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset"),)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll

@@ -44,6 +44,7 @@ __all__ = [
     "edge_line",
     "edge_residuals",
     "assign_echoes",
+    "edge_shared_share",
     "joint_residuals",
     "joint_gauss_newton",
     "band_offsets",
@@ -240,6 +241,32 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     tol = np.where(best == ECHO_EDGE, tolerance if edge_tolerance is None else edge_tolerance, tolerance)
     labels = np.where(np.abs(res) <= tol, best, ECHO_OUTLIER)
     return labels, np.where(labels == ECHO_OUTLIER, np.nan, res)
+
+
+def edge_shared_share(model: CornerModel, pts: ScanPoints, label: int, beam_half_angle: float) -> float:
+    """Share of wall ``label``'s echoes that the edge explains as well, within the model's tolerance.
+
+    A wall's mirror echoes and the corner's double bounces differ in range by
+    ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the edge less
+    its distance to the wall.  Where the edge lies close to the foot of the
+    wall's normal (a near wall beside a far one, an opening far from 90°),
+    that difference falls inside the assignment tolerance and the two
+    explanations cannot be told apart: the wall's offset may rest on corner
+    echoes, biased by up to the tolerance whatever its residuals say.
+
+    Returns 0 for a wall without echoes or a model without an edge.
+    """
+    mask = model.labels == label
+    if not np.any(mask):
+        return 0.0
+    line = edge_line(model.wall_a, model.wall_b)
+    if line is None:
+        return 0.0
+    sub = ScanPoints(pts.step[mask], pts.capsule_index[mask], pts.gamma[mask], pts.capsule[mask],
+                     pts.distance[mask], pts.beam[mask])
+    re, u = edge_residuals(*line, sub, _opening(model.wall_a, model.wall_b))
+    seen = np.einsum("ij,ij->i", sub.beam, u) >= np.cos(beam_half_angle)
+    return float(np.mean(seen & (np.abs(re) <= model.tolerance)))
 
 
 def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
