@@ -85,7 +85,8 @@ def test_a_narrow_sweep_past_the_corner_does_not_take_the_corner_cluster_for_a_w
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("family,seed", [("tilt", 9), ("tilt", 14), ("sweep", 4), ("mixed", 1), ("mixed", 16), ("nocorner", 0)])
+@pytest.mark.parametrize("family,seed", [("tilt", 9), ("tilt", 14), ("sweep", 4), ("nocorner", 0), ("roll", 0),
+                                         ("extreme", 6)])
 def test_stress_cases_through_the_cli_never_claim_good_when_wrong(family, seed, tmp_path):
     """Recorded by the scan loop, replayed by ``reconstruct --source --json``: no crash, no wrong plane claiming good."""
     from lelsonar.tools.bench_stress import stress_scan
@@ -94,25 +95,49 @@ def test_stress_cases_through_the_cli_never_claim_good_when_wrong(family, seed, 
     assert rows and all(r["verdict"] in ("accurate", "flagged") for r in rows), rows
 
 
-def test_a_wall_whose_echoes_the_edge_explains_as_well_does_not_claim_good(tmp_path):
-    """A far wall beside a near one (2.04 m and 0.52 m, opening 101°): its mirror echoes and the corner's
-    double bounces lie within the assignment tolerance of each other.
+#: Scans of the stress sweep whose planes claimed good while failing, each for a different reason (the draws
+#: of ``lelsonar bench estimators --stress``, spelled out so the tests do not move when the sweep's draws do).
+_FAR_WALL_BESIDE_NEAR = dict(
+    distance_a=2.03783111576983, distance_b=0.5212544260357854, opening=1.7685358865626426,
+    roll=0.18113367955055737, skew_a=0.15908759639382272, skew_b=0.20498145379801908, steps=320, capsules=5,
+    pitch=0.1318814262548935, tof_jitter=0.005415442181261191, amplitude_noise=0.08984824778432403,
+    cycle_slip_probability=0.03175780270371016, missing=0.0516463086517168, missing_runs=True)
+CLAIMED_GOOD = {
+    # A far wall beside a near one (2.04 m, 0.52 m, opening 101°): its mirror echoes and the corner's double
+    # bounces lie within the assignment tolerance of each other; fitted mostly to corner echoes, 2.8 cm off.
+    "wall-echoes-are-the-edge's": ("mixed", 16, dict(
+        _FAR_WALL_BESIDE_NEAR, gamma_start=-0.7967780470744431, gamma_stop=1.9198621771937625,
+        radial_offset=0.03242359693372813, sample_rate=100000.0, noise_std=0.010066747934311634,
+        corner_gain=0.637819632080508, e0_scale=0.5088808238579527)),
+    # No double bounce above the threshold (corner gain 0.12, opening 72°), yet the model's "edge" explained
+    # 284 of wall b's echoes and tied wall a's direction to them: 17° off, wall a's face-on outside the sweep.
+    "edge-echoes-are-a-wall's": ("extreme", 6, dict(
+        distance_a=1.463760450740369, distance_b=2.5751788631678587, opening=1.2527732976255288,
+        roll=-0.22580451180749467, skew_a=-0.1043958429914224, skew_b=-0.05892509986042223,
+        gamma_start=-0.17453292519943295, gamma_stop=2.1011253708037976, steps=325, spacing="jitter", capsules=7,
+        pitch=0.1119064662535685, uneven=0.3095341710315847, radial_offset=0.08850718956862212,
+        sample_rate=250000.0, window_start=0.001, tof_jitter=0.006196423293829198,
+        cycle_slip_probability=0.07316242357206562, amplitude_noise=0.06402125579061417,
+        noise_std=0.005585882500798769, corner_gain=0.12319158598582403, corner_max_error=0.767944870877505,
+        missing=0.07018575634714999, missing_runs=True, e0_scale=0.2537417261309924)),
+    # A sweep of −40…24° sees wall a only: no pair of bands, the energy-split fallback fitted wall a 2.5 cm off.
+    "one-wall-fallback": ("mixed", 16, dict(
+        _FAR_WALL_BESIDE_NEAR, gamma_start=-0.6981317007977318, gamma_stop=0.4227985756505899,
+        uneven=0.12969438773491251, radial_offset=0.08796540685386804, sample_rate=100000.0, int16=True,
+        window_start=0.001, tof_jitter=0.003778807736574639, cycle_slip_probability=0.07187859822745922,
+        amplitude_noise=0.08066747934311634, noise_std=0.00412606544026836, corner_gain=0.774694629775752,
+        missing=0.09493178281263742, e0_scale=1.427031183336294)),
+}
 
-    The wall was fitted mostly to corner echoes, 2.8 cm off the truth (oracle 0.2 cm), and claimed good.
-    Recorded by the scan loop and replayed through ``reconstruct --source --json``.
-    """
+
+@pytest.mark.parametrize("name", sorted(CLAIMED_GOOD))
+def test_stress_scans_that_claimed_good_while_wrong_are_accurate_or_flagged(name, tmp_path):
+    """Recorded by the scan loop and replayed through ``reconstruct --source --json``, judged on the scene's truth."""
     from lelsonar.tools.bench_stress import StressCase, judge, record, run_cli, simulate
 
-    case = StressCase(
-        "mixed", 16, distance_a=2.03783111576983, distance_b=0.5212544260357854, opening=1.7685358865626426,
-        roll=0.18113367955055737, skew_a=0.15908759639382272, skew_b=0.20498145379801908,
-        gamma_start=-0.7967780470744431, gamma_stop=1.9198621771937625, steps=320, capsules=5,
-        pitch=0.1318814262548935, radial_offset=0.03242359693372813, sample_rate=100000.0,
-        tof_jitter=0.005415442181261191, cycle_slip_probability=0.03175780270371016,
-        amplitude_noise=0.08984824778432403, noise_std=0.010066747934311634, corner_gain=0.637819632080508,
-        missing=0.0516463086517168, missing_runs=True, e0_scale=0.5088808238579527)
-    scan = simulate(case)
+    family, seed, fields = CLAIMED_GOOD[name]
+    scan = simulate(StressCase(family, seed, **fields))
     path = tmp_path / "scan.mcap"
     record(scan, path)
     rows = judge(scan, *run_cli(path))
-    assert [r["verdict"] for r in rows if r["verdict"] not in ("accurate", "flagged")] == [], rows
+    assert [r for r in rows if r["verdict"] not in ("accurate", "flagged")] == []

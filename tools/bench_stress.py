@@ -11,10 +11,12 @@ family         what is drawn
 ``distance``   each wall at 0.3–3 m, independently (unequal)
 ``opening``    corner opening 70–110° (one wall rolled against the other)
 ``tilt``       the whole L rolled ±20°, each wall skewed ±12° (edge off x)
+``roll``       the whole L rolled ±45° (a robot far from square to the corner)
 ``sweep``      narrow (corner ±12–30°) and asymmetric sweeps, half reversed
                (γ from high to low: ``ScanStart.direction`` DECREASING)
 ``steps``      60–400 steps, uniform, jittered or two densities
-``array``      2–8 capsules, pitch 3–15 cm, radial offset 0–10 cm
+``array``      2–8 capsules, pitch 3–15 cm, uneven (±40 % of the pitch),
+               radial offset 0–10 cm
 ``rate``       sample rate 100 kHz–1 MHz, INT16 or float32 waveforms, late t0
 ``noise``      range jitter 1–8 mm, slips 0–8 %, amplitude noise 0–10 %,
                receiver noise 2–12 mV
@@ -22,7 +24,11 @@ family         what is drawn
 ``missing``    10–35 % of readings without an echo, scattered or in runs
 ``calib``      the announced ``E0(d)`` off by a factor 0.5–2 (another rig's)
 ``nocorner``   a sweep that sees only one wall (the corner is outside it)
-``mixed``      all of the above at once
+``mixed``      all of the above at once (reversed half the time)
+``extreme``    mixed, wider: walls 0.25–4 m, opening 60–120° with double
+               bounces at any opening (a simulator without the 90° ±10°
+               retro-reflection limit), ``E0`` off by 0.1–10, reversed half
+               the time
 =============  =================================================================
 
 Each scan is simulated by the project's simulator physics
@@ -69,8 +75,8 @@ import numpy as np
 
 from lelsonar.tools.bench_families import is_failure, ls_plane, plane_errors
 
-FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "sweep", "steps", "array", "rate", "noise", "corner",
-                             "missing", "calib", "nocorner", "mixed")
+FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "roll", "sweep", "steps", "array", "rate", "noise",
+                             "corner", "missing", "calib", "nocorner", "mixed", "extreme")
 #: Verdicts of one wall, in table order.
 VERDICTS = ("accurate", "flagged", "claims_good", "crash")
 _DEG = math.pi / 180.0
@@ -106,6 +112,7 @@ class StressCase:
     spacing: str = "uniform"
     capsules: int = 4
     pitch: float = 0.08
+    uneven: float = 0.0
     radial_offset: float = 0.03
     sample_rate: float = 200_000.0
     int16: bool = False
@@ -115,6 +122,7 @@ class StressCase:
     amplitude_noise: float = 0.0
     noise_std: float = 0.002
     corner_gain: float = 1.5
+    corner_max_error: float = 10.0 * _DEG
     missing: float = 0.0
     missing_runs: bool = False
     e0_scale: float = 1.0
@@ -128,7 +136,7 @@ class StressCase:
                 continue
             v, b = getattr(self, f.name), getattr(base, f.name)
             if v != b:
-                if f.name in ("opening", "roll", "skew_a", "skew_b", "gamma_start", "gamma_stop"):
+                if f.name in ("opening", "roll", "skew_a", "skew_b", "gamma_start", "gamma_stop", "corner_max_error"):
                     parts.append(f"{f.name} {math.degrees(v):.1f}°")
                 elif isinstance(v, float):
                     parts.append(f"{f.name} {v:.4g}")
@@ -157,35 +165,45 @@ def draw_case(family: str, seed: int) -> StressCase:
     if family not in FAMILIES:
         raise ValueError(f"unknown stress family {family!r}; choose from {', '.join(FAMILIES)}")
     rng = np.random.default_rng([int(seed), zlib.crc32(b"stress-" + family.encode())])
-    every = family == "mixed"
+    every = family in ("mixed", "extreme")
+    wide = family == "extreme"
     kw: dict[str, Any] = {}
-    if family in ("distance", "mixed"):
-        kw.update(distance_a=rng.uniform(0.3, 3.0), distance_b=rng.uniform(0.3, 3.0))
-    if family in ("opening", "mixed"):
-        kw.update(opening=rng.uniform(70, 110) * _DEG)
-    if family in ("tilt", "mixed"):
+    if family in ("distance", "mixed", "extreme"):
+        lo, hi = (0.25, 4.0) if wide else (0.3, 3.0)
+        kw.update(distance_a=rng.uniform(lo, hi), distance_b=rng.uniform(lo, hi))
+    if family in ("opening", "mixed", "extreme"):
+        kw.update(opening=rng.uniform(60, 120) * _DEG if wide else rng.uniform(70, 110) * _DEG)
+    if wide:
+        kw.update(corner_max_error=44.0 * _DEG)
+    if family in ("tilt", "mixed", "extreme"):
         kw.update(roll=rng.uniform(-20, 20) * _DEG, skew_a=rng.uniform(-12, 12) * _DEG,
                   skew_b=rng.uniform(-12, 12) * _DEG)
-    if family in ("steps", "mixed"):
+    if family == "roll":
+        kw.update(roll=rng.uniform(-45, 45) * _DEG)
+    if family in ("steps", "mixed", "extreme"):
         kw.update(steps=int(rng.integers(60, 401)), spacing=str(rng.choice(["uniform", "jitter", "dense"])))
-    if family in ("array", "mixed"):
-        kw.update(capsules=int(rng.integers(2, 9)), pitch=rng.uniform(0.03, 0.15), radial_offset=rng.uniform(0, 0.1))
-    if family in ("rate", "mixed"):
+    if family in ("array", "mixed", "extreme"):
+        kw.update(capsules=int(rng.integers(2, 9)), pitch=rng.uniform(0.03, 0.15), uneven=rng.uniform(0, 0.4),
+                  radial_offset=rng.uniform(0, 0.1))
+    if family in ("rate", "mixed", "extreme"):
         kw.update(sample_rate=float(rng.choice([100e3, 125e3, 250e3, 400e3, 1e6])), int16=bool(rng.random() < 0.5),
                   window_start=float(rng.choice([0.0, 0.5e-3, 1.0e-3])))
-    if family in ("noise", "mixed"):
+    if family in ("noise", "mixed", "extreme"):
         kw.update(tof_jitter=rng.uniform(0.001, 0.008), cycle_slip_probability=rng.uniform(0, 0.08),
                   amplitude_noise=rng.uniform(0, 0.10), noise_std=rng.uniform(0.002, 0.012))
-    if family in ("corner", "mixed"):
+    if family in ("corner", "mixed", "extreme"):
         kw.update(corner_gain=rng.uniform(0.0, 3.0))
-    if family in ("missing", "mixed"):
+    if family in ("missing", "mixed", "extreme"):
         kw.update(missing=rng.uniform(0.10, 0.35) if not every else rng.uniform(0, 0.2),
                   missing_runs=bool(rng.random() < 0.5))
-    if family in ("calib", "mixed"):
-        kw.update(e0_scale=float(np.exp(rng.uniform(math.log(0.5), math.log(2.0)))))
+    if family in ("calib", "mixed", "extreme"):
+        lo, hi = (0.1, 10.0) if wide else (0.5, 2.0)
+        kw.update(e0_scale=float(np.exp(rng.uniform(math.log(lo), math.log(hi)))))
     crit = _critical(kw)
     if family == "sweep" or (every and rng.random() < 0.5):
         kw.update(_draw_sweep(rng, crit))
+        if every:
+            kw.update(reverse=bool(rng.random() < 0.5))
     elif family == "nocorner":
         if rng.random() < 0.5:  # only wall a
             kw.update(gamma_start=crit - rng.uniform(70, 90) * _DEG, gamma_stop=crit - rng.uniform(15, 25) * _DEG)
@@ -193,18 +211,28 @@ def draw_case(family: str, seed: int) -> StressCase:
             kw.update(gamma_start=crit + rng.uniform(15, 25) * _DEG, gamma_stop=crit + rng.uniform(70, 90) * _DEG)
         kw.update(reverse=bool(rng.random() < 0.5))
     else:
-        kw.update(gamma_start=min(-10 * _DEG, crit - 60 * _DEG), gamma_stop=max(110 * _DEG, crit + 60 * _DEG))
+        kw.update(gamma_start=min(-10 * _DEG, crit - 60 * _DEG), gamma_stop=max(110 * _DEG, crit + 60 * _DEG),
+                  reverse=bool(every and rng.random() < 0.5))
     return StressCase(family, int(seed), **kw)
 
 
 # ---------------------------------------------------------------------------- simulation
 def _scene(case: StressCase, height_a: float, height_b: float):
     from lelsonar.acquire.sim.scene import Scene
+    from lelsonar.geometry import rotation_x
 
     half = (case.opening - math.pi / 2) / 2  # opening = 90° + tilt_a_x − tilt_b_x
-    return Scene.l_corner(case.distance_a, case.distance_b, tilt_a_x=case.roll + half, tilt_b_x=case.roll - half,
-                          tilt_a_z=case.skew_a, tilt_b_y=case.skew_b, width=4.0, height_a=height_a,
-                          height_b=height_b)
+    if max(abs(case.roll + half), abs(case.roll - half)) <= math.radians(30):
+        return Scene.l_corner(case.distance_a, case.distance_b, tilt_a_x=case.roll + half,
+                              tilt_b_x=case.roll - half, tilt_a_z=case.skew_a, tilt_b_y=case.skew_b, width=4.0,
+                              height_a=height_a, height_b=height_b)
+    # Beyond l_corner's ±30° tilts: the unrolled L turned as a whole about the rotation axis (offsets kept).
+    base = Scene.l_corner(case.distance_a, case.distance_b, tilt_a_x=half, tilt_b_x=-half, tilt_a_z=case.skew_a,
+                          tilt_b_y=case.skew_b, width=4.0, height_a=height_a, height_b=height_b)
+    turn = rotation_x(case.roll)
+    panels = tuple(dataclasses.replace(p, center=turn @ np.array(p.center), normal=turn @ np.array(p.normal),
+                                       u_axis=turn @ np.array(p.u_axis)) for p in base.panels)
+    return Scene(panels=panels, corners=base.corners)
 
 
 def _schedule(case: StressCase, rng: np.random.Generator) -> np.ndarray:
@@ -229,8 +257,10 @@ def build_config(case: StressCase):
     from lelsonar.geometry import ArrayGeometry
 
     x = (np.arange(case.capsules) - (case.capsules - 1) / 2) * case.pitch
+    if case.uneven > 0:  # uneven spacing, still in order along +x (the schema's capsule order)
+        x = x + np.random.default_rng([case.seed, 7]).uniform(-0.5, 0.5, x.size) * case.uneven * case.pitch
     geometry = ArrayGeometry(capsule_x=tuple(float(v) for v in x), radial_offset=case.radial_offset)
-    acoustics = Acoustics(corner_gain=case.corner_gain)
+    acoustics = Acoustics(corner_gain=case.corner_gain, corner_max_error=case.corner_max_error)
     receiver = Receiver(tof_jitter=case.tof_jitter, cycle_slip_probability=case.cycle_slip_probability,
                         amplitude_noise=case.amplitude_noise, noise_std=case.noise_std)
     far_a = max(0.0, -case.gamma_start) + 10 * _DEG
@@ -411,10 +441,12 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
 
 def stress_scan(family: str, seed: int, keep_dir: str | None = None) -> list[dict[str, Any]]:
     """Draw, simulate, record, reconstruct through the CLI and judge one case; rows per wall."""
-    case = draw_case(family, seed)
+    from lelsonar.errors import ConfigError
+
     try:
+        case = draw_case(family, seed)
         scan = simulate(case)
-    except ValueError as exc:  # an invalid draw is the sweep's problem, not the estimator's
+    except (ValueError, ConfigError) as exc:  # an impossible scene is the sweep's problem, not the estimator's
         return [{"family": family, "seed": seed, "label": "-", "verdict": "skipped", "error": str(exc)}]
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(keep_dir or tmp) / f"{family}-{seed}.mcap"

@@ -166,7 +166,8 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
 
 def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
                  note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
-                 flags: list[str], max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
+                 flags: list[str], edge_is_walls: bool = False,
+                 max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
     """One wall of the joint model, refined on its own echoes.
 
     With the echoes' own amplitudes, the wall's direction in the rotation
@@ -191,7 +192,10 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     ``amplitude`` holds the wall's echoes as ``(gamma, peak amplitude,
     distance, capsules)``, or None.  Reasons to call the plane unreliable are
     appended to ``flags``: corrected points and joint fit more than
-    ``max_disagreement`` (rad) apart.
+    ``max_disagreement`` (rad) apart; a direction that rests on the joint fit
+    while the model's edge echoes are mostly a wall's as well
+    (``edge_is_walls``: the edge that ties the walls' directions together
+    was not identified).
     """
     mask = np.ones(data.n, dtype=bool)
     se_joint, se_h_joint = wall_se
@@ -217,6 +221,9 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         if isinstance(fit, PlaneFit):
             fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
         return fit
+    if edge_is_walls:
+        flags.append("its direction rests on edge echoes that a wall explains as well: the corner edge that ties "
+                     "the walls together was not identified")
     theta_p = F.ls_theta(data.points)
     n_p = theta_p / np.linalg.norm(theta_p)
     se_n, se_h = se_joint, se_h_joint
@@ -274,12 +281,21 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         data = [F.plane_data(geometry, g, d, steps, label, axis)
                 for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
         out = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in data]
+        # Nothing checked these planes against the other wall or the edge, and the energy split assumes both
+        # walls and the corner were swept: a plane can be centimetres off with clean residuals.
+        fallback = ((DEGRADED, "no pair of walls explains the scan's echoes (one wall, or none, shows a band): "
+                               "energy-split fallback, unchecked against the other wall and the edge"),)
+        out = [assess_plane(p, g, findings=fallback) if isinstance(p, PlaneFit) else p for p in out]
         return ScanFit(out[0], out[1], data[0], data[1], crit)
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
             f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
             f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
     out: list[PlaneResult] = []
     datas: list[F.PlaneData] = []
+    # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
+    # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
+    shared_limit = QualityLimits().max_offset_stderr / model.tolerance
+    edge_is_walls = edge_shared_share(model, pts, ECHO_EDGE, opts.corner_beam_half_angle) > shared_limit
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         sel = np.full(d.shape, np.nan)
         m = model.labels == k
@@ -298,12 +314,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         flags: list[str] = []
         if model.outside[k]:
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
-        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls)
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
         shared = edge_shared_share(model, pts, k, opts.corner_beam_half_angle)
-        # Echoes the edge explains as well sit within the tolerance of either model: a share s of them can
-        # move the offset by up to s × tolerance, which must stay inside the offset a good plane may miss by.
-        if shared > QualityLimits().max_offset_stderr / model.tolerance:
+        if shared > shared_limit:
             findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
                                     f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset"),)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)

@@ -244,28 +244,33 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
 
 
 def edge_shared_share(model: CornerModel, pts: ScanPoints, label: int, beam_half_angle: float) -> float:
-    """Share of wall ``label``'s echoes that the edge explains as well, within the model's tolerance.
+    """Share of the echoes labelled ``label`` that another part of the model explains as well, within tolerance.
 
-    A wall's mirror echoes and the corner's double bounces differ in range by
-    ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the edge less
-    its distance to the wall.  Where the edge lies close to the foot of the
-    wall's normal (a near wall beside a far one, an opening far from 90°),
-    that difference falls inside the assignment tolerance and the two
-    explanations cannot be told apart: the wall's offset may rest on corner
-    echoes, biased by up to the tolerance whatever its residuals say.
+    For a wall the other part is the edge; for :data:`ECHO_EDGE` it is either
+    wall.  A wall's mirror echoes and the corner's double bounces differ in
+    range by ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the
+    edge less its distance to the wall.  Where the edge lies close to the foot
+    of the wall's normal (a near wall beside a far one, an opening far from
+    90°), that difference falls inside the assignment tolerance and the two
+    explanations cannot be told apart: a wall's offset may rest on corner
+    echoes, and an "edge" may be a wall's own echoes that tie nothing together.
 
-    Returns 0 for a wall without echoes or a model without an edge.
+    Returns 0 for a label without echoes or a model without an edge.
     """
     mask = model.labels == label
-    if not np.any(mask):
-        return 0.0
     line = edge_line(model.wall_a, model.wall_b)
-    if line is None:
+    if not np.any(mask) or line is None:
         return 0.0
     sub = ScanPoints(pts.step[mask], pts.capsule_index[mask], pts.gamma[mask], pts.capsule[mask],
                      pts.distance[mask], pts.beam[mask])
+    cos_t = np.cos(beam_half_angle)
+    if label == ECHO_EDGE:
+        shared = np.zeros(sub.n, dtype=bool)
+        for wall in (model.wall_a, model.wall_b):
+            shared |= (sub.beam @ wall.normal >= cos_t) & (np.abs(mirror_residuals(wall, sub)) <= model.tolerance)
+        return float(np.mean(shared))
     re, u = edge_residuals(*line, sub, _opening(model.wall_a, model.wall_b))
-    seen = np.einsum("ij,ij->i", sub.beam, u) >= np.cos(beam_half_angle)
+    seen = np.einsum("ij,ij->i", sub.beam, u) >= cos_t
     return float(np.mean(seen & (np.abs(re) <= model.tolerance)))
 
 
