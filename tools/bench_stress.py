@@ -24,6 +24,9 @@ family         what is drawn
 ``missing``    10–35 % of readings without an echo, scattered or in runs
 ``calib``      the announced ``E0(d)`` off by a factor 0.5–2 (another rig's)
 ``nocorner``   a sweep that sees only one wall (the corner is outside it)
+``wire``       what the schema allows and our writer never does: capsules
+               listed in another order (in ``ScanStart`` and every
+               ``Sample``), samples written out of step order, reversed
 ``mixed``      all of the above at once (reversed half the time)
 ``extreme``    mixed, wider: walls 0.25–4 m, opening 60–120° with double
                bounces at any opening (a simulator without the 90° ±10°
@@ -76,7 +79,7 @@ import numpy as np
 from lelsonar.tools.bench_families import is_failure, ls_plane, plane_errors
 
 FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "roll", "sweep", "steps", "array", "rate", "noise",
-                             "corner", "missing", "calib", "nocorner", "mixed", "extreme")
+                             "corner", "missing", "calib", "nocorner", "wire", "mixed", "extreme")
 #: Verdicts of one wall, in table order.
 VERDICTS = ("accurate", "flagged", "claims_good", "crash")
 _DEG = math.pi / 180.0
@@ -126,6 +129,8 @@ class StressCase:
     missing: float = 0.0
     missing_runs: bool = False
     e0_scale: float = 1.0
+    permute_capsules: bool = False
+    shuffle_samples: bool = False
 
     def describe(self) -> str:
         """One line of what differs from the paper's setting."""
@@ -199,6 +204,9 @@ def draw_case(family: str, seed: int) -> StressCase:
     if family in ("calib", "mixed", "extreme"):
         lo, hi = (0.1, 10.0) if wide else (0.5, 2.0)
         kw.update(e0_scale=float(np.exp(rng.uniform(math.log(lo), math.log(hi)))))
+    if family == "wire":
+        kw.update(capsules=int(rng.integers(2, 9)), permute_capsules=True, shuffle_samples=bool(rng.random() < 0.5),
+                  reverse=bool(rng.random() < 0.5))
     crit = _critical(kw)
     if family == "sweep" or (every and rng.random() < 0.5):
         kw.update(_draw_sweep(rng, crit))
@@ -211,8 +219,9 @@ def draw_case(family: str, seed: int) -> StressCase:
             kw.update(gamma_start=crit + rng.uniform(15, 25) * _DEG, gamma_stop=crit + rng.uniform(70, 90) * _DEG)
         kw.update(reverse=bool(rng.random() < 0.5))
     else:
-        kw.update(gamma_start=min(-10 * _DEG, crit - 60 * _DEG), gamma_stop=max(110 * _DEG, crit + 60 * _DEG),
-                  reverse=bool(every and rng.random() < 0.5))
+        kw.update(gamma_start=min(-10 * _DEG, crit - 60 * _DEG), gamma_stop=max(110 * _DEG, crit + 60 * _DEG))
+        if every:
+            kw.update(reverse=bool(rng.random() < 0.5))
     return StressCase(family, int(seed), **kw)
 
 
@@ -365,6 +374,43 @@ def energy_model(scan: StressScan):
     return EnergyModel(m.phi0 / s, m.phi1 / s, m.phi2 / s, m.d_min, m.d_max)
 
 
+class _WireVariations:
+    """Between the scan loop and the recorder: capsules listed in another order, samples written out of order.
+
+    Both are within the schema (capsules are matched by ``capsule_id``, samples by ``step``); our own writer
+    never produces them.
+    """
+
+    def __init__(self, recorder: Any, case: StressCase) -> None:
+        self.recorder = recorder
+        rng = np.random.default_rng([case.seed, 11])
+        self.order = rng.permutation(case.capsules) if case.permute_capsules else None
+        self.shuffle = rng if case.shuffle_samples else None
+        self.held: list[Any] = []
+
+    def write(self, message: Any) -> None:
+        from lelsonar import codec
+
+        if self.order is not None and isinstance(message, (codec.ScanStart, codec.Sample)):
+            field = message.capsules if isinstance(message, codec.ScanStart) else message.sensors
+            items = [type(field[0])() for _ in range(len(field))]
+            for item, i in zip(items, self.order):
+                item.CopyFrom(field[int(i)])
+            del field[:]
+            field.extend(items)
+        if self.shuffle is not None and isinstance(message, codec.Sample):
+            self.held.append(message)
+            return
+        if self.shuffle is not None and isinstance(message, codec.ScanEnd):
+            times = sorted(m.acquisition_time_ns for m in self.held)
+            for t, k in zip(times, self.shuffle.permutation(len(self.held))):
+                self.recorder.write(self.held[int(k)], log_time_ns=t)  # step order lost in the file too
+        self.recorder.write(message)
+
+    def log(self, level: str, text: str) -> None:
+        self.recorder.log(level, text)
+
+
 def record(scan: StressScan, path: Path) -> None:
     """Write ``scan`` as ``lelsonar acquire --device sim`` would (scan loop + recorder)."""
     from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, run_scan
@@ -372,8 +418,9 @@ def record(scan: StressScan, path: Path) -> None:
 
     int16_scale = scan.config.receiver.adc_lsb if scan.case.int16 else None
     with McapRecorder(path, compression="zstd", metadata={"device": "sim", "stress": scan.case.describe()}) as rec:
+        out = _WireVariations(rec, scan.case) if scan.case.permute_capsules or scan.case.shuffle_samples else rec
         run_scan(_Replay(scan), scan.commanded, ScanIdentity("stress", 1), energy_model(scan),
-                 ScanOutput(rec, None), threading.Event(), int16_scale=int16_scale)
+                 ScanOutput(out, None), threading.Event(), int16_scale=int16_scale)
 
 
 def run_cli(path: Path, method: str | None = None) -> tuple[int | None, list[dict[str, Any]], str]:
