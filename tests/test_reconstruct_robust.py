@@ -141,3 +141,20 @@ def test_stress_scans_that_claimed_good_while_wrong_are_accurate_or_flagged(name
     record(scan, path)
     rows = judge(scan, *run_cli(path))
     assert [r for r in rows if r["verdict"] not in ("accurate", "flagged")] == []
+
+
+def test_a_sweep_that_never_sees_the_corner_still_places_the_wall_it_sees(tmp_path):
+    """A reversed sweep of 116…53° sees wall b only (the corner is at 34°): wall b is accurate on its own.
+
+    The joint model needs a band of echoes on both walls; without one the energy-split fallback fitted wall b
+    9.4 cm off (oracle 0.05 cm).  Through the CLI: wall a gets no good plane.
+    """
+    from lelsonar.tools.bench_stress import StressCase, judge, record, run_cli, simulate
+
+    scan = simulate(StressCase("nocorner", 6, gamma_start=0.9245008798800993, gamma_stop=2.030476872555467,
+                               reverse=True))
+    path = tmp_path / "scan.mcap"
+    record(scan, path)
+    rows = {r["label"]: r for r in judge(scan, *run_cli(path))}
+    assert rows["a"]["n_mirror"] == 0 and rows["a"]["verdict"] == "flagged", rows["a"]
+    assert rows["b"]["verdict"] == "accurate", rows["b"]

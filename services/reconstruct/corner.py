@@ -249,6 +249,55 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     return fit
 
 
+def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGeometry, label: str,
+                 axis: np.ndarray, opts: FitOptions, echo_amplitude: np.ndarray | None, t0: float
+                 ) -> tuple[PlaneFit, F.PlaneData] | None:
+    """One wall on its own, where the joint model found no pair of walls (a sweep that sees one wall only).
+
+    The densest band of mirror-implied positions in the wall's window gives its echoes (assigned at the joint
+    model's tolerances, loosest first); its direction in the rotation plane comes from where they are
+    strongest (:func:`amplitude_pitch`), its yaw and offset from the ranges (:func:`fixed_pitch_wall`).  No
+    edge ties it to anything, so without the amplitude peak inside the sweep there is no single-wall plane
+    (None: the caller keeps its fallback).
+    """
+    from .corner_model import band_offsets, mirror_residuals
+
+    if echo_amplitude is None:
+        return None
+    cos_t = np.cos(opts.corner_beam_half_angle)
+    seen = pts.beam @ axis >= cos_t
+    bands = band_offsets(pts.capsule[seen] @ axis + pts.distance[seen], max_bands=1, min_count=opts.min_points)
+    if bands.size == 0 or bands[0] <= 0:
+        return None
+    amp = np.asarray(echo_amplitude, dtype=np.float64)[pts.step, pts.capsule_index]
+    wall, se_n, se_h, m, phi = Wall(np.asarray(axis, dtype=np.float64), float(bands[0])), np.inf, np.inf, None, None
+    tol = opts.corner_tolerance
+    for t in (2.5 * tol, 1.5 * tol, tol):
+        m = (pts.beam @ wall.normal >= cos_t) & (np.abs(mirror_residuals(wall, pts)) <= t)
+        if np.count_nonzero(m) < opts.min_points:
+            return None
+        pitch = amplitude_pitch(pts.gamma[m], amp[m], pts.distance[m])
+        if pitch is None:
+            return None
+        phi = pitch
+        wall, se_n, se_h = fixed_pitch_wall(pts.capsule[m], pts.distance[m], pitch[0], pitch[1], wall.normal)
+    sel = np.full(distance.shape, np.nan)
+    sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
+    data = F.plane_data(geometry, gamma, sel, np.unique(pts.step[m]), label, axis)
+    diag = diagnostics("corner model, one wall; amplitude pitch; gauss-newton", t0,
+                       notes=(f"no pair of walls: wall {label} alone on {int(np.count_nonzero(m))} echoes of its "
+                              f"band", f"echoes strongest at γ = {np.rad2deg(phi[0]):.2f}° ± "
+                                       f"{np.rad2deg(phi[1]):.2f}°: the wall's direction; yaw and offset from "
+                                       "the ranges"))
+    fit = F.make_plane_fit(data, wall.normal / wall.offset, method="corner", inlier_mask=np.ones(data.n, dtype=bool),
+                           diagnostics=diag, model="constant-depth")
+    if not isinstance(fit, PlaneFit):
+        return None
+    fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
+    unexplained = float(np.mean(~m[seen])) if np.any(seen) else 0.0
+    return assess_plane(fit, gamma, edge_echoes=0, findings=unexplained_finding(unexplained)), data
+
+
 def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
                opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
     """The method ``"corner"``: both walls and the edge from all the echoes.
@@ -259,8 +308,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     ``echo_amplitude`` is given and the peak was swept, else from the
     paper-corrected points checked against the joint fit) and given its trust
     verdict.  The critical step is where the boresight points at the final
-    planes' edge, which does not scatter with the energy noise.  Where no wall
-    shows a band of echoes, it falls back to ``"adaptive"`` on the energy split.
+    planes' edge, which does not scatter with the energy noise.  Where no pair
+    of walls shows bands of echoes, it falls back to ``"adaptive"`` on the
+    energy split (degraded), except for a wall that shows a band and whose
+    amplitude peak was swept: that wall is fitted alone (:func:`_single_wall`).
 
     Parameters
     ----------
@@ -286,6 +337,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         fallback = ((DEGRADED, "no pair of walls explains the scan's echoes (one wall, or none, shows a band): "
                                "energy-split fallback, unchecked against the other wall and the edge"),)
         out = [assess_plane(p, g, findings=fallback) if isinstance(p, PlaneFit) else p for p in out]
+        for k, (label, axis) in enumerate((("a", AXIS_Y), ("b", AXIS_Z))):
+            single = _single_wall(pts, g, d, geometry, label, axis, opts, echo_amplitude, t0)
+            if single is not None:
+                out[k], data[k] = single
         return ScanFit(out[0], out[1], data[0], data[1], crit)
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
             f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
