@@ -515,8 +515,9 @@ def tally(rows: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
         if r["verdict"] == "skipped":
             continue
         for key in (r["family"], "all"):
-            t = out.setdefault(key, {"planes": 0, **{v: 0 for v in VERDICTS}})
+            t = out.setdefault(key, {"planes": 0, "unseen": 0, **{v: 0 for v in VERDICTS}})
             t["planes"] += 1
+            t["unseen"] += int(r.get("n_mirror", 0) < 3)
             t[r["verdict"]] += 1
     return out
 
@@ -537,14 +538,19 @@ def run_stress(args: argparse.Namespace) -> int:
             rows.extend(res)
     console = Console()
     table = Table(title=f"stress sweep: {args.seeds} seeds from {args.first_seed}, method corner")
-    for col in ("family", "planes", *VERDICTS):
+    for col in ("family", "planes", "unseen", *VERDICTS):
         table.add_column(col, justify="right" if col != "family" else "left")
     counts = tally(rows)
     for fam in (*families, "all"):
         if fam in counts:
             t = counts[fam]
-            table.add_row(fam, str(t["planes"]), *(str(t[v]) for v in VERDICTS))
+            table.add_row(fam, str(t["planes"]), str(t["unseen"]), *(str(t[v]) for v in VERDICTS))
     console.print(table)
+    console.print("planes: walls of the scenes; unseen: walls with fewer than 3 true mirror echoes (no plane, or a "
+                  "flagged one, is the right answer); accurate: patch error ≤ 2 cm or ≤ 3× the oracle's; flagged: "
+                  "a failure whose quality is not good, or no plane with a non-zero exit; claims_good: a failure "
+                  "(or a plane of an unseen wall) whose quality is good; crash: an exception, no JSON line or an "
+                  "undocumented exit code")
     bad = [r for r in rows if r["verdict"] in ("claims_good", "crash")]
     for r in bad:
         console.print(f"[red]{r['verdict']}[/] {r['case']} plane {r['label']}: "
