@@ -325,7 +325,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     d = np.asarray(distance, dtype=np.float64)
     pts = scan_points(geometry, g, d)
     model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
-                             tolerance=opts.corner_tolerance, min_points=opts.min_points)
+                             tolerance=opts.corner_tolerance, min_points=opts.min_points,
+                             significance=opts.tilt_test_sigma)
     if model is None:
         crit = critical_step(ratio, opts.critical_peak_fraction)
         split = split_subsets(g, crit)

@@ -429,7 +429,7 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
                      beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
                      max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
                      max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02,
-                     recentre: int = 3) -> CornerModel | None:
+                     recentre: int = 3, significance: float = 3.0) -> CornerModel | None:
     """The two walls and their edge that best explain all the echoes.
 
     Parameters
@@ -456,6 +456,10 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     good_enough : float
         Stop trying band pairs once one leaves at most this share of the
         echoes unexplained.
+    significance : float
+        A joint fit beyond ``max_tilt`` counts as leaving the window only if
+        its angle from the axis exceeds this many of its standard errors
+        (else the ranges cannot place the wall and the window stands).
     recentre : int
         How many times the nominal axes may follow a joint fit that leaves
         them by more than ``max_tilt``.  A common roll of the L about the
@@ -506,7 +510,8 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     cost, wa, wb = best
     labels, _ = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
     (fa, fb), cov = joint_gauss_newton(wa, wb, pts, labels, iterations=2)
-    outside = (bool(fa.normal @ axis_a < np.cos(max_tilt)), bool(fb.normal @ axis_b < np.cos(max_tilt)))
+    outside = tuple(_leaves_window(f, axis, cov[3 * k:3 * k + 2, 3 * k:3 * k + 2], max_tilt, significance)
+                    for k, (f, axis) in enumerate(((fa, axis_a), (fb, axis_b))))
     if not any(outside):
         wa, wb = fa, fb
     else:
@@ -523,10 +528,21 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
         moved = fit_corner_model(pts, turn @ axis_a, turn @ axis_b, beam_half_angle=beam_half_angle,
                                  tolerance=tolerance, max_bands=max_bands, max_refined=max_refined,
                                  min_points=min_points, max_tilt=max_tilt, good_enough=good_enough,
-                                 recentre=recentre - 1)
+                                 recentre=recentre - 1, significance=significance)
         if moved is not None and moved.cost < model.cost:
             return moved
     return model
+
+
+def _leaves_window(wall: Wall, axis: np.ndarray, tilt_cov: np.ndarray, max_tilt: float, significance: float) -> bool:
+    """Whether a fitted wall lies beyond ``max_tilt`` of its axis *and* the echoes say so.
+
+    A wall whose tilt the ranges barely constrain (capsules almost on the axis: no lever arm) can land
+    anywhere; its departure is evidence only if it exceeds ``significance`` times its own standard error.
+    """
+    angle = float(np.arccos(np.clip(wall.normal @ axis, -1.0, 1.0)))
+    se = float(np.sqrt(max(tilt_cov[0, 0] + tilt_cov[1, 1], 0.0))) if np.all(np.isfinite(tilt_cov)) else np.inf
+    return angle > max_tilt and angle > significance * se
 
 
 def _roll(normal: np.ndarray, axis: np.ndarray) -> float:
