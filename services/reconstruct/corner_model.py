@@ -512,9 +512,9 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     (fa, fb), cov = joint_gauss_newton(wa, wb, pts, labels, iterations=2)
     outside = tuple(_leaves_window(f, axis, cov[3 * k:3 * k + 2, 3 * k:3 * k + 2], max_tilt, significance)
                     for k, (f, axis) in enumerate(((fa, axis_a), (fb, axis_b))))
-    if not any(outside):
+    if fa.normal @ axis_a >= np.cos(max_tilt) and fb.normal @ axis_b >= np.cos(max_tilt):
         wa, wb = fa, fb
-    else:
+    elif any(outside):
         # The covariance belongs to (fa, fb), not to the walls held at the window: it would overclaim.
         cov = np.full((6, 6), np.inf)
     labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
