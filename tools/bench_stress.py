@@ -488,7 +488,7 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
 
 def stress_scan(family: str, seed: int, keep_dir: str | None = None) -> list[dict[str, Any]]:
     """Draw, simulate, record, reconstruct through the CLI and judge one case; rows per wall."""
-    from lelsonar.errors import ConfigError
+    from lelsonar.errors import ConfigError, PayloadTooLargeError
 
     try:
         case = draw_case(family, seed)
@@ -498,7 +498,10 @@ def stress_scan(family: str, seed: int, keep_dir: str | None = None) -> list[dic
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(keep_dir or tmp) / f"{family}-{seed}.mcap"
         path.parent.mkdir(parents=True, exist_ok=True)
-        record(scan, path)
+        try:
+            record(scan, path)
+        except PayloadTooLargeError as exc:  # the recorder refuses it (e.g. a window over the codec's limit)
+            return [{"family": family, "seed": seed, "label": "-", "verdict": "skipped", "error": str(exc)}]
         code, lines, error = run_cli(path)
         rows = judge(scan, code, lines, error)
         if keep_dir and not any(r["verdict"] in ("claims_good", "crash") for r in rows):
