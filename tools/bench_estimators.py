@@ -1,7 +1,9 @@
 """``lelsonar bench estimators``: accuracy and speed of every reconstruction method on simulated scans.
 
 ``--families`` runs the seeded scene families of issue 9 instead
-(:mod:`lelsonar.tools.bench_families`).  Without it:
+(:mod:`lelsonar.tools.bench_families`); ``--stress`` runs scenes and rigs
+outside those families through ``reconstruct --source FILE.mcap --json``
+(:mod:`lelsonar.tools.bench_stress`).  Without either:
 
 For each scene (the paper's two tests and tilted L corners) and each seed, the
 simulator (:mod:`lelsonar.acquire.sim`) produces a scan; every method in
@@ -74,8 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timing-repeats", type=int, default=50)
     parser.add_argument("--json", metavar="PATH", help="also write every per-plane number as JSON")
     from lelsonar.tools.bench_families import add_family_arguments
+    from lelsonar.tools.bench_stress import add_stress_arguments
 
     add_family_arguments(parser)
+    add_stress_arguments(parser)
 
 
 def _scene_config(name: str) -> Any:
@@ -253,6 +257,10 @@ def run(args: argparse.Namespace) -> int:
         from lelsonar.tools.bench_families import run_families
 
         return run_families(args)
+    if getattr(args, "stress", None):
+        from lelsonar.tools.bench_stress import run_stress
+
+        return run_stress(args)
     from rich.console import Console
     from rich.table import Table
 

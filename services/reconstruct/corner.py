@@ -20,12 +20,12 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
-from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, fit_corner_model,
-                           scan_points)
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, edge_shared_share,
+                           fit_corner_model, scan_points)
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .options import FitOptions, ScanFit
-from .quality import UNRELIABLE, assess_plane, unexplained_finding
+from .quality import DEGRADED, UNRELIABLE, QualityLimits, assess_plane, unexplained_finding
 from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from .split import critical_step, split_subsets
 
@@ -166,7 +166,8 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
 
 def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
                  note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
-                 flags: list[str], max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
+                 flags: list[str], edge_is_walls: bool = False,
+                 max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
     """One wall of the joint model, refined on its own echoes.
 
     With the echoes' own amplitudes, the wall's direction in the rotation
@@ -191,7 +192,10 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     ``amplitude`` holds the wall's echoes as ``(gamma, peak amplitude,
     distance, capsules)``, or None.  Reasons to call the plane unreliable are
     appended to ``flags``: corrected points and joint fit more than
-    ``max_disagreement`` (rad) apart.
+    ``max_disagreement`` (rad) apart; a direction that rests on the joint fit
+    while the model's edge echoes are mostly a wall's as well
+    (``edge_is_walls``: the edge that ties the walls' directions together
+    was not identified).
     """
     mask = np.ones(data.n, dtype=bool)
     se_joint, se_h_joint = wall_se
@@ -203,6 +207,11 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         off = float(np.arccos(np.clip(fitted.normal @ wall.normal, -1.0, 1.0)))
         if not (np.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
             fitted = None
+            if np.isfinite(se_joint):
+                # The amplitudes are the only sensor of the wall's direction in the rotation plane that a
+                # common roll cannot fool; a joint fit they contradict has not found that direction.
+                flags.append(f"its echoes are strongest at γ = {np.rad2deg(phi):.1f}°, {np.rad2deg(off):.1f}° from "
+                             f"the joint fit's normal (over {opts.tilt_test_sigma:g}σ)")
     if fitted is not None:
         diag = diagnostics("corner model; amplitude pitch; gauss-newton", t0,
                            notes=(note, f"echoes strongest at γ = {np.rad2deg(phi):.2f}° ± {np.rad2deg(phi_se):.2f}°: "
@@ -212,6 +221,9 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         if isinstance(fit, PlaneFit):
             fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
         return fit
+    if edge_is_walls:
+        flags.append("its direction rests on edge echoes that a wall explains as well: the corner edge that ties "
+                     "the walls together was not identified")
     theta_p = F.ls_theta(data.points)
     n_p = theta_p / np.linalg.norm(theta_p)
     se_n, se_h = se_joint, se_h_joint
@@ -237,6 +249,55 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     return fit
 
 
+def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGeometry, label: str,
+                 axis: np.ndarray, opts: FitOptions, echo_amplitude: np.ndarray | None, t0: float
+                 ) -> tuple[PlaneFit, F.PlaneData] | None:
+    """One wall on its own, where the joint model found no pair of walls (a sweep that sees one wall only).
+
+    The densest band of mirror-implied positions in the wall's window gives its echoes (assigned at the joint
+    model's tolerances, loosest first); its direction in the rotation plane comes from where they are
+    strongest (:func:`amplitude_pitch`), its yaw and offset from the ranges (:func:`fixed_pitch_wall`).  No
+    edge ties it to anything, so without the amplitude peak inside the sweep there is no single-wall plane
+    (None: the caller keeps its fallback).
+    """
+    from .corner_model import band_offsets, mirror_residuals
+
+    if echo_amplitude is None:
+        return None
+    cos_t = np.cos(opts.corner_beam_half_angle)
+    seen = pts.beam @ axis >= cos_t
+    bands = band_offsets(pts.capsule[seen] @ axis + pts.distance[seen], max_bands=1, min_count=opts.min_points)
+    if bands.size == 0 or bands[0] <= 0:
+        return None
+    amp = np.asarray(echo_amplitude, dtype=np.float64)[pts.step, pts.capsule_index]
+    wall, se_n, se_h, m, phi = Wall(np.asarray(axis, dtype=np.float64), float(bands[0])), np.inf, np.inf, None, None
+    tol = opts.corner_tolerance
+    for t in (2.5 * tol, 1.5 * tol, tol):
+        m = (pts.beam @ wall.normal >= cos_t) & (np.abs(mirror_residuals(wall, pts)) <= t)
+        if np.count_nonzero(m) < opts.min_points:
+            return None
+        pitch = amplitude_pitch(pts.gamma[m], amp[m], pts.distance[m])
+        if pitch is None:
+            return None
+        phi = pitch
+        wall, se_n, se_h = fixed_pitch_wall(pts.capsule[m], pts.distance[m], pitch[0], pitch[1], wall.normal)
+    sel = np.full(distance.shape, np.nan)
+    sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
+    data = F.plane_data(geometry, gamma, sel, np.unique(pts.step[m]), label, axis)
+    diag = diagnostics("corner model, one wall; amplitude pitch; gauss-newton", t0,
+                       notes=(f"no pair of walls: wall {label} alone on {int(np.count_nonzero(m))} echoes of its "
+                              f"band", f"echoes strongest at γ = {np.rad2deg(phi[0]):.2f}° ± "
+                                       f"{np.rad2deg(phi[1]):.2f}°: the wall's direction; yaw and offset from "
+                                       "the ranges"))
+    fit = F.make_plane_fit(data, wall.normal / wall.offset, method="corner", inlier_mask=np.ones(data.n, dtype=bool),
+                           diagnostics=diag, model="constant-depth")
+    if not isinstance(fit, PlaneFit):
+        return None
+    fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
+    unexplained = float(np.mean(~m[seen])) if np.any(seen) else 0.0
+    return assess_plane(fit, gamma, edge_echoes=0, findings=unexplained_finding(unexplained)), data
+
+
 def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
                opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
     """The method ``"corner"``: both walls and the edge from all the echoes.
@@ -247,8 +308,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     ``echo_amplitude`` is given and the peak was swept, else from the
     paper-corrected points checked against the joint fit) and given its trust
     verdict.  The critical step is where the boresight points at the final
-    planes' edge, which does not scatter with the energy noise.  Where no wall
-    shows a band of echoes, it falls back to ``"adaptive"`` on the energy split.
+    planes' edge, which does not scatter with the energy noise.  Where no pair
+    of walls shows bands of echoes, it falls back to ``"adaptive"`` on the
+    energy split (degraded), except for a wall that shows a band and whose
+    amplitude peak was swept: that wall is fitted alone (:func:`_single_wall`).
 
     Parameters
     ----------
@@ -262,19 +325,33 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     d = np.asarray(distance, dtype=np.float64)
     pts = scan_points(geometry, g, d)
     model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
-                             tolerance=opts.corner_tolerance, min_points=opts.min_points)
+                             tolerance=opts.corner_tolerance, min_points=opts.min_points,
+                             significance=opts.tilt_test_sigma)
     if model is None:
         crit = critical_step(ratio, opts.critical_peak_fraction)
         split = split_subsets(g, crit)
         data = [F.plane_data(geometry, g, d, steps, label, axis)
                 for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
         out = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in data]
+        # Nothing checked these planes against the other wall or the edge, and the energy split assumes both
+        # walls and the corner were swept: a plane can be centimetres off with clean residuals.
+        fallback = ((DEGRADED, "no pair of walls explains the scan's echoes (one wall, or none, shows a band): "
+                               "energy-split fallback, unchecked against the other wall and the edge"),)
+        out = [assess_plane(p, g, findings=fallback) if isinstance(p, PlaneFit) else p for p in out]
+        for k, (label, axis) in enumerate((("a", AXIS_Y), ("b", AXIS_Z))):
+            single = _single_wall(pts, g, d, geometry, label, axis, opts, echo_amplitude, t0)
+            if single is not None:
+                out[k], data[k] = single
         return ScanFit(out[0], out[1], data[0], data[1], crit)
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
             f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
             f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
     out: list[PlaneResult] = []
     datas: list[F.PlaneData] = []
+    # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
+    # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
+    shared_limit = QualityLimits().max_offset_stderr / model.tolerance
+    edge_is_walls = edge_shared_share(model, pts, ECHO_EDGE, opts.corner_beam_half_angle) > shared_limit
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         sel = np.full(d.shape, np.nan)
         m = model.labels == k
@@ -291,8 +368,14 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             amplitude = (pts.gamma[m], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[m], pts.capsule_index[m]],
                          pts.distance[m], pts.capsule[m])
         flags: list[str] = []
-        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags)
+        if model.outside[k]:
+            flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls)
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
+        shared = edge_shared_share(model, pts, k, opts.corner_beam_half_angle)
+        if shared > shared_limit:
+            findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
+                                    f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset"),)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lelsonar.geometry import ArrayGeometry, boresight
+from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
 
 __all__ = [
     "ScanPoints",
@@ -44,6 +44,7 @@ __all__ = [
     "edge_line",
     "edge_residuals",
     "assign_echoes",
+    "edge_shared_share",
     "joint_residuals",
     "joint_gauss_newton",
     "band_offsets",
@@ -109,12 +110,16 @@ class CornerModel:
     tolerance : float
         Inlier tolerance of the final assignment, m.
     cost : float
-        MSAC cost of the model (m²), lower is better.
+        MSAC cost of the final walls over all echoes (m²), lower is better.
     hypotheses : int
         Band pairs tried.
     covariance : (6, 6) array
         Of the tangent-plane tilt ``(u₁, u₂)`` (rad) and offset (m) of wall a,
         then wall b, from the joint least squares (``inf`` where unconstrained).
+    outside : (bool, bool)
+        Whether the joint fit of wall a / b wanted to leave the ``max_tilt``
+        window around its nominal axis (the wall returned is held inside it,
+        so it is not the best fit: see :func:`fit_corner_model`).
     """
 
     wall_a: Wall
@@ -125,6 +130,7 @@ class CornerModel:
     cost: float
     hypotheses: int
     covariance: np.ndarray
+    outside: tuple[bool, bool] = (False, False)
 
     def wall_stderr(self, k: int) -> tuple[float, float]:
         """RMS tilt (rad) and offset standard error (m) of wall ``k`` (0 = a, 1 = b)."""
@@ -235,6 +241,37 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     tol = np.where(best == ECHO_EDGE, tolerance if edge_tolerance is None else edge_tolerance, tolerance)
     labels = np.where(np.abs(res) <= tol, best, ECHO_OUTLIER)
     return labels, np.where(labels == ECHO_OUTLIER, np.nan, res)
+
+
+def edge_shared_share(model: CornerModel, pts: ScanPoints, label: int, beam_half_angle: float) -> float:
+    """Share of the echoes labelled ``label`` that another part of the model explains as well, within tolerance.
+
+    For a wall the other part is the edge; for :data:`ECHO_EDGE` it is either
+    wall.  A wall's mirror echoes and the corner's double bounces differ in
+    range by ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the
+    edge less its distance to the wall.  Where the edge lies close to the foot
+    of the wall's normal (a near wall beside a far one, an opening far from
+    90°), that difference falls inside the assignment tolerance and the two
+    explanations cannot be told apart: a wall's offset may rest on corner
+    echoes, and an "edge" may be a wall's own echoes that tie nothing together.
+
+    Returns 0 for a label without echoes or a model without an edge.
+    """
+    mask = model.labels == label
+    line = edge_line(model.wall_a, model.wall_b)
+    if not np.any(mask) or line is None:
+        return 0.0
+    sub = ScanPoints(pts.step[mask], pts.capsule_index[mask], pts.gamma[mask], pts.capsule[mask],
+                     pts.distance[mask], pts.beam[mask])
+    cos_t = np.cos(beam_half_angle)
+    if label == ECHO_EDGE:
+        shared = np.zeros(sub.n, dtype=bool)
+        for wall in (model.wall_a, model.wall_b):
+            shared |= (sub.beam @ wall.normal >= cos_t) & (np.abs(mirror_residuals(wall, sub)) <= model.tolerance)
+        return float(np.mean(shared))
+    re, u = edge_residuals(*line, sub, _opening(model.wall_a, model.wall_b))
+    seen = np.einsum("ij,ij->i", sub.beam, u) >= cos_t
+    return float(np.mean(seen & (np.abs(re) <= model.tolerance)))
 
 
 def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
@@ -391,7 +428,8 @@ def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple
 def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
                      beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
                      max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
-                     max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02) -> CornerModel | None:
+                     max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02,
+                     recentre: int = 3, significance: float = 3.0) -> CornerModel | None:
     """The two walls and their edge that best explain all the echoes.
 
     Parameters
@@ -418,10 +456,29 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     good_enough : float
         Stop trying band pairs once one leaves at most this share of the
         echoes unexplained.
+    significance : float
+        A joint fit beyond ``max_tilt`` counts as leaving the window only if
+        its angle from the axis exceeds this many of its standard errors
+        (else the ranges cannot place the wall and the window stands).
+    recentre : int
+        How many times the nominal axes may follow a joint fit that leaves
+        them by more than ``max_tilt``.  A common roll of the L about the
+        rotation axis (a robot not square to the corner) moves both walls off
+        the paper's axes together; the ranges still see it through the
+        capsules' radial lever arm, so the joint fit points there.  When both
+        walls' fits turn the same way (their rolls about x within ``max_tilt``
+        of each other), both axes are turned about x by the mean roll and the
+        model refitted; the refit is kept only if it explains the echoes
+        better (lower MSAC cost over all echoes).  Walls pulled apart — one
+        onto the corner cluster, which looks like a wall facing the edge —
+        are not followed.
 
     Returns
     -------
-    CornerModel, or None if neither wall has a band of echoes.
+    CornerModel, or None if neither wall has a band of echoes.  ``outside``
+    says which walls' joint fit still wanted to leave the ``max_tilt`` window
+    (their returned walls are held at the window and their covariance is
+    ``inf``: the model cannot place them).
     """
     cos_t = np.cos(beam_half_angle)
     axis_a = np.asarray(axis_a, dtype=np.float64) / np.linalg.norm(axis_a)
@@ -453,7 +510,41 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     cost, wa, wb = best
     labels, _ = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
     (fa, fb), cov = joint_gauss_newton(wa, wb, pts, labels, iterations=2)
+    outside = tuple(_leaves_window(f, axis, cov[3 * k:3 * k + 2, 3 * k:3 * k + 2], max_tilt, significance)
+                    for k, (f, axis) in enumerate(((fa, axis_a), (fb, axis_b))))
     if fa.normal @ axis_a >= np.cos(max_tilt) and fb.normal @ axis_b >= np.cos(max_tilt):
         wa, wb = fa, fb
+    elif any(outside):
+        # The covariance belongs to (fa, fb), not to the walls held at the window: it would overclaim.
+        cov = np.full((6, 6), np.inf)
     labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
-    return CornerModel(wa, wb, labels, res, tolerance, cost, len(hyps), cov)
+    model = CornerModel(wa, wb, labels, res, tolerance, _msac_cost(res, tolerance), len(hyps), cov, outside)
+    roll_a, roll_b = _roll(fa.normal, axis_a), _roll(fb.normal, axis_b)
+    # Only a turn of the whole L moves the axes: both walls turning the same way by about as much.  Walls
+    # pulled apart (one onto the corner cluster, which looks like a wall facing the edge) stay flagged.
+    if any(outside) and recentre > 0 and abs(roll_a - roll_b) <= max_tilt:
+        rho = 0.5 * (roll_a + roll_b)
+        turn = rotation_x(rho)
+        moved = fit_corner_model(pts, turn @ axis_a, turn @ axis_b, beam_half_angle=beam_half_angle,
+                                 tolerance=tolerance, max_bands=max_bands, max_refined=max_refined,
+                                 min_points=min_points, max_tilt=max_tilt, good_enough=good_enough,
+                                 recentre=recentre - 1, significance=significance)
+        if moved is not None and moved.cost < model.cost:
+            return moved
+    return model
+
+
+def _leaves_window(wall: Wall, axis: np.ndarray, tilt_cov: np.ndarray, max_tilt: float, significance: float) -> bool:
+    """Whether a fitted wall lies beyond ``max_tilt`` of its axis *and* the echoes say so.
+
+    A wall whose tilt the ranges barely constrain (capsules almost on the axis: no lever arm) can land
+    anywhere; its departure is evidence only if it exceeds ``significance`` times its own standard error.
+    """
+    angle = float(np.arccos(np.clip(wall.normal @ axis, -1.0, 1.0)))
+    se = float(np.sqrt(max(tilt_cov[0, 0] + tilt_cov[1, 1], 0.0))) if np.all(np.isfinite(tilt_cov)) else np.inf
+    return angle > max_tilt and angle > significance * se
+
+
+def _roll(normal: np.ndarray, axis: np.ndarray) -> float:
+    """Signed angle about x from ``axis`` to ``normal``, both projected onto the rotation plane (y, z), rad."""
+    return float(np.angle(complex(normal[1], normal[2]) * complex(axis[1], -axis[2])))
