@@ -248,6 +248,18 @@ def test_a_clean_plane_that_disagrees_with_a_good_reference_is_degraded() -> Non
     assert cross_check(same, reference).quality == GOOD
 
 
+def test_a_compared_plane_no_good_plane_of_record_vouches_for_is_at_most_degraded() -> None:
+    # The stress sweep's one-wall scan: the record's wall a degraded, LS's wall a "good" and 2.25 cm off.
+    other = assess_plane(_plane(method="other", offset=1.9), GAMMA)
+    doubted = assess_plane(_plane(sigma=0.015), GAMMA)
+    failed = FitFailure(FailureReason.TOO_FEW_POINTS, "no echoes", "a", 0)
+    for reference, words in ((doubted, "a degraded plane"), (failed, "no plane")):
+        checked = cross_check(other, reference)
+        assert checked.quality == DEGRADED and words in checked.quality_reasons[-1], checked.quality_reasons
+    unreliable = dataclasses.replace(other, quality=UNRELIABLE)
+    assert cross_check(unreliable, failed).quality == UNRELIABLE  # never raised
+
+
 def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() -> None:
     planes = [dataclasses.replace(assess_plane(_plane(sigma=0.02), GAMMA), method=f"m{i}", label="ab"[i % 2])
               for i in range(18)]  # all registered methods compared: 18 planes
@@ -312,3 +324,16 @@ def test_a_model_that_leaves_echoes_unexplained_distrusts_its_planes() -> None:
     assert unexplained_finding(0.08)[0][0] == DEGRADED
     ((level, reason),) = unexplained_finding(0.3)
     assert level == UNRELIABLE and "30 %" in reason
+
+
+def test_a_fallback_plane_carries_the_method_of_record_and_says_it_fell_back(monkeypatch) -> None:
+    # Consumers (and `reconstruct --source` exit codes) pick the plane of record by method name: a fallback
+    # plane named after the estimator it fell back on read as "corner produced no plane".
+    from lelsonar.reconstruct import corner
+
+    monkeypatch.setattr(corner, "fit_corner_model", lambda *args, **kwargs: None)  # no pair of wall bands
+    _scan, rec = _reconstruct(_scene_config(), seed=3, amplitudes=False)
+    for plane in (rec.plane_a, rec.plane_b):
+        assert isinstance(plane, PlaneFit) and plane.method == DEFAULT_METHOD
+        assert plane.quality != GOOD and any("energy-split fallback" in r for r in plane.quality_reasons)
+        assert any("fitted by its fallback, adaptive" in n for n in plane.diagnostics.notes)

@@ -348,7 +348,9 @@ class _Replay:
         self.scan = scan
         self.info = sim_info(scan.config, "sim")
 
-    def measure(self, step: int, gamma_commanded: float):
+    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
+                while_listening=None):
+        # No acoustic window to work in: the scan loop emits each sample at once.
         from lelsonar.acquire.scanner import MotorReading, StepMeasurement
         from lelsonar.acquire.sim.record import EPOCH_NS, STEP_NS
 
@@ -450,7 +452,7 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
     distance = cfg.sound_speed * scan.tof / 2.0
     rows = []
     crashed = code not in DOCUMENTED_EXIT or not lines
-    # With ``--compare ''`` every plane is the method of record's (its fallback names itself, e.g. adaptive).
+    # With ``--compare ''`` every plane is the method of record's (a fallback plane too: it carries that name).
     planes = [p for msg in lines for p in msg.get("planes", [])]
     for label, src, panel in (("a", EchoSource.PLANE_A, cfg.scene.panels[0]),
                               ("b", EchoSource.PLANE_B, cfg.scene.panels[1])):

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import MappingProxyType
 
 import numpy as np
@@ -179,6 +179,19 @@ def _method(name: str) -> Method:
         raise ConfigError(f"unknown reconstruction method {name!r}; choose one of {sorted(METHODS)}") from None
 
 
+def _as_method(plane: PlaneResult, method: str) -> PlaneResult:
+    """A scan-level method's plane under that method's name, whichever estimator it fell back on.
+
+    Consumers pick the plane of record by method name; a fallback is said in the diagnostics
+    (and in the verdict, which the method gives it), not by a name no one asked for.
+    """
+    if not isinstance(plane, PlaneFit) or plane.method == method:
+        return plane
+    d = plane.diagnostics
+    notes = (*d.notes, f"{method}: fitted by its fallback, {plane.method}")
+    return replace(plane, method=method, diagnostics=replace(d, notes=notes))
+
+
 def _assessed(plane: PlaneResult, gamma: np.ndarray) -> PlaneResult:
     """The plane with its trust verdict (:mod:`lelsonar.reconstruct.quality`), unless it has one."""
     if isinstance(plane, PlaneFit) and not plane.quality:
@@ -260,7 +273,7 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
         t1 = time.perf_counter()
         ee = None if echo_amplitude is None else np.asarray(echo_amplitude, dtype=np.float64).reshape(d.shape)
         sf = m.fit_scan(g, d, ratio, geometry, opts, echo_amplitude=ee)
-        pa, pb = _assessed(sf.plane_a, g), _assessed(sf.plane_b, g)
+        pa, pb = (_assessed(_as_method(p, method), g) for p in (sf.plane_a, sf.plane_b))
         crit = crit if sf.critical_step is None else sf.critical_step
         t2 = time.perf_counter()
         ta = pa.diagnostics.time_s if isinstance(pa, PlaneFit) else 0.0

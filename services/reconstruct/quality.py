@@ -17,7 +17,7 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 
-from .results import PlaneFit
+from .results import PlaneFit, PlaneResult
 
 __all__ = ["QualityLimits", "assess_plane", "unexplained_finding", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
 
@@ -151,19 +151,27 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     return replace(plane, quality=verdict, quality_reasons=tuple(reasons))
 
 
-def cross_check(plane: PlaneFit, reference: PlaneFit, *, max_angle: float = float(np.deg2rad(3.0)),
+def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)),
                 max_distance: float = 0.02) -> PlaneFit:
-    """``plane`` degraded if it disagrees with a good ``reference`` estimate of the same wall.
+    """``plane`` (a compared method's) checked against the method of record's ``reference`` of the same wall.
 
     A compared method can lock onto the corner cluster and still fit it
     cleanly (a tight, well-populated, wrong plane); its own residuals cannot
-    show that.  The reference (the method of record) is trusted only when its
-    own verdict is good.  The disagreement is measured where it matters: the
-    largest distance between the two planes over the reference's observed
-    patch, and the angle between the normals.
+    show that.  So a compared plane is good only if a good reference agrees
+    with it.  The disagreement is measured where it matters: the largest
+    distance between the two planes over the reference's observed patch, and
+    the angle between the normals.  Without a good reference (the method of
+    record failed, or doubts its own plane of this wall) nothing can vouch for
+    it: it is at most degraded.
     """
-    if plane is reference or reference.quality != GOOD or plane.label != reference.label:
+    if plane is reference:
         return plane
+    if not isinstance(reference, PlaneFit) or reference.quality != GOOD or plane.label != reference.label:
+        if plane.quality != GOOD:
+            return plane
+        what = "no plane" if not isinstance(reference, PlaneFit) else f"a {reference.quality} plane"
+        reason = f"unchecked: the method of record has {what} of this wall to check it against"
+        return replace(plane, quality=DEGRADED, quality_reasons=plane.quality_reasons + (reason,))
     angle = float(np.arccos(np.clip(plane.normal @ reference.normal, -1.0, 1.0)))
     gap = float(np.max(np.abs(reference.patch @ plane.normal - plane.offset)))
     if angle <= max_angle and gap <= max_distance:

@@ -221,13 +221,13 @@ def _compared(plane: PlaneResult, method: str, main: ScanReconstruction) -> Plan
     """A compared method's plane, checked against the method of record's; a failure names its method.
 
     A compared method that fails is reported, never silently dropped; one
-    that disagrees with a good plane of record is degraded (it may have
-    locked onto the corner cluster, which its own residuals cannot show).
+    that disagrees with a good plane of record, or that no good plane of
+    record can vouch for, is degraded (it may have locked onto the corner
+    cluster, which its own residuals cannot show).
     """
     if not isinstance(plane, PlaneFit):
         return FitFailure(plane.reason, f"{method}: {plane.detail}", plane.label, plane.n_points)
-    reference = main.plane_a if plane.label == "a" else main.plane_b
-    return cross_check(plane, reference) if isinstance(reference, PlaneFit) else plane
+    return cross_check(plane, main.plane_a if plane.label == "a" else main.plane_b)
 
 
 class ReconstructionService:
