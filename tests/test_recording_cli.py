@@ -152,6 +152,32 @@ def test_another_writer_of_the_schema_on_its_own_topics_gives_the_same_estimate(
     assert rc == 0 and "no lelsonar scans" not in described and str(STEPS) in described
 
 
+def test_a_scan_end_logged_before_its_samples_still_gives_one_complete_final(scan, tmp_path):
+    # Another writer's log times (e.g. the samples' acquisition times on another clock) can sort a
+    # ScanEnd before samples that follow it in the file: no false alarm, one complete final.
+    _path, msgs, _spans = scan
+    other = tmp_path / "late_samples.mcap"
+    with open(other, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="another simulator")
+        channels = {}
+        for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd):
+            schema = w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", visual.file_descriptor_set(cls))
+            channels[cls] = w.register_channel(recording.TOPICS[cls], "protobuf", schema)
+        order = {codec.ScanStart: 0, codec.ScanEnd: 1}
+        for i, msg in enumerate(msgs):
+            t = order.get(type(msg), 10 + i)
+            w.add_message(channels[type(msg)], log_time=t, publish_time=t, data=msg.SerializeToString())
+        w.finish()
+    done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(other), "--json"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    (line,) = [x for x in done.stdout.splitlines() if x.startswith("{")]
+    got = json.loads(line)
+    assert got["status"] == "final" and got["accounting"]["missing"] == 0 and not got.get("missing_steps")
+    assert "WARNING" not in done.stderr and "steps missing" not in done.stderr, done.stderr
+
+
 def test_a_scan_without_its_scan_start_is_reported_not_silently_skipped(scan, tmp_path):
     _path, msgs, _spans = scan
     target = tmp_path / "headless.mcap"
