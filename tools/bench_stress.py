@@ -307,6 +307,11 @@ class StressScan:
     waveforms: np.ndarray
     echo_source: np.ndarray  # EchoSource per step and capsule (NONE where dropped)
 
+    @property
+    def t0(self) -> float:
+        """s; start of every waveform (what :class:`~lelsonar.acquire.sim.record.ScanReplay` replays)."""
+        return float(self.config.window_start)
+
 
 def simulate(case: StressCase) -> StressScan:
     """Simulate ``case`` with the simulator's physics on its own schedule (seeded by the case)."""
@@ -337,33 +342,6 @@ def simulate(case: StressCase) -> StressScan:
         tof = np.where(drop, np.nan, tof)
         source = np.where(drop, EchoSource.NONE, source)
     return StressScan(case, cfg, commanded, measured, raw, tof, waveforms, source)
-
-
-class _Replay:
-    """A :class:`StressScan` as a scanner for the acquisition scan loop (shot ``k`` at step ``k``)."""
-
-    def __init__(self, scan: StressScan) -> None:
-        from lelsonar.acquire.backends import sim_info
-
-        self.scan = scan
-        self.info = sim_info(scan.config, "sim")
-
-    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
-                while_listening=None):
-        # No acoustic window to work in: the scan loop emits each sample at once.
-        from lelsonar.acquire.scanner import MotorReading, StepMeasurement
-        from lelsonar.acquire.sim.record import EPOCH_NS, STEP_NS
-
-        s = self.scan
-        return StepMeasurement(
-            gamma_measured=float(s.gamma_measured[step]),
-            motor=MotorReading(present_position_raw=int(s.gamma_raw[step]), load=0.0, voltage=12.0,
-                               temperature=313.15),
-            time_of_flight=np.asarray(s.tof[step]), waveforms=np.asarray(s.waveforms[step]),
-            t0=float(s.config.window_start), acquisition_time_ns=EPOCH_NS + step * STEP_NS)
-
-    def close(self) -> None:
-        pass
 
 
 def energy_model(scan: StressScan):
@@ -416,12 +394,13 @@ class _WireVariations:
 def record(scan: StressScan, path: Path) -> None:
     """Write ``scan`` as ``lelsonar acquire --device sim`` would (scan loop + recorder)."""
     from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, run_scan
+    from lelsonar.acquire.sim.record import ScanReplay
     from lelsonar.recording import McapRecorder
 
     int16_scale = scan.config.receiver.adc_lsb if scan.case.int16 else None
     with McapRecorder(path, compression="zstd", metadata={"device": "sim", "stress": scan.case.describe()}) as rec:
         out = _WireVariations(rec, scan.case) if scan.case.permute_capsules or scan.case.shuffle_samples else rec
-        run_scan(_Replay(scan), scan.commanded, ScanIdentity("stress", 1), energy_model(scan),
+        run_scan(ScanReplay(scan), scan.commanded, ScanIdentity("stress", 1), energy_model(scan),
                  ScanOutput(out, None), threading.Event(), int16_scale=int16_scale)
 
 
