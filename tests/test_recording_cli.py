@@ -178,6 +178,38 @@ def test_a_scan_end_logged_before_its_samples_still_gives_one_complete_final(sca
     assert "WARNING" not in done.stderr and "steps missing" not in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize("energy_model", [None, dict(phi0=-1.0, phi1=0.0, phi2=0.0)], ids=["absent", "negative"])
+def test_a_scan_whose_energy_model_is_unusable_is_still_reconstructed_and_says_so(scan, tmp_path, energy_model):
+    # The planes of the default method do not depend on E0; another writer's scan must not be lost for it.
+    path, msgs, _spans = scan
+    start = codec.ScanStart()
+    start.CopyFrom(msgs[0])
+    start.ClearField("energy_model")
+    if energy_model:
+        for k, v in energy_model.items():
+            setattr(start.energy_model, k, v)
+        start.energy_model.valid_min_range, start.energy_model.valid_max_range = 0.9, 1.8
+    target = tmp_path / "uncalibrated.mcap"
+    with recording.McapRecorder(target) as rec:
+        for msg in [start, *msgs[1:]]:
+            rec.write(msg)
+
+    def final(p: Path) -> tuple[dict, str]:
+        done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(p), "--json",
+                               "--compare", ""], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        (line,) = [x for x in done.stdout.splitlines() if x.startswith("{")]
+        return json.loads(line), done.stderr
+
+    got, err = final(target)
+    assert "its energy model is unusable" in err and "uncalibrated" in err
+    reference, _ = final(path)
+    assert got["status"] == "final"
+    for ours, theirs in zip(got["planes"], reference["planes"], strict=True):
+        assert (ours["label"], ours["quality"]) == (theirs["label"], theirs["quality"])
+        assert ours["offset"] == pytest.approx(theirs["offset"], abs=1e-9)
+
+
 def test_a_scan_without_its_scan_start_is_reported_not_silently_skipped(scan, tmp_path):
     _path, msgs, _spans = scan
     target = tmp_path / "headless.mcap"

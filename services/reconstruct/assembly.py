@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.errors import InvalidMessageError
+from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
 from lelsonar.reconstruct.energy import EnergyModel, echo_amplitude, waveform_energy
 from lelsonar.v1 import scan_pb2
@@ -50,9 +50,22 @@ def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
     return ArrayGeometry(capsule_x=tuple(c.position.x for c in ordered), radial_offset=start.radial_offset)
 
 
-def energy_model_from_start(start: codec.ScanStart) -> EnergyModel:
+#: E0 for a ScanStart without a usable energy model: spherical spreading alone, E0 ∝ 1/d² (eq. 12 with
+#: φ1 = φ2 = 0).  R is then uncalibrated but still relative, which is all the critical step and the energy
+#: split use; the default method does not use R at all.
+UNCALIBRATED_E0 = EnergyModel(1.0, 0.0, 0.0, d_min=0.01, d_max=100.0)
+
+
+def energy_model_from_start(start: codec.ScanStart) -> tuple[EnergyModel, str | None]:
+    """The scan's E0 (eq. 12), and why it is :data:`UNCALIBRATED_E0` instead (None if it is not).
+
+    A scan is not thrown away for its calibration: the planes do not depend on it.
+    """
     e = start.energy_model
-    return EnergyModel(e.phi0, e.phi1, e.phi2, d_min=e.valid_min_range, d_max=e.valid_max_range)
+    try:
+        return EnergyModel(e.phi0, e.phi1, e.phi2, d_min=e.valid_min_range, d_max=e.valid_max_range), None
+    except ConfigError as exc:
+        return UNCALIBRATED_E0, f"its energy model is unusable ({exc}); E0 taken as 1/d², uncalibrated"
 
 
 @dataclass
@@ -75,6 +88,7 @@ class ScanAssembly:
     start: codec.ScanStart
     geometry: ArrayGeometry = field(init=False)
     energy_model: EnergyModel = field(init=False)
+    energy_model_problem: str | None = field(init=False)   # why E0 is the uncalibrated one, if it is
     gamma: np.ndarray = field(init=False)            # (steps,) rad, NaN until received
     distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
     sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s
@@ -97,7 +111,7 @@ class ScanAssembly:
     def __post_init__(self) -> None:
         self.geometry = geometry_from_start(self.start)
         self._capsule_ids = list(range(self.geometry.n_capsules))
-        self.energy_model = energy_model_from_start(self.start)
+        self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
     def _allocate(self, n: int) -> None:

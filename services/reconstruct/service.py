@@ -440,6 +440,8 @@ class ReconstructionService:
             if self._observer:
                 self._observer.scan_started(scan)
             self._event("INFO", f"scan {scan.key} started: {scan.start.steps} steps", scan.start.start_time_ns)
+            if scan.energy_model_problem:
+                self._event("WARNING", f"scan {scan.key}: {scan.energy_model_problem}", scan.start.start_time_ns)
             return []
         if event.kind == "end":
             p.ended_at = self._clock()
