@@ -35,6 +35,8 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
 
+from .fit import _median
+
 __all__ = [
     "ScanPoints",
     "Wall",
@@ -316,7 +318,8 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     lo, hi = float(w.min()), float(w.max())
     nb = max(int(np.ceil((hi - lo) / bin_width)), 1)
     counts, edges = np.histogram(w, bins=nb, range=(lo, lo + nb * bin_width))
-    smooth = np.convolve(np.pad(counts, 1), [1, 1, 1], mode="valid")
+    padded = np.concatenate([[0], counts, [0]])
+    smooth = padded[:-2] + padded[1:-1] + padded[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
     left = np.concatenate([[-1], smooth[:-1]])
     right = np.concatenate([smooth[1:], [-1]])
     peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= min_count))
@@ -326,7 +329,7 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
         c = 0.5 * (edges[p] + edges[p + 1])
         near = np.abs(w - c) <= 2.0 * bin_width
         if np.any(near):
-            centres.append(float(np.median(w[near])))
+            centres.append(_median(w[near]))
     return np.asarray(centres)
 
 
@@ -525,26 +528,25 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
         loose = [_msac_cost(assign_echoes(a, b, pts, schedule[0][0], beam_half_angle, schedule[0][1])[1],
                             schedule[0][0]) for a, b in hyps]
         hyps = [hyps[i] for i in np.argsort(loose, kind="stable")[:max_refined]]
-    best: tuple[float, Wall, Wall] | None = None
+    best: tuple[float, Wall, Wall, np.ndarray, np.ndarray] | None = None
     for a, b in hyps:
         wa, wb = _refine(a, b, pts, schedule, beam_half_angle, min_points, (axis_a, axis_b), max_tilt)
         labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
         cost = _msac_cost(res, tolerance)
         if best is None or cost < best[0]:
-            best = (cost, wa, wb)
+            best = (cost, wa, wb, labels, res)
         if np.count_nonzero(labels == ECHO_OUTLIER) <= good_enough * pts.n:
             break  # the most promising pair already explains (nearly) every echo: no other can do better
-    cost, wa, wb = best
-    labels, _ = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
+    cost, wa, wb, labels, res = best  # the assignment is a pure function of the walls: kept, not redone
     (fa, fb), cov = joint_gauss_newton(wa, wb, pts, labels, iterations=2)
     outside = tuple(_leaves_window(f, axis, cov[3 * k:3 * k + 2, 3 * k:3 * k + 2], max_tilt, significance)
                     for k, (f, axis) in enumerate(((fa, axis_a), (fb, axis_b))))
     if fa.normal @ axis_a >= np.cos(max_tilt) and fb.normal @ axis_b >= np.cos(max_tilt):
         wa, wb = fa, fb
+        labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
     elif any(outside):
         # The covariance belongs to (fa, fb), not to the walls held at the window: it would overclaim.
         cov = np.full((6, 6), np.inf)
-    labels, res = assign_echoes(wa, wb, pts, tolerance, beam_half_angle)
     model = CornerModel(wa, wb, labels, res, tolerance, _msac_cost(res, tolerance), len(hyps), cov, outside)
     roll_a, roll_b = _roll(fa.normal, axis_a), _roll(fb.normal, axis_b)
     # Only a turn of the whole L moves the axes: both walls turning the same way by about as much.  Walls
