@@ -182,7 +182,10 @@ def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
     s2 = float(e @ e)
     if s2 < np.sin(min_angle) ** 2:
         return None
-    point = (wall_a.offset * _cross(wall_b.normal, e) + wall_b.offset * _cross(e, wall_a.normal)) / s2
+    # h_a (n_b × e) + h_b (e × n_a), element by element in Python floats: the NumPy expression's roundings.
+    ha, hb = wall_a.offset, wall_b.offset
+    point = np.array([(ha * u + hb * v) / s2 for u, v in zip(_cross(wall_b.normal, e).tolist(),
+                                                              _cross(e, wall_a.normal).tolist())])
     return point, e / np.sqrt(s2)
 
 
@@ -209,8 +212,9 @@ def _edge_range_residuals_many(pairs: tuple[tuple[Wall, Wall], ...], capsule: np
                                distance: np.ndarray) -> np.ndarray:
     """:func:`edge_residuals`' range residual under each pair of walls, (len(pairs), N), m.
 
-    One pass over the echoes for all pairs (the Jacobian's six forward differences); row ``k``
-    is bit for bit what the pair alone gives (the same stacked products, element by element).
+    One pass over the echoes for all pairs (the Jacobian's six forward differences).  Row ``k``
+    is bit for bit what the pair alone gives: stacked ``matmul`` and ``einsum`` form each
+    echo's products and sums exactly as the 2-D ones do.
     """
     points, directions, sines, parallel = [], [], [], []
     for k, (wall_a, wall_b) in enumerate(pairs):
@@ -221,11 +225,12 @@ def _edge_range_residuals_many(pairs: tuple[tuple[Wall, Wall], ...], capsule: np
         points.append(line[0])
         directions.append(line[1])
         sines.append(np.sin(_opening(wall_a, wall_b)))
-    rel = np.stack(points)[:, None, :] - capsule[None, :, :]
-    t = (rel @ np.stack(directions)[:, :, None])[:, :, 0]
+    rel = np.array(points)[:, None, :] - capsule[None, :, :]
+    t = (rel @ np.array(directions)[:, :, None])[:, :, 0]
     dist2 = np.einsum("kij,kij->ki", rel, rel) - t * t
-    out = distance - np.sqrt(np.maximum(dist2, 0.0)) * np.asarray(sines)[:, None]
-    out[parallel] = np.inf
+    out = distance - np.sqrt(np.maximum(dist2, 0.0)) * np.array(sines)[:, None]
+    if parallel:
+        out[parallel] = np.inf
     return out
 
 
