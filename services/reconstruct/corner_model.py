@@ -390,6 +390,12 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
         return np.concatenate([pa @ wa.normal + da - wa.offset, pb @ wb.normal + db - wb.offset,
                                _edge_range_residuals(wa, wb, pe, de)])
 
+    def residuals_many(pairs: list[tuple[Wall, Wall]]) -> list[np.ndarray]:
+        # residuals() of each pair, bit for bit, the edge rows of all pairs in one pass.
+        edge = _edge_range_residuals_many(tuple(pairs), pe, de)
+        return [np.concatenate([pa @ wa.normal + da - wa.offset, pb @ wb.normal + db - wb.offset, edge[k]])
+                for k, (wa, wb) in enumerate(pairs)]
+
     def jacobian(wa: Wall, wb: Wall, r: np.ndarray) -> tuple[np.ndarray, list]:
         basis = [_tangent(wa.normal), _tangent(wb.normal)]
         jac = np.zeros((m, 6))
@@ -418,7 +424,18 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
             return (wall_a, wall_b), cov
         jac, basis = jacobian(walls[0], walls[1], r)
         jtj, g, c0 = jac.T @ jac, jac.T @ r, float(r @ r)
-        for _ in range(6):
+        accepted = False
+        for attempt in range(6):
+            if attempt == 1:
+                # The first damping failed (near convergence, usually all six do): the remaining five trials
+                # do not depend on each other's outcome, so they are formed in one pass, then taken in order.
+                batch = _damped_trials(jtj, g, lam, 5, walls, basis, residuals_many)
+                if batch is not None:
+                    for trial, r1, lam_k in batch:
+                        if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
+                            walls, r, lam, accepted = trial, r1, max(lam_k / 10, 1e-9), True
+                            break
+                    break
             try:
                 dz = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
             except np.linalg.LinAlgError:
@@ -427,10 +444,10 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
             trial = [_moved(walls[0], dz[:3], basis[0]), _moved(walls[1], dz[3:], basis[1])]
             r1 = residuals(*trial)
             if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
-                walls, r, lam = trial, r1, max(lam / 10, 1e-9)
+                walls, r, lam, accepted = trial, r1, max(lam / 10, 1e-9), True
                 break
             lam *= 10
-        else:
+        if not accepted:
             break
     if not covariance:
         return (walls[0], walls[1]), cov
@@ -440,6 +457,28 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
     except np.linalg.LinAlgError:
         pass
     return (walls[0], walls[1]), cov
+
+
+def _damped_trials(jtj: np.ndarray, g: np.ndarray, lam: float, count: int, walls: list[Wall],
+                   basis: list[tuple[np.ndarray, np.ndarray]], residuals_many
+                   ) -> list[tuple[list[Wall], np.ndarray, float]] | None:
+    """The Levenberg steps of :func:`joint_gauss_newton` for damping ``lam``, ``10·lam``, … (``count`` of them).
+
+    Each as the one-at-a-time loop forms it (the same damping products, ``np.linalg.solve``
+    per matrix of the stack): ``(walls, residuals, damping)`` in order.  None if a damped
+    matrix is singular (the caller takes the trials one at a time, skipping it).
+    """
+    lams = []
+    for _ in range(count):
+        lams.append(lam)
+        lam *= 10
+    diag = np.diag(np.diag(jtj) + 1e-12)
+    try:
+        dz = np.linalg.solve(np.stack([jtj + lk * diag for lk in lams]), np.broadcast_to(-g, (count, g.size))[..., None])
+    except np.linalg.LinAlgError:
+        return None
+    trials = [[_moved(walls[0], d[:3, 0], basis[0]), _moved(walls[1], d[3:, 0], basis[1])] for d in dz]
+    return [(t, r1, lk) for t, r1, lk in zip(trials, residuals_many([tuple(t) for t in trials]), lams)]
 
 
 def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple[float, float], ...],
