@@ -199,7 +199,7 @@ def edge_residuals(point: np.ndarray, direction: np.ndarray, pts: ScanPoints,
     for a 90° corner, which retro-reflects (design notes §8).
     """
     rel = point - pts.capsule
-    perp = rel - np.outer(rel @ direction, direction)
+    perp = rel - (rel @ direction)[:, None] * direction  # np.outer, the same products
     dist = np.sqrt(np.einsum("ij,ij->i", perp, perp))
     return pts.distance - dist * np.sin(opening), perp / np.maximum(dist, 1e-9)[:, None]
 
