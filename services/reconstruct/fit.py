@@ -125,6 +125,23 @@ class PlaneData:
         return PlaneData(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
                          self.beam[m], self.step[m])
 
+    @classmethod
+    def _owned(cls, label: str, axis: np.ndarray, points: np.ndarray, capsules: np.ndarray, distance: np.ndarray,
+               beam: np.ndarray, step: np.ndarray) -> PlaneData:
+        """Wrap arrays valid by construction that nothing else holds (fresh boolean-indexed copies).
+
+        What ``__init__`` checks holds already (the valid points :func:`plane_data` kept), and the
+        arrays are this object's alone: they are made read-only in place rather than copied and
+        checked again on the fit's hot path.
+        """
+        obj = object.__new__(cls)
+        for name, a in (("axis", axis), ("points", points), ("capsules", capsules), ("distance", distance),
+                        ("beam", beam), ("step", step)):
+            a.setflags(write=False)
+            object.__setattr__(obj, name, a)
+        object.__setattr__(obj, "label", label)
+        return obj
+
 
 def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray,
                label: str, axis: np.ndarray) -> PlaneData:
@@ -149,7 +166,10 @@ def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
     b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
     st = np.broadcast_to(steps[:, None], d.shape)
     ok = np.isfinite(d) & (d > 0) & np.all(np.isfinite(v), axis=-1)
-    return PlaneData(label, np.asarray(axis, dtype=np.float64), v[ok], pc[ok], d[ok], b[ok], st[ok])
+    # Finite (v = p_c + ... is finite only where p_c is) and of agreeing shapes by construction; boolean
+    # indexing copies, so the arrays are this PlaneData's own (the axis is copied: it may be AXIS_Y).
+    return PlaneData._owned(label, np.array(axis, dtype=np.float64), v[ok], pc[ok], d[ok], b[ok],
+                            st[ok].astype(np.intp, copy=False))
 
 
 def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
