@@ -100,7 +100,8 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
         return None
     g, le = g[ok], np.log(e[ok])
     top = le >= le.max() - top_db * np.log(10.0) / 20.0  # dB of amplitude
-    if np.unique(g[top]).size < 2 * min_steps_each_side + 1:
+    steps = np.unique(g[top])
+    if steps.size < 2 * min_steps_each_side + 1:
         return None
     try:
         coef, cov = np.polyfit(g[top], le[top], 2, cov=True)
@@ -112,7 +113,6 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(float(cov[0, 0]), 0.0))):
         return None
     phi = -b1 / (2.0 * a2)
-    steps = np.unique(g[top])
     if np.count_nonzero(steps < phi) < min_steps_each_side or np.count_nonzero(steps > phi) < min_steps_each_side:
         return None
     jac = np.array([b1 / (2.0 * a2 * a2), -1.0 / (2.0 * a2)])
@@ -143,18 +143,20 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
         return np.array([np.sin(y), np.cos(y) * cp, np.cos(y) * sp])
 
     h = float(np.mean(p @ normal(psi) + d))
+    jac = np.empty((d.size, 2))  # columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
+    jac[:, 1] = -1.0
     for _ in range(iterations):
         n = normal(psi)
         r = p @ n + d - h
         dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
-        jac = np.stack([p @ dn, -np.ones_like(d)], axis=1)
+        jac[:, 0] = p @ dn
         z, *_ = np.linalg.lstsq(jac, -r, rcond=None)
         psi += float(z[0])
         h += float(z[1])
     n = normal(psi)
     r = p @ n + d - h
     dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
-    jac = np.stack([p @ dn, -np.ones_like(d)], axis=1)
+    jac[:, 0] = p @ dn
     dof = max(d.size - 2, 1)
     cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
     # φ's own error moves h through the capsules' lever arm: ∂r/∂φ = p·∂n/∂φ.
