@@ -29,6 +29,7 @@ wall leaves the real wall's echoes unexplained and its edge explains nothing.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -460,7 +461,8 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
 
 
 def _damped_trials(jtj: np.ndarray, g: np.ndarray, lam: float, count: int, walls: list[Wall],
-                   basis: list[tuple[np.ndarray, np.ndarray]], residuals_many
+                   basis: list[tuple[np.ndarray, np.ndarray]],
+                   residuals_many: Callable[[list[tuple[Wall, Wall]]], list[np.ndarray]]
                    ) -> list[tuple[list[Wall], np.ndarray, float]] | None:
     """The Levenberg steps of :func:`joint_gauss_newton` for damping ``lam``, ``10·lam``, … (``count`` of them).
 
