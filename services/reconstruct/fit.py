@@ -291,7 +291,9 @@ def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     x = np.asarray(points, dtype=np.float64)
     m = np.ones(x.shape[0], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     x = x[m]
-    sh = np.broadcast_to(np.asarray(shift, dtype=np.float64), m.shape)[m]
+    sh = np.asarray(shift, dtype=np.float64)
+    # A scalar shift (the paper model's 0) is added as it is: the same sums as the broadcast array's.
+    sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else float(sh)
     k = x.shape[0]
     nt = _norm(t)
     q = x @ t - 1.0
