@@ -30,6 +30,7 @@ from lelsonar.reconstruct.service import ReconstructionService
 _log = logging.getLogger(__name__)
 
 _STOP = ("", b"", "")  # queue sentinel
+_MAX_PARSED_KEYS = 4096
 
 
 class PayloadFifo:
@@ -191,6 +192,8 @@ class LiveSource:
         self._subscribers = [
             session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
             for key in (keys.sample, keys.scan)]
+        #: key → (scanner chunk, leaf), for Zenoh's callback.
+        self._parsed_keys: dict[str, tuple[str, str]] = {}
         self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
@@ -225,10 +228,14 @@ class LiveSource:
         """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
         try:
             key = str(sample.key_expr)
-            scanner = self._keys.scanner_chunk(key)
+            parsed = self._parsed_keys.get(key)
+            if parsed is None:  # parsed once per key, not per payload
+                if len(self._parsed_keys) >= _MAX_PARSED_KEYS:
+                    self._parsed_keys.clear()  # keys are wire data: the cache stays bounded
+                parsed = self._parsed_keys[key] = (self._keys.scanner_chunk(key), key.rpartition("/")[2])
+            scanner, leaf = parsed
             encoding = str(sample.encoding)
-            if self._group is not None and not self._group.admit(scanner, key.rpartition("/")[2], encoding,
-                                                                 sample.payload):
+            if self._group is not None and not self._group.admit(scanner, leaf, encoding, sample.payload):
                 return  # another member's scanner: dropped before decoding, counted by the group
             # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
             # speak for another scanner.
