@@ -238,14 +238,16 @@ class LiveSource:
             if self._group is not None and not self._group.admit(scanner, leaf, encoding, sample.payload):
                 return  # another member's scanner: dropped before decoding, counted by the group
             # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
-            # speak for another scanner.
-            self._enqueue(encoding, sample.payload.to_bytes(), "live", scanner)
+            # speak for another scanner.  The ZBytes is copied to bytes by the processing thread, once:
+            # a copy here held the GIL on Zenoh's thread, and the 56 KB buffers it allocated on this
+            # thread were freed on the other, which made the allocator hand pages back and fault them in again.
+            self._enqueue(encoding, sample.payload, "live", scanner)
         except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
             self.errors += 1
             self.error_types["callback"] += 1
             _log.exception("could not queue a received payload; counted")
 
-    def _enqueue(self, encoding: str, payload: bytes, origin: str, key_scanner: str | None = None) -> None:
+    def _enqueue(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None) -> None:
         # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
         if origin != "live":
             encoding = f"application/protobuf;{encoding}"  # recovery hands over the type name
@@ -273,14 +275,18 @@ class LiveSource:
                     last_tick = now
                     self._guarded(self._service.tick, busy=waiting > 0)
 
-    def _apply(self, item: tuple[str, bytes, str, str | None] | None, waiting: int) -> None:
-        if item is None:
-            return
-        encoding, payload, origin, key_scanner = item
+    def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
+        if item is not None:
+            self._guarded(self._handle, *item, busy=waiting > 0)
+
+    def _handle(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *,
+                busy: bool) -> list[codec.Reconstruction]:
+        if not isinstance(payload, bytes):
+            payload = payload.to_bytes()  # a live payload's ZBytes, copied once
         media, _, type_name = encoding.partition(";")
-        # With more payloads waiting, a provisional refit waits for them too.
-        self._guarded(self._service.handle, type_name if media == "application/protobuf" else encoding,
-                      payload, busy=waiting > 0, origin=origin, key_scanner=key_scanner)
+        # With more payloads waiting (busy), a provisional refit waits for them too.
+        return self._service.handle(type_name if media == "application/protobuf" else encoding, payload,
+                                    busy=busy, origin=origin, key_scanner=key_scanner)
 
     def _guarded(self, step: Callable[..., list[codec.Reconstruction]], *args, **kwargs) -> None:
         """Run one step of the service and record its estimates; an exception is logged and counted, never fatal."""
