@@ -20,7 +20,7 @@ from pathlib import Path
 import zenoh
 
 from lelsonar import codec
-from lelsonar.errors import LelsonarError
+from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
 from lelsonar.recording import McapRecorder, iter_payloads
 from lelsonar.reconstruct.group import GroupMembership
@@ -45,7 +45,8 @@ class PayloadFifo:
 
     def __init__(self, capacity: int, batch: int = 32) -> None:
         if capacity < 1 or batch < 1:
-            raise ValueError(f"PayloadFifo capacity and batch must be >= 1, got {capacity}, {batch}")
+            raise ConfigError(f"the payload FIFO's capacity and batch must be >= 1, got {capacity} and {batch} "
+                              "(LiveSource fifo_capacity)")
         self.capacity, self.batch = capacity, batch
         self._items: deque = deque()
         lock = threading.Lock()
