@@ -25,7 +25,7 @@ time from the first put to the last processed), p50/p99 put → processed
 (``handle`` returned) and put → provisional estimate published (of the sample
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
 worker (user + system over its wall time), CPU of each process while busy (a worker from its first
-to its last live sample, the publisher over its puts, the router meanwhile), and how far the publisher fell
+live sample to its last, read at most every 10 ms, the publisher over its puts, the router meanwhile), and how far the publisher fell
 behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
 again and SIGKILLs one worker in the middle of the first scans: every scan
 must still get exactly one complete final.
@@ -386,7 +386,8 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
         "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
         "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in reports},
-        # Over the window each was busy: a worker from its first to its last live sample handled, the
+        # Over the window each was busy: a worker from its first live sample handled to its last (read at
+        # most every 10 ms), the
         # publisher over its puts, the router over the publisher's puts.
         "busy_cpu": {**{r["member"]: r["busy_cpu_s"] / r["busy_wall_s"] for r in reports
                         if r.get("busy_cpu_s") is not None and r["busy_wall_s"] > 0},
