@@ -200,3 +200,21 @@ def test_recovery_replies_are_checked_against_the_key_and_the_request(scan, zeno
     assert client.stats["rejected: DecodeError"] + client.stats["rejected: InvalidMessageError"] + \
         client.stats["rejected: SchemaVersionError"] == 1
     assert client.stats["rejected: unexpected type"] == 0 and client.stats["rejected: more replies than asked"] == 1
+
+
+def test_payload_fifo_keeps_order_bounds_what_waits_and_wakes_a_blocked_producer():
+    from lelsonar.errors import ConfigError
+    from lelsonar.reconstruct.sources import PayloadFifo
+
+    fifo = PayloadFifo(4, batch=3)
+    assert all(fifo.put(i, timeout=0) for i in range(4))
+    assert not fifo.put(4, timeout=0.01) and len(fifo) == 4  # full: refused after the timeout, nothing lost
+    put_done = threading.Event()
+    producer = threading.Thread(target=lambda: fifo.put(4, timeout=120) and put_done.set())
+    producer.start()
+    assert fifo.take(1.0) == [0, 1, 2]  # at most one batch, oldest first
+    assert put_done.wait(30)  # the blocked producer was woken by the take, not by its timeout
+    producer.join(30)
+    assert fifo.take(1.0) == [3, 4] and fifo.take(0.01) == [] and len(fifo) == 0
+    with pytest.raises(ConfigError):
+        PayloadFifo(0)

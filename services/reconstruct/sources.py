@@ -11,17 +11,16 @@ acquirer's log (:mod:`lelsonar.reconstruct.recovery`) enter the same queue.
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
-from collections import Counter, OrderedDict
+from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
 
 import zenoh
 
 from lelsonar import codec
-from lelsonar.errors import LelsonarError
+from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
 from lelsonar.recording import McapRecorder, iter_payloads
 from lelsonar.reconstruct.group import GroupMembership
@@ -31,6 +30,57 @@ from lelsonar.reconstruct.service import ReconstructionService
 _log = logging.getLogger(__name__)
 
 _STOP = ("", b"", "")  # queue sentinel
+_MAX_PARSED_KEYS = 4096
+
+
+class PayloadFifo:
+    """A bounded FIFO between Zenoh's callback (and the recovery / group threads) and one consumer.
+
+    Producers block while ``capacity`` items wait (back-pressure, as ``queue.Queue`` does);
+    the consumer takes up to ``batch`` items per lock hold and wakes blocked producers once
+    per batch.  ``queue.Queue`` paid a lock round-trip per item and, when full, woke the
+    producer (Zenoh's thread, which then wants the GIL) after every single item taken.
+    At most ``capacity + batch`` payloads are held: the queued ones and the consumer's batch.
+    """
+
+    def __init__(self, capacity: int, batch: int = 32) -> None:
+        if capacity < 1 or batch < 1:
+            raise ConfigError(f"the payload FIFO's capacity and batch must be >= 1, got {capacity} and {batch} "
+                              "(LiveSource fifo_capacity)")
+        self.capacity, self.batch = capacity, batch
+        self._items: deque = deque()
+        lock = threading.Lock()
+        self._not_empty = threading.Condition(lock)
+        self._not_full = threading.Condition(lock)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, item, timeout: float | None = None) -> bool:
+        """Append ``item``, waiting at most ``timeout`` s for room; False if there was none."""
+        with self._not_full:
+            if len(self._items) >= self.capacity and not self._not_full.wait_for(
+                    lambda: len(self._items) < self.capacity, timeout):
+                return False
+            self._items.append(item)
+            if len(self._items) == 1:
+                self._not_empty.notify()  # the consumer waits only on an empty FIFO
+            return True
+
+    def put_nowait(self, item) -> bool:
+        return self.put(item, 0)
+
+    def take(self, timeout: float) -> list:
+        """The oldest items, up to ``batch``, in order; waits at most ``timeout`` s for one ([] if none came)."""
+        with self._not_empty:
+            if not self._items and not self._not_empty.wait(timeout):
+                return []
+            items = self._items
+            n = min(len(items), self.batch)
+            out = [items.popleft() for _ in range(n)]
+            if n:
+                self._not_full.notify_all()
+            return out
 
 
 def replay_mcap(path: Path | str, service: ReconstructionService,
@@ -134,7 +184,7 @@ class LiveSource:
         self._record = record
         # Bounded: a full queue blocks Zenoh's callback, and congestion control BLOCK slows the
         # publisher instead of this process growing without bound.
-        self._queue: queue.Queue[tuple[str, bytes, str, str | None]] = queue.Queue(maxsize=fifo_capacity)
+        self._queue = PayloadFifo(fifo_capacity)
         self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
                           if recovery is not None else None)
         # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
@@ -143,6 +193,8 @@ class LiveSource:
         self._subscribers = [
             session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
             for key in (keys.sample, keys.scan)]
+        #: key → (scanner chunk, leaf), for Zenoh's callback.
+        self._parsed_keys: dict[str, tuple[str, str]] = {}
         self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
@@ -169,75 +221,88 @@ class LiveSource:
         if self._recovery is not None:
             self._service.recover = None
             self._recovery.close()
-        try:
-            self._queue.put_nowait(_STOP)
-        except queue.Full:
-            pass  # the processing thread sees the stop flag within one tick
+        if not self._queue.put_nowait(_STOP):
+            pass  # full: the processing thread sees the stop flag within one tick
         self._thread.join(timeout=5)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
         try:
             key = str(sample.key_expr)
-            scanner = self._keys.scanner_chunk(key)
+            parsed = self._parsed_keys.get(key)
+            if parsed is None:  # parsed once per key, not per payload
+                if len(self._parsed_keys) >= _MAX_PARSED_KEYS:
+                    self._parsed_keys.clear()  # keys are wire data: the cache stays bounded
+                parsed = self._parsed_keys[key] = (self._keys.scanner_chunk(key), key.rpartition("/")[2])
+            scanner, leaf = parsed
             encoding = str(sample.encoding)
-            if self._group is not None and not self._group.admit(scanner, key.rpartition("/")[2], encoding,
-                                                                 sample.payload):
+            if self._group is not None and not self._group.admit(scanner, leaf, encoding, sample.payload):
                 return  # another member's scanner: dropped before decoding, counted by the group
             # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
-            # speak for another scanner.
-            self._enqueue(encoding, sample.payload.to_bytes(), "live", scanner)
+            # speak for another scanner.  The ZBytes is copied to bytes by the processing thread, once:
+            # a copy here held the GIL on Zenoh's thread, and the 56 KB buffers it allocated on this
+            # thread were freed on the other, which made the allocator hand pages back and fault them in again.
+            self._enqueue(encoding, sample.payload, "live", scanner)
         except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
             self.errors += 1
             self.error_types["callback"] += 1
             _log.exception("could not queue a received payload; counted")
 
-    def _enqueue(self, encoding: str, payload: bytes, origin: str, key_scanner: str | None = None) -> None:
+    def _enqueue(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None) -> None:
         # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
         if origin != "live":
             encoding = f"application/protobuf;{encoding}"  # recovery hands over the type name
         while not self._stop.is_set():
-            try:
-                self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s)
+            if self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s):
                 return
-            except queue.Full:
-                continue
 
     def _process(self) -> None:
         last_tick = 0.0
         while not self._stop.is_set():
-            try:
-                item = self._queue.get(timeout=self._tick_s)
-            except queue.Empty:
-                item = None
-            if item == _STOP:
-                return
-            try:
-                if item is not None:
-                    encoding, payload, origin, key_scanner = item
-                    media, _, type_name = encoding.partition(";")
-                    # With more payloads waiting, a provisional refit waits for them too.
-                    for msg in self._service.handle(type_name if media == "application/protobuf" else encoding,
-                                                    payload, busy=not self._queue.empty(), origin=origin,
-                                                    key_scanner=key_scanner):
-                        self._record_estimate(msg)
+            batch = self._queue.take(self._tick_s) or [None]
+            for i, item in enumerate(batch):
+                if item == _STOP:
+                    return
+                if i and self._stop.is_set():
+                    return
+                # Payloads still waiting: the rest of this batch and what the FIFO holds.
+                waiting = len(batch) - 1 - i + len(self._queue)
+                self._apply(item, waiting)
                 now = time.monotonic()
                 # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
                 # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
                 # costs ~36 µs, a tenth of what the payload does).
-                if now - last_tick >= self._tick_s or (self._service.has_deferred and self._queue.empty()):
+                if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
                     last_tick = now
-                    for msg in self._service.tick(busy=not self._queue.empty()):
-                        self._record_estimate(msg)
-            except LelsonarError as exc:  # e.g. a publish that failed validation: log, count, keep serving
-                self.errors += 1
-                self.error_types[type(exc).__name__] += 1
-                _log.error("processing failed: %s", exc)
-            except Exception as exc:  # noqa: BLE001 - a bug must not end the service silently: log, count, go on
-                self.errors += 1
-                self.error_types[type(exc).__name__] += 1
-                _log.exception("processing failed with an unexpected %s (%d errors so far); carrying on",
-                               type(exc).__name__, self.errors)
+                    self._guarded(self._service.tick, busy=waiting > 0)
+
+    def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
+        if item is not None:
+            self._guarded(self._handle, *item, busy=waiting > 0)
+
+    def _handle(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *,
+                busy: bool) -> list[codec.Reconstruction]:
+        if not isinstance(payload, bytes):
+            payload = payload.to_bytes()  # a live payload's ZBytes, copied once
+        media, _, type_name = encoding.partition(";")
+        # With more payloads waiting (busy), a provisional refit waits for them too.
+        return self._service.handle(type_name if media == "application/protobuf" else encoding, payload,
+                                    busy=busy, origin=origin, key_scanner=key_scanner)
+
+    def _guarded(self, step: Callable[..., list[codec.Reconstruction]], *args, **kwargs) -> None:
+        """Run one step of the service and record its estimates; an exception is logged and counted, never fatal."""
+        try:
+            for msg in step(*args, **kwargs):
+                self._record_estimate(msg)
+        except LelsonarError as exc:  # e.g. a publish that failed validation: log, count, keep serving
+            self.errors += 1
+            self.error_types[type(exc).__name__] += 1
+            _log.error("processing failed: %s", exc)
+        except Exception as exc:  # noqa: BLE001 - a bug must not end the service silently: log, count, go on
+            self.errors += 1
+            self.error_types[type(exc).__name__] += 1
+            _log.exception("processing failed with an unexpected %s (%d errors so far); carrying on",
+                           type(exc).__name__, self.errors)
 
     def _record_estimate(self, msg: codec.Reconstruction) -> None:
         if self._record is not None:
