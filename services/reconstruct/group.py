@@ -33,7 +33,7 @@ scans): a member publishes an estimate only of a scan it owns now
 (:meth:`GroupMembership.may_publish`).  When a member it had given up for gone
 comes back (the same token: the same process, a healed partition), the
 unfinished scans taken from it are handed back.  And before the final of a
-scan whose membership changed while it ran, the member asks the others'
+scan during which such a member came back, the member asks the others'
 tables of published finals (a ``get``; the done marks sent during a partition
 were lost) and publishes only if no other member has.  Estimates of a scan
 are the same whoever computes them (the final is a replay of the log), so what
@@ -184,7 +184,7 @@ class _Scan:
     start: tuple[str, bytes] | None = None   # (encoding, payload) as received
     end: tuple[str, bytes] | None = None
     done: bool = False
-    epoch: int = 0                  # membership changes seen when the scan was first heard of
+    returns: int = 0                # members seen back from a partition when the scan was first heard of
     taken_from: str | None = None   # the member it was adopted from (handed back if that one returns)
 
 
@@ -216,7 +216,8 @@ class GroupMembership:
         self._token_key = self._member_key.replace("*/*", f"{self.me}/{self.joined_ns}")
         self._finals_key = finals_key(prefix, config.group, self.me)
         self._entities: list = []
-        self._epoch = 0   # membership changes so far
+        #: Members seen come back with the token they left with (healed partitions) so far.
+        self._returns = 0
         #: Members given up for gone, with the token they had (bounded like the members).
         self._departed: OrderedDict[str, int] = OrderedDict()
         #: The finals this member published: (scanner, scan_id), oldest first.
@@ -331,13 +332,13 @@ class GroupMembership:
             rec = scans.get(msg.scan_id)
             if rec is None:
                 who = owner(scanner, eligible(self.members, start_ns, self.me, self._settle_ns))
-                rec = scans[msg.scan_id] = _Scan(who, start_ns, epoch=self._epoch)
+                rec = scans[msg.scan_id] = _Scan(who, start_ns, returns=self._returns)
             rec.start = (encoding, data)
         else:
             rec = scans.get(msg.scan_id)
             if rec is None:
                 who = owner(scanner, eligible(self.members, None, self.me, self._settle_ns))
-                rec = scans[msg.scan_id] = _Scan(who, epoch=self._epoch)
+                rec = scans[msg.scan_id] = _Scan(who, returns=self._returns)
             rec.end = (encoding, data)
         scans.move_to_end(msg.scan_id)
         while len(scans) > self.config.keep_scans:
@@ -349,8 +350,8 @@ class GroupMembership:
     def may_publish(self, message: codec.Reconstruction) -> bool:
         """The fence: whether this member should publish ``message`` (see the module's notes).
 
-        Not of a scan another member owns now; and, for a final of a scan whose membership
-        changed while it ran, not if another member's table says it published that final.
+        Not of a scan another member owns now; and, for a final of a scan during which a member
+        came back from a partition, not if another member's table says it published that final.
         """
         key = (message.scanner_id, message.scan_id)
         with self._lock:
@@ -363,7 +364,10 @@ class GroupMembership:
             if present.is_terminal(message) and rec.done and key not in self._published:
                 self.stats["fenced: final another member already published"] += 1  # its done mark came
                 return False
-            disturbed = rec.epoch != self._epoch
+            # Another member can have published this final only if it took the scan over while this one
+            # was cut off, i.e. if a member came back since the scan began.  A death alone asks nothing
+            # (the question would wait on the dead member's queryable until its lease ran out).
+            disturbed = rec.returns != self._returns
         if present.is_terminal(message) and disturbed and self._published_elsewhere(*key):
             self.stats["fenced: final another member already published"] += 1
             _log.warning("group %s: fenced: the final of (%s, %d) was already published by another member "
@@ -456,14 +460,13 @@ class GroupMembership:
                                  self.config.max_members)
                     return
                 self.members[member] = max(joined, self.members.get(member, joined))
-                self._epoch += 1
                 self.stats["members joined"] += 1
                 _log.info("group %s: member %s joined (%d members)", self.config.group, member, len(self.members))
                 if self._departed.pop(member, None) == joined:
+                    self._returns += 1
                     self._hand_back(member)
             elif member != self.me and self.members.get(member) == joined:
                 del self.members[member]
-                self._epoch += 1
                 self._departed[member] = joined
                 while len(self._departed) > self.config.max_members:
                     self._departed.popitem(last=False)
