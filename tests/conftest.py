@@ -162,3 +162,16 @@ def assert_matches_the_scene(estimate: codec.Reconstruction, method: str, preset
     point = np.array([edge.point.x, edge.point.y, edge.point.z])
     for normal, h in truth.values():
         assert abs(float(point @ normal) - h) <= 2 * (5 * sigma_p / np.sqrt(n_min) + far * tilt_bound)
+
+
+class Collect:
+    """A ScanOutput stand-in that keeps the messages."""
+
+    def __init__(self) -> None:
+        self.messages: list = []
+
+    def emit(self, message) -> None:
+        self.messages.append(message)
+
+    def log(self, level: str, text: str) -> None:
+        pass

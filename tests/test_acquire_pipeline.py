@@ -29,6 +29,8 @@ from lelsonar.acquire.scan_loop import ScanIdentity, gamma_schedule, run_scan
 from lelsonar.acquire.service import energy_model, sim_config
 from lelsonar.v1 import scan_pb2
 
+from .conftest import Collect
+
 
 class Blob(PtyDevice):
     """Answers any input with ``n`` bytes, due at once: the link alone sets their pace."""
@@ -82,17 +84,6 @@ def test_every_servo_transaction_pays_its_bytes_on_the_bus(cpu_hog):
             motor.position()
         elapsed = time.perf_counter() - start
     assert elapsed / (60 * AX12_BUS.seconds(8 + 17)) >= 1.0
-
-
-class Collect:
-    def __init__(self) -> None:
-        self.messages: list = []
-
-    def emit(self, message) -> None:
-        self.messages.append(message)
-
-    def log(self, level: str, text: str) -> None:
-        pass
 
 
 def _scan(pipeline: bool):

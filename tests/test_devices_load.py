@@ -18,20 +18,9 @@ from lelsonar.acquire.scan_loop import ScanIdentity, gamma_schedule, run_scan
 from lelsonar.acquire.service import energy_model, sim_config
 from lelsonar.v1 import scan_pb2
 
+from .conftest import Collect
+
 pytestmark = pytest.mark.slow
-
-
-class Collect:
-    """A ScanOutput stand-in that keeps the messages."""
-
-    def __init__(self) -> None:
-        self.messages: list = []
-
-    def emit(self, message) -> None:
-        self.messages.append(message)
-
-    def log(self, level: str, text: str) -> None:
-        pass
 
 
 def test_a_full_emulated_scan_completes_with_every_core_saturated(cpu_hog) -> None:
