@@ -921,7 +921,7 @@ def run_families(args: argparse.Namespace) -> int:
                        "wall_s": wall, "jobs": args.jobs, "serial_ms": serial, "calibration": args.calibration, "scenes": scenes,
                        "summary": [{"family": k[0], "method": k[1], **v} for k, v in summary.items()],
                        "targets": [{"family": fam, **checks} for fam, checks in targets],
-                       "rows": rows}), f, default=_json_default, allow_nan=False)
+                       "rows": rows}), f, default=json_default, allow_nan=False)
         console.print(f"wrote {out} ({len(rows)} plane rows)")
     console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets issue 9's targets on every family[/]"
                                                             if not misses else f"[red]misses {len(misses)} targets[/]"))
@@ -966,7 +966,8 @@ def _finite(o: Any) -> Any:
     return o
 
 
-def _json_default(o: Any) -> Any:
+def json_default(o: Any) -> Any:
+    """NumPy scalars and arrays as JSON values (json.dumps default=); anything else as its str."""
     if isinstance(o, (np.integer,)):
         return int(o)
     if isinstance(o, (np.floating,)):

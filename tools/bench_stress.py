@@ -76,7 +76,7 @@ from typing import Any
 
 import numpy as np
 
-from lelsonar.tools.bench_families import is_failure, ls_plane, plane_errors
+from lelsonar.tools.bench_families import json_default, is_failure, ls_plane, plane_errors
 
 FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "roll", "sweep", "steps", "array", "rate", "noise",
                              "corner", "missing", "calib", "nocorner", "wire", "mixed", "extreme")
@@ -544,14 +544,8 @@ def run_stress(args: argparse.Namespace) -> int:
     if skipped:
         console.print(f"{len(skipped)} draws skipped (invalid configuration): {skipped[0]['error']}")
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, default=_json_default, indent=None), encoding="utf-8")
+        Path(args.json).write_text(json.dumps(rows, default=json_default, indent=None), encoding="utf-8")
     return 1 if bad else 0
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    return str(o)
 
 
 def add_stress_arguments(parser: argparse.ArgumentParser) -> None:
