@@ -36,7 +36,7 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
 
-from .fit import _median
+from .fit import fast_median
 
 __all__ = [
     "ScanPoints",
@@ -335,7 +335,7 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
         c = 0.5 * (edges[p] + edges[p + 1])
         near = np.abs(w - c) <= 2.0 * bin_width
         if np.any(near):
-            centres.append(_median(w[near]))
+            centres.append(fast_median(w[near]))
     return np.asarray(centres)
 
 

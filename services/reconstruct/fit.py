@@ -228,7 +228,7 @@ def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     return (np.asarray(points, dtype=np.float64) @ t - 1.0) / _norm(t) + shift
 
 
-def _median(x: np.ndarray) -> float:
+def fast_median(x: np.ndarray) -> float:
     """``np.median`` of a non-empty 1-D float array, bit for bit, without its dispatch (~4× faster).
 
     The middle order statistic, or the mean ``(a + b) / 2`` of the two middle
@@ -249,7 +249,7 @@ def mad(e: np.ndarray) -> float:
     e = np.asarray(e, dtype=np.float64).ravel()
     if e.size == 0:
         raise ConfigError("MAD of an empty set")
-    return _median(np.abs(e - _median(e)))
+    return fast_median(np.abs(e - fast_median(e)))
 
 
 def mad_sigma(e: np.ndarray) -> float:
