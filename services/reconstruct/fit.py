@@ -27,7 +27,7 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
 
-from .correct import corrected_points
+from .correct import corrected_from
 from .lel import PERFECT_FIT, entropy_of_residuals, newton_minimize
 from .results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
 
@@ -112,8 +112,8 @@ class PlaneData:
         if self.points.shape != (n, 3) or self.capsules.shape != (n, 3) or self.beam.shape != (n, 3) \
                 or self.distance.shape != (n,) or self.step.shape != (n,):
             raise ConfigError("PlaneData arrays must agree: points, capsules, beam (N, 3); distance, step (N,)")
-        if not (np.all(np.isfinite(self.points)) and np.all(np.isfinite(self.capsules))
-                and np.all(np.isfinite(self.distance))):
+        if not (np.isfinite(self.points).all() and np.isfinite(self.capsules).all()
+                and np.isfinite(self.distance).all()):
             raise ConfigError("PlaneData holds only valid (finite) points")
 
     @property
@@ -122,8 +122,11 @@ class PlaneData:
 
     def subset(self, mask: np.ndarray) -> PlaneData:
         m = np.asarray(mask, dtype=bool)
-        return PlaneData(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
-                         self.beam[m], self.step[m])
+        if m.shape != (self.n,):
+            raise ConfigError(f"a subset mask must have shape ({self.n},), got {m.shape}")
+        # Valid points stay valid, and boolean indexing copies; the axis is frozen, so shared.
+        return PlaneData._owned(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
+                                self.beam[m], self.step[m])
 
     @classmethod
     def _owned(cls, label: str, axis: np.ndarray, points: np.ndarray, capsules: np.ndarray, distance: np.ndarray,
@@ -161,15 +164,20 @@ def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
     steps = np.asarray(steps, dtype=np.intp)
     g = np.asarray(gamma, dtype=np.float64)[steps]
     d = np.asarray(distance, dtype=np.float64)[steps]
-    v = corrected_points(geometry, g, d, axis)
+    if d.shape != g.shape + (geometry.n_capsules,):
+        raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
+    b = boresight(g)
     pc = geometry.capsule_positions(g)
-    b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
-    st = np.broadcast_to(steps[:, None], d.shape)
-    ok = np.isfinite(d) & (d > 0) & np.all(np.isfinite(v), axis=-1)
-    # Finite (v = p_c + ... is finite only where p_c is) and of agreeing shapes by construction; boolean
-    # indexing copies, so the arrays are this PlaneData's own (the axis is copied: it may be AXIS_Y).
-    return PlaneData._owned(label, np.array(axis, dtype=np.float64), v[ok], pc[ok], d[ok], b[ok],
-                            st[ok].astype(np.intp, copy=False))
+    v = corrected_from(pc, b, d, axis)  # corrected_points, reusing p_c and b
+    ok = np.isfinite(d) & (d > 0) & np.isfinite(v).all(axis=-1)
+    # The kept points as flat indices (step-major, as boolean indexing orders them); a point's step row
+    # gives its boresight and step index.  Finite (v = p_c + ... is finite only where p_c is) and of
+    # agreeing shapes by construction; fancy indexing copies, so the arrays are this PlaneData's own
+    # (the axis is copied: it may be AXIS_Y).
+    flat = np.flatnonzero(ok)
+    row = flat // d.shape[1]
+    return PlaneData._owned(label, np.array(axis, dtype=np.float64), v.reshape(-1, 3)[flat],
+                            pc.reshape(-1, 3)[flat], d.reshape(-1)[flat], b[row], steps[row])
 
 
 def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
@@ -514,10 +522,12 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"{method}: the inliers do not constrain the plane", data.label, data.n)
     foot = data.capsules[mask] + data.distance[mask, None] * n if model == "constant-depth" else data.points[mask]
-    return PlaneFit(
+    # Every array below is fresh and every check of PlaneFit's constructor holds by construction (see
+    # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
+    return PlaneFit._owned(
         label=data.label, method=method, normal=n, offset=h,
         entropy=entropy_of_residuals(e) if data.n >= 2 else 0.0,
         sigma_relative=mad_sigma(e[mask]), sigma=mad_sigma(r_m[mask]),
-        inlier_mask=mask, sorted_residuals=np.sort(e), theta_covariance=cov,
+        inlier_mask=mask.copy(), sorted_residuals=np.sort(e), theta_covariance=cov,
         normal_stderr=se_n, offset_stderr=se_h, patch=observed_patch(n, h, foot), diagnostics=diagnostics,
     )

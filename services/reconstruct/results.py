@@ -190,9 +190,7 @@ class PlaneFit:
     quality_reasons: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.quality not in ("", "good", "degraded", "unreliable"):
-            raise ConfigError(f"PlaneFit.quality must be good, degraded or unreliable, got {self.quality!r}")
-        object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
+        self._check_annotations()
         n = _frozen_array(self, "normal", (3,))
         if abs(float(np.sqrt(n @ n)) - 1.0) > 1e-9:  # |n| as np.linalg.norm computes it
             raise ConfigError(f"PlaneFit.normal must be a unit vector, |n| = {np.linalg.norm(n)}")
@@ -219,6 +217,56 @@ class PlaneFit:
         if self.label not in ("a", "b"):
             raise ConfigError(f"PlaneFit.label must be 'a' or 'b', got {self.label!r}")
 
+    def _check_annotations(self) -> None:
+        """Validate (and normalise) the fields :meth:`annotated` may change."""
+        if self.quality not in ("", "good", "degraded", "unreliable"):
+            raise ConfigError(f"PlaneFit.quality must be good, degraded or unreliable, got {self.quality!r}")
+        if not isinstance(self.method, str):
+            raise ConfigError(f"PlaneFit.method must be a str, got {self.method!r}")
+        if not isinstance(self.diagnostics, SolverDiagnostics):
+            raise ConfigError(f"PlaneFit.diagnostics must be SolverDiagnostics, got {type(self.diagnostics).__name__}")
+        object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
+
+    @classmethod
+    def _owned(cls, label: str, method: str, normal: np.ndarray, offset: float, entropy: float,
+               sigma_relative: float, sigma: float, inlier_mask: np.ndarray, sorted_residuals: np.ndarray,
+               theta_covariance: np.ndarray, normal_stderr: float, offset_stderr: float, patch: np.ndarray,
+               diagnostics: SolverDiagnostics) -> PlaneFit:
+        """Wrap fields valid by construction whose arrays nothing else holds (what ``make_plane_fit`` builds).
+
+        Every check of ``__init__`` holds already — a unit normal and ``h > 0`` from a finite ``θ``,
+        MAD σ and H of finite residuals, residuals fresh from ``np.sort``, a covariance symmetrised
+        and found finite, float64 arrays of the right shapes — and the arrays are fresh: they are
+        made read-only in place rather than copied and checked again on every fit (the fit's hot
+        path; :meth:`__init__` stays the boundary for everyone else).
+        """
+        obj = object.__new__(cls)
+        for a in (normal, inlier_mask, sorted_residuals, theta_covariance, patch):
+            a.setflags(write=False)
+        obj.__dict__.update(label=label, method=method, normal=normal, offset=float(offset),
+                            entropy=float(min(entropy, 1.0)), sigma_relative=float(sigma_relative),
+                            sigma=float(sigma), inlier_mask=inlier_mask, sorted_residuals=sorted_residuals,
+                            theta_covariance=theta_covariance, normal_stderr=float(normal_stderr),
+                            offset_stderr=float(offset_stderr), patch=patch, diagnostics=diagnostics,
+                            quality="", quality_reasons=())
+        return obj
+
+    def annotated(self, **changes: object) -> PlaneFit:
+        """``dataclasses.replace(self, **changes)`` for the fields that describe the fit, not its numbers.
+
+        ``changes`` may set ``method``, ``diagnostics``, ``quality`` and ``quality_reasons``
+        (the trust verdict, a fallback's name).  Only those are validated again; the arrays,
+        frozen and validated when this plane was made, are shared with it, not copied.
+        """
+        if not changes.keys() <= _ANNOTATIONS:
+            raise ConfigError(f"PlaneFit.annotated changes only {sorted(_ANNOTATIONS)}, "
+                              f"not {sorted(changes.keys() - _ANNOTATIONS)}")
+        obj = object.__new__(PlaneFit)
+        obj.__dict__.update(self.__dict__)
+        obj.__dict__.update(changes)
+        obj._check_annotations()
+        return obj
+
     @property
     def ok(self) -> bool:
         return True
@@ -242,6 +290,9 @@ class PlaneFit:
 
 
 PlaneResult = PlaneFit | FitFailure
+
+#: The fields :meth:`PlaneFit.annotated` may change.
+_ANNOTATIONS = frozenset({"method", "diagnostics", "quality", "quality_reasons"})
 
 
 @dataclass(frozen=True)
