@@ -252,6 +252,14 @@ def fast_median(x: np.ndarray) -> float:
     return float("nan") if np.isnan(m) or np.isnan(x).any() else m
 
 
+def _sorted_median(s: np.ndarray) -> float:
+    """:func:`fast_median` of an array already sorted ascending (NaN sorts last), the same number."""
+    n = s.shape[0]
+    k = n // 2
+    m = float(s[k]) if n % 2 else (float(s[k - 1]) + float(s[k])) / 2.0
+    return float("nan") if np.isnan(m) or np.isnan(s[-1]) else m
+
+
 def mad(e: np.ndarray) -> float:
     """Median absolute deviation ``median(|e_i − μ|)``, μ the median, eq. (21)."""
     e = np.asarray(e, dtype=np.float64).ravel()
@@ -297,11 +305,13 @@ def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     """
     t = np.asarray(theta, dtype=np.float64)
     x = np.asarray(points, dtype=np.float64)
-    m = np.ones(x.shape[0], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    x = x[m]
     sh = np.asarray(shift, dtype=np.float64)
+    if mask is not None:  # (no mask: every point, used as it is — the same numbers as a copy's)
+        m = np.asarray(mask, dtype=bool)
+        x = x[m]
+        sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else sh
     # A scalar shift (the paper model's 0) is added as it is: the same sums as the broadcast array's.
-    sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else float(sh)
+    sh = sh if sh.ndim else float(sh)
     k = x.shape[0]
     nt = _norm(t)
     q = x @ t - 1.0
@@ -327,7 +337,7 @@ def normal_offset_stderr(theta: np.ndarray, cov: np.ndarray) -> tuple[float, flo
     """
     t = np.asarray(theta, dtype=np.float64)
     c = np.asarray(cov, dtype=np.float64)
-    if not np.all(np.isfinite(c)):
+    if not np.isfinite(c).all():
         return float("inf"), float("inf")
     nt = _norm(t)
     n = t / nt
@@ -349,9 +359,11 @@ def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.nd
     p = p - (p @ n - offset)[:, None] * n  # np.outer, the same products
     ex = np.array([1.0, 0.0, 0.0])
     u = ex - (ex @ n) * n
-    if _norm(u) < 1e-6:
+    nu = _norm(u)
+    if nu < 1e-6:
         u = np.array([0.0, 1.0, 0.0]) - n[1] * n
-    u /= _norm(u)
+        nu = _norm(u)
+    u /= nu
     w = _cross3(n, u)
     a, b = p @ u, p @ w
     o = offset * n
@@ -499,7 +511,7 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     PlaneFit, or FitFailure (SOLVER_FAILED) if θ is not a usable plane.
     """
     t = np.asarray(theta, dtype=np.float64)
-    nt = _norm(t) if np.all(np.isfinite(t)) else float("nan")
+    nt = _norm(t) if np.isfinite(t).all() else float("nan")
     if not (np.isfinite(nt) and 1e-3 < nt < 1e3):
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
     n, h = t / nt, 1.0 / nt
@@ -514,20 +526,32 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     mask = np.asarray(inlier_mask, dtype=bool)
     if mask.shape != (data.n,):
         raise ConfigError(f"inlier mask must have shape ({data.n},), got {mask.shape}")
-    if np.count_nonzero(mask) < 3:
+    k = int(np.count_nonzero(mask))
+    if k < 3:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
-    cov = theta_covariance(t, x, shift, mask)
+    every = k == data.n  # every point an inlier (LS, the joint model's walls): no copies of the inliers
+    cov = theta_covariance(t, x, shift, None if every else mask)
     se_n, se_h = normal_offset_stderr(t, cov)
     if not (np.isfinite(se_n) and np.isfinite(se_h)):
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"{method}: the inliers do not constrain the plane", data.label, data.n)
-    foot = data.capsules[mask] + data.distance[mask, None] * n if model == "constant-depth" else data.points[mask]
+    if model == "constant-depth":
+        foot = data.capsules + data.distance[:, None] * n if every else \
+            data.capsules[mask] + data.distance[mask, None] * n
+    else:
+        foot = data.points if every else data.points[mask]
+    ordered = np.sort(e)
+    if every:  # MAD (eq. 21) of e, its median read off the sorted residuals (e is finite: no NaN)
+        sigma_relative = MAD_K * fast_median(np.abs(e - _sorted_median(ordered)))
+        sigma = mad_sigma(r_m)
+    else:
+        sigma_relative, sigma = mad_sigma(e[mask]), mad_sigma(r_m[mask])
     # Every array below is fresh and every check of PlaneFit's constructor holds by construction (see
     # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
     return PlaneFit._owned(
         label=data.label, method=method, normal=n, offset=h,
         entropy=entropy_of_residuals(e) if data.n >= 2 else 0.0,
-        sigma_relative=mad_sigma(e[mask]), sigma=mad_sigma(r_m[mask]),
-        inlier_mask=mask.copy(), sorted_residuals=np.sort(e), theta_covariance=cov,
+        sigma_relative=sigma_relative, sigma=sigma,
+        inlier_mask=mask.copy(), sorted_residuals=ordered, theta_covariance=cov,
         normal_stderr=se_n, offset_stderr=se_h, patch=observed_patch(n, h, foot), diagnostics=diagnostics,
     )
