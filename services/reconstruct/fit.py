@@ -374,11 +374,13 @@ def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.nd
 
 
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # np.cross and np.linalg.norm of 3-vectors, the same numbers without their dispatch (every
+    # Gauss-Newton step of the constant-depth fits builds one basis).
     helper = np.zeros(3)
     helper[int(np.argmin(np.abs(n)))] = 1.0
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
+    e1 = _cross3(n, helper)
+    e1 /= _norm(e1)
+    return e1, _cross3(n, e1)
 
 
 def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float,
@@ -398,7 +400,7 @@ def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.nd
     d = np.asarray(distance, dtype=np.float64)
     if mask is not None:
         p, d = p[np.asarray(mask, dtype=bool)], d[np.asarray(mask, dtype=bool)]
-    n = np.asarray(normal0, dtype=np.float64) / np.linalg.norm(normal0)
+    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     it = 0
     for it in range(1, max_outer + 1):
@@ -407,7 +409,7 @@ def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.nd
         c = p @ n + d - h
         z, *_ = np.linalg.lstsq(a, -c, rcond=None)
         n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / np.linalg.norm(n_new)
+        n = n_new / _norm(n_new)
         h += float(z[2])
         if float(np.abs(z[:2]).max()) < tol and abs(float(z[2])) < tol:
             break
@@ -446,7 +448,7 @@ def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.n
     """
     p = np.asarray(capsules, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
-    n = np.asarray(normal0, dtype=np.float64) / np.linalg.norm(normal0)
+    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     its = evs = 0
     converged = False
@@ -461,7 +463,7 @@ def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.n
         its += nit
         evs += nev
         n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / np.linalg.norm(n_new)
+        n = n_new / _norm(n_new)
         h += float(z[2])
         if float(np.abs(z).max()) < tol:
             converged = ok
