@@ -230,18 +230,19 @@ def test_make_plane_fit_sigma_is_the_mad_of_the_inliers_and_the_mask_is_its_own(
         np.testing.assert_array_equal(fit.inlier_mask, mask)
 
 
-def test_annotated_changes_only_the_verdict_and_names_and_validates_them() -> None:
+def test_replace_scalars_shares_the_arrays_and_validates_the_rest() -> None:
     data, _ = _wall_a_data(0.0, 0.002)
     fit = F.make_plane_fit(data, F.ls_theta(data.points), method="ls", inlier_mask=np.ones(data.n, bool),
                            diagnostics=F.SolverDiagnostics("lstsq"))
-    out = fit.annotated(quality="degraded", quality_reasons=["why"], method="corner")
-    ref = dataclasses.replace(fit, quality="degraded", quality_reasons=("why",), method="corner")
+    change = dict(quality="degraded", quality_reasons=["why"], method="corner", normal_stderr=0.01)
+    out = fit.replace_scalars(**change)
+    ref = dataclasses.replace(fit, **change)
     for f in dataclasses.fields(PlaneFit):
         a, b = getattr(out, f.name), getattr(ref, f.name)
         assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, f.name
     assert out.quality_reasons == ("why",) and fit.quality == "" and fit.method == "ls"
     assert out.normal is fit.normal and not out.normal.flags.writeable  # frozen arrays are shared
     for bad in (dict(quality="fine"), dict(normal=np.array([1.0, 0, 0])), dict(diagnostics="lstsq"),
-                dict(method=3)):
+                dict(method=3), dict(offset=-1.0), dict(offset_stderr=np.nan), dict(label="c")):
         with pytest.raises(ConfigError):
-            fit.annotated(**bad)
+            fit.replace_scalars(**bad)

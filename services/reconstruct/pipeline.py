@@ -189,7 +189,7 @@ def _as_method(plane: PlaneResult, method: str) -> PlaneResult:
         return plane
     d = plane.diagnostics
     notes = (*d.notes, f"{method}: fitted by its fallback, {plane.method}")
-    return plane.annotated(method=method, diagnostics=replace(d, notes=notes))
+    return plane.replace_scalars(method=method, diagnostics=replace(d, notes=notes))
 
 
 def _assessed(plane: PlaneResult, gamma: np.ndarray) -> PlaneResult:

@@ -150,7 +150,7 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
                  + ("; no edge echoes tie it to the corner" if level == UNRELIABLE else ""))
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
-    return plane.annotated(quality=verdict, quality_reasons=tuple(reasons))
+    return plane.replace_scalars(quality=verdict, quality_reasons=tuple(reasons))
 
 
 def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)),
@@ -173,7 +173,7 @@ def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = f
             return plane
         what = "no plane" if not isinstance(reference, PlaneFit) else f"a {reference.quality} plane"
         reason = f"unchecked: the method of record has {what} of this wall to check it against"
-        return plane.annotated(quality=DEGRADED, quality_reasons=plane.quality_reasons + (reason,))
+        return plane.replace_scalars(quality=DEGRADED, quality_reasons=plane.quality_reasons + (reason,))
     angle = float(np.arccos(np.clip(plane.normal @ reference.normal, -1.0, 1.0)))
     gap = float(np.max(np.abs(reference.patch @ plane.normal - plane.offset)))
     if angle <= max_angle and gap <= max_distance:
@@ -181,4 +181,4 @@ def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = f
     reason = (f"disagrees with {reference.method} (good) by {100 * gap:.1f} cm and {np.rad2deg(angle):.1f}° "
               "over the observed patch")
     level = DEGRADED if plane.quality == GOOD else plane.quality
-    return plane.annotated(quality=level, quality_reasons=plane.quality_reasons + (reason,))
+    return plane.replace_scalars(quality=level, quality_reasons=plane.quality_reasons + (reason,))
