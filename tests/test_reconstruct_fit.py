@@ -228,6 +228,7 @@ def test_make_plane_fit_sigma_is_the_mad_of_the_inliers_and_the_mask_is_its_own(
         np.testing.assert_allclose(fit.sorted_residuals, np.sort(e), rtol=1e-12, atol=1e-18)
         caller[:] = ~caller  # the caller's array stays the caller's: writable, and not the plane's
         np.testing.assert_array_equal(fit.inlier_mask, mask)
+        dataclasses.replace(fit)  # what make_plane_fit wraps unchecked passes the constructor's checks
 
 
 def test_replace_scalars_shares_the_arrays_and_validates_the_rest() -> None:
