@@ -1,11 +1,12 @@
 """Where payloads come from — a Zenoh subscription or an MCAP file — and where estimates go.
 
 Both sources hand (type name, payload bytes) to the same
-:meth:`ReconstructionService.handle`.  Zenoh callbacks never do the math: they
-put each payload on one bounded queue, in arrival order, and one processing
-thread applies it; a full queue blocks the callback, which back-pressures the
-publisher through congestion control BLOCK.  Replies recovered from the
-acquirer's log (:mod:`lelsonar.reconstruct.recovery`) enter the same queue.
+:meth:`ReconstructionService.handle`.  Live, one processing thread applies
+every payload: it drains a bounded Zenoh FIFO channel of samples and scan
+events itself (no Python runs on Zenoh's receiving thread; a full channel
+blocks it, which back-pressures the publisher through congestion control
+BLOCK), and a bounded FIFO of the replies recovered from the acquirer's log
+(:mod:`lelsonar.reconstruct.recovery`) and of the messages of adopted scans.
 """
 
 from __future__ import annotations
@@ -31,6 +32,18 @@ _log = logging.getLogger(__name__)
 
 _STOP = ("", b"", "")  # queue sentinel
 _MAX_PARSED_KEYS = 4096
+#: The leaves of the keys a live source takes (``<prefix>/<scanner>/<leaf>``).
+LIVE_LEAVES = ("sample", "scan")
+
+
+def live_key(keys: ScannerKeys) -> str:
+    """One key expression covering the sample and scan keys of ``keys`` (and no other key of the contract).
+
+    ``<prefix>/<scanner>/s$*``: ``$*`` matches within a chunk, so of the contract's leaves only
+    ``sample`` and ``scan`` match (``planes``, ``alive/…`` and ``log/…`` do not).  One subscriber
+    keeps the arrival order across both.
+    """
+    return f"{keys.prefix}/{keys.scanner_id}/s$*"
 
 
 class PayloadFifo:
@@ -155,14 +168,24 @@ class PlanesServer:
 
 
 class LiveSource:
-    """Subscribes to samples and scan events and feeds them to the service on one thread.
+    """Receives samples and scan events and feeds them to the service on one thread.
 
-    Use as a context manager inside an open session.  Samples and scan events go
-    through one queue in arrival order: the acquirer publishes them from one
-    session at one priority, so Zenoh delivers them in publication order, and
-    direct (not threaded) callbacks keep that order across the two keys: a
-    ``ScanEnd`` is handled after every sample it counts (two queues drained by
-    two threads let it overtake them under load).
+    Use as a context manager inside an open session.  Samples and scan events come
+    through one subscriber (:func:`live_key`, a wildcard covering both keys) into one
+    Zenoh FIFO channel, in arrival order: the acquirer publishes them from one session
+    at one priority, so Zenoh delivers them in publication order, and one channel keeps
+    that order across the two keys (a ``ScanEnd`` is handled after every sample it
+    counts; a subscriber per key would let it overtake them).
+
+    Zenoh's receiving thread runs no Python: it pushes each sample into the channel
+    (Rust), and blocks while the channel is full, which back-pressures the publishers
+    through congestion control BLOCK.  The processing thread drains the channel itself,
+    a batch at a time.  A Python callback on Zenoh's thread took the GIL for every
+    sample (~75 µs a sample of contention at 2,500 samples/s, a quarter of the worker's
+    time).  Payloads recovered from the acquirer's log and the kept messages of scans
+    adopted from a departed group member come through a :class:`PayloadFifo` drained by
+    the same thread.  The channel cannot be waited on together with that FIFO, so an
+    idle worker waits on the FIFO for ``poll_s`` and then looks at the channel again.
 
     With ``recovery`` (the default), the service asks the acquirer's log for
     what a scan lacks (:class:`~lelsonar.reconstruct.recovery.LogRecoveryClient`).
@@ -172,28 +195,27 @@ class LiveSource:
     """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
-                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
+                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1, poll_s: float = 0.001,
                  record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig(),
                  group: GroupMembership | None = None) -> None:
+        if not (tick_s > 0 and poll_s > 0):
+            raise ConfigError(f"LiveSource tick_s and poll_s must be > 0 s, got {tick_s} and {poll_s}")
         self._service = service
-        # With a group, payloads of scanners another member owns are dropped in the callback (counted there).
+        # With a group, payloads of scanners another member owns are dropped before decoding (counted there).
         self._group = group
         self._keys = keys
         self._stop = stop
         self._tick_s = tick_s
+        self._poll_s = poll_s
         self._record = record
-        # Bounded: a full queue blocks Zenoh's callback, and congestion control BLOCK slows the
-        # publisher instead of this process growing without bound.
+        # Recovered and adopted payloads.  Bounded: a full FIFO blocks their producers.
         self._queue = PayloadFifo(fifo_capacity)
         self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
                           if recovery is not None else None)
-        # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
-        # keys.  A plain Python callback (or a FIFO handler per key) gets a thread per subscriber, and
-        # then a ScanEnd can overtake the samples still queued behind the other subscriber's thread.
-        self._subscribers = [
-            session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
-            for key in (keys.sample, keys.scan)]
-        #: key → (scanner chunk, leaf), for Zenoh's callback.
+        # Bounded too: a full channel blocks Zenoh's receiving thread, and congestion control BLOCK slows the
+        # publisher instead of this process growing without bound.
+        self._subscriber = session.declare_subscriber(live_key(keys), zenoh.handlers.FifoChannel(fifo_capacity))
+        #: key → (scanner chunk, leaf).
         self._parsed_keys: dict[str, tuple[str, str]] = {}
         self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
         self.errors = 0
@@ -214,19 +236,19 @@ class LiveSource:
 
     def __exit__(self, *exc_info) -> None:
         self._stop.set()
-        for s in self._subscribers:
-            s.undeclare()
         if self._group is not None:
             self._group.attach(None)
         if self._recovery is not None:
             self._service.recover = None
             self._recovery.close()
         if not self._queue.put_nowait(_STOP):
-            pass  # full: the processing thread sees the stop flag within one tick
+            pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
+        # After the worker: it reads the channel until it stops.
+        self._subscriber.undeclare()
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
+    def _received(self, sample: zenoh.Sample) -> tuple[str, zenoh.ZBytes, str, str] | None:
+        """A live sample as a work item, or None if it is not this worker's (or not a sample or scan event)."""
         try:
             key = str(sample.key_expr)
             parsed = self._parsed_keys.get(key)
@@ -235,18 +257,20 @@ class LiveSource:
                     self._parsed_keys.clear()  # keys are wire data: the cache stays bounded
                 parsed = self._parsed_keys[key] = (self._keys.scanner_chunk(key), key.rpartition("/")[2])
             scanner, leaf = parsed
+            if leaf not in LIVE_LEAVES:
+                self.error_types[f"ignored: key neither {' nor '.join(LIVE_LEAVES)}"] += 1
+                return None  # the wildcard also covers other leaves beginning with "s"
             encoding = str(sample.encoding)
             if self._group is not None and not self._group.admit(scanner, leaf, encoding, sample.payload):
-                return  # another member's scanner: dropped before decoding, counted by the group
+                return None  # another member's scanner: dropped before decoding, counted by the group
             # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
-            # speak for another scanner.  The ZBytes is copied to bytes by the processing thread, once:
-            # a copy here held the GIL on Zenoh's thread, and the 56 KB buffers it allocated on this
-            # thread were freed on the other, which made the allocator hand pages back and fault them in again.
-            self._enqueue(encoding, sample.payload, "live", scanner)
-        except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
+            # speak for another scanner.  The ZBytes is copied to bytes once, when it is handled.
+            return encoding, sample.payload, "live", scanner
+        except Exception:  # noqa: BLE001 - one bad sample must not stop the worker: counted, logged
             self.errors += 1
-            self.error_types["callback"] += 1
-            _log.exception("could not queue a received payload; counted")
+            self.error_types["receive"] += 1
+            _log.exception("could not take a received payload; counted")
+            return None
 
     def _enqueue(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None) -> None:
         # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
@@ -256,25 +280,47 @@ class LiveSource:
             if self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s):
                 return
 
+    def _pull(self, pending: deque) -> None:
+        """Append what waits, without waiting: up to a batch from the channel, then the FIFO's."""
+        recv = self._subscriber.try_recv
+        try:
+            for _ in range(self._queue.batch):
+                sample = recv()
+                if sample is None:
+                    break
+                item = self._received(sample)
+                if item is not None:
+                    pending.append(item)
+        except zenoh.ZError:  # the subscriber is undeclared: the source is closing
+            self._stop.set()
+        if len(self._queue):
+            pending.extend(self._queue.take(0))
+
     def _process(self) -> None:
         last_tick = 0.0
+        pending: deque = deque()
         while not self._stop.is_set():
-            batch = self._queue.take(self._tick_s) or [None]
-            for i, item in enumerate(batch):
-                if item == _STOP:
+            if not pending:
+                self._pull(pending)
+                if not pending:  # idle: wait for a recovered or adopted payload, then look at the channel again
+                    pending.extend(self._queue.take(self._poll_s))
+            waiting = 0
+            if pending:
+                item = pending.popleft()
+                if item is _STOP:
                     return
-                if i and self._stop.is_set():
-                    return
-                # Payloads still waiting: the rest of this batch and what the FIFO holds.
-                waiting = len(batch) - 1 - i + len(self._queue)
+                if not pending:
+                    self._pull(pending)  # so that `waiting` says whether more came in
+                # Payloads still waiting: pulled, and what the FIFO holds.
+                waiting = len(pending) + len(self._queue)
                 self._apply(item, waiting)
-                now = time.monotonic()
-                # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
-                # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
-                # costs ~36 µs, a tenth of what the payload does).
-                if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
-                    last_tick = now
-                    self._guarded(self._service.tick, busy=waiting > 0)
+            now = time.monotonic()
+            # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
+            # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
+            # costs ~36 µs, a tenth of what the payload does).
+            if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
+                last_tick = now
+                self._guarded(self._service.tick, busy=waiting > 0)
 
     def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
         if item is not None:
