@@ -16,7 +16,11 @@ Which members a scan is assigned among (:func:`eligible`) — the handover rule:
   part in the scans that start (``ScanStart.start_time_ns``, the acquirer's
   clock) at least ``settle`` seconds later, so every member has seen its token
   before such a scan starts and all agree.  Clocks must agree within
-  ``settle`` (NTP).  If no member qualifies, all alive members do.
+  ``settle`` (NTP).  If no member qualifies, all alive members do — the
+  members known when this member handles the ScanStart, which a member with
+  a backlog handles later than the others: a member joining meanwhile can be
+  counted by one and not by another.  That happens only for scans that start
+  within ``settle`` of the oldest member joining (or with clocks further apart).
 - A scan whose ScanStart a member never saw (it joined mid-scan) is assigned
   among the members older than it (they saw the start); with none, to itself
   (it catches up from the acquirer's log, as a lone reconstructor does).

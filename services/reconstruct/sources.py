@@ -180,12 +180,19 @@ class LiveSource:
     Zenoh's receiving thread runs no Python: it pushes each sample into the channel
     (Rust), and blocks while the channel is full, which back-pressures the publishers
     through congestion control BLOCK.  The processing thread drains the channel itself,
-    a batch at a time.  A Python callback on Zenoh's thread took the GIL for every
-    sample (~75 µs a sample of contention at 2,500 samples/s, a quarter of the worker's
-    time).  Payloads recovered from the acquirer's log and the kept messages of scans
-    adopted from a departed group member come through a :class:`PayloadFifo` drained by
-    the same thread.  The channel cannot be waited on together with that FIFO, so an
-    idle worker waits on the FIFO for ``poll_s`` and then looks at the channel again.
+    a batch at a time, without waiting.  A Python callback on Zenoh's thread took the
+    GIL for every sample (~75 µs a sample at 2,500 samples/s, against a busy worker),
+    and so did a thread moving samples from the channel into a queue (measured).
+    Payloads recovered from the acquirer's log and the kept messages of scans adopted
+    from a departed group member come through a :class:`PayloadFifo` drained by the
+    same thread.
+
+    The channel cannot be waited on together with that FIFO, and polling it cost an idle
+    worker 3 % of a core.  So an idle worker *arms a doorbell* and waits on the FIFO
+    alone: the doorbell thread waits on the channel (the GIL released), hands the first
+    sample to come through the FIFO, and stops; from that sample on, the worker drains
+    the channel again.  Only one of the two ever reads the channel, so the order holds;
+    the doorbell takes the GIL once per idle spell, not per sample.
 
     With ``recovery`` (the default), the service asks the acquirer's log for
     what a scan lacks (:class:`~lelsonar.reconstruct.recovery.LogRecoveryClient`).
@@ -195,18 +202,17 @@ class LiveSource:
     """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
-                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1, poll_s: float = 0.001,
+                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
                  record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig(),
                  group: GroupMembership | None = None) -> None:
-        if not (tick_s > 0 and poll_s > 0):
-            raise ConfigError(f"LiveSource tick_s and poll_s must be > 0 s, got {tick_s} and {poll_s}")
+        if not tick_s > 0:
+            raise ConfigError(f"LiveSource tick_s must be > 0 s, got {tick_s}")
         self._service = service
         # With a group, payloads of scanners another member owns are dropped before decoding (counted there).
         self._group = group
         self._keys = keys
         self._stop = stop
         self._tick_s = tick_s
-        self._poll_s = poll_s
         self._record = record
         # Recovered and adopted payloads.  Bounded: a full FIFO blocks their producers.
         self._queue = PayloadFifo(fifo_capacity)
@@ -217,7 +223,11 @@ class LiveSource:
         self._subscriber = session.declare_subscriber(live_key(keys), zenoh.handlers.FifoChannel(fifo_capacity))
         #: key → (scanner chunk, leaf).
         self._parsed_keys: dict[str, tuple[str, str]] = {}
+        self._channel = self._subscriber.handler  # read through the handler: undeclaring never waits for a reader
+        #: Set while the worker is idle: the doorbell reads the channel, not the worker.
+        self._armed = threading.Event()
         self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
+        self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
 
@@ -232,10 +242,13 @@ class LiveSource:
             self._recovery.__enter__()
             self._service.recover = self._recovery.request
         self._thread.start()
+        self._doorbell.start()
         return self
 
     def __exit__(self, *exc_info) -> None:
         self._stop.set()
+        self._armed.set()  # a doorbell not armed returns, an armed one ...
+        self._subscriber.undeclare()  # ... is woken: undeclaring closes the channel
         if self._group is not None:
             self._group.attach(None)
         if self._recovery is not None:
@@ -244,8 +257,7 @@ class LiveSource:
         if not self._queue.put_nowait(_STOP):
             pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
-        # After the worker: it reads the channel until it stops.
-        self._subscriber.undeclare()
+        self._doorbell.join(timeout=5)
 
     def _received(self, sample: zenoh.Sample) -> tuple[str, zenoh.ZBytes, str, str] | None:
         """A live sample as a work item, or None if it is not this worker's (or not a sample or scan event)."""
@@ -280,37 +292,55 @@ class LiveSource:
             if self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s):
                 return
 
-    def _pull(self, pending: deque) -> None:
-        """Append what waits, without waiting: up to a batch from the channel, then the FIFO's."""
-        recv = self._subscriber.try_recv
+    def _ring(self) -> None:
+        """The doorbell: while the worker is idle, wait for a sample and hand it over (the channel is the worker's again)."""
         try:
-            for _ in range(self._queue.batch):
-                sample = recv()
-                if sample is None:
-                    break
-                item = self._received(sample)
-                if item is not None:
-                    pending.append(item)
-        except zenoh.ZError:  # the subscriber is undeclared: the source is closing
-            self._stop.set()
+            while self._armed.wait() and not self._stop.is_set():
+                sample = self._channel.recv()  # waits with the GIL released
+                self._armed.clear()  # before the hand-over: the worker reads the channel once it has this sample
+                while not self._stop.is_set() and not self._queue.put(sample, timeout=self._tick_s):
+                    pass
+        except zenoh.ZError:
+            return  # the channel is closed: the source is closing
+
+    def _pull(self, pending: deque, channel: bool) -> None:
+        """Append what waits, without waiting: up to a batch from the channel (if the worker reads it), then the FIFO's."""
+        if channel:
+            try:
+                for _ in range(self._queue.batch):
+                    sample = self._channel.try_recv()
+                    if sample is None:
+                        break
+                    item = self._received(sample)
+                    if item is not None:
+                        pending.append(item)
+            except zenoh.ZError:  # the channel is closed: the source is closing
+                self._stop.set()
         if len(self._queue):
             pending.extend(self._queue.take(0))
 
     def _process(self) -> None:
         last_tick = 0.0
         pending: deque = deque()
+        reading = True  # the worker reads the channel (False while the doorbell is armed)
         while not self._stop.is_set():
             if not pending:
-                self._pull(pending)
-                if not pending:  # idle: wait for a recovered or adopted payload, then look at the channel again
-                    pending.extend(self._queue.take(self._poll_s))
+                self._pull(pending, reading)
+                if not pending:  # idle: the doorbell watches the channel, the worker waits on the FIFO
+                    if reading:
+                        reading = False
+                        self._armed.set()
+                    pending.extend(self._queue.take(self._tick_s))
             waiting = 0
             if pending:
                 item = pending.popleft()
                 if item is _STOP:
                     return
+                if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
+                    reading = True
+                    item = self._received(item)
                 if not pending:
-                    self._pull(pending)  # so that `waiting` says whether more came in
+                    self._pull(pending, reading)  # so that `waiting` says whether more came in
                 # Payloads still waiting: pulled, and what the FIFO holds.
                 waiting = len(pending) + len(self._queue)
                 self._apply(item, waiting)
