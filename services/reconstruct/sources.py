@@ -192,7 +192,9 @@ class LiveSource:
     alone: the doorbell thread waits on the channel (the GIL released), hands the first
     sample to come through the FIFO, and stops; from that sample on, the worker drains
     the channel again.  Only one of the two ever reads the channel, so the order holds;
-    the doorbell takes the GIL once per idle spell, not per sample.
+    the doorbell takes the GIL once per idle spell, not per sample.  Held at most:
+    ``fifo_capacity`` payloads in the channel, as many in the FIFO, and the worker's
+    batch (``PayloadFifo.batch``) of each.
 
     With ``recovery`` (the default), the service asks the acquirer's log for
     what a scan lacks (:class:`~lelsonar.reconstruct.recovery.LogRecoveryClient`).
