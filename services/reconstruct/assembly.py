@@ -98,7 +98,7 @@ RANGE_TOF_TOLERANCE = 0.01
 #: A comparator fires on an echo's rising edge, over a threshold well above the noise: the echo's peak is
 #: several times what precedes it.  A time of flight off by a factor (one-way, or a range taken for the round
 #: trip) puts both windows on noise or inside one echo: a ratio near 1.
-MIN_ECHO_RISE = 2.0
+MIN_ECHO_RISE = 1.5
 
 
 #: c(T) = 331.3·√(1 + T/273.15) m/s with T in °C (design notes §8).
@@ -161,6 +161,7 @@ class ScanAssembly:
     sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s
     echo_amplitude: np.ndarray = field(init=False)   # (steps, k) V, peak of the first echo alone, NaN: none
     pre_echo_peak: np.ndarray = field(init=False)    # (steps, k) V, peak just before the first echo, NaN: none
+    dc_level: np.ndarray = field(init=False)         # (steps, k) V, |mean| of each waveform (a receiver's offset)
     #: (steps, k) distance / (c·tof/2) where the reading gave both (NaN elsewhere): 1 when they agree.
     range_tof_ratio: np.ndarray = field(init=False)
     step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. 11
@@ -204,6 +205,7 @@ class ScanAssembly:
         self.sensor_energy = grown("sensor_energy", (k,), 0.0)
         self.echo_amplitude = grown("echo_amplitude", (k,), np.nan)
         self.pre_echo_peak = grown("pre_echo_peak", (k,), np.nan)
+        self.dc_level = grown("dc_level", (k,), np.nan)
         self.range_tof_ratio = grown("range_tof_ratio", (k,), np.nan)
         self.step_energy = grown("step_energy", (), 0.0)
         self.expected_energy = grown("expected_energy", (), 0.0)
@@ -326,6 +328,8 @@ class ScanAssembly:
         self.sensor_energy[step] = energy
         self.echo_amplitude[step] = amplitude
         self.pre_echo_peak[step] = before
+        if n:
+            self.dc_level[step] = np.abs(waveforms.mean(axis=-1, dtype=np.float64))
         self.range_tof_ratio[step] = agree
         # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
         self.step_energy[step] = total = float(energy.sum())
@@ -387,7 +391,11 @@ class ScanAssembly:
                             f"the readings' distance is {100 * off:+.0f} % off c·time_of_flight/2 at the stated "
                             f"speed of sound {self.sound_speed:.1f} m/s: the range scale is uncertain (distance is "
                             "one way, time_of_flight the round trip, sound_speed the air's)"))
-        rise = self.echo_amplitude[got] / self.pre_echo_peak[got]
+        # Both peaks above the waveform's DC level (max |w| of a carrier burst or of noise over an offset is
+        # |offset| + its own peak): a receiver's offset would otherwise pull the rise towards 1.
+        dc = self.dc_level[got]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rise = (self.echo_amplitude[got] - dc) / (self.pre_echo_peak[got] - dc)
         rise = rise[np.isfinite(rise)]
         if rise.size >= RANGE_CHECK_MIN and float(np.median(rise)) < MIN_ECHO_RISE:
             out.append((UNRELIABLE, f"the waveforms show no echo starting at the readings' time of flight (median "
