@@ -137,6 +137,26 @@ def test_a_rotation_axis_other_than_x_is_refused_by_name(scan, tmp_path):
     assert "rotation_axis" in err or "InvalidMessageError" in err
 
 
+# ----------------------------------------------------------------------------- the physics
+def test_a_wall_seen_from_one_side_of_its_normal_is_not_good(tmp_path):
+    """The L rolled 11°, the sweep (0°..51°, reversed) starting 11° past wall a's normal; a receiver that clips
+    every wall echo (no amplitude peak to find) and a comparator whose threshold crossing comes later on weaker,
+    off-axis echoes.  Wall a's direction rests on the ranges' lever arm seen from one side, which that range
+    bias turns: before, 10° and 3.2 cm off (oracle 0.9 cm) and "good"."""
+    rig = fs.ForeignRig(distance_a=1.7830363310095811, distance_b=1.6938356931615588, roll=-0.1903572544171102,
+                        gamma_start=-0.0033389079129613197, gamma_stop=0.8934311199550851, steps=64, reverse=True,
+                        beam_sigma=0.3254629289661583, burst=0.0006705769242689202, echo_scale=4.997552377766458,
+                        corner_gain=1.3571584212937797, crosstalk=0.807290582161242, dc=0.15, full_scale=0.5,
+                        gains=(0.5708356164525817, 1.1886958726238408, 0.7073260841899358, 1.584129877091351),
+                        floor_depth=0.6337890015727393, floor_scale=0.37580473655153046, seed=45)
+    code, _, _, verdicts = _run(tmp_path, fs.simulate(rig), fs.Conventions(energy_model=False))
+    assert code == 0
+    a = verdicts["a"]
+    assert a["patch_cm"] > 2 and a["verdict"] == "flagged", a
+    assert any("extrapolated" in r for r in a["reasons"])
+    assert all(v["verdict"] != "claims_good" for v in verdicts.values())
+
+
 # ----------------------------------------------------------------------------- the codec and the assembly
 def _assembly(start=None) -> ScanAssembly:
     return ScanAssembly(start if start is not None else make_scan_start(steps=5))

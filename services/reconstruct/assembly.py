@@ -101,16 +101,23 @@ RANGE_TOF_TOLERANCE = 0.01
 MIN_ECHO_RISE = 1.5
 
 
-#: c(T) = 331.3·√(1 + T/273.15) m/s with T in °C (design notes §8).
+#: Largest disagreement between ``ScanStart.sound_speed`` and c(air_temperature) that is still one air: 2 % is
+#: 6 K, beyond what humidity (< 0.5 %) or a measured c explains.
+SOUND_SPEED_TOLERANCE = 0.02
+
+
+def air_sound_speed(start: codec.ScanStart) -> float | None:
+    """c(T) = 331.3·√(T/273.15) m/s of ``ScanStart.air_temperature`` (K; design notes §8), None if unset."""
+    t = start.air_temperature
+    return 331.3 * math.sqrt(t / 273.15) if 200.0 < t < 350.0 else None
+
+
 def speed_of_sound(start: codec.ScanStart) -> float | None:
     """The scan's speed of sound, m/s: ``ScanStart.sound_speed``, or from ``air_temperature`` (K) where the
     writer left it unset (0); None when neither is known."""
     if start.sound_speed > 0:
         return float(start.sound_speed)
-    t = start.air_temperature
-    if 200.0 < t < 350.0:
-        return 331.3 * math.sqrt(t / 273.15)
-    return None
+    return air_sound_speed(start)
 
 
 #: E0 for a ScanStart without a usable energy model: spherical spreading alone, E0 ∝ 1/d² (eq. 12 with
@@ -382,15 +389,6 @@ class ScanAssembly:
             # The AX-12 turns through 300°: a sweep over a turn is not in radians.
             out.append((UNRELIABLE, f"γ spans {np.ptp(gamma):.1f} rad, more than a turn: the angles are not in rad "
                                     "(degrees?); the contract's gamma_measured is in rad"))
-        ratio = self.range_tof_ratio[got]
-        ratio = ratio[np.isfinite(ratio)]
-        if ratio.size >= RANGE_CHECK_MIN:
-            off = float(np.median(ratio)) - 1.0
-            if abs(off) > RANGE_TOF_TOLERANCE:
-                out.append((UNRELIABLE if abs(off) > 5 * RANGE_TOF_TOLERANCE else DEGRADED,
-                            f"the readings' distance is {100 * off:+.0f} % off c·time_of_flight/2 at the stated "
-                            f"speed of sound {self.sound_speed:.1f} m/s: the range scale is uncertain (distance is "
-                            "one way, time_of_flight the round trip, sound_speed the air's)"))
         # Both peaks above the waveform's DC level (max |w| of a carrier burst or of noise over an offset is
         # |offset| + its own peak): a receiver's offset would otherwise pull the rise towards 1.
         dc = self.dc_level[got]
@@ -398,10 +396,29 @@ class ScanAssembly:
             rise = (self.echo_amplitude[got] - dc) / (self.pre_echo_peak[got] - dc)
         rise = rise[np.isfinite(rise)]
         if rise.size >= RANGE_CHECK_MIN and float(np.median(rise)) < MIN_ECHO_RISE:
-            out.append((UNRELIABLE, f"the waveforms show no echo starting at the readings' time of flight (median "
-                                    f"rise ×{np.median(rise):.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms "
-                                    "before): the ranges do not match the waveforms (time_of_flight is the round "
-                                    "trip from firing, distance one way, waveform.t0 the first sample's time)"))
+            out.append((UNRELIABLE, f"the waveforms show no echo starting at the readings' time of flight (median rise "
+                                    f"×{np.median(rise):.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): "
+                                    "the ranges do not match the waveforms (distance is one way, time_of_flight "
+                                    "the round trip from firing, waveform.t0 the first sample's time)"))
+        c_air = air_sound_speed(self.start)
+        if self.start.sound_speed > 0 and c_air is not None and \
+                abs(self.start.sound_speed / c_air - 1.0) > SOUND_SPEED_TOLERANCE:
+            out.append((DEGRADED, f"ScanStart.sound_speed {self.start.sound_speed:.1f} m/s is not the speed of sound "
+                                  f"at its air_temperature {self.start.air_temperature:.1f} K ({c_air:.1f} m/s): the "
+                                  "range scale is uncertain"))
+        ratio = self.range_tof_ratio[got]
+        ratio = ratio[np.isfinite(ratio)]
+        if ratio.size >= RANGE_CHECK_MIN:
+            off = float(np.median(ratio)) - 1.0
+            if abs(off) > RANGE_TOF_TOLERANCE:
+                # The planes rest on the distance; which of the two fields is right the scan cannot tell (the
+                # waveforms place the time of flight, not the speed of sound).  A few % is a scale error of
+                # centimetres: degraded; beyond, one field is in another convention (a one-way time, a
+                # round-trip path): unreliable.
+                out.append((UNRELIABLE if abs(off) > 5 * RANGE_TOF_TOLERANCE else DEGRADED,
+                            f"the readings' distance is {100 * off:+.0f} % off c·time_of_flight/2 at the stated "
+                            f"speed of sound {self.sound_speed:.1f} m/s: the range scale is uncertain (distance is "
+                            "one way, time_of_flight the round trip, sound_speed the air's)"))
         return out
 
     def raw_points(self, step: int) -> np.ndarray:
