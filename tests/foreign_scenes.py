@@ -140,6 +140,7 @@ class Conventions:
     tof_scale: float = 1.0              # 0.5: one-way time of flight (against the contract)
     distance_scale: float = 1.0         # 2: round-trip path as "distance" (against the contract)
     stated_sound_speed: float = 0.0     # m/s stated in the ScanStart (0: the rig's own)
+    waveforms: bool = True              # False: no samples recorded (sample_count 0), ranges only
 
 
 @dataclass
@@ -339,6 +340,9 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
                 r.time_of_flight = r.distance = -1.0
             wf = r.waveform
             wf.sample_rate, wf.t0, wf.sample_count = rig.sample_rate, rig.t0, scan.waveforms.shape[-1]
+            if not conv.waveforms:
+                wf.encoding, wf.sample_count = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE, 0
+                continue
             if conv.encoding == "int16":
                 wf.encoding, wf.scale = scan_pb2.WAVEFORM_ENCODING_INT16_LE, lsb
                 wf.data = np.clip(np.rint(scan.waveforms[step, j] / lsb), -32768, 32767).astype("<i2").tobytes()

@@ -95,6 +95,13 @@ def test_single_conventions_give_our_writers_planes(scan, baseline, tmp_path, co
     _same_planes(lines, baseline)
 
 
+def test_a_scan_without_waveforms_is_reconstructed_from_its_ranges(scan, tmp_path):
+    # Before: no waveform energy, no energy peak, so "no step with an echo yet" and no plane (exit 1).
+    code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions(waveforms=False))
+    assert code == 0
+    _accurate(verdicts)
+
+
 # ----------------------------------------------------------------------------- against the contract
 @pytest.mark.parametrize(("conv", "why"), [
     # Before: 77 cm and 51 cm off, both planes "good" (the ranges came out half the truth).
