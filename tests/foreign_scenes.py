@@ -141,6 +141,7 @@ class Conventions:
     distance_scale: float = 1.0         # 2: round-trip path as "distance" (against the contract)
     stated_sound_speed: float = 0.0     # m/s stated in the ScanStart (0: the rig's own)
     waveforms: bool = True              # False: no samples recorded (sample_count 0), ranges only
+    int16_scale: bool = True            # False: Waveform.scale left unset (0) on int16 data
 
 
 @dataclass
@@ -344,7 +345,7 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
                 wf.encoding, wf.sample_count = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE, 0
                 continue
             if conv.encoding == "int16":
-                wf.encoding, wf.scale = scan_pb2.WAVEFORM_ENCODING_INT16_LE, lsb
+                wf.encoding, wf.scale = scan_pb2.WAVEFORM_ENCODING_INT16_LE, lsb if conv.int16_scale else 0.0
                 wf.data = np.clip(np.rint(scan.waveforms[step, j] / lsb), -32768, 32767).astype("<i2").tobytes()
             else:
                 wf.encoding = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE

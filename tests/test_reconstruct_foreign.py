@@ -70,10 +70,10 @@ def _same_planes(lines: list[dict], baseline: dict) -> None:
 #: Everything another writer may do within the contract (or leave at proto3's default) at once:
 #: capsule ids from 1, the radial offset only in the capsules' positions, "no echo" as NaN, the range
 #: as a time of flight only, γ measured unset, the ScanStart's sample rate and speed of sound unset
-#: (the air temperature is there), no acquisition times, no rotation axis, float32 waveforms.
+#: (the air temperature is there), no acquisition times, no rotation axis, int16 waveforms without a scale.
 EVERYTHING_FOREIGN = fs.Conventions(capsule_id_base=1, radial_offset_in="position", no_echo="nan", fill="tof",
                                     gamma="commanded", start_sample_rate=False, start_sound_speed=False,
-                                    acquisition_time=False, rotation_axis=(0.0, 0.0, 0.0), encoding="float32")
+                                    acquisition_time=False, rotation_axis=(0.0, 0.0, 0.0), int16_scale=False)
 
 
 def test_every_allowed_convention_at_once_gives_our_writers_planes(scan, baseline, tmp_path):
@@ -86,7 +86,7 @@ def test_every_allowed_convention_at_once_gives_our_writers_planes(scan, baselin
 
 @pytest.mark.parametrize("conv", [
     fs.Conventions(radial_offset_in="position"),  # before: radial offset 0, no plane (exit 1)
-    fs.Conventions(fill="distance", ids_reversed=True, gamma_wrap=True),  # before: every Sample refused
+    fs.Conventions(fill="distance", ids_reversed=True, gamma_wrap=True, encoding="float32"),  # before: all refused
 ])
 def test_single_conventions_give_our_writers_planes(scan, baseline, tmp_path, conv):
     code, lines, _, verdicts = _run(tmp_path, scan, conv)

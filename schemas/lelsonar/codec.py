@@ -139,8 +139,10 @@ def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS, *
         _check_waveform(waveform, limits, where="waveform")
     if waveform.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE:
         return np.frombuffer(waveform.data, dtype="<f4").astype(np.float32, copy=False)
-    # Scale in float64, round once to float32: at most half a count plus half a float32 ulp off.
-    return (np.frombuffer(waveform.data, dtype="<i2") * waveform.scale).astype(np.float32)
+    # Scale in float64, round once to float32: at most half a count plus half a float32 ulp off.  A scale left
+    # unset (0) gives counts: everything reconstruction reads of a waveform is relative (the energy ratio's
+    # peak, the amplitudes' directions), so a writer that never states its volts per count loses nothing.
+    return (np.frombuffer(waveform.data, dtype="<i2") * (waveform.scale or 1.0)).astype(np.float32)
 
 
 def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: bool = True) -> None:
@@ -163,8 +165,9 @@ def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: b
         raise InvalidMessageError(f"{where}.sample_rate must be positive, got {w.sample_rate}")
     if w.encoding == scan_pb2.WAVEFORM_ENCODING_INT16_LE:
         _finite(where + ".scale", w.scale)
-        if w.scale <= 0:
-            raise InvalidMessageError(f"{where}.scale must be positive for int16 data, got {w.scale}")
+        if w.scale < 0:
+            raise InvalidMessageError(f"{where}.scale must be positive for int16 data (or 0: unset, counts), "
+                                      f"got {w.scale}")
     elif samples and not np.isfinite(np.frombuffer(w.data, dtype="<f4")).all():
         raise NonFiniteValueError(f"{where} holds NaN or infinite samples")
 
