@@ -142,6 +142,7 @@ class Conventions:
     stated_sound_speed: float = 0.0     # m/s stated in the ScanStart (0: the rig's own)
     waveforms: bool = True              # False: no samples recorded (sample_count 0), ranges only
     int16_scale: bool = True            # False: Waveform.scale left unset (0) on int16 data
+    t0: bool = True                     # False: Waveform.t0 left unset (0) whatever the window's start
 
 
 @dataclass
@@ -340,7 +341,7 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
             elif conv.no_echo == "negative":
                 r.time_of_flight = r.distance = -1.0
             wf = r.waveform
-            wf.sample_rate, wf.t0, wf.sample_count = rig.sample_rate, rig.t0, scan.waveforms.shape[-1]
+            wf.sample_rate, wf.t0, wf.sample_count = rig.sample_rate, rig.t0 if conv.t0 else 0.0, scan.waveforms.shape[-1]
             if not conv.waveforms:
                 wf.encoding, wf.sample_count = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE, 0
                 continue

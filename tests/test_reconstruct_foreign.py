@@ -121,6 +121,17 @@ def test_ranges_or_angles_in_another_convention_are_never_good(scan, tmp_path, c
         assert any(why in r for r in row["reasons"]), row["reasons"]
 
 
+def test_waveforms_whose_start_time_was_left_unset_are_not_trusted(tmp_path):
+    # The window starts 1 ms after firing but Waveform.t0 says 0: every echo sits 1 ms earlier in the samples
+    # than its time of flight says, and the amplitudes read there are not the echoes'.
+    scan = fs.simulate(fs.ForeignRig(seed=3, steps=100, t0=1.0e-3))
+    code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions(energy_model=False, t0=False))
+    assert code == 0
+    for row in verdicts.values():
+        assert row["quality"] == "unreliable" and row["verdict"] != "claims_good", row
+        assert any("waveform.t0" in r for r in row["reasons"])
+
+
 def test_a_stated_speed_of_sound_that_contradicts_the_readings_degrades(scan, tmp_path):
     # 335 m/s stated, 343 m/s in the air: distance and time of flight disagree by 2.5 %.
     code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions(stated_sound_speed=335.0))
