@@ -110,7 +110,7 @@ def test_a_scan_without_waveforms_is_reconstructed_from_its_ranges(scan, tmp_pat
     (fs.Conventions(fill="distance", distance_scale=2.0), "no echo starting at the readings' time of flight"),
     (fs.Conventions(distance_scale=2.0), "off c·time_of_flight/2"),
     # Before: 50 cm off, flagged only by chance of the fit.
-    (fs.Conventions(gamma_unit="deg"), "more than a turn"),
+    (fs.Conventions(gamma_unit="deg"), "beyond a turn"),
 ])
 def test_ranges_or_angles_in_another_convention_are_never_good(scan, tmp_path, conv, why):
     code, lines, _, verdicts = _run(tmp_path, scan, conv)
@@ -294,3 +294,12 @@ def test_each_capsule_may_have_its_own_clock():
         want = echo_amplitude(w, r.waveform.sample_rate, r.waveform.t0, np.array(r.time_of_flight))
         assert np.array_equal(scan.echo_amplitude[0, i], want, equal_nan=True)
 
+
+
+def test_angles_beyond_a_turn_are_named_even_in_a_narrow_sweep():
+    scan = _assembly()
+    for step in range(3):
+        s = make_sample(step)
+        s.gamma_measured = s.gamma_commanded = 30.0 + step  # degrees: a 2° sweep, yet no angle of a servo
+        scan.add(_decoded(s))
+    assert [level for level, text in scan.writer_problems() if "beyond a turn" in text] == ["unreliable"]

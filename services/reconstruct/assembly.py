@@ -395,10 +395,10 @@ class ScanAssembly:
                               "echo_valid = true on readings with an echo (the contract reads no range from the "
                               "others)"))
         _, gamma, _, _ = self.arrays()
-        if gamma.size > 1 and float(np.ptp(gamma)) > 2.0 * math.pi:
-            # The AX-12 turns through 300°: a sweep over a turn is not in radians.
-            out.append((UNRELIABLE, f"γ spans {np.ptp(gamma):.1f} rad, more than a turn: the angles are not in rad "
-                                    "(degrees?); the contract's gamma_measured is in rad"))
+        if gamma.size and (float(np.ptp(gamma)) > 2.0 * math.pi or float(np.max(np.abs(gamma))) > 2.0 * math.pi):
+            # The AX-12 turns through 300°: a sweep over a turn, or an angle beyond one, is not in radians.
+            out.append((UNRELIABLE, f"γ spans {np.min(gamma):.1f} to {np.max(gamma):.1f} rad, beyond a turn: the "
+                                    "angles are not in rad (degrees?); the contract's gamma_measured is in rad"))
         # Both peaks above the waveform's DC level (max |w| of a carrier burst or of noise over an offset is
         # |offset| + its own peak): a receiver's offset would otherwise pull the rise towards 1.
         dc = self.dc_level[got]
