@@ -47,10 +47,6 @@ class QualityLimits:
         rad.  A normal less certain than this is degraded (tilt unresolved).
     max_offset_stderr : float
         m.
-    bracket_margin : float
-        rad.  The wall's normal must lie at least this far inside the sweep
-        (beams on both sides of it), else its direction is extrapolated:
-        degraded.
     face_on_angle : float
         rad.  If no beam of the scan came within this of the wall's normal,
         its face-on echo was never seen: degraded, and unreliable when the
@@ -72,13 +68,11 @@ class QualityLimits:
     max_normal_stderr: float = float(np.deg2rad(3.0))
     max_offset_stderr: float = 0.005
     face_on_angle: float = float(np.deg2rad(12.0))
-    bracket_margin: float = float(np.deg2rad(2.0))
     degraded_unexplained: float = 0.05
     unreliable_unexplained: float = 0.15
 
     def __post_init__(self) -> None:
-        for name in ("range_noise", "degraded_sigma", "max_normal_stderr", "max_offset_stderr", "face_on_angle",
-                     "bracket_margin"):
+        for name in ("range_noise", "degraded_sigma", "max_normal_stderr", "max_offset_stderr", "face_on_angle"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"QualityLimits.{name} must be > 0, got {getattr(self, name)!r}")
         if not (self.unreliable_sigma >= self.degraded_sigma and self.few_echoes >= self.min_echoes >= 0
@@ -153,16 +147,6 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
             level = UNRELIABLE if edge_echoes is not None and edge_echoes == 0 else DEGRADED
             flag(level, f"wall never seen face-on: the nearest beam is {np.rad2deg(nearest):.0f}° from its normal"
                  + ("; no edge echoes tie it to the corner" if level == UNRELIABLE else ""))
-        else:
-            # The ranges fix the wall's direction in the rotation plane through r·cos(γ − φ), symmetric about its
-            # normal φ: with beams on both sides of φ a range bias that grows away from the normal (a comparator
-            # firing later on weaker, off-axis echoes) stays symmetric and leaves φ alone; seen from one side only
-            # it is indistinguishable from a turned wall, and the estimate leans into the sweep.
-            phi = float(np.arctan2(plane.normal[2], plane.normal[1]))
-            delta = np.angle(np.exp(1j * (g - phi)))  # γ − φ wrapped to (−π, π]
-            if not (np.any(delta < -lim.bracket_margin) and np.any(delta > lim.bracket_margin)):
-                flag(DEGRADED, f"its normal (γ = {np.rad2deg(phi):.1f}°) is at the end of the sweep, not inside it: "
-                               "its direction is extrapolated")
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
     return replace(plane, quality=verdict, quality_reasons=tuple(reasons))
