@@ -19,7 +19,8 @@ from lelsonar.errors import ConfigError
 
 from .results import PlaneFit, PlaneResult
 
-__all__ = ["QualityLimits", "assess_plane", "unexplained_finding", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
+__all__ = ["QualityLimits", "assess_plane", "add_findings", "unexplained_finding", "cross_check", "GOOD", "DEGRADED",
+           "UNRELIABLE"]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
 _RANK = {GOOD: 0, DEGRADED: 1, UNRELIABLE: 2}
@@ -151,6 +152,20 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
     return plane.replace_scalars(quality=verdict, quality_reasons=tuple(reasons))
+
+
+def add_findings(plane: PlaneResult, findings: tuple[tuple[str, str], ...]) -> PlaneResult:
+    """An assessed ``plane`` with more findings: its verdict at least each finding's level, their reasons added.
+
+    For what only the whole scan shows (e.g. ranges that do not match the waveforms), found after the fit.
+    """
+    if not isinstance(plane, PlaneFit) or not findings:
+        return plane
+    verdict = plane.quality or GOOD
+    for level, _ in findings:
+        if _RANK[level] > _RANK[verdict]:
+            verdict = level
+    return replace(plane, quality=verdict, quality_reasons=plane.quality_reasons + tuple(r for _, r in findings))
 
 
 def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)),
