@@ -165,7 +165,7 @@ def add_findings(plane: PlaneResult, findings: tuple[tuple[str, str], ...]) -> P
     for level, _ in findings:
         if _RANK[level] > _RANK[verdict]:
             verdict = level
-    return replace(plane, quality=verdict, quality_reasons=plane.quality_reasons + tuple(r for _, r in findings))
+    return plane.replace_scalars(quality=verdict, quality_reasons=plane.quality_reasons + tuple(r for _, r in findings))
 
 
 def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)),
