@@ -103,16 +103,25 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     steps = np.unique(g[top])
     if steps.size < 2 * min_steps_each_side + 1:
         return None
+    # The parabola about the mean γ of those echoes (the same vertex, better conditioned than in γ itself):
+    # least squares by its normal equations, covariance σ² (XᵀX)⁻¹ with σ² over N − 3 degrees of freedom.
+    t_top, l_top = g[top], le[top]
+    centre = float(t_top.mean())
+    t = t_top - centre
+    x = np.stack([t * t, t, np.ones_like(t)], axis=1)
     try:
-        coef, cov = np.polyfit(g[top], le[top], 2, cov=True)
-    except (np.linalg.LinAlgError, ValueError):
+        inv = np.linalg.inv(x.T @ x)
+    except np.linalg.LinAlgError:
         return None
+    coef = inv @ (x.T @ l_top)
+    res = l_top - x @ coef
+    cov = float(res @ res) / (t.size - 3) * inv
     a2, b1 = float(coef[0]), float(coef[1])
     # A peak, and a significant one: amplitudes that do not fall off (a receiver without a beam
     # pattern, saturation everywhere) give a curvature lost in its own error.
     if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(float(cov[0, 0]), 0.0))):
         return None
-    phi = -b1 / (2.0 * a2)
+    phi = centre - b1 / (2.0 * a2)
     if np.count_nonzero(steps < phi) < min_steps_each_side or np.count_nonzero(steps > phi) < min_steps_each_side:
         return None
     jac = np.array([b1 / (2.0 * a2 * a2), -1.0 / (2.0 * a2)])
@@ -143,16 +152,21 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
         return np.array([np.sin(y), np.cos(y) * cp, np.cos(y) * sp])
 
     h = float(np.mean(p @ normal(psi) + d))
+    for _ in range(iterations):
+        # Least squares of r + x·δψ − δh = 0 (x = p·∂n/∂ψ) in closed form: δψ from the centred x and r, δh
+        # from the means.  Quadratic convergence: stop once the step is below rounding.
+        r = p @ normal(psi) + d - h
+        x = p @ np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
+        xc = x - x.mean()
+        sxx = float(xc @ xc)
+        step_psi = -float(xc @ r) / sxx if sxx > 0 else 0.0
+        step_h = float(r.mean()) + float(x.mean()) * step_psi
+        psi += step_psi
+        h += step_h
+        if abs(step_psi) < 1e-13 and abs(step_h) < 1e-13:
+            break
     jac = np.empty((d.size, 2))  # columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
     jac[:, 1] = -1.0
-    for _ in range(iterations):
-        n = normal(psi)
-        r = p @ n + d - h
-        dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
-        jac[:, 0] = p @ dn
-        z, *_ = np.linalg.lstsq(jac, -r, rcond=None)
-        psi += float(z[0])
-        h += float(z[1])
     n = normal(psi)
     r = p @ n + d - h
     dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
