@@ -47,7 +47,7 @@ __all__ = [
     "edge_range_terms",
     "echo_residuals",
     "assign_echoes",
-    "edge_shared_share",
+    "edge_shared_shares",
     "joint_residuals",
     "joint_gauss_newton",
     "band_offsets",
@@ -280,25 +280,32 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     return labels, np.where(labels == ECHO_OUTLIER, np.nan, res)
 
 
-def edge_shared_share(model: CornerModel, pts: ScanPoints, label: int, beam_half_angle: float) -> float:
-    """Share of the echoes labelled ``label`` that another part of the model explains as well, within tolerance.
+def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: float) -> tuple[float, float, float]:
+    """Share of each part's echoes that another part of the model explains as well, within tolerance.
 
-    For a wall the other part is the edge; for :data:`ECHO_EDGE` it is either
-    wall.  A wall's mirror echoes and the corner's double bounces differ in
-    range by ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the
-    edge less its distance to the wall.  Where the edge lies close to the foot
-    of the wall's normal (a near wall beside a far one, an opening far from
-    90°), that difference falls inside the assignment tolerance and the two
+    For a wall the other part is the edge; for the edge it is either wall.  A
+    wall's mirror echoes and the corner's double bounces differ in range by
+    ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the edge less
+    its distance to the wall.  Where the edge lies close to the foot of the
+    wall's normal (a near wall beside a far one, an opening far from 90°),
+    that difference falls inside the assignment tolerance and the two
     explanations cannot be told apart: a wall's offset may rest on corner
     echoes, and an "edge" may be a wall's own echoes that tie nothing together.
 
-    Returns 0 for a label without echoes or a model without an edge.
+    Returns
+    -------
+    The shares of the echoes labelled :data:`ECHO_WALL_A`, :data:`ECHO_WALL_B`
+    and :data:`ECHO_EDGE`, in that order (indexable by the labels); 0 for a
+    label without echoes, and all 0 for a model without an edge.
     """
-    mask = model.labels == label
-    if not np.any(mask) or edge_line(model.wall_a, model.wall_b) is None:
-        return 0.0
-    r = np.abs(echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle)[:, mask]) <= model.tolerance
-    return float(np.mean(r[0] | r[1] if label == ECHO_EDGE else r[2]))
+    if edge_line(model.wall_a, model.wall_b) is None:
+        return 0.0, 0.0, 0.0
+    close = np.abs(echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle)) <= model.tolerance
+    shares = []
+    for label, shared in ((ECHO_WALL_A, close[2]), (ECHO_WALL_B, close[2]), (ECHO_EDGE, close[0] | close[1])):
+        mask = model.labels == label
+        shares.append(float(np.mean(shared[mask])) if np.any(mask) else 0.0)
+    return shares[0], shares[1], shares[2]
 
 
 def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
@@ -321,7 +328,8 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
         return np.zeros(0)
     lo, hi = float(w.min()), float(w.max())
     nb = max(int(np.ceil((hi - lo) / bin_width)), 1)
-    counts, edges = np.histogram(w, bins=nb, range=(lo, lo + nb * bin_width))
+    # Bin k holds lo + k·bin_width ≤ w < lo + (k + 1)·bin_width (the top bin its right end too).
+    counts = np.bincount(np.minimum(((w - lo) / bin_width).astype(np.intp), nb - 1), minlength=nb)
     padded = np.concatenate([[0], counts, [0]])
     smooth = padded[:-2] + padded[1:-1] + padded[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
     left = np.concatenate([[-1], smooth[:-1]])
@@ -330,7 +338,7 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     peaks = peaks[np.argsort(-smooth[peaks], kind="stable")][:max_bands]
     centres = []
     for p in peaks:
-        c = 0.5 * (edges[p] + edges[p + 1])
+        c = lo + (p + 0.5) * bin_width
         near = np.abs(w - c) <= 2.0 * bin_width
         if np.any(near):
             centres.append(fast_median(w[near]))
