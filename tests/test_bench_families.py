@@ -213,3 +213,17 @@ def test_edge_errors_direction_and_across_the_line():
     ang, across = B.edge_errors(np.array([0.3, 1.57, 1.10]), -tilted, np.array([0.0, 1.57, 1.06]), d)
     assert ang == pytest.approx(math.degrees(0.02))  # sign-free
     assert across == pytest.approx(4.0)  # 4 cm across; the 30 cm along the line do not count
+
+
+def test_speed_vs_open3d_times_the_default_fit_and_open3d_on_the_same_points():
+    pytest.importorskip("open3d")
+    v = B.speed_vs_open3d("paper", 0, repeats=2)
+    assert v["repeats"] == 2 and len(v["points"]) == 2 and min(v["points"]) >= 8
+    assert all(v[k] > 0 for k in ("default_ms", "open3d_ms", "open3d_1000_ms"))
+    assert v["ratio"] == pytest.approx(v["default_ms"] / v["open3d_ms"])
+    # Both Open3D runs fit the same wall: the early stop changes the time, not which plane it finds.
+    pts = np.random.default_rng(0).uniform(-0.5, 0.5, (200, 3)) * [1, 0, 1] + [0, 1.5, 0]
+    early, full = B._open3d_plane(pts, early_stop=True), B._open3d_plane(pts)
+    assert early[1] == pytest.approx(1.5, abs=1e-9) and full[1] == pytest.approx(1.5, abs=1e-9)
+    s = B.speed_summary([v, {**v, "default_ms": 3 * v["default_ms"]}])
+    assert s["default_ms"] == pytest.approx(2 * v["default_ms"]) and s["open3d_ms"] == pytest.approx(v["open3d_ms"])

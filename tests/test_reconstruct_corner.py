@@ -24,8 +24,9 @@ import pytest
 from lelsonar import codec
 from lelsonar.acquire.sim import EchoSource, Scene, calibrate_simulator, preset, simulate_scan
 from lelsonar.reconstruct import wire
-from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B,
-                                               fit_corner_model, scan_points)
+from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall,
+                                               echo_residuals, edge_line, fit_corner_model, joint_gauss_newton,
+                                               joint_residuals, scan_points)
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.acquire.sim import piston_directivity
 from lelsonar.reconstruct.corner import amplitude_pitch
@@ -90,6 +91,56 @@ def test_every_echo_is_labelled_as_the_simulator_produced_it() -> None:
         mine = model.labels[src == truth]
         assert np.mean(mine == label) >= 0.99, (label, np.unique(mine, return_counts=True))
     assert model.count(ECHO_OUTLIER) <= 0.01 * pts.n
+
+
+def _unit(v) -> np.ndarray:  # noqa: ANN001
+    v = np.asarray(v, dtype=np.float64)
+    return v / np.linalg.norm(v)
+
+
+def test_edge_residuals_are_the_double_bounce_off_the_edge_line() -> None:
+    # Independent geometry: the capsule's distance to the line edge_line gives, times the sine of the opening
+    # (the image turned by twice the opening about the edge), and the direction to that line for the beam test.
+    scan = simulate_scan(preset("paper-test1"), seed=0)
+    pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
+    for wa, wb in ((Wall(_unit([0.03, 1.0, -0.05]), 1.6), Wall(_unit([-0.02, 0.1, 1.0]), 1.1)),
+                   (Wall(_unit([0.0, 1.0, 0.3]), 0.9), Wall(_unit([0.05, -0.4, 1.0]), 1.4))):
+        point, direction = edge_line(wa, wb)
+        rel = point - pts.capsule
+        perp = rel - np.outer(rel @ direction, direction)
+        rho = np.linalg.norm(perp, axis=1)
+        opening = np.pi - np.arccos(wa.normal @ wb.normal)
+        r = echo_residuals(wa, wb, pts, np.deg2rad(50.0))
+        seen = np.einsum("ij,ij->i", pts.beam, perp / rho[:, None]) >= np.cos(np.deg2rad(50.0))
+        assert np.array_equal(np.isfinite(r[2]), seen)
+        np.testing.assert_allclose(r[2][seen], (pts.distance - rho * np.sin(opening))[seen], atol=1e-12)
+        for k, w in enumerate((wa, wb)):
+            facing = pts.beam @ w.normal >= np.cos(np.deg2rad(50.0))
+            np.testing.assert_allclose(r[k][facing], (pts.capsule @ w.normal + pts.distance - w.offset)[facing],
+                                       atol=1e-12)
+            assert not np.any(np.isfinite(r[k][~facing]))
+
+
+def test_joint_gauss_newton_lands_on_the_least_squares_minimum() -> None:
+    # Its Jacobian is analytic; whether it is right shows in where the solver stops: no small move of either
+    # wall (tilt about two axes, offset) may lower the sum of squares of joint_residuals there.
+    scan = simulate_scan(preset("paper-test1"), seed=1)
+    pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
+    model = fit_corner_model(pts, AXIS_Y, AXIS_Z)
+    start = (Wall(_unit(model.wall_a.normal + [0.0, 0.0, 0.01]), model.wall_a.offset + 0.005),
+             Wall(_unit(model.wall_b.normal + [0.01, 0.0, 0.0]), model.wall_b.offset - 0.005))
+    (fa, fb), cov = joint_gauss_newton(*start, pts, model.labels, iterations=20)
+    assert model.count(ECHO_EDGE) > 20 and np.all(np.isfinite(cov))
+    cost = float(np.sum(joint_residuals(fa, fb, pts, model.labels) ** 2))
+    rng = np.random.default_rng(0)
+    for _ in range(40):
+        da, db = rng.normal(size=3) * 2e-4, rng.normal(size=3) * 2e-4
+        moved = (Wall(_unit(fa.normal + da), fa.offset + da[0]), Wall(_unit(fb.normal + db), fb.offset + db[1]))
+        assert float(np.sum(joint_residuals(*moved, pts, model.labels) ** 2)) >= cost * (1 - 1e-12)
+    # The covariance is σ²(JᵀJ)⁻¹: the offsets' standard errors are those of a least-squares fit of this many
+    # echoes at the residuals' scatter, within a factor the lever arms allow.
+    sigma = np.sqrt(cost / (pts.n - 6))
+    assert 0.5 * sigma / np.sqrt(pts.n) < np.sqrt(cov[2, 2]) < 20 * sigma / np.sqrt(model.count(ECHO_WALL_A))
 
 
 # Scenes the paper never scanned, each a failure class of the energy-split estimators (issue 9).

@@ -36,7 +36,11 @@ The external anchor ``open3d`` is Open3D's ``segment_plane`` (seeded, 1 cm,
 threads) followed by an LS refit of its inliers, on the same
 corrected subsets as the project's pipeline (split at the default method's
 critical step); it needs the ``bench`` extra and is skipped with a note if
-Open3D cannot be imported.
+Open3D cannot be imported.  With it and ``--timing-repeats``, a speed table
+holds the default method per plane against Open3D with its default early stop
+(what a user of ``segment_plane`` gets) and with all 1000 iterations, on the
+same points in the same process, medians of interleaved repeats
+(:func:`speed_vs_open3d`).
 
 Planes with fewer than 3 true mirror echoes have no oracle and no patch; they
 are counted ("unobserved") and left out of the statistics.
@@ -280,24 +284,99 @@ def ls_plane(points: np.ndarray) -> tuple[np.ndarray, float, float, float]:
 
 
 # ---------------------------------------------------------------------------- one scan
-def _open3d_anchor(points: np.ndarray) -> Estimate | None:
-    """Open3D RANSAC (seeded, 1 cm, 3 points, 1000 iterations), then LS on its inliers; None if too few points."""
+def _open3d_plane(points: np.ndarray, *, early_stop: bool = False) -> tuple[np.ndarray, float, float, float, int] | None:
+    """Open3D RANSAC (seeded, 1 cm, 3 points, up to 1000 iterations), then LS on its inliers.
+
+    ``early_stop=False`` runs all 1000 iterations (``probability=1``): Open3D's early stop depends on
+    its threads' timing, so seeded runs differ with it (isl-org/Open3D#7270); without it the seeded
+    result is the same every run.  ``early_stop=True`` is Open3D's default (``probability`` 0.99999999),
+    what a user of ``segment_plane`` gets: the speed reference.
+
+    Returns ``(normal, h, se_n, se_h, n_inliers)`` of :func:`ls_plane` on the inliers, or None if
+    fewer than 8 points or 3 inliers.
+    """
     import open3d as o3d
 
     if len(points) < 8:
         return None
-    t0 = time.perf_counter()
     o3d.utility.random.seed(0)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(points, dtype=np.float64, order="C")))
-    # probability=1 runs all 1000 iterations: Open3D's early stop depends on its threads' timing, so seeded
-    # runs differ with it (isl-org/Open3D#7270); without it the seeded result is the same every run.
-    _model, inliers = cloud.segment_plane(distance_threshold=0.01, ransac_n=3, num_iterations=1000, probability=1.0)
+    kw = {} if early_stop else {"probability": 1.0}
+    _model, inliers = cloud.segment_plane(distance_threshold=0.01, ransac_n=3, num_iterations=1000, **kw)
     kept = points[np.asarray(inliers, dtype=np.intp)]
     if len(kept) < 3:
         return None
-    normal, h, se_n, se_h = ls_plane(kept)
+    return (*ls_plane(kept), len(kept))
+
+
+def _open3d_anchor(points: np.ndarray) -> Estimate | None:
+    """The deterministic anchor (:func:`_open3d_plane`, all 1000 iterations) as an Estimate; None if too few points."""
+    t0 = time.perf_counter()
+    fit = _open3d_plane(points)
+    if fit is None:
+        return None
+    normal, h, se_n, se_h, n_in = fit
     return Estimate(normal, h, se_n, se_h, time.perf_counter() - t0, extra={"n_points": len(points),
-                                                                           "n_inliers": len(kept)})
+                                                                           "n_inliers": n_in})
+
+
+def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "paper") -> dict[str, Any]:
+    """The default fit per plane against Open3D ``segment_plane`` + LS refit on the same points, ms.
+
+    One scene of ``family``, in this process.  Each repeat runs, back to back, the default
+    method's :func:`lelsonar.reconstruct.pipeline.reconstruct` (with the echoes' amplitudes, as
+    the service runs it; both planes, so per plane is half the scan) and Open3D with its default
+    early stop and with all 1000 iterations (the deterministic anchor of the accuracy rows) on
+    the two corrected subsets at the default method's critical step (the anchor's points).
+    Interleaving puts the same load of a shared host on all three; the medians over ``repeats``
+    (after one warm-up) are reported, and their ratios.
+
+    Returns
+    -------
+    dict with ``default_ms``, ``open3d_ms`` (early stop), ``open3d_1000_ms`` (per plane),
+    ``ratio`` and ``ratio_1000`` (default over Open3D), ``repeats`` and ``points`` (a, b);
+    the Open3D fields are NaN if a subset has too few points.
+    """
+    from lelsonar.acquire.sim.scenes import simulate_family_scene
+    from lelsonar.reconstruct import fit as F
+    from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
+    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
+
+    fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
+    scan, model = fs.scan, fs.energy_model
+    energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+
+    def default() -> Any:
+        return reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=DEFAULT_METHOD,
+                           echo_amplitude=amplitude)
+
+    split = _split(scan, default().critical_step)
+    subsets = [F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, split[label], label, axis).points
+               for label, axis in (("a", AXIS_Y), ("b", AXIS_Z))] if split else []
+    usable = len(subsets) == 2 and all(len(p) >= 8 for p in subsets)
+    t_def, t_o3d, t_1000 = [], [], []
+    for k in range(repeats + 1):
+        t0 = time.perf_counter()
+        default()
+        t1 = time.perf_counter()
+        if usable:
+            for pts in subsets:
+                _open3d_plane(pts, early_stop=True)
+            t2 = time.perf_counter()
+            for pts in subsets:
+                _open3d_plane(pts)
+            t3 = time.perf_counter()
+        if k:  # the first round warms caches up
+            t_def.append((t1 - t0) / 2)
+            if usable:
+                t_o3d.append((t2 - t1) / len(subsets))
+                t_1000.append((t3 - t2) / len(subsets))
+    med = {name: 1e3 * float(np.median(ts)) if ts else float("nan")
+           for name, ts in (("default_ms", t_def), ("open3d_ms", t_o3d), ("open3d_1000_ms", t_1000))}
+    return {**med, "ratio": med["default_ms"] / med["open3d_ms"], "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
+            "repeats": repeats, "points": [len(p) for p in subsets]}
 
 
 def _subset_sources(scan: Any, steps: np.ndarray, label: str) -> np.ndarray:
@@ -674,6 +753,13 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
     return out
 
 
+def speed_summary(per_family: list[dict[str, Any]]) -> dict[str, Any]:
+    """Medians over families of :func:`speed_vs_open3d`'s times, and the ratios of those medians."""
+    med = {k: percentile([v[k] for v in per_family], 50) for k in ("default_ms", "open3d_ms", "open3d_1000_ms")}
+    return {**med, "ratio": med["default_ms"] / med["open3d_ms"], "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
+            "repeats": per_family[0]["repeats"] if per_family else 0, "points": []}
+
+
 # ---------------------------------------------------------------------------- run
 def default_methods(with_paper: bool) -> list[str]:
     """The project's default method, ``fcm-ransac``, ``lel-refit-ls`` (and ``paper``), as registered."""
@@ -800,6 +886,12 @@ def run_families(args: argparse.Namespace) -> int:
             for fam in families:
                 serial[fam] = serial_scan_times(fam, args.first_seed, methods, min(args.timing_repeats, 20),
                                                 args.calibration)
+    speed: dict[str, dict[str, Any]] = {}
+    if anchor and args.timing_repeats > 0:
+        with console.status("default fit vs Open3D …"):
+            for fam in families:
+                speed[fam] = speed_vs_open3d(fam, args.first_seed, min(args.timing_repeats, 20), args.calibration)
+        speed["all"] = speed_summary(list(speed.values()))
     summary: dict[tuple[str, str], dict[str, Any]] = {}
     for fam in (*families, "all"):
         for method in all_methods:
@@ -888,6 +980,21 @@ def run_families(args: argparse.Namespace) -> int:
         et.add_section()
     console.print(et)
 
+    if speed:
+        st = Table(title=f"Default fit {DEFAULT_METHOD!r} per plane vs Open3D segment_plane + LS refit on the same "
+                         f"points (serial, medians of {min(args.timing_repeats, 20)} interleaved repeats, first scene "
+                         "of each family)", title_justify="left")
+        for c in ("family", "points a/b", f"{DEFAULT_METHOD} ms", "open3d ms", "ratio", "open3d 1000 ms",
+                  "ratio 1000"):
+            st.add_column(c, justify="left" if c == "family" else "right")
+        for fam, v in speed.items():
+            st.add_row(fam, "/".join(str(n) for n in v["points"]) if v.get("points") else "",
+                       _fmt(v["default_ms"]), _fmt(v["open3d_ms"]), _fmt(v["ratio"]), _fmt(v["open3d_1000_ms"]),
+                       _fmt(v["ratio_1000"]))
+        console.print(st)
+        console.print("open3d: segment_plane with its default early stop (what a user of it gets); open3d 1000: all "
+                      "1000 iterations (the deterministic anchor of the accuracy rows); the default fit's time is its "
+                      "reconstruct (both planes, with the echo amplitudes) over 2; 'all': medians over the families.")
     targets = _targets(summary, families, DEFAULT_METHOD)
     misses = [f"{fam}: {k}" for fam, checks in targets for k, ok in checks.items() if not ok]
     if targets:
@@ -918,7 +1025,7 @@ def run_families(args: argparse.Namespace) -> int:
         with open(out, "w", encoding="utf-8") as f:
             json.dump(_finite({"command": command, "machine": machine(), "families": list(families),
                        "seeds": [seeds.start, seeds.stop], "methods": all_methods, "default_method": DEFAULT_METHOD,
-                       "wall_s": wall, "jobs": args.jobs, "serial_ms": serial, "calibration": args.calibration, "scenes": scenes,
+                       "wall_s": wall, "jobs": args.jobs, "serial_ms": serial, "speed_vs_open3d": speed, "calibration": args.calibration, "scenes": scenes,
                        "summary": [{"family": k[0], "method": k[1], **v} for k, v in summary.items()],
                        "targets": [{"family": fam, **checks} for fam, checks in targets],
                        "rows": rows}), f, default=json_default, allow_nan=False)

@@ -12,6 +12,7 @@ edge (:func:`corner_edge`).
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 
@@ -20,7 +21,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
-from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, edge_shared_share,
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, edge_shared_shares,
                            fit_corner_model, scan_points)
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
@@ -103,16 +104,25 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     steps = np.unique(g[top])
     if steps.size < 2 * min_steps_each_side + 1:
         return None
+    # The parabola about the mean γ of those echoes (the same vertex, better conditioned than in γ itself):
+    # least squares by its normal equations, covariance σ² (XᵀX)⁻¹ with σ² over N − 3 degrees of freedom.
+    t_top, l_top = g[top], le[top]
+    centre = float(t_top.mean())
+    t = t_top - centre
+    x = np.stack([t * t, t, np.ones_like(t)], axis=1)
     try:
-        coef, cov = np.polyfit(g[top], le[top], 2, cov=True)
-    except (np.linalg.LinAlgError, ValueError):
+        inv = np.linalg.inv(x.T @ x)
+    except np.linalg.LinAlgError:
         return None
+    coef = inv @ (x.T @ l_top)
+    res = l_top - x @ coef
+    cov = float(res @ res) / (t.size - 3) * inv
     a2, b1 = float(coef[0]), float(coef[1])
     # A peak, and a significant one: amplitudes that do not fall off (a receiver without a beam
     # pattern, saturation everywhere) give a curvature lost in its own error.
     if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(float(cov[0, 0]), 0.0))):
         return None
-    phi = -b1 / (2.0 * a2)
+    phi = centre - b1 / (2.0 * a2)
     if np.count_nonzero(steps < phi) < min_steps_each_side or np.count_nonzero(steps > phi) < min_steps_each_side:
         return None
     jac = np.array([b1 / (2.0 * a2 * a2), -1.0 / (2.0 * a2)])
@@ -136,31 +146,37 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
     """
     p = np.asarray(capsules, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
-    cp, sp = np.cos(phi), np.sin(phi)
-    psi = float(np.arcsin(np.clip(normal0[0], -1.0, 1.0)))
+    cp, sp = math.cos(phi), math.sin(phi)
+    psi = math.asin(min(max(float(normal0[0]), -1.0), 1.0))
 
-    def normal(y: float) -> np.ndarray:
-        return np.array([np.sin(y), np.cos(y) * cp, np.cos(y) * sp])
+    def frame(y: float) -> tuple[np.ndarray, np.ndarray]:
+        """The normal at yaw ``y`` and its derivative ∂n/∂ψ."""
+        sy, cy = math.sin(y), math.cos(y)
+        return np.array([sy, cy * cp, cy * sp]), np.array([cy, -sy * cp, -sy * sp])
 
-    h = float(np.mean(p @ normal(psi) + d))
-    jac = np.empty((d.size, 2))  # columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
-    jac[:, 1] = -1.0
+    n, dn = frame(psi)
+    h = float(np.mean(p @ n + d))
     for _ in range(iterations):
-        n = normal(psi)
+        # Least squares of r + x·δψ − δh = 0 (x = p·∂n/∂ψ) in closed form: δψ from the centred x and r, δh
+        # from the means.  Quadratic convergence: stop once the step is below rounding.
         r = p @ n + d - h
-        dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
-        jac[:, 0] = p @ dn
-        z, *_ = np.linalg.lstsq(jac, -r, rcond=None)
-        psi += float(z[0])
-        h += float(z[1])
-    n = normal(psi)
+        x = p @ dn
+        xc = x - x.mean()
+        sxx = float(xc @ xc)
+        step_psi = -float(xc @ r) / sxx if sxx > 0 else 0.0
+        psi += step_psi
+        h += float(r.mean()) + float(x.mean()) * step_psi
+        n, dn = frame(psi)
+        if abs(step_psi) < 1e-13:
+            break
     r = p @ n + d - h
-    dn = np.array([np.cos(psi), -np.sin(psi) * cp, -np.sin(psi) * sp])
+    jac = np.empty((d.size, 2))  # columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
     jac[:, 0] = p @ dn
+    jac[:, 1] = -1.0
     dof = max(d.size - 2, 1)
     cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
     # φ's own error moves h through the capsules' lever arm: ∂r/∂φ = p·∂n/∂φ.
-    dh_dphi = float(np.mean(p @ np.array([0.0, -np.cos(psi) * sp, np.cos(psi) * cp])))
+    dh_dphi = float(np.mean(p @ np.array([0.0, -math.cos(psi) * sp, math.cos(psi) * cp])))
     se_n = float(np.sqrt(max(cov[0, 0], 0.0) + phi_se**2))
     se_h = float(np.sqrt(max(cov[1, 1], 0.0) + (dh_dphi * phi_se) ** 2))
     return Wall(n, h), se_n, se_h
@@ -353,7 +369,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
     # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
     shared_limit = QualityLimits().max_offset_stderr / model.tolerance
-    edge_is_walls = edge_shared_share(model, pts, ECHO_EDGE, opts.corner_beam_half_angle) > shared_limit
+    shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle)
+    edge_is_walls = shares[ECHO_EDGE] > shared_limit
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         sel = np.full(d.shape, np.nan)
         m = model.labels == k
@@ -374,7 +391,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls)
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
-        shared = edge_shared_share(model, pts, k, opts.corner_beam_half_angle)
+        shared = shares[k]
         if shared > shared_limit:
             findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
                                     f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset"),)

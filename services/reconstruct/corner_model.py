@@ -29,7 +29,6 @@ wall leaves the real wall's echoes unexplained and its edge explains nothing.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,9 +44,10 @@ __all__ = [
     "scan_points",
     "mirror_residuals",
     "edge_line",
-    "edge_residuals",
+    "edge_range_terms",
+    "echo_residuals",
     "assign_echoes",
-    "edge_shared_share",
+    "edge_shared_shares",
     "joint_residuals",
     "joint_gauss_newton",
     "band_offsets",
@@ -190,55 +190,71 @@ def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
     return point, e / np.sqrt(s2)
 
 
-def edge_residuals(point: np.ndarray, direction: np.ndarray, pts: ScanPoints,
-                   opening: float = np.pi / 2) -> tuple[np.ndarray, np.ndarray]:
-    """Range residual of the double bounce, ``d − ρ·sin(opening)`` (m), and the unit direction to the edge.
+def edge_range_terms(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float,
+                     capsule: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """The range of the double bounce from the edge of two walls, in closed form (design notes §8).
 
     Two reflections in a dihedral of interior angle ``opening`` rotate the
     capsule's image by ``2·opening`` about the edge, so the echo returns from
     ``ρ·sin(opening)``, ρ the capsule's distance to the edge line — exactly ρ
-    for a 90° corner, which retro-reflects (design notes §8).
+    for a 90° corner, which retro-reflects.  With ``a = h_a − n_a·p_c`` and
+    ``b = h_b − n_b·p_c`` the capsule's distances to the walls and
+    ``c = n_a·n_b``, the vector from the capsule to the edge is
+    ``v = α n_a + β n_b`` with ``α + βc = a``, ``αc + β = b``, so
+    ``ρ² = |v|² = (a² + b² − 2abc)/(1 − c²)``; the opening's sine is
+    ``√(1 − c²)``, so the double bounce returns from ``√(a² + b² − 2abc)``.
+
+    Returns
+    -------
+    a, b : (N,) arrays, m
+    c : float
+    range : (N,) array
+        ``ρ·sin(opening) = √(a² + b² − 2abc)``, m.
     """
-    rel = point - pts.capsule
-    perp = rel - (rel @ direction)[:, None] * direction  # np.outer, the same products
-    dist = np.sqrt(np.einsum("ij,ij->i", perp, perp))
-    return pts.distance - dist * np.sin(opening), perp / np.maximum(dist, 1e-9)[:, None]
+    da = offset_a - capsule @ normal_a
+    db = offset_b - capsule @ normal_b
+    c = float(normal_a @ normal_b)
+    return da, db, c, np.sqrt(np.maximum(da * da + db * db - 2.0 * c * da * db, 0.0))
 
 
-def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
-    return _edge_range_residuals_many(((wall_a, wall_b),), capsule, distance)[0]
+def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray,
+                          min_sine: float = 1e-9) -> np.ndarray:
+    """The double bounce's range residual ``d − ρ·sin(opening)`` (m, :func:`edge_range_terms`).
 
-
-def _edge_range_residuals_many(pairs: tuple[tuple[Wall, Wall], ...], capsule: np.ndarray,
-                               distance: np.ndarray) -> np.ndarray:
-    """:func:`edge_residuals`' range residual under each pair of walls, (len(pairs), N), m.
-
-    One pass over the echoes for all pairs (the Jacobian's six forward differences).  Row ``k``
-    is bit for bit what the pair alone gives: stacked ``matmul`` and ``einsum`` form each
-    echo's products and sums exactly as the 2-D ones do.
+    ``inf`` for walls within ``min_sine`` of parallel: no edge, no double bounce.
     """
-    points, directions, sines, parallel = [], [], [], []
-    for k, (wall_a, wall_b) in enumerate(pairs):
-        line = edge_line(wall_a, wall_b, min_angle=0.0)
-        if line is None:  # parallel walls: no edge, no double bounce
-            parallel.append(k)
-            line = (np.zeros(3), np.zeros(3))
-        points.append(line[0])
-        directions.append(line[1])
-        sines.append(np.sin(_opening(wall_a, wall_b)))
-    rel = np.array(points)[:, None, :] - capsule[None, :, :]
-    t = (rel @ np.array(directions)[:, :, None])[:, :, 0]
-    dist2 = np.einsum("kij,kij->ki", rel, rel) - t * t
-    out = distance - np.sqrt(np.maximum(dist2, 0.0)) * np.array(sines)[:, None]
-    if parallel:
-        out[parallel] = np.inf
-    return out
+    *_, c, rng = edge_range_terms(wall_a.normal, wall_a.offset, wall_b.normal, wall_b.offset, capsule)
+    if 1.0 - c * c < min_sine * min_sine:
+        return np.full(distance.shape, np.inf)
+    return distance - rng
 
 
-def _opening(wall_a: Wall, wall_b: Wall) -> float:
-    """Interior angle of the dihedral that holds the scanner (both normals point out of it), rad."""
-    c = min(max(float(wall_a.normal @ wall_b.normal), -1.0), 1.0)  # np.clip, without its dispatch
-    return float(np.pi - np.arccos(c))
+def echo_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle: float,
+                   min_angle: float = np.deg2rad(20.0)) -> np.ndarray:
+    """Range residual of every echo under each part of the model, (3, N), m: wall a, wall b, the edge.
+
+    A wall's is the mirror-echo condition ``n·p_c + d − h``, the edge's
+    ``d − ρ·sin(opening)`` (:func:`edge_range_terms`).  ``inf`` where that
+    part cannot have returned the echo: a wall whose normal lies beyond
+    ``beam_half_angle`` of the boresight, an edge whose direction from the
+    capsule (``v = α n_a + β n_b``, ``α = (a − bc)/(1 − c²)``,
+    ``β = (b − ac)/(1 − c²)``) does, or no edge at all (walls within
+    ``min_angle`` of parallel, as :func:`edge_line`).
+    """
+    n = pts.n
+    normals = np.array([wall_a.normal, wall_b.normal]).T
+    facing = pts.beam @ normals  # (N, 2): boresight · n_a, boresight · n_b
+    cos_t = np.cos(beam_half_angle)
+    a, b, c, rng = edge_range_terms(wall_a.normal, wall_a.offset, wall_b.normal, wall_b.offset, pts.capsule)
+    r = np.full((3, n), np.inf)
+    r[0] = np.where(facing[:, 0] >= cos_t, pts.distance - a, np.inf)
+    r[1] = np.where(facing[:, 1] >= cos_t, pts.distance - b, np.inf)
+    s2 = 1.0 - c * c
+    if s2 >= np.sin(min_angle) ** 2:
+        # boresight · v/|v| ≥ cos_t, multiplied through by |v|·(1 − c²) = √q·√(1 − c²) ≥ 0.
+        toward = (a - b * c) * facing[:, 0] + (b - a * c) * facing[:, 1]
+        r[2] = np.where(toward >= cos_t * np.sqrt(s2) * rng, pts.distance - rng, np.inf)
+    return r
 
 
 def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
@@ -246,25 +262,17 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     """Give each echo to the model that explains it best, within ``tolerance``.
 
     A wall can explain an echo only if its normal is within ``beam_half_angle``
-    of the boresight, the edge only if the edge is; an echo no model explains
-    within ``tolerance`` (m) is an outlier.  ``edge_tolerance`` (default
-    ``tolerance``) applies to the edge: wider while the walls are still rough,
-    since a pitch error δ moves the edge by about ``h·δ``.
+    of the boresight, the edge only if the edge is (:func:`echo_residuals`); an
+    echo no model explains within ``tolerance`` (m) is an outlier.
+    ``edge_tolerance`` (default ``tolerance``) applies to the edge: wider while
+    the walls are still rough, since a pitch error δ moves the edge by about ``h·δ``.
 
     Returns
     -------
     labels : (N,) int array
     residuals : (N,) array, m (NaN for outliers)
     """
-    cos_t = np.cos(beam_half_angle)
-    r = np.full((3, pts.n), np.inf)
-    for k, wall in enumerate((wall_a, wall_b)):
-        rk = mirror_residuals(wall, pts)
-        r[k] = np.where(pts.beam @ wall.normal >= cos_t, rk, np.inf)
-    line = edge_line(wall_a, wall_b)
-    if line is not None:
-        re, u = edge_residuals(*line, pts, _opening(wall_a, wall_b))
-        r[2] = np.where(np.einsum("ij,ij->i", pts.beam, u) >= cos_t, re, np.inf)
+    r = echo_residuals(wall_a, wall_b, pts, beam_half_angle)
     best = np.argmin(np.abs(r), axis=0)
     res = r[best, np.arange(pts.n)]
     tol = np.where(best == ECHO_EDGE, tolerance if edge_tolerance is None else edge_tolerance, tolerance)
@@ -272,35 +280,32 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     return labels, np.where(labels == ECHO_OUTLIER, np.nan, res)
 
 
-def edge_shared_share(model: CornerModel, pts: ScanPoints, label: int, beam_half_angle: float) -> float:
-    """Share of the echoes labelled ``label`` that another part of the model explains as well, within tolerance.
+def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: float) -> tuple[float, float, float]:
+    """Share of each part's echoes that another part of the model explains as well, within tolerance.
 
-    For a wall the other part is the edge; for :data:`ECHO_EDGE` it is either
-    wall.  A wall's mirror echoes and the corner's double bounces differ in
-    range by ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the
-    edge less its distance to the wall.  Where the edge lies close to the foot
-    of the wall's normal (a near wall beside a far one, an opening far from
-    90°), that difference falls inside the assignment tolerance and the two
+    For a wall the other part is the edge; for the edge it is either wall.  A
+    wall's mirror echoes and the corner's double bounces differ in range by
+    ``ρ·sin(opening) − (h − n·p_c)``, the capsule's distance to the edge less
+    its distance to the wall.  Where the edge lies close to the foot of the
+    wall's normal (a near wall beside a far one, an opening far from 90°),
+    that difference falls inside the assignment tolerance and the two
     explanations cannot be told apart: a wall's offset may rest on corner
     echoes, and an "edge" may be a wall's own echoes that tie nothing together.
 
-    Returns 0 for a label without echoes or a model without an edge.
+    Returns
+    -------
+    The shares of the echoes labelled :data:`ECHO_WALL_A`, :data:`ECHO_WALL_B`
+    and :data:`ECHO_EDGE`, in that order (indexable by the labels); 0 for a
+    label without echoes, and all 0 for a model without an edge.
     """
-    mask = model.labels == label
-    line = edge_line(model.wall_a, model.wall_b)
-    if not np.any(mask) or line is None:
-        return 0.0
-    sub = ScanPoints(pts.step[mask], pts.capsule_index[mask], pts.gamma[mask], pts.capsule[mask],
-                     pts.distance[mask], pts.beam[mask])
-    cos_t = np.cos(beam_half_angle)
-    if label == ECHO_EDGE:
-        shared = np.zeros(sub.n, dtype=bool)
-        for wall in (model.wall_a, model.wall_b):
-            shared |= (sub.beam @ wall.normal >= cos_t) & (np.abs(mirror_residuals(wall, sub)) <= model.tolerance)
-        return float(np.mean(shared))
-    re, u = edge_residuals(*line, sub, _opening(model.wall_a, model.wall_b))
-    seen = np.einsum("ij,ij->i", sub.beam, u) >= cos_t
-    return float(np.mean(seen & (np.abs(re) <= model.tolerance)))
+    if edge_line(model.wall_a, model.wall_b) is None:
+        return 0.0, 0.0, 0.0
+    close = np.abs(echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle)) <= model.tolerance
+    shares = []
+    for label, shared in ((ECHO_WALL_A, close[2]), (ECHO_WALL_B, close[2]), (ECHO_EDGE, close[0] | close[1])):
+        mask = model.labels == label
+        shares.append(float(np.mean(shared[mask])) if np.any(mask) else 0.0)
+    return shares[0], shares[1], shares[2]
 
 
 def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
@@ -323,7 +328,8 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
         return np.zeros(0)
     lo, hi = float(w.min()), float(w.max())
     nb = max(int(np.ceil((hi - lo) / bin_width)), 1)
-    counts, edges = np.histogram(w, bins=nb, range=(lo, lo + nb * bin_width))
+    # Bin k holds lo + k·bin_width ≤ w < lo + (k + 1)·bin_width (the top bin its right end too).
+    counts = np.bincount(np.minimum(((w - lo) / bin_width).astype(np.intp), nb - 1), minlength=nb)
     padded = np.concatenate([[0], counts, [0]])
     smooth = padded[:-2] + padded[1:-1] + padded[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
     left = np.concatenate([[-1], smooth[:-1]])
@@ -332,7 +338,7 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     peaks = peaks[np.argsort(-smooth[peaks], kind="stable")][:max_bands]
     centres = []
     for p in peaks:
-        c = 0.5 * (edges[p] + edges[p + 1])
+        c = lo + (p + 0.5) * bin_width
         near = np.abs(w - c) <= 2.0 * bin_width
         if np.any(near):
             centres.append(fast_median(w[near]))
@@ -347,15 +353,6 @@ def _tangent(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, _cross(n, e1)
 
 
-def _moved(wall: Wall, z: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> Wall:
-    # Element by element in Python floats: the same roundings as the NumPy expression
-    # wall.normal + z[0] * basis[0] + z[1] * basis[1], at a fraction of its dispatch cost.
-    z0, z1, z2 = np.asarray(z).tolist()
-    n = np.array([w + z0 * b0 + z1 * b1 for w, b0, b1 in zip(wall.normal.tolist(), basis[0].tolist(),
-                                                              basis[1].tolist())])
-    return Wall(n / np.sqrt(n @ n), wall.offset + z2)
-
-
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
     """Range residuals (m) of the labelled echoes under their models: wall a, wall b, then the edge."""
     ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
@@ -365,14 +362,18 @@ def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndar
 
 
 def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray, *, iterations: int = 3,
-                       step: float = 1e-7, covariance: bool = True) -> tuple[tuple[Wall, Wall], np.ndarray]:
+                       covariance: bool = True, trials: int = 6,
+                       min_sine: float = 1e-9) -> tuple[tuple[Wall, Wall], np.ndarray]:
     """Least squares of all labelled echoes over both walls at once (6 parameters).
 
     Each wall is ``n = normalise(n₀ + u₁e₁ + u₂e₂)``, ``h``; the edge echoes tie
     the two walls together through their intersection, which pins down the
     pitch that each wall's own echoes (a few-cm lever arm) barely constrain.
-    Levenberg-damped Gauss-Newton; the mirror rows' Jacobian is exact
-    (``∂r/∂u = p_c·e``, ``∂r/∂h = −1``), the edge rows' by forward differences.
+    Levenberg-damped Gauss-Newton (up to ``trials`` dampings, ×10 each) with
+    the exact Jacobian: ``∂r/∂u = p_c·e``, ``∂r/∂h = −1`` for the mirror rows,
+    and for the edge rows ``r = d − √q``, ``q = a² + b² − 2abc``
+    (:func:`edge_range_terms`), ``∂r/∂u_a = (p_c·e)(a − bc)/√q + (ab/√q)(n_b·e)``,
+    ``∂r/∂h_a = −(a − bc)/√q`` and the same for wall b with a and b swapped.
 
     Returns the walls and the (6, 6) covariance of ``(u₁, u₂, h)`` of wall a
     then wall b (``σ² (JᵀJ)⁻¹``, σ² from the residuals; ``inf`` if
@@ -384,103 +385,81 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
     pe, de = pts.capsule[me], pts.distance[me]
     na_, nb_, ne_ = len(da), len(db), len(de)
     m = na_ + nb_ + ne_
-    walls = [wall_a, wall_b]
-    eye = np.eye(3)
-
-    def residuals(wa: Wall, wb: Wall) -> np.ndarray:
-        return np.concatenate([pa @ wa.normal + da - wa.offset, pb @ wb.normal + db - wb.offset,
-                               _edge_range_residuals(wa, wb, pe, de)])
-
-    def residuals_many(pairs: list[tuple[Wall, Wall]]) -> list[np.ndarray]:
-        # residuals() of each pair, bit for bit, the edge rows of all pairs in one pass.
-        edge = _edge_range_residuals_many(tuple(pairs), pe, de)
-        return [np.concatenate([pa @ wa.normal + da - wa.offset, pb @ wb.normal + db - wb.offset, edge[k]])
-                for k, (wa, wb) in enumerate(pairs)]
-
-    def jacobian(wa: Wall, wb: Wall, r: np.ndarray) -> tuple[np.ndarray, list]:
-        basis = [_tangent(wa.normal), _tangent(wb.normal)]
-        jac = np.zeros((m, 6))
-        for k, (p, lo, hi) in enumerate(((pa, 0, na_), (pb, na_, na_ + nb_))):
-            jac[lo:hi, 3 * k] = p @ basis[k][0]
-            jac[lo:hi, 3 * k + 1] = p @ basis[k][1]
-            jac[lo:hi, 3 * k + 2] = -1.0
-        if ne_:
-            re = r[na_ + nb_:]
-            pairs = []
-            for j in range(6):
-                k, z = divmod(j, 3)
-                moved = [wa, wb]
-                moved[k] = _moved(moved[k], step * eye[z], basis[k])
-                pairs.append(tuple(moved))
-            jac[na_ + nb_:, :] = ((_edge_range_residuals_many(tuple(pairs), pe, de) - re) / step).T
-        return jac, basis
-
     cov = np.full((6, 6), np.inf)
     if m < 7:
         return (wall_a, wall_b), cov
+    lo_e = na_ + nb_
+
+    def residuals(w: _Pair) -> np.ndarray:
+        r = np.empty(m)
+        r[:na_] = pa @ w[0] + da - w[1]
+        r[na_:lo_e] = pb @ w[2] + db - w[3]
+        if ne_:
+            *_, c, rng = edge_range_terms(*w, pe)
+            r[lo_e:] = de - rng if 1.0 - c * c >= min_sine * min_sine else np.inf
+        return r
+
+    def jacobian(w: _Pair) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        basis = (np.array(_tangent(w[0])).T, np.array(_tangent(w[2])).T)  # (3, 2): e₁, e₂ of each wall
+        jac = np.empty((m, 6))
+        jac[:na_, 0:2] = pa @ basis[0]
+        jac[:na_, 2] = -1.0
+        jac[:na_, 3:6] = 0.0
+        jac[na_:lo_e, 0:3] = 0.0
+        jac[na_:lo_e, 3:5] = pb @ basis[1]
+        jac[na_:lo_e, 5] = -1.0
+        if ne_:
+            a, b, c, rng = edge_range_terms(*w, pe)
+            inv = 1.0 / np.maximum(rng, 1e-12)
+            ga, gb, gab = (a - b * c) * inv, (b - a * c) * inv, a * b * inv
+            jac[lo_e:, 0:2] = (pe @ basis[0]) * ga[:, None] + gab[:, None] * (w[2] @ basis[0])
+            jac[lo_e:, 2] = -ga
+            jac[lo_e:, 3:5] = (pe @ basis[1]) * gb[:, None] + gab[:, None] * (w[0] @ basis[1])
+            jac[lo_e:, 5] = -gb
+        return jac, basis
+
+    def moved(w: _Pair, dz: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> _Pair:
+        n_a = w[0] + basis[0] @ dz[0:2]
+        n_b = w[2] + basis[1] @ dz[3:5]
+        return n_a / np.sqrt(n_a @ n_a), w[1] + float(dz[2]), n_b / np.sqrt(n_b @ n_b), w[3] + float(dz[5])
+
+    w: _Pair = (wall_a.normal, float(wall_a.offset), wall_b.normal, float(wall_b.offset))
     lam = 1e-6
-    r = residuals(*walls)
+    r = residuals(w)
     for _ in range(iterations):
         if not np.all(np.isfinite(r)):
             return (wall_a, wall_b), cov
-        jac, basis = jacobian(walls[0], walls[1], r)
+        jac, basis = jacobian(w)
         jtj, g, c0 = jac.T @ jac, jac.T @ r, float(r @ r)
+        damping = np.diag(np.diag(jtj) + 1e-12)
         accepted = False
-        for attempt in range(6):
-            if attempt == 1:
-                # The first damping failed (near convergence, usually all six do): the remaining five trials
-                # do not depend on each other's outcome, so they are formed in one pass, then taken in order.
-                batch = _damped_trials(jtj, g, lam, 5, walls, basis, residuals_many)
-                if batch is not None:
-                    for trial, r1, lam_k in batch:
-                        if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
-                            walls, r, lam, accepted = trial, r1, max(lam_k / 10, 1e-9), True
-                            break
-                    break
+        for _attempt in range(trials):
             try:
-                dz = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -g)
+                dz = np.linalg.solve(jtj + lam * damping, -g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            trial = [_moved(walls[0], dz[:3], basis[0]), _moved(walls[1], dz[3:], basis[1])]
-            r1 = residuals(*trial)
+            trial = moved(w, dz, basis)
+            r1 = residuals(trial)
             if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
-                walls, r, lam, accepted = trial, r1, max(lam / 10, 1e-9), True
+                w, r, lam, accepted = trial, r1, max(lam / 10, 1e-9), True
                 break
             lam *= 10
         if not accepted:
             break
+    walls = (Wall(w[0], w[1]), Wall(w[2], w[3]))
     if not covariance:
-        return (walls[0], walls[1]), cov
-    jac, _ = jacobian(walls[0], walls[1], r)
+        return walls, cov
+    jac, _ = jacobian(w)
     try:
         cov = float(r @ r) / (m - 6) * np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
         pass
-    return (walls[0], walls[1]), cov
+    return walls, cov
 
 
-def _damped_trials(jtj: np.ndarray, g: np.ndarray, lam: float, count: int, walls: list[Wall],
-                   basis: list[tuple[np.ndarray, np.ndarray]],
-                   residuals_many: Callable[[list[tuple[Wall, Wall]]], list[np.ndarray]]
-                   ) -> list[tuple[list[Wall], np.ndarray, float]] | None:
-    """The Levenberg steps of :func:`joint_gauss_newton` for damping ``lam``, ``10·lam``, … (``count`` of them).
-
-    Each as the one-at-a-time loop forms it (the same damping products, ``np.linalg.solve``
-    per matrix of the stack): ``(walls, residuals, damping)`` in order.  None if a damped
-    matrix is singular (the caller takes the trials one at a time, skipping it).
-    """
-    lams = []
-    for _ in range(count):
-        lams.append(lam)
-        lam *= 10
-    diag = np.diag(np.diag(jtj) + 1e-12)
-    try:
-        dz = np.linalg.solve(np.stack([jtj + lk * diag for lk in lams]), np.broadcast_to(-g, (count, g.size))[..., None])
-    except np.linalg.LinAlgError:
-        return None
-    trials = [[_moved(walls[0], d[:3, 0], basis[0]), _moved(walls[1], d[3:, 0], basis[1])] for d in dz]
-    return [(t, r1, lk) for t, r1, lk in zip(trials, residuals_many([tuple(t) for t in trials]), lams)]
+#: Two walls as arrays: normal and offset of wall a, then of wall b.
+_Pair = tuple[np.ndarray, float, np.ndarray, float]
 
 
 def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple[float, float], ...],
