@@ -581,7 +581,7 @@ def run_stress(args: argparse.Namespace) -> int:
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for res in pool.map(stress_scan, *zip(*jobs), [args.keep] * len(jobs)):
             rows.extend(res)
-    console = Console()
+    console = Console(width=max(Console().width, 160))
     table = Table(title=f"stress sweep: {args.seeds} seeds from {args.first_seed}, method corner")
     for col in ("family", "planes", "unseen", *VERDICTS):
         table.add_column(col, justify="right" if col != "family" else "left")

@@ -90,8 +90,11 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
 
     Returns
     -------
-    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep)
-    or the fit is not a peak.
+    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep),
+    the fit is not a peak, or the window made symmetric about the vertex no
+    longer resolves one (a peak too near the end of the sweep to tell from the
+    pattern's shape).  σ_φ counts the bias of a lopsided window
+    (:func:`window_bias_stderr`).
     """
     g = np.asarray(gamma, dtype=np.float64)
     e = np.asarray(amplitude, dtype=np.float64) * np.asarray(distance, dtype=np.float64)
@@ -100,11 +103,27 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
         return None
     g, le = g[ok], np.log(e[ok])
     top = le >= le.max() - top_db * np.log(10.0) / 20.0  # dB of amplitude
-    steps = np.unique(g[top])
+    vertex = _parabola_vertex(g[top], le[top], min_steps_each_side)
+    if vertex is None:
+        return None
+    phi, se = vertex
+    # The vertex is unbiased only where the window is symmetric about it (below): on a truncated or lopsided
+    # window the pattern's departure from a parabola shifts it, which the fit's own σ does not count.
+    window = (phi - float(g[top].min()), float(g[top].max()) - phi)
+    sym = top & (np.abs(g - phi) <= min(window))
+    inner = _parabola_vertex(g[sym], le[sym], min_steps_each_side)
+    if inner is None:
+        return None  # one side of the peak too short to tell its vertex from the pattern's shape
+    return float(phi), window_bias_stderr(phi, se, *inner)
+
+
+def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) -> tuple[float, float] | None:
+    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c`` and its standard error; None if not a significant peak inside."""
+    steps = np.unique(g)
     if steps.size < 2 * min_steps_each_side + 1:
         return None
     try:
-        coef, cov = np.polyfit(g[top], le[top], 2, cov=True)
+        coef, cov = np.polyfit(g, le, 2, cov=True)
     except (np.linalg.LinAlgError, ValueError):
         return None
     a2, b1 = float(coef[0]), float(coef[1])
@@ -120,6 +139,33 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     if not (np.isfinite(var) and var >= 0):
         return None
     return float(phi), float(np.sqrt(var))
+
+
+def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> float:
+    """Standard error of the amplitude peak's direction ``φ`` with the bias of a lopsided window.
+
+    ``D(ψ)`` is even in the angle ψ between the beam and the wall's normal
+    (design notes §8), so ``log D²`` is even about the wall's direction: a
+    parabola fitted over echoes symmetric about it has its vertex there
+    whatever the pattern's shape (the odd moments of the window vanish).  Over
+    a lopsided window — the peak near the end of the sweep, or echoes of one
+    side cut by the 10 dB floor — the pattern's quartic and higher terms
+    move the vertex toward the longer side; the fit's own σ (white amplitude
+    noise about a parabola) does not see that.  The vertex ``φ_sym`` of the
+    window made symmetric about ``φ`` measures it: with no bias, ``φ − φ_sym``
+    is noise of variance ``σ_sym² − σ²`` (the full window's fit is the more
+    precise of two nested unbiased ones), so only the excess is bias:
+    ``σ_φ² = σ² + max(0, (φ − φ_sym)² − (σ_sym² − σ²))``.
+
+    Parameters
+    ----------
+    phi, se : float
+        Vertex and standard error over the full window (rad).
+    phi_sym, se_sym : float
+        The same over the window symmetric about ``phi`` (rad).
+    """
+    excess = (phi - phi_sym) ** 2 - max(se_sym**2 - se**2, 0.0)
+    return float(np.sqrt(se**2 + max(excess, 0.0)))
 
 
 def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi_se: float, normal0: np.ndarray,
