@@ -106,19 +106,20 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     vertex = _parabola_vertex(g[top], le[top], min_steps_each_side)
     if vertex is None:
         return None
-    phi, se = vertex
+    phi, se, curvature = vertex
     # The vertex is unbiased only where the window is symmetric about it (below): on a truncated or lopsided
     # window the pattern's departure from a parabola shifts it, which the fit's own σ does not count.
     window = (phi - float(g[top].min()), float(g[top].max()) - phi)
     sym = top & (np.abs(g - phi) <= min(window))
-    inner = _parabola_vertex(g[sym], le[sym], min_steps_each_side)
+    inner = _symmetric_vertex(g[sym] - phi, le[sym], curvature)
     if inner is None:
-        return None  # one side of the peak too short to tell its vertex from the pattern's shape
-    return float(phi), window_bias_stderr(phi, se, *inner)
+        return None  # the peak at the very end of the sweep: nothing on one side of it
+    return float(phi), window_bias_stderr(phi, se, phi + inner[0], inner[1])
 
 
-def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) -> tuple[float, float] | None:
-    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c`` and its standard error; None if not a significant peak inside."""
+def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int
+                     ) -> tuple[float, float, float] | None:
+    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``; None if not a significant peak inside."""
     steps = np.unique(g)
     if steps.size < 2 * min_steps_each_side + 1:
         return None
@@ -138,7 +139,26 @@ def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) ->
     var = float(jac @ cov[:2, :2] @ jac)
     if not (np.isfinite(var) and var >= 0):
         return None
-    return float(phi), float(np.sqrt(var))
+    return float(phi), float(np.sqrt(var)), a2
+
+
+def _symmetric_vertex(x: np.ndarray, le: np.ndarray, curvature: float) -> tuple[float, float] | None:
+    """Shift of the vertex and its standard error over a window ``x = γ − φ`` symmetric about ``φ``.
+
+    The curvature ``a`` is the full window's (a narrow window hardly measures it); the slope ``b`` of
+    ``le − a x²`` at ``x = 0`` moves the vertex by ``−b/2a``.  None without an echo on each side.
+    """
+    if np.unique(x[x < 0]).size < 1 or np.unique(x[x > 0]).size < 1:
+        return None
+    try:
+        coef, cov = np.polyfit(x, le - curvature * x * x, 1, cov="unscaled")
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    r = le - curvature * x * x - np.polyval(coef, x)
+    s2 = float(r @ r) / max(x.size - 2, 1)
+    shift = -float(coef[0]) / (2.0 * curvature)
+    se = float(np.sqrt(max(s2 * float(cov[0, 0]), 0.0))) / (2.0 * abs(curvature))
+    return (shift, se) if np.isfinite(shift) and np.isfinite(se) else None
 
 
 def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> float:
