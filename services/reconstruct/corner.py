@@ -90,11 +90,9 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
 
     Returns
     -------
-    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep),
-    the fit is not a peak, or the window made symmetric about the vertex no
-    longer resolves one (a peak too near the end of the sweep to tell from the
-    pattern's shape).  σ_φ counts the bias of a lopsided window
-    (:func:`window_bias_stderr`).
+    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep,
+    or a σ_φ wider than the directions the fit saw) or the fit is not a peak.
+    σ_φ counts the bias of a lopsided window (:func:`window_bias_stderr`).
     """
     g = np.asarray(gamma, dtype=np.float64)
     e = np.asarray(amplitude, dtype=np.float64) * np.asarray(distance, dtype=np.float64)
@@ -114,7 +112,10 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     inner = _symmetric_vertex(g[sym] - phi, le[sym], curvature)
     if inner is None:
         return None  # the peak at the very end of the sweep: nothing on one side of it
-    return float(phi), window_bias_stderr(phi, se, phi + inner[0], inner[1])
+    sigma = window_bias_stderr(phi, se, phi + inner[0], inner[1])
+    if sigma > float(g[top].max() - g[top].min()):
+        return None  # not located within the directions the fit saw: no peak was observed
+    return float(phi), sigma
 
 
 def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int
@@ -172,10 +173,11 @@ def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> 
     side cut by the 10 dB floor — the pattern's quartic and higher terms
     move the vertex toward the longer side; the fit's own σ (white amplitude
     noise about a parabola) does not see that.  The vertex ``φ_sym`` of the
-    window made symmetric about ``φ`` measures it: with no bias, ``φ − φ_sym``
-    is noise of variance ``σ_sym² − σ²`` (the full window's fit is the more
-    precise of two nested unbiased ones), so only the excess is bias:
-    ``σ_φ² = σ² + max(0, (φ − φ_sym)² − (σ_sym² − σ²))``.
+    window made symmetric about ``φ`` (with the full window's curvature:
+    :func:`_symmetric_vertex`) measures it: with no bias, ``φ − φ_sym`` is
+    noise of variance ``σ_sym² − σ²`` (the full window's fit is the more
+    precise of two nested unbiased ones, as in a Hausman test), so only the
+    excess is bias: ``σ_φ² = σ² + max(0, (φ − φ_sym)² − (σ_sym² − σ²))``.
 
     Parameters
     ----------
