@@ -142,6 +142,13 @@ def percentile(values: list[float] | np.ndarray, q: float) -> float:
     return float(np.percentile(a, q)) if a.size else float("nan")
 
 
+def frac_above(z: np.ndarray, k: float) -> float:
+    """Share of the finite values of ``z`` above ``k``; NaN if there are none."""
+    z = np.asarray(z, dtype=float)
+    z = z[np.isfinite(z)]
+    return float(np.mean(z > k)) if z.size else float("nan")
+
+
 def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Statistics of per-plane rows of one family and method (see the module docstring).
 
@@ -158,10 +165,6 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     scans = {(r["family"], r["seed"]): r["time_scan_ms"] for r in rows}
     crit = [abs(r["crit"] - r["crit_true"]) <= CRIT_TOLERANCE for r in rows
             if r["label"] == "a" and r.get("crit") is not None and r["crit_true"] >= 0]
-
-    def frac_above(z: np.ndarray, k: float) -> float:
-        z = z[np.isfinite(z)]
-        return float(np.mean(z > k)) if z.size else float("nan")
 
     return {
         "planes": len(obs), "unobserved": len(rows) - len(obs), "missing": len(obs) - len(fitted),

@@ -54,6 +54,16 @@ panel) and the oracle (LS on the true mirror echoes, as
 * **crash**: the command raised, printed no JSON line, or exited with an
   undocumented code (documented: 0, 1 = no final or a method produced no
   plane, 2 = typed error).
+
+Every plane's reported standard errors are judged too (principle 1: an honest
+σ), for the method of record ``corner`` and the compared ``ls``
+(``--compare ls``: the cross-check only degrades the compared planes, the
+record's are unchanged): **z** = error / standard error for the normal (angle
+/ ``normal_stderr``) and the offset (``(h − h_true)/offset_stderr``), as
+:mod:`lelsonar.tools.bench_families` — median |z| ≈ 0.8 / 0.7 and ~0.3 %
+beyond 3 when calibrated.  The z table gives, per family, the median |z| and
+the share beyond 3 over the planes that claim ``good`` and over all planes of
+observed walls.
 """
 
 from __future__ import annotations
@@ -76,13 +86,16 @@ from typing import Any
 
 import numpy as np
 
-from lelsonar.tools.bench_families import json_default, is_failure, ls_plane, plane_errors
+from lelsonar.tools.bench_families import (frac_above, is_failure, json_default, ls_plane, percentile,
+                                           plane_errors, z_score)
 
 FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "roll", "sweep", "steps", "array", "rate", "noise",
                              "corner", "missing", "calib", "nocorner", "wire", "mixed", "extreme")
 #: Verdicts of one wall, in table order.
 VERDICTS = ("accurate", "flagged", "claims_good", "crash")
 _DEG = math.pi / 180.0
+#: The method of record (its planes carry the verdicts) and the compared one, whose σ is judged too.
+RECORD, COMPARED = "corner", "ls"
 #: Exit codes ``reconstruct --source`` documents: 0 ok, 1 no final / a plane missing, 2 typed error.
 DOCUMENTED_EXIT = (0, 1, 2)
 
@@ -404,11 +417,12 @@ def record(scan: StressScan, path: Path) -> None:
                  ScanOutput(out, None), threading.Event(), int16_scale=int16_scale)
 
 
-def run_cli(path: Path, method: str | None = None) -> tuple[int | None, list[dict[str, Any]], str]:
-    """``lelsonar reconstruct --source PATH --json --compare ''`` in process: exit code, JSON lines, error."""
+def run_cli(path: Path, method: str | None = None, compare: str = COMPARED
+            ) -> tuple[int | None, list[dict[str, Any]], str]:
+    """``lelsonar reconstruct --source PATH --json --compare COMPARE`` in process: exit code, JSON lines, error."""
     from lelsonar.__main__ import main
 
-    argv = ["reconstruct", "--source", str(path), "--json", "--compare", ""]
+    argv = ["reconstruct", "--source", str(path), "--json", "--compare", compare]
     if method:
         argv += ["--method", method]
     out, err = io.StringIO(), io.StringIO()
@@ -431,8 +445,10 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
     distance = cfg.sound_speed * scan.tof / 2.0
     rows = []
     crashed = code not in DOCUMENTED_EXIT or not lines
-    # With ``--compare ''`` every plane is the method of record's (a fallback plane too: it carries that name).
-    planes = [p for msg in lines for p in msg.get("planes", [])]
+    # Consumers pick the plane of record by method name (a fallback plane carries that name too).
+    all_planes = [p for msg in lines for p in msg.get("planes", [])]
+    planes = [p for p in all_planes if p.get("method", RECORD) == RECORD]
+    compared = [p for p in all_planes if p.get("method") == COMPARED]
     for label, src, panel in (("a", EchoSource.PLANE_A, cfg.scene.panels[0]),
                               ("b", EchoSource.PLANE_B, cfg.scene.panels[1])):
         n_true, h_true = np.asarray(panel.normal), panel.offset
@@ -458,13 +474,27 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
             row.update(quality=quality, reasons=fit.get("quality_reasons", []))
             if m.sum() >= 3:
                 ang, off, pe = plane_errors(n, h, n_true, h_true, patch)
-                row.update(angle_deg=ang, offset_cm=off, patch_cm=pe)
+                row.update(angle_deg=ang, offset_cm=off, patch_cm=pe, **_z_fields(fit, ang, off))
                 wrong = is_failure(pe, oracle)
             else:  # never observed: any plane is a guess
                 wrong = True
             row["verdict"] = "accurate" if not wrong else ("claims_good" if quality == "good" else "flagged")
+        other = next((p for p in compared if p.get("label") == label), None)
+        if not crashed and other is not None and m.sum() >= 3:
+            n = np.array([other["normal"].get(k, 0.0) for k in ("x", "y", "z")])
+            ang, off, pe = plane_errors(n, float(other.get("offset", 0.0)), n_true, h_true, patch)
+            row.update({f"{COMPARED}_{k}": v for k, v in _z_fields(other, ang, off).items()},
+                       **{f"{COMPARED}_quality": other.get("quality"), f"{COMPARED}_patch_cm": pe})
         rows.append(row)
     return rows
+
+
+def _z_fields(plane: dict[str, Any], angle_deg: float, offset_cm: float) -> dict[str, float]:
+    """A JSON plane's standard errors (°, cm) and z-scores of its angle (°) and offset (cm) errors."""
+    se_n = float(plane.get("normal_stderr", float("nan")))
+    se_h = float(plane.get("offset_stderr", float("nan")))
+    return {"normal_stderr_deg": math.degrees(se_n), "offset_stderr_cm": 100.0 * se_h,
+            "z_angle": z_score(math.radians(angle_deg), se_n), "z_offset": z_score(offset_cm / 100.0, se_h)}
 
 
 def stress_scan(family: str, seed: int, keep_dir: str | None = None) -> list[dict[str, Any]]:
@@ -506,6 +536,37 @@ def tally(rows: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
     return out
 
 
+def z_summary(rows: list[dict[str, Any]], prefix: str = "") -> dict[str, dict[str, float]]:
+    """Per family (and ``all``): the z-scores of one method's planes (``prefix`` ``""`` record, ``"ls_"`` compared).
+
+    For ``good`` (planes claiming good) and ``all`` (every plane of an observed wall): ``n``, median |z| and
+    the share of |z| > 3, of the normal (``zn``) and the offset (``zh``).
+    """
+    def num(r: dict[str, Any], key: str) -> float:
+        v = r.get(prefix + key)
+        return float(v) if v is not None else float("nan")
+
+    out: dict[str, dict[str, float]] = {}
+    for fam in {r["family"] for r in rows} | {"all"}:
+        fr = [r for r in rows if (fam == "all" or r["family"] == fam) and math.isfinite(num(r, "z_angle"))]
+        stats: dict[str, float] = {}
+        for which, sel in (("good", [r for r in fr if r.get(prefix + "quality") == "good"]), ("all", fr)):
+            zn = np.abs([num(r, "z_angle") for r in sel], dtype=float)
+            zh = np.abs([num(r, "z_offset") for r in sel], dtype=float)
+            stats.update({f"{which}_n": len(sel), f"{which}_zn_med": percentile(zn, 50),
+                          f"{which}_zn_gt3": frac_above(zn, 3.0), f"{which}_zh_med": percentile(zh, 50),
+                          f"{which}_zh_gt3": frac_above(zh, 3.0)})
+        out[fam] = stats
+    return out
+
+
+def _z_cell(s: dict[str, float], which: str, z: str) -> str:
+    med, gt3 = s.get(f"{which}_{z}_med", float("nan")), s.get(f"{which}_{z}_gt3", float("nan"))
+    if not math.isfinite(med):
+        return "–"
+    return f"{med:.2f}, {100 * gt3:.0f} %"
+
+
 def run_stress(args: argparse.Namespace) -> int:
     """Run the sweep; print the table and the bugs; exit 1 if any wall claims good while wrong or a scan crashed."""
     from rich.console import Console
@@ -520,7 +581,7 @@ def run_stress(args: argparse.Namespace) -> int:
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         for res in pool.map(stress_scan, *zip(*jobs), [args.keep] * len(jobs)):
             rows.extend(res)
-    console = Console()
+    console = Console(width=max(Console().width, 160))
     table = Table(title=f"stress sweep: {args.seeds} seeds from {args.first_seed}, method corner")
     for col in ("family", "planes", "unseen", *VERDICTS):
         table.add_column(col, justify="right" if col != "family" else "left")
@@ -535,6 +596,20 @@ def run_stress(args: argparse.Namespace) -> int:
                   "a failure whose quality is not good, or no plane with a non-zero exit; claims_good: a failure "
                   "(or a plane of an unseen wall) whose quality is good; crash: an exception, no JSON line or an "
                   "undocumented exit code")
+    zs = {m: z_summary(rows, prefix) for m, prefix in ((RECORD, ""), (COMPARED, COMPARED + "_"))}
+    zt = Table(title="honest σ: |z| = |error| / reported standard error (median, share > 3), normal and offset")
+    for col in ("family", "method", "good", "|z_n| good", "|z_h| good", "all", "|z_n| all", "|z_h| all"):
+        zt.add_column(col, justify="right" if col not in ("family", "method") else "left")
+    for fam in (*families, "all"):
+        for m in (RECORD, COMPARED):
+            s = zs[m].get(fam)
+            if s:
+                zt.add_row(fam, m, str(s["good_n"]), _z_cell(s, "good", "zn"), _z_cell(s, "good", "zh"),
+                           str(s["all_n"]), _z_cell(s, "all", "zn"), _z_cell(s, "all", "zh"))
+        zt.add_section()
+    console.print(zt)
+    console.print("calibrated: median |z| ≈ 0.8 (normal, a 2-D tilt) / 0.7 (offset) and ~0.3 % beyond 3; "
+                  f"{COMPARED}'s quality is after the cross-check against the method of record")
     bad = [r for r in rows if r["verdict"] in ("claims_good", "crash")]
     for r in bad:
         console.print(f"[red]{r['verdict']}[/] {r['case']} plane {r['label']}: "
@@ -544,7 +619,8 @@ def run_stress(args: argparse.Namespace) -> int:
     if skipped:
         console.print(f"{len(skipped)} draws skipped (invalid configuration): {skipped[0]['error']}")
     if args.json:
-        Path(args.json).write_text(json.dumps(rows, default=json_default, indent=None), encoding="utf-8")
+        Path(args.json).write_text(json.dumps({"rows": rows, "tally": counts, "z": zs}, default=json_default,
+                                              indent=None), encoding="utf-8")
     return 1 if bad else 0
 
 

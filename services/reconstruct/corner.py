@@ -91,8 +91,9 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
 
     Returns
     -------
-    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep)
-    or the fit is not a peak.
+    (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep,
+    or a σ_φ wider than the directions the fit saw) or the fit is not a peak.
+    σ_φ counts the bias of a lopsided window (:func:`window_bias_stderr`).
     """
     g = np.asarray(gamma, dtype=np.float64)
     e = np.asarray(amplitude, dtype=np.float64) * np.asarray(distance, dtype=np.float64)
@@ -101,21 +102,40 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
         return None
     g, le = g[ok], np.log(e[ok])
     top = le >= le.max() - top_db * np.log(10.0) / 20.0  # dB of amplitude
-    steps = np.unique(g[top])
+    vertex = _parabola_vertex(g[top], le[top], min_steps_each_side)
+    if vertex is None:
+        return None
+    phi, se, curvature = vertex
+    # The vertex is unbiased only where the window is symmetric about it (below): on a truncated or lopsided
+    # window the pattern's departure from a parabola shifts it, which the fit's own σ does not count.
+    window = (phi - float(g[top].min()), float(g[top].max()) - phi)
+    sym = top & (np.abs(g - phi) <= min(window))
+    inner = _symmetric_vertex(g[sym] - phi, le[sym], curvature)
+    if inner is None:
+        return None  # the peak at the very end of the sweep: nothing on one side of it
+    sigma = window_bias_stderr(phi, se, phi + inner[0], inner[1])
+    if sigma > float(g[top].max() - g[top].min()):
+        return None  # not located within the directions the fit saw: no peak was observed
+    return float(phi), sigma
+
+
+def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int
+                     ) -> tuple[float, float, float] | None:
+    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``; None if not a significant peak inside."""
+    steps = np.unique(g)
     if steps.size < 2 * min_steps_each_side + 1:
         return None
     # The parabola about the mean γ of those echoes (the same vertex, better conditioned than in γ itself):
     # least squares by its normal equations, covariance σ² (XᵀX)⁻¹ with σ² over N − 3 degrees of freedom.
-    t_top, l_top = g[top], le[top]
-    centre = float(t_top.mean())
-    t = t_top - centre
+    centre = float(g.mean())
+    t = g - centre
     x = np.stack([t * t, t, np.ones_like(t)], axis=1)
     try:
         inv = np.linalg.inv(x.T @ x)
     except np.linalg.LinAlgError:
         return None
-    coef = inv @ (x.T @ l_top)
-    res = l_top - x @ coef
+    coef = inv @ (x.T @ le)
+    res = le - x @ coef
     cov = float(res @ res) / (t.size - 3) * inv
     a2, b1 = float(coef[0]), float(coef[1])
     # A peak, and a significant one: amplitudes that do not fall off (a receiver without a beam
@@ -129,7 +149,54 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     var = float(jac @ cov[:2, :2] @ jac)
     if not (np.isfinite(var) and var >= 0):
         return None
-    return float(phi), float(np.sqrt(var))
+    return float(phi), float(np.sqrt(var)), a2
+
+
+def _symmetric_vertex(x: np.ndarray, le: np.ndarray, curvature: float) -> tuple[float, float] | None:
+    """Shift of the vertex and its standard error over a window ``x = γ − φ`` symmetric about ``φ``.
+
+    The curvature ``a`` is the full window's (a narrow window hardly measures it); the slope ``b`` of
+    ``le − a x²`` at ``x = 0`` moves the vertex by ``−b/2a``.  None without an echo on each side.
+    """
+    if np.unique(x[x < 0]).size < 1 or np.unique(x[x > 0]).size < 1:
+        return None
+    try:
+        coef, cov = np.polyfit(x, le - curvature * x * x, 1, cov="unscaled")
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    r = le - curvature * x * x - np.polyval(coef, x)
+    s2 = float(r @ r) / max(x.size - 2, 1)
+    shift = -float(coef[0]) / (2.0 * curvature)
+    se = float(np.sqrt(max(s2 * float(cov[0, 0]), 0.0))) / (2.0 * abs(curvature))
+    return (shift, se) if np.isfinite(shift) and np.isfinite(se) else None
+
+
+def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> float:
+    """Standard error of the amplitude peak's direction ``φ`` with the bias of a lopsided window.
+
+    ``D(ψ)`` is even in the angle ψ between the beam and the wall's normal
+    (design notes §8), so ``log D²`` is even about the wall's direction: a
+    parabola fitted over echoes symmetric about it has its vertex there
+    whatever the pattern's shape (the odd moments of the window vanish).  Over
+    a lopsided window — the peak near the end of the sweep, or echoes of one
+    side cut by the 10 dB floor — the pattern's quartic and higher terms
+    move the vertex toward the longer side; the fit's own σ (white amplitude
+    noise about a parabola) does not see that.  The vertex ``φ_sym`` of the
+    window made symmetric about ``φ`` (with the full window's curvature:
+    :func:`_symmetric_vertex`) measures it: with no bias, ``φ − φ_sym`` is
+    noise of variance ``σ_sym² − σ²`` (the full window's fit is the more
+    precise of two nested unbiased ones, as in a Hausman test), so only the
+    excess is bias: ``σ_φ² = σ² + max(0, (φ − φ_sym)² − (σ_sym² − σ²))``.
+
+    Parameters
+    ----------
+    phi, se : float
+        Vertex and standard error over the full window (rad).
+    phi_sym, se_sym : float
+        The same over the window symmetric about ``phi`` (rad).
+    """
+    excess = (phi - phi_sym) ** 2 - max(se_sym**2 - se**2, 0.0)
+    return float(np.sqrt(se**2 + max(excess, 0.0)))
 
 
 def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi_se: float, normal0: np.ndarray,
