@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import replace
 
 import numpy as np
 
@@ -304,7 +303,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         fit = F.make_plane_fit(data, fitted.normal / fitted.offset, method="corner", inlier_mask=mask,
                                diagnostics=diag, model="constant-depth")
         if isinstance(fit, PlaneFit):
-            fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
+            fit = fit.replace_scalars(normal_stderr=se_n, offset_stderr=se_h)
         return fit
     if edge_is_walls:
         flags.append("its direction rests on edge echoes that a wall explains as well: the corner edge that ties "
@@ -330,7 +329,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
                                                     + verdict))
     fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
     if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
-        fit = replace(fit, normal_stderr=max(fit.normal_stderr, se_n), offset_stderr=max(fit.offset_stderr, se_h))
+        fit = fit.replace_scalars(normal_stderr=max(fit.normal_stderr, se_n), offset_stderr=max(fit.offset_stderr, se_h))
     return fit
 
 
@@ -378,7 +377,7 @@ def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGe
                            diagnostics=diag, model="constant-depth")
     if not isinstance(fit, PlaneFit):
         return None
-    fit = replace(fit, normal_stderr=se_n, offset_stderr=se_h)
+    fit = fit.replace_scalars(normal_stderr=se_n, offset_stderr=se_h)
     unexplained = float(np.mean(~m[seen])) if np.any(seen) else 0.0
     return assess_plane(fit, gamma, edge_echoes=0, findings=unexplained_finding(unexplained)), data
 
