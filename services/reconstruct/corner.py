@@ -93,10 +93,17 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     (φ, σ_φ) in rad, or None when the peak was not observed (a truncated sweep,
     or a σ_φ wider than the directions the fit saw) or the fit is not a peak.
     σ_φ counts the bias of a lopsided window (:func:`window_bias_stderr`).
+    Clipped echoes (:func:`clipped_echoes`) are left out: their amplitude is
+    only a lower bound, and a parabola through the plateau they form puts its
+    vertex anywhere inside it.
     """
     g = np.asarray(gamma, dtype=np.float64)
-    e = np.asarray(amplitude, dtype=np.float64) * np.asarray(distance, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    e = a * np.asarray(distance, dtype=np.float64)
     ok = np.isfinite(g) & np.isfinite(e) & (e > 0)
+    if not np.any(ok):
+        return None
+    ok &= ~clipped_echoes(np.where(ok, a, np.nan))
     if np.count_nonzero(ok) < 8:
         return None
     g, le = g[ok], np.log(e[ok])
@@ -116,6 +123,36 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     if sigma > float(g[top].max() - g[top].min()):
         return None  # not located within the directions the fit saw: no peak was observed
     return float(phi), sigma
+
+
+#: Echoes whose amplitudes agree with the largest to this fraction form a plateau: the receiver clipped them.
+CLIP_TOLERANCE = 1e-4
+#: Echoes at the largest amplitude it takes to call them clipped (two may tie by symmetry of the beam).
+CLIP_MIN_ECHOES = 3
+
+
+def clipped_echoes(amplitude: np.ndarray) -> np.ndarray:
+    """Mask of the echoes an ADC or amplifier clipped: those at the largest amplitude, if a plateau forms there.
+
+    A mirror echo's amplitude (design notes §8) varies continuously with the
+    beam's angle to the wall, the range and the noise, so two echoes of a scan
+    hardly ever share their largest amplitude; a receiver that saturates gives
+    every echo stronger than its full scale the same peak ``|w|``
+    (:func:`lelsonar.reconstruct.energy.echo_amplitude`), within a code.  At
+    least :data:`CLIP_MIN_ECHOES` echoes within :data:`CLIP_TOLERANCE` of the
+    largest are taken as that plateau.
+
+    Parameters
+    ----------
+    amplitude : (N,) array
+        Peak amplitude of each echo, V; NaN where none.
+    """
+    a = np.asarray(amplitude, dtype=np.float64)
+    finite = np.isfinite(a)
+    if not np.any(finite):
+        return np.zeros(a.shape, dtype=bool)
+    top = finite & (a >= np.max(a[finite]) * (1.0 - CLIP_TOLERANCE))
+    return top if np.count_nonzero(top) >= CLIP_MIN_ECHOES else np.zeros(a.shape, dtype=bool)
 
 
 def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int
