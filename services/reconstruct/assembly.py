@@ -2,8 +2,21 @@
 
 Samples are placed by step index, so arrival order does not matter; a second
 copy of a step is dropped.  Per step the assembly keeps what the math needs —
-measured γ, ranges, the energy of each capsule (eq. 10) — and the waveforms of
-the latest step only, for display.
+measured γ, ranges, the energy of each capsule (eq. 10), the first echo's
+peak — and the latest step's waveforms, for display.
+
+Placing a sample is bookkeeping only.  What comes from the waveforms — their
+energy, the echo peaks, R (§4) — is worked out for many steps at once, when
+it is first read (``sensor_energy``, ``ratio``, :meth:`ScanAssembly.arrays`,
+…), when the ScanEnd comes (:meth:`ScanAssembly.settle`), or every
+:attr:`ScanAssembly.SETTLE_EVERY` steps (which bounds the waveforms held).  A
+``Sample`` may carry the energies its writer computed (``sensor_energy``, as
+the acquisition service does): they are used after a batched float32 check
+against the waveforms (:func:`~lelsonar.reconstruct.energy.waveform_energy_agrees`);
+where they disagree, or are not plausible, the energies are recomputed,
+counted in :attr:`ScanAssembly.energy_mismatches` and warned about.  Without
+them (another writer), they are computed.  Either way the arrays hold what
+:func:`~lelsonar.reconstruct.energy.waveform_energy` gives.
 
 The per-step arrays grow with the highest step that actually arrived (doubling,
 capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
@@ -14,6 +27,7 @@ stream or the acquirer's log), for the per-scan accounting.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -23,21 +37,19 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.energy import EnergyModel, echo_amplitude, waveform_energy
+from lelsonar.reconstruct.energy import (
+    EnergyModel,
+    echo_amplitude,
+    energy_ratio,
+    total_energy,
+    waveform_energy,
+    waveform_energy_agrees,
+)
 from lelsonar.v1 import scan_pb2
 
+_log = logging.getLogger(__name__)
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
-
-
-def _median_of_valid(distance: list[float]) -> float:
-    """:func:`~lelsonar.reconstruct.energy.median_range` of one step, without numpy's per-call overhead:
-    the same arithmetic on the same numbers (the mean of the two middle valid ranges), so the same bits."""
-    valid = sorted(x for x in distance if x == x)
-    c = len(valid)
-    if not c:
-        return math.nan
-    return 0.5 * (valid[(c - 1) // 2] + valid[c // 2])
 
 
 def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
@@ -83,7 +95,12 @@ class StepView:
 
 @dataclass
 class ScanAssembly:
-    """Everything known about one (scanner, scan)."""
+    """Everything known about one (scanner, scan).
+
+    ``sensor_energy``, ``echo_amplitude``, ``step_energy``, ``expected_energy``
+    and ``ratio`` are read-only views that first :meth:`settle` the steps placed
+    since they were last read.
+    """
 
     start: codec.ScanStart
     geometry: ArrayGeometry = field(init=False)
@@ -91,11 +108,6 @@ class ScanAssembly:
     energy_model_problem: str | None = field(init=False)   # why E0 is the uncalibrated one, if it is
     gamma: np.ndarray = field(init=False)            # (steps,) rad, NaN until received
     distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
-    sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s
-    echo_amplitude: np.ndarray = field(init=False)   # (steps, k) V, peak of the first echo alone, NaN: none
-    step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. 11
-    expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. 12
-    ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m); 0 without a valid range
     time_ns: np.ndarray = field(init=False)          # (steps,)
     received: np.ndarray = field(init=False)         # (steps,) bool
     recovered_mask: np.ndarray = field(init=False)   # (steps,) bool: the step came from the acquirer's log
@@ -103,15 +115,30 @@ class ScanAssembly:
     duplicates: int = 0
     #: Messages of this scan that were refused, by reason (the wire's ScanAccounting.rejected).
     rejected: Counter = field(default_factory=Counter)
-    latest: StepView | None = None
+    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms (or was not plausible:
+    #: not one finite, non-negative value per capsule); their energies were recomputed.
+    energy_mismatches: int = 0
 
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
+    #: Steps placed but not yet settled that make :meth:`add` settle them: the waveforms held for the batched
+    #: work stay below this many steps' worth (4 × 3500 float32 samples: 56 KB a step).
+    SETTLE_EVERY = 32
 
     def __post_init__(self) -> None:
         self.geometry = geometry_from_start(self.start)
         self._capsule_ids = list(range(self.geometry.n_capsules))
         self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
+        # Placed, not yet settled: (step, round trips, carried energies or None); their waveforms are the
+        # first rows of _batch, (SETTLE_EVERY, k, n) float32 of the waveform shape _batch_shape = (n, rate, t0).
+        # One buffer, reused batch after batch: fresh memory for every batch costs more (page faults) than the
+        # arithmetic, and holding the decoded messages instead slows the decoding of the next ones.
+        self._unsettled: list[tuple[int, list[float], object]] = []
+        self._batch: np.ndarray | None = None
+        self._batch_bytes: memoryview | None = None
+        self._batch_shape: tuple[int, float, float] | None = None
+        # The latest step placed: (step, time_ns, gamma, Waveforms), made a StepView when read.
+        self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
     def _allocate(self, n: int) -> None:
@@ -120,21 +147,65 @@ class ScanAssembly:
 
         def grown(name: str, tail: tuple[int, ...], fill, dtype=float) -> np.ndarray:
             new = np.full((n, *tail), fill, dtype=dtype)
-            old = getattr(self, name, None)
+            old = self.__dict__.get(name)
             if isinstance(old, np.ndarray):
                 new[:len(old)] = old
             return new
 
         self.gamma = grown("gamma", (), np.nan)
         self.distance = grown("distance", (k,), np.nan)
-        self.sensor_energy = grown("sensor_energy", (k,), 0.0)
-        self.echo_amplitude = grown("echo_amplitude", (k,), np.nan)
-        self.step_energy = grown("step_energy", (), 0.0)
-        self.expected_energy = grown("expected_energy", (), 0.0)
-        self.ratio = grown("ratio", (), 0.0)
+        self._sensor_energy = grown("_sensor_energy", (k,), 0.0)      # (steps, k) V²·s, eq. 10
+        self._echo_amplitude = grown("_echo_amplitude", (k,), np.nan)  # (steps, k) V, first echo's peak; NaN: none
+        self._step_energy = grown("_step_energy", (), 0.0)            # (steps,) E^γ, eq. 11
+        self._expected_energy = grown("_expected_energy", (), 0.0)    # (steps,) E0(d_m), eq. 12
+        self._ratio = grown("_ratio", (), 0.0)                        # (steps,) R = E^γ / E0(d_m); 0 without a range
         self.time_ns = grown("time_ns", (), 0, np.int64)
         self.received = grown("received", (), False, bool)
         self.recovered_mask = grown("recovered_mask", (), False, bool)
+
+    # --- what comes from the waveforms, settled when read ----------------------------------------
+    @property
+    def sensor_energy(self) -> np.ndarray:
+        """(steps, k) V²·s, eq. (10) of each capsule's waveform; 0 for steps not received."""
+        self.settle()
+        return self._sensor_energy
+
+    @property
+    def echo_amplitude(self) -> np.ndarray:
+        """(steps, k) V, peak of the first echo alone (:func:`~lelsonar.reconstruct.energy.echo_amplitude`);
+        NaN: none."""
+        self.settle()
+        return self._echo_amplitude
+
+    @property
+    def step_energy(self) -> np.ndarray:
+        """(steps,) E^γ, eq. (11)."""
+        self.settle()
+        return self._step_energy
+
+    @property
+    def expected_energy(self) -> np.ndarray:
+        """(steps,) E0(d_m), eq. (12); 0 without a valid range."""
+        self.settle()
+        return self._expected_energy
+
+    @property
+    def ratio(self) -> np.ndarray:
+        """(steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range."""
+        self.settle()
+        return self._ratio
+
+    @property
+    def latest(self) -> StepView | None:
+        """The latest step placed, for display (its waveforms unpacked when first read)."""
+        view = self._latest
+        if view is None or isinstance(view, StepView):
+            return view
+        step, time_ns, gamma, waves = view
+        w = waves[0]
+        self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(),
+                                       _waveforms(waves, w.sample_count), w.sample_rate, w.t0)
+        return view
 
     @property
     def key(self) -> tuple[str, int]:
@@ -181,7 +252,7 @@ class ScanAssembly:
         Raises
         ------
         InvalidMessageError
-            A step outside the schedule, or capsules the ScanStart did not list.
+            A step outside the schedule, capsules the ScanStart did not list, or waveforms of different lengths.
         """
         step = sample.step
         if step >= self.start.steps:
@@ -193,11 +264,15 @@ class ScanAssembly:
             return False
         k = self.geometry.n_capsules
         sensors = sample.sensors
-        if [s.capsule_id for s in sensors] != self._capsule_ids:
-            ids = [s.capsule_id for s in sensors]
+        carried = sample.sensor_energy
+        ids = [s.capsule_id for s in sensors]
+        if ids != self._capsule_ids:
             if sorted(ids) != self._capsule_ids:
                 raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
-            sensors = sorted(sensors, key=lambda s: s.capsule_id)
+            order = sorted(range(k), key=ids.__getitem__)
+            sensors = [sensors[i] for i in order]
+            if len(carried) == k:  # carried in the order of the sensors
+                carried = [carried[i] for i in order]
         # One pass over the readings: the waveforms, and each echo's range and round trip.
         waves = []
         ranges = [math.nan] * k
@@ -215,29 +290,79 @@ class ScanAssembly:
         if any(w.sample_count != n for w in waves):
             raise InvalidMessageError(f"sample {step} has waveforms of different lengths "
                                       f"{sorted({w.sample_count for w in waves})}")
-        # One (k, n) float32 array of the waveforms (ingest decoded and validated them); for float32 data a
-        # read-only view of the joined bytes: one copy in all.
-        if all(w.encoding == _FLOAT32 for w in waves):
-            waveforms = np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(k, n)
-        else:
-            waveforms = np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
-        distance = np.array(ranges)
-        energy = waveform_energy(waveforms, rate)
         self.gamma[step] = sample.gamma_measured
-        self.distance[step] = distance
-        self.sensor_energy[step] = energy
-        self.echo_amplitude[step] = echo_amplitude(waveforms, rate, t0, tof)
-        # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
-        self.step_energy[step] = total = float(energy.sum())
-        d_m = _median_of_valid(ranges)
-        if d_m == d_m:  # not NaN
-            self.expected_energy[step] = expected = float(self.energy_model.expected_energy(d_m))
-            self.ratio[step] = total / expected
+        self.distance[step] = ranges
         self.time_ns[step] = sample.acquisition_time_ns
         self.received[step] = True
         self.recovered_mask[step] = origin == "recovered"
-        self.latest = StepView(step, sample.acquisition_time_ns, sample.gamma_measured, distance, waveforms, rate, t0)
+        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, waves)
+        # The waveforms' share waits for settle(), with as many other steps as come by then: their samples are
+        # copied to the batch (the message is not held).
+        shape = (n, rate, t0)
+        if shape != self._batch_shape:
+            self.settle()
+            self._batch_shape = shape
+            if self._batch is None or self._batch.shape[-1] != n:
+                self._batch = np.empty((self.SETTLE_EVERY, k, n), dtype="<f4")
+                self._batch_bytes = memoryview(self._batch).cast("B")
+        row = len(self._unsettled)
+        if all(w.encoding == _FLOAT32 for w in waves):
+            size = 4 * n
+            at = row * k * size
+            batch = self._batch_bytes
+            for w in waves:
+                batch[at:at + size] = w.data
+                at += size
+        else:
+            self._batch[row] = _waveforms(waves, n)
+        self._unsettled.append((step, tof, list(carried) if len(carried) else None))  # a list: not the message
+        if row + 1 >= self.SETTLE_EVERY:
+            self.settle()
         return True
+
+    def settle(self) -> None:
+        """Work out, for the steps placed since the last call and all at once, what comes from the
+        waveforms: each capsule's energy (eq. 10, the carried one once checked), the first echo's peak,
+        E^γ (eq. 11), E0(d_m) (eq. 12) and R (§4)."""
+        unsettled = self._unsettled
+        if not unsettled:
+            return
+        self._unsettled = []
+        k, m = self.geometry.n_capsules, len(unsettled)
+        n, rate, t0 = self._batch_shape
+        waveforms = self._batch[:m]
+        steps = np.array([e[0] for e in unsettled])
+        carried = [e[2] for e in unsettled]
+        if all(c is not None and len(c) == k for c in carried):  # the acquisition service's samples
+            energy = np.array(carried, dtype=np.float64)
+            agree = waveform_energy_agrees(waveforms, rate, energy).all(axis=1)
+            told = np.ones(m, dtype=bool)
+        else:  # some samples without energies (another writer), or not one a capsule (not plausible)
+            told = np.array([c is not None for c in carried])
+            energy = np.full((m, k), np.nan)
+            for i, c in enumerate(carried):
+                if c is not None and len(c) == k:
+                    energy[i] = c
+            agree = told.copy()
+            if told.any():
+                agree[told] = waveform_energy_agrees(waveforms[told], rate, energy[told]).all(axis=1)
+        if not agree.all():
+            for i in np.flatnonzero(~agree).tolist():  # step by step: a (k, n) float64 copy, not a whole batch's
+                energy[i] = waveform_energy(waveforms[i], rate)
+            wrong = steps[told & ~agree].tolist()
+            if wrong:
+                self.energy_mismatches += len(wrong)
+                _log.warning("scan %s: the sensor_energy carried by %d samples (steps %s) disagrees with their "
+                             "waveforms; recomputed from the waveforms (%d such steps in this scan)",
+                             self.key, len(wrong), _steps_text(wrong), self.energy_mismatches)
+        self._sensor_energy[steps] = energy
+        self._echo_amplitude[steps] = echo_amplitude(waveforms, rate, t0, np.array([e[1] for e in unsettled]))
+        self._step_energy[steps] = step_energy = total_energy(energy)
+        expected = self._expected_energy[steps]
+        self._ratio[steps] = energy_ratio(step_energy, self.distance[steps], self.energy_model, expected=expected)
+        self._expected_energy[steps] = expected
+        if self.end is not None:  # the scan is over: its batch is not kept for the odd late step
+            self._batch = self._batch_bytes = self._batch_shape = None
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(steps, gamma, distance, ratio)`` of the received steps, in step order."""
@@ -247,3 +372,15 @@ class ScanAssembly:
     def raw_points(self, step: int) -> np.ndarray:
         """Eq. (9) points of one received step, (k, 3); NaN rows where no echo."""
         return beam_points(self.geometry, self.gamma[step:step + 1], self.distance[step:step + 1])[0]
+
+
+def _waveforms(waves: list, n: int) -> np.ndarray:
+    """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""
+    if all(w.encoding == _FLOAT32 for w in waves):
+        return np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(len(waves), n)
+    return np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
+
+
+def _steps_text(steps: list[int], most: int = 8) -> str:
+    shown = ", ".join(str(s) for s in sorted(steps)[:most])
+    return shown + (f", … ({len(steps)} in all)" if len(steps) > most else "")

@@ -5,14 +5,12 @@ Pure functions: arrays in, typed results out, no I/O.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 
-__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "waveform_energy", "echo_amplitude", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
+__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "waveform_energy", "waveform_energy_agrees", "echo_amplitude", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
 
 
 def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -38,7 +36,7 @@ def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
     return np.vecdot(w, w) / float(sample_rate)
 
 
-_largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper (called per waveform)
+_largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper
 
 #: Where :func:`echo_amplitude` looks, s after the time of flight: the comparator fires on the
 #: echo's rising edge, and a 40 kHz transceiver's echo peaks within ~0.2 ms of its onset.  Short, so
@@ -81,25 +79,65 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     out = np.full(w.shape[:-1], np.nan)
     if n == 0 or not out.size:  # no waveform recorded: no amplitude
         return out
-    # One window per waveform, sliced: |w| and max are exact in float32, so float32 samples are never
-    # converted, and only the echo windows are touched.
+    # Every window at once (one gather, however many waveforms: a scan's or a step's): |w| and max are
+    # exact in float32, so float32 samples are never converted, and only the echo windows are touched.
     width = max(int(round((window[1] - window[0]) * sample_rate)), 1)
-    rows = w.reshape(-1, n)
-    flat = out.reshape(-1)
-    lo = window[0]
     tof = np.asarray(round_trip, dtype=np.float64)
     if tof.shape != out.shape:
         tof = np.broadcast_to(tof, out.shape)
-    for i, t in enumerate(tof.ravel().tolist()):
-        if not (t > 0.0 and math.isfinite(t)):  # NaN (no echo), no time of flight
-            continue
-        x = (t + lo - t0) * sample_rate
-        if not x < n:  # NaN, or the window starts after the end
-            continue
-        a = round(x) if x > 0.0 else 0  # the nearest sample, half to even (as np.rint), clipped at 0
-        if a < n:
-            flat[i] = _largest(np.abs(rows[i, a:a + width]))
+    tof = tof.ravel()
+    x = (tof + window[0] - t0) * sample_rate   # where the window starts, in samples (NaN: no echo)
+    # an echo (a finite, positive time of flight) whose window starts before the end
+    ok = (tof > 0.0) & (x < n) & np.isfinite(tof)
+    # the nearest sample, half to even, clipped at 0
+    first = np.rint(np.where(ok & (x > 0.0), x, 0.0))
+    ok &= first < n
+    rows = np.flatnonzero(ok)
+    if rows.size:
+        # a window running off the end repeats the last sample, which leaves the max unchanged
+        cols = np.minimum(first[rows].astype(np.intp)[:, None] + np.arange(width), n - 1)
+        out.reshape(-1)[rows] = _largest(np.abs(w.reshape(-1, n)[rows[:, None], cols]), axis=1)
     return out
+
+
+def waveform_energy_agrees(waveforms: np.ndarray, sample_rate: float, energy: np.ndarray) -> np.ndarray:
+    """Whether ``energy`` is each waveform's eq. (10) energy, to the rounding of a float32 check.
+
+    A check of a claimed :func:`waveform_energy` (e.g. one a writer computed), cheaper than
+    recomputing it: float32 samples are squared and summed in float32, without conversion.  A sum of
+    n non-negative float32 products is within ``(n + 1)·2⁻²⁴`` of the exact sum relative to it, and
+    within ``n`` times the smallest normal float32 absolutely (underflow); the claimed float64 value
+    is far closer than that.  So a value outside twice that band is not the waveform's energy, and
+    one inside it differs from it by less than float32 rounding of the samples themselves does.
+    Other sample types are checked against :func:`waveform_energy` itself (float64, ``(n + 1)·2⁻⁵³``).
+
+    Parameters
+    ----------
+    waveforms : (..., n_samples) array
+        V.
+    sample_rate : float
+        Hz.
+    energy : (...) array
+        The claimed energies, V²·s.
+
+    Returns
+    -------
+    (...) bool array
+        False where the claim is off, NaN or negative.
+    """
+    w = np.asarray(waveforms)
+    n = w.shape[-1]
+    claimed = np.asarray(energy, dtype=np.float64)
+    if w.dtype == np.float32:
+        check = np.vecdot(w, w).astype(np.float64) / float(sample_rate)
+        unit, tiny = 2.0 ** -24, float(np.finfo(np.float32).tiny)
+    else:
+        check = waveform_energy(w, sample_rate)
+        unit, tiny = 2.0 ** -53, float(np.finfo(np.float64).tiny)
+    band = 2.0 * ((n + 1) * unit * np.maximum(check, claimed) + n * tiny / float(sample_rate))
+    with np.errstate(invalid="ignore"):
+        # (an infinite band: squares that overflowed float32, which the claim is not checked against)
+        return (claimed >= 0.0) & (np.abs(claimed - check) <= band) & np.isfinite(band)
 
 
 def total_energy(sensor_energy: np.ndarray) -> np.ndarray:
@@ -165,14 +203,21 @@ def median_range(distance: np.ndarray) -> np.ndarray:
     return np.where(count > 0, 0.5 * (lo + hi), np.nan)
 
 
-def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel) -> np.ndarray:
+def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel, *,
+                 expected: np.ndarray | None = None) -> np.ndarray:
     """The indicator ``R = E^γ / E0(d_m)`` of each step (paper §4, Fig. 6).
 
     Steps with no valid range get R = 0: they cannot be the corner, whose
     double bounce always returns an echo.
+
+    ``expected``, an (n_steps,) array if given, receives ``E0(d_m)`` (eq. 12)
+    where ``d_m`` is valid (elsewhere it is left as it is).
     """
     d_m = median_range(distance)
     r = np.zeros_like(np.asarray(step_energy, dtype=np.float64))
     ok = np.isfinite(d_m)
-    r[ok] = np.asarray(step_energy, dtype=np.float64)[ok] / model.expected_energy(d_m[ok])
+    e0 = model.expected_energy(d_m[ok])
+    r[ok] = np.asarray(step_energy, dtype=np.float64)[ok] / e0
+    if expected is not None:
+        expected[ok] = e0
     return r

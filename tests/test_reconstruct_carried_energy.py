@@ -1,0 +1,186 @@
+"""``Sample.sensor_energy``: each waveform's energy (eq. 10) as its writer computed it.
+
+Present and right, the reconstructor uses it (it does not integrate the waveforms again); present and
+wrong (tampered in a recording) or not plausible, it finds out against the waveforms, counts, warns and
+recomputes, and the final is the one the true energies give; absent (another writer), it computes it.
+The truth each time is eq. (10) worked out here from the waveforms, independently of the code under test.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from lelsonar import codec
+from lelsonar.reconstruct import assembly
+from lelsonar.reconstruct.assembly import ScanAssembly
+from lelsonar.reconstruct.energy import waveform_energy_agrees
+from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.sources import replay_mcap
+from lelsonar.recording import McapRecorder
+
+from .conftest import simulated_messages
+from .test_reconstruct_service import comparable
+
+
+def _waves(sample: codec.Sample) -> np.ndarray:
+    return np.stack([codec.unpack_waveform(s.waveform) for s in sample.sensors])
+
+
+def _true_energy(sample: codec.Sample) -> np.ndarray:
+    """Eq. (10) by the rectangle rule, summed here in float64 (the definition, not the code under test)."""
+    w = _waves(sample).astype(np.float64)
+    return (w * w).sum(axis=1) / sample.sensors[0].waveform.sample_rate
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return simulated_messages("paper-test1", seed=5)
+
+
+def _copy(messages):
+    out = []
+    for m in messages:
+        c = type(m)()
+        c.CopyFrom(m)
+        out.append(c)
+    return out
+
+
+def _assemble(messages) -> ScanAssembly:
+    scan = ScanAssembly(messages[0])
+    for m in messages[1:-1]:
+        assert scan.add(m)
+    scan.end = messages[-1]
+    return scan
+
+
+def test_the_acquisition_service_carries_each_waveforms_energy(scan):
+    for m in scan[1:-1]:
+        assert len(m.sensor_energy) == len(m.sensors)
+        np.testing.assert_allclose(m.sensor_energy, _true_energy(m), rtol=1e-12)
+
+
+def test_present_and_right_it_is_used_not_recomputed(scan, monkeypatch):
+    recomputed = []
+    real = assembly.waveform_energy
+    monkeypatch.setattr(assembly, "waveform_energy", lambda *a: recomputed.append(a) or real(*a))
+    got = _assemble(scan)
+    steps = np.flatnonzero(got.received)
+    assert len(steps) == len(scan) - 2
+    assert recomputed == [] and got.energy_mismatches == 0
+    np.testing.assert_array_equal(got.sensor_energy[steps], [list(m.sensor_energy) for m in scan[1:-1]])
+
+
+@pytest.mark.parametrize("tamper", ["scaled", "slightly", "negative", "nan", "short", "swapped"])
+def test_present_and_wrong_it_is_found_counted_warned_and_recomputed(scan, tamper, caplog):
+    messages = _copy(scan)
+    bad = [5, 40, 41, 120]
+    for m in (messages[1 + s] for s in bad):
+        e = list(m.sensor_energy)
+        if tamper == "scaled":
+            e[2] *= 1.5
+        elif tamper == "slightly":  # 0.1 %: well outside float32 rounding over 3500 samples (≤ 0.042 %)
+            e[0] *= 1.001
+        elif tamper == "negative":
+            e[1] = -e[1]
+        elif tamper == "nan":
+            e[3] = float("nan")
+        elif tamper == "short":
+            e = e[:-1]
+        else:  # two capsules' energies exchanged: each value plausible, the pairing wrong
+            e[0], e[3] = e[3], e[0] * (1.01 if e[0] == e[3] else 1.0)
+        del m.sensor_energy[:]
+        m.sensor_energy.extend(e)
+    with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.assembly"):
+        got = _assemble(messages)
+        got.settle()
+    assert got.energy_mismatches == len(bad)
+    assert any("disagrees with their waveforms" in r.getMessage() for r in caplog.records)
+    truth = np.array([_true_energy(m) for m in scan[1:-1]])
+    np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
+    # and exactly what the untampered samples give
+    clean = _assemble(_copy(scan))
+    for name in ("sensor_energy", "echo_amplitude", "step_energy", "expected_energy", "ratio"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(clean, name), err_msg=name)
+
+
+def test_absent_it_is_computed(scan):
+    messages = _copy(scan)
+    for m in messages[1:-1]:
+        m.ClearField("sensor_energy")
+    got = _assemble(messages)
+    clean = _assemble(_copy(scan))
+    assert got.energy_mismatches == 0
+    truth = np.array([_true_energy(m) for m in scan[1:-1]])
+    np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
+    for name in ("sensor_energy", "echo_amplitude", "step_energy", "expected_energy", "ratio"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(clean, name), err_msg=name)
+
+
+def test_a_mix_of_writers_and_encodings_in_one_scan(scan):
+    """Samples with and without energies, int16 waveforms, and a batch cut by the ScanEnd and by a change of
+    waveform length: every step gets eq. (10) of its own waveforms."""
+    messages = _copy(scan)
+    for m in messages[1:-1:3]:
+        m.ClearField("sensor_energy")
+    for m in messages[2:-1:5]:  # int16 data, energies of the int16 samples as the writer packed them
+        for s in m.sensors:
+            w = s.waveform
+            v = codec.unpack_waveform(w)
+            s.waveform.CopyFrom(codec.pack_waveform(v, w.sample_rate, w.t0, int16_scale=1e-4))
+        del m.sensor_energy[:]
+        m.sensor_energy.extend(_true_energy(m).tolist())
+    for m in messages[60:63]:  # shorter waveforms for a few steps, with the energies of those
+        for s in m.sensors:
+            w = s.waveform
+            s.waveform.CopyFrom(codec.pack_waveform(codec.unpack_waveform(w)[:2000], w.sample_rate, w.t0))
+        if len(m.sensor_energy):
+            del m.sensor_energy[:]
+            m.sensor_energy.extend(_true_energy(m).tolist())
+    got = _assemble(messages)
+    assert got.energy_mismatches == 0
+    truth = np.array([_true_energy(m) for m in messages[1:-1]])
+    np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
+    view = got.latest
+    np.testing.assert_array_equal(view.waveforms, _waves(messages[-2]))
+
+
+def test_the_check_refuses_what_is_off_by_more_than_float32_rounding():
+    rng = np.random.default_rng(3)
+    w = rng.standard_normal((50, 4, 3500)).astype(np.float32)
+    exact = (w.astype(np.float64) ** 2).sum(axis=-1) / 2e5
+    assert waveform_energy_agrees(w, 2e5, exact).all()
+    # float32 sums of 3500 terms are within 3501·2⁻²⁴ ≈ 2.1e-4 of the exact sum; 1e-3 off is a different value
+    for factor in (1 + 1e-3, 1 - 1e-3, 2.0, 0.0):
+        assert not waveform_energy_agrees(w, 2e5, exact * factor).any()
+    assert not waveform_energy_agrees(w, 2e5, np.where(exact > 0, np.nan, 0.0)).any()
+    assert waveform_energy_agrees(np.zeros((2, 10), np.float32), 1e3, np.zeros(2)).all()
+
+
+def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_path, caplog):
+    """In an MCAP: the final of a recording whose energies were tampered with is the final of the
+    untouched recording, the tampering counted and warned about."""
+    tampered = _copy(scan)
+    for m in tampered[1:-1:10]:
+        e = list(m.sensor_energy)
+        e[1] *= 3.0
+        del m.sensor_energy[:]
+        m.sensor_energy.extend(e)
+    paths = {}
+    for name, messages in (("true", scan), ("tampered", tampered)):
+        paths[name] = tmp_path / f"{name}.mcap"
+        with McapRecorder(paths[name]) as rec:
+            for i, m in enumerate(messages):
+                rec.write(m, log_time_ns=1_700_000_000_000_000_000 + i * 20_000_000)
+    finals = {}
+    with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.assembly"):
+        for name, path in paths.items():
+            service = ReconstructionService(ReconstructConfig())
+            replay_mcap(path, service)
+            (finals[name],) = service.finals.values()
+    assert comparable(finals["tampered"]) == comparable(finals["true"])
+    warned = [r for r in caplog.records if "disagrees with their waveforms" in r.getMessage()]
+    assert sum(int(r.args[1]) for r in warned) == len(tampered[1:-1:10])
