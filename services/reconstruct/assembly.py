@@ -137,7 +137,7 @@ class ScanAssembly:
         self._batch: np.ndarray | None = None
         self._batch_bytes: memoryview | None = None
         self._batch_shape: tuple[int, float, float] | None = None
-        # The latest step placed: (step, time_ns, gamma, Waveforms), made a StepView when read.
+        # The latest step placed: (step, time_ns, gamma, its sensors in capsule order), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
@@ -201,7 +201,8 @@ class ScanAssembly:
         view = self._latest
         if view is None or isinstance(view, StepView):
             return view
-        step, time_ns, gamma, waves = view
+        step, time_ns, gamma, sensors = view
+        waves = [s.waveform for s in sensors]
         w = waves[0]
         self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(),
                                        _waveforms(waves, w.sample_count), w.sample_rate, w.t0)
@@ -264,61 +265,84 @@ class ScanAssembly:
             return False
         k = self.geometry.n_capsules
         sensors = sample.sensors
-        carried = sample.sensor_energy
-        ids = [s.capsule_id for s in sensors]
-        if ids != self._capsule_ids:
-            if sorted(ids) != self._capsule_ids:
-                raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules 0..{k - 1}")
-            order = sorted(range(k), key=ids.__getitem__)
-            sensors = [sensors[i] for i in order]
-            if len(carried) == k:  # carried in the order of the sensors
-                carried = [carried[i] for i in order]
-        # One pass over the readings: the waveforms, and each echo's range and round trip.
-        waves = []
+        first = sensors[0].waveform
+        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
+        shape = (n, rate, t0)
+        if shape != self._batch_shape:
+            self._start_batch(shape)
+        row = len(self._unsettled)
+        # One pass over the readings, for what the acquisition service sends (capsules in order, float32
+        # waveforms of one length): each echo's range and round trip, and the samples copied to the batch.
         ranges = [math.nan] * k
         tof = [math.nan] * k
-        for i, s in enumerate(sensors):
-            waves.append(s.waveform)
+        size = 4 * n
+        at = row * k * size
+        batch = self._batch_bytes
+        i = 0
+        for s in sensors:
+            w = s.waveform
+            if s.capsule_id != i or w.sample_count != n or w.encoding != _FLOAT32:
+                break
+            batch[at:at + size] = w.data
+            at += size
             if s.echo_valid:
                 ranges[i] = d = s.distance
                 # The round trip, where the echo sits in the waveform; a recorder that leaves it
                 # unset still gave the range, and the speed of sound is in the ScanStart.
                 t = s.time_of_flight
                 tof[i] = t if t > 0 else 2.0 * d / self.start.sound_speed
-        first = waves[0]
-        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
-        if any(w.sample_count != n for w in waves):
-            raise InvalidMessageError(f"sample {step} has waveforms of different lengths "
-                                      f"{sorted({w.sample_count for w in waves})}")
+            i += 1
+        carried = sample.sensor_energy
+        carried = list(carried) if len(carried) else None  # a list: the message is not held
+        if i != k or len(sensors) != k:  # anything else: the same, the general way
+            sensors, ranges, tof, carried = self._readings(sample, carried)
+            self._batch[row] = _waveforms([s.waveform for s in sensors], n)
         self.gamma[step] = sample.gamma_measured
         self.distance[step] = ranges
         self.time_ns[step] = sample.acquisition_time_ns
         self.received[step] = True
         self.recovered_mask[step] = origin == "recovered"
-        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, waves)
-        # The waveforms' share waits for settle(), with as many other steps as come by then: their samples are
-        # copied to the batch (the message is not held).
-        shape = (n, rate, t0)
-        if shape != self._batch_shape:
-            self.settle()
-            self._batch_shape = shape
-            if self._batch is None or self._batch.shape[-1] != n:
-                self._batch = np.empty((self.SETTLE_EVERY, k, n), dtype="<f4")
-                self._batch_bytes = memoryview(self._batch).cast("B")
-        row = len(self._unsettled)
-        if all(w.encoding == _FLOAT32 for w in waves):
-            size = 4 * n
-            at = row * k * size
-            batch = self._batch_bytes
-            for w in waves:
-                batch[at:at + size] = w.data
-                at += size
-        else:
-            self._batch[row] = _waveforms(waves, n)
-        self._unsettled.append((step, tof, list(carried) if len(carried) else None))  # a list: not the message
+        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, sensors)
+        # The waveforms' share waits for settle(), with as many other steps as come by then.
+        self._unsettled.append((step, tof, carried))
         if row + 1 >= self.SETTLE_EVERY:
             self.settle()
         return True
+
+    def _readings(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list, list, list | None]:
+        """The sensors of a sample in capsule order, their ranges and round trips (NaN: no echo), and the
+        carried energies in the same order; checked."""
+        k = self.geometry.n_capsules
+        sensors = list(sample.sensors)
+        ids = [s.capsule_id for s in sensors]
+        if ids != self._capsule_ids:
+            if sorted(ids) != self._capsule_ids:
+                raise InvalidMessageError(f"sample {sample.step} carries capsules {ids}; the scan has capsules "
+                                          f"0..{k - 1}")
+            order = sorted(range(k), key=ids.__getitem__)
+            sensors = [sensors[i] for i in order]
+            if carried is not None and len(carried) == k:  # carried in the order of the sensors
+                carried = [carried[i] for i in order]
+        counts = {s.waveform.sample_count for s in sensors}
+        if len(counts) > 1:
+            raise InvalidMessageError(f"sample {sample.step} has waveforms of different lengths {sorted(counts)}")
+        ranges = [math.nan] * k
+        tof = [math.nan] * k
+        for i, s in enumerate(sensors):
+            if s.echo_valid:
+                ranges[i] = d = s.distance
+                t = s.time_of_flight
+                tof[i] = t if t > 0 else 2.0 * d / self.start.sound_speed
+        return sensors, ranges, tof, carried
+
+    def _start_batch(self, shape: tuple[int, float, float]) -> None:
+        """Settle what is unsettled, and take waveforms of ``shape`` = (samples, rate, t0) from now on."""
+        self.settle()
+        n = shape[0]
+        self._batch_shape = shape
+        if self._batch is None or self._batch.shape[-1] != n:
+            self._batch = np.empty((self.SETTLE_EVERY, self.geometry.n_capsules, n), dtype="<f4")
+            self._batch_bytes = memoryview(self._batch).cast("B")
 
     def settle(self) -> None:
         """Work out, for the steps placed since the last call and all at once, what comes from the
