@@ -98,8 +98,8 @@ class ScanAssembly:
     """Everything known about one (scanner, scan).
 
     ``sensor_energy``, ``echo_amplitude``, ``step_energy``, ``expected_energy``
-    and ``ratio`` are read-only views that first :meth:`settle` the steps placed
-    since they were last read.
+    and ``ratio`` are properties that first :meth:`settle` the steps placed
+    since they were last read (write nothing into them).
     """
 
     start: codec.ScanStart
