@@ -98,7 +98,7 @@ def test_present_and_wrong_it_is_found_counted_warned_and_recomputed(scan, tampe
         got = _assemble(messages)
         got.settle()
     assert got.energy_mismatches == len(bad)
-    assert any("disagrees with their waveforms" in r.getMessage() for r in caplog.records)
+    assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1  # once a scan
     truth = np.array([_true_energy(m) for m in scan[1:-1]])
     np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
     # and exactly what the untampered samples give
@@ -150,14 +150,21 @@ def test_a_mix_of_writers_and_encodings_in_one_scan(scan):
 
 def test_the_check_refuses_what_is_off_by_more_than_float32_rounding():
     rng = np.random.default_rng(3)
-    w = rng.standard_normal((50, 4, 3500)).astype(np.float32)
-    exact = (w.astype(np.float64) ** 2).sum(axis=-1) / 2e5
-    assert waveform_energy_agrees(w, 2e5, exact).all()
-    # float32 sums of 3500 terms are within 3501·2⁻²⁴ ≈ 2.1e-4 of the exact sum; 1e-3 off is a different value
-    for factor in (1 + 1e-3, 1 - 1e-3, 2.0, 0.0):
-        assert not waveform_energy_agrees(w, 2e5, exact * factor).any()
-    assert not waveform_energy_agrees(w, 2e5, np.where(exact > 0, np.nan, 0.0)).any()
-    assert waveform_energy_agrees(np.zeros((2, 10), np.float32), 1e3, np.zeros(2)).all()
+    rate = 2e5
+    for _ in range(50):
+        w = (rng.standard_normal((4, 3500)) * rng.uniform(1e-3, 10.0)).astype(np.float32)
+        exact = (w.astype(np.float64) ** 2).sum(axis=-1) / rate  # eq. (10), in float64 here
+        assert waveform_energy_agrees(w, rate, exact.tolist())
+        # float32 sums of 3500 terms are within 3501·2⁻²⁴ ≈ 2.1e-4 of the exact sum; 1e-3 off is another value
+        for factor in (1 + 1e-3, 1 - 1e-3, 2.0, 0.0):
+            for i in range(4):
+                wrong = exact.copy()
+                wrong[i] *= factor
+                assert not waveform_energy_agrees(w, rate, wrong.tolist())
+        for bad in (np.nan, np.inf, -exact[0]):
+            assert not waveform_energy_agrees(w, rate, [bad, *exact[1:]])
+        assert not waveform_energy_agrees(w, rate, exact[:3].tolist())  # not one a waveform
+    assert waveform_energy_agrees(np.zeros((2, 10), np.float32), 1e3, [0.0, 0.0])
 
 
 def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_path, caplog):
@@ -175,12 +182,13 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
         with McapRecorder(paths[name]) as rec:
             for i, m in enumerate(messages):
                 rec.write(m, log_time_ns=1_700_000_000_000_000_000 + i * 20_000_000)
-    finals = {}
+    finals, services = {}, {}
     with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.assembly"):
         for name, path in paths.items():
-            service = ReconstructionService(ReconstructConfig())
+            services[name] = service = ReconstructionService(ReconstructConfig())
             replay_mcap(path, service)
             (finals[name],) = service.finals.values()
     assert comparable(finals["tampered"]) == comparable(finals["true"])
-    warned = [r for r in caplog.records if "disagrees with their waveforms" in r.getMessage()]
-    assert sum(int(r.args[1]) for r in warned) == len(tampered[1:-1:10])
+    assert services["tampered"].ingest.energy_mismatches == len(tampered[1:-1:10])
+    assert services["true"].ingest.energy_mismatches == 0
+    assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1

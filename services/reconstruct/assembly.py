@@ -5,18 +5,22 @@ copy of a step is dropped.  Per step the assembly keeps what the math needs —
 measured γ, ranges, the energy of each capsule (eq. 10), the first echo's
 peak — and the latest step's waveforms, for display.
 
-Placing a sample is bookkeeping only.  What comes from the waveforms — their
-energy, the echo peaks, R (§4) — is worked out for many steps at once, when
-it is first read (``sensor_energy``, ``ratio``, :meth:`ScanAssembly.arrays`,
-…), when the ScanEnd comes (:meth:`ScanAssembly.settle`), or every
-:attr:`ScanAssembly.SETTLE_EVERY` steps (which bounds the waveforms held).  A
-``Sample`` may carry the energies its writer computed (``sensor_energy``, as
-the acquisition service does): they are used after a batched float32 check
-against the waveforms (:func:`~lelsonar.reconstruct.energy.waveform_energy_agrees`);
-where they disagree, or are not plausible, the energies are recomputed,
-counted in :attr:`ScanAssembly.energy_mismatches` and warned about.  Without
-them (another writer), they are computed.  Either way the arrays hold what
-:func:`~lelsonar.reconstruct.energy.waveform_energy` gives.
+A sample's waveforms are worked on once, as it is placed, while their
+samples are in the cache: a ``Sample`` may carry the energies its writer
+computed (``sensor_energy``, as the acquisition service does); they are
+checked against the waveforms in float32
+(:func:`~lelsonar.reconstruct.energy.waveform_energy_agrees`, one dot product
+a step) instead of integrated again in float64.  Where they disagree, or are
+not plausible, the energies are recomputed, counted
+(:attr:`ScanAssembly.energy_mismatches`) and warned about; without them
+(another writer) they are computed.  Either way the arrays hold eq. (10) of
+the waveforms: the writer's value, which the check holds to within float32
+rounding of it (the acquisition service's is
+:func:`~lelsonar.reconstruct.energy.waveform_energy` itself, bit for bit), or
+that function's.  The first echo's
+peak window is cut out of each waveform; the peaks, and R (§4), are worked
+out for many steps at once (:meth:`ScanAssembly.settle`) when first read, when
+the ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.
 
 The per-step arrays grow with the highest step that actually arrived (doubling,
 capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
@@ -39,11 +43,13 @@ from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
 from lelsonar.reconstruct.energy import (
     EnergyModel,
-    echo_amplitude,
+    echo_window_starts,
+    echo_window_width,
     energy_ratio,
     total_energy,
     waveform_energy,
     waveform_energy_agrees,
+    window_peak,
 )
 from lelsonar.v1 import scan_pb2
 
@@ -121,23 +127,21 @@ class ScanAssembly:
 
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
-    #: Steps placed but not yet settled that make :meth:`add` settle them: the waveforms held for the batched
-    #: work stay below this many steps' worth (4 × 3500 float32 samples: 56 KB a step).
-    SETTLE_EVERY = 32
+    #: Steps placed but not yet settled that make :meth:`add` settle them (what is held for it is small: the
+    #: echo windows, 4 × 80 float32 samples a step).
+    SETTLE_EVERY = 256
 
     def __post_init__(self) -> None:
         self.geometry = geometry_from_start(self.start)
         self._capsule_ids = list(range(self.geometry.n_capsules))
         self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
-        # Placed, not yet settled: (step, round trips, carried energies or None); their waveforms are the
-        # first rows of _batch, (SETTLE_EVERY, k, n) float32 of the waveform shape _batch_shape = (n, rate, t0).
-        # One buffer, reused batch after batch: fresh memory for every batch costs more (page faults) than the
-        # arithmetic, and holding the decoded messages instead slows the decoding of the next ones.
-        self._unsettled: list[tuple[int, list[float], object]] = []
-        self._batch: np.ndarray | None = None
-        self._batch_bytes: memoryview | None = None
-        self._batch_shape: tuple[int, float, float] | None = None
-        # The latest step placed: (step, time_ns, gamma, its sensors in capsule order), made a StepView when read.
+        # Steps placed since the last settle(), and the windows of their first echoes, by width:
+        # (float32 bytes of each window, its flat index in echo_amplitude).
+        self._unsettled: list[int] = []
+        self._windows: dict[int, tuple[list[bytes], list[int]]] = {}
+        self._shape: tuple[int, float, float] | None = None   # the latest (samples, rate, t0), and its window width
+        self._width = 0
+        # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
@@ -201,11 +205,9 @@ class ScanAssembly:
         view = self._latest
         if view is None or isinstance(view, StepView):
             return view
-        step, time_ns, gamma, sensors = view
-        waves = [s.waveform for s in sensors]
-        w = waves[0]
-        self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(),
-                                       _waveforms(waves, w.sample_count), w.sample_rate, w.t0)
+        step, time_ns, gamma, joined, (n, rate, t0) = view
+        waveforms = np.frombuffer(joined, dtype="<f4").reshape(self.geometry.n_capsules, n)
+        self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(), waveforms, rate, t0)
         return view
 
     @property
@@ -265,26 +267,21 @@ class ScanAssembly:
             return False
         k = self.geometry.n_capsules
         sensors = sample.sensors
+        if not sensors:
+            raise InvalidMessageError(f"sample {step} carries no sensor readings")
         first = sensors[0].waveform
         n, rate, t0 = first.sample_count, first.sample_rate, first.t0
-        shape = (n, rate, t0)
-        if shape != self._batch_shape:
-            self._start_batch(shape)
-        row = len(self._unsettled)
         # One pass over the readings, for what the acquisition service sends (capsules in order, float32
-        # waveforms of one length): each echo's range and round trip, and the samples copied to the batch.
+        # waveforms of one length): each echo's range and round trip, and the samples.
         ranges = [math.nan] * k
         tof = [math.nan] * k
-        size = 4 * n
-        at = row * k * size
-        batch = self._batch_bytes
+        data = []
         i = 0
         for s in sensors:
             w = s.waveform
             if s.capsule_id != i or w.sample_count != n or w.encoding != _FLOAT32:
                 break
-            batch[at:at + size] = w.data
-            at += size
+            data.append(w.data)
             if s.echo_valid:
                 ranges[i] = d = s.distance
                 # The round trip, where the echo sits in the waveform; a recorder that leaves it
@@ -293,21 +290,55 @@ class ScanAssembly:
                 tof[i] = t if t > 0 else 2.0 * d / self.start.sound_speed
             i += 1
         carried = sample.sensor_energy
-        carried = list(carried) if len(carried) else None  # a list: the message is not held
-        if i != k or len(sensors) != k:  # anything else: the same, the general way
+        carried = list(carried) if len(carried) else None
+        if i == k and len(sensors) == k:
+            joined = b"".join(data)
+        else:  # anything else: the same, the general way
             sensors, ranges, tof, carried = self._readings(sample, carried)
-            self._batch[row] = _waveforms([s.waveform for s in sensors], n)
+            joined = _waveforms([s.waveform for s in sensors], n).astype("<f4", copy=False).tobytes()
+        # The (k, n) float32 samples, worked on while they are in the cache (holding them for later would
+        # cost more: fresh memory for each step, and a cold cache for the next step's decoding).
+        waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
+        if carried is not None and waveform_energy_agrees(waveforms, rate, carried):
+            self._sensor_energy[step] = carried  # the writer's, checked against the samples
+        else:
+            self._sensor_energy[step] = waveform_energy(waveforms, rate)
+            if carried is not None:
+                self._energy_mismatch(step)
+        # The first echoes' peak windows, cut out of the samples now and reduced with the other steps' later.
+        shape = (n, rate, t0)
+        if shape != self._shape:
+            self._shape, self._width = shape, echo_window_width(rate)
+        width = self._width
+        size = 4 * width
+        chunks = where = None
+        for i, a in enumerate(echo_window_starts(n, rate, t0, tof)):
+            if a >= 0:
+                at = 4 * (i * n + a)
+                window = joined[at:at + min(size, 4 * (n - a))]
+                if len(window) < size:  # off the end: zeros, which leave the largest |w| as it is
+                    window += bytes(size - len(window))
+                if chunks is None:
+                    chunks, where = self._windows.setdefault(width, ([], []))
+                chunks.append(window)
+                where.append(step * k + i)
         self.gamma[step] = sample.gamma_measured
         self.distance[step] = ranges
         self.time_ns[step] = sample.acquisition_time_ns
         self.received[step] = True
         self.recovered_mask[step] = origin == "recovered"
-        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, sensors)
-        # The waveforms' share waits for settle(), with as many other steps as come by then.
-        self._unsettled.append((step, tof, carried))
-        if row + 1 >= self.SETTLE_EVERY:
+        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, joined, shape)
+        self._unsettled.append(step)
+        if len(self._unsettled) >= self.SETTLE_EVERY:
             self.settle()
         return True
+
+    def _energy_mismatch(self, step: int) -> None:
+        self.energy_mismatches += 1
+        if self.energy_mismatches == 1:  # once a scan; the rest are counted
+            _log.warning("scan %s: the sensor_energy carried by step %d disagrees with its waveforms (or is not "
+                         "one finite, non-negative value per capsule); recomputed from the waveforms; further "
+                         "such steps of this scan are counted in energy_mismatches", self.key, step)
 
     def _readings(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list, list, list | None]:
         """The sensors of a sample in capsule order, their ranges and round trips (NaN: no echo), and the
@@ -335,58 +366,22 @@ class ScanAssembly:
                 tof[i] = t if t > 0 else 2.0 * d / self.start.sound_speed
         return sensors, ranges, tof, carried
 
-    def _start_batch(self, shape: tuple[int, float, float]) -> None:
-        """Settle what is unsettled, and take waveforms of ``shape`` = (samples, rate, t0) from now on."""
-        self.settle()
-        n = shape[0]
-        self._batch_shape = shape
-        if self._batch is None or self._batch.shape[-1] != n:
-            self._batch = np.empty((self.SETTLE_EVERY, self.geometry.n_capsules, n), dtype="<f4")
-            self._batch_bytes = memoryview(self._batch).cast("B")
-
     def settle(self) -> None:
-        """Work out, for the steps placed since the last call and all at once, what comes from the
-        waveforms: each capsule's energy (eq. 10, the carried one once checked), the first echo's peak,
-        E^γ (eq. 11), E0(d_m) (eq. 12) and R (§4)."""
-        unsettled = self._unsettled
-        if not unsettled:
+        """Work out, for the steps placed since the last call and all at once, the first echoes' peaks (from the
+        windows cut out by :meth:`add`), E^γ (eq. 11), E0(d_m) (eq. 12) and R (§4)."""
+        if self._windows:
+            flat = self._echo_amplitude.reshape(-1)
+            for width, (chunks, where) in self._windows.items():
+                flat[where] = window_peak(np.frombuffer(b"".join(chunks), dtype="<f4").reshape(-1, width))
+            self._windows = {}
+        if not self._unsettled:
             return
+        steps = np.array(self._unsettled)
         self._unsettled = []
-        k, m = self.geometry.n_capsules, len(unsettled)
-        n, rate, t0 = self._batch_shape
-        waveforms = self._batch[:m]
-        steps = np.array([e[0] for e in unsettled])
-        carried = [e[2] for e in unsettled]
-        if all(c is not None and len(c) == k for c in carried):  # the acquisition service's samples
-            energy = np.array(carried, dtype=np.float64)
-            agree = waveform_energy_agrees(waveforms, rate, energy).all(axis=1)
-            told = np.ones(m, dtype=bool)
-        else:  # some samples without energies (another writer), or not one a capsule (not plausible)
-            told = np.array([c is not None for c in carried])
-            energy = np.full((m, k), np.nan)
-            for i, c in enumerate(carried):
-                if c is not None and len(c) == k:
-                    energy[i] = c
-            agree = told.copy()
-            if told.any():
-                agree[told] = waveform_energy_agrees(waveforms[told], rate, energy[told]).all(axis=1)
-        if not agree.all():
-            for i in np.flatnonzero(~agree).tolist():  # step by step: a (k, n) float64 copy, not a whole batch's
-                energy[i] = waveform_energy(waveforms[i], rate)
-            wrong = steps[told & ~agree].tolist()
-            if wrong:
-                self.energy_mismatches += len(wrong)
-                _log.warning("scan %s: the sensor_energy carried by %d samples (steps %s) disagrees with their "
-                             "waveforms; recomputed from the waveforms (%d such steps in this scan)",
-                             self.key, len(wrong), _steps_text(wrong), self.energy_mismatches)
-        self._sensor_energy[steps] = energy
-        self._echo_amplitude[steps] = echo_amplitude(waveforms, rate, t0, np.array([e[1] for e in unsettled]))
-        self._step_energy[steps] = step_energy = total_energy(energy)
+        self._step_energy[steps] = step_energy = total_energy(self._sensor_energy[steps])
         expected = self._expected_energy[steps]
         self._ratio[steps] = energy_ratio(step_energy, self.distance[steps], self.energy_model, expected=expected)
         self._expected_energy[steps] = expected
-        if self.end is not None:  # the scan is over: its batch is not kept for the odd late step
-            self._batch = self._batch_bytes = self._batch_shape = None
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(steps, gamma, distance, ratio)`` of the received steps, in step order."""
@@ -403,8 +398,3 @@ def _waveforms(waves: list, n: int) -> np.ndarray:
     if all(w.encoding == _FLOAT32 for w in waves):
         return np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(len(waves), n)
     return np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
-
-
-def _steps_text(steps: list[int], most: int = 8) -> str:
-    shown = ", ".join(str(s) for s in sorted(steps)[:most])
-    return shown + (f", … ({len(steps)} in all)" if len(steps) > most else "")

@@ -5,12 +5,15 @@ Pure functions: arrays in, typed results out, no I/O.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 
-__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "waveform_energy", "waveform_energy_agrees", "echo_amplitude", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
+__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "waveform_energy", "waveform_energy_agrees", "echo_amplitude", "echo_window_starts",
+           "echo_window_width", "window_peak", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
 
 
 def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -44,6 +47,38 @@ _largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper
 ECHO_PEAK_WINDOW = (0.0, 4.0e-4)
 
 
+def echo_window_width(sample_rate: float, window: tuple[float, float] = ECHO_PEAK_WINDOW) -> int:
+    """Samples in :func:`echo_amplitude`'s window (at least one)."""
+    return max(int(round((window[1] - window[0]) * sample_rate)), 1)
+
+
+def echo_window_starts(n_samples: int, sample_rate: float, t0: float, round_trips,
+                       window: tuple[float, float] = ECHO_PEAK_WINDOW) -> list[int]:
+    """First sample of :func:`echo_amplitude`'s window for each round trip, in a waveform of ``n_samples``;
+    -1 where there is none.
+
+    The sample nearest ``round_trip + window[0]`` (half to even), clipped at 0; none without an echo
+    (``round_trip`` NaN, infinite or not positive) or when the window starts at or after the end.
+    """
+    starts = []
+    lo = window[0]
+    for t in round_trips:
+        a = -1
+        if t > 0.0 and math.isfinite(t):
+            x = (t + lo - t0) * sample_rate
+            if x < n_samples:
+                a = round(x) if x > 0.0 else 0
+                if a >= n_samples:
+                    a = -1
+        starts.append(a)
+    return starts
+
+
+def window_peak(windows: np.ndarray) -> np.ndarray:
+    """The largest ``|w|`` of each window (last axis): exact, in the samples' own type."""
+    return _largest(np.abs(windows), axis=-1)
+
+
 def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_trip: np.ndarray,
                    window: tuple[float, float] = ECHO_PEAK_WINDOW) -> np.ndarray:
     """Peak amplitude of the first echo alone: the largest ``|w|`` just after its time of flight.
@@ -65,7 +100,8 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     round_trip : (...) array
         Time of flight of the first echo, s (NaN: no echo).
     window : (float, float)
-        Start and end of the search after the time of flight, s.
+        Start and end of the search after the time of flight, s (:func:`echo_window_starts`,
+        :func:`echo_window_width`; a window running off the end stops there).
 
     Returns
     -------
@@ -79,65 +115,63 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     out = np.full(w.shape[:-1], np.nan)
     if n == 0 or not out.size:  # no waveform recorded: no amplitude
         return out
-    # Every window at once (one gather, however many waveforms: a scan's or a step's): |w| and max are
-    # exact in float32, so float32 samples are never converted, and only the echo windows are touched.
-    width = max(int(round((window[1] - window[0]) * sample_rate)), 1)
     tof = np.asarray(round_trip, dtype=np.float64)
     if tof.shape != out.shape:
         tof = np.broadcast_to(tof, out.shape)
-    tof = tof.ravel()
-    x = (tof + window[0] - t0) * sample_rate   # where the window starts, in samples (NaN: no echo)
-    # an echo (a finite, positive time of flight) whose window starts before the end
-    ok = (tof > 0.0) & (x < n) & np.isfinite(tof)
-    # the nearest sample, half to even, clipped at 0
-    first = np.rint(np.where(ok & (x > 0.0), x, 0.0))
-    ok &= first < n
-    rows = np.flatnonzero(ok)
-    if rows.size:
-        # a window running off the end repeats the last sample, which leaves the max unchanged
-        cols = np.minimum(first[rows].astype(np.intp)[:, None] + np.arange(width), n - 1)
-        out.reshape(-1)[rows] = _largest(np.abs(w.reshape(-1, n)[rows[:, None], cols]), axis=1)
+    starts = echo_window_starts(n, sample_rate, t0, tof.ravel().tolist(), window)
+    rows = [i for i, a in enumerate(starts) if a >= 0]
+    if rows:
+        # Every window at once, one gather (|w| and max are exact in float32: float32 samples are never
+        # converted); a window running off the end repeats the last sample, which leaves the max unchanged.
+        first = np.array([starts[i] for i in rows])
+        cols = np.minimum(first[:, None] + np.arange(echo_window_width(sample_rate, window)), n - 1)
+        out.reshape(-1)[rows] = window_peak(w.reshape(-1, n)[np.array(rows)[:, None], cols])
     return out
 
 
-def waveform_energy_agrees(waveforms: np.ndarray, sample_rate: float, energy: np.ndarray) -> np.ndarray:
-    """Whether ``energy`` is each waveform's eq. (10) energy, to the rounding of a float32 check.
+#: float32's unit roundoff and smallest normal number: the rounding bound of :func:`waveform_energy_agrees`.
+_FLOAT32_UNIT, _FLOAT32_TINY = 2.0 ** -24, float(np.finfo(np.float32).tiny)
 
-    A check of a claimed :func:`waveform_energy` (e.g. one a writer computed), cheaper than
-    recomputing it: float32 samples are squared and summed in float32, without conversion.  A sum of
-    n non-negative float32 products is within ``(n + 1)·2⁻²⁴`` of the exact sum relative to it, and
+
+def waveform_energy_agrees(waveforms: np.ndarray, sample_rate: float, energy) -> bool:
+    """Whether ``energy`` is the eq. (10) energy of each waveform, to the rounding of a float32 check.
+
+    A check of claimed :func:`waveform_energy` values (e.g. a writer's), cheaper than recomputing
+    them: the float32 samples are squared and summed in float32, without conversion.  A sum of n
+    non-negative float32 products is within ``(n + 1)·2⁻²⁴`` of the exact sum relative to it, and
     within ``n`` times the smallest normal float32 absolutely (underflow); the claimed float64 value
     is far closer than that.  So a value outside twice that band is not the waveform's energy, and
     one inside it differs from it by less than float32 rounding of the samples themselves does.
-    Other sample types are checked against :func:`waveform_energy` itself (float64, ``(n + 1)·2⁻⁵³``).
 
     Parameters
     ----------
-    waveforms : (..., n_samples) array
-        V.
+    waveforms : (k, n_samples) float32 array
+        V (other types are rounded to float32 first).
     sample_rate : float
         Hz.
-    energy : (...) array
+    energy : sequence of k floats
         The claimed energies, V²·s.
 
     Returns
     -------
-    (...) bool array
-        False where the claim is off, NaN or negative.
+    bool
+        False if any claim is off, not finite or negative, or if there is not one a waveform (or the
+        float32 squares overflowed).
     """
     w = np.asarray(waveforms)
+    if w.dtype != np.float32:
+        w = w.astype(np.float32)
+    if w.ndim != 2 or len(energy) != len(w):
+        return False
     n = w.shape[-1]
-    claimed = np.asarray(energy, dtype=np.float64)
-    if w.dtype == np.float32:
-        check = np.vecdot(w, w).astype(np.float64) / float(sample_rate)
-        unit, tiny = 2.0 ** -24, float(np.finfo(np.float32).tiny)
-    else:
-        check = waveform_energy(w, sample_rate)
-        unit, tiny = 2.0 ** -53, float(np.finfo(np.float64).tiny)
-    band = 2.0 * ((n + 1) * unit * np.maximum(check, claimed) + n * tiny / float(sample_rate))
-    with np.errstate(invalid="ignore"):
-        # (an infinite band: squares that overflowed float32, which the claim is not checked against)
-        return (claimed >= 0.0) & (np.abs(claimed - check) <= band) & np.isfinite(band)
+    rate = float(sample_rate)
+    rtol, atol = 2.0 * (n + 1) * _FLOAT32_UNIT, 2.0 * n * _FLOAT32_TINY / rate
+    # (a step's few values: compared in Python, which costs less than more numpy calls would)
+    for c, s in zip(energy, np.vecdot(w, w).tolist()):
+        s /= rate
+        if not (0.0 <= c < math.inf and abs(c - s) <= rtol * max(c, s) + atol):
+            return False
+    return True
 
 
 def total_energy(sensor_energy: np.ndarray) -> np.ndarray:

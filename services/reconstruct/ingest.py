@@ -69,6 +69,9 @@ class Ingest:
     #: What a bound pushed out, by reason (nothing leaves a table uncounted).
     evicted: Counter[str] = field(default_factory=Counter)
     accepted: int = 0
+    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms, over the scans closed so far
+    #: (each open scan counts its own in ``ScanAssembly.energy_mismatches``); recomputed, not rejected.
+    energy_mismatches: int = 0
     #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
     recovered_after_close: int = 0
     #: Keys that started waiting for their ScanStart since the caller last emptied this list.
@@ -133,7 +136,9 @@ class Ingest:
 
     def close(self, key: ScanKey) -> None:
         """The scan is finalised: drop its data; later messages for it are rejected as late."""
-        self.scans.pop(key, None)
+        scan = self.scans.pop(key, None)
+        if scan is not None:
+            self.energy_mismatches += scan.energy_mismatches
         self._held -= len(self.pending.pop(key, []))
         self.closed[key] = None
         while len(self.closed) > self.max_closed:
