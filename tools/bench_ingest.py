@@ -19,9 +19,9 @@ Three measurements, side by side in one run and one table:
     right after the run (printed beside the result).
 (a′) the **ingest stage** alone — decode, validate, route, assemble
     (:meth:`~lelsonar.reconstruct.ingest.Ingest.accept`: everything the
-    service does before estimation, including the batched work on the
-    waveforms, settled every ``ScanAssembly.SETTLE_EVERY`` steps and at each
-    ScanEnd) — on the floor's payloads, one run of each
+    service does before estimation, including the echo peaks and R that
+    ``ScanAssembly.settle`` works out in batches at each ScanEnd) — on the
+    floor's payloads, one run of each
     per round, medians of 5; same target against the same floor.  The details
     give the time ``Ingest.accept`` took per sample inside (a)'s consumer.
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting
@@ -602,9 +602,9 @@ def profile_replay(path: Path, samples: int, console) -> None:
         ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
         ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
-        ("    ScanAssembly.add (bookkeeping; a settle every SETTLE_EVERY steps)", "reconstruct/assembly.py", "add",
+        ("    ScanAssembly.add (carried energies checked, echo windows cut out)", "reconstruct/assembly.py", "add",
          None),
-        ("  ScanAssembly.settle (energies checked, echo peaks, R; every caller)", "reconstruct/assembly.py", "settle",
+        ("  ScanAssembly.settle (echo peaks and R, batched; every caller)", "reconstruct/assembly.py", "settle",
          None),
         ("  _provisional (corner check, provisional refit)", *upd, None),
         ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
