@@ -228,13 +228,16 @@ def median_range(distance: np.ndarray) -> np.ndarray:
         NaN for a step with no valid range.
     """
     d = np.asarray(distance, dtype=np.float64)
+    k = d.shape[-1]
+    if not k:
+        return np.full(d.shape[:-1], np.nan)
     # np.nanmedian goes through masked arrays (~0.4 ms a call); sorting puts NaN last, so the
     # median of the c valid values is the mean of sorted[(c-1)//2] and sorted[c//2] — the same numbers.
-    ordered = np.sort(d, axis=-1)
-    count = np.isfinite(d).sum(axis=-1)
-    lo = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, axis=-1)[..., 0]
-    hi = np.take_along_axis(ordered, (count // 2)[..., None], axis=-1)[..., 0] if d.shape[-1] else lo
-    return np.where(count > 0, 0.5 * (lo + hi), np.nan)
+    ordered = np.sort(d, axis=-1).reshape(-1, k)
+    count = np.isfinite(d).sum(axis=-1).reshape(-1)
+    rows = np.arange(len(ordered))  # (plain indexing: take_along_axis costs more than the rest together)
+    mid = 0.5 * (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2])
+    return np.where(count > 0, mid, np.nan).reshape(d.shape[:-1])
 
 
 def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel, *,
