@@ -192,3 +192,25 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
     assert services["tampered"].ingest.energy_mismatches == len(tampered[1:-1:10])
     assert services["true"].ingest.energy_mismatches == 0
     assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_decode_sample_hands_over_the_samples_its_validation_joined(scan):
+    sample = scan[90]
+    message, samples = codec.decode_sample(sample.SerializeToString())
+    assert message == sample
+    np.testing.assert_array_equal(np.frombuffer(samples, dtype="<f4").reshape(len(sample.sensors), -1),
+                                  _waves(sample))
+    int16 = type(sample)()
+    int16.CopyFrom(sample)
+    w = int16.sensors[2].waveform
+    w.CopyFrom(codec.pack_waveform(codec.unpack_waveform(w), w.sample_rate, w.t0, int16_scale=1e-4))
+    assert codec.decode_sample(int16.SerializeToString())[1] is None  # not all float32: nothing joined
+    # through the ingest stage, the same energies and peaks as a scan assembled from the messages alone
+    from lelsonar.reconstruct.ingest import Ingest
+    ingest = Ingest()
+    for m in scan:
+        ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
+    (routed,) = ingest.scans.values()
+    alone = _assemble(_copy(scan))
+    for name in ("sensor_energy", "echo_amplitude", "ratio"):
+        np.testing.assert_array_equal(getattr(routed, name), getattr(alone, name), err_msg=name)

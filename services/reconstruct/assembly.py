@@ -249,8 +249,11 @@ class ScanAssembly:
         """The ScanEnd came and every step it counts has arrived."""
         return self.end is not None and len(self.missing_steps()) == 0
 
-    def add(self, sample: codec.Sample, origin: str = "live") -> bool:
+    def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None) -> bool:
         """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
+
+        ``samples``: the float32 samples of its waveforms joined in the order of its sensors, as
+        :func:`~lelsonar.codec.decode_sample` returns them (else they are copied out of the message).
 
         Raises
         ------
@@ -281,7 +284,8 @@ class ScanAssembly:
             w = s.waveform
             if s.capsule_id != i or w.sample_count != n or w.encoding != _FLOAT32:
                 break
-            data.append(w.data)
+            if samples is None:
+                data.append(w.data)
             if s.echo_valid:
                 ranges[i] = d = s.distance
                 # The round trip, where the echo sits in the waveform; a recorder that leaves it
@@ -292,7 +296,8 @@ class ScanAssembly:
         carried = sample.sensor_energy
         carried = list(carried) if len(carried) else None
         if i == k and len(sensors) == k:
-            joined = b"".join(data)
+            joined = samples if samples is not None and len(samples) == 4 * k * n else b"".join(
+                data or [s.waveform.data for s in sensors])
         else:  # anything else: the same, the general way
             sensors, ranges, tof, carried = self._readings(sample, carried)
             joined = _waveforms([s.waveform for s in sensors], n).astype("<f4", copy=False).tobytes()
