@@ -189,7 +189,7 @@ def _set(s: codec.Sample, path: str, value) -> None:
     ("sensors.0.waveform.sample_count", 63, TruncatedDataError, r"sensors\[0\]"),
     ("sensors.0.waveform.encoding", 7, InvalidMessageError, "unknown encoding"),
     ("sensors.1.distance", 100.0, InvalidMessageError, r"sensors\[1\] is marked valid"),
-    ("sensors.1.time_of_flight", 0.0, InvalidMessageError, r"sensors\[1\] is marked valid"),
+    ("sensors.1.time_of_flight", -1e-3, InvalidMessageError, r"sensors\[1\] is marked valid"),  # 0: unset, the distance is there
 ])
 def test_every_sensor_field_is_still_checked(path, value, error, match):
     s = make_sample()
@@ -212,7 +212,11 @@ def test_valid_extremes_the_screen_cannot_vouch_for_are_accepted():
     s.sensors[3].waveform.CopyFrom(codec.pack_waveform(codec.unpack_waveform(s.sensors[3].waveform), 2e5,
                                                        int16_scale=1e-3))
     assert codec.decode(s.SerializeToString(), codec.Sample) == s
-    # ... and int16 data with a bad scale is still refused.
+    # ... int16 data whose scale was left unset (0) is read as counts, and a negative scale still refused.
     s.sensors[3].waveform.scale = 0.0
+    decoded = codec.decode(s.SerializeToString(), codec.Sample)
+    np.testing.assert_array_equal(codec.unpack_waveform(decoded.sensors[3].waveform),
+                                  np.frombuffer(s.sensors[3].waveform.data, dtype="<i2").astype(np.float32))
+    s.sensors[3].waveform.scale = -1e-3
     with pytest.raises(InvalidMessageError, match=r"sensors\[3\].waveform.scale must be positive"):
         codec.decode(s.SerializeToString(), codec.Sample)

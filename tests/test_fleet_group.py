@@ -184,13 +184,8 @@ def start_member(stack: ExitStack, endpoint: str, member: str) -> GroupMembershi
     keys = ScannerKeys(PREFIX, "*")
     group = stack.enter_context(GroupMembership(session, PREFIX, GroupConfig("g", member, settle=0.0)))
     server = None
-
-    def publish(msg):
-        if group.may_publish(msg):
-            server.publish(msg)
-            group.on_estimate(msg)
-
-    service = ReconstructionService(ReconstructConfig(provisional=False, compare_methods=()), publish=publish)
+    service = ReconstructionService(ReconstructConfig(provisional=False, compare_methods=()),
+                                    publish=group.fenced(lambda msg: server.publish(msg)))
     server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
     stack.callback(server.close)
     stop = threading.Event()
@@ -318,8 +313,11 @@ def test_a_member_killed_mid_scan_its_scans_still_get_one_complete_final(tmp_pat
         assert present.status_name(est) == "final" and not est.missing_steps, key
         assert est.accounting.missing == 0 and est.samples_used == STEPS
     assert a.stats["scans adopted"] == len(b_scanners)
-    # b's scans were completed from the acquirers' logs: the steps b had taken were recovered.
-    assert a.service.stats.recovered >= cut * len(b_scanners) - len(b_scanners)
+    # b's scans were completed from the acquirers' logs: every sample a dropped as b's came back from them
+    # (all but b's ScanStarts, which a kept and fed itself).  Samples of b's that a's worker reached only
+    # after b had gone were a's to take live.
+    dropped = a.stats["dropped: other member"] - len(b_scanners)
+    assert dropped > 0 and a.service.stats.recovered >= dropped
 
 
 # --- the watcher's decisions, without a network ------------------------------------------------
@@ -368,6 +366,48 @@ def test_a_dead_members_ended_scan_without_a_final_is_adopted_and_one_with_a_fin
     assert fed == [("ScanStart", b_owned[1], "live"), ("ScanEnd", b_owned[1], "live")]
     assert group.stats["scans adopted"] == 1
     assert group.admit(b_owned[1], "sample", "", None) and group.answers_for(b_owned[0])
+
+
+def test_a_departed_members_scans_reach_a_full_fifo_while_its_worker_asks_the_fence():
+    # The live source's FIFO is full and its worker asks may_publish (the group's lock) before it takes
+    # the next batch.  Feeding the adopted scan's kept messages while holding that lock made each wait
+    # for the other: the feeder for room, the worker for the lock.
+    from lelsonar.reconstruct.sources import PayloadFifo
+
+    group, _ = _watcher("a", {"b": 0})
+    s = next(s for s in (f"s{i}" for i in range(40)) if owner(s, ["a", "b"]) == "b")
+    start, end = _scan_msgs(s)
+    for m in (start, end):
+        assert not group.admit(s, "scan", codec.encoding_name(m), _Payload(m.SerializeToString()))
+    fifo = PayloadFifo(1)
+    assert fifo.put(("live", None), timeout=0)  # full
+    feeding, asked = threading.Event(), threading.Event()
+
+    def enqueue(encoding, payload, origin, scanner):  # as the live source's: waits for room
+        feeding.set()
+        fifo.put((codec.MESSAGE_TYPES[encoding.partition(";")[2]].FromString(payload).DESCRIPTOR.name, scanner),
+                 timeout=30)  # bounded, so that a deadlock fails the test instead of hanging it
+
+    taken: list = []
+
+    def worker():
+        assert feeding.wait(30)
+        group.may_publish(_final(s, start.scan_id, "provisional"))
+        asked.set()
+        while len(taken) < 3 and (more := fifo.take(30)):
+            taken.extend(more)
+
+    group.attach(enqueue)
+    threads = [threading.Thread(target=worker, daemon=True),
+               threading.Thread(target=group._on_token, daemon=True,
+                                args=(_Sample(f"{PREFIX}/_group/g/member/b/0", zenoh.SampleKind.DELETE),))]
+    for t in threads:
+        t.start()
+    assert asked.wait(10), "the worker waited for the group's lock while the adopted scan waited for room"
+    for t in threads:
+        t.join(30)
+    assert taken == [("live", None), ("ScanStart", s), ("ScanEnd", s)]  # nothing lost, in order
+    assert group.stats["scans adopted"] == 1 and group.owner_of(s) == "a"
 
 
 def test_a_member_that_joins_mid_scan_leaves_that_scan_to_its_owner_and_takes_the_next():
@@ -512,6 +552,10 @@ def test_a_member_that_joins_mid_scan_takes_its_share_at_the_next_scan(tmp_path,
             stack.callback(x.close)
         wait_subscribed(acq, 2)
         for s, x in acquirers.items():
+            # The scan starts now, after a and b joined and before c does: its owner is one of a and b
+            # whenever a member gets to its ScanStart (a start before every member joined would be
+            # shared among the members known then, which a backlogged member may learn later).
+            first[s][0].start_time_ns = time.time_ns()
             x.send(first[s][:1 + STEPS // 2])
         c = start_member(stack, endpoint, "c")  # joins mid-scan
         assert all(m.wait_members(3, 20) for m in (a, b, c))

@@ -218,3 +218,20 @@ def test_payload_fifo_keeps_order_bounds_what_waits_and_wakes_a_blocked_producer
     assert fifo.take(1.0) == [3, 4] and fifo.take(0.01) == [] and len(fifo) == 0
     with pytest.raises(ConfigError):
         PayloadFifo(0)
+
+
+def test_one_subscription_covers_both_live_keys_and_no_other_key_of_the_contract():
+    # One subscriber (one channel) keeps the order across samples and scan events; the planes the
+    # reconstructors publish, the tokens and the log queryables must not come back through it.
+    import zenoh
+
+    from lelsonar.keys import ScannerKeys
+    from lelsonar.reconstruct.sources import live_key
+
+    for scanner in ("*", "rig"):
+        ke = zenoh.KeyExpr(live_key(ScannerKeys("robot7/lelsonar", scanner)))
+        one = ScannerKeys("robot7/lelsonar", "rig")
+        assert ke.intersects(one.sample) and ke.intersects(one.scan)
+        assert not any(ke.intersects(k) for k in (one.planes, one.alive("reconstruct"), one.log(3),
+                                                   "robot7/lelsonar/_group/g/done"))
+    assert not zenoh.KeyExpr(live_key(ScannerKeys("lelsonar", "rig"))).intersects(ScannerKeys("lelsonar", "x").sample)

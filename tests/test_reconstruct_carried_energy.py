@@ -214,3 +214,96 @@ def test_decode_sample_hands_over_the_samples_its_validation_joined(scan):
     alone = _assemble(_copy(scan))
     for name in ("sensor_energy", "echo_amplitude", "ratio"):
         np.testing.assert_array_equal(getattr(routed, name), getattr(alone, name), err_msg=name)
+
+
+# ----------------------------------------------------------------------------- the fast path and the general one
+def _peak(w: np.ndarray, rate: float, t0: float, tof: float, window: tuple[float, float]) -> float:
+    """The largest |w| over ``window`` (s) after ``tof``, on the waveform's own clock: from the sample nearest
+    ``tof + window[0]`` (clipped at 0), ``(window[1] - window[0])·rate`` samples (the definition, §4)."""
+    a = max(int(np.rint((tof + window[0] - t0) * rate)), 0)
+    return float(np.abs(w[a:a + max(int(round((window[1] - window[0]) * rate)), 1)]).max())
+
+
+def _check_against_the_waveforms(got: ScanAssembly, messages) -> None:
+    """Every step's energies, echo peaks (and, on each RISE_STRIDE-th step, the peaks just before) and DC
+    levels against its own waveforms, by capsule id, each on its own clock."""
+    from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW, PRE_ECHO_WINDOW
+    row = {c: i for i, c in enumerate(sorted(s.capsule_id for s in messages[1].sensors))}
+    for m in messages[1:-1]:
+        for s in m.sensors:
+            i, w = row[s.capsule_id], s.waveform
+            v = codec.unpack_waveform(w)
+            assert got.sensor_energy[m.step, i] == pytest.approx((v.astype(np.float64) ** 2).sum() / w.sample_rate,
+                                                                 rel=1e-12)
+            if not s.echo_valid:
+                assert np.isnan(got.echo_amplitude[m.step, i])
+                continue
+            assert got.echo_amplitude[m.step, i] == _peak(v, w.sample_rate, w.t0, s.time_of_flight, ECHO_PEAK_WINDOW)
+            if m.step % assembly.RISE_STRIDE == 0:
+                assert got.pre_echo_peak[m.step, i] == _peak(v, w.sample_rate, w.t0, s.time_of_flight, PRE_ECHO_WINDOW)
+                assert got.dc_level[m.step, i] == pytest.approx(abs(v.astype(np.float64).mean()), rel=1e-12)
+            else:
+                assert np.isnan(got.pre_echo_peak[m.step, i])
+
+
+def _count_general(monkeypatch) -> list:
+    calls = []
+    general = ScanAssembly._in_capsule_order
+    monkeypatch.setattr(ScanAssembly, "_in_capsule_order", lambda self, *a: calls.append(1) or general(self, *a))
+    return calls
+
+
+def test_the_acquisition_services_samples_take_the_fast_path(scan, monkeypatch):
+    """Capsules in the ScanStart's order, float32 waveforms of one length on one clock: one pass, and every
+    value what the waveforms give."""
+    general = _count_general(monkeypatch)
+    got = _assemble(_copy(scan))
+    assert general == [] and got.energy_mismatches == 0
+    _check_against_the_waveforms(got, scan)
+
+
+def test_another_writers_order_and_ids_take_the_general_path_to_the_same_values(scan, monkeypatch):
+    """The same readings in reverse order under ids 10.. (the carried energies reversed with them): matched by
+    id, the same arrays as the fast path's, bit for bit."""
+    messages = _copy(scan)
+    for c in messages[0].capsules:
+        c.capsule_id += 10
+    for m in messages[1:-1]:
+        for s in m.sensors:
+            s.capsule_id += 10
+        m.sensors.reverse()
+        e = list(m.sensor_energy)[::-1]
+        del m.sensor_energy[:]
+        m.sensor_energy.extend(e)
+    general = _count_general(monkeypatch)
+    got = _assemble(messages)
+    assert len(general) == len(messages) - 2 and got.energy_mismatches == 0
+    _check_against_the_waveforms(got, messages)
+    fast = _assemble(_copy(scan))
+    for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio",
+                 "step_energy", "expected_energy", "ratio"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(fast, name), err_msg=name)
+
+
+def test_a_clock_per_capsule_takes_the_general_path_and_each_waveforms_own_clock(scan, monkeypatch):
+    """Capsule 1's waveforms start 0.1 ms later and capsule 2's are labelled at another rate, the energies
+    carried at each capsule's own rate: accepted (no mismatch), and the peaks found on each one's clock.  An
+    energy worked out at capsule 0's rate is found out."""
+    messages = _copy(scan)
+    for m in messages[1:-1]:
+        m.sensors[1].waveform.t0 += 1e-4
+        m.sensors[2].waveform.sample_rate *= 1.25
+        e = list(m.sensor_energy)
+        e[2] /= 1.25  # eq. (10) at the rate the waveform now states
+        del m.sensor_energy[:]
+        m.sensor_energy.extend(e)
+    wrong = messages[40]
+    e = list(wrong.sensor_energy)
+    e[2] *= 1.25  # as if all four were on capsule 0's clock
+    del wrong.sensor_energy[:]
+    wrong.sensor_energy.extend(e)
+    general = _count_general(monkeypatch)
+    got = _assemble(messages)
+    assert len(general) == len(messages) - 2
+    assert got.energy_mismatches == 1
+    _check_against_the_waveforms(got, messages)

@@ -48,3 +48,14 @@ def test_bad_calibration_input_is_refused():
         fit_energy_model([1.0, 1.0, 1.2], [1.0, 1.0, 0.8])
     with pytest.raises(ConfigError, match="non-positive energy"):
         EnergyModel(0.0, -1.0, 1.0)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(st.just(np.nan), st.floats(0.05, 5.0)))
+def test_expected_energy_of_one_range_is_the_whole_arrays_value_clipped_alike(d):
+    # The live service asks for one step's E0(d_m) at a time (a float fast path): the same number as
+    # the vectorised form, inside and outside the calibrated interval, NaN included.
+    model = EnergyModel(0.1, 0.2, 0.05, d_min=0.9, d_max=1.8)
+    one = model.expected_energy(d)
+    assert isinstance(one, float)
+    np.testing.assert_array_equal(one, model.expected_energy(np.array([d]))[0])

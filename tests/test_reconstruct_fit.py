@@ -187,3 +187,63 @@ def test_plane_fit_validates() -> None:
                 dict(sorted_residuals=np.array([1.0, 0.0, 2.0])), dict(label="c"), dict(sigma=np.nan)):
         with pytest.raises(ConfigError):
             PlaneFit(**{**kw, **bad})
+
+
+def test_plane_data_keeps_each_valid_echo_with_its_step_beam_and_range() -> None:
+    """The points of wall a's echoes lie on the wall (§4), each with its own step's γ, beam and range."""
+    s = synthetic_corner_scan(GEO, rng=np.random.default_rng(3), noise=0.0)
+    d = np.where(s.source == WALL_A, s.distance, np.nan)
+    d[5, 1] = 0.0  # a zero range is no echo
+    steps = np.flatnonzero(np.any(s.source == WALL_A, axis=1))[::2]  # every other step of the wall
+    data = F.plane_data(GEO, s.gamma, d, steps, "a", AXIS_Y)
+    kept = [(k, c) for k in steps for c in range(GEO.n_capsules)
+            if np.isfinite(d[k, c]) and d[k, c] > 0 and np.cos(s.gamma[k]) > np.cos(np.deg2rad(80.0))]
+    assert data.n == len(kept) > 50
+    np.testing.assert_array_equal(data.step, [k for k, _ in kept])  # step-major, as the steps came
+    np.testing.assert_array_equal(data.distance, [d[k, c] for k, c in kept])
+    g = s.gamma[data.step]
+    np.testing.assert_allclose(data.beam, np.c_[np.zeros_like(g), np.cos(g), np.sin(g)], atol=1e-15)
+    np.testing.assert_allclose(data.capsules[:, 0], [GEO.capsule_x[c] for _, c in kept], atol=1e-15)
+    np.testing.assert_allclose(data.points[:, 1], 1.57, atol=1e-12)  # on the wall y = 1.57
+    for a in (data.points, data.capsules, data.distance, data.beam, data.step):
+        assert not a.flags.writeable
+    sub = data.subset(data.step % 4 == 0)
+    assert sub.n == int(np.count_nonzero(data.step % 4 == 0)) and np.all(sub.step % 4 == 0)
+    with pytest.raises(ConfigError):
+        data.subset(np.ones(3, bool))
+
+
+def test_make_plane_fit_sigma_is_the_mad_of_the_inliers_and_the_mask_is_its_own() -> None:
+    """σ (eq. 21-22) over the inliers only, as np.median computes it, whether all points or some are inliers."""
+    data, _ = _wall_a_data(0.0, 0.002, seed=7)
+    t = F.ls_theta(data.points)
+    e = data.points @ t - 1.0
+    for mask in (np.ones(data.n, bool), np.random.default_rng(1).random(data.n) < 0.7):
+        caller = mask.copy()
+        fit = F.make_plane_fit(data, t, method="ls", inlier_mask=caller, diagnostics=F.SolverDiagnostics("lstsq"))
+        ei = e[mask]
+        assert fit.sigma_relative == pytest.approx(1.4826 * np.median(np.abs(ei - np.median(ei))), rel=1e-9)
+        ri = ei / np.linalg.norm(t)
+        assert fit.sigma == pytest.approx(1.4826 * np.median(np.abs(ri - np.median(ri))), rel=1e-9)
+        np.testing.assert_allclose(fit.sorted_residuals, np.sort(e), rtol=1e-12, atol=1e-18)
+        caller[:] = ~caller  # the caller's array stays the caller's: writable, and not the plane's
+        np.testing.assert_array_equal(fit.inlier_mask, mask)
+        dataclasses.replace(fit)  # what make_plane_fit wraps unchecked passes the constructor's checks
+
+
+def test_replace_scalars_shares_the_arrays_and_validates_the_rest() -> None:
+    data, _ = _wall_a_data(0.0, 0.002)
+    fit = F.make_plane_fit(data, F.ls_theta(data.points), method="ls", inlier_mask=np.ones(data.n, bool),
+                           diagnostics=F.SolverDiagnostics("lstsq"))
+    change = dict(quality="degraded", quality_reasons=["why"], method="corner", normal_stderr=0.01)
+    out = fit.replace_scalars(**change)
+    ref = dataclasses.replace(fit, **change)
+    for f in dataclasses.fields(PlaneFit):
+        a, b = getattr(out, f.name), getattr(ref, f.name)
+        assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, f.name
+    assert out.quality_reasons == ("why",) and fit.quality == "" and fit.method == "ls"
+    assert out.normal is fit.normal and not out.normal.flags.writeable  # frozen arrays are shared
+    for bad in (dict(quality="fine"), dict(normal=np.array([1.0, 0, 0])), dict(diagnostics="lstsq"),
+                dict(method=3), dict(offset=-1.0), dict(offset_stderr=np.nan), dict(label="c")):
+        with pytest.raises(ConfigError):
+            fit.replace_scalars(**bad)

@@ -291,3 +291,28 @@ def test_adaptive_removes_the_correction_offset_bias_on_a_yawed_wall() -> None:
             assert angle_deg(p.normal, s.normals[0]) < 0.3
     assert min(off["lel-refit-ls"]) > 0.004
     assert max(off["adaptive"]) < 0.001
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.just(float("nan")), st.floats(-3.0, 3.0)), min_size=3, max_size=40),
+       st.integers(0, 39))
+def test_split_labels_by_the_nan_median_angle(g: list[float], crit: int) -> None:
+    """Plane a is the subset of smaller median γ (NaN ignored), as np.nanmedian decides it."""
+    import warnings
+
+    g_arr = np.asarray(g)
+    crit = crit % len(g)
+    s = split_subsets(g_arr, crit)
+    before, after = g_arr[:crit], g_arr[crit + 1:]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN subsets
+        mb = np.nanmedian(before) if before.size else np.nan
+        ma = np.nanmedian(after) if after.size else np.nan
+    if before.size and after.size:
+        swap = mb > ma
+    elif before.size:
+        swap = mb > g_arr[crit]
+    else:
+        swap = ma < g_arr[crit]
+    np.testing.assert_array_equal(s.steps_a, np.arange(crit + 1, len(g)) if swap else np.arange(crit))
+    assert crit not in s.steps_a and crit not in s.steps_b

@@ -118,11 +118,8 @@ def worker_main(args: argparse.Namespace) -> int:
     provisional_ns: list[int] = []
     handled: list[float] = []   # monotonic time of each live sample processed
     forward: list = []
-    fence: list = []   # GroupMembership.may_publish, as `reconstruct --group` wires it
 
-    def publish(msg) -> None:
-        if not all(may(msg) for may in fence):
-            return
+    def publish(msg) -> None:  # behind the group's fence, as `reconstruct --group` publishes
         for fn in forward:
             fn(msg)
         if not present.is_terminal(msg):
@@ -130,43 +127,44 @@ def worker_main(args: argparse.Namespace) -> int:
             if scan is not None:
                 provisional_ns.append(time.time_ns() - int(scan.time_ns[msg.last_step]))
 
-    service = ReconstructionService(ReconstructConfig(provisional=not args.no_provisional), publish=publish)
-    accept = service.ingest.accept
     last: list = []
-
-    def probe_accept(type_name, payload, **kw):
-        events = accept(type_name, payload, **kw)
-        last[:] = events if kw.get("origin", "live") == "live" else []
-        return events
-
-    service.ingest.accept = probe_accept
-    handle = service.handle
-
     # (monotonic, process CPU of all threads) when the first live sample was handled, and at the latest read.
     busy_cpu: list[tuple[float, float]] = []
 
-    def probe_handle(type_name, payload, **kw):
-        last.clear()
-        out = handle(type_name, payload, **kw)
-        now_ns, now = time.time_ns(), time.monotonic()
-        for ev in last:
-            if isinstance(ev, Accepted) and ev.kind == "sample":
-                processed_ns.append(now_ns - int(ev.scan.time_ns[ev.step]))
-                handled.append(now)
-                if len(busy_cpu) < 2 or now - busy_cpu[-1][0] >= 0.01:
-                    # The process clock sums every thread's time (a syscall): read at most every 10 ms,
-                    # so the probe does not weigh on the rate it measures.
-                    busy_cpu[min(len(busy_cpu), 1):] = [(now, time.process_time())]
-        return out
+    def probe(service: ReconstructionService) -> None:
+        """Timestamp each live sample the service handles (put → processed)."""
+        accept, handle = service.ingest.accept, service.handle
 
-    service.handle = probe_handle
+        def probe_accept(type_name, payload, **kw):
+            events = accept(type_name, payload, **kw)
+            last[:] = events if kw.get("origin", "live") == "live" else []
+            return events
+
+        def probe_handle(type_name, payload, **kw):
+            last.clear()
+            out = handle(type_name, payload, **kw)
+            now_ns, now = time.time_ns(), time.monotonic()
+            for ev in last:
+                if isinstance(ev, Accepted) and ev.kind == "sample":
+                    processed_ns.append(now_ns - int(ev.scan.time_ns[ev.step]))
+                    handled.append(now)
+                    if len(busy_cpu) < 2 or now - busy_cpu[-1][0] >= 0.01:
+                        # The process clock sums every thread's time (a syscall): read at most every 10 ms,
+                        # so the probe does not weigh on the rate it measures.
+                        busy_cpu[min(len(busy_cpu), 1):] = [(now, time.process_time())]
+            return out
+
+        service.ingest.accept, service.handle = probe_accept, probe_handle
+
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     wall0 = time.monotonic()
     with open_session(_settings(args.endpoint)) as session:
         with GroupMembership(session, PREFIX, GroupConfig(GROUP, args.member, settle=0.5)) as group:
+            service = ReconstructionService(ReconstructConfig(provisional=not args.no_provisional),
+                                            publish=group.fenced(publish))
+            probe(service)
             server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
-            forward += [server.publish, group.on_estimate]
-            fence.append(group.may_publish)
+            forward.append(server.publish)
             with LiveSource(session, keys, service, stop, recovery=RecoveryConfig(), group=group) as live:
                 token = session.liveliness().declare_token(f"{PREFIX}/{args.member}/alive/bench-worker")
                 group.wait_members(args.workers, 60)

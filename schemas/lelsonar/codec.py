@@ -139,8 +139,10 @@ def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS, *
         _check_waveform(waveform, limits, where="waveform")
     if waveform.encoding == scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE:
         return np.frombuffer(waveform.data, dtype="<f4").astype(np.float32, copy=False)
-    # Scale in float64, round once to float32: at most half a count plus half a float32 ulp off.
-    return (np.frombuffer(waveform.data, dtype="<i2") * waveform.scale).astype(np.float32)
+    # Scale in float64, round once to float32: at most half a count plus half a float32 ulp off.  A scale left
+    # unset (0) gives counts: everything reconstruction reads of a waveform is relative (the energy ratio's
+    # peak, the amplitudes' directions), so a writer that never states its volts per count loses nothing.
+    return (np.frombuffer(waveform.data, dtype="<i2") * (waveform.scale or 1.0)).astype(np.float32)
 
 
 def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: bool = True) -> None:
@@ -163,8 +165,9 @@ def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: b
         raise InvalidMessageError(f"{where}.sample_rate must be positive, got {w.sample_rate}")
     if w.encoding == scan_pb2.WAVEFORM_ENCODING_INT16_LE:
         _finite(where + ".scale", w.scale)
-        if w.scale <= 0:
-            raise InvalidMessageError(f"{where}.scale must be positive for int16 data, got {w.scale}")
+        if w.scale < 0:
+            raise InvalidMessageError(f"{where}.scale must be positive for int16 data (or 0: unset, counts), "
+                                      f"got {w.scale}")
     elif samples and not np.isfinite(np.frombuffer(w.data, dtype="<f4")).all():
         raise NonFiniteValueError(f"{where} holds NaN or infinite samples")
 
@@ -229,10 +232,10 @@ def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
 def _validate_header(message: Message) -> None:
     name = message.DESCRIPTOR.full_name
     if message.schema_version != SCHEMA_VERSION:
+        fix = (f"the writer left it unset: set schema_version = {SCHEMA_VERSION}" if message.schema_version == 0
+               else "upgrade the older side")
         raise SchemaVersionError(
-            f"{name} has schema version {message.schema_version}; this build speaks {SCHEMA_VERSION} "
-            "(upgrade the older side)"
-        )
+            f"{name} has schema version {message.schema_version}; this build speaks {SCHEMA_VERSION} ({fix})")
     try:
         validate_identifier(message.scanner_id)
     except InvalidIdentifierError as exc:
@@ -262,10 +265,15 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
     if m.window_samples > limits.max_waveform_samples:
         raise PayloadTooLargeError(
             f"ScanStart.window_samples is {m.window_samples}; the limit is {limits.max_waveform_samples}")
-    if not 200.0 < m.sound_speed < 500.0:
+    # 0 is proto3's "unset": the reconstruction then takes c from air_temperature, or needs no conversion
+    # (every echo carries its distance); the waveforms carry their own sample rate.
+    if m.sound_speed != 0.0 and not 200.0 < m.sound_speed < 500.0:
         raise InvalidMessageError(f"ScanStart.sound_speed {m.sound_speed} m/s is not a speed of sound in air")
-    if m.sample_rate <= 0:
-        raise InvalidMessageError("ScanStart.sample_rate must be positive")
+    if m.sample_rate < 0:
+        raise InvalidMessageError("ScanStart.sample_rate must be positive (or 0: unset)")
+    ids = [c.capsule_id for c in m.capsules]
+    if len(set(ids)) != len(ids):
+        raise InvalidMessageError(f"ScanStart lists capsule ids {ids}; each capsule needs its own id")
     e = m.energy_model
     _finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
 
@@ -290,8 +298,9 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> bytes | None:
         w = s.waveform
         data, count, rate, tof, distance = w.data, w.sample_count, w.sample_rate, s.time_of_flight, s.distance
         if not (w.encoding == _FLOAT32 and count <= max_samples and len(data) == 4 * count and rate > 0.0
-                and math.isfinite(tof + distance + rate + w.t0)
-                and (not s.echo_valid or (0.0 < distance < _MAX_RANGE_M and tof > 0.0))):
+                and math.isfinite(rate + w.t0)
+                and (math.isfinite(tof + distance) and 0.0 < distance < _MAX_RANGE_M and tof > 0.0
+                     if s.echo_valid else True)):
             _check_sensor(i, s, limits)  # raises, or the sensor is valid (e.g. int16 data)
         if w.encoding == _FLOAT32:
             float32.append(data)
@@ -305,12 +314,21 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> bytes | None:
 
 
 def _check_sensor(i: int, s, limits: DecodeLimits) -> None:
-    """The exact checks of one sensor reading (all but the finiteness of float32 samples)."""
-    _finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
-    if s.echo_valid and not (0.0 < s.distance < _MAX_RANGE_M and s.time_of_flight > 0.0):
-        raise InvalidMessageError(
-            f"Sample.sensors[{i}] is marked valid but has distance {s.distance} m and time of flight "
-            f"{s.time_of_flight} s")
+    """The exact checks of one sensor reading (all but the finiteness of float32 samples).
+
+    A reading without an echo (``echo_valid`` false) carries no range: whatever its time of flight and
+    distance hold (0 as the contract says, NaN or −1 as other writers mark "no echo") is never read, so it is
+    not checked.  A valid echo needs its range: the distance, or the time of flight (the reconstruction
+    converts one into the other with the scan's speed of sound); an unset field (0) is the other's to fill.
+    """
+    if s.echo_valid:
+        _finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
+        d, t = s.distance, s.time_of_flight
+        if not (0.0 <= d < _MAX_RANGE_M and t >= 0.0 and (d > 0.0 or t > 0.0)):
+            raise InvalidMessageError(
+                f"Sample.sensors[{i}] is marked valid but has distance {d} m and time of flight {t} s "
+                "(a valid echo needs a positive distance or time of flight; mark a reading without an echo "
+                "echo_valid = false)")
     _check_waveform(s.waveform, limits, where=f"Sample.sensors[{i}].waveform", samples=False)
 
 

@@ -310,12 +310,16 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             # Queries for every scanner's log reach it too; it can only answer for its own.
             _rule(f"{role}-log-queries", "egress", ["query"], [f"{p}/*/log/**", f"{own}/log/**"]),
             # A declared publisher sends only once it learns of matching subscribers.
+            # The reconstructor's live source declares one subscriber on both keys: <prefix>/*/s$*.
             _rule(f"{role}-learn-subscribers", "egress", ["declare_subscriber"],
-                  [f"{p}/*/sample", f"{p}/*/scan", f"{own}/sample", f"{own}/scan"]),
+                  [f"{p}/*/sample", f"{p}/*/scan", f"{p}/*/s$*", f"{own}/sample", f"{own}/scan"]),
         ]
     if role == RECONSTRUCT:
         return [
-            _rule("reconstruct-subscribe", "ingress", ["declare_subscriber"], [f"{p}/*/sample", f"{p}/*/scan"]),
+            # One subscriber on both keys (sources.live_key: one channel keeps their order); the
+            # egress rule below still lets only samples and scan events reach it.
+            _rule("reconstruct-subscribe", "ingress", ["declare_subscriber"],
+                  [f"{p}/*/sample", f"{p}/*/scan", f"{p}/*/s$*"]),
             _rule("reconstruct-receive", "egress", ["put"], [f"{p}/*/sample", f"{p}/*/scan"]),
             _rule("reconstruct-publish", "ingress", ["put", "declare_queryable", "reply"], [f"{p}/*/planes"]),
             _rule("reconstruct-planes-queries", "egress", ["query"], [f"{p}/*/planes"]),

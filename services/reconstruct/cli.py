@@ -236,25 +236,23 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         observer = combine(_rerun_observer(args, stack), fox)
         recorder = stack.enter_context(McapRecorder(args.record)) if args.record else None
         publish_to = [report]
-        fence: list = []  # in a group: GroupMembership.may_publish
 
-        def publish(msg) -> None:
-            if all(may(msg) for may in fence):
-                for fn in publish_to:
-                    fn(msg)
+        def deliver(msg) -> None:
+            for fn in publish_to:
+                fn(msg)
 
-        service = ReconstructionService(config, publish=publish, observer=observer)
-        session = None
+        session = group = None
         if args.source is None or args.publish:
             session = stack.enter_context(open_session(_zenoh_settings(args, "reconstruct", keys.prefix)))
-            group = None
             if group_config is not None and args.source is None:
                 from lelsonar.reconstruct.group import GroupMembership
 
                 # Entered before the live source, so it leaves after it: no final once the token is gone.
                 group = stack.enter_context(GroupMembership(session, keys.prefix, group_config))
-                publish_to.append(group.on_estimate)
-                fence.append(group.may_publish)
+        # In a group, only what passes the fence is published (and a final is marked done for the group).
+        service = ReconstructionService(config, publish=group.fenced(deliver) if group is not None else deliver,
+                                        observer=observer)
+        if session is not None:
             # A get answers from the service's own table (in a group: for the scanners this member owns).
             server = PlanesServer(session, keys, service.latest,
                                   answers_for=group.answers_for if group is not None else None)

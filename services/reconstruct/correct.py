@@ -19,7 +19,7 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
 
-__all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "mirror_points", "beam_points"]
+__all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "corrected_from", "mirror_points", "beam_points"]
 
 #: Normal of plane ``a`` assumed by the paper's correction (plane y = const).
 AXIS_Y = np.array([0.0, 1.0, 0.0])
@@ -56,13 +56,33 @@ def corrected_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.nd
     d = np.asarray(distance, dtype=np.float64)
     if d.shape != g.shape + (geometry.n_capsules,):
         raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
+    return corrected_from(geometry.capsule_positions(g), boresight(g), d, axis, max_angle=max_angle)
+
+
+def corrected_from(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray, *,
+                   max_angle: float = np.deg2rad(80.0)) -> np.ndarray:
+    """:func:`corrected_points` from the capsule positions and boresights the caller has already computed.
+
+    Parameters
+    ----------
+    capsules : (n_steps, n_capsules, 3) array
+        ``p_c`` (:meth:`lelsonar.geometry.ArrayGeometry.capsule_positions`), m.
+    beam : (n_steps, 3) array
+        ``b(γ)`` (:func:`lelsonar.geometry.boresight`).
+    distance : (n_steps, n_capsules) array, m (NaN = no echo)
+    axis : (3,) array
+    max_angle : float, rad
+
+    Returns
+    -------
+    (n_steps, n_capsules, 3) array
+    """
     ax = np.asarray(axis, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
-    b = boresight(g)  # (n, 3)
-    cos_a = b @ ax
+    cos_a = beam @ ax
     ok = cos_a > np.cos(max_angle)
     scale = np.where(ok, 1.0 / np.where(ok, cos_a, 1.0), np.nan)
-    return geometry.capsule_positions(g) + (d * scale[:, None])[..., None] * b[:, None, :]
+    return capsules + (distance * scale[:, None])[..., None] * beam[:, None, :]
 
 
 def mirror_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,

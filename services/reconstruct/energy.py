@@ -12,8 +12,9 @@ import numpy as np
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 
-__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "waveform_energy", "waveform_energy_agrees", "echo_amplitude", "echo_window_starts",
-           "echo_window_width", "window_peak", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
+__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "PRE_ECHO_WINDOW", "waveform_energy", "waveform_energy_agrees",
+           "echo_amplitude", "echo_window_starts", "echo_window_width", "window_peak", "total_energy", "fit_energy_model",
+           "median_range", "energy_ratio"]
 
 
 def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -45,6 +46,10 @@ _largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper
 #: echo's rising edge, and a 40 kHz transceiver's echo peaks within ~0.2 ms of its onset.  Short, so
 #: a later echo (the corner's, a few cm further) does not leak in.
 ECHO_PEAK_WINDOW = (0.0, 4.0e-4)
+#: The same length just before the time of flight: where a first echo has not begun yet.  Its peak against
+#: the echo's (:func:`echo_amplitude` with each window) says whether the waveform holds an echo where the
+#: range puts it.
+PRE_ECHO_WINDOW = (-4.0e-4, 0.0)
 
 
 def echo_window_width(sample_rate: float, window: tuple[float, float] = ECHO_PEAK_WINDOW) -> int:

@@ -27,7 +27,7 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
 
-from .correct import corrected_points
+from .correct import corrected_from
 from .lel import PERFECT_FIT, entropy_of_residuals, newton_minimize
 from .results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
 
@@ -112,8 +112,8 @@ class PlaneData:
         if self.points.shape != (n, 3) or self.capsules.shape != (n, 3) or self.beam.shape != (n, 3) \
                 or self.distance.shape != (n,) or self.step.shape != (n,):
             raise ConfigError("PlaneData arrays must agree: points, capsules, beam (N, 3); distance, step (N,)")
-        if not (np.all(np.isfinite(self.points)) and np.all(np.isfinite(self.capsules))
-                and np.all(np.isfinite(self.distance))):
+        if not (np.isfinite(self.points).all() and np.isfinite(self.capsules).all()
+                and np.isfinite(self.distance).all()):
             raise ConfigError("PlaneData holds only valid (finite) points")
 
     @property
@@ -122,8 +122,11 @@ class PlaneData:
 
     def subset(self, mask: np.ndarray) -> PlaneData:
         m = np.asarray(mask, dtype=bool)
-        return PlaneData(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
-                         self.beam[m], self.step[m])
+        if m.shape != (self.n,):
+            raise ConfigError(f"a subset mask must have shape ({self.n},), got {m.shape}")
+        # Valid points stay valid, and boolean indexing copies; the axis is frozen, so shared.
+        return PlaneData._owned(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
+                                self.beam[m], self.step[m])
 
     @classmethod
     def _owned(cls, label: str, axis: np.ndarray, points: np.ndarray, capsules: np.ndarray, distance: np.ndarray,
@@ -161,15 +164,20 @@ def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
     steps = np.asarray(steps, dtype=np.intp)
     g = np.asarray(gamma, dtype=np.float64)[steps]
     d = np.asarray(distance, dtype=np.float64)[steps]
-    v = corrected_points(geometry, g, d, axis)
+    if d.shape != g.shape + (geometry.n_capsules,):
+        raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
+    b = boresight(g)
     pc = geometry.capsule_positions(g)
-    b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
-    st = np.broadcast_to(steps[:, None], d.shape)
-    ok = np.isfinite(d) & (d > 0) & np.all(np.isfinite(v), axis=-1)
-    # Finite (v = p_c + ... is finite only where p_c is) and of agreeing shapes by construction; boolean
-    # indexing copies, so the arrays are this PlaneData's own (the axis is copied: it may be AXIS_Y).
-    return PlaneData._owned(label, np.array(axis, dtype=np.float64), v[ok], pc[ok], d[ok], b[ok],
-                            st[ok].astype(np.intp, copy=False))
+    v = corrected_from(pc, b, d, axis)  # corrected_points, reusing p_c and b
+    ok = np.isfinite(d) & (d > 0) & np.isfinite(v).all(axis=-1)
+    # The kept points as flat indices (step-major, as boolean indexing orders them); a point's step row
+    # gives its boresight and step index.  Finite (v = p_c + ... is finite only where p_c is) and of
+    # agreeing shapes by construction; fancy indexing copies, so the arrays are this PlaneData's own
+    # (the axis is copied: it may be AXIS_Y).
+    flat = np.flatnonzero(ok)
+    row = flat // d.shape[1]
+    return PlaneData._owned(label, np.array(axis, dtype=np.float64), v.reshape(-1, 3)[flat],
+                            pc.reshape(-1, 3)[flat], d.reshape(-1)[flat], b[row], steps[row])
 
 
 def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
@@ -244,6 +252,14 @@ def fast_median(x: np.ndarray) -> float:
     return float("nan") if np.isnan(m) or np.isnan(x).any() else m
 
 
+def _sorted_median(s: np.ndarray) -> float:
+    """:func:`fast_median` of an array already sorted ascending (NaN sorts last), the same number."""
+    n = s.shape[0]
+    k = n // 2
+    m = float(s[k]) if n % 2 else (float(s[k - 1]) + float(s[k])) / 2.0
+    return float("nan") if np.isnan(m) or np.isnan(s[-1]) else m
+
+
 def mad(e: np.ndarray) -> float:
     """Median absolute deviation ``median(|e_i − μ|)``, μ the median, eq. (21)."""
     e = np.asarray(e, dtype=np.float64).ravel()
@@ -289,11 +305,13 @@ def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     """
     t = np.asarray(theta, dtype=np.float64)
     x = np.asarray(points, dtype=np.float64)
-    m = np.ones(x.shape[0], dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    x = x[m]
     sh = np.asarray(shift, dtype=np.float64)
+    if mask is not None:  # (no mask: every point, used as it is — the same numbers as a copy's)
+        m = np.asarray(mask, dtype=bool)
+        x = x[m]
+        sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else sh
     # A scalar shift (the paper model's 0) is added as it is: the same sums as the broadcast array's.
-    sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else float(sh)
+    sh = sh if sh.ndim else float(sh)
     k = x.shape[0]
     nt = _norm(t)
     q = x @ t - 1.0
@@ -319,7 +337,7 @@ def normal_offset_stderr(theta: np.ndarray, cov: np.ndarray) -> tuple[float, flo
     """
     t = np.asarray(theta, dtype=np.float64)
     c = np.asarray(cov, dtype=np.float64)
-    if not np.all(np.isfinite(c)):
+    if not np.isfinite(c).all():
         return float("inf"), float("inf")
     nt = _norm(t)
     n = t / nt
@@ -341,9 +359,11 @@ def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.nd
     p = p - (p @ n - offset)[:, None] * n  # np.outer, the same products
     ex = np.array([1.0, 0.0, 0.0])
     u = ex - (ex @ n) * n
-    if _norm(u) < 1e-6:
+    nu = _norm(u)
+    if nu < 1e-6:
         u = np.array([0.0, 1.0, 0.0]) - n[1] * n
-    u /= _norm(u)
+        nu = _norm(u)
+    u /= nu
     w = _cross3(n, u)
     a, b = p @ u, p @ w
     o = offset * n
@@ -354,11 +374,13 @@ def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.nd
 
 
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    # np.cross and np.linalg.norm of 3-vectors, the same numbers without their dispatch (every
+    # Gauss-Newton step of the constant-depth fits builds one basis).
     helper = np.zeros(3)
     helper[int(np.argmin(np.abs(n)))] = 1.0
-    e1 = np.cross(n, helper)
-    e1 /= np.linalg.norm(e1)
-    return e1, np.cross(n, e1)
+    e1 = _cross3(n, helper)
+    e1 /= _norm(e1)
+    return e1, _cross3(n, e1)
 
 
 def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float,
@@ -378,7 +400,7 @@ def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.nd
     d = np.asarray(distance, dtype=np.float64)
     if mask is not None:
         p, d = p[np.asarray(mask, dtype=bool)], d[np.asarray(mask, dtype=bool)]
-    n = np.asarray(normal0, dtype=np.float64) / np.linalg.norm(normal0)
+    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     it = 0
     for it in range(1, max_outer + 1):
@@ -387,7 +409,7 @@ def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.nd
         c = p @ n + d - h
         z, *_ = np.linalg.lstsq(a, -c, rcond=None)
         n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / np.linalg.norm(n_new)
+        n = n_new / _norm(n_new)
         h += float(z[2])
         if float(np.abs(z[:2]).max()) < tol and abs(float(z[2])) < tol:
             break
@@ -426,7 +448,7 @@ def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.n
     """
     p = np.asarray(capsules, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
-    n = np.asarray(normal0, dtype=np.float64) / np.linalg.norm(normal0)
+    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     its = evs = 0
     converged = False
@@ -441,7 +463,7 @@ def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.n
         its += nit
         evs += nev
         n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / np.linalg.norm(n_new)
+        n = n_new / _norm(n_new)
         h += float(z[2])
         if float(np.abs(z).max()) < tol:
             converged = ok
@@ -491,7 +513,7 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     PlaneFit, or FitFailure (SOLVER_FAILED) if θ is not a usable plane.
     """
     t = np.asarray(theta, dtype=np.float64)
-    nt = _norm(t) if np.all(np.isfinite(t)) else float("nan")
+    nt = _norm(t) if np.isfinite(t).all() else float("nan")
     if not (np.isfinite(nt) and 1e-3 < nt < 1e3):
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
     n, h = t / nt, 1.0 / nt
@@ -506,18 +528,32 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     mask = np.asarray(inlier_mask, dtype=bool)
     if mask.shape != (data.n,):
         raise ConfigError(f"inlier mask must have shape ({data.n},), got {mask.shape}")
-    if np.count_nonzero(mask) < 3:
+    k = int(np.count_nonzero(mask))
+    if k < 3:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
-    cov = theta_covariance(t, x, shift, mask)
+    every = k == data.n  # every point an inlier (LS, the joint model's walls): no copies of the inliers
+    cov = theta_covariance(t, x, shift, None if every else mask)
     se_n, se_h = normal_offset_stderr(t, cov)
     if not (np.isfinite(se_n) and np.isfinite(se_h)):
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"{method}: the inliers do not constrain the plane", data.label, data.n)
-    foot = data.capsules[mask] + data.distance[mask, None] * n if model == "constant-depth" else data.points[mask]
-    return PlaneFit(
+    if model == "constant-depth":
+        foot = data.capsules + data.distance[:, None] * n if every else \
+            data.capsules[mask] + data.distance[mask, None] * n
+    else:
+        foot = data.points if every else data.points[mask]
+    ordered = np.sort(e)
+    if every:  # MAD (eq. 21) of e, its median read off the sorted residuals (e is finite: no NaN)
+        sigma_relative = MAD_K * fast_median(np.abs(e - _sorted_median(ordered)))
+        sigma = mad_sigma(r_m)
+    else:
+        sigma_relative, sigma = mad_sigma(e[mask]), mad_sigma(r_m[mask])
+    # Every array below is fresh and every check of PlaneFit's constructor holds by construction (see
+    # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
+    return PlaneFit._owned(
         label=data.label, method=method, normal=n, offset=h,
         entropy=entropy_of_residuals(e) if data.n >= 2 else 0.0,
-        sigma_relative=mad_sigma(e[mask]), sigma=mad_sigma(r_m[mask]),
-        inlier_mask=mask, sorted_residuals=np.sort(e), theta_covariance=cov,
+        sigma_relative=sigma_relative, sigma=sigma,
+        inlier_mask=mask.copy(), sorted_residuals=ordered, theta_covariance=cov,
         normal_stderr=se_n, offset_stderr=se_h, patch=observed_patch(n, h, foot), diagnostics=diagnostics,
     )

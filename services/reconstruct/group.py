@@ -16,7 +16,11 @@ Which members a scan is assigned among (:func:`eligible`) — the handover rule:
   part in the scans that start (``ScanStart.start_time_ns``, the acquirer's
   clock) at least ``settle`` seconds later, so every member has seen its token
   before such a scan starts and all agree.  Clocks must agree within
-  ``settle`` (NTP).  If no member qualifies, all alive members do.
+  ``settle`` (NTP).  If no member qualifies, all alive members do — the
+  members known when this member handles the ScanStart, which a member with
+  a backlog handles later than the others: a member joining meanwhile can be
+  counted by one and not by another.  That happens only for scans that start
+  within ``settle`` of the oldest member joining (or with clocks further apart).
 - A scan whose ScanStart a member never saw (it joined mid-scan) is assigned
   among the members older than it (they saw the start); with none, to itself
   (it catches up from the acquirer's log, as a lone reconstructor does).
@@ -44,8 +48,8 @@ Keys: ``<prefix>/_group/<group>/member/<member_id>/<joined_ns>`` (liveliness),
 ``<prefix>/_group/<group>/finals/<member_id>`` (queryable: ``?scanner=S;scan=N``
 is answered ``done`` if that member published the scan's final).
 
-Payloads of scanners a member does not own are dropped in Zenoh's callback,
-before decoding (the scanner id is in the key), and counted as "other
+Payloads of scanners a member does not own are dropped by the live source's
+worker before decoding (the scanner id is in the key), and counted as "other
 member".  ScanStart / ScanEnd of every scanner are decoded (they are small)
 to follow which scan is whose.
 """
@@ -193,8 +197,8 @@ class GroupMembership:
     """Declares this member, watches the others, and says which payloads are this member's.
 
     Use as a context manager inside an open session, around the
-    :class:`~lelsonar.reconstruct.sources.LiveSource` it filters (the source calls
-    :meth:`admit` from Zenoh's callback and :meth:`attach` on start).
+    :class:`~lelsonar.reconstruct.sources.LiveSource` it filters (the source's worker calls
+    :meth:`admit` for every live payload, and the source calls :meth:`attach` on start).
     """
 
     def __init__(self, session: zenoh.Session, prefix: str, config: GroupConfig, *,
@@ -288,7 +292,7 @@ class GroupMembership:
         return self.owner_of(scanner) == self.me
 
     def admit(self, scanner: str, leaf: str, encoding: str, payload) -> bool:
-        """Zenoh's callback asks: is this payload (on ``<prefix>/<scanner>/<leaf>``) this member's?
+        """The live source asks: is this payload (on ``<prefix>/<scanner>/<leaf>``) this member's?
 
         ``payload`` is the ZBytes; it is read only for ScanStart / ScanEnd.  What is not
         admitted is counted as "other member".  Anything malformed is admitted: the
@@ -377,6 +381,20 @@ class GroupMembership:
             return False
         return True
 
+    def fenced(self, publish: Callable[[codec.Reconstruction], None]) -> Callable[[codec.Reconstruction], None]:
+        """``publish`` behind the fence: how a member publishes (``reconstruct --group``, bench fleet, the tests).
+
+        The returned function publishes a message only if :meth:`may_publish` allows it, and then
+        marks a final done for the group (:meth:`on_estimate`): the mark never precedes the final,
+        and a fenced estimate is neither published nor marked.
+        """
+        def publish_fenced(message: codec.Reconstruction) -> None:
+            if self.may_publish(message):
+                publish(message)
+                self.on_estimate(message)
+
+        return publish_fenced
+
     def on_estimate(self, message: codec.Reconstruction) -> None:
         """Call after publishing an estimate: a terminal one is marked done for the group."""
         if present.is_terminal(message):
@@ -432,18 +450,24 @@ class GroupMembership:
     # --- membership ---
     def _on_token(self, sample: zenoh.Sample) -> None:
         try:
-            self._on_token_locked(sample)
+            adopted = self._apply_token(sample)
+            # Fed after the lock is released: the live source's FIFO can be full, and the worker that drains
+            # it asks may_publish / admit (this lock) first; feeding it under the lock deadlocked the two.
+            for enqueue, encoding, data, scanner in adopted:
+                enqueue(encoding, data, "live", scanner)
         except Exception:  # noqa: BLE001 - never into Zenoh's thread; a lost change is logged and counted
             self.stats["errors: membership callback"] += 1
             _log.exception("group %s: a membership change could not be applied", self.config.group)
 
-    def _on_token_locked(self, sample: zenoh.Sample) -> None:
+    def _apply_token(self, sample: zenoh.Sample) -> list[tuple[Callable, str, bytes, str]]:
+        """Apply a member's token (put: joined, delete: left); returns the adopted scans' kept messages to feed."""
         parts = str(sample.key_expr).rsplit("/", 2)
         try:
             member, joined = validate_identifier(parts[1], what="member id"), int(parts[2])
         except (IndexError, ValueError, InvalidIdentifierError):
             self.stats["rejected: malformed member token"] += 1
-            return
+            return []
+        adopted: list[tuple[Callable, str, bytes, str]] = []
         with self.changed:
             if sample.kind == zenoh.SampleKind.PUT:
                 if member == self.me:
@@ -451,14 +475,14 @@ class GroupMembership:
                         self.stats["conflict: member id used by another process"] += 1
                         _log.error("group %s: another process joined as member %s; give each member a unique "
                                    "--member-id (or leave it to the default)", self.config.group, member)
-                    return
+                    return adopted
                 if self.members.get(member) == joined:
-                    return  # seen twice: by the subscriber's history and by the join query
+                    return adopted  # seen twice: by the subscriber's history and by the join query
                 if member not in self.members and len(self.members) >= self.config.max_members:
                     self.stats["refused: member over max_members"] += 1
                     _log.warning("group %s: ignoring member %s (more than %d members)", self.config.group, member,
                                  self.config.max_members)
-                    return
+                    return adopted
                 self.members[member] = max(joined, self.members.get(member, joined))
                 self.stats["members joined"] += 1
                 _log.info("group %s: member %s joined (%d members)", self.config.group, member, len(self.members))
@@ -472,8 +496,9 @@ class GroupMembership:
                     self._departed.popitem(last=False)
                 self.stats["members left"] += 1
                 _log.info("group %s: member %s left (%d members)", self.config.group, member, len(self.members))
-                self._reassign(member)
+                adopted = self._reassign(member)
             self.changed.notify_all()
+        return adopted
 
     def _hand_back(self, member: str) -> None:
         """A member given up for gone is back (a healed partition): its unfinished scans return to it."""
@@ -484,8 +509,13 @@ class GroupMembership:
                         self.stats["scans handed back"] += 1
                     rec.owner, rec.taken_from = member, None
 
-    def _reassign(self, gone: str) -> None:
-        """The scans of a member that left, without a final, go to the members left; adopt ours."""
+    def _reassign(self, gone: str) -> list[tuple[Callable, str, bytes, str]]:
+        """The scans of a member that left, without a final, go to the members left; adopt ours.
+
+        Returns (enqueue, encoding, payload, scanner) of the kept ScanStart / ScanEnd of the scans
+        adopted, for the caller to feed once it has released the lock.
+        """
+        adopted = []
         for scanner, scans in self._scans.items():
             for scan_id, rec in scans.items():
                 if rec.owner != gone:
@@ -503,9 +533,8 @@ class GroupMembership:
                 if self._enqueue is None:
                     self.stats["adoption without a live source (recovered at its next payload)"] += 1
                     continue
-                for kept in (rec.start, rec.end):
-                    if kept is not None:
-                        self._enqueue(kept[0], kept[1], "live", scanner)
+                adopted += [(self._enqueue, *kept, scanner) for kept in (rec.start, rec.end) if kept is not None]
+        return adopted
 
     def stats_dict(self) -> dict:
         with self._lock:

@@ -61,7 +61,7 @@ from . import fit as F
 from .fcm_ransac import fit_fcm_ransac
 from .corner import corner_edge, fit_corner
 from .correct import AXIS_Y, AXIS_Z, corrected_points
-from .energy import EnergyModel, energy_ratio, total_energy
+from .energy import EnergyModel, energy_ratio, median_range, total_energy
 from .estimators import PlaneEstimator
 from .options import FitOptions, ScanFit
 from .quality import assess_plane
@@ -189,7 +189,7 @@ def _as_method(plane: PlaneResult, method: str) -> PlaneResult:
         return plane
     d = plane.diagnostics
     notes = (*d.notes, f"{method}: fitted by its fallback, {plane.method}")
-    return replace(plane, method=method, diagnostics=replace(d, notes=notes))
+    return plane.replace_scalars(method=method, diagnostics=replace(d, notes=notes))
 
 
 def _assessed(plane: PlaneResult, gamma: np.ndarray) -> PlaneResult:
@@ -214,6 +214,22 @@ def _validate_inputs(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.
     if np.any(np.isinf(d)) or np.any(d[np.isfinite(d)] < 0):
         raise ConfigError("distances must be finite and >= 0 m, or NaN for no echo")
     return g, d, e
+
+
+def range_indicator(distance: np.ndarray) -> np.ndarray:
+    """The critical step's indicator where no waveform carried energy (a writer that records ranges only).
+
+    A mirror echo's range is the wall's perpendicular distance, the double bounce's the distance to the edge,
+    which is farther than either wall's (paper §4: the outliers behind the corner).  So the median range
+    ``d_m`` peaks at the corner as ``R`` does (eq. 10–12 need the waveforms); 0 for steps without an echo, as
+    :func:`~lelsonar.reconstruct.energy.energy_ratio` gives them.
+
+    Parameters
+    ----------
+    distance : (n_steps, n_capsules) array
+        m, NaN = no echo.
+    """
+    return np.nan_to_num(median_range(distance), nan=0.0)
 
 
 def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray, geometry: ArrayGeometry,
@@ -261,6 +277,8 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
     g, d, e = _validate_inputs(gamma, distance, sensor_energy, geometry)
     step_energy = e if e.ndim == 1 else total_energy(e)
     ratio = energy_ratio(step_energy, d, energy_model) if g.size else np.zeros(0)
+    if g.size and not np.any(ratio > 0):
+        ratio = range_indicator(d)
     crit = critical_step(ratio, opts.critical_peak_fraction) if g.size else None
     warm_a, warm_b = warm_start if warm_start is not None else (None, None)
     if crit is None:

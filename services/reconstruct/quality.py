@@ -11,7 +11,7 @@ through echoes of more than one surface.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -19,7 +19,8 @@ from lelsonar.errors import ConfigError
 
 from .results import PlaneFit, PlaneResult
 
-__all__ = ["QualityLimits", "assess_plane", "unexplained_finding", "cross_check", "GOOD", "DEGRADED", "UNRELIABLE"]
+__all__ = ["QualityLimits", "assess_plane", "add_findings", "unexplained_finding", "cross_check", "GOOD", "DEGRADED",
+           "UNRELIABLE"]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
 _RANK = {GOOD: 0, DEGRADED: 1, UNRELIABLE: 2}
@@ -140,15 +141,31 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     g = np.asarray(scan_gamma, dtype=np.float64)
     g = g[np.isfinite(g)]
     if g.size:
-        beams = np.stack([np.zeros_like(g), np.cos(g), np.sin(g)], axis=1)
-        nearest = float(np.arccos(np.clip(np.max(beams @ plane.normal), -1.0, 1.0)))
+        # The beams are (0, cos γ, sin γ) (lelsonar.geometry.boresight): their cosines to the normal
+        # without building them.
+        _, ny, nz = plane.normal.tolist()
+        nearest = float(np.arccos(min(max(float((np.cos(g) * ny + np.sin(g) * nz).max()), -1.0), 1.0)))
         if nearest > lim.face_on_angle:
             level = UNRELIABLE if edge_echoes is not None and edge_echoes == 0 else DEGRADED
             flag(level, f"wall never seen face-on: the nearest beam is {np.rad2deg(nearest):.0f}° from its normal"
                  + ("; no edge echoes tie it to the corner" if level == UNRELIABLE else ""))
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
-    return replace(plane, quality=verdict, quality_reasons=tuple(reasons))
+    return plane.replace_scalars(quality=verdict, quality_reasons=tuple(reasons))
+
+
+def add_findings(plane: PlaneResult, findings: tuple[tuple[str, str], ...]) -> PlaneResult:
+    """An assessed ``plane`` with more findings: its verdict at least each finding's level, their reasons added.
+
+    For what only the whole scan shows (e.g. ranges that do not match the waveforms), found after the fit.
+    """
+    if not isinstance(plane, PlaneFit) or not findings:
+        return plane
+    verdict = plane.quality or GOOD
+    for level, _ in findings:
+        if _RANK[level] > _RANK[verdict]:
+            verdict = level
+    return plane.replace_scalars(quality=verdict, quality_reasons=plane.quality_reasons + tuple(r for _, r in findings))
 
 
 def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)),
@@ -171,7 +188,7 @@ def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = f
             return plane
         what = "no plane" if not isinstance(reference, PlaneFit) else f"a {reference.quality} plane"
         reason = f"unchecked: the method of record has {what} of this wall to check it against"
-        return replace(plane, quality=DEGRADED, quality_reasons=plane.quality_reasons + (reason,))
+        return plane.replace_scalars(quality=DEGRADED, quality_reasons=plane.quality_reasons + (reason,))
     angle = float(np.arccos(np.clip(plane.normal @ reference.normal, -1.0, 1.0)))
     gap = float(np.max(np.abs(reference.patch @ plane.normal - plane.offset)))
     if angle <= max_angle and gap <= max_distance:
@@ -179,4 +196,4 @@ def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = f
     reason = (f"disagrees with {reference.method} (good) by {100 * gap:.1f} cm and {np.rad2deg(angle):.1f}° "
               "over the observed patch")
     level = DEGRADED if plane.quality == GOOD else plane.quality
-    return replace(plane, quality=level, quality_reasons=plane.quality_reasons + (reason,))
+    return plane.replace_scalars(quality=level, quality_reasons=plane.quality_reasons + (reason,))

@@ -190,12 +190,29 @@ class PlaneFit:
     quality_reasons: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.quality not in ("", "good", "degraded", "unreliable"):
-            raise ConfigError(f"PlaneFit.quality must be good, degraded or unreliable, got {self.quality!r}")
-        object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
+        self._check_scalars()
         n = _frozen_array(self, "normal", (3,))
         if abs(float(np.sqrt(n @ n)) - 1.0) > 1e-9:  # |n| as np.linalg.norm computes it
             raise ConfigError(f"PlaneFit.normal must be a unit vector, |n| = {np.linalg.norm(n)}")
+        mask = _frozen_array(self, "inlier_mask", (None,), dtype=bool)
+        res = _frozen_array(self, "sorted_residuals", (mask.shape[0],))
+        if (res[1:] < res[:-1]).any():
+            raise ConfigError("PlaneFit.sorted_residuals must be sorted ascending")
+        cov = _frozen_array(self, "theta_covariance", (3, 3))
+        # np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15) for a finite cov, at a quarter of its cost (every fit and every replace validates)
+        if not np.all(np.abs(cov - cov.T) <= 1e-15 + 1e-9 * np.abs(cov.T)):
+            raise ConfigError("PlaneFit.theta_covariance must be symmetric")
+        _frozen_array(self, "patch", (4, 3))
+
+    def _check_scalars(self) -> None:
+        """Validate (and normalise) the fields that are not arrays: what :meth:`replace_scalars` may change."""
+        if self.quality not in ("", "good", "degraded", "unreliable"):
+            raise ConfigError(f"PlaneFit.quality must be good, degraded or unreliable, got {self.quality!r}")
+        if not isinstance(self.method, str):
+            raise ConfigError(f"PlaneFit.method must be a str, got {self.method!r}")
+        if not isinstance(self.diagnostics, SolverDiagnostics):
+            raise ConfigError(f"PlaneFit.diagnostics must be SolverDiagnostics, got {type(self.diagnostics).__name__}")
+        object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
         if not (np.isfinite(self.offset) and self.offset > 0):
             raise ConfigError(f"PlaneFit.offset must be finite and > 0 m, got {self.offset}")
         if not (0.0 <= self.entropy <= 1.0 + 1e-12):
@@ -207,17 +224,49 @@ class PlaneFit:
             object.__setattr__(self, name, float(v))
         object.__setattr__(self, "offset", float(self.offset))
         object.__setattr__(self, "entropy", float(min(self.entropy, 1.0)))
-        mask = _frozen_array(self, "inlier_mask", (None,), dtype=bool)
-        res = _frozen_array(self, "sorted_residuals", (mask.shape[0],))
-        if (res[1:] < res[:-1]).any():
-            raise ConfigError("PlaneFit.sorted_residuals must be sorted ascending")
-        cov = _frozen_array(self, "theta_covariance", (3, 3))
-        # np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15) for a finite cov, at a quarter of its cost (every fit and every replace validates)
-        if not np.all(np.abs(cov - cov.T) <= 1e-15 + 1e-9 * np.abs(cov.T)):
-            raise ConfigError("PlaneFit.theta_covariance must be symmetric")
-        _frozen_array(self, "patch", (4, 3))
         if self.label not in ("a", "b"):
             raise ConfigError(f"PlaneFit.label must be 'a' or 'b', got {self.label!r}")
+
+    @classmethod
+    def _owned(cls, label: str, method: str, normal: np.ndarray, offset: float, entropy: float,
+               sigma_relative: float, sigma: float, inlier_mask: np.ndarray, sorted_residuals: np.ndarray,
+               theta_covariance: np.ndarray, normal_stderr: float, offset_stderr: float, patch: np.ndarray,
+               diagnostics: SolverDiagnostics) -> PlaneFit:
+        """Wrap fields valid by construction whose arrays nothing else holds (what ``make_plane_fit`` builds).
+
+        Every check of ``__init__`` holds already — a unit normal and ``h > 0`` from a finite ``θ``,
+        MAD σ and H of finite residuals, residuals fresh from ``np.sort``, a covariance symmetrised
+        and found finite, float64 arrays of the right shapes — and the arrays are fresh: they are
+        made read-only in place rather than copied and checked again on every fit (the fit's hot
+        path; :meth:`__init__` stays the boundary for everyone else).
+        """
+        obj = object.__new__(cls)
+        for a in (normal, inlier_mask, sorted_residuals, theta_covariance, patch):
+            a.setflags(write=False)
+        obj.__dict__.update(label=label, method=method, normal=normal, offset=float(offset),
+                            entropy=float(min(entropy, 1.0)), sigma_relative=float(sigma_relative),
+                            sigma=float(sigma), inlier_mask=inlier_mask, sorted_residuals=sorted_residuals,
+                            theta_covariance=theta_covariance, normal_stderr=float(normal_stderr),
+                            offset_stderr=float(offset_stderr), patch=patch, diagnostics=diagnostics,
+                            quality="", quality_reasons=())
+        return obj
+
+    def replace_scalars(self, **changes: object) -> PlaneFit:
+        """``dataclasses.replace(self, **changes)`` for fields that are not arrays, without copying the arrays.
+
+        ``changes`` may set any field but ``normal``, ``inlier_mask``, ``sorted_residuals``,
+        ``theta_covariance`` and ``patch`` (e.g. the trust verdict, a fallback's name, the standard
+        errors).  The non-array fields are validated as the constructor validates them; the arrays,
+        frozen and validated when this plane was made, are shared with it, not copied and checked again.
+        """
+        if not changes.keys() <= _SCALARS:
+            raise ConfigError(f"PlaneFit.replace_scalars changes only {sorted(_SCALARS)}, "
+                              f"not {sorted(changes.keys() - _SCALARS)}")
+        obj = object.__new__(PlaneFit)
+        obj.__dict__.update(self.__dict__)
+        obj.__dict__.update(changes)
+        obj._check_scalars()
+        return obj
 
     @property
     def ok(self) -> bool:
@@ -242,6 +291,10 @@ class PlaneFit:
 
 
 PlaneResult = PlaneFit | FitFailure
+
+#: The fields :meth:`PlaneFit.replace_scalars` may change: all but the arrays.
+_SCALARS = frozenset({"label", "method", "offset", "entropy", "sigma_relative", "sigma", "normal_stderr",
+                      "offset_stderr", "diagnostics", "quality", "quality_reasons"})
 
 
 @dataclass(frozen=True)

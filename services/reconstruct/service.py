@@ -59,7 +59,7 @@ from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.incremental import IncrementalPlane
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct
-from lelsonar.reconstruct.quality import assess_plane, cross_check
+from lelsonar.reconstruct.quality import add_findings, assess_plane, cross_check
 from lelsonar.reconstruct.recovery import RecoveryRequest
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step
@@ -540,15 +540,23 @@ class ReconstructionService:
                                           echo_amplitude=scan.echo_amplitude[steps])
         main = results[self.config.method]
         crit = int(steps[main.critical_step]) if main.critical_step is not None else None
-        planes: list[PlaneResult] = [main.plane_a, main.plane_b]
+        # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
+        problems = scan.writer_problems()
+        findings = tuple((level, text) for level, text in problems if level is not None)
+        planes: list[PlaneResult] = [add_findings(pl, findings) for pl in main.planes]
         for method in self.config.compare_methods:
-            planes += [_compared(pl, method, main) for pl in results[method].planes]
+            planes += [add_findings(_compared(pl, method, main), findings) for pl in results[method].planes]
         t = main.timings
         msg = wire.reconstruction_message(
             scan.start.scanner_id, scan.start.scan_id, status=status,
             last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
             critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
             timings=(t.segmentation, t.fit, t.total), missing_steps=missing, accounting=acc)
+        # What the writer left unset: a warning, and where no plane came, the first thing to fix.
+        for _, problem in problems:
+            self._event("WARNING", f"scan {scan.key}: {problem}")
+            if not all(isinstance(pl, PlaneFit) for pl in main.planes):
+                msg.failures.append(problem)
         self.finals[scan.key] = msg
         while len(self.finals) > self.config.keep_finals:
             self.finals.pop(next(iter(self.finals)))

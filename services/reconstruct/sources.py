@@ -1,11 +1,12 @@
 """Where payloads come from — a Zenoh subscription or an MCAP file — and where estimates go.
 
 Both sources hand (type name, payload bytes) to the same
-:meth:`ReconstructionService.handle`.  Zenoh callbacks never do the math: they
-put each payload on one bounded queue, in arrival order, and one processing
-thread applies it; a full queue blocks the callback, which back-pressures the
-publisher through congestion control BLOCK.  Replies recovered from the
-acquirer's log (:mod:`lelsonar.reconstruct.recovery`) enter the same queue.
+:meth:`ReconstructionService.handle`.  Live, one processing thread applies
+every payload: it drains a bounded Zenoh FIFO channel of samples and scan
+events itself (no Python runs on Zenoh's receiving thread; a full channel
+blocks it, which back-pressures the publisher through congestion control
+BLOCK), and a bounded FIFO of the replies recovered from the acquirer's log
+(:mod:`lelsonar.reconstruct.recovery`) and of the messages of adopted scans.
 """
 
 from __future__ import annotations
@@ -31,6 +32,18 @@ _log = logging.getLogger(__name__)
 
 _STOP = ("", b"", "")  # queue sentinel
 _MAX_PARSED_KEYS = 4096
+#: The leaves of the keys a live source takes (``<prefix>/<scanner>/<leaf>``).
+LIVE_LEAVES = ("sample", "scan")
+
+
+def live_key(keys: ScannerKeys) -> str:
+    """One key expression covering the sample and scan keys of ``keys`` (and no other key of the contract).
+
+    ``<prefix>/<scanner>/s$*``: ``$*`` matches within a chunk, so of the contract's leaves only
+    ``sample`` and ``scan`` match (``planes``, ``alive/…`` and ``log/…`` do not).  One subscriber
+    keeps the arrival order across both.
+    """
+    return f"{keys.prefix}/{keys.scanner_id}/s$*"
 
 
 class PayloadFifo:
@@ -155,14 +168,33 @@ class PlanesServer:
 
 
 class LiveSource:
-    """Subscribes to samples and scan events and feeds them to the service on one thread.
+    """Receives samples and scan events and feeds them to the service on one thread.
 
-    Use as a context manager inside an open session.  Samples and scan events go
-    through one queue in arrival order: the acquirer publishes them from one
-    session at one priority, so Zenoh delivers them in publication order, and
-    direct (not threaded) callbacks keep that order across the two keys: a
-    ``ScanEnd`` is handled after every sample it counts (two queues drained by
-    two threads let it overtake them under load).
+    Use as a context manager inside an open session.  Samples and scan events come
+    through one subscriber (:func:`live_key`, a wildcard covering both keys) into one
+    Zenoh FIFO channel, in arrival order: the acquirer publishes them from one session
+    at one priority, so Zenoh delivers them in publication order, and one channel keeps
+    that order across the two keys (a ``ScanEnd`` is handled after every sample it
+    counts; a subscriber per key would let it overtake them).
+
+    Zenoh's receiving thread runs no Python: it pushes each sample into the channel
+    (Rust), and blocks while the channel is full, which back-pressures the publishers
+    through congestion control BLOCK.  The processing thread drains the channel itself,
+    a batch at a time, without waiting.  A Python callback on Zenoh's thread took the
+    GIL for every sample (~75 µs a sample at 2,500 samples/s, against a busy worker),
+    and so did a thread moving samples from the channel into a queue (measured).
+    Payloads recovered from the acquirer's log and the kept messages of scans adopted
+    from a departed group member come through a :class:`PayloadFifo` drained by the
+    same thread.
+
+    The channel cannot be waited on together with that FIFO, and polling it cost an idle
+    worker 3 % of a core.  So an idle worker *arms a doorbell* and waits on the FIFO
+    alone: the doorbell thread waits on the channel (the GIL released), hands the first
+    sample to come through the FIFO, and stops; from that sample on, the worker drains
+    the channel again.  Only one of the two ever reads the channel, so the order holds;
+    the doorbell takes the GIL once per idle spell, not per sample.  Held at most:
+    ``fifo_capacity`` payloads in the channel, as many in the FIFO, and the worker's
+    batch (``PayloadFifo.batch``) of each.
 
     With ``recovery`` (the default), the service asks the acquirer's log for
     what a scan lacks (:class:`~lelsonar.reconstruct.recovery.LogRecoveryClient`).
@@ -175,27 +207,29 @@ class LiveSource:
                  stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
                  record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig(),
                  group: GroupMembership | None = None) -> None:
+        if not tick_s > 0:
+            raise ConfigError(f"LiveSource tick_s must be > 0 s, got {tick_s}")
         self._service = service
-        # With a group, payloads of scanners another member owns are dropped in the callback (counted there).
+        # With a group, payloads of scanners another member owns are dropped before decoding (counted there).
         self._group = group
         self._keys = keys
         self._stop = stop
         self._tick_s = tick_s
         self._record = record
-        # Bounded: a full queue blocks Zenoh's callback, and congestion control BLOCK slows the
-        # publisher instead of this process growing without bound.
+        # Recovered and adopted payloads.  Bounded: a full FIFO blocks their producers.
         self._queue = PayloadFifo(fifo_capacity)
         self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
                           if recovery is not None else None)
-        # indirect=False: the callback runs on Zenoh's receiving thread, in arrival order across both
-        # keys.  A plain Python callback (or a FIFO handler per key) gets a thread per subscriber, and
-        # then a ScanEnd can overtake the samples still queued behind the other subscriber's thread.
-        self._subscribers = [
-            session.declare_subscriber(key, zenoh.handlers.Callback(self._on_sample, indirect=False))
-            for key in (keys.sample, keys.scan)]
-        #: key → (scanner chunk, leaf), for Zenoh's callback.
+        # Bounded too: a full channel blocks Zenoh's receiving thread, and congestion control BLOCK slows the
+        # publisher instead of this process growing without bound.
+        self._subscriber = session.declare_subscriber(live_key(keys), zenoh.handlers.FifoChannel(fifo_capacity))
+        #: key → (scanner chunk, leaf).
         self._parsed_keys: dict[str, tuple[str, str]] = {}
+        self._channel = self._subscriber.handler  # read through the handler: undeclaring never waits for a reader
+        #: Set while the worker is idle: the doorbell reads the channel, not the worker.
+        self._armed = threading.Event()
         self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
+        self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
 
@@ -210,23 +244,25 @@ class LiveSource:
             self._recovery.__enter__()
             self._service.recover = self._recovery.request
         self._thread.start()
+        self._doorbell.start()
         return self
 
     def __exit__(self, *exc_info) -> None:
         self._stop.set()
-        for s in self._subscribers:
-            s.undeclare()
+        self._armed.set()  # a doorbell not armed returns, an armed one ...
+        self._subscriber.undeclare()  # ... is woken: undeclaring closes the channel
         if self._group is not None:
             self._group.attach(None)
         if self._recovery is not None:
             self._service.recover = None
             self._recovery.close()
         if not self._queue.put_nowait(_STOP):
-            pass  # full: the processing thread sees the stop flag within one tick
+            pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
+        self._doorbell.join(timeout=5)
 
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        """Zenoh's callback: no work here but a bounded put (blocks while the queue is full)."""
+    def _received(self, sample: zenoh.Sample) -> tuple[str, zenoh.ZBytes, str, str] | None:
+        """A live sample as a work item, or None if it is not this worker's (or not a sample or scan event)."""
         try:
             key = str(sample.key_expr)
             parsed = self._parsed_keys.get(key)
@@ -235,18 +271,20 @@ class LiveSource:
                     self._parsed_keys.clear()  # keys are wire data: the cache stays bounded
                 parsed = self._parsed_keys[key] = (self._keys.scanner_chunk(key), key.rpartition("/")[2])
             scanner, leaf = parsed
+            if leaf not in LIVE_LEAVES:
+                self.error_types[f"ignored: key neither {' nor '.join(LIVE_LEAVES)}"] += 1
+                return None  # the wildcard also covers other leaves beginning with "s"
             encoding = str(sample.encoding)
             if self._group is not None and not self._group.admit(scanner, leaf, encoding, sample.payload):
-                return  # another member's scanner: dropped before decoding, counted by the group
+                return None  # another member's scanner: dropped before decoding, counted by the group
             # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
-            # speak for another scanner.  The ZBytes is copied to bytes by the processing thread, once:
-            # a copy here held the GIL on Zenoh's thread, and the 56 KB buffers it allocated on this
-            # thread were freed on the other, which made the allocator hand pages back and fault them in again.
-            self._enqueue(encoding, sample.payload, "live", scanner)
-        except Exception:  # noqa: BLE001 - never let an exception escape into Zenoh's thread
+            # speak for another scanner.  The ZBytes is copied to bytes once, when it is handled.
+            return encoding, sample.payload, "live", scanner
+        except Exception:  # noqa: BLE001 - one bad sample must not stop the worker: counted, logged
             self.errors += 1
-            self.error_types["callback"] += 1
-            _log.exception("could not queue a received payload; counted")
+            self.error_types["receive"] += 1
+            _log.exception("could not take a received payload; counted")
+            return None
 
     def _enqueue(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None) -> None:
         # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
@@ -256,25 +294,65 @@ class LiveSource:
             if self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s):
                 return
 
+    def _ring(self) -> None:
+        """The doorbell: while the worker is idle, wait for a sample and hand it over (the channel is the worker's again)."""
+        try:
+            while self._armed.wait() and not self._stop.is_set():
+                sample = self._channel.recv()  # waits with the GIL released
+                self._armed.clear()  # before the hand-over: the worker reads the channel once it has this sample
+                while not self._stop.is_set() and not self._queue.put(sample, timeout=self._tick_s):
+                    pass
+        except zenoh.ZError:
+            return  # the channel is closed: the source is closing
+
+    def _pull(self, pending: deque, channel: bool) -> None:
+        """Append what waits, without waiting: up to a batch from the channel (if the worker reads it), then the FIFO's."""
+        if channel:
+            try:
+                for _ in range(self._queue.batch):
+                    sample = self._channel.try_recv()
+                    if sample is None:
+                        break
+                    item = self._received(sample)
+                    if item is not None:
+                        pending.append(item)
+            except zenoh.ZError:  # the channel is closed: the source is closing
+                self._stop.set()
+        if len(self._queue):
+            pending.extend(self._queue.take(0))
+
     def _process(self) -> None:
         last_tick = 0.0
+        pending: deque = deque()
+        reading = True  # the worker reads the channel (False while the doorbell is armed)
         while not self._stop.is_set():
-            batch = self._queue.take(self._tick_s) or [None]
-            for i, item in enumerate(batch):
-                if item == _STOP:
+            if not pending:
+                self._pull(pending, reading)
+                if not pending:  # idle: the doorbell watches the channel, the worker waits on the FIFO
+                    if reading:
+                        reading = False
+                        self._armed.set()
+                    pending.extend(self._queue.take(self._tick_s))
+            waiting = 0
+            if pending:
+                item = pending.popleft()
+                if item is _STOP:
                     return
-                if i and self._stop.is_set():
-                    return
-                # Payloads still waiting: the rest of this batch and what the FIFO holds.
-                waiting = len(batch) - 1 - i + len(self._queue)
+                if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
+                    reading = True
+                    item = self._received(item)
+                if not pending:
+                    self._pull(pending, reading)  # so that `waiting` says whether more came in
+                # Payloads still waiting: pulled, and what the FIFO holds.
+                waiting = len(pending) + len(self._queue)
                 self._apply(item, waiting)
-                now = time.monotonic()
-                # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
-                # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
-                # costs ~36 µs, a tenth of what the payload does).
-                if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
-                    last_tick = now
-                    self._guarded(self._service.tick, busy=waiting > 0)
+            now = time.monotonic()
+            # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
+            # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
+            # costs ~36 µs, a tenth of what the payload does).
+            if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
+                last_tick = now
+                self._guarded(self._service.tick, busy=waiting > 0)
 
     def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
         if item is not None:

@@ -15,6 +15,8 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 
+from .fit import fast_median
+
 __all__ = ["critical_step", "Split", "split_subsets"]
 
 
@@ -90,8 +92,11 @@ class Split:
             a = np.array(getattr(self, name), dtype=np.intp).ravel()
             a.setflags(write=False)
             object.__setattr__(self, name, a)
-        if np.intersect1d(self.steps_a, self.steps_b).size or self.critical in self.steps_a \
-                or self.critical in self.steps_b:
+        a, b = self.steps_a, self.steps_b
+        # Subsets on either side of each other (split_subsets') are disjoint without intersecting them.
+        overlap = a.size and b.size and not (a.max() < b.min() or b.max() < a.min()) \
+            and np.intersect1d(a, b).size
+        if overlap or self.critical in a or self.critical in b:
             raise ConfigError("the subsets must be disjoint and exclude the critical step")
 
 
@@ -117,11 +122,17 @@ def split_subsets(gamma: np.ndarray, critical: int) -> Split:
     before = np.arange(0, critical)
     after = np.arange(critical + 1, n)
     if before.size and after.size:
-        swap = np.nanmedian(g[before]) > np.nanmedian(g[after])
+        swap = _nanmedian(g[:critical]) > _nanmedian(g[critical + 1:])
     elif before.size:
-        swap = np.nanmedian(g[before]) > g[critical]
+        swap = _nanmedian(g[:critical]) > g[critical]
     elif after.size:
-        swap = np.nanmedian(g[after]) < g[critical]
+        swap = _nanmedian(g[critical + 1:]) < g[critical]
     else:
         swap = False
     return Split(critical, after, before) if swap else Split(critical, before, after)
+
+
+def _nanmedian(x: np.ndarray) -> float:
+    """``np.nanmedian`` of a 1-D array (the same number; NaN if every value is NaN), without its masked-array path."""
+    x = x[~np.isnan(x)]
+    return fast_median(x) if x.size else float("nan")

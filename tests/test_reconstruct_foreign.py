@@ -1,0 +1,308 @@
+"""Scans from another writer of the contract: every field reconstruction reads, filled otherwise.
+
+The scans come from :mod:`tests.foreign_scenes`, a simulator independent of
+``lelsonar.acquire.sim`` (its own beam, burst, comparator, noise and floor),
+written with its own conventions, recorded with the project's recorder and
+reconstructed through ``reconstruct --source --json``.  Each plane is judged
+against the scene's truth as the stress sweep judges it: a failure (patch
+error > 2 cm and > 3× the oracle's) must never claim ``good``; a convention
+the contract allows must give the same planes as our own writer's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lelsonar import codec
+from lelsonar.errors import InvalidMessageError, SchemaVersionError
+from lelsonar.reconstruct.assembly import ScanAssembly, geometry_from_start
+from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
+
+from . import foreign_scenes as fs
+from .conftest import make_sample, make_scan_start
+
+
+# ----------------------------------------------------------------------------- the foreign scan, once
+@pytest.fixture(scope="module")
+def scan() -> fs.ForeignScan:
+    rig = fs.ForeignRig(seed=3, steps=150)
+    s = fs.simulate(rig)
+    s.energy_model = fs.energy_model(rig)
+    return s
+
+
+def _run(tmp_path, scan: fs.ForeignScan, conv: fs.Conventions, name: str = "f"):
+    path = fs.write_scan(tmp_path / f"{name}.mcap", scan, conv)
+    code, lines, err = fs.run_cli(path)
+    planes = [p for msg in lines for p in msg.get("planes", [])]
+    return code, lines, err, fs.judge(scan, planes)
+
+
+def _accurate(verdicts: dict) -> None:
+    for label, row in verdicts.items():
+        assert row["verdict"] == "accurate", (label, row)
+        assert row["quality"] == "good", (label, row)
+
+
+@pytest.fixture(scope="module")
+def baseline(scan, tmp_path_factory):
+    """Our own writer's conventions: both walls accurate and good (the simulator is sound)."""
+    code, lines, _, verdicts = _run(tmp_path_factory.mktemp("base"), scan, fs.Conventions())
+    assert code == 0
+    _accurate(verdicts)
+    return lines[0]
+
+
+def _same_planes(lines: list[dict], baseline: dict) -> None:
+    """The same planes as the baseline's, to float noise (only γ from the commanded angles may differ)."""
+    got = {p["label"]: p for p in lines[0]["planes"]}
+    for p in baseline["planes"]:
+        q = got[p["label"]]
+        n0, n1 = (np.array([x["normal"].get(a, 0.0) for a in "xyz"]) for x in (p, q))
+        assert math.degrees(math.acos(min(1.0, float(n0 @ n1)))) < 0.5
+        assert abs(p["offset"] - q["offset"]) < 0.003
+
+
+# ----------------------------------------------------------------------------- allowed conventions
+#: Everything another writer may do within the contract (or leave at proto3's default) at once:
+#: capsule ids from 1, the radial offset only in the capsules' positions, "no echo" as NaN, the range
+#: as a time of flight only, γ measured unset, the ScanStart's sample rate and speed of sound unset
+#: (the air temperature is there), no acquisition times, no rotation axis, int16 waveforms without a scale.
+EVERYTHING_FOREIGN = fs.Conventions(capsule_id_base=1, radial_offset_in="position", no_echo="nan", fill="tof",
+                                    gamma="commanded", start_sample_rate=False, start_sound_speed=False,
+                                    acquisition_time=False, rotation_axis=(0.0, 0.0, 0.0), int16_scale=False)
+
+
+def test_every_allowed_convention_at_once_gives_our_writers_planes(scan, baseline, tmp_path):
+    # Before: every Sample refused (capsule ids, tof unset, NaN), or with a 0 radial offset no plane at all.
+    code, lines, _, verdicts = _run(tmp_path, scan, EVERYTHING_FOREIGN)
+    assert code == 0
+    _accurate(verdicts)
+    _same_planes(lines, baseline)
+
+
+@pytest.mark.parametrize("conv", [
+    fs.Conventions(radial_offset_in="position"),  # before: radial offset 0, no plane (exit 1)
+    fs.Conventions(fill="distance", ids_reversed=True, gamma_wrap=True, encoding="float32"),  # before: all refused
+])
+def test_single_conventions_give_our_writers_planes(scan, baseline, tmp_path, conv):
+    code, lines, _, verdicts = _run(tmp_path, scan, conv)
+    assert code == 0
+    _accurate(verdicts)
+    _same_planes(lines, baseline)
+
+
+def test_a_scan_without_waveforms_is_reconstructed_from_its_ranges(scan, tmp_path):
+    # Before: no waveform energy, no energy peak, so "no step with an echo yet" and no plane (exit 1).
+    code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions(waveforms=False))
+    assert code == 0
+    _accurate(verdicts)
+
+
+# ----------------------------------------------------------------------------- against the contract
+@pytest.mark.parametrize(("conv", "why"), [
+    # Before: 77 cm and 51 cm off, both planes "good" (the ranges came out half the truth).
+    (fs.Conventions(fill="tof", tof_scale=0.5), "no echo starting at the readings' time of flight"),
+    # Before: 1.5 m off, only "degraded".
+    (fs.Conventions(fill="distance", distance_scale=2.0), "no echo starting at the readings' time of flight"),
+    (fs.Conventions(distance_scale=2.0), "off c·time_of_flight/2"),
+    # Before: 50 cm off, flagged only by chance of the fit.
+    (fs.Conventions(gamma_unit="deg"), "beyond a turn"),
+])
+def test_ranges_or_angles_in_another_convention_are_never_good(scan, tmp_path, conv, why):
+    code, lines, _, verdicts = _run(tmp_path, scan, conv)
+    assert code in (0, 1)
+    for label, row in verdicts.items():
+        assert row["verdict"] != "claims_good", (label, row)
+        assert row["quality"] == "unreliable", (label, row)
+        assert any(why in r for r in row["reasons"]), row["reasons"]
+
+
+def test_waveforms_whose_start_time_was_left_unset_are_not_trusted(tmp_path):
+    # The window starts 1 ms after firing but Waveform.t0 says 0: every echo sits 1 ms earlier in the samples
+    # than its time of flight says, and the amplitudes read there are not the echoes'.
+    scan = fs.simulate(fs.ForeignRig(seed=3, steps=100, t0=1.0e-3))
+    code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions(energy_model=False, t0=False))
+    assert code == 0
+    for row in verdicts.values():
+        assert row["quality"] == "unreliable" and row["verdict"] != "claims_good", row
+        assert any("waveform.t0" in r for r in row["reasons"])
+
+
+def test_a_stated_speed_of_sound_that_contradicts_the_readings_degrades(scan, tmp_path):
+    # 335 m/s stated, 343 m/s in the air: distance and time of flight disagree by 2.5 %.
+    code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions(stated_sound_speed=335.0))
+    assert code == 0
+    for row in verdicts.values():
+        assert row["verdict"] == "accurate" and row["quality"] == "degraded"
+        assert any("speed of sound 335.0" in r for r in row["reasons"])
+
+
+def test_echo_valid_never_set_is_named_as_the_failure(scan, tmp_path):
+    # Before: "too few points (no step with an echo yet)", nothing said why.
+    code, lines, _, verdicts = _run(tmp_path, scan, fs.Conventions(echo_valid=False))
+    assert code == 1
+    assert all(v["verdict"] == "missing" for v in verdicts.values())
+    assert any("set echo_valid = true" in f for f in lines[0]["failures"])
+
+
+def test_a_rotation_axis_other_than_x_is_refused_by_name(scan, tmp_path):
+    code, lines, err, _ = _run(tmp_path, scan, fs.Conventions(rotation_axis=(-1.0, 0.0, 0.0)))
+    assert code == 1 and not lines
+    assert "rotation_axis" in err or "InvalidMessageError" in err
+
+
+# ----------------------------------------------------------------------------- the physics
+@pytest.mark.xfail(strict=True, reason="known gap: a one-sided sweep whose wall echoes all clip leaves the direction to "
+                   "the ranges, which a late-firing comparator turns; degrading every one-sided wall cost 36 of 343 "
+                   "accurate good planes of `bench estimators --families all --seeds 20`, so it is not done")
+def test_a_wall_seen_from_one_side_of_its_normal_is_not_good(tmp_path):
+    """The L rolled 11°, the sweep (0°..51°, reversed) starting 11° past wall a's normal; a receiver that clips
+    every wall echo (no amplitude peak to find) and a comparator whose threshold crossing comes later on weaker,
+    off-axis echoes.  Wall a's direction rests on the ranges' lever arm seen from one side, which that range
+    bias turns: before, 10° and 3.2 cm off (oracle 0.9 cm) and "good"."""
+    rig = fs.ForeignRig(distance_a=1.7830363310095811, distance_b=1.6938356931615588, roll=-0.1903572544171102,
+                        gamma_start=-0.0033389079129613197, gamma_stop=0.8934311199550851, steps=64, reverse=True,
+                        beam_sigma=0.3254629289661583, burst=0.0006705769242689202, echo_scale=4.997552377766458,
+                        corner_gain=1.3571584212937797, crosstalk=0.807290582161242, dc=0.15, full_scale=0.5,
+                        gains=(0.5708356164525817, 1.1886958726238408, 0.7073260841899358, 1.584129877091351),
+                        floor_depth=0.6337890015727393, floor_scale=0.37580473655153046, seed=45)
+    code, _, _, verdicts = _run(tmp_path, fs.simulate(rig), fs.Conventions(energy_model=False))
+    assert code == 0
+    a = verdicts["a"]
+    assert a["patch_cm"] > 2 and a["verdict"] == "flagged", a
+    assert any("extrapolated" in r for r in a["reasons"])
+    assert all(v["verdict"] != "claims_good" for v in verdicts.values())
+
+
+# ----------------------------------------------------------------------------- the codec and the assembly
+def _assembly(start=None) -> ScanAssembly:
+    return ScanAssembly(start if start is not None else make_scan_start(steps=5))
+
+
+def _decoded(m):
+    return codec.decode(m.SerializeToString(), type(m))
+
+
+@pytest.mark.parametrize("value", [math.nan, -1.0, math.inf])
+def test_a_reading_without_an_echo_may_mark_its_range_any_way(value):
+    s = make_sample()
+    s.sensors[2].echo_valid = False
+    s.sensors[2].distance = s.sensors[2].time_of_flight = value
+    scan = _assembly()
+    scan.add(_decoded(s))  # before: NonFiniteValueError, the whole step lost
+    assert np.isnan(scan.distance[0, 2]) and np.isfinite(scan.distance[0, [0, 1, 3]]).all()
+
+
+def test_a_valid_echo_needs_its_range_from_either_field():
+    s = make_sample()
+    d = s.sensors[1].distance
+    s.sensors[1].time_of_flight = 0.0          # range only
+    s.sensors[3].distance = 0.0                # round trip only
+    t3 = s.sensors[3].time_of_flight
+    scan = _assembly()
+    scan.add(_decoded(s))
+    assert scan.distance[0, 1] == d
+    assert scan.distance[0, 3] == pytest.approx(343.2 * t3 / 2, rel=1e-12)
+    s.sensors[0].time_of_flight = s.sensors[0].distance = 0.0
+    with pytest.raises(InvalidMessageError, match="positive distance or time of flight"):
+        _decoded(s)
+
+
+def test_a_time_of_flight_needs_a_speed_of_sound():
+    start = make_scan_start(steps=5)
+    start.sound_speed, start.air_temperature = 0.0, 303.15  # unset: c from 30 °C
+    scan = _assembly(_decoded(start))
+    s = make_sample()
+    s.sensors[0].distance = 0.0
+    scan.add(_decoded(s))
+    c30 = 331.3 * math.sqrt(1 + 30 / 273.15)
+    assert scan.distance[0, 0] == pytest.approx(c30 * s.sensors[0].time_of_flight / 2, rel=1e-12)
+    start.air_temperature = 0.0
+    scan = _assembly(_decoded(start))
+    with pytest.raises(InvalidMessageError, match="ScanStart.sound_speed"):
+        scan.add(_decoded(s))
+
+
+def test_scan_start_fields_left_unset_are_accepted_or_refused_by_name():
+    start = make_scan_start()
+    start.sample_rate = start.sound_speed = 0.0  # before: the ScanStart, so the whole scan, refused
+    _decoded(start)
+    start.capsules[2].capsule_id = 0
+    with pytest.raises(InvalidMessageError, match="its own id"):
+        _decoded(start)
+    start = make_scan_start()
+    start.schema_version = 0
+    with pytest.raises(SchemaVersionError, match="set schema_version = 1"):
+        _decoded(start)
+
+
+def test_capsules_are_matched_by_the_ids_the_scan_start_gave_them():
+    start = make_scan_start(steps=5)
+    for c in start.capsules:
+        c.capsule_id += 10
+    s = make_sample()
+    for r in s.sensors:
+        r.capsule_id += 10
+    s.sensors.reverse()
+    scan = _assembly(start)
+    scan.add(_decoded(s))  # before: "the scan has capsules 0..3", refused
+    assert list(scan.distance[0]) == [1.5, 1.51, 1.52, 1.53]
+
+
+def test_the_radial_offset_may_be_stated_in_either_place_but_not_two_ways():
+    start = make_scan_start()
+    start.radial_offset = 0.0  # only in the positions (y of the array frame)
+    assert geometry_from_start(start).radial_offset == pytest.approx(0.03)
+    start = make_scan_start()
+    for c in start.capsules:
+        c.position.y = 0.0
+        c.boresight.y = 0.0  # unset: +y
+    assert geometry_from_start(start).radial_offset == pytest.approx(0.03)
+    start = make_scan_start()
+    start.radial_offset = 0.05
+    with pytest.raises(InvalidMessageError, match="contradicts the capsules' position.y"):
+        geometry_from_start(start)
+    start = make_scan_start()
+    start.rotation_axis.x, start.rotation_axis.z = 0.0, 1.0
+    with pytest.raises(InvalidMessageError, match="rotation about \\+x only"):
+        geometry_from_start(start)
+
+
+def test_gamma_measured_left_unset_falls_back_on_the_commanded_angles():
+    scan = _assembly()
+    for step in range(3):
+        s = make_sample(step)
+        s.gamma_measured = 0.0
+        scan.add(_decoded(s))
+    _, gamma, _, _ = scan.arrays()
+    assert np.allclose(gamma, np.deg2rad([-10, -8, -6]))
+    assert any("gamma_measured" in text for _, text in scan.writer_problems())
+
+
+def test_each_capsule_may_have_its_own_clock():
+    s = make_sample()
+    s.sensors[1].waveform.sample_rate = 100_000.0
+    s.sensors[2].waveform.t0 = 1e-4
+    for r in s.sensors:  # echoes inside the 0.32 ms waveforms
+        r.time_of_flight = 1.5e-4
+    scan = _assembly()
+    scan.add(_decoded(s))
+    for i, r in enumerate(s.sensors):
+        w = codec.unpack_waveform(r.waveform)
+        assert scan.sensor_energy[0, i] == pytest.approx(float(waveform_energy(w, r.waveform.sample_rate)))
+        want = echo_amplitude(w, r.waveform.sample_rate, r.waveform.t0, np.array(r.time_of_flight))
+        assert np.array_equal(scan.echo_amplitude[0, i], want, equal_nan=True)
+
+
+
+def test_angles_beyond_a_turn_are_named_even_in_a_narrow_sweep():
+    scan = _assembly()
+    for step in range(3):
+        s = make_sample(step)
+        s.gamma_measured = s.gamma_commanded = 30.0 + step  # degrees: a 2° sweep, yet no angle of a servo
+        scan.add(_decoded(s))
+    assert [level for level, text in scan.writer_problems() if "beyond a turn" in text] == ["unreliable"]
