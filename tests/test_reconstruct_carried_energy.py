@@ -8,7 +8,10 @@ The truth each time is eq. (10) worked out here from the waveforms, independentl
 
 from __future__ import annotations
 
+import json
 import logging
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -192,6 +195,15 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
     assert services["tampered"].ingest.energy_mismatches == len(tampered[1:-1:10])
     assert services["true"].ingest.energy_mismatches == 0
     assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1
+    # and in the accounting `reconstruct --source --json` prints on exit
+    for name, want in (("tampered", len(tampered[1:-1:10])), ("true", 0)):
+        assert services[name].stats_dict()["samples"]["energy_mismatches"] == want
+        done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(paths[name]), "--json"],
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr
+        (line,) = [x for x in done.stderr.splitlines() if x.startswith('{"stats"')]
+        assert json.loads(line)["stats"]["samples"]["energy_mismatches"] == want
+        assert (f"energy mismatches {want}" in done.stderr) == bool(want)
 
 
 def test_decode_sample_hands_over_the_samples_its_validation_joined(scan):

@@ -69,8 +69,8 @@ class Ingest:
     #: What a bound pushed out, by reason (nothing leaves a table uncounted).
     evicted: Counter[str] = field(default_factory=Counter)
     accepted: int = 0
-    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms, over the scans closed so far
-    #: (each open scan counts its own in ``ScanAssembly.energy_mismatches``); recomputed, not rejected.
+    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms, over every scan so far, open
+    #: or closed (each scan counts its own in ``ScanAssembly.energy_mismatches``); recomputed, not rejected.
     energy_mismatches: int = 0
     #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
     recovered_after_close: int = 0
@@ -141,9 +141,7 @@ class Ingest:
 
     def close(self, key: ScanKey) -> None:
         """The scan is finalised: drop its data; later messages for it are rejected as late."""
-        scan = self.scans.pop(key, None)
-        if scan is not None:
-            self.energy_mismatches += scan.energy_mismatches
+        self.scans.pop(key, None)
         self._held -= len(self.pending.pop(key, []))
         self.closed[key] = None
         while len(self.closed) > self.max_closed:
@@ -183,12 +181,15 @@ class Ingest:
 
     def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live",
              samples: bytes | None = None) -> Accepted | Rejected:
+        mismatches = scan.energy_mismatches
         try:
             if not scan.add(sample, origin, samples):
                 return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
         except DecodeError as exc:
             scan.rejected[type(exc).__name__] += 1
             return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
+        # Counted here, as they happen (the stats read one number, never the open scans a worker changes).
+        self.energy_mismatches += scan.energy_mismatches - mismatches
         self.accepted += 1
         return Accepted("sample", scan, sample.step)
 
