@@ -399,6 +399,8 @@ class ScanAssembly:
             clocks = None
         else:
             sensors, carried = self._in_capsule_order(sample, carried)
+            first = sensors[0].waveform  # the lowest id's clock: the one the display shows
+            rate, t0 = first.sample_rate, first.t0
             joined = _waveforms([s.waveform for s in sensors], n).astype("<f4", copy=False).tobytes()
             clocks = [(s.waveform.sample_rate, s.waveform.t0) for s in sensors]
             if all(c == (rate, t0) for c in clocks):
