@@ -19,7 +19,9 @@ Three measurements, side by side in one run and one table:
     right after the run (printed beside the result).
 (a′) the **ingest stage** alone — decode, validate, route, assemble
     (:meth:`~lelsonar.reconstruct.ingest.Ingest.accept`: everything the
-    service does before estimation) — on the floor's payloads, one run of each
+    service does before estimation, including the echo peaks and R that
+    ``ScanAssembly.settle`` works out in batches at each ScanEnd) — on the
+    floor's payloads, one run of each
     per round, medians of 5; same target against the same floor.  The details
     give the time ``Ingest.accept`` took per sample inside (a)'s consumer.
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting
@@ -600,7 +602,10 @@ def profile_replay(path: Path, samples: int, console) -> None:
         ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
         ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
-        ("    ScanAssembly.add (waveforms, energies, echo peaks)", "reconstruct/assembly.py", "add", None),
+        ("    ScanAssembly.add (carried energies checked, echo windows cut out)", "reconstruct/assembly.py", "add",
+         None),
+        ("  ScanAssembly.settle (echo peaks and R, batched; every caller)", "reconstruct/assembly.py", "settle",
+         None),
         ("  _provisional (corner check, provisional refit)", *upd, None),
         ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
         ("    IncrementalPlane.update (provisional planes)", "reconstruct/incremental.py", "update", upd),

@@ -196,6 +196,23 @@ def decode(payload: bytes, message_type: type[M], limits: DecodeLimits = DEFAULT
         A subclass that says what was wrong: too large, unparseable, wrong
         schema version, bad identifier, truncated or non-finite data.
     """
+    message = _parse(payload, message_type, limits)
+    validate(message, limits)
+    return message
+
+
+def decode_sample(payload: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[Sample, bytes | None]:
+    """:func:`decode` of a ``Sample``, with the float32 samples of its waveforms joined in the order of
+    its sensors — the bytes its validation checked — or None if a waveform is not float32.
+
+    What uses the samples then need not copy them out of the message again.
+    """
+    message = _parse(payload, Sample, limits)
+    _validate_header(message)
+    return message, _validate_sample(message, limits)
+
+
+def _parse(payload: bytes, message_type: type[M], limits: DecodeLimits) -> M:
     if len(payload) > limits.max_payload_bytes:
         raise PayloadTooLargeError(f"payload of {len(payload)} bytes exceeds the limit of {limits.max_payload_bytes}")
     message = message_type()
@@ -203,12 +220,16 @@ def decode(payload: bytes, message_type: type[M], limits: DecodeLimits = DEFAULT
         message.ParseFromString(bytes(payload))
     except _ProtobufDecodeError as exc:
         raise DecodeError(f"not a valid {message_type.DESCRIPTOR.full_name}: {exc}") from None
-    validate(message, limits)
     return message
 
 
 def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
     """Check a message of the contract; raise a DecodeError subclass if it is invalid."""
+    _validate_header(message)
+    _VALIDATORS[type(message)](message, limits)
+
+
+def _validate_header(message: Message) -> None:
     name = message.DESCRIPTOR.full_name
     if message.schema_version != SCHEMA_VERSION:
         fix = (f"the writer left it unset: set schema_version = {SCHEMA_VERSION}" if message.schema_version == 0
@@ -219,7 +240,6 @@ def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
         validate_identifier(message.scanner_id)
     except InvalidIdentifierError as exc:
         raise InvalidMessageError(f"{name}: {exc}") from None
-    _VALIDATORS[type(message)](message, limits)
 
 
 def _finite(where: str, *values: float) -> None:
@@ -258,7 +278,7 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
     _finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
 
 
-def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
+def _validate_sample(m: Sample, limits: DecodeLimits) -> bytes | None:
     # Every check of the contract, in two tiers: a screen of a few comparisons per sensor that a valid float32
     # sample passes (one sum is finite only if each term is; each comparison is one of the exact checks), and,
     # for anything the screen does not pass (int16 data, a malformed field, an overflowing sum), the exact
@@ -285,10 +305,12 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
         if w.encoding == _FLOAT32:
             float32.append(data)
     # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
-    if float32 and not np.isfinite(np.frombuffer(b"".join(float32), dtype="<f4")).all():
+    joined = b"".join(float32)
+    if float32 and not np.isfinite(np.frombuffer(joined, dtype="<f4")).all():
         for i, s in enumerate(sensors):
             if s.waveform.encoding == _FLOAT32 and not np.isfinite(np.frombuffer(s.waveform.data, dtype="<f4")).all():
                 raise NonFiniteValueError(f"Sample.sensors[{i}].waveform holds NaN or infinite samples")
+    return joined if len(float32) == len(sensors) else None
 
 
 def _check_sensor(i: int, s, limits: DecodeLimits) -> None:

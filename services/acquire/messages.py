@@ -8,6 +8,7 @@ import lelsonar
 from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.acquire.scanner import ScannerInfo, StepMeasurement
 from lelsonar.energy_model import EnergyModel
+from lelsonar.reconstruct.energy import waveform_energy
 from lelsonar.v1 import scan_pb2
 
 
@@ -53,6 +54,11 @@ def sample(scanner_id: str, scan_id: int, step: int, gamma_commanded: float, sho
             r.time_of_flight = float(tof)
             r.distance = float(info.sound_speed * tof / 2.0)
         r.waveform.CopyFrom(codec.pack_waveform(wave, info.sample_rate, shot.t0, int16_scale=int16_scale))
+    # Each waveform's energy (eq. 10) on the samples as packed, so that a reconstructor need not integrate
+    # every waveform again (it checks these against the waveforms, in batches).
+    msg.sensor_energy.extend(
+        float(waveform_energy(codec.unpack_waveform(r.waveform, validated=True), info.sample_rate))
+        for r in msg.sensors)
     return msg
 
 

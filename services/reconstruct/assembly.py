@@ -2,8 +2,31 @@
 
 Samples are placed by step index, so arrival order does not matter; a second
 copy of a step is dropped.  Per step the assembly keeps what the math needs —
-measured γ, ranges, the energy of each capsule (eq. 10) — and the waveforms of
-the latest step only, for display.
+measured γ, ranges, the energy of each capsule (eq. 10), the first echo's
+peak — and the latest step's waveforms, for display.
+
+A sample's waveforms are worked on once, as it is placed, while their
+samples are in the cache: a ``Sample`` may carry the energies its writer
+computed (``sensor_energy``, as the acquisition service does); they are
+checked against the waveforms in float32
+(:func:`~lelsonar.reconstruct.energy.waveform_energy_agrees`, one dot product
+a step) instead of integrated again in float64.  Where they disagree, or are
+not plausible, the energies are recomputed, counted
+(:attr:`ScanAssembly.energy_mismatches`) and warned about; without them
+(another writer) they are computed.  Either way the arrays hold eq. (10) of
+the waveforms: the writer's value, which the check holds to within float32
+rounding of it (the acquisition service's is
+:func:`~lelsonar.reconstruct.energy.waveform_energy` itself, bit for bit), or
+that function's.  The first echo's
+peak window is cut out of each waveform (on every :data:`RISE_STRIDE`-th step
+also the window just before it, and the DC level is taken, for
+:meth:`ScanAssembly.writer_problems`); the peaks, and R (§4), are worked out
+for many steps at once (:meth:`ScanAssembly.settle`) when first read, when
+the ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.  The
+acquisition service's samples (capsules in the ScanStart's order, float32
+waveforms of one length on one clock) take one pass; anything else another
+writer may send (its own capsule order and ids, int16 data, a clock per
+capsule) the general path, to the same values.
 
 The per-step arrays grow with the highest step that actually arrived (doubling,
 capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
@@ -14,6 +37,7 @@ stream or the acquirer's log), for the per-scan accounting.
 
 from __future__ import annotations
 
+import logging
 import math
 from collections import Counter
 from dataclasses import dataclass, field
@@ -23,22 +47,24 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW as ECHO_WINDOW, PRE_ECHO_WINDOW, EnergyModel, echo_amplitude, waveform_energy
+from lelsonar.reconstruct.energy import (
+    ECHO_PEAK_WINDOW,
+    PRE_ECHO_WINDOW,
+    EnergyModel,
+    echo_window_starts,
+    echo_window_width,
+    energy_ratio,
+    total_energy,
+    waveform_energy,
+    waveform_energy_agrees,
+    window_peak,
+)
 from lelsonar.reconstruct.quality import DEGRADED, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
+_log = logging.getLogger(__name__)
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
-
-
-def _median_of_valid(distance: list[float]) -> float:
-    """:func:`~lelsonar.reconstruct.energy.median_range` of one step, without numpy's per-call overhead:
-    the same arithmetic on the same numbers (the mean of the two middle valid ranges), so the same bits."""
-    valid = sorted(x for x in distance if x == x)
-    c = len(valid)
-    if not c:
-        return math.nan
-    return 0.5 * (valid[(c - 1) // 2] + valid[c // 2])
 
 
 #: How far two statements of one length may differ (m): the radial offset in ScanStart.radial_offset and in
@@ -156,7 +182,12 @@ class StepView:
 
 @dataclass
 class ScanAssembly:
-    """Everything known about one (scanner, scan)."""
+    """Everything known about one (scanner, scan).
+
+    ``sensor_energy``, ``echo_amplitude``, ``pre_echo_peak``, ``step_energy``,
+    ``expected_energy`` and ``ratio`` are properties that first :meth:`settle` the steps placed
+    since they were last read (write nothing into them).
+    """
 
     start: codec.ScanStart
     geometry: ArrayGeometry = field(init=False)
@@ -168,15 +199,9 @@ class ScanAssembly:
     #: Readings marked echo_valid = false that carry a range anyway (a writer that never sets the flag).
     unflagged_ranges: int = 0
     distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
-    sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s
-    echo_amplitude: np.ndarray = field(init=False)   # (steps, k) V, peak of the first echo alone, NaN: none
-    pre_echo_peak: np.ndarray = field(init=False)    # (steps, k) V, peak just before the first echo, NaN: none
     dc_level: np.ndarray = field(init=False)         # (steps, k) V, |mean| of each waveform (a receiver's offset)
     #: (steps, k) distance / (c·tof/2) where the reading gave both (NaN elsewhere): 1 when they agree.
     range_tof_ratio: np.ndarray = field(init=False)
-    step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. 11
-    expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. 12
-    ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m); 0 without a valid range
     time_ns: np.ndarray = field(init=False)          # (steps,)
     received: np.ndarray = field(init=False)         # (steps,) bool
     recovered_mask: np.ndarray = field(init=False)   # (steps,) bool: the step came from the acquirer's log
@@ -184,10 +209,15 @@ class ScanAssembly:
     duplicates: int = 0
     #: Messages of this scan that were refused, by reason (the wire's ScanAccounting.rejected).
     rejected: Counter = field(default_factory=Counter)
-    latest: StepView | None = None
+    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms (or was not plausible:
+    #: not one finite, non-negative value per capsule); their energies were recomputed.
+    energy_mismatches: int = 0
 
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
+    #: Steps placed but not yet settled that make :meth:`add` settle them (what is held for it is small: the
+    #: echo windows, 4 × 80 float32 samples a step, and as many again on every RISE_STRIDE-th step).
+    SETTLE_EVERY = 256
 
     def __post_init__(self) -> None:
         self.geometry = geometry_from_start(self.start)
@@ -196,6 +226,14 @@ class ScanAssembly:
         self._capsule_ids = sorted(c.capsule_id for c in self.start.capsules)
         self.sound_speed = speed_of_sound(self.start)
         self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
+        # Steps placed since the last settle(), and the windows of their first echoes, by width:
+        # (float32 bytes of each window, its flat index in echo_amplitude).
+        self._unsettled: list[int] = []
+        self._windows: dict[int, tuple[list[bytes], list[int]]] = {}
+        self._pre_windows: dict[int, tuple[list[bytes], list[int]]] = {}  # the same, just before (sampled steps)
+        self._widths: dict[tuple[float, tuple[float, float]], int] = {}  # window width by (sample rate, window)
+        # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
+        self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
     def _allocate(self, n: int) -> None:
@@ -204,7 +242,7 @@ class ScanAssembly:
 
         def grown(name: str, tail: tuple[int, ...], fill, dtype=float) -> np.ndarray:
             new = np.full((n, *tail), fill, dtype=dtype)
-            old = getattr(self, name, None)
+            old = self.__dict__.get(name)
             if isinstance(old, np.ndarray):
                 new[:len(old)] = old
             return new
@@ -212,17 +250,67 @@ class ScanAssembly:
         self.gamma = grown("gamma", (), np.nan)
         self.gamma_commanded = grown("gamma_commanded", (), np.nan)
         self.distance = grown("distance", (k,), np.nan)
-        self.sensor_energy = grown("sensor_energy", (k,), 0.0)
-        self.echo_amplitude = grown("echo_amplitude", (k,), np.nan)
-        self.pre_echo_peak = grown("pre_echo_peak", (k,), np.nan)
+        self._sensor_energy = grown("_sensor_energy", (k,), 0.0)      # (steps, k) V²·s, eq. 10
+        self._echo_amplitude = grown("_echo_amplitude", (k,), np.nan)  # (steps, k) V, first echo's peak; NaN: none
+        self._pre_echo_peak = grown("_pre_echo_peak", (k,), np.nan)    # (steps, k) V, peak just before it; NaN: none
         self.dc_level = grown("dc_level", (k,), np.nan)
         self.range_tof_ratio = grown("range_tof_ratio", (k,), np.nan)
-        self.step_energy = grown("step_energy", (), 0.0)
-        self.expected_energy = grown("expected_energy", (), 0.0)
-        self.ratio = grown("ratio", (), 0.0)
+        self._step_energy = grown("_step_energy", (), 0.0)            # (steps,) E^γ, eq. 11
+        self._expected_energy = grown("_expected_energy", (), 0.0)    # (steps,) E0(d_m), eq. 12
+        self._ratio = grown("_ratio", (), 0.0)                        # (steps,) R = E^γ / E0(d_m); 0 without a range
         self.time_ns = grown("time_ns", (), 0, np.int64)
         self.received = grown("received", (), False, bool)
         self.recovered_mask = grown("recovered_mask", (), False, bool)
+
+    # --- what comes from the waveforms, settled when read ----------------------------------------
+    @property
+    def sensor_energy(self) -> np.ndarray:
+        """(steps, k) V²·s, eq. (10) of each capsule's waveform; 0 for steps not received."""
+        self.settle()
+        return self._sensor_energy
+
+    @property
+    def echo_amplitude(self) -> np.ndarray:
+        """(steps, k) V, peak of the first echo alone (:func:`~lelsonar.reconstruct.energy.echo_amplitude`);
+        NaN: none."""
+        self.settle()
+        return self._echo_amplitude
+
+    @property
+    def pre_echo_peak(self) -> np.ndarray:
+        """(steps, k) V, peak just before the first echo (``PRE_ECHO_WINDOW``), on every :data:`RISE_STRIDE`-th
+        step; NaN: none, or not a checked step."""
+        self.settle()
+        return self._pre_echo_peak
+
+    @property
+    def step_energy(self) -> np.ndarray:
+        """(steps,) E^γ, eq. (11)."""
+        self.settle()
+        return self._step_energy
+
+    @property
+    def expected_energy(self) -> np.ndarray:
+        """(steps,) E0(d_m), eq. (12); 0 without a valid range."""
+        self.settle()
+        return self._expected_energy
+
+    @property
+    def ratio(self) -> np.ndarray:
+        """(steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range."""
+        self.settle()
+        return self._ratio
+
+    @property
+    def latest(self) -> StepView | None:
+        """The latest step placed, for display (its waveforms unpacked when first read)."""
+        view = self._latest
+        if view is None or isinstance(view, StepView):
+            return view
+        step, time_ns, gamma, joined, (n, rate, t0) = view
+        waveforms = np.frombuffer(joined, dtype="<f4").reshape(self.geometry.n_capsules, n)
+        self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(), waveforms, rate, t0)
+        return view
 
     @property
     def key(self) -> tuple[str, int]:
@@ -263,13 +351,16 @@ class ScanAssembly:
         """The ScanEnd came and every step it counts has arrived."""
         return self.end is not None and len(self.missing_steps()) == 0
 
-    def add(self, sample: codec.Sample, origin: str = "live") -> bool:
+    def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None) -> bool:
         """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
+
+        ``samples``: the float32 samples of its waveforms joined in the order of its sensors, as
+        :func:`~lelsonar.codec.decode_sample` returns them (else they are copied out of the message).
 
         Raises
         ------
         InvalidMessageError
-            A step outside the schedule, or capsules the ScanStart did not list.
+            A step outside the schedule, capsules the ScanStart did not list, or waveforms of different lengths.
         """
         step = sample.step
         if step >= self.start.steps:
@@ -281,26 +372,118 @@ class ScanAssembly:
             return False
         k = self.geometry.n_capsules
         sensors = sample.sensors
-        if [s.capsule_id for s in sensors] != self._capsule_ids:
-            ids = [s.capsule_id for s in sensors]
-            if sorted(ids) != self._capsule_ids:
-                raise InvalidMessageError(f"sample {step} carries capsules {ids}; the scan has capsules "
-                                          f"{self._capsule_ids}")
-            sensors = sorted(sensors, key=lambda s: s.capsule_id)
-        # One pass over the readings: the waveforms, and each echo's range and round trip.
-        waves = []
-        ranges = [math.nan] * k
-        tof = [math.nan] * k
-        c = self.sound_speed
+        if not sensors:
+            raise InvalidMessageError(f"sample {step} carries no sensor readings")
+        first = sensors[0].waveform
+        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
+        # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
+        # waveforms of one length on one clock, the samples joined once.  Anything else (another writer's
+        # order, int16 data, a clock per capsule) takes the general path, with the same results.
+        ids = self._capsule_ids
+        data = []
+        fast = len(sensors) == k
+        if fast:
+            for s, capsule in zip(sensors, ids):
+                w = s.waveform
+                if (s.capsule_id != capsule or w.sample_count != n or w.encoding != _FLOAT32
+                        or w.sample_rate != rate or w.t0 != t0):
+                    fast = False
+                    break
+                if samples is None:
+                    data.append(w.data)
+        carried = sample.sensor_energy
+        carried = list(carried) if len(carried) else None
+        if fast:
+            joined = samples if samples is not None and len(samples) == 4 * k * n else b"".join(
+                data or [s.waveform.data for s in sensors])
+            clocks = None
+        else:
+            sensors, carried = self._in_capsule_order(sample, carried)
+            first = sensors[0].waveform  # the lowest id's clock: the one the display shows
+            rate, t0 = first.sample_rate, first.t0
+            joined = _waveforms([s.waveform for s in sensors], n).astype("<f4", copy=False).tobytes()
+            clocks = [(s.waveform.sample_rate, s.waveform.t0) for s in sensors]
+            if all(c == (rate, t0) for c in clocks):
+                clocks = None  # one clock after all
         # The scan-wide checks of the ranges (writer_problems) are medians over tens of readings: every
         # RISE_STRIDE-th step (by index) gives them plenty, at a quarter of the cost.
         sampled = step % RISE_STRIDE == 0
+        ranges, tof, agree = self._ranges(step, sensors, sampled)
+        # The (k, n) float32 samples, worked on while they are in the cache (holding them for later would
+        # cost more: fresh memory for each step, and a cold cache for the next step's decoding).
+        waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
+        if clocks is None:
+            agrees = carried is not None and waveform_energy_agrees(waveforms, rate, carried)
+        else:  # each capsule on its own clock (the contract allows it): each waveform at its own rate
+            agrees = carried is not None and len(carried) == k and all(
+                waveform_energy_agrees(waveforms[i:i + 1], r, carried[i:i + 1]) for i, (r, _) in enumerate(clocks))
+        if agrees:
+            self._sensor_energy[step] = carried  # the writer's, checked against the samples
+        else:
+            self._sensor_energy[step] = (waveform_energy(waveforms, rate) if clocks is None else
+                                         [waveform_energy(wv, r) for wv, (r, _) in zip(waveforms, clocks)])
+            if carried is not None:
+                self._energy_mismatch(step)
+        # The first echoes' peak windows (and, on a sampled step, the windows just before them, and each
+        # waveform's DC level), cut out of the samples now and reduced with the other steps' later.
+        self._cut(self._windows, step, joined, n, rate, t0, clocks, tof, ECHO_PEAK_WINDOW)
+        if sampled:
+            self.range_tof_ratio[step] = agree
+            if n > 0:
+                self._cut(self._pre_windows, step, joined, n, rate, t0, clocks, tof, PRE_ECHO_WINDOW)
+                self.dc_level[step] = np.abs(waveforms.mean(axis=-1, dtype=np.float64))
+        self.gamma[step] = sample.gamma_measured
+        self.gamma_commanded[step] = sample.gamma_commanded
+        self.distance[step] = ranges
+        self.time_ns[step] = sample.acquisition_time_ns
+        self.received[step] = True
+        self.recovered_mask[step] = origin == "recovered"
+        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, joined, (n, rate, t0))
+        self._unsettled.append(step)
+        if len(self._unsettled) >= self.SETTLE_EVERY:
+            self.settle()
+        return True
+
+    def _energy_mismatch(self, step: int) -> None:
+        self.energy_mismatches += 1
+        if self.energy_mismatches == 1:  # once a scan; the rest are counted
+            _log.warning("scan %s: the sensor_energy carried by step %d disagrees with its waveforms (or is not "
+                         "one finite, non-negative value per capsule); recomputed from the waveforms; further "
+                         "such steps of this scan are counted in energy_mismatches", self.key, step)
+
+    def _in_capsule_order(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list | None]:
+        """The sensors of a sample in the order of the ScanStart's capsule ids, and the carried energies in
+        the same order; checked (the capsules the ScanStart listed, waveforms of one length)."""
+        sensors = list(sample.sensors)
+        ids = [s.capsule_id for s in sensors]
+        if ids != self._capsule_ids:
+            if sorted(ids) != self._capsule_ids:
+                raise InvalidMessageError(f"sample {sample.step} carries capsules {ids}; the scan has capsules "
+                                          f"{self._capsule_ids}")
+            order = sorted(range(len(ids)), key=ids.__getitem__)
+            sensors = [sensors[i] for i in order]
+            if carried is not None and len(carried) == len(order):  # carried in the order of the sensors
+                carried = [carried[i] for i in order]
+        counts = {s.waveform.sample_count for s in sensors}
+        if len(counts) > 1:
+            raise InvalidMessageError(f"sample {sample.step} has waveforms of different lengths {sorted(counts)}")
+        return sensors, carried
+
+    def _ranges(self, step: int, sensors, sampled: bool) -> tuple[list, list, list | None]:
+        """Each reading's range and round trip (NaN: no echo), in the order of ``sensors``, and on a
+        ``sampled`` step each one's distance / (c·tof/2) where it gave both (NaN elsewhere).
+
+        A writer may fill only one of the range and the round trip (the codec made sure one is > 0); the other
+        follows from the scan's speed of sound.  A reading without an echo that carries a range anyway is
+        counted (:attr:`unflagged_ranges`), its range not read.
+        """
+        k = len(sensors)
+        ranges = [math.nan] * k
+        tof = [math.nan] * k
         agree = [math.nan] * k if sampled else None
+        c = self.sound_speed
         for i, s in enumerate(sensors):
-            waves.append(s.waveform)
             if s.echo_valid:
-                # A writer may fill only one of the range and the round trip (the codec made sure one is > 0);
-                # the other follows from the scan's speed of sound.
                 d, t = s.distance, s.time_of_flight
                 if not (d > 0 and t > 0):
                     if c is None:
@@ -314,51 +497,56 @@ class ScanAssembly:
                 ranges[i], tof[i] = d, t
             elif s.distance > 0:  # NaN compares false: only a positive range counts
                 self.unflagged_ranges += 1
-        first = waves[0]
-        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
-        if any(w.sample_count != n for w in waves):
-            raise InvalidMessageError(f"sample {step} has waveforms of different lengths "
-                                      f"{sorted({w.sample_count for w in waves})}")
-        # One (k, n) float32 array of the waveforms (ingest decoded and validated them); for float32 data a
-        # read-only view of the joined bytes: one copy in all.
-        if all(w.encoding == _FLOAT32 for w in waves):
-            waveforms = np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(k, n)
+        return ranges, tof, agree
+
+    def _cut(self, store: dict, step: int, joined: bytes, n: int, rate: float, t0: float, clocks: list | None,
+             tof: list[float], window: tuple[float, float]) -> None:
+        """Cut each waveform's ``window`` after its round trip out of the (k, n) float32 ``joined`` into
+        ``store`` (by width: the windows' bytes and their flat index in a (steps, k) array), for
+        :meth:`settle` to reduce (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s windows).
+
+        ``clocks``: each capsule's (sample rate, t0), or None when all share ``rate`` and ``t0``.
+        """
+        k = len(tof)
+        if clocks is None:
+            key = (rate, window)
+            width = self._widths.get(key)
+            if width is None:
+                width = self._widths[key] = echo_window_width(rate, window)
+            starts = echo_window_starts(n, rate, t0, tof, window)
+            widths = [width] * k
         else:
-            waveforms = np.stack([codec.unpack_waveform(w, validated=True) for w in waves])
-        distance = np.array(ranges)
-        checked = sampled and n > 0  # what precedes each echo, on a sampled step with waveforms
-        before = None
-        if all(w.sample_rate == rate and w.t0 == t0 for w in waves):
-            energy = waveform_energy(waveforms, rate)
-            amplitude = echo_amplitude(waveforms, rate, t0, tof)
-            if checked:
-                before = echo_amplitude(waveforms, rate, t0, tof, PRE_ECHO_WINDOW)
-        else:  # each capsule on its own clock (the contract allows it): each waveform with its own
-            energy = np.array([waveform_energy(wv, w.sample_rate) for wv, w in zip(waveforms, waves)])
-            amplitude, before = (np.array([echo_amplitude(wv, w.sample_rate, w.t0, tt, window)
-                                           for wv, w, tt in zip(waveforms, waves, tof)])
-                                 for window in (ECHO_WINDOW, PRE_ECHO_WINDOW))
-        self.gamma[step] = sample.gamma_measured
-        self.gamma_commanded[step] = sample.gamma_commanded
-        self.distance[step] = distance
-        self.sensor_energy[step] = energy
-        self.echo_amplitude[step] = amplitude
-        if checked and before is not None:
-            self.pre_echo_peak[step] = before
-            self.dc_level[step] = np.abs(waveforms.mean(axis=-1, dtype=np.float64))
-        if sampled:
-            self.range_tof_ratio[step] = agree
-        # R of this step, once, as energy_ratio() computes it for a whole scan (§4).
-        self.step_energy[step] = total = float(energy.sum())
-        d_m = _median_of_valid(ranges)
-        if d_m == d_m:  # not NaN
-            self.expected_energy[step] = expected = float(self.energy_model.expected_energy(d_m))
-            self.ratio[step] = total / expected
-        self.time_ns[step] = sample.acquisition_time_ns
-        self.received[step] = True
-        self.recovered_mask[step] = origin == "recovered"
-        self.latest = StepView(step, sample.acquisition_time_ns, sample.gamma_measured, distance, waveforms, rate, t0)
-        return True
+            starts = [echo_window_starts(n, r, t, [tt], window)[0] for (r, t), tt in zip(clocks, tof)]
+            widths = [echo_window_width(r, window) for r, _ in clocks]
+        for i, (a, width) in enumerate(zip(starts, widths)):
+            if a >= 0:
+                size = 4 * width
+                at = 4 * (i * n + a)
+                chunk = joined[at:at + min(size, 4 * (n - a))]
+                if len(chunk) < size:  # off the end: zeros, which leave the largest |w| as it is
+                    chunk += bytes(size - len(chunk))
+                chunks, where = store.get(width) or store.setdefault(width, ([], []))
+                chunks.append(chunk)
+                where.append(step * k + i)
+
+    def settle(self) -> None:
+        """Work out, for the steps placed since the last call and all at once, the first echoes' peaks and the
+        peaks just before them (from the windows cut out by :meth:`add`), E^γ (eq. 11), E0(d_m) (eq. 12) and
+        R (§4)."""
+        for store, peaks in ((self._windows, self._echo_amplitude), (self._pre_windows, self._pre_echo_peak)):
+            if store:
+                flat = peaks.reshape(-1)
+                for width, (chunks, where) in store.items():
+                    flat[where] = window_peak(np.frombuffer(b"".join(chunks), dtype="<f4").reshape(-1, width))
+                store.clear()
+        if not self._unsettled:
+            return
+        steps = np.array(self._unsettled)
+        self._unsettled = []
+        self._step_energy[steps] = step_energy = total_energy(self._sensor_energy[steps])
+        expected = self._expected_energy[steps]
+        self._ratio[steps] = energy_ratio(step_energy, self.distance[steps], self.energy_model, expected=expected)
+        self._expected_energy[steps] = expected
 
     @property
     def gamma_unmeasured(self) -> bool:
@@ -434,3 +622,10 @@ class ScanAssembly:
     def raw_points(self, step: int) -> np.ndarray:
         """Eq. (9) points of one received step, (k, 3); NaN rows where no echo."""
         return beam_points(self.geometry, self.gamma[step:step + 1], self.distance[step:step + 1])[0]
+
+
+def _waveforms(waves: list, n: int) -> np.ndarray:
+    """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""
+    if all(w.encoding == _FLOAT32 for w in waves):
+        return np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(len(waves), n)
+    return np.stack([codec.unpack_waveform(w, validated=True) for w in waves])

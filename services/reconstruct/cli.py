@@ -315,7 +315,8 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
     console.print(
         f"reconstruct: {stats['finals']} terminal estimates ({stats['incomplete']} incomplete, "
         f"{stats['final_timeouts']} final_timeout); samples: published {s['published']}, live "
-        f"{s['received_live']}, recovered {s['recovered']}, duplicates {s['duplicates']}, missing {s['missing']}; "
+        f"{s['received_live']}, recovered {s['recovered']}, duplicates {s['duplicates']}, missing {s['missing']}"
+        + (f", energy mismatches {s['energy_mismatches']}" if s.get("energy_mismatches") else "") + "; "
         f"rejected {stats['rejected']}; evicted {stats['evicted']}; recovery {stats['recovery']}"
         + (f"; worker errors {stats['worker_errors']}" if stats.get("worker_errors") else "")
         + (f"; group {stats['group']}" if stats.get("group") else ""), highlight=False)

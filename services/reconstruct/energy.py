@@ -12,7 +12,9 @@ import numpy as np
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 
-__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "PRE_ECHO_WINDOW", "waveform_energy", "echo_amplitude", "total_energy", "fit_energy_model", "median_range", "energy_ratio"]
+__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "PRE_ECHO_WINDOW", "waveform_energy", "waveform_energy_agrees",
+           "echo_amplitude", "echo_window_starts", "echo_window_width", "window_peak", "total_energy", "fit_energy_model",
+           "median_range", "energy_ratio"]
 
 
 def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -38,7 +40,7 @@ def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
     return np.vecdot(w, w) / float(sample_rate)
 
 
-_largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper (called per waveform)
+_largest = np.maximum.reduce  # ndarray.max without its Python-level wrapper
 
 #: Where :func:`echo_amplitude` looks, s after the time of flight: the comparator fires on the
 #: echo's rising edge, and a 40 kHz transceiver's echo peaks within ~0.2 ms of its onset.  Short, so
@@ -48,6 +50,38 @@ ECHO_PEAK_WINDOW = (0.0, 4.0e-4)
 #: the echo's (:func:`echo_amplitude` with each window) says whether the waveform holds an echo where the
 #: range puts it.
 PRE_ECHO_WINDOW = (-4.0e-4, 0.0)
+
+
+def echo_window_width(sample_rate: float, window: tuple[float, float] = ECHO_PEAK_WINDOW) -> int:
+    """Samples in :func:`echo_amplitude`'s window (at least one)."""
+    return max(int(round((window[1] - window[0]) * sample_rate)), 1)
+
+
+def echo_window_starts(n_samples: int, sample_rate: float, t0: float, round_trips,
+                       window: tuple[float, float] = ECHO_PEAK_WINDOW) -> list[int]:
+    """First sample of :func:`echo_amplitude`'s window for each round trip, in a waveform of ``n_samples``;
+    -1 where there is none.
+
+    The sample nearest ``round_trip + window[0]`` (half to even), clipped at 0; none without an echo
+    (``round_trip`` NaN, infinite or not positive) or when the window starts at or after the end.
+    """
+    starts = []
+    lo = window[0]
+    for t in round_trips:
+        a = -1
+        if t > 0.0 and math.isfinite(t):
+            x = (t + lo - t0) * sample_rate
+            if x < n_samples:
+                a = round(x) if x > 0.0 else 0
+                if a >= n_samples:
+                    a = -1
+        starts.append(a)
+    return starts
+
+
+def window_peak(windows: np.ndarray) -> np.ndarray:
+    """The largest ``|w|`` of each window (last axis): exact, in the samples' own type."""
+    return _largest(np.abs(windows), axis=-1)
 
 
 def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_trip: np.ndarray,
@@ -71,7 +105,8 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     round_trip : (...) array
         Time of flight of the first echo, s (NaN: no echo).
     window : (float, float)
-        Start and end of the search after the time of flight, s.
+        Start and end of the search after the time of flight, s (:func:`echo_window_starts`,
+        :func:`echo_window_width`; a window running off the end stops there).
 
     Returns
     -------
@@ -85,25 +120,63 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
     out = np.full(w.shape[:-1], np.nan)
     if n == 0 or not out.size:  # no waveform recorded: no amplitude
         return out
-    # One window per waveform, sliced: |w| and max are exact in float32, so float32 samples are never
-    # converted, and only the echo windows are touched.
-    width = max(int(round((window[1] - window[0]) * sample_rate)), 1)
-    rows = w.reshape(-1, n)
-    flat = out.reshape(-1)
-    lo = window[0]
     tof = np.asarray(round_trip, dtype=np.float64)
     if tof.shape != out.shape:
         tof = np.broadcast_to(tof, out.shape)
-    for i, t in enumerate(tof.ravel().tolist()):
-        if not (t > 0.0 and math.isfinite(t)):  # NaN (no echo), no time of flight
-            continue
-        x = (t + lo - t0) * sample_rate
-        if not x < n:  # NaN, or the window starts after the end
-            continue
-        a = round(x) if x > 0.0 else 0  # the nearest sample, half to even (as np.rint), clipped at 0
-        if a < n:
-            flat[i] = _largest(np.abs(rows[i, a:a + width]))
+    starts = echo_window_starts(n, sample_rate, t0, tof.ravel().tolist(), window)
+    rows = [i for i, a in enumerate(starts) if a >= 0]
+    if rows:
+        # Every window at once, one gather (|w| and max are exact in float32: float32 samples are never
+        # converted); a window running off the end repeats the last sample, which leaves the max unchanged.
+        first = np.array([starts[i] for i in rows])
+        cols = np.minimum(first[:, None] + np.arange(echo_window_width(sample_rate, window)), n - 1)
+        out.reshape(-1)[rows] = window_peak(w.reshape(-1, n)[np.array(rows)[:, None], cols])
     return out
+
+
+#: float32's unit roundoff and smallest normal number: the rounding bound of :func:`waveform_energy_agrees`.
+_FLOAT32_UNIT, _FLOAT32_TINY = 2.0 ** -24, float(np.finfo(np.float32).tiny)
+
+
+def waveform_energy_agrees(waveforms: np.ndarray, sample_rate: float, energy) -> bool:
+    """Whether ``energy`` is the eq. (10) energy of each waveform, to the rounding of a float32 check.
+
+    A check of claimed :func:`waveform_energy` values (e.g. a writer's), cheaper than recomputing
+    them: the float32 samples are squared and summed in float32, without conversion.  A sum of n
+    non-negative float32 products is within ``(n + 1)·2⁻²⁴`` of the exact sum relative to it, and
+    within ``n`` times the smallest normal float32 absolutely (underflow); the claimed float64 value
+    is far closer than that.  So a value outside twice that band is not the waveform's energy, and
+    one inside it differs from it by less than float32 rounding of the samples themselves does.
+
+    Parameters
+    ----------
+    waveforms : (k, n_samples) float32 array
+        V (other types are rounded to float32 first).
+    sample_rate : float
+        Hz.
+    energy : sequence of k floats
+        The claimed energies, V²·s.
+
+    Returns
+    -------
+    bool
+        False if any claim is off, not finite or negative, or if there is not one a waveform (or the
+        float32 squares overflowed).
+    """
+    w = np.asarray(waveforms)
+    if w.dtype != np.float32:
+        w = w.astype(np.float32)
+    if w.ndim != 2 or len(energy) != len(w):
+        return False
+    n = w.shape[-1]
+    rate = float(sample_rate)
+    rtol, atol = 2.0 * (n + 1) * _FLOAT32_UNIT, 2.0 * n * _FLOAT32_TINY / rate
+    # (a step's few values: compared in Python, which costs less than more numpy calls would)
+    for c, s in zip(energy, np.vecdot(w, w).tolist()):
+        s /= rate
+        if not (0.0 <= c < math.inf and abs(c - s) <= rtol * max(c, s) + atol):
+            return False
+    return True
 
 
 def total_energy(sensor_energy: np.ndarray) -> np.ndarray:
@@ -160,23 +233,33 @@ def median_range(distance: np.ndarray) -> np.ndarray:
         NaN for a step with no valid range.
     """
     d = np.asarray(distance, dtype=np.float64)
+    k = d.shape[-1]
+    if not k:
+        return np.full(d.shape[:-1], np.nan)
     # np.nanmedian goes through masked arrays (~0.4 ms a call); sorting puts NaN last, so the
     # median of the c valid values is the mean of sorted[(c-1)//2] and sorted[c//2] — the same numbers.
-    ordered = np.sort(d, axis=-1)
-    count = np.isfinite(d).sum(axis=-1)
-    lo = np.take_along_axis(ordered, np.maximum(count - 1, 0)[..., None] // 2, axis=-1)[..., 0]
-    hi = np.take_along_axis(ordered, (count // 2)[..., None], axis=-1)[..., 0] if d.shape[-1] else lo
-    return np.where(count > 0, 0.5 * (lo + hi), np.nan)
+    ordered = np.sort(d, axis=-1).reshape(-1, k)
+    count = np.isfinite(d).sum(axis=-1).reshape(-1)
+    rows = np.arange(len(ordered))  # (plain indexing: take_along_axis costs more than the rest together)
+    mid = 0.5 * (ordered[rows, np.maximum(count - 1, 0) // 2] + ordered[rows, count // 2])
+    return np.where(count > 0, mid, np.nan).reshape(d.shape[:-1])
 
 
-def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel) -> np.ndarray:
+def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel, *,
+                 expected: np.ndarray | None = None) -> np.ndarray:
     """The indicator ``R = E^γ / E0(d_m)`` of each step (paper §4, Fig. 6).
 
     Steps with no valid range get R = 0: they cannot be the corner, whose
     double bounce always returns an echo.
+
+    ``expected``, an (n_steps,) array if given, receives ``E0(d_m)`` (eq. 12)
+    where ``d_m`` is valid (elsewhere it is left as it is).
     """
     d_m = median_range(distance)
     r = np.zeros_like(np.asarray(step_energy, dtype=np.float64))
     ok = np.isfinite(d_m)
-    r[ok] = np.asarray(step_energy, dtype=np.float64)[ok] / model.expected_energy(d_m[ok])
+    e0 = model.expected_energy(d_m[ok])
+    r[ok] = np.asarray(step_energy, dtype=np.float64)[ok] / e0
+    if expected is not None:
+        expected[ok] = e0
     return r

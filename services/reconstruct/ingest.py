@@ -69,6 +69,9 @@ class Ingest:
     #: What a bound pushed out, by reason (nothing leaves a table uncounted).
     evicted: Counter[str] = field(default_factory=Counter)
     accepted: int = 0
+    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms, over every scan so far, open
+    #: or closed (each scan counts its own in ``ScanAssembly.energy_mismatches``); recomputed, not rejected.
+    energy_mismatches: int = 0
     #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
     recovered_after_close: int = 0
     #: Keys that started waiting for their ScanStart since the caller last emptied this list.
@@ -90,18 +93,23 @@ class Ingest:
             cls = codec.MESSAGE_TYPES.get(type_name)
             if cls is None or cls is codec.Reconstruction:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
-            message = codec.decode(payload, cls, self.limits)
+            samples = None  # a Sample's float32 samples as its validation joined them: not copied out again
+            if cls is codec.Sample:
+                message, samples = codec.decode_sample(payload, self.limits)
+            else:
+                message = codec.decode(payload, cls, self.limits)
             if key_scanner is not None and message.scanner_id != key_scanner:
                 raise ScannerMismatchError(
                     f"{cls.DESCRIPTOR.name} claims scanner {message.scanner_id!r} but came on the key of scanner "
                     f"{key_scanner[:80]!r}; dropped (a forgery, or a publisher misconfigured with the wrong "
                     "--scanner-id)")
-            return self.apply(message, origin=origin)
+            return self.apply(message, origin=origin, samples=samples)
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, str(exc))]
 
-    def apply(self, message, *, origin: str = "live") -> list[Accepted | Rejected]:
-        """Apply an already validated message (``origin``: "live" or "recovered")."""
+    def apply(self, message, *, origin: str = "live", samples: bytes | None = None) -> list[Accepted | Rejected]:
+        """Apply an already validated message (``origin``: "live" or "recovered"; ``samples``: a Sample's
+        float32 samples as :func:`~lelsonar.codec.decode_sample` returns them, if at hand)."""
         key = (message.scanner_id, message.scan_id)
         if key in self.closed:
             if origin == "recovered":
@@ -116,7 +124,7 @@ class Ingest:
         if isinstance(message, codec.Sample):
             if scan is None:
                 return self._hold(key, message, origin)
-            return [self._add(scan, message, origin)]
+            return [self._add(scan, message, origin, samples)]
         if scan is None:  # a ScanEnd before its ScanStart: held like a sample (a late start may recover it)
             return self._hold(key, message, origin)
         if scan.end is not None:
@@ -127,6 +135,7 @@ class Ingest:
             return [self._reject("InvalidMessageError", f"ScanEnd of scan {key} counts {message.samples_sent} "
                                                         f"samples; its ScanStart planned {scan.start.steps}")]
         scan.end = message
+        scan.settle()  # what the final reads, worked out now that the scan's samples are in
         self.accepted += 1
         return [Accepted("end", scan)]
 
@@ -170,13 +179,17 @@ class Ingest:
                 events += self.apply(held, origin=origin)
         return events
 
-    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live") -> Accepted | Rejected:
+    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live",
+             samples: bytes | None = None) -> Accepted | Rejected:
+        mismatches = scan.energy_mismatches
         try:
-            if not scan.add(sample, origin):
+            if not scan.add(sample, origin, samples):
                 return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
         except DecodeError as exc:
             scan.rejected[type(exc).__name__] += 1
             return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
+        # Counted here, as they happen (the stats read one number, never the open scans a worker changes).
+        self.energy_mismatches += scan.energy_mismatches - mismatches
         self.accepted += 1
         return Accepted("sample", scan, sample.step)
 

@@ -370,7 +370,9 @@ class ReconstructionService:
         return {
             "estimates": s.estimates, "finals": s.finals, "final_timeouts": s.timeouts, "incomplete": s.incomplete,
             "samples": {"published": s.published, "received_live": s.received_live, "recovered": s.recovered,
-                        "duplicates": s.duplicates, "missing": s.missing},
+                        "duplicates": s.duplicates, "missing": s.missing,
+                        # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
+                        "energy_mismatches": self.ingest.energy_mismatches},
             "rejected": dict(self.ingest.rejected),
             "evicted": dict(self.ingest.evicted + s.evicted),
             "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused,

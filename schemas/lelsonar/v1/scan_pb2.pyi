@@ -148,7 +148,7 @@ class SensorReading(_message.Message):
     def __init__(self, capsule_id: _Optional[int] = ..., echo_valid: _Optional[bool] = ..., time_of_flight: _Optional[float] = ..., distance: _Optional[float] = ..., waveform: _Optional[_Union[Waveform, _Mapping]] = ...) -> None: ...
 
 class Sample(_message.Message):
-    __slots__ = ("schema_version", "scanner_id", "scan_id", "step", "acquisition_time_ns", "gamma_commanded", "gamma_measured", "motor", "sensors")
+    __slots__ = ("schema_version", "scanner_id", "scan_id", "step", "acquisition_time_ns", "gamma_commanded", "gamma_measured", "motor", "sensors", "sensor_energy")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
     SCAN_ID_FIELD_NUMBER: _ClassVar[int]
@@ -158,6 +158,7 @@ class Sample(_message.Message):
     GAMMA_MEASURED_FIELD_NUMBER: _ClassVar[int]
     MOTOR_FIELD_NUMBER: _ClassVar[int]
     SENSORS_FIELD_NUMBER: _ClassVar[int]
+    SENSOR_ENERGY_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     scanner_id: str
     scan_id: int
@@ -167,7 +168,8 @@ class Sample(_message.Message):
     gamma_measured: float
     motor: MotorStatus
     sensors: _containers.RepeatedCompositeFieldContainer[SensorReading]
-    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., step: _Optional[int] = ..., acquisition_time_ns: _Optional[int] = ..., gamma_commanded: _Optional[float] = ..., gamma_measured: _Optional[float] = ..., motor: _Optional[_Union[MotorStatus, _Mapping]] = ..., sensors: _Optional[_Iterable[_Union[SensorReading, _Mapping]]] = ...) -> None: ...
+    sensor_energy: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., step: _Optional[int] = ..., acquisition_time_ns: _Optional[int] = ..., gamma_commanded: _Optional[float] = ..., gamma_measured: _Optional[float] = ..., motor: _Optional[_Union[MotorStatus, _Mapping]] = ..., sensors: _Optional[_Iterable[_Union[SensorReading, _Mapping]]] = ..., sensor_energy: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class ScanEnd(_message.Message):
     __slots__ = ("schema_version", "scanner_id", "scan_id", "end_time_ns", "status", "reason", "steps_planned", "samples_sent", "echoes_missing")
