@@ -376,7 +376,7 @@ def run_cli(path: Path) -> tuple[int | None, list[dict], str]:
     """``lelsonar reconstruct --source PATH --json --compare ''`` in process (bench_stress's runner)."""
     from lelsonar.tools.bench_stress import run_cli as _run
 
-    return _run(path)
+    return _run(path, compare="")
 
 
 def judge(scan: ForeignScan, planes: list[dict]) -> dict[str, dict]:
