@@ -156,9 +156,6 @@ def test_a_rotation_axis_other_than_x_is_refused_by_name(scan, tmp_path):
 
 
 # ----------------------------------------------------------------------------- the physics
-@pytest.mark.xfail(strict=True, reason="known gap: a one-sided sweep whose wall echoes all clip leaves the direction to "
-                   "the ranges, which a late-firing comparator turns; degrading every one-sided wall cost 36 of 343 "
-                   "accurate good planes of `bench estimators --families all --seeds 20`, so it is not done")
 def test_a_wall_seen_from_one_side_of_its_normal_is_not_good(tmp_path):
     """The L rolled 11°, the sweep (0°..51°, reversed) starting 11° past wall a's normal; a receiver that clips
     every wall echo (no amplitude peak to find) and a comparator whose threshold crossing comes later on weaker,
