@@ -155,20 +155,6 @@ def clipped_echoes(amplitude: np.ndarray) -> np.ndarray:
     return top if np.count_nonzero(top) >= CLIP_MIN_ECHOES else np.zeros(a.shape, dtype=bool)
 
 
-def sweep_brackets(normal: np.ndarray, gamma: np.ndarray, margin: float = float(np.deg2rad(2.0))) -> bool:
-    """Whether the sweep's boresights ``(0, cos γ, sin γ)`` pass the wall's normal by ``margin`` (rad) on both sides.
-
-    The ranges fix a wall's direction in the rotation plane through ``r·cos(γ − φ)``,
-    symmetric about its normal ``φ``: seen from both sides, a range bias that grows
-    off-axis (a comparator firing later on weaker echoes, design notes §8) stays
-    symmetric and leaves ``φ`` alone; seen from one side it turns the wall.
-    """
-    phi = float(np.arctan2(normal[2], normal[1]))
-    g = np.asarray(gamma, dtype=np.float64)
-    delta = np.angle(np.exp(1j * (g[np.isfinite(g)] - phi)))  # γ − φ wrapped to (−π, π]
-    return bool(np.any(delta < -margin) and np.any(delta > margin))
-
-
 def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int
                      ) -> tuple[float, float, float] | None:
     """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``; None if not a significant peak inside."""
@@ -508,11 +494,6 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls)
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
-        if amplitude is not None and isinstance(fit, PlaneFit) and clipped_echoes(amplitude[1]).any() \
-                and not sweep_brackets(fit.normal, g):
-            # No amplitude peak to give the direction (clipped), and the ranges see the wall from one side only.
-            findings += ((DEGRADED, "its strongest echoes are clipped and the sweep does not pass its normal: its "
-                                    "direction is extrapolated from one side by the ranges alone"),)
         shared = shares[k]
         if shared > shared_limit:
             findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
