@@ -25,7 +25,7 @@ from lelsonar import codec
 from lelsonar.acquire.sim import EchoSource, Scene, calibrate_simulator, preset, simulate_scan
 from lelsonar.reconstruct import wire
 from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall,
-                                               echo_residuals, edge_line, fit_corner_model, joint_gauss_newton,
+                                               echo_residuals, edge_implied_offsets, edge_line, fit_corner_model, joint_gauss_newton,
                                                joint_residuals, scan_points)
 from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.acquire.sim import piston_directivity
@@ -119,6 +119,22 @@ def test_edge_residuals_are_the_double_bounce_off_the_edge_line() -> None:
             np.testing.assert_allclose(r[k][facing], (pts.capsule @ w.normal + pts.distance - w.offset)[facing],
                                        atol=1e-12)
             assert not np.any(np.isfinite(r[k][~facing]))
+
+
+def test_the_edge_implied_offset_places_the_wall_whose_edge_returned_the_double_bounce() -> None:
+    # Independent geometry, as above: a double bounce from the line edge_line gives returns from ρ·sin(opening);
+    # the offset that makes it one is the wall's own, whichever wall is held.
+    scan = simulate_scan(preset("paper-test1"), seed=0)
+    pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
+    for wa, wb in ((Wall(_unit([0.03, 1.0, -0.05]), 1.6), Wall(_unit([-0.02, 0.1, 1.0]), 1.1)),
+                   (Wall(_unit([0.0, 1.0, 0.3]), 0.9), Wall(_unit([0.05, -0.4, 1.0]), 1.4)),
+                   (Wall(_unit([-0.14, 0.98, -0.11]), 0.58), Wall(_unit([0.11, 0.28, 0.95]), 3.0))):
+        point, direction = edge_line(wa, wb)
+        rel = point - pts.capsule
+        rho = np.linalg.norm(rel - np.outer(rel @ direction, direction), axis=1)
+        d = rho * np.sin(np.pi - np.arccos(wa.normal @ wb.normal))
+        np.testing.assert_allclose(edge_implied_offsets(wa, wb.normal, pts.capsule, d), wb.offset, atol=1e-9)
+        np.testing.assert_allclose(edge_implied_offsets(wb, wa.normal, pts.capsule, d), wa.offset, atol=1e-9)
 
 
 def test_joint_gauss_newton_lands_on_the_least_squares_minimum() -> None:

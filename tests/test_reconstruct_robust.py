@@ -120,6 +120,18 @@ CLAIMED_GOOD = {
         cycle_slip_probability=0.07316242357206562, amplitude_noise=0.06402125579061417,
         noise_std=0.005585882500798769, corner_gain=0.12319158598582403, corner_max_error=0.767944870877505,
         missing=0.07018575634714999, missing_runs=True, e0_scale=0.2537417261309924)),
+    # A far wall beside a near one (2.87 m, 0.91 m, opening 100°, L rolled −11°): the edge lies 5° from the far
+    # wall's normal, so its 438 double bounces passed for wall b (5 mirror echoes of it), 3.5 cm off, and the
+    # model's own edge, beside the cluster, explained none of them.
+    "corner-cluster-is-the-wall": ("extreme", 500, dict(
+        distance_a=0.9056439240034528, distance_b=2.874792960229462, opening=1.747279908568496,
+        roll=-0.19589416822379369, skew_a=0.13846967316071493, skew_b=0.1134423631324446,
+        gamma_stop=2.3128064269053503, reverse=True, steps=251, spacing="dense", pitch=0.04877806113823298,
+        uneven=0.017947211508245076, radial_offset=0.04017700957700983, sample_rate=100000.0, int16=True,
+        tof_jitter=0.002091861148933949, cycle_slip_probability=0.0683575218274668,
+        amplitude_noise=0.08018474390861637, noise_std=0.00937059005964818, corner_gain=1.2151696298441106,
+        corner_max_error=0.767944870877505, missing=0.03149148992260311, missing_runs=True,
+        e0_scale=2.203668332273951)),
     # A sweep of −40…24° sees wall a only: no pair of bands, the energy-split fallback fitted wall a 2.5 cm off.
     "one-wall-fallback": ("mixed", 16, dict(
         _FAR_WALL_BESIDE_NEAR, gamma_start=-0.6981317007977318, gamma_stop=0.4227985756505899,

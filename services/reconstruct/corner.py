@@ -20,8 +20,8 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
-from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_line, edge_shared_shares,
-                           fit_corner_model, scan_points)
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_alternatives, edge_line,
+                           edge_shared_shares, fit_corner_model, scan_points)
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .options import FitOptions, ScanFit
@@ -474,6 +474,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     shared_limit = QualityLimits().max_offset_stderr / model.tolerance
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
+    alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         sel = np.full(d.shape, np.nan)
         m = model.labels == k
@@ -498,6 +499,13 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         if shared > shared_limit:
             findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
                                     f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset"),)
+        as_edge, lost = alternatives[k]
+        # The same share of echoes as above could hold the offset; an alternative leaving no more than the
+        # share of unexplained echoes that already degrades a plane explains the scan about as well.
+        if as_edge > shared_limit and lost <= QualityLimits().degraded_unexplained * pts.n:
+            findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
+                                    f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
+                                    "echoes the model explains: the corner cluster may have passed for the wall"),)
         out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll

@@ -48,6 +48,8 @@ __all__ = [
     "echo_residuals",
     "assign_echoes",
     "edge_shared_shares",
+    "edge_implied_offsets",
+    "edge_alternatives",
     "joint_residuals",
     "joint_gauss_newton",
     "band_offsets",
@@ -306,6 +308,62 @@ def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: flo
         mask = model.labels == label
         shares.append(float(np.mean(shared[mask])) if np.any(mask) else 0.0)
     return shares[0], shares[1], shares[2]
+
+
+def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """Offset of the wall facing ``normal`` that would make each echo a double bounce off its edge with ``other``, m.
+
+    The inverse of :func:`edge_range_terms` for one wall (design notes §8):
+    with ``a`` the capsule's distance to ``other`` and ``c`` the normals' dot
+    product, a double bounce returns from ``d = √(a² + x² − 2acx)``, so the
+    capsule's distance to the wall is ``x = ac + √(d² − a²(1 − c²))`` (the
+    root beyond the edge's foot) and the offset is ``x + n·p_c``.
+    """
+    a = other.offset - capsule @ other.normal
+    c = float(other.normal @ normal)
+    x = a * c + np.sqrt(np.maximum(distance * distance - a * a * (1.0 - c * c), 0.0))
+    return x + capsule @ normal
+
+
+def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: float, min_points: int = 8
+                      ) -> tuple[tuple[float, int], tuple[float, int]]:
+    """How well the other explanation of each wall's echoes, as the corner's double bounces, does.
+
+    Where the edge lies near the foot of a wall's normal (a far wall beside a
+    near one), the double bounces return a few centimetres from where that
+    wall's mirror echoes would, and vary with the capsule almost as they do:
+    the corner cluster passes for the wall, and the model's own edge
+    (:func:`edge_shared_shares`) then lies beside the cluster, not on it.  The
+    alternative keeps the other wall and this wall's normal and moves this wall
+    to the median offset at which its echoes are the edge's
+    (:func:`edge_implied_offsets`); every echo is then assigned afresh.  When
+    the alternative's edge takes most of the wall's echoes and it explains
+    about as many echoes as the model does, the ranges cannot tell the wall
+    from the cluster.  A real wall beside a real corner cluster is told apart:
+    the alternative moves the wall past the cluster, whose echoes it then
+    leaves unexplained.
+
+    Returns
+    -------
+    For wall a, then wall b: the share of its echoes the alternative's edge
+    explains, and how many more echoes the model explains than the
+    alternative (``(0.0, 0)`` for a wall with fewer than ``min_points``
+    echoes, or no edge).
+    """
+    out = []
+    explained = int(np.count_nonzero(model.labels != ECHO_OUTLIER))
+    walls = (model.wall_a, model.wall_b)
+    for k in (ECHO_WALL_A, ECHO_WALL_B):
+        mk = model.labels == k
+        if np.count_nonzero(mk) < min_points or edge_line(*walls) is None:
+            out.append((0.0, 0))
+            continue
+        h = fast_median(edge_implied_offsets(walls[1 - k], walls[k].normal, pts.capsule[mk], pts.distance[mk]))
+        pair = list(walls)
+        pair[k] = Wall(walls[k].normal, float(h))
+        labels, _ = assign_echoes(pair[0], pair[1], pts, model.tolerance, beam_half_angle)
+        out.append((float(np.mean(labels[mk] == ECHO_EDGE)), explained - int(np.count_nonzero(labels != ECHO_OUTLIER))))
+    return out[0], out[1]
 
 
 def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
