@@ -132,6 +132,17 @@ CLAIMED_GOOD = {
         amplitude_noise=0.08018474390861637, noise_std=0.00937059005964818, corner_gain=1.2151696298441106,
         corner_max_error=0.767944870877505, missing=0.03149148992260311, missing_runs=True,
         e0_scale=2.203668332273951)),
+    # A far wall (2.19 m) beside a near one (0.42 m): where the boresight faces the edge (γ ≈ 79°), the corner's
+    # double bounce (gain 2.1) returns 4 cm behind wall b's echo, inside the window whose peak is the echo's
+    # amplitude, so wall b's amplitudes peaked at the edge's direction: 10° off, σ 0.6°, "good".
+    "double-bounce-in-the-amplitude-window": ("mixed", 1136, dict(
+        distance_a=0.41708206847883056, distance_b=2.1885053293516927, opening=1.6213545461782521,
+        roll=0.014492681095263362, skew_a=-0.06582384028657728, skew_b=-0.014604590800815347,
+        gamma_stop=2.429673644517023, reverse=True, steps=78, capsules=6, pitch=0.1372249134418498,
+        uneven=0.08958397172837791, radial_offset=0.014352863738394762, sample_rate=125000.0, int16=True,
+        window_start=0.001, tof_jitter=0.00796458340737418, cycle_slip_probability=0.04055979099393087,
+        amplitude_noise=0.04761447656621262, noise_std=0.007911067021093465, corner_gain=2.1324527262068638,
+        missing=0.18054830437618288, e0_scale=1.7375837639320273)),
     # A sweep of −40…24° sees wall a only: no pair of bands, the energy-split fallback fitted wall a 2.5 cm off.
     "one-wall-fallback": ("mixed", 16, dict(
         _FAR_WALL_BESIDE_NEAR, gamma_start=-0.6981317007977318, gamma_stop=0.4227985756505899,

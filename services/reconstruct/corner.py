@@ -20,8 +20,10 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
-from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall, edge_alternatives, edge_line,
-                           edge_shared_shares, fit_corner_model, scan_points)
+from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, CornerModel, ScanPoints, Wall,
+                           echo_residuals, edge_alternatives, edge_line, edge_shared_shares, fit_corner_model,
+                           scan_points)
+from .energy import ECHO_PEAK_WINDOW
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .options import FitOptions, ScanFit
@@ -419,6 +421,27 @@ def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGe
     return assess_plane(fit, gamma, edge_echoes=0, findings=unexplained_finding(unexplained)), data
 
 
+#: Range the echo's amplitude window (:data:`~lelsonar.reconstruct.energy.ECHO_PEAK_WINDOW`) spans beyond
+#: the echo's own, m: half its length times a speed of sound at the warm end of a lab's (35 °C, ~352 m/s).
+ECHO_WINDOW_RANGE = ECHO_PEAK_WINDOW[1] * 352.0 / 2.0
+
+
+def edge_in_echo_window(model: CornerModel, pts: ScanPoints, beam_half_angle: float) -> np.ndarray:
+    """Mask of the echoes whose amplitude window also holds the corner's double bounce.
+
+    The double bounce returns from ``ρ·sin(opening)`` (eq. of
+    :func:`~lelsonar.reconstruct.corner_model.edge_range_terms`), never nearer
+    than either wall, and as strongly as a wall at that range (design notes
+    §8); a far wall's mirror echo where the boresight also faces the edge is
+    followed by it within centimetres, inside the window whose peak
+    :func:`~lelsonar.reconstruct.energy.echo_amplitude` takes.  That peak is
+    then the corner's, and it pulls :func:`amplitude_pitch` toward the edge's
+    direction.
+    """
+    gap = -echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle)[2]  # ρ·sin(opening) − d; inf: no edge
+    return np.isfinite(gap) & (gap <= ECHO_WINDOW_RANGE)
+
+
 def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
                opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
     """The method ``"corner"``: both walls and the edge from all the echoes.
@@ -475,6 +498,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
+    leaks = edge_in_echo_window(model, pts, opts.corner_beam_half_angle)
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         sel = np.full(d.shape, np.nan)
         m = model.labels == k
@@ -488,8 +512,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             continue
         amplitude = None
         if echo_amplitude is not None:
-            amplitude = (pts.gamma[m], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[m], pts.capsule_index[m]],
-                         pts.distance[m], pts.capsule[m])
+            mine = m & ~leaks  # an echo whose amplitude window also holds the double bounce says nothing of the wall
+            amplitude = (pts.gamma[mine], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[mine],
+                                                                                      pts.capsule_index[mine]],
+                         pts.distance[mine], pts.capsule[mine])
         flags: list[str] = []
         if model.outside[k]:
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
