@@ -120,22 +120,28 @@ def test_foreign_channels_only_is_no_lelsonar_scans(tmp_path, capsys, command):
     assert rc == 0 and "no lelsonar scans" in out
 
 
+def _write_as_another_program(path: Path, msgs: list, topics: dict, log_times: list[int]) -> None:
+    """``msgs`` written with mcap's plain writer, as another program would: a channel per message class on
+    ``topics[cls]``, each message at its ``log_times`` entry, no viewer channels."""
+    with open(path, "wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="another simulator")
+        channels = {}
+        for cls, topic in topics.items():
+            schema = w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", visual.file_descriptor_set(cls))
+            channels[cls] = w.register_channel(topic, "protobuf", schema)
+        for t, msg in zip(log_times, msgs):
+            w.add_message(channels[type(msg)], log_time=t, publish_time=t, data=msg.SerializeToString())
+        w.finish()
+
+
 def test_another_writer_of_the_schema_on_its_own_topics_gives_the_same_estimate(scan, tmp_path, capsys):
     # A simulator or bridge that writes lelsonar.v1 messages with mcap's plain writer, on topics of its
     # own and with no viewer channels, is read by the schema names of its channels.
     path, msgs, _spans = scan
     other = tmp_path / "other.mcap"
-    with open(other, "wb") as f:
-        w = McapWriter(f)
-        w.start(profile="", library="another simulator")
-        channels = {}
-        for cls, topic in ((codec.ScanStart, "/rig7/start"), (codec.Sample, "/rig7/ultrasound"),
-                           (codec.ScanEnd, "/rig7/end")):
-            schema = w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", visual.file_descriptor_set(cls))
-            channels[cls] = w.register_channel(topic, "protobuf", schema)
-        for i, msg in enumerate(msgs):
-            w.add_message(channels[type(msg)], log_time=i, publish_time=i, data=msg.SerializeToString())
-        w.finish()
+    topics = {codec.ScanStart: "/rig7/start", codec.Sample: "/rig7/ultrasound", codec.ScanEnd: "/rig7/end"}
+    _write_as_another_program(other, msgs, topics, list(range(len(msgs))))
     rc, theirs, _ = run(capsys, "reconstruct", "--source", other, "--json")
     assert rc == 0
     rc, ours, _ = run(capsys, "reconstruct", "--source", path, "--json")
@@ -157,18 +163,9 @@ def test_a_scan_end_logged_before_its_samples_still_gives_one_complete_final(sca
     # ScanEnd before samples that follow it in the file: no false alarm, one complete final.
     _path, msgs, _spans = scan
     other = tmp_path / "late_samples.mcap"
-    with open(other, "wb") as f:
-        w = McapWriter(f)
-        w.start(profile="", library="another simulator")
-        channels = {}
-        for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd):
-            schema = w.register_schema(cls.DESCRIPTOR.full_name, "protobuf", visual.file_descriptor_set(cls))
-            channels[cls] = w.register_channel(recording.TOPICS[cls], "protobuf", schema)
-        order = {codec.ScanStart: 0, codec.ScanEnd: 1}
-        for i, msg in enumerate(msgs):
-            t = order.get(type(msg), 10 + i)
-            w.add_message(channels[type(msg)], log_time=t, publish_time=t, data=msg.SerializeToString())
-        w.finish()
+    order = {codec.ScanStart: 0, codec.ScanEnd: 1}
+    topics = {cls: recording.TOPICS[cls] for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd)}
+    _write_as_another_program(other, msgs, topics, [order.get(type(msg), 10 + i) for i, msg in enumerate(msgs)])
     done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(other), "--json"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
