@@ -28,9 +28,14 @@ A step's contract message and its viewer messages share one chunk.
 
 from __future__ import annotations
 
+import bisect
+import heapq
 import json
 import logging
+import mmap
 import os
+import queue
+import threading
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -49,7 +54,9 @@ from mcap_protobuf.schema import register_schema
 
 from lelsonar import __version__, codec, visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.recordings.reader import Salvage, salvage
+from lelsonar.recordings.reader import (
+    MAGIC, ChannelInfo, RawMessage, Salvage, begin_salvage, chunk_schedule, end_salvage, open_bytes, salvage,
+    walk_records)
 
 _log = logging.getLogger(__name__)
 
@@ -300,17 +307,20 @@ class Recording:
         s = self.salvage
         out = {}
         for cid, ch in s.channels.items():
-            cls = codec.MESSAGE_TYPES.get(s.schema_name(cid))
-            if cls is not None and ch.message_encoding == "protobuf":
+            cls = _contract_type(ch, s.schema_name(cid))
+            if cls is not None:
                 out[cid] = cls
         return out
 
     def payloads(self) -> list[RecordedPayload]:
         """The contract messages in log-time order, undecoded."""
+        return self._payloads_of(self.salvage.in_log_time_order())
+
+    def _payloads_of(self, messages: list[RawMessage]) -> list[RecordedPayload]:
         s = self.salvage
         wanted = self.contract_channels()
         return [RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
-                for m in s.in_log_time_order() if m.channel_id in wanted]
+                for m in messages if m.channel_id in wanted]
 
     def count(self, kind: str | type[Message]) -> int:
         """Messages on a topic, or of a contract message type (on whichever topics)."""
@@ -344,6 +354,12 @@ class Recording:
         what = f"its channels are {', '.join(held)}" if held else "it has no readable channels"
         lost = f"; {describe_damage(s)}" if not s.intact else ""
         raise NoScansError(f"no lelsonar scans in {s.path}: {what}{lost}")
+
+
+def _contract_type(channel: ChannelInfo, schema_name: str) -> type[Message] | None:
+    """The contract message type a channel holds, by its protobuf schema name; None for any other channel."""
+    cls = codec.MESSAGE_TYPES.get(schema_name)
+    return cls if cls is not None and channel.message_encoding == "protobuf" else None
 
 
 def describe_damage(s: Salvage) -> str:
@@ -409,7 +425,7 @@ def _adopt_orphans(s: Salvage) -> None:
     """
     from mcap_protobuf.schema import build_file_descriptor_set
 
-    from lelsonar.recordings.reader import ChannelInfo, SchemaInfo
+    from lelsonar.recordings.reader import SchemaInfo
 
     by_name = {schema.name: sid for sid, schema in s.schemas.items()}
     for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
@@ -425,12 +441,212 @@ def _adopt_orphans(s: Salvage) -> None:
     s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
+class _Failed:
+    """The reader thread's exception, handed to the consumer to raise."""
+
+    def __init__(self, exc: BaseException) -> None:
+        self.exc = exc
+
+
+_END = object()  # the reader thread's last item
+
+
+class PayloadStream:
+    """The contract payloads of a recording in log-time order, read on a thread while they are consumed.
+
+    The same payloads, in the same order, as :meth:`Recording.payloads` of :func:`open_recording` (the
+    same walk, :func:`~lelsonar.recordings.reader.walk_records`: every chunk's CRC checked, damage
+    accounted for the same way), but the consumer does not wait for the whole file: a reader thread walks
+    it (zstd and the CRC release the GIL) and hands on, through a bounded queue, every message no later
+    chunk can precede.  Which those are, it knows from the chunk schedule of a finished, indexed file
+    (:func:`~lelsonar.recordings.reader.chunk_schedule`: each chunk's earliest log time, stated twice,
+    in its header and in the summary): a message is handed on once its log time is at most the earliest
+    start of the chunks still unread (ties go in file order, as the stable sort does).  A file without
+    a schedule (unfinished, cut, damaged record chain), and a message whose channel or schema is not yet
+    known from the data section, stop the hand-on until the whole file is read; the rest then follows
+    in the sorted order.  At the end the handed-on messages are checked against the sorted order of the
+    whole salvage; a writer whose chunks hold messages earlier than their stated start (against the MCAP
+    specification) is warned about (the handed-on ones stay as they were) and the rest follows sorted.
+
+    Use as a context manager, iterate once; then :attr:`recording` is the :class:`Recording` the walk
+    built, with its damage.  The constructor opens the file and raises the typed errors
+    (:class:`~lelsonar.errors.RecordingNotFoundError`, :class:`~lelsonar.errors.NotMcapError`); an
+    exception in the reader thread is raised in the consumer, as it is; leaving the ``with`` early (an
+    exception in the consumer, Ctrl-C) stops the thread and closes the file.
+
+    Parameters
+    ----------
+    path : Path or str
+    capacity : int
+        Batches of payloads the queue holds (back-pressure on the reader).
+    batch : int
+        Payloads per batch handed over (one queue round-trip each).
+    """
+
+    def __init__(self, path: Path | str, *, capacity: int = 16, batch: int = 4) -> None:
+        self.path = Path(path)
+        self._batch = batch
+        self._queue: queue.Queue = queue.Queue(capacity)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        #: The recording as read, once the iteration has ended.
+        self.recording: Recording | None = None
+        self._buf, self._size = open_bytes(self.path)
+        try:
+            if bytes(self._buf[:8]) != MAGIC:
+                begin_salvage(self.path, self._buf, self._size)  # NotMcapError for a foreign file
+                self._schedule = None  # flipped bits in the magic: read the way salvage() does, whole
+            else:
+                self._schedule = chunk_schedule(self._buf, self._size)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def streams(self) -> bool:
+        """True if payloads can be handed on before the whole file is read (a finished, indexed file)."""
+        return self._schedule is not None
+
+    def claimed_scan_messages(self) -> int | None:
+        """Scan messages (ScanStart, Sample, ScanEnd) the summary's statistics count; None without them."""
+        if self._buf is None or self._schedule is None:
+            return None
+        summary = Salvage(self.path, self._size)
+        end_salvage(self._buf, self._size, summary)
+        if summary.statistics_counts is None:
+            return None
+        scan_types = (codec.ScanStart, codec.Sample, codec.ScanEnd)
+        return sum(summary.statistics_counts.get(cid, 0) for cid, cls in Recording(summary).contract_channels().items()
+                   if cls in scan_types)
+
+    def __enter__(self) -> PayloadStream:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the reader thread (if running) and close the file; safe to call twice."""
+        thread = self._thread
+        if thread is not None:
+            self._stop.set()
+            while thread.is_alive():
+                try:  # make room for a reader blocked on a full queue; it sees the stop flag next
+                    self._queue.get_nowait()
+                except queue.Empty:
+                    thread.join(0.05)
+        elif self._buf is not None:
+            _close(self._buf)
+        self._buf = None
+
+    def __iter__(self) -> Iterator[RecordedPayload]:
+        if self._thread is not None or self._buf is None:
+            raise RecordingError(f"a PayloadStream of {self.path} is read once")
+        self._thread = threading.Thread(target=self._read, name="recording-reader", daemon=True)
+        self._thread.start()
+        get = self._queue.get
+        while True:
+            try:
+                item = get(timeout=1.0)
+            except queue.Empty:
+                if not self._thread.is_alive() and self._queue.empty():
+                    raise RecordingError(f"the reader of {self.path} stopped without its last word") from None
+                continue
+            if item is _END:
+                return
+            if isinstance(item, _Failed):
+                raise item.exc
+            yield from item
+
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _read(self) -> None:
+        """The reader thread: walk the file, hand on what is settled, then the rest in log-time order."""
+        buf, size = self._buf, self._size
+        try:
+            out = begin_salvage(self.path, buf, size)
+            schedule = self._schedule or []
+            offsets = [offset for offset, _ in schedule]
+            # earliest[k]: the earliest log time chunks k, k+1, ... of the schedule may hold.
+            earliest = [0] * (len(schedule) + 1)
+            earliest[-1] = 2 ** 64
+            for k in range(len(schedule) - 1, -1, -1):
+                earliest[k] = min(schedule[k][1], earliest[k + 1])
+            held: list[tuple[int, int, RawMessage]] = []  # (log time, file order, message): a heap
+            handed: list[RawMessage] = []
+            batch: list[RecordedPayload] = []
+            seen = 0
+            blocked = self._schedule is None
+            for pos in walk_records(buf, size, out):
+                if self._stop.is_set():
+                    return
+                if blocked:
+                    continue  # the rest comes sorted once the whole file is read
+                messages = out.messages
+                while seen < len(messages):
+                    m = messages[seen]
+                    heapq.heappush(held, (m.log_time, seen, m))
+                    seen += 1
+                until = earliest[bisect.bisect_left(offsets, pos)]
+                while held and held[0][0] <= until:
+                    m = held[0][2]
+                    channel = out.channels.get(m.channel_id)
+                    schema = out.schemas.get(channel.schema_id) if channel is not None else None
+                    if schema is None:  # the summary or a later record may still name it: wait for the end
+                        blocked = True
+                        break
+                    heapq.heappop(held)
+                    handed.append(m)
+                    if _contract_type(channel, schema.name) is not None:
+                        batch.append(RecordedPayload(m.log_time, channel.topic, schema.name, m.data))
+                if len(batch) >= self._batch:
+                    if not self._put(batch):
+                        return
+                    batch = []
+            end_salvage(buf, size, out)
+            if out.orphans:
+                _adopt_orphans(out)
+            recording = Recording(out)
+            ordered = out.in_log_time_order()
+            n = len(handed)
+            if len(ordered) >= n and all(a is b for a, b in zip(ordered, handed)):
+                rest = ordered[n:]
+            else:
+                _log.warning("%s: a chunk holds messages earlier than its stated start time (the MCAP "
+                             "specification forbids it); %d messages were replayed before they should have been "
+                             "in log-time order", self.path, n)
+                done = {id(m) for m in handed}
+                rest = [m for m in ordered if id(m) not in done]
+            batch.extend(recording._payloads_of(rest))
+            self.recording = recording
+            if batch and not self._put(batch):
+                return
+            self._put(_END)
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
+            self._put(_Failed(exc))
+        finally:
+            self._buf = None
+            _close(buf)
+
+
+def _close(buf) -> None:
+    if isinstance(buf, mmap.mmap):
+        buf.close()
+
+
 def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
-    A damaged or unfinished file yields every intact message and logs one
-    warning (pass an opened :class:`Recording` to report the damage yourself:
-    then nothing is logged).
+    A path is read by a :class:`PayloadStream` (on a thread, handed on as it is read).  A damaged or
+    unfinished file yields every intact message and logs one warning once it has been read (pass an
+    opened :class:`Recording` to report the damage yourself: then nothing is logged).
 
     Raises
     ------
@@ -439,10 +655,13 @@ def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
         (:class:`~lelsonar.errors.RecordingNotFoundError`,
         :class:`~lelsonar.errors.NotMcapError`).
     """
-    rec = open_recording(path)
-    if not isinstance(path, Recording) and (line := rec.damage_warning()):
-        _log.warning("%s", line.removeprefix("warning: "))
-    yield from rec.payloads()
+    if isinstance(path, Recording):
+        yield from path.payloads()
+        return
+    with PayloadStream(path) as stream:
+        yield from stream
+        if line := stream.recording.damage_warning():
+            _log.warning("%s", line.removeprefix("warning: "))
 
 
 def read_messages(path: Path | str | Recording,

@@ -390,19 +390,36 @@ def salvage(path: Path | str) -> Salvage:
     path = Path(path)
     buf, size = open_bytes(path)
     try:
-        if not _magic_ok(bytes(buf[:8])):
-            head = bytes(buf[:16])
-            raise NotMcapError(f"{path} is not a readable MCAP file (it starts with {head!r}, not the MCAP magic)")
-        out = Salvage(path, size)
-        if bytes(buf[:8]) != MAGIC:
-            out.damage.append(Damage(0, 8, "header", "the leading magic has flipped bits", 0))
+        out = begin_salvage(path, buf, size)
         _walk(buf, size, out)
-        _read_summary(buf, size, out)
-        out.orphans = sum(1 for m in out.messages if m.channel_id not in out.channels)
+        end_salvage(buf, size, out)
         return out
     finally:
         if isinstance(buf, mmap.mmap):
             buf.close()
+
+
+def begin_salvage(path: Path, buf, size: int) -> Salvage:
+    """The start of :func:`salvage` on an opened file: the magic checked, nothing read yet.
+
+    Raises
+    ------
+    NotMcapError
+        The file does not start with the MCAP magic.
+    """
+    if not _magic_ok(bytes(buf[:8])):
+        head = bytes(buf[:16])
+        raise NotMcapError(f"{path} is not a readable MCAP file (it starts with {head!r}, not the MCAP magic)")
+    out = Salvage(path, size)
+    if bytes(buf[:8]) != MAGIC:
+        out.damage.append(Damage(0, 8, "header", "the leading magic has flipped bits", 0))
+    return out
+
+
+def end_salvage(buf, size: int, out: Salvage) -> None:
+    """The end of :func:`salvage`, once :func:`walk_records` is done: the summary's channels, the orphans."""
+    _read_summary(buf, size, out)
+    out.orphans = sum(1 for m in out.messages if m.channel_id not in out.channels)
 
 
 class _Walk:
@@ -458,6 +475,17 @@ class _Walk:
 
 
 def _walk(buf, size: int, out: Salvage) -> None:
+    for _ in walk_records(buf, size, out):
+        pass
+
+
+def walk_records(buf, size: int, out: Salvage):
+    """The walk of :func:`salvage` over the data section, one record at a time.
+
+    Fills ``out`` (channels, schemas, messages, damage) exactly as :func:`salvage` does, and yields the
+    offset where the walk resumes after each record: every record and chunk before it has been read (or
+    counted as damage), so a reader on another thread can hand on what is settled while the rest is read.
+    """
     w = _Walk(buf, size, out)
     pos = len(MAGIC)
     while pos < size:
@@ -492,6 +520,7 @@ def _walk(buf, size: int, out: Salvage) -> None:
         if nxt is None:
             return
         pos = nxt
+        yield pos
 
 
 def _looks_like_chunk(buf, body: int, length: int) -> bool:
@@ -668,3 +697,55 @@ def _lost(buf, start: int, end: int, reason: str, estimate: int) -> Damage:
                 if n is not None:
                     return Damage(start, end - start, kind, reason, n, n, by_channel)
     return Damage(start, end - start, kind, reason, None, estimate)
+
+
+# --- the chunk schedule: what a reader may hand on before it has read the whole file --------------
+_CHUNK_INDEX_HEAD = struct.Struct("<QQQ")  # message_start_time, message_end_time, chunk_start_offset
+
+
+def chunk_schedule(buf, size: int) -> list[tuple[int, int]] | None:
+    """The chunks of a finished, indexed file, each with the earliest log time it holds, or None.
+
+    Returns ``[(offset, message_start_time), ...]`` in file order when the file's records chain from the
+    leading magic to its summary, every record in the data section is well formed as far as its length,
+    there is no message outside a chunk, and each chunk's header states the same start and end times as
+    the summary's chunk index for it (two copies: a flipped bit in either makes them disagree).  Reading
+    it costs the record headers and the summary, not a decompression.
+
+    None for anything else: an unfinished, cut or unindexed file, a damaged record chain, messages outside
+    chunks.  A reader then has to read the whole file before it knows the log-time order (:func:`salvage`).
+    """
+    summary_start = _summary_start(buf, size)
+    if summary_start is None:
+        return None
+    foot = size - len(MAGIC) - 9 - 20
+    index: dict[int, tuple[int, int]] = {}
+    pos = summary_start
+    try:
+        while pos < foot:
+            op, length = _RECORD_HEAD.unpack_from(buf, pos)
+            if pos + 9 + length > foot:
+                return None
+            if op == OP_CHUNK_INDEX:
+                if length < _CHUNK_INDEX_HEAD.size:
+                    return None
+                t0, t1, offset = _CHUNK_INDEX_HEAD.unpack_from(buf, pos + 9)
+                index[offset] = (t0, t1)
+            pos += 9 + length
+        schedule = []
+        pos = len(MAGIC)
+        while pos < summary_start:
+            op, length = _RECORD_HEAD.unpack_from(buf, pos)
+            body = pos + 9
+            if body + length > summary_start or op == OP_MESSAGE:
+                return None
+            if op == OP_CHUNK:
+                if length < _CHUNK_HEAD.size or index.pop(pos, None) != _CHUNK_HEAD.unpack_from(buf, body)[:2]:
+                    return None
+                schedule.append((pos, _CHUNK_HEAD.unpack_from(buf, body)[0]))
+            pos = body + length
+    except struct.error:
+        return None
+    if pos != summary_start or index:
+        return None  # the chain does not land on the summary, or the index names chunks the walk did not see
+    return schedule
