@@ -483,7 +483,7 @@ class PayloadStream:
         Payloads per batch handed over (one queue round-trip each).
     """
 
-    def __init__(self, path: Path | str, *, capacity: int = 16, batch: int = 4) -> None:
+    def __init__(self, path: Path | str, *, capacity: int = 16, batch: int = 16) -> None:
         self.path = Path(path)
         self._batch = batch
         self._queue: queue.Queue = queue.Queue(capacity)
@@ -585,11 +585,14 @@ class PayloadStream:
             seen = 0
             blocked = self._schedule is None
             for pos in walk_records(buf, size, out):
+                messages = out.messages
+                if len(messages) == seen:
+                    continue  # a record without messages (an index, metadata, a damaged chunk)
                 if self._stop.is_set():
                     return
                 if blocked:
+                    seen = len(messages)
                     continue  # the rest comes sorted once the whole file is read
-                messages = out.messages
                 while seen < len(messages):
                     m = messages[seen]
                     heapq.heappush(held, (m.log_time, seen, m))

@@ -510,7 +510,10 @@ def walk_records(buf, size: int, out: Salvage):
                 nxt = body + length
         else:
             try:
-                _top_level(buf, op, pos, body, length, out)
+                if op == OP_MESSAGE_INDEX:  # one after each chunk per channel: checked without a cursor
+                    _message_index_count(buf, body, length)
+                else:
+                    _top_level(buf, op, pos, body, length, out)
             except (_Bad, struct.error) as exc:
                 nxt = w.damaged(pos, f"record with opcode {op:#04x}: {exc}")
             else:
