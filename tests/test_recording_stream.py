@@ -96,7 +96,7 @@ def test_another_writers_chunks_out_of_log_time_order_come_sorted(tmp_path, scan
     log_times = [(7 * i) % 5 * 1000 + (i % 3) for i in range(n)]
     path = tmp_path / "other.mcap"
     _plain(path, scan_messages, log_times, chunk_size)
-    got, stream = _streamed(path, batch=1, capacity=1)
+    got, stream = _streamed(path, batch=1, depth=1)
     assert stream.streams
     assert [(p.log_time_ns, p.payload) for p in got] == _in_log_time_order(scan_messages, log_times)
     assert got == _whole(path)[0]
@@ -110,7 +110,7 @@ def test_a_corrupt_chunk_mid_file_costs_its_messages_and_nothing_else(ours, scan
     data[end - 20] ^= 0x04  # inside the compressed (or stored) records: the CRC or the codec fails
     path = tmp_path / "corrupt.mcap"
     path.write_bytes(bytes(data))
-    got, stream = _streamed(path, batch=1, capacity=1)
+    got, stream = _streamed(path, batch=1, depth=1)
     assert stream.streams  # the footer and the index are intact: still handed on while read
     lost = {p.payload for p in got} ^ {m.SerializeToString() for m in scan_messages}
     assert len(lost) == 1  # one step's chunk: its Sample, and only it
@@ -162,6 +162,21 @@ def test_an_error_in_the_reader_is_raised_in_the_consumer(ours, monkeypatch):
     assert not _readers_alive() and not _mapped(ours)
 
 
+def test_an_error_in_the_decompressing_thread_is_raised_in_the_consumer(ours, monkeypatch):
+    import zstandard
+
+    class Broken:
+        def __init__(self, *args, **kwargs):
+            raise RuntimeError("no decompressor")
+
+    if "zstd" not in ours.name:
+        pytest.skip("only zstd chunks are decompressed ahead")
+    monkeypatch.setattr(zstandard, "ZstdDecompressor", Broken)
+    with pytest.raises(RuntimeError, match="no decompressor"), recording.PayloadStream(ours, batch=1) as stream:
+        list(stream)
+    assert not _readers_alive() and not _mapped(ours)
+
+
 def test_an_error_in_the_consumer_stops_the_reader_and_closes_the_file(ours):
     class Failing(ReconstructionService):
         def handle(self, type_name, payload, **kwargs):
@@ -169,9 +184,10 @@ def test_an_error_in_the_consumer_stops_the_reader_and_closes_the_file(ours):
                 raise KeyboardInterrupt  # what Ctrl-C raises in the main thread
             return super().handle(type_name, payload, **kwargs)
 
-    # One-payload batches, one in the queue: the reader is blocked on the full queue when the consumer leaves.
+    # One-chunk batches, one waiting: the decompressing thread is blocked on its full queue when the consumer
+    # leaves.
     with pytest.raises(KeyboardInterrupt):
-        replay_mcap(recording.PayloadStream(ours, batch=1, capacity=1), Failing())
+        replay_mcap(recording.PayloadStream(ours, batch=1, depth=1), Failing())
     assert not _readers_alive() and not _mapped(ours)
     with pytest.raises(KeyboardInterrupt):
         replay_mcap(ours, Failing())  # a path: iter_payloads' stream, closed as well

@@ -34,8 +34,6 @@ import json
 import logging
 import mmap
 import os
-import queue
-import threading
 import time
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -55,7 +53,7 @@ from mcap_protobuf.schema import register_schema
 from lelsonar import __version__, codec, visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
 from lelsonar.recordings.reader import (
-    MAGIC, ChannelInfo, RawMessage, Salvage, begin_salvage, chunk_schedule, end_salvage, open_bytes, salvage,
+    MAGIC, ChannelInfo, DecompressAhead, RawMessage, Salvage, begin_salvage, chunk_schedule, end_salvage, open_bytes, salvage,
     walk_records)
 
 _log = logging.getLogger(__name__)
@@ -441,54 +439,45 @@ def _adopt_orphans(s: Salvage) -> None:
     s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
-class _Failed:
-    """The reader thread's exception, handed to the consumer to raise."""
-
-    def __init__(self, exc: BaseException) -> None:
-        self.exc = exc
-
-
-_END = object()  # the reader thread's last item
-
-
 class PayloadStream:
-    """The contract payloads of a recording in log-time order, read on a thread while they are consumed.
+    """The contract payloads of a recording in log-time order, handed on while the file is still being read.
 
     The same payloads, in the same order, as :meth:`Recording.payloads` of :func:`open_recording` (the
     same walk, :func:`~lelsonar.recordings.reader.walk_records`: every chunk's CRC checked, damage
-    accounted for the same way), but the consumer does not wait for the whole file: a reader thread walks
-    it (zstd and the CRC release the GIL) and hands on, through a bounded queue, every message no later
-    chunk can precede.  Which those are, it knows from the chunk schedule of a finished, indexed file
-    (:func:`~lelsonar.recordings.reader.chunk_schedule`: each chunk's earliest log time, stated twice,
-    in its header and in the summary): a message is handed on once its log time is at most the earliest
-    start of the chunks still unread (ties go in file order, as the stable sort does).  A file without
-    a schedule (unfinished, cut, damaged record chain), and a message whose channel or schema is not yet
-    known from the data section, stop the hand-on until the whole file is read; the rest then follows
-    in the sorted order.  At the end the handed-on messages are checked against the sorted order of the
-    whole salvage; a writer whose chunks hold messages earlier than their stated start (against the MCAP
-    specification) is warned about (the handed-on ones stay as they were) and the rest follows sorted.
+    accounted for the same way), but the consumer does not wait for the whole file: the walk runs in the
+    consumer's thread, a chunk at a time, and hands on every message no later chunk can precede, while a
+    thread decompresses the zstd chunks ahead of it (:class:`~lelsonar.recordings.reader.DecompressAhead`,
+    the GIL released a batch of chunks at a time).  Which messages no later chunk can precede, it knows
+    from the chunk schedule of a finished, indexed file (:func:`~lelsonar.recordings.reader.chunk_schedule`:
+    each chunk's earliest log time, stated twice, in its header and in the summary): a message is handed on
+    once its log time is at most the earliest start of the chunks still unread (ties go in file order, as
+    the stable sort does).  A file without a schedule (unfinished, cut, damaged record chain), and a message
+    whose channel or schema is not yet known from the data section, stop the hand-on until the whole file
+    is read; the rest then follows in the sorted order.  At the end the handed-on messages are checked
+    against the sorted order of the whole salvage; a writer whose chunks hold messages earlier than their
+    stated start (against the MCAP specification) is warned about (the handed-on ones stay as they were)
+    and the rest follows sorted.
 
     Use as a context manager, iterate once; then :attr:`recording` is the :class:`Recording` the walk
     built, with its damage.  The constructor opens the file and raises the typed errors
     (:class:`~lelsonar.errors.RecordingNotFoundError`, :class:`~lelsonar.errors.NotMcapError`); an
-    exception in the reader thread is raised in the consumer, as it is; leaving the ``with`` early (an
-    exception in the consumer, Ctrl-C) stops the thread and closes the file.
+    exception of the decompressing thread is raised in the consumer, as it is; leaving the ``with`` early
+    (an exception in the consumer, Ctrl-C) stops the thread and closes the file.
 
     Parameters
     ----------
     path : Path or str
-    capacity : int
-        Batches of payloads the queue holds (back-pressure on the reader).
     batch : int
-        Payloads per batch handed over (one queue round-trip each).
+        zstd chunks decompressed per call, ahead of the walk.
+    depth : int
+        Batches decompressed ahead at most.
     """
 
-    def __init__(self, path: Path | str, *, capacity: int = 16, batch: int = 16) -> None:
+    def __init__(self, path: Path | str, *, batch: int = 16, depth: int = 4) -> None:
         self.path = Path(path)
-        self._batch = batch
-        self._queue: queue.Queue = queue.Queue(capacity)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._batch, self._depth = batch, depth
+        self._ahead: DecompressAhead | None = None
+        self._started = False
         #: The recording as read, once the iteration has ended.
         self.recording: Recording | None = None
         self._buf, self._size = open_bytes(self.path)
@@ -526,117 +515,78 @@ class PayloadStream:
         self.close()
 
     def close(self) -> None:
-        """Stop the reader thread (if running) and close the file; safe to call twice."""
-        thread = self._thread
-        if thread is not None:
-            self._stop.set()
-            while thread.is_alive():
-                try:  # make room for a reader blocked on a full queue; it sees the stop flag next
-                    self._queue.get_nowait()
-                except queue.Empty:
-                    thread.join(0.05)
-        elif self._buf is not None:
+        """Stop the decompressing thread (if running) and close the file; safe to call twice."""
+        if self._ahead is not None:
+            self._ahead.close()
+            self._ahead = None
+        if self._buf is not None:
             _close(self._buf)
-        self._buf = None
+            self._buf = None
 
     def __iter__(self) -> Iterator[RecordedPayload]:
-        if self._thread is not None or self._buf is None:
+        if self._started or self._buf is None:
             raise RecordingError(f"a PayloadStream of {self.path} is read once")
-        self._thread = threading.Thread(target=self._read, name="recording-reader", daemon=True)
-        self._thread.start()
-        get = self._queue.get
-        while True:
-            try:
-                item = get(timeout=1.0)
-            except queue.Empty:
-                if not self._thread.is_alive() and self._queue.empty():
-                    raise RecordingError(f"the reader of {self.path} stopped without its last word") from None
-                continue
-            if item is _END:
-                return
-            if isinstance(item, _Failed):
-                raise item.exc
-            yield from item
-
-    def _put(self, item) -> bool:
-        while not self._stop.is_set():
-            try:
-                self._queue.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def _read(self) -> None:
-        """The reader thread: walk the file, hand on what is settled, then the rest in log-time order."""
-        buf, size = self._buf, self._size
+        self._started = True
         try:
-            out = begin_salvage(self.path, buf, size)
-            schedule = self._schedule or []
-            offsets = [offset for offset, _ in schedule]
-            # earliest[k]: the earliest log time chunks k, k+1, ... of the schedule may hold.
-            earliest = [0] * (len(schedule) + 1)
-            earliest[-1] = 2 ** 64
-            for k in range(len(schedule) - 1, -1, -1):
-                earliest[k] = min(schedule[k][1], earliest[k + 1])
-            held: list[tuple[int, int, RawMessage]] = []  # (log time, file order, message): a heap
-            handed: list[RawMessage] = []
-            batch: list[RecordedPayload] = []
-            seen = 0
-            blocked = self._schedule is None
-            for pos in walk_records(buf, size, out):
-                messages = out.messages
-                if len(messages) == seen:
-                    continue  # a record without messages (an index, metadata, a damaged chunk)
-                if self._stop.is_set():
-                    return
-                if blocked:
-                    seen = len(messages)
-                    continue  # the rest comes sorted once the whole file is read
-                while seen < len(messages):
-                    m = messages[seen]
-                    heapq.heappush(held, (m.log_time, seen, m))
-                    seen += 1
-                until = earliest[bisect.bisect_left(offsets, pos)]
-                while held and held[0][0] <= until:
-                    m = held[0][2]
-                    channel = out.channels.get(m.channel_id)
-                    schema = out.schemas.get(channel.schema_id) if channel is not None else None
-                    if schema is None:  # the summary or a later record may still name it: wait for the end
-                        blocked = True
-                        break
-                    heapq.heappop(held)
-                    handed.append(m)
-                    if _contract_type(channel, schema.name) is not None:
-                        batch.append(RecordedPayload(m.log_time, channel.topic, schema.name, m.data))
-                if len(batch) >= self._batch:
-                    if not self._put(batch):
-                        return
-                    batch = []
-            end_salvage(buf, size, out)
-            if out.orphans:
-                _adopt_orphans(out)
-            recording = Recording(out)
-            ordered = out.in_log_time_order()
-            n = len(handed)
-            if len(ordered) >= n and all(a is b for a, b in zip(ordered, handed)):
-                rest = ordered[n:]
-            else:
-                _log.warning("%s: a chunk holds messages earlier than its stated start time (the MCAP "
-                             "specification forbids it); %d messages were replayed before they should have been "
-                             "in log-time order", self.path, n)
-                done = {id(m) for m in handed}
-                rest = [m for m in ordered if id(m) not in done]
-            batch.extend(recording._payloads_of(rest))
-            self.recording = recording
-            if batch and not self._put(batch):
-                return
-            self._put(_END)
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, which raises it
-            self._put(_Failed(exc))
+            yield from self._walk()
         finally:
-            self._buf = None
-            _close(buf)
+            self.close()
+
+    def _walk(self) -> Iterator[RecordedPayload]:
+        buf, size = self._buf, self._size
+        out = begin_salvage(self.path, buf, size)
+        schedule = self._schedule or []
+        offsets = [offset for offset, _ in schedule]
+        if offsets:
+            self._ahead = DecompressAhead(buf, offsets, batch=self._batch, depth=self._depth)
+        # earliest[k]: the earliest log time chunks k, k+1, ... of the schedule may hold.
+        earliest = [0] * (len(schedule) + 1)
+        earliest[-1] = 2 ** 64
+        for k in range(len(schedule) - 1, -1, -1):
+            earliest[k] = min(schedule[k][1], earliest[k + 1])
+        held: list[tuple[int, int, RawMessage]] = []  # (log time, file order, message): a heap
+        handed: list[RawMessage] = []
+        seen = 0
+        blocked = self._schedule is None
+        for pos in walk_records(buf, size, out, self._ahead):
+            messages = out.messages
+            if len(messages) == seen:
+                continue  # a record without messages (an index, metadata, a damaged chunk)
+            if blocked:
+                seen = len(messages)
+                continue  # the rest comes sorted once the whole file is read
+            while seen < len(messages):
+                m = messages[seen]
+                heapq.heappush(held, (m.log_time, seen, m))
+                seen += 1
+            until = earliest[bisect.bisect_left(offsets, pos)]
+            while held and held[0][0] <= until:
+                m = held[0][2]
+                channel = out.channels.get(m.channel_id)
+                schema = out.schemas.get(channel.schema_id) if channel is not None else None
+                if schema is None:  # the summary or a later record may still name it: wait for the end
+                    blocked = True
+                    break
+                heapq.heappop(held)
+                handed.append(m)
+                if _contract_type(channel, schema.name) is not None:
+                    yield RecordedPayload(m.log_time, channel.topic, schema.name, m.data)
+        end_salvage(buf, size, out)
+        if out.orphans:
+            _adopt_orphans(out)
+        recording = Recording(out)
+        ordered = out.in_log_time_order()
+        n = len(handed)
+        if len(ordered) >= n and all(a is b for a, b in zip(ordered, handed)):
+            rest = ordered[n:]
+        else:
+            _log.warning("%s: a chunk holds messages earlier than its stated start time (the MCAP "
+                         "specification forbids it); %d messages were replayed before they should have been "
+                         "in log-time order", self.path, n)
+            done = {id(m) for m in handed}
+            rest = [m for m in ordered if id(m) not in done]
+        self.recording = recording
+        yield from recording._payloads_of(rest)
 
 
 def _close(buf) -> None:
@@ -647,7 +597,7 @@ def _close(buf) -> None:
 def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
-    A path is read by a :class:`PayloadStream` (on a thread, handed on as it is read).  A damaged or
+    A path is read by a :class:`PayloadStream` (handed on as it is read).  A damaged or
     unfinished file yields every intact message and logs one warning once it has been read (pass an
     opened :class:`Recording` to report the damage yourself: then nothing is logged).
 
