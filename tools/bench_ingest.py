@@ -41,10 +41,9 @@ Three measurements, side by side in one run and one table:
     replayed with :func:`~lelsonar.reconstruct.sources.replay_mcap` through a
     default ``ReconstructionService``; samples / wall time, median of
     ``--replay-runs``.  Target ≥ 3,000 samples/s and ≥ 0.8× the read + decode
-    floor (the same file read and every payload decoded and validated, same run).  Both read the file
-    as the replay does, on a thread handing payloads on while the main thread works
-    (:class:`~lelsonar.recording.PayloadStream`).  Diagnostic rows: the replay with provisional
-    estimates, reading + decoding + assembling alone, and the floor with the file read whole first.
+    floor (the same file read and every payload decoded and validated, same run).  Two diagnostic rows
+    bracket it: the replay without the comparison methods
+    (``compare_methods=()``), and reading + decoding + assembling alone.
 
 Processes: the consumer listens on a private unix socket
 (``unixsock-stream/<tmpdir>/z.sock``, a peer); the publisher connects to it as
@@ -507,19 +506,15 @@ def time_ingest_only(path: Path, runs: int) -> float:
     return statistics.median(times)
 
 
-def time_read_decode(path: Path, runs: int, *, whole: bool = False) -> float:
-    """Median wall time to read the recording and decode + validate every payload: the replay's floor.
-
-    Read as the replay reads it (:func:`~lelsonar.recording.iter_payloads`: on a thread, decoded as it comes);
-    ``whole``: the file read whole first, then decoded (how the replay read before it was threaded).
-    """
+def time_read_decode(path: Path, runs: int) -> float:
+    """Median wall time to read the recording and decode + validate every payload: the replay's floor."""
     from lelsonar import codec
-    from lelsonar.recording import iter_payloads, open_recording
+    from lelsonar.recording import iter_payloads
 
     times = []
     for _ in range(runs):
         t = time.perf_counter()
-        for rec in (open_recording(path).payloads() if whole else iter_payloads(path)):
+        for rec in iter_payloads(path):
             cls = codec.MESSAGE_TYPES.get(rec.type_name)
             if cls is not None and cls is not codec.Reconstruction:
                 codec.decode(rec.payload, cls)
@@ -604,8 +599,7 @@ def profile_replay(path: Path, samples: int, console) -> None:
     upd = ("reconstruct/service.py", "_provisional")
     parts = [
         ("replay_mcap (everything)", "reconstruct/sources.py", "replay_mcap", None),
-        ("  MCAP read: waiting on the reader thread (iter_payloads)", "lelsonar/recording.py", "iter_payloads",
-         None),
+        ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
         ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
         ("    ScanAssembly.add (carried energies checked, echo windows cut out)", "reconstruct/assembly.py", "add",
@@ -736,16 +730,15 @@ def run(args: argparse.Namespace) -> int:
         time_replay(path, 1)  # warm-up
         # (c) is what `lelsonar reconstruct --source FILE.mcap` runs: finals only, no provisional estimates.
         # Interleaved, one run of each per round, so a neighbour's load hits the result and its floor alike.
-        rounds: dict[str, list[float]] = {"replay": [], "prov": [], "ingest": [], "floor": [], "whole": []}
+        rounds: dict[str, list[float]] = {"replay": [], "prov": [], "ingest": [], "floor": []}
         for _ in range(args.replay_runs):
             t, replay_finals = time_replay(path, 1, provisional=False)
             rounds["replay"].append(t)
             rounds["prov"].append(time_replay(path, 1)[0])
             rounds["ingest"].append(time_ingest_only(path, 1))
             rounds["floor"].append(time_read_decode(path, 1))
-            rounds["whole"].append(time_read_decode(path, 1, whole=True))
-        replay_s, replay_prov_s, ingest_s, read_decode_s, whole_s = (
-            statistics.median(rounds[k]) for k in ("replay", "prov", "ingest", "floor", "whole"))
+        replay_s, replay_prov_s, ingest_s, read_decode_s = (statistics.median(rounds[k])
+                                                            for k in ("replay", "prov", "ingest", "floor"))
         size_mb = path.stat().st_size / 1e6
         if args.profile:
             profile_stash = (path.read_bytes(), n_replay)
@@ -810,19 +803,13 @@ def run(args: argparse.Namespace) -> int:
         "(c) MCAP replay, as `reconstruct --source` runs it", f"{replay_rate:,.0f} samples/s",
         f"{floor_c:,.0f}/s read+decode", f"{replay_rate / floor_c:.2f}×",
         f"≥ {TARGET_REPLAY:,.0f} and ≥ {TARGET_FLOOR_RATIO}× floor", _verdict(ok_replay),
-        f"{n_replay} samples, {args.scans} scans, {size_mb:.1f} MB zstd; median of {args.replay_runs}: "
-        f"{1e3 * replay_s:.0f} ms against {1e3 * read_decode_s:.0f} ms; "
+        f"{n_replay} samples, {args.scans} scans, {size_mb:.1f} MB zstd; median of {args.replay_runs}; "
         f"{replay_finals} finals ({', '.join((defaults.method, *defaults.compare_methods))}); no provisional "
-        "estimates, which the finals do not depend on; the file read on a thread (zstd and the CRC release "
-        "the GIL) while the service works, in the replay and in its floor alike")
+        "estimates, which the finals do not depend on")
     table.add_row("(c′) replay with provisional estimates (diagnostic)", f"{n_replay / replay_prov_s:,.0f} samples/s",
                   "", f"{n_replay / replay_prov_s / floor_c:.2f}×", "—", "", f"a refit every {defaults.refit_every} steps, as live and `lelsonar review` do")
     table.add_row("(c″) MCAP read + decode + assemble only (diagnostic)", f"{n_replay / ingest_s:,.0f} samples/s",
                   "", f"{n_replay / ingest_s / floor_c:.2f}×", "—", "", "Ingest.accept over iter_payloads: no estimation; the ceiling of (c)")
-    table.add_row("(c‴) MCAP read whole first, then decode (diagnostic)", f"{n_replay / whole_s:,.0f} samples/s",
-                  "", f"{n_replay / whole_s / floor_c:.2f}×", "—", "",
-                  f"{1e3 * whole_s:.0f} ms: the floor as it was before the reader ran on a thread "
-                  f"(open_recording, then decode); (c) is {whole_s / replay_s:.2f}× of it")
     console.print(table)
     if profile_stash is not None:
         with tempfile.TemporaryDirectory(prefix="lelsonar-bench-profile-") as tmp:

@@ -28,11 +28,8 @@ A step's contract message and its viewer messages share one chunk.
 
 from __future__ import annotations
 
-import bisect
-import heapq
 import json
 import logging
-import mmap
 import os
 import time
 from collections.abc import Iterator, Mapping
@@ -52,9 +49,7 @@ from mcap_protobuf.schema import register_schema
 
 from lelsonar import __version__, codec, visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.recordings.reader import (
-    MAGIC, ChannelInfo, DecompressAhead, RawMessage, Salvage, begin_salvage, chunk_schedule, end_salvage, open_bytes, salvage,
-    walk_records)
+from lelsonar.recordings.reader import Salvage, salvage
 
 _log = logging.getLogger(__name__)
 
@@ -305,20 +300,17 @@ class Recording:
         s = self.salvage
         out = {}
         for cid, ch in s.channels.items():
-            cls = _contract_type(ch, s.schema_name(cid))
-            if cls is not None:
+            cls = codec.MESSAGE_TYPES.get(s.schema_name(cid))
+            if cls is not None and ch.message_encoding == "protobuf":
                 out[cid] = cls
         return out
 
     def payloads(self) -> list[RecordedPayload]:
         """The contract messages in log-time order, undecoded."""
-        return self._payloads_of(self.salvage.in_log_time_order())
-
-    def _payloads_of(self, messages: list[RawMessage]) -> list[RecordedPayload]:
         s = self.salvage
         wanted = self.contract_channels()
         return [RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
-                for m in messages if m.channel_id in wanted]
+                for m in s.in_log_time_order() if m.channel_id in wanted]
 
     def count(self, kind: str | type[Message]) -> int:
         """Messages on a topic, or of a contract message type (on whichever topics)."""
@@ -352,12 +344,6 @@ class Recording:
         what = f"its channels are {', '.join(held)}" if held else "it has no readable channels"
         lost = f"; {describe_damage(s)}" if not s.intact else ""
         raise NoScansError(f"no lelsonar scans in {s.path}: {what}{lost}")
-
-
-def _contract_type(channel: ChannelInfo, schema_name: str) -> type[Message] | None:
-    """The contract message type a channel holds, by its protobuf schema name; None for any other channel."""
-    cls = codec.MESSAGE_TYPES.get(schema_name)
-    return cls if cls is not None and channel.message_encoding == "protobuf" else None
 
 
 def describe_damage(s: Salvage) -> str:
@@ -423,7 +409,7 @@ def _adopt_orphans(s: Salvage) -> None:
     """
     from mcap_protobuf.schema import build_file_descriptor_set
 
-    from lelsonar.recordings.reader import SchemaInfo
+    from lelsonar.recordings.reader import ChannelInfo, SchemaInfo
 
     by_name = {schema.name: sid for sid, schema in s.schemas.items()}
     for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
@@ -439,167 +425,12 @@ def _adopt_orphans(s: Salvage) -> None:
     s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
-class PayloadStream:
-    """The contract payloads of a recording in log-time order, handed on while the file is still being read.
-
-    The same payloads, in the same order, as :meth:`Recording.payloads` of :func:`open_recording` (the
-    same walk, :func:`~lelsonar.recordings.reader.walk_records`: every chunk's CRC checked, damage
-    accounted for the same way), but the consumer does not wait for the whole file: the walk runs in the
-    consumer's thread, a chunk at a time, and hands on every message no later chunk can precede, while a
-    thread decompresses the zstd chunks ahead of it (:class:`~lelsonar.recordings.reader.DecompressAhead`,
-    the GIL released a batch of chunks at a time).  Which messages no later chunk can precede, it knows
-    from the chunk schedule of a finished, indexed file (:func:`~lelsonar.recordings.reader.chunk_schedule`:
-    each chunk's earliest log time, stated twice, in its header and in the summary): a message is handed on
-    once its log time is at most the earliest start of the chunks still unread (ties go in file order, as
-    the stable sort does).  A file without a schedule (unfinished, cut, damaged record chain), and a message
-    whose channel or schema is not yet known from the data section, stop the hand-on until the whole file
-    is read; the rest then follows in the sorted order.  At the end the handed-on messages are checked
-    against the sorted order of the whole salvage; a writer whose chunks hold messages earlier than their
-    stated start (against the MCAP specification) is warned about (the handed-on ones stay as they were)
-    and the rest follows sorted.
-
-    Use as a context manager, iterate once; then :attr:`recording` is the :class:`Recording` the walk
-    built, with its damage.  The constructor opens the file and raises the typed errors
-    (:class:`~lelsonar.errors.RecordingNotFoundError`, :class:`~lelsonar.errors.NotMcapError`); an
-    exception of the decompressing thread is raised in the consumer, as it is; leaving the ``with`` early
-    (an exception in the consumer, Ctrl-C) stops the thread and closes the file.
-
-    Parameters
-    ----------
-    path : Path or str
-    batch : int
-        zstd chunks decompressed per call, ahead of the walk.
-    depth : int
-        Batches decompressed ahead at most.
-    """
-
-    def __init__(self, path: Path | str, *, batch: int = 16, depth: int = 4) -> None:
-        self.path = Path(path)
-        self._batch, self._depth = batch, depth
-        self._ahead: DecompressAhead | None = None
-        self._started = False
-        #: The recording as read, once the iteration has ended.
-        self.recording: Recording | None = None
-        self._buf, self._size = open_bytes(self.path)
-        try:
-            if bytes(self._buf[:8]) != MAGIC:
-                begin_salvage(self.path, self._buf, self._size)  # NotMcapError for a foreign file
-                self._schedule = None  # flipped bits in the magic: read the way salvage() does, whole
-            else:
-                self._schedule = chunk_schedule(self._buf, self._size)
-        except BaseException:
-            self.close()
-            raise
-
-    @property
-    def streams(self) -> bool:
-        """True if payloads can be handed on before the whole file is read (a finished, indexed file)."""
-        return self._schedule is not None
-
-    def claimed_scan_messages(self) -> int | None:
-        """Scan messages (ScanStart, Sample, ScanEnd) the summary's statistics count; None without them."""
-        if self._buf is None or self._schedule is None:
-            return None
-        summary = Salvage(self.path, self._size)
-        end_salvage(self._buf, self._size, summary)
-        if summary.statistics_counts is None:
-            return None
-        scan_types = (codec.ScanStart, codec.Sample, codec.ScanEnd)
-        return sum(summary.statistics_counts.get(cid, 0) for cid, cls in Recording(summary).contract_channels().items()
-                   if cls in scan_types)
-
-    def __enter__(self) -> PayloadStream:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Stop the decompressing thread (if running) and close the file; safe to call twice."""
-        if self._ahead is not None:
-            self._ahead.close()
-            self._ahead = None
-        if self._buf is not None:
-            _close(self._buf)
-            self._buf = None
-
-    def __iter__(self) -> Iterator[RecordedPayload]:
-        if self._started or self._buf is None:
-            raise RecordingError(f"a PayloadStream of {self.path} is read once")
-        self._started = True
-        try:
-            yield from self._walk()
-        finally:
-            self.close()
-
-    def _walk(self) -> Iterator[RecordedPayload]:
-        buf, size = self._buf, self._size
-        out = begin_salvage(self.path, buf, size)
-        schedule = self._schedule or []
-        offsets = [offset for offset, _ in schedule]
-        if offsets:
-            self._ahead = DecompressAhead(buf, offsets, batch=self._batch, depth=self._depth)
-        # earliest[k]: the earliest log time chunks k, k+1, ... of the schedule may hold.
-        earliest = [0] * (len(schedule) + 1)
-        earliest[-1] = 2 ** 64
-        for k in range(len(schedule) - 1, -1, -1):
-            earliest[k] = min(schedule[k][1], earliest[k + 1])
-        held: list[tuple[int, int, RawMessage]] = []  # (log time, file order, message): a heap
-        handed: list[RawMessage] = []
-        seen = 0
-        blocked = self._schedule is None
-        for pos in walk_records(buf, size, out, self._ahead):
-            messages = out.messages
-            if len(messages) == seen:
-                continue  # a record without messages (an index, metadata, a damaged chunk)
-            if blocked:
-                seen = len(messages)
-                continue  # the rest comes sorted once the whole file is read
-            while seen < len(messages):
-                m = messages[seen]
-                heapq.heappush(held, (m.log_time, seen, m))
-                seen += 1
-            until = earliest[bisect.bisect_left(offsets, pos)]
-            while held and held[0][0] <= until:
-                m = held[0][2]
-                channel = out.channels.get(m.channel_id)
-                schema = out.schemas.get(channel.schema_id) if channel is not None else None
-                if schema is None:  # the summary or a later record may still name it: wait for the end
-                    blocked = True
-                    break
-                heapq.heappop(held)
-                handed.append(m)
-                if _contract_type(channel, schema.name) is not None:
-                    yield RecordedPayload(m.log_time, channel.topic, schema.name, m.data)
-        end_salvage(buf, size, out)
-        if out.orphans:
-            _adopt_orphans(out)
-        recording = Recording(out)
-        ordered = out.in_log_time_order()
-        n = len(handed)
-        if len(ordered) >= n and all(a is b for a, b in zip(ordered, handed)):
-            rest = ordered[n:]
-        else:
-            _log.warning("%s: a chunk holds messages earlier than its stated start time (the MCAP "
-                         "specification forbids it); %d messages were replayed before they should have been "
-                         "in log-time order", self.path, n)
-            done = {id(m) for m in handed}
-            rest = [m for m in ordered if id(m) not in done]
-        self.recording = recording
-        yield from recording._payloads_of(rest)
-
-
-def _close(buf) -> None:
-    if isinstance(buf, mmap.mmap):
-        buf.close()
-
-
 def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
-    A path is read by a :class:`PayloadStream` (handed on as it is read).  A damaged or
-    unfinished file yields every intact message and logs one warning once it has been read (pass an
-    opened :class:`Recording` to report the damage yourself: then nothing is logged).
+    A damaged or unfinished file yields every intact message and logs one
+    warning (pass an opened :class:`Recording` to report the damage yourself:
+    then nothing is logged).
 
     Raises
     ------
@@ -608,13 +439,10 @@ def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
         (:class:`~lelsonar.errors.RecordingNotFoundError`,
         :class:`~lelsonar.errors.NotMcapError`).
     """
-    if isinstance(path, Recording):
-        yield from path.payloads()
-        return
-    with PayloadStream(path) as stream:
-        yield from stream
-        if line := stream.recording.damage_warning():
-            _log.warning("%s", line.removeprefix("warning: "))
+    rec = open_recording(path)
+    if not isinstance(path, Recording) and (line := rec.damage_warning()):
+        _log.warning("%s", line.removeprefix("warning: "))
+    yield from rec.payloads()
 
 
 def read_messages(path: Path | str | Recording,

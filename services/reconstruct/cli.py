@@ -185,42 +185,18 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
                                           main_method=args.method))
 
 
-def _open_source(path: Path, *, stream: bool = False):
+def _open_source(path: Path):
     """The recording to replay, read tolerantly: one warning line on stderr if it is damaged or unfinished.
 
     Raises the typed :class:`~lelsonar.errors.RecordingError` subclasses (one line, exit 2) for a missing path,
     a directory, a file that is not MCAP, and one without lelsonar scans.
-
-    With ``stream``, a finished, indexed file whose summary counts scan messages is returned unread, as a
-    :class:`~lelsonar.recording.PayloadStream` (read on a thread while the service works); what the reading
-    finds out only at its end (damage, no scan message left intact) :func:`_after_stream` reports.  Any other
-    file is read whole first, as without ``stream``.
     """
-    from lelsonar.recording import PayloadStream, open_recording
+    from lelsonar.recording import open_recording
 
-    if stream:
-        source = PayloadStream(path)
-        try:
-            if source.streams and source.claimed_scan_messages():
-                return source
-        except BaseException:
-            source.close()
-            raise
-        source.close()
     source = open_recording(path).require_scans()
     if (line := source.damage_warning()) is not None:
         print(line, file=sys.stderr, flush=True)
     return source
-
-
-def _after_stream(source) -> None:
-    """What :func:`_open_source` reports up front for a file read whole, for a streamed one once it is read."""
-    from lelsonar.recording import PayloadStream
-
-    if isinstance(source, PayloadStream):
-        source.recording.require_scans()
-        if (line := source.recording.damage_warning()) is not None:
-            print(line, file=sys.stderr, flush=True)
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
@@ -251,11 +227,9 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if args.until_scans and n_final >= args.until_scans:
                 finals.set()
 
-    source = _open_source(args.source, stream=True) if args.source is not None else None
+    source = _open_source(args.source) if args.source is not None else None
+    group_config = _group_config(args)
     with ExitStack() as stack:
-        if hasattr(source, "close"):
-            stack.callback(source.close)  # a stream not read (an error before the replay) closes its file
-        group_config = _group_config(args)
         from lelsonar.reconstruct.observers import combine
 
         fox = _foxglove_observer(args, stack, console)
@@ -294,7 +268,6 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if session is not None:
                 stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
             n = replay_mcap(source, service)
-            _after_stream(source)
             if recorder:
                 for msg in service.finals.values():
                     recorder.write(msg)

@@ -16,7 +16,6 @@ import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
-from contextlib import closing
 from pathlib import Path
 
 import zenoh
@@ -24,7 +23,7 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
-from lelsonar.recording import McapRecorder, PayloadStream, Recording, iter_payloads
+from lelsonar.recording import McapRecorder, iter_payloads
 from lelsonar.reconstruct.group import GroupMembership
 from lelsonar.reconstruct.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.service import ReconstructionService
@@ -97,27 +96,20 @@ class PayloadFifo:
             return out
 
 
-def replay_mcap(path: Path | str | Recording | PayloadStream, service: ReconstructionService,
+def replay_mcap(path: Path | str, service: ReconstructionService,
                 on_payload: Callable[[int], None] | None = None) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
-
-    A path or a :class:`~lelsonar.recording.PayloadStream` is read on a thread while the service works
-    (:func:`~lelsonar.recording.iter_payloads`); a :class:`~lelsonar.recording.Recording` was read already.
-    Leaving early (an exception in the service, Ctrl-C) stops the reader and closes the file.
 
     Returns the number of payloads read.
     """
     n = 0
-    reconstruction = codec.Reconstruction.DESCRIPTOR.full_name
-    payloads = path if isinstance(path, PayloadStream) else iter_payloads(path)
-    with payloads if isinstance(payloads, PayloadStream) else closing(payloads):
-        for rec in payloads:
-            if rec.type_name == reconstruction:
-                continue  # earlier outputs in the file are not inputs
-            service.handle(rec.type_name, rec.payload)
-            n += 1
-            if on_payload is not None:
-                on_payload(rec.log_time_ns)
+    for rec in iter_payloads(path):
+        if rec.type_name == codec.Reconstruction.DESCRIPTOR.full_name:
+            continue  # earlier outputs in the file are not inputs
+        service.handle(rec.type_name, rec.payload)
+        n += 1
+        if on_payload is not None:
+            on_payload(rec.log_time_ns)
     service.finish()
     return n
 

@@ -24,11 +24,9 @@ from __future__ import annotations
 
 import mmap
 import os
-import queue
 import struct
 import threading
 import zlib
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -264,135 +262,8 @@ def _decompress(compression: str, data, size: int) -> bytes:
     raise _Bad(f"unknown compression {compression!r}")
 
 
-class _Failed:
-    """An exception of the decompressing thread, for the walk to raise."""
-
-    def __init__(self, exc: BaseException) -> None:
-        self.exc = exc
-
-
-_AHEAD_END = object()
-
-
-class DecompressAhead:
-    """The zstd chunks of a chunk schedule decompressed on a thread, ahead of the walk that reads them.
-
-    The thread runs ``zstandard``'s ``multi_decompress_to_buffer`` over ``batch`` chunks at a time: one call
-    with the GIL released for the whole batch, so it takes the GIL (from a walk and a consumer busy in Python
-    on the other thread) once per batch; decompressing chunk by chunk, it took it back after every chunk and
-    waited up to the interpreter's switch interval each time, and ran slower than the walk alone (measured).
-    At most ``depth`` batches wait.  Nothing is checked here: :func:`walk_records` hands what this returns to
-    ``_chunk_records``, which checks the size and the CRC as for a chunk it decompresses itself.  A chunk this
-    cannot decompress (not zstd, a damaged frame anywhere in its batch, a header that does not add up) comes
-    back as None and the walk decompresses it alone and reports what fails.  An exception of the thread is
-    raised in the walk; :meth:`close` stops the thread.
-    """
-
-    def __init__(self, buf, offsets: list[int], *, batch: int = 16, depth: int = 4) -> None:
-        self._frames = [(offset, self._frame(buf, offset)) for offset in offsets]
-        self._batch = batch
-        self._queue: queue.Queue = queue.Queue(depth)
-        self._stop = threading.Event()
-        self._current: list = []
-        self._done = False
-        self._thread = threading.Thread(target=self._run, name="recording-reader", daemon=True)
-        self._thread.start()
-
-    @staticmethod
-    def _frame(buf, offset: int) -> tuple[memoryview, int] | None:
-        """A scheduled chunk's compressed bytes (a view of the file) and uncompressed size, if it is zstd."""
-        start = offset + 9
-        end = start + _RECORD_HEAD.unpack_from(buf, offset)[1]
-        head = start + _CHUNK_HEAD.size
-        size = _CHUNK_HEAD.unpack_from(buf, start)[2]
-        if head + 8 > end or _U32.unpack_from(buf, head)[0] != 4 or bytes(buf[head + 4:head + 8]) != b"zstd":
-            return None
-        at = head + 8
-        if at + 8 > end or at + 8 + _U64.unpack_from(buf, at)[0] != end or size > MAX_CHUNK_BYTES:
-            return None
-        return memoryview(buf)[at + 8:end], size
-
-    def _run(self) -> None:
-        import zstandard
-
-        try:
-            zstd = zstandard.ZstdDecompressor()
-            frames, i = self._frames, 0
-            while i < len(frames) and not self._stop.is_set():
-                if frames[i][1] is None:
-                    items, i = [(frames[i][0], None)], i + 1
-                else:
-                    j = i
-                    while j < len(frames) and j - i < self._batch and frames[j][1] is not None:
-                        j += 1
-                    views, sizes = [f[1][0] for f in frames[i:j]], [f[1][1] for f in frames[i:j]]
-                    try:
-                        out = zstd.multi_decompress_to_buffer(views, decompressed_sizes=struct.pack(f"<{len(sizes)}Q",
-                                                                                                   *sizes))
-                        items = [(frames[k][0], out[k - i]) for k in range(i, j)]
-                    except Exception:  # noqa: BLE001 - a damaged frame: the walk decompresses each alone, reports it
-                        items = [(frames[k][0], None) for k in range(i, j)]
-                    i = j
-                if not self._put(items):
-                    return
-            self._put(_AHEAD_END)
-        except BaseException as exc:  # noqa: BLE001 - raised in the walk
-            self._put(_Failed(exc))
-
-    def _put(self, item) -> bool:
-        while not self._stop.is_set():
-            try:
-                self._queue.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def __call__(self, offset: int):
-        """The decompressed content of the chunk record at ``offset`` (a buffer), or None (the walk decompresses it)."""
-        while True:
-            current = self._current
-            while current and current[-1][0] < offset:
-                current.pop()  # chunks the walk skipped (damage before them)
-            if current:
-                return current.pop()[1] if current[-1][0] == offset else None
-            if self._done:
-                return None
-            try:
-                item = self._queue.get(timeout=1.0)
-            except queue.Empty:
-                if not self._thread.is_alive() and self._queue.empty():
-                    raise RecordingError("the recording's decompressing thread stopped without its last word") from None
-                continue
-            if item is _AHEAD_END:
-                self._done = True
-            elif isinstance(item, _Failed):
-                self._done = True
-                raise item.exc
-            else:
-                self._current = item[::-1]  # popped from the end, in file order
-
-    def close(self) -> None:
-        """Stop the thread and let go of the file's bytes (before the file's map is closed)."""
-        self._stop.set()
-        while self._thread.is_alive():
-            try:  # make room for a thread blocked on a full queue; it sees the stop flag next
-                self._queue.get_nowait()
-            except queue.Empty:
-                self._thread.join(0.05)
-        for _offset, frame in self._frames:
-            if frame is not None:
-                frame[0].release()
-        self._frames, self._current = [], []
-
-
-def _chunk_records(buf, start: int, length: int,
-                   decompressed: bytes | None = None) -> tuple[list[tuple[int, object]], int]:
-    """Parse and verify one chunk record's content; return its inner records and its uncompressed size.
-
-    ``decompressed``: the chunk's content already decompressed (a buffer, by :class:`DecompressAhead`),
-    checked here all the same.
-    """
+def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
+    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
     # The hot loop of every read: fields are unpacked in place (no cursor object per record), and the
     # compressed bytes are handed to the decompressor as a view of the file, not a copy.
     end = start + length
@@ -415,14 +286,11 @@ def _chunk_records(buf, start: int, length: int,
         raise _Bad(f"field of {n} bytes runs past the record")
     if at + 8 + n != end:
         raise _Bad("chunk length does not match its content")
-    if decompressed is None:
-        view = memoryview(buf)[at + 8:end]
-        try:
-            raw = _decompress(compression, view, size)
-        finally:
-            view.release()  # the file's map must not be exported when salvage() closes it
-    else:
-        raw = memoryview(decompressed)
+    view = memoryview(buf)[at + 8:end]
+    try:
+        raw = _decompress(compression, view, size)
+    finally:
+        view.release()  # the file's map must not be exported when salvage() closes it
     if len(raw) != size:
         raise _Bad(f"chunk decompressed to {len(raw)} bytes, expected {size}")
     if crc and zlib.crc32(raw) != crc:
@@ -440,7 +308,7 @@ def _chunk_records(buf, start: int, length: int,
         if op == OP_MESSAGE:
             if n < message_head:
                 raise _Bad(f"field of {message_head} bytes runs past the record")
-            records.append((op, (*unpack_message(raw, body), bytes(raw[body + message_head:stop]))))
+            records.append((op, (*unpack_message(raw, body), raw[body + message_head:stop])))
         elif op == OP_SCHEMA:
             records.append((op, _schema(_Cursor(raw, body, stop))))
         elif op == OP_CHANNEL:
@@ -522,36 +390,19 @@ def salvage(path: Path | str) -> Salvage:
     path = Path(path)
     buf, size = open_bytes(path)
     try:
-        out = begin_salvage(path, buf, size)
+        if not _magic_ok(bytes(buf[:8])):
+            head = bytes(buf[:16])
+            raise NotMcapError(f"{path} is not a readable MCAP file (it starts with {head!r}, not the MCAP magic)")
+        out = Salvage(path, size)
+        if bytes(buf[:8]) != MAGIC:
+            out.damage.append(Damage(0, 8, "header", "the leading magic has flipped bits", 0))
         _walk(buf, size, out)
-        end_salvage(buf, size, out)
+        _read_summary(buf, size, out)
+        out.orphans = sum(1 for m in out.messages if m.channel_id not in out.channels)
         return out
     finally:
         if isinstance(buf, mmap.mmap):
             buf.close()
-
-
-def begin_salvage(path: Path, buf, size: int) -> Salvage:
-    """The start of :func:`salvage` on an opened file: the magic checked, nothing read yet.
-
-    Raises
-    ------
-    NotMcapError
-        The file does not start with the MCAP magic.
-    """
-    if not _magic_ok(bytes(buf[:8])):
-        head = bytes(buf[:16])
-        raise NotMcapError(f"{path} is not a readable MCAP file (it starts with {head!r}, not the MCAP magic)")
-    out = Salvage(path, size)
-    if bytes(buf[:8]) != MAGIC:
-        out.damage.append(Damage(0, 8, "header", "the leading magic has flipped bits", 0))
-    return out
-
-
-def end_salvage(buf, size: int, out: Salvage) -> None:
-    """The end of :func:`salvage`, once :func:`walk_records` is done: the summary's channels, the orphans."""
-    _read_summary(buf, size, out)
-    out.orphans = sum(1 for m in out.messages if m.channel_id not in out.channels)
 
 
 class _Walk:
@@ -607,19 +458,6 @@ class _Walk:
 
 
 def _walk(buf, size: int, out: Salvage) -> None:
-    for _ in walk_records(buf, size, out):
-        pass
-
-
-def walk_records(buf, size: int, out: Salvage, decompressed: Callable[[int], bytes | None] | None = None):
-    """The walk of :func:`salvage` over the data section, one record at a time.
-
-    Fills ``out`` (channels, schemas, messages, damage) exactly as :func:`salvage` does, and yields the
-    offset where the walk resumes after each record: every record and chunk before it has been read (or
-    counted as damage), so a reader on another thread can hand on what is settled while the rest is read.
-    ``decompressed(offset)``: a chunk record's content decompressed ahead (:class:`DecompressAhead`), or
-    None to decompress it here.
-    """
     w = _Walk(buf, size, out)
     pos = len(MAGIC)
     while pos < size:
@@ -633,8 +471,7 @@ def walk_records(buf, size: int, out: Salvage, decompressed: Callable[[int], byt
                             else f"record runs past the end of the file (opcode {op:#04x}, length {length})")
         elif op == OP_CHUNK or _looks_like_chunk(buf, body, length):
             try:
-                records, usize = _chunk_records(buf, body, length,
-                                                decompressed(pos) if decompressed is not None else None)
+                records, usize = _chunk_records(buf, body, length)
             except (_Bad, struct.error) as exc:
                 nxt = w.damaged(pos, str(exc))
             else:
@@ -645,10 +482,7 @@ def walk_records(buf, size: int, out: Salvage, decompressed: Callable[[int], byt
                 nxt = body + length
         else:
             try:
-                if op == OP_MESSAGE_INDEX:  # one after each chunk per channel: checked without a cursor
-                    _message_index_count(buf, body, length)
-                else:
-                    _top_level(buf, op, pos, body, length, out)
+                _top_level(buf, op, pos, body, length, out)
             except (_Bad, struct.error) as exc:
                 nxt = w.damaged(pos, f"record with opcode {op:#04x}: {exc}")
             else:
@@ -658,7 +492,6 @@ def walk_records(buf, size: int, out: Salvage, decompressed: Callable[[int], byt
         if nxt is None:
             return
         pos = nxt
-        yield pos
 
 
 def _looks_like_chunk(buf, body: int, length: int) -> bool:
@@ -835,55 +668,3 @@ def _lost(buf, start: int, end: int, reason: str, estimate: int) -> Damage:
                 if n is not None:
                     return Damage(start, end - start, kind, reason, n, n, by_channel)
     return Damage(start, end - start, kind, reason, None, estimate)
-
-
-# --- the chunk schedule: what a reader may hand on before it has read the whole file --------------
-_CHUNK_INDEX_HEAD = struct.Struct("<QQQ")  # message_start_time, message_end_time, chunk_start_offset
-
-
-def chunk_schedule(buf, size: int) -> list[tuple[int, int]] | None:
-    """The chunks of a finished, indexed file, each with the earliest log time it holds, or None.
-
-    Returns ``[(offset, message_start_time), ...]`` in file order when the file's records chain from the
-    leading magic to its summary, every record in the data section is well formed as far as its length,
-    there is no message outside a chunk, and each chunk's header states the same start and end times as
-    the summary's chunk index for it (two copies: a flipped bit in either makes them disagree).  Reading
-    it costs the record headers and the summary, not a decompression.
-
-    None for anything else: an unfinished, cut or unindexed file, a damaged record chain, messages outside
-    chunks.  A reader then has to read the whole file before it knows the log-time order (:func:`salvage`).
-    """
-    summary_start = _summary_start(buf, size)
-    if summary_start is None:
-        return None
-    foot = size - len(MAGIC) - 9 - 20
-    index: dict[int, tuple[int, int]] = {}
-    pos = summary_start
-    try:
-        while pos < foot:
-            op, length = _RECORD_HEAD.unpack_from(buf, pos)
-            if pos + 9 + length > foot:
-                return None
-            if op == OP_CHUNK_INDEX:
-                if length < _CHUNK_INDEX_HEAD.size:
-                    return None
-                t0, t1, offset = _CHUNK_INDEX_HEAD.unpack_from(buf, pos + 9)
-                index[offset] = (t0, t1)
-            pos += 9 + length
-        schedule = []
-        pos = len(MAGIC)
-        while pos < summary_start:
-            op, length = _RECORD_HEAD.unpack_from(buf, pos)
-            body = pos + 9
-            if body + length > summary_start or op == OP_MESSAGE:
-                return None
-            if op == OP_CHUNK:
-                if length < _CHUNK_HEAD.size or index.pop(pos, None) != _CHUNK_HEAD.unpack_from(buf, body)[:2]:
-                    return None
-                schedule.append((pos, _CHUNK_HEAD.unpack_from(buf, body)[0]))
-            pos = body + length
-    except struct.error:
-        return None
-    if pos != summary_start or index:
-        return None  # the chain does not land on the summary, or the index names chunks the walk did not see
-    return schedule
