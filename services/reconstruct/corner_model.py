@@ -36,7 +36,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
 
 from .compiled import kernel
-from .fit import fast_median
+from .fit import _cross3, _tangent_basis, fast_median
 
 __all__ = [
     "ScanPoints",
@@ -167,14 +167,6 @@ def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
     return pts.capsule @ wall.normal + pts.distance - wall.offset
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross costs ~20 µs of argument handling per call; this is on the solver's hot path.  Python floats
-    # round exactly as NumPy scalars do, at a fraction of the cost per operation.
-    a0, a1, a2 = np.asarray(a).tolist()
-    b0, b1, b2 = np.asarray(b).tolist()
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
 def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
               ) -> tuple[np.ndarray, np.ndarray] | None:
     """Point (nearest the origin) and unit direction of the line where two walls meet.
@@ -182,14 +174,14 @@ def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
     With ``e = n_a × n_b`` the point is ``(h_a (n_b × e) + h_b (e × n_a)) / |e|²``.
     None if the walls are within ``min_angle`` of parallel (no corner).
     """
-    e = _cross(wall_a.normal, wall_b.normal)
+    e = _cross3(wall_a.normal, wall_b.normal)
     s2 = float(e @ e)
     if s2 < np.sin(min_angle) ** 2:
         return None
     # h_a (n_b × e) + h_b (e × n_a), element by element in Python floats: the NumPy expression's roundings.
     ha, hb = wall_a.offset, wall_b.offset
-    point = np.array([(ha * u + hb * v) / s2 for u, v in zip(_cross(wall_b.normal, e).tolist(),
-                                                              _cross(e, wall_a.normal).tolist())])
+    point = np.array([(ha * u + hb * v) / s2 for u, v in zip(_cross3(wall_b.normal, e).tolist(),
+                                                              _cross3(e, wall_a.normal).tolist())])
     return point, e / np.sqrt(s2)
 
 
@@ -531,25 +523,6 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     return np.asarray(centres)
 
 
-@kernel
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
-
-@kernel
-def _tangent(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Orthonormal ``e₁, e₂`` of the plane normal to the unit ``n`` (``e₁`` away from ``n``'s smallest axis)."""
-    k = 0
-    for j in (1, 2):
-        if abs(n[j]) < abs(n[k]):
-            k = j
-    helper = np.zeros(3)
-    helper[k] = 1.0
-    e1 = _cross3(n, helper)
-    e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
-    return e1, _cross3(n, e1)
-
-
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
     """Range residuals (m) of the labelled echoes under their models: wall a, wall b, then the edge."""
     ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
@@ -703,8 +676,8 @@ def _joint_gauss_newton(capsule: np.ndarray, distance: np.ndarray, labels: np.nd
         return na, ha, nb, hb, cov, False
     lam = 1e-6
     for _ in range(iterations):
-        ea1, ea2 = _tangent(na)
-        eb1, eb2 = _tangent(nb)
+        ea1, ea2 = _tangent_basis(na)
+        eb1, eb2 = _tangent_basis(nb)
         jtj, g = _joint_normal_equations(capsule, distance, labels, na, ha, nb, hb, ea1, ea2, eb1, eb2)
         rhs = np.empty((6, 1))
         for u in range(6):
@@ -733,8 +706,8 @@ def _joint_gauss_newton(capsule: np.ndarray, distance: np.ndarray, labels: np.nd
         if not accepted:
             break
     if covariance:
-        ea1, ea2 = _tangent(na)
-        eb1, eb2 = _tangent(nb)
+        ea1, ea2 = _tangent_basis(na)
+        eb1, eb2 = _tangent_basis(nb)
         jtj, _g = _joint_normal_equations(capsule, distance, labels, na, ha, nb, hb, ea1, ea2, eb1, eb2)
         inv, ok = _lu_solve(jtj, np.eye(6))
         if ok:
