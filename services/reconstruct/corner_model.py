@@ -500,27 +500,39 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     echoes, each refined as the median of ``w`` within 2 bins (the smoothing
     turns a one-bin spike into a three-bin plateau whose right end is the peak).
     """
-    w = np.asarray(w, dtype=np.float64)
+    return _band_offsets(np.asarray(w, dtype=np.float64), float(bin_width), int(max_bands), int(min_count))
+
+
+@kernel
+def _band_offsets(w: np.ndarray, bin_width: float, max_bands: int, min_count: int) -> np.ndarray:
     w = w[np.isfinite(w)]
     if w.size < min_count:
         return np.zeros(0)
-    lo, hi = float(w.min()), float(w.max())
+    lo, hi = w.min(), w.max()
     nb = max(int(np.ceil((hi - lo) / bin_width)), 1)
     # Bin k holds lo + k·bin_width ≤ w < lo + (k + 1)·bin_width (the top bin its right end too).
-    counts = np.bincount(np.minimum(((w - lo) / bin_width).astype(np.intp), nb - 1), minlength=nb)
-    padded = np.concatenate([[0], counts, [0]])
-    smooth = padded[:-2] + padded[1:-1] + padded[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
-    left = np.concatenate([[-1], smooth[:-1]])
-    right = np.concatenate([smooth[1:], [-1]])
-    peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= min_count))
-    peaks = peaks[np.argsort(-smooth[peaks], kind="stable")][:max_bands]
-    centres = []
-    for p in peaks:
+    counts = np.zeros(nb + 2, dtype=np.intp)  # padded with an empty bin at each end
+    for x in w:
+        counts[1 + min(int((x - lo) / bin_width), nb - 1)] += 1
+    smooth = counts[:-2] + counts[1:-1] + counts[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
+    peaks = []
+    for i in range(nb):
+        left = smooth[i - 1] if i > 0 else -1
+        right = smooth[i + 1] if i + 1 < nb else -1
+        if smooth[i] >= left and smooth[i] > right and smooth[i] >= min_count:
+            peaks.append(i)
+    ranked = np.array(peaks, dtype=np.intp)
+    ranked = ranked[np.argsort(-smooth[ranked], kind="mergesort")][:max_bands]  # densest first, stable
+    centres = np.empty(ranked.size)
+    k = 0
+    for p in ranked:
         c = lo + (p + 0.5) * bin_width
-        near = np.abs(w - c) <= 2.0 * bin_width
-        if np.any(near):
-            centres.append(fast_median(w[near]))
-    return np.asarray(centres)
+        near = np.sort(w[np.abs(w - c) <= 2.0 * bin_width])
+        if near.size:  # their median, as np.median
+            m = near.size // 2
+            centres[k] = near[m] if near.size % 2 else (near[m - 1] + near[m]) / 2.0
+            k += 1
+    return centres[:k]
 
 
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
@@ -718,19 +730,32 @@ def _joint_gauss_newton(capsule: np.ndarray, distance: np.ndarray, labels: np.nd
 def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple[float, float], ...],
             beam_half_angle: float, min_points: int, axes: tuple[np.ndarray, np.ndarray],
             max_tilt: float) -> tuple[Wall, Wall]:
-    for tol, tol_edge in tolerances:
-        labels, _ = assign_echoes(wall_a, wall_b, pts, tol, beam_half_angle, tol_edge)
+    # (copies: the kernel's walls are its own writable arrays, whatever the caller's)
+    na, ha, nb, hb = _refine_walls(pts.capsule, pts.distance, pts.beam, np.array(wall_a.normal, dtype=np.float64),
+                                   float(wall_a.offset), np.array(wall_b.normal, dtype=np.float64), float(wall_b.offset), np.array(tolerances, dtype=np.float64),
+                                   np.cos(beam_half_angle), int(min_points), axes[0], axes[1], np.cos(max_tilt))
+    return Wall(na, ha), Wall(nb, hb)
+
+
+@kernel
+def _refine_walls(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, na: np.ndarray, ha: float,
+                  nb: np.ndarray, hb: float, tolerances: np.ndarray, cos_t: float, min_points: int,
+                  axis_a: np.ndarray, axis_b: np.ndarray, cos_max_tilt: float) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """Alternate assignment and one joint Gauss-Newton step at each (tolerance, edge tolerance) of ``tolerances``."""
+    for s in range(tolerances.shape[0]):
+        labels, _ = _assign(capsule, distance, beam, na, ha, nb, hb, cos_t, tolerances[s, 0], tolerances[s, 1])
         for k in (ECHO_WALL_A, ECHO_WALL_B):
             if np.count_nonzero(labels == k) < min_points:
-                labels = np.where(labels == k, ECHO_OUTLIER, labels)  # too few to move this wall
-        (na, nb), _ = joint_gauss_newton(wall_a, wall_b, pts, labels, iterations=1, covariance=False)
+                labels[labels == k] = ECHO_OUTLIER  # too few to move this wall
+        fa, fha, fb, fhb, _cov, _moved = _joint_gauss_newton(capsule, distance, labels, na, ha, nb, hb, 1, False, 6,
+                                                            1e-9)
         # Keep each wall within max_tilt of its nominal axis: beyond, the solver is chasing the other
         # wall's or the edge's echoes.
-        if na.normal @ axes[0] >= np.cos(max_tilt) and na.offset > 0:
-            wall_a = na
-        if nb.normal @ axes[1] >= np.cos(max_tilt) and nb.offset > 0:
-            wall_b = nb
-    return wall_a, wall_b
+        if fa[0] * axis_a[0] + fa[1] * axis_a[1] + fa[2] * axis_a[2] >= cos_max_tilt and fha > 0:
+            na, ha = fa, fha
+        if fb[0] * axis_b[0] + fb[1] * axis_b[1] + fb[2] * axis_b[2] >= cos_max_tilt and fhb > 0:
+            nb, hb = fb, fhb
+    return na, ha, nb, hb
 
 
 def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
