@@ -528,10 +528,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
     leaks = edge_in_echo_window(model, pts, opts.corner_beam_half_angle)
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
-        sel = np.full(d.shape, np.nan)
         m = model.labels == k
-        sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
-        data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        # The wall's echoes one by one, in the scan's order (step, then capsule) as plane_data keeps them.
+        data = F.plane_data_of(pts.capsule[m][:, None, :], pts.beam[m], pts.distance[m][:, None], pts.step[m],
+                               label, axis)
         datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:

@@ -630,10 +630,16 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
             row[3] = (p0 * eb1[0] + p1 * eb1[1] + p2 * eb1[2]) * gb + gab * na_eb1
             row[4] = (p0 * eb2[0] + p1 * eb2[1] + p2 * eb2[2]) * gb + gab * na_eb2
             row[5] = -gb
-        for u in range(6):
+        # A wall's row is zero in the other wall's columns: only its own block takes sums (adding the zero
+        # products would leave every sum as it is).
+        lo, hi = (0, 3) if k == ECHO_WALL_A else (3, 6) if k == ECHO_WALL_B else (0, 6)
+        for u in range(lo, hi):
             g[u] += row[u] * r
-            for v in range(6):
+            for v in range(u, hi):
                 jtj[u, v] += row[u] * row[v]
+    for u in range(6):
+        for v in range(u):
+            jtj[u, v] = jtj[v, u]
     return jtj, g
 
 

@@ -36,6 +36,7 @@ __all__ = [
     "MAD_K",
     "PlaneData",
     "plane_data",
+    "plane_data_of",
     "check_points",
     "ls_theta",
     "fitting_errors",
@@ -166,18 +167,40 @@ def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
     d = np.asarray(distance, dtype=np.float64)[steps]
     if d.shape != g.shape + (geometry.n_capsules,):
         raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
-    b = boresight(g)
-    pc = geometry.capsule_positions(g)
-    v = corrected_from(pc, b, d, axis)  # corrected_points, reusing p_c and b
+    return plane_data_of(geometry.capsule_positions(g), boresight(g), d, steps, label, axis)
+
+
+def plane_data_of(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str,
+                  axis: np.ndarray) -> PlaneData:
+    """:func:`plane_data` from capsule positions and boresights the caller already has.
+
+    Parameters
+    ----------
+    capsules : (k, n_capsules, 3) array
+        ``p_c`` of each echo slot, m.
+    beam : (k, 3) array
+        Boresight of each row.
+    distance : (k, n_capsules) array, m (NaN = no echo)
+    steps : (k,) int array
+        Step index of each row.
+    label, axis
+        As for :func:`plane_data`.
+
+    The rows may be steps (``n_capsules`` slots each), or single echoes (``n_capsules = 1``): the
+    corner model's echoes of one wall, with the same numbers as from their steps.
+    """
+    d = np.asarray(distance, dtype=np.float64)
+    v = corrected_from(capsules, beam, d, axis)  # corrected_points, reusing p_c and b
     ok = np.isfinite(d) & (d > 0) & np.isfinite(v).all(axis=-1)
-    # The kept points as flat indices (step-major, as boolean indexing orders them); a point's step row
+    # The kept points as flat indices (row-major, as boolean indexing orders them); a point's row
     # gives its boresight and step index.  Finite (v = p_c + ... is finite only where p_c is) and of
     # agreeing shapes by construction; fancy indexing copies, so the arrays are this PlaneData's own
     # (the axis is copied: it may be AXIS_Y).
     flat = np.flatnonzero(ok)
     row = flat // d.shape[1]
     return PlaneData._owned(label, np.array(axis, dtype=np.float64), v.reshape(-1, 3)[flat],
-                            pc.reshape(-1, 3)[flat], d.reshape(-1)[flat], b[row], steps[row])
+                            capsules.reshape(-1, 3)[flat], d.reshape(-1)[flat], beam[row],
+                            np.asarray(steps, dtype=np.intp)[row])
 
 
 def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
