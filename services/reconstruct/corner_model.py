@@ -153,13 +153,12 @@ def scan_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray
     """Flatten the valid echoes of a scan (finite, positive ranges)."""
     g = np.asarray(gamma, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
-    pc = geometry.capsule_positions(g)
-    b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
-    ok = np.isfinite(d) & (d > 0)
-    steps = np.broadcast_to(np.arange(g.shape[0])[:, None], d.shape)
-    caps = np.broadcast_to(np.arange(d.shape[1])[None, :], d.shape)
-    gg = np.broadcast_to(g[:, None], d.shape)
-    return ScanPoints(steps[ok].astype(np.intp), caps[ok].astype(np.intp), gg[ok], pc[ok], d[ok], b[ok])
+    # The valid echoes as flat indices, step-major as boolean indexing orders them: a flat index is the
+    # step times the capsules plus the capsule.
+    flat = np.flatnonzero(np.isfinite(d) & (d > 0))
+    step, capsule = np.divmod(flat, d.shape[1])
+    return ScanPoints(step, capsule, g[step], geometry.capsule_positions(g).reshape(-1, 3)[flat], d.reshape(-1)[flat],
+                      boresight(g)[step])
 
 
 def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
