@@ -363,10 +363,22 @@ def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, d
     capsule's distance to the wall is ``x = ac + √(d² − a²(1 − c²))`` (the
     root beyond the edge's foot) and the offset is ``x + n·p_c``.
     """
-    a = other.offset - capsule @ other.normal
-    c = float(other.normal @ normal)
-    x = a * c + np.sqrt(np.maximum(distance * distance - a * a * (1.0 - c * c), 0.0))
-    return x + capsule @ normal
+    return _edge_implied_offsets(np.asarray(other.normal, dtype=np.float64), float(other.offset),
+                                 np.asarray(normal, dtype=np.float64), np.asarray(capsule, dtype=np.float64),
+                                 np.asarray(distance, dtype=np.float64))
+
+
+@kernel
+def _edge_implied_offsets(other_normal: np.ndarray, other_offset: float, normal: np.ndarray, capsule: np.ndarray,
+                          distance: np.ndarray) -> np.ndarray:
+    c = other_normal[0] * normal[0] + other_normal[1] * normal[1] + other_normal[2] * normal[2]
+    out = np.empty(distance.shape[0])
+    for i in range(distance.shape[0]):
+        p0, p1, p2 = capsule[i, 0], capsule[i, 1], capsule[i, 2]
+        a = other_offset - (p0 * other_normal[0] + p1 * other_normal[1] + p2 * other_normal[2])
+        x = a * c + np.sqrt(max(distance[i] * distance[i] - a * a * (1.0 - c * c), 0.0))
+        out[i] = x + (p0 * normal[0] + p1 * normal[1] + p2 * normal[2])
+    return out
 
 
 def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: float, min_points: int = 8
