@@ -603,8 +603,14 @@ def _joint_cost(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, n
 def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, na: np.ndarray,
                             ha: float, nb: np.ndarray, hb: float, ea1: np.ndarray, ea2: np.ndarray,
                             eb1: np.ndarray, eb2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``JᵀJ`` and ``Jᵀr`` of the labelled echoes, with :func:`joint_gauss_newton`'s Jacobian."""
+    """``JᵀJ`` and ``Jᵀr`` of the labelled echoes, with :func:`joint_gauss_newton`'s Jacobian.
+
+    A wall's mirror rows ``(p_c·e₁, p_c·e₂, −1)`` touch only its own 3×3 block: their sums are
+    kept apart from the edge rows' (which touch all six parameters) and added at the end.
+    """
     da, db, c, rng = edge_range_terms(na, ha, nb, hb, capsule)
+    mirror = np.zeros((2, 6))  # per wall: Σx₁², Σx₁x₂, Σx₁, Σx₂², Σx₂, count
+    mirror_g = np.zeros((2, 3))  # per wall: Σx₁r, Σx₂r, Σr
     jtj = np.zeros((6, 6))
     g = np.zeros(6)
     row = np.zeros(6)
@@ -615,22 +621,24 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
     na_eb2 = na[0] * eb2[0] + na[1] * eb2[1] + na[2] * eb2[2]
     for i in range(labels.shape[0]):
         k = labels[i]
-        if k != ECHO_WALL_A and k != ECHO_WALL_B and k != ECHO_EDGE:
-            continue
         p0, p1, p2 = capsule[i, 0], capsule[i, 1], capsule[i, 2]
-        for j in range(6):
-            row[j] = 0.0
-        if k == ECHO_WALL_A:
-            r = distance[i] - da[i]
-            row[0] = p0 * ea1[0] + p1 * ea1[1] + p2 * ea1[2]
-            row[1] = p0 * ea2[0] + p1 * ea2[1] + p2 * ea2[2]
-            row[2] = -1.0
-        elif k == ECHO_WALL_B:
-            r = distance[i] - db[i]
-            row[3] = p0 * eb1[0] + p1 * eb1[1] + p2 * eb1[2]
-            row[4] = p0 * eb2[0] + p1 * eb2[1] + p2 * eb2[2]
-            row[5] = -1.0
-        else:
+        if k == ECHO_WALL_A or k == ECHO_WALL_B:
+            e1, e2 = (ea1, ea2) if k == ECHO_WALL_A else (eb1, eb2)
+            r = distance[i] - (da[i] if k == ECHO_WALL_A else db[i])
+            x1 = p0 * e1[0] + p1 * e1[1] + p2 * e1[2]
+            x2 = p0 * e2[0] + p1 * e2[1] + p2 * e2[2]
+            m = mirror[k]
+            m[0] += x1 * x1
+            m[1] += x1 * x2
+            m[2] += x1
+            m[3] += x2 * x2
+            m[4] += x2
+            m[5] += 1.0
+            mg = mirror_g[k]
+            mg[0] += x1 * r
+            mg[1] += x2 * r
+            mg[2] += r
+        elif k == ECHO_EDGE:
             r = distance[i] - rng[i]
             a, b = da[i], db[i]
             inv = 1.0 / max(rng[i], 1e-12)
@@ -641,13 +649,22 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
             row[3] = (p0 * eb1[0] + p1 * eb1[1] + p2 * eb1[2]) * gb + gab * na_eb1
             row[4] = (p0 * eb2[0] + p1 * eb2[1] + p2 * eb2[2]) * gb + gab * na_eb2
             row[5] = -gb
-        # A wall's row is zero in the other wall's columns: only its own block takes sums (adding the zero
-        # products would leave every sum as it is).
-        lo, hi = (0, 3) if k == ECHO_WALL_A else (3, 6) if k == ECHO_WALL_B else (0, 6)
-        for u in range(lo, hi):
-            g[u] += row[u] * r
-            for v in range(u, hi):
-                jtj[u, v] += row[u] * row[v]
+            for u in range(6):
+                g[u] += row[u] * r
+                for v in range(u, 6):
+                    jtj[u, v] += row[u] * row[v]
+    for k in (ECHO_WALL_A, ECHO_WALL_B):
+        o = 3 * k
+        m = mirror[k]
+        jtj[o, o] += m[0]
+        jtj[o, o + 1] += m[1]
+        jtj[o, o + 2] -= m[2]
+        jtj[o + 1, o + 1] += m[3]
+        jtj[o + 1, o + 2] -= m[4]
+        jtj[o + 2, o + 2] += m[5]
+        g[o] += mirror_g[k, 0]
+        g[o + 1] += mirror_g[k, 1]
+        g[o + 2] -= mirror_g[k, 2]
     for u in range(6):
         for v in range(u):
             jtj[u, v] = jtj[v, u]
