@@ -346,12 +346,30 @@ def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: flo
     """
     if edge_line(model.wall_a, model.wall_b) is None:
         return 0.0, 0.0, 0.0
-    close = np.abs(echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle)) <= model.tolerance
-    shares = []
-    for label, shared in ((ECHO_WALL_A, close[2]), (ECHO_WALL_B, close[2]), (ECHO_EDGE, close[0] | close[1])):
-        mask = model.labels == label
-        shares.append(float(np.mean(shared[mask])) if np.any(mask) else 0.0)
-    return shares[0], shares[1], shares[2]
+    return _shared_shares(model.labels, echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle),
+                          float(model.tolerance))
+
+
+@kernel
+def _shared_shares(labels: np.ndarray, residuals: np.ndarray, tolerance: float) -> tuple[float, float, float]:
+    """:func:`edge_shared_shares` from the model's labels and :func:`echo_residuals`."""
+    count = np.zeros(3)
+    shared = np.zeros(3)
+    for i in range(labels.shape[0]):
+        k = labels[i]
+        if k == ECHO_WALL_A or k == ECHO_WALL_B:
+            count[k] += 1.0
+            if abs(residuals[ECHO_EDGE, i]) <= tolerance:
+                shared[k] += 1.0
+        elif k == ECHO_EDGE:
+            count[k] += 1.0
+            if abs(residuals[ECHO_WALL_A, i]) <= tolerance or abs(residuals[ECHO_WALL_B, i]) <= tolerance:
+                shared[k] += 1.0
+    out = np.zeros(3)
+    for k in range(3):
+        if count[k] > 0:
+            out[k] = shared[k] / count[k]
+    return out[0], out[1], out[2]
 
 
 def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
@@ -406,20 +424,35 @@ def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: floa
     alternative (``(0.0, 0)`` for a wall with fewer than ``min_points``
     echoes, or no edge).
     """
-    out = []
-    explained = int(np.count_nonzero(model.labels != ECHO_OUTLIER))
-    walls = (model.wall_a, model.wall_b)
-    for k in (ECHO_WALL_A, ECHO_WALL_B):
-        mk = model.labels == k
-        if np.count_nonzero(mk) < min_points or edge_line(*walls) is None:
-            out.append((0.0, 0))
-            continue
-        h = fast_median(edge_implied_offsets(walls[1 - k], walls[k].normal, pts.capsule[mk], pts.distance[mk]))
-        pair = list(walls)
-        pair[k] = Wall(walls[k].normal, float(h))
-        labels, _ = assign_echoes(pair[0], pair[1], pts, model.tolerance, beam_half_angle)
-        out.append((float(np.mean(labels[mk] == ECHO_EDGE)), explained - int(np.count_nonzero(labels != ECHO_OUTLIER))))
+    if edge_line(model.wall_a, model.wall_b) is None:
+        return (0.0, 0), (0.0, 0)
+    wa, wb = model.wall_a, model.wall_b
+    out = [_edge_alternative(pts.capsule, pts.distance, pts.beam, model.labels, k, wa.normal, float(wa.offset),
+                             wb.normal, float(wb.offset), np.cos(beam_half_angle), float(model.tolerance),
+                             int(min_points)) for k in (ECHO_WALL_A, ECHO_WALL_B)]
     return out[0], out[1]
+
+
+@kernel
+def _edge_alternative(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, labels: np.ndarray, k: int,
+                      normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, cos_t: float,
+                      tolerance: float, min_points: int) -> tuple[float, int]:
+    """:func:`edge_alternatives` for wall ``k`` (the walls have an edge)."""
+    mk = labels == k
+    n_k = np.count_nonzero(mk)
+    if n_k < min_points:
+        return 0.0, 0
+    if k == ECHO_WALL_A:
+        implied = _edge_implied_offsets(normal_b, offset_b, normal_a, capsule[mk], distance[mk])
+    else:
+        implied = _edge_implied_offsets(normal_a, offset_a, normal_b, capsule[mk], distance[mk])
+    h = fast_median(implied)
+    if k == ECHO_WALL_A:
+        moved, _ = _assign(capsule, distance, beam, normal_a, h, normal_b, offset_b, cos_t, tolerance, tolerance)
+    else:
+        moved, _ = _assign(capsule, distance, beam, normal_a, offset_a, normal_b, h, cos_t, tolerance, tolerance)
+    as_edge = np.count_nonzero(moved[mk] == ECHO_EDGE) / n_k
+    return as_edge, np.count_nonzero(labels != ECHO_OUTLIER) - np.count_nonzero(moved != ECHO_OUTLIER)
 
 
 @kernel
@@ -538,10 +571,9 @@ def _band_offsets(w: np.ndarray, bin_width: float, max_bands: int, min_count: in
     k = 0
     for p in ranked:
         c = lo + (p + 0.5) * bin_width
-        near = np.sort(w[np.abs(w - c) <= 2.0 * bin_width])
-        if near.size:  # their median, as np.median
-            m = near.size // 2
-            centres[k] = near[m] if near.size % 2 else (near[m - 1] + near[m]) / 2.0
+        near = w[np.abs(w - c) <= 2.0 * bin_width]
+        if near.size:
+            centres[k] = fast_median(near)
             k += 1
     return centres[:k]
 
