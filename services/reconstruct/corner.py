@@ -522,7 +522,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     datas: list[F.PlaneData] = []
     # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
     # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
-    shared_limit = QualityLimits().max_offset_stderr / model.tolerance
+    limits = QualityLimits()
+    shared_limit = limits.max_offset_stderr / model.tolerance
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
@@ -556,7 +557,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         as_edge, lost = alternatives[k]
         # The same share of echoes as above could hold the offset; an alternative leaving no more than the
         # share of unexplained echoes that already degrades a plane explains the scan about as well.
-        if as_edge > shared_limit and lost <= QualityLimits().degraded_unexplained * pts.n:
+        if as_edge > shared_limit and lost <= limits.degraded_unexplained * pts.n:
             findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
                                     f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
                                     "echoes the model explains: the corner cluster may have passed for the wall"),)
