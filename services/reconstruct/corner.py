@@ -12,7 +12,6 @@ edge (:func:`corner_edge`).
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
@@ -20,9 +19,10 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 
 from . import fit as F
+from .compiled import kernel
 from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, CornerModel, ScanPoints, Wall,
-                           echo_residuals, edge_alternatives, edge_line, edge_shared_shares, fit_corner_model,
-                           scan_points)
+                           _lu_solve, _pairwise_sum, echo_residuals, edge_alternatives, edge_line,
+                           edge_shared_shares, fit_corner_model, scan_points)
 from .energy import ECHO_PEAK_WINDOW
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
@@ -99,32 +99,38 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     only a lower bound, and a parabola through the plateau they form puts its
     vertex anywhere inside it.
     """
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    e = a * np.asarray(distance, dtype=np.float64)
+    phi, sigma, found = _amplitude_pitch(np.asarray(gamma, dtype=np.float64), np.asarray(amplitude, dtype=np.float64),
+                                         np.asarray(distance, dtype=np.float64), float(top_db), int(min_steps_each_side))
+    return (phi, sigma) if found else None
+
+
+@kernel
+def _amplitude_pitch(g: np.ndarray, a: np.ndarray, d: np.ndarray, top_db: float,
+                     min_steps_each_side: int) -> tuple[float, float, bool]:
+    """:func:`amplitude_pitch` as a kernel: ``(φ, σ_φ, found)``."""
+    e = a * d
     ok = np.isfinite(g) & np.isfinite(e) & (e > 0)
     if not np.any(ok):
-        return None
+        return np.nan, np.nan, False
     ok &= ~clipped_echoes(np.where(ok, a, np.nan))
     if np.count_nonzero(ok) < 8:
-        return None
+        return np.nan, np.nan, False
     g, le = g[ok], np.log(e[ok])
     top = le >= le.max() - top_db * np.log(10.0) / 20.0  # dB of amplitude
-    vertex = _parabola_vertex(g[top], le[top], min_steps_each_side)
-    if vertex is None:
-        return None
-    phi, se, curvature = vertex
+    phi, se, curvature, found = _parabola_vertex(g[top], le[top], min_steps_each_side)
+    if not found:
+        return np.nan, np.nan, False
     # The vertex is unbiased only where the window is symmetric about it (below): on a truncated or lopsided
     # window the pattern's departure from a parabola shifts it, which the fit's own σ does not count.
-    window = (phi - float(g[top].min()), float(g[top].max()) - phi)
-    sym = top & (np.abs(g - phi) <= min(window))
-    inner = _symmetric_vertex(g[sym] - phi, le[sym], curvature)
-    if inner is None:
-        return None  # the peak at the very end of the sweep: nothing on one side of it
-    sigma = window_bias_stderr(phi, se, phi + inner[0], inner[1])
-    if sigma > float(g[top].max() - g[top].min()):
-        return None  # not located within the directions the fit saw: no peak was observed
-    return float(phi), sigma
+    lo, hi = g[top].min(), g[top].max()
+    sym = top & (np.abs(g - phi) <= min(phi - lo, hi - phi))
+    shift, se_sym, found = _symmetric_vertex(g[sym] - phi, le[sym], curvature)
+    if not found:
+        return np.nan, np.nan, False  # the peak at the very end of the sweep: nothing on one side of it
+    sigma = window_bias_stderr(phi, se, phi + shift, se_sym)
+    if sigma > hi - lo:
+        return np.nan, np.nan, False  # not located within the directions the fit saw: no peak was observed
+    return phi, sigma, True
 
 
 #: Echoes whose amplitudes agree with the largest to this fraction form a plateau: the receiver clipped them.
@@ -133,6 +139,7 @@ CLIP_TOLERANCE = 1e-4
 CLIP_MIN_ECHOES = 3
 
 
+@kernel
 def clipped_echoes(amplitude: np.ndarray) -> np.ndarray:
     """Mask of the echoes an ADC or amplifier clipped: those at the largest amplitude, if a plateau forms there.
 
@@ -149,66 +156,77 @@ def clipped_echoes(amplitude: np.ndarray) -> np.ndarray:
     amplitude : (N,) array
         Peak amplitude of each echo, V; NaN where none.
     """
-    a = np.asarray(amplitude, dtype=np.float64)
-    finite = np.isfinite(a)
+    finite = np.isfinite(amplitude)
     if not np.any(finite):
-        return np.zeros(a.shape, dtype=bool)
-    top = finite & (a >= np.max(a[finite]) * (1.0 - CLIP_TOLERANCE))
-    return top if np.count_nonzero(top) >= CLIP_MIN_ECHOES else np.zeros(a.shape, dtype=bool)
+        return np.zeros(amplitude.shape, dtype=np.bool_)
+    top = finite & (amplitude >= np.max(amplitude[finite]) * (1.0 - CLIP_TOLERANCE))
+    return top if np.count_nonzero(top) >= CLIP_MIN_ECHOES else np.zeros(amplitude.shape, dtype=np.bool_)
 
 
-def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int
-                     ) -> tuple[float, float, float] | None:
-    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``; None if not a significant peak inside."""
+@kernel
+def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) -> tuple[float, float, float, bool]:
+    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``; False if not a significant peak inside."""
     steps = np.unique(g)
     if steps.size < 2 * min_steps_each_side + 1:
-        return None
+        return np.nan, np.nan, np.nan, False
     # The parabola about the mean γ of those echoes (the same vertex, better conditioned than in γ itself):
     # least squares by its normal equations, covariance σ² (XᵀX)⁻¹ with σ² over N − 3 degrees of freedom.
-    centre = float(g.mean())
+    n = g.shape[0]
+    centre = _pairwise_sum(g, 0, n) / n
     t = g - centre
-    x = np.stack([t * t, t, np.ones_like(t)], axis=1)
-    try:
-        inv = np.linalg.inv(x.T @ x)
-    except np.linalg.LinAlgError:
-        return None
-    coef = inv @ (x.T @ le)
-    res = le - x @ coef
-    cov = float(res @ res) / (t.size - 3) * inv
-    a2, b1 = float(coef[0]), float(coef[1])
+    xtx = np.zeros((3, 3))
+    xtl = np.zeros(3)
+    row = np.ones(3)
+    for i in range(n):
+        row[0], row[1] = t[i] * t[i], t[i]
+        for u in range(3):
+            xtl[u] += row[u] * le[i]
+            for v in range(3):
+                xtx[u, v] += row[u] * row[v]
+    inv, ok = _lu_solve(xtx, np.eye(3))
+    if not ok:
+        return np.nan, np.nan, np.nan, False
+    coef = inv @ xtl
+    res = le - (coef[0] * t * t + coef[1] * t + coef[2])
+    cov = (res @ res) / (n - 3) * inv
+    a2, b1 = coef[0], coef[1]
     # A peak, and a significant one: amplitudes that do not fall off (a receiver without a beam
     # pattern, saturation everywhere) give a curvature lost in its own error.
-    if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(float(cov[0, 0]), 0.0))):
-        return None
+    if not (a2 < 0 and -a2 > 3.0 * np.sqrt(max(cov[0, 0], 0.0))):
+        return np.nan, np.nan, np.nan, False
     phi = centre - b1 / (2.0 * a2)
     if np.count_nonzero(steps < phi) < min_steps_each_side or np.count_nonzero(steps > phi) < min_steps_each_side:
-        return None
-    jac = np.array([b1 / (2.0 * a2 * a2), -1.0 / (2.0 * a2)])
-    var = float(jac @ cov[:2, :2] @ jac)
+        return np.nan, np.nan, np.nan, False
+    j0, j1 = b1 / (2.0 * a2 * a2), -1.0 / (2.0 * a2)
+    var = j0 * (cov[0, 0] * j0 + cov[0, 1] * j1) + j1 * (cov[1, 0] * j0 + cov[1, 1] * j1)
     if not (np.isfinite(var) and var >= 0):
-        return None
-    return float(phi), float(np.sqrt(var)), a2
+        return np.nan, np.nan, np.nan, False
+    return phi, np.sqrt(var), a2, True
 
 
-def _symmetric_vertex(x: np.ndarray, le: np.ndarray, curvature: float) -> tuple[float, float] | None:
+@kernel
+def _symmetric_vertex(x: np.ndarray, le: np.ndarray, curvature: float) -> tuple[float, float, bool]:
     """Shift of the vertex and its standard error over a window ``x = γ − φ`` symmetric about ``φ``.
 
     The curvature ``a`` is the full window's (a narrow window hardly measures it); the slope ``b`` of
-    ``le − a x²`` at ``x = 0`` moves the vertex by ``−b/2a``.  None without an echo on each side.
+    ``le − a x²`` at ``x = 0`` (least squares of a line) moves the vertex by ``−b/2a``.  False without an
+    echo on each side.
     """
-    if np.unique(x[x < 0]).size < 1 or np.unique(x[x > 0]).size < 1:
-        return None
-    try:
-        coef, cov = np.polyfit(x, le - curvature * x * x, 1, cov="unscaled")
-    except (np.linalg.LinAlgError, ValueError):
-        return None
-    r = le - curvature * x * x - np.polyval(coef, x)
-    s2 = float(r @ r) / max(x.size - 2, 1)
-    shift = -float(coef[0]) / (2.0 * curvature)
-    se = float(np.sqrt(max(s2 * float(cov[0, 0]), 0.0))) / (2.0 * abs(curvature))
-    return (shift, se) if np.isfinite(shift) and np.isfinite(se) else None
+    if not (np.any(x < 0) and np.any(x > 0)):
+        return np.nan, np.nan, False
+    n = x.shape[0]
+    y = le - curvature * x * x
+    xc = x - _pairwise_sum(x, 0, n) / n
+    sxx = xc @ xc  # the slope's unscaled variance is 1/Σ(x − x̄)²
+    slope = (xc @ y) / sxx
+    r = y - (slope * x + (_pairwise_sum(y, 0, n) / n - slope * (_pairwise_sum(x, 0, n) / n)))
+    s2 = (r @ r) / max(n - 2, 1)
+    shift = -slope / (2.0 * curvature)
+    se = np.sqrt(max(s2 / sxx, 0.0)) / (2.0 * abs(curvature))
+    return shift, se, np.isfinite(shift) and np.isfinite(se)
 
 
+@kernel
 def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> float:
     """Standard error of the amplitude peak's direction ``φ`` with the bias of a lopsided window.
 
@@ -249,42 +267,52 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
     -------
     wall, normal standard error (rad, RMS of the yaw and φ errors), offset standard error (m)
     """
-    p = np.asarray(capsules, dtype=np.float64)
-    d = np.asarray(distance, dtype=np.float64)
-    cp, sp = math.cos(phi), math.sin(phi)
-    psi = math.asin(min(max(float(normal0[0]), -1.0), 1.0))
+    n, h, se_n, se_h = _fixed_pitch_wall(np.asarray(capsules, dtype=np.float64), np.asarray(distance, dtype=np.float64),
+                                         float(phi), float(phi_se), float(normal0[0]), int(iterations))
+    return Wall(n, h), se_n, se_h
 
-    def frame(y: float) -> tuple[np.ndarray, np.ndarray]:
-        """The normal at yaw ``y`` and its derivative ∂n/∂ψ."""
-        sy, cy = math.sin(y), math.cos(y)
-        return np.array([sy, cy * cp, cy * sp]), np.array([cy, -sy * cp, -sy * sp])
 
-    n, dn = frame(psi)
-    h = float(np.mean(p @ n + d))
+@kernel
+def _pitch_frame(psi: float, cp: float, sp: float) -> tuple[np.ndarray, np.ndarray]:
+    """The normal at yaw ``psi`` facing ``(cos φ, sin φ)`` in the rotation plane, and its derivative ∂n/∂ψ."""
+    sy, cy = np.sin(psi), np.cos(psi)
+    return np.array([sy, cy * cp, cy * sp]), np.array([cy, -sy * cp, -sy * sp])
+
+
+@kernel
+def _fixed_pitch_wall(p: np.ndarray, d: np.ndarray, phi: float, phi_se: float, yaw_sine: float,
+                      iterations: int) -> tuple[np.ndarray, float, float, float]:
+    """:func:`fixed_pitch_wall` as a kernel: normal, offset and their standard errors."""
+    m = d.shape[0]
+    cp, sp = np.cos(phi), np.sin(phi)
+    psi = np.arcsin(min(max(yaw_sine, -1.0), 1.0))
+    n, dn = _pitch_frame(psi, cp, sp)
+    h = _pairwise_sum(p @ n + d, 0, m) / m
     for _ in range(iterations):
         # Least squares of r + x·δψ − δh = 0 (x = p·∂n/∂ψ) in closed form: δψ from the centred x and r, δh
         # from the means.  Quadratic convergence: stop once the step is below rounding.
         r = p @ n + d - h
         x = p @ dn
-        xc = x - x.mean()
-        sxx = float(xc @ xc)
-        step_psi = -float(xc @ r) / sxx if sxx > 0 else 0.0
+        x_mean = _pairwise_sum(x, 0, m) / m
+        xc = x - x_mean
+        sxx = xc @ xc
+        step_psi = -(xc @ r) / sxx if sxx > 0 else 0.0
         psi += step_psi
-        h += float(r.mean()) + float(x.mean()) * step_psi
-        n, dn = frame(psi)
+        h += _pairwise_sum(r, 0, m) / m + x_mean * step_psi
+        n, dn = _pitch_frame(psi, cp, sp)
         if abs(step_psi) < 1e-13:
             break
     r = p @ n + d - h
-    jac = np.empty((d.size, 2))  # columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
-    jac[:, 0] = p @ dn
-    jac[:, 1] = -1.0
-    dof = max(d.size - 2, 1)
-    cov = float(r @ r) / dof * np.linalg.pinv(jac.T @ jac)
+    x = p @ dn
+    jtj = np.empty((2, 2))  # of the columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
+    jtj[0, 0], jtj[0, 1], jtj[1, 0], jtj[1, 1] = x @ x, -_pairwise_sum(x, 0, m), -_pairwise_sum(x, 0, m), float(m)
+    cov = (r @ r) / max(m - 2, 1) * np.linalg.pinv(jtj)
     # φ's own error moves h through the capsules' lever arm: ∂r/∂φ = p·∂n/∂φ.
-    dh_dphi = float(np.mean(p @ np.array([0.0, -math.cos(psi) * sp, math.cos(psi) * cp])))
-    se_n = float(np.sqrt(max(cov[0, 0], 0.0) + phi_se**2))
-    se_h = float(np.sqrt(max(cov[1, 1], 0.0) + (dh_dphi * phi_se) ** 2))
-    return Wall(n, h), se_n, se_h
+    dn_dphi = np.array([0.0, -np.cos(psi) * sp, np.cos(psi) * cp])
+    dh_dphi = _pairwise_sum(p @ dn_dphi, 0, m) / m
+    se_n = np.sqrt(max(cov[0, 0], 0.0) + phi_se**2)
+    se_h = np.sqrt(max(cov[1, 1], 0.0) + (dh_dphi * phi_se) ** 2)
+    return n, h, se_n, se_h
 
 
 def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
@@ -494,16 +522,17 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     datas: list[F.PlaneData] = []
     # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
     # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
-    shared_limit = QualityLimits().max_offset_stderr / model.tolerance
+    limits = QualityLimits()
+    shared_limit = limits.max_offset_stderr / model.tolerance
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
     leaks = edge_in_echo_window(model, pts, opts.corner_beam_half_angle)
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
-        sel = np.full(d.shape, np.nan)
         m = model.labels == k
-        sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
-        data = F.plane_data(geometry, g, sel, np.unique(pts.step[m]), label, axis)
+        # The wall's echoes one by one, in the scan's order (step, then capsule) as plane_data keeps them.
+        data = F.plane_data_of(pts.capsule[m][:, None, :], pts.beam[m], pts.distance[m][:, None], pts.step[m],
+                               label, axis)
         datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:
@@ -528,7 +557,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         as_edge, lost = alternatives[k]
         # The same share of echoes as above could hold the offset; an alternative leaving no more than the
         # share of unexplained echoes that already degrades a plane explains the scan about as well.
-        if as_edge > shared_limit and lost <= QualityLimits().degraded_unexplained * pts.n:
+        if as_edge > shared_limit and lost <= limits.degraded_unexplained * pts.n:
             findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
                                     f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
                                     "echoes the model explains: the corner cluster may have passed for the wall"),)

@@ -35,7 +35,8 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
 
-from .fit import fast_median
+from .compiled import kernel
+from .fit import _cross3, _tangent_basis, fast_median
 
 __all__ = [
     "ScanPoints",
@@ -152,26 +153,17 @@ def scan_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray
     """Flatten the valid echoes of a scan (finite, positive ranges)."""
     g = np.asarray(gamma, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
-    pc = geometry.capsule_positions(g)
-    b = np.broadcast_to(boresight(g)[:, None, :], pc.shape)
-    ok = np.isfinite(d) & (d > 0)
-    steps = np.broadcast_to(np.arange(g.shape[0])[:, None], d.shape)
-    caps = np.broadcast_to(np.arange(d.shape[1])[None, :], d.shape)
-    gg = np.broadcast_to(g[:, None], d.shape)
-    return ScanPoints(steps[ok].astype(np.intp), caps[ok].astype(np.intp), gg[ok], pc[ok], d[ok], b[ok])
+    # The valid echoes as flat indices, step-major as boolean indexing orders them: a flat index is the
+    # step times the capsules plus the capsule.
+    flat = np.flatnonzero(np.isfinite(d) & (d > 0))
+    step, capsule = np.divmod(flat, d.shape[1])
+    return ScanPoints(step, capsule, g[step], geometry.capsule_positions(g).reshape(-1, 3)[flat], d.reshape(-1)[flat],
+                      boresight(g)[step])
 
 
 def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
     """Residual of the mirror-echo condition ``n·p_c + d − h`` of every echo, m (design notes §8)."""
     return pts.capsule @ wall.normal + pts.distance - wall.offset
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross costs ~20 µs of argument handling per call; this is on the solver's hot path.  Python floats
-    # round exactly as NumPy scalars do, at a fraction of the cost per operation.
-    a0, a1, a2 = np.asarray(a).tolist()
-    b0, b1, b2 = np.asarray(b).tolist()
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
 
 
 def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
@@ -181,17 +173,18 @@ def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
     With ``e = n_a × n_b`` the point is ``(h_a (n_b × e) + h_b (e × n_a)) / |e|²``.
     None if the walls are within ``min_angle`` of parallel (no corner).
     """
-    e = _cross(wall_a.normal, wall_b.normal)
+    e = _cross3(wall_a.normal, wall_b.normal)
     s2 = float(e @ e)
     if s2 < np.sin(min_angle) ** 2:
         return None
     # h_a (n_b × e) + h_b (e × n_a), element by element in Python floats: the NumPy expression's roundings.
     ha, hb = wall_a.offset, wall_b.offset
-    point = np.array([(ha * u + hb * v) / s2 for u, v in zip(_cross(wall_b.normal, e).tolist(),
-                                                              _cross(e, wall_a.normal).tolist())])
+    point = np.array([(ha * u + hb * v) / s2 for u, v in zip(_cross3(wall_b.normal, e).tolist(),
+                                                              _cross3(e, wall_a.normal).tolist())])
     return point, e / np.sqrt(s2)
 
 
+@kernel
 def edge_range_terms(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float,
                      capsule: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """The range of the double bounce from the edge of two walls, in closed form (design notes §8).
@@ -206,6 +199,9 @@ def edge_range_terms(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray
     ``ρ² = |v|² = (a² + b² − 2abc)/(1 − c²)``; the opening's sine is
     ``√(1 − c²)``, so the double bounce returns from ``√(a² + b² − 2abc)``.
 
+    A kernel (:mod:`~lelsonar.reconstruct.compiled`): the solver evaluates it
+    at every step.
+
     Returns
     -------
     a, b : (N,) arrays, m
@@ -213,10 +209,18 @@ def edge_range_terms(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray
     range : (N,) array
         ``ρ·sin(opening) = √(a² + b² − 2abc)``, m.
     """
-    da = offset_a - capsule @ normal_a
-    db = offset_b - capsule @ normal_b
-    c = float(normal_a @ normal_b)
-    return da, db, c, np.sqrt(np.maximum(da * da + db * db - 2.0 * c * da * db, 0.0))
+    n = capsule.shape[0]
+    da = np.empty(n)
+    db = np.empty(n)
+    rng = np.empty(n)
+    c = normal_a[0] * normal_b[0] + normal_a[1] * normal_b[1] + normal_a[2] * normal_b[2]
+    for i in range(n):
+        a = offset_a - (capsule[i, 0] * normal_a[0] + capsule[i, 1] * normal_a[1] + capsule[i, 2] * normal_a[2])
+        b = offset_b - (capsule[i, 0] * normal_b[0] + capsule[i, 1] * normal_b[1] + capsule[i, 2] * normal_b[2])
+        da[i] = a
+        db[i] = b
+        rng[i] = np.sqrt(max(a * a + b * b - 2.0 * c * a * b, 0.0))
+    return da, db, c, rng
 
 
 def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, distance: np.ndarray,
@@ -231,6 +235,10 @@ def _edge_range_residuals(wall_a: Wall, wall_b: Wall, capsule: np.ndarray, dista
     return distance - rng
 
 
+#: ``sin²`` of the smallest angle between two walls that still makes an edge (as :func:`edge_line`'s default).
+_MIN_EDGE_SINE2 = float(np.sin(np.deg2rad(20.0)) ** 2)
+
+
 def echo_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle: float,
                    min_angle: float = np.deg2rad(20.0)) -> np.ndarray:
     """Range residual of every echo under each part of the model, (3, N), m: wall a, wall b, the edge.
@@ -243,19 +251,31 @@ def echo_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle:
     ``β = (b − ac)/(1 − c²)``) does, or no edge at all (walls within
     ``min_angle`` of parallel, as :func:`edge_line`).
     """
-    n = pts.n
-    normals = np.array([wall_a.normal, wall_b.normal]).T
-    facing = pts.beam @ normals  # (N, 2): boresight · n_a, boresight · n_b
-    cos_t = np.cos(beam_half_angle)
-    a, b, c, rng = edge_range_terms(wall_a.normal, wall_a.offset, wall_b.normal, wall_b.offset, pts.capsule)
+    return _echo_residuals(pts.capsule, pts.distance, pts.beam, wall_a.normal, float(wall_a.offset), wall_b.normal,
+                           float(wall_b.offset), np.cos(beam_half_angle), float(np.sin(min_angle) ** 2))
+
+
+@kernel
+def _echo_residuals(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, normal_a: np.ndarray,
+                    offset_a: float, normal_b: np.ndarray, offset_b: float, cos_t: float,
+                    min_sine2: float) -> np.ndarray:
+    """:func:`echo_residuals` on arrays: ``cos_t`` the beam's half angle's cosine, ``min_sine2`` the edge's sin²."""
+    n = distance.shape[0]
+    a, b, c, rng = edge_range_terms(normal_a, offset_a, normal_b, offset_b, capsule)
     r = np.full((3, n), np.inf)
-    r[0] = np.where(facing[:, 0] >= cos_t, pts.distance - a, np.inf)
-    r[1] = np.where(facing[:, 1] >= cos_t, pts.distance - b, np.inf)
     s2 = 1.0 - c * c
-    if s2 >= np.sin(min_angle) ** 2:
-        # boresight · v/|v| ≥ cos_t, multiplied through by |v|·(1 − c²) = √q·√(1 − c²) ≥ 0.
-        toward = (a - b * c) * facing[:, 0] + (b - a * c) * facing[:, 1]
-        r[2] = np.where(toward >= cos_t * np.sqrt(s2) * rng, pts.distance - rng, np.inf)
+    edge = s2 >= min_sine2
+    # boresight · v/|v| ≥ cos_t, multiplied through by |v|·(1 − c²) = √q·√(1 − c²) ≥ 0.
+    cos_edge = cos_t * np.sqrt(s2)
+    for i in range(n):
+        fa = beam[i, 0] * normal_a[0] + beam[i, 1] * normal_a[1] + beam[i, 2] * normal_a[2]
+        fb = beam[i, 0] * normal_b[0] + beam[i, 1] * normal_b[1] + beam[i, 2] * normal_b[2]
+        if fa >= cos_t:
+            r[0, i] = distance[i] - a[i]
+        if fb >= cos_t:
+            r[1, i] = distance[i] - b[i]
+        if edge and (a[i] - b[i] * c) * fa + (b[i] - a[i] * c) * fb >= cos_edge * rng[i]:
+            r[2, i] = distance[i] - rng[i]
     return r
 
 
@@ -274,12 +294,36 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     labels : (N,) int array
     residuals : (N,) array, m (NaN for outliers)
     """
-    r = echo_residuals(wall_a, wall_b, pts, beam_half_angle)
-    best = np.argmin(np.abs(r), axis=0)
-    res = r[best, np.arange(pts.n)]
-    tol = np.where(best == ECHO_EDGE, tolerance if edge_tolerance is None else edge_tolerance, tolerance)
-    labels = np.where(np.abs(res) <= tol, best, ECHO_OUTLIER)
-    return labels, np.where(labels == ECHO_OUTLIER, np.nan, res)
+    return _assign(pts.capsule, pts.distance, pts.beam, wall_a.normal, float(wall_a.offset), wall_b.normal,
+                   float(wall_b.offset), np.cos(beam_half_angle), float(tolerance),
+                   float(tolerance if edge_tolerance is None else edge_tolerance))
+
+
+@kernel
+def _assign(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, normal_a: np.ndarray, offset_a: float,
+            normal_b: np.ndarray, offset_b: float, cos_t: float, tolerance: float,
+            edge_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`assign_echoes` on arrays (``cos_t`` the beam's half angle's cosine)."""
+    r = _echo_residuals(capsule, distance, beam, normal_a, offset_a, normal_b, offset_b, cos_t, _MIN_EDGE_SINE2)
+    n = distance.shape[0]
+    labels = np.empty(n, dtype=np.intp)
+    res = np.empty(n)
+    for i in range(n):
+        # np.argmin of |r|: the first smallest, or the first NaN.
+        best = 0
+        for k in (1, 2):
+            if np.isnan(abs(r[best, i])):
+                break
+            if np.isnan(abs(r[k, i])) or abs(r[k, i]) < abs(r[best, i]):
+                best = k
+        x = r[best, i]
+        if abs(x) <= (edge_tolerance if best == ECHO_EDGE else tolerance):
+            labels[i] = best
+            res[i] = x
+        else:
+            labels[i] = ECHO_OUTLIER
+            res[i] = np.nan
+    return labels, res
 
 
 def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: float) -> tuple[float, float, float]:
@@ -302,12 +346,30 @@ def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: flo
     """
     if edge_line(model.wall_a, model.wall_b) is None:
         return 0.0, 0.0, 0.0
-    close = np.abs(echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle)) <= model.tolerance
-    shares = []
-    for label, shared in ((ECHO_WALL_A, close[2]), (ECHO_WALL_B, close[2]), (ECHO_EDGE, close[0] | close[1])):
-        mask = model.labels == label
-        shares.append(float(np.mean(shared[mask])) if np.any(mask) else 0.0)
-    return shares[0], shares[1], shares[2]
+    return _shared_shares(model.labels, echo_residuals(model.wall_a, model.wall_b, pts, beam_half_angle),
+                          float(model.tolerance))
+
+
+@kernel
+def _shared_shares(labels: np.ndarray, residuals: np.ndarray, tolerance: float) -> tuple[float, float, float]:
+    """:func:`edge_shared_shares` from the model's labels and :func:`echo_residuals`."""
+    count = np.zeros(3)
+    shared = np.zeros(3)
+    for i in range(labels.shape[0]):
+        k = labels[i]
+        if k == ECHO_WALL_A or k == ECHO_WALL_B:
+            count[k] += 1.0
+            if abs(residuals[ECHO_EDGE, i]) <= tolerance:
+                shared[k] += 1.0
+        elif k == ECHO_EDGE:
+            count[k] += 1.0
+            if abs(residuals[ECHO_WALL_A, i]) <= tolerance or abs(residuals[ECHO_WALL_B, i]) <= tolerance:
+                shared[k] += 1.0
+    out = np.zeros(3)
+    for k in range(3):
+        if count[k] > 0:
+            out[k] = shared[k] / count[k]
+    return out[0], out[1], out[2]
 
 
 def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
@@ -319,10 +381,22 @@ def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, d
     capsule's distance to the wall is ``x = ac + √(d² − a²(1 − c²))`` (the
     root beyond the edge's foot) and the offset is ``x + n·p_c``.
     """
-    a = other.offset - capsule @ other.normal
-    c = float(other.normal @ normal)
-    x = a * c + np.sqrt(np.maximum(distance * distance - a * a * (1.0 - c * c), 0.0))
-    return x + capsule @ normal
+    return _edge_implied_offsets(np.asarray(other.normal, dtype=np.float64), float(other.offset),
+                                 np.asarray(normal, dtype=np.float64), np.asarray(capsule, dtype=np.float64),
+                                 np.asarray(distance, dtype=np.float64))
+
+
+@kernel
+def _edge_implied_offsets(other_normal: np.ndarray, other_offset: float, normal: np.ndarray, capsule: np.ndarray,
+                          distance: np.ndarray) -> np.ndarray:
+    c = other_normal[0] * normal[0] + other_normal[1] * normal[1] + other_normal[2] * normal[2]
+    out = np.empty(distance.shape[0])
+    for i in range(distance.shape[0]):
+        p0, p1, p2 = capsule[i, 0], capsule[i, 1], capsule[i, 2]
+        a = other_offset - (p0 * other_normal[0] + p1 * other_normal[1] + p2 * other_normal[2])
+        x = a * c + np.sqrt(max(distance[i] * distance[i] - a * a * (1.0 - c * c), 0.0))
+        out[i] = x + (p0 * normal[0] + p1 * normal[1] + p2 * normal[2])
+    return out
 
 
 def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: float, min_points: int = 8
@@ -350,25 +424,115 @@ def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: floa
     alternative (``(0.0, 0)`` for a wall with fewer than ``min_points``
     echoes, or no edge).
     """
-    out = []
-    explained = int(np.count_nonzero(model.labels != ECHO_OUTLIER))
-    walls = (model.wall_a, model.wall_b)
-    for k in (ECHO_WALL_A, ECHO_WALL_B):
-        mk = model.labels == k
-        if np.count_nonzero(mk) < min_points or edge_line(*walls) is None:
-            out.append((0.0, 0))
-            continue
-        h = fast_median(edge_implied_offsets(walls[1 - k], walls[k].normal, pts.capsule[mk], pts.distance[mk]))
-        pair = list(walls)
-        pair[k] = Wall(walls[k].normal, float(h))
-        labels, _ = assign_echoes(pair[0], pair[1], pts, model.tolerance, beam_half_angle)
-        out.append((float(np.mean(labels[mk] == ECHO_EDGE)), explained - int(np.count_nonzero(labels != ECHO_OUTLIER))))
+    if edge_line(model.wall_a, model.wall_b) is None:
+        return (0.0, 0), (0.0, 0)
+    wa, wb = model.wall_a, model.wall_b
+    out = [_edge_alternative(pts.capsule, pts.distance, pts.beam, model.labels, k, wa.normal, float(wa.offset),
+                             wb.normal, float(wb.offset), np.cos(beam_half_angle), float(model.tolerance),
+                             int(min_points)) for k in (ECHO_WALL_A, ECHO_WALL_B)]
     return out[0], out[1]
 
 
+@kernel
+def _edge_alternative(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, labels: np.ndarray, k: int,
+                      normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, cos_t: float,
+                      tolerance: float, min_points: int) -> tuple[float, int]:
+    """:func:`edge_alternatives` for wall ``k`` (the walls have an edge)."""
+    mk = labels == k
+    n_k = np.count_nonzero(mk)
+    if n_k < min_points:
+        return 0.0, 0
+    if k == ECHO_WALL_A:
+        implied = _edge_implied_offsets(normal_b, offset_b, normal_a, capsule[mk], distance[mk])
+    else:
+        implied = _edge_implied_offsets(normal_a, offset_a, normal_b, capsule[mk], distance[mk])
+    h = fast_median(implied)
+    if k == ECHO_WALL_A:
+        moved, _ = _assign(capsule, distance, beam, normal_a, h, normal_b, offset_b, cos_t, tolerance, tolerance)
+    else:
+        moved, _ = _assign(capsule, distance, beam, normal_a, offset_a, normal_b, h, cos_t, tolerance, tolerance)
+    as_edge = np.count_nonzero(moved[mk] == ECHO_EDGE) / n_k
+    return as_edge, np.count_nonzero(labels != ECHO_OUTLIER) - np.count_nonzero(moved != ECHO_OUTLIER)
+
+
+@kernel
 def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
-    r = np.where(np.isfinite(residuals), residuals, tolerance)
-    return float(np.sum(np.minimum(r * r, tolerance * tolerance)))
+    """MSAC cost ``Σ min(r², t²)`` (m²), a non-finite residual costing ``t²``; summed pairwise as ``np.sum``."""
+    t2 = tolerance * tolerance
+    x = np.empty(residuals.shape[0])
+    for i in range(residuals.shape[0]):
+        r = residuals[i] if np.isfinite(residuals[i]) else tolerance
+        x[i] = min(r * r, t2)
+    return _pairwise_sum(x, 0, x.shape[0])
+
+
+@kernel
+def _pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
+    """``np.sum`` of ``x[lo:lo + n]``, the same roundings: NumPy's pairwise summation.
+
+    Halves (the first a multiple of 8) summed apart down to blocks of at most 128, each summed in 8
+    lanes.  Costs compared across hypotheses decide which pair of walls wins; summing as NumPy does
+    keeps those decisions where they were.  The halving runs on an explicit stack (a recursive kernel
+    does not survive Numba's cache).
+    """
+    if n <= 128:
+        return _pairwise_block(x, lo, n)
+    los = np.empty(64, dtype=np.intp)
+    ns = np.empty(64, dtype=np.intp)
+    second = np.zeros(64, dtype=np.bool_)  # whether the child above this frame is its second half
+    left = np.empty(64)
+    sp = 0
+    los[0], ns[0] = lo, n
+    while True:
+        if ns[sp] > 128:  # descend into the first half
+            n2 = ns[sp] // 2
+            n2 -= n2 % 8
+            second[sp] = False
+            los[sp + 1], ns[sp + 1] = los[sp], n2
+            sp += 1
+            continue
+        v = _pairwise_block(x, los[sp], ns[sp])
+        while True:  # hand v up: a first half waits for its second, a second half completes its parent
+            sp -= 1
+            if sp < 0:
+                return v
+            if not second[sp]:
+                n2 = ns[sp] // 2
+                n2 -= n2 % 8
+                left[sp] = v
+                second[sp] = True
+                los[sp + 1], ns[sp + 1] = los[sp] + n2, ns[sp] - n2
+                sp += 1
+                break
+            v = left[sp] + v
+
+
+@kernel
+def _pairwise_block(x: np.ndarray, lo: int, n: int) -> float:
+    """A leaf of :func:`_pairwise_sum`: at most 128 terms, in order below 8, else in 8 lanes and the rest."""
+    if n < 8:
+        s = 0.0
+        for i in range(lo, lo + n):
+            s += x[i]
+        return s
+    r0, r1, r2, r3 = x[lo], x[lo + 1], x[lo + 2], x[lo + 3]
+    r4, r5, r6, r7 = x[lo + 4], x[lo + 5], x[lo + 6], x[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        r0 += x[lo + i]
+        r1 += x[lo + i + 1]
+        r2 += x[lo + i + 2]
+        r3 += x[lo + i + 3]
+        r4 += x[lo + i + 4]
+        r5 += x[lo + i + 5]
+        r6 += x[lo + i + 6]
+        r7 += x[lo + i + 7]
+        i += 8
+    s = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        s += x[lo + i]
+        i += 1
+    return s
 
 
 def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, min_count: int = 6) -> np.ndarray:
@@ -380,35 +544,38 @@ def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, 
     echoes, each refined as the median of ``w`` within 2 bins (the smoothing
     turns a one-bin spike into a three-bin plateau whose right end is the peak).
     """
-    w = np.asarray(w, dtype=np.float64)
+    return _band_offsets(np.asarray(w, dtype=np.float64), float(bin_width), int(max_bands), int(min_count))
+
+
+@kernel
+def _band_offsets(w: np.ndarray, bin_width: float, max_bands: int, min_count: int) -> np.ndarray:
     w = w[np.isfinite(w)]
     if w.size < min_count:
         return np.zeros(0)
-    lo, hi = float(w.min()), float(w.max())
+    lo, hi = w.min(), w.max()
     nb = max(int(np.ceil((hi - lo) / bin_width)), 1)
     # Bin k holds lo + k·bin_width ≤ w < lo + (k + 1)·bin_width (the top bin its right end too).
-    counts = np.bincount(np.minimum(((w - lo) / bin_width).astype(np.intp), nb - 1), minlength=nb)
-    padded = np.concatenate([[0], counts, [0]])
-    smooth = padded[:-2] + padded[1:-1] + padded[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
-    left = np.concatenate([[-1], smooth[:-1]])
-    right = np.concatenate([smooth[1:], [-1]])
-    peaks = np.flatnonzero((smooth >= left) & (smooth > right) & (smooth >= min_count))
-    peaks = peaks[np.argsort(-smooth[peaks], kind="stable")][:max_bands]
-    centres = []
-    for p in peaks:
+    counts = np.zeros(nb + 2, dtype=np.intp)  # padded with an empty bin at each end
+    for x in w:
+        counts[1 + min(int((x - lo) / bin_width), nb - 1)] += 1
+    smooth = counts[:-2] + counts[1:-1] + counts[2:]  # np.convolve(np.pad(counts, 1), [1, 1, 1], "valid"): exact counts
+    peaks = []
+    for i in range(nb):
+        left = smooth[i - 1] if i > 0 else -1
+        right = smooth[i + 1] if i + 1 < nb else -1
+        if smooth[i] >= left and smooth[i] > right and smooth[i] >= min_count:
+            peaks.append(i)
+    ranked = np.array(peaks, dtype=np.intp)
+    ranked = ranked[np.argsort(-smooth[ranked], kind="mergesort")][:max_bands]  # densest first, stable
+    centres = np.empty(ranked.size)
+    k = 0
+    for p in ranked:
         c = lo + (p + 0.5) * bin_width
-        near = np.abs(w - c) <= 2.0 * bin_width
-        if np.any(near):
-            centres.append(fast_median(w[near]))
-    return np.asarray(centres)
-
-
-def _tangent(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    helper = np.zeros(3)
-    helper[int(np.argmin(np.abs(n)))] = 1.0
-    e1 = _cross(n, helper)
-    e1 /= np.sqrt(e1 @ e1)
-    return e1, _cross(n, e1)
+        near = w[np.abs(w - c) <= 2.0 * bin_width]
+        if near.size:
+            centres[k] = fast_median(near)
+            k += 1
+    return centres[:k]
 
 
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
@@ -437,105 +604,224 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
     then wall b (``σ² (JᵀJ)⁻¹``, σ² from the residuals; ``inf`` if
     unconstrained or not asked for with ``covariance=False``).
     """
-    ma, mb, me = labels == ECHO_WALL_A, labels == ECHO_WALL_B, labels == ECHO_EDGE
-    pa, da = pts.capsule[ma], pts.distance[ma]
-    pb, db = pts.capsule[mb], pts.distance[mb]
-    pe, de = pts.capsule[me], pts.distance[me]
-    na_, nb_, ne_ = len(da), len(db), len(de)
-    m = na_ + nb_ + ne_
-    cov = np.full((6, 6), np.inf)
-    if m < 7:
-        return (wall_a, wall_b), cov
-    lo_e = na_ + nb_
+    na, ha, nb, hb, cov, moved = _joint_gauss_newton(
+        pts.capsule, pts.distance, np.asarray(labels, dtype=np.intp), wall_a.normal, float(wall_a.offset),
+        wall_b.normal, float(wall_b.offset), iterations, covariance, trials, min_sine)
+    return ((Wall(na, ha), Wall(nb, hb)) if moved else (wall_a, wall_b)), cov
 
-    def residuals(w: _Pair) -> np.ndarray:
-        r = np.empty(m)
-        r[:na_] = pa @ w[0] + da - w[1]
-        r[na_:lo_e] = pb @ w[2] + db - w[3]
-        if ne_:
-            *_, c, rng = edge_range_terms(*w, pe)
-            r[lo_e:] = de - rng if 1.0 - c * c >= min_sine * min_sine else np.inf
-        return r
 
-    def jacobian(w: _Pair) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
-        basis = (np.array(_tangent(w[0])).T, np.array(_tangent(w[2])).T)  # (3, 2): e₁, e₂ of each wall
-        jac = np.empty((m, 6))
-        jac[:na_, 0:2] = pa @ basis[0]
-        jac[:na_, 2] = -1.0
-        jac[:na_, 3:6] = 0.0
-        jac[na_:lo_e, 0:3] = 0.0
-        jac[na_:lo_e, 3:5] = pb @ basis[1]
-        jac[na_:lo_e, 5] = -1.0
-        if ne_:
-            a, b, c, rng = edge_range_terms(*w, pe)
-            inv = 1.0 / np.maximum(rng, 1e-12)
+@kernel
+def _joint_cost(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, na: np.ndarray, ha: float,
+                nb: np.ndarray, hb: float, min_sine: float) -> tuple[float, bool]:
+    """Sum of squares of the labelled echoes' range residuals (:func:`joint_residuals`), and whether all are finite."""
+    da, db, c, rng = edge_range_terms(na, ha, nb, hb, capsule)
+    edge = 1.0 - c * c >= min_sine * min_sine
+    total = 0.0
+    for i in range(labels.shape[0]):
+        k = labels[i]
+        if k == ECHO_WALL_A:
+            r = distance[i] - da[i]
+        elif k == ECHO_WALL_B:
+            r = distance[i] - db[i]
+        elif k == ECHO_EDGE:
+            r = distance[i] - rng[i] if edge else np.inf
+        else:
+            continue
+        total += r * r
+    return total, np.isfinite(total)
+
+
+@kernel
+def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, na: np.ndarray,
+                            ha: float, nb: np.ndarray, hb: float, ea1: np.ndarray, ea2: np.ndarray,
+                            eb1: np.ndarray, eb2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``JᵀJ`` and ``Jᵀr`` of the labelled echoes, with :func:`joint_gauss_newton`'s Jacobian.
+
+    A wall's mirror rows ``(p_c·e₁, p_c·e₂, −1)`` touch only its own 3×3 block: their sums are
+    kept apart from the edge rows' (which touch all six parameters) and added at the end.
+    """
+    da, db, c, rng = edge_range_terms(na, ha, nb, hb, capsule)
+    mirror = np.zeros((2, 6))  # per wall: Σx₁², Σx₁x₂, Σx₁, Σx₂², Σx₂, count
+    mirror_g = np.zeros((2, 3))  # per wall: Σx₁r, Σx₂r, Σr
+    jtj = np.zeros((6, 6))
+    g = np.zeros(6)
+    row = np.zeros(6)
+    # n_b·e (wall a's tangents) and n_a·e (wall b's): how the other wall's normal turns the edge's range.
+    nb_ea1 = nb[0] * ea1[0] + nb[1] * ea1[1] + nb[2] * ea1[2]
+    nb_ea2 = nb[0] * ea2[0] + nb[1] * ea2[1] + nb[2] * ea2[2]
+    na_eb1 = na[0] * eb1[0] + na[1] * eb1[1] + na[2] * eb1[2]
+    na_eb2 = na[0] * eb2[0] + na[1] * eb2[1] + na[2] * eb2[2]
+    for i in range(labels.shape[0]):
+        k = labels[i]
+        p0, p1, p2 = capsule[i, 0], capsule[i, 1], capsule[i, 2]
+        if k == ECHO_WALL_A or k == ECHO_WALL_B:
+            e1, e2 = (ea1, ea2) if k == ECHO_WALL_A else (eb1, eb2)
+            r = distance[i] - (da[i] if k == ECHO_WALL_A else db[i])
+            x1 = p0 * e1[0] + p1 * e1[1] + p2 * e1[2]
+            x2 = p0 * e2[0] + p1 * e2[1] + p2 * e2[2]
+            m = mirror[k]
+            m[0] += x1 * x1
+            m[1] += x1 * x2
+            m[2] += x1
+            m[3] += x2 * x2
+            m[4] += x2
+            m[5] += 1.0
+            mg = mirror_g[k]
+            mg[0] += x1 * r
+            mg[1] += x2 * r
+            mg[2] += r
+        elif k == ECHO_EDGE:
+            r = distance[i] - rng[i]
+            a, b = da[i], db[i]
+            inv = 1.0 / max(rng[i], 1e-12)
             ga, gb, gab = (a - b * c) * inv, (b - a * c) * inv, a * b * inv
-            jac[lo_e:, 0:2] = (pe @ basis[0]) * ga[:, None] + gab[:, None] * (w[2] @ basis[0])
-            jac[lo_e:, 2] = -ga
-            jac[lo_e:, 3:5] = (pe @ basis[1]) * gb[:, None] + gab[:, None] * (w[0] @ basis[1])
-            jac[lo_e:, 5] = -gb
-        return jac, basis
+            row[0] = (p0 * ea1[0] + p1 * ea1[1] + p2 * ea1[2]) * ga + gab * nb_ea1
+            row[1] = (p0 * ea2[0] + p1 * ea2[1] + p2 * ea2[2]) * ga + gab * nb_ea2
+            row[2] = -ga
+            row[3] = (p0 * eb1[0] + p1 * eb1[1] + p2 * eb1[2]) * gb + gab * na_eb1
+            row[4] = (p0 * eb2[0] + p1 * eb2[1] + p2 * eb2[2]) * gb + gab * na_eb2
+            row[5] = -gb
+            for u in range(6):
+                g[u] += row[u] * r
+                for v in range(u, 6):
+                    jtj[u, v] += row[u] * row[v]
+    for k in (ECHO_WALL_A, ECHO_WALL_B):
+        o = 3 * k
+        m = mirror[k]
+        jtj[o, o] += m[0]
+        jtj[o, o + 1] += m[1]
+        jtj[o, o + 2] -= m[2]
+        jtj[o + 1, o + 1] += m[3]
+        jtj[o + 1, o + 2] -= m[4]
+        jtj[o + 2, o + 2] += m[5]
+        g[o] += mirror_g[k, 0]
+        g[o + 1] += mirror_g[k, 1]
+        g[o + 2] -= mirror_g[k, 2]
+    for u in range(6):
+        for v in range(u):
+            jtj[u, v] = jtj[v, u]
+    return jtj, g
 
-    def moved(w: _Pair, dz: np.ndarray, basis: tuple[np.ndarray, np.ndarray]) -> _Pair:
-        n_a = w[0] + basis[0] @ dz[0:2]
-        n_b = w[2] + basis[1] @ dz[3:5]
-        return n_a / np.sqrt(n_a @ n_a), w[1] + float(dz[2]), n_b / np.sqrt(n_b @ n_b), w[3] + float(dz[5])
 
-    w: _Pair = (wall_a.normal, float(wall_a.offset), wall_b.normal, float(wall_b.offset))
+@kernel
+def _lu_solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
+    """``a⁻¹ b`` (b one or more columns) by LU with partial pivoting, as LAPACK's ``gesv``; False if ``a`` is singular."""
+    n = a.shape[0]
+    lu = a.copy()
+    x = b.copy()
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(lu[i, k]) > abs(lu[p, k]):
+                p = i
+        if lu[p, k] == 0.0:
+            return x, False
+        if p != k:
+            for j in range(n):
+                lu[k, j], lu[p, j] = lu[p, j], lu[k, j]
+            for j in range(x.shape[1]):
+                x[k, j], x[p, j] = x[p, j], x[k, j]
+        for i in range(k + 1, n):
+            f = lu[i, k] / lu[k, k]
+            for j in range(k + 1, n):
+                lu[i, j] -= f * lu[k, j]
+            for j in range(x.shape[1]):
+                x[i, j] -= f * x[k, j]
+    for k in range(n - 1, -1, -1):
+        for j in range(x.shape[1]):
+            s = x[k, j]
+            for i in range(k + 1, n):
+                s -= lu[k, i] * x[i, j]
+            x[k, j] = s / lu[k, k]
+    return x, True
+
+
+@kernel
+def _joint_gauss_newton(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, normal_a: np.ndarray,
+                        offset_a: float, normal_b: np.ndarray, offset_b: float, iterations: int, covariance: bool,
+                        trials: int, min_sine: float) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, bool]:
+    """:func:`joint_gauss_newton` on arrays; the last value says whether the walls moved from the start."""
+    cov = np.full((6, 6), np.inf)
+    na, ha, nb, hb = normal_a.copy(), offset_a, normal_b.copy(), offset_b
+    m = 0
+    for i in range(labels.shape[0]):
+        if labels[i] == ECHO_WALL_A or labels[i] == ECHO_WALL_B or labels[i] == ECHO_EDGE:
+            m += 1
+    if m < 7:
+        return na, ha, nb, hb, cov, False
+    c0, finite = _joint_cost(capsule, distance, labels, na, ha, nb, hb, min_sine)
+    if not finite:
+        return na, ha, nb, hb, cov, False
     lam = 1e-6
-    r = residuals(w)
     for _ in range(iterations):
-        if not np.all(np.isfinite(r)):
-            return (wall_a, wall_b), cov
-        jac, basis = jacobian(w)
-        jtj, g, c0 = jac.T @ jac, jac.T @ r, float(r @ r)
-        damping = np.diag(np.diag(jtj) + 1e-12)
+        ea1, ea2 = _tangent_basis(na)
+        eb1, eb2 = _tangent_basis(nb)
+        jtj, g = _joint_normal_equations(capsule, distance, labels, na, ha, nb, hb, ea1, ea2, eb1, eb2)
+        rhs = np.empty((6, 1))
+        for u in range(6):
+            rhs[u, 0] = -g[u]
         accepted = False
         for _attempt in range(trials):
-            try:
-                dz = np.linalg.solve(jtj + lam * damping, -g)
-            except np.linalg.LinAlgError:
+            damped = jtj.copy()
+            for u in range(6):
+                damped[u, u] = jtj[u, u] + lam * (jtj[u, u] + 1e-12)
+            dz, ok = _lu_solve(damped, rhs)
+            if not ok:
                 lam *= 10
                 continue
-            trial = moved(w, dz, basis)
-            r1 = residuals(trial)
-            if np.all(np.isfinite(r1)) and float(r1 @ r1) <= c0:
-                w, r, lam, accepted = trial, r1, max(lam / 10, 1e-9), True
+            ta = na + ea1 * dz[0, 0] + ea2 * dz[1, 0]
+            ta /= np.sqrt(ta[0] * ta[0] + ta[1] * ta[1] + ta[2] * ta[2])
+            tb = nb + eb1 * dz[3, 0] + eb2 * dz[4, 0]
+            tb /= np.sqrt(tb[0] * tb[0] + tb[1] * tb[1] + tb[2] * tb[2])
+            tha, thb = ha + dz[2, 0], hb + dz[5, 0]
+            c1, finite1 = _joint_cost(capsule, distance, labels, ta, tha, tb, thb, min_sine)
+            if finite1 and c1 <= c0:
+                na, ha, nb, hb, c0 = ta, tha, tb, thb, c1
+                lam = max(lam / 10, 1e-9)
+                accepted = True
                 break
             lam *= 10
         if not accepted:
             break
-    walls = (Wall(w[0], w[1]), Wall(w[2], w[3]))
-    if not covariance:
-        return walls, cov
-    jac, _ = jacobian(w)
-    try:
-        cov = float(r @ r) / (m - 6) * np.linalg.inv(jac.T @ jac)
-    except np.linalg.LinAlgError:
-        pass
-    return walls, cov
-
-
-#: Two walls as arrays: normal and offset of wall a, then of wall b.
-_Pair = tuple[np.ndarray, float, np.ndarray, float]
+    if covariance:
+        ea1, ea2 = _tangent_basis(na)
+        eb1, eb2 = _tangent_basis(nb)
+        jtj, _g = _joint_normal_equations(capsule, distance, labels, na, ha, nb, hb, ea1, ea2, eb1, eb2)
+        inv, ok = _lu_solve(jtj, np.eye(6))
+        if ok:
+            cov = c0 / (m - 6) * inv
+    return na, ha, nb, hb, cov, True
 
 
 def _refine(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerances: tuple[tuple[float, float], ...],
             beam_half_angle: float, min_points: int, axes: tuple[np.ndarray, np.ndarray],
             max_tilt: float) -> tuple[Wall, Wall]:
-    for tol, tol_edge in tolerances:
-        labels, _ = assign_echoes(wall_a, wall_b, pts, tol, beam_half_angle, tol_edge)
+    # (copies: the kernel's walls are its own writable arrays, whatever the caller's)
+    na, ha, nb, hb = _refine_walls(pts.capsule, pts.distance, pts.beam, np.array(wall_a.normal, dtype=np.float64),
+                                   float(wall_a.offset), np.array(wall_b.normal, dtype=np.float64), float(wall_b.offset), np.array(tolerances, dtype=np.float64),
+                                   np.cos(beam_half_angle), int(min_points), axes[0], axes[1], np.cos(max_tilt))
+    return Wall(na, ha), Wall(nb, hb)
+
+
+@kernel
+def _refine_walls(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, na: np.ndarray, ha: float,
+                  nb: np.ndarray, hb: float, tolerances: np.ndarray, cos_t: float, min_points: int,
+                  axis_a: np.ndarray, axis_b: np.ndarray, cos_max_tilt: float) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """Alternate assignment and one joint Gauss-Newton step at each (tolerance, edge tolerance) of ``tolerances``."""
+    for s in range(tolerances.shape[0]):
+        labels, _ = _assign(capsule, distance, beam, na, ha, nb, hb, cos_t, tolerances[s, 0], tolerances[s, 1])
         for k in (ECHO_WALL_A, ECHO_WALL_B):
             if np.count_nonzero(labels == k) < min_points:
-                labels = np.where(labels == k, ECHO_OUTLIER, labels)  # too few to move this wall
-        (na, nb), _ = joint_gauss_newton(wall_a, wall_b, pts, labels, iterations=1, covariance=False)
+                labels[labels == k] = ECHO_OUTLIER  # too few to move this wall
+        fa, fha, fb, fhb, _cov, _moved = _joint_gauss_newton(capsule, distance, labels, na, ha, nb, hb, 1, False, 6,
+                                                            1e-9)
         # Keep each wall within max_tilt of its nominal axis: beyond, the solver is chasing the other
         # wall's or the edge's echoes.
-        if na.normal @ axes[0] >= np.cos(max_tilt) and na.offset > 0:
-            wall_a = na
-        if nb.normal @ axes[1] >= np.cos(max_tilt) and nb.offset > 0:
-            wall_b = nb
-    return wall_a, wall_b
+        if fa[0] * axis_a[0] + fa[1] * axis_a[1] + fa[2] * axis_a[2] >= cos_max_tilt and fha > 0:
+            na, ha = fa, fha
+        if fb[0] * axis_b[0] + fb[1] * axis_b[1] + fb[2] * axis_b[2] >= cos_max_tilt and fhb > 0:
+            nb, hb = fb, fhb
+    return na, ha, nb, hb
 
 
 def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,

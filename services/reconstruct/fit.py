@@ -27,6 +27,7 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
 
+from .compiled import kernel
 from .correct import corrected_from
 from .lel import PERFECT_FIT, entropy_of_residuals, newton_minimize
 from .results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
@@ -35,6 +36,7 @@ __all__ = [
     "MAD_K",
     "PlaneData",
     "plane_data",
+    "plane_data_of",
     "check_points",
     "ls_theta",
     "fitting_errors",
@@ -61,11 +63,10 @@ def _norm(v: np.ndarray) -> float:
     return float(np.sqrt(v @ v))
 
 
+@kernel
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     # np.cross of two 3-vectors, with the same roundings (each product rounded, then the difference).
-    a0, a1, a2 = a.tolist()
-    b0, b1, b2 = b.tolist()
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def _ro(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
@@ -166,18 +167,40 @@ def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
     d = np.asarray(distance, dtype=np.float64)[steps]
     if d.shape != g.shape + (geometry.n_capsules,):
         raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
-    b = boresight(g)
-    pc = geometry.capsule_positions(g)
-    v = corrected_from(pc, b, d, axis)  # corrected_points, reusing p_c and b
+    return plane_data_of(geometry.capsule_positions(g), boresight(g), d, steps, label, axis)
+
+
+def plane_data_of(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str,
+                  axis: np.ndarray) -> PlaneData:
+    """:func:`plane_data` from capsule positions and boresights the caller already has.
+
+    Parameters
+    ----------
+    capsules : (k, n_capsules, 3) array
+        ``p_c`` of each echo slot, m.
+    beam : (k, 3) array
+        Boresight of each row.
+    distance : (k, n_capsules) array, m (NaN = no echo)
+    steps : (k,) int array
+        Step index of each row.
+    label, axis
+        As for :func:`plane_data`.
+
+    The rows may be steps (``n_capsules`` slots each), or single echoes (``n_capsules = 1``): the
+    corner model's echoes of one wall, with the same numbers as from their steps.
+    """
+    d = np.asarray(distance, dtype=np.float64)
+    v = corrected_from(capsules, beam, d, axis)  # corrected_points, reusing p_c and b
     ok = np.isfinite(d) & (d > 0) & np.isfinite(v).all(axis=-1)
-    # The kept points as flat indices (step-major, as boolean indexing orders them); a point's step row
+    # The kept points as flat indices (row-major, as boolean indexing orders them); a point's row
     # gives its boresight and step index.  Finite (v = p_c + ... is finite only where p_c is) and of
     # agreeing shapes by construction; fancy indexing copies, so the arrays are this PlaneData's own
     # (the axis is copied: it may be AXIS_Y).
     flat = np.flatnonzero(ok)
     row = flat // d.shape[1]
     return PlaneData._owned(label, np.array(axis, dtype=np.float64), v.reshape(-1, 3)[flat],
-                            pc.reshape(-1, 3)[flat], d.reshape(-1)[flat], b[row], steps[row])
+                            capsules.reshape(-1, 3)[flat], d.reshape(-1)[flat], beam[row],
+                            np.asarray(steps, dtype=np.intp)[row])
 
 
 def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
@@ -236,20 +259,21 @@ def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     return (np.asarray(points, dtype=np.float64) @ t - 1.0) / _norm(t) + shift
 
 
+@kernel
 def fast_median(x: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-D float array, bit for bit, without its dispatch (~4× faster).
+    """``np.median`` of a non-empty 1-D float array, bit for bit, without its dispatch.
 
     The middle order statistic, or the mean ``(a + b) / 2`` of the two middle
-    ones, as :func:`numpy.median` computes them; NaN in, NaN out.
+    ones, as :func:`numpy.median` computes them (order statistics are exact,
+    whichever way they are found); NaN in, NaN out.  A kernel: the corner
+    model's kernels take medians too.
     """
     n = x.shape[0]
+    if np.isnan(x).any():
+        return np.nan
+    s = np.sort(x)
     k = n // 2
-    if n % 2:
-        m = float(np.partition(x, k)[k])
-    else:
-        p = np.partition(x, (k - 1, k))
-        m = (float(p[k - 1]) + float(p[k])) / 2.0
-    return float("nan") if np.isnan(m) or np.isnan(x).any() else m
+    return s[k] if n % 2 else (s[k - 1] + s[k]) / 2.0
 
 
 def _sorted_median(s: np.ndarray) -> float:
@@ -310,20 +334,35 @@ def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
         m = np.asarray(mask, dtype=bool)
         x = x[m]
         sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else sh
-    # A scalar shift (the paper model's 0) is added as it is: the same sums as the broadcast array's.
-    sh = sh if sh.ndim else float(sh)
+    # A scalar shift (the paper model's 0) is added to every residual: the same sums as the broadcast array's.
+    return _theta_covariance(t, x, np.broadcast_to(sh, x.shape[:1]))
+
+
+@kernel
+def _theta_covariance(t: np.ndarray, x: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """:func:`theta_covariance` of the points ``x`` (every one an inlier), ``shift`` one per point."""
     k = x.shape[0]
-    nt = _norm(t)
-    q = x @ t - 1.0
-    r = q / nt + sh
-    jac = x / nt - q[:, None] * t / nt**3  # np.outer(q, t), the same products
+    unconstrained = np.diag(np.full(3, np.inf))
     if k <= 3:
-        return np.diag(np.full(3, np.inf))
-    s2 = float(r @ r) / (k - 3)
-    jtj = jac.T @ jac
-    sv = np.linalg.svd(jtj, compute_uv=False)  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
-    if sv[-1] == 0.0 or not float(sv[0]) / float(sv[-1]) <= 1e15:
-        return np.diag(np.full(3, np.inf))
+        return unconstrained
+    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    nt3 = nt**3
+    jtj = np.zeros((3, 3))
+    ss = 0.0
+    jac = np.empty(3)
+    for i in range(k):
+        q = x[i, 0] * t[0] + x[i, 1] * t[1] + x[i, 2] * t[2] - 1.0
+        r = q / nt + shift[i]
+        ss += r * r
+        for u in range(3):
+            jac[u] = x[i, u] / nt - q * t[u] / nt3
+        for u in range(3):
+            for v in range(3):
+                jtj[u, v] += jac[u] * jac[v]
+    s2 = ss / (k - 3)
+    sv = np.linalg.svd(jtj)[1]  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
+    if sv[-1] == 0.0 or not sv[0] / sv[-1] <= 1e15:
+        return unconstrained
     cov = s2 * np.linalg.inv(jtj)
     return 0.5 * (cov + cov.T)
 
@@ -335,17 +374,20 @@ def normal_offset_stderr(theta: np.ndarray, cov: np.ndarray) -> tuple[float, flo
     the root of the trace of ``cov(n)`` (the RMS tilt of the normal).
     ``h = 1/|θ|`` has gradient ``−h² n``.
     """
-    t = np.asarray(theta, dtype=np.float64)
-    c = np.asarray(cov, dtype=np.float64)
+    return _normal_offset_stderr(np.asarray(theta, dtype=np.float64), np.asarray(cov, dtype=np.float64))
+
+
+@kernel
+def _normal_offset_stderr(t: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     if not np.isfinite(c).all():
-        return float("inf"), float("inf")
-    nt = _norm(t)
+        return np.inf, np.inf
+    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
     n = t / nt
     h = 1.0 / nt
-    jn = (np.eye(3) - n[:, None] * n) / nt  # np.outer(n, n), the same products
-    var_n = float(np.trace(jn @ c @ jn.T))
-    var_h = float(h**4 * (n @ c @ n))
-    return float(np.sqrt(max(var_n, 0.0))), float(np.sqrt(max(var_h, 0.0)))
+    jn = (np.eye(3) - np.outer(n, n)) / nt
+    var_n = np.trace(jn @ c @ jn.T)
+    var_h = h**4 * ((n @ c) @ n)
+    return np.sqrt(max(var_n, 0.0)), np.sqrt(max(var_h, 0.0))
 
 
 def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
@@ -354,32 +396,51 @@ def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.nd
     The rectangle's sides follow the rotation axis x (projected on the plane)
     and ``n × x``.  Returns (4, 3) corners in order around the rectangle, m.
     """
-    n = np.asarray(normal, dtype=np.float64)
-    p = np.asarray(foot, dtype=np.float64)
-    p = p - (p @ n - offset)[:, None] * n  # np.outer, the same products
-    ex = np.array([1.0, 0.0, 0.0])
-    u = ex - (ex @ n) * n
-    nu = _norm(u)
+    return _observed_patch(np.asarray(normal, dtype=np.float64), float(offset), np.asarray(foot, dtype=np.float64))
+
+
+@kernel
+def _observed_patch(n: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
+    u = -n[0] * n
+    u[0] += 1.0  # x − (x·n) n
+    nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
     if nu < 1e-6:
-        u = np.array([0.0, 1.0, 0.0]) - n[1] * n
-        nu = _norm(u)
+        u = -n[1] * n
+        u[1] += 1.0
+        nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
     u /= nu
     w = _cross3(n, u)
-    a, b = p @ u, p @ w
-    o = offset * n
-    a0, a1, b0, b1 = a.min(), a.max(), b.min(), b.max()
-    ca = np.array([a0, a1, a1, a0])[:, None]
-    cb = np.array([b0, b0, b1, b1])[:, None]
-    return o + ca * u + cb * w  # corner by corner, element by element as o + ca·u + cb·w
+    a0 = b0 = np.inf
+    a1 = b1 = -np.inf
+    for i in range(foot.shape[0]):
+        s = foot[i, 0] * n[0] + foot[i, 1] * n[1] + foot[i, 2] * n[2] - offset
+        p0, p1, p2 = foot[i, 0] - s * n[0], foot[i, 1] - s * n[1], foot[i, 2] - s * n[2]
+        a = p0 * u[0] + p1 * u[1] + p2 * u[2]
+        b = p0 * w[0] + p1 * w[1] + p2 * w[2]
+        a0, a1, b0, b1 = min(a0, a), max(a1, a), min(b0, b), max(b1, b)
+    ca = (a0, a1, a1, a0)
+    cb = (b0, b0, b1, b1)
+    out = np.empty((4, 3))
+    for j in range(4):
+        for v in range(3):
+            out[j, v] = offset * n[v] + ca[j] * u[v] + cb[j] * w[v]  # o + ca·u + cb·w, element by element
+    return out
 
 
+@kernel
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    # np.cross and np.linalg.norm of 3-vectors, the same numbers without their dispatch (every
-    # Gauss-Newton step of the constant-depth fits builds one basis).
+    """Orthonormal ``e₁, e₂`` of the plane normal to the unit ``n`` (``e₁`` away from ``n``'s smallest axis).
+
+    Every Gauss-Newton step on the sphere builds one (the constant-depth fits, the joint corner model).
+    """
+    k = 0
+    for j in (1, 2):
+        if abs(n[j]) < abs(n[k]):  # np.argmin: the first smallest
+            k = j
     helper = np.zeros(3)
-    helper[int(np.argmin(np.abs(n)))] = 1.0
+    helper[k] = 1.0
     e1 = _cross3(n, helper)
-    e1 /= _norm(e1)
+    e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
     return e1, _cross3(n, e1)
 
 
