@@ -47,17 +47,17 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
+from lelsonar.reconstruct.compiled import kernel
 from lelsonar.reconstruct.energy import (
     ECHO_PEAK_WINDOW,
     PRE_ECHO_WINDOW,
     EnergyModel,
-    echo_window_starts,
-    echo_window_width,
+    echo_window_start,
+    energy_agrees,
     energy_ratio,
     total_energy,
     waveform_energy,
-    waveform_energy_agrees,
-    window_peak,
+    window_samples,
 )
 from lelsonar.reconstruct.quality import DEGRADED, UNRELIABLE
 from lelsonar.v1 import scan_pb2
@@ -226,12 +226,10 @@ class ScanAssembly:
         self._capsule_ids = sorted(c.capsule_id for c in self.start.capsules)
         self.sound_speed = speed_of_sound(self.start)
         self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
-        # Steps placed since the last settle(), and the windows of their first echoes, by width:
-        # (float32 bytes of each window, its flat index in echo_amplitude).
+        # Steps placed since the last settle() (their E^γ, E0 and R are worked out together).
         self._unsettled: list[int] = []
-        self._windows: dict[int, tuple[list[bytes], list[int]]] = {}
-        self._pre_windows: dict[int, tuple[list[bytes], list[int]]] = {}  # the same, just before (sampled steps)
-        self._widths: dict[tuple[float, tuple[float, float]], int] = {}  # window width by (sample rate, window)
+        # The kernel's sound speed: NaN for none (the ranges then need both fields).
+        self._c = math.nan if self.sound_speed is None else float(self.sound_speed)
         # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -351,98 +349,104 @@ class ScanAssembly:
         """The ScanEnd came and every step it counts has arrived."""
         return self.end is not None and len(self.missing_steps()) == 0
 
-    def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None) -> bool:
+    def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None,
+            readings: list | None = None, *, unchecked: bool = False) -> bool:
         """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
 
-        ``samples``: the float32 samples of its waveforms joined in the order of its sensors, as
-        :func:`~lelsonar.codec.decode_sample` returns them (else they are copied out of the message).
+        ``samples`` and ``readings``: the float32 samples of its waveforms joined in the order of its sensors,
+        and its readings, as :func:`~lelsonar.codec.decode_sample` returns them (else they are read out of the
+        message).  ``unchecked``: that call left the samples' finiteness to this one
+        (``defer_finite=True``); it is checked before anything else can refuse the sample, as decoding would.
 
         Raises
         ------
+        NonFiniteValueError
+            ``unchecked`` samples that hold NaN or an infinity (naming the waveform).
         InvalidMessageError
-            A step outside the schedule, capsules the ScanStart did not list, or waveforms of different lengths.
+            A step outside the schedule, capsules the ScanStart did not list, waveforms of different lengths,
+            or a range that needs a speed of sound the scan does not state.
         """
         step = sample.step
-        if step >= self.start.steps:
-            raise InvalidMessageError(f"step {step} is outside the schedule of {self.start.steps} steps")
-        if step >= len(self.received):
-            self._allocate(min(int(self.start.steps), max(2 * len(self.received), step + 1)))
-        if self.received[step]:
+        received = self.received
+        if step >= self.start.steps or (step < len(received) and received[step]):
+            if unchecked:
+                codec.check_samples_finite(sample)
+            if step >= self.start.steps:
+                raise InvalidMessageError(f"step {step} is outside the schedule of {self.start.steps} steps")
             self.duplicates += 1
             return False
+        if step >= len(received):
+            self._allocate(min(int(self.start.steps), max(2 * len(received), step + 1)))
         k = self.geometry.n_capsules
-        sensors = sample.sensors
-        if not sensors:
+        if readings is None:
+            readings = codec.sample_readings(sample.sensors)
+            if samples is None and all(s.waveform.encoding == _FLOAT32 for s in sample.sensors):
+                samples = b"".join([s.waveform.data for s in sample.sensors])
+        if not readings:
             raise InvalidMessageError(f"sample {step} carries no sensor readings")
-        first = sensors[0].waveform
-        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
-        # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
-        # waveforms of one length on one clock, the samples joined once.  Anything else (another writer's
-        # order, int16 data, a clock per capsule) takes the general path, with the same results.
-        ids = self._capsule_ids
-        data = []
-        fast = len(sensors) == k
-        if fast:
-            for s, capsule in zip(sensors, ids):
-                w = s.waveform
-                if (s.capsule_id != capsule or w.sample_count != n or w.encoding != _FLOAT32
-                        or w.sample_rate != rate or w.t0 != t0):
-                    fast = False
-                    break
-                if samples is None:
-                    data.append(w.data)
+        n = readings[6]
         carried = sample.sensor_energy
-        carried = list(carried) if len(carried) else None
-        if fast:
-            joined = samples if samples is not None and len(samples) == 4 * k * n else b"".join(
-                data or [s.waveform.data for s in sensors])
-            clocks = None
-        else:
-            sensors, carried = self._in_capsule_order(sample, carried)
-            first = sensors[0].waveform  # the lowest id's clock: the one the display shows
-            rate, t0 = first.sample_rate, first.t0
-            joined = _waveforms([s.waveform for s in sensors], n).astype("<f4", copy=False).tobytes()
-            clocks = [(s.waveform.sample_rate, s.waveform.t0) for s in sensors]
+        sampled = step % RISE_STRIDE == 0
+        # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
+        # waveforms of one length on one clock, checked by the kernel.  Anything else (another writer's order,
+        # int16 data, a clock per capsule) takes the general path, to the same values.
+        status = _OTHER_LAYOUT
+        if samples is not None and len(readings) == _READING * k and readings[::_READING] == self._capsule_ids \
+                and len(samples) == 4 * k * n:
+            waveforms = np.frombuffer(samples, dtype="<f4").reshape(k, n)
+            values = np.array([*readings, *carried])
+            status = self._place(step, waveforms, values, sampled, one_clock=True, finite_known=not unchecked)
+            if status == _NON_FINITE:
+                codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
+                status = self._place(step, waveforms, values, sampled, one_clock=True, finite_known=True)
+            if status != _OTHER_LAYOUT:
+                joined, rate, t0, clocks = samples, readings[4], readings[5], None
+        if status == _OTHER_LAYOUT:
+            if unchecked:
+                codec.check_samples_finite(sample)
+            sensors, carried_list = self._in_capsule_order(sample, list(carried) if len(carried) else None)
+            readings = codec.sample_readings(sensors)
+            waveforms = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4")
+            joined = waveforms.tobytes()
+            rate, t0 = readings[4], readings[5]  # the lowest id's clock: the one the display shows
+            clocks = [(r, t) for r, t in zip(readings[4::_READING], readings[5::_READING])]
             if all(c == (rate, t0) for c in clocks):
                 clocks = None  # one clock after all
-        # The scan-wide checks of the ranges (writer_problems) are medians over tens of readings: every
-        # RISE_STRIDE-th step (by index) gives them plenty, at a quarter of the cost.
-        sampled = step % RISE_STRIDE == 0
-        ranges, tof, agree = self._ranges(step, sensors, sampled)
-        # The (k, n) float32 samples, worked on while they are in the cache (holding them for later would
-        # cost more: fresh memory for each step, and a cold cache for the next step's decoding).
-        waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
-        if clocks is None:
-            agrees = carried is not None and waveform_energy_agrees(waveforms, rate, carried)
-        else:  # each capsule on its own clock (the contract allows it): each waveform at its own rate
-            agrees = carried is not None and len(carried) == k and all(
-                waveform_energy_agrees(waveforms[i:i + 1], r, carried[i:i + 1]) for i, (r, _) in enumerate(clocks))
-        if agrees:
-            self._sensor_energy[step] = carried  # the writer's, checked against the samples
-        else:
+            values = np.array([*readings, *(carried_list or ())])
+            status = self._place(step, waveforms, values, sampled, one_clock=False, finite_known=True)
+        if status == _NO_SOUND_SPEED:
+            self._no_sound_speed(step, readings)
+        if not status & _AGREED:
             self._sensor_energy[step] = (waveform_energy(waveforms, rate) if clocks is None else
                                          [waveform_energy(wv, r) for wv, (r, _) in zip(waveforms, clocks)])
-            if carried is not None:
+            if len(carried):
                 self._energy_mismatch(step)
-        # The first echoes' peak windows (and, on a sampled step, the windows just before them, and each
-        # waveform's DC level), cut out of the samples now and reduced with the other steps' later.
-        self._cut(self._windows, step, joined, n, rate, t0, clocks, tof, ECHO_PEAK_WINDOW)
-        if sampled:
-            self.range_tof_ratio[step] = agree
-            if n > 0:
-                self._cut(self._pre_windows, step, joined, n, rate, t0, clocks, tof, PRE_ECHO_WINDOW)
-                self.dc_level[step] = np.abs(waveforms.mean(axis=-1, dtype=np.float64))
+        self.unflagged_ranges += status >> 1
         self.gamma[step] = sample.gamma_measured
         self.gamma_commanded[step] = sample.gamma_commanded
-        self.distance[step] = ranges
-        self.time_ns[step] = sample.acquisition_time_ns
-        self.received[step] = True
+        self.time_ns[step] = time_ns = sample.acquisition_time_ns
+        received[step] = True
         self.recovered_mask[step] = origin == "recovered"
-        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, joined, (n, rate, t0))
+        self._latest = (step, time_ns, sample.gamma_measured, joined, (n, rate, t0))
         self._unsettled.append(step)
         if len(self._unsettled) >= self.SETTLE_EVERY:
             self.settle()
         return True
+
+    def _place(self, step: int, waveforms: np.ndarray, values: np.ndarray, sampled: bool, *, one_clock: bool,
+               finite_known: bool) -> int:
+        return _place_step(waveforms, values, step, sampled, one_clock, finite_known, self._c, self.distance,
+                           self.range_tof_ratio, self._sensor_energy, self._echo_amplitude, self._pre_echo_peak,
+                           self.dc_level)
+
+    def _no_sound_speed(self, step: int, readings: list) -> None:
+        for i in range(0, len(readings), _READING):
+            capsule, valid, d, t = readings[i:i + 4]
+            if valid and not (d > 0 and t > 0):
+                raise InvalidMessageError(
+                    f"sample {step} capsule {capsule} gives only its {'distance' if d > 0 else 'time of flight'}"
+                    " and the ScanStart states neither sound_speed nor air_temperature to convert it: "
+                    "fill both fields of the reading, or ScanStart.sound_speed")
 
     def _energy_mismatch(self, step: int) -> None:
         self.energy_mismatches += 1
@@ -469,76 +473,9 @@ class ScanAssembly:
             raise InvalidMessageError(f"sample {sample.step} has waveforms of different lengths {sorted(counts)}")
         return sensors, carried
 
-    def _ranges(self, step: int, sensors, sampled: bool) -> tuple[list, list, list | None]:
-        """Each reading's range and round trip (NaN: no echo), in the order of ``sensors``, and on a
-        ``sampled`` step each one's distance / (c·tof/2) where it gave both (NaN elsewhere).
-
-        A writer may fill only one of the range and the round trip (the codec made sure one is > 0); the other
-        follows from the scan's speed of sound.  A reading without an echo that carries a range anyway is
-        counted (:attr:`unflagged_ranges`), its range not read.
-        """
-        k = len(sensors)
-        ranges = [math.nan] * k
-        tof = [math.nan] * k
-        agree = [math.nan] * k if sampled else None
-        c = self.sound_speed
-        for i, s in enumerate(sensors):
-            if s.echo_valid:
-                d, t = s.distance, s.time_of_flight
-                if not (d > 0 and t > 0):
-                    if c is None:
-                        raise InvalidMessageError(
-                            f"sample {step} capsule {s.capsule_id} gives only its {'distance' if d > 0 else 'time of flight'}"
-                            " and the ScanStart states neither sound_speed nor air_temperature to convert it: "
-                            "fill both fields of the reading, or ScanStart.sound_speed")
-                    d, t = (d, 2.0 * d / c) if d > 0 else (0.5 * c * t, t)
-                elif sampled and c is not None:
-                    agree[i] = d / (0.5 * c * t)
-                ranges[i], tof[i] = d, t
-            elif s.distance > 0:  # NaN compares false: only a positive range counts
-                self.unflagged_ranges += 1
-        return ranges, tof, agree
-
-    def _cut(self, store: dict, step: int, joined: bytes, n: int, rate: float, t0: float, clocks: list | None,
-             tof: list[float], window: tuple[float, float]) -> None:
-        """Cut each waveform's ``window`` after its round trip out of the (k, n) float32 ``joined`` into
-        ``store`` (by width: the windows' bytes and their flat index in a (steps, k) array), for
-        :meth:`settle` to reduce (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s windows).
-
-        ``clocks``: each capsule's (sample rate, t0), or None when all share ``rate`` and ``t0``.
-        """
-        k = len(tof)
-        if clocks is None:
-            key = (rate, window)
-            width = self._widths.get(key)
-            if width is None:
-                width = self._widths[key] = echo_window_width(rate, window)
-            starts = echo_window_starts(n, rate, t0, tof, window)
-            widths = [width] * k
-        else:
-            starts = [echo_window_starts(n, r, t, [tt], window)[0] for (r, t), tt in zip(clocks, tof)]
-            widths = [echo_window_width(r, window) for r, _ in clocks]
-        for i, (a, width) in enumerate(zip(starts, widths)):
-            if a >= 0:
-                size = 4 * width
-                at = 4 * (i * n + a)
-                chunk = joined[at:at + min(size, 4 * (n - a))]
-                if len(chunk) < size:  # off the end: zeros, which leave the largest |w| as it is
-                    chunk += bytes(size - len(chunk))
-                chunks, where = store.get(width) or store.setdefault(width, ([], []))
-                chunks.append(chunk)
-                where.append(step * k + i)
-
     def settle(self) -> None:
-        """Work out, for the steps placed since the last call and all at once, the first echoes' peaks and the
-        peaks just before them (from the windows cut out by :meth:`add`), E^γ (eq. 11), E0(d_m) (eq. 12) and
-        R (§4)."""
-        for store, peaks in ((self._windows, self._echo_amplitude), (self._pre_windows, self._pre_echo_peak)):
-            if store:
-                flat = peaks.reshape(-1)
-                for width, (chunks, where) in store.items():
-                    flat[where] = window_peak(np.frombuffer(b"".join(chunks), dtype="<f4").reshape(-1, width))
-                store.clear()
+        """Work out, for the steps placed since the last call and all at once, E^γ (eq. 11), E0(d_m) (eq. 12)
+        and R (§4)."""
         if not self._unsettled:
             return
         steps = np.array(self._unsettled)
@@ -623,6 +560,122 @@ class ScanAssembly:
         """Eq. (9) points of one received step, (k, 3); NaN rows where no echo."""
         return beam_points(self.geometry, self.gamma[step:step + 1], self.distance[step:step + 1])[0]
 
+
+# --- the per-sample kernel ------------------------------------------------------------------------------------
+#: Numbers a sensor reading takes in :func:`~lelsonar.codec.decode_sample`'s readings (capsule id, echo_valid,
+#: distance, time of flight, sample rate, t0, sample count).
+_READING = 7
+#: :func:`_place_step`'s refusals (nothing written): a NaN or infinite sum of squares (NaN or infinite samples,
+#: or squares that overflowed float32), a layout the call did not allow, a range without a speed of sound.
+_NON_FINITE, _OTHER_LAYOUT, _NO_SOUND_SPEED = -1, -2, -3
+#: In its result otherwise: the carried energies agree and were written; the rest counts unflagged ranges.
+_AGREED = 1
+
+
+@kernel
+def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound_speed, distance, range_tof_ratio,
+                sensor_energy, echo_amplitude, pre_echo_peak, dc_level):
+    """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
+    waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
+    of squares), each reading's range and round trip (one from the other at ``sound_speed`` where only one is
+    given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on a
+    ``sampled`` step the peak just before it, the DC level and distance / (c·tof/2); written into row
+    ``step`` of the (steps, k) arrays.
+
+    Parameters
+    ----------
+    waveforms : (k, n) float32 array
+        V, in the order of the scan's capsules.
+    values : (7·k + m,) float64 array
+        The k readings (``_READING`` numbers each, same order), then the m carried energies, V²·s.
+    one_clock : bool
+        Refuse (``_OTHER_LAYOUT``) unless every waveform has the first one's sample rate and t0.
+    finite_known : bool
+        The samples are known finite: a non-finite sum of squares is an overflow (the energies then
+        disagree) rather than a refusal (``_NON_FINITE``).
+    sound_speed : float
+        m/s; NaN: none stated.
+
+    Returns
+    -------
+    int
+        A refusal (< 0, nothing written), else ``_AGREED`` if the carried energies were each waveform's and
+        written (not written otherwise), plus twice the readings without an echo that carry a range anyway.
+    """
+    k, n = waveforms.shape
+    m = values.size - _READING * k
+    for i in range(k):
+        b = _READING * i
+        if values[b + 6] != n or (one_clock and (values[b + 4] != values[4] or values[b + 5] != values[5])):
+            return _OTHER_LAYOUT
+    agreed = m == k
+    for i in range(k):
+        squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
+        if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
+            if not finite_known:
+                return _NON_FINITE
+            agreed = False
+        elif agreed:
+            agreed = energy_agrees(values[_READING * k + i], float(squares), n, values[_READING * i + 4])
+    c = sound_speed
+    for i in range(k):
+        b = _READING * i
+        if values[b + 1] != 0.0 and not (values[b + 2] > 0.0 and values[b + 3] > 0.0) and not c == c:
+            return _NO_SOUND_SPEED
+    unflagged = 0
+    for i in range(k):
+        b = _READING * i
+        d, t, rate, t0 = values[b + 2], values[b + 3], values[b + 4], values[b + 5]
+        ratio = np.nan
+        if values[b + 1] != 0.0:  # echo_valid
+            if not (d > 0.0 and t > 0.0):
+                if d > 0.0:
+                    t = 2.0 * d / c
+                else:
+                    d = 0.5 * c * t
+            elif c == c:
+                ratio = d / (0.5 * c * t)
+        else:
+            if d > 0.0:  # NaN compares false: only a positive range counts
+                unflagged += 1
+            d = t = np.nan
+        distance[step, i] = d
+        if agreed:
+            sensor_energy[step, i] = values[_READING * k + i]
+        row = waveforms[i]
+        echo_amplitude[step, i] = _window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
+        if sampled:
+            range_tof_ratio[step, i] = ratio
+            if n > 0:
+                pre_echo_peak[step, i] = _window_peak(row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1])
+                dc_level[step, i] = _dc_level(row)
+    return (_AGREED if agreed else 0) + 2 * unflagged
+
+
+@kernel
+def _window_peak(row, rate, t0, round_trip, lo, hi):
+    """The largest |w| of ``row`` over the window (``lo``, ``hi``) s after ``round_trip``
+    (:func:`~lelsonar.reconstruct.energy.echo_amplitude` of one waveform: exact, in float32); NaN: none."""
+    n = row.size
+    a = echo_window_start(n, rate, t0, round_trip, lo)
+    if a < 0:
+        return np.nan
+    peak = abs(row[a])
+    for j in range(a + 1, min(a + window_samples(rate, lo, hi), n)):
+        v = abs(row[j])
+        if v > peak:
+            peak = v
+    return float(peak)
+
+
+@kernel
+def _dc_level(row):
+    """|mean| of a float32 waveform, V, summed in float64 in order — as ``np.mean(..., dtype=np.float64)``
+    sums float32 samples along the last axis (through its cast, not pairwise), so the two agree bit for bit."""
+    s = 0.0
+    for v in row:
+        s += float(v)
+    return abs(s / row.size)
 
 def _waveforms(waves: list, n: int) -> np.ndarray:
     """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""
