@@ -648,7 +648,8 @@ def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound
             range_tof_ratio[step, i] = ratio
             if n > 0:
                 pre_echo_peak[step, i] = _window_peak(row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1])
-                dc_level[step, i] = _dc_level(row)
+    if sampled and n > 0:
+        _dc_levels(waveforms, dc_level[step])
     return (_AGREED if agreed else 0) + 2 * unflagged
 
 
@@ -669,13 +670,28 @@ def _window_peak(row, rate, t0, round_trip, lo, hi):
 
 
 @kernel
-def _dc_level(row):
-    """|mean| of a float32 waveform, V, summed in float64 in order — as ``np.mean(..., dtype=np.float64)``
-    sums float32 samples along the last axis (through its cast, not pairwise), so the two agree bit for bit."""
-    s = 0.0
-    for v in row:
-        s += float(v)
-    return abs(s / row.size)
+def _dc_levels(waveforms, out):
+    """|mean| of each float32 waveform (row), V, into ``out``: summed in float64 in order, as
+    ``np.mean(..., axis=-1, dtype=np.float64)`` sums float32 samples (through its cast, not pairwise), so the
+    two agree bit for bit.  Four rows' sums advance together, in registers: four chains of additions at once."""
+    k, n = waveforms.shape
+    i = 0
+    while i + 4 <= k:
+        w0, w1, w2, w3 = waveforms[i], waveforms[i + 1], waveforms[i + 2], waveforms[i + 3]
+        s0 = s1 = s2 = s3 = 0.0
+        for j in range(n):
+            s0 += float(w0[j])
+            s1 += float(w1[j])
+            s2 += float(w2[j])
+            s3 += float(w3[j])
+        out[i], out[i + 1], out[i + 2], out[i + 3] = abs(s0 / n), abs(s1 / n), abs(s2 / n), abs(s3 / n)
+        i += 4
+    while i < k:
+        s0 = 0.0
+        for v in waveforms[i]:
+            s0 += float(v)
+        out[i] = abs(s0 / n)
+        i += 1
 
 def _waveforms(waves: list, n: int) -> np.ndarray:
     """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""
