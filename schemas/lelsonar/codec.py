@@ -202,14 +202,15 @@ def decode(payload: bytes, message_type: type[M], limits: DecodeLimits = DEFAULT
 
 
 def decode_sample(payload: bytes, limits: DecodeLimits = DEFAULT_LIMITS, *,
-                  defer_finite: bool = False) -> tuple[Sample, bytes | None, list]:
+                  defer_finite: bool = False) -> tuple[Sample, bytes | None, tuple[list, list]]:
     """:func:`decode` of a ``Sample``, with what its validation read on the way, so that what uses the
     sample need not read it out of the message again:
 
     - the float32 samples of its waveforms joined in the order of its sensors — the bytes its validation
       checked — or None if a waveform is not float32;
-    - its readings, flat, 7 numbers a sensor in the order of the sensors: ``capsule_id, echo_valid,
-      distance, time_of_flight, waveform.sample_rate, waveform.t0, waveform.sample_count``.
+    - its readings, as two flat lists in the order of the sensors: the ranges, 3 numbers a sensor
+      (``echo_valid, distance, time_of_flight``), and the layout, 4 a sensor (``capsule_id,
+      waveform.sample_count, waveform.sample_rate, waveform.t0``).
 
     ``defer_finite``: where the samples are all float32 (the joined bytes are returned), their finiteness
     is left to the caller, who must check it before using the message or refusing it for another reason
@@ -218,7 +219,7 @@ def decode_sample(payload: bytes, limits: DecodeLimits = DEFAULT_LIMITS, *,
     """
     message = _parse(payload, Sample, limits)
     _validate_header(message)
-    readings: list = []
+    readings: tuple[list, list] = ([], [])
     return message, _validate_sample(message, limits, readings, defer_finite=defer_finite), readings
 
 
@@ -235,14 +236,16 @@ def check_samples_finite(m: Sample) -> None:
             raise NonFiniteValueError(f"Sample.sensors[{i}].waveform holds NaN or infinite samples")
 
 
-def sample_readings(sensors) -> list:
-    """The readings of a ``Sample``'s ``sensors`` (in the order given), flat, as :func:`decode_sample` returns
-    them (for a message decoded without it)."""
-    out: list = []
+def sample_readings(sensors) -> tuple[list, list]:
+    """The readings of a ``Sample``'s ``sensors`` (in the order given) as :func:`decode_sample` returns them
+    (for a message decoded without it)."""
+    ranges: list = []
+    layout: list = []
     for s in sensors:
         w = s.waveform
-        out += (s.capsule_id, s.echo_valid, s.distance, s.time_of_flight, w.sample_rate, w.t0, w.sample_count)
-    return out
+        ranges += (s.echo_valid, s.distance, s.time_of_flight)
+        layout += (s.capsule_id, w.sample_count, w.sample_rate, w.t0)
+    return ranges, layout
 
 
 def _parse(payload: bytes, message_type: type[M], limits: DecodeLimits) -> M:
@@ -311,7 +314,7 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
     _finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
 
 
-def _validate_sample(m: Sample, limits: DecodeLimits, readings: list | None = None, *,
+def _validate_sample(m: Sample, limits: DecodeLimits, readings: tuple[list, list] | None = None, *,
                      defer_finite: bool = False) -> bytes | None:
     # Every check of the contract, in two tiers: a screen of a few comparisons per sensor that a valid float32
     # sample passes (one sum is finite only if each term is; each comparison is one of the exact checks), and,
@@ -329,6 +332,7 @@ def _validate_sample(m: Sample, limits: DecodeLimits, readings: list | None = No
         _finite("Sample.motor", motor.load, motor.voltage, motor.temperature)
     float32 = []
     max_samples = limits.max_waveform_samples
+    ranges, layout = readings if readings is not None else (None, None)
     for i, s in enumerate(sensors):
         w = s.waveform
         data, count, rate, t0, tof, distance, valid = (w.data, w.sample_count, w.sample_rate, w.t0,
@@ -341,7 +345,8 @@ def _validate_sample(m: Sample, limits: DecodeLimits, readings: list | None = No
         if w.encoding == _FLOAT32:
             float32.append(data)
         if readings is not None:
-            readings += (s.capsule_id, valid, distance, tof, rate, t0, count)
+            ranges += (valid, distance, tof)
+            layout += (s.capsule_id, count, rate, t0)
     # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
     joined = b"".join(float32)
     if len(float32) == len(sensors):

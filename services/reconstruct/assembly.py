@@ -230,6 +230,11 @@ class ScanAssembly:
         self._unsettled: list[int] = []
         # The kernel's sound speed: NaN for none (the ranges then need both fields).
         self._c = math.nan if self.sound_speed is None else float(self.sound_speed)
+        self._k = self.geometry.n_capsules
+        # The fast path's layout (the readings' capsule ids, lengths and clocks) and its clocks as the kernel
+        # takes them, once a sample has shown it.
+        self._layout: list | None = None
+        self._clocks: np.ndarray | None = None
         # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -377,48 +382,46 @@ class ScanAssembly:
             return False
         if step >= len(received):
             self._allocate(min(int(self.start.steps), max(2 * len(received), step + 1)))
-        k = self.geometry.n_capsules
+        k = self._k
         if readings is None:
             readings = codec.sample_readings(sample.sensors)
             if samples is None and all(s.waveform.encoding == _FLOAT32 for s in sample.sensors):
                 samples = b"".join([s.waveform.data for s in sample.sensors])
-        if not readings:
+        ranges, layout = readings
+        if not layout:
             raise InvalidMessageError(f"sample {step} carries no sensor readings")
-        n = readings[6]
+        n = layout[1]
         carried = sample.sensor_energy
         sampled = step % RISE_STRIDE == 0
         # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
-        # waveforms of one length on one clock, checked by the kernel.  Anything else (another writer's order,
-        # int16 data, a clock per capsule) takes the general path, to the same values.
-        status = _OTHER_LAYOUT
-        if samples is not None and len(readings) == _READING * k and readings[::_READING] == self._capsule_ids \
-                and len(samples) == 4 * k * n:
+        # waveforms of one length on one clock (the layout of the previous such sample, or checked here).
+        # Anything else (another writer's order, int16 data, a clock per capsule) takes the general path, to
+        # the same values.
+        if samples is not None and (layout == self._layout or self._one_layout(layout, len(samples))):
             waveforms = np.frombuffer(samples, dtype="<f4").reshape(k, n)
-            values = np.array([*readings, *carried])
-            status = self._place(step, waveforms, values, sampled, one_clock=True, finite_known=not unchecked)
+            values = np.array([*ranges, *carried])
+            status = self._place(step, waveforms, values, self._clocks, sampled, not unchecked)
             if status == _NON_FINITE:
                 codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
-                status = self._place(step, waveforms, values, sampled, one_clock=True, finite_known=True)
-            if status != _OTHER_LAYOUT:
-                joined, rate, t0, clocks = samples, readings[4], readings[5], None
-        if status == _OTHER_LAYOUT:
+                status = self._place(step, waveforms, values, self._clocks, sampled, True)
+            joined, rate, t0, one_clock = samples, layout[2], layout[3], True
+        else:
             if unchecked:
                 codec.check_samples_finite(sample)
             sensors, carried_list = self._in_capsule_order(sample, list(carried) if len(carried) else None)
-            readings = codec.sample_readings(sensors)
+            ranges, layout = codec.sample_readings(sensors)
             waveforms = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4")
             joined = waveforms.tobytes()
-            rate, t0 = readings[4], readings[5]  # the lowest id's clock: the one the display shows
-            clocks = [(r, t) for r, t in zip(readings[4::_READING], readings[5::_READING])]
-            if all(c == (rate, t0) for c in clocks):
-                clocks = None  # one clock after all
-            values = np.array([*readings, *(carried_list or ())])
-            status = self._place(step, waveforms, values, sampled, one_clock=False, finite_known=True)
+            clocks = np.array(layout, dtype=np.float64).reshape(k, 4)[:, 2:].copy()  # (rate, t0) of each
+            rate, t0 = layout[2], layout[3]  # the lowest id's clock: the one the display shows
+            one_clock = bool((clocks == clocks[0]).all())
+            values = np.array([*ranges, *(carried_list or ())])
+            status = self._place(step, waveforms, values, clocks, sampled, True)
         if status == _NO_SOUND_SPEED:
-            self._no_sound_speed(step, readings)
+            self._no_sound_speed(step, ranges, layout)
         if not status & _AGREED:
-            self._sensor_energy[step] = (waveform_energy(waveforms, rate) if clocks is None else
-                                         [waveform_energy(wv, r) for wv, (r, _) in zip(waveforms, clocks)])
+            self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
+                                         [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
             if len(carried):
                 self._energy_mismatch(step)
         self.unflagged_ranges += status >> 1
@@ -433,18 +436,29 @@ class ScanAssembly:
             self.settle()
         return True
 
-    def _place(self, step: int, waveforms: np.ndarray, values: np.ndarray, sampled: bool, *, one_clock: bool,
+    def _place(self, step: int, waveforms: np.ndarray, values: np.ndarray, clocks: np.ndarray, sampled: bool,
                finite_known: bool) -> int:
-        return _place_step(waveforms, values, step, sampled, one_clock, finite_known, self._c, self.distance,
+        return _place_step(waveforms, values, clocks, step, sampled, finite_known, self._c, self.distance,
                            self.range_tof_ratio, self._sensor_energy, self._echo_amplitude, self._pre_echo_peak,
                            self.dc_level)
 
-    def _no_sound_speed(self, step: int, readings: list) -> None:
-        for i in range(0, len(readings), _READING):
-            capsule, valid, d, t = readings[i:i + 4]
+    def _one_layout(self, layout: list, size: int) -> bool:
+        """Whether a sample's layout is the fast path's (the ScanStart's capsule ids in order, float32 waveforms
+        of ``size`` bytes in all, of one length on one clock); if it is, it is the one to expect next."""
+        k = self._k
+        _, n, rate, t0 = layout[:4]
+        if not (len(layout) == 4 * k and layout[::4] == self._capsule_ids and layout[1::4] == [n] * k
+                and layout[2::4] == [rate] * k and layout[3::4] == [t0] * k and size == 4 * k * n):
+            return False
+        self._layout, self._clocks = layout, np.array([[rate, t0]] * k, dtype=np.float64)
+        return True
+
+    def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:
+        for i in range(0, len(ranges) // 3):
+            valid, d, t = ranges[3 * i:3 * i + 3]
             if valid and not (d > 0 and t > 0):
                 raise InvalidMessageError(
-                    f"sample {step} capsule {capsule} gives only its {'distance' if d > 0 else 'time of flight'}"
+                    f"sample {step} capsule {layout[4 * i]} gives only its {'distance' if d > 0 else 'time of flight'}"
                     " and the ScanStart states neither sound_speed nor air_temperature to convert it: "
                     "fill both fields of the reading, or ScanStart.sound_speed")
 
@@ -562,18 +576,15 @@ class ScanAssembly:
 
 
 # --- the per-sample kernel ------------------------------------------------------------------------------------
-#: Numbers a sensor reading takes in :func:`~lelsonar.codec.decode_sample`'s readings (capsule id, echo_valid,
-#: distance, time of flight, sample rate, t0, sample count).
-_READING = 7
 #: :func:`_place_step`'s refusals (nothing written): a NaN or infinite sum of squares (NaN or infinite samples,
-#: or squares that overflowed float32), a layout the call did not allow, a range without a speed of sound.
-_NON_FINITE, _OTHER_LAYOUT, _NO_SOUND_SPEED = -1, -2, -3
+#: or squares that overflowed float32), a range without a speed of sound.
+_NON_FINITE, _NO_SOUND_SPEED = -1, -2
 #: In its result otherwise: the carried energies agree and were written; the rest counts unflagged ranges.
 _AGREED = 1
 
 
 @kernel
-def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound_speed, distance, range_tof_ratio,
+def _place_step(waveforms, values, clocks, step, sampled, finite_known, sound_speed, distance, range_tof_ratio,
                 sensor_energy, echo_amplitude, pre_echo_peak, dc_level):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
     waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
@@ -586,10 +597,11 @@ def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound
     ----------
     waveforms : (k, n) float32 array
         V, in the order of the scan's capsules.
-    values : (7·k + m,) float64 array
-        The k readings (``_READING`` numbers each, same order), then the m carried energies, V²·s.
-    one_clock : bool
-        Refuse (``_OTHER_LAYOUT``) unless every waveform has the first one's sample rate and t0.
+    values : (3·k + m,) float64 array
+        The k readings' ``echo_valid, distance, time_of_flight`` (same order), then the m carried energies,
+        V²·s.
+    clocks : (k, 2) float64 array
+        Each waveform's sample rate (Hz) and t0 (s).
     finite_known : bool
         The samples are known finite: a non-finite sum of squares is an overflow (the energies then
         disagree) rather than a refusal (``_NON_FINITE``).
@@ -603,11 +615,7 @@ def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound
         written (not written otherwise), plus twice the readings without an echo that carry a range anyway.
     """
     k, n = waveforms.shape
-    m = values.size - _READING * k
-    for i in range(k):
-        b = _READING * i
-        if values[b + 6] != n or (one_clock and (values[b + 4] != values[4] or values[b + 5] != values[5])):
-            return _OTHER_LAYOUT
+    m = values.size - 3 * k
     agreed = m == k
     for i in range(k):
         squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
@@ -616,18 +624,17 @@ def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound
                 return _NON_FINITE
             agreed = False
         elif agreed:
-            agreed = energy_agrees(values[_READING * k + i], float(squares), n, values[_READING * i + 4])
+            agreed = energy_agrees(values[3 * k + i], float(squares), n, clocks[i, 0])
     c = sound_speed
     for i in range(k):
-        b = _READING * i
-        if values[b + 1] != 0.0 and not (values[b + 2] > 0.0 and values[b + 3] > 0.0) and not c == c:
+        if values[3 * i] != 0.0 and not (values[3 * i + 1] > 0.0 and values[3 * i + 2] > 0.0) and not c == c:
             return _NO_SOUND_SPEED
     unflagged = 0
     for i in range(k):
-        b = _READING * i
-        d, t, rate, t0 = values[b + 2], values[b + 3], values[b + 4], values[b + 5]
+        d, t = values[3 * i + 1], values[3 * i + 2]
+        rate, t0 = clocks[i, 0], clocks[i, 1]
         ratio = np.nan
-        if values[b + 1] != 0.0:  # echo_valid
+        if values[3 * i] != 0.0:  # echo_valid
             if not (d > 0.0 and t > 0.0):
                 if d > 0.0:
                     t = 2.0 * d / c
@@ -641,7 +648,7 @@ def _place_step(waveforms, values, step, sampled, one_clock, finite_known, sound
             d = t = np.nan
         distance[step, i] = d
         if agreed:
-            sensor_energy[step, i] = values[_READING * k + i]
+            sensor_energy[step, i] = values[3 * k + i]
         row = waveforms[i]
         echo_amplitude[step, i] = _window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
         if sampled:
