@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
+import struct
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -231,10 +232,14 @@ class ScanAssembly:
         # The kernel's sound speed: NaN for none (the ranges then need both fields).
         self._c = math.nan if self.sound_speed is None else float(self.sound_speed)
         self._k = self.geometry.n_capsules
-        # The fast path's layout (the readings' capsule ids, lengths and clocks) and its clocks as the kernel
-        # takes them, once a sample has shown it.
+        # The fast path's layout (the readings' capsule ids, lengths and clocks), once a sample has shown it, and
+        # the kernel's buffer of numbers (_place_step's ``values``): the layout's clocks, then each sample's
+        # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
         self._layout: list | None = None
-        self._clocks: np.ndarray | None = None
+        self._buffer = bytearray(8 * 6 * self._k)
+        self._values = np.frombuffer(self._buffer, dtype=np.float64)
+        self._pack_readings = struct.Struct(f"<{3 * self._k}d")
+        self._pack_readings_energies = struct.Struct(f"<{4 * self._k}d")
         # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -398,28 +403,34 @@ class ScanAssembly:
         # Anything else (another writer's order, int16 data, a clock per capsule) takes the general path, to
         # the same values.
         if samples is not None and (layout == self._layout or self._one_layout(layout, len(samples))):
-            waveforms = np.frombuffer(samples, dtype="<f4").reshape(k, n)
-            values = np.array([*ranges, *carried])
-            status = self._place(step, waveforms, values, self._clocks, sampled, not unchecked)
+            # The readings into the kernel's buffer, after the clocks (the layout's, written there once).
+            if len(carried) == k:
+                self._pack_readings_energies.pack_into(self._buffer, 16 * k, *ranges, *carried)
+                m = k
+            else:  # not one a waveform: not the waveforms' energies (recomputed and counted below)
+                self._pack_readings.pack_into(self._buffer, 16 * k, *ranges)
+                m = 0
+            status = self._place(samples, n, self._values, m, step, sampled, not unchecked)
             if status == _NON_FINITE:
                 codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
-                status = self._place(step, waveforms, values, self._clocks, sampled, True)
+                status = self._place(samples, n, self._values, m, step, sampled, True)
             joined, rate, t0, one_clock = samples, layout[2], layout[3], True
         else:
             if unchecked:
                 codec.check_samples_finite(sample)
             sensors, carried_list = self._in_capsule_order(sample, list(carried) if len(carried) else None)
             ranges, layout = codec.sample_readings(sensors)
-            waveforms = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4")
-            joined = waveforms.tobytes()
-            clocks = np.array(layout, dtype=np.float64).reshape(k, 4)[:, 2:].copy()  # (rate, t0) of each
+            joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
+            clocks = [v for i in range(k) for v in layout[4 * i + 2:4 * i + 4]]  # (rate, t0) of each
             rate, t0 = layout[2], layout[3]  # the lowest id's clock: the one the display shows
-            one_clock = bool((clocks == clocks[0]).all())
-            values = np.array([*ranges, *(carried_list or ())])
-            status = self._place(step, waveforms, values, clocks, sampled, True)
+            one_clock = clocks == [rate, t0] * k
+            carried_list = carried_list if carried_list is not None and len(carried_list) == k else []
+            values = np.array([*clocks, *ranges, *carried_list], dtype=np.float64)
+            status = self._place(joined, n, values, len(carried_list), step, sampled, True)
         if status == _NO_SOUND_SPEED:
             self._no_sound_speed(step, ranges, layout)
         if not status & _AGREED:
+            waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
             self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
                                          [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
             if len(carried):
@@ -436,21 +447,23 @@ class ScanAssembly:
             self.settle()
         return True
 
-    def _place(self, step: int, waveforms: np.ndarray, values: np.ndarray, clocks: np.ndarray, sampled: bool,
+    def _place(self, samples: bytes, n: int, values: np.ndarray, m: int, step: int, sampled: bool,
                finite_known: bool) -> int:
-        return _place_step(waveforms, values, clocks, step, sampled, finite_known, self._c, self.distance,
+        return _place_step(samples, self._k, n, values, m, step, sampled, finite_known, self._c, self.distance,
                            self.range_tof_ratio, self._sensor_energy, self._echo_amplitude, self._pre_echo_peak,
                            self.dc_level)
 
     def _one_layout(self, layout: list, size: int) -> bool:
         """Whether a sample's layout is the fast path's (the ScanStart's capsule ids in order, float32 waveforms
-        of ``size`` bytes in all, of one length on one clock); if it is, it is the one to expect next."""
+        of ``size`` bytes in all, of one length on one clock); if it is, it is the one to expect next, and its
+        clocks are written into the kernel's buffer."""
         k = self._k
         _, n, rate, t0 = layout[:4]
         if not (len(layout) == 4 * k and layout[::4] == self._capsule_ids and layout[1::4] == [n] * k
                 and layout[2::4] == [rate] * k and layout[3::4] == [t0] * k and size == 4 * k * n):
             return False
-        self._layout, self._clocks = layout, np.array([[rate, t0]] * k, dtype=np.float64)
+        self._values[:2 * k] = [rate, t0] * k
+        self._layout = layout
         return True
 
     def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:
@@ -584,7 +597,7 @@ _AGREED = 1
 
 
 @kernel
-def _place_step(waveforms, values, clocks, step, sampled, finite_known, sound_speed, distance, range_tof_ratio,
+def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_speed, distance, range_tof_ratio,
                 sensor_energy, echo_amplitude, pre_echo_peak, dc_level):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
     waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
@@ -595,13 +608,11 @@ def _place_step(waveforms, values, clocks, step, sampled, finite_known, sound_sp
 
     Parameters
     ----------
-    waveforms : (k, n) float32 array
-        V, in the order of the scan's capsules.
-    values : (3·k + m,) float64 array
-        The k readings' ``echo_valid, distance, time_of_flight`` (same order), then the m carried energies,
-        V²·s.
-    clocks : (k, 2) float64 array
-        Each waveform's sample rate (Hz) and t0 (s).
+    samples : bytes
+        The k waveforms of ``n`` float32 samples (V), one after the other, in the order of the scan's capsules.
+    values : (≥ 6·k,) float64 array
+        Each waveform's sample rate (Hz) and t0 (s); then each reading's ``echo_valid, distance,
+        time_of_flight`` (same order); then the ``m`` carried energies (V²·s), m = k or 0 (none to check).
     finite_known : bool
         The samples are known finite: a non-finite sum of squares is an overflow (the energies then
         disagree) rather than a refusal (``_NON_FINITE``).
@@ -614,8 +625,8 @@ def _place_step(waveforms, values, clocks, step, sampled, finite_known, sound_sp
         A refusal (< 0, nothing written), else ``_AGREED`` if the carried energies were each waveform's and
         written (not written otherwise), plus twice the readings without an echo that carry a range anyway.
     """
-    k, n = waveforms.shape
-    m = values.size - 3 * k
+    waveforms = np.frombuffer(samples, dtype=np.float32)[:k * n].reshape((k, n))
+    clocks, readings, energies = values[:2 * k], values[2 * k:5 * k], values[5 * k:5 * k + m]
     agreed = m == k
     for i in range(k):
         squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
@@ -624,17 +635,17 @@ def _place_step(waveforms, values, clocks, step, sampled, finite_known, sound_sp
                 return _NON_FINITE
             agreed = False
         elif agreed:
-            agreed = energy_agrees(values[3 * k + i], float(squares), n, clocks[i, 0])
+            agreed = energy_agrees(energies[i], float(squares), n, clocks[2 * i])
     c = sound_speed
     for i in range(k):
-        if values[3 * i] != 0.0 and not (values[3 * i + 1] > 0.0 and values[3 * i + 2] > 0.0) and not c == c:
+        if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
             return _NO_SOUND_SPEED
     unflagged = 0
     for i in range(k):
-        d, t = values[3 * i + 1], values[3 * i + 2]
-        rate, t0 = clocks[i, 0], clocks[i, 1]
+        d, t = readings[3 * i + 1], readings[3 * i + 2]
+        rate, t0 = clocks[2 * i], clocks[2 * i + 1]
         ratio = np.nan
-        if values[3 * i] != 0.0:  # echo_valid
+        if readings[3 * i] != 0.0:  # echo_valid
             if not (d > 0.0 and t > 0.0):
                 if d > 0.0:
                     t = 2.0 * d / c
@@ -648,7 +659,7 @@ def _place_step(waveforms, values, clocks, step, sampled, finite_known, sound_sp
             d = t = np.nan
         distance[step, i] = d
         if agreed:
-            sensor_energy[step, i] = values[3 * k + i]
+            sensor_energy[step, i] = energies[i]
         row = waveforms[i]
         echo_amplitude[step, i] = _window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
         if sampled:
