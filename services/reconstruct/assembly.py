@@ -38,9 +38,10 @@ stream or the acquirer's log), for the per-scan accounting.
 from __future__ import annotations
 
 import logging
+import functools
 import math
 import struct
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -131,6 +132,15 @@ MIN_ECHO_RISE = 1.5
 RISE_STRIDE = 4
 
 
+#: The (steps, k) arrays of a scan, in the order of their block (see ScanAssembly._allocate): range (m; NaN: no
+#: echo or not received), eq. (10) energy (V²·s; 0), first echo's peak (V; NaN: none), the peak just before it
+#: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both).
+_PER_CAPSULE = ("distance", "_sensor_energy", "_echo_amplitude", "_pre_echo_peak", "dc_level", "range_tof_ratio")
+#: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
+#: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
+_PER_STEP = ("gamma", "gamma_commanded", "_step_energy", "_expected_energy", "_ratio")
+
+
 #: Largest disagreement between ``ScanStart.sound_speed`` and c(air_temperature) that is still one air: 2 % is
 #: 6 K, beyond what humidity (< 0.5 %) or a measured c explains.
 SOUND_SPEED_TOLERANCE = 0.02
@@ -162,10 +172,33 @@ def energy_model_from_start(start: codec.ScanStart) -> tuple[EnergyModel, str | 
     A scan is not thrown away for its calibration: the planes do not depend on it.
     """
     e = start.energy_model
+    return _energy_model(e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
+
+
+@functools.lru_cache(maxsize=64)
+def _energy_model(phi0: float, phi1: float, phi2: float, d_min: float, d_max: float) -> tuple[EnergyModel, str | None]:
+    # Cached: a scanner states the same model in every ScanStart, and checking it costs ~20 µs a scan.
     try:
-        return EnergyModel(e.phi0, e.phi1, e.phi2, d_min=e.valid_min_range, d_max=e.valid_max_range), None
+        return EnergyModel(phi0, phi1, phi2, d_min=d_min, d_max=d_max), None
     except ConfigError as exc:
         return UNCALIBRATED_E0, f"its energy model is unusable ({exc}); E0 taken as 1/d², uncalibrated"
+
+
+#: Geometries of recent ScanStarts by what describes them (a scanner states the same array in every ScanStart,
+#: and reading and checking it costs ~30 µs a scan); bounded.
+_GEOMETRIES: OrderedDict[tuple, ArrayGeometry] = OrderedDict()
+
+
+def _scan_geometry(start: codec.ScanStart) -> ArrayGeometry:
+    """:func:`geometry_from_start`, of the same description once."""
+    key = (start.rotation_axis.SerializeToString(), tuple([c.SerializeToString() for c in start.capsules]),
+           start.radial_offset)
+    geometry = _GEOMETRIES.get(key)
+    if geometry is None:
+        geometry = _GEOMETRIES[key] = geometry_from_start(start)
+        if len(_GEOMETRIES) > 64:
+            _GEOMETRIES.popitem(last=False)
+    return geometry
 
 
 @dataclass
@@ -221,54 +254,55 @@ class ScanAssembly:
     SETTLE_EVERY = 256
 
     def __post_init__(self) -> None:
-        self.geometry = geometry_from_start(self.start)
+        self.geometry = _scan_geometry(self.start)
+        self._k = self.geometry.n_capsules
+        self._steps = int(self.start.steps)
         # Capsules are matched by the ids the ScanStart gave them (0..k-1 from our writer, any unique ids from
         # another); row i of the arrays is the i-th id in ascending order, as the geometry's capsule i.
         self._capsule_ids = sorted(c.capsule_id for c in self.start.capsules)
         self.sound_speed = speed_of_sound(self.start)
-        self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
+        e = self.start.energy_model
+        self.energy_model, self.energy_model_problem = _energy_model(e.phi0, e.phi1, e.phi2, e.valid_min_range,
+                                                                     e.valid_max_range)
         # Steps placed since the last settle() (their E^γ, E0 and R are worked out together).
         self._unsettled: list[int] = []
         # The kernel's sound speed: NaN for none (the ranges then need both fields).
         self._c = math.nan if self.sound_speed is None else float(self.sound_speed)
-        self._k = self.geometry.n_capsules
         # The fast path's layout (the readings' capsule ids, lengths and clocks), once a sample has shown it, and
         # the kernel's buffer of numbers (_place_step's ``values``): the layout's clocks, then each sample's
         # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
         self._layout: list | None = None
-        self._buffer = bytearray(8 * 6 * self._k)
+        self._buffer = bytearray(8 * (6 * self._k + 2))
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
-        self._pack_readings = struct.Struct(f"<{3 * self._k}d")
-        self._pack_readings_energies = struct.Struct(f"<{4 * self._k}d")
+        self._pack_readings = struct.Struct(f"<{2 + 3 * self._k}d")
+        self._pack_readings_energies = struct.Struct(f"<{2 + 4 * self._k}d")
         # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
     def _allocate(self, n: int) -> None:
-        """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty)."""
-        k = self.geometry.n_capsules
+        """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty).
 
-        def grown(name: str, tail: tuple[int, ...], fill, dtype=float) -> np.ndarray:
-            new = np.full((n, *tail), fill, dtype=dtype)
-            old = self.__dict__.get(name)
-            if isinstance(old, np.ndarray):
-                new[:len(old)] = old
-            return new
-
-        self.gamma = grown("gamma", (), np.nan)
-        self.gamma_commanded = grown("gamma_commanded", (), np.nan)
-        self.distance = grown("distance", (k,), np.nan)
-        self._sensor_energy = grown("_sensor_energy", (k,), 0.0)      # (steps, k) V²·s, eq. 10
-        self._echo_amplitude = grown("_echo_amplitude", (k,), np.nan)  # (steps, k) V, first echo's peak; NaN: none
-        self._pre_echo_peak = grown("_pre_echo_peak", (k,), np.nan)    # (steps, k) V, peak just before it; NaN: none
-        self.dc_level = grown("dc_level", (k,), np.nan)
-        self.range_tof_ratio = grown("range_tof_ratio", (k,), np.nan)
-        self._step_energy = grown("_step_energy", (), 0.0)            # (steps,) E^γ, eq. 11
-        self._expected_energy = grown("_expected_energy", (), 0.0)    # (steps,) E0(d_m), eq. 12
-        self._ratio = grown("_ratio", (), 0.0)                        # (steps,) R = E^γ / E0(d_m); 0 without a range
-        self.time_ns = grown("time_ns", (), 0, np.int64)
-        self.received = grown("received", (), False, bool)
-        self.recovered_mask = grown("recovered_mask", (), False, bool)
+        The (steps, k) arrays are the planes of one block, and the (steps,) float arrays the rows of another:
+        two allocations instead of eleven, and one array each for the kernel to write a step into.
+        """
+        k = self._k
+        per_capsule = np.full((len(_PER_CAPSULE), n, k), np.nan)
+        per_capsule[_PER_CAPSULE.index("_sensor_energy")] = 0.0
+        per_step = np.full((len(_PER_STEP), n), np.nan)
+        per_step[_PER_STEP.index("_step_energy"):] = 0.0
+        time_ns, received, recovered = np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
+        if hasattr(self, "_per_capsule"):
+            had = self._per_capsule.shape[1]
+            per_capsule[:, :had] = self._per_capsule
+            per_step[:, :had] = self._per_step
+            time_ns[:had], received[:had], recovered[:had] = self.time_ns, self.received, self.recovered_mask
+        self._per_capsule, self._per_step = per_capsule, per_step
+        for name, plane in zip(_PER_CAPSULE, per_capsule):
+            setattr(self, name, plane)
+        for name, row in zip(_PER_STEP, per_step):
+            setattr(self, name, row)
+        self.time_ns, self.received, self.recovered_mask = time_ns, received, recovered
 
     # --- what comes from the waveforms, settled when read ----------------------------------------
     @property
@@ -378,15 +412,15 @@ class ScanAssembly:
         """
         step = sample.step
         received = self.received
-        if step >= self.start.steps or (step < len(received) and received[step]):
+        if step >= self._steps or (step < len(received) and received[step]):
             if unchecked:
                 codec.check_samples_finite(sample)
-            if step >= self.start.steps:
-                raise InvalidMessageError(f"step {step} is outside the schedule of {self.start.steps} steps")
+            if step >= self._steps:
+                raise InvalidMessageError(f"step {step} is outside the schedule of {self._steps} steps")
             self.duplicates += 1
             return False
         if step >= len(received):
-            self._allocate(min(int(self.start.steps), max(2 * len(received), step + 1)))
+            self._allocate(min(self._steps, max(2 * len(received), step + 1)))
         k = self._k
         if readings is None:
             readings = codec.sample_readings(sample.sensors)
@@ -397,61 +431,58 @@ class ScanAssembly:
             raise InvalidMessageError(f"sample {step} carries no sensor readings")
         n = layout[1]
         carried = sample.sensor_energy
+        m = len(carried)
         sampled = step % RISE_STRIDE == 0
+        gamma = sample.gamma_measured
+        recovered = origin == "recovered"
+        time_ns = sample.acquisition_time_ns
         # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
         # waveforms of one length on one clock (the layout of the previous such sample, or checked here).
         # Anything else (another writer's order, int16 data, a clock per capsule) takes the general path, to
         # the same values.
         if samples is not None and (layout == self._layout or self._one_layout(layout, len(samples))):
             # The readings into the kernel's buffer, after the clocks (the layout's, written there once).
-            if len(carried) == k:
-                self._pack_readings_energies.pack_into(self._buffer, 16 * k, *ranges, *carried)
-                m = k
+            if m == k:
+                self._pack_readings_energies.pack_into(self._buffer, 16 * k, gamma, sample.gamma_commanded, *ranges,
+                                                       *carried)
             else:  # not one a waveform: not the waveforms' energies (recomputed and counted below)
-                self._pack_readings.pack_into(self._buffer, 16 * k, *ranges)
-                m = 0
-            status = self._place(samples, n, self._values, m, step, sampled, not unchecked)
-            if status == _NON_FINITE:
-                codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
-                status = self._place(samples, n, self._values, m, step, sampled, True)
-            joined, rate, t0, one_clock = samples, layout[2], layout[3], True
+                self._pack_readings.pack_into(self._buffer, 16 * k, gamma, sample.gamma_commanded, *ranges)
+            values, joined, rate, t0, one_clock = self._values, samples, layout[2], layout[3], True
+            finite_known = not unchecked
         else:
             if unchecked:
                 codec.check_samples_finite(sample)
-            sensors, carried_list = self._in_capsule_order(sample, list(carried) if len(carried) else None)
+            sensors, carried_list = self._in_capsule_order(sample, list(carried) if m else None)
             ranges, layout = codec.sample_readings(sensors)
             joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
             clocks = [v for i in range(k) for v in layout[4 * i + 2:4 * i + 4]]  # (rate, t0) of each
             rate, t0 = layout[2], layout[3]  # the lowest id's clock: the one the display shows
             one_clock = clocks == [rate, t0] * k
-            carried_list = carried_list if carried_list is not None and len(carried_list) == k else []
-            values = np.array([*clocks, *ranges, *carried_list], dtype=np.float64)
-            status = self._place(joined, n, values, len(carried_list), step, sampled, True)
+            carried_list = carried_list if m == k else []
+            values = np.array([*clocks, gamma, sample.gamma_commanded, *ranges, *carried_list], dtype=np.float64)
+            finite_known = True
+        while True:
+            status = _place_step(joined, k, n, values, k if m == k else 0, step, sampled, finite_known, self._c,
+                                 time_ns, recovered, self._per_capsule, self._per_step, self.time_ns, received,
+                                 self.recovered_mask)
+            if status != _NON_FINITE:
+                break
+            codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
+            finite_known = True
         if status == _NO_SOUND_SPEED:
             self._no_sound_speed(step, ranges, layout)
         if not status & _AGREED:
             waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
             self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
                                          [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
-            if len(carried):
+            if m:
                 self._energy_mismatch(step)
         self.unflagged_ranges += status >> 1
-        self.gamma[step] = sample.gamma_measured
-        self.gamma_commanded[step] = sample.gamma_commanded
-        self.time_ns[step] = time_ns = sample.acquisition_time_ns
-        received[step] = True
-        self.recovered_mask[step] = origin == "recovered"
-        self._latest = (step, time_ns, sample.gamma_measured, joined, (n, rate, t0))
+        self._latest = (step, time_ns, gamma, joined, (n, rate, t0))
         self._unsettled.append(step)
         if len(self._unsettled) >= self.SETTLE_EVERY:
             self.settle()
         return True
-
-    def _place(self, samples: bytes, n: int, values: np.ndarray, m: int, step: int, sampled: bool,
-               finite_known: bool) -> int:
-        return _place_step(samples, self._k, n, values, m, step, sampled, finite_known, self._c, self.distance,
-                           self.range_tof_ratio, self._sensor_energy, self._echo_amplitude, self._pre_echo_peak,
-                           self.dc_level)
 
     def _one_layout(self, layout: list, size: int) -> bool:
         """Whether a sample's layout is the fast path's (the ScanStart's capsule ids in order, float32 waveforms
@@ -597,27 +628,34 @@ _AGREED = 1
 
 
 @kernel
-def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_speed, distance, range_tof_ratio,
-                sensor_energy, echo_amplitude, pre_echo_peak, dc_level):
+def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_speed, time_ns, recovered,
+                per_capsule, per_step, acquired_ns, received, recovered_mask):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
     waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
     of squares), each reading's range and round trip (one from the other at ``sound_speed`` where only one is
     given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on a
     ``sampled`` step the peak just before it, the DC level and distance / (c·tof/2); written into row
-    ``step`` of the (steps, k) arrays.
+    ``step`` of the scan's arrays, with γ, the time and the step's origin.
 
     Parameters
     ----------
     samples : bytes
         The k waveforms of ``n`` float32 samples (V), one after the other, in the order of the scan's capsules.
-    values : (≥ 6·k,) float64 array
-        Each waveform's sample rate (Hz) and t0 (s); then each reading's ``echo_valid, distance,
-        time_of_flight`` (same order); then the ``m`` carried energies (V²·s), m = k or 0 (none to check).
+    values : (≥ 6·k + 2,) float64 array
+        Each waveform's sample rate (Hz) and t0 (s); γ measured and commanded (rad); each reading's
+        ``echo_valid, distance, time_of_flight`` (same order); the ``m`` carried energies (V²·s), m = k or 0
+        (none to check).
     finite_known : bool
         The samples are known finite: a non-finite sum of squares is an overflow (the energies then
         disagree) rather than a refusal (``_NON_FINITE``).
     sound_speed : float
         m/s; NaN: none stated.
+    time_ns, recovered : int, bool
+        The sample's acquisition time and origin (the acquirer's log).
+    per_capsule, per_step : (6, steps, k), (5, steps) float64 arrays
+        The scan's blocks (:data:`_PER_CAPSULE`, :data:`_PER_STEP`).
+    acquired_ns, received, recovered_mask : (steps,) arrays
+        The scan's ``time_ns``, ``received``, ``recovered_mask``.
 
     Returns
     -------
@@ -626,7 +664,7 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
         written (not written otherwise), plus twice the readings without an echo that carry a range anyway.
     """
     waveforms = np.frombuffer(samples, dtype=np.float32)[:k * n].reshape((k, n))
-    clocks, readings, energies = values[:2 * k], values[2 * k:5 * k], values[5 * k:5 * k + m]
+    clocks, readings, energies = values[:2 * k], values[2 * k + 2:5 * k + 2], values[5 * k + 2:5 * k + 2 + m]
     agreed = m == k
     for i in range(k):
         squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
@@ -640,6 +678,8 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
     for i in range(k):
         if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
             return _NO_SOUND_SPEED
+    distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
+    pre_echo_peak, dc_level, range_tof_ratio = per_capsule[3], per_capsule[4], per_capsule[5]
     unflagged = 0
     for i in range(k):
         d, t = readings[3 * i + 1], readings[3 * i + 2]
@@ -668,6 +708,10 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
                 pre_echo_peak[step, i] = _window_peak(row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1])
     if sampled and n > 0:
         _dc_levels(waveforms, dc_level[step])
+    per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
+    acquired_ns[step] = time_ns
+    received[step] = True
+    recovered_mask[step] = recovered
     return (_AGREED if agreed else 0) + 2 * unflagged
 
 
