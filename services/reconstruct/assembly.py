@@ -733,27 +733,58 @@ def _window_peak(row, rate, t0, round_trip, lo, hi):
 
 @kernel
 def _dc_levels(waveforms, out):
-    """|mean| of each float32 waveform (row), V, into ``out``: summed in float64 in order, as
-    ``np.mean(..., axis=-1, dtype=np.float64)`` sums float32 samples (through its cast, not pairwise), so the
-    two agree bit for bit.  Four rows' sums advance together, in registers: four chains of additions at once."""
+    """|mean| of each float32 waveform (row), V, into ``out``, bit for bit what ``np.mean(..., axis=-1,
+    dtype=np.float64)`` gives: that sums the samples in float64 in order (through its cast, not pairwise).
+
+    In-order float64 additions cannot run side by side without changing the rounding, so they are done
+    exactly instead where they can be: scaled by 2^s so that each sample is an integer and all of them
+    together stay below 2^52, the samples add up in int64 (side by side), and every partial sum of the
+    in-order float64 additions was exact too — the same number.  A waveform whose samples do not all fit
+    (a dynamic range beyond ~2^40 at ``n`` samples) is summed in order.
+    """
     k, n = waveforms.shape
-    i = 0
-    while i + 4 <= k:
-        w0, w1, w2, w3 = waveforms[i], waveforms[i + 1], waveforms[i + 2], waveforms[i + 3]
-        s0 = s1 = s2 = s3 = 0.0
-        for j in range(n):
-            s0 += float(w0[j])
-            s1 += float(w1[j])
-            s2 += float(w2[j])
-            s3 += float(w3[j])
-        out[i], out[i + 1], out[i + 2], out[i + 3] = abs(s0 / n), abs(s1 / n), abs(s2 / n), abs(s3 / n)
-        i += 4
-    while i < k:
-        s0 = 0.0
-        for v in waveforms[i]:
-            s0 += float(v)
-        out[i] = abs(s0 / n)
-        i += 1
+    if n == 0:
+        return
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    for i in range(k):
+        row = waveforms[i]
+        s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
+        total, inexact = _scaled_sum(row, 2.0 ** s)
+        out[i] = _dc_level_in_order(row) if inexact else abs(float(total) * 2.0 ** -s / n)
+
+
+@kernel
+def _largest_bits(row):
+    """The largest |sample|'s float32 bit pattern (an int: its exponent in bits 23–30)."""
+    patterns = row.view(np.int32)
+    top = np.int32(0)
+    for j in range(patterns.size):
+        top = max(top, patterns[j] & np.int32(0x7FFFFFFF))
+    return top
+
+
+@kernel
+def _scaled_sum(row, scale):
+    """Σ row·scale in int64, and whether any term was not an integer."""
+    total = np.int64(0)
+    inexact = np.int64(0)
+    for j in range(row.size):
+        y = np.float64(row[j]) * scale
+        whole = np.int64(y)
+        total += whole
+        inexact |= np.int64(np.float64(whole) != y)
+    return total, inexact != 0
+
+
+@kernel
+def _dc_level_in_order(row):
+    """|mean| of a float32 waveform summed in float64 in order (:func:`_dc_levels` where it cannot be exact)."""
+    total = 0.0
+    for v in row:
+        total += float(v)
+    return abs(total / row.size)
 
 def _waveforms(waves: list, n: int) -> np.ndarray:
     """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""
