@@ -276,7 +276,7 @@ class ScanAssembly:
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{2 + 3 * self._k}d")
         self._pack_readings_energies = struct.Struct(f"<{2 + 4 * self._k}d")
-        # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
+        # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
@@ -303,6 +303,7 @@ class ScanAssembly:
         for name, row in zip(_PER_STEP, per_step):
             setattr(self, name, row)
         self.time_ns, self.received, self.recovered_mask = time_ns, received, recovered
+        self._rows = (per_capsule, per_step, time_ns, received, recovered)  # what the kernel writes a step into
 
     # --- what comes from the waveforms, settled when read ----------------------------------------
     @property
@@ -349,9 +350,10 @@ class ScanAssembly:
         view = self._latest
         if view is None or isinstance(view, StepView):
             return view
-        step, time_ns, gamma, joined, (n, rate, t0) = view
+        step, joined, n, rate, t0 = view
         waveforms = np.frombuffer(joined, dtype="<f4").reshape(self.geometry.n_capsules, n)
-        self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(), waveforms, rate, t0)
+        self._latest = view = StepView(step, int(self.time_ns[step]), float(self.gamma[step]),
+                                       self.distance[step].copy(), waveforms, rate, t0)
         return view
 
     @property
@@ -461,24 +463,25 @@ class ScanAssembly:
             carried_list = carried_list if m == k else []
             values = np.array([*clocks, gamma, sample.gamma_commanded, *ranges, *carried_list], dtype=np.float64)
             finite_known = True
+        m = k if m == k else 0  # the carried energies to check: one a waveform, or none
         while True:
-            status = _place_step(joined, k, n, values, k if m == k else 0, step, sampled, finite_known, self._c,
-                                 time_ns, recovered, self._per_capsule, self._per_step, self.time_ns, received,
-                                 self.recovered_mask)
+            status = _place_step(joined, k, n, values, m, step, sampled, finite_known, self._c, time_ns, recovered,
+                                 *self._rows)
             if status != _NON_FINITE:
                 break
             codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
             finite_known = True
-        if status == _NO_SOUND_SPEED:
-            self._no_sound_speed(step, ranges, layout)
-        if not status & _AGREED:
-            waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
-            self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
-                                         [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
-            if m:
-                self._energy_mismatch(step)
-        self.unflagged_ranges += status >> 1
-        self._latest = (step, time_ns, gamma, joined, (n, rate, t0))
+        if status != _AGREED:  # (rarely: a refusal, energies to recompute, ranges without an echo)
+            if status == _NO_SOUND_SPEED:
+                self._no_sound_speed(step, ranges, layout)
+            if not status & _AGREED:
+                waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
+                self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
+                                             [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
+                if len(carried):
+                    self._energy_mismatch(step)
+            self.unflagged_ranges += status >> 1
+        self._latest = (step, joined, n, rate, t0)
         self._unsettled.append(step)
         if len(self._unsettled) >= self.SETTLE_EVERY:
             self.settle()
