@@ -5,28 +5,31 @@ copy of a step is dropped.  Per step the assembly keeps what the math needs —
 measured γ, ranges, the energy of each capsule (eq. 10), the first echo's
 peak — and the latest step's waveforms, for display.
 
-A sample's waveforms are worked on once, as it is placed, while their
-samples are in the cache: a ``Sample`` may carry the energies its writer
-computed (``sensor_energy``, as the acquisition service does); they are
-checked against the waveforms in float32
-(:func:`~lelsonar.reconstruct.energy.waveform_energy_agrees`, one dot product
-a step) instead of integrated again in float64.  Where they disagree, or are
+A sample's readings and waveforms are worked on once, as it is placed, in one
+compiled pass while its samples are in the cache (:func:`_place_step`): the
+samples are checked finite (the check decoding left to it, see
+:func:`~lelsonar.codec.decode_sample`), and a ``Sample`` may carry the energies
+its writer computed (``sensor_energy``, as the acquisition service does); they
+are checked against the waveforms in float32
+(:func:`~lelsonar.reconstruct.energy.energy_agrees`, one dot product a
+waveform) instead of integrated again in float64.  Where they disagree, or are
 not plausible, the energies are recomputed, counted
 (:attr:`ScanAssembly.energy_mismatches`) and warned about; without them
 (another writer) they are computed.  Either way the arrays hold eq. (10) of
 the waveforms: the writer's value, which the check holds to within float32
 rounding of it (the acquisition service's is
 :func:`~lelsonar.reconstruct.energy.waveform_energy` itself, bit for bit), or
-that function's.  The first echo's
-peak window is cut out of each waveform (on every :data:`RISE_STRIDE`-th step
-also the window just before it, and the DC level is taken, for
-:meth:`ScanAssembly.writer_problems`); the peaks, and R (§4), are worked out
-for many steps at once (:meth:`ScanAssembly.settle`) when first read, when
-the ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.  The
+that function's.  The same pass takes each reading's range, the first echo's
+peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window) and, on
+every :data:`RISE_STRIDE`-th step, the peak just before it and the DC level,
+for :meth:`ScanAssembly.writer_problems`; E^γ, E0 and R (§4) are worked out for
+many steps at once (:meth:`ScanAssembly.settle`) when first read, when the
+ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.  The
 acquisition service's samples (capsules in the ScanStart's order, float32
-waveforms of one length on one clock) take one pass; anything else another
-writer may send (its own capsule order and ids, int16 data, a clock per
-capsule) the general path, to the same values.
+waveforms of one length on one clock) go straight to the pass; anything else
+another writer may send (its own capsule order and ids, int16 data, a clock
+per capsule) is put in capsule order first (the general path), to the same
+values.
 
 The per-step arrays grow with the highest step that actually arrived (doubling,
 capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
@@ -249,8 +252,7 @@ class ScanAssembly:
 
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
-    #: Steps placed but not yet settled that make :meth:`add` settle them (what is held for it is small: the
-    #: echo windows, 4 × 80 float32 samples a step, and as many again on every RISE_STRIDE-th step).
+    #: Steps placed but not yet settled that make :meth:`add` settle them (only their indices are held).
     SETTLE_EVERY = 256
 
     def __post_init__(self) -> None:
