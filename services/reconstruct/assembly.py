@@ -541,8 +541,11 @@ class ScanAssembly:
         and R (§4)."""
         if not self._unsettled:
             return
-        steps = np.array(self._unsettled)
-        self._unsettled = []
+        unsettled, self._unsettled = self._unsettled, []
+        first, last = min(unsettled), max(unsettled)
+        # Steps are placed once, so as many steps as first..last are exactly those: a slice, not an index
+        # array (each NumPy call here comes after a scan's worth of samples went through the caches).
+        steps = slice(first, last + 1) if last - first + 1 == len(unsettled) else np.array(unsettled)
         self._step_energy[steps] = step_energy = total_energy(self._sensor_energy[steps])
         expected = self._expected_energy[steps]
         self._ratio[steps] = energy_ratio(step_energy, self.distance[steps], self.energy_model, expected=expected)
