@@ -349,13 +349,10 @@ def _validate_sample(m: Sample, limits: DecodeLimits, readings: tuple[list, list
             layout += (s.capsule_id, count, rate, t0)
     # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
     joined = b"".join(float32)
-    if len(float32) == len(sensors):
-        if not defer_finite:
-            check_joined_finite(m, joined)
-        return joined
-    if float32:
+    every = len(float32) == len(sensors)
+    if float32 and not (defer_finite and every):
         check_joined_finite(m, joined)
-    return None
+    return joined if every else None
 
 
 def check_joined_finite(m: Sample, joined: bytes) -> None:

@@ -398,7 +398,7 @@ class ScanAssembly:
         return self.end is not None and len(self.missing_steps()) == 0
 
     def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None,
-            readings: list | None = None, *, unchecked: bool = False) -> bool:
+            readings: tuple[list, list] | None = None, *, unchecked: bool = False) -> bool:
         """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
 
         ``samples`` and ``readings``: the float32 samples of its waveforms joined in the order of its sensors,

@@ -128,7 +128,7 @@ class Ingest:
             return [self._reject(type(exc).__name__, str(exc))]
 
     def apply(self, message, *, origin: str = "live", samples: bytes | None = None,
-              readings: list | None = None) -> list[Accepted | Rejected]:
+              readings: tuple[list, list] | None = None) -> list[Accepted | Rejected]:
         """Apply an already validated message (``origin``: "live" or "recovered"; ``samples``, ``readings``: a
         Sample's float32 samples and readings as :func:`~lelsonar.codec.decode_sample` returns them, if at
         hand)."""
@@ -202,7 +202,7 @@ class Ingest:
         return events
 
     def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live", samples: bytes | None = None,
-             readings: list | None = None, unchecked: bool = False) -> Accepted | Rejected:
+             readings: tuple[list, list] | None = None, unchecked: bool = False) -> Accepted | Rejected:
         mismatches = scan.energy_mismatches
         try:
             if not scan.add(sample, origin, samples, readings, unchecked=unchecked):
