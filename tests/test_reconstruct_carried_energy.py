@@ -208,7 +208,7 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
 
 def test_decode_sample_hands_over_the_samples_its_validation_joined(scan):
     sample = scan[90]
-    message, samples = codec.decode_sample(sample.SerializeToString())
+    message, samples, _ = codec.decode_sample(sample.SerializeToString())
     assert message == sample
     np.testing.assert_array_equal(np.frombuffer(samples, dtype="<f4").reshape(len(sample.sensors), -1),
                                   _waves(sample))

@@ -19,9 +19,9 @@ Three measurements, side by side in one run and one table:
     right after the run (printed beside the result).
 (a′) the **ingest stage** alone — decode, validate, route, assemble
     (:meth:`~lelsonar.reconstruct.ingest.Ingest.accept`: everything the
-    service does before estimation, including the echo peaks and R that
-    ``ScanAssembly.settle`` works out in batches at each ScanEnd) — on the
-    floor's payloads, one run of each
+    service does before estimation — the samples' one compiled pass, and the
+    E^γ, E0 and R that ``ScanAssembly.settle`` works out in batches at each
+    ScanEnd) — on the floor's payloads, one run of each
     per round, medians of 5; same target against the same floor.  The details
     give the time ``Ingest.accept`` took per sample inside (a)'s consumer.
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting

@@ -201,15 +201,51 @@ def decode(payload: bytes, message_type: type[M], limits: DecodeLimits = DEFAULT
     return message
 
 
-def decode_sample(payload: bytes, limits: DecodeLimits = DEFAULT_LIMITS) -> tuple[Sample, bytes | None]:
-    """:func:`decode` of a ``Sample``, with the float32 samples of its waveforms joined in the order of
-    its sensors — the bytes its validation checked — or None if a waveform is not float32.
+def decode_sample(payload: bytes, limits: DecodeLimits = DEFAULT_LIMITS, *,
+                  defer_finite: bool = False) -> tuple[Sample, bytes | None, tuple[list, list]]:
+    """:func:`decode` of a ``Sample``, with what its validation read on the way, so that what uses the
+    sample need not read it out of the message again:
 
-    What uses the samples then need not copy them out of the message again.
+    - the float32 samples of its waveforms joined in the order of its sensors — the bytes its validation
+      checked — or None if a waveform is not float32;
+    - its readings, as two flat lists in the order of the sensors: the ranges, 3 numbers a sensor
+      (``echo_valid, distance, time_of_flight``), and the layout, 4 a sensor (``capsule_id,
+      waveform.sample_count, waveform.sample_rate, waveform.t0``).
+
+    ``defer_finite``: where the samples are all float32 (the joined bytes are returned), their finiteness
+    is left to the caller, who must check it before using the message or refusing it for another reason
+    (:func:`check_samples_finite`, or a pass over the samples that finds no NaN or infinity, then this one
+    to name the culprit): a caller that reads every sample anyway checks them in the same pass.
     """
     message = _parse(payload, Sample, limits)
     _validate_header(message)
-    return message, _validate_sample(message, limits)
+    readings: tuple[list, list] = ([], [])
+    return message, _validate_sample(message, limits, readings, defer_finite=defer_finite), readings
+
+
+def check_samples_finite(m: Sample) -> None:
+    """The check of every float32 sample of a ``Sample`` for NaN and infinity (part of :func:`validate`).
+
+    Raises
+    ------
+    NonFiniteValueError
+        Naming the first waveform that holds one.
+    """
+    for i, s in enumerate(m.sensors):
+        if s.waveform.encoding == _FLOAT32 and not np.isfinite(np.frombuffer(s.waveform.data, dtype="<f4")).all():
+            raise NonFiniteValueError(f"Sample.sensors[{i}].waveform holds NaN or infinite samples")
+
+
+def sample_readings(sensors) -> tuple[list, list]:
+    """The readings of a ``Sample``'s ``sensors`` (in the order given) as :func:`decode_sample` returns them
+    (for a message decoded without it)."""
+    ranges: list = []
+    layout: list = []
+    for s in sensors:
+        w = s.waveform
+        ranges += (s.echo_valid, s.distance, s.time_of_flight)
+        layout += (s.capsule_id, w.sample_count, w.sample_rate, w.t0)
+    return ranges, layout
 
 
 def _parse(payload: bytes, message_type: type[M], limits: DecodeLimits) -> M:
@@ -278,11 +314,13 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
     _finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
 
 
-def _validate_sample(m: Sample, limits: DecodeLimits) -> bytes | None:
+def _validate_sample(m: Sample, limits: DecodeLimits, readings: tuple[list, list] | None = None, *,
+                     defer_finite: bool = False) -> bytes | None:
     # Every check of the contract, in two tiers: a screen of a few comparisons per sensor that a valid float32
     # sample passes (one sum is finite only if each term is; each comparison is one of the exact checks), and,
     # for anything the screen does not pass (int16 data, a malformed field, an overflowing sum), the exact
     # checks field by field, which name the culprit.  The screen never accepts what the exact checks refuse.
+    # ``readings`` (decode_sample's): gets what the screen read of each sensor.
     sensors = m.sensors
     if not 1 <= len(sensors) <= limits.max_sensors:
         raise InvalidMessageError(f"Sample carries {len(sensors)} sensor readings; expected 1 to {limits.max_sensors}")
@@ -294,23 +332,34 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> bytes | None:
         _finite("Sample.motor", motor.load, motor.voltage, motor.temperature)
     float32 = []
     max_samples = limits.max_waveform_samples
+    ranges, layout = readings if readings is not None else (None, None)
     for i, s in enumerate(sensors):
         w = s.waveform
-        data, count, rate, tof, distance = w.data, w.sample_count, w.sample_rate, s.time_of_flight, s.distance
+        data, count, rate, t0, tof, distance, valid = (w.data, w.sample_count, w.sample_rate, w.t0,
+                                                       s.time_of_flight, s.distance, s.echo_valid)
         if not (w.encoding == _FLOAT32 and count <= max_samples and len(data) == 4 * count and rate > 0.0
-                and math.isfinite(rate + w.t0)
+                and math.isfinite(rate + t0)
                 and (math.isfinite(tof + distance) and 0.0 < distance < _MAX_RANGE_M and tof > 0.0
-                     if s.echo_valid else True)):
+                     if valid else True)):
             _check_sensor(i, s, limits)  # raises, or the sensor is valid (e.g. int16 data)
         if w.encoding == _FLOAT32:
             float32.append(data)
+        if readings is not None:
+            ranges += (valid, distance, tof)
+            layout += (s.capsule_id, count, rate, t0)
     # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
     joined = b"".join(float32)
-    if float32 and not np.isfinite(np.frombuffer(joined, dtype="<f4")).all():
-        for i, s in enumerate(sensors):
-            if s.waveform.encoding == _FLOAT32 and not np.isfinite(np.frombuffer(s.waveform.data, dtype="<f4")).all():
-                raise NonFiniteValueError(f"Sample.sensors[{i}].waveform holds NaN or infinite samples")
-    return joined if len(float32) == len(sensors) else None
+    every = len(float32) == len(sensors)
+    if float32 and not (defer_finite and every):
+        check_joined_finite(m, joined)
+    return joined if every else None
+
+
+def check_joined_finite(m: Sample, joined: bytes) -> None:
+    """:func:`check_samples_finite` of a ``Sample`` whose float32 samples are ``joined``: in one pass, the
+    culprit looked for only on failure."""
+    if not np.isfinite(np.frombuffer(joined, dtype="<f4")).all():
+        check_samples_finite(m)
 
 
 def _check_sensor(i: int, s, limits: DecodeLimits) -> None:

@@ -5,28 +5,31 @@ copy of a step is dropped.  Per step the assembly keeps what the math needs —
 measured γ, ranges, the energy of each capsule (eq. 10), the first echo's
 peak — and the latest step's waveforms, for display.
 
-A sample's waveforms are worked on once, as it is placed, while their
-samples are in the cache: a ``Sample`` may carry the energies its writer
-computed (``sensor_energy``, as the acquisition service does); they are
-checked against the waveforms in float32
-(:func:`~lelsonar.reconstruct.energy.waveform_energy_agrees`, one dot product
-a step) instead of integrated again in float64.  Where they disagree, or are
+A sample's readings and waveforms are worked on once, as it is placed, in one
+compiled pass while its samples are in the cache (:func:`_place_step`): the
+samples are checked finite (the check decoding left to it, see
+:func:`~lelsonar.codec.decode_sample`), and a ``Sample`` may carry the energies
+its writer computed (``sensor_energy``, as the acquisition service does); they
+are checked against the waveforms in float32
+(:func:`~lelsonar.reconstruct.energy.energy_agrees`, one dot product a
+waveform) instead of integrated again in float64.  Where they disagree, or are
 not plausible, the energies are recomputed, counted
 (:attr:`ScanAssembly.energy_mismatches`) and warned about; without them
 (another writer) they are computed.  Either way the arrays hold eq. (10) of
 the waveforms: the writer's value, which the check holds to within float32
 rounding of it (the acquisition service's is
 :func:`~lelsonar.reconstruct.energy.waveform_energy` itself, bit for bit), or
-that function's.  The first echo's
-peak window is cut out of each waveform (on every :data:`RISE_STRIDE`-th step
-also the window just before it, and the DC level is taken, for
-:meth:`ScanAssembly.writer_problems`); the peaks, and R (§4), are worked out
-for many steps at once (:meth:`ScanAssembly.settle`) when first read, when
-the ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.  The
+that function's.  The same pass takes each reading's range, the first echo's
+peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window) and, on
+every :data:`RISE_STRIDE`-th step, the peak just before it and the DC level,
+for :meth:`ScanAssembly.writer_problems`; E^γ, E0 and R (§4) are worked out for
+many steps at once (:meth:`ScanAssembly.settle`) when first read, when the
+ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.  The
 acquisition service's samples (capsules in the ScanStart's order, float32
-waveforms of one length on one clock) take one pass; anything else another
-writer may send (its own capsule order and ids, int16 data, a clock per
-capsule) the general path, to the same values.
+waveforms of one length on one clock) go straight to the pass; anything else
+another writer may send (its own capsule order and ids, int16 data, a clock
+per capsule) is put in capsule order first (the general path), to the same
+values.
 
 The per-step arrays grow with the highest step that actually arrived (doubling,
 capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
@@ -38,8 +41,10 @@ stream or the acquirer's log), for the per-scan accounting.
 from __future__ import annotations
 
 import logging
+import functools
 import math
-from collections import Counter
+import struct
+from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,17 +52,17 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
+from lelsonar.reconstruct.compiled import kernel
 from lelsonar.reconstruct.energy import (
     ECHO_PEAK_WINDOW,
     PRE_ECHO_WINDOW,
     EnergyModel,
-    echo_window_starts,
-    echo_window_width,
+    echo_window_start,
+    energy_agrees,
     energy_ratio,
     total_energy,
     waveform_energy,
-    waveform_energy_agrees,
-    window_peak,
+    window_samples,
 )
 from lelsonar.reconstruct.quality import DEGRADED, UNRELIABLE
 from lelsonar.v1 import scan_pb2
@@ -130,6 +135,15 @@ MIN_ECHO_RISE = 1.5
 RISE_STRIDE = 4
 
 
+#: The (steps, k) arrays of a scan, in the order of their block (see ScanAssembly._allocate): range (m; NaN: no
+#: echo or not received), eq. (10) energy (V²·s; 0), first echo's peak (V; NaN: none), the peak just before it
+#: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both).
+_PER_CAPSULE = ("distance", "_sensor_energy", "_echo_amplitude", "_pre_echo_peak", "dc_level", "range_tof_ratio")
+#: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
+#: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
+_PER_STEP = ("gamma", "gamma_commanded", "_step_energy", "_expected_energy", "_ratio")
+
+
 #: Largest disagreement between ``ScanStart.sound_speed`` and c(air_temperature) that is still one air: 2 % is
 #: 6 K, beyond what humidity (< 0.5 %) or a measured c explains.
 SOUND_SPEED_TOLERANCE = 0.02
@@ -161,10 +175,33 @@ def energy_model_from_start(start: codec.ScanStart) -> tuple[EnergyModel, str | 
     A scan is not thrown away for its calibration: the planes do not depend on it.
     """
     e = start.energy_model
+    return _energy_model(e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
+
+
+@functools.lru_cache(maxsize=64)
+def _energy_model(phi0: float, phi1: float, phi2: float, d_min: float, d_max: float) -> tuple[EnergyModel, str | None]:
+    # Cached: a scanner states the same model in every ScanStart, and checking it costs ~20 µs a scan.
     try:
-        return EnergyModel(e.phi0, e.phi1, e.phi2, d_min=e.valid_min_range, d_max=e.valid_max_range), None
+        return EnergyModel(phi0, phi1, phi2, d_min=d_min, d_max=d_max), None
     except ConfigError as exc:
         return UNCALIBRATED_E0, f"its energy model is unusable ({exc}); E0 taken as 1/d², uncalibrated"
+
+
+#: Geometries of recent ScanStarts by what describes them (a scanner states the same array in every ScanStart,
+#: and reading and checking it costs ~30 µs a scan); bounded.
+_GEOMETRIES: OrderedDict[tuple, ArrayGeometry] = OrderedDict()
+
+
+def _scan_geometry(start: codec.ScanStart) -> ArrayGeometry:
+    """:func:`geometry_from_start`, of the same description once."""
+    key = (start.rotation_axis.SerializeToString(), tuple([c.SerializeToString() for c in start.capsules]),
+           start.radial_offset)
+    geometry = _GEOMETRIES.get(key)
+    if geometry is None:
+        geometry = _GEOMETRIES[key] = geometry_from_start(start)
+        if len(_GEOMETRIES) > 64:
+            _GEOMETRIES.popitem(last=False)
+    return geometry
 
 
 @dataclass
@@ -215,52 +252,60 @@ class ScanAssembly:
 
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
-    #: Steps placed but not yet settled that make :meth:`add` settle them (what is held for it is small: the
-    #: echo windows, 4 × 80 float32 samples a step, and as many again on every RISE_STRIDE-th step).
+    #: Steps placed but not yet settled that make :meth:`add` settle them (only their indices are held).
     SETTLE_EVERY = 256
 
     def __post_init__(self) -> None:
-        self.geometry = geometry_from_start(self.start)
+        self.geometry = _scan_geometry(self.start)
+        self._k = self.geometry.n_capsules
+        self._steps = int(self.start.steps)
         # Capsules are matched by the ids the ScanStart gave them (0..k-1 from our writer, any unique ids from
         # another); row i of the arrays is the i-th id in ascending order, as the geometry's capsule i.
         self._capsule_ids = sorted(c.capsule_id for c in self.start.capsules)
         self.sound_speed = speed_of_sound(self.start)
-        self.energy_model, self.energy_model_problem = energy_model_from_start(self.start)
-        # Steps placed since the last settle(), and the windows of their first echoes, by width:
-        # (float32 bytes of each window, its flat index in echo_amplitude).
+        e = self.start.energy_model
+        self.energy_model, self.energy_model_problem = _energy_model(e.phi0, e.phi1, e.phi2, e.valid_min_range,
+                                                                     e.valid_max_range)
+        # Steps placed since the last settle() (their E^γ, E0 and R are worked out together).
         self._unsettled: list[int] = []
-        self._windows: dict[int, tuple[list[bytes], list[int]]] = {}
-        self._pre_windows: dict[int, tuple[list[bytes], list[int]]] = {}  # the same, just before (sampled steps)
-        self._widths: dict[tuple[float, tuple[float, float]], int] = {}  # window width by (sample rate, window)
-        # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
+        # The kernel's sound speed: NaN for none (the ranges then need both fields).
+        self._c = math.nan if self.sound_speed is None else float(self.sound_speed)
+        # The fast path's layout (the readings' capsule ids, lengths and clocks), once a sample has shown it, and
+        # the kernel's buffer of numbers (_place_step's ``values``): the layout's clocks, then each sample's
+        # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
+        self._layout: list | None = None
+        self._buffer = bytearray(8 * (6 * self._k + 2))
+        self._values = np.frombuffer(self._buffer, dtype=np.float64)
+        self._pack_readings = struct.Struct(f"<{2 + 3 * self._k}d")
+        self._pack_readings_energies = struct.Struct(f"<{2 + 4 * self._k}d")
+        # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
     def _allocate(self, n: int) -> None:
-        """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty)."""
-        k = self.geometry.n_capsules
+        """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty).
 
-        def grown(name: str, tail: tuple[int, ...], fill, dtype=float) -> np.ndarray:
-            new = np.full((n, *tail), fill, dtype=dtype)
-            old = self.__dict__.get(name)
-            if isinstance(old, np.ndarray):
-                new[:len(old)] = old
-            return new
-
-        self.gamma = grown("gamma", (), np.nan)
-        self.gamma_commanded = grown("gamma_commanded", (), np.nan)
-        self.distance = grown("distance", (k,), np.nan)
-        self._sensor_energy = grown("_sensor_energy", (k,), 0.0)      # (steps, k) V²·s, eq. 10
-        self._echo_amplitude = grown("_echo_amplitude", (k,), np.nan)  # (steps, k) V, first echo's peak; NaN: none
-        self._pre_echo_peak = grown("_pre_echo_peak", (k,), np.nan)    # (steps, k) V, peak just before it; NaN: none
-        self.dc_level = grown("dc_level", (k,), np.nan)
-        self.range_tof_ratio = grown("range_tof_ratio", (k,), np.nan)
-        self._step_energy = grown("_step_energy", (), 0.0)            # (steps,) E^γ, eq. 11
-        self._expected_energy = grown("_expected_energy", (), 0.0)    # (steps,) E0(d_m), eq. 12
-        self._ratio = grown("_ratio", (), 0.0)                        # (steps,) R = E^γ / E0(d_m); 0 without a range
-        self.time_ns = grown("time_ns", (), 0, np.int64)
-        self.received = grown("received", (), False, bool)
-        self.recovered_mask = grown("recovered_mask", (), False, bool)
+        The (steps, k) arrays are the planes of one block, and the (steps,) float arrays the rows of another:
+        two allocations instead of eleven, and one array each for the kernel to write a step into.
+        """
+        k = self._k
+        per_capsule = np.full((len(_PER_CAPSULE), n, k), np.nan)
+        per_capsule[_PER_CAPSULE.index("_sensor_energy")] = 0.0
+        per_step = np.full((len(_PER_STEP), n), np.nan)
+        per_step[_PER_STEP.index("_step_energy"):] = 0.0
+        time_ns, received, recovered = np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
+        if hasattr(self, "_per_capsule"):
+            had = self._per_capsule.shape[1]
+            per_capsule[:, :had] = self._per_capsule
+            per_step[:, :had] = self._per_step
+            time_ns[:had], received[:had], recovered[:had] = self.time_ns, self.received, self.recovered_mask
+        self._per_capsule, self._per_step = per_capsule, per_step
+        for name, plane in zip(_PER_CAPSULE, per_capsule):
+            setattr(self, name, plane)
+        for name, row in zip(_PER_STEP, per_step):
+            setattr(self, name, row)
+        self.time_ns, self.received, self.recovered_mask = time_ns, received, recovered
+        self._rows = (per_capsule, per_step, time_ns, received, recovered)  # what the kernel writes a step into
 
     # --- what comes from the waveforms, settled when read ----------------------------------------
     @property
@@ -307,9 +352,10 @@ class ScanAssembly:
         view = self._latest
         if view is None or isinstance(view, StepView):
             return view
-        step, time_ns, gamma, joined, (n, rate, t0) = view
+        step, joined, n, rate, t0 = view
         waveforms = np.frombuffer(joined, dtype="<f4").reshape(self.geometry.n_capsules, n)
-        self._latest = view = StepView(step, time_ns, gamma, self.distance[step].copy(), waveforms, rate, t0)
+        self._latest = view = StepView(step, int(self.time_ns[step]), float(self.gamma[step]),
+                                       self.distance[step].copy(), waveforms, rate, t0)
         return view
 
     @property
@@ -351,98 +397,119 @@ class ScanAssembly:
         """The ScanEnd came and every step it counts has arrived."""
         return self.end is not None and len(self.missing_steps()) == 0
 
-    def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None) -> bool:
+    def add(self, sample: codec.Sample, origin: str = "live", samples: bytes | None = None,
+            readings: tuple[list, list] | None = None, *, unchecked: bool = False) -> bool:
         """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
 
-        ``samples``: the float32 samples of its waveforms joined in the order of its sensors, as
-        :func:`~lelsonar.codec.decode_sample` returns them (else they are copied out of the message).
+        ``samples`` and ``readings``: the float32 samples of its waveforms joined in the order of its sensors,
+        and its readings, as :func:`~lelsonar.codec.decode_sample` returns them (else they are read out of the
+        message).  ``unchecked``: that call left the samples' finiteness to this one
+        (``defer_finite=True``); it is checked before anything else can refuse the sample, as decoding would.
 
         Raises
         ------
+        NonFiniteValueError
+            ``unchecked`` samples that hold NaN or an infinity (naming the waveform).
         InvalidMessageError
-            A step outside the schedule, capsules the ScanStart did not list, or waveforms of different lengths.
+            A step outside the schedule, capsules the ScanStart did not list, waveforms of different lengths,
+            or a range that needs a speed of sound the scan does not state.
         """
         step = sample.step
-        if step >= self.start.steps:
-            raise InvalidMessageError(f"step {step} is outside the schedule of {self.start.steps} steps")
-        if step >= len(self.received):
-            self._allocate(min(int(self.start.steps), max(2 * len(self.received), step + 1)))
-        if self.received[step]:
+        received = self.received
+        if step >= self._steps or (step < len(received) and received[step]):
+            if unchecked:
+                codec.check_samples_finite(sample)
+            if step >= self._steps:
+                raise InvalidMessageError(f"step {step} is outside the schedule of {self._steps} steps")
             self.duplicates += 1
             return False
-        k = self.geometry.n_capsules
-        sensors = sample.sensors
-        if not sensors:
+        if step >= len(received):
+            self._allocate(min(self._steps, max(2 * len(received), step + 1)))
+        k = self._k
+        if readings is None:
+            readings = codec.sample_readings(sample.sensors)
+            if samples is None and all(s.waveform.encoding == _FLOAT32 for s in sample.sensors):
+                samples = b"".join([s.waveform.data for s in sample.sensors])
+        ranges, layout = readings
+        if not layout:
             raise InvalidMessageError(f"sample {step} carries no sensor readings")
-        first = sensors[0].waveform
-        n, rate, t0 = first.sample_count, first.sample_rate, first.t0
-        # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
-        # waveforms of one length on one clock, the samples joined once.  Anything else (another writer's
-        # order, int16 data, a clock per capsule) takes the general path, with the same results.
-        ids = self._capsule_ids
-        data = []
-        fast = len(sensors) == k
-        if fast:
-            for s, capsule in zip(sensors, ids):
-                w = s.waveform
-                if (s.capsule_id != capsule or w.sample_count != n or w.encoding != _FLOAT32
-                        or w.sample_rate != rate or w.t0 != t0):
-                    fast = False
-                    break
-                if samples is None:
-                    data.append(w.data)
+        n = layout[1]
         carried = sample.sensor_energy
-        carried = list(carried) if len(carried) else None
-        if fast:
-            joined = samples if samples is not None and len(samples) == 4 * k * n else b"".join(
-                data or [s.waveform.data for s in sensors])
-            clocks = None
-        else:
-            sensors, carried = self._in_capsule_order(sample, carried)
-            first = sensors[0].waveform  # the lowest id's clock: the one the display shows
-            rate, t0 = first.sample_rate, first.t0
-            joined = _waveforms([s.waveform for s in sensors], n).astype("<f4", copy=False).tobytes()
-            clocks = [(s.waveform.sample_rate, s.waveform.t0) for s in sensors]
-            if all(c == (rate, t0) for c in clocks):
-                clocks = None  # one clock after all
-        # The scan-wide checks of the ranges (writer_problems) are medians over tens of readings: every
-        # RISE_STRIDE-th step (by index) gives them plenty, at a quarter of the cost.
+        m = len(carried)
         sampled = step % RISE_STRIDE == 0
-        ranges, tof, agree = self._ranges(step, sensors, sampled)
-        # The (k, n) float32 samples, worked on while they are in the cache (holding them for later would
-        # cost more: fresh memory for each step, and a cold cache for the next step's decoding).
-        waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
-        if clocks is None:
-            agrees = carried is not None and waveform_energy_agrees(waveforms, rate, carried)
-        else:  # each capsule on its own clock (the contract allows it): each waveform at its own rate
-            agrees = carried is not None and len(carried) == k and all(
-                waveform_energy_agrees(waveforms[i:i + 1], r, carried[i:i + 1]) for i, (r, _) in enumerate(clocks))
-        if agrees:
-            self._sensor_energy[step] = carried  # the writer's, checked against the samples
+        gamma = sample.gamma_measured
+        recovered = origin == "recovered"
+        time_ns = sample.acquisition_time_ns
+        # The fast path, for what the acquisition service sends: the capsules in the ScanStart's order, float32
+        # waveforms of one length on one clock (the layout of the previous such sample, or checked here).
+        # Anything else (another writer's order, int16 data, a clock per capsule) takes the general path, to
+        # the same values.
+        if samples is not None and (layout == self._layout or self._one_layout(layout, len(samples))):
+            # The readings into the kernel's buffer, after the clocks (the layout's, written there once).
+            if m == k:
+                self._pack_readings_energies.pack_into(self._buffer, 16 * k, gamma, sample.gamma_commanded, *ranges,
+                                                       *carried)
+            else:  # not one a waveform: not the waveforms' energies (recomputed and counted below)
+                self._pack_readings.pack_into(self._buffer, 16 * k, gamma, sample.gamma_commanded, *ranges)
+            values, joined, rate, t0, one_clock = self._values, samples, layout[2], layout[3], True
+            finite_known = not unchecked
         else:
-            self._sensor_energy[step] = (waveform_energy(waveforms, rate) if clocks is None else
-                                         [waveform_energy(wv, r) for wv, (r, _) in zip(waveforms, clocks)])
-            if carried is not None:
-                self._energy_mismatch(step)
-        # The first echoes' peak windows (and, on a sampled step, the windows just before them, and each
-        # waveform's DC level), cut out of the samples now and reduced with the other steps' later.
-        self._cut(self._windows, step, joined, n, rate, t0, clocks, tof, ECHO_PEAK_WINDOW)
-        if sampled:
-            self.range_tof_ratio[step] = agree
-            if n > 0:
-                self._cut(self._pre_windows, step, joined, n, rate, t0, clocks, tof, PRE_ECHO_WINDOW)
-                self.dc_level[step] = np.abs(waveforms.mean(axis=-1, dtype=np.float64))
-        self.gamma[step] = sample.gamma_measured
-        self.gamma_commanded[step] = sample.gamma_commanded
-        self.distance[step] = ranges
-        self.time_ns[step] = sample.acquisition_time_ns
-        self.received[step] = True
-        self.recovered_mask[step] = origin == "recovered"
-        self._latest = (step, sample.acquisition_time_ns, sample.gamma_measured, joined, (n, rate, t0))
+            if unchecked:
+                codec.check_samples_finite(sample)
+            sensors, carried_list = self._in_capsule_order(sample, list(carried) if m else None)
+            ranges, layout = codec.sample_readings(sensors)
+            joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
+            clocks = [v for i in range(k) for v in layout[4 * i + 2:4 * i + 4]]  # (rate, t0) of each
+            rate, t0 = layout[2], layout[3]  # the lowest id's clock: the one the display shows
+            one_clock = clocks == [rate, t0] * k
+            carried_list = carried_list if m == k else []
+            values = np.array([*clocks, gamma, sample.gamma_commanded, *ranges, *carried_list], dtype=np.float64)
+            finite_known = True
+        m = k if m == k else 0  # the carried energies to check: one a waveform, or none
+        while True:
+            status = _place_step(joined, k, n, values, m, step, sampled, finite_known, self._c, time_ns, recovered,
+                                 *self._rows)
+            if status != _NON_FINITE:
+                break
+            codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
+            finite_known = True
+        if status != _AGREED:  # (rarely: a refusal, energies to recompute, ranges without an echo)
+            if status == _NO_SOUND_SPEED:
+                self._no_sound_speed(step, ranges, layout)
+            if not status & _AGREED:
+                waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
+                self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
+                                             [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
+                if len(carried):
+                    self._energy_mismatch(step)
+            self.unflagged_ranges += status >> 1
+        self._latest = (step, joined, n, rate, t0)
         self._unsettled.append(step)
         if len(self._unsettled) >= self.SETTLE_EVERY:
             self.settle()
         return True
+
+    def _one_layout(self, layout: list, size: int) -> bool:
+        """Whether a sample's layout is the fast path's (the ScanStart's capsule ids in order, float32 waveforms
+        of ``size`` bytes in all, of one length on one clock); if it is, it is the one to expect next, and its
+        clocks are written into the kernel's buffer."""
+        k = self._k
+        _, n, rate, t0 = layout[:4]
+        if not (len(layout) == 4 * k and layout[::4] == self._capsule_ids and layout[1::4] == [n] * k
+                and layout[2::4] == [rate] * k and layout[3::4] == [t0] * k and size == 4 * k * n):
+            return False
+        self._values[:2 * k] = [rate, t0] * k
+        self._layout = layout
+        return True
+
+    def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:
+        for i in range(0, len(ranges) // 3):
+            valid, d, t = ranges[3 * i:3 * i + 3]
+            if valid and not (d > 0 and t > 0):
+                raise InvalidMessageError(
+                    f"sample {step} capsule {layout[4 * i]} gives only its {'distance' if d > 0 else 'time of flight'}"
+                    " and the ScanStart states neither sound_speed nor air_temperature to convert it: "
+                    "fill both fields of the reading, or ScanStart.sound_speed")
 
     def _energy_mismatch(self, step: int) -> None:
         self.energy_mismatches += 1
@@ -469,80 +536,16 @@ class ScanAssembly:
             raise InvalidMessageError(f"sample {sample.step} has waveforms of different lengths {sorted(counts)}")
         return sensors, carried
 
-    def _ranges(self, step: int, sensors, sampled: bool) -> tuple[list, list, list | None]:
-        """Each reading's range and round trip (NaN: no echo), in the order of ``sensors``, and on a
-        ``sampled`` step each one's distance / (c·tof/2) where it gave both (NaN elsewhere).
-
-        A writer may fill only one of the range and the round trip (the codec made sure one is > 0); the other
-        follows from the scan's speed of sound.  A reading without an echo that carries a range anyway is
-        counted (:attr:`unflagged_ranges`), its range not read.
-        """
-        k = len(sensors)
-        ranges = [math.nan] * k
-        tof = [math.nan] * k
-        agree = [math.nan] * k if sampled else None
-        c = self.sound_speed
-        for i, s in enumerate(sensors):
-            if s.echo_valid:
-                d, t = s.distance, s.time_of_flight
-                if not (d > 0 and t > 0):
-                    if c is None:
-                        raise InvalidMessageError(
-                            f"sample {step} capsule {s.capsule_id} gives only its {'distance' if d > 0 else 'time of flight'}"
-                            " and the ScanStart states neither sound_speed nor air_temperature to convert it: "
-                            "fill both fields of the reading, or ScanStart.sound_speed")
-                    d, t = (d, 2.0 * d / c) if d > 0 else (0.5 * c * t, t)
-                elif sampled and c is not None:
-                    agree[i] = d / (0.5 * c * t)
-                ranges[i], tof[i] = d, t
-            elif s.distance > 0:  # NaN compares false: only a positive range counts
-                self.unflagged_ranges += 1
-        return ranges, tof, agree
-
-    def _cut(self, store: dict, step: int, joined: bytes, n: int, rate: float, t0: float, clocks: list | None,
-             tof: list[float], window: tuple[float, float]) -> None:
-        """Cut each waveform's ``window`` after its round trip out of the (k, n) float32 ``joined`` into
-        ``store`` (by width: the windows' bytes and their flat index in a (steps, k) array), for
-        :meth:`settle` to reduce (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s windows).
-
-        ``clocks``: each capsule's (sample rate, t0), or None when all share ``rate`` and ``t0``.
-        """
-        k = len(tof)
-        if clocks is None:
-            key = (rate, window)
-            width = self._widths.get(key)
-            if width is None:
-                width = self._widths[key] = echo_window_width(rate, window)
-            starts = echo_window_starts(n, rate, t0, tof, window)
-            widths = [width] * k
-        else:
-            starts = [echo_window_starts(n, r, t, [tt], window)[0] for (r, t), tt in zip(clocks, tof)]
-            widths = [echo_window_width(r, window) for r, _ in clocks]
-        for i, (a, width) in enumerate(zip(starts, widths)):
-            if a >= 0:
-                size = 4 * width
-                at = 4 * (i * n + a)
-                chunk = joined[at:at + min(size, 4 * (n - a))]
-                if len(chunk) < size:  # off the end: zeros, which leave the largest |w| as it is
-                    chunk += bytes(size - len(chunk))
-                chunks, where = store.get(width) or store.setdefault(width, ([], []))
-                chunks.append(chunk)
-                where.append(step * k + i)
-
     def settle(self) -> None:
-        """Work out, for the steps placed since the last call and all at once, the first echoes' peaks and the
-        peaks just before them (from the windows cut out by :meth:`add`), E^γ (eq. 11), E0(d_m) (eq. 12) and
-        R (§4)."""
-        for store, peaks in ((self._windows, self._echo_amplitude), (self._pre_windows, self._pre_echo_peak)):
-            if store:
-                flat = peaks.reshape(-1)
-                for width, (chunks, where) in store.items():
-                    flat[where] = window_peak(np.frombuffer(b"".join(chunks), dtype="<f4").reshape(-1, width))
-                store.clear()
+        """Work out, for the steps placed since the last call and all at once, E^γ (eq. 11), E0(d_m) (eq. 12)
+        and R (§4)."""
         if not self._unsettled:
             return
-        steps = np.array(self._unsettled)
-        self._unsettled = []
+        unsettled, self._unsettled = self._unsettled, []
+        first, last = min(unsettled), max(unsettled)
+        # Steps are placed once, so as many steps as first..last are exactly those: a slice, not an index
+        # array (each NumPy call here comes after a scan's worth of samples went through the caches).
+        steps = slice(first, last + 1) if last - first + 1 == len(unsettled) else np.array(unsettled)
         self._step_energy[steps] = step_energy = total_energy(self._sensor_energy[steps])
         expected = self._expected_energy[steps]
         self._ratio[steps] = energy_ratio(step_energy, self.distance[steps], self.energy_model, expected=expected)
@@ -623,6 +626,173 @@ class ScanAssembly:
         """Eq. (9) points of one received step, (k, 3); NaN rows where no echo."""
         return beam_points(self.geometry, self.gamma[step:step + 1], self.distance[step:step + 1])[0]
 
+
+# --- the per-sample kernel ------------------------------------------------------------------------------------
+#: :func:`_place_step`'s refusals (nothing written): a NaN or infinite sum of squares (NaN or infinite samples,
+#: or squares that overflowed float32), a range without a speed of sound.
+_NON_FINITE, _NO_SOUND_SPEED = -1, -2
+#: In its result otherwise: the carried energies agree and were written; the rest counts unflagged ranges.
+_AGREED = 1
+
+
+@kernel
+def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_speed, time_ns, recovered,
+                per_capsule, per_step, acquired_ns, received, recovered_mask):
+    """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
+    waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
+    of squares), each reading's range and round trip (one from the other at ``sound_speed`` where only one is
+    given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on a
+    ``sampled`` step the peak just before it, the DC level and distance / (c·tof/2); written into row
+    ``step`` of the scan's arrays, with γ, the time and the step's origin.
+
+    Parameters
+    ----------
+    samples : bytes
+        The k waveforms of ``n`` float32 samples (V), one after the other, in the order of the scan's capsules.
+    values : (≥ 6·k + 2,) float64 array
+        Each waveform's sample rate (Hz) and t0 (s); γ measured and commanded (rad); each reading's
+        ``echo_valid, distance, time_of_flight`` (same order); the ``m`` carried energies (V²·s), m = k or 0
+        (none to check).
+    finite_known : bool
+        The samples are known finite: a non-finite sum of squares is an overflow (the energies then
+        disagree) rather than a refusal (``_NON_FINITE``).
+    sound_speed : float
+        m/s; NaN: none stated.
+    time_ns, recovered : int, bool
+        The sample's acquisition time and origin (the acquirer's log).
+    per_capsule, per_step : (6, steps, k), (5, steps) float64 arrays
+        The scan's blocks (:data:`_PER_CAPSULE`, :data:`_PER_STEP`).
+    acquired_ns, received, recovered_mask : (steps,) arrays
+        The scan's ``time_ns``, ``received``, ``recovered_mask``.
+
+    Returns
+    -------
+    int
+        A refusal (< 0, nothing written), else ``_AGREED`` if the carried energies were each waveform's and
+        written (not written otherwise), plus twice the readings without an echo that carry a range anyway.
+    """
+    waveforms = np.frombuffer(samples, dtype=np.float32)[:k * n].reshape((k, n))
+    clocks, readings, energies = values[:2 * k], values[2 * k + 2:5 * k + 2], values[5 * k + 2:5 * k + 2 + m]
+    agreed = m == k
+    for i in range(k):
+        squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
+        if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
+            if not finite_known:
+                return _NON_FINITE
+            agreed = False
+        elif agreed:
+            agreed = energy_agrees(energies[i], float(squares), n, clocks[2 * i])
+    c = sound_speed
+    for i in range(k):
+        if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
+            return _NO_SOUND_SPEED
+    distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
+    pre_echo_peak, dc_level, range_tof_ratio = per_capsule[3], per_capsule[4], per_capsule[5]
+    unflagged = 0
+    for i in range(k):
+        d, t = readings[3 * i + 1], readings[3 * i + 2]
+        rate, t0 = clocks[2 * i], clocks[2 * i + 1]
+        ratio = np.nan
+        if readings[3 * i] != 0.0:  # echo_valid
+            if not (d > 0.0 and t > 0.0):
+                if d > 0.0:
+                    t = 2.0 * d / c
+                else:
+                    d = 0.5 * c * t
+            elif c == c:
+                ratio = d / (0.5 * c * t)
+        else:
+            if d > 0.0:  # NaN compares false: only a positive range counts
+                unflagged += 1
+            d = t = np.nan
+        distance[step, i] = d
+        if agreed:
+            sensor_energy[step, i] = energies[i]
+        row = waveforms[i]
+        echo_amplitude[step, i] = _window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
+        if sampled:
+            range_tof_ratio[step, i] = ratio
+            if n > 0:
+                pre_echo_peak[step, i] = _window_peak(row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1])
+    if sampled and n > 0:
+        _dc_levels(waveforms, dc_level[step])
+    per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
+    acquired_ns[step] = time_ns
+    received[step] = True
+    recovered_mask[step] = recovered
+    return (_AGREED if agreed else 0) + 2 * unflagged
+
+
+@kernel
+def _window_peak(row, rate, t0, round_trip, lo, hi):
+    """The largest |w| of ``row`` over the window (``lo``, ``hi``) s after ``round_trip``
+    (:func:`~lelsonar.reconstruct.energy.echo_amplitude` of one waveform: exact, in float32); NaN: none."""
+    n = row.size
+    a = echo_window_start(n, rate, t0, round_trip, lo)
+    if a < 0:
+        return np.nan
+    peak = abs(row[a])
+    for j in range(a + 1, min(a + window_samples(rate, lo, hi), n)):
+        v = abs(row[j])
+        if v > peak:
+            peak = v
+    return float(peak)
+
+
+@kernel
+def _dc_levels(waveforms, out):
+    """|mean| of each float32 waveform (row), V, into ``out``, bit for bit what ``np.mean(..., axis=-1,
+    dtype=np.float64)`` gives: that sums the samples in float64 in order (through its cast, not pairwise).
+
+    In-order float64 additions cannot run side by side without changing the rounding, so they are done
+    exactly instead where they can be: scaled by 2^s so that each sample is an integer and all of them
+    together stay below 2^52, the samples add up in int64 (side by side), and every partial sum of the
+    in-order float64 additions was exact too — the same number.  A waveform whose samples do not all fit
+    (a dynamic range beyond ~2^40 at ``n`` samples) is summed in order.
+    """
+    k, n = waveforms.shape
+    if n == 0:
+        return
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    for i in range(k):
+        row = waveforms[i]
+        s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
+        total, inexact = _scaled_sum(row, 2.0 ** s)
+        out[i] = _dc_level_in_order(row) if inexact else abs(float(total) * 2.0 ** -s / n)
+
+
+@kernel
+def _largest_bits(row):
+    """The largest |sample|'s float32 bit pattern (an int: its exponent in bits 23–30)."""
+    patterns = row.view(np.int32)
+    top = np.int32(0)
+    for j in range(patterns.size):
+        top = max(top, patterns[j] & np.int32(0x7FFFFFFF))
+    return top
+
+
+@kernel
+def _scaled_sum(row, scale):
+    """Σ row·scale in int64, and whether any term was not an integer."""
+    total = np.int64(0)
+    inexact = np.int64(0)
+    for j in range(row.size):
+        y = np.float64(row[j]) * scale
+        whole = np.int64(y)
+        total += whole
+        inexact |= np.int64(np.float64(whole) != y)
+    return total, inexact != 0
+
+
+@kernel
+def _dc_level_in_order(row):
+    """|mean| of a float32 waveform summed in float64 in order (:func:`_dc_levels` where it cannot be exact)."""
+    total = 0.0
+    for v in row:
+        total += float(v)
+    return abs(total / row.size)
 
 def _waveforms(waves: list, n: int) -> np.ndarray:
     """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""

@@ -11,6 +11,7 @@ import numpy as np
 
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
+from lelsonar.reconstruct.compiled import kernel
 
 __all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "PRE_ECHO_WINDOW", "waveform_energy", "waveform_energy_agrees",
            "echo_amplitude", "echo_window_starts", "echo_window_width", "window_peak", "total_energy", "fit_energy_model",
@@ -54,29 +55,36 @@ PRE_ECHO_WINDOW = (-4.0e-4, 0.0)
 
 def echo_window_width(sample_rate: float, window: tuple[float, float] = ECHO_PEAK_WINDOW) -> int:
     """Samples in :func:`echo_amplitude`'s window (at least one)."""
-    return max(int(round((window[1] - window[0]) * sample_rate)), 1)
+    return window_samples(sample_rate, window[0], window[1])
+
+
+@kernel
+def window_samples(sample_rate: float, lo: float, hi: float) -> int:
+    """:func:`echo_window_width` of the window (``lo``, ``hi``) s (compiled: the ingest's kernel uses it)."""
+    return max(int(np.rint((hi - lo) * sample_rate)), 1)
 
 
 def echo_window_starts(n_samples: int, sample_rate: float, t0: float, round_trips,
                        window: tuple[float, float] = ECHO_PEAK_WINDOW) -> list[int]:
     """First sample of :func:`echo_amplitude`'s window for each round trip, in a waveform of ``n_samples``;
-    -1 where there is none.
+    -1 where there is none (:func:`echo_window_start` of each)."""
+    return [echo_window_start(n_samples, sample_rate, t0, float(t), window[0]) for t in round_trips]
 
-    The sample nearest ``round_trip + window[0]`` (half to even), clipped at 0; none without an echo
+
+@kernel
+def echo_window_start(n_samples: int, sample_rate: float, t0: float, round_trip: float, lo: float) -> int:
+    """First sample of the window that starts ``lo`` s after ``round_trip``; -1 where there is none.
+
+    The sample nearest ``round_trip + lo`` (half to even), clipped at 0; none without an echo
     (``round_trip`` NaN, infinite or not positive) or when the window starts at or after the end.
     """
-    starts = []
-    lo = window[0]
-    for t in round_trips:
-        a = -1
-        if t > 0.0 and math.isfinite(t):
-            x = (t + lo - t0) * sample_rate
-            if x < n_samples:
-                a = round(x) if x > 0.0 else 0
-                if a >= n_samples:
-                    a = -1
-        starts.append(a)
-    return starts
+    if round_trip > 0.0 and math.isfinite(round_trip):
+        x = (round_trip + lo - t0) * sample_rate
+        if x < n_samples:
+            a = int(np.rint(x)) if x > 0.0 else 0
+            if a < n_samples:
+                return a
+    return -1
 
 
 def window_peak(windows: np.ndarray) -> np.ndarray:
@@ -170,13 +178,17 @@ def waveform_energy_agrees(waveforms: np.ndarray, sample_rate: float, energy) ->
         return False
     n = w.shape[-1]
     rate = float(sample_rate)
-    rtol, atol = 2.0 * (n + 1) * _FLOAT32_UNIT, 2.0 * n * _FLOAT32_TINY / rate
     # (a step's few values: compared in Python, which costs less than more numpy calls would)
-    for c, s in zip(energy, np.vecdot(w, w).tolist()):
-        s /= rate
-        if not (0.0 <= c < math.inf and abs(c - s) <= rtol * max(c, s) + atol):
-            return False
-    return True
+    return all(energy_agrees(float(c), s, n, rate) for c, s in zip(energy, np.vecdot(w, w).tolist()))
+
+
+@kernel
+def energy_agrees(claimed: float, sum_of_squares: float, n: int, sample_rate: float) -> bool:
+    """Whether ``claimed`` is a waveform's eq. (10) energy, given the float32 sum of its ``n`` squared samples
+    (the bound of :func:`waveform_energy_agrees`; compiled: the ingest's kernel uses it)."""
+    s = sum_of_squares / sample_rate
+    rtol, atol = 2.0 * (n + 1) * _FLOAT32_UNIT, 2.0 * n * _FLOAT32_TINY / sample_rate
+    return 0.0 <= claimed < math.inf and abs(claimed - s) <= rtol * max(claimed, s) + atol
 
 
 def total_energy(sensor_energy: np.ndarray) -> np.ndarray:

@@ -14,12 +14,20 @@ counted in :attr:`Ingest.evicted` by reason.  A message carries its origin:
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 from lelsonar import codec
-from lelsonar.errors import DecodeError, InvalidMessageError, LelsonarError, ScannerMismatchError
+from lelsonar.errors import (
+    DecodeError,
+    InvalidMessageError,
+    LelsonarError,
+    NonFiniteValueError,
+    ScannerMismatchError,
+)
 from lelsonar.reconstruct.assembly import ScanAssembly
 
 _log = logging.getLogger(__name__)
@@ -35,13 +43,17 @@ class Rejected:
     detail: str
 
 
-@dataclass(frozen=True)
-class Accepted:
-    """A message that changed a scan: its kind is "start", "sample" or "end"."""
+class Accepted(NamedTuple):
+    """A message that changed a scan: its kind is "start", "sample" or "end".  (A named tuple: one is made
+    a sample, and it costs half a frozen dataclass.)"""
 
     kind: str
     scan: ScanAssembly
     step: int | None = None
+
+
+#: Accepted((kind, scan, step)) without the named tuple's Python-level __new__ (a third of its cost).
+_accepted = functools.partial(tuple.__new__, Accepted)
 
 
 @dataclass
@@ -93,9 +105,17 @@ class Ingest:
             cls = codec.MESSAGE_TYPES.get(type_name)
             if cls is None or cls is codec.Reconstruction:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
-            samples = None  # a Sample's float32 samples as its validation joined them: not copied out again
+            samples = readings = None  # what a Sample's validation read: not read out of the message again
             if cls is codec.Sample:
-                message, samples = codec.decode_sample(payload, self.limits)
+                message, samples, readings = codec.decode_sample(payload, self.limits, defer_finite=True)
+                if samples is not None:
+                    key = (message.scanner_id, message.scan_id)
+                    scan = self.scans.get(key)  # (a scan still open is never a closed one)
+                    if scan is not None and (key_scanner is None or key[0] == key_scanner):
+                        # Straight to its scan, which checks the samples are finite in the pass that places
+                        # them, before anything else can refuse them.
+                        return [self._add(scan, message, origin, samples, readings, unchecked=True)]
+                    codec.check_joined_finite(message, samples)  # what the decoding left to this call
             else:
                 message = codec.decode(payload, cls, self.limits)
             if key_scanner is not None and message.scanner_id != key_scanner:
@@ -103,13 +123,15 @@ class Ingest:
                     f"{cls.DESCRIPTOR.name} claims scanner {message.scanner_id!r} but came on the key of scanner "
                     f"{key_scanner[:80]!r}; dropped (a forgery, or a publisher misconfigured with the wrong "
                     "--scanner-id)")
-            return self.apply(message, origin=origin, samples=samples)
+            return self.apply(message, origin=origin, samples=samples, readings=readings)
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, str(exc))]
 
-    def apply(self, message, *, origin: str = "live", samples: bytes | None = None) -> list[Accepted | Rejected]:
-        """Apply an already validated message (``origin``: "live" or "recovered"; ``samples``: a Sample's
-        float32 samples as :func:`~lelsonar.codec.decode_sample` returns them, if at hand)."""
+    def apply(self, message, *, origin: str = "live", samples: bytes | None = None,
+              readings: tuple[list, list] | None = None) -> list[Accepted | Rejected]:
+        """Apply an already validated message (``origin``: "live" or "recovered"; ``samples``, ``readings``: a
+        Sample's float32 samples and readings as :func:`~lelsonar.codec.decode_sample` returns them, if at
+        hand)."""
         key = (message.scanner_id, message.scan_id)
         if key in self.closed:
             if origin == "recovered":
@@ -124,7 +146,7 @@ class Ingest:
         if isinstance(message, codec.Sample):
             if scan is None:
                 return self._hold(key, message, origin)
-            return [self._add(scan, message, origin, samples)]
+            return [self._add(scan, message, origin, samples, readings)]
         if scan is None:  # a ScanEnd before its ScanStart: held like a sample (a late start may recover it)
             return self._hold(key, message, origin)
         if scan.end is not None:
@@ -179,19 +201,21 @@ class Ingest:
                 events += self.apply(held, origin=origin)
         return events
 
-    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live",
-             samples: bytes | None = None) -> Accepted | Rejected:
+    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live", samples: bytes | None = None,
+             readings: tuple[list, list] | None = None, unchecked: bool = False) -> Accepted | Rejected:
         mismatches = scan.energy_mismatches
         try:
-            if not scan.add(sample, origin, samples):
+            if not scan.add(sample, origin, samples, readings, unchecked=unchecked):
                 return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
+        except NonFiniteValueError:
+            raise  # the decoding's refusal (left to add), not the scan's: counted as accept counts it
         except DecodeError as exc:
             scan.rejected[type(exc).__name__] += 1
             return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
         # Counted here, as they happen (the stats read one number, never the open scans a worker changes).
         self.energy_mismatches += scan.energy_mismatches - mismatches
         self.accepted += 1
-        return Accepted("sample", scan, sample.step)
+        return _accepted(("sample", scan, sample.step))
 
     def _hold(self, key: ScanKey, message: codec.Sample | codec.ScanEnd,
               origin: str = "live") -> list[Accepted | Rejected]:

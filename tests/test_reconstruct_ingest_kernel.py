@@ -1,0 +1,102 @@
+"""The ingest stage's one pass a sample (``assembly._place_step``) refuses, counts and computes what decoding
+and the NumPy code before it did: the truth each time is ``codec.decode``'s verdict on the same payload, or
+NumPy's own arithmetic on the same samples."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lelsonar import codec
+from lelsonar.errors import NonFiniteValueError
+from lelsonar.reconstruct.assembly import _dc_levels
+from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected
+
+from .conftest import simulated_messages
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return simulated_messages("paper-test1", seed=7, steps=24)
+
+
+def _name(m) -> str:
+    return m.DESCRIPTOR.full_name
+
+
+def _with_nan(sample, step: int | None = None):
+    bad = type(sample)()
+    bad.CopyFrom(sample)
+    if step is not None:
+        bad.step = step
+    w = bad.sensors[2].waveform
+    v = np.frombuffer(w.data, dtype="<f4").copy()
+    v[123] = np.nan
+    w.data = v.tobytes()
+    return bad
+
+
+@pytest.mark.parametrize("kind", range(5))
+@pytest.mark.parametrize("n", [1, 7, 8, 9, 127, 128, 129, 3500, 8193])
+def test_dc_levels_are_numpys_mean_bit_for_bit(n, kind):
+    rng = np.random.default_rng(1000 * kind + n)
+    w = [rng.standard_normal((4, n)),                                 # a float32 dynamic range: summed in order
+         np.round(rng.standard_normal((4, n)) * 500) * (3.3 / 4096),  # ADC codes in volts: summed exactly
+         rng.integers(-2048, 2048, (4, n)) * 2.0 ** -11 + 0.25,       # with an offset
+         np.where(rng.random((4, n)) < 0.5, 1e-40, 0.0),              # subnormal
+         rng.standard_normal((4, n)) * 1e30][kind].astype(np.float32)
+    got = np.zeros(4)
+    _dc_levels(w, got)
+    np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
+
+
+def test_non_finite_samples_are_refused_as_decoding_refuses_them_whatever_else_is_wrong(scan):
+    """A NaN sample on a scan's fast path, for a step already placed, beyond the schedule, or on another
+    scanner's key: refused as NonFiniteValueError (what codec.decode says of it), counted once, never as the
+    scan's, and nothing of it placed."""
+    start, samples = scan[0], scan[1:-1]
+    ingest = Ingest()
+    ingest.accept(_name(start), start.SerializeToString())
+    (routed,) = ingest.scans.values()
+    for m in samples[:4]:
+        (ev,) = ingest.accept(_name(m), m.SerializeToString())
+        assert isinstance(ev, Accepted)
+    cases = [(_with_nan(samples[5]), {}), (_with_nan(samples[2]), {}), (_with_nan(samples[6], step=4000), {}),
+             (_with_nan(samples[7]), {"key_scanner": "another"})]
+    for i, (bad, kwargs) in enumerate(cases, 1):
+        payload = bad.SerializeToString()
+        with pytest.raises(NonFiniteValueError) as truth:
+            codec.decode(payload, codec.Sample)
+        (ev,) = ingest.accept(_name(bad), payload, **kwargs)
+        assert isinstance(ev, Rejected) and (ev.error, ev.detail) == ("NonFiniteValueError", str(truth.value))
+        assert ingest.rejected == {"NonFiniteValueError": i}
+    assert not routed.rejected and routed.duplicates == 0
+    assert routed.n_received == 4 and not routed.received[5:].any()
+    # the same steps, finite, are placed
+    for m in samples[4:8]:
+        (ev,) = ingest.accept(_name(m), m.SerializeToString())
+        assert isinstance(ev, Accepted) and ev.step == m.step
+
+
+def test_squares_that_overflow_float32_are_not_refused_and_the_energy_is_recomputed(scan):
+    """Finite samples of 1e25 V: their float32 squares overflow, which is no reason to refuse them; the carried
+    energy cannot be checked in float32, so it is recomputed (eq. 10 in float64) and counted."""
+    start, sample = scan[0], scan[3]
+    big = type(sample)()
+    big.CopyFrom(sample)
+    w = big.sensors[0].waveform
+    v = np.frombuffer(w.data, dtype="<f4").copy()
+    v[:10] = 1e25
+    w.data = v.tobytes()
+    truth = (v.astype(np.float64) ** 2).sum() / w.sample_rate
+    e = list(big.sensor_energy)
+    e[0] = truth
+    del big.sensor_energy[:]
+    big.sensor_energy.extend(e)
+    codec.decode(big.SerializeToString(), codec.Sample)  # valid
+    ingest = Ingest()
+    ingest.accept(_name(start), start.SerializeToString())
+    (ev,) = ingest.accept(_name(big), big.SerializeToString())
+    assert isinstance(ev, Accepted)
+    assert ingest.energy_mismatches == 1
+    assert ev.scan.sensor_energy[big.step, 0] == pytest.approx(truth, rel=1e-12)
