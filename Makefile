@@ -11,6 +11,7 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	$(BIN)/lelsonar warm-up
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -26,4 +27,4 @@ protos: $(STAMP)
 	$(BIN)/python -m lelsonar.tools.gen_protos
 
 clean:
-	rm -rf out build *.egg-info .pytest_cache .hypothesis
+	rm -rf out build *.egg-info .pytest_cache .hypothesis services/reconstruct/__pycache__/numba-*

@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "lelsonar.bridge.cli",
     "lelsonar.tools.demo",
     "lelsonar.tools.bench",
+    "lelsonar.tools.warm_up",
 )
 
 

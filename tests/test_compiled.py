@@ -1,0 +1,34 @@
+"""The compiled kernels' cache: complete, keyed to the sources, and reused by a new process."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import lelsonar.reconstruct as package
+from lelsonar.reconstruct.compiled import KERNEL_MODULES
+
+
+def test_every_module_with_a_kernel_is_in_the_cache_key():
+    """A kernel calling another module's kernel keeps that module's machine code: if the module is left out of
+    the key, editing it leaves stale code in the cache."""
+    with_kernels = {p.name for p in Path(package.__file__).parent.glob("*.py")
+                    if re.search(r"^@kernel\b", p.read_text(), re.MULTILINE)}
+    assert with_kernels == set(KERNEL_MODULES)
+
+
+def _warm_up() -> str:
+    done = subprocess.run([sys.executable, "-m", "lelsonar", "warm-up"], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    return " ".join(done.stderr.split())
+
+
+def test_a_new_process_loads_the_kernels_the_warm_up_compiled():
+    _warm_up()  # compiles only if nothing has since the sources last changed (`make` warms up after installing)
+    second = _warm_up()
+    found = re.search(r"(\d+) kernels, (\d+) compiled and (\d+) loaded from the cache", second)
+    assert found, second
+    n_kernels, compiled, loaded = map(int, found.groups())
+    assert n_kernels > 0 and compiled == 0 and loaded > 0, second

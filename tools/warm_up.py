@@ -1,0 +1,64 @@
+"""`lelsonar warm-up`: compile the numeric kernels once, so the first `reconstruct` does not.
+
+Numba compiles a kernel on its first call and keeps the machine code on disk
+(:mod:`lelsonar.reconstruct.compiled`).  Compiling all of them takes ~40 s on
+two cores, once per install or edit; `make` runs this right after installing.
+It replays a short simulated recording through the service twice — the finals
+of `reconstruct --source` (with the compared methods), then the live path's
+provisional estimates — so every kernel meets the argument types it meets in
+use, and says how many it compiled and how many it found compiled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import tempfile
+import time
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("warm-up", help="compile the numeric kernels ahead (once after an install or an edit)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.set_defaults(run=run_warm_up)
+
+
+def kernels() -> dict[str, object]:
+    """Every kernel of the reconstruct package, by qualified name."""
+    from numba.core.registry import CPUDispatcher
+
+    from lelsonar.reconstruct.compiled import KERNEL_MODULES
+
+    found = {}
+    for file in KERNEL_MODULES:
+        module = importlib.import_module(f"lelsonar.reconstruct.{file.removesuffix('.py')}")
+        found.update({f"{module.__name__}.{name}": obj for name, obj in vars(module).items()
+                      if isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == module.__name__})
+    return found
+
+
+def run_warm_up(args: argparse.Namespace) -> int:
+    from lelsonar.reconstruct import present
+    from lelsonar.reconstruct.compiled import cache_dir
+    from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.sources import replay_mcap
+    from lelsonar.tools.bench_ingest import record_scans
+
+    console = present.console(stderr=True)
+    t0 = time.perf_counter()
+    with console.status("compiling the numeric kernels (~40 s the first time after an install or an edit)…"), \
+            tempfile.TemporaryDirectory(prefix="lelsonar-warm-up-") as tmp:
+        path = Path(tmp) / "warm-up.mcap"
+        record_scans(path, "paper-test1", 1)
+        for provisional in (False, True):
+            replay_mcap(path, ReconstructionService(ReconstructConfig(provisional=provisional)))
+    found = kernels()
+    # Counts of the kernels Python calls (by argument types); a kernel called only from kernels is compiled
+    # into its callers.
+    compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
+    loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
+    console.print(f"warm-up: {len(found)} kernels, {compiled} compiled and {loaded} loaded from the cache in "
+                  f"{time.perf_counter() - t0:.1f} s ({cache_dir() or 'Numba default cache'}); the others are "
+                  "compiled into the kernels that call them")
+    return 0
