@@ -59,7 +59,8 @@ from lelsonar.reconstruct.energy import (
     waveform_energy_agrees,
     window_peak,
 )
-from lelsonar.reconstruct.quality import DEGRADED, UNRELIABLE
+from lelsonar.reconstruct.echo_timing import RangeWalk, TimingWindows, range_walk, walk_finding, walk_free_ranges
+from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
 _log = logging.getLogger(__name__)
@@ -232,6 +233,7 @@ class ScanAssembly:
         self._windows: dict[int, tuple[list[bytes], list[int]]] = {}
         self._pre_windows: dict[int, tuple[list[bytes], list[int]]] = {}  # the same, just before (sampled steps)
         self._widths: dict[tuple[float, tuple[float, float]], int] = {}  # window width by (sample rate, window)
+        self._timing = TimingWindows()  # each reading's window around its time of flight, re-timed when settled
         # The latest step placed: (step, time_ns, gamma, (k, n) float32 bytes, shape), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -254,6 +256,8 @@ class ScanAssembly:
         self._echo_amplitude = grown("_echo_amplitude", (k,), np.nan)  # (steps, k) V, first echo's peak; NaN: none
         self._pre_echo_peak = grown("_pre_echo_peak", (k,), np.nan)    # (steps, k) V, peak just before it; NaN: none
         self.dc_level = grown("dc_level", (k,), np.nan)
+        self._onset = grown("_onset", (k,), np.nan)            # (steps, k) s, constant-fraction time − tof; NaN: none
+        self._onset_peak = grown("_onset_peak", (k,), np.nan)  # (steps, k) V, that echo's envelope peak
         self.range_tof_ratio = grown("range_tof_ratio", (k,), np.nan)
         self._step_energy = grown("_step_energy", (), 0.0)            # (steps,) E^γ, eq. 11
         self._expected_energy = grown("_expected_energy", (), 0.0)    # (steps,) E0(d_m), eq. 12
@@ -427,6 +431,7 @@ class ScanAssembly:
         # The first echoes' peak windows (and, on a sampled step, the windows just before them, and each
         # waveform's DC level), cut out of the samples now and reduced with the other steps' later.
         self._cut(self._windows, step, joined, n, rate, t0, clocks, tof, ECHO_PEAK_WINDOW)
+        self._timing.cut(step, joined, n, rate, t0, clocks, tof)
         if sampled:
             self.range_tof_ratio[step] = agree
             if n > 0:
@@ -533,6 +538,7 @@ class ScanAssembly:
         """Work out, for the steps placed since the last call and all at once, the first echoes' peaks and the
         peaks just before them (from the windows cut out by :meth:`add`), E^γ (eq. 11), E0(d_m) (eq. 12) and
         R (§4)."""
+        self._timing.reduce(self._onset, self._onset_peak)
         for store, peaks in ((self._windows, self._echo_amplitude), (self._pre_windows, self._pre_echo_peak)):
             if store:
                 flat = peaks.reshape(-1)
@@ -566,12 +572,27 @@ class ScanAssembly:
         gamma = self.gamma_commanded if self.gamma_unmeasured else self.gamma
         return steps, gamma[steps], self.distance[steps], self.ratio[steps]
 
+    def range_walk(self) -> tuple[RangeWalk, np.ndarray]:
+        """Whether the writer's ranges walk with the echoes' amplitude (:func:`~lelsonar.reconstruct.echo_timing.
+        range_walk`), and each received step's offsets (writer's range − re-timed, m; NaN: not timed)."""
+        self.settle()
+        steps = np.flatnonzero(self.received)
+        offset = -0.5 * (self.sound_speed or math.nan) * self._onset[steps]
+        return range_walk(offset, self._onset_peak[steps]), offset
+
+    def walk_free(self, distance: np.ndarray) -> np.ndarray:
+        """:meth:`arrays`' ``distance`` re-timed from the waveforms where the writer's ranges walk with the
+        echoes' amplitude (:func:`~lelsonar.reconstruct.echo_timing.walk_free_ranges`), else as it is."""
+        walk, offset = self.range_walk()
+        return walk_free_ranges(distance, offset, self._onset_peak[np.flatnonzero(self.received)], walk)
+
     def writer_problems(self) -> list[tuple[str | None, str]]:
         """What the scan's writer left unset or stated otherwise than the contract, each with its fix.
 
         Returns ``(level, text)`` pairs: ``level`` is the verdict the problem imposes on every plane of the
-        scan (``"degraded"``, ``"unreliable"``), or None where the estimate does not suffer (a fallback was
-        taken) or there is no plane to judge.
+        scan (``"degraded"``, ``"unreliable"``), ``"good"`` for what every plane names without its verdict
+        lowered (ranges re-timed, :meth:`walk_free`), or None where the estimate does not suffer (a fallback
+        was taken) or there is no plane to judge.
         """
         out: list[tuple[str | None, str]] = []
         got = self.received
@@ -598,6 +619,9 @@ class ScanAssembly:
                                     f"×{np.median(rise):.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): "
                                     "the ranges do not match the waveforms (distance is one way, time_of_flight "
                                     "the round trip from firing, waveform.t0 the first sample's time)"))
+        walk, _ = self.range_walk()
+        if walk.detected:  # re-timed (walk_free): named on every plane, the verdict left to the fit
+            out.append((GOOD, walk_finding(walk)))
         c_air = air_sound_speed(self.start)
         if self.start.sound_speed > 0 and c_air is not None and \
                 abs(self.start.sound_speed / c_air - 1.0) > SOUND_SPEED_TOLERANCE:
