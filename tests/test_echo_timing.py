@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import Receiver, SimConfig, simulate_scan
+from lelsonar.acquire.sim import SimConfig, simulate_scan
 from lelsonar.acquire.sim.acoustics import comparator_delay, echo_envelope
 from lelsonar.acquire.sim.presets import preset as preset_config
 from lelsonar.acquire.sim.presets import preset_names
