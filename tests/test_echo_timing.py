@@ -56,24 +56,23 @@ def test_a_crossing_board_reads_weaker_echoes_farther_by_its_delay_and_an_onset_
 # ----------------------------------------------------------------------------- constant-fraction timing
 def _bursts(shape: str, peaks: np.ndarray, rng: np.random.Generator, rate: float = 200_000.0,
             threshold: float = 0.05, noise: float = 0.002):
-    """Windows holding one 40 kHz burst each at a known arrival, timed as a threshold-crossing board would."""
+    """Windows holding one 40 kHz burst each at a known arrival, cut around the time a threshold-crossing board
+    would report: (windows, that time and the arrival after each window's first sample)."""
     width = int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0]) * rate))
-    t = np.arange(width) / rate
-    arrival = 0.45e-3 + rng.uniform(0, 1 / rate, peaks.size)  # s after each window's first sample
-    u = t[None, :] - arrival[:, None]
+    arrival = 5e-3 + rng.uniform(0, 1 / rate, peaks.size)  # s after firing
     if shape == "rise":  # the simulator's envelope, τ = 0.15 ms
-        env = echo_envelope(u, 0.15e-3)
         cross = arrival + comparator_delay(peaks, threshold, 0.15e-3)
     else:  # a 0.3 ms Hann burst (tests/foreign_scenes.py)
         length = 0.3e-3
-        env = np.where((u >= 0) & (u <= length), np.sin(np.pi * np.clip(u, 0, length) / length) ** 2, 0.0)
         cross = arrival + length / np.pi * np.arcsin(np.sqrt(threshold / peaks))
+    first = np.round((cross + TIMING_WINDOW[0]) * rate) / rate  # the window's first sample, on the clock
+    u = first[:, None] + np.arange(width) / rate - arrival[:, None]
+    if shape == "rise":
+        env = echo_envelope(u, 0.15e-3)
+    else:
+        env = np.where((u >= 0) & (u <= length), np.sin(np.pi * np.clip(u, 0, length) / length) ** 2, 0.0)
     w = peaks[:, None] * env * np.sin(2 * np.pi * 40_000.0 * np.maximum(u, 0)) + rng.normal(0, noise, env.shape)
-    # The window starts TIMING_WINDOW[0] before the board's time of flight.
-    start = cross + TIMING_WINDOW[0]
-    shift = np.round(start * rate).astype(int)
-    out = np.stack([np.roll(row, -s) for row, s in zip(w, shift)])
-    return out, cross - shift / rate, arrival - shift / rate
+    return w, cross - first, arrival - first
 
 
 @pytest.mark.parametrize("shape", ["rise", "hann"])
@@ -81,7 +80,7 @@ def test_constant_fraction_times_a_burst_whatever_its_strength(shape):
     rng = np.random.default_rng(11)
     peaks = np.exp(rng.uniform(math.log(0.06), math.log(1.5), 300))
     windows, tof_at, arrival_at = _bursts(shape, peaks, rng)
-    onset, peak = echo_onsets(windows, 200_000.0, tof_at)
+    onset, peak, edge = echo_onsets(windows, 200_000.0, tof_at)
     assert np.isfinite(onset).all()
     lag = tof_at + onset - arrival_at  # constant-fraction time after the true arrival
     walk = tof_at - arrival_at  # the board's
@@ -168,7 +167,7 @@ def test_our_default_board_shows_no_walk(preset):
             if 0 <= a and a + width <= scan.waveforms.shape[-1]:
                 rows.append(scan.waveforms[i, j, a:a + width])
                 at.append(t - (scan.t0 + a / rate))
-        onset, peak = echo_onsets(np.array(rows), rate, np.array(at))
+        onset, peak, edge = echo_onsets(np.array(rows), rate, np.array(at))
         assert np.isfinite(onset).mean() > 0.9
         walk = range_walk(-scan.sound_speed / 2 * onset, peak)
         assert not walk.detected, (preset, seed, walk)

@@ -59,7 +59,8 @@ from lelsonar.reconstruct.energy import (
     waveform_energy_agrees,
     window_peak,
 )
-from lelsonar.reconstruct.echo_timing import RangeWalk, TimingWindows, range_walk, walk_finding, walk_free_ranges
+from lelsonar.reconstruct.echo_timing import (RangeWalk, TimingWindows, range_walk, typical_edges, walk_finding,
+                                              walk_free_ranges)
 from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
@@ -256,8 +257,8 @@ class ScanAssembly:
         self._echo_amplitude = grown("_echo_amplitude", (k,), np.nan)  # (steps, k) V, first echo's peak; NaN: none
         self._pre_echo_peak = grown("_pre_echo_peak", (k,), np.nan)    # (steps, k) V, peak just before it; NaN: none
         self.dc_level = grown("dc_level", (k,), np.nan)
-        self._onset = grown("_onset", (k,), np.nan)            # (steps, k) s, constant-fraction time − tof; NaN: none
-        self._onset_peak = grown("_onset_peak", (k,), np.nan)  # (steps, k) V, that echo's envelope peak
+        # (steps, k, 3) each echo re-timed from its waveform (echo_timing.echo_onsets): onset − tof (s), peak (V), edge (s)
+        self._echo_timing = grown("_echo_timing", (k, 3), np.nan)
         self.range_tof_ratio = grown("range_tof_ratio", (k,), np.nan)
         self._step_energy = grown("_step_energy", (), 0.0)            # (steps,) E^γ, eq. 11
         self._expected_energy = grown("_expected_energy", (), 0.0)    # (steps,) E0(d_m), eq. 12
@@ -538,7 +539,7 @@ class ScanAssembly:
         """Work out, for the steps placed since the last call and all at once, the first echoes' peaks and the
         peaks just before them (from the windows cut out by :meth:`add`), E^γ (eq. 11), E0(d_m) (eq. 12) and
         R (§4)."""
-        self._timing.reduce(self._onset, self._onset_peak)
+        self._timing.reduce(self._echo_timing)
         for store, peaks in ((self._windows, self._echo_amplitude), (self._pre_windows, self._pre_echo_peak)):
             if store:
                 flat = peaks.reshape(-1)
@@ -572,19 +573,24 @@ class ScanAssembly:
         gamma = self.gamma_commanded if self.gamma_unmeasured else self.gamma
         return steps, gamma[steps], self.distance[steps], self.ratio[steps]
 
-    def range_walk(self) -> tuple[RangeWalk, np.ndarray]:
+    def range_walk(self) -> tuple[RangeWalk, np.ndarray, np.ndarray, np.ndarray]:
         """Whether the writer's ranges walk with the echoes' amplitude (:func:`~lelsonar.reconstruct.echo_timing.
-        range_walk`), and each received step's offsets (writer's range − re-timed, m; NaN: not timed)."""
+        range_walk`, on the echoes of a typical shape), and each received step's offsets (writer's range −
+        re-timed, m; NaN: not timed), peaks (V; NaN: no echo found) and whether its shape is typical
+        (:func:`~lelsonar.reconstruct.echo_timing.typical_edges`)."""
         self.settle()
-        steps = np.flatnonzero(self.received)
-        offset = -0.5 * (self.sound_speed or math.nan) * self._onset[steps]
-        return range_walk(offset, self._onset_peak[steps]), offset
+        onset, peak, edge = np.moveaxis(self._echo_timing[np.flatnonzero(self.received)], -1, 0)
+        typical = typical_edges(edge)
+        offset = -0.5 * (self.sound_speed or math.nan) * onset
+        shown = typical | np.isnan(onset)  # clipped echoes count as found but untimed
+        walk = range_walk(np.where(typical, offset, np.nan), np.where(shown, peak, np.nan))
+        return walk, offset, peak, typical
 
     def walk_free(self, distance: np.ndarray) -> np.ndarray:
         """:meth:`arrays`' ``distance`` re-timed from the waveforms where the writer's ranges walk with the
         echoes' amplitude (:func:`~lelsonar.reconstruct.echo_timing.walk_free_ranges`), else as it is."""
-        walk, offset = self.range_walk()
-        return walk_free_ranges(distance, offset, self._onset_peak[np.flatnonzero(self.received)], walk)
+        walk, offset, peak, _ = self.range_walk()
+        return walk_free_ranges(distance, offset, peak, walk)
 
     def writer_problems(self) -> list[tuple[str | None, str]]:
         """What the scan's writer left unset or stated otherwise than the contract, each with its fix.
@@ -619,7 +625,7 @@ class ScanAssembly:
                                     f"×{np.median(rise):.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): "
                                     "the ranges do not match the waveforms (distance is one way, time_of_flight "
                                     "the round trip from firing, waveform.t0 the first sample's time)"))
-        walk, _ = self.range_walk()
+        walk = self.range_walk()[0]
         if walk.detected:  # re-timed (walk_free): named on every plane, the verdict left to the fit
             out.append((GOOD, walk_finding(walk)))
         c_air = air_sound_speed(self.start)

@@ -34,8 +34,8 @@ from scipy.signal import hilbert
 
 from lelsonar.errors import ConfigError
 
-__all__ = ["TIMING_WINDOW", "CONSTANT_FRACTION", "TimingWindows", "echo_onsets", "RangeWalk", "range_walk",
-           "walk_free_ranges", "walk_finding"]
+__all__ = ["TIMING_WINDOW", "CONSTANT_FRACTION", "TimingWindows", "echo_onsets", "typical_edges", "RangeWalk",
+           "range_walk", "walk_free_ranges", "walk_finding"]
 
 #: Where an echo is re-timed, s around the writer's time of flight.  A threshold crossing lies up to one
 #: envelope rise after the onset (a 0.3–0.6 ms burst rises for half its length), so the onset may lie well
@@ -51,6 +51,10 @@ _FLOOR_TIME = 1.0e-4
 #: noise σ above the floor.
 _PEAK_HALF_WIDTH = 5.0e-5
 _PEAK_SIGMA = 8.0
+#: The rising edge's span that measures an echo's shape (:func:`typical_edges`), as shares of its peak, and
+#: how far from the scan's median it may lie: weak echoes' noise moves the 20 % point by ~10 %.
+_EDGE = (0.2, 0.8)
+_EDGE_TOLERANCE = 0.3
 #: Share of its steepest rise under which a slowing rise marks the echo's own peak inside a merged hump.
 _KNEE = 0.3
 #: Carrier the envelope is smoothed over (one period); 40 kHz capsules (paper §3).
@@ -86,19 +90,18 @@ class TimingWindows:
             where.append(step * k + i)
             at.append(t - (t_start + a / r))
 
-    def reduce(self, onset: np.ndarray, peak: np.ndarray) -> None:
-        """Time every held window (:func:`echo_onsets`) into the flat (steps, k) ``onset`` (s after the time of
-        flight) and ``peak`` (V); forget them."""
-        flat_onset, flat_peak = onset.reshape(-1), peak.reshape(-1)
+    def reduce(self, timing: np.ndarray) -> None:
+        """Time every held window (:func:`echo_onsets`) into the (steps, k, 3) ``timing``: each echo's onset (s
+        after the time of flight), peak (V) and edge (s); forget them."""
+        flat = timing.reshape(-1, 3)
         for (rate, width), (chunks, where, at) in self._held.items():
             w = np.frombuffer(b"".join(chunks), dtype="<f4").reshape(-1, width)
-            o, p = echo_onsets(w, rate, np.array(at))
-            flat_onset[where], flat_peak[where] = o, p
+            flat[where] = np.stack(echo_onsets(w, rate, np.array(at)), axis=-1)
         self._held.clear()
 
 
 def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
-                fraction: float = CONSTANT_FRACTION) -> tuple[np.ndarray, np.ndarray]:
+                fraction: float = CONSTANT_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Constant-fraction time of the echo that set each reading's time of flight (design notes §8).
 
     The envelope is the analytic signal's modulus (Hilbert transform) of each window less its floor's
@@ -128,15 +131,18 @@ def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
     peak : (N,) array
         The echo's envelope peak over the floor, V (of a clipped echo: the clipped envelope's); NaN where no
         echo was found.
+    edge : (N,) array
+        s from 20 % to 80 % of the peak on the rising edge: the echo's shape (:func:`typical_edges`); NaN where
+        not timed.
     """
     if not 0.0 < fraction < 1.0:
         raise ConfigError(f"the constant fraction must be in (0, 1), got {fraction}")
     w = np.asarray(windows, dtype=np.float64)
     n, width = w.shape
-    onset, peak = np.full(n, np.nan), np.full(n, np.nan)
+    onset, peak, edge = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
     head = max(int(round(_FLOOR_TIME * sample_rate)), 4)
     if n == 0 or width < 2 * head:
-        return onset, peak
+        return onset, peak, edge
     hi, lo = w.max(axis=-1, keepdims=True), w.min(axis=-1, keepdims=True)
     # A converter's rail: two consecutive samples at the window's extreme (a flat top), or three samples at
     # the extreme of all the windows (at 5 samples a carrier cycle a clipped cycle may hold only one).
@@ -166,19 +172,28 @@ def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
     period = max(int(round(sample_rate / _CARRIER)), 1)
     rise = np.zeros_like(env)
     rise[:, period:] = env[:, period:] - env[:, :-period]
-    edge = (idx >= j[:, None]) & (idx <= k_peak[:, None])
-    steepest = np.argmax(np.where(edge, rise, -np.inf), axis=-1)
+    rising = (idx >= j[:, None]) & (idx <= k_peak[:, None])
+    steepest = np.argmax(np.where(rising, rise, -np.inf), axis=-1)
     top = (idx >= steepest[:, None]) & (idx <= k_peak[:, None])
     knee = np.argmin(np.where(top, rise, np.inf), axis=-1)
-    merged = (knee < k_peak - period) & (rise[rows, knee] < _KNEE * rise[rows, steepest])
+    # ... and the hump rises again after the knee by more than the noise could (a noisy rise on a weak echo
+    # can dip anywhere near its top).
+    merged = ((knee < k_peak - period) & (rise[rows, knee] < _KNEE * rise[rows, steepest])
+              & (env[rows, k_peak] - env[rows, knee] > np.maximum(0.2 * (env[rows, knee] - floor), _PEAK_SIGMA * sigma)))
     k_peak = np.where(merged, knee, k_peak)
     j, crossing = _fraction_crossing(env, floor, k_peak, fraction)
     p = env[rows, k_peak]
+    # An earlier echo under the threshold still ringing in the window's first 0.1 ms: this echo rises on its
+    # tail, from no floor the fraction can be taken over.  Neither timed nor given a peak (the writer's range
+    # stands).
+    found &= floor <= np.median(floor) + _PEAK_SIGMA * np.median(sigma)
     peak[found] = (p - floor)[found]
     found &= (j >= head // 2) & ~clipped  # the edge starts inside the window, after the floor's stretch began
     t = crossing / sample_rate - np.asarray(tof_at, dtype=np.float64)
     onset[found] = t[found]
-    return onset, peak
+    low, high = (_fraction_crossing(env, floor, k_peak, f)[1] for f in _EDGE)
+    edge[found] = ((high - low) / sample_rate)[found]
+    return onset, peak, edge
 
 
 def _fraction_crossing(env: np.ndarray, floor: np.ndarray, k_peak: np.ndarray, fraction: float
@@ -193,6 +208,29 @@ def _fraction_crossing(env: np.ndarray, floor: np.ndarray, k_peak: np.ndarray, f
     e0, e1 = env[rows, jj], env[rows, np.minimum(jj + 1, env.shape[1] - 1)]
     with np.errstate(divide="ignore", invalid="ignore"):
         return j, jj + (level - e0) / (e1 - e0)
+
+
+def typical_edges(edge: np.ndarray) -> np.ndarray:
+    """Which echoes have the scan's usual shape: a rising edge (``edge``, :func:`echo_onsets`) within 30 % of
+    the median's.
+
+    Constant-fraction times are amplitude-free only for echoes of one shape.  Two echoes a few mm apart
+    (a wall's mirror echo and the corner's double bounce near the edge's direction) interfere into an
+    envelope of another shape, weaker for cancelling, timed elsewhere: left in, they make a board that times
+    the onset look as if it walked.  Their edge is shorter or longer than the lone echoes'.
+
+    Returns
+    -------
+    (N,) bool array
+        False where the edge is NaN or atypical.
+    """
+    e = np.asarray(edge, dtype=np.float64)
+    ok = np.isfinite(e)
+    if not ok.any():
+        return ok
+    typical = np.median(e[ok])
+    with np.errstate(invalid="ignore"):
+        return ok & (np.abs(e - typical) <= _EDGE_TOLERANCE * typical)
 
 
 @dataclass(frozen=True)
@@ -250,6 +288,8 @@ _PER_BIN = 24
 #: An echo whose own offset is this many robust σ of its bin off the curve is re-timed by the curve
 #: instead (its window held a neighbour's echo, or the writer's comparator slipped a cycle).
 _TRUST = 3.0
+#: Standard errors the walk must stand out by among the weaker and among the stronger half of the echoes.
+_HALF_Z = 3.0
 #: Standard errors the walk must stand out by: a flat writer (onset-timed) passes it by chance once in
 #: ~30 000 scans (one-sided normal tail at 4σ).
 WALK_Z = 4.0
@@ -282,20 +322,35 @@ def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WA
         o, a = o[keep], a[keep]
     if o.size < MIN_TIMED or np.ptp(a) <= 0:
         return RangeWalk(int(o.size), math.nan, math.nan, 0.0, 0.0, False, untimed)
-    am = a - a.mean()
-    sxx = float(am @ am)
-    slope = float(am @ (o - o.mean())) / sxx
-    resid = o - o.mean() - slope * am
-    stderr = math.sqrt(float(resid @ resid) / (o.size - 2) / sxx)
+    slope, stderr = _line(a, o)
     lo, hi = np.percentile(a, [10.0, 90.0])
     walk = -slope * float(hi - lo)
     strong = a >= np.percentile(a, 75.0)
     reference = float(np.median(o[strong]))
-    detected = walk > min_walk and -slope > z * stderr
+    # A comparator's delay falls as 1/√A well above its threshold, so its walk runs through the weaker and
+    # the stronger half of the echoes alike.  A trend in one half only is something else: a wall's echo and
+    # the corner's a few mm apart (near the edge's direction) add into an envelope of another timing, weak
+    # where they cancel, strong where they add, which would make a board that times the onset look as if
+    # it walked.
+    upper = a >= np.median(a)
+    halves = [_line(a[h], o[h]) for h in (~upper, upper)]
+    detected = (walk > min_walk and -slope > z * stderr
+                and all(-s_h > _HALF_Z * se_h for s_h, se_h in halves))
     bins = np.array_split(np.argsort(a), min(10, max(o.size // _PER_BIN, 2)))
     curve = tuple((float(np.median(a[b])), float(np.median(o[b])),
                    1.4826 * float(np.median(np.abs(o[b] - np.median(o[b]))))) for b in bins)
     return RangeWalk(int(o.size), slope, stderr, walk, reference, bool(detected), untimed, curve)
+
+
+def _line(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Least-squares slope of ``y`` against ``x`` and its standard error from the scatter (NaN: too few)."""
+    if x.size < 3 or np.ptp(x) <= 0:
+        return math.nan, math.nan
+    xm = x - x.mean()
+    sxx = float(xm @ xm)
+    slope = float(xm @ (y - y.mean())) / sxx
+    resid = y - y.mean() - slope * xm
+    return slope, math.sqrt(float(resid @ resid) / (x.size - 2) / sxx)
 
 
 def walk_free_ranges(distance: np.ndarray, offset: np.ndarray, peak: np.ndarray, walk: RangeWalk) -> np.ndarray:
@@ -303,24 +358,30 @@ def walk_free_ranges(distance: np.ndarray, offset: np.ndarray, peak: np.ndarray,
 
     The strongest echoes keep their range (``reference`` is their median offset), so the planes keep the
     writer's zero; each weaker echo moves by what its crossing came later than theirs.  An echo whose own
-    offset lies over 3 robust σ from the walk's :attr:`~RangeWalk.curve` at its peak (its window also held a
-    later echo that merged with its rise, or the writer slipped a cycle) moves by the curve instead, where its
-    peak lies within the curve's span.  Echoes that were not timed (no waveform, clipped) keep the writer's range.  Unchanged
-    when ``walk.detected`` is False.
+    offset lies over 3 robust σ from the walk's :attr:`~RangeWalk.curve` within its span (its window also
+    held a later echo that merged with its rise, or the writer slipped a cycle) moves by the curve at its
+    peak instead.  (An echo of atypical shape, :func:`typical_edges`, stays out of the test and the curve,
+    but is timed as well as the others where it agrees with them.)  An echo found but clipped has walked by an unknown amount and is left out (NaN); one
+    not found in its window (no waveform) keeps the writer's range.  Unchanged when ``walk.detected`` is
+    False.
 
     Parameters
     ----------
     distance, offset, peak : arrays of one shape
-        m, m, V: the writer's ranges, :func:`range_walk`'s offsets and peaks (NaN: not timed).
+        m, m, V: the writer's ranges, :func:`range_walk`'s offsets (NaN: not timed) and peaks (NaN: no echo
+        found).
     walk : RangeWalk
     """
     d = np.asarray(distance, dtype=np.float64)
     if not walk.detected:
         return d
     o = np.asarray(offset, dtype=np.float64)
-    expected, spread, inside = walk.expected(peak)
+    p = np.asarray(peak, dtype=np.float64)
+    expected, spread, inside = walk.expected(p)
     own = (np.abs(o - expected) <= _TRUST * np.maximum(spread, 1e-3)) | ~inside
-    return np.where(np.isfinite(o), d - np.where(own, o, expected) + walk.reference, np.where(np.isfinite(np.asarray(peak, dtype=np.float64)), np.nan, d))
+    timed = np.isfinite(o)
+    moved = d - np.where(own, o, expected) + walk.reference
+    return np.where(timed, moved, np.where(np.isfinite(p), np.nan, d))
 
 
 def walk_finding(walk: RangeWalk) -> str:
