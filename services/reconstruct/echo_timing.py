@@ -304,7 +304,8 @@ _HALF_Z = 3.0
 WALK_Z = 4.0
 
 
-def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WALK, z: float = WALK_Z) -> RangeWalk:
+def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WALK, z: float = WALK_Z,
+               halves: bool = True) -> RangeWalk:
     """Whether the writer's ranges walk with the echoes' amplitude (design notes §8).
 
     A least-squares line of ``offset`` against ``ln(peak)``, after dropping offsets more than 5 robust σ
@@ -318,6 +319,9 @@ def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WA
         V, its envelope peak (:func:`echo_onsets`).
     min_walk, z : float
         The detection's lines (:data:`MIN_WALK`, :data:`WALK_Z`).
+    halves : bool
+        Also ask that the walk runs through the weaker and the stronger half of the echoes alike (False: a
+        screen, e.g. on a sample of the echoes before all are re-timed).
     """
     o = np.asarray(offset, dtype=np.float64).ravel()
     a = np.asarray(peak, dtype=np.float64).ravel()
@@ -342,9 +346,9 @@ def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WA
     # where they cancel, strong where they add, which would make a board that times the onset look as if
     # it walked.
     upper = a >= np.median(a)
-    halves = [_line(a[h], o[h]) for h in (~upper, upper)]
+    halves_fit = [_line(a[h], o[h]) for h in (~upper, upper)]
     detected = (walk > min_walk and -slope > z * stderr
-                and all(-s_h > _HALF_Z * se_h for s_h, se_h in halves))
+                and (not halves or all(-s_h > _HALF_Z * se_h for s_h, se_h in halves_fit)))
     bins = np.array_split(np.argsort(a), min(10, max(o.size // _PER_BIN, 2)))
     curve = tuple((float(np.median(a[b])), float(np.median(o[b])),
                    1.4826 * float(np.median(np.abs(o[b] - np.median(o[b]))))) for b in bins)
