@@ -32,6 +32,11 @@ family         what is drawn
                bounces at any opening (a simulator without the 90° ±10°
                retro-reflection limit), ``E0`` off by 0.1–10, reversed half
                the time
+``comparator`` a board whose comparator times the echo's threshold crossing
+               (``Receiver.timing = "crossing"``: later on weaker echoes,
+               design notes §8): threshold 0.02–0.15 V, envelope rise
+               0.08–0.4 ms, echo gain 1–6 V·m, walls 0.6–2.5 m, the L rolled
+               ±15°, half the sweeps narrow or asymmetric
 =============  =================================================================
 
 Each scan is simulated by the project's simulator physics
@@ -90,7 +95,7 @@ from lelsonar.tools.bench_families import (frac_above, is_failure, json_default,
                                            plane_errors, z_score)
 
 FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "roll", "sweep", "steps", "array", "rate", "noise",
-                             "corner", "missing", "calib", "nocorner", "wire", "mixed", "extreme")
+                             "corner", "missing", "calib", "nocorner", "wire", "mixed", "extreme", "comparator")
 #: Verdicts of one wall, in table order.
 VERDICTS = ("accurate", "flagged", "claims_good", "crash")
 _DEG = math.pi / 180.0
@@ -144,6 +149,10 @@ class StressCase:
     e0_scale: float = 1.0
     permute_capsules: bool = False
     shuffle_samples: bool = False
+    timing: str = "onset"
+    threshold: float = 0.05
+    envelope_time: float = 0.15e-3
+    echo_gain: float = 2.5
 
     def describe(self) -> str:
         """One line of what differs from the paper's setting."""
@@ -217,11 +226,15 @@ def draw_case(family: str, seed: int) -> StressCase:
     if family in ("calib", "mixed", "extreme"):
         lo, hi = (0.1, 10.0) if wide else (0.5, 2.0)
         kw.update(e0_scale=float(np.exp(rng.uniform(math.log(lo), math.log(hi)))))
+    if family == "comparator":
+        kw.update(timing="crossing", threshold=float(np.exp(rng.uniform(math.log(0.02), math.log(0.15)))),
+                  envelope_time=rng.uniform(0.08e-3, 0.4e-3), echo_gain=float(np.exp(rng.uniform(0.0, math.log(6.0)))),
+                  distance_a=rng.uniform(0.6, 2.5), distance_b=rng.uniform(0.6, 2.5), roll=rng.uniform(-15, 15) * _DEG)
     if family == "wire":
         kw.update(capsules=int(rng.integers(2, 9)), permute_capsules=True, shuffle_samples=bool(rng.random() < 0.5),
                   reverse=bool(rng.random() < 0.5))
     crit = _critical(kw)
-    if family == "sweep" or (every and rng.random() < 0.5):
+    if family == "sweep" or ((every or family == "comparator") and rng.random() < 0.5):
         kw.update(_draw_sweep(rng, crit))
         if every:
             kw.update(reverse=bool(rng.random() < 0.5))
@@ -284,7 +297,8 @@ def build_config(case: StressCase):
     geometry = ArrayGeometry(capsule_x=tuple(float(v) for v in x), radial_offset=case.radial_offset)
     acoustics = Acoustics(corner_gain=case.corner_gain, corner_max_error=case.corner_max_error)
     receiver = Receiver(tof_jitter=case.tof_jitter, cycle_slip_probability=case.cycle_slip_probability,
-                        amplitude_noise=case.amplitude_noise, noise_std=case.noise_std)
+                        amplitude_noise=case.amplitude_noise, noise_std=case.noise_std, timing=case.timing,
+                        threshold=case.threshold, envelope_time=case.envelope_time, echo_gain=case.echo_gain)
     far_a = max(0.0, -case.gamma_start) + 10 * _DEG
     far_b = max(0.0, case.gamma_stop - math.pi / 2) + 10 * _DEG
     height_a = case.distance_b + case.distance_a * math.tan(min(far_a, 75 * _DEG)) + 0.3
@@ -340,8 +354,8 @@ def simulate(case: StressCase) -> StressScan:
     raw = np.clip(servo.to_raw(gamma_true), 0, 1023)
     measured = servo.to_gamma(raw)
     echoes = _amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
-    _range, source, _index = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, _range, rng)
+    _range, source, _index, delay = _first_echo(cfg, echoes)
+    tof = _time_of_flight(cfg, _range, rng, delay)
     waveforms = _waveforms(cfg, echoes, rng)
     if case.missing > 0:
         n, m = tof.shape

@@ -64,7 +64,9 @@ from lelsonar.reconstruct.energy import (
     waveform_energy,
     window_samples,
 )
-from lelsonar.reconstruct.quality import DEGRADED, UNRELIABLE
+from lelsonar.reconstruct.echo_timing import (TIMING_WINDOW, RangeWalk, echo_onsets, range_walk, typical_edges,
+                                              walk_finding, walk_free_ranges)
+from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
 _log = logging.getLogger(__name__)
@@ -138,7 +140,8 @@ RISE_STRIDE = 4
 #: The (steps, k) arrays of a scan, in the order of their block (see ScanAssembly._allocate): range (m; NaN: no
 #: echo or not received), eq. (10) energy (V²·s; 0), first echo's peak (V; NaN: none), the peak just before it
 #: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both).
-_PER_CAPSULE = ("distance", "_sensor_energy", "_echo_amplitude", "_pre_echo_peak", "dc_level", "range_tof_ratio")
+_PER_CAPSULE = ("distance", "_sensor_energy", "_echo_amplitude", "_pre_echo_peak", "dc_level", "range_tof_ratio",
+                "_timing_at")
 #: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
 #: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
 _PER_STEP = ("gamma", "gamma_commanded", "_step_energy", "_expected_energy", "_ratio")
@@ -278,6 +281,15 @@ class ScanAssembly:
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{2 + 3 * self._k}d")
         self._pack_readings_energies = struct.Struct(f"<{2 + 4 * self._k}d")
+        # Each reading's waveform around its time of flight (echo_timing.TIMING_WINDOW), kept to re-time the
+        # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
+        # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
+        self._timing_rate = math.nan
+        self._timing_windows = np.zeros((0, self._k, 0), np.float32)
+        # (steps, k, 3) each echo re-timed (echo_timing.echo_onsets): onset − tof (s), peak (V), edge (s); and
+        # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first).
+        self._echo_timing = np.zeros((0, self._k, 3))
+        self._timed = np.zeros(0, bool)
         # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -306,6 +318,17 @@ class ScanAssembly:
             setattr(self, name, row)
         self.time_ns, self.received, self.recovered_mask = time_ns, received, recovered
         self._rows = (per_capsule, per_step, time_ns, received, recovered)  # what the kernel writes a step into
+        self._grow_timing(n, self._timing_windows.shape[2])
+
+    def _grow_timing(self, n: int, width: int) -> None:
+        """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
+        windows = np.zeros((n, self._k, width), np.float32)
+        timing, timed = np.full((n, self._k, 3), np.nan), np.zeros(n, bool)
+        had = len(self._timed)
+        if width == self._timing_windows.shape[2]:
+            windows[:had] = self._timing_windows
+        timing[:had], timed[:had] = self._echo_timing, self._timed
+        self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
 
     # --- what comes from the waveforms, settled when read ----------------------------------------
     @property
@@ -467,8 +490,13 @@ class ScanAssembly:
             finite_known = True
         m = k if m == k else 0  # the carried energies to check: one a waveform, or none
         while True:
+            if not self._timing_windows.shape[2] and n and values[0] > 0 and math.isfinite(values[0]):
+                # The first sample with waveforms sets the windows' rate.
+                self._timing_rate = float(values[0])
+                self._grow_timing(len(self.received), max(int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0])
+                                                                     * self._timing_rate)), 1))
             status = _place_step(joined, k, n, values, m, step, sampled, finite_known, self._c, time_ns, recovered,
-                                 *self._rows)
+                                 *self._rows, self._timing_windows, self._timing_rate)
             if status != _NON_FINITE:
                 break
             codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
@@ -569,12 +597,57 @@ class ScanAssembly:
         gamma = self.gamma_commanded if self.gamma_unmeasured else self.gamma
         return steps, gamma[steps], self.distance[steps], self.ratio[steps]
 
+    def range_walk(self) -> tuple[RangeWalk, np.ndarray, np.ndarray, np.ndarray]:
+        """Whether the writer's ranges walk with the echoes' amplitude (:func:`~lelsonar.reconstruct.echo_timing.
+        range_walk`, on the echoes of a typical shape), and each received step's offsets (writer's range −
+        re-timed, m; NaN: not timed), peaks (V; NaN: no echo found) and whether its shape is typical
+        (:func:`~lelsonar.reconstruct.echo_timing.typical_edges`)."""
+        self.settle()
+        steps = np.flatnonzero(self.received)
+
+        def test(rows: np.ndarray, halves: bool) -> tuple[RangeWalk, np.ndarray, np.ndarray, np.ndarray]:
+            onset, peak, edge = np.moveaxis(self._echo_timing[rows], -1, 0)
+            typical = typical_edges(edge)
+            offset = -0.5 * (self.sound_speed or math.nan) * onset
+            shown = typical | np.isnan(onset)  # clipped echoes count as found but untimed
+            walk = range_walk(np.where(typical, offset, np.nan), np.where(shown, peak, np.nan), halves=halves)
+            return walk, offset, peak, typical
+
+        # A screen on the checked steps (a quarter of the echoes: the re-timing, ~40 µs a step, is spared on
+        # the others where nothing walks), then the test on every step where the screen found a walk.
+        checked = steps[steps % RISE_STRIDE == 0]
+        self._time_echoes(checked)
+        found = test(checked, False)
+        if not found[0].detected:
+            return found[0], *(np.full(self.distance[steps].shape, np.nan),) * 2, np.zeros(self.distance[steps].shape, bool)
+        self._time_echoes(steps)
+        return test(steps, True)
+
+    def _time_echoes(self, steps: np.ndarray) -> None:
+        """Re-time (:func:`~lelsonar.reconstruct.echo_timing.echo_onsets`) the kept windows of ``steps`` not
+        timed yet."""
+        todo = steps[~self._timed[steps]]
+        at = self._timing_at[todo]
+        kept = np.isfinite(at)
+        if kept.any():
+            timing = np.full((*at.shape, 3), np.nan)
+            timing[kept] = np.stack(echo_onsets(self._timing_windows[todo][kept], self._timing_rate, at[kept]), axis=-1)
+            self._echo_timing[todo] = timing
+        self._timed[todo] = True
+
+    def walk_free(self, distance: np.ndarray) -> np.ndarray:
+        """:meth:`arrays`' ``distance`` re-timed from the waveforms where the writer's ranges walk with the
+        echoes' amplitude (:func:`~lelsonar.reconstruct.echo_timing.walk_free_ranges`), else as it is."""
+        walk, offset, peak, _ = self.range_walk()
+        return walk_free_ranges(distance, offset, peak, walk)
+
     def writer_problems(self) -> list[tuple[str | None, str]]:
         """What the scan's writer left unset or stated otherwise than the contract, each with its fix.
 
         Returns ``(level, text)`` pairs: ``level`` is the verdict the problem imposes on every plane of the
-        scan (``"degraded"``, ``"unreliable"``), or None where the estimate does not suffer (a fallback was
-        taken) or there is no plane to judge.
+        scan (``"degraded"``, ``"unreliable"``), ``"good"`` for what every plane names without its verdict
+        lowered (ranges re-timed, :meth:`walk_free`), or None where the estimate does not suffer (a fallback
+        was taken) or there is no plane to judge.
         """
         out: list[tuple[str | None, str]] = []
         got = self.received
@@ -601,6 +674,9 @@ class ScanAssembly:
                                     f"×{np.median(rise):.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): "
                                     "the ranges do not match the waveforms (distance is one way, time_of_flight "
                                     "the round trip from firing, waveform.t0 the first sample's time)"))
+        walk = self.range_walk()[0]
+        if walk.detected:  # re-timed (walk_free): named on every plane, the verdict left to the fit
+            out.append((GOOD, walk_finding(walk)))
         c_air = air_sound_speed(self.start)
         if self.start.sound_speed > 0 and c_air is not None and \
                 abs(self.start.sound_speed / c_air - 1.0) > SOUND_SPEED_TOLERANCE:
@@ -637,13 +713,14 @@ _AGREED = 1
 
 @kernel
 def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_speed, time_ns, recovered,
-                per_capsule, per_step, acquired_ns, received, recovered_mask):
+                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, timing_rate):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
     waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
     of squares), each reading's range and round trip (one from the other at ``sound_speed`` where only one is
     given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on a
     ``sampled`` step the peak just before it, the DC level and distance / (c·tof/2); written into row
-    ``step`` of the scan's arrays, with γ, the time and the step's origin.
+    ``step`` of the scan's arrays, with γ, the time and the step's origin; and each waveform around its
+    time of flight (:data:`~lelsonar.reconstruct.echo_timing.TIMING_WINDOW`), to re-time the echo if need be.
 
     Parameters
     ----------
@@ -660,10 +737,13 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
         m/s; NaN: none stated.
     time_ns, recovered : int, bool
         The sample's acquisition time and origin (the acquirer's log).
-    per_capsule, per_step : (6, steps, k), (5, steps) float64 arrays
+    per_capsule, per_step : (7, steps, k), (5, steps) float64 arrays
         The scan's blocks (:data:`_PER_CAPSULE`, :data:`_PER_STEP`).
     acquired_ns, received, recovered_mask : (steps,) arrays
         The scan's ``time_ns``, ``received``, ``recovered_mask``.
+    timing_windows : (steps, k, width) float32 array, timing_rate : float
+        Where each waveform's window around its time of flight goes, if its rate is ``timing_rate`` (Hz) and
+        the window lies inside it (its start's offset from the time of flight into ``_timing_at``).
 
     Returns
     -------
@@ -687,7 +767,8 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
         if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
             return _NO_SOUND_SPEED
     distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
-    pre_echo_peak, dc_level, range_tof_ratio = per_capsule[3], per_capsule[4], per_capsule[5]
+    pre_echo_peak, dc_level, range_tof_ratio, timing_at = per_capsule[3], per_capsule[4], per_capsule[5], per_capsule[6]
+    width = timing_windows.shape[2]
     unflagged = 0
     for i in range(k):
         d, t = readings[3 * i + 1], readings[3 * i + 2]
@@ -710,6 +791,11 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
             sensor_energy[step, i] = energies[i]
         row = waveforms[i]
         echo_amplitude[step, i] = _window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
+        if width > 0 and rate == timing_rate and t > 0.0:  # NaN compares false: no echo, nothing to time
+            a = int(round((t + TIMING_WINDOW[0] - t0) * rate))
+            if a >= 0 and a + width <= n:
+                timing_windows[step, i, :] = row[a:a + width]
+                timing_at[step, i] = t - (t0 + a / rate)
         if sampled:
             range_tof_ratio[step, i] = ratio
             if n > 0:

@@ -534,6 +534,7 @@ class ReconstructionService:
             received_live=scan.n_received - scan.n_recovered, recovered=scan.n_recovered,
             duplicates=scan.duplicates, rejected=dict(scan.rejected), missing=len(missing))
         steps, gamma, distance, _ = scan.arrays()
+        distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
         results: dict[str, ScanReconstruction] = {}
         for method in (self.config.method, *self.config.compare_methods):
             # From scratch, no warm start: the final estimate depends only on the data.

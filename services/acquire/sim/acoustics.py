@@ -35,7 +35,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import j1
+from scipy.special import j1, lambertw
 
 from lelsonar.errors import ConfigError
 
@@ -144,6 +144,10 @@ class Acoustics:
         return math.asin(J1_FIRST_ZERO / ka) if ka > J1_FIRST_ZERO else math.pi / 2
 
 
+#: The comparator's timing models (:attr:`Receiver.timing`).
+TIMINGS = ("onset", "crossing")
+
+
 @dataclass(frozen=True)
 class Receiver:
     """The sensor board: comparator, timing noise, analogue chain and ADC.
@@ -182,6 +186,18 @@ class Receiver:
         ADC resolution over ``±adc_range``.
     adc_range : float
         ADC full scale, ±V.
+    timing : str
+        When the comparator fires on the echo it picked (the earliest whose
+        peak is over ``threshold``; design notes §8).  ``"onset"`` (the
+        default): at the echo's arrival, plus the timing noise — a board whose
+        time of flight does not depend on the echo's strength.
+        ``"crossing"``: where the echo's envelope rises through ``threshold``
+        (:func:`comparator_delay`), as a real comparator does: later on weaker
+        echoes, by up to one ``envelope_time`` (0.15 ms, 26 mm of range) at the
+        threshold itself and ≈0.02 ms (3.5 mm) on a face-on echo ten times over
+        it.  Over a sweep the wall echo weakens off its normal (``D(ψ)²``), so
+        the ranges walk with the beam angle.  Either draws the same random
+        numbers.
     """
 
     echo_gain: float = 2.5
@@ -196,6 +212,7 @@ class Receiver:
     ringdown_time: float = 0.1e-3
     adc_bits: int = 12
     adc_range: float = 2.5
+    timing: str = "onset"
 
     def __post_init__(self) -> None:
         _check_finite(self, ("echo_gain", "threshold", "blanking_time", "envelope_time", "tof_jitter",
@@ -221,6 +238,8 @@ class Receiver:
             raise ConfigError(f"adc_bits must be an int in [4, 24], got {self.adc_bits!r}")
         if self.adc_range <= 0:
             raise ConfigError(f"adc_range must be > 0 V, got {self.adc_range}")
+        if self.timing not in TIMINGS:
+            raise ConfigError(f"timing must be one of {', '.join(TIMINGS)}, got {self.timing!r}")
 
     @property
     def adc_lsb(self) -> float:
@@ -236,6 +255,39 @@ def echo_envelope(u: np.ndarray, rise: float) -> np.ndarray:
     """
     x = np.maximum(np.asarray(u), 0.0) / rise
     return x * x * np.exp(2.0 * (1.0 - x))
+
+
+def comparator_delay(peak: np.ndarray, threshold: float, rise: float) -> np.ndarray:
+    """Time from an echo's arrival to its envelope's rise through the comparator ``threshold``, s.
+
+    The envelope :func:`echo_envelope` scaled to ``peak`` rises as
+    ``peak·x²·exp(2(1 − x))``, ``x = u/τ``; it reaches ``threshold`` where
+    ``x·e^(−x) = √(threshold/peak)/e``, on the rising branch (x ≤ 1) of the
+    Lambert W function: ``x = −W₀(−√(threshold/peak)/e)``.  So the delay
+    depends on the echo's strength only through ``threshold/peak`` (design
+    notes §8: the first echo over a comparator threshold sets the time of
+    flight): 0.135 τ at ten times the threshold, 0.63 τ at 1.2 times, τ at
+    the threshold itself.
+
+    Parameters
+    ----------
+    peak : array
+        Echo envelope peak, V (≥ ``threshold`` for an echo the comparator fires on).
+    threshold : float
+        Comparator level, V.
+    rise : float
+        Envelope rise time τ (:attr:`Receiver.envelope_time`), s.
+
+    Returns
+    -------
+    array
+        s, in ``[0, rise]``; ``rise`` where ``peak ≤ threshold`` (the envelope
+        just touches the level at its peak), NaN where ``peak`` is NaN.
+    """
+    ratio = np.clip(threshold / np.asarray(peak, dtype=np.float64), 0.0, 1.0)
+    # W₀ is NaN at its branch point −1/e itself (scipy); its value there is −1.
+    x = np.where(ratio < 1.0, -lambertw(-np.sqrt(ratio) / math.e, 0).real, 1.0)
+    return rise * np.where(np.isnan(ratio), np.nan, x)
 
 
 def _check_finite(obj: object, names: tuple[str, ...]) -> None:

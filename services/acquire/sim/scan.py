@@ -35,7 +35,7 @@ from scipy.special import ndtri
 
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
 
-from .acoustics import absorption_factor, echo_envelope, piston_directivity
+from .acoustics import absorption_factor, comparator_delay, echo_envelope, piston_directivity
 from .config import SimConfig
 
 #: The receiver envelope is cut after this many rise times (its value is then < 10⁻⁴).
@@ -295,25 +295,36 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
     return EchoTable(range=rng_, amplitude=amp, source=src, index=idx)
 
 
-def _first_echo(cfg: SimConfig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _first_echo(cfg: SimConfig, echoes: EchoTable
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The comparator: the earliest echo whose peak is over the threshold, after blanking.
 
-    Returns the noise-free range, source and index of that echo per capsule.
+    Returns the noise-free range, source and index of that echo per capsule,
+    and the comparator's delay after its arrival (s; 0 where ``Receiver.timing``
+    is ``"onset"``, :func:`~lelsonar.acquire.sim.acoustics.comparator_delay`
+    where it is ``"crossing"``).  A crossing past the end of the window is no
+    echo.
     """
     c = cfg.sound_speed
     rec = cfg.receiver
     arrival = 2.0 * echoes.range / c
+    peak = echoes.amplitude * rec.echo_gain
+    if rec.timing == "crossing":
+        with np.errstate(divide="ignore", invalid="ignore"):
+            delay = np.where(peak > 0, comparator_delay(peak, rec.threshold, rec.envelope_time), 0.0)
+    else:
+        delay = np.zeros_like(peak)
     window_end = cfg.window_start + cfg.window_samples / cfg.sample_rate
     with np.errstate(invalid="ignore"):
-        detected = ((echoes.amplitude * rec.echo_gain >= rec.threshold)
-                    & (arrival >= rec.blanking_time) & (arrival <= window_end))
+        detected = ((peak >= rec.threshold) & (arrival >= rec.blanking_time) & (arrival + delay <= window_end))
     candidate = np.where(detected, echoes.range, np.inf)
     first = np.argmin(candidate, axis=-1)[..., None]
     first_range = np.take_along_axis(candidate, first, axis=-1)[..., 0]
     found = np.isfinite(first_range)
     source = np.where(found, np.take_along_axis(echoes.source, first, axis=-1)[..., 0], EchoSource.NONE)
     index = np.where(found, np.take_along_axis(echoes.index, first, axis=-1)[..., 0], -1)
-    return np.where(found, first_range, np.nan), source.astype(np.int8), index.astype(np.int16)
+    first_delay = np.where(found, np.take_along_axis(delay, first, axis=-1)[..., 0], 0.0)
+    return (np.where(found, first_range, np.nan), source.astype(np.int8), index.astype(np.int16), first_delay)
 
 
 def _amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> EchoTable:
@@ -331,15 +342,17 @@ def _amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator
                      index=echoes.index)
 
 
-def _time_of_flight(cfg: SimConfig, echo_range: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Timing noise on the comparator: Gaussian jitter plus ±1-cycle slips (±λ/2 of range)."""
+def _time_of_flight(cfg: SimConfig, echo_range: np.ndarray, rng: np.random.Generator,
+                    delay: np.ndarray | float = 0.0) -> np.ndarray:
+    """The comparator's time: arrival plus its ``delay`` (:func:`_first_echo`), Gaussian jitter and ±1-cycle
+    slips (±λ/2 of range)."""
     c = cfg.sound_speed
     rec = cfg.receiver
     jitter = rng.standard_normal(echo_range.shape) * (2.0 * rec.tof_jitter / c)
     u = rng.random(echo_range.shape)
     p = rec.cycle_slip_probability
     slip = np.where(u < p / 2, -1.0, np.where(u < p, 1.0, 0.0))
-    return 2.0 * echo_range / c + jitter + slip / cfg.acoustics.frequency
+    return 2.0 * echo_range / c + delay + jitter + slip / cfg.acoustics.frequency
 
 
 # ---------------------------------------------------------------------------- waveforms
@@ -457,8 +470,8 @@ def simulate_scan(cfg: SimConfig, seed: int | np.random.Generator | None = 0, *,
     gamma_measured = cfg.servo.to_gamma(raw)
 
     echoes = _amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
-    echo_range, source, index = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng)
+    echo_range, source, index, delay = _first_echo(cfg, echoes)
+    tof = _time_of_flight(cfg, echo_range, rng, delay)
     c = cfg.sound_speed
     distance = c * tof / 2.0
     if with_waveforms:
@@ -485,8 +498,8 @@ def simulate_step(cfg: SimConfig, gamma_measured: float, rng: np.random.Generato
     """
     gamma = np.array([float(gamma_measured)])
     echoes = _amplitude_noise(cfg, echo_table(cfg, gamma), rng)
-    echo_range, source, index = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng)
+    echo_range, source, index, delay = _first_echo(cfg, echoes)
+    tof = _time_of_flight(cfg, echo_range, rng, delay)
     waveforms = _waveforms(cfg, echoes, rng)
     return SimulatedStep(tof=tof[0], distance=cfg.sound_speed * tof[0] / 2.0, waveforms=waveforms[0],
                          echo_source=source[0], echo_index=index[0], echo_range=echo_range[0])
