@@ -99,7 +99,6 @@ def test_present_and_wrong_it_is_found_counted_warned_and_recomputed(scan, tampe
         m.sensor_energy.extend(e)
     with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.assembly"):
         got = _assemble(messages)
-        got.settle()
     assert got.energy_mismatches == len(bad)
     assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1  # once a scan
     truth = np.array([_true_energy(m) for m in scan[1:-1]])

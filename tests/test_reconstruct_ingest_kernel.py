@@ -9,7 +9,8 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import NonFiniteValueError
-from lelsonar.reconstruct.assembly import _dc_levels
+from lelsonar.reconstruct.assembly import _PER_CAPSULE, _PER_STEP, _dc_levels, _settle_step
+from lelsonar.reconstruct.energy import EnergyModel, energy_ratio, total_energy
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected
 
 from .conftest import simulated_messages
@@ -48,6 +49,37 @@ def test_dc_levels_are_numpys_mean_bit_for_bit(n, kind):
     got = np.zeros(4)
     _dc_levels(w, got)
     np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
+
+
+@pytest.mark.parametrize("k", range(1, 17))
+def test_a_steps_energy_ratio_is_numpys_bit_for_bit(k):
+    """E^γ, E0(d_m) and R of each step as it is placed (_settle_step) are total_energy's and energy_ratio's
+    (NumPy over the whole scan) to the bit: ranges with gaps (no echo), ties, inside and outside the model's
+    interval; energies over many decades (where the order of the additions shows)."""
+    rng = np.random.default_rng(k)
+    steps = 300
+    scale = 10.0 ** rng.integers(1, 5, (steps, 1))
+    distance = np.round(rng.uniform(0.3, 3.0, (steps, k)) * scale) / scale  # ties where coarsely rounded
+    distance[rng.random((steps, k)) < 0.3] = np.nan
+    distance[:5] = np.nan  # steps without a range: R 0, E0 not written
+    energy = rng.random((steps, k)) * 10.0 ** rng.uniform(-12, 0, (steps, k))
+    energy[7] = 0.0
+    model = EnergyModel(3.1e6, -1.2e6, 8.0e5, d_min=0.9, d_max=1.8)
+    per_capsule = np.full((len(_PER_CAPSULE), steps, k), np.nan)
+    per_capsule[_PER_CAPSULE.index("distance")] = distance
+    per_capsule[_PER_CAPSULE.index("sensor_energy")] = energy
+    per_step = np.zeros((len(_PER_STEP), steps))
+    scan = np.array([343.0, 2e5, model.phi0, model.phi1, model.phi2, model.d_min, model.d_max])
+    for step in range(steps):
+        _settle_step(per_capsule, per_step, step, scan)
+    expected = np.zeros(steps)
+    step_energy = total_energy(energy)
+    ratio = energy_ratio(step_energy, distance, model, expected=expected)
+    got = dict(zip(_PER_STEP, per_step))
+    assert got["step_energy"].tobytes() == step_energy.tobytes()
+    assert got["expected_energy"].tobytes() == expected.tobytes()
+    assert got["ratio"].tobytes() == ratio.tobytes()
+    assert (ratio[:5] == 0).all() and (ratio[5:] > 0).any()
 
 
 def test_non_finite_samples_are_refused_as_decoding_refuses_them_whatever_else_is_wrong(scan):

@@ -22,9 +22,8 @@ rounding of it (the acquisition service's is
 that function's.  The same pass takes each reading's range, the first echo's
 peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window) and, on
 every :data:`RISE_STRIDE`-th step, the peak just before it and the DC level,
-for :meth:`ScanAssembly.writer_problems`; E^γ, E0 and R (§4) are worked out for
-many steps at once (:meth:`ScanAssembly.settle`) when first read, when the
-ScanEnd comes, or every :attr:`ScanAssembly.SETTLE_EVERY` steps.  The
+for :meth:`ScanAssembly.writer_problems`, and the step's E^γ, E0(d_m) and R (§4,
+eq. 11–12; :func:`_settle_step`).  The
 acquisition service's samples (capsules in the ScanStart's order, float32
 waveforms of one length on one clock) go straight to the pass; anything else
 another writer may send (its own capsule order and ids, int16 data, a clock
@@ -59,8 +58,6 @@ from lelsonar.reconstruct.energy import (
     EnergyModel,
     echo_window_start,
     energy_agrees,
-    energy_ratio,
-    total_energy,
     waveform_energy,
     window_samples,
 )
@@ -140,11 +137,11 @@ RISE_STRIDE = 4
 #: The (steps, k) arrays of a scan, in the order of their block (see ScanAssembly._allocate): range (m; NaN: no
 #: echo or not received), eq. (10) energy (V²·s; 0), first echo's peak (V; NaN: none), the peak just before it
 #: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both).
-_PER_CAPSULE = ("distance", "_sensor_energy", "_echo_amplitude", "_pre_echo_peak", "dc_level", "range_tof_ratio",
+_PER_CAPSULE = ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio",
                 "_timing_at")
 #: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
 #: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
-_PER_STEP = ("gamma", "gamma_commanded", "_step_energy", "_expected_energy", "_ratio")
+_PER_STEP = ("gamma", "gamma_commanded", "step_energy", "expected_energy", "ratio")
 
 
 #: Largest disagreement between ``ScanStart.sound_speed`` and c(air_temperature) that is still one air: 2 % is
@@ -222,12 +219,7 @@ class StepView:
 
 @dataclass
 class ScanAssembly:
-    """Everything known about one (scanner, scan).
-
-    ``sensor_energy``, ``echo_amplitude``, ``pre_echo_peak``, ``step_energy``,
-    ``expected_energy`` and ``ratio`` are properties that first :meth:`settle` the steps placed
-    since they were last read (write nothing into them).
-    """
+    """Everything known about one (scanner, scan)."""
 
     start: codec.ScanStart
     geometry: ArrayGeometry = field(init=False)
@@ -239,6 +231,15 @@ class ScanAssembly:
     #: Readings marked echo_valid = false that carry a range anyway (a writer that never sets the flag).
     unflagged_ranges: int = 0
     distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
+    sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s, eq. (10) of each waveform; 0: not received
+    #: (steps, k) V, peak of the first echo alone (:func:`~lelsonar.reconstruct.energy.echo_amplitude`); NaN: none.
+    echo_amplitude: np.ndarray = field(init=False)
+    #: (steps, k) V, peak just before the first echo (``PRE_ECHO_WINDOW``), on every :data:`RISE_STRIDE`-th
+    #: step; NaN: none, or not a checked step.
+    pre_echo_peak: np.ndarray = field(init=False)
+    step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. (11)
+    expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. (12); 0 without a valid range
+    ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range
     dc_level: np.ndarray = field(init=False)         # (steps, k) V, |mean| of each waveform (a receiver's offset)
     #: (steps, k) distance / (c·tof/2) where the reading gave both (NaN elsewhere): 1 when they agree.
     range_tof_ratio: np.ndarray = field(init=False)
@@ -255,8 +256,6 @@ class ScanAssembly:
 
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
-    #: Steps placed but not yet settled that make :meth:`add` settle them (only their indices are held).
-    SETTLE_EVERY = 256
 
     def __post_init__(self) -> None:
         self.geometry = _scan_geometry(self.start)
@@ -269,10 +268,11 @@ class ScanAssembly:
         e = self.start.energy_model
         self.energy_model, self.energy_model_problem = _energy_model(e.phi0, e.phi1, e.phi2, e.valid_min_range,
                                                                      e.valid_max_range)
-        # Steps placed since the last settle() (their E^γ, E0 and R are worked out together).
-        self._unsettled: list[int] = []
-        # The kernel's sound speed: NaN for none (the ranges then need both fields).
-        self._c = math.nan if self.sound_speed is None else float(self.sound_speed)
+        # The kernel's constants of the scan (_place_step's ``scan``): the speed of sound (NaN for none: the
+        # ranges then need both fields), the timing windows' rate (NaN until the first waveforms), E0's model.
+        model = self.energy_model
+        self._scan = np.array([math.nan if self.sound_speed is None else float(self.sound_speed), math.nan,
+                               model.phi0, model.phi1, model.phi2, model.d_min, model.d_max])
         # The fast path's layout (the readings' capsule ids, lengths and clocks), once a sample has shown it, and
         # the kernel's buffer of numbers (_place_step's ``values``): the layout's clocks, then each sample's
         # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
@@ -302,9 +302,9 @@ class ScanAssembly:
         """
         k = self._k
         per_capsule = np.full((len(_PER_CAPSULE), n, k), np.nan)
-        per_capsule[_PER_CAPSULE.index("_sensor_energy")] = 0.0
+        per_capsule[_PER_CAPSULE.index("sensor_energy")] = 0.0
         per_step = np.full((len(_PER_STEP), n), np.nan)
-        per_step[_PER_STEP.index("_step_energy"):] = 0.0
+        per_step[_PER_STEP.index("step_energy"):] = 0.0
         time_ns, received, recovered = np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
         if hasattr(self, "_per_capsule"):
             had = self._per_capsule.shape[1]
@@ -329,45 +329,6 @@ class ScanAssembly:
             windows[:had] = self._timing_windows
         timing[:had], timed[:had] = self._echo_timing, self._timed
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
-
-    # --- what comes from the waveforms, settled when read ----------------------------------------
-    @property
-    def sensor_energy(self) -> np.ndarray:
-        """(steps, k) V²·s, eq. (10) of each capsule's waveform; 0 for steps not received."""
-        self.settle()
-        return self._sensor_energy
-
-    @property
-    def echo_amplitude(self) -> np.ndarray:
-        """(steps, k) V, peak of the first echo alone (:func:`~lelsonar.reconstruct.energy.echo_amplitude`);
-        NaN: none."""
-        self.settle()
-        return self._echo_amplitude
-
-    @property
-    def pre_echo_peak(self) -> np.ndarray:
-        """(steps, k) V, peak just before the first echo (``PRE_ECHO_WINDOW``), on every :data:`RISE_STRIDE`-th
-        step; NaN: none, or not a checked step."""
-        self.settle()
-        return self._pre_echo_peak
-
-    @property
-    def step_energy(self) -> np.ndarray:
-        """(steps,) E^γ, eq. (11)."""
-        self.settle()
-        return self._step_energy
-
-    @property
-    def expected_energy(self) -> np.ndarray:
-        """(steps,) E0(d_m), eq. (12); 0 without a valid range."""
-        self.settle()
-        return self._expected_energy
-
-    @property
-    def ratio(self) -> np.ndarray:
-        """(steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range."""
-        self.settle()
-        return self._ratio
 
     @property
     def latest(self) -> StepView | None:
@@ -457,9 +418,8 @@ class ScanAssembly:
         if not layout:
             raise InvalidMessageError(f"sample {step} carries no sensor readings")
         n = layout[1]
-        carried = sample.sensor_energy
+        carried = sample.sensor_energy[:]  # a list: cheaper to slice out than to unpack the field (~1 µs)
         m = len(carried)
-        sampled = step % RISE_STRIDE == 0
         gamma = sample.gamma_measured
         recovered = origin == "recovered"
         time_ns = sample.acquisition_time_ns
@@ -479,7 +439,7 @@ class ScanAssembly:
         else:
             if unchecked:
                 codec.check_samples_finite(sample)
-            sensors, carried_list = self._in_capsule_order(sample, list(carried) if m else None)
+            sensors, carried_list = self._in_capsule_order(sample, carried if m else None)
             ranges, layout = codec.sample_readings(sensors)
             joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
             clocks = [v for i in range(k) for v in layout[4 * i + 2:4 * i + 4]]  # (rate, t0) of each
@@ -492,11 +452,11 @@ class ScanAssembly:
         while True:
             if not self._timing_windows.shape[2] and n and values[0] > 0 and math.isfinite(values[0]):
                 # The first sample with waveforms sets the windows' rate.
-                self._timing_rate = float(values[0])
+                self._timing_rate = self._scan[1] = float(values[0])
                 self._grow_timing(len(self.received), max(int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0])
                                                                      * self._timing_rate)), 1))
-            status = _place_step(joined, k, n, values, m, step, sampled, finite_known, self._c, time_ns, recovered,
-                                 *self._rows, self._timing_windows, self._timing_rate)
+            status = _place_step(joined, n, values, self._scan, m, step, finite_known, time_ns, recovered,
+                                 *self._rows, self._timing_windows)
             if status != _NON_FINITE:
                 break
             codec.check_samples_finite(sample)  # raises, naming the waveform; else only the squares overflowed
@@ -506,15 +466,13 @@ class ScanAssembly:
                 self._no_sound_speed(step, ranges, layout)
             if not status & _AGREED:
                 waveforms = np.frombuffer(joined, dtype="<f4").reshape(k, n)
-                self._sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
-                                             [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
+                self.sensor_energy[step] = (waveform_energy(waveforms, rate) if one_clock else
+                                            [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::4])])
+                _settle_step(self._per_capsule, self._per_step, step, self._scan)  # of these energies
                 if len(carried):
                     self._energy_mismatch(step)
             self.unflagged_ranges += status >> 1
         self._latest = (step, joined, n, rate, t0)
-        self._unsettled.append(step)
-        if len(self._unsettled) >= self.SETTLE_EVERY:
-            self.settle()
         return True
 
     def _one_layout(self, layout: list, size: int) -> bool:
@@ -564,21 +522,6 @@ class ScanAssembly:
             raise InvalidMessageError(f"sample {sample.step} has waveforms of different lengths {sorted(counts)}")
         return sensors, carried
 
-    def settle(self) -> None:
-        """Work out, for the steps placed since the last call and all at once, E^γ (eq. 11), E0(d_m) (eq. 12)
-        and R (§4)."""
-        if not self._unsettled:
-            return
-        unsettled, self._unsettled = self._unsettled, []
-        first, last = min(unsettled), max(unsettled)
-        # Steps are placed once, so as many steps as first..last are exactly those: a slice, not an index
-        # array (each NumPy call here comes after a scan's worth of samples went through the caches).
-        steps = slice(first, last + 1) if last - first + 1 == len(unsettled) else np.array(unsettled)
-        self._step_energy[steps] = step_energy = total_energy(self._sensor_energy[steps])
-        expected = self._expected_energy[steps]
-        self._ratio[steps] = energy_ratio(step_energy, self.distance[steps], self.energy_model, expected=expected)
-        self._expected_energy[steps] = expected
-
     @property
     def gamma_unmeasured(self) -> bool:
         """Every received step's ``gamma_measured`` is exactly 0 (proto3's unset) while the commanded angles
@@ -602,7 +545,6 @@ class ScanAssembly:
         range_walk`, on the echoes of a typical shape), and each received step's offsets (writer's range −
         re-timed, m; NaN: not timed), peaks (V; NaN: no echo found) and whether its shape is typical
         (:func:`~lelsonar.reconstruct.echo_timing.typical_edges`)."""
-        self.settle()
         steps = np.flatnonzero(self.received)
 
         def test(rows: np.ndarray, halves: bool) -> tuple[RangeWalk, np.ndarray, np.ndarray, np.ndarray]:
@@ -712,45 +654,51 @@ _AGREED = 1
 
 
 @kernel
-def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_speed, time_ns, recovered,
-                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, timing_rate):
+def _place_step(samples, n, values, scan, m, step, finite_known, time_ns, recovered,
+                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: each
     waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
-    of squares), each reading's range and round trip (one from the other at ``sound_speed`` where only one is
-    given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on a
-    ``sampled`` step the peak just before it, the DC level and distance / (c·tof/2); written into row
-    ``step`` of the scan's arrays, with γ, the time and the step's origin; and each waveform around its
-    time of flight (:data:`~lelsonar.reconstruct.echo_timing.TIMING_WINDOW`), to re-time the echo if need be.
+    of squares), each reading's range and round trip (one from the other at the speed of sound where only one
+    is given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on
+    every :data:`RISE_STRIDE`-th step the peak just before it, the DC level and distance / (c·tof/2); written
+    into row ``step`` of the scan's arrays, with γ, the time and the step's origin; each waveform around its
+    time of flight (:data:`~lelsonar.reconstruct.echo_timing.TIMING_WINDOW`), to re-time the echo if need be;
+    and, where the carried energies were written, the step's E^γ, E0(d_m) and R (:func:`_settle_step`,
+    eq. 11–12).
 
     Parameters
     ----------
     samples : bytes
-        The k waveforms of ``n`` float32 samples (V), one after the other, in the order of the scan's capsules.
+        The k waveforms of ``n`` float32 samples (V), one after the other, in the order of the scan's capsules
+        (k: the scan's, ``per_capsule.shape[2]``).
     values : (≥ 6·k + 2,) float64 array
         Each waveform's sample rate (Hz) and t0 (s); γ measured and commanded (rad); each reading's
         ``echo_valid, distance, time_of_flight`` (same order); the ``m`` carried energies (V²·s), m = k or 0
         (none to check).
+    scan : (7,) float64 array
+        The scan's speed of sound (m/s; NaN: none stated), the timing windows' rate (Hz), and its energy
+        model φ0, φ1, φ2, d_min, d_max (eq. 12).
     finite_known : bool
         The samples are known finite: a non-finite sum of squares is an overflow (the energies then
         disagree) rather than a refusal (``_NON_FINITE``).
-    sound_speed : float
-        m/s; NaN: none stated.
     time_ns, recovered : int, bool
         The sample's acquisition time and origin (the acquirer's log).
     per_capsule, per_step : (7, steps, k), (5, steps) float64 arrays
         The scan's blocks (:data:`_PER_CAPSULE`, :data:`_PER_STEP`).
     acquired_ns, received, recovered_mask : (steps,) arrays
         The scan's ``time_ns``, ``received``, ``recovered_mask``.
-    timing_windows : (steps, k, width) float32 array, timing_rate : float
-        Where each waveform's window around its time of flight goes, if its rate is ``timing_rate`` (Hz) and
-        the window lies inside it (its start's offset from the time of flight into ``_timing_at``).
+    timing_windows : (steps, k, width) float32 array
+        Where each waveform's window around its time of flight goes, if its rate is the windows' (``scan[1]``)
+        and the window lies inside it (its start's offset from the time of flight into ``_timing_at``).
 
     Returns
     -------
     int
         A refusal (< 0, nothing written), else ``_AGREED`` if the carried energies were each waveform's and
-        written (not written otherwise), plus twice the readings without an echo that carry a range anyway.
+        written (not written otherwise, nor E^γ, E0 and R), plus twice the readings without an echo that carry
+        a range anyway.
     """
+    k = per_capsule.shape[2]
     waveforms = np.frombuffer(samples, dtype=np.float32)[:k * n].reshape((k, n))
     clocks, readings, energies = values[:2 * k], values[2 * k + 2:5 * k + 2], values[5 * k + 2:5 * k + 2 + m]
     agreed = m == k
@@ -762,13 +710,14 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
             agreed = False
         elif agreed:
             agreed = energy_agrees(energies[i], float(squares), n, clocks[2 * i])
-    c = sound_speed
+    c, timing_rate = scan[0], scan[1]
     for i in range(k):
         if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
             return _NO_SOUND_SPEED
     distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
     pre_echo_peak, dc_level, range_tof_ratio, timing_at = per_capsule[3], per_capsule[4], per_capsule[5], per_capsule[6]
     width = timing_windows.shape[2]
+    sampled = step % RISE_STRIDE == 0
     unflagged = 0
     for i in range(k):
         d, t = readings[3 * i + 1], readings[3 * i + 2]
@@ -803,10 +752,91 @@ def _place_step(samples, k, n, values, m, step, sampled, finite_known, sound_spe
     if sampled and n > 0:
         _dc_levels(waveforms, dc_level[step])
     per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
+    if agreed:
+        _settle_step(per_capsule, per_step, step, scan)
     acquired_ns[step] = time_ns
     received[step] = True
     recovered_mask[step] = recovered
     return (_AGREED if agreed else 0) + 2 * unflagged
+
+
+@kernel
+def _settle_step(per_capsule, per_step, step, scan):
+    """Row ``step``'s E^γ (eq. 11), E0(d_m) (eq. 12, where the step has a range) and R = E^γ / E0(d_m) (§4; 0
+    without a range), from its ranges and eq. (10) energies, bit for bit what
+    :func:`~lelsonar.reconstruct.energy.total_energy`, :func:`~lelsonar.reconstruct.energy.median_range` and
+    :func:`~lelsonar.reconstruct.energy.energy_ratio` give (E0 as ``EnergyModel.expected_energy`` of the
+    model in ``scan[2:7]``: φ0, φ1, φ2, d_min, d_max)."""
+    step_energy = 0.0 + _pairwise_sum(per_capsule[1, step])  # add.reduce starts from its identity
+    per_step[2, step] = step_energy
+    d_m = _median_range(per_capsule[0, step])
+    if math.isfinite(d_m):
+        d = min(max(d_m, scan[5]), scan[6])  # np.clip to the calibrated interval
+        e0 = 1.0 / (scan[2] * d * d + scan[3] * d + scan[4])
+        per_step[3, step] = e0
+        per_step[4, step] = step_energy / e0
+    else:
+        per_step[4, step] = 0.0
+
+
+@kernel
+def _pairwise_sum(row):
+    """Σ row as NumPy's ``add.reduce`` sums a contiguous float64 row of up to 128 (its pairwise sum's block):
+    in order from −0.0 below 8 terms, else in 8 running sums combined pairwise, then the rest in order —
+    the same roundings, so E^γ is :func:`~lelsonar.reconstruct.energy.total_energy`'s to the bit."""
+    n = row.size
+    if n < 8:
+        total = -0.0
+        for j in range(n):
+            total += row[j]
+        return total
+    r0, r1, r2, r3, r4, r5, r6, r7 = row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7]
+    j = 8
+    while j < n - n % 8:
+        r0 += row[j]
+        r1 += row[j + 1]
+        r2 += row[j + 2]
+        r3 += row[j + 3]
+        r4 += row[j + 4]
+        r5 += row[j + 5]
+        r6 += row[j + 6]
+        r7 += row[j + 7]
+        j += 8
+    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while j < n:
+        total += row[j]
+        j += 1
+    return total
+
+
+@kernel
+def _median_range(row):
+    """``d_m`` of one step (paper §4): the median of its finite ranges, NaN without one — what
+    :func:`~lelsonar.reconstruct.energy.median_range` gives (the mean of the two middle values of the sorted
+    ranges), found by rank among the non-NaN values instead of a sort (a step has a few)."""
+    count = 0
+    for x in row:
+        if math.isfinite(x):
+            count += 1
+    if count == 0:
+        return np.nan
+    return 0.5 * (_nth_smallest(row, (count - 1) // 2) + _nth_smallest(row, count // 2))
+
+
+@kernel
+def _nth_smallest(row, nth):
+    """The ``nth`` (from 0) of the non-NaN values of ``row`` in ascending order (where a sort puts it)."""
+    for x in row:
+        if x == x:
+            below = tied = 0
+            for y in row:
+                if y < x:
+                    below += 1
+                elif y == x:
+                    tied += 1
+            if below <= nth < below + tied:
+                return x
+    return np.nan
 
 
 @kernel

@@ -157,7 +157,6 @@ class Ingest:
             return [self._reject("InvalidMessageError", f"ScanEnd of scan {key} counts {message.samples_sent} "
                                                         f"samples; its ScanStart planned {scan.start.steps}")]
         scan.end = message
-        scan.settle()  # what the final reads, worked out now that the scan's samples are in
         self.accepted += 1
         return [Accepted("end", scan)]
 
