@@ -132,3 +132,40 @@ def test_squares_that_overflow_float32_are_not_refused_and_the_energy_is_recompu
     assert isinstance(ev, Accepted)
     assert ingest.energy_mismatches == 1
     assert ev.scan.sensor_energy[big.step, 0] == pytest.approx(truth, rel=1e-12)
+
+
+def test_a_scan_on_a_gone_scans_timing_windows_re_times_as_on_fresh_ones():
+    """The timing-window block of a scan gone is reused by the next scan (no fresh pages to fault in); what it
+    held is never read: the next scan's walk, offsets and re-timed ranges are those it gets on a zeroed block.
+    The scans are the foreign generator's, whose comparator's ranges walk with the echoes' amplitude."""
+    import gc
+
+    from lelsonar.reconstruct import assembly
+
+    from .foreign_scenes import Conventions, ForeignRig, messages, simulate
+
+    def assemble(rig: ForeignRig):
+        ingest = Ingest()
+        for m in messages(simulate(rig), Conventions(encoding="float32")):
+            ingest.accept(_name(m), m.SerializeToString())
+        (scan,) = ingest.scans.values()
+        walk, offset, peak, _ = scan.range_walk()
+        return scan, (walk, offset, peak, scan.walk_free(scan.distance))
+
+    first, second = ForeignRig(seed=1), ForeignRig(seed=2, distance_a=1.2, distance_b=1.4)
+    assembly._SPARE_WINDOWS.clear()
+    scan, truth = assemble(second)       # on a fresh block
+    assert truth[0].detected             # the ranges walk: the windows are read
+    del scan
+    gc.collect()
+    assembly._SPARE_WINDOWS.clear()
+    scan, _ = assemble(first)
+    block = scan._timing_windows
+    del scan
+    gc.collect()
+    assert any(b is block for b in assembly._SPARE_WINDOWS)
+    scan, got = assemble(second)
+    assert scan._timing_windows is block  # the gone scan's block, holding its windows
+    assert got[0] == truth[0]
+    for a, b in zip(got[1:], truth[1:]):
+        assert a.tobytes() == b.tobytes()
