@@ -19,9 +19,8 @@ Three measurements, side by side in one run and one table:
     right after the run (printed beside the result).
 (a′) the **ingest stage** alone — decode, validate, route, assemble
     (:meth:`~lelsonar.reconstruct.ingest.Ingest.accept`: everything the
-    service does before estimation — the samples' one compiled pass, and the
-    E^γ, E0 and R that ``ScanAssembly.settle`` works out in batches at each
-    ScanEnd) — on the floor's payloads, one run of each
+    service does before estimation — the samples' one compiled pass, which
+    also works out each step's E^γ, E0 and R) — on the floor's payloads, one run of each
     per round, medians of 5; same target against the same floor.  The details
     give the time ``Ingest.accept`` took per sample inside (a)'s consumer.
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting
@@ -603,8 +602,6 @@ def profile_replay(path: Path, samples: int, console) -> None:
         ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
         ("    ScanAssembly.add (carried energies checked, echo windows cut out)", "reconstruct/assembly.py", "add",
-         None),
-        ("  ScanAssembly.settle (echo peaks and R, batched; every caller)", "reconstruct/assembly.py", "settle",
          None),
         ("  _provisional (corner check, provisional refit)", *upd, None),
         ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
