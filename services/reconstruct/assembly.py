@@ -43,8 +43,6 @@ import logging
 import functools
 import math
 import struct
-import threading
-import weakref
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
@@ -206,38 +204,6 @@ def _scan_geometry(start: codec.ScanStart) -> ArrayGeometry:
     return geometry
 
 
-#: Timing-window blocks of scans gone, for the next scans to reuse (a scan's are ~0.6 MB: freshly allocated,
-#: every 4 KB the kernel first writes costs a page fault, ~2 µs a sample in all); at most this many are kept.
-#: What they held is never read again: a scan reads a window only where its own ``_timing_at`` (NaN until its
-#: kernel writes the window) says it was written.
-MAX_SPARE_WINDOWS = 8
-_SPARE_WINDOWS: list[np.ndarray] = []
-_SPARE_LOCK = threading.Lock()
-
-
-def _timing_block(shape: tuple[int, int, int]) -> np.ndarray:
-    """A (steps, k, width) float32 block for timing windows: a spare one of that shape, else a new one."""
-    if shape[0] * shape[2]:
-        with _SPARE_LOCK:
-            for i, block in enumerate(_SPARE_WINDOWS):
-                if block.shape == shape:
-                    return _SPARE_WINDOWS.pop(i)
-    return np.zeros(shape, np.float32)
-
-
-def _spare_block(block: np.ndarray) -> None:
-    """Keep a timing-window block no scan holds any more for :func:`_timing_block` (if there is room)."""
-    if block.size:
-        with _SPARE_LOCK:
-            if len(_SPARE_WINDOWS) < MAX_SPARE_WINDOWS:
-                _SPARE_WINDOWS.append(block)
-
-
-def _spare_held(held: list[np.ndarray]) -> None:
-    """:func:`_spare_block` of the block a gone scan held."""
-    _spare_block(held[0])
-
-
 @dataclass
 class StepView:
     """The latest step as it arrived, for display."""
@@ -318,12 +284,8 @@ class ScanAssembly:
         # Each reading's waveform around its time of flight (echo_timing.TIMING_WINDOW), kept to re-time the
         # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
         # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
-        # A window is read only where _timing_at says it was written (the block may be a gone scan's).
         self._timing_rate = math.nan
         self._timing_windows = np.zeros((0, self._k, 0), np.float32)
-        # Once the scan is gone its windows serve the next one (not at exit: nothing would reuse them).
-        self._windows_held = [self._timing_windows]
-        weakref.finalize(self, _spare_held, self._windows_held).atexit = False
         # (steps, k, 3) each echo re-timed (echo_timing.echo_onsets): onset − tof (s), peak (V), edge (s); and
         # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first).
         self._echo_timing = np.zeros((0, self._k, 3))
@@ -360,15 +322,13 @@ class ScanAssembly:
 
     def _grow_timing(self, n: int, width: int) -> None:
         """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
-        windows = _timing_block((n, self._k, width))
+        windows = np.zeros((n, self._k, width), np.float32)
         timing, timed = np.full((n, self._k, 3), np.nan), np.zeros(n, bool)
         had = len(self._timed)
         if width == self._timing_windows.shape[2]:
             windows[:had] = self._timing_windows
         timing[:had], timed[:had] = self._echo_timing, self._timed
-        _spare_block(self._timing_windows)
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
-        self._windows_held[0] = windows
 
     @property
     def latest(self) -> StepView | None:
