@@ -52,6 +52,7 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
 from lelsonar.reconstruct.compiled import kernel
+from lelsonar.reconstruct.corner_model import _pairwise_block  # NumPy's add.reduce, to the bit
 from lelsonar.reconstruct.energy import (
     ECHO_PEAK_WINDOW,
     PRE_ECHO_WINDOW,
@@ -767,7 +768,7 @@ def _settle_step(per_capsule, per_step, step, scan):
     :func:`~lelsonar.reconstruct.energy.total_energy`, :func:`~lelsonar.reconstruct.energy.median_range` and
     :func:`~lelsonar.reconstruct.energy.energy_ratio` give (E0 as ``EnergyModel.expected_energy`` of the
     model in ``scan[2:7]``: φ0, φ1, φ2, d_min, d_max)."""
-    step_energy = 0.0 + _pairwise_sum(per_capsule[1, step])  # add.reduce starts from its identity
+    step_energy = 0.0 + _pairwise_block(per_capsule[1, step], 0, per_capsule.shape[2])  # as add.reduce
     per_step[2, step] = step_energy
     d_m = _median_range(per_capsule[0, step])
     if math.isfinite(d_m):
@@ -777,36 +778,6 @@ def _settle_step(per_capsule, per_step, step, scan):
         per_step[4, step] = step_energy / e0
     else:
         per_step[4, step] = 0.0
-
-
-@kernel
-def _pairwise_sum(row):
-    """Σ row as NumPy's ``add.reduce`` sums a contiguous float64 row of up to 128 (its pairwise sum's block):
-    in order from −0.0 below 8 terms, else in 8 running sums combined pairwise, then the rest in order —
-    the same roundings, so E^γ is :func:`~lelsonar.reconstruct.energy.total_energy`'s to the bit."""
-    n = row.size
-    if n < 8:
-        total = -0.0
-        for j in range(n):
-            total += row[j]
-        return total
-    r0, r1, r2, r3, r4, r5, r6, r7 = row[0], row[1], row[2], row[3], row[4], row[5], row[6], row[7]
-    j = 8
-    while j < n - n % 8:
-        r0 += row[j]
-        r1 += row[j + 1]
-        r2 += row[j + 2]
-        r3 += row[j + 3]
-        r4 += row[j + 4]
-        r5 += row[j + 5]
-        r6 += row[j + 6]
-        r7 += row[j + 7]
-        j += 8
-    total = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while j < n:
-        total += row[j]
-        j += 1
-    return total
 
 
 @kernel
