@@ -287,8 +287,8 @@ def walk_stderr(model: CornerModel, pts: ScanPoints, amplitude: np.ndarray) -> t
 
     Returns
     -------
-    (σ_a, σ_b) in rad, to add in quadrature to the joint normals' standard errors; ``inf`` where a walk
-    cannot be told from the walls at all, 0 where nothing was labelled.
+    (σ_a, σ_b) in rad, to add in quadrature to the joint normals' standard errors, at most π (no direction
+    at all: also where a walk cannot be told from the walls); 0 where too few echoes were labelled.
     """
     labels = model.labels
     order = np.concatenate([np.flatnonzero(labels == k) for k in (ECHO_WALL_A, ECHO_WALL_B, ECHO_EDGE)])
@@ -316,16 +316,16 @@ def walk_stderr(model: CornerModel, pts: ScanPoints, amplitude: np.ndarray) -> t
     try:
         m_inv = np.linalg.inv(m)
     except np.linalg.LinAlgError:
-        return float("inf"), float("inf")
+        return np.pi, np.pi
     if not (np.all(np.isfinite(m_inv)) and np.all(np.linalg.eigvalsh(m) > 0)):
-        return float("inf"), float("inf")
+        return np.pi, np.pi
     beta = m_inv @ (x @ r0)
     d = np.array(turn).T  # (6, columns): wall a's normal, then wall b's
     out = []
     for k in (0, 1):
         dk = d[3 * k:3 * k + 3]
         shift = dk @ beta
-        out.append(float(np.sqrt(shift @ shift + np.trace(dk @ (s2 * m_inv) @ dk.T))))
+        out.append(min(float(np.sqrt(shift @ shift + np.trace(dk @ (s2 * m_inv) @ dk.T))), np.pi))
     return out[0], out[1]
 
 
@@ -455,7 +455,9 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     walk = walk_se()
     se_n, se_h = float(np.hypot(se_joint, walk)), se_h_joint
     angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
-    agree = np.isfinite(se_n) and angle <= opts.tilt_test_sigma * se_n
+    # The test is the joint fit's own: a walk that may have turned it does not make the roll-blind
+    # corrected points more likely right; it only widens what either may miss by.
+    agree = np.isfinite(se_joint) and angle <= opts.tilt_test_sigma * se_joint
     if agree:
         h = float(np.mean(data.capsules @ n_p + data.distance))
         theta, model = n_p / h, "paper"
