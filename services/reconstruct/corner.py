@@ -12,6 +12,7 @@ edge (:func:`corner_edge`).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -22,7 +23,7 @@ from . import fit as F
 from .compiled import kernel
 from .corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, CornerModel, ScanPoints, Wall,
                            _lu_solve, _pairwise_sum, echo_residuals, edge_alternatives, edge_line,
-                           edge_shared_shares, fit_corner_model, scan_points)
+                           edge_shared_shares, fit_corner_model, joint_gauss_newton, joint_residuals, scan_points)
 from .energy import ECHO_PEAK_WINDOW
 from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
@@ -31,7 +32,7 @@ from .quality import DEGRADED, UNRELIABLE, QualityLimits, assess_plane, unexplai
 from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from .split import critical_step, split_subsets
 
-__all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "fit_corner"]
+__all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "walk_stderr", "fit_corner"]
 
 
 def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float = np.deg2rad(5.0)
@@ -255,6 +256,79 @@ def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> 
     return float(np.sqrt(se**2 + max(excess, 0.0)))
 
 
+#: Range step (m per unit of a walk's regressor) by which :func:`walk_stderr` measures the joint fit's response.
+_WALK_STEP = 1.0e-3
+
+
+def walk_stderr(model: CornerModel, pts: ScanPoints, amplitude: np.ndarray) -> tuple[float, float]:
+    """How far each wall's joint normal may be from the truth for ranges that walk with the echoes' amplitude.
+
+    Without the amplitude peak a wall's direction in the rotation plane rests on the ranges' change across
+    the sweep through the capsules' radial lever arm ``r`` (``∂d/∂φ = r·sin(γ − φ)``, eq. 9: with ``r`` ≈ 2 cm,
+    0.1 mm of range across the wall's echoes is ~1°).  A range error that follows the echo's amplitude —
+    a comparator's walk (design notes §8), or what is left of it after constant-fraction re-timing, whose
+    noisy peak reads high on weak echoes by about the noise (a bias ∝ 1/A) — follows the beam's angle to
+    the wall, so over the echoes of one side of the normal it looks like a roll, and the joint fit's
+    covariance (white range noise) does not count it.  Here the joint least squares (eq. 15's mirror-echo
+    rows and the edge rows, :func:`~lelsonar.reconstruct.corner_model.joint_gauss_newton`) gets two more
+    columns, ``ln A`` and ``1/A`` (V, centred): by linearity each column's response — the normals' turn
+    ``D`` and the residuals' change ``(I − H)x`` per unit of it — gives the walk ``β̂ = M⁻¹Xᵀr`` with
+    ``M = Xᵀ(I − H)X`` and its covariance ``s²M⁻¹``.  A normal kept without the walk then misses by
+    ``|Dβ̂|`` and has the added variance ``tr(D s²M⁻¹ Dᵀ)`` of a walk the ranges cannot tell from the
+    geometry (Schur complement); the result is the root of their sum.  Echoes without an amplitude count
+    with a walk of 0 (their regressors at the mean).
+
+    Parameters
+    ----------
+    model : CornerModel
+    pts : ScanPoints
+    amplitude : (N,) array
+        Each echo's peak amplitude, V (:func:`~lelsonar.reconstruct.energy.echo_amplitude`); NaN: none.
+
+    Returns
+    -------
+    (σ_a, σ_b) in rad, to add in quadrature to the joint normals' standard errors, at most π (no direction
+    at all: also where a walk cannot be told from the walls); 0 where too few echoes were labelled.
+    """
+    labels = model.labels
+    order = np.concatenate([np.flatnonzero(labels == k) for k in (ECHO_WALL_A, ECHO_WALL_B, ECHO_EDGE)])
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    used = ok[order]
+    if order.size < 8 or np.count_nonzero(used) < 8:
+        return 0.0, 0.0
+    safe = np.where(ok, a, 1.0)
+    columns = []
+    for x in (np.log(safe), float(np.median(a[ok])) / safe):
+        columns.append(np.where(ok, x - np.mean(x[order][used]), 0.0))
+    (wa, wb), _ = joint_gauss_newton(model.wall_a, model.wall_b, pts, labels, iterations=3, covariance=False)
+    r0 = joint_residuals(wa, wb, pts, labels)
+    turn, change = [], []
+    for x in columns:
+        moved = dataclasses.replace(pts, distance=pts.distance + _WALK_STEP * x)
+        (ma, mb), _ = joint_gauss_newton(wa, wb, moved, labels, iterations=3, covariance=False)
+        change.append((joint_residuals(ma, mb, moved, labels) - r0) / _WALK_STEP)
+        turn.append(np.concatenate([ma.normal - wa.normal, mb.normal - wb.normal]) / _WALK_STEP)
+    x = np.array([c[order] for c in columns])
+    m = x @ np.array(change).T
+    m = 0.5 * (m + m.T)
+    s2 = float(r0 @ r0) / max(r0.size - 6 - len(columns), 1)
+    try:
+        m_inv = np.linalg.inv(m)
+    except np.linalg.LinAlgError:
+        return np.pi, np.pi
+    if not (np.all(np.isfinite(m_inv)) and np.all(np.linalg.eigvalsh(m) > 0)):
+        return np.pi, np.pi
+    beta = m_inv @ (x @ r0)
+    d = np.array(turn).T  # (6, columns): wall a's normal, then wall b's
+    out = []
+    for k in (0, 1):
+        dk = d[3 * k:3 * k + 3]
+        shift = dk @ beta
+        out.append(min(float(np.sqrt(shift @ shift + np.trace(dk @ (s2 * m_inv) @ dk.T))), np.pi))
+    return out[0], out[1]
+
+
 def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi_se: float, normal0: np.ndarray,
                      iterations: int = 4) -> tuple[Wall, float, float]:
     """The wall facing direction ``φ`` that best meets the mirror-echo condition ``n·p_c + d = h``.
@@ -318,7 +392,7 @@ def _fixed_pitch_wall(p: np.ndarray, d: np.ndarray, phi: float, phi_se: float, y
 def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
                  note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
                  flags: list[str], edge_is_walls: bool = False,
-                 max_disagreement: float = np.deg2rad(10.0)) -> PlaneResult:
+                 max_disagreement: float = np.deg2rad(10.0), walk_se=lambda: 0.0) -> PlaneResult:
     """One wall of the joint model, refined on its own echoes.
 
     With the echoes' own amplitudes, the wall's direction in the rotation
@@ -346,7 +420,8 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     ``max_disagreement`` (rad) apart; a direction that rests on the joint fit
     while the model's edge echoes are mostly a wall's as well
     (``edge_is_walls``: the edge that ties the walls' directions together
-    was not identified).
+    was not identified).  ``walk_se()`` (rad, :func:`walk_stderr`; asked only here) is added in quadrature to the joint normal's
+    standard error where the direction rests on the ranges (the amplitudes place it free of any walk).
     """
     mask = np.ones(data.n, dtype=bool)
     se_joint, se_h_joint = wall_se
@@ -377,9 +452,12 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
                      "the walls together was not identified")
     theta_p = F.ls_theta(data.points)
     n_p = theta_p / np.linalg.norm(theta_p)
-    se_n, se_h = se_joint, se_h_joint
+    walk = walk_se()
+    se_n, se_h = float(np.hypot(se_joint, walk)), se_h_joint
     angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
-    agree = np.isfinite(se_n) and angle <= opts.tilt_test_sigma * se_n
+    # The test is the joint fit's own: a walk that may have turned it does not make the roll-blind
+    # corrected points more likely right; it only widens what either may miss by.
+    agree = np.isfinite(se_joint) and angle <= opts.tilt_test_sigma * se_joint
     if agree:
         h = float(np.mean(data.capsules @ n_p + data.distance))
         theta, model = n_p / h, "paper"
@@ -392,7 +470,9 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
                          f"{np.rad2deg(angle):.1f}°")
     verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
     diag = diagnostics("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
-                                                    f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°) -> "
+                                                    f"corrected-points normal (joint σ {np.rad2deg(se_n):.2f}°, of "
+                                                    f"which {np.rad2deg(walk):.2f}° for a walk with the "
+                                                    "echoes' amplitude) -> "
                                                     + verdict))
     fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
     if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
@@ -528,6 +608,14 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
     leaks = edge_in_echo_window(model, pts, opts.corner_beam_half_angle)
+    walk: list[tuple[float, float]] = []
+
+    def walk_se(k: int) -> float:
+        # Three more joint fits: only for a wall whose direction rests on the ranges, once a scan.
+        if not walk:
+            walk.append((0.0, 0.0) if echo_amplitude is None else walk_stderr(
+                model, pts, np.asarray(echo_amplitude, dtype=np.float64)[pts.step, pts.capsule_index]))
+        return walk[0][k]
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         m = model.labels == k
         # The wall's echoes one by one, in the scan's order (step, then capsule) as plane_data keeps them.
@@ -548,7 +636,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         flags: list[str] = []
         if model.outside[k]:
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
-        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls)
+        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls,
+                           walk_se=lambda k=k: walk_se(k))
         findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
         shared = shares[k]
         if shared > shared_limit:
