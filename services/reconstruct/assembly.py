@@ -291,6 +291,7 @@ class ScanAssembly:
         # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first).
         self._echo_timing = np.zeros((0, self._k, 3))
         self._timed = np.zeros(0, bool)
+        self._walk_tested: tuple[int, tuple] | None = None  # (steps received, range_walk()) when last asked
         # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -547,6 +548,8 @@ class ScanAssembly:
         re-timed, m; NaN: not timed), peaks (V; NaN: no echo found) and whether its shape is typical
         (:func:`~lelsonar.reconstruct.echo_timing.typical_edges`)."""
         steps = np.flatnonzero(self.received)
+        if self._walk_tested is not None and self._walk_tested[0] == len(steps):
+            return self._walk_tested[1]  # steps only add up: the same count is the same steps
 
         def test(rows: np.ndarray, halves: bool) -> tuple[RangeWalk, np.ndarray, np.ndarray, np.ndarray]:
             onset, peak, edge = np.moveaxis(self._echo_timing[rows], -1, 0)
@@ -562,9 +565,12 @@ class ScanAssembly:
         self._time_echoes(checked)
         found = test(checked, False)
         if not found[0].detected:
-            return found[0], *(np.full(self.distance[steps].shape, np.nan),) * 2, np.zeros(self.distance[steps].shape, bool)
-        self._time_echoes(steps)
-        return test(steps, True)
+            found = found[0], *(np.full(self.distance[steps].shape, np.nan),) * 2, np.zeros(self.distance[steps].shape, bool)
+        else:
+            self._time_echoes(steps)
+            found = test(steps, True)
+        self._walk_tested = (len(steps), found)  # the final's ranges and its planes' reasons ask it in turn
+        return found
 
     def _time_echoes(self, steps: np.ndarray) -> None:
         """Re-time (:func:`~lelsonar.reconstruct.echo_timing.echo_onsets`) the kept windows of ``steps`` not
