@@ -516,7 +516,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
                 out[k], data[k] = single
         return ScanFit(out[0], out[1], data[0], data[1], crit)
     # Echoes per label, counted once: outliers (-1), wall a, wall b, edge.
-    n_outlier, n_wall_a, n_wall_b, n_edge = np.bincount(model.labels + 1, minlength=4).tolist()
+    n_outlier, n_wall_a, n_wall_b, n_edge = np.bincount(model.labels - ECHO_OUTLIER, minlength=4).tolist()
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {n_wall_a} wall a, {n_wall_b} wall b, "
             f"{n_edge} edge, {n_outlier} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
     unexplained = unexplained_finding(n_outlier / pts.n)
