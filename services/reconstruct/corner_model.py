@@ -654,7 +654,7 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
     A wall's mirror rows ``(p_c·e₁, p_c·e₂, −1)`` touch only its own 3×3 block: their sums are
     kept apart from the edge rows' (which touch all six parameters) and added at the end.
     """
-    da, db, c, rng = edge_range_terms(na, ha, nb, hb, capsule)
+    c = na[0] * nb[0] + na[1] * nb[1] + na[2] * nb[2]
     mirror = np.zeros((2, 6))  # per wall: Σx₁², Σx₁x₂, Σx₁, Σx₂², Σx₂, count
     mirror_g = np.zeros((2, 3))  # per wall: Σx₁r, Σx₂r, Σr
     jtj = np.zeros((6, 6))
@@ -667,10 +667,15 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
     na_eb2 = na[0] * eb2[0] + na[1] * eb2[1] + na[2] * eb2[2]
     for i in range(labels.shape[0]):
         k = labels[i]
+        if k != ECHO_WALL_A and k != ECHO_WALL_B and k != ECHO_EDGE:
+            continue
         p0, p1, p2 = capsule[i, 0], capsule[i, 1], capsule[i, 2]
+        # edge_range_terms' a and b, echo by echo (no arrays allocated)
+        a = ha - (p0 * na[0] + p1 * na[1] + p2 * na[2])
+        b = hb - (p0 * nb[0] + p1 * nb[1] + p2 * nb[2])
         if k == ECHO_WALL_A or k == ECHO_WALL_B:
             e1, e2 = (ea1, ea2) if k == ECHO_WALL_A else (eb1, eb2)
-            r = distance[i] - (da[i] if k == ECHO_WALL_A else db[i])
+            r = distance[i] - (a if k == ECHO_WALL_A else b)
             x1 = p0 * e1[0] + p1 * e1[1] + p2 * e1[2]
             x2 = p0 * e2[0] + p1 * e2[1] + p2 * e2[2]
             m = mirror[k]
@@ -684,10 +689,10 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
             mg[0] += x1 * r
             mg[1] += x2 * r
             mg[2] += r
-        elif k == ECHO_EDGE:
-            r = distance[i] - rng[i]
-            a, b = da[i], db[i]
-            inv = 1.0 / max(rng[i], 1e-12)
+        else:
+            rng = np.sqrt(max(a * a + b * b - 2.0 * c * a * b, 0.0))
+            r = distance[i] - rng
+            inv = 1.0 / max(rng, 1e-12)
             ga, gb, gab = (a - b * c) * inv, (b - a * c) * inv, a * b * inv
             row[0] = (p0 * ea1[0] + p1 * ea1[1] + p2 * ea1[2]) * ga + gab * nb_ea1
             row[1] = (p0 * ea2[0] + p1 * ea2[1] + p2 * ea2[2]) * ga + gab * nb_ea2

@@ -323,8 +323,9 @@ def fast_median(x: np.ndarray) -> float:
     model's kernels take medians too.
     """
     n = x.shape[0]
-    if np.isnan(x).any():
-        return np.nan
+    for i in range(n):
+        if np.isnan(x[i]):
+            return np.nan
     # The order statistics by selection (a partition about the middle), not a full sort: a few times faster.
     k = n // 2
     p = np.partition(x, k)
@@ -416,8 +417,11 @@ def _theta_covariance(t: np.ndarray, x: np.ndarray, shift: np.ndarray) -> np.nda
         for u in range(3):
             jac[u] = x[i, u] / nt - q * t[u] / nt3
         for u in range(3):
-            for v in range(3):
+            for v in range(u, 3):  # the upper triangle (jac[u]·jac[v] rounds as jac[v]·jac[u]), mirrored below
                 jtj[u, v] += jac[u] * jac[v]
+    for u in range(3):
+        for v in range(u):
+            jtj[u, v] = jtj[v, u]
     s2 = ss / (k - 3)
     sv = np.linalg.svd(jtj)[1]  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
     if sv[-1] == 0.0 or not sv[0] / sv[-1] <= 1e15:
