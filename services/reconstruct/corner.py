@@ -49,7 +49,7 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
     if not isinstance(plane_a, PlaneFit) or not isinstance(plane_b, PlaneFit):
         return FitFailure(FailureReason.TOO_FEW_POINTS, "the edge needs both planes", "edge", 0)
     na, nb = plane_a.normal, plane_b.normal
-    angle = float(np.arccos(np.clip(na @ nb, -1.0, 1.0)))
+    angle = float(np.arccos(min(max(float(na @ nb), -1.0), 1.0)))  # (np.clip of a scalar costs more)
     line = edge_line(Wall(na, plane_a.offset), Wall(nb, plane_b.offset), min_angle)
     if line is None:
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
@@ -430,7 +430,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     if pitch is not None:
         phi, phi_se = pitch
         fitted, se_n, se_h = fixed_pitch_wall(amplitude[3], amplitude[2], phi, phi_se, wall.normal)
-        off = float(np.arccos(np.clip(fitted.normal @ wall.normal, -1.0, 1.0)))
+        off = float(np.arccos(min(max(float(fitted.normal @ wall.normal), -1.0), 1.0)))
         if not (np.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
             fitted = None
             if np.isfinite(se_joint):
@@ -454,7 +454,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     n_p = theta_p / np.linalg.norm(theta_p)
     walk = walk_se()
     se_n, se_h = float(np.hypot(se_joint, walk)), se_h_joint
-    angle = float(np.arccos(np.clip(n_p @ wall.normal, -1.0, 1.0)))
+    angle = float(np.arccos(min(max(float(n_p @ wall.normal), -1.0), 1.0)))
     # The test is the joint fit's own: a walk that may have turned it does not make the roll-blind
     # corrected points more likely right; it only widens what either may miss by.
     agree = np.isfinite(se_joint) and angle <= opts.tilt_test_sigma * se_joint
@@ -595,9 +595,12 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             if single is not None:
                 out[k], data[k] = single
         return ScanFit(out[0], out[1], data[0], data[1], crit)
-    note = (f"corner model: {model.hypotheses} band pairs; echoes: {model.count(ECHO_WALL_A)} wall a, "
-            f"{model.count(ECHO_WALL_B)} wall b, {model.count(ECHO_EDGE)} edge, "
-            f"{model.count(ECHO_OUTLIER)} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    # Echoes per label, counted once: outliers (-1), wall a, wall b, edge.
+    n_outlier, n_wall_a, n_wall_b, n_edge = np.bincount(model.labels - ECHO_OUTLIER, minlength=4).tolist()
+    note = (f"corner model: {model.hypotheses} band pairs; echoes: {n_wall_a} wall a, {n_wall_b} wall b, "
+            f"{n_edge} edge, {n_outlier} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    unexplained = unexplained_finding(n_outlier / pts.n)
+    amplitudes = None if echo_amplitude is None else np.asarray(echo_amplitude, dtype=np.float64)
     out: list[PlaneResult] = []
     datas: list[F.PlaneData] = []
     # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
@@ -630,15 +633,14 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         amplitude = None
         if echo_amplitude is not None:
             mine = m & ~leaks  # an echo whose amplitude window also holds the double bounce says nothing of the wall
-            amplitude = (pts.gamma[mine], np.asarray(echo_amplitude, dtype=np.float64)[pts.step[mine],
-                                                                                      pts.capsule_index[mine]],
-                         pts.distance[mine], pts.capsule[mine])
+            amplitude = (pts.gamma[mine], amplitudes[pts.step[mine], pts.capsule_index[mine]], pts.distance[mine],
+                         pts.capsule[mine])
         flags: list[str] = []
         if model.outside[k]:
             flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls,
                            walk_se=lambda k=k: walk_se(k))
-        findings = tuple((UNRELIABLE, f) for f in flags) + unexplained_finding(model.count(ECHO_OUTLIER) / pts.n)
+        findings = tuple((UNRELIABLE, f) for f in flags) + unexplained
         shared = shares[k]
         if shared > shared_limit:
             findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
@@ -650,7 +652,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
                                     f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
                                     "echoes the model explains: the corner cluster may have passed for the wall"),)
-        out.append(assess_plane(fit, g, edge_echoes=model.count(ECHO_EDGE), findings=findings)
+        out.append(assess_plane(fit, g, edge_echoes=n_edge, findings=findings)
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the

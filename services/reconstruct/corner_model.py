@@ -173,15 +173,26 @@ def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
     With ``e = n_a × n_b`` the point is ``(h_a (n_b × e) + h_b (e × n_a)) / |e|²``.
     None if the walls are within ``min_angle`` of parallel (no corner).
     """
-    e = _cross3(wall_a.normal, wall_b.normal)
-    s2 = float(e @ e)
-    if s2 < np.sin(min_angle) ** 2:
-        return None
-    # h_a (n_b × e) + h_b (e × n_a), element by element in Python floats: the NumPy expression's roundings.
-    ha, hb = wall_a.offset, wall_b.offset
-    point = np.array([(ha * u + hb * v) / s2 for u, v in zip(_cross3(wall_b.normal, e).tolist(),
-                                                              _cross3(e, wall_a.normal).tolist())])
-    return point, e / np.sqrt(s2)
+    point, direction, ok = _edge_line(np.asarray(wall_a.normal, dtype=np.float64), float(wall_a.offset),
+                                      np.asarray(wall_b.normal, dtype=np.float64), float(wall_b.offset),
+                                      float(np.sin(min_angle) ** 2))
+    return (point, direction) if ok else None
+
+
+@kernel
+def _edge_line(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float,
+               min_sine2: float) -> tuple[np.ndarray, np.ndarray, bool]:
+    """:func:`edge_line` on arrays (``min_sine2`` the sine² of its ``min_angle``); False: no edge."""
+    e = _cross3(normal_a, normal_b)
+    s2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+    if s2 < min_sine2:
+        return np.zeros(3), np.zeros(3), False
+    u = _cross3(normal_b, e)
+    v = _cross3(e, normal_a)
+    point = np.empty(3)
+    for j in range(3):  # h_a (n_b × e) + h_b (e × n_a), element by element
+        point[j] = (offset_a * u[j] + offset_b * v[j]) / s2
+    return point, e / np.sqrt(s2), True
 
 
 @kernel
@@ -614,19 +625,22 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
 def _joint_cost(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, na: np.ndarray, ha: float,
                 nb: np.ndarray, hb: float, min_sine: float) -> tuple[float, bool]:
     """Sum of squares of the labelled echoes' range residuals (:func:`joint_residuals`), and whether all are finite."""
-    da, db, c, rng = edge_range_terms(na, ha, nb, hb, capsule)
+    # edge_range_terms' a, b and range, echo by echo (the solver's trials call this: no arrays allocated)
+    c = na[0] * nb[0] + na[1] * nb[1] + na[2] * nb[2]
     edge = 1.0 - c * c >= min_sine * min_sine
     total = 0.0
     for i in range(labels.shape[0]):
         k = labels[i]
-        if k == ECHO_WALL_A:
-            r = distance[i] - da[i]
-        elif k == ECHO_WALL_B:
-            r = distance[i] - db[i]
-        elif k == ECHO_EDGE:
-            r = distance[i] - rng[i] if edge else np.inf
-        else:
+        if k != ECHO_WALL_A and k != ECHO_WALL_B and k != ECHO_EDGE:
             continue
+        a = ha - (capsule[i, 0] * na[0] + capsule[i, 1] * na[1] + capsule[i, 2] * na[2])
+        b = hb - (capsule[i, 0] * nb[0] + capsule[i, 1] * nb[1] + capsule[i, 2] * nb[2])
+        if k == ECHO_WALL_A:
+            r = distance[i] - a
+        elif k == ECHO_WALL_B:
+            r = distance[i] - b
+        else:
+            r = distance[i] - np.sqrt(max(a * a + b * b - 2.0 * c * a * b, 0.0)) if edge else np.inf
         total += r * r
     return total, np.isfinite(total)
 
@@ -640,7 +654,7 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
     A wall's mirror rows ``(p_c·e₁, p_c·e₂, −1)`` touch only its own 3×3 block: their sums are
     kept apart from the edge rows' (which touch all six parameters) and added at the end.
     """
-    da, db, c, rng = edge_range_terms(na, ha, nb, hb, capsule)
+    c = na[0] * nb[0] + na[1] * nb[1] + na[2] * nb[2]
     mirror = np.zeros((2, 6))  # per wall: Σx₁², Σx₁x₂, Σx₁, Σx₂², Σx₂, count
     mirror_g = np.zeros((2, 3))  # per wall: Σx₁r, Σx₂r, Σr
     jtj = np.zeros((6, 6))
@@ -653,10 +667,15 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
     na_eb2 = na[0] * eb2[0] + na[1] * eb2[1] + na[2] * eb2[2]
     for i in range(labels.shape[0]):
         k = labels[i]
+        if k != ECHO_WALL_A and k != ECHO_WALL_B and k != ECHO_EDGE:
+            continue
         p0, p1, p2 = capsule[i, 0], capsule[i, 1], capsule[i, 2]
+        # edge_range_terms' a and b, echo by echo (no arrays allocated)
+        a = ha - (p0 * na[0] + p1 * na[1] + p2 * na[2])
+        b = hb - (p0 * nb[0] + p1 * nb[1] + p2 * nb[2])
         if k == ECHO_WALL_A or k == ECHO_WALL_B:
             e1, e2 = (ea1, ea2) if k == ECHO_WALL_A else (eb1, eb2)
-            r = distance[i] - (da[i] if k == ECHO_WALL_A else db[i])
+            r = distance[i] - (a if k == ECHO_WALL_A else b)
             x1 = p0 * e1[0] + p1 * e1[1] + p2 * e1[2]
             x2 = p0 * e2[0] + p1 * e2[1] + p2 * e2[2]
             m = mirror[k]
@@ -670,10 +689,10 @@ def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: n
             mg[0] += x1 * r
             mg[1] += x2 * r
             mg[2] += r
-        elif k == ECHO_EDGE:
-            r = distance[i] - rng[i]
-            a, b = da[i], db[i]
-            inv = 1.0 / max(rng[i], 1e-12)
+        else:
+            rng = np.sqrt(max(a * a + b * b - 2.0 * c * a * b, 0.0))
+            r = distance[i] - rng
+            inv = 1.0 / max(rng, 1e-12)
             ga, gb, gab = (a - b * c) * inv, (b - a * c) * inv, a * b * inv
             row[0] = (p0 * ea1[0] + p1 * ea1[1] + p2 * ea1[2]) * ga + gab * nb_ea1
             row[1] = (p0 * ea2[0] + p1 * ea2[1] + p2 * ea2[2]) * ga + gab * nb_ea2
@@ -938,7 +957,7 @@ def _leaves_window(wall: Wall, axis: np.ndarray, tilt_cov: np.ndarray, max_tilt:
     A wall whose tilt the ranges barely constrain (capsules almost on the axis: no lever arm) can land
     anywhere; its departure is evidence only if it exceeds ``significance`` times its own standard error.
     """
-    angle = float(np.arccos(np.clip(wall.normal @ axis, -1.0, 1.0)))
+    angle = float(np.arccos(min(max(float(wall.normal @ axis), -1.0), 1.0)))
     se = float(np.sqrt(max(tilt_cov[0, 0] + tilt_cov[1, 1], 0.0))) if np.all(np.isfinite(tilt_cov)) else np.inf
     return angle > max_tilt and angle > significance * se
 

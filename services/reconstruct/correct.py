@@ -19,16 +19,22 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
 
+from .compiled import kernel
+
 __all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "corrected_from", "mirror_points", "beam_points"]
 
 #: Normal of plane ``a`` assumed by the paper's correction (plane y = const).
 AXIS_Y = np.array([0.0, 1.0, 0.0])
 #: Normal of plane ``b`` assumed by the paper's correction (plane z = const).
 AXIS_Z = np.array([0.0, 0.0, 1.0])
+#: The largest angle between a beam and the assumed normal that is corrected (rad; ``1/cos α`` explodes beyond).
+MAX_CORRECTION_ANGLE = float(np.deg2rad(80.0))
+#: Its cosine, as the fits pass it to :func:`corrected_point`.
+_COS_MAX_CORRECTION = float(np.cos(MAX_CORRECTION_ANGLE))
 
 
 def corrected_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
-                     axis: np.ndarray, *, max_angle: float = np.deg2rad(80.0)) -> np.ndarray:
+                     axis: np.ndarray, *, max_angle: float = MAX_CORRECTION_ANGLE) -> np.ndarray:
     """The paper's corrected data points (§4, Fig. 7).
 
     ``v = p_c + (d / cos α) · b(γ)`` with ``b = (0, cos γ, sin γ)`` the
@@ -60,7 +66,7 @@ def corrected_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.nd
 
 
 def corrected_from(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray, *,
-                   max_angle: float = np.deg2rad(80.0)) -> np.ndarray:
+                   max_angle: float = MAX_CORRECTION_ANGLE) -> np.ndarray:
     """:func:`corrected_points` from the capsule positions and boresights the caller has already computed.
 
     Parameters
@@ -79,10 +85,41 @@ def corrected_from(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray,
     """
     ax = np.asarray(axis, dtype=np.float64)
     ax = ax / np.linalg.norm(ax)
-    cos_a = beam @ ax
-    ok = cos_a > np.cos(max_angle)
-    scale = np.where(ok, 1.0 / np.where(ok, cos_a, 1.0), np.nan)
-    return capsules + (distance * scale[:, None])[..., None] * beam[:, None, :]
+    p = np.asarray(capsules, dtype=np.float64)
+    b = np.asarray(beam, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    n_caps = p.shape[-2]
+    out = _corrected(np.ascontiguousarray(p.reshape(-1, n_caps, 3)), np.ascontiguousarray(b.reshape(-1, 3)),
+                     np.ascontiguousarray(d.reshape(-1, n_caps)), ax, float(np.cos(max_angle)))
+    return out.reshape(p.shape)
+
+
+@kernel
+def corrected_point(capsule: np.ndarray, beam: np.ndarray, distance: float, axis: np.ndarray, cos_max: float,
+                    out: np.ndarray) -> None:
+    """The paper's corrected point (§4, Fig. 7) of one echo, into ``out``: ``p_c + (d / cos α) b``.
+
+    ``cos α = b · axis`` (``axis`` a unit vector); NaN where ``cos α ≤ cos_max`` (too oblique) or ``d`` is NaN.
+    """
+    cos_a = beam[0] * axis[0] + beam[1] * axis[1] + beam[2] * axis[2]
+    if cos_a > cos_max:
+        s = distance * (1.0 / cos_a)
+        for u in range(3):
+            out[u] = capsule[u] + s * beam[u]
+    else:
+        out[:] = np.nan
+
+
+@kernel
+def _corrected(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray,
+               cos_max: float) -> np.ndarray:
+    """:func:`corrected_point` of every slot of (k, c) ranges (``capsules`` (k, c, 3), ``beam`` (k, 3))."""
+    k, c = distance.shape
+    out = np.empty((k, c, 3))
+    for i in range(k):
+        for j in range(c):
+            corrected_point(capsules[i, j], beam[i], distance[i, j], axis, cos_max, out[i, j])
+    return out
 
 
 def mirror_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,

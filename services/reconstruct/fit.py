@@ -28,7 +28,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
 
 from .compiled import kernel
-from .correct import corrected_from
+from .correct import _COS_MAX_CORRECTION, corrected_point
 from .lel import PERFECT_FIT, entropy_of_residuals, newton_minimize
 from .results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
 
@@ -190,17 +190,45 @@ def plane_data_of(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, 
     corner model's echoes of one wall, with the same numbers as from their steps.
     """
     d = np.asarray(distance, dtype=np.float64)
-    v = corrected_from(capsules, beam, d, axis)  # corrected_points, reusing p_c and b
-    ok = np.isfinite(d) & (d > 0) & np.isfinite(v).all(axis=-1)
-    # The kept points as flat indices (row-major, as boolean indexing orders them); a point's row
-    # gives its boresight and step index.  Finite (v = p_c + ... is finite only where p_c is) and of
-    # agreeing shapes by construction; fancy indexing copies, so the arrays are this PlaneData's own
+    ax = np.asarray(axis, dtype=np.float64)
+    # One kernel: the corrected points (correct.py's correction, reusing p_c and b) and the kept ones
+    # gathered, row-major as boolean indexing orders them.  Finite (v = p_c + ... is finite only where
+    # p_c is) and of agreeing shapes by construction; the arrays are fresh, so this PlaneData's own
     # (the axis is copied: it may be AXIS_Y).
-    flat = np.flatnonzero(ok)
-    row = flat // d.shape[1]
-    return PlaneData._owned(label, np.array(axis, dtype=np.float64), v.reshape(-1, 3)[flat],
-                            capsules.reshape(-1, 3)[flat], d.reshape(-1)[flat], beam[row],
-                            np.asarray(steps, dtype=np.intp)[row])
+    points, caps, dist, row = _valid_corrected(np.ascontiguousarray(capsules, dtype=np.float64),
+                                               np.ascontiguousarray(beam, dtype=np.float64), d, ax / _norm(ax),
+                                               _COS_MAX_CORRECTION)
+    return PlaneData._owned(label, ax.copy(), points, caps, dist, beam[row], np.asarray(steps, dtype=np.intp)[row])
+
+
+@kernel
+def _valid_corrected(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray,
+                     cos_max: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The valid echoes' corrected points (§4), capsules, ranges and rows, in row-major order.
+
+    Valid: a finite positive range and a finite corrected point (:func:`corrected_point`).
+    """
+    k, c = distance.shape
+    points = np.empty((k * c, 3))
+    caps = np.empty((k * c, 3))
+    dist = np.empty(k * c)
+    row = np.empty(k * c, dtype=np.intp)
+    m = 0
+    v = np.empty(3)
+    for i in range(k):
+        for j in range(c):
+            dij = distance[i, j]
+            if not (np.isfinite(dij) and dij > 0):
+                continue
+            corrected_point(capsules[i, j], beam[i], dij, axis, cos_max, v)
+            if not (np.isfinite(v[0]) and np.isfinite(v[1]) and np.isfinite(v[2])):
+                continue
+            points[m, 0], points[m, 1], points[m, 2] = v[0], v[1], v[2]
+            caps[m, 0], caps[m, 1], caps[m, 2] = capsules[i, j, 0], capsules[i, j, 1], capsules[i, j, 2]
+            dist[m] = dij
+            row[m] = i
+            m += 1
+    return points[:m].copy(), caps[:m].copy(), dist[:m].copy(), row[:m].copy()
 
 
 def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
@@ -215,11 +243,37 @@ def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFail
     n = v.shape[0]
     if n < max(min_points, 4):
         return FitFailure(FailureReason.TOO_FEW_POINTS, f"{n} valid points, need {max(min_points, 4)}", label, n)
-    sv = np.linalg.svd(v - v.mean(axis=0), compute_uv=False) / np.sqrt(n)
-    if sv[1] < max(1e-6 * sv[0], 1e-3):
+    sv0, sv1 = _spread(v)
+    if sv1 < max(1e-6 * sv0, 1e-3):
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
-                          f"points are collinear or coincident (spread {sv[0]:.3g} m × {sv[1]:.3g} m)", label, n)
+                          f"points are collinear or coincident (spread {sv0:.3g} m × {sv1:.3g} m)", label, n)
     return None
+
+
+@kernel
+def _spread(v: np.ndarray) -> tuple[float, float]:
+    """The two largest RMS spreads of the centred cloud ``v`` (its singular values over ``√N``), m.
+
+    The singular values of the centred ``V`` are the roots of the eigenvalues of its 3×3 scatter
+    matrix ``VᵀV`` (a spread ≥ 1 mm of one ≤ a few m squares to a condition far inside float64's).
+    """
+    n = v.shape[0]
+    mean = np.zeros(3)
+    for i in range(n):  # the row-by-row sums of v.mean(axis=0)
+        for u in range(3):
+            mean[u] += v[i, u]
+    mean /= n
+    scatter = np.zeros((3, 3))
+    for i in range(n):
+        for u in range(3):
+            cu = v[i, u] - mean[u]
+            for w in range(u, 3):
+                scatter[u, w] += cu * (v[i, w] - mean[w])
+    for u in range(3):
+        for w in range(u):
+            scatter[u, w] = scatter[w, u]
+    ev = np.linalg.eigvalsh(scatter)  # ascending
+    return np.sqrt(max(ev[2], 0.0) / n), np.sqrt(max(ev[1], 0.0) / n)
 
 
 def ls_theta(points: np.ndarray) -> np.ndarray:
@@ -269,19 +323,19 @@ def fast_median(x: np.ndarray) -> float:
     model's kernels take medians too.
     """
     n = x.shape[0]
-    if np.isnan(x).any():
-        return np.nan
-    s = np.sort(x)
+    for i in range(n):
+        if np.isnan(x[i]):
+            return np.nan
+    # The order statistics by selection (a partition about the middle), not a full sort: a few times faster.
     k = n // 2
-    return s[k] if n % 2 else (s[k - 1] + s[k]) / 2.0
-
-
-def _sorted_median(s: np.ndarray) -> float:
-    """:func:`fast_median` of an array already sorted ascending (NaN sorts last), the same number."""
-    n = s.shape[0]
-    k = n // 2
-    m = float(s[k]) if n % 2 else (float(s[k - 1]) + float(s[k])) / 2.0
-    return float("nan") if np.isnan(m) or np.isnan(s[-1]) else m
+    p = np.partition(x, k)
+    if n % 2:
+        return p[k]
+    below = p[0]  # the (k − 1)-th order statistic: the largest of the partition's lower part
+    for i in range(1, k):
+        if p[i] > below:
+            below = p[i]
+    return (below + p[k]) / 2.0
 
 
 def mad(e: np.ndarray) -> float:
@@ -289,6 +343,12 @@ def mad(e: np.ndarray) -> float:
     e = np.asarray(e, dtype=np.float64).ravel()
     if e.size == 0:
         raise ConfigError("MAD of an empty set")
+    return _mad(e)
+
+
+@kernel
+def _mad(e: np.ndarray) -> float:
+    """:func:`mad` of a non-empty 1-D array."""
     return fast_median(np.abs(e - fast_median(e)))
 
 
@@ -357,8 +417,11 @@ def _theta_covariance(t: np.ndarray, x: np.ndarray, shift: np.ndarray) -> np.nda
         for u in range(3):
             jac[u] = x[i, u] / nt - q * t[u] / nt3
         for u in range(3):
-            for v in range(3):
+            for v in range(u, 3):  # the upper triangle (jac[u]·jac[v] rounds as jac[v]·jac[u]), mirrored below
                 jtj[u, v] += jac[u] * jac[v]
+    for u in range(3):
+        for v in range(u):
+            jtj[u, v] = jtj[v, u]
     s2 = ss / (k - 3)
     sv = np.linalg.svd(jtj)[1]  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
     if sv[-1] == 0.0 or not sv[0] / sv[-1] <= 1e15:
@@ -577,44 +640,64 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     nt = _norm(t) if np.isfinite(t).all() else float("nan")
     if not (np.isfinite(nt) and 1e-3 < nt < 1e3):
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
-    n, h = t / nt, 1.0 / nt
     if model == "paper":
-        x, shift = data.points, 0.0
+        x, shift = data.points, None
     elif model == "constant-depth":
         x, shift = data.capsules, data.distance
     else:
         raise ConfigError(f"unknown plane model {model!r}")
-    r_m = metric_residuals(t, x, shift)
-    e = r_m * nt  # eq. (20): e_i = v_i · θ − 1 (paper model exactly)
     mask = np.asarray(inlier_mask, dtype=bool)
     if mask.shape != (data.n,):
         raise ConfigError(f"inlier mask must have shape ({data.n},), got {mask.shape}")
     k = int(np.count_nonzero(mask))
     if k < 3:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
-    every = k == data.n  # every point an inlier (LS, the joint model's walls): no copies of the inliers
-    cov = theta_covariance(t, x, shift, None if every else mask)
-    se_n, se_h = normal_offset_stderr(t, cov)
+    n, e, ordered, cov, se_n, se_h, sigma_relative, sigma, patch = _fit_statistics(
+        t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None)
     if not (np.isfinite(se_n) and np.isfinite(se_h)):
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"{method}: the inliers do not constrain the plane", data.label, data.n)
-    if model == "constant-depth":
-        foot = data.capsules + data.distance[:, None] * n if every else \
-            data.capsules[mask] + data.distance[mask, None] * n
-    else:
-        foot = data.points if every else data.points[mask]
-    ordered = np.sort(e)
-    if every:  # MAD (eq. 21) of e, its median read off the sorted residuals (e is finite: no NaN)
-        sigma_relative = MAD_K * fast_median(np.abs(e - _sorted_median(ordered)))
-        sigma = mad_sigma(r_m)
-    else:
-        sigma_relative, sigma = mad_sigma(e[mask]), mad_sigma(r_m[mask])
-    # Every array below is fresh and every check of PlaneFit's constructor holds by construction (see
+    # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
     # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
     return PlaneFit._owned(
-        label=data.label, method=method, normal=n, offset=h,
+        label=data.label, method=method, normal=n, offset=1.0 / nt,
         entropy=entropy_of_residuals(e) if data.n >= 2 else 0.0,
         sigma_relative=sigma_relative, sigma=sigma,
         inlier_mask=mask.copy(), sorted_residuals=ordered, theta_covariance=cov,
-        normal_stderr=se_n, offset_stderr=se_h, patch=observed_patch(n, h, foot), diagnostics=diagnostics,
+        normal_stderr=se_n, offset_stderr=se_h, patch=patch, diagnostics=diagnostics,
     )
+
+
+@kernel
+def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.ndarray, mirror: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray]:
+    """What :func:`make_plane_fit` reports of ``θ`` on the points ``x``, in one kernel.
+
+    The metric residuals ``r = (θ·x − 1)/|θ| + shift`` (:func:`metric_residuals`), the errors
+    ``e = r·|θ|`` of eq. (20), their sorted copy, the covariance of θ over the inliers ``mask``
+    (:func:`theta_covariance`) and the standard errors (:func:`normal_offset_stderr`), σ of eq.
+    (21)–(22) of ``e`` and of ``r`` over the inliers (:func:`mad_sigma`) and the observed patch
+    (:func:`observed_patch`) of the inliers' feet: the points themselves, or with ``mirror`` (the
+    constant-depth model: ``x`` the capsules, ``shift`` the ranges) ``p_c + d·n``.
+
+    Returns
+    -------
+    n, e, sorted e, cov, σ_n, σ_h, σ_relative, σ, patch (σ_n, σ_h inf: the inliers do not constrain θ;
+    the rest is then unset)
+    """
+    m = x.shape[0]
+    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    n = t / nt
+    r = np.empty(m)
+    e = np.empty(m)
+    for i in range(m):
+        r[i] = (x[i, 0] * t[0] + x[i, 1] * t[1] + x[i, 2] * t[2] - 1.0) / nt + shift[i]
+        e[i] = r[i] * nt
+    xi, si, ri, ei = x[mask], shift[mask], r[mask], e[mask]  # (copies: x may be a frozen PlaneData's)
+    cov = _theta_covariance(t, xi, si)
+    se_n, se_h = _normal_offset_stderr(t, cov)
+    if not (np.isfinite(se_n) and np.isfinite(se_h)):
+        return n, e, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3))
+    foot = xi + si.reshape(-1, 1) * n if mirror else xi
+    return (n, e, np.sort(e), cov, se_n, se_h, MAD_K * _mad(ei), MAD_K * _mad(ri),
+            _observed_patch(n, 1.0 / nt, foot))

@@ -82,9 +82,13 @@ class QualityLimits:
                               "and shares must be in [0, 1]")
 
 
+#: The limits every check uses unless given others (frozen: one instance serves every call).
+_DEFAULT_LIMITS = QualityLimits()
+
+
 def unexplained_finding(share: float, limits: QualityLimits | None = None) -> tuple[tuple[str, str], ...]:
     """The finding against every plane of a scan whose model leaves ``share`` of the echoes unexplained."""
-    lim = limits or QualityLimits()
+    lim = limits or _DEFAULT_LIMITS
     text = f"{100 * share:.0f} % of the scan's echoes fit neither wall nor their edge"
     if share > lim.unreliable_unexplained:
         return ((UNRELIABLE, text + ": the walls explain the wrong echoes"),)
@@ -110,7 +114,7 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
         ``"degraded"`` or ``"unreliable"``).
     limits : QualityLimits, optional
     """
-    lim = limits or QualityLimits()
+    lim = limits or _DEFAULT_LIMITS
     verdict, reasons = GOOD, []
 
     def flag(level: str, reason: str) -> None:

@@ -13,6 +13,7 @@ scanner (``h > 0``); the paper's parameter vector is ``θ = n / h`` so that
 from __future__ import annotations
 
 import enum
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -204,27 +205,39 @@ class PlaneFit:
             raise ConfigError("PlaneFit.theta_covariance must be symmetric")
         _frozen_array(self, "patch", (4, 3))
 
-    def _check_scalars(self) -> None:
-        """Validate (and normalise) the fields that are not arrays: what :meth:`replace_scalars` may change."""
-        if self.quality not in ("", "good", "degraded", "unreliable"):
+    def _check_scalars(self, names: AbstractSet[str] | None = None) -> None:
+        """Validate (and normalise) the fields that are not arrays: what :meth:`replace_scalars` may change.
+
+        ``names``: only these fields (those a replacement changed; the others were checked when this
+        plane was made); None: all of them.
+        """
+        def wanted(*fields: str) -> bool:
+            return names is None or not names.isdisjoint(fields)
+
+        if wanted("quality") and self.quality not in ("", "good", "degraded", "unreliable"):
             raise ConfigError(f"PlaneFit.quality must be good, degraded or unreliable, got {self.quality!r}")
-        if not isinstance(self.method, str):
+        if wanted("method") and not isinstance(self.method, str):
             raise ConfigError(f"PlaneFit.method must be a str, got {self.method!r}")
-        if not isinstance(self.diagnostics, SolverDiagnostics):
+        if wanted("diagnostics") and not isinstance(self.diagnostics, SolverDiagnostics):
             raise ConfigError(f"PlaneFit.diagnostics must be SolverDiagnostics, got {type(self.diagnostics).__name__}")
-        object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
-        if not (np.isfinite(self.offset) and self.offset > 0):
-            raise ConfigError(f"PlaneFit.offset must be finite and > 0 m, got {self.offset}")
-        if not (0.0 <= self.entropy <= 1.0 + 1e-12):
-            raise ConfigError(f"PlaneFit.entropy must be in [0, 1], got {self.entropy}")
+        if wanted("quality_reasons"):
+            object.__setattr__(self, "quality_reasons", tuple(str(r) for r in self.quality_reasons))
+        if wanted("offset"):
+            if not (np.isfinite(self.offset) and self.offset > 0):
+                raise ConfigError(f"PlaneFit.offset must be finite and > 0 m, got {self.offset}")
+            object.__setattr__(self, "offset", float(self.offset))
+        if wanted("entropy"):
+            if not (0.0 <= self.entropy <= 1.0 + 1e-12):
+                raise ConfigError(f"PlaneFit.entropy must be in [0, 1], got {self.entropy}")
+            object.__setattr__(self, "entropy", float(min(self.entropy, 1.0)))
         for name in ("sigma_relative", "sigma", "normal_stderr", "offset_stderr"):
+            if not wanted(name):
+                continue
             v = getattr(self, name)
             if not (np.isfinite(v) and v >= 0):
                 raise ConfigError(f"PlaneFit.{name} must be finite and >= 0, got {v}")
             object.__setattr__(self, name, float(v))
-        object.__setattr__(self, "offset", float(self.offset))
-        object.__setattr__(self, "entropy", float(min(self.entropy, 1.0)))
-        if self.label not in ("a", "b"):
+        if wanted("label") and self.label not in ("a", "b"):
             raise ConfigError(f"PlaneFit.label must be 'a' or 'b', got {self.label!r}")
 
     @classmethod
@@ -256,7 +269,8 @@ class PlaneFit:
 
         ``changes`` may set any field but ``normal``, ``inlier_mask``, ``sorted_residuals``,
         ``theta_covariance`` and ``patch`` (e.g. the trust verdict, a fallback's name, the standard
-        errors).  The non-array fields are validated as the constructor validates them; the arrays,
+        errors).  The changed fields are validated as the constructor validates them (the others were when
+        this plane was made); the arrays,
         frozen and validated when this plane was made, are shared with it, not copied and checked again.
         """
         if not changes.keys() <= _SCALARS:
@@ -265,7 +279,7 @@ class PlaneFit:
         obj = object.__new__(PlaneFit)
         obj.__dict__.update(self.__dict__)
         obj.__dict__.update(changes)
-        obj._check_scalars()
+        obj._check_scalars(changes.keys())  # the unchanged fields were checked when this plane was made
         return obj
 
     @property
