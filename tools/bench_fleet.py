@@ -109,8 +109,10 @@ def worker_main(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.recovery import RecoveryConfig
     from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
     from lelsonar.reconstruct.sources import LiveSource, PlanesServer
+    from lelsonar.tools.warm_up import exercise_kernels
     from lelsonar.transport import open_session
 
+    exercise_kernels()  # as `lelsonar reconstruct` does before it listens
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     keys = ScannerKeys(PREFIX, "*")

@@ -328,8 +328,10 @@ def _timed_service_class():
 def consumer_main(args: argparse.Namespace) -> int:
     from lelsonar.keys import ScannerKeys
     from lelsonar.reconstruct.sources import LiveSource, PlanesServer
+    from lelsonar.tools.warm_up import exercise_kernels
     from lelsonar.transport import hermetic_settings, open_session
 
+    exercise_kernels()  # as `lelsonar reconstruct` does before it listens
     service = _timed_service_class()()
     keys = ScannerKeys(PREFIX, "*")
     stop = threading.Event()

@@ -229,6 +229,10 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     source = _open_source(args.source) if args.source is not None else None
     group_config = _group_config(args)
+    if source is None:
+        from lelsonar.tools.warm_up import exercise_kernels
+
+        exercise_kernels()  # before joining anything: the first live scan does not wait for the kernels to load
     with ExitStack() as stack:
         from lelsonar.reconstruct.observers import combine
 
