@@ -59,6 +59,7 @@ from lelsonar.reconstruct.energy import (
     EnergyModel,
     echo_window_start,
     energy_agrees,
+    step_median_range,
     waveform_energy,
     window_samples,
 )
@@ -776,7 +777,7 @@ def _settle_step(per_capsule, per_step, step, scan):
     model in ``scan[2:7]``: φ0, φ1, φ2, d_min, d_max)."""
     step_energy = 0.0 + _pairwise_block(per_capsule[1, step], 0, per_capsule.shape[2])  # as add.reduce
     per_step[2, step] = step_energy
-    d_m = _median_range(per_capsule[0, step])
+    d_m = step_median_range(per_capsule[0, step])
     if math.isfinite(d_m):
         d = min(max(d_m, scan[5]), scan[6])  # np.clip to the calibrated interval
         e0 = 1.0 / (scan[2] * d * d + scan[3] * d + scan[4])
@@ -784,36 +785,6 @@ def _settle_step(per_capsule, per_step, step, scan):
         per_step[4, step] = step_energy / e0
     else:
         per_step[4, step] = 0.0
-
-
-@kernel
-def _median_range(row):
-    """``d_m`` of one step (paper §4): the median of its finite ranges, NaN without one — what
-    :func:`~lelsonar.reconstruct.energy.median_range` gives (the mean of the two middle values of the sorted
-    ranges), found by rank among the non-NaN values instead of a sort (a step has a few)."""
-    count = 0
-    for x in row:
-        if math.isfinite(x):
-            count += 1
-    if count == 0:
-        return np.nan
-    return 0.5 * (_nth_smallest(row, (count - 1) // 2) + _nth_smallest(row, count // 2))
-
-
-@kernel
-def _nth_smallest(row, nth):
-    """The ``nth`` (from 0) of the non-NaN values of ``row`` in ascending order (where a sort puts it)."""
-    for x in row:
-        if x == x:
-            below = tied = 0
-            for y in row:
-                if y < x:
-                    below += 1
-                elif y == x:
-                    tied += 1
-            if below <= nth < below + tied:
-                return x
-    return np.nan
 
 
 @kernel
