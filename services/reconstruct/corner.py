@@ -622,6 +622,9 @@ def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGe
     return assess_plane(fit, gamma, edge_echoes=0, findings=unexplained_finding(unexplained)), data
 
 
+#: The quality limits the corner model's own findings use (frozen: one instance serves every scan).
+_LIMITS = QualityLimits()
+
 #: Range the echo's amplitude window (:data:`~lelsonar.reconstruct.energy.ECHO_PEAK_WINDOW`) spans beyond
 #: the echo's own, m: half its length times a speed of sound at the warm end of a lab's (35 °C, ~352 m/s).
 ECHO_WINDOW_RANGE = ECHO_PEAK_WINDOW[1] * 352.0 / 2.0
@@ -751,7 +754,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     datas: list[F.PlaneData] = []
     # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
     # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
-    limits = QualityLimits()
+    limits = _LIMITS
     shared_limit = limits.max_offset_stderr / model.tolerance
     residuals = echo_residuals(model.wall_a, model.wall_b, pts, opts.corner_beam_half_angle)  # (3, N), once
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle, residuals)

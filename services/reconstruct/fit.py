@@ -724,5 +724,13 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
         return n, e, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
     foot = xi + si.reshape(-1, 1) * n if mirror else xi
     ordered = np.sort(e)
-    return (n, e, ordered, cov, se_n, se_h, MAD_K * _mad(ei), MAD_K * _mad(ri),
+    if every:
+        # e's median is its sorted copy's middle: the order statistics fast_median finds, exactly (e is finite:
+        # the points, θ and the shifts are), so _mad(e) without selecting them again.
+        k = m // 2
+        med = ordered[k] if m % 2 else (ordered[k - 1] + ordered[k]) / 2.0
+        mad_e = fast_median(np.abs(e - med))
+    else:
+        mad_e = _mad(ei)
+    return (n, e, ordered, cov, se_n, se_h, MAD_K * mad_e, MAD_K * _mad(ri),
             _observed_patch(n, 1.0 / nt, foot), _entropy(e) if m >= 2 else 0.0)
