@@ -20,6 +20,7 @@ In both cases the relative error of eq. (20) is the metric residual times
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -451,9 +452,24 @@ def _normal_offset_stderr(t: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
     n = t / nt
     h = 1.0 / nt
-    jn = (np.eye(3) - np.outer(n, n)) / nt
-    var_n = np.trace(jn @ c @ jn.T)
-    var_h = h**4 * ((n @ c) @ n)
+    # trace(J C Jᵀ) with J = (I − n nᵀ)/|θ|, and n·C·n, written out (3×3 BLAS calls cost more than their
+    # arithmetic; the sums round as they did to within a few ulp).
+    jn = np.empty((3, 3))
+    for u in range(3):
+        for v in range(3):
+            jn[u, v] = ((1.0 if u == v else 0.0) - n[u] * n[v]) / nt
+    var_n = 0.0
+    ncn = 0.0
+    for u in range(3):
+        cn = 0.0
+        for w in range(3):
+            t_uw = 0.0
+            for v in range(3):
+                t_uw += jn[u, v] * c[v, w]
+            var_n += t_uw * jn[u, w]
+            cn += n[w] * c[w, u]
+        ncn += cn * n[u]
+    var_h = h**4 * ncn
     return np.sqrt(max(var_n, 0.0)), np.sqrt(max(var_h, 0.0))
 
 
@@ -663,7 +679,7 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
     n, e, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
         t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None)
-    if not (np.isfinite(se_n) and np.isfinite(se_h)):
+    if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"{method}: the inliers do not constrain the plane", data.label, data.n)
     # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
