@@ -58,12 +58,12 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel", "edge", 0)
     point, direction = line
-    s = float(np.sin(angle))
+    s = math.sin(angle)  # (math's sin and sqrt on floats: the same numbers as NumPy's, without the ufunc calls)
     # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
     # and turns it by δ / sin(angle).
-    point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
-                             + (plane_a.offset * plane_a.normal_stderr)**2
-                             + (plane_b.offset * plane_b.normal_stderr)**2) / s)
+    point_se = math.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
+                         + (plane_a.offset * plane_a.normal_stderr)**2
+                         + (plane_b.offset * plane_b.normal_stderr)**2) / s
     direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
     # (edge_line's fresh arrays: a finite point and a unit direction of two valid planes, an angle in [0, π])
     return EdgeLine._owned(point, direction, angle, point_se, direction_se)

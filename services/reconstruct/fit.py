@@ -677,7 +677,7 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     k = int(np.count_nonzero(mask))
     if k < 3:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
-    n, e, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
+    n, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
         t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None)
     if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
@@ -702,8 +702,7 @@ _STDERR_FIELDS = frozenset({"normal_stderr", "offset_stderr"})
 
 @kernel
 def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.ndarray, mirror: bool
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray,
-                               float]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray, float]:
     """What :func:`make_plane_fit` reports of ``θ`` on the points ``x``, in one kernel.
 
     The metric residuals ``r = (θ·x − 1)/|θ| + shift`` (:func:`metric_residuals`), the errors
@@ -716,8 +715,8 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
 
     Returns
     -------
-    n, e, sorted e, cov, σ_n, σ_h, σ_relative, σ, patch, H (σ_n, σ_h inf: the inliers do not constrain θ;
-    the rest is then unset)
+    n, sorted e, cov, σ_n, σ_h, σ_relative, σ, patch, H (σ_n, σ_h inf: the inliers do not constrain θ;
+    the rest is then unset; e itself is not returned: nothing keeps it but its sorted copy)
     """
     m = x.shape[0]
     nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
@@ -737,7 +736,7 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
     cov = _theta_covariance(t, xi, si)
     se_n, se_h = _normal_offset_stderr(t, cov)
     if not (np.isfinite(se_n) and np.isfinite(se_h)):
-        return n, e, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
+        return n, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
     foot = xi + si.reshape(-1, 1) * n if mirror else xi
     ordered = np.sort(e)
     if every:
@@ -748,5 +747,5 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
         mad_e = fast_median(np.abs(e - med))
     else:
         mad_e = _mad(ei)
-    return (n, e, ordered, cov, se_n, se_h, MAD_K * mad_e, MAD_K * _mad(ri),
+    return (n, ordered, cov, se_n, se_h, MAD_K * mad_e, MAD_K * _mad(ri),
             _observed_patch(n, 1.0 / nt, foot), _entropy(e) if m >= 2 else 0.0)
