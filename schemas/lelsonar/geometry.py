@@ -24,6 +24,10 @@ CAPSULE_PITCH_M = 0.08
 def rotation_x(gamma: np.ndarray | float) -> np.ndarray:
     """Rotation matrices about x by ``gamma`` (rad); shape ``(..., 3, 3)``."""
     g = np.asarray(gamma, dtype=float)
+    if g.ndim == 0:
+        # One angle (a turn of the corner model's axes): the same matrix without the four stacks (~20 µs).
+        c, s = np.cos(g), np.sin(g)
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     c, s = np.cos(g), np.sin(g)
     one, zero = np.ones_like(g), np.zeros_like(g)
     return np.stack(
@@ -39,7 +43,13 @@ def rotation_x(gamma: np.ndarray | float) -> np.ndarray:
 def boresight(gamma: np.ndarray | float) -> np.ndarray:
     """Unit beam directions ``(0, cos γ, sin γ)`` for each γ; shape ``(..., 3)``."""
     g = np.asarray(gamma, dtype=float)
-    return np.stack([np.zeros_like(g), np.cos(g), np.sin(g)], axis=-1)
+    # Written in place: the same numbers as stacking zeros, cos γ and sin γ, without the stack's copies
+    # (every scan's fit builds these).
+    out = np.empty(g.shape + (3,))
+    out[..., 0] = 0.0
+    np.cos(g, out=out[..., 1])
+    np.sin(g, out=out[..., 2])
+    return out
 
 
 @dataclass(frozen=True)
@@ -77,19 +87,25 @@ class ArrayGeometry:
         x = np.asarray(self.capsule_x, dtype=float)
         return np.stack([x, np.full_like(x, self.radial_offset), np.zeros_like(x)], axis=-1)
 
-    def capsule_positions(self, gamma: np.ndarray | float) -> np.ndarray:
+    def capsule_positions(self, gamma: np.ndarray | float, beam: np.ndarray | None = None) -> np.ndarray:
         """World positions ``(x^c, y^c, z^c)`` of every capsule at each γ (eq. 9).
 
-        Returns shape ``(..., n_capsules, 3)`` for ``gamma`` of shape ``(...)``.
+        Returns shape ``(..., n_capsules, 3)`` for ``gamma`` of shape ``(...)``.  ``beam``: the
+        :func:`boresight` of ``gamma``, if the caller has it (its cos γ and sin γ are used, not
+        computed again: the same numbers).
         """
         # R·c for a capsule c = (x, r, 0) of the array frame is (x, r cos γ, r sin γ): the products the matmul
         # c·Rᵀ forms, without its zero terms (the same numbers, bit for bit; ~4× faster, on every fit's path).
         g = np.asarray(gamma, dtype=float)
+        if beam is None:
+            cos_g, sin_g = np.cos(g), np.sin(g)
+        else:
+            cos_g, sin_g = beam[..., 1], beam[..., 2]
         x = np.asarray(self.capsule_x, dtype=float)
         out = np.empty(g.shape + (x.size, 3))
         out[..., 0] = x
-        out[..., 1] = self.radial_offset * np.cos(g)[..., None]
-        out[..., 2] = self.radial_offset * np.sin(g)[..., None]
+        out[..., 1] = self.radial_offset * cos_g[..., None]
+        out[..., 2] = self.radial_offset * sin_g[..., None]
         return out
 
 

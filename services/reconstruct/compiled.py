@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 
 #: Every module of this package with a :func:`kernel` (a test checks the list is complete).
 KERNEL_MODULES = ("assembly.py", "corner.py", "corner_model.py", "correct.py", "echo_timing.py", "energy.py",
-                  "fit.py", "lel.py", "pipeline.py", "split.py")
+                  "fit.py", "lel.py", "pipeline.py", "quality.py", "split.py")
 
 
 def _cache_dir() -> Path | None:

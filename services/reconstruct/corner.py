@@ -58,12 +58,12 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel", "edge", 0)
     point, direction = line
-    s = float(np.sin(angle))
+    s = math.sin(angle)  # (math's sin and sqrt on floats: the same numbers as NumPy's, without the ufunc calls)
     # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
     # and turns it by δ / sin(angle).
-    point_se = float(np.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
-                             + (plane_a.offset * plane_a.normal_stderr)**2
-                             + (plane_b.offset * plane_b.normal_stderr)**2) / s)
+    point_se = math.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
+                         + (plane_a.offset * plane_a.normal_stderr)**2
+                         + (plane_b.offset * plane_b.normal_stderr)**2) / s
     direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
     # (edge_line's fresh arrays: a finite point and a unit direction of two valid planes, an angle in [0, π])
     return EdgeLine._owned(point, direction, angle, point_se, direction_se)
@@ -425,37 +425,71 @@ def _pitch_frame(psi: float, cp: float, sp: float) -> tuple[np.ndarray, np.ndarr
 @kernel
 def _fixed_pitch_wall(p: np.ndarray, d: np.ndarray, phi: float, phi_se: float, yaw_sine: float,
                       iterations: int) -> tuple[np.ndarray, float, float, float]:
-    """:func:`fixed_pitch_wall` as a kernel: normal, offset and their standard errors."""
+    """:func:`fixed_pitch_wall` as a kernel: normal, offset and their standard errors.
+
+    The products with the capsules are written out echo by echo (BLAS calls cost more than their
+    arithmetic on a wall's few hundred echoes; sums and products round as they did to within a few ulp).
+    """
     m = d.shape[0]
     cp, sp = np.cos(phi), np.sin(phi)
     psi = np.arcsin(min(max(yaw_sine, -1.0), 1.0))
     n, dn = _pitch_frame(psi, cp, sp)
-    h = _pairwise_sum(p @ n + d, 0, m) / m
+    r = np.empty(m)
+    x = np.empty(m)
+    for i in range(m):
+        r[i] = p[i, 0] * n[0] + p[i, 1] * n[1] + p[i, 2] * n[2] + d[i]
+    h = _pairwise_sum(r, 0, m) / m
     for _ in range(iterations):
         # Least squares of r + x·δψ − δh = 0 (x = p·∂n/∂ψ) in closed form: δψ from the centred x and r, δh
         # from the means.  Quadratic convergence: stop once the step is below rounding.
-        r = p @ n + d - h
-        x = p @ dn
+        _mirror_terms(p, d, n, dn, h, r, x)
         x_mean = _pairwise_sum(x, 0, m) / m
-        xc = x - x_mean
-        sxx = xc @ xc
-        step_psi = -(xc @ r) / sxx if sxx > 0 else 0.0
+        sxx = 0.0
+        sxr = 0.0
+        for i in range(m):
+            xc = x[i] - x_mean
+            sxx += xc * xc
+            sxr += xc * r[i]
+        step_psi = -sxr / sxx if sxx > 0 else 0.0
         psi += step_psi
         h += _pairwise_sum(r, 0, m) / m + x_mean * step_psi
         n, dn = _pitch_frame(psi, cp, sp)
         if abs(step_psi) < 1e-13:
             break
-    r = p @ n + d - h
-    x = p @ dn
-    jtj = np.empty((2, 2))  # of the columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1
-    jtj[0, 0], jtj[0, 1], jtj[1, 0], jtj[1, 1] = x @ x, -_pairwise_sum(x, 0, m), -_pairwise_sum(x, 0, m), float(m)
-    cov = (r @ r) / max(m - 2, 1) * np.linalg.pinv(jtj)
+    _mirror_terms(p, d, n, dn, h, r, x)
+    # JᵀJ of the columns ∂r/∂ψ = p·∂n/∂ψ and ∂r/∂h = −1: [[Σx², −Σx], [−Σx, m]]
+    sxx = 0.0
+    srr = 0.0
+    for i in range(m):
+        sxx += x[i] * x[i]
+        srr += r[i] * r[i]
+    sx = _pairwise_sum(x, 0, m)
+    det = sxx * m - sx * sx
+    if det > 1e-3 * sxx * m:  # well conditioned: its inverse in closed form (≤ 1e-12 of the SVD's, tested)
+        inv00, inv11 = m / det, sxx / det
+    else:  # (nearly) one capsule's lever arm: the pseudo-inverse of the rank-deficient matrix
+        jtj = np.empty((2, 2))
+        jtj[0, 0], jtj[0, 1], jtj[1, 0], jtj[1, 1] = sxx, -sx, -sx, float(m)
+        pinv = np.linalg.pinv(jtj)
+        inv00, inv11 = pinv[0, 0], pinv[1, 1]
+    s2 = srr / max(m - 2, 1)
     # φ's own error moves h through the capsules' lever arm: ∂r/∂φ = p·∂n/∂φ.
-    dn_dphi = np.array([0.0, -np.cos(psi) * sp, np.cos(psi) * cp])
-    dh_dphi = _pairwise_sum(p @ dn_dphi, 0, m) / m
-    se_n = np.sqrt(max(cov[0, 0], 0.0) + phi_se**2)
-    se_h = np.sqrt(max(cov[1, 1], 0.0) + (dh_dphi * phi_se) ** 2)
+    dn1, dn2 = -np.cos(psi) * sp, np.cos(psi) * cp
+    for i in range(m):
+        x[i] = p[i, 1] * dn1 + p[i, 2] * dn2
+    dh_dphi = _pairwise_sum(x, 0, m) / m
+    se_n = np.sqrt(max(s2 * inv00, 0.0) + phi_se**2)
+    se_h = np.sqrt(max(s2 * inv11, 0.0) + (dh_dphi * phi_se) ** 2)
     return n, h, se_n, se_h
+
+
+@kernel
+def _mirror_terms(p: np.ndarray, d: np.ndarray, n: np.ndarray, dn: np.ndarray, h: float, r: np.ndarray,
+                  x: np.ndarray) -> None:
+    """Into ``r`` and ``x``: the mirror-echo residuals ``n·p_c + d − h`` and their derivatives ``p_c·∂n/∂ψ``."""
+    for i in range(d.shape[0]):
+        r[i] = p[i, 0] * n[0] + p[i, 1] * n[1] + p[i, 2] * n[2] + d[i] - h
+        x[i] = p[i, 0] * dn[0] + p[i, 1] * dn[1] + p[i, 2] * dn[2]
 
 
 def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
@@ -508,9 +542,9 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         phi, phi_se = pitch
         fitted, se_n, se_h = fixed_pitch_wall(amplitude[3], amplitude[2], phi, phi_se, wall.normal)
         off = float(np.arccos(min(max(float(fitted.normal @ wall.normal), -1.0), 1.0)))
-        if not (np.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
+        if not (math.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
             fitted = None
-            if np.isfinite(se_joint):
+            if math.isfinite(se_joint):
                 # The amplitudes are the only sensor of the wall's direction in the rotation plane that a
                 # common roll cannot fool; a joint fit they contradict has not found that direction.
                 flags.append(f"its echoes are strongest at γ = {np.rad2deg(phi):.1f}°, {np.rad2deg(off):.1f}° from "
@@ -531,7 +565,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     angle = float(np.arccos(min(max(float(n_p @ wall.normal), -1.0), 1.0)))
     # The test is the joint fit's own: a walk that may have turned it does not make the roll-blind
     # corrected points more likely right; it only widens what either may miss by.
-    agree = np.isfinite(se_joint) and angle <= opts.tilt_test_sigma * se_joint
+    agree = math.isfinite(se_joint) and angle <= opts.tilt_test_sigma * se_joint
     # The corrected points take the wall's direction in the rotation plane from the axis they assume (§4; a
     # roll ρ of the wall moves them by r·ρ only, r the capsules' few-cm lever): on an L rolled about x they
     # sit the roll from the truth whatever the data.  So they disagree with the joint fit only if they do both
@@ -562,7 +596,7 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
                                                     "echoes' amplitude) -> "
                                                     + verdict))
     fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
-    if isinstance(fit, PlaneFit) and np.isfinite(se_n) and np.isfinite(se_h):
+    if isinstance(fit, PlaneFit) and math.isfinite(se_n) and math.isfinite(se_h):
         if agree or tie_suspect:
             # The corrected points cannot see a roll below the joint fit's σ: their own covariance overclaims.
             # A joint wall tied to a suspect wall: the joint σ assumes a tie that may be wrong.
@@ -621,6 +655,9 @@ def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGe
     unexplained = float(np.mean(~m[seen])) if np.any(seen) else 0.0
     return assess_plane(fit, gamma, edge_echoes=0, findings=unexplained_finding(unexplained)), data
 
+
+#: The quality limits the corner model's own findings use (frozen: one instance serves every scan).
+_LIMITS = QualityLimits()
 
 #: Range the echo's amplitude window (:data:`~lelsonar.reconstruct.energy.ECHO_PEAK_WINDOW`) spans beyond
 #: the echo's own, m: half its length times a speed of sound at the warm end of a lab's (35 °C, ~352 m/s).
@@ -751,7 +788,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     datas: list[F.PlaneData] = []
     # Echoes a wall could have returned as well as the edge can move the offset by up to the tolerance; a
     # share of them beyond max_offset_stderr / tolerance could move it past what a good plane may miss by.
-    limits = QualityLimits()
+    limits = _LIMITS
     shared_limit = limits.max_offset_stderr / model.tolerance
     residuals = echo_residuals(model.wall_a, model.wall_b, pts, opts.corner_beam_half_angle)  # (3, N), once
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle, residuals)

@@ -29,6 +29,7 @@ wall leaves the real wall's echoes unexplained and its edge explains nothing.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +37,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
 
 from .compiled import kernel
-from .fit import _cross3, _tangent_basis, fast_median
+from .fit import _cross3, _norm, _tangent_basis, fast_median
 from .lel import _pairwise_block, _pairwise_sum  # noqa: F401 — _pairwise_block: assembly imports it from here
 
 __all__ = [
@@ -141,10 +142,11 @@ class CornerModel:
 
     def wall_stderr(self, k: int) -> tuple[float, float]:
         """RMS tilt (rad) and offset standard error (m) of wall ``k`` (0 = a, 1 = b)."""
-        c = self.covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3]
-        if not np.all(np.isfinite(c)):
+        # On Python floats (a 3×3 block: NumPy's calls would cost more than the arithmetic).
+        c = self.covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3].tolist()
+        if not all(math.isfinite(x) for row in c for x in row):
             return float("inf"), float("inf")
-        return float(np.sqrt(max(c[0, 0] + c[1, 1], 0.0))), float(np.sqrt(max(c[2, 2], 0.0)))
+        return math.sqrt(max(c[0][0] + c[1][1], 0.0)), math.sqrt(max(c[2][2], 0.0))
 
     def count(self, label: int) -> int:
         return int(np.count_nonzero(self.labels == label))
@@ -154,7 +156,8 @@ def scan_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray
     """Flatten the valid echoes of a scan (finite, positive ranges)."""
     g = np.asarray(gamma, dtype=np.float64)
     d = np.ascontiguousarray(distance, dtype=np.float64)
-    return ScanPoints(*_valid_echoes(g, d, geometry.capsule_positions(g), boresight(g)))
+    beam = boresight(g)
+    return ScanPoints(*_valid_echoes(g, d, geometry.capsule_positions(g, beam), beam))
 
 
 @kernel
@@ -199,7 +202,7 @@ def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
     """
     point, direction, ok = _edge_line(np.asarray(wall_a.normal, dtype=np.float64), float(wall_a.offset),
                                       np.asarray(wall_b.normal, dtype=np.float64), float(wall_b.offset),
-                                      float(np.sin(min_angle) ** 2))
+                                      math.sin(min_angle) ** 2)
     return (point, direction) if ok else None
 
 
@@ -275,7 +278,7 @@ def echo_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle:
     ``min_angle`` of parallel, as :func:`edge_line`).
     """
     return _echo_residuals(pts.capsule, pts.distance, pts.beam, wall_a.normal, float(wall_a.offset), wall_b.normal,
-                           float(wall_b.offset), np.cos(beam_half_angle), float(np.sin(min_angle) ** 2))
+                           float(wall_b.offset), math.cos(beam_half_angle), math.sin(min_angle) ** 2)
 
 
 @kernel
@@ -473,8 +476,9 @@ def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: floa
     if edge_line(model.wall_a, model.wall_b) is None:
         return (0.0, 0), (0.0, 0)
     wa, wb = model.wall_a, model.wall_b
+    cos_t = math.cos(beam_half_angle)
     out = [_edge_alternative(pts.capsule, pts.distance, pts.beam, model.labels, k, wa.normal, float(wa.offset),
-                             wb.normal, float(wb.offset), np.cos(beam_half_angle), float(model.tolerance),
+                             wb.normal, float(wb.offset), cos_t, float(model.tolerance),
                              int(min_points)) for k in (ECHO_WALL_A, ECHO_WALL_B)]
     return out[0], out[1]
 
@@ -944,11 +948,13 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     (their returned walls are held at the window and their covariance is
     ``inf``: the model cannot place them).
     """
-    axis_a = np.asarray(axis_a, dtype=np.float64) / np.linalg.norm(axis_a)
-    axis_b = np.asarray(axis_b, dtype=np.float64) / np.linalg.norm(axis_b)
+    axis_a = np.asarray(axis_a, dtype=np.float64)
+    axis_a = axis_a / _norm(axis_a)
+    axis_b = np.asarray(axis_b, dtype=np.float64)
+    axis_b = axis_b / _norm(axis_b)
     na, ha, nb, hb, labels, res, cost, hyps, cov, out_a, out_b, fa, fb = _corner_model(
-        pts.capsule, pts.distance, pts.beam, axis_a, axis_b, np.cos(beam_half_angle), float(tolerance),
-        int(max_bands), int(max_refined), int(min_points), float(max_tilt), np.cos(max_tilt), float(good_enough),
+        pts.capsule, pts.distance, pts.beam, axis_a, axis_b, math.cos(beam_half_angle), float(tolerance),
+        int(max_bands), int(max_refined), int(min_points), float(max_tilt), math.cos(max_tilt), float(good_enough),
         float(significance))
     if hyps == 0:
         return None
@@ -1088,4 +1094,6 @@ def _corner_model(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, a
 
 def _roll(normal: np.ndarray, axis: np.ndarray) -> float:
     """Signed angle about x from ``axis`` to ``normal``, both projected onto the rotation plane (y, z), rad."""
-    return float(np.angle(complex(normal[1], normal[2]) * complex(axis[1], -axis[2])))
+    z = complex(normal[1], normal[2]) * complex(axis[1], -axis[2])
+    # np.angle(z), without its array round trip (NumPy's own arctan2: math.atan2 differs in the last bit)
+    return float(np.arctan2(z.imag, z.real))

@@ -20,6 +20,7 @@ In both cases the relative error of eq. (20) is the metric residual times
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -451,9 +452,24 @@ def _normal_offset_stderr(t: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
     n = t / nt
     h = 1.0 / nt
-    jn = (np.eye(3) - np.outer(n, n)) / nt
-    var_n = np.trace(jn @ c @ jn.T)
-    var_h = h**4 * ((n @ c) @ n)
+    # trace(J C Jᵀ) with J = (I − n nᵀ)/|θ|, and n·C·n, written out (3×3 BLAS calls cost more than their
+    # arithmetic; the sums round as they did to within a few ulp).
+    jn = np.empty((3, 3))
+    for u in range(3):
+        for v in range(3):
+            jn[u, v] = ((1.0 if u == v else 0.0) - n[u] * n[v]) / nt
+    var_n = 0.0
+    ncn = 0.0
+    for u in range(3):
+        cn = 0.0
+        for w in range(3):
+            t_uw = 0.0
+            for v in range(3):
+                t_uw += jn[u, v] * c[v, w]
+            var_n += t_uw * jn[u, w]
+            cn += n[w] * c[w, u]
+        ncn += cn * n[u]
+    var_h = h**4 * ncn
     return np.sqrt(max(var_n, 0.0)), np.sqrt(max(var_h, 0.0))
 
 
@@ -661,9 +677,9 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     k = int(np.count_nonzero(mask))
     if k < 3:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
-    n, e, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
+    n, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
         t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None)
-    if not (np.isfinite(se_n) and np.isfinite(se_h)):
+    if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
         return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
                           f"{method}: the inliers do not constrain the plane", data.label, data.n)
     # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
@@ -686,8 +702,7 @@ _STDERR_FIELDS = frozenset({"normal_stderr", "offset_stderr"})
 
 @kernel
 def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.ndarray, mirror: bool
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray,
-                               float]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray, float]:
     """What :func:`make_plane_fit` reports of ``θ`` on the points ``x``, in one kernel.
 
     The metric residuals ``r = (θ·x − 1)/|θ| + shift`` (:func:`metric_residuals`), the errors
@@ -700,8 +715,8 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
 
     Returns
     -------
-    n, e, sorted e, cov, σ_n, σ_h, σ_relative, σ, patch, H (σ_n, σ_h inf: the inliers do not constrain θ;
-    the rest is then unset)
+    n, sorted e, cov, σ_n, σ_h, σ_relative, σ, patch, H (σ_n, σ_h inf: the inliers do not constrain θ;
+    the rest is then unset; e itself is not returned: nothing keeps it but its sorted copy)
     """
     m = x.shape[0]
     nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
@@ -721,8 +736,16 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
     cov = _theta_covariance(t, xi, si)
     se_n, se_h = _normal_offset_stderr(t, cov)
     if not (np.isfinite(se_n) and np.isfinite(se_h)):
-        return n, e, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
+        return n, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
     foot = xi + si.reshape(-1, 1) * n if mirror else xi
     ordered = np.sort(e)
-    return (n, e, ordered, cov, se_n, se_h, MAD_K * _mad(ei), MAD_K * _mad(ri),
+    if every:
+        # e's median is its sorted copy's middle: the order statistics fast_median finds, exactly (e is finite:
+        # the points, θ and the shifts are), so _mad(e) without selecting them again.
+        k = m // 2
+        med = ordered[k] if m % 2 else (ordered[k - 1] + ordered[k]) / 2.0
+        mad_e = fast_median(np.abs(e - med))
+    else:
+        mad_e = _mad(ei)
+    return (n, ordered, cov, se_n, se_h, MAD_K * mad_e, MAD_K * _mad(ri),
             _observed_patch(n, 1.0 / nt, foot), _entropy(e) if m >= 2 else 0.0)

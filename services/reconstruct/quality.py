@@ -17,6 +17,7 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 
+from .compiled import kernel
 from .results import PlaneFit, PlaneResult
 
 __all__ = ["QualityLimits", "assess_plane", "add_findings", "unexplained_finding", "cross_check", "GOOD", "DEGRADED",
@@ -142,13 +143,10 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
         flag(DEGRADED, f"tilt unresolved: normal ±{np.rad2deg(plane.normal_stderr):.1f}°")
     if plane.offset_stderr > lim.max_offset_stderr:
         flag(DEGRADED, f"offset ±{1000 * plane.offset_stderr:.1f} mm")
-    g = np.asarray(scan_gamma, dtype=np.float64)
-    g = g[np.isfinite(g)]
-    if g.size:
-        # The beams are (0, cos γ, sin γ) (lelsonar.geometry.boresight): their cosines to the normal
-        # without building them.
-        _, ny, nz = plane.normal.tolist()
-        nearest = float(np.arccos(min(max(float((np.cos(g) * ny + np.sin(g) * nz).max()), -1.0), 1.0)))
+    _, ny, nz = plane.normal.tolist()
+    cos_nearest, seen = _nearest_beam_cosine(np.asarray(scan_gamma, dtype=np.float64).ravel(), ny, nz)
+    if seen:
+        nearest = float(np.arccos(min(max(cos_nearest, -1.0), 1.0)))
         if nearest > lim.face_on_angle:
             level = UNRELIABLE if edge_echoes is not None and edge_echoes == 0 else DEGRADED
             flag(level, f"wall never seen face-on: the nearest beam is {np.rad2deg(nearest):.0f}° from its normal"
@@ -156,6 +154,25 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
     return plane.replace_scalars(quality=verdict, quality_reasons=tuple(reasons))
+
+
+@kernel
+def _nearest_beam_cosine(gamma: np.ndarray, ny: float, nz: float) -> tuple[float, bool]:
+    """The largest cosine between a beam of the finite ``gamma`` and a normal ``(·, ny, nz)``; False: no finite γ.
+
+    The beams are ``(0, cos γ, sin γ)`` (:func:`lelsonar.geometry.boresight`): their cosines to the normal
+    without building them, as ``(np.cos(g) * ny + np.sin(g) * nz).max()`` rounds them.
+    """
+    best = -np.inf
+    seen = False
+    for i in range(gamma.shape[0]):
+        g = gamma[i]
+        if np.isfinite(g):
+            c = np.cos(g) * ny + np.sin(g) * nz
+            if not seen or c > best:
+                best = c
+            seen = True
+    return best, seen
 
 
 def add_findings(plane: PlaneResult, findings: tuple[tuple[str, str], ...]) -> PlaneResult:

@@ -303,7 +303,7 @@ def _check_quality_reasons(p: PlaneFit) -> None:
 
 
 def _check_offset(p: PlaneFit) -> None:
-    if not (np.isfinite(p.offset) and p.offset > 0):
+    if not (math.isfinite(p.offset) and p.offset > 0):  # (scalars: math's test, not a ufunc's)
         raise ConfigError(f"PlaneFit.offset must be finite and > 0 m, got {p.offset}")
     object.__setattr__(p, "offset", float(p.offset))
 
@@ -317,7 +317,7 @@ def _check_entropy(p: PlaneFit) -> None:
 def _check_non_negative(name: str):
     def check(p: PlaneFit) -> None:
         v = getattr(p, name)
-        if not (np.isfinite(v) and v >= 0):
+        if not (math.isfinite(v) and v >= 0):
             raise ConfigError(f"PlaneFit.{name} must be finite and >= 0, got {v}")
         object.__setattr__(p, name, float(v))
     return check
@@ -456,7 +456,7 @@ class ScanReconstruction:
         if self.critical_step is not None:
             if not 0 <= self.critical_step < max(self.n_steps, 1):
                 raise ConfigError(f"critical_step {self.critical_step} outside [0, {self.n_steps})")
-            if not np.isfinite(self.critical_angle):
+            if not math.isfinite(self.critical_angle):
                 raise ConfigError("critical_angle must be finite when critical_step is set")
         for name in ("plane_a", "plane_b"):
             if not isinstance(getattr(self, name), (PlaneFit, FitFailure)):
