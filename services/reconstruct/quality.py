@@ -56,7 +56,9 @@ class QualityLimits:
         Share of the scan's echoes that neither wall nor their edge explains
         (the corner model's outliers): a healthy L scan leaves under 1 %; a
         model that leaves a wall's echoes unexplained has taken something else
-        for that wall.
+        for that wall.  On a plane its other checks find good, only those a
+        wall should have returned instead count (another surface's say nothing
+        against it: :func:`assess_beside_unexplained`).
     """
 
     range_noise: float = 0.006
