@@ -351,6 +351,64 @@ def test_a_joint_walls_standard_error_is_the_joint_fits(tmp_path):
     assert np.median(z) >= 0.25, np.round(z, 3)
 
 
+#: Rigs of the wide foreign sweep (seeds 1008, 1022, 1010): a wall 2.8–4.6 m ahead and a sweep starting 30–40°
+#: below it, so the floor 0.45 m below the axis answers the beams pointing down before the far wall does.  On
+#: main 32–41 % of each scan's echoes fit neither wall nor their edge, and both walls (accurate) were unreliable.
+_FLOOR_AHEAD_RIGS = {
+    "seed 1008": fs.ForeignRig(distance_a=4.121338514325262, distance_b=1.3219342973069366, roll=0.2026408752589123,
+                               radial_offset=0.04382797978882796, gamma_start=-0.522985031556836,
+                               gamma_stop=2.5833972257357134, steps=106, beam_sigma=0.08013072109074708,
+                               burst=0.00036164713781004423, echo_scale=2.0515449305305142,
+                               corner_gain=0.5669112195008912, noise=0.004775653139923942,
+                               threshold=0.023978155492011384, seed=1008),
+    "seed 1022": fs.ForeignRig(distance_a=4.616558753464364, distance_b=3.0721278669636884, roll=0.06118439613583937,
+                               radial_offset=0.038015561404497016, gamma_start=-0.6975801989990393,
+                               gamma_stop=1.4263626134149066, steps=107, beam_sigma=0.2422181511026037,
+                               burst=0.00028302640380694293, echo_scale=3.831461897311852,
+                               corner_gain=1.1737411224135563, noise=0.008752533482815569,
+                               threshold=0.0711902283725994, seed=1022),
+    "seed 1010": fs.ForeignRig(distance_a=2.818286936813165, distance_b=4.613080645633265, roll=0.20167594317645832,
+                               radial_offset=0.04964314160416581, gamma_start=-0.598656014697799,
+                               gamma_stop=2.2263050221011906, steps=191, beam_sigma=0.32616343461830916,
+                               burst=0.0002503441444870916, echo_scale=3.3404135146255785,
+                               corner_gain=0.7834213896013921, noise=0.0013613163332815731,
+                               threshold=0.07114731973705621, seed=1010),
+}
+
+
+@pytest.mark.parametrize("name", sorted(_FLOOR_AHEAD_RIGS))
+def test_a_floor_answering_before_a_far_wall_does_not_make_the_walls_unreliable(tmp_path, name):
+    """The floor's echoes come from beams further off wall a's normal than the wall's own echoes, in front of
+    it: a mirror plane there would have answered those nearer face-on beams first, and they heard the wall.
+    They say nothing against the walls, whose verdict rests on their own echoes; the share is still named."""
+    scan = fs.simulate(_FLOOR_AHEAD_RIGS[name])
+    floor = np.count_nonzero(scan.source == 4) / np.count_nonzero(np.isfinite(scan.tof))
+    assert floor > 0.15  # the scene's truth: more floor echoes than once made a scan unreliable
+    code, _, _, verdicts = _run(tmp_path, scan, fs.Conventions())
+    assert code == 0
+    for label, row in verdicts.items():
+        assert row["verdict"] == "accurate", (label, row)
+        assert row["quality"] == "good", (label, row)
+        assert any("fit neither wall nor their edge" in r for r in row["reasons"]), row["reasons"]
+
+
+def test_a_wall_of_few_echoes_beside_a_floor_stays_unreliable(tmp_path):
+    """Seed 1030 of the wide sweep: wall a 0.42 m ahead, wall b 4.1 m above seen on 17 echoes, all the corner's
+    double bounces 3.6 cm beyond it (a 4.2 cm wrong answer, oracle 1.3 cm); 32 % of the echoes are the floor's,
+    behind wall a from beams further off its normal than any it answered.  Wall a, accurate, is good; wall b's
+    own evidence is too thin to outweigh the scan's unexplained echoes: it stays unreliable."""
+    rig = fs.ForeignRig(distance_a=0.4183793600764485, distance_b=4.120249906563535, roll=0.03142728979553402,
+                        radial_offset=0.01736572792631874, gamma_start=-0.4500875169382161,
+                        gamma_stop=2.6722660482588316, steps=103, reverse=True, beam_sigma=0.08861165112541602,
+                        burst=0.00020701329027066385, echo_scale=0.9734206478763101, corner_gain=1.6047593480878182,
+                        noise=0.003621990558144156, threshold=0.06177420590284422, seed=1030)
+    code, _, _, verdicts = _run(tmp_path, fs.simulate(rig), fs.Conventions())
+    assert code == 0
+    a, b = verdicts["a"], verdicts["b"]
+    assert a["verdict"] == "accurate" and a["quality"] == "good", a
+    assert b["verdict"] != "flagged" or b["quality"] == "unreliable", b
+
+
 #: The foreign board's comparator at 3.6 σ of a 7 mV receiver noise (threshold 25 mV): over the ~2,000 samples
 #: it listens to before a wall's echo comes, the noise crosses it first on about 3 readings in 10.
 NOISY_BOARD = fs.ForeignRig(seed=3, steps=150, noise=0.007)

@@ -31,7 +31,8 @@ from .correct import AXIS_Y, AXIS_Z
 from .estimators import diagnostics, fit_adaptive, run_estimator
 from .lel import _pairwise_sum
 from .options import FitOptions, ScanFit
-from .quality import DEGRADED, UNRELIABLE, QualityLimits, assess_plane, unexplained_finding
+from .quality import DEGRADED, UNRELIABLE, QualityLimits, assess_beside_unexplained, assess_plane, unexplained_finding
+from .unexplained import echoes_against_walls
 from .results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from .split import critical_step, split_subsets
 
@@ -782,7 +783,6 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     n_outlier, n_wall_a, n_wall_b, n_edge = np.bincount(model.labels - ECHO_OUTLIER, minlength=4).tolist()
     note = (f"corner model: {model.hypotheses} band pairs; echoes: {n_wall_a} wall a, {n_wall_b} wall b, "
             f"{n_edge} edge, {n_outlier} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
-    unexplained = unexplained_finding(n_outlier / pts.n)
     amplitudes = None if echo_amplitude is None else np.asarray(echo_amplitude, dtype=np.float64)
     out: list[PlaneResult] = []
     datas: list[F.PlaneData] = []
@@ -791,6 +791,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     limits = _LIMITS
     shared_limit = limits.max_offset_stderr / model.tolerance
     residuals = echo_residuals(model.wall_a, model.wall_b, pts, opts.corner_beam_half_angle)  # (3, N), once
+    # Of the echoes no part explains, those a wall should have returned instead (not another surface's).
+    own = np.stack([model.labels == ECHO_WALL_A, model.labels == ECHO_WALL_B])
+    cosines = np.stack([pts.beam @ model.wall_a.normal, pts.beam @ model.wall_b.normal])
+    against = echoes_against_walls(residuals[:2], cosines, own, model.labels == ECHO_OUTLIER, opts.min_points)
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle, residuals)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
@@ -829,7 +833,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls,
                            walk_se=lambda k=k: walk_se(k), tie_suspect=edge_shared[other] or as_cluster[other],
                            common_roll=_roll(*joint_walls[other]))
-        findings = tuple((UNRELIABLE, f) for f in flags) + unexplained
+        findings = tuple((UNRELIABLE, f) for f in flags)
         shared = shares[k]
         if edge_shared[k]:
             findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
@@ -839,7 +843,8 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
                                     f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
                                     "echoes the model explains: the corner cluster may have passed for the wall"),)
-        out.append(assess_plane(fit, g, edge_echoes=n_edge, findings=findings)
+        out.append(assess_beside_unexplained(fit, g, n_outlier / pts.n, np.count_nonzero(against) / pts.n,
+                                             edge_echoes=n_edge, findings=findings, at=len(flags))
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the

@@ -20,7 +20,7 @@ from lelsonar.errors import ConfigError
 from .compiled import kernel
 from .results import PlaneFit, PlaneResult
 
-__all__ = ["QualityLimits", "assess_plane", "add_findings", "unexplained_finding", "cross_check", "GOOD", "DEGRADED",
+__all__ = ["QualityLimits", "assess_plane", "assess_beside_unexplained", "add_findings", "unexplained_finding", "cross_check", "GOOD", "DEGRADED",
            "UNRELIABLE"]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
@@ -57,7 +57,9 @@ class QualityLimits:
         Share of the scan's echoes that neither wall nor their edge explains
         (the corner model's outliers): a healthy L scan leaves under 1 %; a
         model that leaves a wall's echoes unexplained has taken something else
-        for that wall.
+        for that wall.  On a plane its other checks find good, only those a
+        wall should have returned instead count (another surface's say nothing
+        against it: :func:`assess_beside_unexplained`).
     """
 
     range_noise: float = 0.006
@@ -87,15 +89,47 @@ class QualityLimits:
 _DEFAULT_LIMITS = QualityLimits()
 
 
-def unexplained_finding(share: float, limits: QualityLimits | None = None) -> tuple[tuple[str, str], ...]:
-    """The finding against every plane of a scan whose model leaves ``share`` of the echoes unexplained."""
+def unexplained_finding(share: float, limits: QualityLimits | None = None, *, against: float | None = None
+                        ) -> tuple[tuple[str, str], ...]:
+    """The finding against a plane of a scan whose model leaves ``share`` of the echoes unexplained.
+
+    ``against``: the share of the scan's echoes among those that a wall of the model should have returned
+    instead (:func:`~lelsonar.reconstruct.unexplained.echoes_against_walls`); the level rests on it, and
+    the rest (another surface's) is only named, at level ``"good"``.  None: every unexplained echo counts.
+    """
     lim = limits or _DEFAULT_LIMITS
     text = f"{100 * share:.0f} % of the scan's echoes fit neither wall nor their edge"
-    if share > lim.unreliable_unexplained:
+    if against is None:
+        against = share
+    elif share > lim.degraded_unexplained:
+        text += (f" ({100 * against:.0f} % where a wall should have answered instead; the rest from beams "
+                 "beyond the walls' echoes or in front of walls seen nearer face-on: another surface)")
+    if against > lim.unreliable_unexplained:
         return ((UNRELIABLE, text + ": the walls explain the wrong echoes"),)
-    if share > lim.degraded_unexplained:
+    if against > lim.degraded_unexplained:
         return ((DEGRADED, text),)
+    if share > lim.degraded_unexplained:
+        return ((GOOD, text),)
     return ()
+
+
+def assess_beside_unexplained(plane: PlaneFit, scan_gamma: np.ndarray, share: float, against: float, *,
+                              edge_echoes: int | None = None, findings: tuple[tuple[str, str], ...] = (), at: int = 0,
+                              limits: QualityLimits | None = None) -> PlaneFit:
+    """:func:`assess_plane` with the finding of the scan's unexplained echoes put at ``at`` among ``findings``.
+
+    A plane its own evidence finds good (its echoes, residuals, σ, the estimator's findings) is judged only
+    by the share ``against`` of echoes a wall should have returned instead: the rest, another surface's,
+    says nothing against it.  On a plane with doubts of its own every unexplained echo (``share``) counts,
+    since the same surface may be what it cost (it may hide the wall's face-on echoes, or have passed for
+    some of them).
+    """
+    own = assess_plane(plane, scan_gamma, edge_echoes=edge_echoes, findings=findings, limits=limits)
+    found = unexplained_finding(share, limits, against=against if own.quality == GOOD else None)
+    if not found:
+        return own
+    return assess_plane(plane, scan_gamma, edge_echoes=edge_echoes, findings=findings[:at] + found + findings[at:],
+                        limits=limits)
 
 
 def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | None = None,
@@ -112,7 +146,8 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
         e.g. a per-subset method).
     findings : tuple of (level, reason)
         What the estimator itself found against the plane (level
-        ``"degraded"`` or ``"unreliable"``).
+        ``"degraded"`` or ``"unreliable"``; ``"good"``: a fact named
+        without lowering the verdict).
     limits : QualityLimits, optional
     """
     lim = limits or _DEFAULT_LIMITS
