@@ -791,10 +791,14 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     limits = _LIMITS
     shared_limit = limits.max_offset_stderr / model.tolerance
     residuals = echo_residuals(model.wall_a, model.wall_b, pts, opts.corner_beam_half_angle)  # (3, N), once
-    # Of the echoes no part explains, those a wall should have returned instead (not another surface's).
-    own = np.stack([model.labels == ECHO_WALL_A, model.labels == ECHO_WALL_B])
-    cosines = np.stack([pts.beam @ model.wall_a.normal, pts.beam @ model.wall_b.normal])
-    against = echoes_against_walls(residuals[:2], cosines, own, model.labels == ECHO_OUTLIER, opts.min_points)
+    # Of the echoes no part explains, those a wall should have returned instead (not another surface's); only
+    # asked where the share could degrade a plane (under it neither share is named).
+    unexplained, against = n_outlier / pts.n, n_outlier / pts.n
+    if unexplained > limits.degraded_unexplained:
+        own = np.stack([model.labels == ECHO_WALL_A, model.labels == ECHO_WALL_B])
+        cosines = np.stack([pts.beam @ model.wall_a.normal, pts.beam @ model.wall_b.normal])
+        against = np.count_nonzero(echoes_against_walls(residuals[:2], cosines, own, model.labels == ECHO_OUTLIER,
+                                                        opts.min_points)) / pts.n
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle, residuals)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
@@ -843,7 +847,7 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
             findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
                                     f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
                                     "echoes the model explains: the corner cluster may have passed for the wall"),)
-        out.append(assess_beside_unexplained(fit, g, n_outlier / pts.n, np.count_nonzero(against) / pts.n,
+        out.append(assess_beside_unexplained(fit, g, unexplained, against,
                                              edge_echoes=n_edge, findings=findings, at=len(flags))
                    if isinstance(fit, PlaneFit) else fit)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
