@@ -27,7 +27,9 @@ rounding of it (the acquisition service's is
 that function's.  The same pass takes each reading's range, the first echo's
 peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window) and, on
 every :data:`RISE_STRIDE`-th step, the peak just before it and the DC level,
-for :meth:`ScanAssembly.writer_problems`, and the step's E^γ, E0(d_m) and R (§4,
+for :meth:`ScanAssembly.writer_problems`, each waveform around its time of
+flight (and around the first echo after it, where the reading may be the
+noise a board fired on: :func:`_candidate_echo`), and the step's E^γ, E0(d_m) and R (§4,
 eq. 11–12; :func:`_settle_step`).  The
 acquisition service's samples (capsules in the ScanStart's order, float32
 waveforms of one length on one clock) go straight to the pass; anything else
@@ -319,6 +321,7 @@ class ScanAssembly:
         self._walk_tested: tuple[int, tuple] | None = None  # (steps received, range_walk()) when last asked
         self._noise_tested: tuple[int, tuple] | None = None  # (steps received, noise_triggers()) when last asked
         self._recovered: tuple[int, tuple] | None = None  # (steps received, recovered_echoes()) when last asked
+        self._recovery_sigma = math.nan  # V, the noise σ over the recovered echoes' windows
         # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -726,6 +729,7 @@ class ScanAssembly:
             # The noise over these windows' own floors: the time-of-flight windows' may lie in the transmitter's
             # ring-down, where a board that fires on the noise as soon as its blanking ends puts them.
             echo, _, sigma = echoes_over_noise(windows, rate, at, start + at, _FLOOR_TIME)
+            self._recovery_sigma = sigma
             onset, envelope, _ = echo_onsets(windows, rate, at)
             # Where each echo's envelope rises through the noise's level (clipped echoes too: strong ones).
             crossing = echo_onsets(windows, rate, at, level=noise_level(sigma, start + at, rate))[0]
@@ -813,8 +817,9 @@ class ScanAssembly:
                      "others left out")
         related = self.noise_related() if share > 0.5 else math.nan
         if not self.ranges_match_waveforms() and related < NOISE_RELATED:
-            out.append((DEGRADED, f"{100 * share:.0f} % of the readings show no echo over the noise (σ {1e3 * sigma:.1f} "
-                                  "mV) at their time of flight, and their ranges are unrelated to the echoes after "
+            # (σ over the echoes' windows: the time-of-flight windows may lie in the transmitter's ring-down.)
+            out.append((DEGRADED, f"{100 * share:.0f} % of the readings show no echo over the noise (σ "
+                                  f"{1e3 * self._recovery_sigma:.1f} mV) at their time of flight, and their ranges are unrelated to the echoes after "
                                   f"them (R² {related:.2f} of a line between the two): the board's comparator fires "
                                   f"on the noise (a threshold within a few σ of it){recovered}; their zero is the "
                                   "strongest echoes' crossing of the noise's level, not the board's"))
