@@ -75,8 +75,8 @@ from lelsonar.reconstruct.energy import (
     waveform_energy,
     window_samples,
 )
-from lelsonar.reconstruct.echo_timing import (_FLOOR_TIME, TIMING_WINDOW, RangeWalk, echo_onsets, range_walk,
-                                              typical_edges, walk_finding, walk_free_ranges)
+from lelsonar.reconstruct.echo_timing import (_FLOOR_TIME, MIN_TIMED, TIMING_WINDOW, RangeWalk, echo_onsets,
+                                              range_walk, typical_edges, walk_finding, walk_free_ranges)
 from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
@@ -711,10 +711,13 @@ class ScanAssembly:
         echo at a board's time of flight must (:func:`~lelsonar.reconstruct.energy.echoes_over_noise`, the
         scan's DC level and σ, over the samples listened to until it), and is timed where a board would time
         it: by constant fraction (:func:`~lelsonar.reconstruct.echo_timing.echo_onsets`, a time that does not
-        walk with its strength), with the zero kept at the strongest echoes' crossing of the noise's level
-        (:func:`~lelsonar.reconstruct.energy.noise_level`) — a comparator set within a few σ of the noise,
-        as this board's, fires near there on a strong echo.  An echo clipped at its peak (no fraction of it its
-        own) is strong: timed at that crossing.  One not found or too weak to time stays out."""
+        walk with its strength), with the board's zero where the scan's echoes show it (their ranges less
+        their constant-fraction times over the strongest quarter, :attr:`~lelsonar.reconstruct.echo_timing.
+        RangeWalk.reference`, as :meth:`walk_free` keeps it), else at the strongest recovered echoes' crossing
+        of the noise's level (:func:`~lelsonar.reconstruct.energy.noise_level`) — a comparator set within a
+        few σ of the noise, as this board's, fires near there on a strong echo.  An echo clipped at its peak
+        (no fraction of it its own) is strong: timed at that crossing.  One not found or too weak to time
+        stays out."""
         steps = np.flatnonzero(self.received)
         if self._recovered is not None and self._recovered[0] == len(steps):
             return self._recovered[1]
@@ -734,16 +737,22 @@ class ScanAssembly:
             # Where each echo's envelope rises through the noise's level (clipped echoes too: strong ones).
             crossing = echo_onsets(windows, rate, at, level=noise_level(sigma, start + at, rate))[0]
             timed = echo & np.isfinite(onset) & np.isfinite(crossing)
-            zero = 0.0
+            level_zero = 0.0
             if timed.any():
-                # The zero: the strongest quarter's crossing of the noise's level, as a board set near it times them.
+                # The strongest quarter's crossing of the noise's level, as a board set near it times them.
                 strong = timed & (envelope >= np.percentile(envelope[timed], 75.0))
-                zero = float(np.median(crossing[strong] - onset[strong]))
-            # An echo clipped at its peak (no fraction of it to time) is strong: timed at its crossing.
-            found = np.where(timed, onset + zero, np.where(echo & np.isfinite(crossing), crossing, np.nan))
-            distance[rows] = 0.5 * self.sound_speed * (start + at + found)
+                level_zero = float(np.median(crossing[strong] - onset[strong]))
+            # An echo clipped at its peak (no fraction of it to time) is strong: its crossing, less that zero.
+            cf = np.where(timed, onset, np.where(echo & np.isfinite(crossing), crossing - level_zero, np.nan))
+            walk = self.range_walk()[0] if self.ranges_match_waveforms() else None
+            if walk is not None and walk.n >= MIN_TIMED:
+                # The scan's echoes give the board's own zero: its ranges less their constant-fraction ones over
+                # the strongest quarter (RangeWalk.reference), as the re-timed ranges keep it (walk_free_ranges).
+                distance[rows] = 0.5 * self.sound_speed * (start + at + cf) + walk.reference
+            else:
+                distance[rows] = 0.5 * self.sound_speed * (start + at + cf + level_zero)
             amplitude = echo_amplitude(windows, rate, 0.0, at)
-            peak[rows] = np.where(np.isfinite(found), amplitude, np.nan)
+            peak[rows] = np.where(np.isfinite(cf), amplitude, np.nan)
         self._recovered = (len(steps), (distance, peak))
         return distance, peak
 
