@@ -821,9 +821,8 @@ class ScanAssembly:
         readings = int(np.count_nonzero(np.isfinite(self.distance[got])))
         share = self.noise_share()
         found = np.count_nonzero(np.isfinite(self.recovered_echoes()[0])) if noise.any() else 0
-        recovered = (f"; {found} of them re-timed from the echo after it in their waveforms (first over the noise, "
-                     "constant-fraction times, zero at the strongest echoes' crossing of the noise's level), the "
-                     "others left out")
+        recovered = (f"; {found} of them re-timed from the first echo over the noise after it in their waveforms "
+                     "(constant-fraction times), the others left out" if found else "; left out")
         related = self.noise_related() if share > 0.5 else math.nan
         if not self.ranges_match_waveforms() and related < NOISE_RELATED:
             # (σ over the echoes' windows: the time-of-flight windows may lie in the transmitter's ring-down.)
