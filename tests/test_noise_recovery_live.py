@@ -34,5 +34,5 @@ def test_a_noise_triggered_scan_live_with_steps_recovered_from_the_log_equals_it
     assert present.status_name(final) == "final" and list(final.missing_steps) == []
     assert accounting(final) == (steps, steps - len(dropped), len(dropped), 0, {}, 0)
     assert estimate_only(final) == estimate_only(replayed_final(messages))
-    assert final.planes and all(any("re-timed from the first echo over the noise after it" in r for r in p.quality_reasons)
-                                for p in final.planes)
+    named = "re-timed from the first echo over the noise after it"
+    assert final.planes and all(any(named in r for r in p.quality_reasons) for p in final.planes)

@@ -442,7 +442,8 @@ def test_a_board_that_fires_on_noise_everywhere_is_reconstructed_from_its_wavefo
     for row in verdicts.values():
         assert row["verdict"] == "accurate" and row["quality"] in ("degraded", "unreliable"), row
         assert any("fires on the noise" in r and "unrelated to the echoes after them" in r
-                   and "re-timed from the first echo over the noise after it" in r for r in row["reasons"]), row["reasons"]
+                   and "re-timed from the first echo over the noise after it" in r
+                   for r in row["reasons"]), row["reasons"]
 
 
 # ----------------------------------------------------------------------------- the codec and the assembly
