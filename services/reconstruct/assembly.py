@@ -355,7 +355,9 @@ class ScanAssembly:
     def _grow_timing(self, n: int, width: int) -> None:
         """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
         windows = np.zeros((n, self._k, width), np.float32)
-        candidates = np.zeros((n, self._k, width), np.float32)
+        # (The candidates' only once one was found, :meth:`_keep_candidates`.)
+        kept = self._candidate_windows.shape[2] if width == self._timing_windows.shape[2] else 0
+        candidates = np.zeros((n, self._k, kept), np.float32)
         timing, timed = np.full((n, self._k, 3), np.nan), np.zeros(n, bool)
         had = len(self._timed)
         if width == self._timing_windows.shape[2]:
@@ -515,6 +517,9 @@ class ScanAssembly:
         energies to recompute, ranges without an echo to count; the step is then the latest (``latest``: its
         waveforms, or the sample to read them from).  ``layout``, ``ranges``: the sample's in the order of the
         capsules (``ranges`` read here if None: then the fast path's)."""
+        if status > 0 and status & _CANDIDATES:
+            status &= ~_CANDIDATES
+            self._keep_candidates(step, waveforms, layout)
         if status != _AGREED:
             if status == _UNCHECKED:
                 return None
@@ -531,6 +536,16 @@ class ScanAssembly:
             self.unflagged_ranges += status >> 1
         self._latest = (step, latest, waveforms.shape[1], layout[2], layout[3])  # (the lowest id's clock)
         return True
+
+    def _keep_candidates(self, step: int, waveforms: np.ndarray, layout: list) -> None:
+        """Allocate the candidate echoes' windows (the first step with one: a clean scan never holds them) and
+        copy step ``step``'s from its ``waveforms`` ((k, n) float32 in capsule order, each on its ``layout``'s
+        clock), where the pass found them (``_candidate_start``)."""
+        width = self._timing_windows.shape[2]
+        self._candidate_windows = np.zeros((len(self.received), self._k, width), np.float32)
+        for i in np.flatnonzero(np.isfinite(self._candidate_at[step])):
+            c0 = int(round((self._candidate_start[step, i] - layout[6 * i + 3]) * self._timing_rate))
+            self._candidate_windows[step, i] = waveforms[i, c0:c0 + width]
 
     def _one_layout(self, layout: list) -> bool:
         """Whether a validated sample's layout is the fast path's (the ScanStart's capsule ids in order, float32
@@ -1165,6 +1180,9 @@ _UNCHECKED, _NO_SOUND_SPEED = -1, -2
 _UNREAD = -3
 #: In its result otherwise: the carried energies agree and were written; the rest counts unflagged ranges.
 _AGREED = 1
+#: ... plus this where a reading's candidate echo was found before the scan kept any (their windows not allocated
+#: yet: :meth:`ScanAssembly._keep_candidates` copies this step's); the unflagged ranges count below it.
+_CANDIDATES = 1 << 24
 
 
 @kernel
@@ -1216,7 +1234,8 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
     int
         A refusal (< 0, nothing written), else ``_AGREED`` if the carried energies were each waveform's and
         written (not written otherwise, nor E^γ, E0 and R), plus twice the readings without an echo that carry
-        a range anyway.
+        a range anyway, plus ``_CANDIDATES`` if a candidate echo's window was found but not kept
+        (``candidate_windows`` not allocated yet).
     """
     k, n = waveforms.shape
     clocks, readings, energies = values[:2 * k], values[2 * k + 5:5 * k + 5], values[5 * k + 5:5 * k + 5 + m]
@@ -1248,6 +1267,7 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
     width = timing_windows.shape[2]
     sampled = step % RISE_STRIDE == 0
     unflagged = 0
+    unkept = False
     for i in range(k):
         d, t = readings[3 * i + 1], readings[3 * i + 2]
         rate, t0 = clocks[2 * i], clocks[2 * i + 1]
@@ -1278,7 +1298,10 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
                 if b >= 0:
                     c0 = b + a - width // 2  # the crossing in the middle of its window, as the time of flight in its own
                     if c0 + width <= n:
-                        candidate_windows[step, i, :] = row[c0:c0 + width]
+                        if candidate_windows.shape[2] == width:
+                            candidate_windows[step, i, :] = row[c0:c0 + width]
+                        else:
+                            unkept = True
                         candidate_at[step, i] = (b + a - c0) / rate
                         candidate_start[step, i] = t0 + c0 / rate
         if sampled:
@@ -1293,7 +1316,7 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
     acquired_ns[step] = time_ns
     received[step] = True
     recovered_mask[step] = recovered
-    return (_AGREED if agreed else 0) + 2 * unflagged
+    return (_AGREED if agreed else 0) + 2 * unflagged + (_CANDIDATES if unkept else 0)
 
 
 #: A reading whose first :data:`~lelsonar.reconstruct.energy.ECHO_PEAK_WINDOW` after its time of flight rises
