@@ -427,21 +427,21 @@ def test_the_echo_after_each_noise_trigger_is_recovered_from_its_waveform(name):
     spread = 1.4826 * np.median(np.abs(error - np.median(error)))
     assert spread <= rig.range_jitter, spread
     assert np.all(peak[got] > 0)
-    # The board's ranges are the noise's crossings: unrelated to the echoes after them.
-    assert assembly.noise_related() < 0.1
+    # The board's ranges are the noise's crossings: drawn anew at each reading.
+    assert assembly.noise_independence() > 0.8
 
 
 @pytest.mark.parametrize("name", sorted(NOISE_EVERYWHERE))
 def test_a_board_that_fires_on_noise_everywhere_is_reconstructed_from_its_waveforms_and_named(tmp_path, name):
     # Before, every plane was unreliable ("the waveforms show no echo starting at the readings' time of flight":
     # the noise, or ranges in another convention, the windows alone could not tell) and fitted to the noise's
-    # crossings.  The ranges' being unrelated to the echoes after them tells the noise; each reading's echo
-    # after it is recovered.  No plane may be good (the ranges' zero is the waveforms', not the board's).
+    # crossings.  The ranges' changing from step to step as independent draws (a surface's, in any convention,
+    # change smoothly) tells the noise; each reading's echo after it is recovered.  No plane may be good (the ranges' zero is the waveforms', not the board's).
     code, _, _, verdicts = _run(tmp_path, fs.simulate(NOISE_EVERYWHERE[name]), fs.Conventions(energy_model=False))
     assert code == 0
     for row in verdicts.values():
         assert row["verdict"] == "accurate" and row["quality"] in ("degraded", "unreliable"), row
-        assert any("fires on the noise" in r and "unrelated to the echoes after them" in r
+        assert any("fires on the noise" in r and "as independent draws do" in r
                    and "re-timed from the first echo over the noise after it" in r
                    for r in row["reasons"]), row["reasons"]
 

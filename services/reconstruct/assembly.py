@@ -146,10 +146,10 @@ MIN_ECHO_RISE = 1.5
 #: The ranges are checked (against the waveforms, against the time of flight) on every this-many-th step by
 #: index: each check is a median over the scan, and a quarter of a 184-step scan's readings is 184 of them.
 RISE_STRIDE = 4
-#: Largest share of the spread of the noise triggers' ranges that the echoes after them may explain
-#: (:meth:`ScanAssembly.noise_related`) for most readings marking no echo to be a board firing on the noise
-#: rather than ranges in another convention: halfway between the noise's ~0 and a convention's ~1.
-NOISE_RELATED = 0.5
+#: Smallest step-to-step change of the noise triggers' ranges over their spread (:meth:`ScanAssembly.
+#: noise_independence`) for most readings marking no echo to be a board firing on the noise rather than ranges
+#: in another convention: halfway between independent draws' ~1 and a surface's ~0.
+NOISE_INDEPENDENT = 0.5
 
 
 #: The (steps, k) arrays of a scan, in the order of their block (see ScanAssembly._allocate): range (m; NaN: no
@@ -775,35 +775,37 @@ class ScanAssembly:
         """:meth:`arrays`' ``distance`` and the echoes' peaks (``amplitude``) with the readings that mark no echo
         (:meth:`noise_triggers`) replaced by the echo after them (:meth:`recovered_echoes`; NaN where none), if
         the scan's ranges otherwise match its waveforms (:meth:`ranges_match_waveforms`) or most readings are
-        noise (:meth:`noise_share`: a board firing on it, or ranges in another convention than the waveforms —
-        the scan is unreliable as a whole either way, :meth:`writer_problems`, and the echoes in its waveforms
-        are what there is to fit); unchanged otherwise (the ranges do not match the waveforms: nothing the
-        readings mark can be told from noise)."""
+        noise (:meth:`noise_share`) whose ranges change from step to step as the noise's crossings do
+        (:meth:`noise_independence`: a board firing on the noise, not ranges in another convention than the
+        waveforms); unchanged otherwise (nothing the readings mark can be told from noise: the scan is
+        unreliable as a whole, :meth:`writer_problems`)."""
         noise, _ = self.noise_triggers()
-        if not noise.any() or not (self.ranges_match_waveforms() or self.noise_share() > 0.5):
+        if not noise.any() or not (self.ranges_match_waveforms() or self.noise_share() > 0.5
+                                   and self.noise_independence() > NOISE_INDEPENDENT):
             return distance, amplitude
         found, peak = self.recovered_echoes()
         return np.where(noise, found, distance), np.where(noise, peak, amplitude)
 
-    def noise_related(self) -> float:
-        """How much of the spread of the ranges of the readings that mark no echo (:meth:`noise_triggers`) a line
-        through the ranges of the echoes after them (:meth:`recovered_echoes`) explains (R², the squared
-        correlation); NaN with fewer than :data:`RANGE_CHECK_MIN` such readings.
+    def noise_independence(self) -> float:
+        """How the ranges of the readings that mark no echo (:meth:`noise_triggers`) change from step to step: the
+        median |difference| between a capsule's consecutive such readings over their spread (1.4826·MAD); NaN
+        with fewer than :data:`RANGE_CHECK_MIN` differences.
 
-        The noise's crossings fall anywhere in the time the board listened (or all just after its blanking),
-        whatever surface the echo after them comes from: next to 0.  Ranges in another convention than the
-        waveforms' times (a one-way time, a time counted from elsewhere) map each echo's time to the reading's:
-        next to 1.
+        The noise's crossings are drawn anew at each reading (anywhere in the time the board listened, or all
+        just after its blanking): about 1, as for independent draws.  A surface's ranges in another convention
+        than the waveforms' times (a one-way time, a window's start left unset) change smoothly with the beam:
+        next to 0.
         """
         noise, _ = self.noise_triggers()
-        found = self.recovered_echoes()[0]
-        both = noise & np.isfinite(found)
-        if np.count_nonzero(both) < RANGE_CHECK_MIN:
+        d = np.where(noise, self.distance[np.flatnonzero(self.received)], np.nan)
+        jumps = np.abs(np.diff(d, axis=0))
+        jumps = jumps[np.isfinite(jumps)]
+        if jumps.size < RANGE_CHECK_MIN:
             return math.nan
-        board, echo = self.distance[np.flatnonzero(self.received)][both], found[both]
-        if np.ptp(board) <= 0 or np.ptp(echo) <= 0:
-            return 0.0
-        return float(np.corrcoef(board, echo)[0, 1] ** 2)
+        ranges = d[np.isfinite(d)]
+        spread = 1.4826 * float(np.median(np.abs(ranges - np.median(ranges))))
+        step = float(np.median(jumps))
+        return step / spread if spread > 0 else (math.inf if step > 0 else 0.0)
 
     def noise_share(self) -> float:
         """The share of the received readings with a range that mark no echo (:meth:`noise_triggers`)."""
@@ -838,14 +840,15 @@ class ScanAssembly:
         found = np.count_nonzero(np.isfinite(self.recovered_echoes()[0])) if noise.any() else 0
         recovered = (f"; {found} of them re-timed from the first echo over the noise after it in their waveforms "
                      "(constant-fraction times), the others left out" if found else "; left out")
-        related = self.noise_related() if share > 0.5 else math.nan
-        if not self.ranges_match_waveforms() and related < NOISE_RELATED:
+        independence = self.noise_independence() if share > 0.5 else math.nan
+        if not self.ranges_match_waveforms() and independence > NOISE_INDEPENDENT:
             # (σ over the echoes' windows: the time-of-flight windows may lie in the transmitter's ring-down.)
             out.append((DEGRADED, f"{100 * share:.0f} % of the readings show no echo over the noise (σ "
-                                  f"{1e3 * self._recovery_sigma:.1f} mV) at their time of flight, and their ranges are unrelated to the echoes after "
-                                  f"them (R² {related:.2f} of a line between the two): the board's comparator fires "
-                                  f"on the noise (a threshold within a few σ of it){recovered}; their zero is the "
-                                  "strongest echoes' crossing of the noise's level, not the board's"))
+                                  f"{1e3 * self._recovery_sigma:.1f} mV) at their time of flight, and their ranges "
+                                  "change from step to step as independent draws do (median step "
+                                  f"{independence:.2f}× their spread), not as a surface's: the board's comparator "
+                                  f"fires on the noise (a threshold within a few σ of it){recovered}; their zero is "
+                                  "the strongest echoes' crossing of the noise's level, not the board's"))
         elif not self.ranges_match_waveforms():
             whole, echoes = self.echo_rise()
             rise = echoes if math.isfinite(echoes) else whole
