@@ -158,6 +158,11 @@ class ForeignScan:
     source: np.ndarray         # (n, k) 0 none, 1 wall a, 2 wall b, 3 corner: what set the range
     energy_model: tuple[float, float, float, float, float] | None = None
     extra: dict = field(default_factory=dict)
+    #: (n, k) where the board fired on the noise (``source`` 0 with a range): the first echo after its crossing
+    #: that reaches the threshold (the one the board would have reported had the noise not crossed first), as
+    #: its source (0: none) and range (m, NaN: none).  0 and NaN elsewhere.
+    hidden_source: np.ndarray | None = None
+    hidden_range: np.ndarray | None = None
 
     @property
     def distance(self) -> np.ndarray:
@@ -256,7 +261,17 @@ def simulate(rig: ForeignRig) -> ForeignScan:
         best = np.where(hit, arrive, best)
         source = np.where(hit, src, source)
     tof = crossing + rng.normal(0.0, 2 * rig.range_jitter / rig.c, crossing.shape)
-    return ForeignScan(rig, scene, gamma, commanded, tof, w.astype(np.float32), source)
+    # Behind a noise trigger: the first echo after the crossing strong enough for the comparator.
+    noisy = (source == 0) & np.isfinite(crossing)
+    hidden_source, hidden_range = np.zeros((n, k), dtype=int), np.full((n, k), np.nan)
+    for rng_m, amp, src in echoes:
+        arrive = 2 * rng_m / rig.c
+        hit = (noisy & (gains * amp >= rig.threshold) & (arrive > crossing)
+               & ~(np.nan_to_num(hidden_range, nan=np.inf) <= rng_m))
+        hidden_source = np.where(hit, src, hidden_source)
+        hidden_range = np.where(hit, rng_m, hidden_range)
+    return ForeignScan(rig, scene, gamma, commanded, tof, w.astype(np.float32), source,
+                       hidden_source=hidden_source, hidden_range=hidden_range)
 
 
 def energy_model(rig: ForeignRig) -> tuple[float, float, float, float, float]:
@@ -379,22 +394,31 @@ def run_cli(path: Path) -> tuple[int | None, list[dict], str]:
     return _run(path, compare="")
 
 
-def judge(scan: ForeignScan, planes: list[dict]) -> dict[str, dict]:
+def judge(scan: ForeignScan, planes: list[dict], *, hidden: bool = True) -> dict[str, dict]:
     """Per wall: patch error (cm) against the truth, the oracle's, quality, and the stress sweep's verdict.
 
     The oracle is LS on the mirror echoes of that wall at their reported ranges along the true normal (the
     stress sweep's definition); a failure is a patch error > 2 cm and > 3× the oracle's
-    (:func:`lelsonar.tools.bench_families.is_failure`).
+    (:func:`lelsonar.tools.bench_families.is_failure`).  A wall's echo behind a reading the board fired on noise
+    (:attr:`ForeignScan.hidden_source`) is in the waveform too: it counts among the wall's mirror echoes, at its
+    true range with the board's timing noise (``hidden=False``: the board's readings only, as before).
     """
     from lelsonar.tools.bench_families import is_failure, ls_plane, plane_errors
 
     rig = scan.rig
     pos = _positions(rig, scan.gamma)
     d = scan.distance
+    if hidden and scan.hidden_source is not None:
+        behind = np.isfinite(scan.hidden_range)
+        jitter = np.random.default_rng([rig.seed, 0xF1]).normal(0.0, rig.range_jitter, d.shape)
+        d = np.where(behind, scan.hidden_range + jitter, d)
+        source = np.where(behind, scan.hidden_source, scan.source)
+    else:
+        source = scan.source
     out = {}
     for src, (label, panel) in enumerate(zip("ab", scan.scene.panels), start=1):
         n_true, h_true = np.asarray(panel.normal), panel.offset
-        m = (scan.source == src) & np.isfinite(d)
+        m = (source == src) & np.isfinite(d)
         patch = pos[m] + (h_true - pos[m] @ n_true)[:, None] * n_true
         row: dict = {"n_mirror": int(m.sum())}
         oracle = math.nan

@@ -27,7 +27,9 @@ rounding of it (the acquisition service's is
 that function's.  The same pass takes each reading's range, the first echo's
 peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window) and, on
 every :data:`RISE_STRIDE`-th step, the peak just before it and the DC level,
-for :meth:`ScanAssembly.writer_problems`, and the step's E^γ, E0(d_m) and R (§4,
+for :meth:`ScanAssembly.writer_problems`, each waveform around its time of
+flight (and around the first echo after it, where the reading may be the
+noise a board fired on: :func:`_candidate_echo`), and the step's E^γ, E0(d_m) and R (§4,
 eq. 11–12; :func:`_settle_step`).  The
 acquisition service's samples (capsules in the ScanStart's order, float32
 waveforms of one length on one clock) go straight to the pass; anything else
@@ -63,16 +65,18 @@ from lelsonar.reconstruct.energy import (
     ECHO_PEAK_WINDOW,
     PRE_ECHO_WINDOW,
     EnergyModel,
+    echo_amplitude,
     echo_window_start,
     echoes_over_noise,
     energy_agrees,
+    noise_level,
     ranges_backed,
     step_median_range,
     waveform_energy,
     window_samples,
 )
-from lelsonar.reconstruct.echo_timing import (_FLOOR_TIME, TIMING_WINDOW, RangeWalk, echo_onsets, range_walk,
-                                              typical_edges, walk_finding, walk_free_ranges)
+from lelsonar.reconstruct.echo_timing import (_FLOOR_TIME, MIN_TIMED, TIMING_WINDOW, RangeWalk, echo_onsets,
+                                              range_walk, typical_edges, walk_finding, walk_free_ranges)
 from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
@@ -142,13 +146,20 @@ MIN_ECHO_RISE = 1.5
 #: The ranges are checked (against the waveforms, against the time of flight) on every this-many-th step by
 #: index: each check is a median over the scan, and a quarter of a 184-step scan's readings is 184 of them.
 RISE_STRIDE = 4
+#: Smallest step-to-step change of the noise triggers' ranges over their spread (:meth:`ScanAssembly.
+#: noise_independence`) for most readings marking no echo to be a board firing on the noise rather than ranges
+#: in another convention: halfway between independent draws' ~1 and a surface's ~0.
+NOISE_INDEPENDENT = 0.5
 
 
 #: The (steps, k) arrays of a scan, in the order of their block (see ScanAssembly._allocate): range (m; NaN: no
 #: echo or not received), eq. (10) energy (V²·s; 0), first echo's peak (V; NaN: none), the peak just before it
-#: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both).
+#: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both); where
+#: each reading's timing window starts (``_timing_at``: its time of flight after the window's first sample, s)
+#: and, for a reading that may be the noise a board fired on, its candidate echo's (``_candidate_at``: the echo's
+#: first crossing after its window's first sample, s; ``_candidate_start``: that sample's time after firing, s).
 _PER_CAPSULE = ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio",
-                "_timing_at")
+                "_timing_at", "_candidate_at", "_candidate_start")
 #: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
 #: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
 _PER_STEP = ("gamma", "gamma_commanded", "step_energy", "expected_energy", "ratio")
@@ -299,12 +310,18 @@ class ScanAssembly:
         # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
         self._timing_rate = math.nan
         self._timing_windows = np.zeros((0, self._k, 0), np.float32)
+        # A reading that may be the noise a board fired on (:func:`_candidate_echo`): its waveform around the
+        # first echo after its time of flight, the same width (the echo recovered at the final if the reading
+        # proves to be noise, :meth:`recovered_echoes`).
+        self._candidate_windows = np.zeros((0, self._k, 0), np.float32)
         # (steps, k, 3) each echo re-timed (echo_timing.echo_onsets): onset − tof (s), peak (V), edge (s); and
         # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first).
         self._echo_timing = np.zeros((0, self._k, 3))
         self._timed = np.zeros(0, bool)
         self._walk_tested: tuple[int, tuple] | None = None  # (steps received, range_walk()) when last asked
         self._noise_tested: tuple[int, tuple] | None = None  # (steps received, noise_triggers()) when last asked
+        self._recovered: tuple[int, tuple] | None = None  # (steps received, recovered_echoes()) when last asked
+        self._recovery_sigma = math.nan  # V, the noise σ over the recovered echoes' windows
         # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -338,12 +355,17 @@ class ScanAssembly:
     def _grow_timing(self, n: int, width: int) -> None:
         """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
         windows = np.zeros((n, self._k, width), np.float32)
+        # (The candidates' only once one was found, :meth:`_keep_candidates`.)
+        kept = self._candidate_windows.shape[2] if width == self._timing_windows.shape[2] else 0
+        candidates = np.zeros((n, self._k, kept), np.float32)
         timing, timed = np.full((n, self._k, 3), np.nan), np.zeros(n, bool)
         had = len(self._timed)
         if width == self._timing_windows.shape[2]:
             windows[:had] = self._timing_windows
+            candidates[:had] = self._candidate_windows
         timing[:had], timed[:had] = self._echo_timing, self._timed
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
+        self._candidate_windows = candidates
 
     @property
     def latest(self) -> StepView | None:
@@ -439,7 +461,7 @@ class ScanAssembly:
             if payload is not None:
                 status = _place_wire(payload, self._ids, self._values, self._waves, self._scan, step,
                                      sample.acquisition_time_ns, origin == "recovered", *self._rows,
-                                     self._timing_windows)
+                                     self._timing_windows, self._candidate_windows)
                 if status != _UNREAD:
                     return self._placed(status, sample, step, self._waves, known, None, True, sample)
         ranges, layout, data = codec.sample_readings(sample.sensors)
@@ -485,7 +507,8 @@ class ScanAssembly:
             self._grow_timing(len(self.received), max(int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0])
                                                                  * self._timing_rate)), 1))
         status = _place_step(waveforms, values, self._scan, k if m == k else 0, step, limits is None,
-                             sample.acquisition_time_ns, origin == "recovered", *self._rows, self._timing_windows)
+                             sample.acquisition_time_ns, origin == "recovered", *self._rows, self._timing_windows,
+                             self._candidate_windows)
         return self._placed(status, sample, step, waveforms, layout, ranges, one_clock, waveforms)
 
     def _placed(self, status: int, sample: codec.Sample, step: int, waveforms: np.ndarray, layout: list,
@@ -494,6 +517,9 @@ class ScanAssembly:
         energies to recompute, ranges without an echo to count; the step is then the latest (``latest``: its
         waveforms, or the sample to read them from).  ``layout``, ``ranges``: the sample's in the order of the
         capsules (``ranges`` read here if None: then the fast path's)."""
+        if status > 0 and status & _CANDIDATES:
+            status &= ~_CANDIDATES
+            self._keep_candidates(step, waveforms, layout)
         if status != _AGREED:
             if status == _UNCHECKED:
                 return None
@@ -510,6 +536,16 @@ class ScanAssembly:
             self.unflagged_ranges += status >> 1
         self._latest = (step, latest, waveforms.shape[1], layout[2], layout[3])  # (the lowest id's clock)
         return True
+
+    def _keep_candidates(self, step: int, waveforms: np.ndarray, layout: list) -> None:
+        """Allocate the candidate echoes' windows (the first step with one: a clean scan never holds them) and
+        copy step ``step``'s from its ``waveforms`` ((k, n) float32 in capsule order, each on its ``layout``'s
+        clock), where the pass found them (``_candidate_start``)."""
+        width = self._timing_windows.shape[2]
+        self._candidate_windows = np.zeros((len(self.received), self._k, width), np.float32)
+        for i in np.flatnonzero(np.isfinite(self._candidate_at[step])):
+            c0 = int(round((self._candidate_start[step, i] - layout[6 * i + 3]) * self._timing_rate))
+            self._candidate_windows[step, i] = waveforms[i, c0:c0 + width]
 
     def _one_layout(self, layout: list) -> bool:
         """Whether a validated sample's layout is the fast path's (the ScanStart's capsule ids in order, float32
@@ -647,7 +683,7 @@ class ScanAssembly:
         """Whether the readings' times of flight fall where their waveforms' echoes begin (:meth:`echo_rise`).
 
         Those readings with an echo over the noise decide: a board whose comparator fires on the noise before
-        some echoes leaves the others' ranges right (those are left out, :meth:`without_noise_triggers`),
+        some echoes leaves the others' ranges right (those are re-timed from the echo after them or left out, :meth:`noise_triggers_recovered`),
         while ranges in another convention than the waveforms (a one-way time, a window's start left unset)
         put next to none of them at an echo's onset.  Too few of them to tell, the scan's readings as a whole
         decide (none to check: they match).
@@ -672,22 +708,109 @@ class ScanAssembly:
             distance = self.distance[steps]
             listened = 2.0 * distance[kept] / self.sound_speed
             echo = np.isfinite(distance)  # a reading without its window is not tested: taken as an echo
-            echo[kept], _, sigma = echoes_over_noise(self._timing_windows[steps][kept], self._timing_rate, at[kept],
-                                                     listened, _FLOOR_TIME)
+            echo[kept], _, sigma = echoes_over_noise(self._timing_windows[steps][kept], self._timing_rate,
+                                                     at[kept], listened, _FLOOR_TIME)
             # A weak echo beside a neighbour's stays: within the range one echo window spans.
             reach = 0.5 * self.sound_speed * (ECHO_PEAK_WINDOW[1] - ECHO_PEAK_WINDOW[0])
             noise = kept & ~echo & ~ranges_backed(distance, echo, reach)
         self._noise_tested = (len(steps), (noise, sigma))
         return noise, sigma
 
-    def without_noise_triggers(self, distance: np.ndarray) -> np.ndarray:
-        """:meth:`arrays`' ``distance`` with the readings that mark no echo (:meth:`noise_triggers`) made NaN, if
-        the scan's ranges otherwise match its waveforms (:meth:`ranges_match_waveforms`; where they do not,
-        nothing the readings mark can be told from noise, and the scan is unreliable as a whole)."""
+    def recovered_echoes(self) -> tuple[np.ndarray, np.ndarray]:
+        """The ranges (m) and peaks (V, :func:`~lelsonar.reconstruct.energy.echo_amplitude`'s) of the first echo
+        after each reading the board fired on noise (:meth:`noise_triggers`; :meth:`arrays`' rows, NaN where
+        none), from its waveform (design notes §8).
+
+        At ingest each reading that may be noise kept its waveform around the first echo after its time of
+        flight (:func:`_candidate_echo`).  That echo is recovered if it stands over the scan's noise as an
+        echo at a board's time of flight must (:func:`~lelsonar.reconstruct.energy.echoes_over_noise`, the
+        scan's DC level and σ, over the samples listened to until it), and is timed where a board would time
+        it: by constant fraction (:func:`~lelsonar.reconstruct.echo_timing.echo_onsets`, a time that does not
+        walk with its strength), with the board's zero where the scan's echoes show it (their ranges less
+        their constant-fraction times over the strongest quarter, :attr:`~lelsonar.reconstruct.echo_timing.
+        RangeWalk.reference`, as :meth:`walk_free` keeps it), else at the strongest recovered echoes' crossing
+        of the noise's level (:func:`~lelsonar.reconstruct.energy.noise_level`) — a comparator set within a
+        few σ of the noise, as this board's, fires near there on a strong echo.  An echo clipped at its peak
+        (no fraction of it its own) is strong: timed at that crossing.  One not found or too weak to time
+        stays out."""
+        steps = np.flatnonzero(self.received)
+        if self._recovered is not None and self._recovered[0] == len(steps):
+            return self._recovered[1]
         noise, _ = self.noise_triggers()
-        if not noise.any() or not self.ranges_match_waveforms():
-            return distance
-        return np.where(noise, np.nan, distance)
+        distance, peak = np.full(noise.shape, np.nan), np.full(noise.shape, np.nan)
+        at, start = self._candidate_at[steps], self._candidate_start[steps]
+        rows = noise & np.isfinite(at)
+        if np.count_nonzero(rows) >= RANGE_CHECK_MIN and self.sound_speed:
+            rate = self._timing_rate
+            windows = self._candidate_windows[steps][rows]
+            at, start = at[rows], start[rows]
+            # The noise over these windows' own floors: the time-of-flight windows' may lie in the transmitter's
+            # ring-down, where a board that fires on the noise as soon as its blanking ends puts them.
+            echo, _, sigma = echoes_over_noise(windows, rate, at, start + at, _FLOOR_TIME)
+            self._recovery_sigma = sigma
+            onset, envelope, _ = echo_onsets(windows, rate, at)
+            # Where each echo's envelope rises through the noise's level (clipped echoes too: strong ones).
+            crossing = echo_onsets(windows, rate, at, level=noise_level(sigma, start + at, rate))[0]
+            timed = echo & np.isfinite(onset) & np.isfinite(crossing)
+            level_zero = 0.0
+            if timed.any():
+                # The strongest quarter's crossing of the noise's level, as a board set near it times them.
+                strong = timed & (envelope >= np.percentile(envelope[timed], 75.0))
+                level_zero = float(np.median(crossing[strong] - onset[strong]))
+            # An echo clipped at its peak (no fraction of it to time) is strong: its crossing, less that zero.
+            cf = np.where(timed, onset, np.where(echo & np.isfinite(crossing), crossing - level_zero, np.nan))
+            walk = self.range_walk()[0] if self.ranges_match_waveforms() else None
+            if walk is not None and walk.n >= MIN_TIMED:
+                # The scan's echoes give the board's own zero: its ranges less their constant-fraction ones over
+                # the strongest quarter (RangeWalk.reference), as the re-timed ranges keep it (walk_free_ranges).
+                distance[rows] = 0.5 * self.sound_speed * (start + at + cf) + walk.reference
+            else:
+                distance[rows] = 0.5 * self.sound_speed * (start + at + cf + level_zero)
+            amplitude = echo_amplitude(windows, rate, 0.0, at)
+            peak[rows] = np.where(np.isfinite(cf), amplitude, np.nan)
+        self._recovered = (len(steps), (distance, peak))
+        return distance, peak
+
+    def noise_triggers_recovered(self, distance: np.ndarray, amplitude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`arrays`' ``distance`` and the echoes' peaks (``amplitude``) with the readings that mark no echo
+        (:meth:`noise_triggers`) replaced by the echo after them (:meth:`recovered_echoes`; NaN where none), if
+        the scan's ranges otherwise match its waveforms (:meth:`ranges_match_waveforms`) or most readings are
+        noise (:meth:`noise_share`) whose ranges change from step to step as the noise's crossings do
+        (:meth:`noise_independence`: a board firing on the noise, not ranges in another convention than the
+        waveforms); unchanged otherwise (nothing the readings mark can be told from noise: the scan is
+        unreliable as a whole, :meth:`writer_problems`)."""
+        noise, _ = self.noise_triggers()
+        if not noise.any() or not (self.ranges_match_waveforms() or self.noise_share() > 0.5
+                                   and self.noise_independence() > NOISE_INDEPENDENT):
+            return distance, amplitude
+        found, peak = self.recovered_echoes()
+        return np.where(noise, found, distance), np.where(noise, peak, amplitude)
+
+    def noise_independence(self) -> float:
+        """How the ranges of the readings that mark no echo (:meth:`noise_triggers`) change from step to step: the
+        median |difference| between a capsule's consecutive such readings over their spread (1.4826·MAD); NaN
+        with fewer than :data:`RANGE_CHECK_MIN` differences.
+
+        The noise's crossings are drawn anew at each reading (anywhere in the time the board listened, or all
+        just after its blanking): about 1, as for independent draws.  A surface's ranges in another convention
+        than the waveforms' times (a one-way time, a window's start left unset) change smoothly with the beam:
+        next to 0.
+        """
+        noise, _ = self.noise_triggers()
+        d = np.where(noise, self.distance[np.flatnonzero(self.received)], np.nan)
+        jumps = np.abs(np.diff(d, axis=0))
+        jumps = jumps[np.isfinite(jumps)]
+        if jumps.size < RANGE_CHECK_MIN:
+            return math.nan
+        ranges = d[np.isfinite(d)]
+        spread = 1.4826 * float(np.median(np.abs(ranges - np.median(ranges))))
+        step = float(np.median(jumps))
+        return step / spread if spread > 0 else (math.inf if step > 0 else 0.0)
+
+    def noise_share(self) -> float:
+        """The share of the received readings with a range that mark no echo (:meth:`noise_triggers`)."""
+        readings = int(np.count_nonzero(np.isfinite(self.distance[self.received])))
+        return np.count_nonzero(self.noise_triggers()[0]) / max(readings, 1)
 
     def writer_problems(self) -> list[tuple[str | None, str]]:
         """What the scan's writer left unset or stated otherwise than the contract, each with its fix.
@@ -713,23 +836,35 @@ class ScanAssembly:
                                     "angles are not in rad (degrees?); the contract's gamma_measured is in rad"))
         noise, sigma = self.noise_triggers()
         readings = int(np.count_nonzero(np.isfinite(self.distance[got])))
-        share = np.count_nonzero(noise) / max(readings, 1)
-        if not self.ranges_match_waveforms():
+        share = self.noise_share()
+        found = np.count_nonzero(np.isfinite(self.recovered_echoes()[0])) if noise.any() else 0
+        recovered = (f"; {found} of them re-timed from the first echo over the noise after it in their waveforms "
+                     "(constant-fraction times), the others left out" if found else "; left out")
+        independence = self.noise_independence() if share > 0.5 else math.nan
+        if not self.ranges_match_waveforms() and independence > NOISE_INDEPENDENT:
+            # (σ over the echoes' windows: the time-of-flight windows may lie in the transmitter's ring-down.)
+            out.append((DEGRADED, f"{100 * share:.0f} % of the readings show no echo over the noise (σ "
+                                  f"{1e3 * self._recovery_sigma:.1f} mV) at their time of flight, and their ranges "
+                                  "change from step to step as independent draws do (median step "
+                                  f"{independence:.2f}× their spread), not as a surface's: the board's comparator "
+                                  f"fires on the noise (a threshold within a few σ of it){recovered}; their zero is "
+                                  "the strongest echoes' crossing of the noise's level, not the board's"))
+        elif not self.ranges_match_waveforms():
             whole, echoes = self.echo_rise()
             rise = echoes if math.isfinite(echoes) else whole
             # Most readings marking noise is a board whose comparator fires on it, or ranges in another
             # convention than the waveforms (their echoes elsewhere): the windows alone cannot tell which.
             noisy = (f"{100 * share:.0f} % of the readings show no echo over the noise (σ {1e3 * sigma:.1f} mV) at "
-                     "their time of flight: the board's comparator fires on the noise (a threshold within a few σ "
-                     "of it), or " if share > 0.5 else "")
+                     f"their time of flight{recovered}: the board's comparator fires on the noise (a threshold "
+                     "within a few σ of it), or " if share > 0.5 else "")
             out.append((UNRELIABLE, f"the waveforms show no echo starting at the readings' time of flight (median rise "
                                     f"×{rise:.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): {noisy}the "
                                     "ranges do not match the waveforms (distance is one way, time_of_flight the "
                                     "round trip from firing, waveform.t0 the first sample's time)"))
-        elif noise.any():  # left out (without_noise_triggers): named on every plane, the verdict left to the fit
+        elif noise.any():  # re-timed or left out (noise_triggers_recovered): named on every plane, the verdict left to the fit
             out.append((GOOD, f"{np.count_nonzero(noise)} of the {readings} readings ({100 * share:.1f} %) show no "
                               f"echo over the noise (σ {1e3 * sigma:.1f} mV) at their time of flight: the board's "
-                              "comparator fired on noise; left out"))
+                              f"comparator fired on noise{recovered}"))
         walk = self.range_walk()[0]
         if walk.detected:  # re-timed (walk_free): named on every plane, the verdict left to the fit
             out.append((GOOD, walk_finding(walk)))
@@ -1027,7 +1162,7 @@ def _read_sample(payload, ids, values, waveforms):
 
 @kernel
 def _place_wire(payload, ids, values, waveforms, scan, step, time_ns, recovered,
-                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows):
+                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows):
     """:func:`_place_step` of a sample not validated, read from its ``payload`` (:func:`_read_sample`, into
     ``values`` and ``waveforms``); ``_UNREAD`` if it could not be read that way (nothing placed)."""
     carried = _read_sample(payload, ids, values, waveforms)
@@ -1035,7 +1170,8 @@ def _place_wire(payload, ids, values, waveforms, scan, step, time_ns, recovered,
         return _UNREAD
     k = ids.size
     return _place_step(waveforms, values, scan, k if carried == k else 0, step, False, time_ns, recovered,
-                       per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows)
+                       per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows,
+                       candidate_windows)
 
 
 # --- the per-sample kernel ------------------------------------------------------------------------------------
@@ -1047,11 +1183,14 @@ _UNCHECKED, _NO_SOUND_SPEED = -1, -2
 _UNREAD = -3
 #: In its result otherwise: the carried energies agree and were written; the rest counts unflagged ranges.
 _AGREED = 1
+#: ... plus this where a reading's candidate echo was found before the scan kept any (their windows not allocated
+#: yet: :meth:`ScanAssembly._keep_candidates` copies this step's); the unflagged ranges count below it.
+_CANDIDATES = 1 << 24
 
 
 @kernel
 def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
-                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows):
+                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
     sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
     screen: γ and the motor's readings finite, each valid echo's range finite, positive and below
@@ -1060,8 +1199,9 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
     is given), the first echo's peak (:func:`~lelsonar.reconstruct.energy.echo_amplitude`'s window), and on
     every :data:`RISE_STRIDE`-th step the peak just before it, the DC level and distance / (c·tof/2); written
     into row ``step`` of the scan's arrays, with γ, the time and the step's origin; each waveform around its
-    time of flight (:data:`~lelsonar.reconstruct.echo_timing.TIMING_WINDOW`), to re-time the echo if need be;
-    and, where the carried energies were written, the step's E^γ, E0(d_m) and R (:func:`_settle_step`,
+    time of flight (:data:`~lelsonar.reconstruct.echo_timing.TIMING_WINDOW`), to re-time the echo if need be,
+    and where the reading may be the noise a board fired on, the same around its first echo after
+    (:func:`_candidate_echo`); and, where the carried energies were written, the step's E^γ, E0(d_m) and R (:func:`_settle_step`,
     eq. 11–12).
 
     Parameters
@@ -1088,13 +1228,17 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
     timing_windows : (steps, k, width) float32 array
         Where each waveform's window around its time of flight goes, if its rate is the windows' (``scan[1]``)
         and the window lies inside it (its start's offset from the time of flight into ``_timing_at``).
+    candidate_windows : (steps, k, width) float32 array
+        Where a waveform's window around its candidate echo goes (:func:`_candidate_echo`; the echo's crossing
+        after the window's start into ``_candidate_at``, the start's time into ``_candidate_start``).
 
     Returns
     -------
     int
         A refusal (< 0, nothing written), else ``_AGREED`` if the carried energies were each waveform's and
         written (not written otherwise, nor E^γ, E0 and R), plus twice the readings without an echo that carry
-        a range anyway.
+        a range anyway, plus ``_CANDIDATES`` if a candidate echo's window was found but not kept
+        (``candidate_windows`` not allocated yet).
     """
     k, n = waveforms.shape
     clocks, readings, energies = values[:2 * k], values[2 * k + 5:5 * k + 5], values[5 * k + 5:5 * k + 5 + m]
@@ -1122,9 +1266,11 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
             return _NO_SOUND_SPEED
     distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
     pre_echo_peak, dc_level, range_tof_ratio, timing_at = per_capsule[3], per_capsule[4], per_capsule[5], per_capsule[6]
+    candidate_at, candidate_start = per_capsule[7], per_capsule[8]
     width = timing_windows.shape[2]
     sampled = step % RISE_STRIDE == 0
     unflagged = 0
+    unkept = False
     for i in range(k):
         d, t = readings[3 * i + 1], readings[3 * i + 2]
         rate, t0 = clocks[2 * i], clocks[2 * i + 1]
@@ -1151,6 +1297,16 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
             if a >= 0 and a + width <= n:
                 timing_windows[step, i, :] = row[a:a + width]
                 timing_at[step, i] = t - (t0 + a / rate)
+                b = _candidate_echo(row, a, width, rate)
+                if b >= 0:
+                    c0 = b + a - width // 2  # the crossing in the middle of its window, as the time of flight in its own
+                    if c0 + width <= n:
+                        if candidate_windows.shape[2] == width:
+                            candidate_windows[step, i, :] = row[c0:c0 + width]
+                        else:
+                            unkept = True
+                        candidate_at[step, i] = (b + a - c0) / rate
+                        candidate_start[step, i] = t0 + c0 / rate
         if sampled:
             range_tof_ratio[step, i] = ratio
             if n > 0:
@@ -1163,7 +1319,58 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
     acquired_ns[step] = time_ns
     received[step] = True
     recovered_mask[step] = recovered
-    return (_AGREED if agreed else 0) + 2 * unflagged
+    return (_AGREED if agreed else 0) + 2 * unflagged + (_CANDIDATES if unkept else 0)
+
+
+#: A reading whose first :data:`~lelsonar.reconstruct.energy.ECHO_PEAK_WINDOW` after its time of flight rises
+#: (half its peak to peak) less than this over the same time before may be the noise a board's comparator fired
+#: on: its first echo after is looked for (:func:`_candidate_echo`).  The noise's crossing of a threshold within a
+#: few σ of it stands ~1–2× over the noise before it (the largest of ~100 samples against the first crossing in
+#: the ~1,000 the board listened to); an echo rises by its own signal-to-noise ratio.  Loose: which readings are
+#: noise is decided at the final, over the scan's noise (:meth:`ScanAssembly.noise_triggers`).
+CANDIDATE_RISE = 4.0
+#: The candidate echo is where ``|w − DC|`` first reaches this many times the noise spike's own peak (the
+#: largest ``|w − DC|`` over the spike's window): twice the level the noise reached once in the time the board
+#: listened stands over it in the time after (Gaussian tails: z → 2z is a false alarm ~e^(−3z²/2) as likely),
+#: while an echo a board would report stands well over its threshold.  An echo under that level is passed over
+#: for the next one (a board with a higher threshold would report that one too); the final checks the echo
+#: found stands over the scan's noise (:func:`~lelsonar.reconstruct.energy.echoes_over_noise`).
+CANDIDATE_LEVEL = 2.0
+
+
+@kernel
+def _candidate_echo(row, a, width, rate):
+    """The sample of ``row`` where the first echo after a time of flight that may be the noise a board fired on
+    begins (:data:`CANDIDATE_RISE`, :data:`CANDIDATE_LEVEL`), as an offset from the timing window's first sample
+    ``a`` (the window ``width`` samples wide, the time of flight in its middle); -1: not such a reading, or no
+    echo after it.
+
+    The DC level is the mean of the waveform from the window on (after the transmitter's ring-down, which the
+    board's blanking leaves behind; an echo's carrier averages out).
+    """
+    n = row.size
+    mid = a + width // 2
+    span = window_samples(rate, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
+    if mid - span < a or mid + span > n:
+        return -1
+    lo_b = hi_b = row[mid - span]
+    for j in range(mid - span, mid):
+        lo_b, hi_b = min(lo_b, row[j]), max(hi_b, row[j])
+    lo_a = hi_a = row[mid]
+    for j in range(mid, mid + span):
+        lo_a, hi_a = min(lo_a, row[j]), max(hi_a, row[j])
+    if hi_a - lo_a >= CANDIDATE_RISE * (hi_b - lo_b):
+        return -1  # an echo rises at the time of flight
+    total = 0.0
+    for j in range(a, n):
+        total += row[j]
+    dc = total / (n - a)
+    spike = max(abs(hi_a - dc), abs(lo_a - dc))
+    level = CANDIDATE_LEVEL * spike
+    for j in range(mid + span, n):
+        if abs(row[j] - dc) >= level:
+            return j - a
+    return -1
 
 
 @kernel

@@ -63,7 +63,8 @@ _CARRIER = 40_000.0
 
 
 def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
-                fraction: float = CONSTANT_FRACTION) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                fraction: float = CONSTANT_FRACTION, *,
+                level: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Constant-fraction time of the echo that set each reading's time of flight (design notes §8).
 
     The envelope is the analytic signal's modulus (Hilbert transform) of each window less its floor's
@@ -84,6 +85,11 @@ def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
         The reading's time of flight after each window's first sample, s.
     fraction : float
         Share of the peak that times the echo, in (0, 1).
+    level : (N,) array, optional
+        Time each echo instead where its envelope rises through this level over its floor (V; at most
+        ``fraction`` of its peak), clipped echoes too: a level near the noise's is crossed near the onset of a
+        strong echo, whatever its peak (the echoes recovered after a noise trigger,
+        :meth:`~lelsonar.reconstruct.assembly.ScanAssembly.recovered_echoes`).
 
     Returns
     -------
@@ -119,20 +125,21 @@ def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
     tof_at = np.asarray(tof_at, dtype=np.float64)
     half = max(int(round(_PEAK_HALF_WIDTH * sample_rate)), 1)
     start = np.round(tof_at * sample_rate).astype(np.int64) - half  # from 50 µs before the time of flight
+    levels = np.full(n, np.nan) if level is None else np.asarray(level, dtype=np.float64)
     return _time_envelopes(w, x, hilbert, tof_at, start, float(sample_rate), head,
-                           max(int(round(sample_rate / _CARRIER)), 1), half, float(fraction))
+                           max(int(round(sample_rate / _CARRIER)), 1), half, float(fraction), levels)
 
 
 @kernel
-def _time_envelopes(w, x, hilbert, tof_at, start, sample_rate, head, period, half, fraction):
+def _time_envelopes(w, x, hilbert, tof_at, start, sample_rate, head, period, half, fraction, levels):
     """:func:`echo_onsets` from each window ``w`` (N, W), less its floor's mean ``x`` (float32), and the
     Hilbert transform of ``x`` (``hilbert``, (N, ≥ W) float32): the envelope, its smoothing, the floor, the peak,
     the knee and the crossings, one window at a time (a kernel: as NumPy over the whole block it took ~3 ms
     for the 184 windows of a scan's screen).
 
     ``start`` is the first sample the echo's peak is looked for from, ``period`` the carrier period and
-    ``half`` the peak's half width, in samples; the rest as :func:`echo_onsets`.  Returns its
-    ``(onset, peak, edge)``.
+    ``half`` the peak's half width, in samples; ``levels`` :func:`echo_onsets`' ``level`` (all NaN: none); the
+    rest as :func:`echo_onsets`.  Returns its ``(onset, peak, edge)``.
     """
     n, width = w.shape
     onset, peak, edge = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
@@ -209,9 +216,12 @@ def _time_envelopes(w, x, hilbert, tof_at, start, sample_rate, head, period, hal
             continue
         e, k_peak = smooth[r], k_peaks[r]
         peak[r] = e[k_peak] - floor[r]
-        j, crossing = _fraction_crossing(e, floor[r], k_peak, fraction)
+        share = fraction
+        if levels[r] == levels[r]:  # a level given: a clipped echo's onset is its own
+            share = min(levels[r] / peak[r], fraction)
+        j, crossing = _fraction_crossing(e, floor[r], k_peak, share)
         # The edge starts inside the window, after the floor's stretch began.
-        if j >= head // 2 and not clipped[r]:
+        if j >= head // 2 and (not clipped[r] or levels[r] == levels[r]):
             onset[r] = crossing / sample_rate - tof_at[r]
             low = _fraction_crossing(e, floor[r], k_peak, _EDGE[0])[1]
             high = _fraction_crossing(e, floor[r], k_peak, _EDGE[1])[1]

@@ -15,7 +15,7 @@ from lelsonar.reconstruct.compiled import kernel
 
 __all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "PRE_ECHO_WINDOW", "waveform_energy", "waveform_energy_agrees",
            "echo_amplitude", "echo_window_starts", "echo_window_width", "window_peak", "total_energy", "fit_energy_model",
-           "median_range", "energy_ratio", "NOISE_FALSE_ALARM", "echoes_over_noise",
+           "median_range", "energy_ratio", "NOISE_FALSE_ALARM", "echoes_over_noise", "noise_level",
            "ranges_backed"]
 
 
@@ -184,23 +184,49 @@ def echoes_over_noise(windows: np.ndarray, sample_rate: float, tof_at: np.ndarra
     dc, sigma : float
         The scan's DC level and noise σ, V.
     """
-    from scipy.special import ndtri  # the standard normal's quantile
-
-    if not 0.0 < false_alarm < 1.0:
-        raise ConfigError(f"the false-alarm probability must be in (0, 1), got {false_alarm}")
     windows = np.asarray(windows)
     n, width = windows.shape
     head = max(int(round(floor_time * sample_rate)), 1)
+    if not 0.0 < false_alarm < 1.0:
+        raise ConfigError(f"the false-alarm probability must be in (0, 1), got {false_alarm}")
     if n == 0 or width <= head:
         return np.ones(n, bool), math.nan, math.nan
     floor = np.asarray(windows[:, :head], dtype=np.float64)
     dc = float(np.median(floor))
     sigma = 1.4826 * float(np.median(np.abs(floor - dc)))
+    level = noise_level(sigma, listened, sample_rate, false_alarm)
     start = np.round(np.asarray(tof_at, dtype=np.float64) * sample_rate + ECHO_PEAK_WINDOW[0] * sample_rate)
     peak = _peak_after(windows, start, echo_window_width(sample_rate), dc)
-    samples = np.maximum(np.asarray(listened, dtype=np.float64) * sample_rate, 1.0)
-    level = -ndtri(false_alarm / (2.0 * samples)) * sigma
     return peak > level, dc, sigma
+
+
+def noise_level(sigma: float, listened, sample_rate: float, false_alarm: float = NOISE_FALSE_ALARM) -> np.ndarray:
+    """The level Gaussian noise of σ reaches anywhere in the record a board listened to with probability
+    ``false_alarm``: ``z·σ`` with ``2N·Q(z) = false_alarm``, ``N`` the samples of ``listened`` s
+    (:func:`echoes_over_noise`'s line between an echo and the noise).
+
+    Parameters
+    ----------
+    sigma : float
+        V.
+    listened : array
+        s.
+    sample_rate : float
+        Hz.
+    false_alarm : float
+        In (0, 1).
+
+    Returns
+    -------
+    array of ``listened``'s shape
+        V.
+    """
+    from scipy.special import ndtri  # the standard normal's quantile
+
+    if not 0.0 < false_alarm < 1.0:
+        raise ConfigError(f"the false-alarm probability must be in (0, 1), got {false_alarm}")
+    samples = np.maximum(np.asarray(listened, dtype=np.float64) * sample_rate, 1.0)
+    return -ndtri(false_alarm / (2.0 * samples)) * sigma
 
 
 @kernel

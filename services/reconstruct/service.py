@@ -535,13 +535,14 @@ class ReconstructionService:
             duplicates=scan.duplicates, rejected=dict(scan.rejected), missing=len(missing))
         steps, gamma, distance, _ = scan.arrays()
         distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
-        distance = scan.without_noise_triggers(distance)  # a board that fired on noise: those readings left out
+        # A board that fired on noise: those readings' ranges and peaks the echo's after them, where recovered.
+        distance, amplitude = scan.noise_triggers_recovered(distance, scan.echo_amplitude[steps])
         results: dict[str, ScanReconstruction] = {}
         for method in (self.config.method, *self.config.compare_methods):
             # From scratch, no warm start: the final estimate depends only on the data.
             results[method] = reconstruct(gamma, distance, scan.sensor_energy[steps], scan.geometry,
                                           scan.energy_model, method, options=self._options,
-                                          echo_amplitude=scan.echo_amplitude[steps])
+                                          echo_amplitude=amplitude)
         main = results[self.config.method]
         crit = int(steps[main.critical_step]) if main.critical_step is not None else None
         # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
