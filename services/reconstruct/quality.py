@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import math
+
 import numpy as np
 
 from lelsonar.errors import ConfigError
@@ -20,7 +22,7 @@ from lelsonar.errors import ConfigError
 from .compiled import kernel
 from .results import PlaneFit, PlaneResult
 
-__all__ = ["QualityLimits", "assess_plane", "assess_beside_unexplained", "add_findings", "unexplained_finding", "cross_check", "GOOD", "DEGRADED",
+__all__ = ["QualityLimits", "assess_plane", "assess_beside_unexplained", "add_findings", "unexplained_finding", "cross_check", "recovery_finding", "GOOD", "DEGRADED",
            "UNRELIABLE"]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
@@ -253,3 +255,26 @@ def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = f
               "over the observed patch")
     level = DEGRADED if plane.quality == GOOD else plane.quality
     return plane.replace_scalars(quality=level, quality_reasons=plane.quality_reasons + (reason,))
+
+
+def recovery_finding(plane: PlaneResult, without: PlaneResult, *, sigmas: float = 3.0) -> tuple[tuple[str, str], ...]:
+    """The finding against ``plane`` where the echoes recovered after a board's noise triggers turn it away from
+    ``without``, the same wall fitted without them.
+
+    The recovered ranges are timed on the waveforms' convention, their zero estimated (design notes §8); the
+    board's own readings on its.  Both sets see the same wall: if the two fits differ by more than ``sigmas``
+    of their combined standard errors (normal or offset), one of the two timings is off and neither plane's σ
+    covers it.  Nothing to say where either is no plane, or ``without`` is unreliable (too few readings of the
+    board's own to tell: most were noise).
+    """
+    if not isinstance(plane, PlaneFit) or not isinstance(without, PlaneFit) or without.quality == UNRELIABLE:
+        return ()
+    angle = float(np.arccos(min(max(float(plane.normal @ without.normal), -1.0), 1.0)))
+    gap = abs(plane.offset - without.offset)
+    angle_se = math.hypot(plane.normal_stderr, without.normal_stderr)
+    offset_se = math.hypot(plane.offset_stderr, without.offset_stderr)
+    if not (angle > sigmas * angle_se or gap > sigmas * offset_se):
+        return ()
+    return ((UNRELIABLE, f"the echoes recovered after the noise triggers turn it {np.rad2deg(angle):.1f}° and move it "
+                         f"{1000 * gap:.1f} mm from the fit of the board's own readings (over {sigmas:g}σ): the two "
+                         "timings disagree"),)

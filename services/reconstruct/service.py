@@ -59,7 +59,7 @@ from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.incremental import IncrementalPlane
 from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct
-from lelsonar.reconstruct.quality import add_findings, assess_plane, cross_check
+from lelsonar.reconstruct.quality import add_findings, assess_plane, cross_check, recovery_finding
 from lelsonar.reconstruct.recovery import RecoveryRequest
 from lelsonar.reconstruct.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.split import critical_step
@@ -536,7 +536,8 @@ class ReconstructionService:
         steps, gamma, distance, _ = scan.arrays()
         distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
         # A board that fired on noise: those readings' ranges and peaks the echo's after them, where recovered.
-        distance, amplitude = scan.noise_triggers_recovered(distance, scan.echo_amplitude[steps])
+        board_distance, board_amplitude = distance, scan.echo_amplitude[steps]
+        distance, amplitude = scan.noise_triggers_recovered(board_distance, board_amplitude)
         results: dict[str, ScanReconstruction] = {}
         for method in (self.config.method, *self.config.compare_methods):
             # From scratch, no warm start: the final estimate depends only on the data.
@@ -549,6 +550,14 @@ class ReconstructionService:
         problems = scan.writer_problems()
         findings = tuple((level, text) for level, text in problems if level is not None)
         planes: list[PlaneResult] = [add_findings(pl, findings) for pl in main.planes]
+        if not np.array_equal(distance, board_distance, equal_nan=True):
+            # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
+            # agree within their σ (one more fit, only on such scans).
+            own = np.where(scan.noise_triggers()[0], np.nan, board_distance)
+            without = reconstruct(gamma, own, scan.sensor_energy[steps], scan.geometry, scan.energy_model,
+                                  self.config.method, options=self._options, echo_amplitude=board_amplitude).planes
+            planes = [add_findings(pl, recovery_finding(pl, next((w for w in without if w.label == pl.label), None)))
+                      for pl in planes]
         for method in self.config.compare_methods:
             planes += [add_findings(_compared(pl, method, main), findings) for pl in results[method].planes]
         t = main.timings
