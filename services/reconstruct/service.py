@@ -217,8 +217,9 @@ class ServiceStats:
     evicted: Counter = field(default_factory=Counter)
 
 
-def _compared(plane: PlaneResult, method: str, main: ScanReconstruction) -> PlaneResult:
-    """A compared method's plane, checked against the method of record's; a failure names its method.
+def _compared(plane: PlaneResult, method: str, record: dict[str, PlaneResult]) -> PlaneResult:
+    """A compared method's plane, checked against the method of record's (``record``, by label); a failure
+    names its method.
 
     A compared method that fails is reported, never silently dropped; one
     that disagrees with a good plane of record, or that no good plane of
@@ -227,7 +228,7 @@ def _compared(plane: PlaneResult, method: str, main: ScanReconstruction) -> Plan
     """
     if not isinstance(plane, PlaneFit):
         return FitFailure(plane.reason, f"{method}: {plane.detail}", plane.label, plane.n_points)
-    return cross_check(plane, main.plane_a if plane.label == "a" else main.plane_b)
+    return cross_check(plane, record.get(plane.label))
 
 
 class ReconstructionService:
@@ -549,17 +550,18 @@ class ReconstructionService:
         # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
         problems = scan.writer_problems()
         findings = tuple((level, text) for level, text in problems if level is not None)
-        planes: list[PlaneResult] = [add_findings(pl, findings) for pl in main.planes]
+        record = {pl.label: pl for pl in main.planes}  # what the compared methods are checked against
         if not np.array_equal(distance, board_distance, equal_nan=True):
             # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
             # agree within their σ (one more fit, only on such scans).
             own = np.where(scan.noise_triggers()[0], np.nan, board_distance)
-            without = reconstruct(gamma, own, scan.sensor_energy[steps], scan.geometry, scan.energy_model,
-                                  self.config.method, options=self._options, echo_amplitude=board_amplitude).planes
-            planes = [add_findings(pl, recovery_finding(pl, next((w for w in without if w.label == pl.label), None)))
-                      for pl in planes]
+            without = {pl.label: pl for pl in reconstruct(
+                gamma, own, scan.sensor_energy[steps], scan.geometry, scan.energy_model, self.config.method,
+                options=self._options, echo_amplitude=board_amplitude).planes}
+            record = {label: add_findings(pl, recovery_finding(pl, without.get(label))) for label, pl in record.items()}
+        planes: list[PlaneResult] = [add_findings(pl, findings) for pl in record.values()]
         for method in self.config.compare_methods:
-            planes += [add_findings(_compared(pl, method, main), findings) for pl in results[method].planes]
+            planes += [add_findings(_compared(pl, method, record), findings) for pl in results[method].planes]
         t = main.timings
         msg = wire.reconstruction_message(
             scan.start.scanner_id, scan.start.scan_id, status=status,
