@@ -27,4 +27,4 @@ protos: $(STAMP)
 	$(BIN)/python -m lelsonar.tools.gen_protos
 
 clean:
-	rm -rf out build *.egg-info .pytest_cache .hypothesis services/reconstruct/__pycache__/numba-*
+	rm -rf out build *.egg-info .pytest_cache .hypothesis services/signal/__pycache__/numba-*

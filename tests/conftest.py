@@ -60,8 +60,8 @@ def simulated_messages(preset_name: str = "paper-test1", seed: int = 0, *, scann
     from lelsonar.acquire import messages
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.scan_loop import gamma_schedule
-    from lelsonar.acquire.sim import preset
-    from lelsonar.acquire.sim.calibrate import default_energy_model
+    from lelsonar.sim import preset
+    from lelsonar.sim.calibrate import default_energy_model
 
     sim = preset(preset_name)
     if steps is not None:
@@ -108,7 +108,7 @@ def cpu_hog():
 
 def scene_truth(preset_name: str = "paper-test1") -> dict[str, tuple[np.ndarray, float]]:
     """Label → (unit normal, offset h) of each wall of the preset's scene: ``n · x = h``."""
-    from lelsonar.acquire.sim import preset
+    from lelsonar.sim import preset
 
     return {p.label: (np.asarray(p.normal, dtype=float), float(np.dot(p.center, p.normal)))
             for p in preset(preset_name).scene.panels}
@@ -127,7 +127,7 @@ def assert_matches_the_scene(estimate: codec.Reconstruction, method: str, preset
       hits of the wall as γ sweeps (z = h_a tan γ before the corner, y = h_b / tan γ after);
     * the critical angle: the corner is at γ = atan(h_b / h_a); a step is within one step spacing.
     """
-    from lelsonar.acquire.sim import preset
+    from lelsonar.sim import preset
 
     cfg = preset(preset_name)
     truth = scene_truth(preset_name)

@@ -5,7 +5,7 @@ protobuf messages but shares none of our code.  This module plays that
 simulator.  It reuses only the scene geometry (:class:`Scene.l_corner`, for
 the panels and their edge: the ground truth) and builds everything else
 itself, from the paper's physics (§3) and the design notes (§8), with
-choices deliberately unlike :mod:`lelsonar.acquire.sim`:
+choices deliberately unlike :mod:`lelsonar.sim`:
 
 * a **Gaussian** two-way beam (not a piston's ``D²``), 1/(2d) spreading and
   1.3 dB/m absorption;
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lelsonar.acquire.sim.scene import Scene
+from lelsonar.sim.scene import Scene
 from lelsonar.v1 import scan_pb2
 
 _DEG = math.pi / 180.0
@@ -276,7 +276,7 @@ def simulate(rig: ForeignRig) -> ForeignScan:
 
 def energy_model(rig: ForeignRig) -> tuple[float, float, float, float, float]:
     """The foreign rig's own E0(d) calibration (eq. 12–14): face-on shots at six distances, no floor."""
-    from lelsonar.reconstruct.energy import fit_energy_model, waveform_energy
+    from lelsonar.signal.energy import fit_energy_model, waveform_energy
 
     ds = np.linspace(0.9, 1.8, 6)
     energies = []
@@ -378,7 +378,7 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
 
 def write_scan(path: Path, scan: ForeignScan, conv: Conventions = Conventions()) -> Path:
     """Record the foreign writer's messages with the project's recorder, in their order."""
-    from lelsonar.recording import McapRecorder
+    from lelsonar.log.recording import McapRecorder
 
     msgs = messages(scan, conv)
     with McapRecorder(path, metadata={"device": "foreign"}) as rec:

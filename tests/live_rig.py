@@ -13,11 +13,11 @@ from lelsonar import codec
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanPublisher
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct import present
-from lelsonar.reconstruct.recovery import RecoveryConfig
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
-from lelsonar.reconstruct.sources import LiveSource
-from lelsonar.transport import hermetic_settings, open_session
+from lelsonar.view import present
+from lelsonar.reconstruct.stream.recovery import RecoveryConfig
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.sources import LiveSource
+from lelsonar.net.transport import hermetic_settings, open_session
 
 PREFIX = "lelsonar"
 

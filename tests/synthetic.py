@@ -1,6 +1,6 @@
 """A tiny geometric L-corner scan generator for the tests (no waveforms).
 
-Not a simulator (that is :mod:`lelsonar.acquire.sim`): just the mirror-echo and
+Not a simulator (that is :mod:`lelsonar.sim`): just the mirror-echo and
 corner-echo geometry of the design notes §8, so the reconstruction math can be
 tested on its own.
 

@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from lelsonar.__main__ import build_parser
-from lelsonar.acquire.cli import config_from_args
+from lelsonar.cli.main import build_parser
+from lelsonar.cli.acquire import config_from_args
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 
 

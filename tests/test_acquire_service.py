@@ -11,13 +11,14 @@ import threading
 import pytest
 import zenoh
 
-from lelsonar import codec, recording
+from lelsonar import codec
+from lelsonar.log import recording
 from lelsonar.acquire.backends import open_scanner
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, gamma_schedule, run_scan
 from lelsonar.acquire.service import energy_model, run_acquisition, sim_config
 from lelsonar.keys import ScannerKeys
-from lelsonar.transport import hermetic_settings, open_session
+from lelsonar.net.transport import hermetic_settings, open_session
 from lelsonar.v1 import scan_pb2
 
 from .test_contract_mcap import RERUN
@@ -107,7 +108,7 @@ def test_the_servo_status_byte_reaches_every_sample(tmp_path, pipeline):
     from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
     from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
     from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
-    from lelsonar.acquire.emulate.cli import emulated_rig
+    from lelsonar.acquire.emulate.rig import emulated_rig
     from lelsonar.acquire.emulate.sensor_board_emulator import sim_shot_source
 
     cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=16)

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import simulate_scan
-from lelsonar.acquire.sim.record import record_scan
-from lelsonar.acquire.sim.scenes import calibrated_energy_model, draw_scene, simulate_family_scene
-from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
-from lelsonar.recording import read_metadata
+from lelsonar.sim import simulate_scan
+from lelsonar.acquire.simulated import record_scan
+from lelsonar.sim.scenes import calibrated_energy_model, draw_scene, simulate_family_scene
+from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+from lelsonar.log.recording import read_metadata
 from lelsonar.tools import bench_families as B
 
 LELSONAR = [sys.executable, "-m", "lelsonar"]

@@ -27,7 +27,8 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from websockets.sync.client import connect
 
-from lelsonar import codec, recording
+from lelsonar import codec
+from lelsonar.log import recording
 from lelsonar.bridge.foxglove import SUBPROTOCOLS, parse_host_port
 from lelsonar.errors import ConfigError
 
@@ -171,8 +172,8 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
         arrow = np.array([1.0, 0, 0]) + 2 * o.w * np.cross(q, [1.0, 0, 0]) + 2 * np.cross(q, np.cross(q, [1.0, 0, 0]))
         np.testing.assert_allclose(arrow, n, atol=1e-9)
     # The true planes of the preset, grey, where the simulator put them.
-    from lelsonar.acquire.sim import preset
-    from lelsonar.acquire.sim.scan import true_planes
+    from lelsonar.sim import preset
+    from lelsonar.sim.scan import true_planes
 
     _, truth_scene = got["/lelsonar/truth"][-1]
     drawn = {e.id: e for e in truth_scene.entities}
@@ -187,7 +188,7 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
 
 def test_shipped_layout_is_current_and_names_served_topics():
     from lelsonar.bridge.foxglove import _PROTO_TOPICS, layout_json
-    from lelsonar.visual import TOPIC_ENERGY, TOPIC_STEP
+    from lelsonar.draw.visual import TOPIC_ENERGY, TOPIC_STEP
 
     shipped = Path(__file__).parents[1] / "examples" / "foxglove-layout.json"
     assert shipped.read_text() == layout_json(), "regenerate: python -m lelsonar.bridge.foxglove > " + str(shipped)

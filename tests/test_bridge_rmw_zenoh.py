@@ -20,8 +20,8 @@ from lelsonar import codec
 from lelsonar.bridge import rmw_zenoh as rz
 from lelsonar.bridge import ros2
 from lelsonar.errors import ConfigError
-from lelsonar.recording import McapRecorder
-from lelsonar.transport import hermetic_settings, open_session
+from lelsonar.log.recording import McapRecorder
+from lelsonar.net.transport import hermetic_settings, open_session
 
 from .conftest import simulated_messages
 
@@ -124,8 +124,8 @@ def recording(tmp_path):
 
 def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
     """A replay through the bridge, seen from a plain Zenoh peer as rmw_zenoh would see it."""
-    from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
-    from lelsonar.reconstruct.sources import replay_mcap
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     path, source = recording
     samples = [m for m in source if isinstance(m, codec.Sample)]

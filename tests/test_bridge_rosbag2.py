@@ -18,9 +18,9 @@ from rosbags.interfaces import QosDurability
 
 from .conftest import simulated_messages
 from lelsonar import codec
-from lelsonar.__main__ import main
+from lelsonar.cli.main import main
 from lelsonar.bridge.ros2 import read_bag, typestore
-from lelsonar.recording import McapRecorder
+from lelsonar.log.recording import McapRecorder
 
 CAPSULES = 4
 
@@ -201,8 +201,8 @@ def test_corrected_points_follow_the_paper_correction(messages, recording):
 
 
 def test_estimate_and_markers(messages, recording):
-    from lelsonar.acquire.sim import preset
-    from lelsonar.acquire.sim.scan import true_planes
+    from lelsonar.sim import preset
+    from lelsonar.sim.scan import true_planes
 
     samples = samples_of(recording[1])
     ((t, msg),) = by_topic(messages, "/lelsonar/estimate")

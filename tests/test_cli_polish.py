@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from lelsonar import recording
-from lelsonar.__main__ import build_parser, main
+from lelsonar.log import recording
+from lelsonar.cli.main import build_parser, main
 
 from .conftest import simulated_messages
 
@@ -78,7 +78,7 @@ def test_a_worker_thread_that_loses_stdout_stops_the_command_cleanly():
     # The main thread waits for SIGTERM itself (no handler, no lock taken in a handler).
     script = (
         "import signal, sys, threading\n"
-        "from lelsonar.__main__ import _end_quietly_when_a_thread_loses_stdout\n"
+        "from lelsonar.cli.main import _end_quietly_when_a_thread_loses_stdout\n"
         "signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})\n"
         "closed = _end_quietly_when_a_thread_loses_stdout()\n"
         "def worker():\n"

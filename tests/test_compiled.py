@@ -7,16 +7,17 @@ import subprocess
 import sys
 from pathlib import Path
 
-import lelsonar.reconstruct as package
-from lelsonar.reconstruct.compiled import KERNEL_MODULES
+from lelsonar.signal.compiled import KERNEL_MODULES, module_source
+
+SERVICES = Path(__file__).parents[1] / "services"
 
 
 def test_every_module_with_a_kernel_is_in_the_cache_key():
     """A kernel calling another module's kernel keeps that module's machine code: if the module is left out of
     the key, editing it leaves stale code in the cache."""
-    with_kernels = {p.name for p in Path(package.__file__).parent.glob("*.py")
+    with_kernels = {p.resolve() for p in SERVICES.rglob("*.py")
                     if re.search(r"^@kernel\b", p.read_text(), re.MULTILINE)}
-    assert with_kernels == set(KERNEL_MODULES)
+    assert with_kernels == {module_source(name).resolve() for name in KERNEL_MODULES}
 
 
 def _warm_up() -> str:

@@ -23,7 +23,7 @@ def test_generated_code_is_up_to_date(tmp_path):
 
 
 def test_cli_prints_the_contract(capsys):
-    from lelsonar.__main__ import main
+    from lelsonar.cli.main import main
 
     assert main(["schemas", "--prefix", "robot7/lelsonar"]) == 0
     out = capsys.readouterr().out

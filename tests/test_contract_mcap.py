@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 from rerun.chunk import RrdReader
 
-from lelsonar import codec, recording
+from lelsonar import codec
+from lelsonar.log import recording
 from lelsonar.errors import RecordingError
 
 from .conftest import make_sample, make_scan_start

@@ -11,8 +11,8 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.sources import PlanesServer
-from lelsonar.transport import TransportError, ZenohSettings, hermetic_settings, open_session
+from lelsonar.reconstruct.stream.sources import PlanesServer
+from lelsonar.net.transport import TransportError, ZenohSettings, hermetic_settings, open_session
 
 from .conftest import make_sample
 

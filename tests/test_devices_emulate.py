@@ -20,7 +20,7 @@ from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices import sensor_frame as sf
 from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
-from lelsonar.acquire.emulate import cli
+from lelsonar.cli import emulate as cli
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.sensor_board_emulator import echo_shot_source, sim_shot_source
 
@@ -69,7 +69,7 @@ def test_scan_with_both_devices_fires_at_the_angle_the_servo_reports() -> None:
 
 
 def test_sim_shot_source_adapts_the_simulator(monkeypatch) -> None:
-    from lelsonar.acquire import sim
+    from lelsonar import sim
 
     calls = []
 
@@ -101,7 +101,7 @@ def test_the_board_fires_the_real_simulator_at_the_servo_angle() -> None:
     reports: the TOF to the ns the frame carries, the waveforms to the ADC's step; (2) the scene:
     at γ = 0 every beam meets wall a (y = 1.57 m) from capsules at y = 0.03 m, 1.54 m away.
     """
-    from lelsonar.acquire import sim  # a broken simulator import must fail here, not skip
+    from lelsonar import sim  # a broken simulator import must fail here, not skip
 
     cfg = sim.preset("paper-test1")
     source = sim_shot_source(cfg, np.random.default_rng(0))
@@ -159,7 +159,7 @@ def test_cli_registers_and_runs_until_signalled(capsys, monkeypatch) -> None:
 def test_cli_in_a_subprocess_serves_the_real_drivers() -> None:
     code = (
         "import argparse, sys\n"
-        "from lelsonar.acquire.emulate import cli\n"
+        "from lelsonar.cli import emulate as cli\n"
         "p = argparse.ArgumentParser(); cli.register(p.add_subparsers(dest='command'))\n"
         "a = p.parse_args(sys.argv[1:]); sys.exit(a.run(a))\n"
     )

@@ -2,7 +2,7 @@
 
 A comparator that times an echo's threshold crossing fires later on weaker echoes.  The simulator models
 such a board (``Receiver.timing = "crossing"``); reconstruction re-times each echo from its waveform by
-constant fraction (:mod:`lelsonar.reconstruct.echo_timing`) where the writer's ranges walk.  Everything is
+constant fraction (:mod:`lelsonar.signal.echo_timing`) where the writer's ranges walk.  Everything is
 judged against the truth of the scene or of the synthetic burst, never against the code's own output.
 """
 
@@ -14,13 +14,12 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import SimConfig, simulate_scan
-from lelsonar.acquire.sim.acoustics import comparator_delay, echo_envelope
-from lelsonar.acquire.sim.presets import preset as preset_config
-from lelsonar.acquire.sim.presets import preset_names
-from lelsonar.reconstruct.echo_timing import (MIN_WALK, TIMING_WINDOW, echo_onsets, range_walk,
-                                              walk_free_ranges)
-from lelsonar.reconstruct.energy import echo_amplitude
+from lelsonar.sim import SimConfig, simulate_scan
+from lelsonar.sim.acoustics import comparator_delay, echo_envelope
+from lelsonar.sim.presets import preset as preset_config
+from lelsonar.sim.presets import preset_names
+from lelsonar.signal.echo_timing import MIN_WALK, TIMING_WINDOW, echo_onsets, range_walk, walk_free_ranges
+from lelsonar.signal.energy import echo_amplitude
 from lelsonar.tools import bench_stress as stress
 
 C = 343.2
@@ -232,7 +231,7 @@ def _onsets_by_arrays(windows, rate, tof_at, fraction=0.5):
 def test_the_timing_kernels_agree_with_array_code_on_a_crossing_board(threshold, envelope_time):
     """On a threshold-crossing board's own windows (the simulator's, two seeds), the compiled re-timing and
     walk statistics give what whole-array NumPy gives, to rounding."""
-    from lelsonar.reconstruct import echo_timing as et
+    from lelsonar.signal import echo_timing as et
     from scipy.ndimage import uniform_filter1d
 
     cfg = SimConfig()

@@ -12,9 +12,9 @@ import pytest
 import zenoh
 
 
-from lelsonar.reconstruct import present
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
-from lelsonar.transport import ZenohSettings, open_session
+from lelsonar.view import present
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+from lelsonar.net.transport import ZenohSettings, open_session
 
 from .conftest import assert_matches_the_scene
 

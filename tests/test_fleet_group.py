@@ -20,12 +20,19 @@ from hypothesis import strategies as st
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct import present
-from lelsonar.reconstruct.group import GroupConfig, GroupMembership, eligible, finals_key, group_keys, owner
-from lelsonar.reconstruct.recovery import RecoveryConfig
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
-from lelsonar.reconstruct.sources import LiveSource, PlanesServer
-from lelsonar.transport import ZenohSettings, open_session
+from lelsonar.view import present
+from lelsonar.reconstruct.stream.group import (
+    GroupConfig,
+    GroupMembership,
+    eligible,
+    finals_key,
+    group_keys,
+    owner,
+)
+from lelsonar.reconstruct.stream.recovery import RecoveryConfig
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
+from lelsonar.net.transport import ZenohSettings, open_session
 
 from .conftest import simulated_messages
 from .live_rig import PREFIX, Acquirer, renamed
@@ -65,7 +72,7 @@ def test_assignment_is_balanced_within_the_binomial_bound(members, salt):
 
 
 def test_owner_is_stable_across_processes_and_refuses_an_empty_group():
-    out = subprocess.run([sys.executable, "-c", "from lelsonar.reconstruct.group import owner;"
+    out = subprocess.run([sys.executable, "-c", "from lelsonar.reconstruct.stream.group import owner;"
                           "print(owner('scanner-7', ['a', 'b', 'c']))"], capture_output=True, text=True,
                          env={**os.environ, "PYTHONHASHSEED": "123"}, check=True)
     assert out.stdout.strip() == owner("scanner-7", ["a", "b", "c"])
@@ -94,7 +101,7 @@ def test_group_config_is_validated_and_names_the_flag():
 
 
 def test_the_reconstruct_role_may_use_the_group_keys_and_the_others_may_not():
-    from lelsonar.secure import PLANNER, RECONSTRUCT, acquire_role, role_rules
+    from lelsonar.net.secure import PLANNER, RECONSTRUCT, acquire_role, role_rules
 
     members, done = group_keys(PREFIX, "g")
     token = members.replace("*/*", "m1/123")
@@ -117,8 +124,8 @@ def test_the_reconstruct_role_may_use_the_group_keys_and_the_others_may_not():
 
 
 def test_group_flags_come_from_the_config_file(tmp_path):
-    from lelsonar.__main__ import build_parser
-    from lelsonar.config_file import parse_args
+    from lelsonar.cli.main import build_parser
+    from lelsonar.cli.config_file import parse_args
 
     path = tmp_path / "site.toml"
     path.write_text('[reconstruct]\ngroup = "site"\nmember-id = "m1"\ngroup_settle = 0.5\n')
@@ -372,7 +379,7 @@ def test_a_departed_members_scans_reach_a_full_fifo_while_its_worker_asks_the_fe
     # The live source's FIFO is full and its worker asks may_publish (the group's lock) before it takes
     # the next batch.  Feeding the adopted scan's kept messages while holding that lock made each wait
     # for the other: the feeder for room, the worker for the lock.
-    from lelsonar.reconstruct.sources import PayloadFifo
+    from lelsonar.reconstruct.stream.sources import PayloadFifo
 
     group, _ = _watcher("a", {"b": 0})
     s = next(s for s in (f"s{i}" for i in range(40)) if owner(s, ["a", "b"]) == "b")
@@ -434,7 +441,7 @@ def test_a_member_that_joins_mid_scan_leaves_that_scan_to_its_owner_and_takes_th
 
 
 def _final(scanner: str, scan_id: int, status: str = "final") -> codec.Reconstruction:
-    from lelsonar.reconstruct.wire import STATUS
+    from lelsonar.reconstruct.estimate.wire import STATUS
 
     return codec.Reconstruction(scanner_id=scanner, scan_id=scan_id, status=STATUS[status])
 
@@ -507,7 +514,7 @@ def test_a_final_another_member_published_while_its_mark_was_lost_is_fenced(tmp_
 
 def test_under_a_backlog_an_ended_scans_recovery_neither_retries_nor_gives_up(scan):
     """A member that adopted many scans is behind: the replies to its requests wait in its queue."""
-    from lelsonar.reconstruct.recovery import RecoveryRequest
+    from lelsonar.reconstruct.stream.recovery import RecoveryRequest
 
     now = [0.0]
     asked: list[RecoveryRequest] = []

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from lelsonar.reconstruct.group import owner
+from lelsonar.reconstruct.stream.group import owner
 
 from .test_partition import IP_B, PORT, _drain, _in, _ip, _lelsonar, _why_no_netns, veth_pair
 
@@ -30,7 +30,7 @@ DOWN_S = 6.0  # three leases: both sides give the other up
 WATCHER = f"""
 import sys, zenoh
 from lelsonar import codec
-from lelsonar.reconstruct import present
+from lelsonar.view import present
 cfg = zenoh.Config()
 cfg.insert_json5("mode", '"client"')
 cfg.insert_json5("connect/endpoints", '["tcp/{IP_B}:{PORT}"]')

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.reconstruct import present
-from lelsonar.reconstruct.recovery import RecoveryConfig
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+from lelsonar.view import present
+from lelsonar.reconstruct.stream.recovery import RecoveryConfig
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
 from .conftest import simulated_messages, type_name
 from .live_rig import Rig, renamed
@@ -169,8 +169,8 @@ def test_recovery_replies_are_checked_against_the_key_and_the_request(scan, zeno
     import zenoh
 
     from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct.recovery import LogRecoveryClient, RecoveryRequest
-    from lelsonar.transport import ZenohSettings, open_session
+    from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryRequest
+    from lelsonar.net.transport import ZenohSettings, open_session
 
     keys = ScannerKeys("lelsonar", "rig")
     good = scan[1 + 5]
@@ -204,7 +204,7 @@ def test_recovery_replies_are_checked_against_the_key_and_the_request(scan, zeno
 
 def test_payload_fifo_keeps_order_bounds_what_waits_and_wakes_a_blocked_producer():
     from lelsonar.errors import ConfigError
-    from lelsonar.reconstruct.sources import PayloadFifo
+    from lelsonar.reconstruct.stream.sources import PayloadFifo
 
     fifo = PayloadFifo(4, batch=3)
     assert all(fifo.put(i, timeout=0) for i in range(4))
@@ -226,7 +226,7 @@ def test_one_subscription_covers_both_live_keys_and_no_other_key_of_the_contract
     import zenoh
 
     from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct.sources import live_key
+    from lelsonar.reconstruct.stream.sources import live_key
 
     for scanner in ("*", "rig"):
         ke = zenoh.KeyExpr(live_key(ScannerKeys("robot7/lelsonar", scanner)))

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from lelsonar.reconstruct import present
+from lelsonar.view import present
 
 from . import foreign_scenes as fs
 from .live_rig import Rig, renamed

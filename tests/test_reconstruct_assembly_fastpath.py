@@ -1,13 +1,19 @@
 """The per-sample fast path of ScanAssembly.add gives exactly (bit for bit) what the whole-scan
-functions of lelsonar.reconstruct.energy give on the same waveforms."""
+functions of lelsonar.signal.energy give on the same waveforms."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.reconstruct.assembly import ScanAssembly
-from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW, echo_amplitude, energy_ratio, total_energy, waveform_energy
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.signal.energy import (
+    ECHO_PEAK_WINDOW,
+    echo_amplitude,
+    energy_ratio,
+    total_energy,
+    waveform_energy,
+)
 
 from .conftest import simulated_messages
 

@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.reconstruct import assembly
-from lelsonar.reconstruct.assembly import ScanAssembly
-from lelsonar.reconstruct.energy import waveform_energy_agrees
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
-from lelsonar.reconstruct.sources import replay_mcap
-from lelsonar.recording import McapRecorder
+from lelsonar.reconstruct.stream import assembly
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.signal.energy import waveform_energy_agrees
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.sources import replay_mcap
+from lelsonar.log.recording import McapRecorder
 
 from .conftest import simulated_messages
 from .test_reconstruct_service import comparable
@@ -97,7 +97,7 @@ def test_present_and_wrong_it_is_found_counted_warned_and_recomputed(scan, tampe
             e[0], e[3] = e[3], e[0] * (1.01 if e[0] == e[3] else 1.0)
         del m.sensor_energy[:]
         m.sensor_energy.extend(e)
-    with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.assembly"):
+    with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.stream.assembly"):
         got = _assemble(messages)
     assert got.energy_mismatches == len(bad)
     assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1  # once a scan
@@ -185,7 +185,7 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
             for i, m in enumerate(messages):
                 rec.write(m, log_time_ns=1_700_000_000_000_000_000 + i * 20_000_000)
     finals, services = {}, {}
-    with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.assembly"):
+    with caplog.at_level(logging.WARNING, logger="lelsonar.reconstruct.stream.assembly"):
         for name, path in paths.items():
             services[name] = service = ReconstructionService(ReconstructConfig())
             replay_mcap(path, service)
@@ -209,7 +209,7 @@ def test_the_ingest_stage_reads_samples_from_their_payloads_to_the_values_of_the
     """Through the ingest stage, every sample after the first is read from its payload (_place_wire), to the
     arrays of a scan assembled from the parsed messages alone, bit for bit, and the latest step's waveforms;
     a payload encoded otherwise (a field sent twice: the parser keeps the last) is read from the message."""
-    from lelsonar.reconstruct.ingest import Ingest
+    from lelsonar.reconstruct.stream.ingest import Ingest
     read = []
     place_wire = assembly._place_wire
     monkeypatch.setattr(assembly, "_place_wire", lambda *a: read.append(place_wire(*a)) or read[-1])
@@ -245,7 +245,7 @@ def _peak(w: np.ndarray, rate: float, t0: float, tof: float, window: tuple[float
 def _check_against_the_waveforms(got: ScanAssembly, messages) -> None:
     """Every step's energies, echo peaks (and, on each RISE_STRIDE-th step, the peaks just before) and DC
     levels against its own waveforms, by capsule id, each on its own clock."""
-    from lelsonar.reconstruct.energy import ECHO_PEAK_WINDOW, PRE_ECHO_WINDOW
+    from lelsonar.signal.energy import ECHO_PEAK_WINDOW, PRE_ECHO_WINDOW
     row = {c: i for i, c in enumerate(sorted(s.capsule_id for s in messages[1].sensors))}
     for m in messages[1:-1]:
         for s in m.sensors:

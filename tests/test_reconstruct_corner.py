@@ -1,6 +1,6 @@
 """The joint corner model and the trust verdict, checked against the physical simulator's ground truth.
 
-Every scene here is simulated with waveforms (``lelsonar.acquire.sim``) and
+Every scene here is simulated with waveforms (``lelsonar.sim``) and
 reconstructed from the ranges, the waveform energies and the calibrated
 ``E0(d)``, as the service does; the truth is the scene's geometry and the
 simulator's record of which surface produced each echo.
@@ -22,18 +22,29 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.acquire.sim import EchoSource, Scene, calibrate_simulator, preset, simulate_scan
-from lelsonar.reconstruct import wire
-from lelsonar.reconstruct.corner_model import (ECHO_EDGE, ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, Wall,
-                                               echo_residuals, edge_implied_offsets, edge_line, fit_corner_model, joint_gauss_newton,
-                                               joint_residuals, scan_points)
-from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
-from lelsonar.acquire.sim import piston_directivity
-from lelsonar.reconstruct.corner import amplitude_pitch
-from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
-from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
-from lelsonar.reconstruct.results import FailureReason, FitFailure, PlaneFit
+from lelsonar.sim import EchoSource, Scene, calibrate_simulator, preset, simulate_scan
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.corner.model import (
+    ECHO_EDGE,
+    ECHO_OUTLIER,
+    ECHO_WALL_A,
+    ECHO_WALL_B,
+    Wall,
+    echo_residuals,
+    edge_implied_offsets,
+    edge_line,
+    fit_corner_model,
+    joint_gauss_newton,
+    joint_residuals,
+    scan_points,
+)
+from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
+from lelsonar.sim import piston_directivity
+from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch
+from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
+from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit
 
 #: One wall echo within a 2 cm patch error is what the benchmark calls a success (issue 9).
 PATCH_LIMIT = 0.02
@@ -333,7 +344,7 @@ def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() ->
     msg = wire.reconstruction_message("s1", 1, status="final", last_step=10, samples_used=11, critical_step=5,
                                       critical_angle=0.6, planes=planes, edge=None, timings=(0.0, 0.0, 0.0))
     back = codec.decode(msg.SerializeToString(), codec.Reconstruction)
-    assert [p.quality for p in back.planes] == [wire.QUALITY[UNRELIABLE]] * 18
+    assert [p.quality for p in back.planes] == [codec.QUALITY[UNRELIABLE]] * 18
     assert "more than one surface" in back.planes[0].quality_reasons[0]
     too_many = wire.reconstruction_message("s1", 1, status="final", last_step=10, samples_used=11,
                                            critical_step=5, critical_angle=0.6, planes=planes * 4, edge=None,
@@ -343,7 +354,7 @@ def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() ->
 
 
 def test_a_compared_method_that_fails_is_reported_by_name() -> None:
-    from lelsonar.reconstruct.service import _compared
+    from lelsonar.reconstruct.stream.service import _compared
 
     cfg = _scene_config(gamma=(-10, 25))  # the corner is barely reached: plane b cannot be fitted
     _, main = _reconstruct(cfg, 0)
@@ -356,8 +367,8 @@ def test_replay_exits_non_zero_when_the_method_of_record_gives_no_plane(tmp_path
     """A script running ``reconstruct --source X --json`` must see the missing plane: the JSON says why, exit 1."""
     import json
 
-    from lelsonar.__main__ import main
-    from lelsonar.acquire.sim.record import record_scan
+    from lelsonar.cli.main import main
+    from lelsonar.acquire.simulated import record_scan
 
     cfg = _scene_config(gamma=(-10, 40), steps=80)  # the sweep stops just past the corner: no wall b at all
     scan = simulate_scan(cfg, seed=0)
@@ -385,7 +396,7 @@ def test_a_reason_the_estimator_found_makes_the_plane_unreliable() -> None:
 
 
 def test_a_model_that_leaves_echoes_unexplained_distrusts_its_planes() -> None:
-    from lelsonar.reconstruct.quality import unexplained_finding
+    from lelsonar.reconstruct.estimate.quality import unexplained_finding
 
     assert unexplained_finding(0.005) == ()  # a healthy scan: slips and stray echoes
     assert unexplained_finding(0.08)[0][0] == DEGRADED
@@ -396,7 +407,7 @@ def test_a_model_that_leaves_echoes_unexplained_distrusts_its_planes() -> None:
 def test_a_fallback_plane_carries_the_method_of_record_and_says_it_fell_back(monkeypatch) -> None:
     # Consumers (and `reconstruct --source` exit codes) pick the plane of record by method name: a fallback
     # plane named after the estimator it fell back on read as "corner produced no plane".
-    from lelsonar.reconstruct import corner
+    from lelsonar.reconstruct.estimate.corner import method as corner
 
     monkeypatch.setattr(corner, "fit_corner_model", lambda *args, **kwargs: None)  # no pair of wall bands
     _scan, rec = _reconstruct(_scene_config(), seed=3, amplitudes=False)

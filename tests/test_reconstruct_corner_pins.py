@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.assembly import ScanAssembly
-from lelsonar.reconstruct.pipeline import reconstruct
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.estimate.pipeline import reconstruct
 
 from .conftest import simulated_messages
 

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.energy import EnergyModel, energy_ratio, fit_energy_model, median_range, waveform_energy
+from lelsonar.signal.energy import EnergyModel, energy_ratio, fit_energy_model, median_range, waveform_energy
 
 ranges = arrays(np.float64, st.tuples(st.integers(1, 30), st.integers(1, 6)),
                 elements=st.one_of(st.just(np.nan), st.floats(0.05, 5.0)))

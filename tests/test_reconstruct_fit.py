@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct import fit as F
-from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z, corrected_points, mirror_points
-from lelsonar.reconstruct.results import FailureReason, FitFailure, PlaneFit
+from lelsonar.reconstruct.estimate import fit as F
+from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z, corrected_points, mirror_points
+from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit
 from tests.synthetic import WALL_A, WALL_B, synthetic_corner_scan, tilted_normal
 
 GEO = ArrayGeometry()

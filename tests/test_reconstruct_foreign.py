@@ -1,7 +1,7 @@
 """Scans from another writer of the contract: every field reconstruction reads, filled otherwise.
 
 The scans come from :mod:`tests.foreign_scenes`, a simulator independent of
-``lelsonar.acquire.sim`` (its own beam, burst, comparator, noise and floor),
+``lelsonar.sim`` (its own beam, burst, comparator, noise and floor),
 written with its own conventions, recorded with the project's recorder and
 reconstructed through ``reconstruct --source --json``.  Each plane is judged
 against the scene's truth as the stress sweep judges it: a failure (patch
@@ -19,8 +19,8 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, SchemaVersionError
-from lelsonar.reconstruct.assembly import ScanAssembly, geometry_from_start
-from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, geometry_from_start
+from lelsonar.signal.energy import echo_amplitude, waveform_energy
 
 from . import foreign_scenes as fs
 from .conftest import make_sample, make_scan_start

@@ -8,9 +8,9 @@ from lelsonar import codec
 from lelsonar.acquire.log_server import ScanLog, parse_parameters
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import MAX_LOG_STEPS_PER_QUERY, ScannerKeys, validate_scan_id
-from lelsonar.reconstruct import present
-from lelsonar.reconstruct.recovery import RecoveryRequest, selectors, step_ranges
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+from lelsonar.view import present
+from lelsonar.reconstruct.stream.recovery import RecoveryRequest, selectors, step_ranges
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
 from .conftest import make_sample, make_scan_start, simulated_messages, type_name
 
@@ -185,9 +185,9 @@ def test_log_keys_queries_and_the_served_log_are_validated_and_bounded():
 
 
 def test_planes_publishers_are_bounded_and_the_planner_table_shows_the_accounting():
-    from lelsonar.reconstruct import wire
-    from lelsonar.reconstruct.sources import PlanesServer
-    from lelsonar.transport import ZenohSettings, open_session
+    from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream.sources import PlanesServer
+    from lelsonar.net.transport import ZenohSettings, open_session
 
     acc = wire.accounting_message(published=184, received_live=170, recovered=10, duplicates=2,
                                   rejected={"InvalidMessageError": 1}, missing=4)

@@ -7,13 +7,18 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.acquire.sim import preset
-from lelsonar.reconstruct import present
-from lelsonar.reconstruct.correct import AXIS_Z
-from lelsonar.reconstruct.incremental import FACING_MARGIN, RETRY_GROWTH, IncrementalPlane, ransac_iterations
-from lelsonar.reconstruct.pipeline import FitOptions, fit_plane
-from lelsonar.reconstruct.results import PlaneFit
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+from lelsonar.sim import preset
+from lelsonar.view import present
+from lelsonar.reconstruct.estimate.correct import AXIS_Z
+from lelsonar.reconstruct.estimate.incremental import (
+    FACING_MARGIN,
+    RETRY_GROWTH,
+    IncrementalPlane,
+    ransac_iterations,
+)
+from lelsonar.reconstruct.estimate.pipeline import FitOptions, fit_plane
+from lelsonar.reconstruct.estimate.results import PlaneFit
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
 from .conftest import assert_matches_the_scene, scene_truth, simulated_messages, type_name
 

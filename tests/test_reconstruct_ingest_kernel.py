@@ -9,10 +9,10 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import NonFiniteValueError
-from lelsonar.reconstruct.assembly import _PER_CAPSULE, _PER_STEP, _dc_levels, _settle_step
-from lelsonar.reconstruct.energy import EnergyModel, energy_ratio, total_energy
-from lelsonar.reconstruct.assembly import ScanAssembly
-from lelsonar.reconstruct.ingest import Accepted, Ingest, Rejected
+from lelsonar.reconstruct.stream.assembly import _PER_CAPSULE, _PER_STEP, _dc_levels, _settle_step
+from lelsonar.signal.energy import EnergyModel, energy_ratio, total_energy
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -279,7 +279,7 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
     range, the carried energies, every waveform sample — is bit for bit what the parsed message holds, and it
     reads exactly the samples on the fast path's layout unless their encoding is not plain (a field sent twice,
     of another wire type); a payload the parser refuses never reaches it."""
-    from lelsonar.reconstruct.assembly import _read_sample
+    from lelsonar.reconstruct.stream.assembly import _read_sample
 
     rng = np.random.default_rng(12)
     start, samples = scan[0], scan[1:-1]

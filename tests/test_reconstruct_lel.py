@@ -9,8 +9,15 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.lel import (entropy, entropy_and_gradient, entropy_gradient_hessian,
-                                      entropy_of_residuals, lel_fit_fast, lel_fit_nelder_mead, six_starts)
+from lelsonar.reconstruct.estimate.lel import (
+    entropy,
+    entropy_and_gradient,
+    entropy_gradient_hessian,
+    entropy_of_residuals,
+    lel_fit_fast,
+    lel_fit_nelder_mead,
+    six_starts,
+)
 
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 

@@ -11,11 +11,23 @@ from hypothesis import strategies as st
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.baseline import fuzzy_c_means, ransac_plane
-from lelsonar.reconstruct.energy import EnergyModel
-from lelsonar.reconstruct.pipeline import (DEFAULT_METHOD, METHODS, FitOptions, corner_edge, reconstruct)
-from lelsonar.reconstruct.results import EdgeLine, FailureReason, FitFailure, PlaneFit, ScanReconstruction
-from lelsonar.reconstruct.split import critical_step, split_subsets
+from lelsonar.reconstruct.estimate.baseline import fuzzy_c_means, ransac_plane
+from lelsonar.signal.energy import EnergyModel
+from lelsonar.reconstruct.estimate.pipeline import (
+    DEFAULT_METHOD,
+    METHODS,
+    FitOptions,
+    corner_edge,
+    reconstruct,
+)
+from lelsonar.reconstruct.estimate.results import (
+    EdgeLine,
+    FailureReason,
+    FitFailure,
+    PlaneFit,
+    ScanReconstruction,
+)
+from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
 from tests.synthetic import synthetic_corner_scan, tilted_normal
 
 GEO = ArrayGeometry()
@@ -115,8 +127,8 @@ def test_registry_has_the_paper_and_the_default() -> None:
 @pytest.fixture(scope="module")
 def paper_scans():
     """The paper's corner from the physical simulator (waveforms, calibrated E0), two noise seeds."""
-    from lelsonar.acquire.sim import default_energy_model, preset, simulate_scan
-    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
 
     out = []
     for seed in (1, 2):

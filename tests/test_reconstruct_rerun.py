@@ -17,8 +17,14 @@ from rerun.chunk import RrdReader
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.results import EdgeLine, FailureReason, FitFailure, PlaneFit, SolverDiagnostics
-from lelsonar.reconstruct.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
+from lelsonar.reconstruct.estimate.results import (
+    EdgeLine,
+    FailureReason,
+    FitFailure,
+    PlaneFit,
+    SolverDiagnostics,
+)
+from lelsonar.view.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
 
 T_START_NS = 1_700_000_000_000_000_000
 STEP_NS = 50_000_000

@@ -6,9 +6,9 @@ import subprocess
 
 from rerun.chunk import RrdReader
 
-from lelsonar import recording
-from lelsonar.__main__ import main
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
+from lelsonar.log import recording
+from lelsonar.cli.main import main
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 
 from .conftest import simulated_messages
 from .test_contract_mcap import RERUN

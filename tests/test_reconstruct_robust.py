@@ -12,11 +12,11 @@ import math
 
 import pytest
 
-from lelsonar.acquire.sim import simulate_scan
-from lelsonar.acquire.sim.scenes import SceneParams, build_config, calibrated_energy_model
-from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-from lelsonar.reconstruct.pipeline import reconstruct
-from lelsonar.reconstruct.results import PlaneFit
+from lelsonar.sim import simulate_scan
+from lelsonar.sim.scenes import SceneParams, build_config, calibrated_energy_model
+from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.reconstruct.estimate.pipeline import reconstruct
+from lelsonar.reconstruct.estimate.results import PlaneFit
 from lelsonar.tools.bench_families import is_failure, plane_errors, scene_truth
 
 DEG = math.pi / 180.0

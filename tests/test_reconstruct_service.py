@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.reconstruct import present, wire
-from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+from lelsonar.view import present
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
 from .conftest import assert_matches_the_scene, simulated_messages, type_name
 
@@ -61,7 +62,7 @@ def test_provisional_estimates_then_one_final(scan_messages):
     assert_matches_the_scene(final, service.config.method)
     assert_matches_the_scene(provisional[-1], service.provisional_method)
     # Every plane a planner receives carries a verdict, provisional ones included.
-    assert all(pl.quality == wire.QUALITY["good"] for est in (provisional[-1], final) for pl in est.planes
+    assert all(pl.quality == codec.QUALITY["good"] for est in (provisional[-1], final) for pl in est.planes
                if pl.method in (service.provisional_method, service.config.method))
 
 

@@ -13,10 +13,24 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.corner_model import (ECHO_OUTLIER, ECHO_WALL_A, ECHO_WALL_B, ScanPoints, Wall, assign_echoes,
-                                               echo_residuals, mirror_residuals)
-from lelsonar.reconstruct.quality import DEGRADED, GOOD, UNRELIABLE, QualityLimits, unexplained_finding
-from lelsonar.reconstruct.unexplained import echoes_against_walls
+from lelsonar.reconstruct.estimate.corner.model import (
+    ECHO_OUTLIER,
+    ECHO_WALL_A,
+    ECHO_WALL_B,
+    ScanPoints,
+    Wall,
+    assign_echoes,
+    echo_residuals,
+    mirror_residuals,
+)
+from lelsonar.reconstruct.estimate.quality import (
+    DEGRADED,
+    GOOD,
+    UNRELIABLE,
+    QualityLimits,
+    unexplained_finding,
+)
+from lelsonar.reconstruct.estimate.unexplained import echoes_against_walls
 
 H_A, H_B, FLOOR = 3.0, 1.2, 0.45        # m: walls y = H_A, z = H_B; floor z = −FLOOR
 LOBE = np.deg2rad(12.0)                 # the rig's beam: no echo from further off its axis

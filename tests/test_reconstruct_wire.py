@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.reconstruct import wire
-from lelsonar.reconstruct.results import EdgeLine, FailureReason, FitFailure, PlaneFit
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.results import EdgeLine, FailureReason, FitFailure, PlaneFit
 from lelsonar.v1 import reconstruction_pb2 as pb
 
 

@@ -16,8 +16,10 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
 
-from lelsonar import codec, recording, visual
-from lelsonar.__main__ import main as lelsonar_main
+from lelsonar import codec
+from lelsonar.log import recording
+from lelsonar.draw import visual
+from lelsonar.cli.main import main as lelsonar_main
 from lelsonar.v1 import reconstruction_pb2
 
 from .conftest import simulated_messages

@@ -17,15 +17,16 @@ from pathlib import Path
 import pytest
 from mcap.reader import make_reader
 
-from lelsonar import codec, recording
-from lelsonar.__main__ import build_parser
-from lelsonar.__main__ import main as lelsonar_main
-from lelsonar.acquire.cli import config_from_args
+from lelsonar import codec
+from lelsonar.log import recording
+from lelsonar.cli.main import build_parser
+from lelsonar.cli.main import main as lelsonar_main
+from lelsonar.cli.acquire import config_from_args
 from lelsonar.acquire.scan_loop import ScanOutput
 from lelsonar.errors import RecordingError
 from lelsonar.keys import ScannerKeys
-from lelsonar.recordings.reader import salvage
-from lelsonar.transport import hermetic_settings, open_session
+from lelsonar.log.reader import salvage
+from lelsonar.net.transport import hermetic_settings, open_session
 
 from .conftest import simulated_messages
 from .test_contract_mcap import RERUN

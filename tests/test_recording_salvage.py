@@ -23,9 +23,10 @@ from mcap.reader import make_reader
 from mcap.records import Message
 from mcap.stream_reader import StreamReader
 
-from lelsonar import codec, recording
-from lelsonar.recordings.reader import salvage
-from lelsonar.recordings.recover import recover
+from lelsonar import codec
+from lelsonar.log import recording
+from lelsonar.log.reader import salvage
+from lelsonar.log.recover import recover
 
 from .conftest import simulated_messages
 from .test_contract_mcap import RERUN

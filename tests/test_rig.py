@@ -15,14 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lelsonar import codec, recording
-from lelsonar.__main__ import build_parser, main
+from lelsonar import codec
+from lelsonar.log import recording
+from lelsonar.cli.main import build_parser, main
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
-from lelsonar.acquire.emulate.cli import emulated_rig
+from lelsonar.acquire.emulate.rig import emulated_rig
 from lelsonar.acquire.emulate.sensor_board_emulator import SensorBoardEmulatorConfig, sim_shot_source
 from lelsonar.acquire.rig import RIG_KEYS, load_rig, write_energy_model
-from lelsonar.acquire.sim import preset
-from lelsonar.config_file import parse_args
+from lelsonar.sim import preset
+from lelsonar.cli.config_file import parse_args
 from lelsonar.errors import ConfigError
 
 EXAMPLE = Path(__file__).parents[1] / "examples" / "rig.toml"
@@ -45,7 +46,7 @@ def test_serial_names_everything_missing_at_once(tmp_path):
     rig.write_text('[servo]\nport = "/dev/ttyUSB0"\nzero_raw = 512\n')
     with pytest.raises(ConfigError) as err:
         main_args = build_parser().parse_args(["acquire", "--device", "serial", "--config", str(rig)])
-        from lelsonar.acquire.cli import config_from_args
+        from lelsonar.cli.acquire import config_from_args
 
         config_from_args(main_args)
     text = str(err.value)
@@ -168,9 +169,9 @@ def test_write_energy_model_replaces_only_its_table(tmp_path):
 
 
 def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch, capsys):
-    from lelsonar.acquire.sim import simulate_step
-    from lelsonar.acquire.sim.calibrate import PAPER_CALIBRATION_DISTANCES, calibrate_simulator
-    from lelsonar.acquire.sim.scene import Scene
+    from lelsonar.sim import simulate_step
+    from lelsonar.sim.calibrate import PAPER_CALIBRATION_DISTANCES, calibrate_simulator
+    from lelsonar.sim.scene import Scene
 
     sim = preset("paper-test1")
     wall = {"d": 1.0}
@@ -211,7 +212,7 @@ def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch,
 
 
 def test_the_example_rig_configures_every_command_it_has_tables_for():
-    from lelsonar.acquire.cli import config_from_args
+    from lelsonar.cli.acquire import config_from_args
     from lelsonar.acquire.rig import serial_setup
 
     a = parse_args(build_parser(), ["reconstruct", "--config", str(EXAMPLE)])

@@ -22,14 +22,15 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from lelsonar import SCHEMA_VERSION, codec, secure
-from lelsonar.__main__ import main
+from lelsonar import SCHEMA_VERSION, codec
+from lelsonar.net import secure
+from lelsonar.cli.main import main
 from lelsonar.errors import ScannerMismatchError, SecurityError
-from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct import wire
-from lelsonar.reconstruct.ingest import Ingest, Rejected
-from lelsonar.transport import TransportError, ZenohSettings, open_session
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
+from lelsonar.net.transport import TransportError, ZenohSettings, open_session
 from lelsonar.v1 import reconstruction_pb2
 
 from .conftest import make_sample, make_scan_start, type_name
@@ -184,7 +185,7 @@ def test_secure_config_prints_json5_that_any_zenoh_client_can_join_with(certs, r
 
 # --- access control ----------------------------------------------------------------------
 def test_a_planner_cannot_forge_an_estimate(certs, router):
-    from lelsonar.reconstruct.sources import PlanesServer
+    from lelsonar.reconstruct.stream.sources import PlanesServer
 
     legit, forged = estimate(offset=1.57), estimate(offset=9.99)
     with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
@@ -282,9 +283,9 @@ def test_ingest_rejects_and_counts_a_payload_that_claims_another_scanner():
 
 
 def test_live_reconstruct_rejects_a_scan_forged_under_another_key_without_security(zenoh_socket):
-    from lelsonar.reconstruct.service import ReconstructionService
-    from lelsonar.reconstruct.sources import LiveSource
-    from lelsonar.transport import hermetic_settings
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.reconstruct.stream.sources import LiveSource
+    from lelsonar.net.transport import hermetic_settings
 
     events: list[str] = []
     rejected, started = threading.Event(), threading.Event()
@@ -329,7 +330,7 @@ def test_the_planner_refuses_an_estimate_on_another_scanners_key():
 
 
 def test_the_planner_process_drops_an_estimate_on_another_scanners_key_without_security(zenoh_socket):
-    from lelsonar.transport import hermetic_settings
+    from lelsonar.net.transport import hermetic_settings
 
     endpoint = f"unixsock-stream/{zenoh_socket}"
     with open_session(hermetic_settings(zenoh_socket, listen=True)) as session:
@@ -375,7 +376,7 @@ def test_secure_demo_prints_the_same_planes_as_the_plain_demo(tmp_path):
 
 
 def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_mark_finals(certs, router):
-    from lelsonar.reconstruct.group import GroupConfig, GroupMembership, finals_key, group_keys
+    from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership, finals_key, group_keys
 
     _, done_key = group_keys("lelsonar", "g")
     with open_session(client(certs, router, secure.RECONSTRUCT)) as s_a, \

@@ -10,8 +10,9 @@ import re
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import cli, preset, simulate_scan
-from lelsonar.acquire.sim.plot import plane_section, scan_figure
+from lelsonar.cli import simulate as cli
+from lelsonar.sim import preset, simulate_scan
+from lelsonar.sim.plot import plane_section, scan_figure
 from lelsonar.errors import ConfigError
 from lelsonar.tools import bench_sim
 

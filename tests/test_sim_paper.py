@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import (
+from lelsonar.sim import (
     DEFAULT_ENERGY_MODEL,
     EchoSource,
     Scene,
@@ -17,8 +17,8 @@ from lelsonar.acquire.sim import (
     preset,
     simulate_scan,
 )
-from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z, corrected_points
-from lelsonar.reconstruct.energy import energy_ratio
+from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z, corrected_points
+from lelsonar.signal.energy import energy_ratio
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +76,8 @@ def test_argmax_r_needs_a_corner_brighter_than_a_face_on_wall():
 
 @pytest.mark.parametrize("gain", [1.0, 1.5, 2.5])
 def test_the_default_finds_the_critical_step_whatever_the_corner_gain(gain: float):
-    from lelsonar.reconstruct.energy import waveform_energy
-    from lelsonar.reconstruct.pipeline import reconstruct
+    from lelsonar.signal.energy import waveform_energy
+    from lelsonar.reconstruct.estimate.pipeline import reconstruct
 
     cfg = _with_corner_gain(gain)
     for seed in range(4):

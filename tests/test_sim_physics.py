@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import (
+from lelsonar.sim import (
     Acoustics,
     EchoSource,
     Panel,
@@ -23,7 +23,7 @@ from lelsonar.acquire.sim import (
     simulate_step,
     sound_speed,
 )
-from lelsonar.acquire.sim.config import AX12_DEG_PER_UNIT
+from lelsonar.sim.config import AX12_DEG_PER_UNIT
 from lelsonar.errors import ConfigError
 
 

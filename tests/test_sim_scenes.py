@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.acquire.sim import EchoSource, Receiver, SimConfig, SimulatedWallShots, simulate_scan
-from lelsonar.acquire.sim.scenes import (
+from lelsonar.sim import EchoSource, Receiver, SimConfig, SimulatedWallShots, simulate_scan
+from lelsonar.sim.scenes import (
     FAMILIES,
     SceneParams,
     build_config,

@@ -9,8 +9,8 @@ import logging
 import pytest
 import zenoh
 
-from lelsonar import transport
-from lelsonar.transport import add_zenoh_arguments, zenoh_settings_from_args
+from lelsonar.net import transport
+from lelsonar.net.transport import add_zenoh_arguments, zenoh_settings_from_args
 
 FILE = """{
   // a robot's session: none of this may be replaced by a default
@@ -54,7 +54,7 @@ def test_a_session_close_that_fails_is_a_warning_not_a_crash(monkeypatch, caplog
             raise zenoh.ZError("close operation timed out!")
 
     monkeypatch.setattr(transport.zenoh, "open", lambda cfg: Session())
-    with caplog.at_level(logging.WARNING, logger="lelsonar.transport"):
+    with caplog.at_level(logging.WARNING, logger="lelsonar.net.transport"):
         with transport.open_session(transport.ZenohSettings()):
             pass
     assert any("close operation timed out" in r.getMessage() for r in caplog.records)

@@ -1,7 +1,7 @@
 """A recording shows the scan by itself: accumulated points, capsule frames, plottable scalars, a name, planes.
 
 Truth is computed here independently: points by rotating ``position + d·boresight``
-about x, energies by ``lelsonar.reconstruct.energy`` on the unpacked waveforms.
+about x, energies by ``lelsonar.signal.energy`` on the unpacked waveforms.
 """
 
 from __future__ import annotations
@@ -17,8 +17,10 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 from rerun.chunk import RrdReader
 
-from lelsonar import codec, palette, recording, visual
-from lelsonar.reconstruct.energy import total_energy, waveform_energy
+from lelsonar import codec
+from lelsonar.draw import palette, visual
+from lelsonar.log import recording
+from lelsonar.signal.energy import total_energy, waveform_energy
 from lelsonar.v1 import reconstruction_pb2
 
 from .conftest import make_sample, make_scan_start
@@ -128,7 +130,7 @@ def test_step_scalars_are_plottable_json_with_the_true_energies_and_ranges(tmp_p
 def test_recording_is_named_and_rerun_converts_the_views(tmp_path):
     path, rrd = tmp_path / "scan.mcap", tmp_path / "scan.rrd"
     _record(path)
-    meta = recording.read_metadata(path)["lelsonar.recording"]
+    meta = recording.read_metadata(path)["lelsonar.log.recording"]
     assert meta["name"] == "lelsonar s1 scan 7" and meta["scanner_id"] == "s1" and meta["scan_id"] == "7"
     for cmd in ([RERUN, "mcap", "convert", str(path), "-o", str(rrd), "--application-id", "lelsonar"],
                 [RERUN, "rrd", "verify", str(rrd)]):
@@ -140,13 +142,13 @@ def test_recording_is_named_and_rerun_converts_the_views(tmp_path):
     for chunk in RrdReader(rrd).store().stream().to_chunks():
         rb = chunk.to_record_batch()
         batch = {n: rb.column(n).to_pylist() for n in rb.schema.names
-                 if n in ("Points3D:positions", "Transform3D:child_frame", "lelsonar.recording")}
+                 if n in ("Points3D:positions", "Transform3D:child_frame", "lelsonar.log.recording")}
         if chunk.entity_path == "/lelsonar/scan_points" and "Points3D:positions" in batch:
             positions += [len(p) for p in batch["Points3D:positions"]]
         if chunk.entity_path == "/tf_capsules" and "Transform3D:child_frame" in batch:
             frames |= {f for row in batch["Transform3D:child_frame"] for f in row}
-        if chunk.entity_path == "/__mcap_metadata" and "lelsonar.recording" in batch:
-            names += batch["lelsonar.recording"]
+        if chunk.entity_path == "/__mcap_metadata" and "lelsonar.log.recording" in batch:
+            names += batch["lelsonar.log.recording"]
     assert max(positions) == 4 * STEPS - 1
     assert frames == {"capsule_A", "capsule_B", "capsule_C", "capsule_D"}
     assert {"first": "name", "second": "lelsonar s1 scan 7"} in names[0][0]

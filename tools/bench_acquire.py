@@ -212,7 +212,7 @@ class Row:
 
 def _scan_start_ns(path: Path) -> int:
     from lelsonar import codec
-    from lelsonar.recording import iter_payloads
+    from lelsonar.log.recording import iter_payloads
 
     payloads = iter_payloads(path)
     try:
@@ -234,7 +234,7 @@ def one_run(device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, s
     from lelsonar.acquire.config import AcquireConfig
     from lelsonar.acquire.service import run_acquisition
     from lelsonar.keys import ScannerKeys
-    from lelsonar.transport import hermetic_settings, open_session
+    from lelsonar.net.transport import hermetic_settings, open_session
 
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-acquire-") as tmp, ExitStack() as stack:
         cfg = AcquireConfig(device=device, preset=args.preset, steps=steps if steps is not None else args.steps,

@@ -6,8 +6,8 @@ outside those families through ``reconstruct --source FILE.mcap --json``
 (:mod:`lelsonar.tools.bench_stress`).  Without either:
 
 For each scene (the paper's two tests and tilted L corners) and each seed, the
-simulator (:mod:`lelsonar.acquire.sim`) produces a scan; every method in
-:data:`lelsonar.reconstruct.pipeline.METHODS` reconstructs it with the
+simulator (:mod:`lelsonar.sim`) produces a scan; every method in
+:data:`lelsonar.reconstruct.estimate.pipeline.METHODS` reconstructs it with the
 simulator's calibrated energy model; the planes are compared with the truth.
 
 Per plane:
@@ -83,7 +83,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _scene_config(name: str) -> Any:
-    from lelsonar.acquire.sim import Scene, preset
+    from lelsonar.sim import Scene, preset
 
     if name in ("paper-test1", "paper-test2", "tilted"):
         return preset(name)
@@ -110,14 +110,14 @@ def _plane_errors(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true:
 
 
 def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[dict[str, Any]]:
-    from lelsonar.acquire.sim import EchoSource, default_energy_model, simulate_scan
-    from lelsonar.reconstruct import fit as F
-    from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
-    from lelsonar.reconstruct.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
-    from lelsonar.reconstruct.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
-    from lelsonar.reconstruct.pipeline import FitOptions, reconstruct
-    from lelsonar.reconstruct.results import PlaneFit
-    from lelsonar.reconstruct.split import critical_step, split_subsets
+    from lelsonar.sim import EchoSource, default_energy_model, simulate_scan
+    from lelsonar.reconstruct.estimate import fit as F
+    from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
+    from lelsonar.signal.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
+    from lelsonar.reconstruct.estimate.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
+    from lelsonar.reconstruct.estimate.pipeline import FitOptions, reconstruct
+    from lelsonar.reconstruct.estimate.results import PlaneFit
+    from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
 
     cfg = _scene_config(scene)
     scan = simulate_scan(cfg, seed=seed)
@@ -199,12 +199,12 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
 
 
 def _timings(repeats: int) -> dict[str, float]:
-    from lelsonar.acquire.sim import default_energy_model, preset, simulate_scan
-    from lelsonar.reconstruct import fit as F
-    from lelsonar.reconstruct.correct import AXIS_Z
-    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-    from lelsonar.reconstruct.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
+    from lelsonar.reconstruct.estimate import fit as F
+    from lelsonar.reconstruct.estimate.correct import AXIS_Z
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 
     scan = simulate_scan(preset("paper-test2"), seed=0)
     crit = scan.truth.critical_step
@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
     methods = list(args.methods or METHODS)
     if args.skip_slow:

@@ -1,9 +1,9 @@
 """``lelsonar bench estimators --families …``: every estimator on seeded scene families (issue 9 §1).
 
-For each family of :mod:`lelsonar.acquire.sim.scenes` and each seed, the
+For each family of :mod:`lelsonar.sim.scenes` and each seed, the
 scene is drawn (``draw_scene(family, seed)``), simulated
 (``simulate_scan(cfg, seed)``), and reconstructed by each method through
-:func:`lelsonar.reconstruct.pipeline.reconstruct` with the energy model a user
+:func:`lelsonar.reconstruct.estimate.pipeline.reconstruct` with the energy model a user
 of that rig would have: the paper's six-shot calibration of the draw's rig
 (``calibrated_energy_model``; cached per rig, as a real rig is calibrated once).
 
@@ -327,7 +327,7 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     """The default fit per plane against Open3D ``segment_plane`` + LS refit on the same points, ms.
 
     One scene of ``family``, in this process.  Each repeat runs, back to back, the default
-    method's :func:`lelsonar.reconstruct.pipeline.reconstruct` (with the echoes' amplitudes, as
+    method's :func:`lelsonar.reconstruct.estimate.pipeline.reconstruct` (with the echoes' amplitudes, as
     the service runs it; both planes, so per plane is half the scan) and Open3D with its default
     early stop and with all 1000 iterations (the deterministic anchor of the accuracy rows) on
     the two corrected subsets at the default method's critical step (the anchor's points).
@@ -340,11 +340,11 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     ``ratio`` and ``ratio_1000`` (default over Open3D), ``repeats`` and ``points`` (a, b);
     the Open3D fields are NaN if a subset has too few points.
     """
-    from lelsonar.acquire.sim.scenes import simulate_family_scene
-    from lelsonar.reconstruct import fit as F
-    from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
-    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.sim.scenes import simulate_family_scene
+    from lelsonar.reconstruct.estimate import fit as F
+    from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     scan, model = fs.scan, fs.energy_model
@@ -384,7 +384,7 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
 
 def _subset_sources(scan: Any, steps: np.ndarray, label: str) -> np.ndarray:
     """EchoSource of each point of ``plane_data(…, steps, …)``, in its order (the same validity mask)."""
-    from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z, corrected_points
+    from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z, corrected_points
 
     d = scan.distance[steps]
     v = corrected_points(scan.geometry, scan.gamma_measured[steps], d, AXIS_Y if label == "a" else AXIS_Z)
@@ -406,9 +406,9 @@ _WARM: set[str] = set()
 
 def _warm_up(methods: list[str]) -> None:
     """Run each method once per process on a paper scan, so first-call costs (imports, caches) stay out of the times."""
-    from lelsonar.acquire.sim import default_energy_model, preset, simulate_scan
-    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-    from lelsonar.reconstruct.pipeline import reconstruct
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.pipeline import reconstruct
 
     todo = [m for m in methods if m not in _WARM]
     if not todo:
@@ -432,7 +432,7 @@ class SceneTruth:
     Attributes
     ----------
     planes : dict
-        Label → :class:`lelsonar.acquire.sim.TruePlane`.
+        Label → :class:`lelsonar.sim.TruePlane`.
     patch : dict
         Label → (k, 3) true foot points of that plane's mirror echoes, m.
     oracle : dict
@@ -458,7 +458,7 @@ class SceneTruth:
 
 def scene_truth(scan: Any) -> SceneTruth:
     """Patches, oracle errors and mirror-echo counts of a :class:`SimulatedScan` (planes a and b)."""
-    from lelsonar.acquire.sim import EchoSource
+    from lelsonar.sim import EchoSource
 
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
@@ -527,7 +527,7 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
     critical-step subset ``steps`` rebuilt here; ``extra["fitted_on_split"]``
     says whether those points are that subset (so the critical step decided them).
     """
-    from lelsonar.acquire.sim import EchoSource
+    from lelsonar.sim import EchoSource
 
     diag = getattr(res, "diagnostics", None)
     mask = np.asarray(getattr(res, "inlier_mask", np.zeros(0, dtype=bool)), dtype=bool)
@@ -562,11 +562,11 @@ def _add_cross_checked_quality(rows: list[dict[str, Any]], fits: dict[tuple[str,
     """Set ``quality_service`` on each row: the verdict ``reconstruct --compare`` shows.
 
     The service cross-checks a compared method's plane against the method of
-    record's (``lelsonar.reconstruct.quality.cross_check``); ``quality`` stays
+    record's (``lelsonar.reconstruct.estimate.quality.cross_check``); ``quality`` stays
     the method's own verdict, what a planner gets with it as the method of record.
     """
     try:
-        from lelsonar.reconstruct.quality import cross_check
+        from lelsonar.reconstruct.estimate.quality import cross_check
     except ImportError:
         cross_check = None
     for r in rows:
@@ -636,13 +636,13 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     """Draw, simulate and reconstruct one scene; the scene's summary and one row per method and plane.
 
     ``calibration``: ``"paper"`` (six shots, 0.9–1.8 m, as ``lelsonar calibrate``) or ``"wide"``
-    (0.6–2.7 m, the families' span) — see :func:`lelsonar.acquire.sim.scenes.calibrated_energy_model`.
+    (0.6–2.7 m, the families' span) — see :func:`lelsonar.sim.scenes.calibrated_energy_model`.
     """
     _warm_up(methods)
-    from lelsonar.acquire.sim import EchoSource
-    from lelsonar.acquire.sim.scenes import simulate_family_scene
-    from lelsonar.reconstruct.energy import echo_amplitude, waveform_energy
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.sim import EchoSource
+    from lelsonar.sim.scenes import simulate_family_scene
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     draw, scan, model = fs.draw, fs.scan, fs.energy_model
@@ -688,8 +688,8 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
     split = _split(scan, default_crit) if anchor else {}
     if split:
-        from lelsonar.reconstruct import fit as F
-        from lelsonar.reconstruct.correct import AXIS_Y, AXIS_Z
+        from lelsonar.reconstruct.estimate import fit as F
+        from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 
         ests: dict[str, Estimate | str] = {}
         for label, axis in (("a", AXIS_Y), ("b", AXIS_Z)):
@@ -699,7 +699,7 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
         rows += [plane_row(base, truth, ANCHOR, label, e, default_crit, t_scan, True) for label, e in ests.items()]
 
     if dump_dir and any(r["failure"] for r in rows):
-        from lelsonar.acquire.sim.record import record_scan
+        from lelsonar.acquire.simulated import record_scan
 
         path = Path(dump_dir) / f"{family}-{seed}.mcap"
         failing = sorted({f"{r['method']}:{r['label']}" for r in rows if r["failure"]})
@@ -713,7 +713,7 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
 def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
     """The pipeline's subsets at ``crit`` ({} if the split cannot be made or imported)."""
     try:
-        from lelsonar.reconstruct.split import split_subsets
+        from lelsonar.reconstruct.estimate.split import split_subsets
 
         if crit is None:
             return {}
@@ -733,9 +733,9 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
     (fewer once a method has taken 1 s); the minimum is the least disturbed by
     other load on a shared host.
     """
-    from lelsonar.acquire.sim.scenes import simulate_family_scene
-    from lelsonar.reconstruct.energy import waveform_energy
-    from lelsonar.reconstruct.pipeline import reconstruct
+    from lelsonar.sim.scenes import simulate_family_scene
+    from lelsonar.signal.energy import waveform_energy
+    from lelsonar.reconstruct.estimate.pipeline import reconstruct
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     scan, model = fs.scan, fs.energy_model
@@ -766,7 +766,7 @@ def speed_summary(per_family: list[dict[str, Any]]) -> dict[str, Any]:
 # ---------------------------------------------------------------------------- run
 def default_methods(with_paper: bool) -> list[str]:
     """The project's default method, ``fcm-ransac``, ``lel-refit-ls`` (and ``paper``), as registered."""
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD, METHODS
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
     out = []
     for m in (DEFAULT_METHOD, "fcm-ransac", "lel-refit-ls", *(("paper",) if with_paper else ())):
@@ -833,8 +833,8 @@ def run_families(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
     from rich.table import Table
 
-    from lelsonar.acquire.sim.scenes import parse_families
-    from lelsonar.reconstruct.pipeline import DEFAULT_METHOD
+    from lelsonar.sim.scenes import parse_families
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 
     families = parse_families(args.families)
     methods = list(args.methods) if args.methods else default_methods(args.with_paper)

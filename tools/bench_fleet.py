@@ -4,17 +4,17 @@ Processes, all ``python -m lelsonar ...`` children started and always reaped her
 
 - a router (``lelsonar router``) on a private unix socket;
 - W workers, each wired as ``lelsonar reconstruct --group fleet`` wires itself
-  (:class:`~lelsonar.reconstruct.group.GroupMembership`,
-  :class:`~lelsonar.reconstruct.sources.LiveSource`,
-  :class:`~lelsonar.reconstruct.sources.PlanesServer`, the default
-  :class:`~lelsonar.reconstruct.service.ReconstructConfig`, provisional
+  (:class:`~lelsonar.reconstruct.stream.group.GroupMembership`,
+  :class:`~lelsonar.reconstruct.stream.sources.LiveSource`,
+  :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`, the default
+  :class:`~lelsonar.reconstruct.stream.service.ReconstructConfig`, provisional
   estimates on), plus a probe that timestamps what they process;
 - one publisher process with N scanners: each has the acquisition service's
   :class:`~lelsonar.acquire.scan_loop.ScanOutput` (a served
   :class:`~lelsonar.acquire.log_server.ScanLog`, a
   :class:`~lelsonar.acquire.log_server.LogServer`, a ``ScanPublisher`` with
   congestion control BLOCK), and puts real simulated ``Sample`` payloads
-  (:mod:`lelsonar.acquire.sim`, built once) at ``--rate`` Hz per scanner, the
+  (:mod:`lelsonar.sim`, built once) at ``--rate`` Hz per scanner, the
   scanners' phases spread over the period.  Each ``acquisition_time_ns`` is the
   wall clock just before its put;
 - this process: subscribes to ``<prefix>/*/planes`` and counts terminal
@@ -86,7 +86,7 @@ def command_line(args: argparse.Namespace) -> str:
 
 
 def _settings(endpoint: str):
-    from lelsonar.transport import ZenohSettings
+    from lelsonar.net.transport import ZenohSettings
 
     return ZenohSettings(mode="client", connect=(endpoint,))
 
@@ -103,14 +103,14 @@ def worker_main(args: argparse.Namespace) -> int:
     import resource
 
     from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct import present
-    from lelsonar.reconstruct.group import GroupConfig, GroupMembership
-    from lelsonar.reconstruct.ingest import Accepted
-    from lelsonar.reconstruct.recovery import RecoveryConfig
-    from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
-    from lelsonar.reconstruct.sources import LiveSource, PlanesServer
-    from lelsonar.tools.warm_up import exercise_kernels
-    from lelsonar.transport import open_session
+    from lelsonar.view import present
+    from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership
+    from lelsonar.reconstruct.stream.ingest import Accepted
+    from lelsonar.reconstruct.stream.recovery import RecoveryConfig
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
+    from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.net.transport import open_session
 
     exercise_kernels()  # as `lelsonar reconstruct` does before it listens
     stop = threading.Event()
@@ -196,10 +196,10 @@ def publisher_main(args: argparse.Namespace) -> int:
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.log_server import LogServer, ScanLog
     from lelsonar.acquire.scan_loop import ScanOutput, ScanPublisher, gamma_schedule
-    from lelsonar.acquire.sim import preset
-    from lelsonar.acquire.sim.calibrate import default_energy_model
+    from lelsonar.sim import preset
+    from lelsonar.sim.calibrate import default_energy_model
     from lelsonar.keys import ScannerKeys
-    from lelsonar.transport import open_session
+    from lelsonar.net.transport import open_session
 
     sim = preset(args.preset)
     if args.steps:
@@ -302,8 +302,8 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
     import zenoh
 
     from lelsonar import codec
-    from lelsonar.reconstruct import present
-    from lelsonar.transport import ZenohSettings, open_session
+    from lelsonar.view import present
+    from lelsonar.net.transport import ZenohSettings, open_session
 
     procs: list[subprocess.Popen] = []
     bench = ["bench", "fleet", "--scanners", str(args.scanners), "--workers", str(args.workers),

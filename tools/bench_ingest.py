@@ -7,10 +7,10 @@ Three measurements, side by side in one run and one table:
     several scanners, interleaved, through the acquisition service's own
     :class:`~lelsonar.acquire.scan_loop.ScanPublisher` (congestion control
     BLOCK), as fast as BLOCK lets it, for ``--seconds``; a consumer process runs
-    :class:`~lelsonar.reconstruct.sources.LiveSource` feeding a
-    :class:`~lelsonar.reconstruct.service.ReconstructionService` (default
+    :class:`~lelsonar.reconstruct.stream.sources.LiveSource` feeding a
+    :class:`~lelsonar.reconstruct.stream.service.ReconstructionService` (default
     configuration, estimates published by a
-    :class:`~lelsonar.reconstruct.sources.PlanesServer`).  The rate is the
+    :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`).  The rate is the
     number of samples whose ``handle`` returned per second, between the 10th
     and the 90th percentile of the samples (the start-up and the final drain
     left out).  Target ≥ 1,000 samples/s and ≥ 0.8× the decode + validate
@@ -18,7 +18,7 @@ Three measurements, side by side in one run and one table:
     scans, ScanStart to ScanEnd; samples counted), in the parent process,
     right after the run (printed beside the result).
 (a′) the **ingest stage** alone — decode, validate, route, assemble
-    (:meth:`~lelsonar.reconstruct.ingest.Ingest.accept`: everything the
+    (:meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept`: everything the
     service does before estimation — the samples' one compiled pass, which
     also works out each step's E^γ, E0 and R) — on the floor's payloads, one run of each
     per round, medians of 5; same target against the same floor.  The details
@@ -36,8 +36,8 @@ Three measurements, side by side in one run and one table:
     key and reports put → estimate *received* (what a planner sees).  Target
     p99 ≤ 50 ms for the first two.
 (c) **MCAP replay**: ``--scans`` scans recorded with
-    :class:`~lelsonar.recording.McapRecorder` (zstd, /tf and points included),
-    replayed with :func:`~lelsonar.reconstruct.sources.replay_mcap` through a
+    :class:`~lelsonar.log.recording.McapRecorder` (zstd, /tf and points included),
+    replayed with :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
     default ``ReconstructionService``; samples / wall time, median of
     ``--replay-runs``.  Target ≥ 3,000 samples/s and ≥ 0.8× the read + decode
     floor (the same file read and every payload decoded and validated, same run).  Two diagnostic rows
@@ -120,8 +120,8 @@ def build_scan(preset_name: str, seed: int = 0):
     from lelsonar.acquire import messages
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.scan_loop import gamma_schedule
-    from lelsonar.acquire.sim import preset
-    from lelsonar.acquire.sim.calibrate import default_energy_model
+    from lelsonar.sim import preset
+    from lelsonar.sim.calibrate import default_energy_model
 
     sim = preset(preset_name)
     scanner = SimScanner(sim, seed)
@@ -151,7 +151,7 @@ def publisher_main(args: argparse.Namespace) -> int:
     from lelsonar import codec
     from lelsonar.acquire.scan_loop import ScanPublisher
     from lelsonar.keys import ScannerKeys
-    from lelsonar.transport import hermetic_settings, open_session
+    from lelsonar.net.transport import hermetic_settings, open_session
 
     start, samples, end = build_scan(args.preset)
     n_scanners = args.scanners if args.phase == "rate" else args.latency_scanners
@@ -257,8 +257,8 @@ def publisher_main(args: argparse.Namespace) -> int:
 # --- the consumer process ----------------------------------------------------------------------
 def _timed_service_class():
     """A ReconstructionService that timestamps what it processes (the bench's probe, not a change of it)."""
-    from lelsonar.reconstruct.ingest import Accepted, Ingest
-    from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.ingest import Accepted, Ingest
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
     class TimedIngest(Ingest):
         last_events: list = []
@@ -327,9 +327,9 @@ def _timed_service_class():
 
 def consumer_main(args: argparse.Namespace) -> int:
     from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct.sources import LiveSource, PlanesServer
-    from lelsonar.tools.warm_up import exercise_kernels
-    from lelsonar.transport import hermetic_settings, open_session
+    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
+    from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.net.transport import hermetic_settings, open_session
 
     exercise_kernels()  # as `lelsonar reconstruct` does before it listens
     service = _timed_service_class()()
@@ -456,7 +456,7 @@ def run_phase(args: argparse.Namespace, phase: str) -> tuple[dict, dict]:
 # --- (c) replay --------------------------------------------------------------------------------
 def record_scans(path: Path, preset_name: str, scans: int) -> int:
     """Record ``scans`` scans of one scanner to ``path``; return the number of samples."""
-    from lelsonar.recording import McapRecorder
+    from lelsonar.log.recording import McapRecorder
 
     start, samples, end = build_scan(preset_name)
     t = 1_700_000_000_000_000_000
@@ -479,8 +479,8 @@ def record_scans(path: Path, preset_name: str, scans: int) -> int:
 
 def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
     """Median wall time of replay_mcap through a fresh service, and the finals of the last run."""
-    from lelsonar.reconstruct.service import ReconstructConfig, ReconstructionService
-    from lelsonar.reconstruct.sources import replay_mcap
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     times, finals = [], 0
     for _ in range(runs):
@@ -494,8 +494,8 @@ def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
 
 def time_ingest_only(path: Path, runs: int) -> float:
     """Median wall time to read, decode, validate and assemble the recording (no estimation)."""
-    from lelsonar.reconstruct.ingest import Ingest
-    from lelsonar.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
+    from lelsonar.log.recording import iter_payloads
 
     times = []
     for _ in range(runs):
@@ -510,7 +510,7 @@ def time_ingest_only(path: Path, runs: int) -> float:
 def time_read_decode(path: Path, runs: int) -> float:
     """Median wall time to read the recording and decode + validate every payload: the replay's floor."""
     from lelsonar import codec
-    from lelsonar.recording import iter_payloads
+    from lelsonar.log.recording import iter_payloads
 
     times = []
     for _ in range(runs):
@@ -540,11 +540,11 @@ def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, byt
 
 def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[float, float]:
     """Samples/s of (floor) :func:`lelsonar.codec.decode` (parse + every validation) and of (stage)
-    :meth:`~lelsonar.reconstruct.ingest.Ingest.accept` — decode, validate, route, assemble: everything the
+    :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` — decode, validate, route, assemble: everything the
     service does before estimation — over the same payloads (whole scans, ScanStart to ScanEnd), in this
     process, one run of each per round (medians of ``runs``)."""
     from lelsonar import codec
-    from lelsonar.reconstruct.ingest import Ingest
+    from lelsonar.reconstruct.stream.ingest import Ingest
 
     payloads = ingest_stage_payloads(preset_name, n)
     classes = [codec.MESSAGE_TYPES[name] for name, _ in payloads]
@@ -572,9 +572,9 @@ def profile_replay(path: Path, samples: int, console) -> None:
 
     from rich.table import Table
 
-    from lelsonar.reconstruct.pipeline import reconstruct
-    from lelsonar.reconstruct.service import ReconstructionService
-    from lelsonar.reconstruct.sources import replay_mcap
+    from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     prof = cProfile.Profile()
     service = ReconstructionService()
@@ -631,8 +631,8 @@ def profile_replay(path: Path, samples: int, console) -> None:
 
     # What one final costs per method, without the profiler (as _finalise calls them), on the first scan of the
     # file assembled again (the service forgets each scan once it is final).
-    from lelsonar.reconstruct.ingest import Ingest
-    from lelsonar.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
+    from lelsonar.log.recording import iter_payloads
 
     kept = Ingest()
     for rec in iter_payloads(path):
@@ -679,7 +679,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     from lelsonar.errors import ConfigError
-    from lelsonar.reconstruct.service import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructConfig
     from lelsonar.tools.bench import machine, progress
     from lelsonar.tools.bench_acquire import host_busy, host_line
 

@@ -3,7 +3,7 @@
 The acquisition recorder hands every step to the OS before the step is
 published: one MCAP chunk per step (Sample, /tf and points), flushed.  This
 bench writes the same simulated scan, messages built beforehand, through
-:class:`lelsonar.recording.McapRecorder` with
+:class:`lelsonar.log.recording.McapRecorder` with
 
 * ``1 MiB chunks`` — the setting before durability (``durable=False``): chunks
   written when full, so a killed writer loses up to a whole chunk (≈10 samples);
@@ -58,8 +58,8 @@ def scan_messages(preset_name: str, steps: int | None, seed: int) -> list:
     from lelsonar.acquire import messages
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.scan_loop import gamma_schedule
-    from lelsonar.acquire.sim import preset
-    from lelsonar.acquire.sim.calibrate import default_energy_model
+    from lelsonar.sim import preset
+    from lelsonar.sim.calibrate import default_energy_model
 
     sim = preset(preset_name)
     if steps is not None:
@@ -77,7 +77,7 @@ def scan_messages(preset_name: str, steps: int | None, seed: int) -> list:
 
 def write_once(path: Path, msgs: list, compression: str, options: dict) -> float:
     """Wall time to write the scan and finish the file, s."""
-    from lelsonar.recording import McapRecorder
+    from lelsonar.log.recording import McapRecorder
 
     t = time.perf_counter()
     with McapRecorder(path, compression=compression, **options) as rec:
@@ -87,7 +87,7 @@ def write_once(path: Path, msgs: list, compression: str, options: dict) -> float
 
 
 def read_once(path: Path) -> float:
-    from lelsonar.recording import open_recording
+    from lelsonar.log.recording import open_recording
 
     t = time.perf_counter()
     open_recording(path).payloads()
@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from lelsonar.recordings.reader import salvage
+    from lelsonar.log.reader import salvage
     from lelsonar.tools.bench import machine
     from lelsonar.tools.bench_acquire import host_busy, host_line
 

@@ -20,7 +20,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from lelsonar.acquire.sim import preset, simulate_scan
+    from lelsonar.sim import preset, simulate_scan
     from lelsonar.tools.bench import machine, progress
     from lelsonar.errors import ConfigError
 

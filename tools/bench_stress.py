@@ -3,7 +3,7 @@
 The project is judged on scenes from an independent simulator, recorded in
 our schema and replayed with ``lelsonar reconstruct --source X.mcap --json``.
 This sweep draws scenes and rigs the seeded families of
-:mod:`lelsonar.acquire.sim.scenes` never produce, alone and in combination:
+:mod:`lelsonar.sim.scenes` never produce, alone and in combination:
 
 =============  =================================================================
 family         what is drawn
@@ -40,10 +40,10 @@ family         what is drawn
 =============  =================================================================
 
 Each scan is simulated by the project's simulator physics
-(:func:`lelsonar.acquire.sim.scan.echo_table` and the comparator, noise and
+(:func:`lelsonar.sim.scan.echo_table` and the comparator, noise and
 waveform stages of :func:`simulate_scan`), but on any schedule (order and
 spacing), recorded by the acquisition scan loop and
-:class:`lelsonar.recording.McapRecorder` exactly as ``lelsonar acquire``
+:class:`lelsonar.log.recording.McapRecorder` exactly as ``lelsonar acquire``
 writes it, and reconstructed by ``lelsonar reconstruct --source FILE --json``
 (the CLI's ``main``, in process, stdout captured).
 
@@ -253,7 +253,7 @@ def draw_case(family: str, seed: int) -> StressCase:
 
 # ---------------------------------------------------------------------------- simulation
 def _scene(case: StressCase, height_a: float, height_b: float):
-    from lelsonar.acquire.sim.scene import Scene
+    from lelsonar.sim.scene import Scene
     from lelsonar.geometry import rotation_x
 
     half = (case.opening - math.pi / 2) / 2  # opening = 90° + tilt_a_x − tilt_b_x
@@ -286,9 +286,9 @@ def _schedule(case: StressCase, rng: np.random.Generator) -> np.ndarray:
 
 def build_config(case: StressCase):
     """The :class:`SimConfig` of a case: panels wide enough for every beam, window long enough for every echo."""
-    from lelsonar.acquire.sim.acoustics import Acoustics, Receiver
-    from lelsonar.acquire.sim.config import SimConfig
-    from lelsonar.acquire.sim.scenes import check_config, required_window_samples
+    from lelsonar.sim.acoustics import Acoustics, Receiver
+    from lelsonar.sim.config import SimConfig
+    from lelsonar.sim.scenes import check_config, required_window_samples
     from lelsonar.geometry import ArrayGeometry
 
     x = (np.arange(case.capsules) - (case.capsules - 1) / 2) * case.pitch
@@ -336,14 +336,20 @@ class StressScan:
 
     @property
     def t0(self) -> float:
-        """s; start of every waveform (what :class:`~lelsonar.acquire.sim.record.ScanReplay` replays)."""
+        """s; start of every waveform (what :class:`~lelsonar.acquire.simulated.ScanReplay` replays)."""
         return float(self.config.window_start)
 
 
 def simulate(case: StressCase) -> StressScan:
     """Simulate ``case`` with the simulator's physics on its own schedule (seeded by the case)."""
-    from lelsonar.acquire.sim.scan import (EchoSource, _amplitude_noise, _first_echo, _time_of_flight, _waveforms,
-                                           echo_table)
+    from lelsonar.sim.scan import (
+        EchoSource,
+        _amplitude_noise,
+        _first_echo,
+        _time_of_flight,
+        _waveforms,
+        echo_table,
+    )
 
     cfg = build_config(case)
     rng = np.random.default_rng([case.seed, zlib.crc32(b"scan-" + case.family.encode())])
@@ -373,7 +379,7 @@ def simulate(case: StressCase) -> StressScan:
 
 def energy_model(scan: StressScan):
     """The ``E0(d)`` announced: the rig's own six-shot calibration, times the case's ``e0_scale``."""
-    from lelsonar.acquire.sim.scenes import calibrated_energy_model
+    from lelsonar.sim.scenes import calibrated_energy_model
     from lelsonar.energy_model import EnergyModel
 
     m = calibrated_energy_model(scan.config)
@@ -421,8 +427,8 @@ class _WireVariations:
 def record(scan: StressScan, path: Path) -> None:
     """Write ``scan`` as ``lelsonar acquire --device sim`` would (scan loop + recorder)."""
     from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, run_scan
-    from lelsonar.acquire.sim.record import ScanReplay
-    from lelsonar.recording import McapRecorder
+    from lelsonar.acquire.simulated import ScanReplay
+    from lelsonar.log.recording import McapRecorder
 
     int16_scale = scan.config.receiver.adc_lsb if scan.case.int16 else None
     with McapRecorder(path, compression="zstd", metadata={"device": "sim", "stress": scan.case.describe()}) as rec:
@@ -434,7 +440,7 @@ def record(scan: StressScan, path: Path) -> None:
 def run_cli(path: Path, method: str | None = None, compare: str = COMPARED
             ) -> tuple[int | None, list[dict[str, Any]], str]:
     """``lelsonar reconstruct --source PATH --json --compare COMPARE`` in process: exit code, JSON lines, error."""
-    from lelsonar.__main__ import main
+    from lelsonar.cli.main import main
 
     argv = ["reconstruct", "--source", str(path), "--json", "--compare", compare]
     if method:
@@ -452,7 +458,7 @@ def run_cli(path: Path, method: str | None = None, compare: str = COMPARED
 # ---------------------------------------------------------------------------- judging
 def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error: str) -> list[dict[str, Any]]:
     """One row per wall: errors against the truth and the oracle, quality, verdict (see the module docstring)."""
-    from lelsonar.acquire.sim.scan import EchoSource
+    from lelsonar.sim.scan import EchoSource
 
     cfg = scan.config
     pc = cfg.geometry.capsule_positions(scan.gamma_measured)

@@ -1,8 +1,10 @@
 """lelsonar: robust plane estimates from a rotating ultrasonic array.
 
-This package is the wire contract shared by both services: the generated
-protobuf messages (:mod:`lelsonar.v1`), the key expressions, the codecs, the
-frames, the error tree, and the Zenoh and MCAP plumbing.
+This package is the wire contract shared by every part: the generated protobuf
+messages (:mod:`lelsonar.v1`), the key expressions, the codec, the frames, the
+energy model a scan announces, and the error tree.  The rest of the system lives
+in its subpackages, one folder each under ``services/`` (``services/X`` is
+``lelsonar.X``).
 """
 
 from importlib.metadata import PackageNotFoundError, version

@@ -43,6 +43,15 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 
 M = TypeVar("M", bound=Message)
 
+#: The verdict's short names (``--json``, the planner, labels) and their wire values.
+QUALITY = {
+    "": reconstruction_pb2.PLANE_QUALITY_UNSPECIFIED,
+    "good": reconstruction_pb2.PLANE_QUALITY_GOOD,
+    "degraded": reconstruction_pb2.PLANE_QUALITY_DEGRADED,
+    "unreliable": reconstruction_pb2.PLANE_QUALITY_UNRELIABLE,
+}
+QUALITY_NAME = {v: (k or "unassessed") for k, v in QUALITY.items()}
+
 _ITEM_SIZE = {
     scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE: 4,
     scan_pb2.WAVEFORM_ENCODING_INT16_LE: 2,

@@ -14,11 +14,11 @@ from lelsonar.acquire.devices.motor import (EMULATED_STALE_GUARD_S, DynamixelMot
                                             MotorPosition)
 from lelsonar.acquire.devices.sensor_board import SensorBoard, SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
-from lelsonar.acquire.emulate.cli import EmulatedRig, emulated_rig
+from lelsonar.acquire.emulate.rig import EmulatedRig, emulated_rig
 from lelsonar.acquire.emulate.sensor_board_emulator import SensorBoardEmulatorConfig, sim_shot_source
 from lelsonar.acquire.rig import rig_links
 from lelsonar.acquire.scanner import MotorReading, ScannerInfo, StepMeasurement
-from lelsonar.acquire.sim import SimConfig, simulate_step
+from lelsonar.sim import SimConfig, simulate_step
 
 if TYPE_CHECKING:
     from lelsonar.acquire.config import AcquireConfig

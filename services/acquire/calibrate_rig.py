@@ -20,7 +20,7 @@ import numpy as np
 
 from lelsonar.acquire.rig import Rig, load_rig, rig_links, write_energy_model
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
+from lelsonar.signal.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
 
 #: Keys the calibration needs from the rig file (no φ, no schedule: it measures the one and needs not the other).
 REQUIRED_FOR_CALIBRATION = ("servo.port", "servo.zero_raw", "servo.gamma_min_deg", "servo.gamma_max_deg",

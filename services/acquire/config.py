@@ -1,6 +1,6 @@
 """Configuration of the acquisition service: frozen, validated on creation.
 
-Filled from a TOML file and flags by :mod:`lelsonar.acquire.cli` only.
+Filled from a TOML file and flags by :mod:`lelsonar.cli.acquire` only.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ import lelsonar
 from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.acquire.scanner import ScannerInfo, StepMeasurement
 from lelsonar.energy_model import EnergyModel
-from lelsonar.reconstruct.energy import waveform_energy
+from lelsonar.signal.energy import waveform_energy
 from lelsonar.v1 import scan_pb2
 
 

@@ -230,7 +230,7 @@ def serial_setup(cfg) -> SerialSetup:
     from lelsonar.acquire.devices.sensor_board import SensorBoardConfig
     from lelsonar.acquire.scanner import ScannerInfo
     from lelsonar.geometry import ArrayGeometry
-    from lelsonar.reconstruct.energy import EnergyModel
+    from lelsonar.signal.energy import EnergyModel
 
     rig: Rig = cfg.rig or Rig(None, {})
     require_for_serial(rig, serial_overrides(cfg))

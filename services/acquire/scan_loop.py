@@ -32,7 +32,7 @@ from lelsonar.acquire.scanner import Scanner, StepMeasurement
 from lelsonar.errors import DeviceError
 from lelsonar.keys import ScannerKeys
 from lelsonar.energy_model import EnergyModel
-from lelsonar.recording import McapRecorder
+from lelsonar.log.recording import McapRecorder
 
 _log = logging.getLogger(__name__)
 

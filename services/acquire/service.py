@@ -22,11 +22,11 @@ from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
-from lelsonar.acquire.sim import SimConfig, preset
+from lelsonar.sim import SimConfig, preset
 from lelsonar.keys import ScannerKeys
 from lelsonar.energy_model import EnergyModel
-from lelsonar.recording import McapRecorder
-from lelsonar.transport import ZenohSettings, open_session
+from lelsonar.log.recording import McapRecorder
+from lelsonar.net.transport import ZenohSettings, open_session
 
 _log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ def sim_config(cfg: AcquireConfig) -> SimConfig:
 def energy_model(cfg: AcquireConfig) -> EnergyModel:
     if cfg.energy_model is not None:
         return cfg.energy_model
-    from lelsonar.acquire.sim.calibrate import default_energy_model
+    from lelsonar.sim.calibrate import default_energy_model
 
     return default_energy_model()
 

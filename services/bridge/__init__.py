@@ -9,5 +9,5 @@ One module per ecosystem:
   expressions;
 * :mod:`lelsonar.bridge.foxglove` — the live Foxglove WebSocket view (the only
   module importing ``foxglove``);
-* :mod:`lelsonar.bridge.cli` — ``lelsonar export`` and ``lelsonar ros2-bridge``.
+* :mod:`lelsonar.cli.bridge` — ``lelsonar export`` and ``lelsonar ros2-bridge``.
 """

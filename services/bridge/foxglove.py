@@ -1,7 +1,7 @@
 """Foxglove live: ``reconstruct --foxglove [HOST:]PORT`` serves a Foxglove WebSocket (foxglove-sdk).
 
 The only module that imports ``foxglove`` (foxglove-sdk).  The messages are the
-ones :mod:`lelsonar.visual` builds for recordings, serialized as protobuf, so
+ones :mod:`lelsonar.draw.visual` builds for recordings, serialized as protobuf, so
 the live view and a recording opened in Foxglove look the same.  Open
 ``examples/foxglove-layout.json`` in Foxglove and connect to
 ``ws://HOST:PORT``.
@@ -31,10 +31,11 @@ import foxglove
 import numpy as np
 from google.protobuf.message import Message
 
-from lelsonar import codec, visual
-from lelsonar.palette import QUALITY_NAME
+from lelsonar import codec
+from lelsonar.draw import visual
+from lelsonar.draw.palette import QUALITY_NAME
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 
 #: WebSocket subprotocols a client may offer; foxglove-sdk 0.30 needs the first.
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
@@ -145,7 +146,7 @@ class FoxgloveServer:
 
 
 class FoxgloveObserver:
-    """Implements :class:`lelsonar.reconstruct.service.Observer` on a :class:`FoxgloveServer`.
+    """Implements :class:`lelsonar.reconstruct.stream.service.Observer` on a :class:`FoxgloveServer`.
 
     Parameters
     ----------
@@ -260,7 +261,7 @@ def open_foxglove(address: str, *, truth_preset: str | None = None) -> Iterator[
     host, port = parse_host_port(address)
     truth = None
     if truth_preset:
-        from lelsonar.reconstruct.rerun_observer import preset_truth
+        from lelsonar.view.rerun_observer import preset_truth
 
         truth = preset_truth(truth_preset)
     server = FoxgloveServer(host, port)

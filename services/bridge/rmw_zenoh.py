@@ -48,7 +48,7 @@ import zenoh.ext
 
 from lelsonar.bridge import ros2
 from lelsonar.errors import ConfigError
-from lelsonar.transport import TransportError, ZenohSettings
+from lelsonar.net.transport import TransportError, ZenohSettings
 
 ADMIN_SPACE = "@ros2_lv"
 RMW_ZENOH_DEFAULT_DEPTH = 42

@@ -1,6 +1,6 @@
 """ROS 2 view of a scan, and the rosbag2 export.  The only module that imports ``rosbags``.
 
-:class:`Ros2View` is an observer of :class:`lelsonar.reconstruct.service.ReconstructionService`:
+:class:`Ros2View` is an observer of :class:`lelsonar.reconstruct.stream.service.ReconstructionService`:
 it turns what the service sees into ROS 2 messages and hands each to a sink —
 the rosbag2 writer here (:func:`export_rosbag2`), or the rmw_zenoh publisher
 (:mod:`lelsonar.bridge.rmw_zenoh`).  Both carry the same topics:
@@ -37,7 +37,7 @@ given; ``min_range``/``max_range`` are the listening window,
 ``c·t0/2`` and ``c·(t0 + window_samples/sample_rate)/2``.
 
 ``/lelsonar/estimate`` carries exactly the line ``lelsonar reconstruct --json``
-prints (``lelsonar.reconstruct.present.to_json``): the ``lelsonar.v1.Reconstruction``
+prints (``lelsonar.view.present.to_json``): the ``lelsonar.v1.Reconstruction``
 fields with proto names, SI units, ``status`` as a lower-case name.
 """
 
@@ -58,11 +58,11 @@ from rosbags.typesys import Stores, get_typestore
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError, RecordingError
-from lelsonar.reconstruct.assembly import ScanAssembly, StepView
-from lelsonar.reconstruct.pipeline import FitOptions
-from lelsonar.palette import method_color
-from lelsonar.reconstruct.results import PlaneFit, ScanReconstruction
-from lelsonar.reconstruct.wire import QUALITY_NAME
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.estimate.pipeline import FitOptions
+from lelsonar.draw.palette import method_color
+from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.codec import QUALITY_NAME
 
 __all__ = [
     "DISTROS", "TOPIC_TF", "TOPIC_TF_STATIC", "TOPIC_POINTS_RAW", "TOPIC_POINTS_CORRECTED", "TOPIC_PLANES",
@@ -265,7 +265,7 @@ def _quat_from_x_to(v) -> tuple[float, float, float, float]:
 
 # --- the observer -------------------------------------------------------------------------
 class Ros2View:
-    """Implements :class:`lelsonar.reconstruct.service.Observer`: every event becomes ROS 2 messages.
+    """Implements :class:`lelsonar.reconstruct.stream.service.Observer`: every event becomes ROS 2 messages.
 
     Parameters
     ----------
@@ -346,7 +346,7 @@ class Ros2View:
 
     def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
                  results: dict[str, ScanReconstruction] | None, partial) -> None:
-        from lelsonar.reconstruct import present
+        from lelsonar.view import present
 
         s, b = scan.start, self._b
         final = results is not None
@@ -480,7 +480,7 @@ def export_rosbag2(source: Path | str, out_dir: Path | str, *, view_factory: Cal
         ``out_dir`` exists (rosbag2 never overwrites), or the recording cannot be read; a
         partly written bag is removed.
     """
-    from lelsonar.reconstruct.sources import replay_mcap
+    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     out = Path(out_dir)
     if out.exists():

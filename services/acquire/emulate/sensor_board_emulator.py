@@ -332,12 +332,12 @@ def echo_shot_source(
 
 
 def sim_shot_source(sim_config: Any, rng: np.random.Generator) -> ShotSource:
-    """Wrap ``lelsonar.acquire.sim.simulate_step`` as a shot source.
+    """Wrap ``lelsonar.sim.simulate_step`` as a shot source.
 
     If a FIRE asks for another window or sample rate than ``sim_config`` has, a
     copy with ``window_samples`` and ``sample_rate`` replaced is used.
     """
-    from lelsonar.acquire import sim  # the simulator is optional for the device layer
+    from lelsonar import sim  # the simulator is optional for the device layer
 
     configs: dict[tuple[int, float], Any] = {}
 

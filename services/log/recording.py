@@ -1,0 +1,463 @@
+"""MCAP recordings: the lelsonar channels plus Foxglove channels that viewers draw.
+
+A recording holds, in log-time order (log time = acquisition time):
+
+==============================  ================================  ==========================
+topic                           schema                            what
+==============================  ================================  ==========================
+``/lelsonar/scan_start``        ``lelsonar.v1.ScanStart``         one per scan
+``/lelsonar/sample``            ``lelsonar.v1.Sample``            one per step
+``/lelsonar/scan_end``          ``lelsonar.v1.ScanEnd``           one per scan
+``/lelsonar/reconstruction``    ``lelsonar.v1.Reconstruction``    estimates, when recorded
+``/tf``                         ``foxglove.FrameTransform``       world → array, per step
+``/lelsonar/points``            ``foxglove.PointCloud``           raw points of the step (eq. 9)
+``/log``                        ``foxglove.Log``                  events
+``/tf_capsules``                ``foxglove.FrameTransforms``      array → capsule_X, per scan
+``/lelsonar/array``             ``foxglove.SceneUpdate``          the capsules and their beams
+``/lelsonar/scan_points``       ``foxglove.PointCloud``           every raw point of the scan so far
+``/lelsonar/step``              JSON ``lelsonar.StepScalars``     γ, ranges, energies (plottable)
+``/lelsonar/planes``            ``foxglove.SceneUpdate``          estimated planes, when recorded
+==============================  ================================  ==========================
+
+The viewer channels come from :mod:`lelsonar.draw.visual`.  Each scan also adds a
+``lelsonar.log.recording`` metadata record naming it (``name``, scanner, scan,
+device, software).  ``rerun file.mcap`` shows ``/tf`` as a Transform3D and the
+points as Points3D; Foxglove shows everything, and plots ``/lelsonar/step``.
+A step's contract message and its viewer messages share one chunk.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.Log_pb2 import Log
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf.message import Message
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import register_schema
+
+from lelsonar import __version__, codec
+from lelsonar.draw import visual
+from lelsonar.errors import DecodeError, NoScansError, RecordingError
+from lelsonar.log.reader import Salvage, salvage
+
+_log = logging.getLogger(__name__)
+
+TOPICS: dict[type[Message], str] = {
+    codec.ScanStart: "/lelsonar/scan_start",
+    codec.Sample: "/lelsonar/sample",
+    codec.ScanEnd: "/lelsonar/scan_end",
+    codec.Reconstruction: "/lelsonar/reconstruction",
+}
+TOPIC_TF = "/tf"
+TOPIC_POINTS = visual.TOPIC_POINTS
+TOPIC_LOG = "/log"
+WORLD_FRAME = visual.WORLD_FRAME
+ARRAY_FRAME = visual.ARRAY_FRAME
+
+#: Metadata record naming each channel, ``lelsonar.channel.<id>`` → {"topic": ..., "schema": ...}.
+CHANNEL_METADATA = "lelsonar.channel."
+#: The protobuf types a lelsonar recording may hold, by full name (to rebuild a lost schema record).
+RECORDED_TYPES: dict[str, type[Message]] = {
+    **codec.MESSAGE_TYPES, **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, FrameTransforms, PointCloud, Log, SceneUpdate)}}
+
+COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class McapRecorder:
+    """Write a lelsonar recording; always finishes the file, even on an exception.
+
+    Durable before published: every :meth:`write` and :meth:`log` closes its own
+    MCAP chunk (a Sample, its /tf and its points are one chunk: one step) and
+    hands it to the operating system before returning, so a caller that
+    publishes after ``write`` never publishes what the file lacks.  A process
+    killed at any moment (``kill -9``) loses at most the message being written;
+    :func:`lelsonar.log.recover.recover` turns the unfinished file into
+    an indexed one.  ``fsync=True`` also forces each step to the disk (power
+    loss), at the cost ``lelsonar bench recording`` measures.
+
+    Use as a context manager::
+
+        with McapRecorder(path, metadata={"scanner_id": "s1"}) as rec:
+            rec.write(scan_start)
+            rec.write(sample)      # also writes /tf and /lelsonar/points
+            rec.log("INFO", "scan complete", t_ns)
+
+    Parameters
+    ----------
+    path : Path
+    compression : {"zstd", "lz4", "none"}
+    metadata : mapping of str to str
+        Stored as one ``lelsonar.config`` metadata record (e.g. the configuration).
+    fsync : bool
+        ``os.fsync`` after every step (default False: the OS page cache survives
+        a killed process, not a power cut).
+    durable : bool
+        True (default): one chunk per step, flushed to the OS.  False: 1 MiB
+        chunks written when full, the behaviour before durability; a killed
+        writer then loses the whole chunk in progress.  Kept for the benchmark.
+    """
+
+    def __init__(self, path: Path | str, *, compression: str = "zstd",
+                 metadata: Mapping[str, str] | None = None, fsync: bool = False, durable: bool = True) -> None:
+        if compression not in COMPRESSIONS:
+            raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in finish()
+        self._writer = McapWriter(self._file, compression=COMPRESSIONS[compression])
+        self._writer.start(library=f"lelsonar {__version__}")
+        self._channels: dict[str, int] = {}
+        self._fsync = fsync
+        self._durable = durable or fsync
+        self._starts: dict[tuple[str, int], codec.ScanStart] = {}
+        self._finished = False
+        self.messages_written = 0
+        if metadata:
+            self._writer.add_metadata("lelsonar.config", {str(k): str(v) for k, v in metadata.items()})
+        self._commit()
+        if fsync:  # the new directory entry too, once
+            dir_fd = os.open(self.path.parent, os.O_RDONLY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+
+    def __enter__(self) -> McapRecorder:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.finish()
+
+    def finish(self) -> None:
+        """Write the summary and footer and close the file; safe to call twice."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._writer.finish()
+            self._file.flush()
+            if self._fsync:
+                os.fsync(self._file.fileno())
+        finally:
+            self._file.close()
+
+    def _commit(self) -> None:
+        """Close the chunk in progress and hand it to the OS (and the disk, with fsync)."""
+        if not self._durable:
+            return
+        self._writer.flush()  # finishes the chunk, writes its message index, flushes the stream
+        if self._fsync:
+            os.fsync(self._file.fileno())
+
+    def _put(self, topic: str, message: Message, t: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            schema = register_schema(self._writer, type(message))
+            channel = self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema)
+            # The channel record rides in the chunk of its first message; this copy outside any chunk names
+            # the channel's later messages if that one chunk is damaged (see open_recording).
+            self._writer.add_metadata(f"{CHANNEL_METADATA}{channel}",
+                                      {"topic": topic, "schema": type(message).DESCRIPTOR.full_name})
+        self._writer.add_message(channel, log_time=t, data=message.SerializeToString(), publish_time=t)
+
+    # --- writing ---------------------------------------------------------------------
+    def write(self, message: Message, log_time_ns: int | None = None) -> None:
+        """Record one contract message; a Sample also gets its /tf and /lelsonar/points."""
+        if self._finished:
+            raise RecordingError(f"{self.path} is already finished")
+        topic = TOPICS.get(type(message))
+        if topic is None:
+            raise RecordingError(f"{type(message).__name__} is not a lelsonar contract message")
+        t = log_time_ns if log_time_ns is not None else _message_time(message)
+        self._put(topic, message, t)
+        self.messages_written += 1
+        if isinstance(message, codec.ScanStart):
+            self._starts[(message.scanner_id, message.scan_id)] = message
+        elif isinstance(message, codec.Sample):
+            self._write_pose_and_points(message, t)
+        self._write_views(message, t)
+        self._commit()
+
+    def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
+        """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
+        t = log_time_ns if log_time_ns is not None else time.time_ns()
+        self._put(TOPIC_LOG, visual.log_message(level, text, t, name), t)
+        self._commit()
+
+    # --- what viewers draw, beside the contract (lelsonar.draw.visual) -------------------------
+    @cached_property
+    def _views(self) -> _ViewState:
+        return _ViewState()
+
+    def _write_views(self, message: Message, t: int) -> None:
+        """The viewer channels of a contract message: a recording opened alone shows the scan."""
+        views = self._views
+        if isinstance(message, codec.ScanStart):
+            views.cloud.scan_started(message)
+            self._put(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(message, t), t)
+            self._put(visual.TOPIC_ARRAY, visual.array_model(message, t), t)
+            self._writer.add_metadata("lelsonar.log.recording", recording_name_metadata(message))
+        elif isinstance(message, codec.Sample):
+            cloud = views.cloud.add(message, t)
+            if cloud is not None:
+                self._put(visual.TOPIC_SCAN_POINTS, cloud, t)
+            self.write_json(visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA,
+                            visual.step_scalars(message), t)
+        elif isinstance(message, codec.ScanEnd):
+            views.cloud.scan_ended(message.scanner_id, message.scan_id)
+        elif isinstance(message, codec.Reconstruction):
+            self._put(visual.TOPIC_PLANES, views.planes.update(message, t), t)
+
+    def write_json(self, topic: str, schema_name: str, schema: dict, payload: dict, log_time_ns: int) -> None:
+        """Record a JSON message on a channel with a named JSON schema (Foxglove plots its numbers)."""
+        if self._finished:
+            raise RecordingError(f"{self.path} is already finished")
+        channel = self._views.json_channels.get(topic)
+        if channel is None:
+            schema_id = self._writer.register_schema(schema_name, "jsonschema", visual.json_schema_bytes(schema))
+            channel = self._views.json_channels[topic] = self._writer.register_channel(topic, "json", schema_id)
+        self._writer.add_message(channel, log_time=log_time_ns, data=json.dumps(payload).encode(),
+                                 publish_time=log_time_ns)
+
+    def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
+        self._put(TOPIC_TF, visual.array_transform(sample.gamma_measured, t), t)
+        start = self._starts.get((sample.scanner_id, sample.scan_id))
+        if start is None:
+            return
+        pts, _capsules = visual.sample_points(start, sample)
+        if len(pts):
+            self._put(TOPIC_POINTS, visual.point_cloud(pts, t), t)
+
+
+@dataclass
+class _ViewState:
+    cloud: visual.ScanCloud = field(default_factory=visual.ScanCloud)
+    planes: visual.PlaneScene = field(default_factory=visual.PlaneScene)
+    json_channels: dict[str, int] = field(default_factory=dict)
+
+
+def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
+    """The ``lelsonar.log.recording`` metadata record of a scan: a human name and what it was."""
+    return {"name": f"lelsonar {start.scanner_id} scan {start.scan_id}", "scanner_id": start.scanner_id,
+            "scan_id": str(start.scan_id), "device": start.device or "unknown",
+            "software_version": start.software_version, "start_time_ns": str(start.start_time_ns),
+            "steps": str(start.steps)}
+
+
+def _message_time(message: Message) -> int:
+    for name in ("acquisition_time_ns", "start_time_ns", "end_time_ns", "stamp_ns"):
+        if hasattr(message, name) and getattr(message, name):
+            return int(getattr(message, name))
+    return time.time_ns()
+
+
+# --- reading -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class RecordedPayload:
+    """One contract message as stored: its type name and raw bytes, not yet decoded.
+
+    Replay decodes these through :func:`lelsonar.codec.decode`, the same path as live data.
+    """
+
+    log_time_ns: int
+    topic: str
+    type_name: str
+    payload: bytes
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A recording as read by the tolerant reader: what survived, and what did not.
+
+    Build with :func:`open_recording`; iterate the contract payloads with
+    :func:`iter_payloads` (which takes a Recording or a path).
+    """
+
+    salvage: Salvage
+
+    @property
+    def path(self) -> Path:
+        return self.salvage.path
+
+    def contract_channels(self) -> dict[int, type[Message]]:
+        """The channels that hold contract messages, and the message type of each.
+
+        A channel is the contract's by its protobuf schema name (``lelsonar.v1.Sample`` …), whatever
+        its topic: another writer of the schema (a simulator, a bridge) may name its topics otherwise.
+        Every payload is still decoded and validated by the consumer.
+        """
+        s = self.salvage
+        out = {}
+        for cid, ch in s.channels.items():
+            cls = codec.MESSAGE_TYPES.get(s.schema_name(cid))
+            if cls is not None and ch.message_encoding == "protobuf":
+                out[cid] = cls
+        return out
+
+    def payloads(self) -> list[RecordedPayload]:
+        """The contract messages in log-time order, undecoded."""
+        s = self.salvage
+        wanted = self.contract_channels()
+        return [RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
+                for m in s.in_log_time_order() if m.channel_id in wanted]
+
+    def count(self, kind: str | type[Message]) -> int:
+        """Messages on a topic, or of a contract message type (on whichever topics)."""
+        if isinstance(kind, str):
+            ids = {cid for cid, ch in self.salvage.channels.items() if ch.topic == kind}
+        else:
+            ids = {cid for cid, cls in self.contract_channels().items() if cls is kind}
+        return sum(1 for m in self.salvage.messages if m.channel_id in ids)
+
+    @property
+    def has_scans(self) -> bool:
+        return any(self.count(cls) for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd))
+
+    def damage_warning(self) -> str | None:
+        """One line saying what was lost, or None for an intact, finished file.
+
+        e.g. ``warning: scan.mcap is damaged: 1 chunk (≈10 messages) unreadable after byte 81234; 118 samples
+        salvaged``.
+        """
+        s = self.salvage
+        if s.intact:
+            return None
+        return f"warning: {s.path} {describe_damage(s)}; {self.count(codec.Sample)} samples salvaged"
+
+    def require_scans(self) -> Recording:
+        """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost)."""
+        if self.has_scans:
+            return self
+        s = self.salvage
+        held = sorted({ch.topic for ch in s.channels.values()})
+        what = f"its channels are {', '.join(held)}" if held else "it has no readable channels"
+        lost = f"; {describe_damage(s)}" if not s.intact else ""
+        raise NoScansError(f"no lelsonar scans in {s.path}: {what}{lost}")
+
+
+def describe_damage(s: Salvage) -> str:
+    """What happened to a file, as a clause for a one-line warning.
+
+    e.g. ``is damaged: 1 chunk (3 messages) unreadable after byte 688187`` or
+    ``is damaged: cut at byte 1498671 mid-record (≈3 messages), unfinished`` or
+    ``is unfinished (no footer: the writer was stopped or killed), nothing lost``.
+    """
+    parts = []
+    chunks = [d for d in s.damage if d.kind == "chunk"]
+    records = [d for d in s.damage if d.kind == "record"]
+    tail = [d for d in s.damage if d.kind == "tail"]
+    lost, exact = s.messages_lost()
+    if chunks:
+        n = lost if s.statistics_counts is not None else sum(d.messages_lost for d in chunks)
+        approx = "" if exact or all(d.messages is not None for d in chunks) else "≈"
+        label = "chunk" if len(chunks) == 1 else "chunks"
+        parts.append(f"{len(chunks)} {label} ({approx}{n} messages) unreadable after byte {chunks[0].offset}")
+    if records:
+        label = "other record" if len(records) == 1 else "other records"
+        parts.append(f"{len(records)} {label} unreadable after byte {records[0].offset}")
+    if tail:
+        parts.append(f"cut at byte {tail[0].offset} mid-record (≈{tail[0].messages_lost} messages)")
+    if any(d.kind == "header" for d in s.damage):
+        parts.append("the leading magic has flipped bits")
+    if any(d.kind == "summary" for d in s.damage):
+        parts.append("its index is unreadable")
+    if s.orphans:
+        parts.append(f"{s.orphans} messages on channels whose definition was lost")
+    if lost and not chunks and not tail:
+        parts.append(f"{'' if exact else '≈'}{lost} messages lost")
+    if not parts:
+        return ("is unfinished (no footer: the writer was stopped or killed), nothing lost" if not s.finished
+                else "is intact")
+    lossless = not (lost or s.orphans or tail)
+    return (f"is damaged: {', '.join(parts)}" + ("" if s.finished else ", unfinished")
+            + (", no message lost" if lossless else ""))
+
+
+def open_recording(path: Path | str | Recording) -> Recording:
+    """Read a recording tolerantly: every intact message, and an account of the damage.
+
+    Raises
+    ------
+    RecordingNotFoundError
+        Missing path or a directory.
+    NotMcapError
+        The file is not an MCAP file.
+    """
+    if isinstance(path, Recording):
+        return path
+    s = salvage(path)
+    if s.orphans:
+        _adopt_orphans(s)
+    return Recording(s)
+
+
+def _adopt_orphans(s: Salvage) -> None:
+    """Name the channels whose definition was in a damaged chunk, from the recorder's channel metadata.
+
+    The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
+    """
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    from lelsonar.log.reader import ChannelInfo, SchemaInfo
+
+    by_name = {schema.name: sid for sid, schema in s.schemas.items()}
+    for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
+        md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})
+        cls = RECORDED_TYPES.get(md.get("schema", ""))
+        if cls is None or not md.get("topic"):
+            continue
+        name = cls.DESCRIPTOR.full_name
+        if name not in by_name:
+            sid = by_name[name] = max(s.schemas, default=0) + 1
+            s.schemas[sid] = SchemaInfo(sid, name, "protobuf", build_file_descriptor_set(cls).SerializeToString())
+        s.channels[cid] = ChannelInfo(cid, by_name[name], md["topic"], "protobuf", {})
+    s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
+
+
+def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
+    """Yield the contract messages of a recording in log-time order, undecoded.
+
+    A damaged or unfinished file yields every intact message and logs one
+    warning (pass an opened :class:`Recording` to report the damage yourself:
+    then nothing is logged).
+
+    Raises
+    ------
+    RecordingError
+        If the file is missing, a directory or not an MCAP file
+        (:class:`~lelsonar.errors.RecordingNotFoundError`,
+        :class:`~lelsonar.errors.NotMcapError`).
+    """
+    rec = open_recording(path)
+    if not isinstance(path, Recording) and (line := rec.damage_warning()):
+        _log.warning("%s", line.removeprefix("warning: "))
+    yield from rec.payloads()
+
+
+def read_messages(path: Path | str | Recording,
+                  limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
+    """Decoded, validated contract messages in log-time order; a bad record raises DecodeError."""
+    for rec in iter_payloads(path):
+        cls = codec.MESSAGE_TYPES.get(rec.type_name)
+        if cls is None:
+            raise DecodeError(f"{rec.topic} holds {rec.type_name!r}, not a lelsonar.v1 message")
+        yield codec.decode(rec.payload, cls, limits)
+
+
+def read_metadata(path: Path | str | Recording) -> dict[str, dict[str, str]]:
+    """All metadata records of a recording, by name."""
+    return dict(open_recording(path).salvage.metadata)
+
+

@@ -1,0 +1,751 @@
+"""Plane fitting blocks: LS, fitting errors, MAD, pre-filter, covariance, the
+constant-depth model, the outlier-cluster guard, and :class:`PlaneFit` assembly.
+
+Paper references: LS is eq. (15); the fitting error is eq. (20); MAD and σ are
+eq. (21)–(22); the pre-filter is §5.3.  Two plane models share one residual:
+
+* **paper model** — points ``v`` (the paper's corrected points, §4) on the plane
+  ``θ · v = 1``; metric residual ``(θ · v − 1) / |θ|``;
+* **constant-depth model** — the mirror-echo condition ``n · p_c + d = h``
+  (design notes §8): the perpendicular distance from the capsule ``p_c`` to the
+  wall equals the measured range ``d``.  With ``θ = n / h`` its metric residual
+  is ``(θ · p_c − 1) / |θ| + d``, i.e. the paper model with the capsules as
+  points, shifted by the range.  It needs no assumption on the wall's
+  direction, so it stays unbiased on tilted walls where the paper's correction
+  (which assumes ``n`` is an axis) is not.
+
+In both cases the relative error of eq. (20) is the metric residual times
+``|θ| = 1/h``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.errors import ConfigError
+from lelsonar.geometry import ArrayGeometry, boresight
+
+from lelsonar.signal.compiled import kernel
+from lelsonar.reconstruct.estimate.correct import _COS_MAX_CORRECTION, corrected_point
+from lelsonar.reconstruct.estimate.lel import PERFECT_FIT, _entropy, entropy_of_residuals, newton_minimize
+from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
+
+__all__ = [
+    "MAD_K",
+    "PlaneData",
+    "plane_data",
+    "plane_data_of",
+    "check_points",
+    "ls_theta",
+    "fitting_errors",
+    "metric_residuals",
+    "mad",
+    "mad_sigma",
+    "prefilter_mask",
+    "theta_covariance",
+    "normal_offset_stderr",
+    "observed_patch",
+    "constant_depth_fit",
+    "constant_depth_ls",
+    "mirror_consistent",
+    "inlier_count",
+    "make_plane_fit",
+]
+
+#: The constant of eq. (22): σ = k·MAD for normally distributed errors.
+MAD_K = 1.4826
+
+
+def _norm(v: np.ndarray) -> float:
+    # np.linalg.norm of a 1-D vector is sqrt(v · v); this is that, without its ~4 µs of argument handling.
+    return float(np.sqrt(v @ v))
+
+
+@kernel
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    # np.cross of two 3-vectors, with the same roundings (each product rounded, then the difference).
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _ro(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+@dataclass(frozen=True)
+class PlaneData:
+    """The valid points of one subset, with what each model needs.
+
+    Parameters
+    ----------
+    label : str
+        ``"a"`` or ``"b"``.
+    axis : (3,) array
+        The normal assumed by the paper's correction (``y`` for a, ``z`` for b).
+    points : (N, 3) array
+        The paper's corrected points ``v_i`` (§4), m.
+    capsules : (N, 3) array
+        Capsule position ``p_c`` of each point, m.
+    distance : (N,) array
+        Measured range ``d`` of each point, m.
+    beam : (N, 3) array
+        Unit boresight of each point.
+    step : (N,) int array
+        Step index of each point in the scan.
+    """
+
+    label: str
+    axis: np.ndarray
+    points: np.ndarray
+    capsules: np.ndarray
+    distance: np.ndarray
+    beam: np.ndarray
+    step: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("axis", "points", "capsules", "distance", "beam"):
+            object.__setattr__(self, name, _ro(getattr(self, name)))
+        object.__setattr__(self, "step", _ro(self.step, np.intp))
+        n = self.points.shape[0]
+        if self.points.shape != (n, 3) or self.capsules.shape != (n, 3) or self.beam.shape != (n, 3) \
+                or self.distance.shape != (n,) or self.step.shape != (n,):
+            raise ConfigError("PlaneData arrays must agree: points, capsules, beam (N, 3); distance, step (N,)")
+        if not (np.isfinite(self.points).all() and np.isfinite(self.capsules).all()
+                and np.isfinite(self.distance).all()):
+            raise ConfigError("PlaneData holds only valid (finite) points")
+
+    @property
+    def n(self) -> int:
+        return int(self.points.shape[0])
+
+    def subset(self, mask: np.ndarray) -> PlaneData:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != (self.n,):
+            raise ConfigError(f"a subset mask must have shape ({self.n},), got {m.shape}")
+        # Valid points stay valid, and boolean indexing copies; the axis is frozen, so shared.
+        return PlaneData._owned(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
+                                self.beam[m], self.step[m])
+
+    @classmethod
+    def _owned(cls, label: str, axis: np.ndarray, points: np.ndarray, capsules: np.ndarray, distance: np.ndarray,
+               beam: np.ndarray, step: np.ndarray) -> PlaneData:
+        """Wrap arrays valid by construction that nothing else holds (fresh boolean-indexed copies).
+
+        What ``__init__`` checks holds already (the valid points :func:`plane_data` kept), and the
+        arrays are this object's alone: they are made read-only in place rather than copied and
+        checked again on the fit's hot path.
+        """
+        obj = object.__new__(cls)
+        for name, a in (("axis", axis), ("points", points), ("capsules", capsules), ("distance", distance),
+                        ("beam", beam), ("step", step)):
+            a.setflags(write=False)
+            object.__setattr__(obj, name, a)
+        object.__setattr__(obj, "label", label)
+        return obj
+
+
+def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray,
+               label: str, axis: np.ndarray) -> PlaneData:
+    """Gather the valid points of the given steps (eq. 9 and the §4 correction).
+
+    Parameters
+    ----------
+    geometry : ArrayGeometry
+    gamma : (n_steps,) array, rad
+    distance : (n_steps, n_capsules) array, m (NaN = no echo)
+    steps : (k,) int array
+        The subset's step indices (from :func:`lelsonar.reconstruct.estimate.split.split_subsets`).
+    label : str
+    axis : (3,) array
+        The paper's assumed normal for this subset.
+    """
+    steps = np.asarray(steps, dtype=np.intp)
+    g = np.asarray(gamma, dtype=np.float64)[steps]
+    d = np.asarray(distance, dtype=np.float64)[steps]
+    if d.shape != g.shape + (geometry.n_capsules,):
+        raise ConfigError(f"distance must have shape {g.shape + (geometry.n_capsules,)}, got {d.shape}")
+    return plane_data_of(geometry.capsule_positions(g), boresight(g), d, steps, label, axis)
+
+
+def plane_data_of(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str,
+                  axis: np.ndarray) -> PlaneData:
+    """:func:`plane_data` from capsule positions and boresights the caller already has.
+
+    Parameters
+    ----------
+    capsules : (k, n_capsules, 3) array
+        ``p_c`` of each echo slot, m.
+    beam : (k, 3) array
+        Boresight of each row.
+    distance : (k, n_capsules) array, m (NaN = no echo)
+    steps : (k,) int array
+        Step index of each row.
+    label, axis
+        As for :func:`plane_data`.
+
+    The rows may be steps (``n_capsules`` slots each), or single echoes (``n_capsules = 1``): the
+    corner model's echoes of one wall, with the same numbers as from their steps.
+    """
+    d = np.asarray(distance, dtype=np.float64)
+    ax = np.asarray(axis, dtype=np.float64)
+    # One kernel: the corrected points (correct.py's correction, reusing p_c and b) and the kept ones
+    # gathered with their boresights and steps, row-major as boolean indexing orders them.  Finite
+    # (v = p_c + ... is finite only where p_c is) and of agreeing shapes by construction; the arrays are
+    # fresh, so this PlaneData's own (the axis is copied: it may be AXIS_Y).
+    points, caps, dist, bm, st = _valid_corrected(np.ascontiguousarray(capsules, dtype=np.float64),
+                                                  np.ascontiguousarray(beam, dtype=np.float64), d,
+                                                  np.ascontiguousarray(steps, dtype=np.intp), ax / _norm(ax),
+                                                  _COS_MAX_CORRECTION)
+    return PlaneData._owned(label, ax.copy(), points, caps, dist, bm, st)
+
+
+@kernel
+def _valid_corrected(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray,
+                     axis: np.ndarray, cos_max: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The valid echoes' corrected points (§4), capsules, ranges, boresights and steps, in row-major order.
+
+    Valid: a finite positive range and a finite corrected point (:func:`corrected_point`).
+    """
+    k, c = distance.shape
+    points = np.empty((k * c, 3))
+    caps = np.empty((k * c, 3))
+    dist = np.empty(k * c)
+    bm = np.empty((k * c, 3))
+    st = np.empty(k * c, dtype=np.intp)
+    m = 0
+    v = np.empty(3)
+    for i in range(k):
+        for j in range(c):
+            dij = distance[i, j]
+            if not (np.isfinite(dij) and dij > 0):
+                continue
+            corrected_point(capsules[i, j], beam[i], dij, axis, cos_max, v)
+            if not (np.isfinite(v[0]) and np.isfinite(v[1]) and np.isfinite(v[2])):
+                continue
+            points[m, 0], points[m, 1], points[m, 2] = v[0], v[1], v[2]
+            caps[m, 0], caps[m, 1], caps[m, 2] = capsules[i, j, 0], capsules[i, j, 1], capsules[i, j, 2]
+            dist[m] = dij
+            bm[m, 0], bm[m, 1], bm[m, 2] = beam[i, 0], beam[i, 1], beam[i, 2]
+            st[m] = steps[i]
+            m += 1
+    return points[:m].copy(), caps[:m].copy(), dist[:m].copy(), bm[:m].copy(), st[:m].copy()
+
+
+def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFailure | None:
+    """A typed failure if ``points`` cannot define a plane ``θ · v = 1``, else None.
+
+    Too few points (< ``min_points``); collinear or coincident points (second
+    singular value of the centred cloud < 1e-6 of the first, or < 1 mm RMS);
+    or a best plane through the scanner (|h| < 1 mm), which eq. (1) cannot
+    represent.
+    """
+    v = np.asarray(points, dtype=np.float64)
+    n = v.shape[0]
+    if n < max(min_points, 4):
+        return FitFailure(FailureReason.TOO_FEW_POINTS, f"{n} valid points, need {max(min_points, 4)}", label, n)
+    sv0, sv1 = _spread(v)
+    if sv1 < max(1e-6 * sv0, 1e-3):
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
+                          f"points are collinear or coincident (spread {sv0:.3g} m × {sv1:.3g} m)", label, n)
+    return None
+
+
+@kernel
+def _spread(v: np.ndarray) -> tuple[float, float]:
+    """The two largest RMS spreads of the centred cloud ``v`` (its singular values over ``√N``), m.
+
+    The singular values of the centred ``V`` are the roots of the eigenvalues of its 3×3 scatter
+    matrix ``VᵀV`` (a spread ≥ 1 mm of one ≤ a few m squares to a condition far inside float64's).
+    """
+    n = v.shape[0]
+    mean = np.zeros(3)
+    for i in range(n):  # the row-by-row sums of v.mean(axis=0)
+        for u in range(3):
+            mean[u] += v[i, u]
+    mean /= n
+    scatter = np.zeros((3, 3))
+    for i in range(n):
+        for u in range(3):
+            cu = v[i, u] - mean[u]
+            for w in range(u, 3):
+                scatter[u, w] += cu * (v[i, w] - mean[w])
+    for u in range(3):
+        for w in range(u):
+            scatter[u, w] = scatter[w, u]
+    ev = np.linalg.eigvalsh(scatter)  # ascending
+    return np.sqrt(max(ev[2], 0.0) / n), np.sqrt(max(ev[1], 0.0) / n)
+
+
+def ls_theta(points: np.ndarray) -> np.ndarray:
+    """Least-squares θ, eq. (15): ``θ = (GᵀG)⁻¹ Gᵀ u``.
+
+    Solved with :func:`numpy.linalg.lstsq` (the same minimiser, better
+    conditioned than forming ``GᵀG``).
+
+    Parameters
+    ----------
+    points : (N, 3) array
+        The rows of ``G``, m.
+
+    Returns
+    -------
+    (3,) array, 1/m
+    """
+    g = np.asarray(points, dtype=np.float64)
+    theta, *_ = np.linalg.lstsq(g, np.ones(g.shape[0]), rcond=None)
+    return theta
+
+
+def fitting_errors(points: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """The fitting error ``e_i = v_i · θ − 1`` of eq. (20), unitless."""
+    return np.asarray(points, dtype=np.float64) @ np.asarray(theta, dtype=np.float64) - 1.0
+
+
+def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0) -> np.ndarray:
+    """Signed metric residuals ``(θ · x − 1)/|θ| + shift``, m.
+
+    With ``points`` the corrected points and ``shift = 0`` this is the
+    point-to-plane distance (paper model); with the capsule positions and
+    ``shift = d`` it is the mirror-echo residual ``n · p_c + d − h``
+    (constant-depth model).
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    return (np.asarray(points, dtype=np.float64) @ t - 1.0) / _norm(t) + shift
+
+
+@kernel
+def fast_median(x: np.ndarray) -> float:
+    """``np.median`` of a non-empty 1-D float array, bit for bit, without its dispatch.
+
+    The middle order statistic, or the mean ``(a + b) / 2`` of the two middle
+    ones, as :func:`numpy.median` computes them (order statistics are exact,
+    whichever way they are found); NaN in, NaN out.  A kernel: the corner
+    model's kernels take medians too.
+    """
+    n = x.shape[0]
+    for i in range(n):
+        if np.isnan(x[i]):
+            return np.nan
+    # The order statistics by selection (a partition about the middle), not a full sort: a few times faster.
+    k = n // 2
+    p = np.partition(x, k)
+    if n % 2:
+        return p[k]
+    below = p[0]  # the (k − 1)-th order statistic: the largest of the partition's lower part
+    for i in range(1, k):
+        if p[i] > below:
+            below = p[i]
+    return (below + p[k]) / 2.0
+
+
+def mad(e: np.ndarray) -> float:
+    """Median absolute deviation ``median(|e_i − μ|)``, μ the median, eq. (21)."""
+    e = np.asarray(e, dtype=np.float64).ravel()
+    if e.size == 0:
+        raise ConfigError("MAD of an empty set")
+    return _mad(e)
+
+
+@kernel
+def _mad(e: np.ndarray) -> float:
+    """:func:`mad` of a non-empty 1-D array."""
+    return fast_median(np.abs(e - fast_median(e)))
+
+
+def mad_sigma(e: np.ndarray) -> float:
+    """σ = 1.4826 · MAD, eq. (22)."""
+    return MAD_K * mad(e)
+
+
+def prefilter_mask(e: np.ndarray, fraction: float = 0.1) -> np.ndarray:
+    """The paper's pre-filter (§5.3): keep ``|e_i| ≤ fraction · max |e|``.
+
+    Parameters
+    ----------
+    e : (N,) array
+        Fitting errors of eq. (20) (any unit; only ratios matter).
+    fraction : float
+        The paper uses 10 %.
+    """
+    if not 0 < fraction <= 1:
+        raise ConfigError(f"pre-filter fraction must be in (0, 1], got {fraction}")
+    a = np.abs(np.asarray(e, dtype=np.float64))
+    return a <= fraction * a.max()
+
+
+def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0,
+                     mask: np.ndarray | None = None) -> np.ndarray:
+    """Covariance of θ from the inlier residuals (Gauss-Newton, 1/m²).
+
+    ``C = σ² (JᵀJ)⁻¹`` with ``J = ∂r/∂θ`` of the metric residual
+    (:func:`metric_residuals`) and ``σ² = Σ r² / (m − 3)`` over the ``m``
+    inliers.  For the paper model at the solution this is
+    ``σ_e² (VᵀV)⁻¹``, the textbook covariance of eq. (15).  For the
+    constant-depth model ``J`` uses the capsule positions, so the covariance
+    honestly reflects the short lever arm that pins the normal down.
+
+    Returns a (3, 3) symmetric matrix; ``inf`` on the diagonal where the
+    inliers do not constrain θ (fewer than 4 inliers or a singular ``JᵀJ``).
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    x = np.asarray(points, dtype=np.float64)
+    sh = np.asarray(shift, dtype=np.float64)
+    if mask is not None:  # (no mask: every point, used as it is — the same numbers as a copy's)
+        m = np.asarray(mask, dtype=bool)
+        x = x[m]
+        sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else sh
+    # A scalar shift (the paper model's 0) is added to every residual: the same sums as the broadcast array's.
+    return _theta_covariance(t, x, np.broadcast_to(sh, x.shape[:1]))
+
+
+@kernel
+def _theta_covariance(t: np.ndarray, x: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """:func:`theta_covariance` of the points ``x`` (every one an inlier), ``shift`` one per point."""
+    k = x.shape[0]
+    unconstrained = np.diag(np.full(3, np.inf))
+    if k <= 3:
+        return unconstrained
+    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    nt3 = nt**3
+    jtj = np.zeros((3, 3))
+    ss = 0.0
+    jac = np.empty(3)
+    for i in range(k):
+        q = x[i, 0] * t[0] + x[i, 1] * t[1] + x[i, 2] * t[2] - 1.0
+        r = q / nt + shift[i]
+        ss += r * r
+        for u in range(3):
+            jac[u] = x[i, u] / nt - q * t[u] / nt3
+        for u in range(3):
+            for v in range(u, 3):  # the upper triangle (jac[u]·jac[v] rounds as jac[v]·jac[u]), mirrored below
+                jtj[u, v] += jac[u] * jac[v]
+    for u in range(3):
+        for v in range(u):
+            jtj[u, v] = jtj[v, u]
+    s2 = ss / (k - 3)
+    sv = np.linalg.svd(jtj)[1]  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
+    if sv[-1] == 0.0 or not sv[0] / sv[-1] <= 1e15:
+        return unconstrained
+    cov = s2 * np.linalg.inv(jtj)
+    return 0.5 * (cov + cov.T)
+
+
+def normal_offset_stderr(theta: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
+    """Standard errors of the normal direction (rad) and offset (m) from ``cov(θ)``.
+
+    ``n = θ/|θ|`` has Jacobian ``(I − n nᵀ)/|θ|``; the returned angle error is
+    the root of the trace of ``cov(n)`` (the RMS tilt of the normal).
+    ``h = 1/|θ|`` has gradient ``−h² n``.
+    """
+    return _normal_offset_stderr(np.asarray(theta, dtype=np.float64), np.asarray(cov, dtype=np.float64))
+
+
+@kernel
+def _normal_offset_stderr(t: np.ndarray, c: np.ndarray) -> tuple[float, float]:
+    if not np.isfinite(c).all():
+        return np.inf, np.inf
+    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    n = t / nt
+    h = 1.0 / nt
+    # trace(J C Jᵀ) with J = (I − n nᵀ)/|θ|, and n·C·n, written out (3×3 BLAS calls cost more than their
+    # arithmetic; the sums round as they did to within a few ulp).
+    jn = np.empty((3, 3))
+    for u in range(3):
+        for v in range(3):
+            jn[u, v] = ((1.0 if u == v else 0.0) - n[u] * n[v]) / nt
+    var_n = 0.0
+    ncn = 0.0
+    for u in range(3):
+        cn = 0.0
+        for w in range(3):
+            t_uw = 0.0
+            for v in range(3):
+                t_uw += jn[u, v] * c[v, w]
+            var_n += t_uw * jn[u, w]
+            cn += n[w] * c[w, u]
+        ncn += cn * n[u]
+    var_h = h**4 * ncn
+    return np.sqrt(max(var_n, 0.0)), np.sqrt(max(var_h, 0.0))
+
+
+def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
+    """Corners of the bounding rectangle of ``foot`` points projected on the plane.
+
+    The rectangle's sides follow the rotation axis x (projected on the plane)
+    and ``n × x``.  Returns (4, 3) corners in order around the rectangle, m.
+    """
+    return _observed_patch(np.asarray(normal, dtype=np.float64), float(offset), np.asarray(foot, dtype=np.float64))
+
+
+@kernel
+def _observed_patch(n: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
+    u = -n[0] * n
+    u[0] += 1.0  # x − (x·n) n
+    nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    if nu < 1e-6:
+        u = -n[1] * n
+        u[1] += 1.0
+        nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+    u /= nu
+    w = _cross3(n, u)
+    a0 = b0 = np.inf
+    a1 = b1 = -np.inf
+    for i in range(foot.shape[0]):
+        s = foot[i, 0] * n[0] + foot[i, 1] * n[1] + foot[i, 2] * n[2] - offset
+        p0, p1, p2 = foot[i, 0] - s * n[0], foot[i, 1] - s * n[1], foot[i, 2] - s * n[2]
+        a = p0 * u[0] + p1 * u[1] + p2 * u[2]
+        b = p0 * w[0] + p1 * w[1] + p2 * w[2]
+        a0, a1, b0, b1 = min(a0, a), max(a1, a), min(b0, b), max(b1, b)
+    ca = (a0, a1, a1, a0)
+    cb = (b0, b0, b1, b1)
+    out = np.empty((4, 3))
+    for j in range(4):
+        for v in range(3):
+            out[j, v] = offset * n[v] + ca[j] * u[v] + cb[j] * w[v]  # o + ca·u + cb·w, element by element
+    return out
+
+
+@kernel
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Orthonormal ``e₁, e₂`` of the plane normal to the unit ``n`` (``e₁`` away from ``n``'s smallest axis).
+
+    Every Gauss-Newton step on the sphere builds one (the constant-depth fits, the joint corner model).
+    """
+    k = 0
+    for j in (1, 2):
+        if abs(n[j]) < abs(n[k]):  # np.argmin: the first smallest
+            k = j
+    helper = np.zeros(3)
+    helper[k] = 1.0
+    e1 = _cross3(n, helper)
+    e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+    return e1, _cross3(n, e1)
+
+
+def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float,
+                      mask: np.ndarray | None = None, *, max_outer: int = 20,
+                      tol: float = 1e-12) -> tuple[np.ndarray, float, int]:
+    """Least squares for the constant-depth model: ``min Σ (n · p_c + d − h)²``, ``|n| = 1``.
+
+    Gauss-Newton on the sphere: linearise ``n = normalise(n₀ + u₁e₁ + u₂e₂)``
+    in the tangent plane at ``n₀`` — the residual is then affine in
+    ``(u₁, u₂, h)`` — solve by LS, renormalise, repeat.
+
+    Returns
+    -------
+    normal, offset, iterations
+    """
+    p = np.asarray(capsules, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    if mask is not None:
+        p, d = p[np.asarray(mask, dtype=bool)], d[np.asarray(mask, dtype=bool)]
+    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
+    h = float(offset0)
+    it = 0
+    for it in range(1, max_outer + 1):
+        e1, e2 = _tangent_basis(n)
+        a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
+        c = p @ n + d - h
+        z, *_ = np.linalg.lstsq(a, -c, rcond=None)
+        n_new = n + z[0] * e1 + z[1] * e2
+        n = n_new / _norm(n_new)
+        h += float(z[2])
+        if float(np.abs(z[:2]).max()) < tol and abs(float(z[2])) < tol:
+            break
+    return n, h, it
+
+
+def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float, *,
+                       max_outer: int = 10, max_tilt_step: float = 0.05,
+                       tol: float = 1e-10) -> tuple[np.ndarray, float, float, int, int, bool]:
+    """LEL fit of the constant-depth model ``n · p_c + d = h`` (eq. 6, 8 on its residuals).
+
+    Minimises ``H`` of the residuals ``r_i = n · p_i + d_i − h`` over the unit
+    normal ``n`` and ``h``: in the tangent plane at the current ``n`` the
+    residual is affine in ``z = (u₁, u₂, h)``, so each outer step minimises
+    ``H`` of that affine model with :func:`lelsonar.reconstruct.estimate.lel.newton_minimize`
+    (exact Hessian), then renormalises ``n``.  Renormalising changes the
+    residuals only to second order, so 2–4 outer steps converge.
+
+    Parameters
+    ----------
+    capsules : (N, 3) array
+        ``p_c``, m.
+    distance : (N,) array
+        ``d``, m.
+    normal0, offset0
+        Start, e.g. the paper-corrected LEL or LS plane.
+    max_outer : int
+    max_tilt_step : float
+        Cap on one Newton step in the tangent coordinates (rad, and m for h).
+    tol : float
+        Stop when the outer step is below ``tol``.
+
+    Returns
+    -------
+    normal, offset, H, iterations, evaluations, converged
+    """
+    p = np.asarray(capsules, dtype=np.float64)
+    d = np.asarray(distance, dtype=np.float64)
+    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
+    h = float(offset0)
+    its = evs = 0
+    converged = False
+    for _ in range(max_outer):
+        e1, e2 = _tangent_basis(n)
+        a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
+        c = p @ n + d - h
+        if np.all(np.abs(c) <= PERFECT_FIT * max(abs(h), 1.0)):  # D = 0 (eq. 6): a perfect fit
+            converged = True
+            break
+        z, _, nit, nev, ok = newton_minimize(np.zeros(3), a, offset=c, max_step=max_tilt_step, gtol=1e-14)
+        its += nit
+        evs += nev
+        n_new = n + z[0] * e1 + z[1] * e2
+        n = n_new / _norm(n_new)
+        h += float(z[2])
+        if float(np.abs(z).max()) < tol:
+            converged = ok
+            break
+    r = p @ n + d - h
+    hh = 0.0 if np.all(np.abs(r) <= PERFECT_FIT * max(abs(h), 1.0)) else entropy_of_residuals(r)
+    return n, h, hh, its, evs, converged
+
+
+def mirror_consistent(normal: np.ndarray, beam: np.ndarray, half_angle: float) -> bool:
+    """The mirror-echo condition: a wall echoes only if its normal lies in the beam.
+
+    True if ``normal`` is within ``half_angle`` (rad) of at least one of the
+    subset's boresights ``beam`` (N, 3).
+    """
+    b = np.asarray(beam, dtype=np.float64)
+    if b.size == 0:
+        return False
+    return bool(np.max(b @ np.asarray(normal, dtype=np.float64)) >= np.cos(half_angle))
+
+
+def inlier_count(residuals_m: np.ndarray, tolerance: float) -> int:
+    """Points with a metric residual within ``tolerance`` (m)."""
+    return int(np.count_nonzero(np.abs(np.asarray(residuals_m)) <= tolerance))
+
+
+def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_mask: np.ndarray,
+                   diagnostics: SolverDiagnostics, model: str = "paper",
+                   stderr: tuple[float, float] | None = None) -> PlaneFit | FitFailure:
+    """Assemble a :class:`PlaneFit` for ``θ`` (eq. 1) on ``data``.
+
+    Parameters
+    ----------
+    data : PlaneData
+    theta : (3,) array
+        The estimate, 1/m.
+    method : str
+    inlier_mask : (N,) bool array
+        The points the final fit used.
+    diagnostics : SolverDiagnostics
+    model : {"paper", "constant-depth"}
+        Which residual defines ``e_i``: the corrected points (eq. 20) or the
+        mirror-echo condition (``e_i = (n · p_c + d − h)/h``).  The covariance
+        uses the same residual.
+    stderr : (float, float), optional
+        Standard errors of the normal (rad) and offset (m) to report instead of
+        the covariance's (a caller's own error model), validated as
+        :meth:`PlaneFit.replace_scalars` validates them.
+
+    Returns
+    -------
+    PlaneFit, or FitFailure (SOLVER_FAILED) if θ is not a usable plane.
+    """
+    t = np.asarray(theta, dtype=np.float64)
+    nt = _norm(t)
+    if not 1e-3 < nt < 1e3:  # (also a NaN or infinite θ: its norm is not finite, so no comparison holds)
+        return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
+    if model == "paper":
+        x, shift = data.points, None
+    elif model == "constant-depth":
+        x, shift = data.capsules, data.distance
+    else:
+        raise ConfigError(f"unknown plane model {model!r}")
+    mask = np.asarray(inlier_mask, dtype=bool)
+    if mask.shape != (data.n,):
+        raise ConfigError(f"inlier mask must have shape ({data.n},), got {mask.shape}")
+    k = int(np.count_nonzero(mask))
+    if k < 3:
+        return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
+    n, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
+        t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None)
+    if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
+        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
+                          f"{method}: the inliers do not constrain the plane", data.label, data.n)
+    # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
+    # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
+    fit = PlaneFit._owned(
+        label=data.label, method=method, normal=n, offset=1.0 / nt,
+        entropy=entropy,
+        sigma_relative=sigma_relative, sigma=sigma,
+        inlier_mask=mask.copy(), sorted_residuals=ordered, theta_covariance=cov,
+        normal_stderr=se_n if stderr is None else stderr[0], offset_stderr=se_h if stderr is None else stderr[1],
+        patch=patch, diagnostics=diagnostics,
+    )
+    if stderr is not None:
+        fit._check_scalars(_STDERR_FIELDS)
+    return fit
+
+
+_STDERR_FIELDS = frozenset({"normal_stderr", "offset_stderr"})
+
+
+@kernel
+def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.ndarray, mirror: bool
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray, float]:
+    """What :func:`make_plane_fit` reports of ``θ`` on the points ``x``, in one kernel.
+
+    The metric residuals ``r = (θ·x − 1)/|θ| + shift`` (:func:`metric_residuals`), the errors
+    ``e = r·|θ|`` of eq. (20), their sorted copy, the covariance of θ over the inliers ``mask``
+    (:func:`theta_covariance`) and the standard errors (:func:`normal_offset_stderr`), σ of eq.
+    (21)–(22) of ``e`` and of ``r`` over the inliers (:func:`mad_sigma`) and the observed patch
+    (:func:`observed_patch`) of the inliers' feet: the points themselves, or with ``mirror`` (the
+    constant-depth model: ``x`` the capsules, ``shift`` the ranges) ``p_c + d·n``, and the entropy-like
+    cost ``H`` of eq. (6) of all the errors ``e`` (0 below 2 points).
+
+    Returns
+    -------
+    n, sorted e, cov, σ_n, σ_h, σ_relative, σ, patch, H (σ_n, σ_h inf: the inliers do not constrain θ;
+    the rest is then unset; e itself is not returned: nothing keeps it but its sorted copy)
+    """
+    m = x.shape[0]
+    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
+    n = t / nt
+    r = np.empty(m)
+    e = np.empty(m)
+    for i in range(m):
+        r[i] = (x[i, 0] * t[0] + x[i, 1] * t[1] + x[i, 2] * t[2] - 1.0) / nt + shift[i]
+        e[i] = r[i] * nt
+    every = True
+    for i in range(m):
+        every = every and mask[i]
+    if every:  # (the same numbers as the copies below, which nothing writes to)
+        xi, si, ri, ei = x, shift, r, e
+    else:
+        xi, si, ri, ei = x[mask], shift[mask], r[mask], e[mask]  # (copies: x may be a frozen PlaneData's)
+    cov = _theta_covariance(t, xi, si)
+    se_n, se_h = _normal_offset_stderr(t, cov)
+    if not (np.isfinite(se_n) and np.isfinite(se_h)):
+        return n, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
+    foot = xi + si.reshape(-1, 1) * n if mirror else xi
+    ordered = np.sort(e)
+    if every:
+        # e's median is its sorted copy's middle: the order statistics fast_median finds, exactly (e is finite:
+        # the points, θ and the shifts are), so _mad(e) without selecting them again.
+        k = m // 2
+        med = ordered[k] if m % 2 else (ordered[k - 1] + ordered[k]) / 2.0
+        mad_e = fast_median(np.abs(e - med))
+    else:
+        mad_e = _mad(ei)
+    return (n, ordered, cov, se_n, se_h, MAD_K * mad_e, MAD_K * _mad(ri),
+            _observed_patch(n, 1.0 / nt, foot), _entropy(e) if m >= 2 else 0.0)

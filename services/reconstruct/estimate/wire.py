@@ -1,0 +1,127 @@
+"""Reconstruction results as ``lelsonar.v1.Reconstruction`` messages (no I/O)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+import numpy as np
+
+from lelsonar import SCHEMA_VERSION, codec
+from lelsonar.codec import QUALITY
+from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
+from lelsonar.v1 import reconstruction_pb2 as pb
+
+
+STATUS = {
+    "provisional": pb.ESTIMATE_STATUS_PROVISIONAL,
+    "final": pb.ESTIMATE_STATUS_FINAL,
+    "final_timeout": pb.ESTIMATE_STATUS_FINAL_TIMEOUT,
+    "incomplete": pb.ESTIMATE_STATUS_INCOMPLETE,
+}
+#: Statuses after which no other estimate of the scan comes.
+TERMINAL = frozenset({"final", "final_timeout", "incomplete"})
+_STATUS_NAME = {v: k for k, v in STATUS.items()}
+
+
+def status_name(msg: codec.Reconstruction) -> str:
+    return _STATUS_NAME.get(msg.status, "unknown")
+
+
+def is_terminal(msg: codec.Reconstruction) -> bool:
+    """No other estimate of this scan will come (final, final_timeout or incomplete)."""
+    return status_name(msg) in TERMINAL
+
+
+def _set(vec, xyz) -> None:
+    vec.x, vec.y, vec.z = (float(v) for v in xyz)
+
+
+def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
+    msg = pb.PlaneEstimate(
+        label=plane.label, method=plane.method, offset=plane.offset, sigma_relative=plane.sigma_relative,
+        sigma=plane.sigma, inlier_count=plane.n_inliers, point_count=plane.n_points, lel_cost=plane.entropy,
+        normal_stderr=plane.normal_stderr, offset_stderr=plane.offset_stderr,
+        quality=QUALITY[plane.quality], quality_reasons=list(plane.quality_reasons),
+    )
+    _set(msg.normal, plane.normal)
+    _set(msg.theta, plane.theta)
+    msg.theta_covariance.extend(float(v) for v in np.asarray(plane.theta_covariance).ravel())
+    for corner in plane.patch:
+        _set(msg.patch.add(), corner)
+    return msg
+
+
+def reconstruction_message(scanner_id: str, scan_id: int, *, status: str, last_step: int, samples_used: int,
+                           critical_step: int | None, critical_angle: float, planes: Iterable[PlaneResult],
+                           edge: EdgeLine | FitFailure | None, timings: tuple[float, float, float],
+                           stamp_ns: int | None = None, missing_steps: Iterable[int] = (),
+                           accounting: pb.ScanAccounting | None = None) -> codec.Reconstruction:
+    """Build a validated-to-be ``Reconstruction``.
+
+    ``critical_step`` is a step index of the scan's schedule (not of the
+    received subset); ``timings`` is (segmentation, fit, total) in s.
+    """
+    msg = pb.Reconstruction(
+        schema_version=SCHEMA_VERSION, scanner_id=scanner_id, scan_id=scan_id, last_step=last_step,
+        status=STATUS[status], stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns(),
+        samples_used=samples_used,
+    )
+    if critical_step is not None:
+        msg.critical_step = critical_step
+        msg.critical_angle = float(critical_angle)
+    for plane in planes:
+        if isinstance(plane, PlaneFit):
+            msg.planes.append(plane_message(plane))
+        else:
+            msg.failures.append(str(plane))
+    if isinstance(edge, EdgeLine):
+        _set(msg.corner_edge.point, edge.point)
+        _set(msg.corner_edge.direction, edge.direction)
+        msg.corner_edge.point_stderr = float(edge.point_stderr)
+        msg.corner_edge.direction_stderr = float(edge.direction_stderr)
+    elif isinstance(edge, FitFailure):
+        msg.failures.append(str(edge))
+    msg.timings.segmentation, msg.timings.fit, msg.timings.total = (float(t) for t in timings)
+    msg.missing_steps.extend(int(s) for s in missing_steps)
+    if accounting is not None:
+        msg.accounting.CopyFrom(accounting)
+    return msg
+
+
+def accounting_message(*, published: int, received_live: int, recovered: int, duplicates: int,
+                       rejected: dict[str, int], missing: int) -> pb.ScanAccounting:
+    """Where every sample of one scan went (see ``ScanAccounting`` in reconstruction.proto)."""
+    acc = pb.ScanAccounting(published=published, received_live=received_live, recovered=recovered,
+                            duplicates=duplicates, missing=missing)
+    for reason, n in sorted(rejected.items()):
+        if n:
+            acc.rejected[reason] = int(n)
+    return acc
+
+
+def accounting_text(acc: pb.ScanAccounting) -> str:
+    """One line, e.g. ``published 184, live 180, recovered 4, duplicates 0, rejected 0, missing 0``."""
+    rejected = sum(acc.rejected.values())
+    detail = f" ({', '.join(f'{k} {v}' for k, v in sorted(acc.rejected.items()))})" if rejected else ""
+    return (f"published {acc.published}, live {acc.received_live}, recovered {acc.recovered}, "
+            f"duplicates {acc.duplicates}, rejected {rejected}{detail}, missing {acc.missing}")
+def decode_estimate(key: str, payload: bytes, prefix: str) -> codec.Reconstruction:
+    """A Reconstruction received on ``key``, validated, whose scanner id must be the key's.
+
+    Raises
+    ------
+    DecodeError
+        The payload is not a valid Reconstruction.
+    ScannerMismatchError
+        It claims another scanner than the planes key it came on (a forgery or a misconfiguration).
+    """
+    from lelsonar.errors import ScannerMismatchError
+    from lelsonar.keys import ScannerKeys
+
+    message = codec.decode(payload, codec.Reconstruction)
+    on_key = ScannerKeys(prefix).scanner_chunk(key)
+    if message.scanner_id != on_key:
+        raise ScannerMismatchError(f"an estimate for scanner {message.scanner_id!r} came on the planes key of "
+                                   f"scanner {on_key[:80]!r}; ignored (a forgery, or a misconfigured publisher)")
+    return message

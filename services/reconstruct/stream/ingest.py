@@ -1,0 +1,248 @@
+"""The one way in for live and recorded data: decode, validate, route to its scan.
+
+A payload arrives with its type name (the Zenoh encoding's schema, or the MCAP
+schema name).  It is decoded and validated by :func:`lelsonar.codec.decode`,
+then routed to the :class:`ScanAssembly` of its (scanner, scan).  (A ``Sample`` for a scan already open is
+routed on its header alone, and its body checked in the pass that places it, the same checks with the same
+refusals: :meth:`ScanAssembly.add` with ``limits``.)  Whatever is
+wrong is counted by error type and reported — never raised to the caller — so a
+service keeps serving.  Samples that arrive before their ``ScanStart`` wait in
+a bounded buffer.
+
+Every table here is keyed by wire data and bounded; what a bound pushes out is
+counted in :attr:`Ingest.evicted` by reason.  A message carries its origin:
+"live" (the stream) or "recovered" (the acquirer's log), for the accounting.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections import Counter, OrderedDict
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from lelsonar import codec
+from lelsonar.errors import (
+    DecodeError,
+    InvalidMessageError,
+    LelsonarError,
+    ScannerMismatchError,
+)
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+
+_log = logging.getLogger(__name__)
+
+ScanKey = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A payload that could not be used, and why."""
+
+    error: str      # the error class, e.g. "TruncatedDataError", "UnknownScan"
+    detail: str
+
+
+class Accepted(NamedTuple):
+    """A message that changed a scan: its kind is "start", "sample" or "end".  (A named tuple: one is made
+    a sample, and it costs half a frozen dataclass.)"""
+
+    kind: str
+    scan: ScanAssembly
+    step: int | None = None
+
+
+#: Accepted((kind, scan, step)) without the named tuple's Python-level __new__ (a third of its cost).
+_accepted = functools.partial(tuple.__new__, Accepted)
+
+
+@dataclass
+class Ingest:
+    """Routes validated messages to scans, keyed by (scanner, scan).
+
+    Parameters
+    ----------
+    limits : DecodeLimits
+    max_scans : int
+        Scans kept at once; the oldest are forgotten first.
+    max_pending : int
+        Messages (samples, and a ScanEnd) held, over all scans, while their ScanStart has not arrived.
+    """
+
+    limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+    max_scans: int = 256
+    max_pending: int = 4096
+    max_closed: int = 4096
+    scans: OrderedDict[ScanKey, ScanAssembly] = field(default_factory=OrderedDict)
+    closed: OrderedDict[ScanKey, None] = field(default_factory=OrderedDict)
+    #: Messages waiting for their ScanStart, with their origin: samples, and possibly the ScanEnd.
+    pending: OrderedDict[ScanKey, list[tuple[codec.Sample | codec.ScanEnd, str]]] = field(default_factory=OrderedDict)
+    rejected: Counter[str] = field(default_factory=Counter)
+    #: What a bound pushed out, by reason (nothing leaves a table uncounted).
+    evicted: Counter[str] = field(default_factory=Counter)
+    accepted: int = 0
+    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms, over every scan so far, open
+    #: or closed (each scan counts its own in ``ScanAssembly.energy_mismatches``); recomputed, not rejected.
+    energy_mismatches: int = 0
+    #: Recovery replies for scans already finalised (not rejected input: nothing was lost).
+    recovered_after_close: int = 0
+    #: Keys that started waiting for their ScanStart since the caller last emptied this list.
+    newly_pending: list[ScanKey] = field(default_factory=list)
+    _held: int = 0
+
+    @property
+    def n_pending(self) -> int:
+        return self._held
+
+    def accept(self, type_name: str, payload: bytes, *, origin: str = "live",
+               key_scanner: str | None = None) -> list[Accepted | Rejected]:
+        """Decode one payload and apply it; return what changed (or why nothing did).
+
+        ``key_scanner``: the scanner id in the key the payload came on (live data);
+        a payload that claims another scanner is rejected as ``ScannerMismatchError``.
+        """
+        try:
+            cls = codec.MESSAGE_TYPES.get(type_name)
+            if cls is None or cls is codec.Reconstruction:
+                raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
+            if cls is codec.Sample:
+                if type(payload) is not bytes and len(payload) <= self.limits.max_payload_bytes:
+                    payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the parser and the scan read these
+                message = codec.parse(payload, cls, self.limits)
+                scan = self.scans.get((message.scanner_id, message.scan_id))  # (an open scan is never a closed one)
+                if scan is not None and (key_scanner is None or message.scanner_id == key_scanner):
+                    # Straight to its scan, which reads the body from the payload and checks it in the pass
+                    # that places it (or has it checked here first, as decoding does, if that does not clear it).
+                    return [self._add(scan, message, origin, self.limits, payload)]
+                codec.validate_body(message, self.limits)
+            else:
+                message = codec.decode(payload, cls, self.limits)
+            if key_scanner is not None and message.scanner_id != key_scanner:
+                raise ScannerMismatchError(
+                    f"{cls.DESCRIPTOR.name} claims scanner {message.scanner_id!r} but came on the key of scanner "
+                    f"{key_scanner[:80]!r}; dropped (a forgery, or a publisher misconfigured with the wrong "
+                    "--scanner-id)")
+            return self.apply(message, origin=origin)
+        except LelsonarError as exc:
+            return [self._reject(type(exc).__name__, str(exc))]
+
+    def apply(self, message, *, origin: str = "live") -> list[Accepted | Rejected]:
+        """Apply an already validated message (``origin``: "live" or "recovered")."""
+        key = (message.scanner_id, message.scan_id)
+        if key in self.closed:
+            if origin == "recovered":
+                # A recovery reply that came after the verdict (asked twice, or the live copy won):
+                # nothing was lost, so it is counted apart from rejected input.
+                self.recovered_after_close += 1
+                return []
+            return [self._reject("LateMessage", f"{type(message).__name__} for scan {key}, already finalised")]
+        if isinstance(message, codec.ScanStart):
+            return self._start(key, message)
+        scan = self.scans.get(key)
+        if isinstance(message, codec.Sample):
+            if scan is None:
+                return self._hold(key, message, origin)
+            return [self._add(scan, message, origin)]
+        if scan is None:  # a ScanEnd before its ScanStart: held like a sample (a late start may recover it)
+            return self._hold(key, message, origin)
+        if scan.end is not None:
+            scan.rejected["DuplicateScanEnd"] += 1
+            return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
+        if message.samples_sent > scan.start.steps:
+            scan.rejected["InvalidMessageError"] += 1
+            return [self._reject("InvalidMessageError", f"ScanEnd of scan {key} counts {message.samples_sent} "
+                                                        f"samples; its ScanStart planned {scan.start.steps}")]
+        scan.end = message
+        self.accepted += 1
+        return [Accepted("end", scan)]
+
+    def close(self, key: ScanKey) -> None:
+        """The scan is finalised: drop its data; later messages for it are rejected as late."""
+        self.scans.pop(key, None)
+        self._held -= len(self.pending.pop(key, []))
+        self.closed[key] = None
+        while len(self.closed) > self.max_closed:
+            self.closed.popitem(last=False)
+            self.evicted["closed scan forgotten (max_closed)"] += 1
+
+    def drop_pending(self, key: ScanKey) -> list[Rejected]:
+        """Give up on samples whose ScanStart never came (called on timeout)."""
+        held = self.pending.pop(key, [])
+        self._held -= len(held)
+        return [self._reject("UnknownScan", f"{len(held)} messages of scan {key} never got a ScanStart")] if held else []
+
+    # --- internals -------------------------------------------------------------------
+    def _start(self, key: ScanKey, start: codec.ScanStart) -> list[Accepted | Rejected]:
+        if key in self.scans:
+            return [self._reject("DuplicateScanStart", f"second ScanStart for scan {key} ignored")]
+        try:
+            scan = ScanAssembly(start)
+        except LelsonarError as exc:
+            return [self._reject(type(exc).__name__, f"ScanStart {key}: {exc}")]
+        self.scans[key] = scan
+        while len(self.scans) > self.max_scans:
+            old, dropped = self.scans.popitem(last=False)
+            self.evicted["open scan forgotten (max_scans)"] += 1
+            _log.warning("forgetting scan %s with %d samples: more than %d scans open (counted in evicted)",
+                         old, dropped.n_received, self.max_scans)
+        self.accepted += 1
+        events: list[Accepted | Rejected] = [Accepted("start", scan)]
+        waiting = self.pending.pop(key, [])
+        self._held -= len(waiting)
+        for held, origin in waiting:
+            if isinstance(held, codec.Sample):
+                events.append(self._add(scan, held, origin))
+            else:  # the ScanEnd, now that its scan is known
+                events += self.apply(held, origin=origin)
+        return events
+
+    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live",
+             limits: codec.DecodeLimits | None = None, payload: bytes | None = None) -> Accepted | Rejected:
+        """Place a sample in its scan; ``limits``: its body is not validated yet (:func:`~lelsonar.codec.parse`
+        of ``payload`` only), and a refusal of the decoding is raised (for :meth:`accept` to count), never the
+        scan's."""
+        mismatches = scan.energy_mismatches
+        try:
+            placed = scan.add(sample, origin, limits=limits, payload=payload)
+        except DecodeError as exc:
+            return self._refused(scan, sample, exc)
+        if placed is None:  # not cleared by the scan's pass: validated as decoding does, then placed
+            codec.validate_body(sample, limits)  # a refusal of the decoding: raised, for accept to count
+            try:
+                placed = scan.add(sample, origin)
+            except DecodeError as exc:
+                return self._refused(scan, sample, exc)
+        if not placed:
+            return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
+        # Counted here, as they happen (the stats read one number, never the open scans a worker changes).
+        self.energy_mismatches += scan.energy_mismatches - mismatches
+        self.accepted += 1
+        return _accepted(("sample", scan, sample.step))
+
+    def _refused(self, scan: ScanAssembly, sample: codec.Sample, exc: DecodeError) -> Rejected:
+        """The scan's own refusal of a (valid) sample, counted by the scan too."""
+        scan.rejected[type(exc).__name__] += 1
+        return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
+
+    def _hold(self, key: ScanKey, message: codec.Sample | codec.ScanEnd,
+              origin: str = "live") -> list[Accepted | Rejected]:
+        if key not in self.pending:
+            _log.info("holding messages of scan %s until its ScanStart arrives", key)
+            if len(self.newly_pending) < self.max_pending:  # bounded even if no one empties it
+                self.newly_pending.append(key)
+        held = self.pending.setdefault(key, [])
+        if isinstance(message, codec.ScanEnd) and any(isinstance(m, codec.ScanEnd) for m, _ in held):
+            return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
+        held.append((message, origin))
+        self._held += 1
+        out: list[Accepted | Rejected] = []
+        while self.n_pending > self.max_pending:
+            old = next(iter(self.pending))
+            out += self.drop_pending(old)
+        return out
+
+    def _reject(self, error: str, detail: str) -> Rejected:
+        self.rejected[error] += 1
+        _log.warning("rejected input (%s, %d so far): %s", error, self.rejected[error], detail)
+        return Rejected(error, detail)

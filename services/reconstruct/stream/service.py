@@ -1,0 +1,642 @@
+"""The live reconstruction: incremental estimates per scan, from any source.
+
+Everything enters through :meth:`ReconstructionService.handle` as (type name,
+payload bytes), whether it came from Zenoh or from an MCAP file, so live and
+replayed data take the same path and give the same final estimate.
+
+Per scan (paper §4–5, made incremental):
+
+1. after each sample, E^γ, E0(d_m) and R are updated;
+2. once the critical peak is *confirmed* — R at its maximum is well above the
+   scan's typical R and enough steps have followed it — plane a (the subset
+   before the peak) is estimated;
+3. as later samples arrive, plane b is re-estimated every ``refit_every``
+   steps, at most once per ``provisional_period`` of scan time (default
+   0.08 s: ≤ 12.5 provisional estimates a second per scan), in O(new samples)
+   (:mod:`lelsonar.reconstruct.estimate.incremental`: the inliers' least-squares sums,
+   a trust check, and an exact warm-started refit only when the check fails or
+   the points have doubled; the outlier-cluster guard's RANSAC only when the
+   refit's least-H minimum fails the guard's test) — and while a backlog waits
+   (``handle(..., busy=True)``) only every ``max_provisional_delay``, so a
+   burst costs one refit, not one per sample;
+4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
+   silence, the whole scan is reconstructed from scratch with the chosen
+   method and the comparison methods, and published as final.
+
+Gaps and when a final may be published:
+
+- the service knows which steps a scan lacks (step indices, ``ScanStart.steps``,
+  ``ScanEnd.samples_sent``); with a ``recover`` hook (live) it asks the
+  acquirer's log for them: at ``ScanEnd`` with steps missing, after
+  ``recovery_after`` of silence without a ScanEnd (the rest and the ScanEnd),
+  and at the first sample or the ScanEnd of a scan it never saw start (the
+  ScanStart and the earlier steps — a reconstructor that starts late catches up);
+- at most ``recovery_attempts`` requests ``recovery_interval`` apart without
+  progress (any new step starts the budget again);
+- ``FINAL`` only when every step the ScanEnd counts is in; otherwise, once
+  recovery is exhausted, ``INCOMPLETE`` with ``missing_steps``; a scan whose
+  ScanEnd never came is ``FINAL_TIMEOUT``, also with its ``missing_steps``;
+- every terminal estimate carries the scan's exact ``accounting``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from lelsonar import codec
+from lelsonar.errors import ConfigError
+from lelsonar.reconstruct.estimate import fit as F
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
+from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
+from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
+from lelsonar.reconstruct.estimate.pipeline import (
+    DEFAULT_METHOD,
+    METHODS,
+    FitOptions,
+    corner_edge,
+    reconstruct,
+)
+from lelsonar.reconstruct.estimate.quality import add_findings, assess_plane, cross_check, recovery_finding
+from lelsonar.reconstruct.stream.recovery import RecoveryRequest
+from lelsonar.reconstruct.estimate.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
+from lelsonar.reconstruct.estimate.split import critical_step
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """How the service estimates.
+
+    Parameters
+    ----------
+    method : str
+        The estimator of record (a key of ``pipeline.METHODS``).
+    compare_methods : tuple of str
+        Also run at the end of each scan, published next to ``method``.
+    refit_every : int
+        Steps between provisional re-estimates of plane b (and, before the corner is confirmed,
+        between looks for its peak).
+    provisional_period : float
+        s of scan time (the samples' ``acquisition_time_ns``): a scan gets at most one provisional
+        estimate per period (default 0.08 s: at most 12.5 a second per scan, i.e. every
+        ``refit_every`` = 4 steps of a 50 Hz scanner; a faster scanner, or a burst of recovered
+        steps, is held to the same rate).  Scan time, not the wall clock, so a replay gives the
+        same provisional estimates at any speed.  0 disables it.
+    confirm_steps : int
+        Steps that must follow the R peak before it is trusted.
+    confirm_ratio : float
+        The peak must exceed this multiple of the median R so far.
+    provisional : bool
+        Publish provisional estimates while a scan arrives (off for a batch replay,
+        whose finals do not depend on them).
+    max_provisional_delay : float
+        s; under a backlog, a scan still gets a provisional estimate this often.
+    scan_timeout : float
+        s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
+    end_grace : float
+        s to wait, after a ScanEnd with steps missing, before publishing INCOMPLETE when no
+        recovery is possible (no ``recover`` hook).
+    recovery_attempts : int
+        Requests to the acquirer's log per scan without progress before giving up (0: never ask).
+    recovery_interval : float
+        s between two requests for the same scan.
+    recovery_after : float
+        s of silence after which an open scan without ScanEnd asks the log for the rest.
+    max_scans : int
+        Scans assembled at once; the oldest is forgotten first (counted).
+    max_pending : int
+        Samples held, over all scans, while their ScanStart is missing (counted when dropped).
+    max_scanners : int
+        Scanners whose latest estimate is kept (a `get` on planes answers from it).
+    limits : DecodeLimits
+    """
+
+    method: str = DEFAULT_METHOD
+    compare_methods: tuple[str, ...] = ("ls",)
+    refit_every: int = 4
+    provisional_period: float = 0.08
+    confirm_steps: int = 6
+    confirm_ratio: float = 1.5
+    provisional: bool = True
+    max_provisional_delay: float = 0.25
+    keep_finals: int = 1024
+    scan_timeout: float = 10.0
+    end_grace: float = 1.0
+    recovery_attempts: int = 5
+    recovery_interval: float = 1.0
+    recovery_after: float = 1.0
+    max_scans: int = 256
+    max_pending: int = 4096
+    max_scanners: int = 256
+    limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+
+    def __post_init__(self) -> None:
+        for name in (self.method, *self.compare_methods):
+            if name not in METHODS:
+                raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
+        if self.refit_every < 1 or self.confirm_steps < 1:
+            raise ConfigError("refit_every and confirm_steps must be >= 1")
+        if not self.provisional_period >= 0:
+            raise ConfigError("provisional_period must be >= 0 s")
+        if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
+            raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
+        if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
+            raise ConfigError("recovery_attempts must be >= 0, recovery_interval and recovery_after > 0 s")
+        if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
+            raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
+
+
+class Observer(Protocol):
+    """Receives what the service sees and decides (e.g. the Rerun logger)."""
+
+    def scan_started(self, scan: ScanAssembly) -> None: ...
+
+    def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None: ...
+
+    def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
+                 results: dict[str, ScanReconstruction] | None, partial: "Partial") -> None: ...
+
+    def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
+
+
+@dataclass
+class RecoveryState:
+    """Requests made to the acquirer's log for one scan."""
+
+    attempts: int = 0               # since the last progress
+    last_at: float | None = None    # clock of the last request
+    mark: int = -1                  # steps held at the last request (more now = progress)
+    requests: int = 0               # in all
+
+
+@dataclass
+class Partial:
+    """The incremental state of one scan."""
+
+    critical: int | None = None        # confirmed critical step (schedule index)
+    data_a: F.PlaneData | None = None   # the points behind plane_a / plane_b
+    data_b: F.PlaneData | None = None
+    plane_a: PlaneResult | None = None
+    plane_b: PlaneResult | None = None
+    steps_at_fit: int = 0              # steps received at the last refit (before the corner: the last look for it)
+    estimated_at: float = 0.0
+    #: acquisition_time_ns of the newest step at the last provisional estimate (the per-scan rate limit).
+    provisional_ns: int = 0
+    #: The provisional planes, re-estimated in O(new points) (:mod:`lelsonar.reconstruct.estimate.incremental`).
+    inc_a: IncrementalPlane | None = None
+    inc_b: IncrementalPlane | None = None
+    #: A provisional refit waited for a backlog (tick() catches up).
+    deferred: bool = False
+    last_activity: float = 0.0
+    ended_at: float | None = None
+    recovery: RecoveryState = field(default_factory=RecoveryState)
+
+
+@dataclass
+class ServiceStats:
+    """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; all of it: ``stats_dict``)."""
+
+    estimates: int = 0
+    finals: int = 0      # every terminal estimate: final, final_timeout, incomplete
+    timeouts: int = 0
+    incomplete: int = 0
+    published: int = 0
+    received_live: int = 0
+    recovered: int = 0
+    duplicates: int = 0
+    missing: int = 0
+    recovery_requests: int = 0
+    recovery_refused: int = 0
+    #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
+    without_start: int = 0
+    #: What a bound pushed out of the service's own tables, by reason.
+    evicted: Counter = field(default_factory=Counter)
+
+
+def _compared(plane: PlaneResult, method: str, record: dict[str, PlaneResult]) -> PlaneResult:
+    """A compared method's plane, checked against the method of record's (``record``, by label); a failure
+    names its method.
+
+    A compared method that fails is reported, never silently dropped; one
+    that disagrees with a good plane of record, or that no good plane of
+    record can vouch for, is degraded (it may have locked onto the corner
+    cluster, which its own residuals cannot show).
+    """
+    if not isinstance(plane, PlaneFit):
+        return FitFailure(plane.reason, f"{method}: {plane.detail}", plane.label, plane.n_points)
+    return cross_check(plane, record.get(plane.label))
+
+
+class ReconstructionService:
+    """Turns a stream of contract payloads into Reconstruction messages."""
+
+    def __init__(self, config: ReconstructConfig = ReconstructConfig(), *,
+                 publish: Callable[[codec.Reconstruction], None] | None = None,
+                 observer: Observer | None = None, clock: Callable[[], float] = time.monotonic,
+                 recover: Callable[[RecoveryRequest], bool] | None = None) -> None:
+        self.config = config
+        self.ingest = Ingest(limits=config.limits, max_scans=config.max_scans, max_pending=config.max_pending)
+        self._publish = publish
+        self._observer = observer
+        self._clock = clock
+        #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
+        self.recover = recover
+        self._partials: dict[ScanKey, Partial] = {}
+        # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
+        self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
+        # Scans whose provisional refit waited for a backlog (tick() catches up on them).
+        self._deferred: set[ScanKey] = set()
+        self._options = FitOptions()
+        #: The method of the provisional refits, which fit one half at a time: the method of record, or
+        #: "adaptive" when that is a scan-level method ("corner"), which runs on the whole scan at the end.
+        self.provisional_method = self.config.method if METHODS[self.config.method].fit_plane else "adaptive"
+        #: The newest estimate per scanner (what a `get` on the planes key returns).
+        self.latest: dict[str, codec.Reconstruction] = {}
+        #: Final estimates, per scan, in the order they were made.
+        self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
+        self.stats = ServiceStats()
+
+    # --- input ---------------------------------------------------------------------------
+    def handle(self, type_name: str, payload: bytes, *, busy: bool = False,
+               origin: str = "live", key_scanner: str | None = None) -> list[codec.Reconstruction]:
+        """Apply one payload; return the estimates it produced (also published).
+
+        ``busy``: more payloads are already waiting, so a provisional refit can wait
+        for them (see ``max_provisional_delay``); :meth:`tick` catches up.
+        ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
+        ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
+        """
+        out: list[codec.Reconstruction] = []
+        for event in self.ingest.accept(type_name, payload, origin=origin, key_scanner=key_scanner):
+            if isinstance(event, Rejected):
+                self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
+                continue
+            out += self._on_accepted(event, busy)
+        now = self._clock()
+        fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
+        for key in fresh:
+            if key in self.ingest.pending and key not in self._pending_since:
+                # A scan met in the middle (this reconstructor started late, or its ScanStart was lost):
+                # ask the log for the ScanStart and the steps before.
+                self._pending_since[key] = (now, RecoveryState())
+                self._ask_for_start(key, now)
+        return out
+
+    def tick(self, *, busy: bool = False) -> list[codec.Reconstruction]:
+        """Catch up on deferred provisional estimates; ask the log for what scans lack; finalise
+        scans that are complete, whose recovery is exhausted, or that went silent.
+
+        ``busy``: a backlog waits, so silence means this service is behind, not that the
+        scanner stopped: no silence-based request or timeout then; and an ended scan's
+        recovery neither retries nor gives up (its replies may be waiting in the backlog).
+        """
+        now = self._clock()
+        cfg = self.config
+        out: list[codec.Reconstruction] = []
+        self._deferred.clear()  # every deferred refit is caught up on below
+        for key, p in list(self._partials.items()):
+            scan = self.ingest.scans.get(key)
+            if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
+                del self._partials[key]
+                continue
+            if p.deferred:  # only scans whose provisional refit waited for a backlog: O(1) for the others
+                p.deferred = False
+                out += self._provisional(scan, p)
+            r = p.recovery
+            self._note_progress(r, scan.n_received)
+            if p.ended_at is not None:
+                missing = scan.missing_steps()
+                if not len(missing):
+                    out.append(self._finalise(scan, p, "final"))
+                elif busy:
+                    pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
+                elif self._can_ask(r, now):
+                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
+                elif self._exhausted(r, now) and now - p.ended_at >= cfg.end_grace:
+                    out.append(self._finalise(scan, p, "incomplete"))
+            elif not busy:
+                silent = now - p.last_activity
+                if silent >= cfg.recovery_after and self._can_ask(r, now):
+                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()),
+                                                 want_end=True), now, scan.n_received)
+                elif silent >= cfg.scan_timeout and self._exhausted(r, now):
+                    self._event("WARNING", f"scan {key} silent for {silent:.1f} s without a ScanEnd; "
+                                           "finalising it as FINAL_TIMEOUT")
+                    self.stats.timeouts += 1
+                    out.append(self._finalise(scan, p, "final_timeout"))
+        for key, (since, r) in list(self._pending_since.items()):
+            if key not in self.ingest.pending:
+                del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
+            elif self._can_ask(r, now):
+                self._ask_for_start(key, now)
+            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now):
+                # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
+                del self._pending_since[key]
+                for rej in self.ingest.drop_pending(key):
+                    self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
+        return out
+
+    @property
+    def has_deferred(self) -> bool:
+        """Whether a provisional refit waits for :meth:`tick` (it waited for a backlog that has drained)."""
+        return bool(self._deferred)
+
+    def finish(self) -> list[codec.Reconstruction]:
+        """End of input (a replay reached the end of its file): finalise every open scan now."""
+        out = []
+        for key, p in list(self._partials.items()):
+            scan = self.ingest.scans.get(key)
+            if scan is not None:
+                if scan.end is None:
+                    status = "final_timeout"
+                    self._event("WARNING", f"scan {key} has no ScanEnd; finalised as FINAL_TIMEOUT")
+                    self.stats.timeouts += 1
+                else:
+                    status = "final" if scan.complete else "incomplete"
+                out.append(self._finalise(scan, p, status))
+        for key, held in self.ingest.pending.items():
+            # No ScanStart, no array geometry or schedule: nothing can be estimated, and saying so is the result.
+            self.stats.without_start += 1
+            self._event("ERROR", f"scan {key}: {len(held)} messages but never its ScanStart (which carries the "
+                                 "array geometry and the schedule); not reconstructed")
+        return out
+
+    def stats_dict(self) -> dict:
+        """Everything counted so far, for the exit line and ``--json``."""
+        s = self.stats
+        return {
+            "estimates": s.estimates, "finals": s.finals, "final_timeouts": s.timeouts, "incomplete": s.incomplete,
+            "samples": {"published": s.published, "received_live": s.received_live, "recovered": s.recovered,
+                        "duplicates": s.duplicates, "missing": s.missing,
+                        # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
+                        "energy_mismatches": self.ingest.energy_mismatches},
+            "rejected": dict(self.ingest.rejected),
+            "evicted": dict(self.ingest.evicted + s.evicted),
+            "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused,
+                         "replies_after_verdict": self.ingest.recovered_after_close},
+            "open_scans": len(self.ingest.scans), "pending_samples": self.ingest.n_pending,
+            "scans_without_start": s.without_start,
+        }
+
+    # --- recovery ------------------------------------------------------------------------
+    def _note_progress(self, r: RecoveryState, held: int) -> None:
+        if r.mark >= 0 and held > r.mark:
+            r.attempts, r.mark = 0, held  # new steps came: the budget starts again
+
+    def _can_ask(self, r: RecoveryState, now: float) -> bool:
+        return (self.recover is not None and r.attempts < self.config.recovery_attempts
+                and (r.last_at is None or now - r.last_at >= self.config.recovery_interval))
+
+    def _exhausted(self, r: RecoveryState, now: float) -> bool:
+        if self.recover is None or self.config.recovery_attempts == 0:
+            return True
+        return r.attempts >= self.config.recovery_attempts and now - r.last_at >= self.config.recovery_interval
+
+    def still_wanted(self, request: RecoveryRequest) -> bool:
+        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
+        return (request.scanner_id, request.scan_id) not in self.ingest.closed
+
+    def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
+        r.attempts += 1
+        r.requests += 1
+        r.last_at, r.mark = now, held
+        self.stats.recovery_requests += 1
+        what = ", ".join(x for x in (f"{len(request.steps)} steps" if request.steps else "",
+                                    "ScanStart" if request.want_start else "",
+                                    "ScanEnd" if request.want_end else "") if x)
+        self._event("INFO", f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
+                            f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})")
+        try:
+            ok = self.recover(request)
+        except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
+            _log.exception("recovery request failed; counted as refused")
+            ok = False
+        if not ok:
+            self.stats.recovery_refused += 1
+
+    def _ask_for_start(self, key: ScanKey, now: float) -> None:
+        """A scan met in the middle: ask for its ScanStart and the steps before what is held
+        (all the steps its ScanEnd counts, when the ScanEnd is what is held)."""
+        _, r = self._pending_since[key]
+        held = self.ingest.pending.get(key, [])
+        self._note_progress(r, len(held))
+        if not held or not self._can_ask(r, now):
+            return
+        have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
+        ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
+        upto = int(ends[0].samples_sent) if ends else max(have) + 1
+        wanted = tuple(s for s in range(upto) if s not in have)
+        self._ask(r, RecoveryRequest(*key, steps=wanted, want_start=True), now, len(held))
+
+    # --- the incremental estimate ---------------------------------------------------------
+    def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
+        scan = event.scan
+        p = self._partials.get(scan.key)
+        if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
+            p = self._partials[scan.key] = Partial()
+        p.last_activity = self._clock()
+        if event.kind == "start":
+            if self._observer:
+                self._observer.scan_started(scan)
+            self._event("INFO", f"scan {scan.key} started: {scan.start.steps} steps", scan.start.start_time_ns)
+            if scan.energy_model_problem:
+                self._event("WARNING", f"scan {scan.key}: {scan.energy_model_problem}", scan.start.start_time_ns)
+            return []
+        if event.kind == "end":
+            p.ended_at = self._clock()
+            end = scan.end
+            self._event("INFO", f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"
+                                f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
+                        end.end_time_ns)
+            if scan.complete:
+                return [self._finalise(scan, p, "final")]
+            missing = scan.missing_steps()
+            # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
+            # before samples that follow it: what is still missing at the end is said by the terminal estimate.
+            self._event("WARNING" if self.recover is not None else "INFO",
+                        f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
+                        f"missing so far: {_ranges_text(missing)}", end.end_time_ns)
+            if self._can_ask(p.recovery, p.ended_at):
+                self._ask(p.recovery, RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
+                          p.ended_at, scan.n_received)
+            return []
+        step = event.step
+        if self._observer and scan.latest is not None and scan.latest.step == step:
+            self._observer.step(scan, scan.latest, float(scan.step_energy[step]),
+                                float(scan.expected_energy[step]), float(scan.ratio[step]))
+        if p.ended_at is not None and scan.complete:
+            return [self._finalise(scan, p, "final")]
+        if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
+            p.deferred = True  # tick() catches up
+            self._deferred.add(scan.key)
+            return []  # the backlog's later samples will be in the next refit
+        return self._provisional(scan, p)
+
+    def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
+        """Confirm the corner, then (re)fit plane b when enough new steps have come."""
+        if not self.config.provisional:
+            return []
+        if scan.n_received - p.steps_at_fit < self.config.refit_every:
+            return []  # cheap: no array work per sample between refits, nor between looks for the corner
+        steps, _, _, ratio = scan.arrays()
+        if p.critical is None:
+            p.steps_at_fit = len(steps)  # the corner's peak is looked for every refit_every steps (O(steps) each)
+            peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
+            if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
+                return []
+            if ratio[peak] < self.config.confirm_ratio * float(np.median(ratio)):
+                return []
+            p.critical = int(steps[peak])
+            self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
+                                f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
+            p.inc_a = IncrementalPlane(scan.geometry, "a", AXIS_Y, self.provisional_method, self._options,
+                                       scan.start.steps)
+            p.plane_a = p.inc_a.update(scan.gamma, scan.distance, steps[steps < p.critical])
+            p.data_a = p.inc_a.last_data
+        newest_ns = int(scan.time_ns[steps[-1]]) if scan.latest is None else int(scan.latest.time_ns)
+        if 0 < newest_ns - p.provisional_ns < self.config.provisional_period * 1e9:
+            return []  # the per-scan rate limit (scan time)
+        p.provisional_ns = max(p.provisional_ns, newest_ns)
+        p.estimated_at = self._clock()
+        t0 = time.perf_counter()
+        if p.inc_b is None:
+            p.inc_b = IncrementalPlane(scan.geometry, "b", AXIS_Z, self.provisional_method, self._options,
+                                       scan.start.steps)
+        m = len(scan.received)
+        new = np.flatnonzero(scan.received & ~p.inc_b.included[:m])
+        # Plane b: the new steps after the corner, in O(new points) unless the trust check fails.
+        p.plane_b = p.inc_b.update(scan.gamma, scan.distance, new[new > p.critical])
+        p.data_b = p.inc_b.last_data
+        p.steps_at_fit = len(steps)
+        # A provisional plane carries its verdict too (the final's is the method of record's own).
+        gamma_so_far = scan.gamma[steps]
+        p.plane_a, p.plane_b = (assess_plane(pl, gamma_so_far) if isinstance(pl, PlaneFit) and not pl.quality else pl
+                                for pl in (p.plane_a, p.plane_b))
+        fit_s = time.perf_counter() - t0
+        edge = corner_edge(p.plane_a, p.plane_b)
+        msg = wire.reconstruction_message(
+            scan.start.scanner_id, scan.start.scan_id, status="provisional", last_step=int(steps[-1]),
+            samples_used=len(steps), critical_step=p.critical, critical_angle=float(scan.gamma[p.critical]),
+            planes=(p.plane_a, p.plane_b), edge=edge, timings=(0.0, fit_s, fit_s))
+        if self._observer:
+            self._observer.estimate(scan, msg, None, p)
+        return [self._emit(msg)]
+
+    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> codec.Reconstruction:
+        missing = scan.missing_steps()
+        if status == "final" and len(missing):
+            status = "incomplete"  # never FINAL with steps missing
+        acc = wire.accounting_message(
+            published=int(scan.end.samples_sent) if scan.end is not None else 0,
+            received_live=scan.n_received - scan.n_recovered, recovered=scan.n_recovered,
+            duplicates=scan.duplicates, rejected=dict(scan.rejected), missing=len(missing))
+        steps, gamma, distance, _ = scan.arrays()
+        distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
+        # A board that fired on noise: those readings' ranges and peaks the echo's after them, where recovered.
+        board_distance, board_amplitude = distance, scan.echo_amplitude[steps]
+        distance, amplitude = scan.noise_triggers_recovered(board_distance, board_amplitude)
+        results: dict[str, ScanReconstruction] = {}
+        for method in (self.config.method, *self.config.compare_methods):
+            # From scratch, no warm start: the final estimate depends only on the data.
+            results[method] = reconstruct(gamma, distance, scan.sensor_energy[steps], scan.geometry,
+                                          scan.energy_model, method, options=self._options,
+                                          echo_amplitude=amplitude)
+        main = results[self.config.method]
+        crit = int(steps[main.critical_step]) if main.critical_step is not None else None
+        # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
+        problems = scan.writer_problems()
+        findings = tuple((level, text) for level, text in problems if level is not None)
+        record = {pl.label: pl for pl in main.planes}  # what the compared methods are checked against
+        if not np.array_equal(distance, board_distance, equal_nan=True):
+            # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
+            # agree within their σ (one more fit, only on such scans).
+            own = np.where(scan.noise_triggers()[0], np.nan, board_distance)
+            without = {pl.label: pl for pl in reconstruct(
+                gamma, own, scan.sensor_energy[steps], scan.geometry, scan.energy_model, self.config.method,
+                options=self._options, echo_amplitude=board_amplitude).planes}
+            record = {label: add_findings(pl, recovery_finding(pl, without.get(label))) for label, pl in record.items()}
+        planes: list[PlaneResult] = [add_findings(pl, findings) for pl in record.values()]
+        for method in self.config.compare_methods:
+            planes += [add_findings(_compared(pl, method, record), findings) for pl in results[method].planes]
+        t = main.timings
+        msg = wire.reconstruction_message(
+            scan.start.scanner_id, scan.start.scan_id, status=status,
+            last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
+            critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
+            timings=(t.segmentation, t.fit, t.total), missing_steps=missing, accounting=acc)
+        # What the writer left unset: a warning, and where no plane came, the first thing to fix.
+        for _, problem in problems:
+            self._event("WARNING", f"scan {scan.key}: {problem}")
+            if not all(isinstance(pl, PlaneFit) for pl in main.planes):
+                msg.failures.append(problem)
+        self.finals[scan.key] = msg
+        while len(self.finals) > self.config.keep_finals:
+            self.finals.pop(next(iter(self.finals)))
+            self.stats.evicted["final kept for lookup forgotten (keep_finals)"] += 1
+        st = self.stats
+        st.finals += 1
+        st.incomplete += status == "incomplete"
+        st.published += acc.published
+        st.received_live += acc.received_live
+        st.recovered += acc.recovered
+        st.duplicates += acc.duplicates
+        st.missing += acc.missing
+        summary = "; ".join(
+            f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
+            f"h={pl.offset * 100:.1f} cm" for pl in msg.planes if pl.method == self.config.method)
+        self._event("INFO" if not msg.failures else "WARNING",
+                    f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
+                    + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""))
+        hint = ""
+        if missing.size and status == "incomplete":
+            hint = ("; the acquirer's log did not supply them (is acquire serving it? raise acquire "
+                    "--serve-log-for or reconstruct --recovery-attempts)" if self.recover is not None else
+                    "; nothing could recover them here (a replay, or live with --recovery-attempts 0)")
+        self._event("INFO" if not missing.size else "WARNING",
+                    f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
+                    + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""))
+        if self._observer:
+            self._observer.estimate(scan, msg, results, p)
+        self._emit(msg)
+        # The scan is done: forget its state; a straggler is then rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
+        return msg
+
+    def _emit(self, msg: codec.Reconstruction) -> codec.Reconstruction:
+        self.latest.pop(msg.scanner_id, None)  # most recently updated last
+        self.latest[msg.scanner_id] = msg
+        while len(self.latest) > self.config.max_scanners:
+            self.latest.pop(next(iter(self.latest)))
+            self.stats.evicted["latest estimate of a scanner forgotten (max_scanners)"] += 1
+        self.stats.estimates += 1
+        if self._publish is not None:
+            self._publish(msg)
+        return msg
+
+    def _event(self, level: str, text: str, time_ns: int | None = None) -> None:
+        getattr(_log, level.lower(), _log.info)(text)
+        if self._observer:
+            self._observer.event(level, text, time_ns)
+
+
+def _ranges_text(steps) -> str:
+    """``3-7, 12, 40-41`` for a sorted array of steps (at most 20 runs shown)."""
+    runs: list[list[int]] = []
+    for s in (int(x) for x in steps):
+        if runs and s == runs[-1][1] + 1:
+            runs[-1][1] = s
+        else:
+            runs.append([s, s])
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:20])
+    return text + (f", … ({len(runs) - 20} more runs)" if len(runs) > 20 else "")

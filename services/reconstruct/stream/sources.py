@@ -1,0 +1,387 @@
+"""Where payloads come from — a Zenoh subscription or an MCAP file — and where estimates go.
+
+Both sources hand (type name, payload bytes) to the same
+:meth:`ReconstructionService.handle`.  Live, one processing thread applies
+every payload: it drains a bounded Zenoh FIFO channel of samples and scan
+events itself (no Python runs on Zenoh's receiving thread; a full channel
+blocks it, which back-pressures the publisher through congestion control
+BLOCK), and a bounded FIFO of the replies recovered from the acquirer's log
+(:mod:`lelsonar.reconstruct.stream.recovery`) and of the messages of adopted scans.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, OrderedDict, deque
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from lelsonar import codec
+from lelsonar.errors import ConfigError, LelsonarError
+from lelsonar.keys import ScannerKeys, validate_identifier
+from lelsonar.log.recording import McapRecorder, iter_payloads
+from lelsonar.reconstruct.stream.group import GroupMembership
+from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
+from lelsonar.reconstruct.stream.service import ReconstructionService
+
+_log = logging.getLogger(__name__)
+
+_STOP = ("", b"", "")  # queue sentinel
+_MAX_PARSED_KEYS = 4096
+#: The leaves of the keys a live source takes (``<prefix>/<scanner>/<leaf>``).
+LIVE_LEAVES = ("sample", "scan")
+
+
+def live_key(keys: ScannerKeys) -> str:
+    """One key expression covering the sample and scan keys of ``keys`` (and no other key of the contract).
+
+    ``<prefix>/<scanner>/s$*``: ``$*`` matches within a chunk, so of the contract's leaves only
+    ``sample`` and ``scan`` match (``planes``, ``alive/…`` and ``log/…`` do not).  One subscriber
+    keeps the arrival order across both.
+    """
+    return f"{keys.prefix}/{keys.scanner_id}/s$*"
+
+
+class PayloadFifo:
+    """A bounded FIFO between Zenoh's callback (and the recovery / group threads) and one consumer.
+
+    Producers block while ``capacity`` items wait (back-pressure, as ``queue.Queue`` does);
+    the consumer takes up to ``batch`` items per lock hold and wakes blocked producers once
+    per batch.  ``queue.Queue`` paid a lock round-trip per item and, when full, woke the
+    producer (Zenoh's thread, which then wants the GIL) after every single item taken.
+    At most ``capacity + batch`` payloads are held: the queued ones and the consumer's batch.
+    """
+
+    def __init__(self, capacity: int, batch: int = 32) -> None:
+        if capacity < 1 or batch < 1:
+            raise ConfigError(f"the payload FIFO's capacity and batch must be >= 1, got {capacity} and {batch} "
+                              "(LiveSource fifo_capacity)")
+        self.capacity, self.batch = capacity, batch
+        self._items: deque = deque()
+        lock = threading.Lock()
+        self._not_empty = threading.Condition(lock)
+        self._not_full = threading.Condition(lock)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, item, timeout: float | None = None) -> bool:
+        """Append ``item``, waiting at most ``timeout`` s for room; False if there was none."""
+        with self._not_full:
+            if len(self._items) >= self.capacity and not self._not_full.wait_for(
+                    lambda: len(self._items) < self.capacity, timeout):
+                return False
+            self._items.append(item)
+            if len(self._items) == 1:
+                self._not_empty.notify()  # the consumer waits only on an empty FIFO
+            return True
+
+    def put_nowait(self, item) -> bool:
+        return self.put(item, 0)
+
+    def take(self, timeout: float) -> list:
+        """The oldest items, up to ``batch``, in order; waits at most ``timeout`` s for one ([] if none came)."""
+        with self._not_empty:
+            if not self._items and not self._not_empty.wait(timeout):
+                return []
+            items = self._items
+            n = min(len(items), self.batch)
+            out = [items.popleft() for _ in range(n)]
+            if n:
+                self._not_full.notify_all()
+            return out
+
+
+def replay_mcap(path: Path | str, service: ReconstructionService,
+                on_payload: Callable[[int], None] | None = None) -> int:
+    """Feed a recording through the service in log-time order, then finalise open scans.
+
+    Returns the number of payloads read.
+    """
+    n = 0
+    for rec in iter_payloads(path):
+        if rec.type_name == codec.Reconstruction.DESCRIPTOR.full_name:
+            continue  # earlier outputs in the file are not inputs
+        service.handle(rec.type_name, rec.payload)
+        n += 1
+        if on_payload is not None:
+            on_payload(rec.log_time_ns)
+    service.finish()
+    return n
+
+
+class PlanesServer:
+    """Publishes estimates on ``<prefix>/<scanner>/planes``; a ``get`` there returns the latest.
+
+    At most ``max_publishers`` publishers are declared at once; the least recently used
+    is undeclared first (counted in :attr:`evicted`).
+    """
+
+    def __init__(self, session: zenoh.Session, keys: ScannerKeys, latest: dict[str, codec.Reconstruction], *,
+                 max_publishers: int = 256, answers_for: Callable[[str], bool] | None = None) -> None:
+        self._session = session
+        #: In a group, a member answers a get only for the scanners it currently owns.
+        self._answers_for = answers_for
+        self._keys = keys
+        self._latest = latest
+        self._lock = threading.Lock()
+        self._max_publishers = max_publishers
+        self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
+        self.evicted: Counter[str] = Counter()
+        self._queryable = session.declare_queryable(keys.planes, self._answer)
+
+    def publish(self, message: codec.Reconstruction) -> None:
+        scanner = validate_identifier(message.scanner_id)
+        with self._lock:
+            pub = self._publishers.get(scanner)
+            if pub is None:
+                pub = self._session.declare_publisher(
+                    ScannerKeys(self._keys.prefix, scanner).planes, congestion_control=zenoh.CongestionControl.BLOCK,
+                    encoding=zenoh.Encoding(codec.encoding_name(message)))
+                self._publishers[scanner] = pub
+                while len(self._publishers) > self._max_publishers:
+                    _, old = self._publishers.popitem(last=False)
+                    old.undeclare()
+                    self.evicted["planes publisher undeclared (max_publishers)"] += 1
+            self._publishers.move_to_end(scanner)
+        pub.put(message.SerializeToString())
+
+    def _answer(self, query: zenoh.Query) -> None:
+        asked = query.key_expr
+        with self._lock:
+            latest = list(self._latest.items())
+        for scanner, message in latest:
+            if self._answers_for is not None and not self._answers_for(scanner):
+                continue
+            key = ScannerKeys(self._keys.prefix, scanner).planes
+            if zenoh.KeyExpr(key).intersects(asked):
+                query.reply(key, message.SerializeToString(), encoding=zenoh.Encoding(codec.encoding_name(message)))
+
+    def close(self) -> None:
+        self._queryable.undeclare()
+        for pub in self._publishers.values():
+            pub.undeclare()
+
+
+class LiveSource:
+    """Receives samples and scan events and feeds them to the service on one thread.
+
+    Use as a context manager inside an open session.  Samples and scan events come
+    through one subscriber (:func:`live_key`, a wildcard covering both keys) into one
+    Zenoh FIFO channel, in arrival order: the acquirer publishes them from one session
+    at one priority, so Zenoh delivers them in publication order, and one channel keeps
+    that order across the two keys (a ``ScanEnd`` is handled after every sample it
+    counts; a subscriber per key would let it overtake them).
+
+    Zenoh's receiving thread runs no Python: it pushes each sample into the channel
+    (Rust), and blocks while the channel is full, which back-pressures the publishers
+    through congestion control BLOCK.  The processing thread drains the channel itself,
+    a batch at a time, without waiting.  A Python callback on Zenoh's thread took the
+    GIL for every sample (~75 µs a sample at 2,500 samples/s, against a busy worker),
+    and so did a thread moving samples from the channel into a queue (measured).
+    Payloads recovered from the acquirer's log and the kept messages of scans adopted
+    from a departed group member come through a :class:`PayloadFifo` drained by the
+    same thread.
+
+    The channel cannot be waited on together with that FIFO, and polling it cost an idle
+    worker 3 % of a core.  So an idle worker *arms a doorbell* and waits on the FIFO
+    alone: the doorbell thread waits on the channel (the GIL released), hands the first
+    sample to come through the FIFO, and stops; from that sample on, the worker drains
+    the channel again.  Only one of the two ever reads the channel, so the order holds;
+    the doorbell takes the GIL once per idle spell, not per sample.  Held at most:
+    ``fifo_capacity`` payloads in the channel, as many in the FIFO, and the worker's
+    batch (``PayloadFifo.batch``) of each.
+
+    With ``recovery`` (the default), the service asks the acquirer's log for
+    what a scan lacks (:class:`~lelsonar.reconstruct.stream.recovery.LogRecoveryClient`).
+    An exception of any type while processing is logged with its traceback,
+    counted in :attr:`errors` (by type in :attr:`error_types`), and the worker
+    carries on with the next payload.
+    """
+
+    def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
+                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
+                 record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig(),
+                 group: GroupMembership | None = None) -> None:
+        if not tick_s > 0:
+            raise ConfigError(f"LiveSource tick_s must be > 0 s, got {tick_s}")
+        self._service = service
+        # With a group, payloads of scanners another member owns are dropped before decoding (counted there).
+        self._group = group
+        self._keys = keys
+        self._stop = stop
+        self._tick_s = tick_s
+        self._record = record
+        # Recovered and adopted payloads.  Bounded: a full FIFO blocks their producers.
+        self._queue = PayloadFifo(fifo_capacity)
+        self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
+                          if recovery is not None else None)
+        # Bounded too: a full channel blocks Zenoh's receiving thread, and congestion control BLOCK slows the
+        # publisher instead of this process growing without bound.
+        self._subscriber = session.declare_subscriber(live_key(keys), zenoh.handlers.FifoChannel(fifo_capacity))
+        #: key → (scanner chunk, leaf).
+        self._parsed_keys: dict[str, tuple[str, str]] = {}
+        self._channel = self._subscriber.handler  # read through the handler: undeclaring never waits for a reader
+        #: Set while the worker is idle: the doorbell reads the channel, not the worker.
+        self._armed = threading.Event()
+        self._thread = threading.Thread(target=self._process, name="reconstruct", daemon=True)
+        self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
+        self.errors = 0
+        self.error_types: Counter[str] = Counter()
+
+    @property
+    def recovery_stats(self) -> dict[str, int]:
+        return dict(self._recovery.stats) if self._recovery is not None else {}
+
+    def __enter__(self) -> LiveSource:
+        if self._group is not None:
+            self._group.attach(self._enqueue)  # adopted scans' kept ScanStart / ScanEnd go through the queue
+        if self._recovery is not None:
+            self._recovery.__enter__()
+            self._service.recover = self._recovery.request
+        self._thread.start()
+        self._doorbell.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._stop.set()
+        self._armed.set()  # a doorbell not armed returns, an armed one ...
+        self._subscriber.undeclare()  # ... is woken: undeclaring closes the channel
+        if self._group is not None:
+            self._group.attach(None)
+        if self._recovery is not None:
+            self._service.recover = None
+            self._recovery.close()
+        if not self._queue.put_nowait(_STOP):
+            pass  # full: the processing thread sees the stop flag within one payload
+        self._thread.join(timeout=5)
+        self._doorbell.join(timeout=5)
+
+    def _received(self, sample: zenoh.Sample) -> tuple[str, zenoh.ZBytes, str, str] | None:
+        """A live sample as a work item, or None if it is not this worker's (or not a sample or scan event)."""
+        try:
+            key = str(sample.key_expr)
+            parsed = self._parsed_keys.get(key)
+            if parsed is None:  # parsed once per key, not per payload
+                if len(self._parsed_keys) >= _MAX_PARSED_KEYS:
+                    self._parsed_keys.clear()  # keys are wire data: the cache stays bounded
+                parsed = self._parsed_keys[key] = (self._keys.scanner_chunk(key), key.rpartition("/")[2])
+            scanner, leaf = parsed
+            if leaf not in LIVE_LEAVES:
+                self.error_types[f"ignored: key neither {' nor '.join(LIVE_LEAVES)}"] += 1
+                return None  # the wildcard also covers other leaves beginning with "s"
+            encoding = str(sample.encoding)
+            if self._group is not None and not self._group.admit(scanner, leaf, encoding, sample.payload):
+                return None  # another member's scanner: dropped before decoding, counted by the group
+            # The scanner id in the key must be the payload's (checked in ingest): a publisher cannot
+            # speak for another scanner.  The ZBytes is copied to bytes once, when it is handled.
+            return encoding, sample.payload, "live", scanner
+        except Exception:  # noqa: BLE001 - one bad sample must not stop the worker: counted, logged
+            self.errors += 1
+            self.error_types["receive"] += 1
+            _log.exception("could not take a received payload; counted")
+            return None
+
+    def _enqueue(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None) -> None:
+        # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
+        if origin != "live":
+            encoding = f"application/protobuf;{encoding}"  # recovery hands over the type name
+        while not self._stop.is_set():
+            if self._queue.put((encoding, payload, origin, key_scanner), timeout=self._tick_s):
+                return
+
+    def _ring(self) -> None:
+        """The doorbell: while the worker is idle, wait for a sample and hand it over (the channel is the worker's again)."""
+        try:
+            while self._armed.wait() and not self._stop.is_set():
+                sample = self._channel.recv()  # waits with the GIL released
+                self._armed.clear()  # before the hand-over: the worker reads the channel once it has this sample
+                while not self._stop.is_set() and not self._queue.put(sample, timeout=self._tick_s):
+                    pass
+        except zenoh.ZError:
+            return  # the channel is closed: the source is closing
+
+    def _pull(self, pending: deque, channel: bool) -> None:
+        """Append what waits, without waiting: up to a batch from the channel (if the worker reads it), then the FIFO's."""
+        if channel:
+            try:
+                for _ in range(self._queue.batch):
+                    sample = self._channel.try_recv()
+                    if sample is None:
+                        break
+                    item = self._received(sample)
+                    if item is not None:
+                        pending.append(item)
+            except zenoh.ZError:  # the channel is closed: the source is closing
+                self._stop.set()
+        if len(self._queue):
+            pending.extend(self._queue.take(0))
+
+    def _process(self) -> None:
+        last_tick = 0.0
+        pending: deque = deque()
+        reading = True  # the worker reads the channel (False while the doorbell is armed)
+        while not self._stop.is_set():
+            if not pending:
+                self._pull(pending, reading)
+                if not pending:  # idle: the doorbell watches the channel, the worker waits on the FIFO
+                    if reading:
+                        reading = False
+                        self._armed.set()
+                    pending.extend(self._queue.take(self._tick_s))
+            waiting = 0
+            if pending:
+                item = pending.popleft()
+                if item is _STOP:
+                    return
+                if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
+                    reading = True
+                    item = self._received(item)
+                if not pending:
+                    self._pull(pending, reading)  # so that `waiting` says whether more came in
+                # Payloads still waiting: pulled, and what the FIFO holds.
+                waiting = len(pending) + len(self._queue)
+                self._apply(item, waiting)
+            now = time.monotonic()
+            # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
+            # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
+            # costs ~36 µs, a tenth of what the payload does).
+            if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
+                last_tick = now
+                self._guarded(self._service.tick, busy=waiting > 0)
+
+    def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
+        if item is not None:
+            self._guarded(self._handle, *item, busy=waiting > 0)
+
+    def _handle(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *,
+                busy: bool) -> list[codec.Reconstruction]:
+        if not isinstance(payload, bytes):
+            payload = payload.to_bytes()  # a live payload's ZBytes, copied once
+        media, _, type_name = encoding.partition(";")
+        # With more payloads waiting (busy), a provisional refit waits for them too.
+        return self._service.handle(type_name if media == "application/protobuf" else encoding, payload,
+                                    busy=busy, origin=origin, key_scanner=key_scanner)
+
+    def _guarded(self, step: Callable[..., list[codec.Reconstruction]], *args, **kwargs) -> None:
+        """Run one step of the service and record its estimates; an exception is logged and counted, never fatal."""
+        try:
+            for msg in step(*args, **kwargs):
+                self._record_estimate(msg)
+        except LelsonarError as exc:  # e.g. a publish that failed validation: log, count, keep serving
+            self.errors += 1
+            self.error_types[type(exc).__name__] += 1
+            _log.error("processing failed: %s", exc)
+        except Exception as exc:  # noqa: BLE001 - a bug must not end the service silently: log, count, go on
+            self.errors += 1
+            self.error_types[type(exc).__name__] += 1
+            _log.exception("processing failed with an unexpected %s (%d errors so far); carrying on",
+                           type(exc).__name__, self.errors)
+
+    def _record_estimate(self, msg: codec.Reconstruction) -> None:
+        if self._record is not None:
+            self._record.write(msg)

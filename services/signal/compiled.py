@@ -1,0 +1,104 @@
+"""The one module that imports Numba: :func:`kernel` compiles a hot numeric loop to machine code.
+
+Why: the estimators and the ingest path make thousands of small NumPy calls a scan, and each costs
+~1 µs of interpreter overhead whatever its size (issue 12's default-fit and ingest targets).  A
+kernel runs such a loop as one call.  Kernels are ordinary Python functions over NumPy arrays and
+scalars; the math stays in the module it belongs to (``corner_model``, ``assembly``…), decorated
+with :func:`kernel` — one implementation per idea, this module only holds the compiler's settings.
+
+Settings, and why:
+- ``cache=True``: compiled code is kept on disk, so only the first process after an install or an
+  edit compiles (~40 s for all kernels on 2 cores: ``lelsonar warm-up``, which ``make`` runs after
+  installing); a later process loads the machine code on a kernel's first call (~1 s for all).
+- The cache lives in a directory named after a digest of every module holding kernels
+  (:data:`KERNEL_MODULES`) and the Numba version: Numba checks only a kernel's own file, so a kernel
+  calling another module's kernel would otherwise keep stale machine code after that module changed.
+- ``nogil=True``: a kernel releases the GIL, so the live source's threads keep receiving.
+- ``error_model="numpy"``: division by zero gives inf/NaN as NumPy does, not an exception.
+- no ``fastmath``: results stay IEEE, so a kernel agrees with the NumPy it replaced to rounding.
+- Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import logging
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import TypeVar
+
+import numba
+
+F = TypeVar("F", bound=Callable[..., object])
+
+log = logging.getLogger(__name__)
+
+#: Every module of this package with a :func:`kernel` (a test checks the list is complete).
+KERNEL_MODULES = (
+    "lelsonar.signal.echo_timing", "lelsonar.signal.energy",
+    "lelsonar.reconstruct.estimate.corner.method", "lelsonar.reconstruct.estimate.corner.model",
+    "lelsonar.reconstruct.estimate.correct", "lelsonar.reconstruct.estimate.fit", "lelsonar.reconstruct.estimate.lel",
+    "lelsonar.reconstruct.estimate.pipeline", "lelsonar.reconstruct.estimate.quality",
+    "lelsonar.reconstruct.estimate.split", "lelsonar.reconstruct.stream.assembly",
+)
+
+
+def _cache_dir() -> Path | None:
+    """The directory for this build's machine code, made if need be (a warning then: compiling comes next).
+
+    Next to the sources (``__pycache__``), or under the user's cache directory if that is read-only;
+    None (Numba's own default) if neither can be written.
+    """
+    here = Path(__file__).resolve().parent
+    digest = hashlib.blake2b(numba.__version__.encode(), digest_size=8)
+    for name in KERNEL_MODULES:
+        digest.update(module_source(name).read_bytes())
+    user_cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lelsonar"
+    for base in (here / "__pycache__", user_cache):
+        path = base / f"numba-{digest.hexdigest()}"
+        if path.is_dir() and os.access(path, os.W_OK):
+            return path
+        try:
+            path.mkdir(parents=True)
+        except OSError:
+            continue
+        log.warning("first run of this build: compiling the numeric kernels (~40 s on 2 cores, once; "
+                    "`lelsonar warm-up` does it ahead). Cache: %s", path)
+        return path
+    return None
+
+
+def module_source(name: str) -> Path:
+    """The source file of a module, found without importing it (its parent packages are imported)."""
+    spec = importlib.util.find_spec(name)
+    if spec is None or spec.origin is None:
+        raise ImportError(f"{name}: no source file; KERNEL_MODULES names a module that does not exist")
+    return Path(spec.origin)
+
+
+_CACHE = _cache_dir()
+if _CACHE is not None:
+    numba.config.CACHE_DIR = str(_CACHE)  # read by each kernel's cache as it is decorated, after this
+
+
+def cache_dir() -> Path | None:
+    """Where this build's machine code is kept (None: Numba's default)."""
+    return _CACHE
+
+
+def kernel(func: F) -> F:
+    """Compile ``func`` with the project's Numba settings (see the module docstring)."""
+    return numba.njit(cache=True, nogil=True, error_model="numpy")(func)  # type: ignore[return-value]
+
+
+def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
+    """Every kernel of :data:`KERNEL_MODULES`, by qualified name (imports those modules)."""
+    found = {}
+    for module_name in KERNEL_MODULES:
+        module = importlib.import_module(module_name)
+        found.update({f"{module_name}.{name}": obj for name, obj in vars(module).items()
+                      if isinstance(obj, numba.core.registry.CPUDispatcher) and obj.py_func.__module__ == module_name})
+    return found

@@ -1,0 +1,128 @@
+"""Estimates for people and scripts: rich tables and JSON lines (no I/O beyond returning text)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from google.protobuf.json_format import MessageToDict
+from rich.console import Console
+from rich.table import Table
+
+from lelsonar import codec
+from lelsonar.codec import QUALITY, QUALITY_NAME
+from lelsonar.reconstruct.estimate.wire import STATUS, TERMINAL, accounting_text, is_terminal, status_name
+
+
+
+def console(stderr: bool = False) -> Console:
+    """A console that keeps tables readable when the output is a pipe or a CI log (no terminal width)."""
+    c = Console(stderr=stderr)
+    return c if c.is_terminal else Console(stderr=stderr, width=120)
+
+
+def to_json(msg: codec.Reconstruction) -> str:
+    """One JSON line: the message's fields (SI units) with proto field names."""
+    d = MessageToDict(msg, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
+    d["status"] = status_name(msg)
+    for plane, pd in zip(msg.planes, d.get("planes", [])):
+        pd["quality"] = QUALITY_NAME.get(plane.quality, "unknown")
+    return json.dumps(d, separators=(",", ":"), sort_keys=True)
+
+
+def from_json(line: str | dict) -> codec.Reconstruction:
+    """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back)."""
+    from google.protobuf.json_format import ParseDict
+
+
+    d = json.loads(line) if isinstance(line, str) else dict(line)
+    d["status"] = STATUS.get(d.get("status"), 0)
+    d["planes"] = [{**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
+                   for p in d.get("planes", [])]
+    return ParseDict(d, codec.Reconstruction())
+
+
+def _vec(v) -> np.ndarray:
+    return np.array([v.x, v.y, v.z])
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle between two unit normals, degrees."""
+    return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
+
+
+def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, float]] | None = None,
+                 title: str | None = None) -> Table:
+    """One row per plane estimate; with ``truth`` (label → (normal, offset)), the errors in ° and cm."""
+    crit = (f"critical step {msg.critical_step} at γ = {np.rad2deg(msg.critical_angle):.1f}°"
+            if msg.HasField("critical_step") else "corner not found yet")
+    t = Table(title=title or f"{msg.scanner_id} scan {msg.scan_id} — {status_name(msg)}, "
+                             f"{msg.samples_used} samples, {crit}", title_justify="left")
+    t.add_column("plane")
+    t.add_column("method")
+    t.add_column("normal n", no_wrap=True)
+    t.add_column("h (cm)", justify="right")
+    if truth:
+        t.add_column("Δn (°)", justify="right")
+        t.add_column("Δh (cm)", justify="right")
+    for col in ("σ (mm)", "inliers", "H"):
+        t.add_column(col, justify="right")
+    t.add_column("quality")
+    for p in sorted(msg.planes, key=lambda p: (p.label, p.method)):
+        n = _vec(p.normal)
+        cells = [p.label, p.method, f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}", f"{p.offset * 100:.2f}"]
+        if truth:
+            tn, th = truth.get(p.label, (None, None))
+            cells += ([f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""])
+        cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}",
+                  quality_cell(p)]
+        t.add_row(*cells)
+    if truth:
+        for label, (tn, th) in sorted(truth.items()):
+            t.add_row(label, "truth", f"{tn[0]:+.3f} {tn[1]:+.3f} {tn[2]:+.3f}", f"{th * 100:.2f}",
+                      "", "", "", "", "", "", style="dim")
+    for f in msg.failures:
+        t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
+    caption = [f"* {p.label} {p.method}: {'; '.join(p.quality_reasons)}"
+               for p in sorted(msg.planes, key=lambda p: (p.label, p.method)) if p.quality_reasons]
+    if msg.HasField("accounting"):
+        caption.append(f"samples: {accounting_text(msg.accounting)}" + (
+            f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else ""))
+        if msg.missing_steps:
+            t.caption_style = "yellow"
+    if caption:
+        t.caption = "\n".join(caption)
+        t.caption_justify = "left"
+    return t
+
+
+_QUALITY_STYLE = {"good": "green", "degraded": "yellow", "unreliable": "bold red"}
+
+
+def quality_cell(plane) -> str:
+    """The verdict, coloured (rich markup); its reasons follow the table (:func:`planes_table`)."""
+    name = QUALITY_NAME.get(plane.quality, "unknown")
+    return f"[{_QUALITY_STYLE.get(name, 'dim')}]{name}[/]" + ("*" if plane.quality_reasons else "")
+def _runs(steps) -> str:
+    out: list[list[int]] = []
+    for s in steps:
+        if out and s == out[-1][1] + 1:
+            out[-1][1] = s
+        else:
+            out.append([s, s])
+    text = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in out[:20])
+    return text + (f", … ({len(out) - 20} more runs)" if len(out) > 20 else "")
+
+
+def plane_equations(msg: codec.Reconstruction, method: str) -> list[str]:
+    """The paper's way of writing a plane (eq. 16–19, cm): ``y = a x + b z + c`` for a, ``z = a x + b y + c`` for b."""
+    out = []
+    for p in msg.planes:
+        if p.method != method:
+            continue
+        n, h = _vec(p.normal), p.offset * 100
+        if p.label == "a" and abs(n[1]) > 1e-9:
+            out.append(f"y = {-n[0] / n[1]:+.6f}x {-n[2] / n[1]:+.6f}z {h / n[1]:+.4f}")
+        elif p.label == "b" and abs(n[2]) > 1e-9:
+            out.append(f"z = {-n[0] / n[2]:+.6f}x {-n[1] / n[2]:+.6f}y {h / n[2]:+.4f}")
+    return out

@@ -1,0 +1,137 @@
+"""The service's observer that draws everything in Rerun, and the sinks it writes to."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from lelsonar import codec
+from lelsonar.reconstruct.estimate import fit as F
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.view.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
+from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.reconstruct.stream.service import Partial
+
+
+class RerunObserver:
+    """Implements :class:`lelsonar.reconstruct.stream.service.Observer` on one recording.
+
+    Parameters
+    ----------
+    rec : rerun.RecordingStream
+    main_method : str
+        Whose subsets (corrected points, inliers) are drawn.
+    truth : list of (label, normal, offset, corners), optional
+        True planes to draw (simulated scenes).
+    """
+
+    def __init__(self, rec: rr.RecordingStream, main_method: str, truth=None) -> None:
+        self.rec = rec
+        self.main_method = main_method
+        self.truth = truth
+        self._loggers: dict[tuple[str, int], ScanLogger] = {}
+        self._last: ScanLogger | None = None
+
+    def _logger(self, scan: ScanAssembly) -> ScanLogger:
+        log = self._loggers.get(scan.key)
+        if log is None:
+            log = self._loggers[scan.key] = ScanLogger(self.rec, *scan.key)
+        self._last = log
+        return log
+
+    def scan_started(self, scan: ScanAssembly) -> None:
+        s = scan.start
+        log = self._logger(scan)
+        log.scan_started(s.start_time_ns, s.gamma_start, s.gamma_stop, s.steps,
+                         scan.geometry.capsules_in_array_frame(),
+                         f"scan {s.scan_id} of {s.scanner_id}: {s.steps} steps, device {s.device or 'unknown'}, "
+                         f"c = {s.sound_speed:.1f} m/s")
+        if self.truth:
+            log.truth(self.truth)
+
+    def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None:
+        self._logger(scan).step(
+            view.step, view.time_ns, view.gamma, raw_points=scan.raw_points(view.step),
+            capsule_positions=scan.geometry.capsule_positions(view.gamma), waveforms=view.waveforms,
+            sample_rate=view.sample_rate, t0=view.t0, energy=energy, expected_energy=expected, ratio=ratio)
+
+    def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
+                 results: dict[str, ScanReconstruction] | None, partial: Partial) -> None:
+        final = results is not None
+        crit = message.critical_step if message.HasField("critical_step") else None
+        if final:
+            main = results[self.main_method]
+            planes = [p for r in results.values() for p in r.planes]
+            edge = main.edge
+            subsets = self._final_subsets(scan, main)
+        else:
+            planes = [p for p in (partial.plane_a, partial.plane_b) if p is not None]
+            edge = None
+            subsets = [self._subset(d, p) for d, p in ((partial.data_a, partial.plane_a),
+                                                        (partial.data_b, partial.plane_b)) if d is not None]
+        step = int(message.last_step)
+        self._logger(scan).estimate(step, int(scan.time_ns[step]), planes, edge, [s for s in subsets if s],
+                                    crit, float(scan.gamma[crit]) if crit is not None else None, final)
+        if final and message.HasField("accounting"):
+            from lelsonar.view import present
+            from lelsonar.reconstruct.estimate import wire
+
+            self._logger(scan).accounting(present.status_name(message), wire.accounting_text(message.accounting),
+                                          list(message.missing_steps))
+
+    def event(self, level: str, text: str, time_ns: int | None = None) -> None:
+        if self._last is not None:
+            self._last.event(level, text, time_ns)
+        else:
+            self.rec.log("log/service", rr.TextLog(text, level=level.upper()))
+
+    @staticmethod
+    def _subset(data: F.PlaneData | None, plane) -> SubsetView | None:
+        if data is None or data.n == 0:
+            return None
+        mask = plane.inlier_mask if isinstance(plane, PlaneFit) and plane.n_points == data.n else np.ones(data.n, bool)
+        return SubsetView(data.label, np.asarray(data.points), np.asarray(mask))
+
+    def _final_subsets(self, scan: ScanAssembly, main: ScanReconstruction) -> list[SubsetView | None]:
+        # The points each plane was fitted on, as reconstruct() chose them.
+        return [self._subset(main.data_a, main.plane_a), self._subset(main.data_b, main.plane_b)]
+
+
+def preset_truth(name: str) -> list[tuple[str, np.ndarray, float, np.ndarray]]:
+    """The true planes of a simulator preset, as the logger draws them."""
+    from lelsonar.sim import preset
+    from lelsonar.sim.scan import true_planes
+
+    return [(p.label, p.normal, p.offset, p.corners) for p in true_planes(preset(name))]
+
+
+@contextmanager
+def open_rerun(*, rrd: Path | None = None, serve_port: int | None = None, serve_bind: str = "127.0.0.1",
+               spawn: bool = False,
+               application_id: str = "lelsonar", truth_preset: str | None = None,
+               main_method: str | None = None) -> Iterator[RerunObserver]:
+    """One explicit recording with the chosen sinks and the default blueprint; flushed on exit."""
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+
+    rec = make_recording(application_id)
+    blueprint = default_blueprint()
+    sinks = []
+    if rrd is not None:
+        Path(rrd).parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(rr.FileSink(str(rrd)))
+    if serve_port is not None:
+        sinks.append(rr.GrpcServerSink(bind_ip=serve_bind, port=serve_port))  # a viewer connects to us
+    if spawn:
+        rec.spawn(connect=False)
+        sinks.append(rr.GrpcSink())
+    rec.set_sinks(*sinks, default_blueprint=blueprint)
+    try:
+        yield RerunObserver(rec, main_method or DEFAULT_METHOD,
+                            preset_truth(truth_preset) if truth_preset else None)
+    finally:
+        rec.flush()
+        rec.disconnect()
