@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench protos clean
+.PHONY: demo test lint bench protos clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -17,8 +17,17 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/lelsonar demo --out out
 
-test: $(STAMP)
+test: lint
 	$(BIN)/python -m pytest -q
+
+# ruff, import-linter and mypy; the last two find modules by folder, so they read a tree of links
+# named as the package is imported (tools/package_tree.py).
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python tools/package_tree.py build/package-tree >/dev/null
+	PYTHONPATH=build/package-tree $(BIN)/lint-imports --no-cache
+	cd build/package-tree && ../../$(BIN)/mypy --config-file ../../pyproject.toml -p lelsonar
 
 bench: $(STAMP)
 	$(BIN)/lelsonar bench all

@@ -15,10 +15,20 @@ from lelsonar.v1 import scan_pb2
 
 def make_scan_start(scanner_id: str = "s1", scan_id: int = 7, steps: int = 5) -> codec.ScanStart:
     start = scan_pb2.ScanStart(
-        schema_version=SCHEMA_VERSION, scanner_id=scanner_id, scan_id=scan_id, start_time_ns=1_700_000_000_000_000_000,
-        software_version="test", radial_offset=0.03, gamma_start=np.deg2rad(-10), gamma_stop=np.deg2rad(110),
-        steps=steps, direction=scan_pb2.ROTATION_DIRECTION_INCREASING, sound_speed=343.2, air_temperature=293.15,
-        sample_rate=200_000.0, window_samples=64,
+        schema_version=SCHEMA_VERSION,
+        scanner_id=scanner_id,
+        scan_id=scan_id,
+        start_time_ns=1_700_000_000_000_000_000,
+        software_version="test",
+        radial_offset=0.03,
+        gamma_start=np.deg2rad(-10),
+        gamma_stop=np.deg2rad(110),
+        steps=steps,
+        direction=scan_pb2.ROTATION_DIRECTION_INCREASING,
+        sound_speed=343.2,
+        air_temperature=293.15,
+        sample_rate=200_000.0,
+        window_samples=64,
     )
     start.rotation_axis.x = 1.0
     for i, x in enumerate((-0.12, -0.04, 0.04, 0.12)):
@@ -31,13 +41,20 @@ def make_scan_start(scanner_id: str = "s1", scan_id: int = 7, steps: int = 5) ->
     return start
 
 
-def make_sample(step: int = 0, scanner_id: str = "s1", scan_id: int = 7, n_samples: int = 64,
-                seed: int = 0) -> codec.Sample:
+def make_sample(
+    step: int = 0, scanner_id: str = "s1", scan_id: int = 7, n_samples: int = 64, seed: int = 0
+) -> codec.Sample:
     rng = np.random.default_rng(seed + step)
     gamma = np.deg2rad(-10 + 2 * step)
-    s = scan_pb2.Sample(schema_version=SCHEMA_VERSION, scanner_id=scanner_id, scan_id=scan_id, step=step,
-                        acquisition_time_ns=1_700_000_000_000_000_000 + step * 10_000_000,
-                        gamma_commanded=gamma, gamma_measured=gamma + 1e-3)
+    s = scan_pb2.Sample(
+        schema_version=SCHEMA_VERSION,
+        scanner_id=scanner_id,
+        scan_id=scan_id,
+        step=step,
+        acquisition_time_ns=1_700_000_000_000_000_000 + step * 10_000_000,
+        gamma_commanded=gamma,
+        gamma_measured=gamma + 1e-3,
+    )
     s.motor.present_position_raw, s.motor.voltage, s.motor.temperature = 512, 12.0, 310.0
     for i in range(4):
         d = 1.5 + 0.01 * i
@@ -52,8 +69,14 @@ def zenoh_socket(tmp_path):
     return tmp_path / "z.sock"
 
 
-def simulated_messages(preset_name: str = "paper-test1", seed: int = 0, *, scanner_id: str = "s1",
-                       scan_id: int = 1, steps: int | None = None) -> list:
+def simulated_messages(
+    preset_name: str = "paper-test1",
+    seed: int = 0,
+    *,
+    scanner_id: str = "s1",
+    scan_id: int = 1,
+    steps: int | None = None,
+) -> list:
     """ScanStart, Samples and ScanEnd of one simulated scan, built as the acquisition service builds them."""
     import dataclasses
 
@@ -68,13 +91,27 @@ def simulated_messages(preset_name: str = "paper-test1", seed: int = 0, *, scann
         sim = dataclasses.replace(sim, steps=steps)
     scanner = SimScanner(sim, seed)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
-    out = [messages.scan_start(scanner_id, scan_id, 1_700_000_000_000_000_000, scanner.info, schedule,
-                               default_energy_model())]
+    out = [
+        messages.scan_start(
+            scanner_id, scan_id, 1_700_000_000_000_000_000, scanner.info, schedule, default_energy_model()
+        )
+    ]
     for step, gamma in enumerate(schedule):
-        out.append(messages.sample(scanner_id, scan_id, step, float(gamma), scanner.measure(step, float(gamma)),
-                                   scanner.info))
-    out.append(messages.scan_end(scanner_id, scan_id, out[-1].acquisition_time_ns + 1, complete=True, reason="",
-                                 steps_planned=len(schedule), samples_sent=len(schedule), echoes_missing=0))
+        out.append(
+            messages.sample(scanner_id, scan_id, step, float(gamma), scanner.measure(step, float(gamma)), scanner.info)
+        )
+    out.append(
+        messages.scan_end(
+            scanner_id,
+            scan_id,
+            out[-1].acquisition_time_ns + 1,
+            complete=True,
+            reason="",
+            steps_planned=len(schedule),
+            samples_sent=len(schedule),
+            echoes_missing=0,
+        )
+    )
     return out
 
 
@@ -93,8 +130,10 @@ def cpu_hog():
     One busy-looping Python process per core (bounded to 120 s on its own), started before the
     test body and killed when it ends.  Device timing must hold on a loaded host (issue 10 §5).
     """
-    procs = [subprocess.Popen([sys.executable, "-c", _HOG.format(limit=120)], stdout=subprocess.PIPE, text=True)
-             for _ in range(len(os.sched_getaffinity(0)))]
+    procs = [
+        subprocess.Popen([sys.executable, "-c", _HOG.format(limit=120)], stdout=subprocess.PIPE, text=True)
+        for _ in range(len(os.sched_getaffinity(0)))
+    ]
     try:
         for proc in procs:
             assert proc.stdout.readline().strip() == "spinning"  # it is on a core now
@@ -110,8 +149,10 @@ def scene_truth(preset_name: str = "paper-test1") -> dict[str, tuple[np.ndarray,
     """Label → (unit normal, offset h) of each wall of the preset's scene: ``n · x = h``."""
     from lelsonar.sim import preset
 
-    return {p.label: (np.asarray(p.normal, dtype=float), float(np.dot(p.center, p.normal)))
-            for p in preset(preset_name).scene.panels}
+    return {
+        p.label: (np.asarray(p.normal, dtype=float), float(np.dot(p.center, p.normal)))
+        for p in preset(preset_name).scene.panels
+    }
 
 
 def assert_matches_the_scene(estimate: codec.Reconstruction, method: str, preset_name: str = "paper-test1") -> None:
@@ -136,8 +177,10 @@ def assert_matches_the_scene(estimate: codec.Reconstruction, method: str, preset
     spread_x = float(np.sqrt(np.mean(np.square(cfg.geometry.capsule_x))))
     corner = np.arctan2(truth["b"][1], truth["a"][1])
     gamma = np.linspace(cfg.gamma_start, cfg.gamma_stop, cfg.steps)
-    across = {"a": (2, np.std(truth["a"][1] * np.tan(gamma[gamma < corner]))),   # z on wall a
-              "b": (1, np.std(truth["b"][1] / np.tan(gamma[gamma > corner])))}  # y on wall b
+    across = {
+        "a": (2, np.std(truth["a"][1] * np.tan(gamma[gamma < corner]))),  # z on wall a
+        "b": (1, np.std(truth["b"][1] / np.tan(gamma[gamma > corner]))),
+    }  # y on wall b
     planes = {p.label: p for p in estimate.planes if p.method == method}
     assert set(planes) == set(truth), f"{method} estimated {sorted(planes)}; failures: {list(estimate.failures)}"
     for label, (normal, h) in truth.items():

@@ -55,36 +55,36 @@ class ForeignRig:
 
     distance_a: float = 1.57
     distance_b: float = 1.06
-    roll: float = 0.0                   # the whole L about x
+    roll: float = 0.0  # the whole L about x
     capsule_x: tuple[float, ...] = (-0.12, -0.04, 0.04, 0.12)
     radial_offset: float = 0.03
     gamma_start: float = -10.0 * _DEG
     gamma_stop: float = 110.0 * _DEG
     steps: int = 184
     reverse: bool = False
-    temperature: float = 20.0           # °C
+    temperature: float = 20.0  # °C
     sample_rate: float = 250_000.0
-    window: float = 0.0                 # s recorded after t0; 0: to the corner's range and 0.5 m beyond
-    t0: float = 0.0                     # s, first sample after firing
-    beam_sigma: float = 11.0 * _DEG     # Gaussian two-way beam: exp(−ψ²/(2σ²))
-    beam_limit: float = 30.0 * _DEG     # no echo beyond this off-axis angle
-    burst: float = 0.3e-3               # s, Hann envelope length
-    echo_scale: float = 1.2             # V at 1 m face-on (before gain)
+    window: float = 0.0  # s recorded after t0; 0: to the corner's range and 0.5 m beyond
+    t0: float = 0.0  # s, first sample after firing
+    beam_sigma: float = 11.0 * _DEG  # Gaussian two-way beam: exp(−ψ²/(2σ²))
+    beam_limit: float = 30.0 * _DEG  # no echo beyond this off-axis angle
+    burst: float = 0.3e-3  # s, Hann envelope length
+    echo_scale: float = 1.2  # V at 1 m face-on (before gain)
     corner_gain: float = 1.3
-    absorption: float = 1.3             # dB/m
+    absorption: float = 1.3  # dB/m
     gains: tuple[float, ...] = (1.0, 0.72, 1.3, 0.88)
-    ringdown: float = 2.5               # V at t = 0, the transmitter's own ring
-    ringdown_time: float = 0.25e-3      # s
-    crosstalk: float = 0.4              # V, neighbours' bursts at t ≈ 0
-    dc: float = 0.06                    # V
-    noise: float = 0.004                # V, std of the AR(1) noise
-    noise_corr: float = 0.9             # AR(1) coefficient per sample (coloured)
-    full_scale: float = 1.0             # V, the converter clips here
-    floor_depth: float = 0.45           # m below the axis (z = −depth); 0: no floor
-    floor_scale: float = 0.25           # diffuse backscatter relative to a mirror echo
-    threshold: float = 0.025            # V over the DC, the comparator
-    blanking: float = 0.0               # s; 0: the board's own, where its ring-down is under a third of the threshold
-    range_jitter: float = 0.0015        # m, std of the board's timing noise as range
+    ringdown: float = 2.5  # V at t = 0, the transmitter's own ring
+    ringdown_time: float = 0.25e-3  # s
+    crosstalk: float = 0.4  # V, neighbours' bursts at t ≈ 0
+    dc: float = 0.06  # V
+    noise: float = 0.004  # V, std of the AR(1) noise
+    noise_corr: float = 0.9  # AR(1) coefficient per sample (coloured)
+    full_scale: float = 1.0  # V, the converter clips here
+    floor_depth: float = 0.45  # m below the axis (z = −depth); 0: no floor
+    floor_scale: float = 0.25  # diffuse backscatter relative to a mirror echo
+    threshold: float = 0.025  # V over the DC, the comparator
+    blanking: float = 0.0  # s; 0: the board's own, where its ring-down is under a third of the threshold
+    range_jitter: float = 0.0015  # m, std of the board's timing noise as range
     seed: int = 0
 
     @property
@@ -104,9 +104,15 @@ class ForeignRig:
         lo, hi = min(self.gamma_start, self.gamma_stop), max(self.gamma_start, self.gamma_stop)
         far_a = min(max(0.0, -lo + self.roll) + 35 * _DEG, 75 * _DEG)
         far_b = min(max(0.0, hi - self.roll - math.pi / 2) + 35 * _DEG, 75 * _DEG)
-        return Scene.l_corner(self.distance_a, self.distance_b, tilt_a_x=self.roll, tilt_b_x=self.roll, width=6.0,
-                              height_a=self.distance_b + self.distance_a * math.tan(far_a) + 0.3,
-                              height_b=self.distance_a + self.distance_b * math.tan(far_b) + 0.3)
+        return Scene.l_corner(
+            self.distance_a,
+            self.distance_b,
+            tilt_a_x=self.roll,
+            tilt_b_x=self.roll,
+            width=6.0,
+            height_a=self.distance_b + self.distance_a * math.tan(far_a) + 0.3,
+            height_b=self.distance_a + self.distance_b * math.tan(far_b) + 0.3,
+        )
 
     def commanded(self) -> np.ndarray:
         g = np.linspace(self.gamma_start, self.gamma_stop, self.steps)
@@ -121,28 +127,28 @@ class Conventions:
     the schema (or is a proto3 default a writer may leave unset).
     """
 
-    capsule_id_base: int = 0            # ids start here
-    radial_offset_in: str = "both"      # "both", "field" (capsule y = 0) or "position" (field left 0)
-    no_echo: str = "zero"               # "zero", "nan" or "negative" for tof and distance without an echo
-    fill: str = "both"                  # "both", "tof" (distance left 0) or "distance" (tof left 0)
-    echo_valid: bool = True             # False: the flag is never set (proto3 default) although ranges are
-    gamma: str = "measured"             # "measured", "commanded" (measured left 0)
-    gamma_wrap: bool = False            # γ in [0, 2π) instead of (−π, π]
-    encoding: str = "int16"             # "int16" or "float32"
+    capsule_id_base: int = 0  # ids start here
+    radial_offset_in: str = "both"  # "both", "field" (capsule y = 0) or "position" (field left 0)
+    no_echo: str = "zero"  # "zero", "nan" or "negative" for tof and distance without an echo
+    fill: str = "both"  # "both", "tof" (distance left 0) or "distance" (tof left 0)
+    echo_valid: bool = True  # False: the flag is never set (proto3 default) although ranges are
+    gamma: str = "measured"  # "measured", "commanded" (measured left 0)
+    gamma_wrap: bool = False  # γ in [0, 2π) instead of (−π, π]
+    encoding: str = "int16"  # "int16" or "float32"
     energy_model: bool = True
-    start_sample_rate: bool = True      # False: ScanStart.sample_rate left 0
-    start_sound_speed: bool = True      # False: ScanStart.sound_speed left 0
-    acquisition_time: bool = True       # False: Sample.acquisition_time_ns left 0
+    start_sample_rate: bool = True  # False: ScanStart.sample_rate left 0
+    start_sound_speed: bool = True  # False: ScanStart.sound_speed left 0
+    acquisition_time: bool = True  # False: Sample.acquisition_time_ns left 0
     rotation_axis: tuple[float, float, float] = (1.0, 0.0, 0.0)
-    gamma_unit: str = "rad"             # "rad" or "deg" (against the contract)
-    step_base: int = 0                  # steps numbered from here
-    ids_reversed: bool = False          # capsule id k−1−j for the j-th capsule along +x
-    tof_scale: float = 1.0              # 0.5: one-way time of flight (against the contract)
-    distance_scale: float = 1.0         # 2: round-trip path as "distance" (against the contract)
-    stated_sound_speed: float = 0.0     # m/s stated in the ScanStart (0: the rig's own)
-    waveforms: bool = True              # False: no samples recorded (sample_count 0), ranges only
-    int16_scale: bool = True            # False: Waveform.scale left unset (0) on int16 data
-    t0: bool = True                     # False: Waveform.t0 left unset (0) whatever the window's start
+    gamma_unit: str = "rad"  # "rad" or "deg" (against the contract)
+    step_base: int = 0  # steps numbered from here
+    ids_reversed: bool = False  # capsule id k−1−j for the j-th capsule along +x
+    tof_scale: float = 1.0  # 0.5: one-way time of flight (against the contract)
+    distance_scale: float = 1.0  # 2: round-trip path as "distance" (against the contract)
+    stated_sound_speed: float = 0.0  # m/s stated in the ScanStart (0: the rig's own)
+    waveforms: bool = True  # False: no samples recorded (sample_count 0), ranges only
+    int16_scale: bool = True  # False: Waveform.scale left unset (0) on int16 data
+    t0: bool = True  # False: Waveform.t0 left unset (0) whatever the window's start
 
 
 @dataclass
@@ -151,11 +157,11 @@ class ForeignScan:
 
     rig: ForeignRig
     scene: Scene
-    gamma: np.ndarray          # (n,) true = measured γ, rad
-    commanded: np.ndarray      # (n,)
-    tof: np.ndarray            # (n, k) s, NaN: no echo
-    waveforms: np.ndarray      # (n, k, samples) V, after clipping
-    source: np.ndarray         # (n, k) 0 none, 1 wall a, 2 wall b, 3 corner: what set the range
+    gamma: np.ndarray  # (n,) true = measured γ, rad
+    commanded: np.ndarray  # (n,)
+    tof: np.ndarray  # (n, k) s, NaN: no echo
+    waveforms: np.ndarray  # (n, k, samples) V, after clipping
+    source: np.ndarray  # (n, k) 0 none, 1 wall a, 2 wall b, 3 corner: what set the range
     energy_model: tuple[float, float, float, float, float] | None = None
     extra: dict = field(default_factory=dict)
     #: (n, k) where the board fired on the noise (``source`` 0 with a range): the first echo after its crossing
@@ -182,7 +188,7 @@ def _echoes(rig: ForeignRig, scene: Scene, gamma: np.ndarray) -> list[tuple[np.n
     pos = _positions(rig, gamma)
     beam = np.stack([np.zeros_like(gamma), np.cos(gamma), np.sin(gamma)], axis=-1)  # (n, 3)
     spread = lambda path: 10.0 ** (-rig.absorption * path / 20.0) / path  # noqa: E731  one-way path pair, m
-    lobe = lambda psi: np.exp(-psi**2 / (2 * rig.beam_sigma**2)) * (psi < rig.beam_limit)  # noqa: E731
+    lobe = lambda psi: np.exp(-(psi**2) / (2 * rig.beam_sigma**2)) * (psi < rig.beam_limit)  # noqa: E731
     out = []
     for src, panel in enumerate(scene.panels, start=1):
         n = np.asarray(panel.normal)
@@ -205,8 +211,9 @@ def _echoes(rig: ForeignRig, scene: Scene, gamma: np.ndarray) -> list[tuple[np.n
         # Diffuse backscatter from a floor z = −depth, along the beam: only beams pointing down reach it.
         down = -np.sin(gamma)[:, None] + 0 * pos[..., 0]
         along = np.where(down > 0.05, (rig.floor_depth + pos[..., 2]) / np.maximum(down, 0.05), np.nan)
-        amp = np.where(np.isfinite(along), rig.floor_scale * rig.echo_scale * spread(2 * np.nan_to_num(along, nan=1.0))
-                       * 2.0, 0.0)
+        amp = np.where(
+            np.isfinite(along), rig.floor_scale * rig.echo_scale * spread(2 * np.nan_to_num(along, nan=1.0)) * 2.0, 0.0
+        )
         out.append((along, amp, 4))
     return out
 
@@ -214,7 +221,9 @@ def _echoes(rig: ForeignRig, scene: Scene, gamma: np.ndarray) -> list[tuple[np.n
 def _hann_burst(u: np.ndarray, length: float) -> np.ndarray:
     """The tone burst at time ``u`` since its arrival: sin(2πfu) under a Hann window of ``length`` s."""
     inside = (u >= 0) & (u <= length)
-    return np.where(inside, np.sin(np.pi * np.clip(u, 0, length) / length) ** 2, 0.0) * np.sin(2 * np.pi * FREQUENCY * u)
+    return np.where(inside, np.sin(np.pi * np.clip(u, 0, length) / length) ** 2, 0.0) * np.sin(
+        2 * np.pi * FREQUENCY * u
+    )
 
 
 def simulate(rig: ForeignRig) -> ForeignScan:
@@ -266,12 +275,25 @@ def simulate(rig: ForeignRig) -> ForeignScan:
     hidden_source, hidden_range = np.zeros((n, k), dtype=int), np.full((n, k), np.nan)
     for rng_m, amp, src in echoes:
         arrive = 2 * rng_m / rig.c
-        hit = (noisy & (gains * amp >= rig.threshold) & (arrive > crossing)
-               & ~(np.nan_to_num(hidden_range, nan=np.inf) <= rng_m))
+        hit = (
+            noisy
+            & (gains * amp >= rig.threshold)
+            & (arrive > crossing)
+            & ~(np.nan_to_num(hidden_range, nan=np.inf) <= rng_m)
+        )
         hidden_source = np.where(hit, src, hidden_source)
         hidden_range = np.where(hit, rng_m, hidden_range)
-    return ForeignScan(rig, scene, gamma, commanded, tof, w.astype(np.float32), source,
-                       hidden_source=hidden_source, hidden_range=hidden_range)
+    return ForeignScan(
+        rig,
+        scene,
+        gamma,
+        commanded,
+        tof,
+        w.astype(np.float32),
+        source,
+        hidden_source=hidden_source,
+        hidden_range=hidden_range,
+    )
 
 
 def energy_model(rig: ForeignRig) -> tuple[float, float, float, float, float]:
@@ -281,8 +303,9 @@ def energy_model(rig: ForeignRig) -> tuple[float, float, float, float, float]:
     ds = np.linspace(0.9, 1.8, 6)
     energies = []
     for d in ds:
-        one = replace(rig, distance_a=d, distance_b=3.0, gamma_start=0.0, gamma_stop=0.0, steps=1, floor_depth=0.0,
-                      reverse=False)
+        one = replace(
+            rig, distance_a=d, distance_b=3.0, gamma_start=0.0, gamma_stop=0.0, steps=1, floor_depth=0.0, reverse=False
+        )
         scan = simulate(one)
         energies.append(float(waveform_energy(scan.waveforms[0], rig.sample_rate).sum()))
     m = fit_energy_model(ds, np.array(energies))
@@ -297,19 +320,27 @@ def _capsule_id(conv: Conventions, j: int, k: int) -> int:
     return (k - 1 - j if conv.ids_reversed else j) + conv.capsule_id_base
 
 
-def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: str = "foreign",
-             scan_id: int = 7) -> list:
+def messages(
+    scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: str = "foreign", scan_id: int = 7
+) -> list:
     """ScanStart, the Samples (in scan order) and ScanEnd as the foreign writer fills them."""
     rig = scan.rig
     k = len(rig.capsule_x)
     t_start = 1_700_000_000_000_000_000
-    start = scan_pb2.ScanStart(schema_version=1, scanner_id=scanner, scan_id=scan_id, start_time_ns=t_start,
-                               software_version="foreign-sim 0.1", gamma_start=float(rig.commanded()[0]),
-                               gamma_stop=float(rig.commanded()[-1]), steps=rig.steps,
-                               direction=(scan_pb2.ROTATION_DIRECTION_DECREASING if rig.reverse
-                                          else scan_pb2.ROTATION_DIRECTION_INCREASING),
-                               air_temperature=rig.temperature + 273.15,
-                               window_samples=scan.waveforms.shape[-1], device="foreign")
+    start = scan_pb2.ScanStart(
+        schema_version=1,
+        scanner_id=scanner,
+        scan_id=scan_id,
+        start_time_ns=t_start,
+        software_version="foreign-sim 0.1",
+        gamma_start=float(rig.commanded()[0]),
+        gamma_stop=float(rig.commanded()[-1]),
+        steps=rig.steps,
+        direction=(scan_pb2.ROTATION_DIRECTION_DECREASING if rig.reverse else scan_pb2.ROTATION_DIRECTION_INCREASING),
+        air_temperature=rig.temperature + 273.15,
+        window_samples=scan.waveforms.shape[-1],
+        device="foreign",
+    )
     if conv.start_sample_rate:
         start.sample_rate = rig.sample_rate
     if conv.start_sound_speed:
@@ -336,8 +367,9 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
         cmd = float(scan.commanded[step]) % (2 * math.pi) if conv.gamma_wrap else float(scan.commanded[step])
         if conv.gamma_unit == "deg":
             g, cmd = math.degrees(g), math.degrees(cmd)
-        s = scan_pb2.Sample(schema_version=1, scanner_id=scanner, scan_id=scan_id, step=step + conv.step_base,
-                            gamma_commanded=cmd)
+        s = scan_pb2.Sample(
+            schema_version=1, scanner_id=scanner, scan_id=scan_id, step=step + conv.step_base, gamma_commanded=cmd
+        )
         if conv.gamma == "measured":
             s.gamma_measured = g
         if conv.acquisition_time:
@@ -356,7 +388,11 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
             elif conv.no_echo == "negative":
                 r.time_of_flight = r.distance = -1.0
             wf = r.waveform
-            wf.sample_rate, wf.t0, wf.sample_count = rig.sample_rate, rig.t0 if conv.t0 else 0.0, scan.waveforms.shape[-1]
+            wf.sample_rate, wf.t0, wf.sample_count = (
+                rig.sample_rate,
+                rig.t0 if conv.t0 else 0.0,
+                scan.waveforms.shape[-1],
+            )
             if not conv.waveforms:
                 wf.encoding, wf.sample_count = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE, 0
                 continue
@@ -367,11 +403,18 @@ def messages(scan: ForeignScan, conv: Conventions = Conventions(), *, scanner: s
                 wf.encoding = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
                 wf.data = scan.waveforms[step, j].astype("<f4").tobytes()
         out.append(s)
-    out.append(scan_pb2.ScanEnd(schema_version=1, scanner_id=scanner, scan_id=scan_id,
-                                end_time_ns=t_start + (rig.steps + 2) * 20_000_000,
-                                status=scan_pb2.SCAN_STATUS_COMPLETE, steps_planned=rig.steps,
-                                samples_sent=rig.steps,
-                                echoes_missing=int(np.count_nonzero(~np.isfinite(scan.tof)))))
+    out.append(
+        scan_pb2.ScanEnd(
+            schema_version=1,
+            scanner_id=scanner,
+            scan_id=scan_id,
+            end_time_ns=t_start + (rig.steps + 2) * 20_000_000,
+            status=scan_pb2.SCAN_STATUS_COMPLETE,
+            steps_planned=rig.steps,
+            samples_sent=rig.steps,
+            echoes_missing=int(np.count_nonzero(~np.isfinite(scan.tof))),
+        )
+    )
     # Samples in step order on the wire, ScanEnd last (a reversed sweep still counts its steps from 0).
     return out
 
@@ -434,7 +477,13 @@ def judge(scan: ForeignScan, planes: list[dict], *, hidden: bool = True) -> dict
             ang, off, pe = plane_errors(n, float(fit.get("offset", 0.0)), n_true, h_true, patch)
             wrong = is_failure(pe, oracle) if m.sum() >= 3 else True
             q = fit.get("quality")
-            row.update(angle_deg=ang, offset_cm=off, patch_cm=pe, quality=q, reasons=fit.get("quality_reasons", []),
-                       verdict="accurate" if not wrong else ("claims_good" if q == "good" else "flagged"))
+            row.update(
+                angle_deg=ang,
+                offset_cm=off,
+                patch_cm=pe,
+                quality=q,
+                reasons=fit.get("quality_reasons", []),
+                verdict="accurate" if not wrong else ("claims_good" if q == "good" else "flagged"),
+            )
         out[label] = row
     return out

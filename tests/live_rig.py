@@ -13,11 +13,11 @@ from lelsonar import codec
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanPublisher
 from lelsonar.keys import ScannerKeys
-from lelsonar.view import present
+from lelsonar.net.transport import hermetic_settings, open_session
+from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 from lelsonar.reconstruct.stream.sources import LiveSource
-from lelsonar.net.transport import hermetic_settings, open_session
 
 PREFIX = "lelsonar"
 
@@ -42,8 +42,14 @@ class Acquirer:
         self.server = LogServer(session, self.keys, self.log).__enter__()
         self.publisher = ScanPublisher(session, self.keys)
 
-    def send(self, messages: Iterable, *, unpublished: set[int] = frozenset(), unrecorded: set[int] = frozenset(),
-             events: bool = True) -> None:
+    def send(
+        self,
+        messages: Iterable,
+        *,
+        unpublished: set[int] = frozenset(),
+        unrecorded: set[int] = frozenset(),
+        events: bool = True,
+    ) -> None:
         """Record then publish; steps in ``unpublished`` are only recorded (lost on the way), steps in
         ``unrecorded`` only published.  ``events=False`` leaves ScanStart/ScanEnd unpublished."""
         for m in messages:
@@ -61,8 +67,13 @@ class Acquirer:
 class Rig:
     """Hub + acquirer session + reconstructor session, on one unix socket."""
 
-    def __init__(self, socket_path, config: ReconstructConfig = ReconstructConfig(provisional=False),
-                 recovery: RecoveryConfig | None = RecoveryConfig(query_timeout=2.0), expect: int = 1) -> None:
+    def __init__(
+        self,
+        socket_path,
+        config: ReconstructConfig = ReconstructConfig(provisional=False),
+        recovery: RecoveryConfig | None = RecoveryConfig(query_timeout=2.0),
+        expect: int = 1,
+    ) -> None:
         self.stack = ExitStack()
         self.socket_path = socket_path
         self.config = config
@@ -83,7 +94,7 @@ class Rig:
         self.stack.close()
 
     def _collect(self, msg: codec.Reconstruction) -> None:
-        if present.is_terminal(msg):
+        if wire.is_terminal(msg):
             with self._lock:
                 self.terminal.append(msg)
                 if len(self.terminal) >= self.expect:
@@ -94,11 +105,13 @@ class Rig:
         session = self.stack.enter_context(open_session(hermetic_settings(self.socket_path, listen=False)))
         self.service = service or ReconstructionService(self.config, publish=self._collect)
         self.stop = threading.Event()
-        self.live = self.stack.enter_context(LiveSource(session, ScannerKeys(PREFIX, "*"), self.service, self.stop,
-                                                        recovery=self.recovery))
+        self.live = self.stack.enter_context(
+            LiveSource(session, ScannerKeys(PREFIX, "*"), self.service, self.stop, recovery=self.recovery)
+        )
         seen = threading.Event()
-        sub = self.acq_session.liveliness().declare_subscriber(f"{PREFIX}/*/alive/reconstruct",
-                                                               lambda _s: seen.set(), history=True)
+        sub = self.acq_session.liveliness().declare_subscriber(
+            f"{PREFIX}/*/alive/reconstruct", lambda _s: seen.set(), history=True
+        )
         token = session.liveliness().declare_token(ScannerKeys(PREFIX, "any").alive("reconstruct"))
         self.stack.callback(token.undeclare)
         assert seen.wait(10), "the reconstructor's declarations never reached the acquirer's session"

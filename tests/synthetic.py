@@ -17,9 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lelsonar.geometry import ArrayGeometry, boresight
-
 from lelsonar.energy_model import EnergyModel
+from lelsonar.geometry import ArrayGeometry, boresight
 
 __all__ = ["WALL_A", "WALL_B", "CORNER", "NONE", "SyntheticScan", "synthetic_corner_scan", "tilted_normal"]
 
@@ -46,12 +45,20 @@ class SyntheticScan:
     critical_step: int
 
 
-def synthetic_corner_scan(geometry: ArrayGeometry, *, rng: np.random.Generator, n_steps: int = 184,
-                          gamma_range: tuple[float, float] = (np.deg2rad(-10), np.deg2rad(110)),
-                          normal_a: np.ndarray = (0.0, 1.0, 0.0), offset_a: float = 1.57,
-                          normal_b: np.ndarray = (0.0, 0.0, 1.0), offset_b: float = 1.06,
-                          beam_half_angle: float = np.deg2rad(26.0), noise: float = 0.002,
-                          energy_model: EnergyModel | None = None) -> SyntheticScan:
+def synthetic_corner_scan(
+    geometry: ArrayGeometry,
+    *,
+    rng: np.random.Generator,
+    n_steps: int = 184,
+    gamma_range: tuple[float, float] = (np.deg2rad(-10), np.deg2rad(110)),
+    normal_a: np.ndarray = (0.0, 1.0, 0.0),
+    offset_a: float = 1.57,
+    normal_b: np.ndarray = (0.0, 0.0, 1.0),
+    offset_b: float = 1.06,
+    beam_half_angle: float = np.deg2rad(26.0),
+    noise: float = 0.002,
+    energy_model: EnergyModel | None = None,
+) -> SyntheticScan:
     """Ranges of a rotating scan in front of an L corner (see the module doc).
 
     The synthetic energy is ``E0(d) · g`` per capsule with ``g = 4 cos⁴⁰(angle to the edge)`` for

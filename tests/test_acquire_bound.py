@@ -41,8 +41,9 @@ def test_the_byte_counts_are_the_codecs():
     assert MOVE_WRITE_BYTES == 9 + 6 and MOVE_READ_BYTES == 8 + 17
     # The board: FIRE is 12 + 10 + 4 bytes; ACQ with 3,500 samples of 4 channels 12 + 32 + 28,000 + 4.
     fire = sf.encode_fire(1, sf.FireRequest(step=0, n_samples=3500, fs_hz=200_000))
-    acq = sf.encode_acq(1, sf.AcqFrame(step=0, bits=12, fs_hz=200_000, status=0, t_fire_us=0,
-                                       tof_ns=[0] * 4, waves=[[2048] * 3500] * 4))
+    acq = sf.encode_acq(
+        1, sf.AcqFrame(step=0, bits=12, fs_hz=200_000, status=0, t_fire_us=0, tof_ns=[0] * 4, waves=[[2048] * 3500] * 4)
+    )
     assert (len(fire), len(acq)) == (26, 28_048)
 
 
@@ -53,8 +54,15 @@ def test_bound_of_the_paper_scan_on_usb_full_speed():
     acq, fire, move_bus = 28_048 / USB_FS_BYTES_PER_S, 26 / USB_FS_BYTES_PER_S, 40 / AX12_BYTES_PER_S
     window = 3500 / 200_000
     moves = [move_bus + units / 1000 for units in (0, 3, 3, 4)]
-    b = scan_bound([100, 103, 106, 110], 100, speed_units_s=1000.0, window_s=window, n_samples=3500,
-                   sensor_link=SENSOR_BOARD_USB, motor_link=AX12_BUS)
+    b = scan_bound(
+        [100, 103, 106, 110],
+        100,
+        speed_units_s=1000.0,
+        window_s=window,
+        n_samples=3500,
+        sensor_link=SENSOR_BOARD_USB,
+        motor_link=AX12_BUS,
+    )
     assert (b.fire_bytes, b.acq_bytes, b.move_bus_bytes) == (26, 28_048, 40)
     assert (b.travel_units, b.initial_units) == (10, 0)
     assert b.travel_s == pytest.approx(0.010)
@@ -63,8 +71,16 @@ def test_bound_of_the_paper_scan_on_usb_full_speed():
     assert b.motor_link_s == pytest.approx(4 * 0.0004)
     assert b.overlap_s == pytest.approx(sum(moves[1:]))  # each under the previous frame
     assert b.total_s == pytest.approx(moves[0] + 4 * (fire + window) + 4 * acq, rel=1e-12)
-    sequential = scan_bound([100, 103, 106, 110], 100, speed_units_s=1000.0, window_s=window, n_samples=3500,
-                            sensor_link=SENSOR_BOARD_USB, motor_link=AX12_BUS, pipelined=False)
+    sequential = scan_bound(
+        [100, 103, 106, 110],
+        100,
+        speed_units_s=1000.0,
+        window_s=window,
+        n_samples=3500,
+        sensor_link=SENSOR_BOARD_USB,
+        motor_link=AX12_BUS,
+        pipelined=False,
+    )
     assert sequential.total_s == pytest.approx(sum(moves) + 4 * (fire + window + acq), rel=1e-12)
     # The frame takes longer than the window it carries (issue 12's measurement).
     assert acq > window
@@ -80,8 +96,16 @@ def test_bound_with_a_uart_board_and_a_move_longer_than_the_frame():
     window = 500 / 100_000
     m0, m1 = move_bus, move_bus + 100 / 1000
     assert m1 > acq
-    b = scan_bound([0, 100], 0, speed_units_s=1000.0, window_s=window, n_samples=500, sensor_link=link,
-                   motor_link=AX12_BUS, return_delay_s=500e-6)
+    b = scan_bound(
+        [0, 100],
+        0,
+        speed_units_s=1000.0,
+        window_s=window,
+        n_samples=500,
+        sensor_link=link,
+        motor_link=AX12_BUS,
+        return_delay_s=500e-6,
+    )
     assert b.acq_bytes == 4048
     assert b.motor_link_s == pytest.approx(2 * move_bus)
     assert b.overlap_s == pytest.approx(acq)

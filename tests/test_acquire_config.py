@@ -6,8 +6,8 @@ import math
 
 import pytest
 
-from lelsonar.cli.main import build_parser
 from lelsonar.cli.acquire import config_from_args
+from lelsonar.cli.main import build_parser
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 
 
@@ -17,8 +17,9 @@ def parse(*argv: str):
 
 def test_flags_override_toml(tmp_path):
     toml = tmp_path / "rig.toml"
-    toml.write_text('[acquire]\nscanner_id = "rig7"\nsteps = 90\ngamma_start_deg = -5\nscans = 2\n'
-                    'energy_phi = [1.0, 2.0, 3.0]\n')
+    toml.write_text(
+        '[acquire]\nscanner_id = "rig7"\nsteps = 90\ngamma_start_deg = -5\nscans = 2\nenergy_phi = [1.0, 2.0, 3.0]\n'
+    )
     cfg = parse("--config", str(toml), "--steps", "120", "--prefix", "robot7/lelsonar")
     assert cfg.scanner_id == "rig7" and cfg.steps == 120 and cfg.scans == 2
     assert cfg.prefix == "robot7/lelsonar"
@@ -27,11 +28,14 @@ def test_flags_override_toml(tmp_path):
     assert cfg.mcap_path(1).name == "scan-2.mcap"
 
 
-@pytest.mark.parametrize("body, message", [
-    ('[acquire]\nstepz = 3\n', "unknown key 'stepz'"),
-    ('[acquire]\nsteps = "many"\n', "must be of type int"),
-    ('[acquire\n', "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "body, message",
+    [
+        ("[acquire]\nstepz = 3\n", "unknown key 'stepz'"),
+        ('[acquire]\nsteps = "many"\n', "must be of type int"),
+        ("[acquire\n", "not valid TOML"),
+    ],
+)
 def test_bad_toml_names_the_problem(tmp_path, body, message):
     toml = tmp_path / "bad.toml"
     toml.write_text(body)

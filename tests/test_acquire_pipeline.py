@@ -76,9 +76,12 @@ def test_a_paced_link_is_never_early_and_keeps_its_rate_under_load(cpu_hog):
 def test_every_servo_transaction_pays_its_bytes_on_the_bus(cpu_hog):
     """60 reads of Present Position .. Moving through the real driver: each READ is 8 bytes out and 17 back
     at 10 µs a byte on the 1 Mbps bus, so 60 cannot take less than 60 × 250 µs (load only adds)."""
-    with AX12Emulator(AX12EmulatorConfig(return_delay=0, link=AX12_BUS)) as servo, \
-            DynamixelMotor(MotorConfig(port=servo.path, latency_timer_ms=2.0,
-                                       stale_guard_s=EMULATED_STALE_GUARD_S)) as motor:
+    with (
+        AX12Emulator(AX12EmulatorConfig(return_delay=0, link=AX12_BUS)) as servo,
+        DynamixelMotor(
+            MotorConfig(port=servo.path, latency_timer_ms=2.0, stale_guard_s=EMULATED_STALE_GUARD_S)
+        ) as motor,
+    ):
         start = time.perf_counter()
         for _ in range(60):
             motor.position()
@@ -131,8 +134,9 @@ def test_the_pipelined_scan_measures_what_the_sequential_one_does_and_moves_only
     sequential, pipelined = results[False][2], results[True][2]
     for a, b in zip(sequential, pipelined):
         assert (a.gamma_measured, a.motor.present_position_raw) == (b.gamma_measured, b.motor.present_position_raw)
-        assert [(r.echo_valid, r.time_of_flight) for r in a.sensors] == [(r.echo_valid, r.time_of_flight)
-                                                                        for r in b.sensors]
+        assert [(r.echo_valid, r.time_of_flight) for r in a.sensors] == [
+            (r.echo_valid, r.time_of_flight) for r in b.sensors
+        ]
         assert [r.waveform.data for r in a.sensors] == [r.waveform.data for r in b.sensors]
 
 
@@ -145,8 +149,10 @@ def test_after_the_window_a_re_requested_shot_must_be_the_same_shot(board_kept_t
     """The servo moves once the answer's header is in; if the frame then fails its CRC, the driver asks
     again, and only a resend of that shot (status RESENT) will do: a board that fired anew fired at the
     angle the servo has moved to."""
-    with SensorBoardEmulator(_counting_source, config=SensorBoardEmulatorConfig(link=SENSOR_BOARD_USB)) as emu, \
-            SerialSensorBoard(SensorBoardConfig(port=emu.path, n_samples=400, fs_hz=200_000)) as board:
+    with (
+        SensorBoardEmulator(_counting_source, config=SensorBoardEmulatorConfig(link=SENSOR_BOARD_USB)) as emu,
+        SerialSensorBoard(SensorBoardConfig(port=emu.path, n_samples=400, fs_hz=200_000)) as board,
+    ):
         emu.inject_corruption(1, "payload")
         moved: list[int] = []
 

@@ -12,12 +12,12 @@ import pytest
 import zenoh
 
 from lelsonar import codec
-from lelsonar.log import recording
 from lelsonar.acquire.backends import open_scanner
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, gamma_schedule, run_scan
 from lelsonar.acquire.service import energy_model, run_acquisition, sim_config
 from lelsonar.keys import ScannerKeys
+from lelsonar.log import recording
 from lelsonar.net.transport import hermetic_settings, open_session
 from lelsonar.v1 import scan_pb2
 
@@ -45,8 +45,10 @@ def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket
         sub_scan = hub.declare_subscriber(keys.scan, zenoh.handlers.FifoChannel(16))
         scan_events: list = []
         scan_done = threading.Event()
-        threads = [threading.Thread(target=collect, args=(sub_samples, steps, got, done), daemon=True),
-                   threading.Thread(target=collect, args=(sub_scan, 2, scan_events, scan_done), daemon=True)]
+        threads = [
+            threading.Thread(target=collect, args=(sub_samples, steps, got, done), daemon=True),
+            threading.Thread(target=collect, args=(sub_scan, 2, scan_events, scan_done), daemon=True),
+        ]
         for t in threads:
             t.start()
         report = run_acquisition(cfg, hermetic_settings(zenoh_socket, listen=False), threading.Event())
@@ -59,14 +61,18 @@ def test_emulated_scan_is_recorded_and_published_in_order(tmp_path, zenoh_socket
     assert [s.step for s in got] == list(range(steps))
     assert got == samples
     assert [type(m) for m in scan_events] == [codec.ScanStart, codec.ScanEnd]
-    assert recorded[-1].status == codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type.values_by_name[
-        "SCAN_STATUS_COMPLETE"].number
+    assert (
+        recorded[-1].status
+        == codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type.values_by_name["SCAN_STATUS_COMPLETE"].number
+    )
     # The measured angle is the servo's read-back, on the AX-12's 0.29° grid, near the commanded one.
     for s in samples:
         assert abs(s.gamma_measured - s.gamma_commanded) < 0.006
-    for cmd in ([RERUN, "mcap", "check", str(report.paths[0])],
-                [RERUN, "mcap", "convert", str(report.paths[0]), "-o", str(tmp_path / "x.rrd")],
-                [RERUN, "rrd", "verify", str(tmp_path / "x.rrd")]):
+    for cmd in (
+        [RERUN, "mcap", "check", str(report.paths[0])],
+        [RERUN, "mcap", "convert", str(report.paths[0]), "-o", str(tmp_path / "x.rrd")],
+        [RERUN, "rrd", "verify", str(tmp_path / "x.rrd")],
+    ):
         done_cmd = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
         assert done_cmd.returncode == 0, done_cmd.stderr
 
@@ -87,8 +93,15 @@ def test_motor_fault_mid_scan_aborts_cleanly_and_keeps_what_was_recorded(tmp_pat
             if step == 12:
                 scanner.rig.motor.inject_overload()
 
-        end = run_scan(scanner, schedule, ScanIdentity("s1", 5), energy_model(cfg), ScanOutput(rec, None),
-                       threading.Event(), on_step=overload_at_step_12)
+        end = run_scan(
+            scanner,
+            schedule,
+            ScanIdentity("s1", 5),
+            energy_model(cfg),
+            ScanOutput(rec, None),
+            threading.Event(),
+            on_step=overload_at_step_12,
+        )
     assert end.status == 2 and "overload" in end.reason.lower() and f"step {failing_step}:" in end.reason
     recorded = list(recording.read_messages(path))
     assert [s.step for s in recorded if isinstance(s, codec.Sample)] == list(range(failing_step))
@@ -116,14 +129,27 @@ def test_the_servo_status_byte_reaches_every_sample(tmp_path, pipeline):
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     zero_raw = int(sim.servo.to_raw(0.0))
     lo, hi = sorted((sim.gamma_start, sim.gamma_stop))
-    with emulated_rig(sim_shot_source(sim, np.random.default_rng(0)),
-                      AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start))),
-                      zero_raw=zero_raw) as rig, \
-            DynamixelMotor(MotorConfig(port=rig.motor.path, gamma_min=lo, gamma_max=hi, latency_timer_ms=2.0,
-                                       stale_guard_s=EMULATED_STALE_GUARD_S, zero_raw=zero_raw,
-                                       tolerated_error_bits=int(ErrorBit.INPUT_VOLTAGE))) as motor, \
-            SerialSensorBoard(SensorBoardConfig(port=rig.board.path, n_samples=sim.window_samples,
-                                                fs_hz=int(sim.sample_rate))) as board:
+    with (
+        emulated_rig(
+            sim_shot_source(sim, np.random.default_rng(0)),
+            AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start))),
+            zero_raw=zero_raw,
+        ) as rig,
+        DynamixelMotor(
+            MotorConfig(
+                port=rig.motor.path,
+                gamma_min=lo,
+                gamma_max=hi,
+                latency_timer_ms=2.0,
+                stale_guard_s=EMULATED_STALE_GUARD_S,
+                zero_raw=zero_raw,
+                tolerated_error_bits=int(ErrorBit.INPUT_VOLTAGE),
+            )
+        ) as motor,
+        SerialSensorBoard(
+            SensorBoardConfig(port=rig.board.path, n_samples=sim.window_samples, fs_hz=int(sim.sample_rate))
+        ) as board,
+    ):
         scanner = DeviceScanner(motor, board, sim_info(sim, "emulated"), rig, pipeline=pipeline)
 
         def supply(step: int, _gamma: float) -> None:
@@ -135,14 +161,14 @@ def test_the_servo_status_byte_reaches_every_sample(tmp_path, pipeline):
         collected: list = []
         output = ScanOutput()
         output.emit = collected.append
-        end = run_scan(scanner, schedule, ScanIdentity("s1", 8), energy_model(cfg), output, threading.Event(),
-                       on_step=supply)
+        end = run_scan(
+            scanner, schedule, ScanIdentity("s1", 8), energy_model(cfg), output, threading.Event(), on_step=supply
+        )
     assert end.status == scan_pb2.SCAN_STATUS_COMPLETE, end.reason
     samples = [m for m in collected if isinstance(m, codec.Sample)]
     first = 7 if pipeline else 6
-    assert [s.motor.error_bits for s in samples] == \
-        [0] * first + [int(ErrorBit.INPUT_VOLTAGE)] * 4 + [0] * (12 - first)
-    assert [s.motor.voltage for s in samples][first - 1:first + 5] == pytest.approx([12.0, 5.5, 5.5, 5.5, 5.5, 12.0])
+    assert [s.motor.error_bits for s in samples] == [0] * first + [int(ErrorBit.INPUT_VOLTAGE)] * 4 + [0] * (12 - first)
+    assert [s.motor.voltage for s in samples][first - 1 : first + 5] == pytest.approx([12.0, 5.5, 5.5, 5.5, 5.5, 12.0])
 
 
 def _undecodable_from_step_12(scanner) -> None:
@@ -165,10 +191,14 @@ def _unplugged_after_step_11(scanner) -> None:
 
 
 @pytest.mark.parametrize("pipeline", [False, True], ids=["sequential", "pipelined"])
-@pytest.mark.parametrize(("fault", "reason"), [
-    (_undecodable_from_step_12, "cannot be decoded"),
-    (_unplugged_after_step_11, "serial I/O"),
-], ids=["decode-error", "serial-error"])
+@pytest.mark.parametrize(
+    ("fault", "reason"),
+    [
+        (_undecodable_from_step_12, "cannot be decoded"),
+        (_unplugged_after_step_11, "serial I/O"),
+    ],
+    ids=["decode-error", "serial-error"],
+)
 def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason, pipeline):
     cfg = AcquireConfig(device="emulated", out_dir=tmp_path, steps=20, pipeline=pipeline)
     sim = sim_config(cfg)
@@ -176,8 +206,15 @@ def test_a_sensor_board_fault_mid_scan_aborts_cleanly(tmp_path, fault, reason, p
     path = tmp_path / "fault.mcap"
     with open_scanner(cfg, sim) as scanner, recording.McapRecorder(path) as rec:
         on_step = fault(scanner)  # installed now, or a hook that strikes after sample 11
-        end = run_scan(scanner, schedule, ScanIdentity("s1", 6), energy_model(cfg), ScanOutput(rec, None),
-                       threading.Event(), on_step=on_step)
+        end = run_scan(
+            scanner,
+            schedule,
+            ScanIdentity("s1", 6),
+            energy_model(cfg),
+            ScanOutput(rec, None),
+            threading.Event(),
+            on_step=on_step,
+        )
     assert end.status == scan_pb2.SCAN_STATUS_ABORTED
     assert "device failure at step 12" in end.reason and reason in end.reason
     recorded = list(recording.read_messages(path))
@@ -194,9 +231,25 @@ def test_sigint_mid_scan_leaves_a_finished_recording_that_ends_in_an_aborted_sca
         sub = hub.declare_subscriber(keys.sample, zenoh.handlers.FifoChannel(1024))
         threading.Thread(target=collect, args=(sub, 20, got, twenty), daemon=True).start()
         proc = subprocess.Popen(
-            [sys.executable, "-m", "lelsonar", "acquire", "--device", "emulated", "--out", str(tmp_path),
-             "--mode", "client", "--connect", f"unixsock-stream/{zenoh_socket}"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "120"})
+            [
+                sys.executable,
+                "-m",
+                "lelsonar",
+                "acquire",
+                "--device",
+                "emulated",
+                "--out",
+                str(tmp_path),
+                "--mode",
+                "client",
+                "--connect",
+                f"unixsock-stream/{zenoh_socket}",
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "COLUMNS": "120"},
+        )
         try:
             assert twenty.wait(60), "the scan did not start"
             proc.send_signal(signal.SIGINT)

@@ -12,26 +12,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lelsonar.sim import simulate_scan
 from lelsonar.acquire.simulated import record_scan
-from lelsonar.sim.scenes import calibrated_energy_model, draw_scene, simulate_family_scene
-from lelsonar.signal.energy import echo_amplitude, waveform_energy
-from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.log.recording import read_metadata
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.sim import simulate_scan
+from lelsonar.sim.scenes import calibrated_energy_model, draw_scene, simulate_family_scene
 from lelsonar.tools import bench_families as B
 
 LELSONAR = [sys.executable, "-m", "lelsonar"]
 
 
-@pytest.mark.parametrize(("patch", "oracle", "fails"), [
-    (2.5, 0.5, True),      # > 2 cm and > 3×
-    (2.5, 1.0, False),     # > 2 cm but only 2.5× the oracle
-    (1.9, 0.01, False),    # 190× the oracle but under 2 cm
-    (6.1, 2.0, True),
-    (6.0, 2.0, False),     # exactly 3×: not above
-    (float("nan"), 0.1, False),
-    (3.0, float("nan"), False),
-])
+@pytest.mark.parametrize(
+    ("patch", "oracle", "fails"),
+    [
+        (2.5, 0.5, True),  # > 2 cm and > 3×
+        (2.5, 1.0, False),  # > 2 cm but only 2.5× the oracle
+        (1.9, 0.01, False),  # 190× the oracle but under 2 cm
+        (6.1, 2.0, True),
+        (6.0, 2.0, False),  # exactly 3×: not above
+        (float("nan"), 0.1, False),
+        (3.0, float("nan"), False),
+    ],
+)
 def test_failure_needs_both_thresholds(patch, oracle, fails):
     assert B.is_failure(patch, oracle) is fails
 
@@ -61,17 +64,36 @@ def test_plane_errors_patch_is_the_largest_distance_over_the_true_patch():
 
 
 def _row(**kw):
-    base = {"family": "f", "seed": 0, "method": "m", "label": "a", "observed": True, "ok": True, "failure": False,
-            "oracle_fails": False, "angle_deg": 0.1, "offset_cm": 0.1, "patch_cm": 0.2, "oracle_patch_cm": 0.1,
-            "z_angle": 0.5, "z_offset": -0.5, "quality": None, "time_plane_ms": 1.0, "time_scan_ms": 2.0}
+    base = {
+        "family": "f",
+        "seed": 0,
+        "method": "m",
+        "label": "a",
+        "observed": True,
+        "ok": True,
+        "failure": False,
+        "oracle_fails": False,
+        "angle_deg": 0.1,
+        "offset_cm": 0.1,
+        "patch_cm": 0.2,
+        "oracle_patch_cm": 0.1,
+        "z_angle": 0.5,
+        "z_offset": -0.5,
+        "quality": None,
+        "time_plane_ms": 1.0,
+        "time_scan_ms": 2.0,
+    }
     return {**base, **kw}
 
 
 def test_summary_counts_failures_z_and_quality():
     rows = [_row(seed=i, z_angle=z, z_offset=-z) for i, z in enumerate((0.2, 0.5, 0.8, 4.0))]
-    rows += [_row(seed=9, failure=True, patch_cm=5.0, z_angle=10.0, z_offset=10.0, quality="good"),
-             _row(seed=10, failure=True, oracle_fails=True, patch_cm=5.0, oracle_patch_cm=2.5, quality="degraded"),
-             _row(seed=11, ok=False, patch_cm=float("nan")), _row(seed=12, observed=False)]
+    rows += [
+        _row(seed=9, failure=True, patch_cm=5.0, z_angle=10.0, z_offset=10.0, quality="good"),
+        _row(seed=10, failure=True, oracle_fails=True, patch_cm=5.0, oracle_patch_cm=2.5, quality="degraded"),
+        _row(seed=11, ok=False, patch_cm=float("nan")),
+        _row(seed=12, observed=False),
+    ]
     s = B.summarize(rows)
     assert (s["planes"], s["unobserved"], s["missing"]) == (7, 1, 1)
     assert s["failures"] == 2 and s["failures_oracle_avoids"] == 1 and s["failures_good"] == 1
@@ -100,13 +122,32 @@ def test_tiny_run_writes_json(tmp_path):
     add_arguments(p)
     out = tmp_path / "b.json"
     md = tmp_path / "b.md"
-    args = p.parse_args(["--families", "paper", "--seeds", "1", "--jobs", "1", "--no-anchor", "--timing-repeats", "1",
-                         "--methods", DEFAULT_METHOD, "--json", str(out), "--markdown", str(md)])
+    args = p.parse_args(
+        [
+            "--families",
+            "paper",
+            "--seeds",
+            "1",
+            "--jobs",
+            "1",
+            "--no-anchor",
+            "--timing-repeats",
+            "1",
+            "--methods",
+            DEFAULT_METHOD,
+            "--json",
+            str(out),
+            "--markdown",
+            str(md),
+        ]
+    )
     B.run_families(args)
     table = md.read_text().splitlines()
     assert table[0].startswith("`") and table[2].startswith("| family |")
-    assert [line.split(" | ")[:2] for line in table[4:]] == [["| paper", f"**`{DEFAULT_METHOD}`**"],
-                                                             ["| all", f"**`{DEFAULT_METHOD}`**"]]
+    assert [line.split(" | ")[:2] for line in table[4:]] == [
+        ["| paper", f"**`{DEFAULT_METHOD}`**"],
+        ["| all", f"**`{DEFAULT_METHOD}`**"],
+    ]
     data = json.loads(out.read_text())
     assert data["families"] == ["paper"] and len(data["rows"]) == 2 and len(data["scenes"]) == 1
     assert {s["method"] for s in data["summary"]} == {DEFAULT_METHOD}
@@ -118,21 +159,34 @@ def _final(stdout: str) -> dict:
 
 def test_simulate_family_mcap_round_trips_through_reconstruct(tmp_path):
     path = tmp_path / "scene.mcap"
-    sim = subprocess.run([*LELSONAR, "simulate", "--family", "partial", "--seed", "3", "--mcap", str(path)],
-                         capture_output=True, text=True, timeout=60)
+    sim = subprocess.run(
+        [*LELSONAR, "simulate", "--family", "partial", "--seed", "3", "--mcap", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert sim.returncode == 0, sim.stderr
     assert "partial #3" in sim.stdout
-    rec = subprocess.run([*LELSONAR, "reconstruct", "--source", str(path), "--json", "--compare", ""],
-                         capture_output=True, text=True, timeout=60)
+    rec = subprocess.run(
+        [*LELSONAR, "reconstruct", "--source", str(path), "--json", "--compare", ""],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert rec.returncode == 0, rec.stderr
     final = _final(rec.stdout)
 
     fs = simulate_family_scene("partial", 3)
     scan = fs.scan
     # As the service computes them from each recorded Sample: energies and the first echoes' amplitudes.
-    want = reconstruct(scan.gamma_measured, scan.distance, waveform_energy(scan.waveforms, scan.sample_rate),
-                       scan.geometry, fs.energy_model,
-                       echo_amplitude=echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof))
+    want = reconstruct(
+        scan.gamma_measured,
+        scan.distance,
+        waveform_energy(scan.waveforms, scan.sample_rate),
+        scan.geometry,
+        fs.energy_model,
+        echo_amplitude=echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof),
+    )
     assert final["critical_step"] == want.critical_step
     got = {p["label"]: p for p in final["planes"]}
     for label, plane in (("a", want.plane_a), ("b", want.plane_b)):
@@ -148,8 +202,9 @@ def test_simulate_family_mcap_round_trips_through_reconstruct(tmp_path):
 def test_record_scan_is_what_dump_failures_writes(tmp_path):
     draw = draw_scene("noise", 1)
     scan = simulate_scan(draw.config, seed=1)
-    end = record_scan(scan, tmp_path / "d" / "noise-1.mcap", calibrated_energy_model(draw.config),
-                      metadata={"family": "noise"})
+    end = record_scan(
+        scan, tmp_path / "d" / "noise-1.mcap", calibrated_energy_model(draw.config), metadata={"family": "noise"}
+    )
     assert end.samples_sent == scan.n_steps and Path(tmp_path / "d" / "noise-1.mcap").stat().st_size > 0
 
 
@@ -160,17 +215,32 @@ def test_dump_failures_writes_the_failing_scene_that_reconstruct_replays(tmp_pat
     assert path == tmp_path / "corner-2.mcap" and path.exists()
     meta = read_metadata(path)["lelsonar.config"]
     assert meta["failures"] == f"{DEFAULT_METHOD}:a,{DEFAULT_METHOD}:b" and meta["description"].startswith("corner #2")
-    rec = subprocess.run([*LELSONAR, "reconstruct", "--source", str(path), "--json", "--compare", ""],
-                         capture_output=True, text=True, timeout=60)
+    rec = subprocess.run(
+        [*LELSONAR, "reconstruct", "--source", str(path), "--json", "--compare", ""],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert rec.returncode == 0, rec.stderr
     got = {p["label"]: p["offset"] for p in _final(rec.stdout)["planes"]}
     assert got == {r["label"]: pytest.approx(r["offset"], abs=1e-12) for r in rows}
 
 
 def test_failure_flags_name_the_patterns():
-    base = {"label": "a", "true_normal": [0.0, 1.0, 0.0], "other_normal": [0.0, 0.0, 1.0], "true_offset": 1.57,
-            "edge_range": 1.89, "n_mirror": 300, "crit": 50, "crit_true": 50, "uses_split": True,
-            "normal": [0.0, 1.0, 0.0], "offset": 1.60, "inlier_corner_share": 0.0}
+    base = {
+        "label": "a",
+        "true_normal": [0.0, 1.0, 0.0],
+        "other_normal": [0.0, 0.0, 1.0],
+        "true_offset": 1.57,
+        "edge_range": 1.89,
+        "n_mirror": 300,
+        "crit": 50,
+        "crit_true": 50,
+        "uses_split": True,
+        "normal": [0.0, 1.0, 0.0],
+        "offset": 1.60,
+        "inlier_corner_share": 0.0,
+    }
     assert B.failure_flags(base) == ["unexplained"]
     assert B.failure_flags({**base, "crit": 10}) == ["critical step"]
     assert B.failure_flags({**base, "crit": 10, "uses_split": False}) == ["unexplained"]
@@ -185,8 +255,9 @@ def test_failure_flags_name_the_patterns():
 def test_open3d_anchor_is_deterministic_and_refits_the_wall():
     pytest.importorskip("open3d")
     rng = np.random.default_rng(0)
-    wall = np.c_[rng.uniform(-0.5, 0.5, 300), np.full(300, 1.5) + 0.002 * rng.standard_normal(300),
-                 rng.uniform(-0.5, 0.5, 300)]
+    wall = np.c_[
+        rng.uniform(-0.5, 0.5, 300), np.full(300, 1.5) + 0.002 * rng.standard_normal(300), rng.uniform(-0.5, 0.5, 300)
+    ]
     cluster = np.c_[rng.uniform(-0.1, 0.1, 150), rng.uniform(1.6, 1.9, 150), rng.uniform(0.4, 0.6, 150)]
     pts = np.vstack([wall, cluster])
     first = [B._open3d_anchor(pts) for _ in range(3)]

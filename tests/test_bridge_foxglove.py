@@ -28,16 +28,20 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from websockets.sync.client import connect
 
 from lelsonar import codec
-from lelsonar.log import recording
 from lelsonar.bridge.foxglove import SUBPROTOCOLS, parse_host_port
 from lelsonar.errors import ConfigError
+from lelsonar.log import recording
 
 from .conftest import simulated_messages
 
 LELSONAR = str(Path(sys.executable).with_name("lelsonar"))
-DECODERS = {"foxglove.SceneUpdate": SceneUpdate.FromString, "foxglove.PointCloud": PointCloud.FromString,
-            "foxglove.FrameTransforms": FrameTransforms.FromString, "foxglove.FrameTransform": FrameTransform.FromString,
-            "foxglove.Log": Log.FromString}
+DECODERS = {
+    "foxglove.SceneUpdate": SceneUpdate.FromString,
+    "foxglove.PointCloud": PointCloud.FromString,
+    "foxglove.FrameTransforms": FrameTransforms.FromString,
+    "foxglove.FrameTransform": FrameTransform.FromString,
+    "foxglove.Log": Log.FromString,
+}
 
 
 def test_host_port_parsing():
@@ -60,10 +64,27 @@ def source(tmp_path_factory):
 
 
 def _serve(source_path: Path) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen([LELSONAR, "reconstruct", "--source", str(source_path), "--foxglove", "127.0.0.1:0",
-                             "--foxglove-wait", "60", "--json", "--compare", "ls", "--truth-preset", "paper-test1"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "COLUMNS": "200"})
+    proc = subprocess.Popen(
+        [
+            LELSONAR,
+            "reconstruct",
+            "--source",
+            str(source_path),
+            "--foxglove",
+            "127.0.0.1:0",
+            "--foxglove-wait",
+            "60",
+            "--json",
+            "--compare",
+            "ls",
+            "--truth-preset",
+            "paper-test1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "COLUMNS": "200"},
+    )
     for line in proc.stderr:  # blocks until the server announces itself
         if "Foxglove live on" in line:
             return proc, line.split("Foxglove live on", 1)[1].strip()
@@ -84,8 +105,11 @@ def _receive(url: str) -> tuple[dict, dict[str, list[tuple[int, object]]]]:
         # Planes last: the server replays once it sees that subscription.
         order = sorted(channels.values(), key=lambda c: c["topic"] == "/lelsonar/planes")
         subs = {i + 1: c for i, c in enumerate(order)}
-        ws.send(json.dumps({"op": "subscribe",
-                            "subscriptions": [{"id": sid, "channelId": c["id"]} for sid, c in subs.items()]}))
+        ws.send(
+            json.dumps(
+                {"op": "subscribe", "subscriptions": [{"id": sid, "channelId": c["id"]} for sid, c in subs.items()]}
+            )
+        )
         while True:
             frame = ws.recv(timeout=60)
             if isinstance(frame, str):
@@ -121,8 +145,9 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
     assert len(got["/tf_capsules"]) == 1 + len(samples)  # again at every step, for late viewers
     _, tfs = got["/tf_capsules"][-1]
     assert [t.child_frame_id for t in tfs.transforms] == [f"capsule_{c}" for c in "ABCD"]
-    assert [(t.translation.x, t.translation.y) for t in tfs.transforms] == \
-        [(c.position.x, c.position.y) for c in start.capsules]
+    assert [(t.translation.x, t.translation.y) for t in tfs.transforms] == [
+        (c.position.x, c.position.y) for c in start.capsules
+    ]
 
     # Points as they arrive: one cloud per step, growing, the last one every valid echo of the scan.
     clouds = got["/lelsonar/scan_points"]
@@ -136,11 +161,19 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
         for r in smp.sensors:
             if r.echo_valid:
                 cap = start.capsules[r.capsule_id]
-                truth.append(rot @ (np.array([cap.position.x, cap.position.y, cap.position.z])
-                                    + r.distance * np.array([cap.boresight.x, cap.boresight.y, cap.boresight.z])))
+                truth.append(
+                    rot
+                    @ (
+                        np.array([cap.position.x, cap.position.y, cap.position.z])
+                        + r.distance * np.array([cap.boresight.x, cap.boresight.y, cap.boresight.z])
+                    )
+                )
     latest = got["/lelsonar/points"][-1][1]
-    np.testing.assert_allclose(np.frombuffer(latest.data, "<f4").reshape(-1, 3),
-                               np.array(truth[-sum(r.echo_valid for r in samples[-1].sensors):]), atol=2e-6)
+    np.testing.assert_allclose(
+        np.frombuffer(latest.data, "<f4").reshape(-1, 3),
+        np.array(truth[-sum(r.echo_valid for r in samples[-1].sensors) :]),
+        atol=2e-6,
+    )
     last = clouds[-1][1]
     xyz = np.frombuffer(last.data, "<f4").reshape(-1, last.point_stride // 4)[:, :3]
     np.testing.assert_allclose(xyz, np.array(truth), atol=2e-6)
@@ -149,8 +182,10 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
     series = {row["step"]: row for _, row in got["/lelsonar/energy"]}
     assert len(series) == len(samples)
     for smp in samples[::37]:
-        e = sum(float(np.sum(codec.unpack_waveform(r.waveform).astype(np.float64) ** 2)) / r.waveform.sample_rate
-                for r in smp.sensors)
+        e = sum(
+            float(np.sum(codec.unpack_waveform(r.waveform).astype(np.float64) ** 2)) / r.waveform.sample_rate
+            for r in smp.sensors
+        )
         row = series[smp.step]
         assert math.isclose(row["energy"], e, rel_tol=1e-6)
         if row["expected_energy"]:

@@ -46,24 +46,47 @@ def test_type_hashes_are_ros2s_published_values(msgtype):
 
 def test_key_and_tokens_match_rmw_zenohs_design_doc_examples():
     h = PUBLISHED_HASHES["std_msgs/msg/String"]
-    assert rz.topic_key(0, "/chatter", "std_msgs/msg/String", h) == \
-        "0/chatter/std_msgs::msg::dds_::String_/" + h
+    assert rz.topic_key(0, "/chatter", "std_msgs/msg/String", h) == "0/chatter/std_msgs::msg::dds_::String_/" + h
     assert rz.topic_key(3, "/robot1/chatter", "std_msgs/msg/String", h).startswith("3/robot1/chatter/std_msgs::")
     # verbatim from docs/design.md
-    assert rz.node_token(0, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "/", "listener") == \
-        "@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
-    assert rz.publisher_token(0, "8b20917502ee955ac4476e0266340d5c", 0, 10, "/", "talker", "/chatter",
-                              "std_msgs/msg/String", h, ros2.TopicQos(7)) == (
+    assert (
+        rz.node_token(0, "aac3178e146ba6f1fc6e6a4085e77f21", 0, "/", "listener")
+        == "@ros2_lv/0/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    )
+    assert rz.publisher_token(
+        0,
+        "8b20917502ee955ac4476e0266340d5c",
+        0,
+        10,
+        "/",
+        "talker",
+        "/chatter",
+        "std_msgs/msg/String",
+        h,
+        ros2.TopicQos(7),
+    ) == (
         "@ros2_lv/0/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
-        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,")
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,"
+    )
     # tf2's /tf (depth 100) as a public rmw_zenoh client writes it
     assert rz.qos_chunk(ros2.TopicQos(100)) == "::,100:,:,:,,"
     # robot_state_publisher's latched /robot_description token, as a public rmw_zenoh client's test
     # quotes it: TRANSIENT_LOCAL (enum value 1), depth 1
-    assert rz.publisher_token(0, "2e44", 0, 13, "/", "robot_state_publisher", "/robot_description",
-                              "std_msgs/msg/String", "RIHS01_df668c", ros2.TopicQos(1, transient_local=True)) == \
-        ("@ros2_lv/0/2e44/0/13/MP/%/%/robot_state_publisher/%robot_description/std_msgs::msg::dds_::String_/"
-         "RIHS01_df668c/:1:,1:,:,:,,")
+    assert rz.publisher_token(
+        0,
+        "2e44",
+        0,
+        13,
+        "/",
+        "robot_state_publisher",
+        "/robot_description",
+        "std_msgs/msg/String",
+        "RIHS01_df668c",
+        ros2.TopicQos(1, transient_local=True),
+    ) == (
+        "@ros2_lv/0/2e44/0/13/MP/%/%/robot_state_publisher/%robot_description/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c/:1:,1:,:,:,,"
+    )
     assert rz.qos_chunk(ros2.TopicQos(42)) == "::,:,:,:,,"
     assert rz.mangle("/robot1/ns") == "%robot1%ns" and rz.mangle("") == "%"
 
@@ -74,30 +97,51 @@ def test_attachment_is_zenohs_own_serialisation_of_seq_time_gid():
     # by hand: i64 LE, i64 LE, LEB128(16) = 0x10, 16 bytes
     assert att.hex() == "0100000000000000" + "0807060504030201" + "10" + gid.hex()
     # and zenoh-ext's serializer (the one zenoh-cpp's serializer mirrors) agrees byte for byte
-    ref = zenoh.ext.z_serialize((zenoh.ext.Int64(1), zenoh.ext.Int64(0x0102030405060708),
-                                 [zenoh.ext.UInt8(b) for b in gid]))
+    ref = zenoh.ext.z_serialize(
+        (zenoh.ext.Int64(1), zenoh.ext.Int64(0x0102030405060708), [zenoh.ext.UInt8(b) for b in gid])
+    )
     assert att == ref.to_bytes()
     assert rz.parse_attachment(att) == (1, 0x0102030405060708, gid)
 
 
 def test_gid_is_the_one_rmw_zenoh_derives():
     """A talker token hashed by rmw_zenoh_cpp's own simplified_xxhash3.cpp, as a public client's test quotes it."""
-    token = ("@ros2_lv/0/abcdef0123456789abcdef0123456789/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
-             "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,")
+    token = (
+        "@ros2_lv/0/abcdef0123456789abcdef0123456789/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,"
+    )
     assert rz.gid_of(token).hex() == "5d93eb0aa1fed6741fd0751922ffa030"
 
 
 def test_cdr_bytes_match_hand_serialisation():
     b = ros2._Builder("jazzy")
     # std_msgs/String "hello": encapsulation CDR_LE, u32 length with the NUL, the bytes
-    assert ros2.serialize(b("std_msgs/msg/String", data="hello"), "std_msgs/msg/String").hex() == \
-        "00010000" "06000000" "68656c6c6f00"
+    assert (
+        ros2.serialize(b("std_msgs/msg/String", data="hello"), "std_msgs/msg/String").hex() == "00010000"
+        "06000000"
+        "68656c6c6f00"
+    )
     # sensor_msgs/Range (Jazzy): Header{Time{i32 sec, u32 nanosec}, string frame_id}, u8 radiation_type,
     # then five float32 aligned to 4 (from the start of the payload, after the encapsulation)
-    r = b("sensor_msgs/msg/Range", header=b.header(1_000_000_002, "a"), radiation_type=0, field_of_view=0.5,
-          min_range=0.1, max_range=2.0, range=1.5, variance=0.0)
-    expected = (bytes.fromhex("00010000") + struct.pack("<iI", 1, 2) + struct.pack("<I", 2) + b"a\0"
-                + b"\0" + b"\0" + struct.pack("<5f", 0.5, 0.1, 2.0, 1.5, 0.0))
+    r = b(
+        "sensor_msgs/msg/Range",
+        header=b.header(1_000_000_002, "a"),
+        radiation_type=0,
+        field_of_view=0.5,
+        min_range=0.1,
+        max_range=2.0,
+        range=1.5,
+        variance=0.0,
+    )
+    expected = (
+        bytes.fromhex("00010000")
+        + struct.pack("<iI", 1, 2)
+        + struct.pack("<I", 2)
+        + b"a\0"
+        + b"\0"
+        + b"\0"
+        + struct.pack("<5f", 0.5, 0.1, 2.0, 1.5, 0.0)
+    )
     data = ros2.serialize(r, "sensor_msgs/msg/Range")
     assert data == expected
     back = ros2.deserialize(data, "sensor_msgs/msg/Range")
@@ -152,11 +196,14 @@ def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
     with open_session(hermetic_settings(sock, listen=True)) as robot:
         robot.declare_subscriber("0/**", on_data)
         robot.liveliness().declare_subscriber("@ros2_lv/0/**", on_token, history=True)
-        with rz.open_ros_session(hermetic_settings(sock, listen=False)) as bridge_session, \
-                rz.RmwZenohNode(bridge_session, name="lelsonar_bridge") as node:
+        with (
+            rz.open_ros_session(hermetic_settings(sock, listen=False)) as bridge_session,
+            rz.RmwZenohNode(bridge_session, name="lelsonar_bridge") as node,
+        ):
             view = ros2.Ros2View(node.publish, main_method="corner")
-            service = ReconstructionService(ReconstructConfig(compare_methods=("ls",), provisional=False),
-                                            observer=view)
+            service = ReconstructionService(
+                ReconstructConfig(compare_methods=("ls",), provisional=False), observer=view
+            )
             replay_mcap(path, service)
             assert estimate_seen.wait(30), "no estimate arrived"
             assert tokens_seen.wait(30), f"tokens: {tokens}"
@@ -172,8 +219,8 @@ def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
                 late_seen.set()
 
             late_sub = zenoh.ext.declare_advanced_subscriber(
-                robot, pubs["/tf_static"].key, on_late,
-                history=zenoh.ext.HistoryConfig(detect_late_publishers=True))
+                robot, pubs["/tf_static"].key, on_late, history=zenoh.ext.HistoryConfig(detect_late_publishers=True)
+            )
             assert late_seen.wait(30), "the /tf_static cache did not answer a late subscriber"
             late_sub.undeclare()
 
@@ -207,8 +254,9 @@ def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
         assert (q.x, q.w) == pytest.approx((math.sin(sample.gamma_measured / 2), math.cos(sample.gamma_measured / 2)))
         assert t.header.stamp.sec * 10**9 + t.header.stamp.nanosec == sample.acquisition_time_ns
     ranges = per_key[pubs["/lelsonar/range/capsule1"].key]
-    assert [ros2.deserialize(p, "sensor_msgs/msg/Range").range for p, _ in ranges] == \
-        [np.float32(next(s.distance for s in smp.sensors if s.capsule_id == 1)) for smp in samples]
+    assert [ros2.deserialize(p, "sensor_msgs/msg/Range").range for p, _ in ranges] == [
+        np.float32(next(s.distance for s in smp.sensors if s.capsule_id == 1)) for smp in samples
+    ]
     assert ros2.deserialize(late[0], "tf2_msgs/msg/TFMessage").transforms[0].child_frame_id == "s1/axis"
 
 
@@ -241,9 +289,27 @@ def test_ros2_bridge_command_bridges_a_live_scan(tmp_path):
         robot.liveliness().declare_subscriber("@ros2_lv/**", on_token, history=True)  # `**` skips `@` chunks
         robot.declare_subscriber("0/lelsonar/estimate/**", on_estimate)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "lelsonar", "ros2-bridge", "--until-scans", "1", "--node-name", "sonar",
-             "--namespace", "/robot7", "--mode", "client", "--connect", endpoint],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "COLUMNS": "120"})
+            [
+                sys.executable,
+                "-m",
+                "lelsonar",
+                "ros2-bridge",
+                "--until-scans",
+                "1",
+                "--node-name",
+                "sonar",
+                "--namespace",
+                "/robot7",
+                "--mode",
+                "client",
+                "--connect",
+                endpoint,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env={**os.environ, "COLUMNS": "120"},
+        )
         try:
             assert up.wait(60), f"the bridge did not come up: {tokens}"
             sample_pub = robot.declare_publisher(keys.sample, congestion_control=zenoh.CongestionControl.BLOCK)

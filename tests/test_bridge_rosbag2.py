@@ -16,11 +16,12 @@ import pytest
 from rosbags.highlevel import AnyReader
 from rosbags.interfaces import QosDurability
 
-from .conftest import simulated_messages
 from lelsonar import codec
-from lelsonar.cli.main import main
 from lelsonar.bridge.ros2 import read_bag, typestore
+from lelsonar.cli.main import main
 from lelsonar.log.recording import McapRecorder
+
+from .conftest import simulated_messages
 
 CAPSULES = 4
 
@@ -140,7 +141,8 @@ def test_ranges_are_the_sample_distances(messages, recording):
             t0 = reading.waveform.t0
             assert r.min_range == pytest.approx(start.sound_speed * t0 / 2, rel=1e-6)
             assert r.max_range == pytest.approx(
-                start.sound_speed * (t0 + start.window_samples / start.sample_rate) / 2, rel=1e-6)
+                start.sound_speed * (t0 + start.window_samples / start.sample_rate) / 2, rel=1e-6
+            )
     assert sum(not s.echo_valid for sample in samples for s in sample.sensors) == 3
 
 
@@ -148,8 +150,14 @@ def cloud_rows(msg) -> dict[str, np.ndarray]:
     kinds = {7: "<f4", 6: "<u4", 2: "u1"}
     raw = np.asarray(msg.data, dtype=np.uint8).tobytes()
     assert len(raw) == msg.point_step * msg.width == msg.row_step
-    dt = np.dtype({"names": [f.name for f in msg.fields], "formats": [kinds[f.datatype] for f in msg.fields],
-                   "offsets": [f.offset for f in msg.fields], "itemsize": msg.point_step})
+    dt = np.dtype(
+        {
+            "names": [f.name for f in msg.fields],
+            "formats": [kinds[f.datatype] for f in msg.fields],
+            "offsets": [f.offset for f in msg.fields],
+            "itemsize": msg.point_step,
+        }
+    )
     arr = np.frombuffer(raw, dtype=dt)
     return {n: arr[n] for n in dt.names}
 
@@ -164,11 +172,19 @@ def test_raw_cloud_accumulates_the_eq9_points_of_the_scan(messages, recording):
         g = sample.gamma_measured
         for s in sample.sensors:
             if s.echo_valid:  # eq. (9): the capsule rotated about x, plus d along the boresight
-                expected.append((xs[s.capsule_id], r * math.cos(g) + s.distance * math.cos(g),
-                                 r * math.sin(g) + s.distance * math.sin(g), sample.step, s.capsule_id))
+                expected.append(
+                    (
+                        xs[s.capsule_id],
+                        r * math.cos(g) + s.distance * math.cos(g),
+                        r * math.sin(g) + s.distance * math.sin(g),
+                        sample.step,
+                        s.capsule_id,
+                    )
+                )
     clouds = by_topic(messages, "/lelsonar/points/raw")
-    assert [m.width for _, m in clouds] == list(np.cumsum(
-        [sum(s.echo_valid for s in sample.sensors) for sample in samples]))
+    assert [m.width for _, m in clouds] == list(
+        np.cumsum([sum(s.echo_valid for s in sample.sensors) for sample in samples])
+    )
     t, last = clouds[-1]
     assert last.header.frame_id == "s1/base" and last.height == 1 and not last.is_bigendian
     rows = cloud_rows(last)
@@ -210,8 +226,7 @@ def test_estimate_and_markers(messages, recording):
     assert t == recording[1][-1].end_time_ns
     assert (est["scanner_id"], int(est["scan_id"]), est["status"]) == ("s1", 1, "final")
     assert est["samples_used"] == len(samples)
-    assert {(p["method"], p["label"]) for p in est["planes"]} == {(m, lab) for m in ("corner", "ls")
-                                                                    for lab in "ab"}
+    assert {(p["method"], p["label"]) for p in est["planes"]} == {(m, lab) for m in ("corner", "ls") for lab in "ab"}
 
     ((_, arr),) = by_topic(messages, "/lelsonar/planes")
     markers = arr.markers
@@ -229,8 +244,9 @@ def test_estimate_and_markers(messages, recording):
     drawn = [m for m in markers if m.ns == "truth"]
     assert len(drawn) == len(truth)
     for m, tp in zip(drawn, truth.values()):
-        assert {(round(v.x, 9), round(v.y, 9), round(v.z, 9)) for v in m.points} == \
-               {tuple(np.round(c, 9)) for c in tp.corners}
+        assert {(round(v.x, 9), round(v.y, 9), round(v.z, 9)) for v in m.points} == {
+            tuple(np.round(c, 9)) for c in tp.corners
+        }
     for label in "ab":  # and the estimate is close to the truth the sim drew
         n = np.array([planes["corner" + label]["normal"][k] for k in "xyz"])
         assert math.degrees(math.acos(min(1.0, abs(n @ truth[label].normal)))) < 2.0

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from lelsonar.log import recording
 from lelsonar.cli.main import build_parser, main
+from lelsonar.log import recording
 
 from .conftest import simulated_messages
 
@@ -29,8 +29,9 @@ def scan(tmp_path_factory):
 
 
 def test_a_closed_stdout_ends_quietly(scan):
-    proc = subprocess.Popen([LELSONAR, "reconstruct", "--source", str(scan), "--json"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [LELSONAR, "reconstruct", "--source", str(scan), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
     proc.stdout.close()  # the reader is gone before the first line (as `| head` after its lines)
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 141

@@ -15,8 +15,9 @@ SERVICES = Path(__file__).parents[1] / "services"
 def test_every_module_with_a_kernel_is_in_the_cache_key():
     """A kernel calling another module's kernel keeps that module's machine code: if the module is left out of
     the key, editing it leaves stale code in the cache."""
-    with_kernels = {p.resolve() for p in SERVICES.rglob("*.py")
-                    if re.search(r"^@kernel\b", p.read_text(), re.MULTILINE)}
+    with_kernels = {
+        p.resolve() for p in SERVICES.rglob("*.py") if re.search(r"^@kernel\b", p.read_text(), re.MULTILINE)
+    }
     assert with_kernels == {module_source(name).resolve() for name in KERNEL_MODULES}
 
 

@@ -47,7 +47,11 @@ def test_int16_waveform_round_trips_within_half_a_count(volts):
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.integers(0, codec.DEFAULT_LIMITS.max_steps - 1), st.integers(0, 2**63), st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,20}", fullmatch=True))
+@given(
+    st.integers(0, codec.DEFAULT_LIMITS.max_steps - 1),
+    st.integers(0, 2**63),
+    st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,20}", fullmatch=True),
+)
 def test_sample_round_trips_through_bytes(step, scan_id, scanner):
     s = make_sample(step=step, scanner_id=scanner, scan_id=scan_id)
     back = codec.decode(s.SerializeToString(), codec.Sample)
@@ -56,7 +60,11 @@ def test_sample_round_trips_through_bytes(step, scan_id, scanner):
 
 
 def test_every_contract_message_round_trips():
-    for msg in (make_scan_start(), make_sample(), codec.ScanEnd(schema_version=1, scanner_id="s1", scan_id=7, status=1)):
+    for msg in (
+        make_scan_start(),
+        make_sample(),
+        codec.ScanEnd(schema_version=1, scanner_id="s1", scan_id=7, status=1),
+    ):
         assert codec.decode(msg.SerializeToString(), type(msg)) == msg
 
 
@@ -119,8 +127,9 @@ def test_a_non_finite_sample_in_any_waveform_is_rejected_and_named(sensor, bad):
     # The float32 waveforms of a Sample are checked in one pass; the error still names the culprit,
     # also when another capsule's waveform is int16 (not part of that pass).
     s = make_sample()
-    s.sensors[2].waveform.CopyFrom(codec.pack_waveform(codec.unpack_waveform(s.sensors[2].waveform), 2e5,
-                                                       int16_scale=1e-3))
+    s.sensors[2].waveform.CopyFrom(
+        codec.pack_waveform(codec.unpack_waveform(s.sensors[2].waveform), 2e5, int16_scale=1e-3)
+    )
     v = codec.unpack_waveform(s.sensors[sensor].waveform).copy()
     v[-1] = bad
     s.sensors[sensor].waveform.CopyFrom(codec.pack_waveform(v, 2e5))
@@ -179,18 +188,26 @@ def _set(s: codec.Sample, path: str, value) -> None:
     setattr(obj, name, value)
 
 
-@pytest.mark.parametrize(("path", "value", "error", "match"), [
-    ("gamma_measured", math.inf, NonFiniteValueError, "gamma"),
-    ("motor.voltage", math.nan, NonFiniteValueError, "motor"),
-    ("sensors.1.time_of_flight", -math.inf, NonFiniteValueError, r"sensors\[1\].time_of_flight"),
-    ("sensors.2.waveform.t0", math.nan, NonFiniteValueError, r"sensors\[2\].waveform.t0"),
-    ("sensors.3.waveform.sample_rate", math.inf, NonFiniteValueError, r"sensors\[3\].waveform.sample_rate"),
-    ("sensors.3.waveform.sample_rate", 0.0, InvalidMessageError, r"sensors\[3\].waveform.sample_rate must be"),
-    ("sensors.0.waveform.sample_count", 63, TruncatedDataError, r"sensors\[0\]"),
-    ("sensors.0.waveform.encoding", 7, InvalidMessageError, "unknown encoding"),
-    ("sensors.1.distance", 100.0, InvalidMessageError, r"sensors\[1\] is marked valid"),
-    ("sensors.1.time_of_flight", -1e-3, InvalidMessageError, r"sensors\[1\] is marked valid"),  # 0: unset, the distance is there
-])
+@pytest.mark.parametrize(
+    ("path", "value", "error", "match"),
+    [
+        ("gamma_measured", math.inf, NonFiniteValueError, "gamma"),
+        ("motor.voltage", math.nan, NonFiniteValueError, "motor"),
+        ("sensors.1.time_of_flight", -math.inf, NonFiniteValueError, r"sensors\[1\].time_of_flight"),
+        ("sensors.2.waveform.t0", math.nan, NonFiniteValueError, r"sensors\[2\].waveform.t0"),
+        ("sensors.3.waveform.sample_rate", math.inf, NonFiniteValueError, r"sensors\[3\].waveform.sample_rate"),
+        ("sensors.3.waveform.sample_rate", 0.0, InvalidMessageError, r"sensors\[3\].waveform.sample_rate must be"),
+        ("sensors.0.waveform.sample_count", 63, TruncatedDataError, r"sensors\[0\]"),
+        ("sensors.0.waveform.encoding", 7, InvalidMessageError, "unknown encoding"),
+        ("sensors.1.distance", 100.0, InvalidMessageError, r"sensors\[1\] is marked valid"),
+        (
+            "sensors.1.time_of_flight",
+            -1e-3,
+            InvalidMessageError,
+            r"sensors\[1\] is marked valid",
+        ),  # 0: unset, the distance is there
+    ],
+)
 def test_every_sensor_field_is_still_checked(path, value, error, match):
     s = make_sample()
     _set(s, path, value)
@@ -209,14 +226,17 @@ def test_valid_extremes_the_screen_cannot_vouch_for_are_accepted():
     s.sensors[1].waveform.CopyFrom(codec.pack_waveform(v, 2e5))
     # A sensor without an echo may carry any finite range; an int16 waveform goes the exact way.
     s.sensors[2].echo_valid, s.sensors[2].distance, s.sensors[2].time_of_flight = False, -5.0, 0.0
-    s.sensors[3].waveform.CopyFrom(codec.pack_waveform(codec.unpack_waveform(s.sensors[3].waveform), 2e5,
-                                                       int16_scale=1e-3))
+    s.sensors[3].waveform.CopyFrom(
+        codec.pack_waveform(codec.unpack_waveform(s.sensors[3].waveform), 2e5, int16_scale=1e-3)
+    )
     assert codec.decode(s.SerializeToString(), codec.Sample) == s
     # ... int16 data whose scale was left unset (0) is read as counts, and a negative scale still refused.
     s.sensors[3].waveform.scale = 0.0
     decoded = codec.decode(s.SerializeToString(), codec.Sample)
-    np.testing.assert_array_equal(codec.unpack_waveform(decoded.sensors[3].waveform),
-                                  np.frombuffer(s.sensors[3].waveform.data, dtype="<i2").astype(np.float32))
+    np.testing.assert_array_equal(
+        codec.unpack_waveform(decoded.sensors[3].waveform),
+        np.frombuffer(s.sensors[3].waveform.data, dtype="<i2").astype(np.float32),
+    )
     s.sensors[3].waveform.scale = -1e-3
     with pytest.raises(InvalidMessageError, match=r"sensors\[3\].waveform.scale must be positive"):
         codec.decode(s.SerializeToString(), codec.Sample)

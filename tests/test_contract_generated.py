@@ -27,8 +27,14 @@ def test_cli_prints_the_contract(capsys):
 
     assert main(["schemas", "--prefix", "robot7/lelsonar"]) == 0
     out = capsys.readouterr().out
-    for needle in ("robot7/lelsonar/<scanner_id>/sample", "lelsonar.v1.Sample", "gamma_measured", "rad",
-                   "lelsonar.v1.Reconstruction", "/alive/"):
+    for needle in (
+        "robot7/lelsonar/<scanner_id>/sample",
+        "lelsonar.v1.Sample",
+        "gamma_measured",
+        "rad",
+        "lelsonar.v1.Reconstruction",
+        "/alive/",
+    ):
         assert needle in out
     assert main(["version"]) == 0
     assert "schema version 1" in capsys.readouterr().out

@@ -11,8 +11,8 @@ import pytest
 from rerun.chunk import RrdReader
 
 from lelsonar import codec
-from lelsonar.log import recording
 from lelsonar.errors import RecordingError
+from lelsonar.log import recording
 
 from .conftest import make_sample, make_scan_start
 
@@ -21,8 +21,17 @@ RERUN = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
 
 def write_scan(path: Path, steps: int = 6, **kwargs) -> list:
     sent = [make_scan_start(steps=steps)] + [make_sample(step=i) for i in range(steps)]
-    sent.append(codec.ScanEnd(schema_version=1, scanner_id="s1", scan_id=7, status=1, steps_planned=steps,
-                              samples_sent=steps, end_time_ns=sent[-1].acquisition_time_ns + 1))
+    sent.append(
+        codec.ScanEnd(
+            schema_version=1,
+            scanner_id="s1",
+            scan_id=7,
+            status=1,
+            steps_planned=steps,
+            samples_sent=steps,
+            end_time_ns=sent[-1].acquisition_time_ns + 1,
+        )
+    )
     with recording.McapRecorder(path, metadata={"scanner_id": "s1", "preset": "test"}, **kwargs) as rec:
         for msg in sent:
             rec.write(msg)
@@ -60,9 +69,11 @@ def test_unfinished_or_foreign_file_is_a_recording_error(tmp_path):
 def test_rerun_cli_checks_converts_and_verifies(tmp_path):
     path, rrd = tmp_path / "scan.mcap", tmp_path / "scan.rrd"
     write_scan(path)
-    for cmd in ([RERUN, "mcap", "check", str(path)],
-                [RERUN, "mcap", "convert", str(path), "-o", str(rrd), "--application-id", "lelsonar"],
-                [RERUN, "rrd", "verify", str(rrd)]):
+    for cmd in (
+        [RERUN, "mcap", "check", str(path)],
+        [RERUN, "mcap", "convert", str(path), "-o", str(rrd), "--application-id", "lelsonar"],
+        [RERUN, "rrd", "verify", str(rrd)],
+    ):
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, f"{cmd[1:3]} failed:\n{done.stdout}\n{done.stderr}"
     columns: dict[str, set[str]] = {}

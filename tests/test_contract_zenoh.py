@@ -11,19 +11,24 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.stream.sources import PlanesServer
 from lelsonar.net.transport import TransportError, ZenohSettings, hermetic_settings, open_session
+from lelsonar.reconstruct.stream.sources import PlanesServer
 
 from .conftest import make_sample
 
 
 def test_sample_published_by_one_session_arrives_validated_at_the_other(zenoh_socket):
     keys = ScannerKeys("lelsonar", "s1")
-    with open_session(hermetic_settings(zenoh_socket, listen=True)) as pub_session, \
-            open_session(hermetic_settings(zenoh_socket, listen=False)) as sub_session:
+    with (
+        open_session(hermetic_settings(zenoh_socket, listen=True)) as pub_session,
+        open_session(hermetic_settings(zenoh_socket, listen=False)) as sub_session,
+    ):
         sub = sub_session.declare_subscriber(ScannerKeys().sample, zenoh.handlers.FifoChannel(64))
-        pub = pub_session.declare_publisher(keys.sample, congestion_control=zenoh.CongestionControl.BLOCK,
-                                            encoding=zenoh.Encoding(codec.encoding_name(make_sample())))
+        pub = pub_session.declare_publisher(
+            keys.sample,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            encoding=zenoh.Encoding(codec.encoding_name(make_sample())),
+        )
         # Wait for the subscription to reach the publisher instead of sleeping.
         matched = threading.Event()
         pub.declare_matching_listener(lambda status: status.matching and matched.set())
@@ -66,8 +71,10 @@ def test_planes_server_answers_a_get_with_the_latest_estimate_per_scanner(zenoh_
     """The project's PlanesServer, over the service's own `latest` table: a `get` on the planes key
     returns the newest estimate of every scanner (or of the one asked for), and follows updates."""
     latest = {"s1": estimate("s1", 3, 42), "s2": estimate("s2", 9, 7)}
-    with open_session(hermetic_settings(zenoh_socket, listen=True)) as server, \
-            open_session(hermetic_settings(zenoh_socket, listen=False)) as client:
+    with (
+        open_session(hermetic_settings(zenoh_socket, listen=True)) as server,
+        open_session(hermetic_settings(zenoh_socket, listen=False)) as client,
+    ):
         planes = PlanesServer(server, ScannerKeys(), latest)
         try:
             every = planes_querier(client, ScannerKeys().planes)
@@ -81,8 +88,10 @@ def test_planes_server_answers_a_get_with_the_latest_estimate_per_scanner(zenoh_
 
 
 def test_planes_server_publishes_each_estimate_on_its_scanner_key(zenoh_socket):
-    with open_session(hermetic_settings(zenoh_socket, listen=True)) as server, \
-            open_session(hermetic_settings(zenoh_socket, listen=False)) as client:
+    with (
+        open_session(hermetic_settings(zenoh_socket, listen=True)) as server,
+        open_session(hermetic_settings(zenoh_socket, listen=False)) as client,
+    ):
         sub = client.declare_subscriber(ScannerKeys().planes, zenoh.handlers.FifoChannel(16))
         # The subscription has reached the server once a publisher there matches it.
         probe = server.declare_publisher(ScannerKeys().planes)
@@ -126,8 +135,10 @@ def test_the_acquire_service_is_alive_while_it_runs_and_gone_after(tmp_path, zen
         report = run_acquisition(cfg, hermetic_settings(zenoh_socket, listen=False), threading.Event())
         assert report.ok
         assert gone.wait(10)
-    assert events == [("lelsonar/rig7/alive/acquire", zenoh.SampleKind.PUT),
-                      ("lelsonar/rig7/alive/acquire", zenoh.SampleKind.DELETE)]
+    assert events == [
+        ("lelsonar/rig7/alive/acquire", zenoh.SampleKind.PUT),
+        ("lelsonar/rig7/alive/acquire", zenoh.SampleKind.DELETE),
+    ]
 
 
 def test_client_without_router_names_the_fix(tmp_path):

@@ -17,12 +17,26 @@ from lelsonar.errors import ConfigError
 # --- table and units ------------------------------------------------------------------
 def test_control_table_matches_the_datasheet_addresses() -> None:
     expect = {
-        "model_number": (0, 2, 12), "id": (3, 1, 1), "baud_rate": (4, 1, 1), "return_delay_time": (5, 1, 250),
-        "cw_angle_limit": (6, 2, 0), "ccw_angle_limit": (8, 2, 1023), "status_return_level": (16, 1, 2),
-        "torque_enable": (24, 1, 0), "led": (25, 1, 0), "goal_position": (30, 2, None), "moving_speed": (32, 2, None),
-        "torque_limit": (34, 2, None), "present_position": (36, 2, None), "present_speed": (38, 2, None),
-        "present_load": (40, 2, None), "present_voltage": (42, 1, None), "present_temperature": (43, 1, None),
-        "moving": (46, 1, 0), "lock": (47, 1, 0), "punch": (48, 2, 32),
+        "model_number": (0, 2, 12),
+        "id": (3, 1, 1),
+        "baud_rate": (4, 1, 1),
+        "return_delay_time": (5, 1, 250),
+        "cw_angle_limit": (6, 2, 0),
+        "ccw_angle_limit": (8, 2, 1023),
+        "status_return_level": (16, 1, 2),
+        "torque_enable": (24, 1, 0),
+        "led": (25, 1, 0),
+        "goal_position": (30, 2, None),
+        "moving_speed": (32, 2, None),
+        "torque_limit": (34, 2, None),
+        "present_position": (36, 2, None),
+        "present_speed": (38, 2, None),
+        "present_load": (40, 2, None),
+        "present_voltage": (42, 1, None),
+        "present_temperature": (43, 1, None),
+        "moving": (46, 1, 0),
+        "lock": (47, 1, 0),
+        "punch": (48, 2, 32),
     }
     for name, (address, size, default) in expect.items():
         reg = ax12.register(name)
@@ -56,7 +70,9 @@ def test_speed_model_saturates_at_the_no_load_speed() -> None:
     assert ax12.speed_rad_s(1023) == ax12.speed_rad_s(0)  # 114 rpm asked, 59 rpm delivered
     # 60° at 59 rpm: 0.169 s.
     assert ax12.travel_time_s(0, round(60 / ax12.DEG_PER_UNIT), 0) == pytest.approx(60 / 354, rel=1e-2)
-    assert ax12.signed_load(0x400 | 1023) == pytest.approx(-1.0) and ax12.signed_load(511) == pytest.approx(0.4995, abs=1e-3)
+    assert ax12.signed_load(0x400 | 1023) == pytest.approx(-1.0) and ax12.signed_load(511) == pytest.approx(
+        0.4995, abs=1e-3
+    )
     assert ax12.error_bit_names(0b0100010) == ("angle_limit", "overload")
 
 

@@ -20,9 +20,9 @@ from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices import sensor_frame as sf
 from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
-from lelsonar.cli import emulate as cli
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.sensor_board_emulator import echo_shot_source, sim_shot_source
+from lelsonar.cli import emulate as cli
 
 FS = 200_000
 

@@ -48,5 +48,7 @@ def test_a_full_emulated_scan_completes_with_every_core_saturated(cpu_hog) -> No
     assert np.all(np.diff([s.gamma_measured for s in samples]) > 0)
     assert math.isclose(samples[-1].gamma_measured, sim.gamma_stop, abs_tol=ax12.RAD_PER_UNIT)
     # Diagnostics of what the load did (reported by `pytest -rA -s`).
-    print(f"\nunder load: {motor.late_replies} late replies waited out, {motor.retries_used} resends, "
-          f"{motor.stale_replies_binned} stale replies binned")
+    print(
+        f"\nunder load: {motor.late_replies} late replies waited out, {motor.retries_used} resends, "
+        f"{motor.stale_replies_binned} stale replies binned"
+    )

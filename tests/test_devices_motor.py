@@ -14,8 +14,8 @@ from lelsonar.acquire.devices.motor import (
     GammaOutOfRangeError,
     InputVoltageError,
     Motor,
-    MotorConfig,
     MotorCommunicationError,
+    MotorConfig,
     MotorStatusError,
     MotorTimeoutError,
     OverheatingError,
@@ -41,8 +41,12 @@ def servo():
 
 
 def config(emu: AX12Emulator, **kw) -> MotorConfig:
-    return MotorConfig(port=emu.path, latency_timer_ms=kw.pop("latency_timer_ms", LATENCY_MS),
-                       stale_guard_s=kw.pop("stale_guard_s", WINDOW_S), **kw)
+    return MotorConfig(
+        port=emu.path,
+        latency_timer_ms=kw.pop("latency_timer_ms", LATENCY_MS),
+        stale_guard_s=kw.pop("stale_guard_s", WINDOW_S),
+        **kw,
+    )
 
 
 def test_ping_returns_model_12_and_torque_follows_the_context(servo) -> None:
@@ -222,5 +226,3 @@ def test_config_is_validated() -> None:
     with pytest.raises(ConfigError, match="moving_speed"):
         MotorConfig(port="/dev/null", moving_speed=2000)
     assert MotorConfig(port="x").packet_timeout_s == pytest.approx(0.034)
-
-

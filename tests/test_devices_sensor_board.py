@@ -13,8 +13,8 @@ from lelsonar.acquire.devices import sensor_frame as sf
 from lelsonar.acquire.devices.link import Link
 from lelsonar.acquire.devices.sensor_board import (
     SensorBoard,
-    SensorBoardConfig,
     SensorBoardCommunicationError,
+    SensorBoardConfig,
     SensorBoardDecodeError,
     SensorBoardReportedError,
     SensorBoardTimeoutError,
@@ -34,8 +34,14 @@ N, FS = 400, 200_000  # a 2 ms window keeps the tests quick
 def board_config(emu: SensorBoardEmulator, **kw) -> SensorBoardConfig:
     # Short timeouts keep the retry tests quick; the line time of a 1 Mbaud UART (not USB's 12× less)
     # keeps them clear of a busy host's delays, as these tests were tuned.
-    return SensorBoardConfig(port=emu.path, n_samples=kw.pop("n_samples", N), fs_hz=FS, timeout_margin_s=0.02,
-                             link=kw.pop("link", Link.uart(1_000_000)), **kw)
+    return SensorBoardConfig(
+        port=emu.path,
+        n_samples=kw.pop("n_samples", N),
+        fs_hz=FS,
+        timeout_margin_s=0.02,
+        link=kw.pop("link", Link.uart(1_000_000)),
+        **kw,
+    )
 
 
 def counting_source(step: int, gamma: float, n: int, fs: float) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +136,10 @@ def test_oversize_len_is_rejected_with_a_typed_error() -> None:
         with SerialSensorBoard(SensorBoardConfig(port=fake_board.path, n_samples=N, fs_hz=FS)) as drv:
             header = sf.encode_frame(sf.FrameType.ACQ, 1, b"")[:12]  # the first FIRE has SEQ 1
             ver_to_len = header[2:6] + (10_000_000).to_bytes(4, "little")
-            os.write(fake_board.master_fd, b"\xa5\x5a" + ver_to_len + binascii.crc_hqx(ver_to_len, 0xFFFF).to_bytes(2, "little"))
+            os.write(
+                fake_board.master_fd,
+                b"\xa5\x5a" + ver_to_len + binascii.crc_hqx(ver_to_len, 0xFFFF).to_bytes(2, "little"),
+            )
             with pytest.raises(SensorBoardDecodeError, match="10000000") as info:
                 drv.fire(1)
             # Refused at the header: had it waited for the payload, it would have timed out and asked again.

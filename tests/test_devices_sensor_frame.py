@@ -46,7 +46,14 @@ def test_acq_round_trip() -> None:
     frame = parser.next_frame()
     assert frame is not None and (frame.type, frame.seq) == (sf.FrameType.ACQ, 9)
     back = sf.decode_acq(frame.payload)
-    assert (back.step, back.bits, back.fs_hz, back.t_fire_us, back.n_ch, back.n_samples) == (3, 12, 200_000, 123456, 4, 64)
+    assert (back.step, back.bits, back.fs_hz, back.t_fire_us, back.n_ch, back.n_samples) == (
+        3,
+        12,
+        200_000,
+        123456,
+        4,
+        64,
+    )
     np.testing.assert_array_equal(back.tof_ns, acq.tof_ns)
     np.testing.assert_array_equal(back.waves, acq.waves)
     assert parser.next_frame() is None and parser.discarded == 0

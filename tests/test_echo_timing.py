@@ -14,12 +14,12 @@ import math
 import numpy as np
 import pytest
 
+from lelsonar.signal.echo_timing import MIN_WALK, TIMING_WINDOW, echo_onsets, range_walk, walk_free_ranges
+from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim import SimConfig, simulate_scan
 from lelsonar.sim.acoustics import comparator_delay, echo_envelope
 from lelsonar.sim.presets import preset as preset_config
 from lelsonar.sim.presets import preset_names
-from lelsonar.signal.echo_timing import MIN_WALK, TIMING_WINDOW, echo_onsets, range_walk, walk_free_ranges
-from lelsonar.signal.energy import echo_amplitude
 from lelsonar.tools import bench_stress as stress
 
 C = 343.2
@@ -44,7 +44,9 @@ def test_a_crossing_board_reads_weaker_echoes_farther_by_its_delay_and_an_onset_
     ok = np.isfinite(onset.distance)
     extra = (crossing.distance - onset.distance)[ok]
     # Each echo's peak at the receiver, from the waveforms (the truth the board saw).
-    peak = echo_amplitude(onset.waveforms, onset.sample_rate, onset.t0, onset.truth.echo_range * 2 / onset.sound_speed)[ok]
+    peak = echo_amplitude(onset.waveforms, onset.sample_rate, onset.t0, onset.truth.echo_range * 2 / onset.sound_speed)[
+        ok
+    ]
     want = onset.sound_speed / 2 * comparator_delay(peak, cfg.receiver.threshold, cfg.receiver.envelope_time)
     # The waveform's peak is the echo's to the noise (2 mV) and the sampling of the carrier (cos 36° at worst).
     assert np.all(extra > 0) and np.all(extra <= onset.sound_speed / 2 * cfg.receiver.envelope_time + 1e-12)
@@ -53,8 +55,14 @@ def test_a_crossing_board_reads_weaker_echoes_farther_by_its_delay_and_an_onset_
 
 
 # ----------------------------------------------------------------------------- constant-fraction timing
-def _bursts(shape: str, peaks: np.ndarray, rng: np.random.Generator, rate: float = 200_000.0,
-            threshold: float = 0.05, noise: float = 0.002):
+def _bursts(
+    shape: str,
+    peaks: np.ndarray,
+    rng: np.random.Generator,
+    rate: float = 200_000.0,
+    threshold: float = 0.05,
+    noise: float = 0.002,
+):
     """Windows holding one 40 kHz burst each at a known arrival, cut around the time a threshold-crossing board
     would report: (windows, that time and the arrival after each window's first sample)."""
     width = int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0]) * rate))
@@ -112,8 +120,10 @@ def test_a_walk_is_detected_and_removed_and_flat_ranges_never_are():
     assert np.mean(np.abs(left - zero) < 1e-3) > 0.97
     assert np.all(np.abs(left - zero) < 5 * 0.002)
     # A board timing the onset: never detected (4σ one-sided), over many seeded scans.
-    alarms = sum(range_walk(rng.normal(0, 0.002, 200) + rng.normal(0, 2e-4, 200),
-                            np.exp(rng.uniform(-3, 0, 200))).detected for _ in range(300))
+    alarms = sum(
+        range_walk(rng.normal(0, 0.002, 200) + rng.normal(0, 2e-4, 200), np.exp(rng.uniform(-3, 0, 200))).detected
+        for _ in range(300)
+    )
     assert alarms == 0
 
 
@@ -127,11 +137,14 @@ def _cli(tmp_path, case):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kw", [
-    dict(distance_a=1.57, distance_b=1.06, threshold=0.05),                     # the paper's corner
-    dict(distance_a=2.2, distance_b=0.8, roll=math.radians(8), threshold=0.03, envelope_time=0.3e-3),
-    dict(distance_a=0.9, distance_b=1.8, roll=math.radians(-12), threshold=0.12, echo_gain=4.0),
-])
+@pytest.mark.parametrize(
+    "kw",
+    [
+        dict(distance_a=1.57, distance_b=1.06, threshold=0.05),  # the paper's corner
+        dict(distance_a=2.2, distance_b=0.8, roll=math.radians(8), threshold=0.03, envelope_time=0.3e-3),
+        dict(distance_a=0.9, distance_b=1.8, roll=math.radians(-12), threshold=0.12, echo_gain=4.0),
+    ],
+)
 def test_a_board_timing_threshold_crossings_gives_accurate_planes(tmp_path, kw):
     case = stress.StressCase("comparator", 0, timing="crossing", **kw)
     code, rows = _cli(tmp_path, case)
@@ -162,7 +175,7 @@ def _timing_windows(scan):
     for (i, j), t in np.ndenumerate(scan.tof):
         a = int(round((t + TIMING_WINDOW[0] - scan.t0) * rate)) if np.isfinite(t) else -1
         if 0 <= a and a + width <= scan.waveforms.shape[-1]:
-            rows.append(scan.waveforms[i, j, a:a + width])
+            rows.append(scan.waveforms[i, j, a : a + width])
             at.append(t - (scan.t0 + a / rate))
     return np.array(rows), rate, np.array(at)
 
@@ -207,8 +220,11 @@ def _onsets_by_arrays(windows, rate, tof_at, fraction=0.5):
     rise[:, period:] = env[:, period:] - env[:, :-period]
     steepest = np.argmax(np.where((idx >= j[:, None]) & (idx <= k_peak[:, None]), rise, -np.inf), axis=-1)
     knee = np.argmin(np.where((idx >= steepest[:, None]) & (idx <= k_peak[:, None]), rise, np.inf), axis=-1)
-    merged = ((knee < k_peak - period) & (rise[rows, knee] < 0.3 * rise[rows, steepest])
-              & (env[rows, k_peak] - env[rows, knee] > np.maximum(0.2 * (env[rows, knee] - floor), 8.0 * sigma)))
+    merged = (
+        (knee < k_peak - period)
+        & (rise[rows, knee] < 0.3 * rise[rows, steepest])
+        & (env[rows, k_peak] - env[rows, knee] > np.maximum(0.2 * (env[rows, knee] - floor), 8.0 * sigma))
+    )
     k_peak = np.where(merged, knee, k_peak)
 
     def crossing(f):
@@ -231,12 +247,15 @@ def _onsets_by_arrays(windows, rate, tof_at, fraction=0.5):
 def test_the_timing_kernels_agree_with_array_code_on_a_crossing_board(threshold, envelope_time):
     """On a threshold-crossing board's own windows (the simulator's, two seeds), the compiled re-timing and
     walk statistics give what whole-array NumPy gives, to rounding."""
-    from lelsonar.signal import echo_timing as et
     from scipy.ndimage import uniform_filter1d
 
+    from lelsonar.signal import echo_timing as et
+
     cfg = SimConfig()
-    cfg = dataclasses.replace(cfg, receiver=dataclasses.replace(cfg.receiver, timing="crossing", threshold=threshold,
-                                                                envelope_time=envelope_time))
+    cfg = dataclasses.replace(
+        cfg,
+        receiver=dataclasses.replace(cfg.receiver, timing="crossing", threshold=threshold, envelope_time=envelope_time),
+    )
     for seed in range(2):
         scan = simulate_scan(cfg, seed)
         windows, rate, at = _timing_windows(scan)

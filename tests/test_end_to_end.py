@@ -11,10 +11,9 @@ import threading
 import pytest
 import zenoh
 
-
-from lelsonar.view import present
-from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.net.transport import ZenohSettings, open_session
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+from lelsonar.view import present
 
 from .conftest import assert_matches_the_scene
 
@@ -63,8 +62,11 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
     finally:
         for p in procs:
             p.kill()
-    planner_finals = [json.loads(line) for line in planner_out.splitlines()
-                      if line.startswith("{") and json.loads(line)["status"] == "final"]
+    planner_finals = [
+        json.loads(line)
+        for line in planner_out.splitlines()
+        if line.startswith("{") and json.loads(line)["status"] == "final"
+    ]
     live = [json.loads(line) for line in recon_out.splitlines() if line.startswith("{")]
     assert len(planner_finals) == 1 and len(live) == 1
     assert planner_finals[0] == live[0]
@@ -73,8 +75,13 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
     estimate = present.from_json(live[0])
     assert_matches_the_scene(estimate, DEFAULT_METHOD, "paper-test1")  # acquire's default preset
 
-    replay = subprocess.run(LELSONAR + ["reconstruct", "--source", str(tmp_path / "scan.mcap"), "--json"],
-                            capture_output=True, text=True, timeout=120, env=ENV)
+    replay = subprocess.run(
+        LELSONAR + ["reconstruct", "--source", str(tmp_path / "scan.mcap"), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=ENV,
+    )
     assert replay.returncode == 0, replay.stderr
     (replayed,) = [json.loads(line) for line in replay.stdout.splitlines() if line.startswith("{")]
     assert without_clock(replayed) == without_clock(live[0])

@@ -20,7 +20,8 @@ from hypothesis import strategies as st
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
-from lelsonar.view import present
+from lelsonar.net.transport import ZenohSettings, open_session
+from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.group import (
     GroupConfig,
     GroupMembership,
@@ -32,19 +33,18 @@ from lelsonar.reconstruct.stream.group import (
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
-from lelsonar.net.transport import ZenohSettings, open_session
 
 from .conftest import simulated_messages
 from .live_rig import PREFIX, Acquirer, renamed
 
 ids = st.text(alphabet="abcdefghijklmnopqrstuvwxyz0123456789-", min_size=1, max_size=12).filter(
-    lambda s: s[0].isalnum())
+    lambda s: s[0].isalnum()
+)
 
 
 # --- assignment as a pure function -----------------------------------------------------------
 @settings(max_examples=60, deadline=None)
-@given(scanners=st.sets(ids, min_size=1, max_size=60), members=st.sets(ids, min_size=1, max_size=8),
-       newcomer=ids)
+@given(scanners=st.sets(ids, min_size=1, max_size=60), members=st.sets(ids, min_size=1, max_size=8), newcomer=ids)
 def test_each_scanner_has_one_owner_and_a_change_moves_only_that_members_share(scanners, members, newcomer):
     before = {s: owner(s, members) for s in scanners}
     assert all(before[s] in members for s in scanners)
@@ -72,9 +72,17 @@ def test_assignment_is_balanced_within_the_binomial_bound(members, salt):
 
 
 def test_owner_is_stable_across_processes_and_refuses_an_empty_group():
-    out = subprocess.run([sys.executable, "-c", "from lelsonar.reconstruct.stream.group import owner;"
-                          "print(owner('scanner-7', ['a', 'b', 'c']))"], capture_output=True, text=True,
-                         env={**os.environ, "PYTHONHASHSEED": "123"}, check=True)
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from lelsonar.reconstruct.stream.group import owner;print(owner('scanner-7', ['a', 'b', 'c']))",
+        ],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONHASHSEED": "123"},
+        check=True,
+    )
     assert out.stdout.strip() == owner("scanner-7", ["a", "b", "c"])
     with pytest.raises(ConfigError, match="group is empty"):
         owner("s1", [])
@@ -82,11 +90,11 @@ def test_owner_is_stable_across_processes_and_refuses_an_empty_group():
 
 def test_handover_rule_joining_members_wait_for_scans_that_start_after_they_settled():
     members = {"old": 0, "new": 10_000}
-    assert eligible(members, 5_000, "old", settle_ns=1_000) == ["old"]           # started before new joined
-    assert eligible(members, 10_500, "new", settle_ns=1_000) == ["old"]          # within new's settle time
+    assert eligible(members, 5_000, "old", settle_ns=1_000) == ["old"]  # started before new joined
+    assert eligible(members, 10_500, "new", settle_ns=1_000) == ["old"]  # within new's settle time
     assert sorted(eligible(members, 11_000, "old", settle_ns=1_000)) == ["new", "old"]
-    assert eligible(members, None, "new", settle_ns=1_000) == ["old"]            # new never saw it start
-    assert eligible({"solo": 5}, None, "solo", settle_ns=1_000) == ["solo"]      # alone: catch up from the log
+    assert eligible(members, None, "new", settle_ns=1_000) == ["old"]  # new never saw it start
+    assert eligible({"solo": 5}, None, "solo", settle_ns=1_000) == ["solo"]  # alone: catch up from the log
     assert sorted(eligible(members, 100, "old", settle_ns=1_000_000)) == ["new", "old"]  # nobody settled: all
 
 
@@ -108,24 +116,33 @@ def test_the_reconstruct_role_may_use_the_group_keys_and_the_others_may_not():
     finals = finals_key(PREFIX, "g", "m1")
 
     def allowed(role, message, flow, key):
-        return any(message in r["messages"] and flow in r["flows"]
-                   and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in r["key_exprs"])
-                   for r in role_rules(role, PREFIX))
+        return any(
+            message in r["messages"]
+            and flow in r["flows"]
+            and any(zenoh.KeyExpr(k).includes(zenoh.KeyExpr(key)) for k in r["key_exprs"])
+            for r in role_rules(role, PREFIX)
+        )
 
-    for message, flow, key in (("liveliness_token", "ingress", token), ("declare_liveliness_subscriber", "ingress",
-                                                                        members),
-                               ("liveliness_token", "egress", token), ("put", "ingress", done),
-                               ("declare_subscriber", "ingress", done), ("put", "egress", done),
-                               ("declare_queryable", "ingress", finals), ("query", "ingress", finals),
-                               ("reply", "ingress", finals), ("query", "egress", finals),
-                               ("reply", "egress", finals)):
+    for message, flow, key in (
+        ("liveliness_token", "ingress", token),
+        ("declare_liveliness_subscriber", "ingress", members),
+        ("liveliness_token", "egress", token),
+        ("put", "ingress", done),
+        ("declare_subscriber", "ingress", done),
+        ("put", "egress", done),
+        ("declare_queryable", "ingress", finals),
+        ("query", "ingress", finals),
+        ("reply", "ingress", finals),
+        ("query", "egress", finals),
+        ("reply", "egress", finals),
+    ):
         assert allowed(RECONSTRUCT, message, flow, key), (message, flow, key)
         assert not allowed(PLANNER, message, flow, key) and not allowed(acquire_role("s1"), message, flow, key)
 
 
 def test_group_flags_come_from_the_config_file(tmp_path):
-    from lelsonar.cli.main import build_parser
     from lelsonar.cli.config_file import parse_args
+    from lelsonar.cli.main import build_parser
 
     path = tmp_path / "site.toml"
     path.write_text('[reconstruct]\ngroup = "site"\nmember-id = "m1"\ngroup_settle = 0.5\n')
@@ -168,7 +185,7 @@ class Finals:
     def _on(self, sample: zenoh.Sample) -> None:
         msg = codec.Reconstruction.FromString(sample.payload.to_bytes())
         with self.cv:
-            if present.is_terminal(msg):
+            if wire.is_terminal(msg):
                 self.by_scan.setdefault((msg.scanner_id, msg.scan_id), []).append(msg)
                 if len(self.by_scan) >= self.expect:
                     self.done.set()
@@ -191,13 +208,15 @@ def start_member(stack: ExitStack, endpoint: str, member: str) -> GroupMembershi
     keys = ScannerKeys(PREFIX, "*")
     group = stack.enter_context(GroupMembership(session, PREFIX, GroupConfig("g", member, settle=0.0)))
     server = None
-    service = ReconstructionService(ReconstructConfig(provisional=False, compare_methods=()),
-                                    publish=group.fenced(lambda msg: server.publish(msg)))
+    service = ReconstructionService(
+        ReconstructConfig(provisional=False, compare_methods=()), publish=group.fenced(lambda msg: server.publish(msg))
+    )
     server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
     stack.callback(server.close)
     stop = threading.Event()
-    stack.enter_context(LiveSource(session, keys, service, stop, recovery=RecoveryConfig(query_timeout=2.0),
-                                   group=group))
+    stack.enter_context(
+        LiveSource(session, keys, service, stop, recovery=RecoveryConfig(query_timeout=2.0), group=group)
+    )
     group.service = service  # for the test's checks
     # Declared after the source's subscribers: once seen, the subscribers are known too.
     stack.callback(session.liveliness().declare_token(f"{PREFIX}/{member}/alive/test-member").undeclare)
@@ -237,8 +256,11 @@ def test_a_joining_member_knows_the_members_alive_before_it_judges_any_payload(t
             session = stack.enter_context(open_session(client(endpoint)))
             elders.append(stack.enter_context(GroupMembership(session, PREFIX, GroupConfig("g", m, settle=0.0))))
         assert all(e.wait_members(3, 20) for e in elders)
-        newcomer = stack.enter_context(GroupMembership(stack.enter_context(open_session(client(endpoint))), PREFIX,
-                                                       GroupConfig("g", "d", settle=0.0)))
+        newcomer = stack.enter_context(
+            GroupMembership(
+                stack.enter_context(open_session(client(endpoint))), PREFIX, GroupConfig("g", "d", settle=0.0)
+            )
+        )
         # No waiting here: what __enter__ returned with is what the first payload is judged by.
         assert sorted(newcomer.members) == ["a", "b", "c", "d"]
         assert newcomer.stats["members joined"] == 3
@@ -266,13 +288,16 @@ def test_two_members_each_scanner_final_arrives_exactly_once(tmp_path, scan):
         # Wait for both members to finish (a duplicate would come from the other member's own final).
         assert a.service.stats.finals + b.service.stats.finals == len(scanners)
         # A get on every scanner's planes is answered once per scanner, by whichever member owns it.
-        replies = [str(r.ok.key_expr) for r in acq.get(f"{PREFIX}/*/planes", timeout=5,
-                                                       consolidation=zenoh.ConsolidationMode.NONE) if r.ok]
+        replies = [
+            str(r.ok.key_expr)
+            for r in acq.get(f"{PREFIX}/*/planes", timeout=5, consolidation=zenoh.ConsolidationMode.NONE)
+            if r.ok
+        ]
         assert sorted(replies) == [f"{PREFIX}/{s}/planes" for s in scanners]
     assert sorted(finals.by_scan) == [(s, 1) for s in scanners]
     for key, msgs in finals.by_scan.items():
         assert len(msgs) == 1, f"{key}: {len(msgs)} finals"
-        assert present.status_name(msgs[0]) == "final" and msgs[0].accounting.missing == 0
+        assert wire.status_name(msgs[0]) == "final" and msgs[0].accounting.missing == 0
     # Each member processed its own scanners and dropped the others' before decoding, counted.
     assert a.service.stats.finals == 2 and b.service.stats.finals == 2
     assert a.stats["dropped: other member"] > 0 and b.stats["dropped: other member"] > 0
@@ -289,9 +314,28 @@ def test_a_member_killed_mid_scan_its_scans_still_get_one_complete_final(tmp_pat
         acq = stack.enter_context(open_session(client(endpoint)))
         finals = Finals(acq, expect=len(scanners))
         proc = subprocess.Popen(
-            [sys.executable, "-m", "lelsonar", "reconstruct", "--group", "g", "--member-id", "b", "--group-settle",
-             "0", "--compare", "", "--mode", "client", "--connect", endpoint],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                "-m",
+                "lelsonar",
+                "reconstruct",
+                "--group",
+                "g",
+                "--member-id",
+                "b",
+                "--group-settle",
+                "0",
+                "--compare",
+                "",
+                "--mode",
+                "client",
+                "--connect",
+                endpoint,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         stack.callback(lambda: proc.poll() is None and proc.kill())
         a = start_member(stack, endpoint, "a")
         assert a.wait_members(2, 30), proc.stderr.read() if proc.poll() is not None else "b never joined"
@@ -302,22 +346,23 @@ def test_a_member_killed_mid_scan_its_scans_still_get_one_complete_final(tmp_pat
         wait_alive(acq, f"{PREFIX}/*/alive/reconstruct", 1)
         messages = {s: renamed(scan, s) for s in scanners}
         for s, x in acquirers.items():
-            x.send(messages[s][:1 + cut])  # ScanStart and the first `cut` steps
+            x.send(messages[s][: 1 + cut])  # ScanStart and the first `cut` steps
         with finals.cv:
-            assert finals.cv.wait_for(lambda: all(finals.provisional[s] for s in b_scanners), 40), \
+            assert finals.cv.wait_for(lambda: all(finals.provisional[s] for s in b_scanners), 40), (
                 f"b published no provisional estimate: {dict(finals.provisional)}"
+            )
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
         with a.changed:
             assert a.changed.wait_for(lambda: "b" not in a.members, 20)
         for s, x in acquirers.items():
-            x.send(messages[s][1 + cut:])  # the rest and the ScanEnd
+            x.send(messages[s][1 + cut :])  # the rest and the ScanEnd
         assert finals.done.wait(40), f"finals: {sorted(finals.by_scan)}; group {a.stats_dict()}"
     assert sorted(finals.by_scan) == [(s, 1) for s in scanners]
     for key, msgs in finals.by_scan.items():
         assert len(msgs) == 1, f"{key}: {len(msgs)} finals"
         est = msgs[0]
-        assert present.status_name(est) == "final" and not est.missing_steps, key
+        assert wire.status_name(est) == "final" and not est.missing_steps, key
         assert est.accounting.missing == 0 and est.samples_used == STEPS
     assert a.stats["scans adopted"] == len(b_scanners)
     # b's scans were completed from the acquirers' logs: every sample a dropped as b's came back from them
@@ -392,8 +437,9 @@ def test_a_departed_members_scans_reach_a_full_fifo_while_its_worker_asks_the_fe
 
     def enqueue(encoding, payload, origin, scanner):  # as the live source's: waits for room
         feeding.set()
-        fifo.put((codec.MESSAGE_TYPES[encoding.partition(";")[2]].FromString(payload).DESCRIPTOR.name, scanner),
-                 timeout=30)  # bounded, so that a deadlock fails the test instead of hanging it
+        fifo.put(
+            (codec.MESSAGE_TYPES[encoding.partition(";")[2]].FromString(payload).DESCRIPTOR.name, scanner), timeout=30
+        )  # bounded, so that a deadlock fails the test instead of hanging it
 
     taken: list = []
 
@@ -405,9 +451,14 @@ def test_a_departed_members_scans_reach_a_full_fifo_while_its_worker_asks_the_fe
             taken.extend(more)
 
     group.attach(enqueue)
-    threads = [threading.Thread(target=worker, daemon=True),
-               threading.Thread(target=group._on_token, daemon=True,
-                                args=(_Sample(f"{PREFIX}/_group/g/member/b/0", zenoh.SampleKind.DELETE),))]
+    threads = [
+        threading.Thread(target=worker, daemon=True),
+        threading.Thread(
+            target=group._on_token,
+            daemon=True,
+            args=(_Sample(f"{PREFIX}/_group/g/member/b/0", zenoh.SampleKind.DELETE),),
+        ),
+    ]
     for t in threads:
         t.start()
     assert asked.wait(10), "the worker waited for the group's lock while the adopted scan waited for room"
@@ -424,8 +475,8 @@ def test_a_member_that_joins_mid_scan_leaves_that_scan_to_its_owner_and_takes_th
     start, _end = _scan_msgs(s)
     start.start_time_ns = 1_000
     assert old.admit(s, "scan", codec.encoding_name(start), _Payload(start.SerializeToString()))
-    old._on_token(_Sample(f"{PREFIX}/_group/g/member/new/2000"))   # joins mid-scan
-    assert old.admit(s, "sample", "", None)                          # old keeps the scan it started
+    old._on_token(_Sample(f"{PREFIX}/_group/g/member/new/2000"))  # joins mid-scan
+    assert old.admit(s, "sample", "", None)  # old keeps the scan it started
     nxt = codec.ScanStart()
     nxt.CopyFrom(start)
     nxt.scan_id, nxt.start_time_ns = 2, 3_000
@@ -518,9 +569,11 @@ def test_under_a_backlog_an_ended_scans_recovery_neither_retries_nor_gives_up(sc
 
     now = [0.0]
     asked: list[RecoveryRequest] = []
-    service = ReconstructionService(ReconstructConfig(provisional=False, compare_methods=(), recovery_attempts=2,
-                                                      recovery_interval=0.5), clock=lambda: now[0],
-                                    recover=lambda r: asked.append(r) or True)
+    service = ReconstructionService(
+        ReconstructConfig(provisional=False, compare_methods=(), recovery_attempts=2, recovery_interval=0.5),
+        clock=lambda: now[0],
+        recover=lambda r: asked.append(r) or True,
+    )
     for m in scan:
         if not (isinstance(m, codec.Sample) and m.step < 50):
             service.handle(m.DESCRIPTOR.full_name, m.SerializeToString())
@@ -531,8 +584,8 @@ def test_under_a_backlog_an_ended_scans_recovery_neither_retries_nor_gives_up(sc
     assert len(asked) == 1
     for m in scan[1:51]:  # the replies, once the backlog is through
         service.handle(m.DESCRIPTOR.full_name, m.SerializeToString(), origin="recovered")
-    (final,) = [e for e in service.tick() if present.is_terminal(e)] or [service.finals[("s1", 1)]]
-    assert present.status_name(final) == "final" and final.accounting.recovered == 50
+    (final,) = [e for e in service.tick() if wire.is_terminal(e)] or [service.finals[("s1", 1)]]
+    assert wire.status_name(final) == "final" and final.accounting.recovered == 50
 
 
 def test_a_member_that_joins_mid_scan_takes_its_share_at_the_next_scan(tmp_path, scan):
@@ -563,20 +616,22 @@ def test_a_member_that_joins_mid_scan_takes_its_share_at_the_next_scan(tmp_path,
             # whenever a member gets to its ScanStart (a start before every member joined would be
             # shared among the members known then, which a backlogged member may learn later).
             first[s][0].start_time_ns = time.time_ns()
-            x.send(first[s][:1 + STEPS // 2])
+            x.send(first[s][: 1 + STEPS // 2])
         c = start_member(stack, endpoint, "c")  # joins mid-scan
         assert all(m.wait_members(3, 20) for m in (a, b, c))
         wait_subscribed(acq, 3)
         for s, x in acquirers.items():
-            x.send(first[s][1 + STEPS // 2:])
+            x.send(first[s][1 + STEPS // 2 :])
         for s, x in acquirers.items():
             second[s][0].start_time_ns = time.time_ns()  # after c joined (settle 0): c takes part
             x.send(second[s])
         assert finals.done.wait(40), f"finals: {sorted(finals.by_scan)}"
         with finals.cv:
-            assert finals.cv.wait_for(lambda: a.service.stats.finals + b.service.stats.finals
-                                      + c.service.stats.finals == 2 * len(scanners), 10)
-    assert all(len(v) == 1 and present.status_name(v[0]) == "final" for v in finals.by_scan.values())
+            assert finals.cv.wait_for(
+                lambda: a.service.stats.finals + b.service.stats.finals + c.service.stats.finals == 2 * len(scanners),
+                10,
+            )
+    assert all(len(v) == 1 and wire.status_name(v[0]) == "final" for v in finals.by_scan.values())
     assert sorted(finals.by_scan) == sorted((s, k) for s in scanners for k in (1, 2))
     # c left the scans that had started to their owners, and took its share of the next ones.
     assert {m.scan_id for m in c.service.finals.values()} == {2} and c.service.stats.finals == 1

@@ -30,7 +30,7 @@ DOWN_S = 6.0  # three leases: both sides give the other up
 WATCHER = f"""
 import sys, zenoh
 from lelsonar import codec
-from lelsonar.view import present
+from lelsonar.reconstruct.estimate import wire
 cfg = zenoh.Config()
 cfg.insert_json5("mode", '"client"')
 cfg.insert_json5("connect/endpoints", '["tcp/{IP_B}:{PORT}"]')
@@ -39,8 +39,8 @@ cfg.insert_json5("scouting/multicast/enabled", "false")
 
 def on_planes(sample):
     msg = codec.Reconstruction.FromString(sample.payload.to_bytes())
-    if present.is_terminal(msg):
-        print("final", msg.scan_id, present.status_name(msg), len(msg.missing_steps), flush=True)
+    if wire.is_terminal(msg):
+        print("final", msg.scan_id, wire.status_name(msg), len(msg.missing_steps), flush=True)
 
 def on_token(sample):
     if sample.kind == zenoh.SampleKind.PUT:
@@ -60,9 +60,11 @@ with zenoh.open(cfg) as s:
 def _zenoh_config(path: Path, mode: str, **endpoints: list[str]) -> Path:
     # A client waits for the router however long it takes to come up.
     wait = ", timeout_ms: -1" if mode == "client" else ""
-    eps = ", ".join(f'{k}: {{ endpoints: {json.dumps(v)}{wait} }}' for k, v in endpoints.items())
-    path.write_text(f'{{ mode: "{mode}", {eps}, scouting: {{ multicast: {{ enabled: false }} }}, '
-                    f'transport: {{ link: {{ tx: {{ lease: {LEASE_MS}, keep_alive: 4 }} }} }} }}')
+    eps = ", ".join(f"{k}: {{ endpoints: {json.dumps(v)}{wait} }}" for k, v in endpoints.items())
+    path.write_text(
+        f'{{ mode: "{mode}", {eps}, scouting: {{ multicast: {{ enabled: false }} }}, '
+        f"transport: {{ link: {{ tx: {{ lease: {LEASE_MS}, keep_alive: 4 }} }} }} }}"
+    )
     return path
 
 
@@ -75,19 +77,46 @@ def test_a_member_cut_off_mid_scan_does_not_publish_a_second_final_when_the_link
     a_id, b_id = next((f"a{i}", f"b{i}") for i in range(100) if owner(SCANNER, [f"a{i}", f"b{i}"]) == f"b{i}")
     router_cfg = _zenoh_config(tmp_path / "router.json5", "router", listen=[f"tcp/{IP_B}:{PORT}"])
     client_cfg = _zenoh_config(tmp_path / "client.json5", "client", connect=[f"tcp/{IP_B}:{PORT}"])
-    member = ("reconstruct", "--group", "g", "--group-settle", "0", "--json", "--compare", "",
-              "--zenoh-config", str(client_cfg), "--recovery-attempts", "60", "--scan-timeout", "90")
+    member = (
+        "reconstruct",
+        "--group",
+        "g",
+        "--group-settle",
+        "0",
+        "--json",
+        "--compare",
+        "",
+        "--zenoh-config",
+        str(client_cfg),
+        "--recovery-attempts",
+        "60",
+        "--scan-timeout",
+        "90",
+    )
     procs: list[subprocess.Popen] = []
     with veth_pair() as (ns_a, ns_b, dev_a):
         try:
-            router = _lelsonar(ns_b, "router", "--zenoh-config", str(router_cfg), stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE)
+            router = _lelsonar(
+                ns_b, "router", "--zenoh-config", str(router_cfg), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+            )
             procs.append(router)
-            watcher = _in(ns_b, sys.executable, "-c", WATCHER, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                          stderr=subprocess.DEVNULL)
+            watcher = _in(
+                ns_b,
+                sys.executable,
+                "-c",
+                WATCHER,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+            )
             procs.append(watcher)
-            events = {"ready": threading.Event(), "up": threading.Event(), "mid": threading.Event(),
-                      "final": threading.Event(), "settled": threading.Event()}
+            events = {
+                "ready": threading.Event(),
+                "up": threading.Event(),
+                "mid": threading.Event(),
+                "final": threading.Event(),
+                "settled": threading.Event(),
+            }
             counts = {"sample": 0, "alive": 0, "member": 0}
             finals: list[str] = []
 
@@ -114,13 +143,27 @@ def test_a_member_cut_off_mid_scan_does_not_publish_a_second_final_when_the_link
             a = _lelsonar(ns_b, *member, "--member-id", a_id, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
             b = _lelsonar(ns_a, *member, "--member-id", b_id, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
             procs += [a, b]
-            drains = [_drain(p.stdout, out[k], None) for k, p in (("a", a), ("b", b))] + \
-                     [_drain(a.stderr, err["a"], None),
-                      _drain(b.stderr, err["b"], lambda line: "fenced: the final" in line and events["settled"].set())]
+            drains = [_drain(p.stdout, out[k], None) for k, p in (("a", a), ("b", b))] + [
+                _drain(a.stderr, err["a"], None),
+                _drain(b.stderr, err["b"], lambda line: "fenced: the final" in line and events["settled"].set()),
+            ]
             assert events["up"].wait(60), f"members not up: {''.join(err['a'] + err['b'])[-2000:]}"
-            acquire = _lelsonar(ns_b, "acquire", "--device", "emulated", "--scanner-id", SCANNER, "--out",
-                                str(tmp_path), "--zenoh-config", str(client_cfg), "--serve-log-for", "120",
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+            acquire = _lelsonar(
+                ns_b,
+                "acquire",
+                "--device",
+                "emulated",
+                "--scanner-id",
+                SCANNER,
+                "--out",
+                str(tmp_path),
+                "--zenoh-config",
+                str(client_cfg),
+                "--serve-log-for",
+                "120",
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+            )
             procs.append(acquire)
             acquire_err: list[str] = []
             drains.append(_drain(acquire.stderr, acquire_err, None))
@@ -151,8 +194,9 @@ def test_a_member_cut_off_mid_scan_does_not_publish_a_second_final_when_the_link
     assert len(finals) == 1, finals
     assert finals[0].split()[2] == "final" and finals[0].split()[3] == "0", finals
     assert stats_a["group"].get("scans adopted") == 1, stats_a["group"]
-    assert stats_b["finals"] == 1 and stats_b["group"].get("fenced: final another member already published") == 1, \
+    assert stats_b["finals"] == 1 and stats_b["group"].get("fenced: final another member already published") == 1, (
         stats_b
+    )
 
 
 def _stats(lines: list[str]) -> dict:

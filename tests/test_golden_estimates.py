@@ -21,22 +21,51 @@ GOLDEN = Path(__file__).parent / "data" / "golden_estimates.json"
 #: only absorbs a different summation order in a library.
 ATOL = 1e-9
 
-FAMILY_KEYS = ("family", "seed", "method", "label", "observed", "normal", "offset", "quality", "quality_reasons",
-               "normal_stderr_deg", "offset_stderr_cm", "crit")
-STRESS_KEYS = ("family", "seed", "label", "quality", "reasons", "angle_deg", "offset_cm", "normal_stderr_deg",
-               "offset_stderr_cm", "verdict", "ls_quality")
+FAMILY_KEYS = (
+    "family",
+    "seed",
+    "method",
+    "label",
+    "observed",
+    "normal",
+    "offset",
+    "quality",
+    "quality_reasons",
+    "normal_stderr_deg",
+    "offset_stderr_cm",
+    "crit",
+)
+STRESS_KEYS = (
+    "family",
+    "seed",
+    "label",
+    "quality",
+    "reasons",
+    "angle_deg",
+    "offset_cm",
+    "normal_stderr_deg",
+    "offset_stderr_cm",
+    "verdict",
+    "ls_quality",
+)
 
 
 def bench_rows(tmp: Path) -> dict[str, list[dict]]:
     """Run both benches as a user would and keep the golden fields of every plane."""
-    runs = {"families": ["--families", "all", "--seeds", "20", "--no-anchor", "--timing-repeats", "1"],
-            "stress": ["--stress", "all", "--seeds", "8"]}
+    runs = {
+        "families": ["--families", "all", "--seeds", "20", "--no-anchor", "--timing-repeats", "1"],
+        "stress": ["--stress", "all", "--seeds", "8"],
+    }
     keys = {"families": FAMILY_KEYS, "stress": STRESS_KEYS}
     out = {}
     for name, flags in runs.items():
         path = tmp / f"{name}.json"
-        done = subprocess.run([sys.executable, "-m", "lelsonar", "bench", "estimators", *flags, "--jobs", "2",
-                               "--json", str(path)], capture_output=True, text=True, timeout=900)
+        done = subprocess.run(
+            [sys.executable, "-m", "lelsonar", "bench", "estimators", *flags, "--jobs", "2", "--json", str(path)],
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
         assert done.returncode in (0, 1), done.stderr[-2000:]  # 1: a target missed, which the tables report
         out[name] = [{k: row.get(k) for k in keys[name]} for row in json.loads(path.read_text())["rows"]]
     return out
@@ -56,8 +85,7 @@ def test_every_plane_and_verdict_is_the_golden_one(tmp_path):
     now = bench_rows(tmp_path)
     for name in ("families", "stress"):
         assert len(now[name]) == len(golden[name]), name
-        differ = [(g, n) for g, n in zip(golden[name], now[name], strict=True)
-                  if not all(same(g[k], n[k]) for k in g)]
+        differ = [(g, n) for g, n in zip(golden[name], now[name], strict=True) if not all(same(g[k], n[k]) for k in g)]
         assert not differ, f"{len(differ)} {name} planes changed; first: {differ[0]}"
 
 
@@ -66,8 +94,10 @@ if __name__ == "__main__":
 
     with tempfile.TemporaryDirectory() as tmp:
         rows = bench_rows(Path(tmp))
-    commands = {"families": "lelsonar bench estimators --families all --seeds 20 --no-anchor",
-                "stress": "lelsonar bench estimators --stress all --seeds 8"}
+    commands = {
+        "families": "lelsonar bench estimators --families all --seeds 20 --no-anchor",
+        "stress": "lelsonar bench estimators --stress all --seeds 8",
+    }
     with GOLDEN.open("w") as f:
         f.write(json.dumps({"commands": commands}, separators=(",", ": "))[:-1] + ",\n")
         for i, name in enumerate(("families", "stress")):

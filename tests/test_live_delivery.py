@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.view import present
+from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
@@ -55,7 +55,7 @@ def test_dropped_samples_are_recovered_from_the_acquirers_log(scan, zenoh_socket
         rig.acquirer("rig").send(scan, unpublished=dropped)
         assert rig.done.wait(30), f"no terminal estimate; stats {service.stats_dict()}"
     (final,) = rig.terminal
-    assert present.status_name(final) == "final" and list(final.missing_steps) == []
+    assert wire.status_name(final) == "final" and list(final.missing_steps) == []
     assert accounting(final) == (STEPS, STEPS - len(dropped), len(dropped), 0, {}, 0)
     assert estimate_only(final) == estimate_only(replayed_final(scan))
     assert rig.live.errors == 0 and rig.live.recovery_stats.get("delivered") == len(dropped)
@@ -70,7 +70,7 @@ def test_unrecoverable_gap_is_published_incomplete_with_its_missing_steps(scan, 
         rig.acquirer("rig").send(scan, unpublished=lost | {50}, unrecorded=lost)
         assert rig.done.wait(30), f"no terminal estimate; stats {service.stats_dict()}"
     (est,) = rig.terminal
-    assert present.status_name(est) == "incomplete"
+    assert wire.status_name(est) == "incomplete"
     assert list(est.missing_steps) == sorted(lost)
     assert accounting(est) == (STEPS, STEPS - 5, 1, 0, {}, len(lost))
     assert est.samples_used == STEPS - len(lost)
@@ -86,7 +86,7 @@ def test_late_reconstructor_catches_up_on_a_scan_in_progress(scan, zenoh_socket)
         acq.send(scan[head:])
         assert rig.done.wait(30), f"no terminal estimate; stats {rig.service.stats_dict()}"
     (final,) = rig.terminal
-    assert present.status_name(final) == "final"
+    assert wire.status_name(final) == "final"
     assert accounting(final) == (STEPS, STEPS - 45, 45, 0, {}, 0)
     assert estimate_only(final) == estimate_only(replayed_final(scan))
 
@@ -99,7 +99,7 @@ def test_reconstructor_started_after_the_last_sample_recovers_the_whole_scan_fro
         acq.send(scan[-1:])
         assert rig.done.wait(30), f"no terminal estimate; stats {rig.service.stats_dict()}"
     (final,) = rig.terminal
-    assert present.status_name(final) == "final"
+    assert wire.status_name(final) == "final"
     assert accounting(final) == (STEPS, 0, STEPS, 0, {}, 0)
     assert estimate_only(final) == estimate_only(replayed_final(scan))
 
@@ -110,10 +110,10 @@ def test_scan_end_lost_with_the_tail_is_recovered_after_silence(scan, zenoh_sock
     with Rig(zenoh_socket, config) as rig:
         rig.start_reconstructor()
         rig.acquirer("rig").send(scan[:-1], unpublished=tail)
-        rig.acquirer("rig").log.add(scan[-1])   # the ScanEnd is recorded, never published
+        rig.acquirer("rig").log.add(scan[-1])  # the ScanEnd is recorded, never published
         assert rig.done.wait(30), f"no terminal estimate; stats {rig.service.stats_dict()}"
     (final,) = rig.terminal
-    assert present.status_name(final) == "final"
+    assert wire.status_name(final) == "final"
     assert accounting(final) == (STEPS, 100, len(tail), 0, {}, 0)
 
 
@@ -129,7 +129,7 @@ def test_twenty_scanners_through_one_reconstructor_each_scan_end_right_after_its
         for t in threads:
             t.join(60)
         assert rig.done.wait(90), f"{len(rig.terminal)}/{n} terminal estimates; stats {service.stats_dict()}"
-    assert sorted(present.status_name(e) for e in rig.terminal) == ["final"] * n
+    assert sorted(wire.status_name(e) for e in rig.terminal) == ["final"] * n
     assert all(accounting(e) == (STEPS, STEPS, 0, 0, {}, 0) for e in rig.terminal)  # nothing needed recovery
     assert "LateMessage" not in service.ingest.rejected and not service.ingest.rejected
     assert {e.scanner_id for e in rig.terminal} == {f"s{i:02d}" for i in range(n)}
@@ -144,8 +144,11 @@ class _FlakyService(ReconstructionService):
         self.failed = 0
 
     def handle(self, type_name: str, payload: bytes, **kw):
-        if type_name == "lelsonar.v1.Sample" and codec.Sample.FromString(payload).step == self._fail_on \
-                and not self.failed:
+        if (
+            type_name == "lelsonar.v1.Sample"
+            and codec.Sample.FromString(payload).step == self._fail_on
+            and not self.failed
+        ):
             self.failed += 1
             raise ZeroDivisionError("injected")
         return super().handle(type_name, payload, **kw)
@@ -159,7 +162,7 @@ def test_live_source_worker_survives_an_unexpected_exception(scan, zenoh_socket)
     assert svc.failed == 1
     assert rig.live.errors == 1 and rig.live.error_types == {"ZeroDivisionError": 1}
     (final,) = rig.terminal
-    assert present.status_name(final) == "final"
+    assert wire.status_name(final) == "final"
     assert accounting(final) == (STEPS, STEPS - 1, 1, 0, {}, 0)  # step 10 came back from the log
 
 
@@ -169,8 +172,8 @@ def test_recovery_replies_are_checked_against_the_key_and_the_request(scan, zeno
     import zenoh
 
     from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryRequest
     from lelsonar.net.transport import ZenohSettings, open_session
+    from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryRequest
 
     keys = ScannerKeys("lelsonar", "rig")
     good = scan[1 + 5]
@@ -181,24 +184,29 @@ def test_recovery_replies_are_checked_against_the_key_and_the_request(scan, zeno
 
     def answer(query: zenoh.Query) -> None:
         key = keys.log(42)
-        query.reply(key, good.SerializeToString(), encoding=enc)                  # asked: step 5
-        query.reply(key, other_scan.SerializeToString(), encoding=enc)            # another scan's payload
-        query.reply(key, scan[1 + 50].SerializeToString(), encoding=enc)          # step 50 was not asked
-        query.reply(key, b"\x08\x01garbage", encoding=enc)                        # does not decode
-        query.reply(key, scan[0].SerializeToString(), encoding=enc)               # one reply too many
+        query.reply(key, good.SerializeToString(), encoding=enc)  # asked: step 5
+        query.reply(key, other_scan.SerializeToString(), encoding=enc)  # another scan's payload
+        query.reply(key, scan[1 + 50].SerializeToString(), encoding=enc)  # step 50 was not asked
+        query.reply(key, b"\x08\x01garbage", encoding=enc)  # does not decode
+        query.reply(key, scan[0].SerializeToString(), encoding=enc)  # one reply too many
 
     delivered: list[tuple[str, bytes, str]] = []
     with open_session(ZenohSettings(mode="peer", connect=(), listen=())) as session:  # isolated
         queryable = session.declare_queryable(keys.log("*"), answer)
-        with LogRecoveryClient(session, ScannerKeys("lelsonar", "*"),
-                               lambda *a: delivered.append(a), RecoveryConfig(query_timeout=1.0)) as client:
+        with LogRecoveryClient(
+            session, ScannerKeys("lelsonar", "*"), lambda *a: delivered.append(a), RecoveryConfig(query_timeout=1.0)
+        ) as client:
             assert client.request(RecoveryRequest("rig", 42, steps=(4, 5, 6, 7)))  # at most 4 replies taken
             assert client.wait_idle(10)
         queryable.undeclare()
     assert delivered == [("lelsonar.v1.Sample", good.SerializeToString(), "recovered")]
     assert client.stats["rejected: identity mismatch"] == 1 and client.stats["rejected: step not asked"] == 1
-    assert client.stats["rejected: DecodeError"] + client.stats["rejected: InvalidMessageError"] + \
-        client.stats["rejected: SchemaVersionError"] == 1
+    assert (
+        client.stats["rejected: DecodeError"]
+        + client.stats["rejected: InvalidMessageError"]
+        + client.stats["rejected: SchemaVersionError"]
+        == 1
+    )
     assert client.stats["rejected: unexpected type"] == 0 and client.stats["rejected: more replies than asked"] == 1
 
 
@@ -232,6 +240,8 @@ def test_one_subscription_covers_both_live_keys_and_no_other_key_of_the_contract
         ke = zenoh.KeyExpr(live_key(ScannerKeys("robot7/lelsonar", scanner)))
         one = ScannerKeys("robot7/lelsonar", "rig")
         assert ke.intersects(one.sample) and ke.intersects(one.scan)
-        assert not any(ke.intersects(k) for k in (one.planes, one.alive("reconstruct"), one.log(3),
-                                                   "robot7/lelsonar/_group/g/done"))
+        assert not any(
+            ke.intersects(k)
+            for k in (one.planes, one.alive("reconstruct"), one.log(3), "robot7/lelsonar/_group/g/done")
+        )
     assert not zenoh.KeyExpr(live_key(ScannerKeys("lelsonar", "rig"))).intersects(ScannerKeys("lelsonar", "x").sample)

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from lelsonar.view import present
+from lelsonar.reconstruct.estimate import wire
 
 from . import foreign_scenes as fs
 from .live_rig import Rig, renamed
@@ -31,7 +31,7 @@ def test_a_noise_triggered_scan_live_with_steps_recovered_from_the_log_equals_it
         rig.acquirer("rig").send(messages, unpublished=dropped)
         assert rig.done.wait(60), f"no terminal estimate; stats {service.stats_dict()}"
     (final,) = rig.terminal
-    assert present.status_name(final) == "final" and list(final.missing_steps) == []
+    assert wire.status_name(final) == "final" and list(final.missing_steps) == []
     assert accounting(final) == (steps, steps - len(dropped), len(dropped), 0, {}, 0)
     assert estimate_only(final) == estimate_only(replayed_final(messages))
     named = "re-timed from the first echo over the noise after it"

@@ -64,13 +64,19 @@ def veth_pair():
     tag = secrets.token_hex(3)
     ns_a, ns_b, dev_a, dev_b = f"lsa{tag}", f"lsb{tag}", f"va{tag}", f"vb{tag}"
     try:
-        for cmd in (["netns", "add", ns_a], ["netns", "add", ns_b],
-                    ["link", "add", dev_a, "type", "veth", "peer", "name", dev_b],
-                    ["link", "set", dev_a, "netns", ns_a], ["link", "set", dev_b, "netns", ns_b],
-                    ["-n", ns_a, "addr", "add", f"{IP_A}/24", "dev", dev_a],
-                    ["-n", ns_b, "addr", "add", f"{IP_B}/24", "dev", dev_b],
-                    ["-n", ns_a, "link", "set", dev_a, "up"], ["-n", ns_b, "link", "set", dev_b, "up"],
-                    ["-n", ns_a, "link", "set", "lo", "up"], ["-n", ns_b, "link", "set", "lo", "up"]):
+        for cmd in (
+            ["netns", "add", ns_a],
+            ["netns", "add", ns_b],
+            ["link", "add", dev_a, "type", "veth", "peer", "name", dev_b],
+            ["link", "set", dev_a, "netns", ns_a],
+            ["link", "set", dev_b, "netns", ns_b],
+            ["-n", ns_a, "addr", "add", f"{IP_A}/24", "dev", dev_a],
+            ["-n", ns_b, "addr", "add", f"{IP_B}/24", "dev", dev_b],
+            ["-n", ns_a, "link", "set", dev_a, "up"],
+            ["-n", ns_b, "link", "set", dev_b, "up"],
+            ["-n", ns_a, "link", "set", "lo", "up"],
+            ["-n", ns_b, "link", "set", "lo", "up"],
+        ):
             done = _ip(*cmd)
             assert done.returncode == 0, f"ip {' '.join(cmd)}: {done.stderr}"
         yield ns_a, ns_b, dev_a
@@ -93,6 +99,7 @@ def _drain(stream, lines: list[str], on_line=None) -> threading.Thread:
             lines.append(line)
             if on_line is not None:
                 on_line(line)
+
     t = threading.Thread(target=run, daemon=True)
     t.start()
     return t
@@ -109,18 +116,38 @@ def partition_mid_scan(tmp_path: Path, down_s: float) -> None:
         pytest.skip(f"no network namespaces here: {reason}")
     (tmp_path / "acq.json5").write_text(
         f'{{ mode: "peer", listen: {{ endpoints: [] }}, '
-        f'connect: {{ endpoints: ["tcp/{IP_B}:{PORT}", "tcp/{IP_B}:{PORT + 1}"] }} }}')
+        f'connect: {{ endpoints: ["tcp/{IP_B}:{PORT}", "tcp/{IP_B}:{PORT + 1}"] }} }}'
+    )
     (tmp_path / "recon.json5").write_text(
-        f'{{ mode: "peer", listen: {{ endpoints: ["tcp/{IP_B}:{PORT}"] }}, connect: {{ endpoints: [] }} }}')
+        f'{{ mode: "peer", listen: {{ endpoints: ["tcp/{IP_B}:{PORT}"] }}, connect: {{ endpoints: [] }} }}'
+    )
     procs: list[subprocess.Popen] = []
     with veth_pair() as (ns_a, ns_b, dev_a):
         try:
-            recon = _lelsonar(ns_b, "reconstruct", "--json", "--until-scans", "1",
-                              "--zenoh-config", str(tmp_path / "recon.json5"),
-                              "--recovery-attempts", str(int(down_s) + 20),
-                              "--scan-timeout", str(down_s + 30), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-            watcher = _in(ns_b, sys.executable, "-c", WATCHER, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                          stderr=subprocess.DEVNULL)
+            recon = _lelsonar(
+                ns_b,
+                "reconstruct",
+                "--json",
+                "--until-scans",
+                "1",
+                "--zenoh-config",
+                str(tmp_path / "recon.json5"),
+                "--recovery-attempts",
+                str(int(down_s) + 20),
+                "--scan-timeout",
+                str(down_s + 30),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+            )
+            watcher = _in(
+                ns_b,
+                sys.executable,
+                "-c",
+                WATCHER,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+            )
             procs += [recon, watcher]
             seen = [0]
             mid_scan, watching, listening = threading.Event(), threading.Event(), threading.Event()
@@ -137,12 +164,25 @@ def partition_mid_scan(tmp_path: Path, down_s: float) -> None:
             recon_err: list[str] = []
             recon_lines: list[str] = []
             # Both of reconstruct's pipes are drained by threads (communicate() would close them under one).
-            recon_drains = [_drain(recon.stderr, recon_err, lambda line: "listening on" in line and listening.set()),
-                            _drain(recon.stdout, recon_lines)]
+            recon_drains = [
+                _drain(recon.stderr, recon_err, lambda line: "listening on" in line and listening.set()),
+                _drain(recon.stdout, recon_lines),
+            ]
             assert watching.wait(60) and listening.wait(60), f"not up: {''.join(recon_err)[-2000:]}"
-            acquire = _lelsonar(ns_a, "acquire", "--device", "emulated", "--out", str(tmp_path),
-                                "--zenoh-config", str(tmp_path / "acq.json5"), "--serve-log-for", str(down_s + 60),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+            acquire = _lelsonar(
+                ns_a,
+                "acquire",
+                "--device",
+                "emulated",
+                "--out",
+                str(tmp_path),
+                "--zenoh-config",
+                str(tmp_path / "acq.json5"),
+                "--serve-log-for",
+                str(down_s + 60),
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+            )
             procs.append(acquire)
             assert mid_scan.wait(60), f"the scan never got under way; reconstruct said: {''.join(recon_err)[-2000:]}"
             assert _ip("-n", ns_a, "link", "set", dev_a, "down").returncode == 0
@@ -170,8 +210,13 @@ def partition_mid_scan(tmp_path: Path, down_s: float) -> None:
     assert acc["published"] == 184 and acc["missing"] == 0
     # Whether Zenoh buffered the samples across the cut or they came back from the log, none is missing.
     assert acc["received_live"] + acc["recovered"] == 184, acc
-    replay = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(tmp_path / "scan.mcap"),
-                             "--json"], capture_output=True, text=True, timeout=120, env=ENV)
+    replay = subprocess.run(
+        [sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(tmp_path / "scan.mcap"), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=ENV,
+    )
     assert replay.returncode == 0, replay.stderr
     (replayed,) = [line for line in replay.stdout.splitlines() if line.startswith("{")]
     assert _estimate(replayed) == _estimate(live)

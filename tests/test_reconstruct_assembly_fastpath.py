@@ -33,24 +33,26 @@ def test_assembly_matches_the_whole_scan_functions_bit_for_bit():
     assert len(steps) == len(samples)
     for m in samples:
         waves = np.stack([codec.unpack_waveform(s.waveform) for s in sorted(m.sensors, key=lambda s: s.capsule_id)])
-        tof = np.array([s.time_of_flight if s.echo_valid else np.nan
-                        for s in sorted(m.sensors, key=lambda s: s.capsule_id)])
+        tof = np.array(
+            [s.time_of_flight if s.echo_valid else np.nan for s in sorted(m.sensors, key=lambda s: s.capsule_id)]
+        )
         w = m.sensors[0].waveform
         np.testing.assert_array_equal(scan.sensor_energy[m.step], waveform_energy(waves, w.sample_rate))
         # and eq. (10) by the rectangle rule, summed independently
-        np.testing.assert_allclose(scan.sensor_energy[m.step], (waves.astype(np.float64) ** 2).sum(axis=1) / w.sample_rate,
-                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            scan.sensor_energy[m.step], (waves.astype(np.float64) ** 2).sum(axis=1) / w.sample_rate, rtol=1e-12
+        )
         np.testing.assert_array_equal(scan.echo_amplitude[m.step], _peak_by_definition(waves, w.sample_rate, w.t0, tof))
     # Some echoes have no range (NaN) and some do: both branches are covered.
     assert np.isnan(scan.distance[steps]).any() and np.isfinite(scan.distance[steps]).any()
     assert np.isnan(scan.distance[steps]).all(axis=1).any()
     np.testing.assert_array_equal(scan.step_energy[steps], total_energy(scan.sensor_energy[steps]))
-    np.testing.assert_array_equal(scan.ratio[steps],
-                                  energy_ratio(scan.step_energy[steps], scan.distance[steps], scan.energy_model))
+    np.testing.assert_array_equal(
+        scan.ratio[steps], energy_ratio(scan.step_energy[steps], scan.distance[steps], scan.energy_model)
+    )
 
 
-def _peak_by_definition(w: np.ndarray, rate: float, t0: float, tof: np.ndarray,
-                        window=ECHO_PEAK_WINDOW) -> np.ndarray:
+def _peak_by_definition(w: np.ndarray, rate: float, t0: float, tof: np.ndarray, window=ECHO_PEAK_WINDOW) -> np.ndarray:
     """echo_amplitude's definition written out the slow way, in float64: max |w| over the samples
     rint((tof + lo - t0)·rate) (clipped to [0, n]) and the next rint((hi - lo)·rate) - 1, clipped at the end;
     NaN without an echo or when the window starts at or after the end."""
@@ -66,7 +68,7 @@ def _peak_by_definition(w: np.ndarray, rate: float, t0: float, tof: np.ndarray,
 
 def test_echo_peak_windows_at_the_waveform_edges():
     rng = np.random.default_rng(0)
-    rate, t0 = 2.0 ** 20, 2.0 ** -12  # powers of two: the edge times below are exact
+    rate, t0 = 2.0**20, 2.0**-12  # powers of two: the edge times below are exact
     for n in (500, 501):
         # Before the window (clipped to 0), inside, running off the end, at the end, no echo, +inf, none; and a
         # start of exactly n - 0.5 samples (rint rounds half to even: inside for an odd n, outside for an even).

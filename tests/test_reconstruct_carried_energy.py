@@ -17,12 +17,12 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
+from lelsonar.log.recording import McapRecorder
 from lelsonar.reconstruct.stream import assembly
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
-from lelsonar.signal.energy import waveform_energy_agrees
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
-from lelsonar.log.recording import McapRecorder
+from lelsonar.signal.energy import waveform_energy_agrees
 
 from .conftest import simulated_messages
 from .test_reconstruct_service import comparable
@@ -102,7 +102,7 @@ def test_present_and_wrong_it_is_found_counted_warned_and_recomputed(scan, tampe
     assert got.energy_mismatches == len(bad)
     assert sum("disagrees with its waveforms" in r.getMessage() for r in caplog.records) == 1  # once a scan
     truth = np.array([_true_energy(m) for m in scan[1:-1]])
-    np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
+    np.testing.assert_allclose(got.sensor_energy[: len(truth)], truth, rtol=1e-12)
     # and exactly what the untampered samples give
     clean = _assemble(_copy(scan))
     for name in ("sensor_energy", "echo_amplitude", "step_energy", "expected_energy", "ratio"):
@@ -117,7 +117,7 @@ def test_absent_it_is_computed(scan):
     clean = _assemble(_copy(scan))
     assert got.energy_mismatches == 0
     truth = np.array([_true_energy(m) for m in scan[1:-1]])
-    np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
+    np.testing.assert_allclose(got.sensor_energy[: len(truth)], truth, rtol=1e-12)
     for name in ("sensor_energy", "echo_amplitude", "step_energy", "expected_energy", "ratio"):
         np.testing.assert_array_equal(getattr(got, name), getattr(clean, name), err_msg=name)
 
@@ -145,7 +145,7 @@ def test_a_mix_of_writers_and_encodings_in_one_scan(scan):
     got = _assemble(messages)
     assert got.energy_mismatches == 0
     truth = np.array([_true_energy(m) for m in messages[1:-1]])
-    np.testing.assert_allclose(got.sensor_energy[:len(truth)], truth, rtol=1e-12)
+    np.testing.assert_allclose(got.sensor_energy[: len(truth)], truth, rtol=1e-12)
     view = got.latest
     np.testing.assert_array_equal(view.waveforms, _waves(messages[-2]))
 
@@ -197,8 +197,12 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
     # and in the accounting `reconstruct --source --json` prints on exit
     for name, want in (("tampered", len(tampered[1:-1:10])), ("true", 0)):
         assert services[name].stats_dict()["samples"]["energy_mismatches"] == want
-        done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(paths[name]), "--json"],
-                              capture_output=True, text=True, timeout=120)
+        done = subprocess.run(
+            [sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(paths[name]), "--json"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert done.returncode == 0, done.stderr
         (line,) = [x for x in done.stderr.splitlines() if x.startswith('{"stats"')]
         assert json.loads(line)["stats"]["samples"]["energy_mismatches"] == want
@@ -210,6 +214,7 @@ def test_the_ingest_stage_reads_samples_from_their_payloads_to_the_values_of_the
     arrays of a scan assembled from the parsed messages alone, bit for bit, and the latest step's waveforms;
     a payload encoded otherwise (a field sent twice: the parser keeps the last) is read from the message."""
     from lelsonar.reconstruct.stream.ingest import Ingest
+
     read = []
     place_wire = assembly._place_wire
     monkeypatch.setattr(assembly, "_place_wire", lambda *a: read.append(place_wire(*a)) or read[-1])
@@ -219,8 +224,21 @@ def test_the_ingest_stage_reads_samples_from_their_payloads_to_the_values_of_the
     (routed,) = ingest.scans.values()
     assert len(read) == len(scan) - 3 and assembly._UNREAD not in read  # all but the first sample
     alone = _assemble(_copy(scan))
-    for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio",
-                 "gamma", "gamma_commanded", "step_energy", "expected_energy", "ratio", "time_ns", "received"):
+    for name in (
+        "distance",
+        "sensor_energy",
+        "echo_amplitude",
+        "pre_echo_peak",
+        "dc_level",
+        "range_tof_ratio",
+        "gamma",
+        "gamma_commanded",
+        "step_energy",
+        "expected_energy",
+        "ratio",
+        "time_ns",
+        "received",
+    ):
         assert getattr(routed, name).tobytes() == getattr(alone, name).tobytes(), name
     np.testing.assert_array_equal(routed.latest.waveforms, _waves(scan[-2]))
     # γ sent again at the end of the payload: protobuf's merge keeps the last value, and so does the scan
@@ -239,20 +257,22 @@ def _peak(w: np.ndarray, rate: float, t0: float, tof: float, window: tuple[float
     """The largest |w| over ``window`` (s) after ``tof``, on the waveform's own clock: from the sample nearest
     ``tof + window[0]`` (clipped at 0), ``(window[1] - window[0])·rate`` samples (the definition, §4)."""
     a = max(int(np.rint((tof + window[0] - t0) * rate)), 0)
-    return float(np.abs(w[a:a + max(int(round((window[1] - window[0]) * rate)), 1)]).max())
+    return float(np.abs(w[a : a + max(int(round((window[1] - window[0]) * rate)), 1)]).max())
 
 
 def _check_against_the_waveforms(got: ScanAssembly, messages) -> None:
     """Every step's energies, echo peaks (and, on each RISE_STRIDE-th step, the peaks just before) and DC
     levels against its own waveforms, by capsule id, each on its own clock."""
     from lelsonar.signal.energy import ECHO_PEAK_WINDOW, PRE_ECHO_WINDOW
+
     row = {c: i for i, c in enumerate(sorted(s.capsule_id for s in messages[1].sensors))}
     for m in messages[1:-1]:
         for s in m.sensors:
             i, w = row[s.capsule_id], s.waveform
             v = codec.unpack_waveform(w)
-            assert got.sensor_energy[m.step, i] == pytest.approx((v.astype(np.float64) ** 2).sum() / w.sample_rate,
-                                                                 rel=1e-12)
+            assert got.sensor_energy[m.step, i] == pytest.approx(
+                (v.astype(np.float64) ** 2).sum() / w.sample_rate, rel=1e-12
+            )
             if not s.echo_valid:
                 assert np.isnan(got.echo_amplitude[m.step, i])
                 continue
@@ -298,8 +318,17 @@ def test_another_writers_order_and_ids_take_the_general_path_to_the_same_values(
     assert len(general) == len(messages) - 2 and got.energy_mismatches == 0
     _check_against_the_waveforms(got, messages)
     fast = _assemble(_copy(scan))
-    for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio",
-                 "step_energy", "expected_energy", "ratio"):
+    for name in (
+        "distance",
+        "sensor_energy",
+        "echo_amplitude",
+        "pre_echo_peak",
+        "dc_level",
+        "range_tof_ratio",
+        "step_energy",
+        "expected_energy",
+        "ratio",
+    ):
         np.testing.assert_array_equal(getattr(got, name), getattr(fast, name), err_msg=name)
 
 

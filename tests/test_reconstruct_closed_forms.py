@@ -47,8 +47,9 @@ def test_nearest_beam_is_the_largest_cosine_over_the_finite_steps() -> None:
             assert c == float((np.cos(f) * n[1] + np.sin(f) * n[2]).max())
 
 
-def _reference_stderr(p: np.ndarray, d: np.ndarray, normal: np.ndarray, h: float, phi: float, phi_se: float
-                      ) -> tuple[float, float]:
+def _reference_stderr(
+    p: np.ndarray, d: np.ndarray, normal: np.ndarray, h: float, phi: float, phi_se: float
+) -> tuple[float, float]:
     """fixed_pitch_wall's standard errors at its solution, from NumPy's pseudo-inverse of JᵀJ."""
     psi = np.arcsin(normal[0])
     dn = np.array([np.cos(psi), -np.sin(psi) * np.cos(phi), -np.sin(psi) * np.sin(phi)])

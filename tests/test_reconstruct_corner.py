@@ -22,8 +22,8 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.sim import EchoSource, Scene, calibrate_simulator, preset, simulate_scan
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch
 from lelsonar.reconstruct.estimate.corner.model import (
     ECHO_EDGE,
     ECHO_OUTLIER,
@@ -39,12 +39,11 @@ from lelsonar.reconstruct.estimate.corner.model import (
     scan_points,
 )
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-from lelsonar.sim import piston_directivity
-from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch
-from lelsonar.signal.energy import echo_amplitude, waveform_energy
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
 from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit
+from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.sim import EchoSource, Scene, calibrate_simulator, piston_directivity, preset, simulate_scan
 
 #: One wall echo within a 2 cm patch error is what the benchmark calls a success (issue 9).
 PATCH_LIMIT = 0.02
@@ -52,17 +51,29 @@ PATCH_LIMIT = 0.02
 Z_LIMIT = 5.0
 
 
-def _scene_config(*, distance_a: float = 1.57, distance_b: float = 1.06, gamma: tuple[float, float] = (-10, 110),
-                  steps: int = 184, tilts: dict | None = None, capsule_radius: float = 0.007,
-                  corner_gain: float = 1.5) -> object:
+def _scene_config(
+    *,
+    distance_a: float = 1.57,
+    distance_b: float = 1.06,
+    gamma: tuple[float, float] = (-10, 110),
+    steps: int = 184,
+    tilts: dict | None = None,
+    capsule_radius: float = 0.007,
+    corner_gain: float = 1.5,
+) -> object:
     base = preset("paper-test1")
     scene = Scene.l_corner(distance_a, distance_b, width=3.0, height_a=3.5, height_b=3.5, **(tilts or {}))
     longest = math.hypot(distance_a, distance_b) + 0.5  # the edge echo plus margin, m
     window = max(base.window_samples, int(2 * longest / base.sound_speed * base.sample_rate) + 100)
-    return dataclasses.replace(base, scene=scene, gamma_start=math.radians(gamma[0]),
-                               gamma_stop=math.radians(gamma[1]), steps=steps, window_samples=window,
-                               acoustics=dataclasses.replace(base.acoustics, capsule_radius=capsule_radius,
-                                                             corner_gain=corner_gain))
+    return dataclasses.replace(
+        base,
+        scene=scene,
+        gamma_start=math.radians(gamma[0]),
+        gamma_stop=math.radians(gamma[1]),
+        steps=steps,
+        window_samples=window,
+        acoustics=dataclasses.replace(base.acoustics, capsule_radius=capsule_radius, corner_gain=corner_gain),
+    )
 
 
 def _reconstruct(cfg, seed: int, method: str = DEFAULT_METHOD, *, amplitudes: bool = True):  # noqa: ANN001, ANN202
@@ -72,8 +83,9 @@ def _reconstruct(cfg, seed: int, method: str = DEFAULT_METHOD, *, amplitudes: bo
     model = calibrate_simulator(dataclasses.replace(preset("paper-test1"), acoustics=cfg.acoustics), seed=0).model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof) if amplitudes else None
-    return scan, reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method,
-                             echo_amplitude=amp)
+    return scan, reconstruct(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method, echo_amplitude=amp
+    )
 
 
 def _patch_error(scan, label: str, plane: PlaneFit) -> float:  # noqa: ANN001
@@ -97,8 +109,11 @@ def test_every_echo_is_labelled_as_the_simulator_produced_it() -> None:
     assert model is not None
     src = scan.truth.echo_source[pts.step, pts.capsule_index]
     # Wall echoes are within σ_r + one cycle slip (≈ 1 cm) of their wall; the 2 cm tolerance takes them all.
-    for label, truth in ((ECHO_WALL_A, EchoSource.PLANE_A), (ECHO_WALL_B, EchoSource.PLANE_B),
-                         (ECHO_EDGE, EchoSource.CORNER)):
+    for label, truth in (
+        (ECHO_WALL_A, EchoSource.PLANE_A),
+        (ECHO_WALL_B, EchoSource.PLANE_B),
+        (ECHO_EDGE, EchoSource.CORNER),
+    ):
         mine = model.labels[src == truth]
         assert np.mean(mine == label) >= 0.99, (label, np.unique(mine, return_counts=True))
     assert model.count(ECHO_OUTLIER) <= 0.01 * pts.n
@@ -114,8 +129,10 @@ def test_edge_residuals_are_the_double_bounce_off_the_edge_line() -> None:
     # (the image turned by twice the opening about the edge), and the direction to that line for the beam test.
     scan = simulate_scan(preset("paper-test1"), seed=0)
     pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
-    for wa, wb in ((Wall(_unit([0.03, 1.0, -0.05]), 1.6), Wall(_unit([-0.02, 0.1, 1.0]), 1.1)),
-                   (Wall(_unit([0.0, 1.0, 0.3]), 0.9), Wall(_unit([0.05, -0.4, 1.0]), 1.4))):
+    for wa, wb in (
+        (Wall(_unit([0.03, 1.0, -0.05]), 1.6), Wall(_unit([-0.02, 0.1, 1.0]), 1.1)),
+        (Wall(_unit([0.0, 1.0, 0.3]), 0.9), Wall(_unit([0.05, -0.4, 1.0]), 1.4)),
+    ):
         point, direction = edge_line(wa, wb)
         rel = point - pts.capsule
         perp = rel - np.outer(rel @ direction, direction)
@@ -127,8 +144,9 @@ def test_edge_residuals_are_the_double_bounce_off_the_edge_line() -> None:
         np.testing.assert_allclose(r[2][seen], (pts.distance - rho * np.sin(opening))[seen], atol=1e-12)
         for k, w in enumerate((wa, wb)):
             facing = pts.beam @ w.normal >= np.cos(np.deg2rad(50.0))
-            np.testing.assert_allclose(r[k][facing], (pts.capsule @ w.normal + pts.distance - w.offset)[facing],
-                                       atol=1e-12)
+            np.testing.assert_allclose(
+                r[k][facing], (pts.capsule @ w.normal + pts.distance - w.offset)[facing], atol=1e-12
+            )
             assert not np.any(np.isfinite(r[k][~facing]))
 
 
@@ -137,9 +155,11 @@ def test_the_edge_implied_offset_places_the_wall_whose_edge_returned_the_double_
     # the offset that makes it one is the wall's own, whichever wall is held.
     scan = simulate_scan(preset("paper-test1"), seed=0)
     pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
-    for wa, wb in ((Wall(_unit([0.03, 1.0, -0.05]), 1.6), Wall(_unit([-0.02, 0.1, 1.0]), 1.1)),
-                   (Wall(_unit([0.0, 1.0, 0.3]), 0.9), Wall(_unit([0.05, -0.4, 1.0]), 1.4)),
-                   (Wall(_unit([-0.14, 0.98, -0.11]), 0.58), Wall(_unit([0.11, 0.28, 0.95]), 3.0))):
+    for wa, wb in (
+        (Wall(_unit([0.03, 1.0, -0.05]), 1.6), Wall(_unit([-0.02, 0.1, 1.0]), 1.1)),
+        (Wall(_unit([0.0, 1.0, 0.3]), 0.9), Wall(_unit([0.05, -0.4, 1.0]), 1.4)),
+        (Wall(_unit([-0.14, 0.98, -0.11]), 0.58), Wall(_unit([0.11, 0.28, 0.95]), 3.0)),
+    ):
         point, direction = edge_line(wa, wb)
         rel = point - pts.capsule
         rho = np.linalg.norm(rel - np.outer(rel @ direction, direction), axis=1)
@@ -154,8 +174,10 @@ def test_joint_gauss_newton_lands_on_the_least_squares_minimum() -> None:
     scan = simulate_scan(preset("paper-test1"), seed=1)
     pts = scan_points(scan.geometry, scan.gamma_measured, scan.distance)
     model = fit_corner_model(pts, AXIS_Y, AXIS_Z)
-    start = (Wall(_unit(model.wall_a.normal + [0.0, 0.0, 0.01]), model.wall_a.offset + 0.005),
-             Wall(_unit(model.wall_b.normal + [0.01, 0.0, 0.0]), model.wall_b.offset - 0.005))
+    start = (
+        Wall(_unit(model.wall_a.normal + [0.0, 0.0, 0.01]), model.wall_a.offset + 0.005),
+        Wall(_unit(model.wall_b.normal + [0.01, 0.0, 0.0]), model.wall_b.offset - 0.005),
+    )
     (fa, fb), cov = joint_gauss_newton(*start, pts, model.labels, iterations=20)
     assert model.count(ECHO_EDGE) > 20 and np.all(np.isfinite(cov))
     cost = float(np.sum(joint_residuals(fa, fb, pts, model.labels) ** 2))
@@ -176,8 +198,11 @@ HARD_SCENES = {
     "near walls, corner at 55°": dict(distance_a=0.7, distance_b=1.0),
     "partial sweep, corner cluster dominates b": dict(gamma=(3, 79)),
     "late start, corner cluster dominates a": dict(gamma=(10, 105)),
-    "both walls tilted about two axes": dict(tilts=dict(tilt_a_x=math.radians(4), tilt_a_z=math.radians(-5),
-                                                        tilt_b_x=math.radians(-3), tilt_b_y=math.radians(5))),
+    "both walls tilted about two axes": dict(
+        tilts=dict(
+            tilt_a_x=math.radians(4), tilt_a_z=math.radians(-5), tilt_b_x=math.radians(-3), tilt_b_y=math.radians(5)
+        )
+    ),
     "small capsules, strong corner, few steps": dict(capsule_radius=0.006, corner_gain=2.5, steps=95),
 }
 
@@ -231,8 +256,8 @@ def test_echo_amplitude_is_the_first_echo_not_a_later_one() -> None:
     fs, t0 = 200_000.0, 0.0
     t = np.arange(2000) / fs
     first, later = 0.004, 0.0048  # the corner's echo 0.8 ms (14 cm) after the wall's
-    w = 0.2 * np.exp(-((t - first - 1e-4) / 1e-4) ** 2) * np.sin(2 * math.pi * 40_000 * t)
-    w += 0.9 * np.exp(-((t - later - 1e-4) / 1e-4) ** 2) * np.sin(2 * math.pi * 40_000 * t)
+    w = 0.2 * np.exp(-(((t - first - 1e-4) / 1e-4) ** 2)) * np.sin(2 * math.pi * 40_000 * t)
+    w += 0.9 * np.exp(-(((t - later - 1e-4) / 1e-4) ** 2)) * np.sin(2 * math.pi * 40_000 * t)
     amp = echo_amplitude(w[None, :], fs, t0, np.array([first]))
     # 5 samples per 40 kHz cycle: the largest sample is within π/5 of the crest, so ≥ cos(π/5) of it.
     assert 0.2 * math.cos(math.pi * 40_000 / fs) <= amp[0] <= 0.2
@@ -243,8 +268,9 @@ def test_the_energy_split_fails_where_the_corner_model_does_not() -> None:
     """The regression this model fixes: far walls move the energy peak off the corner."""
     cfg = _scene_config(**HARD_SCENES["far walls, energy peak off the corner"])
     scan, old = _reconstruct(cfg, 0, "adaptive")
-    worst = max(_patch_error(scan, lab, p) for lab, p in (("a", old.plane_a), ("b", old.plane_b))
-                if isinstance(p, PlaneFit))
+    worst = max(
+        _patch_error(scan, lab, p) for lab, p in (("a", old.plane_a), ("b", old.plane_b)) if isinstance(p, PlaneFit)
+    )
     assert worst > PATCH_LIMIT
 
 
@@ -280,13 +306,24 @@ def test_the_corner_method_is_deterministic() -> None:
 
 # ----------------------------------------------------------------------------- the verdict itself
 
+
 def _plane(**kw) -> PlaneFit:  # noqa: ANN003
     n = 300
-    base = dict(label="a", method="test", normal=np.array([0.0, 1.0, 0.0]), offset=1.5, entropy=0.5,
-                sigma_relative=0.002 / 1.5, sigma=0.002, inlier_mask=np.ones(n, bool),
-                sorted_residuals=np.linspace(-1e-3, 1e-3, n), theta_covariance=np.eye(3) * 1e-8,
-                normal_stderr=math.radians(0.1), offset_stderr=0.0003,
-                patch=np.array([[-0.1, 1.5, -0.05], [0.1, 1.5, -0.05], [0.1, 1.5, 0.05], [-0.1, 1.5, 0.05]]))
+    base = dict(
+        label="a",
+        method="test",
+        normal=np.array([0.0, 1.0, 0.0]),
+        offset=1.5,
+        entropy=0.5,
+        sigma_relative=0.002 / 1.5,
+        sigma=0.002,
+        inlier_mask=np.ones(n, bool),
+        sorted_residuals=np.linspace(-1e-3, 1e-3, n),
+        theta_covariance=np.eye(3) * 1e-8,
+        normal_stderr=math.radians(0.1),
+        offset_stderr=0.0003,
+        patch=np.array([[-0.1, 1.5, -0.05], [0.1, 1.5, -0.05], [0.1, 1.5, 0.05], [-0.1, 1.5, 0.05]]),
+    )
     base.update(kw)
     return PlaneFit(**base)
 
@@ -299,13 +336,16 @@ def test_a_clean_wall_seen_face_on_is_good() -> None:
     assert p.quality == GOOD and p.quality_reasons == ()
 
 
-@pytest.mark.parametrize("change, level, words", [
-    (dict(sigma=0.020), UNRELIABLE, "more than one surface"),   # a compromise between wall and corner echoes
-    (dict(sigma=0.015), DEGRADED, "residual σ"),
-    (dict(inlier_mask=np.r_[np.ones(10, bool), np.zeros(290, bool)]), UNRELIABLE, "only 10 wall echoes"),
-    (dict(normal_stderr=math.radians(4.0)), DEGRADED, "tilt unresolved"),
-    (dict(normal=np.array([0.0, math.cos(math.radians(40)), -math.sin(math.radians(40))])), DEGRADED, "face-on"),
-])
+@pytest.mark.parametrize(
+    "change, level, words",
+    [
+        (dict(sigma=0.020), UNRELIABLE, "more than one surface"),  # a compromise between wall and corner echoes
+        (dict(sigma=0.015), DEGRADED, "residual σ"),
+        (dict(inlier_mask=np.r_[np.ones(10, bool), np.zeros(290, bool)]), UNRELIABLE, "only 10 wall echoes"),
+        (dict(normal_stderr=math.radians(4.0)), DEGRADED, "tilt unresolved"),
+        (dict(normal=np.array([0.0, math.cos(math.radians(40)), -math.sin(math.radians(40))])), DEGRADED, "face-on"),
+    ],
+)
 def test_each_sign_of_an_untrustworthy_plane_lowers_the_verdict(change: dict, level: str, words: str) -> None:
     p = assess_plane(_plane(**change), GAMMA)
     assert p.quality == level and any(words in r for r in p.quality_reasons), p.quality_reasons
@@ -339,16 +379,37 @@ def test_a_compared_plane_no_good_plane_of_record_vouches_for_is_at_most_degrade
 
 
 def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() -> None:
-    planes = [dataclasses.replace(assess_plane(_plane(sigma=0.02), GAMMA), method=f"m{i}", label="ab"[i % 2])
-              for i in range(18)]  # all registered methods compared: 18 planes
-    msg = wire.reconstruction_message("s1", 1, status="final", last_step=10, samples_used=11, critical_step=5,
-                                      critical_angle=0.6, planes=planes, edge=None, timings=(0.0, 0.0, 0.0))
+    planes = [
+        dataclasses.replace(assess_plane(_plane(sigma=0.02), GAMMA), method=f"m{i}", label="ab"[i % 2])
+        for i in range(18)
+    ]  # all registered methods compared: 18 planes
+    msg = wire.reconstruction_message(
+        "s1",
+        1,
+        status="final",
+        last_step=10,
+        samples_used=11,
+        critical_step=5,
+        critical_angle=0.6,
+        planes=planes,
+        edge=None,
+        timings=(0.0, 0.0, 0.0),
+    )
     back = codec.decode(msg.SerializeToString(), codec.Reconstruction)
     assert [p.quality for p in back.planes] == [codec.QUALITY[UNRELIABLE]] * 18
     assert "more than one surface" in back.planes[0].quality_reasons[0]
-    too_many = wire.reconstruction_message("s1", 1, status="final", last_step=10, samples_used=11,
-                                           critical_step=5, critical_angle=0.6, planes=planes * 4, edge=None,
-                                           timings=(0.0, 0.0, 0.0))
+    too_many = wire.reconstruction_message(
+        "s1",
+        1,
+        status="final",
+        last_step=10,
+        samples_used=11,
+        critical_step=5,
+        critical_angle=0.6,
+        planes=planes * 4,
+        edge=None,
+        timings=(0.0, 0.0, 0.0),
+    )
     with pytest.raises(codec.InvalidMessageError, match="planes"):
         codec.decode(too_many.SerializeToString(), codec.Reconstruction)
 
@@ -367,8 +428,8 @@ def test_replay_exits_non_zero_when_the_method_of_record_gives_no_plane(tmp_path
     """A script running ``reconstruct --source X --json`` must see the missing plane: the JSON says why, exit 1."""
     import json
 
-    from lelsonar.cli.main import main
     from lelsonar.acquire.simulated import record_scan
+    from lelsonar.cli.main import main
 
     cfg = _scene_config(gamma=(-10, 40), steps=80)  # the sweep stops just past the corner: no wall b at all
     scan = simulate_scan(cfg, seed=0)

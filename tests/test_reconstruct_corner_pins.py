@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.stream.assembly import ScanAssembly
 from lelsonar.reconstruct.estimate.pipeline import reconstruct
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
 
 from .conftest import simulated_messages
 
@@ -28,8 +28,15 @@ def test_corner_outputs_are_pinned(case):
     for m in msgs[1:-1]:
         scan.add(m)
     steps, g, d, _ = scan.arrays()
-    r = reconstruct(g, d, scan.sensor_energy[steps], scan.geometry, scan.energy_model, "corner",
-                    echo_amplitude=scan.echo_amplitude[steps])
+    r = reconstruct(
+        g,
+        d,
+        scan.sensor_energy[steps],
+        scan.geometry,
+        scan.energy_model,
+        "corner",
+        echo_amplitude=scan.echo_amplitude[steps],
+    )
     want = PINS[case]
     for p, row in zip((r.plane_a, r.plane_b), want["planes"]):
         got = [*p.normal, p.offset, p.normal_stderr, p.offset_stderr]

@@ -13,8 +13,11 @@ from hypothesis.extra.numpy import arrays
 from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, energy_ratio, fit_energy_model, median_range, waveform_energy
 
-ranges = arrays(np.float64, st.tuples(st.integers(1, 30), st.integers(1, 6)),
-                elements=st.one_of(st.just(np.nan), st.floats(0.05, 5.0)))
+ranges = arrays(
+    np.float64,
+    st.tuples(st.integers(1, 30), st.integers(1, 6)),
+    elements=st.one_of(st.just(np.nan), st.floats(0.05, 5.0)),
+)
 
 
 @settings(max_examples=200, deadline=None)

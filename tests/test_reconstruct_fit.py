@@ -100,10 +100,11 @@ def test_paper_correction_puts_mirror_echoes_on_axis_aligned_walls() -> None:
     assert np.all(np.isnan(corrected_points(GEO, np.deg2rad([85.0]), np.ones((1, 4)), AXIS_Y)))
 
 
-def _wall_a_data(tilt_deg: float, noise: float, seed: int = 0, tilt_x_deg: float = 0.0) -> tuple[F.PlaneData, np.ndarray]:
+def _wall_a_data(
+    tilt_deg: float, noise: float, seed: int = 0, tilt_x_deg: float = 0.0
+) -> tuple[F.PlaneData, np.ndarray]:
     n_true = tilted_normal(AXIS_Y, np.deg2rad(tilt_deg), np.deg2rad(tilt_x_deg))
-    s = synthetic_corner_scan(GEO, rng=np.random.default_rng(seed), normal_a=n_true, noise=noise,
-                              n_steps=400)
+    s = synthetic_corner_scan(GEO, rng=np.random.default_rng(seed), normal_a=n_true, noise=noise, n_steps=400)
     steps = np.flatnonzero(np.any(s.source == WALL_A, axis=1))
     d = np.where(s.source == WALL_A, s.distance, np.nan)
     return F.plane_data(GEO, s.gamma, d, steps, "a", AXIS_Y), n_true
@@ -147,8 +148,9 @@ def test_constant_depth_is_unbiased_where_the_paper_correction_is_not() -> None:
         data, n_true = _wall_a_data(8.0, 0.001, seed)
         paper = F.ls_theta(data.points)
         assert angle_deg(paper, n_true) > 6.0  # biased: the tilt is (nearly) all lost
-        n, h, _ = F.constant_depth_ls(data.capsules, data.distance, paper / np.linalg.norm(paper),
-                                      1 / np.linalg.norm(paper))
+        n, h, _ = F.constant_depth_ls(
+            data.capsules, data.distance, paper / np.linalg.norm(paper), 1 / np.linalg.norm(paper)
+        )
         cov = F.theta_covariance(n / h, data.capsules, data.distance)
         se_n, se_h = F.normal_offset_stderr(n / h, cov)
         assert abs(h - 1.57) <= 5 * se_h
@@ -159,8 +161,9 @@ def test_constant_depth_is_unbiased_where_the_paper_correction_is_not() -> None:
 def test_make_plane_fit_fills_every_field() -> None:
     data, n_true = _wall_a_data(0.0, 0.002)
     t = F.ls_theta(data.points)
-    fit = F.make_plane_fit(data, t, method="ls", inlier_mask=np.ones(data.n, bool),
-                           diagnostics=F.SolverDiagnostics("lstsq"))
+    fit = F.make_plane_fit(
+        data, t, method="ls", inlier_mask=np.ones(data.n, bool), diagnostics=F.SolverDiagnostics("lstsq")
+    )
     assert isinstance(fit, PlaneFit)
     np.testing.assert_allclose(fit.theta, t)
     assert fit.offset == pytest.approx(1 / np.linalg.norm(t))
@@ -173,18 +176,41 @@ def test_make_plane_fit_fills_every_field() -> None:
         fit.offset = 2.0  # type: ignore[misc]
     with pytest.raises(ValueError):
         fit.normal[0] = 1.0
-    bad = F.make_plane_fit(data, np.array([np.nan, 0, 0]), method="ls", inlier_mask=np.ones(data.n, bool),
-                           diagnostics=F.SolverDiagnostics("lstsq"))
+    bad = F.make_plane_fit(
+        data,
+        np.array([np.nan, 0, 0]),
+        method="ls",
+        inlier_mask=np.ones(data.n, bool),
+        diagnostics=F.SolverDiagnostics("lstsq"),
+    )
     assert isinstance(bad, FitFailure) and bad.reason is FailureReason.SOLVER_FAILED
 
 
 def test_plane_fit_validates() -> None:
-    kw = dict(label="a", method="x", normal=np.array([0, 1.0, 0]), offset=1.0, entropy=0.5, sigma_relative=0.0,
-              sigma=0.0, inlier_mask=np.ones(3, bool), sorted_residuals=np.zeros(3), theta_covariance=np.eye(3),
-              normal_stderr=0.0, offset_stderr=0.0, patch=np.zeros((4, 3)))
+    kw = dict(
+        label="a",
+        method="x",
+        normal=np.array([0, 1.0, 0]),
+        offset=1.0,
+        entropy=0.5,
+        sigma_relative=0.0,
+        sigma=0.0,
+        inlier_mask=np.ones(3, bool),
+        sorted_residuals=np.zeros(3),
+        theta_covariance=np.eye(3),
+        normal_stderr=0.0,
+        offset_stderr=0.0,
+        patch=np.zeros((4, 3)),
+    )
     PlaneFit(**kw)
-    for bad in (dict(normal=np.array([0, 2.0, 0])), dict(offset=-1.0), dict(entropy=1.5),
-                dict(sorted_residuals=np.array([1.0, 0.0, 2.0])), dict(label="c"), dict(sigma=np.nan)):
+    for bad in (
+        dict(normal=np.array([0, 2.0, 0])),
+        dict(offset=-1.0),
+        dict(entropy=1.5),
+        dict(sorted_residuals=np.array([1.0, 0.0, 2.0])),
+        dict(label="c"),
+        dict(sigma=np.nan),
+    ):
         with pytest.raises(ConfigError):
             PlaneFit(**{**kw, **bad})
 
@@ -196,8 +222,12 @@ def test_plane_data_keeps_each_valid_echo_with_its_step_beam_and_range() -> None
     d[5, 1] = 0.0  # a zero range is no echo
     steps = np.flatnonzero(np.any(s.source == WALL_A, axis=1))[::2]  # every other step of the wall
     data = F.plane_data(GEO, s.gamma, d, steps, "a", AXIS_Y)
-    kept = [(k, c) for k in steps for c in range(GEO.n_capsules)
-            if np.isfinite(d[k, c]) and d[k, c] > 0 and np.cos(s.gamma[k]) > np.cos(np.deg2rad(80.0))]
+    kept = [
+        (k, c)
+        for k in steps
+        for c in range(GEO.n_capsules)
+        if np.isfinite(d[k, c]) and d[k, c] > 0 and np.cos(s.gamma[k]) > np.cos(np.deg2rad(80.0))
+    ]
     assert data.n == len(kept) > 50
     np.testing.assert_array_equal(data.step, [k for k, _ in kept])  # step-major, as the steps came
     np.testing.assert_array_equal(data.distance, [d[k, c] for k, c in kept])
@@ -233,8 +263,13 @@ def test_make_plane_fit_sigma_is_the_mad_of_the_inliers_and_the_mask_is_its_own(
 
 def test_replace_scalars_shares_the_arrays_and_validates_the_rest() -> None:
     data, _ = _wall_a_data(0.0, 0.002)
-    fit = F.make_plane_fit(data, F.ls_theta(data.points), method="ls", inlier_mask=np.ones(data.n, bool),
-                           diagnostics=F.SolverDiagnostics("lstsq"))
+    fit = F.make_plane_fit(
+        data,
+        F.ls_theta(data.points),
+        method="ls",
+        inlier_mask=np.ones(data.n, bool),
+        diagnostics=F.SolverDiagnostics("lstsq"),
+    )
     change = dict(quality="degraded", quality_reasons=["why"], method="corner", normal_stderr=0.01)
     out = fit.replace_scalars(**change)
     ref = dataclasses.replace(fit, **change)
@@ -243,7 +278,14 @@ def test_replace_scalars_shares_the_arrays_and_validates_the_rest() -> None:
         assert np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b, f.name
     assert out.quality_reasons == ("why",) and fit.quality == "" and fit.method == "ls"
     assert out.normal is fit.normal and not out.normal.flags.writeable  # frozen arrays are shared
-    for bad in (dict(quality="fine"), dict(normal=np.array([1.0, 0, 0])), dict(diagnostics="lstsq"),
-                dict(method=3), dict(offset=-1.0), dict(offset_stderr=np.nan), dict(label="c")):
+    for bad in (
+        dict(quality="fine"),
+        dict(normal=np.array([1.0, 0, 0])),
+        dict(diagnostics="lstsq"),
+        dict(method=3),
+        dict(offset=-1.0),
+        dict(offset_stderr=np.nan),
+        dict(label="c"),
+    ):
         with pytest.raises(ConfigError):
             fit.replace_scalars(**bad)

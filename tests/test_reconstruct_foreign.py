@@ -72,9 +72,18 @@ def _same_planes(lines: list[dict], baseline: dict) -> None:
 #: capsule ids from 1, the radial offset only in the capsules' positions, "no echo" as NaN, the range
 #: as a time of flight only, γ measured unset, the ScanStart's sample rate and speed of sound unset
 #: (the air temperature is there), no acquisition times, no rotation axis, int16 waveforms without a scale.
-EVERYTHING_FOREIGN = fs.Conventions(capsule_id_base=1, radial_offset_in="position", no_echo="nan", fill="tof",
-                                    gamma="commanded", start_sample_rate=False, start_sound_speed=False,
-                                    acquisition_time=False, rotation_axis=(0.0, 0.0, 0.0), int16_scale=False)
+EVERYTHING_FOREIGN = fs.Conventions(
+    capsule_id_base=1,
+    radial_offset_in="position",
+    no_echo="nan",
+    fill="tof",
+    gamma="commanded",
+    start_sample_rate=False,
+    start_sound_speed=False,
+    acquisition_time=False,
+    rotation_axis=(0.0, 0.0, 0.0),
+    int16_scale=False,
+)
 
 
 def test_every_allowed_convention_at_once_gives_our_writers_planes(scan, baseline, tmp_path):
@@ -85,10 +94,13 @@ def test_every_allowed_convention_at_once_gives_our_writers_planes(scan, baselin
     _same_planes(lines, baseline)
 
 
-@pytest.mark.parametrize("conv", [
-    fs.Conventions(radial_offset_in="position"),  # before: radial offset 0, no plane (exit 1)
-    fs.Conventions(fill="distance", ids_reversed=True, gamma_wrap=True, encoding="float32"),  # before: all refused
-])
+@pytest.mark.parametrize(
+    "conv",
+    [
+        fs.Conventions(radial_offset_in="position"),  # before: radial offset 0, no plane (exit 1)
+        fs.Conventions(fill="distance", ids_reversed=True, gamma_wrap=True, encoding="float32"),  # before: all refused
+    ],
+)
 def test_single_conventions_give_our_writers_planes(scan, baseline, tmp_path, conv):
     code, lines, _, verdicts = _run(tmp_path, scan, conv)
     assert code == 0
@@ -104,15 +116,18 @@ def test_a_scan_without_waveforms_is_reconstructed_from_its_ranges(scan, tmp_pat
 
 
 # ----------------------------------------------------------------------------- against the contract
-@pytest.mark.parametrize(("conv", "why"), [
-    # Before: 77 cm and 51 cm off, both planes "good" (the ranges came out half the truth).
-    (fs.Conventions(fill="tof", tof_scale=0.5), "no echo starting at the readings' time of flight"),
-    # Before: 1.5 m off, only "degraded".
-    (fs.Conventions(fill="distance", distance_scale=2.0), "no echo starting at the readings' time of flight"),
-    (fs.Conventions(distance_scale=2.0), "off c·time_of_flight/2"),
-    # Before: 50 cm off, flagged only by chance of the fit.
-    (fs.Conventions(gamma_unit="deg"), "beyond a turn"),
-])
+@pytest.mark.parametrize(
+    ("conv", "why"),
+    [
+        # Before: 77 cm and 51 cm off, both planes "good" (the ranges came out half the truth).
+        (fs.Conventions(fill="tof", tof_scale=0.5), "no echo starting at the readings' time of flight"),
+        # Before: 1.5 m off, only "degraded".
+        (fs.Conventions(fill="distance", distance_scale=2.0), "no echo starting at the readings' time of flight"),
+        (fs.Conventions(distance_scale=2.0), "off c·time_of_flight/2"),
+        # Before: 50 cm off, flagged only by chance of the fit.
+        (fs.Conventions(gamma_unit="deg"), "beyond a turn"),
+    ],
+)
 def test_ranges_or_angles_in_another_convention_are_never_good(scan, tmp_path, conv, why):
     code, lines, _, verdicts = _run(tmp_path, scan, conv)
     assert code in (0, 1)
@@ -200,18 +215,39 @@ def test_a_comparator_whose_crossing_walks_with_amplitude_is_re_timed(scan, tmp_
 #: long bursts, echoes strong enough to clip near the walls' normals (the amplitude peak lost), the re-timed
 #: echoes of each wall on one side of its normal.
 _ROLLED_CLIPPING_RIGS = {
-    "seed 11": fs.ForeignRig(distance_a=1.7481946561002875, distance_b=2.003745894058394, roll=-0.19742228651397592,
-                             radial_offset=0.021012352630445173, gamma_start=-0.28174664965048796,
-                             gamma_stop=1.392321566162817, steps=116, reverse=True, beam_sigma=0.13642951292433952,
-                             burst=0.0007689970719750652, echo_scale=3.222852886142999,
-                             corner_gain=1.1165903732217073, noise=0.006965586572651194,
-                             threshold=0.04579730152622839, seed=11),
-    "seed 43": fs.ForeignRig(distance_a=0.6094383090974915, distance_b=0.5500739671855421, roll=0.1420890342962498,
-                             radial_offset=0.021141371911175027, gamma_start=-0.007522755124996004,
-                             gamma_stop=1.9731767460941156, steps=195, beam_sigma=0.16915191392909396,
-                             burst=0.00045198674582976083, echo_scale=2.4198475189052115,
-                             corner_gain=1.9374404109097325, noise=0.003507697229670492,
-                             threshold=0.07243311684281299, seed=43),
+    "seed 11": fs.ForeignRig(
+        distance_a=1.7481946561002875,
+        distance_b=2.003745894058394,
+        roll=-0.19742228651397592,
+        radial_offset=0.021012352630445173,
+        gamma_start=-0.28174664965048796,
+        gamma_stop=1.392321566162817,
+        steps=116,
+        reverse=True,
+        beam_sigma=0.13642951292433952,
+        burst=0.0007689970719750652,
+        echo_scale=3.222852886142999,
+        corner_gain=1.1165903732217073,
+        noise=0.006965586572651194,
+        threshold=0.04579730152622839,
+        seed=11,
+    ),
+    "seed 43": fs.ForeignRig(
+        distance_a=0.6094383090974915,
+        distance_b=0.5500739671855421,
+        roll=0.1420890342962498,
+        radial_offset=0.021141371911175027,
+        gamma_start=-0.007522755124996004,
+        gamma_stop=1.9731767460941156,
+        steps=195,
+        beam_sigma=0.16915191392909396,
+        burst=0.00045198674582976083,
+        echo_scale=2.4198475189052115,
+        corner_gain=1.9374404109097325,
+        noise=0.003507697229670492,
+        threshold=0.07243311684281299,
+        seed=43,
+    ),
 }
 
 
@@ -236,24 +272,41 @@ def test_a_roll_read_from_re_timed_ranges_is_good_only_within_its_standard_error
             assert row["angle_deg"] <= 3.0 * np.rad2deg(sigma[label]), (label, row, np.rad2deg(sigma[label]))
 
 
-@pytest.mark.xfail(strict=True, reason="known gap: a one-sided sweep whose wall echoes all clip leaves the direction to "
-                   "the ranges, which a late-firing comparator turns. Re-timing (echo_timing) cannot help: 236 of "
-                   "the 256 echoes clip (a clipped peak has no constant fraction), and the 20 that do not, all weak, "
-                   "show the walk at only 1.3 standard errors. Degrading every one-sided wall cost 36 of 343 "
-                   "accurate good planes of `bench estimators --families all --seeds 20`; degrading only clipped "
-                   "one-sided walls still degraded accurate planes of our simulator's partial sweeps (3 of 571 in "
-                   "`--stress all --seeds 20`, and a hard scene of test_reconstruct_corner). Neither is done")
+@pytest.mark.xfail(
+    strict=True,
+    reason="known gap: a one-sided sweep whose wall echoes all clip leaves the direction to "
+    "the ranges, which a late-firing comparator turns. Re-timing (echo_timing) cannot help: 236 of "
+    "the 256 echoes clip (a clipped peak has no constant fraction), and the 20 that do not, all weak, "
+    "show the walk at only 1.3 standard errors. Degrading every one-sided wall cost 36 of 343 "
+    "accurate good planes of `bench estimators --families all --seeds 20`; degrading only clipped "
+    "one-sided walls still degraded accurate planes of our simulator's partial sweeps (3 of 571 in "
+    "`--stress all --seeds 20`, and a hard scene of test_reconstruct_corner). Neither is done",
+)
 def test_a_wall_seen_from_one_side_of_its_normal_is_not_good(tmp_path):
     """The L rolled 11°, the sweep (0°..51°, reversed) starting 11° past wall a's normal; a receiver that clips
     every wall echo (no amplitude peak to find) and a comparator whose threshold crossing comes later on weaker,
     off-axis echoes.  Wall a's direction rests on the ranges' lever arm seen from one side, which that range
     bias turns: before, 10° and 3.2 cm off (oracle 0.9 cm) and "good"."""
-    rig = fs.ForeignRig(distance_a=1.7830363310095811, distance_b=1.6938356931615588, roll=-0.1903572544171102,
-                        gamma_start=-0.0033389079129613197, gamma_stop=0.8934311199550851, steps=64, reverse=True,
-                        beam_sigma=0.3254629289661583, burst=0.0006705769242689202, echo_scale=4.997552377766458,
-                        corner_gain=1.3571584212937797, crosstalk=0.807290582161242, dc=0.15, full_scale=0.5,
-                        gains=(0.5708356164525817, 1.1886958726238408, 0.7073260841899358, 1.584129877091351),
-                        floor_depth=0.6337890015727393, floor_scale=0.37580473655153046, seed=45)
+    rig = fs.ForeignRig(
+        distance_a=1.7830363310095811,
+        distance_b=1.6938356931615588,
+        roll=-0.1903572544171102,
+        gamma_start=-0.0033389079129613197,
+        gamma_stop=0.8934311199550851,
+        steps=64,
+        reverse=True,
+        beam_sigma=0.3254629289661583,
+        burst=0.0006705769242689202,
+        echo_scale=4.997552377766458,
+        corner_gain=1.3571584212937797,
+        crosstalk=0.807290582161242,
+        dc=0.15,
+        full_scale=0.5,
+        gains=(0.5708356164525817, 1.1886958726238408, 0.7073260841899358, 1.584129877091351),
+        floor_depth=0.6337890015727393,
+        floor_scale=0.37580473655153046,
+        seed=45,
+    )
     code, _, _, verdicts = _run(tmp_path, fs.simulate(rig), fs.Conventions(energy_model=False))
     assert code == 0
     a = verdicts["a"]
@@ -265,18 +318,38 @@ def test_a_wall_seen_from_one_side_of_its_normal_is_not_good(tmp_path):
 #: Rigs of the random foreign sweep (seeds 19 and 15): the L rolled by 10.6° and 10.9°, wall a's amplitude peak
 #: not found, so its direction rests on the joint fit, checked against the paper-corrected points.
 _ROLLED_NO_PEAK_RIGS = {
-    "seed 19": fs.ForeignRig(distance_a=2.814673362041759, distance_b=1.1846749697457053, roll=-0.18428640976336602,
-                             radial_offset=0.034529809033116296, gamma_start=-0.12895602766753753,
-                             gamma_stop=1.6586405318511017, steps=64, beam_sigma=0.23634895659325672,
-                             burst=0.0003869992506942923, echo_scale=4.606843728129003,
-                             corner_gain=1.8993057161275204, noise=0.0046872334217392154,
-                             threshold=0.04055646829943126, seed=19),
-    "seed 15": fs.ForeignRig(distance_a=2.539542778340144, distance_b=1.3610168944821417, roll=-0.1906577391260678,
-                             radial_offset=0.04766485450343573, gamma_start=0.01365372887152969,
-                             gamma_stop=1.9835002208907033, steps=195, beam_sigma=0.18910626836986846,
-                             burst=0.00047420580536532283, echo_scale=4.886908070733824,
-                             corner_gain=1.694052438880843, noise=0.005996029456673743,
-                             threshold=0.06906530316847832, seed=15),
+    "seed 19": fs.ForeignRig(
+        distance_a=2.814673362041759,
+        distance_b=1.1846749697457053,
+        roll=-0.18428640976336602,
+        radial_offset=0.034529809033116296,
+        gamma_start=-0.12895602766753753,
+        gamma_stop=1.6586405318511017,
+        steps=64,
+        beam_sigma=0.23634895659325672,
+        burst=0.0003869992506942923,
+        echo_scale=4.606843728129003,
+        corner_gain=1.8993057161275204,
+        noise=0.0046872334217392154,
+        threshold=0.04055646829943126,
+        seed=19,
+    ),
+    "seed 15": fs.ForeignRig(
+        distance_a=2.539542778340144,
+        distance_b=1.3610168944821417,
+        roll=-0.1906577391260678,
+        radial_offset=0.04766485450343573,
+        gamma_start=0.01365372887152969,
+        gamma_stop=1.9835002208907033,
+        steps=195,
+        beam_sigma=0.18910626836986846,
+        burst=0.00047420580536532283,
+        echo_scale=4.886908070733824,
+        corner_gain=1.694052438880843,
+        noise=0.005996029456673743,
+        threshold=0.06906530316847832,
+        seed=15,
+    ),
 }
 
 
@@ -308,29 +381,87 @@ def test_a_roll_the_joint_fit_measured_does_not_make_the_wall_ambiguous(tmp_path
 #: peak was not found: its joint-fit normal 0.1–2° off the truth, reported ±10–39° (the covariance of its own
 #: echoes, whose direction rests on the capsules' few-cm radial lever, not the joint fit's that the edge ties).
 _JOINT_WALL_RIGS = [
-    fs.ForeignRig(distance_a=2.6382562873301474, distance_b=2.5275584969608555, roll=-0.09992511446148157,
-                  radial_offset=0.027531201892136856, gamma_start=0.10374110730338212, gamma_stop=1.7284328228159027,
-                  steps=171, beam_sigma=0.10536256949588771, burst=0.0007462443068395029,
-                  echo_scale=4.92857633361651, corner_gain=1.0008152458326385, noise=0.0017416714949317741,
-                  threshold=0.06695627861272857, seed=13),
-    fs.ForeignRig(distance_a=2.2972766344192523, distance_b=1.327817977877488, roll=0.1814117551975595,
-                  radial_offset=0.03518059396258964, gamma_start=-0.34323976966892716, gamma_stop=1.3007380550835232,
-                  steps=78, beam_sigma=0.2737014291880676, burst=0.0007989771408133268, echo_scale=3.9133184970277535,
-                  corner_gain=1.008558364426894, noise=0.006398592543437524, threshold=0.031092137605588287, seed=53),
-    fs.ForeignRig(distance_a=1.8083490728518568, distance_b=0.6642773435726099, roll=-0.07600192128039981,
-                  radial_offset=0.011889666461423153, gamma_start=0.14494616624102083, gamma_stop=2.315030912358148,
-                  steps=188, beam_sigma=0.2575292709125941, burst=0.0002903242872320636,
-                  echo_scale=0.45891974798112506, corner_gain=1.1853752848711854, noise=0.007244160795525226,
-                  threshold=0.04889240865702877, seed=64),
-    fs.ForeignRig(distance_a=1.778318882035904, distance_b=2.9406092642692605, roll=-0.17557899573054184,
-                  radial_offset=0.04155786870177318, gamma_start=0.14471717179932586, gamma_stop=2.1395278585743336,
-                  steps=99, beam_sigma=0.14736494551206034, burst=0.0007229811645125939, echo_scale=2.8565245835884414,
-                  corner_gain=1.8631011116023837, noise=0.004874466499564719, threshold=0.043400746668744446, seed=4),
-    fs.ForeignRig(distance_a=1.1452826869319326, distance_b=1.5144268195528277, roll=0.1965313126230361,
-                  radial_offset=0.04706994771014241, gamma_start=-0.28489069960304525, gamma_stop=1.3992243575869967,
-                  steps=199, reverse=True, beam_sigma=0.18729943770243201, burst=0.000606633690428322,
-                  echo_scale=3.1977106063503715, corner_gain=1.936910629695899, noise=0.009456776307805552,
-                  threshold=0.038798054660716175, seed=44),
+    fs.ForeignRig(
+        distance_a=2.6382562873301474,
+        distance_b=2.5275584969608555,
+        roll=-0.09992511446148157,
+        radial_offset=0.027531201892136856,
+        gamma_start=0.10374110730338212,
+        gamma_stop=1.7284328228159027,
+        steps=171,
+        beam_sigma=0.10536256949588771,
+        burst=0.0007462443068395029,
+        echo_scale=4.92857633361651,
+        corner_gain=1.0008152458326385,
+        noise=0.0017416714949317741,
+        threshold=0.06695627861272857,
+        seed=13,
+    ),
+    fs.ForeignRig(
+        distance_a=2.2972766344192523,
+        distance_b=1.327817977877488,
+        roll=0.1814117551975595,
+        radial_offset=0.03518059396258964,
+        gamma_start=-0.34323976966892716,
+        gamma_stop=1.3007380550835232,
+        steps=78,
+        beam_sigma=0.2737014291880676,
+        burst=0.0007989771408133268,
+        echo_scale=3.9133184970277535,
+        corner_gain=1.008558364426894,
+        noise=0.006398592543437524,
+        threshold=0.031092137605588287,
+        seed=53,
+    ),
+    fs.ForeignRig(
+        distance_a=1.8083490728518568,
+        distance_b=0.6642773435726099,
+        roll=-0.07600192128039981,
+        radial_offset=0.011889666461423153,
+        gamma_start=0.14494616624102083,
+        gamma_stop=2.315030912358148,
+        steps=188,
+        beam_sigma=0.2575292709125941,
+        burst=0.0002903242872320636,
+        echo_scale=0.45891974798112506,
+        corner_gain=1.1853752848711854,
+        noise=0.007244160795525226,
+        threshold=0.04889240865702877,
+        seed=64,
+    ),
+    fs.ForeignRig(
+        distance_a=1.778318882035904,
+        distance_b=2.9406092642692605,
+        roll=-0.17557899573054184,
+        radial_offset=0.04155786870177318,
+        gamma_start=0.14471717179932586,
+        gamma_stop=2.1395278585743336,
+        steps=99,
+        beam_sigma=0.14736494551206034,
+        burst=0.0007229811645125939,
+        echo_scale=2.8565245835884414,
+        corner_gain=1.8631011116023837,
+        noise=0.004874466499564719,
+        threshold=0.043400746668744446,
+        seed=4,
+    ),
+    fs.ForeignRig(
+        distance_a=1.1452826869319326,
+        distance_b=1.5144268195528277,
+        roll=0.1965313126230361,
+        radial_offset=0.04706994771014241,
+        gamma_start=-0.28489069960304525,
+        gamma_stop=1.3992243575869967,
+        steps=199,
+        reverse=True,
+        beam_sigma=0.18729943770243201,
+        burst=0.000606633690428322,
+        echo_scale=3.1977106063503715,
+        corner_gain=1.936910629695899,
+        noise=0.009456776307805552,
+        threshold=0.038798054660716175,
+        seed=44,
+    ),
 ]
 
 
@@ -355,24 +486,54 @@ def test_a_joint_walls_standard_error_is_the_joint_fits(tmp_path):
 #: below it, so the floor 0.45 m below the axis answers the beams pointing down before the far wall does.  On
 #: main 32–41 % of each scan's echoes fit neither wall nor their edge, and both walls (accurate) were unreliable.
 _FLOOR_AHEAD_RIGS = {
-    "seed 1008": fs.ForeignRig(distance_a=4.121338514325262, distance_b=1.3219342973069366, roll=0.2026408752589123,
-                               radial_offset=0.04382797978882796, gamma_start=-0.522985031556836,
-                               gamma_stop=2.5833972257357134, steps=106, beam_sigma=0.08013072109074708,
-                               burst=0.00036164713781004423, echo_scale=2.0515449305305142,
-                               corner_gain=0.5669112195008912, noise=0.004775653139923942,
-                               threshold=0.023978155492011384, seed=1008),
-    "seed 1022": fs.ForeignRig(distance_a=4.616558753464364, distance_b=3.0721278669636884, roll=0.06118439613583937,
-                               radial_offset=0.038015561404497016, gamma_start=-0.6975801989990393,
-                               gamma_stop=1.4263626134149066, steps=107, beam_sigma=0.2422181511026037,
-                               burst=0.00028302640380694293, echo_scale=3.831461897311852,
-                               corner_gain=1.1737411224135563, noise=0.008752533482815569,
-                               threshold=0.0711902283725994, seed=1022),
-    "seed 1010": fs.ForeignRig(distance_a=2.818286936813165, distance_b=4.613080645633265, roll=0.20167594317645832,
-                               radial_offset=0.04964314160416581, gamma_start=-0.598656014697799,
-                               gamma_stop=2.2263050221011906, steps=191, beam_sigma=0.32616343461830916,
-                               burst=0.0002503441444870916, echo_scale=3.3404135146255785,
-                               corner_gain=0.7834213896013921, noise=0.0013613163332815731,
-                               threshold=0.07114731973705621, seed=1010),
+    "seed 1008": fs.ForeignRig(
+        distance_a=4.121338514325262,
+        distance_b=1.3219342973069366,
+        roll=0.2026408752589123,
+        radial_offset=0.04382797978882796,
+        gamma_start=-0.522985031556836,
+        gamma_stop=2.5833972257357134,
+        steps=106,
+        beam_sigma=0.08013072109074708,
+        burst=0.00036164713781004423,
+        echo_scale=2.0515449305305142,
+        corner_gain=0.5669112195008912,
+        noise=0.004775653139923942,
+        threshold=0.023978155492011384,
+        seed=1008,
+    ),
+    "seed 1022": fs.ForeignRig(
+        distance_a=4.616558753464364,
+        distance_b=3.0721278669636884,
+        roll=0.06118439613583937,
+        radial_offset=0.038015561404497016,
+        gamma_start=-0.6975801989990393,
+        gamma_stop=1.4263626134149066,
+        steps=107,
+        beam_sigma=0.2422181511026037,
+        burst=0.00028302640380694293,
+        echo_scale=3.831461897311852,
+        corner_gain=1.1737411224135563,
+        noise=0.008752533482815569,
+        threshold=0.0711902283725994,
+        seed=1022,
+    ),
+    "seed 1010": fs.ForeignRig(
+        distance_a=2.818286936813165,
+        distance_b=4.613080645633265,
+        roll=0.20167594317645832,
+        radial_offset=0.04964314160416581,
+        gamma_start=-0.598656014697799,
+        gamma_stop=2.2263050221011906,
+        steps=191,
+        beam_sigma=0.32616343461830916,
+        burst=0.0002503441444870916,
+        echo_scale=3.3404135146255785,
+        corner_gain=0.7834213896013921,
+        noise=0.0013613163332815731,
+        threshold=0.07114731973705621,
+        seed=1010,
+    ),
 }
 
 
@@ -397,11 +558,23 @@ def test_a_wall_of_few_echoes_beside_a_floor_stays_unreliable(tmp_path):
     double bounces 3.6 cm beyond it (a 4.2 cm wrong answer, oracle 1.3 cm); 32 % of the echoes are the floor's,
     behind wall a from beams further off its normal than any it answered.  Wall a, accurate, is good; wall b's
     own evidence is too thin to outweigh the scan's unexplained echoes: it stays unreliable."""
-    rig = fs.ForeignRig(distance_a=0.4183793600764485, distance_b=4.120249906563535, roll=0.03142728979553402,
-                        radial_offset=0.01736572792631874, gamma_start=-0.4500875169382161,
-                        gamma_stop=2.6722660482588316, steps=103, reverse=True, beam_sigma=0.08861165112541602,
-                        burst=0.00020701329027066385, echo_scale=0.9734206478763101, corner_gain=1.6047593480878182,
-                        noise=0.003621990558144156, threshold=0.06177420590284422, seed=1030)
+    rig = fs.ForeignRig(
+        distance_a=0.4183793600764485,
+        distance_b=4.120249906563535,
+        roll=0.03142728979553402,
+        radial_offset=0.01736572792631874,
+        gamma_start=-0.4500875169382161,
+        gamma_stop=2.6722660482588316,
+        steps=103,
+        reverse=True,
+        beam_sigma=0.08861165112541602,
+        burst=0.00020701329027066385,
+        echo_scale=0.9734206478763101,
+        corner_gain=1.6047593480878182,
+        noise=0.003621990558144156,
+        threshold=0.06177420590284422,
+        seed=1030,
+    )
     code, _, _, verdicts = _run(tmp_path, fs.simulate(rig), fs.Conventions())
     assert code == 0
     a, b = verdicts["a"], verdicts["b"]
@@ -425,7 +598,7 @@ def test_the_readings_a_board_fired_on_noise_are_told_from_its_echoes():
     # Pooled MAD of ~15,000 AR(1) samples (a few hundred independent ones): within 10 %.
     assert sigma == pytest.approx(NOISY_BOARD.noise, rel=0.1)
     hit = np.count_nonzero(noise & truth)
-    assert hit >= 0.85 * truth.sum()            # the noise's crossings over the level: few
+    assert hit >= 0.85 * truth.sum()  # the noise's crossings over the level: few
     assert hit >= 0.85 * np.count_nonzero(noise)  # weak echoes under it: few
     clean = _assembled(fs.simulate(replace(NOISY_BOARD, noise=0.002)))
     assert not clean.noise_triggers()[0].any()  # 12.5 σ: the noise never fires the board
@@ -438,13 +611,16 @@ def test_readings_a_board_fired_on_noise_are_re_timed_from_the_echo_after_them_a
     # counted as echoes the walls failed to explain.  At 8 mV (3 in 4) the scan's median reading shows no echo
     # rising at its time of flight: every plane unreliable, though the other quarter's ranges are right.  Then
     # they were left out; now the echo after each is recovered from its waveform.
-    code, _, _, verdicts = _run(tmp_path, fs.simulate(replace(NOISY_BOARD, noise=noise)),
-                                fs.Conventions(energy_model=False))
+    code, _, _, verdicts = _run(
+        tmp_path, fs.simulate(replace(NOISY_BOARD, noise=noise)), fs.Conventions(energy_model=False)
+    )
     assert code == 0
     for row in verdicts.values():
         assert row["verdict"] == "accurate" and row["quality"] in qualities, row
-        assert any("comparator fired on noise; " in r and "re-timed from the first echo over the noise after it" in r
-                   for r in row["reasons"]), row["reasons"]
+        assert any(
+            "comparator fired on noise; " in r and "re-timed from the first echo over the noise after it" in r
+            for r in row["reasons"]
+        ), row["reasons"]
 
 
 #: Boards whose comparator fires on the noise before (nearly) every echo: ours at 2 σ of a 12.5 mV noise, and a
@@ -453,12 +629,22 @@ def test_readings_a_board_fired_on_noise_are_re_timed_from_the_echo_after_them_a
 #: flight").
 NOISE_EVERYWHERE = {
     "ours": replace(NOISY_BOARD, noise=0.0125),
-    "sweep14": fs.ForeignRig(distance_a=1.4023666670856414, distance_b=2.2568482639551375, roll=0.15084620460899476,
-                             radial_offset=0.03944228571582977, gamma_start=0.08603599791408358,
-                             gamma_stop=2.1045563883229383, steps=85, beam_sigma=0.2797483775100888,
-                             burst=0.0004803012523465113, echo_scale=2.990557009458441,
-                             corner_gain=1.6448513041278363, noise=0.006821884384379867,
-                             threshold=0.014449474339743784, seed=14),
+    "sweep14": fs.ForeignRig(
+        distance_a=1.4023666670856414,
+        distance_b=2.2568482639551375,
+        roll=0.15084620460899476,
+        radial_offset=0.03944228571582977,
+        gamma_start=0.08603599791408358,
+        gamma_stop=2.1045563883229383,
+        steps=85,
+        beam_sigma=0.2797483775100888,
+        burst=0.0004803012523465113,
+        echo_scale=2.990557009458441,
+        corner_gain=1.6448513041278363,
+        noise=0.006821884384379867,
+        threshold=0.014449474339743784,
+        seed=14,
+    ),
 }
 
 
@@ -499,10 +685,12 @@ def test_a_board_that_fires_on_noise_everywhere_is_reconstructed_from_its_wavefo
     assert code == 0
     for row in verdicts.values():
         assert row["verdict"] == "accurate" and row["quality"] in ("degraded", "unreliable"), row
-        assert any("fires on the noise" in r and "as independent draws do" in r
-                   and "re-timed from the first echo over the noise after it" in r
-                   for r in row["reasons"]), row["reasons"]
-
+        assert any(
+            "fires on the noise" in r
+            and "as independent draws do" in r
+            and "re-timed from the first echo over the noise after it" in r
+            for r in row["reasons"]
+        ), row["reasons"]
 
 
 def test_echoes_recovered_after_noise_triggers_that_turn_the_walls_are_not_good(tmp_path):
@@ -511,11 +699,22 @@ def test_echoes_recovered_after_noise_triggers_that_turn_the_walls_are_not_good(
     each within millimetres of their true ranges, yet with the board's own (re-timed) readings they turned both
     walls 10.5° and the fit called them good at σ 1.6°.  Fitted on the board's own readings alone the walls
     are 1.5° off: two fits of the same walls that disagree beyond their σ cannot both be right."""
-    rig = fs.ForeignRig(distance_a=4.874627915695306, distance_b=0.9132534492359319, roll=-0.10091674290782744,
-                        radial_offset=0.03505425844836125, gamma_start=0.12638209393972225,
-                        gamma_stop=1.5983101093905057, steps=349, beam_sigma=0.3860033760634072,
-                        burst=0.0006428480220254207, echo_scale=3.8911276174510165, corner_gain=2.682002115113341,
-                        noise=0.003973162248685014, threshold=0.014334639097837151, seed=1075)
+    rig = fs.ForeignRig(
+        distance_a=4.874627915695306,
+        distance_b=0.9132534492359319,
+        roll=-0.10091674290782744,
+        radial_offset=0.03505425844836125,
+        gamma_start=0.12638209393972225,
+        gamma_stop=1.5983101093905057,
+        steps=349,
+        beam_sigma=0.3860033760634072,
+        burst=0.0006428480220254207,
+        echo_scale=3.8911276174510165,
+        corner_gain=2.682002115113341,
+        noise=0.003973162248685014,
+        threshold=0.014334639097837151,
+        seed=1075,
+    )
     code, _, _, verdicts = _run(tmp_path, fs.simulate(rig), fs.Conventions())
     assert code == 0
     for row in verdicts.values():
@@ -544,8 +743,8 @@ def test_a_reading_without_an_echo_may_mark_its_range_any_way(value):
 def test_a_valid_echo_needs_its_range_from_either_field():
     s = make_sample()
     d = s.sensors[1].distance
-    s.sensors[1].time_of_flight = 0.0          # range only
-    s.sensors[3].distance = 0.0                # round trip only
+    s.sensors[1].time_of_flight = 0.0  # range only
+    s.sensors[3].distance = 0.0  # round trip only
     t3 = s.sensors[3].time_of_flight
     scan = _assembly()
     scan.add(_decoded(s))
@@ -640,7 +839,6 @@ def test_each_capsule_may_have_its_own_clock():
         assert scan.sensor_energy[0, i] == pytest.approx(float(waveform_energy(w, r.waveform.sample_rate)))
         want = echo_amplitude(w, r.waveform.sample_rate, r.waveform.t0, np.array(r.time_of_flight))
         assert np.array_equal(scan.echo_amplitude[0, i], want, equal_nan=True)
-
 
 
 def test_angles_beyond_a_turn_are_named_even_in_a_narrow_sweep():

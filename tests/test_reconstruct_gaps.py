@@ -8,9 +8,10 @@ from lelsonar import codec
 from lelsonar.acquire.log_server import ScanLog, parse_parameters
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import MAX_LOG_STEPS_PER_QUERY, ScannerKeys, validate_scan_id
-from lelsonar.view import present
+from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.recovery import RecoveryRequest, selectors, step_ranges
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.view import present
 
 from .conftest import make_sample, make_scan_start, simulated_messages, type_name
 
@@ -38,7 +39,7 @@ def feed(service, messages, origin="live"):
 
 
 def terminal(estimates):
-    return [e for e in estimates if present.is_terminal(e)]
+    return [e for e in estimates if wire.is_terminal(e)]
 
 
 def test_without_recovery_a_gap_is_incomplete_never_final(scan):
@@ -50,7 +51,7 @@ def test_without_recovery_a_gap_is_incomplete_never_final(scan):
     assert service.tick() == []
     clock.t = 1.1
     (est,) = service.tick()
-    assert present.status_name(est) == "incomplete" and list(est.missing_steps) == sorted(gap)
+    assert wire.status_name(est) == "incomplete" and list(est.missing_steps) == sorted(gap)
     a = est.accounting
     assert (a.published, a.received_live, a.recovered, a.missing) == (STEPS, STEPS - 3, 0, 3)
     # A straggler after the verdict is rejected as late and counted, never silently lost.
@@ -72,17 +73,18 @@ def test_recovery_is_asked_at_scan_end_retried_a_bounded_number_of_times_then_in
     assert len(asked) == 3 and out == []  # three attempts, 0.5 s apart
     clock.t = 1.5
     (est,) = service.tick()
-    assert present.status_name(est) == "incomplete" and list(est.missing_steps) == [7, 8]
+    assert wire.status_name(est) == "incomplete" and list(est.missing_steps) == [7, 8]
 
 
 def test_recovered_steps_complete_the_scan_as_final(scan):
     clock = Clock()
     asked: list[RecoveryRequest] = []
-    service = ReconstructionService(ReconstructConfig(provisional=False), clock=clock,
-                                    recover=lambda r: asked.append(r) or True)
+    service = ReconstructionService(
+        ReconstructConfig(provisional=False), clock=clock, recover=lambda r: asked.append(r) or True
+    )
     feed(service, [m for m in scan if not (isinstance(m, codec.Sample) and m.step == 40)])
     (final,) = terminal(feed(service, [scan[1 + 40]], origin="recovered"))
-    assert present.status_name(final) == "final" and not final.missing_steps
+    assert wire.status_name(final) == "final" and not final.missing_steps
     a = final.accounting
     assert (a.published, a.received_live, a.recovered, a.duplicates, a.missing) == (STEPS, STEPS - 1, 1, 0, 0)
 
@@ -90,10 +92,11 @@ def test_recovered_steps_complete_the_scan_as_final(scan):
 def test_silent_scan_asks_for_the_rest_and_its_scan_end_then_times_out_with_missing_steps(scan):
     clock = Clock()
     asked: list[RecoveryRequest] = []
-    config = ReconstructConfig(provisional=False, scan_timeout=5.0, recovery_after=1.0, recovery_attempts=2,
-                               recovery_interval=1.0)
+    config = ReconstructConfig(
+        provisional=False, scan_timeout=5.0, recovery_after=1.0, recovery_attempts=2, recovery_interval=1.0
+    )
     service = ReconstructionService(config, clock=clock, recover=lambda r: asked.append(r) or True)
-    feed(service, scan[:1 + 100])
+    feed(service, scan[: 1 + 100])
     clock.t = 0.5
     service.tick()
     assert asked == []
@@ -109,7 +112,7 @@ def test_silent_scan_asks_for_the_rest_and_its_scan_end_then_times_out_with_miss
     assert service.tick() == []  # the budget is spent, but the scan is not silent for scan_timeout yet
     clock.t = 5.0
     (est,) = service.tick()
-    assert present.status_name(est) == "final_timeout" and len(asked) == 2
+    assert wire.status_name(est) == "final_timeout" and len(asked) == 2
     assert list(est.missing_steps) == list(range(100, STEPS)) and est.accounting.missing == STEPS - 100
 
 
@@ -142,8 +145,10 @@ def test_every_message_of_a_thousand_scanners_is_accounted_for_within_the_bounds
     config = ReconstructConfig(provisional=False, max_scans=16, max_scanners=8, scan_timeout=5.0)
     service = ReconstructionService(config, clock=clock)
     starts = [make_scan_start(scanner_id=f"id{i}", scan_id=1, steps=3) for i in range(n)]
-    ends = [codec.ScanEnd(schema_version=1, scanner_id=f"id{i}", scan_id=1, status=1, samples_sent=0,
-                          steps_planned=3) for i in range(n)]
+    ends = [
+        codec.ScanEnd(schema_version=1, scanner_id=f"id{i}", scan_id=1, status=1, samples_sent=0, steps_planned=3)
+        for i in range(n)
+    ]
     feed(service, starts)
     out = terminal(feed(service, ends))
     assert len(service.ingest.scans) == 0 and len(service.latest) == 8
@@ -185,16 +190,30 @@ def test_log_keys_queries_and_the_served_log_are_validated_and_bounded():
 
 
 def test_planes_publishers_are_bounded_and_the_planner_table_shows_the_accounting():
+    from lelsonar.net.transport import ZenohSettings, open_session
     from lelsonar.reconstruct.estimate import wire
     from lelsonar.reconstruct.stream.sources import PlanesServer
-    from lelsonar.net.transport import ZenohSettings, open_session
 
-    acc = wire.accounting_message(published=184, received_live=170, recovered=10, duplicates=2,
-                                  rejected={"InvalidMessageError": 1}, missing=4)
-    msgs = [wire.reconstruction_message(sid, 5, status="incomplete", last_step=183, samples_used=180,
-                                        critical_step=None, critical_angle=0.0, planes=[], edge=None,
-                                        timings=(0, 0, 0), missing_steps=[3, 4, 5, 90], accounting=acc)
-            for sid in ("a", "b", "c")]
+    acc = wire.accounting_message(
+        published=184, received_live=170, recovered=10, duplicates=2, rejected={"InvalidMessageError": 1}, missing=4
+    )
+    msgs = [
+        wire.reconstruction_message(
+            sid,
+            5,
+            status="incomplete",
+            last_step=183,
+            samples_used=180,
+            critical_step=None,
+            critical_angle=0.0,
+            planes=[],
+            edge=None,
+            timings=(0, 0, 0),
+            missing_steps=[3, 4, 5, 90],
+            accounting=acc,
+        )
+        for sid in ("a", "b", "c")
+    ]
     caption = present.planes_table(msgs[0]).caption
     assert "published 184, live 170, recovered 10, duplicates 2, rejected 1" in caption
     assert caption.endswith("missing 4; missing steps 3-5, 90")

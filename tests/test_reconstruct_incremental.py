@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.sim import preset
-from lelsonar.view import present
+from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.correct import AXIS_Z
 from lelsonar.reconstruct.estimate.incremental import (
     FACING_MARGIN,
@@ -19,6 +18,7 @@ from lelsonar.reconstruct.estimate.incremental import (
 from lelsonar.reconstruct.estimate.pipeline import FitOptions, fit_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.sim import preset
 
 from .conftest import assert_matches_the_scene, scene_truth, simulated_messages, type_name
 
@@ -48,7 +48,7 @@ def _feed(service, messages):
 
 
 def _provisional(estimates):
-    return [e for e in estimates if present.status_name(e) == "provisional"]
+    return [e for e in estimates if wire.status_name(e) == "provisional"]
 
 
 def test_provisional_updates_are_incremental_and_the_guard_stays_idle_on_a_clean_scan(scan_messages):
@@ -56,9 +56,14 @@ def test_provisional_updates_are_incremental_and_the_guard_stays_idle_on_a_clean
     seen = []
 
     class Spy:
-        def scan_started(self, scan): pass
-        def step(self, *a): pass
-        def event(self, *a): pass
+        def scan_started(self, scan):
+            pass
+
+        def step(self, *a):
+            pass
+
+        def event(self, *a):
+            pass
 
         def estimate(self, scan, message, results, partial):
             if results is None:
@@ -152,8 +157,9 @@ def test_provisional_planes_match_the_scene_late_in_the_scan_and_are_never_anoth
             if pl.label == "b":
                 seen_b += 1
                 n = np.array([pl.normal.x, pl.normal.y, pl.normal.z])
-                assert np.degrees(np.arccos(np.clip(n @ normal_b, -1, 1))) < np.degrees(FACING_MARGIN), \
+                assert np.degrees(np.arccos(np.clip(n @ normal_b, -1, 1))) < np.degrees(FACING_MARGIN), (
                     f"step {estimate.last_step}: plane b {n} is not wall b {normal_b}"
+                )
     assert seen_b >= len(late)
 
 
@@ -180,7 +186,7 @@ def test_doubled_points_are_reclassified_without_an_exact_fit(scan_messages):
     assert inc.stats.exact == 1 and inc._theta_ls is not None
     at_exact = inc.n
     for k in range(10, len(face_on), 4):
-        inc.update(scan.gamma, scan.distance, face_on[k:k + 4])
+        inc.update(scan.gamma, scan.distance, face_on[k : k + 4])
         if inc.n >= 2 * at_exact:
             break
     assert inc.n >= 2 * at_exact

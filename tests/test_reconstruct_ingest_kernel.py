@@ -9,10 +9,9 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import NonFiniteValueError
-from lelsonar.reconstruct.stream.assembly import _PER_CAPSULE, _PER_STEP, _dc_levels, _settle_step
-from lelsonar.signal.energy import EnergyModel, energy_ratio, total_energy
-from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.assembly import _PER_CAPSULE, _PER_STEP, ScanAssembly, _dc_levels, _settle_step
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected
+from lelsonar.signal.energy import EnergyModel, energy_ratio, total_energy
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -55,11 +54,13 @@ def _with_nan(sample, step: int | None = None):
 @pytest.mark.parametrize("n", [1, 7, 8, 9, 127, 128, 129, 3500, 8193])
 def test_dc_levels_are_numpys_mean_bit_for_bit(n, kind):
     rng = np.random.default_rng(1000 * kind + n)
-    w = [rng.standard_normal((4, n)),                                 # a float32 dynamic range: summed in order
-         np.round(rng.standard_normal((4, n)) * 500) * (3.3 / 4096),  # ADC codes in volts: summed exactly
-         rng.integers(-2048, 2048, (4, n)) * 2.0 ** -11 + 0.25,       # with an offset
-         np.where(rng.random((4, n)) < 0.5, 1e-40, 0.0),              # subnormal
-         rng.standard_normal((4, n)) * 1e30][kind].astype(np.float32)
+    w = [
+        rng.standard_normal((4, n)),  # a float32 dynamic range: summed in order
+        np.round(rng.standard_normal((4, n)) * 500) * (3.3 / 4096),  # ADC codes in volts: summed exactly
+        rng.integers(-2048, 2048, (4, n)) * 2.0**-11 + 0.25,  # with an offset
+        np.where(rng.random((4, n)) < 0.5, 1e-40, 0.0),  # subnormal
+        rng.standard_normal((4, n)) * 1e30,
+    ][kind].astype(np.float32)
     got = np.zeros(4)
     _dc_levels(w, got)
     np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
@@ -102,8 +103,12 @@ def test_non_finite_samples_are_refused_as_decoding_refuses_them_whatever_else_i
     scan's, and nothing of it placed."""
     start, samples = scan[0], scan[1:-1]
     ingest, routed = _opened(start, samples[:4])
-    cases = [(_with_nan(samples[5]), {}), (_with_nan(samples[2]), {}), (_with_nan(samples[6], step=4000), {}),
-             (_with_nan(samples[7]), {"key_scanner": "another"})]
+    cases = [
+        (_with_nan(samples[5]), {}),
+        (_with_nan(samples[2]), {}),
+        (_with_nan(samples[6], step=4000), {}),
+        (_with_nan(samples[7]), {"key_scanner": "another"}),
+    ]
     for i, (bad, kwargs) in enumerate(cases, 1):
         payload = bad.SerializeToString()
         with pytest.raises(NonFiniteValueError) as truth:
@@ -185,8 +190,10 @@ def _faults(sample) -> dict:
         "NaN sample": _with_nan(sample).SerializeToString(),
         # on the wire: what the parser keeps of a field sent twice is the last value
         "NaN gamma sent again": plain + _tag(7, 1) + struct.pack("<d", float("nan")),
-        "a fifth reading, of a NaN range": plain + codec.Sample(sensors=[scan_pb2.SensorReading(
-            capsule_id=4, echo_valid=True, distance=float("nan"))]).SerializeToString(),
+        "a fifth reading, of a NaN range": plain
+        + codec.Sample(
+            sensors=[scan_pb2.SensorReading(capsule_id=4, echo_valid=True, distance=float("nan"))]
+        ).SerializeToString(),
     }
 
 
@@ -215,8 +222,11 @@ def test_the_limits_hold_on_a_scans_fast_path(scan):
     start, samples = scan[0], scan[1:-1]
     sample = samples[4]
     n, k = sample.sensors[0].waveform.sample_count, len(sample.sensors)
-    for limits in (codec.DecodeLimits(max_steps=sample.step), codec.DecodeLimits(max_sensors=k - 1),
-                   codec.DecodeLimits(max_waveform_samples=n - 1)):
+    for limits in (
+        codec.DecodeLimits(max_steps=sample.step),
+        codec.DecodeLimits(max_sensors=k - 1),
+        codec.DecodeLimits(max_waveform_samples=n - 1),
+    ):
         with pytest.raises(codec.DecodeError):
             codec.validate_body(sample, limits)
         routed = ScanAssembly(start)
@@ -230,6 +240,7 @@ def test_the_limits_hold_on_a_scans_fast_path(scan):
 
 def _varied(sample) -> list:
     """Valid variants of a sample, some on the fast path's layout and some not."""
+
     def changed(change):
         m = type(sample).FromString(sample.SerializeToString())
         change(m)
@@ -245,11 +256,11 @@ def _varied(sample) -> list:
         changed(lambda m: setattr(m, "gamma_measured", 0.0)),
         changed(lambda m: setattr(m.motor, "error_bits", 5)),
         changed(lambda m: setattr(m.sensors[0].waveform, "scale", 3.0)),
-        changed(lambda m: setattr(m.sensors[2], "capsule_id", 7)),                 # not the layout: ids
+        changed(lambda m: setattr(m.sensors[2], "capsule_id", 7)),  # not the layout: ids
         changed(lambda m: setattr(m.sensors[2].waveform, "t0", m.sensors[2].waveform.t0 + 1e-6)),  # clocks
-        changed(lambda m: setattr(m.sensors[3].waveform, "encoding", 2)),          # encodings
-        changed(lambda m: m.sensors.reverse()),                                    # order
-        changed(lambda m: m.sensors.pop()),                                        # count
+        changed(lambda m: setattr(m.sensors[3].waveform, "encoding", 2)),  # encodings
+        changed(lambda m: m.sensors.reverse()),  # order
+        changed(lambda m: m.sensors.pop()),  # count
         changed(lambda m: m.sensors[0].ClearField("waveform")),
     ]
 
@@ -259,12 +270,21 @@ def _rewired(payload: bytes, rng) -> list[bytes]:
     runs, a reading more, truncations, flipped bits."""
     import struct
 
-    tail = [_tag(7, 1) + struct.pack("<d", 0.5), bytes([0xF8, 0x06, 0x05]), _tag(15, 2) + b"\x02ab",
-            _tag(15, 5) + b"abcd", _tag(10, 1) + struct.pack("<d", 2.5), _tag(6, 0) + b"\x01", _tag(9, 0) + b"\x01",
-            _tag(8, 2) + bytes([9]) + _tag(2, 1) + struct.pack("<d", 0.25),
-            codec.Sample(sensors=[scan_pb2.SensorReading(capsule_id=4)]).SerializeToString()]
-    out = [payload + t for t in tail] + [_tag(6, 0) + b"\x01" + payload,
-                                         codec.Sample(sensor_energy=[1.0, 2.0]).SerializeToString() + payload]
+    tail = [
+        _tag(7, 1) + struct.pack("<d", 0.5),
+        bytes([0xF8, 0x06, 0x05]),
+        _tag(15, 2) + b"\x02ab",
+        _tag(15, 5) + b"abcd",
+        _tag(10, 1) + struct.pack("<d", 2.5),
+        _tag(6, 0) + b"\x01",
+        _tag(9, 0) + b"\x01",
+        _tag(8, 2) + bytes([9]) + _tag(2, 1) + struct.pack("<d", 0.25),
+        codec.Sample(sensors=[scan_pb2.SensorReading(capsule_id=4)]).SerializeToString(),
+    ]
+    out = [payload + t for t in tail] + [
+        _tag(6, 0) + b"\x01" + payload,
+        codec.Sample(sensor_energy=[1.0, 2.0]).SerializeToString() + payload,
+    ]
     out += [payload[:cut] for cut in (1, 7, 100, len(payload) // 2, len(payload) - 3)]
     for _ in range(40):
         b = bytearray(payload)
@@ -298,8 +318,8 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
                 counts["refused by the parser"] += 1
                 continue
             values = np.zeros(6 * k + 5)
-            values[:2 * k] = [w0.sample_rate, w0.t0] * k
-            values[2 * k:] = rng.standard_normal(4 * k + 5)  # a previous sample's readings, to be overwritten
+            values[: 2 * k] = [w0.sample_rate, w0.t0] * k
+            values[2 * k :] = rng.standard_normal(4 * k + 5)  # a previous sample's readings, to be overwritten
             waveforms = np.full((k, n), np.nan, np.float32)
             carried = _read_sample(payload, ids, values, waveforms)
             ranges, layout, data = codec.sample_readings(m.sensors)
@@ -312,9 +332,19 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
             assert layout == fast_layout
             e = m.sensor_energy[:]
             assert carried == len(e)
-            truth = np.array([m.gamma_measured, m.gamma_commanded, m.motor.load, m.motor.voltage,
-                              m.motor.temperature, *ranges, *e[:k]], dtype=np.float64)
-            assert values[2 * k:5 * k + 5 + min(carried, k)].tobytes() == truth.tobytes()
+            truth = np.array(
+                [
+                    m.gamma_measured,
+                    m.gamma_commanded,
+                    m.motor.load,
+                    m.motor.voltage,
+                    m.motor.temperature,
+                    *ranges,
+                    *e[:k],
+                ],
+                dtype=np.float64,
+            )
+            assert values[2 * k : 5 * k + 5 + min(carried, k)].tobytes() == truth.tobytes()
             assert waveforms.tobytes() == b"".join(data)
     assert min(counts.values()) > 10, counts
 

@@ -22,8 +22,14 @@ from lelsonar.reconstruct.estimate.lel import (
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
 
 
-def plane_with_outliers(rng: np.random.Generator, n: int = 300, frac: float = 0.2, h: float = 1.57,
-                        noise: float = 0.002, cluster: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def plane_with_outliers(
+    rng: np.random.Generator,
+    n: int = 300,
+    frac: float = 0.2,
+    h: float = 1.57,
+    noise: float = 0.002,
+    cluster: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
     """Points of the wall y = h (a 1 m × 1.2 m patch) plus one-sided outliers behind it.
 
     Returns the points and the inlier mask.
@@ -51,9 +57,10 @@ def test_entropy_is_in_unit_interval(r: np.ndarray) -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(arrays(np.float64, st.integers(2, 60),
-              elements=st.floats(-10, 10).filter(lambda x: x == 0 or abs(x) > 1e-150)),
-       st.floats(1e-6, 1e6).map(lambda c: c) | st.floats(-1e6, -1e-6))
+@given(
+    arrays(np.float64, st.integers(2, 60), elements=st.floats(-10, 10).filter(lambda x: x == 0 or abs(x) > 1e-150)),
+    st.floats(1e-6, 1e6).map(lambda c: c) | st.floats(-1e6, -1e-6),
+)
 def test_entropy_is_invariant_to_scaling_the_residuals(r: np.ndarray, c: float) -> None:
     assert entropy_of_residuals(c * r) == pytest.approx(entropy_of_residuals(r), abs=1e-9)
 
@@ -104,8 +111,12 @@ def test_closed_form_gradient_and_hessian_match_finite_differences(seed: int) ->
     eps = 1e-7
     fd_g = np.array([(entropy(theta + eps * e, v) - entropy(theta - eps * e, v)) / (2 * eps) for e in np.eye(3)])
     np.testing.assert_allclose(g, fd_g, rtol=1e-4, atol=1e-6 * np.abs(fd_g).max())
-    fd_h = np.array([(entropy_and_gradient(theta + eps * e, v)[1] - entropy_and_gradient(theta - eps * e, v)[1])
-                     / (2 * eps) for e in np.eye(3)])
+    fd_h = np.array(
+        [
+            (entropy_and_gradient(theta + eps * e, v)[1] - entropy_and_gradient(theta - eps * e, v)[1]) / (2 * eps)
+            for e in np.eye(3)
+        ]
+    )
     np.testing.assert_allclose(hess, fd_h, rtol=1e-3, atol=1e-4 * np.abs(fd_h).max())
 
 
@@ -188,8 +199,7 @@ def test_fast_lel_reaches_the_nelder_mead_minimum(seed: int) -> None:
 def test_fast_lel_keeps_the_best_of_several_starts() -> None:
     v, _ = plane_with_outliers(np.random.default_rng(7), frac=0.2)
     one = lel_fit_fast(v)
-    many = lel_fit_fast(v, extra_starts=six_starts(np.linalg.lstsq(v, np.ones(len(v)), rcond=None)[0])[1:],
-                        front=False)
+    many = lel_fit_fast(v, extra_starts=six_starts(np.linalg.lstsq(v, np.ones(len(v)), rcond=None)[0])[1:], front=False)
     assert many.starts == 6 and many.candidates.shape == (6, 3)
     assert many.entropy <= one.entropy + 1e-15
     assert many.entropy == pytest.approx(many.candidate_entropy.min())

@@ -12,7 +12,6 @@ from hypothesis import strategies as st
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.baseline import fuzzy_c_means, ransac_plane
-from lelsonar.signal.energy import EnergyModel
 from lelsonar.reconstruct.estimate.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -28,6 +27,7 @@ from lelsonar.reconstruct.estimate.results import (
     ScanReconstruction,
 )
 from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
+from lelsonar.signal.energy import EnergyModel
 from tests.synthetic import synthetic_corner_scan, tilted_normal
 
 GEO = ArrayGeometry()
@@ -40,6 +40,7 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
 
 
 # ----------------------------------------------------------------------------- critical step and split
+
 
 @settings(max_examples=100, deadline=None)
 @given(st.integers(20, 300), st.floats(0.05, 0.95), st.integers(0, 2**32 - 1), st.floats(1.2, 5.0))
@@ -80,6 +81,7 @@ def test_split_excludes_the_critical_step_and_labels_by_angle() -> None:
 
 # ----------------------------------------------------------------------------- baseline
 
+
 def test_fcm_separates_three_blobs_and_is_seeded() -> None:
     rng = np.random.default_rng(0)
     centers = np.array([[0, 0], [5, 0], [0, 5]])
@@ -90,7 +92,7 @@ def test_fcm_separates_three_blobs_and_is_seeded() -> None:
     np.testing.assert_allclose(a.membership.sum(axis=0), 1.0)
     assert a.converged
     for k in range(3):  # each blob is one cluster
-        assert len(set(a.labels[50 * k:50 * (k + 1)])) == 1
+        assert len(set(a.labels[50 * k : 50 * (k + 1)])) == 1
     assert len(set(a.labels)) == 3
 
 
@@ -106,6 +108,7 @@ def test_ransac_survives_half_outliers() -> None:
 
 
 # ----------------------------------------------------------------------------- reconstruct()
+
 
 def _scan(seed: int = 0, noise: float = 0.002, **kw):  # noqa: ANN202
     return synthetic_corner_scan(GEO, rng=np.random.default_rng(seed), noise=noise, energy_model=MODEL, **kw)
@@ -127,16 +130,25 @@ def test_registry_has_the_paper_and_the_default() -> None:
 @pytest.fixture(scope="module")
 def paper_scans():
     """The paper's corner from the physical simulator (waveforms, calibrated E0), two noise seeds."""
-    from lelsonar.sim import default_energy_model, preset, simulate_scan
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     out = []
     for seed in (1, 2):
         scan = simulate_scan(preset("paper-test1"), seed=seed)
-        out.append((scan, dict(gamma=scan.gamma_measured, distance=scan.distance,
-                               sensor_energy=waveform_energy(scan.waveforms, scan.sample_rate),
-                               geometry=scan.geometry, energy_model=default_energy_model(),
-                               echo_amplitude=echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof))))
+        out.append(
+            (
+                scan,
+                dict(
+                    gamma=scan.gamma_measured,
+                    distance=scan.distance,
+                    sensor_energy=waveform_energy(scan.waveforms, scan.sample_rate),
+                    geometry=scan.geometry,
+                    energy_model=default_energy_model(),
+                    echo_amplitude=echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof),
+                ),
+            )
+        )
     return out
 
 
@@ -162,8 +174,12 @@ def test_every_method_against_the_paper_corner(method: str, paper_scans) -> None
             # 5σ_r/√n < 1 mm of it; 1 cm (5σ_r) leaves room for the inefficient refits.
             assert abs(p.offset - t.offset) < 0.01, (method, p.label)
             if method in CALIBRATED:
-                assert angle <= 5 * p.normal_stderr and abs(p.offset - t.offset) <= 5 * p.offset_stderr, \
-                    (method, p.label, np.rad2deg(angle), np.rad2deg(p.normal_stderr))
+                assert angle <= 5 * p.normal_stderr and abs(p.offset - t.offset) <= 5 * p.offset_stderr, (
+                    method,
+                    p.label,
+                    np.rad2deg(angle),
+                    np.rad2deg(p.normal_stderr),
+                )
         if method == "ls":
             # LS on the paper's subsets runs through the multipath cluster: 17° on plane b in the paper's
             # eq. 16 — and the verdict says so.
@@ -306,8 +322,7 @@ def test_adaptive_removes_the_correction_offset_bias_on_a_yawed_wall() -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.one_of(st.just(float("nan")), st.floats(-3.0, 3.0)), min_size=3, max_size=40),
-       st.integers(0, 39))
+@given(st.lists(st.one_of(st.just(float("nan")), st.floats(-3.0, 3.0)), min_size=3, max_size=40), st.integers(0, 39))
 def test_split_labels_by_the_nan_median_angle(g: list[float], crit: int) -> None:
     """Plane a is the subset of smaller median γ (NaN ignored), as np.nanmedian decides it."""
     import warnings
@@ -315,7 +330,7 @@ def test_split_labels_by_the_nan_median_angle(g: list[float], crit: int) -> None
     g_arr = np.asarray(g)
     crit = crit % len(g)
     s = split_subsets(g_arr, crit)
-    before, after = g_arr[:crit], g_arr[crit + 1:]
+    before, after = g_arr[:crit], g_arr[crit + 1 :]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN subsets
         mb = np.nanmedian(before) if before.size else np.nan

@@ -81,8 +81,14 @@ def corner_ranges(geometry: ArrayGeometry, gamma: float) -> np.ndarray:
     return np.minimum(d_a, d_b)
 
 
-def plane_fit(method: str, label: str, rng: np.random.Generator, n_points: int = 40,
-              tilt: float = 0.0, points_out: dict | None = None) -> PlaneFit:
+def plane_fit(
+    method: str,
+    label: str,
+    rng: np.random.Generator,
+    n_points: int = 40,
+    tilt: float = 0.0,
+    points_out: dict | None = None,
+) -> PlaneFit:
     base, h = (N_A, H_A) if label == "a" else (N_B, H_B)
     normal = base + np.array([0.0, 0.0, tilt]) if label == "a" else base + np.array([0.0, tilt, 0.0])
     normal /= np.linalg.norm(normal)
@@ -92,57 +98,108 @@ def plane_fit(method: str, label: str, rng: np.random.Generator, n_points: int =
     patch = np.array([o + a * u + b * w for a, b in ((-0.15, -0.4), (0.15, -0.4), (0.15, 0.4), (-0.15, 0.4))])
     mask = rng.random(n_points) > 0.15
     # Points scattered about the true wall; the fit's residuals are theirs against the fitted plane.
-    points = rng.uniform(-0.4, 0.4, (n_points, 1)) * w + rng.uniform(-0.15, 0.15, (n_points, 1)) * u \
+    points = (
+        rng.uniform(-0.4, 0.4, (n_points, 1)) * w
+        + rng.uniform(-0.15, 0.15, (n_points, 1)) * u
         + (h + rng.normal(0, 0.01, (n_points, 1))) * (N_A if label == "a" else N_B)
+    )
     if points_out is not None:
         points_out[(method, label)] = points
     residuals = points @ normal - h
-    return PlaneFit(label=label, method=method, normal=normal, offset=h, entropy=0.4, sigma_relative=0.002,
-                    sigma=0.002 * h, inlier_mask=mask, sorted_residuals=np.sort(residuals),
-                    theta_covariance=np.eye(3) * 1e-8, normal_stderr=1e-3, offset_stderr=1e-3, patch=patch,
-                    diagnostics=SolverDiagnostics("lstsq"))
+    return PlaneFit(
+        label=label,
+        method=method,
+        normal=normal,
+        offset=h,
+        entropy=0.4,
+        sigma_relative=0.002,
+        sigma=0.002 * h,
+        inlier_mask=mask,
+        sorted_residuals=np.sort(residuals),
+        theta_covariance=np.eye(3) * 1e-8,
+        normal_stderr=1e-3,
+        offset_stderr=1e-3,
+        patch=patch,
+        diagnostics=SolverDiagnostics("lstsq"),
+    )
 
 
-def log_scan(rec: rr.RecordingStream, scanner_id: str = "s1", scan_id: int = 7, seed: int = 0,
-             t_start_ns: int = T_START_NS) -> dict:
+def log_scan(
+    rec: rr.RecordingStream, scanner_id: str = "s1", scan_id: int = 7, seed: int = 0, t_start_ns: int = T_START_NS
+) -> dict:
     """Log a synthetic 20-step scan with one partial and one final estimate; return what was sent."""
     rng = np.random.default_rng(seed)
     geometry = ArrayGeometry()
     logger = ScanLogger(rec, scanner_id, scan_id)
     gamma = np.deg2rad(np.linspace(-10.0, 110.0, N_STEPS))
-    logger.scan_started(t_start_ns, gamma[0], gamma[-1], N_STEPS, geometry.capsules_in_array_frame(),
-                        "synthetic corner")
+    logger.scan_started(
+        t_start_ns, gamma[0], gamma[-1], N_STEPS, geometry.capsules_in_array_frame(), "synthetic corner"
+    )
     sent = {"n_points": [], "waveforms": [], "ratio": [], "gamma": gamma}
     for k, g in enumerate(gamma):
         d = corner_ranges(geometry, g) + rng.normal(0.0, 0.003, 4)
-        d[rng.random(4) < 0.2] = np.nan                       # no echo on some capsules
+        d[rng.random(4) < 0.2] = np.nan  # no echo on some capsules
         points = beam_points(geometry, np.array([g]), d[None])[0]
         waves = rng.normal(0.0, 0.05, (4, N_SAMPLES))
         energy = float(rng.uniform(1e-4, 1e-3))
         expected = float(rng.uniform(1e-4, 1e-3))
         ratio = energy / expected
-        logger.step(k, t_start_ns + k * STEP_NS, g, points, geometry.capsule_positions(g), waves, SAMPLE_RATE, T0,
-                    energy, expected, ratio)
+        logger.step(
+            k,
+            t_start_ns + k * STEP_NS,
+            g,
+            points,
+            geometry.capsule_positions(g),
+            waves,
+            SAMPLE_RATE,
+            T0,
+            energy,
+            expected,
+            ratio,
+        )
         sent["n_points"].append(int(np.isfinite(d).sum()))
         sent["waveforms"].append(waves)
         sent["ratio"].append(ratio)
-        if k == 9:   # a partial estimate: ls already fits plane b, another method fails on it
-            logger.estimate(k, t_start_ns + k * STEP_NS,
-                            [plane_fit("ls", "a", rng), plane_fit("lel", "a", rng), plane_fit("ls", "b", rng),
-                             FitFailure(FailureReason.TOO_FEW_POINTS, "3 < 8 points", "b", 3)],
-                            None, [SubsetView("a", rng.normal([0, H_A, 0.3], 0.05, (40, 3)), rng.random(40) > 0.2)],
-                            critical_step=None, critical_gamma=None, final=False)
+        if k == 9:  # a partial estimate: ls already fits plane b, another method fails on it
+            logger.estimate(
+                k,
+                t_start_ns + k * STEP_NS,
+                [
+                    plane_fit("ls", "a", rng),
+                    plane_fit("lel", "a", rng),
+                    plane_fit("ls", "b", rng),
+                    FitFailure(FailureReason.TOO_FEW_POINTS, "3 < 8 points", "b", 3),
+                ],
+                None,
+                [SubsetView("a", rng.normal([0, H_A, 0.3], 0.05, (40, 3)), rng.random(40) > 0.2)],
+                critical_step=None,
+                critical_gamma=None,
+                final=False,
+            )
     last = N_STEPS - 1
     sent["fit_points"] = {}
-    fits = [plane_fit(m, lab, rng, tilt=t, points_out=sent["fit_points"])
-            for m, t in (("ls", 0.05), ("lel", 0.0)) for lab in ("a", "b")]
-    subsets = [SubsetView(lab, rng.normal(o, 0.05, (40, 3)), rng.random(40) > 0.2)
-               for lab, o in (("a", [0, H_A, 0.3]), ("b", [0, 0.6, H_B]))]
+    fits = [
+        plane_fit(m, lab, rng, tilt=t, points_out=sent["fit_points"])
+        for m, t in (("ls", 0.05), ("lel", 0.0))
+        for lab in ("a", "b")
+    ]
+    subsets = [
+        SubsetView(lab, rng.normal(o, 0.05, (40, 3)), rng.random(40) > 0.2)
+        for lab, o in (("a", [0, H_A, 0.3]), ("b", [0, 0.6, H_B]))
+    ]
     edge = EdgeLine(point=np.array([0.0, H_A, H_B]), direction=np.array([1.0, 0.0, 0.0]), angle=math.pi / 2)
     sent["critical"] = 6
-    logger.estimate(last, t_start_ns + last * STEP_NS, fits, edge, subsets, critical_step=6,
-                    critical_gamma=float(gamma[6]), final=True)
-    lel = {f.label: f for f in fits if f.method == "lel"}   # untilted: their patches lie on the true walls
+    logger.estimate(
+        last,
+        t_start_ns + last * STEP_NS,
+        fits,
+        edge,
+        subsets,
+        critical_step=6,
+        critical_gamma=float(gamma[6]),
+        final=True,
+    )
+    lel = {f.label: f for f in fits if f.method == "lel"}  # untilted: their patches lie on the true walls
     logger.truth([("a", N_A, H_A, lel["a"].patch), ("b", N_B, H_B, lel["b"].patch)])
     logger.event("warning", "synthetic scan done")
     sent["fits"] = fits
@@ -209,7 +266,7 @@ def test_steps_carry_pose_points_and_scalars(scan_rrd):
     assert column(ents["/world/s1/array"], "step") == list(range(N_STEPS))
     assert column(ents["/world/s1/array"], "gamma_cdeg") == [round(math.degrees(g) * 100) for g in gamma]
     quats = np.array([q[0] for q in column(ents["/world/s1/array"], "Transform3D:quaternion")])
-    np.testing.assert_allclose(quats[:, 0], np.sin(gamma / 2), atol=1e-6)   # rotation about x by γ
+    np.testing.assert_allclose(quats[:, 0], np.sin(gamma / 2), atol=1e-6)  # rotation about x by γ
     np.testing.assert_allclose(quats[:, 3], np.cos(gamma / 2), atol=1e-6)
 
     # The raw cloud grows by this step's echoes only: NaN rows (no echo) are dropped.
@@ -236,10 +293,10 @@ def test_waveforms_are_not_overwritten_by_later_steps(scan_rrd):
     strips = column(read_rrd(path)["/plots/waveforms/s1/scan_7"], "LineStrips2D:strips")
     assert len(strips) == N_STEPS
     for k in (0, N_STEPS // 2, N_STEPS - 1):
-        s = np.array(strips[k], dtype=float)                     # (capsules, samples, 2)
+        s = np.array(strips[k], dtype=float)  # (capsules, samples, 2)
         assert s.shape == (4, N_SAMPLES, 2)
         np.testing.assert_allclose(s[0, :, 0], (T0 + np.arange(N_SAMPLES) / SAMPLE_RATE) * 1e3, rtol=1e-6)
-        volts = np.arange(4)[:, None] * 1.0 - s[:, :, 1]         # undo the stacking and the y-down flip
+        volts = np.arange(4)[:, None] * 1.0 - s[:, :, 1]  # undo the stacking and the y-down flip
         np.testing.assert_allclose(volts, sent["waveforms"][k], atol=1e-6)
 
 
@@ -254,7 +311,7 @@ def test_estimates_draw_planes_edge_and_flag_outliers(scan_rrd):
     assert len(column(mesh, "Mesh3D:triangle_indices")[-1]) == 2
     ls_rgba = column(ents[f"{scan}/planes/ls/a"], "Mesh3D:albedo_factor")[-1]
     lel_rgba = column(mesh, "Mesh3D:albedo_factor")[-1]
-    assert ls_rgba != lel_rgba                                     # methods are told apart by colour
+    assert ls_rgba != lel_rgba  # methods are told apart by colour
 
     # The bar charts are each final fit's sorted errors e_i, recomputed here from its points.
     for method, label in (("lel", "a"), ("lel", "b"), ("ls", "a"), ("ls", "b")):
@@ -267,7 +324,7 @@ def test_estimates_draw_planes_edge_and_flag_outliers(scan_rrd):
     seg = np.array(column(ents[f"{scan}/edge"], "LineStrips3D:strips")[-1][0])
     assert seg.shape == (2, 3)
     np.testing.assert_allclose(seg[:, 1:], [[H_A, H_B], [H_A, H_B]], atol=1e-9)
-    assert -0.5 <= seg[0, 0] < seg[1, 0] <= 0.5                     # clipped to the patches, ±0.5 m at most
+    assert -0.5 <= seg[0, 0] < seg[1, 0] <= 0.5  # clipped to the patches, ±0.5 m at most
     np.testing.assert_allclose(seg[:, 0], [-0.15, 0.15], atol=1e-9)
 
     # Outliers are drawn bigger than inliers.
@@ -295,10 +352,26 @@ def test_a_method_that_fails_later_is_cleared(tmp_path):
     rng = np.random.default_rng(3)
     logger = ScanLogger(rec, "s1", 1)
     logger.estimate(5, T_START_NS, [plane_fit("lel", "b", rng)], None, [], None, None, final=False)
-    logger.estimate(6, T_START_NS + STEP_NS, [FitFailure(FailureReason.SOLVER_FAILED, "diverged", "b", 20)],
-                    None, [], None, None, final=False)
-    logger.estimate(7, T_START_NS + 2 * STEP_NS, [FitFailure(FailureReason.SOLVER_FAILED, "diverged", "b", 20)],
-                    None, [], None, None, final=False)
+    logger.estimate(
+        6,
+        T_START_NS + STEP_NS,
+        [FitFailure(FailureReason.SOLVER_FAILED, "diverged", "b", 20)],
+        None,
+        [],
+        None,
+        None,
+        final=False,
+    )
+    logger.estimate(
+        7,
+        T_START_NS + 2 * STEP_NS,
+        [FitFailure(FailureReason.SOLVER_FAILED, "diverged", "b", 20)],
+        None,
+        [],
+        None,
+        None,
+        final=False,
+    )
     rec.flush()
     rec.disconnect()
     ents = read_rrd(path)
@@ -306,7 +379,7 @@ def test_a_method_that_fails_later_is_cleared(tmp_path):
     assert mono(plane, "Clear:is_recursive") == [True]
     assert column(plane, "step")[-1] == 6
     warnings = [t for t in mono(ents["/log/s1/scan_1"], "TextLog:text") if "solver failed" in t]
-    assert len(warnings) == 1                                      # the same failure is said once
+    assert len(warnings) == 1  # the same failure is said once
 
 
 def test_two_scans_in_one_recording_do_not_collide(tmp_path):
@@ -335,8 +408,10 @@ def read_blueprint(path: Path) -> dict:
         b = chunk.to_record_batch()
         cols = set(b.schema.names)
         if "ViewBlueprint:class_identifier" in cols:
-            for cls, origin in zip(b.column("ViewBlueprint:class_identifier").to_pylist(),
-                                   b.column("ViewBlueprint:space_origin").to_pylist()):
+            for cls, origin in zip(
+                b.column("ViewBlueprint:class_identifier").to_pylist(),
+                b.column("ViewBlueprint:space_origin").to_pylist(),
+            ):
                 out["views"][cls[0]].append(origin[0])
         if "PanelBlueprint:state" in cols:
             out["panels"][str(chunk.entity_path)] = b.column("PanelBlueprint:state").to_pylist()[0][0]
@@ -357,10 +432,10 @@ def test_the_blueprint_lays_out_world_plots_and_log(scan_rrd):
         "BarChart": ["/plots/errors/a", "/plots/errors/b"],
         "TextLog": ["/log"],
     }
-    collapsed = 2   # rrb.PanelState.Collapsed
+    collapsed = 2  # rrb.PanelState.Collapsed
     assert bp["panels"] == {"/blueprint_panel": collapsed, "/selection_panel": collapsed}
     assert bp["timeline"] == "step"
-    assert bp["col_shares"] == [3.0, 2.0]                # the world takes 3/5 of the width
+    assert bp["col_shares"] == [3.0, 2.0]  # the world takes 3/5 of the width
 
 
 def test_default_blueprint_and_logger_follow_the_root(tmp_path):
@@ -398,9 +473,20 @@ def test_long_waveforms_are_drawn_as_their_envelope(tmp_path):
     logger = ScanLogger(rec, "s1", 1, waveform_points=1000)
     n = 3500
     waves = rng.normal(0.0, 0.05, (4, n))
-    waves[2, 1234] = 0.9                                           # one sharp peak must survive
-    logger.step(0, T_START_NS, 0.0, np.full((4, 3), np.nan), geometry.capsule_positions(0.0), waves,
-                SAMPLE_RATE, T0, 1.0, 1.0, 1.0)
+    waves[2, 1234] = 0.9  # one sharp peak must survive
+    logger.step(
+        0,
+        T_START_NS,
+        0.0,
+        np.full((4, 3), np.nan),
+        geometry.capsule_positions(0.0),
+        waves,
+        SAMPLE_RATE,
+        T0,
+        1.0,
+        1.0,
+        1.0,
+    )
     rec.flush()
     rec.disconnect()
     s = np.array(column(read_rrd(path)["/plots/waveforms/s1/scan_1"], "LineStrips2D:strips")[0], dtype=float)
@@ -408,5 +494,5 @@ def test_long_waveforms_are_drawn_as_their_envelope(tmp_path):
     volts = np.arange(4)[:, None] - s[:, :, 1]
     np.testing.assert_allclose(volts.max(axis=1), waves.max(axis=1), atol=1e-6)
     np.testing.assert_allclose(volts.min(axis=1), waves.min(axis=1), atol=1e-6)
-    assert np.all(np.diff(s[0, :, 0]) >= 0)                        # time still runs forward
+    assert np.all(np.diff(s[0, :, 0]) >= 0)  # time still runs forward
     assert s[0, 0, 0] == pytest.approx(T0 * 1e3) and s[0, -1, 0] == pytest.approx((T0 + (n - 1) / SAMPLE_RATE) * 1e3)

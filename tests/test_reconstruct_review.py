@@ -6,8 +6,8 @@ import subprocess
 
 from rerun.chunk import RrdReader
 
-from lelsonar.log import recording
 from lelsonar.cli.main import main
+from lelsonar.log import recording
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 
 from .conftest import simulated_messages
@@ -31,11 +31,12 @@ def test_review_writes_an_rrd_with_the_scan_the_estimates_and_the_blueprint(tmp_
             texts += [t for row in batch.column("TextLog:text").to_pylist() if row for t in row]
 
     def has(path_part: str, archetype: str) -> bool:
-        return any(path_part in path and any(c.startswith(archetype + ":") for c in cols)
-                   for path, cols in columns.items())
+        return any(
+            path_part in path and any(c.startswith(archetype + ":") for c in cols) for path, cols in columns.items()
+        )
 
-    assert has("/world/rig/array", "Transform3D")            # the array pose
-    assert has("/world/rig/scans/scan_9/raw", "Points3D")    # raw points (eq. 9)
+    assert has("/world/rig/array", "Transform3D")  # the array pose
+    assert has("/world/rig/scans/scan_9/raw", "Points3D")  # raw points (eq. 9)
     assert has("/corrected/a", "Points3D") and has("/corrected/b", "Points3D")
     assert has("/planes/ls/a", "Mesh3D") and has(f"/planes/{DEFAULT_METHOD}/b", "Mesh3D")
     assert has("/truth/a", "Mesh3D")

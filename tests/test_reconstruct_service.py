@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.view import present
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 
@@ -28,7 +27,7 @@ def feed(service: ReconstructionService, messages) -> list[codec.Reconstruction]
 
 
 def finals(estimates):
-    return [e for e in estimates if present.status_name(e).startswith("final")]
+    return [e for e in estimates if wire.status_name(e).startswith("final")]
 
 
 def comparable(msg: codec.Reconstruction) -> codec.Reconstruction:
@@ -46,7 +45,7 @@ def test_provisional_estimates_then_one_final(scan_messages):
     # rate limit (scan time) is off here; test_provisional_estimates_are_rate_limited_in_scan_time tests it.
     service = ReconstructionService(ReconstructConfig(provisional_period=0))
     estimates = feed(service, scan_messages)
-    provisional = [e for e in estimates if present.status_name(e) == "provisional"]
+    provisional = [e for e in estimates if wire.status_name(e) == "provisional"]
     assert provisional, "no provisional estimate before the end of the scan"
     assert all(p.HasField("critical_step") for p in provisional)
     # Provisional estimates follow the scan: later ones use more samples.
@@ -62,8 +61,12 @@ def test_provisional_estimates_then_one_final(scan_messages):
     assert_matches_the_scene(final, service.config.method)
     assert_matches_the_scene(provisional[-1], service.provisional_method)
     # Every plane a planner receives carries a verdict, provisional ones included.
-    assert all(pl.quality == codec.QUALITY["good"] for est in (provisional[-1], final) for pl in est.planes
-               if pl.method in (service.provisional_method, service.config.method))
+    assert all(
+        pl.quality == codec.QUALITY["good"]
+        for est in (provisional[-1], final)
+        for pl in est.planes
+        if pl.method in (service.provisional_method, service.config.method)
+    )
 
 
 def test_final_estimate_does_not_depend_on_arrival_order(scan_messages):
@@ -94,10 +97,10 @@ def test_malformed_payloads_are_counted_and_valid_samples_keep_flowing(scan_mess
         return s.SerializeToString()
 
     bad = [
-        rng.bytes(300),                                                          # random bytes
-        mutated(lambda s: setattr(s, "schema_version", 9)),                      # wrong schema version
+        rng.bytes(300),  # random bytes
+        mutated(lambda s: setattr(s, "schema_version", 9)),  # wrong schema version
         mutated(lambda s: setattr(s.sensors[0].waveform, "data", s.sensors[0].waveform.data[:-8])),  # truncated
-        mutated(lambda s: setattr(s.sensors[1], "distance", math.nan)),          # NaN range
+        mutated(lambda s: setattr(s.sensors[1], "distance", math.nan)),  # NaN range
         mutated(lambda s: setattr(s.sensors[2].waveform, "sample_count", 2**31)),  # huge declared length
     ]
     for i, payload in enumerate(good):
@@ -105,8 +108,13 @@ def test_malformed_payloads_are_counted_and_valid_samples_keep_flowing(scan_mess
         if i == 30:
             for b in bad:
                 assert service.handle(sample_type, b) == []
-    assert service.ingest.rejected == {"DecodeError": 1, "SchemaVersionError": 1, "TruncatedDataError": 1,
-                                      "NonFiniteValueError": 1, "PayloadTooLargeError": 1}
+    assert service.ingest.rejected == {
+        "DecodeError": 1,
+        "SchemaVersionError": 1,
+        "TruncatedDataError": 1,
+        "NonFiniteValueError": 1,
+        "PayloadTooLargeError": 1,
+    }
     assert len(service.finals) == 1 and next(iter(service.finals.values())).samples_used == 184
 
 
@@ -138,7 +146,7 @@ def test_scan_without_scan_end_is_finalised_on_timeout(scan_messages):
     assert service.tick() == []
     now[0] = 3.1
     (final,) = service.tick()
-    assert present.status_name(final) == "final_timeout"
+    assert wire.status_name(final) == "final_timeout"
     assert final.samples_used == 184 and service.stats.timeouts == 1
     assert service.tick() == []  # finalised once
 
@@ -167,7 +175,7 @@ def test_a_backlog_costs_one_refit_not_one_per_sample(scan_messages):
         burst += service.handle(type_name(m), m.SerializeToString(), busy=True)
     assert burst == []  # the clock did not move: everything waited for the backlog
     (caught_up,) = service.tick()
-    assert present.status_name(caught_up) == "provisional" and caught_up.samples_used == 120
+    assert wire.status_name(caught_up) == "provisional" and caught_up.samples_used == 120
     now[0] = 0.3  # past max_provisional_delay: even a busy service refits now
     more = []
     for m in samples[120:130]:

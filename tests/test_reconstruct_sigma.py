@@ -16,8 +16,8 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.sim import piston_directivity
 from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch, window_bias_stderr
+from lelsonar.sim import piston_directivity
 
 #: The capsule's ka at 40 kHz (8 mm radius), as the simulator's receivers.
 KA = 2 * math.pi * 40_000 / 343.2 * 0.008
@@ -78,9 +78,9 @@ def test_rolled_corner_planes_that_claim_good_have_an_honest_normal_sigma() -> N
     The truth is the scene's panels; the noise model allows ~1e-4 of them beyond 3 (one is generous).  The fit's
     own σ of the amplitude peak left 6 of the 16 good planes of these scenes beyond 3 (z 4.4–8.8).
     """
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.estimate.pipeline import reconstruct
     from lelsonar.reconstruct.estimate.results import PlaneFit
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.tools.bench_stress import draw_case, energy_model, simulate
 
     z_good = []
@@ -89,8 +89,14 @@ def test_rolled_corner_planes_that_claim_good_have_an_honest_normal_sigma() -> N
         assert not scan.case.reverse
         cfg = scan.config
         amp = echo_amplitude(scan.waveforms, cfg.sample_rate, scan.t0, scan.tof)
-        res = reconstruct(scan.gamma_measured, cfg.sound_speed * scan.tof / 2, waveform_energy(scan.waveforms,
-                          cfg.sample_rate), cfg.geometry, energy_model(scan), echo_amplitude=amp)
+        res = reconstruct(
+            scan.gamma_measured,
+            cfg.sound_speed * scan.tof / 2,
+            waveform_energy(scan.waveforms, cfg.sample_rate),
+            cfg.geometry,
+            energy_model(scan),
+            echo_amplitude=amp,
+        )
         for plane, panel in ((res.plane_a, cfg.scene.panels[0]), (res.plane_b, cfg.scene.panels[1])):
             if isinstance(plane, PlaneFit) and plane.quality == "good":
                 angle = math.acos(min(1.0, float(plane.normal @ np.asarray(panel.normal))))

@@ -32,9 +32,9 @@ from lelsonar.reconstruct.estimate.quality import (
 )
 from lelsonar.reconstruct.estimate.unexplained import echoes_against_walls
 
-H_A, H_B, FLOOR = 3.0, 1.2, 0.45        # m: walls y = H_A, z = H_B; floor z = −FLOOR
-LOBE = np.deg2rad(12.0)                 # the rig's beam: no echo from further off its axis
-MODEL_LOBE, TOLERANCE, MIN_POINTS = np.deg2rad(50.0), 0.02, 8   # the corner model's defaults (FitOptions)
+H_A, H_B, FLOOR = 3.0, 1.2, 0.45  # m: walls y = H_A, z = H_B; floor z = −FLOOR
+LOBE = np.deg2rad(12.0)  # the rig's beam: no echo from further off its axis
+MODEL_LOBE, TOLERANCE, MIN_POINTS = np.deg2rad(50.0), 0.02, 8  # the corner model's defaults (FitOptions)
 WALL_A, WALL_B, EDGE, FLOOR_ECHO = 1, 2, 3, 4
 
 
@@ -48,16 +48,18 @@ def scene() -> tuple[ScanPoints, np.ndarray]:
     g = gamma[steps]
     beam = np.stack([np.zeros_like(g), np.cos(g), np.sin(g)], axis=1)
     p = np.stack([xs[caps], r * np.cos(g), r * np.sin(g)], axis=1)
-    a, b = H_A - p[:, 1], H_B - p[:, 2]                 # distances to the walls (mirror echoes)
+    a, b = H_A - p[:, 1], H_B - p[:, 2]  # distances to the walls (mirror echoes)
     to_edge = np.stack([np.zeros_like(g), a, b], axis=1)
-    edge = np.linalg.norm(to_edge, axis=1)               # 90° corner: the double bounce returns from ρ
+    edge = np.linalg.norm(to_edge, axis=1)  # 90° corner: the double bounce returns from ρ
     down = -np.sin(g)
-    ranges = np.stack([
-        np.where(beam[:, 1] >= np.cos(LOBE), a, np.inf),
-        np.where(beam[:, 2] >= np.cos(LOBE), b, np.inf),
-        np.where(np.einsum("ij,ij->i", to_edge, beam) >= np.cos(LOBE) * edge, edge, np.inf),
-        np.where(down > 0.05, (FLOOR + p[:, 2]) / np.maximum(down, 0.05), np.inf),
-    ])
+    ranges = np.stack(
+        [
+            np.where(beam[:, 1] >= np.cos(LOBE), a, np.inf),
+            np.where(beam[:, 2] >= np.cos(LOBE), b, np.inf),
+            np.where(np.einsum("ij,ij->i", to_edge, beam) >= np.cos(LOBE) * edge, edge, np.inf),
+            np.where(down > 0.05, (FLOOR + p[:, 2]) / np.maximum(down, 0.05), np.inf),
+        ]
+    )
     first = np.argmin(ranges, axis=0)
     d = ranges[first, np.arange(g.size)]
     ok = np.isfinite(d)
@@ -93,10 +95,12 @@ def test_a_model_that_took_the_corner_cluster_for_wall_a_is_still_told_by_wall_a
     than the cluster's, are left unexplained in front of it, and they count against the model."""
     pts, source = scene
     cluster = source == EDGE
-    wrong_a = Wall(np.array([0.0, 1.0, 0.0]), float(np.median(mirror_residuals(Wall(np.array([0.0, 1.0, 0.0]), 0.0),
-                                                                               pts)[cluster])))
+    wrong_a = Wall(
+        np.array([0.0, 1.0, 0.0]),
+        float(np.median(mirror_residuals(Wall(np.array([0.0, 1.0, 0.0]), 0.0), pts)[cluster])),
+    )
     labels, against = _against(pts, wrong_a, Wall(np.array([0.0, 0.0, 1.0]), H_B))
-    assert np.mean(source[labels == ECHO_WALL_A] == EDGE) > 0.9      # the model's wall a is the cluster
+    assert np.mean(source[labels == ECHO_WALL_A] == EDGE) > 0.9  # the model's wall a is the cluster
     missed = (labels == ECHO_OUTLIER) & (source == WALL_A)
     assert np.count_nonzero(missed) > 0
     # Every echo of the real wall a closer to face-on than the cluster's counts against; no floor echo that the

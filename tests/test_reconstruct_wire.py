@@ -21,9 +21,21 @@ def tilted_fit(label: str = "a", method: str = "lel") -> PlaneFit:
     mask = np.array([True, True, False, True, False, True, True])  # 5 inliers of 7
     cov = np.array([[4e-6, 1e-7, 2e-7], [1e-7, 5e-6, 3e-7], [2e-7, 3e-7, 6e-6]])  # symmetric, not diagonal
     patch = np.array([[-0.3, 1.5, 0.1], [0.3, 1.49, 0.12], [0.31, 1.45, 0.6], [-0.29, 1.46, 0.58]])
-    return PlaneFit(label=label, method=method, normal=normal, offset=1.57, entropy=0.42, sigma_relative=0.0021,
-                    sigma=0.0033, inlier_mask=mask, sorted_residuals=np.linspace(-0.01, 0.02, 7),
-                    theta_covariance=cov, normal_stderr=0.0044, offset_stderr=0.0055, patch=patch)
+    return PlaneFit(
+        label=label,
+        method=method,
+        normal=normal,
+        offset=1.57,
+        entropy=0.42,
+        sigma_relative=0.0021,
+        sigma=0.0033,
+        inlier_mask=mask,
+        sorted_residuals=np.linspace(-0.01, 0.02, 7),
+        theta_covariance=cov,
+        normal_stderr=0.0044,
+        offset_stderr=0.0055,
+        patch=patch,
+    )
 
 
 def xyz(v) -> list[float]:
@@ -50,11 +62,24 @@ def test_reconstruction_message_maps_every_field() -> None:
     a, b = tilted_fit("a"), tilted_fit("b", "ls")
     edge = EdgeLine(point=np.array([0.0, 1.57, 1.06]), direction=np.array([1.0, 0.0, 0.0]), angle=math.pi / 2)
     failure = FitFailure(FailureReason.TOO_FEW_POINTS, "3 < 8 points", "b", 3)
-    for status, code in (("provisional", pb.ESTIMATE_STATUS_PROVISIONAL), ("final", pb.ESTIMATE_STATUS_FINAL),
-                         ("final_timeout", pb.ESTIMATE_STATUS_FINAL_TIMEOUT)):
+    for status, code in (
+        ("provisional", pb.ESTIMATE_STATUS_PROVISIONAL),
+        ("final", pb.ESTIMATE_STATUS_FINAL),
+        ("final_timeout", pb.ESTIMATE_STATUS_FINAL_TIMEOUT),
+    ):
         msg = wire.reconstruction_message(
-            "s1", 77, status=status, last_step=183, samples_used=180, critical_step=67, critical_angle=0.5939,
-            planes=[a, failure, b], edge=edge, timings=(0.011, 0.022, 0.033), stamp_ns=1_700_000_000_123)
+            "s1",
+            77,
+            status=status,
+            last_step=183,
+            samples_used=180,
+            critical_step=67,
+            critical_angle=0.5939,
+            planes=[a, failure, b],
+            edge=edge,
+            timings=(0.011, 0.022, 0.033),
+            stamp_ns=1_700_000_000_123,
+        )
         codec.validate(msg)
         assert (msg.scanner_id, msg.scan_id, msg.status) == ("s1", 77, code)
         assert (msg.last_step, msg.samples_used, msg.stamp_ns) == (183, 180, 1_700_000_000_123)
@@ -67,11 +92,30 @@ def test_reconstruction_message_maps_every_field() -> None:
 
 def test_no_corner_yet_leaves_the_critical_step_unset_and_an_edge_failure_is_reported() -> None:
     edge_failure = FitFailure(FailureReason.DEGENERATE_GEOMETRY, "parallel planes", "edge", 0)
-    msg = wire.reconstruction_message("s1", 1, status="provisional", last_step=10, samples_used=11,
-                                      critical_step=None, critical_angle=0.3, planes=[], edge=edge_failure,
-                                      timings=(0.0, 0.0, 0.0))
+    msg = wire.reconstruction_message(
+        "s1",
+        1,
+        status="provisional",
+        last_step=10,
+        samples_used=11,
+        critical_step=None,
+        critical_angle=0.3,
+        planes=[],
+        edge=edge_failure,
+        timings=(0.0, 0.0, 0.0),
+    )
     assert not msg.HasField("critical_step") and msg.critical_angle == 0.0
     assert not msg.HasField("corner_edge") and list(msg.failures) == [str(edge_failure)]
     with pytest.raises(KeyError):
-        wire.reconstruction_message("s1", 1, status="finished", last_step=0, samples_used=0, critical_step=None,
-                                    critical_angle=0.0, planes=[], edge=None, timings=(0.0, 0.0, 0.0))
+        wire.reconstruction_message(
+            "s1",
+            1,
+            status="finished",
+            last_step=0,
+            samples_used=0,
+            critical_step=None,
+            critical_angle=0.0,
+            planes=[],
+            edge=None,
+            timings=(0.0, 0.0, 0.0),
+        )

@@ -17,9 +17,9 @@ from mcap.reader import make_reader
 from mcap.writer import Writer as McapWriter
 
 from lelsonar import codec
-from lelsonar.log import recording
-from lelsonar.draw import visual
 from lelsonar.cli.main import main as lelsonar_main
+from lelsonar.draw import visual
+from lelsonar.log import recording
 from lelsonar.v1 import reconstruction_pb2
 
 from .conftest import simulated_messages
@@ -65,7 +65,7 @@ def flipped(scan, tmp_path: Path, step: int) -> Path:
 def cut(scan, tmp_path: Path, after_step: int, extra: int = 50) -> Path:
     path, _msgs, spans = scan
     out = tmp_path / "cut.mcap"
-    out.write_bytes(path.read_bytes()[:spans[after_step][1] + extra])
+    out.write_bytes(path.read_bytes()[: spans[after_step][1] + extra])
     return out
 
 
@@ -168,8 +168,12 @@ def test_a_scan_end_logged_before_its_samples_still_gives_one_complete_final(sca
     order = {codec.ScanStart: 0, codec.ScanEnd: 1}
     topics = {cls: recording.TOPICS[cls] for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd)}
     _write_as_another_program(other, msgs, topics, [order.get(type(msg), 10 + i) for i, msg in enumerate(msgs)])
-    done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(other), "--json"],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(other), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr
     (line,) = [x for x in done.stdout.splitlines() if x.startswith("{")]
     got = json.loads(line)
@@ -194,8 +198,12 @@ def test_a_scan_whose_energy_model_is_unusable_is_still_reconstructed_and_says_s
             rec.write(msg)
 
     def final(p: Path) -> tuple[dict, str]:
-        done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(p), "--json",
-                               "--compare", ""], capture_output=True, text=True, timeout=120)
+        done = subprocess.run(
+            [sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(p), "--json", "--compare", ""],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
         assert done.returncode == 0, done.stderr
         (line,) = [x for x in done.stdout.splitlines() if x.startswith("{")]
         return json.loads(line), done.stderr
@@ -216,8 +224,12 @@ def test_a_scan_without_its_scan_start_is_reported_not_silently_skipped(scan, tm
         for msg in msgs:
             if not isinstance(msg, codec.ScanStart):
                 rec.write(msg)
-    done = subprocess.run([sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(target), "--json"],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "lelsonar", "reconstruct", "--source", str(target), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert f"scan ('s1', 1): {STEPS + 1} messages but never its ScanStart" in done.stderr
     assert done.stdout == ""  # stdout carries estimates only
@@ -240,9 +252,12 @@ def test_reconstruct_source_on_a_bit_flip_warns_once_and_estimates(scan, tmp_pat
     rc, out, err = run(capsys, "reconstruct", "--source", target, "--json")
     assert rc == 0 and "Traceback" not in err
     assert len(warnings(err)) == 1
-    assert re.fullmatch(rf"warning: {re.escape(str(target))} is damaged: 1 chunk \({len(PER_STEP)} messages\) "
-                        rf"unreadable after "
-                        rf"byte {scan[2][120][0]}; {STEPS - 1} samples salvaged", warnings(err)[0])
+    assert re.fullmatch(
+        rf"warning: {re.escape(str(target))} is damaged: 1 chunk \({len(PER_STEP)} messages\) "
+        rf"unreadable after "
+        rf"byte {scan[2][120][0]}; {STEPS - 1} samples salvaged",
+        warnings(err)[0],
+    )
     finals = [json.loads(line) for line in out.splitlines()]
     assert len(finals) == 1 and finals[0]["samples_used"] == STEPS - 1 and len(finals[0]["planes"]) >= 2
 
@@ -262,8 +277,10 @@ def test_recover_cli_writes_what_survived_of_a_bit_flip(scan, tmp_path, capsys):
     total = len(PER_STEP) * (STEPS - 1) + len(PER_SCAN)
     assert rc == 0 and err.startswith(f"recovered {total} messages ({STEPS - 1} samples)")
     with open(tmp_path / "fixed.mcap", "rb") as f:
-        steps = sorted(codec.Sample.FromString(m.data).step
-                       for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"]))
+        steps = sorted(
+            codec.Sample.FromString(m.data).step
+            for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"])
+        )
     assert steps == [s for s in range(STEPS) if s != 7]
 
 
@@ -302,7 +319,7 @@ def test_info_names_the_missing_step_and_the_damage(scan, tmp_path, capsys):
 def test_a_killed_file_whose_first_sample_chunk_is_damaged_keeps_the_later_samples(scan, tmp_path, capsys):
     # The Sample channel is defined in step 0's chunk only; the file has no summary to repeat it.
     path, _msgs, spans = scan
-    data = bytearray(path.read_bytes()[:spans[20][1]])
+    data = bytearray(path.read_bytes()[: spans[20][1]])
     data[(spans[0][0] + spans[0][1]) // 2] ^= 0x01
     target = tmp_path / "killed.mcap"
     target.write_bytes(bytes(data))
@@ -311,8 +328,10 @@ def test_a_killed_file_whose_first_sample_chunk_is_damaged_keeps_the_later_sampl
     rc, _out, err = run(capsys, "recover", target, "-o", tmp_path / "fixed.mcap")
     assert rc == 0, err
     with open(tmp_path / "fixed.mcap", "rb") as f:
-        steps = sorted(codec.Sample.FromString(m.data).step
-                       for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"]))
+        steps = sorted(
+            codec.Sample.FromString(m.data).step
+            for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/sample"])
+        )
     assert steps == list(range(1, 21))
     assert [type(m) for m in recording.read_messages(tmp_path / "fixed.mcap")][:2] == [codec.ScanStart, codec.Sample]
 
@@ -332,9 +351,15 @@ def test_info_of_a_cut_file_and_of_skipped_steps(scan, tmp_path, capsys):
 
 
 def test_info_shows_recorded_estimates(tmp_path, capsys):
-    est = reconstruction_pb2.Reconstruction(schema_version=1, scanner_id="s1", scan_id=1, stamp_ns=5,
-                                            status=reconstruction_pb2.ESTIMATE_STATUS_FINAL, samples_used=180,
-                                            critical_step=68)
+    est = reconstruction_pb2.Reconstruction(
+        schema_version=1,
+        scanner_id="s1",
+        scan_id=1,
+        stamp_ns=5,
+        status=reconstruction_pb2.ESTIMATE_STATUS_FINAL,
+        samples_used=180,
+        critical_step=68,
+    )
     p = est.planes.add(label="b", method="adaptive", offset=1.06, sigma=0.002, inlier_count=300, point_count=320)
     p.normal.z = 1.0
     path = tmp_path / "estimates.mcap"

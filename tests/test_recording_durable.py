@@ -18,13 +18,13 @@ import pytest
 from mcap.reader import make_reader
 
 from lelsonar import codec
-from lelsonar.log import recording
+from lelsonar.acquire.scan_loop import ScanOutput
+from lelsonar.cli.acquire import config_from_args
 from lelsonar.cli.main import build_parser
 from lelsonar.cli.main import main as lelsonar_main
-from lelsonar.cli.acquire import config_from_args
-from lelsonar.acquire.scan_loop import ScanOutput
 from lelsonar.errors import RecordingError
 from lelsonar.keys import ScannerKeys
+from lelsonar.log import recording
 from lelsonar.log.reader import salvage
 from lelsonar.net.transport import hermetic_settings, open_session
 
@@ -92,8 +92,24 @@ def test_kill_9_mid_scan_loses_nothing_that_was_published(tmp_path, zenoh_socket
             if len(published) >= 25:
                 enough.set()
 
-    cmd = [sys.executable, "-m", "lelsonar", "acquire", "--device", "sim", "--steps", "3000", "--scanner-id", "k9",
-           "--out", str(tmp_path), "--mode", "client", "--connect", f"unixsock-stream/{zenoh_socket}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "lelsonar",
+        "acquire",
+        "--device",
+        "sim",
+        "--steps",
+        "3000",
+        "--scanner-id",
+        "k9",
+        "--out",
+        str(tmp_path),
+        "--mode",
+        "client",
+        "--connect",
+        f"unixsock-stream/{zenoh_socket}",
+    ]
     with open_session(hermetic_settings(zenoh_socket, listen=True)) as hub:
         sub = hub.declare_subscriber(keys.sample, on_sample)
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -115,8 +131,10 @@ def test_kill_9_mid_scan_loses_nothing_that_was_published(tmp_path, zenoh_socket
     assert capsys.readouterr().err.startswith("recovered ")
     with open(out, "rb") as f:
         reader = make_reader(f)
-        recorded = {codec.Sample.FromString(m.data).step: m.data
-                    for _s, ch, m in reader.iter_messages(topics=["/lelsonar/sample"])}
+        recorded = {
+            codec.Sample.FromString(m.data).step: m.data
+            for _s, ch, m in reader.iter_messages(topics=["/lelsonar/sample"])
+        }
         topics = {ch.topic for ch in reader.get_summary().channels.values()}
     assert set(witnessed) <= set(recorded), f"published but not recorded: {sorted(set(witnessed) - set(recorded))}"
     assert all(recorded[step] == payload for step, payload in witnessed.items())

@@ -60,8 +60,9 @@ def original(tmp_path_factory, request) -> Original:
     chunks = []
     for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
         start, end = ci.chunk_start_offset, ci.chunk_start_offset + ci.chunk_length
-        msgs = Counter((topics[r.channel_id], r.log_time, r.data) for r in chunk_records(data[start:end])
-                       if isinstance(r, Message))
+        msgs = Counter(
+            (topics[r.channel_id], r.log_time, r.data) for r in chunk_records(data[start:end]) if isinstance(r, Message)
+        )
         chunks.append((start, end, msgs))
     every = sum((c for *_, c in chunks), Counter())
     assert sum(every.values()) == summary.statistics.message_count  # the truth accounts for every message
@@ -125,7 +126,9 @@ def test_a_cut_anywhere_salvages_every_complete_chunk(original, data):
     check_cut(original, cut)
 
 
-@settings(max_examples=100, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=100, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(st.data())
 def test_a_flipped_bit_costs_at_most_the_chunk_it_falls_in(original, data):
     raw, chunks, every = original
@@ -151,8 +154,10 @@ def test_flipped_bit_in_a_sample_chunk_is_reported_with_its_exact_count(original
     damaged[(start + end) // 2] ^= 0x10
     got, (s, warning) = salvaged(bytes(damaged))
     assert got == every - msgs
-    assert warning == (f"warning: {s.path} is damaged: 1 chunk ({sum(msgs.values())} messages) unreadable after "
-                       f"byte {start}; {STEPS - 1} samples salvaged")
+    assert warning == (
+        f"warning: {s.path} is damaged: 1 chunk ({sum(msgs.values())} messages) unreadable after "
+        f"byte {start}; {STEPS - 1} samples salvaged"
+    )
 
 
 def test_recover_writes_an_indexed_file_with_every_salvaged_message(original, tmp_path):
@@ -166,8 +171,11 @@ def test_recover_writes_an_indexed_file_with_every_salvaged_message(original, tm
         reader = make_reader(f)
         summary = reader.get_summary()
         got = Counter((ch.topic, m.log_time, m.data) for _sc, ch, m in reader.iter_messages())
-    assert summary is not None and summary.chunk_indexes and summary.statistics.message_count == len(
-        list(expected.elements()))
+    assert (
+        summary is not None
+        and summary.chunk_indexes
+        and summary.statistics.message_count == len(list(expected.elements()))
+    )
     assert got == expected and report.messages_written == sum(expected.values())
     assert recording.read_metadata(dst)["lelsonar.config"] == {"device": "sim"}
     assert salvage(dst).intact
@@ -179,7 +187,7 @@ def test_recover_writes_an_indexed_file_with_every_salvaged_message(original, tm
 def test_rerun_accepts_the_recovered_file(original, tmp_path):
     raw, chunks, _ = original
     src, dst = tmp_path / "cut.mcap", tmp_path / "recovered.mcap"
-    src.write_bytes(raw[:chunks[-2][1] + 10])
+    src.write_bytes(raw[: chunks[-2][1] + 10])
     recover(src, dst)
     done = subprocess.run([RERUN, "mcap", "check", str(dst)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr

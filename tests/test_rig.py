@@ -16,15 +16,15 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
-from lelsonar.log import recording
-from lelsonar.cli.main import build_parser, main
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.rig import emulated_rig
 from lelsonar.acquire.emulate.sensor_board_emulator import SensorBoardEmulatorConfig, sim_shot_source
 from lelsonar.acquire.rig import RIG_KEYS, load_rig, write_energy_model
-from lelsonar.sim import preset
 from lelsonar.cli.config_file import parse_args
+from lelsonar.cli.main import build_parser, main
 from lelsonar.errors import ConfigError
+from lelsonar.log import recording
+from lelsonar.sim import preset
 
 EXAMPLE = Path(__file__).parents[1] / "examples" / "rig.toml"
 
@@ -51,8 +51,14 @@ def test_serial_names_everything_missing_at_once(tmp_path):
         config_from_args(main_args)
     text = str(err.value)
     assert "never from a simulator preset" in text
-    for key in ("array.capsule_x", "servo.gamma_min_deg", "sensor_board.port", "air.temperature_c or air.sound_speed",
-                "energy_model.phi", "schedule.steps"):
+    for key in (
+        "array.capsule_x",
+        "servo.gamma_min_deg",
+        "sensor_board.port",
+        "air.temperature_c or air.sound_speed",
+        "energy_model.phi",
+        "schedule.steps",
+    ):
         assert key in text
     assert "servo.port" not in text.split("missing:")[1]
     # Bad values name the key.
@@ -96,15 +102,34 @@ out_dir = "{out}"
 
 def test_the_rig_file_drives_device_serial_end_to_end(tmp_path):
     sim = preset("paper-test1")
-    with emulated_rig(sim_shot_source(sim, np.random.default_rng(0)),
-                      AX12EmulatorConfig(return_delay=0, initial_position=512), SensorBoardEmulatorConfig(),
-                      zero_raw=512) as emu:
+    with emulated_rig(
+        sim_shot_source(sim, np.random.default_rng(0)),
+        AX12EmulatorConfig(return_delay=0, initial_position=512),
+        SensorBoardEmulatorConfig(),
+        zero_raw=512,
+    ) as emu:
         rig = tmp_path / "rig.toml"
         rig.write_text(RIG.format(board=emu.board.path, out=tmp_path / "ignored"))
         # --motor-port overrides the file's bogus port, --steps its schedule, --out its [acquire] out_dir;
         # --preset names another scene and must change nothing on a serial rig.
-        code = main(["acquire", "--device", "serial", "--config", str(rig), "--motor-port", emu.motor.path,
-                     "--steps", "5", "--out", str(tmp_path / "out"), "--no-zenoh", "--preset", "paper-test2"])
+        code = main(
+            [
+                "acquire",
+                "--device",
+                "serial",
+                "--config",
+                str(rig),
+                "--motor-port",
+                emu.motor.path,
+                "--steps",
+                "5",
+                "--out",
+                str(tmp_path / "out"),
+                "--no-zenoh",
+                "--preset",
+                "paper-test2",
+            ]
+        )
     assert code == 0
     msgs = list(recording.read_messages(tmp_path / "out" / "scan.mcap"))
     start = msgs[0]
@@ -121,8 +146,9 @@ def test_the_rig_file_drives_device_serial_end_to_end(tmp_path):
     samples = [m for m in msgs if isinstance(m, codec.Sample)]
     assert len(samples) == 5 and isinstance(msgs[-1], codec.ScanEnd) and msgs[-1].status == 1
     # γ read back from the servo, within an AX-12 unit of the schedule.
-    np.testing.assert_allclose([s.gamma_measured for s in samples],
-                               np.radians(np.linspace(-5, 100, 5)), atol=math.radians(300 / 1024))
+    np.testing.assert_allclose(
+        [s.gamma_measured for s in samples], np.radians(np.linspace(-5, 100, 5)), atol=math.radians(300 / 1024)
+    )
     assert not (tmp_path / "ignored").exists()
     meta = recording.read_metadata(tmp_path / "out" / "scan.mcap")["lelsonar.config"]
     assert "preset" not in meta and meta["rig.servo.zero_raw"] == "512" and meta["device"] == "serial"
@@ -130,12 +156,19 @@ def test_the_rig_file_drives_device_serial_end_to_end(tmp_path):
 
 def test_every_command_reads_config_and_only_explicit_flags_win(tmp_path):
     cfg = tmp_path / "c.toml"
-    cfg.write_text('[reconstruct]\nmethod = "ls"\nscan-timeout = 3\njson = true\n'
-                   '[zenoh]\nprefix = "robot7/lelsonar"\nconnect = ["tcp/10.0.0.1:7447"]\n'
-                   '[planner]\ntimeout = 5\n')
+    cfg.write_text(
+        '[reconstruct]\nmethod = "ls"\nscan-timeout = 3\njson = true\n'
+        '[zenoh]\nprefix = "robot7/lelsonar"\nconnect = ["tcp/10.0.0.1:7447"]\n'
+        "[planner]\ntimeout = 5\n"
+    )
     a = parse_args(build_parser(), ["reconstruct", "--config", str(cfg)])
-    assert (a.method, a.scan_timeout, a.json, a.prefix, a.connect) == ("ls", 3.0, True, "robot7/lelsonar",
-                                                                      ["tcp/10.0.0.1:7447"])
+    assert (a.method, a.scan_timeout, a.json, a.prefix, a.connect) == (
+        "ls",
+        3.0,
+        True,
+        "robot7/lelsonar",
+        ["tcp/10.0.0.1:7447"],
+    )
     # An explicit flag wins even when it repeats the default value.
     a = parse_args(build_parser(), ["reconstruct", "--config", str(cfg), "--scan-timeout", "10", "-e", "tcp/x:1"])
     assert (a.scan_timeout, a.connect, a.method) == (10.0, ["tcp/x:1"], "ls")
@@ -161,8 +194,9 @@ def test_write_energy_model_replaces_only_its_table(tmp_path):
     doc = tomllib.loads(after)
     assert doc["energy_model"] == {"phi": [1.0, 2.0, 3.0], "d_min": 0.5, "d_max": 2.5}
     before = tomllib.loads(text)
-    assert {k: v for k, v in doc.items() if k != "energy_model"} == \
-        {k: v for k, v in before.items() if k != "energy_model"}
+    assert {k: v for k, v in doc.items() if k != "energy_model"} == {
+        k: v for k, v in before.items() if k != "energy_model"
+    }
     # Comments of the other tables survive.
     assert after.split("[energy_model]")[0] == text.split("[energy_model]")[0]
     assert after.split("[schedule]")[1] == text.split("[schedule]")[1]
@@ -191,12 +225,16 @@ def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch,
             return f"{wall['d']}\n"
 
     monkeypatch.setattr("sys.stdin", Typist())
-    with emulated_rig(shots, AX12EmulatorConfig(return_delay=0, initial_position=700),
-                      SensorBoardEmulatorConfig(), zero_raw=512) as emu:
+    with emulated_rig(
+        shots, AX12EmulatorConfig(return_delay=0, initial_position=700), SensorBoardEmulatorConfig(), zero_raw=512
+    ) as emu:
         rig = tmp_path / "rig.toml"
-        rig.write_text(EXAMPLE.read_text().replace("/dev/ttyUSB0", emu.motor.path)
-                       .replace("/dev/ttyACM0", emu.board.path).replace("latency_timer_ms = 16.0",
-                                                                        "latency_timer_ms = 2.0"))
+        rig.write_text(
+            EXAMPLE.read_text()
+            .replace("/dev/ttyUSB0", emu.motor.path)
+            .replace("/dev/ttyACM0", emu.board.path)
+            .replace("latency_timer_ms = 16.0", "latency_timer_ms = 2.0")
+        )
         assert main(["calibrate", "--device", "serial", "--config", str(rig)]) == 0
         assert emu.motor.gamma_source(512)() == pytest.approx(0.0, abs=math.radians(0.3))  # turned face-on
     out = capsys.readouterr().out
@@ -206,14 +244,14 @@ def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch,
     # Independent: the simulator's own six-shot calibration (no serial link, no ADC) predicts the same E0.
     ref = calibrate_simulator(sim, seed=5).model
     d = np.linspace(0.9, 1.8, 7)
-    e0 = 1.0 / (got["phi"][0] * d ** 2 + got["phi"][1] * d + got["phi"][2])
+    e0 = 1.0 / (got["phi"][0] * d**2 + got["phi"][1] * d + got["phi"][2])
     np.testing.assert_allclose(e0, ref.expected_energy(d), rtol=0.05)
     assert "# calibrated " in rig.read_text() and "[schedule]" in rig.read_text()
 
 
 def test_the_example_rig_configures_every_command_it_has_tables_for():
-    from lelsonar.cli.acquire import config_from_args
     from lelsonar.acquire.rig import serial_setup
+    from lelsonar.cli.acquire import config_from_args
 
     a = parse_args(build_parser(), ["reconstruct", "--config", str(EXAMPLE)])
     assert (a.method, a.compare, a.prefix) == ("adaptive", "ls", "lelsonar")
@@ -223,8 +261,9 @@ def test_the_example_rig_configures_every_command_it_has_tables_for():
     assert setup.steps == 184 and setup.info.geometry.capsule_x == (-0.12, -0.04, 0.04, 0.12)
     assert setup.energy_model.d_min == 0.9 and setup.motor.zero_raw == 512
     # The schedule applies to the simulated devices too; flags still win.
-    cfg = config_from_args(parse_args(build_parser(), ["acquire", "--config", str(EXAMPLE), "--device", "sim",
-                                                       "--gamma-stop", "90"]))
+    cfg = config_from_args(
+        parse_args(build_parser(), ["acquire", "--config", str(EXAMPLE), "--device", "sim", "--gamma-stop", "90"])
+    )
     assert (cfg.steps, cfg.gamma_start, cfg.gamma_stop) == (184, math.radians(-10.0), math.radians(90.0))
     for command in ("planner", "router", "review", "emulate", "simulate", "calibrate", "demo"):
         argv = [command, "--config", str(EXAMPLE)] + (["x.mcap"] if command == "review" else [])

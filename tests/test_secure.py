@@ -23,14 +23,14 @@ import pytest
 import zenoh
 
 from lelsonar import SCHEMA_VERSION, codec
-from lelsonar.net import secure
 from lelsonar.cli.main import main
 from lelsonar.errors import ScannerMismatchError, SecurityError
-from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.keys import ScannerKeys
-from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
+from lelsonar.net import secure
 from lelsonar.net.transport import TransportError, ZenohSettings, open_session
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
 from lelsonar.v1 import reconstruction_pb2
 
 from .conftest import make_sample, make_scan_start, type_name
@@ -55,8 +55,9 @@ def _free_port() -> int:
 def router(certs):
     """A secure router on a loopback port; yields its endpoint."""
     endpoint = f"tls/127.0.0.1:{_free_port()}"
-    settings = secure.secure_settings(ZenohSettings(mode="router", connect=(), listen=(endpoint,)), certs,
-                                      secure.ROUTER)
+    settings = secure.secure_settings(
+        ZenohSettings(mode="router", connect=(), listen=(endpoint,)), certs, secure.ROUTER
+    )
     with open_session(settings):
         yield endpoint
 
@@ -66,8 +67,9 @@ def client(certs: Path, endpoint: str, role: str) -> ZenohSettings:
 
 
 def estimate(scanner: str = "scanner1", offset: float = 1.57) -> codec.Reconstruction:
-    msg = codec.Reconstruction(schema_version=SCHEMA_VERSION, scanner_id=scanner, scan_id=1,
-                               status=reconstruction_pb2.ESTIMATE_STATUS_FINAL)
+    msg = codec.Reconstruction(
+        schema_version=SCHEMA_VERSION, scanner_id=scanner, scan_id=1, status=reconstruction_pb2.ESTIMATE_STATUS_FINAL
+    )
     plane = msg.planes.add(label="a", method="adaptive", offset=offset)
     plane.normal.y = 1.0
     return msg
@@ -117,8 +119,11 @@ def test_init_writes_private_keys_0600_signed_by_the_ca_and_never_overwrites(tmp
         cert = x509.load_pem_x509_certificate((d / f"{role}.pem").read_bytes())
         cert.verify_directly_issued_by(ca)
         assert secure.common_name(cert) == role
-    san = x509.load_pem_x509_certificate((d / "router.pem").read_bytes()).extensions.get_extension_for_class(
-        x509.SubjectAlternativeName).value
+    san = (
+        x509.load_pem_x509_certificate((d / "router.pem").read_bytes())
+        .extensions.get_extension_for_class(x509.SubjectAlternativeName)
+        .value
+    )
     assert san.get_values_for_type(x509.DNSName) == ["localhost", "robot7.local"]
     assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["127.0.0.1", "10.0.0.7"]
 
@@ -159,15 +164,22 @@ def test_only_clients_with_a_certificate_of_this_ca_connect(certs, router, tmp_p
     no_cert = {k: v for k, v in json.loads(tls_json).items() if not k.startswith("connect_")}
     other = tmp_path / "other"
     secure.init(other, ["scanner1"])
-    foreign = json.loads(tls_json) | {"connect_certificate": str(other / "planner.pem"),
-                                      "connect_private_key": str(other / "planner.key")}
+    foreign = json.loads(tls_json) | {
+        "connect_certificate": str(other / "planner.pem"),
+        "connect_private_key": str(other / "planner.key"),
+    }
     for name, tls in (("no certificate", no_cert), ("another CA's certificate", foreign)):
-        settings = ZenohSettings(mode="client", connect=(router,),
-                                 overlay=(("transport/link/protocols", '["tls"]'), (tls_path, json.dumps(tls))))
+        settings = ZenohSettings(
+            mode="client",
+            connect=(router,),
+            overlay=(("transport/link/protocols", '["tls"]'), (tls_path, json.dumps(tls))),
+        )
         with pytest.raises(TransportError), open_session(settings):
             pytest.fail(f"a client with {name} connected")
-    with pytest.raises(TransportError), open_session(ZenohSettings(mode="client",
-                                                                   connect=(router.replace("tls/", "tcp/"),))):
+    with (
+        pytest.raises(TransportError),
+        open_session(ZenohSettings(mode="client", connect=(router.replace("tls/", "tcp/"),))),
+    ):
         pytest.fail("a plain TCP client connected to the TLS router")
 
 
@@ -188,9 +200,11 @@ def test_a_planner_cannot_forge_an_estimate(certs, router):
     from lelsonar.reconstruct.stream.sources import PlanesServer
 
     legit, forged = estimate(offset=1.57), estimate(offset=9.99)
-    with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
-            open_session(client(certs, router, secure.PLANNER)) as planner, \
-            open_session(client(certs, router, secure.PLANNER)) as rogue:
+    with (
+        open_session(client(certs, router, secure.RECONSTRUCT)) as recon,
+        open_session(client(certs, router, secure.PLANNER)) as planner,
+        open_session(client(certs, router, secure.PLANNER)) as rogue,
+    ):
         inbox = Inbox()
         planner.declare_subscriber(KEYS1.planes, inbox)
         server = PlanesServer(recon, ScannerKeys(), {"scanner1": legit})  # answers gets, as reconstruct does
@@ -214,8 +228,10 @@ def test_a_planner_cannot_forge_an_estimate(certs, router):
 def test_a_scanner_cannot_publish_as_another_scanner(certs, router):
     from lelsonar.acquire.scan_loop import ScanPublisher
 
-    with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
-            open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1:
+    with (
+        open_session(client(certs, router, secure.RECONSTRUCT)) as recon,
+        open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1,
+    ):
         inbox = Inbox()
         recon.declare_subscriber(ScannerKeys().sample, inbox)
         probe = acquire1.declare_publisher(KEYS1.sample)
@@ -248,19 +264,23 @@ def test_a_scanner_cannot_publish_as_another_scanner(certs, router):
 
 
 def test_only_a_scanners_own_acquire_answers_for_its_log(certs, router):
-    with open_session(client(certs, router, secure.RECONSTRUCT)) as recon, \
-            open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1, \
-            open_session(client(certs, router, secure.PLANNER)) as planner:
-        own = acquire1.declare_queryable("lelsonar/scanner1/log/**",
-                                         lambda q: q.reply("lelsonar/scanner1/log/5", b"step 5"))
-        other = acquire1.declare_queryable("lelsonar/scanner2/log/**",
-                                           lambda q: q.reply("lelsonar/scanner2/log/5", b"forged"))
+    with (
+        open_session(client(certs, router, secure.RECONSTRUCT)) as recon,
+        open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1,
+        open_session(client(certs, router, secure.PLANNER)) as planner,
+    ):
+        own = acquire1.declare_queryable(
+            "lelsonar/scanner1/log/**", lambda q: q.reply("lelsonar/scanner1/log/5", b"step 5")
+        )
+        other = acquire1.declare_queryable(
+            "lelsonar/scanner2/log/**", lambda q: q.reply("lelsonar/scanner2/log/5", b"forged")
+        )
 
         def ask(session, selector: str) -> list[bytes]:
             return [r.ok.payload.to_bytes() for r in session.get(selector, timeout=5) if r.ok is not None]
 
         querier = recon.declare_querier("lelsonar/scanner1/log/**")  # a querier sees the queryable, as a
-        wait_matching(querier)                                          # publisher sees its subscribers
+        wait_matching(querier)  # publisher sees its subscribers
         assert [r.ok.payload.to_bytes() for r in querier.get() if r.ok is not None] == [b"step 5"]
         assert ask(recon, "lelsonar/scanner1/log/**") == [b"step 5"]
         assert ask(recon, "lelsonar/*/log/**") == [b"step 5"]
@@ -283,9 +303,9 @@ def test_ingest_rejects_and_counts_a_payload_that_claims_another_scanner():
 
 
 def test_live_reconstruct_rejects_a_scan_forged_under_another_key_without_security(zenoh_socket):
+    from lelsonar.net.transport import hermetic_settings
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import LiveSource
-    from lelsonar.net.transport import hermetic_settings
 
     events: list[str] = []
     rejected, started = threading.Event(), threading.Event()
@@ -305,19 +325,25 @@ def test_live_reconstruct_rejects_a_scan_forged_under_another_key_without_securi
 
     service = ReconstructionService(observer=Watch())
     stop = threading.Event()
-    with open_session(hermetic_settings(zenoh_socket, listen=True)) as server, \
-            open_session(hermetic_settings(zenoh_socket, listen=False)) as rogue:
+    with (
+        open_session(hermetic_settings(zenoh_socket, listen=True)) as server,
+        open_session(hermetic_settings(zenoh_socket, listen=False)) as rogue,
+    ):
         with LiveSource(server, ScannerKeys(), service, stop):
             rogue_keys = ScannerKeys("lelsonar", "rogue")
             pub = rogue.declare_publisher(rogue_keys.scan)
             wait_matching(pub)
-            pub.put(make_scan_start(scanner_id="scanner1").SerializeToString(),
-                    encoding=zenoh.Encoding(codec.encoding_name(codec.ScanStart())))
+            pub.put(
+                make_scan_start(scanner_id="scanner1").SerializeToString(),
+                encoding=zenoh.Encoding(codec.encoding_name(codec.ScanStart())),
+            )
             assert rejected.wait(30), events
             legit = rogue.declare_publisher(KEYS1.scan)
             wait_matching(legit)
-            legit.put(make_scan_start(scanner_id="scanner1").SerializeToString(),
-                      encoding=zenoh.Encoding(codec.encoding_name(codec.ScanStart())))
+            legit.put(
+                make_scan_start(scanner_id="scanner1").SerializeToString(),
+                encoding=zenoh.Encoding(codec.encoding_name(codec.ScanStart())),
+            )
             assert started.wait(30), events
     assert service.ingest.rejected["ScannerMismatchError"] == 1
 
@@ -336,9 +362,24 @@ def test_the_planner_process_drops_an_estimate_on_another_scanners_key_without_s
     with open_session(hermetic_settings(zenoh_socket, listen=True)) as session:
         up = threading.Event()
         session.liveliness().declare_subscriber("lelsonar/*/alive/planner", lambda _s: up.set(), history=True)
-        planner = subprocess.Popen([sys.executable, "-m", "lelsonar", "planner", "--json", "--until-final", "1",
-                                    "--timeout", "60", "--connect", endpoint],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        planner = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "lelsonar",
+                "planner",
+                "--json",
+                "--until-final",
+                "1",
+                "--timeout",
+                "60",
+                "--connect",
+                endpoint,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             assert up.wait(30), "the planner did not come up"
             pub2 = session.declare_publisher(KEYS2.planes)
@@ -364,9 +405,25 @@ def test_secure_demo_prints_the_same_planes_as_the_plain_demo(tmp_path):
     env = {**os.environ, "COLUMNS": "140"}
     runs = {}
     for name, extra in (("plain", []), ("secure", ["--secure", str(tmp_path / "certs")])):
-        run = subprocess.run([sys.executable, "-m", "lelsonar", "demo", "--device", "sim", "--seed", "3",
-                              "--out", str(tmp_path / name), *extra],
-                             capture_output=True, text=True, timeout=150, env=env)
+        run = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "lelsonar",
+                "demo",
+                "--device",
+                "sim",
+                "--seed",
+                "3",
+                "--out",
+                str(tmp_path / name),
+                *extra,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=150,
+            env=env,
+        )
         assert run.returncode == 0, run.stdout + run.stderr
         runs[name] = run.stdout
     assert "mutual TLS" in runs["secure"]
@@ -379,16 +436,20 @@ def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_m
     from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership, finals_key, group_keys
 
     _, done_key = group_keys("lelsonar", "g")
-    with open_session(client(certs, router, secure.RECONSTRUCT)) as s_a, \
-            open_session(client(certs, router, secure.PLANNER)) as rogue:
+    with (
+        open_session(client(certs, router, secure.RECONSTRUCT)) as s_a,
+        open_session(client(certs, router, secure.PLANNER)) as rogue,
+    ):
         marks = Inbox()
         s_a.declare_subscriber(done_key, marks)
         with GroupMembership(s_a, "lelsonar", GroupConfig("g", "a", settle=0.0)) as a:
             # The planner tries to join the group and to mark a scan done: the router drops both.
             rogue.liveliness().declare_token("lelsonar/_group/g/member/rogue/1")
             rogue.put(done_key, b"scanner1/1")
-            with open_session(client(certs, router, secure.RECONSTRUCT)) as s_b, \
-                    GroupMembership(s_b, "lelsonar", GroupConfig("g", "b", settle=0.0)) as b:
+            with (
+                open_session(client(certs, router, secure.RECONSTRUCT)) as s_b,
+                GroupMembership(s_b, "lelsonar", GroupConfig("g", "b", settle=0.0)) as b,
+            ):
                 assert sorted(b.members) == ["a", "b"]  # the join query passes the access control
                 assert a.wait_members(2, 20) and b.wait_members(2, 20)
                 pub = s_b.declare_publisher(done_key)
@@ -398,7 +459,10 @@ def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_m
                 assert sorted(a.members) == ["a", "b"] and sorted(b.members) == ["a", "b"]
                 assert marks.empty()
                 # The fence's question reaches a's table of finals; the planner's does not.
-                a.on_estimate(codec.Reconstruction(scanner_id="scanner3", scan_id=1,
-                                                   status=reconstruction_pb2.ESTIMATE_STATUS_FINAL))
+                a.on_estimate(
+                    codec.Reconstruction(
+                        scanner_id="scanner3", scan_id=1, status=reconstruction_pb2.ESTIMATE_STATUS_FINAL
+                    )
+                )
                 assert b._published_elsewhere("scanner3", 1) and not b._published_elsewhere("scanner3", 2)
                 assert not list(rogue.get(finals_key("lelsonar", "g") + "?scanner=scanner3;scan=1", timeout=2.0))

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from lelsonar.cli import simulate as cli
+from lelsonar.errors import ConfigError
 from lelsonar.sim import preset, simulate_scan
 from lelsonar.sim.plot import plane_section, scan_figure
-from lelsonar.errors import ConfigError
 from lelsonar.tools import bench_sim
 
 
@@ -47,8 +47,9 @@ def test_simulate_prints_a_summary_and_writes_the_figure(tmp_path, capsys):
     schedule = np.degrees(np.linspace(cfg.gamma_start, cfg.gamma_stop, cfg.steps))
     assert step == int(np.argmin(np.abs(schedule - critical)))
     for label, panel in panels.items():
-        *normal, offset = _numbers(rf"plane {label}: n = \(([-+\d.]+), ([-+\d.]+), ([-+\d.]+)\), n·p = ([\d.]+) m",
-                                   text)
+        *normal, offset = _numbers(
+            rf"plane {label}: n = \(([-+\d.]+), ([-+\d.]+), ([-+\d.]+)\), n·p = ([\d.]+) m", text
+        )
         np.testing.assert_allclose(normal, panel.normal, atol=5e-5)
         assert offset == pytest.approx(h[label], abs=5e-5)
     # Every capsule of every step is one echo, from wall a, wall b or the corner.
@@ -78,8 +79,13 @@ def test_calibrate_from_the_simulator(capsys):
     text = capsys.readouterr().out
     phi = [_numbers(rf"phi{i} = ([-\d.]+) ", text)[0] for i in range(3)]
     lo, hi = _numbers(r"valid for d in \[([\d.]+), ([\d.]+)\] m", text)
-    rows = np.array([[float(v.rstrip("%")) for v in line.split()]
-                     for line in text.splitlines() if re.match(r"\s+\d+\.\d+\s+\d", line)])
+    rows = np.array(
+        [
+            [float(v.rstrip("%")) for v in line.split()]
+            for line in text.splitlines()
+            if re.match(r"\s+\d+\.\d+\s+\d", line)
+        ]
+    )
     assert len(rows) >= 6
     d, energy, fit, misfit = rows.T
     # The table is the printed model (eq. 12: E0 = 1 / (φ0 d² + φ1 d + φ2)) at the calibration

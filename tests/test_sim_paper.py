@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z, corrected_points
+from lelsonar.signal.energy import energy_ratio
 from lelsonar.sim import (
     DEFAULT_ENERGY_MODEL,
     EchoSource,
@@ -17,8 +19,6 @@ from lelsonar.sim import (
     preset,
     simulate_scan,
 )
-from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z, corrected_points
-from lelsonar.signal.energy import energy_ratio
 
 
 @pytest.fixture(scope="module")
@@ -76,14 +76,15 @@ def test_argmax_r_needs_a_corner_brighter_than_a_face_on_wall():
 
 @pytest.mark.parametrize("gain", [1.0, 1.5, 2.5])
 def test_the_default_finds_the_critical_step_whatever_the_corner_gain(gain: float):
-    from lelsonar.signal.energy import waveform_energy
     from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.signal.energy import waveform_energy
 
     cfg = _with_corner_gain(gain)
     for seed in range(4):
         s = simulate_scan(cfg, seed=seed)
-        rec = reconstruct(s.gamma_measured, s.distance, waveform_energy(s.waveforms, s.sample_rate), s.geometry,
-                          DEFAULT_ENERGY_MODEL)
+        rec = reconstruct(
+            s.gamma_measured, s.distance, waveform_energy(s.waveforms, s.sample_rate), s.geometry, DEFAULT_ENERGY_MODEL
+        )
         # The edge of the fitted planes fixes the direction to well under one 0.66° step.
         assert abs(rec.critical_step - s.truth.critical_step) <= 1, (gain, seed)
 

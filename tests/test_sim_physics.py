@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from lelsonar.errors import ConfigError
 from lelsonar.sim import (
     Acoustics,
     EchoSource,
@@ -24,7 +25,6 @@ from lelsonar.sim import (
     sound_speed,
 )
 from lelsonar.sim.config import AX12_DEG_PER_UNIT
-from lelsonar.errors import ConfigError
 
 
 def quiet(cfg: SimConfig, **receiver) -> SimConfig:
@@ -157,8 +157,10 @@ def test_mirror_echo_needs_its_foot_on_the_panel():
     assert np.all(table.amplitude[:, :, 0] == 0) and np.all(np.isnan(table.range[:, :, 0]))
     # but at 30° the boresight does hit it: a weak diffuse echo along the beam
     assert np.all(table.amplitude[1, :, -1] > 0)
-    assert np.allclose(table.range[1, :, -1], (1.2 - cfg.geometry.radial_offset * math.cos(math.radians(30)))
-                       / math.cos(math.radians(30)))
+    assert np.allclose(
+        table.range[1, :, -1],
+        (1.2 - cfg.geometry.radial_offset * math.cos(math.radians(30))) / math.cos(math.radians(30)),
+    )
 
 
 def test_tof_noise_is_jitter_plus_half_wavelength_slips():

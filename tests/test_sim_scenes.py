@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from lelsonar.errors import ConfigError
 from lelsonar.sim import EchoSource, Receiver, SimConfig, SimulatedWallShots, simulate_scan
 from lelsonar.sim.scenes import (
     FAMILIES,
@@ -20,7 +21,6 @@ from lelsonar.sim.scenes import (
     required_window_samples,
     sample_scene,
 )
-from lelsonar.errors import ConfigError
 
 SEEDS = range(6)
 DEG = math.pi / 180
@@ -118,20 +118,27 @@ def test_partial_family_sweeps_start_late_or_stop_early_and_contain_the_corner()
     assert min(starts) < 0 < max(starts) and min(stops) < 90 < max(stops)
 
 
-@pytest.mark.parametrize(("family", "field", "lo", "hi"), [
-    ("steps", "steps", 90, 400),
-    ("beam", "capsule_radius", 0.006, 0.012),
-    ("corner", "corner_gain", 1.0, 2.5),
-    ("noise", "tof_jitter", 0.001, 0.006),
-    ("noise", "amplitude_noise", 0.01, 0.05),
-])
+@pytest.mark.parametrize(
+    ("family", "field", "lo", "hi"),
+    [
+        ("steps", "steps", 90, 400),
+        ("beam", "capsule_radius", 0.006, 0.012),
+        ("corner", "corner_gain", 1.0, 2.5),
+        ("noise", "tof_jitter", 0.001, 0.006),
+        ("noise", "amplitude_noise", 0.01, 0.05),
+    ],
+)
 def test_one_parameter_families_draw_in_range(family, field, lo, hi):
     values = [getattr(p, field) for p in _params(family)]
     assert all(lo <= v <= hi for v in values) and len(set(values)) > 1
     cfgs = [draw_scene(family, s).config for s in SEEDS]
-    where = {"steps": lambda c: c.steps, "capsule_radius": lambda c: c.acoustics.capsule_radius,
-             "corner_gain": lambda c: c.acoustics.corner_gain, "tof_jitter": lambda c: c.receiver.tof_jitter,
-             "amplitude_noise": lambda c: c.receiver.amplitude_noise}[field]
+    where = {
+        "steps": lambda c: c.steps,
+        "capsule_radius": lambda c: c.acoustics.capsule_radius,
+        "corner_gain": lambda c: c.acoustics.corner_gain,
+        "tof_jitter": lambda c: c.receiver.tof_jitter,
+        "amplitude_noise": lambda c: c.receiver.amplitude_noise,
+    }[field]
     assert [where(c) for c in cfgs] == values
 
 

@@ -26,22 +26,32 @@ def resolved(argv: list[str], default_mode: str = "peer") -> dict:
     parser = argparse.ArgumentParser()
     add_zenoh_arguments(parser, default_mode=default_mode)
     cfg = zenoh_settings_from_args(parser.parse_args(argv)).to_config()
-    return {k: json.loads(cfg.get_json(k)) for k in ("mode", "connect/endpoints", "listen/endpoints",
-                                                      "scouting/multicast/enabled")}
+    return {
+        k: json.loads(cfg.get_json(k))
+        for k in ("mode", "connect/endpoints", "listen/endpoints", "scouting/multicast/enabled")
+    }
 
 
 def test_a_config_file_is_overridden_only_by_the_flags_the_user_typed(tmp_path):
     path = tmp_path / "robot.json5"
     path.write_text(FILE)
-    from_file = {"mode": "client", "connect/endpoints": ["tcp/10.0.0.5:7447"],
-                 "listen/endpoints": ["tcp/10.0.0.6:7448"], "scouting/multicast/enabled": True}
+    from_file = {
+        "mode": "client",
+        "connect/endpoints": ["tcp/10.0.0.5:7447"],
+        "listen/endpoints": ["tcp/10.0.0.6:7448"],
+        "scouting/multicast/enabled": True,
+    }
     assert resolved(["--zenoh-config", str(path)]) == from_file
     assert resolved(["--zenoh-config", str(path)], default_mode="client") == from_file
     typed = resolved(["--zenoh-config", str(path), "--mode", "peer", "--connect", "tcp/127.0.0.1:9"])
     assert typed == {**from_file, "mode": "peer", "connect/endpoints": ["tcp/127.0.0.1:9"]}
     # No file: the command's defaults, multicast scouting off.
-    assert resolved([]) == {"mode": "peer", "connect/endpoints": ["tcp/127.0.0.1:7447"], "listen/endpoints": [],
-                            "scouting/multicast/enabled": False}
+    assert resolved([]) == {
+        "mode": "peer",
+        "connect/endpoints": ["tcp/127.0.0.1:7447"],
+        "listen/endpoints": [],
+        "scouting/multicast/enabled": False,
+    }
     # A file that says nothing of multicast does not get Zenoh's default (on).
     quiet = tmp_path / "quiet.json5"
     quiet.write_text('{ mode: "peer" /* multicast is not configured here */ }')

@@ -40,7 +40,8 @@ def _truth_points(start, samples) -> np.ndarray:
         for r in smp.sensors:
             cap = start.capsules[r.capsule_id]
             local = np.array([cap.position.x, cap.position.y, cap.position.z]) + r.distance * np.array(
-                [cap.boresight.x, cap.boresight.y, cap.boresight.z])
+                [cap.boresight.x, cap.boresight.y, cap.boresight.z]
+            )
             pts.append(_rot_x(smp.gamma_measured) @ local)
     return np.array(pts)
 
@@ -56,8 +57,15 @@ def _record(path, extra=()):
     # One capsule without an echo: its point must be absent, its range null.
     samples[2].sensors[1].echo_valid = False
     samples[2].sensors[1].distance = 0.0
-    end = codec.ScanEnd(schema_version=1, scanner_id="s1", scan_id=7, status=1, steps_planned=STEPS,
-                        samples_sent=STEPS, end_time_ns=samples[-1].acquisition_time_ns + 1)
+    end = codec.ScanEnd(
+        schema_version=1,
+        scanner_id="s1",
+        scan_id=7,
+        status=1,
+        steps_planned=STEPS,
+        samples_sent=STEPS,
+        end_time_ns=samples[-1].acquisition_time_ns + 1,
+    )
     with recording.McapRecorder(path) as rec:
         for m in (start, *samples, end, *extra):
             rec.write(m)
@@ -94,7 +102,7 @@ def _valid_only(sample):
 def test_capsule_frames_put_x_along_each_boresight(tmp_path):
     path = tmp_path / "scan.mcap"
     start, _ = _record(path)
-    (schema, _, m), = _messages(path, visual.TOPIC_CAPSULE_TF)
+    ((schema, _, m),) = _messages(path, visual.TOPIC_CAPSULE_TF)
     assert schema.name == "foxglove.FrameTransforms"
     tfs = FrameTransforms.FromString(m.data).transforms
     assert [t.child_frame_id for t in tfs] == ["capsule_A", "capsule_B", "capsule_C", "capsule_D"]
@@ -132,8 +140,10 @@ def test_recording_is_named_and_rerun_converts_the_views(tmp_path):
     _record(path)
     meta = recording.read_metadata(path)["lelsonar.log.recording"]
     assert meta["name"] == "lelsonar s1 scan 7" and meta["scanner_id"] == "s1" and meta["scan_id"] == "7"
-    for cmd in ([RERUN, "mcap", "convert", str(path), "-o", str(rrd), "--application-id", "lelsonar"],
-                [RERUN, "rrd", "verify", str(rrd)]):
+    for cmd in (
+        [RERUN, "mcap", "convert", str(path), "-o", str(rrd), "--application-id", "lelsonar"],
+        [RERUN, "rrd", "verify", str(rrd)],
+    ):
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
         assert done.returncode == 0, done.stderr
     positions: list[int] = []
@@ -141,8 +151,11 @@ def test_recording_is_named_and_rerun_converts_the_views(tmp_path):
     names: list = []
     for chunk in RrdReader(rrd).store().stream().to_chunks():
         rb = chunk.to_record_batch()
-        batch = {n: rb.column(n).to_pylist() for n in rb.schema.names
-                 if n in ("Points3D:positions", "Transform3D:child_frame", "lelsonar.log.recording")}
+        batch = {
+            n: rb.column(n).to_pylist()
+            for n in rb.schema.names
+            if n in ("Points3D:positions", "Transform3D:child_frame", "lelsonar.log.recording")
+        }
         if chunk.entity_path == "/lelsonar/scan_points" and "Points3D:positions" in batch:
             positions += [len(p) for p in batch["Points3D:positions"]]
         if chunk.entity_path == "/tf_capsules" and "Transform3D:child_frame" in batch:
@@ -155,8 +168,14 @@ def test_recording_is_named_and_rerun_converts_the_views(tmp_path):
 
 
 def _estimate(planes, edge=True) -> codec.Reconstruction:
-    msg = codec.Reconstruction(schema_version=1, scanner_id="s1", scan_id=7, last_step=STEPS - 1,
-                               status=reconstruction_pb2.ESTIMATE_STATUS_FINAL, stamp_ns=1_700_000_001_000_000_000)
+    msg = codec.Reconstruction(
+        schema_version=1,
+        scanner_id="s1",
+        scan_id=7,
+        last_step=STEPS - 1,
+        status=reconstruction_pb2.ESTIMATE_STATUS_FINAL,
+        stamp_ns=1_700_000_001_000_000_000,
+    )
     for label, method, quality, normal, h in planes:
         p = msg.planes.add(label=label, method=method, offset=h, sigma=0.002, quality=quality)
         p.normal.x, p.normal.y, p.normal.z = normal
@@ -180,9 +199,13 @@ def _rgb(color) -> tuple[int, int, int]:
 
 def test_record_adds_planes_coloured_by_method_and_quality_and_deletes_stale_ones(tmp_path):
     path = tmp_path / "scan.mcap"
-    first = _estimate([("a", "ls", reconstruction_pb2.PLANE_QUALITY_GOOD, (0, 1, 0), 1.57),
-                       ("b", "ls", reconstruction_pb2.PLANE_QUALITY_UNRELIABLE, (0, 0, 1), 1.06),
-                       ("a", "lel", reconstruction_pb2.PLANE_QUALITY_UNSPECIFIED, (0, 1, 0), 1.57)])
+    first = _estimate(
+        [
+            ("a", "ls", reconstruction_pb2.PLANE_QUALITY_GOOD, (0, 1, 0), 1.57),
+            ("b", "ls", reconstruction_pb2.PLANE_QUALITY_UNRELIABLE, (0, 0, 1), 1.06),
+            ("a", "lel", reconstruction_pb2.PLANE_QUALITY_UNSPECIFIED, (0, 1, 0), 1.57),
+        ]
+    )
     second = _estimate([("a", "ls", reconstruction_pb2.PLANE_QUALITY_DEGRADED, (0, 1, 0), 1.50)], edge=False)
     second.stamp_ns += 1
     _record(path, extra=(first, second))
@@ -194,9 +217,11 @@ def test_record_adds_planes_coloured_by_method_and_quality_and_deletes_stale_one
     # One palette for every viewer: Foxglove draws what Rerun and the ROS 2 markers draw.
     ls, lel = palette.METHOD_COLORS["ls"], palette.METHOD_COLORS["lel"]
     q = palette.QUALITY_COLORS
-    expect = {"s1/7/plane/ls/a": (ls, q["good"], "good"),
-              "s1/7/plane/ls/b": (ls, q["unreliable"], "unreliable"),
-              "s1/7/plane/lel/a": (lel, palette.UNASSESSED_COLOR, "unassessed")}
+    expect = {
+        "s1/7/plane/ls/a": (ls, q["good"], "good"),
+        "s1/7/plane/ls/b": (ls, q["unreliable"], "unreliable"),
+        "s1/7/plane/lel/a": (lel, palette.UNASSESSED_COLOR, "unassessed"),
+    }
     assert len({ls, lel, *q.values(), palette.UNASSESSED_COLOR}) == 6  # distinguishable
     for eid, (fill, outline, quality) in expect.items():
         e = by_id[eid]

@@ -19,7 +19,10 @@ BENCHES = {
     "estimators": ("lelsonar.tools.bench_estimators", "accuracy and speed of every estimator against the oracle"),
     "acquire": ("lelsonar.tools.bench_acquire", "emulated scan wall time against the physical bound"),
     "ingest": ("lelsonar.tools.bench_ingest", "Zenoh ingest rate, update latency and MCAP replay speed"),
-    "recording": ("lelsonar.tools.bench_recording", "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks"),
+    "recording": (
+        "lelsonar.tools.bench_recording",
+        "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks",
+    ),
     "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
 }
 
@@ -44,8 +47,14 @@ def progress(items: Iterable[T], label: str, total: int | None = None) -> Iterat
 
     if total is None and hasattr(items, "__len__"):
         total = len(items)  # type: ignore[arg-type]
-    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=Console(stderr=True), transient=True) as bar:
+    with Progress(
+        TextColumn(label),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=True,
+    ) as bar:
         task = bar.add_task(label, total=total)
         for item in items:
             yield item

@@ -56,8 +56,12 @@ TARGET_RATIO = 1.1
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", default="paper-test1", help="simulator preset: scene and schedule (default: %(default)s)")
-    parser.add_argument("--runs", type=int, default=3, help="timed runs per backend; medians are reported (default: %(default)s)")
+    parser.add_argument(
+        "--preset", default="paper-test1", help="simulator preset: scene and schedule (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--runs", type=int, default=3, help="timed runs per backend; medians are reported (default: %(default)s)"
+    )
     parser.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
     parser.add_argument("--seed", type=int, default=0, help="simulator seed (default: %(default)s)")
     parser.add_argument("--no-zenoh", action="store_true", help="skip the emulated+zenoh row")
@@ -80,14 +84,19 @@ def command_line(args: argparse.Namespace) -> str:
 def bound_line(bound) -> str:
     """The bound's parts, as the report prints them."""
     b = bound
-    return (f"{b.total_s:.3f} s = travel {b.travel_units} units (initial move {b.initial_units}) at "
-            f"{b.speed_units_s:.0f} units/s (no-load 59 rpm) = {b.travel_s:.3f} s"
-            f" + {b.steps} × {b.window_s * 1e3:.1f} ms windows = {b.windows_s:.3f} s"
-            f" + sensor link {b.steps} × (FIRE {b.fire_bytes} B + ACQ {b.acq_bytes:,} B) on "
-            f"{b.sensor_link.describe()} = {b.sensor_link_s:.3f} s"
-            f" + AX-12 bus {b.steps} × {b.move_bus_bytes} B on {b.motor_link.describe()} = {b.motor_link_s:.3f} s"
-            + (f" − overlap (each move while the previous frame crosses the link) {b.overlap_s:.3f} s"
-               if b.pipelined else " (no overlap)"))
+    return (
+        f"{b.total_s:.3f} s = travel {b.travel_units} units (initial move {b.initial_units}) at "
+        f"{b.speed_units_s:.0f} units/s (no-load 59 rpm) = {b.travel_s:.3f} s"
+        f" + {b.steps} × {b.window_s * 1e3:.1f} ms windows = {b.windows_s:.3f} s"
+        f" + sensor link {b.steps} × (FIRE {b.fire_bytes} B + ACQ {b.acq_bytes:,} B) on "
+        f"{b.sensor_link.describe()} = {b.sensor_link_s:.3f} s"
+        f" + AX-12 bus {b.steps} × {b.move_bus_bytes} B on {b.motor_link.describe()} = {b.motor_link_s:.3f} s"
+        + (
+            f" − overlap (each move while the previous frame crosses the link) {b.overlap_s:.3f} s"
+            if b.pipelined
+            else " (no overlap)"
+        )
+    )
 
 
 # --- CPU of the emulator threads -----------------------------------------------------------
@@ -140,6 +149,7 @@ def host_busy(seconds: float = 0.5) -> float | None:
 
     The load average lags by a minute; this says whether a neighbour is running now.
     """
+
     def snap() -> tuple[int, int]:
         with open("/proc/stat") as f:
             v = [int(x) for x in f.readline().split()[1:]]
@@ -224,8 +234,9 @@ def _scan_start_ns(path: Path) -> int:
     raise RuntimeError(f"no ScanStart in {path}")
 
 
-def one_run(device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, steps: int | None = None,
-            pipeline: bool = True) -> RunResult:
+def one_run(
+    device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, steps: int | None = None, pipeline: bool = True
+) -> RunResult:
     """One full scan through run_acquisition, recorded to a temporary MCAP file."""
     from contextlib import ExitStack
 
@@ -237,9 +248,16 @@ def one_run(device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, s
     from lelsonar.net.transport import hermetic_settings, open_session
 
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-acquire-") as tmp, ExitStack() as stack:
-        cfg = AcquireConfig(device=device, preset=args.preset, steps=steps if steps is not None else args.steps,
-                            serve_log_for=0.0, pipeline=pipeline,
-                            seed=args.seed, record=True, out_dir=Path(tmp))
+        cfg = AcquireConfig(
+            device=device,
+            preset=args.preset,
+            steps=steps if steps is not None else args.steps,
+            serve_log_for=0.0,
+            pipeline=pipeline,
+            seed=args.seed,
+            record=True,
+            out_dir=Path(tmp),
+        )
         quiet = Console(file=io.StringIO(), width=120)
         delivered = [0]
         settings = None
@@ -248,8 +266,9 @@ def one_run(device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, s
             # the acquisition connects to it as a client, as it would to a router.
             sock = Path(tmp) / "z.sock"
             hub = stack.enter_context(open_session(hermetic_settings(sock, listen=True)))
-            sub = hub.declare_subscriber(ScannerKeys(cfg.prefix, "*").sample,
-                                         lambda _s: delivered.__setitem__(0, delivered[0] + 1))
+            sub = hub.declare_subscriber(
+                ScannerKeys(cfg.prefix, "*").sample, lambda _s: delivered.__setitem__(0, delivered[0] + 1)
+            )
             stack.callback(sub.undeclare)
             settings = hermetic_settings(sock, listen=False)
         with ThreadCpuSampler() as sampler:
@@ -268,8 +287,15 @@ def one_run(device: str, args: argparse.Namespace, *, zenoh_pub: bool = False, s
             while delivered[0] < end.samples_sent and time.monotonic() < deadline:
                 time.sleep(0.005)
         scan_s = (end.end_time_ns - _scan_start_ns(report.paths[-1])) / 1e9
-        return RunResult(call_s=call_s, scan_s=scan_s, samples=end.samples_sent, cpu_s=cpu, main_cpu_s=main_cpu,
-                         emulator_cpu_s=sampler.seconds, delivered=delivered[0] if zenoh_pub else None)
+        return RunResult(
+            call_s=call_s,
+            scan_s=scan_s,
+            samples=end.samples_sent,
+            cpu_s=cpu,
+            main_cpu_s=main_cpu,
+            emulator_cpu_s=sampler.seconds,
+            delivered=delivered[0] if zenoh_pub else None,
+        )
 
 
 # --- the benchmark -------------------------------------------------------------------------
@@ -294,9 +320,12 @@ def run(args: argparse.Namespace) -> int:
     one_run("emulated", args, steps=4)
     one_run("sim", args, steps=4)
 
-    rows = ([Row("emulated", bound)] + ([] if args.no_zenoh else [Row("emulated+zenoh", bound, zenoh=True)])
-            + ([] if args.no_sequential else [Row("emulated, sequential", sequential, pipeline=False)])
-            + [Row("sim", None)])
+    rows = (
+        [Row("emulated", bound)]
+        + ([] if args.no_zenoh else [Row("emulated+zenoh", bound, zenoh=True)])
+        + ([] if args.no_sequential else [Row("emulated, sequential", sequential, pipeline=False)])
+        + [Row("sim", None)]
+    )
     components = []
     for _ in progress(range(args.runs), "runs"):  # interleaved, so drift hits every backend alike
         for row in rows:
@@ -304,17 +333,34 @@ def run(args: argparse.Namespace) -> int:
             row.results.append(one_run(device, args, zenoh_pub=row.zenoh, pipeline=row.pipeline))
         components.append(component_run(args))
 
-    console.print(f"[bold]lelsonar bench acquire[/] — preset {args.preset}, {bound.steps} steps, "
-                  f"{args.runs} runs per backend (median; min–max)")
+    console.print(
+        f"[bold]lelsonar bench acquire[/] — preset {args.preset}, {bound.steps} steps, "
+        f"{args.runs} runs per backend (median; min–max)"
+    )
     console.print(f"machine: {machine()}; {host_line(busy)}")
     console.print(f"command: {command_line(args)}")
     console.print(f"physical bound, pipelined: {bound_line(bound)}", highlight=False)
     console.print(f"physical bound, sequential: {bound_line(sequential)}", highlight=False)
 
-    table = Table(title=f"Scan wall time vs the physical bound {bound.total_s:.3f} s (target ≤ {TARGET_RATIO:.2f}×; "
-                        f"sequential: vs {sequential.total_s:.3f} s); CPU per sample by thread")
-    cols = ("backend", "call s", "min–max s", "scan s", "call/bound", "scan/bound", "verdict", "ms/step over",
-            "CPU ms/smp", "calling thr.", "emulators", "other", "delivered")
+    table = Table(
+        title=f"Scan wall time vs the physical bound {bound.total_s:.3f} s (target ≤ {TARGET_RATIO:.2f}×; "
+        f"sequential: vs {sequential.total_s:.3f} s); CPU per sample by thread"
+    )
+    cols = (
+        "backend",
+        "call s",
+        "min–max s",
+        "scan s",
+        "call/bound",
+        "scan/bound",
+        "verdict",
+        "ms/step over",
+        "CPU ms/smp",
+        "calling thr.",
+        "emulators",
+        "other",
+        "delivered",
+    )
     for col in cols:
         table.add_column(col, justify="left" if col in ("backend", "verdict") else "right", no_wrap=True)
     status = 0
@@ -333,13 +379,22 @@ def run(args: argparse.Namespace) -> int:
             ratio_call, ratio_scan = f"{call / total:.3f}", f"{scan / total:.3f}"
             verdict = "[green]PASS[/]" if ok else "[red]MISS[/]"
             over = f"{1e3 * (scan - total) / samples:.2f}"
-        delivered = "—" if row.results[0].delivered is None else \
-            f"{min(r.delivered for r in row.results)}/{samples}"
+        delivered = "—" if row.results[0].delivered is None else f"{min(r.delivered for r in row.results)}/{samples}"
         table.add_row(
-            row.label, f"{call:.3f}", f"{lo:.2f}–{hi:.2f}", f"{scan:.3f}", ratio_call, ratio_scan, verdict, over,
-            f"{per('cpu_s'):.2f}", f"{per('main_cpu_s'):.2f}",
-            "—" if row.label == "sim" else f"{per('emulator_cpu_s'):.2f}", f"{statistics.median(other):.2f}",
-            delivered)
+            row.label,
+            f"{call:.3f}",
+            f"{lo:.2f}–{hi:.2f}",
+            f"{scan:.3f}",
+            ratio_call,
+            ratio_scan,
+            verdict,
+            over,
+            f"{per('cpu_s'):.2f}",
+            f"{per('main_cpu_s'):.2f}",
+            "—" if row.label == "sim" else f"{per('emulator_cpu_s'):.2f}",
+            f"{statistics.median(other):.2f}",
+            delivered,
+        )
     console.print(table)
 
     # Where the scan's time over the bound goes, per step (medians).
@@ -351,19 +406,40 @@ def run(args: argparse.Namespace) -> int:
     fires_bound = bound.windows_s + bound.sensor_link_s
     over_total = scan - bound.total_s
     over_fire = fires - fires_bound
-    parts = Table(title="Where the emulated scan's time over the bound goes (per step; the devices alone, "
-                        "same drivers and emulators)")
+    parts = Table(
+        title="Where the emulated scan's time over the bound goes (per step; the devices alone, "
+        "same drivers and emulators)"
+    )
     for col in ("part", "measured s", "bound s", "ratio", "over, ms/step"):
         parts.add_column(col, justify="left" if col == "part" else "right", no_wrap=True)
-    parts.add_row(f"{n} × fire (FIRE, window, ACQ over the link), back to back", f"{fires:.3f}", f"{fires_bound:.3f}",
-                  f"{fires / fires_bound:.2f}", f"{1e3 * over_fire / n:.2f}")
-    parts.add_row(f"{n} × move_to (bus, travel), back to back; pipelined, each but the first is under a frame",
-                  f"{moves:.3f}", f"{moves_bound:.3f}", f"{moves / moves_bound:.2f}",
-                  f"{1e3 * (moves - moves_bound) / n:.2f}")
-    parts.add_row("rest of the pipelined scan (loop, moves the frames did not hide; by difference)", "", "", "",
-                  f"{1e3 * (over_total - over_fire) / n:.2f}")
-    parts.add_row("whole scan (emulated, ScanStart → ScanEnd)", f"{scan:.3f}", f"{bound.total_s:.3f}",
-                  f"{scan / bound.total_s:.2f}", f"{1e3 * over_total / n:.2f}")
+    parts.add_row(
+        f"{n} × fire (FIRE, window, ACQ over the link), back to back",
+        f"{fires:.3f}",
+        f"{fires_bound:.3f}",
+        f"{fires / fires_bound:.2f}",
+        f"{1e3 * over_fire / n:.2f}",
+    )
+    parts.add_row(
+        f"{n} × move_to (bus, travel), back to back; pipelined, each but the first is under a frame",
+        f"{moves:.3f}",
+        f"{moves_bound:.3f}",
+        f"{moves / moves_bound:.2f}",
+        f"{1e3 * (moves - moves_bound) / n:.2f}",
+    )
+    parts.add_row(
+        "rest of the pipelined scan (loop, moves the frames did not hide; by difference)",
+        "",
+        "",
+        "",
+        f"{1e3 * (over_total - over_fire) / n:.2f}",
+    )
+    parts.add_row(
+        "whole scan (emulated, ScanStart → ScanEnd)",
+        f"{scan:.3f}",
+        f"{bound.total_s:.3f}",
+        f"{scan / bound.total_s:.2f}",
+        f"{1e3 * over_total / n:.2f}",
+    )
     console.print(parts)
     console.print(
         "call s: the whole run_acquisition call (emulator start-up, servo connect, scan, MCAP finish); "
@@ -371,7 +447,8 @@ def run(args: argparse.Namespace) -> int:
         "CPU ms/sample = process_time / samples, all threads: calling thread (drivers, frame parsing, messages, "
         "MCAP zstd) + emulator threads (AX-12 and sensor board, incl. the acoustic simulator per shot; "
         "schedstat, 10 ms sampling) + other (Zenoh, progress refresh, sampler). "
-        f"sim: {row_summary(rows[-1])}.")
+        f"sim: {row_summary(rows[-1])}."
+    )
     return status
 
 

@@ -64,14 +64,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of ``lelsonar bench estimators``."""
     parser.add_argument("--seeds", type=int, default=50, help="seeds per scene (default 50)")
     parser.add_argument("--first-seed", type=int, default=0)
-    parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES),
-                        help="simulator presets, or tilted-roll5 (the L rolled 5° about x), "
-                             "tilted-b8 (plane b pitched 8°), tilted-a5z (plane a yawed 5° about z)")
-    parser.add_argument("--methods", nargs="+", default=None,
-                        help="methods to run (default: all registered; with --families: the default method, "
-                             "fcm-ransac and lel-refit-ls)")
-    parser.add_argument("--skip-slow", action="store_true",
-                        help="skip the Nelder-Mead methods (paper, lel-nm) and the H check")
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        default=list(DEFAULT_SCENES),
+        help="simulator presets, or tilted-roll5 (the L rolled 5° about x), "
+        "tilted-b8 (plane b pitched 8°), tilted-a5z (plane a yawed 5° about z)",
+    )
+    parser.add_argument(
+        "--methods",
+        nargs="+",
+        default=None,
+        help="methods to run (default: all registered; with --families: the default method, "
+        "fcm-ransac and lel-refit-ls)",
+    )
+    parser.add_argument(
+        "--skip-slow", action="store_true", help="skip the Nelder-Mead methods (paper, lel-nm) and the H check"
+    )
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes for accuracy runs")
     parser.add_argument("--timing-repeats", type=int, default=50)
     parser.add_argument("--json", metavar="PATH", help="also write every per-plane number as JSON")
@@ -101,8 +110,9 @@ def _scene_config(name: str) -> Any:
         raise ConfigError(f"unknown benchmark scene {name!r}") from None
 
 
-def _plane_errors(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: float,
-                  patch: np.ndarray) -> tuple[float, float, float]:
+def _plane_errors(
+    normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: float, patch: np.ndarray
+) -> tuple[float, float, float]:
     ang = math.degrees(math.acos(float(np.clip(normal @ n_true, -1.0, 1.0))))
     off = 100.0 * (offset - h_true)
     pe = 100.0 * float(np.max(np.abs(patch @ normal - offset))) if patch.size else float("nan")
@@ -110,14 +120,14 @@ def _plane_errors(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true:
 
 
 def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[dict[str, Any]]:
-    from lelsonar.sim import EchoSource, default_energy_model, simulate_scan
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-    from lelsonar.signal.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
     from lelsonar.reconstruct.estimate.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
     from lelsonar.reconstruct.estimate.pipeline import FitOptions, reconstruct
     from lelsonar.reconstruct.estimate.results import PlaneFit
     from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
+    from lelsonar.signal.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
+    from lelsonar.sim import EchoSource, default_energy_model, simulate_scan
 
     cfg = _scene_config(scene)
     scan = simulate_scan(cfg, seed=seed)
@@ -146,32 +156,68 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
     for label, src, axis in (("a", EchoSource.PLANE_A, AXIS_Y), ("b", EchoSource.PLANE_B, AXIS_Z)):
         tp = planes[label]
         a, o, p = _plane_errors(*oracle[label], tp.normal, tp.offset, patches[label])
-        rows.append({**base, "method": "oracle", "plane": label, "angle": a, "offset": o, "patch": p,
-                     "crit": int(truth.critical_step), "time": 0.0, "ok": True})
+        rows.append(
+            {
+                **base,
+                "method": "oracle",
+                "plane": label,
+                "angle": a,
+                "offset": o,
+                "patch": p,
+                "crit": int(truth.critical_step),
+                "time": 0.0,
+                "ok": True,
+            }
+        )
         # The paper-corrected points of the same true mirror echoes (exact on axis-aligned walls).
         m = truth.echo_source == src
         steps = np.flatnonzero(m.any(axis=1))
-        data = F.plane_data(scan.geometry, scan.gamma_measured, np.where(m, scan.distance, np.nan), steps,
-                            label, axis)
+        data = F.plane_data(scan.geometry, scan.gamma_measured, np.where(m, scan.distance, np.nan), steps, label, axis)
         th = F.ls_theta(data.points)
-        a, o, p = _plane_errors(th / np.linalg.norm(th), 1 / np.linalg.norm(th), tp.normal, tp.offset,
-                                patches[label])
-        rows.append({**base, "method": "oracle-corrected", "plane": label, "angle": a, "offset": o, "patch": p,
-                     "crit": int(truth.critical_step), "time": 0.0, "ok": True})
+        a, o, p = _plane_errors(th / np.linalg.norm(th), 1 / np.linalg.norm(th), tp.normal, tp.offset, patches[label])
+        rows.append(
+            {
+                **base,
+                "method": "oracle-corrected",
+                "plane": label,
+                "angle": a,
+                "offset": o,
+                "patch": p,
+                "crit": int(truth.critical_step),
+                "time": 0.0,
+                "ok": True,
+            }
+        )
 
     for method in methods:
         t0 = time.perf_counter()
-        rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method,
-                          echo_amplitude=amplitude)
+        rec = reconstruct(
+            scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method, echo_amplitude=amplitude
+        )
         dt = time.perf_counter() - t0
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             tp = planes[label]
-            row = {**base, "method": method, "plane": label, "crit": rec.critical_step,
-                   "crit_argmax": crit_argmax, "time": dt, "ok": isinstance(res, PlaneFit)}
+            row = {
+                **base,
+                "method": method,
+                "plane": label,
+                "crit": rec.critical_step,
+                "crit_argmax": crit_argmax,
+                "time": dt,
+                "ok": isinstance(res, PlaneFit),
+            }
             if isinstance(res, PlaneFit):
                 a, o, p = _plane_errors(res.normal, res.offset, tp.normal, tp.offset, patches[label])
-                row.update(angle=a, offset=o, patch=p, H=res.entropy, se_angle=math.degrees(res.normal_stderr),
-                           notes=list(res.diagnostics.notes), n=res.n_points, inliers=res.n_inliers)
+                row.update(
+                    angle=a,
+                    offset=o,
+                    patch=p,
+                    H=res.entropy,
+                    se_angle=math.degrees(res.normal_stderr),
+                    notes=list(res.diagnostics.notes),
+                    n=res.n_points,
+                    inliers=res.n_inliers,
+                )
             else:
                 row.update(angle=float("nan"), offset=float("nan"), patch=float("nan"), failure=str(res))
             rows.append(row)
@@ -188,28 +234,48 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
             six = lel_fit_fast(data.points, t_ls, extra_starts=six_starts(t_ls)[1:], front=False)
             nm = lel_fit_nelder_mead(data.points, t_ls)
             tp = planes[label]
-            rows.append({**base, "method": "_hcheck", "plane": label, "H_fast1": one.entropy, "H_fast2": two.entropy,
-                         "H_fast6": six.entropy, "H_nm": nm.entropy, "n": data.n,
-                         "angle_fast1": _plane_errors(one.theta / np.linalg.norm(one.theta),
-                                                      1 / np.linalg.norm(one.theta), tp.normal, tp.offset,
-                                                      patches[label])[0],
-                         "angle_nm": _plane_errors(nm.theta / np.linalg.norm(nm.theta), 1 / np.linalg.norm(nm.theta),
-                                                   tp.normal, tp.offset, patches[label])[0]})
+            rows.append(
+                {
+                    **base,
+                    "method": "_hcheck",
+                    "plane": label,
+                    "H_fast1": one.entropy,
+                    "H_fast2": two.entropy,
+                    "H_fast6": six.entropy,
+                    "H_nm": nm.entropy,
+                    "n": data.n,
+                    "angle_fast1": _plane_errors(
+                        one.theta / np.linalg.norm(one.theta),
+                        1 / np.linalg.norm(one.theta),
+                        tp.normal,
+                        tp.offset,
+                        patches[label],
+                    )[0],
+                    "angle_nm": _plane_errors(
+                        nm.theta / np.linalg.norm(nm.theta),
+                        1 / np.linalg.norm(nm.theta),
+                        tp.normal,
+                        tp.offset,
+                        patches[label],
+                    )[0],
+                }
+            )
     return rows
 
 
 def _timings(repeats: int) -> dict[str, float]:
-    from lelsonar.sim import default_energy_model, preset, simulate_scan
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Z
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.estimate.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     scan = simulate_scan(preset("paper-test2"), seed=0)
     crit = scan.truth.critical_step
-    data = F.plane_data(scan.geometry, scan.gamma_measured, scan.distance,
-                        np.arange(crit + 1, scan.n_steps), "b", AXIS_Z)
+    data = F.plane_data(
+        scan.geometry, scan.gamma_measured, scan.distance, np.arange(crit + 1, scan.n_steps), "b", AXIS_Z
+    )
     rng = np.random.default_rng(0)
     v = data.points[rng.choice(data.n, 300, replace=data.n < 300)]
     t_ls = F.ls_theta(v)
@@ -230,16 +296,21 @@ def _timings(repeats: int) -> dict[str, float]:
     return {
         "fast LEL, θ_LS + front starts (default, 300 pts)": med(lambda: lel_fit_fast(v, t_ls), repeats),
         "fast LEL, θ_LS only (300 pts)": med(lambda: lel_fit_fast(v, t_ls, front=False), repeats),
-        "fast LEL, the paper's 6 starts (300 pts)":
-            med(lambda: lel_fit_fast(v, t_ls, extra_starts=six_starts(t_ls)[1:], front=False), repeats),
-        "fast LEL, SciPy BFGS, θ_LS + front (300 pts)": med(lambda: lel_fit_fast(v, t_ls, solver="bfgs"),
-                                                             repeats),
+        "fast LEL, the paper's 6 starts (300 pts)": med(
+            lambda: lel_fit_fast(v, t_ls, extra_starts=six_starts(t_ls)[1:], front=False), repeats
+        ),
+        "fast LEL, SciPy BFGS, θ_LS + front (300 pts)": med(lambda: lel_fit_fast(v, t_ls, solver="bfgs"), repeats),
         "six-start Nelder-Mead (300 pts)": med(lambda: lel_fit_nelder_mead(v, t_ls), max(3, repeats // 10)),
-        f"full scan, {DEFAULT_METHOD} ({scan.n_steps} steps)":
-            med(lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model,
-                                    echo_amplitude=amplitude), repeats),
-        "full scan, paper": med(lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry,
-                                                    model, method="paper"), max(3, repeats // 10)),
+        f"full scan, {DEFAULT_METHOD} ({scan.n_steps} steps)": med(
+            lambda: reconstruct(
+                scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+            ),
+            repeats,
+        ),
+        "full scan, paper": med(
+            lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method="paper"),
+            max(3, repeats // 10),
+        ),
     }
 
 
@@ -284,11 +355,23 @@ def run(args: argparse.Namespace) -> int:
     wall = time.perf_counter() - t0
     timings = _timings(args.timing_repeats)
 
-    console.print(f"[bold]lelsonar bench estimators[/] — {len(seeds)} seeds × {len(args.scenes)} scenes, "
-                  f"{machine()}, numpy {np.__version__}; accuracy runs {wall:.0f} s on {args.jobs} workers")
+    console.print(
+        f"[bold]lelsonar bench estimators[/] — {len(seeds)} seeds × {len(args.scenes)} scenes, "
+        f"{machine()}, numpy {np.__version__}; accuracy runs {wall:.0f} s on {args.jobs} workers"
+    )
     table = Table(title="Plane errors per scene and method (planes a and b pooled; median / p95)")
-    for col in ("scene", "method", "angle °", "offset cm", "patch cm", "patch/oracle", "catastr.", "fail",
-                "crit ±1", "ms/scan"):
+    for col in (
+        "scene",
+        "method",
+        "angle °",
+        "offset cm",
+        "patch cm",
+        "patch/oracle",
+        "catastr.",
+        "fail",
+        "crit ±1",
+        "ms/scan",
+    ):
         table.add_column(col, justify="right" if col not in ("scene", "method") else "left")
     misses: list[str] = []
     summary: dict[str, Any] = {}
@@ -305,21 +388,38 @@ def run(args: argparse.Namespace) -> int:
             crit_ok = [abs(r["crit"] - r["crit_true"]) <= 1 for r in mr if r["plane"] == "a" and r["crit"] is not None]
             ratio = _p(pat, 50) / oracle_patch if oracle_patch > 0 else float("nan")
             ms = 1e3 * _p([r["time"] for r in mr if r["plane"] == "a"], 50)
-            summary[(scene, method)] = {"angle_med": _p(ang, 50), "angle_p95": _p(ang, 95), "offset_med": _p(off, 50),
-                                        "patch_med": _p(pat, 50), "patch_p95": _p(pat, 95), "ratio": ratio,
-                                        "catastrophic": cat, "crit_ok": float(np.mean(crit_ok)) if crit_ok else 1.0}
+            summary[(scene, method)] = {
+                "angle_med": _p(ang, 50),
+                "angle_p95": _p(ang, 95),
+                "offset_med": _p(off, 50),
+                "patch_med": _p(pat, 50),
+                "patch_p95": _p(pat, 95),
+                "ratio": ratio,
+                "catastrophic": cat,
+                "crit_ok": float(np.mean(crit_ok)) if crit_ok else 1.0,
+            }
             style = "bold" if method == DEFAULT_METHOD else None
-            table.add_row(scene, method, f"{_p(ang, 50):.3f} / {_p(ang, 95):.3f}",
-                          f"{_p(off, 50):.3f} / {_p(off, 95):.3f}", f"{_p(pat, 50):.3f} / {_p(pat, 95):.3f}",
-                          f"{ratio:.2f}", str(cat), str(fail),
-                          "—" if method.startswith("oracle") else f"{100 * np.mean(crit_ok):.0f} %",
-                          "—" if method.startswith("oracle") else f"{ms:.1f}", style=style)
+            table.add_row(
+                scene,
+                method,
+                f"{_p(ang, 50):.3f} / {_p(ang, 95):.3f}",
+                f"{_p(off, 50):.3f} / {_p(off, 95):.3f}",
+                f"{_p(pat, 50):.3f} / {_p(pat, 95):.3f}",
+                f"{ratio:.2f}",
+                str(cat),
+                str(fail),
+                "—" if method.startswith("oracle") else f"{100 * np.mean(crit_ok):.0f} %",
+                "—" if method.startswith("oracle") else f"{ms:.1f}",
+                style=style,
+            )
             if method == DEFAULT_METHOD:
                 if cat:
                     misses.append(f"{scene}: {cat} catastrophic plane fits")
                 if crit_ok and not all(crit_ok):
-                    misses.append(f"{scene}: critical step off by more than 1 in "
-                                  f"{sum(not c for c in crit_ok)} of {len(crit_ok)} scans")
+                    misses.append(
+                        f"{scene}: critical step off by more than 1 in "
+                        f"{sum(not c for c in crit_ok)} of {len(crit_ok)} scans"
+                    )
                 if scene.startswith("paper") and not ratio <= 1.3:
                     misses.append(f"{scene}: median patch error {ratio:.2f}× the oracle's (target ≤ 1.3×)")
         table.add_section()
@@ -328,8 +428,10 @@ def run(args: argparse.Namespace) -> int:
     crit_rows = [r for r in rows if r["method"] == DEFAULT_METHOD and r["plane"] == "a"]
     if crit_rows:
         am = [abs(r["crit_argmax"] - r["crit_true"]) <= 1 for r in crit_rows if r["crit_argmax"] is not None]
-        console.print(f"critical step within ±1: centroid of the R peak {100 * np.mean([abs(r['crit'] - r['crit_true']) <= 1 for r in crit_rows]):.0f} %, "
-                      f"paper's argmax R {100 * np.mean(am):.0f} % ({len(crit_rows)} scans)")
+        console.print(
+            f"critical step within ±1: centroid of the R peak {100 * np.mean([abs(r['crit'] - r['crit_true']) <= 1 for r in crit_rows]):.0f} %, "
+            f"paper's argmax R {100 * np.mean(am):.0f} % ({len(crit_rows)} scans)"
+        )
 
     hc = [r for r in rows if r["method"] == "_hcheck"]
     if hc:
@@ -337,12 +439,14 @@ def run(args: argparse.Namespace) -> int:
         worse2 = [r for r in hc if r["H_fast2"] > r["H_nm"] * (1 + 1e-9)]
         worse6 = [r for r in hc if r["H_fast6"] > r["H_nm"] * (1 + 1e-9)]
         gap = max((r["H_fast2"] - r["H_nm"]) / r["H_nm"] for r in hc)
-        console.print(f"H check on {len(hc)} plane subsets, cases above the six-start Nelder-Mead H (1e-9 rel.): "
-                      f"fast LEL θ_LS only {len(worse1)}, θ_LS + front (default) {len(worse2)} (largest relative "
-                      f"excess {gap:.2e}), the paper's six starts {len(worse6)}.  Angles: fast(θ_LS) median "
-                      f"{_p([r['angle_fast1'] for r in hc], 50):.3f}°, NM {_p([r['angle_nm'] for r in hc], 50):.3f}°; "
-                      f"NM > 2° in {sum(r['angle_nm'] > 2 for r in hc)}, fast(θ_LS) > 2° in "
-                      f"{sum(r['angle_fast1'] > 2 for r in hc)}")
+        console.print(
+            f"H check on {len(hc)} plane subsets, cases above the six-start Nelder-Mead H (1e-9 rel.): "
+            f"fast LEL θ_LS only {len(worse1)}, θ_LS + front (default) {len(worse2)} (largest relative "
+            f"excess {gap:.2e}), the paper's six starts {len(worse6)}.  Angles: fast(θ_LS) median "
+            f"{_p([r['angle_fast1'] for r in hc], 50):.3f}°, NM {_p([r['angle_nm'] for r in hc], 50):.3f}°; "
+            f"NM > 2° in {sum(r['angle_nm'] > 2 for r in hc)}, fast(θ_LS) > 2° in "
+            f"{sum(r['angle_fast1'] > 2 for r in hc)}"
+        )
         if worse2:
             misses.append(f"fast LEL above the Nelder-Mead H in {len(worse2)} subsets")
 
@@ -352,12 +456,17 @@ def run(args: argparse.Namespace) -> int:
     for k, v in timings.items():
         tt.add_row(k, f"{1e3 * v:.2f} ms")
     console.print(tt)
-    console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets its targets[/]" if not misses
-                                                            else "[red]misses: " + "; ".join(misses) + "[/]"))
+    console.print(
+        f"default method {DEFAULT_METHOD!r}: "
+        + ("[green]meets its targets[/]" if not misses else "[red]misses: " + "; ".join(misses) + "[/]")
+    )
     if args.json:
         with open(args.json, "w", encoding="utf-8") as f:
-            json.dump({"rows": rows, "timings": timings,
-                       "summary": {f"{k[0]}|{k[1]}": v for k, v in summary.items()}}, f, default=float)
+            json.dump(
+                {"rows": rows, "timings": timings, "summary": {f"{k[0]}|{k[1]}": v for k, v in summary.items()}},
+                f,
+                default=float,
+            )
     return 0 if not misses else 1
 
 

@@ -106,8 +106,9 @@ def z_score(error: float, stderr: float) -> float:
     return error / stderr
 
 
-def plane_errors(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: float,
-                 patch: np.ndarray) -> tuple[float, float, float]:
+def plane_errors(
+    normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: float, patch: np.ndarray
+) -> tuple[float, float, float]:
     """Angle (°), signed offset error (cm) and patch error (cm) of a plane ``n·x = h``.
 
     The patch error is the largest ``|n·p − h|`` over the true patch points
@@ -131,7 +132,7 @@ def quality_name(quality: object) -> str | None:
     name = str(value).lower()
     for prefix in ("planequality.", "plane_quality_", "quality_"):
         if name.startswith(prefix):
-            name = name[len(prefix):]
+            name = name[len(prefix) :]
     return name
 
 
@@ -163,11 +164,16 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
     quality = [r["quality"] for r in fails]
     has_quality = any(r["quality"] is not None for r in fitted)
     scans = {(r["family"], r["seed"]): r["time_scan_ms"] for r in rows}
-    crit = [abs(r["crit"] - r["crit_true"]) <= CRIT_TOLERANCE for r in rows
-            if r["label"] == "a" and r.get("crit") is not None and r["crit_true"] >= 0]
+    crit = [
+        abs(r["crit"] - r["crit_true"]) <= CRIT_TOLERANCE
+        for r in rows
+        if r["label"] == "a" and r.get("crit") is not None and r["crit_true"] >= 0
+    ]
 
     return {
-        "planes": len(obs), "unobserved": len(rows) - len(obs), "missing": len(obs) - len(fitted),
+        "planes": len(obs),
+        "unobserved": len(rows) - len(obs),
+        "missing": len(obs) - len(fitted),
         "angle_med": percentile([r["angle_deg"] for r in fitted], 50),
         "angle_p95": percentile([r["angle_deg"] for r in fitted], 95),
         "offset_med": percentile([abs(r["offset_cm"]) for r in fitted], 50),
@@ -176,10 +182,14 @@ def summarize(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "patch_p95": percentile([r["patch_cm"] for r in fitted], 95),
         "oracle_patch_med": percentile([r["oracle_patch_cm"] for r in obs], 50),
         "oracle_patch_p95": percentile([r["oracle_patch_cm"] for r in obs], 95),
-        "ratio_med": percentile(ratios, 50), "ratio_p95": percentile(ratios, 95),
-        "failures": len(fails), "failures_oracle_avoids": sum(not r["oracle_fails"] for r in fails),
-        "z_angle_med": percentile(zn, 50), "z_angle_gt3": frac_above(zn, 3.0),
-        "z_offset_med": percentile(zh, 50), "z_offset_gt3": frac_above(zh, 3.0),
+        "ratio_med": percentile(ratios, 50),
+        "ratio_p95": percentile(ratios, 95),
+        "failures": len(fails),
+        "failures_oracle_avoids": sum(not r["oracle_fails"] for r in fails),
+        "z_angle_med": percentile(zn, 50),
+        "z_angle_gt3": frac_above(zn, 3.0),
+        "z_offset_med": percentile(zh, 50),
+        "z_offset_gt3": frac_above(zh, 3.0),
         "failures_good": sum(q == "good" for q in quality) if has_quality else None,
         "failures_good_service": (sum(r.get("quality_service") == "good" for r in fails) if has_quality else None),
         "crit_ok": float(np.mean(crit)) if crit else float("nan"),
@@ -194,14 +204,18 @@ def _edge_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Edge statistics over one row per scan that has an edge."""
     zd = np.abs([r["z_edge_dir"] for r in rows], dtype=float)
     zp = np.abs([r["z_edge_point"] for r in rows], dtype=float)
-    return {"edges": len(rows),
-            "edge_dir_med": percentile([r["edge_dir_deg"] for r in rows], 50),
-            "edge_dir_p95": percentile([r["edge_dir_deg"] for r in rows], 95),
-            "edge_point_med": percentile([r["edge_point_cm"] for r in rows], 50),
-            "edge_point_p95": percentile([r["edge_point_cm"] for r in rows], 95),
-            "z_edge_dir_med": percentile(zd, 50), "z_edge_point_med": percentile(zp, 50),
-            "z_edge_gt3": float(np.mean(np.concatenate([zd[np.isfinite(zd)], zp[np.isfinite(zp)]]) > 3))
-            if np.isfinite(zd).any() or np.isfinite(zp).any() else float("nan")}
+    return {
+        "edges": len(rows),
+        "edge_dir_med": percentile([r["edge_dir_deg"] for r in rows], 50),
+        "edge_dir_p95": percentile([r["edge_dir_deg"] for r in rows], 95),
+        "edge_point_med": percentile([r["edge_point_cm"] for r in rows], 50),
+        "edge_point_p95": percentile([r["edge_point_cm"] for r in rows], 95),
+        "z_edge_dir_med": percentile(zd, 50),
+        "z_edge_point_med": percentile(zp, 50),
+        "z_edge_gt3": float(np.mean(np.concatenate([zd[np.isfinite(zd)], zp[np.isfinite(zp)]]) > 3))
+        if np.isfinite(zd).any() or np.isfinite(zp).any()
+        else float("nan"),
+    }
 
 
 #: Failure flags, in the order the patterns table shows them.
@@ -223,13 +237,17 @@ def failure_flags(row: dict[str, Any]) -> list[str]:
     """
     flags = []
     crit, true = row.get("crit"), row.get("crit_true")
-    if (row.get("uses_split") and crit is not None and true is not None and true >= 0
-            and abs(crit - true) > CRIT_TOLERANCE):
+    if (
+        row.get("uses_split")
+        and crit is not None
+        and true is not None
+        and true >= 0
+        and abs(crit - true) > CRIT_TOLERANCE
+    ):
         flags.append("critical step")
     share = row.get("inlier_corner_share")
     h, h_true, edge = row.get("offset"), row.get("true_offset"), row.get("edge_range")
-    near_edge = (h is not None and h_true is not None and edge is not None
-                 and abs(h - edge) < abs(h - h_true))
+    near_edge = h is not None and h_true is not None and edge is not None and abs(h - edge) < abs(h - h_true)
     if (share is not None and math.isfinite(share) and share >= CORNER_SHARE) or near_edge:
         flags.append("corner cluster")
     n, other = row.get("normal"), row.get("other_normal")
@@ -287,7 +305,9 @@ def ls_plane(points: np.ndarray) -> tuple[np.ndarray, float, float, float]:
 
 
 # ---------------------------------------------------------------------------- one scan
-def _open3d_plane(points: np.ndarray, *, early_stop: bool = False) -> tuple[np.ndarray, float, float, float, int] | None:
+def _open3d_plane(
+    points: np.ndarray, *, early_stop: bool = False
+) -> tuple[np.ndarray, float, float, float, int] | None:
     """Open3D RANSAC (seeded, 1 cm, 3 points, up to 1000 iterations), then LS on its inliers.
 
     ``early_stop=False`` runs all 1000 iterations (``probability=1``): Open3D's early stop depends on
@@ -319,8 +339,7 @@ def _open3d_anchor(points: np.ndarray) -> Estimate | None:
     if fit is None:
         return None
     normal, h, se_n, se_h, n_in = fit
-    return Estimate(normal, h, se_n, se_h, time.perf_counter() - t0, extra={"n_points": len(points),
-                                                                           "n_inliers": n_in})
+    return Estimate(normal, h, se_n, se_h, time.perf_counter() - t0, extra={"n_points": len(points), "n_inliers": n_in})
 
 
 def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "paper") -> dict[str, Any]:
@@ -340,11 +359,11 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     ``ratio`` and ``ratio_1000`` (default over Open3D), ``repeats`` and ``points`` (a, b);
     the Open3D fields are NaN if a subset has too few points.
     """
-    from lelsonar.sim.scenes import simulate_family_scene
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.sim.scenes import simulate_family_scene
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     scan, model = fs.scan, fs.energy_model
@@ -352,12 +371,25 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
 
     def default() -> Any:
-        return reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=DEFAULT_METHOD,
-                           echo_amplitude=amplitude)
+        return reconstruct(
+            scan.gamma_measured,
+            scan.distance,
+            energy,
+            scan.geometry,
+            model,
+            method=DEFAULT_METHOD,
+            echo_amplitude=amplitude,
+        )
 
     split = _split(scan, default().critical_step)
-    subsets = [F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, split[label], label, axis).points
-               for label, axis in (("a", AXIS_Y), ("b", AXIS_Z))] if split else []
+    subsets = (
+        [
+            F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, split[label], label, axis).points
+            for label, axis in (("a", AXIS_Y), ("b", AXIS_Z))
+        ]
+        if split
+        else []
+    )
     usable = len(subsets) == 2 and all(len(p) >= 8 for p in subsets)
     t_def, t_o3d, t_1000 = [], [], []
     for k in range(repeats + 1):
@@ -376,10 +408,17 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
             if usable:
                 t_o3d.append((t2 - t1) / len(subsets))
                 t_1000.append((t3 - t2) / len(subsets))
-    med = {name: 1e3 * float(np.median(ts)) if ts else float("nan")
-           for name, ts in (("default_ms", t_def), ("open3d_ms", t_o3d), ("open3d_1000_ms", t_1000))}
-    return {**med, "ratio": med["default_ms"] / med["open3d_ms"], "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
-            "repeats": repeats, "points": [len(p) for p in subsets]}
+    med = {
+        name: 1e3 * float(np.median(ts)) if ts else float("nan")
+        for name, ts in (("default_ms", t_def), ("open3d_ms", t_o3d), ("open3d_1000_ms", t_1000))
+    }
+    return {
+        **med,
+        "ratio": med["default_ms"] / med["open3d_ms"],
+        "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
+        "repeats": repeats,
+        "points": [len(p) for p in subsets],
+    }
 
 
 def _subset_sources(scan: Any, steps: np.ndarray, label: str) -> np.ndarray:
@@ -406,9 +445,9 @@ _WARM: set[str] = set()
 
 def _warm_up(methods: list[str]) -> None:
     """Run each method once per process on a paper scan, so first-call costs (imports, caches) stay out of the times."""
-    from lelsonar.sim import default_energy_model, preset, simulate_scan
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     todo = [m for m in methods if m not in _WARM]
     if not todo:
@@ -418,8 +457,15 @@ def _warm_up(methods: list[str]) -> None:
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     for m in todo:
         try:
-            reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), method=m,
-                        echo_amplitude=amplitude)
+            reconstruct(
+                scan.gamma_measured,
+                scan.distance,
+                energy,
+                scan.geometry,
+                default_energy_model(),
+                method=m,
+                echo_amplitude=amplitude,
+            )
         except Exception:  # noqa: BLE001 — the measured run reports it
             pass
         _WARM.add(m)
@@ -475,12 +521,20 @@ def scene_truth(scan: Any) -> SceneTruth:
             oracle[label] = plane_errors(n_o, h_o, tp.normal, tp.offset, patch[label])
     edge = scan.config.scene.edges[0]
     at_x0 = edge.point - edge.direction * (edge.point[0] / edge.direction[0])
-    return SceneTruth(planes, patch, oracle, n_mirror, float(np.hypot(at_x0[1], at_x0[2])), at_x0,
-                      np.asarray(edge.direction, dtype=float))
+    return SceneTruth(
+        planes,
+        patch,
+        oracle,
+        n_mirror,
+        float(np.hypot(at_x0[1], at_x0[2])),
+        at_x0,
+        np.asarray(edge.direction, dtype=float),
+    )
 
 
-def edge_errors(point: np.ndarray, direction: np.ndarray, true_point: np.ndarray,
-                true_direction: np.ndarray) -> tuple[float, float]:
+def edge_errors(
+    point: np.ndarray, direction: np.ndarray, true_point: np.ndarray, true_direction: np.ndarray
+) -> tuple[float, float]:
     """Errors of an estimated edge line: direction (°, sign-free) and position (cm).
 
     The position error is the distance of the estimated line's point from the
@@ -531,18 +585,24 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
 
     diag = getattr(res, "diagnostics", None)
     mask = np.asarray(getattr(res, "inlier_mask", np.zeros(0, dtype=bool)), dtype=bool)
-    extra: dict[str, Any] = {"n_points": int(getattr(res, "n_points", mask.size)),
-                             "n_inliers": int(np.count_nonzero(mask)),
-                             "sigma_mm": 1e3 * float(getattr(res, "sigma", float("nan"))),
-                             "notes": [str(n) for n in getattr(diag, "notes", ())]}
+    extra: dict[str, Any] = {
+        "n_points": int(getattr(res, "n_points", mask.size)),
+        "n_inliers": int(np.count_nonzero(mask)),
+        "sigma_mm": 1e3 * float(getattr(res, "sigma", float("nan"))),
+        "notes": [str(n) for n in getattr(diag, "notes", ())],
+    }
     try:  # diagnostics only: the reconstruct internals may move
         split_src = _subset_sources(scan, steps, res.label) if steps is not None and len(steps) else None
     except Exception:  # noqa: BLE001
         split_src = None
     src = _point_sources(scan, data) if data is not None else None
     if src is not None and src.shape == mask.shape:
-        on_split = (steps is not None and split_src is not None and split_src.shape == src.shape
-                    and np.array_equal(np.unique(np.asarray(data.step)), np.unique(_valid_steps(scan, steps))))
+        on_split = (
+            steps is not None
+            and split_src is not None
+            and split_src.shape == src.shape
+            and np.array_equal(np.unique(np.asarray(data.step)), np.unique(_valid_steps(scan, steps)))
+        )
     else:
         src, on_split = split_src, split_src is not None and split_src.shape == mask.shape
     extra["fitted_on_split"] = bool(on_split)
@@ -551,11 +611,16 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
         extra["subset_corner_share"] = float(np.mean(src == EchoSource.CORNER)) if src.size else 0.0
         extra["inlier_corner_share"] = float(np.mean(inl == EchoSource.CORNER)) if inl.size else float("nan")
     reasons = getattr(res, "quality_reasons", None) or getattr(res, "reasons", None) or ()
-    return Estimate(normal=np.asarray(res.normal, dtype=float), offset=float(res.offset),
-                    normal_stderr=float(res.normal_stderr), offset_stderr=float(res.offset_stderr),
-                    time_s=float(getattr(diag, "time_s", float("nan"))),
-                    quality=quality_name(getattr(res, "quality", None)),
-                    reasons=tuple(str(r) for r in reasons), extra=extra)
+    return Estimate(
+        normal=np.asarray(res.normal, dtype=float),
+        offset=float(res.offset),
+        normal_stderr=float(res.normal_stderr),
+        offset_stderr=float(res.offset_stderr),
+        time_s=float(getattr(diag, "time_s", float("nan"))),
+        quality=quality_name(getattr(res, "quality", None)),
+        reasons=tuple(str(r) for r in reasons),
+        extra=extra,
+    )
 
 
 def _add_cross_checked_quality(rows: list[dict[str, Any]], fits: dict[tuple[str, str], Any], default: str) -> None:
@@ -584,12 +649,16 @@ def _edge_fields(edge: Any, truth: SceneTruth) -> dict[str, Any]:
     nan = float("nan")
     if not (hasattr(edge, "point") and hasattr(edge, "direction")):
         return {"edge_ok": False, "edge_dir_deg": nan, "edge_point_cm": nan, "z_edge_dir": nan, "z_edge_point": nan}
-    ang, dist = edge_errors(np.asarray(edge.point), np.asarray(edge.direction), truth.edge_point,
-                            truth.edge_direction)
+    ang, dist = edge_errors(np.asarray(edge.point), np.asarray(edge.direction), truth.edge_point, truth.edge_direction)
     se_d = float(getattr(edge, "direction_stderr", nan))
     se_p = float(getattr(edge, "point_stderr", nan))
-    return {"edge_ok": True, "edge_dir_deg": ang, "edge_point_cm": dist,
-            "z_edge_dir": z_score(math.radians(ang), se_d), "z_edge_point": z_score(dist / 100.0, se_p)}
+    return {
+        "edge_ok": True,
+        "edge_dir_deg": ang,
+        "edge_point_cm": dist,
+        "z_edge_dir": z_score(math.radians(ang), se_d),
+        "z_edge_point": z_score(dist / 100.0, se_p),
+    }
 
 
 def _valid_steps(scan: Any, steps: np.ndarray) -> np.ndarray:
@@ -599,50 +668,90 @@ def _valid_steps(scan: Any, steps: np.ndarray) -> np.ndarray:
     return steps[np.any(np.isfinite(d) & (d > 0), axis=1)]
 
 
-def plane_row(base: dict[str, Any], truth: SceneTruth, method: str, label: str, est: Estimate | str,
-              crit: int | None, time_scan_s: float, uses_split: bool) -> dict[str, Any]:
+def plane_row(
+    base: dict[str, Any],
+    truth: SceneTruth,
+    method: str,
+    label: str,
+    est: Estimate | str,
+    crit: int | None,
+    time_scan_s: float,
+    uses_split: bool,
+) -> dict[str, Any]:
     """One JSON row: the plane's errors, standard errors, z-scores, quality and oracle (``est`` a str: no plane)."""
     tp = truth.planes[label]
     orc = truth.oracle[label]
     nan = float("nan")
-    row = {**base, "method": method, "label": label, "crit": crit, "n_mirror": truth.n_mirror[label],
-           "uses_split": uses_split, "observed": orc is not None,
-           "true_normal": [float(v) for v in tp.normal], "true_offset": float(tp.offset),
-           "other_normal": [float(v) for v in truth.planes["b" if label == "a" else "a"].normal],
-           "time_scan_ms": 1e3 * time_scan_s,
-           "oracle_angle_deg": orc[0] if orc else nan, "oracle_offset_cm": orc[1] if orc else nan,
-           "oracle_patch_cm": orc[2] if orc else nan, "oracle_fails": bool(orc is not None and orc[2] > FAIL_PATCH_CM),
-           "ok": not isinstance(est, str)}
+    row = {
+        **base,
+        "method": method,
+        "label": label,
+        "crit": crit,
+        "n_mirror": truth.n_mirror[label],
+        "uses_split": uses_split,
+        "observed": orc is not None,
+        "true_normal": [float(v) for v in tp.normal],
+        "true_offset": float(tp.offset),
+        "other_normal": [float(v) for v in truth.planes["b" if label == "a" else "a"].normal],
+        "time_scan_ms": 1e3 * time_scan_s,
+        "oracle_angle_deg": orc[0] if orc else nan,
+        "oracle_offset_cm": orc[1] if orc else nan,
+        "oracle_patch_cm": orc[2] if orc else nan,
+        "oracle_fails": bool(orc is not None and orc[2] > FAIL_PATCH_CM),
+        "ok": not isinstance(est, str),
+    }
     if isinstance(est, str):
-        row.update(angle_deg=nan, offset_cm=nan, patch_cm=nan, failure=False, z_angle=nan, z_offset=nan,
-                   quality=None, quality_reasons=[], normal_stderr_deg=nan, offset_stderr_cm=nan,
-                   time_plane_ms=nan, why=est, flags=[])
+        row.update(
+            angle_deg=nan,
+            offset_cm=nan,
+            patch_cm=nan,
+            failure=False,
+            z_angle=nan,
+            z_offset=nan,
+            quality=None,
+            quality_reasons=[],
+            normal_stderr_deg=nan,
+            offset_stderr_cm=nan,
+            time_plane_ms=nan,
+            why=est,
+            flags=[],
+        )
         return row
     ang, off, pe = plane_errors(est.normal, est.offset, tp.normal, tp.offset, truth.patch[label])
     se_n, se_h = est.normal_stderr, est.offset_stderr
     row.update(est.extra)
-    row.update(angle_deg=ang, offset_cm=off, patch_cm=pe, failure=is_failure(pe, row["oracle_patch_cm"]),
-               normal_stderr_deg=math.degrees(se_n) if math.isfinite(se_n) else nan,
-               offset_stderr_cm=100.0 * se_h if math.isfinite(se_h) else nan,
-               z_angle=z_score(math.radians(ang), se_n), z_offset=z_score(off / 100.0, se_h),
-               quality=est.quality, quality_reasons=list(est.reasons), time_plane_ms=1e3 * est.time_s,
-               normal=[float(v) for v in est.normal], offset=float(est.offset))
+    row.update(
+        angle_deg=ang,
+        offset_cm=off,
+        patch_cm=pe,
+        failure=is_failure(pe, row["oracle_patch_cm"]),
+        normal_stderr_deg=math.degrees(se_n) if math.isfinite(se_n) else nan,
+        offset_stderr_cm=100.0 * se_h if math.isfinite(se_h) else nan,
+        z_angle=z_score(math.radians(ang), se_n),
+        z_offset=z_score(off / 100.0, se_h),
+        quality=est.quality,
+        quality_reasons=list(est.reasons),
+        time_plane_ms=1e3 * est.time_s,
+        normal=[float(v) for v in est.normal],
+        offset=float(est.offset),
+    )
     row["flags"] = failure_flags(row) if row["failure"] else []
     return row
 
 
-def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_dir: str | None,
-                calibration: str = "paper") -> tuple[dict[str, Any], list[dict[str, Any]]]:
+def family_scan(
+    family: str, seed: int, methods: list[str], anchor: bool, dump_dir: str | None, calibration: str = "paper"
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Draw, simulate and reconstruct one scene; the scene's summary and one row per method and plane.
 
     ``calibration``: ``"paper"`` (six shots, 0.9–1.8 m, as ``lelsonar calibrate``) or ``"wide"``
     (0.6–2.7 m, the families' span) — see :func:`lelsonar.sim.scenes.calibrated_energy_model`.
     """
     _warm_up(methods)
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim import EchoSource
     from lelsonar.sim.scenes import simulate_family_scene
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     draw, scan, model = fs.draw, fs.scan, fs.energy_model
@@ -652,11 +761,17 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     truth = scene_truth(scan)
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
-    scene = {"family": family, "seed": seed, "description": draw.description,
-             "crit_true": int(scan.truth.critical_step), "n_steps": int(scan.n_steps),
-             "window_samples": int(cfg.window_samples), "edge_range": truth.edge_range,
-             "echoes": {s.name.lower(): int(counts[s]) for s in EchoSource},
-             "energy_model": [model.phi0, model.phi1, model.phi2, model.d_min, model.d_max]}
+    scene = {
+        "family": family,
+        "seed": seed,
+        "description": draw.description,
+        "crit_true": int(scan.truth.critical_step),
+        "n_steps": int(scan.n_steps),
+        "window_samples": int(cfg.window_samples),
+        "edge_range": truth.edge_range,
+        "echoes": {s.name.lower(): int(counts[s]) for s in EchoSource},
+        "energy_model": [model.phi0, model.phi1, model.phi2, model.d_min, model.d_max],
+    }
     base = {"family": family, "seed": seed, "crit_true": scene["crit_true"], "edge_range": truth.edge_range}
     rows: list[dict[str, Any]] = []
 
@@ -665,12 +780,21 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
     for method in methods:
         t0 = time.perf_counter()
         try:
-            rec = reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method,
-                              echo_amplitude=amplitude)
+            rec = reconstruct(
+                scan.gamma_measured,
+                scan.distance,
+                energy,
+                scan.geometry,
+                model,
+                method=method,
+                echo_amplitude=amplitude,
+            )
         except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
             dt = time.perf_counter() - t0
-            rows += [plane_row(base, truth, method, label, f"{type(exc).__name__}: {exc}", None, dt, False)
-                     for label in ("a", "b")]
+            rows += [
+                plane_row(base, truth, method, label, f"{type(exc).__name__}: {exc}", None, dt, False)
+                for label in ("a", "b")
+            ]
             continue
         dt = time.perf_counter() - t0
         crits[method] = rec.critical_step
@@ -703,9 +827,18 @@ def family_scan(family: str, seed: int, methods: list[str], anchor: bool, dump_d
 
         path = Path(dump_dir) / f"{family}-{seed}.mcap"
         failing = sorted({f"{r['method']}:{r['label']}" for r in rows if r["failure"]})
-        record_scan(scan, path, model, scan_id=seed + 1,
-                    metadata={"family": family, "seed": str(seed), "description": draw.description,
-                              "failures": ",".join(failing)})
+        record_scan(
+            scan,
+            path,
+            model,
+            scan_id=seed + 1,
+            metadata={
+                "family": family,
+                "seed": str(seed),
+                "description": draw.description,
+                "failures": ",".join(failing),
+            },
+        )
         scene["dump"] = str(path)
     return scene, rows
 
@@ -723,8 +856,9 @@ def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
     return {"a": np.asarray(s.steps_a), "b": np.asarray(s.steps_b)}
 
 
-def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
-                      calibration: str = "paper") -> dict[str, float]:
+def serial_scan_times(
+    family: str, seed: int, methods: list[str], repeats: int, calibration: str = "paper"
+) -> dict[str, float]:
     """Best wall time of ``reconstruct`` per method on one scene of ``family``, ms, run serially.
 
     The worker times of the accuracy runs share the cores with each other (and
@@ -733,9 +867,9 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
     (fewer once a method has taken 1 s); the minimum is the least disturbed by
     other load on a shared host.
     """
-    from lelsonar.sim.scenes import simulate_family_scene
-    from lelsonar.signal.energy import waveform_energy
     from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.signal.energy import waveform_energy
+    from lelsonar.sim.scenes import simulate_family_scene
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     scan, model = fs.scan, fs.energy_model
@@ -759,8 +893,13 @@ def serial_scan_times(family: str, seed: int, methods: list[str], repeats: int,
 def speed_summary(per_family: list[dict[str, Any]]) -> dict[str, Any]:
     """Medians over families of :func:`speed_vs_open3d`'s times, and the ratios of those medians."""
     med = {k: percentile([v[k] for v in per_family], 50) for k in ("default_ms", "open3d_ms", "open3d_1000_ms")}
-    return {**med, "ratio": med["default_ms"] / med["open3d_ms"], "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
-            "repeats": per_family[0]["repeats"] if per_family else 0, "points": []}
+    return {
+        **med,
+        "ratio": med["default_ms"] / med["open3d_ms"],
+        "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
+        "repeats": per_family[0]["repeats"] if per_family else 0,
+        "points": [],
+    }
 
 
 # ---------------------------------------------------------------------------- run
@@ -806,8 +945,9 @@ def _scan_ms(s: dict[str, Any]) -> float:
     return t if math.isfinite(t) else s["ms_scan"]
 
 
-def _targets(summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], default: str
-             ) -> list[tuple[str, dict[str, bool]]]:
+def _targets(
+    summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], default: str
+) -> list[tuple[str, dict[str, bool]]]:
     """Issue 9's "done when" checks of the default method, per family."""
     out = []
     for fam in families:
@@ -815,32 +955,47 @@ def _targets(summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str
         f = summary.get((fam, "fcm-ransac"))
         if s is None:
             continue
-        out.append((fam, {
-            "median ≤ 1.2× oracle": s["ratio_med"] <= 1.2,
-            "p95 ≤ 2× oracle": s["patch_p95"] <= 2.0 * s["oracle_patch_p95"],
-            "no failure the oracle avoids": s["failures_oracle_avoids"] == 0,
-            "failures ≤ fcm-ransac": f is None or s["failures"] <= f["failures"],
-            "z calibrated": all(0.5 <= s[k] <= 1.0 for k in ("z_angle_med", "z_offset_med"))
-                            and all(s[k] <= 0.05 for k in ("z_angle_gt3", "z_offset_gt3")),
-            "scan ≤ 10 ms": _scan_ms(s) <= 10.0,
-        }))
+        out.append(
+            (
+                fam,
+                {
+                    "median ≤ 1.2× oracle": s["ratio_med"] <= 1.2,
+                    "p95 ≤ 2× oracle": s["patch_p95"] <= 2.0 * s["oracle_patch_p95"],
+                    "no failure the oracle avoids": s["failures_oracle_avoids"] == 0,
+                    "failures ≤ fcm-ransac": f is None or s["failures"] <= f["failures"],
+                    "z calibrated": all(0.5 <= s[k] <= 1.0 for k in ("z_angle_med", "z_offset_med"))
+                    and all(s[k] <= 0.05 for k in ("z_angle_gt3", "z_offset_gt3")),
+                    "scan ≤ 10 ms": _scan_ms(s) <= 10.0,
+                },
+            )
+        )
     return out
 
 
 def run_families(args: argparse.Namespace) -> int:
     """Run the family benchmark, print the tables; 0 if the default method meets issue 9's targets."""
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
     from rich.table import Table
 
-    from lelsonar.sim.scenes import parse_families
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.sim.scenes import parse_families
 
     families = parse_families(args.families)
     methods = list(args.methods) if args.methods else default_methods(args.with_paper)
     console = Console(width=max(Console().width, 200))
-    command = shlex.join(["lelsonar", *sys.argv[1:]]) if sys.argv and sys.argv[0].endswith("lelsonar") \
+    command = (
+        shlex.join(["lelsonar", *sys.argv[1:]])
+        if sys.argv and sys.argv[0].endswith("lelsonar")
         else shlex.join(sys.argv)
+    )
     anchor_note = None if args.no_anchor else _anchor_available()
     anchor = not args.no_anchor and anchor_note is None
     seeds = range(args.first_seed, args.first_seed + args.seeds)
@@ -848,24 +1003,38 @@ def run_families(args: argparse.Namespace) -> int:
     if args.dump_failures:
         Path(args.dump_failures).mkdir(parents=True, exist_ok=True)
     console.print(f"[bold]{command}[/]")
-    console.print(f"{machine()}, numpy {np.__version__}; {len(seeds)} seeds × {len(families)} families, "
-                  f"methods {', '.join(methods)}" + (f", anchor {ANCHOR}" if anchor else "")
-                  + f"; {args.jobs} workers; energy model: {args.calibration} calibration of each rig")
+    console.print(
+        f"{machine()}, numpy {np.__version__}; {len(seeds)} seeds × {len(families)} families, "
+        f"methods {', '.join(methods)}"
+        + (f", anchor {ANCHOR}" if anchor else "")
+        + f"; {args.jobs} workers; energy model: {args.calibration} calibration of each rig"
+    )
     if anchor_note is not None:
-        console.print(f"[yellow]note: the Open3D anchor is skipped ({anchor_note}); install the bench extra "
-                      "(pip install -e '.[bench]') and libusb-1.0-0[/]")
+        console.print(
+            f"[yellow]note: the Open3D anchor is skipped ({anchor_note}); install the bench extra "
+            "(pip install -e '.[bench]') and libusb-1.0-0[/]"
+        )
     t_start = time.perf_counter()
     scenes: list[dict[str, Any]] = []
     rows: list[dict[str, Any]] = []
-    progress = Progress(TextColumn("scenes"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                        TextColumn("ETA"), TimeRemainingColumn(), console=console, transient=True)
+    progress = Progress(
+        TextColumn("scenes"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    )
     with progress:
         task = progress.add_task("scenes", total=len(jobs))
         if args.jobs > 1:
             # spawn, not fork: the parent has imported Open3D (OpenMP), which a forked child may deadlock on.
             with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
-                futures = [ex.submit(family_scan, f, s, methods, anchor, args.dump_failures,
-                                     args.calibration) for f, s in jobs]
+                futures = [
+                    ex.submit(family_scan, f, s, methods, anchor, args.dump_failures, args.calibration) for f, s in jobs
+                ]
                 for fut in as_completed(futures):
                     scene, r = fut.result()
                     scenes.append(scene)
@@ -887,8 +1056,9 @@ def run_families(args: argparse.Namespace) -> int:
     if args.timing_repeats > 0:
         with console.status("serial timings …"):
             for fam in families:
-                serial[fam] = serial_scan_times(fam, args.first_seed, methods, min(args.timing_repeats, 20),
-                                                args.calibration)
+                serial[fam] = serial_scan_times(
+                    fam, args.first_seed, methods, min(args.timing_repeats, 20), args.calibration
+                )
     speed: dict[str, dict[str, Any]] = {}
     if anchor and args.timing_repeats > 0:
         with console.status("default fit vs Open3D …"):
@@ -901,15 +1071,40 @@ def run_families(args: argparse.Namespace) -> int:
             mr = [r for r in rows if r["method"] == method and (fam == "all" or r["family"] == fam)]
             if mr:
                 summary[(fam, method)] = summarize(mr)
-                times = [serial[f].get(method, float("nan")) for f in (families if fam == "all" else (fam,))
-                         if f in serial]
-                summary[(fam, method)]["ms_scan_serial"] = percentile(times, 50) if fam != "all" else max(
-                    (t for t in times if math.isfinite(t)), default=float("nan"))
+                times = [
+                    serial[f].get(method, float("nan")) for f in (families if fam == "all" else (fam,)) if f in serial
+                ]
+                summary[(fam, method)]["ms_scan_serial"] = (
+                    percentile(times, 50)
+                    if fam != "all"
+                    else max((t for t in times if math.isfinite(t)), default=float("nan"))
+                )
 
-    table = Table(title=f"Plane errors per scene family and method (planes a and b pooled; median / p95; "
-                        f"{len(seeds)} seeds, {wall:.0f} s)", title_justify="left")
-    cols = ("family", "method", "planes", "angle °", "|Δh| cm", "patch cm", "oracle cm", "ratio",
-            "fail", "¬orc", "miss", "|z_n|, >3", "|z_h|, >3", "f&good", "crit±2", "ms/pl", "ms/scan", "serial")
+    table = Table(
+        title=f"Plane errors per scene family and method (planes a and b pooled; median / p95; "
+        f"{len(seeds)} seeds, {wall:.0f} s)",
+        title_justify="left",
+    )
+    cols = (
+        "family",
+        "method",
+        "planes",
+        "angle °",
+        "|Δh| cm",
+        "patch cm",
+        "oracle cm",
+        "ratio",
+        "fail",
+        "¬orc",
+        "miss",
+        "|z_n|, >3",
+        "|z_h|, >3",
+        "f&good",
+        "crit±2",
+        "ms/pl",
+        "ms/scan",
+        "serial",
+    )
     for c in cols:
         table.add_column(c, justify="left" if c in ("family", "method") else "right")
     for fam in (*families, "all"):
@@ -918,25 +1113,39 @@ def run_families(args: argparse.Namespace) -> int:
             if s is None:
                 continue
             style = "bold" if method == DEFAULT_METHOD else None
-            table.add_row(fam, method, f"{s['planes']}" + (f" (+{s['unobserved']})" if s["unobserved"] else ""),
-                          _pair(s["angle_med"], s["angle_p95"]), _pair(s["offset_med"], s["offset_p95"]),
-                          _pair(s["patch_med"], s["patch_p95"]),
-                          _pair(s["oracle_patch_med"], s["oracle_patch_p95"]),
-                          _fmt(s["ratio_med"]), str(s["failures"]), str(s["failures_oracle_avoids"]),
-                          str(s["missing"]), f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])}",
-                          f"{_fmt(s['z_offset_med'])}, {_pct(s['z_offset_gt3'])}",
-                          _good(s), _pct(s["crit_ok"]),
-                          _fmt(s["ms_plane"]), _fmt(s["ms_scan"], 1), _fmt(s["ms_scan_serial"], 1), style=style)
+            table.add_row(
+                fam,
+                method,
+                f"{s['planes']}" + (f" (+{s['unobserved']})" if s["unobserved"] else ""),
+                _pair(s["angle_med"], s["angle_p95"]),
+                _pair(s["offset_med"], s["offset_p95"]),
+                _pair(s["patch_med"], s["patch_p95"]),
+                _pair(s["oracle_patch_med"], s["oracle_patch_p95"]),
+                _fmt(s["ratio_med"]),
+                str(s["failures"]),
+                str(s["failures_oracle_avoids"]),
+                str(s["missing"]),
+                f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])}",
+                f"{_fmt(s['z_offset_med'])}, {_pct(s['z_offset_gt3'])}",
+                _good(s),
+                _pct(s["crit_ok"]),
+                _fmt(s["ms_plane"]),
+                _fmt(s["ms_scan"], 1),
+                _fmt(s["ms_scan_serial"], 1),
+                style=style,
+            )
         table.add_section()
     console.print(table)
-    console.print("planes: observed planes (+ planes with < 3 true mirror echoes, left out); ratio: median of the "
-                  "per-plane patch/oracle ratios; fail: patch > 2 cm and > 3× the oracle's; ¬orc: failures where "
-                  "the oracle's patch ≤ 2 cm; miss: no plane returned; |z|: median |error / reported standard "
-                  "error| and the share > 3 (normal angle, offset); f&good: failures whose own quality says good (in brackets: "
-                  "after reconstruct --compare's cross-check against the method of record); crit±2: scans "
-                  "whose critical step is within 2 steps of the true one (only meaningful for methods that split there); "
-                  "times: median per plane (solver) and per scan (reconstruct) in the workers; serial: "
-                  "reconstruct of the family's first scene run alone (best of repeats; 'all': the slowest family).")
+    console.print(
+        "planes: observed planes (+ planes with < 3 true mirror echoes, left out); ratio: median of the "
+        "per-plane patch/oracle ratios; fail: patch > 2 cm and > 3× the oracle's; ¬orc: failures where "
+        "the oracle's patch ≤ 2 cm; miss: no plane returned; |z|: median |error / reported standard "
+        "error| and the share > 3 (normal angle, offset); f&good: failures whose own quality says good (in brackets: "
+        "after reconstruct --compare's cross-check against the method of record); crit±2: scans "
+        "whose critical step is within 2 steps of the true one (only meaningful for methods that split there); "
+        "times: median per plane (solver) and per scan (reconstruct) in the workers; serial: "
+        "reconstruct of the family's first scene run alone (best of repeats; 'all': the slowest family)."
+    )
 
     patterns: dict[str, dict[str, int]] = {}
     for r in rows:
@@ -946,10 +1155,12 @@ def run_families(args: argparse.Namespace) -> int:
                 patterns[r["method"]][flag] += 1
     if patterns:
         kinds = FLAGS
-        pt = Table(title="Failure patterns (a failure can have several): critical step > 2 steps off (split "
-                         "methods); corner cluster (≥ 30 % corner inliers, or the plane at the edge's range); "
-                         "planes swapped; tilted wall (> 1° off the paper's axis); < 12 mirror echoes",
-                   title_justify="left")
+        pt = Table(
+            title="Failure patterns (a failure can have several): critical step > 2 steps off (split "
+            "methods); corner cluster (≥ 30 % corner inliers, or the plane at the edge's range); "
+            "planes swapped; tilted wall (> 1° off the paper's axis); < 12 mirror echoes",
+            title_justify="left",
+        )
         pt.add_column("method")
         pt.add_column("failures", justify="right")
         for k in kinds:
@@ -967,8 +1178,10 @@ def run_families(args: argparse.Namespace) -> int:
             pt.add_row(method, str(sum(by_fam.values())), *(str(p.get(k, 0)) for k in kinds), worst)
         console.print(pt)
 
-    et = Table(title="Corner edge per family and method (median / p95; |z| = error / reported standard error)",
-               title_justify="left")
+    et = Table(
+        title="Corner edge per family and method (median / p95; |z| = error / reported standard error)",
+        title_justify="left",
+    )
     for c in ("family", "method", "scans", "direction °", "across cm", "|z| dir", "|z| across", "|z|>3"):
         et.add_column(c, justify="left" if c in ("family", "method") else "right")
     for fam in (*families, "all"):
@@ -976,28 +1189,45 @@ def run_families(args: argparse.Namespace) -> int:
             s = summary.get((fam, method))
             if s is None or not s["edges"]:
                 continue
-            et.add_row(fam, method, str(s["edges"]), _pair(s["edge_dir_med"], s["edge_dir_p95"]),
-                       _pair(s["edge_point_med"], s["edge_point_p95"]), _fmt(s["z_edge_dir_med"]),
-                       _fmt(s["z_edge_point_med"]), _pct(s["z_edge_gt3"]),
-                       style="bold" if method == DEFAULT_METHOD else None)
+            et.add_row(
+                fam,
+                method,
+                str(s["edges"]),
+                _pair(s["edge_dir_med"], s["edge_dir_p95"]),
+                _pair(s["edge_point_med"], s["edge_point_p95"]),
+                _fmt(s["z_edge_dir_med"]),
+                _fmt(s["z_edge_point_med"]),
+                _pct(s["z_edge_gt3"]),
+                style="bold" if method == DEFAULT_METHOD else None,
+            )
         et.add_section()
     console.print(et)
 
     if speed:
-        st = Table(title=f"Default fit {DEFAULT_METHOD!r} per plane vs Open3D segment_plane + LS refit on the same "
-                         f"points (serial, medians of {min(args.timing_repeats, 20)} interleaved repeats, first scene "
-                         "of each family)", title_justify="left")
-        for c in ("family", "points a/b", f"{DEFAULT_METHOD} ms", "open3d ms", "ratio", "open3d 1000 ms",
-                  "ratio 1000"):
+        st = Table(
+            title=f"Default fit {DEFAULT_METHOD!r} per plane vs Open3D segment_plane + LS refit on the same "
+            f"points (serial, medians of {min(args.timing_repeats, 20)} interleaved repeats, first scene "
+            "of each family)",
+            title_justify="left",
+        )
+        for c in ("family", "points a/b", f"{DEFAULT_METHOD} ms", "open3d ms", "ratio", "open3d 1000 ms", "ratio 1000"):
             st.add_column(c, justify="left" if c == "family" else "right")
         for fam, v in speed.items():
-            st.add_row(fam, "/".join(str(n) for n in v["points"]) if v.get("points") else "",
-                       _fmt(v["default_ms"]), _fmt(v["open3d_ms"]), _fmt(v["ratio"]), _fmt(v["open3d_1000_ms"]),
-                       _fmt(v["ratio_1000"]))
+            st.add_row(
+                fam,
+                "/".join(str(n) for n in v["points"]) if v.get("points") else "",
+                _fmt(v["default_ms"]),
+                _fmt(v["open3d_ms"]),
+                _fmt(v["ratio"]),
+                _fmt(v["open3d_1000_ms"]),
+                _fmt(v["ratio_1000"]),
+            )
         console.print(st)
-        console.print("open3d: segment_plane with its default early stop (what a user of it gets); open3d 1000: all "
-                      "1000 iterations (the deterministic anchor of the accuracy rows); the default fit's time is its "
-                      "reconstruct (both planes, with the echo amplitudes) over 2; 'all': medians over the families.")
+        console.print(
+            "open3d: segment_plane with its default early stop (what a user of it gets); open3d 1000: all "
+            "1000 iterations (the deterministic anchor of the accuracy rows); the default fit's time is its "
+            "reconstruct (both planes, with the echo amplitudes) over 2; 'all': medians over the families."
+        )
     targets = _targets(summary, families, DEFAULT_METHOD)
     misses = [f"{fam}: {k}" for fam, checks in targets for k, ok in checks.items() if not ok]
     if targets:
@@ -1009,44 +1239,82 @@ def run_families(args: argparse.Namespace) -> int:
         for fam, checks in targets:
             tt.add_row(fam, *("[green]✓[/]" if checks[n] else "[red]✗[/]" for n in names))
         console.print(tt)
-        console.print("median: median of the per-plane patch/oracle ratios; p95: the p95 of the patch error over "
-                      "the oracle's p95; z calibrated: median |z| in [0.5, 1] and ≤ 5 % beyond 3, normal and offset; "
-                      "scan: the serial time if measured.")
+        console.print(
+            "median: median of the per-plane patch/oracle ratios; p95: the p95 of the patch error over "
+            "the oracle's p95; z calibrated: median |z| in [0.5, 1] and ≤ 5 % beyond 3, normal and offset; "
+            "scan: the serial time if measured."
+        )
     dumps = [s["dump"] for s in scenes if "dump" in s]
     if dumps:
-        console.print(f"dumped {len(dumps)} failing scenes to {args.dump_failures}; reproduce one with: "
-                      f"lelsonar reconstruct --source {dumps[0]} --json --compare {','.join(methods)}")
+        console.print(
+            f"dumped {len(dumps)} failing scenes to {args.dump_failures}; reproduce one with: "
+            f"lelsonar reconstruct --source {dumps[0]} --json --compare {','.join(methods)}"
+        )
     if getattr(args, "markdown", None):
         out = Path(args.markdown)
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(markdown_table(summary, families, all_methods, DEFAULT_METHOD, command, machine()),
-                       encoding="utf-8")
+        out.write_text(
+            markdown_table(summary, families, all_methods, DEFAULT_METHOD, command, machine()), encoding="utf-8"
+        )
         console.print(f"wrote {out} (Markdown, for the README)")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
         with open(out, "w", encoding="utf-8") as f:
-            json.dump(_finite({"command": command, "machine": machine(), "families": list(families),
-                       "seeds": [seeds.start, seeds.stop], "methods": all_methods, "default_method": DEFAULT_METHOD,
-                       "wall_s": wall, "jobs": args.jobs, "serial_ms": serial, "speed_vs_open3d": speed, "calibration": args.calibration, "scenes": scenes,
-                       "summary": [{"family": k[0], "method": k[1], **v} for k, v in summary.items()],
-                       "targets": [{"family": fam, **checks} for fam, checks in targets],
-                       "rows": rows}), f, default=json_default, allow_nan=False)
+            json.dump(
+                _finite(
+                    {
+                        "command": command,
+                        "machine": machine(),
+                        "families": list(families),
+                        "seeds": [seeds.start, seeds.stop],
+                        "methods": all_methods,
+                        "default_method": DEFAULT_METHOD,
+                        "wall_s": wall,
+                        "jobs": args.jobs,
+                        "serial_ms": serial,
+                        "speed_vs_open3d": speed,
+                        "calibration": args.calibration,
+                        "scenes": scenes,
+                        "summary": [{"family": k[0], "method": k[1], **v} for k, v in summary.items()],
+                        "targets": [{"family": fam, **checks} for fam, checks in targets],
+                        "rows": rows,
+                    }
+                ),
+                f,
+                default=json_default,
+                allow_nan=False,
+            )
         console.print(f"wrote {out} ({len(rows)} plane rows)")
-    console.print(f"default method {DEFAULT_METHOD!r}: " + ("[green]meets issue 9's targets on every family[/]"
-                                                            if not misses else f"[red]misses {len(misses)} targets[/]"))
+    console.print(
+        f"default method {DEFAULT_METHOD!r}: "
+        + (
+            "[green]meets issue 9's targets on every family[/]"
+            if not misses
+            else f"[red]misses {len(misses)} targets[/]"
+        )
+    )
     return 0 if not misses else 1
 
 
-def markdown_table(summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], methods: list[str],
-                   default: str, command: str, machine_line: str) -> str:
+def markdown_table(
+    summary: dict[tuple[str, str], dict[str, Any]],
+    families: tuple[str, ...],
+    methods: list[str],
+    default: str,
+    command: str,
+    machine_line: str,
+) -> str:
     """The summary as a Markdown table with the command and machine it came from (for the README)."""
-    lines = [f"`{command}` ({machine_line}). Medians / p95 over planes a and b; failure: patch > 2 cm and "
-             "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
-             "and the share > 3.", "",
-             r"| family | method | angle ° | \|Δh\| cm | patch cm | patch / oracle | failures (oracle avoids) "
-             r"| no plane | \|z\| normal | \|z\| offset | failures claiming good (after cross-check) | ms / scan |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"`{command}` ({machine_line}). Medians / p95 over planes a and b; failure: patch > 2 cm and "
+        "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
+        "and the share > 3.",
+        "",
+        r"| family | method | angle ° | \|Δh\| cm | patch cm | patch / oracle | failures (oracle avoids) "
+        r"| no plane | \|z\| normal | \|z\| offset | failures claiming good (after cross-check) | ms / scan |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for fam in (*families, "all"):
         for method in methods:
             s = summary.get((fam, method))
@@ -1059,7 +1327,8 @@ def markdown_table(summary: dict[tuple[str, str], dict[str, Any]], families: tup
                 f"{_fmt(s['ratio_med'])} | {s['failures']} ({s['failures_oracle_avoids']}) | {s['missing']} | "
                 f"{_fmt(s['z_angle_med'])}, {_pct(s['z_angle_gt3'])} | {_fmt(s['z_offset_med'])}, "
                 f"{_pct(s['z_offset_gt3'])} | {_good(s)} | "
-                f"{_fmt(_scan_ms(s), 1)} |")
+                f"{_fmt(_scan_ms(s), 1)} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -1090,18 +1359,29 @@ def json_default(o: Any) -> Any:
 def add_family_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``--families`` mode's own flags (``--seeds``, ``--methods``, ``--jobs``, ``--json`` are shared)."""
     g = parser.add_argument_group("scene families (issue 9)")
-    g.add_argument("--families", nargs="+", metavar="NAME",
-                   help="run on seeded scene families instead of presets: 'all' or names from "
-                        "paper, distance, tilted, partial, steps, beam, corner, noise, mixed")
+    g.add_argument(
+        "--families",
+        nargs="+",
+        metavar="NAME",
+        help="run on seeded scene families instead of presets: 'all' or names from "
+        "paper, distance, tilted, partial, steps, beam, corner, noise, mixed",
+    )
     g.add_argument("--with-paper", action="store_true", help="also run the slow 'paper' method (Nelder-Mead)")
     g.add_argument("--no-anchor", action="store_true", help="skip the Open3D segment_plane anchor")
-    g.add_argument("--calibration", choices=("paper", "wide"), default="paper",
-                   help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
-                        "(default), or eight at 0.6-2.7 m covering the families' walls")
+    g.add_argument(
+        "--calibration",
+        choices=("paper", "wide"),
+        default="paper",
+        help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
+        "(default), or eight at 0.6-2.7 m covering the families' walls",
+    )
     g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table (README)")
-    g.add_argument("--dump-failures", metavar="DIR",
-                   help="write every scene with a failing plane as DIR/<family>-<seed>.mcap "
-                        "(replay with lelsonar reconstruct --source FILE --json)")
+    g.add_argument(
+        "--dump-failures",
+        metavar="DIR",
+        help="write every scene with a failing plane as DIR/<family>-<seed>.mcap "
+        "(replay with lelsonar reconstruct --source FILE --json)",
+    )
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -58,18 +58,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=2, help="reconstructors in the group (default: %(default)s)")
     parser.add_argument("--rate", type=float, default=50.0, help="samples/s per scanner (default: %(default)s)")
     parser.add_argument("--scans", type=int, default=2, help="scans per scanner (default: %(default)s)")
-    parser.add_argument("--steps", type=int, default=0,
-                        help="steps per scan (default: the preset's, 184 for paper-test1)")
+    parser.add_argument(
+        "--steps", type=int, default=0, help="steps per scan (default: the preset's, 184 for paper-test1)"
+    )
     parser.add_argument("--preset", default="paper-test1", help="simulator preset (default: %(default)s)")
-    parser.add_argument("--failover", choices=("auto", "on", "off", "only"), default="auto",
-                        help="also run the case where one worker is SIGKILLed mid-scan (auto: when --workers >= 2; "
-                             "only: that case alone)")
+    parser.add_argument(
+        "--failover",
+        choices=("auto", "on", "off", "only"),
+        default="auto",
+        help="also run the case where one worker is SIGKILLed mid-scan (auto: when --workers >= 2; "
+        "only: that case alone)",
+    )
     parser.add_argument("--no-provisional", action="store_true", help="workers publish finals only")
-    parser.add_argument("--timeout", type=float, default=180.0,
-                        help="s to wait for the finals after the last put (default: %(default)s)")
-    parser.add_argument("--repeat", type=int, default=1,
-                        help="runs per case; the table shows medians, and sums for incomplete and duplicated finals "
-                             "(default: %(default)s)")
+    parser.add_argument(
+        "--timeout",
+        type=float,
+        default=180.0,
+        help="s to wait for the finals after the last put (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="runs per case; the table shows medians, and sums for incomplete and duplicated finals "
+        "(default: %(default)s)",
+    )
     parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON (every run)")
     # Internal: the child processes.
     parser.add_argument("--role", choices=("worker", "publisher"), help=argparse.SUPPRESS)
@@ -78,11 +91,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def command_line(args: argparse.Namespace) -> str:
-    return (f"lelsonar bench fleet --scanners {args.scanners} --workers {args.workers} --rate {args.rate:g} "
-            f"--scans {args.scans}" + (f" --steps {args.steps}" if args.steps else "")
-            + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
-            + f" --preset {args.preset} --failover {args.failover}"
-            + (" --no-provisional" if args.no_provisional else ""))
+    return (
+        f"lelsonar bench fleet --scanners {args.scanners} --workers {args.workers} --rate {args.rate:g} "
+        f"--scans {args.scans}"
+        + (f" --steps {args.steps}" if args.steps else "")
+        + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
+        + f" --preset {args.preset} --failover {args.failover}"
+        + (" --no-provisional" if args.no_provisional else "")
+    )
 
 
 def _settings(endpoint: str):
@@ -102,15 +118,15 @@ def _pct(values: list[float], q: float) -> float | None:
 def worker_main(args: argparse.Namespace) -> int:
     import resource
 
+    from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.keys import ScannerKeys
-    from lelsonar.view import present
+    from lelsonar.net.transport import open_session
+    from lelsonar.reconstruct.estimate import wire
     from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership
     from lelsonar.reconstruct.stream.ingest import Accepted
     from lelsonar.reconstruct.stream.recovery import RecoveryConfig
     from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
     from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
-    from lelsonar.cli.warm_up import exercise_kernels
-    from lelsonar.net.transport import open_session
 
     exercise_kernels()  # as `lelsonar reconstruct` does before it listens
     stop = threading.Event()
@@ -118,13 +134,13 @@ def worker_main(args: argparse.Namespace) -> int:
     keys = ScannerKeys(PREFIX, "*")
     processed_ns: list[int] = []
     provisional_ns: list[int] = []
-    handled: list[float] = []   # monotonic time of each live sample processed
+    handled: list[float] = []  # monotonic time of each live sample processed
     forward: list = []
 
     def publish(msg) -> None:  # behind the group's fence, as `reconstruct --group` publishes
         for fn in forward:
             fn(msg)
-        if not present.is_terminal(msg):
+        if not wire.is_terminal(msg):
             scan = service.ingest.scans.get((msg.scanner_id, msg.scan_id))
             if scan is not None:
                 provisional_ns.append(time.time_ns() - int(scan.time_ns[msg.last_step]))
@@ -153,7 +169,7 @@ def worker_main(args: argparse.Namespace) -> int:
                     if len(busy_cpu) < 2 or now - busy_cpu[-1][0] >= 0.01:
                         # The process clock sums every thread's time (a syscall): read at most every 10 ms,
                         # so the probe does not weigh on the rate it measures.
-                        busy_cpu[min(len(busy_cpu), 1):] = [(now, time.process_time())]
+                        busy_cpu[min(len(busy_cpu), 1) :] = [(now, time.process_time())]
             return out
 
         service.ingest.accept, service.handle = probe_accept, probe_handle
@@ -162,8 +178,9 @@ def worker_main(args: argparse.Namespace) -> int:
     wall0 = time.monotonic()
     with open_session(_settings(args.endpoint)) as session:
         with GroupMembership(session, PREFIX, GroupConfig(GROUP, args.member, settle=0.5)) as group:
-            service = ReconstructionService(ReconstructConfig(provisional=not args.no_provisional),
-                                            publish=group.fenced(publish))
+            service = ReconstructionService(
+                ReconstructConfig(provisional=not args.no_provisional), publish=group.fenced(publish)
+            )
             probe(service)
             server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
             forward.append(server.publish)
@@ -177,14 +194,30 @@ def worker_main(args: argparse.Namespace) -> int:
             gstats = group.stats_dict()
     cpu1 = resource.getrusage(resource.RUSAGE_SELF)
     wall = time.monotonic() - wall0
-    print(_RESULT + json.dumps({
-        "member": args.member, "processed_ns": processed_ns, "provisional_ns": provisional_ns,
-        "first": min(handled, default=None), "last": max(handled, default=None), "samples": len(handled),
-        "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime), "wall_s": wall,
-        "busy_cpu_s": busy_cpu[-1][1] - busy_cpu[0][1] if len(busy_cpu) == 2 else None,
-        "busy_wall_s": busy_cpu[-1][0] - busy_cpu[0][0] if len(busy_cpu) == 2 else None,
-        "service": {**service.stats_dict(), "recovery": {**service.stats_dict()["recovery"], **live.recovery_stats}},
-        "group": gstats, "errors": dict(live.error_types)}), flush=True)
+    print(
+        _RESULT
+        + json.dumps(
+            {
+                "member": args.member,
+                "processed_ns": processed_ns,
+                "provisional_ns": provisional_ns,
+                "first": min(handled, default=None),
+                "last": max(handled, default=None),
+                "samples": len(handled),
+                "cpu_s": (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime),
+                "wall_s": wall,
+                "busy_cpu_s": busy_cpu[-1][1] - busy_cpu[0][1] if len(busy_cpu) == 2 else None,
+                "busy_wall_s": busy_cpu[-1][0] - busy_cpu[0][0] if len(busy_cpu) == 2 else None,
+                "service": {
+                    **service.stats_dict(),
+                    "recovery": {**service.stats_dict()["recovery"], **live.recovery_stats},
+                },
+                "group": gstats,
+                "errors": dict(live.error_types),
+            }
+        ),
+        flush=True,
+    )
     return 0
 
 
@@ -196,10 +229,10 @@ def publisher_main(args: argparse.Namespace) -> int:
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.log_server import LogServer, ScanLog
     from lelsonar.acquire.scan_loop import ScanOutput, ScanPublisher, gamma_schedule
-    from lelsonar.sim import preset
-    from lelsonar.sim.calibrate import default_energy_model
     from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import open_session
+    from lelsonar.sim import preset
+    from lelsonar.sim.calibrate import default_energy_model
 
     sim = preset(args.preset)
     if args.steps:
@@ -207,8 +240,10 @@ def publisher_main(args: argparse.Namespace) -> int:
     scanner = SimScanner(sim, 0)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     shots = [scanner.measure(step, float(g)) for step, g in enumerate(schedule)]
-    samples = [messages.sample("s", 1, step, float(g), shot, scanner.info)
-               for step, (g, shot) in enumerate(zip(schedule, shots))]
+    samples = [
+        messages.sample("s", 1, step, float(g), shot, scanner.info)
+        for step, (g, shot) in enumerate(zip(schedule, shots))
+    ]
     em = default_energy_model()
     names = [f"scanner{i:03d}" for i in range(args.scanners)]
     n, period = len(names), 1.0 / args.rate
@@ -248,16 +283,35 @@ def publisher_main(args: argparse.Namespace) -> int:
                         msg.scanner_id, msg.scan_id = sid, scan_id
                         msg.acquisition_time_ns = time.time_ns()
                     else:
-                        msg = messages.scan_end(sid, scan_id, time.time_ns(), complete=True, reason="",
-                                                steps_planned=len(schedule), samples_sent=len(schedule),
-                                                echoes_missing=0)
+                        msg = messages.scan_end(
+                            sid,
+                            scan_id,
+                            time.time_ns(),
+                            complete=True,
+                            reason="",
+                            steps_planned=len(schedule),
+                            samples_sent=len(schedule),
+                            echoes_missing=0,
+                        )
                     outputs[sid].emit(msg)
                 tick += 1
         wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
-        print(_RESULT + json.dumps({
-            "schedule_s": tick * period, "wall_s": wall, "cpu_s": cpu, "lag_p50": _pct(lag, 50), "lag_p99": _pct(lag, 99),
-            "lag_max": max(lag), "puts": len(lag), "publish_failures": sum(o.publish_failures
-                                                                           for o in outputs.values())}), flush=True)
+        print(
+            _RESULT
+            + json.dumps(
+                {
+                    "schedule_s": tick * period,
+                    "wall_s": wall,
+                    "cpu_s": cpu,
+                    "lag_p50": _pct(lag, 50),
+                    "lag_p99": _pct(lag, 99),
+                    "lag_max": max(lag),
+                    "puts": len(lag),
+                    "publish_failures": sum(o.publish_failures for o in outputs.values()),
+                }
+            ),
+            flush=True,
+        )
         # Keep serving the logs until told to stop (recovery after a failover needs them).
         sys.stdin.read()
         for s in servers:
@@ -278,8 +332,13 @@ def _proc_cpu_s(pid: int) -> float | None:
 
 
 def _child(args: list[str], stdin=None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "lelsonar", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, stdin=stdin, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "lelsonar", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        stdin=stdin,
+        text=True,
+    )
 
 
 def _read_tagged(proc: subprocess.Popen, tag: str, timeout: float) -> dict | None:
@@ -289,7 +348,7 @@ def _read_tagged(proc: subprocess.Popen, tag: str, timeout: float) -> dict | Non
     def read() -> None:
         for line in proc.stdout:
             if line.startswith(tag):
-                result.append(json.loads(line[len(tag):]))
+                result.append(json.loads(line[len(tag) :]))
                 return
 
     t = threading.Thread(target=read, daemon=True)
@@ -302,13 +361,26 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
     import zenoh
 
     from lelsonar import codec
-    from lelsonar.view import present
     from lelsonar.net.transport import ZenohSettings, open_session
+    from lelsonar.reconstruct.estimate import wire
 
     procs: list[subprocess.Popen] = []
-    bench = ["bench", "fleet", "--scanners", str(args.scanners), "--workers", str(args.workers),
-             "--rate", str(args.rate), "--scans", str(args.scans), "--steps", str(args.steps),
-             "--preset", args.preset] + (["--no-provisional"] if args.no_provisional else [])
+    bench = [
+        "bench",
+        "fleet",
+        "--scanners",
+        str(args.scanners),
+        "--workers",
+        str(args.workers),
+        "--rate",
+        str(args.rate),
+        "--scans",
+        str(args.scans),
+        "--steps",
+        str(args.steps),
+        "--preset",
+        args.preset,
+    ] + (["--no-provisional"] if args.no_provisional else [])
     finals: dict[tuple[str, int], list[str]] = {}
     lock = threading.Lock()
     got = threading.Condition(lock)
@@ -320,17 +392,21 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
             if "listening" not in (router.stdout.readline() or ""):
                 raise SystemExit("bench fleet: the router did not start")
             with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as session:
+
                 def on_planes(sample: zenoh.Sample) -> None:
                     msg = codec.Reconstruction.FromString(sample.payload.to_bytes())
-                    if present.is_terminal(msg):
+                    if wire.is_terminal(msg):
                         with got:
                             finals.setdefault((msg.scanner_id, msg.scan_id), []).append(
-                                f"{present.status_name(msg)}:{len(msg.missing_steps)}")
+                                f"{wire.status_name(msg)}:{len(msg.missing_steps)}"
+                            )
                             got.notify_all()
 
                 sub = session.declare_subscriber(f"{PREFIX}/*/planes", on_planes)
-                workers = [_child(bench + ["--role", "worker", "--endpoint", endpoint, "--member", f"w{i}"])
-                           for i in range(args.workers)]
+                workers = [
+                    _child(bench + ["--role", "worker", "--endpoint", endpoint, "--member", f"w{i}"])
+                    for i in range(args.workers)
+                ]
                 procs += workers
                 for w in workers:
                     if _read_tagged(w, _READY, 90) is None:
@@ -377,7 +453,9 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
     samples = sum(r["samples"] for r in reports)
     statuses = [s for v in finals.values() for s in v]
     return {
-        "kill_one": killed, "expected_finals": expected, "scans_with_final": len(finals),
+        "kill_one": killed,
+        "expected_finals": expected,
+        "scans_with_final": len(finals),
         "duplicated_finals": sum(len(v) - 1 for v in finals.values()),
         "incomplete_finals": sum(1 for s in statuses if not s.startswith("final:") or not s.endswith(":0"))
         + (expected - len(finals)),
@@ -389,11 +467,19 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         # Over the window each was busy: a worker from its first live sample handled to its last (read at
         # most every 10 ms), the
         # publisher over its puts, the router over the publisher's puts.
-        "busy_cpu": {**{r["member"]: r["busy_cpu_s"] / r["busy_wall_s"] for r in reports
-                        if r.get("busy_cpu_s") is not None and r["busy_wall_s"] > 0},
-                     **({"publisher": pub["cpu_s"] / pub["wall_s"]} if pub and pub.get("wall_s") else {}),
-                     **({"router": (router_cpu1 - router_cpu0) / router_wall}
-                        if router_cpu0 is not None and router_cpu1 is not None and router_wall > 0 else {})},
+        "busy_cpu": {
+            **{
+                r["member"]: r["busy_cpu_s"] / r["busy_wall_s"]
+                for r in reports
+                if r.get("busy_cpu_s") is not None and r["busy_wall_s"] > 0
+            },
+            **({"publisher": pub["cpu_s"] / pub["wall_s"]} if pub and pub.get("wall_s") else {}),
+            **(
+                {"router": (router_cpu1 - router_cpu0) / router_wall}
+                if router_cpu0 is not None and router_cpu1 is not None and router_wall > 0
+                else {}
+            ),
+        },
         "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in reports},
         "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in reports},
         "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in reports},
@@ -401,12 +487,14 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "recovery": {r["member"]: r["service"]["recovery"] for r in reports},
         "rejected": {r["member"]: r["service"]["rejected"] for r in reports},
         "worker_errors": {r["member"]: r["errors"] for r in reports},
-        "publisher": pub, "elapsed_s": time.monotonic() - t_start,
+        "publisher": pub,
+        "elapsed_s": time.monotonic() - t_start,
     }
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """One case over its runs: medians of the figures, sums of the failures (every run kept in "runs")."""
+
     def med(values):
         values = [v for v in values if v is not None]
         return statistics.median(values) if values else None
@@ -445,27 +533,40 @@ def run(args: argparse.Namespace) -> int:
     if args.scanners < 1 or args.workers < 1 or not args.rate > 0 or args.scans < 1 or args.repeat < 1:
         raise SystemExit("bench fleet: --scanners, --workers, --scans and --repeat must be >= 1 and --rate > 0")
     cases = ([] if args.failover == "only" else [False]) + (
-        [True] if args.failover in ("on", "only") or (args.failover == "auto" and args.workers >= 2) else [])
+        [True] if args.failover in ("on", "only") or (args.failover == "auto" and args.workers >= 2) else []
+    )
     console = Console()
     load = os.getloadavg()
-    console.print(f"command: {command_line(args)}\nmachine: {machine()}\nload average before: "
-                  f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}", highlight=False)
+    console.print(
+        f"command: {command_line(args)}\nmachine: {machine()}\nload average before: "
+        f"{load[0]:.2f} {load[1]:.2f} {load[2]:.2f}",
+        highlight=False,
+    )
     results = []
     for kill in cases:
         label = "failover (one worker SIGKILLed mid-scan)" if kill else "steady"
         runs = []
         for k in range(args.repeat):
-            with Progress(TextColumn(f"{label}, run {k + 1}/{args.repeat}"), BarColumn(), MofNCompleteColumn(),
-                          TextColumn("finals"), TimeElapsedColumn(), console=Console(stderr=True),
-                          transient=True) as bar:
+            with Progress(
+                TextColumn(f"{label}, run {k + 1}/{args.repeat}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("finals"),
+                TimeElapsedColumn(),
+                console=Console(stderr=True),
+                transient=True,
+            ) as bar:
                 task = bar.add_task(label, total=args.scanners * args.scans)
-                runs.append(run_case(args, kill_one=kill,
-                                     progress=lambda done, total: bar.update(task, completed=done)))
+                runs.append(
+                    run_case(args, kill_one=kill, progress=lambda done, total: bar.update(task, completed=done))
+                )
         res = summarise(runs)
         res["case"] = label
         results.append(res)
-    table = Table(title=f"bench fleet: {args.scanners} scanners × {args.rate:g} Hz, {args.workers} workers"
-                        + (f" (medians of {args.repeat} runs)" if args.repeat > 1 else ""))
+    table = Table(
+        title=f"bench fleet: {args.scanners} scanners × {args.rate:g} Hz, {args.workers} workers"
+        + (f" (medians of {args.repeat} runs)" if args.repeat > 1 else "")
+    )
     table.add_column("")
     for r in results:
         table.add_column("failover" if r["kill_one"] else "steady", justify="right")
@@ -483,12 +584,18 @@ def run(args: argparse.Namespace) -> int:
         ("scans with a final", lambda r: f"{r['scans_with_final']} / {r['expected_finals']}"),
         ("incomplete finals (must be 0)", lambda r: str(r["incomplete_finals"])),
         ("duplicated finals (must be 0)", lambda r: str(r["duplicated_finals"])),
-        ("CPU per worker (of one core)", lambda r: " ".join(f"{v * 100:.0f}%" for v in r["cpu_per_worker"].values()
-                                                            if v is not None)),
-        ("CPU while busy (of one core)", lambda r: " ".join(f"{m} {v * 100:.0f}%" for m, v in r["busy_cpu"].items()
-                                                            if v is not None)),
-        ("publisher lag p50 / p99 / max, s", lambda r: f"{pub(r, 'lag_p50'):.2f} / {pub(r, 'lag_p99'):.2f} / "
-                                                       f"{pub(r, 'lag_max'):.2f}"),
+        (
+            "CPU per worker (of one core)",
+            lambda r: " ".join(f"{v * 100:.0f}%" for v in r["cpu_per_worker"].values() if v is not None),
+        ),
+        (
+            "CPU while busy (of one core)",
+            lambda r: " ".join(f"{m} {v * 100:.0f}%" for m, v in r["busy_cpu"].items() if v is not None),
+        ),
+        (
+            "publisher lag p50 / p99 / max, s",
+            lambda r: f"{pub(r, 'lag_p50'):.2f} / {pub(r, 'lag_p99'):.2f} / {pub(r, 'lag_max'):.2f}",
+        ),
         ("publishing took / schedule, s", lambda r: f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f}"),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
@@ -496,15 +603,22 @@ def run(args: argparse.Namespace) -> int:
         table.add_row(name, *(fn(r) for r in results))
     console.print(table)
     for r in results:
-        console.print(f"{r['case']}: terminal statuses (status:missing steps) {r['statuses']}; adopted "
-                      f"{r['adopted']}; recovered samples {r['recovered']}; dropped as other member "
-                      f"{r['dropped_other_member']}", highlight=False)
+        console.print(
+            f"{r['case']}: terminal statuses (status:missing steps) {r['statuses']}; adopted "
+            f"{r['adopted']}; recovered samples {r['recovered']}; dropped as other member "
+            f"{r['dropped_other_member']}",
+            highlight=False,
+        )
     load = os.getloadavg()
-    console.print(f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2 cores shared with other work "
-                  "here: figures are of this run only)", highlight=False)
+    console.print(
+        f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2 cores shared with other work "
+        "here: figures are of this run only)",
+        highlight=False,
+    )
     if args.json:
-        args.json.write_text(json.dumps({"command": command_line(args), "machine": machine(), "cases": results},
-                                        indent=1))
+        args.json.write_text(
+            json.dumps({"command": command_line(args), "machine": machine(), "cases": results}, indent=1)
+        )
     bad = any(r["incomplete_finals"] or r["duplicated_finals"] for r in results)
     return 1 if bad else 0
 

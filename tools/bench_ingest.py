@@ -82,24 +82,44 @@ _READY = "READY"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scans", type=int, default=3,
-                        help="scans in the latency run and in the replayed recording (default: %(default)s)")
-    parser.add_argument("--seconds", type=float, default=8.0,
-                        help="publishing time of the ingest-rate run, s (default: %(default)s)")
-    parser.add_argument("--rate", type=float, default=50.0,
-                        help="samples/s each scanner publishes in the latency run (default: %(default)s, a "
-                             "sample every 20 ms)")
-    parser.add_argument("--latency-scanners", type=int, default=10,
-                        help="scanners publishing at --rate each in the latency run (default: %(default)s)")
-    parser.add_argument("--scanners", type=int, default=2,
-                        help="scanners interleaved in the ingest-rate run (default: %(default)s)")
+    parser.add_argument(
+        "--scans",
+        type=int,
+        default=3,
+        help="scans in the latency run and in the replayed recording (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--seconds", type=float, default=8.0, help="publishing time of the ingest-rate run, s (default: %(default)s)"
+    )
+    parser.add_argument(
+        "--rate",
+        type=float,
+        default=50.0,
+        help="samples/s each scanner publishes in the latency run (default: %(default)s, a sample every 20 ms)",
+    )
+    parser.add_argument(
+        "--latency-scanners",
+        type=int,
+        default=10,
+        help="scanners publishing at --rate each in the latency run (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--scanners", type=int, default=2, help="scanners interleaved in the ingest-rate run (default: %(default)s)"
+    )
     parser.add_argument("--preset", default="paper-test1", help="simulator preset of the scan (default: %(default)s)")
-    parser.add_argument("--fifo", type=int, default=256,
-                        help="LiveSource fifo_capacity in the consumer; bounds what is buffered when the "
-                             "publisher outruns it (default: %(default)s)")
-    parser.add_argument("--replay-runs", type=int, default=5,
-                        help="timed rounds of the replay rows and their floor, interleaved; medians "
-                             "(default: %(default)s)")
+    parser.add_argument(
+        "--fifo",
+        type=int,
+        default=256,
+        help="LiveSource fifo_capacity in the consumer; bounds what is buffered when the "
+        "publisher outruns it (default: %(default)s)",
+    )
+    parser.add_argument(
+        "--replay-runs",
+        type=int,
+        default=5,
+        help="timed rounds of the replay rows and their floor, interleaved; medians (default: %(default)s)",
+    )
     parser.add_argument("--profile", action="store_true", help="also print a cProfile breakdown of one replay")
     # Internal: the child processes.
     parser.add_argument("--role", choices=("consumer", "publisher"), help=argparse.SUPPRESS)
@@ -109,9 +129,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def command_line(args: argparse.Namespace) -> str:
-    return (f"lelsonar bench ingest --scans {args.scans} --seconds {args.seconds:g} --rate {args.rate:g} "
-            f"--scanners {args.scanners} --latency-scanners {args.latency_scanners} --preset {args.preset} --fifo {args.fifo} --replay-runs {args.replay_runs}"
-            + (" --profile" if args.profile else ""))
+    return (
+        f"lelsonar bench ingest --scans {args.scans} --seconds {args.seconds:g} --rate {args.rate:g} "
+        f"--scanners {args.scanners} --latency-scanners {args.latency_scanners} --preset {args.preset} --fifo {args.fifo} --replay-runs {args.replay_runs}"
+        + (" --profile" if args.profile else "")
+    )
 
 
 # --- messages --------------------------------------------------------------------------------
@@ -127,10 +149,20 @@ def build_scan(preset_name: str, seed: int = 0):
     scanner = SimScanner(sim, seed)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     start = messages.scan_start("s0", 1, time.time_ns(), scanner.info, schedule, default_energy_model())
-    samples = [messages.sample("s0", 1, step, float(g), scanner.measure(step, float(g)), scanner.info)
-               for step, g in enumerate(schedule)]
-    end = messages.scan_end("s0", 1, time.time_ns(), complete=True, reason="", steps_planned=len(schedule),
-                            samples_sent=len(schedule), echoes_missing=0)
+    samples = [
+        messages.sample("s0", 1, step, float(g), scanner.measure(step, float(g)), scanner.info)
+        for step, g in enumerate(schedule)
+    ]
+    end = messages.scan_end(
+        "s0",
+        1,
+        time.time_ns(),
+        complete=True,
+        reason="",
+        steps_planned=len(schedule),
+        samples_sent=len(schedule),
+        echoes_missing=0,
+    )
     return start, samples, end
 
 
@@ -157,17 +189,20 @@ def publisher_main(args: argparse.Namespace) -> int:
     n_scanners = args.scanners if args.phase == "rate" else args.latency_scanners
     scanners = [f"bench{i}" for i in range(n_scanners)]
     received: list[tuple[int, bytes]] = []
-    put_ns: dict[tuple[str, int, int], int] = {}   # (scanner, scan, step) → put time
+    put_ns: dict[tuple[str, int, int], int] = {}  # (scanner, scan, step) → put time
     end_ns: dict[tuple[str, int], int] = {}
     deadline = time.monotonic() + args.timeout
     with open_session(hermetic_settings(args.socket, listen=False)) as session:
         planes_sub = session.declare_subscriber(
-            ScannerKeys(PREFIX, "*").planes,
-            lambda s: received.append((time.time_ns(), s.payload.to_bytes())))
+            ScannerKeys(PREFIX, "*").planes, lambda s: received.append((time.time_ns(), s.payload.to_bytes()))
+        )
         pubs = {sid: ScanPublisher(session, ScannerKeys(PREFIX, sid)) for sid in scanners}
         # Publish nothing before the consumer's subscriptions are known here (a put before would be lost).
-        probes = [session.declare_publisher(k) for sid in scanners
-                  for k in (ScannerKeys(PREFIX, sid).sample, ScannerKeys(PREFIX, sid).scan, DONE_KEY)]
+        probes = [
+            session.declare_publisher(k)
+            for sid in scanners
+            for k in (ScannerKeys(PREFIX, sid).sample, ScannerKeys(PREFIX, sid).scan, DONE_KEY)
+        ]
         while not all(p.matching_status.matching for p in probes):
             if time.monotonic() > deadline:
                 raise SystemExit("publisher: the consumer's subscriptions never matched")
@@ -227,8 +262,9 @@ def publisher_main(args: argparse.Namespace) -> int:
                         pubs[sid].publish(end)
                         scans += 1
         put_s = time.monotonic() - t_first
-        session.put(DONE_KEY, json.dumps({"samples": puts, "scans": scans}),
-                    congestion_control=zenoh.CongestionControl.BLOCK)
+        session.put(
+            DONE_KEY, json.dumps({"samples": puts, "scans": scans}), congestion_control=zenoh.CongestionControl.BLOCK
+        )
         # Wait (bounded) for every final estimate to come back.
         finals = seen = 0
         while finals < scans and time.monotonic() < deadline:
@@ -249,8 +285,11 @@ def publisher_main(args: argparse.Namespace) -> int:
             ref = end_ns.get((msg.scanner_id, msg.scan_id))
         if ref is not None:
             e2e.append(("provisional" if msg.status == 1 else "final", t - ref))
-    print(_RESULT + json.dumps({"puts": puts, "scans": scans, "put_s": put_s, "estimates_received": len(received),
-                                "e2e": e2e}), flush=True)
+    print(
+        _RESULT
+        + json.dumps({"puts": puts, "scans": scans, "put_s": put_s, "estimates_received": len(received), "e2e": e2e}),
+        flush=True,
+    )
     return 0
 
 
@@ -276,11 +315,11 @@ def _timed_service_class():
         def __init__(self, config: ReconstructConfig = ReconstructConfig()) -> None:
             super().__init__(config, publish=self._published)
             self.ingest = TimedIngest(limits=config.limits)
-            self.forward = None                      # e.g. PlanesServer.publish
-            self.done_mono: list[float] = []         # per sample: when its handle returned (monotonic s)
-            self.sample_latency_ns: list[int] = []   # per sample: handle returned − put
+            self.forward = None  # e.g. PlanesServer.publish
+            self.done_mono: list[float] = []  # per sample: when its handle returned (monotonic s)
+            self.sample_latency_ns: list[int] = []  # per sample: handle returned − put
             self.estimate_latency: list[tuple[str, int]] = []
-            self.busy: dict[str, list[float]] = {}   # bucket → handle durations, s
+            self.busy: dict[str, list[float]] = {}  # bucket → handle durations, s
             self._finals_made = False
 
         def handle(self, type_name, payload, **kwargs):
@@ -326,10 +365,10 @@ def _timed_service_class():
 
 
 def consumer_main(args: argparse.Namespace) -> int:
-    from lelsonar.keys import ScannerKeys
-    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
     from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import hermetic_settings, open_session
+    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
 
     exercise_kernels()  # as `lelsonar reconstruct` does before it listens
     service = _timed_service_class()()
@@ -352,8 +391,11 @@ def consumer_main(args: argparse.Namespace) -> int:
         with source:
             print(_READY, flush=True)
             while True:
-                if got_done.is_set() and len(service.done_mono) >= done["samples"] \
-                        and service.stats.finals >= done["scans"]:
+                if (
+                    got_done.is_set()
+                    and len(service.done_mono) >= done["samples"]
+                    and service.stats.finals >= done["scans"]
+                ):
                     break
                 if time.monotonic() > deadline:
                     timed_out = True
@@ -362,22 +404,59 @@ def consumer_main(args: argparse.Namespace) -> int:
         ctl.undeclare()
         planes.close()
     busy = {k: [len(v), sum(v), max(v)] for k, v in service.busy.items()}
-    print(_RESULT + json.dumps({
-        "samples": len(service.done_mono), "finals": service.stats.finals, "done": done, "timed_out": timed_out,
-        "rejected": dict(service.ingest.rejected), "errors": source.errors, "done_mono": service.done_mono,
-        "sample_latency_ns": service.sample_latency_ns, "estimate_latency": service.estimate_latency,
-        "busy": busy, "sample_accept_s": service.ingest.sample_accept_s}), flush=True)
+    print(
+        _RESULT
+        + json.dumps(
+            {
+                "samples": len(service.done_mono),
+                "finals": service.stats.finals,
+                "done": done,
+                "timed_out": timed_out,
+                "rejected": dict(service.ingest.rejected),
+                "errors": source.errors,
+                "done_mono": service.done_mono,
+                "sample_latency_ns": service.sample_latency_ns,
+                "estimate_latency": service.estimate_latency,
+                "busy": busy,
+                "sample_accept_s": service.ingest.sample_accept_s,
+            }
+        ),
+        flush=True,
+    )
     return 0
 
 
 # --- the parent: run a phase with two processes ------------------------------------------------
-def _child(role: str, args: argparse.Namespace, sock: Path, phase: str, timeout: float,
-           stderr_path: Path) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "lelsonar.tools.bench_ingest", "--role", role, "--socket", str(sock),
-           "--phase", phase, "--timeout", str(timeout), "--preset", args.preset, "--scans", str(args.scans),
-           "--seconds", str(args.seconds), "--rate", str(args.rate), "--scanners", str(args.scanners),
-           "--latency-scanners", str(args.latency_scanners),
-           "--fifo", str(args.fifo)]
+def _child(
+    role: str, args: argparse.Namespace, sock: Path, phase: str, timeout: float, stderr_path: Path
+) -> subprocess.Popen:
+    cmd = [
+        sys.executable,
+        "-m",
+        "lelsonar.tools.bench_ingest",
+        "--role",
+        role,
+        "--socket",
+        str(sock),
+        "--phase",
+        phase,
+        "--timeout",
+        str(timeout),
+        "--preset",
+        args.preset,
+        "--scans",
+        str(args.scans),
+        "--seconds",
+        str(args.seconds),
+        "--rate",
+        str(args.rate),
+        "--scanners",
+        str(args.scanners),
+        "--latency-scanners",
+        str(args.latency_scanners),
+        "--fifo",
+        str(args.fifo),
+    ]
     with open(stderr_path, "w") as err:
         return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
 
@@ -413,7 +492,7 @@ class _Lines:
             if line is None:
                 raise RuntimeError(f"no {prefix.strip()!r} line from the {self.name} (exit code {self.proc.poll()})")
             if line.startswith(prefix):
-                return line[len(prefix):]
+                return line[len(prefix) :]
 
 
 def run_phase(args: argparse.Namespace, phase: str) -> tuple[dict, dict]:
@@ -494,8 +573,8 @@ def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
 
 def time_ingest_only(path: Path, runs: int) -> float:
     """Median wall time to read, decode, validate and assemble the recording (no estimation)."""
-    from lelsonar.reconstruct.stream.ingest import Ingest
     from lelsonar.log.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
 
     times = []
     for _ in range(runs):
@@ -603,8 +682,12 @@ def profile_replay(path: Path, samples: int, console) -> None:
         ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
         ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
-        ("    ScanAssembly.add (carried energies checked, echo windows cut out)", "reconstruct/assembly.py", "add",
-         None),
+        (
+            "    ScanAssembly.add (carried energies checked, echo windows cut out)",
+            "reconstruct/assembly.py",
+            "add",
+            None,
+        ),
         ("  _provisional (corner check, provisional refit)", *upd, None),
         ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
         ("    IncrementalPlane.update (provisional planes)", "reconstruct/incremental.py", "update", upd),
@@ -612,8 +695,10 @@ def profile_replay(path: Path, samples: int, console) -> None:
         ("    reconstruct (each method, from scratch)", "reconstruct/pipeline.py", "reconstruct", None),
     ]
     whole = cum("reconstruct/sources.py", "replay_mcap")[1] or 1.0
-    table = Table(title=f"cProfile of one replay: {samples} samples, {service.stats.finals} finals "
-                        f"(cumulative; the profiler inflates Python-heavy code)")
+    table = Table(
+        title=f"cProfile of one replay: {samples} samples, {service.stats.finals} finals "
+        f"(cumulative; the profiler inflates Python-heavy code)"
+    )
     for col in ("where", "calls", "cumulative s", "ms / sample", "share"):
         table.add_column(col, justify="left" if col == "where" else "right")
     for label, file_end, func, caller in parts:
@@ -631,8 +716,8 @@ def profile_replay(path: Path, samples: int, console) -> None:
 
     # What one final costs per method, without the profiler (as _finalise calls them), on the first scan of the
     # file assembled again (the service forgets each scan once it is final).
-    from lelsonar.reconstruct.stream.ingest import Ingest
     from lelsonar.log.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
 
     kept = Ingest()
     for rec in iter_payloads(path):
@@ -685,8 +770,14 @@ def run(args: argparse.Namespace) -> int:
 
     defaults = ReconstructConfig()
 
-    if args.scans < 1 or args.seconds <= 0 or args.rate <= 0 or args.scanners < 1 or args.replay_runs < 1 \
-            or args.latency_scanners < 1:
+    if (
+        args.scans < 1
+        or args.seconds <= 0
+        or args.rate <= 0
+        or args.scanners < 1
+        or args.replay_runs < 1
+        or args.latency_scanners < 1
+    ):
         raise ConfigError("--scans, --scanners, --replay-runs must be >= 1; --seconds and --rate > 0")
     console = Console(width=max(Console().width, 160))
     busy = host_busy()
@@ -736,8 +827,9 @@ def run(args: argparse.Namespace) -> int:
             rounds["prov"].append(time_replay(path, 1)[0])
             rounds["ingest"].append(time_ingest_only(path, 1))
             rounds["floor"].append(time_read_decode(path, 1))
-        replay_s, replay_prov_s, ingest_s, read_decode_s = (statistics.median(rounds[k])
-                                                            for k in ("replay", "prov", "ingest", "floor"))
+        replay_s, replay_prov_s, ingest_s, read_decode_s = (
+            statistics.median(rounds[k]) for k in ("replay", "prov", "ingest", "floor")
+        )
         size_mb = path.stat().st_size / 1e6
         if args.profile:
             profile_stash = (path.read_bytes(), n_replay)
@@ -746,20 +838,30 @@ def run(args: argparse.Namespace) -> int:
     next(phases, None)  # the bar counts the last phase and goes
     wall = time.perf_counter() - t_bench
 
-    console.print(f"[bold]lelsonar bench ingest[/] — preset {args.preset}, Sample = 4 × 3500 float32 "
-                  f"waveforms (56 KB); bench wall {wall:.0f} s")
+    console.print(
+        f"[bold]lelsonar bench ingest[/] — preset {args.preset}, Sample = 4 × 3500 float32 "
+        f"waveforms (56 KB); bench wall {wall:.0f} s"
+    )
     console.print(f"machine: {machine()}; {host_line(busy)}")
     console.print(f"command: {command_line(args)}")
-    console.print(f"service: ReconstructConfig() defaults — method {defaults.method}, compare_methods "
-                  f"{defaults.compare_methods}, refit_every {defaults.refit_every}")
+    console.print(
+        f"service: ReconstructConfig() defaults — method {defaults.method}, compare_methods "
+        f"{defaults.compare_methods}, refit_every {defaults.refit_every}"
+    )
     table = Table(title="Ingest, latency and replay (one run, side by side)")
     for col in ("measurement", "result", "floor (same run)", "ratio", "target", "verdict", "details"):
-        table.add_column(col, justify="right" if col in ("result", "target", "floor (same run)", "ratio") else "left",
-                         overflow="fold", max_width=70 if col == "details" else None)
+        table.add_column(
+            col,
+            justify="right" if col in ("result", "target", "floor (same run)", "ratio") else "left",
+            overflow="fold",
+            max_width=70 if col == "details" else None,
+        )
     ok_rate = rate >= TARGET_RATE and rate >= TARGET_FLOOR_RATIO * floor_a
     table.add_row(
-        "(a) sustained ingest, Zenoh → LiveSource → service", f"{rate:,.0f} samples/s",
-        f"{floor_a:,.0f}/s decode+validate", f"{rate / floor_a:.2f}×",
+        "(a) sustained ingest, Zenoh → LiveSource → service",
+        f"{rate:,.0f} samples/s",
+        f"{floor_a:,.0f}/s decode+validate",
+        f"{rate / floor_a:.2f}×",
         f"≥ {TARGET_RATE:,.0f} and ≥ {TARGET_FLOOR_RATIO}× floor",
         _verdict(ok_rate),
         f"{n} samples of {args.scanners} scanners × {con_a['finals'] // max(1, args.scanners)} scans "
@@ -767,48 +869,85 @@ def run(args: argparse.Namespace) -> int:
         f"(BLOCK); consumer busy {100 * busy_s / window:.0f} % in handle; mean handle ms: sample "
         f"{mean_ms('Sample')}, with provisional refit {mean_ms('provisional')}, with final {mean_ms('final')}; "
         f"rejected {con_a['rejected'] or 0}, errors {con_a['errors']}"
-        + ("; [red]consumer timed out[/]" if con_a["timed_out"] else ""))
+        + ("; [red]consumer timed out[/]" if con_a["timed_out"] else ""),
+    )
     ok_stage = stage_a >= TARGET_FLOOR_RATIO * floor_a
     table.add_row(
-        "(a′) ingest stage alone: decode + validate + route + assemble (Ingest.accept)", f"{stage_a:,.0f} samples/s",
-        f"{floor_a:,.0f}/s decode+validate", f"{stage_a / floor_a:.2f}×", f"≥ {TARGET_FLOOR_RATIO}× floor",
+        "(a′) ingest stage alone: decode + validate + route + assemble (Ingest.accept)",
+        f"{stage_a:,.0f} samples/s",
+        f"{floor_a:,.0f}/s decode+validate",
+        f"{stage_a / floor_a:.2f}×",
+        f"≥ {TARGET_FLOOR_RATIO}× floor",
         _verdict(ok_stage),
         "everything before estimation, on the floor's payloads (whole scans), interleaved with it in this process; "
         f"in (a)'s consumer, Ingest.accept took {1e6 * live_accept_s / max(1, live_accepts):.0f} µs a sample "
-        f"({live_accepts / live_accept_s if live_accept_s else float('nan'):,.0f}/s while in it)")
+        f"({live_accepts / live_accept_s if live_accept_s else float('nan'):,.0f}/s while in it)",
+    )
     p50, p99 = _pct(lat_sample, 50), _pct(lat_sample, 99)
     ok_lat_s = p99 <= TARGET_P99_MS
     table.add_row(
-        "(b1) latency put → sample processed (handle returned)", f"p50 {p50:.1f} / p99 {p99:.1f} ms", "", "",
-        f"p99 ≤ {TARGET_P99_MS:.0f} ms", _verdict(ok_lat_s),
-        f"{len(lat_sample)} samples: {args.latency_scanners} scanners at {args.rate:g}/s each, {args.scans} scans back to back; max {max(lat_sample):.0f} ms")
+        "(b1) latency put → sample processed (handle returned)",
+        f"p50 {p50:.1f} / p99 {p99:.1f} ms",
+        "",
+        "",
+        f"p99 ≤ {TARGET_P99_MS:.0f} ms",
+        _verdict(ok_lat_s),
+        f"{len(lat_sample)} samples: {args.latency_scanners} scanners at {args.rate:g}/s each, {args.scans} scans back to back; max {max(lat_sample):.0f} ms",
+    )
     q50, q99 = _pct(lat_prov, 50), _pct(lat_prov, 99)
     ok_lat_e = q99 <= TARGET_P99_MS
     table.add_row(
-        "(b2) latency put of last_step → provisional estimate published", f"p50 {q50:.1f} / p99 {q99:.1f} ms",
-        "", "",
-        f"p99 ≤ {TARGET_P99_MS:.0f} ms", _verdict(ok_lat_e),
+        "(b2) latency put of last_step → provisional estimate published",
+        f"p50 {q50:.1f} / p99 {q99:.1f} ms",
+        "",
+        "",
+        f"p99 ≤ {TARGET_P99_MS:.0f} ms",
+        _verdict(ok_lat_e),
         f"{len(lat_prov)} estimates (every refit_every steps once the corner is confirmed); "
-        f"received by a subscriber: p50 {_pct(e2e_prov, 50):.1f} / p99 {_pct(e2e_prov, 99):.1f} ms")
+        f"received by a subscriber: p50 {_pct(e2e_prov, 50):.1f} / p99 {_pct(e2e_prov, 99):.1f} ms",
+    )
     table.add_row(
         "(b3) latency put of ScanEnd → final estimate published",
-        f"p50 {_pct(lat_final, 50):.0f} / max {max(lat_final, default=float('nan')):.0f} ms", "", "", "—", "",
+        f"p50 {_pct(lat_final, 50):.0f} / max {max(lat_final, default=float('nan')):.0f} ms",
+        "",
+        "",
+        "—",
+        "",
         f"{len(lat_final)} finals ({', '.join((defaults.method, *defaults.compare_methods))}, from scratch); received: "
-        f"max {max(e2e_final, default=float('nan')):.0f} ms")
+        f"max {max(e2e_final, default=float('nan')):.0f} ms",
+    )
     replay_rate = n_replay / replay_s
     floor_c = n_replay / read_decode_s
     ok_replay = replay_rate >= TARGET_REPLAY and replay_rate >= TARGET_FLOOR_RATIO * floor_c
     table.add_row(
-        "(c) MCAP replay, as `reconstruct --source` runs it", f"{replay_rate:,.0f} samples/s",
-        f"{floor_c:,.0f}/s read+decode", f"{replay_rate / floor_c:.2f}×",
-        f"≥ {TARGET_REPLAY:,.0f} and ≥ {TARGET_FLOOR_RATIO}× floor", _verdict(ok_replay),
+        "(c) MCAP replay, as `reconstruct --source` runs it",
+        f"{replay_rate:,.0f} samples/s",
+        f"{floor_c:,.0f}/s read+decode",
+        f"{replay_rate / floor_c:.2f}×",
+        f"≥ {TARGET_REPLAY:,.0f} and ≥ {TARGET_FLOOR_RATIO}× floor",
+        _verdict(ok_replay),
         f"{n_replay} samples, {args.scans} scans, {size_mb:.1f} MB zstd; median of {args.replay_runs}; "
         f"{replay_finals} finals ({', '.join((defaults.method, *defaults.compare_methods))}); no provisional "
-        "estimates, which the finals do not depend on")
-    table.add_row("(c′) replay with provisional estimates (diagnostic)", f"{n_replay / replay_prov_s:,.0f} samples/s",
-                  "", f"{n_replay / replay_prov_s / floor_c:.2f}×", "—", "", f"a refit every {defaults.refit_every} steps, as live and `lelsonar review` do")
-    table.add_row("(c″) MCAP read + decode + assemble only (diagnostic)", f"{n_replay / ingest_s:,.0f} samples/s",
-                  "", f"{n_replay / ingest_s / floor_c:.2f}×", "—", "", "Ingest.accept over iter_payloads: no estimation; the ceiling of (c)")
+        "estimates, which the finals do not depend on",
+    )
+    table.add_row(
+        "(c′) replay with provisional estimates (diagnostic)",
+        f"{n_replay / replay_prov_s:,.0f} samples/s",
+        "",
+        f"{n_replay / replay_prov_s / floor_c:.2f}×",
+        "—",
+        "",
+        f"a refit every {defaults.refit_every} steps, as live and `lelsonar review` do",
+    )
+    table.add_row(
+        "(c″) MCAP read + decode + assemble only (diagnostic)",
+        f"{n_replay / ingest_s:,.0f} samples/s",
+        "",
+        f"{n_replay / ingest_s / floor_c:.2f}×",
+        "—",
+        "",
+        "Ingest.accept over iter_payloads: no estimation; the ceiling of (c)",
+    )
     console.print(table)
     if profile_stash is not None:
         with tempfile.TemporaryDirectory(prefix="lelsonar-bench-profile-") as tmp:

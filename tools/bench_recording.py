@@ -25,25 +25,41 @@ import tempfile
 import time
 from pathlib import Path
 
-ROWS = (("before: 1 MiB chunks", {"durable": False}),
-        ("chunk per step", {}),
-        ("chunk per step, fsync", {"fsync": True}))
+ROWS = (
+    ("before: 1 MiB chunks", {"durable": False}),
+    ("chunk per step", {}),
+    ("chunk per step, fsync", {"fsync": True}),
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="paper-test1", help="simulator preset (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=None, help="override the preset's number of steps")
     parser.add_argument("--runs", type=int, default=7, help="runs per row; medians are reported (default: %(default)s)")
-    parser.add_argument("--compression", nargs="+", default=["zstd"], choices=("zstd", "lz4", "none"),
-                        help="chunk compressions to compare (default: zstd, the acquire default)")
-    parser.add_argument("--dir", type=Path, default=None,
-                        help="where to write (default: a temporary directory; fsync cost depends on the disk)")
+    parser.add_argument(
+        "--compression",
+        nargs="+",
+        default=["zstd"],
+        choices=("zstd", "lz4", "none"),
+        help="chunk compressions to compare (default: zstd, the acquire default)",
+    )
+    parser.add_argument(
+        "--dir",
+        type=Path,
+        default=None,
+        help="where to write (default: a temporary directory; fsync cost depends on the disk)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="simulator seed (default: %(default)s)")
 
 
 def command_line(args: argparse.Namespace) -> str:
-    parts = ["lelsonar bench recording", f"--preset {args.preset}", f"--runs {args.runs}", f"--seed {args.seed}",
-             f"--compression {' '.join(args.compression)}"]
+    parts = [
+        "lelsonar bench recording",
+        f"--preset {args.preset}",
+        f"--runs {args.runs}",
+        f"--seed {args.seed}",
+        f"--compression {' '.join(args.compression)}",
+    ]
     if args.steps is not None:
         parts.append(f"--steps {args.steps}")
     if args.dir is not None:
@@ -70,8 +86,18 @@ def scan_messages(preset_name: str, steps: int | None, seed: int) -> list:
     out = [messages.scan_start("bench", 1, t0, scanner.info, schedule, default_energy_model())]
     for step, gamma in enumerate(schedule):
         out.append(messages.sample("bench", 1, step, float(gamma), scanner.measure(step, float(gamma)), scanner.info))
-    out.append(messages.scan_end("bench", 1, time.time_ns(), complete=True, reason="", steps_planned=len(schedule),
-                                 samples_sent=len(schedule), echoes_missing=0))
+    out.append(
+        messages.scan_end(
+            "bench",
+            1,
+            time.time_ns(),
+            complete=True,
+            reason="",
+            steps_planned=len(schedule),
+            samples_sent=len(schedule),
+            echoes_missing=0,
+        )
+    )
     return out
 
 
@@ -122,17 +148,27 @@ def run(args: argparse.Namespace) -> int:
                     sizes[(comp, name)] = path.stat().st_size
                     chunks[(comp, name)] = salvage(path).chunks_read
         fs = _filesystem(where)
-    table = Table(title=f"writing one {args.preset} scan ({steps} steps, {len(msgs)} contract messages, "
-                        f"each Sample with /tf and points) — medians of {args.runs}", title_justify="left")
+    table = Table(
+        title=f"writing one {args.preset} scan ({steps} steps, {len(msgs)} contract messages, "
+        f"each Sample with /tf and points) — medians of {args.runs}",
+        title_justify="left",
+    )
     for col in ("compression", "recorder", "chunks", "write ms", "µs/step", "× before", "MB", "read ms"):
         table.add_column(col, justify="left" if col in ("compression", "recorder") else "right")
     for comp in args.compression:
         base = statistics.median(times[(comp, ROWS[0][0])])
         for name, _ in ROWS:
             med = statistics.median(times[(comp, name)])
-            table.add_row(comp, name, str(chunks[(comp, name)]), f"{1e3 * med:.1f}", f"{1e6 * med / steps:.0f}",
-                          f"{med / base:.2f}", f"{sizes[(comp, name)] / 1e6:.2f}",
-                          f"{1e3 * statistics.median(reads[(comp, name)]):.1f}")
+            table.add_row(
+                comp,
+                name,
+                str(chunks[(comp, name)]),
+                f"{1e3 * med:.1f}",
+                f"{1e6 * med / steps:.0f}",
+                f"{med / base:.2f}",
+                f"{sizes[(comp, name)] / 1e6:.2f}",
+                f"{1e3 * statistics.median(reads[(comp, name)]):.1f}",
+            )
     console.print(table)
     console.print(f"machine: {machine()}; files on {fs}; {host_line(busy)}")
     console.print("fsync's cost is the disk's: on a shared or loaded host it varies several-fold between runs")

@@ -20,9 +20,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from lelsonar.errors import ConfigError
     from lelsonar.sim import preset, simulate_scan
     from lelsonar.tools.bench import machine, progress
-    from lelsonar.errors import ConfigError
 
     if args.runs < 1:
         raise ConfigError(f"--runs must be ≥ 1, got {args.runs}")
@@ -39,8 +39,10 @@ def run(args: argparse.Namespace) -> int:
 
     n_samples = cfg.steps * cfg.geometry.n_capsules * cfg.window_samples
     print(f"machine: {machine()}, numpy {np.__version__}")
-    print(f"preset {args.preset}: {cfg.steps} steps × {cfg.geometry.n_capsules} capsules × "
-          f"{cfg.window_samples} samples ({n_samples / 1e6:.2f} M samples), {args.runs} runs")
+    print(
+        f"preset {args.preset}: {cfg.steps} steps × {cfg.geometry.n_capsules} capsules × "
+        f"{cfg.window_samples} samples ({n_samples / 1e6:.2f} M samples), {args.runs} runs"
+    )
     print(f"{'waveforms':>10} {'median s':>10} {'min s':>8} {'max s':>8}")
     for with_waveforms, med, lo, hi in rows:
         print(f"{'yes' if with_waveforms else 'no':>10} {med:10.4f} {lo:8.4f} {hi:8.4f}")

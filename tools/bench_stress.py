@@ -91,11 +91,35 @@ from typing import Any
 
 import numpy as np
 
-from lelsonar.tools.bench_families import (frac_above, is_failure, json_default, ls_plane, percentile,
-                                           plane_errors, z_score)
+from lelsonar.tools.bench_families import (
+    frac_above,
+    is_failure,
+    json_default,
+    ls_plane,
+    percentile,
+    plane_errors,
+    z_score,
+)
 
-FAMILIES: tuple[str, ...] = ("distance", "opening", "tilt", "roll", "sweep", "steps", "array", "rate", "noise",
-                             "corner", "missing", "calib", "nocorner", "wire", "mixed", "extreme", "comparator")
+FAMILIES: tuple[str, ...] = (
+    "distance",
+    "opening",
+    "tilt",
+    "roll",
+    "sweep",
+    "steps",
+    "array",
+    "rate",
+    "noise",
+    "corner",
+    "missing",
+    "calib",
+    "nocorner",
+    "wire",
+    "mixed",
+    "extreme",
+    "comparator",
+)
 #: Verdicts of one wall, in table order.
 VERDICTS = ("accurate", "flagged", "claims_good", "crash")
 _DEG = math.pi / 180.0
@@ -203,36 +227,59 @@ def draw_case(family: str, seed: int) -> StressCase:
     if wide:
         kw.update(corner_max_error=44.0 * _DEG)
     if family in ("tilt", "mixed", "extreme"):
-        kw.update(roll=rng.uniform(-20, 20) * _DEG, skew_a=rng.uniform(-12, 12) * _DEG,
-                  skew_b=rng.uniform(-12, 12) * _DEG)
+        kw.update(
+            roll=rng.uniform(-20, 20) * _DEG, skew_a=rng.uniform(-12, 12) * _DEG, skew_b=rng.uniform(-12, 12) * _DEG
+        )
     if family == "roll":
         kw.update(roll=rng.uniform(-45, 45) * _DEG)
     if family in ("steps", "mixed", "extreme"):
         kw.update(steps=int(rng.integers(60, 401)), spacing=str(rng.choice(["uniform", "jitter", "dense"])))
     if family in ("array", "mixed", "extreme"):
-        kw.update(capsules=int(rng.integers(2, 9)), pitch=rng.uniform(0.03, 0.15), uneven=rng.uniform(0, 0.4),
-                  radial_offset=rng.uniform(0, 0.1))
+        kw.update(
+            capsules=int(rng.integers(2, 9)),
+            pitch=rng.uniform(0.03, 0.15),
+            uneven=rng.uniform(0, 0.4),
+            radial_offset=rng.uniform(0, 0.1),
+        )
     if family in ("rate", "mixed", "extreme"):
-        kw.update(sample_rate=float(rng.choice([100e3, 125e3, 250e3, 400e3, 1e6])), int16=bool(rng.random() < 0.5),
-                  window_start=float(rng.choice([0.0, 0.5e-3, 1.0e-3])))
+        kw.update(
+            sample_rate=float(rng.choice([100e3, 125e3, 250e3, 400e3, 1e6])),
+            int16=bool(rng.random() < 0.5),
+            window_start=float(rng.choice([0.0, 0.5e-3, 1.0e-3])),
+        )
     if family in ("noise", "mixed", "extreme"):
-        kw.update(tof_jitter=rng.uniform(0.001, 0.008), cycle_slip_probability=rng.uniform(0, 0.08),
-                  amplitude_noise=rng.uniform(0, 0.10), noise_std=rng.uniform(0.002, 0.012))
+        kw.update(
+            tof_jitter=rng.uniform(0.001, 0.008),
+            cycle_slip_probability=rng.uniform(0, 0.08),
+            amplitude_noise=rng.uniform(0, 0.10),
+            noise_std=rng.uniform(0.002, 0.012),
+        )
     if family in ("corner", "mixed", "extreme"):
         kw.update(corner_gain=rng.uniform(0.0, 3.0))
     if family in ("missing", "mixed", "extreme"):
-        kw.update(missing=rng.uniform(0.10, 0.35) if not every else rng.uniform(0, 0.2),
-                  missing_runs=bool(rng.random() < 0.5))
+        kw.update(
+            missing=rng.uniform(0.10, 0.35) if not every else rng.uniform(0, 0.2), missing_runs=bool(rng.random() < 0.5)
+        )
     if family in ("calib", "mixed", "extreme"):
         lo, hi = (0.1, 10.0) if wide else (0.5, 2.0)
         kw.update(e0_scale=float(np.exp(rng.uniform(math.log(lo), math.log(hi)))))
     if family == "comparator":
-        kw.update(timing="crossing", threshold=float(np.exp(rng.uniform(math.log(0.02), math.log(0.15)))),
-                  envelope_time=rng.uniform(0.08e-3, 0.4e-3), echo_gain=float(np.exp(rng.uniform(0.0, math.log(6.0)))),
-                  distance_a=rng.uniform(0.6, 2.5), distance_b=rng.uniform(0.6, 2.5), roll=rng.uniform(-15, 15) * _DEG)
+        kw.update(
+            timing="crossing",
+            threshold=float(np.exp(rng.uniform(math.log(0.02), math.log(0.15)))),
+            envelope_time=rng.uniform(0.08e-3, 0.4e-3),
+            echo_gain=float(np.exp(rng.uniform(0.0, math.log(6.0)))),
+            distance_a=rng.uniform(0.6, 2.5),
+            distance_b=rng.uniform(0.6, 2.5),
+            roll=rng.uniform(-15, 15) * _DEG,
+        )
     if family == "wire":
-        kw.update(capsules=int(rng.integers(2, 9)), permute_capsules=True, shuffle_samples=bool(rng.random() < 0.5),
-                  reverse=bool(rng.random() < 0.5))
+        kw.update(
+            capsules=int(rng.integers(2, 9)),
+            permute_capsules=True,
+            shuffle_samples=bool(rng.random() < 0.5),
+            reverse=bool(rng.random() < 0.5),
+        )
     crit = _critical(kw)
     if family == "sweep" or ((every or family == "comparator") and rng.random() < 0.5):
         kw.update(_draw_sweep(rng, crit))
@@ -253,20 +300,41 @@ def draw_case(family: str, seed: int) -> StressCase:
 
 # ---------------------------------------------------------------------------- simulation
 def _scene(case: StressCase, height_a: float, height_b: float):
-    from lelsonar.sim.scene import Scene
     from lelsonar.geometry import rotation_x
+    from lelsonar.sim.scene import Scene
 
     half = (case.opening - math.pi / 2) / 2  # opening = 90° + tilt_a_x − tilt_b_x
     if max(abs(case.roll + half), abs(case.roll - half)) <= math.radians(30):
-        return Scene.l_corner(case.distance_a, case.distance_b, tilt_a_x=case.roll + half,
-                              tilt_b_x=case.roll - half, tilt_a_z=case.skew_a, tilt_b_y=case.skew_b, width=4.0,
-                              height_a=height_a, height_b=height_b)
+        return Scene.l_corner(
+            case.distance_a,
+            case.distance_b,
+            tilt_a_x=case.roll + half,
+            tilt_b_x=case.roll - half,
+            tilt_a_z=case.skew_a,
+            tilt_b_y=case.skew_b,
+            width=4.0,
+            height_a=height_a,
+            height_b=height_b,
+        )
     # Beyond l_corner's ±30° tilts: the unrolled L turned as a whole about the rotation axis (offsets kept).
-    base = Scene.l_corner(case.distance_a, case.distance_b, tilt_a_x=half, tilt_b_x=-half, tilt_a_z=case.skew_a,
-                          tilt_b_y=case.skew_b, width=4.0, height_a=height_a, height_b=height_b)
+    base = Scene.l_corner(
+        case.distance_a,
+        case.distance_b,
+        tilt_a_x=half,
+        tilt_b_x=-half,
+        tilt_a_z=case.skew_a,
+        tilt_b_y=case.skew_b,
+        width=4.0,
+        height_a=height_a,
+        height_b=height_b,
+    )
     turn = rotation_x(case.roll)
-    panels = tuple(dataclasses.replace(p, center=turn @ np.array(p.center), normal=turn @ np.array(p.normal),
-                                       u_axis=turn @ np.array(p.u_axis)) for p in base.panels)
+    panels = tuple(
+        dataclasses.replace(
+            p, center=turn @ np.array(p.center), normal=turn @ np.array(p.normal), u_axis=turn @ np.array(p.u_axis)
+        )
+        for p in base.panels
+    )
     return Scene(panels=panels, corners=base.corners)
 
 
@@ -286,19 +354,26 @@ def _schedule(case: StressCase, rng: np.random.Generator) -> np.ndarray:
 
 def build_config(case: StressCase):
     """The :class:`SimConfig` of a case: panels wide enough for every beam, window long enough for every echo."""
+    from lelsonar.geometry import ArrayGeometry
     from lelsonar.sim.acoustics import Acoustics, Receiver
     from lelsonar.sim.config import SimConfig
     from lelsonar.sim.scenes import check_config, required_window_samples
-    from lelsonar.geometry import ArrayGeometry
 
     x = (np.arange(case.capsules) - (case.capsules - 1) / 2) * case.pitch
     if case.uneven > 0:  # uneven spacing, still in order along +x (the schema's capsule order)
         x = x + np.random.default_rng([case.seed, 7]).uniform(-0.5, 0.5, x.size) * case.uneven * case.pitch
     geometry = ArrayGeometry(capsule_x=tuple(float(v) for v in x), radial_offset=case.radial_offset)
     acoustics = Acoustics(corner_gain=case.corner_gain, corner_max_error=case.corner_max_error)
-    receiver = Receiver(tof_jitter=case.tof_jitter, cycle_slip_probability=case.cycle_slip_probability,
-                        amplitude_noise=case.amplitude_noise, noise_std=case.noise_std, timing=case.timing,
-                        threshold=case.threshold, envelope_time=case.envelope_time, echo_gain=case.echo_gain)
+    receiver = Receiver(
+        tof_jitter=case.tof_jitter,
+        cycle_slip_probability=case.cycle_slip_probability,
+        amplitude_noise=case.amplitude_noise,
+        noise_std=case.noise_std,
+        timing=case.timing,
+        threshold=case.threshold,
+        envelope_time=case.envelope_time,
+        echo_gain=case.echo_gain,
+    )
     far_a = max(0.0, -case.gamma_start) + 10 * _DEG
     far_b = max(0.0, case.gamma_stop - math.pi / 2) + 10 * _DEG
     height_a = case.distance_b + case.distance_a * math.tan(min(far_a, 75 * _DEG)) + 0.3
@@ -306,12 +381,18 @@ def build_config(case: StressCase):
     problems: list[str] = []
     for _ in range(8):
         scene = _scene(case, height_a, height_b)
-        cfg = SimConfig(scene=scene, geometry=geometry, gamma_start=min(case.gamma_start, case.gamma_stop),
-                        gamma_stop=max(case.gamma_start, case.gamma_stop), steps=case.steps,
-                        sample_rate=case.sample_rate, window_start=case.window_start, acoustics=acoustics,
-                        receiver=receiver)
-        cfg = dataclasses.replace(cfg, window_samples=max(int(0.0175 * case.sample_rate),
-                                                          required_window_samples(cfg)))
+        cfg = SimConfig(
+            scene=scene,
+            geometry=geometry,
+            gamma_start=min(case.gamma_start, case.gamma_stop),
+            gamma_stop=max(case.gamma_start, case.gamma_stop),
+            steps=case.steps,
+            sample_rate=case.sample_rate,
+            window_start=case.window_start,
+            acoustics=acoustics,
+            receiver=receiver,
+        )
+        cfg = dataclasses.replace(cfg, window_samples=max(int(0.0175 * case.sample_rate), required_window_samples(cfg)))
         problems = [p for p in check_config(cfg) if "corner" not in p or case.family not in ("nocorner", "sweep")]
         problems = [p for p in problems if "does not contain the corner" not in p]
         if not problems:
@@ -369,7 +450,7 @@ def simulate(case: StressCase) -> StressScan:
         if case.missing_runs:
             while drop.mean() < case.missing:
                 k, j, length = rng.integers(n), rng.integers(m), rng.integers(3, 11)
-                drop[k:k + length, j] = True
+                drop[k : k + length, j] = True
         else:
             drop = rng.random((n, m)) < case.missing
         tof = np.where(drop, np.nan, tof)
@@ -379,8 +460,8 @@ def simulate(case: StressCase) -> StressScan:
 
 def energy_model(scan: StressScan):
     """The ``E0(d)`` announced: the rig's own six-shot calibration, times the case's ``e0_scale``."""
-    from lelsonar.sim.scenes import calibrated_energy_model
     from lelsonar.energy_model import EnergyModel
+    from lelsonar.sim.scenes import calibrated_energy_model
 
     m = calibrated_energy_model(scan.config)
     s = scan.case.e0_scale
@@ -433,12 +514,20 @@ def record(scan: StressScan, path: Path) -> None:
     int16_scale = scan.config.receiver.adc_lsb if scan.case.int16 else None
     with McapRecorder(path, compression="zstd", metadata={"device": "sim", "stress": scan.case.describe()}) as rec:
         out = _WireVariations(rec, scan.case) if scan.case.permute_capsules or scan.case.shuffle_samples else rec
-        run_scan(ScanReplay(scan), scan.commanded, ScanIdentity("stress", 1), energy_model(scan),
-                 ScanOutput(out, None), threading.Event(), int16_scale=int16_scale)
+        run_scan(
+            ScanReplay(scan),
+            scan.commanded,
+            ScanIdentity("stress", 1),
+            energy_model(scan),
+            ScanOutput(out, None),
+            threading.Event(),
+            int16_scale=int16_scale,
+        )
 
 
-def run_cli(path: Path, method: str | None = None, compare: str = COMPARED
-            ) -> tuple[int | None, list[dict[str, Any]], str]:
+def run_cli(
+    path: Path, method: str | None = None, compare: str = COMPARED
+) -> tuple[int | None, list[dict[str, Any]], str]:
     """``lelsonar reconstruct --source PATH --json --compare COMPARE`` in process: exit code, JSON lines, error."""
     from lelsonar.cli.main import main
 
@@ -469,8 +558,10 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
     all_planes = [p for msg in lines for p in msg.get("planes", [])]
     planes = [p for p in all_planes if p.get("method", RECORD) == RECORD]
     compared = [p for p in all_planes if p.get("method") == COMPARED]
-    for label, src, panel in (("a", EchoSource.PLANE_A, cfg.scene.panels[0]),
-                              ("b", EchoSource.PLANE_B, cfg.scene.panels[1])):
+    for label, src, panel in (
+        ("a", EchoSource.PLANE_A, cfg.scene.panels[0]),
+        ("b", EchoSource.PLANE_B, cfg.scene.panels[1]),
+    ):
         n_true, h_true = np.asarray(panel.normal), panel.offset
         m = (scan.echo_source == src) & np.isfinite(distance)
         patch = pc[m] + (h_true - pc[m] @ n_true)[:, None] * n_true
@@ -478,9 +569,15 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
         if m.sum() >= 3:
             n_o, h_o, _, _ = ls_plane(pc[m] + distance[m][:, None] * n_true)
             oracle = plane_errors(n_o, h_o, n_true, h_true, patch)[2]
-        row: dict[str, Any] = {"family": scan.case.family, "seed": scan.case.seed, "label": label,
-                               "reverse": scan.case.reverse,
-                               "n_mirror": int(m.sum()), "oracle_patch_cm": oracle, "exit": code}
+        row: dict[str, Any] = {
+            "family": scan.case.family,
+            "seed": scan.case.seed,
+            "label": label,
+            "reverse": scan.case.reverse,
+            "n_mirror": int(m.sum()),
+            "oracle_patch_cm": oracle,
+            "exit": code,
+        }
         fit = next((p for p in planes if p.get("label") == label), None)
         if crashed:
             row.update(verdict="crash", error=error.strip().splitlines()[-1:] if error else ["no JSON line"])
@@ -503,8 +600,10 @@ def judge(scan: StressScan, code: int | None, lines: list[dict[str, Any]], error
         if not crashed and other is not None and m.sum() >= 3:
             n = np.array([other["normal"].get(k, 0.0) for k in ("x", "y", "z")])
             ang, off, pe = plane_errors(n, float(other.get("offset", 0.0)), n_true, h_true, patch)
-            row.update({f"{COMPARED}_{k}": v for k, v in _z_fields(other, ang, off).items()},
-                       **{f"{COMPARED}_quality": other.get("quality"), f"{COMPARED}_patch_cm": pe})
+            row.update(
+                {f"{COMPARED}_{k}": v for k, v in _z_fields(other, ang, off).items()},
+                **{f"{COMPARED}_quality": other.get("quality"), f"{COMPARED}_patch_cm": pe},
+            )
         rows.append(row)
     return rows
 
@@ -513,8 +612,12 @@ def _z_fields(plane: dict[str, Any], angle_deg: float, offset_cm: float) -> dict
     """A JSON plane's standard errors (°, cm) and z-scores of its angle (°) and offset (cm) errors."""
     se_n = float(plane.get("normal_stderr", float("nan")))
     se_h = float(plane.get("offset_stderr", float("nan")))
-    return {"normal_stderr_deg": math.degrees(se_n), "offset_stderr_cm": 100.0 * se_h,
-            "z_angle": z_score(math.radians(angle_deg), se_n), "z_offset": z_score(offset_cm / 100.0, se_h)}
+    return {
+        "normal_stderr_deg": math.degrees(se_n),
+        "offset_stderr_cm": 100.0 * se_h,
+        "z_angle": z_score(math.radians(angle_deg), se_n),
+        "z_offset": z_score(offset_cm / 100.0, se_h),
+    }
 
 
 def stress_scan(family: str, seed: int, keep_dir: str | None = None) -> list[dict[str, Any]]:
@@ -562,6 +665,7 @@ def z_summary(rows: list[dict[str, Any]], prefix: str = "") -> dict[str, dict[st
     For ``good`` (planes claiming good) and ``all`` (every plane of an observed wall): ``n``, median |z| and
     the share of |z| > 3, of the normal (``zn``) and the offset (``zh``).
     """
+
     def num(r: dict[str, Any], key: str) -> float:
         v = r.get(prefix + key)
         return float(v) if v is not None else float("nan")
@@ -573,9 +677,15 @@ def z_summary(rows: list[dict[str, Any]], prefix: str = "") -> dict[str, dict[st
         for which, sel in (("good", [r for r in fr if r.get(prefix + "quality") == "good"]), ("all", fr)):
             zn = np.abs([num(r, "z_angle") for r in sel], dtype=float)
             zh = np.abs([num(r, "z_offset") for r in sel], dtype=float)
-            stats.update({f"{which}_n": len(sel), f"{which}_zn_med": percentile(zn, 50),
-                          f"{which}_zn_gt3": frac_above(zn, 3.0), f"{which}_zh_med": percentile(zh, 50),
-                          f"{which}_zh_gt3": frac_above(zh, 3.0)})
+            stats.update(
+                {
+                    f"{which}_n": len(sel),
+                    f"{which}_zn_med": percentile(zn, 50),
+                    f"{which}_zn_gt3": frac_above(zn, 3.0),
+                    f"{which}_zh_med": percentile(zh, 50),
+                    f"{which}_zh_gt3": frac_above(zh, 3.0),
+                }
+            )
         out[fam] = stats
     return out
 
@@ -611,11 +721,13 @@ def run_stress(args: argparse.Namespace) -> int:
             t = counts[fam]
             table.add_row(fam, str(t["planes"]), str(t["unseen"]), *(str(t[v]) for v in VERDICTS))
     console.print(table)
-    console.print("planes: walls of the scenes; unseen: walls with fewer than 3 true mirror echoes (no plane, or a "
-                  "flagged one, is the right answer); accurate: patch error ≤ 2 cm or ≤ 3× the oracle's; flagged: "
-                  "a failure whose quality is not good, or no plane with a non-zero exit; claims_good: a failure "
-                  "(or a plane of an unseen wall) whose quality is good; crash: an exception, no JSON line or an "
-                  "undocumented exit code")
+    console.print(
+        "planes: walls of the scenes; unseen: walls with fewer than 3 true mirror echoes (no plane, or a "
+        "flagged one, is the right answer); accurate: patch error ≤ 2 cm or ≤ 3× the oracle's; flagged: "
+        "a failure whose quality is not good, or no plane with a non-zero exit; claims_good: a failure "
+        "(or a plane of an unseen wall) whose quality is good; crash: an exception, no JSON line or an "
+        "undocumented exit code"
+    )
     zs = {m: z_summary(rows, prefix) for m, prefix in ((RECORD, ""), (COMPARED, COMPARED + "_"))}
     zt = Table(title="honest σ: |z| = |error| / reported standard error (median, share > 3), normal and offset")
     for col in ("family", "method", "good", "|z_n| good", "|z_h| good", "all", "|z_n| all", "|z_h| all"):
@@ -624,33 +736,51 @@ def run_stress(args: argparse.Namespace) -> int:
         for m in (RECORD, COMPARED):
             s = zs[m].get(fam)
             if s:
-                zt.add_row(fam, m, str(s["good_n"]), _z_cell(s, "good", "zn"), _z_cell(s, "good", "zh"),
-                           str(s["all_n"]), _z_cell(s, "all", "zn"), _z_cell(s, "all", "zh"))
+                zt.add_row(
+                    fam,
+                    m,
+                    str(s["good_n"]),
+                    _z_cell(s, "good", "zn"),
+                    _z_cell(s, "good", "zh"),
+                    str(s["all_n"]),
+                    _z_cell(s, "all", "zn"),
+                    _z_cell(s, "all", "zh"),
+                )
         zt.add_section()
     console.print(zt)
-    console.print("calibrated: median |z| ≈ 0.8 (normal, a 2-D tilt) / 0.7 (offset) and ~0.3 % beyond 3; "
-                  f"{COMPARED}'s quality is after the cross-check against the method of record")
+    console.print(
+        "calibrated: median |z| ≈ 0.8 (normal, a 2-D tilt) / 0.7 (offset) and ~0.3 % beyond 3; "
+        f"{COMPARED}'s quality is after the cross-check against the method of record"
+    )
     bad = [r for r in rows if r["verdict"] in ("claims_good", "crash")]
     for r in bad:
-        console.print(f"[red]{r['verdict']}[/] {r['case']} plane {r['label']}: "
-                      f"patch {r.get('patch_cm', float('nan')):.2f} cm (oracle {r.get('oracle_patch_cm', float('nan')):.2f}), "
-                      f"mirror echoes {r.get('n_mirror')}, exit {r.get('exit')} {r.get('error', '')}", highlight=False)
+        console.print(
+            f"[red]{r['verdict']}[/] {r['case']} plane {r['label']}: "
+            f"patch {r.get('patch_cm', float('nan')):.2f} cm (oracle {r.get('oracle_patch_cm', float('nan')):.2f}), "
+            f"mirror echoes {r.get('n_mirror')}, exit {r.get('exit')} {r.get('error', '')}",
+            highlight=False,
+        )
     skipped = [r for r in rows if r["verdict"] == "skipped"]
     if skipped:
         console.print(f"{len(skipped)} draws skipped (invalid configuration): {skipped[0]['error']}")
     if args.json:
-        Path(args.json).write_text(json.dumps({"rows": rows, "tally": counts, "z": zs}, default=json_default,
-                                              indent=None), encoding="utf-8")
+        Path(args.json).write_text(
+            json.dumps({"rows": rows, "tally": counts, "z": zs}, default=json_default, indent=None), encoding="utf-8"
+        )
     return 1 if bad else 0
 
 
 def add_stress_arguments(parser: argparse.ArgumentParser) -> None:
     """``--stress FAMILY…`` (with ``--seeds``, ``--first-seed``, ``--jobs``, ``--json`` shared)."""
     g = parser.add_argument_group("stress sweep (scenes outside the families, through reconstruct --source)")
-    g.add_argument("--stress", nargs="+", metavar="NAME",
-                   help=f"run the stress sweep: 'all' or names from {', '.join(FAMILIES)}")
-    g.add_argument("--keep", metavar="DIR", help="with --stress: keep the recordings of scans with a bug "
-                                                 "(crash, claims good) in DIR")
+    g.add_argument(
+        "--stress", nargs="+", metavar="NAME", help=f"run the stress sweep: 'all' or names from {', '.join(FAMILIES)}"
+    )
+    g.add_argument(
+        "--keep",
+        metavar="DIR",
+        help="with --stress: keep the recordings of scans with a bug (crash, claims good) in DIR",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -96,8 +96,14 @@ class DecodeLimits:
     max_reasons: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("max_payload_bytes", "max_waveform_samples", "max_sensors", "max_steps", "max_planes",
-                     "max_reasons"):
+        for name in (
+            "max_payload_bytes",
+            "max_waveform_samples",
+            "max_sensors",
+            "max_steps",
+            "max_planes",
+            "max_reasons",
+        ):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"DecodeLimits.{name} must be positive")
 
@@ -132,15 +138,27 @@ def pack_waveform(
         raise ConfigError(f"a waveform must be one-dimensional, got shape {v.shape}")
     if int16_scale is None:
         data = v.astype("<f4", copy=False).tobytes()
-        return Waveform(encoding=scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE, data=data,
-                        sample_rate=sample_rate, t0=t0, sample_count=v.size)
+        return Waveform(
+            encoding=scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE,
+            data=data,
+            sample_rate=sample_rate,
+            t0=t0,
+            sample_count=v.size,
+        )
     counts = np.clip(np.rint(v / int16_scale), -32768, 32767).astype("<i2")
-    return Waveform(encoding=scan_pb2.WAVEFORM_ENCODING_INT16_LE, data=counts.tobytes(), scale=int16_scale,
-                    sample_rate=sample_rate, t0=t0, sample_count=v.size)
+    return Waveform(
+        encoding=scan_pb2.WAVEFORM_ENCODING_INT16_LE,
+        data=counts.tobytes(),
+        scale=int16_scale,
+        sample_rate=sample_rate,
+        t0=t0,
+        sample_count=v.size,
+    )
 
 
-def unpack_waveform(waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS, *,
-                    validated: bool = False) -> np.ndarray:
+def unpack_waveform(
+    waveform: Waveform, limits: DecodeLimits = DEFAULT_LIMITS, *, validated: bool = False
+) -> np.ndarray:
     """Validated samples of a packed waveform as float32 volts, shape ``(sample_count,)``.
 
     ``validated=True`` skips the checks for a waveform of a message that :func:`decode` returned.
@@ -176,8 +194,9 @@ def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: b
     if w.encoding == scan_pb2.WAVEFORM_ENCODING_INT16_LE:
         _finite(where + ".scale", w.scale)
         if w.scale < 0:
-            raise InvalidMessageError(f"{where}.scale must be positive for int16 data (or 0: unset, counts), "
-                                      f"got {w.scale}")
+            raise InvalidMessageError(
+                f"{where}.scale must be positive for int16 data (or 0: unset, counts), got {w.scale}"
+            )
     elif samples and not np.isfinite(np.frombuffer(w.data, dtype="<f4")).all():
         raise NonFiniteValueError(f"{where} holds NaN or infinite samples")
 
@@ -192,8 +211,10 @@ def type_from_encoding(encoding: str) -> type[Message]:
     """The message class named by a Zenoh encoding string, or a DecodeError."""
     media, _, schema = str(encoding).partition(";")
     if media != "application/protobuf" or schema not in MESSAGE_TYPES:
-        raise InvalidMessageError(f"unexpected encoding {str(encoding)[:80]!r}; expected one of "
-                                  + ", ".join(f"application/protobuf;{n}" for n in MESSAGE_TYPES))
+        raise InvalidMessageError(
+            f"unexpected encoding {str(encoding)[:80]!r}; expected one of "
+            + ", ".join(f"application/protobuf;{n}" for n in MESSAGE_TYPES)
+        )
     return MESSAGE_TYPES[schema]
 
 
@@ -281,10 +302,14 @@ def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
 def _validate_header(message: Message) -> None:
     name = message.DESCRIPTOR.full_name
     if message.schema_version != SCHEMA_VERSION:
-        fix = (f"the writer left it unset: set schema_version = {SCHEMA_VERSION}" if message.schema_version == 0
-               else "upgrade the older side")
+        fix = (
+            f"the writer left it unset: set schema_version = {SCHEMA_VERSION}"
+            if message.schema_version == 0
+            else "upgrade the older side"
+        )
         raise SchemaVersionError(
-            f"{name} has schema version {message.schema_version}; this build speaks {SCHEMA_VERSION} ({fix})")
+            f"{name} has schema version {message.schema_version}; this build speaks {SCHEMA_VERSION} ({fix})"
+        )
     try:
         validate_identifier(message.scanner_id)
     except InvalidIdentifierError as exc:
@@ -307,13 +332,21 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
         _vector(f"ScanStart.capsules[{i}].position", c.position)
         _vector(f"ScanStart.capsules[{i}].boresight", c.boresight)
     _vector("ScanStart.rotation_axis", m.rotation_axis)
-    _finite("ScanStart schedule and acoustics", m.radial_offset, m.gamma_start, m.gamma_stop,
-            m.sound_speed, m.air_temperature, m.sample_rate)
+    _finite(
+        "ScanStart schedule and acoustics",
+        m.radial_offset,
+        m.gamma_start,
+        m.gamma_stop,
+        m.sound_speed,
+        m.air_temperature,
+        m.sample_rate,
+    )
     if not 1 <= m.steps <= limits.max_steps:
         raise InvalidMessageError(f"ScanStart.steps is {m.steps}; expected 1 to {limits.max_steps}")
     if m.window_samples > limits.max_waveform_samples:
         raise PayloadTooLargeError(
-            f"ScanStart.window_samples is {m.window_samples}; the limit is {limits.max_waveform_samples}")
+            f"ScanStart.window_samples is {m.window_samples}; the limit is {limits.max_waveform_samples}"
+        )
     # 0 is proto3's "unset": the reconstruction then takes c from air_temperature, or needs no conversion
     # (every echo carries its distance); the waveforms carry their own sample rate.
     if m.sound_speed != 0.0 and not 200.0 < m.sound_speed < 500.0:
@@ -345,12 +378,23 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
     max_samples = limits.max_waveform_samples
     for i, s in enumerate(sensors):
         w = s.waveform
-        data, count, rate, t0, tof, distance, valid = (w.data, w.sample_count, w.sample_rate, w.t0,
-                                                       s.time_of_flight, s.distance, s.echo_valid)
-        if not (w.encoding == _FLOAT32 and count <= max_samples and len(data) == 4 * count and rate > 0.0
-                and math.isfinite(rate + t0)
-                and (math.isfinite(tof + distance) and 0.0 < distance < MAX_RANGE_M and tof > 0.0
-                     if valid else True)):
+        data, count, rate, t0, tof, distance, valid = (
+            w.data,
+            w.sample_count,
+            w.sample_rate,
+            w.t0,
+            s.time_of_flight,
+            s.distance,
+            s.echo_valid,
+        )
+        if not (
+            w.encoding == _FLOAT32
+            and count <= max_samples
+            and len(data) == 4 * count
+            and rate > 0.0
+            and math.isfinite(rate + t0)
+            and (math.isfinite(tof + distance) and 0.0 < distance < MAX_RANGE_M and tof > 0.0 if valid else True)
+        ):
             _check_sensor(i, s, limits)  # raises, or the sensor is valid (e.g. int16 data)
         if w.encoding == _FLOAT32:
             float32.append(data)
@@ -381,7 +425,8 @@ def _check_sensor(i: int, s, limits: DecodeLimits) -> None:
             raise InvalidMessageError(
                 f"Sample.sensors[{i}] is marked valid but has distance {d} m and time of flight {t} s "
                 "(a valid echo needs a positive distance or time of flight; mark a reading without an echo "
-                "echo_valid = false)")
+                "echo_valid = false)"
+            )
     _check_waveform(s.waveform, limits, where=f"Sample.sensors[{i}].waveform", samples=False)
 
 
@@ -389,8 +434,10 @@ def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:
     if m.status not in (scan_pb2.SCAN_STATUS_COMPLETE, scan_pb2.SCAN_STATUS_ABORTED):
         raise InvalidMessageError(f"ScanEnd.status {m.status} is neither COMPLETE nor ABORTED")
     if m.samples_sent > limits.max_steps or m.steps_planned > limits.max_steps:
-        raise InvalidMessageError(f"ScanEnd counts {m.samples_sent} samples sent of {m.steps_planned} planned; "
-                                  f"the limit is {limits.max_steps} steps")
+        raise InvalidMessageError(
+            f"ScanEnd counts {m.samples_sent} samples sent of {m.steps_planned} planned; "
+            f"the limit is {limits.max_steps} steps"
+        )
 
 
 def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
@@ -408,8 +455,9 @@ def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
         if len(p.theta_covariance) not in (0, 9):
             raise InvalidMessageError(f"{where}.theta_covariance must hold 0 or 9 numbers")
         if len(p.quality_reasons) > limits.max_reasons:
-            raise InvalidMessageError(f"{where} carries {len(p.quality_reasons)} quality reasons; "
-                                      f"at most {limits.max_reasons}")
+            raise InvalidMessageError(
+                f"{where} carries {len(p.quality_reasons)} quality reasons; at most {limits.max_reasons}"
+            )
 
 
 _VALIDATORS = {

@@ -64,8 +64,12 @@ class ArrayGeometry:
         Distance of the capsule faces from the rotation axis, m.
     """
 
-    capsule_x: tuple[float, ...] = (-1.5 * CAPSULE_PITCH_M, -0.5 * CAPSULE_PITCH_M,
-                                    0.5 * CAPSULE_PITCH_M, 1.5 * CAPSULE_PITCH_M)
+    capsule_x: tuple[float, ...] = (
+        -1.5 * CAPSULE_PITCH_M,
+        -0.5 * CAPSULE_PITCH_M,
+        0.5 * CAPSULE_PITCH_M,
+        1.5 * CAPSULE_PITCH_M,
+    )
     radial_offset: float = 0.03
 
     def __post_init__(self) -> None:
@@ -74,9 +78,7 @@ class ArrayGeometry:
         if not all(np.isfinite(self.capsule_x)):
             raise ConfigError("capsule positions must be finite numbers (m)")
         if not (np.isfinite(self.radial_offset) and 0.0 <= self.radial_offset < 0.5):
-            raise ConfigError(
-                f"radial_offset must be in [0, 0.5) m, got {self.radial_offset!r}"
-            )
+            raise ConfigError(f"radial_offset must be in [0, 0.5) m, got {self.radial_offset!r}")
 
     @property
     def n_capsules(self) -> int:

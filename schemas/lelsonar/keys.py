@@ -107,10 +107,10 @@ class ScannerKeys:
     def scan_of_log_key(self, key: str) -> tuple[str, int]:
         """(scanner, scan_id) of a concrete log key under this prefix."""
         scanner = self.scanner_of(key)
-        rest = key[len(self.prefix) + 1 + len(scanner):]
-        if not rest.startswith("/log/") or "/" in rest[len("/log/"):]:
+        rest = key[len(self.prefix) + 1 + len(scanner) :]
+        if not rest.startswith("/log/") or "/" in rest[len("/log/") :]:
             raise InvalidIdentifierError(f"key {key!r} is not a log key <prefix>/<scanner>/log/<scan_id>")
-        return scanner, validate_scan_id(rest[len("/log/"):])
+        return scanner, validate_scan_id(rest[len("/log/") :])
 
     def scanner_of(self, key: str) -> str:
         """The scanner id inside a concrete key received under this prefix, validated."""
@@ -121,6 +121,7 @@ class ScannerKeys:
     def scanner_chunk(self, key: str) -> str:
         """The chunk of a received key where the scanner id sits, unvalidated (compare it, don't trust it)."""
         return key.removeprefix(self.prefix + "/").split("/", 1)[0]
+
 
 def validate_scan_id(value: int | str) -> int:
     """A scan id as an int: an unsigned 64-bit integer, given as an int or as its decimal digits.

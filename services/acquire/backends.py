@@ -10,8 +10,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lelsonar.acquire.devices.motor import (EMULATED_STALE_GUARD_S, DynamixelMotor, Motor, MotorConfig, MotorError,
-                                            MotorPosition)
+from lelsonar.acquire.devices.motor import (
+    EMULATED_STALE_GUARD_S,
+    DynamixelMotor,
+    Motor,
+    MotorConfig,
+    MotorError,
+    MotorPosition,
+)
 from lelsonar.acquire.devices.sensor_board import SensorBoard, SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.rig import EmulatedRig, emulated_rig
@@ -27,9 +33,14 @@ DEVICES = ("sim", "emulated", "serial")
 
 
 def sim_info(cfg: SimConfig, device: str) -> ScannerInfo:
-    return ScannerInfo(device=device, geometry=cfg.geometry, sample_rate=cfg.sample_rate,
-                       window_samples=cfg.window_samples, air_temperature=cfg.temperature,
-                       sound_speed=cfg.sound_speed)
+    return ScannerInfo(
+        device=device,
+        geometry=cfg.geometry,
+        sample_rate=cfg.sample_rate,
+        window_samples=cfg.window_samples,
+        air_temperature=cfg.temperature,
+        sound_speed=cfg.sound_speed,
+    )
 
 
 class SimScanner:
@@ -44,8 +55,14 @@ class SimScanner:
         self.info = sim_info(cfg, "sim")
         self._rng = np.random.default_rng(seed)
 
-    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
-                while_listening: Callable[[], None] | None = None) -> StepMeasurement:
+    def measure(
+        self,
+        step: int,
+        gamma_commanded: float,
+        *,
+        next_gamma: float | None = None,
+        while_listening: Callable[[], None] | None = None,
+    ) -> StepMeasurement:
         servo = self.cfg.servo
         goal = servo.to_raw(gamma_commanded)
         gamma_true = float(servo.to_gamma(goal)) + float(self._rng.standard_normal()) * servo.position_error
@@ -55,7 +72,11 @@ class SimScanner:
         return StepMeasurement(
             gamma_measured=float(servo.to_gamma(raw)),
             motor=MotorReading(present_position_raw=raw, load=0.0, voltage=12.0, temperature=313.15),
-            time_of_flight=shot.tof, waveforms=shot.waveforms, t0=self.cfg.window_start, acquisition_time_ns=t_ns)
+            time_of_flight=shot.tof,
+            waveforms=shot.waveforms,
+            t0=self.cfg.window_start,
+            acquisition_time_ns=t_ns,
+        )
 
     def close(self) -> None:
         pass
@@ -75,8 +96,15 @@ class DeviceScanner:
     next :meth:`measure`, the step it belongs to.  Without, one thing after the other.
     """
 
-    def __init__(self, motor: Motor, board: SensorBoard, info: ScannerInfo, rig: EmulatedRig | None = None,
-                 *, pipeline: bool = True) -> None:
+    def __init__(
+        self,
+        motor: Motor,
+        board: SensorBoard,
+        info: ScannerInfo,
+        rig: EmulatedRig | None = None,
+        *,
+        pipeline: bool = True,
+    ) -> None:
         self.motor = motor
         self.board = board
         self.info = info
@@ -85,8 +113,14 @@ class DeviceScanner:
         #: (goal γ, its read-back or the MotorError it raised) of a move made during the last transfer.
         self._ahead: tuple[float, MotorPosition | MotorError] | None = None
 
-    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
-                while_listening: Callable[[], None] | None = None) -> StepMeasurement:
+    def measure(
+        self,
+        step: int,
+        gamma_commanded: float,
+        *,
+        next_gamma: float | None = None,
+        while_listening: Callable[[], None] | None = None,
+    ) -> StepMeasurement:
         pos = self._arrive(gamma_commanded)
         t_ns = time.time_ns()
         heard = self.rig.board.fires + 1 if self.rig is not None else 0
@@ -106,9 +140,18 @@ class DeviceScanner:
         s = pos.status
         return StepMeasurement(
             gamma_measured=pos.gamma,
-            motor=MotorReading(present_position_raw=pos.raw, load=s.load, voltage=s.voltage_v,
-                               temperature=s.temperature_c + 273.15, error_bits=pos.error_bits),
-            time_of_flight=shot.tof_s, waveforms=shot.waveforms, t0=0.0, acquisition_time_ns=t_ns)
+            motor=MotorReading(
+                present_position_raw=pos.raw,
+                load=s.load,
+                voltage=s.voltage_v,
+                temperature=s.temperature_c + 273.15,
+                error_bits=pos.error_bits,
+            ),
+            time_of_flight=shot.tof_s,
+            waveforms=shot.waveforms,
+            t0=0.0,
+            acquisition_time_ns=t_ns,
+        )
 
     def _arrive(self, gamma: float) -> MotorPosition:
         """The servo at ``gamma``, still: from the move made ahead, or moved now."""
@@ -157,10 +200,14 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig | None) -> Iterator[SimScann
         rig = None
         motor_link, board_link = rig_links(cfg.rig)
         if cfg.device == "emulated":
-            rig = stack.enter_context(emulated_rig(
-                sim_shot_source(sim, np.random.default_rng(cfg.seed)), emulated_servo(cfg, sim),
-                SensorBoardEmulatorConfig(link=board_link if cfg.paced_links else None),
-                zero_raw=int(sim.servo.to_raw(0.0))))
+            rig = stack.enter_context(
+                emulated_rig(
+                    sim_shot_source(sim, np.random.default_rng(cfg.seed)),
+                    emulated_servo(cfg, sim),
+                    SensorBoardEmulatorConfig(link=board_link if cfg.paced_links else None),
+                    zero_raw=int(sim.servo.to_raw(0.0)),
+                )
+            )
             motor_port, sensor_port = rig.motor.path, rig.board.path
             # A pty has no USB latency: a short packet timeout keeps the scan near the physical bound,
             # and a long late-reply window absorbs the emulator thread's scheduling delays on a loaded host.
@@ -168,11 +215,26 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig | None) -> Iterator[SimScann
         else:
             raise ValueError(f"unknown device {cfg.device!r}")
         lo, hi = sorted((sim.gamma_start, sim.gamma_stop))
-        motor = stack.enter_context(DynamixelMotor(MotorConfig(
-            port=motor_port, gamma_min=lo, gamma_max=hi, latency_timer_ms=latency_ms, stale_guard_s=guard_s,
-            zero_raw=int(sim.servo.to_raw(0.0)), baudrate=motor_link.baudrate)))
-        board = stack.enter_context(SerialSensorBoard(SensorBoardConfig(
-            port=sensor_port, n_samples=sim.window_samples, fs_hz=int(sim.sample_rate), link=board_link)))
+        motor = stack.enter_context(
+            DynamixelMotor(
+                MotorConfig(
+                    port=motor_port,
+                    gamma_min=lo,
+                    gamma_max=hi,
+                    latency_timer_ms=latency_ms,
+                    stale_guard_s=guard_s,
+                    zero_raw=int(sim.servo.to_raw(0.0)),
+                    baudrate=motor_link.baudrate,
+                )
+            )
+        )
+        board = stack.enter_context(
+            SerialSensorBoard(
+                SensorBoardConfig(
+                    port=sensor_port, n_samples=sim.window_samples, fs_hz=int(sim.sample_rate), link=board_link
+                )
+            )
+        )
         yield DeviceScanner(motor, board, sim_info(sim, cfg.device), rig, pipeline=cfg.pipeline)
 
 
@@ -180,5 +242,8 @@ def emulated_servo(cfg: AcquireConfig, sim: SimConfig) -> AX12EmulatorConfig:
     """The AX-12 that ``--device emulated`` drives: at the schedule's start, Return Delay 0 (as one would
     set a real one for scanning), on the rig's bus if ``cfg.paced_links``."""
     motor_link, _ = rig_links(cfg.rig)
-    return AX12EmulatorConfig(return_delay=0, initial_position=int(sim.servo.to_raw(sim.gamma_start)),
-                              link=motor_link if cfg.paced_links else None)
+    return AX12EmulatorConfig(
+        return_delay=0,
+        initial_position=int(sim.servo.to_raw(sim.gamma_start)),
+        link=motor_link if cfg.paced_links else None,
+    )

@@ -23,29 +23,45 @@ from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
 
 #: Keys the calibration needs from the rig file (no φ, no schedule: it measures the one and needs not the other).
-REQUIRED_FOR_CALIBRATION = ("servo.port", "servo.zero_raw", "servo.gamma_min_deg", "servo.gamma_max_deg",
-                            "sensor_board.port", "sensor_board.sample_rate", "sensor_board.window_samples",
-                            "air.temperature_c or air.sound_speed")
+REQUIRED_FOR_CALIBRATION = (
+    "servo.port",
+    "servo.zero_raw",
+    "servo.gamma_min_deg",
+    "servo.gamma_max_deg",
+    "sensor_board.port",
+    "sensor_board.sample_rate",
+    "sensor_board.window_samples",
+    "air.temperature_c or air.sound_speed",
+)
 
 
 @dataclass(frozen=True)
 class Shot:
-    distance: float        # m, as typed
-    energy: float          # V²·s, summed over the capsules
-    board_range: float     # m, median c·TOF/2 of the capsules with an echo (NaN: none)
+    distance: float  # m, as typed
+    energy: float  # V²·s, summed over the capsules
+    board_range: float  # m, median c·TOF/2 of the capsules with an echo (NaN: none)
 
 
 def _require(rig: Rig, overrides: dict) -> None:
     given = {f"{t}.{k}" for t, kv in rig.values.items() for k in kv} | {k for k, v in overrides.items() if v}
     missing = [need for need in REQUIRED_FOR_CALIBRATION if not any(o in given for o in need.split(" or "))]
     if missing:
-        raise ConfigError(f"calibrate --device serial takes the rig from {rig.path}; missing: {', '.join(missing)} "
-                          "(see examples/rig.toml)")
+        raise ConfigError(
+            f"calibrate --device serial takes the rig from {rig.path}; missing: {', '.join(missing)} "
+            "(see examples/rig.toml)"
+        )
 
 
-def calibrate_serial(rig_path: Path, distances: tuple[float, ...], ask: Callable[[str], str],
-                     say: Callable[[str], None], *, motor_port: str | None = None,
-                     sensor_port: str | None = None, write: bool = True) -> tuple[list[Shot], EnergyModel]:
+def calibrate_serial(
+    rig_path: Path,
+    distances: tuple[float, ...],
+    ask: Callable[[str], str],
+    say: Callable[[str], None],
+    *,
+    motor_port: str | None = None,
+    sensor_port: str | None = None,
+    write: bool = True,
+) -> tuple[list[Shot], EnergyModel]:
     """Guide the shots, fit φ and (unless ``write`` is False) write it into ``rig_path``.
 
     Parameters
@@ -71,23 +87,34 @@ def calibrate_serial(rig_path: Path, distances: tuple[float, ...], ask: Callable
     _require(rig, {"servo.port": motor_port, "sensor_board.port": sensor_port})
     g = rig.get
     c, _temperature = rig.sound_speed_and_temperature()
-    motor_cfg = MotorConfig(port=motor_port or g("servo.port"), motor_id=int(g("servo.id", 1)),
-                            baudrate=int(g("servo.baudrate", 1_000_000)),
-                            gamma_min=np.radians(g("servo.gamma_min_deg")), gamma_max=np.radians(g("servo.gamma_max_deg")),
-                            zero_raw=int(g("servo.zero_raw")), moving_speed=int(g("servo.moving_speed", 0)),
-                            latency_timer_ms=float(g("servo.latency_timer_ms", 16.0)))
+    motor_cfg = MotorConfig(
+        port=motor_port or g("servo.port"),
+        motor_id=int(g("servo.id", 1)),
+        baudrate=int(g("servo.baudrate", 1_000_000)),
+        gamma_min=np.radians(g("servo.gamma_min_deg")),
+        gamma_max=np.radians(g("servo.gamma_max_deg")),
+        zero_raw=int(g("servo.zero_raw")),
+        moving_speed=int(g("servo.moving_speed", 0)),
+        latency_timer_ms=float(g("servo.latency_timer_ms", 16.0)),
+    )
     sample_rate = float(g("sensor_board.sample_rate"))
-    board_cfg = SensorBoardConfig(port=sensor_port or g("sensor_board.port"),
-                                  n_samples=int(g("sensor_board.window_samples")), fs_hz=int(round(sample_rate)),
-                                  full_scale_v=float(g("sensor_board.full_scale_v", 1.65)),
-                                  baudrate=int(g("sensor_board.baudrate", 1_000_000)), link=rig_links(rig)[1])
+    board_cfg = SensorBoardConfig(
+        port=sensor_port or g("sensor_board.port"),
+        n_samples=int(g("sensor_board.window_samples")),
+        fs_hz=int(round(sample_rate)),
+        full_scale_v=float(g("sensor_board.full_scale_v", 1.65)),
+        baudrate=int(g("sensor_board.baudrate", 1_000_000)),
+        link=rig_links(rig)[1],
+    )
     shots: list[Shot] = []
     with DynamixelMotor(motor_cfg) as motor, SerialSensorBoard(board_cfg) as board:
         pos = motor.move_to(0.0)
         say(f"array face-on: γ = {np.degrees(pos.gamma):.2f}° (raw {pos.raw}); c = {c:.1f} m/s")
         for i, nominal in enumerate(distances):
-            line = ask(f"shot {i + 1}/{len(distances)}: place a flat wall face-on about {nominal:.2f} m from the "
-                       f"capsule faces, measure that distance and type it in m (Enter: {nominal:.2f}, q: quit): ")
+            line = ask(
+                f"shot {i + 1}/{len(distances)}: place a flat wall face-on about {nominal:.2f} m from the "
+                f"capsule faces, measure that distance and type it in m (Enter: {nominal:.2f}, q: quit): "
+            )
             text = line.strip()
             if text.lower() in ("q", "quit"):
                 raise ConfigError("calibration stopped; the rig file is unchanged")
@@ -103,15 +130,16 @@ def calibrate_serial(rig_path: Path, distances: tuple[float, ...], ask: Callable
             ranges = c * tof[np.isfinite(tof)] / 2.0
             board_range = float(np.median(ranges)) if ranges.size else float("nan")
             shots.append(Shot(d, e, board_range))
-            check = (f"board range {board_range:.3f} m" if np.isfinite(board_range) else "no echo")
-            warn = "  ← check the wall and the tape" if np.isfinite(board_range) and abs(board_range - d) > 0.05 \
-                else ""
+            check = f"board range {board_range:.3f} m" if np.isfinite(board_range) else "no echo"
+            warn = "  ← check the wall and the tape" if np.isfinite(board_range) and abs(board_range - d) > 0.05 else ""
             say(f"  d = {d:.3f} m: E = {e:.4e} V²·s, {check}{warn}")
     d = np.array([s.distance for s in shots])
     e = np.array([s.energy for s in shots])
     model = fit_energy_model(d, e)
     if write:
-        note = (f"calibrated {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC by `lelsonar calibrate "
-                f"--device serial` from {len(shots)} face-on shots at {', '.join(f'{x:.3f}' for x in d)} m")
+        note = (
+            f"calibrated {_dt.datetime.now(_dt.UTC):%Y-%m-%d %H:%M} UTC by `lelsonar calibrate "
+            f"--device serial` from {len(shots)} face-on shots at {', '.join(f'{x:.3f}' for x in d)} m"
+        )
         write_energy_model(rig_path, (model.phi0, model.phi1, model.phi2), model.d_min, model.d_max, note)
     return shots, model

@@ -11,9 +11,9 @@ from pathlib import Path
 
 from lelsonar.acquire.backends import DEVICES
 from lelsonar.acquire.rig import Rig, require_for_serial, serial_overrides
+from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 from lelsonar.keys import validate_identifier, validate_prefix
-from lelsonar.energy_model import EnergyModel
 
 
 @dataclass(frozen=True)

@@ -50,8 +50,14 @@ class _ScanRecord:
 class ScanLog:
     """The recorded payloads of the last scans of one scanner, by scan id and step (thread-safe)."""
 
-    def __init__(self, *, max_scans: int = 8, max_bytes: int = 256 * 1024 * 1024, keep_for: float = 60.0,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        *,
+        max_scans: int = 8,
+        max_bytes: int = 256 * 1024 * 1024,
+        keep_for: float = 60.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         if max_scans < 1 or max_bytes < 1 or keep_for < 0:
             raise ConfigError("ScanLog needs max_scans >= 1, max_bytes >= 1 and keep_for >= 0 s")
         self.max_scans, self.max_bytes, self.keep_for = max_scans, max_bytes, keep_for
@@ -85,8 +91,9 @@ class ScanLog:
             self._bytes += len(data)
             self._enforce(keep=message.scan_id)
 
-    def lookup(self, scan_id: int, steps: tuple[int, int] | None, start: bool, end: bool
-               ) -> list[tuple[type[Message], bytes]] | None:
+    def lookup(
+        self, scan_id: int, steps: tuple[int, int] | None, start: bool, end: bool
+    ) -> list[tuple[type[Message], bytes]] | None:
         """The recorded messages asked for, ScanStart first; None if the scan is not (or no longer) held."""
         with self._lock:
             self._enforce()
@@ -204,8 +211,10 @@ class LogServer:
         found = self._log.lookup(scan_id, rng, start, end)
         if found is None:
             self.stats["refused: scan not held"] += 1
-            query.reply_err(f"scan {scan_id} is not (or no longer) in the log of {scanner}; held: "
-                            f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)")
+            query.reply_err(
+                f"scan {scan_id} is not (or no longer) in the log of {scanner}; held: "
+                f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)"
+            )
             return
         self.stats["queries"] += 1
         for cls, payload in found:

@@ -29,10 +29,24 @@ from lelsonar.errors import ConfigError
 #: Every table and key of a rig file with its type (float also accepts an int).
 RIG_KEYS: dict[str, dict[str, type]] = {
     "array": {"capsule_x": list, "radial_offset": float},
-    "servo": {"port": str, "id": int, "baudrate": int, "zero_raw": int, "gamma_min_deg": float,
-              "gamma_max_deg": float, "moving_speed": int, "latency_timer_ms": float},
-    "sensor_board": {"port": str, "sample_rate": float, "window_samples": int, "full_scale_v": float,
-                     "link": str, "baudrate": int},
+    "servo": {
+        "port": str,
+        "id": int,
+        "baudrate": int,
+        "zero_raw": int,
+        "gamma_min_deg": float,
+        "gamma_max_deg": float,
+        "moving_speed": int,
+        "latency_timer_ms": float,
+    },
+    "sensor_board": {
+        "port": str,
+        "sample_rate": float,
+        "window_samples": int,
+        "full_scale_v": float,
+        "link": str,
+        "baudrate": int,
+    },
     "air": {"temperature_c": float, "sound_speed": float},
     "energy_model": {"phi": list, "d_min": float, "d_max": float},
     "schedule": {"gamma_start_deg": float, "gamma_stop_deg": float, "steps": int},
@@ -40,12 +54,22 @@ RIG_KEYS: dict[str, dict[str, type]] = {
 
 #: What ``--device serial`` cannot run without (flags may supply the ports, the schedule and φ).
 REQUIRED_FOR_SERIAL = (
-    "array.capsule_x", "array.radial_offset",
-    "servo.port", "servo.zero_raw", "servo.gamma_min_deg", "servo.gamma_max_deg",
-    "sensor_board.port", "sensor_board.sample_rate", "sensor_board.window_samples",
+    "array.capsule_x",
+    "array.radial_offset",
+    "servo.port",
+    "servo.zero_raw",
+    "servo.gamma_min_deg",
+    "servo.gamma_max_deg",
+    "sensor_board.port",
+    "sensor_board.sample_rate",
+    "sensor_board.window_samples",
     "air.temperature_c or air.sound_speed",
-    "energy_model.phi", "energy_model.d_min", "energy_model.d_max",
-    "schedule.gamma_start_deg", "schedule.gamma_stop_deg", "schedule.steps",
+    "energy_model.phi",
+    "energy_model.d_min",
+    "energy_model.d_max",
+    "schedule.gamma_start_deg",
+    "schedule.gamma_stop_deg",
+    "schedule.steps",
 )
 
 
@@ -62,8 +86,9 @@ class Rig:
 
     def missing(self, overrides: dict[str, Any] | None = None) -> list[str]:
         """The keys of :data:`REQUIRED_FOR_SERIAL` that neither the file nor ``overrides`` (dotted keys) give."""
-        given = {f"{t}.{k}" for t, kv in self.values.items() for k in kv} | {k for k, v in (overrides or {}).items()
-                                                                              if v is not None}
+        given = {f"{t}.{k}" for t, kv in self.values.items() for k in kv} | {
+            k for k, v in (overrides or {}).items() if v is not None
+        }
         out = []
         for need in REQUIRED_FOR_SERIAL:
             options = need.split(" or ")
@@ -171,27 +196,33 @@ def require_for_serial(rig: Rig | None, overrides: dict[str, Any] | None = None)
     missing = (rig or Rig(None, {})).missing(overrides)
     if missing:
         where = f"the rig file {rig.path}" if rig and rig.path else "a rig file (--config rig.toml)"
-        raise ConfigError(f"--device serial takes the rig from {where}, never from a simulator preset; missing: "
-                          f"{', '.join(missing)} (see examples/rig.toml)")
+        raise ConfigError(
+            f"--device serial takes the rig from {where}, never from a simulator preset; missing: "
+            f"{', '.join(missing)} (see examples/rig.toml)"
+        )
 
 
 # --- writing φ back ------------------------------------------------------------------------
 _TABLE = re.compile(r"^\s*\[([^\[\]]+)\]\s*(#.*)?$")
 
 
-def write_energy_model(path: Path | str, phi: tuple[float, float, float], d_min: float, d_max: float,
-                       note: str = "") -> None:
+def write_energy_model(
+    path: Path | str, phi: tuple[float, float, float], d_min: float, d_max: float, note: str = ""
+) -> None:
     """Replace the ``[energy_model]`` table of ``path`` (append it if absent); every other line stays."""
     path = Path(path)
     lines = path.read_text().splitlines(keepends=True) if path.exists() else []
     body = ["[energy_model]\n"]
     if note:
         body.append(f"# {note}\n")
-    body += [f"phi = [{phi[0]!r}, {phi[1]!r}, {phi[2]!r}]  # 1/(V²·s·m²), 1/(V²·s·m), 1/(V²·s)\n",
-             f"d_min = {d_min!r}  # m: the model is valid from here ...\n",
-             f"d_max = {d_max!r}  # m: ... to here (the calibrated interval)\n"]
-    start = next((i for i, line in enumerate(lines)
-                  if (m := _TABLE.match(line)) and m.group(1).strip() == "energy_model"), None)
+    body += [
+        f"phi = [{phi[0]!r}, {phi[1]!r}, {phi[2]!r}]  # 1/(V²·s·m²), 1/(V²·s·m), 1/(V²·s)\n",
+        f"d_min = {d_min!r}  # m: the model is valid from here ...\n",
+        f"d_max = {d_max!r}  # m: ... to here (the calibrated interval)\n",
+    ]
+    start = next(
+        (i for i, line in enumerate(lines) if (m := _TABLE.match(line)) and m.group(1).strip() == "energy_model"), None
+    )
     if start is None:
         if lines and not lines[-1].endswith("\n"):
             lines[-1] += "\n"
@@ -212,13 +243,13 @@ def write_energy_model(path: Path | str, phi: tuple[float, float, float], d_min:
 class SerialSetup:
     """Everything ``--device serial`` drives, from the rig file and the flags that override it."""
 
-    info: Any            # ScannerInfo
-    motor: Any           # MotorConfig
-    board: Any           # SensorBoardConfig
-    gamma_start: float   # rad
-    gamma_stop: float    # rad
+    info: Any  # ScannerInfo
+    motor: Any  # MotorConfig
+    board: Any  # SensorBoardConfig
+    gamma_start: float  # rad
+    gamma_stop: float  # rad
     steps: int
-    energy_model: Any    # EnergyModel
+    energy_model: Any  # EnergyModel
 
 
 def serial_setup(cfg) -> SerialSetup:
@@ -235,28 +266,48 @@ def serial_setup(cfg) -> SerialSetup:
     rig: Rig = cfg.rig or Rig(None, {})
     require_for_serial(rig, serial_overrides(cfg))
     g = rig.get
-    geometry = ArrayGeometry(capsule_x=tuple(float(x) for x in g("array.capsule_x")),
-                             radial_offset=float(cfg.radial_offset if cfg.radial_offset is not None
-                                                 else g("array.radial_offset")))
+    geometry = ArrayGeometry(
+        capsule_x=tuple(float(x) for x in g("array.capsule_x")),
+        radial_offset=float(cfg.radial_offset if cfg.radial_offset is not None else g("array.radial_offset")),
+    )
     c, temperature = rig.sound_speed_and_temperature()
     sample_rate = float(g("sensor_board.sample_rate"))
     window = int(g("sensor_board.window_samples"))
-    info = ScannerInfo(device="serial", geometry=geometry, sample_rate=sample_rate, window_samples=window,
-                       air_temperature=temperature, sound_speed=c)
+    info = ScannerInfo(
+        device="serial",
+        geometry=geometry,
+        sample_rate=sample_rate,
+        window_samples=window,
+        air_temperature=temperature,
+        sound_speed=c,
+    )
     gamma_start = cfg.gamma_start if cfg.gamma_start is not None else math.radians(g("schedule.gamma_start_deg"))
     gamma_stop = cfg.gamma_stop if cfg.gamma_stop is not None else math.radians(g("schedule.gamma_stop_deg"))
     lo, hi = math.radians(g("servo.gamma_min_deg")), math.radians(g("servo.gamma_max_deg"))
     for name, v in (("gamma start", gamma_start), ("gamma stop", gamma_stop)):
         if not lo - 1e-9 <= v <= hi + 1e-9:
-            raise ConfigError(f"the schedule's {name} {math.degrees(v):.1f}° is outside the servo's limits "
-                              f"[{math.degrees(lo):.1f}°, {math.degrees(hi):.1f}°] ([servo] gamma_min_deg/gamma_max_deg)")
-    motor = MotorConfig(port=cfg.motor_port or g("servo.port"), motor_id=int(g("servo.id", 1)),
-                        baudrate=int(g("servo.baudrate", 1_000_000)), gamma_min=lo, gamma_max=hi,
-                        zero_raw=int(g("servo.zero_raw")), moving_speed=int(g("servo.moving_speed", 0)),
-                        latency_timer_ms=float(g("servo.latency_timer_ms", 16.0)))
-    board = SensorBoardConfig(port=cfg.sensor_port or g("sensor_board.port"), n_samples=window,
-                              fs_hz=int(round(sample_rate)), full_scale_v=float(g("sensor_board.full_scale_v", 1.65)),
-                              baudrate=int(g("sensor_board.baudrate", 1_000_000)), link=rig_links(rig)[1])
+            raise ConfigError(
+                f"the schedule's {name} {math.degrees(v):.1f}° is outside the servo's limits "
+                f"[{math.degrees(lo):.1f}°, {math.degrees(hi):.1f}°] ([servo] gamma_min_deg/gamma_max_deg)"
+            )
+    motor = MotorConfig(
+        port=cfg.motor_port or g("servo.port"),
+        motor_id=int(g("servo.id", 1)),
+        baudrate=int(g("servo.baudrate", 1_000_000)),
+        gamma_min=lo,
+        gamma_max=hi,
+        zero_raw=int(g("servo.zero_raw")),
+        moving_speed=int(g("servo.moving_speed", 0)),
+        latency_timer_ms=float(g("servo.latency_timer_ms", 16.0)),
+    )
+    board = SensorBoardConfig(
+        port=cfg.sensor_port or g("sensor_board.port"),
+        n_samples=window,
+        fs_hz=int(round(sample_rate)),
+        full_scale_v=float(g("sensor_board.full_scale_v", 1.65)),
+        baudrate=int(g("sensor_board.baudrate", 1_000_000)),
+        link=rig_links(rig)[1],
+    )
     d_min, d_max = g("energy_model.d_min", 0.9), g("energy_model.d_max", 1.8)
     if cfg.energy_model is not None:
         m = cfg.energy_model
@@ -270,7 +321,14 @@ def serial_setup(cfg) -> SerialSetup:
 def serial_overrides(cfg) -> dict[str, Any]:
     """The rig keys that flags of ``cfg`` supply."""
     phi = cfg.energy_model
-    return {"servo.port": cfg.motor_port, "sensor_board.port": cfg.sensor_port, "schedule.steps": cfg.steps,
-            "schedule.gamma_start_deg": cfg.gamma_start, "schedule.gamma_stop_deg": cfg.gamma_stop,
-            "array.radial_offset": cfg.radial_offset, "energy_model.phi": phi,
-            "energy_model.d_min": phi, "energy_model.d_max": phi}
+    return {
+        "servo.port": cfg.motor_port,
+        "sensor_board.port": cfg.sensor_port,
+        "schedule.steps": cfg.steps,
+        "schedule.gamma_start_deg": cfg.gamma_start,
+        "schedule.gamma_stop_deg": cfg.gamma_stop,
+        "array.radial_offset": cfg.radial_offset,
+        "energy_model.phi": phi,
+        "energy_model.d_min": phi,
+        "energy_model.d_max": phi,
+    }

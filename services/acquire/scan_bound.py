@@ -76,9 +76,19 @@ class ScanBound:
         return self.travel_s + self.windows_s + self.link_s - self.overlap_s
 
 
-def scan_bound(goals_raw: Sequence[int], start_raw: int, *, speed_units_s: float, window_s: float,
-               n_samples: int, sensor_link: Link, motor_link: Link, return_delay_s: float = 0.0,
-               n_channels: int = sf.N_CHANNELS, pipelined: bool = True) -> ScanBound:
+def scan_bound(
+    goals_raw: Sequence[int],
+    start_raw: int,
+    *,
+    speed_units_s: float,
+    window_s: float,
+    n_samples: int,
+    sensor_link: Link,
+    motor_link: Link,
+    return_delay_s: float = 0.0,
+    n_channels: int = sf.N_CHANNELS,
+    pipelined: bool = True,
+) -> ScanBound:
     """The shortest time a scan over ``goals_raw`` can take on these links.
 
     What it counts, per step k of N (goal ``g_k``, from ``g_{k-1}``; ``g_{-1}`` = ``start_raw``):
@@ -142,11 +152,23 @@ def scan_bound(goals_raw: Sequence[int], start_raw: int, *, speed_units_s: float
     n = len(goals)
     overlap = sum(min(acq_s, m) for m in moves_s[1:]) if pipelined else 0.0
     return ScanBound(
-        steps=n, travel_units=sum(travel), initial_units=travel[0], speed_units_s=float(speed_units_s),
-        window_s=float(window_s), fire_bytes=fire_bytes, acq_bytes=acq_bytes, move_bus_bytes=move_bus_bytes,
-        sensor_link=sensor_link, motor_link=motor_link, travel_s=sum(travel) / speed_units_s,
-        windows_s=n * window_s, sensor_link_s=n * (sensor_link.seconds(fire_bytes) + acq_s),
-        motor_link_s=n * move_bus_s, overlap_s=overlap, pipelined=pipelined)
+        steps=n,
+        travel_units=sum(travel),
+        initial_units=travel[0],
+        speed_units_s=float(speed_units_s),
+        window_s=float(window_s),
+        fire_bytes=fire_bytes,
+        acq_bytes=acq_bytes,
+        move_bus_bytes=move_bus_bytes,
+        sensor_link=sensor_link,
+        motor_link=motor_link,
+        travel_s=sum(travel) / speed_units_s,
+        windows_s=n * window_s,
+        sensor_link_s=n * (sensor_link.seconds(fire_bytes) + acq_s),
+        motor_link_s=n * move_bus_s,
+        overlap_s=overlap,
+        pipelined=pipelined,
+    )
 
 
 def emulated_scan_bound(cfg, *, pipelined: bool | None = None) -> ScanBound:
@@ -165,12 +187,20 @@ def emulated_scan_bound(cfg, *, pipelined: bool | None = None) -> ScanBound:
     sim = sim_config(cfg)
     servo = emulated_servo(cfg, sim)
     zero_raw = int(sim.servo.to_raw(0.0))
-    goals = [min(ax12.POSITION_MAX, max(0, ax12.raw_from_gamma(float(g), zero_raw)))
-             for g in gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)]
+    goals = [
+        min(ax12.POSITION_MAX, max(0, ax12.raw_from_gamma(float(g), zero_raw)))
+        for g in gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    ]
     motor_link, sensor_link = rig_links(cfg.rig)
     speed = ax12.speed_units_per_s(MotorConfig.moving_speed, servo.no_load_rpm)
-    return scan_bound(goals, servo.initial_position, speed_units_s=speed,
-                      window_s=sim.window_samples / sim.sample_rate, n_samples=sim.window_samples,
-                      sensor_link=sensor_link, motor_link=motor_link,
-                      return_delay_s=servo.return_delay * ax12.RETURN_DELAY_UNIT_S,
-                      pipelined=cfg.pipeline if pipelined is None else pipelined)
+    return scan_bound(
+        goals,
+        servo.initial_position,
+        speed_units_s=speed,
+        window_s=sim.window_samples / sim.sample_rate,
+        n_samples=sim.window_samples,
+        sensor_link=sensor_link,
+        motor_link=motor_link,
+        return_delay_s=servo.return_delay * ax12.RETURN_DELAY_UNIT_S,
+        pipelined=cfg.pipeline if pipelined is None else pipelined,
+    )

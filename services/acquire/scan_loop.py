@@ -29,9 +29,9 @@ from lelsonar import codec
 from lelsonar.acquire import messages
 from lelsonar.acquire.log_server import ScanLog
 from lelsonar.acquire.scanner import Scanner, StepMeasurement
+from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import DeviceError
 from lelsonar.keys import ScannerKeys
-from lelsonar.energy_model import EnergyModel
 from lelsonar.log.recording import McapRecorder
 
 _log = logging.getLogger(__name__)
@@ -43,7 +43,8 @@ class ScanPublisher:
     def __init__(self, session: zenoh.Session, keys: ScannerKeys) -> None:
         block = zenoh.CongestionControl.BLOCK
         self._sample = session.declare_publisher(
-            keys.sample, encoding=zenoh.Encoding(codec.encoding_name(codec.Sample())), congestion_control=block)
+            keys.sample, encoding=zenoh.Encoding(codec.encoding_name(codec.Sample())), congestion_control=block
+        )
         # Same priority as the samples, so start, samples and end stay in order on the link.
         self._scan = session.declare_publisher(keys.scan, congestion_control=block)
 
@@ -101,10 +102,17 @@ class ScanIdentity:
     scan_id: int
 
 
-def run_scan(scanner: Scanner, schedule: np.ndarray, who: ScanIdentity, energy_model: EnergyModel,
-             output: ScanOutput, stop: threading.Event, *,
-             on_step: Callable[[int, float], None] | None = None,
-             int16_scale: float | None = None) -> codec.ScanEnd:
+def run_scan(
+    scanner: Scanner,
+    schedule: np.ndarray,
+    who: ScanIdentity,
+    energy_model: EnergyModel,
+    output: ScanOutput,
+    stop: threading.Event,
+    *,
+    on_step: Callable[[int, float], None] | None = None,
+    int16_scale: float | None = None,
+) -> codec.ScanEnd:
     """Acquire one scan; return its ``ScanEnd`` (complete or aborted, never raising on device faults).
 
     ``on_step(step, gamma_measured)`` is called once each sample is emitted (in the pipelined
@@ -112,8 +120,11 @@ def run_scan(scanner: Scanner, schedule: np.ndarray, who: ScanIdentity, energy_m
     """
     info = scanner.info
     output.emit(messages.scan_start(who.scanner_id, who.scan_id, time.time_ns(), info, schedule, energy_model))
-    output.log("INFO", f"scan {who.scan_id} of {who.scanner_id} started: {len(schedule)} steps, "
-                       f"γ {np.rad2deg(schedule[0]):.1f}° → {np.rad2deg(schedule[-1]):.1f}°, device {info.device}")
+    output.log(
+        "INFO",
+        f"scan {who.scan_id} of {who.scanner_id} started: {len(schedule)} steps, "
+        f"γ {np.rad2deg(schedule[0]):.1f}° → {np.rad2deg(schedule[-1]):.1f}°, device {info.device}",
+    )
     sent = missing = 0
     reason = ""
     measured: tuple[int, float, StepMeasurement] | None = None  # the last shot, not yet emitted
@@ -159,10 +170,20 @@ def run_scan(scanner: Scanner, schedule: np.ndarray, who: ScanIdentity, energy_m
             emit_measured()
     emit_measured()
     complete = sent == len(schedule)
-    end = messages.scan_end(who.scanner_id, who.scan_id, time.time_ns(), complete=complete, reason=reason,
-                            steps_planned=len(schedule), samples_sent=sent, echoes_missing=missing)
-    output.log("INFO" if complete else "WARNING",
-               f"scan {who.scan_id} {'complete' if complete else 'aborted'}: {sent}/{len(schedule)} samples"
-               + (f" ({reason})" if reason else ""))
+    end = messages.scan_end(
+        who.scanner_id,
+        who.scan_id,
+        time.time_ns(),
+        complete=complete,
+        reason=reason,
+        steps_planned=len(schedule),
+        samples_sent=sent,
+        echoes_missing=missing,
+    )
+    output.log(
+        "INFO" if complete else "WARNING",
+        f"scan {who.scan_id} {'complete' if complete else 'aborted'}: {sent}/{len(schedule)} samples"
+        + (f" ({reason})" if reason else ""),
+    )
     output.emit(end)
     return end

@@ -21,12 +21,12 @@ from lelsonar.geometry import ArrayGeometry
 class ScannerInfo:
     """Static facts about a scanner, published in ``ScanStart``."""
 
-    device: str                 # "sim", "emulated" or "serial"
+    device: str  # "sim", "emulated" or "serial"
     geometry: ArrayGeometry
-    sample_rate: float          # Hz
+    sample_rate: float  # Hz
     window_samples: int
-    air_temperature: float      # K
-    sound_speed: float          # m/s
+    air_temperature: float  # K
+    sound_speed: float  # m/s
 
 
 @dataclass(frozen=True)
@@ -34,9 +34,9 @@ class MotorReading:
     """The servo's state after a move (see ``lelsonar.v1.MotorStatus``)."""
 
     present_position_raw: int
-    load: float = 0.0           # signed fraction of max torque
-    voltage: float = 0.0        # V
-    temperature: float = 0.0    # K
+    load: float = 0.0  # signed fraction of max torque
+    voltage: float = 0.0  # V
+    temperature: float = 0.0  # K
     error_bits: int = 0
 
 
@@ -72,8 +72,14 @@ class Scanner(Protocol):
 
     info: ScannerInfo
 
-    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
-                while_listening: Callable[[], None] | None = None) -> StepMeasurement:
+    def measure(
+        self,
+        step: int,
+        gamma_commanded: float,
+        *,
+        next_gamma: float | None = None,
+        while_listening: Callable[[], None] | None = None,
+    ) -> StepMeasurement:
         """Move to ``gamma_commanded`` (rad), wait until still, fire, return the shot.
 
         ``next_gamma``: the next step's angle, which a scanner may move to once this shot's

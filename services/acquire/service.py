@@ -22,11 +22,11 @@ from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
-from lelsonar.sim import SimConfig, preset
-from lelsonar.keys import ScannerKeys
 from lelsonar.energy_model import EnergyModel
+from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder
 from lelsonar.net.transport import ZenohSettings, open_session
+from lelsonar.sim import SimConfig, preset
 
 _log = logging.getLogger(__name__)
 
@@ -37,8 +37,11 @@ INT16_SCALE = 5.0 / 32767
 def sim_config(cfg: AcquireConfig) -> SimConfig:
     """The preset, with the schedule and geometry overrides of ``cfg``."""
     sim = preset(cfg.preset)
-    changes = {k: v for k, v in (("steps", cfg.steps), ("gamma_start", cfg.gamma_start),
-                                 ("gamma_stop", cfg.gamma_stop)) if v is not None}
+    changes = {
+        k: v
+        for k, v in (("steps", cfg.steps), ("gamma_start", cfg.gamma_start), ("gamma_stop", cfg.gamma_stop))
+        if v is not None
+    }
     if cfg.radial_offset is not None:
         changes["geometry"] = dataclasses.replace(sim.geometry, radial_offset=cfg.radial_offset)
     return dataclasses.replace(sim, **changes) if changes else sim
@@ -74,8 +77,9 @@ class AcquisitionReport:
         return bool(self.ends) and all(e.status == 1 for e in self.ends)
 
 
-def run_acquisition(cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threading.Event,
-                    console: Console | None = None) -> AcquisitionReport:
+def run_acquisition(
+    cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threading.Event, console: Console | None = None
+) -> AcquisitionReport:
     """Run ``cfg.scans`` scans; return what happened.  Never leaves a file unfinished."""
     from lelsonar.acquire.backends import open_scanner
 
@@ -109,35 +113,60 @@ def run_acquisition(cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threa
                 scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
                 path = cfg.mcap_path(index) if cfg.record else None
                 with ExitStack() as scan_stack:
-                    recorder = (scan_stack.enter_context(McapRecorder(path, compression=cfg.compression,
-                                                                      metadata=cfg.as_metadata(), fsync=cfg.fsync))
-                                if path else None)
+                    recorder = (
+                        scan_stack.enter_context(
+                            McapRecorder(path, compression=cfg.compression, metadata=cfg.as_metadata(), fsync=cfg.fsync)
+                        )
+                        if path
+                        else None
+                    )
                     output = ScanOutput(recorder, publisher, scan_log=log)
-                    progress = scan_stack.enter_context(Progress(
-                        TextColumn(f"scan {index + 1}/{cfg.scans}"), BarColumn(), MofNCompleteColumn(),
-                        TextColumn("γ {task.fields[gamma]:>6.1f}°"), TimeElapsedColumn(), TextColumn("ETA"),
-                        TimeRemainingColumn(), console=console, transient=False))
+                    progress = scan_stack.enter_context(
+                        Progress(
+                            TextColumn(f"scan {index + 1}/{cfg.scans}"),
+                            BarColumn(),
+                            MofNCompleteColumn(),
+                            TextColumn("γ {task.fields[gamma]:>6.1f}°"),
+                            TimeElapsedColumn(),
+                            TextColumn("ETA"),
+                            TimeRemainingColumn(),
+                            console=console,
+                            transient=False,
+                        )
+                    )
                     task = progress.add_task("scan", total=len(schedule), gamma=math.degrees(schedule[0]))
-                    end = run_scan(scanner, schedule, ScanIdentity(cfg.scanner_id, scan_id), model, output, stop,
-                                   on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
-                                   int16_scale=INT16_SCALE if cfg.waveform_int16 else None)
+                    end = run_scan(
+                        scanner,
+                        schedule,
+                        ScanIdentity(cfg.scanner_id, scan_id),
+                        model,
+                        output,
+                        stop,
+                        on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
+                        int16_scale=INT16_SCALE if cfg.waveform_int16 else None,
+                    )
                     report.publish_failures += output.publish_failures
                 report.ends.append(end)
                 if path:
                     report.paths.append(path)
                 status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
-                console.print(f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
-                              f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else ""))
+                console.print(
+                    f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
+                    f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else "")
+                )
                 if end.status != 1 or stop.is_set():
                     break
                 if index + 1 < cfg.scans and stop.wait(cfg.interval):
                     break
         if server is not None and cfg.serve_log_for > 0 and not stop.is_set():
             # The scanner is released (torque off); keep answering reconstructors that missed steps.
-            _log.info("serving the log of the last scans for %.1f s (--serve-log-for; Ctrl-C ends it)",
-                      cfg.serve_log_for)
-            console.print(f"acquire: serving the log of the last scans for {cfg.serve_log_for:g} s "
-                          "(--serve-log-for; Ctrl-C ends it)")
+            _log.info(
+                "serving the log of the last scans for %.1f s (--serve-log-for; Ctrl-C ends it)", cfg.serve_log_for
+            )
+            console.print(
+                f"acquire: serving the log of the last scans for {cfg.serve_log_for:g} s "
+                "(--serve-log-for; Ctrl-C ends it)"
+            )
             stop.wait(cfg.serve_log_for)
         if server is not None:
             report.log_stats = dict(server.stats)

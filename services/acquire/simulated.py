@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 
 from lelsonar.errors import ConfigError
-
 from lelsonar.sim.scan import SimulatedScan
 
 #: Acquisition time of step 0 of a recorded simulated scan, ns (fixed, so files are reproducible).
@@ -39,18 +38,19 @@ class ScanReplay:
         self.scan = scan
         self.info = sim_info(scan.config, "sim")
 
-    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None,
-                while_listening=None):
+    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None, while_listening=None):
         """Shot ``step`` as recorded (nothing to move, nothing to listen to: the hints are not needed)."""
         from lelsonar.acquire.scanner import MotorReading, StepMeasurement
 
         s = self.scan
         return StepMeasurement(
             gamma_measured=float(s.gamma_measured[step]),
-            motor=MotorReading(present_position_raw=int(s.gamma_raw[step]), load=0.0, voltage=12.0,
-                               temperature=313.15),
-            time_of_flight=np.asarray(s.tof[step]), waveforms=np.asarray(s.waveforms[step]), t0=float(s.t0),
-            acquisition_time_ns=EPOCH_NS + step * STEP_NS)
+            motor=MotorReading(present_position_raw=int(s.gamma_raw[step]), load=0.0, voltage=12.0, temperature=313.15),
+            time_of_flight=np.asarray(s.tof[step]),
+            waveforms=np.asarray(s.waveforms[step]),
+            t0=float(s.t0),
+            acquisition_time_ns=EPOCH_NS + step * STEP_NS,
+        )
 
     def close(self) -> None:
         pass
@@ -59,12 +59,23 @@ class ScanReplay:
 def truth_metadata(scan: SimulatedScan) -> dict[str, str]:
     """The scan's ground truth as metadata strings: true planes (JSON) and the critical step."""
     planes = {p.label: {"normal": [float(v) for v in p.normal], "offset": float(p.offset)} for p in scan.truth.planes}
-    return {"truth_planes": json.dumps(planes), "truth_critical_step": str(scan.truth.critical_step),
-            "truth_critical_angle": repr(float(scan.truth.critical_angle))}
+    return {
+        "truth_planes": json.dumps(planes),
+        "truth_critical_step": str(scan.truth.critical_step),
+        "truth_critical_angle": repr(float(scan.truth.critical_angle)),
+    }
 
 
-def record_scan(scan: SimulatedScan, path: Path | str, energy_model, *, scanner_id: str = "sim",
-                scan_id: int = 1, metadata: Mapping[str, str] | None = None, compression: str = "zstd"):
+def record_scan(
+    scan: SimulatedScan,
+    path: Path | str,
+    energy_model,
+    *,
+    scanner_id: str = "sim",
+    scan_id: int = 1,
+    metadata: Mapping[str, str] | None = None,
+    compression: str = "zstd",
+):
     """Record ``scan`` to ``path`` through the acquisition scan loop.
 
     Parameters
@@ -94,5 +105,11 @@ def record_scan(scan: SimulatedScan, path: Path | str, energy_model, *, scanner_
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"device": "sim", "scanner_id": scanner_id, **truth_metadata(scan), **dict(metadata or {})}
     with McapRecorder(path, compression=compression, metadata=meta) as recorder:
-        return run_scan(ScanReplay(scan), np.asarray(scan.gamma_commanded), ScanIdentity(scanner_id, int(scan_id)),
-                        energy_model, ScanOutput(recorder, None), threading.Event())
+        return run_scan(
+            ScanReplay(scan),
+            np.asarray(scan.gamma_commanded),
+            ScanIdentity(scanner_id, int(scan_id)),
+            energy_model,
+            ScanOutput(recorder, None),
+            threading.Event(),
+        )

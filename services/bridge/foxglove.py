@@ -105,21 +105,28 @@ class FoxgloveServer:
         self.context = foxglove.Context()
         self.subscriptions = _Subscriptions()
         try:
-            self._server = foxglove.start_server(name=name, host=host, port=port, context=self.context,
-                                                 server_listener=self.subscriptions)
+            self._server = foxglove.start_server(
+                name=name, host=host, port=port, context=self.context, server_listener=self.subscriptions
+            )
         except RuntimeError as exc:  # foxglove-sdk 0.30: "FoxgloveError: Failed to bind port: ..."
             raise ConfigError(f"cannot serve Foxglove on {host}:{port}: {exc}") from None
         self.host = host
         self._channels: dict[str, foxglove.Channel] = {}
         for topic, cls in _PROTO_TOPICS.items():
-            schema = foxglove.Schema(name=cls.DESCRIPTOR.full_name, encoding="protobuf",
-                                     data=visual.file_descriptor_set(cls))
-            self._channels[topic] = foxglove.Channel(topic, message_encoding="protobuf", schema=schema,
-                                                     context=self.context)
-        schema = foxglove.Schema(name=visual.ENERGY_SCALARS_NAME, encoding="jsonschema",
-                                 data=visual.json_schema_bytes(visual.ENERGY_SCALARS_SCHEMA))
-        self._channels[visual.TOPIC_ENERGY] = foxglove.Channel(visual.TOPIC_ENERGY, message_encoding="json",
-                                                               schema=schema, context=self.context)
+            schema = foxglove.Schema(
+                name=cls.DESCRIPTOR.full_name, encoding="protobuf", data=visual.file_descriptor_set(cls)
+            )
+            self._channels[topic] = foxglove.Channel(
+                topic, message_encoding="protobuf", schema=schema, context=self.context
+            )
+        schema = foxglove.Schema(
+            name=visual.ENERGY_SCALARS_NAME,
+            encoding="jsonschema",
+            data=visual.json_schema_bytes(visual.ENERGY_SCALARS_SCHEMA),
+        )
+        self._channels[visual.TOPIC_ENERGY] = foxglove.Channel(
+            visual.TOPIC_ENERGY, message_encoding="json", schema=schema, context=self.context
+        )
 
     @property
     def port(self) -> int:
@@ -170,8 +177,12 @@ class FoxgloveObserver:
         self._points[scan.key] = {}
         self._statics(scan, t)
         self.server.log(visual.TOPIC_TF, visual.array_transform(s.gamma_start, t), t)
-        self.event("info", f"scan {s.scan_id} of {s.scanner_id}: {s.steps} steps, device {s.device or 'unknown'}, "
-                           f"c = {s.sound_speed:.1f} m/s", t)
+        self.event(
+            "info",
+            f"scan {s.scan_id} of {s.scanner_id}: {s.steps} steps, device {s.device or 'unknown'}, "
+            f"c = {s.sound_speed:.1f} m/s",
+            t,
+        )
 
     def _statics(self, scan: ScanAssembly, t: int) -> None:
         # The WebSocket keeps no latest value per topic: sent again at every step, so that a
@@ -197,11 +208,23 @@ class FoxgloveObserver:
         ok = np.isfinite(allpts).all(axis=1)
         latest = np.isfinite(pts).all(axis=1)
         self.server.log(visual.TOPIC_POINTS, visual.point_cloud(pts[latest], t), t)
-        self.server.log(visual.TOPIC_SCAN_POINTS,
-                        visual.point_cloud(allpts[ok], t, step=step_ids[ok], capsule=caps[ok]), t)
-        self.server.log_json(visual.TOPIC_ENERGY, visual.energy_scalars(
-            scan.start.scanner_id, scan.start.scan_id, view.step, view.gamma, energy, expected, ratio,
-            self._critical.get(scan.key)), t)
+        self.server.log(
+            visual.TOPIC_SCAN_POINTS, visual.point_cloud(allpts[ok], t, step=step_ids[ok], capsule=caps[ok]), t
+        )
+        self.server.log_json(
+            visual.TOPIC_ENERGY,
+            visual.energy_scalars(
+                scan.start.scanner_id,
+                scan.start.scan_id,
+                view.step,
+                view.gamma,
+                energy,
+                expected,
+                ratio,
+                self._critical.get(scan.key),
+            ),
+            t,
+        )
 
     def estimate(self, scan: ScanAssembly, message: codec.Reconstruction, results, partial) -> None:
         step = int(message.last_step)
@@ -216,16 +239,28 @@ class FoxgloveObserver:
             if step < len(scan.step_energy):
                 # The final's critical step (the fitted edge's) closes the series, which so far held the
                 # provisional one (the energy peak's).
-                self.server.log_json(visual.TOPIC_ENERGY, visual.energy_scalars(
-                    scan.start.scanner_id, scan.start.scan_id, step, float(scan.gamma[step]),
-                    float(scan.step_energy[step]), float(scan.expected_energy[step]), float(scan.ratio[step]),
-                    self._critical.get(scan.key)), t)
+                self.server.log_json(
+                    visual.TOPIC_ENERGY,
+                    visual.energy_scalars(
+                        scan.start.scanner_id,
+                        scan.start.scan_id,
+                        step,
+                        float(scan.gamma[step]),
+                        float(scan.step_energy[step]),
+                        float(scan.expected_energy[step]),
+                        float(scan.ratio[step]),
+                        self._critical.get(scan.key),
+                    ),
+                    t,
+                )
             self._points.pop(scan.key, None)
             lines = [f"final estimate of scan {message.scan_id} after step {step}"]
             for p in message.planes:
-                lines.append(f"  {p.method} {p.label}: h = {p.offset:.4f} m, σ = {p.sigma * 1e3:.1f} mm, "
-                             f"{QUALITY_NAME.get(p.quality, 'unknown')}"
-                             + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else ""))
+                lines.append(
+                    f"  {p.method} {p.label}: h = {p.offset:.4f} m, σ = {p.sigma * 1e3:.1f} mm, "
+                    f"{QUALITY_NAME.get(p.quality, 'unknown')}"
+                    + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else "")
+                )
             lines += [f"  {f}" for f in message.failures]
             self.event("info", "\n".join(lines), t)
 
@@ -284,12 +319,25 @@ def layout_json() -> str:
     import json
 
     def series(topic: str, field: str, label: str, color: str) -> dict:
-        return {"value": f"{topic}.{field}", "enabled": True, "timestampMethod": "receiveTime", "label": label,
-                "color": color}
+        return {
+            "value": f"{topic}.{field}",
+            "enabled": True,
+            "timestampMethod": "receiveTime",
+            "label": label,
+            "color": color,
+        }
 
     def plot(title: str, paths: list[dict]) -> dict:
-        return {"paths": paths, "showLegend": True, "legendDisplay": "floating", "showXAxisLabels": True,
-                "showYAxisLabels": True, "isSynced": True, "xAxisVal": "timestamp", "foxglovePanelTitle": title}
+        return {
+            "paths": paths,
+            "showLegend": True,
+            "legendDisplay": "floating",
+            "showXAxisLabels": True,
+            "showYAxisLabels": True,
+            "isSynced": True,
+            "xAxisVal": "timestamp",
+            "foxglovePanelTitle": title,
+        }
 
     scene_topic = {"visible": True}
     config = {
@@ -297,46 +345,88 @@ def layout_json() -> str:
             "foxglovePanelTitle": "scan",
             "followTf": visual.WORLD_FRAME,
             "followMode": "follow-pose",
-            "cameraState": {"distance": 5.0, "perspective": True, "phi": 60.0, "thetaOffset": 45.0,
-                            "target": [0.0, 0.8, 0.5], "targetOffset": [0.0, 0.0, 0.0],
-                            "targetOrientation": [0.0, 0.0, 0.0, 1.0], "fovy": 45.0, "near": 0.01, "far": 5000.0},
+            "cameraState": {
+                "distance": 5.0,
+                "perspective": True,
+                "phi": 60.0,
+                "thetaOffset": 45.0,
+                "target": [0.0, 0.8, 0.5],
+                "targetOffset": [0.0, 0.0, 0.0],
+                "targetOrientation": [0.0, 0.0, 0.0, 1.0],
+                "fovy": 45.0,
+                "near": 0.01,
+                "far": 5000.0,
+            },
             "scene": {"transforms": {"showLabel": True, "axisScale": 0.5}},
             "transforms": {},
-            "layers": {"grid": {"visible": True, "layerId": "foxglove.Grid", "frameId": visual.WORLD_FRAME,
-                                "size": 4, "divisions": 8, "position": [0, 0, 0], "rotation": [0, 0, 0]}},
+            "layers": {
+                "grid": {
+                    "visible": True,
+                    "layerId": "foxglove.Grid",
+                    "frameId": visual.WORLD_FRAME,
+                    "size": 4,
+                    "divisions": 8,
+                    "position": [0, 0, 0],
+                    "rotation": [0, 0, 0],
+                }
+            },
             "topics": {
-                visual.TOPIC_SCAN_POINTS: {"visible": True, "pointSize": 6, "colorMode": "colormap",
-                                           "colorField": "step", "colorMap": "turbo"},
+                visual.TOPIC_SCAN_POINTS: {
+                    "visible": True,
+                    "pointSize": 6,
+                    "colorMode": "colormap",
+                    "colorField": "step",
+                    "colorMap": "turbo",
+                },
                 # The latest step's points, bigger and white: where the beams land now.
-                visual.TOPIC_POINTS: {"visible": True, "pointSize": 12, "colorMode": "flat",
-                                      "flatColor": "#ffffff"},
+                visual.TOPIC_POINTS: {"visible": True, "pointSize": 12, "colorMode": "flat", "flatColor": "#ffffff"},
                 visual.TOPIC_PLANES: scene_topic,
                 TOPIC_TRUTH: scene_topic,
                 visual.TOPIC_ARRAY: scene_topic,
             },
         },
-        "Plot!energy": plot("energy E^γ and E0(d_m), V²·s", [
-            series(visual.TOPIC_ENERGY, "energy", "E^γ", "#1f77b4"),
-            series(visual.TOPIC_ENERGY, "expected_energy", "E0(d_m)", "#ff7f0e"),
-            # An acquisition recording has no reconstruction, but its own per-step energies:
-            series(visual.TOPIC_STEP, "energy", "E^γ (acquisition)", "#9467bd")]),
-        "Plot!ratio": plot("ratio R and the critical step", [
-            series(visual.TOPIC_ENERGY, "ratio", "R", "#2ca02c"),
-            series(visual.TOPIC_ENERGY, "critical_step", "critical step", "#d62728")]),
-        "RosOut!log": {"foxglovePanelTitle": "log", "searchTerms": [], "minLogLevel": 1,
-                       "topicToRender": visual.TOPIC_LOG},
+        "Plot!energy": plot(
+            "energy E^γ and E0(d_m), V²·s",
+            [
+                series(visual.TOPIC_ENERGY, "energy", "E^γ", "#1f77b4"),
+                series(visual.TOPIC_ENERGY, "expected_energy", "E0(d_m)", "#ff7f0e"),
+                # An acquisition recording has no reconstruction, but its own per-step energies:
+                series(visual.TOPIC_STEP, "energy", "E^γ (acquisition)", "#9467bd"),
+            ],
+        ),
+        "Plot!ratio": plot(
+            "ratio R and the critical step",
+            [
+                series(visual.TOPIC_ENERGY, "ratio", "R", "#2ca02c"),
+                series(visual.TOPIC_ENERGY, "critical_step", "critical step", "#d62728"),
+            ],
+        ),
+        "RosOut!log": {
+            "foxglovePanelTitle": "log",
+            "searchTerms": [],
+            "minLogLevel": 1,
+            "topicToRender": visual.TOPIC_LOG,
+        },
     }
     layout = {
         "configById": config,
         "globalVariables": {},
         "userNodes": {},
         "playbackConfig": {"speed": 1.0},
-        "layout": {"first": "3D!lelsonar", "direction": "row", "splitPercentage": 60,
-                   "second": {"first": "Plot!energy", "direction": "column", "splitPercentage": 33,
-                              "second": {"first": "Plot!ratio", "second": "RosOut!log", "direction": "column",
-                                         "splitPercentage": 50}}},
+        "layout": {
+            "first": "3D!lelsonar",
+            "direction": "row",
+            "splitPercentage": 60,
+            "second": {
+                "first": "Plot!energy",
+                "direction": "column",
+                "splitPercentage": 33,
+                "second": {"first": "Plot!ratio", "second": "RosOut!log", "direction": "column", "splitPercentage": 50},
+            },
+        },
     }
     return json.dumps(layout, indent=2, ensure_ascii=False) + "\n"
+
 
 if __name__ == "__main__":
     print(layout_json(), end="")

@@ -72,9 +72,10 @@ def open_ros_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
     try:
         session = zenoh.open(cfg)
     except zenoh.ZError as exc:
-        raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}; is the robot's router "
-                             f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect)}?"
-                             ) from None
+        raise TransportError(
+            f"cannot open a Zenoh {settings.mode} session: {exc}; is the robot's router "
+            f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect)}?"
+        ) from None
     try:
         yield session
     finally:
@@ -112,10 +113,23 @@ def node_token(domain_id: int, zid: str, node_id: int, namespace: str, node: str
     return f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{node_id}/NN/{mangle(enclave)}/{mangle(namespace)}/{node}"
 
 
-def publisher_token(domain_id: int, zid: str, node_id: int, entity_id: int, namespace: str, node: str, topic: str,
-                    msgtype: str, type_hash: str, qos: ros2.TopicQos, enclave: str = "") -> str:
-    return (f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{entity_id}/MP/{mangle(enclave)}/{mangle(namespace)}/{node}"
-            f"/{mangle(topic)}/{dds_type_name(msgtype)}/{type_hash}/{qos_chunk(qos)}")
+def publisher_token(
+    domain_id: int,
+    zid: str,
+    node_id: int,
+    entity_id: int,
+    namespace: str,
+    node: str,
+    topic: str,
+    msgtype: str,
+    type_hash: str,
+    qos: ros2.TopicQos,
+    enclave: str = "",
+) -> str:
+    return (
+        f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{entity_id}/MP/{mangle(enclave)}/{mangle(namespace)}/{node}"
+        f"/{mangle(topic)}/{dds_type_name(msgtype)}/{type_hash}/{qos_chunk(qos)}"
+    )
 
 
 def gid_of(token: str) -> bytes:
@@ -162,8 +176,15 @@ class RmwZenohNode:
         ``ROS_DOMAIN_ID``.
     """
 
-    def __init__(self, session: zenoh.Session, *, name: str = "lelsonar_bridge", namespace: str = "/",
-                 domain_id: int = 0, distro: str = "jazzy") -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        *,
+        name: str = "lelsonar_bridge",
+        namespace: str = "/",
+        domain_id: int = 0,
+        distro: str = "jazzy",
+    ) -> None:
         if not _NODE_NAME.fullmatch(name):
             raise ConfigError(f"a ROS 2 node name is letters, digits and _, not starting with a digit; got {name!r}")
         if not _NAMESPACE.fullmatch(namespace):
@@ -200,12 +221,26 @@ class RmwZenohNode:
             qos = ros2.topic_qos(topic)
             h = ros2.type_hash(msgtype, self.distro)
             key = topic_key(self.domain_id, topic, msgtype, h)
-            token_key = publisher_token(self.domain_id, self.zid, self.node_id, self._take_id(), self.namespace,
-                                        self.name, topic, msgtype, h, qos)
+            token_key = publisher_token(
+                self.domain_id,
+                self.zid,
+                self.node_id,
+                self._take_id(),
+                self.namespace,
+                self.name,
+                topic,
+                msgtype,
+                h,
+                qos,
+            )
             if qos.transient_local:
                 zpub = zenoh.ext.declare_advanced_publisher(
-                    self._session, key, congestion_control=zenoh.CongestionControl.BLOCK,
-                    cache=zenoh.ext.CacheConfig(qos.depth), publisher_detection=True)
+                    self._session,
+                    key,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    cache=zenoh.ext.CacheConfig(qos.depth),
+                    publisher_detection=True,
+                )
             else:
                 zpub = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
             token = self._session.liveliness().declare_token(token_key)

@@ -57,17 +57,33 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from lelsonar import codec
-from lelsonar.errors import ConfigError, RecordingError
-from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
-from lelsonar.reconstruct.estimate.pipeline import FitOptions
-from lelsonar.draw.palette import method_color
-from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
 from lelsonar.codec import QUALITY_NAME
+from lelsonar.draw.palette import method_color
+from lelsonar.errors import ConfigError, RecordingError
+from lelsonar.reconstruct.estimate.pipeline import FitOptions
+from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 
 __all__ = [
-    "DISTROS", "TOPIC_TF", "TOPIC_TF_STATIC", "TOPIC_POINTS_RAW", "TOPIC_POINTS_CORRECTED", "TOPIC_PLANES",
-    "TOPIC_ESTIMATE", "TopicQos", "TOPIC_QOS", "RosMessage", "Ros2View", "TruePlane", "typestore",
-    "range_topic", "type_hash", "serialize", "deserialize", "export_rosbag2", "read_bag",
+    "DISTROS",
+    "TOPIC_TF",
+    "TOPIC_TF_STATIC",
+    "TOPIC_POINTS_RAW",
+    "TOPIC_POINTS_CORRECTED",
+    "TOPIC_PLANES",
+    "TOPIC_ESTIMATE",
+    "TopicQos",
+    "TOPIC_QOS",
+    "RosMessage",
+    "Ros2View",
+    "TruePlane",
+    "typestore",
+    "range_topic",
+    "type_hash",
+    "serialize",
+    "deserialize",
+    "export_rosbag2",
+    "read_bag",
 ]
 
 #: distro → (rosbags typestore, rosbag2 metadata version).  Humble's ``ros2 bag`` reads version 8.
@@ -190,9 +206,14 @@ class _Builder:
         return self("geometry_msgs/msg/Quaternion", x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
     def transform(self, t_ns: int, parent: str, child: str, translation, rotation) -> object:
-        return self("geometry_msgs/msg/TransformStamped", header=self.header(t_ns, parent), child_frame_id=child,
-                    transform=self("geometry_msgs/msg/Transform", translation=self.vector3(translation),
-                                   rotation=self.quaternion(rotation)))
+        return self(
+            "geometry_msgs/msg/TransformStamped",
+            header=self.header(t_ns, parent),
+            child_frame_id=child,
+            transform=self(
+                "geometry_msgs/msg/Transform", translation=self.vector3(translation), rotation=self.quaternion(rotation)
+            ),
+        )
 
     def color(self, rgb: Sequence[float], alpha: float) -> object:
         return self("std_msgs/msg/ColorRGBA", r=float(rgb[0]), g=float(rgb[1]), b=float(rgb[2]), a=float(alpha))
@@ -200,38 +221,91 @@ class _Builder:
     def cloud(self, t_ns: int, frame: str, points: np.ndarray) -> object:
         """A PointCloud2 of a structured array (its named fields become the PointFields)."""
         dt = points.dtype
-        fields = [self("sensor_msgs/msg/PointField", name=name, offset=int(dt.fields[name][1]),
-                       datatype=_POINTFIELD_TYPES[dt.fields[name][0].str.lstrip("<|")], count=1)
-                  for name in dt.names]
+        fields = [
+            self(
+                "sensor_msgs/msg/PointField",
+                name=name,
+                offset=int(dt.fields[name][1]),
+                datatype=_POINTFIELD_TYPES[dt.fields[name][0].str.lstrip("<|")],
+                count=1,
+            )
+            for name in dt.names
+        ]
         data = np.frombuffer(np.ascontiguousarray(points).tobytes(), dtype=np.uint8)
-        return self(CLOUD, header=self.header(t_ns, frame), height=1, width=int(points.shape[0]), fields=fields,
-                    is_bigendian=False, point_step=int(dt.itemsize), row_step=int(dt.itemsize * points.shape[0]),
-                    data=data, is_dense=True)
+        return self(
+            CLOUD,
+            header=self.header(t_ns, frame),
+            height=1,
+            width=int(points.shape[0]),
+            fields=fields,
+            is_bigendian=False,
+            point_step=int(dt.itemsize),
+            row_step=int(dt.itemsize * points.shape[0]),
+            data=data,
+            is_dense=True,
+        )
 
-    def marker(self, t_ns: int, frame: str, ns: str, id_: int, kind: int, *, points=(), rgb=(0.5, 0.5, 0.5),
-               alpha: float = 1.0, scale=(1.0, 1.0, 1.0), text: str = "", position=(0.0, 0.0, 0.0),
-               action: int = 0) -> object:
+    def marker(
+        self,
+        t_ns: int,
+        frame: str,
+        ns: str,
+        id_: int,
+        kind: int,
+        *,
+        points=(),
+        rgb=(0.5, 0.5, 0.5),
+        alpha: float = 1.0,
+        scale=(1.0, 1.0, 1.0),
+        text: str = "",
+        position=(0.0, 0.0, 0.0),
+        action: int = 0,
+    ) -> object:
         b = self
-        return b("visualization_msgs/msg/Marker", header=b.header(t_ns, frame), ns=ns, id=int(id_), type=int(kind),
-                 action=int(action),
-                 pose=b("geometry_msgs/msg/Pose", position=b.point(position), orientation=b.quaternion((0, 0, 0, 1))),
-                 scale=b.vector3(scale), color=b.color(rgb, alpha),
-                 lifetime=b("builtin_interfaces/msg/Duration", sec=0, nanosec=0), frame_locked=False,
-                 points=[b.point(p) for p in points], colors=[], texture_resource="",
-                 texture=b("sensor_msgs/msg/CompressedImage", header=b.header(0, ""), format="",
-                           data=np.zeros(0, dtype=np.uint8)),
-                 uv_coordinates=[], text=text, mesh_resource="",
-                 mesh_file=b("visualization_msgs/msg/MeshFile", filename="", data=np.zeros(0, dtype=np.uint8)),
-                 mesh_use_embedded_materials=False)
+        return b(
+            "visualization_msgs/msg/Marker",
+            header=b.header(t_ns, frame),
+            ns=ns,
+            id=int(id_),
+            type=int(kind),
+            action=int(action),
+            pose=b("geometry_msgs/msg/Pose", position=b.point(position), orientation=b.quaternion((0, 0, 0, 1))),
+            scale=b.vector3(scale),
+            color=b.color(rgb, alpha),
+            lifetime=b("builtin_interfaces/msg/Duration", sec=0, nanosec=0),
+            frame_locked=False,
+            points=[b.point(p) for p in points],
+            colors=[],
+            texture_resource="",
+            texture=b(
+                "sensor_msgs/msg/CompressedImage", header=b.header(0, ""), format="", data=np.zeros(0, dtype=np.uint8)
+            ),
+            uv_coordinates=[],
+            text=text,
+            mesh_resource="",
+            mesh_file=b("visualization_msgs/msg/MeshFile", filename="", data=np.zeros(0, dtype=np.uint8)),
+            mesh_use_embedded_materials=False,
+        )
 
 
 # sensor_msgs/PointField datatypes
 _POINTFIELD_TYPES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
-RAW_POINT = np.dtype({"names": ["x", "y", "z", "step", "capsule"], "formats": ["<f4", "<f4", "<f4", "<u4", "<u4"],
-                      "offsets": [0, 4, 8, 12, 16], "itemsize": 20})
-CORRECTED_POINT = np.dtype({"names": ["x", "y", "z", "step", "subset", "inlier"],
-                            "formats": ["<f4", "<f4", "<f4", "<u4", "u1", "u1"],
-                            "offsets": [0, 4, 8, 12, 16, 17], "itemsize": 20})
+RAW_POINT = np.dtype(
+    {
+        "names": ["x", "y", "z", "step", "capsule"],
+        "formats": ["<f4", "<f4", "<f4", "<u4", "<u4"],
+        "offsets": [0, 4, 8, 12, 16],
+        "itemsize": 20,
+    }
+)
+CORRECTED_POINT = np.dtype(
+    {
+        "names": ["x", "y", "z", "step", "subset", "inlier"],
+        "formats": ["<f4", "<f4", "<f4", "<u4", "u1", "u1"],
+        "offsets": [0, 4, 8, 12, 16, 17],
+        "itemsize": 20,
+    }
+)
 
 # visualization_msgs/Marker types and actions
 ARROW, LINE_LIST, TEXT_VIEW_FACING, TRIANGLE_LIST, DELETEALL = 0, 5, 9, 11, 3
@@ -282,15 +356,21 @@ class Ros2View:
         Also publish an identity ``parent_frame → <s>/base``.
     """
 
-    def __init__(self, emit: Callable[[RosMessage], None], *, main_method: str, distro: str = "jazzy",
-                 truth: Callable[[ScanAssembly], Sequence[TruePlane] | None] | None = None,
-                 field_of_view: float | None = None, parent_frame: str | None = None) -> None:
+    def __init__(
+        self,
+        emit: Callable[[RosMessage], None],
+        *,
+        main_method: str,
+        distro: str = "jazzy",
+        truth: Callable[[ScanAssembly], Sequence[TruePlane] | None] | None = None,
+        field_of_view: float | None = None,
+        parent_frame: str | None = None,
+    ) -> None:
         self._emit = emit
         self._b = _Builder(distro)
         self.main_method = main_method
         self._truth = truth
-        self.field_of_view = float(field_of_view if field_of_view is not None
-                                   else 2.0 * FitOptions().beam_half_angle)
+        self.field_of_view = float(field_of_view if field_of_view is not None else 2.0 * FitOptions().beam_half_angle)
         if not 0 < self.field_of_view < math.pi:
             raise ConfigError(f"the field of view must be in (0, 180°), got {math.degrees(self.field_of_view):.1f}°")
         self.parent_frame = parent_frame
@@ -314,27 +394,58 @@ class Ros2View:
         ax = (s.rotation_axis.x, s.rotation_axis.y, s.rotation_axis.z)
         tfs.append(b.transform(t, base, axis, (0, 0, 0), _quat_from_x_to(ax) if any(ax) else (0, 0, 0, 1)))
         for c in sorted(s.capsules, key=lambda c: c.capsule_id):
-            tfs.append(b.transform(t, array, self.frame(s.scanner_id, f"capsule{c.capsule_id}"),
-                                   (c.position.x, c.position.y, c.position.z),
-                                   _quat_from_x_to((c.boresight.x, c.boresight.y, c.boresight.z))))
+            tfs.append(
+                b.transform(
+                    t,
+                    array,
+                    self.frame(s.scanner_id, f"capsule{c.capsule_id}"),
+                    (c.position.x, c.position.y, c.position.z),
+                    _quat_from_x_to((c.boresight.x, c.boresight.y, c.boresight.z)),
+                )
+            )
         self._send(TOPIC_TF_STATIC, TF, t, b(TF, transforms=tfs))
         self._raw[scan.key] = []
 
     def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None:
         s, b = scan.start, self._b
         t = view.time_ns
-        self._send(TOPIC_TF, TF, t, b(TF, transforms=[
-            b.transform(t, self.frame(s.scanner_id, "axis"), self.frame(s.scanner_id, "array"), (0, 0, 0),
-                        _quat_x(view.gamma))]))
+        self._send(
+            TOPIC_TF,
+            TF,
+            t,
+            b(
+                TF,
+                transforms=[
+                    b.transform(
+                        t,
+                        self.frame(s.scanner_id, "axis"),
+                        self.frame(s.scanner_id, "array"),
+                        (0, 0, 0),
+                        _quat_x(view.gamma),
+                    )
+                ],
+            ),
+        )
         lo = s.sound_speed * view.t0 / 2.0
         hi = s.sound_speed * (view.t0 + s.window_samples / s.sample_rate) / 2.0 if s.sample_rate > 0 else math.inf
         ids = sorted(c.capsule_id for c in s.capsules)
         for k, cid in enumerate(ids):
             d = float(view.distance[k])
-            self._send(range_topic(cid), RANGE, t, b(
-                RANGE, header=b.header(t, self.frame(s.scanner_id, f"capsule{cid}")), radiation_type=0,
-                field_of_view=self.field_of_view, min_range=lo, max_range=hi,
-                range=d if math.isfinite(d) else math.inf, variance=0.0))
+            self._send(
+                range_topic(cid),
+                RANGE,
+                t,
+                b(
+                    RANGE,
+                    header=b.header(t, self.frame(s.scanner_id, f"capsule{cid}")),
+                    radiation_type=0,
+                    field_of_view=self.field_of_view,
+                    min_range=lo,
+                    max_range=hi,
+                    range=d if math.isfinite(d) else math.inf,
+                    variance=0.0,
+                ),
+            )
         pts = scan.raw_points(view.step)
         ok = np.all(np.isfinite(pts), axis=-1)
         rows = np.zeros(int(ok.sum()), dtype=RAW_POINT)
@@ -344,8 +455,9 @@ class Ros2View:
         acc.append(rows)
         self._send(TOPIC_POINTS_RAW, CLOUD, t, b.cloud(t, self.frame(s.scanner_id, "base"), _stack(acc, RAW_POINT)))
 
-    def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
-                 results: dict[str, ScanReconstruction] | None, partial) -> None:
+    def estimate(
+        self, scan: ScanAssembly, message: codec.Reconstruction, results: dict[str, ScanReconstruction] | None, partial
+    ) -> None:
         from lelsonar.view import present
 
         s, b = scan.start, self._b
@@ -373,8 +485,11 @@ class Ros2View:
         # The points each plane was fitted on, as reconstruct() chose them; plane_data numbers
         # steps within the received ones, so report schedule steps.
         steps = np.flatnonzero(scan.received)
-        return [(dataclasses.replace(data, step=steps[data.step]) if data.n else data, plane)
-                for data, plane in ((main.data_a, main.plane_a), (main.data_b, main.plane_b)) if data is not None]
+        return [
+            (dataclasses.replace(data, step=steps[data.step]) if data.n else data, plane)
+            for data, plane in ((main.data_a, main.plane_a), (main.data_b, main.plane_b))
+            if data is not None
+        ]
 
     def _markers(self, scan: ScanAssembly, message: codec.Reconstruction, t: int, frame: str) -> list:
         b = self._b
@@ -384,16 +499,37 @@ class Ros2View:
             corners = [(c.x, c.y, c.z) for c in plane.patch]
             if len(corners) >= 3:
                 tri = [p for k in range(1, len(corners) - 1) for p in (corners[0], corners[k], corners[k + 1])]
-                markers.append(b.marker(t, frame, f"plane/{plane.method}", i, TRIANGLE_LIST, points=tri, rgb=rgb,
-                                        alpha=0.5))
+                markers.append(
+                    b.marker(t, frame, f"plane/{plane.method}", i, TRIANGLE_LIST, points=tri, rgb=rgb, alpha=0.5)
+                )
                 centre = np.mean(np.asarray(corners), axis=0)
                 n = np.array([plane.normal.x, plane.normal.y, plane.normal.z])
-                markers.append(b.marker(t, frame, f"normal/{plane.method}", i, ARROW,
-                                        points=[centre, centre + 0.2 * n], rgb=rgb, scale=(0.01, 0.02, 0.03)))
-                markers.append(b.marker(
-                    t, frame, f"label/{plane.method}", i, TEXT_VIEW_FACING, rgb=rgb, scale=(0, 0, 0.05),
-                    position=centre, text=f"{plane.method} {plane.label}: h = {plane.offset:.3f} m, "
-                                          f"{QUALITY_NAME.get(plane.quality, 'unknown')}"))
+                markers.append(
+                    b.marker(
+                        t,
+                        frame,
+                        f"normal/{plane.method}",
+                        i,
+                        ARROW,
+                        points=[centre, centre + 0.2 * n],
+                        rgb=rgb,
+                        scale=(0.01, 0.02, 0.03),
+                    )
+                )
+                markers.append(
+                    b.marker(
+                        t,
+                        frame,
+                        f"label/{plane.method}",
+                        i,
+                        TEXT_VIEW_FACING,
+                        rgb=rgb,
+                        scale=(0, 0, 0.05),
+                        position=centre,
+                        text=f"{plane.method} {plane.label}: h = {plane.offset:.3f} m, "
+                        f"{QUALITY_NAME.get(plane.quality, 'unknown')}",
+                    )
+                )
         truth = self._truth(scan) if self._truth else None
         for i, tp in enumerate(truth or ()):
             c = np.asarray(tp.corners, dtype=float)
@@ -404,8 +540,11 @@ class Ros2View:
             e = message.corner_edge
             p = np.array([e.point.x, e.point.y, e.point.z])
             d = np.array([e.direction.x, e.direction.y, e.direction.z])
-            markers.append(b.marker(t, frame, "edge", 0, LINE_LIST, points=[p - 0.5 * d, p + 0.5 * d], rgb=_EDGE_RGB,
-                                    scale=(0.01, 0, 0)))
+            markers.append(
+                b.marker(
+                    t, frame, "edge", 0, LINE_LIST, points=[p - 0.5 * d, p + 0.5 * d], rgb=_EDGE_RGB, scale=(0.01, 0, 0)
+                )
+            )
         return markers
 
 
@@ -429,7 +568,7 @@ def _stack(parts: Sequence[np.ndarray], dtype: np.dtype) -> np.ndarray:
     out = np.zeros(sum(len(p) for p in parts), dtype=dtype)
     i = 0
     for p in parts:
-        out[i:i + len(p)] = p
+        out[i : i + len(p)] = p
         i += len(p)
     return out
 
@@ -437,10 +576,17 @@ def _stack(parts: Sequence[np.ndarray], dtype: np.dtype) -> np.ndarray:
 # --- rosbag2 ------------------------------------------------------------------------------
 def rosbags_qos(qos: TopicQos) -> Qos:
     never = QosTime(sec=0, nsec=0)  # 0 s = the rmw default: no deadline, lifespan or lease
-    return Qos(history=QosHistory.KEEP_LAST, depth=qos.depth, reliability=QosReliability.RELIABLE,
-               durability=QosDurability.TRANSIENT_LOCAL if qos.transient_local else QosDurability.VOLATILE,
-               deadline=never, lifespan=never, liveliness=QosLiveliness.AUTOMATIC,
-               liveliness_lease_duration=never, avoid_ros_namespace_conventions=False)
+    return Qos(
+        history=QosHistory.KEEP_LAST,
+        depth=qos.depth,
+        reliability=QosReliability.RELIABLE,
+        durability=QosDurability.TRANSIENT_LOCAL if qos.transient_local else QosDurability.VOLATILE,
+        deadline=never,
+        lifespan=never,
+        liveliness=QosLiveliness.AUTOMATIC,
+        liveliness_lease_duration=never,
+        avoid_ros_namespace_conventions=False,
+    )
 
 
 class BagSink:
@@ -457,13 +603,20 @@ class BagSink:
         conn = self._connections.get(m.topic)
         if conn is None:
             conn = self._connections[m.topic] = self._writer.add_connection(
-                m.topic, m.msgtype, typestore=self._ts, offered_qos_profiles=[rosbags_qos(topic_qos(m.topic))])
+                m.topic, m.msgtype, typestore=self._ts, offered_qos_profiles=[rosbags_qos(topic_qos(m.topic))]
+            )
         self._writer.write(conn, m.time_ns, serialize(m.message, m.msgtype, self._distro))
         self.counts[m.topic] = self.counts.get(m.topic, 0) + 1
 
 
-def export_rosbag2(source: Path | str, out_dir: Path | str, *, view_factory: Callable[[Callable], Ros2View],
-                   service_factory: Callable[[Ros2View], object], distro: str = "jazzy") -> dict[str, int]:
+def export_rosbag2(
+    source: Path | str,
+    out_dir: Path | str,
+    *,
+    view_factory: Callable[[Callable], Ros2View],
+    service_factory: Callable[[Ros2View], object],
+    distro: str = "jazzy",
+) -> dict[str, int]:
     """Write a rosbag2 directory (``metadata.yaml`` + MCAP, ``cdr``) from a lelsonar recording.
 
     The recording is replayed through a reconstruction service (``service_factory(view)``)

@@ -13,34 +13,59 @@ from lelsonar.errors import ConfigError
 
 #: TOML keys (table [acquire]) and the flags that override them; angles in degrees, lengths in m.
 _TOML_KEYS = {
-    "scanner_id": str, "prefix": str, "device": str, "preset": str, "steps": int, "gamma_start_deg": float,
-    "gamma_stop_deg": float, "radial_offset": float, "motor_port": str, "sensor_port": str, "out_dir": str,
-    "mcap_name": str, "record": bool, "scans": int, "interval": float, "seed": int, "waveform_int16": bool,
-    "compression": str, "energy_phi": list, "fsync": bool, "serve_log_for": float, "pipeline": bool,
+    "scanner_id": str,
+    "prefix": str,
+    "device": str,
+    "preset": str,
+    "steps": int,
+    "gamma_start_deg": float,
+    "gamma_stop_deg": float,
+    "radial_offset": float,
+    "motor_port": str,
+    "sensor_port": str,
+    "out_dir": str,
+    "mcap_name": str,
+    "record": bool,
+    "scans": int,
+    "interval": float,
+    "seed": int,
+    "waveform_int16": bool,
+    "compression": str,
+    "energy_phi": list,
+    "fsync": bool,
+    "serve_log_for": float,
+    "pipeline": bool,
 }
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.acquire.backends import DEVICES
-    from lelsonar.sim import preset_names
     from lelsonar.net.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
+    from lelsonar.sim import preset_names
 
     p = sub.add_parser(
-        "acquire", help="scan: drive the motor and sensor board, record to MCAP, publish on Zenoh",
+        "acquire",
+        help="scan: drive the motor and sensor board, record to MCAP, publish on Zenoh",
         description="Run scans with the real drivers on hardware (--device serial), the real drivers on "
-                    "emulated devices (--device emulated, the default) or the simulator directly (--device sim). "
-                    "Every message is recorded to MCAP whether or not anyone subscribes; SIGINT/SIGTERM finish "
-                    "the current step, send ScanEnd(aborted) and close the file properly. Flags override the "
-                    "[acquire] table of --config.")
-    p.add_argument("--config", type=Path, metavar="FILE.toml",
-                   help=f"TOML rig file (examples/rig.toml): an [acquire] table with keys {', '.join(_TOML_KEYS)}, "
-                        "and the rig tables [array] [servo] [sensor_board] [air] [energy_model] [schedule] that "
-                        "--device serial takes everything from")
+        "emulated devices (--device emulated, the default) or the simulator directly (--device sim). "
+        "Every message is recorded to MCAP whether or not anyone subscribes; SIGINT/SIGTERM finish "
+        "the current step, send ScanEnd(aborted) and close the file properly. Flags override the "
+        "[acquire] table of --config.",
+    )
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE.toml",
+        help=f"TOML rig file (examples/rig.toml): an [acquire] table with keys {', '.join(_TOML_KEYS)}, "
+        "and the rig tables [array] [servo] [sensor_board] [air] [energy_model] [schedule] that "
+        "--device serial takes everything from",
+    )
     p.add_argument("--scanner-id", help="scanner id in key expressions and messages (default: scanner1)")
     p.add_argument("--device", choices=DEVICES, help="what to drive (default: emulated)")
-    p.add_argument("--preset", choices=preset_names(),
-                   help="simulated scene and default schedule (default: paper-test1)")
+    p.add_argument(
+        "--preset", choices=preset_names(), help="simulated scene and default schedule (default: paper-test1)"
+    )
     p.add_argument("--steps", type=int, help="angle steps per scan (default: the preset's)")
     p.add_argument("--gamma-start", type=float, metavar="DEG", help="first angle, degrees (default: the preset's)")
     p.add_argument("--gamma-stop", type=float, metavar="DEG", help="last angle, degrees (default: the preset's)")
@@ -49,29 +74,52 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sensor-port", help="serial device of the sensor board (device serial), e.g. /dev/ttyACM0")
     p.add_argument("--out", type=Path, dest="out_dir", help="directory for recordings (default: out)")
     p.add_argument("--mcap-name", help="recording file name (default: scan.mcap; several scans add -N)")
-    p.add_argument("--no-record", dest="record", action="store_false", default=None,
-                   help="do not write an MCAP file (Zenoh only)")
+    p.add_argument(
+        "--no-record", dest="record", action="store_false", default=None, help="do not write an MCAP file (Zenoh only)"
+    )
     p.add_argument("--no-zenoh", action="store_true", help="do not publish (record only)")
     p.add_argument("--scans", type=int, help="number of scans (default: 1)")
     p.add_argument("--interval", type=float, metavar="S", help="seconds between scans (default: 0)")
     p.add_argument("--seed", type=int, help="seed of the simulated acoustics (default: 0)")
-    p.add_argument("--int16", dest="waveform_int16", action="store_true", default=None,
-                   help="send waveforms as int16 plus a scale (half the bytes of float32)")
+    p.add_argument(
+        "--int16",
+        dest="waveform_int16",
+        action="store_true",
+        default=None,
+        help="send waveforms as int16 plus a scale (half the bytes of float32)",
+    )
     p.add_argument("--compression", choices=("zstd", "lz4", "none"), help="MCAP chunk compression (default: zstd)")
-    p.add_argument("--fsync", action="store_true", default=None,
-                   help="fsync the recording after every step, so it survives a power cut too (every step is "
-                        "always written to the OS before it is published; `lelsonar bench recording` measures "
-                        "the cost)")
-    p.add_argument("--energy-phi", nargs=3, type=float, metavar=("PHI0", "PHI1", "PHI2"),
-                   help="energy model of eq. (12) in SI units (default: the simulator's calibration; "
-                        "see `lelsonar calibrate`)")
-    p.add_argument("--serve-log-for", type=float, metavar="S",
-                   help="keep answering log queries (<prefix>/<scanner>/log/<scan_id>) for S seconds after the "
-                        "last scan, so reconstructors that missed steps recover them (default: 10; 0: only "
-                        "while scanning)")
-    p.add_argument("--no-pipeline", dest="pipeline", action="store_false", default=None,
-                   help="one step after the other: do not move the servo while the board sends the last shot "
-                        "(`lelsonar bench acquire` compares the two)")
+    p.add_argument(
+        "--fsync",
+        action="store_true",
+        default=None,
+        help="fsync the recording after every step, so it survives a power cut too (every step is "
+        "always written to the OS before it is published; `lelsonar bench recording` measures "
+        "the cost)",
+    )
+    p.add_argument(
+        "--energy-phi",
+        nargs=3,
+        type=float,
+        metavar=("PHI0", "PHI1", "PHI2"),
+        help="energy model of eq. (12) in SI units (default: the simulator's calibration; see `lelsonar calibrate`)",
+    )
+    p.add_argument(
+        "--serve-log-for",
+        type=float,
+        metavar="S",
+        help="keep answering log queries (<prefix>/<scanner>/log/<scan_id>) for S seconds after the "
+        "last scan, so reconstructors that missed steps recover them (default: 10; 0: only "
+        "while scanning)",
+    )
+    p.add_argument(
+        "--no-pipeline",
+        dest="pipeline",
+        action="store_false",
+        default=None,
+        help="one step after the other: do not move the servo while the board sends the last shot "
+        "(`lelsonar bench acquire` compares the two)",
+    )
     add_zenoh_arguments(p, default_mode="peer")
     add_secure_argument(p)
     p.set_defaults(run=run_acquire, _own_config_table=True)  # [acquire] and the rig tables: config_from_args
@@ -97,20 +145,38 @@ def load_toml(path: Path) -> dict:
 
 def config_from_args(args: argparse.Namespace):
     from lelsonar.acquire.config import AcquireConfig
-    from lelsonar.energy_model import EnergyModel
-
     from lelsonar.acquire.rig import load_rig
+    from lelsonar.energy_model import EnergyModel
 
     values = load_toml(args.config) if args.config else {}
     rig = load_rig(args.config) if args.config else None
     if rig is not None and rig.values.get("schedule"):
-        clash = [k for k in ("steps", "gamma_start_deg", "gamma_stop_deg") if k in values and k in rig.values["schedule"]]
+        clash = [
+            k for k in ("steps", "gamma_start_deg", "gamma_stop_deg") if k in values and k in rig.values["schedule"]
+        ]
         if clash:
             raise ConfigError(f"{args.config}: {', '.join(clash)} given in both [acquire] and [schedule]; keep one")
         values.update(rig.values["schedule"])  # the schedule applies to every device
-    for key in ("scanner_id", "device", "preset", "steps", "radial_offset", "motor_port", "sensor_port", "out_dir",
-                "mcap_name", "record", "scans", "interval", "seed", "waveform_int16", "compression", "fsync",
-                "serve_log_for", "pipeline"):
+    for key in (
+        "scanner_id",
+        "device",
+        "preset",
+        "steps",
+        "radial_offset",
+        "motor_port",
+        "sensor_port",
+        "out_dir",
+        "mcap_name",
+        "record",
+        "scans",
+        "interval",
+        "seed",
+        "waveform_int16",
+        "compression",
+        "fsync",
+        "serve_log_for",
+        "pipeline",
+    ):
         if getattr(args, key, None) is not None:
             values[key] = getattr(args, key)
     if args.prefix:
@@ -147,14 +213,15 @@ def run_acquire(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     console = Console(stderr=True)
     if zenoh is not None:
-        console.print(f"acquire: publishing on {cfg.prefix}/{cfg.scanner_id}/{{sample,scan}} "
-                      f"({zenoh.describe()})")
+        console.print(f"acquire: publishing on {cfg.prefix}/{cfg.scanner_id}/{{sample,scan}} ({zenoh.describe()})")
     report = run_acquisition(cfg, zenoh, stop, console)
     if report.log_stats:
-        console.print(f"acquire: the log answered {report.log_stats.get('queries', 0)} queries with "
-                      f"{report.log_stats.get('replies', 0)} messages; other outcomes: "
-                      f"{ {k: v for k, v in report.log_stats.items() if k not in ('queries', 'replies')} }",
-                      highlight=False)
+        console.print(
+            f"acquire: the log answered {report.log_stats.get('queries', 0)} queries with "
+            f"{report.log_stats.get('replies', 0)} messages; other outcomes: "
+            f"{ {k: v for k, v in report.log_stats.items() if k not in ('queries', 'replies')} }",
+            highlight=False,
+        )
     if report.paths:
         console.print(f"open the recording with: rerun {' '.join(str(p) for p in report.paths)}")
     return 0 if report.ok else 1

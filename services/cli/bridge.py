@@ -14,29 +14,43 @@ def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.net.transport import add_zenoh_arguments
 
     p = sub.add_parser(
-        "export", help="convert a recording for another ecosystem (rosbag2 for ROS 2)",
+        "export",
+        help="convert a recording for another ecosystem (rosbag2 for ROS 2)",
         description="Replay a recording through the reconstruction and write it as a rosbag2 directory "
-                    "(metadata.yaml + MCAP, CDR): /tf_static, /tf, a sensor_msgs/Range per capsule, raw and "
-                    "corrected PointCloud2, a MarkerArray of the planes, the edge and the truth, and the estimate "
-                    "as JSON on /lelsonar/estimate. No ROS install needed.")
+        "(metadata.yaml + MCAP, CDR): /tf_static, /tf, a sensor_msgs/Range per capsule, raw and "
+        "corrected PointCloud2, a MarkerArray of the planes, the edge and the truth, and the estimate "
+        "as JSON on /lelsonar/estimate. No ROS install needed.",
+    )
     p.add_argument("source", type=Path, metavar="IN.mcap")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="DIR", help="the bag directory (must not exist)")
     p.add_argument("--format", choices=("rosbag2",), default="rosbag2", help="output format (default: rosbag2)")
-    p.add_argument("--distro", choices=("jazzy", "humble"), default="jazzy",
-                   help="ROS 2 message definitions and bag version (jazzy: 9, humble: 8; default: jazzy)")
+    p.add_argument(
+        "--distro",
+        choices=("jazzy", "humble"),
+        default="jazzy",
+        help="ROS 2 message definitions and bag version (jazzy: 9, humble: 8; default: jazzy)",
+    )
     _add_ros_arguments(p)
     p.set_defaults(run=run_export)
 
     p = sub.add_parser(
-        "ros2-bridge", help="publish scans and estimates as ROS 2 topics over rmw_zenoh",
+        "ros2-bridge",
+        help="publish scans and estimates as ROS 2 topics over rmw_zenoh",
         description="Reconstruct live (or replay --source) and publish the same topics as `export` on rmw_zenoh key "
-                    "expressions, with liveliness tokens, so `ros2 topic echo` on a robot running rmw_zenoh sees "
-                    "them. Connect it to the robot's rmw_zenohd router (default tcp/127.0.0.1:7447).")
+        "expressions, with liveliness tokens, so `ros2 topic echo` on a robot running rmw_zenoh sees "
+        "them. Connect it to the robot's rmw_zenohd router (default tcp/127.0.0.1:7447).",
+    )
     p.add_argument("--source", type=Path, metavar="FILE.mcap", help="replay a recording instead of subscribing")
-    p.add_argument("--hold", action="store_true",
-                   help="with --source: keep the node (and the latched topics) up until Ctrl-C")
-    p.add_argument("--until-scans", type=int, default=0, metavar="N",
-                   help="live: exit after N final estimates (default: run until Ctrl-C)")
+    p.add_argument(
+        "--hold", action="store_true", help="with --source: keep the node (and the latched topics) up until Ctrl-C"
+    )
+    p.add_argument(
+        "--until-scans",
+        type=int,
+        default=0,
+        metavar="N",
+        help="live: exit after N final estimates (default: run until Ctrl-C)",
+    )
     p.add_argument("--scanner", default="*", help="only this scanner id (default: all)")
     p.add_argument("--domain-id", type=int, default=0, metavar="N", help="ROS_DOMAIN_ID (default: 0)")
     p.add_argument("--node-name", default="lelsonar_bridge", help="ROS 2 node name (default: lelsonar_bridge)")
@@ -51,15 +65,24 @@ def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
 
     g = p.add_argument_group("estimation and drawing")
     add_method_arguments(g, "also draw these methods' planes (default: ls; '' for none)")
-    g.add_argument("--truth-preset", metavar="PRESET",
-                   help="draw the true planes of this simulator preset (default: the recording's own preset "
-                        "when its device is sim or emulated)")
+    g.add_argument(
+        "--truth-preset",
+        metavar="PRESET",
+        help="draw the true planes of this simulator preset (default: the recording's own preset "
+        "when its device is sim or emulated)",
+    )
     g.add_argument("--no-truth", action="store_true", help="never draw true planes")
-    g.add_argument("--parent-frame", metavar="FRAME",
-                   help="also publish an identity transform FRAME → <scanner>/base (e.g. base_link)")
-    g.add_argument("--fov-deg", type=float, metavar="DEG",
-                   help="sensor_msgs/Range field_of_view, full angle (default: twice the estimator's beam "
-                        "half-angle, 70)")
+    g.add_argument(
+        "--parent-frame",
+        metavar="FRAME",
+        help="also publish an identity transform FRAME → <scanner>/base (e.g. base_link)",
+    )
+    g.add_argument(
+        "--fov-deg",
+        type=float,
+        metavar="DEG",
+        help="sensor_msgs/Range field_of_view, full angle (default: twice the estimator's beam half-angle, 70)",
+    )
 
 
 def _service_config(args: argparse.Namespace, *, provisional: bool):
@@ -87,9 +110,9 @@ def _truth(args: argparse.Namespace, source: Path | None):
         only_simulated = True
     if not preset_name:
         return None
+    from lelsonar.errors import ConfigError
     from lelsonar.sim import preset
     from lelsonar.sim.scan import true_planes
-    from lelsonar.errors import ConfigError
 
     try:
         planes = [TruePlane(p.label, p.normal, p.offset, p.corners) for p in true_planes(preset(preset_name))]
@@ -103,9 +126,14 @@ def _truth(args: argparse.Namespace, source: Path | None):
 def _view(args: argparse.Namespace, emit, source: Path | None, distro: str = "jazzy"):
     from lelsonar.bridge.ros2 import Ros2View
 
-    return Ros2View(emit, main_method=args.method, distro=distro, truth=_truth(args, source),
-                    field_of_view=math.radians(args.fov_deg) if args.fov_deg is not None else None,
-                    parent_frame=args.parent_frame)
+    return Ros2View(
+        emit,
+        main_method=args.method,
+        distro=distro,
+        truth=_truth(args, source),
+        field_of_view=math.radians(args.fov_deg) if args.fov_deg is not None else None,
+        parent_frame=args.parent_frame,
+    )
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -113,9 +141,13 @@ def run_export(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.stream.service import ReconstructionService
 
     config = _service_config(args, provisional=False)  # a batch export needs only the finals
-    counts = export_rosbag2(args.source, args.output, distro=args.distro,
-                            view_factory=lambda sink: _view(args, sink, args.source, args.distro),
-                            service_factory=lambda view: ReconstructionService(config, observer=view))
+    counts = export_rosbag2(
+        args.source,
+        args.output,
+        distro=args.distro,
+        view_factory=lambda sink: _view(args, sink, args.source, args.distro),
+        service_factory=lambda view: ReconstructionService(config, observer=view),
+    )
     for topic, n in sorted(counts.items()):
         print(f"{n:8d}  {topic}")
     print(f"wrote {args.output} — inspect it with: ros2 bag info {args.output}")
@@ -125,9 +157,9 @@ def run_export(args: argparse.Namespace) -> int:
 def run_bridge(args: argparse.Namespace) -> int:
     from lelsonar.bridge.rmw_zenoh import RmwZenohNode, open_ros_session
     from lelsonar.keys import ScannerKeys
+    from lelsonar.net.transport import zenoh_settings_from_args
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import LiveSource, replay_mcap
-    from lelsonar.net.transport import zenoh_settings_from_args
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -136,8 +168,9 @@ def run_bridge(args: argparse.Namespace) -> int:
 
     with ExitStack() as stack:
         session = stack.enter_context(open_ros_session(zenoh_settings_from_args(args)))
-        node = stack.enter_context(RmwZenohNode(session, name=args.node_name, namespace=args.namespace,
-                                                domain_id=args.domain_id))
+        node = stack.enter_context(
+            RmwZenohNode(session, name=args.node_name, namespace=args.namespace, domain_id=args.domain_id)
+        )
 
         def emit(message) -> None:
             nonlocal n_final
@@ -147,10 +180,14 @@ def run_bridge(args: argparse.Namespace) -> int:
                 if args.until_scans and n_final >= args.until_scans:
                     stop.set()
 
-        service = ReconstructionService(_service_config(args, provisional=args.source is None),
-                                        observer=_view(args, emit, args.source))
-        print(f"ros2-bridge: node {args.namespace.rstrip('/')}/{args.node_name} on domain {args.domain_id} "
-              f"(zenoh id {node.zid})", flush=True)
+        service = ReconstructionService(
+            _service_config(args, provisional=args.source is None), observer=_view(args, emit, args.source)
+        )
+        print(
+            f"ros2-bridge: node {args.namespace.rstrip('/')}/{args.node_name} on domain {args.domain_id} "
+            f"(zenoh id {node.zid})",
+            flush=True,
+        )
         if args.source is not None:
             n = replay_mcap(args.source, service)
             print(f"ros2-bridge: replayed {n} payloads, {n_final} final estimates", flush=True)

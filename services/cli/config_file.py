@@ -29,9 +29,13 @@ def add_config_arguments(subparsers: argparse._SubParsersAction) -> None:
     for name, p in subparsers.choices.items():
         if any(a.dest == "config" for a in p._actions):
             continue
-        p.add_argument("--config", type=Path, metavar="FILE.toml",
-                       help=f"TOML file: its [{name}] table sets this command's flags by their long names, its "
-                            f"[zenoh] table the Zenoh flags; flags given here win (examples/rig.toml)")
+        p.add_argument(
+            "--config",
+            type=Path,
+            metavar="FILE.toml",
+            help=f"TOML file: its [{name}] table sets this command's flags by their long names, its "
+            f"[zenoh] table the Zenoh flags; flags given here win (examples/rig.toml)",
+        )
 
 
 def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
@@ -103,15 +107,17 @@ def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argpa
                 continue  # a command without Zenoh ignores [zenoh]
             if dest not in allowed:
                 known = ", ".join(sorted(allowed)) or "none"
-                raise ConfigError(f"{path}: unknown key {key!r} in [{table}] for `lelsonar {args.command}`; "
-                                  f"known: {known}")
+                raise ConfigError(
+                    f"{path}: unknown key {key!r} in [{table}] for `lelsonar {args.command}`; known: {known}"
+                )
             values[dest] = (_convert(actions[dest], value, f"{path}: [{table}].{key}"), table)
     if not values:
         return args
     # Which flags did the command line give?  Parse again with sentinels as the defaults.
     saved = {dest: sub.get_default(dest) for dest in values}
-    sub.set_defaults(**{dest: (None if isinstance(actions[dest], argparse._AppendAction) else _UNSET)
-                        for dest in values})
+    sub.set_defaults(
+        **{dest: (None if isinstance(actions[dest], argparse._AppendAction) else _UNSET) for dest in values}
+    )
     try:
         probe = parser.parse_args(argv)
     finally:

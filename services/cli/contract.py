@@ -17,14 +17,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_schemas)
 
     p = sub.add_parser("router", help="run a Zenoh router that services and planners connect to as clients")
-    p.add_argument("--listen", "-l", action="append", metavar="ENDPOINT",
-                   help="endpoint to listen on; repeatable (default: tcp/127.0.0.1:7447)")
+    p.add_argument(
+        "--listen",
+        "-l",
+        action="append",
+        metavar="ENDPOINT",
+        help="endpoint to listen on; repeatable (default: tcp/127.0.0.1:7447)",
+    )
     p.add_argument("--zenoh-config", metavar="FILE", help="a Zenoh JSON5 config file to start from")
-    p.add_argument("--secure", metavar="DIR",
-                   help="mutual TLS with DIR/router.pem and per-role access control, deny by default "
-                        "(DIR made by `lelsonar secure init`); tcp/ endpoints become tls/")
-    p.add_argument("--prefix", default="lelsonar", help="key-expression prefix the access rules cover "
-                                                         "(default: lelsonar)")
+    p.add_argument(
+        "--secure",
+        metavar="DIR",
+        help="mutual TLS with DIR/router.pem and per-role access control, deny by default "
+        "(DIR made by `lelsonar secure init`); tcp/ endpoints become tls/",
+    )
+    p.add_argument(
+        "--prefix", default="lelsonar", help="key-expression prefix the access rules cover (default: lelsonar)"
+    )
     p.set_defaults(run=run_router)
 
 
@@ -47,12 +56,18 @@ def contract_tables(prefix: str = "lelsonar", scanner: str = "<scanner_id>"):
         keys.add_column(col, overflow="fold")
     base = f"{prefix}/{scanner}"
     keys.add_row(f"{base}/sample", "lelsonar.v1.Sample", recording.TOPICS[codec.Sample])
-    keys.add_row(f"{base}/scan", "lelsonar.v1.ScanStart | ScanEnd",
-                 f"{recording.TOPICS[codec.ScanStart]}, {recording.TOPICS[codec.ScanEnd]}")
+    keys.add_row(
+        f"{base}/scan",
+        "lelsonar.v1.ScanStart | ScanEnd",
+        f"{recording.TOPICS[codec.ScanStart]}, {recording.TOPICS[codec.ScanEnd]}",
+    )
     keys.add_row(f"{base}/planes", "lelsonar.v1.Reconstruction (get → latest)", recording.TOPICS[codec.Reconstruction])
     keys.add_row(f"{base}/alive/<service>", "liveliness token", "—")
-    keys.add_row(f"{base}/log/<scan_id>?steps=A-B;start=1;end=1",
-                 "queryable (acquire): the recorded ScanStart | Sample | ScanEnd", "—")
+    keys.add_row(
+        f"{base}/log/<scan_id>?steps=A-B;start=1;end=1",
+        "queryable (acquire): the recorded ScanStart | Sample | ScanEnd",
+        "—",
+    )
     tables = [keys]
     comments = field_comments()
     for cls in codec.MESSAGE_TYPES.values():
@@ -64,8 +79,12 @@ def contract_tables(prefix: str = "lelsonar", scanner: str = "<scanner_id>"):
         for f in cls.DESCRIPTOR.fields:
             named = f.message_type or f.enum_type
             kind = named.full_name if named else _SCALAR_NAMES.get(f.type, str(f.type))
-            t.add_row(str(f.number), f.name, ("repeated " if _is_repeated(f) else "") + str(kind),
-                      comments.get((cls.DESCRIPTOR.name, f.name), ""))
+            t.add_row(
+                str(f.number),
+                f.name,
+                ("repeated " if _is_repeated(f) else "") + str(kind),
+                comments.get((cls.DESCRIPTOR.name, f.name), ""),
+            )
         tables.append(t)
     return tables
 
@@ -93,8 +112,17 @@ def _is_repeated(field) -> bool:
     return bool(getattr(field, "is_repeated", False)) or getattr(field, "label", None) == 3
 
 
-_SCALAR_NAMES = {1: "double", 2: "float", 3: "int64", 4: "uint64", 5: "int32", 8: "bool", 9: "string",
-                 12: "bytes", 13: "uint32"}
+_SCALAR_NAMES = {
+    1: "double",
+    2: "float",
+    3: "int64",
+    4: "uint64",
+    5: "int32",
+    8: "bool",
+    9: "string",
+    12: "bytes",
+    13: "uint32",
+}
 
 
 def run_schemas(args: argparse.Namespace) -> int:
@@ -117,16 +145,21 @@ def run_router(args: argparse.Namespace) -> int:
 
     file = Path(args.zenoh_config) if args.zenoh_config else None
     # Typed flags override the file; the defaults apply only without a file (see lelsonar.net.transport).
-    settings = ZenohSettings(mode="router", connect=None if file else (),
-                             listen=tuple(args.listen) if args.listen else (None if file else ("tcp/127.0.0.1:7447",)),
-                             config_file=file)
+    settings = ZenohSettings(
+        mode="router",
+        connect=None if file else (),
+        listen=tuple(args.listen) if args.listen else (None if file else ("tcp/127.0.0.1:7447",)),
+        config_file=file,
+    )
     note = ""
     if args.secure:
         from lelsonar.net.secure import ROUTER, SecureDir, secure_settings
 
         settings = secure_settings(settings, args.secure, ROUTER, args.prefix)
-        note = (" (mutual TLS; deny by default, allowing reconstruct, planner and "
-                f"{', '.join('acquire-' + s for s in SecureDir(Path(args.secure)).scanners())})")
+        note = (
+            " (mutual TLS; deny by default, allowing reconstruct, planner and "
+            f"{', '.join('acquire-' + s for s in SecureDir(Path(args.secure)).scanners())})"
+        )
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

@@ -23,16 +23,28 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run acquire, reconstruct and planner over Zenoh and compare LS, LEL and truth",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "demo",
+        help="run acquire, reconstruct and planner over Zenoh and compare LS, LEL and truth",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", type=Path, default=Path("out"), help="output directory (default: out)")
     p.add_argument("--preset", default="paper-test1", help="simulated scene (default: paper-test1)")
-    p.add_argument("--device", default="emulated", choices=("emulated", "sim"),
-                   help="emulated devices through the real drivers (default), or the simulator directly")
+    p.add_argument(
+        "--device",
+        default="emulated",
+        choices=("emulated", "sim"),
+        help="emulated devices through the real drivers (default), or the simulator directly",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--secure", type=Path, metavar="DIR",
-                   help="run everything over mutual TLS with per-role access control, with the certificates in DIR "
-                        "(made now for scanner1 if DIR holds no CA)")
+    p.add_argument(
+        "--secure",
+        type=Path,
+        metavar="DIR",
+        help="run everything over mutual TLS with per-role access control, with the certificates in DIR "
+        "(made now for scanner1 if DIR holds no CA)",
+    )
     p.set_defaults(run=run_demo)
 
 
@@ -44,11 +56,11 @@ def _free_tcp_port() -> int:
 
 def run_demo(args: argparse.Namespace) -> int:
 
+    from lelsonar.errors import LelsonarError
+    from lelsonar.net.transport import ZenohSettings, open_session
     from lelsonar.sim import preset
     from lelsonar.sim.scan import true_planes
-    from lelsonar.errors import LelsonarError
     from lelsonar.view import present
-    from lelsonar.net.transport import ZenohSettings, open_session
 
     console = present.console()
     out: Path = args.out
@@ -69,8 +81,10 @@ def run_demo(args: argparse.Namespace) -> int:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     truth = {p.label: (p.normal, p.offset) for p in true_planes(preset(args.preset))}
 
-    console.rule(f"lelsonar demo — scene {args.preset}, device {args.device}, Zenoh on {endpoint}"
-                 + (" (mutual TLS + access control)" if args.secure else ""))
+    console.rule(
+        f"lelsonar demo — scene {args.preset}, device {args.device}, Zenoh on {endpoint}"
+        + (" (mutual TLS + access control)" if args.secure else "")
+    )
     t_start = time.monotonic()
     procs: list[subprocess.Popen] = []
 
@@ -95,18 +109,52 @@ def run_demo(args: argparse.Namespace) -> int:
                     ready.set()
 
             session.liveliness().declare_subscriber("lelsonar/*/alive/*", on_token, history=True)
-            recon = spawn("reconstruct", ["reconstruct", "--json", "--until-scans", "1", "--rrd", str(rrd),
-                                          "--compare", "ls,paper,fcm-ransac",
-                                          "--truth-preset", args.preset, *link],
-                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-            planner = spawn("planner", ["planner", "--json", "--until-final", "1", "--timeout", "120", *link],
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+            recon = spawn(
+                "reconstruct",
+                [
+                    "reconstruct",
+                    "--json",
+                    "--until-scans",
+                    "1",
+                    "--rrd",
+                    str(rrd),
+                    "--compare",
+                    "ls,paper,fcm-ransac",
+                    "--truth-preset",
+                    args.preset,
+                    *link,
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+            )
+            planner = spawn(
+                "planner",
+                ["planner", "--json", "--until-final", "1", "--timeout", "120", *link],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.DEVNULL,
+            )
             if not ready.wait(60):
                 console.print(f"[red]reconstruct and planner did not come up (seen: {sorted(seen)})")
                 return 1
-            acquire = spawn("acquire", ["acquire", "--device", args.device, "--preset", args.preset,
-                                        "--seed", str(args.seed), "--out", str(out), "--mcap-name", mcap.name,
-                                        "--serve-log-for", "2", *link])
+            acquire = spawn(
+                "acquire",
+                [
+                    "acquire",
+                    "--device",
+                    args.device,
+                    "--preset",
+                    args.preset,
+                    "--seed",
+                    str(args.seed),
+                    "--out",
+                    str(out),
+                    "--mcap-name",
+                    mcap.name,
+                    "--serve-log-for",
+                    "2",
+                    *link,
+                ],
+            )
             if acquire.wait(300) != 0:
                 console.print("[red]acquisition failed")
                 return 1
@@ -131,12 +179,19 @@ def run_demo(args: argparse.Namespace) -> int:
         console.print("[red]the planner received no final estimate")
         return 1
     final = present.from_json(finals[-1])
-    console.print(present.planes_table(final, truth, title="Final estimate received by the planner "
-                                       f"(critical angle {final.critical_angle * 57.29578:.1f}°)"))
+    console.print(
+        present.planes_table(
+            final,
+            truth,
+            title=f"Final estimate received by the planner (critical angle {final.critical_angle * 57.29578:.1f}°)",
+        )
+    )
     _print_equations(console, final, truth)
     elapsed = time.monotonic() - t_start
-    console.print(f"\nwrote {mcap} ({mcap.stat().st_size / 1e6:.1f} MB) and {rrd} ({rrd.stat().st_size / 1e6:.1f} MB)"
-                  f" in {elapsed:.1f} s")
+    console.print(
+        f"\nwrote {mcap} ({mcap.stat().st_size / 1e6:.1f} MB) and {rrd} ({rrd.stat().st_size / 1e6:.1f} MB)"
+        f" in {elapsed:.1f} s"
+    )
     console.print(f"open the live reconstruction:  [bold]{Path(sys.executable).parent / 'rerun'} {rrd}[/]")
     console.print(f"open the raw recording:        [bold]{Path(sys.executable).parent / 'rerun'} {mcap}[/]")
     return 0
@@ -146,8 +201,8 @@ def _print_equations(console, final, truth) -> None:
     """The paper's way of writing the planes (cm), method by method, then who wins."""
     import numpy as np
 
-    from lelsonar.view import present
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.view import present
 
     methods = sorted({p.method for p in final.planes}, key=lambda m: (m != "ls", m != "paper", m))
     console.print("\nPlanes as the paper writes them (cm; ideal: y = 157, z = 106):")

@@ -8,28 +8,24 @@ at the printed paths.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import signal
 import sys
 import threading
-from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices.link import AX12_BUS, SENSOR_BOARD_USB
-from lelsonar.acquire.emulate.ax12_emulator import AX12Emulator, AX12EmulatorConfig
+from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
+from lelsonar.acquire.emulate.rig import emulated_rig
 from lelsonar.acquire.emulate.sensor_board_emulator import (
-    SensorBoardEmulator,
     SensorBoardEmulatorConfig,
     ShotSource,
     echo_shot_source,
     sim_shot_source,
 )
-from lelsonar.acquire.emulate.rig import emulated_rig
 from lelsonar.errors import ConfigError
 
 
@@ -56,9 +52,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--corrupt-p", type=float, default=0.0, help="probability of a bit flip in an ACQ frame")
     p.add_argument("--garbage-p", type=float, default=0.0, help="probability of garbage before a frame")
     p.add_argument("--no-realtime", action="store_true", help="answer FIRE at once instead of after the window")
-    p.add_argument("--unpaced", action="store_true",
-                   help="move bytes as fast as the ptys take them, instead of at the links' rates (the AX-12 bus "
-                        "at 1 Mbps, the board on USB full speed)")
+    p.add_argument(
+        "--unpaced",
+        action="store_true",
+        help="move bytes as fast as the ptys take them, instead of at the links' rates (the AX-12 bus "
+        "at 1 Mbps, the board on USB full speed)",
+    )
     p.add_argument("--json", action="store_true", help="also print the paths as one JSON line")
     p.set_defaults(run=run)
 
@@ -81,7 +80,10 @@ def run(args: argparse.Namespace) -> int:
     source, source_name = _shot_source(args)
     start_raw = ax12.raw_from_gamma(math.radians(args.start_gamma), args.zero_raw)
     motor_config = AX12EmulatorConfig(
-        motor_id=args.motor_id, return_delay=args.return_delay, initial_position=start_raw, seed=args.seed,
+        motor_id=args.motor_id,
+        return_delay=args.return_delay,
+        initial_position=start_raw,
+        seed=args.seed,
         link=None if args.unpaced else AX12_BUS,
     )
     board_config = SensorBoardEmulatorConfig(
@@ -97,8 +99,10 @@ def run(args: argparse.Namespace) -> int:
         with emulated_rig(source, motor_config, board_config, zero_raw=args.zero_raw) as rig:
             pace = "unpaced" if args.unpaced else "paced"
             print(f"AX-12 (id {args.motor_id}, 1 Mbps, {pace}): {rig.motor.path}")
-            print(f"sensor board ({source_name}, {'unpaced' if args.unpaced else SENSOR_BOARD_USB.describe()}): "
-                  f"{rig.board.path}")
+            print(
+                f"sensor board ({source_name}, {'unpaced' if args.unpaced else SENSOR_BOARD_USB.describe()}): "
+                f"{rig.board.path}"
+            )
             if args.json:
                 print(json.dumps({**rig.paths, "motor_id": args.motor_id, "source": source_name}))
             print("running; Ctrl-C to stop", file=sys.stderr)

@@ -18,42 +18,84 @@ def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.net.transport import add_zenoh_arguments
 
     p = sub.add_parser(
-        "reconstruct", help="estimate planes live from Zenoh, or from an MCAP recording",
+        "reconstruct",
+        help="estimate planes live from Zenoh, or from an MCAP recording",
         description="Consume samples incrementally, find the corner, fit both planes and publish the estimates "
-                    "on <prefix>/<scanner>/planes (a get there returns the latest).")
-    p.add_argument("--source", type=Path, metavar="FILE.mcap",
-                   help="replay a recording instead of subscribing to Zenoh")
+        "on <prefix>/<scanner>/planes (a get there returns the latest).",
+    )
+    p.add_argument(
+        "--source", type=Path, metavar="FILE.mcap", help="replay a recording instead of subscribing to Zenoh"
+    )
     p.add_argument("--scanner", default="*", help="only this scanner id (default: all)")
-    p.add_argument("--json", action="store_true",
-                   help="print terminal estimates (final, final_timeout, incomplete) as JSON lines (SI units), "
-                        "and, on stderr, one line {\"stats\": {...}} with the service's accounting")
-    p.add_argument("--publish", action="store_true",
-                   help="with --source: also publish the estimates on Zenoh (live mode always publishes)")
-    p.add_argument("--until-scans", type=int, default=0, metavar="N",
-                   help="live: exit after N final estimates (default: run until Ctrl-C)")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        help="print terminal estimates (final, final_timeout, incomplete) as JSON lines (SI units), "
+        'and, on stderr, one line {"stats": {...}} with the service\'s accounting',
+    )
+    p.add_argument(
+        "--publish",
+        action="store_true",
+        help="with --source: also publish the estimates on Zenoh (live mode always publishes)",
+    )
+    p.add_argument(
+        "--until-scans",
+        type=int,
+        default=0,
+        metavar="N",
+        help="live: exit after N final estimates (default: run until Ctrl-C)",
+    )
     p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the estimates to an MCAP file")
-    p.add_argument("--truth-preset", metavar="PRESET",
-                   help="draw the true planes of a simulator preset in Rerun (e.g. paper-test1)")
-    g = p.add_argument_group("gap recovery (live)", "Missing steps are asked from the acquirer's log "
-                             "(<prefix>/<scanner>/log/<scan_id>); a scan still lacking steps after the attempts "
-                             "is published INCOMPLETE with its missing_steps, never FINAL.")
-    g.add_argument("--recovery-attempts", type=int, default=5, metavar="N",
-                   help="requests per scan without progress before giving up (default: 5; 0 disables recovery)")
-    g.add_argument("--recovery-interval", type=float, default=1.0, metavar="S",
-                   help="seconds between requests for one scan (default: 1)")
-    g.add_argument("--recovery-after", type=float, default=1.0, metavar="S",
-                   help="seconds of silence before an open scan without ScanEnd asks the log for the rest "
-                        "(default: 1)")
-    g = p.add_argument_group("scaling out (live)", "Reconstructors with the same --group share the scanners of "
-                             "their prefix, each scanner processed by one member (rendezvous hashing over the "
-                             "members' liveliness tokens). A member keeps a scan it started until its final; "
-                             "a joining member takes its share at the scans that start after it settled; the "
-                             "scans of a member that dies are completed by the others from the acquirers' logs.")
+    p.add_argument(
+        "--truth-preset",
+        metavar="PRESET",
+        help="draw the true planes of a simulator preset in Rerun (e.g. paper-test1)",
+    )
+    g = p.add_argument_group(
+        "gap recovery (live)",
+        "Missing steps are asked from the acquirer's log "
+        "(<prefix>/<scanner>/log/<scan_id>); a scan still lacking steps after the attempts "
+        "is published INCOMPLETE with its missing_steps, never FINAL.",
+    )
+    g.add_argument(
+        "--recovery-attempts",
+        type=int,
+        default=5,
+        metavar="N",
+        help="requests per scan without progress before giving up (default: 5; 0 disables recovery)",
+    )
+    g.add_argument(
+        "--recovery-interval",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="seconds between requests for one scan (default: 1)",
+    )
+    g.add_argument(
+        "--recovery-after",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="seconds of silence before an open scan without ScanEnd asks the log for the rest (default: 1)",
+    )
+    g = p.add_argument_group(
+        "scaling out (live)",
+        "Reconstructors with the same --group share the scanners of "
+        "their prefix, each scanner processed by one member (rendezvous hashing over the "
+        "members' liveliness tokens). A member keeps a scan it started until its final; "
+        "a joining member takes its share at the scans that start after it settled; the "
+        "scans of a member that dies are completed by the others from the acquirers' logs.",
+    )
     g.add_argument("--group", metavar="NAME", help="share the scanners with the other members of group NAME")
     g.add_argument("--member-id", metavar="ID", help="this member's id, unique in the group (default: host-pid-random)")
-    g.add_argument("--group-settle", type=float, default=2.0, metavar="S",
-                   help="a joining member takes part in scans starting S s after it joined; members' clocks must "
-                        "agree within S (default: 2)")
+    g.add_argument(
+        "--group-settle",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="a joining member takes part in scans starting S s after it joined; members' clocks must "
+        "agree within S (default: 2)",
+    )
     _add_estimator_arguments(p)
     _add_rerun_arguments(p)
     _add_foxglove_arguments(p)
@@ -64,18 +106,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("review", help="reconstruct a recording offline into a Rerun .rrd with the default layout")
     p.add_argument("source", type=Path, metavar="FILE.mcap")
     p.add_argument("-o", "--output", type=Path, metavar="FILE.rrd", help="default: next to the input")
-    p.add_argument("--truth-preset", metavar="PRESET",
-                   help="draw the true planes of a simulator preset (e.g. paper-test1)")
+    p.add_argument(
+        "--truth-preset", metavar="PRESET", help="draw the true planes of a simulator preset (e.g. paper-test1)"
+    )
     _add_estimator_arguments(p)
     p.set_defaults(run=run_review)
 
     p = sub.add_parser("planner", help="an example remote consumer: print plane estimates as they arrive")
     p.add_argument("--scanner", default="*", help="only this scanner id (default: all)")
     p.add_argument("--json", action="store_true", help="JSON lines instead of tables")
-    p.add_argument("--until-final", type=int, default=0, metavar="N",
-                   help="exit after N final estimates (default: run until Ctrl-C)")
-    p.add_argument("--timeout", type=float, default=0.0, metavar="S",
-                   help="give up after S seconds without a final estimate (default: never)")
+    p.add_argument(
+        "--until-final",
+        type=int,
+        default=0,
+        metavar="N",
+        help="exit after N final estimates (default: run until Ctrl-C)",
+    )
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="give up after S seconds without a final estimate (default: never)",
+    )
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
     p.set_defaults(run=run_planner)
@@ -85,8 +138,12 @@ def add_method_arguments(g, compare_help: str) -> None:
     """``--method`` and ``--compare``, for every command that reconstructs (see :func:`compared_methods`)."""
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
-    g.add_argument("--method", default=DEFAULT_METHOD, choices=sorted(METHODS),
-                   help=f"estimator of record (default: {DEFAULT_METHOD})")
+    g.add_argument(
+        "--method",
+        default=DEFAULT_METHOD,
+        choices=sorted(METHODS),
+        help=f"estimator of record (default: {DEFAULT_METHOD})",
+    )
     g.add_argument("--compare", default="ls", metavar="M1,M2", help=compare_help)
 
 
@@ -98,27 +155,44 @@ def compared_methods(args: argparse.Namespace) -> tuple[str, ...]:
 def _add_estimator_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("estimation")
     add_method_arguments(g, "also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
-    g.add_argument("--scan-timeout", type=float, default=10.0, metavar="S",
-                   help="finalise a scan after S seconds of silence without ScanEnd (default: 10)")
+    g.add_argument(
+        "--scan-timeout",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="finalise a scan after S seconds of silence without ScanEnd (default: 10)",
+    )
 
 
 def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("rerun")
     g.add_argument("--rrd", type=Path, metavar="FILE.rrd", help="save the Rerun recording to a file")
     g.add_argument("--serve", type=int, metavar="PORT", help="serve the recording over gRPC for a remote viewer")
-    g.add_argument("--serve-bind", default="127.0.0.1", metavar="IP",
-                   help="address --serve listens on (default: 127.0.0.1; 0.0.0.0 exposes it to the network)")
+    g.add_argument(
+        "--serve-bind",
+        default="127.0.0.1",
+        metavar="IP",
+        help="address --serve listens on (default: 127.0.0.1; 0.0.0.0 exposes it to the network)",
+    )
     g.add_argument("--spawn", action="store_true", help="spawn a local Rerun viewer")
 
 
 def _add_foxglove_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("foxglove")
-    g.add_argument("--foxglove", metavar="[HOST:]PORT",
-                   help="serve a live Foxglove WebSocket (e.g. 8765, or 0.0.0.0:8765 for the network; port 0 picks "
-                        "one); open examples/foxglove-layout.json in Foxglove and connect to ws://HOST:PORT")
-    g.add_argument("--foxglove-wait", type=float, default=0.0, metavar="S",
-                   help="with --source: wait up to S s for a Foxglove client to subscribe before replaying, "
-                        "then keep serving until Ctrl-C (default: replay at once)")
+    g.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help="serve a live Foxglove WebSocket (e.g. 8765, or 0.0.0.0:8765 for the network; port 0 picks "
+        "one); open examples/foxglove-layout.json in Foxglove and connect to ws://HOST:PORT",
+    )
+    g.add_argument(
+        "--foxglove-wait",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="with --source: wait up to S s for a Foxglove client to subscribe before replaying, "
+        "then keep serving until Ctrl-C (default: replay at once)",
+    )
 
 
 def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
@@ -135,10 +209,14 @@ def _config(args: argparse.Namespace, *, provisional: bool = True):
     from lelsonar.reconstruct.stream.service import ReconstructConfig
 
     compare = compared_methods(args)
-    recovery = {k: getattr(args, k) for k in ("recovery_attempts", "recovery_interval", "recovery_after")
-                if getattr(args, k, None) is not None}
-    return ReconstructConfig(method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout,
-                             provisional=provisional, **recovery)
+    recovery = {
+        k: getattr(args, k)
+        for k in ("recovery_attempts", "recovery_interval", "recovery_after")
+        if getattr(args, k, None) is not None
+    }
+    return ReconstructConfig(
+        method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout, provisional=provisional, **recovery
+    )
 
 
 def _group_config(args: argparse.Namespace):
@@ -180,9 +258,17 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
         return None
     from lelsonar.view.rerun_observer import open_rerun
 
-    return stack.enter_context(open_rerun(rrd=args.rrd, serve_port=args.serve, serve_bind=args.serve_bind, spawn=args.spawn,
-                                          application_id=application_id, truth_preset=args.truth_preset,
-                                          main_method=args.method))
+    return stack.enter_context(
+        open_rerun(
+            rrd=args.rrd,
+            serve_port=args.serve,
+            serve_bind=args.serve_bind,
+            spawn=args.spawn,
+            application_id=application_id,
+            truth_preset=args.truth_preset,
+            main_method=args.method,
+        )
+    )
 
 
 def _open_source(path: Path):
@@ -203,11 +289,12 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     import json
 
     from lelsonar.keys import ScannerKeys
-    from lelsonar.view import present
-    from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer, replay_mcap
     from lelsonar.log.recording import McapRecorder
     from lelsonar.net.transport import open_session
+    from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer, replay_mcap
+    from lelsonar.view import present
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     # A batch replay needs no provisional estimates: the finals are computed from scratch anyway.
@@ -218,7 +305,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     def report(msg) -> None:
         nonlocal n_final
-        if present.is_terminal(msg):
+        if wire.is_terminal(msg):
             n_final += 1
             if args.json:
                 print(present.to_json(msg), flush=True)
@@ -254,12 +341,14 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 # Entered before the live source, so it leaves after it: no final once the token is gone.
                 group = stack.enter_context(GroupMembership(session, keys.prefix, group_config))
         # In a group, only what passes the fence is published (and a final is marked done for the group).
-        service = ReconstructionService(config, publish=group.fenced(deliver) if group is not None else deliver,
-                                        observer=observer)
+        service = ReconstructionService(
+            config, publish=group.fenced(deliver) if group is not None else deliver, observer=observer
+        )
         if session is not None:
             # A get answers from the service's own table (in a group: for the scanners this member owns).
-            server = PlanesServer(session, keys, service.latest,
-                                  answers_for=group.answers_for if group is not None else None)
+            server = PlanesServer(
+                session, keys, service.latest, answers_for=group.answers_for if group is not None else None
+            )
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
         if args.source is not None:
@@ -279,15 +368,20 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             stats = service.stats_dict()
             _print_stats(console, stats, args.json, json)
             if fox is not None and args.foxglove_wait > 0:
-                console.print(f"reconstruct: replay done, {len(service.finals)} final estimates; "
-                              "serving Foxglove until Ctrl-C", highlight=False)
+                console.print(
+                    f"reconstruct: replay done, {len(service.finals)} final estimates; serving Foxglove until Ctrl-C",
+                    highlight=False,
+                )
                 stop.wait()
             if not service.finals:
                 return 1
             # A scan whose method of record produced no plane is a failure a script must see.
-            missing = [f"{m.scanner_id} scan {m.scan_id} plane {label}" for m in service.finals.values()
-                       for label in ("a", "b")
-                       if not any(p.label == label and p.method == config.method for p in m.planes)]
+            missing = [
+                f"{m.scanner_id} scan {m.scan_id} plane {label}"
+                for m in service.finals.values()
+                for label in ("a", "b")
+                if not any(p.label == label and p.method == config.method for p in m.planes)
+            ]
             if missing:
                 console.print(f"reconstruct: {config.method} produced no plane for {', '.join(missing)}")
                 return 1
@@ -299,8 +393,10 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         recovery = RecoveryConfig() if config.recovery_attempts > 0 else None
         if group is not None:
             console.print(f"reconstruct: member {group.me} of group {group_config.group}", highlight=False)
-        with LiveSource(session, keys, service, stop, record=recorder, recovery=recovery, group=group) as live, \
-                session.liveliness().declare_token(keys.alive("reconstruct")):  # alive = listening
+        with (
+            LiveSource(session, keys, service, stop, record=recorder, recovery=recovery, group=group) as live,
+            session.liveliness().declare_token(keys.alive("reconstruct")),
+        ):  # alive = listening
             while not stop.is_set() and not finals.is_set():
                 stop.wait(0.2)
         stats = service.stats_dict()
@@ -320,10 +416,13 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
         f"reconstruct: {stats['finals']} terminal estimates ({stats['incomplete']} incomplete, "
         f"{stats['final_timeouts']} final_timeout); samples: published {s['published']}, live "
         f"{s['received_live']}, recovered {s['recovered']}, duplicates {s['duplicates']}, missing {s['missing']}"
-        + (f", energy mismatches {s['energy_mismatches']}" if s.get("energy_mismatches") else "") + "; "
+        + (f", energy mismatches {s['energy_mismatches']}" if s.get("energy_mismatches") else "")
+        + "; "
         f"rejected {stats['rejected']}; evicted {stats['evicted']}; recovery {stats['recovery']}"
         + (f"; worker errors {stats['worker_errors']}" if stats.get("worker_errors") else "")
-        + (f"; group {stats['group']}" if stats.get("group") else ""), highlight=False)
+        + (f"; group {stats['group']}" if stats.get("group") else ""),
+        highlight=False,
+    )
     if as_json:  # on stderr: stdout carries only estimates, one per line
         print(json.dumps({"stats": stats}, sort_keys=True, separators=(",", ":")), file=sys.stderr, flush=True)
 
@@ -331,19 +430,28 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
 def run_review(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from lelsonar.view import present
-    from lelsonar.view.rerun_observer import open_rerun
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
+    from lelsonar.view import present
+    from lelsonar.view.rerun_observer import open_rerun
 
     source = _open_source(args.source)
     out = args.output or args.source.with_suffix(".rrd")
     total = len(source.payloads())
     console = present.console(stderr=True)
-    with open_rerun(rrd=out, application_id="lelsonar", truth_preset=args.truth_preset,
-                    main_method=args.method) as observer, \
-            Progress(TextColumn("review"), BarColumn(), TextColumn("{task.completed}/{task.total} messages"),
-                     TimeRemainingColumn(), console=console, transient=True) as progress:
+    with (
+        open_rerun(
+            rrd=out, application_id="lelsonar", truth_preset=args.truth_preset, main_method=args.method
+        ) as observer,
+        Progress(
+            TextColumn("review"),
+            BarColumn(),
+            TextColumn("{task.completed}/{task.total} messages"),
+            TimeRemainingColumn(),
+            console=console,
+            transient=True,
+        ) as progress,
+    ):
         task = progress.add_task("replay", total=total)
         service = ReconstructionService(_config(args), observer=observer)
         replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
@@ -354,15 +462,15 @@ def run_review(args: argparse.Namespace) -> int:
 
 
 def run_planner(args: argparse.Namespace) -> int:
-    import zenoh
-
     from collections import Counter
+
+    import zenoh
 
     from lelsonar.errors import LelsonarError
     from lelsonar.keys import ScannerKeys
-    from lelsonar.view import present
-    from lelsonar.reconstruct.estimate import wire
     from lelsonar.net.transport import open_session
+    from lelsonar.reconstruct.estimate import wire
+    from lelsonar.view import present
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     settings = _zenoh_settings(args, "planner", keys.prefix)
@@ -381,17 +489,23 @@ def run_planner(args: argparse.Namespace) -> int:
         except LelsonarError as exc:
             with lock:
                 rejected[type(exc).__name__] += 1
-            print(f"planner: rejected an estimate ({type(exc).__name__}, {rejected[type(exc).__name__]} so far): "
-                  f"{exc}", file=sys.stderr, flush=True)
+            print(
+                f"planner: rejected an estimate ({type(exc).__name__}, {rejected[type(exc).__name__]} so far): {exc}",
+                file=sys.stderr,
+                flush=True,
+            )
             return
         with lock:
             if args.json:
                 print(present.to_json(msg), flush=True)
             else:
-                console.print(present.planes_table(msg, title=None) if present.status_name(msg) != "provisional"
-                              else f"{origin}: {msg.scanner_id} scan {msg.scan_id} provisional, "
-                                   f"{msg.samples_used} samples, {len(msg.planes)} planes")
-            if present.is_terminal(msg):
+                console.print(
+                    present.planes_table(msg, title=None)
+                    if wire.status_name(msg) != "provisional"
+                    else f"{origin}: {msg.scanner_id} scan {msg.scan_id} provisional, "
+                    f"{msg.samples_used} samples, {len(msg.planes)} planes"
+                )
+            if wire.is_terminal(msg):
                 finals += 1
                 if args.until_final and finals >= args.until_final:
                     done.set()

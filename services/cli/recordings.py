@@ -10,21 +10,29 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "recover", help="rewrite a cut, unfinished or corrupted recording as a valid, indexed MCAP",
+        "recover",
+        help="rewrite a cut, unfinished or corrupted recording as a valid, indexed MCAP",
         description="Salvage every intact message of IN (chunks that fail their CRC or decompression are skipped "
-                    "and counted) and write them, with their channels, schemas and metadata, to a new MCAP file "
-                    "with a summary and indexes. Like `mcap recover`.")
+        "and counted) and write them, with their channels, schemas and metadata, to a new MCAP file "
+        "with a summary and indexes. Like `mcap recover`.",
+    )
     p.add_argument("source", type=Path, metavar="IN.mcap")
     p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.mcap")
-    p.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
-                   help="chunk compression of the output (default: %(default)s)")
+    p.add_argument(
+        "--compression",
+        choices=("zstd", "lz4", "none"),
+        default="zstd",
+        help="chunk compression of the output (default: %(default)s)",
+    )
     p.set_defaults(run=run_recover)
 
     p = sub.add_parser(
-        "info", help="summarise recordings: scans, steps, channels, damage, estimates",
+        "info",
+        help="summarise recordings: scans, steps, channels, damage, estimates",
         description="Per file: scans and scanners, steps received against planned with the missing ones, duration, "
-                    "device, channels with message counts, damaged parts, and the final estimates if the file "
-                    "holds Reconstruction messages. Works on damaged and unfinished files.")
+        "device, channels with message counts, damaged parts, and the final estimates if the file "
+        "holds Reconstruction messages. Works on damaged and unfinished files.",
+    )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap")
     p.add_argument("--json", action="store_true", help="one JSON object per file (SI units, times in Unix ns)")
     p.set_defaults(run=run_info)
@@ -43,8 +51,10 @@ def run_recover(args: argparse.Namespace) -> int:
     s = report.source
     if report.messages_written == 0:
         args.output.unlink(missing_ok=True)
-        raise RecordingError(f"nothing to recover in {args.source}: no intact message"
-                             + (f" ({describe_damage(s)})" if not s.intact else ""))
+        raise RecordingError(
+            f"nothing to recover in {args.source}: no intact message"
+            + (f" ({describe_damage(s)})" if not s.intact else "")
+        )
     try:  # the output must open in the indexed reader, message for message
         with open(args.output, "rb") as f:
             reader = make_reader(f)
@@ -53,12 +63,17 @@ def run_recover(args: argparse.Namespace) -> int:
     except (McapError, ValueError, EOFError) as exc:
         raise RecordingError(f"the recovered {args.output} does not read back ({exc}); please report this") from None
     if summary is None or indexed != report.messages_written:
-        raise RecordingError(f"the recovered {args.output} reads back {indexed} of {report.messages_written} "
-                             "messages; please report this")
+        raise RecordingError(
+            f"the recovered {args.output} reads back {indexed} of {report.messages_written} "
+            "messages; please report this"
+        )
     samples = Recording(s).count(codec.Sample)
     state = "intact" if s.intact else describe_damage(s)
-    print(f"recovered {report.messages_written} messages ({samples} samples) on {report.channels_written} channels "
-          f"from {args.source} into {args.output}; the input {state}", file=sys.stderr)
+    print(
+        f"recovered {report.messages_written} messages ({samples} samples) on {report.channels_written} channels "
+        f"from {args.source} into {args.output}; the input {state}",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -126,25 +141,43 @@ def _print_info(info) -> None:
             planned = "?" if sc.steps_planned is None else str(sc.steps_planned)
             status = sc.status + (f" ({sc.reason})" if sc.reason else "")
             dur = f"{sc.duration_s:.2f} s" if sc.duration_s is not None else "—"
-            t.add_row(sc.scanner_id, str(sc.scan_id), sc.device or "—", status, f"{sc.steps_received}/{planned}",
-                      step_ranges(sc.missing_steps) or "none", dur)
+            t.add_row(
+                sc.scanner_id,
+                str(sc.scan_id),
+                sc.device or "—",
+                status,
+                f"{sc.steps_received}/{planned}",
+                step_ranges(sc.missing_steps) or "none",
+                dur,
+            )
         c.print(t)
     else:
         c.print("  no lelsonar scans in this file")
 
     for d in info.damage:
         n = f"{'' if d['exact'] else '≈'}{d['messages_lost']} messages"
-        c.print(f"  [yellow]damaged[/] {d['kind']} at byte {d['offset']} ({d['length']} bytes, {n}): {d['reason']}",
-                highlight=False)
+        c.print(
+            f"  [yellow]damaged[/] {d['kind']} at byte {d['offset']} ({d['length']} bytes, {n}): {d['reason']}",
+            highlight=False,
+        )
 
     for est in info.estimates:
         crit = f"critical step {est.critical_step}" if est.critical_step is not None else "no corner"
-        t = Table(title=f"estimate: {est.scanner_id} scan {est.scan_id} — {est.status}, {est.samples_used} samples, "
-                        f"{crit}", title_justify="left")
+        t = Table(
+            title=f"estimate: {est.scanner_id} scan {est.scan_id} — {est.status}, {est.samples_used} samples, {crit}",
+            title_justify="left",
+        )
         for col in ("plane", "method", "normal n", "h (cm)", "σ (mm)", "inliers", "quality"):
             t.add_column(col, justify="right" if col in ("h (cm)", "σ (mm)", "inliers") else "left")
         for p in est.planes:
             n = p["normal"]
-            t.add_row(p["label"], p["method"], f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}", f"{p['offset'] * 100:.2f}",
-                      f"{p['sigma'] * 1000:.1f}", f"{p['inliers']}/{p['points']}", p["quality"])
+            t.add_row(
+                p["label"],
+                p["method"],
+                f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}",
+                f"{p['offset'] * 100:.2f}",
+                f"{p['sigma'] * 1000:.1f}",
+                f"{p['inliers']}/{p['points']}",
+                p["quality"],
+            )
         c.print(t)

@@ -24,30 +24,51 @@ def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.sim.scenes import FAMILIES
 
     p = sub.add_parser("simulate", help="simulate a scan of an L-shaped corner (physics-based)")
-    p.add_argument("--preset", default="paper-test1", choices=preset_names(), help="scene and scan (default: %(default)s)")
-    p.add_argument("--family", choices=FAMILIES,
-                   help="draw the scene from a benchmark scene family instead of a preset (with --seed)")
+    p.add_argument(
+        "--preset", default="paper-test1", choices=preset_names(), help="scene and scan (default: %(default)s)"
+    )
+    p.add_argument(
+        "--family",
+        choices=FAMILIES,
+        help="draw the scene from a benchmark scene family instead of a preset (with --seed)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bytes")
-    p.add_argument("--mcap", metavar="OUT.mcap",
-                   help="also record the scan as `lelsonar acquire --device sim` would, with the rig's calibrated "
-                        "energy model; `lelsonar reconstruct --source OUT.mcap --json` reconstructs it")
+    p.add_argument(
+        "--mcap",
+        metavar="OUT.mcap",
+        help="also record the scan as `lelsonar acquire --device sim` would, with the rig's calibrated "
+        "energy model; `lelsonar reconstruct --source OUT.mcap --json` reconstructs it",
+    )
     p.add_argument("--plot", metavar="PATH", help="write a figure of points, energies and R (PNG/PDF/SVG)")
     p.set_defaults(run=_simulate)
 
     c = sub.add_parser("calibrate", help="fit the energy model E0(d) from six face-on shots (paper §4)")
-    c.add_argument("--preset", default="paper-test1", choices=preset_names(),
-                   help="simulator configuration to calibrate (default: %(default)s)")
+    c.add_argument(
+        "--preset",
+        default="paper-test1",
+        choices=preset_names(),
+        help="simulator configuration to calibrate (default: %(default)s)",
+    )
     c.add_argument("--seed", type=int, default=0, help="random seed of the simulated shots")
-    c.add_argument("--distances", type=float, nargs="+", metavar="M",
-                   help="wall distances in m (default: six from 0.9 to 1.8)")
-    c.add_argument("--manual", action="store_true",
-                   help="read 'distance_m energy_V2s' pairs from stdin instead of simulating")
-    c.add_argument("--device", choices=("sim", "serial"), default="sim",
-                   help="sim: the simulator (default); serial: guide six face-on shots on the real rig of "
-                        "--config and write φ into its [energy_model] table")
-    c.add_argument("--config", type=Path, metavar="RIG.toml",
-                   help="the rig file (examples/rig.toml): ports, servo, board, air; --device serial rewrites "
-                        "its [energy_model]")
+    c.add_argument(
+        "--distances", type=float, nargs="+", metavar="M", help="wall distances in m (default: six from 0.9 to 1.8)"
+    )
+    c.add_argument(
+        "--manual", action="store_true", help="read 'distance_m energy_V2s' pairs from stdin instead of simulating"
+    )
+    c.add_argument(
+        "--device",
+        choices=("sim", "serial"),
+        default="sim",
+        help="sim: the simulator (default); serial: guide six face-on shots on the real rig of "
+        "--config and write φ into its [energy_model] table",
+    )
+    c.add_argument(
+        "--config",
+        type=Path,
+        metavar="RIG.toml",
+        help="the rig file (examples/rig.toml): ports, servo, board, air; --device serial rewrites its [energy_model]",
+    )
     c.add_argument("--motor-port", help="override [servo].port")
     c.add_argument("--sensor-port", help="override [sensor_board].port")
     c.add_argument("--dry-run", action="store_true", help="--device serial: fit and print, leave the file alone")
@@ -56,7 +77,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _simulate(args: argparse.Namespace) -> int:
     from lelsonar.signal.energy import energy_ratio
-
     from lelsonar.sim.calibrate import default_energy_model
     from lelsonar.sim.presets import preset
     from lelsonar.sim.scan import EchoSource, simulate_scan
@@ -73,11 +93,15 @@ def _simulate(args: argparse.Namespace) -> int:
     ratio = energy_ratio(scan.step_energy(), scan.distance, model)
     k = int(np.argmax(ratio))
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
-    print(f"{name}, seed {args.seed}: {scan.n_steps} steps × {scan.geometry.n_capsules} capsules, "
-          f"{scan.waveforms.shape[-1]} samples at {scan.sample_rate / 1e3:.0f} kS/s, c = {scan.sound_speed:.1f} m/s")
+    print(
+        f"{name}, seed {args.seed}: {scan.n_steps} steps × {scan.geometry.n_capsules} capsules, "
+        f"{scan.waveforms.shape[-1]} samples at {scan.sample_rate / 1e3:.0f} kS/s, c = {scan.sound_speed:.1f} m/s"
+    )
     print("echo that set the TOF: " + ", ".join(f"{s.name.lower()} {counts[s]}" for s in EchoSource if counts[s]))
-    print(f"critical angle {np.degrees(scan.truth.critical_angle):.2f}° (step {scan.truth.critical_step}); "
-          f"argmax R step {k} at {np.degrees(scan.gamma_measured[k]):.2f}°")
+    print(
+        f"critical angle {np.degrees(scan.truth.critical_angle):.2f}° (step {scan.truth.critical_step}); "
+        f"argmax R step {k} at {np.degrees(scan.gamma_measured[k]):.2f}°"
+    )
     for plane in scan.truth.planes:
         n = plane.normal
         print(f"plane {plane.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}), n·p = {plane.offset:.4f} m")
@@ -96,7 +120,6 @@ def _simulate(args: argparse.Namespace) -> int:
 
 def _calibrate(args: argparse.Namespace) -> int:
     from lelsonar.signal.energy import fit_energy_model
-
     from lelsonar.sim.calibrate import PAPER_CALIBRATION_DISTANCES, CalibrationResult, calibrate_simulator
     from lelsonar.sim.presets import preset
 
@@ -122,7 +145,6 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 def _calibrate_serial(args: argparse.Namespace) -> int:
     from lelsonar.acquire.calibrate_rig import calibrate_serial
-
     from lelsonar.sim.calibrate import PAPER_CALIBRATION_DISTANCES
 
     if args.config is None:
@@ -136,8 +158,15 @@ def _calibrate_serial(args: argparse.Namespace) -> int:
             raise ConfigError("no answer on stdin; the rig file is unchanged")
         return line
 
-    shots, m = calibrate_serial(args.config, distances, ask, print, motor_port=args.motor_port,
-                                sensor_port=args.sensor_port, write=not args.dry_run)
+    shots, m = calibrate_serial(
+        args.config,
+        distances,
+        ask,
+        print,
+        motor_port=args.motor_port,
+        sensor_port=args.sensor_port,
+        write=not args.dry_run,
+    )
     print("   d (m)    E (V²·s)    fit (V²·s)   misfit")
     for s in shots:
         fit = m.expected_energy(s.distance)

@@ -12,7 +12,6 @@ use, and says how many it compiled and how many it found compiled.
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
 import tempfile
 import time
@@ -20,8 +19,12 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("warm-up", help="compile the numeric kernels ahead (once after an install or an edit)",
-                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "warm-up",
+        help="compile the numeric kernels ahead (once after an install or an edit)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.set_defaults(run=run_warm_up)
 
 
@@ -32,9 +35,9 @@ def exercise_kernels() -> None:
     (measured: 0.74 s of the first scan's handling, a p99 put→processed of 134 ms in `bench ingest`).
     The service's own log is held back meanwhile: these scans are not the user's.
     """
+    from lelsonar.acquire.simulated import record_scan
     from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
-    from lelsonar.acquire.simulated import record_scan
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     logging.disable(logging.WARNING)  # at start-up, before any thread of ours logs
@@ -49,8 +52,8 @@ def exercise_kernels() -> None:
 
 
 def run_warm_up(args: argparse.Namespace) -> int:
-    from lelsonar.view import present
     from lelsonar.signal.compiled import cache_dir, kernels
+    from lelsonar.view import present
 
     console = present.console(stderr=True)
     t0 = time.perf_counter()
@@ -61,7 +64,9 @@ def run_warm_up(args: argparse.Namespace) -> int:
     # into its callers.
     compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
     loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
-    console.print(f"warm-up: {len(found)} kernels, {compiled} compiled and {loaded} loaded from the cache in "
-                  f"{time.perf_counter() - t0:.1f} s ({cache_dir() or 'Numba default cache'}); the others are "
-                  "compiled into the kernels that call them")
+    console.print(
+        f"warm-up: {len(found)} kernels, {compiled} compiled and {loaded} loaded from the cache in "
+        f"{time.perf_counter() - t0:.1f} s ({cache_dir() or 'Numba default cache'}); the others are "
+        "compiled into the kernels that call them"
+    )
     return 0

@@ -10,21 +10,31 @@ import zlib
 
 from lelsonar.codec import QUALITY, QUALITY_NAME
 
-__all__ = ["METHOD_COLORS", "QUALITY", "QUALITY_NAME", "QUALITY_COLORS", "UNASSESSED_COLOR", "method_color",
-           "quality_color"]
+__all__ = [
+    "METHOD_COLORS",
+    "QUALITY",
+    "QUALITY_NAME",
+    "QUALITY_COLORS",
+    "UNASSESSED_COLOR",
+    "method_color",
+    "quality_color",
+]
 
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {
     "corner": (30, 120, 255),  # blue: the method of record
-    "ls": (255, 140, 0),       # orange
-    "lel": (40, 190, 70),      # green
-    "paper": (0, 180, 210),    # cyan
+    "ls": (255, 140, 0),  # orange
+    "lel": (40, 190, 70),  # green
+    "paper": (0, 180, 210),  # cyan
     "fcm-ransac": (220, 60, 200),  # magenta
 }
 _PALETTE = ((230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100))
 
 #: The trust verdict: green good, amber degraded, red unreliable.
-QUALITY_COLORS: dict[str, tuple[int, int, int]] = {"good": (40, 200, 80), "degraded": (255, 170, 0),
-                                                   "unreliable": (230, 30, 30)}
+QUALITY_COLORS: dict[str, tuple[int, int, int]] = {
+    "good": (40, 200, 80),
+    "degraded": (255, 170, 0),
+    "unreliable": (230, 30, 30),
+}
 UNASSESSED_COLOR = (150, 150, 150)
 
 

@@ -73,7 +73,7 @@ TOPIC_PLANES = "/lelsonar/planes"
 TOPIC_LOG = "/log"
 
 _PATCH_ALPHA = 0.45
-_NORMAL_LENGTH = 0.25   # m
+_NORMAL_LENGTH = 0.25  # m
 _EDGE_RGB = (255, 255, 255)
 
 
@@ -131,8 +131,9 @@ def _quat_x_to(v: np.ndarray) -> tuple[float, float, float, float]:
     return float(axis[0]), float(axis[1]), float(axis[2]), w
 
 
-def frame_transform(parent: str, child: str, t_ns: int, translation=(0.0, 0.0, 0.0),
-                    rotation=(0.0, 0.0, 0.0, 1.0)) -> FrameTransform:
+def frame_transform(
+    parent: str, child: str, t_ns: int, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0)
+) -> FrameTransform:
     """A ``foxglove.FrameTransform``; ``rotation`` is (x, y, z, w), identity by default (w = 1)."""
     tf = FrameTransform(parent_frame_id=parent, child_frame_id=child)
     tf.timestamp.FromNanoseconds(int(t_ns))
@@ -154,8 +155,11 @@ def capsule_transforms(start: codec.ScanStart, t_ns: int | None = None) -> Frame
     for c in start.capsules:
         b = np.array([c.boresight.x, c.boresight.y, c.boresight.z])
         rot = _quat_x_to(b) if np.linalg.norm(b) > 0 else (0.0, 0.0, 0.0, 1.0)
-        out.transforms.append(frame_transform(ARRAY_FRAME, capsule_frame(c.capsule_id), t,
-                                              (c.position.x, c.position.y, c.position.z), rot))
+        out.transforms.append(
+            frame_transform(
+                ARRAY_FRAME, capsule_frame(c.capsule_id), t, (c.position.x, c.position.y, c.position.z), rot
+            )
+        )
     return out
 
 
@@ -173,14 +177,20 @@ def array_model(start: codec.ScanStart, t_ns: int | None = None) -> SceneUpdate:
         s.pose.orientation.w = 1.0
         s.size.x = s.size.y = s.size.z = 0.02
         ent.spheres.append(s)
-        a = ArrowPrimitive(shaft_length=0.08, shaft_diameter=0.004, head_length=0.02, head_diameter=0.012,
-                           color=_color((90, 160, 255)))
+        a = ArrowPrimitive(
+            shaft_length=0.08, shaft_diameter=0.004, head_length=0.02, head_diameter=0.012, color=_color((90, 160, 255))
+        )
         _set_position(a.pose, p)
         x, y, z, w = _quat_x_to(b) if np.linalg.norm(b) > 0 else (0.0, 0.0, 0.0, 1.0)
         a.pose.orientation.x, a.pose.orientation.y, a.pose.orientation.z, a.pose.orientation.w = x, y, z, w
         ent.arrows.append(a)
-        label = TextPrimitive(billboard=True, font_size=14.0, scale_invariant=True, text=capsule_name(c.capsule_id),
-                              color=_color((255, 255, 255)))
+        label = TextPrimitive(
+            billboard=True,
+            font_size=14.0,
+            scale_invariant=True,
+            text=capsule_name(c.capsule_id),
+            color=_color((255, 255, 255)),
+        )
         _set_position(label.pose, (p[0], p[1], p[2] - 0.03))
         label.pose.orientation.w = 1.0
         ent.texts.append(label)
@@ -192,8 +202,13 @@ def array_model(start: codec.ScanStart, t_ns: int | None = None) -> SceneUpdate:
 CLOUD_FIELDS = ("x", "y", "z", "step", "capsule")
 
 
-def point_cloud(points: np.ndarray, t_ns: int, frame_id: str = WORLD_FRAME,
-                step: np.ndarray | None = None, capsule: np.ndarray | None = None) -> PointCloud:
+def point_cloud(
+    points: np.ndarray,
+    t_ns: int,
+    frame_id: str = WORLD_FRAME,
+    step: np.ndarray | None = None,
+    capsule: np.ndarray | None = None,
+) -> PointCloud:
     """A ``foxglove.PointCloud`` of float32 fields: x, y, z and, if given, step and capsule."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     cols = [pts[:, 0], pts[:, 1], pts[:, 2]]
@@ -217,8 +232,12 @@ def sample_points(start: codec.ScanStart, sample: codec.Sample) -> tuple[np.ndar
     rows = [(by_id[s.capsule_id], s.distance) for s in sample.sensors if s.echo_valid and s.capsule_id in by_id]
     if not rows:
         return np.empty((0, 3)), np.empty(0, dtype=int)
-    local = np.array([[c.position.x + d * c.boresight.x, c.position.y + d * c.boresight.y,
-                       c.position.z + d * c.boresight.z] for c, d in rows])
+    local = np.array(
+        [
+            [c.position.x + d * c.boresight.x, c.position.y + d * c.boresight.y, c.position.z + d * c.boresight.z]
+            for c, d in rows
+        ]
+    )
     # Eq. (9) as beam_points_from_capsules computes it, for one γ (its general form costs 0.3 ms a call).
     cg, sg = math.cos(sample.gamma_measured), math.sin(sample.gamma_measured)
     rot = np.array([[1.0, 0.0, 0.0], [0.0, cg, -sg], [0.0, sg, cg]])
@@ -253,7 +272,7 @@ class ScanCloud:
         buf, n = self._buffers[key], self._counts[key]
         if n + len(pts) > len(buf):
             buf = self._buffers[key] = np.concatenate([buf, np.empty_like(buf)])
-        rows = buf[n:n + len(pts)]
+        rows = buf[n : n + len(pts)]
         rows[:, :3] = pts
         rows[:, 3] = sample.step
         rows[:, 4] = caps
@@ -273,8 +292,7 @@ class ScanCloud:
 
 # --- plottable scalars ---------------------------------------------------------------------
 def _nullable_numbers(description: str) -> dict:
-    return {"type": "object", "description": description,
-            "additionalProperties": {"type": ["number", "null"]}}
+    return {"type": "object", "description": description, "additionalProperties": {"type": ["number", "null"]}}
 
 
 STEP_SCALARS_NAME = "lelsonar.StepScalars"
@@ -343,17 +361,39 @@ def step_scalars(sample: codec.Sample) -> dict:
         else:
             energies[name] = None
     total = sum(e for e in energies.values() if e is not None)
-    return {"scanner_id": sample.scanner_id, "scan_id": int(sample.scan_id), "step": int(sample.step),
-            "gamma": float(sample.gamma_measured), "gamma_deg": math.degrees(sample.gamma_measured),
-            "energy": float(total), "energy_by_capsule": energies, "range": ranges, "valid_echoes": valid}
+    return {
+        "scanner_id": sample.scanner_id,
+        "scan_id": int(sample.scan_id),
+        "step": int(sample.step),
+        "gamma": float(sample.gamma_measured),
+        "gamma_deg": math.degrees(sample.gamma_measured),
+        "energy": float(total),
+        "energy_by_capsule": energies,
+        "range": ranges,
+        "valid_echoes": valid,
+    }
 
 
-def energy_scalars(scanner_id: str, scan_id: int, step: int, gamma: float, energy: float, expected: float,
-                   ratio: float, critical_step: int | None) -> dict:
-    return {"scanner_id": scanner_id, "scan_id": int(scan_id), "step": int(step),
-            "gamma_deg": math.degrees(gamma), "energy": _finite_or_none(energy),
-            "expected_energy": _finite_or_none(expected), "ratio": _finite_or_none(ratio),
-            "critical_step": None if critical_step is None else int(critical_step)}
+def energy_scalars(
+    scanner_id: str,
+    scan_id: int,
+    step: int,
+    gamma: float,
+    energy: float,
+    expected: float,
+    ratio: float,
+    critical_step: int | None,
+) -> dict:
+    return {
+        "scanner_id": scanner_id,
+        "scan_id": int(scan_id),
+        "step": int(step),
+        "gamma_deg": math.degrees(gamma),
+        "energy": _finite_or_none(energy),
+        "expected_energy": _finite_or_none(expected),
+        "ratio": _finite_or_none(ratio),
+        "critical_step": None if critical_step is None else int(critical_step),
+    }
 
 
 # --- planes --------------------------------------------------------------------------------
@@ -378,9 +418,15 @@ def _plane_entity(msg: codec.Reconstruction, p: reconstruction_pb2.PlaneEstimate
     ent = SceneEntity(frame_id=WORLD_FRAME, id=plane_entity_id(msg.scanner_id, msg.scan_id, p.method, p.label))
     ent.timestamp.FromNanoseconds(int(t_ns))
     ent.lifetime.SetInParent()
-    for k, v in (("method", p.method), ("label", p.label), ("quality", quality),
-                 ("quality_reasons", "; ".join(p.quality_reasons)), ("offset_m", f"{p.offset:.4f}"),
-                 ("sigma_mm", f"{p.sigma * 1e3:.2f}"), ("inliers", f"{p.inlier_count}/{p.point_count}")):
+    for k, v in (
+        ("method", p.method),
+        ("label", p.label),
+        ("quality", quality),
+        ("quality_reasons", "; ".join(p.quality_reasons)),
+        ("offset_m", f"{p.offset:.4f}"),
+        ("sigma_mm", f"{p.sigma * 1e3:.2f}"),
+        ("inliers", f"{p.inlier_count}/{p.point_count}"),
+    ):
         ent.metadata.append(KeyValuePair(key=k, value=v))
     # The patch as a fan of triangles, in the method's colour.
     tri = TriangleListPrimitive(color=_color(rgb, _PATCH_ALPHA))
@@ -391,8 +437,7 @@ def _plane_entity(msg: codec.Reconstruction, p: reconstruction_pb2.PlaneEstimate
             tri.points.append(_point(patch[j]))
     ent.triangles.append(tri)
     # Its outline in the colour of its quality verdict.
-    outline = LinePrimitive(type=LinePrimitive.LINE_LOOP, thickness=0.012, scale_invariant=False,
-                            color=_color(qrgb))
+    outline = LinePrimitive(type=LinePrimitive.LINE_LOOP, thickness=0.012, scale_invariant=False, color=_color(qrgb))
     outline.pose.position.SetInParent()
     outline.pose.orientation.w = 1.0
     outline.points.extend(_point(v) for v in patch)
@@ -400,14 +445,24 @@ def _plane_entity(msg: codec.Reconstruction, p: reconstruction_pb2.PlaneEstimate
     centre = patch.mean(axis=0)
     n = _vec(p.normal)
     if np.linalg.norm(n) > 0:
-        a = ArrowPrimitive(shaft_length=0.8 * _NORMAL_LENGTH, shaft_diameter=0.01, head_length=0.2 * _NORMAL_LENGTH,
-                           head_diameter=0.03, color=_color(rgb))
+        a = ArrowPrimitive(
+            shaft_length=0.8 * _NORMAL_LENGTH,
+            shaft_diameter=0.01,
+            head_length=0.2 * _NORMAL_LENGTH,
+            head_diameter=0.03,
+            color=_color(rgb),
+        )
         _set_position(a.pose, centre)
         x, y, z, w = _quat_x_to(n)
         a.pose.orientation.x, a.pose.orientation.y, a.pose.orientation.z, a.pose.orientation.w = x, y, z, w
         ent.arrows.append(a)
-    text = TextPrimitive(billboard=True, font_size=14.0, scale_invariant=True, color=_color(qrgb),
-                         text=f"{p.method} {p.label}: h = {p.offset:.3f} m, σ = {p.sigma * 1e3:.1f} mm, {quality}")
+    text = TextPrimitive(
+        billboard=True,
+        font_size=14.0,
+        scale_invariant=True,
+        color=_color(qrgb),
+        text=f"{p.method} {p.label}: h = {p.offset:.3f} m, σ = {p.sigma * 1e3:.1f} mm, {quality}",
+    )
     _set_position(text.pose, centre + (_NORMAL_LENGTH * n if np.linalg.norm(n) > 0 else 0.0))
     text.pose.orientation.w = 1.0
     ent.texts.append(text)
@@ -428,8 +483,9 @@ def _edge_entity(msg: codec.Reconstruction, t_ns: int, half_length: float = 0.5)
     line.pose.orientation.w = 1.0
     line.points.extend(_point(point + s * direction) for s in (-half_length, half_length))
     ent.lines.append(line)
-    text = TextPrimitive(billboard=True, font_size=14.0, scale_invariant=True, color=_color(_EDGE_RGB),
-                         text="corner edge")
+    text = TextPrimitive(
+        billboard=True, font_size=14.0, scale_invariant=True, color=_color(_EDGE_RGB), text="corner edge"
+    )
     _set_position(text.pose, point + half_length * direction)
     text.pose.orientation.w = 1.0
     ent.texts.append(text)
@@ -448,8 +504,7 @@ class PlaneScene:
 
     def update(self, msg: codec.Reconstruction, t_ns: int | None = None) -> SceneUpdate:
         t = int(msg.stamp_ns if t_ns is None else t_ns)
-        entities = [e for e in (*(_plane_entity(msg, p, t) for p in msg.planes), _edge_entity(msg, t))
-                    if e is not None]
+        entities = [e for e in (*(_plane_entity(msg, p, t) for p in msg.planes), _edge_entity(msg, t)) if e is not None]
         key = (msg.scanner_id, msg.scan_id)
         ids = {e.id for e in entities}
         gone = set(self._drawn.get(key, set()) - ids)
@@ -466,8 +521,16 @@ class PlaneScene:
 
 
 # --- log -----------------------------------------------------------------------------------
-_LOG_LEVELS = {"trace": "DEBUG", "debug": "DEBUG", "info": "INFO", "warn": "WARNING", "warning": "WARNING",
-               "error": "ERROR", "critical": "FATAL", "fatal": "FATAL"}
+_LOG_LEVELS = {
+    "trace": "DEBUG",
+    "debug": "DEBUG",
+    "info": "INFO",
+    "warn": "WARNING",
+    "warning": "WARNING",
+    "error": "ERROR",
+    "critical": "FATAL",
+    "fatal": "FATAL",
+}
 
 
 def log_message(level: str, text: str, t_ns: int, name: str = "lelsonar") -> Log:

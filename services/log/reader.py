@@ -35,7 +35,15 @@ from lelsonar.errors import NotMcapError, RecordingError, RecordingNotFoundError
 MAGIC = b"\x89MCAP0\r\n"
 
 # Opcodes of the MCAP specification (https://mcap.dev/spec).
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = 0x01, 0x02, 0x03, 0x04, 0x05, 0x06, 0x07
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK, OP_MESSAGE_INDEX = (
+    0x01,
+    0x02,
+    0x03,
+    0x04,
+    0x05,
+    0x06,
+    0x07,
+)
 OP_CHUNK_INDEX, OP_ATTACHMENT, OP_ATTACHMENT_INDEX, OP_STATISTICS, OP_METADATA = 0x08, 0x09, 0x0A, 0x0B, 0x0C
 OP_METADATA_INDEX, OP_SUMMARY_OFFSET, OP_DATA_END = 0x0D, 0x0E, 0x0F
 
@@ -196,7 +204,7 @@ class _Cursor:
     def take(self, n: int):
         if n < 0 or self.pos + n > self.end:
             raise _Bad(f"field of {n} bytes runs past the record")
-        out = self.buf[self.pos:self.pos + n]
+        out = self.buf[self.pos : self.pos + n]
         self.pos += n
         return out
 
@@ -276,7 +284,7 @@ def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object
     if at + 8 > end:
         raise _Bad(f"field of {cl} bytes runs past the record")
     try:
-        compression = str(buf[head + 4:at], "utf-8")
+        compression = str(buf[head + 4 : at], "utf-8")
     except UnicodeDecodeError as exc:
         raise _Bad(f"string is not UTF-8: {exc}") from None
     if size > MAX_CHUNK_BYTES:
@@ -286,7 +294,7 @@ def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object
         raise _Bad(f"field of {n} bytes runs past the record")
     if at + 8 + n != end:
         raise _Bad("chunk length does not match its content")
-    view = memoryview(buf)[at + 8:end]
+    view = memoryview(buf)[at + 8 : end]
     try:
         raw = _decompress(compression, view, size)
     finally:
@@ -308,7 +316,7 @@ def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object
         if op == OP_MESSAGE:
             if n < message_head:
                 raise _Bad(f"field of {message_head} bytes runs past the record")
-            records.append((op, (*unpack_message(raw, body), raw[body + message_head:stop])))
+            records.append((op, (*unpack_message(raw, body), raw[body + message_head : stop])))
         elif op == OP_SCHEMA:
             records.append((op, _schema(_Cursor(raw, body, stop))))
         elif op == OP_CHANNEL:
@@ -467,8 +475,12 @@ def _walk(buf, size: int, out: Salvage) -> None:
         op, length = _RECORD_HEAD.unpack_from(buf, pos)
         body = pos + 9
         if body + length > size:
-            nxt = w.damaged(pos, "the file ends inside a record (cut, or the writer was killed)" if op == OP_CHUNK
-                            else f"record runs past the end of the file (opcode {op:#04x}, length {length})")
+            nxt = w.damaged(
+                pos,
+                "the file ends inside a record (cut, or the writer was killed)"
+                if op == OP_CHUNK
+                else f"record runs past the end of the file (opcode {op:#04x}, length {length})",
+            )
         elif op == OP_CHUNK or _looks_like_chunk(buf, body, length):
             try:
                 records, usize = _chunk_records(buf, body, length)
@@ -476,8 +488,15 @@ def _walk(buf, size: int, out: Salvage) -> None:
                 nxt = w.damaged(pos, str(exc))
             else:
                 if op != OP_CHUNK:  # a damaged opcode in front of an intact chunk: nothing lost
-                    out.damage.append(Damage(pos, 1, "record", f"opcode at byte {pos} damaged ({op:#04x}); "
-                                                              "the chunk behind it is intact", 0))
+                    out.damage.append(
+                        Damage(
+                            pos,
+                            1,
+                            "record",
+                            f"opcode at byte {pos} damaged ({op:#04x}); the chunk behind it is intact",
+                            0,
+                        )
+                    )
                 w.take_chunk(pos, records, usize, length)
                 nxt = body + length
         else:
@@ -500,7 +519,7 @@ def _looks_like_chunk(buf, body: int, length: int) -> bool:
     if length < head + 4 + 8:
         return False
     cl = _U32.unpack_from(buf, body + head)[0]
-    if cl not in (0, 3, 4) or bytes(buf[body + head + 4:body + head + 4 + cl]) not in (b"", b"lz4", b"zstd"):
+    if cl not in (0, 3, 4) or bytes(buf[body + head + 4 : body + head + 4 + cl]) not in (b"", b"lz4", b"zstd"):
         return False
     at = body + head + 4 + cl
     return at + 8 <= body + length and at + 8 + _U64.unpack_from(buf, at)[0] == body + length
@@ -509,7 +528,7 @@ def _looks_like_chunk(buf, body: int, length: int) -> bool:
 def _summary_start(buf, size: int) -> int | None:
     """Where the summary section starts, from an intact footer; None if there is none."""
     foot = size - len(MAGIC) - 9 - 20
-    if foot < len(MAGIC) or bytes(buf[size - len(MAGIC):]) != MAGIC:
+    if foot < len(MAGIC) or bytes(buf[size - len(MAGIC) :]) != MAGIC:
         return None
     op, length = _RECORD_HEAD.unpack_from(buf, foot)
     if op != OP_FOOTER or length != 20:
@@ -525,7 +544,7 @@ def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> 
         c.string(), c.string()
     elif op == OP_FOOTER:
         c.take(20)
-        out.finished = body + length + len(MAGIC) == len(buf) and bytes(buf[body + length:]) == MAGIC
+        out.finished = body + length + len(MAGIC) == len(buf) and bytes(buf[body + length :]) == MAGIC
     elif op == OP_SCHEMA:
         s = _schema(c)
         out.schemas.setdefault(s.id, s)
@@ -538,7 +557,7 @@ def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> 
             raise _Bad(f"message on channel {cid}, which is not defined before it")
         if out.data_end_seen or (out.summary_start is not None and pos >= out.summary_start):
             raise _Bad("a message record in the summary section")
-        out.messages.append(RawMessage(cid, seq, t_log, t_pub, bytes(buf[c.pos:c.end]), pos))
+        out.messages.append(RawMessage(cid, seq, t_log, t_pub, bytes(buf[c.pos : c.end]), pos))
         c.pos = c.end
     elif op == OP_MESSAGE_INDEX:
         _message_index_count(buf, body, length)
@@ -556,7 +575,7 @@ def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> 
         name, media = c.string(), c.string()
         data = bytes(c.take(c.u64()))
         crc = c.u32()
-        if crc and zlib.crc32(buf[body:c.pos - 4]) != crc:
+        if crc and zlib.crc32(buf[body : c.pos - 4]) != crc:
             raise _Bad("attachment CRC mismatch")
         out.attachments.append((t_log, t_create, name, media, data))
     elif op == OP_ATTACHMENT_INDEX:
@@ -629,7 +648,7 @@ def _resync(buf, size: int, start: int) -> int | None:
             # Cheap checks first: the compression string must be one we know.
             cl_at = pos + 9 + _CHUNK_HEAD.size
             cl = _U32.unpack_from(buf, cl_at)[0]
-            if cl in (0, 3, 4) and bytes(buf[cl_at + 4:cl_at + 4 + cl]) in (b"", b"lz4", b"zstd"):
+            if cl in (0, 3, 4) and bytes(buf[cl_at + 4 : cl_at + 4 + cl]) in (b"", b"lz4", b"zstd"):
                 try:
                     _chunk_records(buf, pos + 9, length)
                     return pos

@@ -70,7 +70,9 @@ ARRAY_FRAME = visual.ARRAY_FRAME
 CHANNEL_METADATA = "lelsonar.channel."
 #: The protobuf types a lelsonar recording may hold, by full name (to rebuild a lost schema record).
 RECORDED_TYPES: dict[str, type[Message]] = {
-    **codec.MESSAGE_TYPES, **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, FrameTransforms, PointCloud, Log, SceneUpdate)}}
+    **codec.MESSAGE_TYPES,
+    **{cls.DESCRIPTOR.full_name: cls for cls in (FrameTransform, FrameTransforms, PointCloud, Log, SceneUpdate)},
+}
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
@@ -109,8 +111,15 @@ class McapRecorder:
         writer then loses the whole chunk in progress.  Kept for the benchmark.
     """
 
-    def __init__(self, path: Path | str, *, compression: str = "zstd",
-                 metadata: Mapping[str, str] | None = None, fsync: bool = False, durable: bool = True) -> None:
+    def __init__(
+        self,
+        path: Path | str,
+        *,
+        compression: str = "zstd",
+        metadata: Mapping[str, str] | None = None,
+        fsync: bool = False,
+        durable: bool = True,
+    ) -> None:
         if compression not in COMPRESSIONS:
             raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         self.path = Path(path)
@@ -168,8 +177,9 @@ class McapRecorder:
             channel = self._channels[topic] = self._writer.register_channel(topic, "protobuf", schema)
             # The channel record rides in the chunk of its first message; this copy outside any chunk names
             # the channel's later messages if that one chunk is damaged (see open_recording).
-            self._writer.add_metadata(f"{CHANNEL_METADATA}{channel}",
-                                      {"topic": topic, "schema": type(message).DESCRIPTOR.full_name})
+            self._writer.add_metadata(
+                f"{CHANNEL_METADATA}{channel}", {"topic": topic, "schema": type(message).DESCRIPTOR.full_name}
+            )
         self._writer.add_message(channel, log_time=t, data=message.SerializeToString(), publish_time=t)
 
     # --- writing ---------------------------------------------------------------------
@@ -213,8 +223,9 @@ class McapRecorder:
             cloud = views.cloud.add(message, t)
             if cloud is not None:
                 self._put(visual.TOPIC_SCAN_POINTS, cloud, t)
-            self.write_json(visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA,
-                            visual.step_scalars(message), t)
+            self.write_json(
+                visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA, visual.step_scalars(message), t
+            )
         elif isinstance(message, codec.ScanEnd):
             views.cloud.scan_ended(message.scanner_id, message.scan_id)
         elif isinstance(message, codec.Reconstruction):
@@ -228,8 +239,9 @@ class McapRecorder:
         if channel is None:
             schema_id = self._writer.register_schema(schema_name, "jsonschema", visual.json_schema_bytes(schema))
             channel = self._views.json_channels[topic] = self._writer.register_channel(topic, "json", schema_id)
-        self._writer.add_message(channel, log_time=log_time_ns, data=json.dumps(payload).encode(),
-                                 publish_time=log_time_ns)
+        self._writer.add_message(
+            channel, log_time=log_time_ns, data=json.dumps(payload).encode(), publish_time=log_time_ns
+        )
 
     def _write_pose_and_points(self, sample: codec.Sample, t: int) -> None:
         self._put(TOPIC_TF, visual.array_transform(sample.gamma_measured, t), t)
@@ -250,10 +262,15 @@ class _ViewState:
 
 def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
     """The ``lelsonar.log.recording`` metadata record of a scan: a human name and what it was."""
-    return {"name": f"lelsonar {start.scanner_id} scan {start.scan_id}", "scanner_id": start.scanner_id,
-            "scan_id": str(start.scan_id), "device": start.device or "unknown",
-            "software_version": start.software_version, "start_time_ns": str(start.start_time_ns),
-            "steps": str(start.steps)}
+    return {
+        "name": f"lelsonar {start.scanner_id} scan {start.scan_id}",
+        "scanner_id": start.scanner_id,
+        "scan_id": str(start.scan_id),
+        "device": start.device or "unknown",
+        "software_version": start.software_version,
+        "start_time_ns": str(start.start_time_ns),
+        "steps": str(start.steps),
+    }
 
 
 def _message_time(message: Message) -> int:
@@ -310,8 +327,11 @@ class Recording:
         """The contract messages in log-time order, undecoded."""
         s = self.salvage
         wanted = self.contract_channels()
-        return [RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
-                for m in s.in_log_time_order() if m.channel_id in wanted]
+        return [
+            RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
+            for m in s.in_log_time_order()
+            if m.channel_id in wanted
+        ]
 
     def count(self, kind: str | type[Message]) -> int:
         """Messages on a topic, or of a contract message type (on whichever topics)."""
@@ -378,11 +398,17 @@ def describe_damage(s: Salvage) -> str:
     if lost and not chunks and not tail:
         parts.append(f"{'' if exact else '≈'}{lost} messages lost")
     if not parts:
-        return ("is unfinished (no footer: the writer was stopped or killed), nothing lost" if not s.finished
-                else "is intact")
+        return (
+            "is unfinished (no footer: the writer was stopped or killed), nothing lost"
+            if not s.finished
+            else "is intact"
+        )
     lossless = not (lost or s.orphans or tail)
-    return (f"is damaged: {', '.join(parts)}" + ("" if s.finished else ", unfinished")
-            + (", no message lost" if lossless else ""))
+    return (
+        f"is damaged: {', '.join(parts)}"
+        + ("" if s.finished else ", unfinished")
+        + (", no message lost" if lossless else "")
+    )
 
 
 def open_recording(path: Path | str | Recording) -> Recording:
@@ -446,8 +472,7 @@ def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
     yield from rec.payloads()
 
 
-def read_messages(path: Path | str | Recording,
-                  limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
+def read_messages(path: Path | str | Recording, limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
     """Decoded, validated contract messages in log-time order; a bad record raises DecodeError."""
     for rec in iter_payloads(path):
         cls = codec.MESSAGE_TYPES.get(rec.type_name)
@@ -459,5 +484,3 @@ def read_messages(path: Path | str | Recording,
 def read_metadata(path: Path | str | Recording) -> dict[str, dict[str, str]]:
     """All metadata records of a recording, by name."""
     return dict(open_recording(path).salvage.metadata)
-
-

@@ -17,8 +17,8 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 
 from lelsonar.errors import RecordingError
-from lelsonar.log.recording import CHANNEL_METADATA, open_recording
 from lelsonar.log.reader import Salvage
+from lelsonar.log.recording import CHANNEL_METADATA, open_recording
 
 _COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 

@@ -14,8 +14,8 @@ from pathlib import Path
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
 from lelsonar import codec
-from lelsonar.log.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
 from lelsonar.log.reader import Damage
+from lelsonar.log.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
 
 _SCAN_STATUS = codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type
 _EST_STATUS = codec.Reconstruction.DESCRIPTOR.fields_by_name["status"].enum_type
@@ -59,12 +59,12 @@ class ScanSummary:
     scan_id: int
     device: str = ""
     steps_planned: int | None = None  # from ScanStart (or ScanEnd when the start was lost)
-    steps_received: int = 0           # distinct steps with a Sample in the file
+    steps_received: int = 0  # distinct steps with a Sample in the file
     missing_steps: list[int] = field(default_factory=list)
     duplicates: int = 0
-    status: str = "no ScanEnd"        # complete, aborted, or "no ScanEnd" (unfinished or lost)
+    status: str = "no ScanEnd"  # complete, aborted, or "no ScanEnd" (unfinished or lost)
     reason: str = ""
-    samples_sent: int | None = None   # ScanEnd.samples_sent: what the acquirer says it published
+    samples_sent: int | None = None  # ScanEnd.samples_sent: what the acquirer says it published
     start_ns: int | None = None
     end_ns: int | None = None
     has_start: bool = False
@@ -210,34 +210,73 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     channels = []
     for cid, ch in sorted(s.channels.items()):
         schema = s.schemas.get(ch.schema_id)
-        channels.append(ChannelSummary(ch.topic, schema.name if schema else "", ch.message_encoding,
-                                       counts.get(cid, 0), lost_by.get(cid, 0) if exact_channels else None))
+        channels.append(
+            ChannelSummary(
+                ch.topic,
+                schema.name if schema else "",
+                ch.message_encoding,
+                counts.get(cid, 0),
+                lost_by.get(cid, 0) if exact_channels else None,
+            )
+        )
     lost, exact = s.messages_lost()
     times = [m.log_time for m in s.messages]
     devices = sorted({sc.device for sc in scans.values() if sc.device})
     device = ", ".join(devices) or s.metadata.get("lelsonar.config", {}).get("device", "")
     return FileSummary(
-        path=str(s.path), size=s.size, finished=s.finished, intact=s.intact,
+        path=str(s.path),
+        size=s.size,
+        finished=s.finished,
+        intact=s.intact,
         damage_text=None if s.intact else describe_damage(s),
-        damage=[_damage_dict(d, s) for d in s.damage], messages=len(s.messages), messages_lost=lost,
-        messages_lost_exact=exact, start_ns=min(times) if times else None, end_ns=max(times) if times else None,
-        device=device, scanners=sorted({k[0] for k in scans} | {k[0] for k in estimates}), channels=channels,
-        scans=[scans[k] for k in sorted(scans)], estimates=[_estimate(estimates[k]) for k in sorted(estimates)],
+        damage=[_damage_dict(d, s) for d in s.damage],
+        messages=len(s.messages),
+        messages_lost=lost,
+        messages_lost_exact=exact,
+        start_ns=min(times) if times else None,
+        end_ns=max(times) if times else None,
+        device=device,
+        scanners=sorted({k[0] for k in scans} | {k[0] for k in estimates}),
+        channels=channels,
+        scans=[scans[k] for k in sorted(scans)],
+        estimates=[_estimate(estimates[k]) for k in sorted(estimates)],
         undecodable=undecodable,
-        metadata={k: v for k, v in s.metadata.items() if not k.startswith(CHANNEL_METADATA)})
+        metadata={k: v for k, v in s.metadata.items() if not k.startswith(CHANNEL_METADATA)},
+    )
 
 
 def _damage_dict(d: Damage, s) -> dict:
-    return {"offset": d.offset, "length": d.length, "kind": d.kind, "reason": d.reason,
-            "messages_lost": d.messages_lost, "exact": d.messages is not None,
-            "by_topic": {s.topic(cid): n for cid, n in d.by_channel.items()}}
+    return {
+        "offset": d.offset,
+        "length": d.length,
+        "kind": d.kind,
+        "reason": d.reason,
+        "messages_lost": d.messages_lost,
+        "exact": d.messages is not None,
+        "by_topic": {s.topic(cid): n for cid, n in d.by_channel.items()},
+    }
 
 
 def _estimate(msg: codec.Reconstruction) -> EstimateSummary:
-    planes = [{"label": p.label, "method": p.method, "normal": [p.normal.x, p.normal.y, p.normal.z],
-               "offset": p.offset, "sigma": p.sigma, "inliers": p.inlier_count, "points": p.point_count,
-               "quality": _enum_name(_QUALITY, p.quality, "PLANE_QUALITY_")}
-              for p in sorted(msg.planes, key=lambda p: (p.label, p.method))]
-    return EstimateSummary(msg.scanner_id, msg.scan_id, _enum_name(_EST_STATUS, msg.status, "ESTIMATE_STATUS_"),
-                           msg.samples_used, msg.critical_step if msg.HasField("critical_step") else None,
-                           planes, list(msg.missing_steps))
+    planes = [
+        {
+            "label": p.label,
+            "method": p.method,
+            "normal": [p.normal.x, p.normal.y, p.normal.z],
+            "offset": p.offset,
+            "sigma": p.sigma,
+            "inliers": p.inlier_count,
+            "points": p.point_count,
+            "quality": _enum_name(_QUALITY, p.quality, "PLANE_QUALITY_"),
+        }
+        for p in sorted(msg.planes, key=lambda p: (p.label, p.method))
+    ]
+    return EstimateSummary(
+        msg.scanner_id,
+        msg.scan_id,
+        _enum_name(_EST_STATUS, msg.status, "ESTIMATE_STATUS_"),
+        msg.samples_used,
+        msg.critical_step if msg.HasField("critical_step") else None,
+        planes,
+        list(msg.missing_steps),
+    )

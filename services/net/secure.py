@@ -57,7 +57,7 @@ def validate_role(role: str) -> str:
     if role in (ROUTER, RECONSTRUCT, PLANNER):
         return role
     if role.startswith(ACQUIRE_PREFIX):
-        acquire_role(role[len(ACQUIRE_PREFIX):])
+        acquire_role(role[len(ACQUIRE_PREFIX) :])
         return role
     raise SecurityError(f"unknown role {role!r}; roles are router, reconstruct, planner and acquire-<scanner id>")
 
@@ -87,7 +87,7 @@ class SecureDir:
         """Scanner ids that have an acquire certificate here, sorted."""
         if not self.path.is_dir():
             return ()
-        return tuple(sorted(p.stem[len(ACQUIRE_PREFIX):] for p in self.path.glob(f"{ACQUIRE_PREFIX}*.pem")))
+        return tuple(sorted(p.stem[len(ACQUIRE_PREFIX) :] for p in self.path.glob(f"{ACQUIRE_PREFIX}*.pem")))
 
     def require(self, role: str) -> None:
         """Raise :class:`SecurityError` unless the CA and the role's certificate and key are usable."""
@@ -96,25 +96,36 @@ class SecureDir:
 
         missing = [p for p in (self.ca_cert, self.cert(role), self.key(role)) if not p.is_file()]
         if missing:
-            fix = (f"lelsonar secure add-scanner {self.path} {role[len(ACQUIRE_PREFIX):]}"
-                   if role.startswith(ACQUIRE_PREFIX) else f"lelsonar secure init {self.path} --scanner ID")
-            raise SecurityError(f"missing {', '.join(str(p) for p in missing)} for role {role!r}; create it with "
-                                f"`{fix}` (or copy it there from the machine that holds the CA)")
+            fix = (
+                f"lelsonar secure add-scanner {self.path} {role[len(ACQUIRE_PREFIX) :]}"
+                if role.startswith(ACQUIRE_PREFIX)
+                else f"lelsonar secure init {self.path} --scanner ID"
+            )
+            raise SecurityError(
+                f"missing {', '.join(str(p) for p in missing)} for role {role!r}; create it with "
+                f"`{fix}` (or copy it there from the machine that holds the CA)"
+            )
         ca = x509.load_pem_x509_certificate(self.ca_cert.read_bytes())
         cert = x509.load_pem_x509_certificate(self.cert(role).read_bytes())
         try:
             cert.verify_directly_issued_by(ca)
         except (ValueError, TypeError, InvalidSignature) as exc:
-            raise SecurityError(f"{self.cert(role)} was not issued by {self.ca_cert} ({exc.__class__.__name__}); "
-                                f"re-issue it with the CA of this directory") from None
-        now = dt.datetime.now(dt.timezone.utc)
+            raise SecurityError(
+                f"{self.cert(role)} was not issued by {self.ca_cert} ({exc.__class__.__name__}); "
+                f"re-issue it with the CA of this directory"
+            ) from None
+        now = dt.datetime.now(dt.UTC)
         if not cert.not_valid_before_utc <= now <= cert.not_valid_after_utc:
-            raise SecurityError(f"{self.cert(role)} is valid only from {cert.not_valid_before_utc:%Y-%m-%d} to "
-                                f"{cert.not_valid_after_utc:%Y-%m-%d}; rotate it with `lelsonar secure rotate "
-                                f"{self.path} {role}`")
+            raise SecurityError(
+                f"{self.cert(role)} is valid only from {cert.not_valid_before_utc:%Y-%m-%d} to "
+                f"{cert.not_valid_after_utc:%Y-%m-%d}; rotate it with `lelsonar secure rotate "
+                f"{self.path} {role}`"
+            )
         if common_name(cert) != role:
-            raise SecurityError(f"{self.cert(role)} has common name {common_name(cert)!r}, not {role!r}; "
-                                "the access rules are keyed by it, so re-issue the certificate")
+            raise SecurityError(
+                f"{self.cert(role)} has common name {common_name(cert)!r}, not {role!r}; "
+                "the access rules are keyed by it, so re-issue the certificate"
+            )
 
 
 def common_name(cert) -> str:
@@ -133,8 +144,9 @@ def _new_key():
 def _key_pem(key) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
-    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                             serialization.NoEncryption())
+    return key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
 
 
 def _write(path: Path, data: bytes, *, private: bool, replace: bool = False) -> None:
@@ -143,9 +155,11 @@ def _write(path: Path, data: bytes, *, private: bool, replace: bool = False) -> 
     try:
         fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600 if private else 0o644)
     except FileExistsError:
-        raise SecurityError(f"{target} already exists; lelsonar never overwrites keys or certificates silently "
-                            "(replace a role's with `lelsonar secure rotate DIR ROLE`; remove a stale .new "
-                            "file)") from None
+        raise SecurityError(
+            f"{target} already exists; lelsonar never overwrites keys or certificates silently "
+            "(replace a role's with `lelsonar secure rotate DIR ROLE`; remove a stale .new "
+            "file)"
+        ) from None
     with os.fdopen(fd, "wb") as f:
         if private:
             os.fchmod(f.fileno(), 0o600)  # whatever the umask said
@@ -159,32 +173,52 @@ def _load_ca(d: SecureDir):
     from cryptography.hazmat.primitives import serialization
 
     if not (d.ca_cert.is_file() and d.ca_key.is_file()):
-        raise SecurityError(f"{d.path} holds no CA (ca.pem and ca.key); create one with "
-                            f"`lelsonar secure init {d.path} --scanner ID`")
-    return (x509.load_pem_x509_certificate(d.ca_cert.read_bytes()),
-            serialization.load_pem_private_key(d.ca_key.read_bytes(), password=None))
+        raise SecurityError(
+            f"{d.path} holds no CA (ca.pem and ca.key); create one with `lelsonar secure init {d.path} --scanner ID`"
+        )
+    return (
+        x509.load_pem_x509_certificate(d.ca_cert.read_bytes()),
+        serialization.load_pem_private_key(d.ca_key.read_bytes(), password=None),
+    )
 
 
-def _issue(d: SecureDir, role: str, *, hosts: Iterable[str] = (), days: int = DEFAULT_DAYS,
-           replace: bool = False) -> list[Path]:
+def _issue(
+    d: SecureDir, role: str, *, hosts: Iterable[str] = (), days: int = DEFAULT_DAYS, replace: bool = False
+) -> list[Path]:
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
     ca_cert, ca_key = _load_ca(d)
     key = _new_key()
-    now = dt.datetime.now(dt.timezone.utc)
-    builder = (x509.CertificateBuilder()
-               .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, role)]))
-               .issuer_name(ca_cert.subject).public_key(key.public_key())
-               .serial_number(x509.random_serial_number())
-               .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=days))
-               .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-               .add_extension(x509.KeyUsage(digital_signature=True, key_encipherment=False, content_commitment=False,
-                                            data_encipherment=False, key_agreement=True, key_cert_sign=False,
-                                            crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
-               .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
-                                                     ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False))
+    now = dt.datetime.now(dt.UTC)
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, role)]))
+        .issuer_name(ca_cert.subject)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=days))
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                key_encipherment=False,
+                content_commitment=False,
+                data_encipherment=False,
+                key_agreement=True,
+                key_cert_sign=False,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]), critical=False
+        )
+    )
     names: list[x509.GeneralName] = []
     for host in hosts:
         try:
@@ -197,15 +231,18 @@ def _issue(d: SecureDir, role: str, *, hosts: Iterable[str] = (), days: int = DE
     from cryptography.hazmat.primitives import serialization
 
     if not replace and (d.key(role).exists() or d.cert(role).exists()):
-        raise SecurityError(f"{d.cert(role)} or its key already exists; lelsonar never overwrites them silently "
-                            f"(to replace them: `lelsonar secure rotate {d.path} {role}`)")
+        raise SecurityError(
+            f"{d.cert(role)} or its key already exists; lelsonar never overwrites them silently "
+            f"(to replace them: `lelsonar secure rotate {d.path} {role}`)"
+        )
     _write(d.key(role), _key_pem(key), private=True, replace=replace)
     _write(d.cert(role), cert.public_bytes(serialization.Encoding.PEM), private=False, replace=replace)
     return [d.cert(role), d.key(role)]
 
 
-def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = (),
-         days: int = DEFAULT_DAYS) -> list[Path]:
+def init(
+    path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = (), days: int = DEFAULT_DAYS
+) -> list[Path]:
     """Create a CA and the certificates of the router, reconstruct, planner and one acquire per scanner.
 
     The router's certificate names ``localhost``, ``127.0.0.1`` and ``hosts`` (what remote clients dial).
@@ -224,25 +261,45 @@ def init(path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = ()
     if not scanners:
         raise SecurityError("name at least one scanner: `lelsonar secure init DIR --scanner scanner1`")
     if d.ca_key.exists() or d.ca_cert.exists():
-        raise SecurityError(f"{d.path} already holds a CA; add scanners with `lelsonar secure add-scanner "
-                            f"{d.path} ID`, or init into a new directory to start over (nothing was overwritten)")
+        raise SecurityError(
+            f"{d.path} already holds a CA; add scanners with `lelsonar secure add-scanner "
+            f"{d.path} ID`, or init into a new directory to start over (nothing was overwritten)"
+        )
     roles = (ROUTER, RECONSTRUCT, PLANNER, *(acquire_role(s) for s in scanners))
     if taken := [str(p) for r in roles for p in (d.cert(r), d.key(r)) if p.exists()]:
-        raise SecurityError(f"{', '.join(taken)} already exist without a CA here; init into a new directory "
-                            "(nothing was overwritten)")
+        raise SecurityError(
+            f"{', '.join(taken)} already exist without a CA here; init into a new directory (nothing was overwritten)"
+        )
     d.path.mkdir(parents=True, exist_ok=True, mode=0o700)
     key = _new_key()
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "lelsonar CA")])
-    ca = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-          .serial_number(x509.random_serial_number())
-          .not_valid_before(now - dt.timedelta(minutes=5)).not_valid_after(now + dt.timedelta(days=CA_DAYS))
-          .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-          .add_extension(x509.KeyUsage(digital_signature=True, key_encipherment=False, content_commitment=False,
-                                       data_encipherment=False, key_agreement=False, key_cert_sign=True,
-                                       crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
-          .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-          .sign(key, hashes.SHA256()))
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=CA_DAYS))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                key_encipherment=False,
+                content_commitment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=True,
+                crl_sign=True,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
     _write(d.ca_key, _key_pem(key), private=True)
     _write(d.ca_cert, ca.public_bytes(serialization.Encoding.PEM), private=False)
     created = [d.ca_cert, d.ca_key]
@@ -258,13 +315,14 @@ def add_scanner(path: Path | str, scanner_id: str, *, days: int = DEFAULT_DAYS) 
     d = SecureDir(Path(path))
     role = acquire_role(scanner_id)
     if d.cert(role).exists() or d.key(role).exists():
-        raise SecurityError(f"{d.cert(role)} already exists; to replace its key and certificate run "
-                            f"`lelsonar secure rotate {d.path} {role}`")
+        raise SecurityError(
+            f"{d.cert(role)} already exists; to replace its key and certificate run "
+            f"`lelsonar secure rotate {d.path} {role}`"
+        )
     return _issue(d, role, days=days)
 
 
-def rotate(path: Path | str, role: str, *, hosts: Iterable[str] | None = None,
-           days: int = DEFAULT_DAYS) -> list[Path]:
+def rotate(path: Path | str, role: str, *, hosts: Iterable[str] | None = None, days: int = DEFAULT_DAYS) -> list[Path]:
     """Replace a role's key and certificate with new ones from the same CA; the common name stays.
 
     The router's new certificate names the same hosts as the old one unless ``hosts`` is given
@@ -275,16 +333,23 @@ def rotate(path: Path | str, role: str, *, hosts: Iterable[str] | None = None,
     d = SecureDir(Path(path))
     validate_role(role)
     if not d.cert(role).exists():
-        raise SecurityError(f"{d.cert(role)} does not exist, so there is nothing to rotate; issue it with "
-                            + (f"`lelsonar secure add-scanner {d.path} {role[len(ACQUIRE_PREFIX):]}`"
-                               if role.startswith(ACQUIRE_PREFIX) else "`lelsonar secure init` into a new directory"))
+        raise SecurityError(
+            f"{d.cert(role)} does not exist, so there is nothing to rotate; issue it with "
+            + (
+                f"`lelsonar secure add-scanner {d.path} {role[len(ACQUIRE_PREFIX) :]}`"
+                if role.startswith(ACQUIRE_PREFIX)
+                else "`lelsonar secure init` into a new directory"
+            )
+        )
     if role == ROUTER:
         if hosts is None:
             old = x509.load_pem_x509_certificate(d.cert(role).read_bytes())
             try:
                 san = old.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
-                hosts = [*san.get_values_for_type(x509.DNSName),
-                         *(str(ip) for ip in san.get_values_for_type(x509.IPAddress))]
+                hosts = [
+                    *san.get_values_for_type(x509.DNSName),
+                    *(str(ip) for ip in san.get_values_for_type(x509.IPAddress)),
+                ]
             except x509.ExtensionNotFound:
                 hosts = []
         hosts = dict.fromkeys((*DEFAULT_HOSTS, *hosts))
@@ -301,7 +366,7 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
     p = validate_prefix(prefix)
     validate_role(role)
     if role.startswith(ACQUIRE_PREFIX):
-        sid = role[len(ACQUIRE_PREFIX):]
+        sid = role[len(ACQUIRE_PREFIX) :]
         own = f"{p}/{sid}"
         return [
             _rule(f"{role}-put", "ingress", ["put"], [f"{own}/sample", f"{own}/scan"]),
@@ -311,15 +376,23 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             _rule(f"{role}-log-queries", "egress", ["query"], [f"{p}/*/log/**", f"{own}/log/**"]),
             # A declared publisher sends only once it learns of matching subscribers.
             # The reconstructor's live source declares one subscriber on both keys: <prefix>/*/s$*.
-            _rule(f"{role}-learn-subscribers", "egress", ["declare_subscriber"],
-                  [f"{p}/*/sample", f"{p}/*/scan", f"{p}/*/s$*", f"{own}/sample", f"{own}/scan"]),
+            _rule(
+                f"{role}-learn-subscribers",
+                "egress",
+                ["declare_subscriber"],
+                [f"{p}/*/sample", f"{p}/*/scan", f"{p}/*/s$*", f"{own}/sample", f"{own}/scan"],
+            ),
         ]
     if role == RECONSTRUCT:
         return [
             # One subscriber on both keys (sources.live_key: one channel keeps their order); the
             # egress rule below still lets only samples and scan events reach it.
-            _rule("reconstruct-subscribe", "ingress", ["declare_subscriber"],
-                  [f"{p}/*/sample", f"{p}/*/scan", f"{p}/*/s$*"]),
+            _rule(
+                "reconstruct-subscribe",
+                "ingress",
+                ["declare_subscriber"],
+                [f"{p}/*/sample", f"{p}/*/scan", f"{p}/*/s$*"],
+            ),
             _rule("reconstruct-receive", "egress", ["put"], [f"{p}/*/sample", f"{p}/*/scan"]),
             _rule("reconstruct-publish", "ingress", ["put", "declare_queryable", "reply"], [f"{p}/*/planes"]),
             _rule("reconstruct-planes-queries", "egress", ["query"], [f"{p}/*/planes"]),
@@ -328,28 +401,45 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
             # Like publishers and subscribers: a querier's matching status needs the queryables' declarations.
             _rule("reconstruct-log-replies", "egress", ["reply", "declare_queryable"], [f"{p}/*/log/**"]),
             _rule("reconstruct-token", "ingress", ["liveliness_token"], [f"{p}/*/alive/reconstruct"]),
-            _rule("reconstruct-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
-                  [f"{p}/*/alive/**"]),
+            _rule(
+                "reconstruct-watch",
+                "ingress",
+                ["declare_liveliness_subscriber", "liveliness_query"],
+                [f"{p}/*/alive/**"],
+            ),
             _rule("reconstruct-see-tokens", "egress", ["liveliness_token"], [f"{p}/*/alive/**"]),
             # reconstruct --group: members' tokens, and the marks of the finals each member published.
-            _rule("reconstruct-group-token", "ingress", ["liveliness_token", "declare_liveliness_subscriber",
-                                                          "liveliness_query"], [f"{p}/_group/*/member/**"]),
+            _rule(
+                "reconstruct-group-token",
+                "ingress",
+                ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                [f"{p}/_group/*/member/**"],
+            ),
             _rule("reconstruct-group-see-tokens", "egress", ["liveliness_token"], [f"{p}/_group/*/member/**"]),
             _rule("reconstruct-group-done", "ingress", ["put", "declare_subscriber"], [f"{p}/_group/*/done"]),
             _rule("reconstruct-group-done-receive", "egress", ["put", "declare_subscriber"], [f"{p}/_group/*/done"]),
             # The fence after a partition: each member's table of the finals it published.
-            _rule("reconstruct-group-finals", "ingress", ["declare_queryable", "reply", "query"],
-                  [f"{p}/_group/*/finals/*"]),
-            _rule("reconstruct-group-finals-receive", "egress", ["declare_queryable", "reply", "query"],
-                  [f"{p}/_group/*/finals/*"]),
+            _rule(
+                "reconstruct-group-finals",
+                "ingress",
+                ["declare_queryable", "reply", "query"],
+                [f"{p}/_group/*/finals/*"],
+            ),
+            _rule(
+                "reconstruct-group-finals-receive",
+                "egress",
+                ["declare_queryable", "reply", "query"],
+                [f"{p}/_group/*/finals/*"],
+            ),
         ]
     if role == PLANNER:
         return [
             _rule("planner-subscribe", "ingress", ["declare_subscriber", "query"], [f"{p}/*/planes"]),
             _rule("planner-receive", "egress", ["put", "reply", "declare_queryable"], [f"{p}/*/planes"]),
             _rule("planner-token", "ingress", ["liveliness_token"], [f"{p}/*/alive/planner"]),
-            _rule("planner-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"],
-                  [f"{p}/*/alive/**"]),
+            _rule(
+                "planner-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], [f"{p}/*/alive/**"]
+            ),
             _rule("planner-see-tokens", "egress", ["liveliness_token"], [f"{p}/*/alive/**"]),
         ]
     return []  # the router itself sends nothing of its own
@@ -364,8 +454,7 @@ def access_control(scanners: Iterable[str], prefix: str = DEFAULT_PREFIX) -> dic
         rules += mine
         subjects.append({"id": role, "cert_common_names": [role]})
         policies.append({"id": role, "subjects": [role], "rules": [r["id"] for r in mine]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 # --- Zenoh configuration ----------------------------------------------------------------
@@ -373,9 +462,11 @@ def tls_endpoint(endpoint: str) -> str:
     """``tcp/H:P`` → ``tls/H:P``; ``tls/`` stays; anything else cannot carry mutual TLS."""
     for plain, tls in _PLAIN_TO_TLS.items():
         if endpoint.startswith(plain):
-            return tls + endpoint[len(plain):]
-    raise SecurityError(f"endpoint {endpoint!r} cannot carry mutual TLS; use tls/HOST:PORT (or tcp/HOST:PORT, "
-                        "which --secure switches to tls/)")
+            return tls + endpoint[len(plain) :]
+    raise SecurityError(
+        f"endpoint {endpoint!r} cannot carry mutual TLS; use tls/HOST:PORT (or tcp/HOST:PORT, "
+        "which --secure switches to tls/)"
+    )
 
 
 def overlay(directory: Path | str, role: str, prefix: str = DEFAULT_PREFIX) -> tuple[tuple[str, str], ...]:
@@ -395,14 +486,17 @@ def overlay(directory: Path | str, role: str, prefix: str = DEFAULT_PREFIX) -> t
     if role == ROUTER:
         scanners = d.scanners()
         if not scanners:
-            raise SecurityError(f"{d.path} has no acquire-<id> certificate, so no scanner could publish; add one "
-                                f"with `lelsonar secure add-scanner {d.path} ID`")
+            raise SecurityError(
+                f"{d.path} has no acquire-<id> certificate, so no scanner could publish; add one "
+                f"with `lelsonar secure add-scanner {d.path} ID`"
+            )
         pairs.append(("access_control", access_control(scanners, prefix)))
     return tuple((path, json.dumps(value)) for path, value in pairs)
 
 
-def secure_settings(settings: ZenohSettings, directory: Path | str, role: str,
-                    prefix: str | None = None) -> ZenohSettings:
+def secure_settings(
+    settings: ZenohSettings, directory: Path | str, role: str, prefix: str | None = None
+) -> ZenohSettings:
     """``settings`` switched to mutual TLS as ``role``.
 
     Every role but the router becomes a *client*: the router enforces the access
@@ -413,25 +507,39 @@ def secure_settings(settings: ZenohSettings, directory: Path | str, role: str,
     mode = "router" if role == ROUTER else "client"
     # A field left None takes the embedded default (no config file) or the file's value (see transport).
     no_file = settings.config_file is None
-    connect = tuple(tls_endpoint(e) for e in (settings.connect if settings.connect is not None
-                                              else ((DEFAULT_ENDPOINT,) if no_file else ())))
+    connect = tuple(
+        tls_endpoint(e)
+        for e in (settings.connect if settings.connect is not None else ((DEFAULT_ENDPOINT,) if no_file else ()))
+    )
     listen = tuple(tls_endpoint(e) for e in (settings.listen or ()))
     if mode == "client":
         if not connect:
             raise SecurityError("a secure client needs the router's endpoint: --connect tls/HOST:7447")
         if listen:
-            raise SecurityError("with --secure every process but the router is a client and listens on nothing; "
-                                "drop --listen (a listening peer would accept links that bypass the access rules)")
-    return dataclasses.replace(settings, mode=mode, connect=connect if mode == "client" else (), listen=listen,
-                               overlay=overlay(directory, role, prefix or DEFAULT_PREFIX))
+            raise SecurityError(
+                "with --secure every process but the router is a client and listens on nothing; "
+                "drop --listen (a listening peer would accept links that bypass the access rules)"
+            )
+    return dataclasses.replace(
+        settings,
+        mode=mode,
+        connect=connect if mode == "client" else (),
+        listen=listen,
+        overlay=overlay(directory, role, prefix or DEFAULT_PREFIX),
+    )
 
 
-def role_config(directory: Path | str, role: str, *, prefix: str = DEFAULT_PREFIX, connect: Iterable[str] = (),
-                listen: Iterable[str] = ()) -> dict:
+def role_config(
+    directory: Path | str,
+    role: str,
+    *,
+    prefix: str = DEFAULT_PREFIX,
+    connect: Iterable[str] = (),
+    listen: Iterable[str] = (),
+) -> dict:
     """The whole Zenoh configuration of one role, for any Zenoh client or tool."""
     validate_role(role)
-    config: dict = {"mode": "router" if role == ROUTER else "client",
-                    "scouting": {"multicast": {"enabled": False}}}
+    config: dict = {"mode": "router" if role == ROUTER else "client", "scouting": {"multicast": {"enabled": False}}}
     if role == ROUTER:
         config["listen"] = {"endpoints": [tls_endpoint(e) for e in (listen or ("tls/127.0.0.1:7447",))]}
     else:
@@ -459,24 +567,38 @@ Roles: router, reconstruct, planner, acquire-<scanner id>. Private keys are 0600
 and never overwritten but by `lelsonar secure rotate`. Keep ca.key off the robots.
 """
 
+
 def add_secure_argument(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--secure", type=Path, metavar="DIR",
-                        help="join over mutual TLS with this role's certificate from DIR (made by "
-                             "`lelsonar secure init`); the router enforces the access rules")
+    parser.add_argument(
+        "--secure",
+        type=Path,
+        metavar="DIR",
+        help="join over mutual TLS with this role's certificate from DIR (made by "
+        "`lelsonar secure init`); the router enforces the access rules",
+    )
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("secure", help="certificates and Zenoh configs for mutual TLS and per-role access control",
-                       description=_CLI_DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = sub.add_parser(
+        "secure",
+        help="certificates and Zenoh configs for mutual TLS and per-role access control",
+        description=_CLI_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     ss = p.add_subparsers(dest="secure_command", required=True, metavar="ACTION")
     q = ss.add_parser("init", help="create a CA and the certificates of every role")
     q.add_argument("dir", type=Path)
     q.add_argument("--scanner", action="append", required=True, metavar="ID", help="a scanner id; repeatable")
-    q.add_argument("--host", action="append", metavar="NAME_OR_IP",
-                   help=f"a name or address clients dial the router by; repeatable "
-                        f"({', '.join(DEFAULT_HOSTS)} are always included)")
-    q.add_argument("--days", type=int, default=DEFAULT_DAYS, help=f"validity of the role certificates "
-                                                                  f"(default: {DEFAULT_DAYS})")
+    q.add_argument(
+        "--host",
+        action="append",
+        metavar="NAME_OR_IP",
+        help=f"a name or address clients dial the router by; repeatable "
+        f"({', '.join(DEFAULT_HOSTS)} are always included)",
+    )
+    q.add_argument(
+        "--days", type=int, default=DEFAULT_DAYS, help=f"validity of the role certificates (default: {DEFAULT_DAYS})"
+    )
     q.set_defaults(run=_run_init)
     q = ss.add_parser("add-scanner", help="issue the certificate of another scanner (restart the router after)")
     q.add_argument("dir", type=Path)
@@ -486,17 +608,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     q = ss.add_parser("rotate", help="replace a role's key and certificate (same CA, same common name)")
     q.add_argument("dir", type=Path)
     q.add_argument("role", help="router, reconstruct, planner or acquire-<scanner id>")
-    q.add_argument("--host", action="append", metavar="NAME_OR_IP",
-                   help="router: the names it is dialled by (default: those of the old certificate)")
+    q.add_argument(
+        "--host",
+        action="append",
+        metavar="NAME_OR_IP",
+        help="router: the names it is dialled by (default: those of the old certificate)",
+    )
     q.add_argument("--days", type=int, default=DEFAULT_DAYS)
     q.set_defaults(run=_run_rotate)
     q = ss.add_parser("config", help="print the Zenoh JSON5 config of a role")
     q.add_argument("dir", type=Path)
     q.add_argument("--role", required=True, help="router, reconstruct, planner or acquire-<scanner id>")
-    q.add_argument("--connect", "-e", action="append", metavar="ENDPOINT",
-                   help="router endpoint (default: tls/127.0.0.1:7447)")
-    q.add_argument("--listen", "-l", action="append", metavar="ENDPOINT",
-                   help="router role: endpoint to listen on (default: tls/127.0.0.1:7447)")
+    q.add_argument(
+        "--connect", "-e", action="append", metavar="ENDPOINT", help="router endpoint (default: tls/127.0.0.1:7447)"
+    )
+    q.add_argument(
+        "--listen",
+        "-l",
+        action="append",
+        metavar="ENDPOINT",
+        help="router role: endpoint to listen on (default: tls/127.0.0.1:7447)",
+    )
     q.add_argument("--prefix", default=DEFAULT_PREFIX, help="key-expression prefix (default: lelsonar)")
     q.set_defaults(run=_run_config)
 
@@ -505,8 +637,10 @@ def _run_init(args: argparse.Namespace) -> int:
     created = init(args.dir, args.scanner, hosts=tuple(args.host or ()), days=args.days)
     for path in created:
         print(f"created {path}")
-    print(f"start the router with: lelsonar router --secure {args.dir} --listen tls/0.0.0.0:7447\n"
-          f"keep {SecureDir(args.dir).ca_key} off the robots; copy each role only its own .pem/.key and ca.pem")
+    print(
+        f"start the router with: lelsonar router --secure {args.dir} --listen tls/0.0.0.0:7447\n"
+        f"keep {SecureDir(args.dir).ca_key} off the robots; copy each role only its own .pem/.key and ca.pem"
+    )
     return 0
 
 
@@ -525,6 +659,16 @@ def _run_rotate(args: argparse.Namespace) -> int:
 
 
 def _run_config(args: argparse.Namespace) -> int:
-    print(json.dumps(role_config(args.dir, validate_role(args.role), prefix=args.prefix,
-                                 connect=args.connect or (), listen=args.listen or ()), indent=2))
+    print(
+        json.dumps(
+            role_config(
+                args.dir,
+                validate_role(args.role),
+                prefix=args.prefix,
+                connect=args.connect or (),
+                listen=args.listen or (),
+            ),
+            indent=2,
+        )
+    )
     return 0

@@ -149,11 +149,15 @@ def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
     except zenoh.ZError as exc:
         hint = ""
         if settings.mode == "client":
-            hint = (f"; is a router listening on {', '.join(settings.connect)}? "
-                    "Start one with `lelsonar router`, or pass --mode peer")
+            hint = (
+                f"; is a router listening on {', '.join(settings.connect)}? "
+                "Start one with `lelsonar router`, or pass --mode peer"
+            )
         if settings.overlay and settings.mode == "client":  # --secure
-            hint = (f"; is `lelsonar router --secure DIR` listening on {', '.join(settings.connect)}, with the same "
-                    "CA as this process's certificate, and does its certificate name the host you dial?")
+            hint = (
+                f"; is `lelsonar router --secure DIR` listening on {', '.join(settings.connect)}, with the same "
+                "CA as this process's certificate, and does its certificate name the host you dial?"
+            )
         raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}{hint}") from None
     try:
         yield session
@@ -167,21 +171,46 @@ def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
 
 
 # --- command-line flags, shared by every command that talks Zenoh -------------------
-def add_zenoh_arguments(parser: argparse.ArgumentParser, *, default_mode: str = "peer",
-                        default_connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)) -> None:
-    g = parser.add_argument_group("zenoh", "Precedence: flags you type, then the --zenoh-config file, then "
-                                           "the defaults below (used only without a file).")
+def add_zenoh_arguments(
+    parser: argparse.ArgumentParser,
+    *,
+    default_mode: str = "peer",
+    default_connect: tuple[str, ...] = (DEFAULT_ENDPOINT,),
+) -> None:
+    g = parser.add_argument_group(
+        "zenoh",
+        "Precedence: flags you type, then the --zenoh-config file, then the defaults below (used only without a file).",
+    )
     # default=None: a flag the user did not type must not override the config file.
-    g.add_argument("--mode", choices=MODES, default=None,
-                   help=f"Zenoh session mode (default: {default_mode})")
-    g.add_argument("--connect", "-e", action="append", metavar="ENDPOINT", default=None,
-                   help=f"endpoint to connect to; repeatable (default: {', '.join(default_connect) or 'none'})")
-    g.add_argument("--listen", "-l", action="append", metavar="ENDPOINT", default=None,
-                   help="endpoint to listen on; repeatable (default: none)")
-    g.add_argument("--zenoh-config", type=Path, metavar="FILE",
-                   help="a Zenoh JSON5 config file; only the flags you type override it")
-    g.add_argument("--prefix", default=None, metavar="PREFIX",
-                   help="key-expression prefix, e.g. robot7/lelsonar (default: lelsonar)")
+    g.add_argument("--mode", choices=MODES, default=None, help=f"Zenoh session mode (default: {default_mode})")
+    g.add_argument(
+        "--connect",
+        "-e",
+        action="append",
+        metavar="ENDPOINT",
+        default=None,
+        help=f"endpoint to connect to; repeatable (default: {', '.join(default_connect) or 'none'})",
+    )
+    g.add_argument(
+        "--listen",
+        "-l",
+        action="append",
+        metavar="ENDPOINT",
+        default=None,
+        help="endpoint to listen on; repeatable (default: none)",
+    )
+    g.add_argument(
+        "--zenoh-config",
+        type=Path,
+        metavar="FILE",
+        help="a Zenoh JSON5 config file; only the flags you type override it",
+    )
+    g.add_argument(
+        "--prefix",
+        default=None,
+        metavar="PREFIX",
+        help="key-expression prefix, e.g. robot7/lelsonar (default: lelsonar)",
+    )
     parser.set_defaults(_default_connect=tuple(default_connect), _default_mode=default_mode)
 
 

@@ -38,11 +38,17 @@ log = logging.getLogger(__name__)
 
 #: Every module of this package with a :func:`kernel` (a test checks the list is complete).
 KERNEL_MODULES = (
-    "lelsonar.signal.echo_timing", "lelsonar.signal.energy",
-    "lelsonar.reconstruct.estimate.corner.method", "lelsonar.reconstruct.estimate.corner.model",
-    "lelsonar.reconstruct.estimate.correct", "lelsonar.reconstruct.estimate.fit", "lelsonar.reconstruct.estimate.lel",
-    "lelsonar.reconstruct.estimate.pipeline", "lelsonar.reconstruct.estimate.quality",
-    "lelsonar.reconstruct.estimate.split", "lelsonar.reconstruct.stream.assembly",
+    "lelsonar.signal.echo_timing",
+    "lelsonar.signal.energy",
+    "lelsonar.reconstruct.estimate.corner.method",
+    "lelsonar.reconstruct.estimate.corner.model",
+    "lelsonar.reconstruct.estimate.correct",
+    "lelsonar.reconstruct.estimate.fit",
+    "lelsonar.reconstruct.estimate.lel",
+    "lelsonar.reconstruct.estimate.pipeline",
+    "lelsonar.reconstruct.estimate.quality",
+    "lelsonar.reconstruct.estimate.split",
+    "lelsonar.reconstruct.stream.assembly",
 )
 
 
@@ -65,8 +71,11 @@ def _cache_dir() -> Path | None:
             path.mkdir(parents=True)
         except OSError:
             continue
-        log.warning("first run of this build: compiling the numeric kernels (~40 s on 2 cores, once; "
-                    "`lelsonar warm-up` does it ahead). Cache: %s", path)
+        log.warning(
+            "first run of this build: compiling the numeric kernels (~40 s on 2 cores, once; "
+            "`lelsonar warm-up` does it ahead). Cache: %s",
+            path,
+        )
         return path
     return None
 
@@ -99,6 +108,11 @@ def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
     found = {}
     for module_name in KERNEL_MODULES:
         module = importlib.import_module(module_name)
-        found.update({f"{module_name}.{name}": obj for name, obj in vars(module).items()
-                      if isinstance(obj, numba.core.registry.CPUDispatcher) and obj.py_func.__module__ == module_name})
+        found.update(
+            {
+                f"{module_name}.{name}": obj
+                for name, obj in vars(module).items()
+                if isinstance(obj, numba.core.registry.CPUDispatcher) and obj.py_func.__module__ == module_name
+            }
+        )
     return found

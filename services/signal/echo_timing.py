@@ -34,8 +34,16 @@ from scipy import fft as sfft
 from lelsonar.errors import ConfigError
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["TIMING_WINDOW", "CONSTANT_FRACTION", "echo_onsets", "typical_edges", "RangeWalk",
-           "range_walk", "walk_free_ranges", "walk_finding"]
+__all__ = [
+    "TIMING_WINDOW",
+    "CONSTANT_FRACTION",
+    "echo_onsets",
+    "typical_edges",
+    "RangeWalk",
+    "range_walk",
+    "walk_free_ranges",
+    "walk_finding",
+]
 
 #: Where an echo is re-timed, s around the writer's time of flight.  A threshold crossing lies up to one
 #: envelope rise after the onset (a 0.3–0.6 ms burst rises for half its length), so the onset may lie well
@@ -62,9 +70,14 @@ _KNEE = 0.3
 _CARRIER = 40_000.0
 
 
-def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
-                fraction: float = CONSTANT_FRACTION, *,
-                level: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def echo_onsets(
+    windows: np.ndarray,
+    sample_rate: float,
+    tof_at: np.ndarray,
+    fraction: float = CONSTANT_FRACTION,
+    *,
+    level: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Constant-fraction time of the echo that set each reading's time of flight (design notes §8).
 
     The envelope is the analytic signal's modulus (Hilbert transform) of each window less its floor's
@@ -126,8 +139,19 @@ def echo_onsets(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray,
     half = max(int(round(_PEAK_HALF_WIDTH * sample_rate)), 1)
     start = np.round(tof_at * sample_rate).astype(np.int64) - half  # from 50 µs before the time of flight
     levels = np.full(n, np.nan) if level is None else np.asarray(level, dtype=np.float64)
-    return _time_envelopes(w, x, hilbert, tof_at, start, float(sample_rate), head,
-                           max(int(round(sample_rate / _CARRIER)), 1), half, float(fraction), levels)
+    return _time_envelopes(
+        w,
+        x,
+        hilbert,
+        tof_at,
+        start,
+        float(sample_rate),
+        head,
+        max(int(round(sample_rate / _CARRIER)), 1),
+        half,
+        float(fraction),
+        levels,
+    )
 
 
 @kernel
@@ -203,8 +227,11 @@ def _time_envelopes(w, x, hilbert, tof_at, start, sample_rate, head, period, hal
                 knee = i
         # ... and the hump rises again after the knee by more than the noise could (a noisy rise on a weak echo
         # can dip anywhere near its top).
-        if (knee < k_peak - period and rise[knee] < _KNEE * rise[steepest]
-                and e[k_peak] - e[knee] > max(0.2 * (e[knee] - floor[r]), _PEAK_SIGMA * sigma[r])):
+        if (
+            knee < k_peak - period
+            and rise[knee] < _KNEE * rise[steepest]
+            and e[k_peak] - e[knee] > max(0.2 * (e[knee] - floor[r]), _PEAK_SIGMA * sigma[r])
+        ):
             k_peak = knee
         k_peaks[r] = k_peak
     # An earlier echo under the threshold still ringing in the window's first 0.1 ms: this echo rises on its
@@ -362,8 +389,9 @@ _HALF_Z = 3.0
 WALK_Z = 4.0
 
 
-def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WALK, z: float = WALK_Z,
-               halves: bool = True) -> RangeWalk:
+def range_walk(
+    offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WALK, z: float = WALK_Z, halves: bool = True
+) -> RangeWalk:
     """Whether the writer's ranges walk with the echoes' amplitude (design notes §8).
 
     A least-squares line of ``offset`` against ``ln(peak)``, after dropping offsets more than 5 robust σ
@@ -394,10 +422,21 @@ def range_walk(offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WA
     # the corner's a few mm apart (near the edge's direction) add into an envelope of another timing, weak
     # where they cancel, strong where they add, which would make a board that times the onset look as if
     # it walked.
-    detected = (walk > min_walk and -slope > z * stderr
-                and (not halves or (-slope_weak > _HALF_Z * stderr_weak and -slope_strong > _HALF_Z * stderr_strong)))
-    return RangeWalk(n, slope, stderr, walk, reference, bool(detected), untimed,
-                     tuple((float(x), float(y), float(s)) for x, y, s in curve))
+    detected = (
+        walk > min_walk
+        and -slope > z * stderr
+        and (not halves or (-slope_weak > _HALF_Z * stderr_weak and -slope_strong > _HALF_Z * stderr_strong))
+    )
+    return RangeWalk(
+        n,
+        slope,
+        stderr,
+        walk,
+        reference,
+        bool(detected),
+        untimed,
+        tuple((float(x), float(y), float(s)) for x, y, s in curve),
+    )
 
 
 @kernel
@@ -501,7 +540,9 @@ def walk_free_ranges(distance: np.ndarray, offset: np.ndarray, peak: np.ndarray,
 
 def walk_finding(walk: RangeWalk) -> str:
     """The reason each plane carries when its ranges were re-timed."""
-    return (f"ranges re-timed from the waveforms: the writer's walk {1000 * walk.walk:.1f} mm later on weaker "
-            f"echoes ({1000 * walk.slope:+.1f} ± {1000 * walk.slope_stderr:.1f} mm per e-fold of amplitude, "
-            f"{walk.n} echoes; a comparator timing a threshold crossing); constant-fraction times used, zero "
-            "kept at the strongest echoes'")
+    return (
+        f"ranges re-timed from the waveforms: the writer's walk {1000 * walk.walk:.1f} mm later on weaker "
+        f"echoes ({1000 * walk.slope:+.1f} ± {1000 * walk.slope_stderr:.1f} mm per e-fold of amplitude, "
+        f"{walk.n} echoes; a comparator timing a threshold crossing); constant-fraction times used, zero "
+        "kept at the strongest echoes'"
+    )

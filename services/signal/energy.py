@@ -13,10 +13,25 @@ from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["EnergyModel", "ECHO_PEAK_WINDOW", "PRE_ECHO_WINDOW", "waveform_energy", "waveform_energy_agrees",
-           "echo_amplitude", "echo_window_starts", "echo_window_width", "window_peak", "total_energy", "fit_energy_model",
-           "median_range", "energy_ratio", "NOISE_FALSE_ALARM", "echoes_over_noise", "noise_level",
-           "ranges_backed"]
+__all__ = [
+    "EnergyModel",
+    "ECHO_PEAK_WINDOW",
+    "PRE_ECHO_WINDOW",
+    "waveform_energy",
+    "waveform_energy_agrees",
+    "echo_amplitude",
+    "echo_window_starts",
+    "echo_window_width",
+    "window_peak",
+    "total_energy",
+    "fit_energy_model",
+    "median_range",
+    "energy_ratio",
+    "NOISE_FALSE_ALARM",
+    "echoes_over_noise",
+    "noise_level",
+    "ranges_backed",
+]
 
 
 def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
@@ -65,8 +80,9 @@ def window_samples(sample_rate: float, lo: float, hi: float) -> int:
     return max(int(np.rint((hi - lo) * sample_rate)), 1)
 
 
-def echo_window_starts(n_samples: int, sample_rate: float, t0: float, round_trips,
-                       window: tuple[float, float] = ECHO_PEAK_WINDOW) -> list[int]:
+def echo_window_starts(
+    n_samples: int, sample_rate: float, t0: float, round_trips, window: tuple[float, float] = ECHO_PEAK_WINDOW
+) -> list[int]:
     """First sample of :func:`echo_amplitude`'s window for each round trip, in a waveform of ``n_samples``;
     -1 where there is none (:func:`echo_window_start` of each)."""
     return [echo_window_start(n_samples, sample_rate, t0, float(t), window[0]) for t in round_trips]
@@ -93,8 +109,13 @@ def window_peak(windows: np.ndarray) -> np.ndarray:
     return _largest(np.abs(windows), axis=-1)
 
 
-def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_trip: np.ndarray,
-                   window: tuple[float, float] = ECHO_PEAK_WINDOW) -> np.ndarray:
+def echo_amplitude(
+    waveforms: np.ndarray,
+    sample_rate: float,
+    t0: float,
+    round_trip: np.ndarray,
+    window: tuple[float, float] = ECHO_PEAK_WINDOW,
+) -> np.ndarray:
     """Peak amplitude of the first echo alone: the largest ``|w|`` just after its time of flight.
 
     The paper's ``E_i^γ`` (eq. 10) integrates the whole waveform, so a step
@@ -148,8 +169,14 @@ def echo_amplitude(waveforms: np.ndarray, sample_rate: float, t0: float, round_t
 NOISE_FALSE_ALARM = 1.0e-3
 
 
-def echoes_over_noise(windows: np.ndarray, sample_rate: float, tof_at: np.ndarray, listened: np.ndarray,
-                      floor_time: float, false_alarm: float = NOISE_FALSE_ALARM) -> tuple[np.ndarray, float, float]:
+def echoes_over_noise(
+    windows: np.ndarray,
+    sample_rate: float,
+    tof_at: np.ndarray,
+    listened: np.ndarray,
+    floor_time: float,
+    false_alarm: float = NOISE_FALSE_ALARM,
+) -> tuple[np.ndarray, float, float]:
     """Which readings' waveforms hold an echo at their time of flight, rather than the noise a board's
     comparator fired on (design notes §8).
 
@@ -274,12 +301,12 @@ def ranges_backed(distance: np.ndarray, echo: np.ndarray, reach: float) -> np.nd
     n, k = d.shape
     with np.errstate(invalid="ignore"):
         for di, dj in ((0, 1), (2, 1), (1, 0), (1, 2)):  # the row before and after, the capsule left and right
-            backed |= np.abs(pad[di:di + n, dj:dj + k] - d) <= reach
+            backed |= np.abs(pad[di : di + n, dj : dj + k] - d) <= reach
     return backed
 
 
 #: float32's unit roundoff and smallest normal number: the rounding bound of :func:`waveform_energy_agrees`.
-_FLOAT32_UNIT, _FLOAT32_TINY = 2.0 ** -24, float(np.finfo(np.float32).tiny)
+_FLOAT32_UNIT, _FLOAT32_TINY = 2.0**-24, float(np.finfo(np.float32).tiny)
 
 
 def waveform_energy_agrees(waveforms: np.ndarray, sample_rate: float, energy) -> bool:
@@ -450,8 +477,9 @@ def _middle_pair(row, lo, hi):
     return a, b
 
 
-def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel, *,
-                 expected: np.ndarray | None = None) -> np.ndarray:
+def energy_ratio(
+    step_energy: np.ndarray, distance: np.ndarray, model: EnergyModel, *, expected: np.ndarray | None = None
+) -> np.ndarray:
     """The indicator ``R = E^γ / E0(d_m)`` of each step (paper §4, Fig. 6).
 
     Steps with no valid range get R = 0: they cannot be the corner, whose
@@ -469,8 +497,9 @@ def energy_ratio(step_energy: np.ndarray, distance: np.ndarray, model: EnergyMod
 
 
 @kernel
-def _ratio_where_ranged(step_energy: np.ndarray, d_m: np.ndarray, e0: np.ndarray, expected: np.ndarray,
-                        write_expected: bool) -> np.ndarray:
+def _ratio_where_ranged(
+    step_energy: np.ndarray, d_m: np.ndarray, e0: np.ndarray, expected: np.ndarray, write_expected: bool
+) -> np.ndarray:
     """``R = E^γ / E0(d_m)`` where ``d_m`` is finite, else 0 (:func:`energy_ratio`); ``E0`` into ``expected`` there."""
     r = np.zeros(step_energy.shape[0])
     for i in range(step_energy.shape[0]):

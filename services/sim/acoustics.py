@@ -119,8 +119,17 @@ class Acoustics:
     diffuse_coefficient: float = 0.01
 
     def __post_init__(self) -> None:
-        _check_finite(self, ("frequency", "capsule_radius", "absorption_db_per_m", "corner_gain",
-                             "corner_max_error", "diffuse_coefficient"))
+        _check_finite(
+            self,
+            (
+                "frequency",
+                "capsule_radius",
+                "absorption_db_per_m",
+                "corner_gain",
+                "corner_max_error",
+                "diffuse_coefficient",
+            ),
+        )
         if not 1e3 <= self.frequency <= 1e6:
             raise ConfigError(f"frequency must be in [1 kHz, 1 MHz], got {self.frequency} Hz")
         if not 0.0005 <= self.capsule_radius <= 0.05:
@@ -215,9 +224,22 @@ class Receiver:
     timing: str = "onset"
 
     def __post_init__(self) -> None:
-        _check_finite(self, ("echo_gain", "threshold", "blanking_time", "envelope_time", "tof_jitter",
-                             "cycle_slip_probability", "noise_std", "amplitude_noise", "ringdown_amplitude",
-                             "ringdown_time", "adc_range"))
+        _check_finite(
+            self,
+            (
+                "echo_gain",
+                "threshold",
+                "blanking_time",
+                "envelope_time",
+                "tof_jitter",
+                "cycle_slip_probability",
+                "noise_std",
+                "amplitude_noise",
+                "ringdown_amplitude",
+                "ringdown_time",
+                "adc_range",
+            ),
+        )
         if self.echo_gain <= 0:
             raise ConfigError(f"echo_gain must be > 0 V·m, got {self.echo_gain}")
         if self.threshold <= 0:

@@ -16,7 +16,6 @@ sensors report and what ``d_m`` is compared with in ``R = E^γ/E0(d_m)``.
 from __future__ import annotations
 
 import functools
-
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -24,13 +23,13 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
-
 from lelsonar.sim.config import SimConfig
 from lelsonar.sim.scan import simulate_step
 from lelsonar.sim.scene import Scene
 
 #: Six wall distances spanning the paper's calibrated interval, 0.9–1.8 m.
 PAPER_CALIBRATION_DISTANCES: tuple[float, ...] = (0.90, 1.08, 1.26, 1.44, 1.62, 1.80)
+
 
 class EnergyShotSource(Protocol):
     """Something that can fire one face-on shot at a wall ``distance`` m away."""
@@ -79,7 +78,9 @@ class SimulatedWallShots:
         return float(total_energy(waveform_energy(shot.waveforms, cfg.sample_rate)))
 
 
-def calibrate(source: EnergyShotSource, distances: tuple[float, ...] = PAPER_CALIBRATION_DISTANCES) -> CalibrationResult:
+def calibrate(
+    source: EnergyShotSource, distances: tuple[float, ...] = PAPER_CALIBRATION_DISTANCES
+) -> CalibrationResult:
     """Fire one shot per distance and fit eq. (12) by eq. (13)–(14).
 
     Raises
@@ -94,8 +95,9 @@ def calibrate(source: EnergyShotSource, distances: tuple[float, ...] = PAPER_CAL
     return CalibrationResult(distances=d, energies=e, model=fit_energy_model(d, e))
 
 
-def calibrate_simulator(cfg: SimConfig, seed: int = 0,
-                        distances: tuple[float, ...] = PAPER_CALIBRATION_DISTANCES) -> CalibrationResult:
+def calibrate_simulator(
+    cfg: SimConfig, seed: int = 0, distances: tuple[float, ...] = PAPER_CALIBRATION_DISTANCES
+) -> CalibrationResult:
     """The paper's six-shot calibration against the simulator (seeded)."""
     return calibrate(SimulatedWallShots(cfg, np.random.default_rng(seed)), distances)
 

@@ -13,7 +13,6 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
-
 from lelsonar.sim.acoustics import Acoustics, Receiver, sound_speed
 from lelsonar.sim.scene import Scene
 
@@ -104,10 +103,17 @@ class SimConfig:
     servo: Servo = field(default_factory=Servo)
 
     def __post_init__(self) -> None:
-        for name, kind in (("scene", Scene), ("geometry", ArrayGeometry), ("acoustics", Acoustics),
-                           ("receiver", Receiver), ("servo", Servo)):
+        for name, kind in (
+            ("scene", Scene),
+            ("geometry", ArrayGeometry),
+            ("acoustics", Acoustics),
+            ("receiver", Receiver),
+            ("servo", Servo),
+        ):
             if not isinstance(getattr(self, name), kind):
-                raise ConfigError(f"SimConfig.{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
+                raise ConfigError(
+                    f"SimConfig.{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}"
+                )
         for name in ("gamma_start", "gamma_stop", "temperature", "sample_rate", "window_start"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value)):

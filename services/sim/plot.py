@@ -11,7 +11,6 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range
-
 from lelsonar.sim.calibrate import default_energy_model
 from lelsonar.sim.scan import EchoSource, SimulatedScan, TruePlane
 
@@ -87,11 +86,13 @@ def scan_figure(scan: SimulatedScan, model: EnergyModel | None = None):
         seg = plane_section(plane)
         if len(seg):
             ax_pts.plot(seg[:, 1], seg[:, 2], "k-", lw=1.5)
-            ax_pts.annotate(f"plane {plane.label}", seg.mean(axis=0)[1:], fontsize=8,
-                            xytext=(4, 4), textcoords="offset points")
+            ax_pts.annotate(
+                f"plane {plane.label}", seg.mean(axis=0)[1:], fontsize=8, xytext=(4, 4), textcoords="offset points"
+            )
     ax_pts.plot([0], [0], "k+", ms=10)
-    ax_pts.set(xlabel="y (m)", ylabel="z (m)", title="raw points along the beams (eq. 9), x = all capsules",
-               aspect="equal")
+    ax_pts.set(
+        xlabel="y (m)", ylabel="z (m)", title="raw points along the beams (eq. 9), x = all capsules", aspect="equal"
+    )
     ax_pts.legend(fontsize=7, loc="lower left")
 
     ax_e.plot(gamma_deg, energy, "-", c="tab:blue", label=r"$E^\gamma$ (eq. 11)")
@@ -105,8 +106,10 @@ def scan_figure(scan: SimulatedScan, model: EnergyModel | None = None):
     ax_r.plot(gamma_deg[k], ratio[k], "o", mfc="none", c="k", label=f"argmax R: step {k}, {gamma_deg[k]:.1f}°")
     ax_r.set(xlabel="γ (deg)", ylabel=r"$R = E^\gamma / E_{0°}(d_m)$", title="energy ratio (Fig. 6)")
     ax_r.legend(fontsize=8)
-    fig.suptitle(f"simulated scan: {scan.n_steps} steps, c = {scan.sound_speed:.1f} m/s, "
-                 f"critical step {scan.truth.critical_step}")
+    fig.suptitle(
+        f"simulated scan: {scan.n_steps} steps, c = {scan.sound_speed:.1f} m/s, "
+        f"critical step {scan.truth.critical_step}"
+    )
     return fig
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 
 from lelsonar.errors import ConfigError
-
 from lelsonar.sim.config import SimConfig
 from lelsonar.sim.scene import Scene
 

@@ -34,7 +34,6 @@ import numpy as np
 from scipy.special import ndtri
 
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
-
 from lelsonar.sim.acoustics import absorption_factor, comparator_delay, echo_envelope, piston_directivity
 from lelsonar.sim.config import SimConfig
 
@@ -248,8 +247,7 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
         with np.errstate(divide="ignore", invalid="ignore"):
             foot = pos + s[..., None] * normal
             ok = (s > 0) & panel.contains(foot) & (psi < lobe)
-            a = (panel.reflectivity * piston_directivity(psi, ka) ** 2
-                 * absorption_factor(2 * s, alpha) / (2 * s))
+            a = panel.reflectivity * piston_directivity(psi, ka) ** 2 * absorption_factor(2 * s, alpha) / (2 * s)
         rng_[..., k] = np.where(ok, s, np.nan)
         amp[..., k] = np.where(ok, a, 0.0)
         src[..., k] = _plane_source(k)
@@ -261,8 +259,9 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
             along = np.where(cos_i > 1e-6, s / cos_i, np.inf)
             hit = pos + np.where(np.isfinite(along), along, 0.0)[..., None] * bore[:, None, :]
             hit_ok = (s > 0) & np.isfinite(along) & panel.contains(hit) & (along < diffuse_range)
-            a_d = (ac.diffuse_coefficient * panel.reflectivity * cos_i
-                   * absorption_factor(2 * along, alpha) / (2 * along))
+            a_d = (
+                ac.diffuse_coefficient * panel.reflectivity * cos_i * absorption_factor(2 * along, alpha) / (2 * along)
+            )
         diffuse_range = np.where(hit_ok, along, diffuse_range)
         diffuse_amp = np.where(hit_ok, a_d, diffuse_amp)
         diffuse_index = np.where(hit_ok, np.int16(k), diffuse_index)
@@ -276,11 +275,23 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
             cos_psi = np.einsum("nmk,nk->nm", to_edge, bore) / rho
             psi = np.arccos(np.clip(cos_psi, -1.0, 1.0))
             r = rho * math.sin(edge.opening)
-            ok = ((t >= edge.t_min) & (t <= edge.t_max) & (perpendicular[i] > 0) & (perpendicular[j] > 0)
-                  & (psi < lobe) & (rho > 0)
-                  & (abs(edge.opening - math.pi / 2) <= ac.corner_max_error))
-            a = (ac.corner_gain * panels[i].reflectivity * panels[j].reflectivity
-                 * piston_directivity(psi, ka) ** 2 * absorption_factor(2 * r, alpha) / (2 * r))
+            ok = (
+                (t >= edge.t_min)
+                & (t <= edge.t_max)
+                & (perpendicular[i] > 0)
+                & (perpendicular[j] > 0)
+                & (psi < lobe)
+                & (rho > 0)
+                & (abs(edge.opening - math.pi / 2) <= ac.corner_max_error)
+            )
+            a = (
+                ac.corner_gain
+                * panels[i].reflectivity
+                * panels[j].reflectivity
+                * piston_directivity(psi, ka) ** 2
+                * absorption_factor(2 * r, alpha)
+                / (2 * r)
+            )
         slot = len(panels) + q
         rng_[..., slot] = np.where(ok, r, np.nan)
         amp[..., slot] = np.where(ok, a, 0.0)
@@ -295,8 +306,7 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
     return EchoTable(range=rng_, amplitude=amp, source=src, index=idx)
 
 
-def _first_echo(cfg: SimConfig, echoes: EchoTable
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _first_echo(cfg: SimConfig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The comparator: the earliest echo whose peak is over the threshold, after blanking.
 
     Returns the noise-free range, source and index of that echo per capsule,
@@ -316,7 +326,7 @@ def _first_echo(cfg: SimConfig, echoes: EchoTable
         delay = np.zeros_like(peak)
     window_end = cfg.window_start + cfg.window_samples / cfg.sample_rate
     with np.errstate(invalid="ignore"):
-        detected = ((peak >= rec.threshold) & (arrival >= rec.blanking_time) & (arrival + delay <= window_end))
+        detected = (peak >= rec.threshold) & (arrival >= rec.blanking_time) & (arrival + delay <= window_end)
     candidate = np.where(detected, echoes.range, np.inf)
     first = np.argmin(candidate, axis=-1)[..., None]
     first_range = np.take_along_axis(candidate, first, axis=-1)[..., 0]
@@ -338,12 +348,14 @@ def _amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator
     if sigma <= 0:
         return echoes
     factor = np.exp(sigma * rng.standard_normal(echoes.amplitude.shape[:2]) - sigma * sigma / 2)
-    return EchoTable(range=echoes.range, amplitude=echoes.amplitude * factor[..., None], source=echoes.source,
-                     index=echoes.index)
+    return EchoTable(
+        range=echoes.range, amplitude=echoes.amplitude * factor[..., None], source=echoes.source, index=echoes.index
+    )
 
 
-def _time_of_flight(cfg: SimConfig, echo_range: np.ndarray, rng: np.random.Generator,
-                    delay: np.ndarray | float = 0.0) -> np.ndarray:
+def _time_of_flight(
+    cfg: SimConfig, echo_range: np.ndarray, rng: np.random.Generator, delay: np.ndarray | float = 0.0
+) -> np.ndarray:
     """The comparator's time: arrival plus its ``delay`` (:func:`_first_echo`), Gaussian jitter and ±1-cycle
     slips (±λ/2 of range)."""
     c = cfg.sound_speed
@@ -418,7 +430,7 @@ def _waveforms(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> n
         burst *= np.sin(two_pi_f * u + phase[:, None])
         burst *= (rec.echo_gain * amp[sel, k]).astype(np.float32)[:, None]
         flat[(sel * stride + first + span)[:, None] + offsets] += burst
-    w = buf[:, span:span + n_samples]
+    w = buf[:, span : span + n_samples]
     t = t0 + np.arange(n_samples) / fs
     ringdown = rec.ringdown_amplitude * np.exp(-t / rec.ringdown_time) * np.sin(2.0 * math.pi * f * t)
     w += ringdown.astype(np.float32)
@@ -443,8 +455,9 @@ def true_planes(cfg: SimConfig) -> tuple[TruePlane, ...]:
     )
 
 
-def simulate_scan(cfg: SimConfig, seed: int | np.random.Generator | None = 0, *,
-                  with_waveforms: bool = True) -> SimulatedScan:
+def simulate_scan(
+    cfg: SimConfig, seed: int | np.random.Generator | None = 0, *, with_waveforms: bool = True
+) -> SimulatedScan:
     """Simulate a whole scan: servo, echoes, times of flight and waveforms.
 
     Parameters
@@ -481,12 +494,30 @@ def simulate_scan(cfg: SimConfig, seed: int | np.random.Generator | None = 0, *,
 
     critical = cfg.scene.critical_angle()
     critical_step = int(np.argmin(np.abs(gamma_measured - critical))) if math.isfinite(critical) else -1
-    truth = ScanTruth(echo_source=source, echo_index=index, echo_range=echo_range, gamma_true=gamma_true,
-                      planes=true_planes(cfg), critical_angle=critical, critical_step=critical_step)
-    return SimulatedScan(gamma_commanded=commanded, gamma_measured=gamma_measured, gamma_raw=raw, tof=tof,
-                         distance=distance, waveforms=waveforms, sample_rate=float(cfg.sample_rate),
-                         t0=float(cfg.window_start), sound_speed=c, temperature=float(cfg.temperature),
-                         geometry=cfg.geometry, truth=truth, config=cfg)
+    truth = ScanTruth(
+        echo_source=source,
+        echo_index=index,
+        echo_range=echo_range,
+        gamma_true=gamma_true,
+        planes=true_planes(cfg),
+        critical_angle=critical,
+        critical_step=critical_step,
+    )
+    return SimulatedScan(
+        gamma_commanded=commanded,
+        gamma_measured=gamma_measured,
+        gamma_raw=raw,
+        tof=tof,
+        distance=distance,
+        waveforms=waveforms,
+        sample_rate=float(cfg.sample_rate),
+        t0=float(cfg.window_start),
+        sound_speed=c,
+        temperature=float(cfg.temperature),
+        geometry=cfg.geometry,
+        truth=truth,
+        config=cfg,
+    )
 
 
 def simulate_step(cfg: SimConfig, gamma_measured: float, rng: np.random.Generator) -> SimulatedStep:
@@ -501,5 +532,11 @@ def simulate_step(cfg: SimConfig, gamma_measured: float, rng: np.random.Generato
     echo_range, source, index, delay = _first_echo(cfg, echoes)
     tof = _time_of_flight(cfg, echo_range, rng, delay)
     waveforms = _waveforms(cfg, echoes, rng)
-    return SimulatedStep(tof=tof[0], distance=cfg.sound_speed * tof[0] / 2.0, waveforms=waveforms[0],
-                         echo_source=source[0], echo_index=index[0], echo_range=echo_range[0])
+    return SimulatedStep(
+        tof=tof[0],
+        distance=cfg.sound_speed * tof[0] / 2.0,
+        waveforms=waveforms[0],
+        echo_source=source[0],
+        echo_index=index[0],
+        echo_range=echo_range[0],
+    )

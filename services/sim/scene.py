@@ -195,12 +195,21 @@ class Scene:
         ``height_b`` towards −y, both ``width`` along the edge, centred on x = 0.
         The defaults cover every beam of a [-10°, 110°] scan.
         """
-        for name, value in (("distance_a", distance_a), ("distance_b", distance_b), ("width", width),
-                            ("height_a", height_a), ("height_b", height_b)):
+        for name, value in (
+            ("distance_a", distance_a),
+            ("distance_b", distance_b),
+            ("width", width),
+            ("height_a", height_a),
+            ("height_b", height_b),
+        ):
             if not (math.isfinite(value) and value > 0):
                 raise ConfigError(f"Scene.l_corner: {name} must be > 0 m, got {value!r}")
-        for name, value in (("tilt_a_x", tilt_a_x), ("tilt_a_z", tilt_a_z), ("tilt_b_x", tilt_b_x),
-                            ("tilt_b_y", tilt_b_y)):
+        for name, value in (
+            ("tilt_a_x", tilt_a_x),
+            ("tilt_a_z", tilt_a_z),
+            ("tilt_b_x", tilt_b_x),
+            ("tilt_b_y", tilt_b_y),
+        ):
             if not (math.isfinite(value) and abs(value) <= math.radians(30)):
                 raise ConfigError(f"Scene.l_corner: {name} must be within ±30° (rad), got {value!r}")
         apex = np.array([0.0, distance_a, distance_b])
@@ -216,13 +225,16 @@ class Scene:
         v_b = np.cross(n_b, e)
         v_b *= -np.sign(v_b @ n_a)
         panels = []
-        for label, n, v, h, refl in (("a", n_a, v_a, height_a, reflectivity[0]),
-                                     ("b", n_b, v_b, height_b, reflectivity[1])):
+        for label, n, v, h, refl in (
+            ("a", n_a, v_a, height_a, reflectivity[0]),
+            ("b", n_b, v_b, height_b, reflectivity[1]),
+        ):
             center = apex + v * h / 2
             # Panel's own (u, v): u along the edge; Panel derives v = n × u, so pick u's sign to match.
             u = e if np.cross(n, e) @ v > 0 else -e
-            panels.append(Panel(center=center, normal=n, u_axis=u, width=width, height=h,
-                                reflectivity=float(refl), label=label))
+            panels.append(
+                Panel(center=center, normal=n, u_axis=u, width=width, height=h, reflectivity=float(refl), label=label)
+            )
         return cls(panels=tuple(panels), corners=((0, 1),))
 
     @classmethod
@@ -230,8 +242,19 @@ class Scene:
         """One square wall ``y = distance`` facing the array at γ = 0 (for calibration)."""
         if not (math.isfinite(distance) and distance > 0):
             raise ConfigError(f"Scene.wall: distance must be > 0 m, got {distance!r}")
-        return cls(panels=(Panel(center=(0.0, distance, 0.0), normal=(0.0, 1.0, 0.0), u_axis=(1.0, 0.0, 0.0),
-                                 width=size, height=size, reflectivity=reflectivity, label=label),))
+        return cls(
+            panels=(
+                Panel(
+                    center=(0.0, distance, 0.0),
+                    normal=(0.0, 1.0, 0.0),
+                    u_axis=(1.0, 0.0, 0.0),
+                    width=size,
+                    height=size,
+                    reflectivity=reflectivity,
+                    label=label,
+                ),
+            )
+        )
 
     # ------------------------------------------------------------------ ground truth
     def critical_angle(self, corner: int = 0) -> float:

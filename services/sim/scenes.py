@@ -48,7 +48,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.errors import ConfigError
-
 from lelsonar.sim.acoustics import Acoustics, Receiver
 from lelsonar.sim.config import SimConfig
 from lelsonar.sim.scene import Scene
@@ -118,13 +117,18 @@ class SceneParams:
     def describe(self) -> str:
         """One line: distances, tilts, sweep, beam, corner gain and noise."""
         tilts = (self.tilt_a_x, self.tilt_a_z, self.tilt_b_x, self.tilt_b_y)
-        tilt = ("untilted" if not any(tilts) else
-                "tilts a(x {:+.1f}°, z {:+.1f}°) b(x {:+.1f}°, y {:+.1f}°)".format(*(math.degrees(t) for t in tilts)))
-        return (f"d_a {self.distance_a:.2f} m, d_b {self.distance_b:.2f} m, {tilt}, "
-                f"sweep {math.degrees(self.gamma_start):+.1f}…{math.degrees(self.gamma_stop):+.1f}° "
-                f"in {self.steps} steps, capsule {1e3 * self.capsule_radius:.1f} mm, "
-                f"corner gain {self.corner_gain:.2f}, jitter {1e3 * self.tof_jitter:.1f} mm, "
-                f"slips {100 * self.cycle_slip_probability:.1f} %, amplitude noise {100 * self.amplitude_noise:.1f} %")
+        tilt = (
+            "untilted"
+            if not any(tilts)
+            else "tilts a(x {:+.1f}°, z {:+.1f}°) b(x {:+.1f}°, y {:+.1f}°)".format(*(math.degrees(t) for t in tilts))
+        )
+        return (
+            f"d_a {self.distance_a:.2f} m, d_b {self.distance_b:.2f} m, {tilt}, "
+            f"sweep {math.degrees(self.gamma_start):+.1f}…{math.degrees(self.gamma_stop):+.1f}° "
+            f"in {self.steps} steps, capsule {1e3 * self.capsule_radius:.1f} mm, "
+            f"corner gain {self.corner_gain:.2f}, jitter {1e3 * self.tof_jitter:.1f} mm, "
+            f"slips {100 * self.cycle_slip_probability:.1f} %, amplitude noise {100 * self.amplitude_noise:.1f} %"
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -191,8 +195,11 @@ def _critical(params: dict[str, float]) -> float:
 
 
 def _noise(rng: np.random.Generator) -> dict[str, float]:
-    return {"tof_jitter": _u(rng, 0.001, 0.006), "cycle_slip_probability": _u(rng, 0.0, 0.05),
-            "amplitude_noise": _u(rng, 0.01, 0.05)}
+    return {
+        "tof_jitter": _u(rng, 0.001, 0.006),
+        "cycle_slip_probability": _u(rng, 0.0, 0.05),
+        "amplitude_noise": _u(rng, 0.01, 0.05),
+    }
 
 
 def draw_params(family: str, rng: np.random.Generator) -> SceneParams:
@@ -212,8 +219,12 @@ def draw_params(family: str, rng: np.random.Generator) -> SceneParams:
     """
     p: dict[str, float] = {}
     if family == "paper":
-        p.update(steps=_paper_steps(rng), tof_jitter=_u(rng, 0.001, 0.003),
-                 cycle_slip_probability=_u(rng, 0.0, 0.03), amplitude_noise=_u(rng, 0.0, 0.02))
+        p.update(
+            steps=_paper_steps(rng),
+            tof_jitter=_u(rng, 0.001, 0.003),
+            cycle_slip_probability=_u(rng, 0.0, 0.03),
+            amplitude_noise=_u(rng, 0.0, 0.02),
+        )
     elif family == "distance":
         p.update(steps=_paper_steps(rng), **_distances(rng))
     elif family == "tilted":
@@ -232,8 +243,12 @@ def draw_params(family: str, rng: np.random.Generator) -> SceneParams:
         p.update(_distances(rng))
         p.update(_tilts(rng))
         p.update(_sweep(rng, _critical(p)))
-        p.update(steps=int(rng.integers(90, 401)), capsule_radius=_u(rng, 0.006, 0.012),
-                 corner_gain=_u(rng, 1.0, 2.5), **_noise(rng))
+        p.update(
+            steps=int(rng.integers(90, 401)),
+            capsule_radius=_u(rng, 0.006, 0.012),
+            corner_gain=_u(rng, 1.0, 2.5),
+            **_noise(rng),
+        )
     else:
         raise ConfigError(f"unknown scene family {family!r}; choose one of {', '.join(FAMILIES)}")
     return SceneParams(**p)
@@ -258,15 +273,32 @@ def build_config(params: SceneParams) -> SimConfig:
     height_a = max(1.7, p.distance_b + p.distance_a * math.tan(far_a) + 0.1)
     height_b = max(2.2, p.distance_a + p.distance_b * math.tan(far_b) + 0.1)
     acoustics = dataclasses.replace(base.acoustics, capsule_radius=p.capsule_radius, corner_gain=p.corner_gain)
-    receiver = dataclasses.replace(base.receiver, tof_jitter=p.tof_jitter,
-                                   cycle_slip_probability=p.cycle_slip_probability,
-                                   amplitude_noise=p.amplitude_noise)
+    receiver = dataclasses.replace(
+        base.receiver,
+        tof_jitter=p.tof_jitter,
+        cycle_slip_probability=p.cycle_slip_probability,
+        amplitude_noise=p.amplitude_noise,
+    )
     problems: list[str] = []
     for _ in range(6):
-        scene = Scene.l_corner(p.distance_a, p.distance_b, tilt_a_x=p.tilt_a_x, tilt_a_z=p.tilt_a_z,
-                               tilt_b_x=p.tilt_b_x, tilt_b_y=p.tilt_b_y, height_a=height_a, height_b=height_b)
-        cfg = SimConfig(scene=scene, gamma_start=p.gamma_start, gamma_stop=p.gamma_stop, steps=p.steps,
-                        acoustics=acoustics, receiver=receiver)
+        scene = Scene.l_corner(
+            p.distance_a,
+            p.distance_b,
+            tilt_a_x=p.tilt_a_x,
+            tilt_a_z=p.tilt_a_z,
+            tilt_b_x=p.tilt_b_x,
+            tilt_b_y=p.tilt_b_y,
+            height_a=height_a,
+            height_b=height_b,
+        )
+        cfg = SimConfig(
+            scene=scene,
+            gamma_start=p.gamma_start,
+            gamma_stop=p.gamma_stop,
+            steps=p.steps,
+            acoustics=acoustics,
+            receiver=receiver,
+        )
         cfg = dataclasses.replace(cfg, window_samples=max(base.window_samples, required_window_samples(cfg)))
         problems = check_config(cfg)
         if not problems:
@@ -298,7 +330,7 @@ def parse_families(names: list[str] | tuple[str, ...]) -> tuple[str, ...]:
     """``["all"]`` → :data:`FAMILIES`; otherwise the names, checked (order kept, duplicates dropped)."""
     out: list[str] = []
     for name in names:
-        for n in (FAMILIES if name == "all" else (name,)):
+        for n in FAMILIES if name == "all" else (name,):
             if n not in FAMILIES:
                 raise ConfigError(f"unknown scene family {n!r}; choose from all, {', '.join(FAMILIES)}")
             if n not in out:
@@ -344,8 +376,10 @@ def check_config(cfg: SimConfig) -> list[str]:
     if not math.isfinite(crit):
         return ["the scene has no corner"]
     if not cfg.gamma_start + CORNER_MARGIN <= crit <= cfg.gamma_stop - CORNER_MARGIN:
-        problems.append(f"the sweep {math.degrees(cfg.gamma_start):.1f}…{math.degrees(cfg.gamma_stop):.1f}° "
-                        f"does not contain the corner at {math.degrees(crit):.1f}° with 5° to spare")
+        problems.append(
+            f"the sweep {math.degrees(cfg.gamma_start):.1f}…{math.degrees(cfg.gamma_stop):.1f}° "
+            f"does not contain the corner at {math.degrees(crit):.1f}° with 5° to spare"
+        )
     need = required_window_samples(cfg)
     if cfg.window_samples < need:
         problems.append(f"window of {cfg.window_samples} samples is shorter than the {need} the longest echo needs")
@@ -363,8 +397,9 @@ def check_config(cfg: SimConfig) -> list[str]:
         covered |= (s > 0) & np.isfinite(along) & (along > 0) & panel.contains(hit)
     if not covered.all():
         bad = np.flatnonzero(~covered.all(axis=1))
-        problems.append(f"{bad.size} steps have a beam that meets no panel "
-                        f"(first at γ = {math.degrees(gamma[bad[0]]):.1f}°)")
+        problems.append(
+            f"{bad.size} steps have a beam that meets no panel (first at γ = {math.degrees(gamma[bad[0]]):.1f}°)"
+        )
     return problems
 
 
@@ -374,14 +409,30 @@ WIDE_CALIBRATION_DISTANCES: tuple[float, ...] = (0.6, 0.9, 1.2, 1.5, 1.8, 2.1, 2
 
 
 @functools.lru_cache(maxsize=64)
-def _calibrated(acoustics: Acoustics, receiver: Receiver, window_samples: int, sample_rate: float,
-                temperature: float, radial_offset: float, reflectivity: float, distances: tuple[float, ...]):
+def _calibrated(
+    acoustics: Acoustics,
+    receiver: Receiver,
+    window_samples: int,
+    sample_rate: float,
+    temperature: float,
+    radial_offset: float,
+    reflectivity: float,
+    distances: tuple[float, ...],
+):
     from lelsonar.sim.calibrate import calibrate_simulator
 
-    cfg = SimConfig(acoustics=acoustics, receiver=receiver, window_samples=window_samples,
-                    sample_rate=sample_rate, temperature=temperature)
-    cfg = dataclasses.replace(cfg, geometry=dataclasses.replace(cfg.geometry, radial_offset=radial_offset),
-                              scene=Scene.wall(1.0, reflectivity=reflectivity))
+    cfg = SimConfig(
+        acoustics=acoustics,
+        receiver=receiver,
+        window_samples=window_samples,
+        sample_rate=sample_rate,
+        temperature=temperature,
+    )
+    cfg = dataclasses.replace(
+        cfg,
+        geometry=dataclasses.replace(cfg.geometry, radial_offset=radial_offset),
+        scene=Scene.wall(1.0, reflectivity=reflectivity),
+    )
     return calibrate_simulator(cfg, seed=0, distances=distances).model
 
 
@@ -401,9 +452,16 @@ def calibrated_energy_model(cfg: SimConfig, distances: tuple[float, ...] | None 
     -------
     lelsonar.signal.energy.EnergyModel
     """
-    return _calibrated(cfg.acoustics, cfg.receiver, int(cfg.window_samples), float(cfg.sample_rate),
-                       float(cfg.temperature), float(cfg.geometry.radial_offset),
-                       float(cfg.scene.panels[0].reflectivity), tuple(distances or _paper_distances()))
+    return _calibrated(
+        cfg.acoustics,
+        cfg.receiver,
+        int(cfg.window_samples),
+        float(cfg.sample_rate),
+        float(cfg.temperature),
+        float(cfg.geometry.radial_offset),
+        float(cfg.scene.panels[0].reflectivity),
+        tuple(distances or _paper_distances()),
+    )
 
 
 def _paper_distances() -> tuple[float, ...]:
@@ -430,8 +488,9 @@ class FamilyScan:
     energy_model: object
 
 
-def simulate_family_scene(family: str, seed: int, *, wide_calibration: bool = False,
-                          with_waveforms: bool = True) -> FamilyScan:
+def simulate_family_scene(
+    family: str, seed: int, *, wide_calibration: bool = False, with_waveforms: bool = True
+) -> FamilyScan:
     """Scene ``seed`` of ``family``, simulated with the same seed, and its rig's calibrated ``E0(d)``.
 
     Exactly what ``lelsonar bench estimators --families`` reconstructs and what

@@ -11,8 +11,7 @@ from rich.table import Table
 
 from lelsonar import codec
 from lelsonar.codec import QUALITY, QUALITY_NAME
-from lelsonar.reconstruct.estimate.wire import STATUS, TERMINAL, accounting_text, is_terminal, status_name
-
+from lelsonar.reconstruct.estimate.wire import STATUS, accounting_text, status_name
 
 
 def console(stderr: bool = False) -> Console:
@@ -34,11 +33,12 @@ def from_json(line: str | dict) -> codec.Reconstruction:
     """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back)."""
     from google.protobuf.json_format import ParseDict
 
-
     d = json.loads(line) if isinstance(line, str) else dict(line)
     d["status"] = STATUS.get(d.get("status"), 0)
-    d["planes"] = [{**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
-                   for p in d.get("planes", [])]
+    d["planes"] = [
+        {**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
+        for p in d.get("planes", [])
+    ]
     return ParseDict(d, codec.Reconstruction())
 
 
@@ -51,13 +51,19 @@ def angle_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(abs(float(a @ b)), -1.0, 1.0))))
 
 
-def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, float]] | None = None,
-                 title: str | None = None) -> Table:
+def planes_table(
+    msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, float]] | None = None, title: str | None = None
+) -> Table:
     """One row per plane estimate; with ``truth`` (label → (normal, offset)), the errors in ° and cm."""
-    crit = (f"critical step {msg.critical_step} at γ = {np.rad2deg(msg.critical_angle):.1f}°"
-            if msg.HasField("critical_step") else "corner not found yet")
-    t = Table(title=title or f"{msg.scanner_id} scan {msg.scan_id} — {status_name(msg)}, "
-                             f"{msg.samples_used} samples, {crit}", title_justify="left")
+    crit = (
+        f"critical step {msg.critical_step} at γ = {np.rad2deg(msg.critical_angle):.1f}°"
+        if msg.HasField("critical_step")
+        else "corner not found yet"
+    )
+    t = Table(
+        title=title or f"{msg.scanner_id} scan {msg.scan_id} — {status_name(msg)}, {msg.samples_used} samples, {crit}",
+        title_justify="left",
+    )
     t.add_column("plane")
     t.add_column("method")
     t.add_column("normal n", no_wrap=True)
@@ -73,21 +79,36 @@ def planes_table(msg: codec.Reconstruction, truth: dict[str, tuple[np.ndarray, f
         cells = [p.label, p.method, f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}", f"{p.offset * 100:.2f}"]
         if truth:
             tn, th = truth.get(p.label, (None, None))
-            cells += ([f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""])
-        cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}",
-                  quality_cell(p)]
+            cells += [f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""]
+        cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}", quality_cell(p)]
         t.add_row(*cells)
     if truth:
         for label, (tn, th) in sorted(truth.items()):
-            t.add_row(label, "truth", f"{tn[0]:+.3f} {tn[1]:+.3f} {tn[2]:+.3f}", f"{th * 100:.2f}",
-                      "", "", "", "", "", "", style="dim")
+            t.add_row(
+                label,
+                "truth",
+                f"{tn[0]:+.3f} {tn[1]:+.3f} {tn[2]:+.3f}",
+                f"{th * 100:.2f}",
+                "",
+                "",
+                "",
+                "",
+                "",
+                "",
+                style="dim",
+            )
     for f in msg.failures:
         t.add_row("", "failure", f, *[""] * (len(t.columns) - 3), style="yellow")
-    caption = [f"* {p.label} {p.method}: {'; '.join(p.quality_reasons)}"
-               for p in sorted(msg.planes, key=lambda p: (p.label, p.method)) if p.quality_reasons]
+    caption = [
+        f"* {p.label} {p.method}: {'; '.join(p.quality_reasons)}"
+        for p in sorted(msg.planes, key=lambda p: (p.label, p.method))
+        if p.quality_reasons
+    ]
     if msg.HasField("accounting"):
-        caption.append(f"samples: {accounting_text(msg.accounting)}" + (
-            f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else ""))
+        caption.append(
+            f"samples: {accounting_text(msg.accounting)}"
+            + (f"; missing steps {_runs(msg.missing_steps)}" if msg.missing_steps else "")
+        )
         if msg.missing_steps:
             t.caption_style = "yellow"
     if caption:
@@ -103,6 +124,8 @@ def quality_cell(plane) -> str:
     """The verdict, coloured (rich markup); its reasons follow the table (:func:`planes_table`)."""
     name = QUALITY_NAME.get(plane.quality, "unknown")
     return f"[{_QUALITY_STYLE.get(name, 'dim')}]{name}[/]" + ("*" if plane.quality_reasons else "")
+
+
 def _runs(steps) -> str:
     out: list[list[int]] = []
     for s in steps:

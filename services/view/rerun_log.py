@@ -77,9 +77,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from lelsonar.draw.palette import METHOD_COLORS, method_color, quality_color
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit
-from lelsonar.draw.palette import METHOD_COLORS, method_color, quality_color
 
 __all__ = [
     "STEP_TIMELINE",
@@ -100,7 +100,7 @@ TIME_TIMELINE = "acq_time"
 
 #: Per-method colours (RGB); methods not listed get a stable colour from the palette.
 _PALETTE = [(230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100)]
-_PLANE_ALPHA = 110                       # patches stay see-through so points behind them show
+_PLANE_ALPHA = 110  # patches stay see-through so points behind them show
 _TRUTH_RGBA = (160, 160, 160, 80)
 _SUBSET_COLORS = {"a": (60, 120, 240), "b": (160, 70, 210)}
 _OUTLIER_RGB = (235, 40, 40)
@@ -110,9 +110,9 @@ _CAPSULE_RGB = (255, 200, 0)
 _EDGE_RGB = (255, 255, 255)
 _CRITICAL_RGB = (235, 40, 40)
 _WAVEFORM_COLORS = [(255, 140, 0), (40, 190, 70), (60, 140, 255), (220, 60, 200)]
-_POINT_RADIUS = 0.008                    # m
-_OUTLIER_RADIUS = 0.016                  # m: twice as big, so outliers stand out among inliers
-_NORMAL_LENGTH = 0.25                    # m
+_POINT_RADIUS = 0.008  # m
+_OUTLIER_RADIUS = 0.016  # m: twice as big, so outliers stand out among inliers
+_NORMAL_LENGTH = 0.25  # m
 _LEVELS = {
     "trace": rr.TextLogLevel.TRACE,
     "debug": rr.TextLogLevel.DEBUG,
@@ -168,14 +168,16 @@ def default_blueprint(root: str = "/") -> rrb.Blueprint:
         world taking 3/5 of the width, the blueprint and selection panels
         collapsed and the ``step`` timeline active.
     """
+
     def at(*parts: str) -> str:
         return _join(root, *parts)
 
     column = rrb.Vertical(
         rrb.TimeSeriesView(name="energy E^γ and E0(d_m)", origin=at("plots", "energy")),
         rrb.TimeSeriesView(name="ratio R = E^γ / E0(d_m)", origin=at("plots", "ratio")),
-        rrb.Spatial2DView(name="waveforms of the step (ms; volts up, capsule i at i·spacing)",
-                          origin=at("plots", "waveforms")),
+        rrb.Spatial2DView(
+            name="waveforms of the step (ms; volts up, capsule i at i·spacing)", origin=at("plots", "waveforms")
+        ),
         rrb.Horizontal(
             rrb.BarChartView(name="sorted errors e_i, plane a", origin=at("plots", "errors", "a")),
             rrb.BarChartView(name="sorted errors e_i, plane b", origin=at("plots", "errors", "b")),
@@ -232,8 +234,9 @@ def _cone(normal: np.ndarray, half_angle: float, n: int = 8) -> np.ndarray:
     e2 = np.cross(normal, e1)
     phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
     a = min(float(half_angle), np.pi / 4)
-    return (np.cos(a) * normal[None, :]
-            + np.sin(a) * (np.cos(phi)[:, None] * e1[None, :] + np.sin(phi)[:, None] * e2[None, :]))
+    return np.cos(a) * normal[None, :] + np.sin(a) * (
+        np.cos(phi)[:, None] * e1[None, :] + np.sin(phi)[:, None] * e2[None, :]
+    )
 
 
 def _centidegrees(gamma: float) -> int:
@@ -303,8 +306,16 @@ class ScanLogger:
     per thread, and each method sets all of its timelines itself).
     """
 
-    def __init__(self, rec: rr.RecordingStream, scanner_id: str, scan_id: int, *, root: str = "/",
-                 waveform_spacing: float = 1.0, waveform_points: int | None = 1000) -> None:
+    def __init__(
+        self,
+        rec: rr.RecordingStream,
+        scanner_id: str,
+        scan_id: int,
+        *,
+        root: str = "/",
+        waveform_spacing: float = 1.0,
+        waveform_points: int | None = 1000,
+    ) -> None:
         if not (np.isfinite(waveform_spacing) and waveform_spacing > 0):
             raise ConfigError(f"waveform_spacing must be > 0 V, got {waveform_spacing!r}")
         if waveform_points is not None and waveform_points < 16:
@@ -335,19 +346,23 @@ class ScanLogger:
         self._ratio: dict[int, float] = {}
         self._clock: tuple[int | None, float | None, int | None] = (None, None, None)
         self._marked_critical: int | None = None
-        self._reported: dict[str, str] = {}   # what was last said about each plane/edge failure
-        self._drawn: set[tuple[str, str]] = set()   # (method, label) patches on screen
+        self._reported: dict[str, str] = {}  # what was last said about each plane/edge failure
+        self._drawn: set[tuple[str, str]] = set()  # (method, label) patches on screen
         self._strip_key: tuple[int, int, float, float] | None = None
         self._strip_x = np.empty(0, dtype=np.float32)
         self._bin = 1
         self._baselines = np.empty((0, 1), dtype=np.float32)
 
         rec.log(self.world, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        rec.log(self.energy, rr.SeriesLines(names=["E^γ", "E0(d_m)"], colors=[(60, 140, 255), (160, 160, 160)]),
-                static=True)
+        rec.log(
+            self.energy, rr.SeriesLines(names=["E^γ", "E0(d_m)"], colors=[(60, 140, 255), (160, 160, 160)]), static=True
+        )
         rec.log(self.ratio, rr.SeriesLines(names="R", colors=(255, 140, 0)), static=True)
-        rec.log(self.critical, rr.SeriesPoints(names="critical step", colors=_CRITICAL_RGB,
-                                               markers="diamond", marker_sizes=8.0), static=True)
+        rec.log(
+            self.critical,
+            rr.SeriesPoints(names="critical step", colors=_CRITICAL_RGB, markers="diamond", marker_sizes=8.0),
+            static=True,
+        )
         # Styles that never change are static, so step() sends only positions.
         rec.log(f"{self.scan_world}/raw", rr.Points3D.from_fields(colors=_RAW_RGB, radii=0.006), static=True)
         rec.log(f"{self.scan_world}/beams", rr.Arrows3D.from_fields(colors=_BEAM_RGB, radii=0.002), static=True)
@@ -368,8 +383,15 @@ class ScanLogger:
 
     # -- scan -----------------------------------------------------------------
 
-    def scan_started(self, t_ns: int, gamma_start: float, gamma_stop: float, steps: int,
-                     capsule_positions_array_frame: np.ndarray, info_text: str) -> None:
+    def scan_started(
+        self,
+        t_ns: int,
+        gamma_start: float,
+        gamma_stop: float,
+        steps: int,
+        capsule_positions_array_frame: np.ndarray,
+        info_text: str,
+    ) -> None:
         """Log the scan's constants and a start event.
 
         Parameters
@@ -390,24 +412,41 @@ class ScanLogger:
         caps = np.array(capsule_positions_array_frame, dtype=np.float64).reshape(-1, 3)
         k = caps.shape[0]
         names = [_capsule_name(i) for i in range(k)]
-        rec.log(f"{self.array}/capsules", rr.Points3D(caps, radii=0.012, colors=_CAPSULE_RGB, labels=names),
-                static=True)
+        rec.log(
+            f"{self.array}/capsules", rr.Points3D(caps, radii=0.012, colors=_CAPSULE_RGB, labels=names), static=True
+        )
         centre = caps.mean(axis=0) if k else np.zeros(3)
-        rec.log(f"{self.array}/boresight", rr.Arrows3D(origins=[centre], vectors=[[0.0, 0.3, 0.0]],
-                                                       colors=_CAPSULE_RGB, radii=0.004), static=True)
+        rec.log(
+            f"{self.array}/boresight",
+            rr.Arrows3D(origins=[centre], vectors=[[0.0, 0.3, 0.0]], colors=_CAPSULE_RGB, radii=0.004),
+            static=True,
+        )
         colors = [_WAVEFORM_COLORS[i % len(_WAVEFORM_COLORS)] for i in range(k)]
         rec.log(self.waveforms, rr.LineStrips2D.from_fields(labels=names, colors=colors), static=True)
 
         self._at(0, gamma_start, t_ns)
-        text = (f"scan {self.scan_id} of {self.scanner_id} started: γ {math.degrees(gamma_start):.1f}° → "
-                f"{math.degrees(gamma_stop):.1f}° in {steps} steps, {k} capsules")
+        text = (
+            f"scan {self.scan_id} of {self.scanner_id} started: γ {math.degrees(gamma_start):.1f}° → "
+            f"{math.degrees(gamma_stop):.1f}° in {steps} steps, {k} capsules"
+        )
         if info_text:
             text += f"\n{info_text}"
         rec.log(self.log_path, rr.TextLog(text, level=rr.TextLogLevel.INFO))
 
-    def step(self, step: int, t_ns: int, gamma: float, raw_points: np.ndarray, capsule_positions: np.ndarray,
-             waveforms: np.ndarray, sample_rate: float, t0: float, energy: float, expected_energy: float,
-             ratio: float) -> None:
+    def step(
+        self,
+        step: int,
+        t_ns: int,
+        gamma: float,
+        raw_points: np.ndarray,
+        capsule_positions: np.ndarray,
+        waveforms: np.ndarray,
+        sample_rate: float,
+        t0: float,
+        energy: float,
+        expected_energy: float,
+        ratio: float,
+    ) -> None:
         """Log one step: array pose, raw points so far, beams, waveforms, E^γ, E0(d_m), R.
 
         Parameters
@@ -438,7 +477,7 @@ class ScanLogger:
         self._t_ns[step] = int(t_ns)
         self._ratio[step] = float(ratio)
 
-        if math.isfinite(gamma):   # an unread encoder leaves the pose where it was
+        if math.isfinite(gamma):  # an unread encoder leaves the pose where it was
             # Rotation about x by γ, parent (world) from child (array): p_world = R_x(γ) p_array.
             half = 0.5 * float(gamma)
             rec.log(self.array, rr.Transform3D(quaternion=[math.sin(half), 0.0, 0.0, math.cos(half)]))
@@ -446,7 +485,7 @@ class ScanLogger:
         pts = np.asarray(raw_points, dtype=np.float64).reshape(-1, 3)
         echo = np.isfinite(pts).all(axis=1)
         pts = pts[echo]
-        if step not in self._seen:   # a repeated step is drawn once
+        if step not in self._seen:  # a repeated step is drawn once
             self._seen.add(step)
             self._append_cloud(pts)
         rec.log(f"{self.scan_world}/raw", rr.Points3D(self._cloud[: self._n_cloud]))
@@ -465,7 +504,7 @@ class ScanLogger:
         """(k, m, 2) float32 strips: x = time after the ping in ms, y = stacked, negated volts."""
         k, n = w.shape
         key = (k, n, sample_rate, t0)
-        if self._strip_key != key:   # the window is the same for a whole scan: compute the axes once
+        if self._strip_key != key:  # the window is the same for a whole scan: compute the axes once
             self._strip_key = key
             t_ms = (t0 + np.arange(n) / sample_rate) * 1e3
             self._bin = 1 if self.waveform_points is None else max(1, -(-2 * n // self.waveform_points))
@@ -496,14 +535,22 @@ class ScanLogger:
             grown = np.empty((max(n, 2 * self._cloud.shape[0], 256), 3), dtype=np.float32)
             grown[: self._n_cloud] = self._cloud[: self._n_cloud]
             self._cloud = grown
-        self._cloud[self._n_cloud:n] = pts
+        self._cloud[self._n_cloud : n] = pts
         self._n_cloud = n
 
     # -- estimates ------------------------------------------------------------
 
-    def estimate(self, step: int, t_ns: int, planes: Sequence[PlaneFit | FitFailure],
-                 edge: EdgeLine | FitFailure | None, subsets: Sequence[SubsetView],
-                 critical_step: int | None, critical_gamma: float | None, final: bool) -> None:
+    def estimate(
+        self,
+        step: int,
+        t_ns: int,
+        planes: Sequence[PlaneFit | FitFailure],
+        edge: EdgeLine | FitFailure | None,
+        subsets: Sequence[SubsetView],
+        critical_step: int | None,
+        critical_gamma: float | None,
+        final: bool,
+    ) -> None:
         """Log an estimate made after ``step``: planes, edge, corrected points, errors, critical step.
 
         Parameters
@@ -536,8 +583,10 @@ class ScanLogger:
             base = _SUBSET_COLORS.get(sub.label, _PALETTE[zlib.crc32(sub.label.encode()) % len(_PALETTE)])
             colors = np.where(inl[ok, None], np.array(base, np.uint8), np.array(_OUTLIER_RGB, np.uint8))
             radii = np.where(inl[ok], _POINT_RADIUS, _OUTLIER_RADIUS).astype(np.float32)
-            rec.log(f"{self.scan_world}/corrected/{rr.escape_entity_path_part(sub.label)}",
-                    rr.Points3D(sub.points[ok], colors=colors, radii=radii))
+            rec.log(
+                f"{self.scan_world}/corrected/{rr.escape_entity_path_part(sub.label)}",
+                rr.Points3D(sub.points[ok], colors=colors, radii=radii),
+            )
 
         fits = [p for p in planes if isinstance(p, PlaneFit)]
         for p in fits:
@@ -570,19 +619,25 @@ class ScanLogger:
             for p in planes:
                 if isinstance(p, PlaneFit):
                     n = p.normal
-                    lines.append(f"  {p.method} {p.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}) "
-                                 f"± {math.degrees(p.normal_stderr):.2f}°, h = {p.offset:.4f} "
-                                 f"± {p.offset_stderr * 1e3:.1f} mm, σ = {p.sigma * 1e3:.1f} mm, "
-                                 f"{p.n_inliers}/{p.n_points} inliers, {p.quality or 'unassessed'}"
-                                 + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else ""))
+                    lines.append(
+                        f"  {p.method} {p.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}) "
+                        f"± {math.degrees(p.normal_stderr):.2f}°, h = {p.offset:.4f} "
+                        f"± {p.offset_stderr * 1e3:.1f} mm, σ = {p.sigma * 1e3:.1f} mm, "
+                        f"{p.n_inliers}/{p.n_points} inliers, {p.quality or 'unassessed'}"
+                        + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else "")
+                    )
                 else:
                     lines.append(f"  {p.label}: failed, {p.reason.value}")
             if isinstance(edge, EdgeLine):
-                lines.append(f"  edge angle {math.degrees(edge.angle):.2f}°, point ± {edge.point_stderr * 1e3:.1f} mm, "
-                             f"direction ± {math.degrees(edge.direction_stderr):.2f}°")
+                lines.append(
+                    f"  edge angle {math.degrees(edge.angle):.2f}°, point ± {edge.point_stderr * 1e3:.1f} mm, "
+                    f"direction ± {math.degrees(edge.direction_stderr):.2f}°"
+                )
             untrusted = any(isinstance(p, PlaneFit) and p.quality in ("degraded", "unreliable") for p in planes)
-            rec.log(self.log_path, rr.TextLog("\n".join(lines), level=rr.TextLogLevel.WARN if untrusted
-                                              else rr.TextLogLevel.INFO))
+            rec.log(
+                self.log_path,
+                rr.TextLog("\n".join(lines), level=rr.TextLogLevel.WARN if untrusted else rr.TextLogLevel.INFO),
+            )
 
     def accounting(self, status: str, text: str, missing_steps: Sequence[int] = ()) -> None:
         """One TextLog line with where every sample of the scan went (WARN when steps are missing)."""
@@ -590,39 +645,68 @@ class ScanLogger:
         if len(missing_steps):
             shown = ", ".join(str(int(s)) for s in list(missing_steps)[:40])
             line += f"; missing steps {shown}{' …' if len(missing_steps) > 40 else ''}"
-        self.rec.log(self.log_path, rr.TextLog(line, level=rr.TextLogLevel.WARN if len(missing_steps)
-                                               else rr.TextLogLevel.INFO))
+        self.rec.log(
+            self.log_path, rr.TextLog(line, level=rr.TextLogLevel.WARN if len(missing_steps) else rr.TextLogLevel.INFO)
+        )
 
     def _plane_path(self, method: str, label: str) -> str:
-        return (f"{self.scan_world}/planes/{rr.escape_entity_path_part(method)}/"
-                f"{rr.escape_entity_path_part(label)}")
+        return f"{self.scan_world}/planes/{rr.escape_entity_path_part(method)}/{rr.escape_entity_path_part(label)}"
 
     def _log_plane(self, p: PlaneFit) -> None:
         rec = self.rec
         rgb = method_color(p.method)
         path = self._plane_path(p.method, p.label)
-        rec.log(path, rr.Mesh3D(vertex_positions=p.patch, triangle_indices=[[0, 1, 2], [0, 2, 3]],
-                                vertex_normals=np.tile(p.normal, (4, 1)), albedo_factor=(*rgb, _PLANE_ALPHA),
-                                face_rendering="DoubleSided"))
+        rec.log(
+            path,
+            rr.Mesh3D(
+                vertex_positions=p.patch,
+                triangle_indices=[[0, 1, 2], [0, 2, 3]],
+                vertex_normals=np.tile(p.normal, (4, 1)),
+                albedo_factor=(*rgb, _PLANE_ALPHA),
+                face_rendering="DoubleSided",
+            ),
+        )
         centre = p.patch.mean(axis=0)
-        rec.log(f"{path}/normal", rr.Arrows3D(origins=[centre], vectors=[p.normal * _NORMAL_LENGTH],
-                                              colors=rgb, radii=0.005,
-                                              labels=f"{p.method} {p.label} ({p.quality or 'unassessed'})"))
+        rec.log(
+            f"{path}/normal",
+            rr.Arrows3D(
+                origins=[centre],
+                vectors=[p.normal * _NORMAL_LENGTH],
+                colors=rgb,
+                radii=0.005,
+                labels=f"{p.method} {p.label} ({p.quality or 'unassessed'})",
+            ),
+        )
         # The verdict as the patch's outline: green good, amber degraded, red unreliable.
         outline = np.vstack([p.patch, p.patch[:1]])
-        rec.log(f"{path}/quality", rr.LineStrips3D([outline], colors=quality_color(p.quality),
-                                                   radii=0.004, labels=p.quality or "unassessed"))
+        rec.log(
+            f"{path}/quality",
+            rr.LineStrips3D([outline], colors=quality_color(p.quality), radii=0.004, labels=p.quality or "unassessed"),
+        )
         # The uncertainty: the offset band (patch outline at ±2σ_h) and the normal cone (half-angle 2σ_n).
         band = [outline + k * 2.0 * p.offset_stderr * p.normal for k in (-1.0, 1.0)]
         rec.log(f"{path}/uncertainty/offset_band", rr.LineStrips3D(band, colors=rgb, radii=0.0015))
-        rec.log(f"{path}/uncertainty/normal_cone", rr.Arrows3D(origins=np.tile(centre, (8, 1)),
-                                                               vectors=_cone(p.normal, 2.0 * p.normal_stderr)
-                                                               * _NORMAL_LENGTH, colors=rgb, radii=0.0015))
+        rec.log(
+            f"{path}/uncertainty/normal_cone",
+            rr.Arrows3D(
+                origins=np.tile(centre, (8, 1)),
+                vectors=_cone(p.normal, 2.0 * p.normal_stderr) * _NORMAL_LENGTH,
+                colors=rgb,
+                radii=0.0015,
+            ),
+        )
         rec.log(self._errors_path(p.method, p.label), rr.BarChart(p.sorted_residuals, color=rgb))
 
     def _errors_path(self, method: str, label: str) -> str:
-        return _join(self.root, "plots", "errors", rr.escape_entity_path_part(label), self._scanner, self._scan,
-                     rr.escape_entity_path_part(method))
+        return _join(
+            self.root,
+            "plots",
+            "errors",
+            rr.escape_entity_path_part(label),
+            self._scanner,
+            self._scan,
+            rr.escape_entity_path_part(method),
+        )
 
     def _warn_once(self, key: str, text: str, final: bool) -> None:
         """A warning, unless the same one was already given (estimates repeat every few steps)."""
@@ -650,10 +734,15 @@ class ScanLogger:
         rec = self.rec
         c, s = math.cos(critical_gamma), math.sin(critical_gamma)
         # The critical direction as a fan line from the axis, at the array's ends.
-        rec.log(f"{self.scan_world}/critical",
-                rr.LineStrips3D([[[x, 0.0, 0.0], [x, 2.5 * c, 2.5 * s]] for x in (-0.15, 0.15)],
-                                colors=_CRITICAL_RGB, radii=0.002,
-                                labels=[f"critical γ = {math.degrees(critical_gamma):.1f}°", ""]))
+        rec.log(
+            f"{self.scan_world}/critical",
+            rr.LineStrips3D(
+                [[[x, 0.0, 0.0], [x, 2.5 * c, 2.5 * s]] for x in (-0.15, 0.15)],
+                colors=_CRITICAL_RGB,
+                radii=0.002,
+                labels=[f"critical γ = {math.degrees(critical_gamma):.1f}°", ""],
+            ),
+        )
         if critical_step == self._marked_critical and not final:
             return
         clock = self._clock
@@ -665,9 +754,14 @@ class ScanLogger:
             self._at(*clock)
         self._marked_critical = critical_step
         r_text = f", R = {r:.3g}" if r is not None else ""
-        rec.log(self.log_path, rr.TextLog(
-            f"{'final ' if final else ''}critical step {critical_step} at γ = "
-            f"{math.degrees(critical_gamma):.2f}°{r_text}", level=rr.TextLogLevel.INFO))
+        rec.log(
+            self.log_path,
+            rr.TextLog(
+                f"{'final ' if final else ''}critical step {critical_step} at γ = "
+                f"{math.degrees(critical_gamma):.2f}°{r_text}",
+                level=rr.TextLogLevel.INFO,
+            ),
+        )
 
     # -- truth and events -----------------------------------------------------
 
@@ -681,16 +775,31 @@ class ScanLogger:
             around the patch, m.
         """
         for label, normal, offset, corners in planes:
-            corners = np.array(corners, dtype=np.float64).reshape(4, 3)   # a copy, see scan_started
+            corners = np.array(corners, dtype=np.float64).reshape(4, 3)  # a copy, see scan_started
             n = np.asarray(normal, dtype=np.float64).reshape(3)
             path = _join(self.root, "world", self._scanner, "truth", rr.escape_entity_path_part(label))
-            self.rec.log(path, rr.Mesh3D(vertex_positions=corners, triangle_indices=[[0, 1, 2], [0, 2, 3]],
-                                         vertex_normals=np.tile(n, (4, 1)), albedo_factor=_TRUTH_RGBA,
-                                         face_rendering="DoubleSided"), static=True)
-            self.rec.log(f"{path}/normal", rr.Arrows3D(origins=[corners.mean(axis=0)], vectors=[n * _NORMAL_LENGTH],
-                                                       colors=_TRUTH_RGBA[:3], radii=0.004,
-                                                       labels=f"truth {label}: h = {float(offset):.3f} m"),
-                         static=True)
+            self.rec.log(
+                path,
+                rr.Mesh3D(
+                    vertex_positions=corners,
+                    triangle_indices=[[0, 1, 2], [0, 2, 3]],
+                    vertex_normals=np.tile(n, (4, 1)),
+                    albedo_factor=_TRUTH_RGBA,
+                    face_rendering="DoubleSided",
+                ),
+                static=True,
+            )
+            self.rec.log(
+                f"{path}/normal",
+                rr.Arrows3D(
+                    origins=[corners.mean(axis=0)],
+                    vectors=[n * _NORMAL_LENGTH],
+                    colors=_TRUTH_RGBA[:3],
+                    radii=0.004,
+                    labels=f"truth {label}: h = {float(offset):.3f} m",
+                ),
+                static=True,
+            )
 
     def event(self, level: str, text: str, t_ns: int | None = None) -> None:
         """Log a text event at the current step.

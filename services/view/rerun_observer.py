@@ -11,10 +11,10 @@ import rerun as rr
 
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import fit as F
-from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
-from lelsonar.view.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
 from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.service import Partial
+from lelsonar.view.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
 
 
 class RerunObserver:
@@ -46,21 +46,40 @@ class RerunObserver:
     def scan_started(self, scan: ScanAssembly) -> None:
         s = scan.start
         log = self._logger(scan)
-        log.scan_started(s.start_time_ns, s.gamma_start, s.gamma_stop, s.steps,
-                         scan.geometry.capsules_in_array_frame(),
-                         f"scan {s.scan_id} of {s.scanner_id}: {s.steps} steps, device {s.device or 'unknown'}, "
-                         f"c = {s.sound_speed:.1f} m/s")
+        log.scan_started(
+            s.start_time_ns,
+            s.gamma_start,
+            s.gamma_stop,
+            s.steps,
+            scan.geometry.capsules_in_array_frame(),
+            f"scan {s.scan_id} of {s.scanner_id}: {s.steps} steps, device {s.device or 'unknown'}, "
+            f"c = {s.sound_speed:.1f} m/s",
+        )
         if self.truth:
             log.truth(self.truth)
 
     def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None:
         self._logger(scan).step(
-            view.step, view.time_ns, view.gamma, raw_points=scan.raw_points(view.step),
-            capsule_positions=scan.geometry.capsule_positions(view.gamma), waveforms=view.waveforms,
-            sample_rate=view.sample_rate, t0=view.t0, energy=energy, expected_energy=expected, ratio=ratio)
+            view.step,
+            view.time_ns,
+            view.gamma,
+            raw_points=scan.raw_points(view.step),
+            capsule_positions=scan.geometry.capsule_positions(view.gamma),
+            waveforms=view.waveforms,
+            sample_rate=view.sample_rate,
+            t0=view.t0,
+            energy=energy,
+            expected_energy=expected,
+            ratio=ratio,
+        )
 
-    def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
-                 results: dict[str, ScanReconstruction] | None, partial: Partial) -> None:
+    def estimate(
+        self,
+        scan: ScanAssembly,
+        message: codec.Reconstruction,
+        results: dict[str, ScanReconstruction] | None,
+        partial: Partial,
+    ) -> None:
         final = results is not None
         crit = message.critical_step if message.HasField("critical_step") else None
         if final:
@@ -71,17 +90,28 @@ class RerunObserver:
         else:
             planes = [p for p in (partial.plane_a, partial.plane_b) if p is not None]
             edge = None
-            subsets = [self._subset(d, p) for d, p in ((partial.data_a, partial.plane_a),
-                                                        (partial.data_b, partial.plane_b)) if d is not None]
+            subsets = [
+                self._subset(d, p)
+                for d, p in ((partial.data_a, partial.plane_a), (partial.data_b, partial.plane_b))
+                if d is not None
+            ]
         step = int(message.last_step)
-        self._logger(scan).estimate(step, int(scan.time_ns[step]), planes, edge, [s for s in subsets if s],
-                                    crit, float(scan.gamma[crit]) if crit is not None else None, final)
+        self._logger(scan).estimate(
+            step,
+            int(scan.time_ns[step]),
+            planes,
+            edge,
+            [s for s in subsets if s],
+            crit,
+            float(scan.gamma[crit]) if crit is not None else None,
+            final,
+        )
         if final and message.HasField("accounting"):
-            from lelsonar.view import present
             from lelsonar.reconstruct.estimate import wire
 
-            self._logger(scan).accounting(present.status_name(message), wire.accounting_text(message.accounting),
-                                          list(message.missing_steps))
+            self._logger(scan).accounting(
+                wire.status_name(message), wire.accounting_text(message.accounting), list(message.missing_steps)
+            )
 
     def event(self, level: str, text: str, time_ns: int | None = None) -> None:
         if self._last is not None:
@@ -110,10 +140,16 @@ def preset_truth(name: str) -> list[tuple[str, np.ndarray, float, np.ndarray]]:
 
 
 @contextmanager
-def open_rerun(*, rrd: Path | None = None, serve_port: int | None = None, serve_bind: str = "127.0.0.1",
-               spawn: bool = False,
-               application_id: str = "lelsonar", truth_preset: str | None = None,
-               main_method: str | None = None) -> Iterator[RerunObserver]:
+def open_rerun(
+    *,
+    rrd: Path | None = None,
+    serve_port: int | None = None,
+    serve_bind: str = "127.0.0.1",
+    spawn: bool = False,
+    application_id: str = "lelsonar",
+    truth_preset: str | None = None,
+    main_method: str | None = None,
+) -> Iterator[RerunObserver]:
     """One explicit recording with the chosen sinks and the default blueprint; flushed on exit."""
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 
@@ -130,8 +166,7 @@ def open_rerun(*, rrd: Path | None = None, serve_port: int | None = None, serve_
         sinks.append(rr.GrpcSink())
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     try:
-        yield RerunObserver(rec, main_method or DEFAULT_METHOD,
-                            preset_truth(truth_preset) if truth_preset else None)
+        yield RerunObserver(rec, main_method or DEFAULT_METHOD, preset_truth(truth_preset) if truth_preset else None)
     finally:
         rec.flush()
         rec.disconnect()

@@ -41,8 +41,14 @@ from types import TracebackType
 from typing import Protocol, Self, TypeVar, runtime_checkable
 
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
-from dynamixel_sdk.protocol1_packet_handler import INST_PING, PKT_ERROR, PKT_ID, PKT_INSTRUCTION, PKT_LENGTH, \
-    PKT_PARAMETER0
+from dynamixel_sdk.protocol1_packet_handler import (
+    INST_PING,
+    PKT_ERROR,
+    PKT_ID,
+    PKT_INSTRUCTION,
+    PKT_LENGTH,
+    PKT_PARAMETER0,
+)
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices.ax12 import ErrorBit
@@ -465,6 +471,7 @@ class DynamixelMotor:
 
     def ping(self) -> int:
         """Model number (12 for an AX-12)."""
+
         # The SDK's ping() is PING then READ of the model number, in one call; here the two are
         # separate transactions, so that each gets the retry and late-reply handling.
         def ping() -> tuple[None, int, int]:
@@ -594,8 +601,9 @@ class DynamixelMotor:
 
         return self._transact(f"READ {address}+{size}", read, parse)
 
-    def _transact(self, what: str, call: Callable[[], tuple[T, int, int]],
-                  parse: Callable[[list[int]], tuple[T, int]]) -> T:
+    def _transact(
+        self, what: str, call: Callable[[], tuple[T, int, int]], parse: Callable[[list[int]], tuple[T, int]]
+    ) -> T:
         """Run an idempotent SDK call with retries, the late-reply window and ERR decoding.
 
         ``call`` sends the request and waits the SDK's packet timeout; ``parse`` turns a

@@ -350,7 +350,8 @@ class SerialSensorBoard:
 
     def _port_failed(self, step: int, exc: BaseException) -> SensorBoardCommunicationError:
         return SensorBoardCommunicationError(
-            f"FIRE step {step}: serial I/O on {self.config.port} failed: {exc}; check the cable and the board")
+            f"FIRE step {step}: serial I/O on {self.config.port} failed: {exc}; check the cable and the board"
+        )
 
     def _flush_quietly(self) -> None:
         try:
@@ -404,7 +405,8 @@ class SerialSensorBoard:
             if window_over.called_before(request) and not acq.status & sf.AcqStatus.RESENT:
                 raise SensorBoardProtocolError(
                     f"FIRE step {step}: asked again after the servo had moved on, the board fired anew instead of "
-                    "resending the shot it had (status without RESENT): that shot is at the wrong angle")
+                    "resending the shot it had (status without RESENT): that shot is at the wrong angle"
+                )
             return acq
         raise SensorBoardTimeoutError(
             f"no valid answer from the sensor board on {c.port} for step {step} after {c.retries + 1} requests; "
@@ -481,7 +483,6 @@ class SerialSensorBoard:
             waveforms=self._scale.to_volts(acq.waves, acq.bits),
             requests=requests,
         )
-
 
 
 class _HookFailed(Exception):

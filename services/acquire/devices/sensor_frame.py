@@ -24,7 +24,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lelsonar.errors import DecodeError, InvalidMessageError, PayloadTooLargeError, SchemaVersionError, TruncatedDataError
+from lelsonar.errors import (
+    DecodeError,
+    InvalidMessageError,
+    PayloadTooLargeError,
+    SchemaVersionError,
+    TruncatedDataError,
+)
 
 SYNC = b"\xa5\x5a"
 VERSION = 1
@@ -238,7 +244,14 @@ def encode_acq(seq: int, acq: AcqFrame) -> bytes:
     if waves.ndim != 2 or waves.shape[0] != N_CHANNELS or tof.shape != (N_CHANNELS,):
         raise InvalidMessageError(f"ACQ: need waves (4, n) and tof (4,), got {waves.shape} and {tof.shape}")
     head = _ACQ.pack(
-        acq.step, waves.shape[0], acq.bits, acq.fs_hz, waves.shape[1], acq.status, acq.t_fire_us & 0xFFFFFFFF, *tof.tolist()
+        acq.step,
+        waves.shape[0],
+        acq.bits,
+        acq.fs_hz,
+        waves.shape[1],
+        acq.status,
+        acq.t_fire_us & 0xFFFFFFFF,
+        *tof.tolist(),
     )
     return encode_frame(FrameType.ACQ, seq, head + waves.tobytes())
 

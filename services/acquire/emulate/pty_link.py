@@ -229,9 +229,7 @@ class PtyDevice:
                 if pending:
                     self._write_some(master, pending)  # at once: a select first would only add latency
                 timeout = None if next_due is None else max(0.0, next_due - now)
-                readable, writable, _ = select.select(
-                    [master, self._wake_r], [master] if pending else [], [], timeout
-                )
+                readable, writable, _ = select.select([master, self._wake_r], [master] if pending else [], [], timeout)
                 if self._wake_r in readable:
                     try:
                         os.read(self._wake_r, 4096)

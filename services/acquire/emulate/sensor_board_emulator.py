@@ -198,7 +198,10 @@ class SensorBoardEmulator(PtyDevice):
         n = fire.n_samples if want_waves else 0
         if want_waves and not 0 < n <= self.config.max_samples or fire.fs_hz == 0 or fire.mask == 0:
             self._send_err(
-                frame.seq, sf.ErrCode.BAD_PARAM, f"n_samples {fire.n_samples}, fs_hz {fire.fs_hz}, mask {fire.mask}", now
+                frame.seq,
+                sf.ErrCode.BAD_PARAM,
+                f"n_samples {fire.n_samples}, fs_hz {fire.fs_hz}, mask {fire.mask}",
+                now,
             )
             return
         with self._lock:

@@ -40,8 +40,15 @@ class FcmResult:
     converged: bool
 
 
-def fuzzy_c_means(x: np.ndarray, n_clusters: int = 3, *, m: float = 2.0, rng: np.random.Generator,
-                  max_iter: int = 300, tol: float = 1e-6) -> FcmResult:
+def fuzzy_c_means(
+    x: np.ndarray,
+    n_clusters: int = 3,
+    *,
+    m: float = 2.0,
+    rng: np.random.Generator,
+    max_iter: int = 300,
+    tol: float = 1e-6,
+) -> FcmResult:
     """Fuzzy C-Means (Bezdek) on the rows of ``x``.
 
     Alternates ``c_k = Σ u_ki^m x_i / Σ u_ki^m`` and
@@ -93,8 +100,9 @@ class RansacResult:
     iterations: int
 
 
-def ransac_plane(points: np.ndarray, *, threshold: float, rng: np.random.Generator,
-                 n_iter: int = 200, refit: bool = True) -> RansacResult | None:
+def ransac_plane(
+    points: np.ndarray, *, threshold: float, rng: np.random.Generator, n_iter: int = 200, refit: bool = True
+) -> RansacResult | None:
     """RANSAC plane fit: sample 3 points, count points within ``threshold``, keep the best.
 
     All ``n_iter`` hypotheses are built and scored at once (vectorised).  The

@@ -18,7 +18,6 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
-
 from lelsonar.signal.compiled import kernel
 
 __all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "corrected_from", "mirror_points", "beam_points"]
@@ -33,8 +32,14 @@ MAX_CORRECTION_ANGLE = float(np.deg2rad(80.0))
 _COS_MAX_CORRECTION = float(np.cos(MAX_CORRECTION_ANGLE))
 
 
-def corrected_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
-                     axis: np.ndarray, *, max_angle: float = MAX_CORRECTION_ANGLE) -> np.ndarray:
+def corrected_points(
+    geometry: ArrayGeometry,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    axis: np.ndarray,
+    *,
+    max_angle: float = MAX_CORRECTION_ANGLE,
+) -> np.ndarray:
     """The paper's corrected data points (§4, Fig. 7).
 
     ``v = p_c + (d / cos α) · b(γ)`` with ``b = (0, cos γ, sin γ)`` the
@@ -65,8 +70,14 @@ def corrected_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.nd
     return corrected_from(geometry.capsule_positions(g), boresight(g), d, axis, max_angle=max_angle)
 
 
-def corrected_from(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray, *,
-                   max_angle: float = MAX_CORRECTION_ANGLE) -> np.ndarray:
+def corrected_from(
+    capsules: np.ndarray,
+    beam: np.ndarray,
+    distance: np.ndarray,
+    axis: np.ndarray,
+    *,
+    max_angle: float = MAX_CORRECTION_ANGLE,
+) -> np.ndarray:
     """:func:`corrected_points` from the capsule positions and boresights the caller has already computed.
 
     Parameters
@@ -89,14 +100,20 @@ def corrected_from(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray,
     b = np.asarray(beam, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
     n_caps = p.shape[-2]
-    out = _corrected(np.ascontiguousarray(p.reshape(-1, n_caps, 3)), np.ascontiguousarray(b.reshape(-1, 3)),
-                     np.ascontiguousarray(d.reshape(-1, n_caps)), ax, float(np.cos(max_angle)))
+    out = _corrected(
+        np.ascontiguousarray(p.reshape(-1, n_caps, 3)),
+        np.ascontiguousarray(b.reshape(-1, 3)),
+        np.ascontiguousarray(d.reshape(-1, n_caps)),
+        ax,
+        float(np.cos(max_angle)),
+    )
     return out.reshape(p.shape)
 
 
 @kernel
-def corrected_point(capsule: np.ndarray, beam: np.ndarray, distance: float, axis: np.ndarray, cos_max: float,
-                    out: np.ndarray) -> None:
+def corrected_point(
+    capsule: np.ndarray, beam: np.ndarray, distance: float, axis: np.ndarray, cos_max: float, out: np.ndarray
+) -> None:
     """The paper's corrected point (§4, Fig. 7) of one echo, into ``out``: ``p_c + (d / cos α) b``.
 
     ``cos α = b · axis`` (``axis`` a unit vector); NaN where ``cos α ≤ cos_max`` (too oblique) or ``d`` is NaN.
@@ -111,8 +128,9 @@ def corrected_point(capsule: np.ndarray, beam: np.ndarray, distance: float, axis
 
 
 @kernel
-def _corrected(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray,
-               cos_max: float) -> np.ndarray:
+def _corrected(
+    capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axis: np.ndarray, cos_max: float
+) -> np.ndarray:
     """:func:`corrected_point` of every slot of (k, c) ranges (``capsules`` (k, c, 3), ``beam`` (k, 3))."""
     k, c = distance.shape
     out = np.empty((k, c, 3))
@@ -122,8 +140,7 @@ def _corrected(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, axi
     return out
 
 
-def mirror_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
-                  normal: np.ndarray) -> np.ndarray:
+def mirror_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Foot points of mirror echoes on a wall with unit ``normal``: ``p_c + d · n``.
 
     The mirror-echo condition ``n · p_c + d = h`` (design notes §8) puts these

@@ -27,17 +27,27 @@ from lelsonar.reconstruct.estimate.results import (
 )
 
 __all__ = [
-    "PlaneEstimator", "Inconsistent", "diagnostics", "run_estimator",
-    "fit_ls", "fit_lel_nm", "fit_paper", "fit_lel", "fit_lel_refit_lel", "fit_lel_refit_ls",
-    "fit_constant_depth", "fit_adaptive",
+    "PlaneEstimator",
+    "Inconsistent",
+    "diagnostics",
+    "run_estimator",
+    "fit_ls",
+    "fit_lel_nm",
+    "fit_paper",
+    "fit_lel",
+    "fit_lel_refit_lel",
+    "fit_lel_refit_ls",
+    "fit_constant_depth",
+    "fit_adaptive",
 ]
 
 #: A plane estimator: (subset, warm start θ or None, options) -> PlaneFit | FitFailure.
 PlaneEstimator = Callable[[F.PlaneData, "np.ndarray | None", FitOptions], PlaneResult]
 
 
-def run_estimator(estimator: PlaneEstimator, name: str, data: F.PlaneData, warm: np.ndarray | None,
-                  opts: FitOptions) -> PlaneResult:
+def run_estimator(
+    estimator: PlaneEstimator, name: str, data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions
+) -> PlaneResult:
     """Run ``estimator`` on ``data``; too few points and solver breakdowns become typed failures."""
     fail = F.check_points(data.points, data.label, opts.min_points)
     if fail is not None:
@@ -50,23 +60,45 @@ def run_estimator(estimator: PlaneEstimator, name: str, data: F.PlaneData, warm:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{name}: {exc}", data.label, data.n)
 
 
-def diagnostics(solver: str, t0: float, res: LelResult | None = None, starts: int = 1, iterations: int = 0,
-          evaluations: int = 0, converged: bool = True, notes: tuple[str, ...] = ()) -> SolverDiagnostics:
+def diagnostics(
+    solver: str,
+    t0: float,
+    res: LelResult | None = None,
+    starts: int = 1,
+    iterations: int = 0,
+    evaluations: int = 0,
+    converged: bool = True,
+    notes: tuple[str, ...] = (),
+) -> SolverDiagnostics:
     if res is not None:
         starts, iterations, evaluations, converged = res.starts, res.iterations, res.evaluations, res.converged
-    return SolverDiagnostics(solver=solver, starts=starts, iterations=iterations, evaluations=evaluations,
-                             time_s=time.perf_counter() - t0, converged=converged, notes=notes)
+    return SolverDiagnostics(
+        solver=solver,
+        starts=starts,
+        iterations=iterations,
+        evaluations=evaluations,
+        time_s=time.perf_counter() - t0,
+        converged=converged,
+        notes=notes,
+    )
 
 
-def _merge(a: SolverDiagnostics, b: LelResult | None, solver: str, t0: float,
-           notes: tuple[str, ...] = ()) -> SolverDiagnostics:
+def _merge(
+    a: SolverDiagnostics, b: LelResult | None, solver: str, t0: float, notes: tuple[str, ...] = ()
+) -> SolverDiagnostics:
     extra_s = b.starts if b is not None else 0
     extra_i = b.iterations if b is not None else 0
     extra_e = b.evaluations if b is not None else 1
     conv = b.converged if b is not None else a.converged
-    return SolverDiagnostics(solver=solver, starts=a.starts + extra_s, iterations=a.iterations + extra_i,
-                             evaluations=a.evaluations + extra_e, time_s=time.perf_counter() - t0,
-                             converged=conv, notes=a.notes + notes)
+    return SolverDiagnostics(
+        solver=solver,
+        starts=a.starts + extra_s,
+        iterations=a.iterations + extra_i,
+        evaluations=a.evaluations + extra_e,
+        time_s=time.perf_counter() - t0,
+        converged=conv,
+        notes=a.notes + notes,
+    )
 
 
 def _warm(warm: np.ndarray | None) -> np.ndarray | None:
@@ -79,15 +111,21 @@ def _warm(warm: np.ndarray | None) -> np.ndarray | None:
 def fit_ls(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> PlaneResult:
     t0 = time.perf_counter()
     theta = F.ls_theta(data.points)
-    return F.make_plane_fit(data, theta, method="ls", inlier_mask=np.ones(data.n, dtype=bool),
-                            diagnostics=diagnostics("lstsq", t0))
+    return F.make_plane_fit(
+        data, theta, method="ls", inlier_mask=np.ones(data.n, dtype=bool), diagnostics=diagnostics("lstsq", t0)
+    )
 
 
 def fit_lel_nm(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> PlaneResult:
     t0 = time.perf_counter()
     res = lel_fit_nelder_mead(data.points, F.ls_theta(data.points), extra_starts=_warm(warm))
-    return F.make_plane_fit(data, res.theta, method="lel-nm", inlier_mask=np.ones(data.n, dtype=bool),
-                            diagnostics=diagnostics("nelder-mead", t0, res))
+    return F.make_plane_fit(
+        data,
+        res.theta,
+        method="lel-nm",
+        inlier_mask=np.ones(data.n, dtype=bool),
+        diagnostics=diagnostics("nelder-mead", t0, res),
+    )
 
 
 def _prefiltered(data: F.PlaneData, theta: np.ndarray, opts: FitOptions) -> np.ndarray:
@@ -99,17 +137,24 @@ def fit_paper(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> P
     first = lel_fit_nelder_mead(data.points, F.ls_theta(data.points), extra_starts=_warm(warm))
     mask = _prefiltered(data, first.theta, opts)
     if np.count_nonzero(mask) < 4:
-        return FitFailure(FailureReason.TOO_FEW_POINTS, "paper: fewer than 4 points survive the pre-filter",
-                          data.label, data.n)
+        return FitFailure(
+            FailureReason.TOO_FEW_POINTS, "paper: fewer than 4 points survive the pre-filter", data.label, data.n
+        )
     kept = data.points[mask]
     second = lel_fit_nelder_mead(kept, F.ls_theta(kept))
     d1 = diagnostics("nelder-mead", t0, first)
-    return F.make_plane_fit(data, second.theta, method="paper", inlier_mask=mask,
-                            diagnostics=_merge(d1, second, "nelder-mead x6, pre-filter, nelder-mead x6", t0))
+    return F.make_plane_fit(
+        data,
+        second.theta,
+        method="paper",
+        inlier_mask=mask,
+        diagnostics=_merge(d1, second, "nelder-mead x6, pre-filter, nelder-mead x6", t0),
+    )
 
 
-def _guarded_lel(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions,
-                 rng: np.random.Generator) -> tuple[np.ndarray, LelResult, tuple[str, ...]]:
+def _guarded_lel(
+    data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions, rng: np.random.Generator
+) -> tuple[np.ndarray, LelResult, tuple[str, ...]]:
     """Fast LEL (eq. 8) with the outlier-cluster guard.
 
     LEL is local, and its cost can have a minimum on a plane through the tight
@@ -164,18 +209,28 @@ def _guarded_lel(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions,
         cands.append(alt.theta)
         hs.append(alt.entropy)
         scores.append(score(alt.theta))
-        total = replace(res, starts=res.starts + alt.starts, iterations=res.iterations + alt.iterations,
-                        evaluations=res.evaluations + alt.evaluations, time_s=res.time_s + alt.time_s,
-                        candidates=np.asarray(cands), candidate_entropy=np.asarray(hs))
+        total = replace(
+            res,
+            starts=res.starts + alt.starts,
+            iterations=res.iterations + alt.iterations,
+            evaluations=res.evaluations + alt.evaluations,
+            time_s=res.time_s + alt.time_s,
+            candidates=np.asarray(cands),
+            candidate_entropy=np.asarray(hs),
+        )
     pick = max(range(len(cands)), key=lambda i: (scores[i][0], scores[i][1], -hs[i]))
     if not scores[pick][0]:
-        raise Inconsistent(f"no LEL minimum has its normal within {np.rad2deg(opts.beam_half_angle):.0f}° of a "
-                            "boresight of the subset: no wall seen face-on (is the corner reached yet?)")
+        raise Inconsistent(
+            f"no LEL minimum has its normal within {np.rad2deg(opts.beam_half_angle):.0f}° of a "
+            "boresight of the subset: no wall seen face-on (is the corner reached yet?)"
+        )
     if pick == best:
         notes.append("guard: no better minimum found; kept the least-H one")
     else:
-        notes.append(f"guard: switched to minimum {pick} (mirror-consistent={scores[pick][0]}, "
-                     f"inliers={scores[pick][1]}/{data.n}, H {hs[best]:.4f} -> {hs[pick]:.4f})")
+        notes.append(
+            f"guard: switched to minimum {pick} (mirror-consistent={scores[pick][0]}, "
+            f"inliers={scores[pick][1]}/{data.n}, H {hs[best]:.4f} -> {hs[pick]:.4f})"
+        )
     return cands[pick], replace(total, theta=cands[pick], entropy=hs[pick]), tuple(notes)
 
 
@@ -191,17 +246,20 @@ def fit_lel(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> Pla
     t0 = time.perf_counter()
     theta, res, notes = _guarded_lel(data, warm, opts, _rng(opts, data.label))
     mask = _prefiltered(data, theta, opts)  # reported inliers: the §5.3 criterion
-    return F.make_plane_fit(data, theta, method="lel", inlier_mask=mask,
-                            diagnostics=diagnostics("newton", t0, res, notes=notes))
+    return F.make_plane_fit(
+        data, theta, method="lel", inlier_mask=mask, diagnostics=diagnostics("newton", t0, res, notes=notes)
+    )
 
 
-def _lel_then_prefilter(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions, name: str,
-                        t0: float) -> tuple[np.ndarray, np.ndarray, SolverDiagnostics] | FitFailure:
+def _lel_then_prefilter(
+    data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions, name: str, t0: float
+) -> tuple[np.ndarray, np.ndarray, SolverDiagnostics] | FitFailure:
     theta, res, notes = _guarded_lel(data, warm, opts, _rng(opts, data.label))
     mask = _prefiltered(data, theta, opts)
     if np.count_nonzero(mask) < 4:
-        return FitFailure(FailureReason.TOO_FEW_POINTS, f"{name}: fewer than 4 points survive the pre-filter",
-                          data.label, data.n)
+        return FitFailure(
+            FailureReason.TOO_FEW_POINTS, f"{name}: fewer than 4 points survive the pre-filter", data.label, data.n
+        )
     return theta, mask, diagnostics("newton", t0, res, notes=notes)
 
 
@@ -213,8 +271,13 @@ def fit_lel_refit_lel(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptio
     theta, mask, d1 = first
     kept = data.points[mask]
     second = lel_fit_fast(kept, F.ls_theta(kept), extra_starts=theta[None, :])
-    return F.make_plane_fit(data, second.theta, method="lel-refit-lel", inlier_mask=mask,
-                            diagnostics=_merge(d1, second, "newton, pre-filter, newton", t0))
+    return F.make_plane_fit(
+        data,
+        second.theta,
+        method="lel-refit-lel",
+        inlier_mask=mask,
+        diagnostics=_merge(d1, second, "newton, pre-filter, newton", t0),
+    )
 
 
 def fit_lel_refit_ls(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> PlaneResult:
@@ -224,8 +287,13 @@ def fit_lel_refit_ls(data: F.PlaneData, warm: np.ndarray | None, opts: FitOption
         return first
     _, mask, d1 = first
     theta = F.ls_theta(data.points[mask])
-    return F.make_plane_fit(data, theta, method="lel-refit-ls", inlier_mask=mask,
-                            diagnostics=_merge(d1, None, "newton, pre-filter, lstsq", t0))
+    return F.make_plane_fit(
+        data,
+        theta,
+        method="lel-refit-ls",
+        inlier_mask=mask,
+        diagnostics=_merge(d1, None, "newton, pre-filter, lstsq", t0),
+    )
 
 
 def fit_constant_depth(data: F.PlaneData, warm: np.ndarray | None, opts: FitOptions) -> PlaneResult:
@@ -248,12 +316,18 @@ def fit_constant_depth(data: F.PlaneData, warm: np.ndarray | None, opts: FitOpti
     if not F.mirror_consistent(n2, data.beam, opts.beam_half_angle):
         notes += ("constant-depth: LS refit leaves the beam; kept the corrected-points plane",)
         n2, h2 = n0, h0
-    diag = SolverDiagnostics(solver="newton, pre-filter, lstsq; constant-depth newton, pre-filter, gauss-newton",
-                             starts=d1.starts + 1, iterations=d1.iterations + nit + nit2,
-                             evaluations=d1.evaluations + nev + nit2, time_s=time.perf_counter() - t0,
-                             converged=d1.converged and ok, notes=d1.notes + notes)
-    return F.make_plane_fit(data, n2 / h2, method="constant-depth", inlier_mask=mask, diagnostics=diag,
-                            model="constant-depth")
+    diag = SolverDiagnostics(
+        solver="newton, pre-filter, lstsq; constant-depth newton, pre-filter, gauss-newton",
+        starts=d1.starts + 1,
+        iterations=d1.iterations + nit + nit2,
+        evaluations=d1.evaluations + nev + nit2,
+        time_s=time.perf_counter() - t0,
+        converged=d1.converged and ok,
+        notes=d1.notes + notes,
+    )
+    return F.make_plane_fit(
+        data, n2 / h2, method="constant-depth", inlier_mask=mask, diagnostics=diag, model="constant-depth"
+    )
 
 
 def _tilt_checked(data: F.PlaneData, first: PlaneFit, opts: FitOptions, method: str) -> PlaneResult:
@@ -282,17 +356,23 @@ def _tilt_checked(data: F.PlaneData, first: PlaneFit, opts: FitOptions, method: 
     chi2 = float(dn @ np.linalg.pinv(cov_n, rcond=1e-10, hermitian=True) @ dn) if np.all(np.isfinite(cov_n)) else 0.0
     tilted = chi2 > opts.tilt_test_sigma**2 and F.mirror_consistent(n_cd, data.beam, opts.beam_half_angle)
     angle = np.rad2deg(np.arccos(np.clip(first.normal @ n_cd, -1.0, 1.0)))
-    note = (f"tilt test: corrected-points normal {angle:.2f}° from the constant-depth normal, "
-            f"chi2 = {chi2:.1f} -> " + ("constant-depth plane" if tilted else "corrected-points normal, "
-                                        "mirror-echo offset"))
+    note = f"tilt test: corrected-points normal {angle:.2f}° from the constant-depth normal, chi2 = {chi2:.1f} -> " + (
+        "constant-depth plane" if tilted else "corrected-points normal, mirror-echo offset"
+    )
     d = first.diagnostics
-    diag = SolverDiagnostics(solver=d.solver + "; constant-depth gauss-newton", starts=d.starts,
-                             iterations=d.iterations + nit, evaluations=d.evaluations + nit,
-                             time_s=d.time_s + time.perf_counter() - t0, converged=d.converged,
-                             notes=d.notes + (note,))
+    diag = SolverDiagnostics(
+        solver=d.solver + "; constant-depth gauss-newton",
+        starts=d.starts,
+        iterations=d.iterations + nit,
+        evaluations=d.evaluations + nit,
+        time_s=d.time_s + time.perf_counter() - t0,
+        converged=d.converged,
+        notes=d.notes + (note,),
+    )
     if tilted:
-        return F.make_plane_fit(data, theta_cd, method=method, inlier_mask=mask_cd, diagnostics=diag,
-                                model="constant-depth")
+        return F.make_plane_fit(
+            data, theta_cd, method=method, inlier_mask=mask_cd, diagnostics=diag, model="constant-depth"
+        )
     h = float(np.mean(data.capsules[mask] @ first.normal + data.distance[mask]))
     return F.make_plane_fit(data, first.normal / h, method=method, inlier_mask=mask, diagnostics=diag)
 

@@ -12,7 +12,6 @@ import time
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, beam_points
-
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.baseline import fuzzy_c_means, ransac_plane
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
@@ -23,8 +22,14 @@ from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, Pla
 __all__ = ["fit_fcm_ransac"]
 
 
-def fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-                    opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
+def fit_fcm_ransac(
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    ratio: np.ndarray,
+    geometry: ArrayGeometry,
+    opts: FitOptions,
+    echo_amplitude: np.ndarray | None = None,
+) -> ScanFit:
     """FCM with three clusters + RANSAC (paper §5.4, ref. [8]).
 
     Features per point: the raw point's y and z (eq. 9) and the R of its step,
@@ -46,8 +51,7 @@ def fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, g
     ok = np.isfinite(d) & (d > 0) & np.isfinite(rr)
     if np.count_nonzero(ok) < 3 * opts.min_points:
         f = FitFailure(FailureReason.TOO_FEW_POINTS, f"fcm-ransac: {np.count_nonzero(ok)} valid points", "", 0)
-        return ScanFit(FitFailure(f.reason, f.detail, "a", f.n_points),
-                       FitFailure(f.reason, f.detail, "b", f.n_points))
+        return ScanFit(FitFailure(f.reason, f.detail, "a", f.n_points), FitFailure(f.reason, f.detail, "b", f.n_points))
     raw = beam_points(geometry, g, np.where(ok, d, 0.0))
     feats = np.stack([raw[..., 1][ok], raw[..., 2][ok], rr[ok]], axis=1)
     sd = feats.std(axis=0)
@@ -74,7 +78,15 @@ def fit_fcm_ransac(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, g
         if rs is None or rs.inliers.sum() < 3:
             out.append(FitFailure(FailureReason.SOLVER_FAILED, "fcm-ransac: RANSAC found no plane", label, data.n))
             continue
-        out.append(F.make_plane_fit(data, rs.normal / rs.offset, method="fcm-ransac", inlier_mask=rs.inliers,
-                                    diagnostics=diagnostics("fcm+ransac", t0, starts=rs.iterations,
-                                                      iterations=fcm.iterations, converged=fcm.converged)))
+        out.append(
+            F.make_plane_fit(
+                data,
+                rs.normal / rs.offset,
+                method="fcm-ransac",
+                inlier_mask=rs.inliers,
+                diagnostics=diagnostics(
+                    "fcm+ransac", t0, starts=rs.iterations, iterations=fcm.iterations, converged=fcm.converged
+                ),
+            )
+        )
     return ScanFit(out[0], out[1], datas[0], datas[1])

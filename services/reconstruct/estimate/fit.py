@@ -27,11 +27,10 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
-
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate.correct import _COS_MAX_CORRECTION, corrected_point
 from lelsonar.reconstruct.estimate.lel import PERFECT_FIT, _entropy, entropy_of_residuals, newton_minimize
 from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
+from lelsonar.signal.compiled import kernel
 
 __all__ = [
     "MAD_K",
@@ -111,11 +110,17 @@ class PlaneData:
             object.__setattr__(self, name, _ro(getattr(self, name)))
         object.__setattr__(self, "step", _ro(self.step, np.intp))
         n = self.points.shape[0]
-        if self.points.shape != (n, 3) or self.capsules.shape != (n, 3) or self.beam.shape != (n, 3) \
-                or self.distance.shape != (n,) or self.step.shape != (n,):
+        if (
+            self.points.shape != (n, 3)
+            or self.capsules.shape != (n, 3)
+            or self.beam.shape != (n, 3)
+            or self.distance.shape != (n,)
+            or self.step.shape != (n,)
+        ):
             raise ConfigError("PlaneData arrays must agree: points, capsules, beam (N, 3); distance, step (N,)")
-        if not (np.isfinite(self.points).all() and np.isfinite(self.capsules).all()
-                and np.isfinite(self.distance).all()):
+        if not (
+            np.isfinite(self.points).all() and np.isfinite(self.capsules).all() and np.isfinite(self.distance).all()
+        ):
             raise ConfigError("PlaneData holds only valid (finite) points")
 
     @property
@@ -127,12 +132,21 @@ class PlaneData:
         if m.shape != (self.n,):
             raise ConfigError(f"a subset mask must have shape ({self.n},), got {m.shape}")
         # Valid points stay valid, and boolean indexing copies; the axis is frozen, so shared.
-        return PlaneData._owned(self.label, self.axis, self.points[m], self.capsules[m], self.distance[m],
-                                self.beam[m], self.step[m])
+        return PlaneData._owned(
+            self.label, self.axis, self.points[m], self.capsules[m], self.distance[m], self.beam[m], self.step[m]
+        )
 
     @classmethod
-    def _owned(cls, label: str, axis: np.ndarray, points: np.ndarray, capsules: np.ndarray, distance: np.ndarray,
-               beam: np.ndarray, step: np.ndarray) -> PlaneData:
+    def _owned(
+        cls,
+        label: str,
+        axis: np.ndarray,
+        points: np.ndarray,
+        capsules: np.ndarray,
+        distance: np.ndarray,
+        beam: np.ndarray,
+        step: np.ndarray,
+    ) -> PlaneData:
         """Wrap arrays valid by construction that nothing else holds (fresh boolean-indexed copies).
 
         What ``__init__`` checks holds already (the valid points :func:`plane_data` kept), and the
@@ -140,16 +154,23 @@ class PlaneData:
         checked again on the fit's hot path.
         """
         obj = object.__new__(cls)
-        for name, a in (("axis", axis), ("points", points), ("capsules", capsules), ("distance", distance),
-                        ("beam", beam), ("step", step)):
+        for name, a in (
+            ("axis", axis),
+            ("points", points),
+            ("capsules", capsules),
+            ("distance", distance),
+            ("beam", beam),
+            ("step", step),
+        ):
             a.setflags(write=False)
             object.__setattr__(obj, name, a)
         object.__setattr__(obj, "label", label)
         return obj
 
 
-def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray,
-               label: str, axis: np.ndarray) -> PlaneData:
+def plane_data(
+    geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str, axis: np.ndarray
+) -> PlaneData:
     """Gather the valid points of the given steps (eq. 9 and the §4 correction).
 
     Parameters
@@ -171,8 +192,9 @@ def plane_data(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray,
     return plane_data_of(geometry.capsule_positions(g), boresight(g), d, steps, label, axis)
 
 
-def plane_data_of(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str,
-                  axis: np.ndarray) -> PlaneData:
+def plane_data_of(
+    capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str, axis: np.ndarray
+) -> PlaneData:
     """:func:`plane_data` from capsule positions and boresights the caller already has.
 
     Parameters
@@ -196,17 +218,21 @@ def plane_data_of(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, 
     # gathered with their boresights and steps, row-major as boolean indexing orders them.  Finite
     # (v = p_c + ... is finite only where p_c is) and of agreeing shapes by construction; the arrays are
     # fresh, so this PlaneData's own (the axis is copied: it may be AXIS_Y).
-    points, caps, dist, bm, st = _valid_corrected(np.ascontiguousarray(capsules, dtype=np.float64),
-                                                  np.ascontiguousarray(beam, dtype=np.float64), d,
-                                                  np.ascontiguousarray(steps, dtype=np.intp), ax / _norm(ax),
-                                                  _COS_MAX_CORRECTION)
+    points, caps, dist, bm, st = _valid_corrected(
+        np.ascontiguousarray(capsules, dtype=np.float64),
+        np.ascontiguousarray(beam, dtype=np.float64),
+        d,
+        np.ascontiguousarray(steps, dtype=np.intp),
+        ax / _norm(ax),
+        _COS_MAX_CORRECTION,
+    )
     return PlaneData._owned(label, ax.copy(), points, caps, dist, bm, st)
 
 
 @kernel
-def _valid_corrected(capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray,
-                     axis: np.ndarray, cos_max: float
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _valid_corrected(
+    capsules: np.ndarray, beam: np.ndarray, distance: np.ndarray, steps: np.ndarray, axis: np.ndarray, cos_max: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The valid echoes' corrected points (§4), capsules, ranges, boresights and steps, in row-major order.
 
     Valid: a finite positive range and a finite corrected point (:func:`corrected_point`).
@@ -250,8 +276,12 @@ def check_points(points: np.ndarray, label: str, min_points: int = 8) -> FitFail
         return FitFailure(FailureReason.TOO_FEW_POINTS, f"{n} valid points, need {max(min_points, 4)}", label, n)
     sv0, sv1 = _spread(v)
     if sv1 < max(1e-6 * sv0, 1e-3):
-        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
-                          f"points are collinear or coincident (spread {sv0:.3g} m × {sv1:.3g} m)", label, n)
+        return FitFailure(
+            FailureReason.DEGENERATE_GEOMETRY,
+            f"points are collinear or coincident (spread {sv0:.3g} m × {sv1:.3g} m)",
+            label,
+            n,
+        )
     return None
 
 
@@ -378,8 +408,9 @@ def prefilter_mask(e: np.ndarray, fraction: float = 0.1) -> np.ndarray:
     return a <= fraction * a.max()
 
 
-def theta_covariance(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0,
-                     mask: np.ndarray | None = None) -> np.ndarray:
+def theta_covariance(
+    theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0, mask: np.ndarray | None = None
+) -> np.ndarray:
     """Covariance of θ from the inlier residuals (Gauss-Newton, 1/m²).
 
     ``C = σ² (JᵀJ)⁻¹`` with ``J = ∂r/∂θ`` of the metric residual
@@ -527,9 +558,16 @@ def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, _cross3(n, e1)
 
 
-def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float,
-                      mask: np.ndarray | None = None, *, max_outer: int = 20,
-                      tol: float = 1e-12) -> tuple[np.ndarray, float, int]:
+def constant_depth_ls(
+    capsules: np.ndarray,
+    distance: np.ndarray,
+    normal0: np.ndarray,
+    offset0: float,
+    mask: np.ndarray | None = None,
+    *,
+    max_outer: int = 20,
+    tol: float = 1e-12,
+) -> tuple[np.ndarray, float, int]:
     """Least squares for the constant-depth model: ``min Σ (n · p_c + d − h)²``, ``|n| = 1``.
 
     Gauss-Newton on the sphere: linearise ``n = normalise(n₀ + u₁e₁ + u₂e₂)``
@@ -560,9 +598,16 @@ def constant_depth_ls(capsules: np.ndarray, distance: np.ndarray, normal0: np.nd
     return n, h, it
 
 
-def constant_depth_fit(capsules: np.ndarray, distance: np.ndarray, normal0: np.ndarray, offset0: float, *,
-                       max_outer: int = 10, max_tilt_step: float = 0.05,
-                       tol: float = 1e-10) -> tuple[np.ndarray, float, float, int, int, bool]:
+def constant_depth_fit(
+    capsules: np.ndarray,
+    distance: np.ndarray,
+    normal0: np.ndarray,
+    offset0: float,
+    *,
+    max_outer: int = 10,
+    max_tilt_step: float = 0.05,
+    tol: float = 1e-10,
+) -> tuple[np.ndarray, float, float, int, int, bool]:
     """LEL fit of the constant-depth model ``n · p_c + d = h`` (eq. 6, 8 on its residuals).
 
     Minimises ``H`` of the residuals ``r_i = n · p_i + d_i − h`` over the unit
@@ -634,9 +679,16 @@ def inlier_count(residuals_m: np.ndarray, tolerance: float) -> int:
     return int(np.count_nonzero(np.abs(np.asarray(residuals_m)) <= tolerance))
 
 
-def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_mask: np.ndarray,
-                   diagnostics: SolverDiagnostics, model: str = "paper",
-                   stderr: tuple[float, float] | None = None) -> PlaneFit | FitFailure:
+def make_plane_fit(
+    data: PlaneData,
+    theta: np.ndarray,
+    *,
+    method: str,
+    inlier_mask: np.ndarray,
+    diagnostics: SolverDiagnostics,
+    model: str = "paper",
+    stderr: tuple[float, float] | None = None,
+) -> PlaneFit | FitFailure:
     """Assemble a :class:`PlaneFit` for ``θ`` (eq. 1) on ``data``.
 
     Parameters
@@ -678,19 +730,29 @@ def make_plane_fit(data: PlaneData, theta: np.ndarray, *, method: str, inlier_ma
     if k < 3:
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: fewer than 3 inliers", data.label, data.n)
     n, ordered, cov, se_n, se_h, sigma_relative, sigma, patch, entropy = _fit_statistics(
-        t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None)
+        t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None
+    )
     if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
-        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
-                          f"{method}: the inliers do not constrain the plane", data.label, data.n)
+        return FitFailure(
+            FailureReason.DEGENERATE_GEOMETRY, f"{method}: the inliers do not constrain the plane", data.label, data.n
+        )
     # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
     # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
     fit = PlaneFit._owned(
-        label=data.label, method=method, normal=n, offset=1.0 / nt,
+        label=data.label,
+        method=method,
+        normal=n,
+        offset=1.0 / nt,
         entropy=entropy,
-        sigma_relative=sigma_relative, sigma=sigma,
-        inlier_mask=mask.copy(), sorted_residuals=ordered, theta_covariance=cov,
-        normal_stderr=se_n if stderr is None else stderr[0], offset_stderr=se_h if stderr is None else stderr[1],
-        patch=patch, diagnostics=diagnostics,
+        sigma_relative=sigma_relative,
+        sigma=sigma,
+        inlier_mask=mask.copy(),
+        sorted_residuals=ordered,
+        theta_covariance=cov,
+        normal_stderr=se_n if stderr is None else stderr[0],
+        offset_stderr=se_h if stderr is None else stderr[1],
+        patch=patch,
+        diagnostics=diagnostics,
     )
     if stderr is not None:
         fit._check_scalars(_STDERR_FIELDS)
@@ -701,8 +763,9 @@ _STDERR_FIELDS = frozenset({"normal_stderr", "offset_stderr"})
 
 
 @kernel
-def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.ndarray, mirror: bool
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray, float]:
+def _fit_statistics(
+    t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.ndarray, mirror: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float, float, np.ndarray, float]:
     """What :func:`make_plane_fit` reports of ``θ`` on the points ``x``, in one kernel.
 
     The metric residuals ``r = (θ·x − 1)/|θ| + shift`` (:func:`metric_residuals`), the errors
@@ -747,5 +810,14 @@ def _fit_statistics(t: np.ndarray, x: np.ndarray, shift: np.ndarray, mask: np.nd
         mad_e = fast_median(np.abs(e - med))
     else:
         mad_e = _mad(ei)
-    return (n, ordered, cov, se_n, se_h, MAD_K * mad_e, MAD_K * _mad(ri),
-            _observed_patch(n, 1.0 / nt, foot), _entropy(e) if m >= 2 else 0.0)
+    return (
+        n,
+        ordered,
+        cov,
+        se_n,
+        se_h,
+        MAD_K * mad_e,
+        MAD_K * _mad(ri),
+        _observed_patch(n, 1.0 / nt, foot),
+        _entropy(e) if m >= 2 else 0.0,
+    )

@@ -67,7 +67,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight
-
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.options import FitOptions
 from lelsonar.reconstruct.estimate.results import (
@@ -106,22 +105,22 @@ def ransac_iterations(inlier_share: float, miss: float) -> int:
     """
     if not (0 < inlier_share < 1 and 0 < miss < 1):
         return 1 if inlier_share >= 1 else 10**6
-    return max(1, int(np.ceil(np.log(miss) / np.log1p(-inlier_share**3))))
+    return max(1, int(np.ceil(np.log(miss) / np.log1p(-(inlier_share**3)))))
 
 
 @dataclass
 class IncrementalStats:
     """How the provisional estimates of one plane were made."""
 
-    calls: int = 0            # re-estimates asked for
-    updates: int = 0          # O(new points) updates that passed the trust check
-    exact: int = 0            # exact fits without the guard
-    guarded: int = 0          # exact fits whose least-H minimum failed the guard's test (its RANSAC ran)
-    trust_failures: int = 0   # incremental updates that failed the trust check (an exact fit followed)
-    untrusted: int = 0        # exact fits that failed the trust check even guarded (e.g. wall b not yet face-on)
-    waited: int = 0           # re-estimates that kept the last plane, waiting for more points after an untrusted fit
-    not_facing: int = 0       # re-estimates skipped: no beam has faced the wall yet (a typed failure, no fit)
-    refreshes: int = 0        # doublings handled by re-classifying every point, without an exact fit
+    calls: int = 0  # re-estimates asked for
+    updates: int = 0  # O(new points) updates that passed the trust check
+    exact: int = 0  # exact fits without the guard
+    guarded: int = 0  # exact fits whose least-H minimum failed the guard's test (its RANSAC ran)
+    trust_failures: int = 0  # incremental updates that failed the trust check (an exact fit followed)
+    untrusted: int = 0  # exact fits that failed the trust check even guarded (e.g. wall b not yet face-on)
+    waited: int = 0  # re-estimates that kept the last plane, waiting for more points after an untrusted fit
+    not_facing: int = 0  # re-estimates skipped: no beam has faced the wall yet (a typed failure, no fit)
+    refreshes: int = 0  # doublings handled by re-classifying every point, without an exact fit
 
 
 class IncrementalPlane:
@@ -142,12 +141,17 @@ class IncrementalPlane:
         Steps of the scan's schedule.
     """
 
-    def __init__(self, geometry: ArrayGeometry, label: str, axis: np.ndarray, method: str, options: FitOptions,
-                 steps: int) -> None:
+    def __init__(
+        self, geometry: ArrayGeometry, label: str, axis: np.ndarray, method: str, options: FitOptions, steps: int
+    ) -> None:
         self.geometry, self.label, self.axis = geometry, label, np.asarray(axis, dtype=np.float64)
         self.method, self.options = method, options
-        self._fit_options = replace(options, ransac_iterations=min(
-            options.ransac_iterations, ransac_iterations(options.min_inlier_fraction, RANSAC_MISS)))
+        self._fit_options = replace(
+            options,
+            ransac_iterations=min(
+                options.ransac_iterations, ransac_iterations(options.min_inlier_fraction, RANSAC_MISS)
+            ),
+        )
         self.included = np.zeros(int(steps), dtype=bool)
         self.n = 0
         cap = 64
@@ -159,16 +163,16 @@ class IncrementalPlane:
         self._inlier = np.zeros(cap, dtype=bool)
         self._reset_sums()
         self._theta_ls: np.ndarray | None = None  # the LS θ of the inliers; None: the next update is exact
-        self._exact_at = 0          # points at the last exact fit
-        self._retry_at = 0          # after an exact fit without sums: points needed before the next one
-        self._retry_face_on = 0     # after an untrusted one: face-on echoes needed before the next one
-        self._face_on = 0           # echoes of beams within beam_half_angle of the nominal normal
-        self._offered = self._accepted = 0   # new points since the last exact fit
+        self._exact_at = 0  # points at the last exact fit
+        self._retry_at = 0  # after an exact fit without sums: points needed before the next one
+        self._retry_face_on = 0  # after an untrusted one: face-on echoes needed before the next one
+        self._face_on = 0  # echoes of beams within beam_half_angle of the nominal normal
+        self._offered = self._accepted = 0  # new points since the last exact fit
         self._best_beam: np.ndarray | None = None
-        self._pending: list[np.ndarray] = []   # steps whose points are not computed yet
-        self._pending_echoes = 0                # their echoes (an upper bound on their points)
-        self._facing = -1.0         # the largest beam · axis so far
-        self._seed_fraction = 1.0   # inliers / points at the last exact fit
+        self._pending: list[np.ndarray] = []  # steps whose points are not computed yet
+        self._pending_echoes = 0  # their echoes (an upper bound on their points)
+        self._facing = -1.0  # the largest beam · axis so far
+        self._seed_fraction = 1.0  # inliers / points at the last exact fit
         self.plane: PlaneResult | None = None
         #: The points behind :attr:`plane` (for observers that draw them).
         self.last_data: F.PlaneData | None = None
@@ -196,7 +200,7 @@ class IncrementalPlane:
             for name in ("_v", "_pc", "_d", "_beam", "_step", "_inlier"):
                 old = getattr(self, name)
                 new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
-                new[:self.n] = old[:self.n]
+                new[: self.n] = old[: self.n]
                 setattr(self, name, new)
         sl = slice(self.n, self.n + m)
         self._v[sl], self._pc[sl], self._d[sl] = data.points, data.capsules, data.distance
@@ -208,8 +212,9 @@ class IncrementalPlane:
     def data(self) -> F.PlaneData:
         """The plane's points so far, in arrival order."""
         n = self.n
-        return F.PlaneData(self.label, self.axis, self._v[:n], self._pc[:n], self._d[:n], self._beam[:n],
-                           self._step[:n])
+        return F.PlaneData(
+            self.label, self.axis, self._v[:n], self._pc[:n], self._d[:n], self._beam[:n], self._step[:n]
+        )
 
     # --- the estimate -----------------------------------------------------------------------
     def update(self, gamma: np.ndarray, distance: np.ndarray, new_steps: np.ndarray) -> PlaneResult:
@@ -233,16 +238,23 @@ class IncrementalPlane:
             # The points wait (uncomputed) for a beam to face the wall: nothing to fit yet.
             return self._not_facing(
                 f"no beam has come within {np.rad2deg(o.beam_half_angle + FACING_MARGIN):.0f}° of the wall's "
-                "nominal normal yet (is the corner reached yet?)", echoes)
-        if self._theta_ls is None and self._face_on < o.min_inlier_fraction * echoes \
-                and not isinstance(self.plane, PlaneFit):
+                "nominal normal yet (is the corner reached yet?)",
+                echoes,
+            )
+        if (
+            self._theta_ls is None
+            and self._face_on < o.min_inlier_fraction * echoes
+            and not isinstance(self.plane, PlaneFit)
+        ):
             # A trusted fit holds min_inlier_fraction of the points (the guard's test), and a wall's echoes
             # come from the beams that face it: until those have given that share, a fit can only find the
             # corner's echoes (it fails, or its plane is far off the wall's normal).
             return self._not_facing(
                 f"the beams within {np.rad2deg(o.beam_half_angle):.0f}° of the wall's nominal normal have given "
                 f"{self._face_on} of its {echoes} echoes, less than the {o.min_inlier_fraction:.0%} a fit must "
-                "hold", echoes)
+                "hold",
+                echoes,
+            )
         if self._waiting(echoes):
             return self.plane  # not even the echoes (an upper bound on the points) are enough yet
         sl = self._materialise(gamma, distance)
@@ -267,8 +279,11 @@ class IncrementalPlane:
     def _waiting(self, points: int) -> bool:
         """After an exact fit that gave no sums (untrusted, or a tilted wall): wait for more points, or, after
         an untrusted one, for more of the echoes of the beams facing the wall."""
-        if self._theta_ls is None and self.plane is not None \
-                and (points < self._retry_at or self._face_on < self._retry_face_on):
+        if (
+            self._theta_ls is None
+            and self.plane is not None
+            and (points < self._retry_at or self._face_on < self._retry_face_on)
+        ):
             self.stats.waited += 1
             return True
         return False
@@ -337,8 +352,9 @@ class IncrementalPlane:
         if float(n @ self.axis) < np.cos(FACING_MARGIN):
             return False
         cands = beams if self._best_beam is None else np.vstack([self._best_beam[None, :], beams])
-        if not F.mirror_consistent(n, cands, o.beam_half_angle) \
-                and not F.mirror_consistent(n, self._beam[:self.n], o.beam_half_angle):
+        if not F.mirror_consistent(n, cands, o.beam_half_angle) and not F.mirror_consistent(
+            n, self._beam[: self.n], o.beam_half_angle
+        ):
             return False
         rss = float(theta @ self._S @ theta - 2.0 * theta @ self._s + self._k)
         if not np.sqrt(max(rss, 0.0) / self._k) / nt <= o.inlier_tolerance:
@@ -346,12 +362,17 @@ class IncrementalPlane:
         self._theta_ls = theta
         h = float((n @ self._P + self._D) / self._k)
         diag = SolverDiagnostics(
-            solver="incremental: LS on the inliers' sums, mirror-echo offset", time_s=time.perf_counter() - t0,
-            notes=(f"{what}: {self._k} inliers of {self.n} points; {self._accepted} of the "
-                   f"{self._offered} points since the last exact fit at {self._exact_at} accepted",))
+            solver="incremental: LS on the inliers' sums, mirror-echo offset",
+            time_s=time.perf_counter() - t0,
+            notes=(
+                f"{what}: {self._k} inliers of {self.n} points; {self._accepted} of the "
+                f"{self._offered} points since the last exact fit at {self._exact_at} accepted",
+            ),
+        )
         self.last_data = self.data()
-        fit = F.make_plane_fit(self.last_data, n / h, method=self.method,
-                               inlier_mask=self._inlier[:self.n].copy(), diagnostics=diag)
+        fit = F.make_plane_fit(
+            self.last_data, n / h, method=self.method, inlier_mask=self._inlier[: self.n].copy(), diagnostics=diag
+        )
         if not isinstance(fit, PlaneFit):
             return False
         self.plane = fit
@@ -365,8 +386,10 @@ class IncrementalPlane:
             return "no fit"
         tilt = float(np.rad2deg(np.arccos(np.clip(fit.normal @ self.axis, -1.0, 1.0))))
         if tilt > np.rad2deg(FACING_MARGIN):
-            return (f"its normal is {tilt:.0f}° from the wall's nominal normal, beyond the "
-                    f"{np.rad2deg(FACING_MARGIN):.0f}° a wall may tilt: another surface (the corner's echoes?)")
+            return (
+                f"its normal is {tilt:.0f}° from the wall's nominal normal, beyond the "
+                f"{np.rad2deg(FACING_MARGIN):.0f}° a wall may tilt: another surface (the corner's echoes?)"
+            )
         if not F.mirror_consistent(fit.normal, data.beam, o.beam_half_angle):
             return f"no beam came within {np.rad2deg(o.beam_half_angle):.0f}° of its normal"
         if not o.guard:  # the guard vetted its own pick; without it, apply its inlier test here
@@ -376,7 +399,9 @@ class IncrementalPlane:
         return ""
 
     def _exact(self, t0: float) -> PlaneResult:
-        from lelsonar.reconstruct.estimate.pipeline import fit_plane  # pipeline imports the estimators this module sits beside
+        from lelsonar.reconstruct.estimate.pipeline import (
+            fit_plane,
+        )  # pipeline imports the estimators this module sits beside
 
         data = self.last_data = self.data()
         warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
@@ -393,7 +418,7 @@ class IncrementalPlane:
         self._offered = self._accepted = 0
         self._theta_ls = None
         self._reset_sums()
-        self._inlier[:self.n] = False
+        self._inlier[: self.n] = False
         self._retry_at = max(self.n + 1, int(np.ceil(RETRY_GROWTH * self.n)))  # if no update can follow this fit
         self._retry_face_on = 0
         if why:
@@ -402,9 +427,12 @@ class IncrementalPlane:
             self._retry_at = self.n + 1
             self._retry_face_on = max(self._face_on + 1, int(np.ceil(RETRY_GROWTH * self._face_on)))
             if isinstance(fit, PlaneFit):  # a plane the trust check rejects is not published as this wall
-                self.plane = FitFailure(FailureReason.DEGENERATE_GEOMETRY,
-                                        f"provisional: the {self.method} fit of {data.n} points is not trusted "
-                                        f"yet: {why}", self.label, data.n)
+                self.plane = FitFailure(
+                    FailureReason.DEGENERATE_GEOMETRY,
+                    f"provisional: the {self.method} fit of {data.n} points is not trusted yet: {why}",
+                    self.label,
+                    data.n,
+                )
             return self.plane
         # Seed the sums with the fit's inliers, if the fit is the corrected-points LS of those inliers
         # (not the constant-depth plane of a tilted wall, which the sums do not represent).
@@ -420,7 +448,7 @@ class IncrementalPlane:
         if float(n_ls @ fit.normal) < np.cos(1e-6):
             self._reset_sums()  # a tilted wall: the next update is an exact fit again
             return fit
-        self._inlier[:self.n] = mask
+        self._inlier[: self.n] = mask
         self._seed_fraction = self._k / max(self.n, 1)
         self._theta_ls = theta_ls
         self._retry_at = 0

@@ -38,7 +38,6 @@ import numpy as np
 from scipy import optimize
 
 from lelsonar.errors import ConfigError
-
 from lelsonar.signal.compiled import kernel
 
 __all__ = [
@@ -266,8 +265,9 @@ def entropy_gradient_hessian(theta: np.ndarray, points: np.ndarray) -> tuple[flo
     return _egh(np.asarray(theta, dtype=np.float64), v, np.ascontiguousarray(v.T))
 
 
-def _egh(theta: np.ndarray, v: np.ndarray, vt: np.ndarray,
-         c: float | np.ndarray = -1.0) -> tuple[float, np.ndarray, np.ndarray]:
+def _egh(
+    theta: np.ndarray, v: np.ndarray, vt: np.ndarray, c: float | np.ndarray = -1.0
+) -> tuple[float, np.ndarray, np.ndarray]:
     # H, gradient and Hessian for the affine residuals r = V θ + c (c = −1: eq. 2).
     r = v @ theta + c
     h, d, logs = _cost_terms(r)
@@ -290,9 +290,15 @@ def _h(theta: np.ndarray, v: np.ndarray, c: float | np.ndarray = -1.0) -> float:
     return _cost_terms(v @ theta + c)[0]
 
 
-def newton_minimize(theta0: np.ndarray, points: np.ndarray, *, gtol: float = 1e-12,
-                    maxiter: int = 100, offset: float | np.ndarray = -1.0,
-                    max_step: float | None = None) -> tuple[np.ndarray, float, int, int, bool]:
+def newton_minimize(
+    theta0: np.ndarray,
+    points: np.ndarray,
+    *,
+    gtol: float = 1e-12,
+    maxiter: int = 100,
+    offset: float | np.ndarray = -1.0,
+    max_step: float | None = None,
+) -> tuple[np.ndarray, float, int, int, bool]:
     """Minimise ``H`` (eq. 8) by a damped Newton method with the exact Hessian.
 
     The residuals are ``r = V θ + offset`` — ``offset = −1`` is the paper's
@@ -434,9 +440,15 @@ def _ls(v: np.ndarray) -> np.ndarray:
     return theta
 
 
-def lel_fit_nelder_mead(points: np.ndarray, theta_ls: np.ndarray | None = None, *,
-                        extra_starts: np.ndarray | None = None,
-                        xatol: float = 1e-4, fatol: float = 1e-4, maxiter: int = 2000) -> LelResult:
+def lel_fit_nelder_mead(
+    points: np.ndarray,
+    theta_ls: np.ndarray | None = None,
+    *,
+    extra_starts: np.ndarray | None = None,
+    xatol: float = 1e-4,
+    fatol: float = 1e-4,
+    maxiter: int = 2000,
+) -> LelResult:
     """The paper's LEL minimisation (§5.2, eq. 8): six-start Nelder-Mead.
 
     Parameters
@@ -476,8 +488,9 @@ def lel_fit_nelder_mead(points: np.ndarray, theta_ls: np.ndarray | None = None, 
 
     cands, hs, its, evs, oks = [], [], 0, 0, []
     for x0 in starts:
-        res = optimize.minimize(fun, x0, method="Nelder-Mead",
-                                options={"xatol": xatol, "fatol": fatol, "maxiter": maxiter})
+        res = optimize.minimize(
+            fun, x0, method="Nelder-Mead", options={"xatol": xatol, "fatol": fatol, "maxiter": maxiter}
+        )
         cands.append(res.x)
         hs.append(float(res.fun))
         its += int(res.nit)
@@ -485,13 +498,22 @@ def lel_fit_nelder_mead(points: np.ndarray, theta_ls: np.ndarray | None = None, 
         oks.append(bool(res.success))
     hs_arr = np.asarray(hs)
     best = int(np.argmin(hs_arr))
-    return LelResult(theta=cands[best], entropy=hs[best], starts=len(starts), iterations=its,
-                     evaluations=evs, time_s=time.perf_counter() - t0, converged=oks[best],
-                     candidates=np.asarray(cands), candidate_entropy=hs_arr)
+    return LelResult(
+        theta=cands[best],
+        entropy=hs[best],
+        starts=len(starts),
+        iterations=its,
+        evaluations=evs,
+        time_s=time.perf_counter() - t0,
+        converged=oks[best],
+        candidates=np.asarray(cands),
+        candidate_entropy=hs_arr,
+    )
 
 
-def _scipy_qn(v: np.ndarray, x0: np.ndarray, method: str, gtol: float,
-              maxiter: int) -> tuple[np.ndarray, float, int, int, bool]:
+def _scipy_qn(
+    v: np.ndarray, x0: np.ndarray, method: str, gtol: float, maxiter: int
+) -> tuple[np.ndarray, float, int, int, bool]:
     def fg(th: np.ndarray) -> tuple[float, np.ndarray]:
         return entropy_and_gradient(th, v)
 
@@ -529,9 +551,17 @@ def front_start(points: np.ndarray, theta_ls: np.ndarray) -> np.ndarray:
     return theta
 
 
-def lel_fit_fast(points: np.ndarray, theta_ls: np.ndarray | None = None, *,
-                 extra_starts: np.ndarray | None = None, solver: str = "newton", front: bool = True,
-                 gtol: float = 1e-12, maxiter: int = 200, polish: bool = False) -> LelResult:
+def lel_fit_fast(
+    points: np.ndarray,
+    theta_ls: np.ndarray | None = None,
+    *,
+    extra_starts: np.ndarray | None = None,
+    solver: str = "newton",
+    front: bool = True,
+    gtol: float = 1e-12,
+    maxiter: int = 200,
+    polish: bool = False,
+) -> LelResult:
     """Fast LEL minimisation (eq. 8) with the closed-form derivatives.
 
     From each start — θ_LS, then (``front=True``) :func:`front_start`, then
@@ -598,14 +628,25 @@ def lel_fit_fast(points: np.ndarray, theta_ls: np.ndarray | None = None, *,
     if polish:
         scale = max(float(np.linalg.norm(theta)), 1e-12)
         simplex = theta + np.vstack([np.zeros(3), 1e-6 * scale * np.eye(3)])
-        res = optimize.minimize(lambda th: entropy(th, v), theta, method="Nelder-Mead",
-                                options={"initial_simplex": simplex, "xatol": 1e-12 * scale,
-                                         "fatol": 1e-15, "maxiter": 400})
+        res = optimize.minimize(
+            lambda th: entropy(th, v),
+            theta,
+            method="Nelder-Mead",
+            options={"initial_simplex": simplex, "xatol": 1e-12 * scale, "fatol": 1e-15, "maxiter": 400},
+        )
         its += int(res.nit)
         evs += int(res.nfev)
         if float(res.fun) < h_best:
             theta, h_best = res.x, float(res.fun)
             cands[best], hs_arr[best] = theta, h_best
-    return LelResult(theta=theta, entropy=h_best, starts=len(starts), iterations=its, evaluations=evs,
-                     time_s=time.perf_counter() - t0, converged=oks[best],
-                     candidates=np.asarray(cands), candidate_entropy=hs_arr)
+    return LelResult(
+        theta=theta,
+        entropy=h_best,
+        starts=len(starts),
+        iterations=its,
+        evaluations=evs,
+        time_s=time.perf_counter() - t0,
+        converged=oks[best],
+        candidates=np.asarray(cands),
+        candidate_entropy=hs_arr,
+    )

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.errors import ConfigError
-
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneResult
 
@@ -84,7 +83,6 @@ class FitOptions:
             raise ConfigError(f"critical_peak_fraction must be in [0, 1), got {self.critical_peak_fraction}")
         if self.ransac_iterations < 1:
             raise ConfigError("ransac_iterations must be >= 1")
-
 
 
 @dataclass(frozen=True)

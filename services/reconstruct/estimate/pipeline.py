@@ -55,15 +55,12 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points
-
 from lelsonar.reconstruct.estimate import estimators as E
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate import fit as F
-from lelsonar.reconstruct.estimate.fcm_ransac import fit_fcm_ransac
 from lelsonar.reconstruct.estimate.corner.method import corner_edge, fit_corner
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z, corrected_points
-from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range, total_energy
 from lelsonar.reconstruct.estimate.estimators import PlaneEstimator
+from lelsonar.reconstruct.estimate.fcm_ransac import fit_fcm_ransac
 from lelsonar.reconstruct.estimate.options import FitOptions, ScanFit
 from lelsonar.reconstruct.estimate.quality import assess_plane
 from lelsonar.reconstruct.estimate.results import (
@@ -75,6 +72,8 @@ from lelsonar.reconstruct.estimate.results import (
     Timings,
 )
 from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
+from lelsonar.signal.compiled import kernel
+from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range, total_energy
 
 __all__ = [
     "FitOptions",
@@ -87,8 +86,6 @@ __all__ = [
     "corner_edge",
     "reconstruct",
 ]
-
-
 
 
 @dataclass(frozen=True)
@@ -135,19 +132,31 @@ def register_method(method: Method) -> Method:
 
 register_method(Method("ls", "least squares on the corrected points (eq. 15)", fit_plane=E.fit_ls))
 register_method(Method("lel-nm", "paper §5.2: six-start Nelder-Mead LEL", fit_plane=E.fit_lel_nm))
-register_method(Method("paper", "paper §5.2-5.3: six-start Nelder-Mead LEL, 10 % pre-filter, LEL refit",
-                       fit_plane=E.fit_paper))
-register_method(Method("lel", "fast LEL (Newton, closed-form derivatives) with the cluster guard",
-                       fit_plane=E.fit_lel))
-register_method(Method("lel-refit-lel", "fast LEL + guard, 10 % pre-filter, fast LEL refit",
-                       fit_plane=E.fit_lel_refit_lel))
+register_method(
+    Method("paper", "paper §5.2-5.3: six-start Nelder-Mead LEL, 10 % pre-filter, LEL refit", fit_plane=E.fit_paper)
+)
+register_method(Method("lel", "fast LEL (Newton, closed-form derivatives) with the cluster guard", fit_plane=E.fit_lel))
+register_method(
+    Method("lel-refit-lel", "fast LEL + guard, 10 % pre-filter, fast LEL refit", fit_plane=E.fit_lel_refit_lel)
+)
 register_method(Method("lel-refit-ls", "fast LEL + guard, 10 % pre-filter, LS refit", fit_plane=E.fit_lel_refit_ls))
-register_method(Method("constant-depth", "mirror-echo model n·p_c + d = h: LEL, pre-filter, LS refit",
-                       fit_plane=E.fit_constant_depth))
-register_method(Method("adaptive", "lel-refit-ls, or the constant-depth LS fit where a χ² test shows a tilted wall",
-                       fit_plane=E.fit_adaptive))
-register_method(Method("corner", "joint model of both walls and the edge over all echoes, then adaptive refits",
-                       fit_scan=fit_corner))
+register_method(
+    Method(
+        "constant-depth", "mirror-echo model n·p_c + d = h: LEL, pre-filter, LS refit", fit_plane=E.fit_constant_depth
+    )
+)
+register_method(
+    Method(
+        "adaptive",
+        "lel-refit-ls, or the constant-depth LS fit where a χ² test shows a tilted wall",
+        fit_plane=E.fit_adaptive,
+    )
+)
+register_method(
+    Method(
+        "corner", "joint model of both walls and the edge over all echoes, then adaptive refits", fit_scan=fit_corner
+    )
+)
 register_method(Method("fcm-ransac", "paper §5.4 baseline: FCM (3 clusters) + RANSAC", fit_scan=fit_fcm_ransac))
 
 #: The method :func:`reconstruct` uses by default (chosen by the benchmark).
@@ -159,8 +168,14 @@ _DEFAULT_OPTIONS = FitOptions()
 
 # --------------------------------------------------------------------------- public API
 
-def fit_plane(data: F.PlaneData, method: str = DEFAULT_METHOD, *, warm_start: np.ndarray | None = None,
-              options: FitOptions | None = None) -> PlaneResult:
+
+def fit_plane(
+    data: F.PlaneData,
+    method: str = DEFAULT_METHOD,
+    *,
+    warm_start: np.ndarray | None = None,
+    options: FitOptions | None = None,
+) -> PlaneResult:
     """Fit one subset with a registered plane method.
 
     Parameters
@@ -210,8 +225,9 @@ def _assessed(plane: PlaneResult, gamma: np.ndarray) -> PlaneResult:
     return plane
 
 
-def _validate_inputs(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray,
-                     geometry: ArrayGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _validate_inputs(
+    gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray, geometry: ArrayGeometry
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     g = np.asarray(gamma, dtype=np.float64).ravel()
     d = np.asarray(distance, dtype=np.float64)
     e = np.asarray(sensor_energy, dtype=np.float64)
@@ -258,10 +274,18 @@ def range_indicator(distance: np.ndarray) -> np.ndarray:
     return np.nan_to_num(median_range(distance), nan=0.0)
 
 
-def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarray, geometry: ArrayGeometry,
-                energy_model: EnergyModel, method: str = DEFAULT_METHOD, *,
-                warm_start: tuple[np.ndarray | None, np.ndarray | None] | None = None,
-                options: FitOptions | None = None, echo_amplitude: np.ndarray | None = None) -> ScanReconstruction:
+def reconstruct(
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    sensor_energy: np.ndarray,
+    geometry: ArrayGeometry,
+    energy_model: EnergyModel,
+    method: str = DEFAULT_METHOD,
+    *,
+    warm_start: tuple[np.ndarray | None, np.ndarray | None] | None = None,
+    options: FitOptions | None = None,
+    echo_amplitude: np.ndarray | None = None,
+) -> ScanReconstruction:
     """Reconstruct the two planes of an L-shaped corner from a (partial) scan (paper §4–5).
 
     Parameters
@@ -313,8 +337,9 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
         t1 = time.perf_counter()
         fa = FitFailure(FailureReason.TOO_FEW_POINTS, "no step with an echo yet", "a", 0)
         fb = FitFailure(FailureReason.TOO_FEW_POINTS, "no step with an echo yet", "b", 0)
-        return ScanReconstruction(method, int(g.size), None, float("nan"), fa, fb, corner_edge(fa, fb),
-                                  Timings(t1 - t0, 0.0, 0.0, t1 - t0))
+        return ScanReconstruction(
+            method, int(g.size), None, float("nan"), fa, fb, corner_edge(fa, fb), Timings(t1 - t0, 0.0, 0.0, t1 - t0)
+        )
     if m.fit_scan is not None:
         t1 = time.perf_counter()
         ee = None if echo_amplitude is None else np.asarray(echo_amplitude, dtype=np.float64).reshape(d.shape)
@@ -325,9 +350,18 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
         ta = pa.diagnostics.time_s if isinstance(pa, PlaneFit) else 0.0
         # (the planes' names and verdicts above leave their normals, offsets and errors, all the edge uses)
         edge = corner_edge(pa, pb) if sf.edge is None else sf.edge
-        return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
-                                  Timings(t1 - t0, ta, max(t2 - t1 - ta, 0.0), time.perf_counter() - t0),
-                                  sf.data_a, sf.data_b)
+        return ScanReconstruction(
+            method,
+            int(g.size),
+            crit,
+            float(g[crit]),
+            pa,
+            pb,
+            edge,
+            Timings(t1 - t0, ta, max(t2 - t1 - ta, 0.0), time.perf_counter() - t0),
+            sf.data_a,
+            sf.data_b,
+        )
     split = split_subsets(g, crit)
     data_a = F.plane_data(geometry, g, d, split.steps_a, "a", AXIS_Y)
     data_b = F.plane_data(geometry, g, d, split.steps_b, "b", AXIS_Z)
@@ -338,8 +372,18 @@ def reconstruct(gamma: np.ndarray, distance: np.ndarray, sensor_energy: np.ndarr
     pa, pb = _assessed(pa, g), _assessed(pb, g)
     t3 = time.perf_counter()
     edge = corner_edge(pa, pb)
-    return ScanReconstruction(method, int(g.size), crit, float(g[crit]), pa, pb, edge,
-                              Timings(t1 - t0, t2 - t1, t3 - t2, time.perf_counter() - t0), data_a, data_b)
+    return ScanReconstruction(
+        method,
+        int(g.size),
+        crit,
+        float(g[crit]),
+        pa,
+        pb,
+        edge,
+        Timings(t1 - t0, t2 - t1, t3 - t2, time.perf_counter() - t0),
+        data_a,
+        data_b,
+    )
 
 
 # Re-exported for callers that want the raw points.

@@ -11,19 +11,27 @@ through echoes of more than one surface.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
-
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate.results import PlaneFit, PlaneResult
+from lelsonar.signal.compiled import kernel
 
-__all__ = ["QualityLimits", "assess_plane", "assess_beside_unexplained", "add_findings", "unexplained_finding", "cross_check", "recovery_finding", "GOOD", "DEGRADED",
-           "UNRELIABLE"]
+__all__ = [
+    "QualityLimits",
+    "assess_plane",
+    "assess_beside_unexplained",
+    "add_findings",
+    "unexplained_finding",
+    "cross_check",
+    "recovery_finding",
+    "GOOD",
+    "DEGRADED",
+    "UNRELIABLE",
+]
 
 GOOD, DEGRADED, UNRELIABLE = "good", "degraded", "unreliable"
 _RANK = {GOOD: 0, DEGRADED: 1, UNRELIABLE: 2}
@@ -80,19 +88,24 @@ class QualityLimits:
         for name in ("range_noise", "degraded_sigma", "max_normal_stderr", "max_offset_stderr", "face_on_angle"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"QualityLimits.{name} must be > 0, got {getattr(self, name)!r}")
-        if not (self.unreliable_sigma >= self.degraded_sigma and self.few_echoes >= self.min_echoes >= 0
-                and 0 <= self.degraded_unexplained <= self.unreliable_unexplained <= 1
-                and 0 <= self.max_inlier_loss <= 1):
-            raise ConfigError("QualityLimits: each unreliable line must lie beyond its degraded line, "
-                              "and shares must be in [0, 1]")
+        if not (
+            self.unreliable_sigma >= self.degraded_sigma
+            and self.few_echoes >= self.min_echoes >= 0
+            and 0 <= self.degraded_unexplained <= self.unreliable_unexplained <= 1
+            and 0 <= self.max_inlier_loss <= 1
+        ):
+            raise ConfigError(
+                "QualityLimits: each unreliable line must lie beyond its degraded line, and shares must be in [0, 1]"
+            )
 
 
 #: The limits every check uses unless given others (frozen: one instance serves every call).
 _DEFAULT_LIMITS = QualityLimits()
 
 
-def unexplained_finding(share: float, limits: QualityLimits | None = None, *, against: float | None = None
-                        ) -> tuple[tuple[str, str], ...]:
+def unexplained_finding(
+    share: float, limits: QualityLimits | None = None, *, against: float | None = None
+) -> tuple[tuple[str, str], ...]:
     """The finding against a plane of a scan whose model leaves ``share`` of the echoes unexplained.
 
     ``against``: the share of the scan's echoes among those that a wall of the model should have returned
@@ -104,8 +117,10 @@ def unexplained_finding(share: float, limits: QualityLimits | None = None, *, ag
     if against is None:
         against = share
     elif share > lim.degraded_unexplained:
-        text += (f" ({100 * against:.0f} % where a wall should have answered instead; the rest from beams "
-                 "beyond the walls' echoes or in front of walls seen nearer face-on: another surface)")
+        text += (
+            f" ({100 * against:.0f} % where a wall should have answered instead; the rest from beams "
+            "beyond the walls' echoes or in front of walls seen nearer face-on: another surface)"
+        )
     if against > lim.unreliable_unexplained:
         return ((UNRELIABLE, text + ": the walls explain the wrong echoes"),)
     if against > lim.degraded_unexplained:
@@ -115,9 +130,17 @@ def unexplained_finding(share: float, limits: QualityLimits | None = None, *, ag
     return ()
 
 
-def assess_beside_unexplained(plane: PlaneFit, scan_gamma: np.ndarray, share: float, against: float, *,
-                              edge_echoes: int | None = None, findings: tuple[tuple[str, str], ...] = (), at: int = 0,
-                              limits: QualityLimits | None = None) -> PlaneFit:
+def assess_beside_unexplained(
+    plane: PlaneFit,
+    scan_gamma: np.ndarray,
+    share: float,
+    against: float,
+    *,
+    edge_echoes: int | None = None,
+    findings: tuple[tuple[str, str], ...] = (),
+    at: int = 0,
+    limits: QualityLimits | None = None,
+) -> PlaneFit:
     """:func:`assess_plane` with the finding of the scan's unexplained echoes put at ``at`` among ``findings``.
 
     A plane its own evidence finds good (its echoes, residuals, σ, the estimator's findings) is judged only
@@ -130,12 +153,19 @@ def assess_beside_unexplained(plane: PlaneFit, scan_gamma: np.ndarray, share: fl
     found = unexplained_finding(share, limits, against=against if own.quality == GOOD else None)
     if not found:
         return own
-    return assess_plane(plane, scan_gamma, edge_echoes=edge_echoes, findings=findings[:at] + found + findings[at:],
-                        limits=limits)
+    return assess_plane(
+        plane, scan_gamma, edge_echoes=edge_echoes, findings=findings[:at] + found + findings[at:], limits=limits
+    )
 
 
-def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | None = None,
-                 findings: tuple[tuple[str, str], ...] = (), limits: QualityLimits | None = None) -> PlaneFit:
+def assess_plane(
+    plane: PlaneFit,
+    scan_gamma: np.ndarray,
+    *,
+    edge_echoes: int | None = None,
+    findings: tuple[tuple[str, str], ...] = (),
+    limits: QualityLimits | None = None,
+) -> PlaneFit:
     """``plane`` with its verdict and reasons filled in.
 
     Parameters
@@ -164,8 +194,11 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
     for level, reason in findings:
         flag(level, reason)
     if plane.sigma > lim.unreliable_sigma * lim.range_noise:
-        flag(UNRELIABLE, f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.unreliable_sigma:g}× the range noise: "
-                         "the plane runs through echoes of more than one surface")
+        flag(
+            UNRELIABLE,
+            f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.unreliable_sigma:g}× the range noise: "
+            "the plane runs through echoes of more than one surface",
+        )
     elif plane.sigma > lim.degraded_sigma * lim.range_noise:
         flag(DEGRADED, f"residual σ {1000 * plane.sigma:.1f} mm is over {lim.degraded_sigma:g}× the range noise")
     k = plane.n_inliers
@@ -186,8 +219,11 @@ def assess_plane(plane: PlaneFit, scan_gamma: np.ndarray, *, edge_echoes: int | 
         nearest = float(np.arccos(min(max(cos_nearest, -1.0), 1.0)))
         if nearest > lim.face_on_angle:
             level = UNRELIABLE if edge_echoes is not None and edge_echoes == 0 else DEGRADED
-            flag(level, f"wall never seen face-on: the nearest beam is {np.rad2deg(nearest):.0f}° from its normal"
-                 + ("; no edge echoes tie it to the corner" if level == UNRELIABLE else ""))
+            flag(
+                level,
+                f"wall never seen face-on: the nearest beam is {np.rad2deg(nearest):.0f}° from its normal"
+                + ("; no edge echoes tie it to the corner" if level == UNRELIABLE else ""),
+            )
     if edge_echoes is not None and edge_echoes == 0 and verdict == GOOD:
         flag(DEGRADED, "the corner edge was not seen: the walls are not tied together")
     return plane.replace_scalars(quality=verdict, quality_reasons=tuple(reasons))
@@ -226,8 +262,9 @@ def add_findings(plane: PlaneResult, findings: tuple[tuple[str, str], ...]) -> P
     return plane.replace_scalars(quality=verdict, quality_reasons=plane.quality_reasons + tuple(r for _, r in findings))
 
 
-def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)),
-                max_distance: float = 0.02) -> PlaneFit:
+def cross_check(
+    plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)), max_distance: float = 0.02
+) -> PlaneFit:
     """``plane`` (a compared method's) checked against the method of record's ``reference`` of the same wall.
 
     A compared method can lock onto the corner cluster and still fit it
@@ -251,8 +288,10 @@ def cross_check(plane: PlaneFit, reference: PlaneResult, *, max_angle: float = f
     gap = float(np.max(np.abs(reference.patch @ plane.normal - plane.offset)))
     if angle <= max_angle and gap <= max_distance:
         return plane
-    reason = (f"disagrees with {reference.method} (good) by {100 * gap:.1f} cm and {np.rad2deg(angle):.1f}° "
-              "over the observed patch")
+    reason = (
+        f"disagrees with {reference.method} (good) by {100 * gap:.1f} cm and {np.rad2deg(angle):.1f}° "
+        "over the observed patch"
+    )
     level = DEGRADED if plane.quality == GOOD else plane.quality
     return plane.replace_scalars(quality=level, quality_reasons=plane.quality_reasons + (reason,))
 
@@ -275,6 +314,11 @@ def recovery_finding(plane: PlaneResult, without: PlaneResult, *, sigmas: float 
     offset_se = math.hypot(plane.offset_stderr, without.offset_stderr)
     if not (angle > sigmas * angle_se or gap > sigmas * offset_se):
         return ()
-    return ((UNRELIABLE, f"the echoes recovered after the noise triggers turn it {np.rad2deg(angle):.1f}° and move it "
-                         f"{1000 * gap:.1f} mm from the fit of the board's own readings (over {sigmas:g}σ): the two "
-                         "timings disagree"),)
+    return (
+        (
+            UNRELIABLE,
+            f"the echoes recovered after the noise triggers turn it {np.rad2deg(angle):.1f}° and move it "
+            f"{1000 * gap:.1f} mm from the fit of the board's own readings (over {sigmas:g}σ): the two "
+            "timings disagree",
+        ),
+    )

@@ -33,8 +33,9 @@ __all__ = [
 ]
 
 
-def _frozen_array(obj: object, name: str, shape: tuple[int | None, ...] | None = None,
-                  dtype: type = np.float64, finite: bool = True) -> np.ndarray:
+def _frozen_array(
+    obj: object, name: str, shape: tuple[int | None, ...] | None = None, dtype: type = np.float64, finite: bool = True
+) -> np.ndarray:
     """Copy ``getattr(obj, name)`` into a read-only array and write it back."""
     a = np.array(getattr(obj, name), dtype=dtype, copy=True)
     if shape is not None:
@@ -217,10 +218,23 @@ class PlaneFit:
                 check(self)
 
     @classmethod
-    def _owned(cls, label: str, method: str, normal: np.ndarray, offset: float, entropy: float,
-               sigma_relative: float, sigma: float, inlier_mask: np.ndarray, sorted_residuals: np.ndarray,
-               theta_covariance: np.ndarray, normal_stderr: float, offset_stderr: float, patch: np.ndarray,
-               diagnostics: SolverDiagnostics) -> PlaneFit:
+    def _owned(
+        cls,
+        label: str,
+        method: str,
+        normal: np.ndarray,
+        offset: float,
+        entropy: float,
+        sigma_relative: float,
+        sigma: float,
+        inlier_mask: np.ndarray,
+        sorted_residuals: np.ndarray,
+        theta_covariance: np.ndarray,
+        normal_stderr: float,
+        offset_stderr: float,
+        patch: np.ndarray,
+        diagnostics: SolverDiagnostics,
+    ) -> PlaneFit:
         """Wrap fields valid by construction whose arrays nothing else holds (what ``make_plane_fit`` builds).
 
         Every check of ``__init__`` holds already — a unit normal and ``h > 0`` from a finite ``θ``,
@@ -232,12 +246,24 @@ class PlaneFit:
         obj = object.__new__(cls)
         for a in (normal, inlier_mask, sorted_residuals, theta_covariance, patch):
             a.setflags(write=False)
-        obj.__dict__.update(label=label, method=method, normal=normal, offset=float(offset),
-                            entropy=float(min(entropy, 1.0)), sigma_relative=float(sigma_relative),
-                            sigma=float(sigma), inlier_mask=inlier_mask, sorted_residuals=sorted_residuals,
-                            theta_covariance=theta_covariance, normal_stderr=float(normal_stderr),
-                            offset_stderr=float(offset_stderr), patch=patch, diagnostics=diagnostics,
-                            quality="", quality_reasons=())
+        obj.__dict__.update(
+            label=label,
+            method=method,
+            normal=normal,
+            offset=float(offset),
+            entropy=float(min(entropy, 1.0)),
+            sigma_relative=float(sigma_relative),
+            sigma=float(sigma),
+            inlier_mask=inlier_mask,
+            sorted_residuals=sorted_residuals,
+            theta_covariance=theta_covariance,
+            normal_stderr=float(normal_stderr),
+            offset_stderr=float(offset_stderr),
+            patch=patch,
+            diagnostics=diagnostics,
+            quality="",
+            quality_reasons=(),
+        )
         return obj
 
     def replace_scalars(self, **changes: object) -> PlaneFit:
@@ -250,8 +276,9 @@ class PlaneFit:
         frozen and validated when this plane was made, are shared with it, not copied and checked again.
         """
         if not changes.keys() <= _SCALARS:
-            raise ConfigError(f"PlaneFit.replace_scalars changes only {sorted(_SCALARS)}, "
-                              f"not {sorted(changes.keys() - _SCALARS)}")
+            raise ConfigError(
+                f"PlaneFit.replace_scalars changes only {sorted(_SCALARS)}, not {sorted(changes.keys() - _SCALARS)}"
+            )
         obj = object.__new__(PlaneFit)
         obj.__dict__.update(self.__dict__)
         obj.__dict__.update(changes)
@@ -320,6 +347,7 @@ def _check_non_negative(name: str):
         if not (math.isfinite(v) and v >= 0):
             raise ConfigError(f"PlaneFit.{name} must be finite and >= 0, got {v}")
         object.__setattr__(p, name, float(v))
+
     return check
 
 
@@ -329,16 +357,33 @@ def _check_label(p: PlaneFit) -> None:
 
 
 #: :meth:`PlaneFit._check_scalars`' checks, field by field, in the order they run (each normalises its field).
-_SCALAR_CHECKS = (("quality", _check_quality), ("method", _check_method), ("diagnostics", _check_diagnostics),
-                  ("quality_reasons", _check_quality_reasons), ("offset", _check_offset),
-                  ("entropy", _check_entropy),
-                  *((name, _check_non_negative(name)) for name in ("sigma_relative", "sigma", "normal_stderr",
-                                                                     "offset_stderr")),
-                  ("label", _check_label))
+_SCALAR_CHECKS = (
+    ("quality", _check_quality),
+    ("method", _check_method),
+    ("diagnostics", _check_diagnostics),
+    ("quality_reasons", _check_quality_reasons),
+    ("offset", _check_offset),
+    ("entropy", _check_entropy),
+    *((name, _check_non_negative(name)) for name in ("sigma_relative", "sigma", "normal_stderr", "offset_stderr")),
+    ("label", _check_label),
+)
 
 #: The fields :meth:`PlaneFit.replace_scalars` may change: all but the arrays.
-_SCALARS = frozenset({"label", "method", "offset", "entropy", "sigma_relative", "sigma", "normal_stderr",
-                      "offset_stderr", "diagnostics", "quality", "quality_reasons"})
+_SCALARS = frozenset(
+    {
+        "label",
+        "method",
+        "offset",
+        "entropy",
+        "sigma_relative",
+        "sigma",
+        "normal_stderr",
+        "offset_stderr",
+        "diagnostics",
+        "quality",
+        "quality_reasons",
+    }
+)
 
 
 @dataclass(frozen=True)
@@ -376,8 +421,9 @@ class EdgeLine:
         object.__setattr__(self, "angle", float(self.angle))
 
     @classmethod
-    def _owned(cls, point: np.ndarray, direction: np.ndarray, angle: float, point_stderr: float,
-               direction_stderr: float) -> EdgeLine:
+    def _owned(
+        cls, point: np.ndarray, direction: np.ndarray, angle: float, point_stderr: float, direction_stderr: float
+    ) -> EdgeLine:
         """Wrap fields valid by construction whose arrays nothing else holds (what ``corner_edge`` builds).
 
         As :meth:`PlaneFit._owned`: the checks of ``__init__`` hold already and the arrays are made
@@ -386,8 +432,13 @@ class EdgeLine:
         obj = object.__new__(cls)
         for a in (point, direction):
             a.setflags(write=False)
-        obj.__dict__.update(point=point, direction=direction, angle=float(angle), point_stderr=point_stderr,
-                            direction_stderr=direction_stderr)
+        obj.__dict__.update(
+            point=point,
+            direction=direction,
+            angle=float(angle),
+            point_stderr=point_stderr,
+            direction_stderr=direction_stderr,
+        )
         return obj
 
     @property

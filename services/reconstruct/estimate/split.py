@@ -14,10 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.errors import ConfigError
-
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate.fit import fast_median
 from lelsonar.reconstruct.estimate.lel import _pairwise_sum
+from lelsonar.signal.compiled import kernel
 
 __all__ = ["critical_step", "Split", "split_subsets"]
 
@@ -80,7 +79,7 @@ def _critical_step(ratio: np.ndarray, peak_fraction: float) -> int:
     while hi < n - 1 and r[hi + 1] >= thr:
         hi += 1
     m = hi + 1 - lo
-    w = r[lo:hi + 1] - thr
+    w = r[lo : hi + 1] - thr
     total = _pairwise_sum(w, 0, m)  # (sums as np.sum's)
     if total <= 0:
         return k
@@ -111,8 +110,7 @@ class Split:
             object.__setattr__(self, name, a)
         a, b = self.steps_a, self.steps_b
         # Subsets on either side of each other (split_subsets') are disjoint without intersecting them.
-        overlap = a.size and b.size and not (a.max() < b.min() or b.max() < a.min()) \
-            and np.intersect1d(a, b).size
+        overlap = a.size and b.size and not (a.max() < b.min() or b.max() < a.min()) and np.intersect1d(a, b).size
         if overlap or self.critical in a or self.critical in b:
             raise ConfigError("the subsets must be disjoint and exclude the critical step")
 
@@ -139,11 +137,11 @@ def split_subsets(gamma: np.ndarray, critical: int) -> Split:
     before = np.arange(0, critical)
     after = np.arange(critical + 1, n)
     if before.size and after.size:
-        swap = _nanmedian(g[:critical]) > _nanmedian(g[critical + 1:])
+        swap = _nanmedian(g[:critical]) > _nanmedian(g[critical + 1 :])
     elif before.size:
         swap = _nanmedian(g[:critical]) > g[critical]
     elif after.size:
-        swap = _nanmedian(g[critical + 1:]) < g[critical]
+        swap = _nanmedian(g[critical + 1 :]) < g[critical]
     else:
         swap = False
     return Split(critical, after, before) if swap else Split(critical, before, after)

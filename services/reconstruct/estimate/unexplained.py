@@ -30,8 +30,9 @@ import numpy as np
 __all__ = ["echoes_against_walls"]
 
 
-def echoes_against_walls(residuals: np.ndarray, cosines: np.ndarray, own: np.ndarray, unexplained: np.ndarray,
-                         min_face_on: int) -> np.ndarray:
+def echoes_against_walls(
+    residuals: np.ndarray, cosines: np.ndarray, own: np.ndarray, unexplained: np.ndarray, min_face_on: int
+) -> np.ndarray:
     """Mask of the ``unexplained`` echoes that a wall of the model should have returned instead.
 
     Parameters

@@ -12,7 +12,6 @@ from lelsonar.codec import QUALITY
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
 from lelsonar.v1 import reconstruction_pb2 as pb
 
-
 STATUS = {
     "provisional": pb.ESTIMATE_STATUS_PROVISIONAL,
     "final": pb.ESTIMATE_STATUS_FINAL,
@@ -39,10 +38,18 @@ def _set(vec, xyz) -> None:
 
 def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
     msg = pb.PlaneEstimate(
-        label=plane.label, method=plane.method, offset=plane.offset, sigma_relative=plane.sigma_relative,
-        sigma=plane.sigma, inlier_count=plane.n_inliers, point_count=plane.n_points, lel_cost=plane.entropy,
-        normal_stderr=plane.normal_stderr, offset_stderr=plane.offset_stderr,
-        quality=QUALITY[plane.quality], quality_reasons=list(plane.quality_reasons),
+        label=plane.label,
+        method=plane.method,
+        offset=plane.offset,
+        sigma_relative=plane.sigma_relative,
+        sigma=plane.sigma,
+        inlier_count=plane.n_inliers,
+        point_count=plane.n_points,
+        lel_cost=plane.entropy,
+        normal_stderr=plane.normal_stderr,
+        offset_stderr=plane.offset_stderr,
+        quality=QUALITY[plane.quality],
+        quality_reasons=list(plane.quality_reasons),
     )
     _set(msg.normal, plane.normal)
     _set(msg.theta, plane.theta)
@@ -52,19 +59,34 @@ def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
     return msg
 
 
-def reconstruction_message(scanner_id: str, scan_id: int, *, status: str, last_step: int, samples_used: int,
-                           critical_step: int | None, critical_angle: float, planes: Iterable[PlaneResult],
-                           edge: EdgeLine | FitFailure | None, timings: tuple[float, float, float],
-                           stamp_ns: int | None = None, missing_steps: Iterable[int] = (),
-                           accounting: pb.ScanAccounting | None = None) -> codec.Reconstruction:
+def reconstruction_message(
+    scanner_id: str,
+    scan_id: int,
+    *,
+    status: str,
+    last_step: int,
+    samples_used: int,
+    critical_step: int | None,
+    critical_angle: float,
+    planes: Iterable[PlaneResult],
+    edge: EdgeLine | FitFailure | None,
+    timings: tuple[float, float, float],
+    stamp_ns: int | None = None,
+    missing_steps: Iterable[int] = (),
+    accounting: pb.ScanAccounting | None = None,
+) -> codec.Reconstruction:
     """Build a validated-to-be ``Reconstruction``.
 
     ``critical_step`` is a step index of the scan's schedule (not of the
     received subset); ``timings`` is (segmentation, fit, total) in s.
     """
     msg = pb.Reconstruction(
-        schema_version=SCHEMA_VERSION, scanner_id=scanner_id, scan_id=scan_id, last_step=last_step,
-        status=STATUS[status], stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns(),
+        schema_version=SCHEMA_VERSION,
+        scanner_id=scanner_id,
+        scan_id=scan_id,
+        last_step=last_step,
+        status=STATUS[status],
+        stamp_ns=stamp_ns if stamp_ns is not None else time.time_ns(),
         samples_used=samples_used,
     )
     if critical_step is not None:
@@ -89,11 +111,13 @@ def reconstruction_message(scanner_id: str, scan_id: int, *, status: str, last_s
     return msg
 
 
-def accounting_message(*, published: int, received_live: int, recovered: int, duplicates: int,
-                       rejected: dict[str, int], missing: int) -> pb.ScanAccounting:
+def accounting_message(
+    *, published: int, received_live: int, recovered: int, duplicates: int, rejected: dict[str, int], missing: int
+) -> pb.ScanAccounting:
     """Where every sample of one scan went (see ``ScanAccounting`` in reconstruction.proto)."""
-    acc = pb.ScanAccounting(published=published, received_live=received_live, recovered=recovered,
-                            duplicates=duplicates, missing=missing)
+    acc = pb.ScanAccounting(
+        published=published, received_live=received_live, recovered=recovered, duplicates=duplicates, missing=missing
+    )
     for reason, n in sorted(rejected.items()):
         if n:
             acc.rejected[reason] = int(n)
@@ -104,8 +128,12 @@ def accounting_text(acc: pb.ScanAccounting) -> str:
     """One line, e.g. ``published 184, live 180, recovered 4, duplicates 0, rejected 0, missing 0``."""
     rejected = sum(acc.rejected.values())
     detail = f" ({', '.join(f'{k} {v}' for k, v in sorted(acc.rejected.items()))})" if rejected else ""
-    return (f"published {acc.published}, live {acc.received_live}, recovered {acc.recovered}, "
-            f"duplicates {acc.duplicates}, rejected {rejected}{detail}, missing {acc.missing}")
+    return (
+        f"published {acc.published}, live {acc.received_live}, recovered {acc.recovered}, "
+        f"duplicates {acc.duplicates}, rejected {rejected}{detail}, missing {acc.missing}"
+    )
+
+
 def decode_estimate(key: str, payload: bytes, prefix: str) -> codec.Reconstruction:
     """A Reconstruction received on ``key``, validated, whose scanner id must be the key's.
 
@@ -122,6 +150,8 @@ def decode_estimate(key: str, payload: bytes, prefix: str) -> codec.Reconstructi
     message = codec.decode(payload, codec.Reconstruction)
     on_key = ScannerKeys(prefix).scanner_chunk(key)
     if message.scanner_id != on_key:
-        raise ScannerMismatchError(f"an estimate for scanner {message.scanner_id!r} came on the planes key of "
-                                   f"scanner {on_key[:80]!r}; ignored (a forgery, or a misconfigured publisher)")
+        raise ScannerMismatchError(
+            f"an estimate for scanner {message.scanner_id!r} came on the planes key of "
+            f"scanner {on_key[:80]!r}; ignored (a forgery, or a misconfigured publisher)"
+        )
     return message

@@ -46,8 +46,8 @@ stream or the acquirer's log), for the per-scan accounting.
 
 from __future__ import annotations
 
-import logging
 import functools
+import logging
 import math
 import struct
 from collections import Counter, OrderedDict
@@ -59,8 +59,20 @@ from lelsonar import codec
 from lelsonar.codec import MAX_RANGE_M
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate.corner.model import _pairwise_block  # NumPy's add.reduce, to the bit
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE
+from lelsonar.signal.compiled import kernel
+from lelsonar.signal.echo_timing import (
+    _FLOOR_TIME,
+    MIN_TIMED,
+    TIMING_WINDOW,
+    RangeWalk,
+    echo_onsets,
+    range_walk,
+    typical_edges,
+    walk_finding,
+    walk_free_ranges,
+)
 from lelsonar.signal.energy import (
     ECHO_PEAK_WINDOW,
     PRE_ECHO_WINDOW,
@@ -75,18 +87,6 @@ from lelsonar.signal.energy import (
     waveform_energy,
     window_samples,
 )
-from lelsonar.signal.echo_timing import (
-    _FLOOR_TIME,
-    MIN_TIMED,
-    TIMING_WINDOW,
-    RangeWalk,
-    echo_onsets,
-    range_walk,
-    typical_edges,
-    walk_finding,
-    walk_free_ranges,
-)
-from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.v1 import scan_pb2
 
 _log = logging.getLogger(__name__)
@@ -118,18 +118,22 @@ def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
         if not (axis.x > 0 and math.hypot(axis.y, axis.z) <= 1e-3 * norm):
             raise InvalidMessageError(
                 f"ScanStart.rotation_axis is ({axis.x:g}, {axis.y:g}, {axis.z:g}); this build supports rotation "
-                "about +x only (γ right-handed about +x, beam along +y at γ = 0): state γ about +x")
+                "about +x only (γ right-handed about +x, beam along +y at γ = 0): state γ about +x"
+            )
     ordered = sorted(start.capsules, key=lambda c: c.capsule_id)
     for c in ordered:
         b = c.boresight
         unset = (b.x, b.y, b.z) == (0.0, 0.0, 0.0)
         if abs(c.position.z) > 1e-9 or not (unset or (abs(b.x) + abs(b.z) <= 1e-9 and abs(b.y - 1.0) <= 1e-9)):
             raise InvalidMessageError(
-                f"capsule {c.capsule_id} is not on the x axis line facing +y; this build supports only linear arrays")
+                f"capsule {c.capsule_id} is not on the x axis line facing +y; this build supports only linear arrays"
+            )
     radial = {round(c.position.y, 9) for c in ordered}
     if len(radial) > 1 and max(radial) - min(radial) > _SAME_LENGTH:
-        raise InvalidMessageError(f"the capsules sit at different radial offsets {sorted(radial)} m (position.y); "
-                                  "this build supports one line of capsules")
+        raise InvalidMessageError(
+            f"the capsules sit at different radial offsets {sorted(radial)} m (position.y); "
+            "this build supports one line of capsules"
+        )
     from_positions = float(np.mean([c.position.y for c in ordered]))
     offset = start.radial_offset
     if offset == 0.0:
@@ -137,7 +141,8 @@ def geometry_from_start(start: codec.ScanStart) -> ArrayGeometry:
     elif from_positions != 0.0 and abs(from_positions - offset) > _SAME_LENGTH:
         raise InvalidMessageError(
             f"ScanStart.radial_offset {offset} m contradicts the capsules' position.y {from_positions} m: the "
-            "positions are in the array frame, so y is the radial offset; state the same value in both")
+            "positions are in the array frame, so y is the radial offset; state the same value in both"
+        )
     return ArrayGeometry(capsule_x=tuple(c.position.x for c in ordered), radial_offset=offset)
 
 
@@ -167,8 +172,17 @@ NOISE_INDEPENDENT = 0.5
 #: each reading's timing window starts (``_timing_at``: its time of flight after the window's first sample, s)
 #: and, for a reading that may be the noise a board fired on, its candidate echo's (``_candidate_at``: the echo's
 #: first crossing after its window's first sample, s; ``_candidate_start``: that sample's time after firing, s).
-_PER_CAPSULE = ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio",
-                "_timing_at", "_candidate_at", "_candidate_start")
+_PER_CAPSULE = (
+    "distance",
+    "sensor_energy",
+    "echo_amplitude",
+    "pre_echo_peak",
+    "dc_level",
+    "range_tof_ratio",
+    "_timing_at",
+    "_candidate_at",
+    "_candidate_start",
+)
 #: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
 #: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
 _PER_STEP = ("gamma", "gamma_commanded", "step_energy", "expected_energy", "ratio")
@@ -224,8 +238,11 @@ _GEOMETRIES: OrderedDict[tuple, ArrayGeometry] = OrderedDict()
 
 def _scan_geometry(start: codec.ScanStart) -> ArrayGeometry:
     """:func:`geometry_from_start`, of the same description once."""
-    key = (start.rotation_axis.SerializeToString(), tuple([c.SerializeToString() for c in start.capsules]),
-           start.radial_offset)
+    key = (
+        start.rotation_axis.SerializeToString(),
+        tuple([c.SerializeToString() for c in start.capsules]),
+        start.radial_offset,
+    )
     geometry = _GEOMETRIES.get(key)
     if geometry is None:
         geometry = _GEOMETRIES[key] = geometry_from_start(start)
@@ -241,8 +258,8 @@ class StepView:
     step: int
     time_ns: int
     gamma: float
-    distance: np.ndarray     # (k,) m, NaN = no echo
-    waveforms: np.ndarray    # (k, n) V
+    distance: np.ndarray  # (k,) m, NaN = no echo
+    waveforms: np.ndarray  # (k, n) V
     sample_rate: float
     t0: float
 
@@ -254,28 +271,28 @@ class ScanAssembly:
     start: codec.ScanStart
     geometry: ArrayGeometry = field(init=False)
     energy_model: EnergyModel = field(init=False)
-    energy_model_problem: str | None = field(init=False)   # why E0 is the uncalibrated one, if it is
-    gamma: np.ndarray = field(init=False)            # (steps,) rad, NaN until received
+    energy_model_problem: str | None = field(init=False)  # why E0 is the uncalibrated one, if it is
+    gamma: np.ndarray = field(init=False)  # (steps,) rad, NaN until received
     gamma_commanded: np.ndarray = field(init=False)  # (steps,) rad, NaN until received
-    sound_speed: float | None = field(init=False)    # m/s, None: neither stated nor a temperature to derive it
+    sound_speed: float | None = field(init=False)  # m/s, None: neither stated nor a temperature to derive it
     #: Readings marked echo_valid = false that carry a range anyway (a writer that never sets the flag).
     unflagged_ranges: int = 0
-    distance: np.ndarray = field(init=False)         # (steps, k) m, NaN = no echo / not received
-    sensor_energy: np.ndarray = field(init=False)    # (steps, k) V²·s, eq. (10) of each waveform; 0: not received
+    distance: np.ndarray = field(init=False)  # (steps, k) m, NaN = no echo / not received
+    sensor_energy: np.ndarray = field(init=False)  # (steps, k) V²·s, eq. (10) of each waveform; 0: not received
     #: (steps, k) V, peak of the first echo alone (:func:`~lelsonar.signal.energy.echo_amplitude`); NaN: none.
     echo_amplitude: np.ndarray = field(init=False)
     #: (steps, k) V, peak just before the first echo (``PRE_ECHO_WINDOW``), on every :data:`RISE_STRIDE`-th
     #: step; NaN: none, or not a checked step.
     pre_echo_peak: np.ndarray = field(init=False)
-    step_energy: np.ndarray = field(init=False)      # (steps,) E^γ, eq. (11)
+    step_energy: np.ndarray = field(init=False)  # (steps,) E^γ, eq. (11)
     expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. (12); 0 without a valid range
-    ratio: np.ndarray = field(init=False)            # (steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range
-    dc_level: np.ndarray = field(init=False)         # (steps, k) V, |mean| of each waveform (a receiver's offset)
+    ratio: np.ndarray = field(init=False)  # (steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range
+    dc_level: np.ndarray = field(init=False)  # (steps, k) V, |mean| of each waveform (a receiver's offset)
     #: (steps, k) distance / (c·tof/2) where the reading gave both (NaN elsewhere): 1 when they agree.
     range_tof_ratio: np.ndarray = field(init=False)
-    time_ns: np.ndarray = field(init=False)          # (steps,)
-    received: np.ndarray = field(init=False)         # (steps,) bool
-    recovered_mask: np.ndarray = field(init=False)   # (steps,) bool: the step came from the acquirer's log
+    time_ns: np.ndarray = field(init=False)  # (steps,)
+    received: np.ndarray = field(init=False)  # (steps,) bool
+    recovered_mask: np.ndarray = field(init=False)  # (steps,) bool: the step came from the acquirer's log
     end: codec.ScanEnd | None = None
     duplicates: int = 0
     #: Messages of this scan that were refused, by reason (the wire's ScanAccounting.rejected).
@@ -297,13 +314,23 @@ class ScanAssembly:
         self._ids = np.array(self._capsule_ids, dtype=np.int64)
         self.sound_speed = speed_of_sound(self.start)
         e = self.start.energy_model
-        self.energy_model, self.energy_model_problem = _energy_model(e.phi0, e.phi1, e.phi2, e.valid_min_range,
-                                                                     e.valid_max_range)
+        self.energy_model, self.energy_model_problem = _energy_model(
+            e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range
+        )
         # The kernel's constants of the scan (_place_step's ``scan``): the speed of sound (NaN for none: the
         # ranges then need both fields), the timing windows' rate (NaN until the first waveforms), E0's model.
         model = self.energy_model
-        self._scan = np.array([math.nan if self.sound_speed is None else float(self.sound_speed), math.nan,
-                               model.phi0, model.phi1, model.phi2, model.d_min, model.d_max])
+        self._scan = np.array(
+            [
+                math.nan if self.sound_speed is None else float(self.sound_speed),
+                math.nan,
+                model.phi0,
+                model.phi1,
+                model.phi2,
+                model.d_min,
+                model.d_max,
+            ]
+        )
         # The fast path's layout (the readings' capsule ids, lengths and clocks), once a sample has shown it, and
         # the kernel's buffer of numbers (_place_step's ``values``): the layout's clocks, then each sample's
         # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
@@ -345,7 +372,7 @@ class ScanAssembly:
         per_capsule = np.full((len(_PER_CAPSULE), n, k), np.nan)
         per_capsule[_PER_CAPSULE.index("sensor_energy")] = 0.0
         per_step = np.full((len(_PER_STEP), n), np.nan)
-        per_step[_PER_STEP.index("step_energy"):] = 0.0
+        per_step[_PER_STEP.index("step_energy") :] = 0.0
         time_ns, received, recovered = np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
         if hasattr(self, "_per_capsule"):
             had = self._per_capsule.shape[1]
@@ -386,8 +413,9 @@ class ScanAssembly:
         # (k, n) float32, or the Sample itself where its waveforms were read from its payload (on the fast path's
         # layout: its sensors in the order of the capsules)
         waveforms = held if isinstance(held, np.ndarray) else _waveforms([s.waveform for s in held.sensors], n)
-        self._latest = view = StepView(step, int(self.time_ns[step]), float(self.gamma[step]),
-                                       self.distance[step].copy(), waveforms, rate, t0)
+        self._latest = view = StepView(
+            step, int(self.time_ns[step]), float(self.gamma[step]), self.distance[step].copy(), waveforms, rate, t0
+        )
         return view
 
     @property
@@ -429,8 +457,14 @@ class ScanAssembly:
         """The ScanEnd came and every step it counts has arrived."""
         return self.end is not None and len(self.missing_steps()) == 0
 
-    def add(self, sample: codec.Sample, origin: str = "live", *, limits: codec.DecodeLimits | None = None,
-            payload: bytes | None = None) -> bool | None:
+    def add(
+        self,
+        sample: codec.Sample,
+        origin: str = "live",
+        *,
+        limits: codec.DecodeLimits | None = None,
+        payload: bytes | None = None,
+    ) -> bool | None:
         """Place a sample (``origin`` "live" or "recovered"); return False for a duplicate step.
 
         ``limits``: the sample's body has not been validated (:func:`~lelsonar.codec.parse` only); its checks
@@ -462,15 +496,26 @@ class ScanAssembly:
         if limits is not None:
             # Only on the layout of a sample validated before (the same ids, encodings, lengths and clocks: the
             # contract's checks of them passed) but for its checks against ``limits``, made here.
-            if known is None or not (step < limits.max_steps and k <= limits.max_sensors
-                                     and known[1] <= limits.max_waveform_samples):
+            if known is None or not (
+                step < limits.max_steps and k <= limits.max_sensors and known[1] <= limits.max_waveform_samples
+            ):
                 return None
             if step >= len(received):
                 self._allocate(min(self._steps, max(2 * len(received), step + 1)))
             if payload is not None:
-                status = _place_wire(payload, self._ids, self._values, self._waves, self._scan, step,
-                                     sample.acquisition_time_ns, origin == "recovered", *self._rows,
-                                     self._timing_windows, self._candidate_windows)
+                status = _place_wire(
+                    payload,
+                    self._ids,
+                    self._values,
+                    self._waves,
+                    self._scan,
+                    step,
+                    sample.acquisition_time_ns,
+                    origin == "recovered",
+                    *self._rows,
+                    self._timing_windows,
+                    self._candidate_windows,
+                )
                 if status != _UNREAD:
                     return self._placed(status, sample, step, self._waves, known, None, True, sample)
         ranges, layout, data = codec.sample_readings(sample.sensors)
@@ -493,35 +538,82 @@ class ScanAssembly:
         if fast or self._one_layout(layout):
             # The readings into the kernel's buffer, after the clocks (the layout's, written there once).
             if m == k:
-                self._pack_readings_energies.pack_into(self._buffer, 16 * k, gamma, sample.gamma_commanded,
-                                                       motor.load, motor.voltage, motor.temperature, *ranges,
-                                                       *carried)
+                self._pack_readings_energies.pack_into(
+                    self._buffer,
+                    16 * k,
+                    gamma,
+                    sample.gamma_commanded,
+                    motor.load,
+                    motor.voltage,
+                    motor.temperature,
+                    *ranges,
+                    *carried,
+                )
             else:  # not one a waveform: not the waveforms' energies (recomputed and counted below)
-                self._pack_readings.pack_into(self._buffer, 16 * k, gamma, sample.gamma_commanded, motor.load,
-                                              motor.voltage, motor.temperature, *ranges)
+                self._pack_readings.pack_into(
+                    self._buffer,
+                    16 * k,
+                    gamma,
+                    sample.gamma_commanded,
+                    motor.load,
+                    motor.voltage,
+                    motor.temperature,
+                    *ranges,
+                )
             values, joined, one_clock = self._values, b"".join(data), True
         else:
             sensors, carried_list = self._in_capsule_order(sample, carried if m else None)
             ranges, layout, data = codec.sample_readings(sensors)
             joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
-            clocks = [v for i in range(k) for v in layout[6 * i + 2:6 * i + 4]]  # (rate, t0) of each
+            clocks = [v for i in range(k) for v in layout[6 * i + 2 : 6 * i + 4]]  # (rate, t0) of each
             one_clock = clocks == [layout[2], layout[3]] * k
             carried_list = carried_list if m == k else []
-            values = np.array([*clocks, gamma, sample.gamma_commanded, motor.load, motor.voltage, motor.temperature,
-                               *ranges, *carried_list], dtype=np.float64)
+            values = np.array(
+                [
+                    *clocks,
+                    gamma,
+                    sample.gamma_commanded,
+                    motor.load,
+                    motor.voltage,
+                    motor.temperature,
+                    *ranges,
+                    *carried_list,
+                ],
+                dtype=np.float64,
+            )
         waveforms = np.frombuffer(joined, dtype=np.float32).reshape(k, n)
         if not self._timing_windows.shape[2] and n and values[0] > 0 and math.isfinite(values[0]):
             # The first sample with waveforms sets the windows' rate.
             self._timing_rate = self._scan[1] = float(values[0])
-            self._grow_timing(len(self.received), max(int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0])
-                                                                 * self._timing_rate)), 1))
-        status = _place_step(waveforms, values, self._scan, k if m == k else 0, step, limits is None,
-                             sample.acquisition_time_ns, origin == "recovered", *self._rows, self._timing_windows,
-                             self._candidate_windows)
+            self._grow_timing(
+                len(self.received), max(int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0]) * self._timing_rate)), 1)
+            )
+        status = _place_step(
+            waveforms,
+            values,
+            self._scan,
+            k if m == k else 0,
+            step,
+            limits is None,
+            sample.acquisition_time_ns,
+            origin == "recovered",
+            *self._rows,
+            self._timing_windows,
+            self._candidate_windows,
+        )
         return self._placed(status, sample, step, waveforms, layout, ranges, one_clock, waveforms)
 
-    def _placed(self, status: int, sample: codec.Sample, step: int, waveforms: np.ndarray, layout: list,
-                ranges: list | None, one_clock: bool, latest) -> bool | None:
+    def _placed(
+        self,
+        status: int,
+        sample: codec.Sample,
+        step: int,
+        waveforms: np.ndarray,
+        layout: list,
+        ranges: list | None,
+        one_clock: bool,
+        latest,
+    ) -> bool | None:
         """What a step's placement (:func:`_place_step`'s ``status``) leaves to do, rarely anything: a refusal,
         energies to recompute, ranges without an echo to count; the step is then the latest (``latest``: its
         waveforms, or the sample to read them from).  ``layout``, ``ranges``: the sample's in the order of the
@@ -537,8 +629,11 @@ class ScanAssembly:
                     ranges = codec.sample_readings(sample.sensors)[0]
                 self._no_sound_speed(step, ranges, layout)
             if not status & _AGREED:
-                self.sensor_energy[step] = (waveform_energy(waveforms, layout[2]) if one_clock else
-                                            [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::6])])
+                self.sensor_energy[step] = (
+                    waveform_energy(waveforms, layout[2])
+                    if one_clock
+                    else [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::6])]
+                )
                 _settle_step(self._per_capsule, self._per_step, step, self._scan)  # of these energies
                 if len(sample.sensor_energy):
                     self._energy_mismatch(step)
@@ -554,7 +649,7 @@ class ScanAssembly:
         self._candidate_windows = np.zeros((len(self.received), self._k, width), np.float32)
         for i in np.flatnonzero(np.isfinite(self._candidate_at[step])):
             c0 = int(round((self._candidate_start[step, i] - layout[6 * i + 3]) * self._timing_rate))
-            self._candidate_windows[step, i] = waveforms[i, c0:c0 + width]
+            self._candidate_windows[step, i] = waveforms[i, c0 : c0 + width]
 
     def _one_layout(self, layout: list) -> bool:
         """Whether a validated sample's layout is the fast path's (the ScanStart's capsule ids in order, float32
@@ -562,11 +657,17 @@ class ScanAssembly:
         written into the kernel's buffer."""
         k = self._k
         _, n, rate, t0 = layout[:4]
-        if not (len(layout) == 6 * k and layout[::6] == self._capsule_ids and layout[1::6] == [n] * k
-                and layout[2::6] == [rate] * k and layout[3::6] == [t0] * k and layout[4::6] == [_FLOAT32] * k
-                and layout[5::6] == [4 * n] * k):
+        if not (
+            len(layout) == 6 * k
+            and layout[::6] == self._capsule_ids
+            and layout[1::6] == [n] * k
+            and layout[2::6] == [rate] * k
+            and layout[3::6] == [t0] * k
+            and layout[4::6] == [_FLOAT32] * k
+            and layout[5::6] == [4 * n] * k
+        ):
             return False
-        self._values[:2 * k] = [rate, t0] * k
+        self._values[: 2 * k] = [rate, t0] * k
         self._layout = layout
         if self._waves.shape[1] != n:
             self._waves = np.empty((k, n), np.float32)
@@ -574,19 +675,24 @@ class ScanAssembly:
 
     def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:
         for i in range(0, len(ranges) // 3):
-            valid, d, t = ranges[3 * i:3 * i + 3]
+            valid, d, t = ranges[3 * i : 3 * i + 3]
             if valid and not (d > 0 and t > 0):
                 raise InvalidMessageError(
                     f"sample {step} capsule {layout[6 * i]} gives only its {'distance' if d > 0 else 'time of flight'}"
                     " and the ScanStart states neither sound_speed nor air_temperature to convert it: "
-                    "fill both fields of the reading, or ScanStart.sound_speed")
+                    "fill both fields of the reading, or ScanStart.sound_speed"
+                )
 
     def _energy_mismatch(self, step: int) -> None:
         self.energy_mismatches += 1
         if self.energy_mismatches == 1:  # once a scan; the rest are counted
-            _log.warning("scan %s: the sensor_energy carried by step %d disagrees with its waveforms (or is not "
-                         "one finite, non-negative value per capsule); recomputed from the waveforms; further "
-                         "such steps of this scan are counted in energy_mismatches", self.key, step)
+            _log.warning(
+                "scan %s: the sensor_energy carried by step %d disagrees with its waveforms (or is not "
+                "one finite, non-negative value per capsule); recomputed from the waveforms; further "
+                "such steps of this scan are counted in energy_mismatches",
+                self.key,
+                step,
+            )
 
     def _in_capsule_order(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list | None]:
         """The sensors of a sample in the order of the ScanStart's capsule ids, and the carried energies in
@@ -595,8 +701,9 @@ class ScanAssembly:
         ids = [s.capsule_id for s in sensors]
         if ids != self._capsule_ids:
             if sorted(ids) != self._capsule_ids:
-                raise InvalidMessageError(f"sample {sample.step} carries capsules {ids}; the scan has capsules "
-                                          f"{self._capsule_ids}")
+                raise InvalidMessageError(
+                    f"sample {sample.step} carries capsules {ids}; the scan has capsules {self._capsule_ids}"
+                )
             order = sorted(range(len(ids)), key=ids.__getitem__)
             sensors = [sensors[i] for i in order]
             if carried is not None and len(carried) == len(order):  # carried in the order of the sensors
@@ -611,8 +718,7 @@ class ScanAssembly:
         """Every received step's ``gamma_measured`` is exactly 0 (proto3's unset) while the commanded angles
         move: the writer never filled the measured angle, and :meth:`arrays` uses the commanded one."""
         steps = np.flatnonzero(self.received)
-        return (len(steps) > 1 and not np.any(self.gamma[steps])
-                and bool(np.ptp(self.gamma_commanded[steps]) > 0))
+        return len(steps) > 1 and not np.any(self.gamma[steps]) and bool(np.ptp(self.gamma_commanded[steps]) > 0)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(steps, gamma, distance, ratio)`` of the received steps, in step order.
@@ -647,7 +753,11 @@ class ScanAssembly:
         self._time_echoes(checked)
         found = test(checked, False)
         if not found[0].detected:
-            found = found[0], *(np.full(self.distance[steps].shape, np.nan),) * 2, np.zeros(self.distance[steps].shape, bool)
+            found = (
+                found[0],
+                *(np.full(self.distance[steps].shape, np.nan),) * 2,
+                np.zeros(self.distance[steps].shape, bool),
+            )
         else:
             self._time_echoes(steps)
             found = test(steps, True)
@@ -685,8 +795,9 @@ class ScanAssembly:
             rise = (self.echo_amplitude[got] - dc) / (self.pre_echo_peak[got] - dc)
         checked = np.isfinite(rise)
         echoes = checked & ~self.noise_triggers()[0]
-        return tuple(float(np.median(rise[m])) if np.count_nonzero(m) >= RANGE_CHECK_MIN else math.nan
-                     for m in (checked, echoes))
+        return tuple(
+            float(np.median(rise[m])) if np.count_nonzero(m) >= RANGE_CHECK_MIN else math.nan for m in (checked, echoes)
+        )
 
     def ranges_match_waveforms(self) -> bool:
         """Whether the readings' times of flight fall where their waveforms' echoes begin (:meth:`echo_rise`).
@@ -717,8 +828,9 @@ class ScanAssembly:
             distance = self.distance[steps]
             listened = 2.0 * distance[kept] / self.sound_speed
             echo = np.isfinite(distance)  # a reading without its window is not tested: taken as an echo
-            echo[kept], _, sigma = echoes_over_noise(self._timing_windows[steps][kept], self._timing_rate,
-                                                     at[kept], listened, _FLOOR_TIME)
+            echo[kept], _, sigma = echoes_over_noise(
+                self._timing_windows[steps][kept], self._timing_rate, at[kept], listened, _FLOOR_TIME
+            )
             # A weak echo beside a neighbour's stays: within the range one echo window spans.
             reach = 0.5 * self.sound_speed * (ECHO_PEAK_WINDOW[1] - ECHO_PEAK_WINDOW[0])
             noise = kept & ~echo & ~ranges_backed(distance, echo, reach)
@@ -789,8 +901,9 @@ class ScanAssembly:
         waveforms); unchanged otherwise (nothing the readings mark can be told from noise: the scan is
         unreliable as a whole, :meth:`writer_problems`)."""
         noise, _ = self.noise_triggers()
-        if not noise.any() or not (self.ranges_match_waveforms() or self.noise_share() > 0.5
-                                   and self.noise_independence() > NOISE_INDEPENDENT):
+        if not noise.any() or not (
+            self.ranges_match_waveforms() or self.noise_share() > 0.5 and self.noise_independence() > NOISE_INDEPENDENT
+        ):
             return distance, amplitude
         found, peak = self.recovered_echoes()
         return np.where(noise, found, distance), np.where(noise, peak, amplitude)
@@ -832,57 +945,105 @@ class ScanAssembly:
         out: list[tuple[str | None, str]] = []
         got = self.received
         if self.gamma_unmeasured:
-            out.append((None, "no Sample filled gamma_measured (all 0): the commanded angles were used instead; "
-                              "fill gamma_measured with the motor's measured angle"))
+            out.append(
+                (
+                    None,
+                    "no Sample filled gamma_measured (all 0): the commanded angles were used instead; "
+                    "fill gamma_measured with the motor's measured angle",
+                )
+            )
         if self.unflagged_ranges and not np.isfinite(self.distance[got]).any():
-            out.append((None, f"no reading is marked echo_valid, yet {self.unflagged_ranges} carry a distance: set "
-                              "echo_valid = true on readings with an echo (the contract reads no range from the "
-                              "others)"))
+            out.append(
+                (
+                    None,
+                    f"no reading is marked echo_valid, yet {self.unflagged_ranges} carry a distance: set "
+                    "echo_valid = true on readings with an echo (the contract reads no range from the "
+                    "others)",
+                )
+            )
         _, gamma, _, _ = self.arrays()
         if gamma.size and (float(np.ptp(gamma)) > 2.0 * math.pi or float(np.max(np.abs(gamma))) > 2.0 * math.pi):
             # The AX-12 turns through 300°: a sweep over a turn, or an angle beyond one, is not in radians.
-            out.append((UNRELIABLE, f"γ spans {np.min(gamma):.1f} to {np.max(gamma):.1f} rad, beyond a turn: the "
-                                    "angles are not in rad (degrees?); the contract's gamma_measured is in rad"))
+            out.append(
+                (
+                    UNRELIABLE,
+                    f"γ spans {np.min(gamma):.1f} to {np.max(gamma):.1f} rad, beyond a turn: the "
+                    "angles are not in rad (degrees?); the contract's gamma_measured is in rad",
+                )
+            )
         noise, sigma = self.noise_triggers()
         readings = int(np.count_nonzero(np.isfinite(self.distance[got])))
         share = self.noise_share()
         found = np.count_nonzero(np.isfinite(self.recovered_echoes()[0])) if noise.any() else 0
-        recovered = (f"; {found} of them re-timed from the first echo over the noise after it in their waveforms "
-                     "(constant-fraction times), the others left out" if found else "; left out")
+        recovered = (
+            f"; {found} of them re-timed from the first echo over the noise after it in their waveforms "
+            "(constant-fraction times), the others left out"
+            if found
+            else "; left out"
+        )
         independence = self.noise_independence() if share > 0.5 else math.nan
         if not self.ranges_match_waveforms() and independence > NOISE_INDEPENDENT:
             # (σ over the echoes' windows: the time-of-flight windows may lie in the transmitter's ring-down.)
-            out.append((DEGRADED, f"{100 * share:.0f} % of the readings show no echo over the noise (σ "
-                                  f"{1e3 * self._recovery_sigma:.1f} mV) at their time of flight, and their ranges "
-                                  "change from step to step as independent draws do (median step "
-                                  f"{independence:.2f}× their spread), not as a surface's: the board's comparator "
-                                  f"fires on the noise (a threshold within a few σ of it){recovered}; their zero is "
-                                  "the strongest echoes' crossing of the noise's level, not the board's"))
+            out.append(
+                (
+                    DEGRADED,
+                    f"{100 * share:.0f} % of the readings show no echo over the noise (σ "
+                    f"{1e3 * self._recovery_sigma:.1f} mV) at their time of flight, and their ranges "
+                    "change from step to step as independent draws do (median step "
+                    f"{independence:.2f}× their spread), not as a surface's: the board's comparator "
+                    f"fires on the noise (a threshold within a few σ of it){recovered}; their zero is "
+                    "the strongest echoes' crossing of the noise's level, not the board's",
+                )
+            )
         elif not self.ranges_match_waveforms():
             whole, echoes = self.echo_rise()
             rise = echoes if math.isfinite(echoes) else whole
             # Most readings marking noise is a board whose comparator fires on it, or ranges in another
             # convention than the waveforms (their echoes elsewhere): the windows alone cannot tell which.
-            noisy = (f"{100 * share:.0f} % of the readings show no echo over the noise (σ {1e3 * sigma:.1f} mV) at "
-                     f"their time of flight{recovered}: the board's comparator fires on the noise (a threshold "
-                     "within a few σ of it), or " if share > 0.5 else "")
-            out.append((UNRELIABLE, f"the waveforms show no echo starting at the readings' time of flight (median rise "
-                                    f"×{rise:.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): {noisy}the "
-                                    "ranges do not match the waveforms (distance is one way, time_of_flight the "
-                                    "round trip from firing, waveform.t0 the first sample's time)"))
-        elif noise.any():  # re-timed or left out (noise_triggers_recovered): named on every plane, the verdict left to the fit
-            out.append((GOOD, f"{np.count_nonzero(noise)} of the {readings} readings ({100 * share:.1f} %) show no "
-                              f"echo over the noise (σ {1e3 * sigma:.1f} mV) at their time of flight: the board's "
-                              f"comparator fired on noise{recovered}"))
+            noisy = (
+                f"{100 * share:.0f} % of the readings show no echo over the noise (σ {1e3 * sigma:.1f} mV) at "
+                f"their time of flight{recovered}: the board's comparator fires on the noise (a threshold "
+                "within a few σ of it), or "
+                if share > 0.5
+                else ""
+            )
+            out.append(
+                (
+                    UNRELIABLE,
+                    f"the waveforms show no echo starting at the readings' time of flight (median rise "
+                    f"×{rise:.2f} over the {1e3 * -PRE_ECHO_WINDOW[0]:.1f} ms before): {noisy}the "
+                    "ranges do not match the waveforms (distance is one way, time_of_flight the "
+                    "round trip from firing, waveform.t0 the first sample's time)",
+                )
+            )
+        elif (
+            noise.any()
+        ):  # re-timed or left out (noise_triggers_recovered): named on every plane, the verdict left to the fit
+            out.append(
+                (
+                    GOOD,
+                    f"{np.count_nonzero(noise)} of the {readings} readings ({100 * share:.1f} %) show no "
+                    f"echo over the noise (σ {1e3 * sigma:.1f} mV) at their time of flight: the board's "
+                    f"comparator fired on noise{recovered}",
+                )
+            )
         walk = self.range_walk()[0]
         if walk.detected:  # re-timed (walk_free): named on every plane, the verdict left to the fit
             out.append((GOOD, walk_finding(walk)))
         c_air = air_sound_speed(self.start)
-        if self.start.sound_speed > 0 and c_air is not None and \
-                abs(self.start.sound_speed / c_air - 1.0) > SOUND_SPEED_TOLERANCE:
-            out.append((DEGRADED, f"ScanStart.sound_speed {self.start.sound_speed:.1f} m/s is not the speed of sound "
-                                  f"at its air_temperature {self.start.air_temperature:.1f} K ({c_air:.1f} m/s): the "
-                                  "range scale is uncertain"))
+        if (
+            self.start.sound_speed > 0
+            and c_air is not None
+            and abs(self.start.sound_speed / c_air - 1.0) > SOUND_SPEED_TOLERANCE
+        ):
+            out.append(
+                (
+                    DEGRADED,
+                    f"ScanStart.sound_speed {self.start.sound_speed:.1f} m/s is not the speed of sound "
+                    f"at its air_temperature {self.start.air_temperature:.1f} K ({c_air:.1f} m/s): the "
+                    "range scale is uncertain",
+                )
+            )
         ratio = self.range_tof_ratio[got]
         ratio = ratio[np.isfinite(ratio)]
         if ratio.size >= RANGE_CHECK_MIN:
@@ -892,15 +1053,19 @@ class ScanAssembly:
                 # waveforms place the time of flight, not the speed of sound).  A few % is a scale error of
                 # centimetres: degraded; beyond, one field is in another convention (a one-way time, a
                 # round-trip path): unreliable.
-                out.append((UNRELIABLE if abs(off) > 5 * RANGE_TOF_TOLERANCE else DEGRADED,
-                            f"the readings' distance is {100 * off:+.0f} % off c·time_of_flight/2 at the stated "
-                            f"speed of sound {self.sound_speed:.1f} m/s: the range scale is uncertain (distance is "
-                            "one way, time_of_flight the round trip, sound_speed the air's)"))
+                out.append(
+                    (
+                        UNRELIABLE if abs(off) > 5 * RANGE_TOF_TOLERANCE else DEGRADED,
+                        f"the readings' distance is {100 * off:+.0f} % off c·time_of_flight/2 at the stated "
+                        f"speed of sound {self.sound_speed:.1f} m/s: the range scale is uncertain (distance is "
+                        "one way, time_of_flight the round trip, sound_speed the air's)",
+                    )
+                )
         return out
 
     def raw_points(self, step: int) -> np.ndarray:
         """Eq. (9) points of one received step, (k, 3); NaN rows where no echo."""
-        return beam_points(self.geometry, self.gamma[step:step + 1], self.distance[step:step + 1])[0]
+        return beam_points(self.geometry, self.gamma[step : step + 1], self.distance[step : step + 1])[0]
 
 
 # --- a Sample read from its payload ---------------------------------------------------------------------------
@@ -912,17 +1077,43 @@ _MOTOR_LOAD, _MOTOR_VOLTAGE, _MOTOR_TEMPERATURE = 2, 3, 4
 _READING_CAPSULE, _READING_VALID, _READING_TOF, _READING_DISTANCE, _READING_WAVEFORM = 1, 2, 3, 4, 5
 _WAVE_ENCODING, _WAVE_DATA, _WAVE_RATE, _WAVE_T0, _WAVE_COUNT = 1, 2, 4, 5, 6
 for _message, _fields in (
-        (codec.Sample, {"gamma_commanded": _SAMPLE_GAMMA_COMMANDED, "gamma_measured": _SAMPLE_GAMMA_MEASURED,
-                        "motor": _SAMPLE_MOTOR, "sensors": _SAMPLE_SENSORS, "sensor_energy": _SAMPLE_ENERGY}),
-        (scan_pb2.MotorStatus, {"load": _MOTOR_LOAD, "voltage": _MOTOR_VOLTAGE, "temperature": _MOTOR_TEMPERATURE}),
-        (scan_pb2.SensorReading, {"capsule_id": _READING_CAPSULE, "echo_valid": _READING_VALID,
-                                  "time_of_flight": _READING_TOF, "distance": _READING_DISTANCE,
-                                  "waveform": _READING_WAVEFORM}),
-        (codec.Waveform, {"encoding": _WAVE_ENCODING, "data": _WAVE_DATA, "sample_rate": _WAVE_RATE, "t0": _WAVE_T0,
-                          "sample_count": _WAVE_COUNT})):
+    (
+        codec.Sample,
+        {
+            "gamma_commanded": _SAMPLE_GAMMA_COMMANDED,
+            "gamma_measured": _SAMPLE_GAMMA_MEASURED,
+            "motor": _SAMPLE_MOTOR,
+            "sensors": _SAMPLE_SENSORS,
+            "sensor_energy": _SAMPLE_ENERGY,
+        },
+    ),
+    (scan_pb2.MotorStatus, {"load": _MOTOR_LOAD, "voltage": _MOTOR_VOLTAGE, "temperature": _MOTOR_TEMPERATURE}),
+    (
+        scan_pb2.SensorReading,
+        {
+            "capsule_id": _READING_CAPSULE,
+            "echo_valid": _READING_VALID,
+            "time_of_flight": _READING_TOF,
+            "distance": _READING_DISTANCE,
+            "waveform": _READING_WAVEFORM,
+        },
+    ),
+    (
+        codec.Waveform,
+        {
+            "encoding": _WAVE_ENCODING,
+            "data": _WAVE_DATA,
+            "sample_rate": _WAVE_RATE,
+            "t0": _WAVE_T0,
+            "sample_count": _WAVE_COUNT,
+        },
+    ),
+):
     if {name: _message.DESCRIPTOR.fields_by_name[name].number for name in _fields} != _fields:
-        raise ConfigError(f"lelsonar.v1.{_message.DESCRIPTOR.name}'s field numbers are not the ones "
-                          "assembly._read_sample reads: a schema that breaks the wire format")
+        raise ConfigError(
+            f"lelsonar.v1.{_message.DESCRIPTOR.name}'s field numbers are not the ones "
+            "assembly._read_sample reads: a schema that breaks the wire format"
+        )
 del _message, _fields
 _VARINT, _FIXED64, _LENGTH, _FIXED32 = 0, 1, 2, 5
 _ONE = 0x3FF0000000000000  # 1.0's bits
@@ -1067,8 +1258,7 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
             continue
         seen |= 1 << field
     # The layout's clock to the bit (stricter than ==, which the fast path's clocks, finite, need no more of).
-    if not (encoding == _FLOAT32 and count == n and d1 - d0 == 4 * n and rate == bits[clock]
-            and t0 == bits[clock + 1]):
+    if not (encoding == _FLOAT32 and count == n and d1 - d0 == 4 * n and rate == bits[clock] and t0 == bits[clock + 1]):
         return False
     # A loop over the bytes: one vectorised copy (a slice assignment checks for overlap and copies twice).
     src, dst = buf[d0:d1], row.view(np.uint8)
@@ -1112,8 +1302,9 @@ def _read_sample(payload, ids, values, waveforms):
             if wire_type != _LENGTH or sensors == k:
                 return -1
             a, b = _wire_length(buf, i, end)
-            if a < 0 or not _read_reading(buf, a, b, np.uint64(ids[sensors]), bits, readings + 3 * sensors,
-                                          2 * sensors, waveforms[sensors]):
+            if a < 0 or not _read_reading(
+                buf, a, b, np.uint64(ids[sensors]), bits, readings + 3 * sensors, 2 * sensors, waveforms[sensors]
+            ):
                 return -1
             sensors += 1
             i = b
@@ -1152,8 +1343,9 @@ def _read_sample(payload, ids, values, waveforms):
                 if f == _MOTOR_LOAD or f == _MOTOR_VOLTAGE or f == _MOTOR_TEMPERATURE:
                     if w != _FIXED64 or read & (1 << f) or a + 8 > b:
                         return -1
-                    bits[head + 2 + (0 if f == _MOTOR_LOAD else 1 if f == _MOTOR_VOLTAGE else 2)] = \
-                        _wire_fixed64(buf, a)
+                    bits[head + 2 + (0 if f == _MOTOR_LOAD else 1 if f == _MOTOR_VOLTAGE else 2)] = _wire_fixed64(
+                        buf, a
+                    )
                     a += 8
                     read |= 1 << f
                 else:
@@ -1170,17 +1362,46 @@ def _read_sample(payload, ids, values, waveforms):
 
 
 @kernel
-def _place_wire(payload, ids, values, waveforms, scan, step, time_ns, recovered,
-                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows):
+def _place_wire(
+    payload,
+    ids,
+    values,
+    waveforms,
+    scan,
+    step,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
     """:func:`_place_step` of a sample not validated, read from its ``payload`` (:func:`_read_sample`, into
     ``values`` and ``waveforms``); ``_UNREAD`` if it could not be read that way (nothing placed)."""
     carried = _read_sample(payload, ids, values, waveforms)
     if carried < 0:
         return _UNREAD
     k = ids.size
-    return _place_step(waveforms, values, scan, k if carried == k else 0, step, False, time_ns, recovered,
-                       per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows,
-                       candidate_windows)
+    return _place_step(
+        waveforms,
+        values,
+        scan,
+        k if carried == k else 0,
+        step,
+        False,
+        time_ns,
+        recovered,
+        per_capsule,
+        per_step,
+        acquired_ns,
+        received,
+        recovered_mask,
+        timing_windows,
+        candidate_windows,
+    )
 
 
 # --- the per-sample kernel ------------------------------------------------------------------------------------
@@ -1198,8 +1419,23 @@ _CANDIDATES = 1 << 24
 
 
 @kernel
-def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
-                per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows):
+def _place_step(
+    waveforms,
+    values,
+    scan,
+    m,
+    step,
+    checked,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
     sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
     screen: γ and the motor's readings finite, each valid echo's range finite, positive and below
@@ -1250,11 +1486,12 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
         (``candidate_windows`` not allocated yet).
     """
     k, n = waveforms.shape
-    clocks, readings, energies = values[:2 * k], values[2 * k + 5:5 * k + 5], values[5 * k + 5:5 * k + 5 + m]
+    clocks, readings, energies = values[: 2 * k], values[2 * k + 5 : 5 * k + 5], values[5 * k + 5 : 5 * k + 5 + m]
     if not checked:
         # codec._validate_sample's screen (a sum is finite only if each term is), refusing nothing it clears.
-        if not math.isfinite(values[2 * k] + values[2 * k + 1] + values[2 * k + 2] + values[2 * k + 3]
-                             + values[2 * k + 4]):
+        if not math.isfinite(
+            values[2 * k] + values[2 * k + 1] + values[2 * k + 2] + values[2 * k + 3] + values[2 * k + 4]
+        ):
             return _UNCHECKED
         for i in range(k):
             d, t = readings[3 * i + 1], readings[3 * i + 2]
@@ -1304,14 +1541,16 @@ def _place_step(waveforms, values, scan, m, step, checked, time_ns, recovered,
         if width > 0 and rate == timing_rate and t > 0.0:  # NaN compares false: no echo, nothing to time
             a = int(round((t + TIMING_WINDOW[0] - t0) * rate))
             if a >= 0 and a + width <= n:
-                timing_windows[step, i, :] = row[a:a + width]
+                timing_windows[step, i, :] = row[a : a + width]
                 timing_at[step, i] = t - (t0 + a / rate)
                 b = _candidate_echo(row, a, width, rate)
                 if b >= 0:
-                    c0 = b + a - width // 2  # the crossing in the middle of its window, as the time of flight in its own
+                    c0 = (
+                        b + a - width // 2
+                    )  # the crossing in the middle of its window, as the time of flight in its own
                     if c0 + width <= n:
                         if candidate_windows.shape[2] == width:
-                            candidate_windows[step, i, :] = row[c0:c0 + width]
+                            candidate_windows[step, i, :] = row[c0 : c0 + width]
                         else:
                             unkept = True
                         candidate_at[step, i] = (b + a - c0) / rate
@@ -1437,8 +1676,8 @@ def _dc_levels(waveforms, out):
     for i in range(k):
         row = waveforms[i]
         s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
-        total, inexact = _scaled_sum(row, 2.0 ** s)
-        out[i] = _dc_level_in_order(row) if inexact else abs(float(total) * 2.0 ** -s / n)
+        total, inexact = _scaled_sum(row, 2.0**s)
+        out[i] = _dc_level_in_order(row) if inexact else abs(float(total) * 2.0**-s / n)
 
 
 @kernel
@@ -1471,6 +1710,7 @@ def _dc_level_in_order(row):
     for v in row:
         total += float(v)
     return abs(total / row.size)
+
 
 def _waveforms(waves: list, n: int) -> np.ndarray:
     """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""

@@ -96,8 +96,9 @@ def owner(scanner_id: str, members: Iterable[str]) -> str:
     """
     best = max(members, key=lambda m: (weight(scanner_id, m), m), default=None)
     if best is None:
-        raise ConfigError(f"no member to own scanner {scanner_id!r}: the group is empty (is this member's own "
-                          "token declared?)")
+        raise ConfigError(
+            f"no member to own scanner {scanner_id!r}: the group is empty (is this member's own token declared?)"
+        )
     return best
 
 
@@ -185,11 +186,11 @@ class _Scan:
 
     owner: str
     start_ns: int | None = None
-    start: tuple[str, bytes] | None = None   # (encoding, payload) as received
+    start: tuple[str, bytes] | None = None  # (encoding, payload) as received
     end: tuple[str, bytes] | None = None
     done: bool = False
-    returns: int = 0                # members seen back from a partition when the scan was first heard of
-    taken_from: str | None = None   # the member it was adopted from (handed back if that one returns)
+    returns: int = 0  # members seen back from a partition when the scan was first heard of
+    taken_from: str | None = None  # the member it was adopted from (handed back if that one returns)
 
 
 # --- the Zenoh part ----------------------------------------------------------------------
@@ -201,8 +202,9 @@ class GroupMembership:
     :meth:`admit` for every live payload, and the source calls :meth:`attach` on start).
     """
 
-    def __init__(self, session: zenoh.Session, prefix: str, config: GroupConfig, *,
-                 clock_ns: Callable[[], int] = time.time_ns) -> None:
+    def __init__(
+        self, session: zenoh.Session, prefix: str, config: GroupConfig, *, clock_ns: Callable[[], int] = time.time_ns
+    ) -> None:
         self.config = config
         self.me = config.member_id
         self.prefix = validate_prefix(prefix)
@@ -254,8 +256,11 @@ class GroupMembership:
                     self._on_token(reply.ok)
         except zenoh.ZError as exc:
             self.stats["errors: member query"] += 1
-            _log.warning("group %s: the members alive could not be asked (%s); relying on their tokens as they "
-                         "arrive", self.config.group, exc)
+            _log.warning(
+                "group %s: the members alive could not be asked (%s); relying on their tokens as they arrive",
+                self.config.group,
+                exc,
+            )
 
     def __exit__(self, *exc_info) -> None:
         self.close()
@@ -374,8 +379,12 @@ class GroupMembership:
             disturbed = rec.returns != self._returns
         if wire.is_terminal(message) and disturbed and self._published_elsewhere(*key):
             self.stats["fenced: final another member already published"] += 1
-            _log.warning("group %s: fenced: the final of (%s, %d) was already published by another member "
-                         "(a partition made each side take the other's scans)", self.config.group, *key)
+            _log.warning(
+                "group %s: fenced: the final of (%s, %d) was already published by another member "
+                "(a partition made each side take the other's scans)",
+                self.config.group,
+                *key,
+            )
             with self._lock:
                 rec.done = True
             return False
@@ -388,6 +397,7 @@ class GroupMembership:
         marks a final done for the group (:meth:`on_estimate`): the mark never precedes the final,
         and a fenced estimate is neither published nor marked.
         """
+
         def publish_fenced(message: codec.Reconstruction) -> None:
             if self.may_publish(message):
                 publish(message)
@@ -407,17 +417,23 @@ class GroupMembership:
     def _published_elsewhere(self, scanner: str, scan_id: int) -> bool:
         """Ask every other member's table whether it published this final (waits ≤ join_timeout)."""
         try:
-            replies = self._session.get(f"{finals_key(self.prefix, self.config.group)}?scanner={scanner};scan={scan_id}",
-                                        timeout=self.config.join_timeout)
+            replies = self._session.get(
+                f"{finals_key(self.prefix, self.config.group)}?scanner={scanner};scan={scan_id}",
+                timeout=self.config.join_timeout,
+            )
             for reply in replies:
                 ok = reply.ok
-                if ok is not None and not str(ok.key_expr).endswith(f"/{self.me}") \
-                        and ok.payload.to_bytes() == b"done":
+                if ok is not None and not str(ok.key_expr).endswith(f"/{self.me}") and ok.payload.to_bytes() == b"done":
                     return True
         except zenoh.ZError as exc:
             self.stats["errors: finals query"] += 1
-            _log.warning("group %s: could not ask the others' finals of (%s, %d): %s; publishing",
-                         self.config.group, scanner, scan_id, exc)
+            _log.warning(
+                "group %s: could not ask the others' finals of (%s, %d): %s; publishing",
+                self.config.group,
+                scanner,
+                scan_id,
+                exc,
+            )
         return False
 
     def _answer_finals(self, query: zenoh.Query) -> None:
@@ -473,15 +489,23 @@ class GroupMembership:
                 if member == self.me:
                     if joined != self.joined_ns:  # two processes with one id would both process its share
                         self.stats["conflict: member id used by another process"] += 1
-                        _log.error("group %s: another process joined as member %s; give each member a unique "
-                                   "--member-id (or leave it to the default)", self.config.group, member)
+                        _log.error(
+                            "group %s: another process joined as member %s; give each member a unique "
+                            "--member-id (or leave it to the default)",
+                            self.config.group,
+                            member,
+                        )
                     return adopted
                 if self.members.get(member) == joined:
                     return adopted  # seen twice: by the subscriber's history and by the join query
                 if member not in self.members and len(self.members) >= self.config.max_members:
                     self.stats["refused: member over max_members"] += 1
-                    _log.warning("group %s: ignoring member %s (more than %d members)", self.config.group, member,
-                                 self.config.max_members)
+                    _log.warning(
+                        "group %s: ignoring member %s (more than %d members)",
+                        self.config.group,
+                        member,
+                        self.config.max_members,
+                    )
                     return adopted
                 self.members[member] = max(joined, self.members.get(member, joined))
                 self.stats["members joined"] += 1
@@ -523,8 +547,12 @@ class GroupMembership:
                 if scan_id is None:  # a guess, no scan seen: decided afresh at the next payload
                     rec.owner = owner(scanner, eligible(self.members, None, self.me, self._settle_ns))
                     continue
-                rec.owner = owner(scanner, eligible(self.members, rec.start_ns, self.me, self._settle_ns)
-                                  if rec.start_ns is not None else list(self.members))
+                rec.owner = owner(
+                    scanner,
+                    eligible(self.members, rec.start_ns, self.me, self._settle_ns)
+                    if rec.start_ns is not None
+                    else list(self.members),
+                )
                 rec.taken_from = gone
                 if rec.owner != self.me or rec.done:
                     continue
@@ -538,5 +566,4 @@ class GroupMembership:
 
     def stats_dict(self) -> dict:
         with self._lock:
-            return {"group": self.config.group, "member": self.me, "members": sorted(self.members),
-                    **dict(self.stats)}
+            return {"group": self.config.group, "member": self.me, "members": sorted(self.members), **dict(self.stats)}

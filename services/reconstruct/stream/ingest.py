@@ -40,7 +40,7 @@ ScanKey = tuple[str, int]
 class Rejected:
     """A payload that could not be used, and why."""
 
-    error: str      # the error class, e.g. "TruncatedDataError", "UnknownScan"
+    error: str  # the error class, e.g. "TruncatedDataError", "UnknownScan"
     detail: str
 
 
@@ -95,8 +95,9 @@ class Ingest:
     def n_pending(self) -> int:
         return self._held
 
-    def accept(self, type_name: str, payload: bytes, *, origin: str = "live",
-               key_scanner: str | None = None) -> list[Accepted | Rejected]:
+    def accept(
+        self, type_name: str, payload: bytes, *, origin: str = "live", key_scanner: str | None = None
+    ) -> list[Accepted | Rejected]:
         """Decode one payload and apply it; return what changed (or why nothing did).
 
         ``key_scanner``: the scanner id in the key the payload came on (live data);
@@ -122,7 +123,8 @@ class Ingest:
                 raise ScannerMismatchError(
                     f"{cls.DESCRIPTOR.name} claims scanner {message.scanner_id!r} but came on the key of scanner "
                     f"{key_scanner[:80]!r}; dropped (a forgery, or a publisher misconfigured with the wrong "
-                    "--scanner-id)")
+                    "--scanner-id)"
+                )
             return self.apply(message, origin=origin)
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, str(exc))]
@@ -151,8 +153,13 @@ class Ingest:
             return [self._reject("DuplicateScanEnd", f"second ScanEnd for scan {key} ignored")]
         if message.samples_sent > scan.start.steps:
             scan.rejected["InvalidMessageError"] += 1
-            return [self._reject("InvalidMessageError", f"ScanEnd of scan {key} counts {message.samples_sent} "
-                                                        f"samples; its ScanStart planned {scan.start.steps}")]
+            return [
+                self._reject(
+                    "InvalidMessageError",
+                    f"ScanEnd of scan {key} counts {message.samples_sent} "
+                    f"samples; its ScanStart planned {scan.start.steps}",
+                )
+            ]
         scan.end = message
         self.accepted += 1
         return [Accepted("end", scan)]
@@ -170,7 +177,9 @@ class Ingest:
         """Give up on samples whose ScanStart never came (called on timeout)."""
         held = self.pending.pop(key, [])
         self._held -= len(held)
-        return [self._reject("UnknownScan", f"{len(held)} messages of scan {key} never got a ScanStart")] if held else []
+        return (
+            [self._reject("UnknownScan", f"{len(held)} messages of scan {key} never got a ScanStart")] if held else []
+        )
 
     # --- internals -------------------------------------------------------------------
     def _start(self, key: ScanKey, start: codec.ScanStart) -> list[Accepted | Rejected]:
@@ -184,8 +193,12 @@ class Ingest:
         while len(self.scans) > self.max_scans:
             old, dropped = self.scans.popitem(last=False)
             self.evicted["open scan forgotten (max_scans)"] += 1
-            _log.warning("forgetting scan %s with %d samples: more than %d scans open (counted in evicted)",
-                         old, dropped.n_received, self.max_scans)
+            _log.warning(
+                "forgetting scan %s with %d samples: more than %d scans open (counted in evicted)",
+                old,
+                dropped.n_received,
+                self.max_scans,
+            )
         self.accepted += 1
         events: list[Accepted | Rejected] = [Accepted("start", scan)]
         waiting = self.pending.pop(key, [])
@@ -197,8 +210,14 @@ class Ingest:
                 events += self.apply(held, origin=origin)
         return events
 
-    def _add(self, scan: ScanAssembly, sample: codec.Sample, origin: str = "live",
-             limits: codec.DecodeLimits | None = None, payload: bytes | None = None) -> Accepted | Rejected:
+    def _add(
+        self,
+        scan: ScanAssembly,
+        sample: codec.Sample,
+        origin: str = "live",
+        limits: codec.DecodeLimits | None = None,
+        payload: bytes | None = None,
+    ) -> Accepted | Rejected:
         """Place a sample in its scan; ``limits``: its body is not validated yet (:func:`~lelsonar.codec.parse`
         of ``payload`` only), and a refusal of the decoding is raised (for :meth:`accept` to count), never the
         scan's."""
@@ -225,8 +244,9 @@ class Ingest:
         scan.rejected[type(exc).__name__] += 1
         return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
 
-    def _hold(self, key: ScanKey, message: codec.Sample | codec.ScanEnd,
-              origin: str = "live") -> list[Accepted | Rejected]:
+    def _hold(
+        self, key: ScanKey, message: codec.Sample | codec.ScanEnd, origin: str = "live"
+    ) -> list[Accepted | Rejected]:
         if key not in self.pending:
             _log.info("holding messages of scan %s until its ScanStart arrives", key)
             if len(self.newly_pending) < self.max_pending:  # bounded even if no one empties it

@@ -72,8 +72,9 @@ def step_ranges(steps: Iterable[int], max_len: int) -> list[tuple[int, int]]:
     return out
 
 
-def selectors(keys: ScannerKeys, request: RecoveryRequest, max_len: int) -> list[tuple[str, tuple[int, int] | None,
-                                                                                       bool, bool]]:
+def selectors(
+    keys: ScannerKeys, request: RecoveryRequest, max_len: int
+) -> list[tuple[str, tuple[int, int] | None, bool, bool]]:
     """The queries for one request: ``(selector, step range or None, start wanted, end wanted)``."""
     key = ScannerKeys(keys.prefix, request.scanner_id).log(request.scan_id)
     ranges: list[tuple[int, int] | None] = list(step_ranges(request.steps, max_len)) or [None]
@@ -81,8 +82,9 @@ def selectors(keys: ScannerKeys, request: RecoveryRequest, max_len: int) -> list
     for i, rng in enumerate(ranges):
         start = request.want_start and i == 0
         end = request.want_end and i == len(ranges) - 1
-        params = ([f"steps={rng[0]}-{rng[1]}"] if rng else []) + (["start=1"] if start else []) + (
-            ["end=1"] if end else [])
+        params = (
+            ([f"steps={rng[0]}-{rng[1]}"] if rng else []) + (["start=1"] if start else []) + (["end=1"] if end else [])
+        )
         if params:
             out.append((f"{key}?{';'.join(params)}", rng, start, end))
     return out
@@ -126,9 +128,15 @@ class LogRecoveryClient:
     context manager.
     """
 
-    def __init__(self, session: zenoh.Session, keys: ScannerKeys,
-                 deliver: Callable[[str, bytes, str], None], config: RecoveryConfig = RecoveryConfig(), *,
-                 wanted: Callable[[RecoveryRequest], bool] | None = None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: ScannerKeys,
+        deliver: Callable[[str, bytes, str], None],
+        config: RecoveryConfig = RecoveryConfig(),
+        *,
+        wanted: Callable[[RecoveryRequest], bool] | None = None,
+    ) -> None:
         self._session = session
         self._wanted = wanted
         self._keys = keys
@@ -168,8 +176,12 @@ class LogRecoveryClient:
                 self._outstanding += 1
         except queue.Full:
             self.stats[f"refused: queue full (max_queued={self.config.max_queued})"] += 1
-            _log.warning("recovery request for scan (%s, %d) refused: %d requests already wait",
-                         request.scanner_id, request.scan_id, self.config.max_queued)
+            _log.warning(
+                "recovery request for scan (%s, %d) refused: %d requests already wait",
+                request.scanner_id,
+                request.scan_id,
+                self.config.max_queued,
+            )
             return False
         self.stats["requests"] += 1
         return True
@@ -212,14 +224,18 @@ class LogRecoveryClient:
             self.stats["queries"] += 1
             allowed = (rng[1] - rng[0] + 1 if rng else 0) + int(want_start) + int(want_end)
             try:
-                replies = self._session.get(selector, consolidation=zenoh.ConsolidationMode.NONE,
-                                            timeout=self.config.query_timeout)
+                replies = self._session.get(
+                    selector, consolidation=zenoh.ConsolidationMode.NONE, timeout=self.config.query_timeout
+                )
                 taken = 0
                 for reply in replies:
                     if reply.ok is None:
                         self.stats["errors: error reply"] += 1
-                        _log.warning("log query %s answered an error: %s", selector,
-                                     reply.err.payload.to_bytes()[:200] if reply.err is not None else "?")
+                        _log.warning(
+                            "log query %s answered an error: %s",
+                            selector,
+                            reply.err.payload.to_bytes()[:200] if reply.err is not None else "?",
+                        )
                         continue
                     if taken >= allowed:
                         self.stats["rejected: more replies than asked"] += 1
@@ -230,14 +246,23 @@ class LogRecoveryClient:
                 self.stats["errors: query failed"] += 1
                 _log.warning("log query %s failed: %s", selector, exc)
 
-    def _check_and_deliver(self, sample: zenoh.Sample, key: str, req: RecoveryRequest,
-                           rng: tuple[int, int] | None, want_start: bool, want_end: bool) -> None:
+    def _check_and_deliver(
+        self,
+        sample: zenoh.Sample,
+        key: str,
+        req: RecoveryRequest,
+        rng: tuple[int, int] | None,
+        want_start: bool,
+        want_end: bool,
+    ) -> None:
         self.stats["replies"] += 1
         if str(sample.key_expr) != key:
             return self._bad("key mismatch", f"reply on {str(sample.key_expr)[:120]!r}, asked {key!r}")
         media, _, type_name = str(sample.encoding).partition(";")
         cls = codec.MESSAGE_TYPES.get(type_name) if media == "application/protobuf" else None
-        wanted = {codec.Sample} | ({codec.ScanStart} if want_start else set()) | ({codec.ScanEnd} if want_end else set())
+        wanted = (
+            {codec.Sample} | ({codec.ScanStart} if want_start else set()) | ({codec.ScanEnd} if want_end else set())
+        )
         if cls not in wanted:
             return self._bad("unexpected type", f"{str(sample.encoding)[:80]!r} on {key}")
         payload = sample.payload.to_bytes()
@@ -246,8 +271,10 @@ class LogRecoveryClient:
         except LelsonarError as exc:
             return self._bad(type(exc).__name__, f"reply on {key}: {exc}")
         if (message.scanner_id, message.scan_id) != (req.scanner_id, req.scan_id):
-            return self._bad("identity mismatch", f"{type(message).__name__} of scan "
-                                                  f"({message.scanner_id}, {message.scan_id}) on {key}")
+            return self._bad(
+                "identity mismatch",
+                f"{type(message).__name__} of scan ({message.scanner_id}, {message.scan_id}) on {key}",
+            )
         if cls is codec.Sample and (rng is None or not rng[0] <= message.step <= rng[1]):
             return self._bad("step not asked", f"step {message.step} on {key}, asked {rng}")
         self.stats["delivered"] += 1

@@ -54,10 +54,8 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
-from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.estimate.pipeline import (
     DEFAULT_METHOD,
     METHODS,
@@ -66,9 +64,11 @@ from lelsonar.reconstruct.estimate.pipeline import (
     reconstruct,
 )
 from lelsonar.reconstruct.estimate.quality import add_findings, assess_plane, cross_check, recovery_finding
-from lelsonar.reconstruct.stream.recovery import RecoveryRequest
 from lelsonar.reconstruct.estimate.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.estimate.split import critical_step
+from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
+from lelsonar.reconstruct.stream.recovery import RecoveryRequest
 
 _log = logging.getLogger(__name__)
 
@@ -163,8 +163,13 @@ class Observer(Protocol):
 
     def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None: ...
 
-    def estimate(self, scan: ScanAssembly, message: codec.Reconstruction,
-                 results: dict[str, ScanReconstruction] | None, partial: "Partial") -> None: ...
+    def estimate(
+        self,
+        scan: ScanAssembly,
+        message: codec.Reconstruction,
+        results: dict[str, ScanReconstruction] | None,
+        partial: Partial,
+    ) -> None: ...
 
     def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
 
@@ -173,22 +178,22 @@ class Observer(Protocol):
 class RecoveryState:
     """Requests made to the acquirer's log for one scan."""
 
-    attempts: int = 0               # since the last progress
-    last_at: float | None = None    # clock of the last request
-    mark: int = -1                  # steps held at the last request (more now = progress)
-    requests: int = 0               # in all
+    attempts: int = 0  # since the last progress
+    last_at: float | None = None  # clock of the last request
+    mark: int = -1  # steps held at the last request (more now = progress)
+    requests: int = 0  # in all
 
 
 @dataclass
 class Partial:
     """The incremental state of one scan."""
 
-    critical: int | None = None        # confirmed critical step (schedule index)
-    data_a: F.PlaneData | None = None   # the points behind plane_a / plane_b
+    critical: int | None = None  # confirmed critical step (schedule index)
+    data_a: F.PlaneData | None = None  # the points behind plane_a / plane_b
     data_b: F.PlaneData | None = None
     plane_a: PlaneResult | None = None
     plane_b: PlaneResult | None = None
-    steps_at_fit: int = 0              # steps received at the last refit (before the corner: the last look for it)
+    steps_at_fit: int = 0  # steps received at the last refit (before the corner: the last look for it)
     estimated_at: float = 0.0
     #: acquisition_time_ns of the newest step at the last provisional estimate (the per-scan rate limit).
     provisional_ns: int = 0
@@ -207,7 +212,7 @@ class ServiceStats:
     """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; all of it: ``stats_dict``)."""
 
     estimates: int = 0
-    finals: int = 0      # every terminal estimate: final, final_timeout, incomplete
+    finals: int = 0  # every terminal estimate: final, final_timeout, incomplete
     timeouts: int = 0
     incomplete: int = 0
     published: int = 0
@@ -240,10 +245,15 @@ def _compared(plane: PlaneResult, method: str, record: dict[str, PlaneResult]) -
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
-    def __init__(self, config: ReconstructConfig = ReconstructConfig(), *,
-                 publish: Callable[[codec.Reconstruction], None] | None = None,
-                 observer: Observer | None = None, clock: Callable[[], float] = time.monotonic,
-                 recover: Callable[[RecoveryRequest], bool] | None = None) -> None:
+    def __init__(
+        self,
+        config: ReconstructConfig = ReconstructConfig(),
+        *,
+        publish: Callable[[codec.Reconstruction], None] | None = None,
+        observer: Observer | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        recover: Callable[[RecoveryRequest], bool] | None = None,
+    ) -> None:
         self.config = config
         self.ingest = Ingest(limits=config.limits, max_scans=config.max_scans, max_pending=config.max_pending)
         self._publish = publish
@@ -267,8 +277,15 @@ class ReconstructionService:
         self.stats = ServiceStats()
 
     # --- input ---------------------------------------------------------------------------
-    def handle(self, type_name: str, payload: bytes, *, busy: bool = False,
-               origin: str = "live", key_scanner: str | None = None) -> list[codec.Reconstruction]:
+    def handle(
+        self,
+        type_name: str,
+        payload: bytes,
+        *,
+        busy: bool = False,
+        origin: str = "live",
+        key_scanner: str | None = None,
+    ) -> list[codec.Reconstruction]:
         """Apply one payload; return the estimates it produced (also published).
 
         ``busy``: more payloads are already waiting, so a provisional refit can wait
@@ -327,11 +344,17 @@ class ReconstructionService:
             elif not busy:
                 silent = now - p.last_activity
                 if silent >= cfg.recovery_after and self._can_ask(r, now):
-                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()),
-                                                 want_end=True), now, scan.n_received)
+                    self._ask(
+                        r,
+                        RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()), want_end=True),
+                        now,
+                        scan.n_received,
+                    )
                 elif silent >= cfg.scan_timeout and self._exhausted(r, now):
-                    self._event("WARNING", f"scan {key} silent for {silent:.1f} s without a ScanEnd; "
-                                           "finalising it as FINAL_TIMEOUT")
+                    self._event(
+                        "WARNING",
+                        f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
+                    )
                     self.stats.timeouts += 1
                     out.append(self._finalise(scan, p, "final_timeout"))
         for key, (since, r) in list(self._pending_since.items()):
@@ -367,24 +390,39 @@ class ReconstructionService:
         for key, held in self.ingest.pending.items():
             # No ScanStart, no array geometry or schedule: nothing can be estimated, and saying so is the result.
             self.stats.without_start += 1
-            self._event("ERROR", f"scan {key}: {len(held)} messages but never its ScanStart (which carries the "
-                                 "array geometry and the schedule); not reconstructed")
+            self._event(
+                "ERROR",
+                f"scan {key}: {len(held)} messages but never its ScanStart (which carries the "
+                "array geometry and the schedule); not reconstructed",
+            )
         return out
 
     def stats_dict(self) -> dict:
         """Everything counted so far, for the exit line and ``--json``."""
         s = self.stats
         return {
-            "estimates": s.estimates, "finals": s.finals, "final_timeouts": s.timeouts, "incomplete": s.incomplete,
-            "samples": {"published": s.published, "received_live": s.received_live, "recovered": s.recovered,
-                        "duplicates": s.duplicates, "missing": s.missing,
-                        # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
-                        "energy_mismatches": self.ingest.energy_mismatches},
+            "estimates": s.estimates,
+            "finals": s.finals,
+            "final_timeouts": s.timeouts,
+            "incomplete": s.incomplete,
+            "samples": {
+                "published": s.published,
+                "received_live": s.received_live,
+                "recovered": s.recovered,
+                "duplicates": s.duplicates,
+                "missing": s.missing,
+                # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
+                "energy_mismatches": self.ingest.energy_mismatches,
+            },
             "rejected": dict(self.ingest.rejected),
             "evicted": dict(self.ingest.evicted + s.evicted),
-            "recovery": {"requests": s.recovery_requests, "refused": s.recovery_refused,
-                         "replies_after_verdict": self.ingest.recovered_after_close},
-            "open_scans": len(self.ingest.scans), "pending_samples": self.ingest.n_pending,
+            "recovery": {
+                "requests": s.recovery_requests,
+                "refused": s.recovery_refused,
+                "replies_after_verdict": self.ingest.recovered_after_close,
+            },
+            "open_scans": len(self.ingest.scans),
+            "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
         }
 
@@ -394,8 +432,11 @@ class ReconstructionService:
             r.attempts, r.mark = 0, held  # new steps came: the budget starts again
 
     def _can_ask(self, r: RecoveryState, now: float) -> bool:
-        return (self.recover is not None and r.attempts < self.config.recovery_attempts
-                and (r.last_at is None or now - r.last_at >= self.config.recovery_interval))
+        return (
+            self.recover is not None
+            and r.attempts < self.config.recovery_attempts
+            and (r.last_at is None or now - r.last_at >= self.config.recovery_interval)
+        )
 
     def _exhausted(self, r: RecoveryState, now: float) -> bool:
         if self.recover is None or self.config.recovery_attempts == 0:
@@ -411,11 +452,20 @@ class ReconstructionService:
         r.requests += 1
         r.last_at, r.mark = now, held
         self.stats.recovery_requests += 1
-        what = ", ".join(x for x in (f"{len(request.steps)} steps" if request.steps else "",
-                                    "ScanStart" if request.want_start else "",
-                                    "ScanEnd" if request.want_end else "") if x)
-        self._event("INFO", f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
-                            f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})")
+        what = ", ".join(
+            x
+            for x in (
+                f"{len(request.steps)} steps" if request.steps else "",
+                "ScanStart" if request.want_start else "",
+                "ScanEnd" if request.want_end else "",
+            )
+            if x
+        )
+        self._event(
+            "INFO",
+            f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
+            f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})",
+        )
         try:
             ok = self.recover(request)
         except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
@@ -455,25 +505,40 @@ class ReconstructionService:
         if event.kind == "end":
             p.ended_at = self._clock()
             end = scan.end
-            self._event("INFO", f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"
-                                f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
-                        end.end_time_ns)
+            self._event(
+                "INFO",
+                f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"
+                f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
+                end.end_time_ns,
+            )
             if scan.complete:
                 return [self._finalise(scan, p, "final")]
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
             # before samples that follow it: what is still missing at the end is said by the terminal estimate.
-            self._event("WARNING" if self.recover is not None else "INFO",
-                        f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
-                        f"missing so far: {_ranges_text(missing)}", end.end_time_ns)
+            self._event(
+                "WARNING" if self.recover is not None else "INFO",
+                f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
+                f"missing so far: {_ranges_text(missing)}",
+                end.end_time_ns,
+            )
             if self._can_ask(p.recovery, p.ended_at):
-                self._ask(p.recovery, RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
-                          p.ended_at, scan.n_received)
+                self._ask(
+                    p.recovery,
+                    RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
+                    p.ended_at,
+                    scan.n_received,
+                )
             return []
         step = event.step
         if self._observer and scan.latest is not None and scan.latest.step == step:
-            self._observer.step(scan, scan.latest, float(scan.step_energy[step]),
-                                float(scan.expected_energy[step]), float(scan.ratio[step]))
+            self._observer.step(
+                scan,
+                scan.latest,
+                float(scan.step_energy[step]),
+                float(scan.expected_energy[step]),
+                float(scan.ratio[step]),
+            )
         if p.ended_at is not None and scan.complete:
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
@@ -497,10 +562,15 @@ class ReconstructionService:
             if ratio[peak] < self.config.confirm_ratio * float(np.median(ratio)):
                 return []
             p.critical = int(steps[peak])
-            self._event("INFO", f"scan {scan.key}: critical step {p.critical} confirmed at "
-                                f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°", int(scan.time_ns[p.critical]))
-            p.inc_a = IncrementalPlane(scan.geometry, "a", AXIS_Y, self.provisional_method, self._options,
-                                       scan.start.steps)
+            self._event(
+                "INFO",
+                f"scan {scan.key}: critical step {p.critical} confirmed at "
+                f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°",
+                int(scan.time_ns[p.critical]),
+            )
+            p.inc_a = IncrementalPlane(
+                scan.geometry, "a", AXIS_Y, self.provisional_method, self._options, scan.start.steps
+            )
             p.plane_a = p.inc_a.update(scan.gamma, scan.distance, steps[steps < p.critical])
             p.data_a = p.inc_a.last_data
         newest_ns = int(scan.time_ns[steps[-1]]) if scan.latest is None else int(scan.latest.time_ns)
@@ -510,8 +580,9 @@ class ReconstructionService:
         p.estimated_at = self._clock()
         t0 = time.perf_counter()
         if p.inc_b is None:
-            p.inc_b = IncrementalPlane(scan.geometry, "b", AXIS_Z, self.provisional_method, self._options,
-                                       scan.start.steps)
+            p.inc_b = IncrementalPlane(
+                scan.geometry, "b", AXIS_Z, self.provisional_method, self._options, scan.start.steps
+            )
         m = len(scan.received)
         new = np.flatnonzero(scan.received & ~p.inc_b.included[:m])
         # Plane b: the new steps after the corner, in O(new points) unless the trust check fails.
@@ -520,14 +591,24 @@ class ReconstructionService:
         p.steps_at_fit = len(steps)
         # A provisional plane carries its verdict too (the final's is the method of record's own).
         gamma_so_far = scan.gamma[steps]
-        p.plane_a, p.plane_b = (assess_plane(pl, gamma_so_far) if isinstance(pl, PlaneFit) and not pl.quality else pl
-                                for pl in (p.plane_a, p.plane_b))
+        p.plane_a, p.plane_b = (
+            assess_plane(pl, gamma_so_far) if isinstance(pl, PlaneFit) and not pl.quality else pl
+            for pl in (p.plane_a, p.plane_b)
+        )
         fit_s = time.perf_counter() - t0
         edge = corner_edge(p.plane_a, p.plane_b)
         msg = wire.reconstruction_message(
-            scan.start.scanner_id, scan.start.scan_id, status="provisional", last_step=int(steps[-1]),
-            samples_used=len(steps), critical_step=p.critical, critical_angle=float(scan.gamma[p.critical]),
-            planes=(p.plane_a, p.plane_b), edge=edge, timings=(0.0, fit_s, fit_s))
+            scan.start.scanner_id,
+            scan.start.scan_id,
+            status="provisional",
+            last_step=int(steps[-1]),
+            samples_used=len(steps),
+            critical_step=p.critical,
+            critical_angle=float(scan.gamma[p.critical]),
+            planes=(p.plane_a, p.plane_b),
+            edge=edge,
+            timings=(0.0, fit_s, fit_s),
+        )
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
@@ -538,8 +619,12 @@ class ReconstructionService:
             status = "incomplete"  # never FINAL with steps missing
         acc = wire.accounting_message(
             published=int(scan.end.samples_sent) if scan.end is not None else 0,
-            received_live=scan.n_received - scan.n_recovered, recovered=scan.n_recovered,
-            duplicates=scan.duplicates, rejected=dict(scan.rejected), missing=len(missing))
+            received_live=scan.n_received - scan.n_recovered,
+            recovered=scan.n_recovered,
+            duplicates=scan.duplicates,
+            rejected=dict(scan.rejected),
+            missing=len(missing),
+        )
         steps, gamma, distance, _ = scan.arrays()
         distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
         # A board that fired on noise: those readings' ranges and peaks the echo's after them, where recovered.
@@ -548,9 +633,16 @@ class ReconstructionService:
         results: dict[str, ScanReconstruction] = {}
         for method in (self.config.method, *self.config.compare_methods):
             # From scratch, no warm start: the final estimate depends only on the data.
-            results[method] = reconstruct(gamma, distance, scan.sensor_energy[steps], scan.geometry,
-                                          scan.energy_model, method, options=self._options,
-                                          echo_amplitude=amplitude)
+            results[method] = reconstruct(
+                gamma,
+                distance,
+                scan.sensor_energy[steps],
+                scan.geometry,
+                scan.energy_model,
+                method,
+                options=self._options,
+                echo_amplitude=amplitude,
+            )
         main = results[self.config.method]
         crit = int(steps[main.critical_step]) if main.critical_step is not None else None
         # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
@@ -561,19 +653,38 @@ class ReconstructionService:
             # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
             # agree within their σ (one more fit, only on such scans).
             own = np.where(scan.noise_triggers()[0], np.nan, board_distance)
-            without = {pl.label: pl for pl in reconstruct(
-                gamma, own, scan.sensor_energy[steps], scan.geometry, scan.energy_model, self.config.method,
-                options=self._options, echo_amplitude=board_amplitude).planes}
+            without = {
+                pl.label: pl
+                for pl in reconstruct(
+                    gamma,
+                    own,
+                    scan.sensor_energy[steps],
+                    scan.geometry,
+                    scan.energy_model,
+                    self.config.method,
+                    options=self._options,
+                    echo_amplitude=board_amplitude,
+                ).planes
+            }
             record = {label: add_findings(pl, recovery_finding(pl, without.get(label))) for label, pl in record.items()}
         planes: list[PlaneResult] = [add_findings(pl, findings) for pl in record.values()]
         for method in self.config.compare_methods:
             planes += [add_findings(_compared(pl, method, record), findings) for pl in results[method].planes]
         t = main.timings
         msg = wire.reconstruction_message(
-            scan.start.scanner_id, scan.start.scan_id, status=status,
-            last_step=int(steps[-1]) if len(steps) else 0, samples_used=len(steps), critical_step=crit,
-            critical_angle=main.critical_angle if crit is not None else 0.0, planes=planes, edge=main.edge,
-            timings=(t.segmentation, t.fit, t.total), missing_steps=missing, accounting=acc)
+            scan.start.scanner_id,
+            scan.start.scan_id,
+            status=status,
+            last_step=int(steps[-1]) if len(steps) else 0,
+            samples_used=len(steps),
+            critical_step=crit,
+            critical_angle=main.critical_angle if crit is not None else 0.0,
+            planes=planes,
+            edge=main.edge,
+            timings=(t.segmentation, t.fit, t.total),
+            missing_steps=missing,
+            accounting=acc,
+        )
         # What the writer left unset: a warning, and where no plane came, the first thing to fix.
         for _, problem in problems:
             self._event("WARNING", f"scan {scan.key}: {problem}")
@@ -593,18 +704,28 @@ class ReconstructionService:
         st.missing += acc.missing
         summary = "; ".join(
             f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
-            f"h={pl.offset * 100:.1f} cm" for pl in msg.planes if pl.method == self.config.method)
-        self._event("INFO" if not msg.failures else "WARNING",
-                    f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
-                    + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""))
+            f"h={pl.offset * 100:.1f} cm"
+            for pl in msg.planes
+            if pl.method == self.config.method
+        )
+        self._event(
+            "INFO" if not msg.failures else "WARNING",
+            f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
+            + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""),
+        )
         hint = ""
         if missing.size and status == "incomplete":
-            hint = ("; the acquirer's log did not supply them (is acquire serving it? raise acquire "
-                    "--serve-log-for or reconstruct --recovery-attempts)" if self.recover is not None else
-                    "; nothing could recover them here (a replay, or live with --recovery-attempts 0)")
-        self._event("INFO" if not missing.size else "WARNING",
-                    f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
-                    + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""))
+            hint = (
+                "; the acquirer's log did not supply them (is acquire serving it? raise acquire "
+                "--serve-log-for or reconstruct --recovery-attempts)"
+                if self.recover is not None
+                else "; nothing could recover them here (a replay, or live with --recovery-attempts 0)"
+            )
+        self._event(
+            "INFO" if not missing.size else "WARNING",
+            f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
+            + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""),
+        )
         if self._observer:
             self._observer.estimate(scan, msg, results, p)
         self._emit(msg)

@@ -58,8 +58,10 @@ class PayloadFifo:
 
     def __init__(self, capacity: int, batch: int = 32) -> None:
         if capacity < 1 or batch < 1:
-            raise ConfigError(f"the payload FIFO's capacity and batch must be >= 1, got {capacity} and {batch} "
-                              "(LiveSource fifo_capacity)")
+            raise ConfigError(
+                f"the payload FIFO's capacity and batch must be >= 1, got {capacity} and {batch} "
+                "(LiveSource fifo_capacity)"
+            )
         self.capacity, self.batch = capacity, batch
         self._items: deque = deque()
         lock = threading.Lock()
@@ -73,7 +75,8 @@ class PayloadFifo:
         """Append ``item``, waiting at most ``timeout`` s for room; False if there was none."""
         with self._not_full:
             if len(self._items) >= self.capacity and not self._not_full.wait_for(
-                    lambda: len(self._items) < self.capacity, timeout):
+                lambda: len(self._items) < self.capacity, timeout
+            ):
                 return False
             self._items.append(item)
             if len(self._items) == 1:
@@ -96,8 +99,9 @@ class PayloadFifo:
             return out
 
 
-def replay_mcap(path: Path | str, service: ReconstructionService,
-                on_payload: Callable[[int], None] | None = None) -> int:
+def replay_mcap(
+    path: Path | str, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
+) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
     Returns the number of payloads read.
@@ -121,8 +125,15 @@ class PlanesServer:
     is undeclared first (counted in :attr:`evicted`).
     """
 
-    def __init__(self, session: zenoh.Session, keys: ScannerKeys, latest: dict[str, codec.Reconstruction], *,
-                 max_publishers: int = 256, answers_for: Callable[[str], bool] | None = None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: ScannerKeys,
+        latest: dict[str, codec.Reconstruction],
+        *,
+        max_publishers: int = 256,
+        answers_for: Callable[[str], bool] | None = None,
+    ) -> None:
         self._session = session
         #: In a group, a member answers a get only for the scanners it currently owns.
         self._answers_for = answers_for
@@ -140,8 +151,10 @@ class PlanesServer:
             pub = self._publishers.get(scanner)
             if pub is None:
                 pub = self._session.declare_publisher(
-                    ScannerKeys(self._keys.prefix, scanner).planes, congestion_control=zenoh.CongestionControl.BLOCK,
-                    encoding=zenoh.Encoding(codec.encoding_name(message)))
+                    ScannerKeys(self._keys.prefix, scanner).planes,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    encoding=zenoh.Encoding(codec.encoding_name(message)),
+                )
                 self._publishers[scanner] = pub
                 while len(self._publishers) > self._max_publishers:
                     _, old = self._publishers.popitem(last=False)
@@ -203,10 +216,19 @@ class LiveSource:
     carries on with the next payload.
     """
 
-    def __init__(self, session: zenoh.Session, keys: ScannerKeys, service: ReconstructionService,
-                 stop: threading.Event, *, fifo_capacity: int = 256, tick_s: float = 0.1,
-                 record: McapRecorder | None = None, recovery: RecoveryConfig | None = RecoveryConfig(),
-                 group: GroupMembership | None = None) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: ScannerKeys,
+        service: ReconstructionService,
+        stop: threading.Event,
+        *,
+        fifo_capacity: int = 256,
+        tick_s: float = 0.1,
+        record: McapRecorder | None = None,
+        recovery: RecoveryConfig | None = RecoveryConfig(),
+        group: GroupMembership | None = None,
+    ) -> None:
         if not tick_s > 0:
             raise ConfigError(f"LiveSource tick_s must be > 0 s, got {tick_s}")
         self._service = service
@@ -218,8 +240,11 @@ class LiveSource:
         self._record = record
         # Recovered and adopted payloads.  Bounded: a full FIFO blocks their producers.
         self._queue = PayloadFifo(fifo_capacity)
-        self._recovery = (LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
-                          if recovery is not None else None)
+        self._recovery = (
+            LogRecoveryClient(session, keys, self._enqueue, recovery, wanted=service.still_wanted)
+            if recovery is not None
+            else None
+        )
         # Bounded too: a full channel blocks Zenoh's receiving thread, and congestion control BLOCK slows the
         # publisher instead of this process growing without bound.
         self._subscriber = session.declare_subscriber(live_key(keys), zenoh.handlers.FifoChannel(fifo_capacity))
@@ -286,7 +311,9 @@ class LiveSource:
             _log.exception("could not take a received payload; counted")
             return None
 
-    def _enqueue(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None) -> None:
+    def _enqueue(
+        self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None = None
+    ) -> None:
         # key_scanner is None for recovered payloads: the recovery client checked them against the key it asked.
         if origin != "live":
             encoding = f"application/protobuf;{encoding}"  # recovery hands over the type name
@@ -358,14 +385,20 @@ class LiveSource:
         if item is not None:
             self._guarded(self._handle, *item, busy=waiting > 0)
 
-    def _handle(self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *,
-                busy: bool) -> list[codec.Reconstruction]:
+    def _handle(
+        self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *, busy: bool
+    ) -> list[codec.Reconstruction]:
         if not isinstance(payload, bytes):
             payload = payload.to_bytes()  # a live payload's ZBytes, copied once
         media, _, type_name = encoding.partition(";")
         # With more payloads waiting (busy), a provisional refit waits for them too.
-        return self._service.handle(type_name if media == "application/protobuf" else encoding, payload,
-                                    busy=busy, origin=origin, key_scanner=key_scanner)
+        return self._service.handle(
+            type_name if media == "application/protobuf" else encoding,
+            payload,
+            busy=busy,
+            origin=origin,
+            key_scanner=key_scanner,
+        )
 
     def _guarded(self, step: Callable[..., list[codec.Reconstruction]], *args, **kwargs) -> None:
         """Run one step of the service and record its estimates; an exception is logged and counted, never fatal."""
@@ -379,8 +412,11 @@ class LiveSource:
         except Exception as exc:  # noqa: BLE001 - a bug must not end the service silently: log, count, go on
             self.errors += 1
             self.error_types[type(exc).__name__] += 1
-            _log.exception("processing failed with an unexpected %s (%d errors so far); carrying on",
-                           type(exc).__name__, self.errors)
+            _log.exception(
+                "processing failed with an unexpected %s (%d errors so far); carrying on",
+                type(exc).__name__,
+                self.errors,
+            )
 
     def _record_estimate(self, msg: codec.Reconstruction) -> None:
         if self._record is not None:

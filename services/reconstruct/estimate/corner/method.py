@@ -18,10 +18,7 @@ import time
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
-
 from lelsonar.reconstruct.estimate import fit as F
-from lelsonar.reconstruct.estimate.fit import fast_median
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate.corner.model import (
     ECHO_EDGE,
     ECHO_OUTLIER,
@@ -31,20 +28,20 @@ from lelsonar.reconstruct.estimate.corner.model import (
     ScanPoints,
     Wall,
     _joint_gauss_newton,
+    _joint_residuals,
+    _labelled_order,
     _lu_solve,
+    _roll,
     echo_residuals,
     edge_alternatives,
     edge_line,
-    _joint_residuals,
-    _labelled_order,
-    _roll,
     edge_shared_shares,
     fit_corner_model,
     scan_points,
 )
-from lelsonar.signal.energy import ECHO_PEAK_WINDOW
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.estimators import diagnostics, fit_adaptive, run_estimator
+from lelsonar.reconstruct.estimate.fit import fast_median
 from lelsonar.reconstruct.estimate.lel import _pairwise_sum
 from lelsonar.reconstruct.estimate.options import FitOptions, ScanFit
 from lelsonar.reconstruct.estimate.quality import (
@@ -55,15 +52,18 @@ from lelsonar.reconstruct.estimate.quality import (
     assess_plane,
     unexplained_finding,
 )
-from lelsonar.reconstruct.estimate.unexplained import echoes_against_walls
 from lelsonar.reconstruct.estimate.results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
+from lelsonar.reconstruct.estimate.unexplained import echoes_against_walls
+from lelsonar.signal.compiled import kernel
+from lelsonar.signal.energy import ECHO_PEAK_WINDOW
 
 __all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "walk_stderr", "fit_corner"]
 
 
-def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float = np.deg2rad(5.0)
-                ) -> EdgeLine | FitFailure:
+def corner_edge(
+    plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float = np.deg2rad(5.0)
+) -> EdgeLine | FitFailure:
     """The line where the two planes meet.
 
     Direction ``n_a × n_b`` (normalised) and the point of the line closest to
@@ -79,22 +79,38 @@ def corner_edge(plane_a: PlaneResult, plane_b: PlaneResult, *, min_angle: float 
     angle = float(np.arccos(min(max(float(na @ nb), -1.0), 1.0)))  # (np.clip of a scalar costs more)
     line = edge_line(Wall(na, plane_a.offset), Wall(nb, plane_b.offset), min_angle)
     if line is None:
-        return FitFailure(FailureReason.DEGENERATE_GEOMETRY,
-                          f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel", "edge", 0)
+        return FitFailure(
+            FailureReason.DEGENERATE_GEOMETRY,
+            f"the planes are {np.rad2deg(angle):.1f}° apart, nearly parallel",
+            "edge",
+            0,
+        )
     point, direction = line
     s = math.sin(angle)  # (math's sin and sqrt on floats: the same numbers as NumPy's, without the ufunc calls)
     # First order: an offset error δh moves the line by δh / sin(angle); a tilt δ of a normal moves it by h·δ
     # and turns it by δ / sin(angle).
-    point_se = math.sqrt(plane_a.offset_stderr**2 + plane_b.offset_stderr**2
-                         + (plane_a.offset * plane_a.normal_stderr)**2
-                         + (plane_b.offset * plane_b.normal_stderr)**2) / s
+    point_se = (
+        math.sqrt(
+            plane_a.offset_stderr**2
+            + plane_b.offset_stderr**2
+            + (plane_a.offset * plane_a.normal_stderr) ** 2
+            + (plane_b.offset * plane_b.normal_stderr) ** 2
+        )
+        / s
+    )
     direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
     # (edge_line's fresh arrays: a finite point and a unit direction of two valid planes, an angle in [0, π])
     return EdgeLine._owned(point, direction, angle, point_se, direction_se)
 
 
-def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarray, *, top_db: float = 10.0,
-                    min_steps_each_side: int = 2) -> tuple[float, float] | None:
+def amplitude_pitch(
+    gamma: np.ndarray,
+    amplitude: np.ndarray,
+    distance: np.ndarray,
+    *,
+    top_db: float = 10.0,
+    min_steps_each_side: int = 2,
+) -> tuple[float, float] | None:
     """The direction a wall faces in the rotation plane, from where its echoes are strongest.
 
     A mirror echo's amplitude is ``∝ D(ψ)²/(2d)`` (design notes §8), ψ the
@@ -127,14 +143,20 @@ def amplitude_pitch(gamma: np.ndarray, amplitude: np.ndarray, distance: np.ndarr
     only a lower bound, and a parabola through the plateau they form puts its
     vertex anywhere inside it.
     """
-    phi, sigma, found = _amplitude_pitch(np.asarray(gamma, dtype=np.float64), np.asarray(amplitude, dtype=np.float64),
-                                         np.asarray(distance, dtype=np.float64), float(top_db), int(min_steps_each_side))
+    phi, sigma, found = _amplitude_pitch(
+        np.asarray(gamma, dtype=np.float64),
+        np.asarray(amplitude, dtype=np.float64),
+        np.asarray(distance, dtype=np.float64),
+        float(top_db),
+        int(min_steps_each_side),
+    )
     return (phi, sigma) if found else None
 
 
 @kernel
-def _amplitude_pitch(g: np.ndarray, a: np.ndarray, d: np.ndarray, top_db: float,
-                     min_steps_each_side: int) -> tuple[float, float, bool]:
+def _amplitude_pitch(
+    g: np.ndarray, a: np.ndarray, d: np.ndarray, top_db: float, min_steps_each_side: int
+) -> tuple[float, float, bool]:
     """:func:`amplitude_pitch` as a kernel: ``(φ, σ_φ, found)``."""
     e = a * d
     ok = np.isfinite(g) & np.isfinite(e) & (e > 0)
@@ -317,16 +339,32 @@ def walk_stderr(model: CornerModel, pts: ScanPoints, amplitude: np.ndarray) -> t
     (σ_a, σ_b) in rad, to add in quadrature to the joint normals' standard errors, at most π (no direction
     at all: also where a walk cannot be told from the walls); 0 where too few echoes were labelled.
     """
-    sa, sb = _walk_stderr(pts.capsule, pts.distance, np.asarray(model.labels, dtype=np.intp),
-                          np.asarray(amplitude, dtype=np.float64), model.wall_a.normal, float(model.wall_a.offset),
-                          model.wall_b.normal, float(model.wall_b.offset), _WALK_STEP)
+    sa, sb = _walk_stderr(
+        pts.capsule,
+        pts.distance,
+        np.asarray(model.labels, dtype=np.intp),
+        np.asarray(amplitude, dtype=np.float64),
+        model.wall_a.normal,
+        float(model.wall_a.offset),
+        model.wall_b.normal,
+        float(model.wall_b.offset),
+        _WALK_STEP,
+    )
     return sa, sb
 
 
 @kernel
-def _walk_stderr(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, amplitude: np.ndarray,
-                 normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float,
-                 step: float) -> tuple[float, float]:
+def _walk_stderr(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    labels: np.ndarray,
+    amplitude: np.ndarray,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    step: float,
+) -> tuple[float, float]:
     """:func:`walk_stderr` as one kernel (``step``: :data:`_WALK_STEP`)."""
     n = labels.shape[0]
     order = _labelled_order(labels)  # wall a's echoes, wall b's, then the edge's (joint_residuals' order)
@@ -367,15 +405,15 @@ def _walk_stderr(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, 
         for i in range(n):
             if ok[i]:
                 columns[c, i] = raw[c, i] - mean
-    wa, ha, wb, hb, _cov, _moved = _joint_gauss_newton(capsule, distance, labels, normal_a, offset_a, normal_b,
-                                                      offset_b, 3, False, 6, 1e-9)
+    wa, ha, wb, hb, _cov, _moved = _joint_gauss_newton(
+        capsule, distance, labels, normal_a, offset_a, normal_b, offset_b, 3, False, 6, 1e-9
+    )
     r0 = _joint_residuals(capsule, distance, order, labels, wa, ha, wb, hb)
     change = np.empty((2, m))
     turn = np.empty((6, 2))  # d normal / d β: wall a's normal, then wall b's
     for c in range(2):
         moved = distance + step * columns[c]
-        ma, mha, mb, mhb, _cov, _moved = _joint_gauss_newton(capsule, moved, labels, wa, ha, wb, hb, 3, False, 6,
-                                                            1e-9)
+        ma, mha, mb, mhb, _cov, _moved = _joint_gauss_newton(capsule, moved, labels, wa, ha, wb, hb, 3, False, 6, 1e-9)
         r1 = _joint_residuals(capsule, moved, order, labels, ma, mha, mb, mhb)
         for o in range(m):
             change[c, o] = (r1[o] - r0[o]) / step
@@ -408,7 +446,7 @@ def _walk_stderr(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, 
     beta = m_inv @ xr
     out = np.empty(2)
     for k in range(2):
-        dk = turn[3 * k:3 * k + 3]
+        dk = turn[3 * k : 3 * k + 3]
         shift = dk @ beta
         cov = s2 * m_inv
         trace = 0.0  # tr(D_k (s² M⁻¹) D_kᵀ)
@@ -422,8 +460,9 @@ def _walk_stderr(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, 
     return out[0], out[1]
 
 
-def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi_se: float, normal0: np.ndarray,
-                     iterations: int = 4) -> tuple[Wall, float, float]:
+def fixed_pitch_wall(
+    capsules: np.ndarray, distance: np.ndarray, phi: float, phi_se: float, normal0: np.ndarray, iterations: int = 4
+) -> tuple[Wall, float, float]:
     """The wall facing direction ``φ`` that best meets the mirror-echo condition ``n·p_c + d = h``.
 
     ``n = (sin ψ, cos ψ cos φ, cos ψ sin φ)``: the ranges fix the yaw ψ (the
@@ -434,8 +473,14 @@ def fixed_pitch_wall(capsules: np.ndarray, distance: np.ndarray, phi: float, phi
     -------
     wall, normal standard error (rad, RMS of the yaw and φ errors), offset standard error (m)
     """
-    n, h, se_n, se_h = _fixed_pitch_wall(np.asarray(capsules, dtype=np.float64), np.asarray(distance, dtype=np.float64),
-                                         float(phi), float(phi_se), float(normal0[0]), int(iterations))
+    n, h, se_n, se_h = _fixed_pitch_wall(
+        np.asarray(capsules, dtype=np.float64),
+        np.asarray(distance, dtype=np.float64),
+        float(phi),
+        float(phi_se),
+        float(normal0[0]),
+        int(iterations),
+    )
     return Wall(n, h), se_n, se_h
 
 
@@ -447,8 +492,9 @@ def _pitch_frame(psi: float, cp: float, sp: float) -> tuple[np.ndarray, np.ndarr
 
 
 @kernel
-def _fixed_pitch_wall(p: np.ndarray, d: np.ndarray, phi: float, phi_se: float, yaw_sine: float,
-                      iterations: int) -> tuple[np.ndarray, float, float, float]:
+def _fixed_pitch_wall(
+    p: np.ndarray, d: np.ndarray, phi: float, phi_se: float, yaw_sine: float, iterations: int
+) -> tuple[np.ndarray, float, float, float]:
     """:func:`fixed_pitch_wall` as a kernel: normal, offset and their standard errors.
 
     The products with the capsules are written out echo by echo (BLAS calls cost more than their
@@ -508,19 +554,30 @@ def _fixed_pitch_wall(p: np.ndarray, d: np.ndarray, phi: float, phi_se: float, y
 
 
 @kernel
-def _mirror_terms(p: np.ndarray, d: np.ndarray, n: np.ndarray, dn: np.ndarray, h: float, r: np.ndarray,
-                  x: np.ndarray) -> None:
+def _mirror_terms(
+    p: np.ndarray, d: np.ndarray, n: np.ndarray, dn: np.ndarray, h: float, r: np.ndarray, x: np.ndarray
+) -> None:
     """Into ``r`` and ``x``: the mirror-echo residuals ``n·p_c + d − h`` and their derivatives ``p_c·∂n/∂ψ``."""
     for i in range(d.shape[0]):
         r[i] = p[i, 0] * n[0] + p[i, 1] * n[1] + p[i, 2] * n[2] + d[i] - h
         x[i] = p[i, 0] * dn[0] + p[i, 1] * dn[1] + p[i, 2] * dn[2]
 
 
-def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], opts: FitOptions, t0: float,
-                 note: str, amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
-                 flags: list[str], edge_is_walls: bool = False,
-                 max_disagreement: float = np.deg2rad(10.0), walk_se=lambda: 0.0,
-                 tie_suspect: bool = False, common_roll: float = 0.0) -> PlaneResult:
+def _corner_wall(
+    data: F.PlaneData,
+    wall: Wall,
+    wall_se: tuple[float, float],
+    opts: FitOptions,
+    t0: float,
+    note: str,
+    amplitude: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None,
+    flags: list[str],
+    edge_is_walls: bool = False,
+    max_disagreement: float = np.deg2rad(10.0),
+    walk_se=lambda: 0.0,
+    tie_suspect: bool = False,
+    common_roll: float = 0.0,
+) -> PlaneResult:
     """One wall of the joint model, refined on its own echoes.
 
     With the echoes' own amplitudes, the wall's direction in the rotation
@@ -571,17 +628,34 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
             if math.isfinite(se_joint):
                 # The amplitudes are the only sensor of the wall's direction in the rotation plane that a
                 # common roll cannot fool; a joint fit they contradict has not found that direction.
-                flags.append(f"its echoes are strongest at γ = {np.rad2deg(phi):.1f}°, {np.rad2deg(off):.1f}° from "
-                             f"the joint fit's normal (over {opts.tilt_test_sigma:g}σ)")
+                flags.append(
+                    f"its echoes are strongest at γ = {np.rad2deg(phi):.1f}°, {np.rad2deg(off):.1f}° from "
+                    f"the joint fit's normal (over {opts.tilt_test_sigma:g}σ)"
+                )
     if fitted is not None:
-        diag = diagnostics("corner model; amplitude pitch; gauss-newton", t0,
-                           notes=(note, f"echoes strongest at γ = {np.rad2deg(phi):.2f}° ± {np.rad2deg(phi_se):.2f}°: "
-                                        "the wall's direction; yaw and offset from the ranges"))
-        return F.make_plane_fit(data, fitted.normal / fitted.offset, method="corner", inlier_mask=mask,
-                                diagnostics=diag, model="constant-depth", stderr=(se_n, se_h))
+        diag = diagnostics(
+            "corner model; amplitude pitch; gauss-newton",
+            t0,
+            notes=(
+                note,
+                f"echoes strongest at γ = {np.rad2deg(phi):.2f}° ± {np.rad2deg(phi_se):.2f}°: "
+                "the wall's direction; yaw and offset from the ranges",
+            ),
+        )
+        return F.make_plane_fit(
+            data,
+            fitted.normal / fitted.offset,
+            method="corner",
+            inlier_mask=mask,
+            diagnostics=diag,
+            model="constant-depth",
+            stderr=(se_n, se_h),
+        )
     if edge_is_walls:
-        flags.append("its direction rests on edge echoes that a wall explains as well: the corner edge that ties "
-                     "the walls together was not identified")
+        flags.append(
+            "its direction rests on edge echoes that a wall explains as well: the corner edge that ties "
+            "the walls together was not identified"
+        )
     theta_p = F.ls_theta(data.points)
     n_p = theta_p / np.linalg.norm(theta_p)
     walk = walk_se()
@@ -610,16 +684,24 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
         if apart > max_disagreement:
             # Neither can be trusted: a wall tilted this far is outside what the corrected points describe,
             # and a joint fit this far off its axis has likely taken the edge's echoes for the wall's.
-            flags.append(f"its direction is ambiguous: the corrected points and the joint fit differ by "
-                         f"{np.rad2deg(angle):.1f}°, and by {np.rad2deg(turned):.1f}° "
-                         f"allowing for the {np.rad2deg(common_roll):.1f}° roll the other wall shows")
-    verdict = ("corrected-points normal, mirror-echo offset" if agree else "joint-model wall")
-    diag = diagnostics("corner model; lstsq", t0, notes=(note, f"joint normal {np.rad2deg(angle):.2f}° from the "
-                                                    f"corrected-points normal ({np.rad2deg(apart):.2f}° allowing for "
-                                                    f"the L's roll; joint σ {np.rad2deg(se_n):.2f}°, of "
-                                                    f"which {np.rad2deg(walk):.2f}° for a walk with the "
-                                                    "echoes' amplitude) -> "
-                                                    + verdict))
+            flags.append(
+                f"its direction is ambiguous: the corrected points and the joint fit differ by "
+                f"{np.rad2deg(angle):.1f}°, and by {np.rad2deg(turned):.1f}° "
+                f"allowing for the {np.rad2deg(common_roll):.1f}° roll the other wall shows"
+            )
+    verdict = "corrected-points normal, mirror-echo offset" if agree else "joint-model wall"
+    diag = diagnostics(
+        "corner model; lstsq",
+        t0,
+        notes=(
+            note,
+            f"joint normal {np.rad2deg(angle):.2f}° from the "
+            f"corrected-points normal ({np.rad2deg(apart):.2f}° allowing for "
+            f"the L's roll; joint σ {np.rad2deg(se_n):.2f}°, of "
+            f"which {np.rad2deg(walk):.2f}° for a walk with the "
+            "echoes' amplitude) -> " + verdict,
+        ),
+    )
     fit = F.make_plane_fit(data, theta, method="corner", inlier_mask=mask, diagnostics=diag, model=model)
     if isinstance(fit, PlaneFit) and math.isfinite(se_n) and math.isfinite(se_h):
         if agree or tie_suspect:
@@ -633,9 +715,17 @@ def _corner_wall(data: F.PlaneData, wall: Wall, wall_se: tuple[float, float], op
     return fit
 
 
-def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGeometry, label: str,
-                 axis: np.ndarray, opts: FitOptions, echo_amplitude: np.ndarray | None, t0: float
-                 ) -> tuple[PlaneFit, F.PlaneData] | None:
+def _single_wall(
+    pts,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    geometry: ArrayGeometry,
+    label: str,
+    axis: np.ndarray,
+    opts: FitOptions,
+    echo_amplitude: np.ndarray | None,
+    t0: float,
+) -> tuple[PlaneFit, F.PlaneData] | None:
     """One wall on its own, where the joint model found no pair of walls (a sweep that sees one wall only).
 
     The densest band of mirror-implied positions in the wall's window gives its echoes (assigned at the joint
@@ -668,13 +758,25 @@ def _single_wall(pts, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGe
     sel = np.full(distance.shape, np.nan)
     sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
     data = F.plane_data(geometry, gamma, sel, np.unique(pts.step[m]), label, axis)
-    diag = diagnostics("corner model, one wall; amplitude pitch; gauss-newton", t0,
-                       notes=(f"no pair of walls: wall {label} alone on {int(np.count_nonzero(m))} echoes of its "
-                              f"band", f"echoes strongest at γ = {np.rad2deg(phi[0]):.2f}° ± "
-                                       f"{np.rad2deg(phi[1]):.2f}°: the wall's direction; yaw and offset from "
-                                       "the ranges"))
-    fit = F.make_plane_fit(data, wall.normal / wall.offset, method="corner", inlier_mask=np.ones(data.n, dtype=bool),
-                           diagnostics=diag, model="constant-depth", stderr=(se_n, se_h))
+    diag = diagnostics(
+        "corner model, one wall; amplitude pitch; gauss-newton",
+        t0,
+        notes=(
+            f"no pair of walls: wall {label} alone on {int(np.count_nonzero(m))} echoes of its band",
+            f"echoes strongest at γ = {np.rad2deg(phi[0]):.2f}° ± "
+            f"{np.rad2deg(phi[1]):.2f}°: the wall's direction; yaw and offset from "
+            "the ranges",
+        ),
+    )
+    fit = F.make_plane_fit(
+        data,
+        wall.normal / wall.offset,
+        method="corner",
+        inlier_mask=np.ones(data.n, dtype=bool),
+        diagnostics=diag,
+        model="constant-depth",
+        stderr=(se_n, se_h),
+    )
     if not isinstance(fit, PlaneFit):
         return None
     unexplained = float(np.mean(~m[seen])) if np.any(seen) else 0.0
@@ -689,8 +791,9 @@ _LIMITS = QualityLimits()
 ECHO_WINDOW_RANGE = ECHO_PEAK_WINDOW[1] * 352.0 / 2.0
 
 
-def edge_in_echo_window(model: CornerModel, pts: ScanPoints, beam_half_angle: float,
-                        residuals: np.ndarray | None = None) -> np.ndarray:
+def edge_in_echo_window(
+    model: CornerModel, pts: ScanPoints, beam_half_angle: float, residuals: np.ndarray | None = None
+) -> np.ndarray:
     """Mask of the echoes whose amplitude window also holds the corner's double bounce.
 
     The double bounce returns from ``ρ·sin(opening)`` (eq. of
@@ -709,20 +812,42 @@ def edge_in_echo_window(model: CornerModel, pts: ScanPoints, beam_half_angle: fl
     return np.isfinite(gap) & (gap <= ECHO_WINDOW_RANGE)
 
 
-def _wall_echoes(labels: np.ndarray, k: int, leaks: np.ndarray, pts: ScanPoints, echo_amp: np.ndarray | None
-                 ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-                            tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None]:
+def _wall_echoes(
+    labels: np.ndarray, k: int, leaks: np.ndarray, pts: ScanPoints, echo_amp: np.ndarray | None
+) -> tuple[
+    tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None
+]:
     """The echoes labelled ``k``, as :func:`~lelsonar.reconstruct.estimate.fit.plane_data_of` takes them (capsules
     ``(n, 1, 3)``, boresights, ranges ``(n, 1)``, steps), and for :func:`_corner_wall` the ``(γ, amplitude,
     range, capsule)`` of those whose amplitude window holds no double bounce (None without amplitudes)."""
-    found = _gather_wall(labels, k, leaks, pts.step, pts.gamma, pts.capsule, pts.distance, pts.beam,
-                         np.zeros(0) if echo_amp is None else echo_amp, echo_amp is not None)
+    found = _gather_wall(
+        labels,
+        k,
+        leaks,
+        pts.step,
+        pts.gamma,
+        pts.capsule,
+        pts.distance,
+        pts.beam,
+        np.zeros(0) if echo_amp is None else echo_amp,
+        echo_amp is not None,
+    )
     return found[:4], (None if echo_amp is None else found[4:])
 
 
 @kernel
-def _gather_wall(labels: np.ndarray, k: int, leaks: np.ndarray, step: np.ndarray, gamma: np.ndarray,
-                 capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, amplitude: np.ndarray, with_amplitude: bool):
+def _gather_wall(
+    labels: np.ndarray,
+    k: int,
+    leaks: np.ndarray,
+    step: np.ndarray,
+    gamma: np.ndarray,
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    amplitude: np.ndarray,
+    with_amplitude: bool,
+):
     """:func:`_wall_echoes` as one kernel (the same rows as boolean indexing, in order)."""
     n = 0
     n_own = 0
@@ -758,8 +883,14 @@ def _gather_wall(labels: np.ndarray, k: int, leaks: np.ndarray, step: np.ndarray
     return caps, bm, dist, st, g_own, a_own, d_own, c_own
 
 
-def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geometry: ArrayGeometry,
-               opts: FitOptions, echo_amplitude: np.ndarray | None = None) -> ScanFit:
+def fit_corner(
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    ratio: np.ndarray,
+    geometry: ArrayGeometry,
+    opts: FitOptions,
+    echo_amplitude: np.ndarray | None = None,
+) -> ScanFit:
     """The method ``"corner"``: both walls and the edge from all the echoes.
 
     The joint model (:func:`fit_corner_model`) labels every echo (wall a,
@@ -784,19 +915,32 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     g = np.asarray(gamma, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
     pts = scan_points(geometry, g, d)
-    model = fit_corner_model(pts, AXIS_Y, AXIS_Z, beam_half_angle=opts.corner_beam_half_angle,
-                             tolerance=opts.corner_tolerance, min_points=opts.min_points,
-                             significance=opts.tilt_test_sigma)
+    model = fit_corner_model(
+        pts,
+        AXIS_Y,
+        AXIS_Z,
+        beam_half_angle=opts.corner_beam_half_angle,
+        tolerance=opts.corner_tolerance,
+        min_points=opts.min_points,
+        significance=opts.tilt_test_sigma,
+    )
     if model is None:
         crit = critical_step(ratio, opts.critical_peak_fraction)
         split = split_subsets(g, crit)
-        data = [F.plane_data(geometry, g, d, steps, label, axis)
-                for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))]
+        data = [
+            F.plane_data(geometry, g, d, steps, label, axis)
+            for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))
+        ]
         out = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in data]
         # Nothing checked these planes against the other wall or the edge, and the energy split assumes both
         # walls and the corner were swept: a plane can be centimetres off with clean residuals.
-        fallback = ((DEGRADED, "no pair of walls explains the scan's echoes (one wall, or none, shows a band): "
-                               "energy-split fallback, unchecked against the other wall and the edge"),)
+        fallback = (
+            (
+                DEGRADED,
+                "no pair of walls explains the scan's echoes (one wall, or none, shows a band): "
+                "energy-split fallback, unchecked against the other wall and the edge",
+            ),
+        )
         out = [assess_plane(p, g, findings=fallback) if isinstance(p, PlaneFit) else p for p in out]
         for k, (label, axis) in enumerate((("a", AXIS_Y), ("b", AXIS_Z))):
             single = _single_wall(pts, g, d, geometry, label, axis, opts, echo_amplitude, t0)
@@ -805,8 +949,10 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         return ScanFit(out[0], out[1], data[0], data[1], crit)
     # Echoes per label, counted once: outliers (-1), wall a, wall b, edge.
     n_outlier, n_wall_a, n_wall_b, n_edge = np.bincount(model.labels - ECHO_OUTLIER, minlength=4).tolist()
-    note = (f"corner model: {model.hypotheses} band pairs; echoes: {n_wall_a} wall a, {n_wall_b} wall b, "
-            f"{n_edge} edge, {n_outlier} outliers (tolerance {1000 * model.tolerance:.0f} mm)")
+    note = (
+        f"corner model: {model.hypotheses} band pairs; echoes: {n_wall_a} wall a, {n_wall_b} wall b, "
+        f"{n_edge} edge, {n_outlier} outliers (tolerance {1000 * model.tolerance:.0f} mm)"
+    )
     amplitudes = None if echo_amplitude is None else np.asarray(echo_amplitude, dtype=np.float64)
     out: list[PlaneResult] = []
     datas: list[F.PlaneData] = []
@@ -821,8 +967,12 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     if unexplained > limits.degraded_unexplained:
         own = np.stack([model.labels == ECHO_WALL_A, model.labels == ECHO_WALL_B])
         cosines = np.stack([pts.beam @ model.wall_a.normal, pts.beam @ model.wall_b.normal])
-        against = np.count_nonzero(echoes_against_walls(residuals[:2], cosines, own, model.labels == ECHO_OUTLIER,
-                                                        opts.min_points)) / pts.n
+        against = (
+            np.count_nonzero(
+                echoes_against_walls(residuals[:2], cosines, own, model.labels == ECHO_OUTLIER, opts.min_points)
+            )
+            / pts.n
+        )
     shares = edge_shared_shares(model, pts, opts.corner_beam_half_angle, residuals)
     edge_is_walls = shares[ECHO_EDGE] > shared_limit
     alternatives = edge_alternatives(model, pts, opts.corner_beam_half_angle, opts.min_points)
@@ -836,14 +986,17 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
     # more than the share of unexplained echoes that already degrades a plane explains the scan about as well.
     edge_shared = {k: shares[k] > shared_limit for k in (ECHO_WALL_A, ECHO_WALL_B)}
     joint_walls = {ECHO_WALL_A: (model.wall_a.normal, AXIS_Y), ECHO_WALL_B: (model.wall_b.normal, AXIS_Z)}
-    as_cluster = {k: alternatives[k][0] > shared_limit and alternatives[k][1] <= limits.degraded_unexplained * pts.n
-                  for k in (ECHO_WALL_A, ECHO_WALL_B)}
+    as_cluster = {
+        k: alternatives[k][0] > shared_limit and alternatives[k][1] <= limits.degraded_unexplained * pts.n
+        for k in (ECHO_WALL_A, ECHO_WALL_B)
+    }
 
     def walk_se(k: int) -> float:
         # Three more joint fits: only for a wall whose direction rests on the ranges, once a scan.
         if not walk:
             walk.append((0.0, 0.0) if echo_amp is None else walk_stderr(model, pts, echo_amp))
         return walk[0][k]
+
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         rows, amplitude = _wall_echoes(model.labels, k, leaks, pts, echo_amp)
         # The wall's echoes one by one, in the scan's order (step, then capsule) as plane_data keeps them.
@@ -851,29 +1004,62 @@ def fit_corner(gamma: np.ndarray, distance: np.ndarray, ratio: np.ndarray, geome
         datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:
-            out.append(FitFailure(fail.reason, f"corner: {rows[0].shape[0]} echoes of wall {label}; "
-                                  + fail.detail, label, fail.n_points))
+            out.append(
+                FitFailure(
+                    fail.reason,
+                    f"corner: {rows[0].shape[0]} echoes of wall {label}; " + fail.detail,
+                    label,
+                    fail.n_points,
+                )
+            )
             continue
         flags: list[str] = []
         if model.outside[k]:
-            flags.append("the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it")
+            flags.append(
+                "the joint fit turns it beyond the tilt window around its nominal axis: the model cannot place it"
+            )
         other = ECHO_WALL_B if k == ECHO_WALL_A else ECHO_WALL_A
-        fit = _corner_wall(data, wall, model.wall_stderr(k), opts, t0, note, amplitude, flags, edge_is_walls,
-                           walk_se=lambda k=k: walk_se(k), tie_suspect=edge_shared[other] or as_cluster[other],
-                           common_roll=_roll(*joint_walls[other]))
+        fit = _corner_wall(
+            data,
+            wall,
+            model.wall_stderr(k),
+            opts,
+            t0,
+            note,
+            amplitude,
+            flags,
+            edge_is_walls,
+            walk_se=lambda k=k: walk_se(k),
+            tie_suspect=edge_shared[other] or as_cluster[other],
+            common_roll=_roll(*joint_walls[other]),
+        )
         findings = tuple((UNRELIABLE, f) for f in flags)
         shared = shares[k]
         if edge_shared[k]:
-            findings += ((DEGRADED, f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
-                                    f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset"),)
+            findings += (
+                (
+                    DEGRADED,
+                    f"{100 * shared:.0f} % of its echoes fit the corner edge as well (within "
+                    f"{1000 * model.tolerance:.0f} mm): the corner cluster may hold its offset",
+                ),
+            )
         as_edge, lost = alternatives[k]
         if as_cluster[k]:
-            findings += ((DEGRADED, f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
-                                    f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
-                                    "echoes the model explains: the corner cluster may have passed for the wall"),)
-        out.append(assess_beside_unexplained(fit, g, unexplained, against,
-                                             edge_echoes=n_edge, findings=findings, at=len(flags))
-                   if isinstance(fit, PlaneFit) else fit)
+            findings += (
+                (
+                    DEGRADED,
+                    f"{100 * as_edge:.0f} % of its echoes are the corner's double bounces with the "
+                    f"wall where they put it, a pair that explains all but {max(lost, 0)} of the "
+                    "echoes the model explains: the corner cluster may have passed for the wall",
+                ),
+            )
+        out.append(
+            assess_beside_unexplained(
+                fit, g, unexplained, against, edge_echoes=n_edge, findings=findings, at=len(flags)
+            )
+            if isinstance(fit, PlaneFit)
+            else fit
+        )
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the
     # corrected points) place the edge's direction better than the joint fit's.

@@ -35,10 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
-
-from lelsonar.signal.compiled import kernel
 from lelsonar.reconstruct.estimate.fit import _cross3, _norm, _tangent_basis, fast_median
 from lelsonar.reconstruct.estimate.lel import _pairwise_block, _pairwise_sum  # noqa: F401 — _pairwise_block: assembly imports it from here
+from lelsonar.signal.compiled import kernel
 
 __all__ = [
     "ScanPoints",
@@ -143,7 +142,7 @@ class CornerModel:
     def wall_stderr(self, k: int) -> tuple[float, float]:
         """RMS tilt (rad) and offset standard error (m) of wall ``k`` (0 = a, 1 = b)."""
         # On Python floats (a 3×3 block: NumPy's calls would cost more than the arithmetic).
-        c = self.covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3].tolist()
+        c = self.covariance[3 * k : 3 * k + 3, 3 * k : 3 * k + 3].tolist()
         if not all(math.isfinite(x) for row in c for x in row):
             return float("inf"), float("inf")
         return math.sqrt(max(c[0][0] + c[1][1], 0.0)), math.sqrt(max(c[2][2], 0.0))
@@ -161,8 +160,9 @@ def scan_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray
 
 
 @kernel
-def _valid_echoes(gamma: np.ndarray, distance: np.ndarray, capsules: np.ndarray, beam: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _valid_echoes(
+    gamma: np.ndarray, distance: np.ndarray, capsules: np.ndarray, beam: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:class:`ScanPoints`' arrays: the echoes with a finite positive range, step-major (as boolean indexing)."""
     n_steps, n_caps = distance.shape
     n = 0
@@ -193,22 +193,26 @@ def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
     return pts.capsule @ wall.normal + pts.distance - wall.offset
 
 
-def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)
-              ) -> tuple[np.ndarray, np.ndarray] | None:
+def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)) -> tuple[np.ndarray, np.ndarray] | None:
     """Point (nearest the origin) and unit direction of the line where two walls meet.
 
     With ``e = n_a × n_b`` the point is ``(h_a (n_b × e) + h_b (e × n_a)) / |e|²``.
     None if the walls are within ``min_angle`` of parallel (no corner).
     """
-    point, direction, ok = _edge_line(np.asarray(wall_a.normal, dtype=np.float64), float(wall_a.offset),
-                                      np.asarray(wall_b.normal, dtype=np.float64), float(wall_b.offset),
-                                      math.sin(min_angle) ** 2)
+    point, direction, ok = _edge_line(
+        np.asarray(wall_a.normal, dtype=np.float64),
+        float(wall_a.offset),
+        np.asarray(wall_b.normal, dtype=np.float64),
+        float(wall_b.offset),
+        math.sin(min_angle) ** 2,
+    )
     return (point, direction) if ok else None
 
 
 @kernel
-def _edge_line(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float,
-               min_sine2: float) -> tuple[np.ndarray, np.ndarray, bool]:
+def _edge_line(
+    normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, min_sine2: float
+) -> tuple[np.ndarray, np.ndarray, bool]:
     """:func:`edge_line` on arrays (``min_sine2`` the sine² of its ``min_angle``); False: no edge."""
     e = _cross3(normal_a, normal_b)
     s2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
@@ -223,8 +227,9 @@ def _edge_line(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offs
 
 
 @kernel
-def edge_range_terms(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float,
-                     capsule: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+def edge_range_terms(
+    normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, capsule: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """The range of the double bounce from the edge of two walls, in closed form (design notes §8).
 
     Two reflections in a dihedral of interior angle ``opening`` rotate the
@@ -265,8 +270,9 @@ def edge_range_terms(normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray
 _MIN_EDGE_SINE2 = float(np.sin(np.deg2rad(20.0)) ** 2)
 
 
-def echo_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle: float,
-                   min_angle: float = np.deg2rad(20.0)) -> np.ndarray:
+def echo_residuals(
+    wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle: float, min_angle: float = np.deg2rad(20.0)
+) -> np.ndarray:
     """Range residual of every echo under each part of the model, (3, N), m: wall a, wall b, the edge.
 
     A wall's is the mirror-echo condition ``n·p_c + d − h``, the edge's
@@ -277,14 +283,34 @@ def echo_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, beam_half_angle:
     ``β = (b − ac)/(1 − c²)``) does, or no edge at all (walls within
     ``min_angle`` of parallel, as :func:`edge_line`).
     """
-    return _echo_residuals(pts.capsule, pts.distance, pts.beam, wall_a.normal, float(wall_a.offset), wall_b.normal,
-                           float(wall_b.offset), math.cos(beam_half_angle), math.sin(min_angle) ** 2)
+    return _echo_residuals(
+        pts.capsule,
+        pts.distance,
+        pts.beam,
+        wall_a.normal,
+        float(wall_a.offset),
+        wall_b.normal,
+        float(wall_b.offset),
+        math.cos(beam_half_angle),
+        math.sin(min_angle) ** 2,
+    )
 
 
 @kernel
-def _echo_residual(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, i: int, normal_a: np.ndarray,
-                   offset_a: float, normal_b: np.ndarray, offset_b: float, c: float, cos_t: float, edge: bool,
-                   cos_edge: float) -> tuple[float, float, float]:
+def _echo_residual(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    i: int,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    c: float,
+    cos_t: float,
+    edge: bool,
+    cos_edge: float,
+) -> tuple[float, float, float]:
     """:func:`echo_residuals` of echo ``i``: wall a, wall b, the edge (``c = n_a·n_b``; ``edge``: the walls
     make one; ``cos_edge = cos_t·√(1 − c²)``).  :func:`edge_range_terms`' ``a``, ``b`` and range echo by
     echo, as the assignment of every stage takes them (no arrays allocated)."""
@@ -302,9 +328,17 @@ def _echo_residual(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, 
 
 
 @kernel
-def _echo_residuals(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, normal_a: np.ndarray,
-                    offset_a: float, normal_b: np.ndarray, offset_b: float, cos_t: float,
-                    min_sine2: float) -> np.ndarray:
+def _echo_residuals(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    cos_t: float,
+    min_sine2: float,
+) -> np.ndarray:
     """:func:`echo_residuals` on arrays: ``cos_t`` the beam's half angle's cosine, ``min_sine2`` the edge's sin²."""
     n = distance.shape[0]
     c = normal_a[0] * normal_b[0] + normal_a[1] * normal_b[1] + normal_a[2] * normal_b[2]
@@ -313,13 +347,20 @@ def _echo_residuals(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray,
     cos_edge = cos_t * np.sqrt(s2)
     r = np.empty((3, n))
     for i in range(n):
-        r[0, i], r[1, i], r[2, i] = _echo_residual(capsule, distance, beam, i, normal_a, offset_a, normal_b,
-                                                   offset_b, c, cos_t, edge, cos_edge)
+        r[0, i], r[1, i], r[2, i] = _echo_residual(
+            capsule, distance, beam, i, normal_a, offset_a, normal_b, offset_b, c, cos_t, edge, cos_edge
+        )
     return r
 
 
-def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
-                  beam_half_angle: float, edge_tolerance: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+def assign_echoes(
+    wall_a: Wall,
+    wall_b: Wall,
+    pts: ScanPoints,
+    tolerance: float,
+    beam_half_angle: float,
+    edge_tolerance: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Give each echo to the model that explains it best, within ``tolerance``.
 
     A wall can explain an echo only if its normal is within ``beam_half_angle``
@@ -333,15 +374,33 @@ def assign_echoes(wall_a: Wall, wall_b: Wall, pts: ScanPoints, tolerance: float,
     labels : (N,) int array
     residuals : (N,) array, m (NaN for outliers)
     """
-    return _assign(pts.capsule, pts.distance, pts.beam, wall_a.normal, float(wall_a.offset), wall_b.normal,
-                   float(wall_b.offset), np.cos(beam_half_angle), float(tolerance),
-                   float(tolerance if edge_tolerance is None else edge_tolerance))
+    return _assign(
+        pts.capsule,
+        pts.distance,
+        pts.beam,
+        wall_a.normal,
+        float(wall_a.offset),
+        wall_b.normal,
+        float(wall_b.offset),
+        np.cos(beam_half_angle),
+        float(tolerance),
+        float(tolerance if edge_tolerance is None else edge_tolerance),
+    )
 
 
 @kernel
-def _assign(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, normal_a: np.ndarray, offset_a: float,
-            normal_b: np.ndarray, offset_b: float, cos_t: float, tolerance: float,
-            edge_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+def _assign(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    cos_t: float,
+    tolerance: float,
+    edge_tolerance: float,
+) -> tuple[np.ndarray, np.ndarray]:
     """:func:`assign_echoes` on arrays (``cos_t`` the beam's half angle's cosine)."""
     n = distance.shape[0]
     c = normal_a[0] * normal_b[0] + normal_a[1] * normal_b[1] + normal_a[2] * normal_b[2]
@@ -353,8 +412,9 @@ def _assign(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, normal_
     r = np.empty(3)
     for i in range(n):
         # :func:`echo_residuals`' column i, echo by echo
-        r[0], r[1], r[2] = _echo_residual(capsule, distance, beam, i, normal_a, offset_a, normal_b, offset_b, c,
-                                          cos_t, edge, cos_edge)
+        r[0], r[1], r[2] = _echo_residual(
+            capsule, distance, beam, i, normal_a, offset_a, normal_b, offset_b, c, cos_t, edge, cos_edge
+        )
         # np.argmin of |r|: the first smallest, or the first NaN.
         best = 0
         for k in (1, 2):
@@ -372,8 +432,9 @@ def _assign(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, normal_
     return labels, res
 
 
-def edge_shared_shares(model: CornerModel, pts: ScanPoints, beam_half_angle: float,
-                       residuals: np.ndarray | None = None) -> tuple[float, float, float]:
+def edge_shared_shares(
+    model: CornerModel, pts: ScanPoints, beam_half_angle: float, residuals: np.ndarray | None = None
+) -> tuple[float, float, float]:
     """Share of each part's echoes that another part of the model explains as well, within tolerance.
 
     For a wall the other part is the edge; for the edge it is either wall.  A
@@ -430,14 +491,19 @@ def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, d
     capsule's distance to the wall is ``x = ac + √(d² − a²(1 − c²))`` (the
     root beyond the edge's foot) and the offset is ``x + n·p_c``.
     """
-    return _edge_implied_offsets(np.asarray(other.normal, dtype=np.float64), float(other.offset),
-                                 np.asarray(normal, dtype=np.float64), np.asarray(capsule, dtype=np.float64),
-                                 np.asarray(distance, dtype=np.float64))
+    return _edge_implied_offsets(
+        np.asarray(other.normal, dtype=np.float64),
+        float(other.offset),
+        np.asarray(normal, dtype=np.float64),
+        np.asarray(capsule, dtype=np.float64),
+        np.asarray(distance, dtype=np.float64),
+    )
 
 
 @kernel
-def _edge_implied_offsets(other_normal: np.ndarray, other_offset: float, normal: np.ndarray, capsule: np.ndarray,
-                          distance: np.ndarray) -> np.ndarray:
+def _edge_implied_offsets(
+    other_normal: np.ndarray, other_offset: float, normal: np.ndarray, capsule: np.ndarray, distance: np.ndarray
+) -> np.ndarray:
     c = other_normal[0] * normal[0] + other_normal[1] * normal[1] + other_normal[2] * normal[2]
     out = np.empty(distance.shape[0])
     for i in range(distance.shape[0]):
@@ -448,8 +514,9 @@ def _edge_implied_offsets(other_normal: np.ndarray, other_offset: float, normal:
     return out
 
 
-def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: float, min_points: int = 8
-                      ) -> tuple[tuple[float, int], tuple[float, int]]:
+def edge_alternatives(
+    model: CornerModel, pts: ScanPoints, beam_half_angle: float, min_points: int = 8
+) -> tuple[tuple[float, int], tuple[float, int]]:
     """How well the other explanation of each wall's echoes, as the corner's double bounces, does.
 
     Where the edge lies near the foot of a wall's normal (a far wall beside a
@@ -477,16 +544,41 @@ def edge_alternatives(model: CornerModel, pts: ScanPoints, beam_half_angle: floa
         return (0.0, 0), (0.0, 0)
     wa, wb = model.wall_a, model.wall_b
     cos_t = math.cos(beam_half_angle)
-    out = [_edge_alternative(pts.capsule, pts.distance, pts.beam, model.labels, k, wa.normal, float(wa.offset),
-                             wb.normal, float(wb.offset), cos_t, float(model.tolerance),
-                             int(min_points)) for k in (ECHO_WALL_A, ECHO_WALL_B)]
+    out = [
+        _edge_alternative(
+            pts.capsule,
+            pts.distance,
+            pts.beam,
+            model.labels,
+            k,
+            wa.normal,
+            float(wa.offset),
+            wb.normal,
+            float(wb.offset),
+            cos_t,
+            float(model.tolerance),
+            int(min_points),
+        )
+        for k in (ECHO_WALL_A, ECHO_WALL_B)
+    ]
     return out[0], out[1]
 
 
 @kernel
-def _edge_alternative(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, labels: np.ndarray, k: int,
-                      normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, cos_t: float,
-                      tolerance: float, min_points: int) -> tuple[float, int]:
+def _edge_alternative(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    labels: np.ndarray,
+    k: int,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    cos_t: float,
+    tolerance: float,
+    min_points: int,
+) -> tuple[float, int]:
     """:func:`edge_alternatives` for wall ``k`` (the walls have an edge)."""
     mk = labels == k
     n_k = np.count_nonzero(mk)
@@ -562,8 +654,16 @@ def _band_offsets(w: np.ndarray, bin_width: float, max_bands: int, min_count: in
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
     """Range residuals (m) of the labelled echoes under their models: wall a, wall b, then the edge."""
     lab = np.asarray(labels, dtype=np.intp)
-    return _joint_residuals(pts.capsule, pts.distance, _labelled_order(lab), lab, np.asarray(wall_a.normal, dtype=np.float64),
-                            float(wall_a.offset), np.asarray(wall_b.normal, dtype=np.float64), float(wall_b.offset))
+    return _joint_residuals(
+        pts.capsule,
+        pts.distance,
+        _labelled_order(lab),
+        lab,
+        np.asarray(wall_a.normal, dtype=np.float64),
+        float(wall_a.offset),
+        np.asarray(wall_b.normal, dtype=np.float64),
+        float(wall_b.offset),
+    )
 
 
 @kernel
@@ -584,8 +684,16 @@ def _labelled_order(labels: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _joint_residuals(capsule: np.ndarray, distance: np.ndarray, order: np.ndarray, labels: np.ndarray,
-                        na: np.ndarray, ha: float, nb: np.ndarray, hb: float) -> np.ndarray:
+def _joint_residuals(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    order: np.ndarray,
+    labels: np.ndarray,
+    na: np.ndarray,
+    ha: float,
+    nb: np.ndarray,
+    hb: float,
+) -> np.ndarray:
     """:func:`~lelsonar.reconstruct.estimate.corner.model.joint_residuals` of the echoes ``order`` lists (m)."""
     c = na[0] * nb[0] + na[1] * nb[1] + na[2] * nb[2]
     out = np.empty(order.shape[0])
@@ -606,9 +714,17 @@ def _joint_residuals(capsule: np.ndarray, distance: np.ndarray, order: np.ndarra
     return out
 
 
-def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray, *, iterations: int = 3,
-                       covariance: bool = True, trials: int = 6,
-                       min_sine: float = 1e-9) -> tuple[tuple[Wall, Wall], np.ndarray]:
+def joint_gauss_newton(
+    wall_a: Wall,
+    wall_b: Wall,
+    pts: ScanPoints,
+    labels: np.ndarray,
+    *,
+    iterations: int = 3,
+    covariance: bool = True,
+    trials: int = 6,
+    min_sine: float = 1e-9,
+) -> tuple[tuple[Wall, Wall], np.ndarray]:
     """Least squares of all labelled echoes over both walls at once (6 parameters).
 
     Each wall is ``n = normalise(n₀ + u₁e₁ + u₂e₂)``, ``h``; the edge echoes tie
@@ -625,14 +741,32 @@ def joint_gauss_newton(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.n
     unconstrained or not asked for with ``covariance=False``).
     """
     na, ha, nb, hb, cov, moved = _joint_gauss_newton(
-        pts.capsule, pts.distance, np.asarray(labels, dtype=np.intp), wall_a.normal, float(wall_a.offset),
-        wall_b.normal, float(wall_b.offset), iterations, covariance, trials, min_sine)
+        pts.capsule,
+        pts.distance,
+        np.asarray(labels, dtype=np.intp),
+        wall_a.normal,
+        float(wall_a.offset),
+        wall_b.normal,
+        float(wall_b.offset),
+        iterations,
+        covariance,
+        trials,
+        min_sine,
+    )
     return ((Wall(na, ha), Wall(nb, hb)) if moved else (wall_a, wall_b)), cov
 
 
 @kernel
-def _joint_cost(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, na: np.ndarray, ha: float,
-                nb: np.ndarray, hb: float, min_sine: float) -> tuple[float, bool]:
+def _joint_cost(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    labels: np.ndarray,
+    na: np.ndarray,
+    ha: float,
+    nb: np.ndarray,
+    hb: float,
+    min_sine: float,
+) -> tuple[float, bool]:
     """Sum of squares of the labelled echoes' range residuals (:func:`joint_residuals`), and whether all are finite."""
     # edge_range_terms' a, b and range, echo by echo (the solver's trials call this: no arrays allocated)
     c = na[0] * nb[0] + na[1] * nb[1] + na[2] * nb[2]
@@ -655,9 +789,19 @@ def _joint_cost(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, n
 
 
 @kernel
-def _joint_normal_equations(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, na: np.ndarray,
-                            ha: float, nb: np.ndarray, hb: float, ea1: np.ndarray, ea2: np.ndarray,
-                            eb1: np.ndarray, eb2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _joint_normal_equations(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    labels: np.ndarray,
+    na: np.ndarray,
+    ha: float,
+    nb: np.ndarray,
+    hb: float,
+    ea1: np.ndarray,
+    ea2: np.ndarray,
+    eb1: np.ndarray,
+    eb2: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """``JᵀJ`` and ``Jᵀr`` of the labelled echoes, with :func:`joint_gauss_newton`'s Jacobian.
 
     A wall's mirror rows ``(p_c·e₁, p_c·e₂, −1)`` touch only its own 3×3 block: their sums are
@@ -783,12 +927,34 @@ def _lu_solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 @kernel
-def _joint_gauss_newton(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, normal_a: np.ndarray,
-                        offset_a: float, normal_b: np.ndarray, offset_b: float, iterations: int, covariance: bool,
-                        trials: int, min_sine: float) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, bool]:
+def _joint_gauss_newton(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    labels: np.ndarray,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    iterations: int,
+    covariance: bool,
+    trials: int,
+    min_sine: float,
+) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, bool]:
     """:func:`joint_gauss_newton` on arrays; the last value says whether the walls moved from the start."""
-    return _joint_gauss_newton_from(capsule, distance, labels, normal_a, offset_a, normal_b, offset_b, iterations,
-                                    covariance, trials, min_sine, np.nan)
+    return _joint_gauss_newton_from(
+        capsule,
+        distance,
+        labels,
+        normal_a,
+        offset_a,
+        normal_b,
+        offset_b,
+        iterations,
+        covariance,
+        trials,
+        min_sine,
+        np.nan,
+    )
 
 
 @kernel
@@ -804,10 +970,20 @@ def _assigned_cost(labels: np.ndarray, residuals: np.ndarray) -> float:
 
 
 @kernel
-def _joint_gauss_newton_from(capsule: np.ndarray, distance: np.ndarray, labels: np.ndarray, normal_a: np.ndarray,
-                             offset_a: float, normal_b: np.ndarray, offset_b: float, iterations: int,
-                             covariance: bool, trials: int, min_sine: float, cost0: float
-                             ) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, bool]:
+def _joint_gauss_newton_from(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    labels: np.ndarray,
+    normal_a: np.ndarray,
+    offset_a: float,
+    normal_b: np.ndarray,
+    offset_b: float,
+    iterations: int,
+    covariance: bool,
+    trials: int,
+    min_sine: float,
+    cost0: float,
+) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, bool]:
     """:func:`_joint_gauss_newton` given the start's :func:`_joint_cost` ``cost0`` (finite; NaN: work it out)."""
     cov = np.full((6, 6), np.inf)
     na, ha, nb, hb = normal_a.copy(), offset_a, normal_b.copy(), offset_b
@@ -865,10 +1041,23 @@ def _joint_gauss_newton_from(capsule: np.ndarray, distance: np.ndarray, labels: 
 
 
 @kernel
-def _refine_walls(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, na: np.ndarray, ha: float,
-                  nb: np.ndarray, hb: float, tolerances: np.ndarray, cos_t: float, min_points: int,
-                  axis_a: np.ndarray, axis_b: np.ndarray, cos_max_tilt: float, first_labels: np.ndarray,
-                  first_residuals: np.ndarray) -> tuple[np.ndarray, float, np.ndarray, float]:
+def _refine_walls(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    na: np.ndarray,
+    ha: float,
+    nb: np.ndarray,
+    hb: float,
+    tolerances: np.ndarray,
+    cos_t: float,
+    min_points: int,
+    axis_a: np.ndarray,
+    axis_b: np.ndarray,
+    cos_max_tilt: float,
+    first_labels: np.ndarray,
+    first_residuals: np.ndarray,
+) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Alternate assignment and one joint Gauss-Newton step at each (tolerance, edge tolerance) of ``tolerances``.
 
     ``first_labels``, ``first_residuals``: the first stage's assignment of the starting walls, if the caller
@@ -882,8 +1071,9 @@ def _refine_walls(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, n
         for k in (ECHO_WALL_A, ECHO_WALL_B):
             if np.count_nonzero(labels == k) < min_points:
                 labels[labels == k] = ECHO_OUTLIER  # too few to move this wall
-        fa, fha, fb, fhb, _cov, _moved = _joint_gauss_newton_from(capsule, distance, labels, na, ha, nb, hb, 1, False,
-                                                                 6, 1e-9, _assigned_cost(labels, res))
+        fa, fha, fb, fhb, _cov, _moved = _joint_gauss_newton_from(
+            capsule, distance, labels, na, ha, nb, hb, 1, False, 6, 1e-9, _assigned_cost(labels, res)
+        )
         # Keep each wall within max_tilt of its nominal axis: beyond, the solver is chasing the other
         # wall's or the edge's echoes.
         if fa[0] * axis_a[0] + fa[1] * axis_a[1] + fa[2] * axis_a[2] >= cos_max_tilt and fha > 0:
@@ -893,11 +1083,21 @@ def _refine_walls(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, n
     return na, ha, nb, hb
 
 
-def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
-                     beam_half_angle: float = np.deg2rad(50.0), tolerance: float = 0.02,
-                     max_bands: int = 3, max_refined: int = 4, min_points: int = 8,
-                     max_tilt: float = np.deg2rad(15.0), good_enough: float = 0.02,
-                     recentre: int = 3, significance: float = 3.0) -> CornerModel | None:
+def fit_corner_model(
+    pts: ScanPoints,
+    axis_a: np.ndarray,
+    axis_b: np.ndarray,
+    *,
+    beam_half_angle: float = np.deg2rad(50.0),
+    tolerance: float = 0.02,
+    max_bands: int = 3,
+    max_refined: int = 4,
+    min_points: int = 8,
+    max_tilt: float = np.deg2rad(15.0),
+    good_enough: float = 0.02,
+    recentre: int = 3,
+    significance: float = 3.0,
+) -> CornerModel | None:
     """The two walls and their edge that best explain all the echoes.
 
     Parameters
@@ -953,9 +1153,21 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     axis_b = np.asarray(axis_b, dtype=np.float64)
     axis_b = axis_b / _norm(axis_b)
     na, ha, nb, hb, labels, res, cost, hyps, cov, out_a, out_b, fa, fb = _corner_model(
-        pts.capsule, pts.distance, pts.beam, axis_a, axis_b, math.cos(beam_half_angle), float(tolerance),
-        int(max_bands), int(max_refined), int(min_points), float(max_tilt), math.cos(max_tilt), float(good_enough),
-        float(significance))
+        pts.capsule,
+        pts.distance,
+        pts.beam,
+        axis_a,
+        axis_b,
+        math.cos(beam_half_angle),
+        float(tolerance),
+        int(max_bands),
+        int(max_refined),
+        int(min_points),
+        float(max_tilt),
+        math.cos(max_tilt),
+        float(good_enough),
+        float(significance),
+    )
     if hyps == 0:
         return None
     outside = (bool(out_a), bool(out_b))
@@ -968,18 +1180,35 @@ def fit_corner_model(pts: ScanPoints, axis_a: np.ndarray, axis_b: np.ndarray, *,
     if abs(roll_a - roll_b) <= max_tilt:
         rho = 0.5 * (roll_a + roll_b)
         turn = rotation_x(rho)
-        moved = fit_corner_model(pts, turn @ axis_a, turn @ axis_b, beam_half_angle=beam_half_angle,
-                                 tolerance=tolerance, max_bands=max_bands, max_refined=max_refined,
-                                 min_points=min_points, max_tilt=max_tilt, good_enough=good_enough,
-                                 recentre=recentre - 1, significance=significance)
+        moved = fit_corner_model(
+            pts,
+            turn @ axis_a,
+            turn @ axis_b,
+            beam_half_angle=beam_half_angle,
+            tolerance=tolerance,
+            max_bands=max_bands,
+            max_refined=max_refined,
+            min_points=min_points,
+            max_tilt=max_tilt,
+            good_enough=good_enough,
+            recentre=recentre - 1,
+            significance=significance,
+        )
         if moved is not None and moved.cost < model.cost:
             return moved
     return model
 
 
 @kernel
-def _wall_bands(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, axis: np.ndarray, cos_t: float,
-                max_bands: int, min_points: int) -> np.ndarray:
+def _wall_bands(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    axis: np.ndarray,
+    cos_t: float,
+    max_bands: int,
+    min_points: int,
+) -> np.ndarray:
     """Offsets (> 0) of the densest bands of ``w = axis·p_c + d`` over the echoes whose boresight sees ``axis``."""
     n = distance.shape[0]
     w = np.empty(n)
@@ -993,8 +1222,9 @@ def _wall_bands(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, axi
 
 
 @kernel
-def _leaves_window(normal: np.ndarray, axis: np.ndarray, cov: np.ndarray, k: int, max_tilt: float,
-                   significance: float) -> bool:
+def _leaves_window(
+    normal: np.ndarray, axis: np.ndarray, cov: np.ndarray, k: int, max_tilt: float, significance: float
+) -> bool:
     """Whether a fitted wall lies beyond ``max_tilt`` of its axis *and* the echoes say so.
 
     A wall whose tilt the ranges barely constrain (capsules almost on the axis: no lever arm) can land
@@ -1013,9 +1243,22 @@ def _leaves_window(normal: np.ndarray, axis: np.ndarray, cov: np.ndarray, k: int
 
 
 @kernel
-def _corner_model(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, axis_a: np.ndarray,
-                  axis_b: np.ndarray, cos_t: float, tolerance: float, max_bands: int, max_refined: int,
-                  min_points: int, max_tilt: float, cos_max_tilt: float, good_enough: float, significance: float):
+def _corner_model(
+    capsule: np.ndarray,
+    distance: np.ndarray,
+    beam: np.ndarray,
+    axis_a: np.ndarray,
+    axis_b: np.ndarray,
+    cos_t: float,
+    tolerance: float,
+    max_bands: int,
+    max_refined: int,
+    min_points: int,
+    max_tilt: float,
+    cos_max_tilt: float,
+    good_enough: float,
+    significance: float,
+):
     """One pass of :func:`fit_corner_model` about the axes ``axis_a``, ``axis_b`` (unit), as a kernel.
 
     Hypotheses are the pairs of the walls' bands (:func:`band_offsets`); beyond ``max_refined`` of them
@@ -1035,8 +1278,21 @@ def _corner_model(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, a
     n_hyps = bands_a.shape[0] * bands_b.shape[0]
     if n_hyps == 0:
         empty = np.zeros(0)
-        return (axis_a.copy(), 0.0, axis_b.copy(), 0.0, np.zeros(0, dtype=np.intp), empty, np.inf, 0,
-                np.full((6, 6), np.inf), False, False, axis_a.copy(), axis_b.copy())
+        return (
+            axis_a.copy(),
+            0.0,
+            axis_b.copy(),
+            0.0,
+            np.zeros(0, dtype=np.intp),
+            empty,
+            np.inf,
+            0,
+            np.full((6, 6), np.inf),
+            False,
+            False,
+            axis_a.copy(),
+            axis_b.copy(),
+        )
     hyp_a = np.empty(n_hyps)
     hyp_b = np.empty(n_hyps)
     for i in range(bands_a.shape[0]):
@@ -1058,8 +1314,9 @@ def _corner_model(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, a
         loose_labels = np.empty((n_hyps, n), dtype=np.intp)
         loose_res = np.empty((n_hyps, n))
         for h in range(n_hyps):
-            loose_labels[h], loose_res[h] = _assign(capsule, distance, beam, axis_a, hyp_a[h], axis_b, hyp_b[h],
-                                                    cos_t, schedule[0, 0], schedule[0, 1])
+            loose_labels[h], loose_res[h] = _assign(
+                capsule, distance, beam, axis_a, hyp_a[h], axis_b, hyp_b[h], cos_t, schedule[0, 0], schedule[0, 1]
+            )
             loose[h] = _msac_cost(loose_res[h], schedule[0, 0])
         order = np.argsort(loose, kind="mergesort")[:max_refined]
     best_cost = np.inf
@@ -1067,9 +1324,23 @@ def _corner_model(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, a
     labels = np.zeros(0, dtype=np.intp)
     res = np.zeros(0)
     for h in order:
-        ra, rha, rb, rhb = _refine_walls(capsule, distance, beam, axis_a.copy(), hyp_a[h], axis_b.copy(), hyp_b[h],
-                                         schedule, cos_t, min_points, axis_a, axis_b, cos_max_tilt, loose_labels[h],
-                                         loose_res[h])
+        ra, rha, rb, rhb = _refine_walls(
+            capsule,
+            distance,
+            beam,
+            axis_a.copy(),
+            hyp_a[h],
+            axis_b.copy(),
+            hyp_b[h],
+            schedule,
+            cos_t,
+            min_points,
+            axis_a,
+            axis_b,
+            cos_max_tilt,
+            loose_labels[h],
+            loose_res[h],
+        )
         lab, r = _assign(capsule, distance, beam, ra, rha, rb, rhb, cos_t, tolerance, tolerance)
         cost = _msac_cost(r, tolerance)
         if h == order[0] or cost < best_cost:
@@ -1077,19 +1348,35 @@ def _corner_model(capsule: np.ndarray, distance: np.ndarray, beam: np.ndarray, a
         if np.count_nonzero(lab == ECHO_OUTLIER) <= good_enough * n:
             break  # the most promising pair already explains (nearly) every echo: no other can do better
     # (the assignment is a pure function of the walls: kept, not redone)
-    fa, fha, fb, fhb, cov, _moved = _joint_gauss_newton_from(capsule, distance, labels, wa, wha, wb, whb, 2, True, 6,
-                                                             1e-9, _assigned_cost(labels, res))
+    fa, fha, fb, fhb, cov, _moved = _joint_gauss_newton_from(
+        capsule, distance, labels, wa, wha, wb, whb, 2, True, 6, 1e-9, _assigned_cost(labels, res)
+    )
     out_a = _leaves_window(fa, axis_a, cov, 0, max_tilt, significance)
     out_b = _leaves_window(fb, axis_b, cov, 1, max_tilt, significance)
-    if (fa[0] * axis_a[0] + fa[1] * axis_a[1] + fa[2] * axis_a[2] >= cos_max_tilt
-            and fb[0] * axis_b[0] + fb[1] * axis_b[1] + fb[2] * axis_b[2] >= cos_max_tilt):
+    if (
+        fa[0] * axis_a[0] + fa[1] * axis_a[1] + fa[2] * axis_a[2] >= cos_max_tilt
+        and fb[0] * axis_b[0] + fb[1] * axis_b[1] + fb[2] * axis_b[2] >= cos_max_tilt
+    ):
         wa, wha, wb, whb = fa, fha, fb, fhb
         labels, res = _assign(capsule, distance, beam, wa, wha, wb, whb, cos_t, tolerance, tolerance)
     elif out_a or out_b:
         # The covariance belongs to (fa, fb), not to the walls held at the window: it would overclaim.
         cov = np.full((6, 6), np.inf)
-    return (wa, wha, wb, whb, labels, res, _msac_cost(res, tolerance), min(n_hyps, max_refined), cov, out_a, out_b,
-            fa, fb)
+    return (
+        wa,
+        wha,
+        wb,
+        whb,
+        labels,
+        res,
+        _msac_cost(res, tolerance),
+        min(n_hyps, max_refined),
+        cov,
+        out_a,
+        out_b,
+        fa,
+        fb,
+    )
 
 
 def _roll(normal: np.ndarray, axis: np.ndarray) -> float:
