@@ -238,3 +238,12 @@ def array_pose(x: float, y: float, heading: float, mount: str, height: float) ->
         The array frame's origin (on the rotation axis, ``height`` above the floor), m.
     """
     return rotation_z(heading) @ mount_rotation(mount), np.array([x, y, height], dtype=float)
+
+
+def beam_heading(orientation) -> float:
+    """Heading (rad, counter-clockwise from +x) of an array's γ = 0 beam, the frame's +y, projected on the floor.
+
+    ``orientation`` is the array frame's (x, y, z, w) in a z-up world frame.
+    """
+    beam = matrix_from_quaternion(orientation)[:, 1]
+    return float(np.arctan2(beam[1], beam[0]))

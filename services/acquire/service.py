@@ -12,7 +12,7 @@ import logging
 import math
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, nullcontext
 from dataclasses import dataclass
 
 from rich.console import Console
@@ -22,6 +22,7 @@ from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
+from lelsonar.acquire.world_scans import prepare_world
 from lelsonar.energy_model import EnergyModel
 from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder
@@ -84,12 +85,17 @@ def run_acquisition(
     from lelsonar.acquire.backends import open_scanner
 
     console = console or Console(stderr=True)
+    world = prepare_world(cfg.world, cfg.seed, steps=cfg.steps) if cfg.world is not None else None
     if cfg.device == "serial":  # the rig file and flags only, never a simulator preset
         from lelsonar.acquire.rig import serial_setup
 
         setup, sim = serial_setup(cfg), None
         schedule = gamma_schedule(setup.gamma_start, setup.gamma_stop, setup.steps)
         model = setup.energy_model
+    elif world is not None:  # one simulated sweep per pose, each its own scanner
+        sim = None
+        schedule = world.schedule
+        model = energy_model(cfg)
     else:
         sim = sim_config(cfg)
         schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
@@ -108,14 +114,17 @@ def run_acquisition(
             server = stack.enter_context(LogServer(session, keys, log))
             publisher = ScanPublisher(session, keys)
             stack.callback(_quietly, "undeclaring the publishers", publisher.close)
-        with open_scanner(cfg, sim) as scanner:
+        with nullcontext(None) if world is not None else open_scanner(cfg, sim) as opened:
             for index in range(cfg.scans):
                 scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
                 path = cfg.mcap_path(index) if cfg.record else None
+                scanner = world.scanner(index) if world is not None else opened
+                assert scanner is not None  # open_scanner yields one whenever there is no world
+                meta = cfg.as_metadata() | (world.metadata(index) if world is not None else {})
                 with ExitStack() as scan_stack:
                     recorder = (
                         scan_stack.enter_context(
-                            McapRecorder(path, compression=cfg.compression, metadata=cfg.as_metadata(), fsync=cfg.fsync)
+                            McapRecorder(path, compression=cfg.compression, metadata=meta, fsync=cfg.fsync)
                         )
                         if path
                         else None
@@ -150,6 +159,9 @@ def run_acquisition(
                 if path:
                     report.paths.append(path)
                 status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
+                if world is not None:
+                    p = world.world.poses[index]
+                    status += f" at pose {index + 1} (x {p.x:g} m, y {p.y:g} m, heading {math.degrees(p.heading):g}°)"
                 console.print(
                     f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
                     f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else "")

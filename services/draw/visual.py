@@ -19,7 +19,8 @@ Topics (the names are the same live and recorded):
 ==========================  =============================  =====================================
 topic                       schema                         what
 ==========================  =============================  =====================================
-``/tf``                     ``foxglove.FrameTransform``    world → array, per step (recording)
+``/tf``                     ``foxglove.FrameTransform``    world → array, per step (recording); map → odom →
+                                                           base_link → world per scan, when the scan has a pose
 ``/tf_capsules``            ``foxglove.FrameTransforms``   array → capsule_X, per scan
 ``/lelsonar/array``         ``foxglove.SceneUpdate``       capsules and beams, in the array frame
 ``/lelsonar/points``        ``foxglove.PointCloud``        the raw points of the latest step
@@ -57,6 +58,7 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.draw.palette import QUALITY_NAME, method_color, quality_color
+from lelsonar.geometry import beam_heading, matrix_from_quaternion, quaternion_from_matrix, rotation_z
 from lelsonar.v1 import reconstruction_pb2
 
 WORLD_FRAME = "world"
@@ -146,6 +148,40 @@ def array_transform(gamma: float, t_ns: int) -> FrameTransform:
     """world → array: the array turned by γ about x."""
     half = 0.5 * gamma
     return frame_transform(WORLD_FRAME, ARRAY_FRAME, t_ns, rotation=(math.sin(half), 0.0, 0.0, math.cos(half)))
+
+
+MAP_FRAME = "map"
+BASE_FRAME = "base_link"
+
+
+def pose_transforms(start: codec.ScanStart, t_ns: int) -> list[FrameTransform]:
+    """map → odom → base_link → world of a scan that carries a pose; none for one that does not.
+
+    ``odom`` is the pose's frame (map → odom is the identity: the odometry's own start).
+    ``base_link`` is the floor point below the array, heading along its γ = 0 beam; ``world``
+    (the array frame at γ = 0, the frame the scan is drawn in) sits on it by the mount.
+    """
+    if not start.HasField("pose"):
+        return []
+    pose = codec.scan_pose(start)
+    out = []
+    if pose.frame_id != MAP_FRAME:
+        out.append(frame_transform(MAP_FRAME, pose.frame_id, t_ns))
+    heading = beam_heading(pose.orientation)
+    base_rot = rotation_z(heading)
+    base_t = np.array([pose.position[0], pose.position[1], 0.0])
+    out.append(
+        frame_transform(
+            pose.frame_id, BASE_FRAME, t_ns, base_t, (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2))
+        )
+    )
+    mount = base_rot.T @ matrix_from_quaternion(pose.orientation)
+    out.append(
+        frame_transform(
+            BASE_FRAME, WORLD_FRAME, t_ns, base_rot.T @ (pose.position - base_t), quaternion_from_matrix(mount)
+        )
+    )
+    return out
 
 
 def capsule_transforms(start: codec.ScanStart, t_ns: int | None = None) -> FrameTransforms:

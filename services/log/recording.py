@@ -9,7 +9,8 @@ topic                           schema                            what
 ``/lelsonar/sample``            ``lelsonar.v1.Sample``            one per step
 ``/lelsonar/scan_end``          ``lelsonar.v1.ScanEnd``           one per scan
 ``/lelsonar/reconstruction``    ``lelsonar.v1.Reconstruction``    estimates, when recorded
-``/tf``                         ``foxglove.FrameTransform``       world → array, per step
+``/tf``                         ``foxglove.FrameTransform``       world → array, per step; map → odom →
+                                                                  base_link → world per scan with a pose
 ``/lelsonar/points``            ``foxglove.PointCloud``           raw points of the step (eq. 9)
 ``/log``                        ``foxglove.Log``                  events
 ``/tf_capsules``                ``foxglove.FrameTransforms``      array → capsule_X, per scan
@@ -217,6 +218,8 @@ class McapRecorder:
         if isinstance(message, codec.ScanStart):
             views.cloud.scan_started(message)
             self._put(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(message, t), t)
+            for tf in visual.pose_transforms(message, t):  # where the robot was: map → odom → base_link → world
+                self._put(TOPIC_TF, tf, t)
             self._put(visual.TOPIC_ARRAY, visual.array_model(message, t), t)
             self._writer.add_metadata("lelsonar.log.recording", recording_name_metadata(message))
         elif isinstance(message, codec.Sample):
