@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 
 from lelsonar import codec
@@ -191,6 +192,15 @@ def test_acquire_world_records_one_scan_per_pose_with_its_pose_on_scan_start_and
         np.testing.assert_allclose(rot[:, 0], [0, 0, 1], atol=1e-9)
         assert pose["z"] == pytest.approx(0.3)
         assert pose["heading"] == pytest.approx(math.atan2(rot[1, 1], rot[0, 1]))
+    # Foxglove draws the world as truth and the scan's pose.
+    with open(paths[0], "rb") as f:
+        scenes = [
+            SceneUpdate.FromString(m.data) for _s, _c, m in make_reader(f).iter_messages(topics=["/lelsonar/world"])
+        ]
+    ids = {(e.frame_id, e.id.split("/")[-1]) for u in scenes for e in u.entities}
+    assert ("map", "truth") in ids and ("odom", "pose") in ids
+    drawn = next(e for u in scenes for e in u.entities if e.id == "world/truth")
+    assert len(drawn.cubes) == 4 and len(drawn.arrows) == 2
     # The first pose is where the odometry starts: exact, no covariance.
     first = infos[0]["scans"][0]["pose"]
     assert (first["x"], first["y"], first["heading"]) == pytest.approx(truth[0])
