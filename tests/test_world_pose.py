@@ -232,3 +232,40 @@ def test_acquire_world_errors_are_one_line(tmp_path, capsys):
     assert lelsonar_main(["acquire", "--device", "sim", "--world", str(tmp_path / "nope.toml"), "--no-zenoh"]) != 0
     err = capsys.readouterr().err.strip()
     assert "does not exist" in err and "Traceback" not in err
+
+
+def _odometry(scanner_id="scanner1", yaw=math.pi / 2, cov=None) -> bytes:
+    msg = codec.Odometry(schema_version=1, scanner_id=scanner_id, time_ns=1)
+    msg.pose.CopyFrom(
+        codec.pose_message("odom", (1.0, 2.0, 0.0), (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), cov)
+    )
+    return msg.SerializeToString()
+
+
+def test_a_robot_s_odometry_becomes_the_array_s_pose_through_the_mount():
+    from lelsonar.acquire.odometry import OdometryFollower
+    from lelsonar.keys import ScannerKeys
+
+    follower = OdometryFollower(None, ScannerKeys("lelsonar", "scanner1"), max_age=1.0)
+    pose, why = follower.pose_for_scan("fan", 0.3, now_ns=10)
+    assert pose is None and "no odometry received on lelsonar/scanner1/odom" in why
+    assert not follower.offer(b"\x00garbage", 5) and follower.rejected == 1
+    assert not follower.offer(_odometry("other"), 5) and follower.rejected == 2
+    # Base at (1, 2) facing +y; roll variance s² about x, yaw variance t².
+    s2, t2 = 0.01**2, 0.02**2
+    cov = np.diag([0.04, 0.09, 0.0, s2, 0.0, t2])
+    assert follower.offer(_odometry(cov=cov), 1_000_000_000)
+    pose, why = follower.pose_for_scan("fan", 0.3, now_ns=1_500_000_000)
+    assert why == ""
+    got = codec.scan_pose(codec.ScanStart(pose=pose))
+    np.testing.assert_allclose(got.position, [1.0, 2.0, 0.3], atol=1e-12)
+    rot = matrix_from_quaternion(got.orientation)
+    # Fan: the rotation axis up, the γ = 0 beam along the base's heading (+y), γ = 90° to its left (−x).
+    np.testing.assert_allclose(rot, [[0, 0, -1], [0, 1, 0], [1, 0, 0]], atol=1e-12)
+    # A roll δθ about x moves the array, 0.3 m up, by δθ × (0, 0, 0.3) = (0, −0.3 δθ, 0): y gains 0.09·s².
+    expected = cov.copy()
+    expected[1, 1] += 0.3**2 * s2
+    expected[1, 3] = expected[3, 1] = -0.3 * s2
+    np.testing.assert_allclose(got.covariance, expected, atol=1e-15)
+    stale, why = follower.pose_for_scan("fan", 0.3, now_ns=3_000_000_000)
+    assert stale is None and "2.0 s old" in why

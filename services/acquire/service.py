@@ -21,6 +21,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
+from lelsonar.acquire.odometry import OdometryFollower
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
 from lelsonar.acquire.world_scans import prepare_world
 from lelsonar.energy_model import EnergyModel
@@ -106,6 +107,7 @@ def run_acquisition(
     with ExitStack() as stack:
         publisher = None
         server = None
+        follower = None
         if zenoh is not None:
             session = stack.enter_context(open_session(zenoh))
             token = session.liveliness().declare_token(keys.alive("acquire"))
@@ -114,12 +116,21 @@ def run_acquisition(
             server = stack.enter_context(LogServer(session, keys, log))
             publisher = ScanPublisher(session, keys)
             stack.callback(_quietly, "undeclaring the publishers", publisher.close)
+            if world is None and cfg.rig is not None and cfg.rig.get("mount.kind") is not None:
+                # A robot's scanner: each scan carries the pose its odometry publishes, through the mount.
+                follower = OdometryFollower(session, keys, max_age=cfg.rig.get("mount.odometry_max_age", 1.0))
+                stack.callback(_quietly, "undeclaring the odometry subscriber", follower.close)
         with nullcontext(None) if world is not None else open_scanner(cfg, sim) as opened:
             for index in range(cfg.scans):
                 scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
                 path = cfg.mcap_path(index) if cfg.record else None
                 scanner = world.scanner(index) if world is not None else opened
                 assert scanner is not None  # open_scanner yields one whenever there is no world
+                if follower is not None and cfg.rig is not None:
+                    pose, why = follower.pose_for_scan(cfg.rig.get("mount.kind"), cfg.rig.get("mount.height", 0.0))
+                    scanner.info = dataclasses.replace(scanner.info, pose=pose)
+                    if why:
+                        console.print(f"acquire: {why}")
                 meta = cfg.as_metadata() | (world.metadata(index) if world is not None else {})
                 with ExitStack() as scan_stack:
                     recorder = (

@@ -170,7 +170,7 @@ def _maze(rng):
             stack.pop()
             continue
         nxt = nexts[int(rng.integers(len(nexts)))]
-        open_edges.add(tuple(sorted(((cx, cy), nxt))))  # type: ignore[arg-type]
+        open_edges.add(tuple(sorted(((cx, cy), nxt))))
         seen.add(nxt)
         stack.append(nxt)
     exit_cell = (nx - 1, int(rng.integers(ny)))
