@@ -87,10 +87,10 @@ def test_a_right_corner_returns_the_double_bounce_from_the_edge_and_the_triple_f
     caps = _fan_capsules(math.radians(45.0))
     horizontal = np.hypot(2.0 - caps[:, 0], 2.0 - caps[:, 1])  # = 2√2 − r
     np.testing.assert_allclose(horizontal, 2 * math.sqrt(2) - R, atol=1e-12)
-    dihedral = _slot(model, ElementKind.DIHEDRAL, "wall1|wall2@2,2")
+    dihedral = _slot(model, ElementKind.DIHEDRAL, "wall1|wall2@2,2:225")
     np.testing.assert_allclose(table.range[0, :, dihedral], horizontal, atol=1e-12)
     assert (table.source[0, :, dihedral] == EchoSource.CORNER).all()
-    trihedral = _slot(model, ElementKind.TRIHEDRAL, "wall1|wall2|floor@2,2")
+    trihedral = _slot(model, ElementKind.TRIHEDRAL, "wall1|wall2|floor@2,2:225")
     np.testing.assert_allclose(table.range[0, :, trihedral], np.hypot(horizontal, caps[:, 2]), atol=1e-12)
     assert (table.source[0, :, trihedral] == EchoSource.TRIHEDRAL).all()
 
@@ -125,7 +125,7 @@ def test_a_free_wall_end_diffracts_from_its_edge():
     gamma = math.degrees(math.atan2(0.4, 1.2))
     model, rig, table = _table(world, gamma)
     caps = _fan_capsules(math.radians(gamma))
-    k = _slot(model, ElementKind.EDGE, "wall1@1.2,0.4")
+    k = _slot(model, ElementKind.EDGE, "wall1@1.2,0.4:270")
     expected = np.hypot(1.2 - caps[:, 0], 0.4 - caps[:, 1])
     np.testing.assert_allclose(table.range[0, :, k], expected, atol=1e-12)
     # Weak: the edge gain times a mirror at that range, on the boresight.
@@ -222,3 +222,25 @@ def test_the_example_worlds_load_and_scan(tmp_path):
         scan = simulate_world_scan(world, 0, seed=0, with_waveforms=False)
         # Most beams of a closed world find a surface.
         assert np.isfinite(scan.distance).mean() > 0.5, name
+
+
+def test_a_wall_ending_on_another_makes_two_right_corners_and_no_edge():
+    # Wall 2 runs from (0, -1) up to wall 1 (y = 2) and ends on its middle: a T with two concave corners.
+    world = _world([((-3.0, 2.0), (3.0, 2.0)), ((0.0, -1.0), (0.0, 2.0))], pose=(1.0, 0.0, 0.0))
+    model = build_model(world)
+    at_t = [e for e in model.elements if "@0,2:" in e.label]
+    assert sorted(e.kind.name for e in at_t) == ["DIHEDRAL", "DIHEDRAL", "TRIHEDRAL", "TRIHEDRAL"]
+    # From (1, 0), the beam towards the junction (heading atan2(2, −1)) sees the corner on its side.
+    gamma = math.degrees(math.atan2(2.0, -1.0))
+    rig = world_rig(world)
+    rot, trans = pose_frame(rig, world.poses[0])
+    table = world_echo_table(model, rig, rot, trans, np.radians([gamma]))
+    caps = _fan_capsules(math.radians(gamma)) + np.array([1.0, 0.0, 0.0])
+    k = _slot(model, ElementKind.DIHEDRAL, "wall1|wall2@0,2:315")  # the sector x > 0, y < 2
+    np.testing.assert_allclose(table.range[0, :, k], np.hypot(0.0 - caps[:, 0], 2.0 - caps[:, 1]), atol=1e-12)
+    tri = _slot(model, ElementKind.TRIHEDRAL, "wall1|wall2|floor@0,2:315")
+    horizontal = np.hypot(0.0 - caps[:, 0], 2.0 - caps[:, 1])
+    np.testing.assert_allclose(table.range[0, :, tri], np.hypot(horizontal, caps[:, 2]), atol=1e-12)
+    # The other corner of the T (x < 0, its bisector at 225°) is behind wall 2 from here: no echo.
+    others = [i for i, e in enumerate(model.elements) if "@0,2:225" in e.label]
+    assert len(others) == 2 and np.isnan(table.range[0][:, others]).all()

@@ -176,6 +176,10 @@ def test_acquire_world_records_one_scan_per_pose_with_its_pose_on_scan_start_and
         assert pose["known"] and pose["frame_id"] == "odom" and scan["status"] == "complete"
         meta = info["metadata"]["lelsonar.config"]
         assert json.loads(meta["truth_pose"]) == pytest.approx({"x": x, "y": y, "heading": heading, "frame_id": "map"})
+        # Which element set each reading: one per step and capsule, an index into the element list.
+        elements = json.loads(meta["truth_elements"])
+        which = np.array(json.loads(meta["truth_echo_element"]))
+        assert which.shape == (24, 4) and which.max() < len(elements) and (which >= 0).mean() > 0.5
         starts = [m for m in recording.read_messages(path) if isinstance(m, codec.ScanStart)]
         tfs = []
         with open(path, "rb") as f:

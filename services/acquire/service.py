@@ -23,7 +23,7 @@ from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.odometry import OdometryFollower
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
-from lelsonar.acquire.world_scans import prepare_world
+from lelsonar.acquire.world_scans import WorldReplay, prepare_world
 from lelsonar.energy_model import EnergyModel
 from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder
@@ -131,7 +131,9 @@ def run_acquisition(
                     scanner.info = dataclasses.replace(scanner.info, pose=pose)
                     if why:
                         console.print(f"acquire: {why}")
-                meta = cfg.as_metadata() | (world.metadata(index) if world is not None else {})
+                meta = cfg.as_metadata()
+                if world is not None and isinstance(scanner, WorldReplay):
+                    meta |= world.metadata(index, scanner.scan)  # the truth, never on the wire
                 with ExitStack() as scan_stack:
                     recorder = (
                         scan_stack.enter_context(

@@ -103,11 +103,21 @@ class WorldRun:
         rng = np.random.default_rng([self.seed, index])
         return WorldReplay(simulate_world_scan(self.model, index, rig=self.rig, seed=rng), self.pose_message(index))
 
-    def metadata(self, index: int) -> dict[str, str]:
-        """Ground truth for the recording of pose ``index``: the world, the true pose, the odometry's."""
+    def metadata(self, index: int, scan: WorldScan | None = None) -> dict[str, str]:
+        """Ground truth for the recording of pose ``index``: the world, the true pose, the odometry's, and
+        (given its ``scan``) which element of the world set each reading: ``truth_echo_element`` per step and
+        capsule, an index into ``truth_elements`` (−1 for none), and ``truth_echo_kind``, its
+        :class:`~lelsonar.sim.scan.EchoSource` (a diffuse echo names the mirror element of its surface)."""
         p = self.world.poses[index]
         o = self.odometry[index]
-        return {
+        echoes = {}
+        if scan is not None:
+            echoes = {
+                "truth_elements": json.dumps([e.describe() for e in self.model.elements]),
+                "truth_echo_element": json.dumps(np.where(scan.echo_source > 0, scan.echo_index, -1).tolist()),
+                "truth_echo_kind": json.dumps(scan.echo_source.tolist()),
+            }
+        return echoes | {
             "world_file": str(self.path),
             "world_name": self.world.name,
             "pose_index": str(index),

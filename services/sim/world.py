@@ -34,10 +34,12 @@ _TABLES = {"world", "room", "wall", "box", "scanner", "pose", "odometry", "acous
 
 @dataclass(frozen=True)
 class Room:
-    """Horizontal planes: the floor (always) and an optional ceiling, m."""
+    """Horizontal planes: the floor (always) and an optional ceiling (heights in m, reflectivities in (0, 1])."""
 
     floor: float = 0.0
     ceiling: float | None = None
+    floor_reflectivity: float = 0.95
+    ceiling_reflectivity: float = 0.95
 
 
 @dataclass(frozen=True)
@@ -325,12 +327,17 @@ def parse_world(data: dict, where: str = "world") -> World:
     name = meta.string("name", Path(where).stem)
 
     rt = _Table(where, "[room]", data.get("room", {}))
-    rt.check_keys(("floor", "ceiling"))
+    rt.check_keys(("floor", "ceiling", "floor_reflectivity", "ceiling_reflectivity"))
     floor = rt.number("floor", 0.0, lo=-100.0, hi=100.0, example="floor = 0.0")
     ceiling = rt.optional_number("ceiling", lo=-100.0, hi=200.0)
     if ceiling is not None and ceiling <= floor + 0.5:
         raise ConfigError(f"{where}: [room] 'ceiling' must be at least 0.5 m above the floor; write ceiling = 2.6")
-    room = Room(floor=floor, ceiling=ceiling)
+    room = Room(
+        floor=floor,
+        ceiling=ceiling,
+        floor_reflectivity=rt.number("floor_reflectivity", 0.95, lo=0.01, hi=1.0),
+        ceiling_reflectivity=rt.number("ceiling_reflectivity", 0.95, lo=0.01, hi=1.0),
+    )
     top = (ceiling - floor) if ceiling is not None else DEFAULT_WALL_HEIGHT
 
     walls: list[Wall] = []

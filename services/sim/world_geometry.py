@@ -221,11 +221,13 @@ def build_model(world: World) -> WorldModel:
     extent = (x1 - x0 + 2 * _FLOOR_MARGIN, y1 - y0 + 2 * _FLOOR_MARGIN)
     middle = ((x0 + x1) / 2, (y0 + y1) / 2)
     floor_index = len(surfaces)
-    surfaces.append(_horizontal_rect("floor", "floor", middle, extent, 0.0, floor, True, 0.95))
+    surfaces.append(_horizontal_rect("floor", "floor", middle, extent, 0.0, floor, True, world.room.floor_reflectivity))
     ceiling_index = -1
     if ceiling is not None:
         ceiling_index = len(surfaces)
-        surfaces.append(_horizontal_rect("ceiling", "ceiling", middle, extent, 0.0, ceiling, False, 0.95))
+        surfaces.append(
+            _horizontal_rect("ceiling", "ceiling", middle, extent, 0.0, ceiling, False, world.room.ceiling_reflectivity)
+        )
 
     for i, s in enumerate(surfaces):
         zero = np.zeros(3)
@@ -342,7 +344,8 @@ def _junction_elements(
                 p0, p1 = np.array([c[0], c[1], lo]), np.array([c[0], c[1], hi])
                 sector = (float(c[0]), float(c[1]), float(a0), float(span))
                 pair = (fa,) if fa == fb else (min(fa, fb), max(fa, fb))
-                at = f"@{c[0]:g},{c[1]:g}"
+                # Where, and towards which side: the junction's point and the heading of the sector's bisector.
+                at = f"@{c[0]:g},{c[1]:g}:{math.degrees((a0 + span / 2) % (2 * math.pi)):.0f}"
                 label = "|".join(surfaces[i].label for i in pair)
                 gain = float(np.prod([surfaces[i].reflectivity for i in pair]))
                 if span < math.pi - _STRAIGHT:
