@@ -1,4 +1,4 @@
-"""``lelsonar bench estimators --families …``: every estimator on seeded scene families (issue 9 §1).
+"""``lelsonar bench estimators --families …``: every estimator on seeded scene families.
 
 For each family of :mod:`lelsonar.sim.scenes` and each seed, the
 scene is drawn (``draw_scene(family, seed)``), simulated
@@ -948,7 +948,7 @@ def _scan_ms(s: dict[str, Any]) -> float:
 def _targets(
     summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], default: str
 ) -> list[tuple[str, dict[str, bool]]]:
-    """Issue 9's "done when" checks of the default method, per family."""
+    """The default method's targets, checked per family."""
     out = []
     for fam in families:
         s = summary.get((fam, default))
@@ -973,7 +973,7 @@ def _targets(
 
 
 def run_families(args: argparse.Namespace) -> int:
-    """Run the family benchmark, print the tables; 0 if the default method meets issue 9's targets."""
+    """Run the family benchmark, print the tables; 0 if the default method meets its targets."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -1231,7 +1231,7 @@ def run_families(args: argparse.Namespace) -> int:
     targets = _targets(summary, families, DEFAULT_METHOD)
     misses = [f"{fam}: {k}" for fam, checks in targets for k, ok in checks.items() if not ok]
     if targets:
-        tt = Table(title=f"Issue 9 targets for the default method {DEFAULT_METHOD!r}", title_justify="left")
+        tt = Table(title=f"Targets for the default method {DEFAULT_METHOD!r}", title_justify="left")
         tt.add_column("family")
         names = list(targets[0][1])
         for n in names:
@@ -1288,11 +1288,7 @@ def run_families(args: argparse.Namespace) -> int:
         console.print(f"wrote {out} ({len(rows)} plane rows)")
     console.print(
         f"default method {DEFAULT_METHOD!r}: "
-        + (
-            "[green]meets issue 9's targets on every family[/]"
-            if not misses
-            else f"[red]misses {len(misses)} targets[/]"
-        )
+        + ("[green]meets its targets on every family[/]" if not misses else f"[red]misses {len(misses)} targets[/]")
     )
     return 0 if not misses else 1
 
@@ -1358,7 +1354,7 @@ def json_default(o: Any) -> Any:
 
 def add_family_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``--families`` mode's own flags (``--seeds``, ``--methods``, ``--jobs``, ``--json`` are shared)."""
-    g = parser.add_argument_group("scene families (issue 9)")
+    g = parser.add_argument_group("scene families")
     g.add_argument(
         "--families",
         nargs="+",

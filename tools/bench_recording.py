@@ -1,4 +1,4 @@
-"""``lelsonar bench recording``: what durable recording costs (issue 10 §1).
+"""``lelsonar bench recording``: what durable recording costs.
 
 The acquisition recorder hands every step to the OS before the step is
 published: one MCAP chunk per step (Sample, /tf and points), flushed.  This

@@ -1,7 +1,7 @@
 """Echo times that do not walk with the echo's amplitude, and the test of a writer's ranges that do.
 
 A board's comparator sets the time of flight where the echo first crosses a
-threshold (design notes §8).  The echo's envelope rises over a few carrier
+threshold.  The echo's envelope rises over a few carrier
 cycles (the transducers' Q), so on a weaker echo the crossing comes later:
 ``t(A) ≈ onset + rise·f(threshold/A)``.  Over a sweep a wall's echo weakens
 off its normal (``D(ψ)²``), so such ranges carry a bias of millimetres to
@@ -78,7 +78,7 @@ def echo_onsets(
     *,
     level: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Constant-fraction time of the echo that set each reading's time of flight (design notes §8).
+    """Constant-fraction time of the echo that set each reading's time of flight.
 
     The envelope is the analytic signal's modulus (Hilbert transform) of each window less its floor's
     mean, smoothed over one carrier period.  The echo is the first local maximum of the envelope (over
@@ -392,7 +392,7 @@ WALK_Z = 4.0
 def range_walk(
     offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WALK, z: float = WALK_Z, halves: bool = True
 ) -> RangeWalk:
-    """Whether the writer's ranges walk with the echoes' amplitude (design notes §8).
+    """Whether the writer's ranges walk with the echoes' amplitude.
 
     A least-squares line of ``offset`` against ``ln(peak)``, after dropping offsets more than 5 robust σ
     from their median (a cycle slip of the writer's comparator, an echo timed on a neighbour).

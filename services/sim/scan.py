@@ -3,7 +3,7 @@
 One physics for a whole scan (:func:`simulate_scan`) and for one shot
 (:func:`simulate_step`, used by the sensor-board emulator).
 
-Echo model (design notes §8):
+Echo model:
 
 * **Mirror echo** of panel ``p``: the sound leaves and returns along the panel
   normal.  Range = perpendicular distance ``s`` from the capsule; present when

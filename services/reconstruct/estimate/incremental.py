@@ -1,4 +1,4 @@
-"""Cheap provisional estimates of a plane while its scan arrives (issue 12 §2).
+"""Cheap provisional estimates of a plane while its scan arrives.
 
 The live service re-estimates plane b as samples come.  Refitting it from
 scratch each time costs O(points) with the solver's constant (fast LEL,

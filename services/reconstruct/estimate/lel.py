@@ -7,7 +7,7 @@ residuals are ``r_i = v_i · θ − 1`` (eq. 2), ``D = Σ r_i²`` (eq. 3),
     H = −(1 / log N) Σ q_i log q_i   (eq. 6),   H = 0 if D = 0.
 
 With ``s_i = r_i²`` and ``S = Σ s_i log s_i`` this is
-``H = (log D − S / D) / log N``, and its gradient (design notes §9) is
+``H = (log D − S / D) / log N``, and its gradient is
 
     ∂H/∂r_i = 2 r_i (S/D − log s_i) / (D log N),
     ∇_θ H   = (2 / (D log N)) Σ r_i v_i (S/D − log s_i).
@@ -213,7 +213,7 @@ def entropy(theta: np.ndarray, points: np.ndarray) -> float:
 
 
 def residual_gradient(residuals: np.ndarray) -> tuple[float, np.ndarray]:
-    """``H`` and ``∂H/∂r`` for a residual vector (eq. 6; design notes §9).
+    """``H`` and ``∂H/∂r`` for a residual vector (eq. 6).
 
     ``∂H/∂r_i = 2 r_i (S/D − log s_i) / (D log N)`` with ``s = r²``,
     ``D = Σ s``, ``S = Σ s log s``; ``r_i log s_i`` is taken as 0 where
@@ -230,7 +230,7 @@ def residual_gradient(residuals: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def entropy_and_gradient(theta: np.ndarray, points: np.ndarray) -> tuple[float, np.ndarray]:
-    """``H(θ)`` and its closed-form gradient ``∇_θ H`` (eq. 6; design notes §9).
+    """``H(θ)`` and its closed-form gradient ``∇_θ H`` (eq. 6).
 
     ``∇_θ H = (2 / (D log N)) Σ r_i v_i (S/D − log s_i)``.
 
