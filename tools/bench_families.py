@@ -884,7 +884,7 @@ def serial_scan_times(
             except Exception:  # noqa: BLE001 — reported by the accuracy run
                 break
             ts.append(time.perf_counter() - t0)
-            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper: ~0.5 s) gets two measured runs
+            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper) gets two measured runs
                 break
         out[method] = 1e3 * float(np.min(ts[1:])) if len(ts) > 1 else float("nan")
     return out

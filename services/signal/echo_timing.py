@@ -158,8 +158,8 @@ def echo_onsets(
 def _time_envelopes(w, x, hilbert, tof_at, start, sample_rate, head, period, half, fraction, levels):
     """:func:`echo_onsets` from each window ``w`` (N, W), less its floor's mean ``x`` (float32), and the
     Hilbert transform of ``x`` (``hilbert``, (N, ≥ W) float32): the envelope, its smoothing, the floor, the peak,
-    the knee and the crossings, one window at a time (a kernel: as NumPy over the whole block it took ~3 ms
-    for the 184 windows of a scan's screen).
+    the knee and the crossings, one window at a time (a kernel: as NumPy over the whole block it pays per-call
+    overhead for every window of a scan's screen).
 
     ``start`` is the first sample the echo's peak is looked for from, ``period`` the carrier period and
     ``half`` the peak's half width, in samples; ``levels`` :func:`echo_onsets`' ``level`` (all NaN: none); the
@@ -444,7 +444,7 @@ def _walk_line(o, a):
     """:func:`range_walk`'s statistics of the offsets ``o`` (m) against the log peaks ``a`` of the echoes
     timed: how many are kept, ``(slope, stderr, walk, reference)`` and the slope and its standard error over
     the weaker and the stronger half (NaN: too few), and the curve's ``(ln peak, offset, spread)`` rows.
-    (A kernel: in NumPy its ~60 small calls took ~1 ms a final.)"""
+    (A kernel: in NumPy it is ~60 small calls a final.)"""
     if o.size >= MIN_TIMED:
         med = np.median(o)
         mad = 1.4826 * np.median(np.abs(o - med))

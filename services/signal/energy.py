@@ -432,7 +432,7 @@ def median_range(distance: np.ndarray) -> np.ndarray:
 
 @kernel
 def _median_ranges(rows):
-    """:func:`step_median_range` of each row (a kernel: np.nanmedian goes through masked arrays, ~0.4 ms)."""
+    """:func:`step_median_range` of each row (a kernel: np.nanmedian goes through masked arrays)."""
     out = np.empty(rows.shape[0])
     for i in range(rows.shape[0]):
         out[i] = step_median_range(rows[i])

@@ -568,10 +568,10 @@ def lel_fit_fast(
     ``extra_starts`` — a local solver minimises ``H``:
 
     * ``"newton"`` (default): :func:`newton_minimize`, damped Newton with the
-      closed-form Hessian, about 10–20 iterations of ~25 µs on 300 points;
+      closed-form Hessian, about 10–20 iterations on 300 points;
     * ``"bfgs"`` / ``"l-bfgs-b"``: SciPy's quasi-Newton solvers with the
       closed-form gradient (:func:`entropy_and_gradient`); same minima, but
-      SciPy's per-call overhead makes them ~1–2 ms.
+      SciPy's per-call overhead makes them several times slower.
 
     The start with the least ``H`` wins.  On 500 simulated plane subsets
     (``lelsonar bench estimators``) θ_LS alone ended above the six-start
@@ -593,7 +593,7 @@ def lel_fit_fast(
         Stop when ``|∇H|·|θ| < gtol``; iteration cap per start.
     polish : bool
         Finish with a tight Nelder-Mead run on a tiny simplex around the best
-        minimum (only ever lowers ``H``; costs ~1 ms).  Not needed in practice.
+        minimum (only ever lowers ``H``).  Not needed in practice.
 
     Returns
     -------
