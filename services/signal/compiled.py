@@ -15,7 +15,7 @@ Settings, and why:
   calling another module's kernel would otherwise keep stale machine code after that module changed.
 - ``nogil=True``: a kernel releases the GIL, so the live source's threads keep receiving.
 - ``error_model="numpy"``: division by zero gives inf/NaN as NumPy does, not an exception.
-- no ``fastmath``: results stay IEEE, so a kernel agrees with the NumPy it replaced to rounding.
+- no ``fastmath``: results stay IEEE, so a kernel agrees with the equivalent NumPy to rounding.
 - Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
 """
 
