@@ -1256,7 +1256,7 @@ def run_families(args: argparse.Namespace) -> int:
         out.write_text(
             markdown_table(summary, families, all_methods, DEFAULT_METHOD, command, machine()), encoding="utf-8"
         )
-        console.print(f"wrote {out} (Markdown, for the README)")
+        console.print(f"wrote {out} (Markdown)")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -1301,7 +1301,7 @@ def markdown_table(
     command: str,
     machine_line: str,
 ) -> str:
-    """The summary as a Markdown table with the command and machine it came from (for the README)."""
+    """The summary as a Markdown table with the command and machine it came from."""
     lines = [
         f"`{command}` ({machine_line}). Medians / p95 over planes a and b; failure: patch > 2 cm and "
         "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
@@ -1371,7 +1371,7 @@ def add_family_arguments(parser: argparse.ArgumentParser) -> None:
         help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
         "(default), or eight at 0.6-2.7 m covering the families' walls",
     )
-    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table (README)")
+    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table")
     g.add_argument(
         "--dump-failures",
         metavar="DIR",
