@@ -15,7 +15,7 @@ The router carries the access-control rules: deny by default, then what each
 role may do, keyed by the certificate's common name (:func:`access_control`).
 A sender needs an *ingress* rule for a message and the receiver the matching
 *egress* rule; a declared publisher also needs an egress ``declare_subscriber``
-rule, or it never learns that anyone listens (design notes §11).
+rule, or it never learns that anyone listens.
 
 Private keys are written 0600 and replaced only by :func:`rotate` (``lelsonar secure rotate``).
 """
