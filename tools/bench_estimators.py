@@ -1,6 +1,6 @@
 """``lelsonar bench estimators``: accuracy and speed of every reconstruction method on simulated scans.
 
-``--families`` runs the seeded scene families of issue 9 instead
+``--families`` runs the seeded scene families instead
 (:mod:`lelsonar.tools.bench_families`); ``--stress`` runs scenes and rigs
 outside those families through ``reconstruct --source FILE.mcap --json``
 (:mod:`lelsonar.tools.bench_stress`).  Without either:

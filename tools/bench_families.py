@@ -1,4 +1,4 @@
-"""``lelsonar bench estimators --families …``: every estimator on seeded scene families (issue 9 §1).
+"""``lelsonar bench estimators --families …``: every estimator on seeded scene families.
 
 For each family of :mod:`lelsonar.sim.scenes` and each seed, the
 scene is drawn (``draw_scene(family, seed)``), simulated
@@ -884,7 +884,7 @@ def serial_scan_times(
             except Exception:  # noqa: BLE001 — reported by the accuracy run
                 break
             ts.append(time.perf_counter() - t0)
-            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper: ~0.5 s) gets two measured runs
+            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper) gets two measured runs
                 break
         out[method] = 1e3 * float(np.min(ts[1:])) if len(ts) > 1 else float("nan")
     return out
@@ -948,7 +948,7 @@ def _scan_ms(s: dict[str, Any]) -> float:
 def _targets(
     summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], default: str
 ) -> list[tuple[str, dict[str, bool]]]:
-    """Issue 9's "done when" checks of the default method, per family."""
+    """The default method's targets, checked per family."""
     out = []
     for fam in families:
         s = summary.get((fam, default))
@@ -973,7 +973,7 @@ def _targets(
 
 
 def run_families(args: argparse.Namespace) -> int:
-    """Run the family benchmark, print the tables; 0 if the default method meets issue 9's targets."""
+    """Run the family benchmark, print the tables; 0 if the default method meets its targets."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -1231,7 +1231,7 @@ def run_families(args: argparse.Namespace) -> int:
     targets = _targets(summary, families, DEFAULT_METHOD)
     misses = [f"{fam}: {k}" for fam, checks in targets for k, ok in checks.items() if not ok]
     if targets:
-        tt = Table(title=f"Issue 9 targets for the default method {DEFAULT_METHOD!r}", title_justify="left")
+        tt = Table(title=f"Targets for the default method {DEFAULT_METHOD!r}", title_justify="left")
         tt.add_column("family")
         names = list(targets[0][1])
         for n in names:
@@ -1256,7 +1256,7 @@ def run_families(args: argparse.Namespace) -> int:
         out.write_text(
             markdown_table(summary, families, all_methods, DEFAULT_METHOD, command, machine()), encoding="utf-8"
         )
-        console.print(f"wrote {out} (Markdown, for the README)")
+        console.print(f"wrote {out} (Markdown)")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -1288,11 +1288,7 @@ def run_families(args: argparse.Namespace) -> int:
         console.print(f"wrote {out} ({len(rows)} plane rows)")
     console.print(
         f"default method {DEFAULT_METHOD!r}: "
-        + (
-            "[green]meets issue 9's targets on every family[/]"
-            if not misses
-            else f"[red]misses {len(misses)} targets[/]"
-        )
+        + ("[green]meets its targets on every family[/]" if not misses else f"[red]misses {len(misses)} targets[/]")
     )
     return 0 if not misses else 1
 
@@ -1305,7 +1301,7 @@ def markdown_table(
     command: str,
     machine_line: str,
 ) -> str:
-    """The summary as a Markdown table with the command and machine it came from (for the README)."""
+    """The summary as a Markdown table with the command and machine it came from."""
     lines = [
         f"`{command}` ({machine_line}). Medians / p95 over planes a and b; failure: patch > 2 cm and "
         "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
@@ -1358,7 +1354,7 @@ def json_default(o: Any) -> Any:
 
 def add_family_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``--families`` mode's own flags (``--seeds``, ``--methods``, ``--jobs``, ``--json`` are shared)."""
-    g = parser.add_argument_group("scene families (issue 9)")
+    g = parser.add_argument_group("scene families")
     g.add_argument(
         "--families",
         nargs="+",
@@ -1375,7 +1371,7 @@ def add_family_arguments(parser: argparse.ArgumentParser) -> None:
         help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
         "(default), or eight at 0.6-2.7 m covering the families' walls",
     )
-    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table (README)")
+    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table")
     g.add_argument(
         "--dump-failures",
         metavar="DIR",

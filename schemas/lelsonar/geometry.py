@@ -25,7 +25,7 @@ def rotation_x(gamma: np.ndarray | float) -> np.ndarray:
     """Rotation matrices about x by ``gamma`` (rad); shape ``(..., 3, 3)``."""
     g = np.asarray(gamma, dtype=float)
     if g.ndim == 0:
-        # One angle (a turn of the corner model's axes): the same matrix without the four stacks (~20 µs).
+        # One angle (a turn of the corner model's axes): the same matrix without the four stacks.
         c, s = np.cos(g), np.sin(g)
         return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     c, s = np.cos(g), np.sin(g)
@@ -97,7 +97,7 @@ class ArrayGeometry:
         computed again: the same numbers).
         """
         # R·c for a capsule c = (x, r, 0) of the array frame is (x, r cos γ, r sin γ): the products the matmul
-        # c·Rᵀ forms, without its zero terms (the same numbers, bit for bit; ~4× faster, on every fit's path).
+        # c·Rᵀ forms, without its zero terms (the same numbers, bit for bit; on every fit's path).
         g = np.asarray(gamma, dtype=float)
         if beam is None:
             cos_g, sin_g = np.cos(g), np.sin(g)

@@ -41,7 +41,7 @@ _TOML_KEYS = {
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.acquire.backends import DEVICES
-    from lelsonar.net.secure import add_secure_argument
+    from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
     from lelsonar.sim import preset_names
 

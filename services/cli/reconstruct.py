@@ -14,7 +14,7 @@ _log = logging.getLogger("lelsonar.reconstruct")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from lelsonar.net.secure import add_secure_argument
+    from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
 
     p = sub.add_parser(

@@ -274,7 +274,7 @@ def sample_points(start: codec.ScanStart, sample: codec.Sample) -> tuple[np.ndar
             for c, d in rows
         ]
     )
-    # Eq. (9) as beam_points_from_capsules computes it, for one γ (its general form costs 0.3 ms a call).
+    # Eq. (9) as beam_points_from_capsules computes it, for one γ (its general form pays for many γ).
     cg, sg = math.cos(sample.gamma_measured), math.sin(sample.gamma_measured)
     rot = np.array([[1.0, 0.0, 0.0], [0.0, cg, -sg], [0.0, sg, cg]])
     return local @ rot.T, np.array([c.capsule_id for c, _ in rows])

@@ -109,8 +109,8 @@ class McapRecorder:
         a killed process, not a power cut).
     durable : bool
         True (default): one chunk per step, flushed to the OS.  False: 1 MiB
-        chunks written when full, the behaviour before durability; a killed
-        writer then loses the whole chunk in progress.  Kept for the benchmark.
+        chunks written when full; a killed writer then loses the whole chunk in
+        progress.  Kept as the benchmark's floor.
     """
 
     def __init__(

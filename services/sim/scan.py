@@ -3,7 +3,7 @@
 One physics for a whole scan (:func:`simulate_scan`) and for one shot
 (:func:`simulate_step`, used by the sensor-board emulator).
 
-Echo model (design notes §8):
+Echo model:
 
 * **Mirror echo** of panel ``p``: the sound leaves and returns along the panel
   normal.  Range = perpendicular distance ``s`` from the capsule; present when
@@ -379,8 +379,8 @@ _NORMAL_TABLE = ndtri((np.arange(2**16) + 0.5) / 2**16).astype(np.float32)
 def _gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], std: float) -> np.ndarray:
     """White Gaussian noise, float32, by inverse-CDF lookup of 16-bit uniforms.
 
-    Five times faster than ``standard_normal`` here (5 ms instead of 30 ms for a
-    scan's 2.6 M samples), which is most of a scan's time.  The 16-bit
+    Several times faster than ``standard_normal`` over a scan's 2.6 M samples,
+    where the noise is most of a scan's time.  The 16-bit
     quantisation of the probability cuts the tails at ±4.3σ; the ADC rounds far
     coarser than the table's steps.
     """

@@ -247,7 +247,7 @@ def _min_max_envelope(w: np.ndarray, bin_: int) -> np.ndarray:
     """(k, n) → (k, 2·(n // bin_)): each bin's min then max.
 
     Element-wise passes over the bin's columns: numpy's ``min(axis=-1)`` over a
-    short last axis is about 7× slower, and this runs at every step.
+    short last axis is several times slower, and this runs at every step.
     """
     k, n = w.shape
     binned = w[:, : (n // bin_) * bin_].reshape(k, n // bin_, bin_)
@@ -289,7 +289,7 @@ class ScanLogger:
     Notes
     -----
     Cost: :meth:`step` makes six log calls (pose, raw points, beams, waveforms,
-    energy, ratio), about 0.3 ms.  The raw points are logged as the whole
+    energy, ratio).  The raw points are logged as the whole
     cloud received so far, at every step, so that the latest-at view of any
     timeline shows the scan up to the cursor without a blueprint time range
     (which would also pile up every past plane estimate, and needs exact

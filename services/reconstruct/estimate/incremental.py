@@ -1,4 +1,4 @@
-"""Cheap provisional estimates of a plane while its scan arrives (issue 12 §2).
+"""Cheap provisional estimates of a plane while its scan arrives.
 
 The live service re-estimates plane b as samples come.  Refitting it from
 scratch each time costs O(points) with the solver's constant (fast LEL,
@@ -55,8 +55,8 @@ scratch (:meth:`ReconstructionService._finalise`).
 
 Building the :class:`~lelsonar.reconstruct.estimate.results.PlaneFit` the message
 carries (σ by MAD, H over all points, the observed patch, the residuals) is
-one vectorised pass over the plane's points (about 0.4 ms at 150–450 points,
-nearly all of it per-call overhead); the fit itself touches only the new ones.
+one vectorised pass over the plane's points (nearly all of it per-call
+overhead); the fit itself touches only the new ones.
 """
 
 from __future__ import annotations

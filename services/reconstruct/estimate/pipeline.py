@@ -32,7 +32,7 @@ Methods (``METHODS``, name → :class:`Method`), one module per family:
     ``"fcm-ransac"`` — the baseline of §5.4: FCM (3 clusters) + RANSAC, seeded.
 
 :data:`DEFAULT_METHOD` is ``"corner"``, chosen by ``lelsonar bench estimators
---families all`` (README): the energy-split methods fail where the corner's
+--families all`` (``docs/estimators.md``): the energy-split methods fail where the corner's
 double-bounce echoes dominate a subset or the energy peak misses the corner
 (far walls, partial sweeps); the joint model does not, and matches the
 corrected-points oracle on the paper's scenes.
