@@ -164,7 +164,9 @@ def run_acquisition(
                         model,
                         output,
                         stop,
-                        on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
+                        on_step=lambda _s, g, bar=progress, task=task: bar.update(
+                            task, advance=1, gamma=math.degrees(g)
+                        ),
                         int16_scale=INT16_SCALE if cfg.waveform_int16 else None,
                     )
                     report.publish_failures += output.publish_failures
