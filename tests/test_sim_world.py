@@ -244,3 +244,33 @@ def test_a_wall_ending_on_another_makes_two_right_corners_and_no_edge():
     # The other corner of the T (x < 0, its bisector at 225°) is behind wall 2 from here: no echo.
     others = [i for i, e in enumerate(model.elements) if "@0,2:225" in e.label]
     assert len(others) == 2 and np.isnan(table.range[0][:, others]).all()
+
+
+def test_the_diffuse_echo_comes_from_where_the_boresight_meets_the_first_surface():
+    # At γ = 60° the wall x = 2 is outside the main lobe for a mirror echo; the boresight still meets it.
+    world = _world([((2.0, -5.0), (2.0, 5.0))])
+    g = math.radians(60.0)
+    _model, _rig, table = _table(world, 60.0)
+    caps = _fan_capsules(g)
+    np.testing.assert_allclose(table.range[0, :, -1], (2.0 - caps[:, 0]) / math.cos(g), atol=1e-12)
+    assert (table.source[0, :, -1] == EchoSource.DIFFUSE).all()
+    # A box in the way is met first.
+    boxed = _world([((2.0, -5.0), (2.0, 5.0))], [((1.0, 1.4), (0.4, 0.4, 0.6), 0.0)])
+    _model, _rig, table = _table(boxed, 60.0)
+    # The box's face x = 0.8 (y 1.2…1.6): the boresight from each capsule reaches it at t = (0.8 − x_c)/cos γ.
+    t = (0.8 - caps[:, 0]) / math.cos(g)
+    assert np.all(np.abs(caps[:, 1] + t * math.sin(g) - 1.4) <= 0.2)
+    np.testing.assert_allclose(table.range[0, :, -1], t, atol=1e-12)
+
+
+def test_simulate_world_draws_the_world_and_reports_each_pose(tmp_path, capsys):
+    from pathlib import Path
+
+    from lelsonar.cli.main import main as lelsonar_main
+
+    root = Path(__file__).resolve().parents[1] / "examples" / "worlds"
+    out = tmp_path / "boxes.png"
+    assert lelsonar_main(["simulate", "--world", str(root / "boxes.toml"), "--plot", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "world boxes: 4 walls, 2 boxes" in text and text.count("pose ") == 2
+    assert out.stat().st_size > 10_000 and out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
