@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -20,6 +21,28 @@ from lelsonar.sim.scene import Scene
 AX12_DEG_PER_UNIT = 300.0 / 1024.0
 #: AX-12 raw position of the middle of its range (150°).
 AX12_CENTER_RAW = 512
+
+
+class Rig(Protocol):
+    """What the receiver chain needs of a simulated rig (:class:`SimConfig`, or a world's rig)."""
+
+    @property
+    def acoustics(self) -> Acoustics: ...
+
+    @property
+    def receiver(self) -> Receiver: ...
+
+    @property
+    def sample_rate(self) -> float: ...
+
+    @property
+    def window_samples(self) -> int: ...
+
+    @property
+    def window_start(self) -> float: ...
+
+    @property
+    def sound_speed(self) -> float: ...
 
 
 @dataclass(frozen=True)
