@@ -1,0 +1,241 @@
+"""Regions of constant depth (RCDs) of one sweep, and what each one's echoes say.
+
+A specular target (a plane, a concave corner, a convex edge) answers a rotating
+sonar over a run of steps at a steady range: the region of constant depth of
+Leonard & Durrant-Whyte.  The range is the target's distance from the rotation
+axis less the capsule's radial offset, to first order at every step of the run
+(``d ≈ ρ − r·cos(γ − β)``), so the run's *centre* is the target's bearing β and
+its *minimum* the depth ρ.  Along the capsule stack (the rotation axis x) the
+four ranges are a straight line for a plane (the array's mirror image is a
+straight array: slope ``−n_x``, the tilt) and a hyperbola for a line or a point
+across the stack (``d = √(ρ² + (x − x₀)²)``: curvature ``1/(2ρ)``).
+
+Pure functions: no I/O, no state.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.errors import ConfigError
+from lelsonar.geometry import ArrayGeometry
+
+__all__ = ["Region", "find_regions", "stack_fit", "bearing_from_amplitude"]
+
+
+@dataclass(frozen=True, eq=False)
+class Region:
+    """One region of constant depth.
+
+    Attributes
+    ----------
+    steps : (k,) int array
+        The scan's steps in the region (each with at least one reading in it).
+    rows, capsules : (N,) int arrays
+        The readings in the region: step index and capsule index of each.
+    cut_before, cut_after : bool
+        The region ends on that side not because its echo faded but because a
+        nearer echo took over or the sweep ended: its centre is not its bearing.
+    """
+
+    steps: np.ndarray
+    rows: np.ndarray
+    capsules: np.ndarray
+    cut_before: bool
+    cut_after: bool
+
+    @property
+    def n_echoes(self) -> int:
+        return int(self.rows.size)
+
+
+def _step_range(distance: np.ndarray) -> np.ndarray:
+    """Median range of each step over its capsules (NaN: no echo)."""
+    d = np.asarray(distance, dtype=np.float64)
+    out = np.full(d.shape[0], np.nan)
+    have = np.isfinite(d).any(axis=1)
+    if have.any():
+        out[have] = np.nanmedian(d[have], axis=1)
+    return out
+
+
+def find_regions(
+    distance: np.ndarray, *, tolerance: float = 0.015, max_gap: int = 2, min_steps: int = 3
+) -> list[Region]:
+    """Split a sweep into regions of constant depth.
+
+    Parameters
+    ----------
+    distance : (n_steps, n_capsules) array
+        Ranges, m (NaN: no echo), steps in sweep order.
+    tolerance : float
+        A step joins the current run while its median range is within this of
+        the run's median, m (the range noise plus the radial offset's
+        ``r·(1 − cos Δγ)`` over a beam width).
+    max_gap : int
+        Steps without an echo a run may bridge.
+    min_steps : int
+        Shorter runs are not regions (their echoes stay unexplained).
+
+    Returns
+    -------
+    list of Region, in sweep order.
+    """
+    d = np.asarray(distance, dtype=np.float64)
+    if d.ndim != 2:
+        raise ConfigError(f"distance must be (n_steps, n_capsules), got shape {d.shape}")
+    if not (tolerance > 0 and max_gap >= 0 and min_steps >= 1):
+        raise ConfigError("find_regions: tolerance > 0, max_gap >= 0 and min_steps >= 1")
+    rs = _step_range(d)
+    n = rs.size
+    runs: list[list[int]] = []
+    run: list[int] = []
+    gap = 0
+    for s in range(n):
+        if not math.isfinite(rs[s]):
+            gap += 1
+            if run and gap > max_gap:
+                runs.append(run)
+                run = []
+            continue
+        if run and abs(rs[s] - float(np.median(rs[run]))) <= tolerance:
+            run.append(s)
+        else:
+            if run:
+                runs.append(run)
+            run = [s]
+        gap = 0
+    if run:
+        runs.append(run)
+    out = []
+    for r in runs:
+        if len(r) < min_steps:
+            continue
+        steps = np.asarray(r, dtype=np.intp)
+        ref = float(np.median(rs[steps]))
+        block = d[steps]
+        # A capsule's reading joins when it is within twice the tolerance of its step's median: the stack's
+        # tilt or a line across it spreads the four ranges by a few cm at most, another target by more.
+        keep = np.isfinite(block) & (np.abs(block - rs[steps][:, None]) <= 2 * tolerance)
+        rows, caps = np.nonzero(keep)
+        first, last = int(steps[0]), int(steps[-1])
+        out.append(
+            Region(
+                steps=steps,
+                rows=steps[rows],
+                capsules=caps.astype(np.intp),
+                cut_before=_cut(rs, first, -1, ref, tolerance, max_gap),
+                cut_after=_cut(rs, last, +1, ref, tolerance, max_gap),
+            )
+        )
+    return out
+
+
+def _cut(rs: np.ndarray, end: int, direction: int, ref: float, tolerance: float, max_gap: int) -> bool:
+    """Whether a run's end is a cut: the sweep's end, or a nearer echo within ``max_gap + 1`` steps."""
+    for k in range(1, max_gap + 2):
+        s = end + direction * k
+        if not 0 <= s < rs.size:
+            return k == 1
+        if math.isfinite(rs[s]):
+            return bool(rs[s] < ref - tolerance)
+    return False
+
+
+def stack_fit(x: np.ndarray, rows: np.ndarray, d: np.ndarray, *, curved: bool) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ranges along the capsule stack: ``d = a_s + b·x (+ c·x²)`` with one intercept per step.
+
+    The slope ``b = −n_x`` of a plane (its tilt along the stack); the curvature
+    ``c ≈ 1/(2ρ)`` of a line or point across the stack and 0 for a plane.
+
+    Parameters
+    ----------
+    x : (N,) array
+        Each reading's capsule position along the stack, m.
+    rows : (N,) int array
+        Each reading's step (the intercepts' grouping).
+    d : (N,) array
+        Ranges, m.
+    curved : bool
+        Fit ``c`` too.
+
+    Returns
+    -------
+    coefficients (b[, c]), their covariance, residual σ (m); NaN when the
+    readings do not constrain them (a single capsule per step).
+    """
+    k = 2 if curved else 1
+    _, group = np.unique(rows, return_inverse=True)
+    cols = [x, x * x][:k]
+    a = np.stack(cols, axis=1)
+    # Within-step demeaning removes the per-step intercepts exactly.
+    counts = np.bincount(group)
+    am = a - (np.stack([np.bincount(group, weights=c) for c in cols], axis=1) / counts[:, None])[group]
+    dm = d - (np.bincount(group, weights=d) / counts)[group]
+    dof = d.size - counts.size - k
+    if dof < 1:
+        return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
+    ata = am.T @ am
+    if np.linalg.cond(ata) > 1e10:
+        return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
+    coef = np.linalg.solve(ata, am.T @ dm)
+    res = dm - am @ coef
+    s2 = float(res @ res) / dof
+    return coef, s2 * np.linalg.inv(ata), math.sqrt(s2)
+
+
+def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float] | None:
+    """The beam pattern's peak across γ: the vertex of a parabola in ``log A`` over the top of the region.
+
+    ``D(ψ)²`` is symmetric about the target's direction and, in ``log``, close to
+    a parabola over its upper half, so the vertex of that fit is the bearing
+    even when the region is cut on one side, as long as its peak is in it.
+
+    Parameters
+    ----------
+    gamma : (k,) array
+        Steps' γ, rad.
+    amplitude : (k,) array
+        Each step's echo peak amplitude, V (NaN: none).
+
+    Returns
+    -------
+    (bearing, σ) in rad, or None when the amplitudes have no interior peak.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 5:
+        return None
+    g, a = g[ok], a[ok]
+    top = a >= 0.5 * a.max()
+    if np.count_nonzero(top) < 4:
+        top = a >= np.sort(a)[-4]
+    gt, la = g[top], np.log(a[top])
+    g0 = float(np.mean(gt))
+    u = gt - g0
+    m = np.stack([np.ones_like(u), u, u * u], axis=1)
+    if np.linalg.matrix_rank(m) < 3:
+        return None
+    coef, *_ = np.linalg.lstsq(m, la, rcond=None)
+    c0, b, c = (float(v) for v in coef)
+    if not c < 0:
+        return None
+    vertex = -b / (2 * c)
+    if not (u.min() <= vertex <= u.max()):
+        return None
+    res = la - m @ coef
+    dof = max(u.size - 3, 1)
+    cov = float(res @ res) / dof * np.linalg.pinv(m.T @ m)
+    # Delta method on −b/(2c).
+    jac = np.array([0.0, -1 / (2 * c), b / (2 * c * c)])
+    var = float(jac @ cov @ jac)
+    return g0 + vertex, math.sqrt(max(var, 0.0))
+
+
+def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
+    """Each capsule's position along the stack (the rotation axis), m."""
+    return np.asarray(geometry.capsules_in_array_frame()[:, 0], dtype=np.float64)
