@@ -238,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
         failed_good = sum(1 for p in planes if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle)
         bad_total += failed_good
 
-        def tot(attr: str, cls: str) -> int:
+        def tot(attr: str, cls: str, recs: list[ScanRecord] = recs) -> int:
             return sum(getattr(r, attr)[cls] for r in recs)
 
         table.add_row(

@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from lelsonar.v1 import common_pb2 as lelsonar_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n lelsonar/v1/reconstruction.proto\x12\x0blelsonar.v1\x1a\x18lelsonar/v1/common.proto\"\x9f\x03\n\rPlaneEstimate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x0e\n\x06method\x18\x02 \x01(\t\x12$\n\x06normal\x18\x03 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0e\n\x06offset\x18\x04 \x01(\x01\x12#\n\x05theta\x18\x05 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x16\n\x0esigma_relative\x18\x06 \x01(\x01\x12\r\n\x05sigma\x18\x07 \x01(\x01\x12\x14\n\x0cinlier_count\x18\x08 \x01(\r\x12\x13\n\x0bpoint_count\x18\t \x01(\r\x12\x10\n\x08lel_cost\x18\n \x01(\x01\x12\x18\n\x10theta_covariance\x18\x0b \x03(\x01\x12\x15\n\rnormal_stderr\x18\x0c \x01(\x01\x12\x15\n\roffset_stderr\x18\r \x01(\x01\x12#\n\x05patch\x18\x0e \x03(\x0b\x32\x14.lelsonar.v1.Vector3\x12*\n\x07quality\x18\x0f \x01(\x0e\x32\x19.lelsonar.v1.PlaneQuality\x12\x17\n\x0fquality_reasons\x18\x10 \x03(\t\"\x84\x01\n\x04Line\x12#\n\x05point\x18\x01 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\'\n\tdirection\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x14\n\x0cpoint_stderr\x18\x03 \x01(\x01\x12\x18\n\x10\x64irection_stderr\x18\x04 \x01(\x01\"B\n\x0e\x43omputeTimings\x12\x14\n\x0csegmentation\x18\x01 \x01(\x01\x12\x0b\n\x03\x66it\x18\x02 \x01(\x01\x12\r\n\x05total\x18\x03 \x01(\x01\"\xe0\x01\n\x0eScanAccounting\x12\x11\n\tpublished\x18\x01 \x01(\r\x12\x15\n\rreceived_live\x18\x02 \x01(\r\x12\x11\n\trecovered\x18\x03 \x01(\r\x12\x12\n\nduplicates\x18\x04 \x01(\r\x12;\n\x08rejected\x18\x05 \x03(\x0b\x32).lelsonar.v1.ScanAccounting.RejectedEntry\x12\x0f\n\x07missing\x18\x06 \x01(\r\x1a/\n\rRejectedEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\r:\x02\x38\x01\"\xd7\x03\n\x0eReconstruction\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x11\n\tlast_step\x18\x04 \x01(\r\x12+\n\x06status\x18\x05 \x01(\x0e\x32\x1b.lelsonar.v1.EstimateStatus\x12\x10\n\x08stamp_ns\x18\x06 \x01(\x03\x12\x1a\n\rcritical_step\x18\x07 \x01(\rH\x00\x88\x01\x01\x12\x16\n\x0e\x63ritical_angle\x18\x08 \x01(\x01\x12*\n\x06planes\x18\t \x03(\x0b\x32\x1a.lelsonar.v1.PlaneEstimate\x12&\n\x0b\x63orner_edge\x18\n \x01(\x0b\x32\x11.lelsonar.v1.Line\x12,\n\x07timings\x18\x0b \x01(\x0b\x32\x1b.lelsonar.v1.ComputeTimings\x12\x14\n\x0csamples_used\x18\x0c \x01(\r\x12\x10\n\x08\x66\x61ilures\x18\r \x03(\t\x12\x15\n\rmissing_steps\x18\x0e \x03(\r\x12/\n\naccounting\x18\x0f \x01(\x0b\x32\x1b.lelsonar.v1.ScanAccountingB\x10\n\x0e_critical_step*\x7f\n\x0cPlaneQuality\x12\x1d\n\x19PLANE_QUALITY_UNSPECIFIED\x10\x00\x12\x16\n\x12PLANE_QUALITY_GOOD\x10\x01\x12\x1a\n\x16PLANE_QUALITY_DEGRADED\x10\x02\x12\x1c\n\x18PLANE_QUALITY_UNRELIABLE\x10\x03*\xb0\x01\n\x0e\x45stimateStatus\x12\x1f\n\x1b\x45STIMATE_STATUS_UNSPECIFIED\x10\x00\x12\x1f\n\x1b\x45STIMATE_STATUS_PROVISIONAL\x10\x01\x12\x19\n\x15\x45STIMATE_STATUS_FINAL\x10\x02\x12!\n\x1d\x45STIMATE_STATUS_FINAL_TIMEOUT\x10\x03\x12\x1e\n\x1a\x45STIMATE_STATUS_INCOMPLETE\x10\x04\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n lelsonar/v1/reconstruction.proto\x12\x0blelsonar.v1\x1a\x18lelsonar/v1/common.proto\"\x9f\x03\n\rPlaneEstimate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x0e\n\x06method\x18\x02 \x01(\t\x12$\n\x06normal\x18\x03 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0e\n\x06offset\x18\x04 \x01(\x01\x12#\n\x05theta\x18\x05 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x16\n\x0esigma_relative\x18\x06 \x01(\x01\x12\r\n\x05sigma\x18\x07 \x01(\x01\x12\x14\n\x0cinlier_count\x18\x08 \x01(\r\x12\x13\n\x0bpoint_count\x18\t \x01(\r\x12\x10\n\x08lel_cost\x18\n \x01(\x01\x12\x18\n\x10theta_covariance\x18\x0b \x03(\x01\x12\x15\n\rnormal_stderr\x18\x0c \x01(\x01\x12\x15\n\roffset_stderr\x18\r \x01(\x01\x12#\n\x05patch\x18\x0e \x03(\x0b\x32\x14.lelsonar.v1.Vector3\x12*\n\x07quality\x18\x0f \x01(\x0e\x32\x19.lelsonar.v1.PlaneQuality\x12\x17\n\x0fquality_reasons\x18\x10 \x03(\t\"\x84\x01\n\x04Line\x12#\n\x05point\x18\x01 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\'\n\tdirection\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x14\n\x0cpoint_stderr\x18\x03 \x01(\x01\x12\x18\n\x10\x64irection_stderr\x18\x04 \x01(\x01\"\xaa\x01\n\x0fSurfaceEstimate\x12\r\n\x05label\x18\x01 \x01(\t\x12)\n\x05plane\x18\x02 \x01(\x0b\x32\x1a.lelsonar.v1.PlaneEstimate\x12\x0f\n\x07\x62\x65\x61ring\x18\x03 \x01(\x01\x12\x0c\n\x04tilt\x18\x04 \x01(\x01\x12\x12\n\ncovariance\x18\x05 \x03(\x01\x12\x16\n\x0e\x62\x65\x61ring_source\x18\x06 \x01(\t\x12\x12\n\necho_count\x18\x07 \x01(\r\"\x8c\x01\n\x0f\x46\x65\x61tureEstimate\x12\r\n\x05label\x18\x01 \x01(\t\x12\x1f\n\x04line\x18\x02 \x01(\x0b\x32\x11.lelsonar.v1.Line\x12\x12\n\ncovariance\x18\x03 \x03(\x01\x12\x10\n\x08surfaces\x18\x04 \x03(\t\x12\x0f\n\x07reasons\x18\x05 \x03(\t\x12\x12\n\necho_count\x18\x06 \x01(\r\"1\n\x11UnexplainedEchoes\x12\r\n\x05\x63\x61use\x18\x01 \x01(\t\x12\r\n\x05\x63ount\x18\x02 \x01(\r\"B\n\x0e\x43omputeTimings\x12\x14\n\x0csegmentation\x18\x01 \x01(\x01\x12\x0b\n\x03\x66it\x18\x02 \x01(\x01\x12\r\n\x05total\x18\x03 \x01(\x01\"\xe0\x01\n\x0eScanAccounting\x12\x11\n\tpublished\x18\x01 \x01(\r\x12\x15\n\rreceived_live\x18\x02 \x01(\r\x12\x11\n\trecovered\x18\x03 \x01(\r\x12\x12\n\nduplicates\x18\x04 \x01(\r\x12;\n\x08rejected\x18\x05 \x03(\x0b\x32).lelsonar.v1.ScanAccounting.RejectedEntry\x12\x0f\n\x07missing\x18\x06 \x01(\r\x1a/\n\rRejectedEntry\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05value\x18\x02 \x01(\r:\x02\x38\x01\"\xb4\x05\n\x0eReconstruction\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x11\n\tlast_step\x18\x04 \x01(\r\x12+\n\x06status\x18\x05 \x01(\x0e\x32\x1b.lelsonar.v1.EstimateStatus\x12\x10\n\x08stamp_ns\x18\x06 \x01(\x03\x12\x1a\n\rcritical_step\x18\x07 \x01(\rH\x00\x88\x01\x01\x12\x16\n\x0e\x63ritical_angle\x18\x08 \x01(\x01\x12*\n\x06planes\x18\t \x03(\x0b\x32\x1a.lelsonar.v1.PlaneEstimate\x12&\n\x0b\x63orner_edge\x18\n \x01(\x0b\x32\x11.lelsonar.v1.Line\x12,\n\x07timings\x18\x0b \x01(\x0b\x32\x1b.lelsonar.v1.ComputeTimings\x12\x14\n\x0csamples_used\x18\x0c \x01(\r\x12\x10\n\x08\x66\x61ilures\x18\r \x03(\t\x12\x15\n\rmissing_steps\x18\x0e \x03(\r\x12/\n\naccounting\x18\x0f \x01(\x0b\x32\x1b.lelsonar.v1.ScanAccounting\x12.\n\x08surfaces\x18( \x03(\x0b\x32\x1c.lelsonar.v1.SurfaceEstimate\x12-\n\x07\x63orners\x18) \x03(\x0b\x32\x1c.lelsonar.v1.FeatureEstimate\x12+\n\x05\x65\x64ges\x18* \x03(\x0b\x32\x1c.lelsonar.v1.FeatureEstimate\x12\x33\n\x0bunexplained\x18+ \x03(\x0b\x32\x1e.lelsonar.v1.UnexplainedEchoes\x12\x1a\n\x12surface_echo_count\x18, \x01(\rB\x10\n\x0e_critical_step*\x7f\n\x0cPlaneQuality\x12\x1d\n\x19PLANE_QUALITY_UNSPECIFIED\x10\x00\x12\x16\n\x12PLANE_QUALITY_GOOD\x10\x01\x12\x1a\n\x16PLANE_QUALITY_DEGRADED\x10\x02\x12\x1c\n\x18PLANE_QUALITY_UNRELIABLE\x10\x03*\xb0\x01\n\x0e\x45stimateStatus\x12\x1f\n\x1b\x45STIMATE_STATUS_UNSPECIFIED\x10\x00\x12\x1f\n\x1b\x45STIMATE_STATUS_PROVISIONAL\x10\x01\x12\x19\n\x15\x45STIMATE_STATUS_FINAL\x10\x02\x12!\n\x1d\x45STIMATE_STATUS_FINAL_TIMEOUT\x10\x03\x12\x1e\n\x1a\x45STIMATE_STATUS_INCOMPLETE\x10\x04\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,20 +34,26 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_SCANACCOUNTING_REJECTEDENTRY']._loaded_options = None
   _globals['_SCANACCOUNTING_REJECTEDENTRY']._serialized_options = b'8\001'
-  _globals['_PLANEQUALITY']._serialized_start=1397
-  _globals['_PLANEQUALITY']._serialized_end=1524
-  _globals['_ESTIMATESTATUS']._serialized_start=1527
-  _globals['_ESTIMATESTATUS']._serialized_end=1703
+  _globals['_PLANEQUALITY']._serialized_start=1985
+  _globals['_PLANEQUALITY']._serialized_end=2112
+  _globals['_ESTIMATESTATUS']._serialized_start=2115
+  _globals['_ESTIMATESTATUS']._serialized_end=2291
   _globals['_PLANEESTIMATE']._serialized_start=76
   _globals['_PLANEESTIMATE']._serialized_end=491
   _globals['_LINE']._serialized_start=494
   _globals['_LINE']._serialized_end=626
-  _globals['_COMPUTETIMINGS']._serialized_start=628
-  _globals['_COMPUTETIMINGS']._serialized_end=694
-  _globals['_SCANACCOUNTING']._serialized_start=697
-  _globals['_SCANACCOUNTING']._serialized_end=921
-  _globals['_SCANACCOUNTING_REJECTEDENTRY']._serialized_start=874
-  _globals['_SCANACCOUNTING_REJECTEDENTRY']._serialized_end=921
-  _globals['_RECONSTRUCTION']._serialized_start=924
-  _globals['_RECONSTRUCTION']._serialized_end=1395
+  _globals['_SURFACEESTIMATE']._serialized_start=629
+  _globals['_SURFACEESTIMATE']._serialized_end=799
+  _globals['_FEATUREESTIMATE']._serialized_start=802
+  _globals['_FEATUREESTIMATE']._serialized_end=942
+  _globals['_UNEXPLAINEDECHOES']._serialized_start=944
+  _globals['_UNEXPLAINEDECHOES']._serialized_end=993
+  _globals['_COMPUTETIMINGS']._serialized_start=995
+  _globals['_COMPUTETIMINGS']._serialized_end=1061
+  _globals['_SCANACCOUNTING']._serialized_start=1064
+  _globals['_SCANACCOUNTING']._serialized_end=1288
+  _globals['_SCANACCOUNTING_REJECTEDENTRY']._serialized_start=1241
+  _globals['_SCANACCOUNTING_REJECTEDENTRY']._serialized_end=1288
+  _globals['_RECONSTRUCTION']._serialized_start=1291
+  _globals['_RECONSTRUCTION']._serialized_end=1983
 # @@protoc_insertion_point(module_scope)

@@ -66,6 +66,7 @@ from lelsonar.reconstruct.estimate.pipeline import (
 from lelsonar.reconstruct.estimate.quality import add_findings, assess_plane, cross_check, recovery_finding
 from lelsonar.reconstruct.estimate.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.estimate.split import critical_step
+from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.recovery import RecoveryRequest
@@ -684,6 +685,7 @@ class ReconstructionService:
             timings=(t.segmentation, t.fit, t.total),
             missing_steps=missing,
             accounting=acc,
+            surfaces=extract_surfaces(gamma, distance, scan.geometry, amplitude=amplitude),
         )
         # What the writer left unset: a warning, and where no plane came, the first thing to fix.
         for _, problem in problems:
