@@ -77,7 +77,9 @@ def test_a_simulated_scan_is_the_methods_own_reconstruction(simulated):
     """With nothing to repair and nothing compared, the estimate of record is the method's own fit."""
     scan, energy, amplitude = simulated
     model = default_energy_model()
-    given = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude)
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
     for method in ("corner", "lel-refit-ls"):
         est = reconstruct_scan(given, RecordOptions(method=method))
         own = reconstruct(
@@ -100,7 +102,12 @@ def test_a_compared_plane_without_a_good_plane_of_record_is_at_most_degraded(sim
     model = default_energy_model()
     keep = np.arange(scan.truth.critical_step + 8)  # the sweep stops just past the corner
     given = ScanInput.of_scan(
-        scan.gamma_measured[keep], scan.distance[keep], energy[keep], scan.geometry, model, echo_amplitude=amplitude[keep]
+        scan.gamma_measured[keep],
+        scan.distance[keep],
+        energy[keep],
+        scan.geometry,
+        model,
+        echo_amplitude=amplitude[keep],
     )
     est = reconstruct_scan(given, RecordOptions(method="corner", compare_methods=("ls",)))
     record = {p.label: p for p in est.planes_of("corner")}
@@ -123,7 +130,5 @@ def test_the_provisional_variant_needs_its_state_and_the_final_its_energies(simu
     with pytest.raises(ConfigError):
         reconstruct_scan(bare, RecordOptions())
     # Before the corner is confirmed (a few steps only) there is no provisional estimate.
-    few = ScanInput(
-        scan.geometry, model, np.arange(5), scan.gamma_measured[:5], scan.distance[:5], ratio=np.ones(5)
-    )
+    few = ScanInput(scan.geometry, model, np.arange(5), scan.gamma_measured[:5], scan.distance[:5], ratio=np.ones(5))
     assert reconstruct_scan(few, RecordOptions(provisional=True), ProvisionalState()) is None

@@ -27,6 +27,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from types import MappingProxyType
+from typing import overload
 
 import numpy as np
 
@@ -38,7 +39,14 @@ from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
 from lelsonar.reconstruct.estimate.options import FitOptions
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, corner_edge, reconstruct
 from lelsonar.reconstruct.estimate.quality import add_findings, assess_plane, cross_check, recovery_finding
-from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit, PlaneResult, ScanReconstruction
+from lelsonar.reconstruct.estimate.results import (
+    EdgeLine,
+    FailureReason,
+    FitFailure,
+    PlaneFit,
+    PlaneResult,
+    ScanReconstruction,
+)
 from lelsonar.reconstruct.estimate.split import critical_step
 from lelsonar.signal.energy import EnergyModel
 
@@ -163,6 +171,9 @@ class RecordOptions:
                 raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
 
 
+_FINAL = RecordOptions()
+
+
 def provisional_method(method: str) -> str:
     """The method of the provisional refits, which fit one half at a time: ``method``, or ``"adaptive"``
     when that is a scan-level method (``"corner"``), which runs on the whole scan at the end."""
@@ -253,12 +264,21 @@ class ScanEstimate:
         return out
 
 
+@overload
+def reconstruct_scan(scan: ScanInput, options: RecordOptions = ..., state: None = None) -> ScanEstimate: ...
+
+
+@overload
+def reconstruct_scan(scan: ScanInput, options: RecordOptions, state: ProvisionalState) -> ScanEstimate | None: ...
+
+
 def reconstruct_scan(
-    scan: ScanInput, options: RecordOptions = RecordOptions(), state: ProvisionalState | None = None
+    scan: ScanInput, options: RecordOptions = _FINAL, state: ProvisionalState | None = None
 ) -> ScanEstimate | None:
     """The estimate of record of ``scan`` (paper §4-5); see the module's docstring for the final.
 
-    The final always returns an estimate; failures are typed in it.
+    The final always returns an estimate (failures are typed in it); the provisional variant returns None
+    while it has none to give.
 
     **Provisional** (``options.provisional``, a scan still arriving; ``state`` carries what the
     previous calls of the same scan left) is the same estimate made cheaper.  It:
@@ -436,12 +456,18 @@ def _verdicts(
         record = tuple(assess_plane(pl, gamma) if isinstance(pl, PlaneFit) and not pl.quality else pl for pl in record)
     by_label = {pl.label: pl for pl in record}
     if without is not None:
-        by_label = {label: add_findings(pl, recovery_finding(pl, without.get(label))) for label, pl in by_label.items()}
+        by_label = {
+            label: add_findings(pl, recovery_finding(pl, without[label]) if label in without else ())
+            for label, pl in by_label.items()
+        }
     planes: list[PlaneResult] = [add_findings(pl, findings) for pl in by_label.values()]
     for method, pls in compared:
         for pl in pls:
             if isinstance(pl, PlaneFit):
-                checked: PlaneResult = cross_check(pl, by_label.get(pl.label))
+                reference = by_label.get(pl.label)
+                if reference is None:  # (every method labels its planes a and b: not expected)
+                    reference = FitFailure(FailureReason.TOO_FEW_POINTS, "no plane of record", pl.label)
+                checked: PlaneResult = cross_check(pl, reference)
             else:
                 checked = FitFailure(pl.reason, f"{method}: {pl.detail}", pl.label, pl.n_points)
             planes.append(add_findings(checked, findings))

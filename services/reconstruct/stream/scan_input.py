@@ -29,14 +29,21 @@ def scan_input(scan: ScanAssembly, *, provisional: bool = False) -> ScanInput:
     reads; O(steps), no waveform pass).
     """
     steps, gamma, distance, ratio = scan.arrays()
-    common = {"n_schedule": int(scan.start.steps)}
+    n_schedule = int(scan.start.steps)
     if provisional:
         if scan.latest is not None:
             newest_ns = int(scan.latest.time_ns)
         else:
             newest_ns = int(scan.time_ns[steps[-1]]) if len(steps) else 0
         return ScanInput(
-            scan.geometry, scan.energy_model, steps, gamma, distance, ratio=ratio, newest_ns=newest_ns, **common
+            scan.geometry,
+            scan.energy_model,
+            steps,
+            gamma,
+            distance,
+            ratio=ratio,
+            newest_ns=newest_ns,
+            n_schedule=n_schedule,
         )
     distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
     board_distance, board_amplitude = distance, scan.echo_amplitude[steps]
@@ -55,5 +62,5 @@ def scan_input(scan: ScanAssembly, *, provisional: bool = False) -> ScanInput:
         own_distance=own,
         own_amplitude=board_amplitude if own is not None else None,
         writer_problems=tuple(scan.writer_problems()),
-        **common,
+        n_schedule=n_schedule,
     )
