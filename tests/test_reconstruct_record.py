@@ -96,29 +96,27 @@ def test_a_simulated_scan_is_the_methods_own_reconstruction(simulated):
             )
 
 
-def test_a_compared_plane_without_a_good_plane_of_record_is_at_most_degraded(simulated):
-    """Wall b cut off the sweep: the method of record has no plane of it, so nothing vouches for a compared one."""
+def test_a_compared_plane_is_judged_against_the_plane_of_record(simulated):
+    """LS on the corner's double-bounce echoes doubts its own walls; the joint model fits them well.  As a
+    compared method the joint model's good planes have no good plane of record to vouch for them (degraded,
+    and said why); as the method of record they are good, and a compared method that agrees stays good."""
     scan, energy, amplitude = simulated
     model = default_energy_model()
-    keep = np.arange(scan.truth.critical_step + 8)  # the sweep stops just past the corner
     given = ScanInput.of_scan(
-        scan.gamma_measured[keep],
-        scan.distance[keep],
-        energy[keep],
-        scan.geometry,
-        model,
-        echo_amplitude=amplitude[keep],
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
     )
-    est = reconstruct_scan(given, RecordOptions(method="corner", compare_methods=("ls",)))
-    record = {p.label: p for p in est.planes_of("corner")}
-    for plane in est.planes_of("ls"):
-        if not isinstance(plane, PlaneFit):
-            continue
-        ref = record.get(plane.label)
-        if not (isinstance(ref, PlaneFit) and ref.quality == "good"):
-            assert plane.quality != "good", plane.quality_reasons
+    est = reconstruct_scan(given, RecordOptions(method="ls", compare_methods=("corner",)))
+    assert all(p.quality != "good" for p in est.planes_of("ls"))
+    assert [p.quality for p in est.results["corner"].planes] == ["good", "good"]  # its own verdict
+    for plane in est.planes_of("corner"):
+        assert plane.quality == "degraded" and plane.quality_reasons[-1].startswith("unchecked: the method of record")
+    # The message a planner gets carries the judged planes, not the methods' own verdicts.
+    published = est.as_published()
+    assert [p.quality for p in published["corner"].planes] == ["degraded", "degraded"]
+    agree = reconstruct_scan(given, RecordOptions(method="corner", compare_methods=("adaptive",)))
+    assert [p.quality for p in agree.planes] == ["good"] * 4
     with pytest.raises(ConfigError):
-        est.planes_of("lel")
+        agree.planes_of("lel")
 
 
 def test_the_provisional_variant_needs_its_state_and_the_final_its_energies(simulated):

@@ -293,11 +293,14 @@ def reconstruct_scan(
     - skips the compared methods and their cross-checks, the recovered echoes' check and the writer's
       findings, and reads the ranges as received (``scan`` is not repaired).
 
-    That is safe because none of it is kept: every provisional estimate says PROVISIONAL, and every
-    scan ends in a terminal estimate (final, incomplete or final timeout) made from scratch by the
-    final branch on the whole, repaired scan, with every check; nothing of a provisional estimate
-    (state, warm starts, verdicts) enters it.  The checks a provisional skips can only lower a
-    verdict or add a finding, so a consumer that needs them waits for the terminal estimate.
+    Why skipping is safe: a provisional estimate is never a scan's answer.  It says PROVISIONAL, and
+    every scan ends in exactly one terminal estimate (final, incomplete or final timeout) made from
+    scratch by the final branch, on the whole repaired scan with every check; nothing of a provisional
+    estimate (state, warm starts, verdicts) enters it, so a final is the same with or without them (a
+    replay runs none).  What a provisional verdict does not promise: it is the plane's own on the steps
+    so far, without the writer's findings and the recovered echoes' check, which only lower verdicts
+    (a provisional "good" can end "degraded" or "unreliable").  A consumer that acts on a verdict waits
+    for the terminal estimate.
 
     Parameters
     ----------
