@@ -112,6 +112,14 @@ class ScanInput:
     n_schedule: int = 0
     newest_ns: int = 0
 
+    def __post_init__(self) -> None:
+        rows = {len(self.steps), len(self.gamma), len(self.distance)}
+        if len(rows) != 1:
+            raise ConfigError(
+                f"steps, gamma and distance must have one row per step, got {len(self.steps)}, "
+                f"{len(self.gamma)} and {len(self.distance)}"
+            )
+
     @classmethod
     def of_scan(
         cls,
