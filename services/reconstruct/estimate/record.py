@@ -479,6 +479,8 @@ def _verdicts(
                 if reference is None:  # (every method labels its planes a and b: not expected)
                     reference = FitFailure(FailureReason.TOO_FEW_POINTS, "no plane of record", pl.label)
                 checked: PlaneResult = cross_check(pl, reference)
+            elif pl.detail.startswith(f"{method}: "):
+                checked = pl  # (the estimator named itself)
             else:
                 checked = FitFailure(pl.reason, f"{method}: {pl.detail}", pl.label, pl.n_points)
             planes.append(add_findings(checked, findings))
