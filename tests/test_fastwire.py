@@ -74,7 +74,8 @@ def samples(draw) -> tuple[codec.Sample, list[int], int, float, float]:
         sensor_energy=draw(st.lists(doubles, max_size=k + 2)),
     )
     if draw(st.booleans()):
-        sample.motor.CopyFrom(scan_pb2.MotorStatus(load=draw(doubles), voltage=draw(doubles), temperature=draw(doubles)))
+        motor = scan_pb2.MotorStatus(load=draw(doubles), voltage=draw(doubles), temperature=draw(doubles))
+        sample.motor.CopyFrom(motor)
     return sample, ids, n, rate, t0
 
 

@@ -13,7 +13,7 @@ from lelsonar.reconstruct.stream.assembly import ScanAssembly
 from lelsonar.reconstruct.stream.fastwire import read_sample
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected
 from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, dc_levels, settle_step
-from lelsonar.signal.energy import EnergyModel, energy_ratio, total_energy
+from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range, total_energy
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -97,6 +97,11 @@ def test_a_steps_energy_ratio_is_numpys_bit_for_bit(k):
     assert got["expected_energy"].tobytes() == expected.tobytes()
     assert got["ratio"].tobytes() == ratio.tobytes()
     assert (ratio[:5] == 0).all() and (ratio[5:] > 0).any()
+    # E0 against the model's own NumPy (clip, then the quadratic of eq. 12), which no kernel shares.
+    d_m = median_range(distance)
+    ranged = np.isfinite(d_m)
+    assert expected[ranged].tobytes() == model.expected_energy(d_m[ranged]).tobytes()
+    assert ratio[ranged].tobytes() == (step_energy[ranged] / model.expected_energy(d_m[ranged])).tobytes()
 
 
 def test_non_finite_samples_are_refused_as_decoding_refuses_them_whatever_else_is_wrong(scan):

@@ -123,7 +123,7 @@ def echo_amplitude(
     whose first echo is a wall still rings with the corner's echo later on.
     The peak right after the time of flight belongs to the echo that set the
     range; it follows the beam pattern ``D(ψ)²`` of the angle between the beam
-    and the wall's normal (design notes §8).
+    and the wall's normal.
 
     Parameters
     ----------
@@ -179,7 +179,7 @@ def echoes_over_noise(
     false_alarm: float = NOISE_FALSE_ALARM,
 ) -> tuple[np.ndarray, float, float]:
     """Which readings' waveforms hold an echo at their time of flight, rather than the noise a board's
-    comparator fired on (design notes §8).
+    comparator fired on.
 
     A comparator fires at the first sample whose ``|w − DC|`` crosses its threshold.  Set within a few σ of the
     receiver's noise, it fires on the noise before the echo comes: the reading's time of flight then marks no

@@ -343,7 +343,7 @@ class ScanAssembly(WriterChecks):
         if not layout:
             raise InvalidMessageError(f"sample {step} carries no sensor readings")
         n = layout[1]
-        carried = sample.sensor_energy[:]  # a list: cheaper to slice out than to unpack the field (~1 µs)
+        carried = sample.sensor_energy[:]  # a list: cheaper to slice out than to unpack the field
         m = len(carried)
         gamma = sample.gamma_measured
         motor = sample.motor

@@ -58,7 +58,7 @@ class RangeRepair(NoiseTriggers):
             walk = range_walk(np.where(typical, offset, np.nan), np.where(shown, peak, np.nan), halves=halves)
             return walk, offset, peak, typical
 
-        # A screen on the checked steps (a quarter of the echoes: the re-timing, ~40 µs a step, is spared on
+        # A screen on the checked steps (a quarter of the echoes: the re-timing is spared on
         # the others where nothing walks), then the test on every step where the screen found a walk.
         checked = steps[steps % RISE_STRIDE == 0]
         self._time_echoes(checked)
@@ -126,7 +126,7 @@ class RangeRepair(NoiseTriggers):
     def recovered_echoes(self) -> tuple[np.ndarray, np.ndarray]:
         """The ranges (m) and peaks (V, :func:`~lelsonar.signal.energy.echo_amplitude`'s) of the first echo
         after each reading the board fired on noise (:meth:`noise_triggers`; :meth:`arrays`' rows, NaN where
-        none), from its waveform (design notes §8).
+        none), from its waveform.
 
         At ingest each reading that may be noise kept its waveform around the first echo after its time of
         flight (:func:`~lelsonar.reconstruct.stream.candidates.candidate_echo`).  That echo is recovered if it

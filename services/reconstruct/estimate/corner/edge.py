@@ -76,7 +76,7 @@ def _shared_shares(labels: np.ndarray, residuals: np.ndarray, tolerance: float) 
 def edge_implied_offsets(other: Wall, normal: np.ndarray, capsule: np.ndarray, distance: np.ndarray) -> np.ndarray:
     """Offset of the wall facing ``normal`` that would make each echo a double bounce off its edge with ``other``, m.
 
-    The inverse of :func:`edge_range_terms` for one wall (design notes §8):
+    The inverse of :func:`edge_range_terms` for one wall:
     with ``a`` the capsule's distance to ``other`` and ``c`` the normals' dot
     product, a double bounce returns from ``d = √(a² + x² − 2acx)``, so the
     capsule's distance to the wall is ``x = ac + √(d² − a²(1 − c²))`` (the

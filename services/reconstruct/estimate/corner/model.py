@@ -6,10 +6,10 @@ half holds more corner echoes than wall echoes (a sweep that covers little of
 a wall, a far wall, a corner at an unusual angle): the corner echoes all share
 one range, the distance to the edge, so the mirror-echo condition fits them for
 *any* normal and LEL locks onto them (its breakdown point is 35–45 % one-sided
-outliers, design notes §9).
+outliers).
 
 Here the corner echoes are signal.  Two walls ``n_a·x = h_a``, ``n_b·x = h_b``
-predict every echo a capsule at ``p_c`` can return (design notes §8):
+predict every echo a capsule at ``p_c`` can return:
 
 * a mirror echo from wall ``k`` at range ``h_k − n_k·p_c``, if the wall's normal
   lies within the beam;
@@ -185,7 +185,7 @@ def _valid_echoes(
 
 
 def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
-    """Residual of the mirror-echo condition ``n·p_c + d − h`` of every echo, m (design notes §8)."""
+    """Residual of the mirror-echo condition ``n·p_c + d − h`` of every echo, m."""
     return pts.capsule @ wall.normal + pts.distance - wall.offset
 
 
@@ -226,7 +226,7 @@ def _edge_line(
 def edge_range_terms(
     normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, capsule: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """The range of the double bounce from the edge of two walls, in closed form (design notes §8).
+    """The range of the double bounce from the edge of two walls, in closed form.
 
     Two reflections in a dihedral of interior angle ``opening`` rotate the
     capsule's image by ``2·opening`` about the edge, so the echo returns from

@@ -32,7 +32,7 @@ def amplitude_pitch(
 ) -> tuple[float, float] | None:
     """The direction a wall faces in the rotation plane, from where its echoes are strongest.
 
-    A mirror echo's amplitude is ``∝ D(ψ)²/(2d)`` (design notes §8), ψ the
+    A mirror echo's amplitude is ``∝ D(ψ)²/(2d)``, ψ the
     angle between the beam and the wall's normal, so amplitude times ``d``
     peaks where the boresight ``(0, cos γ, sin γ)`` faces the wall.  Near the
     peak ``log D²`` is a parabola in γ whatever the capsule, so the vertex of
@@ -112,7 +112,7 @@ CLIP_MIN_ECHOES = 3
 def clipped_echoes(amplitude: np.ndarray) -> np.ndarray:
     """Mask of the echoes an ADC or amplifier clipped: those at the largest amplitude, if a plateau forms there.
 
-    A mirror echo's amplitude (design notes §8) varies continuously with the
+    A mirror echo's amplitude varies continuously with the
     beam's angle to the wall, the range and the noise, so two echoes of a scan
     hardly ever share their largest amplitude; a receiver that saturates gives
     every echo stronger than its full scale the same peak ``|w|``
@@ -200,26 +200,26 @@ def _symmetric_vertex(x: np.ndarray, le: np.ndarray, curvature: float) -> tuple[
 def window_bias_stderr(phi: float, se: float, phi_sym: float, se_sym: float) -> float:
     """Standard error of the amplitude peak's direction ``φ`` with the bias of a lopsided window.
 
-    ``D(ψ)`` is even in the angle ψ between the beam and the wall's normal
-    (design notes §8), so ``log D²`` is even about the wall's direction: a
-    parabola fitted over echoes symmetric about it has its vertex there
-    whatever the pattern's shape (the odd moments of the window vanish).  Over
-    a lopsided window — the peak near the end of the sweep, or echoes of one
-    side cut by the 10 dB floor — the pattern's quartic and higher terms
-    move the vertex toward the longer side; the fit's own σ (white amplitude
-    noise about a parabola) does not see that.  The vertex ``φ_sym`` of the
-    window made symmetric about ``φ`` (with the full window's curvature:
-    :func:`_symmetric_vertex`) measures it: with no bias, ``φ − φ_sym`` is
-    noise of variance ``σ_sym² − σ²`` (the full window's fit is the more
-    precise of two nested unbiased ones, as in a Hausman test), so only the
-    excess is bias: ``σ_φ² = σ² + max(0, (φ − φ_sym)² − (σ_sym² − σ²))``.
+     ``D(ψ)`` is even in the angle ψ between the beam and the wall's normal
+    , so ``log D²`` is even about the wall's direction: a
+     parabola fitted over echoes symmetric about it has its vertex there
+     whatever the pattern's shape (the odd moments of the window vanish).  Over
+     a lopsided window — the peak near the end of the sweep, or echoes of one
+     side cut by the 10 dB floor — the pattern's quartic and higher terms
+     move the vertex toward the longer side; the fit's own σ (white amplitude
+     noise about a parabola) does not see that.  The vertex ``φ_sym`` of the
+     window made symmetric about ``φ`` (with the full window's curvature:
+     :func:`_symmetric_vertex`) measures it: with no bias, ``φ − φ_sym`` is
+     noise of variance ``σ_sym² − σ²`` (the full window's fit is the more
+     precise of two nested unbiased ones, as in a Hausman test), so only the
+     excess is bias: ``σ_φ² = σ² + max(0, (φ − φ_sym)² − (σ_sym² − σ²))``.
 
-    Parameters
-    ----------
-    phi, se : float
-        Vertex and standard error over the full window (rad).
-    phi_sym, se_sym : float
-        The same over the window symmetric about ``phi`` (rad).
+     Parameters
+     ----------
+     phi, se : float
+         Vertex and standard error over the full window (rad).
+     phi_sym, se_sym : float
+         The same over the window symmetric about ``phi`` (rad).
     """
     excess = (phi - phi_sym) ** 2 - max(se_sym**2 - se**2, 0.0)
     return float(np.sqrt(se**2 + max(excess, 0.0)))
@@ -235,7 +235,7 @@ def walk_stderr(model: CornerModel, pts: ScanPoints, amplitude: np.ndarray) -> t
     Without the amplitude peak a wall's direction in the rotation plane rests on the ranges' change across
     the sweep through the capsules' radial lever arm ``r`` (``∂d/∂φ = r·sin(γ − φ)``, eq. 9: with ``r`` ≈ 2 cm,
     0.1 mm of range across the wall's echoes is ~1°).  A range error that follows the echo's amplitude —
-    a comparator's walk (design notes §8), or what is left of it after constant-fraction re-timing, whose
+    a comparator's walk, or what is left of it after constant-fraction re-timing, whose
     noisy peak reads high on weak echoes by about the noise (a bias ∝ 1/A) — follows the beam's angle to
     the wall, so over the echoes of one side of the normal it looks like a roll, and the joint fit's
     covariance (white range noise) does not count it.  Here the joint least squares (eq. 15's mirror-echo

@@ -264,8 +264,8 @@ def edge_in_echo_window(
 
     The double bounce returns from ``ρ·sin(opening)`` (eq. of
     :func:`~lelsonar.reconstruct.estimate.corner.model.edge_range_terms`), never nearer
-    than either wall, and as strongly as a wall at that range (design notes
-    §8); a far wall's mirror echo where the boresight also faces the edge is
+    than either wall, and as strongly as a wall at that range; a far wall's mirror echo where the boresight also
+    faces the edge is
     followed by it within centimetres, inside the window whose peak
     :func:`~lelsonar.signal.energy.echo_amplitude` takes.  That peak is
     then the corner's, and it pulls :func:`amplitude_pitch` toward the edge's
