@@ -20,7 +20,7 @@ from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
 from lelsonar.v1 import scan_pb2
 
 FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
-SETTINGS = settings(max_examples=300, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 
 doubles = st.floats(allow_nan=True, allow_infinity=True, width=64)
 
@@ -80,7 +80,8 @@ def samples(draw) -> tuple[codec.Sample, list[int], int, float, float]:
 
 
 def _unknown_field(number: int, value: bytes) -> bytes:
-    """A length-delimited field this build does not know."""
+    """A length-delimited field this build does not know (``number`` < 16, ``value`` < 128 bytes: one-byte
+    varints)."""
     return bytes([(number << 3) | 2, len(value)]) + value
 
 
@@ -89,13 +90,16 @@ def _bits(x: float) -> bytes:
 
 
 def _check(payload: bytes, ids: list[int], n: int, rate: float, t0: float) -> None:
-    """What the fast path reads of ``payload`` against what the parser reads of it."""
+    """What the fast path reads of ``payload`` (its header, then its body, as the ingest reads them) against what
+    the parser reads of it."""
     try:
         truth = codec.Sample.FromString(payload)
     except DecodeError:
         truth = None
     header = sample_header(payload)
-    if header is not None and truth is not None:
+    if header is None:
+        return  # left to the parser: the ingest reads a body only after its header (its scanner id UTF-8)
+    if truth is not None:
         assert header == (truth.schema_version, truth.scanner_id, truth.scan_id, truth.step, truth.acquisition_time_ns)
     k = len(ids)
     values = np.zeros(6 * k + 5)
@@ -126,7 +130,7 @@ def _check(payload: bytes, ids: list[int], n: int, rate: float, t0: float) -> No
 @given(samples(), st.booleans(), st.binary(max_size=6))
 def test_valid_messages_are_read_as_the_parser_reads_them(drawn, unknown: bool, extra: bytes):
     sample, ids, n, rate, t0 = drawn
-    payload = sample.SerializeToString() + (_unknown_field(99, extra) if unknown else b"")
+    payload = sample.SerializeToString() + (_unknown_field(15, extra) if unknown else b"")
     _check(payload, ids, n, rate, t0)
     # A plainly encoded sample on its scan's layout is always read: the fast path is the path.
     on_layout = [s.capsule_id for s in sample.sensors] == ids and all(
