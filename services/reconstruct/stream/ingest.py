@@ -258,7 +258,8 @@ class Ingest:
         except DecodeError as exc:
             return self._refused(scan, sample.step, exc)
         if placed is None:  # not cleared by the scan's pass: validated as decoding does, then placed
-            codec.validate_body(sample, limits)  # a refusal of the decoding: raised, for accept to count
+            # A refusal of the decoding: raised, for accept to count (``limits`` is set: only then is None returned).
+            codec.validate_body(sample, self.limits if limits is None else limits)
             try:
                 placed = scan.add(sample, origin)
             except DecodeError as exc:

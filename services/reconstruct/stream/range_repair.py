@@ -105,10 +105,12 @@ class RangeRepair(NoiseTriggers):
         with np.errstate(divide="ignore", invalid="ignore"):
             rise = (self.echo_amplitude[got] - dc) / (self.pre_echo_peak[got] - dc)
         checked = np.isfinite(rise)
-        echoes = checked & ~self.noise_triggers()[0]
-        return tuple(
-            float(np.median(rise[m])) if np.count_nonzero(m) >= RANGE_CHECK_MIN else math.nan for m in (checked, echoes)
+        with_echo = checked & ~self.noise_triggers()[0]
+        whole, echoes = (
+            float(np.median(rise[m])) if np.count_nonzero(m) >= RANGE_CHECK_MIN else math.nan
+            for m in (checked, with_echo)
         )
+        return whole, echoes
 
     def ranges_match_waveforms(self) -> bool:
         """Whether the readings' times of flight fall where their waveforms' echoes begin (:meth:`echo_rise`).

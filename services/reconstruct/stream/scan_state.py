@@ -45,6 +45,10 @@ class ScanState:
     time_ns: np.ndarray
     received: np.ndarray
     recovered_mask: np.ndarray
+    # The blocks the arrays above are planes and rows of, and what the kernel writes a step into.
+    _per_capsule: np.ndarray
+    _per_step: np.ndarray
+    _rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
     # The kept windows (:mod:`~lelsonar.reconstruct.stream.step_features`) and the checks' caches.
     _timing_rate: float
     _timing_at: np.ndarray
