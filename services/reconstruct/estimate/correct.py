@@ -29,7 +29,7 @@ AXIS_Z = np.array([0.0, 0.0, 1.0])
 #: The largest angle between a beam and the assumed normal that is corrected (rad; ``1/cos α`` explodes beyond).
 MAX_CORRECTION_ANGLE = float(np.deg2rad(80.0))
 #: Its cosine, as the fits pass it to :func:`corrected_point`.
-_COS_MAX_CORRECTION = float(np.cos(MAX_CORRECTION_ANGLE))
+COS_MAX_CORRECTION = float(np.cos(MAX_CORRECTION_ANGLE))
 
 
 def corrected_points(
