@@ -368,7 +368,7 @@ def run(args: argparse.Namespace) -> int:
         call, scan = row.median("call_s"), row.median("scan_s")
         samples = row.results[0].samples
         lo, hi = min(r.call_s for r in row.results), max(r.call_s for r in row.results)
-        per = lambda name: 1e3 * row.median(name) / samples  # noqa: E731
+        per = lambda name, row=row, samples=samples: 1e3 * row.median(name) / samples  # noqa: E731
         other = [1e3 * (r.cpu_s - r.main_cpu_s - r.emulator_cpu_s) / samples for r in row.results]
         if row.bound is None:
             ratio_call = ratio_scan = verdict = over = "—"

@@ -428,8 +428,9 @@ def run(args: argparse.Namespace) -> int:
     crit_rows = [r for r in rows if r["method"] == DEFAULT_METHOD and r["plane"] == "a"]
     if crit_rows:
         am = [abs(r["crit_argmax"] - r["crit_true"]) <= 1 for r in crit_rows if r["crit_argmax"] is not None]
+        centroid = [abs(r["crit"] - r["crit_true"]) <= 1 for r in crit_rows]
         console.print(
-            f"critical step within ±1: centroid of the R peak {100 * np.mean([abs(r['crit'] - r['crit_true']) <= 1 for r in crit_rows]):.0f} %, "
+            f"critical step within ±1: centroid of the R peak {100 * np.mean(centroid):.0f} %, "
             f"paper's argmax R {100 * np.mean(am):.0f} % ({len(crit_rows)} scans)"
         )
 

@@ -131,8 +131,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def command_line(args: argparse.Namespace) -> str:
     return (
         f"lelsonar bench ingest --scans {args.scans} --seconds {args.seconds:g} --rate {args.rate:g} "
-        f"--scanners {args.scanners} --latency-scanners {args.latency_scanners} --preset {args.preset} --fifo {args.fifo} --replay-runs {args.replay_runs}"
-        + (" --profile" if args.profile else "")
+        f"--scanners {args.scanners} --latency-scanners {args.latency_scanners} --preset {args.preset} "
+        f"--fifo {args.fifo} --replay-runs {args.replay_runs}" + (" --profile" if args.profile else "")
     )
 
 
@@ -865,7 +865,8 @@ def run(args: argparse.Namespace) -> int:
         f"≥ {TARGET_RATE:,.0f} and ≥ {TARGET_FLOOR_RATIO}× floor",
         _verdict(ok_rate),
         f"{n} samples of {args.scanners} scanners × {con_a['finals'] // max(1, args.scanners)} scans "
-        f"in {window:.1f} s (overall {overall:,.0f}/s; 10–90 % window); publisher {pub_a['puts'] / pub_a['put_s']:,.0f} puts/s "
+        f"in {window:.1f} s (overall {overall:,.0f}/s; 10–90 % window); "
+        f"publisher {pub_a['puts'] / pub_a['put_s']:,.0f} puts/s "
         f"(BLOCK); consumer busy {100 * busy_s / window:.0f} % in handle; mean handle ms: sample "
         f"{mean_ms('Sample')}, with provisional refit {mean_ms('provisional')}, with final {mean_ms('final')}; "
         f"rejected {con_a['rejected'] or 0}, errors {con_a['errors']}"
@@ -892,7 +893,8 @@ def run(args: argparse.Namespace) -> int:
         "",
         f"p99 ≤ {TARGET_P99_MS:.0f} ms",
         _verdict(ok_lat_s),
-        f"{len(lat_sample)} samples: {args.latency_scanners} scanners at {args.rate:g}/s each, {args.scans} scans back to back; max {max(lat_sample):.0f} ms",
+        f"{len(lat_sample)} samples: {args.latency_scanners} scanners at {args.rate:g}/s each, "
+        f"{args.scans} scans back to back; max {max(lat_sample):.0f} ms",
     )
     q50, q99 = _pct(lat_prov, 50), _pct(lat_prov, 99)
     ok_lat_e = q99 <= TARGET_P99_MS

@@ -5,17 +5,17 @@ it turns what the service sees into ROS 2 messages and hands each to a sink —
 the rosbag2 writer here (:func:`export_rosbag2`), or the rmw_zenoh publisher
 (:mod:`lelsonar.bridge.rmw_zenoh`).  Both carry the same topics:
 
-==============================  ==================================  =========  ==============================================
-topic                           type                                QoS        what
-==============================  ==================================  =========  ==============================================
-``/tf_static``                  ``tf2_msgs/msg/TFMessage``          TL, 1      per scan: base → axis, array → each capsule
-``/tf``                         ``tf2_msgs/msg/TFMessage``          V, 100     per step: axis → array, γ_measured about x
-``/lelsonar/range/capsule<i>``  ``sensor_msgs/msg/Range``           V, 10      per step and capsule; ``+inf`` without an echo
-``/lelsonar/points/raw``        ``sensor_msgs/msg/PointCloud2``     V, 10      per step: eq. (9) points of the scan so far
-``/lelsonar/points/corrected``  ``sensor_msgs/msg/PointCloud2``     V, 10      per estimate: §4 corrected points, a and b
-``/lelsonar/planes``            ``visualization_msgs/MarkerArray``  TL, 1      per estimate: planes per method, truth, edge
-``/lelsonar/estimate``          ``std_msgs/msg/String``             TL, 1      per estimate: the Reconstruction as JSON
-==============================  ==================================  =========  ==============================================
+==============================  ==================================  ======  ============================================
+topic                           type                                QoS     what
+==============================  ==================================  ======  ============================================
+``/tf_static``                  ``tf2_msgs/msg/TFMessage``          TL, 1   per scan: base → axis, array → each capsule
+``/tf``                         ``tf2_msgs/msg/TFMessage``          V, 100  per step: axis → array, γ_measured about x
+``/lelsonar/range/capsule<i>``  ``sensor_msgs/msg/Range``           V, 10   per step, capsule; ``+inf`` without an echo
+``/lelsonar/points/raw``        ``sensor_msgs/msg/PointCloud2``     V, 10   per step: eq. (9) points of the scan so far
+``/lelsonar/points/corrected``  ``sensor_msgs/msg/PointCloud2``     V, 10   per estimate: §4 corrected points, a and b
+``/lelsonar/planes``            ``visualization_msgs/MarkerArray``  TL, 1   per estimate: planes per method, truth, edge
+``/lelsonar/estimate``          ``std_msgs/msg/String``             TL, 1   per estimate: the Reconstruction as JSON
+==============================  ==================================  ======  ============================================
 
 (TL = RELIABLE, TRANSIENT_LOCAL, KEEP_LAST depth; V = RELIABLE, VOLATILE, KEEP_LAST depth.)
 Several scanners share these topics; their frame ids (and the estimate's

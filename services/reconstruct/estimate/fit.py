@@ -585,7 +585,7 @@ def constant_depth_ls(
     n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     it = 0
-    for it in range(1, max_outer + 1):
+    for it in range(1, max_outer + 1):  # noqa: B007  # read after the loop: the iterations run
         e1, e2 = _tangent_basis(n)
         a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
         c = p @ n + d - h

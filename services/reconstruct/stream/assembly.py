@@ -803,10 +803,10 @@ class ScanAssembly:
         """Whether the readings' times of flight fall where their waveforms' echoes begin (:meth:`echo_rise`).
 
         Those readings with an echo over the noise decide: a board whose comparator fires on the noise before
-        some echoes leaves the others' ranges right (those are re-timed from the echo after them or left out, :meth:`noise_triggers_recovered`),
-        while ranges in another convention than the waveforms (a one-way time, a window's start left unset)
-        put next to none of them at an echo's onset.  Too few of them to tell, the scan's readings as a whole
-        decide (none to check: they match).
+        some echoes leaves the others' ranges right (those are re-timed from the echo after them or left out,
+        :meth:`noise_triggers_recovered`), while ranges in another convention than the waveforms (a one-way
+        time, a window's start left unset) put next to none of them at an echo's onset.  Too few of them to
+        tell, the scan's readings as a whole decide (none to check: they match).
         """
         whole, echoes = self.echo_rise()
         return echoes >= MIN_ECHO_RISE if math.isfinite(echoes) else not whole < MIN_ECHO_RISE
@@ -815,8 +815,8 @@ class ScanAssembly:
         """Which readings of the received steps (:meth:`arrays`' rows) show no echo over the noise at their time
         of flight (:func:`~lelsonar.signal.energy.echoes_over_noise`: a board whose comparator fired on
         the noise) nor have a neighbour's echo near their range (:func:`~lelsonar.signal.energy.
-        ranges_backed`: a weak echo), and the noise σ (V; NaN: not known).  None where a reading's window was not kept (no
-        waveform, or on another clock), nor with fewer than :data:`RANGE_CHECK_MIN` windows."""
+        ranges_backed`: a weak echo), and the noise σ (V; NaN: not known).  None where a reading's window was
+        not kept (no waveform, or on another clock), nor with fewer than :data:`RANGE_CHECK_MIN` windows."""
         steps = np.flatnonzero(self.received)
         if self._noise_tested is not None and self._noise_tested[0] == len(steps):
             return self._noise_tested[1]  # steps only add up: the same count is the same steps
@@ -1436,18 +1436,17 @@ def _place_step(
     timing_windows,
     candidate_windows,
 ):
-    """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
-    sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
-    screen: γ and the motor's readings finite, each valid echo's range finite, positive and below
-    ``codec.MAX_RANGE_M``); each waveform's samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum
-    of squares), each reading's range and round trip (one from the other at the speed of sound where only one
-    is given), the first echo's peak (:func:`~lelsonar.signal.energy.echo_amplitude`'s window), and on
-    every :data:`RISE_STRIDE`-th step the peak just before it, the DC level and distance / (c·tof/2); written
-    into row ``step`` of the scan's arrays, with γ, the time and the step's origin; each waveform around its
-    time of flight (:data:`~lelsonar.signal.echo_timing.TIMING_WINDOW`), to re-time the echo if need be,
-    and where the reading may be the noise a board fired on, the same around its first echo after
-    (:func:`_candidate_echo`); and, where the carried energies were written, the step's E^γ, E0(d_m) and R (:func:`_settle_step`,
-    eq. 11–12).
+    """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the sample was
+    validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s screen: γ and the
+    motor's readings finite, each valid echo's range finite, positive and below ``codec.MAX_RANGE_M``); each waveform's
+    samples checked finite, its carried eq. (10) energy checked (:func:`energy_agrees`, float32 sum of squares), each
+    reading's range and round trip (one from the other at the speed of sound where only one is given), the first echo's
+    peak (:func:`~lelsonar.signal.energy.echo_amplitude`'s window), and on every :data:`RISE_STRIDE`-th step the peak
+    just before it, the DC level and distance / (c·tof/2); written into row ``step`` of the scan's arrays, with γ, the
+    time and the step's origin; each waveform around its time of flight
+    (:data:`~lelsonar.signal.echo_timing.TIMING_WINDOW`), to re-time the echo if need be, and where the reading may be
+    the noise a board fired on, the same around its first echo after (:func:`_candidate_echo`); and, where the carried
+    energies were written, the step's E^γ, E0(d_m) and R (:func:`_settle_step`, eq. 11–12).
 
     Parameters
     ----------

@@ -215,7 +215,9 @@ def clipped_echoes(amplitude: np.ndarray) -> np.ndarray:
 
 @kernel
 def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) -> tuple[float, float, float, bool]:
-    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``; False if not a significant peak inside."""
+    """Vertex ``−b/2a`` of ``le = aγ² + bγ + c``, its standard error and ``a``.
+
+    False if not a significant peak inside."""
     steps = np.unique(g)
     if steps.size < 2 * min_steps_each_side + 1:
         return np.nan, np.nan, np.nan, False
@@ -609,8 +611,9 @@ def _corner_wall(
     wall's joint fit shows it, which the corrected points cannot see); a direction that rests on the joint fit
     while the model's edge echoes are mostly a wall's as well
     (``edge_is_walls``: the edge that ties the walls' directions together
-    was not identified).  ``walk_se()`` (rad, :func:`walk_stderr`; asked only here) is added in quadrature to the joint normal's
-    standard error where the direction rests on the ranges (the amplitudes place it free of any walk).
+    was not identified).  ``walk_se()`` (rad, :func:`walk_stderr`; asked only here) is added in quadrature
+    to the joint normal's standard error where the direction rests on the ranges (the amplitudes place it
+    free of any walk).
     ``tie_suspect``: the other wall's echoes may be the corner cluster's, so the edge that ties this wall's
     direction to it may be wrong; the joint wall then reports the standard errors of its own echoes at
     least (the joint covariance assumes the tie).

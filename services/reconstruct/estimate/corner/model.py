@@ -22,8 +22,8 @@ Hypotheses are the dense bands of the mirror-implied wall position
 random sampling is needed and the result is deterministic.  Each pair of bands
 is refined by alternating assignment (each echo to the model that explains it
 best) and a joint Gauss-Newton over both walls, the edge's echoes tying them
-together, then scored with the MSAC cost over *all* echoes.  The true pair explains the wall echoes of both walls and the
-corner cluster through the edge; a pair that mistakes the corner cluster for a
+together, then scored with the MSAC cost over *all* echoes.  The true pair explains
+the wall echoes of both walls and the corner cluster through the edge; a pair that mistakes the corner cluster for a
 wall leaves the real wall's echoes unexplained and its edge explains nothing.
 """
 
@@ -895,7 +895,9 @@ def _joint_normal_equations(
 
 @kernel
 def _lu_solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
-    """``a⁻¹ b`` (b one or more columns) by LU with partial pivoting, as LAPACK's ``gesv``; False if ``a`` is singular."""
+    """``a⁻¹ b`` (b one or more columns) by LU with partial pivoting, as LAPACK's ``gesv``.
+
+    False if ``a`` is singular."""
     n = a.shape[0]
     lu = a.copy()
     x = b.copy()
