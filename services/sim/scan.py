@@ -306,7 +306,7 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
     return EchoTable(range=rng_, amplitude=amp, source=src, index=idx)
 
 
-def _first_echo(cfg: SimConfig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def first_echo(cfg: SimConfig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The comparator: the earliest echo whose peak is over the threshold, after blanking.
 
     Returns the noise-free range, source and index of that echo per capsule,
@@ -337,7 +337,7 @@ def _first_echo(cfg: SimConfig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarr
     return (np.where(found, first_range, np.nan), source.astype(np.int8), index.astype(np.int16), first_delay)
 
 
-def _amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> EchoTable:
+def apply_amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> EchoTable:
     """Scale every echo of a capsule's shot by one log-normal factor (``Receiver.amplitude_noise``).
 
     Draws nothing when the noise is 0, so the random stream (and every existing
@@ -353,10 +353,10 @@ def _amplitude_noise(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator
     )
 
 
-def _time_of_flight(
+def comparator_time_of_flight(
     cfg: SimConfig, echo_range: np.ndarray, rng: np.random.Generator, delay: np.ndarray | float = 0.0
 ) -> np.ndarray:
-    """The comparator's time: arrival plus its ``delay`` (:func:`_first_echo`), Gaussian jitter and ±1-cycle
+    """The comparator's time: arrival plus its ``delay`` (:func:`first_echo`), Gaussian jitter and ±1-cycle
     slips (±λ/2 of range)."""
     c = cfg.sound_speed
     rec = cfg.receiver
@@ -386,7 +386,7 @@ def _gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], std: float
     return noise.reshape(shape)
 
 
-def _waveforms(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> np.ndarray:
+def digitised_waveforms(cfg: SimConfig, echoes: EchoTable, rng: np.random.Generator) -> np.ndarray:
     """Digitised echo signals, (n, m, window_samples) float32 volts.
 
     Each echo adds a 40 kHz burst under :func:`echo_envelope`, starting at its
@@ -482,13 +482,13 @@ def simulate_scan(
     raw = np.clip(cfg.servo.to_raw(gamma_true), 0, 1023)
     gamma_measured = cfg.servo.to_gamma(raw)
 
-    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
-    echo_range, source, index, delay = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng, delay)
+    echoes = apply_amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
+    echo_range, source, index, delay = first_echo(cfg, echoes)
+    tof = comparator_time_of_flight(cfg, echo_range, rng, delay)
     c = cfg.sound_speed
     distance = c * tof / 2.0
     if with_waveforms:
-        waveforms = _waveforms(cfg, echoes, rng)
+        waveforms = digitised_waveforms(cfg, echoes, rng)
     else:
         waveforms = np.zeros((*tof.shape, 0), dtype=np.float32)
 
@@ -528,10 +528,10 @@ def simulate_step(cfg: SimConfig, gamma_measured: float, rng: np.random.Generato
     step, without the servo draw.
     """
     gamma = np.array([float(gamma_measured)])
-    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma), rng)
-    echo_range, source, index, delay = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng, delay)
-    waveforms = _waveforms(cfg, echoes, rng)
+    echoes = apply_amplitude_noise(cfg, echo_table(cfg, gamma), rng)
+    echo_range, source, index, delay = first_echo(cfg, echoes)
+    tof = comparator_time_of_flight(cfg, echo_range, rng, delay)
+    waveforms = digitised_waveforms(cfg, echoes, rng)
     return SimulatedStep(
         tof=tof[0],
         distance=cfg.sound_speed * tof[0] / 2.0,

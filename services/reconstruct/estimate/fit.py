@@ -27,8 +27,8 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
-from lelsonar.reconstruct.estimate.correct import _COS_MAX_CORRECTION, corrected_point
-from lelsonar.reconstruct.estimate.lel import PERFECT_FIT, _entropy, entropy_of_residuals, newton_minimize
+from lelsonar.reconstruct.estimate.correct import COS_MAX_CORRECTION, corrected_point
+from lelsonar.reconstruct.estimate.lel import PERFECT_FIT, entropy_of_residuals, newton_minimize, residual_entropy
 from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
 from lelsonar.signal.compiled import kernel
 
@@ -52,20 +52,23 @@ __all__ = [
     "mirror_consistent",
     "inlier_count",
     "make_plane_fit",
+    "vector_norm",
+    "cross3",
+    "tangent_basis",
 ]
 
 #: The constant of eq. (22): σ = k·MAD for normally distributed errors.
 MAD_K = 1.4826
 
 
-def _norm(v: np.ndarray) -> float:
-    # np.linalg.norm of a 1-D vector is sqrt(v · v); this is that, without its ~4 µs of argument handling.
+def vector_norm(v: np.ndarray) -> float:
+    """``np.linalg.norm`` of a 1-D vector, ``sqrt(v · v)``, without its argument handling (a hot path)."""
     return float(np.sqrt(v @ v))
 
 
 @kernel
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross of two 3-vectors, with the same roundings (each product rounded, then the difference).
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of two 3-vectors, with the same roundings (each product rounded, then the difference)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
@@ -223,8 +226,8 @@ def plane_data_of(
         np.ascontiguousarray(beam, dtype=np.float64),
         d,
         np.ascontiguousarray(steps, dtype=np.intp),
-        ax / _norm(ax),
-        _COS_MAX_CORRECTION,
+        ax / vector_norm(ax),
+        COS_MAX_CORRECTION,
     )
     return PlaneData._owned(label, ax.copy(), points, caps, dist, bm, st)
 
@@ -345,7 +348,7 @@ def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     (constant-depth model).
     """
     t = np.asarray(theta, dtype=np.float64)
-    return (np.asarray(points, dtype=np.float64) @ t - 1.0) / _norm(t) + shift
+    return (np.asarray(points, dtype=np.float64) @ t - 1.0) / vector_norm(t) + shift
 
 
 @kernel
@@ -523,7 +526,7 @@ def _observed_patch(n: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarra
         u[1] += 1.0
         nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
     u /= nu
-    w = _cross3(n, u)
+    w = cross3(n, u)
     a0 = b0 = np.inf
     a1 = b1 = -np.inf
     for i in range(foot.shape[0]):
@@ -542,7 +545,7 @@ def _observed_patch(n: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarra
 
 
 @kernel
-def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Orthonormal ``e₁, e₂`` of the plane normal to the unit ``n`` (``e₁`` away from ``n``'s smallest axis).
 
     Every Gauss-Newton step on the sphere builds one (the constant-depth fits, the joint corner model).
@@ -553,9 +556,9 @@ def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             k = j
     helper = np.zeros(3)
     helper[k] = 1.0
-    e1 = _cross3(n, helper)
+    e1 = cross3(n, helper)
     e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
-    return e1, _cross3(n, e1)
+    return e1, cross3(n, e1)
 
 
 def constant_depth_ls(
@@ -582,16 +585,16 @@ def constant_depth_ls(
     d = np.asarray(distance, dtype=np.float64)
     if mask is not None:
         p, d = p[np.asarray(mask, dtype=bool)], d[np.asarray(mask, dtype=bool)]
-    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
+    n = np.asarray(normal0, dtype=np.float64) / vector_norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     it = 0
     for it in range(1, max_outer + 1):  # noqa: B007  # read after the loop: the iterations run
-        e1, e2 = _tangent_basis(n)
+        e1, e2 = tangent_basis(n)
         a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
         c = p @ n + d - h
         z, *_ = np.linalg.lstsq(a, -c, rcond=None)
         n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / _norm(n_new)
+        n = n_new / vector_norm(n_new)
         h += float(z[2])
         if float(np.abs(z[:2]).max()) < tol and abs(float(z[2])) < tol:
             break
@@ -637,12 +640,12 @@ def constant_depth_fit(
     """
     p = np.asarray(capsules, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
-    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
+    n = np.asarray(normal0, dtype=np.float64) / vector_norm(np.asarray(normal0, dtype=np.float64))
     h = float(offset0)
     its = evs = 0
     converged = False
     for _ in range(max_outer):
-        e1, e2 = _tangent_basis(n)
+        e1, e2 = tangent_basis(n)
         a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
         c = p @ n + d - h
         if np.all(np.abs(c) <= PERFECT_FIT * max(abs(h), 1.0)):  # D = 0 (eq. 6): a perfect fit
@@ -652,7 +655,7 @@ def constant_depth_fit(
         its += nit
         evs += nev
         n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / _norm(n_new)
+        n = n_new / vector_norm(n_new)
         h += float(z[2])
         if float(np.abs(z).max()) < tol:
             converged = ok
@@ -714,7 +717,7 @@ def make_plane_fit(
     PlaneFit, or FitFailure (SOLVER_FAILED) if θ is not a usable plane.
     """
     t = np.asarray(theta, dtype=np.float64)
-    nt = _norm(t)
+    nt = vector_norm(t)
     if not 1e-3 < nt < 1e3:  # (also a NaN or infinite θ: its norm is not finite, so no comparison holds)
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
     if model == "paper":
@@ -819,5 +822,5 @@ def _fit_statistics(
         MAD_K * mad_e,
         MAD_K * _mad(ri),
         _observed_patch(n, 1.0 / nt, foot),
-        _entropy(e) if m >= 2 else 0.0,
+        residual_entropy(e) if m >= 2 else 0.0,
     )

@@ -54,11 +54,14 @@ __all__ = [
     "front_start",
     "FAST_SOLVERS",
     "PERFECT_FIT",
+    "pairwise_sum",
+    "pairwise_block",
+    "residual_entropy",
 ]
 
 
 @kernel
-def _pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
+def pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
     """``np.sum`` of ``x[lo:lo + n]``, the same roundings: NumPy's pairwise summation.
 
     Halves (the first a multiple of 8) summed apart down to blocks of at most 128, each summed in 8
@@ -67,7 +70,7 @@ def _pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
     does not survive Numba's cache).
     """
     if n <= 128:
-        return _pairwise_block(x, lo, n)
+        return pairwise_block(x, lo, n)
     los = np.empty(64, dtype=np.intp)
     ns = np.empty(64, dtype=np.intp)
     second = np.zeros(64, dtype=np.bool_)  # whether the child above this frame is its second half
@@ -82,7 +85,7 @@ def _pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
             los[sp + 1], ns[sp + 1] = los[sp], n2
             sp += 1
             continue
-        v = _pairwise_block(x, los[sp], ns[sp])
+        v = pairwise_block(x, los[sp], ns[sp])
         while True:  # hand v up: a first half waits for its second, a second half completes its parent
             sp -= 1
             if sp < 0:
@@ -99,8 +102,8 @@ def _pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
 
 
 @kernel
-def _pairwise_block(x: np.ndarray, lo: int, n: int) -> float:
-    """A leaf of :func:`_pairwise_sum`: at most 128 terms, in order below 8, else in 8 lanes and the rest."""
+def pairwise_block(x: np.ndarray, lo: int, n: int) -> float:
+    """A leaf of :func:`pairwise_sum`: at most 128 terms, in order below 8, else in 8 lanes and the rest."""
     if n < 8:
         s = 0.0
         for i in range(lo, lo + n):
@@ -138,7 +141,7 @@ def _cost_terms(r: np.ndarray) -> tuple[float, float, np.ndarray]:
     """
     n = r.shape[0]
     s = r * r
-    d = _pairwise_sum(s, 0, n)
+    d = pairwise_sum(s, 0, n)
     if d == 0.0 or not np.isfinite(d):
         return (0.0 if d == 0.0 else np.inf), d, np.zeros_like(s)
     floor = 1e-30 * d
@@ -172,12 +175,12 @@ def entropy_of_residuals(residuals: np.ndarray) -> float:
         raise ConfigError(f"the entropy-like cost needs at least 2 residuals, got {n}")
     if not np.all(np.isfinite(r)):
         raise ConfigError("residuals must be finite")
-    return _entropy(r)
+    return residual_entropy(r)
 
 
 @kernel
-def _entropy(r: np.ndarray) -> float:
-    """:func:`entropy_of_residuals` of at least 2 finite residuals."""
+def residual_entropy(r: np.ndarray) -> float:
+    """:func:`entropy_of_residuals` of at least 2 finite residuals (eq. 6), compiled: no checks."""
     # Scale first: H is scale-invariant, and this keeps r² from underflowing.
     scale = 0.0
     for x in r:

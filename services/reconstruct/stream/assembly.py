@@ -59,11 +59,11 @@ from lelsonar import codec
 from lelsonar.codec import MAX_RANGE_M
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.geometry import ArrayGeometry, beam_points
-from lelsonar.reconstruct.estimate.corner.model import _pairwise_block  # NumPy's add.reduce, to the bit
+from lelsonar.reconstruct.estimate.lel import pairwise_block  # NumPy's add.reduce, to the bit
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.signal.compiled import kernel
 from lelsonar.signal.echo_timing import (
-    _FLOOR_TIME,
+    FLOOR_TIME,
     MIN_TIMED,
     TIMING_WINDOW,
     RangeWalk,
@@ -829,7 +829,7 @@ class ScanAssembly:
             listened = 2.0 * distance[kept] / self.sound_speed
             echo = np.isfinite(distance)  # a reading without its window is not tested: taken as an echo
             echo[kept], _, sigma = echoes_over_noise(
-                self._timing_windows[steps][kept], self._timing_rate, at[kept], listened, _FLOOR_TIME
+                self._timing_windows[steps][kept], self._timing_rate, at[kept], listened, FLOOR_TIME
             )
             # A weak echo beside a neighbour's stays: within the range one echo window spans.
             reach = 0.5 * self.sound_speed * (ECHO_PEAK_WINDOW[1] - ECHO_PEAK_WINDOW[0])
@@ -867,7 +867,7 @@ class ScanAssembly:
             at, start = at[rows], start[rows]
             # The noise over these windows' own floors: the time-of-flight windows' may lie in the transmitter's
             # ring-down, where a board that fires on the noise as soon as its blanking ends puts them.
-            echo, _, sigma = echoes_over_noise(windows, rate, at, start + at, _FLOOR_TIME)
+            echo, _, sigma = echoes_over_noise(windows, rate, at, start + at, FLOOR_TIME)
             self._recovery_sigma = sigma
             onset, envelope, _ = echo_onsets(windows, rate, at)
             # Where each echo's envelope rises through the noise's level (clipped echoes too: strong ones).
@@ -1627,7 +1627,7 @@ def _settle_step(per_capsule, per_step, step, scan):
     :func:`~lelsonar.signal.energy.total_energy`, :func:`~lelsonar.signal.energy.median_range` and
     :func:`~lelsonar.signal.energy.energy_ratio` give (E0 as ``EnergyModel.expected_energy`` of the
     model in ``scan[2:7]``: φ0, φ1, φ2, d_min, d_max)."""
-    step_energy = 0.0 + _pairwise_block(per_capsule[1, step], 0, per_capsule.shape[2])  # as add.reduce
+    step_energy = 0.0 + pairwise_block(per_capsule[1, step], 0, per_capsule.shape[2])  # as add.reduce
     per_step[2, step] = step_energy
     d_m = step_median_range(per_capsule[0, step])
     if math.isfinite(d_m):

@@ -27,22 +27,22 @@ from lelsonar.reconstruct.estimate.corner.model import (
     CornerModel,
     ScanPoints,
     Wall,
-    _joint_gauss_newton,
-    _joint_residuals,
-    _labelled_order,
-    _lu_solve,
-    _roll,
     echo_residuals,
     edge_alternatives,
     edge_line,
     edge_shared_shares,
     fit_corner_model,
+    joint_gauss_newton_arrays,
+    joint_residuals_arrays,
+    labelled_order,
+    lu_solve,
+    roll_angle,
     scan_points,
 )
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.estimators import diagnostics, fit_adaptive, run_estimator
 from lelsonar.reconstruct.estimate.fit import fast_median
-from lelsonar.reconstruct.estimate.lel import _pairwise_sum
+from lelsonar.reconstruct.estimate.lel import pairwise_sum
 from lelsonar.reconstruct.estimate.options import FitOptions, ScanFit
 from lelsonar.reconstruct.estimate.quality import (
     DEGRADED,
@@ -224,7 +224,7 @@ def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) ->
     # The parabola about the mean γ of those echoes (the same vertex, better conditioned than in γ itself):
     # least squares by its normal equations, covariance σ² (XᵀX)⁻¹ with σ² over N − 3 degrees of freedom.
     n = g.shape[0]
-    centre = _pairwise_sum(g, 0, n) / n
+    centre = pairwise_sum(g, 0, n) / n
     t = g - centre
     xtx = np.zeros((3, 3))
     xtl = np.zeros(3)
@@ -235,7 +235,7 @@ def _parabola_vertex(g: np.ndarray, le: np.ndarray, min_steps_each_side: int) ->
             xtl[u] += row[u] * le[i]
             for v in range(3):
                 xtx[u, v] += row[u] * row[v]
-    inv, ok = _lu_solve(xtx, np.eye(3))
+    inv, ok = lu_solve(xtx, np.eye(3))
     if not ok:
         return np.nan, np.nan, np.nan, False
     coef = inv @ xtl
@@ -268,10 +268,10 @@ def _symmetric_vertex(x: np.ndarray, le: np.ndarray, curvature: float) -> tuple[
         return np.nan, np.nan, False
     n = x.shape[0]
     y = le - curvature * x * x
-    xc = x - _pairwise_sum(x, 0, n) / n
+    xc = x - pairwise_sum(x, 0, n) / n
     sxx = xc @ xc  # the slope's unscaled variance is 1/Σ(x − x̄)²
     slope = (xc @ y) / sxx
-    r = y - (slope * x + (_pairwise_sum(y, 0, n) / n - slope * (_pairwise_sum(x, 0, n) / n)))
+    r = y - (slope * x + (pairwise_sum(y, 0, n) / n - slope * (pairwise_sum(x, 0, n) / n)))
     s2 = (r @ r) / max(n - 2, 1)
     shift = -slope / (2.0 * curvature)
     se = np.sqrt(max(s2 / sxx, 0.0)) / (2.0 * abs(curvature))
@@ -369,7 +369,7 @@ def _walk_stderr(
 ) -> tuple[float, float]:
     """:func:`walk_stderr` as one kernel (``step``: :data:`_WALK_STEP`)."""
     n = labels.shape[0]
-    order = _labelled_order(labels)  # wall a's echoes, wall b's, then the edge's (joint_residuals' order)
+    order = labelled_order(labels)  # wall a's echoes, wall b's, then the edge's (joint_residuals' order)
     m = order.shape[0]
     ok = np.empty(n, dtype=np.bool_)
     n_ok = 0
@@ -403,20 +403,22 @@ def _walk_stderr(
             if ok[order[o]]:
                 used[j] = raw[c, order[o]]
                 j += 1
-        mean = _pairwise_sum(used, 0, n_used) / n_used
+        mean = pairwise_sum(used, 0, n_used) / n_used
         for i in range(n):
             if ok[i]:
                 columns[c, i] = raw[c, i] - mean
-    wa, ha, wb, hb, _cov, _moved = _joint_gauss_newton(
+    wa, ha, wb, hb, _cov, _moved = joint_gauss_newton_arrays(
         capsule, distance, labels, normal_a, offset_a, normal_b, offset_b, 3, False, 6, 1e-9
     )
-    r0 = _joint_residuals(capsule, distance, order, labels, wa, ha, wb, hb)
+    r0 = joint_residuals_arrays(capsule, distance, order, labels, wa, ha, wb, hb)
     change = np.empty((2, m))
     turn = np.empty((6, 2))  # d normal / d β: wall a's normal, then wall b's
     for c in range(2):
         moved = distance + step * columns[c]
-        ma, mha, mb, mhb, _cov, _moved = _joint_gauss_newton(capsule, moved, labels, wa, ha, wb, hb, 3, False, 6, 1e-9)
-        r1 = _joint_residuals(capsule, moved, order, labels, ma, mha, mb, mhb)
+        ma, mha, mb, mhb, _cov, _moved = joint_gauss_newton_arrays(
+            capsule, moved, labels, wa, ha, wb, hb, 3, False, 6, 1e-9
+        )
+        r1 = joint_residuals_arrays(capsule, moved, order, labels, ma, mha, mb, mhb)
         for o in range(m):
             change[c, o] = (r1[o] - r0[o]) / step
         for u in range(3):
@@ -436,7 +438,7 @@ def _walk_stderr(
         for v in range(2):
             sym[u, v] = 0.5 * (mm[u, v] + mm[v, u])
     s2 = (r0 @ r0) / max(m - 6 - 2, 1)
-    m_inv, invertible = _lu_solve(sym, np.eye(2))
+    m_inv, invertible = lu_solve(sym, np.eye(2))
     if not invertible:
         return np.pi, np.pi
     for u in range(2):
@@ -510,12 +512,12 @@ def _fixed_pitch_wall(
     x = np.empty(m)
     for i in range(m):
         r[i] = p[i, 0] * n[0] + p[i, 1] * n[1] + p[i, 2] * n[2] + d[i]
-    h = _pairwise_sum(r, 0, m) / m
+    h = pairwise_sum(r, 0, m) / m
     for _ in range(iterations):
         # Least squares of r + x·δψ − δh = 0 (x = p·∂n/∂ψ) in closed form: δψ from the centred x and r, δh
         # from the means.  Quadratic convergence: stop once the step is below rounding.
         _mirror_terms(p, d, n, dn, h, r, x)
-        x_mean = _pairwise_sum(x, 0, m) / m
+        x_mean = pairwise_sum(x, 0, m) / m
         sxx = 0.0
         sxr = 0.0
         for i in range(m):
@@ -524,7 +526,7 @@ def _fixed_pitch_wall(
             sxr += xc * r[i]
         step_psi = -sxr / sxx if sxx > 0 else 0.0
         psi += step_psi
-        h += _pairwise_sum(r, 0, m) / m + x_mean * step_psi
+        h += pairwise_sum(r, 0, m) / m + x_mean * step_psi
         n, dn = _pitch_frame(psi, cp, sp)
         if abs(step_psi) < 1e-13:
             break
@@ -535,7 +537,7 @@ def _fixed_pitch_wall(
     for i in range(m):
         sxx += x[i] * x[i]
         srr += r[i] * r[i]
-    sx = _pairwise_sum(x, 0, m)
+    sx = pairwise_sum(x, 0, m)
     det = sxx * m - sx * sx
     if det > 1e-3 * sxx * m:  # well conditioned: its inverse in closed form (≤ 1e-12 of the SVD's, tested)
         inv00, inv11 = m / det, sxx / det
@@ -549,7 +551,7 @@ def _fixed_pitch_wall(
     dn1, dn2 = -np.cos(psi) * sp, np.cos(psi) * cp
     for i in range(m):
         x[i] = p[i, 1] * dn1 + p[i, 2] * dn2
-    dh_dphi = _pairwise_sum(x, 0, m) / m
+    dh_dphi = pairwise_sum(x, 0, m) / m
     se_n = np.sqrt(max(s2 * inv00, 0.0) + phi_se**2)
     se_h = np.sqrt(max(s2 * inv11, 0.0) + (dh_dphi * phi_se) ** 2)
     return n, h, se_n, se_h
@@ -1034,7 +1036,7 @@ def fit_corner(
             edge_is_walls,
             walk_se=lambda k=k: walk_se(k),
             tie_suspect=edge_shared[other] or as_cluster[other],
-            common_roll=_roll(*joint_walls[other]),
+            common_roll=roll_angle(*joint_walls[other]),
         )
         findings = tuple((UNRELIABLE, f) for f in flags)
         shared = shares[k]

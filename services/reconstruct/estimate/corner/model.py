@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
-from lelsonar.reconstruct.estimate.fit import _cross3, _norm, _tangent_basis, fast_median
-from lelsonar.reconstruct.estimate.lel import _pairwise_block, _pairwise_sum  # noqa: F401 — _pairwise_block: assembly imports it from here
+from lelsonar.reconstruct.estimate.fit import cross3, fast_median, tangent_basis, vector_norm
+from lelsonar.reconstruct.estimate.lel import pairwise_sum
 from lelsonar.signal.compiled import kernel
 
 __all__ = [
@@ -54,6 +54,11 @@ __all__ = [
     "edge_alternatives",
     "joint_residuals",
     "joint_gauss_newton",
+    "joint_residuals_arrays",
+    "joint_gauss_newton_arrays",
+    "labelled_order",
+    "lu_solve",
+    "roll_angle",
     "band_offsets",
     "fit_corner_model",
     "ECHO_WALL_A",
@@ -214,12 +219,12 @@ def _edge_line(
     normal_a: np.ndarray, offset_a: float, normal_b: np.ndarray, offset_b: float, min_sine2: float
 ) -> tuple[np.ndarray, np.ndarray, bool]:
     """:func:`edge_line` on arrays (``min_sine2`` the sine² of its ``min_angle``); False: no edge."""
-    e = _cross3(normal_a, normal_b)
+    e = cross3(normal_a, normal_b)
     s2 = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
     if s2 < min_sine2:
         return np.zeros(3), np.zeros(3), False
-    u = _cross3(normal_b, e)
-    v = _cross3(e, normal_a)
+    u = cross3(normal_b, e)
+    v = cross3(e, normal_a)
     point = np.empty(3)
     for j in range(3):  # h_a (n_b × e) + h_b (e × n_a), element by element
         point[j] = (offset_a * u[j] + offset_b * v[j]) / s2
@@ -605,7 +610,7 @@ def _msac_cost(residuals: np.ndarray, tolerance: float) -> float:
     for i in range(residuals.shape[0]):
         r = residuals[i] if np.isfinite(residuals[i]) else tolerance
         x[i] = min(r * r, t2)
-    return _pairwise_sum(x, 0, x.shape[0])
+    return pairwise_sum(x, 0, x.shape[0])
 
 
 def band_offsets(w: np.ndarray, *, bin_width: float = 0.01, max_bands: int = 4, min_count: int = 6) -> np.ndarray:
@@ -654,10 +659,10 @@ def _band_offsets(w: np.ndarray, bin_width: float, max_bands: int, min_count: in
 def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndarray) -> np.ndarray:
     """Range residuals (m) of the labelled echoes under their models: wall a, wall b, then the edge."""
     lab = np.asarray(labels, dtype=np.intp)
-    return _joint_residuals(
+    return joint_residuals_arrays(
         pts.capsule,
         pts.distance,
-        _labelled_order(lab),
+        labelled_order(lab),
         lab,
         np.asarray(wall_a.normal, dtype=np.float64),
         float(wall_a.offset),
@@ -667,7 +672,7 @@ def joint_residuals(wall_a: Wall, wall_b: Wall, pts: ScanPoints, labels: np.ndar
 
 
 @kernel
-def _labelled_order(labels: np.ndarray) -> np.ndarray:
+def labelled_order(labels: np.ndarray) -> np.ndarray:
     """Indices of the echoes labelled wall a, then wall b, then the edge, each in the scan's order."""
     m = 0
     for i in range(labels.shape[0]):
@@ -684,7 +689,7 @@ def _labelled_order(labels: np.ndarray) -> np.ndarray:
 
 
 @kernel
-def _joint_residuals(
+def joint_residuals_arrays(
     capsule: np.ndarray,
     distance: np.ndarray,
     order: np.ndarray,
@@ -740,7 +745,7 @@ def joint_gauss_newton(
     then wall b (``σ² (JᵀJ)⁻¹``, σ² from the residuals; ``inf`` if
     unconstrained or not asked for with ``covariance=False``).
     """
-    na, ha, nb, hb, cov, moved = _joint_gauss_newton(
+    na, ha, nb, hb, cov, moved = joint_gauss_newton_arrays(
         pts.capsule,
         pts.distance,
         np.asarray(labels, dtype=np.intp),
@@ -894,7 +899,7 @@ def _joint_normal_equations(
 
 
 @kernel
-def _lu_solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
+def lu_solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """``a⁻¹ b`` (b one or more columns) by LU with partial pivoting, as LAPACK's ``gesv``.
 
     False if ``a`` is singular."""
@@ -929,7 +934,7 @@ def _lu_solve(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 @kernel
-def _joint_gauss_newton(
+def joint_gauss_newton_arrays(
     capsule: np.ndarray,
     distance: np.ndarray,
     labels: np.ndarray,
@@ -986,7 +991,7 @@ def _joint_gauss_newton_from(
     min_sine: float,
     cost0: float,
 ) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, bool]:
-    """:func:`_joint_gauss_newton` given the start's :func:`_joint_cost` ``cost0`` (finite; NaN: work it out)."""
+    """:func:`joint_gauss_newton_arrays` given the start's :func:`_joint_cost` ``cost0`` (finite; NaN: work it out)."""
     cov = np.full((6, 6), np.inf)
     na, ha, nb, hb = normal_a.copy(), offset_a, normal_b.copy(), offset_b
     m = 0
@@ -1003,8 +1008,8 @@ def _joint_gauss_newton_from(
         return na, ha, nb, hb, cov, False
     lam = 1e-6
     for _ in range(iterations):
-        ea1, ea2 = _tangent_basis(na)
-        eb1, eb2 = _tangent_basis(nb)
+        ea1, ea2 = tangent_basis(na)
+        eb1, eb2 = tangent_basis(nb)
         jtj, g = _joint_normal_equations(capsule, distance, labels, na, ha, nb, hb, ea1, ea2, eb1, eb2)
         rhs = np.empty((6, 1))
         for u in range(6):
@@ -1014,7 +1019,7 @@ def _joint_gauss_newton_from(
             damped = jtj.copy()
             for u in range(6):
                 damped[u, u] = jtj[u, u] + lam * (jtj[u, u] + 1e-12)
-            dz, ok = _lu_solve(damped, rhs)
+            dz, ok = lu_solve(damped, rhs)
             if not ok:
                 lam *= 10
                 continue
@@ -1033,10 +1038,10 @@ def _joint_gauss_newton_from(
         if not accepted:
             break
     if covariance:
-        ea1, ea2 = _tangent_basis(na)
-        eb1, eb2 = _tangent_basis(nb)
+        ea1, ea2 = tangent_basis(na)
+        eb1, eb2 = tangent_basis(nb)
         jtj, _g = _joint_normal_equations(capsule, distance, labels, na, ha, nb, hb, ea1, ea2, eb1, eb2)
-        inv, ok = _lu_solve(jtj, np.eye(6))
+        inv, ok = lu_solve(jtj, np.eye(6))
         if ok:
             cov = c0 / (m - 6) * inv
     return na, ha, nb, hb, cov, True
@@ -1151,9 +1156,9 @@ def fit_corner_model(
     ``inf``: the model cannot place them).
     """
     axis_a = np.asarray(axis_a, dtype=np.float64)
-    axis_a = axis_a / _norm(axis_a)
+    axis_a = axis_a / vector_norm(axis_a)
     axis_b = np.asarray(axis_b, dtype=np.float64)
-    axis_b = axis_b / _norm(axis_b)
+    axis_b = axis_b / vector_norm(axis_b)
     na, ha, nb, hb, labels, res, cost, hyps, cov, out_a, out_b, fa, fb = _corner_model(
         pts.capsule,
         pts.distance,
@@ -1176,7 +1181,7 @@ def fit_corner_model(
     model = CornerModel(Wall(na, ha), Wall(nb, hb), labels, res, tolerance, cost, int(hyps), cov, outside)
     if not (any(outside) and recentre > 0):
         return model
-    roll_a, roll_b = _roll(fa, axis_a), _roll(fb, axis_b)
+    roll_a, roll_b = roll_angle(fa, axis_a), roll_angle(fb, axis_b)
     # Only a turn of the whole L moves the axes: both walls turning the same way by about as much.  Walls
     # pulled apart (one onto the corner cluster, which looks like a wall facing the edge) stay flagged.
     if abs(roll_a - roll_b) <= max_tilt:
@@ -1381,7 +1386,7 @@ def _corner_model(
     )
 
 
-def _roll(normal: np.ndarray, axis: np.ndarray) -> float:
+def roll_angle(normal: np.ndarray, axis: np.ndarray) -> float:
     """Signed angle about x from ``axis`` to ``normal``, both projected onto the rotation plane (y, z), rad."""
     z = complex(normal[1], normal[2]) * complex(axis[1], -axis[2])
     # np.angle(z), without its array round trip (NumPy's own arctan2: math.atan2 differs in the last bit)
