@@ -308,7 +308,7 @@ class Recording:
     def path(self) -> Path:
         return self.salvage.path
 
-    def contract_channels(self) -> dict[int, type[Message]]:
+    def contract_channels(self) -> dict[int, type[codec.WireMessage]]:
         """The channels that hold contract messages, and the message type of each.
 
         A channel is the contract's by its protobuf schema name (``lelsonar.v1.Sample`` …), whatever
@@ -316,7 +316,7 @@ class Recording:
         Every payload is still decoded and validated by the consumer.
         """
         s = self.salvage
-        out = {}
+        out: dict[int, type[codec.WireMessage]] = {}
         for cid, ch in s.channels.items():
             cls = codec.MESSAGE_TYPES.get(s.schema_name(cid))
             if cls is not None and ch.message_encoding == "protobuf":

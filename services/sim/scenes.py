@@ -44,6 +44,7 @@ import functools
 import math
 import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -217,7 +218,7 @@ def draw_params(family: str, rng: np.random.Generator) -> SceneParams:
     ConfigError
         For an unknown family.
     """
-    p: dict[str, float] = {}
+    p: dict[str, Any] = {}  # SceneParams fields, drawn per family
     if family == "paper":
         p.update(
             steps=_paper_steps(rng),

@@ -73,7 +73,7 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _ro(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
-    out = np.array(a, dtype=dtype, copy=True)
+    out: np.ndarray = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
     return out
 
