@@ -509,7 +509,9 @@ def scene_truth(scan: Any) -> SceneTruth:
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
     pc = scan.geometry.capsule_positions(scan.gamma_measured)
-    patch, oracle, n_mirror = {}, {}, {}
+    patch: dict[str, np.ndarray] = {}
+    oracle: dict[str, tuple[float, float, float] | None] = {}
+    n_mirror: dict[str, int] = {}
     for label, src in (("a", EchoSource.PLANE_A), ("b", EchoSource.PLANE_B)):
         tp = planes[label]
         m = (truth.echo_source == src) & np.isfinite(scan.distance)
@@ -630,14 +632,12 @@ def _add_cross_checked_quality(rows: list[dict[str, Any]], fits: dict[tuple[str,
     record's (``lelsonar.reconstruct.estimate.quality.cross_check``); ``quality`` stays
     the method's own verdict, what a planner gets with it as the method of record.
     """
-    try:
-        from lelsonar.reconstruct.estimate.quality import cross_check
-    except ImportError:
-        cross_check = None
+    from lelsonar.reconstruct.estimate.quality import cross_check
+
     for r in rows:
         res, ref = fits.get((r["method"], r["label"])), fits.get((default, r["label"]))
         r["quality_service"] = r.get("quality")
-        if cross_check is not None and res is not None and ref is not None and r["method"] != default:
+        if res is not None and ref is not None and r["method"] != default:
             try:
                 r["quality_service"] = quality_name(getattr(cross_check(res, ref), "quality", None))
             except Exception:  # noqa: BLE001 — the contract may move; the own verdict stays
@@ -1033,18 +1033,19 @@ def run_families(args: argparse.Namespace) -> int:
             # spawn, not fork: the parent has imported Open3D (OpenMP), which a forked child may deadlock on.
             with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
                 futures = [
-                    ex.submit(family_scan, f, s, methods, anchor, args.dump_failures, args.calibration) for f, s in jobs
+                    ex.submit(family_scan, fam, seed, methods, anchor, args.dump_failures, args.calibration)
+                    for fam, seed in jobs
                 ]
                 for fut in as_completed(futures):
-                    scene, r = fut.result()
+                    scene, scene_rows = fut.result()
                     scenes.append(scene)
-                    rows.extend(r)
+                    rows.extend(scene_rows)
                     progress.advance(task)
         else:
-            for f, s in jobs:
-                scene, r = family_scan(f, s, methods, anchor, args.dump_failures, args.calibration)
+            for fam, seed in jobs:
+                scene, scene_rows = family_scan(fam, seed, methods, anchor, args.dump_failures, args.calibration)
                 scenes.append(scene)
-                rows.extend(r)
+                rows.extend(scene_rows)
                 progress.advance(task)
     wall = time.perf_counter() - t_start
     order = {f: i for i, f in enumerate(families)}
@@ -1260,7 +1261,7 @@ def run_families(args: argparse.Namespace) -> int:
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(out, "w", encoding="utf-8") as f:
+        with open(out, "w", encoding="utf-8") as fh:
             json.dump(
                 _finite(
                     {
@@ -1281,7 +1282,7 @@ def run_families(args: argparse.Namespace) -> int:
                         "rows": rows,
                     }
                 ),
-                f,
+                fh,
                 default=json_default,
                 allow_nan=False,
             )

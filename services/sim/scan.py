@@ -34,6 +34,7 @@ import numpy as np
 from scipy.special import ndtri
 
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
+from lelsonar.signal.energy import total_energy, waveform_energy
 from lelsonar.sim.acoustics import absorption_factor, comparator_delay, echo_envelope, piston_directivity
 from lelsonar.sim.config import SimConfig
 
@@ -185,8 +186,6 @@ class SimulatedScan:
 
     def step_energy(self) -> np.ndarray:
         """Total waveform energy ``E^γ`` of each step, eq. (10)–(11), V²·s."""
-        from lelsonar.signal.energy import total_energy, waveform_energy
-
         return total_energy(waveform_energy(self.waveforms, self.sample_rate))
 
 
