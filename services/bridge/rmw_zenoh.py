@@ -76,7 +76,7 @@ def open_ros_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
     except zenoh.ZError as exc:
         raise TransportError(
             f"cannot open a Zenoh {settings.mode} session: {exc}; is the robot's router "
-            f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect)}?"
+            f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect or ('its config file',))}?"
         ) from None
     try:
         yield session

@@ -49,6 +49,7 @@ import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from rosbags.highlevel import AnyReader
@@ -87,7 +88,8 @@ __all__ = [
 ]
 
 #: distro → (rosbags typestore, rosbag2 metadata version).  Humble's ``ros2 bag`` reads version 8.
-DISTROS = {"jazzy": (Stores.ROS2_JAZZY, 9), "humble": (Stores.ROS2_HUMBLE, 8)}
+#: The rosbag2 type store and bag version of each distro.
+DISTROS: dict[str, tuple[Stores, Literal[8, 9]]] = {"jazzy": (Stores.ROS2_JAZZY, 9), "humble": (Stores.ROS2_HUMBLE, 8)}
 
 TOPIC_TF = "/tf"
 TOPIC_TF_STATIC = "/tf_static"
@@ -334,7 +336,7 @@ def _quat_from_x_to(v) -> tuple[float, float, float, float]:
         return (0.0, 0.0, 1.0, 0.0)  # 180° about z
     q = np.array([0.0, -v[2], v[1], 1.0 + v[0]])  # axis x × v, w = 1 + cos
     q /= np.linalg.norm(q)
-    return tuple(float(c) for c in q)
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 # --- the observer -------------------------------------------------------------------------

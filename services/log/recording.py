@@ -32,7 +32,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Generator, Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -452,7 +452,7 @@ def _adopt_orphans(s: Salvage) -> None:
     s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
-def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
+def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, None, None]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
     A damaged or unfinished file yields every intact message and logs one
