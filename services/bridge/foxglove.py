@@ -296,7 +296,7 @@ def open_foxglove(address: str, *, truth_preset: str | None = None) -> Iterator[
     host, port = parse_host_port(address)
     truth = None
     if truth_preset:
-        from lelsonar.view.rerun_observer import preset_truth
+        from lelsonar.view.rerun_observer import preset_truth  # brings in rerun (heavy): only for a truth preset
 
         truth = preset_truth(truth_preset)
     server = FoxgloveServer(host, port)

@@ -64,6 +64,8 @@ from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
 from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.sources import replay_mcap
+from lelsonar.view import present
 
 __all__ = [
     "DISTROS",
@@ -460,8 +462,6 @@ class Ros2View:
     def estimate(
         self, scan: ScanAssembly, message: codec.Reconstruction, results: dict[str, ScanReconstruction] | None, partial
     ) -> None:
-        from lelsonar.view import present
-
         s, b = scan.start, self._b
         final = results is not None
         if final and scan.end is not None:
@@ -635,8 +635,6 @@ def export_rosbag2(
         ``out_dir`` exists (rosbag2 never overwrites), or the recording cannot be read; a
         partly written bag is removed.
     """
-    from lelsonar.reconstruct.stream.sources import replay_mcap
-
     out = Path(out_dir)
     if out.exists():
         raise RecordingError(f"{out} already exists; rosbag2 writes a new directory (remove it or pick another -o)")

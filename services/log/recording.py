@@ -45,12 +45,12 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.message import Message
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
-from mcap_protobuf.schema import register_schema
+from mcap_protobuf.schema import build_file_descriptor_set, register_schema
 
 from lelsonar import __version__, codec
 from lelsonar.draw import visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.log.reader import Salvage, salvage
+from lelsonar.log.reader import ChannelInfo, Salvage, SchemaInfo, salvage
 
 _log = logging.getLogger(__name__)
 
@@ -434,10 +434,6 @@ def _adopt_orphans(s: Salvage) -> None:
 
     The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
     """
-    from mcap_protobuf.schema import build_file_descriptor_set
-
-    from lelsonar.log.reader import ChannelInfo, SchemaInfo
-
     by_name = {schema.name: sid for sid, schema in s.schemas.items()}
     for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
         md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})

@@ -9,6 +9,8 @@ import numpy as np
 
 from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.codec import QUALITY
+from lelsonar.errors import ScannerMismatchError
+from lelsonar.keys import ScannerKeys
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
 from lelsonar.v1 import reconstruction_pb2 as pb
 
@@ -144,9 +146,6 @@ def decode_estimate(key: str, payload: bytes, prefix: str) -> codec.Reconstructi
     ScannerMismatchError
         It claims another scanner than the planes key it came on (a forgery or a misconfiguration).
     """
-    from lelsonar.errors import ScannerMismatchError
-    from lelsonar.keys import ScannerKeys
-
     message = codec.decode(payload, codec.Reconstruction)
     on_key = ScannerKeys(prefix).scanner_chunk(key)
     if message.scanner_id != on_key:

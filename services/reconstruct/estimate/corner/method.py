@@ -27,6 +27,7 @@ from lelsonar.reconstruct.estimate.corner.model import (
     CornerModel,
     ScanPoints,
     Wall,
+    band_offsets,
     echo_residuals,
     edge_alternatives,
     edge_line,
@@ -36,6 +37,7 @@ from lelsonar.reconstruct.estimate.corner.model import (
     joint_residuals_arrays,
     labelled_order,
     lu_solve,
+    mirror_residuals,
     roll_angle,
     scan_points,
 )
@@ -739,8 +741,6 @@ def _single_wall(
     edge ties it to anything, so without the amplitude peak inside the sweep there is no single-wall plane
     (None: the caller keeps its fallback).
     """
-    from lelsonar.reconstruct.estimate.corner.model import band_offsets, mirror_residuals
-
     if echo_amplitude is None:
         return None
     cos_t = np.cos(opts.corner_beam_half_angle)
