@@ -29,6 +29,7 @@ from contextlib import contextmanager
 
 import foxglove
 import numpy as np
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from google.protobuf.message import Message
 
 from lelsonar import codec
@@ -271,7 +272,7 @@ class FoxgloveObserver:
 
 def truth_scene(planes, scanner_id: str, t_ns: int) -> visual.SceneUpdate:
     """The true planes as grey patches."""
-    entities = []
+    entities: list[SceneEntity] = []
     for label, normal, offset, corners in planes:
         msg = codec.Reconstruction(scanner_id=scanner_id, scan_id=0)
         p = msg.planes.add(label=str(label), method="truth", offset=float(offset))

@@ -160,8 +160,8 @@ class _Publisher:
     token_key: str
     gid: bytes
     msgtype: str
-    zpub: object
-    token: object
+    zpub: zenoh.Publisher | zenoh.ext.AdvancedPublisher
+    token: zenoh.LivelinessToken
     seq: int = 1
 
 
@@ -235,6 +235,7 @@ class RmwZenohNode:
                 h,
                 qos,
             )
+            zpub: zenoh.Publisher | zenoh.ext.AdvancedPublisher
             if qos.transient_local:
                 zpub = zenoh.ext.declare_advanced_publisher(
                     self._session,

@@ -53,7 +53,7 @@ from typing import Literal
 
 import numpy as np
 from rosbags.highlevel import AnyReader
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.interfaces import Connection, Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -64,6 +64,7 @@ from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
 from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.view import present
 
@@ -225,6 +226,8 @@ class _Builder:
     def cloud(self, t_ns: int, frame: str, points: np.ndarray) -> object:
         """A PointCloud2 of a structured array (its named fields become the PointFields)."""
         dt = points.dtype
+        if dt.fields is None or dt.names is None:
+            raise ConfigError(f"a point cloud needs a structured array, got dtype {dt}")
         fields = [
             self(
                 "sensor_msgs/msg/PointField",
@@ -469,7 +472,7 @@ class Ros2View:
         else:
             t = int(scan.time_ns[message.last_step])
         base = self.frame(s.scanner_id, "base")
-        if final:
+        if results is not None:
             subsets = self._final_subsets(scan, results[self.main_method])
             self._raw.pop(scan.key, None)
         else:
@@ -598,7 +601,7 @@ class BagSink:
         self._writer = writer
         self._distro = distro
         self._ts = typestore(distro)
-        self._connections: dict[str, object] = {}
+        self._connections: dict[str, Connection] = {}
         self.counts: dict[str, int] = {}
 
     def __call__(self, m: RosMessage) -> None:
@@ -616,7 +619,7 @@ def export_rosbag2(
     out_dir: Path | str,
     *,
     view_factory: Callable[[Callable], Ros2View],
-    service_factory: Callable[[Ros2View], object],
+    service_factory: Callable[[Ros2View], ReconstructionService],
     distro: str = "jazzy",
 ) -> dict[str, int]:
     """Write a rosbag2 directory (``metadata.yaml`` + MCAP, ``cdr``) from a lelsonar recording.
