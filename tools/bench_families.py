@@ -346,7 +346,7 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     """The default fit per plane against Open3D ``segment_plane`` + LS refit on the same points, ms.
 
     One scene of ``family``, in this process.  Each repeat runs, back to back, the default
-    method's :func:`lelsonar.reconstruct.estimate.pipeline.reconstruct` (with the echoes' amplitudes, as
+    method's :func:`lelsonar.reconstruct.estimate.record.reconstruct_scan` (with the echoes' amplitudes, as
     the service runs it; both planes, so per plane is half the scan) and Open3D with its default
     early stop and with all 1000 iterations (the deterministic anchor of the accuracy rows) on
     the two corrected subsets at the default method's critical step (the anchor's points).
@@ -361,7 +361,8 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     """
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim.scenes import simulate_family_scene
 
@@ -369,17 +370,13 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     scan, model = fs.scan, fs.energy_model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
+    record = RecordOptions(method=DEFAULT_METHOD)
 
     def default() -> Any:
-        return reconstruct(
-            scan.gamma_measured,
-            scan.distance,
-            energy,
-            scan.geometry,
-            model,
-            method=DEFAULT_METHOD,
-            echo_amplitude=amplitude,
-        )
+        return reconstruct_scan(given, record)
 
     split = _split(scan, default().critical_step)
     subsets = (
@@ -445,7 +442,7 @@ _WARM: set[str] = set()
 
 def _warm_up(methods: list[str]) -> None:
     """Run each method once per process on a paper scan, so first-call costs (imports, caches) stay out of the times."""
-    from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
@@ -455,17 +452,12 @@ def _warm_up(methods: list[str]) -> None:
     scan = simulate_scan(preset("paper-test1"), seed=12345)
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), echo_amplitude=amplitude
+    )
     for m in todo:
         try:
-            reconstruct(
-                scan.gamma_measured,
-                scan.distance,
-                energy,
-                scan.geometry,
-                default_energy_model(),
-                method=m,
-                echo_amplitude=amplitude,
-            )
+            reconstruct_scan(given, RecordOptions(method=m))
         except Exception:  # noqa: BLE001 — the measured run reports it
             pass
         _WARM.add(m)
@@ -509,7 +501,9 @@ def scene_truth(scan: Any) -> SceneTruth:
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
     pc = scan.geometry.capsule_positions(scan.gamma_measured)
-    patch, oracle, n_mirror = {}, {}, {}
+    patch: dict[str, np.ndarray] = {}
+    oracle: dict[str, tuple[float, float, float] | None] = {}
+    n_mirror: dict[str, int] = {}
     for label, src in (("a", EchoSource.PLANE_A), ("b", EchoSource.PLANE_B)):
         tp = planes[label]
         m = (truth.echo_source == src) & np.isfinite(scan.distance)
@@ -623,25 +617,39 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
     )
 
 
-def _add_cross_checked_quality(rows: list[dict[str, Any]], fits: dict[tuple[str, str], Any], default: str) -> None:
-    """Set ``quality_service`` on each row: the verdict ``reconstruct --compare`` shows.
+def _reconstruct_all(given: Any, methods: list[str], default: str) -> dict[str, Any]:
+    """Each method's reconstruction of one scan, through the reconstruction of record.
 
-    The service cross-checks a compared method's plane against the method of
-    record's (``lelsonar.reconstruct.estimate.quality.cross_check``); ``quality`` stays
-    the method's own verdict, what a planner gets with it as the method of record.
+    Returns method → ``(ScanReconstruction, seconds, quality_service)`` or the text of the exception a
+    method raised (a crashing method is a result).  ``quality_service`` maps a label to the verdict
+    ``reconstruct --compare`` shows: the default method is the method of record and the others are
+    compared with it, so theirs are cross-checked; without the default, each method's own.
     """
-    try:
-        from lelsonar.reconstruct.estimate.quality import cross_check
-    except ImportError:
-        cross_check = None
-    for r in rows:
-        res, ref = fits.get((r["method"], r["label"])), fits.get((default, r["label"]))
-        r["quality_service"] = r.get("quality")
-        if cross_check is not None and res is not None and ref is not None and r["method"] != default:
-            try:
-                r["quality_service"] = quality_name(getattr(cross_check(res, ref), "quality", None))
-            except Exception:  # noqa: BLE001 — the contract may move; the own verdict stays
-                pass
+    from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
+
+    def one(method: str, compare: tuple[str, ...] = ()) -> dict[str, Any]:
+        est = reconstruct_scan(given, RecordOptions(method=method, compare_methods=compare))
+        return {
+            m: (
+                est.results[m],
+                est.results[m].timings.total,
+                {pl.label: quality_name(getattr(pl, "quality", None)) for pl in est.planes_of(m)},
+            )
+            for m in (method, *compare)
+        }
+
+    if default in methods:
+        try:
+            return one(default, tuple(m for m in methods if m != default))
+        except Exception:  # noqa: BLE001 — one method crashed: run each alone to say which
+            pass
+    out: dict[str, Any] = {}
+    for method in methods:
+        try:
+            out.update(one(method))
+        except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
+            out[method] = f"{type(exc).__name__}: {exc}"
+    return out
 
 
 def _edge_fields(edge: Any, truth: SceneTruth) -> dict[str, Any]:
@@ -748,7 +756,8 @@ def family_scan(
     (0.6–2.7 m, the families' span) — see :func:`lelsonar.sim.scenes.calibrated_energy_model`.
     """
     _warm_up(methods)
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.reconstruct.estimate.record import ScanInput
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim import EchoSource
     from lelsonar.sim.scenes import simulate_family_scene
@@ -776,39 +785,30 @@ def family_scan(
     rows: list[dict[str, Any]] = []
 
     crits: dict[str, int | None] = {}
-    fits: dict[tuple[str, str], Any] = {}
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
+    runs = _reconstruct_all(given, methods, DEFAULT_METHOD)
     for method in methods:
-        t0 = time.perf_counter()
-        try:
-            rec = reconstruct(
-                scan.gamma_measured,
-                scan.distance,
-                energy,
-                scan.geometry,
-                model,
-                method=method,
-                echo_amplitude=amplitude,
-            )
-        except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
-            dt = time.perf_counter() - t0
+        run = runs[method]
+        if isinstance(run, str):
             rows += [
-                plane_row(base, truth, method, label, f"{type(exc).__name__}: {exc}", None, dt, False)
+                {**plane_row(base, truth, method, label, run, None, 0.0, False), "quality_service": None}
                 for label in ("a", "b")
             ]
             continue
-        dt = time.perf_counter() - t0
+        rec, dt, quality_service = run
         crits[method] = rec.critical_step
         split = _split(scan, rec.critical_step)
         edge = _edge_fields(rec.edge, truth)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
-            fits[(method, label)] = res if fitted else None
             data = getattr(rec, f"data_{label}", None)
             est = _from_plane_fit(res, scan, data, split.get(label)) if fitted else str(res)
             uses_split = isinstance(est, Estimate) and est.extra["fitted_on_split"]
-            rows.append({**plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split), **edge})
+            row = plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split)
+            rows.append({**row, **edge, "quality_service": quality_service.get(label)})
 
-    _add_cross_checked_quality(rows, fits, DEFAULT_METHOD)
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
     split = _split(scan, default_crit) if anchor else {}
     if split:
@@ -859,7 +859,7 @@ def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
 def serial_scan_times(
     family: str, seed: int, methods: list[str], repeats: int, calibration: str = "paper"
 ) -> dict[str, float]:
-    """Best wall time of ``reconstruct`` per method on one scene of ``family``, ms, run serially.
+    """Best wall time of ``reconstruct_scan`` per method on one scene of ``family``, ms, run serially.
 
     The worker times of the accuracy runs share the cores with each other (and
     with anything else on the host); these are the numbers to hold against a
@@ -867,20 +867,21 @@ def serial_scan_times(
     (fewer once a method has taken 1 s); the minimum is the least disturbed by
     other load on a shared host.
     """
-    from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import waveform_energy
     from lelsonar.sim.scenes import simulate_family_scene
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     scan, model = fs.scan, fs.energy_model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    given = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model)
     out = {}
     for method in methods:
         ts: list[float] = []
         for _ in range(repeats + 1):
             t0 = time.perf_counter()
             try:
-                reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
+                reconstruct_scan(given, RecordOptions(method=method))
             except Exception:  # noqa: BLE001 — reported by the accuracy run
                 break
             ts.append(time.perf_counter() - t0)
@@ -1033,18 +1034,19 @@ def run_families(args: argparse.Namespace) -> int:
             # spawn, not fork: the parent has imported Open3D (OpenMP), which a forked child may deadlock on.
             with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
                 futures = [
-                    ex.submit(family_scan, f, s, methods, anchor, args.dump_failures, args.calibration) for f, s in jobs
+                    ex.submit(family_scan, fam, seed, methods, anchor, args.dump_failures, args.calibration)
+                    for fam, seed in jobs
                 ]
                 for fut in as_completed(futures):
-                    scene, r = fut.result()
+                    scene, scene_rows = fut.result()
                     scenes.append(scene)
-                    rows.extend(r)
+                    rows.extend(scene_rows)
                     progress.advance(task)
         else:
-            for f, s in jobs:
-                scene, r = family_scan(f, s, methods, anchor, args.dump_failures, args.calibration)
+            for fam, seed in jobs:
+                scene, scene_rows = family_scan(fam, seed, methods, anchor, args.dump_failures, args.calibration)
                 scenes.append(scene)
-                rows.extend(r)
+                rows.extend(scene_rows)
                 progress.advance(task)
     wall = time.perf_counter() - t_start
     order = {f: i for i, f in enumerate(families)}
@@ -1260,7 +1262,7 @@ def run_families(args: argparse.Namespace) -> int:
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(out, "w", encoding="utf-8") as f:
+        with open(out, "w", encoding="utf-8") as fh:
             json.dump(
                 _finite(
                     {
@@ -1281,7 +1283,7 @@ def run_families(args: argparse.Namespace) -> int:
                         "rows": rows,
                     }
                 ),
-                f,
+                fh,
                 default=json_default,
                 allow_nan=False,
             )

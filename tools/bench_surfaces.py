@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.fit import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces import SurfaceSet, extract_surfaces
+from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
+from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
@@ -153,7 +153,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, min_echoes: 
     false = {c: 0 for c in classes}
     extracted = {"plane": len(result.surfaces), "corner": len(result.corners), "edge": len(result.edges)}
     planes: list[PlaneRecord] = []
-    items = [("plane", s.steps, s) for s in result.surfaces]
+    items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
     items += [("corner", f.steps, None) for f in result.corners] + [("edge", f.steps, None) for f in result.edges]
     for cls, steps, surf in items:
         k, _ = _majority(scan, steps)

@@ -51,7 +51,7 @@ before then subset b holds mostly the corner's echoes and a fit could only
 fail or find them.  The estimate is then a typed failure, at no cost.
 
 The final estimate of a scan never uses any of this: it is computed from
-scratch (:meth:`ReconstructionService._finalise`).
+scratch (:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`).
 
 Building the :class:`~lelsonar.reconstruct.estimate.results.PlaneFit` the message
 carries (σ by MAD, H over all points, the observed patch, the residuals) is
@@ -69,6 +69,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry, boresight
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.options import FitOptions
+from lelsonar.reconstruct.estimate.pipeline import fit_plane
 from lelsonar.reconstruct.estimate.results import (
     FailureReason,
     FitFailure,
@@ -399,10 +400,6 @@ class IncrementalPlane:
         return ""
 
     def _exact(self, t0: float) -> PlaneResult:
-        from lelsonar.reconstruct.estimate.pipeline import (
-            fit_plane,
-        )  # pipeline imports the estimators this module sits beside
-
         data = self.last_data = self.data()
         warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
         # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test

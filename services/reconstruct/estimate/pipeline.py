@@ -13,6 +13,10 @@ paper's steps:
 
 Scan-level methods segment the scan themselves.
 
+What is published, recorded and benchmarked is the reconstruction of record
+(:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`), which runs
+:func:`reconstruct` once per method and applies the scan's verdict.
+
 Methods (``METHODS``, name → :class:`Method`), one module per family:
 
 :mod:`~lelsonar.reconstruct.estimate.estimators` (one subset at a time)
