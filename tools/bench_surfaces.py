@@ -58,6 +58,8 @@ class PlaneRecord:
     """One extracted plane matched to its true surface."""
 
     family: str
+    seed: int
+    pose: int
     element: int
     quality: str
     error: float  # m
@@ -139,7 +141,7 @@ def oracle_error(scan: WorldScan, element: int) -> float:
     return trace_error(n, h, n_true, h_true)
 
 
-def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, min_echoes: int = 20) -> ScanRecord:
+def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 0, min_echoes: int = 20) -> ScanRecord:
     """Match the extracted items to the truth of one sweep."""
     model = scan.model
     valid = np.isfinite(scan.distance) & (scan.echo_source != EchoSource.DIFFUSE)
@@ -166,7 +168,11 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, min_echoes: 
             n_true, h_true = true_plane(scan, k)
             err = trace_error(surf.normal, surf.offset, n_true, h_true)
             ang = math.acos(min(1.0, abs(float(surf.normal @ n_true))))
-            planes.append(PlaneRecord(family, k, surf.quality, err, oracle_error(scan, k), ang, int(counts[k])))
+            planes.append(
+                PlaneRecord(
+                    family, seed, scan.pose_index, k, surf.quality, err, oracle_error(scan, k), ang, int(counts[k])
+                )
+            )
     found = {c: 0 for c in classes}
     right = {c: 0 for c in classes}
     for k in seen_el:
@@ -183,7 +189,7 @@ def run_scan(family: str, seed: int, pose: int, model: WorldModel) -> ScanRecord
     scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    return score_scan(family, scan, result)
+    return score_scan(family, scan, result, seed=seed)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -209,7 +215,7 @@ def run(args: argparse.Namespace) -> int:
         model = build_model(draw_world(family, seed))
         for pose in range(min(args.max_poses, len(model.world.poses))):
             records[family].append(run_scan(family, seed, pose, model))
-    console = Console()
+    console = Console(width=200)
     table = Table(title=f"surfaces per family ({args.seeds} worlds each, ≤ {args.max_poses} sweeps) — {machine()}")
     for col in (
         "family",
@@ -258,6 +264,13 @@ def run(args: argparse.Namespace) -> int:
             f"{100 * float(np.mean([r.unexplained_share for r in recs])):.0f} %",
         )
     console.print(table)
+    for family in families:
+        for p in (p for r in records[family] for p in r.planes):
+            if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle:
+                console.print(
+                    f"failure claiming good: {family} seed {p.seed} pose {p.pose} element {p.element}: "
+                    f"{100 * p.error:.1f} cm (oracle {100 * p.oracle:.1f} cm), {math.degrees(p.angle):.1f}°"
+                )
     console.print(
         "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
         "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "

@@ -16,6 +16,7 @@ Pure functions: no I/O, no state.
 from __future__ import annotations
 
 import math
+import statistics
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,9 +91,10 @@ def find_regions(
     if not (tolerance > 0 and max_gap >= 0 and min_steps >= 1):
         raise ConfigError("find_regions: tolerance > 0, max_gap >= 0 and min_steps >= 1")
     rs = _step_range(d)
-    n = rs.size
+    n, m = d.shape
     runs: list[list[int]] = []
     run: list[int] = []
+    seen: list[list[float]] = [[] for _ in range(m)]  # each capsule's ranges in the run
     gap = 0
     for s in range(n):
         if not math.isfinite(rs[s]):
@@ -101,12 +103,15 @@ def find_regions(
                 runs.append(run)
                 run = []
             continue
-        if run and abs(rs[s] - float(np.median(rs[run]))) <= tolerance:
-            run.append(s)
-        else:
+        if not (run and _steady(d[s], rs[s], seen, rs[run]) <= tolerance):
             if run:
                 runs.append(run)
-            run = [s]
+            run = []
+            seen = [[] for _ in range(m)]
+        run.append(s)
+        for c in range(m):
+            if math.isfinite(d[s, c]):
+                seen[c].append(float(d[s, c]))
         gap = 0
     if run:
         runs.append(run)
@@ -117,9 +122,10 @@ def find_regions(
         steps = np.asarray(r, dtype=np.intp)
         ref = float(np.median(rs[steps]))
         block = d[steps]
-        # A capsule's reading joins when it is within twice the tolerance of its step's median: the stack's
-        # tilt or a line across it spreads the four ranges by a few cm at most, another target by more.
-        keep = np.isfinite(block) & (np.abs(block - rs[steps][:, None]) <= 2 * tolerance)
+        # A capsule's reading joins when it is within twice the tolerance of that capsule's median over the
+        # region: a tilt or a line across the stack spreads the four ranges steadily (by several cm for a line
+        # below the stack), another target in one capsule's beam does not.
+        keep = np.isfinite(block) & (np.abs(block - _capsule_medians(block)) <= 2 * tolerance)
         rows, caps = np.nonzero(keep)
         first, last = int(steps[0]), int(steps[-1])
         out.append(
@@ -131,6 +137,24 @@ def find_regions(
                 cut_after=_cut(rs, last, +1, ref, tolerance, max_gap),
             )
         )
+    return out
+
+
+def _steady(row: np.ndarray, step_range: float, seen: list[list[float]], run_ranges: np.ndarray) -> float:
+    """How far a step is from the run: capsule by capsule where both have echoes (a capsule that loses its
+    echo at the edge of the beam does not move the others), else by the steps' medians, m."""
+    # (statistics.median: these lists are short, and NumPy's call costs more than the sort)
+    devs = [abs(float(row[c]) - statistics.median(v)) for c, v in enumerate(seen) if v and math.isfinite(row[c])]
+    if devs:
+        return statistics.median(devs)
+    return abs(float(step_range) - float(np.median(run_ranges)))
+
+
+def _capsule_medians(block: np.ndarray) -> np.ndarray:
+    out = np.full(block.shape[1], np.nan)
+    have = np.isfinite(block).any(axis=0)
+    if have.any():
+        out[have] = np.nanmedian(block[:, have], axis=0)
     return out
 
 
