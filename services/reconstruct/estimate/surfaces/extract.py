@@ -272,6 +272,15 @@ def _measure(
         bearing, sb, source = mid, quant, "region centre"
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
+        # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
+        # window bend (and a receiver's clipping flattens): usable, not good.
+        findings.append(
+            (
+                DEGRADED,
+                "bearing from the amplitude peak alone: the region of constant depth is cut "
+                "(a nearer echo or the sweep's end), so its centre is not the wall's",
+            )
+        )
     else:
         bearing, source = mid, "undetermined"
         sb = 0.5 * (float(g[-1]) - float(g[0])) + step

@@ -24,7 +24,10 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 
-__all__ = ["Region", "find_regions", "stack_fit", "bearing_from_amplitude"]
+__all__ = ["Region", "find_regions", "stack_fit", "bearing_from_amplitude", "PLATEAU"]
+
+#: Amplitudes within this share of the largest are a clipped plateau, not a peak.
+PLATEAU = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -235,9 +238,20 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     if np.count_nonzero(ok) < 5:
         return None
     g, a = g[ok], a[ok]
+    order = np.argsort(g)
+    g, a = g[order], a[order]
+    # A receiver that clips flattens the top: the plateau's centre is the peak when both of its ends are
+    # inside the region (an unclipped echo on either side), and nothing can be said when one is not.
+    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * a.max())
+    if flat.size >= 3:
+        if flat[0] == 0 or flat[-1] == a.size - 1:
+            return None
+        step = float(np.median(np.diff(g)))
+        width = float(g[flat[-1]]) - float(g[flat[0]])
+        return 0.5 * (float(g[flat[0]]) + float(g[flat[-1]])), math.hypot(step, width / flat.size) / math.sqrt(12.0)
     top = a >= 0.5 * a.max()
-    if np.count_nonzero(top) < 4:
-        top = a >= np.sort(a)[-4]
+    if np.count_nonzero(top) < 5:
+        return None
     gt, la = g[top], np.log(a[top])
     g0 = float(np.mean(gt))
     u = gt - g0
@@ -249,7 +263,8 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     if not c < 0:
         return None
     vertex = -b / (2 * c)
-    if not (u.min() <= vertex <= u.max()):
+    # The vertex must be held by the samples on both of its sides, not extrapolated past the region's end.
+    if np.count_nonzero(u < vertex) < 2 or np.count_nonzero(u > vertex) < 2:
         return None
     res = la - m @ coef
     dof = max(u.size - 3, 1)
