@@ -26,8 +26,8 @@ from lelsonar.geometry import ArrayGeometry
 
 __all__ = ["Region", "find_regions", "stack_fit", "bearing_from_amplitude", "PLATEAU"]
 
-#: Amplitudes within this share of the largest are a clipped plateau, not a peak.
-PLATEAU = 0.02
+#: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
+PLATEAU = 0.001
 
 
 @dataclass(frozen=True, eq=False)
