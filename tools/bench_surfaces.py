@@ -79,6 +79,7 @@ class ScanRecord:
     false: dict[str, int]  # class -> extracted items of that class with another majority
     extracted: dict[str, int]
     unexplained_share: float
+    false_good: int  # extracted planes claiming good whose echoes are no surface's mirror
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -155,6 +156,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     false = {c: 0 for c in classes}
     extracted = {"plane": len(result.surfaces), "corner": len(result.corners), "edge": len(result.edges)}
     planes: list[PlaneRecord] = []
+    false_good = 0
     items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
     items += [("corner", f.steps, None) for f in result.corners] + [("edge", f.steps, None) for f in result.edges]
     for cls, steps, surf in items:
@@ -162,6 +164,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
         truth = _element_kind(model, k, scan, steps)
         if truth is None or truth != cls:
             false[cls] += 1
+            false_good += int(surf is not None and surf.quality == "good")
         if truth is not None:
             claimed.setdefault(k, set()).add(cls)
         if surf is not None and truth == "plane":
@@ -181,7 +184,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             found[c] += 1
             right[c] += int(c in claimed[k])
     share = result.n_unexplained / max(result.n_echoes, 1)
-    return ScanRecord(planes, seen, found, right, false, extracted, share)
+    return ScanRecord(planes, seen, found, right, false, extracted, share, false_good)
 
 
 def run_scan(family: str, seed: int, pose: int, model: WorldModel) -> ScanRecord:
@@ -227,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
         "angle med °",
         "good",
         "good-but-failed",
-        "false planes",
+        "false planes (good)",
         "corners found/seen (right)",
         "edges found/seen (right)",
         "false corners/edges",
@@ -257,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
             f"{math.degrees(_pct([p.angle for p in planes], 50)):.2f}",
             f"{sum(p.quality == 'good' for p in planes)}/{len(planes)}",
             str(failed_good),
-            str(tot("false", "plane")),
+            f"{tot('false', 'plane')} ({sum(r.false_good for r in recs)} good)",
             f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')})",
             f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')})",
             f"{tot('false', 'corner')}/{tot('false', 'edge')}",

@@ -41,6 +41,7 @@ from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, QualityLimits, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.surfaces.regions import (
+    PLATEAU,
     Region,
     bearing_from_amplitude,
     capsule_x,
@@ -69,7 +70,8 @@ class SurfaceOptions:
     foot_separation : float
         rad: a region this close in bearing to a plane is that plane's own echo, not its end.
     weak_echo : float
-        An echo below this share of a mirror's amplitude at its range diffracts (an edge).
+        An echo below this share of the sweep's strongest at its range (a mirror's or a corner's, up to
+        1.5× a mirror's) diffracts (an edge, about 0.2× a mirror's).
     absorption_db_per_m : float
         Air absorption at 40 kHz, to compare amplitudes at different ranges.
     curvature_sigmas : float
@@ -84,7 +86,7 @@ class SurfaceOptions:
     min_steps: int = 3
     on_trace: float = 0.03
     foot_separation: float = math.radians(8.0)
-    weak_echo: float = 0.5
+    weak_echo: float = 0.35
     absorption_db_per_m: float = 1.3
     curvature_sigmas: float = 4.0
     beyond_cut: float = math.radians(40.0)
@@ -228,7 +230,8 @@ class _Measured:
     stack_slope: float
     strength: float  # peak amplitude over a mirror's at this depth (NaN: unknown)
     peak: float
-    peak_inside: bool  # the region holds its amplitude peak (else its strength is only a lower bound)
+    peak_inside: bool  # the region holds its amplitude peak
+    exact: bool  # its peak is inside and not clipped (else its strength is only a lower bound)
     span: tuple[float, float]  # γ of the region's first and last steps, rad
     step: float  # the sweep's step, rad
 
@@ -254,6 +257,7 @@ def _measure(
     mid = 0.5 * (float(g[0]) + float(g[-1]))
     peak_fit = None
     peak = float("nan")
+    clipped: bool | None = None
     if amplitude is not None:
         a = amplitude[region.rows, region.capsules]
         per_step = np.full(region.steps.size, np.nan)
@@ -264,6 +268,7 @@ def _measure(
             if v.size:
                 per_step[k] = float(np.median(v))
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
+        clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
     if not cut:
         # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
@@ -320,6 +325,7 @@ def _measure(
         strength=strength,
         peak=peak,
         peak_inside=not cut or peak_fit is not None,
+        exact=(not cut or peak_fit is not None) and clipped is False,
         span=(float(g[0]), float(g[-1])),
         step=step,
     )
@@ -455,8 +461,11 @@ def extract_surfaces(
 
     # The mirror amplitude at unit range: the median over the regions (most are mirrors, and an edge's is
     # weaker by an order of magnitude, so it does not pull the median).
-    strengths = np.array([m.strength for m in measured if math.isfinite(m.strength)])
-    mirror = float(np.median(strengths)) if strengths.size >= 2 else float("nan")
+    # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
+    # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
+    # far below it diffracts.  A median would not do: in a cluttered sweep most regions may be edges.
+    strengths = [m.strength for m in measured if math.isfinite(m.strength)]
+    mirror = max(strengths) if len(strengths) >= 2 else float("nan")
 
     def weak(m: _Measured) -> bool:
         return (
@@ -527,7 +536,7 @@ def extract_surfaces(
         elif weak(m):
             kinds[i] = (
                 "edge",
-                [f"echo {100 * m.strength / mirror:.0f} % of a mirror's at its range: diffraction"],
+                [f"echo {100 * m.strength / mirror:.0f} % of the sweep's strongest at its range: diffraction"],
                 [],
             )
 
