@@ -162,13 +162,14 @@ def _capsule_medians(block: np.ndarray) -> np.ndarray:
 
 
 def _cut(rs: np.ndarray, end: int, direction: int, ref: float, tolerance: float, max_gap: int) -> bool:
-    """Whether a run's end is a cut: the sweep's end, or a nearer echo within ``max_gap + 1`` steps."""
-    for k in range(1, max_gap + 2):
+    """Whether a run's end is a cut: the sweep's end, or a nearer echo within ``max_gap + 2`` steps (a step
+    between two targets may hold a little of both, and belong to neither)."""
+    if not 0 <= end + direction < rs.size:
+        return True
+    for k in range(1, max_gap + 3):
         s = end + direction * k
-        if not 0 <= s < rs.size:
-            return k == 1
-        if math.isfinite(rs[s]):
-            return bool(rs[s] < ref - tolerance)
+        if 0 <= s < rs.size and math.isfinite(rs[s]) and rs[s] < ref - tolerance:
+            return True
     return False
 
 
