@@ -55,7 +55,6 @@ from lelsonar.reconstruct.estimate.record import (
     reconstruct_scan,
 )
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
-from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.recovery import RecoveryRequest
@@ -606,18 +605,9 @@ class ReconstructionService:
             rejected=dict(scan.rejected),
             missing=len(missing),
         )
-        inp = scan_input(scan)
-        est = reconstruct_scan(inp, self._options)
-        # Every surface of the sweep, beside the L's planes of record: the one place the service extracts them.
-        surfaces = extract_surfaces(inp.gamma, inp.distance, inp.geometry, amplitude=inp.echo_amplitude)
+        est = reconstruct_scan(scan_input(scan), self._options)
         msg = wire.estimate_message(
-            est,
-            scan.start.scanner_id,
-            scan.start.scan_id,
-            status=status,
-            missing_steps=missing,
-            accounting=acc,
-            surfaces=surfaces,
+            est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
         )
         # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
         for note in est.notes:
