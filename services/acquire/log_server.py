@@ -33,7 +33,7 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
-from lelsonar.keys import MAX_LOG_STEPS_PER_QUERY, ScannerKeys
+from lelsonar.keys import LOG_NOT_HELD_ENCODING, MAX_LOG_STEPS_PER_QUERY, ScannerKeys
 
 _log = logging.getLogger(__name__)
 
@@ -213,7 +213,8 @@ class LogServer:
             self.stats["refused: scan not held"] += 1
             query.reply_err(
                 f"scan {scan_id} is not (or no longer) in the log of {scanner}; held: "
-                f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)"
+                f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)",
+                encoding=zenoh.Encoding(LOG_NOT_HELD_ENCODING),
             )
             return
         self.stats["queries"] += 1

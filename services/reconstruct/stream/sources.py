@@ -11,6 +11,7 @@ BLOCK), and a bounded FIFO of the replies recovered from the acquirer's log
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -268,6 +269,10 @@ class LiveSource:
         if self._recovery is not None:
             self._recovery.__enter__()
             self._service.recover = self._recovery.request
+            # Past its attempts, a scan asks on while its acquirer's log may still answer.
+            self._service.recovery_policy = dataclasses.replace(
+                self._service.recovery_policy, log_may_answer=self._recovery.may_answer
+            )
         self._thread.start()
         self._doorbell.start()
         return self
@@ -280,6 +285,7 @@ class LiveSource:
             self._group.attach(None)
         if self._recovery is not None:
             self._service.recover = None
+            self._service.recovery_policy = dataclasses.replace(self._service.recovery_policy, log_may_answer=None)
             self._recovery.close()
         if not self._queue.put_nowait(_STOP):
             pass  # full: the processing thread sees the stop flag within one payload
