@@ -31,8 +31,10 @@ Gaps and when a final may be published:
   ``recovery_after`` of silence without a ScanEnd (the rest and the ScanEnd),
   and at the first sample or the ScanEnd of a scan it never saw start (the
   ScanStart and the earlier steps — a reconstructor that starts late catches up);
-- at most ``recovery_attempts`` requests ``recovery_interval`` apart without
-  progress (any new step starts the budget again);
+- ``recovery_attempts`` requests without progress, from ``recovery_interval``
+  apart and doubling, then on while the acquirer's log may still answer
+  (:class:`~lelsonar.reconstruct.stream.recovery.RecoveryPolicy`; any new step
+  starts the budget again);
 - ``FINAL`` only when every step the ScanEnd counts is in; otherwise, once
   recovery is exhausted, ``INCOMPLETE`` with ``missing_steps``; a scan whose
   ScanEnd never came is ``FINAL_TIMEOUT``, also with its ``missing_steps``;
@@ -68,7 +70,7 @@ from lelsonar.reconstruct.estimate.results import FitFailure, PlaneFit, PlaneRes
 from lelsonar.reconstruct.estimate.split import critical_step
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
-from lelsonar.reconstruct.stream.recovery import RecoveryRequest
+from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 
 _log = logging.getLogger(__name__)
 
@@ -109,7 +111,7 @@ class ReconstructConfig:
     recovery_attempts : int
         Requests to the acquirer's log per scan without progress before giving up (0: never ask).
     recovery_interval : float
-        s between two requests for the same scan.
+        s before the second request for a scan; each later one waits twice as long, up to 4 s (or this).
     recovery_after : float
         s of silence after which an open scan without ScanEnd asks the log for the rest.
     max_scans : int
@@ -261,6 +263,12 @@ class ReconstructionService:
         self._clock = clock
         #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
         self.recover = recover
+        #: When to ask again and when to give up (a live source lets it ask on while the log may answer).
+        self.recovery_policy = RecoveryPolicy(
+            config.recovery_attempts,
+            config.recovery_interval,
+            max(config.recovery_interval, RecoveryPolicy.max_interval),
+        )
         self._partials: dict[ScanKey, Partial] = {}
         # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
@@ -337,20 +345,20 @@ class ReconstructionService:
                     out.append(self._finalise(scan, p, "final"))
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
-                elif self._can_ask(r, now):
+                elif self._can_ask(r, now, key):
                     self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
-                elif self._exhausted(r, now) and now - p.ended_at >= cfg.end_grace:
+                elif self._exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
                     out.append(self._finalise(scan, p, "incomplete"))
             elif not busy:
                 silent = now - p.last_activity
-                if silent >= cfg.recovery_after and self._can_ask(r, now):
+                if silent >= cfg.recovery_after and self._can_ask(r, now, key):
                     self._ask(
                         r,
                         RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()), want_end=True),
                         now,
                         scan.n_received,
                     )
-                elif silent >= cfg.scan_timeout and self._exhausted(r, now):
+                elif silent >= cfg.scan_timeout and self._exhausted(r, now, key):
                     self._event(
                         "WARNING",
                         f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
@@ -360,9 +368,9 @@ class ReconstructionService:
         for key, (since, r) in list(self._pending_since.items()):
             if key not in self.ingest.pending:
                 del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
-            elif self._can_ask(r, now):
+            elif self._can_ask(r, now, key):
                 self._ask_for_start(key, now)
-            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now):
+            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now, key):
                 # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
                 del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
@@ -431,17 +439,11 @@ class ReconstructionService:
         if r.mark >= 0 and held > r.mark:
             r.attempts, r.mark = 0, held  # new steps came: the budget starts again
 
-    def _can_ask(self, r: RecoveryState, now: float) -> bool:
-        return (
-            self.recover is not None
-            and r.attempts < self.config.recovery_attempts
-            and (r.last_at is None or now - r.last_at >= self.config.recovery_interval)
-        )
+    def _can_ask(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
+        return self.recover is not None and self.recovery_policy.can_ask(r.attempts, r.last_at, now, key)
 
-    def _exhausted(self, r: RecoveryState, now: float) -> bool:
-        if self.recover is None or self.config.recovery_attempts == 0:
-            return True
-        return r.attempts >= self.config.recovery_attempts and now - r.last_at >= self.config.recovery_interval
+    def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
+        return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
 
     def still_wanted(self, request: RecoveryRequest) -> bool:
         """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
@@ -480,7 +482,7 @@ class ReconstructionService:
         _, r = self._pending_since[key]
         held = self.ingest.pending.get(key, [])
         self._note_progress(r, len(held))
-        if not held or not self._can_ask(r, now):
+        if not held or not self._can_ask(r, now, key):
             return
         have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
         ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
@@ -522,7 +524,7 @@ class ReconstructionService:
                 f"missing so far: {_ranges_text(missing)}",
                 end.end_time_ns,
             )
-            if self._can_ask(p.recovery, p.ended_at):
+            if self._can_ask(p.recovery, p.ended_at, scan.key):
                 self._ask(
                     p.recovery,
                     RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
