@@ -71,6 +71,7 @@ from lelsonar.reconstruct.estimate.split import critical_step
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
+from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 _log = logging.getLogger(__name__)
 
@@ -619,6 +620,10 @@ class ReconstructionService:
         missing = scan.missing_steps()
         if status == "final" and len(missing):
             status = "incomplete"  # never FINAL with steps missing
+        end = scan.end
+        aborted = end is not None and end.status == SCAN_STATUS_ABORTED
+        if aborted and status in ("final", "incomplete"):
+            status = "aborted"  # a sweep stopped early is never FINAL (its missing_steps still listed)
         acc = wire.accounting_message(
             published=int(scan.end.samples_sent) if scan.end is not None else 0,
             received_live=scan.n_received - scan.n_recovered,
@@ -650,6 +655,8 @@ class ReconstructionService:
         # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
         problems = scan.writer_problems()
         findings = tuple((level, text) for level, text in problems if level is not None)
+        if end is not None and aborted:
+            findings += (("degraded", partial_sweep_reason(end, int(scan.start.steps))),)
         record = {pl.label: pl for pl in main.planes}  # what the compared methods are checked against
         if not np.array_equal(distance, board_distance, equal_nan=True):
             # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
@@ -687,6 +694,8 @@ class ReconstructionService:
             missing_steps=missing,
             accounting=acc,
         )
+        if end is not None and aborted:
+            msg.aborted_reason = end.reason or "aborted"
         # What the writer left unset: a warning, and where no plane came, the first thing to fix.
         for _, problem in problems:
             self._event("WARNING", f"scan {scan.key}: {problem}")
@@ -751,6 +760,15 @@ class ReconstructionService:
         getattr(_log, level.lower(), _log.info)(text)
         if self._observer:
             self._observer.event(level, text, time_ns)
+
+
+def partial_sweep_reason(end: codec.ScanEnd, planned: int) -> str:
+    """A plane's reason when its sweep stopped early: how far it went, and why it stopped."""
+    why = f" ({end.reason})" if end.reason else ""
+    return (
+        f"partial sweep: the scan was aborted after {end.samples_sent} of {planned} steps{why}; "
+        "a wall may extend beyond what was swept"
+    )
 
 
 def _ranges_text(steps) -> str:
