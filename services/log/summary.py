@@ -68,6 +68,8 @@ class ScanSummary:
     start_ns: int | None = None
     end_ns: int | None = None
     has_start: bool = False
+    #: What of the scan could not be read, e.g. its ScanStart in a damaged chunk (empty: nothing).
+    unreadable: list[str] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float | None:
@@ -203,6 +205,23 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     for key, sc in scans.items():
         if key not in steps and sc.steps_planned:
             sc.missing_steps = list(range(sc.steps_planned))
+    restored = rec.restored_starts()
+    for key, sc in scans.items():
+        if sc.has_start:
+            continue
+        copy = restored.get(key)
+        if copy is None:
+            sc.unreadable.append(
+                "ScanStart unreadable and no copy of it: the scan cannot be reconstructed (no geometry, no schedule)"
+            )
+            continue
+        sc.unreadable.append("ScanStart unreadable; restored from the recording's metadata copy")
+        try:
+            start = codec.ScanStart.FromString(copy.payload)
+        except ProtobufDecodeError:
+            continue
+        sc.device, sc.steps_planned = start.device, start.steps
+        sc.start_ns = start.start_time_ns
 
     lost_by = s.lost_by_channel()
     exact_channels = s.statistics_counts is not None or all(d.messages is not None for d in s.damage)
