@@ -14,6 +14,7 @@ import threading
 import time
 from contextlib import ExitStack
 from dataclasses import dataclass
+from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
@@ -22,9 +23,11 @@ from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
+from lelsonar.acquire.scanner import ScannerInfo
 from lelsonar.energy_model import EnergyModel
+from lelsonar.errors import RecordingError
 from lelsonar.keys import ScannerKeys
-from lelsonar.log.recording import McapRecorder
+from lelsonar.log.recording import McapRecorder, free_space
 from lelsonar.net.transport import ZenohSettings, open_session
 from lelsonar.sim import SimConfig, preset
 
@@ -55,6 +58,32 @@ def energy_model(cfg: AcquireConfig) -> EnergyModel:
     return default_energy_model()
 
 
+#: Bytes a step takes on disk besides its waveforms (the sample's numbers, its pose, points and scalars).
+STEP_OVERHEAD_BYTES = 16 * 1024
+
+
+def scan_bytes(steps: int, info: ScannerInfo) -> int:
+    """An upper estimate of a scan's recording: every waveform uncompressed, float32, plus each step's views."""
+    return steps * (info.geometry.n_capsules * info.window_samples * 4 + STEP_OVERHEAD_BYTES)
+
+
+def check_space(directory: Path, steps: int, info: ScannerInfo) -> None:
+    """Refuse to start a scan whose recording would not fit in ``directory``.
+
+    Raises
+    ------
+    RecordingError
+        One line naming the directory, its free space and the space a scan needs.
+    """
+    free = free_space(directory)
+    needed = scan_bytes(steps, info)
+    if free is not None and free < needed:
+        raise RecordingError(
+            f"not enough space to record a scan in {directory}: {free / 2**20:.1f} MiB free, a scan of {steps} "
+            f"steps needs up to {needed / 2**20:.1f} MiB; free some space or give another --out directory"
+        )
+
+
 def _quietly(what: str, fn) -> None:
     """Run a Zenoh clean-up step; after a partition it may fail, which must not crash acquire."""
     import zenoh as _zenoh
@@ -71,6 +100,8 @@ class AcquisitionReport:
     paths: list
     publish_failures: int
     log_stats: dict | None = None
+    #: Samples published while no subscriber matched their key (nobody received them live).
+    unmatched: int = 0
 
     @property
     def ok(self) -> bool:
@@ -112,6 +143,8 @@ def run_acquisition(
             for index in range(cfg.scans):
                 scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
                 path = cfg.mcap_path(index) if cfg.record else None
+                if path:
+                    check_space(path.parent, len(schedule), scanner.info)
                 with ExitStack() as scan_stack:
                     recorder = (
                         scan_stack.enter_context(
@@ -146,14 +179,31 @@ def run_acquisition(
                         int16_scale=INT16_SCALE if cfg.waveform_int16 else None,
                     )
                     report.publish_failures += output.publish_failures
+                unmatched = publisher.take_unmatched() if publisher is not None else 0
+                report.unmatched += unmatched
                 report.ends.append(end)
                 if path:
                     report.paths.append(path)
                 status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
+                recorded = ""
+                if path:
+                    recorded = (
+                        f"; what was recorded is in {path} (lelsonar info / recover read it)"
+                        if output.recording_failure
+                        else f"; recorded to {path}"
+                    )
                 console.print(
                     f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
-                    f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else "")
+                    f"{end.echoes_missing} readings without echo" + recorded,
+                    highlight=False,
                 )
+                if unmatched:
+                    console.print(
+                        f"acquire: warning: {unmatched} of {end.samples_sent} samples of scan {scan_id} were "
+                        "published while no subscriber matched (nobody received them live); a reconstructor "
+                        "gets them from the log while it is served (--serve-log-for) or from the recording",
+                        highlight=False,
+                    )
                 if end.status != 1 or stop.is_set():
                     break
                 if index + 1 < cfg.scans and stop.wait(cfg.interval):
