@@ -208,6 +208,9 @@ class Partial:
     last_activity: float = 0.0
     ended_at: float | None = None
     recovery: RecoveryState = field(default_factory=RecoveryState)
+    #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
+    settling: frozenset = frozenset()
+    settle_at: float | None = None
 
 
 @dataclass
@@ -340,9 +343,10 @@ class ReconstructionService:
                 out += self._provisional(scan, p)
             r = p.recovery
             self._note_progress(r, scan.n_received)
+            self._settle(scan, p, now)
             if p.ended_at is not None:
                 missing = scan.missing_steps()
-                if not len(missing):
+                if not len(missing) and not self._settling(scan, p, now):
                     out.append(self._finalise(scan, p, "final"))
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
@@ -446,6 +450,27 @@ class ReconstructionService:
     def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
         return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
 
+    def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
+        """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
+        if scan.unsettled and self.recover is not None and p.settling != scan.unsettled:
+            p.settling, p.settle_at = frozenset(scan.unsettled), now
+            self._event(
+                "WARNING",
+                f"scan {scan.key}: {scan.conflicts} conflicting copies of steps {_ranges_text(sorted(p.settling))}; "
+                "asking the acquirer's log which is right",
+            )
+            self.stats.recovery_requests += 1
+            if not self.recover(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling)))):
+                self.stats.recovery_refused += 1
+
+    def _settling(self, scan: ScanAssembly, p: Partial, now: float | None) -> bool:
+        """Whether the final waits for the log to settle conflicting copies (live, for up to ``scan_timeout``)."""
+        if not scan.unsettled or self.recover is None:
+            return False
+        if p.settle_at is None:
+            self._settle(scan, p, now if now is not None else self._clock())
+        return p.settle_at is not None and (now or 0.0) - p.settle_at < self.config.scan_timeout
+
     def still_wanted(self, request: RecoveryRequest) -> bool:
         """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
         return (request.scanner_id, request.scan_id) not in self.ingest.closed
@@ -514,7 +539,7 @@ class ReconstructionService:
                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                 end.end_time_ns,
             )
-            if scan.complete:
+            if scan.complete and not self._settling(scan, p, p.ended_at):
                 return [self._finalise(scan, p, "final")]
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -542,7 +567,7 @@ class ReconstructionService:
                 float(scan.expected_energy[step]),
                 float(scan.ratio[step]),
             )
-        if p.ended_at is not None and scan.complete:
+        if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
@@ -631,6 +656,7 @@ class ReconstructionService:
             duplicates=scan.duplicates,
             rejected=dict(scan.rejected),
             missing=len(missing),
+            conflicts=scan.conflicts,
         )
         steps, gamma, distance, _ = scan.arrays()
         distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
@@ -657,6 +683,8 @@ class ReconstructionService:
         findings = tuple((level, text) for level, text in problems if level is not None)
         if end is not None and aborted:
             findings += (("degraded", partial_sweep_reason(end, int(scan.start.steps))),)
+        if scan.conflicts:
+            findings += (("degraded", conflict_reason(scan, self.recover is not None)),)
         record = {pl.label: pl for pl in main.planes}  # what the compared methods are checked against
         if not np.array_equal(distance, board_distance, equal_nan=True):
             # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
@@ -769,6 +797,23 @@ def partial_sweep_reason(end: codec.ScanEnd, planned: int) -> str:
         f"partial sweep: the scan was aborted after {end.samples_sent} of {planned} steps{why}; "
         "a wall may extend beyond what was swept"
     )
+
+
+def conflict_reason(scan: ScanAssembly, live: bool) -> str:
+    """A plane's reason when steps of its scan came twice with different content."""
+    if not scan.unsettled:
+        kept = f"the acquirer's log settled them ({scan.replaced} held copies replaced by the log's)"
+    elif live:
+        kept = (
+            f"the acquirer's log did not settle steps {_ranges_text(sorted(scan.unsettled))}: the first copy was used"
+        )
+    else:
+        kept = (
+            "without the acquirer's log (a replay, or recovery off) nothing can tell which is right: "
+            "the first copy was used"
+        )
+    copies = "1 copy of a held step" if scan.conflicts == 1 else f"{scan.conflicts} copies of held steps"
+    return f"{copies} differed from the one held (a forged or replayed step?); {kept}"
 
 
 def _ranges_text(steps) -> str:
