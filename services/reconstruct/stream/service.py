@@ -75,6 +75,9 @@ from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 _log = logging.getLogger(__name__)
 
+#: Times a scan may be re-finalised after a FINAL_TIMEOUT or INCOMPLETE verdict (late steps from its log).
+MAX_REVISIONS = 3
+
 
 @dataclass(frozen=True)
 class ReconstructConfig:
@@ -286,6 +289,8 @@ class ReconstructionService:
         self.latest: dict[str, codec.Reconstruction] = {}
         #: Final estimates, per scan, in the order they were made.
         self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
+        #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
+        self._reopened: dict[ScanKey, int] = {}
         self.stats = ServiceStats()
 
     # --- input ---------------------------------------------------------------------------
@@ -312,6 +317,10 @@ class ReconstructionService:
                 continue
             out += self._on_accepted(event, busy)
         now = self._clock()
+        if self.ingest.late:
+            late, self.ingest.late = self.ingest.late, []
+            for key in late:
+                self._reopen(key)
         fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
         for key in fresh:
             if key in self.ingest.pending and key not in self._pending_since:
@@ -450,6 +459,33 @@ class ReconstructionService:
     def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
         return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
 
+    def _reopen(self, key: ScanKey) -> None:
+        """Steps came for a scan finalised without them: ask the acquirer's log for the whole scan, to publish
+        it again complete, with a higher revision (at most ``MAX_REVISIONS``)."""
+        old = self.finals.get(key)
+        if (
+            old is None
+            or self.recover is None
+            or key in self._reopened
+            or wire.status_name(old) not in ("final_timeout", "incomplete")
+            or old.revision >= MAX_REVISIONS
+        ):
+            return
+        self._reopened[key] = old.revision + 1
+        while len(self._reopened) > self.config.max_scans:
+            self._reopened.pop(next(iter(self._reopened)))
+            self.stats.evicted["re-opened scan forgotten (max_scans)"] += 1
+        self.ingest.closed.pop(key, None)
+        steps = int(old.samples_used) + len(old.missing_steps)  # the schedule
+        self._event(
+            "WARNING",
+            f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
+            f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
+        )
+        self.stats.recovery_requests += 1
+        if not self.recover(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True)):
+            self.stats.recovery_refused += 1
+
     def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
         """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
         if scan.unsettled and self.recover is not None and p.settling != scan.unsettled:
@@ -577,8 +613,8 @@ class ReconstructionService:
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
         """Confirm the corner, then (re)fit plane b when enough new steps have come."""
-        if not self.config.provisional:
-            return []
+        if not self.config.provisional or scan.key in self._reopened:
+            return []  # (a re-opened scan already had its verdict: only its new final is published)
         if scan.n_received - p.steps_at_fit < self.config.refit_every:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
         steps, _, _, ratio = scan.arrays()
@@ -724,6 +760,7 @@ class ReconstructionService:
         )
         if end is not None and aborted:
             msg.aborted_reason = end.reason or "aborted"
+        msg.revision = self._reopened.pop(scan.key, 0)
         # What the writer left unset: a warning, and where no plane came, the first thing to fix.
         for _, problem in problems:
             self._event("WARNING", f"scan {scan.key}: {problem}")
