@@ -21,7 +21,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
-from lelsonar.acquire.log_server import LogServer, ScanLog
+from lelsonar.acquire.log_server import LogServer, Receipts, ScanLog
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
 from lelsonar.acquire.scanner import ScannerInfo
 from lelsonar.energy_model import EnergyModel
@@ -84,6 +84,31 @@ def check_space(directory: Path, steps: int, info: ScannerInfo) -> None:
         )
 
 
+#: s, the longest ``acquire`` serves its log after the scans while a reconstructor still lacks a scan's final.
+SERVE_LOG_MAX = 120.0
+
+
+def serve_log(
+    receipts: Receipts,
+    scan_ids: list[int],
+    serve_for: float,
+    stop: threading.Event,
+    *,
+    longest: float = SERVE_LOG_MAX,
+    clock=time.monotonic,
+) -> None:
+    """Serve for ``serve_for`` s, then on while a reconstructor may still ask for one of ``scan_ids`` (a
+    partition hides it for a while: its final has not come back), at most ``longest`` s in all."""
+    start = clock()
+    while not stop.wait(min(0.2, serve_for) if serve_for > 0 else 0.2):
+        waited = clock() - start
+        if waited >= max(serve_for, longest):
+            _log.warning("stopped serving the log after %.0f s; a reconstructor may still lack a scan", waited)
+            return
+        if waited >= serve_for and not any(receipts.wanted(s) for s in scan_ids):
+            return
+
+
 def _quietly(what: str, fn) -> None:
     """Run a Zenoh clean-up step; after a partition it may fail, which must not crash acquire."""
     import zenoh as _zenoh
@@ -127,7 +152,8 @@ def run_acquisition(
         model = energy_model(cfg)
     keys = ScannerKeys(cfg.prefix, cfg.scanner_id)
     report = AcquisitionReport([], [], 0)
-    log = ScanLog(keep_for=cfg.serve_log_for) if zenoh is not None else None
+    log = ScanLog(keep_for=max(cfg.serve_log_for, SERVE_LOG_MAX)) if zenoh is not None else None
+    receipts: Receipts | None = None
     with ExitStack() as stack:
         publisher = None
         server = None
@@ -137,6 +163,8 @@ def run_acquisition(
             stack.callback(_quietly, "undeclaring the liveliness token", token.undeclare)
             # Serve the log before the first scan: a reconstructor may ask as soon as it sees a sample.
             server = stack.enter_context(LogServer(session, keys, log))
+            receipts = Receipts(session, keys)
+            stack.callback(receipts.close)
             publisher = ScanPublisher(session, keys)
             stack.callback(_quietly, "undeclaring the publishers", publisher.close)
         with open_scanner(cfg, sim) as scanner:
@@ -196,6 +224,7 @@ def run_acquisition(
                     f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
                     f"{end.echoes_missing} readings without echo" + recorded,
                     highlight=False,
+                    soft_wrap=True,
                 )
                 if unmatched:
                     console.print(
@@ -203,21 +232,23 @@ def run_acquisition(
                         "published while no subscriber matched (nobody received them live); a reconstructor "
                         "gets them from the log while it is served (--serve-log-for) or from the recording",
                         highlight=False,
+                        soft_wrap=True,
                     )
                 if end.status != 1 or stop.is_set():
                     break
                 if index + 1 < cfg.scans and stop.wait(cfg.interval):
                     break
-        if server is not None and cfg.serve_log_for > 0 and not stop.is_set():
+        if server is not None and receipts is not None and cfg.serve_log_for > 0 and not stop.is_set():
             # The scanner is released (torque off); keep answering reconstructors that missed steps.
             _log.info(
                 "serving the log of the last scans for %.1f s (--serve-log-for; Ctrl-C ends it)", cfg.serve_log_for
             )
             console.print(
-                f"acquire: serving the log of the last scans for {cfg.serve_log_for:g} s "
-                "(--serve-log-for; Ctrl-C ends it)"
+                f"acquire: serving the log of the last scans for {cfg.serve_log_for:g} s, longer while a "
+                f"reconstructor has not finalised them (at most {max(cfg.serve_log_for, SERVE_LOG_MAX):g} s; "
+                "--serve-log-for; Ctrl-C ends it)"
             )
-            stop.wait(cfg.serve_log_for)
+            serve_log(receipts, [e.scan_id for e in report.ends], cfg.serve_log_for, stop)
         if server is not None:
             report.log_stats = dict(server.stats)
     return report
