@@ -354,12 +354,7 @@ def open_bytes(path: Path | str):
         The file cannot be opened (permissions).
     """
     path = Path(path)
-    if path.is_dir():
-        raise RecordingNotFoundError(f"{path} is a directory, not an MCAP recording; give the .mcap file inside it")
-    kind = _not_regular(path)
-    if kind:
-        # Opening a named pipe waits for a writer, and a device never ends: refuse before opening.
-        raise RecordingError(f"{path} is {kind}, not a regular file; give a recorded .mcap file")
+    check_recording_path(path)
     try:
         with open(path, "rb") as f:
             size = os.fstat(f.fileno()).st_size
@@ -372,6 +367,24 @@ def open_bytes(path: Path | str):
         raise RecordingError(f"cannot read {path}: permission denied") from None
     except OSError as exc:
         raise RecordingError(f"cannot read {path}: {exc.strerror or exc}") from None
+
+
+def check_recording_path(path: Path | str) -> None:
+    """Refuse, before opening it, a path that cannot be a recording.
+
+    Raises
+    ------
+    RecordingNotFoundError
+        A directory.
+    RecordingError
+        A named pipe, a device or a socket (opening a pipe waits for a writer; a device never ends).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise RecordingNotFoundError(f"{path} is a directory, not an MCAP recording; give the .mcap file inside it")
+    kind = _not_regular(path)
+    if kind:
+        raise RecordingError(f"{path} is {kind}, not a regular file; give a recorded .mcap file")
 
 
 def _not_regular(path: Path) -> str | None:
