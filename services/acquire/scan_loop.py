@@ -220,8 +220,7 @@ def run_scan(
         emit_measured()
     except RecordingError as exc:
         measured = None  # not recorded, so not published
-        reason = f"recording failed after {sent} samples: {exc}"
-        _log.error("%s", reason)
+        reason = f"recording failed after {sent} samples: {exc}"  # the caller's status line says it, once
     complete = sent == len(schedule)
     end = messages.scan_end(
         who.scanner_id,
@@ -234,7 +233,8 @@ def run_scan(
         echoes_missing=missing,
     )
     output.log(
-        "INFO" if complete else "WARNING",
+        # (A failed recording cannot take this line, and the caller's status line says it.)
+        "INFO" if complete or output.recording_failure else "WARNING",
         f"scan {who.scan_id} {'complete' if complete else 'aborted'}: {sent}/{len(schedule)} samples"
         + (f" ({reason})" if reason else ""),
     )
