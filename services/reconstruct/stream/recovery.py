@@ -443,6 +443,8 @@ class LogRecoveryClient:
         )
         if cls not in wanted:
             return self._bad("unexpected type", f"{str(sample.encoding)[:80]!r} on {key}")
+        if len(sample.payload) > self.config.limits.max_payload_bytes:  # refused before it is copied
+            return self._bad("PayloadTooLargeError", f"{len(sample.payload)} bytes on {key}")
         payload = sample.payload.to_bytes()
         try:
             message = codec.decode(payload, cls, self.config.limits)
