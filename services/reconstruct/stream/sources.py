@@ -111,7 +111,7 @@ class PayloadFifo:
 
 def _item_bytes(item) -> int:
     """The payload bytes a FIFO item holds: a work item's payload, or a received Zenoh sample's."""
-    if isinstance(item, tuple):
+    if isinstance(item, tuple) and len(item) > 1 and isinstance(item[1], (bytes, zenoh.ZBytes)):
         return len(item[1])
     if isinstance(item, zenoh.Sample):
         return len(item.payload)
