@@ -316,3 +316,52 @@ def test_a_disk_that_fills_mid_scan_gives_one_line_and_a_published_aborted_scan_
     (live,) = [json.loads(line) for line in recon_out.splitlines() if line.startswith("{")]
     assert live["status"] == "aborted" and "no space left" in live["aborted_reason"], recon_err[-3000:]
     assert live["accounting"]["published"] == live["samples_used"] >= 40
+
+
+# --- nobody listening, and how long the log is served ---------------------------------------------------
+def test_acquire_counts_the_samples_nobody_subscribed_to(zenoh_socket):
+    from lelsonar.acquire.scan_loop import ScanPublisher
+
+    sample = simulated_messages(steps=2)[1]
+    keys = ScannerKeys("lelsonar", "s1")
+    with open_session(ZenohSettings(mode="peer", connect=(), listen=(f"unixsock-stream/{zenoh_socket}",))) as s:
+        alone = ScanPublisher(s, keys)
+        for _ in range(3):
+            alone.publish(sample)
+        assert alone.take_unmatched() == 3 and alone.unmatched == 0
+        alone.close()
+        got = threading.Event()
+        sub = s.declare_subscriber(keys.sample, lambda _s: got.set())
+        heard = ScanPublisher(s, keys)  # a subscriber matches from the start
+        heard.publish(sample)
+        assert got.wait(10) and heard.take_unmatched() == 0
+        heard.close()
+        sub.undeclare()
+
+
+class _Receipts:
+    def __init__(self, wanted_until: float, clock: Clock) -> None:
+        self.until, self.clock = wanted_until, clock
+
+    def wanted(self, _scan_id: int) -> bool:
+        return self.clock.t < self.until
+
+
+class _Stop:
+    """A stop event whose wait advances the fake clock instead of sleeping."""
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+
+    def wait(self, s: float) -> bool:
+        self.clock.t += s
+        return False
+
+
+@pytest.mark.parametrize(("wanted_until", "served"), [(0.0, 10.0), (25.0, 25.0), (1e9, 120.0)])
+def test_the_log_is_served_while_a_reconstructor_still_lacks_the_final(wanted_until, served):
+    from lelsonar.acquire.service import serve_log
+
+    clock = Clock()
+    serve_log(_Receipts(wanted_until, clock), [1], 10.0, _Stop(clock), longest=120.0, clock=clock)
+    assert clock.t == pytest.approx(served, abs=0.25)
