@@ -528,7 +528,12 @@ class ReconstructionService:
         self._event(
             "INFO",
             f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
-            f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})",
+            f"{what} (attempt {r.attempts}"
+            + (
+                f"/{self.config.recovery_attempts})"
+                if r.attempts <= self.config.recovery_attempts
+                else f", past {self.config.recovery_attempts}: its log may still answer)"
+            ),
         )
         try:
             ok = self.recover(request)
