@@ -222,10 +222,6 @@ class LogPresence:
             while len(self._absent_since) > MAX_TRACKED:
                 self._absent_since.popitem(last=False)
 
-    def known(self, scanner: str) -> bool:
-        with self._lock:
-            return scanner in self._absent_since
-
     def may_answer(self, scanner: str) -> bool:
         """Seen, and present or absent for less than ``gone_after`` s."""
         with self._lock:
