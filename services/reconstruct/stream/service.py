@@ -482,9 +482,7 @@ class ReconstructionService:
             f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
             f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
         )
-        self.stats.recovery_requests += 1
-        if not self.recover(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True)):
-            self.stats.recovery_refused += 1
+        self._request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
         """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
@@ -495,17 +493,26 @@ class ReconstructionService:
                 f"scan {scan.key}: {scan.conflicts} conflicting copies of steps {_ranges_text(sorted(p.settling))}; "
                 "asking the acquirer's log which is right",
             )
-            self.stats.recovery_requests += 1
-            if not self.recover(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling)))):
-                self.stats.recovery_refused += 1
+            self._request(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling))))
 
-    def _settling(self, scan: ScanAssembly, p: Partial, now: float | None) -> bool:
+    def _request(self, request: RecoveryRequest) -> None:
+        """One request outside a scan's attempts (counted; a refusal or a failure counted as refused)."""
+        self.stats.recovery_requests += 1
+        try:
+            ok = self.recover is not None and self.recover(request)
+        except Exception:  # noqa: BLE001 - a failed request is a refused one, not a dead service
+            _log.exception("recovery request failed; counted as refused")
+            ok = False
+        if not ok:
+            self.stats.recovery_refused += 1
+
+    def _settling(self, scan: ScanAssembly, p: Partial, now: float) -> bool:
         """Whether the final waits for the log to settle conflicting copies (live, for up to ``scan_timeout``)."""
         if not scan.unsettled or self.recover is None:
             return False
         if p.settle_at is None:
-            self._settle(scan, p, now if now is not None else self._clock())
-        return p.settle_at is not None and (now or 0.0) - p.settle_at < self.config.scan_timeout
+            self._settle(scan, p, now)
+        return p.settle_at is not None and now - p.settle_at < self.config.scan_timeout
 
     def still_wanted(self, request: RecoveryRequest) -> bool:
         """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
@@ -580,7 +587,7 @@ class ReconstructionService:
                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                 end.end_time_ns,
             )
-            if scan.complete and not self._settling(scan, p, p.ended_at):
+            if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
                 return [self._finalise(scan, p, "final")]
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
