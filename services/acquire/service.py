@@ -246,7 +246,8 @@ def run_acquisition(
             console.print(
                 f"acquire: serving the log of the last scans for {cfg.serve_log_for:g} s, longer while a "
                 f"reconstructor has not finalised them (at most {max(cfg.serve_log_for, SERVE_LOG_MAX):g} s; "
-                "--serve-log-for; Ctrl-C ends it)"
+                "--serve-log-for; Ctrl-C ends it)",
+                soft_wrap=True,
             )
             serve_log(receipts, [e.scan_id for e in report.ends], cfg.serve_log_for, stop)
         if server is not None:
