@@ -19,6 +19,7 @@ import zenoh
 from mcap.reader import make_reader
 
 from lelsonar import codec
+from lelsonar.cli.main import main as lelsonar_main
 from lelsonar.keys import ScannerKeys
 from lelsonar.log import recording
 from lelsonar.log.recover import recover
@@ -221,16 +222,23 @@ def test_recovery_asks_on_while_the_acquirers_log_may_answer_and_stops_once_it_i
     ],
     ids=lambda a: a[0],
 )
-def test_a_named_pipe_as_a_recording_is_refused_in_one_line(tmp_path, argv):
+def test_a_named_pipe_as_a_recording_is_refused_in_one_line(tmp_path, capsys, argv):
     fifo = tmp_path / "scan.mcap"
     os.mkfifo(fifo)
     cmd = [a.format(p=fifo, d=tmp_path) for a in argv]
-    done = subprocess.run(
-        [sys.executable, "-m", "lelsonar", *cmd], capture_output=True, text=True, timeout=120, env=ENV
-    )
-    assert done.returncode != 0 and "Traceback" not in done.stderr
-    lines = [line for line in done.stderr.splitlines() if line.strip()]
-    assert len(lines) == 1 and "named pipe" in lines[0] and "regular file" in lines[0], done.stderr
+    done: dict = {}
+    worker = threading.Thread(target=lambda: done.update(rc=lelsonar_main(cmd)), daemon=True)
+    worker.start()
+    worker.join(60)
+    if worker.is_alive():  # it opened the pipe and waits for a writer: release it, and fail
+        os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+        worker.join(10)
+        pytest.fail(f"`lelsonar {argv[0]}` opened the named pipe and waited for a writer")
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert done["rc"] == 2 and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith(f"lelsonar {argv[0]}: error: "), err
+    assert "named pipe" in lines[0] and "regular file" in lines[0], err
 
 
 def test_the_payload_fifo_is_bounded_in_bytes_and_sessions_refuse_huge_messages():
