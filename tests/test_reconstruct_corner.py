@@ -23,7 +23,7 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch
+from lelsonar.reconstruct.estimate.corner.edge import edge_implied_offsets
 from lelsonar.reconstruct.estimate.corner.model import (
     ECHO_EDGE,
     ECHO_OUTLIER,
@@ -31,16 +31,16 @@ from lelsonar.reconstruct.estimate.corner.model import (
     ECHO_WALL_B,
     Wall,
     echo_residuals,
-    edge_implied_offsets,
     edge_line,
-    fit_corner_model,
-    joint_gauss_newton,
-    joint_residuals,
     scan_points,
 )
+from lelsonar.reconstruct.estimate.corner.pitch import amplitude_pitch
+from lelsonar.reconstruct.estimate.corner.search import fit_corner_model
+from lelsonar.reconstruct.estimate.corner.solver import joint_gauss_newton, joint_residuals
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
+from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
 from lelsonar.sim import EchoSource, Scene, calibrate_simulator, piston_directivity, preset, simulate_scan
@@ -415,13 +415,17 @@ def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() ->
 
 
 def test_a_compared_method_that_fails_is_reported_by_name() -> None:
-    from lelsonar.reconstruct.stream.service import _compared
-
     cfg = _scene_config(gamma=(-10, 25))  # the corner is barely reached: plane b cannot be fitted
-    _, main = _reconstruct(cfg, 0)
-    failed = FitFailure(FailureReason.TOO_FEW_POINTS, "3 valid points", "b", 3)
-    out = _compared(failed, "lel", main)
-    assert isinstance(out, FitFailure) and str(out).count("lel: 3 valid points") == 1
+    scan = simulate_scan(cfg, seed=0)
+    model = calibrate_simulator(dataclasses.replace(preset("paper-test1"), acoustics=cfg.acoustics), seed=0).model
+    energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amp)
+    for compared in ("lel", "adaptive"):
+        est = reconstruct_scan(given, RecordOptions(method=DEFAULT_METHOD, compare_methods=(compared,)))
+        (failed,) = [p for p in est.planes_of(compared) if p.label == "b"]
+        assert isinstance(failed, FitFailure), failed  # reported, never dropped
+        assert failed.detail.startswith(f"{compared}: ") and str(failed).count(f"{compared}: ") == 1, str(failed)
 
 
 def test_replay_exits_non_zero_when_the_method_of_record_gives_no_plane(tmp_path, capsys) -> None:

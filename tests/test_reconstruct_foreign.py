@@ -19,7 +19,8 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, SchemaVersionError
-from lelsonar.reconstruct.stream.assembly import ScanAssembly, geometry_from_start
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.scan_start import geometry_from_start
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
 
 from . import foreign_scenes as fs
