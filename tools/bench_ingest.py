@@ -573,8 +573,8 @@ def run(args: argparse.Namespace) -> int:
         "",
         f"p99 ≤ {TARGET_P99_MS:.0f} ms",
         _verdict(ok_lat_s),
-        f"{len(lat_sample)} samples: {args.latency_scanners} scanners at {args.rate:g}/s each, {args.scans} scans "
-        f"back to back; max {max(lat_sample):.0f} ms",
+        f"{len(lat_sample)} samples: {args.latency_scanners} scanners at {args.rate:g}/s each, "
+        f"{args.scans} scans back to back; max {max(lat_sample):.0f} ms",
     )
     q50, q99 = _pct(lat_prov, 50), _pct(lat_prov, 99)
     ok_lat_e = q99 <= TARGET_P99_MS

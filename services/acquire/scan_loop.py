@@ -97,7 +97,7 @@ class ScanOutput:
     #: Why recording failed (a full or read-only disk), or None.  Nothing is recorded after it.
     recording_failure: str | None = None
 
-    def emit(self, message: Message) -> None:
+    def emit(self, message: codec.ScanMessage) -> None:
         """Record, keep for the log server, publish.
 
         Raises

@@ -99,7 +99,8 @@ def module_source(name: str) -> Path:
 
 _CACHE = _cache_dir()
 if _CACHE is not None:
-    numba.config.CACHE_DIR = str(_CACHE)  # read by each kernel's cache as it is decorated, after this
+    # Read by each kernel's cache as it is decorated, after this.
+    numba.config.CACHE_DIR = str(_CACHE)  # type: ignore[attr-defined]  # numba.config makes its options at import
 
 
 def cache_dir() -> Path | None:

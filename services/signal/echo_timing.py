@@ -37,6 +37,7 @@ from lelsonar.signal.compiled import kernel
 __all__ = [
     "TIMING_WINDOW",
     "CONSTANT_FRACTION",
+    "FLOOR_TIME",
     "echo_onsets",
     "typical_edges",
     "RangeWalk",
@@ -515,9 +516,9 @@ def walk_free_ranges(distance: np.ndarray, offset: np.ndarray, peak: np.ndarray,
     offset lies over 3 robust σ from the walk's :attr:`~RangeWalk.curve` within its span (its window also
     held a later echo that merged with its rise, or the writer slipped a cycle) moves by the curve at its
     peak instead.  (An echo of atypical shape, :func:`typical_edges`, stays out of the test and the curve,
-    but is timed as well as the others where it agrees with them.)  An echo found but clipped has walked by an unknown amount and is left out (NaN); one
-    not found in its window (no waveform) keeps the writer's range.  Unchanged when ``walk.detected`` is
-    False.
+    but is timed as well as the others where it agrees with them.)  An echo found but clipped has walked by
+    an unknown amount and is left out (NaN); one not found in its window (no waveform) keeps the writer's
+    range.  Unchanged when ``walk.detected`` is False.
 
     Parameters
     ----------

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.special import ndtri  # the standard normal's quantile
 
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
@@ -249,8 +250,6 @@ def noise_level(sigma: float, listened, sample_rate: float, false_alarm: float =
     array of ``listened``'s shape
         V.
     """
-    from scipy.special import ndtri  # the standard normal's quantile
-
     if not 0.0 < false_alarm < 1.0:
         raise ConfigError(f"the false-alarm probability must be in (0, 1), got {false_alarm}")
     samples = np.maximum(np.asarray(listened, dtype=np.float64) * sample_rate, 1.0)

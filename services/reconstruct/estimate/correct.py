@@ -20,7 +20,16 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "corrected_from", "mirror_points", "beam_points"]
+__all__ = [
+    "AXIS_Y",
+    "AXIS_Z",
+    "MAX_CORRECTION_ANGLE",
+    "COS_MAX_CORRECTION",
+    "corrected_points",
+    "corrected_from",
+    "mirror_points",
+    "beam_points",
+]
 
 #: Normal of plane ``a`` assumed by the paper's correction (plane y = const).
 AXIS_Y = np.array([0.0, 1.0, 0.0])

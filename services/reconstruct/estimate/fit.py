@@ -67,7 +67,7 @@ __all__ = [
 
 
 def _ro(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
-    out = np.array(a, dtype=dtype, copy=True)
+    out: np.ndarray = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
     return out
 

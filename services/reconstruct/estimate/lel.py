@@ -56,6 +56,8 @@ __all__ = [
     "front_start",
     "FAST_SOLVERS",
     "PERFECT_FIT",
+    "pairwise_sum",
+    "residual_entropy",
 ]
 
 
@@ -254,7 +256,7 @@ def newton_minimize(
     c = offset
     h, g, hess = _egh(theta, v, vt, c)
     evals, it, converged = 1, 0, False
-    for it in range(1, maxiter + 1):
+    for it in range(1, maxiter + 1):  # noqa: B007  # read after the loop: the iterations run
         scale = max(math.sqrt(float(theta @ theta)), 1e-300) if max_step is None else max_step
         if math.sqrt(float(g @ g)) * scale < gtol:
             converged = True

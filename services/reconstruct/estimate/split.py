@@ -69,7 +69,7 @@ def _critical_step(ratio: np.ndarray, peak_fraction: float) -> int:
         found = found or ok
     if not found:
         return -1
-    k = np.argmax(r)
+    k = int(np.argmax(r))
     if peak_fraction == 0.0:
         return k
     thr = (1.0 - peak_fraction) * r[k]

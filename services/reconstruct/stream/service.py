@@ -47,7 +47,7 @@ from typing import Protocol
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.errors import ConfigError
+from lelsonar.errors import ConfigError, InternalError
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings
@@ -535,6 +535,9 @@ class ReconstructionService:
         return (request.scanner_id, request.scan_id) not in self.ingest.closed
 
     def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
+        if self.recover is None:
+            raise InternalError("a recovery request was made by a service given no recover callback")
+        recover = self.recover
         r.attempts += 1
         r.requests += 1
         r.last_at, r.mark = now, held
@@ -559,7 +562,7 @@ class ReconstructionService:
             ),
         )
         try:
-            ok = self.recover(request)
+            ok = recover(request)
         except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
             _log.exception("recovery request failed; counted as refused")
             ok = False
@@ -597,6 +600,8 @@ class ReconstructionService:
         if event.kind == "end":
             p.ended_at = self._clock()
             end = scan.end
+            if end is None:
+                raise InternalError(f"scan {scan.key}: an end event without its ScanEnd")
             self._event(
                 "INFO",
                 f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"
