@@ -15,6 +15,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -172,25 +173,35 @@ def test_exit_codes_are_documented_in_the_help(capsys):
 # --- processes: Ctrl-C and a closed stdout --------------------------------------------------------
 
 # Arms a SIGINT that the process sends itself at its first import after parsing (the command's own
-# start-up), or, with LELSONAR_TEST_SIGINT_AT=parse, at the parser's first import of a subcommand.
+# start-up) or its first wait on an event (a command that imports nothing more and then waits), whichever
+# comes first; with LELSONAR_TEST_SIGINT_AT=parse, at the parser's first import of a subcommand.
 _WRAPPER = """
-import os, signal, sys
+import os, signal, sys, threading
 import lelsonar.cli.config_file as config_file
 from lelsonar.cli.main import main
 
+fired = []
+
+def fire():
+    if not fired:
+        fired.append(True)
+        os.kill(os.getpid(), signal.SIGINT)
+
 class SigintOnImport:
-    fired = False
     def find_spec(self, name, path=None, target=None):
-        if not SigintOnImport.fired:
-            SigintOnImport.fired = True
-            os.kill(os.getpid(), signal.SIGINT)
+        fire()
         return None
 
 def arm():
     sys.meta_path.insert(0, SigintOnImport())
+    wait = threading.Event.wait
+    def wait_then_fire(self, timeout=None):
+        fire()
+        return wait(self, timeout)
+    threading.Event.wait = wait_then_fire
 
 if os.environ.get("LELSONAR_TEST_SIGINT_AT") == "parse":
-    arm()
+    sys.meta_path.insert(0, SigintOnImport())
 else:
     parse = config_file.parse_args
     def parse_then_arm(*a, **kw):
@@ -199,7 +210,7 @@ else:
         return args
     config_file.parse_args = parse_then_arm
 code = main(sys.argv[1:])
-print("fired" if SigintOnImport.fired else "not fired", file=sys.stderr)
+print("fired" if fired else "not fired", file=sys.stderr)
 sys.exit(code)
 """
 
@@ -225,35 +236,55 @@ def _startup_argv(d: Path, command: str) -> list[str]:
         "review": ["review", scan, "-o", str(d / "startup.rrd")],
         "ros2-bridge": ["ros2-bridge", "--source", scan],
         "router": ["router", "--listen", f"tcp/127.0.0.1:{_free_port()}"],
-        "secure": ["secure", "init", str(d / "startup-pki")],
+        "secure": ["secure", "init", str(d / "startup-pki"), "--scanner", "s1"],
         "bench": ["bench", "sim"],
     }.get(command, [command])
 
 
-def _run(argv, *, env=None, stdout=subprocess.DEVNULL, until: str | None = None, interrupt: bool = False):
-    """Run ``argv``; with ``until``, SIGINT once a line holding it appears on stderr.  (code, stderr lines)."""
-    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=stdout, stderr=subprocess.PIPE, text=True, env=env)
+def _run(argv, *, env=None, stdout=subprocess.DEVNULL, until: str | None = None):
+    """Run ``argv`` (killed after 300 s); with ``until``, SIGINT once a line holding it appears on stdout or
+    stderr (then merged).  Returns (exit code, stderr lines)."""
+    merged = until is not None
+    proc = subprocess.Popen(
+        argv,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE if merged else stdout,
+        stderr=subprocess.STDOUT if merged else subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    stream = proc.stdout if merged else proc.stderr
+    watchdog = threading.Timer(300.0, proc.kill)
+    watchdog.start()
     lines = []
-    if until is not None:
-        for line in proc.stderr:
-            lines.append(line)
-            if until in line:
-                proc.send_signal(signal.SIGINT)
-                break
     try:
-        rest, _ = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        rest, _ = proc.communicate()
+        if merged:
+            for line in stream:
+                lines.append(line)
+                if until in line:
+                    proc.send_signal(signal.SIGINT)
+                    break
+        lines += stream.readlines()
+        proc.wait()
+    finally:
+        watchdog.cancel()
+        stream.close()
+    if proc.returncode == -signal.SIGKILL:
         lines.append("TIMEOUT\n")
-    return proc.returncode, lines + rest.splitlines(keepends=True)
+    return proc.returncode, lines
 
 
 def _side_by_side(jobs: dict[str, callable]) -> dict[str, tuple[int, list[str]]]:
     results: dict[str, tuple[int, list[str]]] = {}
 
+    slots = threading.Semaphore(8)  # a few at a time: each process loads the whole package
+
     def one(name, fn):
-        results[name] = fn()
+        with slots:
+            t0 = time.monotonic()
+            results[name] = fn()
+        if os.environ.get("LELSONAR_TEST_TIMES"):
+            print(f"{time.monotonic() - t0:6.1f} s  {name}", file=sys.stderr)
 
     threads = [threading.Thread(target=one, args=item) for item in jobs.items()]
     for t in threads:

@@ -613,7 +613,9 @@ def run_planner(args: argparse.Namespace) -> int:
 
         worker = threading.Thread(target=drain, daemon=True)
         worker.start()
-        print(f"planner: listening on {keys.planes} ({settings.describe()}); Ctrl-C to stop", file=sys.stderr, flush=True)
+        print(
+            f"planner: listening on {keys.planes} ({settings.describe()}); Ctrl-C to stop", file=sys.stderr, flush=True
+        )
         for reply in session.get(keys.planes, timeout=2.0):  # the latest, if any, on start
             if reply.ok is not None:
                 show(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), "latest")
