@@ -87,12 +87,14 @@ def main(argv: list[str] | None = None) -> int:
         import threading
 
         hook = threading.excepthook
+        handlers = _signal_handlers()
         pipe_closed = _end_quietly_when_a_thread_loses_stdout()
         try:
             code = int(args.run(args) or 0)
             return 141 if pipe_closed.is_set() else code
         finally:
             threading.excepthook = hook
+            _restore(handlers)  # a command's Ctrl-C handler ends with it (main() may run again in-process)
     except KeyboardInterrupt:  # at start-up (imports) too
         print(f"{command}: interrupted", file=sys.stderr, flush=True)
         return 130
@@ -102,6 +104,23 @@ def main(argv: list[str] | None = None) -> int:
         if os.environ.get("LELSONAR_TRACEBACK"):
             raise
         return _fail(command, exc, _exit_code(exc))
+
+
+def _signal_handlers() -> dict:
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
+def _restore(handlers: dict) -> None:
+    import signal
+
+    for sig, handler in handlers.items():
+        if handler is not None:
+            signal.signal(sig, handler)
 
 
 def _exit_code(exc: BaseException) -> int:
