@@ -318,6 +318,11 @@ def test_ctrl_c_and_closed_pipes_in_processes(files, tmp_path):
             "acquire: publishing",
             130,
         ),
+        "foxglove-wait": (  # waiting for a viewer that never comes: Ctrl-C ends the wait, not its 600 s
+            ["reconstruct", "--source", str(files / "scan.mcap"), "--foxglove", "0", "--foxglove-wait", "600"],
+            "waiting up to",
+            130,
+        ),
     }
     router_proc = subprocess.Popen(
         [LELSONAR, "router", "--listen", router], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
@@ -366,3 +371,19 @@ def test_ctrl_c_and_closed_pipes_in_processes(files, tmp_path):
             failures.append(f"{name}: exit {code}, stderr {err[-600:]!r}")
     assert not failures, "\n".join(failures)
     assert results["parser imports"][0] == 130  # Ctrl-C while the parser imports the subcommands
+
+
+def test_exit_stats_count_the_samples_of_a_scan_stopped_mid_way():
+    """After Ctrl-C mid-scan, the totals count what was ingested, not only the finished scans'."""
+    from lelsonar import codec as c
+    from lelsonar.cli.reconstruct import count_open_scans
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+
+    messages = [m for m in simulated_messages("paper-test1", seed=2, steps=120) if not isinstance(m, c.ScanEnd)]
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    for m in messages[:101]:  # the ScanStart and 100 samples
+        service.handle(type(m).DESCRIPTOR.full_name, m.SerializeToString())
+    stats = service.stats_dict()
+    assert stats["samples"]["received_live"] == 0  # the service counts a scan at its final
+    count_open_scans(stats, service)
+    assert stats["samples"]["received_live"] == 100 and stats["samples"]["open_scans"] == 1

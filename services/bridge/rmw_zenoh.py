@@ -10,9 +10,11 @@ Targets ``rmw_zenoh_cpp`` ≥ 0.2.4 (Jazzy) and 0.6 (Kilted), whose design
   computes, or it sees nothing.
 * **Liveliness tokens** (the graph: ``ros2 node list``, ``ros2 topic list``):
   a node ``@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>``
-  and per publisher ``@ros2_lv/<domain>/<zid>/<nid>/<id>/MP/<enclave>/<namespace>/<node>/<topic>/<DDS type>/<hash>/<qos>``,
+  and per publisher
+  ``@ros2_lv/<domain>/<zid>/<nid>/<id>/MP/<enclave>/<namespace>/<node>/<topic>/<DDS type>/<hash>/<qos>``,
   every ``/`` inside a chunk mangled to ``%`` and an empty chunk written ``%``.
-  The QoS chunk is ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<s>,<ns>``
+  The QoS chunk is
+  ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<s>,<ns>``
   with every component that equals rmw_zenoh's default (RELIABLE, VOLATILE,
   KEEP_LAST, depth 42, infinite durations, AUTOMATIC) left empty; a non-default
   one is the ``rmw/types.h`` enum value (TRANSIENT_LOCAL = 1).

@@ -51,7 +51,7 @@ EPILOG = (
 class OneLineParser(argparse.ArgumentParser):
     """A usage error is one line naming the command and where its help is, exit 2 (subcommands inherit it)."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
 
 

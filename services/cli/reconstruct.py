@@ -234,8 +234,11 @@ def check_outputs(args: argparse.Namespace) -> None:
     from lelsonar.cli.paths import output_file
     from lelsonar.errors import ConfigError
 
-    outs = [(flag, getattr(args, dest, None)) for flag, dest in (("--record", "record"), ("--rrd", "rrd"))]
-    outs = [(flag, path) for flag, path in outs if path is not None]
+    outs: list[tuple[str, Path]] = [
+        (flag, path)
+        for flag, path in (("--record", getattr(args, "record", None)), ("--rrd", getattr(args, "rrd", None)))
+        if path is not None
+    ]
     for flag, path in outs:
         output_file(path, overwrite=args.overwrite, what=f"{flag} file")
     src = getattr(args, "source", None)
@@ -415,7 +418,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                     highlight=False,
                 )
                 fox.server.wait_for_subscribers([TOPIC_PLANES], args.foxglove_wait, stop=stop)
-                if stop.is_set():
+                if stop is not None and stop.is_set():
                     console.print("reconstruct: interrupted before the replay", highlight=False)
                     return 130
             if session is not None:
@@ -460,7 +463,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             while not stop.is_set() and not finals.is_set():
                 stop.wait(0.2)
         stats = service.stats_dict()
-        _count_open_scans(stats, service)
+        count_open_scans(stats, service)
         if group is not None:
             stats["group"] = group.stats_dict()
         stats["worker_errors"] = dict(live.error_types)
@@ -470,7 +473,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
-def _count_open_scans(stats: dict, service) -> None:
+def count_open_scans(stats: dict, service) -> None:
     """Add what the scans still open at exit (stopped by Ctrl-C mid-scan) received: the totals count every
     sample ingested, not only those of the finished scans."""
     open_scans = list(service.ingest.scans.values())

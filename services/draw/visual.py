@@ -436,7 +436,7 @@ TOPIC_TRUTH = "/lelsonar/truth"
 
 def truth_scene(planes, scanner_id: str, t_ns: int) -> SceneUpdate:
     """The true planes of a simulated scene, ``(label, normal, offset, corners)`` each, as grey patches."""
-    entities = []
+    entities: list[SceneEntity] = []
     for label, normal, offset, corners in planes:
         msg = codec.Reconstruction(scanner_id=scanner_id, scan_id=0)
         p = msg.planes.add(label=str(label), method="truth", offset=float(offset))

@@ -143,7 +143,7 @@ class SnapshotObserver:
         return path
 
     def _draw_world(self, ax, s: _Scan) -> None:
-        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+        from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # type: ignore[import-untyped]
 
         order = sorted(s.points)
         if order:
@@ -170,9 +170,9 @@ class SnapshotObserver:
         ax.set_zlabel("z, m")
         ax.view_init(elev=25, azim=-60)
         # Equal scales on the three axes, so angles between planes look as they are.
-        corners = [p.patch for p in s.planes] + [s.points[k] for k in order]
-        if corners:
-            allpts = np.concatenate(corners)
+        extents = [p.patch for p in s.planes] + [s.points[k] for k in order]
+        if extents:
+            allpts = np.concatenate(extents)
             lo, hi = allpts.min(axis=0), allpts.max(axis=0)
             mid, half = (lo + hi) / 2, float((hi - lo).max()) / 2 + 0.05
             ax.set_xlim(mid[0] - half, mid[0] + half)
