@@ -387,3 +387,24 @@ def test_exit_stats_count_the_samples_of_a_scan_stopped_mid_way():
     assert stats["samples"]["received_live"] == 0  # the service counts a scan at its final
     count_open_scans(stats, service)
     assert stats["samples"]["received_live"] == 100 and stats["samples"]["open_scans"] == 1
+
+
+@pytest.mark.slow
+def test_a_cold_kernel_cache_is_announced_and_compiled_in_a_child(monkeypatch, capsys):
+    """The first run says it compiles before it starts, and compiles in a child process, which Ctrl-C ends
+    at once (Numba's compiler would hold it in this one)."""
+    import lelsonar.cli.warm_up as warm_up
+
+    calls = []
+    real = warm_up.compile_in_child
+
+    def counted(console):
+        calls.append(True)
+        return real(console)
+
+    monkeypatch.setattr(warm_up, "cache_is_cold", lambda: not calls)
+    monkeypatch.setattr(warm_up, "compile_in_child", counted)
+    assert main(["warm-up"]) == 0
+    err = capsys.readouterr().err
+    assert calls == [True] and "first run of this build: compiling the numeric kernels" in err
+    assert err.index("first run") < err.index("warm-up:")

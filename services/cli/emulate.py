@@ -1,4 +1,4 @@
-"""`lelsonar emulate`: an AX-12 and a sensor board on two ptys, until SIGINT/SIGTERM.
+"""lelsonar emulate: an AX-12 and a sensor board on two ptys, until SIGINT/SIGTERM.
 
 Both emulators run as threads of this process.  The sensor board sees the
 angle the emulated servo is at.  Point the real drivers (or any serial tool)

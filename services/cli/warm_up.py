@@ -1,10 +1,10 @@
-"""`lelsonar warm-up`: compile the numeric kernels once, so the first `reconstruct` does not.
+"""lelsonar warm-up: compile the numeric kernels once, so the first reconstruction does not.
 
 Numba compiles a kernel on its first call and keeps the machine code on disk
 (lelsonar.signal.compiled).  Compiling all of them takes about 40 s on two
-cores, once per install or edit; `make` runs this right after installing.  It
+cores, once per install or edit; make runs this right after installing.  It
 replays a short simulated recording through the service twice (the finals of
-`reconstruct --source` with the compared methods, then the live path's
+"reconstruct --source" with the compared methods, then the live path's
 provisional estimates) so every kernel meets the argument types it meets in use.
 
 A command that computes finds the cache cold at start: it says so, then
