@@ -32,6 +32,7 @@ topic                       schema                         what
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -405,20 +406,19 @@ def acquisition_energy_scalars(start: codec.ScanStart, sample: codec.Sample, ste
     step is the reconstruction's: null here.  ``step``: the sample's :func:`step_scalars`, if already made.
     """
     step = step_scalars(sample) if step is None else step
-    ranges = [r for r in step["range"].values() if r is not None and math.isfinite(r)]
+    ranges = sorted(r for r in step["range"].values() if r is not None and math.isfinite(r))
     e = step["energy"]
     em = start.energy_model
     expected = ratio = None
-    if ranges and em.valid_max_range > em.valid_min_range > 0:
-        try:
-            model = EnergyModel(em.phi0, em.phi1, em.phi2, em.valid_min_range, em.valid_max_range)
-        except ConfigError:  # an unusable model: nothing to divide by
-            model = None
-        if model is not None:
-            expected = float(model.expected_energy(float(np.median(ranges))))
-            ratio = e / expected if expected > 0 else None
-    elif not ranges:
+    if not ranges:
         ratio = 0.0
+    else:
+        model = _energy_model(em.phi0, em.phi1, em.phi2, em.valid_min_range, em.valid_max_range)
+        if model is not None:
+            n = len(ranges)
+            d_m = 0.5 * (ranges[(n - 1) // 2] + ranges[n // 2])  # the median
+            expected = float(model.expected_energy(float(d_m)))
+            ratio = e / expected if expected > 0 else None
     return energy_scalars(
         sample.scanner_id,
         sample.scan_id,
@@ -429,6 +429,15 @@ def acquisition_energy_scalars(start: codec.ScanStart, sample: codec.Sample, ste
         math.nan if ratio is None else ratio,
         None,
     )
+
+
+@functools.lru_cache(maxsize=16)
+def _energy_model(phi0: float, phi1: float, phi2: float, d_min: float, d_max: float) -> EnergyModel | None:
+    """The announced model, checked once per scan (None: unusable, nothing to divide by)."""
+    try:
+        return EnergyModel(phi0, phi1, phi2, d_min, d_max)
+    except ConfigError:
+        return None
 
 
 TOPIC_TRUTH = "/lelsonar/truth"
