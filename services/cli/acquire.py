@@ -242,9 +242,9 @@ def run_acquire(args: argparse.Namespace) -> int:
         )
     if report.paths:
         console.print(f"open the recording with: rerun {' '.join(str(p) for p in report.paths)}")
-    if interrupted.is_set():
-        return 130
-    return 0 if report.ok else 1
+    if report.ok:  # Ctrl-C while serving the log after complete scans ends that service: done
+        return 0
+    return 130 if interrupted.is_set() else 1
 
 
 def check_recordings(cfg, *, overwrite: bool) -> None:

@@ -153,7 +153,7 @@ def _check_bag_dir(out: Path, overwrite: bool) -> None:
 
     if out.exists() or out.is_symlink():
         if not overwrite:
-            raise ConfigError(f"{out} exists; pass --overwrite to replace the bag, or give another -o")
+            raise ConfigError(f"{out} already exists; pass --overwrite to replace the bag, or give another -o")
         if not (out.is_dir() and not out.is_symlink() and (out / "metadata.yaml").is_file()):
             raise ConfigError(f"{out} exists and is not a rosbag2 directory (no metadata.yaml); give another -o")
         shutil.rmtree(out)

@@ -71,12 +71,14 @@ def run_warm_up(args: argparse.Namespace) -> int:
     with console.status("loading the numeric kernels…"):
         exercise_kernels()
     found = kernels()
-    # Per kernel Python calls, one entry per argument types; a kernel called only from kernels is compiled
-    # into its callers and has none.
-    signatures = sum(len(k.signatures) for k in found.values())
+    # A kernel has a variant per argument types it is called with from Python (one called only from other
+    # kernels is compiled into them and has none), so variants outnumber kernels.
+    compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
+    loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
     console.print(
-        f"warm-up: {len(found)} kernels ready, {signatures} compiled variants (one per argument types) in the "
-        f"cache {cache_dir() or 'of Numba'}; {time.perf_counter() - t0:.1f} s",
+        f"warm-up: {len(found)} kernels ready: {compiled} variants compiled now and {loaded} loaded from the "
+        f"cache (a variant per argument types a kernel is called with), in {time.perf_counter() - t0:.1f} s; "
+        f"cache {cache_dir() or 'of Numba'}",
         highlight=False,
     )
     return 0
