@@ -17,6 +17,8 @@ topic                           schema                            what
 ``/lelsonar/array``             ``foxglove.SceneUpdate``          the capsules and their beams
 ``/lelsonar/scan_points``       ``foxglove.PointCloud``           every raw point of the scan so far
 ``/lelsonar/step``              JSON ``lelsonar.StepScalars``     γ, ranges, energies (plottable)
+``/lelsonar/energy``            JSON ``lelsonar.EnergyScalars``   E^γ, E0(d_m), R per step (plottable)
+``/lelsonar/truth``             ``foxglove.SceneUpdate``          true planes, simulated scans only
 ``/lelsonar/planes``            ``foxglove.SceneUpdate``          estimated planes, when recorded
 ``/lelsonar/world``             ``foxglove.SceneUpdate``          the scan's pose; a simulated world as truth
 ==============================  ================================  ==========================
@@ -111,6 +113,8 @@ class McapRecorder:
         True (default): one chunk per step, flushed to the OS.  False: 1 MiB
         chunks written when full; a killed writer then loses the whole chunk in
         progress.  Kept as the benchmark's floor.
+    truth : list of (label, normal, offset, corners), optional
+        The true planes of a simulated scene, drawn on ``/lelsonar/truth`` at each ScanStart.
     """
 
     def __init__(
@@ -121,6 +125,7 @@ class McapRecorder:
         metadata: Mapping[str, str] | None = None,
         fsync: bool = False,
         durable: bool = True,
+        truth=None,
     ) -> None:
         if compression not in COMPRESSIONS:
             raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
@@ -133,6 +138,7 @@ class McapRecorder:
         self._fsync = fsync
         self._durable = durable or fsync
         self._starts: dict[tuple[str, int], codec.ScanStart] = {}
+        self._truth = truth
         self._finished = False
         self.messages_written = 0
         if metadata:
@@ -229,13 +235,20 @@ class McapRecorder:
                 self._put(visual.TOPIC_WORLD, visual.world_scene(self._world, t), t)
             self._put(visual.TOPIC_ARRAY, visual.array_model(message, t), t)
             self._writer.add_metadata("lelsonar.log.recording", recording_name_metadata(message))
+            if self._truth:
+                self._put(visual.TOPIC_TRUTH, visual.truth_scene(self._truth, message.scanner_id, t), t)
         elif isinstance(message, codec.Sample):
             cloud = views.cloud.add(message, t)
             if cloud is not None:
                 self._put(visual.TOPIC_SCAN_POINTS, cloud, t)
-            self.write_json(
-                visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA, visual.step_scalars(message), t
-            )
+            step = visual.step_scalars(message)
+            self.write_json(visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA, step, t)
+            start = self._starts.get((message.scanner_id, message.scan_id))
+            if start is not None:
+                energy = visual.acquisition_energy_scalars(start, message, step)
+                self.write_json(
+                    visual.TOPIC_ENERGY, visual.ENERGY_SCALARS_NAME, visual.ENERGY_SCALARS_SCHEMA, energy, t
+                )
         elif isinstance(message, codec.ScanEnd):
             views.cloud.scan_ended(message.scanner_id, message.scan_id)
         elif isinstance(message, codec.Reconstruction):
