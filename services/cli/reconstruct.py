@@ -272,17 +272,22 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
 
 
 def _open_source(path: Path):
-    """The recording to replay, read tolerantly: one warning line on stderr if it is damaged or unfinished.
+    """The recording to replay, opened tolerantly (its messages are read by the replay, chunk by chunk).
 
     Raises the typed :class:`~lelsonar.errors.RecordingError` subclasses (one line, exit 2) for a missing path,
     a directory, a file that is not MCAP, and one without lelsonar scans.
     """
     from lelsonar.log.recording import open_recording
 
-    source = open_recording(path).require_scans()
+    return open_recording(path).require_scans()
+
+
+def _replayed(source) -> None:
+    """After the replay: one warning line on stderr if the file was damaged or unfinished; an error if no scan
+    message was readable after all."""
+    source.require_scans()
     if (line := source.damage_warning()) is not None:
         print(line, file=sys.stderr, flush=True)
-    return source
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
@@ -361,6 +366,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if session is not None:
                 stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
             n = replay_mcap(source, service)
+            _replayed(source)
             if recorder:
                 for msg in service.finals.values():
                     recorder.write(msg)
@@ -437,7 +443,7 @@ def run_review(args: argparse.Namespace) -> int:
 
     source = _open_source(args.source)
     out = args.output or args.source.with_suffix(".rrd")
-    total = len(source.payloads())
+    total = source.expected_payloads()
     console = present.console(stderr=True)
     with (
         open_rerun(
@@ -455,6 +461,7 @@ def run_review(args: argparse.Namespace) -> int:
         task = progress.add_task("replay", total=total)
         service = ReconstructionService(_config(args), observer=observer)
         replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
+    _replayed(source)
     for msg in service.finals.values():
         console.print(present.planes_table(msg))
     console.print(f"wrote {out} — open it with: rerun {out}")

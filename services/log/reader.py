@@ -18,17 +18,29 @@ instead:
 Channels and schemas come from the data section and, when the footer is
 intact, from the summary section too, so a damaged first chunk does not orphan
 the messages of later ones.  Nothing here knows about lelsonar's topics.
+
+Reading holds one chunk at a time, whatever the file's length: :func:`open_mcap`
+walks the records' framing once (no decompression, except the first chunk of
+each channel, to learn its definition) and :meth:`McapSource.read` then
+decompresses and checks the chunks one by one, yielding their messages in log-time
+order through a merge bounded by the chunks that overlap in time (as the indexed
+reader does with its chunk index).  A chunk whose message index says it holds
+none of the wanted channels is not decompressed at all.  :func:`salvage` is the
+in-memory form: every message of the file in a list.
 """
 
 from __future__ import annotations
 
+import heapq
 import mmap
 import os
 import struct
 import threading
-import zlib
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from isal.isal_zlib import crc32
 
 from lelsonar.errors import NotMcapError, RecordingError, RecordingNotFoundError
 
@@ -129,11 +141,14 @@ class Damage:
 
 @dataclass
 class Salvage:
-    """Everything :func:`salvage` read from one file.
+    """The account of one file: what :func:`open_mcap` and :meth:`McapSource.read` found.
 
-    ``messages`` are in file order; :meth:`in_log_time_order` sorts them the way
-    the indexed reader does.  ``finished`` is True when the file ends with an
-    intact footer and magic (the writer called ``finish()``).
+    Schemas, channels, metadata, attachments and the damage to the records' framing are known
+    once the file is opened; the messages counted, and a chunk whose content fails its check,
+    once it has been read (``read_done``).  ``messages`` is filled by :func:`salvage` only (in
+    file order; :meth:`in_log_time_order` sorts them the way the indexed reader does).
+    ``finished`` is True when the file ends with an intact footer and magic (the writer called
+    ``finish()``).
     """
 
     path: Path
@@ -150,6 +165,14 @@ class Salvage:
     statistics_counts: dict[int, int] | None = None  # channel id → messages, from an intact Statistics record
     orphans: int = 0  # intact messages whose channel definition was lost
     summary_start: int | None = None  # from an intact footer
+    #: Messages per channel that the chunks' message indexes announce (framing only, before any read).
+    indexed_counts: dict[int, int] = field(default_factory=dict)
+    #: Messages per channel read intact (or, for a chunk a read skipped, as its message index says).
+    counts: dict[int, int] = field(default_factory=dict)
+    first_time: int | None = None  # smallest log time read
+    last_time: int | None = None
+    read_done: bool = False  # a read has been to the end of the file
+    framing_damage: list[Damage] = field(default_factory=list)  # what the opening walk found
 
     @property
     def intact(self) -> bool:
@@ -161,15 +184,12 @@ class Salvage:
         return sorted((m for m in self.messages if m.channel_id in self.channels), key=lambda m: m.log_time)
 
     def count_by_channel(self) -> dict[int, int]:
-        counts: dict[int, int] = {}
-        for m in self.messages:
-            counts[m.channel_id] = counts.get(m.channel_id, 0) + 1
-        return counts
+        return dict(self.counts)
 
     def lost_by_channel(self) -> dict[int, int]:
         """Messages lost per channel: from the file's statistics when they survived, else from the damage records."""
         if self.statistics_counts is not None:
-            have = self.count_by_channel()
+            have = self.counts
             return {cid: n - have.get(cid, 0) for cid, n in self.statistics_counts.items() if n > have.get(cid, 0)}
         lost: dict[int, int] = {}
         for d in self.damage:
@@ -183,6 +203,13 @@ class Salvage:
             return sum(self.lost_by_channel().values()), True
         exact = all(d.messages is not None for d in self.damage)
         return sum(d.messages_lost for d in self.damage), exact
+
+    def _start_read(self) -> None:
+        """Forget what an earlier read found: a read recounts everything past the framing."""
+        self.damage = list(self.framing_damage)
+        self.counts, self.orphans, self.chunks_read = {}, 0, 0
+        self.first_time = self.last_time = None
+        self.read_done = False
 
     def topic(self, channel_id: int) -> str:
         ch = self.channels.get(channel_id)
@@ -270,10 +297,11 @@ def _decompress(compression: str, data, size: int) -> bytes:
     raise _Bad(f"unknown compression {compression!r}")
 
 
-def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
-    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
-    # The hot loop of every read: fields are unpacked in place (no cursor object per record), and the
-    # compressed bytes are handed to the decompressor as a view of the file, not a copy.
+def _chunk_frame(buf, start: int, length: int) -> tuple[str, int, int, int]:
+    """Check one chunk record's layout without decompressing it.
+
+    Returns (compression, uncompressed size, uncompressed CRC, offset of the compressed bytes).
+    """
     end = start + length
     head = start + _CHUNK_HEAD.size
     if head + 4 > end:
@@ -287,6 +315,8 @@ def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object
         compression = str(buf[head + 4 : at], "utf-8")
     except UnicodeDecodeError as exc:
         raise _Bad(f"string is not UTF-8: {exc}") from None
+    if compression not in ("", "zstd", "lz4"):
+        raise _Bad(f"unknown compression {compression!r}")
     if size > MAX_CHUNK_BYTES:
         raise _Bad(f"chunk claims {size} uncompressed bytes")
     n = _U64.unpack_from(buf, at)[0]
@@ -294,15 +324,29 @@ def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object
         raise _Bad(f"field of {n} bytes runs past the record")
     if at + 8 + n != end:
         raise _Bad("chunk length does not match its content")
-    view = memoryview(buf)[at + 8 : end]
+    return compression, size, crc, at + 8
+
+
+def _chunk_raw(buf, start: int, length: int) -> bytes:
+    """One chunk record's content decompressed and checked against its CRC: its inner records."""
+    # The compressed bytes go to the decompressor as a view of the file, not a copy.
+    compression, size, crc, at = _chunk_frame(buf, start, length)
+    view = memoryview(buf)[at : start + length]
     try:
         raw = _decompress(compression, view, size)
     finally:
-        view.release()  # the file's map must not be exported when salvage() closes it
+        view.release()  # the file's map must not be exported when it is closed
     if len(raw) != size:
         raise _Bad(f"chunk decompressed to {len(raw)} bytes, expected {size}")
-    if crc and zlib.crc32(raw) != crc:
+    if crc and crc32(raw) != crc:
         raise _Bad("chunk CRC mismatch")
+    return raw
+
+
+def _chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
+    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
+    raw = _chunk_raw(buf, start, length)
+    size = len(raw)
     records: list[tuple[int, object]] = []
     pos = 0
     unpack_head, unpack_message, message_head = _RECORD_HEAD.unpack_from, _MESSAGE_HEAD.unpack_from, _MESSAGE_HEAD.size
@@ -377,7 +421,10 @@ def _magic_ok(head: bytes) -> bool:
 
 
 def salvage(path: Path | str) -> Salvage:
-    """Read every intact message of an MCAP file, finished or not, damaged or not.
+    """Read every intact message of an MCAP file, finished or not, damaged or not, into memory.
+
+    Holds the whole file's messages: for a file of any length, read it with :func:`open_mcap`
+    and :meth:`McapSource.read` instead.
 
     Parameters
     ----------
@@ -386,7 +433,269 @@ def salvage(path: Path | str) -> Salvage:
     Returns
     -------
     Salvage
-        Messages, channels, schemas, metadata and a list of the damaged parts.
+        Messages (in file order), channels, schemas, metadata and a list of the damaged parts.
+
+    Raises
+    ------
+    RecordingNotFoundError
+        Missing path or a directory.
+    NotMcapError
+        The file does not start with the MCAP magic (e.g. a text file).
+    """
+    source = open_mcap(path)
+    source.account.messages = list(source.read(ordered=False))
+    return source.account
+
+
+#: A message whose record may land here: (log time, file order, message).
+_Pending = tuple[int, int, RawMessage]
+
+
+class Unit:
+    """A chunk, or a message outside chunks, found by the opening walk: where, when, and what it holds.
+
+    ``index`` is the chunk's message index, ((channel id, messages), …), or None without one.
+    """
+
+    __slots__ = ("offset", "length", "start", "end", "index", "stop", "chunk")
+
+    def __init__(self, offset: int, length: int, start: int, end: int, chunk: bool) -> None:
+        self.offset, self.length, self.start, self.end, self.chunk = offset, length, start, end, chunk
+        self.index: tuple[tuple[int, int], ...] | None = None
+        self.stop = offset + 9 + length  # past its message index records
+
+
+class McapSource:
+    """An MCAP file opened for reading in bounded memory; build with :func:`open_mcap`.
+
+    ``account`` (a :class:`Salvage` without messages) holds what the opening walk found; each
+    :meth:`read` completes it with what the chunks' contents hold.
+    """
+
+    def __init__(self, account: Salvage, units: list[Unit]) -> None:
+        self.account = account
+        self.units = units
+
+    @property
+    def path(self) -> Path:
+        return self.account.path
+
+    def read(
+        self,
+        want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None,
+        *,
+        verify_all: bool = True,
+        ordered: bool = True,
+    ) -> Iterator[RawMessage]:
+        """Yield the intact messages, chunk by chunk, in log-time order (file order breaks ties).
+
+        Parameters
+        ----------
+        want : callable (channel, schema) -> bool, optional
+            The channels to yield (all, and the messages of unknown channels too, if None).
+        verify_all : bool
+            True: decompress and check every chunk, so that the damage is complete.  False: a
+            chunk whose message index shows none of the wanted channels is skipped, its messages
+            counted from that index.
+        ordered : bool
+            False: file order, with no merge.
+
+        Holds the chunks whose time ranges overlap the message being yielded, not the file:
+        chunks are merged by the message start time their header records, as the indexed
+        reader merges them.  The account is complete when the iterator is exhausted.
+        """
+        out = self.account
+        out._start_read()
+        buf, size = open_bytes(out.path)
+        try:
+            yield from _Read(self, buf, size, want, verify_all).messages(ordered)
+        finally:
+            if isinstance(buf, mmap.mmap):
+                buf.close()
+
+
+class _Read:
+    """One pass over the units of a source: decompress, check, count, yield."""
+
+    #: Drop the file pages behind the read from the process every this many bytes (they stay in the page
+    #: cache): a mapped file's touched pages count in the resident set until unmapped.
+    RELEASE_EVERY = 16 * 1024 * 1024
+
+    def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool) -> None:
+        self.source, self.buf, self.size = source, buf, size
+        self.out = source.account
+        self.want = want
+        self.verify_all = verify_all
+        self.wanted: dict[int, bool] = {}
+        self.released = 0
+        self.good_bytes = self.good_messages = 0
+
+    def is_wanted(self, cid: int) -> bool:
+        hit = self.wanted.get(cid)
+        if hit is None:
+            ch = self.out.channels.get(cid)
+            if ch is None:
+                return self.want is None  # an orphan: only a read of everything keeps it
+            hit = self.wanted[cid] = self.want is None or bool(self.want(ch, self.out.schemas.get(ch.schema_id)))
+        return hit
+
+    def skippable(self, unit: Unit) -> bool:
+        if self.verify_all or unit.index is None or self.want is None:
+            return False
+        channels = self.out.channels
+        return all(cid in channels and not self.is_wanted(cid) for cid, _n in unit.index)
+
+    def release(self, upto: int) -> None:
+        buf = self.buf
+        if not isinstance(buf, mmap.mmap) or upto - self.released < self.RELEASE_EVERY:
+            return
+        end = upto - upto % mmap.PAGESIZE
+        if end > self.released:
+            buf.madvise(mmap.MADV_DONTNEED, self.released, end - self.released)
+            self.released = end
+
+    def messages(self, ordered: bool) -> Iterator[RawMessage]:
+        units = self.source.units
+        if not ordered:
+            for unit in units:
+                yield from self.unit_messages(unit)
+                self.release(unit.offset)
+            self.done()
+            return
+        # later[i]: the earliest message any unit from i on may hold; what is older can be yielded.
+        later = [0] * (len(units) + 1)
+        later[-1] = 1 << 64
+        for i in range(len(units) - 1, -1, -1):
+            later[i] = min(units[i].start, later[i + 1])
+        heap: list[_Pending] = []
+        seq = 0
+        push, pop = heapq.heappush, heapq.heappop
+        for i, unit in enumerate(units):
+            for m in self.unit_messages(unit):
+                push(heap, (m.log_time, seq, m))
+                seq += 1
+            bound = later[i + 1]
+            while heap and heap[0][0] <= bound:
+                yield pop(heap)[2]
+            self.release(unit.offset)
+        while heap:
+            yield pop(heap)[2]
+        self.done()
+
+    def done(self) -> None:
+        self.out.damage.sort(key=lambda d: d.offset)
+        self.out.read_done = True
+
+    def unit_messages(self, unit: Unit) -> list[RawMessage]:
+        """The wanted messages of one unit, counted; [] and a Damage record if its content is damaged."""
+        out, buf = self.out, self.buf
+        if not unit.chunk:
+            cid, seq, t_log, t_pub = _MESSAGE_HEAD.unpack_from(buf, unit.offset + 9)
+            self.count(cid, 1, t_log, t_log)
+            if cid not in out.channels:
+                out.orphans += 1
+            if not self.is_wanted(cid):
+                return []
+            body = unit.offset + 9 + _MESSAGE_HEAD.size
+            return [RawMessage(cid, seq, t_log, t_pub, bytes(buf[body : unit.offset + 9 + unit.length]), unit.offset)]
+        if self.skippable(unit):
+            for cid, n in unit.index or ():
+                self.count(cid, n, unit.start, unit.end)
+            return []
+        try:
+            found, counts, t0, t1 = self.parse_chunk(unit)
+        except (_Bad, struct.error) as exc:
+            self.damaged(unit, str(exc))
+            return []
+        out.chunks_read += 1
+        for cid, n in counts.items():
+            self.count(cid, n, t0, t1)
+            if cid not in out.channels:
+                out.orphans += n
+        self.good_bytes += 9 + unit.length
+        self.good_messages += sum(counts.values())
+        return found
+
+    def parse_chunk(self, unit: Unit) -> tuple[list[RawMessage], dict[int, int], int, int]:
+        """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere."""
+        raw = _chunk_raw(self.buf, unit.offset + 9, unit.length)
+        size = len(raw)
+        out = self.out
+        found: list[RawMessage] = []
+        counts: dict[int, int] = {}
+        schemas: list[SchemaInfo] = []
+        channels: list[ChannelInfo] = []
+        t0, t1 = 1 << 64, 0
+        unpack_head, unpack_message, message_head = (
+            _RECORD_HEAD.unpack_from,
+            _MESSAGE_HEAD.unpack_from,
+            _MESSAGE_HEAD.size,
+        )
+        known, wanted = out.channels, self.wanted
+        pos = 0
+        while pos < size:
+            if pos + 9 > size:
+                raise _Bad("field of 9 bytes runs past the record")
+            op, n = unpack_head(raw, pos)
+            body, stop = pos + 9, pos + 9 + n
+            if stop > size:
+                raise _Bad("record inside the chunk runs past it")
+            if op == OP_MESSAGE:
+                if n < message_head:
+                    raise _Bad(f"field of {message_head} bytes runs past the record")
+                cid, seq, t_log, t_pub = unpack_message(raw, body)
+                counts[cid] = counts.get(cid, 0) + 1
+                t0, t1 = min(t0, t_log), max(t1, t_log)
+                hit = wanted.get(cid)
+                if hit is None:
+                    hit = self.is_wanted(cid) if cid in known or not channels else self.decide(cid, channels, schemas)
+                if hit:
+                    found.append(RawMessage(cid, seq, t_log, t_pub, raw[body + message_head : stop], unit.offset))
+            elif op == OP_SCHEMA:
+                schemas.append(_schema(_Cursor(raw, body, stop)))
+            elif op == OP_CHANNEL:
+                channels.append(_channel(_Cursor(raw, body, stop)))
+            pos = stop
+        for s in schemas:
+            out.schemas.setdefault(s.id, s)
+        for ch in channels:
+            out.channels.setdefault(ch.id, ch)
+        return found, counts, t0, t1
+
+    def decide(self, cid: int, channels: list[ChannelInfo], schemas: list[SchemaInfo]) -> bool:
+        """Whether a channel defined earlier in the chunk being parsed is wanted."""
+        ch = next((c for c in reversed(channels) if c.id == cid), None)
+        if ch is None:
+            return self.want is None
+        schema = self.out.schemas.get(ch.schema_id) or next((s for s in schemas if s.id == ch.schema_id), None)
+        hit = self.wanted[cid] = self.want is None or bool(self.want(ch, schema))
+        return hit
+
+    def count(self, cid: int, n: int, t0: int, t1: int) -> None:
+        out = self.out
+        out.counts[cid] = out.counts.get(cid, 0) + n
+        if n:
+            out.first_time = t0 if out.first_time is None else min(out.first_time, t0)
+            out.last_time = t1 if out.last_time is None else max(out.last_time, t1)
+
+    def damaged(self, unit: Unit, reason: str) -> None:
+        if unit.index is not None:
+            n = sum(k for _cid, k in unit.index)
+            by_channel: dict[int, int] = {}
+            for cid, k in unit.index:
+                by_channel[cid] = by_channel.get(cid, 0) + k
+            self.out.damage.append(Damage(unit.offset, unit.stop - unit.offset, "chunk", reason, n, n, by_channel))
+            return
+        nbytes = unit.stop - unit.offset
+        est = round(nbytes * self.good_messages / self.good_bytes) if self.good_bytes else 0
+        self.out.damage.append(Damage(unit.offset, nbytes, "chunk", reason, None, est))
+
+
+def open_mcap(path: Path | str) -> McapSource:
+    """Open an MCAP file, finished or not, damaged or not: its framing walked, nothing decompressed yet.
+
+    Only the first chunk of each channel whose definition is not outside the chunks (in the
+    summary) is decompressed, to learn the channel.
 
     Raises
     ------
@@ -404,42 +713,65 @@ def salvage(path: Path | str) -> Salvage:
         out = Salvage(path, size)
         if bytes(buf[:8]) != MAGIC:
             out.damage.append(Damage(0, 8, "header", "the leading magic has flipped bits", 0))
-        _walk(buf, size, out)
         _read_summary(buf, size, out)
-        out.orphans = sum(1 for m in out.messages if m.channel_id not in out.channels)
-        return out
+        units = _Walk(buf, size, out).run()
+        out.framing_damage = list(out.damage)
+        return McapSource(out, units)
     finally:
         if isinstance(buf, mmap.mmap):
             buf.close()
 
 
 class _Walk:
-    """State of one pass over the file: running averages for estimates, and the summary's start if known."""
+    """The opening walk over the records' framing: units to read, top-level records, damage to the framing."""
 
     def __init__(self, buf, size: int, out: Salvage) -> None:
         self.buf, self.size, self.out = buf, size, out
         self.good_bytes = self.good_messages = self.good_raw = 0
         self.summary_start = out.summary_start = _summary_start(buf, size)
+        self.units: list[Unit] = []
+        self.indexes: dict[tuple[tuple[int, int], ...], tuple[tuple[int, int], ...]] = {}  # shared, not repeated
+        self.learnt: set[int] = set()  # channels whose first chunk was tried
+        self.released = 0
 
     def estimate(self, nbytes: int) -> int:
         return round(nbytes * self.good_messages / self.good_bytes) if self.good_bytes else 0
 
-    def take_chunk(self, pos: int, records: list, usize: int, length: int) -> None:
-        out = self.out
-        out.chunks_read += 1
-        n = 0
-        for rop, rec in records:
-            if rop == OP_SCHEMA:
-                out.schemas.setdefault(rec.id, rec)
-            elif rop == OP_CHANNEL:
-                out.channels.setdefault(rec.id, rec)
-            else:
-                cid, seq, t_log, t_pub, data = rec
-                out.messages.append(RawMessage(cid, seq, t_log, t_pub, data, pos))
-                n += 1
+    def take_chunk(self, pos: int, length: int) -> Unit:
+        t0, t1, usize, _crc = _CHUNK_HEAD.unpack_from(self.buf, pos + 9)
+        unit = Unit(pos, length, t0, t1, True)
+        self.units.append(unit)
         self.good_bytes += 9 + length
         self.good_raw += usize
+        return unit
+
+    def take_index(self, unit: Unit, entries: dict[int, int], stop: int) -> None:
+        """The message index after a chunk: what the chunk holds, per channel."""
+        unit.stop = stop
+        if not entries:
+            return
+        key = tuple(sorted(entries.items()))
+        unit.index = self.indexes.setdefault(key, key)
+        n = sum(entries.values())
         self.good_messages += n
+        counts = self.out.indexed_counts
+        for cid, k in key:
+            counts[cid] = counts.get(cid, 0) + k
+        if n == 0 and unit.start == unit.end == 0:
+            unit.start = 1 << 64  # no message: it holds nothing back
+        unknown = [cid for cid, _k in key if cid not in self.out.channels and cid not in self.learnt]
+        if unknown:
+            # The first chunk of a channel holds its definition: read it now, so a read can choose channels.
+            self.learnt.update(unknown)
+            try:
+                records, _usize = _chunk_records(self.buf, unit.offset + 9, unit.length)
+            except (_Bad, struct.error):
+                return  # damaged: the read says so
+            for rop, rec in records:
+                if rop == OP_SCHEMA:
+                    self.out.schemas.setdefault(rec.id, rec)  # type: ignore[attr-defined]
+                elif rop == OP_CHANNEL:
+                    self.out.channels.setdefault(rec.id, rec)  # type: ignore[attr-defined]
 
     def damaged(self, pos: int, reason: str) -> int | None:
         """Record damage starting at ``pos``; return where reading resumes (the next intact chunk), or None."""
@@ -464,30 +796,51 @@ class _Walk:
         out.damage.append(Damage(pos, size - pos, "tail", reason, None, est))
         return None
 
-
-def _walk(buf, size: int, out: Salvage) -> None:
-    w = _Walk(buf, size, out)
-    pos = len(MAGIC)
-    while pos < size:
-        if pos + 9 > size:
-            w.damaged(pos, "the file ends inside a record header")
-            return
-        op, length = _RECORD_HEAD.unpack_from(buf, pos)
-        body = pos + 9
-        if body + length > size:
-            nxt = w.damaged(
-                pos,
-                "the file ends inside a record (cut, or the writer was killed)"
-                if op == OP_CHUNK
-                else f"record runs past the end of the file (opcode {op:#04x}, length {length})",
-            )
-        elif op == OP_CHUNK or _looks_like_chunk(buf, body, length):
-            try:
-                records, usize = _chunk_records(buf, body, length)
-            except (_Bad, struct.error) as exc:
-                nxt = w.damaged(pos, str(exc))
-            else:
-                if op != OP_CHUNK:  # a damaged opcode in front of an intact chunk: nothing lost
+    def run(self) -> list[Unit]:
+        buf, size, out = self.buf, self.size, self.out
+        pos = len(MAGIC)
+        chunk: Unit | None = None  # the chunk whose message index records may follow
+        entries: dict[int, int] = {}
+        while pos < size:
+            if pos + 9 > size:
+                self.damaged(pos, "the file ends inside a record header")
+                break
+            op, length = _RECORD_HEAD.unpack_from(buf, pos)
+            body = pos + 9
+            if chunk is not None and (op != OP_MESSAGE_INDEX or body + length > size):
+                self.take_index(chunk, entries, pos)
+                chunk, entries = None, {}
+            if body + length > size:
+                nxt = self.damaged(
+                    pos,
+                    "the file ends inside a record (cut, or the writer was killed)"
+                    if op == OP_CHUNK
+                    else f"record runs past the end of the file (opcode {op:#04x}, length {length})",
+                )
+            elif op == OP_CHUNK:
+                try:
+                    _chunk_frame(buf, body, length)
+                except (_Bad, struct.error) as exc:
+                    nxt = self.damaged(pos, str(exc))
+                else:
+                    chunk = self.take_chunk(pos, length)
+                    nxt = body + length
+            elif op == OP_MESSAGE_INDEX and chunk is not None:
+                try:
+                    cid, n = _message_index_count(buf, body, length)
+                except (_Bad, struct.error) as exc:
+                    self.take_index(chunk, {}, pos)
+                    chunk, entries = None, {}
+                    nxt = self.damaged(pos, f"record with opcode {op:#04x}: {exc}")
+                else:
+                    entries[cid] = entries.get(cid, 0) + n
+                    nxt = body + length
+            elif _looks_like_chunk(buf, body, length):
+                try:
+                    _chunk_records(buf, body, length)  # rare: worth proving before calling it intact
+                except (_Bad, struct.error) as exc:
+                    nxt = self.damaged(pos, str(exc))
+                else:
                     out.damage.append(
                         Damage(
                             pos,
@@ -497,20 +850,27 @@ def _walk(buf, size: int, out: Salvage) -> None:
                             0,
                         )
                     )
-                w.take_chunk(pos, records, usize, length)
-                nxt = body + length
-        else:
-            try:
-                _top_level(buf, op, pos, body, length, out)
-            except (_Bad, struct.error) as exc:
-                nxt = w.damaged(pos, f"record with opcode {op:#04x}: {exc}")
+                    chunk = self.take_chunk(pos, length)
+                    nxt = body + length
             else:
-                if op == OP_FOOTER:
-                    return
-                nxt = body + length
-        if nxt is None:
-            return
-        pos = nxt
+                try:
+                    _top_level(buf, op, pos, body, length, out, self.units)
+                except (_Bad, struct.error) as exc:
+                    nxt = self.damaged(pos, f"record with opcode {op:#04x}: {exc}")
+                else:
+                    if op == OP_FOOTER:
+                        break
+                    nxt = body + length
+            if nxt is None:
+                break
+            pos = nxt
+            if isinstance(buf, mmap.mmap) and pos - self.released >= _Read.RELEASE_EVERY:
+                end = pos - pos % mmap.PAGESIZE
+                buf.madvise(mmap.MADV_DONTNEED, self.released, end - self.released)
+                self.released = end
+        if chunk is not None:
+            self.take_index(chunk, entries, min(pos, size))
+        return self.units
 
 
 def _looks_like_chunk(buf, body: int, length: int) -> bool:
@@ -537,7 +897,7 @@ def _summary_start(buf, size: int) -> int | None:
     return start if len(MAGIC) <= start <= foot else None
 
 
-def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> None:
+def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage, units: list[Unit]) -> None:
     """Parse one record outside chunks strictly (its content must fill its length exactly)."""
     c = _Cursor(buf, body, body + length)
     if op == OP_HEADER:
@@ -557,7 +917,7 @@ def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> 
             raise _Bad(f"message on channel {cid}, which is not defined before it")
         if out.data_end_seen or (out.summary_start is not None and pos >= out.summary_start):
             raise _Bad("a message record in the summary section")
-        out.messages.append(RawMessage(cid, seq, t_log, t_pub, bytes(buf[c.pos : c.end]), pos))
+        units.append(Unit(pos, length, t_log, t_log, False))
         c.pos = c.end
     elif op == OP_MESSAGE_INDEX:
         _message_index_count(buf, body, length)
@@ -575,7 +935,7 @@ def _top_level(buf, op: int, pos: int, body: int, length: int, out: Salvage) -> 
         name, media = c.string(), c.string()
         data = bytes(c.take(c.u64()))
         crc = c.u32()
-        if crc and zlib.crc32(buf[body : c.pos - 4]) != crc:
+        if crc and crc32(buf[body : c.pos - 4]) != crc:
             raise _Bad("attachment CRC mismatch")
         out.attachments.append((t_log, t_create, name, media, data))
     elif op == OP_ATTACHMENT_INDEX:
@@ -630,7 +990,7 @@ def _read_summary(buf, size: int, out: Salvage) -> None:
                 ch = _channel(c)
                 out.channels.setdefault(ch.id, ch)
             elif op == OP_STATISTICS and out.statistics_counts is None:
-                _top_level(buf, op, pos, pos + 9, length, out)
+                _top_level(buf, op, pos, pos + 9, length, out, [])
             pos += 9 + length
     except (_Bad, struct.error):
         pass  # the walk has already reported it
