@@ -339,7 +339,10 @@ class _Read:
                     raise BadRecord(f"field of {message_head} bytes runs past the record")
                 cid, seq, t_log, t_pub = unpack_message(raw, body)
                 counts[cid] = counts.get(cid, 0) + 1
-                t0, t1 = min(t0, t_log), max(t1, t_log)
+                if t_log < t0:
+                    t0 = t_log
+                if t_log > t1:
+                    t1 = t_log
                 hit = wanted.get(cid)
                 if hit is None:
                     hit = self.is_wanted(cid) if cid in known or not channels else self.decide(cid, channels, schemas)

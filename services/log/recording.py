@@ -333,8 +333,12 @@ class Recording:
         when the iterator is exhausted, ``salvage`` accounts for what was read.
         """
         s = self.salvage
+        names: dict[int, tuple[str, str]] = {}
         for m in self.messages(is_contract_channel):
-            yield RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
+            name = names.get(m.channel_id)
+            if name is None:
+                name = names[m.channel_id] = (s.topic(m.channel_id), s.schema_name(m.channel_id))
+            yield RecordedPayload(m.log_time, name[0], name[1], m.data)
 
     def messages(
         self, want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None, *, verify_all: bool = False
