@@ -6,7 +6,7 @@ import io
 
 from rich.console import Console
 
-from lelsonar.tools.bench_ingest import ingest_stage_vs_floor, profile_replay, record_scans
+from lelsonar.tools.bench_ingest_replay import ingest_stage_vs_floor, profile_replay, record_scans
 
 
 def test_profile_of_a_replay_times_the_finals_on_a_scan_it_kept(tmp_path):

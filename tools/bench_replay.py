@@ -53,7 +53,7 @@ def time_floor(path: Path) -> tuple[float, int]:
     t = time.perf_counter()
     with open(path, "rb") as f:
         for schema, _channel, message in make_reader(f).iter_messages(topics=CONTRACT_TOPICS, log_time_order=True):
-            msg = types[schema.name].FromString(message.data)
+            msg = types[schema.name if schema is not None else ""].FromString(message.data)
             samples += isinstance(msg, codec.Sample)
     return time.perf_counter() - t, samples
 

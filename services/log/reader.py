@@ -464,11 +464,11 @@ class _Walk:
                 records, _usize = chunk_records(self.buf, unit.offset + 9, unit.length)
             except (BadRecord, struct.error):
                 return  # damaged: the read says so
-            for rop, rec in records:
-                if rop == OP_SCHEMA:
-                    self.out.schemas.setdefault(rec.id, rec)  # type: ignore[attr-defined]
-                elif rop == OP_CHANNEL:
-                    self.out.channels.setdefault(rec.id, rec)  # type: ignore[attr-defined]
+            for _op, rec in records:
+                if isinstance(rec, SchemaInfo):
+                    self.out.schemas.setdefault(rec.id, rec)
+                elif isinstance(rec, ChannelInfo):
+                    self.out.channels.setdefault(rec.id, rec)
 
     def damaged(self, pos: int, reason: str) -> int | None:
         """Record damage starting at ``pos``; return where reading resumes (the next intact chunk), or None."""

@@ -87,9 +87,9 @@ def _write(rec: Recording, f, compression: CompressionType) -> tuple[int, int]:
     s = rec.salvage
     writer = McapWriter(f, compression=compression)
     writer.start(library="lelsonar recover")
-    for name, data in s.metadata.items():
+    for name, record in s.metadata.items():
         if not name.startswith(CHANNEL_METADATA):  # channel ids change: written afresh below
-            writer.add_metadata(name, data)
+            writer.add_metadata(name, record)
     for t_log, t_create, name, media, data in s.attachments:
         writer.add_attachment(create_time=t_create, log_time=t_log, name=name, media_type=media, data=data)
     schema_ids: dict[int, int] = {}
