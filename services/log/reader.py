@@ -221,6 +221,7 @@ class _Read:
         self.want = want
         self.verify_all = verify_all
         self.wanted: dict[int, bool] = {}
+        self.unknown = True  # some channel named by a message index may be undefined so far
         self.released = 0
         self.good_bytes = self.good_messages = 0
 
@@ -234,10 +235,17 @@ class _Read:
         return hit
 
     def skippable(self, unit: Unit) -> bool:
+        """A chunk holding none of the wanted channels, while every channel of the file is known.
+
+        A chunk may define a channel whose messages are in later chunks: until all are known, none is skipped.
+        """
         if self.verify_all or unit.index is None or self.want is None:
             return False
         channels = self.out.channels
-        return all(cid in channels and not self.is_wanted(cid) for cid, _n in unit.index)
+        if self.unknown and any(cid not in channels for cid in self.out.indexed_counts):
+            return False
+        self.unknown = False
+        return all(not self.is_wanted(cid) for cid, _n in unit.index)
 
     def release(self, upto: int) -> None:
         buf = self.buf
