@@ -324,7 +324,7 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
 
 
 def _open_source(path: Path):
-    """The recording to replay, read tolerantly: one warning line on stderr if it is damaged or unfinished.
+    """The recording to replay, opened tolerantly (its messages are read by the replay, chunk by chunk).
 
     Raises the typed :class:`~lelsonar.errors.RecordingError` subclasses (one line, exit 2) for a missing path,
     a directory, a pipe, a file that is not MCAP, and one without lelsonar scans.
@@ -332,10 +332,15 @@ def _open_source(path: Path):
     from lelsonar.cli.paths import input_file
     from lelsonar.log.recording import open_recording
 
-    source = open_recording(input_file(path)).require_scans()
+    return open_recording(input_file(path)).require_scans()
+
+
+def _replayed(source) -> None:
+    """After the replay: one warning line on stderr if the file was damaged or unfinished; an error if no scan
+    message was readable after all."""
+    source.require_scans()
     if (line := source.damage_warning()) is not None:
         print(line, file=sys.stderr, flush=True)
-    return source
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
@@ -424,6 +429,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if session is not None:
                 stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
             n = replay_mcap(source, service)
+            _replayed(source)
             if recorder:
                 for msg in service.finals.values():
                     recorder.write(msg)
@@ -525,7 +531,7 @@ def run_review(args: argparse.Namespace) -> int:
     files = [Path(f).resolve() for f in (args.source, out, args.screenshot) if f is not None]
     if len(set(files)) < len(files):
         raise ConfigError("the recording, the review file and the screenshot must be three different files")
-    total = len(source.payloads())
+    total = source.expected_payloads()
     console = present.console(stderr=True)
     from lelsonar.cli.warm_up import ensure_compiled
 
@@ -551,6 +557,7 @@ def run_review(args: argparse.Namespace) -> int:
         task = progress.add_task("replay", total=total)
         service = ReconstructionService(_config(args), observer=combine(observer, shot))
         replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
+    _replayed(source)
     tables = present.console()
     for msg in service.finals.values():
         tables.print(present.planes_table(msg))

@@ -36,7 +36,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Generator, Iterator, Mapping
+from collections.abc import Callable, Generator, Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -54,7 +54,7 @@ from mcap_protobuf.schema import build_file_descriptor_set, register_schema
 from lelsonar import __version__, codec
 from lelsonar.draw import visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.log.reader import ChannelInfo, Salvage, SchemaInfo, salvage
+from lelsonar.log.reader import ChannelInfo, McapSource, RawMessage, Salvage, SchemaInfo, open_mcap
 
 _log = logging.getLogger(__name__)
 
@@ -335,10 +335,13 @@ class Recording:
     """A recording as read by the tolerant reader: what survived, and what did not.
 
     Build with :func:`open_recording`; iterate the contract payloads with
-    :func:`iter_payloads` (which takes a Recording or a path).
+    :meth:`payloads` or :func:`iter_payloads` (which takes a Recording or a path), in
+    memory bounded by a chunk, whatever the file's length.  What the reads found (counts,
+    damage) accumulates in ``salvage``.
     """
 
     salvage: Salvage
+    source: McapSource | None = None
 
     @property
     def path(self) -> Path:
@@ -359,41 +362,92 @@ class Recording:
                 out[cid] = cls
         return out
 
-    def payloads(self) -> list[RecordedPayload]:
-        """The contract messages in log-time order, undecoded."""
+    def payloads(self) -> Iterator[RecordedPayload]:
+        """The contract messages in log-time order, undecoded, read chunk by chunk.
+
+        Only the chunks that hold contract messages are decompressed (by their message index);
+        when the iterator is exhausted, ``salvage`` accounts for what was read.
+        """
         s = self.salvage
-        wanted = self.contract_channels()
-        return [
-            RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
+        names: dict[int, tuple[str, str]] = {}
+        for m in self.messages(is_contract_channel):
+            name = names.get(m.channel_id)
+            if name is None:
+                name = names[m.channel_id] = (s.topic(m.channel_id), s.schema_name(m.channel_id))
+            yield RecordedPayload(m.log_time, name[0], name[1], m.data)
+
+    def messages(
+        self, want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None, *, verify_all: bool = False
+    ) -> Iterator[RawMessage]:
+        """The intact messages of the channels ``want`` accepts (all if None), in log-time order.
+
+        ``verify_all`` decompresses and checks every chunk, wanted or not, so the damage is complete.
+        """
+        if self.source is not None:
+            return self.source.read(want, verify_all=verify_all)
+        s = self.salvage  # read already, into memory (lelsonar.log.reader.salvage)
+        return (
+            m
             for m in s.in_log_time_order()
-            if m.channel_id in wanted
-        ]
+            if want is None or want(s.channels[m.channel_id], s.schemas.get(s.channels[m.channel_id].schema_id))
+        )
+
+    def read_all(self) -> Recording:
+        """Read (and check) every chunk once, keeping nothing, so that the counts and the damage are complete."""
+        if not self.salvage.read_done:
+            for _ in self.messages(_nothing, verify_all=True):
+                pass
+        return self
+
+    def expected_payloads(self) -> int | None:
+        """Contract messages the file's indexes announce (its statistics, or the chunks' message indexes)."""
+        s = self.salvage
+        counts = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+        if not counts:
+            return None
+        return sum(counts.get(cid, 0) for cid in self.contract_channels())
 
     def count(self, kind: str | type[Message]) -> int:
-        """Messages on a topic, or of a contract message type (on whichever topics)."""
+        """Messages read on a topic, or of a contract message type (on whichever topics); reads the file if needed."""
         if isinstance(kind, str):
             ids = {cid for cid, ch in self.salvage.channels.items() if ch.topic == kind}
         else:
             ids = {cid for cid, cls in self.contract_channels().items() if cls is kind}
-        return sum(1 for m in self.salvage.messages if m.channel_id in ids)
+        counts = self.read_all().salvage.counts
+        return sum(counts.get(cid, 0) for cid in ids)
 
     @property
     def has_scans(self) -> bool:
-        return any(self.count(cls) for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd))
+        """Whether the file holds a scan message: as read, or before any read, as its indexes announce."""
+        s = self.salvage
+        ids = [
+            cid
+            for cid, cls in self.contract_channels().items()
+            if cls in (codec.ScanStart, codec.Sample, codec.ScanEnd)
+        ]
+        if s.read_done:
+            return any(s.counts.get(cid) for cid in ids)
+        announced = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+        if announced:
+            return any(announced.get(cid) for cid in ids)
+        return bool(ids)  # no index: the read decides (require_scans again after it)
 
     def damage_warning(self) -> str | None:
-        """One line saying what was lost, or None for an intact, finished file.
+        """One line saying what was lost, or None for an intact, finished file; reads the file if no read has.
 
         e.g. ``warning: scan.mcap is damaged: 1 chunk (≈10 messages) unreadable after byte 81234; 118 samples
-        salvaged``.
+        salvaged``.  After :meth:`payloads`, it tells what that read found (in the chunks it read).
         """
-        s = self.salvage
+        s = self.read_all().salvage
         if s.intact:
             return None
         return f"warning: {s.path} {describe_damage(s)}; {self.count(codec.Sample)} samples salvaged"
 
     def require_scans(self) -> Recording:
-        """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost)."""
+        """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost).
+
+        Before a read, it goes by what the indexes announce; after one, by what was read.
+        """
         if self.has_scans:
             return self
         s = self.salvage
@@ -448,7 +502,7 @@ def describe_damage(s: Salvage) -> str:
 
 
 def open_recording(path: Path | str | Recording) -> Recording:
-    """Read a recording tolerantly: every intact message, and an account of the damage.
+    """Open a recording tolerantly: its channels and framing now, its messages as they are read.
 
     Raises
     ------
@@ -459,10 +513,18 @@ def open_recording(path: Path | str | Recording) -> Recording:
     """
     if isinstance(path, Recording):
         return path
-    s = salvage(path)
-    if s.orphans:
-        _adopt_orphans(s)
-    return Recording(s)
+    source = open_mcap(path)
+    _adopt_orphans(source.account)
+    return Recording(source.account, source)
+
+
+def is_contract_channel(channel: ChannelInfo, schema: SchemaInfo | None) -> bool:
+    """A channel of contract messages: by its protobuf schema's name, whatever its topic."""
+    return schema is not None and channel.message_encoding == "protobuf" and schema.name in codec.MESSAGE_TYPES
+
+
+def _nothing(channel: ChannelInfo, schema: SchemaInfo | None) -> bool:
+    return False
 
 
 def _adopt_orphans(s: Salvage) -> None:
@@ -470,8 +532,12 @@ def _adopt_orphans(s: Salvage) -> None:
 
     The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
     """
+    referenced = set(s.indexed_counts) | set(s.statistics_counts or ()) | {m.channel_id for m in s.messages}
+    missing = referenced - set(s.channels)
+    if not missing:
+        return
     by_name = {schema.name: sid for sid, schema in s.schemas.items()}
-    for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
+    for cid in sorted(missing):
         md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})
         cls = RECORDED_TYPES.get(md.get("schema", ""))
         if cls is None or not md.get("topic"):
@@ -481,15 +547,16 @@ def _adopt_orphans(s: Salvage) -> None:
             sid = by_name[name] = max(s.schemas, default=0) + 1
             s.schemas[sid] = SchemaInfo(sid, name, "protobuf", build_file_descriptor_set(cls).SerializeToString())
         s.channels[cid] = ChannelInfo(cid, by_name[name], md["topic"], "protobuf", {})
-    s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
+    if s.messages:
+        s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
 def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, None, None]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
-    A damaged or unfinished file yields every intact message and logs one
-    warning (pass an opened :class:`Recording` to report the damage yourself:
-    then nothing is logged).
+    A damaged or unfinished file yields every intact message and, at the end,
+    logs one warning (pass an opened :class:`Recording` to report the damage
+    yourself: then nothing is logged).
 
     Raises
     ------
@@ -499,9 +566,9 @@ def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, No
         :class:`~lelsonar.errors.NotMcapError`).
     """
     rec = open_recording(path)
+    yield from rec.payloads()
     if not isinstance(path, Recording) and (line := rec.damage_warning()):
         _log.warning("%s", line.removeprefix("warning: "))
-    yield from rec.payloads()
 
 
 def read_messages(path: Path | str | Recording, limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:
