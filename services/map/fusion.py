@@ -400,7 +400,26 @@ class WallMapper:
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
         features = wall_corners(walls, self.config.corner_reach) + fuse_features(observed)
-        return FusedMap(walls=tuple(walls), features=tuple(features), poses=poses, notes=tuple(self.notes))
+        return FusedMap(
+            walls=tuple(walls),
+            features=tuple(features),
+            poses=poses,
+            notes=tuple(self.notes),
+            views=tuple(self._views(world_poses)),
+        )
+
+    def _views(self, world_poses: list[np.ndarray]) -> list[np.ndarray]:
+        """Each observation's echo paths: the triangle (or fan) from its scanner to its patch, world frame."""
+        out = []
+        for t in self._graph_tracks + self._flagged_tracks:
+            for s in t.seen + t.flagged:
+                pose = world_poses[s.pose_index]
+                patch = _sensor_points_to_world(pose, s.obs.extent)
+                # The patch's two ends along the wall, and the scanner: the region the echoes crossed.
+                along = patch @ np.array([-math.sin(pose[2] + s.obs.line[0]), math.cos(pose[2] + s.obs.line[0])])
+                ends = patch[[int(np.argmin(along)), int(np.argmax(along))]]
+                out.append(np.array([pose[:2], ends[0], ends[1]]))
+        return out
 
     def _verdict(
         self, t: _Track, line: np.ndarray, poses: list[np.ndarray], by_id: dict[int, _Track]

@@ -117,6 +117,9 @@ class FusedMap:
     features: tuple[FusedFeature, ...]
     poses: tuple[FusedPose, ...]
     notes: tuple[str, ...] = field(default=())
+    #: Where the scans saw free space: for each wall observation, the polygon (k, 2) from its scanner to
+    #: the patch the echoes came from, world frame.
+    views: tuple[np.ndarray, ...] = field(default=())
 
     @property
     def corners(self) -> tuple[FusedFeature, ...]:

@@ -286,7 +286,7 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0) -> World:
     return World(
         segments=np.array(segments, float),
         poses=np.array(poses),
-        exit=np.array([(n + 1.0) * cell, (exit_row + 0.5) * cell]),
+        exit=np.array([(n + 0.6) * cell, (exit_row + 0.5) * cell]),
     )
 
 
