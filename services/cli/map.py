@@ -1,0 +1,173 @@
+"""`lelsonar map`: walls fused across the scans of recordings into one map (JSON, GeoJSON, a route)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
+
+    p = sub.add_parser(
+        "map",
+        help="fuse the walls of several scans (recordings) into one map",
+        description="Replay each recording through the reconstruction, take each scan's planes of record as "
+        "wall observations at the scan's pose (ScanStart; the origin where a recording has none), fuse them "
+        "across scans (GTSAM factor graph) and print the map: walls with σ and verdict, corners, edges, "
+        "corrected poses (world frame, m and rad).",
+    )
+    p.add_argument(
+        "--source", type=Path, nargs="+", required=True, metavar="FILE.mcap", help="recordings, in any order"
+    )
+    p.add_argument("--json", action="store_true", help="print the map as one JSON object")
+    p.add_argument("--geojson", type=Path, metavar="FILE", help="also write the floor plan as GeoJSON")
+    p.add_argument(
+        "--grid", type=Path, metavar="FILE", help="also write the occupancy grid (nav_msgs/OccupancyGrid fields, JSON)"
+    )
+    p.add_argument(
+        "--route",
+        action="store_true",
+        help="plan a route from the first pose out of the map (or to --goal) and print it",
+    )
+    p.add_argument("--goal", metavar="X,Y", help="the route's goal in the map frame, m (default: out of the map)")
+    p.add_argument(
+        "--robot-radius", type=float, default=0.15, metavar="M", help="the route keeps this from walls (default 0.15)"
+    )
+    p.add_argument("--resolution", type=float, default=0.05, metavar="M", help="grid cell size (default 0.05)")
+    p.add_argument(
+        "--method",
+        default=DEFAULT_METHOD,
+        choices=sorted(METHODS),
+        help=f"estimator of record (default: {DEFAULT_METHOD})",
+    )
+    p.add_argument(
+        "--gate",
+        type=float,
+        default=None,
+        metavar="CHI2",
+        help="association gate, χ² with 2 dof (default 13.8: p = 0.999)",
+    )
+    p.set_defaults(run=run_map)
+
+
+def _goal(text: str | None) -> tuple[float, float] | None:
+    from lelsonar.errors import ConfigError
+
+    if text is None:
+        return None
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--goal takes X,Y in metres (e.g. 5.6,3.5), got {text!r}") from None
+    return x, y
+
+
+def scans_of(path: Path, method: str) -> list:
+    """Each final scan of one recording as the map's observation, in the order the scans started.
+
+    The recording is replayed through the reconstruction (as ``reconstruct --source`` does) and each
+    scan's ``ScanStart`` gives its pose.
+    """
+    from lelsonar import codec
+    from lelsonar.log.recording import iter_payloads, open_recording
+    from lelsonar.map.from_reconstruction import scan_from_reconstruction
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
+
+    source = open_recording(path).require_scans()
+    if (line := source.damage_warning()) is not None:
+        print(line, file=sys.stderr, flush=True)
+    starts = {}
+    for rec in iter_payloads(source):
+        if rec.type_name == codec.ScanStart.DESCRIPTOR.full_name:
+            start = codec.decode(rec.payload, codec.ScanStart)
+            starts[(start.scanner_id, start.scan_id)] = start
+    service = ReconstructionService(ReconstructConfig(method=method, compare_methods=(), provisional=False))
+    replay_mcap(source, service)
+    finals = sorted(
+        service.finals.values(),
+        key=lambda m: (getattr(starts.get((m.scanner_id, m.scan_id)), "start_time_ns", 0), m.scan_id),
+    )
+    return [(m.scanner_id, scan_from_reconstruction(m, starts.get((m.scanner_id, m.scan_id)), method)) for m in finals]
+
+
+def run_map(args: argparse.Namespace) -> int:
+    from lelsonar.errors import InvalidMessageError
+    from lelsonar.map import floorplan
+    from lelsonar.map.fusion import FusionConfig, WallMapper
+    from lelsonar.map.result import map_to_dict
+
+    goal = _goal(args.goal)
+    plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
+    config = FusionConfig() if args.gate is None else FusionConfig(gate_chi2=args.gate)
+    scans, where = [], {}
+    for path in args.source:
+        for _scanner, scan in scans_of(path, args.method):
+            if scan.scan_id in where:
+                raise InvalidMessageError(
+                    f"scan {scan.scan_id} is in both {where[scan.scan_id]} and {path}: give each scan once"
+                )
+            where[scan.scan_id] = path
+            scans.append(scan)
+    if not scans:
+        print("lelsonar map: no final scan in the recordings", file=sys.stderr)
+        return 1
+    mapper = WallMapper(config)
+    for scan in scans:
+        mapper.add_scan(scan)
+    fused = mapper.snapshot()
+    out = map_to_dict(fused)
+    if args.route:
+        start = (fused.poses[0].x, fused.poses[0].y)
+        path = floorplan.route(fused, start, goal, plan)
+        out["route"] = None if path is None else [{"x": x, "y": y} for x, y in path]
+    if args.geojson:
+        args.geojson.write_text(json.dumps(floorplan.to_geojson(fused, plan)))
+    if args.grid:
+        args.grid.write_text(json.dumps(floorplan.occupancy_grid(fused, plan).to_message()))
+    if args.json:
+        print(json.dumps(out, separators=(",", ":")))
+    else:
+        _print_table(out)
+    return 0 if not args.route or out["route"] is not None else 1
+
+
+def _print_table(out: dict) -> None:
+    from rich.table import Table
+
+    from lelsonar.view import present
+
+    console = present.console()
+    t = Table(title=f"map: {len(out['walls'])} walls, {len(out['corners'])} corners, {len(out['poses'])} poses")
+    for col in ("wall", "normal (x, y)", "offset m", "σ normal °", "σ offset mm", "quality", "scans", "reasons"):
+        t.add_column(col)
+    for w in out["walls"]:
+        t.add_row(
+            str(w["id"]),
+            f"{w['normal']['x']:+.3f}, {w['normal']['y']:+.3f}",
+            f"{w['offset']:.3f}",
+            f"{math.degrees(w['normal_stderr']):.2f}",
+            f"{1000 * w['offset_stderr']:.1f}",
+            w["quality"],
+            ",".join(map(str, w["scans"])),
+            "; ".join(w["reasons"]),
+        )
+    console.print(t)
+    for p in out["poses"]:
+        console.print(
+            f"scan {p['scan_id']}: x {p['x']:.3f} m, y {p['y']:.3f} m, heading {math.degrees(p['heading']):.1f}° "
+            f"(odometry {p['odometry']['x']:.3f}, {p['odometry']['y']:.3f})",
+            highlight=False,
+        )
+    for note in out["notes"]:
+        console.print(f"note: {note}", highlight=False)
+    if "route" in out:
+        r = out["route"]
+        console.print(
+            "route: none" if r is None else "route: " + " → ".join(f"({p['x']:.2f}, {p['y']:.2f})" for p in r),
+            highlight=False,
+        )
