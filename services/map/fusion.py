@@ -26,7 +26,14 @@ import numpy as np
 from lelsonar.errors import ConfigError, InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.features import fuse_features, wall_corners
-from lelsonar.map.lines import interval_on_line, line_in_world, world_jacobians, wrap
+from lelsonar.map.lines import (
+    interval_on_line,
+    line_in_world,
+    mahalanobis2,
+    measurement_jacobians,
+    world_jacobians,
+    wrap,
+)
 from lelsonar.map.observation import QUALITIES, ScanObservation, WallObservation
 from lelsonar.map.result import FusedMap, FusedPose, FusedWall
 
@@ -68,7 +75,7 @@ class FusionConfig:
     default_step_sigma: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
     step_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     corner_reach: float = 0.3
-    relinearize_threshold: float = 1e-3
+    relinearize_threshold: float = 1e-2
 
     def __post_init__(self) -> None:
         for name in ("gate_chi2", "max_gap", "conflict_distance", "conflict_angle", "corner_reach"):
@@ -127,8 +134,10 @@ class WallMapper:
         self._poses: list[np.ndarray] = []  # current estimate, local
         self._pose_cov: np.ndarray = np.eye(3)  # marginal of the newest pose (body frame)
         self._graph_tracks: list[_Track] = []
+        self._isam_walls = 0  # graph walls already in ISAM2 (the newer ones arrived with the scan being added)
         self._flagged_tracks: list[_Track] = []
         self._next_id = 0
+        self._step: tuple[np.ndarray, np.ndarray] | None = None  # (Ad(u⁻¹), Q) of the scan being added
         self._features: list[tuple[int, int, object]] = []  # (scan_id, pose index, FeatureObservation)
         self.notes: list[str] = []
 
@@ -170,6 +179,7 @@ class WallMapper:
             factors.add(graph.odometry_factor(k - 1, k, step, q))
             ad = step.inverse().AdjointMap()
             pose_cov = ad @ self._pose_cov @ ad.T + q
+            self._step = (ad, q)
         values.insert(graph.pose_key(k), _pose2(predicted))
         self._odometry.append(odo)
         self._odometry_cov.append(None if scan.pose.covariance is None else np.array(scan.pose.covariance))
@@ -189,6 +199,7 @@ class WallMapper:
         self._features.extend((scan.scan_id, k, f) for f in scan.features)
 
         self._isam.update(factors, values)
+        self._isam_walls = len(self._graph_tracks)
         estimate = self._isam.calculateEstimate()
         self._poses = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(k + 1)]
         for t in self._graph_tracks:
@@ -278,6 +289,8 @@ class WallMapper:
         for i in np.flatnonzero(ok):
             if self._graph_tracks[i].id in used:
                 ok[i] = False
+        self._refine(d2, ok, nu, pose, obs.covariance)
+        ok &= d2 < self.config.gate_chi2
         if ok.any():
             i = int(np.argmin(np.where(ok, d2, np.inf)))
             track = self._graph_tracks[i]
@@ -296,6 +309,30 @@ class WallMapper:
         used.add(track.id)
         factors.add(graph.wall_factor(seen.pose_index, track.index, measured, obs.covariance))
         return track
+
+    def _refine(
+        self, d2: np.ndarray, candidates: np.ndarray, nu: np.ndarray, pose: np.ndarray, meas_cov: np.ndarray
+    ) -> None:
+        """Recompute ``d2`` in place for the candidate walls with the joint covariance of the previous pose and
+        the wall.
+
+        The marginals alone ignore that a pose and a wall seen from near it drifted together: after a long
+        way both are uncertain in the world, much less so relative to each other, and the gate built from
+        the marginals would let in a parallel wall a corridor away.
+        """
+        if self._step is None:
+            return
+        ad, q = self._step
+        prev = graph.pose_key(len(self._poses) - 2)
+        for i in np.flatnonzero(candidates):
+            track = self._graph_tracks[i]
+            key = graph.wall_key(track.index)
+            joint = self._isam.jointMarginalCovariance(gtsam.KeyVector([prev, key]))
+            p_pp, p_pw, p_ww = joint.at(prev, prev), joint.at(prev, key), joint.at(key, key)
+            cov = np.block([[ad @ p_pp @ ad.T + q, ad @ p_pw], [(ad @ p_pw).T, p_ww]])
+            h_pose, h_line = measurement_jacobians(pose, track.line)
+            h = np.hstack([h_pose, h_line])
+            d2[i] = mahalanobis2(nu[i], h @ cov @ h.T + meas_cov)
 
     def _mark_conflicts(self, track: _Track, d2: np.ndarray, gap: np.ndarray, nu: np.ndarray) -> None:
         """Walls the new one overlaps and lies near, outside their gate: the same surface, disagreeing."""
@@ -318,8 +355,12 @@ class WallMapper:
         obs = seen.obs
         points = _sensor_points_to_world(pose, obs.extent)
         for tracks in (self._graph_tracks, self._flagged_tracks):
-            d2, gap, _ = self._gate(tracks, obs.line, obs.covariance, pose, pose_cov, points)
+            d2, gap, nu = self._gate(tracks, obs.line, obs.covariance, pose, pose_cov, points)
             ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
+            if tracks is self._graph_tracks:
+                ok &= np.array([t.index < self._isam_walls for t in tracks], bool)
+                self._refine(d2, ok, nu, pose, obs.covariance)
+                ok &= d2 < self.config.gate_chi2
             if ok.any():
                 tracks[int(np.argmin(np.where(ok, d2, np.inf)))].flagged.append(seen)
                 return

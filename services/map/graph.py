@@ -95,10 +95,10 @@ def step_covariance_from_poses(
 
 
 def isam2(relinearize_threshold: float) -> gtsam.ISAM2:
-    """An ISAM2 solver with Powell's dogleg steps: a trust region, robust as Levenberg–Marquardt where
-    Gauss–Newton steps overshoot (a wall seen first at a grazing angle)."""
+    """An ISAM2 solver: Gauss–Newton steps on the Bayes tree, relinearized where a variable moved more than
+    ``relinearize_threshold`` (the dogleg variant evaluates every factor's error at each update: with
+    Python factors, a cost that grows with the map)."""
     params = gtsam.ISAM2Params()
-    params.setOptimizationParams(gtsam.ISAM2DoglegParams())
     params.setRelinearizeThreshold(relinearize_threshold)
     params.relinearizeSkip = 1
     return gtsam.ISAM2(params)

@@ -222,9 +222,11 @@ def room(width: float = 4.0, depth: float = 3.0) -> World:
     return World(segments=segments, poses=poses)
 
 
-def maze(cells: int, rng: np.random.Generator, cell: float = 1.0) -> World:
+def maze(cells: int, rng: np.random.Generator, cell: float = 1.0, *, tour: bool = False) -> World:
     """A perfect maze of ``cells × cells`` (seeded depth-first carving), its exit on the east side, and
     the poses along the way from the south-west cell to the exit (cell centres, facing the way on).
+    With ``tour``, the poses walk the whole maze instead (the carving's depth-first walk, back-tracking
+    included: every cell is seen, corridors twice).
 
     Collinear walls that touch are one segment, as built walls are.
     """
@@ -234,6 +236,7 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0) -> World:
     visited = np.zeros((n, n), bool)
     stack = [(0, 0)]
     visited[0, 0] = True
+    walk = [(0, 0)]
     while stack:
         i, j = stack[-1]
         options = [
@@ -243,6 +246,8 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0) -> World:
         ]
         if not options:
             stack.pop()
+            if stack:
+                walk.append(stack[-1])
             continue
         a, b = options[int(rng.integers(len(options)))]
         if a != i:
@@ -251,6 +256,7 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0) -> World:
             north[i, min(b, j)] = False
         visited[a, b] = True
         stack.append((a, b))
+        walk.append((a, b))
     exit_row = int(rng.integers(n))
     east[n - 1, exit_row] = False
     # The path from (0, 0) to the exit cell, breadth-first over open sides.
@@ -270,6 +276,8 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0) -> World:
     while prev[path[-1]] is not None:
         path.append(prev[path[-1]])
     path.reverse()
+    if tour:
+        path = walk
     poses = []
     for k, (i, j) in enumerate(path):
         nxt = path[k + 1] if k + 1 < len(path) else (i + 1, j)
