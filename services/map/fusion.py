@@ -64,7 +64,9 @@ class FusionConfig:
     corner_reach : float
         Two walls make a corner where their lines cross within this distance of both stretches, m.
     relinearize_threshold : float
-        ISAM2 relinearizes a variable whose update exceeds this.
+        ISAM2 relinearizes a variable whose update exceeds this (m or rad).
+    relinearize_skip : int
+        ISAM2 looks for variables to relinearize every this many updates.
     """
 
     gate_chi2: float = CHI2_2_999
@@ -75,13 +77,16 @@ class FusionConfig:
     default_step_sigma: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
     step_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     corner_reach: float = 0.3
-    relinearize_threshold: float = 1e-2
+    relinearize_threshold: float = 0.1
+    relinearize_skip: int = 10
 
     def __post_init__(self) -> None:
         for name in ("gate_chi2", "max_gap", "conflict_distance", "conflict_angle", "corner_reach"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"map {name} must be a finite number ≥ 0, got {v!r}")
+        if not (isinstance(self.relinearize_skip, int) and self.relinearize_skip >= 1):
+            raise ConfigError(f"map relinearize_skip must be an integer ≥ 1, got {self.relinearize_skip!r}")
         for name in ("first_pose_sigma", "default_step_sigma", "step_sigma_floor"):
             v = getattr(self, name)
             if len(v) != 3 or not all(math.isfinite(x) and x > 0 for x in v):
@@ -125,7 +130,7 @@ class WallMapper:
 
     def __init__(self, config: FusionConfig | None = None) -> None:
         self.config = config or FusionConfig()
-        self._isam = graph.isam2(self.config.relinearize_threshold)
+        self._isam = graph.isam2(self.config.relinearize_threshold, self.config.relinearize_skip)
         self._origin = np.zeros(2)  # world position of the local frame's origin (the first pose)
         self._odometry: list[np.ndarray] = []  # (x, y, ψ) world, per scan
         self._odometry_cov: list[np.ndarray | None] = []
@@ -403,8 +408,9 @@ class WallMapper:
     # ------------------------------------------------------------------ the map
     def snapshot(self) -> FusedMap:
         """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses."""
-        estimate = self._isam.calculateEstimate()
-        marginals = gtsam.Marginals(self._isam.getFactorsUnsafe(), estimate) if self._poses else None
+        factors = self._isam.getFactorsUnsafe()
+        estimate = graph.polish(factors, self._isam.calculateEstimate()) if self._poses else gtsam.Values()
+        marginals = gtsam.Marginals(factors, estimate) if self._poses else None
         poses_local = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(len(self._poses))]
         pose_covs = [marginals.marginalCovariance(graph.pose_key(i)) for i in range(len(self._poses))]
         by_id = {t.id: t for t in self._graph_tracks}

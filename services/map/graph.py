@@ -94,11 +94,20 @@ def step_covariance_from_poses(
     return psd + np.diag(np.asarray(floor, float) ** 2)
 
 
-def isam2(relinearize_threshold: float) -> gtsam.ISAM2:
+def isam2(relinearize_threshold: float, relinearize_skip: int = 10) -> gtsam.ISAM2:
     """An ISAM2 solver: Gauss–Newton steps on the Bayes tree, relinearized where a variable moved more than
-    ``relinearize_threshold`` (the dogleg variant evaluates every factor's error at each update: with
+    ``relinearize_threshold``, checked every ``relinearize_skip`` updates (the dogleg variant evaluates every factor's error at each update: with
     Python factors, a cost that grows with the map)."""
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(relinearize_threshold)
-    params.relinearizeSkip = 1
+    params.relinearizeSkip = relinearize_skip
     return gtsam.ISAM2(params)
+
+
+def polish(factors: gtsam.NonlinearFactorGraph, initial: gtsam.Values) -> gtsam.Values:
+    """Levenberg–Marquardt over the whole graph from ISAM2's estimate: the map as read is converged, whatever
+    the incremental solver's relinearization left pending (its state is not touched)."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-6)
+    params.setMaxIterations(20)
+    return gtsam.LevenbergMarquardtOptimizer(factors, initial, params).optimize()
