@@ -87,7 +87,7 @@ def scans_of(path: Path, method: str) -> list:
             start = codec.decode(rec.payload, codec.ScanStart)
             starts[(start.scanner_id, start.scan_id)] = start
     service = ReconstructionService(ReconstructConfig(method=method, compare_methods=(), provisional=False))
-    replay_mcap(source, service)
+    replay_mcap(source, service)  # type: ignore[arg-type]  # a Recording reads as its path does
     finals = sorted(
         service.finals.values(),
         key=lambda m: (getattr(starts.get((m.scanner_id, m.scan_id)), "start_time_ns", 0), m.scan_id),
@@ -104,7 +104,8 @@ def run_map(args: argparse.Namespace) -> int:
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
     config = FusionConfig() if args.gate is None else FusionConfig(gate_chi2=args.gate)
-    scans, where = [], {}
+    scans: list = []
+    where: dict[int, Path] = {}
     for path in args.source:
         for _scanner, scan in scans_of(path, args.method):
             if scan.scan_id in where:

@@ -272,7 +272,7 @@ def route(
         return None
     cells = [divmod(n, cols) for n in path if n != -1]
     points = [(float(x[r, c]), float(y[r, c])) for r, c in cells]
-    return _turning_points([tuple(map(float, start))] + points[1:])
+    return _turning_points([(float(start[0]), float(start[1]))] + points[1:])
 
 
 def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, float]]:

@@ -34,7 +34,7 @@ from lelsonar.map.lines import (
     world_jacobians,
     wrap,
 )
-from lelsonar.map.observation import QUALITIES, ScanObservation, WallObservation
+from lelsonar.map.observation import QUALITIES, FeatureObservation, ScanObservation, WallObservation
 from lelsonar.map.result import FusedMap, FusedPose, FusedWall
 
 #: χ² with 2 degrees of freedom at 0.999.
@@ -143,7 +143,7 @@ class WallMapper:
         self._flagged_tracks: list[_Track] = []
         self._next_id = 0
         self._step: tuple[np.ndarray, np.ndarray] | None = None  # (Ad(u⁻¹), Q) of the scan being added
-        self._features: list[tuple[int, int, object]] = []  # (scan_id, pose index, FeatureObservation)
+        self._features: list[tuple[int, int, FeatureObservation]] = []  # (scan_id, pose index, FeatureObservation)
         self.notes: list[str] = []
 
     # ------------------------------------------------------------------ properties
@@ -297,8 +297,7 @@ class WallMapper:
         self._refine(d2, ok, nu, pose, obs.covariance)
         ok &= d2 < self.config.gate_chi2
         if ok.any():
-            i = int(np.argmin(np.where(ok, d2, np.inf)))
-            track = self._graph_tracks[i]
+            track = self._graph_tracks[int(np.argmin(np.where(ok, d2, np.inf)))]
         else:
             index = len(self._graph_tracks)
             track = _Track(id=self._new_id(), index=index, seen=[])
@@ -348,7 +347,7 @@ class WallMapper:
             & (np.abs(nu[:, 0]) < cfg.conflict_angle)
             & (np.abs(nu[:, 1]) < cfg.conflict_distance)
         )
-        for i in np.flatnonzero(near):
+        for i in np.flatnonzero(near).tolist():
             other = self._graph_tracks[i]
             what = (
                 f"{math.degrees(abs(nu[i, 0])):.2g}° and {100 * abs(nu[i, 1]):.2g} cm apart ({math.sqrt(d2[i]):.1f}σ)"
@@ -408,9 +407,11 @@ class WallMapper:
     # ------------------------------------------------------------------ the map
     def snapshot(self) -> FusedMap:
         """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses."""
+        if not self._poses:
+            return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
         factors = self._isam.getFactorsUnsafe()
-        estimate = graph.polish(factors, self._isam.calculateEstimate()) if self._poses else gtsam.Values()
-        marginals = gtsam.Marginals(factors, estimate) if self._poses else None
+        estimate = graph.polish(factors, self._isam.calculateEstimate())
+        marginals = gtsam.Marginals(factors, estimate)
         poses_local = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(len(self._poses))]
         pose_covs = [marginals.marginalCovariance(graph.pose_key(i)) for i in range(len(self._poses))]
         by_id = {t.id: t for t in self._graph_tracks}

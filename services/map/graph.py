@@ -96,8 +96,11 @@ def step_covariance_from_poses(
 
 def isam2(relinearize_threshold: float, relinearize_skip: int = 10) -> gtsam.ISAM2:
     """An ISAM2 solver: Gauss–Newton steps on the Bayes tree, relinearized where a variable moved more than
-    ``relinearize_threshold``, checked every ``relinearize_skip`` updates (the dogleg variant evaluates every factor's error at each update: with
-    Python factors, a cost that grows with the map)."""
+    ``relinearize_threshold``, checked every ``relinearize_skip`` updates.
+
+    Not the dogleg variant: it evaluates every factor's error at each update, and with Python factors
+    that cost grows with the map.
+    """
     params = gtsam.ISAM2Params()
     params.setRelinearizeThreshold(relinearize_threshold)
     params.relinearizeSkip = relinearize_skip

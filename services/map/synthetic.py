@@ -171,7 +171,7 @@ def observe_world(
             sr = noise.range_floor + noise.range_per_m * truth[1]
             obs_cov = np.diag([noise.bearing**2, sr**2])
             z = truth + rng.multivariate_normal(np.zeros(2), obs_cov)
-            quality, reasons = "good", ()
+            quality, reasons = "good", tuple[str, ...]()
             if (k, i) in flagged:
                 quality, bias = flagged[(k, i)]
                 z = z + bias
@@ -260,7 +260,7 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0, *, tour: bool 
     exit_row = int(rng.integers(n))
     east[n - 1, exit_row] = False
     # The path from (0, 0) to the exit cell, breadth-first over open sides.
-    prev = {(0, 0): None}
+    prev: dict[tuple[int, int], tuple[int, int] | None] = {(0, 0): None}
     queue = [(0, 0)]
     while queue:
         i, j = queue.pop(0)
@@ -273,8 +273,8 @@ def maze(cells: int, rng: np.random.Generator, cell: float = 1.0, *, tour: bool 
                 prev[(a, b)] = (i, j)
                 queue.append((a, b))
     path = [(n - 1, exit_row)]
-    while prev[path[-1]] is not None:
-        path.append(prev[path[-1]])
+    while (back := prev[path[-1]]) is not None:
+        path.append(back)
     path.reverse()
     if tour:
         path = walk
