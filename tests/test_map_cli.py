@@ -11,7 +11,8 @@ import pytest
 from lelsonar import codec
 from lelsonar.cli.main import main
 from lelsonar.log import recording
-from lelsonar.map.from_reconstruction import scan_from_reconstruction
+from lelsonar.map.from_reconstruction import observation_at, planar_pose, scan_from_reconstruction
+from lelsonar.map.lines import line_in_world
 from lelsonar.v1 import reconstruction_pb2 as pb
 from tests.conftest import scene_truth, simulated_messages
 
@@ -113,3 +114,31 @@ def test_the_adapter_carries_the_parameter_covariance_to_theta_rho():
     eps = 1e-7
     jac = np.column_stack([(f(theta0 + e) - f(theta0 - e)) / (2 * eps) for e in np.eye(3) * eps])
     np.testing.assert_allclose(wall.covariance, jac @ c_theta @ jac.T, rtol=1e-5, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "mount",
+    [
+        # base ← array at γ = 0: the columns are the array's axes in the robot's frame (x ahead, z up).
+        np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),  # fan: axis up, beams ahead then left
+        np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),  # paper: axis to the right, beams ahead then up
+    ],
+    ids=["fan", "paper"],
+)
+def test_a_wall_seen_from_a_placed_array_lands_on_its_world_line(mount):
+    heading, position = math.radians(30.0), np.array([2.0, 1.0, 0.3])
+    c, s = math.cos(heading), math.sin(heading)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ mount
+    phi, rho = math.radians(75.0), 4.0  # the true wall: cos φ x + sin φ y = ρ (world), facing away from the robot
+    n_world = np.array([math.cos(phi), math.sin(phi), 0.0])
+    n_array = rot.T @ n_world
+    d_array = rho - float(n_world @ position)
+    msg = codec.Reconstruction(scanner_id="s1", scan_id=9)
+    msg.planes.append(_plane(tuple(n_array), d_array))
+    cov6 = np.diag([1e-4, 2e-4, 1e-6, 1e-6, 1e-6, 3e-4])
+    scan = observation_at(msg, rot, planar_pose(rot, position, cov6), "lel")
+    assert scan.pose.heading == pytest.approx(heading)
+    np.testing.assert_allclose(scan.pose.covariance, np.diag([1e-4, 2e-4, 3e-4]))
+    [wall] = scan.walls
+    world = line_in_world(scan.pose.vector, wall.line)
+    assert world == pytest.approx([phi, rho], abs=1e-12)

@@ -43,25 +43,36 @@ def level_heading(rotation: np.ndarray) -> float:
     return math.atan2(ahead[1], ahead[0])
 
 
+def planar_pose(rotation: np.ndarray, position: np.ndarray, covariance: np.ndarray | None) -> Pose2D:
+    """The planar pose of an array frame placed by ``rotation`` (world ← array) at ``position``.
+
+    Parameters
+    ----------
+    covariance : (6, 6) array or None
+        Over ``(x, y, z, rotation about x, y, z)`` in the world frame (ROS's order); its ``(x, y, yaw)``
+        block is the pose's.  None, or all zeros: unknown.
+    """
+    cov = None
+    if covariance is not None and np.any(covariance):
+        cov = np.asarray(covariance, dtype=float)[np.ix_([0, 1, 5], [0, 1, 5])]
+    return Pose2D(float(position[0]), float(position[1]), level_heading(rotation), float(position[2]), cov)
+
+
 def scan_pose(start: codec.ScanStart) -> tuple[np.ndarray, Pose2D, str | None]:
     """The array frame's rotation (world ← array), the scan's planar pose, and a note when the start has no pose.
 
     A ``ScanStart`` without a pose (older recordings) is taken at the origin of the world, the array frame
     unturned, and the note says so.
     """
-    pose = getattr(start, "pose", None) if "pose" in start.DESCRIPTOR.fields_by_name else None
-    if pose is None or not start.HasField("pose"):
+    if "pose" not in start.DESCRIPTOR.fields_by_name or not start.HasField("pose"):
         rot = np.eye(3)
         note = f"scan {start.scan_id} has no pose in its ScanStart: taken at the origin"
-        return rot, Pose2D(0.0, 0.0, level_heading(rot), 0.0, None), note
+        return rot, planar_pose(rot, np.zeros(3), None), note
+    pose = start.pose  # type: ignore[attr-defined]  # the field is read where the contract has it
     q = pose.orientation
     rot = _quaternion_matrix(q.x, q.y, q.z, q.w)
-    t = _vec(pose.position)
     cov6 = np.array(pose.covariance, dtype=float)
-    cov = cov6.reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])] if cov6.size == 36 else None
-    if cov is not None and not np.any(cov):
-        cov = None
-    return rot, Pose2D(float(t[0]), float(t[1]), level_heading(rot), float(t[2]), cov), None
+    return rot, planar_pose(rot, _vec(pose.position), cov6.reshape(6, 6) if cov6.size == 36 else None), None
 
 
 def _wall(plane, to_level: np.ndarray) -> WallObservation | None:
@@ -103,21 +114,33 @@ def _wall(plane, to_level: np.ndarray) -> WallObservation | None:
 def scan_from_reconstruction(
     msg: codec.Reconstruction, start: codec.ScanStart | None, method: str, scan_id: int | None = None
 ) -> ScanObservation:
-    """A scan's planes of record (``method``) and corner edge as the map's observation.
-
-    Horizontal planes (a floor, a ceiling) are not walls of a floor plan: they are left out, and counted
-    in the observation's notes.
-    """
-    notes = []
+    """A scan's planes of record (``method``) and corner edge as the map's observation, at its start's pose."""
     if start is None:
-        rot, pose, note = np.eye(3), Pose2D(0.0, 0.0, level_heading(np.eye(3))), None
-        notes.append(f"scan {msg.scan_id}: its ScanStart is not in the recording: taken at the origin")
+        rot = np.eye(3)
+        pose = planar_pose(rot, np.zeros(3), None)
+        note: str | None = f"scan {msg.scan_id}: its ScanStart is not in the recording: taken at the origin"
     else:
         rot, pose, note = scan_pose(start)
-    if note:
-        notes.append(note)
+    return observation_at(msg, rot, pose, method, (note,) if note else (), scan_id)
+
+
+def observation_at(
+    msg: codec.Reconstruction,
+    rotation: np.ndarray,
+    pose: Pose2D,
+    method: str,
+    notes: tuple[str, ...] = (),
+    scan_id: int | None = None,
+) -> ScanObservation:
+    """A scan's planes of record (``method``) and corner edge, seen from an array frame placed by ``rotation``
+    (world ← array) at ``pose``, as the map's observation.
+
+    Horizontal planes (a floor, a ceiling) are not walls of a floor plan: they are left out, and named in
+    the observation's notes.
+    """
+    notes_out = list(notes)
     c, s = math.cos(pose.heading), math.sin(pose.heading)
-    to_level = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ rot
+    to_level = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ rotation
     walls, horizontal = [], []
     for plane in msg.planes:
         if plane.method != method:
@@ -128,9 +151,9 @@ def scan_from_reconstruction(
         else:
             walls.append(wall)
     if horizontal:
-        notes.append(f"scan {msg.scan_id}: plane {', '.join(horizontal)} horizontal (floor or ceiling), not a wall")
+        notes_out.append(f"scan {msg.scan_id}: plane {', '.join(horizontal)} horizontal (floor or ceiling), not a wall")
     features = []
-    if msg.HasField("corner_edge") and any(w.label in ("a", "b") for w in walls):
+    if msg.HasField("corner_edge") and walls:
         e = msg.corner_edge
         d = to_level @ _vec(e.direction)
         if np.linalg.norm(d) > 0:
@@ -147,5 +170,5 @@ def scan_from_reconstruction(
         pose=pose,
         walls=tuple(walls),
         features=tuple(features),
-        notes=tuple(notes),
+        notes=tuple(notes_out),
     )
