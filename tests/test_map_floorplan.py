@@ -68,7 +68,8 @@ def test_free_space_grid_geojson_and_markers_of_a_room():
     kinds = [f["properties"]["kind"] for f in gj["features"]]
     assert kinds.count("wall") == len(m.walls) and "free_space" in kinds and kinds.count("pose") == len(m.poses)
     markers = fp.wall_markers(m)
-    assert [mk["id"] for mk in markers] == [w.id for w in m.walls]
+    assert len(markers) == sum(len(w.pieces) for w in m.walls)
+    assert {mk["text"] for mk in markers} == {f"wall {w.id}: {w.quality}" for w in m.walls}
     assert all(mk["scale"]["y"] >= 0.01 for mk in markers)
 
 

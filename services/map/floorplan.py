@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import networkx as nx
 import numpy as np
 import shapely
-from shapely.geometry import LineString, Point, Polygon, mapping
+from shapely.geometry import LineString, MultiLineString, Point, Polygon, mapping
 from shapely.ops import unary_union
 
 from lelsonar.errors import ConfigError
@@ -60,8 +60,12 @@ class PlanConfig:
 
 
 def wall_segments(m: FusedMap) -> list[LineString]:
-    """Each wall's observed stretch on the floor plane."""
-    return [LineString(w.segment) for w in m.walls]
+    """Every observed piece of every wall, on the floor plane."""
+    return [LineString(s) for w in m.walls for s in w.piece_segments]
+
+
+def _segment_array(m: FusedMap) -> np.ndarray:
+    return np.array([s for w in m.walls for s in w.piece_segments]).reshape(-1, 2, 2)
 
 
 def free_space(m: FusedMap, config: PlanConfig | None = None) -> Polygon | shapely.MultiPolygon:
@@ -95,7 +99,7 @@ def to_geojson(m: FusedMap, config: PlanConfig | None = None) -> dict:
     features = [
         {
             "type": "Feature",
-            "geometry": mapping(LineString(w.segment)),
+            "geometry": mapping(MultiLineString(w.piece_segments)),
             "properties": {
                 "kind": "wall",
                 "id": w.id,
@@ -167,7 +171,7 @@ def _distance_to_segments(x: np.ndarray, y: np.ndarray, segments: np.ndarray) ->
 def occupancy_grid(m: FusedMap, config: PlanConfig | None = None) -> Grid:
     """Occupied where a wall runs (within half a cell), free inside :func:`free_space`, unknown elsewhere."""
     cfg = config or PlanConfig()
-    segments = np.array([w.segment for w in m.walls]).reshape(-1, 2, 2)
+    segments = _segment_array(m)
     pts = np.concatenate([segments.reshape(-1, 2), np.array([[p.x, p.y] for p in m.poses]).reshape(-1, 2)])
     if len(pts) == 0:
         pts = np.zeros((1, 2))
@@ -185,35 +189,36 @@ def occupancy_grid(m: FusedMap, config: PlanConfig | None = None) -> Grid:
 
 
 def wall_markers(m: FusedMap, frame_id: str = "map", thickness_sigmas: float = 2.0) -> list[dict]:
-    """Each wall as the fields of a ``visualization_msgs/Marker`` CUBE: its stretch, its height, a thickness of
-    ``thickness_sigmas`` × its offset σ (at least 1 cm), coloured by verdict."""
+    """Each observed piece of each wall as the fields of a ``visualization_msgs/Marker`` CUBE: its stretch,
+    its height, a thickness of ``thickness_sigmas`` × its offset σ (at least 1 cm), coloured by verdict;
+    the marker's text names the wall."""
     out = []
     for w in m.walls:
-        (a, b) = w.segment
-        mid = 0.5 * (a + b)
-        yaw = math.atan2(b[1] - a[1], b[0] - a[0])
         z0, z1 = w.z_range
         r, g, bl, alpha = QUALITY_COLOURS[w.quality]
-        out.append(
-            {
-                "header": {"frame_id": frame_id},
-                "ns": "walls",
-                "id": w.id,
-                "type": 1,  # CUBE
-                "action": 0,  # ADD
-                "pose": {
-                    "position": {"x": float(mid[0]), "y": float(mid[1]), "z": 0.5 * (z0 + z1)},
-                    "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
-                },
-                "scale": {
-                    "x": float(np.hypot(*(b - a))),
-                    "y": max(0.01, thickness_sigmas * w.offset_stderr),
-                    "z": max(0.01, z1 - z0),
-                },
-                "color": {"r": r, "g": g, "b": bl, "a": alpha},
-                "text": w.quality,
-            }
-        )
+        for a, b in w.piece_segments:
+            mid = 0.5 * (a + b)
+            yaw = math.atan2(b[1] - a[1], b[0] - a[0])
+            out.append(
+                {
+                    "header": {"frame_id": frame_id},
+                    "ns": "walls",
+                    "id": len(out),
+                    "type": 1,  # CUBE
+                    "action": 0,  # ADD
+                    "pose": {
+                        "position": {"x": float(mid[0]), "y": float(mid[1]), "z": 0.5 * (z0 + z1)},
+                        "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
+                    },
+                    "scale": {
+                        "x": max(0.01, float(np.hypot(*(b - a)))),
+                        "y": max(0.01, thickness_sigmas * w.offset_stderr),
+                        "z": max(0.01, z1 - z0),
+                    },
+                    "color": {"r": r, "g": g, "b": bl, "a": alpha},
+                    "text": f"wall {w.id}: {w.quality}",
+                }
+            )
     return out
 
 
@@ -235,7 +240,7 @@ def route(
     cfg = config or PlanConfig()
     grid = occupancy_grid(m, cfg)
     x, y = grid.centres()
-    segments = np.array([w.segment for w in m.walls]).reshape(-1, 2, 2)
+    segments = _segment_array(m)
     clearance = cfg.robot_radius + cfg.resolution * math.sqrt(2) / 2
     open_ = _distance_to_segments(x, y, segments) > clearance if len(segments) else np.ones(x.shape, bool)
     rows, cols = open_.shape

@@ -50,7 +50,12 @@ class FusionConfig:
     gate_chi2 : float
         Largest Mahalanobis distance² of an observation from a wall it joins (χ²₂; 13.8 is p = 0.999).
     max_gap : float
-        Largest gap, m, between an observation's stretch and a wall's along the wall for it to join.
+        Largest gap, m, between an observation's stretch and a wall's along the wall for it to join.  Sonar
+        sees a wall only near the foot of its perpendicular, so scans from different places see different
+        stretches of one wall: the gap is generous, and the wall keeps its observed pieces apart (``join_gap``).
+    join_gap : float
+        A wall's observed stretches closer than this, m, are one piece of the floor plan; farther apart, the
+        space between stays unknown (an opening the scans did not see closed).
     conflict_distance, conflict_angle : float
         An observation outside the gate of a wall it overlaps, but nearer than these (m, rad), is the same
         surface seen in disagreement: it becomes its own wall and both are marked.  Farther, it is another
@@ -70,7 +75,8 @@ class FusionConfig:
     """
 
     gate_chi2: float = CHI2_2_999
-    max_gap: float = 0.5
+    max_gap: float = 2.0
+    join_gap: float = 0.3
     conflict_distance: float = 0.15
     conflict_angle: float = math.radians(10.0)
     first_pose_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
@@ -81,7 +87,7 @@ class FusionConfig:
     relinearize_skip: int = 10
 
     def __post_init__(self) -> None:
-        for name in ("gate_chi2", "max_gap", "conflict_distance", "conflict_angle", "corner_reach"):
+        for name in ("gate_chi2", "max_gap", "join_gap", "conflict_distance", "conflict_angle", "corner_reach"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"map {name} must be a finite number ≥ 0, got {v!r}")
@@ -219,6 +225,8 @@ class WallMapper:
         if scan.step_covariance is not None:
             return np.array(scan.step_covariance) + np.diag(np.square(cfg.step_sigma_floor)) * 1e-6
         previous_cov = self._odometry_cov[-1]
+        if scan.pose.covariance is not None and previous_cov is None and len(self._odometry_cov) == 1:
+            previous_cov = np.zeros((3, 3))  # the first pose gave none: the odometry starts there, exact
         if scan.pose.covariance is not None and previous_cov is not None:
             return graph.step_covariance_from_poses(
                 self._odometry[-1], previous_cov, scan.pose.covariance, np.asarray(cfg.step_sigma_floor)
@@ -495,7 +503,16 @@ class WallMapper:
         verdict: tuple[str, tuple[str, ...]],
     ) -> FusedWall:
         everything = t.seen + t.flagged
-        pts = np.concatenate([_sensor_points_to_world(poses[s.pose_index], s.obs.extent) for s in everything])
+        spans = sorted(
+            self._interval_from_points(line_local, _sensor_points_to_world(poses[s.pose_index], s.obs.extent))
+            for s in everything
+        )
+        pieces = [list(spans[0])]
+        for lo, hi in spans[1:]:
+            if lo - pieces[-1][1] <= self.config.join_gap:
+                pieces[-1][1] = max(pieces[-1][1], hi)
+            else:
+                pieces.append([lo, hi])
         zs = np.concatenate([s.obs.extent[:, 2] + self._heights[s.pose_index] for s in everything])
         # Local → world: ρ_w = ρ_l + n(θ)·o, so dρ_w/dθ = −sin θ o_x + cos θ o_y.
         theta = wrap(float(line_local[0]))
@@ -503,12 +520,12 @@ class WallMapper:
         b = -math.sin(theta) * ox + math.cos(theta) * oy
         j = np.array([[1.0, 0.0], [b, 1.0]])
         line_world = np.array([theta, line_local[1] + math.cos(theta) * ox + math.sin(theta) * oy])
-        interval = self._interval_from_points(line_local, pts)
         return FusedWall(
             id=t.id,
             line=line_world,
             covariance=j @ cov_local @ j.T,
-            interval=(interval[0] + b, interval[1] + b),
+            interval=(pieces[0][0] + b, max(p[1] for p in pieces) + b),
+            pieces=tuple((lo + b, hi + b) for lo, hi in pieces),
             z_range=(float(zs.min()), float(zs.max())),
             quality=verdict[0],
             reasons=verdict[1],

@@ -29,7 +29,11 @@ class FusedWall:
     covariance : (2, 2) array
         Covariance of ``(θ, ρ)`` (GTSAM marginal, or first order for a flagged wall outside the graph).
     interval : (float, float)
-        The observed stretch along the line's tangent ``(−sin θ, cos θ)``, from its foot ``ρ n``, m.
+        The observed stretch along the line's tangent ``(−sin θ, cos θ)``, from its foot ``ρ n``, m: from the
+        first observed point to the last.
+    pieces : tuple of (float, float)
+        The stretches actually observed, in the same coordinate, in order; between them the scans saw no
+        wall (and no opening either).
     z_range : (float, float)
         The observed heights, m.
     quality : str
@@ -46,6 +50,7 @@ class FusedWall:
     line: np.ndarray
     covariance: np.ndarray
     interval: tuple[float, float]
+    pieces: tuple[tuple[float, float], ...]
     z_range: tuple[float, float]
     quality: str
     reasons: tuple[str, ...]
@@ -73,6 +78,11 @@ class FusedWall:
     def segment(self) -> np.ndarray:
         """End points (2, 2) of the observed stretch on the floor plane."""
         return segment(self.line, self.interval)
+
+    @property
+    def piece_segments(self) -> list[np.ndarray]:
+        """End points (2, 2) of each observed piece on the floor plane."""
+        return [segment(self.line, p) for p in self.pieces]
 
     def extent(self) -> np.ndarray:
         """The observed patch's corners (k, 3): a rectangle, or the two end points when no height was seen."""
@@ -148,6 +158,7 @@ def map_to_dict(m: FusedMap) -> dict:
             "reasons": list(w.reasons),
             "scans": list(w.scans),
             "observations": {"good": w.good_observations, "flagged": w.flagged_observations},
+            "pieces": [[_xyz((*p, w.z_range[0])) for p in seg] for seg in w.piece_segments],
         }
         for w in m.walls
     ]
