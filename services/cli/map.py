@@ -53,6 +53,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.set_defaults(run=run_map)
 
+    from lelsonar.net.secure import add_secure_argument
+    from lelsonar.net.transport import add_zenoh_arguments
+
+    p = sub.add_parser(
+        "mapper",
+        help="keep one scanner's map live from its scans and estimates, published on <prefix>/map",
+        description="Listen to <prefix>/<scanner>/scan (poses) and <prefix>/<scanner>/planes (final estimates), "
+        "fuse each scan into the map (one update per scan) and publish it as a Map on <prefix>/map (a get there "
+        "returns the latest).",
+    )
+    p.add_argument("--scanner", required=True, help="the scanner (one robot) whose scans make the map")
+    p.add_argument(
+        "--method",
+        default=DEFAULT_METHOD,
+        choices=sorted(METHODS),
+        help=f"estimator of record (default: {DEFAULT_METHOD})",
+    )
+    p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record every map to an MCAP file")
+    p.add_argument("--until-scans", type=int, default=0, metavar="N", help="exit after N scans are mapped")
+    p.add_argument("--json", action="store_true", help="print each map as one JSON line (as map --json)")
+    add_zenoh_arguments(p, default_mode="client")
+    add_secure_argument(p)
+    p.set_defaults(run=run_mapper)
+
 
 def _goal(text: str | None) -> tuple[float, float] | None:
     from lelsonar.errors import ConfigError
@@ -172,3 +196,43 @@ def _print_table(out: dict) -> None:
             "route: none" if r is None else "route: " + " → ".join(f"({p['x']:.2f}, {p['y']:.2f})" for p in r),
             highlight=False,
         )
+
+
+def run_mapper(args: argparse.Namespace) -> int:
+    import signal
+    import threading
+
+    from google.protobuf.json_format import MessageToDict
+
+    from lelsonar.keys import ScannerKeys, validate_identifier
+    from lelsonar.map.service import MapperService, ZenohMapper, map_key
+    from lelsonar.net.transport import open_session, zenoh_settings_from_args
+
+    scanner = validate_identifier(args.scanner)
+    prefix = ScannerKeys(args.prefix or "lelsonar", scanner).prefix
+    settings = zenoh_settings_from_args(args)
+    if getattr(args, "secure", None) is not None:
+        from lelsonar.net.secure import secure_settings
+
+        settings = secure_settings(settings, args.secure, "mapper", prefix)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    mapped = 0
+
+    def on_map(msg) -> None:
+        nonlocal mapped
+        mapped += 1
+        if args.json:
+            print(json.dumps(MessageToDict(msg), separators=(",", ":")), flush=True)
+        else:
+            print(f"mapper: scan {mapped}: {len(msg.walls)} walls, {len(msg.corners)} corners", flush=True)
+        if args.until_scans and mapped >= args.until_scans:
+            stop.set()
+
+    service = MapperService(scanner, args.method)
+    with open_session(settings) as session, ZenohMapper(session, prefix, service, record=args.record, on_map=on_map):
+        print(f"mapper: fusing {scanner}'s scans; the map on {map_key(prefix)}", file=sys.stderr, flush=True)
+        while not stop.wait(0.2):
+            pass
+    return 0

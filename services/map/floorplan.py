@@ -192,7 +192,7 @@ def wall_markers(m: FusedMap, frame_id: str = "map", thickness_sigmas: float = 2
     """Each observed piece of each wall as the fields of a ``visualization_msgs/Marker`` CUBE: its stretch,
     its height, a thickness of ``thickness_sigmas`` × its offset σ (at least 1 cm), coloured by verdict;
     the marker's text names the wall."""
-    out = []
+    out: list[dict] = []
     for w in m.walls:
         z0, z1 = w.z_range
         r, g, bl, alpha = QUALITY_COLOURS[w.quality]
