@@ -216,3 +216,31 @@ def test_an_observation_that_is_not_a_wall_is_refused():
     mapper.add_scan(ScanObservation(scan_id=7, pose=Pose2D(0.0, 0.0, 0.0)))
     with pytest.raises(InvalidMessageError, match="already"):
         mapper.add_scan(ScanObservation(scan_id=7, pose=Pose2D(1.0, 0.0, 0.0)))
+
+
+def test_the_corners_of_a_room_are_concave_and_where_its_walls_meet():
+    world = room()
+    m, _ = _fuse(world, 6)
+    truth = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 3.0]])  # the room's corners, by hand
+    corners = [f for f in m.corners if f.source == "walls"]
+    assert len(corners) == 4
+    for f in corners:
+        assert f.kind == "concave" and f.direction @ [0, 0, 1] == pytest.approx(1.0)
+        d = np.min(np.hypot(*(truth - f.point[:2]).T))
+        assert d < 4 * f.point_stderr, (f.point, f.point_stderr)
+
+
+def test_a_box_s_corners_are_convex_and_the_room_s_concave():
+    room_ = [[0, 0], [6, 0], [6, 5], [0, 5]]
+    box = [[2.5, 2], [3.5, 2], [3.5, 3], [2.5, 3]]
+    segments = [[room_[i], room_[(i + 1) % 4]] for i in range(4)] + [[box[i], box[(i + 1) % 4]] for i in range(4)]
+    h = math.pi / 2
+    poses = [[1, 1, 0], [3, 1, 0], [5, 1, h], [5, 2.5, h], [5, 4, 2 * h], [3, 4, 2 * h], [1, 4, -h], [1, 2.5, -h]]
+    world = World(np.array(segments, float), np.array(poses, float))
+    m, _ = _fuse(world, 0)
+    kinds = {}
+    for f in m.corners:
+        near_box = min(np.hypot(*(np.array(box, float) - f.point[:2]).T)) < 4 * f.point_stderr + 0.02
+        kinds[f.kind] = kinds.get(f.kind, 0) + 1
+        assert f.kind == ("convex" if near_box else "concave"), (f.point, f.kind)
+    assert kinds == {"concave": 4, "convex": 4}

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from lelsonar.errors import ConfigError
     from lelsonar.map.fusion import WallMapper
     from lelsonar.map.lines import wrap
-    from lelsonar.map.synthetic import NoiseModel, maze, observe_world, truth_of
+    from lelsonar.map.synthetic import NoiseModel, maze, observe_world, true_corners, truth_of
     from lelsonar.tools.bench import machine, progress
 
     if args.cells < 2 or args.seeds < 1:
@@ -77,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
     snapshots: list[float] = []
     wall_rows: list[tuple[float, float, float, float, str]] = []  # |Δθ|, |Δρ|, z_θ, z_ρ, quality (seen ≥ 2)
     once = 0
+    corner_errors: list[float] = []
     pose_fused, pose_odo, head_fused, head_odo = [], [], [], []
     for seed in progress(range(args.seeds), "mazes"):
         world = maze(args.cells, np.random.default_rng(seed), tour=True)
@@ -103,6 +104,10 @@ def run(args: argparse.Namespace) -> int:
             _, line = truth_of(world, w)
             dt, dr = abs(wrap(w.line[0] - line[0])), abs(w.line[1] - line[1])
             wall_rows.append((dt, dr, dt / w.normal_stderr, dr / w.offset_stderr, w.quality))
+        corners = true_corners(world)
+        for f in m.corners:
+            if f.source == "walls":
+                corner_errors.append(float(np.min(np.hypot(*(corners - f.point[:2]).T))))
         for p, truth, odo in zip(m.poses[1:], world.poses[1:], odometry[1:]):
             pose_fused.append(math.hypot(p.x - truth[0], p.y - truth[1]))
             pose_odo.append(math.hypot(odo[0] - truth[0], odo[1] - truth[1]))
@@ -153,6 +158,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'|err|/σ θ':>12} {_pct(arr[:, 2], 50):8.2f} {_pct(arr[:, 2], 95):8.2f}")
     print(f"{'|err|/σ ρ':>12} {_pct(arr[:, 3], 50):8.2f} {_pct(arr[:, 3], 95):8.2f}")
     print(f"good walls off by > 2 cm and > 3σ: {claims}")
+    print(
+        f"corners where fused walls meet: {len(corner_errors)}, distance to the nearest true corner "
+        f"median {100 * _pct(corner_errors, 50):.2f} cm, p95 {100 * _pct(corner_errors, 95):.2f} cm"
+    )
     print(f"\n{'pose error':>12} {'fused med':>10} {'fused p95':>10} {'odom med':>10} {'odom p95':>10}")
     print(
         f"{'position cm':>12} {100 * _pct(pose_fused, 50):10.2f} {100 * _pct(pose_fused, 95):10.2f} "

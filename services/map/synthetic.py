@@ -327,3 +327,21 @@ def truth_of(world: World, wall) -> tuple[int, np.ndarray]:
         if d < best_d:
             best, best_d, best_line = i, d, line
     return best, best_line
+
+
+def true_corners(world: World, tol: float = 1e-6) -> np.ndarray:
+    """Where two walls meet at an angle (an end of one on the other), on the floor plane: (k, 2)."""
+    out = []
+    segs = world.segments
+    for i, (a, b) in enumerate(segs):
+        for j, (c, d) in enumerate(segs):
+            if i == j:
+                continue
+            u, v = b - a, d - c
+            if abs(u[0] * v[1] - u[1] * v[0]) < tol * np.hypot(*u) * np.hypot(*v):
+                continue  # parallel walls never make a corner
+            for p in (a, b):  # an end of wall i on wall j
+                t = float((p - c) @ v / (v @ v))
+                if -tol <= t <= 1 + tol and np.hypot(*(c + t * v - p)) < tol:
+                    out.append(p)
+    return np.unique(np.round(np.array(out).reshape(-1, 2), 9), axis=0)
