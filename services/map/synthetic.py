@@ -310,22 +310,25 @@ def _runs(flags: np.ndarray, make) -> list:
 
 
 def truth_of(world: World, wall) -> tuple[int, np.ndarray]:
-    """The true segment a fused wall lies on (nearest by the distance of its stretch's middle and its angle),
-    and that segment's line ``(θ, ρ)`` oriented as the fused wall's normal."""
-    mid = wall.segment.mean(axis=0)
+    """The true segment a fused wall lies on, and that segment's line ``(θ, ρ)`` oriented as the wall's normal.
+
+    The segment nearest one of the wall's observed pieces (the middle of a piece to the segment), among
+    those facing the same way; a wall joined across an opening has pieces on collinear segments, which
+    share one line.
+    """
+    mids = np.array([seg.mean(axis=0) for seg in wall.piece_segments])
     best, best_d, best_line = -1, math.inf, np.zeros(2)
-    for i, ((ax, ay), (bx, by)) in enumerate(world.segments):
-        n = np.array([ay - by, bx - ax]) / math.hypot(bx - ax, by - ay)
+    for i, (a, b) in enumerate(world.segments):
+        d = b - a
+        n = np.array([-d[1], d[0]]) / math.hypot(*d)
         if n @ wall.normal[:2] < 0:
             n = -n
-        line = np.array([math.atan2(n[1], n[0]), float(n @ np.array([ax, ay]))])
-        t = np.array([-n[1], n[0]])
-        s = float((mid - np.array([ax, ay])) @ t)
-        length = math.hypot(bx - ax, by - ay)
-        outside = max(0.0, -s, s - length) if t @ np.array([bx - ax, by - ay]) > 0 else max(0.0, s, -s - length)
-        d = abs(float(n @ mid) - line[1]) + abs(wrap(line[0] - wall.line[0])) + outside
-        if d < best_d:
-            best, best_d, best_line = i, d, line
+        line = np.array([math.atan2(n[1], n[0]), float(n @ a)])
+        t = np.clip((mids - a) @ d / (d @ d), 0.0, 1.0)
+        dist = float(np.min(np.hypot(*(a + t[:, None] * d - mids).T)))
+        cost = dist + abs(wrap(line[0] - wall.line[0]))
+        if cost < best_d:
+            best, best_d, best_line = i, cost, line
     return best, best_line
 
 
