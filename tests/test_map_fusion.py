@@ -11,7 +11,7 @@ import pytest
 
 from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
-from lelsonar.map.fusion import WallMapper
+from lelsonar.map.fusion import MapUpdateError, WallMapper
 from lelsonar.map.lines import line_in_sensor, line_in_world, measurement_jacobians, world_jacobians, wrap
 from lelsonar.map.observation import Pose2D, ScanObservation, WallObservation
 from lelsonar.map.synthetic import NoiseModel, World, maze, observe_world, room
@@ -244,3 +244,29 @@ def test_a_box_s_corners_are_convex_and_the_room_s_concave():
         kinds[f.kind] = kinds.get(f.kind, 0) + 1
         assert f.kind == ("convex" if near_box else "concave"), (f.point, f.kind)
     assert kinds == {"concave": 4, "convex": 4}
+
+
+def test_a_graph_that_cannot_be_solved_stops_the_map_with_one_typed_error(monkeypatch):
+    world = room()
+    scans, _, _ = observe_world(world, NoiseModel(), np.random.default_rng(0))
+    mapper = WallMapper()
+    mapper.add_scan(scans[0])
+
+    solver = mapper._isam
+
+    class Unsolvable:
+        """GTSAM's solver as it fails on an ill-posed system (its queries answer as before)."""
+
+        def update(self, *_args):
+            raise RuntimeError("Indeterminate linear system detected while working near variable x1\nmore")
+
+        def __getattr__(self, name):
+            return getattr(solver, name)
+
+    monkeypatch.setattr(mapper, "_isam", Unsolvable())
+    with pytest.raises(MapUpdateError, match="scan 2 made the graph unsolvable"):
+        mapper.add_scan(scans[1])
+    with pytest.raises(MapUpdateError, match="takes no more scans"):
+        mapper.add_scan(scans[2])
+    with pytest.raises(MapUpdateError, match="no map"):
+        mapper.snapshot()

@@ -7,4 +7,7 @@
 * :mod:`~lelsonar.map.floorplan`: segments, free space (shapely, GeoJSON), an occupancy grid, wall
   markers, and a route (networkx) that keeps the robot's radius from every wall.
 * :mod:`~lelsonar.map.from_reconstruction`: the reconstruction's planes of record as wall observations.
+* :mod:`~lelsonar.map.service`: the live mapper (``lelsonar mapper``), the map on ``<prefix>/map``;
+  :mod:`~lelsonar.map.wire`: the map as the contract's ``Map`` message.
+* :mod:`~lelsonar.map.synthetic`: walls seen from known poses with stated noise, for tests and the bench.
 """

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from lelsonar.errors import ConfigError, InvalidMessageError
+from lelsonar.errors import ConfigError, InvalidMessageError, LelsonarError
 from lelsonar.map import graph
 from lelsonar.map.features import fuse_features, wall_corners
 from lelsonar.map.lines import (
@@ -39,6 +39,11 @@ from lelsonar.map.result import FusedMap, FusedPose, FusedWall
 
 #: χ² with 2 degrees of freedom at 0.999.
 CHI2_2_999 = 13.8155
+
+
+class MapUpdateError(LelsonarError):
+    """The factor graph could not take a scan (an ill-posed system): the map takes no more scans, and what it
+    had before is the last map published."""
 
 
 @dataclass(frozen=True)
@@ -151,6 +156,7 @@ class WallMapper:
         self._step: tuple[np.ndarray, np.ndarray] | None = None  # (Ad(u⁻¹), Q) of the scan being added
         self._features: list[tuple[int, int, FeatureObservation]] = []  # (scan_id, pose index, FeatureObservation)
         self.notes: list[str] = []
+        self._failed: str | None = None
 
     # ------------------------------------------------------------------ properties
     @property
@@ -165,6 +171,8 @@ class WallMapper:
     # ------------------------------------------------------------------ update
     def add_scan(self, scan: ScanObservation) -> None:
         """Fuse one scan: its pose, its odometry step, its walls and features (one ISAM2 update)."""
+        if self._failed is not None:
+            raise MapUpdateError(f"the map takes no more scans: {self._failed}; start a new map")
         if scan.scan_id in self._scan_ids:
             raise InvalidMessageError(f"scan {scan.scan_id} is already in the map (scan ids must be unique)")
         for note in scan.notes:
@@ -209,7 +217,12 @@ class WallMapper:
                 self._associate_flagged(seen, predicted, pose_cov)
         self._features.extend((scan.scan_id, k, f) for f in scan.features)
 
-        self._isam.update(factors, values)
+        try:
+            self._isam.update(factors, values)
+        except RuntimeError as exc:  # GTSAM's indeterminate or ill-conditioned system
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            self._failed = f"scan {scan.scan_id} made the graph unsolvable ({first})"
+            raise MapUpdateError(self._failed) from None
         self._isam_walls = len(self._graph_tracks)
         estimate = self._isam.calculateEstimate()
         self._poses = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(k + 1)]
@@ -223,7 +236,7 @@ class WallMapper:
     def _step_covariance(self, scan: ScanObservation) -> np.ndarray:
         cfg = self.config
         if scan.step_covariance is not None:
-            return np.array(scan.step_covariance) + np.diag(np.square(cfg.step_sigma_floor)) * 1e-6
+            return np.array(scan.step_covariance) + np.diag(np.square(cfg.step_sigma_floor))
         previous_cov = self._odometry_cov[-1]
         if scan.pose.covariance is not None and previous_cov is None and len(self._odometry_cov) == 1:
             previous_cov = np.zeros((3, 3))  # the first pose gave none: the odometry starts there, exact
@@ -415,6 +428,8 @@ class WallMapper:
     # ------------------------------------------------------------------ the map
     def snapshot(self) -> FusedMap:
         """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses."""
+        if self._failed is not None:
+            raise MapUpdateError(f"no map: {self._failed}")
         if not self._poses:
             return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
         factors = self._isam.getFactorsUnsafe()
