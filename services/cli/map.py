@@ -44,13 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=sorted(METHODS),
         help=f"estimator of record (default: {DEFAULT_METHOD})",
     )
-    p.add_argument(
-        "--gate",
-        type=float,
-        default=None,
-        metavar="CHI2",
-        help="association gate, χ² with 2 dof (default 13.8: p = 0.999)",
-    )
+    _add_fusion_arguments(p)
     p.set_defaults(run=run_map)
 
     from lelsonar.net.secure import add_secure_argument
@@ -73,9 +67,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record every map to an MCAP file")
     p.add_argument("--until-scans", type=int, default=0, metavar="N", help="exit after N scans are mapped")
     p.add_argument("--json", action="store_true", help="print each map as one JSON line (as map --json)")
+    _add_fusion_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
     p.set_defaults(run=run_mapper)
+
+
+def _add_fusion_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("fusion", "map and mapper give the same map from the same scans with the same flags")
+    g.add_argument(
+        "--gate",
+        type=float,
+        default=None,
+        metavar="CHI2",
+        help="association gate, χ² with 2 dof (default 13.8: p = 0.999)",
+    )
+    g.add_argument(
+        "--no-polish",
+        action="store_true",
+        help="read the map as ISAM2 leaves it, without a final Levenberg–Marquardt pass (cheaper on large maps)",
+    )
+
+
+def _fusion_config(args: argparse.Namespace):
+    from lelsonar.map.fusion import FusionConfig
+
+    extra = {} if args.gate is None else {"gate_chi2": args.gate}
+    return FusionConfig(polish=not args.no_polish, **extra)
 
 
 def _goal(text: str | None) -> tuple[float, float] | None:
@@ -122,12 +140,12 @@ def scans_of(path: Path, method: str) -> list:
 def run_map(args: argparse.Namespace) -> int:
     from lelsonar.errors import InvalidMessageError
     from lelsonar.map import floorplan
-    from lelsonar.map.fusion import FusionConfig, WallMapper
+    from lelsonar.map.fusion import WallMapper
     from lelsonar.map.result import map_to_dict
 
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
-    config = FusionConfig() if args.gate is None else FusionConfig(gate_chi2=args.gate)
+    config = _fusion_config(args)
     scans: list = []
     where: dict[int, Path] = {}
     for path in args.source:
@@ -230,7 +248,7 @@ def run_mapper(args: argparse.Namespace) -> int:
         if args.until_scans and mapped >= args.until_scans:
             stop.set()
 
-    service = MapperService(scanner, args.method)
+    service = MapperService(scanner, args.method, config=_fusion_config(args))
     with open_session(settings) as session, ZenohMapper(session, prefix, service, record=args.record, on_map=on_map):
         print(f"mapper: fusing {scanner}'s scans; the map on {map_key(prefix)}", file=sys.stderr, flush=True)
         while not stop.wait(0.2):

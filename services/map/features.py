@@ -39,40 +39,47 @@ def wall_corners(walls: list[FusedWall], reach: float) -> list[FusedFeature]:
     A corner is concave when each wall runs from it away from the other's face into the free space (the
     normals point into the walls): the stretch of ``a`` lies on the side of ``b`` opposite ``b``'s normal.
     """
+    n = len(walls)
+    if n < 2:
+        return []
+    theta = np.array([w.line[0] for w in walls])
+    rho = np.array([w.line[1] for w in walls])
+    lo = np.array([w.interval[0] for w in walls])
+    hi = np.array([w.interval[1] for w in walls])
+    i, j = np.triu_indices(n, 1)
+    sin_ij = np.sin(theta[j] - theta[i])
+    keep = np.abs(sin_ij) >= math.sin(MIN_CORNER_ANGLE)
+    i, j, sin_ij = i[keep], j[keep], sin_ij[keep]
+    # Where the lines cross (Cramer's rule on the two normals), and how far along each line that is.
+    px = (rho[i] * np.sin(theta[j]) - rho[j] * np.sin(theta[i])) / sin_ij
+    py = (rho[j] * np.cos(theta[i]) - rho[i] * np.cos(theta[j])) / sin_ij
+    along = []
+    for k in (i, j):
+        s_k = -np.sin(theta[k]) * px + np.cos(theta[k]) * py  # the foot ρ n is at 0 along the line
+        inside = (s_k >= lo[k] - reach) & (s_k <= hi[k] + reach)
+        at_end = np.minimum(np.abs(s_k - lo[k]), np.abs(s_k - hi[k])) <= reach
+        along.append((inside, at_end))
+    ok = along[0][0] & along[1][0] & (along[0][1] | along[1][1])
     out: list[FusedFeature] = []
-    for i, a in enumerate(walls):
-        for b in walls[i + 1 :]:
-            if abs(math.sin(float(a.line[0] - b.line[0]))) < math.sin(MIN_CORNER_ANGLE):
-                continue
-            p, jac = line_intersection(a.line, b.line)
-            ends = []
-            for w in (a, b):
-                t = np.array([-math.sin(w.line[0]), math.cos(w.line[0])])
-                s = float((p - w.line[1] * w.normal[:2]) @ t)
-                lo, hi = w.interval
-                if not (lo - reach <= s <= hi + reach):
-                    break
-                ends.append(min(abs(s - lo), abs(s - hi)) <= reach)
-            else:
-                if not any(ends):
-                    continue
-                middle = a.segment.mean(axis=0)
-                kind = "concave" if float((middle - p) @ b.normal[:2]) < 0.0 else "convex"
-                cov = jac @ np.block([[a.covariance, np.zeros((2, 2))], [np.zeros((2, 2)), b.covariance]]) @ jac.T
-                lo = max(a.z_range[0], b.z_range[0])
-                hi = min(a.z_range[1], b.z_range[1])
-                z = 0.5 * (lo + hi) if lo <= hi else 0.5 * (a.z_range[0] + b.z_range[0])
-                out.append(
-                    FusedFeature(
-                        point=np.array([p[0], p[1], z]),
-                        direction=np.array([0.0, 0.0, 1.0]),
-                        kind=kind,
-                        point_stderr=math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)),
-                        source="walls",
-                        observations=a.good_observations + b.good_observations,
-                        walls=(a.id, b.id),
-                    )
-                )
+    for ia, ib in zip(i[ok].tolist(), j[ok].tolist()):
+        a, b = walls[ia], walls[ib]
+        p, jac = line_intersection(a.line, b.line)
+        middle = a.segment.mean(axis=0)
+        kind = "concave" if float((middle - p) @ b.normal[:2]) < 0.0 else "convex"
+        cov = jac @ np.block([[a.covariance, np.zeros((2, 2))], [np.zeros((2, 2)), b.covariance]]) @ jac.T
+        z_lo, z_hi = max(a.z_range[0], b.z_range[0]), min(a.z_range[1], b.z_range[1])
+        z = 0.5 * (z_lo + z_hi) if z_lo <= z_hi else 0.5 * (a.z_range[0] + b.z_range[0])
+        out.append(
+            FusedFeature(
+                point=np.array([p[0], p[1], z]),
+                direction=np.array([0.0, 0.0, 1.0]),
+                kind=kind,
+                point_stderr=math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)),
+                source="walls",
+                observations=a.good_observations + b.good_observations,
+                walls=(a.id, b.id),
+            )
+        )
     return out
 
 

@@ -77,6 +77,9 @@ class FusionConfig:
         ISAM2 relinearizes a variable whose update exceeds this (m or rad).
     relinearize_skip : int
         ISAM2 looks for variables to relinearize every this many updates.
+    polish : bool
+        A map as read (:meth:`WallMapper.snapshot`) is first converged by Levenberg–Marquardt over the whole
+        graph; off, it is ISAM2's estimate (cheaper to read after every scan on a large map).
     """
 
     gate_chi2: float = CHI2_2_999
@@ -90,6 +93,7 @@ class FusionConfig:
     corner_reach: float = 0.3
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
+    polish: bool = True
 
     def __post_init__(self) -> None:
         for name in ("gate_chi2", "max_gap", "join_gap", "conflict_distance", "conflict_angle", "corner_reach"):
@@ -433,7 +437,9 @@ class WallMapper:
         if not self._poses:
             return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
         factors = self._isam.getFactorsUnsafe()
-        estimate = graph.polish(factors, self._isam.calculateEstimate())
+        estimate = self._isam.calculateEstimate()
+        if self.config.polish:
+            estimate = graph.polish(factors, estimate)
         marginals = gtsam.Marginals(factors, estimate)
         poses_local = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(len(self._poses))]
         pose_covs = [marginals.marginalCovariance(graph.pose_key(i)) for i in range(len(self._poses))]
