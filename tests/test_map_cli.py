@@ -142,3 +142,19 @@ def test_a_wall_seen_from_a_placed_array_lands_on_its_world_line(mount):
     [wall] = scan.walls
     world = line_in_world(scan.pose.vector, wall.line)
     assert world == pytest.approx([phi, rho], abs=1e-12)
+
+
+def test_the_scans_are_fused_in_the_order_they_started_and_one_robot_at_a_time(two_scans, capsys, tmp_path):
+    assert main(["map", "--source", str(two_scans[1]), str(two_scans[0]), "--json"]) == 0
+    reversed_files = json.loads(capsys.readouterr().out)
+    assert main(["map", "--source", *map(str, two_scans), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == reversed_files
+    other = tmp_path / "other_robot.mcap"
+    with recording.McapRecorder(other) as rec:
+        for m in simulated_messages("paper-test1", seed=3, scanner_id="s2", scan_id=5):
+            rec.write(m)
+    assert main(["map", "--source", str(two_scans[0]), str(other)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--scanner" in err[0]
+    assert main(["map", "--source", str(two_scans[0]), str(other), "--scanner", "s2", "--json"]) == 0
+    assert [p["scan_id"] for p in json.loads(capsys.readouterr().out)["poses"]] == [5]

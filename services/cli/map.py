@@ -21,8 +21,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         "corrected poses (world frame, m and rad).",
     )
     p.add_argument(
-        "--source", type=Path, nargs="+", required=True, metavar="FILE.mcap", help="recordings, in any order"
+        "--source",
+        type=Path,
+        nargs="+",
+        required=True,
+        metavar="FILE.mcap",
+        help="recordings, in any order: the scans are fused in the order they started",
     )
+    p.add_argument("--scanner", help="only this scanner's scans (needed when the recordings hold several)")
     p.add_argument("--json", action="store_true", help="print the map as one JSON object")
     p.add_argument("--geojson", type=Path, metavar="FILE", help="also write the floor plan as GeoJSON")
     p.add_argument(
@@ -109,7 +115,7 @@ def _goal(text: str | None) -> tuple[float, float] | None:
 
 
 def scans_of(path: Path, method: str) -> list:
-    """Each final scan of one recording as the map's observation, in the order the scans started.
+    """Each final scan of one recording: ``(start time ns, scanner id, the map's observation)``.
 
     The recording is replayed through the reconstruction (as ``reconstruct --source`` does) and each
     scan's ``ScanStart`` gives its pose.
@@ -130,15 +136,16 @@ def scans_of(path: Path, method: str) -> list:
             starts[(start.scanner_id, start.scan_id)] = start
     service = ReconstructionService(ReconstructConfig(method=method, compare_methods=(), provisional=False))
     replay_mcap(source, service)  # type: ignore[arg-type]  # a Recording reads as its path does
-    finals = sorted(
-        service.finals.values(),
-        key=lambda m: (getattr(starts.get((m.scanner_id, m.scan_id)), "start_time_ns", 0), m.scan_id),
-    )
-    return [(m.scanner_id, scan_from_reconstruction(m, starts.get((m.scanner_id, m.scan_id)), method)) for m in finals]
+    out = []
+    for m in service.finals.values():
+        start = starts.get((m.scanner_id, m.scan_id))
+        t = start.start_time_ns if start is not None else 0
+        out.append((t, m.scanner_id, scan_from_reconstruction(m, start, method)))
+    return out
 
 
 def run_map(args: argparse.Namespace) -> int:
-    from lelsonar.errors import InvalidMessageError
+    from lelsonar.errors import ConfigError, InvalidMessageError
     from lelsonar.map import floorplan
     from lelsonar.map.fusion import WallMapper
     from lelsonar.map.result import map_to_dict
@@ -146,16 +153,23 @@ def run_map(args: argparse.Namespace) -> int:
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
     config = _fusion_config(args)
-    scans: list = []
+    found: list = []
     where: dict[int, Path] = {}
     for path in args.source:
-        for _scanner, scan in scans_of(path, args.method):
+        for t, scanner, scan in scans_of(path, args.method):
+            if args.scanner is not None and scanner != args.scanner:
+                continue
             if scan.scan_id in where:
                 raise InvalidMessageError(
                     f"scan {scan.scan_id} is in both {where[scan.scan_id]} and {path}: give each scan once"
                 )
             where[scan.scan_id] = path
-            scans.append(scan)
+            found.append((t, scan.scan_id, scanner, scan))
+    scanners = sorted({f[2] for f in found})
+    if len(scanners) > 1:
+        raise ConfigError(f"the recordings hold the scans of {', '.join(scanners)}: choose one robot with --scanner")
+    # The robot's path is the order its scans started in, whatever the order of the files.
+    scans = [f[3] for f in sorted(found, key=lambda f: (f[0], f[1]))]
     if not scans:
         print("lelsonar map: no final scan in the recordings", file=sys.stderr)
         return 1
