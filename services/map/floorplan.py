@@ -277,7 +277,10 @@ def route(
         return None
     cells = [divmod(n, cols) for n in path if n != -1]
     points = [(float(x[r, c]), float(y[r, c])) for r, c in cells]
-    return _turning_points([(float(start[0]), float(start[1]))] + points[1:])
+    # The exact start and goal replace their cells' centres: each lies within half a cell's diagonal of
+    # its open centre, so the last and first moves keep the radius too.
+    end = points[1:] if goal is None else points[1:-1] + [(float(goal[0]), float(goal[1]))]
+    return _turning_points([(float(start[0]), float(start[1]))] + end)
 
 
 def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
