@@ -62,7 +62,7 @@ def test_plot_without_matplotlib_names_the_extra(tmp_path, monkeypatch, capsys):
 
 def test_readme_command_table_lists_every_command():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
-    table = README.read_text().split("## Command line", 1)[1].split("\n## ", 1)[0]
+    table = README.read_text().split("## Commands", 1)[1].split("\n## ", 1)[0]
     listed = set(re.findall(r"^\| `lelsonar ([a-z0-9-]+)", table, re.M))
     listed |= set(re.findall(r"`lelsonar ([a-z0-9-]+)`", table))
     assert set(sub.choices) <= listed, f"missing from the README: {sorted(set(sub.choices) - listed)}"

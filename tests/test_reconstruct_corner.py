@@ -41,6 +41,7 @@ from lelsonar.reconstruct.estimate.corner.model import (
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check
+from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
 from lelsonar.sim import EchoSource, Scene, calibrate_simulator, piston_directivity, preset, simulate_scan
@@ -415,13 +416,17 @@ def test_the_verdict_crosses_the_wire_and_the_plane_bound_fits_every_method() ->
 
 
 def test_a_compared_method_that_fails_is_reported_by_name() -> None:
-    from lelsonar.reconstruct.stream.service import _compared
-
     cfg = _scene_config(gamma=(-10, 25))  # the corner is barely reached: plane b cannot be fitted
-    _, main = _reconstruct(cfg, 0)
-    failed = FitFailure(FailureReason.TOO_FEW_POINTS, "3 valid points", "b", 3)
-    out = _compared(failed, "lel", main)
-    assert isinstance(out, FitFailure) and str(out).count("lel: 3 valid points") == 1
+    scan = simulate_scan(cfg, seed=0)
+    model = calibrate_simulator(dataclasses.replace(preset("paper-test1"), acoustics=cfg.acoustics), seed=0).model
+    energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amp)
+    for compared in ("lel", "adaptive"):
+        est = reconstruct_scan(given, RecordOptions(method=DEFAULT_METHOD, compare_methods=(compared,)))
+        (failed,) = [p for p in est.planes_of(compared) if p.label == "b"]
+        assert isinstance(failed, FitFailure), failed  # reported, never dropped
+        assert failed.detail.startswith(f"{compared}: ") and str(failed).count(f"{compared}: ") == 1, str(failed)
 
 
 def test_replay_exits_non_zero_when_the_method_of_record_gives_no_plane(tmp_path, capsys) -> None:

@@ -1,4 +1,4 @@
-"""``lelsonar bench acquire``: the wall time of a scan against the physical bound (issues 5, 12).
+"""``lelsonar bench acquire``: the wall time of a scan against the physical bound.
 
 A scan cannot be faster than its physics: the servo must travel from step to
 step, each shot must listen for its acoustic window, and every byte of every

@@ -1,6 +1,6 @@
 """``lelsonar bench estimators``: accuracy and speed of every reconstruction method on simulated scans.
 
-``--families`` runs the seeded scene families of issue 9 instead
+``--families`` runs the seeded scene families instead
 (:mod:`lelsonar.tools.bench_families`); ``--stress`` runs scenes and rigs
 outside those families through ``reconstruct --source FILE.mcap --json``
 (:mod:`lelsonar.tools.bench_stress`).  Without either:
@@ -123,7 +123,8 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
     from lelsonar.reconstruct.estimate.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
-    from lelsonar.reconstruct.estimate.pipeline import FitOptions, reconstruct
+    from lelsonar.reconstruct.estimate.pipeline import FitOptions
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.reconstruct.estimate.results import PlaneFit
     from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
     from lelsonar.signal.energy import echo_amplitude, energy_ratio, total_energy, waveform_energy
@@ -189,13 +190,14 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
             }
         )
 
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
     for method in methods:
         t0 = time.perf_counter()
-        rec = reconstruct(
-            scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method, echo_amplitude=amplitude
-        )
+        rec = reconstruct_scan(given, RecordOptions(method=method))
         dt = time.perf_counter() - t0
-        for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
+        for label, res in zip(("a", "b"), rec.planes, strict=True):
             tp = planes[label]
             row = {
                 **base,
@@ -267,7 +269,8 @@ def _timings(repeats: int) -> dict[str, float]:
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Z
     from lelsonar.reconstruct.estimate.lel import lel_fit_fast, lel_fit_nelder_mead, six_starts
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
@@ -293,6 +296,10 @@ def _timings(repeats: int) -> dict[str, float]:
     # The first echoes' own amplitudes, as the reconstruction service computes them from each Sample.
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     model = default_energy_model()
+    with_amplitude = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
+    without_amplitude = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model)
     return {
         "fast LEL, θ_LS + front starts (default, 300 pts)": med(lambda: lel_fit_fast(v, t_ls), repeats),
         "fast LEL, θ_LS only (300 pts)": med(lambda: lel_fit_fast(v, t_ls, front=False), repeats),
@@ -302,14 +309,10 @@ def _timings(repeats: int) -> dict[str, float]:
         "fast LEL, SciPy BFGS, θ_LS + front (300 pts)": med(lambda: lel_fit_fast(v, t_ls, solver="bfgs"), repeats),
         "six-start Nelder-Mead (300 pts)": med(lambda: lel_fit_nelder_mead(v, t_ls), max(3, repeats // 10)),
         f"full scan, {DEFAULT_METHOD} ({scan.n_steps} steps)": med(
-            lambda: reconstruct(
-                scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
-            ),
-            repeats,
+            lambda: reconstruct_scan(with_amplitude, RecordOptions(method=DEFAULT_METHOD)), repeats
         ),
         "full scan, paper": med(
-            lambda: reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method="paper"),
-            max(3, repeats // 10),
+            lambda: reconstruct_scan(without_amplitude, RecordOptions(method="paper")), max(3, repeats // 10)
         ),
     }
 
@@ -428,8 +431,9 @@ def run(args: argparse.Namespace) -> int:
     crit_rows = [r for r in rows if r["method"] == DEFAULT_METHOD and r["plane"] == "a"]
     if crit_rows:
         am = [abs(r["crit_argmax"] - r["crit_true"]) <= 1 for r in crit_rows if r["crit_argmax"] is not None]
+        centroid = [abs(r["crit"] - r["crit_true"]) <= 1 for r in crit_rows]
         console.print(
-            f"critical step within ±1: centroid of the R peak {100 * np.mean([abs(r['crit'] - r['crit_true']) <= 1 for r in crit_rows]):.0f} %, "
+            f"critical step within ±1: centroid of the R peak {100 * np.mean(centroid):.0f} %, "
             f"paper's argmax R {100 * np.mean(am):.0f} % ({len(crit_rows)} scans)"
         )
 

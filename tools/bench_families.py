@@ -1,4 +1,4 @@
-"""``lelsonar bench estimators --families …``: every estimator on seeded scene families (issue 9 §1).
+"""``lelsonar bench estimators --families …``: every estimator on seeded scene families.
 
 For each family of :mod:`lelsonar.sim.scenes` and each seed, the
 scene is drawn (``draw_scene(family, seed)``), simulated
@@ -346,7 +346,7 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     """The default fit per plane against Open3D ``segment_plane`` + LS refit on the same points, ms.
 
     One scene of ``family``, in this process.  Each repeat runs, back to back, the default
-    method's :func:`lelsonar.reconstruct.estimate.pipeline.reconstruct` (with the echoes' amplitudes, as
+    method's :func:`lelsonar.reconstruct.estimate.record.reconstruct_scan` (with the echoes' amplitudes, as
     the service runs it; both planes, so per plane is half the scan) and Open3D with its default
     early stop and with all 1000 iterations (the deterministic anchor of the accuracy rows) on
     the two corrected subsets at the default method's critical step (the anchor's points).
@@ -361,7 +361,8 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     """
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim.scenes import simulate_family_scene
 
@@ -369,17 +370,13 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     scan, model = fs.scan, fs.energy_model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
+    record = RecordOptions(method=DEFAULT_METHOD)
 
     def default() -> Any:
-        return reconstruct(
-            scan.gamma_measured,
-            scan.distance,
-            energy,
-            scan.geometry,
-            model,
-            method=DEFAULT_METHOD,
-            echo_amplitude=amplitude,
-        )
+        return reconstruct_scan(given, record)
 
     split = _split(scan, default().critical_step)
     subsets = (
@@ -445,7 +442,7 @@ _WARM: set[str] = set()
 
 def _warm_up(methods: list[str]) -> None:
     """Run each method once per process on a paper scan, so first-call costs (imports, caches) stay out of the times."""
-    from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
@@ -455,17 +452,12 @@ def _warm_up(methods: list[str]) -> None:
     scan = simulate_scan(preset("paper-test1"), seed=12345)
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
     amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), echo_amplitude=amplitude
+    )
     for m in todo:
         try:
-            reconstruct(
-                scan.gamma_measured,
-                scan.distance,
-                energy,
-                scan.geometry,
-                default_energy_model(),
-                method=m,
-                echo_amplitude=amplitude,
-            )
+            reconstruct_scan(given, RecordOptions(method=m))
         except Exception:  # noqa: BLE001 — the measured run reports it
             pass
         _WARM.add(m)
@@ -623,25 +615,39 @@ def _from_plane_fit(res: Any, scan: Any, data: Any, steps: np.ndarray | None) ->
     )
 
 
-def _add_cross_checked_quality(rows: list[dict[str, Any]], fits: dict[tuple[str, str], Any], default: str) -> None:
-    """Set ``quality_service`` on each row: the verdict ``reconstruct --compare`` shows.
+def _reconstruct_all(given: Any, methods: list[str], default: str) -> dict[str, Any]:
+    """Each method's reconstruction of one scan, through the reconstruction of record.
 
-    The service cross-checks a compared method's plane against the method of
-    record's (``lelsonar.reconstruct.estimate.quality.cross_check``); ``quality`` stays
-    the method's own verdict, what a planner gets with it as the method of record.
+    Returns method → ``(ScanReconstruction, seconds, quality_service)`` or the text of the exception a
+    method raised (a crashing method is a result).  ``quality_service`` maps a label to the verdict
+    ``reconstruct --compare`` shows: the default method is the method of record and the others are
+    compared with it, so theirs are cross-checked; without the default, each method's own.
     """
-    try:
-        from lelsonar.reconstruct.estimate.quality import cross_check
-    except ImportError:
-        cross_check = None
-    for r in rows:
-        res, ref = fits.get((r["method"], r["label"])), fits.get((default, r["label"]))
-        r["quality_service"] = r.get("quality")
-        if cross_check is not None and res is not None and ref is not None and r["method"] != default:
-            try:
-                r["quality_service"] = quality_name(getattr(cross_check(res, ref), "quality", None))
-            except Exception:  # noqa: BLE001 — the contract may move; the own verdict stays
-                pass
+    from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
+
+    def one(method: str, compare: tuple[str, ...] = ()) -> dict[str, Any]:
+        est = reconstruct_scan(given, RecordOptions(method=method, compare_methods=compare))
+        return {
+            m: (
+                est.results[m],
+                est.results[m].timings.total,
+                {pl.label: quality_name(getattr(pl, "quality", None)) for pl in est.planes_of(m)},
+            )
+            for m in (method, *compare)
+        }
+
+    if default in methods:
+        try:
+            return one(default, tuple(m for m in methods if m != default))
+        except Exception:  # noqa: BLE001 — one method crashed: run each alone to say which
+            pass
+    out: dict[str, Any] = {}
+    for method in methods:
+        try:
+            out.update(one(method))
+        except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
+            out[method] = f"{type(exc).__name__}: {exc}"
+    return out
 
 
 def _edge_fields(edge: Any, truth: SceneTruth) -> dict[str, Any]:
@@ -748,7 +754,8 @@ def family_scan(
     (0.6–2.7 m, the families' span) — see :func:`lelsonar.sim.scenes.calibrated_energy_model`.
     """
     _warm_up(methods)
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
+    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.reconstruct.estimate.record import ScanInput
     from lelsonar.signal.energy import echo_amplitude, waveform_energy
     from lelsonar.sim import EchoSource
     from lelsonar.sim.scenes import simulate_family_scene
@@ -776,39 +783,30 @@ def family_scan(
     rows: list[dict[str, Any]] = []
 
     crits: dict[str, int | None] = {}
-    fits: dict[tuple[str, str], Any] = {}
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
+    )
+    runs = _reconstruct_all(given, methods, DEFAULT_METHOD)
     for method in methods:
-        t0 = time.perf_counter()
-        try:
-            rec = reconstruct(
-                scan.gamma_measured,
-                scan.distance,
-                energy,
-                scan.geometry,
-                model,
-                method=method,
-                echo_amplitude=amplitude,
-            )
-        except Exception as exc:  # noqa: BLE001 — a crashing method is a result, not the end of the bench
-            dt = time.perf_counter() - t0
+        run = runs[method]
+        if isinstance(run, str):
             rows += [
-                plane_row(base, truth, method, label, f"{type(exc).__name__}: {exc}", None, dt, False)
+                {**plane_row(base, truth, method, label, run, None, 0.0, False), "quality_service": None}
                 for label in ("a", "b")
             ]
             continue
-        dt = time.perf_counter() - t0
+        rec, dt, quality_service = run
         crits[method] = rec.critical_step
         split = _split(scan, rec.critical_step)
         edge = _edge_fields(rec.edge, truth)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
-            fits[(method, label)] = res if fitted else None
             data = getattr(rec, f"data_{label}", None)
             est = _from_plane_fit(res, scan, data, split.get(label)) if fitted else str(res)
             uses_split = isinstance(est, Estimate) and est.extra["fitted_on_split"]
-            rows.append({**plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split), **edge})
+            row = plane_row(base, truth, method, label, est, rec.critical_step, dt, uses_split)
+            rows.append({**row, **edge, "quality_service": quality_service.get(label)})
 
-    _add_cross_checked_quality(rows, fits, DEFAULT_METHOD)
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
     split = _split(scan, default_crit) if anchor else {}
     if split:
@@ -859,7 +857,7 @@ def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
 def serial_scan_times(
     family: str, seed: int, methods: list[str], repeats: int, calibration: str = "paper"
 ) -> dict[str, float]:
-    """Best wall time of ``reconstruct`` per method on one scene of ``family``, ms, run serially.
+    """Best wall time of ``reconstruct_scan`` per method on one scene of ``family``, ms, run serially.
 
     The worker times of the accuracy runs share the cores with each other (and
     with anything else on the host); these are the numbers to hold against a
@@ -867,24 +865,25 @@ def serial_scan_times(
     (fewer once a method has taken 1 s); the minimum is the least disturbed by
     other load on a shared host.
     """
-    from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
     from lelsonar.signal.energy import waveform_energy
     from lelsonar.sim.scenes import simulate_family_scene
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     scan, model = fs.scan, fs.energy_model
     energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    given = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model)
     out = {}
     for method in methods:
         ts: list[float] = []
         for _ in range(repeats + 1):
             t0 = time.perf_counter()
             try:
-                reconstruct(scan.gamma_measured, scan.distance, energy, scan.geometry, model, method=method)
+                reconstruct_scan(given, RecordOptions(method=method))
             except Exception:  # noqa: BLE001 — reported by the accuracy run
                 break
             ts.append(time.perf_counter() - t0)
-            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper: ~0.5 s) gets two measured runs
+            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper) gets two measured runs
                 break
         out[method] = 1e3 * float(np.min(ts[1:])) if len(ts) > 1 else float("nan")
     return out
@@ -948,7 +947,7 @@ def _scan_ms(s: dict[str, Any]) -> float:
 def _targets(
     summary: dict[tuple[str, str], dict[str, Any]], families: tuple[str, ...], default: str
 ) -> list[tuple[str, dict[str, bool]]]:
-    """Issue 9's "done when" checks of the default method, per family."""
+    """The default method's targets, checked per family."""
     out = []
     for fam in families:
         s = summary.get((fam, default))
@@ -973,7 +972,7 @@ def _targets(
 
 
 def run_families(args: argparse.Namespace) -> int:
-    """Run the family benchmark, print the tables; 0 if the default method meets issue 9's targets."""
+    """Run the family benchmark, print the tables; 0 if the default method meets its targets."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -1231,7 +1230,7 @@ def run_families(args: argparse.Namespace) -> int:
     targets = _targets(summary, families, DEFAULT_METHOD)
     misses = [f"{fam}: {k}" for fam, checks in targets for k, ok in checks.items() if not ok]
     if targets:
-        tt = Table(title=f"Issue 9 targets for the default method {DEFAULT_METHOD!r}", title_justify="left")
+        tt = Table(title=f"Targets for the default method {DEFAULT_METHOD!r}", title_justify="left")
         tt.add_column("family")
         names = list(targets[0][1])
         for n in names:
@@ -1256,7 +1255,7 @@ def run_families(args: argparse.Namespace) -> int:
         out.write_text(
             markdown_table(summary, families, all_methods, DEFAULT_METHOD, command, machine()), encoding="utf-8"
         )
-        console.print(f"wrote {out} (Markdown, for the README)")
+        console.print(f"wrote {out} (Markdown)")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -1288,11 +1287,7 @@ def run_families(args: argparse.Namespace) -> int:
         console.print(f"wrote {out} ({len(rows)} plane rows)")
     console.print(
         f"default method {DEFAULT_METHOD!r}: "
-        + (
-            "[green]meets issue 9's targets on every family[/]"
-            if not misses
-            else f"[red]misses {len(misses)} targets[/]"
-        )
+        + ("[green]meets its targets on every family[/]" if not misses else f"[red]misses {len(misses)} targets[/]")
     )
     return 0 if not misses else 1
 
@@ -1305,7 +1300,7 @@ def markdown_table(
     command: str,
     machine_line: str,
 ) -> str:
-    """The summary as a Markdown table with the command and machine it came from (for the README)."""
+    """The summary as a Markdown table with the command and machine it came from."""
     lines = [
         f"`{command}` ({machine_line}). Medians / p95 over planes a and b; failure: patch > 2 cm and "
         "> 3× the oracle's (LS on the true mirror echoes); |z|: median |error / reported standard error| "
@@ -1358,7 +1353,7 @@ def json_default(o: Any) -> Any:
 
 def add_family_arguments(parser: argparse.ArgumentParser) -> None:
     """The ``--families`` mode's own flags (``--seeds``, ``--methods``, ``--jobs``, ``--json`` are shared)."""
-    g = parser.add_argument_group("scene families (issue 9)")
+    g = parser.add_argument_group("scene families")
     g.add_argument(
         "--families",
         nargs="+",
@@ -1375,7 +1370,7 @@ def add_family_arguments(parser: argparse.ArgumentParser) -> None:
         help="energy model of each rig: the paper's six shots at 0.9-1.8 m, as `lelsonar calibrate` "
         "(default), or eight at 0.6-2.7 m covering the families' walls",
     )
-    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table (README)")
+    g.add_argument("--markdown", metavar="OUT.md", help="also write the summary as a Markdown table")
     g.add_argument(
         "--dump-failures",
         metavar="DIR",

@@ -1,4 +1,4 @@
-"""``lelsonar bench fleet``: N scanners, W reconstructors in one group, through a Zenoh router (issue 12 §4).
+"""``lelsonar bench fleet``: N scanners, W reconstructors in one group, through a Zenoh router.
 
 Processes, all ``python -m lelsonar ...`` children started and always reaped here:
 

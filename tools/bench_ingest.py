@@ -1,4 +1,4 @@
-"""``lelsonar bench ingest``: Zenoh ingest rate, update latency and MCAP replay speed (issue 6).
+"""``lelsonar bench ingest``: Zenoh ingest rate, update latency and MCAP replay speed.
 
 Three measurements, side by side in one run and one table:
 
@@ -24,7 +24,7 @@ Three measurements, side by side in one run and one table:
     per round, medians of 5; same target against the same floor.  The details
     give the time ``Ingest.accept`` took per sample inside (a)'s consumer.
 (b) **latency** of ``--latency-scanners`` scanners (default 10) each putting
-    ``--rate`` samples/s (default 50: one every 20 ms, as issue 12 measures),
+    ``--rate`` samples/s (default 50: one every 20 ms),
     ``--scans`` scans each, back to back; not synchronised (scanner j runs j/N
     of a scan behind the first, so their corners and finals do not all fall on
     the same instant).  Each ``Sample``'s ``acquisition_time_ns`` and
@@ -71,7 +71,7 @@ from typing import Any
 TARGET_RATE = 1000.0
 TARGET_P99_MS = 50.0
 TARGET_REPLAY = 3000.0
-#: Issue 12: ingest and replay within this share of their floors (decode + validate; read + decode),
+#: Target: ingest and replay within this share of their floors (decode + validate; read + decode),
 #: each floor measured in the same run.
 TARGET_FLOOR_RATIO = 0.8
 DONE_KEY = "lelsonar-bench/ingest/done"

@@ -1,13 +1,13 @@
-"""``lelsonar bench recording``: what durable recording costs (issue 10 §1).
+"""``lelsonar bench recording``: what durable recording costs.
 
 The acquisition recorder hands every step to the OS before the step is
 published: one MCAP chunk per step (Sample, /tf and points), flushed.  This
 bench writes the same simulated scan, messages built beforehand, through
 :class:`lelsonar.log.recording.McapRecorder` with
 
-* ``1 MiB chunks`` — the setting before durability (``durable=False``): chunks
+* ``1 MiB chunks`` — the floor, no durability (``durable=False``): chunks
   written when full, so a killed writer loses up to a whole chunk (≈10 samples);
-* ``chunk per step`` — the default now: a killed writer loses at most the step
+* ``chunk per step`` — the default: a killed writer loses at most the step
   being written;
 * ``chunk per step + fsync`` — ``lelsonar acquire --fsync``: each step also on
   the disk (survives a power cut).

@@ -33,8 +33,8 @@ family         what is drawn
                retro-reflection limit), ``E0`` off by 0.1–10, reversed half
                the time
 ``comparator`` a board whose comparator times the echo's threshold crossing
-               (``Receiver.timing = "crossing"``: later on weaker echoes,
-               design notes §8): threshold 0.02–0.15 V, envelope rise
+               (``Receiver.timing = "crossing"``: later on weaker echoes):
+               threshold 0.02–0.15 V, envelope rise
                0.08–0.4 ms, echo gain 1–6 V·m, walls 0.6–2.5 m, the L rolled
                ±15°, half the sweeps narrow or asymmetric
 =============  =================================================================

@@ -52,7 +52,7 @@ class EnergyModel:
         """``E0(d)`` in V²·s, eq. (12).  Ranges are clipped to the calibrated interval,
         where the quadratic is known to stay positive.  A float in, a float out."""
         if isinstance(distance, float):
-            # One step's range (the live service, per sample): np.clip on a 0-d array cost ~4 µs.
+            # One step's range (the live service, per sample): np.clip on a 0-d array costs more than the formula.
             return 1.0 / self._denominator(min(max(distance, self.d_min), self.d_max))
         d = np.clip(np.asarray(distance, dtype=np.float64), self.d_min, self.d_max)
         return 1.0 / self._denominator(d)

@@ -25,7 +25,7 @@ def rotation_x(gamma: np.ndarray | float) -> np.ndarray:
     """Rotation matrices about x by ``gamma`` (rad); shape ``(..., 3, 3)``."""
     g = np.asarray(gamma, dtype=float)
     if g.ndim == 0:
-        # One angle (a turn of the corner model's axes): the same matrix without the four stacks (~20 µs).
+        # One angle (a turn of the corner model's axes): the same matrix without the four stacks.
         c, s = np.cos(g), np.sin(g)
         return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     c, s = np.cos(g), np.sin(g)
@@ -97,7 +97,7 @@ class ArrayGeometry:
         computed again: the same numbers).
         """
         # R·c for a capsule c = (x, r, 0) of the array frame is (x, r cos γ, r sin γ): the products the matmul
-        # c·Rᵀ forms, without its zero terms (the same numbers, bit for bit; ~4× faster, on every fit's path).
+        # c·Rᵀ forms, without its zero terms (the same numbers, bit for bit; on every fit's path).
         g = np.asarray(gamma, dtype=float)
         if beam is None:
             cos_g, sin_g = np.cos(g), np.sin(g)
@@ -155,3 +155,95 @@ def beam_points_from_capsules(
     origins = np.einsum("...ij,kj->...ki", rot, np.asarray(positions, dtype=float))
     beams = np.einsum("...ij,kj->...ki", rot, np.asarray(boresights, dtype=float))
     return origins + np.asarray(distance, dtype=float)[..., None] * beams
+
+
+# ---------------------------------------------------------------------------- frames of a moving robot
+#: Mounts of the array on a robot: ``fan`` (rotation axis vertical) and ``paper`` (axis horizontal).
+MOUNTS = ("fan", "paper")
+
+
+def mount_rotation(mount: str) -> np.ndarray:
+    """Rotation base ← array of a mount: its columns are the array frame's axes in the robot's base frame.
+
+    The base frame is the robot's (x ahead, y to the left, z up, as ROS's ``base_link``); the array
+    frame is the one above at γ = 0.
+
+    * ``paper``: the rotation axis x points to the robot's right, the beams look ahead at γ = 0 and
+      straight up at γ = 90° (the paper's rig, seeing a wall ahead and the ceiling).
+    * ``fan``: the rotation axis x points up, the beams look ahead at γ = 0 and to the left at
+      γ = 90°: a horizontal fan turning counter-clockwise seen from above, the capsules stacked
+      vertically.
+
+    Raises
+    ------
+    ConfigError
+        For an unknown mount.
+    """
+    if mount == "fan":
+        return np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    if mount == "paper":
+        return np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    raise ConfigError(f"unknown mount {mount!r}; choose one of {', '.join(MOUNTS)}")
+
+
+def rotation_z(angle: float) -> np.ndarray:
+    """Rotation about z by ``angle`` (rad), 3×3."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def quaternion_from_matrix(rot: np.ndarray) -> tuple[float, float, float, float]:
+    """(x, y, z, w) of a rotation matrix, with w ≥ 0 (Shepperd's method, stable for every rotation)."""
+    m = np.asarray(rot, dtype=float)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = (0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s)
+    elif m[1, 1] > m[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = ((m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s)
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = ((m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s)
+    arr = np.array(q, dtype=float)
+    arr /= np.linalg.norm(arr)
+    if arr[3] < 0:
+        arr = -arr
+    return float(arr[0]), float(arr[1]), float(arr[2]), float(arr[3])
+
+
+def matrix_from_quaternion(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (x, y, z, w)."""
+    x, y, z, w = (float(v) for v in q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def array_pose(x: float, y: float, heading: float, mount: str, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of the array frame (γ = 0) in a world frame, for a robot at floor point (x, y) with ``heading``.
+
+    Returns
+    -------
+    rotation : (3, 3) array
+        world ← array; a point ``p`` of the array frame is at ``rotation @ p + translation``.
+    translation : (3,) array
+        The array frame's origin (on the rotation axis, ``height`` above the floor), m.
+    """
+    return rotation_z(heading) @ mount_rotation(mount), np.array([x, y, height], dtype=float)
+
+
+def beam_heading(orientation) -> float:
+    """Heading (rad, counter-clockwise from +x) of an array's γ = 0 beam, the frame's +y, projected on the floor.
+
+    ``orientation`` is the array frame's (x, y, z, w) in a z-up world frame.
+    """
+    beam = matrix_from_quaternion(orientation)[:, 1]
+    return float(np.arctan2(beam[1], beam[0]))

@@ -93,6 +93,11 @@ class ScannerKeys:
     def planes(self) -> str:
         return self._key("planes")
 
+    @property
+    def odom(self) -> str:
+        """Where the robot's odometry publishes its base pose (``lelsonar.v1.Odometry``)."""
+        return self._key("odom")
+
     def alive(self, service: str = "*") -> str:
         if service != "*":
             validate_identifier(service, what="service name")

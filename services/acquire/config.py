@@ -70,6 +70,9 @@ class AcquireConfig:
         ``device="emulated"``: the emulators send and receive at the links' rates, so the
         scan pays the line time a real one would.  False: as fast as the ptys move bytes
         (quick tests).
+    world : Path, optional
+        ``device="sim"``: a world file (``docs/worlds.md``); one scan per pose, each
+        ``ScanStart`` with the odometry's pose.  ``scans`` is then the number of poses.
     """
 
     scanner_id: str = "scanner1"
@@ -96,6 +99,7 @@ class AcquireConfig:
     rig: Rig | None = None
     pipeline: bool = True
     paced_links: bool = True
+    world: Path | None = None
 
     def __post_init__(self) -> None:
         validate_identifier(self.scanner_id)
@@ -119,6 +123,12 @@ class AcquireConfig:
         if self.compression not in ("zstd", "lz4", "none"):
             raise ConfigError(f"compression must be zstd, lz4 or none, got {self.compression!r}")
         object.__setattr__(self, "out_dir", Path(self.out_dir))
+        if self.world is not None:
+            object.__setattr__(self, "world", Path(self.world))
+            if self.device != "sim":
+                raise ConfigError(f"--world needs --device sim (the world is simulated), got --device {self.device}")
+            if self.gamma_start is not None or self.gamma_stop is not None:
+                raise ConfigError("--gamma-start/--gamma-stop do not apply with --world; set [scanner] sweep in it")
 
     def mcap_path(self, index: int) -> Path:
         if self.scans == 1:

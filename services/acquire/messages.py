@@ -50,6 +50,8 @@ def scan_start(
     e.phi0, e.phi1, e.phi2 = energy_model.phi0, energy_model.phi1, energy_model.phi2
     e.valid_min_range, e.valid_max_range = energy_model.d_min, energy_model.d_max
     e.distance_unit, e.energy_unit = "m", "V^2 s"
+    if info.pose is not None:
+        msg.pose.CopyFrom(info.pose)
     return msg
 
 

@@ -8,6 +8,8 @@
     [air]           temperature_c or sound_speed (m/s)
     [energy_model]  phi = [phi0, phi1, phi2], d_min, d_max (m): E0(d) = 1/(phi0 d² + phi1 d + phi2)
     [schedule]      gamma_start_deg, gamma_stop_deg, steps
+    [mount]         kind ("fan" or "paper"), height (m), odometry_max_age (s): the array on the robot; with it,
+                    each scan carries the pose the robot's odometry publishes on <prefix>/<scanner>/odom
 
 :func:`load_rig` reads and type-checks them; :func:`require_for_serial` names
 every missing key at once.  :func:`write_energy_model` rewrites only the
@@ -50,6 +52,7 @@ RIG_KEYS: dict[str, dict[str, type]] = {
     "air": {"temperature_c": float, "sound_speed": float},
     "energy_model": {"phi": list, "d_min": float, "d_max": float},
     "schedule": {"gamma_start_deg": float, "gamma_stop_deg": float, "steps": int},
+    "mount": {"kind": str, "height": float, "odometry_max_age": float},
 }
 
 #: What ``--device serial`` cannot run without (flags may supply the ports, the schedule and φ).
@@ -184,6 +187,14 @@ def _validate(rig: Rig) -> None:
         baud = rig.get(f"{table}.baudrate")
         if baud is not None and baud <= 0:
             raise ConfigError(_where(p, f"[{table}].baudrate must be positive, got {baud}"))
+    kind, height = rig.get("mount.kind"), rig.get("mount.height")
+    if kind is not None and kind not in ("fan", "paper"):
+        raise ConfigError(_where(p, f'[mount].kind must be "fan" or "paper", got {kind!r}'))
+    if height is not None and not 0.0 <= height <= 10.0:
+        raise ConfigError(_where(p, f"[mount].height must be in [0, 10] m above the floor, got {height}"))
+    age = rig.get("mount.odometry_max_age")
+    if age is not None and not 0.0 < age <= 60.0:
+        raise ConfigError(_where(p, f"[mount].odometry_max_age must be in (0, 60] s, got {age}"))
     t_c, c = rig.get("air.temperature_c"), rig.get("air.sound_speed")
     if t_c is not None and not -40.0 <= t_c <= 60.0:
         raise ConfigError(_where(p, f"[air].temperature_c must be in [-40, 60] °C, got {t_c}"))

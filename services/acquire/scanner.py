@@ -15,6 +15,7 @@ from typing import Protocol
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.v1.scan_pb2 import PoseWithCovariance
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,7 @@ class ScannerInfo:
     window_samples: int
     air_temperature: float  # K
     sound_speed: float  # m/s
+    pose: PoseWithCovariance | None = None  # the array frame (γ = 0) in a world frame, when known
 
 
 @dataclass(frozen=True)

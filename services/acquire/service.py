@@ -12,7 +12,7 @@ import logging
 import math
 import threading
 import time
-from contextlib import ExitStack
+from contextlib import ExitStack, nullcontext
 from dataclasses import dataclass
 
 from rich.console import Console
@@ -21,7 +21,9 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from lelsonar import codec
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
+from lelsonar.acquire.odometry import OdometryFollower
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
+from lelsonar.acquire.world_scans import WorldReplay, prepare_world
 from lelsonar.energy_model import EnergyModel
 from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder
@@ -84,12 +86,17 @@ def run_acquisition(
     from lelsonar.acquire.backends import open_scanner
 
     console = console or Console(stderr=True)
+    world = prepare_world(cfg.world, cfg.seed, steps=cfg.steps) if cfg.world is not None else None
     if cfg.device == "serial":  # the rig file and flags only, never a simulator preset
         from lelsonar.acquire.rig import serial_setup
 
         setup, sim = serial_setup(cfg), None
         schedule = gamma_schedule(setup.gamma_start, setup.gamma_stop, setup.steps)
         model = setup.energy_model
+    elif world is not None:  # one simulated sweep per pose, each its own scanner
+        sim = None
+        schedule = world.schedule
+        model = energy_model(cfg)
     else:
         sim = sim_config(cfg)
         schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
@@ -100,6 +107,7 @@ def run_acquisition(
     with ExitStack() as stack:
         publisher = None
         server = None
+        follower = None
         if zenoh is not None:
             session = stack.enter_context(open_session(zenoh))
             token = session.liveliness().declare_token(keys.alive("acquire"))
@@ -108,14 +116,28 @@ def run_acquisition(
             server = stack.enter_context(LogServer(session, keys, log))
             publisher = ScanPublisher(session, keys)
             stack.callback(_quietly, "undeclaring the publishers", publisher.close)
-        with open_scanner(cfg, sim) as scanner:
+            if world is None and cfg.rig is not None and cfg.rig.get("mount.kind") is not None:
+                # A robot's scanner: each scan carries the pose its odometry publishes, through the mount.
+                follower = OdometryFollower(session, keys, max_age=cfg.rig.get("mount.odometry_max_age", 1.0))
+                stack.callback(_quietly, "undeclaring the odometry subscriber", follower.close)
+        with nullcontext(None) if world is not None else open_scanner(cfg, sim) as opened:
             for index in range(cfg.scans):
                 scan_id = time.time_ns() // 1000  # unique per scanner, readable as a start time in µs
                 path = cfg.mcap_path(index) if cfg.record else None
+                scanner = world.scanner(index) if world is not None else opened
+                assert scanner is not None  # open_scanner yields one whenever there is no world
+                if follower is not None and cfg.rig is not None:
+                    pose, why = follower.pose_for_scan(cfg.rig.get("mount.kind"), cfg.rig.get("mount.height", 0.0))
+                    scanner.info = dataclasses.replace(scanner.info, pose=pose)
+                    if why:
+                        console.print(f"acquire: {why}")
+                meta = cfg.as_metadata()
+                if world is not None and isinstance(scanner, WorldReplay):
+                    meta |= world.metadata(index, scanner.scan)  # the truth, never on the wire
                 with ExitStack() as scan_stack:
                     recorder = (
                         scan_stack.enter_context(
-                            McapRecorder(path, compression=cfg.compression, metadata=cfg.as_metadata(), fsync=cfg.fsync)
+                            McapRecorder(path, compression=cfg.compression, metadata=meta, fsync=cfg.fsync)
                         )
                         if path
                         else None
@@ -142,7 +164,9 @@ def run_acquisition(
                         model,
                         output,
                         stop,
-                        on_step=lambda _s, g: progress.update(task, advance=1, gamma=math.degrees(g)),
+                        on_step=lambda _s, g, bar=progress, task=task: bar.update(
+                            task, advance=1, gamma=math.degrees(g)
+                        ),
                         int16_scale=INT16_SCALE if cfg.waveform_int16 else None,
                     )
                     report.publish_failures += output.publish_failures
@@ -150,6 +174,9 @@ def run_acquisition(
                 if path:
                     report.paths.append(path)
                 status = "complete" if end.status == 1 else f"ABORTED ({end.reason})"
+                if world is not None:
+                    p = world.world.poses[index]
+                    status += f" at pose {index + 1} (x {p.x:g} m, y {p.y:g} m, heading {math.degrees(p.heading):g}°)"
                 console.print(
                     f"scan {scan_id}: {status}; {end.samples_sent}/{end.steps_planned} samples, "
                     f"{end.echoes_missing} readings without echo" + (f"; recorded to {path}" if path else "")

@@ -48,6 +48,7 @@ _PROTO_TOPICS: dict[str, type[Message]] = {
     visual.TOPIC_POINTS: visual.PointCloud,
     visual.TOPIC_SCAN_POINTS: visual.PointCloud,
     visual.TOPIC_PLANES: visual.SceneUpdate,
+    visual.TOPIC_WORLD: visual.SceneUpdate,
     TOPIC_TRUTH: visual.SceneUpdate,
     visual.TOPIC_LOG: visual.Log,
 }
@@ -190,6 +191,11 @@ class FoxgloveObserver:
         s = scan.start
         self.server.log(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(s, t), t)
         self.server.log(visual.TOPIC_ARRAY, visual.array_model(s, t), t)
+        for tf in visual.pose_transforms(s, t):  # where the robot was: map → odom → base_link → world
+            self.server.log(visual.TOPIC_TF, tf, t)
+        pose = visual.pose_scene(s, t)
+        if pose is not None:
+            self.server.log(visual.TOPIC_WORLD, pose, t)
         if self.truth:
             self.server.log(TOPIC_TRUTH, truth_scene(self.truth, s.scanner_id, t), t)
 

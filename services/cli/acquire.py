@@ -35,12 +35,13 @@ _TOML_KEYS = {
     "fsync": bool,
     "serve_log_for": float,
     "pipeline": bool,
+    "world": str,
 }
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.acquire.backends import DEVICES
-    from lelsonar.net.secure import add_secure_argument
+    from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
     from lelsonar.sim import preset_names
 
@@ -65,6 +66,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--device", choices=DEVICES, help="what to drive (default: emulated)")
     p.add_argument(
         "--preset", choices=preset_names(), help="simulated scene and default schedule (default: paper-test1)"
+    )
+    p.add_argument(
+        "--world",
+        type=Path,
+        metavar="FILE.toml",
+        help="--device sim: scan a world (docs/worlds.md) at each of its poses, one recording per pose, "
+        "each ScanStart with the odometry's pose",
     )
     p.add_argument("--steps", type=int, help="angle steps per scan (default: the preset's)")
     p.add_argument("--gamma-start", type=float, metavar="DEG", help="first angle, degrees (default: the preset's)")
@@ -181,6 +189,14 @@ def config_from_args(args: argparse.Namespace):
             values[key] = getattr(args, key)
     if args.prefix:
         values["prefix"] = args.prefix
+    if getattr(args, "world", None) is not None:
+        values["world"] = args.world
+    if values.get("world") is not None:
+        from lelsonar.sim.world import load_world
+
+        if "scans" in values:
+            raise ConfigError("--scans does not apply with --world: the world's [[pose]] entries set the scans")
+        values["scans"] = len(load_world(values["world"]).poses)
     for name in ("gamma_start", "gamma_stop"):
         deg = getattr(args, name) if getattr(args, name) is not None else values.pop(f"{name}_deg", None)
         values.pop(f"{name}_deg", None)

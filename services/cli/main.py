@@ -15,7 +15,7 @@ import sys
 #: Modules that contribute subcommands, in the order `--help` lists them.
 COMMAND_MODULES = (
     "lelsonar.cli.contract",
-    "lelsonar.net.secure",
+    "lelsonar.cli.secure",
     "lelsonar.cli.acquire",
     "lelsonar.cli.simulate",
     "lelsonar.cli.emulate",

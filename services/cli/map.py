@@ -53,7 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_fusion_arguments(p)
     p.set_defaults(run=run_map)
 
-    from lelsonar.net.secure import add_secure_argument
+    from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
 
     p = sub.add_parser(

@@ -14,7 +14,7 @@ _log = logging.getLogger("lelsonar.reconstruct")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from lelsonar.net.secure import add_secure_argument
+    from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
 
     p = sub.add_parser(
@@ -430,6 +430,7 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
 def run_review(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from lelsonar.log.recording import read_metadata, truth_world
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.view import present
@@ -439,9 +440,14 @@ def run_review(args: argparse.Namespace) -> int:
     out = args.output or args.source.with_suffix(".rrd")
     total = len(source.payloads())
     console = present.console(stderr=True)
+    world = truth_world(read_metadata(source).get("lelsonar.config"))  # a simulated world, drawn as truth
     with (
         open_rerun(
-            rrd=out, application_id="lelsonar", truth_preset=args.truth_preset, main_method=args.method
+            rrd=out,
+            application_id="lelsonar",
+            truth_preset=args.truth_preset,
+            main_method=args.method,
+            truth_world=world,
         ) as observer,
         Progress(
             TextColumn("review"),

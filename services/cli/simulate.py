@@ -40,6 +40,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "energy model; `lelsonar reconstruct --source OUT.mcap --json` reconstructs it",
     )
     p.add_argument("--plot", metavar="PATH", help="write a figure of points, energies and R (PNG/PDF/SVG)")
+    p.add_argument(
+        "--world",
+        type=Path,
+        metavar="FILE.toml",
+        help="simulate a world (docs/worlds.md) at each of its poses instead of an L; --plot draws the world, "
+        "the poses, the path and each sweep's echoes",
+    )
     p.set_defaults(run=_simulate)
 
     c = sub.add_parser("calibrate", help="fit the energy model E0(d) from six face-on shots (paper §4)")
@@ -81,6 +88,8 @@ def _simulate(args: argparse.Namespace) -> int:
     from lelsonar.sim.presets import preset
     from lelsonar.sim.scan import EchoSource, simulate_scan
 
+    if args.world is not None:
+        return _simulate_world(args)
     if args.family:
         from lelsonar.sim.scenes import simulate_family_scene
 
@@ -115,6 +124,43 @@ def _simulate(args: argparse.Namespace) -> int:
         from lelsonar.sim.plot import save_scan_figure
 
         print(f"wrote {save_scan_figure(scan, args.plot)}")
+    return 0
+
+
+def _simulate_world(args: argparse.Namespace) -> int:
+    import math
+
+    from lelsonar.sim.odometry import simulate_odometry
+    from lelsonar.sim.scan import EchoSource
+    from lelsonar.sim.world import load_world
+    from lelsonar.sim.world_geometry import ElementKind, build_model
+    from lelsonar.sim.world_render import simulate_world_scan
+
+    if args.mcap or args.family:
+        raise ConfigError("--world runs alone: record its scans with `lelsonar acquire --device sim --world FILE`")
+    world = load_world(args.world)
+    model = build_model(world)
+    kinds = {k.name.lower(): sum(e.kind == k for e in model.elements) for k in ElementKind}
+    print(
+        f"world {world.name}: {len(world.walls)} walls, {len(world.boxes)} boxes, {len(model.surfaces)} surfaces; "
+        + ", ".join(f"{n} {k}" for k, n in kinds.items())
+        + f"; {world.scanner.mount} mount at {world.scanner.height:g} m"
+    )
+    scans = []
+    for i, pose in enumerate(world.poses):
+        scan = simulate_world_scan(model, i, seed=np.random.default_rng([args.seed, i]), with_waveforms=False)
+        scans.append(scan)
+        counts = np.bincount(scan.echo_source.ravel().astype(int), minlength=len(EchoSource))
+        print(
+            f"pose {i + 1} (x {pose.x:g} m, y {pose.y:g} m, heading {math.degrees(pose.heading):g}°): "
+            f"{scan.n_steps} steps; echo that set the TOF: "
+            + ", ".join(f"{s.name.lower()} {counts[s]}" for s in EchoSource if counts[s])
+        )
+    if args.plot:
+        from lelsonar.sim.world_plot import save_world_figure
+
+        odometry = simulate_odometry(world.poses, world.odometry)
+        print(f"wrote {save_world_figure(model, scans, args.plot, odometry)}")
     return 0
 
 

@@ -1,8 +1,8 @@
 """`lelsonar warm-up`: compile the numeric kernels once, so the first `reconstruct` does not.
 
 Numba compiles a kernel on its first call and keeps the machine code on disk
-(:mod:`lelsonar.signal.compiled`).  Compiling all of them takes ~40 s on
-two cores, once per install or edit; `make` runs this right after installing.
+(:mod:`lelsonar.signal.compiled`).  Compiling all of them takes a while,
+once per install or edit; `make` runs this right after installing.
 It replays a short simulated recording through the service twice — the finals
 of `reconstruct --source` (with the compared methods), then the live path's
 provisional estimates — so every kernel meets the argument types it meets in
@@ -29,10 +29,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def exercise_kernels() -> None:
-    """Call every kernel once, as a scan does: compiled if need be, else loaded from the cache (~1 s).
+    """Call every kernel once, as a scan does: compiled if need be, else loaded from the cache.
 
     A live reconstructor does this before it listens, so its first scan does not wait for the loading
-    (measured: 0.74 s of the first scan's handling, a p99 put→processed of 134 ms in `bench ingest`).
+    (which would otherwise delay the first scan's samples).
     The service's own log is held back meanwhile: these scans are not the user's.
     """
     from lelsonar.acquire.simulated import record_scan

@@ -19,7 +19,8 @@ Topics (the names are the same live and recorded):
 ==========================  =============================  =====================================
 topic                       schema                         what
 ==========================  =============================  =====================================
-``/tf``                     ``foxglove.FrameTransform``    world → array, per step (recording)
+``/tf``                     ``foxglove.FrameTransform``    world → array, per step (recording); map → odom →
+                                                           base_link → world per scan, when the scan has a pose
 ``/tf_capsules``            ``foxglove.FrameTransforms``   array → capsule_X, per scan
 ``/lelsonar/array``         ``foxglove.SceneUpdate``       capsules and beams, in the array frame
 ``/lelsonar/points``        ``foxglove.PointCloud``        the raw points of the latest step
@@ -57,6 +58,7 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.draw.palette import QUALITY_NAME, method_color, quality_color
+from lelsonar.geometry import beam_heading, matrix_from_quaternion, quaternion_from_matrix, rotation_z
 from lelsonar.v1 import reconstruction_pb2
 
 WORLD_FRAME = "world"
@@ -146,6 +148,40 @@ def array_transform(gamma: float, t_ns: int) -> FrameTransform:
     """world → array: the array turned by γ about x."""
     half = 0.5 * gamma
     return frame_transform(WORLD_FRAME, ARRAY_FRAME, t_ns, rotation=(math.sin(half), 0.0, 0.0, math.cos(half)))
+
+
+MAP_FRAME = "map"
+BASE_FRAME = "base_link"
+
+
+def pose_transforms(start: codec.ScanStart, t_ns: int) -> list[FrameTransform]:
+    """map → odom → base_link → world of a scan that carries a pose; none for one that does not.
+
+    ``odom`` is the pose's frame (map → odom is the identity: the odometry's own start).
+    ``base_link`` is the floor point below the array, heading along its γ = 0 beam; ``world``
+    (the array frame at γ = 0, the frame the scan is drawn in) sits on it by the mount.
+    """
+    if not start.HasField("pose"):
+        return []
+    pose = codec.scan_pose(start)
+    out = []
+    if pose.frame_id != MAP_FRAME:
+        out.append(frame_transform(MAP_FRAME, pose.frame_id, t_ns))
+    heading = beam_heading(pose.orientation)
+    base_rot = rotation_z(heading)
+    base_t = np.array([pose.position[0], pose.position[1], 0.0])
+    out.append(
+        frame_transform(
+            pose.frame_id, BASE_FRAME, t_ns, base_t, (0.0, 0.0, math.sin(heading / 2), math.cos(heading / 2))
+        )
+    )
+    mount = base_rot.T @ matrix_from_quaternion(pose.orientation)
+    out.append(
+        frame_transform(
+            BASE_FRAME, WORLD_FRAME, t_ns, base_rot.T @ (pose.position - base_t), quaternion_from_matrix(mount)
+        )
+    )
+    return out
 
 
 def capsule_transforms(start: codec.ScanStart, t_ns: int | None = None) -> FrameTransforms:
@@ -238,7 +274,7 @@ def sample_points(start: codec.ScanStart, sample: codec.Sample) -> tuple[np.ndar
             for c, d in rows
         ]
     )
-    # Eq. (9) as beam_points_from_capsules computes it, for one γ (its general form costs 0.3 ms a call).
+    # Eq. (9) as beam_points_from_capsules computes it, for one γ (its general form pays for many γ).
     cg, sg = math.cos(sample.gamma_measured), math.sin(sample.gamma_measured)
     rot = np.array([[1.0, 0.0, 0.0], [0.0, cg, -sg], [0.0, sg, cg]])
     return local @ rot.T, np.array([c.capsule_id for c, _ in rows])
@@ -538,3 +574,93 @@ def log_message(level: str, text: str, t_ns: int, name: str = "lelsonar") -> Log
     msg = Log(level=Log.Level.Value(_LOG_LEVELS.get(level.lower(), "INFO")), message=text, name=name, file="")
     msg.timestamp.FromNanoseconds(int(t_ns))
     return msg
+
+
+# --- a simulated world as truth, and where each scan was ------------------------------------
+TOPIC_WORLD = "/lelsonar/world"
+_WALL_RGB = (150, 150, 150)
+_BOX_RGB = (190, 160, 110)
+_PATH_RGB = (120, 200, 255)
+_POSE_RGB = (255, 200, 0)
+_WALL_THICKNESS = 0.02  # m
+
+
+def _entity(frame_id: str, entity_id: str, t_ns: int) -> SceneEntity:
+    ent = SceneEntity(frame_id=frame_id, id=entity_id)
+    ent.timestamp.FromNanoseconds(int(t_ns))
+    ent.lifetime.SetInParent()
+    return ent
+
+
+def _cube(ent: SceneEntity, center, size, yaw: float, rgb, alpha: float = 1.0) -> None:
+    cube = ent.cubes.add()
+    cube.pose.position.x, cube.pose.position.y, cube.pose.position.z = (float(v) for v in center)
+    cube.pose.orientation.z, cube.pose.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    cube.size.x, cube.size.y, cube.size.z = (float(v) for v in size)
+    cube.color.CopyFrom(_color(rgb, alpha))
+
+
+def world_scene(world: dict, t_ns: int) -> SceneUpdate:
+    """A simulated world (the recording's ``truth_world`` metadata) in the ``map`` frame: walls, boxes, the path.
+
+    Walls are thin cubes, boxes cubes, the robot's true path a line through its poses with an arrow per pose.
+    """
+    out = SceneUpdate()
+    floor = float(world.get("floor") or 0.0)
+    ent = _entity(MAP_FRAME, "world/truth", t_ns)
+    for w in world.get("walls", []):
+        (x0, y0), (x1, y1) = w["from"], w["to"]
+        length = math.hypot(x1 - x0, y1 - y0)
+        z = floor + float(w.get("bottom", 0.0)) + float(w["height"]) / 2
+        _cube(
+            ent,
+            ((x0 + x1) / 2, (y0 + y1) / 2, z),
+            (length, _WALL_THICKNESS, w["height"]),
+            math.atan2(y1 - y0, x1 - x0),
+            _WALL_RGB,
+            0.6,
+        )
+    for b in world.get("boxes", []):
+        _cube(ent, (b["center"][0], b["center"][1], floor + b["size"][2] / 2), b["size"], float(b["yaw"]), _BOX_RGB)
+    poses = world.get("poses", [])
+    if poses:
+        line = ent.lines.add(type=LinePrimitive.LINE_STRIP, thickness=0.02, scale_invariant=False)
+        line.pose.position.SetInParent()
+        line.pose.orientation.w = 1.0
+        line.color.CopyFrom(_color(_PATH_RGB))
+        for p in poses:
+            line.points.append(Point3(x=float(p["x"]), y=float(p["y"]), z=floor + 0.01))
+            arrow = ent.arrows.add(shaft_length=0.2, shaft_diameter=0.02, head_length=0.08, head_diameter=0.06)
+            arrow.pose.position.x, arrow.pose.position.y, arrow.pose.position.z = (
+                float(p["x"]),
+                float(p["y"]),
+                floor + 0.01,
+            )
+            arrow.pose.orientation.z, arrow.pose.orientation.w = math.sin(p["heading"] / 2), math.cos(p["heading"] / 2)
+            arrow.color.CopyFrom(_color(_PATH_RGB))
+    out.entities.append(ent)
+    return out
+
+
+def pose_scene(start: codec.ScanStart, t_ns: int) -> SceneUpdate | None:
+    """Where the scan was, as its pose says: an arrow along the γ = 0 beam in the pose's frame; None without one."""
+    if not start.HasField("pose"):
+        return None
+    pose = codec.scan_pose(start)
+    out = SceneUpdate()
+    ent = _entity(pose.frame_id, f"{start.scanner_id}/{start.scan_id}/pose", t_ns)
+    heading = beam_heading(pose.orientation)
+    arrow = ent.arrows.add(shaft_length=0.25, shaft_diameter=0.03, head_length=0.1, head_diameter=0.08)
+    arrow.pose.position.x, arrow.pose.position.y, arrow.pose.position.z = (float(v) for v in pose.position)
+    arrow.pose.orientation.z, arrow.pose.orientation.w = math.sin(heading / 2), math.cos(heading / 2)
+    arrow.color.CopyFrom(_color(_POSE_RGB))
+    if pose.covariance is not None:
+        sx, sy = (math.sqrt(max(pose.covariance[i, i], 0.0)) for i in (0, 1))
+        sphere = ent.spheres.add()
+        sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = (float(v) for v in pose.position)
+        sphere.pose.orientation.w = 1.0
+        sphere.size.x, sphere.size.y, sphere.size.z = max(4 * sx, 0.01), max(4 * sy, 0.01), 0.01  # ±2σ
+        sphere.color.CopyFrom(_color(_POSE_RGB, 0.3))
+    ent.metadata.append(KeyValuePair(key="frame_id", value=pose.frame_id))
+    out.entities.append(ent)
+    return out

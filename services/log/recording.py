@@ -9,7 +9,8 @@ topic                           schema                            what
 ``/lelsonar/sample``            ``lelsonar.v1.Sample``            one per step
 ``/lelsonar/scan_end``          ``lelsonar.v1.ScanEnd``           one per scan
 ``/lelsonar/reconstruction``    ``lelsonar.v1.Reconstruction``    estimates, when recorded
-``/tf``                         ``foxglove.FrameTransform``       world → array, per step
+``/tf``                         ``foxglove.FrameTransform``       world → array, per step; map → odom →
+                                                                  base_link → world per scan with a pose
 ``/lelsonar/points``            ``foxglove.PointCloud``           raw points of the step (eq. 9)
 ``/log``                        ``foxglove.Log``                  events
 ``/tf_capsules``                ``foxglove.FrameTransforms``      array → capsule_X, per scan
@@ -17,6 +18,7 @@ topic                           schema                            what
 ``/lelsonar/scan_points``       ``foxglove.PointCloud``           every raw point of the scan so far
 ``/lelsonar/step``              JSON ``lelsonar.StepScalars``     γ, ranges, energies (plottable)
 ``/lelsonar/planes``            ``foxglove.SceneUpdate``          estimated planes, when recorded
+``/lelsonar/world``             ``foxglove.SceneUpdate``          the scan's pose; a simulated world as truth
 ==============================  ================================  ==========================
 
 The viewer channels come from :mod:`lelsonar.draw.visual`.  Each scan also adds a
@@ -107,8 +109,8 @@ class McapRecorder:
         a killed process, not a power cut).
     durable : bool
         True (default): one chunk per step, flushed to the OS.  False: 1 MiB
-        chunks written when full, the behaviour before durability; a killed
-        writer then loses the whole chunk in progress.  Kept for the benchmark.
+        chunks written when full; a killed writer then loses the whole chunk in
+        progress.  Kept as the benchmark's floor.
     """
 
     def __init__(
@@ -135,6 +137,7 @@ class McapRecorder:
         self.messages_written = 0
         if metadata:
             self._writer.add_metadata("lelsonar.config", {str(k): str(v) for k, v in metadata.items()})
+        self._world = truth_world(metadata)
         self._commit()
         if fsync:  # the new directory entry too, once
             dir_fd = os.open(self.path.parent, os.O_RDONLY)
@@ -217,6 +220,13 @@ class McapRecorder:
         if isinstance(message, codec.ScanStart):
             views.cloud.scan_started(message)
             self._put(visual.TOPIC_CAPSULE_TF, visual.capsule_transforms(message, t), t)
+            for tf in visual.pose_transforms(message, t):  # where the robot was: map → odom → base_link → world
+                self._put(TOPIC_TF, tf, t)
+            pose = visual.pose_scene(message, t)
+            if pose is not None:
+                self._put(visual.TOPIC_WORLD, pose, t)
+            if self._world is not None:  # a simulated world, drawn as truth
+                self._put(visual.TOPIC_WORLD, visual.world_scene(self._world, t), t)
             self._put(visual.TOPIC_ARRAY, visual.array_model(message, t), t)
             self._writer.add_metadata("lelsonar.log.recording", recording_name_metadata(message))
         elif isinstance(message, codec.Sample):
@@ -251,6 +261,19 @@ class McapRecorder:
         pts, _capsules = visual.sample_points(start, sample)
         if len(pts):
             self._put(TOPIC_POINTS, visual.point_cloud(pts, t), t)
+
+
+def truth_world(metadata: Mapping[str, str] | None) -> dict | None:
+    """The simulated world of a recording's metadata (``truth_world``, JSON), or None."""
+    text = (metadata or {}).get("truth_world")
+    if not text:
+        return None
+    try:
+        world = json.loads(text)
+    except ValueError:
+        _log.warning("the recording's truth_world metadata is not JSON; the world is not drawn")
+        return None
+    return world if isinstance(world, dict) and isinstance(world.get("walls"), list) else None
 
 
 @dataclass

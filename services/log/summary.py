@@ -14,6 +14,8 @@ from pathlib import Path
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
 from lelsonar import codec
+from lelsonar.errors import DecodeError
+from lelsonar.geometry import beam_heading
 from lelsonar.log.reader import Damage
 from lelsonar.log.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
 
@@ -68,6 +70,9 @@ class ScanSummary:
     start_ns: int | None = None
     end_ns: int | None = None
     has_start: bool = False
+    # Where the array frame was (ScanStart.pose): frame_id, x, y, z (m), heading (rad, of the γ = 0 beam),
+    # orientation (x, y, z, w), covariance (36, row-major, or None), known, note.
+    pose: dict | None = None
 
     @property
     def duration_s(self) -> float | None:
@@ -176,6 +181,7 @@ def summarize(path: Path | str | Recording) -> FileSummary:
             sc = scan(msg.scanner_id, msg.scan_id)
             sc.has_start, sc.device, sc.steps_planned = True, msg.device, msg.steps
             sc.start_ns = msg.start_time_ns
+            sc.pose = _pose_dict(msg)
         elif isinstance(msg, codec.Sample):
             sc = scan(msg.scanner_id, msg.scan_id)
             steps.setdefault((msg.scanner_id, msg.scan_id), []).append(msg.step)
@@ -280,3 +286,26 @@ def _estimate(msg: codec.Reconstruction) -> EstimateSummary:
         planes,
         list(msg.missing_steps),
     )
+
+
+def _pose_dict(start: codec.ScanStart) -> dict:
+    """The scan's pose for ``info`` (the origin, with a note, for a scan without one; a note for an invalid one)."""
+    note = ""
+    if start.HasField("pose"):
+        try:
+            codec.validate_pose("ScanStart.pose", start.pose)
+        except DecodeError as exc:
+            note = f"invalid pose, taken as the origin: {exc}"
+            start = codec.ScanStart()
+    pose = codec.scan_pose(start)
+    return {
+        "frame_id": pose.frame_id,
+        "x": float(pose.position[0]),
+        "y": float(pose.position[1]),
+        "z": float(pose.position[2]),
+        "heading": beam_heading(pose.orientation),
+        "orientation": list(pose.orientation),
+        "covariance": None if pose.covariance is None else [float(v) for v in pose.covariance.reshape(-1)],
+        "known": pose.known and not note,
+        "note": note or pose.note,
+    }

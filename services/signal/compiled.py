@@ -1,21 +1,21 @@
 """The one module that imports Numba: :func:`kernel` compiles a hot numeric loop to machine code.
 
-Why: the estimators and the ingest path make thousands of small NumPy calls a scan, and each costs
-~1 µs of interpreter overhead whatever its size (issue 12's default-fit and ingest targets).  A
+Why: the estimators and the ingest path make thousands of small NumPy calls a scan, and each pays
+the interpreter's fixed overhead whatever its size.  A
 kernel runs such a loop as one call.  Kernels are ordinary Python functions over NumPy arrays and
 scalars; the math stays in the module it belongs to (``corner_model``, ``assembly``…), decorated
 with :func:`kernel` — one implementation per idea, this module only holds the compiler's settings.
 
 Settings, and why:
 - ``cache=True``: compiled code is kept on disk, so only the first process after an install or an
-  edit compiles (~40 s for all kernels on 2 cores: ``lelsonar warm-up``, which ``make`` runs after
-  installing); a later process loads the machine code on a kernel's first call (~1 s for all).
+  edit compiles (``lelsonar warm-up``, which ``make`` runs after
+  installing); a later process loads the machine code on a kernel's first call.
 - The cache lives in a directory named after a digest of every module holding kernels
   (:data:`KERNEL_MODULES`) and the Numba version: Numba checks only a kernel's own file, so a kernel
   calling another module's kernel would otherwise keep stale machine code after that module changed.
 - ``nogil=True``: a kernel releases the GIL, so the live source's threads keep receiving.
 - ``error_model="numpy"``: division by zero gives inf/NaN as NumPy does, not an exception.
-- no ``fastmath``: results stay IEEE, so a kernel agrees with the NumPy it replaced to rounding.
+- no ``fastmath``: results stay IEEE, so a kernel agrees with the equivalent NumPy to rounding.
 - Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
 """
 

@@ -1,7 +1,7 @@
 """Echo times that do not walk with the echo's amplitude, and the test of a writer's ranges that do.
 
 A board's comparator sets the time of flight where the echo first crosses a
-threshold (design notes §8).  The echo's envelope rises over a few carrier
+threshold.  The echo's envelope rises over a few carrier
 cycles (the transducers' Q), so on a weaker echo the crossing comes later:
 ``t(A) ≈ onset + rise·f(threshold/A)``.  Over a sweep a wall's echo weakens
 off its normal (``D(ψ)²``), so such ranges carry a bias of millimetres to
@@ -78,7 +78,7 @@ def echo_onsets(
     *,
     level: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Constant-fraction time of the echo that set each reading's time of flight (design notes §8).
+    """Constant-fraction time of the echo that set each reading's time of flight.
 
     The envelope is the analytic signal's modulus (Hilbert transform) of each window less its floor's
     mean, smoothed over one carrier period.  The echo is the first local maximum of the envelope (over
@@ -158,8 +158,8 @@ def echo_onsets(
 def _time_envelopes(w, x, hilbert, tof_at, start, sample_rate, head, period, half, fraction, levels):
     """:func:`echo_onsets` from each window ``w`` (N, W), less its floor's mean ``x`` (float32), and the
     Hilbert transform of ``x`` (``hilbert``, (N, ≥ W) float32): the envelope, its smoothing, the floor, the peak,
-    the knee and the crossings, one window at a time (a kernel: as NumPy over the whole block it took ~3 ms
-    for the 184 windows of a scan's screen).
+    the knee and the crossings, one window at a time (a kernel: as NumPy over the whole block it pays per-call
+    overhead for every window of a scan's screen).
 
     ``start`` is the first sample the echo's peak is looked for from, ``period`` the carrier period and
     ``half`` the peak's half width, in samples; ``levels`` :func:`echo_onsets`' ``level`` (all NaN: none); the
@@ -392,7 +392,7 @@ WALK_Z = 4.0
 def range_walk(
     offset: np.ndarray, peak: np.ndarray, *, min_walk: float = MIN_WALK, z: float = WALK_Z, halves: bool = True
 ) -> RangeWalk:
-    """Whether the writer's ranges walk with the echoes' amplitude (design notes §8).
+    """Whether the writer's ranges walk with the echoes' amplitude.
 
     A least-squares line of ``offset`` against ``ln(peak)``, after dropping offsets more than 5 robust σ
     from their median (a cycle slip of the writer's comparator, an echo timed on a neighbour).
@@ -444,7 +444,7 @@ def _walk_line(o, a):
     """:func:`range_walk`'s statistics of the offsets ``o`` (m) against the log peaks ``a`` of the echoes
     timed: how many are kept, ``(slope, stderr, walk, reference)`` and the slope and its standard error over
     the weaker and the stronger half (NaN: too few), and the curve's ``(ln peak, offset, spread)`` rows.
-    (A kernel: in NumPy its ~60 small calls took ~1 ms a final.)"""
+    (A kernel: in NumPy it is ~60 small calls a final.)"""
     if o.size >= MIN_TIMED:
         med = np.median(o)
         mad = 1.4826 * np.median(np.abs(o - med))

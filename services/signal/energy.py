@@ -53,7 +53,7 @@ def waveform_energy(waveforms: np.ndarray, sample_rate: float) -> np.ndarray:
     """
     w = np.asarray(waveforms, dtype=np.float64)
     # np.vecdot: one dot product per waveform, the same arithmetic whatever the leading shape (a step's
-    # (k, n) or a scan's (steps, k, n)); ~4x faster on a step than the einsum it replaces.
+    # (k, n) or a scan's (steps, k, n)); cheaper on a step than an einsum.
     return np.vecdot(w, w) / float(sample_rate)
 
 
@@ -122,7 +122,7 @@ def echo_amplitude(
     whose first echo is a wall still rings with the corner's echo later on.
     The peak right after the time of flight belongs to the echo that set the
     range; it follows the beam pattern ``D(ψ)²`` of the angle between the beam
-    and the wall's normal (design notes §8).
+    and the wall's normal.
 
     Parameters
     ----------
@@ -178,7 +178,7 @@ def echoes_over_noise(
     false_alarm: float = NOISE_FALSE_ALARM,
 ) -> tuple[np.ndarray, float, float]:
     """Which readings' waveforms hold an echo at their time of flight, rather than the noise a board's
-    comparator fired on (design notes §8).
+    comparator fired on.
 
     A comparator fires at the first sample whose ``|w − DC|`` crosses its threshold.  Set within a few σ of the
     receiver's noise, it fires on the noise before the echo comes: the reading's time of flight then marks no
@@ -432,7 +432,7 @@ def median_range(distance: np.ndarray) -> np.ndarray:
 
 @kernel
 def _median_ranges(rows):
-    """:func:`step_median_range` of each row (a kernel: np.nanmedian goes through masked arrays, ~0.4 ms)."""
+    """:func:`step_median_range` of each row (a kernel: np.nanmedian goes through masked arrays)."""
     out = np.empty(rows.shape[0])
     for i in range(rows.shape[0]):
         out[i] = step_median_range(rows[i])

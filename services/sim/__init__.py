@@ -1,4 +1,4 @@
-"""Physically based simulator of the rotating ultrasonic scanner (issue 3).
+"""Physically based simulator of the rotating ultrasonic scanner.
 
 Pure computation: a :class:`Scene` of finite panels, the four-capsule array on
 an AX-12, air acoustics, echoes, times of flight and digitised waveforms, with

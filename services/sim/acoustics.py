@@ -1,4 +1,4 @@
-"""Air, beam and receiver physics of the simulated scanner (design notes §8).
+"""Air, beam and receiver physics of the simulated scanner.
 
 Pure functions and frozen configuration; no I/O.
 
@@ -6,7 +6,7 @@ Choices worth knowing (all documented on the fields below):
 
 * **Capsule radius 7 mm** (``ka = 5.13`` at 40 kHz, 20 °C).  The two-way
   pattern ``D²`` is −8.5 dB at 30° and −11.4 dB at 34°, first null at 48°.
-  A 5 mm piston (design §8) is so wide that the plane-a echo still carries
+  A 5 mm piston is so wide that the plane-a echo still carries
   more energy than the corner's curvature can beat, so ``E^γ`` has no peak at
   34° at all (it falls monotonically through it); 8 mm is so narrow that
   plane a is lost before 30° and the paper's "arc" shrinks.  7 mm keeps plane
@@ -47,7 +47,7 @@ J1_FIRST_ZERO = 3.831705970207512
 
 
 def sound_speed(temperature: float | np.ndarray) -> float | np.ndarray:
-    """Speed of sound in dry air, ``c = 331.3·√(1 + T_C/273.15)`` (design §8).
+    """Speed of sound in dry air, ``c = 331.3·√(1 + T_C/273.15)``.
 
     Parameters
     ----------
@@ -197,7 +197,7 @@ class Receiver:
         ADC full scale, ±V.
     timing : str
         When the comparator fires on the echo it picked (the earliest whose
-        peak is over ``threshold``; design notes §8).  ``"onset"`` (the
+        peak is over ``threshold``).  ``"onset"`` (the
         default): at the echo's arrival, plus the timing noise — a board whose
         time of flight does not depend on the echo's strength.
         ``"crossing"``: where the echo's envelope rises through ``threshold``
@@ -286,10 +286,9 @@ def comparator_delay(peak: np.ndarray, threshold: float, rise: float) -> np.ndar
     ``peak·x²·exp(2(1 − x))``, ``x = u/τ``; it reaches ``threshold`` where
     ``x·e^(−x) = √(threshold/peak)/e``, on the rising branch (x ≤ 1) of the
     Lambert W function: ``x = −W₀(−√(threshold/peak)/e)``.  So the delay
-    depends on the echo's strength only through ``threshold/peak`` (design
-    notes §8: the first echo over a comparator threshold sets the time of
-    flight): 0.135 τ at ten times the threshold, 0.63 τ at 1.2 times, τ at
-    the threshold itself.
+    depends on the echo's strength only through ``threshold/peak`` (the
+    first echo over a comparator threshold sets the time of flight): 0.135 τ
+    at ten times the threshold, 0.63 τ at 1.2 times, τ at the threshold itself.
 
     Parameters
     ----------

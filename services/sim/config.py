@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -16,10 +17,32 @@ from lelsonar.geometry import ArrayGeometry
 from lelsonar.sim.acoustics import Acoustics, Receiver, sound_speed
 from lelsonar.sim.scene import Scene
 
-#: AX-12 resolution: 300° over 1024 units (design §6), in degrees per unit.
+#: AX-12 resolution: 300° over 1024 units, in degrees per unit.
 AX12_DEG_PER_UNIT = 300.0 / 1024.0
 #: AX-12 raw position of the middle of its range (150°).
 AX12_CENTER_RAW = 512
+
+
+class Rig(Protocol):
+    """What the receiver chain needs of a simulated rig (:class:`SimConfig`, or a world's rig)."""
+
+    @property
+    def acoustics(self) -> Acoustics: ...
+
+    @property
+    def receiver(self) -> Receiver: ...
+
+    @property
+    def sample_rate(self) -> float: ...
+
+    @property
+    def window_samples(self) -> int: ...
+
+    @property
+    def window_start(self) -> float: ...
+
+    @property
+    def sound_speed(self) -> float: ...
 
 
 @dataclass(frozen=True)
@@ -33,7 +56,7 @@ class Servo:
     The goal position is rounded to a whole unit, so the array really sits on
     the 0.293° grid; ``position_error`` (rad, standard deviation) then models
     the compliance dead band around the goal.  The measured γ is the present
-    position read back, again a whole unit (design §6: log the read-back).
+    position read back, again a whole unit (so the read-back is what is logged).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Seeded families of L-corner scenes for tests and the estimator benchmark (issue 9 §1).
+"""Seeded families of L-corner scenes for tests and the estimator benchmark.
 
 Each family varies one thing the estimators are judged on, drawn broadly (the
 project is evaluated on scenes it never sees, so nothing here is tuned to a

@@ -10,11 +10,19 @@ import numpy as np
 import rerun as rr
 
 from lelsonar import codec
+from lelsonar.geometry import beam_heading
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.service import Partial
-from lelsonar.view.rerun_log import ScanLogger, SubsetView, default_blueprint, make_recording
+from lelsonar.view.rerun_log import (
+    ScanLogger,
+    SubsetView,
+    default_blueprint,
+    log_scan_pose,
+    log_world_truth,
+    make_recording,
+)
 
 
 class RerunObserver:
@@ -29,10 +37,11 @@ class RerunObserver:
         True planes to draw (simulated scenes).
     """
 
-    def __init__(self, rec: rr.RecordingStream, main_method: str, truth=None) -> None:
+    def __init__(self, rec: rr.RecordingStream, main_method: str, truth=None, world: dict | None = None) -> None:
         self.rec = rec
         self.main_method = main_method
         self.truth = truth
+        self.world = world  # a simulated world (truth_world metadata), drawn once
         self._loggers: dict[tuple[str, int], ScanLogger] = {}
         self._last: ScanLogger | None = None
 
@@ -57,6 +66,14 @@ class RerunObserver:
         )
         if self.truth:
             log.truth(self.truth)
+        if self.world is not None:
+            log_world_truth(self.rec, self.world)
+            self.world = None
+        if s.HasField("pose"):
+            pose = codec.scan_pose(s)
+            log_scan_pose(
+                self.rec, s.scanner_id, s.scan_id, pose.position, beam_heading(pose.orientation), pose.frame_id
+            )
 
     def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None:
         self._logger(scan).step(
@@ -149,6 +166,7 @@ def open_rerun(
     application_id: str = "lelsonar",
     truth_preset: str | None = None,
     main_method: str | None = None,
+    truth_world: dict | None = None,
 ) -> Iterator[RerunObserver]:
     """One explicit recording with the chosen sinks and the default blueprint; flushed on exit."""
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
@@ -166,7 +184,9 @@ def open_rerun(
         sinks.append(rr.GrpcSink())
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     try:
-        yield RerunObserver(rec, main_method or DEFAULT_METHOD, preset_truth(truth_preset) if truth_preset else None)
+        yield RerunObserver(
+            rec, main_method or DEFAULT_METHOD, preset_truth(truth_preset) if truth_preset else None, truth_world
+        )
     finally:
         rec.flush()
         rec.disconnect()

@@ -25,33 +25,39 @@ _sym_db = _symbol_database.Default()
 from lelsonar.v1 import common_pb2 as lelsonar_dot_v1_dot_common__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16lelsonar/v1/scan.proto\x12\x0blelsonar.v1\x1a\x18lelsonar/v1/common.proto\"n\n\x07\x43\x61psule\x12\x12\n\ncapsule_id\x18\x01 \x01(\r\x12&\n\x08position\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\'\n\tboresight\x18\x03 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\"\x95\x01\n\x0b\x45nergyModel\x12\x0c\n\x04phi0\x18\x01 \x01(\x01\x12\x0c\n\x04phi1\x18\x02 \x01(\x01\x12\x0c\n\x04phi2\x18\x03 \x01(\x01\x12\x17\n\x0fvalid_min_range\x18\x04 \x01(\x01\x12\x17\n\x0fvalid_max_range\x18\x05 \x01(\x01\x12\x15\n\rdistance_unit\x18\x06 \x01(\t\x12\x13\n\x0b\x65nergy_unit\x18\x07 \x01(\t\"\xeb\x03\n\tScanStart\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x15\n\rstart_time_ns\x18\x04 \x01(\x03\x12\x18\n\x10software_version\x18\x05 \x01(\t\x12&\n\x08\x63\x61psules\x18\x06 \x03(\x0b\x32\x14.lelsonar.v1.Capsule\x12+\n\rrotation_axis\x18\x07 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x15\n\rradial_offset\x18\x08 \x01(\x01\x12\x13\n\x0bgamma_start\x18\t \x01(\x01\x12\x12\n\ngamma_stop\x18\n \x01(\x01\x12\r\n\x05steps\x18\x0b \x01(\r\x12\x31\n\tdirection\x18\x0c \x01(\x0e\x32\x1e.lelsonar.v1.RotationDirection\x12\x13\n\x0bsound_speed\x18\r \x01(\x01\x12\x17\n\x0f\x61ir_temperature\x18\x0e \x01(\x01\x12\x13\n\x0bsample_rate\x18\x0f \x01(\x01\x12\x16\n\x0ewindow_samples\x18\x10 \x01(\r\x12.\n\x0c\x65nergy_model\x18\x11 \x01(\x0b\x32\x18.lelsonar.v1.EnergyModel\x12\x0e\n\x06\x64\x65vice\x18\x12 \x01(\t\"s\n\x0bMotorStatus\x12\x1c\n\x14present_position_raw\x18\x01 \x01(\r\x12\x0c\n\x04load\x18\x02 \x01(\x01\x12\x0f\n\x07voltage\x18\x03 \x01(\x01\x12\x13\n\x0btemperature\x18\x04 \x01(\x01\x12\x12\n\nerror_bits\x18\x05 \x01(\r\"\x8f\x01\n\x08Waveform\x12/\n\x08\x65ncoding\x18\x01 \x01(\x0e\x32\x1d.lelsonar.v1.WaveformEncoding\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\r\n\x05scale\x18\x03 \x01(\x01\x12\x13\n\x0bsample_rate\x18\x04 \x01(\x01\x12\n\n\x02t0\x18\x05 \x01(\x01\x12\x14\n\x0csample_count\x18\x06 \x01(\r\"\x8a\x01\n\rSensorReading\x12\x12\n\ncapsule_id\x18\x01 \x01(\r\x12\x12\n\necho_valid\x18\x02 \x01(\x08\x12\x16\n\x0etime_of_flight\x18\x03 \x01(\x01\x12\x10\n\x08\x64istance\x18\x04 \x01(\x01\x12\'\n\x08waveform\x18\x05 \x01(\x0b\x32\x15.lelsonar.v1.Waveform\"\x8e\x02\n\x06Sample\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x0c\n\x04step\x18\x04 \x01(\r\x12\x1b\n\x13\x61\x63quisition_time_ns\x18\x05 \x01(\x03\x12\x17\n\x0fgamma_commanded\x18\x06 \x01(\x01\x12\x16\n\x0egamma_measured\x18\x07 \x01(\x01\x12\'\n\x05motor\x18\x08 \x01(\x0b\x32\x18.lelsonar.v1.MotorStatus\x12+\n\x07sensors\x18\t \x03(\x0b\x32\x1a.lelsonar.v1.SensorReading\x12\x15\n\rsensor_energy\x18\n \x03(\x01\"\xd9\x01\n\x07ScanEnd\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x13\n\x0b\x65nd_time_ns\x18\x04 \x01(\x03\x12\'\n\x06status\x18\x05 \x01(\x0e\x32\x17.lelsonar.v1.ScanStatus\x12\x0e\n\x06reason\x18\x06 \x01(\t\x12\x15\n\rsteps_planned\x18\x07 \x01(\r\x12\x14\n\x0csamples_sent\x18\x08 \x01(\r\x12\x16\n\x0e\x65\x63hoes_missing\x18\t \x01(\r*}\n\x11RotationDirection\x12\"\n\x1eROTATION_DIRECTION_UNSPECIFIED\x10\x00\x12!\n\x1dROTATION_DIRECTION_INCREASING\x10\x01\x12!\n\x1dROTATION_DIRECTION_DECREASING\x10\x02*w\n\x10WaveformEncoding\x12!\n\x1dWAVEFORM_ENCODING_UNSPECIFIED\x10\x00\x12 \n\x1cWAVEFORM_ENCODING_FLOAT32_LE\x10\x01\x12\x1e\n\x1aWAVEFORM_ENCODING_INT16_LE\x10\x02*\\\n\nScanStatus\x12\x1b\n\x17SCAN_STATUS_UNSPECIFIED\x10\x00\x12\x18\n\x14SCAN_STATUS_COMPLETE\x10\x01\x12\x17\n\x13SCAN_STATUS_ABORTED\x10\x02\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16lelsonar/v1/scan.proto\x12\x0blelsonar.v1\x1a\x18lelsonar/v1/common.proto\"n\n\x07\x43\x61psule\x12\x12\n\ncapsule_id\x18\x01 \x01(\r\x12&\n\x08position\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\'\n\tboresight\x18\x03 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\"\x95\x01\n\x0b\x45nergyModel\x12\x0c\n\x04phi0\x18\x01 \x01(\x01\x12\x0c\n\x04phi1\x18\x02 \x01(\x01\x12\x0c\n\x04phi2\x18\x03 \x01(\x01\x12\x17\n\x0fvalid_min_range\x18\x04 \x01(\x01\x12\x17\n\x0fvalid_max_range\x18\x05 \x01(\x01\x12\x15\n\rdistance_unit\x18\x06 \x01(\t\x12\x13\n\x0b\x65nergy_unit\x18\x07 \x01(\t\"\x9a\x04\n\tScanStart\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x15\n\rstart_time_ns\x18\x04 \x01(\x03\x12\x18\n\x10software_version\x18\x05 \x01(\t\x12&\n\x08\x63\x61psules\x18\x06 \x03(\x0b\x32\x14.lelsonar.v1.Capsule\x12+\n\rrotation_axis\x18\x07 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x15\n\rradial_offset\x18\x08 \x01(\x01\x12\x13\n\x0bgamma_start\x18\t \x01(\x01\x12\x12\n\ngamma_stop\x18\n \x01(\x01\x12\r\n\x05steps\x18\x0b \x01(\r\x12\x31\n\tdirection\x18\x0c \x01(\x0e\x32\x1e.lelsonar.v1.RotationDirection\x12\x13\n\x0bsound_speed\x18\r \x01(\x01\x12\x17\n\x0f\x61ir_temperature\x18\x0e \x01(\x01\x12\x13\n\x0bsample_rate\x18\x0f \x01(\x01\x12\x16\n\x0ewindow_samples\x18\x10 \x01(\r\x12.\n\x0c\x65nergy_model\x18\x11 \x01(\x0b\x32\x18.lelsonar.v1.EnergyModel\x12\x0e\n\x06\x64\x65vice\x18\x12 \x01(\t\x12-\n\x04pose\x18\x13 \x01(\x0b\x32\x1f.lelsonar.v1.PoseWithCovariance\"8\n\nQuaternion\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\t\n\x01z\x18\x03 \x01(\x01\x12\t\n\x01w\x18\x04 \x01(\x01\"\x90\x01\n\x12PoseWithCovariance\x12\x10\n\x08\x66rame_id\x18\x01 \x01(\t\x12&\n\x08position\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12,\n\x0borientation\x18\x03 \x01(\x0b\x32\x17.lelsonar.v1.Quaternion\x12\x12\n\ncovariance\x18\x04 \x03(\x01\"v\n\x08Odometry\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07time_ns\x18\x03 \x01(\x03\x12-\n\x04pose\x18\x04 \x01(\x0b\x32\x1f.lelsonar.v1.PoseWithCovariance\"s\n\x0bMotorStatus\x12\x1c\n\x14present_position_raw\x18\x01 \x01(\r\x12\x0c\n\x04load\x18\x02 \x01(\x01\x12\x0f\n\x07voltage\x18\x03 \x01(\x01\x12\x13\n\x0btemperature\x18\x04 \x01(\x01\x12\x12\n\nerror_bits\x18\x05 \x01(\r\"\x8f\x01\n\x08Waveform\x12/\n\x08\x65ncoding\x18\x01 \x01(\x0e\x32\x1d.lelsonar.v1.WaveformEncoding\x12\x0c\n\x04\x64\x61ta\x18\x02 \x01(\x0c\x12\r\n\x05scale\x18\x03 \x01(\x01\x12\x13\n\x0bsample_rate\x18\x04 \x01(\x01\x12\n\n\x02t0\x18\x05 \x01(\x01\x12\x14\n\x0csample_count\x18\x06 \x01(\r\"\x8a\x01\n\rSensorReading\x12\x12\n\ncapsule_id\x18\x01 \x01(\r\x12\x12\n\necho_valid\x18\x02 \x01(\x08\x12\x16\n\x0etime_of_flight\x18\x03 \x01(\x01\x12\x10\n\x08\x64istance\x18\x04 \x01(\x01\x12\'\n\x08waveform\x18\x05 \x01(\x0b\x32\x15.lelsonar.v1.Waveform\"\x8e\x02\n\x06Sample\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x0c\n\x04step\x18\x04 \x01(\r\x12\x1b\n\x13\x61\x63quisition_time_ns\x18\x05 \x01(\x03\x12\x17\n\x0fgamma_commanded\x18\x06 \x01(\x01\x12\x16\n\x0egamma_measured\x18\x07 \x01(\x01\x12\'\n\x05motor\x18\x08 \x01(\x0b\x32\x18.lelsonar.v1.MotorStatus\x12+\n\x07sensors\x18\t \x03(\x0b\x32\x1a.lelsonar.v1.SensorReading\x12\x15\n\rsensor_energy\x18\n \x03(\x01\"\xd9\x01\n\x07ScanEnd\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x0f\n\x07scan_id\x18\x03 \x01(\x04\x12\x13\n\x0b\x65nd_time_ns\x18\x04 \x01(\x03\x12\'\n\x06status\x18\x05 \x01(\x0e\x32\x17.lelsonar.v1.ScanStatus\x12\x0e\n\x06reason\x18\x06 \x01(\t\x12\x15\n\rsteps_planned\x18\x07 \x01(\r\x12\x14\n\x0csamples_sent\x18\x08 \x01(\r\x12\x16\n\x0e\x65\x63hoes_missing\x18\t \x01(\r*}\n\x11RotationDirection\x12\"\n\x1eROTATION_DIRECTION_UNSPECIFIED\x10\x00\x12!\n\x1dROTATION_DIRECTION_INCREASING\x10\x01\x12!\n\x1dROTATION_DIRECTION_DECREASING\x10\x02*w\n\x10WaveformEncoding\x12!\n\x1dWAVEFORM_ENCODING_UNSPECIFIED\x10\x00\x12 \n\x1cWAVEFORM_ENCODING_FLOAT32_LE\x10\x01\x12\x1e\n\x1aWAVEFORM_ENCODING_INT16_LE\x10\x02*\\\n\nScanStatus\x12\x1b\n\x17SCAN_STATUS_UNSPECIFIED\x10\x00\x12\x18\n\x14SCAN_STATUS_COMPLETE\x10\x01\x12\x17\n\x13SCAN_STATUS_ABORTED\x10\x02\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'lelsonar.v1.scan_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_ROTATIONDIRECTION']._serialized_start=1720
-  _globals['_ROTATIONDIRECTION']._serialized_end=1845
-  _globals['_WAVEFORMENCODING']._serialized_start=1847
-  _globals['_WAVEFORMENCODING']._serialized_end=1966
-  _globals['_SCANSTATUS']._serialized_start=1968
-  _globals['_SCANSTATUS']._serialized_end=2060
+  _globals['_ROTATIONDIRECTION']._serialized_start=2092
+  _globals['_ROTATIONDIRECTION']._serialized_end=2217
+  _globals['_WAVEFORMENCODING']._serialized_start=2219
+  _globals['_WAVEFORMENCODING']._serialized_end=2338
+  _globals['_SCANSTATUS']._serialized_start=2340
+  _globals['_SCANSTATUS']._serialized_end=2432
   _globals['_CAPSULE']._serialized_start=65
   _globals['_CAPSULE']._serialized_end=175
   _globals['_ENERGYMODEL']._serialized_start=178
   _globals['_ENERGYMODEL']._serialized_end=327
   _globals['_SCANSTART']._serialized_start=330
-  _globals['_SCANSTART']._serialized_end=821
-  _globals['_MOTORSTATUS']._serialized_start=823
-  _globals['_MOTORSTATUS']._serialized_end=938
-  _globals['_WAVEFORM']._serialized_start=941
-  _globals['_WAVEFORM']._serialized_end=1084
-  _globals['_SENSORREADING']._serialized_start=1087
-  _globals['_SENSORREADING']._serialized_end=1225
-  _globals['_SAMPLE']._serialized_start=1228
-  _globals['_SAMPLE']._serialized_end=1498
-  _globals['_SCANEND']._serialized_start=1501
-  _globals['_SCANEND']._serialized_end=1718
+  _globals['_SCANSTART']._serialized_end=868
+  _globals['_QUATERNION']._serialized_start=870
+  _globals['_QUATERNION']._serialized_end=926
+  _globals['_POSEWITHCOVARIANCE']._serialized_start=929
+  _globals['_POSEWITHCOVARIANCE']._serialized_end=1073
+  _globals['_ODOMETRY']._serialized_start=1075
+  _globals['_ODOMETRY']._serialized_end=1193
+  _globals['_MOTORSTATUS']._serialized_start=1195
+  _globals['_MOTORSTATUS']._serialized_end=1310
+  _globals['_WAVEFORM']._serialized_start=1313
+  _globals['_WAVEFORM']._serialized_end=1456
+  _globals['_SENSORREADING']._serialized_start=1459
+  _globals['_SENSORREADING']._serialized_end=1597
+  _globals['_SAMPLE']._serialized_start=1600
+  _globals['_SAMPLE']._serialized_end=1870
+  _globals['_SCANEND']._serialized_start=1873
+  _globals['_SCANEND']._serialized_end=2090
 # @@protoc_insertion_point(module_scope)

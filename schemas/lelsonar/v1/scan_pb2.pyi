@@ -64,7 +64,7 @@ class EnergyModel(_message.Message):
     def __init__(self, phi0: _Optional[float] = ..., phi1: _Optional[float] = ..., phi2: _Optional[float] = ..., valid_min_range: _Optional[float] = ..., valid_max_range: _Optional[float] = ..., distance_unit: _Optional[str] = ..., energy_unit: _Optional[str] = ...) -> None: ...
 
 class ScanStart(_message.Message):
-    __slots__ = ("schema_version", "scanner_id", "scan_id", "start_time_ns", "software_version", "capsules", "rotation_axis", "radial_offset", "gamma_start", "gamma_stop", "steps", "direction", "sound_speed", "air_temperature", "sample_rate", "window_samples", "energy_model", "device")
+    __slots__ = ("schema_version", "scanner_id", "scan_id", "start_time_ns", "software_version", "capsules", "rotation_axis", "radial_offset", "gamma_start", "gamma_stop", "steps", "direction", "sound_speed", "air_temperature", "sample_rate", "window_samples", "energy_model", "device", "pose")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
     SCAN_ID_FIELD_NUMBER: _ClassVar[int]
@@ -83,6 +83,7 @@ class ScanStart(_message.Message):
     WINDOW_SAMPLES_FIELD_NUMBER: _ClassVar[int]
     ENERGY_MODEL_FIELD_NUMBER: _ClassVar[int]
     DEVICE_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     scanner_id: str
     scan_id: int
@@ -101,7 +102,44 @@ class ScanStart(_message.Message):
     window_samples: int
     energy_model: EnergyModel
     device: str
-    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., start_time_ns: _Optional[int] = ..., software_version: _Optional[str] = ..., capsules: _Optional[_Iterable[_Union[Capsule, _Mapping]]] = ..., rotation_axis: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., radial_offset: _Optional[float] = ..., gamma_start: _Optional[float] = ..., gamma_stop: _Optional[float] = ..., steps: _Optional[int] = ..., direction: _Optional[_Union[RotationDirection, str]] = ..., sound_speed: _Optional[float] = ..., air_temperature: _Optional[float] = ..., sample_rate: _Optional[float] = ..., window_samples: _Optional[int] = ..., energy_model: _Optional[_Union[EnergyModel, _Mapping]] = ..., device: _Optional[str] = ...) -> None: ...
+    pose: PoseWithCovariance
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., start_time_ns: _Optional[int] = ..., software_version: _Optional[str] = ..., capsules: _Optional[_Iterable[_Union[Capsule, _Mapping]]] = ..., rotation_axis: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., radial_offset: _Optional[float] = ..., gamma_start: _Optional[float] = ..., gamma_stop: _Optional[float] = ..., steps: _Optional[int] = ..., direction: _Optional[_Union[RotationDirection, str]] = ..., sound_speed: _Optional[float] = ..., air_temperature: _Optional[float] = ..., sample_rate: _Optional[float] = ..., window_samples: _Optional[int] = ..., energy_model: _Optional[_Union[EnergyModel, _Mapping]] = ..., device: _Optional[str] = ..., pose: _Optional[_Union[PoseWithCovariance, _Mapping]] = ...) -> None: ...
+
+class Quaternion(_message.Message):
+    __slots__ = ("x", "y", "z", "w")
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    Z_FIELD_NUMBER: _ClassVar[int]
+    W_FIELD_NUMBER: _ClassVar[int]
+    x: float
+    y: float
+    z: float
+    w: float
+    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., z: _Optional[float] = ..., w: _Optional[float] = ...) -> None: ...
+
+class PoseWithCovariance(_message.Message):
+    __slots__ = ("frame_id", "position", "orientation", "covariance")
+    FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    POSITION_FIELD_NUMBER: _ClassVar[int]
+    ORIENTATION_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
+    frame_id: str
+    position: _common_pb2.Vector3
+    orientation: Quaternion
+    covariance: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, frame_id: _Optional[str] = ..., position: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., orientation: _Optional[_Union[Quaternion, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class Odometry(_message.Message):
+    __slots__ = ("schema_version", "scanner_id", "time_ns", "pose")
+    SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
+    SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
+    TIME_NS_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    schema_version: int
+    scanner_id: str
+    time_ns: int
+    pose: PoseWithCovariance
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., time_ns: _Optional[int] = ..., pose: _Optional[_Union[PoseWithCovariance, _Mapping]] = ...) -> None: ...
 
 class MotorStatus(_message.Message):
     __slots__ = ("present_position_raw", "load", "voltage", "temperature", "error_bits")

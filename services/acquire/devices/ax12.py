@@ -6,7 +6,7 @@ table, so they cannot drift apart.
 
 Source: ROBOTIS e-Manual, AX-12/AX-12A control table (protocol 1.0),
 https://emanual.robotis.com/docs/en/dxl/ax/ax-12a/ .  The SDK's own protocol-1.0
-examples use X-series addresses, which are wrong for the AX (design §6).
+examples use X-series addresses, which are wrong for the AX.
 
 Units
 -----
@@ -231,7 +231,7 @@ def signed_load(raw: int) -> float:
     return -magnitude if raw & DIRECTION_BIT else magnitude
 
 
-#: Bytes of a protocol-1.0 packet around its parameters: FF FF ID LEN INSTR/ERR … CKSUM (design §6).
+#: Bytes of a protocol-1.0 packet around its parameters: FF FF ID LEN INSTR/ERR … CKSUM.
 PACKET_OVERHEAD = 6
 
 

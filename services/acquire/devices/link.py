@@ -9,12 +9,12 @@ Two kinds of link:
 
 * ``uart``: an asynchronous serial line, 8N1: 10 bits on the wire per byte (start,
   8 data, stop).  The AX-12 bus is one at its Baud Rate register (1 Mbps from the
-  factory, design §6): 100,000 bytes/s, 10 µs per byte, half duplex.
+  factory): 100,000 bytes/s, 10 µs per byte, half duplex.
 * ``usb-fs``: a USB CDC device at full speed.  The bus signals at 12 Mbit/s, but a
   bulk endpoint (64-byte packets) carries at most 19 packets per 1 ms frame (USB 2.0
   §5.8.4, table 5-9): 1,216 bytes per frame, 1,216,000 bytes/s of payload at best,
   delivered frame by frame.  A 28,048-byte ACQ frame takes 23.1 ms, longer than the
-  17.5 ms acoustic window it carries (design §7, ``schemas/SENSOR_BOARD.md``).
+  17.5 ms acoustic window it carries (``schemas/SENSOR_BOARD.md``).
 """
 
 from __future__ import annotations
@@ -107,5 +107,5 @@ class Link:
 
 #: The AX-12 bus at the factory Baud Rate (1 Mbps).
 AX12_BUS = Link.uart(1_000_000)
-#: The sensor board: USB CDC at full speed (design §7 prefers USB over a UART for 28 KB frames).
+#: The sensor board: USB CDC at full speed (a UART would be slower still for 28 KB frames).
 SENSOR_BOARD_USB = Link.usb_full_speed()

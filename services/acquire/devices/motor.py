@@ -1,8 +1,7 @@
 """The scanner's motor: a small :class:`Motor` protocol and its AX-12 driver.
 
 This is the only module that imports ``dynamixel_sdk``.  The SDK is used
-unmodified, with protocol 1.0 at 1 Mbps.  Two SDK traits shape the driver
-(design §6):
+unmodified, with protocol 1.0 at 1 Mbps.  Two SDK traits shape the driver:
 
 * **Timeouts.**  The SDK's packet timeout is ``2 × LATENCY_TIMER + 2 ms`` plus the
   line time; ``LATENCY_TIMER`` is a module global (16 ms, an FTDI adapter's default
@@ -59,7 +58,7 @@ _log = logging.getLogger(__name__)
 
 #: Late-reply window for a servo emulated on a pty in this process (s).  The emulator's
 #: thread is scheduled by the host: with both cores saturated by other processes its
-#: reply to a 6-byte request was measured up to 164 ms late (issue 10 §5), far past the
+#: reply to a 6-byte request can come over a hundred milliseconds late, far past the
 #: SDK's packet timeout.  A window this long costs nothing unless a reply is really lost.
 EMULATED_STALE_GUARD_S = 1.0
 
@@ -267,7 +266,7 @@ class MotorPosition:
     Attributes
     ----------
     raw : int
-        Present Position (0..1023): log this, the angle steps quantise (design §6).
+        Present Position (0..1023): log this, the angle steps quantise.
     gamma : float
         The scanner angle γ (rad) it stands for.
     status : MotorStatus

@@ -114,7 +114,7 @@ class SensorBoardConfig:
     timeout_margin_s : float
         Added to the acoustic window and the line time to bound the wait for an answer: USB
         latency and the host's scheduling (an emulator thread on a loaded host answers 100+ ms
-        late, issue 10 §5); a lost answer costs this much.
+        late); a lost answer costs this much.
     """
 
     port: str

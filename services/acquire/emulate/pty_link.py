@@ -1,8 +1,7 @@
 """Raw pseudo-terminals and a small threaded device loop for byte-exact emulators.
 
 A driver opens the *slave* path exactly as it would open ``/dev/ttyUSB0``; the
-emulator reads and writes the *master* fd.  Three details make this reliable
-(design §6, "Emulating the motor on a pty"):
+emulator reads and writes the *master* fd.  Three details make this reliable:
 
 * the slave is put in raw mode, otherwise ONLCR turns 0x0A into 0x0D 0x0A and
   ECHO sends the request back to the driver;

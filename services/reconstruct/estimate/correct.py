@@ -2,7 +2,7 @@
 
 A mirror echo from a flat wall travels along the wall's normal, not along the
 boresight, and its range is the perpendicular distance from the capsule to the
-wall (design notes §8).  Plotting it along the boresight (eq. 9) bends the wall
+wall.  Plotting it along the boresight (eq. 9) bends the wall
 into an arc (the paper's "curvature", Fig. 3).  The paper corrects the ranges
 assuming the subset lies on an axis-aligned plane — ``y = const`` before the
 corner, ``z = const`` after — and places each point where its beam meets that
@@ -143,7 +143,7 @@ def _corrected(
 def mirror_points(geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, normal: np.ndarray) -> np.ndarray:
     """Foot points of mirror echoes on a wall with unit ``normal``: ``p_c + d · n``.
 
-    The mirror-echo condition ``n · p_c + d = h`` (design notes §8) puts these
+    The mirror-echo condition ``n · p_c + d = h`` puts these
     points exactly on the wall ``n · x = h``.  Used by the constant-depth model
     and as the benchmark's oracle points.
 

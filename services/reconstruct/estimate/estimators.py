@@ -158,7 +158,7 @@ def _guarded_lel(
     """Fast LEL (eq. 8) with the outlier-cluster guard.
 
     LEL is local, and its cost can have a minimum on a plane through the tight
-    cluster of double-bounce echoes behind the corner (design notes §9).  Each
+    cluster of double-bounce echoes behind the corner.  Each
     LEL minimum found (from θ_LS, the warm start, and with
     ``opts.lel_starts == "six"`` the paper's other five starts) is scored by
 

@@ -1,4 +1,4 @@
-"""Cheap provisional estimates of a plane while its scan arrives (issue 12 §2).
+"""Cheap provisional estimates of a plane while its scan arrives.
 
 The live service re-estimates plane b as samples come.  Refitting it from
 scratch each time costs O(points) with the solver's constant (fast LEL,
@@ -51,12 +51,12 @@ before then subset b holds mostly the corner's echoes and a fit could only
 fail or find them.  The estimate is then a typed failure, at no cost.
 
 The final estimate of a scan never uses any of this: it is computed from
-scratch (:meth:`ReconstructionService._finalise`).
+scratch (:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`).
 
 Building the :class:`~lelsonar.reconstruct.estimate.results.PlaneFit` the message
 carries (σ by MAD, H over all points, the observed patch, the residuals) is
-one vectorised pass over the plane's points (about 0.4 ms at 150–450 points,
-nearly all of it per-call overhead); the fit itself touches only the new ones.
+one vectorised pass over the plane's points (nearly all of it per-call
+overhead); the fit itself touches only the new ones.
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry, boresight
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.options import FitOptions
+from lelsonar.reconstruct.estimate.pipeline import fit_plane
 from lelsonar.reconstruct.estimate.results import (
     FailureReason,
     FitFailure,
@@ -399,10 +400,6 @@ class IncrementalPlane:
         return ""
 
     def _exact(self, t0: float) -> PlaneResult:
-        from lelsonar.reconstruct.estimate.pipeline import (
-            fit_plane,
-        )  # pipeline imports the estimators this module sits beside
-
         data = self.last_data = self.data()
         warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
         # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test

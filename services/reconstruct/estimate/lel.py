@@ -7,7 +7,7 @@ residuals are ``r_i = v_i · θ − 1`` (eq. 2), ``D = Σ r_i²`` (eq. 3),
     H = −(1 / log N) Σ q_i log q_i   (eq. 6),   H = 0 if D = 0.
 
 With ``s_i = r_i²`` and ``S = Σ s_i log s_i`` this is
-``H = (log D − S / D) / log N``, and its gradient (design notes §9) is
+``H = (log D − S / D) / log N``, and its gradient is
 
     ∂H/∂r_i = 2 r_i (S/D − log s_i) / (D log N),
     ∇_θ H   = (2 / (D log N)) Σ r_i v_i (S/D − log s_i).
@@ -213,7 +213,7 @@ def entropy(theta: np.ndarray, points: np.ndarray) -> float:
 
 
 def residual_gradient(residuals: np.ndarray) -> tuple[float, np.ndarray]:
-    """``H`` and ``∂H/∂r`` for a residual vector (eq. 6; design notes §9).
+    """``H`` and ``∂H/∂r`` for a residual vector (eq. 6).
 
     ``∂H/∂r_i = 2 r_i (S/D − log s_i) / (D log N)`` with ``s = r²``,
     ``D = Σ s``, ``S = Σ s log s``; ``r_i log s_i`` is taken as 0 where
@@ -230,7 +230,7 @@ def residual_gradient(residuals: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def entropy_and_gradient(theta: np.ndarray, points: np.ndarray) -> tuple[float, np.ndarray]:
-    """``H(θ)`` and its closed-form gradient ``∇_θ H`` (eq. 6; design notes §9).
+    """``H(θ)`` and its closed-form gradient ``∇_θ H`` (eq. 6).
 
     ``∇_θ H = (2 / (D log N)) Σ r_i v_i (S/D − log s_i)``.
 
@@ -568,10 +568,10 @@ def lel_fit_fast(
     ``extra_starts`` — a local solver minimises ``H``:
 
     * ``"newton"`` (default): :func:`newton_minimize`, damped Newton with the
-      closed-form Hessian, about 10–20 iterations of ~25 µs on 300 points;
+      closed-form Hessian, about 10–20 iterations on 300 points;
     * ``"bfgs"`` / ``"l-bfgs-b"``: SciPy's quasi-Newton solvers with the
       closed-form gradient (:func:`entropy_and_gradient`); same minima, but
-      SciPy's per-call overhead makes them ~1–2 ms.
+      SciPy's per-call overhead makes them several times slower.
 
     The start with the least ``H`` wins.  On 500 simulated plane subsets
     (``lelsonar bench estimators``) θ_LS alone ended above the six-start
@@ -593,7 +593,7 @@ def lel_fit_fast(
         Stop when ``|∇H|·|θ| < gtol``; iteration cap per start.
     polish : bool
         Finish with a tight Nelder-Mead run on a tiny simplex around the best
-        minimum (only ever lowers ``H``; costs ~1 ms).  Not needed in practice.
+        minimum (only ever lowers ``H``).  Not needed in practice.
 
     Returns
     -------

@@ -13,6 +13,10 @@ paper's steps:
 
 Scan-level methods segment the scan themselves.
 
+What is published, recorded and benchmarked is the reconstruction of record
+(:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`), which runs
+:func:`reconstruct` once per method and applies the scan's verdict.
+
 Methods (``METHODS``, name → :class:`Method`), one module per family:
 
 :mod:`~lelsonar.reconstruct.estimate.estimators` (one subset at a time)
@@ -32,7 +36,7 @@ Methods (``METHODS``, name → :class:`Method`), one module per family:
     ``"fcm-ransac"`` — the baseline of §5.4: FCM (3 clusters) + RANSAC, seeded.
 
 :data:`DEFAULT_METHOD` is ``"corner"``, chosen by ``lelsonar bench estimators
---families all`` (README): the energy-split methods fail where the corner's
+--families all`` (``docs/estimators.md``): the energy-split methods fail where the corner's
 double-bounce echoes dominate a subset or the energy peak misses the corner
 (far walls, partial sweeps); the joint model does not, and matches the
 corrected-points oracle on the paper's scenes.

@@ -3,7 +3,7 @@
 A planner must never receive a wrong plane that claims to be good.  Each check
 below looks for a way a fit can be wrong while its own residuals look fine,
 and for the signs of a fit that is not what it claims.  Thresholds come from
-the measurement model (design notes §8): ultrasonic range noise is 1–6 mm
+the measurement model: ultrasonic range noise is 1–6 mm
 (plus ±4.3 mm cycle slips), so a wall fitted to its own echoes has a
 residual σ of at most ~6 mm; a plane whose σ is several times that runs
 through echoes of more than one surface.
@@ -300,7 +300,7 @@ def recovery_finding(plane: PlaneResult, without: PlaneResult, *, sigmas: float 
     """The finding against ``plane`` where the echoes recovered after a board's noise triggers turn it away from
     ``without``, the same wall fitted without them.
 
-    The recovered ranges are timed on the waveforms' convention, their zero estimated (design notes §8); the
+    The recovered ranges are timed on the waveforms' convention, their zero estimated; the
     board's own readings on its.  Both sets see the same wall: if the two fits differ by more than ``sigmas``
     of their combined standard errors (normal or offset), one of the two timings is off and neither plane's σ
     covers it.  Nothing to say where either is no plane, or ``without`` is unreliable (too few readings of the

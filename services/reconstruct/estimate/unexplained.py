@@ -39,7 +39,7 @@ def echoes_against_walls(
     ----------
     residuals : (K, N) array
         Each wall's mirror-echo residual ``n·p_c + d − h`` of every echo, m
-        (design notes §8; :func:`~lelsonar.reconstruct.estimate.corner.model.echo_residuals`):
+        (:func:`~lelsonar.reconstruct.estimate.corner.model.echo_residuals`):
         positive behind the wall, negative in front of it; ``inf`` where the
         wall's normal lies outside the beam (the wall cannot have returned it).
     cosines : (K, N) array

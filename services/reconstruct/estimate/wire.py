@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.codec import QUALITY
+from lelsonar.errors import ConfigError, ScannerMismatchError
+from lelsonar.keys import ScannerKeys
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
 from lelsonar.v1 import reconstruction_pb2 as pb
+
+if TYPE_CHECKING:  # (the estimate's type only: decoding an estimate needs no estimator)
+    from lelsonar.reconstruct.estimate.record import ScanEstimate
 
 STATUS = {
     "provisional": pb.ESTIMATE_STATUS_PROVISIONAL,
@@ -111,6 +117,42 @@ def reconstruction_message(
     return msg
 
 
+def estimate_message(
+    estimate: ScanEstimate,
+    scanner_id: str,
+    scan_id: int,
+    *,
+    status: str = "provisional",
+    missing_steps: Iterable[int] = (),
+    accounting: pb.ScanAccounting | None = None,
+) -> codec.Reconstruction:
+    """The ``Reconstruction`` message of an estimate of record
+    (:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`): its planes, edge and failures,
+    then the failures beyond them (``estimate.failures``).
+
+    ``status`` is a terminal status for a final estimate (the stream decides which: final, incomplete,
+    final_timeout), "provisional" for a provisional one.
+    """
+    if estimate.provisional != (status == "provisional"):
+        raise ConfigError(f"a {'provisional' if estimate.provisional else 'final'} estimate cannot be {status}")
+    msg = reconstruction_message(
+        scanner_id,
+        scan_id,
+        status=status,
+        last_step=estimate.last_step,
+        samples_used=estimate.samples_used,
+        critical_step=estimate.critical_step,
+        critical_angle=estimate.critical_angle,
+        planes=estimate.planes,
+        edge=estimate.edge,
+        timings=estimate.timings,
+        missing_steps=missing_steps,
+        accounting=accounting,
+    )
+    msg.failures.extend(estimate.failures)
+    return msg
+
+
 def accounting_message(
     *, published: int, received_live: int, recovered: int, duplicates: int, rejected: dict[str, int], missing: int
 ) -> pb.ScanAccounting:
@@ -144,9 +186,6 @@ def decode_estimate(key: str, payload: bytes, prefix: str) -> codec.Reconstructi
     ScannerMismatchError
         It claims another scanner than the planes key it came on (a forgery or a misconfiguration).
     """
-    from lelsonar.errors import ScannerMismatchError
-    from lelsonar.keys import ScannerKeys
-
     message = codec.decode(payload, codec.Reconstruction)
     on_key = ScannerKeys(prefix).scanner_chunk(key)
     if message.scanner_id != on_key:

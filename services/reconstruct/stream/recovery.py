@@ -22,11 +22,11 @@ Why a queryable over the log and not only zenoh-ext's advanced pub/sub: the
 advanced publisher's cache is a ring of the last N puts addressed by Zenoh
 sequence numbers; it cannot answer "steps 40-73 of scan X" after the scan, a
 late joiner only gets the last N samples, a cache large enough for a whole scan
-(~10 MB) blocks ``put`` on a saturated link unless its replies DROP (design
-§4), and its miss detection is an unstable API.  The log is already the truth
-(every message is recorded before it is published), so serving it by step
-index recovers exactly what is missing, after any partition, for as long as
-the acquirer keeps it.
+(~10 MB) blocks ``put`` on a saturated link unless its replies DROP, and its
+miss detection is an unstable API. The log is already the truth (every message
+is recorded before it is published), so serving it by step index recovers
+exactly what is missing, after any partition, for as long as the acquirer keeps
+it.
 """
 
 from __future__ import annotations

@@ -4,24 +4,18 @@ Everything enters through :meth:`ReconstructionService.handle` as (type name,
 payload bytes), whether it came from Zenoh or from an MCAP file, so live and
 replayed data take the same path and give the same final estimate.
 
-Per scan (paper §4–5, made incremental):
+Every estimate is :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan`'s, the reconstruction of
+record (paper §4–5); this module decides when a scan is estimated and with what status:
 
-1. after each sample, E^γ, E0(d_m) and R are updated;
-2. once the critical peak is *confirmed* — R at its maximum is well above the
-   scan's typical R and enough steps have followed it — plane a (the subset
-   before the peak) is estimated;
-3. as later samples arrive, plane b is re-estimated every ``refit_every``
-   steps, at most once per ``provisional_period`` of scan time (default
-   0.08 s: ≤ 12.5 provisional estimates a second per scan), in O(new samples)
-   (:mod:`lelsonar.reconstruct.estimate.incremental`: the inliers' least-squares sums,
-   a trust check, and an exact warm-started refit only when the check fails or
-   the points have doubled; the outlier-cluster guard's RANSAC only when the
-   refit's least-H minimum fails the guard's test) — and while a backlog waits
-   (``handle(..., busy=True)``) only every ``max_provisional_delay``, so a
-   burst costs one refit, not one per sample;
-4. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of
-   silence, the whole scan is reconstructed from scratch with the chosen
-   method and the comparison methods, and published as final.
+1. after each sample, E^γ, E0(d_m) and R are updated (the assembly);
+2. every ``refit_every`` steps the provisional variant runs: it confirms the corner (R at its maximum
+   well above the scan's typical R, enough steps after it), then re-estimates plane b in O(new
+   samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
+   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) only every
+   ``max_provisional_delay``, so a burst costs one refit, not one per sample;
+3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
+   whole scan from scratch, with the method of record and the compared methods, and is published as
+   terminal.
 
 Gaps and when a final may be published:
 
@@ -45,30 +39,26 @@ import logging
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
-from lelsonar.reconstruct.estimate.pipeline import (
-    DEFAULT_METHOD,
-    METHODS,
-    FitOptions,
-    corner_edge,
-    reconstruct,
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
+from lelsonar.reconstruct.estimate.record import (
+    ProvisionalState,
+    RecordOptions,
+    provisional_method,
+    reconstruct_scan,
 )
-from lelsonar.reconstruct.estimate.quality import add_findings, assess_plane, cross_check, recovery_finding
-from lelsonar.reconstruct.estimate.results import FitFailure, PlaneFit, PlaneResult, ScanReconstruction
-from lelsonar.reconstruct.estimate.split import critical_step
+from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.recovery import RecoveryRequest
+from lelsonar.reconstruct.stream.scan_input import scan_input
 
 _log = logging.getLogger(__name__)
 
@@ -155,9 +145,25 @@ class ReconstructConfig:
         if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
             raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
 
+    def record_options(self) -> RecordOptions:
+        """How this service's scans are reconstructed (:func:`reconstruct_scan`)."""
+        return RecordOptions(
+            method=self.method,
+            compare_methods=self.compare_methods,
+            fit=FitOptions(),
+            confirm_steps=self.confirm_steps,
+            confirm_ratio=self.confirm_ratio,
+            provisional_period=self.provisional_period,
+        )
+
 
 class Observer(Protocol):
-    """Receives what the service sees and decides (e.g. the Rerun logger)."""
+    """Receives what the service sees and decides (e.g. the Rerun logger).
+
+    ``estimate`` gets the message, and for a terminal one each method's reconstruction with its planes
+    as published (:meth:`~lelsonar.reconstruct.estimate.record.ScanEstimate.as_published`; None for a
+    provisional one, whose planes and points are the ``partial``'s).
+    """
 
     def scan_started(self, scan: ScanAssembly) -> None: ...
 
@@ -185,21 +191,10 @@ class RecoveryState:
 
 
 @dataclass
-class Partial:
-    """The incremental state of one scan."""
+class Partial(ProvisionalState):
+    """The state of one scan in progress: the provisional estimate's, and the stream's."""
 
-    critical: int | None = None  # confirmed critical step (schedule index)
-    data_a: F.PlaneData | None = None  # the points behind plane_a / plane_b
-    data_b: F.PlaneData | None = None
-    plane_a: PlaneResult | None = None
-    plane_b: PlaneResult | None = None
-    steps_at_fit: int = 0  # steps received at the last refit (before the corner: the last look for it)
-    estimated_at: float = 0.0
-    #: acquisition_time_ns of the newest step at the last provisional estimate (the per-scan rate limit).
-    provisional_ns: int = 0
-    #: The provisional planes, re-estimated in O(new points) (:mod:`lelsonar.reconstruct.estimate.incremental`).
-    inc_a: IncrementalPlane | None = None
-    inc_b: IncrementalPlane | None = None
+    estimated_at: float = 0.0  # clock of the last provisional estimate (a backlog defers the next)
     #: A provisional refit waited for a backlog (tick() catches up).
     deferred: bool = False
     last_activity: float = 0.0
@@ -228,20 +223,6 @@ class ServiceStats:
     evicted: Counter = field(default_factory=Counter)
 
 
-def _compared(plane: PlaneResult, method: str, record: dict[str, PlaneResult]) -> PlaneResult:
-    """A compared method's plane, checked against the method of record's (``record``, by label); a failure
-    names its method.
-
-    A compared method that fails is reported, never silently dropped; one
-    that disagrees with a good plane of record, or that no good plane of
-    record can vouch for, is degraded (it may have locked onto the corner
-    cluster, which its own residuals cannot show).
-    """
-    if not isinstance(plane, PlaneFit):
-        return FitFailure(plane.reason, f"{method}: {plane.detail}", plane.label, plane.n_points)
-    return cross_check(plane, record.get(plane.label))
-
-
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
@@ -266,10 +247,11 @@ class ReconstructionService:
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
         self._deferred: set[ScanKey] = set()
-        self._options = FitOptions()
-        #: The method of the provisional refits, which fit one half at a time: the method of record, or
-        #: "adaptive" when that is a scan-level method ("corner"), which runs on the whole scan at the end.
-        self.provisional_method = self.config.method if METHODS[self.config.method].fit_plane else "adaptive"
+        #: How finals are reconstructed; provisional estimates are the cheaper variant of the same.
+        self._options = config.record_options()
+        self._provisional_options = replace(self._options, provisional=True)
+        #: The method of the provisional refits (:func:`provisional_method`).
+        self.provisional_method = provisional_method(config.method)
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
         #: Final estimates, per scan, in the order they were made.
@@ -548,67 +530,24 @@ class ReconstructionService:
         return self._provisional(scan, p)
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
-        """Confirm the corner, then (re)fit plane b when enough new steps have come."""
+        """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`)."""
         if not self.config.provisional:
             return []
         if scan.n_received - p.steps_at_fit < self.config.refit_every:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
-        steps, _, _, ratio = scan.arrays()
-        if p.critical is None:
-            p.steps_at_fit = len(steps)  # the corner's peak is looked for every refit_every steps (O(steps) each)
-            peak = critical_step(ratio, self._options.critical_peak_fraction)  # the rule reconstruct() uses
-            if peak is None or len(steps) - 1 - peak < self.config.confirm_steps:
-                return []
-            if ratio[peak] < self.config.confirm_ratio * float(np.median(ratio)):
-                return []
-            p.critical = int(steps[peak])
+        had_corner = p.critical is not None
+        est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p)
+        if not had_corner and p.critical is not None:
             self._event(
                 "INFO",
                 f"scan {scan.key}: critical step {p.critical} confirmed at "
                 f"γ = {np.rad2deg(scan.gamma[p.critical]):.1f}°",
                 int(scan.time_ns[p.critical]),
             )
-            p.inc_a = IncrementalPlane(
-                scan.geometry, "a", AXIS_Y, self.provisional_method, self._options, scan.start.steps
-            )
-            p.plane_a = p.inc_a.update(scan.gamma, scan.distance, steps[steps < p.critical])
-            p.data_a = p.inc_a.last_data
-        newest_ns = int(scan.time_ns[steps[-1]]) if scan.latest is None else int(scan.latest.time_ns)
-        if 0 < newest_ns - p.provisional_ns < self.config.provisional_period * 1e9:
-            return []  # the per-scan rate limit (scan time)
-        p.provisional_ns = max(p.provisional_ns, newest_ns)
+        if est is None:
+            return []
         p.estimated_at = self._clock()
-        t0 = time.perf_counter()
-        if p.inc_b is None:
-            p.inc_b = IncrementalPlane(
-                scan.geometry, "b", AXIS_Z, self.provisional_method, self._options, scan.start.steps
-            )
-        m = len(scan.received)
-        new = np.flatnonzero(scan.received & ~p.inc_b.included[:m])
-        # Plane b: the new steps after the corner, in O(new points) unless the trust check fails.
-        p.plane_b = p.inc_b.update(scan.gamma, scan.distance, new[new > p.critical])
-        p.data_b = p.inc_b.last_data
-        p.steps_at_fit = len(steps)
-        # A provisional plane carries its verdict too (the final's is the method of record's own).
-        gamma_so_far = scan.gamma[steps]
-        p.plane_a, p.plane_b = (
-            assess_plane(pl, gamma_so_far) if isinstance(pl, PlaneFit) and not pl.quality else pl
-            for pl in (p.plane_a, p.plane_b)
-        )
-        fit_s = time.perf_counter() - t0
-        edge = corner_edge(p.plane_a, p.plane_b)
-        msg = wire.reconstruction_message(
-            scan.start.scanner_id,
-            scan.start.scan_id,
-            status="provisional",
-            last_step=int(steps[-1]),
-            samples_used=len(steps),
-            critical_step=p.critical,
-            critical_angle=float(scan.gamma[p.critical]),
-            planes=(p.plane_a, p.plane_b),
-            edge=edge,
-            timings=(0.0, fit_s, fit_s),
-        )
+        msg = wire.estimate_message(est, scan.start.scanner_id, scan.start.scan_id)
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
@@ -625,71 +564,13 @@ class ReconstructionService:
             rejected=dict(scan.rejected),
             missing=len(missing),
         )
-        steps, gamma, distance, _ = scan.arrays()
-        distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed
-        # A board that fired on noise: those readings' ranges and peaks the echo's after them, where recovered.
-        board_distance, board_amplitude = distance, scan.echo_amplitude[steps]
-        distance, amplitude = scan.noise_triggers_recovered(board_distance, board_amplitude)
-        results: dict[str, ScanReconstruction] = {}
-        for method in (self.config.method, *self.config.compare_methods):
-            # From scratch, no warm start: the final estimate depends only on the data.
-            results[method] = reconstruct(
-                gamma,
-                distance,
-                scan.sensor_energy[steps],
-                scan.geometry,
-                scan.energy_model,
-                method,
-                options=self._options,
-                echo_amplitude=amplitude,
-            )
-        main = results[self.config.method]
-        crit = int(steps[main.critical_step]) if main.critical_step is not None else None
-        # What only the whole scan shows about its writer (ranges that do not match the waveforms, …).
-        problems = scan.writer_problems()
-        findings = tuple((level, text) for level, text in problems if level is not None)
-        record = {pl.label: pl for pl in main.planes}  # what the compared methods are checked against
-        if not np.array_equal(distance, board_distance, equal_nan=True):
-            # Echoes recovered after noise triggers: the same walls fitted on the board's own readings alone must
-            # agree within their σ (one more fit, only on such scans).
-            own = np.where(scan.noise_triggers()[0], np.nan, board_distance)
-            without = {
-                pl.label: pl
-                for pl in reconstruct(
-                    gamma,
-                    own,
-                    scan.sensor_energy[steps],
-                    scan.geometry,
-                    scan.energy_model,
-                    self.config.method,
-                    options=self._options,
-                    echo_amplitude=board_amplitude,
-                ).planes
-            }
-            record = {label: add_findings(pl, recovery_finding(pl, without.get(label))) for label, pl in record.items()}
-        planes: list[PlaneResult] = [add_findings(pl, findings) for pl in record.values()]
-        for method in self.config.compare_methods:
-            planes += [add_findings(_compared(pl, method, record), findings) for pl in results[method].planes]
-        t = main.timings
-        msg = wire.reconstruction_message(
-            scan.start.scanner_id,
-            scan.start.scan_id,
-            status=status,
-            last_step=int(steps[-1]) if len(steps) else 0,
-            samples_used=len(steps),
-            critical_step=crit,
-            critical_angle=main.critical_angle if crit is not None else 0.0,
-            planes=planes,
-            edge=main.edge,
-            timings=(t.segmentation, t.fit, t.total),
-            missing_steps=missing,
-            accounting=acc,
+        est = reconstruct_scan(scan_input(scan), self._options)
+        msg = wire.estimate_message(
+            est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
         )
-        # What the writer left unset: a warning, and where no plane came, the first thing to fix.
-        for _, problem in problems:
-            self._event("WARNING", f"scan {scan.key}: {problem}")
-            if not all(isinstance(pl, PlaneFit) for pl in main.planes):
-                msg.failures.append(problem)
+        # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
+        for note in est.notes:
+            self._event("WARNING", f"scan {scan.key}: {note}")
         self.finals[scan.key] = msg
         while len(self.finals) > self.config.keep_finals:
             self.finals.pop(next(iter(self.finals)))
@@ -727,7 +608,7 @@ class ReconstructionService:
             + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""),
         )
         if self._observer:
-            self._observer.estimate(scan, msg, results, p)
+            self._observer.estimate(scan, msg, est.as_published(), p)
         self._emit(msg)
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)

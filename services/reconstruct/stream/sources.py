@@ -193,9 +193,9 @@ class LiveSource:
     Zenoh's receiving thread runs no Python: it pushes each sample into the channel
     (Rust), and blocks while the channel is full, which back-pressures the publishers
     through congestion control BLOCK.  The processing thread drains the channel itself,
-    a batch at a time, without waiting.  A Python callback on Zenoh's thread took the
-    GIL for every sample (~75 µs a sample at 2,500 samples/s, against a busy worker),
-    and so did a thread moving samples from the channel into a queue (measured).
+    a batch at a time, without waiting.  A Python callback on Zenoh's thread would take the
+    GIL for every sample, against a busy worker, and so would a thread moving samples
+    from the channel into a queue.
     Payloads recovered from the acquirer's log and the kept messages of scans adopted
     from a departed group member come through a :class:`PayloadFifo` drained by the
     same thread.
@@ -375,8 +375,8 @@ class LiveSource:
                 self._apply(item, waiting)
             now = time.monotonic()
             # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
-            # provisional refit waited for the backlog (not after every payload: at 50 open scans a tick
-            # costs ~36 µs, a tenth of what the payload does).
+            # provisional refit waited for the backlog (not after every payload: with many open scans a tick
+            # costs a fair share of what a payload does).
             if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
                 last_tick = now
                 self._guarded(self._service.tick, busy=waiting > 0)
