@@ -158,3 +158,34 @@ def test_the_scans_are_fused_in_the_order_they_started_and_one_robot_at_a_time(t
     assert len(err) == 1 and "--scanner" in err[0]
     assert main(["map", "--source", str(two_scans[0]), str(other), "--scanner", "s2", "--json"]) == 0
     assert [p["scan_id"] for p in json.loads(capsys.readouterr().out)["poses"]] == [5]
+
+
+def test_a_scan_start_s_pose_places_the_scan():
+    from scipy.spatial.transform import Rotation
+
+    from lelsonar.map.from_reconstruction import scan_pose
+    from tests.conftest import make_scan_start
+
+    heading = math.radians(-120.0)
+    fan = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
+    rot = Rotation.from_euler("z", heading).as_matrix() @ fan
+    start = make_scan_start()
+    start.pose.frame_id = "odom"
+    start.pose.position.x, start.pose.position.y, start.pose.position.z = 1.5, -2.0, 0.3
+    qx, qy, qz, qw = Rotation.from_matrix(rot).as_quat()
+    start.pose.orientation.x, start.pose.orientation.y, start.pose.orientation.z, start.pose.orientation.w = (
+        qx,
+        qy,
+        qz,
+        qw,
+    )
+    cov6 = np.diag([4e-4, 9e-4, 1e-6, 1e-6, 1e-6, 2.5e-3])
+    start.pose.covariance.extend(cov6.ravel().tolist())
+    got_rot, pose, note = scan_pose(start)
+    assert note is None
+    np.testing.assert_allclose(got_rot, rot, atol=1e-12)
+    assert (pose.x, pose.y, pose.z) == pytest.approx((1.5, -2.0, 0.3))
+    assert pose.heading == pytest.approx(heading)
+    np.testing.assert_allclose(pose.covariance, np.diag([4e-4, 9e-4, 2.5e-3]))
+    _, origin, note = scan_pose(make_scan_start())
+    assert (origin.x, origin.y) == (0.0, 0.0) and "no pose" in note

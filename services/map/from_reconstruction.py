@@ -64,11 +64,11 @@ def scan_pose(start: codec.ScanStart) -> tuple[np.ndarray, Pose2D, str | None]:
     A ``ScanStart`` without a pose (older recordings) is taken at the origin of the world, the array frame
     unturned, and the note says so.
     """
-    if "pose" not in start.DESCRIPTOR.fields_by_name or not start.HasField("pose"):
+    if not start.HasField("pose"):
         rot = np.eye(3)
         note = f"scan {start.scan_id} has no pose in its ScanStart: taken at the origin"
         return rot, planar_pose(rot, np.zeros(3), None), note
-    pose = start.pose  # type: ignore[attr-defined]  # the field is read where the contract has it
+    pose = start.pose
     q = pose.orientation
     rot = _quaternion_matrix(q.x, q.y, q.z, q.w)
     cov6 = np.array(pose.covariance, dtype=float)
