@@ -138,9 +138,9 @@ def scans_of(path: Path, method: str) -> list:
     replay_mcap(source, service)  # type: ignore[arg-type]  # a Recording reads as its path does
     out = []
     for m in service.finals.values():
-        start = starts.get((m.scanner_id, m.scan_id))
-        t = start.start_time_ns if start is not None else 0
-        out.append((t, m.scanner_id, scan_from_reconstruction(m, start, method)))
+        its_start = starts.get((m.scanner_id, m.scan_id))
+        t = its_start.start_time_ns if its_start is not None else 0
+        out.append((t, m.scanner_id, scan_from_reconstruction(m, its_start, method)))
     return out
 
 
