@@ -120,7 +120,10 @@ def type_name(message) -> str:
 
 
 #: A busy loop that bounds itself (so a crashed test run cannot leave it behind) and says when it spins.
-_HOG = "import sys, time\nend = time.monotonic() + {limit}\nprint('spinning', flush=True)\nwhile time.monotonic() < end: pass\n"
+_HOG = (
+    "import sys, time\nend = time.monotonic() + {limit}\nprint('spinning', flush=True)\n"
+    "while time.monotonic() < end: pass\n"
+)
 
 
 @pytest.fixture

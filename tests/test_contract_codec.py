@@ -78,7 +78,7 @@ def test_wrong_schema_version_is_rejected():
 @pytest.mark.parametrize("message_type", [codec.Sample, codec.ScanStart, codec.ScanEnd, codec.Reconstruction])
 def test_random_bytes_are_a_decode_error(message_type):
     rng = np.random.default_rng(1)
-    for i in range(50):
+    for _ in range(50):
         payload = rng.bytes(int(rng.integers(1, 400)))
         with pytest.raises(DecodeError):  # every one of them, not just the first
             codec.decode(payload, message_type)

@@ -2,8 +2,8 @@
 
 `acquire` runs in one namespace, `reconstruct` (and a watcher that tells the test when the scan
 is under way) in the other; both listen, and `acquire` connects to them (and reconnects after
-the cut), so both are connected before the scan starts.  The link goes down mid-scan for 3 s or 15 s — longer than Zenoh's
-10 s lease, so the session itself is lost and re-established.  The live final must equal the
+the cut), so both are connected before the scan starts.  The link goes down mid-scan for 3 s or
+15 s — longer than Zenoh's 10 s lease, so the session itself is lost and re-established.  The live final must equal the
 replay of the acquirer's MCAP with 0 steps missing, and `acquire` must exit 0 without a traceback.
 Needs root and `ip netns` (skipped with the reason otherwise); `tc netem` is not needed.
 """

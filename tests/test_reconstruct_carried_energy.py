@@ -20,8 +20,10 @@ from lelsonar import codec
 from lelsonar.log.recording import McapRecorder
 from lelsonar.reconstruct.stream import assembly
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.fastwire import UNREAD
 from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
+from lelsonar.reconstruct.stream.step_features import RISE_STRIDE
 from lelsonar.signal.energy import waveform_energy_agrees
 
 from .conftest import simulated_messages
@@ -210,19 +212,19 @@ def test_a_tampered_recording_replays_to_the_final_of_the_true_one(scan, tmp_pat
 
 
 def test_the_ingest_stage_reads_samples_from_their_payloads_to_the_values_of_the_messages(scan, monkeypatch):
-    """Through the ingest stage, every sample after the first is read from its payload (_place_wire), to the
+    """Through the ingest stage, every sample after the first is read from its payload (fastwire.place_wire), to the
     arrays of a scan assembled from the parsed messages alone, bit for bit, and the latest step's waveforms;
     a payload encoded otherwise (a field sent twice: the parser keeps the last) is read from the message."""
     from lelsonar.reconstruct.stream.ingest import Ingest
 
     read = []
-    place_wire = assembly._place_wire
-    monkeypatch.setattr(assembly, "_place_wire", lambda *a: read.append(place_wire(*a)) or read[-1])
+    place_wire = assembly.place_wire
+    monkeypatch.setattr(assembly, "place_wire", lambda *a: read.append(place_wire(*a)) or read[-1])
     ingest = Ingest()
     for m in scan:
         ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
     (routed,) = ingest.scans.values()
-    assert len(read) == len(scan) - 3 and assembly._UNREAD not in read  # all but the first sample
+    assert len(read) == len(scan) - 3 and UNREAD not in [status for status, _ in read]  # all but the first
     alone = _assemble(_copy(scan))
     for name in (
         "distance",
@@ -248,7 +250,7 @@ def test_the_ingest_stage_reads_samples_from_their_payloads_to_the_values_of_the
         ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
     sample = scan[3]
     (ev,) = ingest.accept(sample.DESCRIPTOR.full_name, sample.SerializeToString() + extra)
-    assert ev.kind == "sample" and read[-1] == assembly._UNREAD
+    assert ev.kind == "sample" and read[-1][0] == UNREAD
     assert ev.scan.gamma[sample.step] == codec.Sample.FromString(sample.SerializeToString() + extra).gamma_measured
 
 
@@ -277,7 +279,7 @@ def _check_against_the_waveforms(got: ScanAssembly, messages) -> None:
                 assert np.isnan(got.echo_amplitude[m.step, i])
                 continue
             assert got.echo_amplitude[m.step, i] == _peak(v, w.sample_rate, w.t0, s.time_of_flight, ECHO_PEAK_WINDOW)
-            if m.step % assembly.RISE_STRIDE == 0:
+            if m.step % RISE_STRIDE == 0:
                 assert got.pre_echo_peak[m.step, i] == _peak(v, w.sample_rate, w.t0, s.time_of_flight, PRE_ECHO_WINDOW)
                 assert got.dc_level[m.step, i] == pytest.approx(abs(v.astype(np.float64).mean()), rel=1e-12)
             else:

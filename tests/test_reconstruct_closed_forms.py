@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry, boresight, rotation_x
-from lelsonar.reconstruct.estimate.corner.method import fixed_pitch_wall
+from lelsonar.reconstruct.estimate.corner.pitch import fixed_pitch_wall
 from lelsonar.reconstruct.estimate.fit import normal_offset_stderr
 from lelsonar.reconstruct.estimate.quality import _nearest_beam_cosine
 

@@ -23,7 +23,7 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch
+from lelsonar.reconstruct.estimate.corner.edge import edge_implied_offsets
 from lelsonar.reconstruct.estimate.corner.model import (
     ECHO_EDGE,
     ECHO_OUTLIER,
@@ -31,13 +31,12 @@ from lelsonar.reconstruct.estimate.corner.model import (
     ECHO_WALL_B,
     Wall,
     echo_residuals,
-    edge_implied_offsets,
     edge_line,
-    fit_corner_model,
-    joint_gauss_newton,
-    joint_residuals,
     scan_points,
 )
+from lelsonar.reconstruct.estimate.corner.pitch import amplitude_pitch
+from lelsonar.reconstruct.estimate.corner.search import fit_corner_model
+from lelsonar.reconstruct.estimate.corner.solver import joint_gauss_newton, joint_residuals
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, reconstruct
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane, cross_check

@@ -19,7 +19,8 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, SchemaVersionError
-from lelsonar.reconstruct.stream.assembly import ScanAssembly, geometry_from_start
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.scan_start import geometry_from_start
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
 
 from . import foreign_scenes as fs
@@ -677,10 +678,11 @@ def test_the_echo_after_each_noise_trigger_is_recovered_from_its_waveform(name):
 
 @pytest.mark.parametrize("name", sorted(NOISE_EVERYWHERE))
 def test_a_board_that_fires_on_noise_everywhere_is_reconstructed_from_its_waveforms_and_named(tmp_path, name):
-    # Before, every plane was unreliable ("the waveforms show no echo starting at the readings' time of flight":
-    # the noise, or ranges in another convention, the windows alone could not tell) and fitted to the noise's
+    # The windows alone cannot tell the noise from ranges in another convention ("the waveforms show no echo
+    # starting at the readings' time of flight"), so every plane would be unreliable and fitted to the noise's
     # crossings.  The ranges' changing from step to step as independent draws (a surface's, in any convention,
-    # change smoothly) tells the noise; each reading's echo after it is recovered.  No plane may be good (the ranges' zero is the waveforms', not the board's).
+    # change smoothly) tells the noise; each reading's echo after it is recovered.  No plane may be good (the
+    # ranges' zero is the waveforms', not the board's).
     code, _, _, verdicts = _run(tmp_path, fs.simulate(NOISE_EVERYWHERE[name]), fs.Conventions(energy_model=False))
     assert code == 0
     for row in verdicts.values():

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from lelsonar import codec
+from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.correct import AXIS_Z
 from lelsonar.reconstruct.estimate.incremental import (
@@ -132,7 +133,7 @@ def test_provisional_estimates_are_rate_limited_in_scan_time(scan_messages):
     # Deterministic: scan time, not the wall clock.
     again = _provisional(_feed(ReconstructionService(), _restamped(scan_messages, 5_000_000)))
     assert [e.last_step for e in again] == [e.last_step for e in every_5ms]
-    with pytest.raises(Exception):
+    with pytest.raises(ConfigError, match="provisional_period"):
         ReconstructConfig(provisional_period=-1)
 
 

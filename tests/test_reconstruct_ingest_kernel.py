@@ -1,4 +1,4 @@
-"""The ingest stage's one pass a sample (``assembly._place_step``) refuses, counts and computes what decoding
+"""The ingest stage's one pass a sample (``step_features.place_step``) refuses, counts and computes what decoding
 and the NumPy code before it did: the truth each time is ``codec.decode``'s verdict on the same payload, or
 NumPy's own arithmetic on the same samples."""
 
@@ -9,9 +9,11 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.errors import NonFiniteValueError
-from lelsonar.reconstruct.stream.assembly import _PER_CAPSULE, _PER_STEP, ScanAssembly, _dc_levels, _settle_step
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.fastwire import read_sample
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected
-from lelsonar.signal.energy import EnergyModel, energy_ratio, total_energy
+from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, dc_levels, settle_step
+from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range, total_energy
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -62,13 +64,13 @@ def test_dc_levels_are_numpys_mean_bit_for_bit(n, kind):
         rng.standard_normal((4, n)) * 1e30,
     ][kind].astype(np.float32)
     got = np.zeros(4)
-    _dc_levels(w, got)
+    dc_levels(w, got)
     np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
 
 
 @pytest.mark.parametrize("k", range(1, 17))
 def test_a_steps_energy_ratio_is_numpys_bit_for_bit(k):
-    """E^γ, E0(d_m) and R of each step as it is placed (_settle_step) are total_energy's and energy_ratio's
+    """E^γ, E0(d_m) and R of each step as it is placed (settle_step) are total_energy's and energy_ratio's
     (NumPy over the whole scan) to the bit: ranges with gaps (no echo), ties, inside and outside the model's
     interval; energies over many decades (where the order of the additions shows)."""
     rng = np.random.default_rng(k)
@@ -80,21 +82,26 @@ def test_a_steps_energy_ratio_is_numpys_bit_for_bit(k):
     energy = rng.random((steps, k)) * 10.0 ** rng.uniform(-12, 0, (steps, k))
     energy[7] = 0.0
     model = EnergyModel(3.1e6, -1.2e6, 8.0e5, d_min=0.9, d_max=1.8)
-    per_capsule = np.full((len(_PER_CAPSULE), steps, k), np.nan)
-    per_capsule[_PER_CAPSULE.index("distance")] = distance
-    per_capsule[_PER_CAPSULE.index("sensor_energy")] = energy
-    per_step = np.zeros((len(_PER_STEP), steps))
+    per_capsule = np.full((len(PER_CAPSULE), steps, k), np.nan)
+    per_capsule[PER_CAPSULE.index("distance")] = distance
+    per_capsule[PER_CAPSULE.index("sensor_energy")] = energy
+    per_step = np.zeros((len(PER_STEP), steps))
     scan = np.array([343.0, 2e5, model.phi0, model.phi1, model.phi2, model.d_min, model.d_max])
     for step in range(steps):
-        _settle_step(per_capsule, per_step, step, scan)
+        settle_step(per_capsule, per_step, step, scan)
     expected = np.zeros(steps)
     step_energy = total_energy(energy)
     ratio = energy_ratio(step_energy, distance, model, expected=expected)
-    got = dict(zip(_PER_STEP, per_step))
+    got = dict(zip(PER_STEP, per_step))
     assert got["step_energy"].tobytes() == step_energy.tobytes()
     assert got["expected_energy"].tobytes() == expected.tobytes()
     assert got["ratio"].tobytes() == ratio.tobytes()
     assert (ratio[:5] == 0).all() and (ratio[5:] > 0).any()
+    # E0 against the model's own NumPy (clip, then the quadratic of eq. 12), which no kernel shares.
+    d_m = median_range(distance)
+    ranged = np.isfinite(d_m)
+    assert expected[ranged].tobytes() == model.expected_energy(d_m[ranged]).tobytes()
+    assert ratio[ranged].tobytes() == (step_energy[ranged] / model.expected_energy(d_m[ranged])).tobytes()
 
 
 def test_non_finite_samples_are_refused_as_decoding_refuses_them_whatever_else_is_wrong(scan):
@@ -232,9 +239,11 @@ def test_the_limits_hold_on_a_scans_fast_path(scan):
         routed = ScanAssembly(start)
         for m in samples[:4]:
             assert routed.add(m)
-        assert routed.add(sample, limits=limits, payload=sample.SerializeToString()) is None
+        payload, time_ns = sample.SerializeToString(), sample.acquisition_time_ns
+        assert routed.add_payload(payload, sample.step, time_ns, "live", limits) is None
+        assert routed.add(sample, limits=limits) is None
         assert routed.n_received == 4 and not routed.received[4:].any()
-        assert routed.add(sample, limits=codec.DEFAULT_LIMITS, payload=sample.SerializeToString())
+        assert routed.add_payload(payload, sample.step, time_ns, "live", codec.DEFAULT_LIMITS)
         assert routed.received[sample.step]
 
 
@@ -295,12 +304,10 @@ def _rewired(payload: bytes, rng) -> list[bytes]:
 
 
 def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_parser(scan):
-    """_read_sample against the parser (upb), the truth: what it reads of a payload — γ, the motor, each reading's
+    """read_sample against the parser (upb), the truth: what it reads of a payload — γ, the motor, each reading's
     range, the carried energies, every waveform sample — is bit for bit what the parsed message holds, and it
     reads exactly the samples on the fast path's layout unless their encoding is not plain (a field sent twice,
     of another wire type); a payload the parser refuses never reaches it."""
-    from lelsonar.reconstruct.stream.assembly import _read_sample
-
     rng = np.random.default_rng(12)
     start, samples = scan[0], scan[1:-1]
     k = len(start.capsules)
@@ -321,7 +328,7 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
             values[: 2 * k] = [w0.sample_rate, w0.t0] * k
             values[2 * k :] = rng.standard_normal(4 * k + 5)  # a previous sample's readings, to be overwritten
             waveforms = np.full((k, n), np.nan, np.float32)
-            carried = _read_sample(payload, ids, values, waveforms)
+            carried = read_sample(payload, ids, values, waveforms)
             ranges, layout, data = codec.sample_readings(m.sensors)
             if i < len(plain):  # plainly encoded: read exactly when on the layout
                 assert (carried >= 0) == (layout == fast_layout), i

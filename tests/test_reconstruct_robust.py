@@ -107,7 +107,8 @@ def test_a_narrow_sweep_past_the_corner_does_not_take_the_corner_cluster_for_a_w
     "family,seed", [("tilt", 9), ("tilt", 14), ("sweep", 4), ("nocorner", 0), ("roll", 0), ("extreme", 6)]
 )
 def test_stress_cases_through_the_cli_never_claim_good_when_wrong(family, seed, tmp_path):
-    """Recorded by the scan loop, replayed by ``reconstruct --source --json``: no crash, no wrong plane claiming good."""
+    """Recorded by the scan loop, replayed by ``reconstruct --source --json``: no crash, no wrong plane
+    claiming good."""
     from lelsonar.tools.bench_stress import stress_scan
 
     rows = stress_scan(family, seed)

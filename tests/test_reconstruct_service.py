@@ -181,3 +181,52 @@ def test_a_backlog_costs_one_refit_not_one_per_sample(scan_messages):
     for m in samples[120:130]:
         more += service.handle(type_name(m), m.SerializeToString(), busy=True)
     assert [e.samples_used for e in more] == [120 + service.config.refit_every]
+
+
+def _deferred_scans(now):
+    """Three scanners whose provisional refits all waited for a backlog at ``now[0]``."""
+    service = ReconstructionService(ReconstructConfig(provisional_period=0), clock=lambda: now[0])
+    scans = {sid: simulated_messages("paper-test1", seed=k, scanner_id=sid) for k, sid in enumerate("abc")}
+    for messages in scans.values():
+        service.handle(type_name(messages[0]), messages[0].SerializeToString())
+    return service, scans
+
+
+def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeypatch):
+    now = [0.0]
+    service, scans = _deferred_scans(now)
+    for sid in "bc":
+        for m in scans[sid][1:100]:
+            service.handle(type_name(m), m.SerializeToString(), busy=True)
+    now[0] = 0.1  # scanner a refits now: the newest estimate; b and c still wait from before
+    for m in scans["a"][1:100]:
+        service.handle(type_name(m), m.SerializeToString())
+    for messages in scans.values():
+        for m in messages[100:110]:
+            service.handle(type_name(m), m.SerializeToString(), busy=True)
+    refit, real = [], service._provisional
+
+    def slow_refit(scan, p):  # each refit takes 60 % of the budget on the service's clock
+        refit.append(scan.key[0])
+        now[0] += 0.6 * service.config.provisional_budget
+        return real(scan, p)
+
+    monkeypatch.setattr(service, "_provisional", slow_refit)
+    first = service.tick()
+    assert sorted(refit) == ["b", "c"] and len(first) == 2  # the two oldest; the budget ran out before a
+    assert service.has_deferred
+    second = service.tick()
+    assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
+
+
+def test_a_busy_service_sheds_stale_provisional_refits_and_counts_them():
+    now = [0.0]
+    service, scans = _deferred_scans(now)
+    for messages in scans.values():
+        for m in messages[1:100]:
+            service.handle(type_name(m), m.SerializeToString(), busy=True)
+    now[0] = 3 * service.config.max_provisional_delay  # still behind, long after they were deferred
+    assert service.tick(busy=True) == []
+    assert service.stats.provisionals_shed == 3 and not service.has_deferred
+    (final,) = finals(feed(service, scans["a"][100:]))  # the final is never shed
+    assert final.samples_used == scans["a"][-1].samples_sent

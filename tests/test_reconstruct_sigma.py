@@ -1,7 +1,7 @@
 """Honest σ (principle 1): a plane's reported standard errors cover its errors against the simulator's truth.
 
 The amplitude peak that gives ``corner`` a wall's direction in the rotation plane
-(:func:`lelsonar.reconstruct.estimate.corner.method.amplitude_pitch`) is a parabola's vertex; on a
+(:func:`lelsonar.reconstruct.estimate.corner.pitch.amplitude_pitch`) is a parabola's vertex; on a
 window lopsided about the peak (the wall's normal near the end of the sweep, as
 when the whole L is rolled) the beam pattern's departure from a parabola moves it
 by several of the fit's own σ.  These tests hold the reported σ to the noise model:
@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.estimate.corner.method import amplitude_pitch, window_bias_stderr
+from lelsonar.reconstruct.estimate.corner.pitch import amplitude_pitch, window_bias_stderr
 from lelsonar.sim import piston_directivity
 
 #: The capsule's ka at 40 kHz (8 mm radius), as the simulator's receivers.
@@ -107,7 +107,7 @@ def test_rolled_corner_planes_that_claim_good_have_an_honest_normal_sigma() -> N
 
 def test_clipped_echoes_are_a_plateau_at_the_largest_amplitude() -> None:
     gamma, amp = _beam_scan(math.radians(10.0), 40.0, seed=0)
-    from lelsonar.reconstruct.estimate.corner.method import clipped_echoes
+    from lelsonar.reconstruct.estimate.corner.pitch import clipped_echoes
 
     assert not clipped_echoes(amp).any()  # noisy, unclipped: one largest echo
     full_scale = float(np.quantile(amp, 0.9))

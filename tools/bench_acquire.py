@@ -51,6 +51,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+from lelsonar.errors import InternalError
+
+if TYPE_CHECKING:
+    from lelsonar.acquire.scan_bound import ScanBound
 
 TARGET_RATIO = 1.1
 
@@ -176,7 +182,7 @@ def host_line(busy: float | None) -> str:
 def component_run(args: argparse.Namespace) -> tuple[float, float, int]:
     """The two devices alone, through the same drivers and emulators as a scan: every move of the
     schedule back to back, then every FIRE back to back.  Returns (moves s, fires s, steps)."""
-    from lelsonar.acquire.backends import open_scanner
+    from lelsonar.acquire.backends import DeviceScanner, open_scanner
     from lelsonar.acquire.config import AcquireConfig
     from lelsonar.acquire.scan_loop import gamma_schedule
     from lelsonar.acquire.service import sim_config
@@ -185,6 +191,8 @@ def component_run(args: argparse.Namespace) -> tuple[float, float, int]:
     sim = sim_config(cfg)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     with open_scanner(cfg, sim) as scanner:
+        if not isinstance(scanner, DeviceScanner):
+            raise InternalError(f"--device {cfg.device} opened no drivers to time apart")
         t = time.perf_counter()
         for gamma in schedule:
             scanner.motor.move_to(float(gamma))
@@ -211,7 +219,7 @@ class RunResult:
 @dataclass
 class Row:
     label: str
-    bound: object  # ScanBound
+    bound: ScanBound | None
     pipeline: bool = True
     zenoh: bool = False
     results: list[RunResult] = field(default_factory=list)
@@ -368,7 +376,7 @@ def run(args: argparse.Namespace) -> int:
         call, scan = row.median("call_s"), row.median("scan_s")
         samples = row.results[0].samples
         lo, hi = min(r.call_s for r in row.results), max(r.call_s for r in row.results)
-        per = lambda name: 1e3 * row.median(name) / samples  # noqa: E731
+        per = lambda name, row=row, samples=samples: 1e3 * row.median(name) / samples  # noqa: E731
         other = [1e3 * (r.cpu_s - r.main_cpu_s - r.emulator_cpu_s) / samples for r in row.results]
         if row.bound is None:
             ratio_call = ratio_scan = verdict = over = "—"
@@ -379,7 +387,8 @@ def run(args: argparse.Namespace) -> int:
             ratio_call, ratio_scan = f"{call / total:.3f}", f"{scan / total:.3f}"
             verdict = "[green]PASS[/]" if ok else "[red]MISS[/]"
             over = f"{1e3 * (scan - total) / samples:.2f}"
-        delivered = "—" if row.results[0].delivered is None else f"{min(r.delivered for r in row.results)}/{samples}"
+        counts = [r.delivered for r in row.results if r.delivered is not None]
+        delivered = f"{min(counts)}/{samples}" if counts else "—"
         table.add_row(
             row.label,
             f"{call:.3f}",

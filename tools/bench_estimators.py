@@ -153,7 +153,7 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
         pts = pc[m] + scan.distance[m][:, None] * tp.normal
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         th = F.ls_theta(pts)
-        oracle[label] = (th / np.linalg.norm(th), 1.0 / np.linalg.norm(th))
+        oracle[label] = (th / np.linalg.norm(th), 1.0 / float(np.linalg.norm(th)))
     for label, src, axis in (("a", EchoSource.PLANE_A, AXIS_Y), ("b", EchoSource.PLANE_B, AXIS_Z)):
         tp = planes[label]
         a, o, p = _plane_errors(*oracle[label], tp.normal, tp.offset, patches[label])
@@ -175,7 +175,9 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
         steps = np.flatnonzero(m.any(axis=1))
         data = F.plane_data(scan.geometry, scan.gamma_measured, np.where(m, scan.distance, np.nan), steps, label, axis)
         th = F.ls_theta(data.points)
-        a, o, p = _plane_errors(th / np.linalg.norm(th), 1 / np.linalg.norm(th), tp.normal, tp.offset, patches[label])
+        a, o, p = _plane_errors(
+            th / np.linalg.norm(th), 1 / float(np.linalg.norm(th)), tp.normal, tp.offset, patches[label]
+        )
         rows.append(
             {
                 **base,
@@ -248,14 +250,14 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
                     "n": data.n,
                     "angle_fast1": _plane_errors(
                         one.theta / np.linalg.norm(one.theta),
-                        1 / np.linalg.norm(one.theta),
+                        1 / float(np.linalg.norm(one.theta)),
                         tp.normal,
                         tp.offset,
                         patches[label],
                     )[0],
                     "angle_nm": _plane_errors(
                         nm.theta / np.linalg.norm(nm.theta),
-                        1 / np.linalg.norm(nm.theta),
+                        1 / float(np.linalg.norm(nm.theta)),
                         tp.normal,
                         tp.offset,
                         patches[label],
@@ -377,7 +379,7 @@ def run(args: argparse.Namespace) -> int:
     ):
         table.add_column(col, justify="right" if col not in ("scene", "method") else "left")
     misses: list[str] = []
-    summary: dict[str, Any] = {}
+    summary: dict[tuple[str, str], dict[str, Any]] = {}
     for scene in args.scenes:
         sr = [r for r in rows if r["scene"] == scene and r["method"] != "_hcheck"]
         oracle_patch = _p([r["patch"] for r in sr if r["method"] == "oracle"], 50)

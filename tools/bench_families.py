@@ -501,7 +501,9 @@ def scene_truth(scan: Any) -> SceneTruth:
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
     pc = scan.geometry.capsule_positions(scan.gamma_measured)
-    patch, oracle, n_mirror = {}, {}, {}
+    patch: dict[str, np.ndarray] = {}
+    oracle: dict[str, tuple[float, float, float] | None] = {}
+    n_mirror: dict[str, int] = {}
     for label, src in (("a", EchoSource.PLANE_A), ("b", EchoSource.PLANE_B)):
         tp = planes[label]
         m = (truth.echo_source == src) & np.isfinite(scan.distance)
@@ -1032,18 +1034,19 @@ def run_families(args: argparse.Namespace) -> int:
             # spawn, not fork: the parent has imported Open3D (OpenMP), which a forked child may deadlock on.
             with ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
                 futures = [
-                    ex.submit(family_scan, f, s, methods, anchor, args.dump_failures, args.calibration) for f, s in jobs
+                    ex.submit(family_scan, fam, seed, methods, anchor, args.dump_failures, args.calibration)
+                    for fam, seed in jobs
                 ]
                 for fut in as_completed(futures):
-                    scene, r = fut.result()
+                    scene, scene_rows = fut.result()
                     scenes.append(scene)
-                    rows.extend(r)
+                    rows.extend(scene_rows)
                     progress.advance(task)
         else:
-            for f, s in jobs:
-                scene, r = family_scan(f, s, methods, anchor, args.dump_failures, args.calibration)
+            for fam, seed in jobs:
+                scene, scene_rows = family_scan(fam, seed, methods, anchor, args.dump_failures, args.calibration)
                 scenes.append(scene)
-                rows.extend(r)
+                rows.extend(scene_rows)
                 progress.advance(task)
     wall = time.perf_counter() - t_start
     order = {f: i for i, f in enumerate(families)}
@@ -1259,7 +1262,7 @@ def run_families(args: argparse.Namespace) -> int:
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)
-        with open(out, "w", encoding="utf-8") as f:
+        with open(out, "w", encoding="utf-8") as fh:
             json.dump(
                 _finite(
                     {
@@ -1280,7 +1283,7 @@ def run_families(args: argparse.Namespace) -> int:
                         "rows": rows,
                     }
                 ),
-                f,
+                fh,
                 default=json_default,
                 allow_nan=False,
             )

@@ -25,8 +25,8 @@ time from the first put to the last processed), p50/p99 put → processed
 (``handle`` returned) and put → provisional estimate published (of the sample
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
 worker (user + system over its wall time), CPU of each process while busy (a worker from its first
-live sample to its last, read at most every 10 ms, the publisher over its puts, the router meanwhile), and how far the publisher fell
-behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
+live sample to its last, read at most every 10 ms, the publisher over its puts, the router meanwhile),
+and how far the publisher fell behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
 again and SIGKILLs one worker in the middle of the first scans: every scan
 must still get exactly one complete final.
 """
@@ -558,7 +558,11 @@ def run(args: argparse.Namespace) -> int:
             ) as bar:
                 task = bar.add_task(label, total=args.scanners * args.scans)
                 runs.append(
-                    run_case(args, kill_one=kill, progress=lambda done, total: bar.update(task, completed=done))
+                    run_case(
+                        args,
+                        kill_one=kill,
+                        progress=lambda done, total, bar=bar, task=task: bar.update(task, completed=done),
+                    )
                 )
         res = summarise(runs)
         res["case"] = label

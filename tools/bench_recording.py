@@ -25,7 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
-ROWS = (
+from lelsonar import codec
+
+#: Each row: its label and the McapRecorder options it measures.
+ROWS: tuple[tuple[str, dict[str, bool]], ...] = (
     ("before: 1 MiB chunks", {"durable": False}),
     ("chunk per step", {}),
     ("chunk per step, fsync", {"fsync": True}),
@@ -83,7 +86,7 @@ def scan_messages(preset_name: str, steps: int | None, seed: int) -> list:
     scanner = SimScanner(sim, seed)
     schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
     t0 = time.time_ns()
-    out = [messages.scan_start("bench", 1, t0, scanner.info, schedule, default_energy_model())]
+    out: list[codec.ScanMessage] = [messages.scan_start("bench", 1, t0, scanner.info, schedule, default_energy_model())]
     for step, gamma in enumerate(schedule):
         out.append(messages.sample("bench", 1, step, float(gamma), scanner.measure(step, float(gamma)), scanner.info))
     out.append(

@@ -425,11 +425,11 @@ def simulate(case: StressCase) -> StressScan:
     """Simulate ``case`` with the simulator's physics on its own schedule (seeded by the case)."""
     from lelsonar.sim.scan import (
         EchoSource,
-        _amplitude_noise,
-        _first_echo,
-        _time_of_flight,
-        _waveforms,
+        apply_amplitude_noise,
+        comparator_time_of_flight,
+        digitised_waveforms,
         echo_table,
+        first_echo,
     )
 
     cfg = build_config(case)
@@ -440,10 +440,10 @@ def simulate(case: StressCase) -> StressScan:
     gamma_true = servo.to_gamma(goal) + rng.standard_normal(commanded.shape) * servo.position_error
     raw = np.clip(servo.to_raw(gamma_true), 0, 1023)
     measured = servo.to_gamma(raw)
-    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
-    _range, source, _index, delay = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, _range, rng, delay)
-    waveforms = _waveforms(cfg, echoes, rng)
+    echoes = apply_amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
+    _range, source, _index, delay = first_echo(cfg, echoes)
+    tof = comparator_time_of_flight(cfg, _range, rng, delay)
+    waveforms = digitised_waveforms(cfg, echoes, rng)
     if case.missing > 0:
         n, m = tof.shape
         drop = np.zeros((n, m), dtype=bool)

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from google.protobuf.message import DecodeError as _ProtobufDecodeError
@@ -37,10 +38,14 @@ ScanEnd = scan_pb2.ScanEnd
 Reconstruction = reconstruction_pb2.Reconstruction
 Waveform = scan_pb2.Waveform
 
+#: A top-level message of the contract: each carries ``schema_version`` and ``scanner_id``.
+WireMessage = ScanStart | Sample | ScanEnd | Reconstruction
+#: A message of a scan, as ``acquire`` sends and records it: each carries ``scan_id`` too.
+ScanMessage = ScanStart | Sample | ScanEnd
+_TOP_LEVEL = (ScanStart, Sample, ScanEnd, Reconstruction)
+
 #: The top-level messages of the contract, by their full protobuf name.
-MESSAGE_TYPES: dict[str, type[Message]] = {
-    cls.DESCRIPTOR.full_name: cls for cls in (ScanStart, Sample, ScanEnd, Reconstruction)
-}
+MESSAGE_TYPES: dict[str, type[WireMessage]] = {cls.DESCRIPTOR.full_name: cls for cls in _TOP_LEVEL}
 
 M = TypeVar("M", bound=Message)
 
@@ -51,7 +56,7 @@ QUALITY = {
     "degraded": reconstruction_pb2.PLANE_QUALITY_DEGRADED,
     "unreliable": reconstruction_pb2.PLANE_QUALITY_UNRELIABLE,
 }
-QUALITY_NAME = {v: (k or "unassessed") for k, v in QUALITY.items()}
+QUALITY_NAME: dict[int, str] = {v: (k or "unassessed") for k, v in QUALITY.items()}
 
 _ITEM_SIZE = {
     scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE: 4,
@@ -250,7 +255,7 @@ def parse(payload: bytes, message_type: type[M], limits: DecodeLimits = DEFAULT_
 
 def validate_body(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
     """The second half of :func:`decode`: every check of a parsed message but its header's."""
-    _VALIDATORS[type(message)](message, limits)
+    _VALIDATORS[type(_top_level(message))](message, limits)
 
 
 def check_samples_finite(m: Sample) -> None:
@@ -300,7 +305,17 @@ def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
     _VALIDATORS[type(message)](message, limits)
 
 
-def _validate_header(message: Message) -> None:
+def _top_level(message: Message) -> WireMessage:
+    if not isinstance(message, _TOP_LEVEL):
+        raise InvalidMessageError(
+            f"{message.DESCRIPTOR.full_name} is not a top-level message of the contract; "
+            f"pass one of {', '.join(MESSAGE_TYPES)}"
+        )
+    return message
+
+
+def _validate_header(any_message: Message) -> None:
+    message = _top_level(any_message)
     name = message.DESCRIPTOR.full_name
     if message.schema_version != SCHEMA_VERSION:
         fix = (
@@ -574,7 +589,8 @@ def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
             )
 
 
-_VALIDATORS = {
+#: Each validator takes the message type it is keyed by.
+_VALIDATORS: dict[type[Message], Callable[[Any, DecodeLimits], None]] = {
     ScanStart: _validate_scan_start,
     Sample: _validate_sample,
     ScanEnd: _validate_scan_end,

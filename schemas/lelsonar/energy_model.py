@@ -8,12 +8,16 @@ to the contract because it is part of what a scan says about its rig.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar, overload
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
 
 __all__ = ["EnergyModel"]
+
+#: One range (a float) or many (an array): the quadratic keeps the kind it is given.
+_D = TypeVar("_D", float, np.ndarray)
 
 
 @dataclass(frozen=True)
@@ -45,14 +49,20 @@ class EnergyModel:
                 f"[{self.d_min}, {self.d_max}] m; recalibrate with `lelsonar calibrate`"
             )
 
-    def _denominator(self, d: np.ndarray) -> np.ndarray:
+    def _denominator(self, d: _D) -> _D:
         return self.phi0 * d * d + self.phi1 * d + self.phi2
+
+    @overload
+    def expected_energy(self, distance: float) -> float: ...
+
+    @overload
+    def expected_energy(self, distance: np.ndarray) -> np.ndarray: ...
 
     def expected_energy(self, distance: np.ndarray | float) -> np.ndarray | float:
         """``E0(d)`` in V²·s, eq. (12).  Ranges are clipped to the calibrated interval,
         where the quadratic is known to stay positive.  A float in, a float out."""
         if isinstance(distance, float):
-            # One step's range (the live service, per sample): np.clip on a 0-d array costs more than the formula.
+            # One step's range (the live service, per sample): plain min/max, not np.clip on a 0-d array.
             return 1.0 / self._denominator(min(max(distance, self.d_min), self.d_max))
         d = np.clip(np.asarray(distance, dtype=np.float64), self.d_min, self.d_max)
         return 1.0 / self._denominator(d)

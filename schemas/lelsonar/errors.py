@@ -79,3 +79,9 @@ class SecurityError(ConfigError):
 
 class ScannerMismatchError(InvalidMessageError):
     """The scanner id in the Zenoh key differs from the scanner id in the payload (a forgery or a bug)."""
+
+
+# --- lelsonar's own invariants -----------------------------------------------------
+class InternalError(LelsonarError):
+    """lelsonar broke one of its own invariants: a bug to report (the message names it), not a fault of the
+    input, the device or the set-up."""

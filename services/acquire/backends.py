@@ -22,7 +22,7 @@ from lelsonar.acquire.devices.sensor_board import SensorBoard, SensorBoardConfig
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.rig import EmulatedRig, emulated_rig
 from lelsonar.acquire.emulate.sensor_board_emulator import SensorBoardEmulatorConfig, sim_shot_source
-from lelsonar.acquire.rig import rig_links
+from lelsonar.acquire.rig import rig_links, serial_setup
 from lelsonar.acquire.scanner import MotorReading, ScannerInfo, StepMeasurement
 from lelsonar.sim import SimConfig, simulate_step
 
@@ -183,8 +183,6 @@ def open_scanner(cfg: AcquireConfig, sim: SimConfig | None) -> Iterator[SimScann
     (:func:`lelsonar.acquire.rig.serial_setup`) and ignores it.
     """
     if cfg.device == "serial":
-        from lelsonar.acquire.rig import serial_setup
-
         setup = serial_setup(cfg)
         with ExitStack() as stack:
             motor = stack.enter_context(DynamixelMotor(setup.motor))

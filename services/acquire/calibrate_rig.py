@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lelsonar.acquire.devices.motor import DynamixelMotor, MotorConfig
+from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.rig import Rig, load_rig, rig_links, write_energy_model
 from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
@@ -80,9 +82,6 @@ def calibrate_serial(
     ConfigError
         Missing rig keys, an unparsable distance, the user quit, or too few usable shots.
     """
-    from lelsonar.acquire.devices.motor import DynamixelMotor, MotorConfig
-    from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
-
     rig = load_rig(rig_path)
     _require(rig, {"servo.port": motor_port, "sensor_board.port": sensor_port})
     g = rig.get
@@ -133,13 +132,12 @@ def calibrate_serial(
             check = f"board range {board_range:.3f} m" if np.isfinite(board_range) else "no echo"
             warn = "  ← check the wall and the tape" if np.isfinite(board_range) and abs(board_range - d) > 0.05 else ""
             say(f"  d = {d:.3f} m: E = {e:.4e} V²·s, {check}{warn}")
-    d = np.array([s.distance for s in shots])
-    e = np.array([s.energy for s in shots])
-    model = fit_energy_model(d, e)
+    distances_m = np.array([s.distance for s in shots])
+    model = fit_energy_model(distances_m, np.array([s.energy for s in shots]))
     if write:
         note = (
             f"calibrated {_dt.datetime.now(_dt.UTC):%Y-%m-%d %H:%M} UTC by `lelsonar calibrate "
-            f"--device serial` from {len(shots)} face-on shots at {', '.join(f'{x:.3f}' for x in d)} m"
+            f"--device serial` from {len(shots)} face-on shots at {', '.join(f'{x:.3f}' for x in distances_m)} m"
         )
         write_energy_model(rig_path, (model.phi0, model.phi1, model.phi2), model.d_min, model.d_max, note)
     return shots, model

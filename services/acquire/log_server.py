@@ -68,7 +68,7 @@ class ScanLog:
         #: What the bounds dropped, by reason.
         self.evicted: Counter[str] = Counter()
 
-    def add(self, message: Message, payload: bytes | None = None) -> None:
+    def add(self, message: codec.ScanMessage, payload: bytes | None = None) -> None:
         """Keep one recorded message (``payload``: its bytes as recorded; serialised if not given)."""
         data = payload if payload is not None else message.SerializeToString()
         with self._lock:

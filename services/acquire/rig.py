@@ -23,10 +23,18 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from lelsonar.acquire.devices.link import LINK_KINDS, Link
+from lelsonar.acquire.devices.motor import MotorConfig
+from lelsonar.acquire.devices.sensor_board import SensorBoardConfig
+from lelsonar.acquire.scanner import ScannerInfo
+from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
+from lelsonar.geometry import ArrayGeometry
+
+if TYPE_CHECKING:  # the config reads rig files: it imports this module
+    from lelsonar.acquire.config import AcquireConfig
 
 #: Every table and key of a rig file with its type (float also accepts an int).
 RIG_KEYS: dict[str, dict[str, type]] = {
@@ -254,26 +262,20 @@ def write_energy_model(
 class SerialSetup:
     """Everything ``--device serial`` drives, from the rig file and the flags that override it."""
 
-    info: Any  # ScannerInfo
-    motor: Any  # MotorConfig
-    board: Any  # SensorBoardConfig
+    info: ScannerInfo
+    motor: MotorConfig
+    board: SensorBoardConfig
     gamma_start: float  # rad
     gamma_stop: float  # rad
     steps: int
-    energy_model: Any  # EnergyModel
+    energy_model: EnergyModel
 
 
-def serial_setup(cfg) -> SerialSetup:
+def serial_setup(cfg: AcquireConfig) -> SerialSetup:
     """Build the serial scanner of an :class:`~lelsonar.acquire.config.AcquireConfig` from its rig.
 
     Flags that the config carries (ports, schedule, radial offset, φ) win over the file.
     """
-    from lelsonar.acquire.devices.motor import MotorConfig
-    from lelsonar.acquire.devices.sensor_board import SensorBoardConfig
-    from lelsonar.acquire.scanner import ScannerInfo
-    from lelsonar.geometry import ArrayGeometry
-    from lelsonar.signal.energy import EnergyModel
-
     rig: Rig = cfg.rig or Rig(None, {})
     require_for_serial(rig, serial_overrides(cfg))
     g = rig.get
@@ -324,12 +326,13 @@ def serial_setup(cfg) -> SerialSetup:
         m = cfg.energy_model
         model = EnergyModel(m.phi0, m.phi1, m.phi2, float(d_min), float(d_max))
     else:
-        model = EnergyModel(*map(float, g("energy_model.phi")), float(d_min), float(d_max))
+        phi0, phi1, phi2 = (float(x) for x in g("energy_model.phi"))  # three numbers: checked by load_rig
+        model = EnergyModel(phi0, phi1, phi2, float(d_min), float(d_max))
     steps = cfg.steps if cfg.steps is not None else int(g("schedule.steps"))
     return SerialSetup(info, motor, board, float(gamma_start), float(gamma_stop), steps, model)
 
 
-def serial_overrides(cfg) -> dict[str, Any]:
+def serial_overrides(cfg: AcquireConfig) -> dict[str, Any]:
     """The rig keys that flags of ``cfg`` supply."""
     phi = cfg.energy_model
     return {

@@ -12,9 +12,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from lelsonar.acquire.backends import emulated_servo
+from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices import sensor_frame as sf
 from lelsonar.acquire.devices.link import Link
+from lelsonar.acquire.devices.motor import MotorConfig
+from lelsonar.acquire.rig import rig_links
+from lelsonar.acquire.scan_loop import gamma_schedule
+from lelsonar.acquire.service import sim_config
 
 #: AX-12 bus bytes of one move as the driver makes it: WRITE Goal Position (2 data bytes) and its
 #: status packet, then one READ of Present Position .. Moving (address, length) and its status.
@@ -171,19 +177,13 @@ def scan_bound(
     )
 
 
-def emulated_scan_bound(cfg, *, pipelined: bool | None = None) -> ScanBound:
+def emulated_scan_bound(cfg: AcquireConfig, *, pipelined: bool | None = None) -> ScanBound:
     """:func:`scan_bound` of the scan ``--device emulated`` makes for ``cfg`` (an AcquireConfig).
 
     The schedule, window and samples of its preset; the goals as the driver computes them;
     the emulated servo's power-on position, speed and Return Delay; the links of the rig
     (:func:`~lelsonar.acquire.rig.rig_links`).  ``pipelined`` defaults to ``cfg.pipeline``.
     """
-    from lelsonar.acquire.backends import emulated_servo
-    from lelsonar.acquire.devices.motor import MotorConfig
-    from lelsonar.acquire.rig import rig_links
-    from lelsonar.acquire.scan_loop import gamma_schedule
-    from lelsonar.acquire.service import sim_config
-
     sim = sim_config(cfg)
     servo = emulated_servo(cfg, sim)
     zero_raw = int(sim.servo.to_raw(0.0))

@@ -73,7 +73,7 @@ class ScanOutput:
     publish_failures: int = 0
     scan_log: ScanLog | None = None
 
-    def emit(self, message: Message) -> None:
+    def emit(self, message: codec.ScanMessage) -> None:
         if self.recorder is not None:
             self.recorder.write(message)  # returns once the step is with the OS: durable before published
         if self.scan_log is not None:

@@ -12,23 +12,35 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from contextlib import ExitStack, nullcontext
 from dataclasses import dataclass
 
+import zenoh as zenoh_lib
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 
 from lelsonar import codec
+from lelsonar.acquire.backends import open_scanner
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.log_server import LogServer, ScanLog
 from lelsonar.acquire.odometry import OdometryFollower
+from lelsonar.acquire.rig import serial_setup
 from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, ScanPublisher, gamma_schedule, run_scan
 from lelsonar.acquire.world_scans import WorldReplay, prepare_world
 from lelsonar.energy_model import EnergyModel
 from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder
 from lelsonar.net.transport import ZenohSettings, open_session
-from lelsonar.sim import SimConfig, preset
+from lelsonar.sim import SimConfig, default_energy_model, preset
 
 _log = logging.getLogger(__name__)
 
@@ -39,32 +51,38 @@ INT16_SCALE = 5.0 / 32767
 def sim_config(cfg: AcquireConfig) -> SimConfig:
     """The preset, with the schedule and geometry overrides of ``cfg``."""
     sim = preset(cfg.preset)
-    changes = {
-        k: v
-        for k, v in (("steps", cfg.steps), ("gamma_start", cfg.gamma_start), ("gamma_stop", cfg.gamma_stop))
-        if v is not None
-    }
+    if cfg.steps is not None:
+        sim = dataclasses.replace(sim, steps=cfg.steps)
+    if cfg.gamma_start is not None:
+        sim = dataclasses.replace(sim, gamma_start=cfg.gamma_start)
+    if cfg.gamma_stop is not None:
+        sim = dataclasses.replace(sim, gamma_stop=cfg.gamma_stop)
     if cfg.radial_offset is not None:
-        changes["geometry"] = dataclasses.replace(sim.geometry, radial_offset=cfg.radial_offset)
-    return dataclasses.replace(sim, **changes) if changes else sim
+        sim = dataclasses.replace(sim, geometry=dataclasses.replace(sim.geometry, radial_offset=cfg.radial_offset))
+    return sim
 
 
 def energy_model(cfg: AcquireConfig) -> EnergyModel:
     if cfg.energy_model is not None:
         return cfg.energy_model
-    from lelsonar.sim.calibrate import default_energy_model
-
     return default_energy_model()
 
 
-def _quietly(what: str, fn) -> None:
+def _quietly(what: str, fn: Callable[[], object]) -> None:
     """Run a Zenoh clean-up step; after a partition it may fail, which must not crash acquire."""
-    import zenoh as _zenoh
-
     try:
         fn()
-    except _zenoh.ZError as exc:
+    except zenoh_lib.ZError as exc:
         _log.warning("%s failed (the network may be down; the recording is complete): %s", what, exc)
+
+
+def _advance(progress: Progress, task: TaskID) -> Callable[[int, float], None]:
+    """``run_scan``'s ``on_step``: one step more on ``task``, showing the measured γ."""
+
+    def on_step(_step: int, gamma: float) -> None:
+        progress.update(task, advance=1, gamma=math.degrees(gamma))
+
+    return on_step
 
 
 @dataclass
@@ -83,13 +101,9 @@ def run_acquisition(
     cfg: AcquireConfig, zenoh: ZenohSettings | None, stop: threading.Event, console: Console | None = None
 ) -> AcquisitionReport:
     """Run ``cfg.scans`` scans; return what happened.  Never leaves a file unfinished."""
-    from lelsonar.acquire.backends import open_scanner
-
     console = console or Console(stderr=True)
     world = prepare_world(cfg.world, cfg.seed, steps=cfg.steps) if cfg.world is not None else None
     if cfg.device == "serial":  # the rig file and flags only, never a simulator preset
-        from lelsonar.acquire.rig import serial_setup
-
         setup, sim = serial_setup(cfg), None
         schedule = gamma_schedule(setup.gamma_start, setup.gamma_stop, setup.steps)
         model = setup.energy_model
@@ -103,12 +117,13 @@ def run_acquisition(
         model = energy_model(cfg)
     keys = ScannerKeys(cfg.prefix, cfg.scanner_id)
     report = AcquisitionReport([], [], 0)
-    log = ScanLog(keep_for=cfg.serve_log_for) if zenoh is not None else None
+    log: ScanLog | None = None
     with ExitStack() as stack:
         publisher = None
         server = None
         follower = None
         if zenoh is not None:
+            log = ScanLog(keep_for=cfg.serve_log_for)
             session = stack.enter_context(open_session(zenoh))
             token = session.liveliness().declare_token(keys.alive("acquire"))
             stack.callback(_quietly, "undeclaring the liveliness token", token.undeclare)
@@ -164,9 +179,7 @@ def run_acquisition(
                         model,
                         output,
                         stop,
-                        on_step=lambda _s, g, bar=progress, task=task: bar.update(
-                            task, advance=1, gamma=math.degrees(g)
-                        ),
+                        on_step=_advance(progress, task),
                         int16_scale=INT16_SCALE if cfg.waveform_int16 else None,
                     )
                     report.publish_failures += output.publish_failures

@@ -13,12 +13,16 @@ from __future__ import annotations
 
 import json
 import threading
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 
+from lelsonar.acquire.backends import sim_info
+from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, run_scan
+from lelsonar.acquire.scanner import MotorReading, StepMeasurement
 from lelsonar.errors import ConfigError
+from lelsonar.log.recording import McapRecorder
 from lelsonar.sim.scan import SimulatedScan
 
 #: Acquisition time of step 0 of a recorded simulated scan, ns (fixed, so files are reproducible).
@@ -31,17 +35,20 @@ class ScanReplay:
     """A :class:`SimulatedScan` as a :class:`lelsonar.acquire.scanner.Scanner`: step ``k`` returns shot ``k``."""
 
     def __init__(self, scan: SimulatedScan) -> None:
-        from lelsonar.acquire.backends import sim_info
-
         if scan.waveforms.shape[-1] == 0:
             raise ConfigError("a recorded scan needs its waveforms (simulate_scan(..., with_waveforms=True))")
         self.scan = scan
         self.info = sim_info(scan.config, "sim")
 
-    def measure(self, step: int, gamma_commanded: float, *, next_gamma: float | None = None, while_listening=None):
+    def measure(
+        self,
+        step: int,
+        gamma_commanded: float,
+        *,
+        next_gamma: float | None = None,
+        while_listening: Callable[[], None] | None = None,
+    ) -> StepMeasurement:
         """Shot ``step`` as recorded (nothing to move, nothing to listen to: the hints are not needed)."""
-        from lelsonar.acquire.scanner import MotorReading, StepMeasurement
-
         s = self.scan
         return StepMeasurement(
             gamma_measured=float(s.gamma_measured[step]),
@@ -98,9 +105,6 @@ def record_scan(
     ScanEnd
         Complete unless the loop failed.
     """
-    from lelsonar.acquire.scan_loop import ScanIdentity, ScanOutput, run_scan
-    from lelsonar.log.recording import McapRecorder
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"device": "sim", "scanner_id": scanner_id, **truth_metadata(scan), **dict(metadata or {})}

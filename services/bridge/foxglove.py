@@ -29,6 +29,7 @@ from contextlib import contextmanager
 
 import foxglove
 import numpy as np
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from google.protobuf.message import Message
 
 from lelsonar import codec
@@ -277,7 +278,7 @@ class FoxgloveObserver:
 
 def truth_scene(planes, scanner_id: str, t_ns: int) -> visual.SceneUpdate:
     """The true planes as grey patches."""
-    entities = []
+    entities: list[SceneEntity] = []
     for label, normal, offset, corners in planes:
         msg = codec.Reconstruction(scanner_id=scanner_id, scan_id=0)
         p = msg.planes.add(label=str(label), method="truth", offset=float(offset))
@@ -302,7 +303,7 @@ def open_foxglove(address: str, *, truth_preset: str | None = None) -> Iterator[
     host, port = parse_host_port(address)
     truth = None
     if truth_preset:
-        from lelsonar.view.rerun_observer import preset_truth
+        from lelsonar.view.rerun_observer import preset_truth  # brings in rerun (heavy): only for a truth preset
 
         truth = preset_truth(truth_preset)
     server = FoxgloveServer(host, port)

@@ -10,9 +10,11 @@ Targets ``rmw_zenoh_cpp`` ≥ 0.2.4 (Jazzy) and 0.6 (Kilted), whose design
   computes, or it sees nothing.
 * **Liveliness tokens** (the graph: ``ros2 node list``, ``ros2 topic list``):
   a node ``@ros2_lv/<domain>/<zid>/<nid>/<nid>/NN/<enclave>/<namespace>/<node>``
-  and per publisher ``@ros2_lv/<domain>/<zid>/<nid>/<id>/MP/<enclave>/<namespace>/<node>/<topic>/<DDS type>/<hash>/<qos>``,
+  and per publisher
+  ``@ros2_lv/<domain>/<zid>/<nid>/<id>/MP/<enclave>/<namespace>/<node>/<topic>/<DDS type>/<hash>/<qos>``,
   every ``/`` inside a chunk mangled to ``%`` and an empty chunk written ``%``.
-  The QoS chunk is ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<s>,<ns>``
+  The QoS chunk is
+  ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<s>,<ns>``
   with every component that equals rmw_zenoh's default (RELIABLE, VOLATILE,
   KEEP_LAST, depth 42, infinite durations, AUTOMATIC) left empty; a non-default
   one is the ``rmw/types.h`` enum value (TRANSIENT_LOCAL = 1).
@@ -74,7 +76,7 @@ def open_ros_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
     except zenoh.ZError as exc:
         raise TransportError(
             f"cannot open a Zenoh {settings.mode} session: {exc}; is the robot's router "
-            f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect)}?"
+            f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect or ('its config file',))}?"
         ) from None
     try:
         yield session
@@ -158,8 +160,8 @@ class _Publisher:
     token_key: str
     gid: bytes
     msgtype: str
-    zpub: object
-    token: object
+    zpub: zenoh.Publisher | zenoh.ext.AdvancedPublisher
+    token: zenoh.LivelinessToken
     seq: int = 1
 
 
@@ -233,6 +235,7 @@ class RmwZenohNode:
                 h,
                 qos,
             )
+            zpub: zenoh.Publisher | zenoh.ext.AdvancedPublisher
             if qos.transient_local:
                 zpub = zenoh.ext.declare_advanced_publisher(
                     self._session,

@@ -5,17 +5,17 @@ it turns what the service sees into ROS 2 messages and hands each to a sink —
 the rosbag2 writer here (:func:`export_rosbag2`), or the rmw_zenoh publisher
 (:mod:`lelsonar.bridge.rmw_zenoh`).  Both carry the same topics:
 
-==============================  ==================================  =========  ==============================================
-topic                           type                                QoS        what
-==============================  ==================================  =========  ==============================================
-``/tf_static``                  ``tf2_msgs/msg/TFMessage``          TL, 1      per scan: base → axis, array → each capsule
-``/tf``                         ``tf2_msgs/msg/TFMessage``          V, 100     per step: axis → array, γ_measured about x
-``/lelsonar/range/capsule<i>``  ``sensor_msgs/msg/Range``           V, 10      per step and capsule; ``+inf`` without an echo
-``/lelsonar/points/raw``        ``sensor_msgs/msg/PointCloud2``     V, 10      per step: eq. (9) points of the scan so far
-``/lelsonar/points/corrected``  ``sensor_msgs/msg/PointCloud2``     V, 10      per estimate: §4 corrected points, a and b
-``/lelsonar/planes``            ``visualization_msgs/MarkerArray``  TL, 1      per estimate: planes per method, truth, edge
-``/lelsonar/estimate``          ``std_msgs/msg/String``             TL, 1      per estimate: the Reconstruction as JSON
-==============================  ==================================  =========  ==============================================
+==============================  ==================================  ======  ============================================
+topic                           type                                QoS     what
+==============================  ==================================  ======  ============================================
+``/tf_static``                  ``tf2_msgs/msg/TFMessage``          TL, 1   per scan: base → axis, array → each capsule
+``/tf``                         ``tf2_msgs/msg/TFMessage``          V, 100  per step: axis → array, γ_measured about x
+``/lelsonar/range/capsule<i>``  ``sensor_msgs/msg/Range``           V, 10   per step, capsule; ``+inf`` without an echo
+``/lelsonar/points/raw``        ``sensor_msgs/msg/PointCloud2``     V, 10   per step: eq. (9) points of the scan so far
+``/lelsonar/points/corrected``  ``sensor_msgs/msg/PointCloud2``     V, 10   per estimate: §4 corrected points, a and b
+``/lelsonar/planes``            ``visualization_msgs/MarkerArray``  TL, 1   per estimate: planes per method, truth, edge
+``/lelsonar/estimate``          ``std_msgs/msg/String``             TL, 1   per estimate: the Reconstruction as JSON
+==============================  ==================================  ======  ============================================
 
 (TL = RELIABLE, TRANSIENT_LOCAL, KEEP_LAST depth; V = RELIABLE, VOLATILE, KEEP_LAST depth.)
 Several scanners share these topics; their frame ids (and the estimate's
@@ -49,10 +49,11 @@ import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from rosbags.highlevel import AnyReader
-from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.interfaces import Connection, Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -63,6 +64,9 @@ from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
 from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.service import ReconstructionService
+from lelsonar.reconstruct.stream.sources import replay_mcap
+from lelsonar.view import present
 
 __all__ = [
     "DISTROS",
@@ -87,7 +91,8 @@ __all__ = [
 ]
 
 #: distro → (rosbags typestore, rosbag2 metadata version).  Humble's ``ros2 bag`` reads version 8.
-DISTROS = {"jazzy": (Stores.ROS2_JAZZY, 9), "humble": (Stores.ROS2_HUMBLE, 8)}
+#: The rosbag2 type store and bag version of each distro.
+DISTROS: dict[str, tuple[Stores, Literal[8, 9]]] = {"jazzy": (Stores.ROS2_JAZZY, 9), "humble": (Stores.ROS2_HUMBLE, 8)}
 
 TOPIC_TF = "/tf"
 TOPIC_TF_STATIC = "/tf_static"
@@ -221,6 +226,8 @@ class _Builder:
     def cloud(self, t_ns: int, frame: str, points: np.ndarray) -> object:
         """A PointCloud2 of a structured array (its named fields become the PointFields)."""
         dt = points.dtype
+        if dt.fields is None or dt.names is None:
+            raise ConfigError(f"a point cloud needs a structured array, got dtype {dt}")
         fields = [
             self(
                 "sensor_msgs/msg/PointField",
@@ -334,7 +341,7 @@ def _quat_from_x_to(v) -> tuple[float, float, float, float]:
         return (0.0, 0.0, 1.0, 0.0)  # 180° about z
     q = np.array([0.0, -v[2], v[1], 1.0 + v[0]])  # axis x × v, w = 1 + cos
     q /= np.linalg.norm(q)
-    return tuple(float(c) for c in q)
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 # --- the observer -------------------------------------------------------------------------
@@ -458,8 +465,6 @@ class Ros2View:
     def estimate(
         self, scan: ScanAssembly, message: codec.Reconstruction, results: dict[str, ScanReconstruction] | None, partial
     ) -> None:
-        from lelsonar.view import present
-
         s, b = scan.start, self._b
         final = results is not None
         if final and scan.end is not None:
@@ -467,7 +472,7 @@ class Ros2View:
         else:
             t = int(scan.time_ns[message.last_step])
         base = self.frame(s.scanner_id, "base")
-        if final:
+        if results is not None:
             subsets = self._final_subsets(scan, results[self.main_method])
             self._raw.pop(scan.key, None)
         else:
@@ -596,7 +601,7 @@ class BagSink:
         self._writer = writer
         self._distro = distro
         self._ts = typestore(distro)
-        self._connections: dict[str, object] = {}
+        self._connections: dict[str, Connection] = {}
         self.counts: dict[str, int] = {}
 
     def __call__(self, m: RosMessage) -> None:
@@ -614,7 +619,7 @@ def export_rosbag2(
     out_dir: Path | str,
     *,
     view_factory: Callable[[Callable], Ros2View],
-    service_factory: Callable[[Ros2View], object],
+    service_factory: Callable[[Ros2View], ReconstructionService],
     distro: str = "jazzy",
 ) -> dict[str, int]:
     """Write a rosbag2 directory (``metadata.yaml`` + MCAP, ``cdr``) from a lelsonar recording.
@@ -633,8 +638,6 @@ def export_rosbag2(
         ``out_dir`` exists (rosbag2 never overwrites), or the recording cannot be read; a
         partly written bag is removed.
     """
-    from lelsonar.reconstruct.stream.sources import replay_mcap
-
     out = Path(out_dir)
     if out.exists():
         raise RecordingError(f"{out} already exists; rosbag2 writes a new directory (remove it or pick another -o)")

@@ -96,7 +96,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
     try:
         router = spawn("router", ["router", "--listen", endpoint, *secure_flags], stdout=subprocess.PIPE)
-        if "listening" not in (router.stdout.readline() or ""):
+        if router.stdout is None or "listening" not in (router.stdout.readline() or ""):
             console.print("[red]the Zenoh router did not start")
             return 1
         with open_session(watcher) as session:

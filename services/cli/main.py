@@ -88,7 +88,9 @@ def _end_quietly_when_a_thread_loses_stdout():
                 closed.set()
                 _stdout_closed()
                 # To the main thread, where the command's own handler stops it cleanly.
-                signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+                main_ident = threading.main_thread().ident
+                if main_ident is not None:  # always set: the main thread is running
+                    signal.pthread_kill(main_ident, signal.SIGTERM)
             return
         previous(info)
 

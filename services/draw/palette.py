@@ -45,4 +45,5 @@ def method_color(method: str) -> tuple[int, int, int]:
 
 def quality_color(quality: str | int) -> tuple[int, int, int]:
     """The colour of a verdict, by name (``"good"``, …) or wire value; grey when not assessed or unknown."""
-    return QUALITY_COLORS.get(QUALITY_NAME.get(quality, quality), UNASSESSED_COLOR)
+    name = QUALITY_NAME.get(quality, "") if isinstance(quality, int) else quality
+    return QUALITY_COLORS.get(name, UNASSESSED_COLOR)

@@ -547,9 +547,8 @@ class PlaneScene:
         for other in [k for k in self._drawn if k[0] == msg.scanner_id and k != key]:
             gone |= self._drawn.pop(other)  # a new scan of this scanner replaces the last one's planes
         self._drawn[key] = ids
-        gone = sorted(gone)
         out = SceneUpdate(entities=entities)
-        for entity_id in gone:
+        for entity_id in sorted(gone):
             d = SceneEntityDeletion(type=SceneEntityDeletion.MATCHING_ID, id=entity_id)
             d.timestamp.FromNanoseconds(t)
             out.deletions.append(d)

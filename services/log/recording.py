@@ -34,7 +34,7 @@ import json
 import logging
 import os
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Generator, Iterator, Mapping
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -47,12 +47,12 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.message import Message
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
-from mcap_protobuf.schema import register_schema
+from mcap_protobuf.schema import build_file_descriptor_set, register_schema
 
 from lelsonar import __version__, codec
 from lelsonar.draw import visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.log.reader import Salvage, salvage
+from lelsonar.log.reader import ChannelInfo, Salvage, SchemaInfo, salvage
 
 _log = logging.getLogger(__name__)
 
@@ -331,7 +331,7 @@ class Recording:
     def path(self) -> Path:
         return self.salvage.path
 
-    def contract_channels(self) -> dict[int, type[Message]]:
+    def contract_channels(self) -> dict[int, type[codec.WireMessage]]:
         """The channels that hold contract messages, and the message type of each.
 
         A channel is the contract's by its protobuf schema name (``lelsonar.v1.Sample`` …), whatever
@@ -339,7 +339,7 @@ class Recording:
         Every payload is still decoded and validated by the consumer.
         """
         s = self.salvage
-        out = {}
+        out: dict[int, type[codec.WireMessage]] = {}
         for cid, ch in s.channels.items():
             cls = codec.MESSAGE_TYPES.get(s.schema_name(cid))
             if cls is not None and ch.message_encoding == "protobuf":
@@ -457,10 +457,6 @@ def _adopt_orphans(s: Salvage) -> None:
 
     The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
     """
-    from mcap_protobuf.schema import build_file_descriptor_set
-
-    from lelsonar.log.reader import ChannelInfo, SchemaInfo
-
     by_name = {schema.name: sid for sid, schema in s.schemas.items()}
     for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
         md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})
@@ -475,7 +471,7 @@ def _adopt_orphans(s: Salvage) -> None:
     s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
-def iter_payloads(path: Path | str | Recording) -> Iterator[RecordedPayload]:
+def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, None, None]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
     A damaged or unfinished file yields every intact message and logs one

@@ -88,8 +88,8 @@ def _write(s: Salvage, f, compression: CompressionType) -> tuple[int, int]:
     for name, data in s.metadata.items():
         if not name.startswith(CHANNEL_METADATA):  # channel ids change: written afresh below
             writer.add_metadata(name, data)
-    for t_log, t_create, name, media, data in s.attachments:
-        writer.add_attachment(create_time=t_create, log_time=t_log, name=name, media_type=media, data=data)
+    for t_log, t_create, name, media, blob in s.attachments:
+        writer.add_attachment(create_time=t_create, log_time=t_log, name=name, media_type=media, data=blob)
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     for cid, ch in sorted(s.channels.items()):

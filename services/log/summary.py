@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from google.protobuf.descriptor import EnumDescriptor
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
 from lelsonar import codec
@@ -18,13 +19,14 @@ from lelsonar.errors import DecodeError
 from lelsonar.geometry import beam_heading
 from lelsonar.log.reader import Damage
 from lelsonar.log.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
+from lelsonar.v1 import reconstruction_pb2, scan_pb2
 
-_SCAN_STATUS = codec.ScanEnd.DESCRIPTOR.fields_by_name["status"].enum_type
-_EST_STATUS = codec.Reconstruction.DESCRIPTOR.fields_by_name["status"].enum_type
-_QUALITY = codec.Reconstruction.DESCRIPTOR.fields_by_name["planes"].message_type.fields_by_name["quality"].enum_type
+_SCAN_STATUS = scan_pb2.DESCRIPTOR.enum_types_by_name["ScanStatus"]
+_EST_STATUS = reconstruction_pb2.DESCRIPTOR.enum_types_by_name["EstimateStatus"]
+_QUALITY = reconstruction_pb2.DESCRIPTOR.enum_types_by_name["PlaneQuality"]
 
 
-def _enum_name(enum, value: int, prefix: str) -> str:
+def _enum_name(enum: EnumDescriptor, value: int, prefix: str) -> str:
     v = enum.values_by_number.get(value)
     return v.name.removeprefix(prefix).lower() if v else str(value)
 

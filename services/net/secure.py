@@ -30,13 +30,16 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from lelsonar.errors import SecurityError
 from lelsonar.keys import DEFAULT_PREFIX, validate_identifier, validate_prefix
-
-if TYPE_CHECKING:
-    from lelsonar.net.transport import ZenohSettings
+from lelsonar.net.transport import DEFAULT_ENDPOINT, ZenohSettings
 
 ROUTER, RECONSTRUCT, PLANNER = "router", "reconstruct", "planner"
 ACQUIRE_PREFIX = "acquire-"
@@ -90,8 +93,6 @@ class SecureDir:
 
     def require(self, role: str) -> None:
         """Raise :class:`SecurityError` unless the CA and the role's certificate and key are usable."""
-        from cryptography import x509
-        from cryptography.exceptions import InvalidSignature
 
         missing = [p for p in (self.ca_cert, self.cert(role), self.key(role)) if not p.is_file()]
         if missing:
@@ -128,20 +129,17 @@ class SecureDir:
 
 
 def common_name(cert) -> str:
-    from cryptography.x509.oid import NameOID
 
     names = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
     return str(names[0].value) if names else ""
 
 
 def _new_key():
-    from cryptography.hazmat.primitives.asymmetric import ec
 
     return ec.generate_private_key(ec.SECP256R1())
 
 
 def _key_pem(key) -> bytes:
-    from cryptography.hazmat.primitives import serialization
 
     return key.private_bytes(
         serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
@@ -168,8 +166,6 @@ def _write(path: Path, data: bytes, *, private: bool, replace: bool = False) -> 
 
 
 def _load_ca(d: SecureDir):
-    from cryptography import x509
-    from cryptography.hazmat.primitives import serialization
 
     if not (d.ca_cert.is_file() and d.ca_key.is_file()):
         raise SecurityError(
@@ -184,9 +180,6 @@ def _load_ca(d: SecureDir):
 def _issue(
     d: SecureDir, role: str, *, hosts: Iterable[str] = (), days: int = DEFAULT_DAYS, replace: bool = False
 ) -> list[Path]:
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
     ca_cert, ca_key = _load_ca(d)
     key = _new_key()
@@ -227,7 +220,6 @@ def _issue(
     if names:
         builder = builder.add_extension(x509.SubjectAlternativeName(names), critical=False)
     cert = builder.sign(ca_key, hashes.SHA256())
-    from cryptography.hazmat.primitives import serialization
 
     if not replace and (d.key(role).exists() or d.cert(role).exists()):
         raise SecurityError(
@@ -251,9 +243,6 @@ def init(
     SecurityError
         If the directory already holds a CA: nothing is overwritten.
     """
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.x509.oid import NameOID
 
     d = SecureDir(Path(path))
     scanners = [validate_identifier(s) for s in scanners]
@@ -327,7 +316,6 @@ def rotate(path: Path | str, role: str, *, hosts: Iterable[str] | None = None, d
     The router's new certificate names the same hosts as the old one unless ``hosts`` is given
     (loopback is always named).
     """
-    from cryptography import x509
 
     d = SecureDir(Path(path))
     validate_role(role)
@@ -501,7 +489,6 @@ def secure_settings(
     Every role but the router becomes a *client*: the router enforces the access
     rules, and a peer would accept connections that bypass them.
     """
-    from lelsonar.net.transport import DEFAULT_ENDPOINT  # zenoh is imported there, and only when a session is made
 
     mode = "router" if role == ROUTER else "client"
     # A field left None takes the embedded default (no config file) or the file's value (see transport).

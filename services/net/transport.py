@@ -148,14 +148,12 @@ def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
         session = zenoh.open(settings.to_config())
     except zenoh.ZError as exc:
         hint = ""
+        dialled = ", ".join(settings.connect) if settings.connect else "the config file's connect endpoints"
         if settings.mode == "client":
-            hint = (
-                f"; is a router listening on {', '.join(settings.connect)}? "
-                "Start one with `lelsonar router`, or pass --mode peer"
-            )
+            hint = f"; is a router listening on {dialled}? Start one with `lelsonar router`, or pass --mode peer"
         if settings.overlay and settings.mode == "client":  # --secure
             hint = (
-                f"; is `lelsonar router --secure DIR` listening on {', '.join(settings.connect)}, with the same "
+                f"; is `lelsonar router --secure DIR` listening on {dialled}, with the same "
                 "CA as this process's certificate, and does its certificate name the host you dial?"
             )
         raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}{hint}") from None

@@ -3,7 +3,7 @@
 Why: the estimators and the ingest path make thousands of small NumPy calls a scan, and each pays
 the interpreter's fixed overhead whatever its size.  A
 kernel runs such a loop as one call.  Kernels are ordinary Python functions over NumPy arrays and
-scalars; the math stays in the module it belongs to (``corner_model``, ``assembly``…), decorated
+scalars; the math stays in the module it belongs to (``corner.model``, ``stream.step_features``…), decorated
 with :func:`kernel` — one implementation per idea, this module only holds the compiler's settings.
 
 Settings, and why:
@@ -40,15 +40,24 @@ log = logging.getLogger(__name__)
 KERNEL_MODULES = (
     "lelsonar.signal.echo_timing",
     "lelsonar.signal.energy",
-    "lelsonar.reconstruct.estimate.corner.method",
+    "lelsonar.signal.summation",
+    "lelsonar.reconstruct.estimate.corner.edge",
     "lelsonar.reconstruct.estimate.corner.model",
+    "lelsonar.reconstruct.estimate.corner.pitch",
+    "lelsonar.reconstruct.estimate.corner.search",
+    "lelsonar.reconstruct.estimate.corner.solver",
+    "lelsonar.reconstruct.estimate.corner.wall",
     "lelsonar.reconstruct.estimate.correct",
     "lelsonar.reconstruct.estimate.fit",
     "lelsonar.reconstruct.estimate.lel",
+    "lelsonar.reconstruct.estimate.normals",
     "lelsonar.reconstruct.estimate.pipeline",
     "lelsonar.reconstruct.estimate.quality",
+    "lelsonar.reconstruct.estimate.robust",
     "lelsonar.reconstruct.estimate.split",
-    "lelsonar.reconstruct.stream.assembly",
+    "lelsonar.reconstruct.stream.candidates",
+    "lelsonar.reconstruct.stream.fastwire",
+    "lelsonar.reconstruct.stream.step_features",
 )
 
 
@@ -90,7 +99,8 @@ def module_source(name: str) -> Path:
 
 _CACHE = _cache_dir()
 if _CACHE is not None:
-    numba.config.CACHE_DIR = str(_CACHE)  # read by each kernel's cache as it is decorated, after this
+    # Read by each kernel's cache as it is decorated, after this.
+    numba.config.CACHE_DIR = str(_CACHE)  # type: ignore[attr-defined]  # numba.config makes its options at import
 
 
 def cache_dir() -> Path | None:

@@ -37,6 +37,7 @@ from lelsonar.signal.compiled import kernel
 __all__ = [
     "TIMING_WINDOW",
     "CONSTANT_FRACTION",
+    "FLOOR_TIME",
     "echo_onsets",
     "typical_edges",
     "RangeWalk",
@@ -54,7 +55,7 @@ TIMING_WINDOW = (-5.0e-4, 5.0e-4)
 #: the converter's clipping bends the edge.
 CONSTANT_FRACTION = 0.5
 #: The noise floor is taken over the window's first 0.1 ms (before any onset the window is meant to hold).
-_FLOOR_TIME = 1.0e-4
+FLOOR_TIME = 1.0e-4
 #: A peak is a maximum of the smoothed envelope over ±50 µs (two carrier cycles) at least this many robust
 #: noise σ above the floor.
 _PEAK_HALF_WIDTH = 5.0e-5
@@ -120,7 +121,7 @@ def echo_onsets(
         raise ConfigError(f"the constant fraction must be in (0, 1), got {fraction}")
     w = np.asarray(windows, dtype=np.float64)
     n, width = w.shape
-    head = max(int(round(_FLOOR_TIME * sample_rate)), 4)
+    head = max(int(round(FLOOR_TIME * sample_rate)), 4)
     if n == 0 or width < 2 * head:
         return np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
     x = (w - w[:, :head].mean(axis=-1, keepdims=True)).astype(np.float32)
@@ -515,9 +516,9 @@ def walk_free_ranges(distance: np.ndarray, offset: np.ndarray, peak: np.ndarray,
     offset lies over 3 robust σ from the walk's :attr:`~RangeWalk.curve` within its span (its window also
     held a later echo that merged with its rise, or the writer slipped a cycle) moves by the curve at its
     peak instead.  (An echo of atypical shape, :func:`typical_edges`, stays out of the test and the curve,
-    but is timed as well as the others where it agrees with them.)  An echo found but clipped has walked by an unknown amount and is left out (NaN); one
-    not found in its window (no waveform) keeps the writer's range.  Unchanged when ``walk.detected`` is
-    False.
+    but is timed as well as the others where it agrees with them.)  An echo found but clipped has walked by
+    an unknown amount and is left out (NaN); one not found in its window (no waveform) keeps the writer's
+    range.  Unchanged when ``walk.detected`` is False.
 
     Parameters
     ----------

@@ -8,10 +8,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.special import ndtri  # the standard normal's quantile
 
 from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
 from lelsonar.signal.compiled import kernel
+from lelsonar.signal.summation import pairwise_sum
 
 __all__ = [
     "EnergyModel",
@@ -248,8 +250,6 @@ def noise_level(sigma: float, listened, sample_rate: float, false_alarm: float =
     array of ``listened``'s shape
         V.
     """
-    from scipy.special import ndtri  # the standard normal's quantile
-
     if not 0.0 < false_alarm < 1.0:
         raise ConfigError(f"the false-alarm probability must be in (0, 1), got {false_alarm}")
     samples = np.maximum(np.asarray(listened, dtype=np.float64) * sample_rate, 1.0)
@@ -374,11 +374,15 @@ def _capsule_sums(rows: np.ndarray) -> np.ndarray:
     (NumPy's pairwise summation adds those in order; the rig has 4 capsules), without its dispatch."""
     out = np.empty(rows.shape[0])
     for i in range(rows.shape[0]):
-        s = 0.0
-        for j in range(rows.shape[1]):
-            s += rows[i, j]
-        out[i] = s
+        out[i] = step_total_energy(rows[i])
     return out
+
+
+@kernel
+def step_total_energy(row: np.ndarray) -> float:
+    """E^γ of one step (eq. 11): the sum of its capsules' eq. (10) energies, ``np.sum``'s to the bit
+    (pairwise, in order below 8 terms)."""
+    return 0.0 + pairwise_sum(row, 0, row.size)
 
 
 def fit_energy_model(distance: np.ndarray, energy: np.ndarray) -> EnergyModel:
@@ -489,22 +493,73 @@ def energy_ratio(
     where ``d_m`` is valid (elsewhere it is left as it is).
     """
     d_m = median_range(distance)
-    e0 = model.expected_energy(d_m)  # (NaN where d_m is: elementwise, the same values as on the valid ones alone)
     e = np.ascontiguousarray(step_energy, dtype=np.float64)
     if e.shape != d_m.shape:
         raise ConfigError(f"step_energy must have shape {d_m.shape}, got {e.shape}")
-    return _ratio_where_ranged(e, d_m, e0, np.zeros(0) if expected is None else expected, expected is not None)
+    m = model
+    return _ratio_where_ranged(
+        e,
+        d_m,
+        m.phi0,
+        m.phi1,
+        m.phi2,
+        m.d_min,
+        m.d_max,
+        np.zeros(0) if expected is None else expected,
+        expected is not None,
+    )
 
 
 @kernel
 def _ratio_where_ranged(
-    step_energy: np.ndarray, d_m: np.ndarray, e0: np.ndarray, expected: np.ndarray, write_expected: bool
+    step_energy: np.ndarray,
+    d_m: np.ndarray,
+    phi0: float,
+    phi1: float,
+    phi2: float,
+    d_min: float,
+    d_max: float,
+    expected: np.ndarray,
+    write_expected: bool,
 ) -> np.ndarray:
     """``R = E^γ / E0(d_m)`` where ``d_m`` is finite, else 0 (:func:`energy_ratio`); ``E0`` into ``expected`` there."""
     r = np.zeros(step_energy.shape[0])
     for i in range(step_energy.shape[0]):
         if np.isfinite(d_m[i]):
-            r[i] = step_energy[i] / e0[i]
+            e0 = expected_energy_at(d_m[i], phi0, phi1, phi2, d_min, d_max)
+            r[i] = step_energy[i] / e0
             if write_expected:
-                expected[i] = e0[i]
+                expected[i] = e0
     return r
+
+
+@kernel
+def expected_energy_at(d: float, phi0: float, phi1: float, phi2: float, d_min: float, d_max: float) -> float:
+    """E0(d) = 1 / (φ0·d² + φ1·d + φ2), eq. (12), with ``d`` clipped to the calibrated interval
+    [``d_min``, ``d_max``]: ``EnergyModel.expected_energy`` of one range, to the bit."""
+    d = min(max(d, d_min), d_max)
+    return 1.0 / (phi0 * d * d + phi1 * d + phi2)
+
+
+@kernel
+def step_energy_ratio(
+    sensor_energy: np.ndarray,
+    distance: np.ndarray,
+    phi0: float,
+    phi1: float,
+    phi2: float,
+    d_min: float,
+    d_max: float,
+) -> tuple[float, float, float, bool]:
+    """One step's E^γ (eq. 11, :func:`step_total_energy`), E0(d_m) (eq. 12, :func:`expected_energy_at` of the
+    model φ0, φ1, φ2 over [d_min, d_max]) and R = E^γ / E0(d_m) (§4), from its capsules' eq. (10) energies and
+    ranges (NaN: no echo); and whether the step has a range (``d_m``, :func:`step_median_range`).  Without one
+    E0 is NaN and R is 0: such a step cannot be the corner, whose double bounce always returns an echo.  The
+    same numbers as :func:`total_energy` and :func:`energy_ratio` give for the step.
+    """
+    e = step_total_energy(sensor_energy)
+    d_m = step_median_range(distance)
+    if not math.isfinite(d_m):
+        return e, np.nan, 0.0, False
+    e0 = expected_energy_at(d_m, phi0, phi1, phi2, d_min, d_max)
+    return e, e0, e / e0, True

@@ -269,7 +269,7 @@ class Receiver:
         return 2.0 * self.adc_range / 2**self.adc_bits
 
 
-def echo_envelope(u: np.ndarray, rise: float) -> np.ndarray:
+def echo_envelope(u: np.ndarray, rise: float | np.floating) -> np.ndarray:
     """Echo envelope ``(u/τ)²·exp(2(1 − u/τ))`` for ``u ≥ 0`` (0 before), peak 1 at ``u = τ``.
 
     The shape of a tone burst through two resonant transducers: a fast

@@ -24,6 +24,7 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
 from lelsonar.sim.config import SimConfig
+from lelsonar.sim.presets import preset
 from lelsonar.sim.scan import simulate_step
 from lelsonar.sim.scene import Scene
 
@@ -111,8 +112,6 @@ def default_energy_model() -> EnergyModel:
     changes it too.  The three φ are poorly conditioned (other seeds give φ1
     from 0.8e3 to 1.9e3) while ``E0`` itself agrees within a few per cent.
     """
-    from lelsonar.sim.presets import preset
-
     return calibrate_simulator(preset("paper-test1"), seed=0).model
 
 

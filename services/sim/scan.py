@@ -34,6 +34,7 @@ import numpy as np
 from scipy.special import ndtri
 
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
+from lelsonar.signal.energy import total_energy, waveform_energy
 from lelsonar.sim.acoustics import absorption_factor, comparator_delay, echo_envelope, piston_directivity
 from lelsonar.sim.config import Rig, SimConfig
 
@@ -189,8 +190,6 @@ class SimulatedScan:
 
     def step_energy(self) -> np.ndarray:
         """Total waveform energy ``E^γ`` of each step, eq. (10)–(11), V²·s."""
-        from lelsonar.signal.energy import total_energy, waveform_energy
-
         return total_energy(waveform_energy(self.waveforms, self.sample_rate))
 
 
@@ -310,7 +309,7 @@ def echo_table(cfg: SimConfig, gamma: np.ndarray) -> EchoTable:
     return EchoTable(range=rng_, amplitude=amp, source=src, index=idx)
 
 
-def _first_echo(cfg: Rig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def first_echo(cfg: Rig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The comparator: the earliest echo whose peak is over the threshold, after blanking.
 
     Returns the noise-free range, source and index of that echo per capsule,
@@ -341,7 +340,7 @@ def _first_echo(cfg: Rig, echoes: EchoTable) -> tuple[np.ndarray, np.ndarray, np
     return (np.where(found, first_range, np.nan), source.astype(np.int8), index.astype(np.int16), first_delay)
 
 
-def _amplitude_noise(cfg: Rig, echoes: EchoTable, rng: np.random.Generator) -> EchoTable:
+def apply_amplitude_noise(cfg: Rig, echoes: EchoTable, rng: np.random.Generator) -> EchoTable:
     """Scale every echo of a capsule's shot by one log-normal factor (``Receiver.amplitude_noise``).
 
     Draws nothing when the noise is 0, so the random stream (and every existing
@@ -357,10 +356,10 @@ def _amplitude_noise(cfg: Rig, echoes: EchoTable, rng: np.random.Generator) -> E
     )
 
 
-def _time_of_flight(
+def comparator_time_of_flight(
     cfg: Rig, echo_range: np.ndarray, rng: np.random.Generator, delay: np.ndarray | float = 0.0
 ) -> np.ndarray:
-    """The comparator's time: arrival plus its ``delay`` (:func:`_first_echo`), Gaussian jitter and ±1-cycle
+    """The comparator's time: arrival plus its ``delay`` (:func:`first_echo`), Gaussian jitter and ±1-cycle
     slips (±λ/2 of range)."""
     c = cfg.sound_speed
     rec = cfg.receiver
@@ -390,7 +389,7 @@ def _gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], std: float
     return noise.reshape(shape)
 
 
-def _waveforms(cfg: Rig, echoes: EchoTable, rng: np.random.Generator) -> np.ndarray:
+def digitised_waveforms(cfg: Rig, echoes: EchoTable, rng: np.random.Generator) -> np.ndarray:
     """Digitised echo signals, (n, m, window_samples) float32 volts.
 
     Each echo adds a 40 kHz burst under :func:`echo_envelope`, starting at its
@@ -486,13 +485,13 @@ def simulate_scan(
     raw = np.clip(cfg.servo.to_raw(gamma_true), 0, 1023)
     gamma_measured = cfg.servo.to_gamma(raw)
 
-    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
-    echo_range, source, index, delay = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng, delay)
+    echoes = apply_amplitude_noise(cfg, echo_table(cfg, gamma_true), rng)
+    echo_range, source, index, delay = first_echo(cfg, echoes)
+    tof = comparator_time_of_flight(cfg, echo_range, rng, delay)
     c = cfg.sound_speed
     distance = c * tof / 2.0
     if with_waveforms:
-        waveforms = _waveforms(cfg, echoes, rng)
+        waveforms = digitised_waveforms(cfg, echoes, rng)
     else:
         waveforms = np.zeros((*tof.shape, 0), dtype=np.float32)
 
@@ -532,10 +531,10 @@ def simulate_step(cfg: SimConfig, gamma_measured: float, rng: np.random.Generato
     step, without the servo draw.
     """
     gamma = np.array([float(gamma_measured)])
-    echoes = _amplitude_noise(cfg, echo_table(cfg, gamma), rng)
-    echo_range, source, index, delay = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng, delay)
-    waveforms = _waveforms(cfg, echoes, rng)
+    echoes = apply_amplitude_noise(cfg, echo_table(cfg, gamma), rng)
+    echo_range, source, index, delay = first_echo(cfg, echoes)
+    tof = comparator_time_of_flight(cfg, echo_range, rng, delay)
+    waveforms = digitised_waveforms(cfg, echoes, rng)
     return SimulatedStep(
         tof=tof[0],
         distance=cfg.sound_speed * tof[0] / 2.0,
@@ -564,11 +563,11 @@ def shots_from_echoes(
     waveforms : (n, m, window_samples) float32 array
         V; 0 samples when ``with_waveforms`` is False.
     """
-    echoes = _amplitude_noise(cfg, echoes, rng)
-    echo_range, source, index, delay = _first_echo(cfg, echoes)
-    tof = _time_of_flight(cfg, echo_range, rng, delay)
+    echoes = apply_amplitude_noise(cfg, echoes, rng)
+    echo_range, source, index, delay = first_echo(cfg, echoes)
+    tof = comparator_time_of_flight(cfg, echo_range, rng, delay)
     if with_waveforms:
-        waveforms = _waveforms(cfg, echoes, rng)
+        waveforms = digitised_waveforms(cfg, echoes, rng)
     else:
         waveforms = np.zeros((*tof.shape, 0), dtype=np.float32)
     return echo_range, source, index, tof, waveforms

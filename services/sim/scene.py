@@ -233,7 +233,15 @@ class Scene:
             # Panel's own (u, v): u along the edge; Panel derives v = n × u, so pick u's sign to match.
             u = e if np.cross(n, e) @ v > 0 else -e
             panels.append(
-                Panel(center=center, normal=n, u_axis=u, width=width, height=h, reflectivity=float(refl), label=label)
+                Panel(
+                    center=_vec3(center, "center"),
+                    normal=_vec3(n, "normal"),
+                    u_axis=_vec3(u, "u_axis"),
+                    width=width,
+                    height=h,
+                    reflectivity=float(refl),
+                    label=label,
+                )
             )
         return cls(panels=tuple(panels), corners=((0, 1),))
 

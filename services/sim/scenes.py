@@ -44,12 +44,17 @@ import functools
 import math
 import zlib
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from lelsonar.energy_model import EnergyModel
 from lelsonar.errors import ConfigError
+from lelsonar.geometry import boresight
 from lelsonar.sim.acoustics import Acoustics, Receiver
+from lelsonar.sim.calibrate import PAPER_CALIBRATION_DISTANCES, calibrate_simulator
 from lelsonar.sim.config import SimConfig
+from lelsonar.sim.scan import SimulatedScan, echo_table, simulate_scan
 from lelsonar.sim.scene import Scene
 
 #: Scene families, in the order the benchmark reports them.
@@ -217,7 +222,7 @@ def draw_params(family: str, rng: np.random.Generator) -> SceneParams:
     ConfigError
         For an unknown family.
     """
-    p: dict[str, float] = {}
+    p: dict[str, Any] = {}  # SceneParams fields, drawn per family
     if family == "paper":
         p.update(
             steps=_paper_steps(rng),
@@ -345,8 +350,6 @@ def longest_echo_range(cfg: SimConfig, margin: float = 2.0 * _DEG) -> float:
     Evaluated at the commanded angles and at ``± margin`` around them (the
     servo rounds and settles).  0 if there is no echo at all.
     """
-    from lelsonar.sim.scan import echo_table
-
     gamma = cfg.gamma_commanded()
     table = echo_table(cfg, np.concatenate([gamma - margin, gamma, gamma + margin]))
     r = table.range[np.isfinite(table.range)]
@@ -369,8 +372,6 @@ def check_config(cfg: SimConfig) -> list[str]:
     a panel (the panels cover the beams).  The servo range is checked by
     :class:`SimConfig` itself.
     """
-    from lelsonar.geometry import boresight
-
     problems = []
     crit = cfg.scene.critical_angle()
     if not math.isfinite(crit):
@@ -419,8 +420,6 @@ def _calibrated(
     reflectivity: float,
     distances: tuple[float, ...],
 ):
-    from lelsonar.sim.calibrate import calibrate_simulator
-
     cfg = SimConfig(
         acoustics=acoustics,
         receiver=receiver,
@@ -465,8 +464,6 @@ def calibrated_energy_model(cfg: SimConfig, distances: tuple[float, ...] | None 
 
 
 def _paper_distances() -> tuple[float, ...]:
-    from lelsonar.sim.calibrate import PAPER_CALIBRATION_DISTANCES
-
     return PAPER_CALIBRATION_DISTANCES
 
 
@@ -484,8 +481,8 @@ class FamilyScan:
     """
 
     draw: SceneDraw
-    scan: object
-    energy_model: object
+    scan: SimulatedScan
+    energy_model: EnergyModel
 
 
 def simulate_family_scene(
@@ -496,8 +493,6 @@ def simulate_family_scene(
     Exactly what ``lelsonar bench estimators --families`` reconstructs and what
     ``lelsonar simulate --family F --seed N --mcap OUT`` records.
     """
-    from lelsonar.sim.scan import simulate_scan
-
     draw = draw_scene(family, seed)
     scan = simulate_scan(draw.config, seed=seed, with_waveforms=with_waveforms)
     model = calibrated_energy_model(draw.config, WIDE_CALIBRATION_DISTANCES if wide_calibration else None)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
-from google.protobuf.json_format import MessageToDict
+from google.protobuf.json_format import MessageToDict, ParseDict
 from rich.console import Console
 from rich.table import Table
 
@@ -31,10 +31,8 @@ def to_json(msg: codec.Reconstruction) -> str:
 
 def from_json(line: str | dict) -> codec.Reconstruction:
     """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back)."""
-    from google.protobuf.json_format import ParseDict
-
     d = json.loads(line) if isinstance(line, str) else dict(line)
-    d["status"] = STATUS.get(d.get("status"), 0)
+    d["status"] = STATUS.get(str(d.get("status", "")), 0)
     d["planes"] = [
         {**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
         for p in d.get("planes", [])
@@ -78,8 +76,12 @@ def planes_table(
         n = _vec(p.normal)
         cells = [p.label, p.method, f"{n[0]:+.3f} {n[1]:+.3f} {n[2]:+.3f}", f"{p.offset * 100:.2f}"]
         if truth:
-            tn, th = truth.get(p.label, (None, None))
-            cells += [f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"] if tn is not None else ["", ""]
+            true_plane = truth.get(p.label)
+            if true_plane is None:
+                cells += ["", ""]
+            else:
+                tn, th = true_plane
+                cells += [f"{angle_deg(n, tn):.2f}", f"{(p.offset - th) * 100:+.2f}"]
         cells += [f"{p.sigma * 1000:.1f}", f"{p.inlier_count}/{p.point_count}", f"{p.lel_cost:.3f}", quality_cell(p)]
         t.add_row(*cells)
     if truth:

@@ -480,7 +480,9 @@ class ScanLogger:
         if math.isfinite(gamma):  # an unread encoder leaves the pose where it was
             # Rotation about x by γ, parent (world) from child (array): p_world = R_x(γ) p_array.
             half = 0.5 * float(gamma)
-            rec.log(self.array, rr.Transform3D(quaternion=[math.sin(half), 0.0, 0.0, math.cos(half)]))
+            rec.log(
+                self.array, rr.Transform3D(quaternion=rr.Quaternion(xyzw=[math.sin(half), 0.0, 0.0, math.cos(half)]))
+            )
 
         pts = np.asarray(raw_points, dtype=np.float64).reshape(-1, 3)
         echo = np.isfinite(pts).all(axis=1)
@@ -589,9 +591,9 @@ class ScanLogger:
             )
 
         fits = [p for p in planes if isinstance(p, PlaneFit)]
-        for p in fits:
-            self._log_plane(p)
-            self._drawn.add((p.method, p.label))
+        for fit in fits:
+            self._log_plane(fit)
+            self._drawn.add((fit.method, fit.label))
         fitted = {(p.method, p.label) for p in fits}
         for f in planes:
             if isinstance(f, FitFailure):

@@ -12,9 +12,13 @@ import rerun as rr
 from lelsonar import codec
 from lelsonar.geometry import beam_heading
 from lelsonar.reconstruct.estimate import fit as F
-from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+from lelsonar.reconstruct.estimate.results import PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.service import Partial
+from lelsonar.sim import preset
+from lelsonar.sim.scan import true_planes
 from lelsonar.view.rerun_log import (
     ScanLogger,
     SubsetView,
@@ -99,7 +103,7 @@ class RerunObserver:
     ) -> None:
         final = results is not None
         crit = message.critical_step if message.HasField("critical_step") else None
-        if final:
+        if results is not None:
             main = results[self.main_method]
             planes = [p for r in results.values() for p in r.planes]
             edge = main.edge
@@ -124,8 +128,6 @@ class RerunObserver:
             final,
         )
         if final and message.HasField("accounting"):
-            from lelsonar.reconstruct.estimate import wire
-
             self._logger(scan).accounting(
                 wire.status_name(message), wire.accounting_text(message.accounting), list(message.missing_steps)
             )
@@ -137,7 +139,7 @@ class RerunObserver:
             self.rec.log("log/service", rr.TextLog(text, level=level.upper()))
 
     @staticmethod
-    def _subset(data: F.PlaneData | None, plane) -> SubsetView | None:
+    def _subset(data: F.PlaneData | None, plane: PlaneResult | None) -> SubsetView | None:
         if data is None or data.n == 0:
             return None
         mask = plane.inlier_mask if isinstance(plane, PlaneFit) and plane.n_points == data.n else np.ones(data.n, bool)
@@ -150,9 +152,6 @@ class RerunObserver:
 
 def preset_truth(name: str) -> list[tuple[str, np.ndarray, float, np.ndarray]]:
     """The true planes of a simulator preset, as the logger draws them."""
-    from lelsonar.sim import preset
-    from lelsonar.sim.scan import true_planes
-
     return [(p.label, p.normal, p.offset, p.corners) for p in true_planes(preset(name))]
 
 
@@ -169,11 +168,9 @@ def open_rerun(
     truth_world: dict | None = None,
 ) -> Iterator[RerunObserver]:
     """One explicit recording with the chosen sinks and the default blueprint; flushed on exit."""
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
-
     rec = make_recording(application_id)
     blueprint = default_blueprint()
-    sinks = []
+    sinks: list[rr.FileSink | rr.GrpcServerSink | rr.GrpcSink] = []
     if rrd is not None:
         Path(rrd).parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(str(rrd)))

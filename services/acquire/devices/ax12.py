@@ -185,7 +185,7 @@ class ErrorBit(enum.IntFlag):
 
 def error_bit_names(bits: int) -> tuple[str, ...]:
     """Names of the set error bits, lowest bit first (e.g. ``("angle_limit",)``)."""
-    return tuple(b.name.lower() for b in ErrorBit if bits & b)
+    return tuple(b.name.lower() for b in ErrorBit if bits & b and b.name is not None)
 
 
 # --- units -------------------------------------------------------------------------

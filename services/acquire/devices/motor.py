@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Protocol, Self, TypeVar, runtime_checkable
+from typing import Protocol, Self, TypeVar, cast, runtime_checkable
 
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
 from dynamixel_sdk.protocol1_packet_handler import (
@@ -334,7 +334,9 @@ class Motor(Protocol):
 
     def __enter__(self) -> Self: ...
 
-    def __exit__(self, *exc: object) -> None: ...
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None: ...
 
 
 # --- the SDK port, tuned ------------------------------------------------------------
@@ -616,9 +618,10 @@ class DynamixelMotor:
             if result == COMM_RX_TIMEOUT and self._guard_s > 0:
                 # Silence so far.  Only this request is outstanding, so a reply that comes
                 # now is its answer: wait the timeout out for it rather than resend.
-                value, result, error = self._listen(parse)
+                heard, result, error = self._listen(parse)
                 if result == COMM_SUCCESS:
                     self.late_replies += 1
+                    value = cast("T", heard)  # parse's value: _listen gives None only with a failed result
             if result == COMM_SUCCESS:
                 if in_flight:
                     self._bin_stale_reply()

@@ -218,6 +218,11 @@ class PendingShot:
 class SensorBoard(Protocol):
     """What the acquisition loop needs from the sensor board."""
 
+    @property
+    def config(self) -> SensorBoardConfig:
+        """The board's configuration (its acoustic window paces the loop)."""
+        ...
+
     def fire(self, step: int) -> Acquisition:
         """Fire all configured capsules for ``step`` and return the shot."""
         ...
@@ -234,7 +239,9 @@ class SensorBoard(Protocol):
 
     def __enter__(self) -> Self: ...
 
-    def __exit__(self, *exc: object) -> None: ...
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None: ...
 
 
 # --- the driver -----------------------------------------------------------------------
@@ -337,7 +344,7 @@ class SerialSensorBoard:
         try:
             return self._receive(shot, after_window)
         except _HookFailed as exc:
-            raise exc.__cause__ from None  # the caller's own error, not the board's
+            raise exc.cause from None  # the caller's own error, not the board's
         except SensorBoardError:
             raise
         except DecodeError as exc:
@@ -426,8 +433,9 @@ class SerialSensorBoard:
 
         A CRC failure is raised only for a frame that could be ours: a corrupt
         frame with another SEQ is just a lost stale frame.  ``window_over`` runs once
-        the header of our ACQ is in (whether or not the rest then checks out).  At the deadline, what already waits in the port
-        is read before giving up (the host may have been busy, not the board late).
+        the header of our ACQ is in (whether or not the rest then checks out).  At the deadline,
+        what already waits in the port is read before giving up (the host may have been busy, not
+        the board late).
         """
         parser = self._parser
         drained = False
@@ -488,6 +496,10 @@ class SerialSensorBoard:
 class _HookFailed(Exception):
     """Carries what a caller's ``after_window`` raised through the driver's own error mapping."""
 
+    def __init__(self, cause: Exception) -> None:
+        super().__init__(cause)
+        self.cause = cause
+
 
 class _Once:
     """Runs the caller's ``after_window`` at most once and remembers during which request it ran."""
@@ -499,14 +511,14 @@ class _Once:
         self.current_request = 1
 
     def __call__(self) -> None:
-        if not self.pending:
+        if not self.pending or self._fn is None:
             return
         self.pending = False
         self._request = self.current_request
         try:
             self._fn()
         except Exception as exc:  # noqa: BLE001 - re-raised as is by receive()
-            raise _HookFailed() from exc
+            raise _HookFailed(exc) from exc
 
     def called_before(self, request: int) -> bool:
         """Whether it ran during a request earlier than ``request``."""

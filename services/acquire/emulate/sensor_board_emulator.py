@@ -33,10 +33,11 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 
+from lelsonar import sim
 from lelsonar.acquire.devices import sensor_frame as sf
 from lelsonar.acquire.devices.link import Link
 from lelsonar.acquire.emulate.pty_link import PtyDevice
@@ -334,15 +335,13 @@ def echo_shot_source(
     return source
 
 
-def sim_shot_source(sim_config: Any, rng: np.random.Generator) -> ShotSource:
+def sim_shot_source(sim_config: sim.SimConfig, rng: np.random.Generator) -> ShotSource:
     """Wrap ``lelsonar.sim.simulate_step`` as a shot source.
 
     If a FIRE asks for another window or sample rate than ``sim_config`` has, a
     copy with ``window_samples`` and ``sample_rate`` replaced is used.
     """
-    from lelsonar import sim  # the simulator is optional for the device layer
-
-    configs: dict[tuple[int, float], Any] = {}
+    configs: dict[tuple[int, float], sim.SimConfig] = {}
 
     def source(step: int, gamma: float, n_samples: int, fs_hz: float) -> tuple[np.ndarray, np.ndarray]:
         key = (n_samples, fs_hz)

@@ -75,7 +75,7 @@ def fuzzy_c_means(
     expo = 2.0 / (m - 1.0)
     centers = np.zeros((n_clusters, x.shape[1]))
     converged, it = False, 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007  # read after the loop: the iterations run
         um = u**m
         centers = (um @ x) / um.sum(axis=1, keepdims=True)
         dist = np.linalg.norm(x[None, :, :] - centers[:, None, :], axis=2)

@@ -20,7 +20,16 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["AXIS_Y", "AXIS_Z", "corrected_points", "corrected_from", "mirror_points", "beam_points"]
+__all__ = [
+    "AXIS_Y",
+    "AXIS_Z",
+    "MAX_CORRECTION_ANGLE",
+    "COS_MAX_CORRECTION",
+    "corrected_points",
+    "corrected_from",
+    "mirror_points",
+    "beam_points",
+]
 
 #: Normal of plane ``a`` assumed by the paper's correction (plane y = const).
 AXIS_Y = np.array([0.0, 1.0, 0.0])
@@ -29,7 +38,7 @@ AXIS_Z = np.array([0.0, 0.0, 1.0])
 #: The largest angle between a beam and the assumed normal that is corrected (rad; ``1/cos α`` explodes beyond).
 MAX_CORRECTION_ANGLE = float(np.deg2rad(80.0))
 #: Its cosine, as the fits pass it to :func:`corrected_point`.
-_COS_MAX_CORRECTION = float(np.cos(MAX_CORRECTION_ANGLE))
+COS_MAX_CORRECTION = float(np.cos(MAX_CORRECTION_ANGLE))
 
 
 def corrected_points(

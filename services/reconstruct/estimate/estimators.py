@@ -179,7 +179,8 @@ def _guarded_lel(
     """
     v = data.points
     t_ls = F.ls_theta(v)
-    extra = [] if _warm(warm) is None else [_warm(warm)]
+    warm_start = _warm(warm)
+    extra: list[np.ndarray] = [] if warm_start is None else [warm_start]
     if opts.lel_starts == "six":
         extra.append(six_starts(t_ls)[1:])
     res = lel_fit_fast(v, t_ls, extra_starts=np.concatenate(extra) if extra else None)
@@ -304,7 +305,7 @@ def fit_constant_depth(data: F.PlaneData, warm: np.ndarray | None, opts: FitOpti
     theta0, mask0, d1 = first
     # Start on the paper-corrected LS refit (unbiased on axis-aligned walls, close otherwise).
     t_ls = F.ls_theta(data.points[mask0])
-    n0, h0 = t_ls / np.linalg.norm(t_ls), 1.0 / np.linalg.norm(t_ls)
+    n0, h0 = t_ls / np.linalg.norm(t_ls), 1.0 / float(np.linalg.norm(t_ls))
     n1, h1, _, nit, nev, ok = F.constant_depth_fit(data.capsules, data.distance, n0, h0)
     r = data.capsules @ n1 + data.distance - h1
     mask = F.prefilter_mask(r, opts.prefilter_fraction)

@@ -7,7 +7,7 @@ eq. (21)–(22); the pre-filter is §5.3.  Two plane models share one residual:
 * **paper model** — points ``v`` (the paper's corrected points, §4) on the plane
   ``θ · v = 1``; metric residual ``(θ · v − 1) / |θ|``;
 * **constant-depth model** — the mirror-echo condition ``n · p_c + d = h``
-  (design notes §8): the perpendicular distance from the capsule ``p_c`` to the
+ : the perpendicular distance from the capsule ``p_c`` to the
   wall equals the measured range ``d``.  With ``θ = n / h`` its metric residual
   is ``(θ · p_c − 1) / |θ| + d``, i.e. the paper model with the capsules as
   points, shifted by the range.  It needs no assumption on the wall's
@@ -27,9 +27,20 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, boresight
-from lelsonar.reconstruct.estimate.correct import _COS_MAX_CORRECTION, corrected_point
-from lelsonar.reconstruct.estimate.lel import PERFECT_FIT, _entropy, entropy_of_residuals, newton_minimize
+from lelsonar.reconstruct.estimate.constant_depth import constant_depth_fit, constant_depth_ls
+from lelsonar.reconstruct.estimate.correct import COS_MAX_CORRECTION, corrected_point
+from lelsonar.reconstruct.estimate.lel import residual_entropy
+from lelsonar.reconstruct.estimate.normals import (
+    norm,
+    normal_offset_stderr,
+    normal_offset_stderr_of,
+    observed_patch,
+    observed_patch_of,
+    theta_covariance,
+    theta_covariance_of,
+)
 from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit, SolverDiagnostics
+from lelsonar.reconstruct.estimate.robust import MAD_K, fast_median, mad, mad_of, mad_sigma, prefilter_mask
 from lelsonar.signal.compiled import kernel
 
 __all__ = [
@@ -54,23 +65,9 @@ __all__ = [
     "make_plane_fit",
 ]
 
-#: The constant of eq. (22): σ = k·MAD for normally distributed errors.
-MAD_K = 1.4826
-
-
-def _norm(v: np.ndarray) -> float:
-    # np.linalg.norm of a 1-D vector is sqrt(v · v); this is that, without its ~4 µs of argument handling.
-    return float(np.sqrt(v @ v))
-
-
-@kernel
-def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    # np.cross of two 3-vectors, with the same roundings (each product rounded, then the difference).
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
-
 
 def _ro(a: np.ndarray, dtype: type = np.float64) -> np.ndarray:
-    out = np.array(a, dtype=dtype, copy=True)
+    out: np.ndarray = np.array(a, dtype=dtype, copy=True)
     out.setflags(write=False)
     return out
 
@@ -223,8 +220,8 @@ def plane_data_of(
         np.ascontiguousarray(beam, dtype=np.float64),
         d,
         np.ascontiguousarray(steps, dtype=np.intp),
-        ax / _norm(ax),
-        _COS_MAX_CORRECTION,
+        ax / norm(ax),
+        COS_MAX_CORRECTION,
     )
     return PlaneData._owned(label, ax.copy(), points, caps, dist, bm, st)
 
@@ -345,321 +342,7 @@ def metric_residuals(theta: np.ndarray, points: np.ndarray, shift: np.ndarray | 
     (constant-depth model).
     """
     t = np.asarray(theta, dtype=np.float64)
-    return (np.asarray(points, dtype=np.float64) @ t - 1.0) / _norm(t) + shift
-
-
-@kernel
-def fast_median(x: np.ndarray) -> float:
-    """``np.median`` of a non-empty 1-D float array, bit for bit, without its dispatch.
-
-    The middle order statistic, or the mean ``(a + b) / 2`` of the two middle
-    ones, as :func:`numpy.median` computes them (order statistics are exact,
-    whichever way they are found); NaN in, NaN out.  A kernel: the corner
-    model's kernels take medians too.
-    """
-    n = x.shape[0]
-    for i in range(n):
-        if np.isnan(x[i]):
-            return np.nan
-    # The order statistics by selection (a partition about the middle), not a full sort: a few times faster.
-    k = n // 2
-    p = np.partition(x, k)
-    if n % 2:
-        return p[k]
-    below = p[0]  # the (k − 1)-th order statistic: the largest of the partition's lower part
-    for i in range(1, k):
-        if p[i] > below:
-            below = p[i]
-    return (below + p[k]) / 2.0
-
-
-def mad(e: np.ndarray) -> float:
-    """Median absolute deviation ``median(|e_i − μ|)``, μ the median, eq. (21)."""
-    e = np.asarray(e, dtype=np.float64).ravel()
-    if e.size == 0:
-        raise ConfigError("MAD of an empty set")
-    return _mad(e)
-
-
-@kernel
-def _mad(e: np.ndarray) -> float:
-    """:func:`mad` of a non-empty 1-D array."""
-    return fast_median(np.abs(e - fast_median(e)))
-
-
-def mad_sigma(e: np.ndarray) -> float:
-    """σ = 1.4826 · MAD, eq. (22)."""
-    return MAD_K * mad(e)
-
-
-def prefilter_mask(e: np.ndarray, fraction: float = 0.1) -> np.ndarray:
-    """The paper's pre-filter (§5.3): keep ``|e_i| ≤ fraction · max |e|``.
-
-    Parameters
-    ----------
-    e : (N,) array
-        Fitting errors of eq. (20) (any unit; only ratios matter).
-    fraction : float
-        The paper uses 10 %.
-    """
-    if not 0 < fraction <= 1:
-        raise ConfigError(f"pre-filter fraction must be in (0, 1], got {fraction}")
-    a = np.abs(np.asarray(e, dtype=np.float64))
-    return a <= fraction * a.max()
-
-
-def theta_covariance(
-    theta: np.ndarray, points: np.ndarray, shift: np.ndarray | float = 0.0, mask: np.ndarray | None = None
-) -> np.ndarray:
-    """Covariance of θ from the inlier residuals (Gauss-Newton, 1/m²).
-
-    ``C = σ² (JᵀJ)⁻¹`` with ``J = ∂r/∂θ`` of the metric residual
-    (:func:`metric_residuals`) and ``σ² = Σ r² / (m − 3)`` over the ``m``
-    inliers.  For the paper model at the solution this is
-    ``σ_e² (VᵀV)⁻¹``, the textbook covariance of eq. (15).  For the
-    constant-depth model ``J`` uses the capsule positions, so the covariance
-    honestly reflects the short lever arm that pins the normal down.
-
-    Returns a (3, 3) symmetric matrix; ``inf`` on the diagonal where the
-    inliers do not constrain θ (fewer than 4 inliers or a singular ``JᵀJ``).
-    """
-    t = np.asarray(theta, dtype=np.float64)
-    x = np.asarray(points, dtype=np.float64)
-    sh = np.asarray(shift, dtype=np.float64)
-    if mask is not None:  # (no mask: every point, used as it is — the same numbers as a copy's)
-        m = np.asarray(mask, dtype=bool)
-        x = x[m]
-        sh = np.broadcast_to(sh, m.shape)[m] if sh.ndim else sh
-    # A scalar shift (the paper model's 0) is added to every residual: the same sums as the broadcast array's.
-    return _theta_covariance(t, x, np.broadcast_to(sh, x.shape[:1]))
-
-
-@kernel
-def _theta_covariance(t: np.ndarray, x: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """:func:`theta_covariance` of the points ``x`` (every one an inlier), ``shift`` one per point."""
-    k = x.shape[0]
-    unconstrained = np.diag(np.full(3, np.inf))
-    if k <= 3:
-        return unconstrained
-    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-    nt3 = nt**3
-    jtj = np.zeros((3, 3))
-    ss = 0.0
-    jac = np.empty(3)
-    for i in range(k):
-        q = x[i, 0] * t[0] + x[i, 1] * t[1] + x[i, 2] * t[2] - 1.0
-        r = q / nt + shift[i]
-        ss += r * r
-        for u in range(3):
-            jac[u] = x[i, u] / nt - q * t[u] / nt3
-        for u in range(3):
-            for v in range(u, 3):  # the upper triangle (jac[u]·jac[v] rounds as jac[v]·jac[u]), mirrored below
-                jtj[u, v] += jac[u] * jac[v]
-    for u in range(3):
-        for v in range(u):
-            jtj[u, v] = jtj[v, u]
-    s2 = ss / (k - 3)
-    sv = np.linalg.svd(jtj)[1]  # np.linalg.cond(jtj) (0/0 counts as inf), without its bookkeeping
-    if sv[-1] == 0.0 or not sv[0] / sv[-1] <= 1e15:
-        return unconstrained
-    cov = s2 * np.linalg.inv(jtj)
-    return 0.5 * (cov + cov.T)
-
-
-def normal_offset_stderr(theta: np.ndarray, cov: np.ndarray) -> tuple[float, float]:
-    """Standard errors of the normal direction (rad) and offset (m) from ``cov(θ)``.
-
-    ``n = θ/|θ|`` has Jacobian ``(I − n nᵀ)/|θ|``; the returned angle error is
-    the root of the trace of ``cov(n)`` (the RMS tilt of the normal).
-    ``h = 1/|θ|`` has gradient ``−h² n``.
-    """
-    return _normal_offset_stderr(np.asarray(theta, dtype=np.float64), np.asarray(cov, dtype=np.float64))
-
-
-@kernel
-def _normal_offset_stderr(t: np.ndarray, c: np.ndarray) -> tuple[float, float]:
-    if not np.isfinite(c).all():
-        return np.inf, np.inf
-    nt = np.sqrt(t[0] * t[0] + t[1] * t[1] + t[2] * t[2])
-    n = t / nt
-    h = 1.0 / nt
-    # trace(J C Jᵀ) with J = (I − n nᵀ)/|θ|, and n·C·n, written out (3×3 BLAS calls cost more than their
-    # arithmetic; the sums round as they did to within a few ulp).
-    jn = np.empty((3, 3))
-    for u in range(3):
-        for v in range(3):
-            jn[u, v] = ((1.0 if u == v else 0.0) - n[u] * n[v]) / nt
-    var_n = 0.0
-    ncn = 0.0
-    for u in range(3):
-        cn = 0.0
-        for w in range(3):
-            t_uw = 0.0
-            for v in range(3):
-                t_uw += jn[u, v] * c[v, w]
-            var_n += t_uw * jn[u, w]
-            cn += n[w] * c[w, u]
-        ncn += cn * n[u]
-    var_h = h**4 * ncn
-    return np.sqrt(max(var_n, 0.0)), np.sqrt(max(var_h, 0.0))
-
-
-def observed_patch(normal: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
-    """Corners of the bounding rectangle of ``foot`` points projected on the plane.
-
-    The rectangle's sides follow the rotation axis x (projected on the plane)
-    and ``n × x``.  Returns (4, 3) corners in order around the rectangle, m.
-    """
-    return _observed_patch(np.asarray(normal, dtype=np.float64), float(offset), np.asarray(foot, dtype=np.float64))
-
-
-@kernel
-def _observed_patch(n: np.ndarray, offset: float, foot: np.ndarray) -> np.ndarray:
-    u = -n[0] * n
-    u[0] += 1.0  # x − (x·n) n
-    nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-    if nu < 1e-6:
-        u = -n[1] * n
-        u[1] += 1.0
-        nu = np.sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
-    u /= nu
-    w = _cross3(n, u)
-    a0 = b0 = np.inf
-    a1 = b1 = -np.inf
-    for i in range(foot.shape[0]):
-        s = foot[i, 0] * n[0] + foot[i, 1] * n[1] + foot[i, 2] * n[2] - offset
-        p0, p1, p2 = foot[i, 0] - s * n[0], foot[i, 1] - s * n[1], foot[i, 2] - s * n[2]
-        a = p0 * u[0] + p1 * u[1] + p2 * u[2]
-        b = p0 * w[0] + p1 * w[1] + p2 * w[2]
-        a0, a1, b0, b1 = min(a0, a), max(a1, a), min(b0, b), max(b1, b)
-    ca = (a0, a1, a1, a0)
-    cb = (b0, b0, b1, b1)
-    out = np.empty((4, 3))
-    for j in range(4):
-        for v in range(3):
-            out[j, v] = offset * n[v] + ca[j] * u[v] + cb[j] * w[v]  # o + ca·u + cb·w, element by element
-    return out
-
-
-@kernel
-def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Orthonormal ``e₁, e₂`` of the plane normal to the unit ``n`` (``e₁`` away from ``n``'s smallest axis).
-
-    Every Gauss-Newton step on the sphere builds one (the constant-depth fits, the joint corner model).
-    """
-    k = 0
-    for j in (1, 2):
-        if abs(n[j]) < abs(n[k]):  # np.argmin: the first smallest
-            k = j
-    helper = np.zeros(3)
-    helper[k] = 1.0
-    e1 = _cross3(n, helper)
-    e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
-    return e1, _cross3(n, e1)
-
-
-def constant_depth_ls(
-    capsules: np.ndarray,
-    distance: np.ndarray,
-    normal0: np.ndarray,
-    offset0: float,
-    mask: np.ndarray | None = None,
-    *,
-    max_outer: int = 20,
-    tol: float = 1e-12,
-) -> tuple[np.ndarray, float, int]:
-    """Least squares for the constant-depth model: ``min Σ (n · p_c + d − h)²``, ``|n| = 1``.
-
-    Gauss-Newton on the sphere: linearise ``n = normalise(n₀ + u₁e₁ + u₂e₂)``
-    in the tangent plane at ``n₀`` — the residual is then affine in
-    ``(u₁, u₂, h)`` — solve by LS, renormalise, repeat.
-
-    Returns
-    -------
-    normal, offset, iterations
-    """
-    p = np.asarray(capsules, dtype=np.float64)
-    d = np.asarray(distance, dtype=np.float64)
-    if mask is not None:
-        p, d = p[np.asarray(mask, dtype=bool)], d[np.asarray(mask, dtype=bool)]
-    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
-    h = float(offset0)
-    it = 0
-    for it in range(1, max_outer + 1):
-        e1, e2 = _tangent_basis(n)
-        a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
-        c = p @ n + d - h
-        z, *_ = np.linalg.lstsq(a, -c, rcond=None)
-        n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / _norm(n_new)
-        h += float(z[2])
-        if float(np.abs(z[:2]).max()) < tol and abs(float(z[2])) < tol:
-            break
-    return n, h, it
-
-
-def constant_depth_fit(
-    capsules: np.ndarray,
-    distance: np.ndarray,
-    normal0: np.ndarray,
-    offset0: float,
-    *,
-    max_outer: int = 10,
-    max_tilt_step: float = 0.05,
-    tol: float = 1e-10,
-) -> tuple[np.ndarray, float, float, int, int, bool]:
-    """LEL fit of the constant-depth model ``n · p_c + d = h`` (eq. 6, 8 on its residuals).
-
-    Minimises ``H`` of the residuals ``r_i = n · p_i + d_i − h`` over the unit
-    normal ``n`` and ``h``: in the tangent plane at the current ``n`` the
-    residual is affine in ``z = (u₁, u₂, h)``, so each outer step minimises
-    ``H`` of that affine model with :func:`lelsonar.reconstruct.estimate.lel.newton_minimize`
-    (exact Hessian), then renormalises ``n``.  Renormalising changes the
-    residuals only to second order, so 2–4 outer steps converge.
-
-    Parameters
-    ----------
-    capsules : (N, 3) array
-        ``p_c``, m.
-    distance : (N,) array
-        ``d``, m.
-    normal0, offset0
-        Start, e.g. the paper-corrected LEL or LS plane.
-    max_outer : int
-    max_tilt_step : float
-        Cap on one Newton step in the tangent coordinates (rad, and m for h).
-    tol : float
-        Stop when the outer step is below ``tol``.
-
-    Returns
-    -------
-    normal, offset, H, iterations, evaluations, converged
-    """
-    p = np.asarray(capsules, dtype=np.float64)
-    d = np.asarray(distance, dtype=np.float64)
-    n = np.asarray(normal0, dtype=np.float64) / _norm(np.asarray(normal0, dtype=np.float64))
-    h = float(offset0)
-    its = evs = 0
-    converged = False
-    for _ in range(max_outer):
-        e1, e2 = _tangent_basis(n)
-        a = np.stack([p @ e1, p @ e2, -np.ones_like(d)], axis=1)
-        c = p @ n + d - h
-        if np.all(np.abs(c) <= PERFECT_FIT * max(abs(h), 1.0)):  # D = 0 (eq. 6): a perfect fit
-            converged = True
-            break
-        z, _, nit, nev, ok = newton_minimize(np.zeros(3), a, offset=c, max_step=max_tilt_step, gtol=1e-14)
-        its += nit
-        evs += nev
-        n_new = n + z[0] * e1 + z[1] * e2
-        n = n_new / _norm(n_new)
-        h += float(z[2])
-        if float(np.abs(z).max()) < tol:
-            converged = ok
-            break
-    r = p @ n + d - h
-    hh = 0.0 if np.all(np.abs(r) <= PERFECT_FIT * max(abs(h), 1.0)) else entropy_of_residuals(r)
-    return n, h, hh, its, evs, converged
+    return (np.asarray(points, dtype=np.float64) @ t - 1.0) / norm(t) + shift
 
 
 def mirror_consistent(normal: np.ndarray, beam: np.ndarray, half_angle: float) -> bool:
@@ -714,7 +397,7 @@ def make_plane_fit(
     PlaneFit, or FitFailure (SOLVER_FAILED) if θ is not a usable plane.
     """
     t = np.asarray(theta, dtype=np.float64)
-    nt = _norm(t)
+    nt = norm(t)
     if not 1e-3 < nt < 1e3:  # (also a NaN or infinite θ: its norm is not finite, so no comparison holds)
         return FitFailure(FailureReason.SOLVER_FAILED, f"{method}: no usable plane (θ = {t})", data.label, data.n)
     if model == "paper":
@@ -796,20 +479,20 @@ def _fit_statistics(
         xi, si, ri, ei = x, shift, r, e
     else:
         xi, si, ri, ei = x[mask], shift[mask], r[mask], e[mask]  # (copies: x may be a frozen PlaneData's)
-    cov = _theta_covariance(t, xi, si)
-    se_n, se_h = _normal_offset_stderr(t, cov)
+    cov = theta_covariance_of(t, xi, si)
+    se_n, se_h = normal_offset_stderr_of(t, cov)
     if not (np.isfinite(se_n) and np.isfinite(se_h)):
         return n, e, cov, se_n, se_h, np.nan, np.nan, np.empty((4, 3)), np.nan
     foot = xi + si.reshape(-1, 1) * n if mirror else xi
     ordered = np.sort(e)
     if every:
         # e's median is its sorted copy's middle: the order statistics fast_median finds, exactly (e is finite:
-        # the points, θ and the shifts are), so _mad(e) without selecting them again.
+        # the points, θ and the shifts are), so mad_of(e) without selecting them again.
         k = m // 2
         med = ordered[k] if m % 2 else (ordered[k - 1] + ordered[k]) / 2.0
         mad_e = fast_median(np.abs(e - med))
     else:
-        mad_e = _mad(ei)
+        mad_e = mad_of(ei)
     return (
         n,
         ordered,
@@ -817,7 +500,7 @@ def _fit_statistics(
         se_n,
         se_h,
         MAD_K * mad_e,
-        MAD_K * _mad(ri),
-        _observed_patch(n, 1.0 / nt, foot),
-        _entropy(e) if m >= 2 else 0.0,
+        MAD_K * mad_of(ri),
+        observed_patch_of(n, 1.0 / nt, foot),
+        residual_entropy(e) if m >= 2 else 0.0,
     )

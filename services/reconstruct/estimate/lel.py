@@ -39,10 +39,12 @@ from scipy import optimize
 
 from lelsonar.errors import ConfigError
 from lelsonar.signal.compiled import kernel
+from lelsonar.signal.summation import pairwise_sum
 
 __all__ = [
     "entropy",
     "entropy_of_residuals",
+    "residual_entropy",
     "entropy_and_gradient",
     "residual_gradient",
     "entropy_gradient_hessian",
@@ -54,76 +56,9 @@ __all__ = [
     "front_start",
     "FAST_SOLVERS",
     "PERFECT_FIT",
+    "pairwise_sum",
+    "residual_entropy",
 ]
-
-
-@kernel
-def _pairwise_sum(x: np.ndarray, lo: int, n: int) -> float:
-    """``np.sum`` of ``x[lo:lo + n]``, the same roundings: NumPy's pairwise summation.
-
-    Halves (the first a multiple of 8) summed apart down to blocks of at most 128, each summed in 8
-    lanes.  Costs compared across hypotheses decide which pair of walls wins; summing as NumPy does
-    keeps those decisions where they were.  The halving runs on an explicit stack (a recursive kernel
-    does not survive Numba's cache).
-    """
-    if n <= 128:
-        return _pairwise_block(x, lo, n)
-    los = np.empty(64, dtype=np.intp)
-    ns = np.empty(64, dtype=np.intp)
-    second = np.zeros(64, dtype=np.bool_)  # whether the child above this frame is its second half
-    left = np.empty(64)
-    sp = 0
-    los[0], ns[0] = lo, n
-    while True:
-        if ns[sp] > 128:  # descend into the first half
-            n2 = ns[sp] // 2
-            n2 -= n2 % 8
-            second[sp] = False
-            los[sp + 1], ns[sp + 1] = los[sp], n2
-            sp += 1
-            continue
-        v = _pairwise_block(x, los[sp], ns[sp])
-        while True:  # hand v up: a first half waits for its second, a second half completes its parent
-            sp -= 1
-            if sp < 0:
-                return v
-            if not second[sp]:
-                n2 = ns[sp] // 2
-                n2 -= n2 % 8
-                left[sp] = v
-                second[sp] = True
-                los[sp + 1], ns[sp + 1] = los[sp] + n2, ns[sp] - n2
-                sp += 1
-                break
-            v = left[sp] + v
-
-
-@kernel
-def _pairwise_block(x: np.ndarray, lo: int, n: int) -> float:
-    """A leaf of :func:`_pairwise_sum`: at most 128 terms, in order below 8, else in 8 lanes and the rest."""
-    if n < 8:
-        s = 0.0
-        for i in range(lo, lo + n):
-            s += x[i]
-        return s
-    r0, r1, r2, r3 = x[lo], x[lo + 1], x[lo + 2], x[lo + 3]
-    r4, r5, r6, r7 = x[lo + 4], x[lo + 5], x[lo + 6], x[lo + 7]
-    i = 8
-    while i < n - n % 8:
-        r0 += x[lo + i]
-        r1 += x[lo + i + 1]
-        r2 += x[lo + i + 2]
-        r3 += x[lo + i + 3]
-        r4 += x[lo + i + 4]
-        r5 += x[lo + i + 5]
-        r6 += x[lo + i + 6]
-        r7 += x[lo + i + 7]
-        i += 8
-    s = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
-    while i < n:
-        s += x[lo + i]
-        i += 1
-    return s
 
 
 @kernel
@@ -138,7 +73,7 @@ def _cost_terms(r: np.ndarray) -> tuple[float, float, np.ndarray]:
     """
     n = r.shape[0]
     s = r * r
-    d = _pairwise_sum(s, 0, n)
+    d = pairwise_sum(s, 0, n)
     if d == 0.0 or not np.isfinite(d):
         return (0.0 if d == 0.0 else np.inf), d, np.zeros_like(s)
     floor = 1e-30 * d
@@ -172,12 +107,13 @@ def entropy_of_residuals(residuals: np.ndarray) -> float:
         raise ConfigError(f"the entropy-like cost needs at least 2 residuals, got {n}")
     if not np.all(np.isfinite(r)):
         raise ConfigError("residuals must be finite")
-    return _entropy(r)
+    return residual_entropy(r)
 
 
 @kernel
-def _entropy(r: np.ndarray) -> float:
-    """:func:`entropy_of_residuals` of at least 2 finite residuals."""
+def residual_entropy(r: np.ndarray) -> float:
+    """H (eq. 6) of at least 2 finite residuals: :func:`entropy_of_residuals` without its checks (a kernel, for
+    the kernels that score a fit)."""
     # Scale first: H is scale-invariant, and this keeps r² from underflowing.
     scale = 0.0
     for x in r:
@@ -320,7 +256,7 @@ def newton_minimize(
     c = offset
     h, g, hess = _egh(theta, v, vt, c)
     evals, it, converged = 1, 0, False
-    for it in range(1, maxiter + 1):
+    for it in range(1, maxiter + 1):  # noqa: B007  # read after the loop: the iterations run
         scale = max(math.sqrt(float(theta @ theta)), 1e-300) if max_step is None else max_step
         if math.sqrt(float(g @ g)) * scale < gtol:
             converged = True

@@ -263,7 +263,11 @@ def add_findings(plane: PlaneResult, findings: tuple[tuple[str, str], ...]) -> P
 
 
 def cross_check(
-    plane: PlaneFit, reference: PlaneResult, *, max_angle: float = float(np.deg2rad(3.0)), max_distance: float = 0.02
+    plane: PlaneFit,
+    reference: PlaneResult | None,
+    *,
+    max_angle: float = float(np.deg2rad(3.0)),
+    max_distance: float = 0.02,
 ) -> PlaneFit:
     """``plane`` (a compared method's) checked against the method of record's ``reference`` of the same wall.
 
@@ -296,12 +300,14 @@ def cross_check(
     return plane.replace_scalars(quality=level, quality_reasons=plane.quality_reasons + (reason,))
 
 
-def recovery_finding(plane: PlaneResult, without: PlaneResult, *, sigmas: float = 3.0) -> tuple[tuple[str, str], ...]:
+def recovery_finding(
+    plane: PlaneResult, without: PlaneResult | None, *, sigmas: float = 3.0
+) -> tuple[tuple[str, str], ...]:
     """The finding against ``plane`` where the echoes recovered after a board's noise triggers turn it away from
     ``without``, the same wall fitted without them.
 
-    The recovered ranges are timed on the waveforms' convention, their zero estimated; the
-    board's own readings on its.  Both sets see the same wall: if the two fits differ by more than ``sigmas``
+    The recovered ranges are timed on the waveforms' convention, their zero estimated; the board's own
+    readings on its.  Both sets see the same wall: if the two fits differ by more than ``sigmas``
     of their combined standard errors (normal or offset), one of the two timings is off and neither plane's σ
     covers it.  Nothing to say where either is no plane, or ``without`` is unreliable (too few readings of the
     board's own to tell: most were noise).

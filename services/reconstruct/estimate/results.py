@@ -16,10 +16,14 @@ import enum
 import math
 from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
+
+if TYPE_CHECKING:  # fit.py builds its results from this module
+    from lelsonar.reconstruct.estimate.fit import PlaneData
 
 __all__ = [
     "FailureReason",
@@ -37,7 +41,7 @@ def _frozen_array(
     obj: object, name: str, shape: tuple[int | None, ...] | None = None, dtype: type = np.float64, finite: bool = True
 ) -> np.ndarray:
     """Copy ``getattr(obj, name)`` into a read-only array and write it back."""
-    a = np.array(getattr(obj, name), dtype=dtype, copy=True)
+    a: np.ndarray = np.array(getattr(obj, name), dtype=dtype, copy=True)
     if shape is not None:
         if a.ndim != len(shape) or any(s is not None and s != t for s, t in zip(shape, a.shape)):
             raise ConfigError(f"{type(obj).__name__}.{name} must have shape {shape}, got {a.shape}")
@@ -48,7 +52,7 @@ def _frozen_array(
     return a
 
 
-class FailureReason(str, enum.Enum):
+class FailureReason(enum.StrEnum):
     """Why a plane could not be estimated."""
 
     TOO_FEW_POINTS = "too few points"
@@ -202,7 +206,8 @@ class PlaneFit:
         if (res[1:] < res[:-1]).any():
             raise ConfigError("PlaneFit.sorted_residuals must be sorted ascending")
         cov = _frozen_array(self, "theta_covariance", (3, 3))
-        # np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15) for a finite cov, at a quarter of its cost (every fit and every replace validates)
+        # np.allclose(cov, cov.T, rtol=1e-9, atol=1e-15) for a finite cov, written out: every fit and every
+        # replace validates, and np.allclose's generality costs more than the check.
         if not np.all(np.abs(cov - cov.T) <= 1e-15 + 1e-9 * np.abs(cov.T)):
             raise ConfigError("PlaneFit.theta_covariance must be symmetric")
         _frozen_array(self, "patch", (4, 3))
@@ -498,8 +503,8 @@ class ScanReconstruction:
     plane_b: PlaneResult
     edge: EdgeLine | FitFailure
     timings: Timings
-    data_a: object | None = None  # PlaneData; typed loosely: fit.py imports this module
-    data_b: object | None = None
+    data_a: PlaneData | None = None
+    data_b: PlaneData | None = None
 
     def __post_init__(self) -> None:
         if self.n_steps < 0:

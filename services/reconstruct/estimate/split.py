@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.estimate.fit import fast_median
-from lelsonar.reconstruct.estimate.lel import _pairwise_sum
+from lelsonar.reconstruct.estimate.robust import fast_median
 from lelsonar.signal.compiled import kernel
+from lelsonar.signal.summation import pairwise_sum
 
 __all__ = ["critical_step", "Split", "split_subsets"]
 
@@ -69,7 +69,7 @@ def _critical_step(ratio: np.ndarray, peak_fraction: float) -> int:
         found = found or ok
     if not found:
         return -1
-    k = np.argmax(r)
+    k = int(np.argmax(r))
     if peak_fraction == 0.0:
         return k
     thr = (1.0 - peak_fraction) * r[k]
@@ -80,10 +80,10 @@ def _critical_step(ratio: np.ndarray, peak_fraction: float) -> int:
         hi += 1
     m = hi + 1 - lo
     w = r[lo : hi + 1] - thr
-    total = _pairwise_sum(w, 0, m)  # (sums as np.sum's)
+    total = pairwise_sum(w, 0, m)  # (sums as np.sum's)
     if total <= 0:
         return k
-    moment = _pairwise_sum(np.arange(lo, hi + 1) * w, 0, m)
+    moment = pairwise_sum(np.arange(lo, hi + 1) * w, 0, m)
     return int(min(max(np.rint(moment / total), lo), hi))
 
 

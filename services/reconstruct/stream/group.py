@@ -336,7 +336,7 @@ class GroupMembership:
                 self.stats["evicted: scanner forgotten (max_scanners)"] += 1
         self._scans.move_to_end(scanner)
         scans.pop(None, None)  # the guess made before any ScanStart was seen
-        if cls is codec.ScanStart:
+        if isinstance(msg, codec.ScanStart):
             start_ns = int(msg.start_time_ns)
             rec = scans.get(msg.scan_id)
             if rec is None:
@@ -364,7 +364,8 @@ class GroupMembership:
         """
         key = (message.scanner_id, message.scan_id)
         with self._lock:
-            rec = self._scans.get(key[0], {}).get(key[1])
+            scans = self._scans.get(key[0])
+            rec = scans.get(key[1]) if scans is not None else None
             if rec is None:
                 return True
             if rec.owner != self.me:
@@ -459,7 +460,8 @@ class GroupMembership:
             self.stats["rejected: malformed done mark"] += 1
             return
         with self._lock:
-            rec = self._scans.get(scanner, {}).get(sid)
+            scans = self._scans.get(scanner)
+            rec = scans.get(sid) if scans is not None else None
             if rec is not None:
                 rec.done = True
 

@@ -2,9 +2,12 @@
 
 A payload arrives with its type name (the Zenoh encoding's schema, or the MCAP
 schema name).  It is decoded and validated by :func:`lelsonar.codec.decode`,
-then routed to the :class:`ScanAssembly` of its (scanner, scan).  (A ``Sample`` for a scan already open is
-routed on its header alone, and its body checked in the pass that places it, the same checks with the same
-refusals: :meth:`ScanAssembly.add` with ``limits``.)  Whatever is
+then routed to the :class:`ScanAssembly` of its (scanner, scan).  Each payload is
+parsed once.  A ``Sample`` for a scan already open is routed on its header alone
+and its body checked in the pass that places it, the same checks with the same
+refusals: read straight from its payload where it has the scan's layout
+(:mod:`~lelsonar.reconstruct.stream.fastwire`, :meth:`ScanAssembly.add_payload`),
+else parsed (:meth:`ScanAssembly.add` with ``limits``).  Whatever is
 wrong is counted by error type and reported — never raised to the caller — so a
 service keeps serving.  Samples that arrive before their ``ScanStart`` wait in
 a bounded buffer.
@@ -22,7 +25,7 @@ from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from lelsonar import codec
+from lelsonar import SCHEMA_VERSION, codec
 from lelsonar.errors import (
     DecodeError,
     InvalidMessageError,
@@ -30,6 +33,7 @@ from lelsonar.errors import (
     ScannerMismatchError,
 )
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.fastwire import sample_header
 
 _log = logging.getLogger(__name__)
 
@@ -89,6 +93,9 @@ class Ingest:
     recovered_after_close: int = 0
     #: Keys that started waiting for their ScanStart since the caller last emptied this list.
     newly_pending: list[ScanKey] = field(default_factory=list)
+    #: Read a Sample of an open scan straight from its payload (:mod:`~lelsonar.reconstruct.stream.fastwire`)
+    #: where it has the scan's layout; False parses every payload (the baseline `lelsonar bench ingest` shows).
+    fast_path: bool = True
     _held: int = 0
 
     @property
@@ -109,13 +116,16 @@ class Ingest:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
             if cls is codec.Sample:
                 if type(payload) is not bytes and len(payload) <= self.limits.max_payload_bytes:
-                    payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the parser and the scan read these
+                    payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the fast path or the parser reads it
+                placed = self._add_payload(payload, origin, key_scanner) if self.fast_path else None
+                if placed is not None:
+                    return [placed]
                 message = codec.parse(payload, cls, self.limits)
                 scan = self.scans.get((message.scanner_id, message.scan_id))  # (an open scan is never a closed one)
                 if scan is not None and (key_scanner is None or message.scanner_id == key_scanner):
-                    # Straight to its scan, which reads the body from the payload and checks it in the pass
-                    # that places it (or has it checked here first, as decoding does, if that does not clear it).
-                    return [self._add(scan, message, origin, self.limits, payload)]
+                    # Straight to its scan, which checks the body in the pass that places it (or has it checked
+                    # here first, as decoding does, if that does not clear it).
+                    return [self._add(scan, message, origin, self.limits)]
                 codec.validate_body(message, self.limits)
             else:
                 message = codec.decode(payload, cls, self.limits)
@@ -210,28 +220,50 @@ class Ingest:
                 events += self.apply(held, origin=origin)
         return events
 
+    def _add_payload(self, payload: bytes, origin: str, key_scanner: str | None) -> Accepted | Rejected | None:
+        """A ``Sample``'s payload placed in its open scan straight from its bytes, never parsed
+        (:meth:`ScanAssembly.add_payload`); None where the fast path leaves it to the parser (nothing done)."""
+        if len(payload) > self.limits.max_payload_bytes:
+            return None
+        header = sample_header(payload)
+        if header is None or header[0] != SCHEMA_VERSION:
+            return None
+        _, scanner, scan_id, step, time_ns = header
+        scan = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
+        if scan is None or (key_scanner is not None and scanner != key_scanner):
+            return None
+        mismatches = scan.energy_mismatches
+        try:
+            placed = scan.add_payload(payload, step, time_ns, origin, self.limits)
+        except DecodeError as exc:
+            return self._refused(scan, step, exc)
+        if placed is None:
+            return None
+        self.energy_mismatches += scan.energy_mismatches - mismatches
+        self.accepted += 1
+        return _accepted(("sample", scan, step))
+
     def _add(
         self,
         scan: ScanAssembly,
         sample: codec.Sample,
         origin: str = "live",
         limits: codec.DecodeLimits | None = None,
-        payload: bytes | None = None,
     ) -> Accepted | Rejected:
         """Place a sample in its scan; ``limits``: its body is not validated yet (:func:`~lelsonar.codec.parse`
-        of ``payload`` only), and a refusal of the decoding is raised (for :meth:`accept` to count), never the
-        scan's."""
+        only), and a refusal of the decoding is raised (for :meth:`accept` to count), never the scan's."""
         mismatches = scan.energy_mismatches
         try:
-            placed = scan.add(sample, origin, limits=limits, payload=payload)
+            placed = scan.add(sample, origin, limits=limits)
         except DecodeError as exc:
-            return self._refused(scan, sample, exc)
+            return self._refused(scan, sample.step, exc)
         if placed is None:  # not cleared by the scan's pass: validated as decoding does, then placed
-            codec.validate_body(sample, limits)  # a refusal of the decoding: raised, for accept to count
+            # A refusal of the decoding: raised, for accept to count (``limits`` is set: only then is None returned).
+            codec.validate_body(sample, self.limits if limits is None else limits)
             try:
                 placed = scan.add(sample, origin)
             except DecodeError as exc:
-                return self._refused(scan, sample, exc)
+                return self._refused(scan, sample.step, exc)
         if not placed:
             return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
         # Counted here, as they happen (the stats read one number, never the open scans a worker changes).
@@ -239,10 +271,10 @@ class Ingest:
         self.accepted += 1
         return _accepted(("sample", scan, sample.step))
 
-    def _refused(self, scan: ScanAssembly, sample: codec.Sample, exc: DecodeError) -> Rejected:
-        """The scan's own refusal of a (valid) sample, counted by the scan too."""
+    def _refused(self, scan: ScanAssembly, step: int, exc: DecodeError) -> Rejected:
+        """The scan's own refusal of a (valid) sample of step ``step``, counted by the scan too."""
         scan.rejected[type(exc).__name__] += 1
-        return self._reject(type(exc).__name__, f"scan {scan.key} step {sample.step}: {exc}")
+        return self._reject(type(exc).__name__, f"scan {scan.key} step {step}: {exc}")
 
     def _hold(
         self, key: ScanKey, message: codec.Sample | codec.ScanEnd, origin: str = "live"

@@ -275,7 +275,7 @@ class LogRecoveryClient:
                 "identity mismatch",
                 f"{type(message).__name__} of scan ({message.scanner_id}, {message.scan_id}) on {key}",
             )
-        if cls is codec.Sample and (rng is None or not rng[0] <= message.step <= rng[1]):
+        if isinstance(message, codec.Sample) and (rng is None or not rng[0] <= message.step <= rng[1]):
             return self._bad("step not asked", f"step {message.step} on {key}, asked {rng}")
         self.stats["delivered"] += 1
         self._deliver(type_name, payload, ORIGIN)

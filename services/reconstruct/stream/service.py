@@ -45,7 +45,7 @@ from typing import Protocol
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.errors import ConfigError
+from lelsonar.errors import ConfigError, InternalError
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.record import (
@@ -91,6 +91,11 @@ class ReconstructConfig:
         whose finals do not depend on them).
     max_provisional_delay : float
         s; under a backlog, a scan still gets a provisional estimate this often.
+    provisional_budget : float
+        s of deferred provisional refits one :meth:`ReconstructionService.tick` runs, oldest estimate
+        first; the rest wait for the next tick, so catching up never holds the stream for long.
+        While a backlog waits, a refit deferred over twice ``max_provisional_delay`` is shed
+        (``ServiceStats.provisionals_shed``): samples come first, and the scan's next refit covers it.
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -119,6 +124,7 @@ class ReconstructConfig:
     confirm_ratio: float = 1.5
     provisional: bool = True
     max_provisional_delay: float = 0.25
+    provisional_budget: float = 0.01
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
@@ -217,6 +223,8 @@ class ServiceStats:
     missing: int = 0
     recovery_requests: int = 0
     recovery_refused: int = 0
+    #: Deferred provisional refits dropped under a backlog (the final is never shed).
+    provisionals_shed: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
@@ -301,16 +309,12 @@ class ReconstructionService:
         """
         now = self._clock()
         cfg = self.config
-        out: list[codec.Reconstruction] = []
-        self._deferred.clear()  # every deferred refit is caught up on below
+        out = self._catch_up_provisionals(busy)
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
                 del self._partials[key]
                 continue
-            if p.deferred:  # only scans whose provisional refit waited for a backlog: O(1) for the others
-                p.deferred = False
-                out += self._provisional(scan, p)
             r = p.recovery
             self._note_progress(r, scan.n_received)
             if p.ended_at is not None:
@@ -349,6 +353,34 @@ class ReconstructionService:
                 del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
+        return out
+
+    def _catch_up_provisionals(self, busy: bool) -> list[codec.Reconstruction]:
+        """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
+
+        Those left wait for the next tick; under a backlog (``busy``) one deferred for over twice
+        ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
+        """
+        cfg = self.config
+        out: list[codec.Reconstruction] = []
+        waiting = sorted(
+            (p.estimated_at, key, p) for key in self._deferred if (p := self._partials.get(key)) is not None
+        )
+        self._deferred.clear()
+        start = self._clock()
+        for n, (estimated_at, key, p) in enumerate(waiting):
+            scan = self.ingest.scans.get(key)
+            if scan is None or not p.deferred:
+                continue
+            if self._clock() - start >= cfg.provisional_budget:
+                self._deferred.update(k for _, k, _ in waiting[n:])
+                break
+            p.deferred = False
+            if busy and start - estimated_at >= 2 * cfg.max_provisional_delay:
+                self.stats.provisionals_shed += 1
+                p.estimated_at = start  # the next deferral waits a full delay again
+                continue
+            out += self._provisional(scan, p)
         return out
 
     @property
@@ -423,13 +455,20 @@ class ReconstructionService:
     def _exhausted(self, r: RecoveryState, now: float) -> bool:
         if self.recover is None or self.config.recovery_attempts == 0:
             return True
-        return r.attempts >= self.config.recovery_attempts and now - r.last_at >= self.config.recovery_interval
+        return (
+            r.attempts >= self.config.recovery_attempts
+            and r.last_at is not None
+            and now - r.last_at >= self.config.recovery_interval
+        )
 
     def still_wanted(self, request: RecoveryRequest) -> bool:
         """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
         return (request.scanner_id, request.scan_id) not in self.ingest.closed
 
     def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
+        if self.recover is None:
+            raise InternalError("a recovery request was made by a service given no recover callback")
+        recover = self.recover
         r.attempts += 1
         r.requests += 1
         r.last_at, r.mark = now, held
@@ -449,7 +488,7 @@ class ReconstructionService:
             f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})",
         )
         try:
-            ok = self.recover(request)
+            ok = recover(request)
         except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
             _log.exception("recovery request failed; counted as refused")
             ok = False
@@ -487,6 +526,8 @@ class ReconstructionService:
         if event.kind == "end":
             p.ended_at = self._clock()
             end = scan.end
+            if end is None:
+                raise InternalError(f"scan {scan.key}: an end event without its ScanEnd")
             self._event(
                 "INFO",
                 f"scan {scan.key} ended ({'complete' if end.status == 1 else 'aborted'}"

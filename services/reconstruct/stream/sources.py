@@ -322,7 +322,9 @@ class LiveSource:
                 return
 
     def _ring(self) -> None:
-        """The doorbell: while the worker is idle, wait for a sample and hand it over (the channel is the worker's again)."""
+        """The doorbell: while the worker is idle, wait for a sample and hand it over.
+
+        The channel is the worker's again once it has that sample."""
         try:
             while self._armed.wait() and not self._stop.is_set():
                 sample = self._channel.recv()  # waits with the GIL released
@@ -333,7 +335,8 @@ class LiveSource:
             return  # the channel is closed: the source is closing
 
     def _pull(self, pending: deque, channel: bool) -> None:
-        """Append what waits, without waiting: up to a batch from the channel (if the worker reads it), then the FIFO's."""
+        """Append what waits, without waiting: up to a batch from the channel (if the worker reads it), then
+        the FIFO's."""
         if channel:
             try:
                 for _ in range(self._queue.batch):

@@ -1,0 +1,439 @@
+"""A ``Sample`` read straight from its payload, without the protobuf parser: the ingest's fast path.
+
+The acquisition service's samples all have one layout (the capsules in the ScanStart's order, float32
+waveforms of one length on one clock).  For a scan whose layout is known, a sample's header
+(:func:`read_header`) and body (:func:`read_sample`) are read from the protobuf wire format in compiled code,
+bit for bit what the parser gives, and the payload is parsed once.  Only a payload plainly encoded (each field
+once, with its own wire type, no groups, canonical field numbers) on that layout is read; anything else,
+however valid, is left to :func:`lelsonar.codec.parse` (the readers say so, nothing else).  A differential
+test holds the readers to ``protobuf`` on valid messages of every shape and on mutated bytes.
+
+The field numbers read are literals, so that the compiled code (cached by this file's contents) never holds
+numbers other than these, and are checked against the generated descriptors on import.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lelsonar import codec
+from lelsonar.errors import ConfigError
+from lelsonar.reconstruct.stream.step_features import place_step
+from lelsonar.signal.compiled import kernel
+from lelsonar.v1 import scan_pb2
+
+_FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
+_SAMPLE_VERSION, _SAMPLE_SCANNER, _SAMPLE_SCAN, _SAMPLE_STEP, _SAMPLE_TIME = 1, 2, 3, 4, 5
+# generated descriptors on import.
+_SAMPLE_GAMMA_COMMANDED, _SAMPLE_GAMMA_MEASURED, _SAMPLE_MOTOR, _SAMPLE_SENSORS, _SAMPLE_ENERGY = 6, 7, 8, 9, 10
+_MOTOR_LOAD, _MOTOR_VOLTAGE, _MOTOR_TEMPERATURE = 2, 3, 4
+_READING_CAPSULE, _READING_VALID, _READING_TOF, _READING_DISTANCE, _READING_WAVEFORM = 1, 2, 3, 4, 5
+_WAVE_ENCODING, _WAVE_DATA, _WAVE_RATE, _WAVE_T0, _WAVE_COUNT = 1, 2, 4, 5, 6
+for _message, _fields in (
+    (
+        codec.Sample,
+        {
+            "schema_version": _SAMPLE_VERSION,
+            "scanner_id": _SAMPLE_SCANNER,
+            "scan_id": _SAMPLE_SCAN,
+            "step": _SAMPLE_STEP,
+            "acquisition_time_ns": _SAMPLE_TIME,
+            "gamma_commanded": _SAMPLE_GAMMA_COMMANDED,
+            "gamma_measured": _SAMPLE_GAMMA_MEASURED,
+            "motor": _SAMPLE_MOTOR,
+            "sensors": _SAMPLE_SENSORS,
+            "sensor_energy": _SAMPLE_ENERGY,
+        },
+    ),
+    (scan_pb2.MotorStatus, {"load": _MOTOR_LOAD, "voltage": _MOTOR_VOLTAGE, "temperature": _MOTOR_TEMPERATURE}),
+    (
+        scan_pb2.SensorReading,
+        {
+            "capsule_id": _READING_CAPSULE,
+            "echo_valid": _READING_VALID,
+            "time_of_flight": _READING_TOF,
+            "distance": _READING_DISTANCE,
+            "waveform": _READING_WAVEFORM,
+        },
+    ),
+    (
+        codec.Waveform,
+        {
+            "encoding": _WAVE_ENCODING,
+            "data": _WAVE_DATA,
+            "sample_rate": _WAVE_RATE,
+            "t0": _WAVE_T0,
+            "sample_count": _WAVE_COUNT,
+        },
+    ),
+):
+    if {name: _message.DESCRIPTOR.fields_by_name[name].number for name in _fields} != _fields:
+        raise ConfigError(
+            f"lelsonar.v1.{_message.DESCRIPTOR.name}'s field numbers are not the ones "
+            "fastwire reads: a schema that breaks the wire format"
+        )
+del _message, _fields
+_VARINT, _FIXED64, _LENGTH, _FIXED32 = 0, 1, 2, 5
+#: :func:`place_wire`'s: a payload not read (not plainly encoded, or not the fast path's layout), nothing written.
+UNREAD = -3
+_ONE = 0x3FF0000000000000  # 1.0's bits
+
+
+@kernel
+def _wire_varint(buf, i, end):
+    """The base-128 varint at ``buf[i:end]``, and the index after it (-1: none there)."""
+    value = np.uint64(0)
+    shift = np.uint64(0)
+    while i < end and shift < 64:
+        b = np.uint64(buf[i])
+        i += 1
+        value |= (b & np.uint64(0x7F)) << shift
+        if b < 0x80:
+            return value, i
+        shift += np.uint64(7)
+    return value, -1
+
+
+@kernel
+def _wire_tag(buf, i, end):
+    """The field number and wire type of the tag at ``buf[i:end]``, and the index after it (-1: none there, or
+    not a tag the parser accepts: field number 0, or beyond 2^29 − 1)."""
+    tag, i = _wire_varint(buf, i, end)
+    field = np.int64(tag >> np.uint64(3))
+    if i < 0 or field == 0 or field >= (1 << 29):
+        return 0, 0, -1
+    return field, np.int64(tag & np.uint64(7)), i
+
+
+@kernel
+def _wire_fixed64(buf, i):
+    """The little-endian 64 bits at ``buf[i:i + 8]`` (a double's, bit for bit)."""
+    value = np.uint64(0)
+    for j in range(8):
+        value |= np.uint64(buf[i + j]) << np.uint64(8 * j)
+    return value
+
+
+@kernel
+def _wire_length(buf, i, end):
+    """The bounds (start, end) of the length-delimited field whose length is at ``buf[i:end]``; (-1, -1): none."""
+    size, i = _wire_varint(buf, i, end)
+    if i < 0 or size > end - i:
+        return -1, -1
+    return i, i + np.int64(size)
+
+
+@kernel
+def _wire_skip(buf, i, end, wire_type):
+    """The index after a field of ``wire_type`` whose value starts at ``buf[i]`` (-1: a group, or malformed)."""
+    if wire_type == _VARINT:
+        return _wire_varint(buf, i, end)[1]
+    if wire_type == _FIXED64:
+        return i + 8 if i + 8 <= end else -1
+    if wire_type == _LENGTH:
+        return _wire_length(buf, i, end)[1]
+    if wire_type == _FIXED32:
+        return i + 4 if i + 4 <= end else -1
+    return -1
+
+
+@kernel
+def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
+    """One ``SensorReading`` (``buf[i:end]``) of :func:`read_sample`: its ``echo_valid, distance,
+    time_of_flight`` into ``bits[at:at + 3]`` (1.0 or 0.0, and the doubles' bits) and its waveform's samples into
+    ``row``; False (``row`` and ``bits`` then partly written) unless the reading is plainly encoded and on the
+    fast path's layout: ``capsule_id``, a float32 waveform of ``row.size`` samples on the clock whose bits are
+    ``bits[clock:clock + 2]`` (rate, t0)."""
+    n = row.size
+    bits[at] = 0
+    bits[at + 1] = 0
+    bits[at + 2] = 0
+    valid = capsule = np.uint64(0)
+    seen = 0
+    a = b = -1
+    while i < end:
+        field, wire_type, i = _wire_tag(buf, i, end)
+        if i < 0:
+            return False
+        if field == _READING_CAPSULE or field == _READING_VALID:
+            if wire_type != _VARINT or seen & (1 << field):
+                return False
+            v, i = _wire_varint(buf, i, end)
+            if i < 0:
+                return False
+            if field == _READING_CAPSULE:
+                capsule = v
+            else:
+                valid = v
+        elif field == _READING_TOF or field == _READING_DISTANCE:
+            if wire_type != _FIXED64 or seen & (1 << field) or i + 8 > end:
+                return False
+            bits[at + 2 if field == _READING_TOF else at + 1] = _wire_fixed64(buf, i)
+            i += 8
+        elif field == _READING_WAVEFORM:
+            if wire_type != _LENGTH or seen & (1 << field):
+                return False
+            a, b = _wire_length(buf, i, end)
+            if a < 0:
+                return False
+            i = b
+        else:  # a field this build does not know: skipped, as the parser keeps it aside
+            i = _wire_skip(buf, i, end, wire_type)
+            if i < 0:
+                return False
+            continue
+        seen |= 1 << field
+    if capsule != capsule_id or a < 0:
+        return False
+    if valid != 0:  # (a bool is any varint but 0)
+        bits[at] = _ONE
+    encoding = count = rate = t0 = np.uint64(0)
+    d0 = d1 = -1
+    seen = 0
+    i = a
+    while i < b:
+        field, wire_type, i = _wire_tag(buf, i, b)
+        if i < 0:
+            return False
+        if field == _WAVE_ENCODING or field == _WAVE_COUNT:
+            if wire_type != _VARINT or seen & (1 << field):
+                return False
+            v, i = _wire_varint(buf, i, b)
+            if i < 0:
+                return False
+            if field == _WAVE_ENCODING:
+                encoding = v
+            else:
+                count = v
+        elif field == _WAVE_RATE or field == _WAVE_T0:
+            if wire_type != _FIXED64 or seen & (1 << field) or i + 8 > b:
+                return False
+            if field == _WAVE_RATE:
+                rate = _wire_fixed64(buf, i)
+            else:
+                t0 = _wire_fixed64(buf, i)
+            i += 8
+        elif field == _WAVE_DATA:
+            if wire_type != _LENGTH or seen & (1 << field):
+                return False
+            d0, d1 = _wire_length(buf, i, b)
+            if d0 < 0:
+                return False
+            i = d1
+        else:
+            i = _wire_skip(buf, i, b, wire_type)
+            if i < 0:
+                return False
+            continue
+        seen |= 1 << field
+    # The layout's clock to the bit (stricter than ==, which the fast path's clocks, finite, need no more of).
+    if not (encoding == _FLOAT32 and count == n and d1 - d0 == 4 * n and rate == bits[clock] and t0 == bits[clock + 1]):
+        return False
+    # A loop over the bytes: one vectorised copy (a slice assignment checks for overlap and copies twice).
+    src, dst = buf[d0:d1], row.view(np.uint8)
+    for j in range(d1 - d0):
+        dst[j] = src[j]
+    return True
+
+
+@kernel
+def read_sample(payload, ids, values, waveforms):
+    """What a ``Sample``'s payload holds that :func:`place_step` reads, straight from the protobuf wire format:
+    γ measured and commanded, the motor's load, voltage and temperature and each reading's ``echo_valid,
+    distance, time_of_flight`` into ``values`` (where :func:`place_step` reads them; a field absent is 0, as
+    the parser gives it), the first k carried energies after them, and each waveform's samples into
+    ``waveforms`` — bit for bit what the parsed message's fields hold.
+
+    Only a payload plainly encoded (each field read here once, with its own wire type, no groups) on the fast
+    path's layout (the k readings in the order of the capsule ``ids``, float32 waveforms of
+    ``waveforms.shape[1]`` samples each on the clocks in ``values[:2k]``, to the bit) is read; anything else,
+    however valid, is left to the parsed message (-1; ``values`` and ``waveforms`` then partly written).
+
+    Returns
+    -------
+    int
+        How many energies the sample carries (≥ 0), or -1: not read.
+    """
+    buf = np.frombuffer(payload, dtype=np.uint8)
+    bits = values.view(np.uint64)
+    k = ids.size
+    head, readings, energies = 2 * k, 2 * k + 5, 5 * k + 5
+    for j in range(head, head + 5):
+        bits[j] = 0
+    sensors = carried = seen = 0
+    i, end = 0, buf.size
+    while i < end:
+        field, wire_type, i = _wire_tag(buf, i, end)
+        if i < 0:
+            return -1
+        if field == _SAMPLE_SENSORS:
+            if wire_type != _LENGTH or sensors == k:
+                return -1
+            a, b = _wire_length(buf, i, end)
+            if a < 0 or not _read_reading(
+                buf, a, b, np.uint64(ids[sensors]), bits, readings + 3 * sensors, 2 * sensors, waveforms[sensors]
+            ):
+                return -1
+            sensors += 1
+            i = b
+        elif field == _SAMPLE_ENERGY:  # a repeated double: packed runs, or one at a time
+            if wire_type == _FIXED64:
+                a, b = i, i + 8
+            elif wire_type == _LENGTH:
+                a, b = _wire_length(buf, i, end)
+            else:
+                return -1
+            if a < 0 or b > end or (b - a) % 8:
+                return -1
+            for j in range(a, b, 8):
+                if carried < k:
+                    bits[energies + carried] = _wire_fixed64(buf, j)
+                carried += 1
+            i = b
+        elif field == _SAMPLE_GAMMA_MEASURED or field == _SAMPLE_GAMMA_COMMANDED:
+            if wire_type != _FIXED64 or seen & (1 << field) or i + 8 > end:
+                return -1
+            bits[head if field == _SAMPLE_GAMMA_MEASURED else head + 1] = _wire_fixed64(buf, i)
+            i += 8
+            seen |= 1 << field
+        elif field == _SAMPLE_MOTOR:
+            if wire_type != _LENGTH or seen & (1 << field):
+                return -1
+            a, b = _wire_length(buf, i, end)
+            if a < 0:
+                return -1
+            read = 0
+            while a < b:
+                f, w, a = _wire_tag(buf, a, b)
+                if a < 0:
+                    return -1
+                if f == _MOTOR_LOAD or f == _MOTOR_VOLTAGE or f == _MOTOR_TEMPERATURE:
+                    if w != _FIXED64 or read & (1 << f) or a + 8 > b:
+                        return -1
+                    bits[head + 2 + (0 if f == _MOTOR_LOAD else 1 if f == _MOTOR_VOLTAGE else 2)] = _wire_fixed64(
+                        buf, a
+                    )
+                    a += 8
+                    read |= 1 << f
+                else:
+                    a = _wire_skip(buf, a, b, w)
+                    if a < 0:
+                        return -1
+            i = b
+            seen |= 1 << field
+        else:  # the header (read by the parser), or a field this build does not know
+            i = _wire_skip(buf, i, end, wire_type)
+            if i < 0:
+                return -1
+    return carried if sensors == k else -1
+
+
+@kernel
+def place_wire(
+    payload,
+    ids,
+    values,
+    waveforms,
+    scan,
+    step,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
+    """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample`, into
+    ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it could not be
+    read that way (nothing placed)."""
+    carried = read_sample(payload, ids, values, waveforms)
+    if carried < 0:
+        return UNREAD, 0
+    k = ids.size
+    status = place_step(
+        waveforms,
+        values,
+        scan,
+        k if carried == k else 0,
+        step,
+        False,
+        time_ns,
+        recovered,
+        per_capsule,
+        per_step,
+        acquired_ns,
+        received,
+        recovered_mask,
+        timing_windows,
+        candidate_windows,
+    )
+    return status, carried
+
+
+@kernel
+def read_header(payload):
+    """A ``Sample``'s header straight from its payload: whether it was read, ``schema_version``, the bounds
+    (start, end) of ``scanner_id``'s bytes, ``scan_id``, ``step`` and ``acquisition_time_ns``'s 64 bits.
+
+    Read only if each header field appears at most once with its own wire type, ``schema_version`` and
+    ``step`` fit their 32 bits and every top-level tag is one the parser accepts; the body's fields are
+    skipped (:func:`read_sample` reads them).  A field absent is 0, as the parser gives it.
+    """
+    buf = np.frombuffer(payload, dtype=np.uint8)
+    version = scan_id = step = time = np.uint64(0)
+    a = b = 0
+    seen = 0
+    i, end = 0, buf.size
+    while i < end:
+        field, wire_type, i = _wire_tag(buf, i, end)
+        if i < 0:
+            return False, version, a, b, scan_id, step, time
+        if field <= _SAMPLE_TIME:
+            if seen & (1 << field):
+                return False, version, a, b, scan_id, step, time
+            seen |= 1 << field
+            if field == _SAMPLE_SCANNER:
+                if wire_type != _LENGTH:
+                    return False, version, a, b, scan_id, step, time
+                a, b = _wire_length(buf, i, end)
+                if a < 0:
+                    return False, version, a, b, scan_id, step, time
+                i = b
+                continue
+            if wire_type != _VARINT:
+                return False, version, a, b, scan_id, step, time
+            v, i = _wire_varint(buf, i, end)
+            if i < 0:
+                return False, version, a, b, scan_id, step, time
+            if field == _SAMPLE_VERSION:
+                version = v
+            elif field == _SAMPLE_SCAN:
+                scan_id = v
+            elif field == _SAMPLE_STEP:
+                step = v
+            else:
+                time = v
+        else:
+            i = _wire_skip(buf, i, end, wire_type)
+            if i < 0:
+                return False, version, a, b, scan_id, step, time
+    ok = version < np.uint64(1 << 32) and step < np.uint64(1 << 32)
+    return ok, version, a, b, scan_id, step, time
+
+
+def sample_header(payload: bytes) -> tuple[int, str, int, int, int] | None:
+    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns)`` of a ``Sample``'s payload, as the
+    parser reads them (:func:`read_header`); None where the fast path leaves the payload to the parser (not
+    plainly encoded, or a ``scanner_id`` that is not UTF-8)."""
+    ok, version, a, b, scan_id, step, time = read_header(payload)
+    if not ok:
+        return None
+    try:
+        scanner = payload[a:b].decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    t = int(time)
+    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t

@@ -1,0 +1,307 @@
+"""The per-sample pass: everything one step's readings and waveforms give, in one compiled pass.
+
+A sample's readings and waveforms are worked on once, as it is placed, while its samples are in the cache
+(:func:`place_step`): the contract's checks of a sample not validated yet (its samples finite among them),
+the carried eq. (10) energies checked against the waveforms in float32
+(:func:`~lelsonar.signal.energy.energy_agrees`, one dot product a waveform) instead of integrated again in
+float64, each reading's range and round trip, the first echo's peak
+(:func:`~lelsonar.signal.energy.echo_amplitude`'s window) and, on every :data:`RISE_STRIDE`-th step, the peak
+just before it and the DC level (for the writer checks), each waveform around its time of flight (and around
+the first echo after it, where the reading may be the noise a board fired on:
+:func:`~lelsonar.reconstruct.stream.candidates.candidate_echo`), and the step's E^γ, E0(d_m) and R (§4,
+eq. 11–12; :func:`settle_step`, :func:`~lelsonar.signal.energy.step_energy_ratio`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lelsonar.codec import MAX_RANGE_M
+from lelsonar.reconstruct.stream.candidates import candidate_echo
+from lelsonar.signal.compiled import kernel
+from lelsonar.signal.echo_timing import TIMING_WINDOW
+from lelsonar.signal.energy import (
+    ECHO_PEAK_WINDOW,
+    PRE_ECHO_WINDOW,
+    echo_window_start,
+    energy_agrees,
+    step_energy_ratio,
+    window_samples,
+)
+
+#: The ranges are checked (against the waveforms, against the time of flight) on every this-many-th step by
+#: index: each check is a median over the scan, and a quarter of a 184-step scan's readings is 184 of them.
+RISE_STRIDE = 4
+
+#: The (steps, k) arrays of a scan, in the order of their block (:meth:`ScanAssembly._allocate`): range (m; NaN: no
+#: echo or not received), eq. (10) energy (V²·s; 0), first echo's peak (V; NaN: none), the peak just before it
+#: (V; NaN: none or not a sampled step), |mean| of the waveform (V), distance / (c·tof/2) (NaN: not both); where
+#: each reading's timing window starts (``_timing_at``: its time of flight after the window's first sample, s)
+#: and, for a reading that may be the noise a board fired on, its candidate echo's (``_candidate_at``: the echo's
+#: first crossing after its window's first sample, s; ``_candidate_start``: that sample's time after firing, s).
+PER_CAPSULE = (
+    "distance",
+    "sensor_energy",
+    "echo_amplitude",
+    "pre_echo_peak",
+    "dc_level",
+    "range_tof_ratio",
+    "_timing_at",
+    "_candidate_at",
+    "_candidate_start",
+)
+#: The (steps,) float arrays: γ measured and commanded (rad; NaN until received), E^γ (eq. 11), E0(d_m)
+#: (eq. 12), R = E^γ / E0(d_m) (0 without a range).
+PER_STEP = ("gamma", "gamma_commanded", "step_energy", "expected_energy", "ratio")
+
+#: :func:`place_step`'s refusals (nothing written): a sample not validated that its screen does not clear (a
+#: check of the contract, or a NaN or infinite sum of squares: NaN or infinite samples, or squares that
+#: overflowed float32), a range without a speed of sound.
+UNCHECKED, NO_SOUND_SPEED = -1, -2
+#: In its result otherwise: the carried energies agree and were written; the rest counts unflagged ranges.
+AGREED = 1
+#: ... plus this where a reading's candidate echo was found before the scan kept any (their windows not allocated
+#: yet: :meth:`ScanAssembly._keep_candidates` copies this step's); the unflagged ranges count below it.
+CANDIDATES = 1 << 24
+
+
+@kernel
+def place_step(
+    waveforms,
+    values,
+    scan,
+    m,
+    step,
+    checked,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
+    """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
+    sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
+    screen: γ and the motor's readings finite, each valid echo's range finite, positive and below
+    ``codec.MAX_RANGE_M``); each waveform's samples checked finite, its carried eq. (10) energy checked
+    (:func:`~lelsonar.signal.energy.energy_agrees`, float32 sum of squares), each reading's range and round
+    trip (one from the other at the speed of sound where only one is given), the first echo's peak
+    (:func:`~lelsonar.signal.energy.echo_amplitude`'s window), and on
+    every :data:`RISE_STRIDE`-th step the peak just before it, the DC level and distance / (c·tof/2); written
+    into row ``step`` of the scan's arrays, with γ, the time and the step's origin; each waveform around its
+    time of flight (:data:`~lelsonar.signal.echo_timing.TIMING_WINDOW`), to re-time the echo if need be,
+    and where the reading may be the noise a board fired on, the same around its first echo after
+    (:func:`~lelsonar.reconstruct.stream.candidates.candidate_echo`); and, where the carried energies were
+    written, the step's E^γ, E0(d_m) and R (:func:`settle_step`, eq. 11–12).
+
+    Parameters
+    ----------
+    waveforms : (k, n) float32 array
+        The k waveforms (V), in the order of the scan's capsules (k: the scan's, ``per_capsule.shape[2]``).
+    values : (≥ 6·k + 5,) float64 array
+        Each waveform's sample rate (Hz) and t0 (s); γ measured and commanded (rad); the motor's load,
+        voltage and temperature; each reading's ``echo_valid, distance, time_of_flight`` (same order); the
+        ``m`` carried energies (V²·s), m = k or 0 (none to check).
+    scan : (7,) float64 array
+        The scan's speed of sound (m/s; NaN: none stated), the timing windows' rate (Hz), and its energy
+        model φ0, φ1, φ2, d_min, d_max (eq. 12).
+    checked : bool
+        The sample was validated (:func:`lelsonar.codec.validate_body`): its samples are finite, so a
+        non-finite sum of squares is an overflow (the energies then disagree); otherwise that, or a reading
+        the screen does not clear, is ``UNCHECKED`` (for the caller to validate it, naming the culprit).
+    time_ns, recovered : int, bool
+        The sample's acquisition time and origin (the acquirer's log).
+    per_capsule, per_step : (7, steps, k), (5, steps) float64 arrays
+        The scan's blocks (:data:`PER_CAPSULE`, :data:`PER_STEP`).
+    acquired_ns, received, recovered_mask : (steps,) arrays
+        The scan's ``time_ns``, ``received``, ``recovered_mask``.
+    timing_windows : (steps, k, width) float32 array
+        Where each waveform's window around its time of flight goes, if its rate is the windows' (``scan[1]``)
+        and the window lies inside it (its start's offset from the time of flight into ``_timing_at``).
+    candidate_windows : (steps, k, width) float32 array
+        Where a waveform's window around its candidate echo goes (:func:`candidate_echo`; the echo's crossing
+        after the window's start into ``_candidate_at``, the start's time into ``_candidate_start``).
+
+    Returns
+    -------
+    int
+        A refusal (< 0, nothing written), else ``AGREED`` if the carried energies were each waveform's and
+        written (not written otherwise, nor E^γ, E0 and R), plus twice the readings without an echo that carry
+        a range anyway, plus ``CANDIDATES`` if a candidate echo's window was found but not kept
+        (``candidate_windows`` not allocated yet).
+    """
+    k, n = waveforms.shape
+    clocks, readings, energies = values[: 2 * k], values[2 * k + 5 : 5 * k + 5], values[5 * k + 5 : 5 * k + 5 + m]
+    if not checked:
+        # codec._validate_sample's screen (a sum is finite only if each term is), refusing nothing it clears.
+        if not math.isfinite(
+            values[2 * k] + values[2 * k + 1] + values[2 * k + 2] + values[2 * k + 3] + values[2 * k + 4]
+        ):
+            return UNCHECKED
+        for i in range(k):
+            d, t = readings[3 * i + 1], readings[3 * i + 2]
+            if readings[3 * i] != 0.0 and not (math.isfinite(t + d) and 0.0 < d < MAX_RANGE_M and t > 0.0):
+                return UNCHECKED
+    agreed = m == k
+    for i in range(k):
+        squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
+        if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
+            if not checked:
+                return UNCHECKED
+            agreed = False
+        elif agreed:
+            agreed = energy_agrees(energies[i], float(squares), n, clocks[2 * i])
+    c, timing_rate = scan[0], scan[1]
+    for i in range(k):
+        if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
+            return NO_SOUND_SPEED
+    distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
+    pre_echo_peak, dc_level, range_tof_ratio, timing_at = per_capsule[3], per_capsule[4], per_capsule[5], per_capsule[6]
+    candidate_at, candidate_start = per_capsule[7], per_capsule[8]
+    width = timing_windows.shape[2]
+    sampled = step % RISE_STRIDE == 0
+    unflagged = 0
+    unkept = False
+    for i in range(k):
+        d, t = readings[3 * i + 1], readings[3 * i + 2]
+        rate, t0 = clocks[2 * i], clocks[2 * i + 1]
+        ratio = np.nan
+        if readings[3 * i] != 0.0:  # echo_valid
+            if not (d > 0.0 and t > 0.0):
+                if d > 0.0:
+                    t = 2.0 * d / c
+                else:
+                    d = 0.5 * c * t
+            elif c == c:
+                ratio = d / (0.5 * c * t)
+        else:
+            if d > 0.0:  # NaN compares false: only a positive range counts
+                unflagged += 1
+            d = t = np.nan
+        distance[step, i] = d
+        if agreed:
+            sensor_energy[step, i] = energies[i]
+        row = waveforms[i]
+        echo_amplitude[step, i] = window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
+        if width > 0 and rate == timing_rate and t > 0.0:  # NaN compares false: no echo, nothing to time
+            a = int(round((t + TIMING_WINDOW[0] - t0) * rate))
+            if a >= 0 and a + width <= n:
+                timing_windows[step, i, :] = row[a : a + width]
+                timing_at[step, i] = t - (t0 + a / rate)
+                b = candidate_echo(row, a, width, rate)
+                if b >= 0:
+                    c0 = (
+                        b + a - width // 2
+                    )  # the crossing in the middle of its window, as the time of flight in its own
+                    if c0 + width <= n:
+                        if candidate_windows.shape[2] == width:
+                            candidate_windows[step, i, :] = row[c0 : c0 + width]
+                        else:
+                            unkept = True
+                        candidate_at[step, i] = (b + a - c0) / rate
+                        candidate_start[step, i] = t0 + c0 / rate
+        if sampled:
+            range_tof_ratio[step, i] = ratio
+            if n > 0:
+                pre_echo_peak[step, i] = window_peak(row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1])
+    if sampled and n > 0:
+        dc_levels(waveforms, dc_level[step])
+    per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
+    if agreed:
+        settle_step(per_capsule, per_step, step, scan)
+    acquired_ns[step] = time_ns
+    received[step] = True
+    recovered_mask[step] = recovered
+    return (AGREED if agreed else 0) + 2 * unflagged + (CANDIDATES if unkept else 0)
+
+
+@kernel
+def settle_step(per_capsule, per_step, step, scan):
+    """Row ``step``'s E^γ (eq. 11), E0(d_m) (eq. 12, where the step has a range) and R = E^γ / E0(d_m) (§4; 0
+    without a range) into ``per_step``, from its ranges and eq. (10) energies in ``per_capsule``
+    (:func:`~lelsonar.signal.energy.step_energy_ratio` of the model in ``scan[2:7]``: φ0, φ1, φ2, d_min,
+    d_max)."""
+    e, e0, r, ranged = step_energy_ratio(
+        per_capsule[1, step], per_capsule[0, step], scan[2], scan[3], scan[4], scan[5], scan[6]
+    )
+    per_step[2, step] = e
+    if ranged:
+        per_step[3, step] = e0
+    per_step[4, step] = r
+
+
+@kernel
+def window_peak(row, rate, t0, round_trip, lo, hi):
+    """The largest |w| of ``row`` over the window (``lo``, ``hi``) s after ``round_trip``
+    (:func:`~lelsonar.signal.energy.echo_amplitude` of one waveform: exact, in float32); NaN: none."""
+    n = row.size
+    a = echo_window_start(n, rate, t0, round_trip, lo)
+    if a < 0:
+        return np.nan
+    peak = abs(row[a])
+    for j in range(a + 1, min(a + window_samples(rate, lo, hi), n)):
+        v = abs(row[j])
+        if v > peak:
+            peak = v
+    return float(peak)
+
+
+@kernel
+def dc_levels(waveforms, out):
+    """|mean| of each float32 waveform (row), V, into ``out``, bit for bit what ``np.mean(..., axis=-1,
+    dtype=np.float64)`` gives: that sums the samples in float64 in order (through its cast, not pairwise).
+
+    In-order float64 additions cannot run side by side without changing the rounding, so they are done
+    exactly instead where they can be: scaled by 2^s so that each sample is an integer and all of them
+    together stay below 2^52, the samples add up in int64 (side by side), and every partial sum of the
+    in-order float64 additions was exact too — the same number.  A waveform whose samples do not all fit
+    (a dynamic range beyond ~2^40 at ``n`` samples) is summed in order.
+    """
+    k, n = waveforms.shape
+    if n == 0:
+        return
+    bits = 0
+    while (1 << bits) < n:
+        bits += 1
+    for i in range(k):
+        row = waveforms[i]
+        s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
+        total, inexact = _scaled_sum(row, 2.0**s)
+        out[i] = _dc_level_in_order(row) if inexact else abs(float(total) * 2.0**-s / n)
+
+
+@kernel
+def _largest_bits(row):
+    """The largest |sample|'s float32 bit pattern (an int: its exponent in bits 23–30)."""
+    patterns = row.view(np.int32)
+    top = np.int32(0)
+    for j in range(patterns.size):
+        top = max(top, patterns[j] & np.int32(0x7FFFFFFF))
+    return top
+
+
+@kernel
+def _scaled_sum(row, scale):
+    """Σ row·scale in int64, and whether any term was not an integer."""
+    total = np.int64(0)
+    inexact = np.int64(0)
+    for j in range(row.size):
+        y = np.float64(row[j]) * scale
+        whole = np.int64(y)
+        total += whole
+        inexact |= np.int64(np.float64(whole) != y)
+    return total, inexact != 0
+
+
+@kernel
+def _dc_level_in_order(row):
+    """|mean| of a float32 waveform summed in float64 in order (:func:`dc_levels` where it cannot be exact)."""
+    total = 0.0
+    for v in row:
+        total += float(v)
+    return abs(total / row.size)

@@ -1,0 +1,175 @@
+"""The ingest's fast path reads a ``Sample`` payload as ``protobuf`` does, or leaves it to ``protobuf``.
+
+Differential tests against the parser (upb), the truth: on valid messages of every shape (any header, any
+number of readings in any order, every waveform encoding, energies packed or not, unknown fields) and on their
+bytes mutated (flipped, cut, spliced, a field sent twice), whatever :mod:`lelsonar.reconstruct.stream.fastwire`
+reads is bit for bit what the parsed message holds, and it reads nothing from bytes the parser refuses.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+from google.protobuf.message import DecodeError
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from lelsonar import codec
+from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
+from lelsonar.v1 import scan_pb2
+
+FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
+SETTINGS = settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
+
+doubles = st.floats(allow_nan=True, allow_infinity=True, width=64)
+
+
+@st.composite
+def waveforms(draw, n: int | None = None, rate: float | None = None, t0: float | None = None):
+    encoding = draw(st.sampled_from([FLOAT32, FLOAT32, FLOAT32, scan_pb2.WAVEFORM_ENCODING_INT16_LE, 0]))
+    count = draw(st.integers(0, 12)) if n is None else n
+    size = 4 * count if encoding == FLOAT32 and draw(st.booleans()) else draw(st.integers(0, 48))
+    return scan_pb2.Waveform(
+        encoding=encoding,
+        data=draw(st.binary(min_size=size, max_size=size)),
+        sample_count=count,
+        sample_rate=draw(doubles) if rate is None else rate,
+        t0=draw(doubles) if t0 is None else t0,
+    )
+
+
+@st.composite
+def samples(draw) -> tuple[codec.Sample, list[int], int, float, float]:
+    """A ``Sample`` of any shape, and a layout (capsule ids, waveform length, clock) it may or may not be on."""
+    k = draw(st.integers(1, 5))
+    ids = sorted(draw(st.lists(st.integers(0, 2**32 - 1), min_size=k, max_size=k, unique=True)))
+    n = draw(st.integers(0, 10))
+    rate, t0 = draw(doubles), draw(doubles)
+    on_layout = draw(st.booleans())
+    sensors = []
+    for i in range(draw(st.integers(0, k + 1)) if not on_layout else k):
+        capsule = ids[i] if on_layout and i < k else draw(st.integers(0, 2**32 - 1))
+        wave = draw(waveforms(n, rate, t0) if on_layout else waveforms())
+        if on_layout:
+            wave.encoding, wave.data = FLOAT32, draw(st.binary(min_size=4 * n, max_size=4 * n))
+        sensors.append(
+            scan_pb2.SensorReading(
+                capsule_id=capsule,
+                echo_valid=draw(st.booleans()),
+                time_of_flight=draw(doubles),
+                distance=draw(doubles),
+                waveform=wave,
+            )
+        )
+    sample = codec.Sample(
+        schema_version=draw(st.integers(0, 2**32 - 1)),
+        scanner_id=draw(st.text(max_size=12)),
+        scan_id=draw(st.integers(0, 2**64 - 1)),
+        step=draw(st.integers(0, 2**32 - 1)),
+        acquisition_time_ns=draw(st.integers(-(2**63), 2**63 - 1)),
+        gamma_commanded=draw(doubles),
+        gamma_measured=draw(doubles),
+        sensors=sensors,
+        sensor_energy=draw(st.lists(doubles, max_size=k + 2)),
+    )
+    if draw(st.booleans()):
+        motor = scan_pb2.MotorStatus(load=draw(doubles), voltage=draw(doubles), temperature=draw(doubles))
+        sample.motor.CopyFrom(motor)
+    return sample, ids, n, rate, t0
+
+
+def _unknown_field(number: int, value: bytes) -> bytes:
+    """A length-delimited field this build does not know (``number`` < 16, ``value`` < 128 bytes: one-byte
+    varints)."""
+    return bytes([(number << 3) | 2, len(value)]) + value
+
+
+def _bits(x: float) -> bytes:
+    return struct.pack("<d", x)
+
+
+def _check(payload: bytes, ids: list[int], n: int, rate: float, t0: float) -> None:
+    """What the fast path reads of ``payload`` (its header, then its body, as the ingest reads them) against what
+    the parser reads of it."""
+    try:
+        truth = codec.Sample.FromString(payload)
+    except DecodeError:
+        truth = None
+    header = sample_header(payload)
+    if header is None:
+        return  # left to the parser: the ingest reads a body only after its header (its scanner id UTF-8)
+    if truth is not None:
+        assert header == (truth.schema_version, truth.scanner_id, truth.scan_id, truth.step, truth.acquisition_time_ns)
+    k = len(ids)
+    values = np.zeros(6 * k + 5)
+    values[: 2 * k] = [rate, t0] * k
+    waves = np.zeros((k, n), np.float32)
+    carried = read_sample(payload, np.array(ids, np.int64), values, waves)
+    if carried < 0:
+        return
+    assert truth is not None, "read a payload the parser refuses"
+    sensors = list(truth.sensors)
+    assert [s.capsule_id for s in sensors] == ids
+    for s in sensors:
+        w = s.waveform
+        assert (w.encoding, w.sample_count, len(w.data)) == (FLOAT32, n, 4 * n)
+        assert _bits(w.sample_rate) == _bits(rate) and _bits(w.t0) == _bits(t0)
+    ranges, _, data = codec.sample_readings(sensors)
+    m = truth.motor
+    expected = [truth.gamma_measured, truth.gamma_commanded, m.load, m.voltage, m.temperature, *ranges]
+    energy = list(truth.sensor_energy)
+    assert carried == len(energy)
+    expected += energy[:k]
+    got = values[2 * k : 2 * k + len(expected)]
+    assert got.tobytes() == np.array(expected, np.float64).tobytes()
+    assert waves.tobytes() == b"".join(data)
+
+
+@SETTINGS
+@given(samples(), st.booleans(), st.binary(max_size=6))
+def test_valid_messages_are_read_as_the_parser_reads_them(drawn, unknown: bool, extra: bytes):
+    sample, ids, n, rate, t0 = drawn
+    payload = sample.SerializeToString() + (_unknown_field(15, extra) if unknown else b"")
+    _check(payload, ids, n, rate, t0)
+    # A plainly encoded sample on its scan's layout is always read: the fast path is the path.
+    on_layout = [s.capsule_id for s in sample.sensors] == ids and all(
+        s.waveform.encoding == FLOAT32
+        and s.waveform.sample_count == n
+        and len(s.waveform.data) == 4 * n
+        and _bits(s.waveform.sample_rate) == _bits(rate)
+        and _bits(s.waveform.t0) == _bits(t0)
+        for s in sample.sensors
+    )
+    k = len(ids)
+    values = np.zeros(6 * k + 5)
+    values[: 2 * k] = [rate, t0] * k
+    read = read_sample(payload, np.array(ids, np.int64), values, np.zeros((k, n), np.float32))
+    assert (read >= 0) == on_layout
+    assert sample_header(payload) is not None
+
+
+@SETTINGS
+@given(samples(), st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 255)), min_size=1, max_size=4))
+def test_mutated_bytes_are_read_as_the_parser_reads_them_or_left_to_it(drawn, flips):
+    sample, ids, n, rate, t0 = drawn
+    payload = bytearray(sample.SerializeToString())
+    for at, value in flips:
+        if payload:
+            payload[at % len(payload)] = value
+    _check(bytes(payload), ids, n, rate, t0)
+
+
+@SETTINGS
+@given(samples(), st.integers(0, 10**6), st.integers(0, 10**6), st.sampled_from(["cut", "splice", "twice"]))
+def test_cut_spliced_or_repeated_fields_are_read_as_the_parser_reads_them_or_left_to_it(drawn, a, b, how):
+    sample, ids, n, rate, t0 = drawn
+    payload = sample.SerializeToString()
+    if how == "cut":
+        payload = payload[: a % (len(payload) + 1)]
+    elif how == "splice":
+        i, j = sorted((a % (len(payload) + 1), b % (len(payload) + 1)))
+        payload = payload[:i] + payload[j:] + payload[i:j]
+    else:  # a field sent again at the end: the parser keeps the last (or merges), the fast path leaves it
+        payload += codec.Sample(step=b, gamma_measured=float(a), scanner_id="x").SerializeToString()
+    _check(payload, ids, n, rate, t0)

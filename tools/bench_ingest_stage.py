@@ -1,0 +1,273 @@
+"""``lelsonar bench ingest``'s in-process measurements: the messages of a simulated scan, the ingest stage
+against its floor, the Sample decoding paths side by side, and the MCAP replay rows with their profile."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from pathlib import Path
+
+
+def build_scan(preset_name: str, seed: int = 0):
+    """ScanStart, Samples and ScanEnd of one simulated scan, as the acquisition service builds them."""
+    from lelsonar.acquire import messages
+    from lelsonar.acquire.backends import SimScanner
+    from lelsonar.acquire.scan_loop import gamma_schedule
+    from lelsonar.sim import preset
+    from lelsonar.sim.calibrate import default_energy_model
+
+    sim = preset(preset_name)
+    scanner = SimScanner(sim, seed)
+    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
+    start = messages.scan_start("s0", 1, time.time_ns(), scanner.info, schedule, default_energy_model())
+    samples = [
+        messages.sample("s0", 1, step, float(g), scanner.measure(step, float(g)), scanner.info)
+        for step, g in enumerate(schedule)
+    ]
+    end = messages.scan_end(
+        "s0",
+        1,
+        time.time_ns(),
+        complete=True,
+        reason="",
+        steps_planned=len(schedule),
+        samples_sent=len(schedule),
+        echoes_missing=0,
+    )
+    return start, samples, end
+
+
+# --- (c) replay --------------------------------------------------------------------------------
+def record_scans(path: Path, preset_name: str, scans: int) -> int:
+    """Record ``scans`` scans of one scanner to ``path``; return the number of samples."""
+    from lelsonar.log.recording import McapRecorder
+
+    start, samples, end = build_scan(preset_name)
+    t = 1_700_000_000_000_000_000
+    n = 0
+    with McapRecorder(path, metadata={"bench": "ingest"}) as rec:
+        for k in range(scans):
+            start.scan_id, start.start_time_ns = k + 1, t
+            rec.write(start)
+            for sample in samples:
+                t += 20_000_000  # 20 ms per step, as an emulated scan
+                sample.scan_id, sample.acquisition_time_ns = k + 1, t
+                rec.write(sample)
+                n += 1
+            t += 1_000_000
+            end.scan_id, end.end_time_ns = k + 1, t
+            rec.write(end)
+            t += 1_000_000_000
+    return n
+
+
+def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
+    """Median wall time of replay_mcap through a fresh service, and the finals of the last run."""
+    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
+
+    times, finals = [], 0
+    for _ in range(runs):
+        service = ReconstructionService(ReconstructConfig(**config))
+        t = time.perf_counter()
+        replay_mcap(path, service)
+        times.append(time.perf_counter() - t)
+        finals = service.stats.finals
+    return statistics.median(times), finals
+
+
+def time_ingest_only(path: Path, runs: int) -> float:
+    """Median wall time to read, decode, validate and assemble the recording (no estimation)."""
+    from lelsonar.log.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
+
+    times = []
+    for _ in range(runs):
+        ingest = Ingest()
+        t = time.perf_counter()
+        for rec in iter_payloads(path):
+            ingest.accept(rec.type_name, rec.payload)
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def time_read_decode(path: Path, runs: int) -> float:
+    """Median wall time to read the recording and decode + validate every payload: the replay's floor."""
+    from lelsonar import codec
+    from lelsonar.log.recording import iter_payloads
+
+    times = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        for rec in iter_payloads(path):
+            cls = codec.MESSAGE_TYPES.get(rec.type_name)
+            if cls is not None and cls is not codec.Reconstruction:
+                codec.decode(rec.payload, cls)
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, bytes]]:
+    """(type name, payload) of whole scans of one scanner, ScanStart … ScanEnd, ``n`` samples or a little more."""
+    from lelsonar import codec
+
+    start, samples, end = build_scan(preset_name)
+    out: list[tuple[str, bytes]] = []
+    scan_id = 0
+    while sum(1 for name, _ in out if name == codec.Sample.DESCRIPTOR.full_name) < n:
+        scan_id += 1
+        for m in (start, *samples, end):
+            m.scan_id = scan_id
+            out.append((m.DESCRIPTOR.full_name, m.SerializeToString()))
+    return out
+
+
+def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[float, float]:
+    """Samples/s of (floor) :func:`lelsonar.codec.decode` (parse + every validation) and of (stage)
+    :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` — decode, validate, route, assemble: everything the
+    service does before estimation — over the same payloads (whole scans, ScanStart to ScanEnd), in this
+    process, one run of each per round (medians of ``runs``)."""
+    from lelsonar import codec
+    from lelsonar.reconstruct.stream.ingest import Ingest
+
+    payloads = ingest_stage_payloads(preset_name, n)
+    classes = [codec.MESSAGE_TYPES[name] for name, _ in payloads]
+    samples = sum(1 for cls in classes if cls is codec.Sample)
+    floor, stage = [], []
+    for _ in range(runs):
+        t = time.perf_counter()
+        for cls, (_, b) in zip(classes, payloads):
+            codec.decode(b, cls)
+        floor.append(samples / (time.perf_counter() - t))
+        ingest = Ingest()
+        t = time.perf_counter()
+        for name, b in payloads:
+            ingest.accept(name, b)
+        stage.append(samples / (time.perf_counter() - t))
+        if ingest.rejected or ingest.accepted != len(payloads):
+            raise RuntimeError(f"the ingest stage refused bench payloads: {dict(ingest.rejected)}")
+    return statistics.median(floor), statistics.median(stage)
+
+
+def decoding_paths(preset_name: str, runs: int, n: int = 400) -> dict[str, float]:
+    """µs a sample, over the same payloads (whole scans, ScanStart to ScanEnd), one run of each per round,
+    medians of ``runs``: ``parse`` a plain upb parse of every payload (``ParseFromString``, no check), ``fast``
+    the ingest stage as it runs (:class:`~lelsonar.reconstruct.stream.ingest.Ingest`: a Sample of an open
+    scan read straight from its payload, :mod:`~lelsonar.reconstruct.stream.fastwire`), ``parsed`` the stage
+    without that (``Ingest(fast_path=False)``: every payload parsed by upb, the sample placed from the
+    message)."""
+    from lelsonar import codec
+    from lelsonar.reconstruct.stream.ingest import Ingest
+
+    payloads = ingest_stage_payloads(preset_name, n)
+    classes = [codec.MESSAGE_TYPES[name] for name, _ in payloads]
+    samples = sum(1 for cls in classes if cls is codec.Sample)
+    times: dict[str, list[float]] = {"parse": [], "fast": [], "parsed": []}
+    for _ in range(runs):
+        t = time.perf_counter()
+        for cls, (_, b) in zip(classes, payloads):
+            cls().ParseFromString(b)
+        times["parse"].append(time.perf_counter() - t)
+        for name, fast in (("fast", True), ("parsed", False)):
+            ingest = Ingest(fast_path=fast)
+            t = time.perf_counter()
+            for type_name, b in payloads:
+                ingest.accept(type_name, b)
+            times[name].append(time.perf_counter() - t)
+            if ingest.rejected or ingest.accepted != len(payloads):
+                raise RuntimeError(f"the ingest stage refused bench payloads: {dict(ingest.rejected)}")
+    return {name: 1e6 * statistics.median(v) / samples for name, v in times.items()}
+
+
+def profile_replay(path: Path, samples: int, console) -> None:
+    """cProfile one replay (the live path's ``handle`` code), then time each final method without the profiler."""
+    import cProfile
+    import pstats
+
+    from rich.table import Table
+
+    from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
+
+    prof = cProfile.Profile()
+    service = ReconstructionService()
+    prof.enable()
+    replay_mcap(path, service)
+    prof.disable()
+    stats = pstats.Stats(prof).stats  # (file, line, func) → (cc, nc, tt, ct, callers)
+
+    def keys(file_end: str, func: str) -> list:
+        return [k for k in stats if k[0].endswith(file_end) and k[2] == func]
+
+    def cum(file_end: str, func: str, caller: tuple[str, str] | None = None) -> tuple[int, float]:
+        calls = ct = 0.0
+        for k in keys(file_end, func):
+            if caller is None:
+                calls, ct = calls + stats[k][1], ct + stats[k][3]
+                continue
+            for ck, (_cc, nc, _tt, cct) in stats[k][4].items():
+                if ck[0].endswith(caller[0]) and ck[2] == caller[1]:
+                    calls, ct = calls + nc, ct + cct
+        return int(calls), ct
+
+    upd = ("reconstruct/service.py", "_provisional")
+    parts = [
+        ("replay_mcap (everything)", "reconstruct/sources.py", "replay_mcap", None),
+        ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
+        ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
+        ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
+        (
+            "    ScanAssembly.add (carried energies checked, echo windows cut out)",
+            "reconstruct/assembly.py",
+            "add",
+            None,
+        ),
+        ("  _provisional (corner check, provisional refit)", *upd, None),
+        ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
+        ("    IncrementalPlane.update (provisional planes)", "reconstruct/incremental.py", "update", upd),
+        ("  _finalise (after ScanEnd: main + compare methods)", "reconstruct/service.py", "_finalise", None),
+        ("    reconstruct (each method, from scratch)", "reconstruct/pipeline.py", "reconstruct", None),
+    ]
+    whole = cum("reconstruct/sources.py", "replay_mcap")[1] or 1.0
+    table = Table(
+        title=f"cProfile of one replay: {samples} samples, {service.stats.finals} finals "
+        f"(cumulative; the profiler inflates Python-heavy code)"
+    )
+    for col in ("where", "calls", "cumulative s", "ms / sample", "share"):
+        table.add_column(col, justify="left" if col == "where" else "right")
+    for label, file_end, func, caller in parts:
+        calls, ct = cum(file_end, func, caller)
+        table.add_row(label, str(calls), f"{ct:.3f}", f"{1e3 * ct / samples:.2f}", f"{100 * ct / whole:.0f} %")
+    console.print(table)
+
+    top = sorted(stats.items(), key=lambda kv: kv[1][2], reverse=True)[:10]
+    tt = Table(title="Top functions by own time (same profile)")
+    for col in ("function", "calls", "own s"):
+        tt.add_column(col, justify="left" if col == "function" else "right")
+    for (f, line, fn), v in top:
+        tt.add_row(f"{fn}  ({'/'.join(Path(f).parts[-2:])}:{line})", str(v[1]), f"{v[2]:.3f}")
+    console.print(tt)
+
+    # What one final costs per method, without the profiler (as _finalise calls them), on the first scan of the
+    # file assembled again (the service forgets each scan once it is final).
+    from lelsonar.log.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
+
+    kept = Ingest()
+    for rec in iter_payloads(path):
+        kept.accept(rec.type_name, rec.payload)
+    scan = next(iter(kept.scans.values()))
+    steps, gamma, distance, _ = scan.arrays()
+    cfg = service.config
+    ft = Table(title=f"One final estimate per method, wall (median of 3, no profiler; {len(steps)} steps)")
+    for col in ("method", "role", "ms"):
+        ft.add_column(col, justify="right" if col == "ms" else "left")
+    for i, method in enumerate((cfg.method, *cfg.compare_methods)):
+        times = []
+        for _ in range(3):
+            t = time.perf_counter()
+            reconstruct(gamma, distance, scan.sensor_energy[steps], scan.geometry, scan.energy_model, method)
+            times.append(time.perf_counter() - t)
+        ft.add_row(method, "main" if i == 0 else "compare", f"{1e3 * statistics.median(times):.1f}")
+    console.print(ft)
