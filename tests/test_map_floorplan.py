@@ -39,6 +39,8 @@ def test_the_route_out_of_a_maze_keeps_the_radius_and_crosses_no_true_wall(seed)
         assert line.distance(w) >= cfg.robot_radius - 1e-9
     for seg in world.segments:
         assert not line.intersects(LineString(seg))
+    # Only the last stretch, out of the exit the scans looked through, may leave the space seen free.
+    assert fp.unseen_length(m, path, cfg) < 1.0
 
 
 def test_no_route_from_a_start_off_the_grid_or_into_a_wall():

@@ -182,6 +182,7 @@ def run_map(args: argparse.Namespace) -> int:
         start = (fused.poses[0].x, fused.poses[0].y)
         path = floorplan.route(fused, start, goal, plan)
         out["route"] = None if path is None else [{"x": x, "y": y} for x, y in path]
+        out["route_unseen_m"] = None if path is None else floorplan.unseen_length(fused, path, plan)
     if args.geojson:
         args.geojson.write_text(json.dumps(floorplan.to_geojson(fused, plan)))
     if args.grid:
@@ -228,6 +229,11 @@ def _print_table(out: dict) -> None:
             "route: none" if r is None else "route: " + " → ".join(f"({p['x']:.2f}, {p['y']:.2f})" for p in r),
             highlight=False,
         )
+        if r is not None and out["route_unseen_m"] > 0:
+            console.print(
+                f"route: {out['route_unseen_m']:.2f} m of it through space no scan saw free (a wall may stand there)",
+                highlight=False,
+            )
 
 
 def run_mapper(args: argparse.Namespace) -> int:

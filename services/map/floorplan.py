@@ -283,6 +283,13 @@ def route(
     return _turning_points([(float(start[0]), float(start[1]))] + end)
 
 
+def unseen_length(m: FusedMap, path: list[tuple[float, float]], config: PlanConfig | None = None) -> float:
+    """How much of a route (m) runs through space no scan saw free: there a wall the scans missed may stand."""
+    if len(path) < 2:
+        return 0.0
+    return float(LineString(path).difference(free_space(m, config)).length)
+
+
 def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     """The route without the points where it goes straight on."""
     if len(points) < 3:
