@@ -69,12 +69,11 @@ def test_the_mapper_publishes_answers_a_get_and_records(scans, zenoh_socket, tmp
     keys = ScannerKeys("lelsonar", "s1")
     record = tmp_path / "maps.mcap"
     got: list[map_pb2.Map] = []
-    two = threading.Event()
+    mapped = [threading.Event(), threading.Event()]
 
     def on_map(msg):
         got.append(msg)
-        if len(got) == 2:
-            two.set()
+        mapped[len(got) - 1].set()
 
     with (
         open_session(hermetic_settings(zenoh_socket, listen=True)) as mapper_session,
@@ -88,10 +87,11 @@ def test_the_mapper_publishes_answers_a_get_and_records(scans, zenoh_socket, tmp
                 pub.declare_matching_listener(lambda status, e=matched: status.matching and e.set())
                 assert matched.wait(10)
                 pubs[key] = pub
-            for _, start, final in scans:
+            # A robot's scans come one after the other: each final estimate after its start, the next scan after.
+            for (_, start, final), done in zip(scans, mapped):
                 pubs[keys.scan].put(start.SerializeToString())
                 pubs[keys.planes].put(final.SerializeToString())
-            assert two.wait(60)
+                assert done.wait(60)
             querier = robot.declare_querier(map_key("lelsonar"), timeout=10.0)
             matched = threading.Event()
             querier.declare_matching_listener(lambda status: status.matching and matched.set())
