@@ -107,3 +107,16 @@ def test_the_mapper_publishes_answers_a_get_and_records(scans, zenoh_socket, tmp
     maps = [m for _, _, _, m in decoded]
     assert len(maps) == 2 and maps[-1].scans == 2
     assert np.isclose(maps[-1].walls[0].offset, latest.walls[0].offset)
+
+
+def test_an_estimate_that_comes_before_its_start_waits_for_it(scans):
+    (_, start1, final1), (_, _start2, final2) = scans
+    service = MapperService("s1", DEFAULT_METHOD)
+    assert service.handle_estimate(final1) is None  # its start is on another key, still on its way
+    first = service.handle_start(start1)
+    assert first is not None and first.scans == 1
+    assert not any("no ScanStart" in n for n in first.notes)
+    assert service.handle_estimate(final2) is None
+    last = service.flush()  # the run ends without scan 2's start: it goes in at the origin, and says so
+    assert last.scans == 2 and any("scan 2: no ScanStart came" in n for n in last.notes)
+    assert service.flush() is None

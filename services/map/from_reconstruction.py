@@ -118,7 +118,7 @@ def scan_from_reconstruction(
     if start is None:
         rot = np.eye(3)
         pose = planar_pose(rot, np.zeros(3), None)
-        note: str | None = f"scan {msg.scan_id}: its ScanStart is not in the recording: taken at the origin"
+        note: str | None = f"scan {msg.scan_id}: no ScanStart came with it: taken at the origin"
     else:
         rot, pose, note = scan_pose(start)
     return observation_at(msg, rot, pose, method, (note,) if note else (), scan_id)

@@ -73,35 +73,63 @@ class MapperService:
         self._starts: OrderedDict[int, codec.ScanStart] = OrderedDict()
         self._max_starts = max_starts
         self._mapped: set[int] = set()
+        self._pending: OrderedDict[int, codec.Reconstruction] = OrderedDict()  # finals awaiting their start
         self.latest: map_pb2.Map | None = None
         self.ignored: Counter[str] = Counter()
 
-    def handle_start(self, start: codec.ScanStart) -> None:
+    def handle_start(self, start: codec.ScanStart) -> map_pb2.Map | None:
+        """Keep a scan's start for its estimate; an estimate that came first is fused now."""
         if start.scanner_id != self.scanner_id:
             self.ignored["another scanner's scan"] += 1
-            return
+            return None
         self._starts[start.scan_id] = start
         while len(self._starts) > self._max_starts:
             self._starts.popitem(last=False)
             self.ignored["scan start forgotten before its estimate (max_starts)"] += 1
+        if start.scan_id in self._pending:
+            return self._fuse_up_to(start.scan_id)
+        return None
 
     def handle_estimate(self, msg: codec.Reconstruction) -> map_pb2.Map | None:
-        """Fuse a terminal estimate (provisional ones wait for theirs); returns the new map, if any."""
+        """Fuse a terminal estimate (provisional ones wait for theirs); returns the new map, if any.
+
+        An estimate whose scan's start has not come yet waits for it (the two travel on different keys),
+        until its start comes or a later scan's estimate is fused: then it goes in at the origin, and the
+        map's notes say so.
+        """
         if msg.scanner_id != self.scanner_id:
             self.ignored["another scanner's estimate"] += 1
             return None
         if not wire.is_terminal(msg):
             return None
-        if msg.scan_id in self._mapped:
+        if msg.scan_id in self._mapped or msg.scan_id in self._pending:
             self.ignored["estimate of a scan already mapped"] += 1
             return None
-        scan = scan_from_reconstruction(msg, self._starts.pop(msg.scan_id, None), self.method)
-        self.mapper.add_scan(scan)
-        self._mapped.add(msg.scan_id)
+        self._pending[msg.scan_id] = msg
+        if msg.scan_id not in self._starts:
+            return None
+        return self._fuse_up_to(msg.scan_id)
+
+    def flush(self) -> map_pb2.Map | None:
+        """Fuse every estimate still waiting for its start (at the end of a run)."""
+        if not self._pending:
+            return None
+        return self._fuse_up_to(max(self._pending))
+
+    def _fuse_up_to(self, scan_id: int) -> map_pb2.Map | None:
+        """Fuse the waiting estimates of scans up to ``scan_id``, in scan order; publish the map once."""
+        ready = sorted(k for k in self._pending if k <= scan_id)
+        for k in ready:
+            self._fuse(self._pending.pop(k))
         self.latest = map_message(self.mapper.snapshot(), self.scanner_id)
         if self._publish is not None:
             self._publish(self.latest)
         return self.latest
+
+    def _fuse(self, msg: codec.Reconstruction) -> None:
+        scan = scan_from_reconstruction(msg, self._starts.pop(msg.scan_id, None), self.method)
+        self._mapped.add(msg.scan_id)
+        self.mapper.add_scan(scan)
 
 
 class ZenohMapper:
@@ -189,6 +217,11 @@ class ZenohMapper:
             sub.undeclare()
         self._queue.put(None)
         self._worker.join()
+        try:
+            self._service.flush()
+        except LelsonarError as exc:
+            self.errors[type(exc).__name__] += 1
+            _log.warning("mapper: %s while fusing the last estimates: %s", type(exc).__name__, exc)
         self._queryable.undeclare()
         self._publisher.undeclare()
         if self._writer is not None:
