@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "lelsonar.cli.emulate",
     "lelsonar.cli.reconstruct",
     "lelsonar.cli.recordings",
+    "lelsonar.cli.map",
     "lelsonar.cli.bridge",
     "lelsonar.cli.demo",
     "lelsonar.tools.bench",
