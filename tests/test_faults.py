@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 
 from lelsonar import codec
 from lelsonar.cli.main import main as lelsonar_main
+from lelsonar.errors import RecordingError
 from lelsonar.keys import ScannerKeys
 from lelsonar.log import recording
 from lelsonar.log.recover import recover
@@ -238,7 +239,15 @@ def test_a_named_pipe_as_a_recording_is_refused_in_one_line(tmp_path, capsys, ar
     lines = [line for line in err.splitlines() if line.strip()]
     assert done["rc"] == 2 and "Traceback" not in err, err
     assert len(lines) == 1 and lines[0].startswith(f"lelsonar {argv[0]}: error: "), err
-    assert "named pipe" in lines[0] and "regular file" in lines[0], err
+    assert "pipe" in lines[0] and "regular file" in lines[0], err
+
+
+def test_the_reader_itself_refuses_a_named_pipe_before_opening_it(tmp_path):
+    fifo = tmp_path / "scan.mcap"
+    os.mkfifo(fifo)  # (opening it would wait for a writer: the test would hang, not fail, without the check)
+    for read in (recording.open_recording, lambda p: list(recording.read_messages(p))):
+        with pytest.raises(RecordingError, match="named pipe, not a regular file"):
+            read(fifo)
 
 
 def test_the_payload_fifo_is_bounded_in_bytes_and_sessions_refuse_huge_messages():

@@ -24,6 +24,7 @@ BENCHES = {
         "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks",
     ),
     "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
+    "map": ("lelsonar.tools.bench_map", "map update time per scan vs map size, walls vs truth, poses vs odometry"),
 }
 
 

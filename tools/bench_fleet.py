@@ -25,10 +25,12 @@ time from the first put to the last processed), p50/p99 put → processed
 (``handle`` returned) and put → provisional estimate published (of the sample
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
 worker (user + system over its wall time), CPU of each process while busy (a worker from its first
-live sample to its last, read at most every 10 ms, the publisher over its puts, the router meanwhile),
-and how far the publisher fell behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
-again and SIGKILLs one worker in the middle of the first scans: every scan
-must still get exactly one complete final.
+live sample to its last, read at most every 10 ms, the publisher over its puts, the router
+meanwhile), and how far the publisher fell behind its schedule.  The offered rate is scanners ×
+``--rate``: a run shows whether the workers keep up with it, not how far beyond it they could go;
+``--capacity`` finds that (:mod:`lelsonar.tools.bench_fleet_capacity`).  ``--failover`` (default on
+with W ≥ 2) runs the same again and SIGKILLs one worker in the middle of the first scans: every
+scan must still get exactly one complete final.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
+
+from lelsonar.tools.bench_fleet_capacity import CAPACITY_LADDER, run_capacity
 
 PREFIX = "lelsonar"
 GROUP = "fleet"
@@ -84,6 +88,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: %(default)s)",
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON (every run)")
+    parser.add_argument(
+        "--capacity",
+        type=int,
+        nargs="*",
+        metavar="N",
+        default=None,
+        help="find one reconstructor's capacity instead: N scanners × --rate for each N, rising, until one does "
+        f"not hold (no N given: {' '.join(str(n) for n in CAPACITY_LADDER)})",
+    )
+    parser.add_argument("--markdown", type=Path, default=None, help="also write the tables to this Markdown file")
     # Internal: the child processes.
     parser.add_argument("--role", choices=("worker", "publisher"), help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
@@ -98,6 +112,8 @@ def command_line(args: argparse.Namespace) -> str:
         + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
         + f" --preset {args.preset} --failover {args.failover}"
         + (" --no-provisional" if args.no_provisional else "")
+        + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
+        + (" --capacity" if args.capacity == [] else "")
     )
 
 
@@ -459,7 +475,9 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "duplicated_finals": sum(len(v) - 1 for v in finals.values()),
         "incomplete_finals": sum(1 for s in statuses if not s.startswith("final:") or not s.endswith(":0"))
         + (expected - len(finals)),
-        "handled_per_s": samples / (max(lasts) - min(firsts)) if len(firsts) and max(lasts) > min(firsts) else 0.0,
+        "handled_per_s": (samples - 1) / (max(lasts) - min(firsts))
+        if len(firsts) and max(lasts) > min(firsts)
+        else 0.0,
         "samples_processed": samples,
         "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
         "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
@@ -524,6 +542,8 @@ def run(args: argparse.Namespace) -> int:
         return worker_main(args)
     if args.role == "publisher":
         return publisher_main(args)
+    if args.capacity is not None:
+        return run_capacity(args, run_case, summarise, command_line)
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
@@ -557,13 +577,11 @@ def run(args: argparse.Namespace) -> int:
                 transient=True,
             ) as bar:
                 task = bar.add_task(label, total=args.scanners * args.scans)
-                runs.append(
-                    run_case(
-                        args,
-                        kill_one=kill,
-                        progress=lambda done, total, bar=bar, task=task: bar.update(task, completed=done),
-                    )
-                )
+
+                def show(done: int, total: int, task=task, bar=bar) -> None:
+                    bar.update(task, completed=done)
+
+                runs.append(run_case(args, kill_one=kill, progress=show))
         res = summarise(runs)
         res["case"] = label
         results.append(res)
@@ -581,8 +599,11 @@ def run(args: argparse.Namespace) -> int:
     def pub(r, key):
         return (r["publisher"] or {}).get(key, float("nan"))
 
+    offered = args.scanners * args.rate
     rows = [
+        ("offered samples/s (scanners × rate)", lambda r: f"{offered:.0f}"),
         ("handled samples/s", lambda r: f"{r['handled_per_s']:.0f}"),
+        ("handled / offered", lambda r: f"{r['handled_per_s'] / offered:.2f}"),
         ("put→processed p50 / p99, ms", lambda r: ms(r["processed_ms"])),
         ("put→provisional p50 / p99, ms", lambda r: ms(r["provisional_ms"])),
         ("scans with a final", lambda r: f"{r['scans_with_final']} / {r['expected_finals']}"),
@@ -603,9 +624,23 @@ def run(args: argparse.Namespace) -> int:
         ("publishing took / schedule, s", lambda r: f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f}"),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
-    for name, fn in rows:
-        table.add_row(name, *(fn(r) for r in results))
+    table_rows = [(name, *(fn(r) for r in results)) for name, fn in rows]
+    for row in table_rows:
+        table.add_row(*row)
     console.print(table)
+    from lelsonar.tools import bench_markdown
+
+    bench_markdown.write(
+        args.markdown,
+        [
+            bench_markdown.table(
+                str(table.title),
+                ["", *("failover" if r["kill_one"] else "steady" for r in results)],
+                table_rows,
+                [f"command: {command_line(args)}", f"machine: {machine()}"],
+            )
+        ],
+    )
     for r in results:
         console.print(
             f"{r['case']}: terminal statuses (status:missing steps) {r['statuses']}; adopted "

@@ -44,11 +44,17 @@ from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder, free_space
 from lelsonar.net.transport import ZenohSettings, open_session
 from lelsonar.sim import SimConfig, default_energy_model, preset
+from lelsonar.sim.scan import true_planes
 
 _log = logging.getLogger(__name__)
 
 #: V per count when waveforms travel as int16: ±5 V full scale, finer than a 12-bit ADC.
 INT16_SCALE = 5.0 / 32767
+
+
+def sim_truth(sim: SimConfig) -> list:
+    """The true planes of a simulated scene, as the recording draws them."""
+    return [(p.label, p.normal, p.offset, p.corners) for p in true_planes(sim)]
 
 
 def sim_config(cfg: AcquireConfig) -> SimConfig:
@@ -213,7 +219,13 @@ def run_acquisition(
                 with ExitStack() as scan_stack:
                     recorder = (
                         scan_stack.enter_context(
-                            McapRecorder(path, compression=cfg.compression, metadata=meta, fsync=cfg.fsync)
+                            McapRecorder(
+                                path,
+                                compression=cfg.compression,
+                                metadata=meta,
+                                fsync=cfg.fsync,
+                                truth=None if sim is None else sim_truth(sim),  # simulated scenes only
+                            )
                         )
                         if path
                         else None

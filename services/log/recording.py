@@ -17,6 +17,8 @@ topic                           schema                            what
 ``/lelsonar/array``             ``foxglove.SceneUpdate``          the capsules and their beams
 ``/lelsonar/scan_points``       ``foxglove.PointCloud``           every raw point of the scan so far
 ``/lelsonar/step``              JSON ``lelsonar.StepScalars``     γ, ranges, energies (plottable)
+``/lelsonar/energy``            JSON ``lelsonar.EnergyScalars``   E^γ, E0(d_m), R per step (plottable)
+``/lelsonar/truth``             ``foxglove.SceneUpdate``          true planes, simulated scans only
 ``/lelsonar/planes``            ``foxglove.SceneUpdate``          estimated planes, when recorded
 ``/lelsonar/world``             ``foxglove.SceneUpdate``          the scan's pose; a simulated world as truth
 ==============================  ================================  ==========================
@@ -38,7 +40,7 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Generator, Iterator, Mapping
+from collections.abc import Callable, Generator, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -57,7 +59,7 @@ from mcap_protobuf.schema import build_file_descriptor_set, register_schema
 from lelsonar import __version__, codec
 from lelsonar.draw import visual
 from lelsonar.errors import DecodeError, NoScansError, RecordingError
-from lelsonar.log.reader import ChannelInfo, Salvage, SchemaInfo, salvage
+from lelsonar.log.reader import ChannelInfo, McapSource, RawMessage, Salvage, SchemaInfo, open_mcap
 
 _log = logging.getLogger(__name__)
 
@@ -118,6 +120,8 @@ class McapRecorder:
         True (default): one chunk per step, flushed to the OS.  False: 1 MiB
         chunks written when full; a killed writer then loses the whole chunk in
         progress.  Kept as the benchmark's floor.
+    truth : list of (label, normal, offset, corners), optional
+        The true planes of a simulated scene, drawn on ``/lelsonar/truth`` at each ScanStart.
     """
 
     def __init__(
@@ -128,6 +132,7 @@ class McapRecorder:
         metadata: Mapping[str, str] | None = None,
         fsync: bool = False,
         durable: bool = True,
+        truth=None,
     ) -> None:
         if compression not in COMPRESSIONS:
             raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
@@ -145,6 +150,7 @@ class McapRecorder:
         self._fsync = fsync
         self._durable = durable or fsync
         self._starts: dict[tuple[str, int], codec.ScanStart] = {}
+        self._truth = truth
         self.messages_written = 0
         self._world = truth_world(metadata)
         with self._failing():
@@ -272,13 +278,20 @@ class McapRecorder:
             self._writer.add_metadata("lelsonar.log.recording", recording_name_metadata(message))
             # The scan's header again, outside any chunk: a damaged first chunk does not take the scan with it.
             self._writer.add_metadata(*scan_start_metadata(message, t))
+            if self._truth:
+                self._put(visual.TOPIC_TRUTH, visual.truth_scene(self._truth, message.scanner_id, t), t)
         elif isinstance(message, codec.Sample):
             cloud = views.cloud.add(message, t)
             if cloud is not None:
                 self._put(visual.TOPIC_SCAN_POINTS, cloud, t)
-            self.write_json(
-                visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA, visual.step_scalars(message), t
-            )
+            step = visual.step_scalars(message)
+            self.write_json(visual.TOPIC_STEP, visual.STEP_SCALARS_NAME, visual.STEP_SCALARS_SCHEMA, step, t)
+            start = self._starts.get((message.scanner_id, message.scan_id))
+            if start is not None:
+                energy = visual.acquisition_energy_scalars(start, message, step)
+                self.write_json(
+                    visual.TOPIC_ENERGY, visual.ENERGY_SCALARS_NAME, visual.ENERGY_SCALARS_SCHEMA, energy, t
+                )
         elif isinstance(message, codec.ScanEnd):
             views.cloud.scan_ended(message.scanner_id, message.scan_id)
         elif isinstance(message, codec.Reconstruction):
@@ -409,10 +422,15 @@ class Recording:
     """A recording as read by the tolerant reader: what survived, and what did not.
 
     Build with :func:`open_recording`; iterate the contract payloads with
-    :func:`iter_payloads` (which takes a Recording or a path).
+    :meth:`payloads` or :func:`iter_payloads` (which takes a Recording or a path), in
+    memory bounded by a chunk, whatever the file's length.  What the reads found (counts,
+    damage) accumulates in ``salvage``.
     """
 
     salvage: Salvage
+    source: McapSource | None = None
+    #: Scans whose ScanStart :meth:`payloads` restored from its metadata copy (the one in the chunks was lost).
+    restored: set[tuple[str, int]] = field(default_factory=set)
 
     @property
     def path(self) -> Path:
@@ -433,76 +451,130 @@ class Recording:
                 out[cid] = cls
         return out
 
-    def payloads(self) -> list[RecordedPayload]:
-        """The contract messages in log-time order, undecoded.
+    def payloads(self) -> Iterator[RecordedPayload]:
+        """The contract messages in log-time order, undecoded, read chunk by chunk.
 
-        A scan whose ScanStart was lost (a damaged chunk) gets it back from the recorder's
-        ``lelsonar.scan_start.*`` metadata copy (:attr:`restored_starts` names them).
+        Only the chunks that hold contract messages are decompressed (by their message index);
+        when the iterator is exhausted, ``salvage`` accounts for what was read.  A scan whose ScanStart
+        was lost (a damaged chunk) gets it back from the recorder's ``lelsonar.scan_start.*`` metadata
+        copy, in its place in log time (:attr:`restored` names those scans once read).
         """
         s = self.salvage
-        wanted = self.contract_channels()
-        out = [
-            RecordedPayload(m.log_time, s.topic(m.channel_id), s.schema_name(m.channel_id), m.data)
-            for m in s.in_log_time_order()
-            if m.channel_id in wanted
-        ]
-        restored = self.restored_starts()
-        if restored:
-            out = sorted(out + list(restored.values()), key=lambda r: r.log_time_ns)  # stable: ties keep file order
-        return out
-
-    def restored_starts(self) -> dict[tuple[str, int], RecordedPayload]:
-        """The ScanStarts missing from the messages, rebuilt from their metadata copies, by (scanner, scan)."""
-        s = self.salvage
-        copies = {name: md for name, md in s.metadata.items() if name.startswith(SCAN_START_METADATA)}
-        if not copies:
-            return {}
         start_name = codec.ScanStart.DESCRIPTOR.full_name
-        held = set()
-        for m in s.messages:
-            if m.channel_id in s.channels and s.schema_name(m.channel_id) == start_name:
+        copies = sorted(self.start_copies().items(), key=lambda kv: kv[1].log_time_ns)
+        seen: set[tuple[str, int]] = set()
+        names: dict[int, tuple[str, str]] = {}
+        for m in self.messages(is_contract_channel):
+            # Messages come in log-time order: a copy older than this message whose ScanStart has not
+            # come is one whose ScanStart was lost.
+            while copies and copies[0][1].log_time_ns < m.log_time:
+                key, copy = copies.pop(0)
+                if key not in seen:
+                    seen.add(key)
+                    self.restored.add(key)
+                    yield copy
+            name = names.get(m.channel_id)
+            if name is None:
+                name = names[m.channel_id] = (s.topic(m.channel_id), s.schema_name(m.channel_id))
+            if name[1] == start_name:
                 try:
-                    msg = codec.ScanStart.FromString(m.data)
-                except Exception:  # noqa: BLE001 - an unreadable copy is not a held one; decoding reports it later
-                    continue
-                held.add((msg.scanner_id, msg.scan_id))
+                    start = codec.ScanStart.FromString(m.data)
+                    seen.add((start.scanner_id, start.scan_id))
+                except Exception:  # noqa: BLE001 - an unreadable ScanStart is refused by the decoding, later
+                    pass
+            yield RecordedPayload(m.log_time, name[0], name[1], m.data)
+        for key, copy in copies:
+            if key not in seen:
+                self.restored.add(key)
+                yield copy
+
+    def start_copies(self) -> dict[tuple[str, int], RecordedPayload]:
+        """Every scan's ScanStart as its metadata copy holds it (outside the chunks), by (scanner, scan)."""
         out = {}
-        for md in copies.values():
+        for name, md in self.salvage.metadata.items():
+            if not name.startswith(SCAN_START_METADATA):
+                continue
             try:
                 key = (md["scanner_id"], int(md["scan_id"]))
                 payload = base64.b64decode(md["payload_base64"], validate=True)
                 t = int(md["log_time_ns"])
             except (KeyError, ValueError, binascii.Error):
                 continue  # a damaged copy: the scan stays without its start, as it would without a copy
-            if key not in held:
-                out[key] = RecordedPayload(t, TOPICS[codec.ScanStart], start_name, payload)
+            out[key] = RecordedPayload(t, TOPICS[codec.ScanStart], codec.ScanStart.DESCRIPTOR.full_name, payload)
         return out
 
+    def messages(
+        self, want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None, *, verify_all: bool = False
+    ) -> Iterator[RawMessage]:
+        """The intact messages of the channels ``want`` accepts (all if None), in log-time order.
+
+        ``verify_all`` decompresses and checks every chunk, wanted or not, so the damage is complete.
+        """
+        if self.source is not None:
+            return self.source.read(want, verify_all=verify_all)
+        s = self.salvage  # read already, into memory (lelsonar.log.reader.salvage)
+        return (
+            m
+            for m in s.in_log_time_order()
+            if want is None or want(s.channels[m.channel_id], s.schemas.get(s.channels[m.channel_id].schema_id))
+        )
+
+    def read_all(self) -> Recording:
+        """Read (and check) every chunk once, keeping nothing, so that the counts and the damage are complete."""
+        if not self.salvage.read_done:
+            for _ in self.messages(_nothing, verify_all=True):
+                pass
+        return self
+
+    def expected_payloads(self) -> int | None:
+        """Contract messages the file's indexes announce (its statistics, or the chunks' message indexes)."""
+        s = self.salvage
+        counts = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+        if not counts:
+            return None
+        return sum(counts.get(cid, 0) for cid in self.contract_channels())
+
     def count(self, kind: str | type[Message]) -> int:
-        """Messages on a topic, or of a contract message type (on whichever topics)."""
+        """Messages read on a topic, or of a contract message type (on whichever topics); reads the file if needed."""
         if isinstance(kind, str):
             ids = {cid for cid, ch in self.salvage.channels.items() if ch.topic == kind}
         else:
             ids = {cid for cid, cls in self.contract_channels().items() if cls is kind}
-        return sum(1 for m in self.salvage.messages if m.channel_id in ids)
+        counts = self.read_all().salvage.counts
+        return sum(counts.get(cid, 0) for cid in ids)
 
     @property
     def has_scans(self) -> bool:
-        return any(self.count(cls) for cls in (codec.ScanStart, codec.Sample, codec.ScanEnd))
+        """Whether the file holds a scan message: as read, or before any read, as its indexes announce."""
+        s = self.salvage
+        ids = [
+            cid
+            for cid, cls in self.contract_channels().items()
+            if cls in (codec.ScanStart, codec.Sample, codec.ScanEnd)
+        ]
+        if s.read_done:
+            return any(s.counts.get(cid) for cid in ids)
+        announced = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+        if announced:
+            return any(announced.get(cid) for cid in ids)
+        return bool(ids)  # no index: the read decides (require_scans again after it)
 
     def damage_warning(self) -> str | None:
-        """One line saying what was lost, or None for an intact, finished file.
+        """One line saying what was lost, or None for an intact, finished file; reads the file if no read has.
 
         e.g. ``warning: scan.mcap is damaged: 1 chunk (≈10 messages) unreadable after byte 81234; 118 samples
-        salvaged``.
+        salvaged``.  After :meth:`payloads`, it tells what that read found (in the chunks it read).
         """
-        s = self.salvage
+        s = self.read_all().salvage
         if s.intact:
             return None
         return f"warning: {s.path} {describe_damage(s)}; {self.count(codec.Sample)} samples salvaged"
 
     def require_scans(self) -> Recording:
-        """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost)."""
+        """Self, or :class:`NoScansError` when no scan message survived (foreign channels, or all lost).
+
+        Before a read, it goes by what the indexes announce; after one, by what was read.
+        """
         if self.has_scans:
             return self
         s = self.salvage
@@ -557,7 +629,7 @@ def describe_damage(s: Salvage) -> str:
 
 
 def open_recording(path: Path | str | Recording) -> Recording:
-    """Read a recording tolerantly: every intact message, and an account of the damage.
+    """Open a recording tolerantly: its channels and framing now, its messages as they are read.
 
     Raises
     ------
@@ -568,10 +640,18 @@ def open_recording(path: Path | str | Recording) -> Recording:
     """
     if isinstance(path, Recording):
         return path
-    s = salvage(path)
-    if s.orphans:
-        _adopt_orphans(s)
-    return Recording(s)
+    source = open_mcap(path)
+    _adopt_orphans(source.account)
+    return Recording(source.account, source)
+
+
+def is_contract_channel(channel: ChannelInfo, schema: SchemaInfo | None) -> bool:
+    """A channel of contract messages: by its protobuf schema's name, whatever its topic."""
+    return schema is not None and channel.message_encoding == "protobuf" and schema.name in codec.MESSAGE_TYPES
+
+
+def _nothing(channel: ChannelInfo, schema: SchemaInfo | None) -> bool:
+    return False
 
 
 def _adopt_orphans(s: Salvage) -> None:
@@ -579,8 +659,12 @@ def _adopt_orphans(s: Salvage) -> None:
 
     The schema is rebuilt from this build's protobuf descriptors, so ``recover`` can write the messages again.
     """
+    referenced = set(s.indexed_counts) | set(s.statistics_counts or ()) | {m.channel_id for m in s.messages}
+    missing = referenced - set(s.channels)
+    if not missing:
+        return
     by_name = {schema.name: sid for sid, schema in s.schemas.items()}
-    for cid in sorted({m.channel_id for m in s.messages} - set(s.channels)):
+    for cid in sorted(missing):
         md = s.metadata.get(f"{CHANNEL_METADATA}{cid}", {})
         cls = RECORDED_TYPES.get(md.get("schema", ""))
         if cls is None or not md.get("topic"):
@@ -590,15 +674,16 @@ def _adopt_orphans(s: Salvage) -> None:
             sid = by_name[name] = max(s.schemas, default=0) + 1
             s.schemas[sid] = SchemaInfo(sid, name, "protobuf", build_file_descriptor_set(cls).SerializeToString())
         s.channels[cid] = ChannelInfo(cid, by_name[name], md["topic"], "protobuf", {})
-    s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
+    if s.messages:
+        s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
 def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, None, None]:
     """Yield the contract messages of a recording in log-time order, undecoded.
 
-    A damaged or unfinished file yields every intact message and logs one
-    warning (pass an opened :class:`Recording` to report the damage yourself:
-    then nothing is logged).
+    A damaged or unfinished file yields every intact message and, at the end,
+    logs one warning (pass an opened :class:`Recording` to report the damage
+    yourself: then nothing is logged).
 
     Raises
     ------
@@ -608,9 +693,9 @@ def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, No
         :class:`~lelsonar.errors.NotMcapError`).
     """
     rec = open_recording(path)
+    yield from rec.payloads()
     if not isinstance(path, Recording) and (line := rec.damage_warning()):
         _log.warning("%s", line.removeprefix("warning: "))
-    yield from rec.payloads()
 
 
 def read_messages(path: Path | str | Recording, limits: codec.DecodeLimits = codec.DEFAULT_LIMITS) -> Iterator[Message]:

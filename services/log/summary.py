@@ -18,7 +18,13 @@ from lelsonar import codec
 from lelsonar.errors import DecodeError
 from lelsonar.geometry import beam_heading
 from lelsonar.log.reader import Damage
-from lelsonar.log.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
+from lelsonar.log.recording import (
+    CHANNEL_METADATA,
+    Recording,
+    describe_damage,
+    is_contract_channel,
+    open_recording,
+)
 from lelsonar.v1 import reconstruction_pb2, scan_pb2
 
 _SCAN_STATUS = scan_pb2.DESCRIPTOR.enum_types_by_name["ScanStatus"]
@@ -171,11 +177,10 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     def scan(scanner_id: str, scan_id: int) -> ScanSummary:
         return scans.setdefault((scanner_id, scan_id), ScanSummary(scanner_id, scan_id))
 
-    channel_type = rec.contract_channels()
-    for m in s.in_log_time_order():
-        cls = channel_type.get(m.channel_id)
-        if cls is None:
-            continue
+    # Every chunk is read and checked (the damage is complete); only the contract's messages are kept, one chunk
+    # at a time.
+    for m in rec.messages(is_contract_channel, verify_all=True):
+        cls = codec.MESSAGE_TYPES[s.schema_name(m.channel_id)]
         try:
             msg = cls.FromString(m.data)
         except ProtobufDecodeError:
@@ -213,7 +218,7 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     for key, sc in scans.items():
         if key not in steps and sc.steps_planned:
             sc.missing_steps = list(range(sc.steps_planned))
-    restored = rec.restored_starts()
+    restored = rec.start_copies()
     for key, sc in scans.items():
         if sc.has_start:
             continue
@@ -247,7 +252,6 @@ def summarize(path: Path | str | Recording) -> FileSummary:
             )
         )
     lost, exact = s.messages_lost()
-    times = [m.log_time for m in s.messages]
     devices = sorted({sc.device for sc in scans.values() if sc.device})
     device = ", ".join(devices) or s.metadata.get("lelsonar.config", {}).get("device", "")
     return FileSummary(
@@ -257,11 +261,11 @@ def summarize(path: Path | str | Recording) -> FileSummary:
         intact=s.intact,
         damage_text=None if s.intact else describe_damage(s),
         damage=[_damage_dict(d, s) for d in s.damage],
-        messages=len(s.messages),
+        messages=sum(s.counts.values()),
         messages_lost=lost,
         messages_lost_exact=exact,
-        start_ns=min(times) if times else None,
-        end_ns=max(times) if times else None,
+        start_ns=s.first_time,
+        end_ns=s.last_time,
         device=device,
         scanners=sorted({k[0] for k in scans} | {k[0] for k in estimates}),
         channels=channels,
