@@ -52,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     g = p.add_argument_group(
         "gap recovery (live)",
         "Missing steps are asked from the acquirer's log "
-        "(<prefix>/<scanner>/log/<scan_id>); a scan still lacking steps after the attempts "
+        "(<prefix>/<scanner>/log/<scan_id>); past the attempts a scan asks on, every 4 s, while the "
+        "acquirer's liveliness token has not been gone 30 s; a scan still lacking steps then "
         "is published INCOMPLETE with its missing_steps, never FINAL.",
     )
     g.add_argument(
@@ -60,14 +61,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=5,
         metavar="N",
-        help="requests per scan without progress before giving up (default: 5; 0 disables recovery)",
+        help="requests per scan without progress before giving up, unless the acquirer's log may still "
+        "answer (default: 5; 0 disables recovery)",
     )
     g.add_argument(
         "--recovery-interval",
         type=float,
         default=1.0,
         metavar="S",
-        help="seconds between requests for one scan (default: 1)",
+        help="seconds before the second request for one scan; the wait doubles up to 4 s (default: 1)",
     )
     g.add_argument(
         "--recovery-after",

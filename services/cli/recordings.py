@@ -147,7 +147,7 @@ def _print_info(info) -> None:
             t.add_column(col, justify="right" if col in ("steps", "duration") else "left")
         for sc in info.scans:
             planned = "?" if sc.steps_planned is None else str(sc.steps_planned)
-            status = sc.status + (f" ({sc.reason})" if sc.reason else "")
+            status = sc.status + (f" ({sc.reason})" if sc.reason else "") + "".join(f"; {u}" for u in sc.unreadable)
             dur = f"{sc.duration_s:.2f} s" if sc.duration_s is not None else "—"
             t.add_row(
                 sc.scanner_id,

@@ -34,6 +34,7 @@ from __future__ import annotations
 import heapq
 import mmap
 import os
+import stat
 import struct
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -105,8 +106,7 @@ def open_bytes(path: Path | str):
         The file cannot be opened (permissions).
     """
     path = Path(path)
-    if path.is_dir():
-        raise RecordingNotFoundError(f"{path} is a directory, not an MCAP recording; give the .mcap file inside it")
+    check_recording_path(path)
     try:
         with open(path, "rb") as f:
             size = os.fstat(f.fileno()).st_size
@@ -119,6 +119,43 @@ def open_bytes(path: Path | str):
         raise RecordingError(f"cannot read {path}: permission denied") from None
     except OSError as exc:
         raise RecordingError(f"cannot read {path}: {exc.strerror or exc}") from None
+
+
+def check_recording_path(path: Path | str) -> None:
+    """Refuse, before opening it, a path that cannot be a recording.
+
+    Raises
+    ------
+    RecordingNotFoundError
+        A directory.
+    RecordingError
+        A named pipe, a device or a socket (opening a pipe waits for a writer; a device never ends).
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise RecordingNotFoundError(f"{path} is a directory, not an MCAP recording; give the .mcap file inside it")
+    kind = _not_regular(path)
+    if kind:
+        raise RecordingError(f"{path} is {kind}, not a regular file; give a recorded .mcap file")
+
+
+def _not_regular(path: Path) -> str | None:
+    """What ``path`` is when it is not a regular file (``"a named pipe"`` …); None for a regular file or none."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None  # missing or unreadable: open() says which
+    if stat.S_ISREG(mode):
+        return None
+    for test, kind in (
+        (stat.S_ISFIFO, "a named pipe"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    ):
+        if test(mode):
+            return kind
+    return "a special file"
 
 
 def _magic_ok(head: bytes) -> bool:

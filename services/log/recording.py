@@ -32,11 +32,16 @@ A step's contract message and its viewer messages share one chunk.
 
 from __future__ import annotations
 
+import base64
+import binascii
+import errno
 import json
 import logging
 import os
+import shutil
 import time
 from collections.abc import Callable, Generator, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -72,6 +77,8 @@ ARRAY_FRAME = visual.ARRAY_FRAME
 
 #: Metadata record naming each channel, ``lelsonar.channel.<id>`` → {"topic": ..., "schema": ...}.
 CHANNEL_METADATA = "lelsonar.channel."
+#: Metadata record repeating each scan's ScanStart (outside the chunks), ``lelsonar.scan_start.<scanner>.<scan>``.
+SCAN_START_METADATA = "lelsonar.scan_start."
 #: The protobuf types a lelsonar recording may hold, by full name (to rebuild a lost schema record).
 RECORDED_TYPES: dict[str, type[Message]] = {
     **codec.MESSAGE_TYPES,
@@ -130,27 +137,33 @@ class McapRecorder:
         if compression not in COMPRESSIONS:
             raise RecordingError(f"compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")  # noqa: SIM115 - closed in finish()
+        self._finished = False
+        #: Why writing failed (a full or read-only disk), or None: once set, nothing more is written.
+        self.failure: str | None = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file = open(self.path, "wb")  # noqa: SIM115 - closed in finish()
+        except OSError as exc:
+            raise RecordingError(write_failure(self.path, exc)) from None
         self._writer = McapWriter(self._file, compression=COMPRESSIONS[compression])
-        self._writer.start(library=f"lelsonar {__version__}")
         self._channels: dict[str, int] = {}
         self._fsync = fsync
         self._durable = durable or fsync
         self._starts: dict[tuple[str, int], codec.ScanStart] = {}
         self._truth = truth
-        self._finished = False
         self.messages_written = 0
-        if metadata:
-            self._writer.add_metadata("lelsonar.config", {str(k): str(v) for k, v in metadata.items()})
         self._world = truth_world(metadata)
-        self._commit()
-        if fsync:  # the new directory entry too, once
-            dir_fd = os.open(self.path.parent, os.O_RDONLY)
-            try:
-                os.fsync(dir_fd)
-            finally:
-                os.close(dir_fd)
+        with self._failing():
+            self._writer.start(library=f"lelsonar {__version__}")
+            if metadata:
+                self._writer.add_metadata("lelsonar.config", {str(k): str(v) for k, v in metadata.items()})
+            self._commit()
+            if fsync:  # the new directory entry too, once
+                dir_fd = os.open(self.path.parent, os.O_RDONLY)
+                try:
+                    os.fsync(dir_fd)
+                finally:
+                    os.close(dir_fd)
 
     def __enter__(self) -> McapRecorder:
         return self
@@ -159,17 +172,37 @@ class McapRecorder:
         self.finish()
 
     def finish(self) -> None:
-        """Write the summary and footer and close the file; safe to call twice."""
+        """Write the summary and footer and close the file; safe to call twice.
+
+        After a failed write the file is closed as it is: every step committed before the failure stays
+        readable by the tolerant reader (:func:`open_recording`, ``lelsonar recover``).
+        """
         if self._finished:
             return
         self._finished = True
         try:
-            self._writer.finish()
-            self._file.flush()
-            if self._fsync:
-                os.fsync(self._file.fileno())
+            if self.failure is None:
+                with self._failing():
+                    self._writer.finish()
+                    self._file.flush()
+                    if self._fsync:
+                        os.fsync(self._file.fileno())
+        except RecordingError as exc:
+            _log.error("%s", exc)
         finally:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError:
+                pass  # the failure is recorded: a buffer that cannot be flushed is the failed write's
+
+    @contextmanager
+    def _failing(self) -> Iterator[None]:
+        """Turn an OSError of the disk into one RecordingError naming the directory and its free space."""
+        try:
+            yield
+        except OSError as exc:
+            self.failure = write_failure(self.path, exc)
+            raise RecordingError(self.failure) from None
 
     def _commit(self) -> None:
         """Close the chunk in progress and hand it to the OS (and the disk, with fsync)."""
@@ -194,26 +227,34 @@ class McapRecorder:
     # --- writing ---------------------------------------------------------------------
     def write(self, message: Message, log_time_ns: int | None = None) -> None:
         """Record one contract message; a Sample also gets its /tf and /lelsonar/points."""
-        if self._finished:
-            raise RecordingError(f"{self.path} is already finished")
+        self._check_writable()
         topic = TOPICS.get(type(message))
         if topic is None:
             raise RecordingError(f"{type(message).__name__} is not a lelsonar contract message")
         t = log_time_ns if log_time_ns is not None else _message_time(message)
-        self._put(topic, message, t)
+        with self._failing():
+            self._put(topic, message, t)
+            if isinstance(message, codec.ScanStart):
+                self._starts[(message.scanner_id, message.scan_id)] = message
+            elif isinstance(message, codec.Sample):
+                self._write_pose_and_points(message, t)
+            self._write_views(message, t)
+            self._commit()
         self.messages_written += 1
-        if isinstance(message, codec.ScanStart):
-            self._starts[(message.scanner_id, message.scan_id)] = message
-        elif isinstance(message, codec.Sample):
-            self._write_pose_and_points(message, t)
-        self._write_views(message, t)
-        self._commit()
+
+    def _check_writable(self) -> None:
+        if self.failure is not None:
+            raise RecordingError(self.failure)
+        if self._finished:
+            raise RecordingError(f"{self.path} is already finished")
 
     def log(self, level: str, text: str, log_time_ns: int | None = None, name: str = "lelsonar") -> None:
         """Record a ``foxglove.Log`` event (level: DEBUG, INFO, WARNING, ERROR, FATAL)."""
+        self._check_writable()
         t = log_time_ns if log_time_ns is not None else time.time_ns()
-        self._put(TOPIC_LOG, visual.log_message(level, text, t, name), t)
-        self._commit()
+        with self._failing():
+            self._put(TOPIC_LOG, visual.log_message(level, text, t, name), t)
+            self._commit()
 
     # --- what viewers draw, beside the contract (lelsonar.draw.visual) -------------------------
     @cached_property
@@ -235,6 +276,8 @@ class McapRecorder:
                 self._put(visual.TOPIC_WORLD, visual.world_scene(self._world, t), t)
             self._put(visual.TOPIC_ARRAY, visual.array_model(message, t), t)
             self._writer.add_metadata("lelsonar.log.recording", recording_name_metadata(message))
+            # The scan's header again, outside any chunk: a damaged first chunk does not take the scan with it.
+            self._writer.add_metadata(*scan_start_metadata(message, t))
             if self._truth:
                 self._put(visual.TOPIC_TRUTH, visual.truth_scene(self._truth, message.scanner_id, t), t)
         elif isinstance(message, codec.Sample):
@@ -296,6 +339,19 @@ class _ViewState:
     json_channels: dict[str, int] = field(default_factory=dict)
 
 
+def scan_start_metadata(start: codec.ScanStart, log_time_ns: int) -> tuple[str, dict[str, str]]:
+    """The metadata record that repeats a scan's ScanStart: ``lelsonar.scan_start.<scanner>.<scan_id>``."""
+    return (
+        f"{SCAN_START_METADATA}{start.scanner_id}.{start.scan_id}",
+        {
+            "scanner_id": start.scanner_id,
+            "scan_id": str(start.scan_id),
+            "log_time_ns": str(log_time_ns),
+            "payload_base64": base64.b64encode(start.SerializeToString()).decode("ascii"),
+        },
+    )
+
+
 def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
     """The ``lelsonar.log.recording`` metadata record of a scan: a human name and what it was."""
     return {
@@ -307,6 +363,37 @@ def recording_name_metadata(start: codec.ScanStart) -> dict[str, str]:
         "start_time_ns": str(start.start_time_ns),
         "steps": str(start.steps),
     }
+
+
+def free_space(path: Path | str) -> int | None:
+    """Bytes free for an unprivileged writer on the filesystem of ``path`` (or its nearest existing parent)."""
+    p = Path(path).absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    try:
+        return shutil.disk_usage(p).free
+    except OSError:
+        return None
+
+
+def _mib(n: int | None) -> str:
+    return "? MiB" if n is None else f"{n / 2**20:.1f} MiB"
+
+
+def write_failure(path: Path, exc: OSError) -> str:
+    """One line on a failed write: what, the directory, and its free space."""
+    where = path.parent
+    what = exc.strerror or str(exc)
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        what = "no space left on the device"
+    elif exc.errno in (errno.EROFS, errno.EACCES, errno.EPERM):
+        what = "the directory is read-only or not writable" if exc.errno != errno.EROFS else "read-only filesystem"
+    fix = (
+        "free some space or give another --out directory"
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT)
+        else "give a writable --out directory"
+    )
+    return f"cannot record to {where}: {what} ({_mib(free_space(where))} free); {fix}"
 
 
 def _message_time(message: Message) -> int:
@@ -342,6 +429,8 @@ class Recording:
 
     salvage: Salvage
     source: McapSource | None = None
+    #: Scans whose ScanStart :meth:`payloads` restored from its metadata copy (the one in the chunks was lost).
+    restored: set[tuple[str, int]] = field(default_factory=set)
 
     @property
     def path(self) -> Path:
@@ -366,15 +455,53 @@ class Recording:
         """The contract messages in log-time order, undecoded, read chunk by chunk.
 
         Only the chunks that hold contract messages are decompressed (by their message index);
-        when the iterator is exhausted, ``salvage`` accounts for what was read.
+        when the iterator is exhausted, ``salvage`` accounts for what was read.  A scan whose ScanStart
+        was lost (a damaged chunk) gets it back from the recorder's ``lelsonar.scan_start.*`` metadata
+        copy, in its place in log time (:attr:`restored` names those scans once read).
         """
         s = self.salvage
+        start_name = codec.ScanStart.DESCRIPTOR.full_name
+        copies = sorted(self.start_copies().items(), key=lambda kv: kv[1].log_time_ns)
+        seen: set[tuple[str, int]] = set()
         names: dict[int, tuple[str, str]] = {}
         for m in self.messages(is_contract_channel):
+            # Messages come in log-time order: a copy older than this message whose ScanStart has not
+            # come is one whose ScanStart was lost.
+            while copies and copies[0][1].log_time_ns < m.log_time:
+                key, copy = copies.pop(0)
+                if key not in seen:
+                    seen.add(key)
+                    self.restored.add(key)
+                    yield copy
             name = names.get(m.channel_id)
             if name is None:
                 name = names[m.channel_id] = (s.topic(m.channel_id), s.schema_name(m.channel_id))
+            if name[1] == start_name:
+                try:
+                    start = codec.ScanStart.FromString(m.data)
+                    seen.add((start.scanner_id, start.scan_id))
+                except Exception:  # noqa: BLE001 - an unreadable ScanStart is refused by the decoding, later
+                    pass
             yield RecordedPayload(m.log_time, name[0], name[1], m.data)
+        for key, copy in copies:
+            if key not in seen:
+                self.restored.add(key)
+                yield copy
+
+    def start_copies(self) -> dict[tuple[str, int], RecordedPayload]:
+        """Every scan's ScanStart as its metadata copy holds it (outside the chunks), by (scanner, scan)."""
+        out = {}
+        for name, md in self.salvage.metadata.items():
+            if not name.startswith(SCAN_START_METADATA):
+                continue
+            try:
+                key = (md["scanner_id"], int(md["scan_id"]))
+                payload = base64.b64decode(md["payload_base64"], validate=True)
+                t = int(md["log_time_ns"])
+            except (KeyError, ValueError, binascii.Error):
+                continue  # a damaged copy: the scan stays without its start, as it would without a copy
+            out[key] = RecordedPayload(t, TOPICS[codec.ScanStart], codec.ScanStart.DESCRIPTOR.full_name, payload)
+        return out
 
     def messages(
         self, want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None, *, verify_all: bool = False

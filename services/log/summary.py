@@ -81,6 +81,8 @@ class ScanSummary:
     # Where the array frame was (ScanStart.pose): frame_id, x, y, z (m), heading (rad, of the γ = 0 beam),
     # orientation (x, y, z, w), covariance (36, row-major, or None), known, note.
     pose: dict | None = None
+    #: What of the scan could not be read, e.g. its ScanStart in a damaged chunk (empty: nothing).
+    unreadable: list[str] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float | None:
@@ -216,6 +218,23 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     for key, sc in scans.items():
         if key not in steps and sc.steps_planned:
             sc.missing_steps = list(range(sc.steps_planned))
+    restored = rec.start_copies()
+    for key, sc in scans.items():
+        if sc.has_start:
+            continue
+        copy = restored.get(key)
+        if copy is None:
+            sc.unreadable.append(
+                "ScanStart unreadable and no copy of it: the scan cannot be reconstructed (no geometry, no schedule)"
+            )
+            continue
+        sc.unreadable.append("ScanStart unreadable; restored from the recording's metadata copy")
+        try:
+            start = codec.ScanStart.FromString(copy.payload)
+        except ProtobufDecodeError:
+            continue
+        sc.device, sc.steps_planned = start.device, start.steps
+        sc.start_ns = start.start_time_ns
 
     lost_by = s.lost_by_channel()
     exact_channels = s.statistics_counts is not None or all(d.messages is not None for d in s.damage)
