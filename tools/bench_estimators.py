@@ -229,6 +229,7 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
     if h_check:
         opts = FitOptions()
         crit = critical_step(ratio, opts.critical_peak_fraction)
+        assert crit is not None, "the bench's scenes all have a corner"
         split = split_subsets(scan.gamma_measured, crit)
         for label, steps, axis in (("a", split.steps_a, AXIS_Y), ("b", split.steps_b, AXIS_Z)):
             data = F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, steps, label, axis)

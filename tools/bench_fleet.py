@@ -188,7 +188,8 @@ def worker_main(args: argparse.Namespace) -> int:
                         busy_cpu[min(len(busy_cpu), 1) :] = [(now, time.process_time())]
             return out
 
-        service.ingest.accept, service.handle = probe_accept, probe_handle
+        # The probes replace the bound methods of this one instance: the bench's measurement, not a change of it.
+        service.ingest.accept, service.handle = probe_accept, probe_handle  # type: ignore[method-assign]
 
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     wall0 = time.monotonic()
@@ -241,6 +242,7 @@ def worker_main(args: argparse.Namespace) -> int:
 def publisher_main(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from lelsonar import codec
     from lelsonar.acquire import messages
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.log_server import LogServer, ScanLog
@@ -275,7 +277,8 @@ def publisher_main(args: argparse.Namespace) -> int:
         # Nothing before the workers' subscriptions are known here (a put before them would be lost).
         probe = session.declare_publisher(ScannerKeys(PREFIX, names[-1]).sample)
         deadline = time.monotonic() + 60
-        while not probe.matching_status.matching and time.monotonic() < deadline:
+        # zenoh's stub types matching_status as bool; it is a MatchingStatus.
+        while not probe.matching_status.matching and time.monotonic() < deadline:  # type: ignore[attr-defined]
             time.sleep(0.01)
         probe.undeclare()
         print(_READY + "{}", flush=True)
@@ -292,12 +295,14 @@ def publisher_main(args: argparse.Namespace) -> int:
                     if delay > 0:
                         time.sleep(delay)
                     lag.append(max(0.0, time.monotonic() - due))
+                    msg: codec.ScanStart | codec.Sample | codec.ScanEnd
                     if j == 0:
                         msg = messages.scan_start(sid, scan_id, time.time_ns(), scanner.info, schedule, em)
                     elif j <= len(samples):
-                        msg = samples[j - 1]
-                        msg.scanner_id, msg.scan_id = sid, scan_id
-                        msg.acquisition_time_ns = time.time_ns()
+                        sample = samples[j - 1]
+                        sample.scanner_id, sample.scan_id = sid, scan_id
+                        sample.acquisition_time_ns = time.time_ns()
+                        msg = sample
                     else:
                         msg = messages.scan_end(
                             sid,
@@ -333,7 +338,8 @@ def publisher_main(args: argparse.Namespace) -> int:
         for s in servers:
             s.close()
         for o in outputs.values():
-            o.publisher.close()
+            if o.publisher is not None:
+                o.publisher.close()
     return 0
 
 
@@ -362,6 +368,7 @@ def _read_tagged(proc: subprocess.Popen, tag: str, timeout: float) -> dict | Non
     result: list = []
 
     def read() -> None:
+        assert proc.stdout is not None  # every child is started with stdout=PIPE
         for line in proc.stdout:
             if line.startswith(tag):
                 result.append(json.loads(line[len(tag) :]))
@@ -405,6 +412,7 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         try:
             router = _child(["router", "--listen", endpoint])
             procs.append(router)
+            assert router.stdout is not None  # started with stdout=PIPE
             if "listening" not in (router.stdout.readline() or ""):
                 raise SystemExit("bench fleet: the router did not start")
             with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as session:
@@ -455,18 +463,19 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                         w.send_signal(signal.SIGTERM)
                         reports.append(_read_tagged(w, _RESULT, 60))
                 sub.undeclare()
+                assert publisher.stdin is not None  # started with stdin=PIPE
                 publisher.stdin.close()
         finally:
             for p in procs:
                 if p.poll() is None:
                     p.kill()
                 p.wait()
-    reports = [r for r in reports if r]
-    processed = [x / 1e6 for r in reports for x in r["processed_ns"]]
-    provisional = [x / 1e6 for r in reports for x in r["provisional_ns"]]
-    firsts = [r["first"] for r in reports if r["first"] is not None]
-    lasts = [r["last"] for r in reports if r["last"] is not None]
-    samples = sum(r["samples"] for r in reports)
+    finished: list[dict] = [r for r in reports if r is not None]
+    processed = [x / 1e6 for r in finished for x in r["processed_ns"]]
+    provisional = [x / 1e6 for r in finished for x in r["provisional_ns"]]
+    firsts = [r["first"] for r in finished if r["first"] is not None]
+    lasts = [r["last"] for r in finished if r["last"] is not None]
+    samples = sum(r["samples"] for r in finished)
     statuses = [s for v in finals.values() for s in v]
     return {
         "kill_one": killed,
@@ -481,14 +490,14 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "samples_processed": samples,
         "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
         "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
-        "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in reports},
+        "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in finished},
         # Over the window each was busy: a worker from its first live sample handled to its last (read at
         # most every 10 ms), the
         # publisher over its puts, the router over the publisher's puts.
         "busy_cpu": {
             **{
                 r["member"]: r["busy_cpu_s"] / r["busy_wall_s"]
-                for r in reports
+                for r in finished
                 if r.get("busy_cpu_s") is not None and r["busy_wall_s"] > 0
             },
             **({"publisher": pub["cpu_s"] / pub["wall_s"]} if pub and pub.get("wall_s") else {}),
@@ -498,13 +507,13 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                 else {}
             ),
         },
-        "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in reports},
-        "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in reports},
-        "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in reports},
+        "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in finished},
+        "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in finished},
+        "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in finished},
         "statuses": dict(Counter(statuses)),
-        "recovery": {r["member"]: r["service"]["recovery"] for r in reports},
-        "rejected": {r["member"]: r["service"]["rejected"] for r in reports},
-        "worker_errors": {r["member"]: r["errors"] for r in reports},
+        "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
+        "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
+        "worker_errors": {r["member"]: r["errors"] for r in finished},
         "publisher": pub,
         "elapsed_s": time.monotonic() - t_start,
     }

@@ -149,8 +149,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
     table = Table(title=title)
     for i, h in enumerate(HEADERS):
         table.add_column(h, justify="left" if i in (0, len(HEADERS) - 1) else "right")
-    for r in rows:
-        table.add_row(*r)
+    for row in rows:
+        table.add_row(*row)
     console.print(table)
     for note in notes:
         console.print(note, highlight=False)

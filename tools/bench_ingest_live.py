@@ -93,7 +93,8 @@ def publisher_main(args: argparse.Namespace) -> int:
             for sid in scanners
             for k in (ScannerKeys(PREFIX, sid).sample, ScannerKeys(PREFIX, sid).scan, DONE_KEY)
         ]
-        while not all(p.matching_status.matching for p in probes):
+        # zenoh's stub types matching_status as bool; it is a MatchingStatus.
+        while not all(p.matching_status.matching for p in probes):  # type: ignore[attr-defined]
             if time.monotonic() > deadline:
                 raise SystemExit("publisher: the consumer's subscriptions never matched")
             time.sleep(0.01)
@@ -163,8 +164,8 @@ def publisher_main(args: argparse.Namespace) -> int:
             seen += len(batch)
             finals += sum(1 for _, b in batch if codec.decode(b, codec.Reconstruction).status != 1)
         planes_sub.undeclare()
-        for p in pubs.values():
-            p.close()
+        for pub in pubs.values():
+            pub.close()
 
     e2e = []
     for t, payload in received:

@@ -176,7 +176,7 @@ def profile_replay(path: Path, samples: int, console) -> None:
     prof.enable()
     replay_mcap(path, service)
     prof.disable()
-    stats = pstats.Stats(prof).stats  # (file, line, func) → (cc, nc, tt, ct, callers)
+    stats = pstats.Stats(prof).stats  # type: ignore[attr-defined]  # typeshed omits .stats; (file, line, func) → (cc, nc, tt, ct, callers)
 
     def keys(file_end: str, func: str) -> list:
         return [k for k in stats if k[0].endswith(file_end) and k[2] == func]

@@ -73,7 +73,7 @@ def parse_host_port(text: str, default_host: str = "127.0.0.1") -> tuple[str, in
     return host, value
 
 
-class _Subscriptions:
+class _Subscriptions(foxglove.ServerListener):
     """Counts channel subscriptions, so callers can wait for a viewer instead of sleeping."""
 
     def __init__(self) -> None:

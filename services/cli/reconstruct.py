@@ -7,8 +7,12 @@ import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
+
+from lelsonar import codec
+from lelsonar.errors import InternalError
 
 _log = logging.getLogger("lelsonar.reconstruct")
 
@@ -389,7 +393,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         fox = _foxglove_observer(args, stack, console)
         observer = combine(_rerun_observer(args, stack), fox)
         recorder = stack.enter_context(McapRecorder(args.record)) if args.record else None
-        publish_to = [report]
+        publish_to: list[Callable[[codec.Reconstruction], None]] = [report]
 
         def deliver(msg) -> None:
             for fn in publish_to:
@@ -414,7 +418,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             )
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
-        if args.source is not None:
+        if source is not None:
             stop = _stop_on_signals() if fox is not None else None
             if fox is not None and args.foxglove_wait > 0:
                 from lelsonar.draw.visual import TOPIC_PLANES
@@ -438,7 +442,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             _log.info("replayed %d payloads from %s; rejected: %s", n, args.source, dict(service.ingest.rejected))
             stats = service.stats_dict()
             _print_stats(console, stats, args.json, json)
-            if fox is not None and args.foxglove_wait > 0:
+            if fox is not None and stop is not None and args.foxglove_wait > 0:
                 console.print(
                     f"reconstruct: replay done, {len(service.finals)} final estimates; serving Foxglove until Ctrl-C",
                     highlight=False,
@@ -457,6 +461,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 console.print(f"reconstruct: {config.method} produced no plane for {', '.join(missing)}")
                 return 1
             return 0
+        if session is None:
+            raise InternalError("a live reconstruction opens its Zenoh session first")
         stop = _stop_on_signals()
         console.print(f"reconstruct: listening on {keys.sample} and {keys.scan}; estimates on {keys.planes}")
         from lelsonar.reconstruct.stream.recovery import RecoveryConfig

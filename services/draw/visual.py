@@ -494,7 +494,8 @@ def truth_scene(planes, scanner_id: str, t_ns: int) -> SceneUpdate:
         e.id = f"{scanner_id}/truth/{label}"
         del e.metadata[:]
         for prim in (*e.triangles, *e.lines, *e.arrows, *e.texts):
-            prim.color.r = prim.color.g = prim.color.b = 0.63
+            # Every primitive message has a color; the tuple's element type is only Message.
+            prim.color.r = prim.color.g = prim.color.b = 0.63  # type: ignore[attr-defined]
         e.triangles[0].color.a = 0.3
         e.texts[0].text = f"truth {label}: h = {float(offset):.3f} m"
     return SceneUpdate(entities=entities)
