@@ -382,12 +382,12 @@ class ScanAssembly(WriterChecks):
                 )
             values, joined, one_clock = self._values, b"".join(data), True
         else:
-            sensors, carried_list = self._in_capsule_order(sample, carried if m else None)
+            sensors, in_order = self._in_capsule_order(sample, carried if m == k else None)
             ranges, layout, data = codec.sample_readings(sensors)
             joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
             clocks = [v for i in range(k) for v in layout[6 * i + 2 : 6 * i + 4]]  # (rate, t0) of each
             one_clock = clocks == [layout[2], layout[3]] * k
-            carried_list = carried_list if m == k else []
+            carried_list = [] if in_order is None else in_order
             values = np.array(
                 [
                     *clocks,
@@ -542,7 +542,7 @@ class ScanAssembly(WriterChecks):
                 step,
             )
 
-    def _in_capsule_order(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list | None]:
+    def _in_capsule_order(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list[float] | None]:
         """The sensors of a sample in the order of the ScanStart's capsule ids, and the carried energies in
         the same order; checked (the capsules the ScanStart listed, waveforms of one length)."""
         sensors = list(sample.sensors)

@@ -112,6 +112,7 @@ class Ingest:
         ``key_scanner``: the scanner id in the key the payload came on (live data);
         a payload that claims another scanner is rejected as ``ScannerMismatchError``.
         """
+        message: codec.WireMessage
         try:
             cls = codec.MESSAGE_TYPES.get(type_name)
             if cls is None or cls is codec.Reconstruction:
