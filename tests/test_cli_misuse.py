@@ -377,7 +377,8 @@ def test_exit_stats_count_the_samples_of_a_scan_stopped_mid_way():
     """After Ctrl-C mid-scan, the totals count what was ingested, not only the finished scans'."""
     from lelsonar import codec as c
     from lelsonar.cli.reconstruct import count_open_scans
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
 
     messages = [m for m in simulated_messages("paper-test1", seed=2, steps=120) if not isinstance(m, c.ScanEnd)]
     service = ReconstructionService(ReconstructConfig(provisional=False))

@@ -27,8 +27,9 @@ from lelsonar.log.recover import recover
 from lelsonar.log.summary import summarize
 from lelsonar.net.transport import MAX_MESSAGE_BYTES, ZenohSettings, open_session
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import LogPresence, RecoveryPolicy, RecoveryRequest
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import PayloadFifo, replay_mcap
 from lelsonar.v1 import scan_pb2
 

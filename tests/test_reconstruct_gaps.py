@@ -9,8 +9,9 @@ from lelsonar.acquire.log_server import ScanLog, parse_parameters
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import MAX_LOG_STEPS_PER_QUERY, ScannerKeys, validate_scan_id
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import RecoveryRequest, selectors, step_ranges
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.view import present
 
 from .conftest import make_sample, make_scan_start, simulated_messages, type_name

@@ -260,7 +260,8 @@ def test_a_simulated_recording_carries_energy_ratio_and_truth(tmp_path):
     the service's own per-step ratio), so the layout's ratio panel is filled on a recording; a simulated
     scan also carries its true planes."""
     from lelsonar.acquire.simulated import record_scan
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 

@@ -7,7 +7,7 @@ Processes, all ``python -m lelsonar ...`` children started and always reaped her
   (:class:`~lelsonar.reconstruct.stream.group.GroupMembership`,
   :class:`~lelsonar.reconstruct.stream.sources.LiveSource`,
   :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`, the default
-  :class:`~lelsonar.reconstruct.stream.service.ReconstructConfig`, provisional
+  :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`, provisional
   estimates on), plus a probe that timestamps what they process;
 - one publisher process with N scanners: each has the acquisition service's
   :class:`~lelsonar.acquire.scan_loop.ScanOutput` (a served
@@ -138,10 +138,11 @@ def worker_main(args: argparse.Namespace) -> int:
     from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import open_session
     from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership
     from lelsonar.reconstruct.stream.ingest import Accepted
     from lelsonar.reconstruct.stream.recovery import RecoveryConfig
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
 
     exercise_kernels()  # as `lelsonar reconstruct` does before it listens

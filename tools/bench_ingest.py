@@ -171,7 +171,7 @@ def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     from lelsonar.errors import ConfigError
-    from lelsonar.reconstruct.stream.service import ReconstructConfig
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.tools.bench import machine, progress
     from lelsonar.tools.bench_acquire import host_busy, host_line
 

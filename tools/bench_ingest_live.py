@@ -187,8 +187,9 @@ def publisher_main(args: argparse.Namespace) -> int:
 # --- the consumer process ----------------------------------------------------------------------
 def _timed_service_class():
     """A ReconstructionService that timestamps what it processes (the bench's probe, not a change of it)."""
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.ingest import Accepted, Ingest
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.service import ReconstructionService
 
     class TimedIngest(Ingest):
         last_events: list = []

@@ -42,7 +42,8 @@ def record_scans(path: Path, preset_name: str, scans: int) -> int:
 
 def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
     """Median wall time of replay_mcap through a fresh service, and the finals of the last run."""
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 
     times, finals = [], 0

@@ -75,7 +75,8 @@ def time_read(path: Path) -> tuple[float, int]:
 def time_replay(path: Path) -> tuple[float, int]:
     """(seconds, finals) of replay_mcap through a service without provisional estimates."""
     from lelsonar.cli.warm_up import exercise_kernels
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does

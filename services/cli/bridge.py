@@ -95,7 +95,7 @@ def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
 
 def _service_config(args: argparse.Namespace, *, provisional: bool):
     from lelsonar.cli.reconstruct import compared_methods
-    from lelsonar.reconstruct.stream.service import ReconstructConfig
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
 
     return ReconstructConfig(method=args.method, compare_methods=compared_methods(args), provisional=provisional)
 

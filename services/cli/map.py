@@ -123,7 +123,8 @@ def scans_of(path: Path, method: str) -> list:
     from lelsonar import codec
     from lelsonar.log.recording import iter_payloads, open_recording
     from lelsonar.map.from_reconstruction import scan_from_reconstruction
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 
     source = open_recording(path).require_scans()

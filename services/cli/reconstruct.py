@@ -264,7 +264,7 @@ def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
 
 
 def _config(args: argparse.Namespace, *, provisional: bool = True):
-    from lelsonar.reconstruct.stream.service import ReconstructConfig
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
 
     compare = compared_methods(args)
     recovery = {

@@ -45,7 +45,8 @@ def exercise_kernels() -> None:
     The service's own log is held back meanwhile: these scans are not the user's.
     """
     from lelsonar.acquire.simulated import record_scan
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
