@@ -24,6 +24,7 @@ BENCHES = {
         "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks",
     ),
     "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
+    "batch": ("lelsonar.tools.bench_batch", "lelsonar batch over an archive: N workers against 1"),
 }
 
 
@@ -62,7 +63,9 @@ def progress(items: Iterable[T], label: str, total: int | None = None) -> Iterat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="run a benchmark (sim, estimators, acquire, ingest, recording, fleet, or all)")
+    p = sub.add_parser(
+        "bench", help="run a benchmark (sim, estimators, acquire, ingest, recording, fleet, batch, or all)"
+    )
     names = p.add_subparsers(dest="bench", required=True, metavar="NAME")
     for name, (module, summary) in BENCHES.items():
         try:

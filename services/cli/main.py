@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "lelsonar.cli.emulate",
     "lelsonar.cli.reconstruct",
     "lelsonar.cli.recordings",
+    "lelsonar.cli.batch",
     "lelsonar.cli.bridge",
     "lelsonar.cli.demo",
     "lelsonar.tools.bench",
