@@ -84,13 +84,13 @@ import tempfile
 import threading
 import traceback
 import zlib
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from lelsonar.cli.executor import add_ray_argument, config_from_args, map_values
 from lelsonar.tools.bench_families import (
     frac_above,
     is_failure,
@@ -708,9 +708,9 @@ def run_stress(args: argparse.Namespace) -> int:
             raise SystemExit(f"unknown stress family {f!r}; choose from all, {', '.join(FAMILIES)}")
     jobs = [(f, s) for f in families for s in range(args.first_seed, args.first_seed + args.seeds)]
     rows: list[dict[str, Any]] = []
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for res in pool.map(stress_scan, *zip(*jobs), [args.keep] * len(jobs)):
-            rows.extend(res)
+    items = [(f, s, args.keep) for f, s in jobs]
+    for res in map_values(stress_scan, items, config_from_args(args, "jobs")):
+        rows.extend(res)
     console = Console(width=max(Console().width, 160))
     table = Table(title=f"stress sweep: {args.seeds} seeds from {args.first_seed}, method corner")
     for col in ("family", "planes", "unseen", *VERDICTS):
@@ -789,6 +789,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--first-seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1)
     p.add_argument("--json")
+    add_ray_argument(p)
     add_stress_arguments(p)
     args = p.parse_args(argv)
     if not args.stress:
