@@ -209,7 +209,8 @@ def test_record_scan_is_what_dump_failures_writes(tmp_path):
 
 
 def test_dump_failures_writes_the_failing_scene_that_reconstruct_replays(tmp_path, monkeypatch):
-    monkeypatch.setattr(B, "is_failure", lambda patch, oracle: math.isfinite(patch))  # every fitted plane "fails"
+    # Every fitted plane "fails" (patched where the scene runner looks it up).
+    monkeypatch.setattr("lelsonar.tools.family_scan.is_failure", lambda patch, oracle: math.isfinite(patch))
     scene, rows = B.family_scan("corner", 2, [DEFAULT_METHOD], anchor=False, dump_dir=str(tmp_path))
     path = Path(scene["dump"])
     assert path == tmp_path / "corner-2.mcap" and path.exists()
