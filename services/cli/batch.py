@@ -153,27 +153,33 @@ def process_file(command: str, source: str, output: str, flags: list[str]) -> di
     job = JOBS[command]
     assert job is not None
     out = Path(output)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(out.name + ".partial")
-    _remove(partial)
+    # Written in a folder of its own, then moved: a bag's files are named after its final directory, and a
+    # worker that dies leaves no output the index could take for complete.
+    staging = out.parent / f".{out.name}.partial"
+    _remove(staging)
+    staging.mkdir(parents=True)
+    partial = staging / out.name
     stdout, stderr = io.StringIO(), io.StringIO()
     t0 = time.perf_counter()
-    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
-        rc = main(command_argv(command, Path(source), partial, flags))
-    text = stdout.getvalue()
-    if command == "reconstruct":
-        text = without_run_fields(text)
-    if job.stdout_is_output and rc in (0, 1):
-        partial.write_text(text)
-    result: dict[str, Any] = {"rc": rc, "output_hash": None, "error": None, "seconds": time.perf_counter() - t0}
-    if rc not in (0, 1):
-        lines = [line for line in stderr.getvalue().splitlines() if line.strip()]
-        result["error"] = lines[-1] if lines else f"exit code {rc}"
-    if partial.exists():
-        _remove(out)
-        os.replace(partial, out)
-        result["output_hash"] = file_hash(out)
-    result.update(count_results(command, text if job.stdout_is_output else ""))
+    try:
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            rc = main(command_argv(command, Path(source), partial, flags))
+        text = stdout.getvalue()
+        if command == "reconstruct":
+            text = without_run_fields(text)
+        if job.stdout_is_output and rc in (0, 1):
+            partial.write_text(text)
+        result: dict[str, Any] = {"rc": rc, "output_hash": None, "error": None, "seconds": time.perf_counter() - t0}
+        if rc not in (0, 1):
+            lines = [line for line in stderr.getvalue().splitlines() if line.strip()]
+            result["error"] = lines[-1] if lines else f"exit code {rc}"
+        if partial.exists():
+            _remove(out)
+            os.replace(partial, out)
+            result["output_hash"] = file_hash(out)
+    finally:
+        _remove(staging)
+    result.update(count_results(command, text))
     return result
 
 
@@ -190,7 +196,7 @@ def without_run_fields(text: str) -> str:
 
 
 def count_results(command: str, text: str) -> dict[str, Any]:
-    """``scans``, ``statuses`` and ``verdicts`` (plane qualities) from a JSON output; empty for the others."""
+    """``scans``, ``statuses`` and ``verdicts`` (plane qualities) from a command's stdout, where it says them."""
     if command == "reconstruct":
         msgs = [json.loads(line) for line in text.splitlines() if line.strip()]
         return {
@@ -207,6 +213,11 @@ def count_results(command: str, text: str) -> dict[str, Any]:
                 sorted(Counter(p.get("quality", "?") for e in d.get("estimates", []) for p in e["planes"]).items())
             ),
         }
+    if command == "export":  # `export` prints "<count>  <topic>" per topic: one estimate per scan
+        for line in text.splitlines():
+            count, _, topic = line.strip().partition(" ")
+            if topic.strip() == "/lelsonar/estimate" and count.isdigit():
+                return {"scans": int(count), "statuses": {}, "verdicts": {}}
     return {"scans": None, "statuses": {}, "verdicts": {}}
 
 
@@ -346,11 +357,13 @@ def _print_summary(console, command: str, lines: list[dict[str, Any]], times, wa
     n_failed = sum(1 for line in lines if line["rc"] not in (0, 1))
     n_empty = sum(1 for line in lines if line["rc"] == 1)
     n_skipped = sum(1 for line in lines if line.get("skipped"))
+    where = {
+        "ray": "on Ray",
+        "inline": "in this process",
+        "pool": f"on {config.worker_count} worker processes",
+    }[config.engine]
     console.print(
         f"batch {command}: {len(lines) - n_failed - n_empty} ok, {n_empty} without result, {n_failed} failed, "
-        f"{n_skipped} done before; {wall:.1f} s on {config.engine} ({config.worker_count} workers)"
-        if config.engine != "ray"
-        else f"batch {command}: {len(lines) - n_failed - n_empty} ok, {n_empty} without result, {n_failed} failed, "
-        f"{n_skipped} done before; {wall:.1f} s on Ray",
+        f"{n_skipped} done before; {wall:.1f} s {where}",
         highlight=False,
     )
