@@ -158,10 +158,11 @@ def _run_pool(fn: Callable[..., Any], items: Sequence[tuple], workers: int) -> I
     while queue:
         lost: list[int] = []
         with ProcessPoolExecutor(workers, mp_context=context) as pool:
-            # At most one item per worker in flight, so a dying worker loses only the items that were running.
+            # Two items per worker in flight: a worker never waits for this loop, and a dying worker loses
+            # only a few items.
             running: dict[Future, int] = {}
             while (queue or running) and not lost:
-                while queue and len(running) < workers:
+                while queue and len(running) < 2 * workers:
                     i = queue.pop()
                     running[pool.submit(_call, fn, items[i])] = i
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -174,7 +175,7 @@ def _run_pool(fn: Callable[..., Any], items: Sequence[tuple], workers: int) -> I
                         continue
                     yield i, outcome
             lost.extend(running.values())
-        # Each item that was running when a worker died runs again alone: the one that kills its own pool is
+        # Each item in flight when a worker died runs again alone: the one that kills its own pool is
         # reported, the others complete.
         for i in sorted(lost):
             with ProcessPoolExecutor(1, mp_context=context) as alone:
