@@ -31,7 +31,7 @@ EFFICIENCY_FLOOR = 0.85
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--files", type=int, default=160, help="recordings in the archive (default 160)")
+    parser.add_argument("--files", type=int, default=480, help="recordings in the archive (default 480)")
     parser.add_argument("--distinct", type=int, default=8, help="distinct simulated scans among them (default 8)")
     parser.add_argument("--preset", default="paper-test1", help="simulator preset of every scan (default paper-test1)")
     parser.add_argument("--workers", type=int, default=2, help="workers of the parallel runs (default 2)")

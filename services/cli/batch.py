@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from lelsonar.cli.executor import add_executor_arguments, config_from_args, run_each
+from lelsonar.cli.main import COMMAND_MODULES, main
 from lelsonar.errors import ConfigError
 
 INDEX = "index.jsonl"
@@ -44,22 +45,24 @@ class Job:
     """How one command runs on one file, and what it leaves in DIR."""
 
     suffix: str  # of the output beside the input's relative path
-    takes_method: bool
+    method_flags: tuple[str, ...]  # the estimation flags the command takes
     stdout_is_output: bool  # the command's stdout is the output (else it writes ``-o`` itself)
+    module: str  # the module that registers the command
 
 
-JOBS: dict[str, Job | None] = {
-    "reconstruct": Job(".jsonl", takes_method=True, stdout_is_output=True),
-    "review": Job(".rrd", takes_method=True, stdout_is_output=False),
-    "info": Job(".json", takes_method=False, stdout_is_output=True),
-    "export": Job(".rosbag2", takes_method=True, stdout_is_output=False),
-    "map": None,  # until `lelsonar map` exists
+JOBS: dict[str, Job] = {
+    "reconstruct": Job(".jsonl", ("--method", "--compare"), True, "lelsonar.cli.reconstruct"),
+    "review": Job(".rrd", ("--method", "--compare"), False, "lelsonar.cli.reconstruct"),
+    "info": Job(".json", (), True, "lelsonar.cli.recordings"),
+    "export": Job(".rosbag2", ("--method", "--compare"), False, "lelsonar.cli.bridge"),
+    "map": Job(".json", ("--method",), True, "lelsonar.cli.map"),  # one map per recording
 }
 
 EPILOG = (
     "Outputs in DIR, per input: reconstruct → .jsonl (the lines of `reconstruct --source F --json` without "
     "stamp_ns and timings, which say when and how fast, not what), "
-    "review → .rrd, info → .json (`info --json`), export → .rosbag2/ (a bag directory); and DIR/index.jsonl. "
+    "review → .rrd, info → .json (`info --json`), export → .rosbag2/ (a bag directory), map → .json "
+    "(`map --source F --json`: one map per recording); and DIR/index.jsonl. "
     "Exit status: 0 when every file's command exited 0, 1 when any file failed or its command reported no "
     "result (see the summary and the index), 2 on a usage error."
 )
@@ -70,7 +73,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser(
         "batch",
-        help="run reconstruct, review, info or export over many recordings (process pool or Ray)",
+        help="run reconstruct, review, info, export or map over many recordings (process pool or Ray)",
         description="Run a command over every recording that FILES_OR_GLOBS names, each file in its own "
         "worker, with a progress bar, a summary table, and an index that makes the batch resumable.",
         epilog=EPILOG,
@@ -137,6 +140,8 @@ def command_argv(command: str, source: Path, output: Path, flags: list[str]) -> 
         return ["reconstruct", "--source", str(source), "--json", *flags]
     if command == "info":
         return ["info", "--json", str(source), *flags]
+    if command == "map":
+        return ["map", "--source", str(source), "--json", *flags]
     return [command, str(source), "-o", str(output), *flags]
 
 
@@ -148,10 +153,7 @@ def process_file(command: str, source: str, output: str, flags: list[str]) -> di
     ``seconds`` (for the summary only: the index holds nothing that varies between runs).  An exception
     in the command propagates (the executor reports it).
     """
-    from lelsonar.cli.main import main
-
     job = JOBS[command]
-    assert job is not None
     out = Path(output)
     # Written in a folder of its own, then moved: a bag's files are named after its final directory, and a
     # worker that dies leaves no output the index could take for complete.
@@ -257,12 +259,13 @@ def run_batch(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     job = JOBS[args.command]
-    if job is None:
-        raise ConfigError(f"`lelsonar {args.command}` does not exist yet; batch can run it once it does")
+    if job.module not in COMMAND_MODULES:
+        raise ConfigError(f"`lelsonar {args.command}` does not exist in this version; batch runs it where it does")
     config = config_from_args(args)
     inputs = expand_inputs(args.inputs)
     names = relative_names(inputs)
-    flags = ["--method", args.method, "--compare", args.compare] if job.takes_method else []
+    values = {"--method": args.method, "--compare": args.compare}
+    flags = [part for flag in job.method_flags for part in (flag, values[flag])]
     out_dir: Path = args.out
     out_dir.mkdir(parents=True, exist_ok=True)
     index_path = out_dir / INDEX

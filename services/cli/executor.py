@@ -106,7 +106,7 @@ def config_from_args(args: argparse.Namespace, workers_dest: str = "workers") ->
 def _call(fn: Callable[..., Any], args: tuple) -> Outcome:
     try:
         return Outcome(value=fn(*args))
-    except Exception as exc:  # noqa: BLE001 - every failure is reported with its item, never lost
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - every failure is reported with its item, never lost
         return Outcome(error=f"{type(exc).__name__}: {exc}".splitlines()[0], trace=traceback.format_exc())
 
 
