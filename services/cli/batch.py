@@ -269,7 +269,8 @@ def run_batch(args: argparse.Namespace) -> int:
     out_dir: Path = args.out
     out_dir.mkdir(parents=True, exist_ok=True)
     index_path = out_dir / INDEX
-    previous = {} if args.force else read_index(index_path)
+    recorded = read_index(index_path)
+    previous = {} if args.force else recorded
 
     # Bound to this stderr: a command running in this process (--workers 1) has its own redirected.
     console = Console(file=sys.stderr)
@@ -317,8 +318,10 @@ def run_batch(args: argparse.Namespace) -> int:
             bar.update(task, advance=1, failed=failed)
     wall = time.perf_counter() - started
     ordered = [lines[k] for k in sorted(lines)]
+    # The lines of inputs outside this run stay: a batch over part of an archive keeps the rest resumable.
+    index = {**recorded, **lines}
     tmp = index_path.with_name(INDEX + ".partial")
-    tmp.write_text("".join(json.dumps(_clean(line), sort_keys=True) + "\n" for line in ordered))
+    tmp.write_text("".join(json.dumps(_clean(index[k]), sort_keys=True) + "\n" for k in sorted(index)))
     os.replace(tmp, index_path)
     _print_summary(console, args.command, ordered, times, wall, config)
     return EXIT_OK if all(line["rc"] == 0 for line in ordered) else EXIT_SOME_FAILED
