@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -116,6 +117,7 @@ def test_batch_on_a_local_ray_head_gives_the_same_bytes(archive, tmp_path):
     except Exception as exc:  # noqa: BLE001 - a host where Ray cannot start is a skip, with its reason
         pytest.skip(f"a local Ray head cannot start here: {type(exc).__name__}: {exc}")
     assert rc == 1
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # Ray's own handlers do not outlive the batch
     assert (on_ray / "index.jsonl").read_bytes() == (pool / "index.jsonl").read_bytes()
     for line in _index(pool)[:2]:
         assert (on_ray / line["output"]).read_bytes() == (pool / line["output"]).read_bytes()

@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import os
+import signal
+import threading
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -196,6 +198,8 @@ def _ray_module():
 def _run_ray(fn: Callable[..., Any], items: Sequence[tuple], address: str) -> Iterator[tuple[int, Outcome]]:
     ray = _ray_module()
     started = False
+    # ray.init installs its own SIGINT/SIGTERM handlers in this process; the command's are put back after.
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
     if not ray.is_initialized():
         target = os.environ.get("RAY_ADDRESS") if address == RAY_AUTO else address
         try:
@@ -217,3 +221,6 @@ def _run_ray(fn: Callable[..., Any], items: Sequence[tuple], address: str) -> It
     finally:
         if started:
             ray.shutdown()
+            if threading.current_thread() is threading.main_thread():
+                for sig, handler in handlers.items():
+                    signal.signal(sig, handler)
