@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "lelsonar.cli.reconstruct",
     "lelsonar.cli.recordings",
     "lelsonar.cli.map",
+    "lelsonar.cli.batch",
     "lelsonar.cli.bridge",
     "lelsonar.cli.demo",
     "lelsonar.tools.bench",
