@@ -221,7 +221,9 @@ def scene_truth(scan: Any) -> SceneTruth:
     truth = scan.truth
     planes = {p.label: p for p in truth.planes}
     pc = scan.geometry.capsule_positions(scan.gamma_measured)
-    patch, oracle, n_mirror = {}, {}, {}
+    patch: dict[str, np.ndarray] = {}
+    oracle: dict[str, tuple[float, float, float] | None] = {}
+    n_mirror: dict[str, int] = {}
     for label, src in (("a", EchoSource.PLANE_A), ("b", EchoSource.PLANE_B)):
         tp = planes[label]
         m = (truth.echo_source == src) & np.isfinite(scan.distance)

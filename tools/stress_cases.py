@@ -405,7 +405,7 @@ class _WireVariations:
         from lelsonar import codec
 
         if self.order is not None and isinstance(message, (codec.ScanStart, codec.Sample)):
-            field = message.capsules if isinstance(message, codec.ScanStart) else message.sensors
+            field: Any = message.capsules if isinstance(message, codec.ScanStart) else message.sensors
             items = [type(field[0])() for _ in range(len(field))]
             for item, i in zip(items, self.order):
                 item.CopyFrom(field[int(i)])
@@ -434,11 +434,11 @@ def record(scan: StressScan, path: Path) -> None:
     with McapRecorder(path, compression="zstd", metadata={"device": "sim", "stress": scan.case.describe()}) as rec:
         out = _WireVariations(rec, scan.case) if scan.case.permute_capsules or scan.case.shuffle_samples else rec
         run_scan(
-            ScanReplay(scan),
+            ScanReplay(scan),  # type: ignore[arg-type]  # a StressScan has every field ScanReplay reads
             scan.commanded,
             ScanIdentity("stress", 1),
             energy_model(scan),
-            ScanOutput(out, None),
+            ScanOutput(out, None),  # type: ignore[arg-type]  # _WireVariations writes and logs as a recorder does
             threading.Event(),
             int16_scale=int16_scale,
         )
