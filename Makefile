@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/lelsonar demo --out out
+	$(BIN)/lelsonar demo --out out --overwrite
 
 test: lint
 	$(BIN)/python -m pytest -q

@@ -15,8 +15,9 @@ from lelsonar.acquire.scan_loop import ScanPublisher
 from lelsonar.keys import ScannerKeys
 from lelsonar.net.transport import hermetic_settings, open_session
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import LiveSource
 
 PREFIX = "lelsonar"

@@ -6,7 +6,7 @@ import io
 
 from rich.console import Console
 
-from lelsonar.tools.bench_ingest import ingest_stage_vs_floor, profile_replay, record_scans
+from lelsonar.tools.bench_ingest_replay import ingest_stage_vs_floor, profile_replay, record_scans
 
 
 def test_profile_of_a_replay_times_the_finals_on_a_scan_it_kept(tmp_path):
@@ -31,7 +31,7 @@ def test_the_decoding_paths_run_on_the_same_payloads_and_place_the_same_scans():
     """The row's two ingest stages (with the fast path, and every payload parsed) accept every payload (it raises
     otherwise) and assemble the same arrays, bit for bit; the plain parse runs beside them."""
     from lelsonar.reconstruct.stream.ingest import Ingest
-    from lelsonar.tools.bench_ingest_stage import decoding_paths, ingest_stage_payloads
+    from lelsonar.tools.bench_ingest_replay import decoding_paths, ingest_stage_payloads
 
     times = decoding_paths("paper-test1", runs=1, n=20)
     assert set(times) == {"parse", "fast", "parsed"} and all(t > 0 for t in times.values())

@@ -248,6 +248,13 @@ def test_shipped_layout_is_current_and_names_served_topics():
             assert t in topics
         for s in p["config"].get("paths", []):
             assert s["value"].split(".", 1)[0] in topics
+    # One quantity (one unit) per axis: R (about 0.2-1.5) and the critical step (tens) never share one.
+    plotted = {i: {s["value"] for s in config[i]["paths"]} for i in ids if i.startswith("Plot")}
+    ratio = next(i for i, v in plotted.items() if f"{TOPIC_ENERGY}.ratio" in v)
+    assert plotted[ratio] == {f"{TOPIC_ENERGY}.ratio"}
+    assert any(v == {f"{TOPIC_ENERGY}.critical_step"} for v in plotted.values())
+    ranges = next(v for v in plotted.values() if any(".range." in x for x in v))  # as the README says
+    assert ranges == {f"{TOPIC_STEP}.range.{c}" for c in "ABCD"}
 
 
 def test_a_busy_port_is_one_clear_error():

@@ -168,7 +168,8 @@ def recording(tmp_path):
 
 def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
     """A replay through the bridge, seen from a plain Zenoh peer as rmw_zenoh would see it."""
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 
     path, source = recording
@@ -331,3 +332,26 @@ def test_ros2_bridge_command_bridges_a_live_scan(tmp_path):
     assert len(final) == 1
     text = ros2.deserialize(final[0], "std_msgs/msg/String").data
     assert '"samples_used":50' in text and '"scanner_id":"s1"' in text
+
+
+def test_publishers_are_declared_as_rmw_zenoh_declares_its_own():
+    """rmw_zenoh (rmw_publisher_data.cpp): every publisher advanced; DROP for KEEP_LAST, so a slow ROS
+    subscriber never stalls the bridge; TRANSIENT_LOCAL adds a cache of depth samples, publisher detection
+    and sample-miss detection by sporadic heartbeat (0.5 s)."""
+    import zenoh.ext
+
+    from lelsonar.bridge import ros2
+    from lelsonar.bridge.rmw_zenoh import SAMPLE_MISS_HEARTBEAT_PERIOD, publisher_options
+
+    assert SAMPLE_MISS_HEARTBEAT_PERIOD == 0.5
+    for topic in (*ros2.TOPIC_QOS, "/lelsonar/points"):
+        qos = ros2.topic_qos(topic)
+        options = publisher_options(qos)
+        assert options["congestion_control"] == zenoh.CongestionControl.DROP
+        assert options["reliability"] == zenoh.Reliability.RELIABLE
+        if qos.transient_local:
+            assert options["publisher_detection"] is True
+            assert isinstance(options["cache"], zenoh.ext.CacheConfig)
+            assert isinstance(options["sample_miss_detection"], zenoh.ext.MissDetectionConfig)
+        else:
+            assert not {"cache", "publisher_detection", "sample_miss_detection"} & set(options)

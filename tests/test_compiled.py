@@ -30,7 +30,7 @@ def _warm_up() -> str:
 def test_a_new_process_loads_the_kernels_the_warm_up_compiled():
     _warm_up()  # compiles only if nothing has since the sources last changed (`make` warms up after installing)
     second = _warm_up()
-    found = re.search(r"(\d+) kernels, (\d+) compiled and (\d+) loaded from the cache", second)
+    found = re.search(r"(\d+) kernels ready: (\d+) variants compiled now and (\d+) loaded from the cache", second)
     assert found, second
     n_kernels, compiled, loaded = map(int, found.groups())
     assert n_kernels > 0 and compiled == 0 and loaded > 0, second

@@ -150,6 +150,7 @@ def test_cli_registers_and_runs_until_signalled(capsys, monkeypatch) -> None:
     rc = args.run(args)
     assert rc == 0 and served == [True]
     out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == 1  # --json: only the JSON line on stdout
     paths = json.loads(out[-1])
     assert paths["source"] == "echo:1.0m" and paths["motor"].startswith("/dev/pts/")
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # handlers restored

@@ -22,6 +22,7 @@ from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import ScannerKeys
 from lelsonar.net.transport import ZenohSettings, open_session
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.group import (
     GroupConfig,
     GroupMembership,
@@ -31,7 +32,7 @@ from lelsonar.reconstruct.stream.group import (
     owner,
 )
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
 
 from .conftest import simulated_messages

@@ -11,8 +11,9 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 
 from .conftest import simulated_messages, type_name
 from .live_rig import Rig, renamed

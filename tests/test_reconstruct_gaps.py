@@ -9,8 +9,9 @@ from lelsonar.acquire.log_server import ScanLog, parse_parameters
 from lelsonar.errors import ConfigError, InvalidIdentifierError
 from lelsonar.keys import MAX_LOG_STEPS_PER_QUERY, ScannerKeys, validate_scan_id
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import RecoveryRequest, selectors, step_ranges
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.view import present
 
 from .conftest import make_sample, make_scan_start, simulated_messages, type_name
@@ -67,11 +68,11 @@ def test_recovery_is_asked_at_scan_end_retried_a_bounded_number_of_times_then_in
     feed(service, [m for m in scan if not (isinstance(m, codec.Sample) and m.step in (7, 8))])
     assert asked == [RecoveryRequest("s1", 1, steps=(7, 8))]
     out = []
-    for t in (0.4, 0.5, 0.9, 1.0, 1.4):
+    for t in (0.4, 0.5, 0.9, 1.4, 1.5, 3.4):
         clock.t = t
         out += service.tick()
-    assert len(asked) == 3 and out == []  # three attempts, 0.5 s apart
-    clock.t = 1.5
+    assert len(asked) == 3 and out == []  # three attempts, 0.5 s then 1 s apart (the wait doubles)
+    clock.t = 3.5  # the last one had its 2 s to answer
     (est,) = service.tick()
     assert wire.status_name(est) == "incomplete" and list(est.missing_steps) == [7, 8]
 

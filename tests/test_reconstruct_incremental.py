@@ -18,7 +18,8 @@ from lelsonar.reconstruct.estimate.incremental import (
 )
 from lelsonar.reconstruct.estimate.pipeline import FitOptions, fit_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.sim import preset
 
 from .conftest import assert_matches_the_scene, scene_truth, simulated_messages, type_name

@@ -17,8 +17,9 @@ from lelsonar.reconstruct.estimate.record import (
     reconstruct_scan,
 )
 from lelsonar.reconstruct.estimate.results import PlaneFit
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.scan_input import scan_input
-from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
 from lelsonar.sim import default_energy_model, preset, simulate_scan
 

@@ -337,7 +337,11 @@ def test_a_failure_is_reported_and_takes_down_the_stale_patch(scan_rrd):
     ents = read_rrd(path)
     log = ents["/log/s1/scan_7"]
     rows = list(zip(mono(log, "TextLog:level"), mono(log, "TextLog:text")))
-    assert any(lvl == "WARN" and "plane b" in txt and "too few points" in txt for lvl, txt in rows)
+    # Before the final, a plane not fitted yet is an expected state (the beams have not reached wall b):
+    # not a warning.
+    said = [(lvl, txt) for lvl, txt in rows if "plane b" in txt and "too few points" in txt]
+    assert said and all(lvl == "DEBUG" for lvl, _ in said)
+    assert not any(lvl == "WARN" and "not fitted" in txt for lvl, txt in rows)
     assert any(lvl == "INFO" and txt.startswith("final estimate") for lvl, txt in rows)
     assert any("critical step 6" in txt for _, txt in rows)
     assert any(lvl == "WARN" and txt == "synthetic scan done" for lvl, txt in rows)
@@ -496,3 +500,26 @@ def test_long_waveforms_are_drawn_as_their_envelope(tmp_path):
     np.testing.assert_allclose(volts.min(axis=1), waves.min(axis=1), atol=1e-6)
     assert np.all(np.diff(s[0, :, 0]) >= 0)  # time still runs forward
     assert s[0, 0, 0] == pytest.approx(T0 * 1e3) and s[0, -1, 0] == pytest.approx((T0 + (n - 1) / SAMPLE_RATE) * 1e3)
+
+
+def test_the_final_step_draws_only_the_final_planes(tmp_path):
+    path = tmp_path / "final.rrd"
+    rec = make_recording(recording_id="final")
+    rec.save(path)
+    rng = np.random.default_rng(4)
+    logger = ScanLogger(rec, "s1", 1, main_method="corner")
+    provisional = [plane_fit("adaptive", "a", rng), plane_fit("adaptive", "b", rng)]
+    logger.estimate(5, T_START_NS, provisional, None, [], None, None, final=False)
+    final = [plane_fit(m, lab, rng) for m in ("corner", "ls") for lab in ("a", "b")]
+    logger.estimate(9, T_START_NS + 4 * STEP_NS, final, None, [], None, None, final=True)
+    rec.flush()
+    rec.disconnect()
+    ents = read_rrd(path)
+    for label in ("a", "b"):
+        gone = ents[f"/world/s1/scans/scan_1/planes/adaptive/{label}"]
+        assert mono(gone, "Clear:is_recursive") == [True] and column(gone, "step")[-1] == 9
+        assert "Clear:is_recursive" not in names(ents[f"/world/s1/scans/scan_1/planes/corner/{label}"])
+        # One label per plane: the method of record's.
+        corner = column(ents[f"/world/s1/scans/scan_1/planes/corner/{label}/normal"], "Arrows3D:labels")[-1]
+        assert corner == [f"{label}: corner, unassessed"] or corner[0].startswith(f"{label}: corner")
+        assert not column(ents[f"/world/s1/scans/scan_1/planes/ls/{label}/normal"], "Arrows3D:labels")

@@ -26,7 +26,14 @@ from .conftest import simulated_messages
 
 STEPS = 184  # the paper-test1 schedule: enough for a corner and both planes
 #: What the recorder writes for each step (one chunk), and once per scan.
-PER_STEP = ("/lelsonar/sample", "/tf", "/lelsonar/points", "/lelsonar/scan_points", "/lelsonar/step")
+PER_STEP = (
+    "/lelsonar/sample",
+    "/tf",
+    "/lelsonar/points",
+    "/lelsonar/scan_points",
+    "/lelsonar/step",
+    "/lelsonar/energy",
+)
 PER_SCAN = ("/lelsonar/scan_start", "/tf_capsules", "/lelsonar/array", "/lelsonar/scan_end")
 
 

@@ -24,6 +24,7 @@ from lelsonar.cli.config_file import parse_args
 from lelsonar.cli.main import build_parser, main
 from lelsonar.errors import ConfigError
 from lelsonar.log import recording
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.sim import preset
 
 EXAMPLE = Path(__file__).parents[1] / "examples" / "rig.toml"
@@ -202,7 +203,9 @@ def test_write_energy_model_replaces_only_its_table(tmp_path):
     assert after.split("[schedule]")[1] == text.split("[schedule]")[1]
 
 
-def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("mistyped", [False, True])
+def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch, capsys, mistyped):
+    from lelsonar.acquire.calibrate_rig import range_tolerance
     from lelsonar.sim import simulate_step
     from lelsonar.sim.calibrate import PAPER_CALIBRATION_DISTANCES, calibrate_simulator
     from lelsonar.sim.scene import Scene
@@ -219,10 +222,14 @@ def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch,
 
     answers = iter(PAPER_CALIBRATION_DISTANCES)
 
-    class Typist:  # moves the wall, then types the distance it measured
+    class Typist:  # moves the wall, then types the distance it measured (or, mistyped, one 3 tolerances off)
+        shot = 0
+
         def readline(self):
             wall["d"] = next(answers)
-            return f"{wall['d']}\n"
+            Typist.shot += 1
+            off = 3 * range_tolerance(wall["d"], 343.0) if mistyped and Typist.shot == 4 else 0.0
+            return f"{wall['d'] + off}\n"
 
     monkeypatch.setattr("sys.stdin", Typist())
     with emulated_rig(
@@ -235,6 +242,13 @@ def test_calibrate_serial_guides_six_shots_and_writes_phi(tmp_path, monkeypatch,
             .replace("/dev/ttyACM0", emu.board.path)
             .replace("latency_timer_ms = 16.0", "latency_timer_ms = 2.0")
         )
+        before = rig.read_text()
+        if mistyped:  # refused, the file untouched, the shot named
+            assert main(["calibrate", "--device", "serial", "--config", str(rig)]) == 2
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "1 of 6 shots disagree" in err and "shot 4 typed" in err
+            assert rig.read_text() == before
+            return
         assert main(["calibrate", "--device", "serial", "--config", str(rig)]) == 0
         assert emu.motor.gamma_source(512)() == pytest.approx(0.0, abs=math.radians(0.3))  # turned face-on
     out = capsys.readouterr().out
@@ -254,7 +268,7 @@ def test_the_example_rig_configures_every_command_it_has_tables_for():
     from lelsonar.cli.acquire import config_from_args
 
     a = parse_args(build_parser(), ["reconstruct", "--config", str(EXAMPLE)])
-    assert (a.method, a.compare, a.prefix) == ("adaptive", "ls", "lelsonar")
+    assert (a.method, a.compare, a.prefix) == (DEFAULT_METHOD, "ls", "lelsonar")  # the file keeps the default
     cfg = config_from_args(parse_args(build_parser(), ["acquire", "--config", str(EXAMPLE)]))
     setup = serial_setup(cfg)
     assert cfg.device == "serial" and setup.motor.port == "/dev/ttyUSB0" and setup.board.port == "/dev/ttyACM0"

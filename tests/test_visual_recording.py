@@ -253,3 +253,48 @@ def test_a_new_scan_replaces_the_planes_of_the_last_one():
     update = scene.update(second)
     assert [e.id for e in update.entities] == ["s1/8/plane/lel/b"]
     assert sorted(d.id for d in update.deletions) == ["s1/7/edge", "s1/7/plane/ls/a"]
+
+
+def test_a_simulated_recording_carries_energy_ratio_and_truth(tmp_path):
+    """/lelsonar/energy on the acquisition recording gives the R the reconstruction computes (independently:
+    the service's own per-step ratio), so the layout's ratio panel is filled on a recording; a simulated
+    scan also carries its true planes."""
+    from lelsonar.acquire.simulated import record_scan
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
+    from lelsonar.sim import default_energy_model, preset, simulate_scan
+
+    path = tmp_path / "sim.mcap"
+    scan = simulate_scan(preset("paper-test1"), seed=2)
+    record_scan(scan, path, default_energy_model())
+    rows = [json.loads(m.data) for _, _, m in _messages(path, visual.TOPIC_ENERGY)]
+    assert [r["step"] for r in rows] == list(range(scan.n_steps))
+    assert all(r["critical_step"] is None for r in rows)  # the reconstruction's to find
+
+    ratios = {}
+
+    class Ratios:  # the service's observer: what the reconstruction computes per step
+        def scan_started(self, s): ...
+        def estimate(self, *a): ...
+        def event(self, *a, **k): ...
+        def step(self, s, view, energy, expected, ratio):
+            ratios[view.step] = (energy, expected, ratio)
+
+    replay_mcap(path, ReconstructionService(ReconstructConfig(provisional=False), observer=Ratios()))
+    for r in rows:
+        energy, expected, ratio = ratios[r["step"]]
+        assert math.isclose(r["energy"], energy, rel_tol=1e-6)
+        if ratio > 0:
+            assert math.isclose(r["ratio"], ratio, rel_tol=1e-6) and math.isclose(r["expected_energy"], expected)
+    ((_, _, m),) = _messages(path, visual.TOPIC_TRUTH)
+    drawn = {e.id: e for e in SceneUpdate.FromString(m.data).entities}
+    for plane in scan.truth.planes:
+        assert f"sim/truth/{plane.label}" in drawn
+
+
+def test_a_recording_without_truth_has_no_truth_channel(tmp_path):
+    path = tmp_path / "scan.mcap"
+    _record(path)
+    assert _messages(path, visual.TOPIC_TRUTH) == []
+    assert len(_messages(path, visual.TOPIC_ENERGY)) == STEPS

@@ -25,6 +25,8 @@ BENCHES = {
     ),
     "surfaces": ("lelsonar.tools.bench_surfaces", "every surface of a sweep against the world simulator's truth"),
     "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
+    "map": ("lelsonar.tools.bench_map", "map update time per scan vs map size, walls vs truth, poses vs odometry"),
+    "batch": ("lelsonar.tools.bench_batch", "lelsonar batch over an archive: N workers against 1"),
 }
 
 
@@ -63,7 +65,9 @@ def progress(items: Iterable[T], label: str, total: int | None = None) -> Iterat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="run a benchmark (sim, estimators, acquire, ingest, recording, fleet, or all)")
+    p = sub.add_parser(
+        "bench", help="run a benchmark (sim, estimators, acquire, ingest, recording, fleet, batch, or all)"
+    )
     names = p.add_subparsers(dest="bench", required=True, metavar="NAME")
     for name, (module, summary) in BENCHES.items():
         try:

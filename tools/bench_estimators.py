@@ -50,11 +50,11 @@ import json
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
 import numpy as np
 
+from lelsonar.cli.executor import add_ray_argument, config_from_args, map_values
 from lelsonar.tools.bench import machine, progress
 
 DEFAULT_SCENES = ("paper-test1", "paper-test2", "tilted", "tilted-roll5", "tilted-b8")
@@ -82,6 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--skip-slow", action="store_true", help="skip the Nelder-Mead methods (paper, lel-nm) and the H check"
     )
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes for accuracy runs")
+    add_ray_argument(parser)
     parser.add_argument("--timing-repeats", type=int, default=50)
     parser.add_argument("--json", metavar="PATH", help="also write every per-plane number as JSON")
     from lelsonar.tools.bench_families import add_family_arguments
@@ -229,6 +230,7 @@ def _one_scan(scene: str, seed: int, methods: list[str], h_check: bool) -> list[
     if h_check:
         opts = FitOptions()
         crit = critical_step(ratio, opts.critical_peak_fraction)
+        assert crit is not None, "the bench's scenes all have a corner"
         split = split_subsets(scan.gamma_measured, crit)
         for label, steps, axis in (("a", split.steps_a, AXIS_Y), ("b", split.steps_b, AXIS_Z)):
             data = F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, steps, label, axis)
@@ -350,13 +352,10 @@ def run(args: argparse.Namespace) -> int:
     console = Console(width=max(Console().width, 160))
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as ex:
-            for r in progress(ex.map(_one_scan, *zip(*jobs), chunksize=2), "scans", total=len(jobs)):
-                rows.extend(r)
-    else:
-        for j in progress(jobs, "scans"):
-            rows.extend(_one_scan(*j))
+    for r in map_values(
+        _one_scan, jobs, config_from_args(args, "jobs"), wrap=lambda done: progress(done, "scans", total=len(jobs))
+    ):
+        rows.extend(r)
     wall = time.perf_counter() - t0
     timings = _timings(args.timing_repeats)
 

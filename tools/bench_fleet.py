@@ -7,7 +7,7 @@ Processes, all ``python -m lelsonar ...`` children started and always reaped her
   (:class:`~lelsonar.reconstruct.stream.group.GroupMembership`,
   :class:`~lelsonar.reconstruct.stream.sources.LiveSource`,
   :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`, the default
-  :class:`~lelsonar.reconstruct.stream.service.ReconstructConfig`, provisional
+  :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`, provisional
   estimates on), plus a probe that timestamps what they process;
 - one publisher process with N scanners: each has the acquisition service's
   :class:`~lelsonar.acquire.scan_loop.ScanOutput` (a served
@@ -25,10 +25,12 @@ time from the first put to the last processed), p50/p99 put → processed
 (``handle`` returned) and put → provisional estimate published (of the sample
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
 worker (user + system over its wall time), CPU of each process while busy (a worker from its first
-live sample to its last, read at most every 10 ms, the publisher over its puts, the router meanwhile),
-and how far the publisher fell behind its schedule.  ``--failover`` (default on with W ≥ 2) runs the same
-again and SIGKILLs one worker in the middle of the first scans: every scan
-must still get exactly one complete final.
+live sample to its last, read at most every 10 ms, the publisher over its puts, the router
+meanwhile), and how far the publisher fell behind its schedule.  The offered rate is scanners ×
+``--rate``: a run shows whether the workers keep up with it, not how far beyond it they could go;
+``--capacity`` finds that (:mod:`lelsonar.tools.bench_fleet_capacity`).  ``--failover`` (default on
+with W ≥ 2) runs the same again and SIGKILLs one worker in the middle of the first scans: every
+scan must still get exactly one complete final.
 """
 
 from __future__ import annotations
@@ -46,6 +48,8 @@ import time
 from collections import Counter
 from pathlib import Path
 from typing import Any
+
+from lelsonar.tools.bench_fleet_capacity import CAPACITY_LADDER, run_capacity
 
 PREFIX = "lelsonar"
 GROUP = "fleet"
@@ -84,6 +88,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default: %(default)s)",
     )
     parser.add_argument("--json", type=Path, metavar="OUT", help="also write the results as JSON (every run)")
+    parser.add_argument(
+        "--capacity",
+        type=int,
+        nargs="*",
+        metavar="N",
+        default=None,
+        help="find one reconstructor's capacity instead: N scanners × --rate for each N, rising, until one does "
+        f"not hold (no N given: {' '.join(str(n) for n in CAPACITY_LADDER)})",
+    )
+    parser.add_argument("--markdown", type=Path, default=None, help="also write the tables to this Markdown file")
     # Internal: the child processes.
     parser.add_argument("--role", choices=("worker", "publisher"), help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
@@ -98,6 +112,8 @@ def command_line(args: argparse.Namespace) -> str:
         + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
         + f" --preset {args.preset} --failover {args.failover}"
         + (" --no-provisional" if args.no_provisional else "")
+        + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
+        + (" --capacity" if args.capacity == [] else "")
     )
 
 
@@ -122,10 +138,11 @@ def worker_main(args: argparse.Namespace) -> int:
     from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import open_session
     from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership
     from lelsonar.reconstruct.stream.ingest import Accepted
     from lelsonar.reconstruct.stream.recovery import RecoveryConfig
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
 
     exercise_kernels()  # as `lelsonar reconstruct` does before it listens
@@ -172,7 +189,8 @@ def worker_main(args: argparse.Namespace) -> int:
                         busy_cpu[min(len(busy_cpu), 1) :] = [(now, time.process_time())]
             return out
 
-        service.ingest.accept, service.handle = probe_accept, probe_handle
+        # The probes replace the bound methods of this one instance: the bench's measurement, not a change of it.
+        service.ingest.accept, service.handle = probe_accept, probe_handle  # type: ignore[method-assign]
 
     cpu0 = resource.getrusage(resource.RUSAGE_SELF)
     wall0 = time.monotonic()
@@ -225,6 +243,7 @@ def worker_main(args: argparse.Namespace) -> int:
 def publisher_main(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from lelsonar import codec
     from lelsonar.acquire import messages
     from lelsonar.acquire.backends import SimScanner
     from lelsonar.acquire.log_server import LogServer, ScanLog
@@ -259,7 +278,8 @@ def publisher_main(args: argparse.Namespace) -> int:
         # Nothing before the workers' subscriptions are known here (a put before them would be lost).
         probe = session.declare_publisher(ScannerKeys(PREFIX, names[-1]).sample)
         deadline = time.monotonic() + 60
-        while not probe.matching_status.matching and time.monotonic() < deadline:
+        # zenoh's stub types matching_status as bool; it is a MatchingStatus.
+        while not probe.matching_status.matching and time.monotonic() < deadline:  # type: ignore[attr-defined]
             time.sleep(0.01)
         probe.undeclare()
         print(_READY + "{}", flush=True)
@@ -276,12 +296,14 @@ def publisher_main(args: argparse.Namespace) -> int:
                     if delay > 0:
                         time.sleep(delay)
                     lag.append(max(0.0, time.monotonic() - due))
+                    msg: codec.ScanStart | codec.Sample | codec.ScanEnd
                     if j == 0:
                         msg = messages.scan_start(sid, scan_id, time.time_ns(), scanner.info, schedule, em)
                     elif j <= len(samples):
-                        msg = samples[j - 1]
-                        msg.scanner_id, msg.scan_id = sid, scan_id
-                        msg.acquisition_time_ns = time.time_ns()
+                        sample = samples[j - 1]
+                        sample.scanner_id, sample.scan_id = sid, scan_id
+                        sample.acquisition_time_ns = time.time_ns()
+                        msg = sample
                     else:
                         msg = messages.scan_end(
                             sid,
@@ -317,7 +339,8 @@ def publisher_main(args: argparse.Namespace) -> int:
         for s in servers:
             s.close()
         for o in outputs.values():
-            o.publisher.close()
+            if o.publisher is not None:
+                o.publisher.close()
     return 0
 
 
@@ -346,6 +369,7 @@ def _read_tagged(proc: subprocess.Popen, tag: str, timeout: float) -> dict | Non
     result: list = []
 
     def read() -> None:
+        assert proc.stdout is not None  # every child is started with stdout=PIPE
         for line in proc.stdout:
             if line.startswith(tag):
                 result.append(json.loads(line[len(tag) :]))
@@ -389,6 +413,7 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         try:
             router = _child(["router", "--listen", endpoint])
             procs.append(router)
+            assert router.stdout is not None  # started with stdout=PIPE
             if "listening" not in (router.stdout.readline() or ""):
                 raise SystemExit("bench fleet: the router did not start")
             with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as session:
@@ -439,18 +464,19 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                         w.send_signal(signal.SIGTERM)
                         reports.append(_read_tagged(w, _RESULT, 60))
                 sub.undeclare()
+                assert publisher.stdin is not None  # started with stdin=PIPE
                 publisher.stdin.close()
         finally:
             for p in procs:
                 if p.poll() is None:
                     p.kill()
                 p.wait()
-    reports = [r for r in reports if r]
-    processed = [x / 1e6 for r in reports for x in r["processed_ns"]]
-    provisional = [x / 1e6 for r in reports for x in r["provisional_ns"]]
-    firsts = [r["first"] for r in reports if r["first"] is not None]
-    lasts = [r["last"] for r in reports if r["last"] is not None]
-    samples = sum(r["samples"] for r in reports)
+    finished: list[dict] = [r for r in reports if r is not None]
+    processed = [x / 1e6 for r in finished for x in r["processed_ns"]]
+    provisional = [x / 1e6 for r in finished for x in r["provisional_ns"]]
+    firsts = [r["first"] for r in finished if r["first"] is not None]
+    lasts = [r["last"] for r in finished if r["last"] is not None]
+    samples = sum(r["samples"] for r in finished)
     statuses = [s for v in finals.values() for s in v]
     return {
         "kill_one": killed,
@@ -459,18 +485,20 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "duplicated_finals": sum(len(v) - 1 for v in finals.values()),
         "incomplete_finals": sum(1 for s in statuses if not s.startswith("final:") or not s.endswith(":0"))
         + (expected - len(finals)),
-        "handled_per_s": samples / (max(lasts) - min(firsts)) if len(firsts) and max(lasts) > min(firsts) else 0.0,
+        "handled_per_s": (samples - 1) / (max(lasts) - min(firsts))
+        if len(firsts) and max(lasts) > min(firsts)
+        else 0.0,
         "samples_processed": samples,
         "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
         "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
-        "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in reports},
+        "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in finished},
         # Over the window each was busy: a worker from its first live sample handled to its last (read at
         # most every 10 ms), the
         # publisher over its puts, the router over the publisher's puts.
         "busy_cpu": {
             **{
                 r["member"]: r["busy_cpu_s"] / r["busy_wall_s"]
-                for r in reports
+                for r in finished
                 if r.get("busy_cpu_s") is not None and r["busy_wall_s"] > 0
             },
             **({"publisher": pub["cpu_s"] / pub["wall_s"]} if pub and pub.get("wall_s") else {}),
@@ -480,13 +508,13 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                 else {}
             ),
         },
-        "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in reports},
-        "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in reports},
-        "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in reports},
+        "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in finished},
+        "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in finished},
+        "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in finished},
         "statuses": dict(Counter(statuses)),
-        "recovery": {r["member"]: r["service"]["recovery"] for r in reports},
-        "rejected": {r["member"]: r["service"]["rejected"] for r in reports},
-        "worker_errors": {r["member"]: r["errors"] for r in reports},
+        "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
+        "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
+        "worker_errors": {r["member"]: r["errors"] for r in finished},
         "publisher": pub,
         "elapsed_s": time.monotonic() - t_start,
     }
@@ -524,6 +552,8 @@ def run(args: argparse.Namespace) -> int:
         return worker_main(args)
     if args.role == "publisher":
         return publisher_main(args)
+    if args.capacity is not None:
+        return run_capacity(args, run_case, summarise, command_line)
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
@@ -557,13 +587,11 @@ def run(args: argparse.Namespace) -> int:
                 transient=True,
             ) as bar:
                 task = bar.add_task(label, total=args.scanners * args.scans)
-                runs.append(
-                    run_case(
-                        args,
-                        kill_one=kill,
-                        progress=lambda done, total, bar=bar, task=task: bar.update(task, completed=done),
-                    )
-                )
+
+                def show(done: int, total: int, task=task, bar=bar) -> None:
+                    bar.update(task, completed=done)
+
+                runs.append(run_case(args, kill_one=kill, progress=show))
         res = summarise(runs)
         res["case"] = label
         results.append(res)
@@ -581,8 +609,11 @@ def run(args: argparse.Namespace) -> int:
     def pub(r, key):
         return (r["publisher"] or {}).get(key, float("nan"))
 
+    offered = args.scanners * args.rate
     rows = [
+        ("offered samples/s (scanners × rate)", lambda r: f"{offered:.0f}"),
         ("handled samples/s", lambda r: f"{r['handled_per_s']:.0f}"),
+        ("handled / offered", lambda r: f"{r['handled_per_s'] / offered:.2f}"),
         ("put→processed p50 / p99, ms", lambda r: ms(r["processed_ms"])),
         ("put→provisional p50 / p99, ms", lambda r: ms(r["provisional_ms"])),
         ("scans with a final", lambda r: f"{r['scans_with_final']} / {r['expected_finals']}"),
@@ -603,9 +634,23 @@ def run(args: argparse.Namespace) -> int:
         ("publishing took / schedule, s", lambda r: f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f}"),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
-    for name, fn in rows:
-        table.add_row(name, *(fn(r) for r in results))
+    table_rows = [(name, *(fn(r) for r in results)) for name, fn in rows]
+    for row in table_rows:
+        table.add_row(*row)
     console.print(table)
+    from lelsonar.tools import bench_markdown
+
+    bench_markdown.write(
+        args.markdown,
+        [
+            bench_markdown.table(
+                str(table.title),
+                ["", *("failover" if r["kill_one"] else "steady" for r in results)],
+                table_rows,
+                [f"command: {command_line(args)}", f"machine: {machine()}"],
+            )
+        ],
+    )
     for r in results:
         console.print(
             f"{r['case']}: terminal statuses (status:missing steps) {r['statuses']}; adopted "

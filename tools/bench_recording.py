@@ -15,6 +15,12 @@ bench writes the same simulated scan, messages built beforehand, through
 and reads each file back with the tolerant reader.  Each row is the median of
 ``--runs`` runs, interleaved so a neighbour's load hits every row alike; the
 ratio is against the first row of the same compression.
+
+A second table replays ONE file of 1, 10 and 100 scans (``--rss-scans``) merged
+by ``mcap``'s own writer, each measurement in a fresh process
+(:mod:`lelsonar.tools.bench_replay`): the reading's speed against its floor,
+python ``mcap`` + upb on the same file, and the peak resident set of the
+replay, which must not grow with the file.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import time
 from pathlib import Path
 
 from lelsonar import codec
+from lelsonar.tools import bench_markdown
 
 #: Each row: its label and the McapRecorder options it measures.
 ROWS: tuple[tuple[str, dict[str, bool]], ...] = (
@@ -53,6 +60,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="where to write (default: a temporary directory; fsync cost depends on the disk)",
     )
     parser.add_argument("--seed", type=int, default=0, help="simulator seed (default: %(default)s)")
+    parser.add_argument(
+        "--rss-scans",
+        type=int,
+        nargs="*",
+        default=[1, 10, 100],
+        help="scans merged into one file for the replay speed and memory rows; none to skip (default: 1 10 100)",
+    )
+    parser.add_argument(
+        "--rss-runs", type=int, default=1, help="runs of each replay row; medians (default: %(default)s)"
+    )
+    parser.add_argument("--markdown", type=Path, default=None, help="also write the tables to this Markdown file")
 
 
 def command_line(args: argparse.Namespace) -> str:
@@ -67,6 +85,7 @@ def command_line(args: argparse.Namespace) -> str:
         parts.append(f"--steps {args.steps}")
     if args.dir is not None:
         parts.append(f"--dir {args.dir}")
+    parts.append(f"--rss-scans {' '.join(str(n) for n in args.rss_scans)} --rss-runs {args.rss_runs}")
     return " ".join(parts)
 
 
@@ -119,20 +138,19 @@ def read_once(path: Path) -> float:
     from lelsonar.log.recording import open_recording
 
     t = time.perf_counter()
-    open_recording(path).payloads()
+    for _ in open_recording(path).payloads():
+        pass
     return time.perf_counter() - t
 
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.table import Table
 
     from lelsonar.log.reader import salvage
     from lelsonar.tools.bench import machine
     from lelsonar.tools.bench_acquire import host_busy, host_line
 
-    console = Console()
-    console = console if console.is_terminal else Console(width=120)
+    console = Console(width=max(Console().width, 160))
     busy = host_busy()
     msgs = scan_messages(args.preset, args.steps, args.seed)
     steps = len(msgs) - 2
@@ -151,32 +169,116 @@ def run(args: argparse.Namespace) -> int:
                     sizes[(comp, name)] = path.stat().st_size
                     chunks[(comp, name)] = salvage(path).chunks_read
         fs = _filesystem(where)
-    table = Table(
-        title=f"writing one {args.preset} scan ({steps} steps, {len(msgs)} contract messages, "
-        f"each Sample with /tf and points) — medians of {args.runs}",
-        title_justify="left",
+    title = (
+        f"writing one {args.preset} scan ({steps} steps, {len(msgs)} contract messages, "
+        f"each Sample with /tf and points) — medians of {args.runs}"
     )
-    for col in ("compression", "recorder", "chunks", "write ms", "µs/step", "× before", "MB", "read ms"):
-        table.add_column(col, justify="left" if col in ("compression", "recorder") else "right")
+    headers = ("compression", "recorder", "chunks", "write ms", "µs/step", "× before", "MB", "read ms")
+    rows = []
     for comp in args.compression:
         base = statistics.median(times[(comp, ROWS[0][0])])
         for name, _ in ROWS:
             med = statistics.median(times[(comp, name)])
-            table.add_row(
-                comp,
-                name,
-                str(chunks[(comp, name)]),
-                f"{1e3 * med:.1f}",
-                f"{1e6 * med / steps:.0f}",
-                f"{med / base:.2f}",
-                f"{sizes[(comp, name)] / 1e6:.2f}",
-                f"{1e3 * statistics.median(reads[(comp, name)]):.1f}",
+            rows.append(
+                (
+                    comp,
+                    name,
+                    str(chunks[(comp, name)]),
+                    f"{1e3 * med:.1f}",
+                    f"{1e6 * med / steps:.0f}",
+                    f"{med / base:.2f}",
+                    f"{sizes[(comp, name)] / 1e6:.2f}",
+                    f"{1e3 * statistics.median(reads[(comp, name)]):.1f}",
+                )
             )
+    notes = [
+        f"machine: {machine()}; files on {fs}; {host_line(busy)}",
+        "floor: the first row of each compression (1 MiB chunks, no durability)",
+        "fsync's cost is the disk's: on a shared or loaded host it varies several-fold between runs",
+        f"command: {command_line(args)}",
+    ]
+    _print(console, title, headers, rows, notes)
+    sections = [bench_markdown.table(title, headers, rows, notes)]
+    ok = True
+    if args.rss_scans:
+        replay_section, ok = replay_memory(console, args)
+        sections.append(replay_section)
+    bench_markdown.write(args.markdown, sections)
+    return 0 if ok else 1
+
+
+def _print(console, title: str, headers, rows, notes) -> None:
+    from rich.table import Table
+
+    table = Table(title=title, title_justify="left")
+    for i, col in enumerate(headers):
+        table.add_column(col, justify="left" if i < 2 else "right")
+    for row in rows:
+        table.add_row(*row)
     console.print(table)
-    console.print(f"machine: {machine()}; files on {fs}; {host_line(busy)}")
-    console.print("fsync's cost is the disk's: on a shared or loaded host it varies several-fold between runs")
-    console.print(f"command: {command_line(args)}")
-    return 0
+    for note in notes:
+        console.print(note, highlight=False)
+
+
+#: Target: the replay's peak RSS on the largest file within this factor of the 1-scan file's.
+TARGET_RSS_GROWTH = 1.25
+
+
+def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
+    """The replay rows: one merged file per ``--rss-scans``; speed against python mcap + upb, and peak RSS."""
+    from lelsonar.tools import bench_replay
+    from lelsonar.tools.bench_acquire import host_busy, host_line
+
+    busy = host_busy()
+    rows = bench_replay.memory_rows(args.rss_scans, args.preset, args.rss_runs)
+    headers = (
+        "scans in one file",
+        "MB",
+        "samples",
+        "floor samples/s",
+        "read samples/s",
+        "read × floor",
+        "replay samples/s",
+        "replay × floor",
+        "peak RSS MiB replay / read / floor",
+    )
+    table_rows = []
+    ok = True
+    for r in rows:
+        floor, read, replay = (r["samples"] / r[f"{m}_s"] for m in ("floor", "read", "replay"))
+        ok &= read >= bench_replay.TARGET_RATIO * floor
+        table_rows.append(
+            (
+                str(r["scans"]),
+                f"{r['mb']:.0f}",
+                str(r["samples"]),
+                f"{floor:,.0f}",
+                f"{read:,.0f}",
+                f"{read / floor:.2f}×",
+                f"{replay:,.0f}",
+                f"{replay / floor:.2f}×",
+                f"{r['replay_rss']:.0f} / {r['read_rss']:.0f} / {r['floor_rss']:.0f}",
+            )
+        )
+    growth = rows[-1]["replay_rss"] / rows[0]["replay_rss"] if rows else float("nan")
+    flat = growth <= TARGET_RSS_GROWTH
+    ok &= flat
+    title = (
+        f"replay of ONE file of N scans merged by mcap's own writer — medians of {args.rss_runs}, fresh process each"
+    )
+    notes = [
+        f"floor: {bench_replay.FLOOR}",
+        "read: lelsonar's tolerant reader (iter_payloads, every chunk's CRC checked) + upb FromString; target "
+        f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
+        "replay: replay_mcap through ReconstructionService(provisional=False), as `reconstruct --source`: "
+        "reading, decoding, validation, assembly and the final estimates",
+        f"peak RSS: VmHWM of the child process; replay's at {rows[-1]['scans'] if rows else '?'} scans is "
+        f"{growth:.2f}× its 1st file's (target ≤ {TARGET_RSS_GROWTH}×: flat in the file's length) "
+        + ("[green]PASS[/]" if flat else "[red]FAIL[/]"),
+        f"{host_line(busy)}",
+    ]
+    _print(console, title, headers, table_rows, notes)
+    return bench_markdown.table(title, headers, table_rows, notes), ok
 
 
 def _filesystem(path: Path) -> str:

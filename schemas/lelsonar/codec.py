@@ -305,8 +305,9 @@ def validate(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> None:
     _VALIDATORS[type(message)](message, limits)
 
 
-def _top_level(message: Message) -> WireMessage:
-    if not isinstance(message, _TOP_LEVEL):
+def _top_level(message: Message) -> WireMessage | scan_pb2.Odometry:
+    """``message`` if it carries the contract's header (``schema_version``, ``scanner_id``)."""
+    if not isinstance(message, (*_TOP_LEVEL, scan_pb2.Odometry)):
         raise InvalidMessageError(
             f"{message.DESCRIPTOR.full_name} is not a top-level message of the contract; "
             f"pass one of {', '.join(MESSAGE_TYPES)}"

@@ -29,6 +29,8 @@ from lelsonar.errors import InvalidIdentifierError
 DEFAULT_PREFIX = "lelsonar"
 #: Most samples one log query may ask for (the acquirer refuses larger ranges).
 MAX_LOG_STEPS_PER_QUERY = 64
+#: The encoding of the log's error reply "this scan is not (or no longer) held": the querier stops asking.
+LOG_NOT_HELD_ENCODING = "text/plain;lelsonar.log.not_held"
 _UINT64_MAX = 2**64 - 1
 MAX_ID_LENGTH = 64
 MAX_PREFIX_LENGTH = 200

@@ -5,8 +5,9 @@ user places a flat wall parallel to the array, measures the distance from the
 capsule faces to the wall, and types it.  The board fires, the summed waveform
 energy ``E^{0°}(d)`` (eq. 10–11) is kept, and eq. (12) is fitted by eq. (13)–(14).
 The board's own range (c·TOF/2) is shown next to the typed one, so a typo or a
-wall that is not where it should be shows at once.  φ and its valid range go into
-the rig file's ``[energy_model]`` table; every other line of the file is kept.
+wall that is not where it should be shows at once; a fit whose shots disagree
+beyond :func:`range_tolerance` is refused unless forced.  φ and its valid range go
+into the rig file's ``[energy_model]`` table; every other line of the file is kept.
 """
 
 from __future__ import annotations
@@ -37,11 +38,56 @@ REQUIRED_FOR_CALIBRATION = (
 )
 
 
+#: The capsules' carrier, Hz: a comparator that slips one cycle moves the range by c / (2 f).
+CARRIER_HZ = 40_000.0
+#: A tape measure read to the centimetre, m.
+TAPE_TOLERANCE = 0.01
+#: The speed of sound's relative error when the rig file's temperature is off by about 6 °C.
+SOUND_SPEED_TOLERANCE = 0.01
+
+
 @dataclass(frozen=True)
 class Shot:
     distance: float  # m, as typed
     energy: float  # V²·s, summed over the capsules
     board_range: float  # m, median c·TOF/2 of the capsules with an echo (NaN: none)
+    tolerance: float = float("inf")  # m, how far board_range may be from distance (range_tolerance)
+
+    @property
+    def agrees(self) -> bool:
+        """The board saw a wall where the typed distance says, within the noise model."""
+        return bool(np.isfinite(self.board_range) and abs(self.board_range - self.distance) <= self.tolerance)
+
+
+def range_tolerance(distance: float, sound_speed: float) -> float:
+    """How far the board's range may lie from a typed distance on a good shot, m.
+
+    The sum of the tape's reading (:data:`TAPE_TOLERANCE`), one slipped carrier cycle of the
+    comparator (c / 2f), and the range error of a speed of sound off by :data:`SOUND_SPEED_TOLERANCE`.
+    """
+    return TAPE_TOLERANCE + sound_speed / (2.0 * CARRIER_HZ) + SOUND_SPEED_TOLERANCE * distance
+
+
+def check_shots(shots: list[Shot]) -> None:
+    """Refuse shots whose board range disagrees with the typed distance.
+
+    Raises
+    ------
+    ConfigError
+        Naming each such shot; the fit would calibrate E0 against the wrong distances.
+    """
+    bad = [(i, s) for i, s in enumerate(shots, 1) if not s.agrees]
+    if not bad:
+        return
+    what = ", ".join(
+        f"shot {i} typed {s.distance:.3f} m, board "
+        + (f"{s.board_range:.3f} m (±{s.tolerance:.3f})" if np.isfinite(s.board_range) else "no echo")
+        for i, s in bad
+    )
+    raise ConfigError(
+        f"{len(bad)} of {len(shots)} shots disagree with their typed distance ({what}); the rig file is "
+        "unchanged: check the wall and the tape and shoot again, or pass --force to write the fit anyway"
+    )
 
 
 def _require(rig: Rig, overrides: dict) -> None:
@@ -63,6 +109,7 @@ def calibrate_serial(
     motor_port: str | None = None,
     sensor_port: str | None = None,
     write: bool = True,
+    force: bool = False,
 ) -> tuple[list[Shot], EnergyModel]:
     """Guide the shots, fit φ and (unless ``write`` is False) write it into ``rig_path``.
 
@@ -76,11 +123,14 @@ def calibrate_serial(
         Shows a prompt and returns the typed line (``input`` at a terminal).
     say : callable
         Prints a line.
+    force : bool
+        Fit (and write) even when shots disagree with their typed distance (:func:`check_shots`).
 
     Raises
     ------
     ConfigError
-        Missing rig keys, an unparsable distance, the user quit, or too few usable shots.
+        Missing rig keys, an unparsable distance, the user quit, too few usable shots, or shots that
+        disagree with their distances (without ``force``).
     """
     rig = load_rig(rig_path)
     _require(rig, {"servo.port": motor_port, "sensor_board.port": sensor_port})
@@ -128,10 +178,12 @@ def calibrate_serial(
             tof = np.asarray(shot.tof_s, dtype=float)
             ranges = c * tof[np.isfinite(tof)] / 2.0
             board_range = float(np.median(ranges)) if ranges.size else float("nan")
-            shots.append(Shot(d, e, board_range))
+            shots.append(Shot(d, e, board_range, range_tolerance(d, c)))
             check = f"board range {board_range:.3f} m" if np.isfinite(board_range) else "no echo"
-            warn = "  ← check the wall and the tape" if np.isfinite(board_range) and abs(board_range - d) > 0.05 else ""
+            warn = "" if shots[-1].agrees else "  ← check the wall and the tape"
             say(f"  d = {d:.3f} m: E = {e:.4e} V²·s, {check}{warn}")
+    if not force:
+        check_shots(shots)
     distances_m = np.array([s.distance for s in shots])
     model = fit_energy_model(distances_m, np.array([s.energy for s in shots]))
     if write:

@@ -33,9 +33,13 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
-from lelsonar.keys import MAX_LOG_STEPS_PER_QUERY, ScannerKeys
+from lelsonar.keys import LOG_NOT_HELD_ENCODING, MAX_LOG_STEPS_PER_QUERY, ScannerKeys
+from lelsonar.v1 import reconstruction_pb2
 
 _log = logging.getLogger(__name__)
+
+#: Reconstructors and settled scans remembered by :class:`Receipts` (keys are wire data: bounded).
+_MAX_RECEIPTS = 1024
 
 
 @dataclass
@@ -157,6 +161,75 @@ def parse_parameters(params: zenoh.Parameters | str) -> tuple[tuple[int, int] | 
     return rng, flag[start], flag[end]
 
 
+class Receipts:
+    """Whether a reconstructor may still need the log of a scan (so ``acquire`` keeps serving it).
+
+    A reconstructor declares ``<prefix>/<scanner>/alive/reconstruct`` and publishes its estimates on
+    ``<prefix>/<scanner>/planes``.  A scan is *settled* once a terminal estimate of it is heard.  An
+    unsettled scan is still wanted while a reconstructor is alive, or was lost less than ``lost_grace``
+    seconds ago (a partition drops its token after the lease; it may come back and ask).  Runs short
+    callbacks on Zenoh's threads: one per liveliness change, one per estimate.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        keys: ScannerKeys,
+        *,
+        lost_grace: float = 30.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self._scanner = keys.scanner_id
+        self.lost_grace = lost_grace
+        self._clock = clock
+        self._lock = threading.Lock()
+        self._alive: OrderedDict[str, None] = OrderedDict()  # token keys present (bounded: wire data)
+        self._lost_at: float | None = None
+        self._settled: OrderedDict[int, None] = OrderedDict()
+        self._entities = [
+            session.liveliness().declare_subscriber(keys.alive("reconstruct"), self._token, history=True),
+            session.declare_subscriber(keys.planes, self._estimate),
+        ]
+
+    def _token(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)[:300]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive[key] = None
+                while len(self._alive) > _MAX_RECEIPTS:
+                    self._alive.popitem(last=False)
+            elif self._alive.pop(key, 0) is None:
+                self._lost_at = self._clock()
+
+    def _estimate(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = codec.decode(sample.payload.to_bytes(), codec.Reconstruction)
+        except LelsonarError:
+            return  # not an estimate we can read: it settles nothing
+        if msg.scanner_id != self._scanner or msg.status == reconstruction_pb2.ESTIMATE_STATUS_PROVISIONAL:
+            return
+        with self._lock:
+            self._settled[int(msg.scan_id)] = None
+            while len(self._settled) > _MAX_RECEIPTS:
+                self._settled.popitem(last=False)
+
+    def wanted(self, scan_id: int) -> bool:
+        """Whether scan ``scan_id`` may still be asked for (see the class)."""
+        with self._lock:
+            if scan_id in self._settled:
+                return False
+            if self._alive:
+                return True
+            return self._lost_at is not None and self._clock() - self._lost_at < self.lost_grace
+
+    def close(self) -> None:
+        for entity in self._entities:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:
+                _log.warning("log server: undeclaring a receipts subscriber failed: %s", exc)
+
+
 class LogServer:
     """Answers log queries of one scanner from a :class:`ScanLog`, on a worker thread.
 
@@ -213,7 +286,8 @@ class LogServer:
             self.stats["refused: scan not held"] += 1
             query.reply_err(
                 f"scan {scan_id} is not (or no longer) in the log of {scanner}; held: "
-                f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)"
+                f"{self._log.scan_ids[-8:]} (acquire --serve-log-for keeps ended scans longer)",
+                encoding=zenoh.Encoding(LOG_NOT_HELD_ENCODING),
             )
             return
         self.stats["queries"] += 1

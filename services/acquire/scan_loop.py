@@ -20,6 +20,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -30,7 +31,7 @@ from lelsonar.acquire import messages
 from lelsonar.acquire.log_server import ScanLog
 from lelsonar.acquire.scanner import Scanner, StepMeasurement
 from lelsonar.energy_model import EnergyModel
-from lelsonar.errors import DeviceError
+from lelsonar.errors import DeviceError, RecordingError
 from lelsonar.keys import ScannerKeys
 from lelsonar.log.recording import McapRecorder
 
@@ -38,7 +39,12 @@ _log = logging.getLogger(__name__)
 
 
 class ScanPublisher:
-    """Puts contract messages on their Zenoh keys; samples use congestion control BLOCK."""
+    """Puts contract messages on their Zenoh keys; samples use congestion control BLOCK.
+
+    Counts the samples put while no subscriber matched their key (Zenoh's matching status, kept
+    current by a listener): nobody received those live.  Samples lost on a link that still looked
+    matched (the first seconds of a partition, before the lease expires) cannot be counted here.
+    """
 
     def __init__(self, session: zenoh.Session, keys: ScannerKeys) -> None:
         block = zenoh.CongestionControl.BLOCK
@@ -47,15 +53,31 @@ class ScanPublisher:
         )
         # Same priority as the samples, so start, samples and end stay in order on the link.
         self._scan = session.declare_publisher(keys.scan, congestion_control=block)
+        status: Any = self._sample.matching_status  # a MatchingStatus (the stubs say bool)
+        self._matching = bool(status.matching)
+        self._listener = self._sample.declare_matching_listener(self._matched)
+        #: Samples put while no subscriber matched, since the last :meth:`take_unmatched`.
+        self.unmatched = 0
+
+    def _matched(self, status: zenoh.MatchingStatus) -> None:
+        self._matching = bool(status.matching)
 
     def publish(self, message: Message) -> None:
         payload = message.SerializeToString()
         if isinstance(message, codec.Sample):
             self._sample.put(payload)
+            if not self._matching:
+                self.unmatched += 1
         else:
             self._scan.put(payload, encoding=zenoh.Encoding(codec.encoding_name(message)))
 
+    def take_unmatched(self) -> int:
+        """Samples put with no subscriber matching since the last call (then reset)."""
+        n, self.unmatched = self.unmatched, 0
+        return n
+
     def close(self) -> None:
+        self._listener.undeclare()
         self._sample.undeclare()
         self._scan.undeclare()
 
@@ -72,10 +94,25 @@ class ScanOutput:
     publisher: ScanPublisher | None = None
     publish_failures: int = 0
     scan_log: ScanLog | None = None
+    #: Why recording failed (a full or read-only disk), or None.  Nothing is recorded after it.
+    recording_failure: str | None = None
 
     def emit(self, message: codec.ScanMessage) -> None:
-        if self.recorder is not None:
-            self.recorder.write(message)  # returns once the step is with the OS: durable before published
+        """Record, keep for the log server, publish.
+
+        Raises
+        ------
+        RecordingError
+            The message could not be recorded (then it is not published either), except a ScanEnd: after a
+            failed recording, the ScanEnd that says so is published unrecorded, so consumers learn of it.
+        """
+        if self.recorder is not None and self.recording_failure is None:
+            try:
+                self.recorder.write(message)  # returns once the step is with the OS: durable before published
+            except RecordingError as exc:
+                self.recording_failure = str(exc)
+                if not isinstance(message, codec.ScanEnd):
+                    raise
         if self.scan_log is not None:
             self.scan_log.add(message)
         if self.publisher is not None:
@@ -87,8 +124,11 @@ class ScanOutput:
 
     def log(self, level: str, text: str) -> None:
         getattr(_log, level.lower(), _log.info)(text)
-        if self.recorder is not None:
-            self.recorder.log(level, text)
+        if self.recorder is not None and self.recording_failure is None:
+            try:
+                self.recorder.log(level, text)
+            except RecordingError as exc:
+                self.recording_failure = str(exc)
 
 
 def gamma_schedule(gamma_start: float, gamma_stop: float, steps: int) -> np.ndarray:
@@ -116,7 +156,13 @@ def run_scan(
     """Acquire one scan; return its ``ScanEnd`` (complete or aborted, never raising on device faults).
 
     ``on_step(step, gamma_measured)`` is called once each sample is emitted (in the pipelined
-    loop, during the next step's acoustic window).
+    loop, during the next step's acoustic window).  A recording that fails mid-scan (a full disk)
+    ends the scan ``ABORTED`` with the reason, its ScanEnd published.
+
+    Raises
+    ------
+    RecordingError
+        The ScanStart itself could not be recorded: the scan did not start, nothing was published.
     """
     info = scanner.info
     output.emit(messages.scan_start(who.scanner_id, who.scan_id, time.time_ns(), info, schedule, energy_model))
@@ -148,27 +194,33 @@ def run_scan(
         listened = True
         emit_measured()
 
-    for step, gamma in enumerate(schedule):
-        if stop.is_set():
-            reason = f"stopped by request before step {step}"
-            break
-        next_gamma = float(schedule[step + 1]) if step + 1 < len(schedule) else None
-        listened = False
-        try:
-            shot = scanner.measure(step, float(gamma), next_gamma=next_gamma, while_listening=while_listening)
-        except DeviceError as exc:
-            emit_measured()  # the step before the fault was measured whole: it is kept
-            reason = f"device failure at step {step}: {exc}"
-            output.log("ERROR", reason)
-            break
-        except BaseException:
-            emit_measured()  # whatever else stops the loop, what was measured is recorded
-            raise
-        emit_measured()
-        measured = (step, float(gamma), shot)
-        if not listened:  # a scanner that does not work while listening: out at once, as ever
+    try:
+        for step, gamma in enumerate(schedule):
+            if stop.is_set():
+                reason = f"stopped by request before step {step}"
+                break
+            next_gamma = float(schedule[step + 1]) if step + 1 < len(schedule) else None
+            listened = False
+            try:
+                shot = scanner.measure(step, float(gamma), next_gamma=next_gamma, while_listening=while_listening)
+            except DeviceError as exc:
+                emit_measured()  # the step before the fault was measured whole: it is kept
+                reason = f"device failure at step {step}: {exc}"
+                output.log("ERROR", reason)
+                break
+            except RecordingError:
+                raise
+            except BaseException:
+                emit_measured()  # whatever else stops the loop, what was measured is recorded
+                raise
             emit_measured()
-    emit_measured()
+            measured = (step, float(gamma), shot)
+            if not listened:  # a scanner that does not work while listening: out at once, as ever
+                emit_measured()
+        emit_measured()
+    except RecordingError as exc:
+        measured = None  # not recorded, so not published
+        reason = f"recording failed after {sent} samples: {exc}"  # the caller's status line says it, once
     complete = sent == len(schedule)
     end = messages.scan_end(
         who.scanner_id,
@@ -181,7 +233,8 @@ def run_scan(
         echoes_missing=missing,
     )
     output.log(
-        "INFO" if complete else "WARNING",
+        # (A failed recording cannot take this line, and the caller's status line says it.)
+        "INFO" if complete or output.recording_failure else "WARNING",
         f"scan {who.scan_id} {'complete' if complete else 'aborted'}: {sent}/{len(schedule)} samples"
         + (f" ({reason})" if reason else ""),
     )

@@ -108,7 +108,8 @@ def record_scan(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"device": "sim", "scanner_id": scanner_id, **truth_metadata(scan), **dict(metadata or {})}
-    with McapRecorder(path, compression=compression, metadata=meta) as recorder:
+    truth = [(p.label, p.normal, p.offset, p.corners) for p in scan.truth.planes]
+    with McapRecorder(path, compression=compression, metadata=meta, truth=truth) as recorder:
         return run_scan(
             ScanReplay(scan),
             np.asarray(scan.gamma_commanded),

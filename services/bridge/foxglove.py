@@ -15,21 +15,24 @@ planes of a simulated scene), ``/lelsonar/energy`` (E^γ, E0(d_m), R and the
 critical step, plottable JSON) and ``/log``.
 
 Protocol notes (foxglove-sdk 0.30): the server speaks the subprotocol
-``foxglove.sdk.v1`` and refuses a client that offers only
-``foxglove.websocket.v1``; a data frame is ``0x01 | u32 subscription id | u64
-log time | payload``.
+``foxglove.sdk.v1`` only, and foxglove-sdk has no option to speak the older
+``foxglove.websocket.v1``: the Foxglove app (web or desktop, 2.x) connects;
+a client that offers only ``foxglove.websocket.v1`` (Lichtblick, Foxglove
+Studio 1.x) is refused (HTTP 400) and should open a recording instead
+(``reconstruct --record`` or ``export``).  A data frame is ``0x01 | u32
+subscription id | u64 log time | payload``.
 """
 
 from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 
 import foxglove
 import numpy as np
-from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from google.protobuf.message import Message
 
 from lelsonar import codec
@@ -40,7 +43,7 @@ from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 
 #: WebSocket subprotocols a client may offer; foxglove-sdk 0.30 needs the first.
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
-TOPIC_TRUTH = "/lelsonar/truth"
+TOPIC_TRUTH = visual.TOPIC_TRUTH
 
 _PROTO_TOPICS: dict[str, type[Message]] = {
     visual.TOPIC_TF: visual.FrameTransform,
@@ -70,7 +73,7 @@ def parse_host_port(text: str, default_host: str = "127.0.0.1") -> tuple[str, in
     return host, value
 
 
-class _Subscriptions:
+class _Subscriptions(foxglove.ServerListener):
     """Counts channel subscriptions, so callers can wait for a viewer instead of sleeping."""
 
     def __init__(self) -> None:
@@ -87,9 +90,18 @@ class _Subscriptions:
             self.topics[channel.topic] = max(0, self.topics.get(channel.topic, 0) - 1)
             self._cond.notify_all()
 
-    def wait(self, topics: Sequence[str], timeout: float) -> bool:
+    def wait(self, topics: Sequence[str], timeout: float, stop: threading.Event | None = None) -> bool:
+        """True once every topic has a subscriber; False after ``timeout`` s or once ``stop`` is set."""
+        deadline = time.monotonic() + timeout
         with self._cond:
-            return self._cond.wait_for(lambda: all(self.topics.get(t, 0) > 0 for t in topics), timeout)
+            while True:
+                if all(self.topics.get(t, 0) > 0 for t in topics):
+                    return True
+                left = deadline - time.monotonic()
+                if left <= 0 or (stop is not None and stop.is_set()):
+                    return False
+                # In slices: a signal handler sets ``stop`` without notifying this condition.
+                self._cond.wait(min(left, 0.1) if stop is not None else left)
 
 
 class FoxgloveServer:
@@ -144,9 +156,9 @@ class FoxgloveServer:
     def log_json(self, topic: str, payload: dict, t_ns: int) -> None:
         self._channels[topic].log(payload, log_time=int(t_ns))
 
-    def wait_for_subscribers(self, topics: Sequence[str], timeout: float) -> bool:
-        """True once every topic has a subscriber; False after ``timeout`` s."""
-        return self.subscriptions.wait(topics, timeout)
+    def wait_for_subscribers(self, topics: Sequence[str], timeout: float, stop: threading.Event | None = None) -> bool:
+        """True once every topic has a subscriber; False after ``timeout`` s or once ``stop`` is set (Ctrl-C)."""
+        return self.subscriptions.wait(topics, timeout, stop)
 
     def close(self) -> None:
         for ch in self._channels.values():
@@ -198,7 +210,7 @@ class FoxgloveObserver:
         if pose is not None:
             self.server.log(visual.TOPIC_WORLD, pose, t)
         if self.truth:
-            self.server.log(TOPIC_TRUTH, truth_scene(self.truth, s.scanner_id, t), t)
+            self.server.log(TOPIC_TRUTH, visual.truth_scene(self.truth, s.scanner_id, t), t)
 
     def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None:
         t = view.time_ns
@@ -276,27 +288,6 @@ class FoxgloveObserver:
         self.server.log(visual.TOPIC_LOG, visual.log_message(level, text, t), t)
 
 
-def truth_scene(planes, scanner_id: str, t_ns: int) -> visual.SceneUpdate:
-    """The true planes as grey patches."""
-    entities: list[SceneEntity] = []
-    for label, normal, offset, corners in planes:
-        msg = codec.Reconstruction(scanner_id=scanner_id, scan_id=0)
-        p = msg.planes.add(label=str(label), method="truth", offset=float(offset))
-        p.normal.x, p.normal.y, p.normal.z = map(float, normal)
-        for c in np.asarray(corners, dtype=float).reshape(-1, 3):
-            q = p.patch.add()
-            q.x, q.y, q.z = c
-        entities.extend(visual.PlaneScene().update(msg, t_ns).entities)
-    for e, (label, _normal, offset, _corners) in zip(entities, planes):
-        e.id = f"{scanner_id}/truth/{label}"
-        del e.metadata[:]
-        for prim in (*e.triangles, *e.lines, *e.arrows, *e.texts):
-            prim.color.r = prim.color.g = prim.color.b = 0.63
-        e.triangles[0].color.a = 0.3
-        e.texts[0].text = f"truth {label}: h = {float(offset):.3f} m"
-    return visual.SceneUpdate(entities=entities)
-
-
 @contextmanager
 def open_foxglove(address: str, *, truth_preset: str | None = None) -> Iterator[FoxgloveObserver]:
     """Serve Foxglove at ``[HOST:]PORT`` for the duration of the block; the observer draws on it."""
@@ -318,8 +309,10 @@ def layout_json() -> str:
 
     A 3D view (the scan's points coloured by step, the latest step's points, the
     planes, the truth, the array and its capsule frames, following the world
-    frame), plots of E^γ against E0(d_m) and of R with the critical step, and the
-    log.  Works live and on a recording: the topics are the same.  (foxglove-sdk's
+    frame); plots of E^γ against E0(d_m), of each capsule's range, of R, and of the
+    critical step, each on its own axis; and the log.  Works live and on a recording:
+    a recording carries the same topics (``/lelsonar/energy`` from the acquisition,
+    without the critical step, which only a reconstruction finds).  (foxglove-sdk's
     ``foxglove.layouts`` builds the notebook widget's format, not this one.)
     Regenerate the file with ``python -m lelsonar.bridge.foxglove > examples/foxglove-layout.json``.
     """
@@ -401,11 +394,16 @@ def layout_json() -> str:
                 series(visual.TOPIC_STEP, "energy", "E^γ (acquisition)", "#9467bd"),
             ],
         ),
-        "Plot!ratio": plot(
-            "ratio R and the critical step",
+        "Plot!ratio": plot("ratio R = E^γ / E0(d_m)", [series(visual.TOPIC_ENERGY, "ratio", "R", "#2ca02c")]),
+        "Plot!critical": plot(
+            "critical step (step number)",
+            [series(visual.TOPIC_ENERGY, "critical_step", "critical step", "#d62728")],
+        ),
+        "Plot!ranges": plot(
+            "ranges per capsule, m",
             [
-                series(visual.TOPIC_ENERGY, "ratio", "R", "#2ca02c"),
-                series(visual.TOPIC_ENERGY, "critical_step", "critical step", "#d62728"),
+                series(visual.TOPIC_STEP, f"range.{name}", f"range {name}", color)
+                for name, color in zip("ABCD", ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728"))
             ],
         ),
         "RosOut!log": {
@@ -425,10 +423,15 @@ def layout_json() -> str:
             "direction": "row",
             "splitPercentage": 60,
             "second": {
-                "first": "Plot!energy",
+                "first": {"first": "Plot!energy", "second": "Plot!ranges", "direction": "column"},
                 "direction": "column",
-                "splitPercentage": 33,
-                "second": {"first": "Plot!ratio", "second": "RosOut!log", "direction": "column", "splitPercentage": 50},
+                "splitPercentage": 40,
+                "second": {
+                    "first": {"first": "Plot!ratio", "second": "Plot!critical", "direction": "row"},
+                    "second": "RosOut!log",
+                    "direction": "column",
+                    "splitPercentage": 60,
+                },
             },
         },
     }

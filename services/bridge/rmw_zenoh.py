@@ -28,10 +28,12 @@ Targets ``rmw_zenoh_cpp`` ≥ 0.2.4 (Jazzy) and 0.6 (Kilted), whose design
   and for remote ones it learns from tokens (``ros2 topic info -v``).  Stock
   XXH3-128 (PyPI ``xxhash``) equals rmw_zenoh's ``simplified_XXH3_128bits``.
 
-``TRANSIENT_LOCAL`` topics (``/tf_static``, the planes, the estimate) go out
-through a zenoh-ext ``AdvancedPublisher`` with a cache of ``depth`` samples and
-publisher detection, as rmw_zenoh declares them, so a late subscriber's history
-query can fetch them.
+**Publishers** are declared as rmw_zenoh declares its own (``rmw_publisher_data.cpp``): every one
+a zenoh-ext ``AdvancedPublisher``; a ``TRANSIENT_LOCAL`` topic (``/tf_static``, the planes, the
+estimate) with a cache of ``depth`` samples, publisher detection and, being RELIABLE, sample-miss
+detection by sporadic heartbeat every 0.5 s, so a late or lossy subscriber fetches what it lacks;
+congestion control DROP for KEEP_LAST (every topic here), so a slow ROS subscriber never stalls the
+bridge (BLOCK is for KEEP_ALL, which no topic here uses).  See :func:`publisher_options`.
 """
 
 from __future__ import annotations
@@ -56,6 +58,8 @@ ADMIN_SPACE = "@ros2_lv"
 RMW_ZENOH_DEFAULT_DEPTH = 42
 DURABILITY_TRANSIENT_LOCAL = 1  # rmw/types.h rmw_qos_durability_policy_e
 GID_SIZE = 16
+#: rmw_zenoh's ``SAMPLE_MISS_DETECTION_HEARTBEAT_PERIOD`` (RELIABLE + TRANSIENT_LOCAL publishers), s.
+SAMPLE_MISS_HEARTBEAT_PERIOD = 0.5
 
 _NODE_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 _NAMESPACE = re.compile(r"/|(/[A-Za-z_][A-Za-z0-9_]*)+")
@@ -132,6 +136,28 @@ def publisher_token(
         f"{ADMIN_SPACE}/{domain_id}/{zid}/{node_id}/{entity_id}/MP/{mangle(enclave)}/{mangle(namespace)}/{node}"
         f"/{mangle(topic)}/{dds_type_name(msgtype)}/{type_hash}/{qos_chunk(qos)}"
     )
+
+
+def publisher_options(qos: ros2.TopicQos) -> dict:
+    """The keyword arguments of ``zenoh.ext.declare_advanced_publisher`` that rmw_zenoh uses for ``qos``.
+
+    Every topic here is RELIABLE and KEEP_LAST: congestion control DROP (rmw_zenoh blocks only for
+    KEEP_ALL); TRANSIENT_LOCAL adds the cache of ``depth`` samples, publisher detection and miss
+    detection by sporadic heartbeat.
+    """
+    options: dict = {
+        "congestion_control": zenoh.CongestionControl.DROP,
+        "reliability": zenoh.Reliability.RELIABLE,
+    }
+    if qos.transient_local:
+        options.update(
+            cache=zenoh.ext.CacheConfig(qos.depth),
+            publisher_detection=True,
+            sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                heartbeat=None, sporadic_heartbeat=SAMPLE_MISS_HEARTBEAT_PERIOD
+            ),
+        )
+    return options
 
 
 def gid_of(token: str) -> bytes:
@@ -235,17 +261,7 @@ class RmwZenohNode:
                 h,
                 qos,
             )
-            zpub: zenoh.Publisher | zenoh.ext.AdvancedPublisher
-            if qos.transient_local:
-                zpub = zenoh.ext.declare_advanced_publisher(
-                    self._session,
-                    key,
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                    cache=zenoh.ext.CacheConfig(qos.depth),
-                    publisher_detection=True,
-                )
-            else:
-                zpub = self._session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            zpub = zenoh.ext.declare_advanced_publisher(self._session, key, **publisher_options(qos))
             token = self._session.liveliness().declare_token(token_key)
             pub = self._publishers[topic] = _Publisher(key, token_key, gid_of(token_key), msgtype, zpub, token)
             return pub

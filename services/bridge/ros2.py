@@ -61,6 +61,7 @@ from lelsonar import codec
 from lelsonar.codec import QUALITY_NAME
 from lelsonar.draw.palette import method_color
 from lelsonar.errors import ConfigError, RecordingError
+from lelsonar.log.reader import check_recording_path
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
 from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
@@ -641,6 +642,7 @@ def export_rosbag2(
     out = Path(out_dir)
     if out.exists():
         raise RecordingError(f"{out} already exists; rosbag2 writes a new directory (remove it or pick another -o)")
+    check_recording_path(source)  # a named pipe or a device is refused before it is opened
     if not Path(source).is_file():
         raise RecordingError(f"no recording at {source}")
     out.parent.mkdir(parents=True, exist_ok=True)

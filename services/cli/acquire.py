@@ -41,6 +41,7 @@ _TOML_KEYS = {
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.acquire.backends import DEVICES
+    from lelsonar.cli.paths import add_overwrite_argument
     from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
     from lelsonar.sim import preset_names
@@ -80,8 +81,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--radial-offset", type=float, metavar="M", help="capsule faces from the rotation axis, m")
     p.add_argument("--motor-port", help="serial device of the AX-12 (device serial), e.g. /dev/ttyUSB0")
     p.add_argument("--sensor-port", help="serial device of the sensor board (device serial), e.g. /dev/ttyACM0")
-    p.add_argument("--out", type=Path, dest="out_dir", help="directory for recordings (default: out)")
-    p.add_argument("--mcap-name", help="recording file name (default: scan.mcap; several scans add -N)")
+    p.add_argument("--out", type=Path, dest="out_dir", metavar="DIR", help="directory for recordings (default: out)")
+    p.add_argument(
+        "--mcap-name",
+        metavar="NAME.mcap",
+        help="recording file name (default: scan.mcap; several scans add -N); an existing one is refused "
+        "unless --overwrite",
+    )
+    add_overwrite_argument(p)
     p.add_argument(
         "--no-record", dest="record", action="store_false", default=None, help="do not write an MCAP file (Zenoh only)"
     )
@@ -212,12 +219,16 @@ def config_from_args(args: argparse.Namespace):
 
 
 def run_acquire(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     from lelsonar.acquire.service import run_acquisition
     from lelsonar.net.transport import zenoh_settings_from_args
+    from lelsonar.view import present
 
     cfg = config_from_args(args)
+    check_recordings(cfg, overwrite=args.overwrite)
+    if cfg.device != "serial":  # the simulated acoustics run the kernels
+        from lelsonar.cli.warm_up import ensure_compiled
+
+        ensure_compiled()
     zenoh = None if args.no_zenoh else zenoh_settings_from_args(args)
     if zenoh is not None and args.secure is not None:
         from lelsonar.net.secure import acquire_role, secure_settings
@@ -225,9 +236,16 @@ def run_acquire(args: argparse.Namespace) -> int:
         # A client of the secure router: only the router's access rules let it publish, and only its own keys.
         zenoh = secure_settings(zenoh, args.secure, acquire_role(cfg.scanner_id), cfg.prefix)
     stop = threading.Event()
+    interrupted = threading.Event()
+
+    def on_signal(signum, _frame) -> None:
+        if signum == signal.SIGINT:
+            interrupted.set()
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    console = Console(stderr=True)
+        signal.signal(sig, on_signal)
+    console = present.console(stderr=True)
     if zenoh is not None:
         console.print(f"acquire: publishing on {cfg.prefix}/{cfg.scanner_id}/{{sample,scan}} ({zenoh.describe()})")
     report = run_acquisition(cfg, zenoh, stop, console)
@@ -240,4 +258,18 @@ def run_acquire(args: argparse.Namespace) -> int:
         )
     if report.paths:
         console.print(f"open the recording with: rerun {' '.join(str(p) for p in report.paths)}")
-    return 0 if report.ok else 1
+    if report.ok:  # Ctrl-C while serving the log after complete scans ends that service: done
+        return 0
+    return 130 if interrupted.is_set() else 1
+
+
+def check_recordings(cfg, *, overwrite: bool) -> None:
+    """The files this run will write: refused before the first step if one exists (without --overwrite),
+    if a file stands where the folder should be, or if the folder is not writable."""
+    from lelsonar.cli.paths import output_dir, output_file
+
+    if not cfg.record:
+        return
+    output_dir(cfg.out_dir, what="--out")
+    for index in range(cfg.scans):
+        output_file(cfg.mcap_path(index), overwrite=overwrite, what="recording")

@@ -11,6 +11,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.paths import add_overwrite_argument
     from lelsonar.net.transport import add_zenoh_arguments
 
     p = sub.add_parser(
@@ -21,8 +22,16 @@ def register(sub: argparse._SubParsersAction) -> None:
         "corrected PointCloud2, a MarkerArray of the planes, the edge and the truth, and the estimate "
         "as JSON on /lelsonar/estimate. No ROS install needed.",
     )
-    p.add_argument("source", type=Path, metavar="IN.mcap")
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="DIR", help="the bag directory (must not exist)")
+    p.add_argument("source", type=Path, metavar="IN.mcap", help="the recording to export")
+    p.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="the bag directory to write (an existing one is refused; --overwrite replaces a rosbag2 directory)",
+    )
+    add_overwrite_argument(p)
     p.add_argument("--format", choices=("rosbag2",), default="rosbag2", help="output format (default: rosbag2)")
     p.add_argument(
         "--distro",
@@ -61,15 +70,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
-    from lelsonar.cli.reconstruct import add_method_arguments
+    from lelsonar.cli.reconstruct import add_method_arguments, add_truth_preset_argument
 
     g = p.add_argument_group("estimation and drawing")
     add_method_arguments(g, "also draw these methods' planes (default: ls; '' for none)")
-    g.add_argument(
-        "--truth-preset",
-        metavar="PRESET",
-        help="draw the true planes of this simulator preset (default: the recording's own preset "
-        "when its device is sim or emulated)",
+    add_truth_preset_argument(
+        g,
+        "draw the true planes of this simulator preset (default: the recording's own preset when its device "
+        "is sim or emulated)",
     )
     g.add_argument("--no-truth", action="store_true", help="never draw true planes")
     g.add_argument(
@@ -87,7 +95,7 @@ def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
 
 def _service_config(args: argparse.Namespace, *, provisional: bool):
     from lelsonar.cli.reconstruct import compared_methods
-    from lelsonar.reconstruct.stream.service import ReconstructConfig
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
 
     return ReconstructConfig(method=args.method, compare_methods=compared_methods(args), provisional=provisional)
 
@@ -136,10 +144,32 @@ def _view(args: argparse.Namespace, emit, source: Path | None, distro: str = "ja
     )
 
 
+def _check_bag_dir(out: Path, overwrite: bool) -> None:
+    """A new bag directory, or (with ``overwrite``) an old rosbag2 directory, removed; anything else refused."""
+    import shutil
+
+    from lelsonar.cli.paths import output_dir
+    from lelsonar.errors import ConfigError
+
+    if out.exists() or out.is_symlink():
+        if not overwrite:
+            raise ConfigError(f"{out} already exists; pass --overwrite to replace the bag, or give another -o")
+        if not (out.is_dir() and not out.is_symlink() and (out / "metadata.yaml").is_file()):
+            raise ConfigError(f"{out} exists and is not a rosbag2 directory (no metadata.yaml); give another -o")
+        shutil.rmtree(out)
+    output_dir(out.parent, what=f"the folder of {out}")
+
+
 def run_export(args: argparse.Namespace) -> int:
     from lelsonar.bridge.ros2 import export_rosbag2
+    from lelsonar.cli.paths import input_file
     from lelsonar.reconstruct.stream.service import ReconstructionService
 
+    input_file(args.source)
+    _check_bag_dir(args.output, args.overwrite)
+    from lelsonar.cli.warm_up import ensure_compiled
+
+    ensure_compiled()
     config = _service_config(args, provisional=False)  # a batch export needs only the finals
     counts = export_rosbag2(
         args.source,
@@ -161,11 +191,17 @@ def run_bridge(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import LiveSource, replay_mcap
 
+    if args.source is not None:
+        from lelsonar.cli.paths import input_file
+
+        input_file(args.source)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     n_final = 0
+    from lelsonar.cli.warm_up import ensure_compiled
 
+    ensure_compiled()
     with ExitStack() as stack:
         session = stack.enter_context(open_ros_session(zenoh_settings_from_args(args)))
         node = stack.enter_context(

@@ -38,21 +38,49 @@ def add_config_arguments(subparsers: argparse._SubParsersAction) -> None:
         )
 
 
-def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+def _subparsers(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
-            return action.choices[command]
-    raise ConfigError(f"no subcommand {command!r}")
+            return dict(action.choices)
+    return {}
+
+
+def _subparser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    sub = _subparsers(parser).get(command)
+    if sub is None:
+        raise ConfigError(f"no subcommand {command!r}")
+    return sub
 
 
 def _load(path: Path) -> dict[str, Any]:
+    from lelsonar.cli.paths import input_file
+
     try:
-        with open(path, "rb") as f:
+        with open(input_file(path, "config file", error=ConfigError), "rb") as f:
             return tomllib.load(f)
-    except FileNotFoundError:
-        raise ConfigError(f"config file {path} does not exist") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path} is not valid TOML: {exc}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path} is not valid TOML: not UTF-8 text") from None
+
+
+def check_tables(path: Path, doc: dict[str, Any], commands: list[str]) -> None:
+    """Every table of the file is a command's, ``[zenoh]`` or a rig table; a misspelt one is named with the fix.
+
+    A table nobody reads would be ignored silently, and the flags it meant to set left at their defaults.
+    """
+    import difflib
+
+    from lelsonar.acquire.rig import RIG_KEYS
+
+    known = [*commands, ZENOH_TABLE, *RIG_KEYS]
+    for table in doc:
+        if table in known:
+            continue
+        close = difflib.get_close_matches(table, known, n=1, cutoff=0.6)
+        hint = f"; did you mean [{close[0]}]?" if close else f"; known tables: {', '.join(known)}"
+        kind = "table" if isinstance(doc[table], dict) else "top-level key"
+        raise ConfigError(f"{path}: unknown {kind} [{table}]{hint}")
 
 
 def _convert(action: argparse.Action, value: Any, where: str) -> Any:
@@ -69,6 +97,11 @@ def _convert_one(action: argparse.Action, value: Any, where: str) -> Any:
         if not isinstance(value, bool):
             raise ConfigError(f"{where} must be true or false, got {value!r}")
         return value
+    if action.type is None and action.choices is None and not isinstance(value, str):
+        # A string flag (e.g. --foxglove [HOST:]PORT) written as a TOML number means the number's text.
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where} must be a string, got {value!r}")
+        value = str(value)
     if isinstance(value, str) and callable(action.type):
         try:
             value = action.type(value)
@@ -93,6 +126,7 @@ def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argpa
     actions = {a.dest: a for a in sub._actions if a.dest not in _SKIP and not a.dest.startswith("_")}
     zenoh_dests = {"mode", "connect", "listen", "zenoh_config", "prefix"}
     doc = _load(Path(path))
+    check_tables(Path(path), doc, list(_subparsers(parser)))
     values: dict[str, tuple[Any, str]] = {}
     tables = [(ZENOH_TABLE, zenoh_dests & set(actions))]
     if not getattr(args, "_own_config_table", False):

@@ -126,12 +126,11 @@ _SCALAR_NAMES = {
 
 
 def run_schemas(args: argparse.Namespace) -> int:
-    from rich.console import Console
-
     from lelsonar.keys import validate_prefix
+    from lelsonar.view import present
 
     validate_prefix(args.prefix)
-    console = Console() if Console().is_terminal else Console(width=120)
+    console = present.console()
     for table in contract_tables(args.prefix, args.scanner):
         console.print(table)
     console.print("Units: SI (m, rad, s, K, V, Hz); timestamps are Unix-epoch ns. Details: schemas/README.md")

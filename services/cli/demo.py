@@ -1,4 +1,4 @@
-"""`lelsonar demo`: the whole system as separate processes over Zenoh on loopback.
+"""lelsonar demo: the whole system as separate processes over Zenoh on loopback.
 
 router ─ acquire (emulated AX-12 and sensor board, through the real drivers)
        ─ reconstruct (live, incremental; writes the Rerun recording)
@@ -6,6 +6,8 @@ router ─ acquire (emulated AX-12 and sensor board, through the real drivers)
 
 Then it prints the final planes next to the truth, in the paper's units (cm, °)
 and its equation style (eq. 16–19, 23–24), and says how to open the viewer.
+It writes OUT/scan.mcap and OUT/scan.rrd, and refuses to replace them unless
+given --overwrite.
 """
 
 from __future__ import annotations
@@ -23,21 +25,27 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.paths import add_overwrite_argument
+    from lelsonar.sim import preset_names
+
     p = sub.add_parser(
         "demo",
         help="run acquire, reconstruct and planner over Zenoh and compare LS, LEL and truth",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--out", type=Path, default=Path("out"), help="output directory (default: out)")
-    p.add_argument("--preset", default="paper-test1", help="simulated scene (default: paper-test1)")
+    p.add_argument("--out", type=Path, default=Path("out"), metavar="DIR", help="output directory (default: out)")
+    p.add_argument(
+        "--preset", default="paper-test1", choices=preset_names(), help="simulated scene (default: paper-test1)"
+    )
     p.add_argument(
         "--device",
         default="emulated",
         choices=("emulated", "sim"),
         help="emulated devices through the real drivers (default), or the simulator directly",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulated acoustics (default: 0)")
+    add_overwrite_argument(p)
     p.add_argument(
         "--secure",
         type=Path,
@@ -56,6 +64,8 @@ def _free_tcp_port() -> int:
 
 def run_demo(args: argparse.Namespace) -> int:
 
+    from lelsonar.cli.paths import output_dir, output_file
+    from lelsonar.cli.warm_up import ensure_compiled
     from lelsonar.errors import LelsonarError
     from lelsonar.net.transport import ZenohSettings, open_session
     from lelsonar.sim import preset
@@ -63,9 +73,12 @@ def run_demo(args: argparse.Namespace) -> int:
     from lelsonar.view import present
 
     console = present.console()
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
+    out: Path = output_dir(args.out, what="--out")
     mcap, rrd = out / "scan.mcap", out / "scan.rrd"
+    for path in (mcap, rrd):
+        output_file(path, overwrite=args.overwrite, what="demo output")
+    overwrite = ["--overwrite"] if args.overwrite else []
+    ensure_compiled()  # here, with its progress bar: the reconstructor below has a minute to come up
     endpoint = f"{'tls' if args.secure else 'tcp'}/127.0.0.1:{_free_tcp_port()}"
     secure_flags = ["--secure", str(args.secure)] if args.secure else []
     link = ["--mode", "client", "--connect", endpoint, *secure_flags]
@@ -122,6 +135,7 @@ def run_demo(args: argparse.Namespace) -> int:
                     "ls,paper,fcm-ransac",
                     "--truth-preset",
                     args.preset,
+                    *overwrite,
                     *link,
                 ],
                 stdout=subprocess.PIPE,
@@ -152,6 +166,7 @@ def run_demo(args: argparse.Namespace) -> int:
                     mcap.name,
                     "--serve-log-for",
                     "2",
+                    *overwrite,
                     *link,
                 ],
             )

@@ -1,4 +1,4 @@
-"""``lelsonar emulate``: an AX-12 and a sensor board on two ptys, until SIGINT/SIGTERM.
+"""lelsonar emulate: an AX-12 and a sensor board on two ptys, until SIGINT/SIGTERM.
 
 Both emulators run as threads of this process.  The sensor board sees the
 angle the emulated servo is at.  Point the real drivers (or any serial tool)
@@ -45,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--preset", default="paper-test1", help="simulator preset (default: %(default)s)")
     p.add_argument("--echo-distance", type=float, default=1.0, metavar="M", help="wall range for --source echo")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulator and the fault generators")
-    p.add_argument("--motor-id", type=int, default=1)
+    p.add_argument("--motor-id", type=int, default=1, metavar="ID", help="the AX-12's bus id (default: 1)")
     p.add_argument("--return-delay", type=int, default=0, help="Return Delay Time, 2 µs units (datasheet default 250)")
     p.add_argument("--zero-raw", type=int, default=ax12.CENTER_RAW, help="raw position of γ = 0")
     p.add_argument("--start-gamma", type=float, default=0.0, metavar="DEG", help="servo angle at power-on, γ degrees")
@@ -58,7 +58,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="move bytes as fast as the ptys take them, instead of at the links' rates (the AX-12 bus "
         "at 1 Mbps, the board on USB full speed)",
     )
-    p.add_argument("--json", action="store_true", help="also print the paths as one JSON line")
+    p.add_argument("--json", action="store_true", help="print only the paths, as one JSON line on stdout (for scripts)")
     p.set_defaults(run=run)
 
 
@@ -98,13 +98,14 @@ def run(args: argparse.Namespace) -> int:
     try:
         with emulated_rig(source, motor_config, board_config, zero_raw=args.zero_raw) as rig:
             pace = "unpaced" if args.unpaced else "paced"
-            print(f"AX-12 (id {args.motor_id}, 1 Mbps, {pace}): {rig.motor.path}")
-            print(
-                f"sensor board ({source_name}, {'unpaced' if args.unpaced else SENSOR_BOARD_USB.describe()}): "
-                f"{rig.board.path}"
-            )
             if args.json:
                 print(json.dumps({**rig.paths, "motor_id": args.motor_id, "source": source_name}))
+            else:
+                print(f"AX-12 (id {args.motor_id}, 1 Mbps, {pace}): {rig.motor.path}")
+                print(
+                    f"sensor board ({source_name}, {'unpaced' if args.unpaced else SENSOR_BOARD_USB.describe()}): "
+                    f"{rig.board.path}"
+                )
             print("running; Ctrl-C to stop", file=sys.stderr)
             sys.stdout.flush()
             while not stop.wait(0.5):  # a bounded wait keeps signal delivery prompt

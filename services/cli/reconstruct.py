@@ -7,13 +7,18 @@ import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
+
+from lelsonar import codec
+from lelsonar.errors import InternalError
 
 _log = logging.getLogger("lelsonar.reconstruct")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.paths import add_overwrite_argument
     from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
 
@@ -46,15 +51,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="live: exit after N final estimates (default: run until Ctrl-C)",
     )
     p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record the estimates to an MCAP file")
-    p.add_argument(
-        "--truth-preset",
-        metavar="PRESET",
-        help="draw the true planes of a simulator preset in Rerun (e.g. paper-test1)",
-    )
+    add_truth_preset_argument(p, "draw the true planes of a simulator preset in Rerun and Foxglove")
+    add_overwrite_argument(p)
     g = p.add_argument_group(
         "gap recovery (live)",
         "Missing steps are asked from the acquirer's log "
-        "(<prefix>/<scanner>/log/<scan_id>); a scan still lacking steps after the attempts "
+        "(<prefix>/<scanner>/log/<scan_id>); past the attempts a scan asks on, every 4 s, while the "
+        "acquirer's liveliness token has not been gone 30 s; a scan still lacking steps then "
         "is published INCOMPLETE with its missing_steps, never FINAL.",
     )
     g.add_argument(
@@ -62,14 +65,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         type=int,
         default=5,
         metavar="N",
-        help="requests per scan without progress before giving up (default: 5; 0 disables recovery)",
+        help="requests per scan without progress before giving up, unless the acquirer's log may still "
+        "answer (default: 5; 0 disables recovery)",
     )
     g.add_argument(
         "--recovery-interval",
         type=float,
         default=1.0,
         metavar="S",
-        help="seconds between requests for one scan (default: 1)",
+        help="seconds before the second request for one scan; the wait doubles up to 4 s (default: 1)",
     )
     g.add_argument(
         "--recovery-after",
@@ -96,20 +100,33 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="a joining member takes part in scans starting S s after it joined; members' clocks must "
         "agree within S (default: 2)",
     )
-    _add_estimator_arguments(p)
+    _add_estimator_arguments(p, scan_timeout=True)
     _add_rerun_arguments(p)
     _add_foxglove_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
     p.set_defaults(run=run_reconstruct)
 
-    p = sub.add_parser("review", help="reconstruct a recording offline into a Rerun .rrd with the default layout")
-    p.add_argument("source", type=Path, metavar="FILE.mcap")
-    p.add_argument("-o", "--output", type=Path, metavar="FILE.rrd", help="default: next to the input")
-    p.add_argument(
-        "--truth-preset", metavar="PRESET", help="draw the true planes of a simulator preset (e.g. paper-test1)"
+    p = sub.add_parser(
+        "review",
+        help="reconstruct a recording offline into a Rerun .rrd with the default layout",
+        description="Replay a recording through the reconstruction, step by step as it was acquired, into a "
+        "Rerun recording (.rrd) with the default layout; print the final planes on stdout.",
     )
-    _add_estimator_arguments(p)
+    p.add_argument("source", type=Path, metavar="FILE.mcap", help="the recording to review")
+    p.add_argument(
+        "-o", "--output", type=Path, metavar="FILE.rrd", help="the Rerun recording to write (default: FILE.rrd)"
+    )
+    p.add_argument(
+        "--screenshot",
+        type=Path,
+        metavar="FILE.png",
+        help="also draw the final step (points, final planes, R) with matplotlib into an image, from the data "
+        "the .rrd gets (the README's docs/review.png is made so)",
+    )
+    add_truth_preset_argument(p, "draw the true planes of a simulator preset")
+    add_overwrite_argument(p)
+    _add_estimator_arguments(p, scan_timeout=False)
     p.set_defaults(run=run_review)
 
     p = sub.add_parser("planner", help="an example remote consumer: print plane estimates as they arrive")
@@ -134,6 +151,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(run=run_planner)
 
 
+def add_truth_preset_argument(p, text: str) -> None:
+    """``--truth-preset``, checked against the simulator's presets."""
+    from lelsonar.sim import preset_names
+
+    names = preset_names()
+    p.add_argument("--truth-preset", choices=names, metavar="PRESET", help=f"{text}; one of {', '.join(names)}")
+
+
 def add_method_arguments(g, compare_help: str) -> None:
     """``--method`` and ``--compare``, for every command that reconstructs (see :func:`compared_methods`)."""
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
@@ -148,13 +173,28 @@ def add_method_arguments(g, compare_help: str) -> None:
 
 
 def compared_methods(args: argparse.Namespace) -> tuple[str, ...]:
-    """The ``--compare`` list, without the method of record."""
-    return tuple(m for m in args.compare.split(",") if m and m != args.method)
+    """The ``--compare`` list, without the method of record.
+
+    Raises
+    ------
+    ConfigError
+        A name that is no method.
+    """
+    from lelsonar.errors import ConfigError
+    from lelsonar.reconstruct.estimate.pipeline import METHODS
+
+    names = tuple(m.strip() for m in args.compare.split(",") if m.strip())
+    unknown = [m for m in names if m not in METHODS]
+    if unknown:
+        raise ConfigError(f"--compare: no method {', '.join(unknown)}; methods: {', '.join(sorted(METHODS))}")
+    return tuple(m for m in names if m != args.method)
 
 
-def _add_estimator_arguments(p: argparse.ArgumentParser) -> None:
+def _add_estimator_arguments(p: argparse.ArgumentParser, *, scan_timeout: bool) -> None:
     g = p.add_argument_group("estimation")
     add_method_arguments(g, "also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
+    if not scan_timeout:  # offline, a scan ends with its recording
+        return
     g.add_argument(
         "--scan-timeout",
         type=float,
@@ -195,6 +235,24 @@ def _add_foxglove_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """``--record`` and ``--rrd``: new files, or ``--overwrite``; the same file twice is refused."""
+    from lelsonar.cli.paths import output_file
+    from lelsonar.errors import ConfigError
+
+    outs: list[tuple[str, Path]] = [
+        (flag, path)
+        for flag, path in (("--record", getattr(args, "record", None)), ("--rrd", getattr(args, "rrd", None)))
+        if path is not None
+    ]
+    for flag, path in outs:
+        output_file(path, overwrite=args.overwrite, what=f"{flag} file")
+    src = getattr(args, "source", None)
+    paths = [Path(p).resolve() for _, p in outs] + ([Path(src).resolve()] if src is not None else [])
+    if len(set(paths)) < len(paths):
+        raise ConfigError("the input and the output files must differ: " + ", ".join(str(p) for p in paths))
+
+
 def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
     if not getattr(args, "foxglove", None):
         return None
@@ -206,7 +264,7 @@ def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
 
 
 def _config(args: argparse.Namespace, *, provisional: bool = True):
-    from lelsonar.reconstruct.stream.service import ReconstructConfig
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
 
     compare = compared_methods(args)
     recovery = {
@@ -214,9 +272,9 @@ def _config(args: argparse.Namespace, *, provisional: bool = True):
         for k in ("recovery_attempts", "recovery_interval", "recovery_after")
         if getattr(args, k, None) is not None
     }
-    return ReconstructConfig(
-        method=args.method, compare_methods=compare, scan_timeout=args.scan_timeout, provisional=provisional, **recovery
-    )
+    if getattr(args, "scan_timeout", None) is not None:
+        recovery["scan_timeout"] = args.scan_timeout
+    return ReconstructConfig(method=args.method, compare_methods=compare, provisional=provisional, **recovery)
 
 
 def _group_config(args: argparse.Namespace):
@@ -272,17 +330,23 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
 
 
 def _open_source(path: Path):
-    """The recording to replay, read tolerantly: one warning line on stderr if it is damaged or unfinished.
+    """The recording to replay, opened tolerantly (its messages are read by the replay, chunk by chunk).
 
     Raises the typed :class:`~lelsonar.errors.RecordingError` subclasses (one line, exit 2) for a missing path,
-    a directory, a file that is not MCAP, and one without lelsonar scans.
+    a directory, a pipe, a file that is not MCAP, and one without lelsonar scans.
     """
+    from lelsonar.cli.paths import input_file
     from lelsonar.log.recording import open_recording
 
-    source = open_recording(path).require_scans()
+    return open_recording(input_file(path)).require_scans()
+
+
+def _replayed(source) -> None:
+    """After the replay: one warning line on stderr if the file was damaged or unfinished; an error if no scan
+    message was readable after all."""
+    source.require_scans()
     if (line := source.damage_warning()) is not None:
         print(line, file=sys.stderr, flush=True)
-    return source
 
 
 def run_reconstruct(args: argparse.Namespace) -> int:
@@ -297,9 +361,11 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from lelsonar.view import present
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
+    check_outputs(args)
     # A batch replay needs no provisional estimates: the finals are computed from scratch anyway.
     config = _config(args, provisional=args.source is None or args.publish or bool(args.rrd) or bool(args.foxglove))
-    console = present.console(stderr=True)
+    console = present.console(stderr=True)  # what the command says about itself
+    tables = present.console()  # the estimates, on stdout
     finals = threading.Event()
     n_final = 0
 
@@ -310,15 +376,16 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if args.json:
                 print(present.to_json(msg), flush=True)
             else:
-                console.print(present.planes_table(msg))
+                tables.print(present.planes_table(msg))
             if args.until_scans and n_final >= args.until_scans:
                 finals.set()
 
     source = _open_source(args.source) if args.source is not None else None
     group_config = _group_config(args)
-    if source is None:
-        from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.cli.warm_up import ensure_compiled, exercise_kernels
 
+    ensure_compiled(console)
+    if source is None:
         exercise_kernels()  # before joining anything: the first live scan does not wait for the kernels to load
     with ExitStack() as stack:
         from lelsonar.reconstruct.stream.observers import combine
@@ -326,7 +393,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
         fox = _foxglove_observer(args, stack, console)
         observer = combine(_rerun_observer(args, stack), fox)
         recorder = stack.enter_context(McapRecorder(args.record)) if args.record else None
-        publish_to = [report]
+        publish_to: list[Callable[[codec.Reconstruction], None]] = [report]
 
         def deliver(msg) -> None:
             for fn in publish_to:
@@ -351,23 +418,31 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             )
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
-        if args.source is not None:
+        if source is not None:
             stop = _stop_on_signals() if fox is not None else None
             if fox is not None and args.foxglove_wait > 0:
                 from lelsonar.draw.visual import TOPIC_PLANES
 
-                console.print("reconstruct: waiting for a Foxglove client to subscribe", highlight=False)
-                fox.server.wait_for_subscribers([TOPIC_PLANES], args.foxglove_wait)
+                console.print(
+                    f"reconstruct: waiting up to {args.foxglove_wait:g} s for a Foxglove client to subscribe "
+                    "(Ctrl-C stops)",
+                    highlight=False,
+                )
+                fox.server.wait_for_subscribers([TOPIC_PLANES], args.foxglove_wait, stop=stop)
+                if stop is not None and stop.is_set():
+                    console.print("reconstruct: interrupted before the replay", highlight=False)
+                    return 130
             if session is not None:
                 stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
             n = replay_mcap(source, service)
+            _replayed(source)
             if recorder:
                 for msg in service.finals.values():
                     recorder.write(msg)
             _log.info("replayed %d payloads from %s; rejected: %s", n, args.source, dict(service.ingest.rejected))
             stats = service.stats_dict()
             _print_stats(console, stats, args.json, json)
-            if fox is not None and args.foxglove_wait > 0:
+            if fox is not None and stop is not None and args.foxglove_wait > 0:
                 console.print(
                     f"reconstruct: replay done, {len(service.finals)} final estimates; serving Foxglove until Ctrl-C",
                     highlight=False,
@@ -386,6 +461,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 console.print(f"reconstruct: {config.method} produced no plane for {', '.join(missing)}")
                 return 1
             return 0
+        if session is None:
+            raise InternalError("a live reconstruction opens its Zenoh session first")
         stop = _stop_on_signals()
         console.print(f"reconstruct: listening on {keys.sample} and {keys.scan}; estimates on {keys.planes}")
         from lelsonar.reconstruct.stream.recovery import RecoveryConfig
@@ -400,6 +477,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             while not stop.is_set() and not finals.is_set():
                 stop.wait(0.2)
         stats = service.stats_dict()
+        count_open_scans(stats, service)
         if group is not None:
             stats["group"] = group.stats_dict()
         stats["worker_errors"] = dict(live.error_types)
@@ -409,6 +487,16 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     return 0
 
 
+def count_open_scans(stats: dict, service) -> None:
+    """Add what the scans still open at exit (stopped by Ctrl-C mid-scan) received: the totals count every
+    sample ingested, not only those of the finished scans."""
+    open_scans = list(service.ingest.scans.values())
+    s = stats["samples"]
+    s["received_live"] += sum(scan.n_received - scan.n_recovered for scan in open_scans)
+    s["recovered"] += sum(scan.n_recovered for scan in open_scans)
+    s["open_scans"] = len(open_scans)
+
+
 def _print_stats(console, stats: dict, as_json: bool, json) -> None:
     """The service's accounting on exit: a line for people on stderr, and a JSON line with --json."""
     s = stats["samples"]
@@ -416,6 +504,7 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
         f"reconstruct: {stats['finals']} terminal estimates ({stats['incomplete']} incomplete, "
         f"{stats['final_timeouts']} final_timeout); samples: published {s['published']}, live "
         f"{s['received_live']}, recovered {s['recovered']}, duplicates {s['duplicates']}, missing {s['missing']}"
+        + (f", in {s['open_scans']} unfinished scans" if s.get("open_scans") else "")
         + (f", energy mismatches {s['energy_mismatches']}" if s.get("energy_mismatches") else "")
         + "; "
         f"rejected {stats['rejected']}; evicted {stats['evicted']}; recovery {stats['recovery']}"
@@ -430,16 +519,31 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
 def run_review(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from lelsonar.cli.paths import output_file
+    from lelsonar.errors import ConfigError
     from lelsonar.log.recording import read_metadata, truth_world
+    from lelsonar.reconstruct.stream.observers import combine
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.view import present
     from lelsonar.view.rerun_observer import open_rerun
 
     source = _open_source(args.source)
-    out = args.output or args.source.with_suffix(".rrd")
-    total = len(source.payloads())
+    out = output_file(args.output or args.source.with_suffix(".rrd"), overwrite=args.overwrite, what="review file")
+    shot = None
+    if args.screenshot is not None:
+        from lelsonar.view.snapshot import SnapshotObserver, check_image_path
+
+        shot = SnapshotObserver(main_method=args.method, truth_preset=args.truth_preset)
+        check_image_path(output_file(args.screenshot, overwrite=args.overwrite, what="screenshot"))
+    files = [Path(f).resolve() for f in (args.source, out, args.screenshot) if f is not None]
+    if len(set(files)) < len(files):
+        raise ConfigError("the recording, the review file and the screenshot must be three different files")
+    total = source.expected_payloads()
     console = present.console(stderr=True)
+    from lelsonar.cli.warm_up import ensure_compiled
+
+    ensure_compiled(console)
     world = truth_world(read_metadata(source).get("lelsonar.config"))  # a simulated world, drawn as truth
     with (
         open_rerun(
@@ -459,11 +563,15 @@ def run_review(args: argparse.Namespace) -> int:
         ) as progress,
     ):
         task = progress.add_task("replay", total=total)
-        service = ReconstructionService(_config(args), observer=observer)
+        service = ReconstructionService(_config(args), observer=combine(observer, shot))
         replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
+    _replayed(source)
+    tables = present.console()
     for msg in service.finals.values():
-        console.print(present.planes_table(msg))
-    console.print(f"wrote {out} — open it with: rerun {out}")
+        tables.print(present.planes_table(msg))
+    console.print(f"wrote {out} — open it with: rerun {out}", highlight=False)
+    if shot is not None:
+        console.print(f"wrote {shot.save(args.screenshot)}", highlight=False)
     return 0 if service.finals else 1
 
 
@@ -529,6 +637,9 @@ def run_planner(args: argparse.Namespace) -> int:
 
         worker = threading.Thread(target=drain, daemon=True)
         worker.start()
+        print(
+            f"planner: listening on {keys.planes} ({settings.describe()}); Ctrl-C to stop", file=sys.stderr, flush=True
+        )
         for reply in session.get(keys.planes, timeout=2.0):  # the latest, if any, on start
             if reply.ok is not None:
                 show(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), "latest")

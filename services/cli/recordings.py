@@ -9,6 +9,8 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.paths import add_overwrite_argument
+
     p = sub.add_parser(
         "recover",
         help="rewrite a cut, unfinished or corrupted recording as a valid, indexed MCAP",
@@ -16,8 +18,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "and counted) and write them, with their channels, schemas and metadata, to a new MCAP file "
         "with a summary and indexes. Like `mcap recover`.",
     )
-    p.add_argument("source", type=Path, metavar="IN.mcap")
-    p.add_argument("-o", "--output", type=Path, required=True, metavar="OUT.mcap")
+    p.add_argument("source", type=Path, metavar="IN.mcap", help="the damaged or unfinished recording (left as is)")
+    p.add_argument(
+        "-o", "--output", type=Path, required=True, metavar="OUT.mcap", help="the repaired recording to write"
+    )
+    add_overwrite_argument(p)
     p.add_argument(
         "--compression",
         choices=("zstd", "lz4", "none"),
@@ -33,7 +38,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "device, channels with message counts, damaged parts, and the final estimates if the file "
         "holds Reconstruction messages. Works on damaged and unfinished files.",
     )
-    p.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap")
+    p.add_argument("files", type=Path, nargs="+", metavar="FILE.mcap", help="the recordings to summarise")
     p.add_argument("--json", action="store_true", help="one JSON object per file (SI units, times in Unix ns)")
     p.set_defaults(run=run_info)
 
@@ -43,10 +48,15 @@ def run_recover(args: argparse.Namespace) -> int:
     from mcap.reader import make_reader
 
     from lelsonar import codec
-    from lelsonar.errors import RecordingError
+    from lelsonar.cli.paths import input_file, output_file
+    from lelsonar.errors import ConfigError, RecordingError
     from lelsonar.log.recording import Recording, describe_damage
     from lelsonar.log.recover import recover
 
+    input_file(args.source)
+    output_file(args.output, overwrite=args.overwrite, what="recovered file")
+    if args.output.resolve() == args.source.resolve():
+        raise ConfigError("recover writes a new file: give -o another name than the input")
     report = recover(args.source, args.output, compression=args.compression)
     s = report.source
     if report.messages_written == 0:
@@ -78,27 +88,26 @@ def run_recover(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    """Each file in turn; one that cannot be read is one line on stderr, and the exit code is then 2.
+
+    A closed stdout (``| head -1``) ends the command with 141, as for every command.
+    """
+    from lelsonar.cli.paths import input_file
     from lelsonar.errors import RecordingError
     from lelsonar.log.summary import summarize
 
     status = 0
     for path in args.files:
         try:
-            info = summarize(path)
+            info = summarize(input_file(path))
         except RecordingError as exc:
-            print(f"lelsonar info: error: {exc}", file=sys.stderr)
+            print(f"lelsonar info: error: {exc}", file=sys.stderr, flush=True)
             status = 2
             continue
-        try:
-            if args.json:
-                print(json.dumps(info.as_dict(), separators=(",", ":"), sort_keys=True), flush=True)
-            else:
-                _print_info(info)
-        except BrokenPipeError:  # `lelsonar info --json ... | head`: the reader has had enough
-            import os
-
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-            return status
+        if args.json:
+            print(json.dumps(info.as_dict(), separators=(",", ":"), sort_keys=True), flush=True)
+        else:
+            _print_info(info)
     return status
 
 
@@ -111,13 +120,12 @@ def _ns(t: int | None) -> str:
 
 
 def _print_info(info) -> None:
-    from rich.console import Console
     from rich.table import Table
 
     from lelsonar.log.summary import step_ranges
+    from lelsonar.view import present
 
-    c = Console()
-    c = c if c.is_terminal else Console(width=120)
+    c = present.console()
     state = "finished, intact" if info.intact else f"[yellow]{info.damage_text}[/]"
     c.print(f"[bold]{info.path}[/]  {info.size:,} bytes — {state}", highlight=False)
     dur = f"{info.duration_s:.2f} s" if info.duration_s is not None else "—"
@@ -139,7 +147,7 @@ def _print_info(info) -> None:
             t.add_column(col, justify="right" if col in ("steps", "duration") else "left")
         for sc in info.scans:
             planned = "?" if sc.steps_planned is None else str(sc.steps_planned)
-            status = sc.status + (f" ({sc.reason})" if sc.reason else "")
+            status = sc.status + (f" ({sc.reason})" if sc.reason else "") + "".join(f"; {u}" for u in sc.unreadable)
             dur = f"{sc.duration_s:.2f} s" if sc.duration_s is not None else "—"
             t.add_row(
                 sc.scanner_id,

@@ -18,8 +18,12 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 
+#: The figure formats ``--plot`` writes, by suffix.
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.paths import add_overwrite_argument
     from lelsonar.sim.presets import preset_names
     from lelsonar.sim.scenes import FAMILIES
 
@@ -39,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also record the scan as `lelsonar acquire --device sim` would, with the rig's calibrated "
         "energy model; `lelsonar reconstruct --source OUT.mcap --json` reconstructs it",
     )
-    p.add_argument("--plot", metavar="PATH", help="write a figure of points, energies and R (PNG/PDF/SVG)")
+    p.add_argument("--plot", metavar="FILE.png", help="write a figure of points, energies and R (.png, .pdf or .svg)")
+    add_overwrite_argument(p)
     p.add_argument(
         "--world",
         type=Path,
@@ -79,7 +84,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--motor-port", help="override [servo].port")
     c.add_argument("--sensor-port", help="override [sensor_board].port")
     c.add_argument("--dry-run", action="store_true", help="--device serial: fit and print, leave the file alone")
+    c.add_argument(
+        "--force",
+        action="store_true",
+        help="--device serial: write the fit even when the board's range disagrees with a typed distance "
+        "beyond the noise model (a wall moved, a typo)",
+    )
     c.set_defaults(run=_calibrate, _own_config_table=True)
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    from lelsonar.cli.paths import output_file
+
+    if args.mcap:
+        output_file(args.mcap, overwrite=args.overwrite, what="--mcap file")
+    if args.plot:
+        if Path(args.plot).suffix.lower() not in PLOT_SUFFIXES:
+            raise ConfigError(f"--plot writes {', '.join(PLOT_SUFFIXES)} files, got {args.plot}")
+        output_file(args.plot, overwrite=args.overwrite, what="--plot file")
+        if args.mcap and Path(args.mcap).resolve() == Path(args.plot).resolve():
+            raise ConfigError("--mcap and --plot must be different files")
 
 
 def _simulate(args: argparse.Namespace) -> int:
@@ -88,6 +112,10 @@ def _simulate(args: argparse.Namespace) -> int:
     from lelsonar.sim.presets import preset
     from lelsonar.sim.scan import EchoSource, simulate_scan
 
+    _check_outputs(args)
+    from lelsonar.cli.warm_up import ensure_compiled
+
+    ensure_compiled()
     if args.world is not None:
         return _simulate_world(args)
     if args.family:
@@ -212,6 +240,7 @@ def _calibrate_serial(args: argparse.Namespace) -> int:
         motor_port=args.motor_port,
         sensor_port=args.sensor_port,
         write=not args.dry_run,
+        force=args.force,
     )
     print("   d (m)    E (V²·s)    fit (V²·s)   misfit")
     for s in shots:

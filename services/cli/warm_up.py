@@ -1,18 +1,22 @@
-"""`lelsonar warm-up`: compile the numeric kernels once, so the first `reconstruct` does not.
+"""lelsonar warm-up: compile the numeric kernels once, so the first reconstruction does not.
 
 Numba compiles a kernel on its first call and keeps the machine code on disk
-(:mod:`lelsonar.signal.compiled`).  Compiling all of them takes a while,
-once per install or edit; `make` runs this right after installing.
-It replays a short simulated recording through the service twice — the finals
-of `reconstruct --source` (with the compared methods), then the live path's
-provisional estimates — so every kernel meets the argument types it meets in
-use, and says how many it compiled and how many it found compiled.
+(lelsonar.signal.compiled).  Compiling all of them takes a while,
+once per install or edit; make runs this right after installing.  It
+replays a short simulated recording through the service twice (the finals of
+"reconstruct --source" with the compared methods, then the live path's
+provisional estimates) so every kernel meets the argument types it meets in use.
+
+A command that computes finds the cache cold at start: it says so, then
+compiles in a child process behind a progress bar, so Ctrl-C stops it at once.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -25,6 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    p.add_argument(
+        "--in-process",
+        action="store_true",
+        help="compile in this process (Ctrl-C then waits for the kernel being compiled)",
+    )
     p.set_defaults(run=run_warm_up)
 
 
@@ -36,7 +45,8 @@ def exercise_kernels() -> None:
     The service's own log is held back meanwhile: these scans are not the user's.
     """
     from lelsonar.acquire.simulated import record_scan
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
@@ -57,16 +67,96 @@ def run_warm_up(args: argparse.Namespace) -> int:
 
     console = present.console(stderr=True)
     t0 = time.perf_counter()
-    with console.status("compiling the numeric kernels (~40 s the first time after an install or an edit)…"):
+    if not args.in_process and cache_is_cold():
+        compile_in_child(console)
+    with console.status("loading the numeric kernels…"):
         exercise_kernels()
     found = kernels()
-    # Counts of the kernels Python calls (by argument types); a kernel called only from kernels is compiled
-    # into its callers.
+    # A kernel has a variant per argument types it is called with from Python (one called only from other
+    # kernels is compiled into them and has none), so variants outnumber kernels.
     compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
     loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
     console.print(
-        f"warm-up: {len(found)} kernels, {compiled} compiled and {loaded} loaded from the cache in "
-        f"{time.perf_counter() - t0:.1f} s ({cache_dir() or 'Numba default cache'}); the others are "
-        "compiled into the kernels that call them"
+        f"warm-up: {len(found)} kernels ready: {compiled} variants compiled now and {loaded} loaded from the "
+        f"cache (a variant per argument types a kernel is called with), in {time.perf_counter() - t0:.1f} s; "
+        f"cache {cache_dir() or 'of Numba'}",
+        highlight=False,
     )
     return 0
+
+
+def cache_is_cold() -> bool:
+    """No kernel of this build has been compiled yet (its cache holds no index)."""
+    from lelsonar.signal.compiled import cache_dir
+
+    where = cache_dir()
+    return where is not None and not any(where.rglob("*.nbi"))
+
+
+def compile_in_child(console) -> None:
+    """Compile every kernel in a child process, with a progress bar; Ctrl-C ends it at once.
+
+    Numba's compiler holds the interpreter for seconds at a time, which would hold a Ctrl-C as long;
+    this process only waits and draws.
+
+    Raises
+    ------
+    KeyboardInterrupt
+        Ctrl-C (the child is stopped first).
+    RuntimeError
+        The child failed (its last line of stderr says why).
+    """
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from lelsonar.signal.compiled import cache_dir, kernels
+
+    where = cache_dir()
+    total = len(kernels())
+    console.print(
+        "first run of this build: compiling the numeric kernels once (about 40 s on 2 cores; Ctrl-C stops, "
+        "`lelsonar warm-up` does it ahead)",
+        highlight=False,
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-m", "lelsonar", "warm-up", "--in-process"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # Ctrl-C reaches this process only, which stops the child
+    )
+    try:
+        with Progress(
+            TextColumn("compiling"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("kernels"),
+            TimeElapsedColumn(),
+            console=console,
+            transient=True,
+        ) as progress:
+            task = progress.add_task("compile", total=total)
+            while True:
+                try:
+                    child.wait(timeout=0.25)
+                    break
+                except subprocess.TimeoutExpired:
+                    done = len(list(where.rglob("*.nbi"))) if where is not None else 0
+                    progress.update(task, completed=min(done, total))
+    except BaseException:
+        child.kill()
+        child.wait()
+        raise
+    err = child.stderr.read() if child.stderr is not None else ""
+    if child.returncode != 0:
+        last = (err.strip().splitlines() or ["no message"])[-1]
+        raise RuntimeError(f"compiling the numeric kernels failed (exit {child.returncode}): {last}")
+
+
+def ensure_compiled(console=None) -> None:
+    """Before a command that computes: compile in a child, with a progress bar, if the cache is cold."""
+    if not cache_is_cold():
+        return
+    from lelsonar.view import present
+
+    compile_in_child(console or present.console(stderr=True))

@@ -33,6 +33,7 @@ topic                       schema                         what
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -58,6 +59,8 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.draw.palette import QUALITY_NAME, method_color, quality_color
+from lelsonar.energy_model import EnergyModel
+from lelsonar.errors import ConfigError
 from lelsonar.geometry import beam_heading, matrix_from_quaternion, quaternion_from_matrix, rotation_z
 from lelsonar.v1 import reconstruction_pb2
 
@@ -430,6 +433,72 @@ def energy_scalars(
         "ratio": _finite_or_none(ratio),
         "critical_step": None if critical_step is None else int(critical_step),
     }
+
+
+def acquisition_energy_scalars(start: codec.ScanStart, sample: codec.Sample, step: dict | None = None) -> dict:
+    """``/lelsonar/energy`` of one recorded step, from what the scan announced: E^γ of the waveforms
+    (eq. 10–11), E0(d_m) of the ScanStart's energy model (eq. 12) at d_m, the median of the step's valid
+    ranges (§4), and R = E^γ / E0(d_m) (0 without a range, as the reconstruction has it).  The critical
+    step is the reconstruction's: null here.  ``step``: the sample's :func:`step_scalars`, if already made.
+    """
+    step = step_scalars(sample) if step is None else step
+    ranges = sorted(r for r in step["range"].values() if r is not None and math.isfinite(r))
+    e = step["energy"]
+    em = start.energy_model
+    expected = ratio = None
+    if not ranges:
+        ratio = 0.0
+    else:
+        model = _energy_model(em.phi0, em.phi1, em.phi2, em.valid_min_range, em.valid_max_range)
+        if model is not None:
+            n = len(ranges)
+            d_m = 0.5 * (ranges[(n - 1) // 2] + ranges[n // 2])  # the median
+            expected = float(model.expected_energy(float(d_m)))
+            ratio = e / expected if expected > 0 else None
+    return energy_scalars(
+        sample.scanner_id,
+        sample.scan_id,
+        sample.step,
+        sample.gamma_measured,
+        e,
+        math.nan if expected is None else expected,
+        math.nan if ratio is None else ratio,
+        None,
+    )
+
+
+@functools.lru_cache(maxsize=16)
+def _energy_model(phi0: float, phi1: float, phi2: float, d_min: float, d_max: float) -> EnergyModel | None:
+    """The announced model, checked once per scan (None: unusable, nothing to divide by)."""
+    try:
+        return EnergyModel(phi0, phi1, phi2, d_min, d_max)
+    except ConfigError:
+        return None
+
+
+TOPIC_TRUTH = "/lelsonar/truth"
+
+
+def truth_scene(planes, scanner_id: str, t_ns: int) -> SceneUpdate:
+    """The true planes of a simulated scene, ``(label, normal, offset, corners)`` each, as grey patches."""
+    entities: list[SceneEntity] = []
+    for label, normal, offset, corners in planes:
+        msg = codec.Reconstruction(scanner_id=scanner_id, scan_id=0)
+        p = msg.planes.add(label=str(label), method="truth", offset=float(offset))
+        p.normal.x, p.normal.y, p.normal.z = map(float, normal)
+        for c in np.asarray(corners, dtype=float).reshape(-1, 3):
+            q = p.patch.add()
+            q.x, q.y, q.z = c
+        entities.extend(PlaneScene().update(msg, t_ns).entities)
+    for e, (label, _normal, offset, _corners) in zip(entities, planes):
+        e.id = f"{scanner_id}/truth/{label}"
+        del e.metadata[:]
+        for prim in (*e.triangles, *e.lines, *e.arrows, *e.texts):
+            # Every primitive message has a color; the tuple's element type is only Message.
+            prim.color.r = prim.color.g = prim.color.b = 0.63  # type: ignore[attr-defined]
+        e.triangles[0].color.a = 0.3
+        e.texts[0].text = f"truth {label}: h = {float(offset):.3f} m"
+    return SceneUpdate(entities=entities)
 
 
 # --- planes --------------------------------------------------------------------------------

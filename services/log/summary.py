@@ -18,7 +18,13 @@ from lelsonar import codec
 from lelsonar.errors import DecodeError
 from lelsonar.geometry import beam_heading
 from lelsonar.log.reader import Damage
-from lelsonar.log.recording import CHANNEL_METADATA, Recording, describe_damage, open_recording
+from lelsonar.log.recording import (
+    CHANNEL_METADATA,
+    Recording,
+    describe_damage,
+    is_contract_channel,
+    open_recording,
+)
 from lelsonar.v1 import reconstruction_pb2, scan_pb2
 
 _SCAN_STATUS = scan_pb2.DESCRIPTOR.enum_types_by_name["ScanStatus"]
@@ -75,6 +81,8 @@ class ScanSummary:
     # Where the array frame was (ScanStart.pose): frame_id, x, y, z (m), heading (rad, of the γ = 0 beam),
     # orientation (x, y, z, w), covariance (36, row-major, or None), known, note.
     pose: dict | None = None
+    #: What of the scan could not be read, e.g. its ScanStart in a damaged chunk (empty: nothing).
+    unreadable: list[str] = field(default_factory=list)
 
     @property
     def duration_s(self) -> float | None:
@@ -169,11 +177,10 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     def scan(scanner_id: str, scan_id: int) -> ScanSummary:
         return scans.setdefault((scanner_id, scan_id), ScanSummary(scanner_id, scan_id))
 
-    channel_type = rec.contract_channels()
-    for m in s.in_log_time_order():
-        cls = channel_type.get(m.channel_id)
-        if cls is None:
-            continue
+    # Every chunk is read and checked (the damage is complete); only the contract's messages are kept, one chunk
+    # at a time.
+    for m in rec.messages(is_contract_channel, verify_all=True):
+        cls = codec.MESSAGE_TYPES[s.schema_name(m.channel_id)]
         try:
             msg = cls.FromString(m.data)
         except ProtobufDecodeError:
@@ -211,6 +218,23 @@ def summarize(path: Path | str | Recording) -> FileSummary:
     for key, sc in scans.items():
         if key not in steps and sc.steps_planned:
             sc.missing_steps = list(range(sc.steps_planned))
+    restored = rec.start_copies()
+    for key, sc in scans.items():
+        if sc.has_start:
+            continue
+        copy = restored.get(key)
+        if copy is None:
+            sc.unreadable.append(
+                "ScanStart unreadable and no copy of it: the scan cannot be reconstructed (no geometry, no schedule)"
+            )
+            continue
+        sc.unreadable.append("ScanStart unreadable; restored from the recording's metadata copy")
+        try:
+            start = codec.ScanStart.FromString(copy.payload)
+        except ProtobufDecodeError:
+            continue
+        sc.device, sc.steps_planned = start.device, start.steps
+        sc.start_ns = start.start_time_ns
 
     lost_by = s.lost_by_channel()
     exact_channels = s.statistics_counts is not None or all(d.messages is not None for d in s.damage)
@@ -228,7 +252,6 @@ def summarize(path: Path | str | Recording) -> FileSummary:
             )
         )
     lost, exact = s.messages_lost()
-    times = [m.log_time for m in s.messages]
     devices = sorted({sc.device for sc in scans.values() if sc.device})
     device = ", ".join(devices) or s.metadata.get("lelsonar.config", {}).get("device", "")
     return FileSummary(
@@ -238,11 +261,11 @@ def summarize(path: Path | str | Recording) -> FileSummary:
         intact=s.intact,
         damage_text=None if s.intact else describe_damage(s),
         damage=[_damage_dict(d, s) for d in s.damage],
-        messages=len(s.messages),
+        messages=sum(s.counts.values()),
         messages_lost=lost,
         messages_lost_exact=exact,
-        start_ns=min(times) if times else None,
-        end_ns=max(times) if times else None,
+        start_ns=s.first_time,
+        end_ns=s.last_time,
         device=device,
         scanners=sorted({k[0] for k in scans} | {k[0] for k in estimates}),
         channels=channels,

@@ -13,7 +13,11 @@ Precedence, highest first:
 3. the command's defaults (e.g. ``--mode client --connect tcp/127.0.0.1:7447``),
    used only when there is no file.
 
-Multicast scouting is off unless the file sets ``scouting/multicast``.  In
+Multicast scouting is off unless the file sets ``scouting/multicast``.  A
+message larger than :data:`MAX_MESSAGE_BYTES` (twice the contract's decode
+limit) is dropped by Zenoh while it is reassembled, before it reaches a
+subscriber's queue, unless the file sets ``max_message_size``: Zenoh's own
+default, 1 GiB a message, would let one put grow a process by as much.  In
 :class:`ZenohSettings`, ``None`` means "not set": left to the file, or to the
 embedded default when there is no file.
 """
@@ -31,11 +35,15 @@ from pathlib import Path
 
 import zenoh
 
+from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 
 _log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+#: Largest message a session reassembles (``transport/link/rx/max_message_size``): twice the decode limit,
+#: so a payload just over the limit still arrives to be refused and counted, and nothing far larger is held.
+MAX_MESSAGE_BYTES = 2 * codec.DEFAULT_LIMITS.max_payload_bytes
 MODES = ("peer", "client", "router")
 _SCHEMES = ("tcp/", "udp/", "tls/", "quic/", "unixsock-stream/", "ws/")
 
@@ -109,8 +117,10 @@ class ZenohSettings:
             cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
         if self.multicast_scouting is not None:
             cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
-        elif not (self.config_file and _file_sets_multicast(Path(self.config_file))):
+        elif not (self.config_file and _file_mentions(Path(self.config_file), "multicast")):
             cfg.insert_json5("scouting/multicast/enabled", "false")
+        if not (self.config_file and _file_mentions(Path(self.config_file), "max_message_size")):
+            cfg.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
         for path, value in self.overlay:
             cfg.insert_json5(path, value)
         return cfg
@@ -130,15 +140,15 @@ class ZenohSettings:
         return f"{get('mode') or '?'}, {', '.join(map(str, flat)) or 'local only'}"
 
 
-def _file_sets_multicast(path: Path) -> bool:
-    """Whether a JSON5 config file mentions multicast scouting (comments ignored)."""
+def _file_mentions(path: Path, word: str) -> bool:
+    """Whether a JSON5 config file mentions ``word`` (a key: comments ignored)."""
     try:
         text = path.read_text(encoding="utf-8", errors="replace")
     except OSError:
         return False
     text = re.sub(r"/\*.*?\*/", "", text, flags=re.S)
     text = re.sub(r"(?m)//.*$", "", text)
-    return re.search(r"\bmulticast\b", text) is not None
+    return re.search(rf"\b{re.escape(word)}\b", text) is not None
 
 
 @contextmanager

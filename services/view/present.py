@@ -14,10 +14,19 @@ from lelsonar.codec import QUALITY, QUALITY_NAME
 from lelsonar.reconstruct.estimate.wire import STATUS, accounting_text, status_name
 
 
+class PipeConsole(Console):
+    """A console whose closed pipe (``lelsonar info | head -1``) raises :class:`BrokenPipeError`, which the
+    command line turns into exit code 141 as for plain prints (rich's own handling exits 1)."""
+
+    def on_broken_pipe(self) -> None:
+        self.quiet = True
+        raise BrokenPipeError(32, "the reader closed the pipe")
+
+
 def console(stderr: bool = False) -> Console:
     """A console that keeps tables readable when the output is a pipe or a CI log (no terminal width)."""
-    c = Console(stderr=stderr)
-    return c if c.is_terminal else Console(stderr=stderr, width=120)
+    c = PipeConsole(stderr=stderr)
+    return c if c.is_terminal else PipeConsole(stderr=stderr, width=120)
 
 
 def to_json(msg: codec.Reconstruction) -> str:

@@ -71,15 +71,29 @@ from __future__ import annotations
 import math
 import zlib
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import rerun as rr
-import rerun.blueprint as rrb
 
 from lelsonar.draw.palette import METHOD_COLORS, method_color, quality_color
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit
+from lelsonar.view.rerun_layout import (
+    ANGLE_TIMELINE,
+    STEP_TIMELINE,
+    TIME_TIMELINE,
+    default_blueprint,
+    join_path,
+    make_recording,
+)
+from lelsonar.view.rerun_shapes import (
+    SubsetView,
+    WaveformStrips,
+    capsule_name,
+    centidegrees,
+    cone,
+    final_estimate_text,
+)
 
 __all__ = [
     "STEP_TIMELINE",
@@ -92,11 +106,6 @@ __all__ = [
     "SubsetView",
     "ScanLogger",
 ]
-
-STEP_TIMELINE = "step"
-#: γ in hundredths of a degree (a sequence timeline, see the module doc).
-ANGLE_TIMELINE = "gamma_cdeg"
-TIME_TIMELINE = "acq_time"
 
 #: Per-method colours (RGB); methods not listed get a stable colour from the palette.
 _PALETTE = [(230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100)]
@@ -124,148 +133,6 @@ _LEVELS = {
 }
 
 
-def make_recording(application_id: str = "lelsonar", recording_id: str | None = None) -> rr.RecordingStream:
-    """A new recording stream without sinks.
-
-    Parameters
-    ----------
-    application_id : str
-        Groups recordings in the viewer.
-    recording_id : str or None
-        Recordings with the same id are merged by the viewer; ``None`` makes a
-        fresh random one.
-
-    Returns
-    -------
-    rerun.RecordingStream
-        Give it sinks before logging, e.g. ``rec.save(path,
-        default_blueprint=default_blueprint())``, ``rec.serve_grpc()``,
-        ``rec.spawn()`` or ``rec.set_sinks(rr.FileSink(path))``; data logged
-        before that is buffered.
-    """
-    return rr.RecordingStream(application_id, recording_id=recording_id)
-
-
-def _join(root: str, *parts: str) -> str:
-    """``root`` + ``parts`` as an entity path (parts are already escaped)."""
-    base = "/" + root.strip("/") if root.strip("/") else ""
-    return base + "/" + "/".join(parts)
-
-
-def default_blueprint(root: str = "/") -> rrb.Blueprint:
-    """The default layout: the world on the left, the plots in a column on the right.
-
-    Parameters
-    ----------
-    root : str
-        The ``root`` the :class:`ScanLogger` instances were given.
-
-    Returns
-    -------
-    rerun.blueprint.Blueprint
-        ``Horizontal(3D "world" | Vertical(energy, ratio R, waveforms,
-        Horizontal(sorted errors a | sorted errors b), events))`` with the
-        world taking 3/5 of the width, the blueprint and selection panels
-        collapsed and the ``step`` timeline active.
-    """
-
-    def at(*parts: str) -> str:
-        return _join(root, *parts)
-
-    column = rrb.Vertical(
-        rrb.TimeSeriesView(name="energy E^γ and E0(d_m)", origin=at("plots", "energy")),
-        rrb.TimeSeriesView(name="ratio R = E^γ / E0(d_m)", origin=at("plots", "ratio")),
-        rrb.Spatial2DView(
-            name="waveforms of the step (ms; volts up, capsule i at i·spacing)", origin=at("plots", "waveforms")
-        ),
-        rrb.Horizontal(
-            rrb.BarChartView(name="sorted errors e_i, plane a", origin=at("plots", "errors", "a")),
-            rrb.BarChartView(name="sorted errors e_i, plane b", origin=at("plots", "errors", "b")),
-        ),
-        rrb.TextLogView(name="events", origin=at("log")),
-        row_shares=[1.0, 1.0, 1.0, 1.0, 0.8],
-    )
-    return rrb.Blueprint(
-        rrb.Horizontal(rrb.Spatial3DView(name="world", origin=at("world")), column, column_shares=[3.0, 2.0]),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=STEP_TIMELINE),
-        auto_views=False,
-    )
-
-
-@dataclass(frozen=True)
-class SubsetView:
-    """The corrected points a fit used, for colouring.
-
-    Parameters
-    ----------
-    label : str
-        ``"a"`` or ``"b"``.
-    points : (m, 3) array
-        Corrected points, world frame, m.  Rows with a NaN are not drawn.
-    inlier_mask : (m,) bool array
-        ``False`` marks an outlier (drawn red and bigger).
-    """
-
-    label: str
-    points: np.ndarray
-    inlier_mask: np.ndarray
-
-    def __post_init__(self) -> None:
-        points = np.array(self.points, dtype=np.float64, copy=True)
-        mask = np.array(self.inlier_mask, dtype=bool, copy=True)
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise ConfigError(f"SubsetView.points must have shape (m, 3), got {points.shape}")
-        if mask.shape != (points.shape[0],):
-            raise ConfigError(f"SubsetView.inlier_mask must have shape ({points.shape[0]},), got {mask.shape}")
-        points.setflags(write=False)
-        mask.setflags(write=False)
-        object.__setattr__(self, "points", points)
-        object.__setattr__(self, "inlier_mask", mask)
-
-
-def _cone(normal: np.ndarray, half_angle: float, n: int = 8) -> np.ndarray:
-    """``n`` unit vectors at ``half_angle`` (rad) around ``normal``: the edge of its uncertainty cone."""
-    helper = np.zeros(3)
-    helper[int(np.argmin(np.abs(normal)))] = 1.0
-    e1 = np.cross(normal, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    phi = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
-    a = min(float(half_angle), np.pi / 4)
-    return np.cos(a) * normal[None, :] + np.sin(a) * (
-        np.cos(phi)[:, None] * e1[None, :] + np.sin(phi)[:, None] * e2[None, :]
-    )
-
-
-def _centidegrees(gamma: float) -> int:
-    return int(round(math.degrees(gamma) * 100.0))
-
-
-def _min_max_envelope(w: np.ndarray, bin_: int) -> np.ndarray:
-    """(k, n) → (k, 2·(n // bin_)): each bin's min then max.
-
-    Element-wise passes over the bin's columns: numpy's ``min(axis=-1)`` over a
-    short last axis is several times slower, and this runs at every step.
-    """
-    k, n = w.shape
-    binned = w[:, : (n // bin_) * bin_].reshape(k, n // bin_, bin_)
-    out = np.empty((k, n // bin_, 2), dtype=np.float32)
-    lo, hi = out[:, :, 0], out[:, :, 1]
-    lo[...] = binned[:, :, 0]
-    hi[...] = binned[:, :, 0]
-    for j in range(1, bin_):
-        np.minimum(lo, binned[:, :, j], out=lo)
-        np.maximum(hi, binned[:, :, j], out=hi)
-    return out.reshape(k, -1)
-
-
-def _capsule_name(i: int) -> str:
-    # The paper names the capsules A, B, C, D (Fig. 1).
-    return chr(ord("A") + i) if i < 26 else str(i)
-
-
 class ScanLogger:
     """Logs one scan of one scanner to a recording, step by step.
 
@@ -285,6 +152,9 @@ class ScanLogger:
         many vertices (``None``: every sample).  At 200 kHz a 40 kHz echo has
         five samples a cycle, so at any screen width the trace is its envelope
         anyway; full 3500-sample windows would make waveforms ~95 % of the file.
+    main_method : str or None
+        The estimator of record: only its planes carry a text label in 3D (the compared methods'
+        would sit on top of it); None labels every method's.
 
     Notes
     -----
@@ -315,12 +185,14 @@ class ScanLogger:
         root: str = "/",
         waveform_spacing: float = 1.0,
         waveform_points: int | None = 1000,
+        main_method: str | None = None,
     ) -> None:
         if not (np.isfinite(waveform_spacing) and waveform_spacing > 0):
             raise ConfigError(f"waveform_spacing must be > 0 V, got {waveform_spacing!r}")
         if waveform_points is not None and waveform_points < 16:
             raise ConfigError(f"waveform_points must be >= 16 or None, got {waveform_points!r}")
         self.waveform_points = waveform_points
+        self.main_method = main_method
         self.rec = rec
         self.scanner_id = str(scanner_id)
         self.scan_id = int(scan_id)
@@ -329,14 +201,14 @@ class ScanLogger:
         scanner = rr.escape_entity_path_part(self.scanner_id)
         scan = f"scan_{self.scan_id}"
         self._scanner, self._scan = scanner, scan
-        self.world = _join(root, "world")
-        self.array = _join(root, "world", scanner, "array")
-        self.scan_world = _join(root, "world", scanner, "scans", scan)
-        self.energy = _join(root, "plots", "energy", scanner, scan)
-        self.ratio = _join(root, "plots", "ratio", scanner, scan, "R")
-        self.critical = _join(root, "plots", "ratio", scanner, scan, "critical")
-        self.waveforms = _join(root, "plots", "waveforms", scanner, scan)
-        self.log_path = _join(root, "log", scanner, scan)
+        self.world = join_path(root, "world")
+        self.array = join_path(root, "world", scanner, "array")
+        self.scan_world = join_path(root, "world", scanner, "scans", scan)
+        self.energy = join_path(root, "plots", "energy", scanner, scan)
+        self.ratio = join_path(root, "plots", "ratio", scanner, scan, "R")
+        self.critical = join_path(root, "plots", "ratio", scanner, scan, "critical")
+        self.waveforms = join_path(root, "plots", "waveforms", scanner, scan)
+        self.log_path = join_path(root, "log", scanner, scan)
 
         self._cloud = np.empty((0, 3), dtype=np.float32)
         self._n_cloud = 0
@@ -348,14 +220,13 @@ class ScanLogger:
         self._marked_critical: int | None = None
         self._reported: dict[str, str] = {}  # what was last said about each plane/edge failure
         self._drawn: set[tuple[str, str]] = set()  # (method, label) patches on screen
-        self._strip_key: tuple[int, int, float, float] | None = None
-        self._strip_x = np.empty(0, dtype=np.float32)
-        self._bin = 1
-        self._baselines = np.empty((0, 1), dtype=np.float32)
+        self._strips = WaveformStrips(self.waveform_spacing, waveform_points)
 
         rec.log(self.world, rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         rec.log(
-            self.energy, rr.SeriesLines(names=["E^γ", "E0(d_m)"], colors=[(60, 140, 255), (160, 160, 160)]), static=True
+            self.energy,
+            rr.SeriesLines(names=["E^γ, V²·s", "E0(d_m), V²·s"], colors=[(60, 140, 255), (160, 160, 160)]),
+            static=True,
         )
         rec.log(self.ratio, rr.SeriesLines(names="R", colors=(255, 140, 0)), static=True)
         rec.log(
@@ -376,7 +247,7 @@ class ScanLogger:
         if step is not None:
             rec.set_time(STEP_TIMELINE, sequence=int(step))
         if gamma is not None and math.isfinite(gamma):
-            rec.set_time(ANGLE_TIMELINE, sequence=_centidegrees(gamma))
+            rec.set_time(ANGLE_TIMELINE, sequence=centidegrees(gamma))
         if t_ns is not None:
             rec.set_time(TIME_TIMELINE, timestamp=np.datetime64(int(t_ns), "ns"))
         self._clock = (step, gamma, t_ns)
@@ -411,7 +282,7 @@ class ScanLogger:
         # Copies: Rerun would otherwise keep a view of the caller's array until it flushes.
         caps = np.array(capsule_positions_array_frame, dtype=np.float64).reshape(-1, 3)
         k = caps.shape[0]
-        names = [_capsule_name(i) for i in range(k)]
+        names = [capsule_name(i) for i in range(k)]
         rec.log(
             f"{self.array}/capsules", rr.Points3D(caps, radii=0.012, colors=_CAPSULE_RGB, labels=names), static=True
         )
@@ -497,37 +368,10 @@ class ScanLogger:
 
         w = np.asarray(waveforms, dtype=np.float32)
         if w.ndim == 2 and w.shape[1] > 0 and sample_rate > 0:
-            rec.log(self.waveforms, rr.LineStrips2D(self._waveform_strips(w, float(sample_rate), float(t0))))
+            rec.log(self.waveforms, rr.LineStrips2D(self._strips(w, float(sample_rate), float(t0))))
 
         rec.log(self.energy, rr.Scalars([energy, expected_energy]))
         rec.log(self.ratio, rr.Scalars(ratio))
-
-    def _waveform_strips(self, w: np.ndarray, sample_rate: float, t0: float) -> np.ndarray:
-        """(k, m, 2) float32 strips: x = time after the ping in ms, y = stacked, negated volts."""
-        k, n = w.shape
-        key = (k, n, sample_rate, t0)
-        if self._strip_key != key:  # the window is the same for a whole scan: compute the axes once
-            self._strip_key = key
-            t_ms = (t0 + np.arange(n) / sample_rate) * 1e3
-            self._bin = 1 if self.waveform_points is None else max(1, -(-2 * n // self.waveform_points))
-            if self._bin > 1:
-                # Each bin becomes two vertices, its min then its max, at the bin's first
-                # and last sample times: the envelope keeps every peak of the echo.  The
-                # last n mod bin samples (< bin, tens of µs after the window) are dropped.
-                n_bins = n // self._bin
-                t_bins = t_ms[: n_bins * self._bin].reshape(n_bins, self._bin)
-                t_ms = np.stack([t_bins[:, 0], t_bins[:, -1]], axis=1).reshape(-1)
-            self._strip_x = t_ms.astype(np.float32)
-            self._baselines = np.arange(k, dtype=np.float32)[:, None] * np.float32(self.waveform_spacing)
-        if self._bin > 1:
-            w = _min_max_envelope(w, self._bin)
-        # A fresh array every time: Rerun keeps a zero-copy view of what it is given until
-        # the batch is flushed, so reusing a buffer would rewrite earlier steps' waveforms.
-        strips = np.empty((k, w.shape[1], 2), dtype=np.float32)
-        strips[:, :, 0] = self._strip_x
-        # 2D views point y down: negate so positive volts go up; capsule i sits at y = i·spacing.
-        np.subtract(self._baselines, w, out=strips[:, :, 1])
-        return strips
 
     def _append_cloud(self, pts: np.ndarray) -> None:
         # Rerun holds zero-copy views of logged slices until it flushes: only ever write
@@ -591,54 +435,40 @@ class ScanLogger:
             )
 
         fits = [p for p in planes if isinstance(p, PlaneFit)]
-        for fit in fits:
-            self._log_plane(fit)
-            self._drawn.add((fit.method, fit.label))
         fitted = {(p.method, p.label) for p in fits}
+        if final:  # the final planes only: the provisional estimates' patches go
+            for method, label in sorted(self._drawn - fitted):
+                self._clear_plane(method, label)
+        for p in fits:
+            self._log_plane(p)
+            self._drawn.add((p.method, p.label))
         for f in planes:
             if isinstance(f, FitFailure):
                 # A FitFailure does not name its method: take down every patch of that
                 # label this estimate did not redraw, so no stale plane stays on screen.
                 for method, label in sorted(self._drawn):
                     if label == f.label and (method, label) not in fitted:
-                        rec.log(self._plane_path(method, label), rr.Clear(recursive=True))
-                        rec.log(self._errors_path(method, label), rr.Clear(recursive=False))
-                        self._drawn.discard((method, label))
-                self._warn_once(f"plane/{f.label}", f"plane fit failed: {f}", final)
+                        self._clear_plane(method, label)
+                self._note_failure(f"plane/{f.label}", f"plane {f.label} not fitted: {f}", final)
 
         if isinstance(edge, EdgeLine):
             self._reported.pop("edge", None)
             self._log_edge(edge, fits)
         elif isinstance(edge, FitFailure):
             rec.log(f"{self.scan_world}/edge", rr.Clear(recursive=False))
-            self._warn_once("edge", f"edge: {edge}", final)
+            self._note_failure("edge", f"edge: {edge}", final)
 
         if critical_step is not None and critical_gamma is not None and math.isfinite(critical_gamma):
             self._log_critical(int(critical_step), float(critical_gamma), final)
 
         if final:
-            lines = [f"final estimate of scan {self.scan_id} after step {step}"]
-            for p in planes:
-                if isinstance(p, PlaneFit):
-                    n = p.normal
-                    lines.append(
-                        f"  {p.method} {p.label}: n = ({n[0]:+.4f}, {n[1]:+.4f}, {n[2]:+.4f}) "
-                        f"± {math.degrees(p.normal_stderr):.2f}°, h = {p.offset:.4f} "
-                        f"± {p.offset_stderr * 1e3:.1f} mm, σ = {p.sigma * 1e3:.1f} mm, "
-                        f"{p.n_inliers}/{p.n_points} inliers, {p.quality or 'unassessed'}"
-                        + (f" ({'; '.join(p.quality_reasons)})" if p.quality_reasons else "")
-                    )
-                else:
-                    lines.append(f"  {p.label}: failed, {p.reason.value}")
-            if isinstance(edge, EdgeLine):
-                lines.append(
-                    f"  edge angle {math.degrees(edge.angle):.2f}°, point ± {edge.point_stderr * 1e3:.1f} mm, "
-                    f"direction ± {math.degrees(edge.direction_stderr):.2f}°"
-                )
             untrusted = any(isinstance(p, PlaneFit) and p.quality in ("degraded", "unreliable") for p in planes)
             rec.log(
                 self.log_path,
-                rr.TextLog("\n".join(lines), level=rr.TextLogLevel.WARN if untrusted else rr.TextLogLevel.INFO),
+                rr.TextLog(
+                    final_estimate_text(self.scan_id, step, planes, edge),
+                    level=rr.TextLogLevel.WARN if untrusted else rr.TextLogLevel.INFO,
+                ),
             )
 
     def accounting(self, status: str, text: str, missing_steps: Sequence[int] = ()) -> None:
@@ -650,6 +480,11 @@ class ScanLogger:
         self.rec.log(
             self.log_path, rr.TextLog(line, level=rr.TextLogLevel.WARN if len(missing_steps) else rr.TextLogLevel.INFO)
         )
+
+    def _clear_plane(self, method: str, label: str) -> None:
+        self.rec.log(self._plane_path(method, label), rr.Clear(recursive=True))
+        self.rec.log(self._errors_path(method, label), rr.Clear(recursive=False))
+        self._drawn.discard((method, label))
 
     def _plane_path(self, method: str, label: str) -> str:
         return f"{self.scan_world}/planes/{rr.escape_entity_path_part(method)}/{rr.escape_entity_path_part(label)}"
@@ -669,6 +504,9 @@ class ScanLogger:
             ),
         )
         centre = p.patch.mean(axis=0)
+        # One label per plane, the method of record's, at the tip of its normal: compared methods'
+        # planes share the centre, and their labels would cover each other.
+        labelled = self.main_method is None or p.method == self.main_method
         rec.log(
             f"{path}/normal",
             rr.Arrows3D(
@@ -676,15 +514,13 @@ class ScanLogger:
                 vectors=[p.normal * _NORMAL_LENGTH],
                 colors=rgb,
                 radii=0.005,
-                labels=f"{p.method} {p.label} ({p.quality or 'unassessed'})",
+                labels=f"{p.label}: {p.method}, {p.quality or 'unassessed'}" if labelled else None,
+                show_labels=labelled,
             ),
         )
         # The verdict as the patch's outline: green good, amber degraded, red unreliable.
         outline = np.vstack([p.patch, p.patch[:1]])
-        rec.log(
-            f"{path}/quality",
-            rr.LineStrips3D([outline], colors=quality_color(p.quality), radii=0.004, labels=p.quality or "unassessed"),
-        )
+        rec.log(f"{path}/quality", rr.LineStrips3D([outline], colors=quality_color(p.quality), radii=0.004))
         # The uncertainty: the offset band (patch outline at ±2σ_h) and the normal cone (half-angle 2σ_n).
         band = [outline + k * 2.0 * p.offset_stderr * p.normal for k in (-1.0, 1.0)]
         rec.log(f"{path}/uncertainty/offset_band", rr.LineStrips3D(band, colors=rgb, radii=0.0015))
@@ -692,7 +528,7 @@ class ScanLogger:
             f"{path}/uncertainty/normal_cone",
             rr.Arrows3D(
                 origins=np.tile(centre, (8, 1)),
-                vectors=_cone(p.normal, 2.0 * p.normal_stderr) * _NORMAL_LENGTH,
+                vectors=cone(p.normal, 2.0 * p.normal_stderr) * _NORMAL_LENGTH,
                 colors=rgb,
                 radii=0.0015,
             ),
@@ -700,7 +536,7 @@ class ScanLogger:
         rec.log(self._errors_path(p.method, p.label), rr.BarChart(p.sorted_residuals, color=rgb))
 
     def _errors_path(self, method: str, label: str) -> str:
-        return _join(
+        return join_path(
             self.root,
             "plots",
             "errors",
@@ -710,12 +546,14 @@ class ScanLogger:
             rr.escape_entity_path_part(method),
         )
 
-    def _warn_once(self, key: str, text: str, final: bool) -> None:
-        """A warning, unless the same one was already given (estimates repeat every few steps)."""
+    def _note_failure(self, key: str, text: str, final: bool) -> None:
+        """A plane or edge not fitted: a warning on the final estimate; before it, an expected state (the
+        beams have not reached wall b yet), said once at DEBUG level."""
         if self._reported.get(key) == text and not final:
             return
         self._reported[key] = text
-        self.rec.log(self.log_path, rr.TextLog(text, level=rr.TextLogLevel.WARN))
+        level = rr.TextLogLevel.WARN if final else rr.TextLogLevel.DEBUG
+        self.rec.log(self.log_path, rr.TextLog(("final: " if final else "so far: ") + text, level=level))
 
     def _log_edge(self, edge: EdgeLine, fits: Sequence[PlaneFit], half_length: float = 0.5) -> None:
         # Draw ±half_length around the point nearest the origin, but no further than the
@@ -779,7 +617,7 @@ class ScanLogger:
         for label, normal, offset, corners in planes:
             corners = np.array(corners, dtype=np.float64).reshape(4, 3)  # a copy, see scan_started
             n = np.asarray(normal, dtype=np.float64).reshape(3)
-            path = _join(self.root, "world", self._scanner, "truth", rr.escape_entity_path_part(label))
+            path = join_path(self.root, "world", self._scanner, "truth", rr.escape_entity_path_part(label))
             self.rec.log(
                 path,
                 rr.Mesh3D(
@@ -798,7 +636,14 @@ class ScanLogger:
                     vectors=[n * _NORMAL_LENGTH],
                     colors=_TRUTH_RGBA[:3],
                     radii=0.004,
-                    labels=f"truth {label}: h = {float(offset):.3f} m",
+                ),
+                static=True,
+            )
+            # At the patch's first corner, away from the estimates' labels at the centre.
+            self.rec.log(
+                f"{path}/label",
+                rr.Points3D(
+                    corners[:1], radii=0.001, colors=_TRUTH_RGBA[:3], labels=f"truth {label}: h = {float(offset):.3f} m"
                 ),
                 static=True,
             )
@@ -820,66 +665,3 @@ class ScanLogger:
         self._at(step, gamma, last_t if t_ns is None else t_ns)
         lvl = _LEVELS.get(level.lower(), level.upper())
         self.rec.log(self.log_path, rr.TextLog(text, level=lvl))
-
-
-# --- a simulated world as truth, and where each scan was ----------------------------------------
-_WORLD_RGB = (150, 150, 150)
-_BOX_RGB = (190, 160, 110)
-_PATH_RGB = (120, 200, 255)
-_POSE_RGB = (255, 200, 0)
-
-
-def log_world_truth(rec: rr.RecordingStream, world: dict, root: str = "/") -> None:
-    """A simulated world (a recording's ``truth_world`` metadata) under ``<root>/map/truth``: wall outlines,
-    boxes, the robot's true path and poses.  Static: the world does not move."""
-    base = _join(root, "map", "truth")
-    floor = float(world.get("floor") or 0.0)
-    strips = []
-    for w in world.get("walls", []):
-        (x0, y0), (x1, y1) = w["from"], w["to"]
-        z0 = floor + float(w.get("bottom", 0.0))
-        z1 = z0 + float(w["height"])
-        strips.append([[x0, y0, z0], [x1, y1, z0], [x1, y1, z1], [x0, y0, z1], [x0, y0, z0]])
-    if strips:
-        rec.log(f"{base}/walls", rr.LineStrips3D(np.array(strips, dtype=np.float64), colors=_WORLD_RGB), static=True)
-    boxes = world.get("boxes", [])
-    if boxes:
-        rec.log(
-            f"{base}/boxes",
-            rr.Boxes3D(
-                centers=[[b["center"][0], b["center"][1], floor + b["size"][2] / 2] for b in boxes],
-                half_sizes=[[s / 2 for s in b["size"]] for b in boxes],
-                rotation_axis_angles=[rr.RotationAxisAngle(axis=[0, 0, 1], radians=float(b["yaw"])) for b in boxes],
-                colors=_BOX_RGB,
-                labels=[b.get("name", "") for b in boxes],
-            ),
-            static=True,
-        )
-    poses = world.get("poses", [])
-    if poses:
-        path = np.array([[p["x"], p["y"], floor + 0.01] for p in poses], dtype=np.float64)
-        rec.log(f"{base}/path", rr.LineStrips3D([path], colors=_PATH_RGB), static=True)
-        heads = np.array([[0.2 * math.cos(p["heading"]), 0.2 * math.sin(p["heading"]), 0.0] for p in poses])
-        rec.log(
-            f"{base}/poses",
-            rr.Arrows3D(origins=path, vectors=heads, colors=_PATH_RGB, labels=[str(i + 1) for i in range(len(poses))]),
-            static=True,
-        )
-
-
-def log_scan_pose(
-    rec: rr.RecordingStream, scanner_id: str, scan_id: int, position, heading: float, frame_id: str, root: str = "/"
-) -> None:
-    """Where a scan was (its ``ScanStart`` pose) under ``<root>/map/poses/<scanner>/<scan>``: an arrow along the
-    γ = 0 beam, labelled with the pose's frame."""
-    p = np.array(position, dtype=np.float64).reshape(1, 3)
-    rec.log(
-        _join(root, "map", "poses", rr.escape_entity_path_part(scanner_id), str(int(scan_id))),
-        rr.Arrows3D(
-            origins=p,
-            vectors=[[0.25 * math.cos(heading), 0.25 * math.sin(heading), 0.0]],
-            colors=_POSE_RGB,
-            labels=f"scan {scan_id} ({frame_id})",
-        ),
-        static=True,
-    )

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+import socket
+import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -10,6 +14,7 @@ import numpy as np
 import rerun as rr
 
 from lelsonar import codec
+from lelsonar.errors import ConfigError
 from lelsonar.geometry import beam_heading
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate import wire
@@ -23,10 +28,9 @@ from lelsonar.view.rerun_log import (
     ScanLogger,
     SubsetView,
     default_blueprint,
-    log_scan_pose,
-    log_world_truth,
     make_recording,
 )
+from lelsonar.view.rerun_world import log_scan_pose, log_world_truth
 
 
 class RerunObserver:
@@ -52,7 +56,7 @@ class RerunObserver:
     def _logger(self, scan: ScanAssembly) -> ScanLogger:
         log = self._loggers.get(scan.key)
         if log is None:
-            log = self._loggers[scan.key] = ScanLogger(self.rec, *scan.key)
+            log = self._loggers[scan.key] = ScanLogger(self.rec, *scan.key, main_method=self.main_method)
         self._last = log
         return log
 
@@ -155,6 +159,47 @@ def preset_truth(name: str) -> list[tuple[str, np.ndarray, float, np.ndarray]]:
     return [(p.label, p.normal, p.offset, p.corners) for p in true_planes(preset(name))]
 
 
+def rerun_viewer() -> str:
+    """The Rerun viewer to spawn: the one installed beside this Python, else the first on PATH.
+
+    Raises
+    ------
+    ConfigError
+        No viewer, or no display for it to open on (the viewer would fail after a long wait).
+    """
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise ConfigError(
+            "--spawn needs a display (DISPLAY and WAYLAND_DISPLAY are unset); save the recording with "
+            "--rrd FILE.rrd, or serve it with --serve PORT and connect a viewer from another machine"
+        )
+    beside = Path(sys.executable).with_name("rerun")
+    found = str(beside) if beside.exists() else shutil.which("rerun")
+    if found is None:
+        raise ConfigError("--spawn: no Rerun viewer found (pip install rerun-sdk puts `rerun` beside python)")
+    return found
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse a port something else listens on, before the server starts (it would only log the failure).
+
+    Raises
+    ------
+    ConfigError
+        The address is in use or cannot be bound.
+    """
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"--serve port must be in [0, 65535], got {port}")
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the server binds
+        try:
+            s.bind((host, port))
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot serve Rerun on {host}:{port}: {exc.strerror}; pick another --serve port"
+            ) from None
+
+
 @contextmanager
 def open_rerun(
     *,
@@ -168,6 +213,10 @@ def open_rerun(
     truth_world: dict | None = None,
 ) -> Iterator[RerunObserver]:
     """One explicit recording with the chosen sinks and the default blueprint; flushed on exit."""
+
+    viewer = rerun_viewer() if spawn else None  # checked before anything starts
+    if serve_port is not None:
+        check_port_free(serve_bind, serve_port)
     rec = make_recording(application_id)
     blueprint = default_blueprint()
     sinks: list[rr.FileSink | rr.GrpcServerSink | rr.GrpcSink] = []
@@ -176,8 +225,8 @@ def open_rerun(
         sinks.append(rr.FileSink(str(rrd)))
     if serve_port is not None:
         sinks.append(rr.GrpcServerSink(bind_ip=serve_bind, port=serve_port))  # a viewer connects to us
-    if spawn:
-        rec.spawn(connect=False)
+    if viewer is not None:
+        rr.spawn(connect=False, executable_path=viewer, recording=rec)
         sinks.append(rr.GrpcSink())
     rec.set_sinks(*sinks, default_blueprint=blueprint)
     try:

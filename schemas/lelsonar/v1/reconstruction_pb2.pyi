@@ -22,6 +22,7 @@ class EstimateStatus(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     ESTIMATE_STATUS_FINAL: _ClassVar[EstimateStatus]
     ESTIMATE_STATUS_FINAL_TIMEOUT: _ClassVar[EstimateStatus]
     ESTIMATE_STATUS_INCOMPLETE: _ClassVar[EstimateStatus]
+    ESTIMATE_STATUS_ABORTED: _ClassVar[EstimateStatus]
 PLANE_QUALITY_UNSPECIFIED: PlaneQuality
 PLANE_QUALITY_GOOD: PlaneQuality
 PLANE_QUALITY_DEGRADED: PlaneQuality
@@ -31,6 +32,7 @@ ESTIMATE_STATUS_PROVISIONAL: EstimateStatus
 ESTIMATE_STATUS_FINAL: EstimateStatus
 ESTIMATE_STATUS_FINAL_TIMEOUT: EstimateStatus
 ESTIMATE_STATUS_INCOMPLETE: EstimateStatus
+ESTIMATE_STATUS_ABORTED: EstimateStatus
 
 class PlaneEstimate(_message.Message):
     __slots__ = ("label", "method", "normal", "offset", "theta", "sigma_relative", "sigma", "inlier_count", "point_count", "lel_cost", "theta_covariance", "normal_stderr", "offset_stderr", "patch", "quality", "quality_reasons")
@@ -133,7 +135,7 @@ class ComputeTimings(_message.Message):
     def __init__(self, segmentation: _Optional[float] = ..., fit: _Optional[float] = ..., total: _Optional[float] = ...) -> None: ...
 
 class ScanAccounting(_message.Message):
-    __slots__ = ("published", "received_live", "recovered", "duplicates", "rejected", "missing")
+    __slots__ = ("published", "received_live", "recovered", "duplicates", "rejected", "missing", "conflicts")
     class RejectedEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -147,16 +149,18 @@ class ScanAccounting(_message.Message):
     DUPLICATES_FIELD_NUMBER: _ClassVar[int]
     REJECTED_FIELD_NUMBER: _ClassVar[int]
     MISSING_FIELD_NUMBER: _ClassVar[int]
+    CONFLICTS_FIELD_NUMBER: _ClassVar[int]
     published: int
     received_live: int
     recovered: int
     duplicates: int
     rejected: _containers.ScalarMap[str, int]
     missing: int
-    def __init__(self, published: _Optional[int] = ..., received_live: _Optional[int] = ..., recovered: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[_Mapping[str, int]] = ..., missing: _Optional[int] = ...) -> None: ...
+    conflicts: int
+    def __init__(self, published: _Optional[int] = ..., received_live: _Optional[int] = ..., recovered: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[_Mapping[str, int]] = ..., missing: _Optional[int] = ..., conflicts: _Optional[int] = ...) -> None: ...
 
 class Reconstruction(_message.Message):
-    __slots__ = ("schema_version", "scanner_id", "scan_id", "last_step", "status", "stamp_ns", "critical_step", "critical_angle", "planes", "corner_edge", "timings", "samples_used", "failures", "missing_steps", "accounting", "surfaces", "corners", "edges", "unexplained", "surface_echo_count")
+    __slots__ = ("schema_version", "scanner_id", "scan_id", "last_step", "status", "stamp_ns", "critical_step", "critical_angle", "planes", "corner_edge", "timings", "samples_used", "failures", "missing_steps", "accounting", "revision", "aborted_reason", "surfaces", "corners", "edges", "unexplained", "surface_echo_count")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
     SCAN_ID_FIELD_NUMBER: _ClassVar[int]
@@ -172,6 +176,8 @@ class Reconstruction(_message.Message):
     FAILURES_FIELD_NUMBER: _ClassVar[int]
     MISSING_STEPS_FIELD_NUMBER: _ClassVar[int]
     ACCOUNTING_FIELD_NUMBER: _ClassVar[int]
+    REVISION_FIELD_NUMBER: _ClassVar[int]
+    ABORTED_REASON_FIELD_NUMBER: _ClassVar[int]
     SURFACES_FIELD_NUMBER: _ClassVar[int]
     CORNERS_FIELD_NUMBER: _ClassVar[int]
     EDGES_FIELD_NUMBER: _ClassVar[int]
@@ -192,9 +198,11 @@ class Reconstruction(_message.Message):
     failures: _containers.RepeatedScalarFieldContainer[str]
     missing_steps: _containers.RepeatedScalarFieldContainer[int]
     accounting: ScanAccounting
+    revision: int
+    aborted_reason: str
     surfaces: _containers.RepeatedCompositeFieldContainer[SurfaceEstimate]
     corners: _containers.RepeatedCompositeFieldContainer[FeatureEstimate]
     edges: _containers.RepeatedCompositeFieldContainer[FeatureEstimate]
     unexplained: _containers.RepeatedCompositeFieldContainer[UnexplainedEchoes]
     surface_echo_count: int
-    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., last_step: _Optional[int] = ..., status: _Optional[_Union[EstimateStatus, str]] = ..., stamp_ns: _Optional[int] = ..., critical_step: _Optional[int] = ..., critical_angle: _Optional[float] = ..., planes: _Optional[_Iterable[_Union[PlaneEstimate, _Mapping]]] = ..., corner_edge: _Optional[_Union[Line, _Mapping]] = ..., timings: _Optional[_Union[ComputeTimings, _Mapping]] = ..., samples_used: _Optional[int] = ..., failures: _Optional[_Iterable[str]] = ..., missing_steps: _Optional[_Iterable[int]] = ..., accounting: _Optional[_Union[ScanAccounting, _Mapping]] = ..., surfaces: _Optional[_Iterable[_Union[SurfaceEstimate, _Mapping]]] = ..., corners: _Optional[_Iterable[_Union[FeatureEstimate, _Mapping]]] = ..., edges: _Optional[_Iterable[_Union[FeatureEstimate, _Mapping]]] = ..., unexplained: _Optional[_Iterable[_Union[UnexplainedEchoes, _Mapping]]] = ..., surface_echo_count: _Optional[int] = ...) -> None: ...
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., last_step: _Optional[int] = ..., status: _Optional[_Union[EstimateStatus, str]] = ..., stamp_ns: _Optional[int] = ..., critical_step: _Optional[int] = ..., critical_angle: _Optional[float] = ..., planes: _Optional[_Iterable[_Union[PlaneEstimate, _Mapping]]] = ..., corner_edge: _Optional[_Union[Line, _Mapping]] = ..., timings: _Optional[_Union[ComputeTimings, _Mapping]] = ..., samples_used: _Optional[int] = ..., failures: _Optional[_Iterable[str]] = ..., missing_steps: _Optional[_Iterable[int]] = ..., accounting: _Optional[_Union[ScanAccounting, _Mapping]] = ..., revision: _Optional[int] = ..., aborted_reason: _Optional[str] = ..., surfaces: _Optional[_Iterable[_Union[SurfaceEstimate, _Mapping]]] = ..., corners: _Optional[_Iterable[_Union[FeatureEstimate, _Mapping]]] = ..., edges: _Optional[_Iterable[_Union[FeatureEstimate, _Mapping]]] = ..., unexplained: _Optional[_Iterable[_Union[UnexplainedEchoes, _Mapping]]] = ..., surface_echo_count: _Optional[int] = ...) -> None: ...

@@ -66,6 +66,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from lelsonar.errors import InternalError
 from lelsonar.geometry import ArrayGeometry, boresight
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.options import FitOptions
@@ -257,19 +258,26 @@ class IncrementalPlane:
                 echoes,
             )
         if self._waiting(echoes):
-            return self.plane  # not even the echoes (an upper bound on the points) are enough yet
+            return self._last()  # not even the echoes (an upper bound on the points) are enough yet
         sl = self._materialise(gamma, distance)
-        if self._theta_ls is not None:
+        theta = self._theta_ls
+        if theta is not None:
             if self.n < 2 * self._exact_at:
-                trusted = self._incremental(sl, t0)
+                trusted = self._incremental(sl, theta, t0)
             else:
-                trusted = self._refresh(t0)
+                trusted = self._refresh(theta, t0)
             if trusted:
-                return self.plane
+                return self._last()
             self.stats.trust_failures += 1
         elif self._waiting(self.n):
-            return self.plane
+            return self._last()
         return self._exact(t0)
+
+    def _last(self) -> PlaneResult:
+        """The estimate kept: only asked once one was made (waiting follows a fit, a trusted update sets one)."""
+        if self.plane is None:
+            raise InternalError(f"plane {self.label}: the last provisional estimate was asked before any was made")
+        return self.plane
 
     def _not_facing(self, why: str, echoes: int) -> FitFailure:
         self.stats.not_facing += 1
@@ -298,9 +306,9 @@ class IncrementalPlane:
         new = F.plane_data(self.geometry, gamma, distance, steps, self.label, self.axis)
         return self._append(new) if new.n else slice(self.n, self.n)
 
-    def _incremental(self, sl: slice, t0: float) -> bool:
-        """The new points only: classify them against the current plane, add the inliers to the sums."""
-        theta = self._theta_ls
+    def _incremental(self, sl: slice, theta: np.ndarray, t0: float) -> bool:
+        """The new points only: classify them against the current plane (the inliers' LS ``theta``), add the
+        inliers to the sums."""
         v, pc, d = self._v[sl], self._pc[sl], self._d[sl]
         if len(d):
             r = (v @ theta - 1.0) / np.linalg.norm(theta)
@@ -311,7 +319,7 @@ class IncrementalPlane:
             self._accepted += int(np.count_nonzero(ok))
         return self._accept(self._beam[sl], t0, "incremental update")
 
-    def _refresh(self, t0: float) -> bool:
+    def _refresh(self, theta: np.ndarray, t0: float) -> bool:
         """The doubling rule, without a solver: every point re-classified against the current plane.
 
         Re-deriving the inliers from all the points (one vectorised pass, O(points) once per doubling:
@@ -319,7 +327,7 @@ class IncrementalPlane:
         sums are rebuilt from the new inliers and the trust check judges the result like an update whose
         new points are all the points.  Only if it fails does an exact fit run.
         """
-        n, theta = self.n, self._theta_ls
+        n = self.n
         v, pc, d = self._v[:n], self._pc[:n], self._d[:n]
         ok = np.abs((v @ theta - 1.0) / np.linalg.norm(theta)) <= self.options.inlier_tolerance
         self._reset_sums()
@@ -418,7 +426,7 @@ class IncrementalPlane:
         self._inlier[: self.n] = False
         self._retry_at = max(self.n + 1, int(np.ceil(RETRY_GROWTH * self.n)))  # if no update can follow this fit
         self._retry_face_on = 0
-        if why:
+        if why or not isinstance(fit, PlaneFit):  # (a failure is never trusted: its why is "no fit")
             self.stats.untrusted += 1
             # What changes the outcome is more echoes of the beams facing the wall.
             self._retry_at = self.n + 1

@@ -24,9 +24,10 @@ STATUS = {
     "final": pb.ESTIMATE_STATUS_FINAL,
     "final_timeout": pb.ESTIMATE_STATUS_FINAL_TIMEOUT,
     "incomplete": pb.ESTIMATE_STATUS_INCOMPLETE,
+    "aborted": pb.ESTIMATE_STATUS_ABORTED,
 }
-#: Statuses after which no other estimate of the scan comes.
-TERMINAL = frozenset({"final", "final_timeout", "incomplete"})
+#: Statuses after which no other estimate of the scan comes (but a re-finalised one, of a higher revision).
+TERMINAL = frozenset({"final", "final_timeout", "incomplete", "aborted"})
 _STATUS_NAME = {v: k for k, v in STATUS.items()}
 
 
@@ -35,7 +36,7 @@ def status_name(msg: codec.Reconstruction) -> str:
 
 
 def is_terminal(msg: codec.Reconstruction) -> bool:
-    """No other estimate of this scan will come (final, final_timeout or incomplete)."""
+    """No other estimate of this scan will come (final, final_timeout, incomplete or aborted)."""
     return status_name(msg) in TERMINAL
 
 
@@ -198,11 +199,23 @@ def estimate_message(
 
 
 def accounting_message(
-    *, published: int, received_live: int, recovered: int, duplicates: int, rejected: dict[str, int], missing: int
+    *,
+    published: int,
+    received_live: int,
+    recovered: int,
+    duplicates: int,
+    rejected: dict[str, int],
+    missing: int,
+    conflicts: int = 0,
 ) -> pb.ScanAccounting:
     """Where every sample of one scan went (see ``ScanAccounting`` in reconstruction.proto)."""
     acc = pb.ScanAccounting(
-        published=published, received_live=received_live, recovered=recovered, duplicates=duplicates, missing=missing
+        published=published,
+        received_live=received_live,
+        recovered=recovered,
+        duplicates=duplicates,
+        missing=missing,
+        conflicts=conflicts,
     )
     for reason, n in sorted(rejected.items()):
         if n:
@@ -216,7 +229,9 @@ def accounting_text(acc: pb.ScanAccounting) -> str:
     detail = f" ({', '.join(f'{k} {v}' for k, v in sorted(acc.rejected.items()))})" if rejected else ""
     return (
         f"published {acc.published}, live {acc.received_live}, recovered {acc.recovered}, "
-        f"duplicates {acc.duplicates}, rejected {rejected}{detail}, missing {acc.missing}"
+        f"duplicates {acc.duplicates}"
+        + (f" (conflicting {acc.conflicts})" if acc.conflicts else "")
+        + f", rejected {rejected}{detail}, missing {acc.missing}"
     )
 
 

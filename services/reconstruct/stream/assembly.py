@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.errors import InvalidMessageError
+from lelsonar.errors import InvalidMessageError, LelsonarError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.stream.fastwire import UNREAD, place_wire
 from lelsonar.reconstruct.stream.scan_start import energy_model_of, scan_geometry, speed_of_sound
@@ -117,6 +117,13 @@ class ScanAssembly(WriterChecks):
     recovered_mask: np.ndarray = field(init=False)  # (steps,) bool: the step came from the acquirer's log
     end: codec.ScanEnd | None = None
     duplicates: int = 0
+    #: Copies of a held step whose content differed from the held one (a forgery, a replayed step of another
+    #: run, a broken writer): counted apart from identical resends, and settled by the acquirer's log.
+    conflicts: int = 0
+    #: Steps with a conflicting copy that no copy from the acquirer's log has settled yet.
+    unsettled: set = field(default_factory=set)
+    #: Held steps the acquirer's log replaced (its copy differed from the one held).
+    replaced: int = 0
     #: Messages of this scan that were refused, by reason (the wire's ScanAccounting.rejected).
     rejected: Counter = field(default_factory=Counter)
     #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms (or was not plausible:
@@ -320,6 +327,7 @@ class ScanAssembly(WriterChecks):
             if step >= self._steps:
                 raise InvalidMessageError(f"step {step} is outside the schedule of {self._steps} steps")
             self.duplicates += 1
+            self._compare_copy(sample, step, origin)
             return False
         k = self._k
         known = self._layout
@@ -374,12 +382,12 @@ class ScanAssembly(WriterChecks):
                 )
             values, joined, one_clock = self._values, b"".join(data), True
         else:
-            sensors, carried_list = self._in_capsule_order(sample, carried if m else None)
+            sensors, in_order = self._in_capsule_order(sample, carried if m == k else None)
             ranges, layout, data = codec.sample_readings(sensors)
             joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
             clocks = [v for i in range(k) for v in layout[6 * i + 2 : 6 * i + 4]]  # (rate, t0) of each
             one_clock = clocks == [layout[2], layout[3]] * k
-            carried_list = carried_list if m == k else []
+            carried_list = [] if in_order is None else in_order
             values = np.array(
                 [
                     *clocks,
@@ -414,6 +422,33 @@ class ScanAssembly(WriterChecks):
             self._candidate_windows,
         )
         return self._placed(status, m, step, waveforms, layout, ranges, one_clock, waveforms)
+
+    def _compare_copy(self, sample: codec.Sample, step: int, origin: str) -> None:
+        """A second copy of a held step: identical, or a conflict; a copy from the acquirer's log settles it.
+
+        The copy is placed in a scratch scan and compared on what the estimate reads (time, angle, ranges,
+        energies): only duplicates pay for it.
+        """
+        probe = ScanAssembly(self.start)
+        try:
+            probe.add(sample, origin)
+            differs = probe.time_ns[step] != self.time_ns[step] or not all(
+                np.allclose(getattr(probe, name)[step], getattr(self, name)[step], rtol=1e-9, atol=0, equal_nan=True)
+                for name in ("gamma", "gamma_commanded", "distance", "sensor_energy", "echo_amplitude")
+            )
+        except LelsonarError:
+            differs = True
+        if origin == "recovered":  # the log is the truth: its copy stays
+            if differs:
+                self.received[step] = False
+                self._timed[step] = False
+                self._walk_tested = self._noise_tested = self._recovered = None
+                self.add(sample, origin)
+                self.replaced += 1
+            self.unsettled.discard(step)
+        elif differs:
+            self.conflicts += 1
+            self.unsettled.add(step)
 
     def _placed(
         self,
@@ -507,7 +542,7 @@ class ScanAssembly(WriterChecks):
                 step,
             )
 
-    def _in_capsule_order(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list | None]:
+    def _in_capsule_order(self, sample: codec.Sample, carried: list[float] | None) -> tuple[list, list[float] | None]:
         """The sensors of a sample in the order of the ScanStart's capsule ids, and the carried energies in
         the same order; checked (the capsules the ScanStart listed, waveforms of one length)."""
         sensors = list(sample.sensors)

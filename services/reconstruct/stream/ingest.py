@@ -93,6 +93,8 @@ class Ingest:
     recovered_after_close: int = 0
     #: Keys that started waiting for their ScanStart since the caller last emptied this list.
     newly_pending: list[ScanKey] = field(default_factory=list)
+    #: Finalised scans a message came for since the caller last emptied this list (it may re-finalise them).
+    late: list[ScanKey] = field(default_factory=list)
     #: Read a Sample of an open scan straight from its payload (:mod:`~lelsonar.reconstruct.stream.fastwire`)
     #: where it has the scan's layout; False parses every payload (the baseline `lelsonar bench ingest` shows).
     fast_path: bool = True
@@ -110,6 +112,7 @@ class Ingest:
         ``key_scanner``: the scanner id in the key the payload came on (live data);
         a payload that claims another scanner is rejected as ``ScannerMismatchError``.
         """
+        message: codec.WireMessage
         try:
             cls = codec.MESSAGE_TYPES.get(type_name)
             if cls is None or cls is codec.Reconstruction:
@@ -143,6 +146,8 @@ class Ingest:
         """Apply an already validated message (``origin``: "live" or "recovered")."""
         key = (message.scanner_id, message.scan_id)
         if key in self.closed:
+            if len(self.late) < self.max_pending and (not self.late or self.late[-1] != key):  # bounded
+                self.late.append(key)
             if origin == "recovered":
                 # A recovery reply that came after the verdict (asked twice, or the live copy won):
                 # nothing was lost, so it is counted apart from rejected input.

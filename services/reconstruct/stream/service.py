@@ -25,8 +25,10 @@ Gaps and when a final may be published:
   ``recovery_after`` of silence without a ScanEnd (the rest and the ScanEnd),
   and at the first sample or the ScanEnd of a scan it never saw start (the
   ScanStart and the earlier steps — a reconstructor that starts late catches up);
-- at most ``recovery_attempts`` requests ``recovery_interval`` apart without
-  progress (any new step starts the budget again);
+- ``recovery_attempts`` requests without progress, from ``recovery_interval``
+  apart and doubling, then on while the acquirer's log may still answer
+  (:class:`~lelsonar.reconstruct.stream.recovery.RecoveryPolicy`; any new step
+  starts the budget again);
 - ``FINAL`` only when every step the ScanEnd counts is in; otherwise, once
   recovery is exhausted, ``INCOMPLETE`` with ``missing_steps``; a scan whose
   ScanEnd never came is ``FINAL_TIMEOUT``, also with its ``missing_steps``;
@@ -37,7 +39,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Protocol
@@ -45,122 +46,26 @@ from typing import Protocol
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.errors import ConfigError, InternalError
+from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
+from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings
 from lelsonar.reconstruct.estimate.record import (
     ProvisionalState,
-    RecordOptions,
     provisional_method,
     reconstruct_scan,
 )
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
-from lelsonar.reconstruct.stream.recovery import RecoveryRequest
+from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
+from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 _log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True)
-class ReconstructConfig:
-    """How the service estimates.
-
-    Parameters
-    ----------
-    method : str
-        The estimator of record (a key of ``pipeline.METHODS``).
-    compare_methods : tuple of str
-        Also run at the end of each scan, published next to ``method``.
-    refit_every : int
-        Steps between provisional re-estimates of plane b (and, before the corner is confirmed,
-        between looks for its peak).
-    provisional_period : float
-        s of scan time (the samples' ``acquisition_time_ns``): a scan gets at most one provisional
-        estimate per period (default 0.08 s: at most 12.5 a second per scan, i.e. every
-        ``refit_every`` = 4 steps of a 50 Hz scanner; a faster scanner, or a burst of recovered
-        steps, is held to the same rate).  Scan time, not the wall clock, so a replay gives the
-        same provisional estimates at any speed.  0 disables it.
-    confirm_steps : int
-        Steps that must follow the R peak before it is trusted.
-    confirm_ratio : float
-        The peak must exceed this multiple of the median R so far.
-    provisional : bool
-        Publish provisional estimates while a scan arrives (off for a batch replay,
-        whose finals do not depend on them).
-    max_provisional_delay : float
-        s; under a backlog, a scan still gets a provisional estimate this often.
-    provisional_budget : float
-        s of deferred provisional refits one :meth:`ReconstructionService.tick` runs, oldest estimate
-        first; the rest wait for the next tick, so catching up never holds the stream for long.
-        While a backlog waits, a refit deferred over twice ``max_provisional_delay`` is shed
-        (``ServiceStats.provisionals_shed``): samples come first, and the scan's next refit covers it.
-    scan_timeout : float
-        s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
-    end_grace : float
-        s to wait, after a ScanEnd with steps missing, before publishing INCOMPLETE when no
-        recovery is possible (no ``recover`` hook).
-    recovery_attempts : int
-        Requests to the acquirer's log per scan without progress before giving up (0: never ask).
-    recovery_interval : float
-        s between two requests for the same scan.
-    recovery_after : float
-        s of silence after which an open scan without ScanEnd asks the log for the rest.
-    max_scans : int
-        Scans assembled at once; the oldest is forgotten first (counted).
-    max_pending : int
-        Samples held, over all scans, while their ScanStart is missing (counted when dropped).
-    max_scanners : int
-        Scanners whose latest estimate is kept (a `get` on planes answers from it).
-    limits : DecodeLimits
-    """
-
-    method: str = DEFAULT_METHOD
-    compare_methods: tuple[str, ...] = ("ls",)
-    refit_every: int = 4
-    provisional_period: float = 0.08
-    confirm_steps: int = 6
-    confirm_ratio: float = 1.5
-    provisional: bool = True
-    max_provisional_delay: float = 0.25
-    provisional_budget: float = 0.01
-    keep_finals: int = 1024
-    scan_timeout: float = 10.0
-    end_grace: float = 1.0
-    recovery_attempts: int = 5
-    recovery_interval: float = 1.0
-    recovery_after: float = 1.0
-    max_scans: int = 256
-    max_pending: int = 4096
-    max_scanners: int = 256
-    limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
-
-    def __post_init__(self) -> None:
-        for name in (self.method, *self.compare_methods):
-            if name not in METHODS:
-                raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
-        if self.refit_every < 1 or self.confirm_steps < 1:
-            raise ConfigError("refit_every and confirm_steps must be >= 1")
-        if not self.provisional_period >= 0:
-            raise ConfigError("provisional_period must be >= 0 s")
-        if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
-            raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
-        if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
-            raise ConfigError("recovery_attempts must be >= 0, recovery_interval and recovery_after > 0 s")
-        if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
-            raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
-
-    def record_options(self) -> RecordOptions:
-        """How this service's scans are reconstructed (:func:`reconstruct_scan`)."""
-        return RecordOptions(
-            method=self.method,
-            compare_methods=self.compare_methods,
-            fit=FitOptions(),
-            confirm_steps=self.confirm_steps,
-            confirm_ratio=self.confirm_ratio,
-            provisional_period=self.provisional_period,
-        )
+#: Times a scan may be re-finalised after a FINAL_TIMEOUT or INCOMPLETE verdict (late steps from its log).
+MAX_REVISIONS = 3
 
 
 class Observer(Protocol):
@@ -206,29 +111,9 @@ class Partial(ProvisionalState):
     last_activity: float = 0.0
     ended_at: float | None = None
     recovery: RecoveryState = field(default_factory=RecoveryState)
-
-
-@dataclass
-class ServiceStats:
-    """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; all of it: ``stats_dict``)."""
-
-    estimates: int = 0
-    finals: int = 0  # every terminal estimate: final, final_timeout, incomplete
-    timeouts: int = 0
-    incomplete: int = 0
-    published: int = 0
-    received_live: int = 0
-    recovered: int = 0
-    duplicates: int = 0
-    missing: int = 0
-    recovery_requests: int = 0
-    recovery_refused: int = 0
-    #: Deferred provisional refits dropped under a backlog (the final is never shed).
-    provisionals_shed: int = 0
-    #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
-    without_start: int = 0
-    #: What a bound pushed out of the service's own tables, by reason.
-    evicted: Counter = field(default_factory=Counter)
+    #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
+    settling: frozenset = frozenset()
+    settle_at: float | None = None
 
 
 class ReconstructionService:
@@ -250,6 +135,12 @@ class ReconstructionService:
         self._clock = clock
         #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
         self.recover = recover
+        #: When to ask again and when to give up (a live source lets it ask on while the log may answer).
+        self.recovery_policy = RecoveryPolicy(
+            config.recovery_attempts,
+            config.recovery_interval,
+            max(config.recovery_interval, RecoveryPolicy.max_interval),
+        )
         self._partials: dict[ScanKey, Partial] = {}
         # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
@@ -264,6 +155,8 @@ class ReconstructionService:
         self.latest: dict[str, codec.Reconstruction] = {}
         #: Final estimates, per scan, in the order they were made.
         self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
+        #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
+        self._reopened: dict[ScanKey, int] = {}
         self.stats = ServiceStats()
 
     # --- input ---------------------------------------------------------------------------
@@ -290,6 +183,10 @@ class ReconstructionService:
                 continue
             out += self._on_accepted(event, busy)
         now = self._clock()
+        if self.ingest.late:
+            late, self.ingest.late = self.ingest.late, []
+            for key in late:
+                self._reopen(key)
         fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
         for key in fresh:
             if key in self.ingest.pending and key not in self._pending_since:
@@ -317,26 +214,28 @@ class ReconstructionService:
                 continue
             r = p.recovery
             self._note_progress(r, scan.n_received)
+            self._settle(scan, p, now)
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    out.append(self._finalise(scan, p, "final"))
+                    if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                        out.append(self._finalise(scan, p, "final"))
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
-                elif self._can_ask(r, now):
+                elif self._can_ask(r, now, key):
                     self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
-                elif self._exhausted(r, now) and now - p.ended_at >= cfg.end_grace:
+                elif self._exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
                     out.append(self._finalise(scan, p, "incomplete"))
             elif not busy:
                 silent = now - p.last_activity
-                if silent >= cfg.recovery_after and self._can_ask(r, now):
+                if silent >= cfg.recovery_after and self._can_ask(r, now, key):
                     self._ask(
                         r,
                         RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()), want_end=True),
                         now,
                         scan.n_received,
                     )
-                elif silent >= cfg.scan_timeout and self._exhausted(r, now):
+                elif silent >= cfg.scan_timeout and self._exhausted(r, now, key):
                     self._event(
                         "WARNING",
                         f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
@@ -346,9 +245,9 @@ class ReconstructionService:
         for key, (since, r) in list(self._pending_since.items()):
             if key not in self.ingest.pending:
                 del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
-            elif self._can_ask(r, now):
+            elif self._can_ask(r, now, key):
                 self._ask_for_start(key, now)
-            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now):
+            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now, key):
                 # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
                 del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
@@ -445,21 +344,66 @@ class ReconstructionService:
         if r.mark >= 0 and held > r.mark:
             r.attempts, r.mark = 0, held  # new steps came: the budget starts again
 
-    def _can_ask(self, r: RecoveryState, now: float) -> bool:
-        return (
-            self.recover is not None
-            and r.attempts < self.config.recovery_attempts
-            and (r.last_at is None or now - r.last_at >= self.config.recovery_interval)
-        )
+    def _can_ask(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
+        return self.recover is not None and self.recovery_policy.can_ask(r.attempts, r.last_at, now, key)
 
-    def _exhausted(self, r: RecoveryState, now: float) -> bool:
-        if self.recover is None or self.config.recovery_attempts == 0:
-            return True
-        return (
-            r.attempts >= self.config.recovery_attempts
-            and r.last_at is not None
-            and now - r.last_at >= self.config.recovery_interval
+    def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
+        return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
+
+    def _reopen(self, key: ScanKey) -> None:
+        """Steps came for a scan finalised without them: ask the acquirer's log for the whole scan, to publish
+        it again complete, with a higher revision (at most ``MAX_REVISIONS``)."""
+        old = self.finals.get(key)
+        if (
+            old is None
+            or self.recover is None
+            or key in self._reopened
+            or wire.status_name(old) not in ("final_timeout", "incomplete")
+            or old.revision >= MAX_REVISIONS
+        ):
+            return
+        self._reopened[key] = old.revision + 1
+        while len(self._reopened) > self.config.max_scans:
+            self._reopened.pop(next(iter(self._reopened)))
+            self.stats.evicted["re-opened scan forgotten (max_scans)"] += 1
+        self.ingest.closed.pop(key, None)
+        steps = int(old.samples_used) + len(old.missing_steps)  # the schedule
+        self._event(
+            "WARNING",
+            f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
+            f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
         )
+        self._request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
+
+    def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
+        """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
+        if scan.unsettled and self.recover is not None and p.settling != scan.unsettled:
+            p.settling, p.settle_at = frozenset(scan.unsettled), now
+            self._event(
+                "WARNING",
+                f"scan {scan.key}: {scan.conflicts} conflicting copies of steps {_ranges_text(sorted(p.settling))}; "
+                "asking the acquirer's log which is right",
+            )
+            self._request(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling))))
+
+    def _request(self, request: RecoveryRequest) -> None:
+        """One request outside a scan's attempts (counted; a refusal or a failure counted as refused)."""
+        self.stats.recovery_requests += 1
+        try:
+            ok = self.recover is not None and self.recover(request)
+        except Exception:  # noqa: BLE001 - a failed request is a refused one, not a dead service
+            _log.exception("recovery request failed; counted as refused")
+            ok = False
+        if not ok:
+            self.stats.recovery_refused += 1
+
+    def _settling(self, scan: ScanAssembly, p: Partial, now: float) -> bool:
+        """Whether the final waits for the log to settle conflicting copies (live, for up to ``scan_timeout``)."""
+        if not scan.unsettled or self.recover is None:
+            return False
+        if p.settle_at is None:
+            self._settle(scan, p, now)
+        return p.settle_at is not None and now - p.settle_at < self.config.scan_timeout
 
     def still_wanted(self, request: RecoveryRequest) -> bool:
         """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
@@ -485,7 +429,12 @@ class ReconstructionService:
         self._event(
             "INFO",
             f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
-            f"{what} (attempt {r.attempts}/{self.config.recovery_attempts})",
+            f"{what} (attempt {r.attempts}"
+            + (
+                f"/{self.config.recovery_attempts})"
+                if r.attempts <= self.config.recovery_attempts
+                else f", past {self.config.recovery_attempts}: its log may still answer)"
+            ),
         )
         try:
             ok = recover(request)
@@ -501,7 +450,7 @@ class ReconstructionService:
         _, r = self._pending_since[key]
         held = self.ingest.pending.get(key, [])
         self._note_progress(r, len(held))
-        if not held or not self._can_ask(r, now):
+        if not held or not self._can_ask(r, now, key):
             return
         have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
         ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
@@ -534,7 +483,7 @@ class ReconstructionService:
                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                 end.end_time_ns,
             )
-            if scan.complete:
+            if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
                 return [self._finalise(scan, p, "final")]
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -545,7 +494,7 @@ class ReconstructionService:
                 f"missing so far: {_ranges_text(missing)}",
                 end.end_time_ns,
             )
-            if self._can_ask(p.recovery, p.ended_at):
+            if self._can_ask(p.recovery, p.ended_at, scan.key):
                 self._ask(
                     p.recovery,
                     RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
@@ -562,7 +511,7 @@ class ReconstructionService:
                 float(scan.expected_energy[step]),
                 float(scan.ratio[step]),
             )
-        if p.ended_at is not None and scan.complete:
+        if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
             return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
@@ -572,8 +521,8 @@ class ReconstructionService:
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
         """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`)."""
-        if not self.config.provisional:
-            return []
+        if not self.config.provisional or scan.key in self._reopened:
+            return []  # (a re-opened scan already had its verdict: only its new final is published)
         if scan.n_received - p.steps_at_fit < self.config.refit_every:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
         had_corner = p.critical is not None
@@ -597,6 +546,10 @@ class ReconstructionService:
         missing = scan.missing_steps()
         if status == "final" and len(missing):
             status = "incomplete"  # never FINAL with steps missing
+        end = scan.end
+        aborted = end is not None and end.status == SCAN_STATUS_ABORTED
+        if aborted and status in ("final", "incomplete"):
+            status = "aborted"  # a sweep stopped early is never FINAL (its missing_steps still listed)
         acc = wire.accounting_message(
             published=int(scan.end.samples_sent) if scan.end is not None else 0,
             received_live=scan.n_received - scan.n_recovered,
@@ -604,11 +557,23 @@ class ReconstructionService:
             duplicates=scan.duplicates,
             rejected=dict(scan.rejected),
             missing=len(missing),
+            conflicts=scan.conflicts,
         )
         est = reconstruct_scan(scan_input(scan), self._options)
+        # What the stream knows of the scan beyond its data: a sweep stopped early, copies that conflicted.
+        findings: tuple[tuple[str, str], ...] = ()
+        if end is not None and aborted:
+            findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
+        if scan.conflicts:
+            findings += ((DEGRADED, conflict_reason(scan, self.recover is not None)),)
+        if findings:
+            est = replace(est, planes=tuple(add_findings(pl, findings) for pl in est.planes))
         msg = wire.estimate_message(
             est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
         )
+        if end is not None and aborted:
+            msg.aborted_reason = end.reason or "aborted"
+        msg.revision = self._reopened.pop(scan.key, 0)
         # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
         for note in est.notes:
             self._event("WARNING", f"scan {scan.key}: {note}")
@@ -671,6 +636,32 @@ class ReconstructionService:
         getattr(_log, level.lower(), _log.info)(text)
         if self._observer:
             self._observer.event(level, text, time_ns)
+
+
+def partial_sweep_reason(end: codec.ScanEnd, planned: int) -> str:
+    """A plane's reason when its sweep stopped early: how far it went, and why it stopped."""
+    why = f" ({end.reason})" if end.reason else ""
+    return (
+        f"partial sweep: the scan was aborted after {end.samples_sent} of {planned} steps{why}; "
+        "a wall may extend beyond what was swept"
+    )
+
+
+def conflict_reason(scan: ScanAssembly, live: bool) -> str:
+    """A plane's reason when steps of its scan came twice with different content."""
+    if not scan.unsettled:
+        kept = f"the acquirer's log settled them ({scan.replaced} held copies replaced by the log's)"
+    elif live:
+        kept = (
+            f"the acquirer's log did not settle steps {_ranges_text(sorted(scan.unsettled))}: the first copy was used"
+        )
+    else:
+        kept = (
+            "without the acquirer's log (a replay, or recovery off) nothing can tell which is right: "
+            "the first copy was used"
+        )
+    copies = "1 copy of a held step" if scan.conflicts == 1 else f"{scan.conflicts} copies of held steps"
+    return f"{copies} differed from the one held (a forged or replayed step?); {kept}"
 
 
 def _ranges_text(steps) -> str:

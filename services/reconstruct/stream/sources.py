@@ -11,12 +11,14 @@ BLOCK), and a bounded FIFO of the replies recovered from the acquirer's log
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
+from typing import cast
 
 import zenoh
 
@@ -54,16 +56,19 @@ class PayloadFifo:
     per batch.  ``queue.Queue`` paid a lock round-trip per item and, when full, woke the
     producer (Zenoh's thread, which then wants the GIL) after every single item taken.
     At most ``capacity + batch`` payloads are held: the queued ones and the consumer's batch.
+    The queued payloads also hold at most ``max_bytes`` (one larger item is let in alone, so
+    nothing waits forever): producers block while they are over it.
     """
 
-    def __init__(self, capacity: int, batch: int = 32) -> None:
-        if capacity < 1 or batch < 1:
+    def __init__(self, capacity: int, batch: int = 32, max_bytes: int = 64 * 1024 * 1024) -> None:
+        if capacity < 1 or batch < 1 or max_bytes < 1:
             raise ConfigError(
-                f"the payload FIFO's capacity and batch must be >= 1, got {capacity} and {batch} "
-                "(LiveSource fifo_capacity)"
+                f"the payload FIFO's capacity, batch and max_bytes must be >= 1, got {capacity}, {batch} and "
+                f"{max_bytes} (LiveSource fifo_capacity)"
             )
-        self.capacity, self.batch = capacity, batch
+        self.capacity, self.batch, self.max_bytes = capacity, batch, max_bytes
         self._items: deque = deque()
+        self._bytes = 0
         lock = threading.Lock()
         self._not_empty = threading.Condition(lock)
         self._not_full = threading.Condition(lock)
@@ -73,12 +78,16 @@ class PayloadFifo:
 
     def put(self, item, timeout: float | None = None) -> bool:
         """Append ``item``, waiting at most ``timeout`` s for room; False if there was none."""
+        size = _item_bytes(item)
         with self._not_full:
-            if len(self._items) >= self.capacity and not self._not_full.wait_for(
-                lambda: len(self._items) < self.capacity, timeout
-            ):
+
+            def room() -> bool:
+                return len(self._items) < self.capacity and (not self._items or self._bytes + size <= self.max_bytes)
+
+            if not room() and not self._not_full.wait_for(room, timeout):
                 return False
             self._items.append(item)
+            self._bytes += size
             if len(self._items) == 1:
                 self._not_empty.notify()  # the consumer waits only on an empty FIFO
             return True
@@ -95,8 +104,18 @@ class PayloadFifo:
             n = min(len(items), self.batch)
             out = [items.popleft() for _ in range(n)]
             if n:
+                self._bytes = 0 if not items else self._bytes - sum(_item_bytes(i) for i in out)
                 self._not_full.notify_all()
             return out
+
+
+def _item_bytes(item) -> int:
+    """The payload bytes a FIFO item holds: a work item's payload, or a received Zenoh sample's."""
+    if isinstance(item, tuple) and len(item) > 1 and isinstance(item[1], (bytes, zenoh.ZBytes)):
+        return len(item[1])
+    if isinstance(item, zenoh.Sample):
+        return len(item.payload)
+    return 0
 
 
 def replay_mcap(
@@ -268,6 +287,10 @@ class LiveSource:
         if self._recovery is not None:
             self._recovery.__enter__()
             self._service.recover = self._recovery.request
+            # Past its attempts, a scan asks on while its acquirer's log may still answer.
+            self._service.recovery_policy = dataclasses.replace(
+                self._service.recovery_policy, log_may_answer=self._recovery.may_answer
+            )
         self._thread.start()
         self._doorbell.start()
         return self
@@ -280,6 +303,7 @@ class LiveSource:
             self._group.attach(None)
         if self._recovery is not None:
             self._service.recover = None
+            self._service.recovery_policy = dataclasses.replace(self._service.recovery_policy, log_may_answer=None)
             self._recovery.close()
         if not self._queue.put_nowait(_STOP):
             pass  # full: the processing thread sees the stop flag within one payload
@@ -391,13 +415,13 @@ class LiveSource:
     def _handle(
         self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *, busy: bool
     ) -> list[codec.Reconstruction]:
-        if not isinstance(payload, bytes):
-            payload = payload.to_bytes()  # a live payload's ZBytes, copied once
+        if not isinstance(payload, bytes) and len(payload) <= self._service.config.limits.max_payload_bytes:
+            payload = payload.to_bytes()  # a live payload's ZBytes, copied once (a larger one is refused uncopied)
         media, _, type_name = encoding.partition(";")
         # With more payloads waiting (busy), a provisional refit waits for them too.
         return self._service.handle(
             type_name if media == "application/protobuf" else encoding,
-            payload,
+            cast(bytes, payload),  # or a ZBytes over the decode limit: ingest refuses it by its length, uncopied
             busy=busy,
             origin=origin,
             key_scanner=key_scanner,

@@ -186,4 +186,4 @@ def _edge_alternative(
     else:
         moved, _ = assign_labels(capsule, distance, beam, normal_a, offset_a, normal_b, h, cos_t, tolerance, tolerance)
     as_edge = np.count_nonzero(moved[mk] == ECHO_EDGE) / n_k
-    return as_edge, np.count_nonzero(labels != ECHO_OUTLIER) - np.count_nonzero(moved != ECHO_OUTLIER)
+    return float(as_edge), int(np.count_nonzero(labels != ECHO_OUTLIER) - np.count_nonzero(moved != ECHO_OUTLIER))

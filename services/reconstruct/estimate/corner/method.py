@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from lelsonar.errors import InternalError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.corner.edge import (
@@ -61,9 +62,6 @@ from lelsonar.reconstruct.estimate.quality import (
 from lelsonar.reconstruct.estimate.results import EdgeLine, FailureReason, FitFailure, PlaneFit, PlaneResult
 from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
 from lelsonar.reconstruct.estimate.unexplained import echoes_against_walls
-
-__all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "walk_stderr", "fit_corner"]
-
 
 __all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "walk_stderr", "fit_corner"]
 
@@ -157,12 +155,16 @@ def fit_corner(
     )
     if model is None:
         crit = critical_step(ratio, opts.critical_peak_fraction)
+        if crit is None:
+            raise InternalError(
+                "fit_corner: no step has a finite, positive R; the pipeline calls a scan method only once one has"
+            )
         split = split_subsets(g, crit)
-        data = [
+        subsets = [
             F.plane_data(geometry, g, d, steps, label, axis)
             for steps, label, axis in ((split.steps_a, "a", AXIS_Y), (split.steps_b, "b", AXIS_Z))
         ]
-        out = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in data]
+        adaptive = [run_estimator(fit_adaptive, "adaptive", dd, None, opts) for dd in subsets]
         # Nothing checked these planes against the other wall or the edge, and the energy split assumes both
         # walls and the corner were swept: a plane can be centimetres off with clean residuals.
         fallback = (
@@ -172,12 +174,12 @@ def fit_corner(
                 "energy-split fallback, unchecked against the other wall and the edge",
             ),
         )
-        out = [assess_plane(p, g, findings=fallback) if isinstance(p, PlaneFit) else p for p in out]
+        planes = [assess_plane(p, g, findings=fallback) if isinstance(p, PlaneFit) else p for p in adaptive]
         for k, (label, axis) in enumerate((("a", AXIS_Y), ("b", AXIS_Z))):
             single = single_wall(pts, g, d, geometry, label, axis, opts, echo_amplitude, t0)
             if single is not None:
-                out[k], data[k] = single
-        return ScanFit(out[0], out[1], data[0], data[1], crit)
+                planes[k], subsets[k] = single
+        return ScanFit(planes[0], planes[1], subsets[0], subsets[1], crit)
     # Echoes per label, counted once: outliers (-1), wall a, wall b, edge.
     n_outlier, n_wall_a, n_wall_b, n_edge = np.bincount(model.labels - ECHO_OUTLIER, minlength=4).tolist()
     note = (

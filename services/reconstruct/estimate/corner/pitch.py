@@ -378,7 +378,7 @@ def _walk_stderr(
                 for v in range(2):
                     t += dk[u, v] * cov[v, w]
                 trace += t * dk[u, w]
-        out[k] = min(np.sqrt(shift @ shift + trace), np.pi)
+        out[k] = min(float(np.sqrt(shift @ shift + trace)), np.pi)
     return out[0], out[1]
 
 

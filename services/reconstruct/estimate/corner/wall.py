@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 
+from lelsonar.errors import InternalError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.corner.model import (
@@ -88,9 +89,8 @@ def corner_wall(
     """
     mask = np.ones(data.n, dtype=bool)
     se_joint, se_h_joint = wall_se
-    pitch = amplitude_pitch(*amplitude[:3]) if amplitude is not None else None
     fitted = None
-    if pitch is not None:
+    if amplitude is not None and (pitch := amplitude_pitch(*amplitude[:3])) is not None:
         phi, phi_se = pitch
         fitted, se_n, se_h = fixed_pitch_wall(amplitude[3], amplitude[2], phi, phi_se, wall.normal)
         off = float(np.arccos(min(max(float(fitted.normal @ wall.normal), -1.0), 1.0)))
@@ -187,7 +187,7 @@ def corner_wall(
 
 
 def single_wall(
-    pts,
+    pts: ScanPoints,
     gamma: np.ndarray,
     distance: np.ndarray,
     geometry: ArrayGeometry,
@@ -224,6 +224,8 @@ def single_wall(
             return None
         phi = pitch
         wall, se_n, se_h = fixed_pitch_wall(pts.capsule[m], pts.distance[m], pitch[0], pitch[1], wall.normal)
+    if m is None or phi is None:
+        raise InternalError("single_wall: the loop over the tolerances placed no wall (it runs at least once)")
     sel = np.full(distance.shape, np.nan)
     sel[pts.step[m], pts.capsule_index[m]] = pts.distance[m]
     data = F.plane_data(geometry, gamma, sel, np.unique(pts.step[m]), label, axis)

@@ -1,5 +1,11 @@
-"""``lelsonar bench ingest``'s in-process measurements: the messages of a simulated scan, the ingest stage
-against its floor, the Sample decoding paths side by side, and the MCAP replay rows with their profile."""
+"""``lelsonar bench ingest``, (a′) and (c): the ingest stage and the MCAP replay, in this process, beside their floors.
+
+* the ingest stage (:meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept`) against a plain upb parse
+  (``FromString``) of the same payloads;
+* the replay (:func:`~lelsonar.reconstruct.stream.sources.replay_mcap`) against python ``mcap`` + upb reading
+  the same file (:func:`lelsonar.tools.bench_replay.time_floor`);
+* a cProfile breakdown of one replay (``--profile``).
+"""
 
 from __future__ import annotations
 
@@ -7,34 +13,7 @@ import statistics
 import time
 from pathlib import Path
 
-
-def build_scan(preset_name: str, seed: int = 0):
-    """ScanStart, Samples and ScanEnd of one simulated scan, as the acquisition service builds them."""
-    from lelsonar.acquire import messages
-    from lelsonar.acquire.backends import SimScanner
-    from lelsonar.acquire.scan_loop import gamma_schedule
-    from lelsonar.sim import preset
-    from lelsonar.sim.calibrate import default_energy_model
-
-    sim = preset(preset_name)
-    scanner = SimScanner(sim, seed)
-    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
-    start = messages.scan_start("s0", 1, time.time_ns(), scanner.info, schedule, default_energy_model())
-    samples = [
-        messages.sample("s0", 1, step, float(g), scanner.measure(step, float(g)), scanner.info)
-        for step, g in enumerate(schedule)
-    ]
-    end = messages.scan_end(
-        "s0",
-        1,
-        time.time_ns(),
-        complete=True,
-        reason="",
-        steps_planned=len(schedule),
-        samples_sent=len(schedule),
-        echoes_missing=0,
-    )
-    return start, samples, end
+from lelsonar.tools.bench_ingest_live import build_scan
 
 
 # --- (c) replay --------------------------------------------------------------------------------
@@ -63,7 +42,8 @@ def record_scans(path: Path, preset_name: str, scans: int) -> int:
 
 def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
     """Median wall time of replay_mcap through a fresh service, and the finals of the last run."""
-    from lelsonar.reconstruct.stream.service import ReconstructConfig, ReconstructionService
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 
     times, finals = [], 0
@@ -91,20 +71,18 @@ def time_ingest_only(path: Path, runs: int) -> float:
     return statistics.median(times)
 
 
-def time_read_decode(path: Path, runs: int) -> float:
-    """Median wall time to read the recording and decode + validate every payload: the replay's floor."""
-    from lelsonar import codec
-    from lelsonar.log.recording import iter_payloads
+def time_read_upb(path: Path, runs: int) -> float:
+    """Median wall time of the tolerant reader and a upb parse of every payload: the replay's reading alone."""
+    from lelsonar.tools.bench_replay import time_read
 
-    times = []
-    for _ in range(runs):
-        t = time.perf_counter()
-        for rec in iter_payloads(path):
-            cls = codec.MESSAGE_TYPES.get(rec.type_name)
-            if cls is not None and cls is not codec.Reconstruction:
-                codec.decode(rec.payload, cls)
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
+    return statistics.median(time_read(path)[0] for _ in range(runs))
+
+
+def time_floor(path: Path, runs: int) -> float:
+    """Median wall time of the replay's floor: python ``mcap`` + upb reading the same file's contract messages."""
+    from lelsonar.tools.bench_replay import time_floor as floor
+
+    return statistics.median(floor(path)[0] for _ in range(runs))
 
 
 def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, bytes]]:
@@ -122,8 +100,12 @@ def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, byt
     return out
 
 
+#: The ingest stage's floor, printed beside its ratio.
+STAGE_FLOOR = "plain upb parse (FromString) of the same payloads, no validation"
+
+
 def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[float, float]:
-    """Samples/s of (floor) :func:`lelsonar.codec.decode` (parse + every validation) and of (stage)
+    """Samples/s of (floor) a plain upb parse, ``cls.FromString``, and of (stage)
     :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` — decode, validate, route, assemble: everything the
     service does before estimation — over the same payloads (whole scans, ScanStart to ScanEnd), in this
     process, one run of each per round (medians of ``runs``)."""
@@ -131,13 +113,13 @@ def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[fl
     from lelsonar.reconstruct.stream.ingest import Ingest
 
     payloads = ingest_stage_payloads(preset_name, n)
-    classes = [codec.MESSAGE_TYPES[name] for name, _ in payloads]
-    samples = sum(1 for cls in classes if cls is codec.Sample)
+    parsers = [(codec.MESSAGE_TYPES[name].FromString, b) for name, b in payloads]
+    samples = sum(1 for name, _ in payloads if name == codec.Sample.DESCRIPTOR.full_name)
     floor, stage = [], []
     for _ in range(runs):
         t = time.perf_counter()
-        for cls, (_, b) in zip(classes, payloads):
-            codec.decode(b, cls)
+        for parse, b in parsers:
+            parse(b)
         floor.append(samples / (time.perf_counter() - t))
         ingest = Ingest()
         t = time.perf_counter()
@@ -195,7 +177,7 @@ def profile_replay(path: Path, samples: int, console) -> None:
     prof.enable()
     replay_mcap(path, service)
     prof.disable()
-    stats = pstats.Stats(prof).stats  # (file, line, func) → (cc, nc, tt, ct, callers)
+    stats = pstats.Stats(prof).stats  # type: ignore[attr-defined]  # typeshed omits .stats; (file, line, func) → (cc, nc, tt, ct, callers)
 
     def keys(file_end: str, func: str) -> list:
         return [k for k in stats if k[0].endswith(file_end) and k[2] == func]
@@ -211,25 +193,25 @@ def profile_replay(path: Path, samples: int, console) -> None:
                     calls, ct = calls + nc, ct + cct
         return int(calls), ct
 
-    upd = ("reconstruct/service.py", "_provisional")
+    upd = ("stream/service.py", "_provisional")
     parts = [
-        ("replay_mcap (everything)", "reconstruct/sources.py", "replay_mcap", None),
-        ("  MCAP read (iter_payloads, zstd)", "lelsonar/recording.py", "iter_payloads", None),
-        ("  ingest.accept: decode + assemble", "reconstruct/ingest.py", "accept", None),
+        ("replay_mcap (everything)", "stream/sources.py", "replay_mcap", None),
+        ("  MCAP read (Recording.payloads: zstd, CRC)", "log/recording.py", "payloads", None),
+        ("  ingest.accept: decode + assemble", "stream/ingest.py", "accept", None),
         ("    codec.decode (parse + validate)", "lelsonar/codec.py", "decode", None),
         (
             "    ScanAssembly.add (carried energies checked, echo windows cut out)",
-            "reconstruct/assembly.py",
+            "stream/assembly.py",
             "add",
             None,
         ),
         ("  _provisional (corner check, provisional refit)", *upd, None),
-        ("    ScanAssembly.arrays", "reconstruct/assembly.py", "arrays", upd),
-        ("    IncrementalPlane.update (provisional planes)", "reconstruct/incremental.py", "update", upd),
-        ("  _finalise (after ScanEnd: main + compare methods)", "reconstruct/service.py", "_finalise", None),
-        ("    reconstruct (each method, from scratch)", "reconstruct/pipeline.py", "reconstruct", None),
+        ("    ScanAssembly.arrays", "stream/assembly.py", "arrays", upd),
+        ("    IncrementalPlane.update (provisional planes)", "estimate/incremental.py", "update", upd),
+        ("  _finalise (after ScanEnd: main + compare methods)", "stream/service.py", "_finalise", None),
+        ("    reconstruct (each method, from scratch)", "estimate/pipeline.py", "reconstruct", None),
     ]
-    whole = cum("reconstruct/sources.py", "replay_mcap")[1] or 1.0
+    whole = cum("stream/sources.py", "replay_mcap")[1] or 1.0
     table = Table(
         title=f"cProfile of one replay: {samples} samples, {service.stats.finals} finals "
         f"(cumulative; the profiler inflates Python-heavy code)"

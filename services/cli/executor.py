@@ -1,0 +1,226 @@
+"""Run one function over many argument tuples: a local process pool by default, Ray tasks where asked.
+
+The one place work fans out over processes or machines: ``lelsonar batch`` and the benchmarks use it, so
+``--workers`` and ``--ray`` mean the same everywhere.  It lives with the commands because only the edge
+decides how a process spends its cores; the services below scale live work through Zenoh groups and never
+fan out over files, and ``tools`` may import any layer.
+
+``ray`` is an optional extra (``pip install -e '.[ray]'``) imported in this module only.  Ray is asked for
+one CPU per task, so a cluster runs as many tasks at once as it has cores; ``--ray`` without an address
+joins ``RAY_ADDRESS`` when it is set, else starts a local head.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import signal
+import threading
+import traceback
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from typing import Any
+
+from lelsonar.errors import ConfigError
+
+#: ``--ray`` given without an address: join RAY_ADDRESS if set, else start a local head.
+RAY_AUTO = "auto-or-local"
+RAY_EXTRA_HINT = "Ray is not installed; install the extra: pip install -e '.[ray]'"
+
+
+@dataclass(frozen=True)
+class ExecutorConfig:
+    """Where the work runs.
+
+    Attributes
+    ----------
+    workers : int or None
+        Local processes; None is one per core.  1 runs in this process (no pool).
+    ray : str or None
+        None: the local pool.  :data:`RAY_AUTO`: Ray at ``RAY_ADDRESS`` or a new local head.  Any other
+        string: the Ray address (``auto``, ``host:6379``, ``ray://host:10001``).
+    """
+
+    workers: int | None = None
+    ray: str | None = None
+
+    @property
+    def engine(self) -> str:
+        """``"ray"``, ``"pool"`` or ``"inline"``, for the tables."""
+        if self.ray is not None:
+            return "ray"
+        return "inline" if self.worker_count == 1 else "pool"
+
+    @property
+    def worker_count(self) -> int:
+        return max(1, self.workers if self.workers is not None else (os.cpu_count() or 1))
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One item's result: ``value``, or ``error`` (one line) with the ``trace`` for a report."""
+
+    value: Any = None
+    error: str | None = None
+    trace: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--workers N`` and ``--ray [ADDRESS]``."""
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="local worker processes (default: one per core; 1 runs in this process)",
+    )
+    add_ray_argument(parser)
+
+
+def add_ray_argument(parser: argparse.ArgumentParser) -> None:
+    """``--ray [ADDRESS]`` alone (the benchmarks keep their ``--jobs``)."""
+    parser.add_argument(
+        "--ray",
+        nargs="?",
+        const=RAY_AUTO,
+        default=None,
+        metavar="ADDRESS",
+        help="run on Ray instead: ADDRESS (auto, host:6379, ray://host:10001), else $RAY_ADDRESS, else a local "
+        "head; needs the extra: pip install -e '.[ray]'",
+    )
+
+
+def config_from_args(args: argparse.Namespace, workers_dest: str = "workers") -> ExecutorConfig:
+    """The executor of ``--workers`` (or the flag stored in ``workers_dest``) and ``--ray``."""
+    workers = getattr(args, workers_dest, None)
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers must be at least 1, not {workers}")
+    return ExecutorConfig(workers=workers, ray=getattr(args, "ray", None))
+
+
+def _call(fn: Callable[..., Any], args: tuple) -> Outcome:
+    try:
+        return Outcome(value=fn(*args))
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - every failure is reported with its item, never lost
+        return Outcome(error=f"{type(exc).__name__}: {exc}".splitlines()[0], trace=traceback.format_exc())
+
+
+def run_each(fn: Callable[..., Any], items: Sequence[tuple], config: ExecutorConfig) -> Iterator[tuple[int, Outcome]]:
+    """Yield ``(index, outcome)`` of ``fn(*items[index])`` for every item, in completion order.
+
+    An exception in ``fn`` (or a worker process that dies) becomes that item's ``Outcome.error``; the other
+    items run on.  ``fn`` must be a module-level function and the items picklable.
+    """
+    if not items:
+        return
+    if config.ray is not None:
+        yield from _run_ray(fn, items, config.ray)
+    elif config.worker_count == 1:
+        for i, args in enumerate(items):
+            yield i, _call(fn, args)
+    else:
+        yield from _run_pool(fn, items, min(config.worker_count, len(items)))
+
+
+def map_values(
+    fn: Callable[..., Any],
+    items: Sequence[tuple],
+    config: ExecutorConfig,
+    wrap: Callable[[Iterator[tuple[int, Outcome]]], Iterator[tuple[int, Outcome]]] | None = None,
+) -> list[Any]:
+    """``[fn(*item) for item in items]`` in input order, on the executor; the first failure is raised.
+
+    ``wrap`` wraps the stream of completions (a progress bar).
+
+    Raises
+    ------
+    RuntimeError
+        An item failed (its error line, and its traceback as the message's tail).
+    """
+    out: list[Any] = [None] * len(items)
+    stream = run_each(fn, items, config)
+    for i, outcome in wrap(stream) if wrap is not None else stream:
+        if not outcome.ok:
+            raise RuntimeError(f"item {i} {items[i]!r} failed: {outcome.error}\n{outcome.trace}")
+        out[i] = outcome.value
+    return out
+
+
+def _run_pool(fn: Callable[..., Any], items: Sequence[tuple], workers: int) -> Iterator[tuple[int, Outcome]]:
+    # spawn: a forked child would inherit the parent's threads' locks (progress bars, Numba, Zenoh).
+    context = multiprocessing.get_context("spawn")
+    queue = list(range(len(items)))[::-1]  # popped from the end: input order
+    while queue:
+        lost: list[int] = []
+        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+            # Two items per worker in flight: a worker never waits for this loop, and a dying worker loses
+            # only a few items.
+            running: dict[Future, int] = {}
+            while (queue or running) and not lost:
+                while queue and len(running) < 2 * workers:
+                    i = queue.pop()
+                    running[pool.submit(_call, fn, items[i])] = i
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in sorted(done, key=running.__getitem__):
+                    i = running.pop(fut)
+                    try:
+                        outcome = fut.result()
+                    except BrokenProcessPool:
+                        lost.append(i)
+                        continue
+                    yield i, outcome
+            lost.extend(running.values())
+        # Each item in flight when a worker died runs again alone: the one that kills its own pool is
+        # reported, the others complete.
+        for i in sorted(lost):
+            with ProcessPoolExecutor(1, mp_context=context) as alone:
+                try:
+                    yield i, alone.submit(_call, fn, items[i]).result()
+                except BrokenProcessPool:
+                    yield i, Outcome(error="the worker process died (killed, or a crash in native code)")
+
+
+def _ray_module():
+    try:
+        import ray
+    except ModuleNotFoundError:
+        raise ConfigError(RAY_EXTRA_HINT) from None
+    return ray
+
+
+def _run_ray(fn: Callable[..., Any], items: Sequence[tuple], address: str) -> Iterator[tuple[int, Outcome]]:
+    ray = _ray_module()
+    started = False
+    # ray.init installs its own SIGINT/SIGTERM handlers in this process; the command's are put back after.
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if not ray.is_initialized():
+        target = os.environ.get("RAY_ADDRESS") if address == RAY_AUTO else address
+        try:
+            ray.init(address=target or None, include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+        except ConnectionError as exc:
+            raise ConfigError(f"cannot reach Ray at {target}: {exc}; start it with `ray start --head`") from None
+        started = True
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(_call)
+        refs = {task.remote(fn, args): i for i, args in enumerate(items)}
+        while refs:
+            done, _ = ray.wait(list(refs), num_returns=1)
+            for ref in done:
+                i = refs.pop(ref)
+                try:
+                    yield i, ray.get(ref)
+                except ray.exceptions.RayError as exc:
+                    yield i, Outcome(error=f"{type(exc).__name__}: {exc}".splitlines()[0])
+    finally:
+        if started:
+            ray.shutdown()
+            if threading.current_thread() is threading.main_thread():
+                for sig, handler in handlers.items():
+                    signal.signal(sig, handler)

@@ -1,0 +1,302 @@
+"""The floor plan a planner uses: wall segments, the free space (shapely, GeoJSON), an occupancy grid shaped
+like ROS 2's ``nav_msgs/OccupancyGrid``, wall markers, and a route (networkx) that keeps the robot's radius
+from every wall.
+
+Every wall is an obstacle here, flagged ones included: a wall the map cannot vouch for may still be there.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import networkx as nx
+import numpy as np
+import shapely
+from shapely.geometry import LineString, MultiLineString, Point, Polygon, mapping
+from shapely.ops import unary_union
+
+from lelsonar.errors import ConfigError
+from lelsonar.map.result import FusedMap
+
+#: Colours of the verdicts (RGBA, 0..1) for the wall markers.
+QUALITY_COLOURS = {"good": (0.2, 0.8, 0.3, 1.0), "degraded": (1.0, 0.7, 0.1, 1.0), "unreliable": (0.9, 0.2, 0.2, 1.0)}
+
+#: OccupancyGrid cell values.
+UNKNOWN, FREE, OCCUPIED = -1, 0, 100
+
+
+@dataclass(frozen=True)
+class PlanConfig:
+    """The floor plan's geometry.
+
+    Parameters
+    ----------
+    robot_radius : float
+        The route keeps at least this from every wall, m.
+    resolution : float
+        Grid cell size, m.
+    unknown_cost : float
+        A move through space no scan saw free costs this many times a move through seen free space
+        (the way out of a maze leads through space not yet seen; a wall not yet seen may stand there).
+    margin : float
+        The grid reaches this beyond the walls (room to leave the map), m.
+    """
+
+    robot_radius: float = 0.15
+    resolution: float = 0.05
+    unknown_cost: float = 10.0
+    margin: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1):
+            raise ConfigError(f"plan unknown_cost must be ≥ 1, got {self.unknown_cost!r}")
+        for name in ("robot_radius", "margin"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"plan {name} must be ≥ 0 m, got {v!r}")
+        if not (math.isfinite(self.resolution) and 0.005 <= self.resolution <= 1.0):
+            raise ConfigError(f"plan resolution must be 0.005–1 m, got {self.resolution!r}")
+
+
+def wall_segments(m: FusedMap) -> list[LineString]:
+    """Every observed piece of every wall, on the floor plane."""
+    return [LineString(s) for w in m.walls for s in w.piece_segments]
+
+
+def _segment_array(m: FusedMap) -> np.ndarray:
+    return np.array([s for w in m.walls for s in w.piece_segments]).reshape(-1, 2, 2)
+
+
+def free_space(m: FusedMap, config: PlanConfig | None = None) -> Polygon | shapely.MultiPolygon:
+    """The space the scans saw free: each echo's path from the scanner to the patch it came from (the
+    map's ``views``), and the robot's own way between consecutive poses, less the walls.
+
+    Nothing else is taken as free: a wall the scans never saw leaves unknown space, not free space.  Not
+    shrunk by the robot: see :func:`reachable`.
+    """
+    cfg = config or PlanConfig()
+    parts = [Polygon(v) for v in m.views if len(v) >= 3]
+    xy = [(p.x, p.y) for p in m.poses]
+    if len(xy) == 1:
+        parts.append(Point(xy[0]).buffer(cfg.robot_radius))
+    elif xy:
+        parts.append(LineString(xy).buffer(cfg.robot_radius))
+    seen = unary_union([p.buffer(0) for p in parts]) if parts else Polygon()
+    walls = unary_union(wall_segments(m)).buffer(cfg.resolution / 2) if m.walls else Polygon()
+    return seen.difference(walls)
+
+
+def reachable(m: FusedMap, config: PlanConfig | None = None):
+    """Where the robot's centre may go: the free space shrunk by its radius."""
+    cfg = config or PlanConfig()
+    return free_space(m, cfg).buffer(-cfg.robot_radius)
+
+
+def to_geojson(m: FusedMap, config: PlanConfig | None = None) -> dict:
+    """A GeoJSON FeatureCollection (metres in the map frame, not degrees): walls, free space, poses, route-free."""
+    cfg = config or PlanConfig()
+    features = [
+        {
+            "type": "Feature",
+            "geometry": mapping(MultiLineString(w.piece_segments)),
+            "properties": {
+                "kind": "wall",
+                "id": w.id,
+                "quality": w.quality,
+                "normal_stderr": w.normal_stderr,
+                "offset_stderr": w.offset_stderr,
+            },
+        }
+        for w in m.walls
+    ]
+    space = free_space(m, cfg)
+    if not space.is_empty:
+        features.append({"type": "Feature", "geometry": mapping(space), "properties": {"kind": "free_space"}})
+    features += [
+        {"type": "Feature", "geometry": mapping(Point(p.x, p.y)), "properties": {"kind": "pose", "scan_id": p.scan_id}}
+        for p in m.poses
+    ]
+    return {"type": "FeatureCollection", "features": features}
+
+
+@dataclass(frozen=True)
+class Grid:
+    """An occupancy grid shaped like ``nav_msgs/OccupancyGrid``: row-major from ``origin``, x along rows."""
+
+    resolution: float
+    width: int
+    height: int
+    origin: tuple[float, float]
+    data: np.ndarray  # (height, width) int8: −1 unknown, 0 free, 100 occupied
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """The x and y of every cell's centre, each (height, width)."""
+        xs = self.origin[0] + (np.arange(self.width) + 0.5) * self.resolution
+        ys = self.origin[1] + (np.arange(self.height) + 0.5) * self.resolution
+        return np.meshgrid(xs, ys)
+
+    def cell(self, x: float, y: float) -> tuple[int, int]:
+        """``(row, column)`` of a point."""
+        return int((y - self.origin[1]) // self.resolution), int((x - self.origin[0]) // self.resolution)
+
+    def to_message(self, frame_id: str = "map") -> dict:
+        """The fields of ``nav_msgs/OccupancyGrid`` (for the ROS 2 bridge and the bag export)."""
+        return {
+            "header": {"frame_id": frame_id},
+            "info": {
+                "resolution": self.resolution,
+                "width": self.width,
+                "height": self.height,
+                "origin": {
+                    "position": {"x": self.origin[0], "y": self.origin[1], "z": 0.0},
+                    "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                },
+            },
+            "data": self.data.astype(np.int8).ravel().tolist(),
+        }
+
+
+def _distance_to_segments(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """The distance from each point to the nearest segment ``(n, 2, 2)``."""
+    best = np.full(x.shape, np.inf)
+    for (ax, ay), (bx, by) in segments:
+        dx, dy = bx - ax, by - ay
+        length2 = dx * dx + dy * dy or 1e-18
+        t = np.clip(((x - ax) * dx + (y - ay) * dy) / length2, 0.0, 1.0)
+        np.minimum(best, np.hypot(x - (ax + t * dx), y - (ay + t * dy)), out=best)
+    return best
+
+
+def occupancy_grid(m: FusedMap, config: PlanConfig | None = None) -> Grid:
+    """Occupied where a wall runs (within half a cell), free inside :func:`free_space`, unknown elsewhere."""
+    cfg = config or PlanConfig()
+    segments = _segment_array(m)
+    pts = np.concatenate([segments.reshape(-1, 2), np.array([[p.x, p.y] for p in m.poses]).reshape(-1, 2)])
+    if len(pts) == 0:
+        pts = np.zeros((1, 2))
+    lo = pts.min(axis=0) - cfg.margin
+    hi = pts.max(axis=0) + cfg.margin
+    width, height = (int(math.ceil(v)) for v in (hi - lo) / cfg.resolution)
+    grid = Grid(cfg.resolution, width, height, (float(lo[0]), float(lo[1])), np.full((height, width), UNKNOWN, np.int8))
+    x, y = grid.centres()
+    space = free_space(m, cfg)
+    if not space.is_empty:
+        grid.data[shapely.contains_xy(space, x, y)] = FREE
+    if len(segments):
+        grid.data[_distance_to_segments(x, y, segments) <= cfg.resolution / 2] = OCCUPIED
+    return grid
+
+
+def wall_markers(m: FusedMap, frame_id: str = "map", thickness_sigmas: float = 2.0) -> list[dict]:
+    """Each observed piece of each wall as the fields of a ``visualization_msgs/Marker`` CUBE: its stretch,
+    its height, a thickness of ``thickness_sigmas`` × its offset σ (at least 1 cm), coloured by verdict;
+    the marker's text names the wall."""
+    out: list[dict] = []
+    for w in m.walls:
+        z0, z1 = w.z_range
+        r, g, bl, alpha = QUALITY_COLOURS[w.quality]
+        for a, b in w.piece_segments:
+            mid = 0.5 * (a + b)
+            yaw = math.atan2(b[1] - a[1], b[0] - a[0])
+            out.append(
+                {
+                    "header": {"frame_id": frame_id},
+                    "ns": "walls",
+                    "id": len(out),
+                    "type": 1,  # CUBE
+                    "action": 0,  # ADD
+                    "pose": {
+                        "position": {"x": float(mid[0]), "y": float(mid[1]), "z": 0.5 * (z0 + z1)},
+                        "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
+                    },
+                    "scale": {
+                        "x": max(0.01, float(np.hypot(*(b - a)))),
+                        "y": max(0.01, thickness_sigmas * w.offset_stderr),
+                        "z": max(0.01, z1 - z0),
+                    },
+                    "color": {"r": r, "g": g, "b": bl, "a": alpha},
+                    "text": f"wall {w.id}: {w.quality}",
+                }
+            )
+    return out
+
+
+def route(
+    m: FusedMap, start: tuple[float, float], goal: tuple[float, float] | None = None, config: PlanConfig | None = None
+) -> list[tuple[float, float]] | None:
+    """The shortest route over the grid from ``start`` to ``goal``, or out of the map when ``goal`` is None.
+
+    A move costs its length, times ``unknown_cost`` through space no scan saw free.
+    A cell is open when its centre is farther than the robot's radius plus half a cell's diagonal from
+    every wall, so the straight moves between open cells keep the radius.  Moves go to the 8 neighbours.
+    "Out of the map" is any open cell on the grid's border (the grid reaches ``margin`` beyond the walls).
+
+    Returns
+    -------
+    list of (x, y) or None
+        The route's turning points from ``start`` to the end, m; None when there is none.
+    """
+    cfg = config or PlanConfig()
+    grid = occupancy_grid(m, cfg)
+    x, y = grid.centres()
+    segments = _segment_array(m)
+    clearance = cfg.robot_radius + cfg.resolution * math.sqrt(2) / 2
+    open_ = _distance_to_segments(x, y, segments) > clearance if len(segments) else np.ones(x.shape, bool)
+    rows, cols = open_.shape
+    cost = np.where(grid.data == FREE, 1.0, cfg.unknown_cost)
+
+    def index(r: int, c: int) -> int:
+        return r * cols + c
+
+    g = nx.Graph()
+    rr, cc = np.nonzero(open_)
+    g.add_nodes_from(index(r, c) for r, c in zip(rr.tolist(), cc.tolist()))
+    for dr, dc, w in ((0, 1, 1.0), (1, 0, 1.0), (1, 1, math.sqrt(2)), (1, -1, math.sqrt(2))):
+        r2, c2 = rr + dr, cc + dc
+        ok = (r2 >= 0) & (r2 < rows) & (c2 >= 0) & (c2 < cols)
+        ok[ok] &= open_[r2[ok], c2[ok]]
+        a, b, c, d = rr[ok], cc[ok], r2[ok], c2[ok]
+        weight = w * 0.5 * (cost[a, b] + cost[c, d])
+        g.add_weighted_edges_from(zip((a * cols + b).tolist(), (c * cols + d).tolist(), weight.tolist()))
+    s = grid.cell(*start)
+    if not (0 <= s[0] < rows and 0 <= s[1] < cols) or not open_[s]:
+        return None
+    if goal is None:
+        target = -1
+        border = [index(r, c) for r, c in zip(rr.tolist(), cc.tolist()) if r in (0, rows - 1) or c in (0, cols - 1)]
+        g.add_weighted_edges_from((b, target, 0.0) for b in border)
+    else:
+        t = grid.cell(*goal)
+        if not (0 <= t[0] < rows and 0 <= t[1] < cols) or not open_[t]:
+            return None
+        target = index(*t)
+    try:
+        path = nx.shortest_path(g, index(*s), target, weight="weight")
+    except nx.NetworkXNoPath:
+        return None
+    cells = [divmod(n, cols) for n in path if n != -1]
+    points = [(float(x[r, c]), float(y[r, c])) for r, c in cells]
+    # The exact start and goal replace their cells' centres: each lies within half a cell's diagonal of
+    # its open centre, so the last and first moves keep the radius too.
+    end = points[1:] if goal is None else points[1:-1] + [(float(goal[0]), float(goal[1]))]
+    return _turning_points([(float(start[0]), float(start[1]))] + end)
+
+
+def unseen_length(m: FusedMap, path: list[tuple[float, float]], config: PlanConfig | None = None) -> float:
+    """How much of a route (m) runs through space no scan saw free: there a wall the scans missed may stand."""
+    if len(path) < 2:
+        return 0.0
+    return float(LineString(path).difference(free_space(m, config)).length)
+
+
+def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The route without the points where it goes straight on."""
+    if len(points) < 3:
+        return points
+    out = [points[0]]
+    for a, b, c in zip(points, points[1:], points[2:]):
+        if abs((b[0] - a[0]) * (c[1] - b[1]) - (b[1] - a[1]) * (c[0] - b[0])) > 1e-12:
+            out.append(b)
+    out.append(points[-1])
+    return out

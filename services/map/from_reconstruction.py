@@ -1,0 +1,174 @@
+"""The reconstruction's planes of record as the map's wall observations, and the scan's pose from its
+``ScanStart``: a thin adapter, kept apart from the fusion.
+
+Frames: a ``Reconstruction``'s planes are in the scan's array frame at γ = 0.  ``ScanStart.pose``, where
+the recording has one, places that frame in the odometry's world frame (rotation and position, with the
+6 × 6 covariance over ``(x, y, z, roll, pitch, yaw)``).  The robot's heading is the azimuth of the beams
+at γ = 0 (the array frame's +y, ahead for every mount); the observation frame is the level frame turned
+by that heading, so a tilted mount's planes are levelled before they become walls.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lelsonar import codec
+from lelsonar.map.observation import MAX_WALL_TILT, FeatureObservation, Pose2D, ScanObservation, WallObservation
+
+#: Smallest variance given to an observation's (θ, ρ), so a plane that claims none still has a σ (rad², m²).
+MIN_VARIANCE = (1e-10, 1e-10)
+
+
+def _vec(v) -> np.ndarray:
+    return np.array([v.x, v.y, v.z], dtype=float)
+
+
+def _quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def level_heading(rotation: np.ndarray) -> float:
+    """The heading of an array frame placed by ``rotation`` (world ← array): the azimuth of its +y."""
+    ahead = rotation[:, 1]
+    return math.atan2(ahead[1], ahead[0])
+
+
+def planar_pose(rotation: np.ndarray, position: np.ndarray, covariance: np.ndarray | None) -> Pose2D:
+    """The planar pose of an array frame placed by ``rotation`` (world ← array) at ``position``.
+
+    Parameters
+    ----------
+    covariance : (6, 6) array or None
+        Over ``(x, y, z, rotation about x, y, z)`` in the world frame (ROS's order); its ``(x, y, yaw)``
+        block is the pose's.  None, or all zeros: unknown.
+    """
+    cov = None
+    if covariance is not None and np.any(covariance):
+        cov = np.asarray(covariance, dtype=float)[np.ix_([0, 1, 5], [0, 1, 5])]
+    return Pose2D(float(position[0]), float(position[1]), level_heading(rotation), float(position[2]), cov)
+
+
+def scan_pose(start: codec.ScanStart) -> tuple[np.ndarray, Pose2D, str | None]:
+    """The array frame's rotation (world ← array), the scan's planar pose, and a note when the start has no pose.
+
+    A ``ScanStart`` without a pose (older recordings) is taken at the origin of the world, the array frame
+    unturned, and the note says so.
+    """
+    if not start.HasField("pose"):
+        rot = np.eye(3)
+        note = f"scan {start.scan_id} has no pose in its ScanStart: taken at the origin"
+        return rot, planar_pose(rot, np.zeros(3), None), note
+    pose = start.pose
+    q = pose.orientation
+    rot = _quaternion_matrix(q.x, q.y, q.z, q.w)
+    cov6 = np.array(pose.covariance, dtype=float)
+    return rot, planar_pose(rot, _vec(pose.position), cov6.reshape(6, 6) if cov6.size == 36 else None), None
+
+
+def _wall(plane, to_level: np.ndarray) -> WallObservation | None:
+    """One plane of record as a wall in the level frame, or None for a horizontal plane (floor, ceiling)."""
+    n = to_level @ _vec(plane.normal)
+    n /= np.linalg.norm(n)
+    if math.asin(min(1.0, abs(float(n[2])))) > MAX_WALL_TILT:
+        return None
+    h2 = float(n[0] ** 2 + n[1] ** 2)
+    cov = np.diag([plane.normal_stderr**2, (plane.offset_stderr / math.sqrt(h2)) ** 2])
+    if len(plane.theta_covariance) == 9 and plane.offset > 0:
+        # θ = n / d (the paper's parameter vector); φ = atan2(θ_y, θ_x), ρ = 1 / |θ_xy| in the level frame.
+        c_theta = to_level @ np.array(plane.theta_covariance, dtype=float).reshape(3, 3) @ to_level.T
+        a, b = n[0] / plane.offset, n[1] / plane.offset
+        r2 = a * a + b * b
+        jac = np.array([[-b / r2, a / r2, 0.0], [-a / r2**1.5, -b / r2**1.5, 0.0]])
+        full = jac @ c_theta @ jac.T
+        if np.all(np.isfinite(full)) and np.linalg.eigvalsh(full).min() > 0:
+            cov = full
+    cov = cov + np.diag(MIN_VARIANCE)
+    patch = np.array([to_level @ _vec(p) for p in plane.patch]).reshape(-1, 3)
+    if len(patch) == 0:
+        patch = (plane.offset * n)[None, :]
+    quality = codec.QUALITY_NAME.get(plane.quality, "unassessed")
+    reasons = tuple(plane.quality_reasons)
+    if quality == "unassessed":
+        quality, reasons = "degraded", reasons + ("the reconstruction gave no verdict",)
+    return WallObservation(
+        normal=n,
+        offset=float(plane.offset),
+        covariance=0.5 * (cov + cov.T),
+        extent=patch,
+        quality=quality,
+        reasons=reasons,
+        label=plane.label,
+    )
+
+
+def scan_from_reconstruction(
+    msg: codec.Reconstruction, start: codec.ScanStart | None, method: str, scan_id: int | None = None
+) -> ScanObservation:
+    """A scan's planes of record (``method``) and corner edge as the map's observation, at its start's pose."""
+    if start is None:
+        rot = np.eye(3)
+        pose = planar_pose(rot, np.zeros(3), None)
+        note: str | None = f"scan {msg.scan_id}: no ScanStart came with it: taken at the origin"
+    else:
+        rot, pose, note = scan_pose(start)
+    return observation_at(msg, rot, pose, method, (note,) if note else (), scan_id)
+
+
+def observation_at(
+    msg: codec.Reconstruction,
+    rotation: np.ndarray,
+    pose: Pose2D,
+    method: str,
+    notes: tuple[str, ...] = (),
+    scan_id: int | None = None,
+) -> ScanObservation:
+    """A scan's planes of record (``method``) and corner edge, seen from an array frame placed by ``rotation``
+    (world ← array) at ``pose``, as the map's observation.
+
+    Horizontal planes (a floor, a ceiling) are not walls of a floor plan: they are left out, and named in
+    the observation's notes.
+    """
+    notes_out = list(notes)
+    c, s = math.cos(pose.heading), math.sin(pose.heading)
+    to_level = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]) @ rotation
+    walls, horizontal = [], []
+    for plane in msg.planes:
+        if plane.method != method:
+            continue
+        wall = _wall(plane, to_level)
+        if wall is None:
+            horizontal.append(plane.label)
+        else:
+            walls.append(wall)
+    if horizontal:
+        notes_out.append(f"scan {msg.scan_id}: plane {', '.join(horizontal)} horizontal (floor or ceiling), not a wall")
+    features = []
+    if msg.HasField("corner_edge") and walls:
+        e = msg.corner_edge
+        d = to_level @ _vec(e.direction)
+        if np.linalg.norm(d) > 0:
+            features.append(
+                FeatureObservation(
+                    point=to_level @ _vec(e.point),
+                    direction=d / np.linalg.norm(d),
+                    kind="concave",
+                    point_stderr=max(float(e.point_stderr), 0.0),
+                )
+            )
+    return ScanObservation(
+        scan_id=int(msg.scan_id if scan_id is None else scan_id),
+        pose=pose,
+        walls=tuple(walls),
+        features=tuple(features),
+        notes=tuple(notes_out),
+    )

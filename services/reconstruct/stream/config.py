@@ -1,0 +1,134 @@
+"""What a reconstruction service is told (:class:`ReconstructConfig`) and what it counts (:class:`ServiceStats`)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+from lelsonar import codec
+from lelsonar.errors import ConfigError
+from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
+from lelsonar.reconstruct.estimate.record import RecordOptions
+
+
+@dataclass(frozen=True)
+class ReconstructConfig:
+    """How the service estimates.
+
+    Parameters
+    ----------
+    method : str
+        The estimator of record (a key of ``pipeline.METHODS``).
+    compare_methods : tuple of str
+        Also run at the end of each scan, published next to ``method``.
+    refit_every : int
+        Steps between provisional re-estimates of plane b (and, before the corner is confirmed,
+        between looks for its peak).
+    provisional_period : float
+        s of scan time (the samples' ``acquisition_time_ns``): a scan gets at most one provisional
+        estimate per period (default 0.08 s: at most 12.5 a second per scan, i.e. every
+        ``refit_every`` = 4 steps of a 50 Hz scanner; a faster scanner, or a burst of recovered
+        steps, is held to the same rate).  Scan time, not the wall clock, so a replay gives the
+        same provisional estimates at any speed.  0 disables it.
+    confirm_steps : int
+        Steps that must follow the R peak before it is trusted.
+    confirm_ratio : float
+        The peak must exceed this multiple of the median R so far.
+    provisional : bool
+        Publish provisional estimates while a scan arrives (off for a batch replay,
+        whose finals do not depend on them).
+    max_provisional_delay : float
+        s; under a backlog, a scan still gets a provisional estimate this often.
+    provisional_budget : float
+        s of deferred provisional refits one :meth:`ReconstructionService.tick` runs, oldest estimate
+        first; the rest wait for the next tick, so catching up never holds the stream for long.
+        While a backlog waits, a refit deferred over twice ``max_provisional_delay`` is shed
+        (``ServiceStats.provisionals_shed``): samples come first, and the scan's next refit covers it.
+    scan_timeout : float
+        s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
+    end_grace : float
+        s to wait, after a ScanEnd with steps missing, before publishing INCOMPLETE when no
+        recovery is possible (no ``recover`` hook).
+    recovery_attempts : int
+        Requests to the acquirer's log per scan without progress before giving up (0: never ask).
+    recovery_interval : float
+        s before the second request for a scan; each later one waits twice as long, up to 4 s (or this).
+    recovery_after : float
+        s of silence after which an open scan without ScanEnd asks the log for the rest.
+    max_scans : int
+        Scans assembled at once; the oldest is forgotten first (counted).
+    max_pending : int
+        Samples held, over all scans, while their ScanStart is missing (counted when dropped).
+    max_scanners : int
+        Scanners whose latest estimate is kept (a `get` on planes answers from it).
+    limits : DecodeLimits
+    """
+
+    method: str = DEFAULT_METHOD
+    compare_methods: tuple[str, ...] = ("ls",)
+    refit_every: int = 4
+    provisional_period: float = 0.08
+    confirm_steps: int = 6
+    confirm_ratio: float = 1.5
+    provisional: bool = True
+    max_provisional_delay: float = 0.25
+    provisional_budget: float = 0.01
+    keep_finals: int = 1024
+    scan_timeout: float = 10.0
+    end_grace: float = 1.0
+    recovery_attempts: int = 5
+    recovery_interval: float = 1.0
+    recovery_after: float = 1.0
+    max_scans: int = 256
+    max_pending: int = 4096
+    max_scanners: int = 256
+    limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+
+    def __post_init__(self) -> None:
+        for name in (self.method, *self.compare_methods):
+            if name not in METHODS:
+                raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
+        if self.refit_every < 1 or self.confirm_steps < 1:
+            raise ConfigError("refit_every and confirm_steps must be >= 1")
+        if not self.provisional_period >= 0:
+            raise ConfigError("provisional_period must be >= 0 s")
+        if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
+            raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
+        if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
+            raise ConfigError("recovery_attempts must be >= 0, recovery_interval and recovery_after > 0 s")
+        if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
+            raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
+
+    def record_options(self) -> RecordOptions:
+        """How this service's scans are reconstructed (:func:`reconstruct_scan`)."""
+        return RecordOptions(
+            method=self.method,
+            compare_methods=self.compare_methods,
+            fit=FitOptions(),
+            confirm_steps=self.confirm_steps,
+            confirm_ratio=self.confirm_ratio,
+            provisional_period=self.provisional_period,
+        )
+
+
+@dataclass
+class ServiceStats:
+    """Totals over the scans finalised so far (rejected input: ``ingest.rejected``; all of it: ``stats_dict``)."""
+
+    estimates: int = 0
+    finals: int = 0  # every terminal estimate: final, final_timeout, incomplete
+    timeouts: int = 0
+    incomplete: int = 0
+    published: int = 0
+    received_live: int = 0
+    recovered: int = 0
+    duplicates: int = 0
+    missing: int = 0
+    recovery_requests: int = 0
+    recovery_refused: int = 0
+    #: Deferred provisional refits dropped under a backlog (the final is never shed).
+    provisionals_shed: int = 0
+    #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
+    without_start: int = 0
+    #: What a bound pushed out of the service's own tables, by reason.
+    evicted: Counter = field(default_factory=Counter)

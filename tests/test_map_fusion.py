@@ -1,0 +1,272 @@
+"""The map's fusion against independent truth: synthetic walls seen from known poses with the noise each
+observation states (seeded), and the measurement model's Jacobians against finite differences."""
+
+from __future__ import annotations
+
+import math
+
+import gtsam
+import numpy as np
+import pytest
+
+from lelsonar.errors import InvalidMessageError
+from lelsonar.map import graph
+from lelsonar.map.fusion import MapUpdateError, WallMapper
+from lelsonar.map.lines import line_in_sensor, line_in_world, measurement_jacobians, world_jacobians, wrap
+from lelsonar.map.observation import Pose2D, ScanObservation, WallObservation
+from lelsonar.map.synthetic import NoiseModel, World, maze, observe_world, room
+
+
+def _truth_line(segment: np.ndarray, normal_hint: np.ndarray) -> np.ndarray:
+    """The segment's line, oriented like ``normal_hint`` (independent of the map's code)."""
+    (ax, ay), (bx, by) = segment
+    n = np.array([ay - by, bx - ax]) / math.hypot(bx - ax, by - ay)
+    if n @ normal_hint[:2] < 0:
+        n = -n
+    return np.array([math.atan2(n[1], n[0]), float(n @ segment[0])])
+
+
+def _match(world: World, wall) -> int:
+    """The truth segment the fused wall lies on (nearest line over its stretch)."""
+    mid = wall.segment.mean(axis=0)
+    best, best_d = -1, math.inf
+    for i, seg in enumerate(world.segments):
+        t = _truth_line(seg, wall.normal)
+        d = abs(math.cos(t[0]) * mid[0] + math.sin(t[0]) * mid[1] - t[1]) + abs(wrap(t[0] - wall.line[0]))
+        if d < best_d:
+            best, best_d = i, d
+    return best
+
+
+def _fuse(world: World, seed: int, noise: NoiseModel | None = None, **kw):
+    scans, seen, odometry = observe_world(world, noise or NoiseModel(), np.random.default_rng(seed), **kw)
+    mapper = WallMapper()
+    for s in scans:
+        mapper.add_scan(s)
+    return mapper.snapshot(), odometry
+
+
+# --------------------------------------------------------------------------- the measurement model
+@pytest.mark.parametrize("seed", range(5))
+def test_jacobians_match_finite_differences_on_gtsam_manifolds(seed):
+    rng = np.random.default_rng(seed)
+    pose = gtsam.Pose2(*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi))
+    line = np.array([rng.uniform(-math.pi, math.pi), rng.uniform(-4, 4)])
+    h_pose, h_line = measurement_jacobians(graph.pose_vector(pose), line)
+    base = line_in_sensor(graph.pose_vector(pose), line)
+    eps = 1e-6
+    for j in range(3):
+        d = np.zeros(3)
+        d[j] = eps
+        plus = line_in_sensor(graph.pose_vector(pose.retract(d)), line)
+        minus = line_in_sensor(graph.pose_vector(pose.retract(-d)), line)
+        diff = np.array([wrap(plus[0] - minus[0]), plus[1] - minus[1]]) / (2 * eps)
+        np.testing.assert_allclose(h_pose[:, j], diff, atol=1e-7)
+    for j in range(2):
+        d = np.zeros(2)
+        d[j] = eps
+        plus, minus = (
+            line_in_sensor(graph.pose_vector(pose), line + d),
+            line_in_sensor(graph.pose_vector(pose), line - d),
+        )
+        diff = np.array([wrap(plus[0] - minus[0]), plus[1] - minus[1]]) / (2 * eps)
+        np.testing.assert_allclose(h_line[:, j], diff, atol=1e-7)
+    # The world transform is the inverse of the sensor one, and its Jacobians are its derivatives.
+    np.testing.assert_allclose(line_in_world(graph.pose_vector(pose), base), [wrap(line[0]), line[1]], atol=1e-12)
+    pv = graph.pose_vector(pose)
+    j_pose, j_obs = world_jacobians(pv, base)
+    for j in range(3):
+        d = np.zeros(3)
+        d[j] = eps
+        plus, minus = line_in_world(pv + d, base), line_in_world(pv - d, base)
+        np.testing.assert_allclose(
+            j_pose[:, j], [wrap(plus[0] - minus[0]) / (2 * eps), (plus[1] - minus[1]) / (2 * eps)], atol=1e-7
+        )
+    for j in range(2):
+        d = np.zeros(2)
+        d[j] = eps
+        plus, minus = line_in_world(pv, base + d), line_in_world(pv, base - d)
+        np.testing.assert_allclose(
+            j_obs[:, j], [wrap(plus[0] - minus[0]) / (2 * eps), (plus[1] - minus[1]) / (2 * eps)], atol=1e-7
+        )
+
+
+def test_the_custom_factor_linearises_to_the_hand_written_jacobians():
+    pose = gtsam.Pose2(1.2, -0.7, 0.4)
+    line = np.array([2.0, 1.5])
+    measured = line_in_sensor(graph.pose_vector(pose), line) + np.array([0.01, -0.02])
+    cov = np.diag([1e-4, 4e-6])
+    factor = graph.wall_factor(0, 0, measured, cov)
+    values = gtsam.Values()
+    values.insert(graph.pose_key(0), pose)
+    values.insert(graph.wall_key(0), line)
+    np.testing.assert_allclose(factor.unwhitenedError(values), [-0.01, 0.02], atol=1e-12)
+    jf = factor.linearize(values)
+    a, _ = jf.jacobian()
+    h_pose, h_line = measurement_jacobians(graph.pose_vector(pose), line)
+    whiten = np.linalg.cholesky(np.linalg.inv(cov)).T
+    np.testing.assert_allclose(np.abs(a), np.abs(whiten @ np.hstack([h_pose, h_line])), rtol=1e-9, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- fused walls against truth
+def test_fused_walls_are_within_their_sigma_and_poses_beat_odometry():
+    zs, fused_err, odo_err = [], [], []
+    for seed in range(8):
+        world = room()
+        m, odometry = _fuse(world, seed)
+        assert len(m.walls) == 4, [w.line for w in m.walls]
+        for w in m.walls:
+            assert w.quality == "good", w.reasons
+            t = _truth_line(world.segments[_match(world, w)], w.normal)
+            zs += [wrap(w.line[0] - t[0]) / w.normal_stderr, (w.line[1] - t[1]) / w.offset_stderr]
+        for p, truth, o in zip(m.poses[1:], world.poses[1:], odometry[1:]):
+            fused_err.append(math.hypot(p.x - truth[0], p.y - truth[1]))
+            odo_err.append(math.hypot(o[0] - truth[0], o[1] - truth[1]))
+    zs = np.abs(zs)
+    # The claimed σ is honest: no error beyond 4σ, and the errors' RMS over σ near 1 (64 draws).
+    assert zs.max() < 4.0, zs.max()
+    assert 0.6 < math.sqrt(np.mean(zs**2)) < 1.5, math.sqrt(np.mean(zs**2))
+    assert np.median(fused_err) < 0.5 * np.median(odo_err), (np.median(fused_err), np.median(odo_err))
+
+
+def test_a_maze_s_walls_are_within_their_sigma_and_each_lies_on_a_face():
+    world = maze(5, np.random.default_rng(11))
+    m, _ = _fuse(world, 4)
+    zs = []
+    for w in m.walls:
+        t = _truth_line(world.segments[_match(world, w)], w.normal)
+        # On the face it matched: the stretch lies on the truth segment's line within a few σ.
+        for p in w.segment:
+            assert abs(math.cos(t[0]) * p[0] + math.sin(t[0]) * p[1] - t[1]) < 0.1
+        assert w.quality == "good", w.reasons
+        zs += [wrap(w.line[0] - t[0]) / w.normal_stderr, (w.line[1] - t[1]) / w.offset_stderr]
+    zs = np.abs(zs)
+    assert len(m.walls) >= 10
+    assert zs.max() < 4.0 and np.median(zs) < 1.2, (zs.max(), np.median(zs))
+
+
+# --------------------------------------------------------------------------- verdicts carry over
+def _two_scans_of_a_room(flag_second: str | None, bias: np.ndarray, noise: NoiseModel | None = None):
+    world = room()
+    world = World(segments=world.segments, poses=world.poses[:3])
+    flagged = {(2, 1): (flag_second, bias)} if flag_second else {(2, 1): ("good", bias)}
+    scans, _, _ = observe_world(world, noise or NoiseModel(), np.random.default_rng(5), flagged=flagged)
+    return world, scans
+
+
+def test_a_wall_seen_once_and_flagged_stays_flagged():
+    world = room()
+    scans, _, _ = observe_world(
+        World(world.segments, world.poses[:1]),
+        NoiseModel(),
+        np.random.default_rng(2),
+        flagged={(0, 2): ("unreliable", np.zeros(2))},
+    )
+    mapper = WallMapper()
+    mapper.add_scan(scans[0])
+    m = mapper.snapshot()
+    flagged = [w for w in m.walls if w.quality != "good"]
+    assert len(flagged) == 1 and flagged[0].quality == "unreliable"
+    assert any("flagged" in r for r in flagged[0].reasons)
+    assert sum(w.quality == "good" for w in m.walls) == len(scans[0].walls) - 1
+
+
+def test_a_flagged_observation_of_a_good_wall_neither_spoils_it_nor_moves_it():
+    bias = np.array([0.0, 0.20])  # a flagged observation 20 cm off
+    world, scans = _two_scans_of_a_room("unreliable", bias)
+    mapper = WallMapper()
+    for s in scans:
+        mapper.add_scan(s)
+    m = mapper.snapshot()
+    wall = next(w for w in m.walls if _match(world, w) == 1)
+    t = _truth_line(world.segments[1], wall.normal)
+    assert wall.quality == "good" and wall.good_observations == 2
+    assert abs(wall.line[1] - t[1]) < 4 * wall.offset_stderr
+
+
+def test_observations_that_disagree_beyond_their_sigma_are_not_averaged():
+    noise = NoiseModel(step_floor_xy=0.002, step_xy_per_m=0.002, step_floor_heading=1e-3, step_heading_per_m=1e-3)
+    bias = np.array([0.0, 0.08])  # the same wall reported 8 cm off, claiming good at σ of a few mm
+    world, scans = _two_scans_of_a_room(None, bias, noise)
+    mapper = WallMapper()
+    for s in scans:
+        mapper.add_scan(s)
+    m = mapper.snapshot()
+    on_wall = [w for w in m.walls if _match(world, w) == 1]
+    t = _truth_line(world.segments[1], on_wall[0].normal)
+    assert len(on_wall) == 2, [(w.line, w.scans) for w in on_wall]
+    honest = [w for w in on_wall if 3 not in w.scans]
+    split = [w for w in on_wall if w.scans == (3,)]
+    assert len(honest) == 1 and len(split) == 1
+    # Neither sits at the average of the disagreeing reports: each is where its own evidence puts it.
+    assert abs(honest[0].line[1] - t[1]) < 4 * honest[0].offset_stderr
+    assert abs(split[0].line[1] - (t[1] + bias[1])) < 4 * split[0].offset_stderr
+    assert split[0].quality == "degraded" and any("not averaged" in r for r in split[0].reasons)
+    assert honest[0].quality == "good"  # two consistent good observations outweigh one
+
+
+def test_an_observation_that_is_not_a_wall_is_refused():
+    with pytest.raises(InvalidMessageError, match="unit vector"):
+        WallObservation(normal=[1.0, 1.0, 0.0], offset=1.0, covariance=np.eye(2), extent=[[1, 0, 0]])
+    with pytest.raises(InvalidMessageError, match="not vertical"):
+        WallObservation(normal=[0.0, 0.0, 1.0], offset=1.0, covariance=np.eye(2), extent=[[1, 0, 0]])
+    with pytest.raises(InvalidMessageError, match="positive"):
+        Pose2D(0.0, 0.0, 0.0, covariance=-np.eye(3))
+    mapper = WallMapper()
+    mapper.add_scan(ScanObservation(scan_id=7, pose=Pose2D(0.0, 0.0, 0.0)))
+    with pytest.raises(InvalidMessageError, match="already"):
+        mapper.add_scan(ScanObservation(scan_id=7, pose=Pose2D(1.0, 0.0, 0.0)))
+
+
+def test_the_corners_of_a_room_are_concave_and_where_its_walls_meet():
+    world = room()
+    m, _ = _fuse(world, 6)
+    truth = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 3.0], [0.0, 3.0]])  # the room's corners, by hand
+    corners = [f for f in m.corners if f.source == "walls"]
+    assert len(corners) == 4
+    for f in corners:
+        assert f.kind == "concave" and f.direction @ [0, 0, 1] == pytest.approx(1.0)
+        d = np.min(np.hypot(*(truth - f.point[:2]).T))
+        assert d < 4 * f.point_stderr, (f.point, f.point_stderr)
+
+
+def test_a_box_s_corners_are_convex_and_the_room_s_concave():
+    room_ = [[0, 0], [6, 0], [6, 5], [0, 5]]
+    box = [[2.5, 2], [3.5, 2], [3.5, 3], [2.5, 3]]
+    segments = [[room_[i], room_[(i + 1) % 4]] for i in range(4)] + [[box[i], box[(i + 1) % 4]] for i in range(4)]
+    h = math.pi / 2
+    poses = [[1, 1, 0], [3, 1, 0], [5, 1, h], [5, 2.5, h], [5, 4, 2 * h], [3, 4, 2 * h], [1, 4, -h], [1, 2.5, -h]]
+    world = World(np.array(segments, float), np.array(poses, float))
+    m, _ = _fuse(world, 0)
+    kinds = {}
+    for f in m.corners:
+        near_box = min(np.hypot(*(np.array(box, float) - f.point[:2]).T)) < 4 * f.point_stderr + 0.02
+        kinds[f.kind] = kinds.get(f.kind, 0) + 1
+        assert f.kind == ("convex" if near_box else "concave"), (f.point, f.kind)
+    assert kinds == {"concave": 4, "convex": 4}
+
+
+def test_a_graph_that_cannot_be_solved_stops_the_map_with_one_typed_error(monkeypatch):
+    world = room()
+    scans, _, _ = observe_world(world, NoiseModel(), np.random.default_rng(0))
+    mapper = WallMapper()
+    mapper.add_scan(scans[0])
+
+    solver = mapper._isam
+
+    class Unsolvable:
+        """GTSAM's solver as it fails on an ill-posed system (its queries answer as before)."""
+
+        def update(self, *_args):
+            raise RuntimeError("Indeterminate linear system detected while working near variable x1\nmore")
+
+        def __getattr__(self, name):
+            return getattr(solver, name)
+
+    monkeypatch.setattr(mapper, "_isam", Unsolvable())
+    with pytest.raises(MapUpdateError, match="scan 2 made the graph unsolvable"):
+        mapper.add_scan(scans[1])
+    with pytest.raises(MapUpdateError, match="takes no more scans"):
+        mapper.add_scan(scans[2])
+    with pytest.raises(MapUpdateError, match="no map"):
+        mapper.snapshot()

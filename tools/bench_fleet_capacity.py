@@ -1,0 +1,165 @@
+"""``lelsonar bench fleet --capacity``: how many scanners one reconstructor keeps up with.
+
+The offered rate is raised rung by rung — N scanners × ``--rate`` samples/s, N from the
+ladder, one worker, no failover — until a rung does not hold (the rungs up to
+``TARGET_SCANNERS`` are measured whatever: their p99 is the target's).  A rung holds when the worker
+handles at least ``HOLD_SHARE`` of the offered rate (live samples processed, from the first to
+the last) and every scan gets exactly one complete final.  The capacity is the largest N that
+holds, reported with its p99 put → provisional estimate published; the table also shows that
+p99 at every rung (50 and 100 scanners among them by default), against ``TARGET_P99_MS``.
+
+A rung whose publisher could not keep its own schedule (one process puts every scanner's
+samples) is marked, with the rate it did put: there the offered rate was not offered, and the
+capacity found is a lower bound.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+from collections.abc import Callable
+
+#: Scanner counts tried by ``--capacity`` with no N given.
+CAPACITY_LADDER = (10, 25, 50, 75, 100, 150)
+#: A rung holds when the worker handles this share of the offered rate (scanners × rate) and every scan
+#: gets one complete final.
+HOLD_SHARE = 0.98
+#: Target: one reconstructor holds this many scanners, with p99 put → provisional within TARGET_P99_MS.
+TARGET_SCANNERS = 100
+TARGET_P99_MS = 50.0
+
+#: The publisher kept its schedule when publishing took at most this share over it.
+PUBLISHER_SLACK = 1.05
+
+HEADERS = (
+    "scanners",
+    "offered samples/s",
+    "put samples/s",
+    "handled samples/s",
+    "handled / offered",
+    "put→processed p50 / p99 ms",
+    "put→provisional p50 / p99 ms",
+    "finals complete",
+    "publisher took / schedule s",
+    "worker CPU busy",
+    "holds",
+)
+
+
+def rung(args: argparse.Namespace, scanners: int, run_case: Callable, summarise: Callable) -> dict:
+    """One steady run of ``scanners`` scanners on one worker; the summary, and whether it holds."""
+    case = copy.copy(args)
+    case.scanners, case.workers, case.failover = scanners, 1, "off"
+    res = summarise([run_case(case, kill_one=False) for _ in range(args.repeat)])
+    offered = scanners * args.rate
+    pub = res["publisher"] or {}
+    res["scanners"] = scanners
+    res["offered"] = offered
+    res["share"] = res["handled_per_s"] / offered if offered else 0.0
+    res["publisher_kept_up"] = bool(pub) and pub["wall_s"] <= PUBLISHER_SLACK * pub["schedule_s"]
+    # Samples actually put per second (ScanStart and ScanEnd are 2 of each scanner's puts per scan).
+    res["put_rate"] = (pub["puts"] - 2 * scanners * args.scans) / pub["wall_s"] if pub.get("wall_s") else 0.0
+    res["complete"] = (
+        res["scans_with_final"] == res["expected_finals"]
+        and not res["incomplete_finals"]
+        and not res["duplicated_finals"]
+    )
+    res["holds"] = res["share"] >= HOLD_SHARE and res["complete"]
+    return res
+
+
+def _ms(d: dict) -> str:
+    return " / ".join("—" if d.get(k) is None else f"{d[k]:.0f}" for k in ("p50", "p99"))
+
+
+def row(res: dict) -> tuple[str, ...]:
+    pub = res["publisher"] or {}
+    busy = [v for m, v in res["busy_cpu"].items() if m.startswith("w") and v is not None]
+    verdict = "yes" if res["holds"] else "no"
+    if not res["publisher_kept_up"]:
+        verdict += " (publisher behind its schedule)"
+    return (
+        str(res["scanners"]),
+        f"{res['offered']:.0f}",
+        f"{res['put_rate']:.0f}",
+        f"{res['handled_per_s']:.0f}",
+        f"{res['share']:.2f}",
+        _ms(res["processed_ms"]),
+        _ms(res["provisional_ms"]),
+        f"{res['scans_with_final']} / {res['expected_finals']}" + ("" if res["complete"] else " (!)"),
+        f"{pub.get('wall_s', float('nan')):.1f} / {pub.get('schedule_s', float('nan')):.1f}",
+        " ".join(f"{100 * v:.0f}%" for v in busy),
+        verdict,
+    )
+
+
+def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callable, command_line: Callable) -> int:
+    """The ladder, with :mod:`lelsonar.tools.bench_fleet`'s ``run_case``, ``summarise`` and ``command_line``."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from lelsonar.tools import bench_markdown
+    from lelsonar.tools.bench import machine
+
+    ladder = sorted(set(args.capacity or CAPACITY_LADDER))
+    console = Console(width=max(Console().width, 160))
+    load0 = os.getloadavg()
+    results = []
+    for n in ladder:
+        console.print(f"capacity: {n} scanners × {args.rate:g} Hz …", highlight=False)
+        res = rung(args, n, run_case, summarise)
+        results.append(res)
+        if not res["holds"] and n >= TARGET_SCANNERS:
+            break  # past what one reconstructor keeps up with (the target's rungs are measured whatever)
+    held = []
+    for r in results:  # the largest N below which every rung held too
+        if not r["holds"]:
+            break
+        held.append(r)
+    best = held[-1] if held else None
+    load1 = os.getloadavg()
+    title = f"bench fleet --capacity: one reconstructor, N scanners × {args.rate:g} Hz, {args.scans} scans each" + (
+        f" (medians of {args.repeat} runs)" if args.repeat > 1 else ""
+    )
+    rows = [row(r) for r in results]
+    notes = [
+        f"floor: the offered rate, N scanners × {args.rate:g} samples/s; a rung holds when the worker handles ≥ "
+        f"{HOLD_SHARE} of it and every scan gets one complete final; past {TARGET_SCANNERS} scanners the ladder "
+        "stops at the first that does not",
+        (
+            f"capacity: {best['scanners']} scanners ({best['handled_per_s']:.0f} samples/s handled), p99 "
+            f"put→provisional {_ms(best['provisional_ms']).split(' / ')[1]} ms (target ≤ {TARGET_P99_MS:.0f} ms)"
+            if best
+            else f"capacity: below {ladder[0]} scanners"
+        )
+        + (
+            "; a lower bound: the publisher fell behind its schedule first"
+            if results and not results[-1]["holds"] and not results[-1]["publisher_kept_up"]
+            else ""
+        )
+        + ("; every rung held" if results and results[-1]["holds"] else ""),
+        "p99 put→provisional: "
+        + ", ".join(f"{r['scanners']} scanners {_ms(r['provisional_ms']).split(' / ')[1]} ms" for r in results)
+        + f" (target ≤ {TARGET_P99_MS:.0f} ms at {TARGET_SCANNERS})",
+        f"command: {command_line(args)}",
+        f"machine: {machine()}; load average before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after "
+        f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f} (2 cores shared with other work: figures are of this run)",
+    ]
+    table = Table(title=title)
+    for i, h in enumerate(HEADERS):
+        table.add_column(h, justify="left" if i in (0, len(HEADERS) - 1) else "right")
+    for row in rows:
+        table.add_row(*row)
+    console.print(table)
+    for note in notes:
+        console.print(note, highlight=False)
+    bench_markdown.write(args.markdown, [bench_markdown.table(title, HEADERS, rows, notes)])
+    at_target = next((r for r in held if r["scanners"] >= TARGET_SCANNERS), None)
+    p99 = at_target["provisional_ms"]["p99"] if at_target is not None else None
+    ok = p99 is not None and p99 <= TARGET_P99_MS
+    console.print(
+        f"target: ≥ {TARGET_SCANNERS} scanners held with p99 put→provisional ≤ {TARGET_P99_MS:.0f} ms: "
+        + ("[green]PASS[/]" if ok else "[red]MISS[/]")
+    )
+    return 0 if ok else 1

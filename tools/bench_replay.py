@@ -1,0 +1,183 @@
+"""Replay speed and peak memory against their floor: python ``mcap`` + upb reading the same file.
+
+Used by ``lelsonar bench recording`` (the memory rows) and ``lelsonar bench ingest`` (the replay
+row's floor).  A file of N scans is made the way other programs make one: N copies of a
+recorded scan (each its own scan id and times, viewer channels included) merged into ONE file
+by ``mcap``'s own writer (1 MiB chunks that mix channels).  Each measurement runs in a fresh
+child process (``python -m lelsonar.tools.bench_replay --child MODE FILE``), which reports its
+peak resident set (``VmHWM``): replay's memory must not grow with the file.
+
+Modes:
+
+* ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
+  ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
+  (the kernels loaded first), estimation included: its time is mostly the finals';
+* ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
+  (the reading alone);
+* ``floor`` — ``mcap.reader.make_reader(f).iter_messages(topics=…, log_time_order=True)`` and a
+  upb parse (``FromString``) of each contract message: the reading any program can do.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+CONTRACT_TOPICS = ("/lelsonar/scan_start", "/lelsonar/sample", "/lelsonar/scan_end")
+FLOOR = "python mcap make_reader + upb FromString of the contract messages, same file, log-time order"
+TARGET_RATIO = 1.0
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident set, MiB (VmHWM)."""
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def time_floor(path: Path) -> tuple[float, int]:
+    """(seconds, samples) of python mcap + upb reading the contract messages of ``path`` in log-time order."""
+    from mcap.reader import make_reader
+
+    from lelsonar import codec
+
+    types = codec.MESSAGE_TYPES
+    samples = 0
+    t = time.perf_counter()
+    with open(path, "rb") as f:
+        for schema, _channel, message in make_reader(f).iter_messages(topics=CONTRACT_TOPICS, log_time_order=True):
+            msg = types[schema.name if schema is not None else ""].FromString(message.data)
+            samples += isinstance(msg, codec.Sample)
+    return time.perf_counter() - t, samples
+
+
+def time_read(path: Path) -> tuple[float, int]:
+    """(seconds, samples) of the tolerant reader and a upb parse of every contract payload."""
+    from lelsonar import codec
+    from lelsonar.log.recording import iter_payloads
+
+    types = codec.MESSAGE_TYPES
+    samples = 0
+    t = time.perf_counter()
+    for rec in iter_payloads(path):
+        msg = types[rec.type_name].FromString(rec.payload)
+        samples += isinstance(msg, codec.Sample)
+    return time.perf_counter() - t, samples
+
+
+def time_replay(path: Path) -> tuple[float, int]:
+    """(seconds, finals) of replay_mcap through a service without provisional estimates."""
+    from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.reconstruct.stream.sources import replay_mcap
+
+    exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    t = time.perf_counter()
+    replay_mcap(path, service)
+    return time.perf_counter() - t, service.stats.finals
+
+
+_MODES = {"floor": time_floor, "read": time_read, "replay": time_replay}
+
+
+def child(mode: str, path: Path) -> dict:
+    """Run one measurement in a fresh interpreter; its seconds, samples and peak RSS."""
+    done = subprocess.run(
+        [sys.executable, "-m", "lelsonar.tools.bench_replay", "--child", mode, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=1800,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"bench_replay child {mode} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def merged_file(path: Path, scans: int, preset_name: str, seed: int = 0) -> int:
+    """Write ``scans`` copies of one recorded scan into ONE file with ``mcap``'s own writer; return the samples."""
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    from lelsonar import codec
+    from lelsonar.log.reader import salvage
+    from lelsonar.tools.bench_recording import scan_messages, write_once
+
+    with tempfile.TemporaryDirectory(prefix="lelsonar-bench-merge-") as tmp:
+        one = Path(tmp) / "one.mcap"
+        write_once(one, scan_messages(preset_name, None, seed), "zstd", {})
+        s = salvage(one)  # one scan: small
+        ordered = s.in_log_time_order()
+    t_first, t_last = ordered[0].log_time, ordered[-1].log_time
+    period = t_last - t_first + 1_000_000_000
+    types = {cid: codec.MESSAGE_TYPES.get(s.schema_name(cid)) for cid in s.channels}
+    samples = 0
+    with open(path, "wb") as f:
+        w = McapWriter(f, compression=CompressionType.ZSTD)
+        w.start(profile="", library="lelsonar bench (merged)")
+        schema_ids = {sid: w.register_schema(sc.name, sc.encoding, sc.data) for sid, sc in s.schemas.items()}
+        channel_ids = {
+            cid: w.register_channel(ch.topic, ch.message_encoding, schema_ids.get(ch.schema_id, 0), dict(ch.metadata))
+            for cid, ch in s.channels.items()
+        }
+        for k in range(scans):
+            shift = k * period
+            for m in ordered:
+                data = m.data
+                cls = types.get(m.channel_id)
+                if cls in (codec.ScanStart, codec.Sample, codec.ScanEnd):
+                    msg = cls.FromString(data)
+                    msg.scan_id = k + 1
+                    for name in ("start_time_ns", "acquisition_time_ns", "end_time_ns"):
+                        if name in cls.DESCRIPTOR.fields_by_name:
+                            setattr(msg, name, getattr(msg, name) + shift)
+                    data = msg.SerializeToString()
+                    samples += cls is codec.Sample
+                t = m.log_time + shift
+                w.add_message(channel_ids[m.channel_id], log_time=t, data=data, publish_time=t)
+        w.finish()
+    return samples
+
+
+def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[dict]:
+    """Per file of N scans: size, samples, and (median over ``runs``) seconds and peak RSS of each mode."""
+    import statistics
+
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="lelsonar-bench-replay-") as tmp:
+        for n in scans_list:
+            path = Path(tmp) / f"merged-{n}.mcap"
+            samples = merged_file(path, n, preset_name)
+            got: dict[str, list[dict]] = {mode: [] for mode in _MODES}
+            for _ in range(runs):  # interleaved: a neighbour's load hits every mode alike
+                for mode in _MODES:
+                    got[mode].append(child(mode, path))
+            row = {"scans": n, "samples": samples, "mb": path.stat().st_size / 1e6}
+            for mode, results in got.items():
+                row[f"{mode}_s"] = statistics.median(r["seconds"] for r in results)
+                row[f"{mode}_rss"] = max(r["rss_mib"] for r in results)
+            rows.append(row)
+            path.unlink()
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m lelsonar.tools.bench_replay")
+    parser.add_argument("--child", choices=sorted(_MODES), required=True)
+    parser.add_argument("path", type=Path)
+    args = parser.parse_args(argv)
+    seconds, samples = _MODES[args.child](args.path)
+    print(json.dumps({"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib()}), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
