@@ -23,6 +23,7 @@ BENCHES = {
         "lelsonar.tools.bench_recording",
         "cost of durable recording: chunk per step, fsync, vs 1 MiB chunks",
     ),
+    "surfaces": ("lelsonar.tools.bench_surfaces", "every surface of a sweep against the world simulator's truth"),
     "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
     "map": ("lelsonar.tools.bench_map", "map update time per scan vs map size, walls vs truth, poses vs odometry"),
     "batch": ("lelsonar.tools.bench_batch", "lelsonar batch over an archive: N workers against 1"),

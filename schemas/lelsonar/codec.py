@@ -588,6 +588,42 @@ def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
             raise InvalidMessageError(
                 f"{where} carries {len(p.quality_reasons)} quality reasons; at most {limits.max_reasons}"
             )
+    _validate_surfaces(m, limits)
+
+
+def _validate_surfaces(m: Reconstruction, limits: DecodeLimits) -> None:
+    """The sweep's surfaces, corners and edges: bounded, finite, unit normals and directions, 3×3 covariances."""
+    for name, items in (("surfaces", m.surfaces), ("corners", m.corners), ("edges", m.edges)):
+        if len(items) > limits.max_planes:
+            raise InvalidMessageError(f"Reconstruction carries {len(items)} {name}; at most {limits.max_planes}")
+    if len(m.unexplained) > limits.max_reasons:
+        raise InvalidMessageError(
+            f"Reconstruction carries {len(m.unexplained)} unexplained causes; at most {limits.max_reasons}"
+        )
+    for i, s in enumerate(m.surfaces):
+        where = f"Reconstruction.surfaces[{i}]"
+        p = s.plane
+        _vector(f"{where}.plane.normal", p.normal)
+        _finite(f"{where}.plane.offset/sigma", p.offset, p.sigma, p.offset_stderr, p.normal_stderr)
+        if abs(math.hypot(p.normal.x, p.normal.y, p.normal.z) - 1.0) > 1e-6:
+            raise InvalidMessageError(f"{where}.plane.normal is not a unit vector")
+        _finite(f"{where}.bearing/tilt", s.bearing, s.tilt)
+        if len(s.covariance) != 9 or not all(math.isfinite(v) for v in s.covariance):
+            raise InvalidMessageError(f"{where}.covariance must hold 9 finite numbers (bearing, tilt, offset)")
+        if len(p.quality_reasons) > limits.max_reasons:
+            raise InvalidMessageError(f"{where} carries {len(p.quality_reasons)} reasons; at most {limits.max_reasons}")
+    for name, items in (("corners", m.corners), ("edges", m.edges)):
+        for i, f in enumerate(items):
+            where = f"Reconstruction.{name}[{i}]"
+            _vector(f"{where}.line.point", f.line.point)
+            _vector(f"{where}.line.direction", f.line.direction)
+            d = f.line.direction
+            if abs(math.hypot(d.x, d.y, d.z) - 1.0) > 1e-6:
+                raise InvalidMessageError(f"{where}.line.direction is not a unit vector")
+            if len(f.covariance) != 9 or not all(math.isfinite(v) for v in f.covariance):
+                raise InvalidMessageError(f"{where}.covariance must hold 9 finite numbers (m²)")
+            if len(f.reasons) > limits.max_reasons or len(f.surfaces) > limits.max_planes:
+                raise InvalidMessageError(f"{where} carries too many reasons or surfaces")
 
 
 #: Each validator takes the message type it is keyed by.

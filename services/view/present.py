@@ -35,6 +35,8 @@ def to_json(msg: codec.Reconstruction) -> str:
     d["status"] = status_name(msg)
     for plane, pd in zip(msg.planes, d.get("planes", [])):
         pd["quality"] = QUALITY_NAME.get(plane.quality, "unknown")
+    for surface, sd in zip(msg.surfaces, d.get("surfaces", [])):
+        sd["plane"]["quality"] = QUALITY_NAME.get(surface.plane.quality, "unknown")
     return json.dumps(d, separators=(",", ":"), sort_keys=True)
 
 
@@ -46,6 +48,9 @@ def from_json(line: str | dict) -> codec.Reconstruction:
         {**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
         for p in d.get("planes", [])
     ]
+    for sd in d.get("surfaces", []):
+        q = sd.get("plane", {}).get("quality")
+        sd["plane"]["quality"] = QUALITY.get("" if q == "unassessed" else q, 0)
     return ParseDict(d, codec.Reconstruction())
 
 

@@ -82,6 +82,48 @@ class Line(_message.Message):
     direction_stderr: float
     def __init__(self, point: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., direction: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., point_stderr: _Optional[float] = ..., direction_stderr: _Optional[float] = ...) -> None: ...
 
+class SurfaceEstimate(_message.Message):
+    __slots__ = ("label", "plane", "bearing", "tilt", "covariance", "bearing_source", "echo_count")
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    PLANE_FIELD_NUMBER: _ClassVar[int]
+    BEARING_FIELD_NUMBER: _ClassVar[int]
+    TILT_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
+    BEARING_SOURCE_FIELD_NUMBER: _ClassVar[int]
+    ECHO_COUNT_FIELD_NUMBER: _ClassVar[int]
+    label: str
+    plane: PlaneEstimate
+    bearing: float
+    tilt: float
+    covariance: _containers.RepeatedScalarFieldContainer[float]
+    bearing_source: str
+    echo_count: int
+    def __init__(self, label: _Optional[str] = ..., plane: _Optional[_Union[PlaneEstimate, _Mapping]] = ..., bearing: _Optional[float] = ..., tilt: _Optional[float] = ..., covariance: _Optional[_Iterable[float]] = ..., bearing_source: _Optional[str] = ..., echo_count: _Optional[int] = ...) -> None: ...
+
+class FeatureEstimate(_message.Message):
+    __slots__ = ("label", "line", "covariance", "surfaces", "reasons", "echo_count")
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    LINE_FIELD_NUMBER: _ClassVar[int]
+    COVARIANCE_FIELD_NUMBER: _ClassVar[int]
+    SURFACES_FIELD_NUMBER: _ClassVar[int]
+    REASONS_FIELD_NUMBER: _ClassVar[int]
+    ECHO_COUNT_FIELD_NUMBER: _ClassVar[int]
+    label: str
+    line: Line
+    covariance: _containers.RepeatedScalarFieldContainer[float]
+    surfaces: _containers.RepeatedScalarFieldContainer[str]
+    reasons: _containers.RepeatedScalarFieldContainer[str]
+    echo_count: int
+    def __init__(self, label: _Optional[str] = ..., line: _Optional[_Union[Line, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., surfaces: _Optional[_Iterable[str]] = ..., reasons: _Optional[_Iterable[str]] = ..., echo_count: _Optional[int] = ...) -> None: ...
+
+class UnexplainedEchoes(_message.Message):
+    __slots__ = ("cause", "count")
+    CAUSE_FIELD_NUMBER: _ClassVar[int]
+    COUNT_FIELD_NUMBER: _ClassVar[int]
+    cause: str
+    count: int
+    def __init__(self, cause: _Optional[str] = ..., count: _Optional[int] = ...) -> None: ...
+
 class ComputeTimings(_message.Message):
     __slots__ = ("segmentation", "fit", "total")
     SEGMENTATION_FIELD_NUMBER: _ClassVar[int]
@@ -118,7 +160,7 @@ class ScanAccounting(_message.Message):
     def __init__(self, published: _Optional[int] = ..., received_live: _Optional[int] = ..., recovered: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[_Mapping[str, int]] = ..., missing: _Optional[int] = ..., conflicts: _Optional[int] = ...) -> None: ...
 
 class Reconstruction(_message.Message):
-    __slots__ = ("schema_version", "scanner_id", "scan_id", "last_step", "status", "stamp_ns", "critical_step", "critical_angle", "planes", "corner_edge", "timings", "samples_used", "failures", "missing_steps", "accounting", "revision", "aborted_reason")
+    __slots__ = ("schema_version", "scanner_id", "scan_id", "last_step", "status", "stamp_ns", "critical_step", "critical_angle", "planes", "corner_edge", "timings", "samples_used", "failures", "missing_steps", "accounting", "revision", "aborted_reason", "surfaces", "corners", "edges", "unexplained", "surface_echo_count")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
     SCAN_ID_FIELD_NUMBER: _ClassVar[int]
@@ -136,6 +178,11 @@ class Reconstruction(_message.Message):
     ACCOUNTING_FIELD_NUMBER: _ClassVar[int]
     REVISION_FIELD_NUMBER: _ClassVar[int]
     ABORTED_REASON_FIELD_NUMBER: _ClassVar[int]
+    SURFACES_FIELD_NUMBER: _ClassVar[int]
+    CORNERS_FIELD_NUMBER: _ClassVar[int]
+    EDGES_FIELD_NUMBER: _ClassVar[int]
+    UNEXPLAINED_FIELD_NUMBER: _ClassVar[int]
+    SURFACE_ECHO_COUNT_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     scanner_id: str
     scan_id: int
@@ -153,4 +200,9 @@ class Reconstruction(_message.Message):
     accounting: ScanAccounting
     revision: int
     aborted_reason: str
-    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., last_step: _Optional[int] = ..., status: _Optional[_Union[EstimateStatus, str]] = ..., stamp_ns: _Optional[int] = ..., critical_step: _Optional[int] = ..., critical_angle: _Optional[float] = ..., planes: _Optional[_Iterable[_Union[PlaneEstimate, _Mapping]]] = ..., corner_edge: _Optional[_Union[Line, _Mapping]] = ..., timings: _Optional[_Union[ComputeTimings, _Mapping]] = ..., samples_used: _Optional[int] = ..., failures: _Optional[_Iterable[str]] = ..., missing_steps: _Optional[_Iterable[int]] = ..., accounting: _Optional[_Union[ScanAccounting, _Mapping]] = ..., revision: _Optional[int] = ..., aborted_reason: _Optional[str] = ...) -> None: ...
+    surfaces: _containers.RepeatedCompositeFieldContainer[SurfaceEstimate]
+    corners: _containers.RepeatedCompositeFieldContainer[FeatureEstimate]
+    edges: _containers.RepeatedCompositeFieldContainer[FeatureEstimate]
+    unexplained: _containers.RepeatedCompositeFieldContainer[UnexplainedEchoes]
+    surface_echo_count: int
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., scan_id: _Optional[int] = ..., last_step: _Optional[int] = ..., status: _Optional[_Union[EstimateStatus, str]] = ..., stamp_ns: _Optional[int] = ..., critical_step: _Optional[int] = ..., critical_angle: _Optional[float] = ..., planes: _Optional[_Iterable[_Union[PlaneEstimate, _Mapping]]] = ..., corner_edge: _Optional[_Union[Line, _Mapping]] = ..., timings: _Optional[_Union[ComputeTimings, _Mapping]] = ..., samples_used: _Optional[int] = ..., failures: _Optional[_Iterable[str]] = ..., missing_steps: _Optional[_Iterable[int]] = ..., accounting: _Optional[_Union[ScanAccounting, _Mapping]] = ..., revision: _Optional[int] = ..., aborted_reason: _Optional[str] = ..., surfaces: _Optional[_Iterable[_Union[SurfaceEstimate, _Mapping]]] = ..., corners: _Optional[_Iterable[_Union[FeatureEstimate, _Mapping]]] = ..., edges: _Optional[_Iterable[_Union[FeatureEstimate, _Mapping]]] = ..., unexplained: _Optional[_Iterable[_Union[UnexplainedEchoes, _Mapping]]] = ..., surface_echo_count: _Optional[int] = ...) -> None: ...

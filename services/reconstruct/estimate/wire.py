@@ -13,6 +13,7 @@ from lelsonar.codec import QUALITY
 from lelsonar.errors import ConfigError, ScannerMismatchError
 from lelsonar.keys import ScannerKeys
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit, PlaneResult
+from lelsonar.reconstruct.estimate.surfaces import Feature, SurfaceSet
 from lelsonar.v1 import reconstruction_pb2 as pb
 
 if TYPE_CHECKING:  # (the estimate's type only: decoding an estimate needs no estimator)
@@ -66,6 +67,44 @@ def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
     return msg
 
 
+def feature_message(feature: Feature) -> pb.FeatureEstimate:
+    msg = pb.FeatureEstimate(
+        label=feature.label,
+        surfaces=list(feature.surfaces),
+        reasons=list(feature.reasons),
+        echo_count=feature.n_echoes,
+    )
+    _set(msg.line.point, feature.point)
+    _set(msg.line.direction, feature.direction)
+    # Across the line: the larger spread of the point's covariance (the bearing's, at the feature's depth).
+    msg.line.point_stderr = float(np.sqrt(max(np.linalg.eigvalsh(feature.covariance).max(), 0.0)))
+    msg.covariance.extend(float(v) for v in np.asarray(feature.covariance).ravel())
+    return msg
+
+
+def add_surfaces(msg: codec.Reconstruction, result: SurfaceSet) -> codec.Reconstruction:
+    """Fill a ``Reconstruction``'s surfaces, corners, edges and unexplained echoes from one sweep's extraction."""
+    for surface in result.surfaces:
+        plane = plane_message(surface.plane)
+        plane.label = surface.label
+        item = msg.surfaces.add(
+            label=surface.label,
+            bearing=float(surface.bearing),
+            tilt=float(surface.tilt),
+            bearing_source=surface.bearing_source,
+            echo_count=surface.n_echoes,
+        )
+        item.plane.CopyFrom(plane)
+        item.covariance.extend(float(v) for v in np.asarray(surface.covariance).ravel())
+    msg.corners.extend(feature_message(f) for f in result.corners)
+    msg.edges.extend(feature_message(f) for f in result.edges)
+    for cause, count in result.unexplained.items():
+        if count:
+            msg.unexplained.add(cause=cause, count=int(count))
+    msg.surface_echo_count = int(result.n_echoes)
+    return msg
+
+
 def reconstruction_message(
     scanner_id: str,
     scan_id: int,
@@ -81,6 +120,7 @@ def reconstruction_message(
     stamp_ns: int | None = None,
     missing_steps: Iterable[int] = (),
     accounting: pb.ScanAccounting | None = None,
+    surfaces: SurfaceSet | None = None,
 ) -> codec.Reconstruction:
     """Build a validated-to-be ``Reconstruction``.
 
@@ -115,6 +155,8 @@ def reconstruction_message(
     msg.missing_steps.extend(int(s) for s in missing_steps)
     if accounting is not None:
         msg.accounting.CopyFrom(accounting)
+    if surfaces is not None:
+        add_surfaces(msg, surfaces)
     return msg
 
 
@@ -126,6 +168,7 @@ def estimate_message(
     status: str = "provisional",
     missing_steps: Iterable[int] = (),
     accounting: pb.ScanAccounting | None = None,
+    surfaces: SurfaceSet | None = None,
 ) -> codec.Reconstruction:
     """The ``Reconstruction`` message of an estimate of record
     (:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`): its planes, edge and failures,
@@ -149,6 +192,7 @@ def estimate_message(
         timings=estimate.timings,
         missing_steps=missing_steps,
         accounting=accounting,
+        surfaces=surfaces,
     )
     msg.failures.extend(estimate.failures)
     return msg

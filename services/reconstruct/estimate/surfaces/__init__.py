@@ -1,0 +1,12 @@
+"""Every surface of a sweep: regions of constant depth, classified as planes, concave corners or convex edges."""
+
+from lelsonar.reconstruct.estimate.surfaces.extract import (
+    METHOD,
+    Feature,
+    Surface,
+    SurfaceOptions,
+    SurfaceSet,
+    extract_surfaces,
+)
+
+__all__ = ["METHOD", "Feature", "Surface", "SurfaceOptions", "SurfaceSet", "extract_surfaces"]

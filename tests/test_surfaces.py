@@ -1,0 +1,214 @@
+"""Every surface of a sweep: analytic planes, corners and edges computed by hand, and the world simulator's truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lelsonar import codec
+from lelsonar.errors import InvalidMessageError
+from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
+from lelsonar.view import present
+
+GEOMETRY = ArrayGeometry(radial_offset=0.03)
+#: The sweep of the fan mount: 300 steps over ±149.7°.
+GAMMA = np.linspace(math.radians(-149.7), math.radians(149.7), 300)
+RANGE_NOISE = 0.002  # m, σ of the synthetic ranges
+BEAM = math.radians(15.0)  # the synthetic beam's 1/e half-width
+THRESHOLD = 0.05  # V: weaker echoes are not detected
+
+
+def _unit(bearing: float, tilt: float = 0.0) -> np.ndarray:
+    c = math.cos(tilt)
+    return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
+
+
+class Echoes:
+    """A sweep built by hand: per step and capsule, the first detected echo of the targets added."""
+
+    def __init__(self, seed: int = 0) -> None:
+        self.caps = GEOMETRY.capsule_positions(GAMMA)  # (n, 4, 3)
+        self.beam = np.stack([np.zeros_like(GAMMA), np.cos(GAMMA), np.sin(GAMMA)], axis=1)
+        self.range = np.full(self.caps.shape[:2], np.nan)
+        self.amp = np.full(self.caps.shape[:2], np.nan)
+        self.rng = np.random.default_rng(seed)
+
+    def _add(self, r: np.ndarray, toward: np.ndarray, gain: float) -> None:
+        """Echoes of range ``r`` (n, 4) arriving from unit directions ``toward`` (n, 4, 3)."""
+        psi = np.arccos(np.clip(np.einsum("nk,nmk->nm", self.beam, toward), -1, 1))
+        a = gain * np.exp(-((psi / BEAM) ** 2)) / (2 * r)
+        seen = (a > THRESHOLD) & (r > 0)
+        first = seen & ~(self.range <= r)  # the first echo over the threshold sets the range
+        self.range[first] = r[first]
+        self.amp[first] = a[first]
+
+    def plane(self, bearing: float, offset: float, tilt: float = 0.0, gain: float = 1.0) -> None:
+        n = _unit(bearing, tilt)
+        r = offset - self.caps @ n
+        self._add(r, np.broadcast_to(n, self.caps.shape), gain)
+
+    def vertical_line(self, y: float, z: float, gain: float) -> None:
+        """A line along the stack (x) through (y, z): a vertical corner or edge of the fan mount."""
+        rel = np.array([0.0, y, z]) - self.caps
+        rel[..., 0] = 0.0
+        r = np.linalg.norm(rel, axis=-1)
+        self._add(r, rel / r[..., None], gain)
+
+    def across_line(self, point: np.ndarray, direction: np.ndarray, gain: float) -> None:
+        """A line across the stack through ``point`` along ``direction``."""
+        rel = point - self.caps
+        rel = rel - (rel @ direction)[..., None] * direction
+        r = np.linalg.norm(rel, axis=-1)
+        self._add(r, rel / r[..., None], gain)
+
+    def ranges(self) -> np.ndarray:
+        return self.range + self.rng.normal(0.0, RANGE_NOISE, self.range.shape)
+
+
+def test_a_plane_is_one_good_surface_with_its_bearing_from_the_region_of_constant_depth():
+    e = Echoes(seed=1)
+    bearing, offset, tilt = math.radians(23.0), 1.2, math.radians(2.0)
+    e.plane(bearing, offset, tilt)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and not result.corners and not result.edges
+    s = result.surfaces[0]
+    sd = np.sqrt(np.diag(s.covariance))
+    assert abs(s.bearing - bearing) < 4 * sd[0] + 1e-9
+    assert abs(s.tilt - tilt) < 4 * sd[1]
+    assert abs(s.offset - offset) < 4 * sd[2]
+    assert s.quality == "good", s.reasons
+    assert s.bearing_source == "region centre"
+    # The σ has its true shape: the offset is known to a few mm, the bearing to the region's quantisation.
+    assert sd[2] < 0.003 and sd[0] < math.radians(1.0)
+
+
+def test_a_plane_cut_by_a_nearer_target_takes_its_bearing_from_the_amplitude_peak_or_says_it_has_none():
+    e = Echoes(seed=2)
+    bearing, offset = math.radians(-40.0), 1.5
+    e.vertical_line(0.5 * math.cos(math.radians(-75.0)), 0.5 * math.sin(math.radians(-75.0)), gain=1.0)
+    e.plane(bearing, offset)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    wall = [s for s in result.surfaces if abs(s.offset - offset) < 0.05]
+    assert len(wall) == 1
+    s = wall[0]
+    assert s.bearing_source == "amplitude peak"
+    assert abs(s.bearing - bearing) < 4 * math.sqrt(s.covariance[0, 0])
+    # Without the amplitudes the cut region's bearing is undetermined: never good.
+    blind = extract_surfaces(GAMMA, e.ranges(), GEOMETRY)
+    s = next(s for s in blind.surfaces if abs(s.offset - offset) < 0.05)
+    assert s.bearing_source == "undetermined"
+    assert s.quality == "unreliable"
+    assert any("bearing not determined" in r for r in s.reasons)
+
+
+def test_a_dihedral_corner_sits_at_the_double_bounce_range_of_its_two_walls():
+    e = Echoes(seed=3)
+    e.plane(0.0, 1.0)
+    e.plane(math.pi / 2, 1.5)
+    e.vertical_line(1.0, 1.5, gain=1.5)  # the double bounce: from the edge, stronger than a mirror
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    offsets = sorted(round(s.offset, 2) for s in result.surfaces)
+    assert offsets == pytest.approx([1.0, 1.5], abs=0.01)
+    assert all(s.quality == "good" for s in result.surfaces)
+    assert len(result.corners) == 1 and not result.edges
+    c = result.corners[0]
+    assert len(c.surfaces) == 2
+    assert np.linalg.norm(c.point[1:] - [1.0, 1.5]) < 0.03
+    assert abs(c.direction[0]) == pytest.approx(1.0)  # along the stack: a vertical corner of the fan
+
+
+def test_a_wall_end_diffracts_weakly_and_is_an_edge():
+    e = Echoes(seed=4)
+    e.plane(0.0, 1.0)
+    e.plane(math.radians(-100.0), 1.3)  # a second wall: the mirrors' amplitude scale comes from both
+    e.vertical_line(1.0, 0.8, gain=0.2)  # the wall's free end, on its trace y = 1
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.edges) == 1 and not result.corners
+    edge = result.edges[0]
+    assert np.linalg.norm(edge.point[1:] - [1.0, 0.8]) < 0.05
+    assert len(result.surfaces) == 2
+
+
+def test_a_line_across_the_stack_is_told_from_a_plane_by_the_curvature_of_its_ranges():
+    e = Echoes(seed=5)
+    bearing = math.radians(10.0)
+    # The foot of a wall on the floor, 0.3 m below the axis, 1 m away: ranges curve along the stack.
+    point = np.array([-0.3, math.cos(bearing), math.sin(bearing)])
+    e.across_line(point, np.array([0.0, -math.sin(bearing), math.cos(bearing)]), gain=1.5)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert not result.surfaces
+    assert len(result.corners) == 1
+    assert "curve along the capsule stack" in result.corners[0].reasons[0]
+
+
+def test_unexplained_readings_are_counted_with_their_cause():
+    e = Echoes(seed=6)
+    e.plane(0.0, 1.0)
+    d = e.ranges()
+    d[200, 0] = 2.5  # a lone reading: no region
+    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=e.amp)
+    assert result.n_unexplained == 1
+    assert result.n_echoes == int(np.isfinite(d).sum())
+
+
+def test_the_surfaces_travel_in_the_reconstruction_and_its_json():
+    e = Echoes(seed=7)
+    e.plane(0.0, 1.0)
+    e.plane(math.pi / 2, 1.5)
+    e.vertical_line(1.0, 1.5, gain=1.5)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    msg = wire.reconstruction_message(
+        "s",
+        1,
+        status="final",
+        last_step=299,
+        samples_used=300,
+        critical_step=None,
+        critical_angle=0.0,
+        planes=(),
+        edge=None,
+        timings=(0.0, 0.0, 0.0),
+        surfaces=result,
+    )
+    back = codec.decode(msg.SerializeToString(), codec.Reconstruction)
+    assert [s.label for s in back.surfaces] == [s.label for s in result.surfaces]
+    assert len(back.corners) == 1 and back.corners[0].surfaces == list(result.corners[0].surfaces)
+    line = present.to_json(back)
+    assert '"surfaces":' in line and '"quality":"good"' in line
+    assert present.from_json(line) == back
+    bad = codec.Reconstruction()
+    bad.CopyFrom(back)
+    bad.surfaces[0].plane.normal.x = 2.0
+    with pytest.raises(InvalidMessageError):
+        codec.validate(bad)
+    bad.CopyFrom(back)
+    del bad.corners[0].covariance[:]
+    with pytest.raises(InvalidMessageError):
+        codec.validate(bad)
+
+
+# ----------------------------------------------------------------------------- the world simulator's truth
+@pytest.mark.slow
+@pytest.mark.parametrize("family", ["room", "l_room", "corridor", "maze", "boxes"])
+def test_every_wall_of_a_simulated_sweep_is_found_and_none_claims_good_while_wrong(family):
+    from lelsonar.sim.world_geometry import build_model
+    from lelsonar.sim.worlds import draw_world
+    from lelsonar.tools.bench_surfaces import run_scan
+
+    model = build_model(draw_world(family, 0))
+    records = [run_scan(family, 0, pose, model) for pose in range(min(2, len(model.world.poses)))]
+    seen = sum(r.seen["plane"] for r in records)
+    found = sum(r.found["plane"] for r in records)
+    assert seen > 0 and found == seen, f"{found} of {seen} walls seen by ≥ 20 echoes found"
+    for p in (p for r in records for p in r.planes):
+        wrong = p.error > 0.02 and p.error > 3 * p.oracle
+        assert not (p.quality == "good" and wrong), (
+            f"element {p.element} claims good while {100 * p.error:.1f} cm off (oracle {100 * p.oracle:.1f} cm)"
+        )
+    features = {c: sum(r.found[c] for r in records) for c in ("corner", "edge")}
+    right = {c: sum(r.right[c] for r in records) for c in ("corner", "edge")}
+    print(f"{family}: corners {right['corner']}/{features['corner']}, edges {right['edge']}/{features['edge']} right")

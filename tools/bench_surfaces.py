@@ -1,0 +1,282 @@
+"""``lelsonar bench surfaces``: every surface of a sweep against the world simulator's truth.
+
+For each world family (:mod:`lelsonar.sim.worlds`), seed and pose, one sweep is
+simulated with waveforms, the echo amplitudes are read off them
+(:func:`lelsonar.signal.energy.echo_amplitude`), and
+:func:`lelsonar.reconstruct.estimate.surfaces.extract_surfaces` runs on the
+measured γ and ranges.  The truth is the simulator's: which element set each
+reading (``echo_index``) and the true pose.
+
+Per class (plane, corner, edge):
+
+* **found / seen** (recall): truth elements with at least ``--min-echoes``
+  readings that some extracted item of any class claims (its majority element);
+* **classified right**: of those claimed, the share whose class matches
+  (mirror → plane, dihedral or trihedral → corner, edge → edge);
+* **false**: extracted items whose majority reading is no element of that class
+  (noise, a diffuse echo or another class);
+
+and per plane:
+
+* **error**: the largest distance between the fitted and the true plane over the
+  true wall's trace 0.5 m either side of the foot of the perpendicular, cm (a
+  bearing error shows as much as an offset error);
+* **oracle**: least squares (:func:`~lelsonar.reconstruct.estimate.fit.constant_depth_ls`)
+  on the surface's own true echoes, started at the truth, with the same error;
+* **failure claiming good**: verdict good while the error is > 2 cm and > 3× the oracle's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
+from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceSet, extract_surfaces
+from lelsonar.signal.energy import echo_amplitude
+from lelsonar.sim.scan import EchoSource
+from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
+from lelsonar.sim.world_render import WorldScan, pose_frame, simulate_world_scan
+from lelsonar.sim.worlds import WORLD_FAMILIES, draw_world
+
+#: The class each element kind should be extracted as.
+TRUE_CLASS = {
+    ElementKind.MIRROR: "plane",
+    ElementKind.DIHEDRAL: "corner",
+    ElementKind.TRIHEDRAL: "corner",
+    ElementKind.EDGE: "edge",
+}
+#: Half the length of wall trace the error is measured over, m.
+TRACE_HALF = 0.5
+
+
+@dataclass(frozen=True)
+class PlaneRecord:
+    """One extracted plane matched to its true surface."""
+
+    family: str
+    seed: int
+    pose: int
+    element: int
+    quality: str
+    error: float  # m
+    oracle: float  # m
+    angle: float  # rad
+    n_true_echoes: int
+
+
+@dataclass(frozen=True)
+class ScanRecord:
+    """What one sweep's extraction scored."""
+
+    planes: list[PlaneRecord]
+    seen: dict[str, int]  # class -> truth elements seen
+    found: dict[str, int]  # class -> of those, claimed by an item of any class
+    right: dict[str, int]  # class -> of those, claimed with the right class
+    false: dict[str, int]  # class -> extracted items of that class with another majority
+    extracted: dict[str, int]
+    unexplained_share: float
+    false_good: int  # extracted planes claiming good whose echoes are no surface's mirror
+
+
+def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
+    """The mirror element's plane in the array frame, normal pointing away from the scanner."""
+    model = scan.model
+    surf = model.surfaces[model.elements[element].surfaces[0]]
+    rot, tr = pose_frame(scan.rig, scan.pose)
+    n = rot.T @ surf.normal
+    h = float(surf.normal @ (surf.center - tr))
+    if h < 0:
+        n, h = -n, -h
+    return n, h
+
+
+def trace_error(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: float) -> float:
+    """Largest distance of the fitted plane from the true one over the true trace ±TRACE_HALF of the foot, m.
+
+    The trace runs in the fan (perpendicular to the stack x and to the normal).
+    """
+    foot = h_true * n_true
+    along = np.cross(np.array([1.0, 0.0, 0.0]), n_true)
+    nrm = float(np.linalg.norm(along))
+    along = along / nrm if nrm > 1e-9 else np.array([0.0, 1.0, 0.0])
+    pts = foot[None, :] + np.array([-TRACE_HALF, 0.0, TRACE_HALF])[:, None] * along[None, :]
+    # Distance from each true point to the fitted plane, plus the true plane's distance from the fit's foot.
+    return float(np.max(np.abs(pts @ normal - offset)))
+
+
+def _majority(scan: WorldScan, steps: np.ndarray) -> tuple[int, int]:
+    idx = scan.echo_index[steps].ravel()
+    ok = np.isfinite(scan.distance[steps].ravel()) & (idx >= 0)
+    if not ok.any():
+        return -1, 0
+    vals, counts = np.unique(idx[ok], return_counts=True)
+    k = int(np.argmax(counts))
+    return int(vals[k]), int(counts[k])
+
+
+def _element_kind(model: WorldModel, k: int, scan: WorldScan, steps: np.ndarray) -> str | None:
+    """The class of element k, None for a diffuse echo or no element."""
+    if k < 0 or k >= len(model.elements):
+        return None
+    # A diffuse slot carries its surface's index as element index: tell by the source of those readings.
+    src = scan.echo_source[steps].ravel()
+    idx = scan.echo_index[steps].ravel()
+    if np.count_nonzero((idx == k) & (src == EchoSource.DIFFUSE)) > np.count_nonzero(
+        (idx == k) & (src != EchoSource.DIFFUSE)
+    ):
+        return None
+    return TRUE_CLASS[model.elements[k].kind]
+
+
+def oracle_error(scan: WorldScan, element: int) -> float:
+    """LS on the element's own true echoes, started at the truth: its trace error, m."""
+    n_true, h_true = true_plane(scan, element)
+    mask = (scan.echo_index == element) & (scan.echo_source != EchoSource.DIFFUSE) & np.isfinite(scan.distance)
+    rows, caps = np.nonzero(mask)
+    p = scan.geometry.capsule_positions(scan.gamma_measured[rows])[np.arange(rows.size), caps]
+    n, h, _ = constant_depth_ls(p, scan.distance[rows, caps], n_true, h_true)
+    return trace_error(n, h, n_true, h_true)
+
+
+def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 0, min_echoes: int = 20) -> ScanRecord:
+    """Match the extracted items to the truth of one sweep."""
+    model = scan.model
+    valid = np.isfinite(scan.distance) & (scan.echo_source != EchoSource.DIFFUSE)
+    counts = np.bincount(scan.echo_index[valid & (scan.echo_index >= 0)].ravel(), minlength=len(model.elements))
+    seen_el = {k for k in range(len(model.elements)) if counts[k] >= min_echoes}
+    classes = ("plane", "corner", "edge")
+    seen = {c: 0 for c in classes}
+    for k in seen_el:
+        seen[TRUE_CLASS[model.elements[k].kind]] += 1
+    claimed: dict[int, set[str]] = {}
+    false = {c: 0 for c in classes}
+    extracted = {"plane": len(result.surfaces), "corner": len(result.corners), "edge": len(result.edges)}
+    planes: list[PlaneRecord] = []
+    false_good = 0
+    items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
+    items += [("corner", f.steps, None) for f in result.corners] + [("edge", f.steps, None) for f in result.edges]
+    for cls, steps, surf in items:
+        k, _ = _majority(scan, steps)
+        truth = _element_kind(model, k, scan, steps)
+        if truth is None or truth != cls:
+            false[cls] += 1
+            false_good += int(surf is not None and surf.quality == "good")
+        if truth is not None:
+            claimed.setdefault(k, set()).add(cls)
+        if surf is not None and truth == "plane":
+            n_true, h_true = true_plane(scan, k)
+            err = trace_error(surf.normal, surf.offset, n_true, h_true)
+            ang = math.acos(min(1.0, abs(float(surf.normal @ n_true))))
+            planes.append(
+                PlaneRecord(
+                    family, seed, scan.pose_index, k, surf.quality, err, oracle_error(scan, k), ang, int(counts[k])
+                )
+            )
+    found = {c: 0 for c in classes}
+    right = {c: 0 for c in classes}
+    for k in seen_el:
+        c = TRUE_CLASS[model.elements[k].kind]
+        if k in claimed:
+            found[c] += 1
+            right[c] += int(c in claimed[k])
+    share = result.n_unexplained / max(result.n_echoes, 1)
+    return ScanRecord(planes, seen, found, right, false, extracted, share, false_good)
+
+
+def run_scan(family: str, seed: int, pose: int, model: WorldModel) -> ScanRecord:
+    """Simulate, extract and score one sweep."""
+    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    return score_scan(family, scan, result, seed=seed)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--worlds", default="all", help="comma-separated world families, or all")
+    parser.add_argument("--seeds", type=int, default=3, help="worlds per family (seeds 0..N-1)")
+    parser.add_argument("--max-poses", type=int, default=2, help="sweeps per world (its first poses)")
+
+
+def _pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from lelsonar.tools.bench import machine, progress
+
+    families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
+    jobs = [(f, s) for f in families for s in range(args.seeds)]
+    records: dict[str, list[ScanRecord]] = {f: [] for f in families}
+    for family, seed in progress(jobs, "surfaces"):
+        model = build_model(draw_world(family, seed))
+        for pose in range(min(args.max_poses, len(model.world.poses))):
+            records[family].append(run_scan(family, seed, pose, model))
+    console = Console(width=200)
+    table = Table(title=f"surfaces per family ({args.seeds} worlds each, ≤ {args.max_poses} sweeps) — {machine()}")
+    for col in (
+        "family",
+        "planes found/seen",
+        "err med cm",
+        "err p95 cm",
+        "oracle med cm",
+        "med/oracle",
+        "angle med °",
+        "good",
+        "good-but-failed",
+        "false planes (good)",
+        "corners found/seen (right)",
+        "edges found/seen (right)",
+        "false corners/edges",
+        "unexplained",
+    ):
+        table.add_column(col, justify="right")
+    bad_total = 0
+    for family in families:
+        recs = records[family]
+        planes = [p for r in recs for p in r.planes]
+        err = [100 * p.error for p in planes]
+        orc = [100 * p.oracle for p in planes]
+        ratio = float(np.median(err) / max(np.median(orc), 1e-9)) if planes else float("nan")
+        failed_good = sum(1 for p in planes if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle)
+        bad_total += failed_good
+
+        def tot(attr: str, cls: str, recs: list[ScanRecord] = recs) -> int:
+            return sum(getattr(r, attr)[cls] for r in recs)
+
+        table.add_row(
+            family,
+            f"{tot('found', 'plane')}/{tot('seen', 'plane')}",
+            f"{_pct(err, 50):.2f}",
+            f"{_pct(err, 95):.2f}",
+            f"{_pct(orc, 50):.2f}",
+            f"{ratio:.2f}",
+            f"{math.degrees(_pct([p.angle for p in planes], 50)):.2f}",
+            f"{sum(p.quality == 'good' for p in planes)}/{len(planes)}",
+            str(failed_good),
+            f"{tot('false', 'plane')} ({sum(r.false_good for r in recs)} good)",
+            f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')})",
+            f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')})",
+            f"{tot('false', 'corner')}/{tot('false', 'edge')}",
+            f"{100 * float(np.mean([r.unexplained_share for r in recs])):.0f} %",
+        )
+    console.print(table)
+    for family in families:
+        for p in (p for r in records[family] for p in r.planes):
+            if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle:
+                console.print(
+                    f"failure claiming good: {family} seed {p.seed} pose {p.pose} element {p.element}: "
+                    f"{100 * p.error:.1f} cm (oracle {100 * p.oracle:.1f} cm), {math.degrees(p.angle):.1f}°"
+                )
+    console.print(
+        "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
+        "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
+        "and > 3× oracle; (right): claimed with the right class."
+    )
+    return 1 if bad_total else 0
