@@ -58,7 +58,8 @@ def _cases(d: Path) -> list[tuple[str, list[str], str]]:
     for command in COMMANDS:  # a flag no command has, and --config pointing at nothing useful
         positional = {"review": [scan], "recover": [scan, "-o", str(d / "r.mcap")], "info": [scan]}
         positional |= {"export": [scan, "-o", str(d / "bag")], "secure": ["init", str(d / "pki"), "--scanner", "s1"]}
-        positional |= {"bench": ["sim"]}
+        positional |= {"bench": ["sim"], "map": ["--source", scan], "mapper": ["--scanner", "s1"]}
+        positional |= {"batch": ["info", scan, "--out", str(d / "batch")]}
         extra = positional.get(command, [])
         cases.append((command, [command, *extra, "--no-such-flag"], "unrecognized arguments"))
         if command not in ("bench",):
@@ -238,6 +239,9 @@ def _startup_argv(d: Path, command: str) -> list[str]:
         "router": ["router", "--listen", f"tcp/127.0.0.1:{_free_port()}"],
         "secure": ["secure", "init", str(d / "startup-pki"), "--scanner", "s1"],
         "bench": ["bench", "sim"],
+        "map": ["map", "--source", scan],
+        "mapper": ["mapper", "--scanner", "s1", "--connect", "tcp/127.0.0.1:9"],
+        "batch": ["batch", "info", scan, "--out", str(d / "startup-batch")],
     }.get(command, [command])
 
 
