@@ -245,12 +245,19 @@ def _startup_argv(d: Path, command: str) -> list[str]:
     }.get(command, [command])
 
 
+def _default_sigint() -> None:
+    """In the child: Ctrl-C as a terminal delivers it, even where this test was started with SIGINT ignored
+    (a background job of a non-interactive shell), which Python would otherwise inherit."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _run(argv, *, env=None, stdout=subprocess.DEVNULL, until: str | None = None):
     """Run ``argv`` (killed after 300 s); with ``until``, SIGINT once a line holding it appears on stdout or
     stderr (then merged).  Returns (exit code, stderr lines)."""
     merged = until is not None
     proc = subprocess.Popen(
         argv,
+        preexec_fn=_default_sigint,
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE if merged else stdout,
         stderr=subprocess.STDOUT if merged else subprocess.PIPE,
@@ -329,7 +336,11 @@ def test_ctrl_c_and_closed_pipes_in_processes(files, tmp_path):
         ),
     }
     router_proc = subprocess.Popen(
-        [LELSONAR, "router", "--listen", router], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+        [LELSONAR, "router", "--listen", router],
+        preexec_fn=_default_sigint,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
     )
     try:
         assert "listening" in router_proc.stdout.readline()
