@@ -47,7 +47,7 @@ class FileWitness:
         self.in_file.append(message.SerializeToString() in stored)
 
 
-@pytest.mark.parametrize("durable", [True, False], ids=["chunk per step", "1 MiB chunks (before)"])
+@pytest.mark.parametrize("durable", [True, False], ids=["chunk per step", "1 MiB chunks"])
 def test_every_message_is_with_the_os_before_it_is_published(tmp_path, durable):
     path = tmp_path / "scan.mcap"
     witness = FileWitness(path)

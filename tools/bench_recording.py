@@ -36,7 +36,7 @@ from lelsonar.tools import bench_markdown
 
 #: Each row: its label and the McapRecorder options it measures.
 ROWS: tuple[tuple[str, dict[str, bool]], ...] = (
-    ("before: 1 MiB chunks", {"durable": False}),
+    ("1 MiB chunks, not durable", {"durable": False}),
     ("chunk per step", {}),
     ("chunk per step, fsync", {"fsync": True}),
 )
