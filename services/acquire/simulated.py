@@ -49,18 +49,22 @@ class ScanReplay:
         while_listening: Callable[[], None] | None = None,
     ) -> StepMeasurement:
         """Shot ``step`` as recorded (nothing to move, nothing to listen to: the hints are not needed)."""
-        s = self.scan
-        return StepMeasurement(
-            gamma_measured=float(s.gamma_measured[step]),
-            motor=MotorReading(present_position_raw=int(s.gamma_raw[step]), load=0.0, voltage=12.0, temperature=313.15),
-            time_of_flight=np.asarray(s.tof[step]),
-            waveforms=np.asarray(s.waveforms[step]),
-            t0=float(s.t0),
-            acquisition_time_ns=EPOCH_NS + step * STEP_NS,
-        )
+        return simulated_step(self.scan, step, EPOCH_NS + step * STEP_NS)
 
     def close(self) -> None:
         pass
+
+
+def simulated_step(scan, step: int, acquisition_time_ns: int) -> StepMeasurement:
+    """Step ``step`` of an already simulated sweep (an L scan or a world's) as the scanner would measure it."""
+    return StepMeasurement(
+        gamma_measured=float(scan.gamma_measured[step]),
+        motor=MotorReading(present_position_raw=int(scan.gamma_raw[step]), load=0.0, voltage=12.0, temperature=313.15),
+        time_of_flight=np.asarray(scan.tof[step]),
+        waveforms=np.asarray(scan.waveforms[step]),
+        t0=float(scan.t0),
+        acquisition_time_ns=acquisition_time_ns,
+    )
 
 
 def truth_metadata(scan: SimulatedScan) -> dict[str, str]:

@@ -18,7 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.acquire.scanner import MotorReading, ScannerInfo, StepMeasurement
+from lelsonar.acquire.scanner import ScannerInfo, StepMeasurement
+from lelsonar.acquire.simulated import simulated_step
 from lelsonar.geometry import array_pose, quaternion_from_matrix
 from lelsonar.sim.odometry import OdometryPose, array_covariance, simulate_odometry
 from lelsonar.sim.world import World, load_world
@@ -52,15 +53,7 @@ class WorldReplay:
         next_gamma: float | None = None,
         while_listening: Callable[[], None] | None = None,
     ) -> StepMeasurement:
-        s = self.scan
-        return StepMeasurement(
-            gamma_measured=float(s.gamma_measured[step]),
-            motor=MotorReading(present_position_raw=int(s.gamma_raw[step]), load=0.0, voltage=12.0, temperature=313.15),
-            time_of_flight=np.asarray(s.tof[step]),
-            waveforms=np.asarray(s.waveforms[step]),
-            t0=float(s.t0),
-            acquisition_time_ns=time.time_ns(),
-        )
+        return simulated_step(self.scan, step, time.time_ns())
 
     def close(self) -> None:
         pass
