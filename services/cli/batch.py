@@ -16,10 +16,12 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import glob
 import io
 import json
 import os
+import resource
 import shutil
 import sys
 import time
@@ -28,7 +30,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lelsonar.cli.executor import add_executor_arguments, config_from_args, run_each
+from lelsonar.cli.executor import (
+    ExecutorConfig,
+    Outcome,
+    WorkerLoad,
+    add_executor_arguments,
+    config_from_args,
+    run_each,
+    tree_cpu,
+    worker_loads,
+)
 from lelsonar.cli.main import COMMAND_MODULES, main
 from lelsonar.errors import ConfigError
 
@@ -36,6 +47,14 @@ INDEX = "index.jsonl"
 #: Fields of a `reconstruct --json` line that say when and how fast this run computed it, not what it
 #: computed: left out of the batch's output, which must not depend on the run.
 RUN_FIELDS = ("stamp_ns", "timings")
+#: What a worker imports to run any command on a file, loaded once by a local pool before it forks its
+#: workers.  Nothing that starts threads at import (a Rerun or Ray runtime): a forked worker would lack them.
+WORKER_MODULES = (
+    *COMMAND_MODULES,
+    "lelsonar.log.recording",
+    "lelsonar.reconstruct.stream.service",
+    "lelsonar.reconstruct.stream.sources",
+)
 #: Exit codes of `lelsonar batch`.
 EXIT_OK, EXIT_SOME_FAILED = 0, 1
 
@@ -82,6 +101,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("inputs", nargs="+", metavar="FILES_OR_GLOBS", help="recordings, or quoted globs ('a/*.mcap')")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="where the outputs and the index go")
     p.add_argument("--force", action="store_true", help="redo every file, even one whose output is complete")
+    p.add_argument(
+        "--timings",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write where the time went as JSON: the wall time, the CPU time of this process and its "
+        "workers, and each worker's items, busy and CPU time and start-up",
+    )
     add_executor_arguments(p)
     add_method_arguments(
         p.add_argument_group("estimation (reconstruct, review, export)"),
@@ -143,6 +170,24 @@ def command_argv(command: str, source: Path, output: Path, flags: list[str]) -> 
     if command == "map":
         return ["map", "--source", str(source), "--json", *flags]
     return [command, str(source), "-o", str(output), *flags]
+
+
+def process_input(
+    command: str, source: str, out_dir: str, key: dict[str, Any], previous: dict[str, Any] | None
+) -> dict[str, Any]:
+    """One input's index line: the input fingerprinted, skipped when ``previous`` records it complete, else
+    run by :func:`process_file`.
+
+    ``key`` holds the input's name, the command, its flags and the output's name; the line adds the
+    input's fingerprint and the run's fields.  Everything per file happens here, in the worker: hashing
+    the input and checking the output take no time from the process that hands the files out.
+    """
+    key = {**key, **_prefixed(fingerprint(Path(source)))}
+    if is_complete(previous, key, Path(out_dir)):
+        assert previous is not None
+        return {**previous, "skipped": True}
+    result = process_file(command, source, str(Path(out_dir) / key["output"]), key["flags"])
+    return {**key, **result}
 
 
 def process_file(command: str, source: str, output: str, flags: list[str]) -> dict[str, Any]:
@@ -275,20 +320,17 @@ def run_batch(args: argparse.Namespace) -> int:
     # Bound to this stderr: a command running in this process (--workers 1) has its own redirected.
     console = Console(file=sys.stderr)
     console = console if console.is_terminal else Console(file=sys.stderr, width=120)
-    lines: dict[str, dict[str, Any]] = {}
-    todo: list[tuple[str, dict[str, Any], Path]] = []
-    for path, name in zip(inputs, names):
-        key = {"input": str(name), "command": args.command, "flags": flags, **_prefixed(fingerprint(path))}
+    keys = []
+    for name in names:
         output = name.with_name(name.name.removesuffix(".mcap") + job.suffix)
-        key["output"] = str(output)
-        if is_complete(previous.get(str(name)), key, out_dir):
-            lines[str(name)] = {**previous[str(name)], "skipped": True}
-        else:
-            todo.append((str(path), key, output))
-
-    items = [(args.command, src, str(out_dir / output), flags) for src, _key, output in todo]
+        keys.append({"input": str(name), "command": args.command, "flags": flags, "output": str(output)})
+    items = [
+        (args.command, str(path), str(out_dir), key, previous.get(key["input"])) for path, key in zip(inputs, keys)
+    ]
+    lines: dict[str, dict[str, Any]] = {}
     times: dict[str, float] = {}
-    started = time.perf_counter()
+    outcomes: list[Outcome] = []
+    started, since = time.perf_counter(), time.time()
     with (
         open(index_path, "a") as log,
         Progress(
@@ -303,17 +345,21 @@ def run_batch(args: argparse.Namespace) -> int:
     ):
         task = bar.add_task("files", total=len(items), failed=0)
         failed = 0
-        for i, outcome in run_each(process_file, items, config):
-            _src, key, _output = todo[i]
+        for i, outcome in run_each(process_input, items, config, preload=WORKER_MODULES):
+            outcomes.append(outcome)
+            key = keys[i]
             if outcome.ok:
-                times[key["input"]] = outcome.value.pop("seconds")
-                line = {**key, **outcome.value}
+                line = outcome.value
+                if not line.get("skipped"):
+                    times[key["input"]] = line.pop("seconds")
             else:
-                line = {**key, "rc": None, "output_hash": None, "error": outcome.error, **count_results("", "")}
+                line = {**key, **_prefixed(_fingerprint_or_none(inputs[i]))}
+                line.update(rc=None, output_hash=None, error=outcome.error, **count_results("", ""))
             lines[key["input"]] = line
-            log.write(json.dumps(line, sort_keys=True) + "\n")  # kept as it comes: a killed batch resumes
-            log.flush()
-            if line["rc"] != 0:
+            if not line.get("skipped"):
+                log.write(json.dumps(line, sort_keys=True) + "\n")  # kept as it comes: a killed batch resumes
+                log.flush()
+            if line["rc"] != 0 and not line.get("skipped"):
                 failed += 1
             bar.update(task, advance=1, failed=failed)
     wall = time.perf_counter() - started
@@ -323,8 +369,19 @@ def run_batch(args: argparse.Namespace) -> int:
     tmp = index_path.with_name(INDEX + ".partial")
     tmp.write_text("".join(json.dumps(_clean(index[k]), sort_keys=True) + "\n" for k in sorted(index)))
     os.replace(tmp, index_path)
+    loads = worker_loads(outcomes, since)
     _print_summary(console, args.command, ordered, times, wall, config)
+    _print_workers(console, loads, wall)
+    if args.timings is not None:
+        write_timings(args.timings, wall, config, loads)
     return EXIT_OK if all(line["rc"] == 0 for line in ordered) else EXIT_SOME_FAILED
+
+
+def _fingerprint_or_none(path: Path) -> dict[str, Any]:
+    try:
+        return fingerprint(path)
+    except OSError:
+        return {"size": None, "mtime_ns": None, "hash": None}
 
 
 def _prefixed(fp: dict[str, Any]) -> dict[str, Any]:
@@ -373,3 +430,30 @@ def _print_summary(console, command: str, lines: list[dict[str, Any]], times, wa
         f"{n_skipped} done before; {wall:.1f} s {where}",
         highlight=False,
     )
+
+
+def _print_workers(console, loads: list[WorkerLoad], wall: float) -> None:
+    """One line: how busy the workers were, and how long the slowest took to start."""
+    if not loads or wall <= 0:
+        return
+    busy = sum(load.busy for load in loads) / (wall * len(loads))
+    start = max(load.first_start for load in loads)
+    console.print(
+        f"{len(loads)} worker{'s' if len(loads) > 1 else ''} busy {busy:.0%} of the time, the last one's first "
+        f"file after {start:.1f} s; CPU {tree_cpu():.1f} s in all",
+        highlight=False,
+    )
+
+
+def write_timings(path: Path, wall: float, config: ExecutorConfig, loads: list[WorkerLoad]) -> None:
+    """The run's timings as JSON (see ``--timings``): never part of the index, which must not vary."""
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    doc = {
+        "engine": config.engine,
+        "workers": config.worker_count,
+        "wall_s": wall,
+        "cpu_this_process_s": own.ru_utime + own.ru_stime,
+        "cpu_all_s": tree_cpu(),
+        "per_worker": [dataclasses.asdict(load) for load in loads],
+    }
+    path.write_text(json.dumps(doc, indent=1) + "\n")
