@@ -10,6 +10,10 @@ files write the same index.
 A file is done, and skipped by the next run, when its index line matches the input (size, mtime, hash),
 the command and flags, and the output on disk still has the recorded hash.  A file that fails is
 reported, counted and retried next time; it never stops the batch.
+
+Everything per file happens in its worker: hashing the input, checking the previous run's output, running
+the command.  This process only hands the files out, writes the index and shows the progress, so the
+workers, not it, set the pace.
 """
 
 from __future__ import annotations
@@ -52,8 +56,11 @@ RUN_FIELDS = ("stamp_ns", "timings")
 WORKER_MODULES = (
     *COMMAND_MODULES,
     "lelsonar.log.recording",
+    "lelsonar.reconstruct.stream.observers",
     "lelsonar.reconstruct.stream.service",
     "lelsonar.reconstruct.stream.sources",
+    "lelsonar.view.present",
+    "xxhash",
 )
 #: Exit codes of `lelsonar batch`.
 EXIT_OK, EXIT_SOME_FAILED = 0, 1
@@ -330,7 +337,7 @@ def run_batch(args: argparse.Namespace) -> int:
     lines: dict[str, dict[str, Any]] = {}
     times: dict[str, float] = {}
     outcomes: list[Outcome] = []
-    started, since = time.perf_counter(), time.time()
+    started, since, cpu_start = time.perf_counter(), time.time(), time.process_time()
     with (
         open(index_path, "a") as log,
         Progress(
@@ -341,6 +348,7 @@ def run_batch(args: argparse.Namespace) -> int:
             TimeElapsedColumn(),
             console=console,
             transient=True,
+            refresh_per_second=2,  # its thread renders the bar: kept light beside the workers
         ) as bar,
     ):
         task = bar.add_task("files", total=len(items), failed=0)
@@ -363,6 +371,7 @@ def run_batch(args: argparse.Namespace) -> int:
                 failed += 1
             bar.update(task, advance=1, failed=failed)
     wall = time.perf_counter() - started
+    cpu_loop = time.process_time() - cpu_start
     ordered = [lines[k] for k in sorted(lines)]
     # The lines of inputs outside this run stay: a batch over part of an archive keeps the rest resumable.
     index = {**recorded, **lines}
@@ -373,7 +382,7 @@ def run_batch(args: argparse.Namespace) -> int:
     _print_summary(console, args.command, ordered, times, wall, config)
     _print_workers(console, loads, wall)
     if args.timings is not None:
-        write_timings(args.timings, wall, config, loads)
+        write_timings(args.timings, wall, config, loads, cpu_loop)
     return EXIT_OK if all(line["rc"] == 0 for line in ordered) else EXIT_SOME_FAILED
 
 
@@ -445,14 +454,20 @@ def _print_workers(console, loads: list[WorkerLoad], wall: float) -> None:
     )
 
 
-def write_timings(path: Path, wall: float, config: ExecutorConfig, loads: list[WorkerLoad]) -> None:
-    """The run's timings as JSON (see ``--timings``): never part of the index, which must not vary."""
+def write_timings(path: Path, wall: float, config: ExecutorConfig, loads: list[WorkerLoad], cpu_loop: float) -> None:
+    """The run's timings as JSON (see ``--timings``): never part of the index, which must not vary.
+
+    ``cpu_hand_out_s`` is this process's CPU time while the files ran, theirs excluded where they ran in it:
+    what handing them out and collecting their results cost.
+    """
     own = resource.getrusage(resource.RUSAGE_SELF)
+    inline = sum(load.cpu for load in loads) if config.engine == "inline" else 0.0
     doc = {
         "engine": config.engine,
         "workers": config.worker_count,
         "wall_s": wall,
         "cpu_this_process_s": own.ru_utime + own.ru_stime,
+        "cpu_hand_out_s": max(0.0, cpu_loop - inline),
         "cpu_all_s": tree_cpu(),
         "per_worker": [dataclasses.asdict(load) for load in loads],
     }

@@ -5,6 +5,10 @@ The one place work fans out over processes or machines: ``lelsonar batch`` and t
 decides how a process spends its cores; the services below scale live work through Zenoh groups and never
 fan out over files, and ``tools`` may import any layer.
 
+The local pool's workers are forked from a fork server that has imported the work's modules: imported
+once, not once per worker.  Each outcome says which worker ran it and
+what wall and CPU time it took, so a run can say where its time went.
+
 ``ray`` is an optional extra (``pip install -e '.[ray]'``) imported in this module only.  Ray is asked for
 one CPU per task, so a cluster runs as many tasks at once as it has cores; ``--ray`` without an address
 joins ``RAY_ADDRESS`` when it is set, else starts a local head.
