@@ -87,6 +87,10 @@ class Run:
         Wall time the workers spent inside files, summed over them, s.
     start_up : float
         From the batch's first hand-out to the slowest worker's first file, s: a pool's start-up.
+    cpu_path : float
+        The run's critical path in CPU time: what its wall time would be on free cores, s.  In one process,
+        all its CPU time; with a pool, the command's start-up, the fork server's imports, the busiest
+        worker's CPU time, its share of handing the files out, and the command's end.
     load : float
         The host's 1-minute load average just before the run.
     """
@@ -97,6 +101,7 @@ class Run:
     cpu_workers: float
     busy: float
     start_up: float
+    cpu_path: float
     load: float
 
 
@@ -115,6 +120,9 @@ def time_batch(archive: Path, out: Path, engine_flags: list[str]) -> Run:
     t = json.loads(timings.read_text())
     workers = t["per_worker"]
     inline = t["engine"] == "inline"
+    slowest = max((w["process_cpu"] for w in workers), default=0.0)
+    path = t["cpu_before_files_s"] + t["cpu_helpers_s"] + slowest + t["cpu_after_files_s"]
+    path += t["cpu_hand_out_s"] / max(1, len(workers))
     return Run(
         wall=wall,
         cpu_all=t["cpu_all_s"],
@@ -122,6 +130,7 @@ def time_batch(archive: Path, out: Path, engine_flags: list[str]) -> Run:
         cpu_workers=sum(w["cpu" if inline else "process_cpu"] for w in workers),
         busy=sum(w["busy"] for w in workers),
         start_up=max((w["first_start"] for w in workers), default=0.0),
+        cpu_path=t["cpu_this_process_s"] if inline else path,
         load=load,
     )
 
@@ -132,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
 
     from lelsonar.tools.bench import progress
 
-    console = Console(width=max(Console().width, 160))
+    console = Console(width=max(Console().width, 180))
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-batch-") as tmp:
         root = Path(tmp)
         make_archive(root / "archive", args.files, args.distinct, args.preset)
@@ -144,12 +153,13 @@ def run(args: argparse.Namespace) -> int:
         for name, k in progress(runs, "batch runs"):
             results[name].append(time_batch(root / "archive", root / f"out-{k}", configs[name]))
     base = statistics.median(r.wall for r in results["1 worker"])
+    base_path = statistics.median(r.cpu_path for r in results["1 worker"])
     table = Table(
         title=f"lelsonar batch reconstruct: {args.files} recordings of {args.preset} ({args.distinct} distinct), "
         f"whole command, runs alternated, medians of {args.repeats}"
     )
     columns = ("engine", "wall s", "min s", "files/s", "load", "cores used", "busy", "efficiency", "start-up s")
-    for col in (*columns, "parent CPU s", "speedup", "floor", ""):
+    for col in (*columns, "parent CPU s", "free-core est.", "speedup", "floor", ""):
         table.add_column(col, justify="left" if col in ("engine", "") else "right")
     status = 0
     for name, rs in results.items():
@@ -171,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
             f"{statistics.median(r.cpu_workers / (r.wall * n) for r in rs):.0%}",
             f"{statistics.median(r.start_up for r in rs):.2f}",
             f"{statistics.median(r.cpu_parent for r in rs):.2f}",
+            "—" if name == "ray" else f"{base_path / statistics.median(r.cpu_path for r in rs):.2f}×",
             f"{speedup:.2f}×",
             f"{floor:.2f}×",
             "" if n == 1 else ("ok" if ok else "[red]below the floor[/]"),
@@ -183,7 +194,9 @@ def run(args: argparse.Namespace) -> int:
         "busy: the workers' time inside files over wall × workers. efficiency: the workers' CPU time over wall × "
         "workers (where it is far below 100 % the host, not the batch, held them back). start-up: from the "
         "first hand-out to the slowest worker's first file. parent CPU: the command's own process, files "
-        f"excluded. The ratio needs {args.workers} free cores.",
+        "excluded. free-core est.: the speedup the runs' CPU critical paths predict on free cores (an "
+        "estimate that ignores contention for memory and caches, for a loaded host; the row's verdict is the "
+        f"measured speedup). The ratio needs {args.workers} free cores.",
         highlight=False,
     )
     return status

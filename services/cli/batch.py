@@ -40,6 +40,7 @@ from lelsonar.cli.executor import (
     WorkerLoad,
     add_executor_arguments,
     config_from_args,
+    helpers_cpu,
     run_each,
     tree_cpu,
     worker_loads,
@@ -371,7 +372,7 @@ def run_batch(args: argparse.Namespace) -> int:
                 failed += 1
             bar.update(task, advance=1, failed=failed)
     wall = time.perf_counter() - started
-    cpu_loop = time.process_time() - cpu_start
+    cpu_end = time.process_time()
     ordered = [lines[k] for k in sorted(lines)]
     # The lines of inputs outside this run stay: a batch over part of an archive keeps the rest resumable.
     index = {**recorded, **lines}
@@ -382,7 +383,7 @@ def run_batch(args: argparse.Namespace) -> int:
     _print_summary(console, args.command, ordered, times, wall, config)
     _print_workers(console, loads, wall)
     if args.timings is not None:
-        write_timings(args.timings, wall, config, loads, cpu_loop)
+        write_timings(args.timings, wall, config, loads, (cpu_start, cpu_end))
     return EXIT_OK if all(line["rc"] == 0 for line in ordered) else EXIT_SOME_FAILED
 
 
@@ -454,20 +455,29 @@ def _print_workers(console, loads: list[WorkerLoad], wall: float) -> None:
     )
 
 
-def write_timings(path: Path, wall: float, config: ExecutorConfig, loads: list[WorkerLoad], cpu_loop: float) -> None:
+def write_timings(
+    path: Path, wall: float, config: ExecutorConfig, loads: list[WorkerLoad], loop_cpu: tuple[float, float]
+) -> None:
     """The run's timings as JSON (see ``--timings``): never part of the index, which must not vary.
 
-    ``cpu_hand_out_s`` is this process's CPU time while the files ran, theirs excluded where they ran in it:
-    what handing them out and collecting their results cost.
+    ``loop_cpu`` is this process's CPU time when the first file was handed out and when the last came back.
+    The document splits this process's CPU into before the files (its start-up), while they ran (handing
+    them out and collecting their results; files that ran in this process excluded) and after (the index,
+    the summary); ``cpu_helpers_s`` is the fork server's and the resource tracker's own.
     """
     own = resource.getrusage(resource.RUSAGE_SELF)
+    this = own.ru_utime + own.ru_stime
     inline = sum(load.cpu for load in loads) if config.engine == "inline" else 0.0
+    start, end = loop_cpu
     doc = {
         "engine": config.engine,
         "workers": config.worker_count,
         "wall_s": wall,
-        "cpu_this_process_s": own.ru_utime + own.ru_stime,
-        "cpu_hand_out_s": max(0.0, cpu_loop - inline),
+        "cpu_this_process_s": this,
+        "cpu_before_files_s": start,
+        "cpu_hand_out_s": max(0.0, end - start - inline),
+        "cpu_after_files_s": max(0.0, this - end),
+        "cpu_helpers_s": helpers_cpu(),
         "cpu_all_s": tree_cpu(),
         "per_worker": [dataclasses.asdict(load) for load in loads],
     }

@@ -179,8 +179,18 @@ def tree_cpu() -> float:
     """
     own = resource.getrusage(resource.RUSAGE_SELF)
     reaped = resource.getrusage(resource.RUSAGE_CHILDREN)
-    total = own.ru_utime + own.ru_stime + reaped.ru_utime + reaped.ru_stime
+    return own.ru_utime + own.ru_stime + reaped.ru_utime + reaped.ru_stime + _running_children_cpu(reaped=True)
+
+
+def helpers_cpu() -> float:
+    """CPU time of this process's running children themselves, without theirs, s: after a pool has ended,
+    the fork server's (its imports) and the resource tracker's.  0 where ``/proc`` is not."""
+    return _running_children_cpu(reaped=False)
+
+
+def _running_children_cpu(reaped: bool) -> float:
     tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    total = 0.0
     for pid in _running_children():
         try:
             with open(f"/proc/{pid}/stat") as fh:
@@ -188,7 +198,7 @@ def tree_cpu() -> float:
         except OSError:
             continue  # ended meanwhile: counted once reaped
         # utime, stime, cutime, cstime: fields 14-17 of proc(5), 12-15 after the name.
-        total += sum(int(f) for f in fields[11:15]) / tick
+        total += sum(int(f) for f in fields[11 : 15 if reaped else 13]) / tick
     return total
 
 
