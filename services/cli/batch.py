@@ -191,8 +191,7 @@ def process_input(
     the input and checking the output take no time from the process that hands the files out.
     """
     key = {**key, **_prefixed(fingerprint(Path(source)))}
-    if is_complete(previous, key, Path(out_dir)):
-        assert previous is not None
+    if previous is not None and is_complete(previous, key, Path(out_dir)):
         return {**previous, "skipped": True}
     result = process_file(command, source, str(Path(out_dir) / key["output"]), key["flags"])
     return {**key, **result}
@@ -381,7 +380,7 @@ def run_batch(args: argparse.Namespace) -> int:
     os.replace(tmp, index_path)
     loads = worker_loads(outcomes, since)
     _print_summary(console, args.command, ordered, times, wall, config)
-    _print_workers(console, loads, wall)
+    _print_workers(console, loads, wall, config)
     if args.timings is not None:
         write_timings(args.timings, wall, config, loads, (cpu_start, cpu_end))
     return EXIT_OK if all(line["rc"] == 0 for line in ordered) else EXIT_SOME_FAILED
@@ -442,15 +441,17 @@ def _print_summary(console, command: str, lines: list[dict[str, Any]], times, wa
     )
 
 
-def _print_workers(console, loads: list[WorkerLoad], wall: float) -> None:
-    """One line: how busy the workers were, and how long the slowest took to start."""
+def _print_workers(console, loads: list[WorkerLoad], wall: float, config: ExecutorConfig) -> None:
+    """One line: how busy the workers were, how long the slowest took to start, and the CPU time spent
+    (on this machine: Ray's workers are not this process's children)."""
     if not loads or wall <= 0:
         return
     busy = sum(load.busy for load in loads) / (wall * len(loads))
     start = max(load.first_start for load in loads)
+    cpu = "" if config.engine == "ray" else f"; CPU {tree_cpu():.1f} s in all"
     console.print(
         f"{len(loads)} worker{'s' if len(loads) > 1 else ''} busy {busy:.0%} of the time, the last one's first "
-        f"file after {start:.1f} s; CPU {tree_cpu():.1f} s in all",
+        f"file after {start:.1f} s{cpu}",
         highlight=False,
     )
 
