@@ -105,7 +105,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "worker, with a progress bar, a summary table, and an index that makes the batch resumable.",
         epilog=EPILOG,
     )
-    p.add_argument("command", choices=sorted(JOBS), help="the command to run on each file")
+    # Stored as `job`: `command` is the subcommand's own name (`batch`), which errors and --config use.
+    p.add_argument("job", metavar="command", choices=sorted(JOBS), help="the command to run on each file")
     p.add_argument("inputs", nargs="+", metavar="FILES_OR_GLOBS", help="recordings, or quoted globs ('a/*.mcap')")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="where the outputs and the index go")
     p.add_argument("--force", action="store_true", help="redo every file, even one whose output is complete")
@@ -310,9 +311,9 @@ def run_batch(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    job = JOBS[args.command]
+    job = JOBS[args.job]
     if job.module not in COMMAND_MODULES:
-        raise ConfigError(f"`lelsonar {args.command}` does not exist in this version; batch runs it where it does")
+        raise ConfigError(f"`lelsonar {args.job}` does not exist in this version; batch runs it where it does")
     config = config_from_args(args)
     inputs = expand_inputs(args.inputs)
     names = relative_names(inputs)
@@ -330,10 +331,8 @@ def run_batch(args: argparse.Namespace) -> int:
     keys = []
     for name in names:
         output = name.with_name(name.name.removesuffix(".mcap") + job.suffix)
-        keys.append({"input": str(name), "command": args.command, "flags": flags, "output": str(output)})
-    items = [
-        (args.command, str(path), str(out_dir), key, previous.get(key["input"])) for path, key in zip(inputs, keys)
-    ]
+        keys.append({"input": str(name), "command": args.job, "flags": flags, "output": str(output)})
+    items = [(args.job, str(path), str(out_dir), key, previous.get(key["input"])) for path, key in zip(inputs, keys)]
     lines: dict[str, dict[str, Any]] = {}
     times: dict[str, float] = {}
     outcomes: list[Outcome] = []
@@ -341,7 +340,7 @@ def run_batch(args: argparse.Namespace) -> int:
     with (
         open(index_path, "a") as log,
         Progress(
-            TextColumn(f"batch {args.command}"),
+            TextColumn(f"batch {args.job}"),
             BarColumn(),
             MofNCompleteColumn(),
             TextColumn("{task.fields[failed]} failed"),
@@ -379,7 +378,7 @@ def run_batch(args: argparse.Namespace) -> int:
     tmp.write_text("".join(json.dumps(_clean(index[k]), sort_keys=True) + "\n" for k in sorted(index)))
     os.replace(tmp, index_path)
     loads = worker_loads(outcomes, since)
-    _print_summary(console, args.command, ordered, times, wall, config)
+    _print_summary(console, args.job, ordered, times, wall, config)
     _print_workers(console, loads, wall, config)
     if args.timings is not None:
         write_timings(args.timings, wall, config, loads, (cpu_start, cpu_end))

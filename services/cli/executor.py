@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
+import multiprocessing.forkserver
 import os
 import resource
 import signal
@@ -289,12 +290,26 @@ def pool_context(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
     child would inherit held.  The fork server is a fresh single-threaded process that imports ``preload``
     once, then forks each worker with those modules loaded; spawn makes every worker import them anew.
     The server is one per process: the preload of the first pool holds for the others.
+
+    The server starts with Ctrl-C ignored, so a Ctrl-C while it imports leaves no traceback: it ends with
+    this process.  Its workers take Ctrl-C back (:func:`_worker_start`).
     """
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload(list(preload))
+    if threading.current_thread() is threading.main_thread():
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)  # inherited by the server's interpreter
+        try:
+            multiprocessing.forkserver.ensure_running()  # starts it, without waiting for its imports
+        finally:
+            signal.signal(signal.SIGINT, handler)
     return context
+
+
+def _worker_start() -> None:
+    """In each worker: Ctrl-C interrupts the item, as in the command itself."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def _run_pool(
@@ -304,7 +319,7 @@ def _run_pool(
     queue = list(range(len(items)))[::-1]  # popped from the end: input order
     while queue:
         lost: list[int] = []
-        with ProcessPoolExecutor(workers, mp_context=context) as pool:
+        with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_start) as pool:
             # Two items per worker in flight: a worker never waits for this loop, and a dying worker loses
             # only a few items.
             running: dict[Future, int] = {}
@@ -325,7 +340,7 @@ def _run_pool(
         # Each item in flight when a worker died runs again alone: the one that kills its own pool is
         # reported, the others complete.
         for i in sorted(lost):
-            with ProcessPoolExecutor(1, mp_context=context) as alone:
+            with ProcessPoolExecutor(1, mp_context=context, initializer=_worker_start) as alone:
                 try:
                     yield i, alone.submit(_call, fn, items[i]).result()
                 except BrokenProcessPool:
