@@ -47,6 +47,19 @@ def _fuse(world: World, seed: int, noise: NoiseModel | None = None, **kw):
 
 
 # --------------------------------------------------------------------------- the measurement model
+@pytest.mark.parametrize("seed", range(3))
+def test_pose_arithmetic_matches_gtsam_pose2(seed):
+    from lelsonar.map.lines import pose_between, pose_compose, pose_inverse_adjoint
+
+    rng = np.random.default_rng(seed)
+    a = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)])
+    b = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)])
+    ga, gb = gtsam.Pose2(*a), gtsam.Pose2(*b)
+    np.testing.assert_allclose(pose_between(a, b), graph.pose_vector(ga.between(gb)), atol=1e-12)
+    np.testing.assert_allclose(pose_compose(a, b), graph.pose_vector(ga.compose(gb)), atol=1e-12)
+    np.testing.assert_allclose(pose_inverse_adjoint(b), gb.inverse().AdjointMap(), atol=1e-12)
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_jacobians_match_finite_differences_on_gtsam_manifolds(seed):
     rng = np.random.default_rng(seed)
@@ -252,7 +265,7 @@ def test_a_graph_that_cannot_be_solved_stops_the_map_with_one_typed_error(monkey
     mapper = WallMapper()
     mapper.add_scan(scans[0])
 
-    solver = mapper._isam
+    solver = mapper._graph._isam
 
     class Unsolvable:
         """GTSAM's solver as it fails on an ill-posed system (its queries answer as before)."""
@@ -263,7 +276,7 @@ def test_a_graph_that_cannot_be_solved_stops_the_map_with_one_typed_error(monkey
         def __getattr__(self, name):
             return getattr(solver, name)
 
-    monkeypatch.setattr(mapper, "_isam", Unsolvable())
+    monkeypatch.setattr(mapper._graph, "_isam", Unsolvable())
     with pytest.raises(MapUpdateError, match="scan 2 made the graph unsolvable"):
         mapper.add_scan(scans[1])
     with pytest.raises(MapUpdateError, match="takes no more scans"):

@@ -290,6 +290,23 @@ def unseen_length(m: FusedMap, path: list[tuple[float, float]], config: PlanConf
     return float(LineString(path).difference(free_space(m, config)).length)
 
 
+def frontier(
+    m: FusedMap, path: list[tuple[float, float]], config: PlanConfig | None = None
+) -> tuple[float, float] | None:
+    """Where a route first leaves the free space the scans saw (the frontier to explore), or None when it never
+    does."""
+    if len(path) < 2:
+        return None
+    line = LineString(path)
+    outside = line.difference(free_space(m, config))
+    if outside.is_empty or outside.length <= 1e-9:
+        return None
+    pieces = list(getattr(outside, "geoms", [outside]))
+    first = min(pieces, key=lambda g: line.project(Point(g.coords[0])))
+    x, y = first.coords[0]
+    return float(x), float(y)
+
+
 def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, float]]:
     """The route without the points where it goes straight on."""
     if len(points) < 3:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import gtsam
 import numpy as np
 
 from lelsonar.errors import ConfigError, InvalidMessageError, LelsonarError
@@ -31,6 +30,9 @@ from lelsonar.map.lines import (
     line_in_world,
     mahalanobis2,
     measurement_jacobians,
+    pose_between,
+    pose_compose,
+    pose_inverse_adjoint,
     world_jacobians,
     wrap,
 )
@@ -55,9 +57,10 @@ class FusionConfig:
     gate_chi2 : float
         Largest Mahalanobis distance² of an observation from a wall it joins (χ²₂; 13.8 is p = 0.999).
     max_gap : float
-        Largest gap, m, between an observation's stretch and a wall's along the wall for it to join.  Sonar
-        sees a wall only near the foot of its perpendicular, so scans from different places see different
-        stretches of one wall: the gap is generous, and the wall keeps its observed pieces apart (``join_gap``).
+        Largest gap, m, between an observation's stretch and a wall's along the wall for it to join; none by
+        default.  Sonar sees a wall only near the foot of its perpendicular, so scans from different places
+        see stretches of one wall metres apart; the line is one either way, and the wall keeps its observed
+        pieces apart (``join_gap``).
     join_gap : float
         A wall's observed stretches closer than this, m, are one piece of the floor plan; farther apart, the
         space between stays unknown (an opening the scans did not see closed).
@@ -80,10 +83,15 @@ class FusionConfig:
     polish : bool
         A map as read (:meth:`WallMapper.snapshot`) is first converged by Levenberg–Marquardt over the whole
         graph; off, it is ISAM2's estimate (cheaper to read after every scan on a large map).
+    flagged_constrain : tuple of str
+        Flagged observations of these verdicts, once they agree with a wall of good evidence (within its
+        gate), tie their pose to it in the graph with their own covariance and Huber's loss: a wall whose
+        bearing the scan could not pin still places the robot in range.  They never open a wall of the
+        graph nor make one good.
     """
 
     gate_chi2: float = CHI2_2_999
-    max_gap: float = 2.0
+    max_gap: float = math.inf
     join_gap: float = 0.3
     conflict_distance: float = 0.15
     conflict_angle: float = math.radians(10.0)
@@ -94,11 +102,12 @@ class FusionConfig:
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
     polish: bool = True
+    flagged_constrain: tuple[str, ...] = ("degraded", "unreliable")
 
     def __post_init__(self) -> None:
         for name in ("gate_chi2", "max_gap", "join_gap", "conflict_distance", "conflict_angle", "corner_reach"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
+            if not ((math.isfinite(v) or name == "max_gap") and v >= 0):
                 raise ConfigError(f"map {name} must be a finite number ≥ 0, got {v!r}")
         if not (isinstance(self.relinearize_skip, int) and self.relinearize_skip >= 1):
             raise ConfigError(f"map relinearize_skip must be an integer ≥ 1, got {self.relinearize_skip!r}")
@@ -131,10 +140,6 @@ class _Track:
     interval: tuple[float, float] = (0.0, 0.0)
 
 
-def _pose2(v: np.ndarray) -> gtsam.Pose2:
-    return gtsam.Pose2(float(v[0]), float(v[1]), float(v[2]))
-
-
 def _sensor_points_to_world(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
     c, s = math.cos(pose[2]), math.sin(pose[2])
     return points[:, :2] @ np.array([[c, s], [-s, c]]) + pose[:2]
@@ -145,7 +150,7 @@ class WallMapper:
 
     def __init__(self, config: FusionConfig | None = None) -> None:
         self.config = config or FusionConfig()
-        self._isam = graph.isam2(self.config.relinearize_threshold, self.config.relinearize_skip)
+        self._graph = graph.MapGraph(self.config.relinearize_threshold, self.config.relinearize_skip)
         self._origin = np.zeros(2)  # world position of the local frame's origin (the first pose)
         self._odometry: list[np.ndarray] = []  # (x, y, ψ) world, per scan
         self._odometry_cov: list[np.ndarray | None] = []
@@ -153,6 +158,7 @@ class WallMapper:
         self._heights: list[float] = []
         self._poses: list[np.ndarray] = []  # current estimate, local
         self._pose_cov: np.ndarray = np.eye(3)  # marginal of the newest pose (body frame)
+        self._pose_covs: list[np.ndarray] = []  # each pose's marginal when it was the newest (body frame)
         self._graph_tracks: list[_Track] = []
         self._isam_walls = 0  # graph walls already in ISAM2 (the newer ones arrived with the scan being added)
         self._flagged_tracks: list[_Track] = []
@@ -184,8 +190,6 @@ class WallMapper:
                 self.notes.append(note)
         k = len(self._poses)
         odo = scan.pose.vector
-        factors = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
         if k == 0:
             self._origin = odo[:2].copy()
             predicted = np.array([0.0, 0.0, odo[2]])
@@ -193,17 +197,17 @@ class WallMapper:
                 cov = np.array(scan.pose.covariance)
             else:
                 cov = np.diag(np.square(self.config.first_pose_sigma))
-            factors.add(graph.prior_factor(0, _pose2(predicted), cov))
+            self._graph.add_prior(0, predicted, cov)
             pose_cov = cov
         else:
-            step = _pose2(self._odometry[-1]).between(_pose2(odo))
+            step = pose_between(self._odometry[-1], odo)
             q = self._step_covariance(scan)
-            predicted = graph.pose_vector(_pose2(self._poses[-1]).compose(step))
-            factors.add(graph.odometry_factor(k - 1, k, step, q))
-            ad = step.inverse().AdjointMap()
+            predicted = pose_compose(self._poses[-1], step)
+            self._graph.add_odometry(k - 1, k, step, q)
+            ad = pose_inverse_adjoint(step)
             pose_cov = ad @ self._pose_cov @ ad.T + q
             self._step = (ad, q)
-        values.insert(graph.pose_key(k), _pose2(predicted))
+        self._graph.add_pose(k, predicted)
         self._odometry.append(odo)
         self._odometry_cov.append(None if scan.pose.covariance is None else np.array(scan.pose.covariance))
         self._scan_ids.append(scan.scan_id)
@@ -215,26 +219,26 @@ class WallMapper:
         for obs in sorted(scan.walls, key=lambda w: QUALITIES.index(w.quality)):
             seen = _Seen(scan.scan_id, k, obs)
             if obs.quality == "good":
-                track = self._associate_good(seen, predicted, pose_cov, used, factors, values)
+                track = self._associate_good(seen, predicted, pose_cov, used)
                 touched.append(track)
             else:
                 self._associate_flagged(seen, predicted, pose_cov)
         self._features.extend((scan.scan_id, k, f) for f in scan.features)
 
         try:
-            self._isam.update(factors, values)
+            self._graph.update()
         except RuntimeError as exc:  # GTSAM's indeterminate or ill-conditioned system
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             self._failed = f"scan {scan.scan_id} made the graph unsolvable ({first})"
             raise MapUpdateError(self._failed) from None
         self._isam_walls = len(self._graph_tracks)
-        estimate = self._isam.calculateEstimate()
-        self._poses = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(k + 1)]
+        self._poses = [self._graph.pose(i) for i in range(k + 1)]
         for t in self._graph_tracks:
-            t.line = np.asarray(estimate.atPoint2(graph.wall_key(t.index)), float)
-        self._pose_cov = self._isam.marginalCovariance(graph.pose_key(k))
+            t.line = self._graph.wall(t.index)
+        self._pose_cov = self._graph.pose_marginal(k)
+        self._pose_covs.append(self._pose_cov)
         for t in touched:
-            t.covariance = self._isam.marginalCovariance(graph.wall_key(t.index))
+            t.covariance = self._graph.wall_marginal(t.index)
             t.interval = self._interval(t, t.seen)
 
     def _step_covariance(self, scan: ScanObservation) -> np.ndarray:
@@ -246,7 +250,11 @@ class WallMapper:
             previous_cov = np.zeros((3, 3))  # the first pose gave none: the odometry starts there, exact
         if scan.pose.covariance is not None and previous_cov is not None:
             return graph.step_covariance_from_poses(
-                self._odometry[-1], previous_cov, scan.pose.covariance, np.asarray(cfg.step_sigma_floor)
+                self._odometry[-1],
+                scan.pose.vector,
+                previous_cov,
+                scan.pose.covariance,
+                np.asarray(cfg.step_sigma_floor),
             )
         note = (
             "odometry gave no covariance: each step taken as σ = "
@@ -308,8 +316,6 @@ class WallMapper:
         pose: np.ndarray,
         pose_cov: np.ndarray,
         used: set[int],
-        factors: gtsam.NonlinearFactorGraph,
-        values: gtsam.Values,
     ) -> _Track:
         obs = seen.obs
         measured = obs.line
@@ -330,13 +336,13 @@ class WallMapper:
             j_pose, j_obs = world_jacobians(pose, measured)
             track.covariance = j_pose @ _world_pose_cov(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
             track.interval = self._interval_from_points(track.line, points)
-            values.insert(graph.wall_key(index), track.line.copy())
+            self._graph.add_wall(index, track.line)
             self._mark_conflicts(track, d2, gap, nu)
             self._graph_tracks.append(track)
             self._adopt_flagged(track)
         track.seen.append(seen)
         used.add(track.id)
-        factors.add(graph.wall_factor(seen.pose_index, track.index, measured, obs.covariance))
+        self._graph.add_observation(seen.pose_index, track.index, measured, obs.covariance)
         return track
 
     def _refine(
@@ -352,12 +358,10 @@ class WallMapper:
         if self._step is None:
             return
         ad, q = self._step
-        prev = graph.pose_key(len(self._poses) - 2)
+        prev = len(self._poses) - 2
         for i in np.flatnonzero(candidates):
             track = self._graph_tracks[i]
-            key = graph.wall_key(track.index)
-            joint = self._isam.jointMarginalCovariance(gtsam.KeyVector([prev, key]))
-            p_pp, p_pw, p_ww = joint.at(prev, prev), joint.at(prev, key), joint.at(key, key)
+            p_pp, p_pw, p_ww = self._graph.pose_wall_joint(prev, track.index)
             cov = np.block([[ad @ p_pp @ ad.T + q, ad @ p_pw], [(ad @ p_pw).T, p_ww]])
             h_pose, h_line = measurement_jacobians(pose, track.line)
             h = np.hstack([h_pose, h_line])
@@ -391,7 +395,10 @@ class WallMapper:
                 self._refine(d2, ok, nu, pose, obs.covariance)
                 ok &= d2 < self.config.gate_chi2
             if ok.any():
-                tracks[int(np.argmin(np.where(ok, d2, np.inf)))].flagged.append(seen)
+                track = tracks[int(np.argmin(np.where(ok, d2, np.inf)))]
+                track.flagged.append(seen)
+                if tracks is self._graph_tracks:
+                    self._constrain(track, seen)
                 return
         track = _Track(id=self._new_id(), index=-1, seen=[], flagged=[seen])
         track.line = line_in_world(pose, obs.line)
@@ -412,9 +419,16 @@ class WallMapper:
             )
             if d2 < self.config.gate_chi2 and gap <= self.config.max_gap:
                 track.flagged.extend(f.flagged)
+                for seen in f.flagged:
+                    self._constrain(track, seen)
             else:
                 keep.append(f)
         self._flagged_tracks = keep
+
+    def _constrain(self, track: _Track, seen: _Seen) -> None:
+        """A flagged observation attached to a wall of the graph ties its pose to it (``flagged_constrain``)."""
+        if seen.obs.quality in self.config.flagged_constrain:
+            self._graph.add_observation(seen.pose_index, track.index, seen.obs.line, seen.obs.covariance, robust=True)
 
     def _new_id(self) -> int:
         self._next_id += 1
@@ -436,18 +450,24 @@ class WallMapper:
             raise MapUpdateError(f"no map: {self._failed}")
         if not self._poses:
             return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
-        factors = self._isam.getFactorsUnsafe()
-        estimate = self._isam.calculateEstimate()
         if self.config.polish:
-            estimate = graph.polish(factors, estimate)
-        marginals = gtsam.Marginals(factors, estimate)
-        poses_local = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(len(self._poses))]
-        pose_covs = [marginals.marginalCovariance(graph.pose_key(i)) for i in range(len(self._poses))]
+            solution = self._graph.solve(polished=True)
+            poses_local = [solution.pose(i) for i in range(len(self._poses))]
+            pose_covs = [solution.pose_marginal(i) for i in range(len(self._poses))]
+            lines = {t.index: solution.wall(t.index) for t in self._graph_tracks}
+            covs = {t.index: solution.wall_marginal(t.index) for t in self._graph_tracks}
+        else:
+            # ISAM2's estimate as the last update left it, and each marginal as it was last computed (the newest
+            # pose's, the walls a scan touched): new evidence only narrows a marginal, so an older one is the
+            # wider, and no marginal of the whole graph is recomputed for a read.
+            poses_local = list(self._poses)
+            pose_covs = list(self._pose_covs)
+            lines = {t.index: t.line for t in self._graph_tracks}
+            covs = {t.index: t.covariance for t in self._graph_tracks}
         by_id = {t.id: t for t in self._graph_tracks}
         walls: list[FusedWall] = []
         for t in self._graph_tracks:
-            line = np.asarray(estimate.atPoint2(graph.wall_key(t.index)), float)
-            cov = marginals.marginalCovariance(graph.wall_key(t.index))
+            line, cov = lines[t.index], covs[t.index]
             walls.append(self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id)))
         for t in self._flagged_tracks:
             first = t.flagged[0]
@@ -477,17 +497,19 @@ class WallMapper:
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
         features = wall_corners(walls, self.config.corner_reach) + fuse_features(observed)
+        views, view_scans = self._views(world_poses)
         return FusedMap(
             walls=tuple(walls),
             features=tuple(features),
             poses=poses,
             notes=tuple(self.notes),
-            views=tuple(self._views(world_poses)),
+            views=tuple(views),
+            view_scans=tuple(view_scans),
         )
 
-    def _views(self, world_poses: list[np.ndarray]) -> list[np.ndarray]:
-        """Each observation's echo paths: the triangle (or fan) from its scanner to its patch, world frame."""
-        out = []
+    def _views(self, world_poses: list[np.ndarray]) -> tuple[list[np.ndarray], list[int]]:
+        """Each observation's echo paths: the triangle from its scanner to its patch, world frame; and its scan."""
+        out, scans = [], []
         for t in self._graph_tracks + self._flagged_tracks:
             for s in t.seen + t.flagged:
                 pose = world_poses[s.pose_index]
@@ -496,7 +518,8 @@ class WallMapper:
                 along = patch @ np.array([-math.sin(pose[2] + s.obs.line[0]), math.cos(pose[2] + s.obs.line[0])])
                 ends = patch[[int(np.argmin(along)), int(np.argmax(along))]]
                 out.append(np.array([pose[:2], ends[0], ends[1]]))
-        return out
+                scans.append(s.scan_id)
+        return out, scans
 
     def _verdict(
         self, t: _Track, line: np.ndarray, poses: list[np.ndarray], by_id: dict[int, _Track]
