@@ -18,7 +18,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -76,6 +76,10 @@ class FusionConfig:
         Smallest σ of an odometry step (a source that reports none or a constant one).
     corner_reach : float
         Two walls make a corner where their lines cross within this distance of both stretches, m.
+    good_tolerance : float
+        A wall of good evidence is good only if the map places its whole observed stretch within this, m, at
+        3σ (its marginal in the map's frame, the poses' uncertainty included); else it is degraded, and says
+        how well it is placed.
     relinearize_threshold : float
         ISAM2 relinearizes a variable whose update exceeds this (m or rad).
     relinearize_skip : int
@@ -99,13 +103,22 @@ class FusionConfig:
     default_step_sigma: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
     step_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
     corner_reach: float = 0.3
+    good_tolerance: float = 0.02
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
     polish: bool = True
     flagged_constrain: tuple[str, ...] = ("degraded", "unreliable")
 
     def __post_init__(self) -> None:
-        for name in ("gate_chi2", "max_gap", "join_gap", "conflict_distance", "conflict_angle", "corner_reach"):
+        for name in (
+            "gate_chi2",
+            "max_gap",
+            "join_gap",
+            "conflict_distance",
+            "conflict_angle",
+            "corner_reach",
+            "good_tolerance",
+        ):
             v = getattr(self, name)
             if not ((math.isfinite(v) or name == "max_gap") and v >= 0):
                 raise ConfigError(f"map {name} must be a finite number ≥ 0, got {v!r}")
@@ -468,7 +481,9 @@ class WallMapper:
         walls: list[FusedWall] = []
         for t in self._graph_tracks:
             line, cov = lines[t.index], covs[t.index]
-            walls.append(self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id)))
+            walls.append(
+                self._placed(self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id)))
+            )
         for t in self._flagged_tracks:
             first = t.flagged[0]
             pose = poses_local[first.pose_index]
@@ -520,6 +535,19 @@ class WallMapper:
                 out.append(np.array([pose[:2], ends[0], ends[1]]))
                 scans.append(s.scan_id)
         return out, scans
+
+    def _placed(self, wall: FusedWall) -> FusedWall:
+        """A good wall the map places less well than ``good_tolerance`` (3σ over its stretch) is degraded."""
+        if wall.quality != "good":
+            return wall
+        sigma = wall_placement_sigma(wall)
+        if 3.0 * sigma <= self.config.good_tolerance:
+            return wall
+        reason = (
+            f"placed to ±{100 * sigma:.1f} cm (1σ) over its stretch in the map's frame, more than "
+            f"{100 * self.config.good_tolerance / 3:.2g} cm: the poses that saw it are that uncertain"
+        )
+        return replace(wall, quality="degraded", reasons=wall.reasons + (reason,))
 
     def _verdict(
         self, t: _Track, line: np.ndarray, poses: list[np.ndarray], by_id: dict[int, _Track]
@@ -577,6 +605,16 @@ class WallMapper:
             good_observations=len(t.seen),
             flagged_observations=len(t.flagged),
         )
+
+
+def wall_placement_sigma(wall: FusedWall) -> float:
+    """The largest σ, m, of the wall's position across its line over its observed stretch.
+
+    A point ``s`` along the line from its foot moves across it by ``δρ − s δθ``: its variance is
+    ``C_ρρ − 2 s C_θρ + s² C_θθ``, largest at an end of the stretch.
+    """
+    c = wall.covariance
+    return math.sqrt(max(max(float(c[1, 1] - 2 * s * c[0, 1] + s * s * c[0, 0]) for s in wall.interval), 0.0))
 
 
 def _world_pose_cov(pose: np.ndarray, body_cov: np.ndarray) -> np.ndarray:
