@@ -279,7 +279,7 @@ def tour(family: str, seed: int, method: str = "lel") -> TourResult:
     out.unmatched_good = sum(1 for s in out.walls if s.face < 0 and s.quality == "good")
     corners = true_corners(run.model)
     for f in fused.corners:
-        if f.source == "walls" and len(corners):
+        if len(corners):
             out.corners.append(float(np.min(np.hypot(*(corners - f.point[:2]).T))))
     for p, truth, odo in zip(fused.poses[1:], run.world.poses[1:], run.odometry[1:]):
         out.pose_fused.append((math.hypot(p.x - truth.x, p.y - truth.y), abs(wrap(p.heading - truth.heading))))

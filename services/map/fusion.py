@@ -511,7 +511,10 @@ class WallMapper:
         )
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
-        features = wall_corners(walls, self.config.corner_reach) + fuse_features(observed)
+        # Corners where walls of good evidence meet: a flagged wall's line may be degrees off, and its crossings
+        # with others land anywhere.
+        placed = [w for w in walls if w.good_observations > 0]
+        features = wall_corners(placed, self.config.corner_reach) + fuse_features(observed)
         views, view_scans = self._views(world_poses)
         return FusedMap(
             walls=tuple(walls),
