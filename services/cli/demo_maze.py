@@ -50,6 +50,7 @@ def resolve_world(text: str) -> Path:
 def sweep_reconstruction(scan, scanner_id: str, scan_id: int):
     """A world sweep's ``Reconstruction``: its surfaces, corners and edges, extracted from its ranges and the
     echo amplitudes read off its waveforms."""
+    from lelsonar import SCHEMA_VERSION
     from lelsonar.reconstruct.estimate import wire
     from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
     from lelsonar.signal.energy import echo_amplitude
@@ -58,7 +59,11 @@ def sweep_reconstruction(scan, scanner_id: str, scan_id: int):
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
     msg = pb.Reconstruction(
-        scanner_id=scanner_id, scan_id=scan_id, status=pb.ESTIMATE_STATUS_FINAL, stamp_ns=time.time_ns()
+        schema_version=SCHEMA_VERSION,
+        scanner_id=scanner_id,
+        scan_id=scan_id,
+        status=pb.ESTIMATE_STATUS_FINAL,
+        stamp_ns=time.time_ns(),
     )
     return wire.add_surfaces(msg, result)
 
@@ -79,6 +84,7 @@ def run_maze_demo(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from lelsonar import codec
+    from lelsonar.acquire import messages
     from lelsonar.acquire.world_scans import prepare_world
     from lelsonar.keys import ScannerKeys
     from lelsonar.map import floorplan
@@ -86,14 +92,15 @@ def run_maze_demo(args: argparse.Namespace) -> int:
     from lelsonar.map.wire import map_from_message
     from lelsonar.net.transport import hermetic_settings, open_session
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
+    from lelsonar.sim import default_energy_model
     from lelsonar.v1 import map_pb2
-    from lelsonar.v1 import scan_pb2 as spb
     from lelsonar.view import present
 
     console = present.console()
     path = resolve_world(args.world)
     run = prepare_world(path, seed=args.seed)
     poses = len(run.world.poses)
+    energy_model = default_energy_model()
     if poses == 0:
         console.print(f"[red]the world {path} has no poses: nothing to tour")
         return 1
@@ -109,7 +116,7 @@ def run_maze_demo(args: argparse.Namespace) -> int:
             ZenohMapper(mapper_session, PREFIX, MapperService(SCANNER, DEFAULT_METHOD), on_map=maps.put) as mapper,
         ):
             publishers = {}
-            for key, example in ((keys.scan, spb.ScanStart()), (keys.planes, codec.Reconstruction())):
+            for key, example in ((keys.scan, codec.ScanStart()), (keys.planes, codec.Reconstruction())):
                 pub = robot.declare_publisher(key, encoding=zenoh.Encoding(codec.encoding_name(example)))
                 if not _wait_matched(pub, 10):
                     console.print("[red]the mapper did not subscribe to the rover's keys")
@@ -130,8 +137,9 @@ def run_maze_demo(args: argparse.Namespace) -> int:
                 task = bar.add_task("touring the maze", total=poses)
                 for index in range(poses):
                     replay = run.scanner(index)
-                    start = spb.ScanStart(scanner_id=SCANNER, scan_id=index + 1, start_time_ns=time.time_ns())
-                    start.pose.CopyFrom(run.pose_message(index))
+                    start = messages.scan_start(
+                        SCANNER, index + 1, time.time_ns(), replay.info, run.schedule, energy_model
+                    )
                     reconstruction = sweep_reconstruction(replay.scan, SCANNER, index + 1)
                     publishers[keys.scan].put(start.SerializeToString())
                     publishers[keys.planes].put(reconstruction.SerializeToString())
