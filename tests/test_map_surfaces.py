@@ -103,3 +103,44 @@ def test_surfaces_replace_the_l_planes_and_carry_verdicts_corners_and_edges():
     msg.ClearField("edges")
     msg.surface_echo_count = 0
     assert [w.label for w in observation_at(msg, rot, pose, "lel").walls] == ["a"]
+
+
+@pytest.mark.slow
+def test_a_room_toured_through_the_simulator_and_the_extractor_is_mapped_within_a_centimetre():
+    """A world drawn for the test, simulated pose by pose, its surfaces extracted: the walls seen twice lie on the
+    true faces, the poses beat odometry, and no wall claims good while off."""
+    from lelsonar.tools.bench_map import false_good
+    from lelsonar.tools.map_worlds import tour
+
+    result = tour("room", 7)
+    twice = [w for w in result.walls if w.scans >= 2]
+    assert twice and all(w.face >= 0 for w in twice)
+    assert np.median([w.offset for w in twice]) < 0.01
+    assert np.median([w.angle for w in twice]) < math.radians(1.0)
+    assert not false_good(result) and result.unmatched_good == 0
+    fused = np.mean([p[0] for p in result.pose_fused])
+    odometry = np.mean([p[0] for p in result.pose_odometry])
+    assert fused < odometry
+
+
+@pytest.mark.slow
+def test_demo_world_maze_prints_a_route_out_that_crosses_no_true_wall(capsys):
+    import re
+
+    from shapely.geometry import LineString
+
+    from lelsonar.cli.main import main
+    from lelsonar.sim.world import load_world
+
+    assert main(["demo", "--world", "maze"]) == 0
+    out = capsys.readouterr().out
+    text = " ".join(out[out.index("route out") : out.index("the exit")].split())
+    route = [(float(x), float(y)) for x, y in re.findall(r"\((-?\d+\.\d+), (-?\d+\.\d+)\)", text.split(": ", 1)[1])]
+    world = load_world("examples/worlds/maze.toml")
+    # The route's points are printed to the cm: a true wall is crossed only if the route comes nearer than that.
+    line = LineString(route)
+    for w in world.walls:
+        assert line.distance(LineString([w.start, w.end])) > 0.15 - 0.01
+    x0, y0, x1, y1 = world.bounds()
+    end = route[-1]
+    assert not (x0 < end[0] < x1 and y0 < end[1] < y1)
