@@ -139,9 +139,7 @@ def test_a_route_goes_round_where_a_wall_likely_runs_rather_than_through_it():
     # A wall x = 1 seen at y ∈ [−0.02, 0.02] only, ended by corners at y = ±1.5; the robot at the origin.
     wall = _wall(0, 0.0, 1.0, [(-0.02, 0.02)])
     corners = (_feature(1.0, -1.5), _feature(1.0, 1.5))
-    pose = FusedPose(
-        scan_id=1, x=0.0, y=0.0, z=0.3, heading=0.0, covariance=np.eye(3) * 1e-6, odometry=(0.0, 0.0, 0.0)
-    )
+    pose = FusedPose(scan_id=1, x=0.0, y=0.0, z=0.3, heading=0.0, covariance=np.eye(3) * 1e-6, odometry=(0.0, 0.0, 0.0))
     m = FusedMap(walls=(wall,), features=corners, poses=(pose,))
     cfg = fp.PlanConfig(robot_radius=0.15, margin=2.5)
     path = fp.route(m, (0.0, 0.0), (2.0, 0.0), cfg)

@@ -37,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--jobs", type=int, default=None, help="worker processes (default: one per core)")
     add_ray_argument(parser)
-    parser.add_argument("--cells", type=int, default=16, help="synthetic maze side in cells (default: %(default)s)")
+    parser.add_argument("--cells", type=int, default=18, help="synthetic maze side in cells (default: %(default)s)")
     parser.add_argument("--timing-seeds", type=int, default=1, help="synthetic mazes for the timing rows")
     parser.add_argument(
         "--budget", type=float, default=20.0, help="target ms a scan with --walls walls (default: %(default)s)"
@@ -92,7 +92,7 @@ def run_timing(args: argparse.Namespace) -> int:
         raise ConfigError("--cells must be ≥ 2 and --timing-seeds ≥ 1")
     # (walls in the map before the update, wall-clock s, CPU s of this process): on a shared host the CPU
     # time is the update's own cost, the wall-clock time adds the other processes' share of the cores.
-    updates: list[tuple[int, float, float]] = []
+    updates: list[tuple[int, float, float, float]] = []  # … and the CPU s of reading the map after it
     floor: list[float] = []
     snapshots: list[float] = []
     wall_rows: list[tuple[float, float, float, float, str]] = []  # |Δθ|, |Δρ|, z_θ, z_ρ, quality (seen ≥ 2)
@@ -107,7 +107,10 @@ def run_timing(args: argparse.Namespace) -> int:
             n = mapper.walls
             t, c = time.perf_counter(), time.process_time()
             mapper.add_scan(scan)
-            updates.append((n, time.perf_counter() - t, time.process_time() - c))
+            wall_s, cpu_s = time.perf_counter() - t, time.process_time() - c
+            c = time.process_time()
+            mapper.snapshot(polished=False)  # what the live mapper publishes after each scan
+            updates.append((n, wall_s, cpu_s, time.process_time() - c))
         steps = [(np.zeros(3), np.eye(3))] + [
             (pose_between(a.pose.vector, b.pose.vector), b.step_covariance)
             for a, b in zip(scans, scans[1:])
@@ -142,31 +145,35 @@ def run_timing(args: argparse.Namespace) -> int:
     )
     print(
         f"\n{'walls in map':>14} {'scans':>6} {'CPU med ms':>11} {'CPU p90 ms':>11} {'wall med ms':>12} "
-        f"{'CPU × floor':>12}"
+        f"{'CPU × floor':>12} {'read med ms':>12}"
     )
-    top = max(n for n, _, _ in updates)
+    top = max(u[0] for u in updates)
     for lo in range(0, top + 50, 50):
-        rows = [(1e3 * w, 1e3 * c) for n, w, c in updates if lo <= n < lo + 50]
+        rows = [(1e3 * w, 1e3 * c, 1e3 * r) for n, w, c, r in updates if lo <= n < lo + 50]
         if rows:
-            cpu = [c for _, c in rows]
+            cpu = [c for _, c, _ in rows]
             med = statistics.median(cpu)
             print(
                 f"{f'{lo}–{lo + 49}':>14} {len(rows):>6} {med:11.2f} {_pct(cpu, 90):11.2f} "
-                f"{statistics.median(w for w, _ in rows):12.2f} {med / floor_ms:12.1f}"
+                f"{statistics.median(w for w, _, _ in rows):12.2f} {med / floor_ms:12.1f} "
+                f"{statistics.median(r for _, _, r in rows):12.2f}"
             )
-    near = [1e3 * c for n, _, c in updates if abs(n - args.walls) <= 25]
+    near = [(1e3 * c, 1e3 * r) for n, _, c, r in updates if abs(n - args.walls) <= 25]
     verdict = 0
     if near:
-        med = statistics.median(near)
+        med = statistics.median(c for c, _ in near)
         ok = med <= args.budget
         verdict = 0 if ok else 1
         print(
             f"at {args.walls} ± 25 walls: median {med:.2f} ms CPU a scan ({len(near)} scans): "
-            f"{'within' if ok else 'OVER'} the {args.budget:g} ms budget"
+            f"{'within' if ok else 'OVER'} the {args.budget:g} ms budget; reading the map after it (as the live "
+            f"mapper publishes it, unpolished): median {statistics.median(r for _, r in near):.2f} ms"
         )
     else:
         print(f"no update with {args.walls} ± 25 walls in the map: raise --cells")
-    print(f"snapshot (marginals, verdicts, corners): median {1e3 * statistics.median(snapshots):.1f} ms")
+    print(
+        f"polished map (LM over the graph, marginals, verdicts, corners): {1e3 * statistics.median(snapshots):.1f} ms"
+    )
 
     arr = np.array([r[:4] for r in wall_rows]) if wall_rows else np.zeros((0, 4))
     good = [r for r in wall_rows if r[4] == "good"]

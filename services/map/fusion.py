@@ -42,6 +42,9 @@ from lelsonar.map.result import FusedMap, FusedPose, FusedWall
 #: χ² with 2 degrees of freedom at 0.999.
 CHI2_2_999 = 13.8155
 
+#: A wall is redone for a read when its line or a pose that saw it moved more than this (m or rad).
+READ_TOLERANCE = 1e-5
+
 
 class MapUpdateError(LelsonarError):
     """The factor graph could not take a scan (an ill-posed system): the map takes no more scans, and what it
@@ -180,6 +183,7 @@ class WallMapper:
         self._features: list[tuple[int, int, FeatureObservation]] = []  # (scan_id, pose index, FeatureObservation)
         self.notes: list[str] = []
         self._failed: str | None = None
+        self._read_cache: dict[int, tuple] = {}  # wall id → what its last unpolished read took and gave
 
     # ------------------------------------------------------------------ properties
     @property
@@ -457,13 +461,17 @@ class WallMapper:
         return self._interval_from_points(track.line, pts)
 
     # ------------------------------------------------------------------ the map
-    def snapshot(self) -> FusedMap:
-        """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses."""
+    def snapshot(self, polished: bool | None = None) -> FusedMap:
+        """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses.
+
+        ``polished`` (default: the config's ``polish``): converged over the whole graph with its marginals;
+        otherwise ISAM2's estimate with each marginal as last computed (cheap enough after every scan)."""
         if self._failed is not None:
             raise MapUpdateError(f"no map: {self._failed}")
         if not self._poses:
             return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
-        if self.config.polish:
+        use_polish = self.config.polish if polished is None else polished
+        if use_polish:
             solution = self._graph.solve(polished=True)
             poses_local = [solution.pose(i) for i in range(len(self._poses))]
             pose_covs = [solution.pose_marginal(i) for i in range(len(self._poses))]
@@ -478,24 +486,60 @@ class WallMapper:
             lines = {t.index: t.line for t in self._graph_tracks}
             covs = {t.index: t.covariance for t in self._graph_tracks}
         by_id = {t.id: t for t in self._graph_tracks}
+        world_local = np.array(poses_local)
+        origin = np.array([self._origin[0], self._origin[1], 0.0])
+        # Unpolished reads after every scan redo only the walls whose inputs moved: a wall's line or σ, the poses
+        # that saw it, its observations or its disagreements (ISAM2 leaves most of a large map untouched).
+        reuse = not use_polish
+        fresh: dict[int, tuple] = {}
         walls: list[FusedWall] = []
-        for t in self._graph_tracks:
-            line, cov = lines[t.index], covs[t.index]
-            walls.append(
-                self._placed(self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id)))
-            )
-        for t in self._flagged_tracks:
-            first = t.flagged[0]
-            pose = poses_local[first.pose_index]
-            line = line_in_world(pose, first.obs.line)
-            j_pose, j_obs = world_jacobians(pose, first.obs.line)
-            cov = j_pose @ _world_pose_cov(pose, pose_covs[first.pose_index]) @ j_pose.T
-            cov = cov + j_obs @ first.obs.covariance @ j_obs.T
-            best = min(QUALITIES.index(s.obs.quality) for s in t.flagged)
-            reasons = tuple(f"scan {s.scan_id}: {r}" for s in t.flagged for r in s.obs.reasons) or (
-                f"seen only {QUALITIES[best]}",
-            )
-            walls.append(self._fused(t, line, cov, poses_local, (QUALITIES[best], reasons)))
+        views: list[np.ndarray] = []
+        view_scans: list[int] = []
+        for t in self._graph_tracks + self._flagged_tracks:
+            everything = t.seen + t.flagged
+            ref = world_local[[s.pose_index for s in everything]]
+            if t.index >= 0:
+                line, cov = lines[t.index], covs[t.index]
+                key = (
+                    len(t.seen),
+                    len(t.flagged),
+                    tuple(sorted((o, len(by_id[o].seen) if o in by_id else 0) for o in t.conflicts)),
+                )
+            else:
+                first = t.flagged[0]
+                pose = poses_local[first.pose_index]
+                line = line_in_world(pose, first.obs.line)
+                j_pose, j_obs = world_jacobians(pose, first.obs.line)
+                cov = j_pose @ _world_pose_cov(pose, pose_covs[first.pose_index]) @ j_pose.T
+                cov = cov + j_obs @ first.obs.covariance @ j_obs.T
+                key = (0, len(t.flagged), ())
+            hit = self._read_cache.get(t.id) if reuse else None
+            if (
+                hit is not None
+                and hit[0] == key
+                and np.allclose(hit[1], ref, rtol=0.0, atol=READ_TOLERANCE)
+                and np.allclose(hit[2], line, rtol=0.0, atol=READ_TOLERANCE)
+                and np.allclose(hit[3], cov, rtol=1e-6, atol=0.0)
+            ):
+                wall, its_views = hit[4], hit[5]
+            else:
+                if t.index >= 0:
+                    wall = self._placed(
+                        self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id))
+                    )
+                else:
+                    best = min(QUALITIES.index(s.obs.quality) for s in t.flagged)
+                    reasons = tuple(f"scan {s.scan_id}: {r}" for s in t.flagged for r in s.obs.reasons) or (
+                        f"seen only {QUALITIES[best]}",
+                    )
+                    wall = self._fused(t, line, cov, poses_local, (QUALITIES[best], reasons))
+                its_views = [_view(p + origin, s.obs) for p, s in zip(ref, everything)]
+            fresh[t.id] = (key, ref, np.array(line), np.array(cov), wall, its_views)
+            walls.append(wall)
+            views.extend(its_views)
+            view_scans.extend(s.scan_id for s in everything)
+        if reuse:
+            self._read_cache = fresh
         walls.sort(key=lambda w: w.id)
         poses = tuple(
             FusedPose(
@@ -515,7 +559,6 @@ class WallMapper:
         # with others land anywhere.
         placed = [w for w in walls if w.good_observations > 0]
         features = wall_corners(placed, self.config.corner_reach) + fuse_features(observed)
-        views, view_scans = self._views(world_poses)
         return FusedMap(
             walls=tuple(walls),
             features=tuple(features),
@@ -524,20 +567,6 @@ class WallMapper:
             views=tuple(views),
             view_scans=tuple(view_scans),
         )
-
-    def _views(self, world_poses: list[np.ndarray]) -> tuple[list[np.ndarray], list[int]]:
-        """Each observation's echo paths: the triangle from its scanner to its patch, world frame; and its scan."""
-        out, scans = [], []
-        for t in self._graph_tracks + self._flagged_tracks:
-            for s in t.seen + t.flagged:
-                pose = world_poses[s.pose_index]
-                patch = _sensor_points_to_world(pose, s.obs.extent)
-                # The patch's two ends along the wall, and the scanner: the region the echoes crossed.
-                along = patch @ np.array([-math.sin(pose[2] + s.obs.line[0]), math.cos(pose[2] + s.obs.line[0])])
-                ends = patch[[int(np.argmin(along)), int(np.argmax(along))]]
-                out.append(np.array([pose[:2], ends[0], ends[1]]))
-                scans.append(s.scan_id)
-        return out, scans
 
     def _placed(self, wall: FusedWall) -> FusedWall:
         """A good wall the map places less well than ``good_tolerance`` (3σ over its stretch) is degraded."""
@@ -618,6 +647,14 @@ def wall_placement_sigma(wall: FusedWall) -> float:
     """
     c = wall.covariance
     return math.sqrt(max(max(float(c[1, 1] - 2 * s * c[0, 1] + s * s * c[0, 0]) for s in wall.interval), 0.0))
+
+
+def _view(pose: np.ndarray, obs: WallObservation) -> np.ndarray:
+    """An observation's echo paths: the triangle from its scanner (world pose) to its patch's two ends."""
+    patch = _sensor_points_to_world(pose, obs.extent)
+    along = patch @ np.array([-math.sin(pose[2] + obs.line[0]), math.cos(pose[2] + obs.line[0])])
+    ends = patch[[int(np.argmin(along)), int(np.argmax(along))]]
+    return np.array([pose[:2], ends[0], ends[1]])
 
 
 def _world_pose_cov(pose: np.ndarray, body_cov: np.ndarray) -> np.ndarray:
