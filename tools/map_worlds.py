@@ -1,9 +1,8 @@
 """One world of a family toured, mapped and scored: the work item of ``lelsonar bench map --worlds``.
 
 For each pose of the world (:func:`lelsonar.sim.worlds.draw_world`) one sweep is simulated with
-waveforms, its echo amplitudes read off them, its surfaces extracted
-(:func:`lelsonar.reconstruct.estimate.surfaces.extract_surfaces`) and put in a ``Reconstruction``
-(:func:`lelsonar.reconstruct.estimate.wire.add_surfaces`); the pose comes as the acquirer announces it
+waveforms and reconstructed as the reconstructor does it (the final ``Reconstruction`` of record, its
+surfaces, corners and edges filled); the pose comes as the acquirer announces it
 (:meth:`lelsonar.acquire.world_scans.WorldRun.pose_message`: the sim's own odometry, with its
 covariance).  The map's adapter (:func:`lelsonar.map.from_reconstruction.scan_from_reconstruction`)
 turns both into its observation, and :class:`~lelsonar.map.fusion.WallMapper` fuses the tour.
@@ -29,16 +28,15 @@ import numpy as np
 
 from lelsonar import codec
 from lelsonar.acquire.world_scans import WorldRun
+from lelsonar.cli.demo_maze import sweep_reconstruction
 from lelsonar.map.from_reconstruction import scan_from_reconstruction
 from lelsonar.map.fusion import FusionConfig, WallMapper
 from lelsonar.map.lines import wrap
 from lelsonar.map.observation import ScanObservation
 from lelsonar.map.result import FusedMap, FusedWall
-from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
 from lelsonar.reconstruct.estimate.normals import tangent_basis
-from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.signal.energy import echo_amplitude
+from lelsonar.sim import default_energy_model
 from lelsonar.sim.odometry import simulate_odometry
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
@@ -50,6 +48,8 @@ from lelsonar.v1 import reconstruction_pb2 as pb
 #: A fused wall lies on a true face within this angle (rad) and distance (m) of it.
 MATCH_ANGLE = math.radians(15.0)
 MATCH_DISTANCE = 0.25
+#: ``E0(d)`` the simulated acquirer announces (what the reconstruction of record uses).
+ENERGY_MODEL = default_energy_model()
 #: Readings of a mirror for the oracle to fit it.
 MIN_ORACLE_ECHOES = 20
 #: Smallest σ of a range, m (the oracle's covariance when its residuals are smaller than the noise can be).
@@ -163,11 +163,9 @@ def scan_start(run: WorldRun, index: int, scanner_id: str = "sim") -> codec.Scan
 
 
 def surfaces_message(scan: WorldScan, scan_id: int, scanner_id: str = "sim") -> codec.Reconstruction:
-    """The sweep's surfaces, corners and edges in a ``Reconstruction``, as the reconstruction fills them."""
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    msg = pb.Reconstruction(scanner_id=scanner_id, scan_id=scan_id, status=pb.ESTIMATE_STATUS_FINAL)
-    return wire.add_surfaces(msg, result)
+    """The sweep's final reconstruction of record, its surfaces, corners and edges filled, as the
+    reconstructor publishes it (:func:`lelsonar.cli.demo_maze.sweep_reconstruction`)."""
+    return sweep_reconstruction(scan, scanner_id, scan_id, ENERGY_MODEL)
 
 
 def _true_echoes(scan: WorldScan, element: int) -> np.ndarray:

@@ -5,17 +5,18 @@ On one host:
 
 * the rover: at each pose of the world, the sweep the acquirer would make (``acquire --device sim --world``'s
   own set-up, :func:`lelsonar.acquire.world_scans.prepare_world`: the simulator, its odometry, the
-  ``ScanStart`` pose it announces) and the sweep's surfaces, corners and edges
-  (:func:`sweep_reconstruction`), both published on the scanner's keys;
+  ``ScanStart`` it announces) and the sweep's final reconstruction of record with its surfaces, corners and
+  edges (:func:`sweep_reconstruction`), both published on the scanner's keys;
 * the mapper (:class:`lelsonar.map.service.ZenohMapper`, as ``lelsonar mapper`` runs it): one update a scan,
   each map published on ``<prefix>/map``;
 * the planner: a ``get`` on ``<prefix>/map``, the map read back (:func:`lelsonar.map.wire.map_from_message`),
   and a route over the free space the scans saw that keeps the robot's radius
   (:func:`lelsonar.map.floorplan.route`).
 
-The three talk over Zenoh on a unix socket of their own.  The sweeps are simulated and their surfaces
-extracted in this process, not streamed step by step through ``acquire`` and ``reconstruct``: that path
-carries the L model's two planes, and a fan-mount sweep of a maze is no L.
+The three talk over Zenoh on a unix socket of their own.  Each sweep is simulated and reconstructed whole
+in this process rather than streamed step by step through ``acquire`` and a live ``reconstruct`` (which
+give the same final estimate, bit for bit): a demo of the map waits seconds, not a live sweep's minute
+per pose.
 """
 
 from __future__ import annotations
@@ -47,25 +48,22 @@ def resolve_world(text: str) -> Path:
     raise ConfigError(f"--world {text!r} is neither a world file nor an example world ({known})")
 
 
-def sweep_reconstruction(scan, scanner_id: str, scan_id: int):
-    """A world sweep's ``Reconstruction``: its surfaces, corners and edges, extracted from its ranges and the
-    echo amplitudes read off its waveforms."""
-    from lelsonar import SCHEMA_VERSION
+def sweep_reconstruction(scan, scanner_id: str, scan_id: int, energy_model):
+    """A world sweep's final ``Reconstruction`` of record: the L planes and every surface, corner and edge of
+    the sweep (:func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` on its ranges, energies and echo
+    amplitudes, as the reconstructor computes it)."""
     from lelsonar.reconstruct.estimate import wire
-    from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-    from lelsonar.signal.energy import echo_amplitude
-    from lelsonar.v1 import reconstruction_pb2 as pb
+    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
+    from lelsonar.signal.energy import echo_amplitude, waveform_energy
 
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    msg = pb.Reconstruction(
-        schema_version=SCHEMA_VERSION,
-        scanner_id=scanner_id,
-        scan_id=scan_id,
-        status=pb.ESTIMATE_STATUS_FINAL,
-        stamp_ns=time.time_ns(),
+    energy = waveform_energy(scan.waveforms, scan.sample_rate)
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    given = ScanInput.of_scan(
+        scan.gamma_measured, scan.distance, energy, scan.geometry, energy_model, echo_amplitude=amplitude
     )
-    return wire.add_surfaces(msg, result)
+    msg = wire.estimate_message(reconstruct_scan(given, RecordOptions()), scanner_id, scan_id, status="final")
+    msg.stamp_ns = time.time_ns()
+    return msg
 
 
 def _wait_matched(entity, timeout: float) -> bool:
@@ -140,7 +138,7 @@ def run_maze_demo(args: argparse.Namespace) -> int:
                     start = messages.scan_start(
                         SCANNER, index + 1, time.time_ns(), replay.info, run.schedule, energy_model
                     )
-                    reconstruction = sweep_reconstruction(replay.scan, SCANNER, index + 1)
+                    reconstruction = sweep_reconstruction(replay.scan, SCANNER, index + 1, energy_model)
                     publishers[keys.scan].put(start.SerializeToString())
                     publishers[keys.planes].put(reconstruction.SerializeToString())
                     try:
