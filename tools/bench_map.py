@@ -83,7 +83,7 @@ def run_timing(args: argparse.Namespace) -> int:
     import numpy as np
 
     from lelsonar.errors import ConfigError
-    from lelsonar.map.fusion import WallMapper
+    from lelsonar.map.fusion import FusionConfig, WallMapper
     from lelsonar.map.lines import pose_between, wrap
     from lelsonar.map.synthetic import NoiseModel, maze, observe_world, true_corners, truth_of
     from lelsonar.tools.bench import machine, progress
@@ -102,7 +102,9 @@ def run_timing(args: argparse.Namespace) -> int:
     for seed in progress(range(args.timing_seeds), "mazes"):
         world = maze(args.cells, np.random.default_rng(seed), tour=True)
         scans, _, odometry = observe_world(world, NoiseModel(), np.random.default_rng(1000 + seed))
-        mapper = WallMapper()
+        # Collinear walls apart by more than 2 m are kept apart here, as a map of that many walls needs: the
+        # synthetic maze's cell walls line up across the maze.
+        mapper = WallMapper(FusionConfig(max_gap=2.0))
         for scan in scans:
             n = mapper.walls
             t, c = time.perf_counter(), time.process_time()
