@@ -144,3 +144,21 @@ def test_demo_world_maze_prints_a_route_out_that_crosses_no_true_wall(capsys):
     x0, y0, x1, y1 = world.bounds()
     end = route[-1]
     assert not (x0 < end[0] < x1 and y0 < end[1] < y1)
+
+
+def test_an_l_plane_of_record_stands_for_a_surface_it_vouches_for_and_no_other():
+    rot, _, pose = _placed(heading=0.0, xy=(0.0, 0.0))
+    msg = codec.Reconstruction(scanner_id="s1", scan_id=5)
+    n = fan_direction(0.2, 0.0)
+    flagged = _surface(msg, n, 1.5, np.diag([1e-4, 1e-4, 1e-6]), quality=pb.PLANE_QUALITY_DEGRADED, label="s1")
+    flagged.plane.quality_reasons.append("bearing from the amplitude peak alone")
+    _surface(msg, fan_direction(1.4, 0.0), 2.0, np.diag([1e-4, 1e-4, 1e-6]), label="s2")
+    for label, normal, offset in (("a", fan_direction(0.2 + 0.01, 0.0), 1.51), ("b", fan_direction(1.4, 0.0), 2.0)):
+        plane = msg.planes.add(label=label, method="lel", offset=offset, normal_stderr=0.002, offset_stderr=0.001)
+        plane.normal.x, plane.normal.y, plane.normal.z = normal
+        plane.quality = pb.PLANE_QUALITY_GOOD if label == "a" else pb.PLANE_QUALITY_DEGRADED
+        plane.patch.add(x=normal[0] * offset, y=normal[1] * offset, z=normal[2] * offset)
+    walls = observation_at(msg, rot, pose, "lel").walls
+    # s1 (degraded) is plane a's wall, which a vouches for; s2 is good on its own and b is not better.
+    assert [(w.label, w.quality) for w in walls] == [("a", "good"), ("s2", "good")]
+    assert walls[0].line[1] == pytest.approx(1.51)

@@ -3,7 +3,8 @@ kept apart from the fusion.
 
 What it takes: the sweep's surfaces, corners and edges where the reconstruction extracted them
 (``surface_echo_count > 0``); the two planes of record of the L model otherwise (recordings made before
-surfaces were extracted).
+surfaces were extracted).  Where both came, a plane of record that vouches for a wall a surface alone
+cannot (a better verdict on the same wall) stands for that surface.
 
 A surface's σ keeps its shape: its covariance over (bearing, tilt, offset) is carried to the wall's
 ``(θ, ρ)`` to first order.  A wall is vertical, so its ``ρ`` is the surface's offset (a mirror's range is
@@ -24,7 +25,14 @@ import math
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.map.observation import MAX_WALL_TILT, FeatureObservation, Pose2D, ScanObservation, WallObservation
+from lelsonar.map.observation import (
+    MAX_WALL_TILT,
+    QUALITIES,
+    FeatureObservation,
+    Pose2D,
+    ScanObservation,
+    WallObservation,
+)
 
 #: Smallest variance given to an observation's (θ, ρ), so a plane that claims none still has a σ (rad², m²).
 MIN_VARIANCE = (1e-10, 1e-10)
@@ -200,6 +208,23 @@ def _feature(f, kind: str, to_level: np.ndarray) -> FeatureObservation | None:
     )
 
 
+#: An L plane of record is the same wall as a surface when their normals and offsets agree this well (rad, m).
+SAME_WALL = (math.radians(3.0), 0.03)
+
+
+def _better_of(surface: WallObservation, planes: list[WallObservation]) -> WallObservation:
+    """The surface, or the L plane of record on the same wall where that one has the better verdict (the
+    joint corner model of an L scan fits both walls at once: where it vouches for a wall and the surface
+    alone cannot, its fit is the scan's)."""
+    rank = QUALITIES.index(surface.quality)
+    for plane in planes:
+        d_theta = abs(math.remainder(float(plane.line[0] - surface.line[0]), 2 * math.pi))
+        if d_theta <= SAME_WALL[0] and abs(float(plane.line[1] - surface.line[1])) <= SAME_WALL[1]:
+            if QUALITIES.index(plane.quality) < rank:
+                return plane
+    return surface
+
+
 def has_surfaces(msg: codec.Reconstruction) -> bool:
     """Whether the reconstruction extracted the sweep's surfaces (then they, not the L planes, are its walls)."""
     return msg.surface_echo_count > 0 or len(msg.surfaces) > 0
@@ -247,6 +272,8 @@ def observation_at(
                 walls.append(wall)
         for group, kind in ((msg.corners, "concave"), (msg.edges, "edge")):
             features.extend(f for f in (_feature(x, kind, to_level) for x in group) if f is not None)
+        planes = [w for w in (_wall(p, to_level) for p in msg.planes if p.method == method) if w is not None]
+        walls = [_better_of(w, planes) for w in walls]
     else:
         for plane in msg.planes:
             if plane.method != method:

@@ -6,13 +6,15 @@
 
 * **Association.**  Each good wall observation is compared with every wall of the map through the
   predicted pose: the Mahalanobis distance of the innovation on ``(θ, ρ)`` (pose, wall and observation
-  covariances), gated at ``gate_chi2``, and the gap between the observed stretch and the wall's.  The
-  nearest wall within the gate takes it; no two observations of one scan go to one wall.
-* **Verdicts carry over.**  Only good observations enter the graph, so only good evidence moves the poses
-  and the walls.  Degraded and unreliable observations are attached to a fused wall they agree with, or
-  kept as walls of their own with their own verdict: a wall seen once and flagged stays flagged.
-  An observation that overlaps a wall and lies near it but outside the gate is another wall, and both
-  are marked as disagreeing: never averaged into a wall that does not exist.
+  covariances), gated at ``gate_chi2`` (and, where configured, the gap between the observed stretch and the
+  wall's).  The nearest wall within the gate takes it; no two observations of one scan go to one wall.
+* **Verdicts carry over.**  Only good observations open walls in the graph and make a wall good.  Degraded
+  and unreliable observations are attached to a fused wall they agree with (there they tie their pose to
+  it with their own σ and Huber's loss: a wall whose bearing a scan could not pin still places the robot in
+  range), or kept as walls of their own with their own verdict: a wall seen once and flagged stays
+  flagged.  An observation that overlaps a wall and lies near it but outside the gate is another wall, and
+  both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good evidence
+  that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and says so.
 """
 
 from __future__ import annotations
@@ -22,8 +24,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from lelsonar.errors import ConfigError, InvalidMessageError, LelsonarError
+from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
+from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
 from lelsonar.map.features import fuse_features, wall_corners
 from lelsonar.map.lines import (
     interval_on_line,
@@ -37,101 +40,21 @@ from lelsonar.map.lines import (
     wrap,
 )
 from lelsonar.map.observation import QUALITIES, FeatureObservation, ScanObservation, WallObservation
+from lelsonar.map.placement import (
+    line_distance2,
+    observation_views,
+    observed_points,
+    sensor_points_to_world,
+    wall_placement_sigma,
+    world_pose_covariance,
+)
 from lelsonar.map.result import FusedMap, FusedPose, FusedWall
 
-#: χ² with 2 degrees of freedom at 0.999.
-CHI2_2_999 = 13.8155
+__all__ = ["CHI2_2_999", "FusionConfig", "MapUpdateError", "WallMapper", "wall_placement_sigma"]
 
 #: A wall is redone for a read when its line or a pose that saw it moved more than this (m or rad): ISAM2 itself
 #: stops carrying an update further where it changes a variable by less (its wildfire threshold).
 READ_TOLERANCE = 1e-3
-
-
-class MapUpdateError(LelsonarError):
-    """The factor graph could not take a scan (an ill-posed system): the map takes no more scans, and what it
-    had before is the last map published."""
-
-
-@dataclass(frozen=True)
-class FusionConfig:
-    """How walls are associated and fused.
-
-    Parameters
-    ----------
-    gate_chi2 : float
-        Largest Mahalanobis distance² of an observation from a wall it joins (χ²₂; 13.8 is p = 0.999).
-    max_gap : float
-        Largest gap, m, between an observation's stretch and a wall's along the wall for it to join; none by
-        default.  Sonar sees a wall only near the foot of its perpendicular, so scans from different places
-        see stretches of one wall metres apart; the line is one either way, and the wall keeps its observed
-        pieces apart (``join_gap``).
-    join_gap : float
-        A wall's observed stretches closer than this, m, are one piece of the floor plan; farther apart, the
-        space between stays unknown (an opening the scans did not see closed).
-    conflict_distance, conflict_angle : float
-        An observation outside the gate of a wall it overlaps, but nearer than these (m, rad), is the same
-        surface seen in disagreement: it becomes its own wall and both are marked.  Farther, it is another
-        surface (a box in front of a wall).
-    first_pose_sigma : (float, float, float)
-        σ of the first pose's prior ``(x, y, heading)`` where the source gives no covariance.
-    default_step_sigma : (float, float, float)
-        σ of an odometry step where the source gives no covariance at all.
-    step_sigma_floor : (float, float, float)
-        Smallest σ of an odometry step (a source that reports none or a constant one).
-    corner_reach : float
-        Two walls make a corner where their lines cross within this distance of both stretches, m.
-    good_tolerance : float
-        A wall of good evidence is good only if the map places its whole observed stretch within this, m, at
-        3σ (its marginal in the map's frame, the poses' uncertainty included); else it is degraded, and says
-        how well it is placed.
-    relinearize_threshold : float
-        ISAM2 relinearizes a variable whose update exceeds this (m or rad).
-    relinearize_skip : int
-        ISAM2 looks for variables to relinearize every this many updates.
-    polish : bool
-        A map as read (:meth:`WallMapper.snapshot`) is first converged by Levenberg–Marquardt over the whole
-        graph; off, it is ISAM2's estimate (cheaper to read after every scan on a large map).
-    flagged_constrain : tuple of str
-        Flagged observations of these verdicts, once they agree with a wall of good evidence (within its
-        gate), tie their pose to it in the graph with their own covariance and Huber's loss: a wall whose
-        bearing the scan could not pin still places the robot in range.  They never open a wall of the
-        graph nor make one good.
-    """
-
-    gate_chi2: float = CHI2_2_999
-    max_gap: float = math.inf
-    join_gap: float = 0.3
-    conflict_distance: float = 0.15
-    conflict_angle: float = math.radians(10.0)
-    first_pose_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
-    default_step_sigma: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
-    step_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
-    corner_reach: float = 0.3
-    good_tolerance: float = 0.02
-    relinearize_threshold: float = 0.1
-    relinearize_skip: int = 10
-    polish: bool = True
-    flagged_constrain: tuple[str, ...] = ("degraded", "unreliable")
-
-    def __post_init__(self) -> None:
-        for name in (
-            "gate_chi2",
-            "max_gap",
-            "join_gap",
-            "conflict_distance",
-            "conflict_angle",
-            "corner_reach",
-            "good_tolerance",
-        ):
-            v = getattr(self, name)
-            if not ((math.isfinite(v) or name == "max_gap") and v >= 0):
-                raise ConfigError(f"map {name} must be a finite number ≥ 0, got {v!r}")
-        if not (isinstance(self.relinearize_skip, int) and self.relinearize_skip >= 1):
-            raise ConfigError(f"map relinearize_skip must be an integer ≥ 1, got {self.relinearize_skip!r}")
-        for name in ("first_pose_sigma", "default_step_sigma", "step_sigma_floor"):
-            v = getattr(self, name)
-            if len(v) != 3 or not all(math.isfinite(x) and x > 0 for x in v):
-                raise ConfigError(f"map {name} must be three σ > 0 (m, m, rad), got {v!r}")
 
 
 @dataclass
@@ -155,11 +78,6 @@ class _Track:
     line: np.ndarray = field(default_factory=lambda: np.zeros(2))  # local frame
     covariance: np.ndarray = field(default_factory=lambda: np.eye(2))
     interval: tuple[float, float] = (0.0, 0.0)
-
-
-def _sensor_points_to_world(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return points[:, :2] @ np.array([[c, s], [-s, c]]) + pose[:2]
 
 
 class WallMapper:
@@ -337,7 +255,7 @@ class WallMapper:
     ) -> _Track:
         obs = seen.obs
         measured = obs.line
-        points = _sensor_points_to_world(pose, obs.extent)
+        points = sensor_points_to_world(pose, obs.extent)
         d2, gap, nu = self._gate(self._graph_tracks, measured, obs.covariance, pose, pose_cov, points)
         ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
         for i in np.flatnonzero(ok):
@@ -352,7 +270,9 @@ class WallMapper:
             track = _Track(id=self._new_id(), index=index, seen=[])
             track.line = line_in_world(pose, measured)
             j_pose, j_obs = world_jacobians(pose, measured)
-            track.covariance = j_pose @ _world_pose_cov(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
+            track.covariance = (
+                j_pose @ world_pose_covariance(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
+            )
             track.interval = self._interval_from_points(track.line, points)
             self._graph.add_wall(index, track.line)
             self._mark_conflicts(track, d2, gap, nu)
@@ -404,7 +324,7 @@ class WallMapper:
 
     def _associate_flagged(self, seen: _Seen, pose: np.ndarray, pose_cov: np.ndarray) -> None:
         obs = seen.obs
-        points = _sensor_points_to_world(pose, obs.extent)
+        points = sensor_points_to_world(pose, obs.extent)
         for tracks in (self._graph_tracks, self._flagged_tracks):
             d2, gap, nu = self._gate(tracks, obs.line, obs.covariance, pose, pose_cov, points)
             ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
@@ -421,7 +341,7 @@ class WallMapper:
         track = _Track(id=self._new_id(), index=-1, seen=[], flagged=[seen])
         track.line = line_in_world(pose, obs.line)
         j_pose, j_obs = world_jacobians(pose, obs.line)
-        track.covariance = j_pose @ _world_pose_cov(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
+        track.covariance = j_pose @ world_pose_covariance(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
         track.interval = self._interval_from_points(track.line, points)
         self._flagged_tracks.append(track)
 
@@ -429,7 +349,7 @@ class WallMapper:
         """Flagged walls that agree with a new wall of good evidence become its flagged observations."""
         keep = []
         for f in self._flagged_tracks:
-            d2 = _line_distance2(f.line, f.covariance, track.line, track.covariance)
+            d2 = line_distance2(f.line, f.covariance, track.line, track.covariance)
             gap = (
                 max(f.interval[0] - track.interval[1], track.interval[0] - f.interval[1])
                 if abs(wrap(f.line[0] - track.line[0])) < math.pi / 2
@@ -458,7 +378,7 @@ class WallMapper:
 
     def _interval(self, track: _Track, seen: list[_Seen]) -> tuple[float, float]:
         """The hull of the observations' stretches, through the current poses, on the wall's current line."""
-        pts = np.concatenate([_sensor_points_to_world(self._poses[s.pose_index], s.obs.extent) for s in seen])
+        pts = np.concatenate([sensor_points_to_world(self._poses[s.pose_index], s.obs.extent) for s in seen])
         return self._interval_from_points(track.line, pts)
 
     # ------------------------------------------------------------------ the map
@@ -511,7 +431,7 @@ class WallMapper:
                 pose = poses_local[first.pose_index]
                 line = line_in_world(pose, first.obs.line)
                 j_pose, j_obs = world_jacobians(pose, first.obs.line)
-                cov = j_pose @ _world_pose_cov(pose, pose_covs[first.pose_index]) @ j_pose.T
+                cov = j_pose @ world_pose_covariance(pose, pose_covs[first.pose_index]) @ j_pose.T
                 cov = cov + j_obs @ first.obs.covariance @ j_obs.T
                 key = (0, len(t.flagged), ())
             hit = self._read_cache.get(t.id) if reuse else None
@@ -534,7 +454,9 @@ class WallMapper:
                         f"seen only {QUALITIES[best]}",
                     )
                     wall = self._fused(t, line, cov, poses_local, (QUALITIES[best], reasons))
-                its_views = _views(everything, ref + origin)
+                its_views = observation_views(
+                    [s.obs.extent for s in everything], [float(s.obs.line[0]) for s in everything], ref + origin
+                )
             fresh[t.id] = (key, ref, np.array(line), np.array(cov), wall, its_views)
             walls.append(wall)
             views.extend(its_views)
@@ -549,7 +471,7 @@ class WallMapper:
                 y=float(p[1] + self._origin[1]),
                 z=self._heights[i],
                 heading=wrap(float(p[2])),
-                covariance=_world_pose_cov(p, pose_covs[i]),
+                covariance=world_pose_covariance(p, pose_covs[i]),
                 odometry=tuple(float(v) for v in self._odometry[i]),  # type: ignore[arg-type]
             )
             for i, p in enumerate(poses_local)
@@ -620,7 +542,9 @@ class WallMapper:
         verdict: tuple[str, tuple[str, ...]],
     ) -> FusedWall:
         everything = t.seen + t.flagged
-        pts, starts = _observed_points(everything, np.asarray(poses))
+        pts, starts = observed_points(
+            [s.obs.extent for s in everything], [s.pose_index for s in everything], np.asarray(poses)
+        )
         theta_l = float(line_local[0])
         along = (pts - float(line_local[1]) * np.array([math.cos(theta_l), math.sin(theta_l)])) @ np.array(
             [-math.sin(theta_l), math.cos(theta_l)]
@@ -652,56 +576,3 @@ class WallMapper:
             good_observations=len(t.seen),
             flagged_observations=len(t.flagged),
         )
-
-
-def wall_placement_sigma(wall: FusedWall) -> float:
-    """The largest σ, m, of the wall's position across its line over its observed stretch.
-
-    A point ``s`` along the line from its foot moves across it by ``δρ − s δθ``: its variance is
-    ``C_ρρ − 2 s C_θρ + s² C_θθ``, largest at an end of the stretch.
-    """
-    c = wall.covariance
-    return math.sqrt(max(max(float(c[1, 1] - 2 * s * c[0, 1] + s * s * c[0, 0]) for s in wall.interval), 0.0))
-
-
-def _observed_points(seen: list[_Seen], poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The observations' patch points (k, 2) through their poses ``(x, y, ψ)`` (indexed by pose index), and
-    where each observation's points start."""
-    counts = [len(s.obs.extent) for s in seen]
-    ext = np.concatenate([s.obs.extent[:, :2] for s in seen])
-    p = poses[[s.pose_index for s in seen]][np.repeat(np.arange(len(seen)), counts)]
-    c, sn = np.cos(p[:, 2]), np.sin(p[:, 2])
-    pts = np.stack([c * ext[:, 0] - sn * ext[:, 1] + p[:, 0], sn * ext[:, 0] + c * ext[:, 1] + p[:, 1]], axis=1)
-    return pts, np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
-
-
-def _views(seen: list[_Seen], poses: np.ndarray) -> list[np.ndarray]:
-    """Each observation's echo paths: the triangle from its scanner to its patch's two ends along the wall.
-
-    ``poses`` are the observations' own world poses, one a row.
-    """
-    counts = np.array([len(s.obs.extent) for s in seen])
-    owner = np.repeat(np.arange(len(seen)), counts)
-    ext = np.concatenate([s.obs.extent[:, :2] for s in seen])
-    p = poses[owner]
-    c, sn = np.cos(p[:, 2]), np.sin(p[:, 2])
-    pts = np.stack([c * ext[:, 0] - sn * ext[:, 1] + p[:, 0], sn * ext[:, 0] + c * ext[:, 1] + p[:, 1]], axis=1)
-    theta = p[:, 2] + np.array([s.obs.line[0] for s in seen])[owner]
-    along = -np.sin(theta) * pts[:, 0] + np.cos(theta) * pts[:, 1]
-    order = np.lexsort((along, owner))
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(int)
-    first, last = pts[order[starts]], pts[order[starts + counts - 1]]
-    return list(np.stack([poses[:, :2], first, last], axis=1))
-
-
-def _world_pose_cov(pose: np.ndarray, body_cov: np.ndarray) -> np.ndarray:
-    """A Pose2 marginal (body-frame tangent) turned to world axes ``(x, y, ψ)``."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r @ body_cov @ r.T
-
-
-def _line_distance2(a: np.ndarray, ca: np.ndarray, b: np.ndarray, cb: np.ndarray) -> float:
-    """Mahalanobis d² between two wall lines of the same frame (independent errors)."""
-    d = np.array([wrap(float(a[0] - b[0])), float(a[1] - b[1])])
-    return float(d @ np.linalg.solve(ca + cb, d))
