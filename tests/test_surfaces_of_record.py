@@ -69,6 +69,32 @@ def test_the_writers_findings_lower_every_surface_as_every_plane(given):
     assert all(p.quality_reasons[-1] == "stopped early" for p in stopped.planes)
 
 
+def test_a_surface_next_to_missing_steps_says_so(given):
+    """An incomplete scan: the steps lost inside one wall's region of constant depth degrade that wall (its
+    centre, hence its bearing, is no longer the region's), and only that one."""
+    whole = reconstruct_scan(given, RecordOptions())
+    assert whole.surfaces is not None
+    first, second = whole.surfaces.surfaces[:2]
+    lost = np.arange(int(first.steps.max()) - 3, int(first.steps.max()) + 2)  # the end of the first wall's region
+    keep = np.setdiff1d(np.arange(len(given.steps)), lost)
+    holed = replace(
+        given,
+        steps=given.steps[keep],
+        gamma=given.gamma[keep],
+        distance=given.distance[keep],
+        sensor_energy=np.asarray(given.sensor_energy)[keep],
+        echo_amplitude=np.asarray(given.echo_amplitude)[keep],
+        n_schedule=len(given.steps),
+    )
+    est = reconstruct_scan(holed, RecordOptions())
+    assert est.surfaces is not None
+    near = [s for s in est.surfaces.surfaces if any("missing" in r for r in s.reasons)]
+    assert len(near) == 1 and near[0].quality != "good"
+    assert f"steps {lost[0]}-{lost[-1]} of the scan are missing" in near[0].reasons[-1]
+    far = [s for s in est.surfaces.surfaces if s is not near[0]]
+    assert far and all(not any("missing" in r for r in s.reasons) for s in far)
+
+
 def test_a_provisional_estimate_says_nothing_of_surfaces():
     messages = simulated_messages("paper-test1", seed=4)
     service = ReconstructionService(ReconstructConfig(provisional=True, provisional_period=0.0))
