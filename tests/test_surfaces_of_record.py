@@ -105,6 +105,10 @@ def test_a_provisional_estimate_says_nothing_of_surfaces():
     (final,) = [m for m in out if wire.is_terminal(m)]
     assert provisional and not any(m.surfaces or m.corners or m.edges or m.surface_echo_count for m in provisional)
     assert final.surfaces and final.surface_echo_count
+    # The console's table of them: one row per surface, corner and edge; none for a provisional.
+    assert all(present.surfaces_table(m) is None for m in provisional)
+    table = present.surfaces_table(final)
+    assert table is not None and table.row_count == len(final.surfaces) + len(final.corners) + len(final.edges)
 
 
 def test_reading_a_json_estimate_back_leaves_the_callers_dict_as_it_was(given):

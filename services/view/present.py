@@ -168,6 +168,65 @@ def planes_table(
     return t
 
 
+def surfaces_table(msg: codec.Reconstruction) -> Table | None:
+    """Every surface of the sweep, one row each (bearing and tilt in °, offset in cm, their σ), then its
+    corners and edges, and the echoes none of them explains (their causes and shares); None if the estimate
+    carries no surfaces (a provisional one, or one made before surfaces were extracted)."""
+    if not (msg.surfaces or msg.corners or msg.edges or msg.surface_echo_count):
+        return None
+    t = Table(
+        title=f"{msg.scanner_id} scan {msg.scan_id} — every surface of the sweep ({msg.surface_echo_count} echoes)",
+        title_justify="left",
+    )
+    for col, justify in (
+        ("label", "left"),
+        ("kind", "left"),
+        ("bearing (°)", "right"),
+        ("tilt (°)", "right"),
+        ("h (cm)", "right"),
+        ("echoes", "right"),
+        ("quality", "left"),
+        ("joins / bearing from", "left"),
+    ):
+        t.add_column(col, justify=justify)  # type: ignore[arg-type]
+    for sf in msg.surfaces:
+        cov = np.asarray(sf.covariance).reshape(3, 3) if len(sf.covariance) == 9 else np.full((3, 3), np.nan)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        plus = [f" ± {v:.2f}" if np.isfinite(v) else "" for v in (*np.rad2deg(sd[:2]), sd[2] * 100)]
+        t.add_row(
+            sf.label,
+            "plane",
+            f"{np.rad2deg(sf.bearing):+.2f}{plus[0]}",
+            f"{np.rad2deg(sf.tilt):+.2f}{plus[1]}",
+            f"{sf.plane.offset * 100:.2f}{plus[2]}",
+            str(sf.echo_count),
+            quality_cell(sf.plane),
+            sf.bearing_source,
+        )
+    for kind, features in (("corner", msg.corners), ("edge", msg.edges)):
+        for f in features:
+            p = _vec(f.line.point)
+            t.add_row(
+                f.label,
+                kind,
+                f"{np.rad2deg(np.arctan2(p[2], p[1])):+.2f}",
+                "",
+                f"{np.linalg.norm(p[1:]) * 100:.2f} ± {f.line.point_stderr * 100:.2f}",
+                str(f.echo_count),
+                "",
+                ", ".join(f.surfaces),
+            )
+    caption = [
+        f"* {sf.label}: {'; '.join(sf.plane.quality_reasons)}" for sf in msg.surfaces if sf.plane.quality_reasons
+    ]
+    n = max(msg.surface_echo_count, 1)
+    caption += [f"unexplained: {u.count} echoes ({100 * u.count / n:.1f} %) {u.cause}" for u in msg.unexplained]
+    if caption:
+        t.caption = "\n".join(caption)
+        t.caption_justify = "left"
+    return t
+
+
 _QUALITY_STYLE = {"good": "green", "degraded": "yellow", "unreliable": "bold red"}
 
 
