@@ -58,8 +58,7 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from lelsonar import codec
-from lelsonar.codec import QUALITY_NAME
-from lelsonar.draw.palette import method_color
+from lelsonar.bridge.ros2_markers import estimate_markers
 from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.log.reader import check_recording_path
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
@@ -181,7 +180,7 @@ def deserialize(data: bytes, msgtype: str, distro: str = "jazzy") -> object:
     return typestore(distro).deserialize_cdr(data, msgtype)
 
 
-class _Builder:
+class Builder:
     """Message constructors for one typestore; fields a distro lacks (e.g. Humble's Range.variance) are dropped."""
 
     def __init__(self, distro: str) -> None:
@@ -268,6 +267,7 @@ class _Builder:
         text: str = "",
         position=(0.0, 0.0, 0.0),
         action: int = 0,
+        orientation=(0.0, 0.0, 0.0, 1.0),
     ) -> object:
         b = self
         return b(
@@ -277,7 +277,7 @@ class _Builder:
             id=int(id_),
             type=int(kind),
             action=int(action),
-            pose=b("geometry_msgs/msg/Pose", position=b.point(position), orientation=b.quaternion((0, 0, 0, 1))),
+            pose=b("geometry_msgs/msg/Pose", position=b.point(position), orientation=b.quaternion(orientation)),
             scale=b.vector3(scale),
             color=b.color(rgb, alpha),
             lifetime=b("builtin_interfaces/msg/Duration", sec=0, nanosec=0),
@@ -314,17 +314,6 @@ CORRECTED_POINT = np.dtype(
         "itemsize": 20,
     }
 )
-
-# visualization_msgs/Marker types and actions
-ARROW, LINE_LIST, TEXT_VIEW_FACING, TRIANGLE_LIST, DELETEALL = 0, 5, 9, 11, 3
-
-_TRUTH_RGB = (0.6, 0.6, 0.6)
-_EDGE_RGB = (1.0, 0.1, 0.1)
-
-
-def method_rgb(method: str) -> tuple[float, float, float]:
-    r, g, b = method_color(method)
-    return r / 255, g / 255, b / 255
 
 
 def _quat_x(angle: float) -> tuple[float, float, float, float]:
@@ -375,7 +364,7 @@ class Ros2View:
         parent_frame: str | None = None,
     ) -> None:
         self._emit = emit
-        self._b = _Builder(distro)
+        self._b = Builder(distro)
         self.main_method = main_method
         self._truth = truth
         self.field_of_view = float(field_of_view if field_of_view is not None else 2.0 * FitOptions().beam_half_angle)
@@ -479,7 +468,12 @@ class Ros2View:
         else:
             subsets = [(partial.data_a, partial.plane_a), (partial.data_b, partial.plane_b)]
         self._send(TOPIC_POINTS_CORRECTED, CLOUD, t, b.cloud(t, base, _corrected_rows(subsets)))
-        self._send(TOPIC_PLANES, MARKERS, t, b(MARKERS, markers=self._markers(scan, message, t, base)))
+        self._send(
+            TOPIC_PLANES,
+            MARKERS,
+            t,
+            b(MARKERS, markers=estimate_markers(b, message, t, base, self._truth(scan) if self._truth else None)),
+        )
         self._send(TOPIC_ESTIMATE, STRING, t, b(STRING, data=present.to_json(message)))
 
     def event(self, level: str, text: str, time_ns: int | None = None) -> None:
@@ -496,62 +490,6 @@ class Ros2View:
             for data, plane in ((main.data_a, main.plane_a), (main.data_b, main.plane_b))
             if data is not None
         ]
-
-    def _markers(self, scan: ScanAssembly, message: codec.Reconstruction, t: int, frame: str) -> list:
-        b = self._b
-        markers = [b.marker(t, frame, "", 0, 0, action=DELETEALL)]
-        for i, plane in enumerate(message.planes):
-            rgb = method_rgb(plane.method)
-            corners = [(c.x, c.y, c.z) for c in plane.patch]
-            if len(corners) >= 3:
-                tri = [p for k in range(1, len(corners) - 1) for p in (corners[0], corners[k], corners[k + 1])]
-                markers.append(
-                    b.marker(t, frame, f"plane/{plane.method}", i, TRIANGLE_LIST, points=tri, rgb=rgb, alpha=0.5)
-                )
-                centre = np.mean(np.asarray(corners), axis=0)
-                n = np.array([plane.normal.x, plane.normal.y, plane.normal.z])
-                markers.append(
-                    b.marker(
-                        t,
-                        frame,
-                        f"normal/{plane.method}",
-                        i,
-                        ARROW,
-                        points=[centre, centre + 0.2 * n],
-                        rgb=rgb,
-                        scale=(0.01, 0.02, 0.03),
-                    )
-                )
-                markers.append(
-                    b.marker(
-                        t,
-                        frame,
-                        f"label/{plane.method}",
-                        i,
-                        TEXT_VIEW_FACING,
-                        rgb=rgb,
-                        scale=(0, 0, 0.05),
-                        position=centre,
-                        text=f"{plane.method} {plane.label}: h = {plane.offset:.3f} m, "
-                        f"{QUALITY_NAME.get(plane.quality, 'unknown')}",
-                    )
-                )
-        truth = self._truth(scan) if self._truth else None
-        for i, tp in enumerate(truth or ()):
-            c = np.asarray(tp.corners, dtype=float)
-            if len(c) >= 3:
-                tri = [p for k in range(1, len(c) - 1) for p in (c[0], c[k], c[k + 1])]
-                markers.append(b.marker(t, frame, "truth", i, TRIANGLE_LIST, points=tri, rgb=_TRUTH_RGB, alpha=0.3))
-        if message.HasField("corner_edge"):
-            e = message.corner_edge
-            p = np.array([e.point.x, e.point.y, e.point.z])
-            d = np.array([e.direction.x, e.direction.y, e.direction.z])
-            markers.append(
-                b.marker(
-                    t, frame, "edge", 0, LINE_LIST, points=[p - 0.5 * d, p + 0.5 * d], rgb=_EDGE_RGB, scale=(0.01, 0, 0)
-                )
-            )
-        return markers
 
 
 def _corrected_rows(subsets) -> np.ndarray:
