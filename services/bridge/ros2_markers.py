@@ -98,7 +98,6 @@ def estimate_markers(b, message: codec.Reconstruction, t: int, frame: str, truth
                 t, frame, "edge", 0, LINE_LIST, points=[p - 0.5 * d, p + 0.5 * d], rgb=_EDGE_RGB, scale=(0.01, 0, 0)
             )
         )
-    return markers
     markers += surface_markers(b, message, t, frame)
     return markers
 
