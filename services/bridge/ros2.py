@@ -15,6 +15,8 @@ topic                           type                                QoS     what
 ``/lelsonar/points/corrected``  ``sensor_msgs/msg/PointCloud2``     V, 10   per estimate: §4 corrected points, a and b
 ``/lelsonar/planes``            ``visualization_msgs/MarkerArray``  TL, 1   per estimate: planes per method, truth, edge
 ``/lelsonar/estimate``          ``std_msgs/msg/String``             TL, 1   per estimate: the Reconstruction as JSON
+``/map``                        ``nav_msgs/msg/OccupancyGrid``      TL, 1   per map update (:mod:`.ros2_map`)
+``/lelsonar/map/walls``         ``visualization_msgs/MarkerArray``  TL, 1   per map update: walls, corners, path
 ==============================  ==================================  ======  ============================================
 
 (TL = RELIABLE, TRANSIENT_LOCAL, KEEP_LAST depth; V = RELIABLE, VOLATILE, KEEP_LAST depth.)
@@ -46,7 +48,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -76,6 +79,8 @@ __all__ = [
     "TOPIC_POINTS_CORRECTED",
     "TOPIC_PLANES",
     "TOPIC_ESTIMATE",
+    "TOPIC_MAP_GRID",
+    "TOPIC_MAP_WALLS",
     "TopicQos",
     "TOPIC_QOS",
     "RosMessage",
@@ -87,6 +92,7 @@ __all__ = [
     "serialize",
     "deserialize",
     "export_rosbag2",
+    "open_bag",
     "read_bag",
 ]
 
@@ -100,12 +106,15 @@ TOPIC_POINTS_RAW = "/lelsonar/points/raw"
 TOPIC_POINTS_CORRECTED = "/lelsonar/points/corrected"
 TOPIC_PLANES = "/lelsonar/planes"
 TOPIC_ESTIMATE = "/lelsonar/estimate"
+TOPIC_MAP_GRID = "/map"
+TOPIC_MAP_WALLS = "/lelsonar/map/walls"
 
 TF = "tf2_msgs/msg/TFMessage"
 RANGE = "sensor_msgs/msg/Range"
 CLOUD = "sensor_msgs/msg/PointCloud2"
 MARKERS = "visualization_msgs/msg/MarkerArray"
 STRING = "std_msgs/msg/String"
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 
 
 def range_topic(capsule_id: int) -> str:
@@ -125,6 +134,8 @@ TOPIC_QOS: dict[str, TopicQos] = {
     TOPIC_TF: TopicQos(100),
     TOPIC_PLANES: TopicQos(1, True),
     TOPIC_ESTIMATE: TopicQos(1, True),
+    TOPIC_MAP_GRID: TopicQos(1, True),
+    TOPIC_MAP_WALLS: TopicQos(1, True),
 }
 DEFAULT_QOS = TopicQos(10)
 
@@ -551,6 +562,14 @@ class BagSink:
             )
         self._writer.write(conn, m.time_ns, serialize(m.message, m.msgtype, self._distro))
         self.counts[m.topic] = self.counts.get(m.topic, 0) + 1
+
+
+@contextmanager
+def open_bag(out_dir: Path | str, distro: str = "jazzy") -> Iterator[Writer]:
+    """An open rosbag2 writer (MCAP storage) of a new directory; finished on any exit."""
+    typestore(distro)  # an unknown distro is refused before the directory is made
+    with Writer(Path(out_dir), version=DISTROS[distro][1], storage_plugin=StoragePlugin.MCAP) as w:
+        yield w
 
 
 def export_rosbag2(

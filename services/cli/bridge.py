@@ -144,7 +144,7 @@ def _view(args: argparse.Namespace, emit, source: Path | None, distro: str = "ja
     )
 
 
-def _check_bag_dir(out: Path, overwrite: bool) -> None:
+def check_bag_dir(out: Path, overwrite: bool, flag: str = "-o") -> None:
     """A new bag directory, or (with ``overwrite``) an old rosbag2 directory, removed; anything else refused."""
     import shutil
 
@@ -153,9 +153,9 @@ def _check_bag_dir(out: Path, overwrite: bool) -> None:
 
     if out.exists() or out.is_symlink():
         if not overwrite:
-            raise ConfigError(f"{out} already exists; pass --overwrite to replace the bag, or give another -o")
+            raise ConfigError(f"{out} already exists; pass --overwrite to replace the bag, or give another {flag}")
         if not (out.is_dir() and not out.is_symlink() and (out / "metadata.yaml").is_file()):
-            raise ConfigError(f"{out} exists and is not a rosbag2 directory (no metadata.yaml); give another -o")
+            raise ConfigError(f"{out} exists and is not a rosbag2 directory (no metadata.yaml); give another {flag}")
         shutil.rmtree(out)
     output_dir(out.parent, what=f"the folder of {out}")
 
@@ -166,7 +166,7 @@ def run_export(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.stream.service import ReconstructionService
 
     input_file(args.source)
-    _check_bag_dir(args.output, args.overwrite)
+    check_bag_dir(args.output, args.overwrite)
     from lelsonar.cli.warm_up import ensure_compiled
 
     ensure_compiled()

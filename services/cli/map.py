@@ -10,6 +10,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.map_views import add_view_arguments
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
     p = sub.add_parser(
@@ -51,7 +52,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"estimator of record (default: {DEFAULT_METHOD})",
     )
     _add_fusion_arguments(p)
-    p.set_defaults(run=run_map)
+    add_view_arguments(p)
+    p.set_defaults(run=run_map_with_views)
 
     from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
@@ -154,6 +156,7 @@ def run_map(args: argparse.Namespace) -> int:
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
     config = _fusion_config(args)
+    views = getattr(args, "map_views", None)  # the viewer outputs, opened by run_map_with_views
     found: list = []
     where: dict[int, Path] = {}
     for path in args.source:
@@ -177,6 +180,8 @@ def run_map(args: argparse.Namespace) -> int:
     mapper = WallMapper(config)
     for scan in scans:
         mapper.add_scan(scan)
+        if views is not None:
+            views.add(mapper.snapshot(), scanners[0])
     fused = mapper.snapshot()
     out = map_to_dict(fused)
     if args.route:
@@ -188,11 +193,27 @@ def run_map(args: argparse.Namespace) -> int:
         args.geojson.write_text(json.dumps(floorplan.to_geojson(fused, plan)))
     if args.grid:
         args.grid.write_text(json.dumps(floorplan.occupancy_grid(fused, plan).to_message()))
+    if views is not None:
+        views.finish(None if out.get("route") is None else [(p["x"], p["y"]) for p in out["route"]])
     if args.json:
         print(json.dumps(out, separators=(",", ":")))
     else:
         _print_table(out)
     return 0 if not args.route or out["route"] is not None else 1
+
+
+def run_map_with_views(args: argparse.Namespace) -> int:
+    """`lelsonar map` with its viewer outputs checked and opened before the replay and finished on any exit."""
+    from lelsonar.cli.map_views import MapViews, wants_views
+    from lelsonar.map.floorplan import PlanConfig
+
+    if not wants_views(args):
+        return run_map(args)
+    args.map_views = MapViews(args, PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution))
+    try:
+        return run_map(args)
+    finally:
+        args.map_views.close()
 
 
 def _print_table(out: dict) -> None:

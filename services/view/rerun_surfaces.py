@@ -28,7 +28,7 @@ _CORNER_RGB = (255, 80, 200)
 _EDGE_RGB = (0, 220, 255)
 _NORMAL_LENGTH = 0.2  # m
 _FEATURE_HALF_LENGTH = 0.25  # m
-_SURFACE_ALPHA = 0.35
+_SURFACE_ALPHA = 90  # 0–255: see-through, so the points behind show
 
 
 def _vec(v) -> np.ndarray:

@@ -1,0 +1,182 @@
+"""The map in every viewer, against independent truth: the ROS 2 grid's cells are occupied where the true
+walls run and its geometry is the floor plan's; the markers, the Foxglove scene and the Rerun recording hold
+every wall with its σ and verdict, growing scan by scan; `map --rrd/--mcap/--ros2-bag/--screenshot` writes
+them and refuses to overwrite."""
+
+from __future__ import annotations
+
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from google.protobuf.json_format import MessageToJson, Parse
+from mcap.reader import make_reader
+from rerun.chunk import RrdReader
+from shapely.geometry import LineString
+
+from lelsonar.bridge import ros2
+from lelsonar.bridge.ros2_map import TOPIC_GRID, TOPIC_WALLS, fused_from_message, map_ros_messages
+from lelsonar.cli.main import main
+from lelsonar.draw.estimates import SIGMA_BAND
+from lelsonar.draw.map_scene import MapScene, wall_entity_id
+from lelsonar.draw.palette import quality_color
+from lelsonar.map import floorplan as fp
+from lelsonar.map.fusion import WallMapper
+from lelsonar.map.synthetic import NoiseModel, observe_world, room
+from lelsonar.map.wire import map_message
+from lelsonar.view.rerun_layout import make_recording
+from lelsonar.view.rerun_map import log_map
+
+PLAN = fp.PlanConfig(resolution=0.05)
+
+
+@pytest.fixture(scope="module")
+def room_maps():
+    """A room (independent truth) fused scan by scan: each step's map and the world."""
+    world = room()
+    scans, _, _ = observe_world(world, NoiseModel(), np.random.default_rng(5))
+    mapper = WallMapper()
+    steps = []
+    for s in scans:
+        mapper.add_scan(s)
+        steps.append(mapper.snapshot())
+    return world, steps
+
+
+def test_the_ros2_grid_is_the_floor_plan_s_and_occupied_where_the_true_walls_run(room_maps):
+    world, steps = room_maps
+    m = steps[-1]
+    b = ros2.Builder("jazzy")
+    out = {r.topic: r for r in map_ros_messages(b, m, 10, PLAN)}
+    grid = ros2.deserialize(ros2.serialize(out[TOPIC_GRID].message, ros2.OCCUPANCY_GRID), ros2.OCCUPANCY_GRID)
+    want = fp.occupancy_grid(m, PLAN)
+    assert (grid.info.width, grid.info.height) == (want.width, want.height)
+    assert grid.info.resolution == pytest.approx(PLAN.resolution)
+    assert (grid.info.origin.position.x, grid.info.origin.position.y) == pytest.approx(want.origin)
+    assert grid.header.frame_id == "map"
+    data = np.asarray(grid.data, dtype=np.int8).reshape(grid.info.height, grid.info.width)
+    assert np.array_equal(data, want.data)
+    # Independent truth: every occupied cell lies on a true wall (within the fused walls' error and a cell),
+    # and most cells along the true walls' observed stretches are occupied.
+    x, y = want.centres()
+    occupied = np.argwhere(data == fp.OCCUPIED)
+    assert len(occupied) > 0
+    truth = [LineString(seg) for seg in world.segments]
+    tol = PLAN.resolution + 0.05
+    from shapely.geometry import Point
+
+    off = [min(t.distance(Point(x[r, c], y[r, c])) for t in truth) for r, c in occupied]
+    assert max(off) < tol
+    assert (data == fp.FREE).sum() > 0 and (data == fp.UNKNOWN).sum() > 0
+
+
+def test_the_wall_markers_are_as_thick_as_each_wall_s_two_sigma_band_and_coloured_by_verdict(room_maps):
+    _, steps = room_maps
+    m = steps[-1]
+    b = ros2.Builder("jazzy")
+    out = {r.topic: r for r in map_ros_messages(b, m, 10, PLAN)}
+    markers = ros2.deserialize(ros2.serialize(out[TOPIC_WALLS].message, ros2.MARKERS), ros2.MARKERS).markers
+    assert markers[0].action == 3  # DELETEALL: a map update replaces the last
+    walls = [mk for mk in markers if mk.ns == "walls"]
+    pieces = [(w, seg) for w in m.walls for seg in w.piece_segments]
+    assert len(walls) == len(pieces)
+    for mk, (w, seg) in zip(walls, pieces):
+        assert mk.scale.y == pytest.approx(max(0.01, 2 * SIGMA_BAND * w.offset_stderr))
+        assert mk.scale.x == pytest.approx(max(0.01, float(np.hypot(*(seg[1] - seg[0])))))
+        assert round(mk.color.r * 255) == pytest.approx(quality_color(w.quality)[0], abs=1)
+    assert sum(mk.ns == "path" for mk in markers) == 1
+
+
+def test_a_map_message_rebuilds_the_walls_and_path_of_its_map_and_frees_only_the_way(room_maps):
+    _, steps = room_maps
+    m = steps[-1]
+    back = fused_from_message(map_message(m, "s", stamp_ns=1))
+    assert [w.id for w in back.walls] == [w.id for w in m.walls]
+    for a, w in zip(back.walls, m.walls):
+        for sa, sw in zip(a.piece_segments, w.piece_segments):
+            assert sa == pytest.approx(sw, abs=1e-9)
+        assert a.quality == w.quality and a.offset_stderr == pytest.approx(w.offset_stderr)
+    full, rebuilt = fp.occupancy_grid(m, PLAN), fp.occupancy_grid(back, PLAN)
+    assert np.array_equal(full.data == fp.OCCUPIED, rebuilt.data == fp.OCCUPIED)
+    # Without the views, nothing is free that the full map does not call free.
+    assert not np.any((rebuilt.data == fp.FREE) & (full.data != fp.FREE))
+
+
+def test_the_foxglove_map_scene_grows_and_drops_the_walls_that_are_gone(room_maps):
+    _, steps = room_maps
+    scene = MapScene()
+    seen = []
+    for i, m in enumerate(steps):
+        msg = map_message(m, "s", stamp_ns=i + 1)
+        update = scene.update(msg, free_space=fp.free_space(m, PLAN))
+        back = SceneUpdate()
+        back.ParseFromString(update.SerializeToString())
+        assert Parse(MessageToJson(back), SceneUpdate()) == back
+        ids = {e.id for e in back.entities}
+        assert {wall_entity_id("s", w.id) for w in m.walls if w.pieces} <= ids
+        assert "s/map/free_space" in ids and "s/map/path" in ids
+        assert {d.id for d in back.deletions}.isdisjoint(ids)
+        seen.append(len(m.walls))
+        for w in msg.walls:
+            ent = next(e for e in back.entities if e.id == wall_entity_id("s", w.id))
+            assert ent.cubes[0].size.y == pytest.approx(max(0.01, 2 * SIGMA_BAND * w.offset_stderr))
+    assert seen[-1] >= seen[0]
+
+
+def test_the_rerun_map_holds_every_wall_at_each_scan(room_maps, tmp_path: Path):
+    _, steps = room_maps
+    path = tmp_path / "map.rrd"
+    rec = make_recording(recording_id="map")
+    rec.save(path)
+    for m in steps:
+        log_map(rec, map_message(m, "s", stamp_ns=1), free_space=fp.free_space(m, PLAN))
+    rec.flush()
+    rec.disconnect()
+    rows: dict[str, list] = defaultdict(list)
+    for chunk in RrdReader(path).store().stream().to_chunks():
+        batch = chunk.to_record_batch()
+        scans = batch.column("scans").to_pylist() if "scans" in batch.schema.names else [None] * batch.num_rows
+        rows[str(chunk.entity_path)] += scans
+    last = steps[-1]
+    for w in last.walls:
+        assert len(steps) in rows[f"/map/fused/walls/{w.id}"]
+    assert set(range(1, len(steps) + 1)) <= set(rows["/map/fused/path/corrected"])
+    assert "/map/fused/free_space" in rows and "/map/fused/free_space/outline" in rows
+
+
+def test_map_writes_every_viewer_output_and_refuses_to_overwrite(two_scans, tmp_path, capsys):
+    rrd, mcap, bag, png = tmp_path / "m.rrd", tmp_path / "m.mcap", tmp_path / "bag", tmp_path / "m.png"
+    args = ["map", "--source", *map(str, two_scans), "--json"]
+    views = ["--rrd", str(rrd), "--mcap", str(mcap), "--ros2-bag", str(bag), "--screenshot", str(png)]
+    assert main([*args, *views]) == 0
+    capsys.readouterr()
+    assert png.stat().st_size > 0
+    with open(mcap, "rb") as f:
+        topics = Counter(ch.topic for _, ch, _ in make_reader(f).iter_messages())
+    assert topics["/lelsonar/map"] == topics["/lelsonar/map/scene"] == 2  # one map a scan
+    bag_topics = Counter(t for t, *_ in ros2.read_bag(bag))
+    assert bag_topics == {"/map": 2, "/lelsonar/map/walls": 2}
+    assert any("/map/fused/walls" in str(c.entity_path) for c in RrdReader(rrd).store().stream().to_chunks())
+    for flag, path in (("--rrd", rrd), ("--ros2-bag", bag)):
+        assert main([*args, flag, str(path)]) == 2
+        err = capsys.readouterr().err
+        assert "--overwrite" in err and err.count("\n") == 1
+    assert main([*args, "--rrd", str(rrd), "--overwrite"]) == 0
+
+
+@pytest.fixture(scope="module")
+def two_scans(tmp_path_factory):
+    from lelsonar.log import recording
+    from tests.conftest import simulated_messages
+
+    d = tmp_path_factory.mktemp("mapviews")
+    paths = []
+    for i in (1, 2):
+        path = d / f"scan{i}.mcap"
+        with recording.McapRecorder(path) as rec:
+            for m in simulated_messages("paper-test1", seed=i, scan_id=i):
+                rec.write(m)
+        paths.append(path)
+    return paths
