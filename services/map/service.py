@@ -24,6 +24,7 @@ import zenoh
 from mcap_protobuf.writer import Writer
 
 from lelsonar import codec
+from lelsonar.draw.map_scene import TOPIC_MAP_SCENE, MapScene
 from lelsonar.errors import LelsonarError
 from lelsonar.keys import ScannerKeys, validate_prefix
 from lelsonar.map.from_reconstruction import scan_from_reconstruction
@@ -156,6 +157,7 @@ class ZenohMapper:
         if record is not None:
             self._file = open(record, "wb")  # closed by close(), after the writer has finished it
             self._writer = Writer(self._file)
+        self._scene = MapScene()  # the recorded map as Foxglove draws it
         self._publisher = session.declare_publisher(
             self._key, encoding=zenoh.Encoding(f"application/protobuf;{map_pb2.Map.DESCRIPTOR.full_name}")
         )
@@ -189,6 +191,8 @@ class ZenohMapper:
         self._publisher.put(msg.SerializeToString())
         if self._writer is not None:
             self._writer.write_message(MAP_TOPIC, msg, log_time=msg.stamp_ns, publish_time=msg.stamp_ns)
+            scene = self._scene.update(msg)
+            self._writer.write_message(TOPIC_MAP_SCENE, scene, log_time=msg.stamp_ns, publish_time=msg.stamp_ns)
         if self._on_map is not None:
             self._on_map(msg)
 
