@@ -159,6 +159,17 @@ def test_map_writes_every_viewer_output_and_refuses_to_overwrite(two_scans, tmp_
     bag_topics = Counter(t for t, *_ in ros2.read_bag(bag))
     assert bag_topics == {"/map": 2, "/lelsonar/map/walls": 2}
     assert any("/map/fused/walls" in str(c.entity_path) for c in RrdReader(rrd).store().stream().to_chunks())
+    # `export` of a map recording: the grid and the walls of each recorded map, the same as --ros2-bag's.
+    exported = tmp_path / "exported"
+    assert main(["export", str(mcap), "-o", str(exported)]) == 0
+    capsys.readouterr()
+    a, b = ros2.read_bag(exported), ros2.read_bag(bag)
+    assert Counter(t for t, *_ in a) == bag_topics
+    grids_a = [m for t, _, _, m in a if t == "/map"]
+    grids_b = [m for t, _, _, m in b if t == "/map"]
+    for ga, gb in zip(grids_a, grids_b):  # the Map carries no views: the walls match, cell for cell
+        da, db = np.asarray(ga.data).reshape(ga.info.height, -1), np.asarray(gb.data).reshape(gb.info.height, -1)
+        assert da.shape == db.shape and np.array_equal(da == fp.OCCUPIED, db == fp.OCCUPIED)
     for flag, path in (("--rrd", rrd), ("--ros2-bag", bag)):
         assert main([*args, flag, str(path)]) == 2
         err = capsys.readouterr().err
@@ -180,3 +191,84 @@ def two_scans(tmp_path_factory):
                 rec.write(m)
         paths.append(path)
     return paths
+
+
+def test_the_live_foxglove_map_view_serves_each_map_as_a_scene(room_maps):
+    import json
+    import struct
+
+    from websockets.sync.client import connect
+
+    from lelsonar.bridge.foxglove import SUBPROTOCOLS, open_foxglove_map
+    from lelsonar.draw.map_scene import TOPIC_MAP_SCENE
+
+    _, steps = room_maps
+    msg = map_message(steps[-1], "s", stamp_ns=5)
+    with open_foxglove_map("127.0.0.1:0") as view:
+        with connect(view.server.url, subprotocols=list(SUBPROTOCOLS), open_timeout=30, max_size=None) as ws:
+            channels: dict[int, dict] = {}
+            while TOPIC_MAP_SCENE not in {c["topic"] for c in channels.values()}:
+                op = json.loads(ws.recv(timeout=30))
+                if op["op"] == "advertise":
+                    channels.update({c["id"]: c for c in op["channels"]})
+            cid = next(i for i, c in channels.items() if c["topic"] == TOPIC_MAP_SCENE)
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": cid}]}))
+            assert view.server.wait_for_subscribers([TOPIC_MAP_SCENE], timeout=30)
+            view(msg)
+            frame = ws.recv(timeout=30)
+            while isinstance(frame, str):
+                frame = ws.recv(timeout=30)
+    sid, log_time = struct.unpack_from("<IQ", frame, 1)
+    assert (sid, log_time) == (1, 5)
+    scene = SceneUpdate.FromString(frame[13:])
+    assert {wall_entity_id("s", w.id) for w in msg.walls if w.pieces} <= {e.id for e in scene.entities}
+
+
+def test_the_live_ros2_bridge_republishes_each_map_as_rmw_zenoh_grid_and_markers(room_maps, tmp_path):
+    import threading
+
+    import zenoh
+
+    from lelsonar.bridge import rmw_zenoh as rz
+    from lelsonar.bridge.ros2_map import MapRos2, MapSubscription
+    from lelsonar.net.transport import hermetic_settings, open_session
+
+    _, steps = room_maps
+    m = steps[-1]
+    msg = map_message(m, "s", stamp_ns=7)
+    key = f"0/map/{rz.dds_type_name(ros2.OCCUPANCY_GRID)}/{ros2.type_hash(ros2.OCCUPANCY_GRID)}"
+    got: list[tuple[bytes, bytes | None]] = []
+    seen = threading.Event()
+
+    def on_grid(s: zenoh.Sample) -> None:
+        got.append((s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment is not None else None))
+        seen.set()
+
+    sock = tmp_path / "z.sock"
+    with open_session(hermetic_settings(sock, listen=True)) as robot:
+        robot.declare_subscriber(key, on_grid)
+        with (
+            rz.open_ros_session(hermetic_settings(sock, listen=False)) as bridge_session,
+            rz.RmwZenohNode(bridge_session, name="lelsonar_bridge") as node,
+            MapSubscription(bridge_session, "lelsonar", MapRos2(node.publish)) as sub,
+        ):
+            mapper = robot.declare_publisher("lelsonar/map")
+            matched = threading.Event()
+            listener = mapper.declare_matching_listener(lambda status: status.matching and matched.set())
+            assert matched.wait(30) or mapper.matching_status.matching, "the bridge never subscribed"
+            listener.undeclare()
+            mapper.put(b"not a map")  # counted and logged, and the subscription goes on
+            mapper.put(msg.SerializeToString())
+            assert seen.wait(30), "no OccupancyGrid arrived"
+            assert set(node.publishers) == {"/map", "/lelsonar/map/walls"}
+            assert node.publishers["/map"].key == key
+            assert sub.errors == {"InvalidMessageError": 1} and sub.received == 1
+    payload, att = got[0]
+    assert att is not None and len(att) == 33
+    grid = ros2.deserialize(payload, ros2.OCCUPANCY_GRID)
+    # The Map carries no free-space views: its grid has the walls of the fused map, cell for cell.
+    want = fp.occupancy_grid(fused_from_message(msg))
+    assert (grid.info.width, grid.info.height) == (want.width, want.height)
+    data = np.asarray(grid.data, dtype=np.int8).reshape(want.height, want.width)
+    assert np.array_equal(data, want.data)
+    assert np.array_equal(data == fp.OCCUPIED, fp.occupancy_grid(m).data == fp.OCCUPIED)

@@ -15,17 +15,26 @@ the whole free space.
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Callable
+import shutil
+from collections import Counter
+from collections.abc import Callable, Iterator
+from pathlib import Path
 
 import numpy as np
+import zenoh
+from google.protobuf.message import DecodeError
 
 from lelsonar import codec
 from lelsonar.bridge import ros2
 from lelsonar.bridge.ros2_markers import CUBE, DELETEALL, LINE_STRIP, SPHERE, TEXT_VIEW_FACING, verdict_rgb
 from lelsonar.draw.estimates import SIGMA_BAND
+from lelsonar.errors import InvalidMessageError, LelsonarError, RecordingError
+from lelsonar.log.recording import open_recording
 from lelsonar.map import floorplan
 from lelsonar.map.result import FusedFeature, FusedMap, FusedPose, FusedWall
+from lelsonar.map.service import map_key
 from lelsonar.v1 import map_pb2
 
 TOPIC_GRID = ros2.TOPIC_MAP_GRID
@@ -36,6 +45,80 @@ _CORNER_RGB = (1.0, 0.31, 0.78)
 _EDGE_RGB = (0.0, 0.86, 1.0)
 _PATH_RGB = (1.0, 0.78, 0.0)
 _ODOMETRY_RGB = (0.6, 0.6, 0.6)
+
+
+MAP_SCHEMA = map_pb2.Map.DESCRIPTOR.full_name
+_log = logging.getLogger("lelsonar.bridge.map")
+
+
+def decode_map(data: bytes) -> map_pb2.Map:
+    """A ``Map`` from its wire bytes, checked: its contract version and its walls' and poses' shapes.
+
+    Raises
+    ------
+    InvalidMessageError
+        Not a ``lelsonar.v1.Map`` of version 1, or a wall or pose whose numbers cannot be drawn.
+    """
+    try:
+        msg = map_pb2.Map.FromString(data)
+    except DecodeError as exc:
+        raise InvalidMessageError(f"not a lelsonar.v1.Map: {exc}") from None
+    if msg.schema_version != 1:
+        raise InvalidMessageError(f"a Map of contract version {msg.schema_version}; this reader knows version 1")
+    for w in msg.walls:
+        if len(w.covariance) not in (0, 4) or len(w.pieces) % 2:
+            raise InvalidMessageError(
+                f"map wall {w.id}: a covariance of {len(w.covariance)} terms (4 expected) "
+                f"or an odd number of piece ends ({len(w.pieces)})"
+            )
+        values = [w.normal.x, w.normal.y, w.offset, w.offset_stderr, w.normal_stderr, *w.covariance]
+        values += [v for p in (*w.pieces, *w.extent) for v in (p.x, p.y, p.z)]
+        if not all(math.isfinite(v) for v in values) or abs(math.hypot(w.normal.x, w.normal.y) - 1.0) > 1e-6:
+            raise InvalidMessageError(f"map wall {w.id}: a non-finite number or a normal that is not a unit vector")
+    for p in msg.poses:
+        if len(p.covariance) not in (0, 9):
+            raise InvalidMessageError(f"map pose of scan {p.scan_id}: {len(p.covariance)} covariance terms, not 9")
+    return msg
+
+
+def _is_map(channel, schema) -> bool:
+    return schema is not None and channel.message_encoding == "protobuf" and schema.name == MAP_SCHEMA
+
+
+def recorded_maps(path: Path | str) -> Iterator[tuple[int, map_pb2.Map]]:
+    """``(log time ns, Map)`` of every map a recording holds (a mapper's ``--record``, ``map --mcap``)."""
+    for m in open_recording(path).messages(_is_map):
+        yield m.log_time, decode_map(m.data)
+
+
+def export_map_rosbag2(
+    source: Path | str, out_dir: Path | str, *, distro: str = "jazzy", plan: floorplan.PlanConfig | None = None
+) -> dict[str, int]:
+    """Write a rosbag2 directory of a map recording: the grid and the wall markers of every map in it.
+
+    Returns
+    -------
+    dict
+        Messages written per topic.
+
+    Raises
+    ------
+    RecordingError
+        ``out_dir`` exists, or the recording cannot be read; a partly written bag is removed.
+    """
+    out = Path(out_dir)
+    if out.exists():
+        raise RecordingError(f"{out} already exists; rosbag2 writes a new directory (remove it or pick another -o)")
+    try:
+        with ros2.open_bag(out, distro) as writer:
+            sink = ros2.BagSink(writer, distro)
+            view = MapRos2(sink, distro, plan)
+            for t, msg in recorded_maps(source):
+                view(msg, t)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    return dict(sink.counts)
 
 
 def _xyz(v) -> np.ndarray:
@@ -206,3 +289,36 @@ class MapRos2:
         t = int(msg.stamp_ns if t_ns is None else t_ns)
         for out in map_ros_messages(self._b, fused_from_message(msg), t, self._plan):
             self._emit(out)
+
+
+class MapSubscription:
+    """Each ``Map`` published on ``<prefix>/map`` (by ``lelsonar mapper``), decoded and handed to ``on_map``.
+
+    A map that cannot be decoded or drawn is counted in :attr:`errors` and logged; the subscription goes on.
+    A context manager: the subscriber is undeclared on exit.
+    """
+
+    def __init__(self, session: zenoh.Session, prefix: str, on_map: Callable[[map_pb2.Map], None]) -> None:
+        self._on_map = on_map
+        self.key = map_key(prefix)
+        self.errors: Counter[str] = Counter()
+        self.received = 0
+        self._subscriber = session.declare_subscriber(self.key, self._handle)
+
+    def _handle(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = decode_map(sample.payload.to_bytes())
+            self.received += 1
+            self._on_map(msg)
+        except LelsonarError as exc:
+            self.errors[type(exc).__name__] += 1
+            _log.warning("map on %s: %s: %s", self.key, type(exc).__name__, exc)
+        except Exception:  # a Zenoh callback must not die silently: count it, log it with its traceback
+            self.errors["unexpected"] += 1
+            _log.exception("map on %s: unexpected error", self.key)
+
+    def __enter__(self) -> MapSubscription:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._subscriber.undeclare()

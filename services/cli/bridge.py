@@ -167,6 +167,8 @@ def run_export(args: argparse.Namespace) -> int:
 
     input_file(args.source)
     check_bag_dir(args.output, args.overwrite)
+    if is_map_recording(args.source):
+        return export_maps(args)
     from lelsonar.cli.warm_up import ensure_compiled
 
     ensure_compiled()
@@ -182,6 +184,34 @@ def run_export(args: argparse.Namespace) -> int:
         print(f"{n:8d}  {topic}")
     print(f"wrote {args.output} — inspect it with: ros2 bag info {args.output}")
     return 0 if counts.get("/lelsonar/estimate") else 1
+
+
+def map_to_ros2(session, prefix: str, publish):
+    """The mapper's maps (``<prefix>/map``) as /map (OccupancyGrid) and /lelsonar/map/walls on the node."""
+    from lelsonar.bridge.ros2_map import MapRos2, MapSubscription
+
+    return MapSubscription(session, prefix, MapRos2(publish))
+
+
+def is_map_recording(path: Path) -> bool:
+    """A recording of maps (a mapper's ``--record``, ``map --mcap``) rather than of scans."""
+    from lelsonar.bridge.ros2_map import recorded_maps
+    from lelsonar.log.recording import open_recording
+
+    if open_recording(path).has_scans:
+        return False
+    return next(recorded_maps(path), None) is not None
+
+
+def export_maps(args: argparse.Namespace) -> int:
+    """`export` of a map recording: the floor plan's OccupancyGrid on /map and the walls' MarkerArray, per map."""
+    from lelsonar.bridge.ros2_map import export_map_rosbag2
+
+    counts = export_map_rosbag2(args.source, args.output, distro=args.distro)
+    for topic, n in sorted(counts.items()):
+        print(f"{n:8d}  {topic}")
+    print(f"wrote {args.output} — inspect it with: ros2 bag info {args.output}")
+    return 0 if counts else 1
 
 
 def run_bridge(args: argparse.Namespace) -> int:
@@ -232,6 +262,7 @@ def run_bridge(args: argparse.Namespace) -> int:
             return 0 if n_final else 1
         keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
         print(f"ros2-bridge: listening on {keys.sample} and {keys.scan}", flush=True)
+        stack.enter_context(map_to_ros2(session, keys.prefix, node.publish))
         with LiveSource(session, keys, service, stop):
             # declared once subscribed, like every lelsonar service: `<prefix>/<scanner>/alive/ros2-bridge`
             stack.callback(session.liveliness().declare_token(keys.alive("ros2-bridge")).undeclare)
