@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from lelsonar.cli.map_views import add_view_arguments
+    from lelsonar.cli.map_views import add_mapper_view_arguments, add_view_arguments
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
     p = sub.add_parser(
@@ -78,6 +78,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_fusion_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
+    add_mapper_view_arguments(p)
     p.set_defaults(run=run_mapper)
 
 
@@ -264,6 +265,7 @@ def run_mapper(args: argparse.Namespace) -> int:
 
     from google.protobuf.json_format import MessageToDict
 
+    from lelsonar.cli.map_views import mapper_views
     from lelsonar.keys import ScannerKeys, validate_identifier
     from lelsonar.map.service import MapperService, ZenohMapper, map_key
     from lelsonar.net.transport import open_session, zenoh_settings_from_args
@@ -287,11 +289,17 @@ def run_mapper(args: argparse.Namespace) -> int:
             print(json.dumps(MessageToDict(msg), separators=(",", ":")), flush=True)
         else:
             print(f"mapper: scan {mapped}: {len(msg.walls)} walls, {len(msg.corners)} corners", flush=True)
+        if draw is not None:
+            draw(msg)
         if args.until_scans and mapped >= args.until_scans:
             stop.set()
 
     service = MapperService(scanner, args.method, config=_fusion_config(args))
-    with open_session(settings) as session, ZenohMapper(session, prefix, service, record=args.record, on_map=on_map):
+    with (
+        mapper_views(args) as draw,
+        open_session(settings) as session,
+        ZenohMapper(session, prefix, service, record=args.record, on_map=on_map),
+    ):
         print(f"mapper: fusing {scanner}'s scans; the map on {map_key(prefix)}", file=sys.stderr, flush=True)
         while not stop.wait(0.2):
             pass

@@ -8,6 +8,8 @@ fusion saw; nothing is overwritten without ``--overwrite``.
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -164,3 +166,26 @@ class MapViews:
 
     def close(self) -> None:
         self._stack.close()
+
+
+def add_mapper_view_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help="serve the map live on a Foxglove WebSocket (/lelsonar/map/scene), growing with every scan",
+    )
+
+
+@contextmanager
+def mapper_views(args: argparse.Namespace) -> Iterator[Callable[[Any], None] | None]:
+    """What `mapper` draws each map on (``--foxglove``), for the duration of the block; None without it."""
+    if getattr(args, "foxglove", None) is None:
+        yield None
+        return
+    import sys
+
+    from lelsonar.bridge.foxglove import open_foxglove_map
+
+    with open_foxglove_map(args.foxglove) as view:
+        print(f"mapper: Foxglove live on {view.server.url}", file=sys.stderr, flush=True)
+        yield view
