@@ -1,5 +1,9 @@
 """What viewers draw: Foxglove messages built from the contract messages.
 
+This module draws a scan (frames, points, scalars, log); :mod:`lelsonar.draw.estimates` the estimates,
+:mod:`lelsonar.draw.world` a simulated world and the scan poses, :mod:`lelsonar.draw.map_scene` the map,
+from the pieces of :mod:`lelsonar.draw.primitives`.  The names used across the house are importable here.
+
 The same builders feed the acquisition MCAP (:mod:`lelsonar.log.recording`),
 ``reconstruct --record`` and the live Foxglove WebSocket
 (:mod:`lelsonar.bridge.foxglove`), so a recording opened alone shows what the
@@ -27,7 +31,11 @@ topic                       schema                         what
 ``/lelsonar/scan_points``   ``foxglove.PointCloud``        every raw point of the scan so far
 ``/lelsonar/step``          JSON ``lelsonar.StepScalars``  γ, ranges and energies of the step
 ``/lelsonar/energy``        JSON ``lelsonar.EnergyScalars`` E^γ, E0(d_m), R, critical step
-``/lelsonar/planes``        ``foxglove.SceneUpdate``       planes, normals, labels, the edge
+``/lelsonar/planes``        ``foxglove.SceneUpdate``       planes, normals, labels, the edge; every surface,
+                                                           corner and edge of the sweep (:mod:`.estimates`)
+``/lelsonar/truth``         ``foxglove.SceneUpdate``       the true planes of a simulated scene
+``/lelsonar/world``         ``foxglove.SceneUpdate``       a simulated world, the robot's true path (:mod:`.world`)
+``/lelsonar/map/scene``     ``foxglove.SceneUpdate``       the map: walls, corners, path (:mod:`.map_scene`)
 ==========================  =============================  =====================================
 """
 
