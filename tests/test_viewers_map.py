@@ -69,6 +69,15 @@ def test_the_ros2_grid_is_the_floor_plan_s_and_occupied_where_the_true_walls_run
 
     off = [min(t.distance(Point(x[r, c], y[r, c])) for t in truth) for r, c in occupied]
     assert max(off) < tol
+    # And where a fused wall says a true wall runs, the grid holds it: the true wall's point nearest each
+    # piece's middle is in an occupied cell or next to one.
+    for w in m.walls:
+        for seg in w.piece_segments:
+            mid = Point(*(0.5 * (seg[0] + seg[1])))
+            nearest = min(truth, key=lambda t: t.distance(mid))
+            p = nearest.interpolate(nearest.project(mid))
+            r, c = want.cell(p.x, p.y)
+            assert (data[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] == fp.OCCUPIED).any()
     assert (data == fp.FREE).sum() > 0 and (data == fp.UNKNOWN).sum() > 0
 
 
