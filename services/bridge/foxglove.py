@@ -387,6 +387,7 @@ def layout_json() -> str:
                 visual.TOPIC_PLANES: scene_topic,
                 TOPIC_TRUTH: scene_topic,
                 visual.TOPIC_ARRAY: scene_topic,
+                TOPIC_MAP_SCENE: scene_topic,
             },
         },
         "Plot!energy": plot(
