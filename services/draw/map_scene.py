@@ -16,6 +16,7 @@ are gone (merged or split), so the scene grows scan by scan as the map does.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 
 import numpy as np
 import shapely
@@ -191,8 +192,11 @@ def _free_space_entity(scanner_id: str, free_space, t_ns: int) -> SceneEntity | 
 class MapScene:
     """Turns each ``Map`` into a ``SceneUpdate`` (see the module docstring); one instance per output."""
 
+    #: Scanners whose drawn walls are remembered (the oldest forgotten first): the ids come off the wire.
+    MAX_SCANNERS = 64
+
     def __init__(self) -> None:
-        self._walls: dict[str, set[str]] = {}
+        self._walls: OrderedDict[str, set[str]] = OrderedDict()
 
     def update(self, msg: map_pb2.Map, t_ns: int | None = None, free_space=None) -> SceneUpdate:
         """The scene of ``msg``; ``free_space`` a shapely (multi)polygon in the map frame, or None."""
@@ -205,6 +209,9 @@ class MapScene:
         ids = {e.id for e in walls}
         gone = self._walls.get(msg.scanner_id, set()) - ids
         self._walls[msg.scanner_id] = ids
+        self._walls.move_to_end(msg.scanner_id)
+        while len(self._walls) > self.MAX_SCANNERS:
+            self._walls.popitem(last=False)
         out = SceneUpdate(entities=entities)
         for entity_id in sorted(gone):
             d = SceneEntityDeletion(type=SceneEntityDeletion.MATCHING_ID, id=entity_id)
