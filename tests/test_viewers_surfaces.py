@@ -177,3 +177,25 @@ def test_an_extracted_sweep_is_drawn_whole_in_every_viewer(tmp_path: Path):
     rec = make_recording(recording_id="extracted")
     rec.save(tmp_path / "x.rrd")
     assert log_surfaces(rec, "/world/s/scans/scan_1", msg) == len(want) + len(result.corners) + len(result.edges)
+
+
+def test_review_draws_the_surfaces_of_the_final_estimate_of_record(tmp_path: Path, capsys):
+    import json
+
+    from lelsonar.cli.main import main
+    from lelsonar.log import recording
+    from tests.conftest import simulated_messages
+
+    src, rrd = tmp_path / "scan.mcap", tmp_path / "scan.rrd"
+    with recording.McapRecorder(src) as rec:
+        for m in simulated_messages("paper-test1", seed=4, scanner_id="s", scan_id=9):
+            rec.write(m)
+    assert main(["reconstruct", "--source", str(src), "--json"]) == 0
+    final = json.loads(capsys.readouterr().out.splitlines()[-1])
+    assert main(["review", str(src), "-o", str(rrd)]) == 0
+    paths = {str(c.entity_path) for c in RrdReader(rrd).store().stream().to_chunks()}
+    root = "/world/s/scans/scan_9"
+    want = {f"{root}/surfaces/{s['label']}/outline" for s in final.get("surfaces", [])}
+    want |= {f"{root}/corners/{f['label']}" for f in final.get("corners", [])}
+    want |= {f"{root}/edges/{f['label']}" for f in final.get("edges", [])}
+    assert want and want <= paths
