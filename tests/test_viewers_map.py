@@ -223,14 +223,16 @@ def test_the_live_foxglove_map_view_serves_each_map_as_a_scene(room_maps):
             cid = next(i for i, c in channels.items() if c["topic"] == TOPIC_MAP_SCENE)
             ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": 1, "channelId": cid}]}))
             assert view.server.wait_for_subscribers([TOPIC_MAP_SCENE], timeout=30)
-            view(msg)
+            view(msg, fp.free_space(steps[-1], PLAN))
             frame = ws.recv(timeout=30)
             while isinstance(frame, str):
                 frame = ws.recv(timeout=30)
     sid, log_time = struct.unpack_from("<IQ", frame, 1)
     assert (sid, log_time) == (1, 5)
     scene = SceneUpdate.FromString(frame[13:])
-    assert {wall_entity_id("s", w.id) for w in msg.walls if w.pieces} <= {e.id for e in scene.entities}
+    assert {wall_entity_id("s", w.id) for w in msg.walls if w.pieces} | {"s/map/free_space"} <= {
+        e.id for e in scene.entities
+    }
 
 
 def test_the_live_ros2_bridge_republishes_each_map_as_rmw_zenoh_grid_and_markers(room_maps, tmp_path):

@@ -456,9 +456,10 @@ class FoxgloveMapView:
         self._scene = MapScene()
         self._lock = threading.Lock()
 
-    def __call__(self, msg: map_pb2.Map) -> None:
+    def __call__(self, msg: map_pb2.Map, free_space=None) -> None:
+        """Draw ``msg``; ``free_space`` (a shapely geometry in the map frame) where the caller has the fusion."""
         with self._lock:
-            update = self._scene.update(msg)
+            update = self._scene.update(msg, free_space=free_space)
         self.server.log(TOPIC_MAP_SCENE, update, msg.stamp_ns)
 
 

@@ -290,7 +290,7 @@ def run_mapper(args: argparse.Namespace) -> int:
         else:
             print(f"mapper: scan {mapped}: {len(msg.walls)} walls, {len(msg.corners)} corners", flush=True)
         if draw is not None:
-            draw(msg)
+            draw(msg, service.fused)
         if args.until_scans and mapped >= args.until_scans:
             stop.set()
 

@@ -177,15 +177,17 @@ def add_mapper_view_arguments(p: argparse.ArgumentParser) -> None:
 
 
 @contextmanager
-def mapper_views(args: argparse.Namespace) -> Iterator[Callable[[Any], None] | None]:
-    """What `mapper` draws each map on (``--foxglove``), for the duration of the block; None without it."""
+def mapper_views(args: argparse.Namespace) -> Iterator[Callable[[Any, Any], None] | None]:
+    """``draw(map, fused)``: what `mapper` draws each map (and the fusion's free space) on (``--foxglove``),
+    for the duration of the block; None without it."""
     if getattr(args, "foxglove", None) is None:
         yield None
         return
     import sys
 
     from lelsonar.bridge.foxglove import open_foxglove_map
+    from lelsonar.map.floorplan import free_space
 
     with open_foxglove_map(args.foxglove) as view:
         print(f"mapper: Foxglove live on {view.server.url}", file=sys.stderr, flush=True)
-        yield view
+        yield lambda msg, fused: view(msg, None if fused is None else free_space(fused))
