@@ -62,10 +62,18 @@ from rosbags.typesys import Stores, get_typestore
 
 from lelsonar import codec
 from lelsonar.bridge.ros2_markers import estimate_markers
+from lelsonar.bridge.ros2_shapes import (
+    POINTFIELD_TYPES,
+    RAW_POINT,
+    corrected_rows,
+    quat_from_x_to,
+    quat_x,
+    stack_rows,
+)
 from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.log.reader import check_recording_path
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
-from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
@@ -244,7 +252,7 @@ class Builder:
                 "sensor_msgs/msg/PointField",
                 name=name,
                 offset=int(dt.fields[name][1]),
-                datatype=_POINTFIELD_TYPES[dt.fields[name][0].str.lstrip("<|")],
+                datatype=POINTFIELD_TYPES[dt.fields[name][0].str.lstrip("<|")],
                 count=1,
             )
             for name in dt.names
@@ -307,44 +315,6 @@ class Builder:
         )
 
 
-# sensor_msgs/PointField datatypes
-_POINTFIELD_TYPES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
-RAW_POINT = np.dtype(
-    {
-        "names": ["x", "y", "z", "step", "capsule"],
-        "formats": ["<f4", "<f4", "<f4", "<u4", "<u4"],
-        "offsets": [0, 4, 8, 12, 16],
-        "itemsize": 20,
-    }
-)
-CORRECTED_POINT = np.dtype(
-    {
-        "names": ["x", "y", "z", "step", "subset", "inlier"],
-        "formats": ["<f4", "<f4", "<f4", "<u4", "u1", "u1"],
-        "offsets": [0, 4, 8, 12, 16, 17],
-        "itemsize": 20,
-    }
-)
-
-
-def _quat_x(angle: float) -> tuple[float, float, float, float]:
-    return (math.sin(angle / 2), 0.0, 0.0, math.cos(angle / 2))
-
-
-def _quat_from_x_to(v) -> tuple[float, float, float, float]:
-    """The shortest rotation taking +x onto the unit vector ``v`` (x, y, z, w)."""
-    v = np.asarray(v, dtype=float)
-    n = np.linalg.norm(v)
-    if not n > 0:
-        raise ConfigError("a frame axis must be a non-zero vector")
-    v = v / n
-    if v[0] < -1 + 1e-12:
-        return (0.0, 0.0, 1.0, 0.0)  # 180° about z
-    q = np.array([0.0, -v[2], v[1], 1.0 + v[0]])  # axis x × v, w = 1 + cos
-    q /= np.linalg.norm(q)
-    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
-
-
 # --- the observer -------------------------------------------------------------------------
 class Ros2View:
     """Implements :class:`lelsonar.reconstruct.stream.service.Observer`: every event becomes ROS 2 messages.
@@ -400,7 +370,7 @@ class Ros2View:
         if self.parent_frame:
             tfs.append(b.transform(t, self.parent_frame, base, (0, 0, 0), (0, 0, 0, 1)))
         ax = (s.rotation_axis.x, s.rotation_axis.y, s.rotation_axis.z)
-        tfs.append(b.transform(t, base, axis, (0, 0, 0), _quat_from_x_to(ax) if any(ax) else (0, 0, 0, 1)))
+        tfs.append(b.transform(t, base, axis, (0, 0, 0), quat_from_x_to(ax) if any(ax) else (0, 0, 0, 1)))
         for c in sorted(s.capsules, key=lambda c: c.capsule_id):
             tfs.append(
                 b.transform(
@@ -408,7 +378,7 @@ class Ros2View:
                     array,
                     self.frame(s.scanner_id, f"capsule{c.capsule_id}"),
                     (c.position.x, c.position.y, c.position.z),
-                    _quat_from_x_to((c.boresight.x, c.boresight.y, c.boresight.z)),
+                    quat_from_x_to((c.boresight.x, c.boresight.y, c.boresight.z)),
                 )
             )
         self._send(TOPIC_TF_STATIC, TF, t, b(TF, transforms=tfs))
@@ -429,7 +399,7 @@ class Ros2View:
                         self.frame(s.scanner_id, "axis"),
                         self.frame(s.scanner_id, "array"),
                         (0, 0, 0),
-                        _quat_x(view.gamma),
+                        quat_x(view.gamma),
                     )
                 ],
             ),
@@ -461,7 +431,7 @@ class Ros2View:
         rows["step"], rows["capsule"] = view.step, np.asarray(ids)[ok]
         acc = self._raw.setdefault(scan.key, [])
         acc.append(rows)
-        self._send(TOPIC_POINTS_RAW, CLOUD, t, b.cloud(t, self.frame(s.scanner_id, "base"), _stack(acc, RAW_POINT)))
+        self._send(TOPIC_POINTS_RAW, CLOUD, t, b.cloud(t, self.frame(s.scanner_id, "base"), stack_rows(acc, RAW_POINT)))
 
     def estimate(
         self, scan: ScanAssembly, message: codec.Reconstruction, results: dict[str, ScanReconstruction] | None, partial
@@ -478,7 +448,7 @@ class Ros2View:
             self._raw.pop(scan.key, None)
         else:
             subsets = [(partial.data_a, partial.plane_a), (partial.data_b, partial.plane_b)]
-        self._send(TOPIC_POINTS_CORRECTED, CLOUD, t, b.cloud(t, base, _corrected_rows(subsets)))
+        self._send(TOPIC_POINTS_CORRECTED, CLOUD, t, b.cloud(t, base, corrected_rows(subsets)))
         self._send(
             TOPIC_PLANES,
             MARKERS,
@@ -501,31 +471,6 @@ class Ros2View:
             for data, plane in ((main.data_a, main.plane_a), (main.data_b, main.plane_b))
             if data is not None
         ]
-
-
-def _corrected_rows(subsets) -> np.ndarray:
-    parts = []
-    for data, plane in subsets:
-        if data is None or data.n == 0:
-            continue
-        rows = np.zeros(data.n, dtype=CORRECTED_POINT)
-        rows["x"], rows["y"], rows["z"] = np.asarray(data.points).T
-        rows["step"] = data.step
-        rows["subset"] = 0 if data.label == "a" else 1
-        mask = plane.inlier_mask if isinstance(plane, PlaneFit) and plane.n_points == data.n else np.ones(data.n, bool)
-        rows["inlier"] = np.asarray(mask, dtype=np.uint8)
-        parts.append(rows)
-    return _stack(parts, CORRECTED_POINT)
-
-
-def _stack(parts: Sequence[np.ndarray], dtype: np.dtype) -> np.ndarray:
-    """Concatenate structured rows keeping ``dtype``'s padding (np.concatenate would pack it)."""
-    out = np.zeros(sum(len(p) for p in parts), dtype=dtype)
-    i = 0
-    for p in parts:
-        out[i : i + len(p)] = p
-        i += len(p)
-    return out
 
 
 # --- rosbag2 ------------------------------------------------------------------------------
