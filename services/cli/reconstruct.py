@@ -377,6 +377,9 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                 print(present.to_json(msg), flush=True)
             else:
                 tables.print(present.planes_table(msg))
+                surfaces = present.surfaces_table(msg)
+                if surfaces is not None:
+                    tables.print(surfaces)
             if args.until_scans and n_final >= args.until_scans:
                 finals.set()
 
@@ -569,6 +572,9 @@ def run_review(args: argparse.Namespace) -> int:
     tables = present.console()
     for msg in service.finals.values():
         tables.print(present.planes_table(msg))
+        surfaces = present.surfaces_table(msg)
+        if surfaces is not None:
+            tables.print(surfaces)
     console.print(f"wrote {out} — open it with: rerun {out}", highlight=False)
     if shot is not None:
         console.print(f"wrote {shot.save(args.screenshot)}", highlight=False)
@@ -619,6 +625,9 @@ def run_planner(args: argparse.Namespace) -> int:
                     else f"{origin}: {msg.scanner_id} scan {msg.scan_id} provisional, "
                     f"{msg.samples_used} samples, {len(msg.planes)} planes"
                 )
+                surfaces = present.surfaces_table(msg)
+                if surfaces is not None:
+                    console.print(surfaces)
             if wire.is_terminal(msg):
                 finals += 1
                 if args.until_final and finals >= args.until_final:
