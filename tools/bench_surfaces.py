@@ -197,7 +197,8 @@ def run_scan(family: str, seed: int, pose: int, model: WorldModel) -> ScanRecord
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--worlds", default="all", help="comma-separated world families, or all")
-    parser.add_argument("--seeds", type=int, default=3, help="worlds per family (seeds 0..N-1)")
+    parser.add_argument("--seeds", type=int, default=3, help="worlds per family (seeds F..F+N-1)")
+    parser.add_argument("--first-seed", type=int, default=0, help="F: the first world seed (held-out worlds: 10)")
     parser.add_argument("--max-poses", type=int, default=2, help="sweeps per world (its first poses)")
 
 
@@ -212,14 +213,15 @@ def run(args: argparse.Namespace) -> int:
     from lelsonar.tools.bench import machine, progress
 
     families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
-    jobs = [(f, s) for f in families for s in range(args.seeds)]
+    jobs = [(f, s) for f in families for s in range(args.first_seed, args.first_seed + args.seeds)]
     records: dict[str, list[ScanRecord]] = {f: [] for f in families}
     for family, seed in progress(jobs, "surfaces"):
         model = build_model(draw_world(family, seed))
         for pose in range(min(args.max_poses, len(model.world.poses))):
             records[family].append(run_scan(family, seed, pose, model))
     console = Console(width=200)
-    table = Table(title=f"surfaces per family ({args.seeds} worlds each, ≤ {args.max_poses} sweeps) — {machine()}")
+    seeds = f"seeds {args.first_seed}–{args.first_seed + args.seeds - 1}"
+    table = Table(title=f"surfaces per family ({seeds}, ≤ {args.max_poses} sweeps each) — {machine()}")
     for col in (
         "family",
         "planes found/seen",
