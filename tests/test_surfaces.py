@@ -12,6 +12,7 @@ from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.regions import extrapolated_peak, log_amplitude_curvature
 from lelsonar.view import present
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
@@ -143,6 +144,60 @@ def test_a_line_across_the_stack_is_told_from_a_plane_by_the_curvature_of_its_ra
     assert not result.surfaces
     assert len(result.corners) == 1
     assert "curve along the capsule stack" in result.corners[0].reasons[0]
+
+
+def test_a_wall_meeting_the_floor_is_a_corner_at_the_double_bounce_range_with_the_stack_slope_it_predicts():
+    e = Echoes(seed=8)
+    bearing, h, z = math.radians(20.0), 1.0, -0.3
+    # The wall-floor line, 0.3 m along the stack from the axis: each capsule's range is its distance to the
+    # line, √((h − n·p)² + (x − z)²), so the ranges grow along the stack by ≈ 0.3 m/m.  The wall (gain 0.2)
+    # answers within 12.5° of its foot, the line (gain 3, 16.7° off the fan) out to 22°: the line's region
+    # flanks the wall's on both sides.
+    e.plane(bearing, h, gain=0.2)
+    point = np.array([z, h * math.cos(bearing), h * math.sin(bearing)])
+    e.across_line(point, np.array([0.0, -math.sin(bearing), math.cos(bearing)]), gain=3.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and abs(result.surfaces[0].offset - h) < 0.01
+    wall = result.surfaces[0].label
+    assert len(result.corners) == 2 and not result.edges
+    for c in result.corners:
+        assert c.surfaces == (wall,)
+        assert "double bounce" in c.reasons[0] and "across the fan" in c.reasons[0]
+        assert c.depth == pytest.approx(math.hypot(h, z), abs=0.005)
+        assert f"{z:+.2f} m along the stack" in c.reasons[0]
+        # The line lies at the wall's foot, off the fan by z, and runs in the fan along the wall.
+        assert np.linalg.norm(c.point - point) < 0.03
+        assert abs(c.direction @ np.array([0.0, -math.sin(bearing), math.cos(bearing)])) == pytest.approx(1, abs=1e-6)
+
+
+def test_a_wall_end_whose_peak_a_nearer_post_hides_is_still_a_weak_edge():
+    e = Echoes(seed=9)
+    e.plane(0.0, 1.0)
+    e.plane(math.radians(-100.0), 1.3)
+    # The wall's free end (diffraction, 0.2 of a mirror) at bearing atan2(0.8, 1) = 38.7°, 1.28 m, answers
+    # within 10° of it; a thin post (gain 0.3) at 0.6 m and 25° answers first from 6° to 44°, so the end's
+    # region is its flank 44°–48.7°, past its hidden peak.
+    e.vertical_line(0.6 * math.cos(math.radians(25.0)), 0.6 * math.sin(math.radians(25.0)), gain=0.3)
+    e.vertical_line(1.0, 0.8, gain=0.2)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    far = [f for f in result.edges if abs(f.depth - math.hypot(1.0, 0.8)) < 0.02]
+    assert len(far) == 1, [(s.offset, s.bearing_source) for s in result.surfaces]
+    wall = next(s for s in result.surfaces if abs(s.offset - 1.0) < 0.01)
+    assert far[0].surfaces == (wall.label,) and "weak" in far[0].reasons[0]
+    assert np.linalg.norm(far[0].point[1:] - [1.0, 0.8]) < 0.05
+    assert sorted(round(s.offset, 1) for s in result.surfaces) == [1.0, 1.3]
+
+
+def test_the_beam_curvature_and_a_hidden_peak_come_back_from_a_gaussian_flank():
+    width, peak, centre = 0.26, 0.4, 0.1
+    g = np.linspace(-0.3, 0.5, 41)
+    a = peak * np.exp(-(((g - centre) / width) ** 2))  # log A = log peak − (γ − β)²/w²: k = 1/w²
+    assert log_amplitude_curvature(g, a) == pytest.approx(1 / width**2, rel=0.02)
+    flank = g > centre + 0.15  # the peak is 0.15 rad before the region
+    got = extrapolated_peak(g[flank], a[flank], 1 / width**2, before=math.radians(40.0), after=0.0)
+    assert got == pytest.approx(peak, rel=1e-6)
+    # Where the region's echo faded on that side, its peak cannot lie there.
+    assert extrapolated_peak(g[flank], a[flank], 1 / width**2, before=0.0, after=0.0) is None
 
 
 def test_unexplained_readings_are_counted_with_their_cause():

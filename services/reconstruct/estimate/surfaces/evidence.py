@@ -65,6 +65,9 @@ class Measured:
     span: tuple[float, float]  # γ of the region's first and last steps, rad
     step: float  # the sweep's step, rad
     step_amplitude: np.ndarray  # each step's median echo amplitude, V (NaN: none or no amplitudes)
+    positions: np.ndarray  # (N, 3) each reading's capsule position, m
+    ranges: np.ndarray  # (N,) each reading's range, m
+    stack_sigma: float  # residual σ of the ranges along the stack about a free slope per region, m
 
 
 def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
@@ -131,7 +134,7 @@ def measure_region(
     caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
     d = distance[region.rows, region.capsules]
     x = capsule_x(geometry)[region.capsules]
-    lin, lin_cov, _ = stack_fit(x, region.rows, d, curved=False)
+    lin, lin_cov, lin_sigma = stack_fit(x, region.rows, d, curved=False)
     quad, quad_cov, _ = stack_fit(x, region.rows, d, curved=True)
     slope = float(lin[0])
     tilt = math.asin(max(-1.0, min(1.0, -slope))) if math.isfinite(slope) else 0.0
@@ -162,6 +165,9 @@ def measure_region(
         span=(float(g[0]), float(g[-1])),
         step=step,
         step_amplitude=per_step,
+        positions=caps,
+        ranges=d,
+        stack_sigma=lin_sigma,
     )
 
 
@@ -245,37 +251,53 @@ def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tupl
     return None
 
 
-def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[int, str] | None:
+def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[int, float, str] | None:
     """A plane whose concave corner with a surface across the stack (a floor, a ceiling) this region is.
 
-    That corner is a line across the stack at the plane's foot, off the fan by ``z``: its echo retro-reflects
-    in the plane normal to the line, so the ranges grow along the stack with slope ``−z/ρ`` and its range is
-    ``ρ = √(h² + z²)``.  The two must agree: the slope ``s`` (significant) predicts ``h = ρ √(1 − s²)``.  The
-    plane's bearing must lie within the region's reach.
+    That corner is a line in the plane, across the stack at ``x = z``: its echo retro-reflects in the plane
+    normal to the line, so each reading's range is the capsule's distance to it,
+    ``√((h − n·p)² + (x_p − z)²)``, with the plane's own ``n`` and ``h``.  One unknown, ``z``, must then
+    explain every reading of the region as well as a free slope per region does (within twice its
+    residual σ), with ``z`` off the fan by more than 3 σ (else it is the plane's own echo).  The plane's
+    bearing must lie within a beam's half-width (``beyond_cut``) of the region.
 
     Returns
     -------
-    (index into ``planes``, the evidence) or None.
+    (index into ``planes``, ``z`` in m, the evidence) or None.
     """
-    s, se = m.stack_slope, m.tilt_stderr
-    if not (math.isfinite(s) and math.isfinite(se) and se > 0 and abs(s) > opts.curvature_sigmas * se and abs(s) < 1):
+    s, se, sigma = m.stack_slope, m.tilt_stderr, m.stack_sigma
+    if not (math.isfinite(s) and math.isfinite(se) and se > 0 and abs(s) > opts.curvature_sigmas * se):
         return None
-    h_pred = m.depth * math.sqrt(1.0 - s * s)
-    # How the prediction moves with the slope and the region's depth.
-    h_se_pred = math.hypot(m.depth * abs(s) / math.sqrt(1.0 - s * s) * se, m.depth_stderr)
+    if not (math.isfinite(sigma) and sigma > 0 and abs(s) < 1):
+        return None
+    x, d = m.positions[:, 0], m.ranges
     for j, pj in enumerate(planes):
-        tol = 3 * math.hypot(h_se_pred, pj.depth_stderr)
-        if not math.isfinite(tol):
+        # The wall's own nearer echo masks the line's wherever both answer, whether or not the ranges differ
+        # enough to mark the region cut: the foot may lie a beam's half-width past either end.
+        if not (m.span[0] - opts.beyond_cut <= pj.bearing <= m.span[1] + opts.beyond_cut and m.depth > pj.depth):
             continue
-        if (
-            m.depth - pj.depth > tol
-            and abs(h_pred - pj.depth) <= tol
-            and in_span(pj.bearing, m, m.step, opts.beyond_cut)
-        ):
-            return j, (
-                f"the double bounce of the plane at {pj.depth:.2f} m with a surface across the fan "
-                f"{-s * m.depth:+.2f} m along the stack: range {m.depth:.3f} m and stack slope {s:.3f} agree "
-                f"(ρ√(1−s²) = {h_pred:.3f} m)"
+        a = pj.depth - m.positions @ unit_normal(pj.bearing)
+        z = -s * m.depth  # the slope's own guess, then Gauss-Newton on the one unknown
+        for _ in range(8):
+            r = np.sqrt(a * a + (x - z) ** 2)
+            jac = (z - x) / r
+            den = float(jac @ jac)
+            if not den > 0:
+                break
+            z -= float(jac @ (r - d)) / den
+        r = np.sqrt(a * a + (x - z) ** 2)
+        rms = math.sqrt(float(np.mean((d - r) ** 2)))
+        den = float(((z - x) / r) @ ((z - x) / r))
+        z_se = sigma / math.sqrt(den) if den > 0 else float("inf")
+        if rms <= 2 * sigma and abs(z) > 3 * z_se:
+            return (
+                j,
+                z,
+                (
+                    f"the double bounce of the plane at {pj.depth:.2f} m with a surface across the fan {z:+.2f} m "
+                    f"along the stack: one line explains the ranges to {1000 * rms:.1f} mm rms "
+                    f"(a free slope: {1000 * sigma:.1f} mm)"
+                ),
             )
     return None
 

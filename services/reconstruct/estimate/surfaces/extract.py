@@ -263,20 +263,33 @@ def extract_surfaces(
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
     across_lines: set[int] = set()
     for i, m in enumerate(measured):
+        pool = others(i, planes)
+        # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
+        # alone, which says only that the line runs across the stack.
+        low = stack_dihedral(m, [measured[j] for j in pool], opts)
+        if low is not None:
+            j, z, text = low
+            pj = measured[pool[j]]
+            # The line's point: the plane's foot, off the fan by z; its depth, the distance to it.
+            foot = pj.depth * unit_normal(pj.bearing) + np.array([z, 0.0, 0.0])
+            tilt = math.atan2(z, pj.depth)
+            measured[i] = m = replace(
+                m, bearing=pj.bearing, bearing_stderr=pj.bearing_stderr, depth=float(np.linalg.norm(foot)), tilt=tilt
+            )
+            # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
+            # diffracts, the wall's free top or bottom edge.
+            if weak(m):
+                kinds[i] = ("edge", [text.replace("double bounce", "line"), "with a weak (diffracted) echo"], [pool[j]])
+            else:
+                kinds[i] = ("corner", [text], [pool[j]])
+            across_lines.add(i)
+            continue
         if across[i]:
             text = (
                 f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
                 f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
             )
             kinds[i] = ("edge" if weak(m) else "corner", [text], [])
-            across_lines.add(i)
-            continue
-        pool = others(i, planes)
-        low = stack_dihedral(m, [measured[j] for j in pool], opts)
-        if low is not None:
-            j, text = low
-            measured[i] = replace(m, bearing=measured[pool[j]].bearing, bearing_stderr=measured[pool[j]].bearing_stderr)
-            kinds[i] = ("corner", [text], [pool[j]])
             across_lines.add(i)
             continue
         pair = pair_corner(m, [measured[j] for j in pool], opts)
