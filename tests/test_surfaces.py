@@ -267,3 +267,21 @@ def test_every_wall_of_a_simulated_sweep_is_found_and_none_claims_good_while_wro
     features = {c: sum(r.found[c] for r in records) for c in ("corner", "edge")}
     right = {c: sum(r.right[c] for r in records) for c in ("corner", "edge")}
     print(f"{family}: corners {right['corner']}/{features['corner']}, edges {right['edge']}/{features['edge']} right")
+
+
+@pytest.mark.slow
+def test_with_a_box_in_front_each_wall_is_estimated_from_its_own_echoes_or_flagged():
+    from lelsonar.sim.world_geometry import build_model
+    from lelsonar.sim.worlds import draw_world
+    from lelsonar.tools.bench_surfaces import run_scan
+
+    model = build_model(draw_world("boxes", 0))
+    walls = [p for pose in range(min(2, len(model.world.poses))) for p in run_scan("boxes", 0, pose, model).planes]
+    walls = [p for p in walls if p.wall]
+    assert walls
+    for p in walls:
+        # The box is its own segment: the wall's surface holds the wall's echoes, not the box's.
+        assert p.own_share > 0.5, f"element {p.element}: {100 * p.own_share:.0f} % of its readings are its own"
+        assert (p.quality == "good" and p.within_oracle) or p.flagged, (
+            f"element {p.element} {p.quality}: {100 * p.error:.2f} cm against its oracle's {100 * p.oracle:.2f} cm"
+        )

@@ -66,6 +66,15 @@ class PlaneRecord:
     oracle: float  # m
     angle: float  # rad
     n_true_echoes: int
+    wall: bool = False  # a wall of the room (not a box's face)
+    own_share: float = float("nan")  # the surface's readings that are this element's own echoes
+    flagged: bool = False  # not good, with its reasons
+    range_noise: float = 0.0  # m, σ of one range (the receiver's timing noise): errors under it are noise
+
+    @property
+    def within_oracle(self) -> bool:
+        """Within 3× its oracle, or within one range's σ (the clutter criterion: estimated from its own echoes)."""
+        return self.error <= max(3 * self.oracle, self.range_noise)
 
 
 @dataclass(frozen=True)
@@ -132,6 +141,13 @@ def _element_kind(model: WorldModel, k: int, scan: WorldScan, steps: np.ndarray)
     return TRUE_CLASS[model.elements[k].kind]
 
 
+def _own_share(scan: WorldScan, steps: np.ndarray, element: int) -> float:
+    """Of the readings in the surface's steps, the share that are the element's own (non-diffuse) echoes."""
+    ok = np.isfinite(scan.distance[steps])
+    own = ok & (scan.echo_index[steps] == element) & (scan.echo_source[steps] != EchoSource.DIFFUSE)
+    return float(np.count_nonzero(own) / max(np.count_nonzero(ok), 1))
+
+
 def oracle_error(scan: WorldScan, element: int) -> float:
     """LS on the element's own true echoes, started at the truth: its trace error, m."""
     n_true, h_true = true_plane(scan, element)
@@ -171,9 +187,22 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             n_true, h_true = true_plane(scan, k)
             err = trace_error(surf.normal, surf.offset, n_true, h_true)
             ang = math.acos(min(1.0, abs(float(surf.normal @ n_true))))
+            label = model.surfaces[model.elements[k].surfaces[0]].label
             planes.append(
                 PlaneRecord(
-                    family, seed, scan.pose_index, k, surf.quality, err, oracle_error(scan, k), ang, int(counts[k])
+                    family,
+                    seed,
+                    scan.pose_index,
+                    k,
+                    surf.quality,
+                    err,
+                    oracle_error(scan, k),
+                    ang,
+                    int(counts[k]),
+                    wall=label.startswith("wall"),
+                    own_share=_own_share(scan, steps, k),
+                    flagged=surf.quality != "good" and bool(surf.reasons),
+                    range_noise=scan.rig.receiver.tof_jitter,
                 )
             )
     found = {c: 0 for c in classes}
@@ -237,9 +266,12 @@ def run(args: argparse.Namespace) -> int:
         "edges found/seen (right)",
         "false corners/edges",
         "unexplained",
+        "walls good ≤3× oracle / flagged / neither",
+        "walls' own echoes med",
     ):
         table.add_column(col, justify="right")
     bad_total = 0
+    neither: list[tuple[str, PlaneRecord]] = []
     for family in families:
         recs = records[family]
         planes = [p for r in recs for p in r.planes]
@@ -248,6 +280,10 @@ def run(args: argparse.Namespace) -> int:
         ratio = float(np.median(err) / max(np.median(orc), 1e-9)) if planes else float("nan")
         failed_good = sum(1 for p in planes if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle)
         bad_total += failed_good
+        # Clutter: each wall of the room (not a box's face) good and within 3× its oracle, or flagged.
+        walls = [p for p in planes if p.wall]
+        unclean = [p for p in walls if not ((p.quality == "good" and p.within_oracle) or p.flagged)]
+        neither.extend((family, p) for p in unclean)
 
         def tot(attr: str, cls: str, recs: list[ScanRecord] = recs) -> int:
             return sum(getattr(r, attr)[cls] for r in recs)
@@ -267,6 +303,9 @@ def run(args: argparse.Namespace) -> int:
             f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')})",
             f"{tot('false', 'corner')}/{tot('false', 'edge')}",
             f"{100 * float(np.mean([r.unexplained_share for r in recs])):.0f} %",
+            f"{sum(p.quality == 'good' and p.within_oracle for p in walls)} / {sum(p.flagged for p in walls)} / "
+            f"{len(unclean)}",
+            f"{100 * _pct([p.own_share for p in walls], 50):.0f} %",
         )
     console.print(table)
     for family in families:
@@ -276,9 +315,17 @@ def run(args: argparse.Namespace) -> int:
                     f"failure claiming good: {family} seed {p.seed} pose {p.pose} element {p.element}: "
                     f"{100 * p.error:.1f} cm (oracle {100 * p.oracle:.1f} cm), {math.degrees(p.angle):.1f}°"
                 )
+    for family, p in neither:
+        console.print(
+            f"wall good but over 3× its oracle and the range noise: {family} seed {p.seed} pose {p.pose} "
+            f"element {p.element}: "
+            f"{100 * p.error:.2f} cm (oracle {100 * p.oracle:.2f} cm), own echoes {100 * p.own_share:.0f} %"
+        )
     console.print(
         "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
         "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
-        "and > 3× oracle; (right): claimed with the right class."
+        "and > 3× oracle; (right): claimed with the right class; walls: the room's walls (not boxes' faces), good "
+        "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
+        "steps' readings that are its own."
     )
     return 1 if bad_total else 0
