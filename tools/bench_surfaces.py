@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceSet, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceOptions, SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
@@ -216,11 +216,11 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     return ScanRecord(planes, seen, found, right, false, extracted, share, false_good)
 
 
-def run_scan(family: str, seed: int, pose: int, model: WorldModel) -> ScanRecord:
+def run_scan(family: str, seed: int, pose: int, model: WorldModel, options: SurfaceOptions | None = None) -> ScanRecord:
     """Simulate, extract and score one sweep."""
     scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp, options=options)
     return score_scan(family, scan, result, seed=seed)
 
 
@@ -229,6 +229,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=3, help="worlds per family (seeds F..F+N-1)")
     parser.add_argument("--first-seed", type=int, default=0, help="F: the first world seed (held-out worlds: 10)")
     parser.add_argument("--max-poses", type=int, default=2, help="sweeps per world (its first poses)")
+    parser.add_argument(
+        "--no-joint-corners", action="store_true", help="fit each wall alone (the A/B of the joint corner model)"
+    )
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -244,10 +247,11 @@ def run(args: argparse.Namespace) -> int:
     families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
     jobs = [(f, s) for f in families for s in range(args.first_seed, args.first_seed + args.seeds)]
     records: dict[str, list[ScanRecord]] = {f: [] for f in families}
+    options = SurfaceOptions(joint_corners=not args.no_joint_corners)
     for family, seed in progress(jobs, "surfaces"):
         model = build_model(draw_world(family, seed))
         for pose in range(min(args.max_poses, len(model.world.poses))):
-            records[family].append(run_scan(family, seed, pose, model))
+            records[family].append(run_scan(family, seed, pose, model, options))
     console = Console(width=200)
     seeds = f"seeds {args.first_seed}–{args.first_seed + args.seeds - 1}"
     table = Table(title=f"surfaces per family ({seeds}, ≤ {args.max_poses} sweeps each) — {machine()}")
