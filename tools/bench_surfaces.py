@@ -157,7 +157,8 @@ def _own_share(scan: WorldScan, steps: np.ndarray, element: int) -> float:
     """Of the readings in the surface's steps, the share that are the element's own (non-diffuse) echoes."""
     ok = np.isfinite(scan.distance[steps])
     own = ok & (scan.echo_index[steps] == element) & (scan.echo_source[steps] != EchoSource.DIFFUSE)
-    return float(np.count_nonzero(own) / max(np.count_nonzero(ok), 1))
+    n_ok = int(np.count_nonzero(ok))
+    return int(np.count_nonzero(own)) / max(n_ok, 1)
 
 
 def oracle_error(scan: WorldScan, element: int) -> float:
