@@ -120,8 +120,9 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
         return np.concatenate(out)
 
     x0 = np.array([v for w in walls for v in (w.bearing, w.tilt, w.offset)], dtype=np.float64)
-    if not np.all(np.isfinite(rows(x0))):
-        return None
+    start = rows(x0)
+    if start.size <= x0.size or not np.all(np.isfinite(start)):
+        return None  # fewer rows than unknowns, or a wall's σ or a start not finite
     fit = least_squares(rows, x0, method="lm", x_scale=np.tile([1e-2, 1e-2, 1e-3], len(walls)))
     if not fit.success or not np.all(np.isfinite(fit.x)):
         return None
