@@ -325,13 +325,13 @@ def extract_surfaces(
         )
         return float("nan") if peak is None else mirror_normalised(peak, m.depth, opts)
 
-    def weak(m: Measured) -> bool:
+    def weak(m: Measured, ref: float = mirror) -> bool:
         top = upper_strength(m)
-        return math.isfinite(mirror) and math.isfinite(top) and top < opts.weak_echo * mirror
+        return math.isfinite(ref) and math.isfinite(top) and top < opts.weak_echo * ref
 
-    def strong(m: Measured) -> bool:
+    def strong(m: Measured, ref: float = mirror) -> bool:
         # The observed peak is a lower bound of the region's.
-        return math.isfinite(mirror) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * mirror
+        return math.isfinite(ref) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * ref
 
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
@@ -421,10 +421,16 @@ def extract_surfaces(
                 ties[:2],
             )
         elif len(ties) == 1:
-            if weak(m):
-                kinds[i] = ("edge", ["on a plane's trace off its foot, with a weak (diffracted) echo"], ties)
-            elif strong(m):
-                kinds[i] = ("corner", ["on a plane's trace off its foot, with a mirror-strong echo"], ties)
+            # A plane's end against that plane's own mirror echo (same material, a like range), measured where
+            # its peak is clean; else against the sweep's strongest.
+            mj = measured[ties[0]]
+            ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
+            of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
+            if weak(m, ref):
+                text = f"on a plane's trace off its foot, with a weak (diffracted) echo: under {of}"
+                kinds[i] = ("edge", [f"{text} × {opts.weak_echo:.2f}"], ties)
+            elif strong(m, ref):
+                kinds[i] = ("corner", [f"on a plane's trace off its foot, with an echo as strong as {of}"], ties)
             else:
                 kinds[i] = ("edge", ["on a plane's trace off its foot (its end); echo strength unknown"], ties)
         elif weak(m):
