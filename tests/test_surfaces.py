@@ -161,6 +161,22 @@ def test_a_wall_end_diffracts_weakly_and_is_an_edge():
     assert len(result.surfaces) == 2
 
 
+def test_a_wall_end_as_strong_as_the_walls_own_echo_is_a_corner_whose_other_wall_is_unseen():
+    e = Echoes(seed=10)
+    e.plane(0.0, 1.0)
+    e.plane(math.radians(-100.0), 1.3, gain=2.5)  # a bright wall: the sweep's strongest echo
+    # The double bounce at the wall's end (1, 0.8): 0.75 of the wall's own echo (gain 1.5 with a second wall of
+    # reflectivity 0.5, whose face lies out of the sweep).  Against the wall's own echo it is 0.75: a corner;
+    # against the sweep's strongest it would be 0.75/2.5 = 0.3, under the weak line of 0.35.
+    e.vertical_line(1.0, 0.8, gain=0.75)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    wall = next(s for s in result.surfaces if abs(s.offset - 1.0) < 0.01)
+    assert len(result.corners) == 1 and not result.edges
+    c = result.corners[0]
+    assert c.surfaces == (wall.label,) and "its plane's mirror echo" in c.reasons[0]
+    assert np.linalg.norm(c.point[1:] - [1.0, 0.8]) < 0.05
+
+
 def test_a_line_across_the_stack_is_told_from_a_plane_by_the_curvature_of_its_ranges():
     e = Echoes(seed=5)
     bearing = math.radians(10.0)
