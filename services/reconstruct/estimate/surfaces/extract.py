@@ -11,16 +11,25 @@ Per region of constant depth (:mod:`.regions`):
 * **depth** ``ρ`` from the ranges with the bearing fixed (the mirror condition
   ``n · p_c + d = h``), **tilt** from the differential ranges along the capsule
   stack.
-* **class** by physics:
+* **class** by physics (the tests are in :mod:`.evidence`):
 
+  - one line in a plane, across the fan, explaining every range (the double
+    bounce of a wall with the floor or ceiling): a **corner** of that wall, an
+    **edge** (its free top or bottom) if its echo is weak;
   - ranges curved along the stack as ``1/(2ρ)``: a line or point *across* the
     stack (the image of the array is not a straight array), so not a plane;
-  - a region whose point lies on the trace of two other planes, at the range
-    their intersection predicts for the double bounce: a **concave corner**;
-  - on one other plane's trace (off that plane's own foot): that plane's end,
-    a **corner** if its echo is as strong as a mirror's, an **edge** if weak;
-  - an echo much weaker than a mirror's at its range (diffraction): an **edge**;
+  - at the range and bearing of two planes' intersection (the double bounce):
+    a **concave corner**;
+  - on one other plane's trace (off that plane's own foot, or deeper than it):
+    that plane's end, a **corner** if its echo is as strong as that plane's own
+    mirror echo, an **edge** if weak;
+  - an echo much weaker than the sweep's strongest at its range (diffraction):
+    an **edge**; a region cut before its peak is weak only if the upper
+    estimate of its peak (its flank, extrapolated with the sweep's own beam
+    curvature) is;
   - anything else: a **plane**.
+
+Walls joined at concave corners are fitted with them (:mod:`.joint`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
@@ -292,8 +301,6 @@ def extract_surfaces(
     regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
     measured = [measure_region(r, g, d, amp, geometry, opts) for r in regions]
 
-    # The mirror amplitude at unit range: the median over the regions (most are mirrors, and an edge's is
-    # weaker by an order of magnitude, so it does not pull the median).
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
     # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
     # far below it diffracts.  A median would not do: in a cluttered sweep most regions may be edges.
