@@ -7,8 +7,8 @@ instead:
 
 * a chunk is kept only if it decompresses and its CRC (``uncompressed_crc``)
   matches, so a flipped bit never yields a wrong message — it costs the chunk
-  it falls in, which is one step of a lelsonar recording (one chunk per step,
-  see :class:`lelsonar.log.recording.McapRecorder`);
+  it falls in, which is one step of a lelsonar recording (a chunk per contract
+  message, then one for its views: see :class:`lelsonar.log.recording.McapRecorder`);
 * after a damaged record it resynchronises on the next chunk whose CRC
   matches, so one bad chunk does not hide the rest of the file;
 * what it skipped is reported as :class:`Damage` with the byte range and the
@@ -63,6 +63,7 @@ from lelsonar.log.records import (
     chunk_frame,
     chunk_raw,
     chunk_records,
+    inner_records,
     looks_like_chunk,
     lost_region,
     message_index_count,
@@ -358,30 +359,16 @@ class _Read:
     def parse_chunk(self, unit: Unit) -> tuple[list[RawMessage], dict[int, int], int, int]:
         """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere."""
         raw = chunk_raw(self.buf, unit.offset + 9, unit.length)
-        size = len(raw)
         out = self.out
         found: list[RawMessage] = []
         counts: dict[int, int] = {}
         schemas: list[SchemaInfo] = []
         channels: list[ChannelInfo] = []
         t0, t1 = 1 << 64, 0
-        unpack_head, unpack_message, message_head = (
-            RECORD_HEAD.unpack_from,
-            MESSAGE_HEAD.unpack_from,
-            MESSAGE_HEAD.size,
-        )
+        unpack_message, message_head = MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
         known, wanted = out.channels, self.wanted
-        pos = 0
-        while pos < size:
-            if pos + 9 > size:
-                raise BadRecord("field of 9 bytes runs past the record")
-            op, n = unpack_head(raw, pos)
-            body, stop = pos + 9, pos + 9 + n
-            if stop > size:
-                raise BadRecord("record inside the chunk runs past it")
+        for op, body, stop in inner_records(raw):
             if op == OP_MESSAGE:
-                if n < message_head:
-                    raise BadRecord(f"field of {message_head} bytes runs past the record")
                 cid, seq, t_log, t_pub = unpack_message(raw, body)
                 counts[cid] = counts.get(cid, 0) + 1
                 if t_log < t0:
@@ -397,7 +384,6 @@ class _Read:
                 schemas.append(parse_schema(Cursor(raw, body, stop)))
             elif op == OP_CHANNEL:
                 channels.append(parse_channel(Cursor(raw, body, stop)))
-            pos = stop
         for s in schemas:
             out.schemas.setdefault(s.id, s)
         for ch in channels:

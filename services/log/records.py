@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -313,13 +314,14 @@ def chunk_raw(buf, start: int, length: int) -> bytes:
     return raw
 
 
-def chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
-    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
-    raw = chunk_raw(buf, start, length)
+def inner_records(raw) -> Iterator[tuple[int, int, int]]:
+    """(opcode, start, stop of its content) of each record inside a decompressed chunk, in order.
+
+    Raises BadRecord where a record runs past the chunk, or a message record is shorter than its header.
+    """
     size = len(raw)
-    records: list[tuple[int, object]] = []
+    unpack_head, message_head = RECORD_HEAD.unpack_from, MESSAGE_HEAD.size
     pos = 0
-    unpack_head, unpack_message, message_head = RECORD_HEAD.unpack_from, MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
     while pos < size:
         if pos + 9 > size:
             raise BadRecord("field of 9 bytes runs past the record")
@@ -327,16 +329,25 @@ def chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]
         body, stop = pos + 9, pos + 9 + n
         if stop > size:
             raise BadRecord("record inside the chunk runs past it")
+        if op == OP_MESSAGE and n < message_head:
+            raise BadRecord(f"field of {message_head} bytes runs past the record")
+        yield op, body, stop
+        pos = stop
+
+
+def chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
+    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
+    raw = chunk_raw(buf, start, length)
+    records: list[tuple[int, object]] = []
+    unpack_message, message_head = MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
+    for op, body, stop in inner_records(raw):
         if op == OP_MESSAGE:
-            if n < message_head:
-                raise BadRecord(f"field of {message_head} bytes runs past the record")
             records.append((op, (*unpack_message(raw, body), raw[body + message_head : stop])))
         elif op == OP_SCHEMA:
             records.append((op, parse_schema(Cursor(raw, body, stop))))
         elif op == OP_CHANNEL:
             records.append((op, parse_channel(Cursor(raw, body, stop))))
-        pos = stop
-    return records, size
+    return records, len(raw)
 
 
 def message_index_count(buf, start: int, length: int) -> tuple[int, int]:
