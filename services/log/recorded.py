@@ -11,7 +11,7 @@ from __future__ import annotations
 import base64
 import binascii
 import logging
-from collections.abc import Callable, Generator, Iterator
+from collections.abc import Callable, Collection, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -94,20 +94,30 @@ class Recording:
                 out[cid] = cls
         return out
 
-    def payloads(self) -> Iterator[RecordedPayload]:
+    def payloads(self, types: Collection[type[Message]] | None = None) -> Iterator[RecordedPayload]:
         """The contract messages in log-time order, undecoded, read chunk by chunk.
 
-        Only the chunks that hold contract messages are decompressed (by their message index);
+        ``types``: the contract messages wanted (all if None); a chunk holding none of them is not
+        decompressed (by its message index), as the chunks of the viewer channels are not;
         when the iterator is exhausted, ``salvage`` accounts for what was read.  A scan whose ScanStart
         was lost (a damaged chunk) gets it back from the recorder's ``lelsonar.scan_start.*`` metadata
         copy, in its place in log time (:attr:`restored` names those scans once read).
         """
         s = self.salvage
         start_name = codec.ScanStart.DESCRIPTOR.full_name
+        wanted = None if types is None else frozenset(cls.DESCRIPTOR.full_name for cls in types)
+
+        def want(channel: ChannelInfo, schema: SchemaInfo | None) -> bool:
+            if not is_contract_channel(channel, schema):
+                return False
+            return wanted is None or (schema is not None and schema.name in wanted)
+
         copies = sorted(self.start_copies().items(), key=lambda kv: kv[1].log_time_ns)
+        if wanted is not None and start_name not in wanted:
+            copies = []
         seen: set[tuple[str, int]] = set()
         names: dict[int, tuple[str, str]] = {}
-        for m in self.messages(is_contract_channel):
+        for m in self.messages(want):
             # Messages come in log-time order: a copy older than this message whose ScanStart has not
             # come is one whose ScanStart was lost.
             while copies and copies[0][1].log_time_ns < m.log_time:
@@ -322,8 +332,10 @@ def _adopt_orphans(s: Salvage) -> None:
         s.orphans = sum(1 for m in s.messages if m.channel_id not in s.channels)
 
 
-def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, None, None]:
-    """Yield the contract messages of a recording in log-time order, undecoded.
+def iter_payloads(
+    path: Path | str | Recording, types: Collection[type[Message]] | None = None
+) -> Generator[RecordedPayload, None, None]:
+    """Yield the contract messages of a recording (of ``types``, all if None) in log-time order, undecoded.
 
     A damaged or unfinished file yields every intact message and, at the end,
     logs one warning (pass an opened :class:`Recording` to report the damage
@@ -337,7 +349,7 @@ def iter_payloads(path: Path | str | Recording) -> Generator[RecordedPayload, No
         :class:`~lelsonar.errors.NotMcapError`).
     """
     rec = open_recording(path)
-    yield from rec.payloads()
+    yield from rec.payloads(types)
     if not isinstance(path, Recording) and (line := rec.damage_warning()):
         _log.warning("%s", line.removeprefix("warning: "))
 

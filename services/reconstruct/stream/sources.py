@@ -25,6 +25,7 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
+from lelsonar.log.ahead import ReadAhead
 from lelsonar.log.recording import McapRecorder, iter_payloads
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
@@ -118,21 +119,30 @@ def _item_bytes(item) -> int:
     return 0
 
 
+#: The contract messages a replay feeds the service: a scan's, not the estimates a file may also hold.
+REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
+
+
 def replay_mcap(
     path: Path | str, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
+    The file is read (decompressed, checked) on a thread of its own a bounded number of payloads
+    ahead (:class:`~lelsonar.log.ahead.ReadAhead`): decompression and the estimation's kernels
+    release the GIL, so the reading of the next steps overlaps the estimation of a scan.  The
+    payloads are handled in the file's order, on the caller's thread, as without it.
+
     Returns the number of payloads read.
     """
     n = 0
-    for rec in iter_payloads(path):
-        if rec.type_name == codec.Reconstruction.DESCRIPTOR.full_name:
-            continue  # earlier outputs in the file are not inputs
-        service.handle(rec.type_name, rec.payload)
-        n += 1
-        if on_payload is not None:
-            on_payload(rec.log_time_ns)
+    # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
+    with ReadAhead(iter_payloads(path, REPLAYED)) as payloads:
+        for rec in payloads:
+            service.handle(rec.type_name, rec.payload)
+            n += 1
+            if on_payload is not None:
+                on_payload(rec.log_time_ns)
     service.finish()
     return n
 
