@@ -563,7 +563,7 @@ class _Walk:
                 else:
                     entries[cid] = entries.get(cid, 0) + n
                     nxt = body + length
-            elif looks_like_chunk(buf, body, length):
+            elif (self.summary_start is None or pos < self.summary_start) and looks_like_chunk(buf, body, length):
                 try:
                     chunk_records(buf, body, length)  # rare: worth proving before calling it intact
                 except (BadRecord, struct.error) as exc:

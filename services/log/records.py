@@ -423,13 +423,8 @@ def top_level_record(buf, op: int, pos: int, body: int, length: int, out: Salvag
         message_index_count(buf, body, length)
         c.pos = c.end
     elif op == OP_CHUNK_INDEX:
-        c.take(32)
-        n = c.u32()
-        if n % 10:
-            raise BadRecord("chunk index offsets are not whole entries")
-        c.take(n + 8)
-        c.string()
-        c.take(16)
+        check_chunk_index(buf, body, length)  # one per chunk in the summary: checked without a Cursor
+        c.pos = c.end
     elif op == OP_ATTACHMENT:
         t_log, t_create = c.u64(), c.u64()
         name, media = c.string(), c.string()
@@ -468,6 +463,29 @@ def top_level_record(buf, op: int, pos: int, body: int, length: int, out: Salvag
         raise BadRecord(f"unknown opcode {op:#04x}")
     if c.pos != c.end:
         raise BadRecord(f"{length - (c.pos - body)} bytes left over in the record")
+
+
+def check_chunk_index(buf, body: int, length: int) -> None:
+    """A chunk index record's layout: times and place (32 bytes), offsets, index length, compression, sizes."""
+    end = body + length
+    if body + 36 > end:
+        raise BadRecord(f"field of 36 bytes runs past the record of {length}")
+    n = U32.unpack_from(buf, body + 32)[0]
+    if n % 10:
+        raise BadRecord("chunk index offsets are not whole entries")
+    at = body + 36 + n + 8
+    if at + 4 > end:
+        raise BadRecord(f"field of {n + 12} bytes runs past the record")
+    cl = U32.unpack_from(buf, at)[0]
+    stop = at + 4 + cl + 16
+    if stop > end:
+        raise BadRecord(f"field of {cl + 16} bytes runs past the record")
+    if stop != end:
+        raise BadRecord(f"{end - stop} bytes left over in the record")
+    try:
+        str(buf[at + 4 : at + 4 + cl], "utf-8")
+    except UnicodeDecodeError as exc:
+        raise BadRecord(f"string is not UTF-8: {exc}") from None
 
 
 def read_summary(buf, size: int, out: Salvage) -> None:
