@@ -137,3 +137,63 @@ def test_a_replay_does_not_decompress_the_estimates_or_the_views(recorded):
 def test_a_replay_of_a_missing_file_raises_the_readers_error(tmp_path):
     with pytest.raises(RecordingNotFoundError, match="no recording at"):
         replay_mcap(tmp_path / "missing.mcap", ReconstructionService())
+
+
+# --- chunks decompressed ahead -----------------------------------------------------------------------------
+def _mcap(path, chunks: int, per_chunk: int = 3) -> None:
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    with open(path, "wb") as f:
+        w = McapWriter(f, compression=CompressionType.ZSTD)
+        w.start(profile="", library="test")
+        schema = w.register_schema("raw", "", b"")
+        ids = {t: w.register_channel(t, "raw", schema) for t in ("/a", "/b")}
+        for k in range(chunks):
+            topic = "/a" if k % 3 else "/b"
+            for i in range(per_chunk):
+                t = 10 * k + i
+                w.add_message(ids[topic], log_time=t, data=f"{topic}@{t}".encode() * 50, publish_time=t)
+            w.flush()
+        w.finish()
+
+
+def _read(path, threads: int, want=None):
+    from lelsonar.log.reader import open_mcap
+
+    source = open_mcap(path)
+    got = [(m.channel_id, m.log_time, m.data) for m in source.read(want, verify_all=False, decompress_threads=threads)]
+    s = source.account
+    return got, s.damage, s.counts, s.chunks_read
+
+
+@pytest.mark.parametrize("flip", [None, 9, 21])  # chunks of /b (every third)
+@pytest.mark.parametrize("only_b", [False, True])
+def test_chunks_decompressed_ahead_read_as_chunks_decompressed_in_turn(tmp_path, flip, only_b):
+    path = tmp_path / "many.mcap"
+    _mcap(path, 40)
+    if flip is not None:
+        from mcap.reader import make_reader
+
+        with open(path, "rb") as f:
+            chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+        hit = chunks[flip]
+        data = bytearray(path.read_bytes())
+        data[hit.chunk_start_offset + hit.chunk_length // 2] ^= 0x20
+        path.write_bytes(bytes(data))
+    want = (lambda ch, _schema: ch.topic == "/b") if only_b else None
+    in_turn = _read(path, 0, want)
+    assert in_turn[0], "nothing read"
+    assert (flip is None) == (not in_turn[1])
+    assert _read(path, 1, want) == _read(path, 2, want) == in_turn
+
+
+def test_a_read_left_early_stops_its_decompressing_threads(tmp_path):
+    from lelsonar.log.reader import open_mcap
+
+    path = tmp_path / "many.mcap"
+    _mcap(path, 40)
+    messages = open_mcap(path).read(decompress_threads=2)
+    assert next(messages).log_time == 0
+    messages.close()
+    assert not any(th.name.startswith("mcap-decompress") for th in threading.enumerate())

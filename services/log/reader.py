@@ -37,6 +37,7 @@ import os
 import stat
 import struct
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 from lelsonar.errors import NotMcapError, RecordingError, RecordingNotFoundError
@@ -218,6 +219,7 @@ class McapSource:
         *,
         verify_all: bool = True,
         ordered: bool = True,
+        decompress_threads: int = 0,
     ) -> Iterator[RawMessage]:
         """Yield the intact messages, chunk by chunk, in log-time order (file order breaks ties).
 
@@ -231,6 +233,9 @@ class McapSource:
             counted from that index.
         ordered : bool
             False: file order, with no merge.
+        decompress_threads : int
+            Threads that decompress and check the next chunks while this one is walked (zstd releases
+            the GIL); 0: each chunk is decompressed when it is reached.  What is yielded is the same.
 
         Holds the chunks whose time ranges overlap the message being yielded, not the file:
         chunks are merged by the message start time their header records, as the indexed
@@ -240,7 +245,7 @@ class McapSource:
         out.start_read()
         buf, size = open_bytes(out.path)
         try:
-            yield from _Read(self, buf, size, want, verify_all).messages(ordered)
+            yield from _Read(self, buf, size, want, verify_all, decompress_threads).messages(ordered)
         finally:
             if isinstance(buf, mmap.mmap):
                 buf.close()
@@ -253,8 +258,15 @@ class _Read:
     #: cache): a mapped file's touched pages count in the resident set until unmapped.
     RELEASE_EVERY = 16 * 1024 * 1024
 
-    def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool) -> None:
+    #: Chunks decompressed ahead of the one being walked, by the decompressing threads.
+    AHEAD = 4
+
+    def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool, threads: int = 0) -> None:
         self.source, self.buf, self.size = source, buf, size
+        self.threads = threads
+        self.pool: ThreadPoolExecutor | None = None
+        self.inflight: dict[int, tuple[Future[list[bytes | Exception]], int]] = {}  # offset → (job, place)
+        self.next_ahead = 0  # the first unit not yet considered for decompressing ahead
         self.out = source.account
         self.want = want
         self.verify_all = verify_all
@@ -294,14 +306,43 @@ class _Read:
             buf.madvise(mmap.MADV_DONTNEED, self.released, end - self.released)
             self.released = end
 
-    def messages(self, ordered: bool) -> Iterator[RawMessage]:
+    def ahead(self, i: int) -> None:
+        """Keep the next AHEAD to 2 × AHEAD units' chunks being decompressed, a job of AHEAD units at a time.
+
+        One job per AHEAD chunks, on the decompressing thread: a thread hand-over per chunk would cost a
+        good part of what decompressing it does.  A chunk the read turns out to skip (its channels learnt
+        meanwhile) costs its decompression only.
+        """
+        if self.pool is None or self.next_ahead > i + self.AHEAD:
+            return  # a job ahead of this unit is still to be used: the next one starts while it is
         units = self.source.units
-        if not ordered:
-            for unit in units:
-                yield from self.unit_messages(unit)
-                self.release(unit.offset)
-            self.done()
-            return
+        stop = min(len(units), max(self.next_ahead, i + 1) + self.AHEAD)
+        batch = [u for u in units[max(self.next_ahead, i + 1) : stop] if u.chunk and not self.skippable(u)]
+        self.next_ahead = stop
+        if batch:
+            job = self.pool.submit(decompress_chunks, self.buf, [(u.offset + 9, u.length) for u in batch])
+            for k, u in enumerate(batch):
+                self.inflight[u.offset] = (job, k)
+
+    def messages(self, ordered: bool) -> Iterator[RawMessage]:
+        if self.threads > 0:
+            self.pool = ThreadPoolExecutor(self.threads, thread_name_prefix="mcap-decompress")
+        try:
+            yield from self.in_order() if ordered else self.in_file_order()
+        finally:
+            if self.pool is not None:
+                self.pool.shutdown(wait=True, cancel_futures=True)  # before the file's map is closed
+                self.inflight.clear()
+
+    def in_file_order(self) -> Iterator[RawMessage]:
+        for i, unit in enumerate(self.source.units):
+            self.ahead(i)
+            yield from self.unit_messages(unit)
+            self.release(unit.offset)
+        self.done()
+
+    def in_order(self) -> Iterator[RawMessage]:
+        units = self.source.units
         # later[i]: the earliest message any unit from i on may hold; what is older can be yielded.
         later = [0] * (len(units) + 1)
         later[-1] = 1 << 64
@@ -311,6 +352,7 @@ class _Read:
         seq = 0
         push, pop = heapq.heappush, heapq.heappop
         for i, unit in enumerate(units):
+            self.ahead(i)
             for m in self.unit_messages(unit):
                 push(heap, (m.log_time, seq, m))
                 seq += 1
@@ -358,7 +400,11 @@ class _Read:
 
     def parse_chunk(self, unit: Unit) -> tuple[list[RawMessage], dict[int, int], int, int]:
         """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere."""
-        raw = chunk_raw(self.buf, unit.offset + 9, unit.length)
+        pending = self.inflight.pop(unit.offset, None)
+        done = chunk_raw(self.buf, unit.offset + 9, unit.length) if pending is None else pending[0].result()[pending[1]]
+        if isinstance(done, Exception):
+            raise done
+        raw = done
         out = self.out
         found: list[RawMessage] = []
         counts: dict[int, int] = {}
@@ -417,6 +463,17 @@ class _Read:
         nbytes = unit.stop - unit.offset
         est = round(nbytes * self.good_messages / self.good_bytes) if self.good_bytes else 0
         self.out.damage.append(Damage(unit.offset, nbytes, "chunk", reason, None, est))
+
+
+def decompress_chunks(buf, places: list[tuple[int, int]]) -> list[bytes | Exception]:
+    """Each chunk record's content at (start, length) of ``buf``, decompressed and checked, or why not."""
+    out: list[bytes | Exception] = []
+    for start, length in places:
+        try:
+            out.append(chunk_raw(buf, start, length))
+        except (BadRecord, struct.error) as exc:
+            out.append(exc)
+    return out
 
 
 def open_mcap(path: Path | str) -> McapSource:

@@ -94,11 +94,14 @@ class Recording:
                 out[cid] = cls
         return out
 
-    def payloads(self, types: Collection[type[Message]] | None = None) -> Iterator[RecordedPayload]:
+    def payloads(
+        self, types: Collection[type[Message]] | None = None, *, decompress_threads: int = 0
+    ) -> Iterator[RecordedPayload]:
         """The contract messages in log-time order, undecoded, read chunk by chunk.
 
         ``types``: the contract messages wanted (all if None); a chunk holding none of them is not
         decompressed (by its message index), as the chunks of the viewer channels are not;
+        ``decompress_threads``: see :meth:`~lelsonar.log.reader.McapSource.read`;
         when the iterator is exhausted, ``salvage`` accounts for what was read.  A scan whose ScanStart
         was lost (a damaged chunk) gets it back from the recorder's ``lelsonar.scan_start.*`` metadata
         copy, in its place in log time (:attr:`restored` names those scans once read).
@@ -117,7 +120,7 @@ class Recording:
             copies = []
         seen: set[tuple[str, int]] = set()
         names: dict[int, tuple[str, str]] = {}
-        for m in self.messages(want):
+        for m in self.messages(want, decompress_threads=decompress_threads):
             # Messages come in log-time order: a copy older than this message whose ScanStart has not
             # come is one whose ScanStart was lost.
             while copies and copies[0][1].log_time_ns < m.log_time:
@@ -157,14 +160,18 @@ class Recording:
         return out
 
     def messages(
-        self, want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None, *, verify_all: bool = False
+        self,
+        want: Callable[[ChannelInfo, SchemaInfo | None], bool] | None = None,
+        *,
+        verify_all: bool = False,
+        decompress_threads: int = 0,
     ) -> Iterator[RawMessage]:
         """The intact messages of the channels ``want`` accepts (all if None), in log-time order.
 
         ``verify_all`` decompresses and checks every chunk, wanted or not, so the damage is complete.
         """
         if self.source is not None:
-            return self.source.read(want, verify_all=verify_all)
+            return self.source.read(want, verify_all=verify_all, decompress_threads=decompress_threads)
         s = self.salvage  # read already, into memory (lelsonar.log.reader.salvage)
         return (
             m
@@ -333,7 +340,7 @@ def _adopt_orphans(s: Salvage) -> None:
 
 
 def iter_payloads(
-    path: Path | str | Recording, types: Collection[type[Message]] | None = None
+    path: Path | str | Recording, types: Collection[type[Message]] | None = None, *, decompress_threads: int = 0
 ) -> Generator[RecordedPayload, None, None]:
     """Yield the contract messages of a recording (of ``types``, all if None) in log-time order, undecoded.
 
@@ -349,7 +356,7 @@ def iter_payloads(
         :class:`~lelsonar.errors.NotMcapError`).
     """
     rec = open_recording(path)
-    yield from rec.payloads(types)
+    yield from rec.payloads(types, decompress_threads=decompress_threads)
     if not isinstance(path, Recording) and (line := rec.damage_warning()):
         _log.warning("%s", line.removeprefix("warning: "))
 

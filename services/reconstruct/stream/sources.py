@@ -128,16 +128,17 @@ def replay_mcap(
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
-    The file is read (decompressed, checked) on a thread of its own a bounded number of payloads
-    ahead (:class:`~lelsonar.log.ahead.ReadAhead`): decompression and the estimation's kernels
-    release the GIL, so the reading of the next steps overlaps the estimation of a scan.  The
-    payloads are handled in the file's order, on the caller's thread, as without it.
+    The file is read on a thread of its own a bounded number of payloads ahead
+    (:class:`~lelsonar.log.ahead.ReadAhead`), its next chunks decompressed and checked on another:
+    decompression and the estimation's kernels release the GIL, so reading the next steps overlaps
+    estimating a scan.  The payloads are handled in the file's order, on the caller's thread, as
+    without them.
 
     Returns the number of payloads read.
     """
     n = 0
     # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
-    with ReadAhead(iter_payloads(path, REPLAYED)) as payloads:
+    with ReadAhead(iter_payloads(path, REPLAYED, decompress_threads=1)) as payloads:
         for rec in payloads:
             service.handle(rec.type_name, rec.payload)
             n += 1
