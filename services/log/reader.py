@@ -258,14 +258,20 @@ class _Read:
     #: cache): a mapped file's touched pages count in the resident set until unmapped.
     RELEASE_EVERY = 16 * 1024 * 1024
 
-    #: Chunks decompressed ahead of the one being walked, by the decompressing threads.
-    AHEAD = 4
+    #: Uncompressed bytes of the chunks decompressed ahead of the one being walked, at most (a bound
+    #: on memory whatever the file's length, and room enough for a scan's final estimate to overlap).
+    AHEAD_BYTES = 16 * 1024 * 1024
+    #: About this many uncompressed bytes per job: a thread hand-over per small chunk would cost a good
+    #: part of what decompressing it does.
+    JOB_BYTES = 1024 * 1024
 
     def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool, threads: int = 0) -> None:
         self.source, self.buf, self.size = source, buf, size
         self.threads = threads
         self.pool: ThreadPoolExecutor | None = None
-        self.inflight: dict[int, tuple[Future[list[bytes | Exception]], int]] = {}  # offset → (job, place)
+        #: Chunks being decompressed ahead, by offset: (job, place in the job, uncompressed bytes).
+        self.inflight: dict[int, tuple[Future[list[bytes | Exception]], int, int]] = {}
+        self.inflight_bytes = 0
         self.next_ahead = 0  # the first unit not yet considered for decompressing ahead
         self.out = source.account
         self.want = want
@@ -307,22 +313,42 @@ class _Read:
             self.released = end
 
     def ahead(self, i: int) -> None:
-        """Keep the next AHEAD to 2 × AHEAD units' chunks being decompressed, a job of AHEAD units at a time.
+        """Keep the chunks of the units after ``i`` being decompressed, up to AHEAD_BYTES of them.
 
-        One job per AHEAD chunks, on the decompressing thread: a thread hand-over per chunk would cost a
-        good part of what decompressing it does.  A chunk the read turns out to skip (its channels learnt
-        meanwhile) costs its decompression only.
+        A chunk the read turns out to skip (its channels learnt meanwhile) costs its decompression only.
         """
-        if self.pool is None or self.next_ahead > i + self.AHEAD:
-            return  # a job ahead of this unit is still to be used: the next one starts while it is
-        units = self.source.units
-        stop = min(len(units), max(self.next_ahead, i + 1) + self.AHEAD)
-        batch = [u for u in units[max(self.next_ahead, i + 1) : stop] if u.chunk and not self.skippable(u)]
-        self.next_ahead = stop
-        if batch:
-            job = self.pool.submit(decompress_chunks, self.buf, [(u.offset + 9, u.length) for u in batch])
-            for k, u in enumerate(batch):
-                self.inflight[u.offset] = (job, k)
+        if self.pool is None:
+            return
+        units, buf = self.source.units, self.buf
+        j = max(self.next_ahead, i + 1)
+        while j < len(units) and self.inflight_bytes < self.AHEAD_BYTES:
+            job: list[tuple[Unit, int]] = []
+            nbytes = 0
+            while j < len(units) and nbytes < self.JOB_BYTES:
+                u = units[j]
+                j += 1
+                if u.chunk and not self.skippable(u):
+                    usize = CHUNK_HEAD.unpack_from(buf, u.offset + 9)[2]  # checked by the walk
+                    job.append((u, usize))
+                    nbytes += usize
+            if job:
+                done = self.pool.submit(decompress_chunks, buf, [(u.offset + 9, u.length) for u, _ in job])
+                for k, (u, usize) in enumerate(job):
+                    self.inflight[u.offset] = (done, k, usize)
+                self.inflight_bytes += nbytes
+        self.next_ahead = j
+
+    def take_raw(self, unit: Unit) -> bytes:
+        """One chunk's content decompressed and checked: decompressed ahead, or now."""
+        pending = self.inflight.pop(unit.offset, None)
+        if pending is None:
+            return chunk_raw(self.buf, unit.offset + 9, unit.length)
+        done, k, usize = pending
+        self.inflight_bytes -= usize
+        raw = done.result()[k]
+        if isinstance(raw, Exception):
+            raise raw
+        return raw
 
     def messages(self, ordered: bool) -> Iterator[RawMessage]:
         if self.threads > 0:
@@ -381,6 +407,9 @@ class _Read:
             body = unit.offset + 9 + MESSAGE_HEAD.size
             return [RawMessage(cid, seq, t_log, t_pub, bytes(buf[body : unit.offset + 9 + unit.length]), unit.offset)]
         if self.skippable(unit):
+            pending = self.inflight.pop(unit.offset, None)
+            if pending is not None:  # decompressed ahead before its channels were known: not needed
+                self.inflight_bytes -= pending[2]
             for cid, n in unit.index or ():
                 self.count(cid, n, unit.start, unit.end)
             return []
@@ -400,11 +429,7 @@ class _Read:
 
     def parse_chunk(self, unit: Unit) -> tuple[list[RawMessage], dict[int, int], int, int]:
         """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere."""
-        pending = self.inflight.pop(unit.offset, None)
-        done = chunk_raw(self.buf, unit.offset + 9, unit.length) if pending is None else pending[0].result()[pending[1]]
-        if isinstance(done, Exception):
-            raise done
-        raw = done
+        raw = self.take_raw(unit)
         out = self.out
         found: list[RawMessage] = []
         counts: dict[int, int] = {}

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 from collections import Counter, OrderedDict, deque
@@ -25,7 +26,6 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
-from lelsonar.log.ahead import ReadAhead
 from lelsonar.log.recording import McapRecorder, iter_payloads
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
@@ -123,27 +123,36 @@ def _item_bytes(item) -> int:
 REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
 
 
+def decompress_threads() -> int:
+    """Threads to decompress a replayed file ahead of the service: the cores the host's load leaves idle, up to two.
+
+    The load average counts the replay itself.  On a busy host a decompressing thread finds no core
+    to run on: it would only compete with the service for the one it has, and slow the replay.
+    """
+    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
+    return max(0, min(2, round(idle)))
+
+
 def replay_mcap(
     path: Path | str, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
-    The file is read on a thread of its own a bounded number of payloads ahead
-    (:class:`~lelsonar.log.ahead.ReadAhead`), its next chunks decompressed and checked on another:
-    decompression and the estimation's kernels release the GIL, so reading the next steps overlaps
-    estimating a scan.  The payloads are handled in the file's order, on the caller's thread, as
-    without them.
+    Where the host has an idle core, the next chunks of the file are decompressed and checked on
+    other threads while the service handles a payload (:func:`decompress_threads`,
+    :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
+    the estimation.  The payloads are handled in the file's order, on the caller's thread, and the
+    estimates are the same either way.
 
     Returns the number of payloads read.
     """
     n = 0
     # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
-    with ReadAhead(iter_payloads(path, REPLAYED, decompress_threads=1)) as payloads:
-        for rec in payloads:
-            service.handle(rec.type_name, rec.payload)
-            n += 1
-            if on_payload is not None:
-                on_payload(rec.log_time_ns)
+    for rec in iter_payloads(path, REPLAYED, decompress_threads=decompress_threads()):
+        service.handle(rec.type_name, rec.payload)
+        n += 1
+        if on_payload is not None:
+            on_payload(rec.log_time_ns)
     service.finish()
     return n
 
