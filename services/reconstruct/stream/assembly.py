@@ -233,6 +233,16 @@ class ScanAssembly(WriterChecks):
         self._candidate_windows = candidates
 
     @property
+    def newest_ns(self) -> int:
+        """The acquisition time of the latest step placed (else of the highest step received; 0: none), without
+        unpacking its waveforms (:attr:`latest` does, for display)."""
+        view = self._latest
+        if view is not None:
+            return int(self.time_ns[view.step if isinstance(view, StepView) else view[0]])
+        steps = np.flatnonzero(self.received)
+        return int(self.time_ns[steps[-1]]) if len(steps) else 0
+
+    @property
     def latest(self) -> StepView | None:
         """The latest step placed, for display (its waveforms unpacked when first read)."""
         view = self._latest

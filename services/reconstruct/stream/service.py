@@ -526,6 +526,8 @@ class ReconstructionService:
         if scan.n_received - p.steps_at_fit < self.config.refit_every:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
         had_corner = p.critical is not None
+        if had_corner and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9:
+            return []  # within the per-scan rate limit: no estimate, and no input built to learn that
         est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p)
         if not had_corner and p.critical is not None:
             self._event(
