@@ -9,14 +9,14 @@ Processes, all ``python -m lelsonar ...`` children started and always reaped her
   :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`, the default
   :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`, provisional
   estimates on), plus a probe that timestamps what they process;
-- one publisher process with N scanners: each has the acquisition service's
-  :class:`~lelsonar.acquire.scan_loop.ScanOutput` (a served
-  :class:`~lelsonar.acquire.log_server.ScanLog`, a
-  :class:`~lelsonar.acquire.log_server.LogServer`, a ``ScanPublisher`` with
-  congestion control BLOCK), and puts real simulated ``Sample`` payloads
-  (:mod:`lelsonar.sim`, built once) at ``--rate`` Hz per scanner, the
-  scanners' phases spread over the period.  Each ``acquisition_time_ns`` is the
-  wall clock just before its put;
+- ``--publishers`` processes (default one per 25 scanners) sharing the N scanners
+  (:mod:`lelsonar.tools.bench_fleet_publisher`): each scanner has a served
+  :class:`~lelsonar.acquire.log_server.ScanLog` and its
+  :class:`~lelsonar.acquire.log_server.LogServer`, and puts real simulated ``Sample``
+  payloads (:mod:`lelsonar.sim`, encoded once, a header joined per put) at ``--rate`` Hz
+  with congestion control BLOCK, the scanners' phases spread over the period, on one
+  schedule for all the processes.  Each ``acquisition_time_ns`` is the wall clock just
+  before its put;
 - this process: subscribes to ``<prefix>/*/planes`` and counts terminal
   estimates per scan (duplicates, incomplete).
 
@@ -26,7 +26,10 @@ time from the first put to the last processed), p50/p99 put → processed
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
 worker (user + system over its wall time), CPU of each process while busy (a worker from its first
 live sample to its last, read at most every 10 ms, the publisher over its puts, the router
-meanwhile), and how far the publisher fell behind its schedule.  The offered rate is scanners ×
+meanwhile), how far the publishers fell behind their schedule (a run where they fell behind on
+their own is invalid: the offered rate was not offered; behind because BLOCK held their puts, the
+workers did not keep up), and each worker's CPU per sample inside ``handle``, inside ``tick`` and
+outside them, with the provisional refits' cost by the steps the scan held.  The offered rate is scanners ×
 ``--rate``: a run shows whether the workers keep up with it, not how far beyond it they could go;
 ``--capacity`` finds that (:mod:`lelsonar.tools.bench_fleet_capacity`).  ``--failover`` (default on
 with W ≥ 2) runs the same again and SIGKILLs one worker in the middle of the first scans: every
@@ -495,6 +498,16 @@ def refit_cost(refits: list[tuple[int, float]], steps: int) -> dict[str, float |
     return out
 
 
+def _behind(pub: dict | None) -> str:
+    """What the publishers' schedule says of a run: nothing (kept), held back by BLOCK, or invalid."""
+    pub = pub or {}
+    if pub.get("kept_up"):
+        return ""
+    if pub.get("held_back"):
+        return f" behind: held back inside put {pub['blocked_s']:.1f} s (BLOCK: the workers did not keep up)"
+    return " BEHIND on their own: run invalid"
+
+
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """One case over its runs: medians of the figures, sums of the failures (every run kept in "runs")."""
 
@@ -514,9 +527,12 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     procs = sorted({m for r in runs for m in r["busy_cpu"]})
     out["busy_cpu"] = {m: med([r["busy_cpu"].get(m) for r in runs]) for m in procs}
     pubs = [r["publisher"] for r in runs if r["publisher"]]
-    out["publisher"] = {k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {}) if k != "kept_up"}
+    out["publisher"] = {
+        k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {}) if k not in ("kept_up", "held_back", "valid")
+    }
     if pubs:
-        out["publisher"]["kept_up"] = len(pubs) == len(runs) and all(p["kept_up"] for p in pubs)
+        for flag in ("kept_up", "held_back", "valid"):
+            out["publisher"][flag] = len(pubs) == len(runs) and all(p[flag] for p in pubs)
     out["cpu_per_sample_us"] = {
         m: {k: med([(r["cpu_per_sample_us"].get(m) or {}).get(k) for r in runs]) for k in CPU_PARTS} for m in members
     }
@@ -618,7 +634,7 @@ def run(args: argparse.Namespace) -> int:
             "publishing took / schedule, s",
             lambda r: (
                 f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f} ({pub(r, 'processes'):.0f} processes)"
-                + ("" if (r["publisher"] or {}).get("kept_up") else " BEHIND: run invalid")
+                + _behind(r["publisher"])
             ),
         ),
         (
@@ -668,7 +684,7 @@ def run(args: argparse.Namespace) -> int:
         args.json.write_text(
             json.dumps({"command": command_line(args), "machine": machine(), "cases": results}, indent=1)
         )
-    behind = [r["case"] for r in results if not (r["publisher"] or {}).get("kept_up")]
+    behind = [r["case"] for r in results if not (r["publisher"] or {}).get("valid")]
     if behind:
         console.print(
             f"[red]invalid[/]: the publishers fell behind their schedule ({', '.join(behind)}): the offered rate "

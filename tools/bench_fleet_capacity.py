@@ -10,9 +10,10 @@ p99 at every rung (50 and 100 scanners among them by default), against ``TARGET_
 
 The scanners are spread over publisher processes (:mod:`lelsonar.tools.bench_fleet_publisher`); a
 rung whose publishers could not keep their own schedule is invalid, not "does not hold": there the
-offered rate was not offered.  The ladder stops at it, and the capacity found (the rungs below) is a
-lower bound.  Each rung also shows the worker's CPU per sample, inside ``handle`` and ``tick`` and
-outside them.
+offered rate was not offered (publishers held back inside their puts by congestion control BLOCK
+are the worker's doing: that rung is valid, and does not hold).  The ladder stops at an invalid
+rung, and the capacity found (the rungs below) is a lower bound.  Each rung also shows the
+worker's CPU per sample, inside ``handle`` and ``tick`` and outside them.
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ def rung(args: argparse.Namespace, scanners: int, run_case: Callable, summarise:
     res["offered"] = offered
     res["share"] = res["handled_per_s"] / offered if offered else 0.0
     res["publisher_kept_up"] = bool(pub.get("kept_up"))
+    # Publishers held back by BLOCK (the worker's back-pressure) make a valid rung that does not hold.
+    res["valid"] = bool(pub.get("valid"))
     # Samples actually put per second.
     res["put_rate"] = pub["samples"] / pub["wall_s"] if pub.get("wall_s") else 0.0
     res["complete"] = (
@@ -76,7 +79,15 @@ def _ms(d: dict) -> str:
 def row(res: dict) -> tuple[str, ...]:
     pub = res["publisher"] or {}
     busy = [v for m, v in res["busy_cpu"].items() if m.startswith("w") and v is not None]
-    verdict = "yes" if res["holds"] else "no" if res["publisher_kept_up"] else "invalid: publishers behind"
+    verdict = (
+        "yes"
+        if res["holds"]
+        else "no"
+        if res["publisher_kept_up"]
+        else "no (publishers held back by BLOCK)"
+        if res["valid"]
+        else "invalid: publishers behind"
+    )
     cpu = [v for v in res["cpu_per_sample_us"].values() if v and v.get("total") is not None]
     return (
         str(res["scanners"]),
@@ -110,7 +121,7 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
         console.print(f"capacity: {n} scanners × {args.rate:g} Hz …", highlight=False)
         res = rung(args, n, run_case, summarise)
         results.append(res)
-        if not res["publisher_kept_up"]:
+        if not res["valid"]:
             break  # a higher rate would not be offered either
         if not res["holds"] and n >= TARGET_SCANNERS:
             break  # past what one reconstructor keeps up with (the target's rungs are measured whatever)
@@ -137,7 +148,7 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
         )
         + (
             "; a lower bound: the publishers fell behind their schedule at the next rung (invalid)"
-            if results and not results[-1]["holds"] and not results[-1]["publisher_kept_up"]
+            if results and not results[-1]["holds"] and not results[-1]["valid"]
             else ""
         )
         + ("; every rung held" if results and results[-1]["holds"] else ""),
@@ -157,8 +168,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
     table = Table(title=title)
     for i, h in enumerate(HEADERS):
         table.add_column(h, justify="left" if i in (0, len(HEADERS) - 1) else "right")
-    for row in rows:
-        table.add_row(*row)
+    for cells in rows:
+        table.add_row(*cells)
     console.print(table)
     for note in notes:
         console.print(note, highlight=False)
