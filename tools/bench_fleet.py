@@ -135,6 +135,30 @@ def _settings(endpoint: str):
     return ZenohSettings(mode="client", connect=(endpoint,))
 
 
+def _thread_cpu() -> dict[int, tuple[str, float]]:
+    """CPU (user + system, s) of each thread of this process so far, by native id, with its OS name."""
+    out: dict[int, tuple[str, float]] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in Path("/proc/self/task").glob("*"):
+        try:
+            fields = (task / "stat").read_text().rpartition(")")[2].split()
+            out[int(task.name)] = ((task / "comm").read_text().strip(), (int(fields[11]) + int(fields[12])) / tick)
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def _by_thread(before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]]) -> dict[str, float]:
+    """CPU s between two :func:`_thread_cpu` readings, by thread: Python's by their names, the others (Zenoh's
+    runtime) by their OS names without a trailing number."""
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: Counter[str] = Counter()
+    for tid, (comm, cpu) in after.items():
+        name = names.get(tid) or comm.rstrip("0123456789-_") or comm
+        out[name] += cpu - before.get(tid, (comm, 0.0))[1]
+    return {k: round(v, 3) for k, v in out.most_common() if v > 0}
+
+
 def _pct(values: list[float], q: float) -> float | None:
     if not values:
         return None
@@ -237,7 +261,9 @@ def worker_main(args: argparse.Namespace) -> int:
                 token = session.liveliness().declare_token(f"{PREFIX}/{args.member}/alive/bench-worker")
                 group.wait_members(args.workers, 60)
                 print(_READY + json.dumps({"members": len(group.members)}), flush=True)
+                threads0 = _thread_cpu()
                 stop.wait()
+                threads = _by_thread(threads0, _thread_cpu())
                 token.undeclare()
             server.close()
             gstats = group.stats_dict()
@@ -258,6 +284,7 @@ def worker_main(args: argparse.Namespace) -> int:
                 "busy_cpu_s": busy_cpu[-1][1] - busy_cpu[0][1] if len(busy_cpu) == 2 else None,
                 "busy_wall_s": busy_cpu[-1][0] - busy_cpu[0][0] if len(busy_cpu) == 2 else None,
                 "thread_cpu_s": thread_cpu,
+                "threads_cpu_s": threads,
                 "refits": refits,
                 "service": {
                     **service.stats_dict(),
@@ -462,6 +489,7 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "worker_errors": {r["member"]: r["errors"] for r in finished},
         "publisher": pub,
         "cpu_per_sample_us": {r["member"]: cpu_per_sample(r) for r in finished},
+        "threads_cpu_s": {r["member"]: r.get("threads_cpu_s", {}) for r in finished},
         "refit_us": refit_cost([x for r in finished for x in r["refits"]], args.steps or 184),
         "elapsed_s": time.monotonic() - t_start,
     }
@@ -535,6 +563,10 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
             out["publisher"][flag] = len(pubs) == len(runs) and all(p[flag] for p in pubs)
     out["cpu_per_sample_us"] = {
         m: {k: med([(r["cpu_per_sample_us"].get(m) or {}).get(k) for r in runs]) for k in CPU_PARTS} for m in members
+    }
+    out["threads_cpu_s"] = {
+        m: {k: med([r["threads_cpu_s"].get(m, {}).get(k) for r in runs]) for k in runs[0]["threads_cpu_s"].get(m, {})}
+        for m in members
     }
     bins = runs[0]["refit_us"]
     out["refit_us"] = {b: med([r["refit_us"].get(b) for r in runs]) for b in bins}
@@ -674,6 +706,11 @@ def run(args: argparse.Namespace) -> int:
             f"{r['dropped_other_member']}",
             highlight=False,
         )
+        for m, threads in r["threads_cpu_s"].items():
+            console.print(
+                f"{r['case']}: {m}'s CPU by thread, s: " + ", ".join(f"{k} {v:.2f}" for k, v in threads.items()),
+                highlight=False,
+            )
     load = os.getloadavg()
     console.print(
         f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2 cores shared with other work "
