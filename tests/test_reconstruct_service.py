@@ -220,6 +220,38 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
     assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
 
 
+def test_finals_of_scans_ending_under_a_backlog_are_made_by_tick_within_its_budget(monkeypatch):
+    now = [0.0]
+    service, scans = _deferred_scans(now)
+    for messages in scans.values():  # every payload through the ScanEnd with a backlog waiting
+        assert finals(feed_busy(service, messages[1:])) == []
+    assert service.stats.finals_deferred == 3 and service.has_deferred
+    made, real = [], service._finalise
+
+    def slow_final(scan, p, status):  # each final takes 60 % of the budget on the service's clock
+        made.append(scan.key[0])
+        now[0] += 0.6 * service.config.provisional_budget
+        return real(scan, p, status)
+
+    monkeypatch.setattr(service, "_finalise", slow_final)
+    first = finals(service.tick(busy=True))
+    assert len(first) == 2 and service.has_deferred  # the first, then one more within the budget
+    second = finals(service.tick(busy=True))
+    assert len(second) == 1 and not service.has_deferred and sorted(made) == ["a", "b", "c"]
+    # The same finals as made on the spot, without a backlog.
+    for final in first + second:
+        alone = ReconstructionService(ReconstructConfig(provisional_period=0), clock=lambda: 0.0)
+        (expected,) = finals(feed(alone, scans[final.scanner_id]))
+        assert comparable(final) == comparable(expected)
+
+
+def feed_busy(service: ReconstructionService, messages) -> list[codec.Reconstruction]:
+    out = []
+    for m in messages:
+        out += service.handle(type_name(m), m.SerializeToString(), busy=True)
+    return out
+
+
 def test_a_busy_service_sheds_stale_provisional_refits_and_counts_them():
     now = [0.0]
     service, scans = _deferred_scans(now)

@@ -15,7 +15,9 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
    ``max_provisional_delay``, so a burst costs one refit, not one per sample;
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
-   terminal.
+   terminal — if a backlog waits then, by :meth:`ReconstructionService.tick`, within
+   ``provisional_budget`` a tick (at least one a tick), so that scans ending together do not hold the
+   stream for all their finals at once.
 
 Gaps and when a final may be published:
 
@@ -146,6 +148,8 @@ class ReconstructionService:
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
         self._deferred: set[ScanKey] = set()
+        # Complete scans whose final waited for a backlog (tick() finalises them, within its budget).
+        self._finals_due: set[ScanKey] = set()
         #: How finals are reconstructed; provisional estimates are the cheaper variant of the same.
         self._options = config.record_options()
         self._provisional_options = replace(self._options, provisional=True)
@@ -207,6 +211,7 @@ class ReconstructionService:
         now = self._clock()
         cfg = self.config
         out = self._catch_up_provisionals(busy)
+        finals = 0  # made by this tick: deferred ones only within the budget, past the first
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
@@ -218,8 +223,13 @@ class ReconstructionService:
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                    if self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                        pass
+                    elif key in self._finals_due and finals and self._clock() - now >= cfg.provisional_budget:
+                        pass  # deferred, and the budget is spent: the next tick finalises it
+                    else:
                         out.append(self._finalise(scan, p, "final"))
+                        finals += 1
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
                 elif self._can_ask(r, now, key):
@@ -284,8 +294,8 @@ class ReconstructionService:
 
     @property
     def has_deferred(self) -> bool:
-        """Whether a provisional refit waits for :meth:`tick` (it waited for a backlog that has drained)."""
-        return bool(self._deferred)
+        """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
+        return bool(self._deferred) or bool(self._finals_due)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now."""
@@ -334,6 +344,8 @@ class ReconstructionService:
                 "refused": s.recovery_refused,
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
+            "provisionals_shed": s.provisionals_shed,
+            "finals_deferred": s.finals_deferred,
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
@@ -484,7 +496,7 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
-                return [self._finalise(scan, p, "final")]
+                return self._final_or_due(scan, p, busy)
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
             # before samples that follow it: what is still missing at the end is said by the terminal estimate.
@@ -512,12 +524,21 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
-            return [self._finalise(scan, p, "final")]
+            return self._final_or_due(scan, p, busy)
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
             self._deferred.add(scan.key)
             return []  # the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
+
+    def _final_or_due(self, scan: ScanAssembly, p: Partial, busy: bool) -> list[codec.Reconstruction]:
+        """A complete scan's final now, or, while a backlog waits, by :meth:`tick` (the samples come first)."""
+        if busy:
+            if scan.key not in self._finals_due:
+                self._finals_due.add(scan.key)
+                self.stats.finals_deferred += 1
+            return []
+        return [self._finalise(scan, p, "final")]
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
         """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`)."""
@@ -620,6 +641,7 @@ class ReconstructionService:
         self._emit(msg)
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)
+        self._finals_due.discard(scan.key)
         self.ingest.close(scan.key)
         return msg
 
