@@ -483,6 +483,8 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in finished},
         "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in finished},
         "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in finished},
+        "shed": {r["member"]: r["service"].get("provisionals_shed", 0) for r in finished},
+        "finals_deferred": {r["member"]: r["service"].get("finals_deferred", 0) for r in finished},
         "statuses": dict(Counter(statuses)),
         "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
         "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
@@ -572,7 +574,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     out["refit_us"] = {b: med([r["refit_us"].get(b) for r in runs]) for b in bins}
     out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
     out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
-    for key in ("recovered", "dropped_other_member"):
+    for key in ("recovered", "dropped_other_member", "shed", "finals_deferred"):
         out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
     return out
 
@@ -679,6 +681,10 @@ def run(args: argparse.Namespace) -> int:
         (
             "provisional refit µs by steps held",
             lambda r: " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items()),
+        ),
+        (
+            "provisionals shed / finals deferred",
+            lambda r: f"{sum(r['shed'].values()):g} / {sum(r['finals_deferred'].values()):g}",
         ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
