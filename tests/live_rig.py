@@ -94,7 +94,7 @@ class Rig:
     def __exit__(self, *exc) -> None:
         self.stack.close()
 
-    def _collect(self, msg: codec.Reconstruction) -> None:
+    def collect(self, msg: codec.Reconstruction) -> None:
         if wire.is_terminal(msg):
             with self._lock:
                 self.terminal.append(msg)
@@ -104,7 +104,7 @@ class Rig:
     def start_reconstructor(self, service: ReconstructionService | None = None) -> ReconstructionService:
         """Start the LiveSource and wait until the acquirer's session sees it (its token)."""
         session = self.stack.enter_context(open_session(hermetic_settings(self.socket_path, listen=False)))
-        self.service = service or ReconstructionService(self.config, publish=self._collect)
+        self.service = service or ReconstructionService(self.config, publish=self.collect)
         self.stop = threading.Event()
         self.live = self.stack.enter_context(
             LiveSource(session, ScannerKeys(PREFIX, "*"), self.service, self.stop, recovery=self.recovery)

@@ -71,6 +71,7 @@ def test_planner_receives_the_final_estimate_and_replay_gives_the_same(tmp_path)
     assert len(planner_finals) == 1 and len(live) == 1
     assert planner_finals[0] == live[0]
     assert live[0]["samples_used"] == 184 and {p["label"] for p in live[0]["planes"]} == {"a", "b"}
+    assert len(live[0]["surfaces"]) == 2  # the scene's two walls, as every surface of the sweep
     # What the planner got is the scene the simulated scanner looked at, within the noise model's bounds.
     estimate = present.from_json(live[0])
     assert_matches_the_scene(estimate, DEFAULT_METHOD, "paper-test1")  # acquire's default preset

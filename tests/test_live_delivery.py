@@ -11,8 +11,10 @@ import pytest
 
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.record import ScanInput
 from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import RecoveryConfig
+from lelsonar.reconstruct.stream.scan_input import scan_input
 from lelsonar.reconstruct.stream.service import ReconstructionService
 
 from .conftest import simulated_messages, type_name
@@ -26,13 +28,43 @@ def scan():
     return simulated_messages("paper-test1", seed=5, scanner_id="rig", scan_id=42, steps=STEPS)
 
 
-def replayed_final(messages) -> codec.Reconstruction:
+def replayed_final(messages, observer=None) -> codec.Reconstruction:
     """The independent truth: the same messages, all of them, straight through the replay path."""
-    service = ReconstructionService(ReconstructConfig(provisional=False))
+    service = ReconstructionService(ReconstructConfig(provisional=False), observer=observer)
     for m in messages:
         service.handle(type_name(m), m.SerializeToString())
     (final,) = service.finish() or list(service.finals.values())
     return final
+
+
+class FinalInput:
+    """An observer keeping the :class:`ScanInput` each final estimate was made from."""
+
+    def __init__(self) -> None:
+        self.inputs: list[ScanInput] = []
+
+    def scan_started(self, scan) -> None:
+        pass
+
+    def step(self, *args) -> None:
+        pass
+
+    def event(self, *args) -> None:
+        pass
+
+    def estimate(self, scan, message, results, partial) -> None:
+        if results is not None:  # a terminal estimate, before the service forgets its scan
+            self.inputs.append(scan_input(scan))
+
+
+def assert_same_input(live: ScanInput, replayed: ScanInput) -> None:
+    """Field by field, bit for bit: what the reconstruction of record reads."""
+    for name in ("steps", "gamma", "distance", "sensor_energy", "echo_amplitude", "own_distance", "own_amplitude"):
+        a, b = getattr(live, name), getattr(replayed, name)
+        assert (a is None) == (b is None), name
+        if a is not None:
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+    assert live.writer_problems == replayed.writer_problems and live.n_schedule == replayed.n_schedule
 
 
 def estimate_only(msg: codec.Reconstruction) -> codec.Reconstruction:
@@ -51,14 +83,19 @@ def accounting(msg) -> tuple:
 def test_dropped_samples_are_recovered_from_the_acquirers_log(scan, zenoh_socket):
     rng = np.random.default_rng(11)
     dropped = set(int(s) for s in rng.choice(STEPS, size=17, replace=False)) | {0, STEPS - 1}
+    live, replayed = FinalInput(), FinalInput()
     with Rig(zenoh_socket) as rig:
-        service = rig.start_reconstructor()
+        service = rig.start_reconstructor(ReconstructionService(rig.config, publish=rig.collect, observer=live))
         rig.acquirer("rig").send(scan, unpublished=dropped)
         assert rig.done.wait(30), f"no terminal estimate; stats {service.stats_dict()}"
     (final,) = rig.terminal
     assert wire.status_name(final) == "final" and list(final.missing_steps) == []
     assert accounting(final) == (STEPS, STEPS - len(dropped), len(dropped), 0, {}, 0)
-    assert estimate_only(final) == estimate_only(replayed_final(scan))
+    again = replayed_final(scan, replayed)
+    assert_same_input(live.inputs[0], replayed.inputs[0])
+    # Every surface of the sweep too (the scene's two walls and their corner), bit for bit.
+    assert len(final.surfaces) == 2 and len(final.corners) == 1
+    assert estimate_only(final) == estimate_only(again)
     assert rig.live.errors == 0 and rig.live.recovery_stats.get("delivered") == len(dropped)
 
 
@@ -157,7 +194,7 @@ class _FlakyService(ReconstructionService):
 
 def test_live_source_worker_survives_an_unexpected_exception(scan, zenoh_socket):
     with Rig(zenoh_socket) as rig:
-        svc = rig.start_reconstructor(_FlakyService(rig.config, publish=rig._collect, fail_on_step=10))
+        svc = rig.start_reconstructor(_FlakyService(rig.config, publish=rig.collect, fail_on_step=10))
         rig.acquirer("rig").send(scan)
         assert rig.done.wait(30), f"no terminal estimate; stats {svc.stats_dict()}"
     assert svc.failed == 1

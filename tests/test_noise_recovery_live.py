@@ -33,6 +33,7 @@ def test_a_noise_triggered_scan_live_with_steps_recovered_from_the_log_equals_it
     (final,) = rig.terminal
     assert wire.status_name(final) == "final" and list(final.missing_steps) == []
     assert accounting(final) == (steps, steps - len(dropped), len(dropped), 0, {}, 0)
+    assert final.surfaces  # every surface of the sweep, as the replay's
     assert estimate_only(final) == estimate_only(replayed_final(messages))
     named = "re-timed from the first echo over the noise after it"
     assert final.planes and all(any(named in r for r in p.quality_reasons) for p in final.planes)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 
 import numpy as np
@@ -41,17 +42,19 @@ def to_json(msg: codec.Reconstruction) -> str:
 
 
 def from_json(line: str | dict) -> codec.Reconstruction:
-    """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back)."""
-    d = json.loads(line) if isinstance(line, str) else dict(line)
+    """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back).
+
+    A dict given is left as it is (a copy is mapped back): the caller may compare it afterwards.
+    """
+    d = json.loads(line) if isinstance(line, str) else copy.deepcopy(dict(line))
     d["status"] = STATUS.get(str(d.get("status", "")), 0)
-    d["planes"] = [
-        {**p, "quality": QUALITY.get("" if p.get("quality") == "unassessed" else p.get("quality"), 0)}
-        for p in d.get("planes", [])
-    ]
-    for sd in d.get("surfaces", []):
-        q = sd.get("plane", {}).get("quality")
-        sd["plane"]["quality"] = QUALITY.get("" if q == "unassessed" else q, 0)
+    for p in [*d.get("planes", []), *(sd.get("plane", {}) for sd in d.get("surfaces", []))]:
+        p["quality"] = _quality_number(p.get("quality"))
     return ParseDict(d, codec.Reconstruction())
+
+
+def _quality_number(name) -> int:
+    return QUALITY.get("" if name == "unassessed" else name, 0)
 
 
 def _vec(v) -> np.ndarray:

@@ -16,7 +16,11 @@ Final (``options.provisional`` False), from scratch, on the whole scan:
    on the board's own readings, and a plane the recovered echoes turn away from that fit is unreliable;
 3. the verdict (:func:`_verdicts`): the scan's writer findings on every plane, the recovered echoes'
    check on the planes of record, and each compared plane cross-checked against the plane of record
-   of its wall.
+   of its wall;
+4. every surface of the sweep, beside the L's planes: the planes, concave corners and convex edges of
+   its regions of constant depth (:func:`~lelsonar.reconstruct.estimate.surfaces.extract_surfaces`, on
+   the same repaired ranges of record and their echoes' amplitudes), the writer findings on each
+   surface's verdict too.
 
 The provisional variant is documented on :func:`reconstruct_scan`.
 """
@@ -48,6 +52,7 @@ from lelsonar.reconstruct.estimate.results import (
     ScanReconstruction,
 )
 from lelsonar.reconstruct.estimate.split import critical_step
+from lelsonar.reconstruct.estimate.surfaces import SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import EnergyModel
 
 __all__ = [
@@ -57,6 +62,7 @@ __all__ = [
     "ScanEstimate",
     "reconstruct_scan",
     "provisional_method",
+    "with_findings",
 ]
 
 #: A writer finding: the verdict it imposes on every plane (None: named, no plane suffers) and its text.
@@ -236,6 +242,10 @@ class ScanEstimate:
     failures : tuple of str
         Failure lines beyond the planes' and the edge's (the notes, when the method of record has no
         plane: the first thing to fix).
+    surfaces : SurfaceSet or None
+        Every surface, corner and edge of the sweep, on a final only.  A provisional estimate says
+        nothing of surfaces (None): the regions of constant depth are only known once the sweep has
+        passed them, and a consumer that acts on them waits for the terminal estimate.
     """
 
     method: str
@@ -251,6 +261,7 @@ class ScanEstimate:
     results: Mapping[str, ScanReconstruction] = field(default_factory=lambda: MappingProxyType({}))
     notes: tuple[str, ...] = ()
     failures: tuple[str, ...] = ()
+    surfaces: SurfaceSet | None = None
 
     def planes_of(self, method: str) -> tuple[PlaneResult, ...]:
         """The published planes of ``method`` (the method of record or a compared method), verdicts
@@ -370,6 +381,7 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
     notes = tuple(text for _, text in scan.writer_problems)
     crit = int(steps[main.critical_step]) if main.critical_step is not None else None
     t = main.timings
+    surfaces = extract_surfaces(scan.gamma, scan.distance, scan.geometry, amplitude=scan.echo_amplitude)
     return ScanEstimate(
         method=options.method,
         compare_methods=options.compare_methods,
@@ -384,7 +396,31 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
         results=MappingProxyType(results),
         notes=notes,
         failures=notes if not all(isinstance(pl, PlaneFit) for pl in main.planes) else (),
+        surfaces=_surface_findings(surfaces, findings),
     )
+
+
+def with_findings(estimate: ScanEstimate, findings: tuple[tuple[str, str], ...]) -> ScanEstimate:
+    """``estimate`` with ``findings`` (verdict level, text) on every plane and every surface: what the
+    stream knows of a scan beyond its data (a sweep stopped early, copies that conflicted)."""
+    if not findings:
+        return estimate
+    return replace(
+        estimate,
+        planes=tuple(add_findings(pl, findings) for pl in estimate.planes),
+        surfaces=_surface_findings(estimate.surfaces, findings),
+    )
+
+
+def _surface_findings(surfaces: SurfaceSet | None, findings: tuple[tuple[str, str], ...]) -> SurfaceSet | None:
+    """The writer's or the stream's findings on each surface's verdict, as on the planes of record."""
+    if surfaces is None or not findings:
+        return surfaces
+    out = []
+    for s in surfaces.surfaces:
+        plane = add_findings(s.plane, findings)
+        out.append(replace(s, plane=plane) if isinstance(plane, PlaneFit) else s)
+    return replace(surfaces, surfaces=tuple(out))
 
 
 def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState) -> ScanEstimate | None:

@@ -172,7 +172,8 @@ def estimate_message(
 ) -> codec.Reconstruction:
     """The ``Reconstruction`` message of an estimate of record
     (:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`): its planes, edge and failures,
-    then the failures beyond them (``estimate.failures``).
+    then the failures beyond them (``estimate.failures``), and the sweep's surfaces (``surfaces``, by
+    default the estimate's own: a final's; a provisional estimate has none).
 
     ``status`` is a terminal status for a final estimate (the stream decides which: final, incomplete,
     final_timeout), "provisional" for a provisional one.
@@ -192,7 +193,7 @@ def estimate_message(
         timings=estimate.timings,
         missing_steps=missing_steps,
         accounting=accounting,
-        surfaces=surfaces,
+        surfaces=surfaces if surfaces is not None else estimate.surfaces,
     )
     msg.failures.extend(estimate.failures)
     return msg

@@ -50,11 +50,12 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings
+from lelsonar.reconstruct.estimate.quality import DEGRADED
 from lelsonar.reconstruct.estimate.record import (
     ProvisionalState,
     provisional_method,
     reconstruct_scan,
+    with_findings,
 )
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
@@ -589,8 +590,7 @@ class ReconstructionService:
             findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
         if scan.conflicts:
             findings += ((DEGRADED, conflict_reason(scan, self.recover is not None)),)
-        if findings:
-            est = replace(est, planes=tuple(add_findings(pl, findings) for pl in est.planes))
+        est = with_findings(est, findings)
         msg = wire.estimate_message(
             est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
         )
