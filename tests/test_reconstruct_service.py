@@ -245,6 +245,19 @@ def test_finals_of_scans_ending_under_a_backlog_are_made_by_tick_within_its_budg
         assert comparable(final) == comparable(expected)
 
 
+def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():
+    now = [1000.0]  # a monotonic clock: far from 0
+    service, scans = _deferred_scans(now)
+    messages = scans["a"][1:110]
+    assert feed_busy(service, messages) == []  # its corner confirmed meanwhile, but no refit inline
+    assert service.has_deferred
+    (caught_up,) = service.tick()
+    assert not wire.is_terminal(caught_up) and caught_up.last_step == messages[-1].step
+    # Without a backlog the same scan gets its provisional estimates on the way.
+    alone, _ = _deferred_scans(now)
+    assert [e for e in feed(alone, messages) if not wire.is_terminal(e)]
+
+
 def feed_busy(service: ReconstructionService, messages) -> list[codec.Reconstruction]:
     out = []
     for m in messages:

@@ -108,7 +108,9 @@ class RecoveryState:
 class Partial(ProvisionalState):
     """The state of one scan in progress: the provisional estimate's, and the stream's."""
 
-    estimated_at: float = 0.0  # clock of the last provisional estimate (a backlog defers the next)
+    #: Clock of the last provisional estimate, or of the scan's first message: under a backlog the next refit
+    #: (the corner's confirmation, the costliest, among them) waits up to ``max_provisional_delay`` after it.
+    estimated_at: float = 0.0
     #: A provisional refit waited for a backlog (tick() catches up).
     deferred: bool = False
     last_activity: float = 0.0
@@ -476,7 +478,7 @@ class ReconstructionService:
         scan = event.scan
         p = self._partials.get(scan.key)
         if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
-            p = self._partials[scan.key] = Partial()
+            p = self._partials[scan.key] = Partial(estimated_at=self._clock())
         p.last_activity = self._clock()
         if event.kind == "start":
             if self._observer:
