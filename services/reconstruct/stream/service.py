@@ -219,6 +219,7 @@ class ReconstructionService:
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
                 del self._partials[key]
+                self._finals_due.discard(key)
                 continue
             r = p.recovery
             self._note_progress(r, scan.n_received)
