@@ -220,7 +220,8 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
     assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
 
 
-def test_finals_of_scans_ending_under_a_backlog_are_made_by_tick_within_its_budget(monkeypatch):
+@pytest.mark.parametrize("catch_up", ["tick", "catch_up"])
+def test_finals_of_scans_ending_under_a_backlog_are_made_later_within_the_budget(monkeypatch, catch_up):
     now = [0.0]
     service, scans = _deferred_scans(now)
     for messages in scans.values():  # every payload through the ScanEnd with a backlog waiting
@@ -234,9 +235,10 @@ def test_finals_of_scans_ending_under_a_backlog_are_made_by_tick_within_its_budg
         return real(scan, p, status)
 
     monkeypatch.setattr(service, "_finalise", slow_final)
-    first = finals(service.tick(busy=True))
+    later = (lambda: service.tick(busy=True)) if catch_up == "tick" else service.catch_up
+    first = finals(later())
     assert len(first) == 2 and service.has_deferred  # the first, then one more within the budget
-    second = finals(service.tick(busy=True))
+    second = finals(later())
     assert len(second) == 1 and not service.has_deferred and sorted(made) == ["a", "b", "c"]
     # The same finals as made on the spot, without a backlog.
     for final in first + second:

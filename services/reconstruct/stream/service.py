@@ -268,6 +268,24 @@ class ReconstructionService:
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
         return out
 
+    def catch_up(self) -> list[codec.Reconstruction]:
+        """Only what waited for a backlog that has drained: the deferred provisional refits, then the
+        deferred finals, within ``provisional_budget`` (at least one final); no walk over every open scan,
+        which :meth:`tick` makes, so a source may call this after every payload and :meth:`tick` less often."""
+        start = self._clock()
+        out = self._catch_up_provisionals(False)
+        finals = 0
+        for key in sorted(self._finals_due):
+            p, scan = self._partials.get(key), self.ingest.scans.get(key)
+            if p is None or scan is None or self._settling(scan, p, start):
+                self._finals_due.discard(key)  # gone, or waiting for the log's copies: the walk of tick() decides
+                continue
+            if finals and self._clock() - start >= self.config.provisional_budget:
+                break
+            out.append(self._finalise(scan, p, "final"))
+            finals += 1
+        return out
+
     def _catch_up_provisionals(self, busy: bool) -> list[codec.Reconstruction]:
         """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
 
