@@ -152,11 +152,11 @@ def _by_thread(before: dict[int, tuple[str, float]], after: dict[int, tuple[str,
     """CPU s between two :func:`_thread_cpu` readings, by thread: Python's by their names, the others (Zenoh's
     runtime) by their OS names without a trailing number."""
     names = {t.native_id: t.name for t in threading.enumerate()}
-    out: Counter[str] = Counter()
+    out: dict[str, float] = {}
     for tid, (comm, cpu) in after.items():
         name = names.get(tid) or comm.rstrip("0123456789-_") or comm
-        out[name] += cpu - before.get(tid, (comm, 0.0))[1]
-    return {k: round(v, 3) for k, v in out.most_common() if v > 0}
+        out[name] = out.get(name, 0.0) + cpu - before.get(tid, (comm, 0.0))[1]
+    return {k: round(v, 3) for k, v in sorted(out.items(), key=lambda kv: -kv[1]) if v > 0}
 
 
 def _pct(values: list[float], q: float) -> float | None:
