@@ -193,7 +193,8 @@ def _deferred_scans(now):
     return service, scans
 
 
-def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeypatch):
+@pytest.mark.parametrize("catch_up", ["tick", "catch_up"])
+def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeypatch, catch_up):
     now = [0.0]
     service, scans = _deferred_scans(now)
     for sid in "bc":
@@ -213,38 +214,12 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
         return real(scan, p)
 
     monkeypatch.setattr(service, "_provisional", slow_refit)
-    first = service.tick()
+    later = service.tick if catch_up == "tick" else service.catch_up
+    first = later()
     assert sorted(refit) == ["b", "c"] and len(first) == 2  # the two oldest; the budget ran out before a
     assert service.has_deferred
-    second = service.tick()
+    second = later()
     assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
-
-
-@pytest.mark.parametrize("catch_up", ["tick", "catch_up"])
-def test_finals_of_scans_ending_under_a_backlog_are_made_later_within_the_budget(monkeypatch, catch_up):
-    now = [0.0]
-    service, scans = _deferred_scans(now)
-    for messages in scans.values():  # every payload through the ScanEnd with a backlog waiting
-        assert finals(feed_busy(service, messages[1:])) == []
-    assert service.stats.finals_deferred == 3 and service.has_deferred
-    made, real = [], service._finalise
-
-    def slow_final(scan, p, status):  # each final takes 60 % of the budget on the service's clock
-        made.append(scan.key[0])
-        now[0] += 0.6 * service.config.provisional_budget
-        return real(scan, p, status)
-
-    monkeypatch.setattr(service, "_finalise", slow_final)
-    later = (lambda: service.tick(busy=True)) if catch_up == "tick" else service.catch_up
-    first = finals(later())
-    assert len(first) == 2 and service.has_deferred  # the first, then one more within the budget
-    second = finals(later())
-    assert len(second) == 1 and not service.has_deferred and sorted(made) == ["a", "b", "c"]
-    # The same finals as made on the spot, without a backlog.
-    for final in first + second:
-        alone = ReconstructionService(ReconstructConfig(provisional_period=0), clock=lambda: 0.0)
-        (expected,) = finals(feed(alone, scans[final.scanner_id]))
-        assert comparable(final) == comparable(expected)
 
 
 def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():

@@ -484,7 +484,6 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in finished},
         "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in finished},
         "shed": {r["member"]: r["service"].get("provisionals_shed", 0) for r in finished},
-        "finals_deferred": {r["member"]: r["service"].get("finals_deferred", 0) for r in finished},
         "statuses": dict(Counter(statuses)),
         "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
         "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
@@ -574,7 +573,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     out["refit_us"] = {b: med([r["refit_us"].get(b) for r in runs]) for b in bins}
     out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
     out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
-    for key in ("recovered", "dropped_other_member", "shed", "finals_deferred"):
+    for key in ("recovered", "dropped_other_member", "shed"):
         out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
     return out
 
@@ -683,8 +682,8 @@ def run(args: argparse.Namespace) -> int:
             lambda r: " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items()),
         ),
         (
-            "provisionals shed / finals deferred",
-            lambda r: f"{sum(r['shed'].values()):g} / {sum(r['finals_deferred'].values()):g}",
+            "provisionals shed",
+            lambda r: f"{sum(r['shed'].values()):g}",
         ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]

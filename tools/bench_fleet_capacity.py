@@ -161,11 +161,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
             + " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items())
             for r in results
         ),
-        "provisionals shed / finals deferred (to tick, under a backlog): "
-        + ", ".join(
-            f"{r['scanners']} scanners {sum(r['shed'].values()):g} / {sum(r['finals_deferred'].values()):g}"
-            for r in results
-        ),
+        "provisionals shed (under a backlog): "
+        + ", ".join(f"{r['scanners']} scanners {sum(r['shed'].values()):g}" for r in results),
         f"command: {command_line(args)}",
         f"machine: {machine()}; load average before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after "
         f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f} (2 cores shared with other work: figures are of this run)",

@@ -41,9 +41,7 @@ class ReconstructConfig:
         s; under a backlog, a scan still gets a provisional estimate this often.
     provisional_budget : float
         s of deferred provisional refits one :meth:`ReconstructionService.tick` runs, oldest estimate
-        first; the rest wait for the next tick, so catching up never holds the stream for long.  While
-        a backlog waits, the finals of complete scans are made there too, within the same budget (at
-        least one a tick).
+        first; the rest wait for the next tick, so catching up never holds the stream for long.
         While a backlog waits, a refit deferred over twice ``max_provisional_delay`` is shed
         (``ServiceStats.provisionals_shed``): samples come first, and the scan's next refit covers it.
     scan_timeout : float
@@ -130,8 +128,6 @@ class ServiceStats:
     recovery_refused: int = 0
     #: Deferred provisional refits dropped under a backlog (the final is never shed).
     provisionals_shed: int = 0
-    #: Finals of complete scans left to :meth:`ReconstructionService.tick` because a backlog waited.
-    finals_deferred: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
     #: What a bound pushed out of the service's own tables, by reason.

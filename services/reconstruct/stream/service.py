@@ -15,9 +15,7 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
    ``max_provisional_delay``, so a burst costs one refit, not one per sample;
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
-   terminal — if a backlog waits then, by :meth:`ReconstructionService.tick`, within
-   ``provisional_budget`` a tick (at least one a tick), so that scans ending together do not hold the
-   stream for all their finals at once.
+   terminal.
 
 Gaps and when a final may be published:
 
@@ -151,8 +149,6 @@ class ReconstructionService:
         self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
         self._deferred: set[ScanKey] = set()
-        # Complete scans whose final waited for a backlog (tick() finalises them, within its budget).
-        self._finals_due: set[ScanKey] = set()
         #: How finals are reconstructed; provisional estimates are the cheaper variant of the same.
         self._options = config.record_options()
         self._provisional_options = replace(self._options, provisional=True)
@@ -214,12 +210,10 @@ class ReconstructionService:
         now = self._clock()
         cfg = self.config
         out = self._catch_up_provisionals(busy)
-        finals = 0  # made by this tick: deferred ones only within the budget, past the first
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
                 del self._partials[key]
-                self._finals_due.discard(key)
                 continue
             r = p.recovery
             self._note_progress(r, scan.n_received)
@@ -227,13 +221,8 @@ class ReconstructionService:
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
-                        pass
-                    elif key in self._finals_due and finals and self._clock() - now >= cfg.provisional_budget:
-                        pass  # deferred, and the budget is spent: the next tick finalises it
-                    else:
+                    if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
                         out.append(self._finalise(scan, p, "final"))
-                        finals += 1
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
                 elif self._can_ask(r, now, key):
@@ -269,22 +258,10 @@ class ReconstructionService:
         return out
 
     def catch_up(self) -> list[codec.Reconstruction]:
-        """Only what waited for a backlog that has drained: the deferred provisional refits, then the
-        deferred finals, within ``provisional_budget`` (at least one final); no walk over every open scan,
-        which :meth:`tick` makes, so a source may call this after every payload and :meth:`tick` less often."""
-        start = self._clock()
-        out = self._catch_up_provisionals(False)
-        finals = 0
-        for key in sorted(self._finals_due):
-            p, scan = self._partials.get(key), self.ingest.scans.get(key)
-            if p is None or scan is None or self._settling(scan, p, start):
-                self._finals_due.discard(key)  # gone, or waiting for the log's copies: the walk of tick() decides
-                continue
-            if finals and self._clock() - start >= self.config.provisional_budget:
-                break
-            out.append(self._finalise(scan, p, "final"))
-            finals += 1
-        return out
+        """Only the provisional refits that waited for a backlog that has drained, within
+        ``provisional_budget``: no walk over every open scan, which :meth:`tick` makes, so a source may call
+        this after every payload and :meth:`tick` less often."""
+        return self._catch_up_provisionals(False)
 
     def _catch_up_provisionals(self, busy: bool) -> list[codec.Reconstruction]:
         """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
@@ -317,7 +294,7 @@ class ReconstructionService:
     @property
     def has_deferred(self) -> bool:
         """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
-        return bool(self._deferred) or bool(self._finals_due)
+        return bool(self._deferred)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now."""
@@ -367,7 +344,6 @@ class ReconstructionService:
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
             "provisionals_shed": s.provisionals_shed,
-            "finals_deferred": s.finals_deferred,
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
@@ -518,7 +494,7 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
-                return self._final_or_due(scan, p, busy)
+                return [self._finalise(scan, p, "final")]
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
             # before samples that follow it: what is still missing at the end is said by the terminal estimate.
@@ -546,21 +522,12 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
-            return self._final_or_due(scan, p, busy)
+            return [self._finalise(scan, p, "final")]
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
             self._deferred.add(scan.key)
             return []  # the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
-
-    def _final_or_due(self, scan: ScanAssembly, p: Partial, busy: bool) -> list[codec.Reconstruction]:
-        """A complete scan's final now, or, while a backlog waits, by :meth:`tick` (the samples come first)."""
-        if busy:
-            if scan.key not in self._finals_due:
-                self._finals_due.add(scan.key)
-                self.stats.finals_deferred += 1
-            return []
-        return [self._finalise(scan, p, "final")]
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
         """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`)."""
@@ -662,7 +629,6 @@ class ReconstructionService:
         self._emit(msg)
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)
-        self._finals_due.discard(scan.key)
         self.ingest.close(scan.key)
         return msg
 
