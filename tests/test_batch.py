@@ -75,6 +75,7 @@ def test_batch_reconstruct_is_reconstruct_per_file_and_resumes(archive, tmp_path
         assert finals == alone  # every estimate, plane, σ and verdict, in the command's order
         assert produced == "".join(json.dumps(d, separators=(",", ":"), sort_keys=True) + "\n" for d in alone)
         assert line["scans"] == len(finals) == 1
+        assert finals[0]["surfaces"]  # every surface of the sweep, as the command alone gives them
         assert line["statuses"] == {finals[0]["status"]: 1}
         assert sum(line["verdicts"].values()) == len(finals[0]["planes"])
     assert bad["rc"] == 2 and bad["output_hash"] is None and "c-corrupt.mcap" in bad["error"]

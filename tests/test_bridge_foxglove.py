@@ -195,7 +195,12 @@ def test_a_websocket_client_receives_live_planes_points_frames_and_series(source
     # The last SceneUpdate holds the final planes of both methods, drawn where the estimate says.
     _, scene = got["/lelsonar/planes"][-1]
     by_id = {e.id: e for e in scene.entities}
-    assert {f"rig/3/plane/{p['method']}/{p['label']}" for p in final["planes"]} | {"rig/3/edge"} == set(by_id)
+    planes = {f"rig/3/plane/{p['method']}/{p['label']}" for p in final["planes"]} | {"rig/3/edge"}
+    # Beside them, every surface, corner and edge of the sweep, and its unexplained echoes, as the estimate has them.
+    surfaces = {f"rig/3/surface/{s['label']}" for s in final.get("surfaces", [])}
+    features = {f"rig/3/feature/{f['label']}" for f in final.get("corners", []) + final.get("edges", [])}
+    unexplained = {"rig/3/unexplained"} if any(u.get("count") for u in final.get("unexplained", [])) else set()
+    assert planes | surfaces | features | unexplained == set(by_id)
     for p in final["planes"]:
         e = by_id[f"rig/3/plane/{p['method']}/{p['label']}"]
         drawn = [(q.x, q.y, q.z) for q in e.lines[0].points]

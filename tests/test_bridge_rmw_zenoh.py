@@ -114,7 +114,7 @@ def test_gid_is_the_one_rmw_zenoh_derives():
 
 
 def test_cdr_bytes_match_hand_serialisation():
-    b = ros2._Builder("jazzy")
+    b = ros2.Builder("jazzy")
     # std_msgs/String "hello": encapsulation CDR_LE, u32 length with the NUL, the bytes
     assert (
         ros2.serialize(b("std_msgs/msg/String", data="hello"), "std_msgs/msg/String").hex() == "00010000"

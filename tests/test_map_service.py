@@ -14,6 +14,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from lelsonar import codec
 from lelsonar.cli.main import main
+from lelsonar.draw.map_scene import TOPIC_MAP_SCENE
 from lelsonar.keys import ScannerKeys
 from lelsonar.log import recording
 from lelsonar.log.recording import iter_payloads
@@ -104,8 +105,11 @@ def test_the_mapper_publishes_answers_a_get_and_records(scans, zenoh_socket, tmp
     assert any("no pose" in n for n in latest.notes)
     with open(record, "rb") as f:
         decoded = list(make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
-    assert {channel.topic for _, channel, _, _ in decoded} == {MAP_TOPIC}
-    maps = [m for _, _, _, m in decoded]
+    assert {channel.topic for _, channel, _, _ in decoded} == {MAP_TOPIC, TOPIC_MAP_SCENE}
+    maps = [m for _, channel, _, m in decoded if channel.topic == MAP_TOPIC]
+    scenes = [m for _, channel, _, m in decoded if channel.topic == TOPIC_MAP_SCENE]
+    assert len(scenes) == 2
+    assert {e.id for e in scenes[-1].entities} >= {f"s1/map/wall/{w.id}" for w in latest.walls} | {"s1/map/free_space"}
     assert len(maps) == 2 and maps[-1].scans == 2
     assert np.isclose(maps[-1].walls[0].offset, latest.walls[0].offset)
 

@@ -12,7 +12,8 @@ step's points), ``/lelsonar/scan_points`` (every
 raw point of the scan so far), ``/lelsonar/planes`` (planes, normals, labels,
 the edge, coloured by method and by quality), ``/lelsonar/truth`` (the true
 planes of a simulated scene), ``/lelsonar/energy`` (E^γ, E0(d_m), R and the
-critical step, plottable JSON) and ``/log``.
+critical step, plottable JSON), ``/log``, and ``/lelsonar/map/scene`` (the map as
+the mapper publishes it: :class:`FoxgloveMapView`, ``mapper --foxglove``).
 
 Protocol notes (foxglove-sdk 0.30): the server speaks the subprotocol
 ``foxglove.sdk.v1`` only, and foxglove-sdk has no option to speak the older
@@ -37,9 +38,11 @@ from google.protobuf.message import Message
 
 from lelsonar import codec
 from lelsonar.draw import visual
+from lelsonar.draw.map_scene import TOPIC_MAP_SCENE, MapScene
 from lelsonar.draw.palette import QUALITY_NAME
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.v1 import map_pb2
 
 #: WebSocket subprotocols a client may offer; foxglove-sdk 0.30 needs the first.
 SUBPROTOCOLS = ("foxglove.sdk.v1", "foxglove.websocket.v1")
@@ -55,6 +58,7 @@ _PROTO_TOPICS: dict[str, type[Message]] = {
     visual.TOPIC_WORLD: visual.SceneUpdate,
     TOPIC_TRUTH: visual.SceneUpdate,
     visual.TOPIC_LOG: visual.Log,
+    TOPIC_MAP_SCENE: visual.SceneUpdate,
 }
 
 
@@ -383,6 +387,7 @@ def layout_json() -> str:
                 visual.TOPIC_PLANES: scene_topic,
                 TOPIC_TRUTH: scene_topic,
                 visual.TOPIC_ARRAY: scene_topic,
+                TOPIC_MAP_SCENE: scene_topic,
             },
         },
         "Plot!energy": plot(
@@ -440,3 +445,30 @@ def layout_json() -> str:
 
 if __name__ == "__main__":
     print(layout_json(), end="")
+
+
+class FoxgloveMapView:
+    """Draws each ``Map`` on ``/lelsonar/map/scene`` of a :class:`FoxgloveServer` (the scene a mapper's MCAP
+    records), so the map grows live as the mapper fuses scans."""
+
+    def __init__(self, server: FoxgloveServer) -> None:
+        self.server = server
+        self._scene = MapScene()
+        self._lock = threading.Lock()
+
+    def __call__(self, msg: map_pb2.Map, free_space=None) -> None:
+        """Draw ``msg``; ``free_space`` (a shapely geometry in the map frame) where the caller has the fusion."""
+        with self._lock:
+            update = self._scene.update(msg, free_space=free_space)
+        self.server.log(TOPIC_MAP_SCENE, update, msg.stamp_ns)
+
+
+@contextmanager
+def open_foxglove_map(address: str) -> Iterator[FoxgloveMapView]:
+    """Serve the map on Foxglove at ``[HOST:]PORT`` for the duration of the block."""
+    host, port = parse_host_port(address)
+    server = FoxgloveServer(host, port, name="lelsonar mapper")
+    try:
+        yield FoxgloveMapView(server)
+    finally:
+        server.close()

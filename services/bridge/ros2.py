@@ -15,6 +15,8 @@ topic                           type                                QoS     what
 ``/lelsonar/points/corrected``  ``sensor_msgs/msg/PointCloud2``     V, 10   per estimate: §4 corrected points, a and b
 ``/lelsonar/planes``            ``visualization_msgs/MarkerArray``  TL, 1   per estimate: planes per method, truth, edge
 ``/lelsonar/estimate``          ``std_msgs/msg/String``             TL, 1   per estimate: the Reconstruction as JSON
+``/map``                        ``nav_msgs/msg/OccupancyGrid``      TL, 1   per map update (:mod:`.ros2_map`)
+``/lelsonar/map/walls``         ``visualization_msgs/MarkerArray``  TL, 1   per map update: walls, corners, path
 ==============================  ==================================  ======  ============================================
 
 (TL = RELIABLE, TRANSIENT_LOCAL, KEEP_LAST depth; V = RELIABLE, VOLATILE, KEEP_LAST depth.)
@@ -46,7 +48,8 @@ from __future__ import annotations
 import dataclasses
 import math
 import shutil
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -58,12 +61,19 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 from lelsonar import codec
-from lelsonar.codec import QUALITY_NAME
-from lelsonar.draw.palette import method_color
+from lelsonar.bridge.ros2_markers import estimate_markers
+from lelsonar.bridge.ros2_shapes import (
+    POINTFIELD_TYPES,
+    RAW_POINT,
+    corrected_rows,
+    quat_from_x_to,
+    quat_x,
+    stack_rows,
+)
 from lelsonar.errors import ConfigError, RecordingError
 from lelsonar.log.reader import check_recording_path
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
-from lelsonar.reconstruct.estimate.results import PlaneFit, ScanReconstruction
+from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
@@ -77,6 +87,8 @@ __all__ = [
     "TOPIC_POINTS_CORRECTED",
     "TOPIC_PLANES",
     "TOPIC_ESTIMATE",
+    "TOPIC_MAP_GRID",
+    "TOPIC_MAP_WALLS",
     "TopicQos",
     "TOPIC_QOS",
     "RosMessage",
@@ -88,6 +100,7 @@ __all__ = [
     "serialize",
     "deserialize",
     "export_rosbag2",
+    "open_bag",
     "read_bag",
 ]
 
@@ -101,12 +114,15 @@ TOPIC_POINTS_RAW = "/lelsonar/points/raw"
 TOPIC_POINTS_CORRECTED = "/lelsonar/points/corrected"
 TOPIC_PLANES = "/lelsonar/planes"
 TOPIC_ESTIMATE = "/lelsonar/estimate"
+TOPIC_MAP_GRID = "/map"
+TOPIC_MAP_WALLS = "/lelsonar/map/walls"
 
 TF = "tf2_msgs/msg/TFMessage"
 RANGE = "sensor_msgs/msg/Range"
 CLOUD = "sensor_msgs/msg/PointCloud2"
 MARKERS = "visualization_msgs/msg/MarkerArray"
 STRING = "std_msgs/msg/String"
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 
 
 def range_topic(capsule_id: int) -> str:
@@ -126,6 +142,8 @@ TOPIC_QOS: dict[str, TopicQos] = {
     TOPIC_TF: TopicQos(100),
     TOPIC_PLANES: TopicQos(1, True),
     TOPIC_ESTIMATE: TopicQos(1, True),
+    TOPIC_MAP_GRID: TopicQos(1, True),
+    TOPIC_MAP_WALLS: TopicQos(1, True),
 }
 DEFAULT_QOS = TopicQos(10)
 
@@ -181,7 +199,7 @@ def deserialize(data: bytes, msgtype: str, distro: str = "jazzy") -> object:
     return typestore(distro).deserialize_cdr(data, msgtype)
 
 
-class _Builder:
+class Builder:
     """Message constructors for one typestore; fields a distro lacks (e.g. Humble's Range.variance) are dropped."""
 
     def __init__(self, distro: str) -> None:
@@ -234,7 +252,7 @@ class _Builder:
                 "sensor_msgs/msg/PointField",
                 name=name,
                 offset=int(dt.fields[name][1]),
-                datatype=_POINTFIELD_TYPES[dt.fields[name][0].str.lstrip("<|")],
+                datatype=POINTFIELD_TYPES[dt.fields[name][0].str.lstrip("<|")],
                 count=1,
             )
             for name in dt.names
@@ -268,6 +286,7 @@ class _Builder:
         text: str = "",
         position=(0.0, 0.0, 0.0),
         action: int = 0,
+        orientation=(0.0, 0.0, 0.0, 1.0),
     ) -> object:
         b = self
         return b(
@@ -277,7 +296,7 @@ class _Builder:
             id=int(id_),
             type=int(kind),
             action=int(action),
-            pose=b("geometry_msgs/msg/Pose", position=b.point(position), orientation=b.quaternion((0, 0, 0, 1))),
+            pose=b("geometry_msgs/msg/Pose", position=b.point(position), orientation=b.quaternion(orientation)),
             scale=b.vector3(scale),
             color=b.color(rgb, alpha),
             lifetime=b("builtin_interfaces/msg/Duration", sec=0, nanosec=0),
@@ -294,55 +313,6 @@ class _Builder:
             mesh_file=b("visualization_msgs/msg/MeshFile", filename="", data=np.zeros(0, dtype=np.uint8)),
             mesh_use_embedded_materials=False,
         )
-
-
-# sensor_msgs/PointField datatypes
-_POINTFIELD_TYPES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
-RAW_POINT = np.dtype(
-    {
-        "names": ["x", "y", "z", "step", "capsule"],
-        "formats": ["<f4", "<f4", "<f4", "<u4", "<u4"],
-        "offsets": [0, 4, 8, 12, 16],
-        "itemsize": 20,
-    }
-)
-CORRECTED_POINT = np.dtype(
-    {
-        "names": ["x", "y", "z", "step", "subset", "inlier"],
-        "formats": ["<f4", "<f4", "<f4", "<u4", "u1", "u1"],
-        "offsets": [0, 4, 8, 12, 16, 17],
-        "itemsize": 20,
-    }
-)
-
-# visualization_msgs/Marker types and actions
-ARROW, LINE_LIST, TEXT_VIEW_FACING, TRIANGLE_LIST, DELETEALL = 0, 5, 9, 11, 3
-
-_TRUTH_RGB = (0.6, 0.6, 0.6)
-_EDGE_RGB = (1.0, 0.1, 0.1)
-
-
-def method_rgb(method: str) -> tuple[float, float, float]:
-    r, g, b = method_color(method)
-    return r / 255, g / 255, b / 255
-
-
-def _quat_x(angle: float) -> tuple[float, float, float, float]:
-    return (math.sin(angle / 2), 0.0, 0.0, math.cos(angle / 2))
-
-
-def _quat_from_x_to(v) -> tuple[float, float, float, float]:
-    """The shortest rotation taking +x onto the unit vector ``v`` (x, y, z, w)."""
-    v = np.asarray(v, dtype=float)
-    n = np.linalg.norm(v)
-    if not n > 0:
-        raise ConfigError("a frame axis must be a non-zero vector")
-    v = v / n
-    if v[0] < -1 + 1e-12:
-        return (0.0, 0.0, 1.0, 0.0)  # 180° about z
-    q = np.array([0.0, -v[2], v[1], 1.0 + v[0]])  # axis x × v, w = 1 + cos
-    q /= np.linalg.norm(q)
-    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
 # --- the observer -------------------------------------------------------------------------
@@ -375,7 +345,7 @@ class Ros2View:
         parent_frame: str | None = None,
     ) -> None:
         self._emit = emit
-        self._b = _Builder(distro)
+        self._b = Builder(distro)
         self.main_method = main_method
         self._truth = truth
         self.field_of_view = float(field_of_view if field_of_view is not None else 2.0 * FitOptions().beam_half_angle)
@@ -400,7 +370,7 @@ class Ros2View:
         if self.parent_frame:
             tfs.append(b.transform(t, self.parent_frame, base, (0, 0, 0), (0, 0, 0, 1)))
         ax = (s.rotation_axis.x, s.rotation_axis.y, s.rotation_axis.z)
-        tfs.append(b.transform(t, base, axis, (0, 0, 0), _quat_from_x_to(ax) if any(ax) else (0, 0, 0, 1)))
+        tfs.append(b.transform(t, base, axis, (0, 0, 0), quat_from_x_to(ax) if any(ax) else (0, 0, 0, 1)))
         for c in sorted(s.capsules, key=lambda c: c.capsule_id):
             tfs.append(
                 b.transform(
@@ -408,7 +378,7 @@ class Ros2View:
                     array,
                     self.frame(s.scanner_id, f"capsule{c.capsule_id}"),
                     (c.position.x, c.position.y, c.position.z),
-                    _quat_from_x_to((c.boresight.x, c.boresight.y, c.boresight.z)),
+                    quat_from_x_to((c.boresight.x, c.boresight.y, c.boresight.z)),
                 )
             )
         self._send(TOPIC_TF_STATIC, TF, t, b(TF, transforms=tfs))
@@ -429,7 +399,7 @@ class Ros2View:
                         self.frame(s.scanner_id, "axis"),
                         self.frame(s.scanner_id, "array"),
                         (0, 0, 0),
-                        _quat_x(view.gamma),
+                        quat_x(view.gamma),
                     )
                 ],
             ),
@@ -461,7 +431,7 @@ class Ros2View:
         rows["step"], rows["capsule"] = view.step, np.asarray(ids)[ok]
         acc = self._raw.setdefault(scan.key, [])
         acc.append(rows)
-        self._send(TOPIC_POINTS_RAW, CLOUD, t, b.cloud(t, self.frame(s.scanner_id, "base"), _stack(acc, RAW_POINT)))
+        self._send(TOPIC_POINTS_RAW, CLOUD, t, b.cloud(t, self.frame(s.scanner_id, "base"), stack_rows(acc, RAW_POINT)))
 
     def estimate(
         self, scan: ScanAssembly, message: codec.Reconstruction, results: dict[str, ScanReconstruction] | None, partial
@@ -478,8 +448,13 @@ class Ros2View:
             self._raw.pop(scan.key, None)
         else:
             subsets = [(partial.data_a, partial.plane_a), (partial.data_b, partial.plane_b)]
-        self._send(TOPIC_POINTS_CORRECTED, CLOUD, t, b.cloud(t, base, _corrected_rows(subsets)))
-        self._send(TOPIC_PLANES, MARKERS, t, b(MARKERS, markers=self._markers(scan, message, t, base)))
+        self._send(TOPIC_POINTS_CORRECTED, CLOUD, t, b.cloud(t, base, corrected_rows(subsets)))
+        self._send(
+            TOPIC_PLANES,
+            MARKERS,
+            t,
+            b(MARKERS, markers=estimate_markers(b, message, t, base, self._truth(scan) if self._truth else None)),
+        )
         self._send(TOPIC_ESTIMATE, STRING, t, b(STRING, data=present.to_json(message)))
 
     def event(self, level: str, text: str, time_ns: int | None = None) -> None:
@@ -496,87 +471,6 @@ class Ros2View:
             for data, plane in ((main.data_a, main.plane_a), (main.data_b, main.plane_b))
             if data is not None
         ]
-
-    def _markers(self, scan: ScanAssembly, message: codec.Reconstruction, t: int, frame: str) -> list:
-        b = self._b
-        markers = [b.marker(t, frame, "", 0, 0, action=DELETEALL)]
-        for i, plane in enumerate(message.planes):
-            rgb = method_rgb(plane.method)
-            corners = [(c.x, c.y, c.z) for c in plane.patch]
-            if len(corners) >= 3:
-                tri = [p for k in range(1, len(corners) - 1) for p in (corners[0], corners[k], corners[k + 1])]
-                markers.append(
-                    b.marker(t, frame, f"plane/{plane.method}", i, TRIANGLE_LIST, points=tri, rgb=rgb, alpha=0.5)
-                )
-                centre = np.mean(np.asarray(corners), axis=0)
-                n = np.array([plane.normal.x, plane.normal.y, plane.normal.z])
-                markers.append(
-                    b.marker(
-                        t,
-                        frame,
-                        f"normal/{plane.method}",
-                        i,
-                        ARROW,
-                        points=[centre, centre + 0.2 * n],
-                        rgb=rgb,
-                        scale=(0.01, 0.02, 0.03),
-                    )
-                )
-                markers.append(
-                    b.marker(
-                        t,
-                        frame,
-                        f"label/{plane.method}",
-                        i,
-                        TEXT_VIEW_FACING,
-                        rgb=rgb,
-                        scale=(0, 0, 0.05),
-                        position=centre,
-                        text=f"{plane.method} {plane.label}: h = {plane.offset:.3f} m, "
-                        f"{QUALITY_NAME.get(plane.quality, 'unknown')}",
-                    )
-                )
-        truth = self._truth(scan) if self._truth else None
-        for i, tp in enumerate(truth or ()):
-            c = np.asarray(tp.corners, dtype=float)
-            if len(c) >= 3:
-                tri = [p for k in range(1, len(c) - 1) for p in (c[0], c[k], c[k + 1])]
-                markers.append(b.marker(t, frame, "truth", i, TRIANGLE_LIST, points=tri, rgb=_TRUTH_RGB, alpha=0.3))
-        if message.HasField("corner_edge"):
-            e = message.corner_edge
-            p = np.array([e.point.x, e.point.y, e.point.z])
-            d = np.array([e.direction.x, e.direction.y, e.direction.z])
-            markers.append(
-                b.marker(
-                    t, frame, "edge", 0, LINE_LIST, points=[p - 0.5 * d, p + 0.5 * d], rgb=_EDGE_RGB, scale=(0.01, 0, 0)
-                )
-            )
-        return markers
-
-
-def _corrected_rows(subsets) -> np.ndarray:
-    parts = []
-    for data, plane in subsets:
-        if data is None or data.n == 0:
-            continue
-        rows = np.zeros(data.n, dtype=CORRECTED_POINT)
-        rows["x"], rows["y"], rows["z"] = np.asarray(data.points).T
-        rows["step"] = data.step
-        rows["subset"] = 0 if data.label == "a" else 1
-        mask = plane.inlier_mask if isinstance(plane, PlaneFit) and plane.n_points == data.n else np.ones(data.n, bool)
-        rows["inlier"] = np.asarray(mask, dtype=np.uint8)
-        parts.append(rows)
-    return _stack(parts, CORRECTED_POINT)
-
-
-def _stack(parts: Sequence[np.ndarray], dtype: np.dtype) -> np.ndarray:
-    """Concatenate structured rows keeping ``dtype``'s padding (np.concatenate would pack it)."""
-    out = np.zeros(sum(len(p) for p in parts), dtype=dtype)
-    i = 0
-    for p in parts:
-        out[i : i + len(p)] = p
-        i += len(p)
-    return out
 
 
 # --- rosbag2 ------------------------------------------------------------------------------
@@ -613,6 +507,14 @@ class BagSink:
             )
         self._writer.write(conn, m.time_ns, serialize(m.message, m.msgtype, self._distro))
         self.counts[m.topic] = self.counts.get(m.topic, 0) + 1
+
+
+@contextmanager
+def open_bag(out_dir: Path | str, distro: str = "jazzy") -> Iterator[Writer]:
+    """An open rosbag2 writer (MCAP storage) of a new directory; finished on any exit."""
+    typestore(distro)  # an unknown distro is refused before the directory is made
+    with Writer(Path(out_dir), version=DISTROS[distro][1], storage_plugin=StoragePlugin.MCAP) as w:
+        yield w
 
 
 def export_rosbag2(

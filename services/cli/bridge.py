@@ -144,7 +144,7 @@ def _view(args: argparse.Namespace, emit, source: Path | None, distro: str = "ja
     )
 
 
-def _check_bag_dir(out: Path, overwrite: bool) -> None:
+def check_bag_dir(out: Path, overwrite: bool, flag: str = "-o") -> None:
     """A new bag directory, or (with ``overwrite``) an old rosbag2 directory, removed; anything else refused."""
     import shutil
 
@@ -153,9 +153,9 @@ def _check_bag_dir(out: Path, overwrite: bool) -> None:
 
     if out.exists() or out.is_symlink():
         if not overwrite:
-            raise ConfigError(f"{out} already exists; pass --overwrite to replace the bag, or give another -o")
+            raise ConfigError(f"{out} already exists; pass --overwrite to replace the bag, or give another {flag}")
         if not (out.is_dir() and not out.is_symlink() and (out / "metadata.yaml").is_file()):
-            raise ConfigError(f"{out} exists and is not a rosbag2 directory (no metadata.yaml); give another -o")
+            raise ConfigError(f"{out} exists and is not a rosbag2 directory (no metadata.yaml); give another {flag}")
         shutil.rmtree(out)
     output_dir(out.parent, what=f"the folder of {out}")
 
@@ -166,7 +166,9 @@ def run_export(args: argparse.Namespace) -> int:
     from lelsonar.reconstruct.stream.service import ReconstructionService
 
     input_file(args.source)
-    _check_bag_dir(args.output, args.overwrite)
+    check_bag_dir(args.output, args.overwrite)
+    if is_map_recording(args.source):
+        return export_maps(args)
     from lelsonar.cli.warm_up import ensure_compiled
 
     ensure_compiled()
@@ -182,6 +184,34 @@ def run_export(args: argparse.Namespace) -> int:
         print(f"{n:8d}  {topic}")
     print(f"wrote {args.output} — inspect it with: ros2 bag info {args.output}")
     return 0 if counts.get("/lelsonar/estimate") else 1
+
+
+def map_to_ros2(session, prefix: str, publish):
+    """The mapper's maps (``<prefix>/map``) as /map (OccupancyGrid) and /lelsonar/map/walls on the node."""
+    from lelsonar.bridge.ros2_map import MapRos2, MapSubscription
+
+    return MapSubscription(session, prefix, MapRos2(publish))
+
+
+def is_map_recording(path: Path) -> bool:
+    """A recording of maps (a mapper's ``--record``, ``map --mcap``) rather than of scans."""
+    from lelsonar.bridge.ros2_map import recorded_maps
+    from lelsonar.log.recording import open_recording
+
+    if open_recording(path).has_scans:
+        return False
+    return next(recorded_maps(path), None) is not None
+
+
+def export_maps(args: argparse.Namespace) -> int:
+    """`export` of a map recording: the floor plan's OccupancyGrid on /map and the walls' MarkerArray, per map."""
+    from lelsonar.bridge.ros2_map import export_map_rosbag2
+
+    counts = export_map_rosbag2(args.source, args.output, distro=args.distro)
+    for topic, n in sorted(counts.items()):
+        print(f"{n:8d}  {topic}")
+    print(f"wrote {args.output} — inspect it with: ros2 bag info {args.output}")
+    return 0 if counts else 1
 
 
 def run_bridge(args: argparse.Namespace) -> int:
@@ -232,6 +262,7 @@ def run_bridge(args: argparse.Namespace) -> int:
             return 0 if n_final else 1
         keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
         print(f"ros2-bridge: listening on {keys.sample} and {keys.scan}", flush=True)
+        stack.enter_context(map_to_ros2(session, keys.prefix, node.publish))
         with LiveSource(session, keys, service, stop):
             # declared once subscribed, like every lelsonar service: `<prefix>/<scanner>/alive/ros2-bridge`
             stack.callback(session.liveliness().declare_token(keys.alive("ros2-bridge")).undeclare)

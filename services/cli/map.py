@@ -10,15 +10,17 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
+    from lelsonar.cli.map_views import add_mapper_view_arguments, add_view_arguments
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
     p = sub.add_parser(
         "map",
         help="fuse the walls of several scans (recordings) into one map",
-        description="Replay each recording through the reconstruction, take each scan's planes of record as "
-        "wall observations at the scan's pose (ScanStart; the origin where a recording has none), fuse them "
-        "across scans (GTSAM factor graph) and print the map: walls with σ and verdict, corners, edges, "
-        "corrected poses (world frame, m and rad).",
+        description="Replay each recording through the reconstruction, take each scan's surfaces, corners and "
+        "edges (its two planes of record where the reconstruction extracted no surfaces) as observations at the "
+        "scan's pose (ScanStart; the origin where a recording has none), fuse them across scans (GTSAM factor "
+        "graph) and print the map: walls with σ and verdict, corners, edges, corrected poses (world frame, m "
+        "and rad).",
     )
     p.add_argument(
         "--source",
@@ -51,7 +53,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"estimator of record (default: {DEFAULT_METHOD})",
     )
     _add_fusion_arguments(p)
-    p.set_defaults(run=run_map)
+    add_view_arguments(p)
+    p.set_defaults(run=run_map_with_views)
 
     from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
@@ -76,6 +79,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     _add_fusion_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
+    add_mapper_view_arguments(p)
     p.set_defaults(run=run_mapper)
 
 
@@ -154,6 +158,7 @@ def run_map(args: argparse.Namespace) -> int:
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
     config = _fusion_config(args)
+    views = getattr(args, "map_views", None)  # the viewer outputs, opened by run_map_with_views
     found: list = []
     where: dict[int, Path] = {}
     for path in args.source:
@@ -177,6 +182,8 @@ def run_map(args: argparse.Namespace) -> int:
     mapper = WallMapper(config)
     for scan in scans:
         mapper.add_scan(scan)
+        if views is not None:
+            views.add(mapper.snapshot(), scanners[0])
     fused = mapper.snapshot()
     out = map_to_dict(fused)
     if args.route:
@@ -188,11 +195,27 @@ def run_map(args: argparse.Namespace) -> int:
         args.geojson.write_text(json.dumps(floorplan.to_geojson(fused, plan)))
     if args.grid:
         args.grid.write_text(json.dumps(floorplan.occupancy_grid(fused, plan).to_message()))
+    if views is not None:
+        views.finish(None if out.get("route") is None else [(p["x"], p["y"]) for p in out["route"]])
     if args.json:
         print(json.dumps(out, separators=(",", ":")))
     else:
         _print_table(out)
     return 0 if not args.route or out["route"] is not None else 1
+
+
+def run_map_with_views(args: argparse.Namespace) -> int:
+    """`lelsonar map` with its viewer outputs checked and opened before the replay and finished on any exit."""
+    from lelsonar.cli.map_views import MapViews, wants_views
+    from lelsonar.map.floorplan import PlanConfig
+
+    if not wants_views(args):
+        return run_map(args)
+    args.map_views = MapViews(args, PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution))
+    try:
+        return run_map(args)
+    finally:
+        args.map_views.close()
 
 
 def _print_table(out: dict) -> None:
@@ -243,6 +266,7 @@ def run_mapper(args: argparse.Namespace) -> int:
 
     from google.protobuf.json_format import MessageToDict
 
+    from lelsonar.cli.map_views import mapper_views
     from lelsonar.keys import ScannerKeys, validate_identifier
     from lelsonar.map.service import MapperService, ZenohMapper, map_key
     from lelsonar.net.transport import open_session, zenoh_settings_from_args
@@ -266,11 +290,17 @@ def run_mapper(args: argparse.Namespace) -> int:
             print(json.dumps(MessageToDict(msg), separators=(",", ":")), flush=True)
         else:
             print(f"mapper: scan {mapped}: {len(msg.walls)} walls, {len(msg.corners)} corners", flush=True)
+        if draw is not None:
+            draw(msg, service.fused)
         if args.until_scans and mapped >= args.until_scans:
             stop.set()
 
     service = MapperService(scanner, args.method, config=_fusion_config(args))
-    with open_session(settings) as session, ZenohMapper(session, prefix, service, record=args.record, on_map=on_map):
+    with (
+        mapper_views(args) as draw,
+        open_session(settings) as session,
+        ZenohMapper(session, prefix, service, record=args.record, on_map=on_map),
+    ):
         print(f"mapper: fusing {scanner}'s scans; the map on {map_key(prefix)}", file=sys.stderr, flush=True)
         while not stop.wait(0.2):
             pass

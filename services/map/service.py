@@ -24,10 +24,13 @@ import zenoh
 from mcap_protobuf.writer import Writer
 
 from lelsonar import codec
+from lelsonar.draw.map_scene import TOPIC_MAP_SCENE, MapScene
 from lelsonar.errors import LelsonarError
 from lelsonar.keys import ScannerKeys, validate_prefix
+from lelsonar.map.floorplan import free_space
 from lelsonar.map.from_reconstruction import scan_from_reconstruction
 from lelsonar.map.fusion import FusionConfig, WallMapper
+from lelsonar.map.result import FusedMap
 from lelsonar.map.wire import map_message
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.v1 import map_pb2
@@ -75,6 +78,7 @@ class MapperService:
         self._mapped: set[int] = set()
         self._pending: OrderedDict[int, codec.Reconstruction] = OrderedDict()  # finals awaiting their start
         self.latest: map_pb2.Map | None = None
+        self.fused: FusedMap | None = None  # the fusion's map behind ``latest`` (its free space, for viewers)
         self.ignored: Counter[str] = Counter()
 
     def handle_start(self, start: codec.ScanStart) -> map_pb2.Map | None:
@@ -121,7 +125,8 @@ class MapperService:
         ready = sorted(k for k in self._pending if k <= scan_id)
         for k in ready:
             self._fuse(self._pending.pop(k))
-        self.latest = map_message(self.mapper.snapshot(), self.scanner_id)
+        self.fused = self.mapper.snapshot()
+        self.latest = map_message(self.fused, self.scanner_id)
         if self._publish is not None:
             self._publish(self.latest)
         return self.latest
@@ -156,6 +161,7 @@ class ZenohMapper:
         if record is not None:
             self._file = open(record, "wb")  # closed by close(), after the writer has finished it
             self._writer = Writer(self._file)
+        self._scene = MapScene()  # the recorded map as Foxglove draws it
         self._publisher = session.declare_publisher(
             self._key, encoding=zenoh.Encoding(f"application/protobuf;{map_pb2.Map.DESCRIPTOR.full_name}")
         )
@@ -189,6 +195,9 @@ class ZenohMapper:
         self._publisher.put(msg.SerializeToString())
         if self._writer is not None:
             self._writer.write_message(MAP_TOPIC, msg, log_time=msg.stamp_ns, publish_time=msg.stamp_ns)
+            fused = self._service.fused
+            scene = self._scene.update(msg, free_space=None if fused is None else free_space(fused))
+            self._writer.write_message(TOPIC_MAP_SCENE, scene, log_time=msg.stamp_ns, publish_time=msg.stamp_ns)
         if self._on_map is not None:
             self._on_map(msg)
 

@@ -30,19 +30,42 @@ def console(stderr: bool = False) -> Console:
     return c if c.is_terminal else PipeConsole(stderr=stderr, width=120)
 
 
+#: Keys :func:`to_json` adds beside the message's own fields (read back by :func:`from_json` without them).
+_SURFACE_KEYS = ("kind", "quality", "reasons")
+_FEATURE_KEYS = ("kind",)
+_UNEXPLAINED_KEYS = ("share",)
+_TOP_KEYS = ("unexplained_share",)
+
+
 def to_json(msg: codec.Reconstruction) -> str:
-    """One JSON line: the message's fields (SI units) with proto field names."""
+    """One JSON line: the message's fields (SI units) with proto field names.
+
+    Beside them, for a reader of the surfaces: each surface's ``kind`` ("plane"), ``quality`` and
+    ``reasons`` (its plane's verdict); each corner's and edge's ``kind`` ("corner", "edge"); each cause of
+    unexplained echoes' ``share`` of the echoes the surfaces were extracted from, and their total
+    ``unexplained_share`` (0 where the estimate carries no surfaces).
+    """
     d = MessageToDict(msg, preserving_proto_field_name=True, always_print_fields_with_no_presence=True)
     d["status"] = status_name(msg)
     for plane, pd in zip(msg.planes, d.get("planes", [])):
         pd["quality"] = QUALITY_NAME.get(plane.quality, "unknown")
     for surface, sd in zip(msg.surfaces, d.get("surfaces", [])):
-        sd["plane"]["quality"] = QUALITY_NAME.get(surface.plane.quality, "unknown")
+        quality = QUALITY_NAME.get(surface.plane.quality, "unknown")
+        sd["plane"]["quality"] = quality
+        sd.update(kind="plane", quality=quality, reasons=list(surface.plane.quality_reasons))
+    for kind, features in (("corner", d.get("corners", [])), ("edge", d.get("edges", []))):
+        for fd in features:
+            fd["kind"] = kind
+    n = msg.surface_echo_count
+    for ud in d.get("unexplained", []):
+        ud["share"] = int(ud.get("count", 0)) / n if n else 0.0
+    d["unexplained_share"] = sum(u.count for u in msg.unexplained) / n if n else 0.0
     return json.dumps(d, separators=(",", ":"), sort_keys=True)
 
 
 def from_json(line: str | dict) -> codec.Reconstruction:
-    """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back).
+    """The ``Reconstruction`` a :func:`to_json` line came from (short status and quality names mapped back,
+    the keys it adds beside the message's fields left out).
 
     A dict given is left as it is (a copy is mapped back): the caller may compare it afterwards.
     """
@@ -50,6 +73,15 @@ def from_json(line: str | dict) -> codec.Reconstruction:
     d["status"] = STATUS.get(str(d.get("status", "")), 0)
     for p in [*d.get("planes", []), *(sd.get("plane", {}) for sd in d.get("surfaces", []))]:
         p["quality"] = _quality_number(p.get("quality"))
+    for items, keys in (
+        ([d], _TOP_KEYS),
+        (d.get("surfaces", []), _SURFACE_KEYS),
+        ([*d.get("corners", []), *d.get("edges", [])], _FEATURE_KEYS),
+        (d.get("unexplained", []), _UNEXPLAINED_KEYS),
+    ):
+        for item in items:
+            for key in keys:
+                item.pop(key, None)
     return ParseDict(d, codec.Reconstruction())
 
 
@@ -130,6 +162,65 @@ def planes_table(
         )
         if msg.missing_steps:
             t.caption_style = "yellow"
+    if caption:
+        t.caption = "\n".join(caption)
+        t.caption_justify = "left"
+    return t
+
+
+def surfaces_table(msg: codec.Reconstruction) -> Table | None:
+    """Every surface of the sweep, one row each (bearing and tilt in °, offset in cm, their σ), then its
+    corners and edges, and the echoes none of them explains (their causes and shares); None if the estimate
+    carries no surfaces (a provisional one, or one made before surfaces were extracted)."""
+    if not (msg.surfaces or msg.corners or msg.edges or msg.surface_echo_count):
+        return None
+    t = Table(
+        title=f"{msg.scanner_id} scan {msg.scan_id} — every surface of the sweep ({msg.surface_echo_count} echoes)",
+        title_justify="left",
+    )
+    for col, justify in (
+        ("label", "left"),
+        ("kind", "left"),
+        ("bearing (°)", "right"),
+        ("tilt (°)", "right"),
+        ("h (cm)", "right"),
+        ("echoes", "right"),
+        ("quality", "left"),
+        ("joins / bearing from", "left"),
+    ):
+        t.add_column(col, justify=justify)  # type: ignore[arg-type]
+    for sf in msg.surfaces:
+        cov = np.asarray(sf.covariance).reshape(3, 3) if len(sf.covariance) == 9 else np.full((3, 3), np.nan)
+        sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        plus = [f" ± {v:.2f}" if np.isfinite(v) else "" for v in (*np.rad2deg(sd[:2]), sd[2] * 100)]
+        t.add_row(
+            sf.label,
+            "plane",
+            f"{np.rad2deg(sf.bearing):+.2f}{plus[0]}",
+            f"{np.rad2deg(sf.tilt):+.2f}{plus[1]}",
+            f"{sf.plane.offset * 100:.2f}{plus[2]}",
+            str(sf.echo_count),
+            quality_cell(sf.plane),
+            sf.bearing_source,
+        )
+    for kind, features in (("corner", msg.corners), ("edge", msg.edges)):
+        for f in features:
+            p = _vec(f.line.point)
+            t.add_row(
+                f.label,
+                kind,
+                f"{np.rad2deg(np.arctan2(p[2], p[1])):+.2f}",
+                "",
+                f"{np.linalg.norm(p[1:]) * 100:.2f} ± {f.line.point_stderr * 100:.2f}",
+                str(f.echo_count),
+                "",
+                ", ".join(f.surfaces),
+            )
+    caption = [
+        f"* {sf.label}: {'; '.join(sf.plane.quality_reasons)}" for sf in msg.surfaces if sf.plane.quality_reasons
+    ]
+    n = max(msg.surface_echo_count, 1)
+    caption += [f"unexplained: {u.count} echoes ({100 * u.count / n:.1f} %) {u.cause}" for u in msg.unexplained]
     if caption:
         t.caption = "\n".join(caption)
         t.caption_justify = "left"

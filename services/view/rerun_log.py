@@ -75,7 +75,7 @@ from collections.abc import Sequence
 import numpy as np
 import rerun as rr
 
-from lelsonar.draw.palette import METHOD_COLORS, method_color, quality_color
+from lelsonar.draw.palette import METHOD_COLORS, method_color
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.results import EdgeLine, FitFailure, PlaneFit
 from lelsonar.view.rerun_layout import (
@@ -86,12 +86,12 @@ from lelsonar.view.rerun_layout import (
     join_path,
     make_recording,
 )
+from lelsonar.view.rerun_planes import log_edge, log_plane_fit, log_true_plane
 from lelsonar.view.rerun_shapes import (
     SubsetView,
     WaveformStrips,
     capsule_name,
     centidegrees,
-    cone,
     final_estimate_text,
 )
 
@@ -109,19 +109,15 @@ __all__ = [
 
 #: Per-method colours (RGB); methods not listed get a stable colour from the palette.
 _PALETTE = [(230, 200, 40), (120, 120, 255), (255, 110, 110), (140, 220, 220), (200, 160, 100)]
-_PLANE_ALPHA = 110  # patches stay see-through so points behind them show
-_TRUTH_RGBA = (160, 160, 160, 80)
 _SUBSET_COLORS = {"a": (60, 120, 240), "b": (160, 70, 210)}
 _OUTLIER_RGB = (235, 40, 40)
 _RAW_RGB = (200, 200, 200)
 _BEAM_RGB = (250, 220, 90)
 _CAPSULE_RGB = (255, 200, 0)
-_EDGE_RGB = (255, 255, 255)
 _CRITICAL_RGB = (235, 40, 40)
 _WAVEFORM_COLORS = [(255, 140, 0), (40, 190, 70), (60, 140, 255), (220, 60, 200)]
 _POINT_RADIUS = 0.008  # m
 _OUTLIER_RADIUS = 0.016  # m: twice as big, so outliers stand out among inliers
-_NORMAL_LENGTH = 0.25  # m
 _LEVELS = {
     "trace": rr.TextLogLevel.TRACE,
     "debug": rr.TextLogLevel.DEBUG,
@@ -490,50 +486,10 @@ class ScanLogger:
         return f"{self.scan_world}/planes/{rr.escape_entity_path_part(method)}/{rr.escape_entity_path_part(label)}"
 
     def _log_plane(self, p: PlaneFit) -> None:
-        rec = self.rec
-        rgb = method_color(p.method)
-        path = self._plane_path(p.method, p.label)
-        rec.log(
-            path,
-            rr.Mesh3D(
-                vertex_positions=p.patch,
-                triangle_indices=[[0, 1, 2], [0, 2, 3]],
-                vertex_normals=np.tile(p.normal, (4, 1)),
-                albedo_factor=(*rgb, _PLANE_ALPHA),
-                face_rendering="DoubleSided",
-            ),
+        log_plane_fit(self.rec, self._plane_path(p.method, p.label), p, self.main_method)
+        self.rec.log(
+            self._errors_path(p.method, p.label), rr.BarChart(p.sorted_residuals, color=method_color(p.method))
         )
-        centre = p.patch.mean(axis=0)
-        # One label per plane, the method of record's, at the tip of its normal: compared methods'
-        # planes share the centre, and their labels would cover each other.
-        labelled = self.main_method is None or p.method == self.main_method
-        rec.log(
-            f"{path}/normal",
-            rr.Arrows3D(
-                origins=[centre],
-                vectors=[p.normal * _NORMAL_LENGTH],
-                colors=rgb,
-                radii=0.005,
-                labels=f"{p.label}: {p.method}, {p.quality or 'unassessed'}" if labelled else None,
-                show_labels=labelled,
-            ),
-        )
-        # The verdict as the patch's outline: green good, amber degraded, red unreliable.
-        outline = np.vstack([p.patch, p.patch[:1]])
-        rec.log(f"{path}/quality", rr.LineStrips3D([outline], colors=quality_color(p.quality), radii=0.004))
-        # The uncertainty: the offset band (patch outline at ±2σ_h) and the normal cone (half-angle 2σ_n).
-        band = [outline + k * 2.0 * p.offset_stderr * p.normal for k in (-1.0, 1.0)]
-        rec.log(f"{path}/uncertainty/offset_band", rr.LineStrips3D(band, colors=rgb, radii=0.0015))
-        rec.log(
-            f"{path}/uncertainty/normal_cone",
-            rr.Arrows3D(
-                origins=np.tile(centre, (8, 1)),
-                vectors=cone(p.normal, 2.0 * p.normal_stderr) * _NORMAL_LENGTH,
-                colors=rgb,
-                radii=0.0015,
-            ),
-        )
-        rec.log(self._errors_path(p.method, p.label), rr.BarChart(p.sorted_residuals, color=rgb))
 
     def _errors_path(self, method: str, label: str) -> str:
         return join_path(
@@ -555,20 +511,8 @@ class ScanLogger:
         level = rr.TextLogLevel.WARN if final else rr.TextLogLevel.DEBUG
         self.rec.log(self.log_path, rr.TextLog(("final: " if final else "so far: ") + text, level=level))
 
-    def _log_edge(self, edge: EdgeLine, fits: Sequence[PlaneFit], half_length: float = 0.5) -> None:
-        # Draw ±half_length around the point nearest the origin, but no further than the
-        # observed patches reach along the edge (the edge beyond them is extrapolation).
-        lo, hi = -half_length, half_length
-        if fits:
-            t = np.concatenate([(f.patch - edge.point) @ edge.direction for f in fits])
-            lo_p, hi_p = max(lo, float(t.min())), min(hi, float(t.max()))
-            if hi_p - lo_p > 1e-3:
-                lo, hi = lo_p, hi_p
-        seg = edge.point + np.outer([lo, hi], edge.direction)
-        label = f"edge {math.degrees(edge.angle):.1f}°"
-        if math.isfinite(edge.point_stderr):
-            label += f" ± {edge.point_stderr * 1e3:.0f} mm"
-        self.rec.log(f"{self.scan_world}/edge", rr.LineStrips3D([seg], colors=_EDGE_RGB, radii=0.004, labels=label))
+    def _log_edge(self, edge: EdgeLine, fits: Sequence[PlaneFit]) -> None:
+        log_edge(self.rec, f"{self.scan_world}/edge", edge, fits)
 
     def _log_critical(self, critical_step: int, critical_gamma: float, final: bool) -> None:
         rec = self.rec
@@ -615,38 +559,8 @@ class ScanLogger:
             around the patch, m.
         """
         for label, normal, offset, corners in planes:
-            corners = np.array(corners, dtype=np.float64).reshape(4, 3)  # a copy, see scan_started
-            n = np.asarray(normal, dtype=np.float64).reshape(3)
             path = join_path(self.root, "world", self._scanner, "truth", rr.escape_entity_path_part(label))
-            self.rec.log(
-                path,
-                rr.Mesh3D(
-                    vertex_positions=corners,
-                    triangle_indices=[[0, 1, 2], [0, 2, 3]],
-                    vertex_normals=np.tile(n, (4, 1)),
-                    albedo_factor=_TRUTH_RGBA,
-                    face_rendering="DoubleSided",
-                ),
-                static=True,
-            )
-            self.rec.log(
-                f"{path}/normal",
-                rr.Arrows3D(
-                    origins=[corners.mean(axis=0)],
-                    vectors=[n * _NORMAL_LENGTH],
-                    colors=_TRUTH_RGBA[:3],
-                    radii=0.004,
-                ),
-                static=True,
-            )
-            # At the patch's first corner, away from the estimates' labels at the centre.
-            self.rec.log(
-                f"{path}/label",
-                rr.Points3D(
-                    corners[:1], radii=0.001, colors=_TRUTH_RGBA[:3], labels=f"truth {label}: h = {float(offset):.3f} m"
-                ),
-                static=True,
-            )
+            log_true_plane(self.rec, path, label, normal, offset, corners)
 
     def event(self, level: str, text: str, t_ns: int | None = None) -> None:
         """Log a text event at the current step.

@@ -30,6 +30,7 @@ from lelsonar.view.rerun_log import (
     default_blueprint,
     make_recording,
 )
+from lelsonar.view.rerun_surfaces import log_surfaces
 from lelsonar.view.rerun_world import log_scan_pose, log_world_truth
 
 
@@ -131,6 +132,9 @@ class RerunObserver:
             float(scan.gamma[crit]) if crit is not None else None,
             final,
         )
+        if final and (message.surfaces or message.corners or message.edges or message.unexplained):
+            # At the time the logger just set: the final estimate's.
+            log_surfaces(self.rec, self._logger(scan).scan_world, message)
         if final and message.HasField("accounting"):
             self._logger(scan).accounting(
                 wire.status_name(message), wire.accounting_text(message.accounting), list(message.missing_steps)

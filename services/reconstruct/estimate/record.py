@@ -20,7 +20,7 @@ Final (``options.provisional`` False), from scratch, on the whole scan:
 4. every surface of the sweep, beside the L's planes: the planes, concave corners and convex edges of
    its regions of constant depth (:func:`~lelsonar.reconstruct.estimate.surfaces.extract_surfaces`, on
    the same repaired ranges of record and their echoes' amplitudes), the writer findings on each
-   surface's verdict too.
+   surface's verdict too, and a surface next to steps the scan is missing degraded.
 
 The provisional variant is documented on :func:`reconstruct_scan`.
 """
@@ -42,7 +42,7 @@ from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
 from lelsonar.reconstruct.estimate.options import FitOptions
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, corner_edge, reconstruct
-from lelsonar.reconstruct.estimate.quality import add_findings, assess_plane, cross_check, recovery_finding
+from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings, assess_plane, cross_check, recovery_finding
 from lelsonar.reconstruct.estimate.results import (
     EdgeLine,
     FailureReason,
@@ -235,6 +235,7 @@ class ScanEstimate:
         The planes of record, then each compared method's, their verdicts applied.
     edge : EdgeLine or FitFailure
     timings : (segmentation, fit, total), s
+        Of the method of record; on a final, ``total`` also holds the extraction of the surfaces.
     results : mapping of method → ScanReconstruction
         Each method's own reconstruction, before the scan's verdict (empty for a provisional).
     notes : tuple of str
@@ -381,7 +382,13 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
     notes = tuple(text for _, text in scan.writer_problems)
     crit = int(steps[main.critical_step]) if main.critical_step is not None else None
     t = main.timings
-    surfaces = extract_surfaces(scan.gamma, scan.distance, scan.geometry, amplitude=scan.echo_amplitude)
+    t0 = time.perf_counter()
+    surfaces = _unobserved(
+        extract_surfaces(scan.gamma, scan.distance, scan.geometry, amplitude=scan.echo_amplitude),
+        steps,
+        max(scan.n_schedule, int(steps[-1]) + 1 if len(steps) else 0),
+    )
+    extract_s = time.perf_counter() - t0
     return ScanEstimate(
         method=options.method,
         compare_methods=options.compare_methods,
@@ -392,7 +399,7 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
         critical_angle=main.critical_angle if crit is not None else 0.0,
         planes=planes,
         edge=main.edge,
-        timings=(t.segmentation, t.fit, t.total),
+        timings=(t.segmentation, t.fit, t.total + extract_s),  # the total with the surfaces' extraction
         results=MappingProxyType(results),
         notes=notes,
         failures=notes if not all(isinstance(pl, PlaneFit) for pl in main.planes) else (),
@@ -420,6 +427,38 @@ def _surface_findings(surfaces: SurfaceSet | None, findings: tuple[tuple[str, st
     for s in surfaces.surfaces:
         plane = add_findings(s.plane, findings)
         out.append(replace(s, plane=plane) if isinstance(plane, PlaneFit) else s)
+    return replace(surfaces, surfaces=tuple(out))
+
+
+def _unobserved(surfaces: SurfaceSet, steps: np.ndarray, n_schedule: int) -> SurfaceSet:
+    """Each surface whose region of constant depth borders or spans steps the scan is missing, degraded and
+    said why.
+
+    The extractor reads the received rows in order: it cannot tell a missing step from a step without an
+    echo, so a region that ends at a gap may really go on (its centre, hence its bearing, and its extent
+    are then not the wall's) and one across a gap joins steps that were never seen together.
+    """
+    if not surfaces.surfaces or len(steps) == n_schedule:
+        return surfaces
+    missing = np.ones(n_schedule, dtype=bool)
+    missing[steps] = False
+    # Each run of missing steps, as (first, last).
+    edges = np.diff(np.concatenate(([0], missing.astype(np.int8), [0])))
+    runs = list(zip(np.flatnonzero(edges == 1).tolist(), (np.flatnonzero(edges == -1) - 1).tolist()))
+    out = []
+    for s in surfaces.surfaces:
+        first, last = int(steps[int(s.steps.min())]), int(steps[int(s.steps.max())])
+        near = [(a, b) for a, b in runs if a <= last + 1 and b >= first - 1]
+        if near:
+            n = sum(b - a + 1 for a, b in near)
+            listed = ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in near)
+            text = (
+                f"step{'s' if n > 1 else ''} {listed} of the scan {'are' if n > 1 else 'is'} missing at or inside "
+                "its region of constant depth: its bearing and extent may not be the wall's"
+            )
+            plane = add_findings(s.plane, ((DEGRADED, text),))
+            s = replace(s, plane=plane) if isinstance(plane, PlaneFit) else s
+        out.append(s)
     return replace(surfaces, surfaces=tuple(out))
 
 

@@ -1,0 +1,103 @@
+"""``lelsonar map --source … --screenshot OUT.png``: the final map as a still image (matplotlib), from above.
+
+Drawn from the ``Map`` message, as the other viewers draw it: the free space the scans saw (light blue),
+each wall as a band as wide as its offset's ± 2σ (at least a hairline) in its verdict's colour, corners and
+edges, the corrected path against the odometry's, the planner's route, and the simulated world's true walls
+(grey, thin) where the recording carries them.  ``docs/map.png`` is made with it.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import shapely
+
+from lelsonar.draw.estimates import SIGMA_BAND
+from lelsonar.draw.map_scene import wall_pieces
+from lelsonar.draw.palette import QUALITY_COLORS, quality_color
+from lelsonar.v1 import map_pb2
+
+
+def _rgb(c) -> tuple[float, float, float]:
+    return c[0] / 255, c[1] / 255, c[2] / 255
+
+
+def save_map_picture(
+    path: Path | str,
+    msg: map_pb2.Map,
+    *,
+    free_space=None,
+    route: list[tuple[float, float]] | None = None,
+    world: dict | None = None,
+    title: str = "",
+) -> Path:
+    """Draw the map and write it to ``path`` (png, pdf or svg); returns the path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Polygon as Patch
+
+    fig, ax = plt.subplots(figsize=(8, 7), dpi=110)
+    if free_space is not None and not free_space.is_empty:
+        for poly in shapely.get_parts(free_space):
+            ax.add_patch(
+                Patch(np.asarray(poly.exterior.coords), closed=True, fc=(0.75, 0.87, 1.0), ec="none", zorder=0)
+            )
+            for hole in poly.interiors:
+                ax.add_patch(Patch(np.asarray(hole.coords), closed=True, fc="white", ec="none", zorder=0))
+    for w in (world or {}).get("walls", []):
+        (x0, y0), (x1, y1) = w["from"], w["to"]
+        ax.plot([x0, x1], [y0, y1], color=(0.45, 0.45, 0.45), lw=0.8, ls="--", zorder=1)
+    for w in msg.walls:
+        sigma = w.offset_stderr if math.isfinite(w.offset_stderr) else 0.0
+        n = np.array([w.normal.x, w.normal.y])
+        for a, b in wall_pieces(w):
+            band = SIGMA_BAND * sigma * n
+            corners = np.array([a[:2] - band, b[:2] - band, b[:2] + band, a[:2] + band])
+            color = _rgb(quality_color(w.quality))
+            ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=0.9, zorder=3))
+    for items, color, marker in ((msg.corners, (1.0, 0.31, 0.78), "o"), (msg.edges, (0.0, 0.7, 0.85), "s")):
+        if len(items):
+            ax.scatter(
+                [f.point.x for f in items], [f.point.y for f in items], s=18, color=color, marker=marker, zorder=4
+            )
+    if msg.poses:
+        odo = np.array([[p.odometry.x, p.odometry.y] for p in msg.poses])
+        fused = np.array([[p.position.x, p.position.y] for p in msg.poses])
+        ax.plot(odo[:, 0], odo[:, 1], color=(0.55, 0.55, 0.55), lw=1, marker=".", zorder=5)
+        ax.plot(fused[:, 0], fused[:, 1], color=(0.9, 0.65, 0.0), lw=1.6, marker="o", ms=3, zorder=6)
+    if route:
+        r = np.asarray(route)
+        ax.plot(r[:, 0], r[:, 1], color=(0.1, 0.1, 0.1), lw=2, zorder=7)
+        ax.plot(*r[-1], marker="*", color=(0.1, 0.1, 0.1), ms=12, zorder=7)
+    legend = [
+        Line2D([], [], color=_rgb(QUALITY_COLORS[q]), lw=4, label=f"wall {q} (± 2σ)")
+        for q in ("good", "degraded", "unreliable")
+    ]
+    legend += [
+        Line2D([], [], color=(0.9, 0.65, 0.0), lw=1.6, marker="o", ms=3, label="path after fusion"),
+        Line2D([], [], color=(0.55, 0.55, 0.55), lw=1, marker=".", label="odometry"),
+        Line2D([], [], color=(1.0, 0.31, 0.78), marker="o", ls="none", label="corner"),
+    ]
+    if free_space is not None:
+        legend.append(Line2D([], [], color=(0.75, 0.87, 1.0), lw=6, label="seen free"))
+    if route:
+        legend.append(Line2D([], [], color=(0.1, 0.1, 0.1), lw=2, label="route out"))
+    if world:
+        legend.append(Line2D([], [], color=(0.45, 0.45, 0.45), lw=0.8, ls="--", label="true walls"))
+    ax.legend(handles=legend, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlabel("x, m")
+    ax.set_ylabel("y, m")
+    ax.set_title(title or f"map of {msg.scanner_id}: {len(msg.walls)} walls, {msg.scans} scans", fontsize=10)
+    ax.grid(True, lw=0.3, alpha=0.5)
+    fig.tight_layout()
+    out = Path(path)
+    fig.savefig(out)
+    plt.close(fig)
+    return out
