@@ -68,6 +68,23 @@ def test_readme_command_table_lists_every_command():
     assert set(sub.choices) <= listed, f"missing from the README: {sorted(set(sub.choices) - listed)}"
 
 
+def test_each_command_is_registered_by_the_module_the_registry_names():
+    import importlib
+
+    from lelsonar.cli.main import COMMANDS, OneLineParser
+
+    for module, names in COMMANDS.items():
+        sub = OneLineParser(prog="x").add_subparsers(dest="command")
+        importlib.import_module(module).register(sub)
+        assert tuple(sub.choices) == names, module
+    every = next(a for a in build_parser()._actions if a.dest == "command").choices
+    assert list(every) == [n for names in COMMANDS.values() for n in names]
+    # A command line that names its command builds that module's commands only; help builds them all.
+    only = next(a for a in build_parser(["info", "x.mcap"])._actions if a.dest == "command").choices
+    assert list(only) == ["recover", "info"]
+    assert list(next(a for a in build_parser(["--help"])._actions if a.dest == "command").choices) == list(every)
+
+
 def test_bench_progress_yields_every_item():
     from lelsonar.tools.bench import progress
 

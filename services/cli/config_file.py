@@ -116,8 +116,13 @@ def _convert_one(action: argparse.Action, value: Any, where: str) -> Any:
     return value
 
 
-def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
-    """Parse ``argv``; then fill every flag not given explicitly from ``--config``'s tables."""
+def parse_args(
+    parser: argparse.ArgumentParser, argv: list[str] | None, commands: list[str] | None = None
+) -> argparse.Namespace:
+    """Parse ``argv``; then fill every flag not given explicitly from ``--config``'s tables.
+
+    ``commands``: every command a table may be named after (default: the parser's).
+    """
     args = parser.parse_args(argv)
     path = getattr(args, "config", None)
     if path is None:
@@ -126,7 +131,7 @@ def parse_args(parser: argparse.ArgumentParser, argv: list[str] | None) -> argpa
     actions = {a.dest: a for a in sub._actions if a.dest not in _SKIP and not a.dest.startswith("_")}
     zenoh_dests = {"mode", "connect", "listen", "zenoh_config", "prefix"}
     doc = _load(Path(path))
-    check_tables(Path(path), doc, list(_subparsers(parser)))
+    check_tables(Path(path), doc, commands if commands is not None else list(_subparsers(parser)))
     values: dict[str, tuple[Any, str]] = {}
     tables = [(ZENOH_TABLE, zenoh_dests & set(actions))]
     if not getattr(args, "_own_config_table", False):

@@ -14,24 +14,27 @@ import importlib
 import os
 import sys
 
-#: Modules that contribute subcommands, in the order `--help` lists them.
-COMMAND_MODULES = (
-    "lelsonar.cli.contract",
-    "lelsonar.cli.secure",
-    "lelsonar.cli.acquire",
-    "lelsonar.cli.simulate",
-    "lelsonar.cli.emulate",
-    "lelsonar.cli.reconstruct",
-    "lelsonar.cli.review",
-    "lelsonar.cli.planner",
-    "lelsonar.cli.recordings",
-    "lelsonar.cli.map",
-    "lelsonar.cli.batch",
-    "lelsonar.cli.bridge",
-    "lelsonar.cli.demo",
-    "lelsonar.tools.bench",
-    "lelsonar.cli.warm_up",
-)
+#: Modules that contribute subcommands and the commands each registers, in the order `--help` lists them.
+#: A command line that names its command builds only that module's parser (a command starts without
+#: importing every other command's libraries); `tests/test_cli_polish.py` checks the names against the modules.
+COMMANDS: dict[str, tuple[str, ...]] = {
+    "lelsonar.cli.contract": ("version", "schemas", "router"),
+    "lelsonar.cli.secure": ("secure",),
+    "lelsonar.cli.acquire": ("acquire",),
+    "lelsonar.cli.simulate": ("simulate", "calibrate"),
+    "lelsonar.cli.emulate": ("emulate",),
+    "lelsonar.cli.reconstruct": ("reconstruct",),
+    "lelsonar.cli.review": ("review",),
+    "lelsonar.cli.planner": ("planner",),
+    "lelsonar.cli.recordings": ("recover", "info"),
+    "lelsonar.cli.map": ("map", "mapper"),
+    "lelsonar.cli.batch": ("batch",),
+    "lelsonar.cli.bridge": ("export", "ros2-bridge"),
+    "lelsonar.cli.demo": ("demo",),
+    "lelsonar.tools.bench": ("bench",),
+    "lelsonar.cli.warm_up": ("warm-up",),
+}
+COMMAND_MODULES = tuple(COMMANDS)
 
 
 #: The exit codes every command keeps (`lelsonar --help` shows them; the misuse test checks them).
@@ -59,14 +62,18 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser of every command, or only of the command ``argv`` names first (``--help``, no command or an
+    unknown one: every command, so the listing and the closest-name hint are whole)."""
+    first = next((a for a in argv or () if not a.startswith("-")), None)
+    modules = [m for m, names in COMMANDS.items() if first in names] or list(COMMANDS)
     parser = OneLineParser(
         prog="lelsonar",
         description="Robust plane estimates from a rotating ultrasonic array (LEL fitting of L-shaped corners).",
         epilog=EPILOG,
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name in COMMAND_MODULES:
+    for name in modules:
         importlib.import_module(name).register(sub)
     from lelsonar.cli.config_file import add_config_arguments
 
@@ -82,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         from lelsonar.errors import LelsonarError
 
         try:
-            args = parse_args(build_parser(), argv)
+            every = [name for names in COMMANDS.values() for name in names]
+            args = parse_args(build_parser(sys.argv[1:] if argv is None else argv), argv, every)
         except LelsonarError as exc:
             return _fail(command, exc, 2)
         except SystemExit as exc:  # --help (0) or a usage error already printed (2)
