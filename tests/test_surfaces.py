@@ -11,7 +11,8 @@ from lelsonar import codec
 from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.regions import extrapolated_peak, log_amplitude_curvature
 from lelsonar.view import present
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
@@ -121,6 +122,33 @@ def test_a_dihedral_corner_sits_at_the_double_bounce_range_of_its_two_walls():
     assert abs(c.direction[0]) == pytest.approx(1.0)  # along the stack: a vertical corner of the fan
 
 
+def test_walls_joined_at_a_corner_are_fitted_with_it_and_their_sigma_stays_honest():
+    # Walls y = 1 (bearing 0) and z = 1.5 (bearing 90°) meet at (1, 1.5): the corner's double bounce ties
+    # them.  Over 20 sweeps each wall's error over its σ must scatter as N(0, 1) does or less (the rms of
+    # 40 such draws lies within 1.4 with probability > 0.999), and the corner's evidence narrows the bearing.
+    z = {True: [], False: []}
+    sd_bearing: dict[bool, list[float]] = {True: [], False: []}
+    for seed in range(20):
+        for joint in (True, False):
+            e = Echoes(seed=100 + seed)
+            e.plane(0.0, 1.0)
+            e.plane(math.pi / 2, 1.5)
+            e.vertical_line(1.0, 1.5, gain=1.5)
+            opts = SurfaceOptions(joint_corners=joint)
+            result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp, options=opts)
+            assert len(result.surfaces) == 2 and len(result.corners) == 1
+            for s in result.surfaces:
+                assert ("joint corner model: tied to its corners" in s.plane.diagnostics.notes) == joint
+                bearing, offset = (0.0, 1.0) if abs(s.offset - 1.0) < 0.1 else (math.pi / 2, 1.5)
+                sd = np.sqrt(np.diag(s.covariance))
+                z[joint].append(((s.bearing - bearing) / sd[0], s.tilt / sd[1], (s.offset - offset) / sd[2]))
+                sd_bearing[joint].append(float(sd[0]))
+    scores = np.array(z[True])
+    assert np.all(np.sqrt(np.mean(scores**2, axis=0)) < 1.4), np.sqrt(np.mean(scores**2, axis=0))
+    assert np.all(np.abs(scores) < 4.0)
+    assert np.median(sd_bearing[True]) < np.median(sd_bearing[False])
+
+
 def test_a_wall_end_diffracts_weakly_and_is_an_edge():
     e = Echoes(seed=4)
     e.plane(0.0, 1.0)
@@ -133,6 +161,22 @@ def test_a_wall_end_diffracts_weakly_and_is_an_edge():
     assert len(result.surfaces) == 2
 
 
+def test_a_wall_end_as_strong_as_the_walls_own_echo_is_a_corner_whose_other_wall_is_unseen():
+    e = Echoes(seed=10)
+    e.plane(0.0, 1.0)
+    e.plane(math.radians(-100.0), 1.3, gain=2.5)  # a bright wall: the sweep's strongest echo
+    # The double bounce at the wall's end (1, 0.8): 0.75 of the wall's own echo (gain 1.5 with a second wall of
+    # reflectivity 0.5, whose face lies out of the sweep).  Against the wall's own echo it is 0.75: a corner;
+    # against the sweep's strongest it would be 0.75/2.5 = 0.3, under the weak line of 0.35.
+    e.vertical_line(1.0, 0.8, gain=0.75)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    wall = next(s for s in result.surfaces if abs(s.offset - 1.0) < 0.01)
+    assert len(result.corners) == 1 and not result.edges
+    c = result.corners[0]
+    assert c.surfaces == (wall.label,) and "its plane's mirror echo" in c.reasons[0]
+    assert np.linalg.norm(c.point[1:] - [1.0, 0.8]) < 0.05
+
+
 def test_a_line_across_the_stack_is_told_from_a_plane_by_the_curvature_of_its_ranges():
     e = Echoes(seed=5)
     bearing = math.radians(10.0)
@@ -143,6 +187,60 @@ def test_a_line_across_the_stack_is_told_from_a_plane_by_the_curvature_of_its_ra
     assert not result.surfaces
     assert len(result.corners) == 1
     assert "curve along the capsule stack" in result.corners[0].reasons[0]
+
+
+def test_a_wall_meeting_the_floor_is_a_corner_at_the_double_bounce_range_with_the_stack_slope_it_predicts():
+    e = Echoes(seed=8)
+    bearing, h, z = math.radians(20.0), 1.0, -0.3
+    # The wall-floor line, 0.3 m along the stack from the axis: each capsule's range is its distance to the
+    # line, √((h − n·p)² + (x − z)²), so the ranges grow along the stack by ≈ 0.3 m/m.  The wall (gain 0.2)
+    # answers within 12.5° of its foot, the line (gain 3, 16.7° off the fan) out to 22°: the line's region
+    # flanks the wall's on both sides.
+    e.plane(bearing, h, gain=0.2)
+    point = np.array([z, h * math.cos(bearing), h * math.sin(bearing)])
+    e.across_line(point, np.array([0.0, -math.sin(bearing), math.cos(bearing)]), gain=3.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and abs(result.surfaces[0].offset - h) < 0.01
+    wall = result.surfaces[0].label
+    assert len(result.corners) == 2 and not result.edges
+    for c in result.corners:
+        assert c.surfaces == (wall,)
+        assert "double bounce" in c.reasons[0] and "across the fan" in c.reasons[0]
+        assert c.depth == pytest.approx(math.hypot(h, z), abs=0.005)
+        assert f"{z:+.2f} m along the stack" in c.reasons[0]
+        # The line lies at the wall's foot, off the fan by z, and runs in the fan along the wall.
+        assert np.linalg.norm(c.point - point) < 0.03
+        assert abs(c.direction @ np.array([0.0, -math.sin(bearing), math.cos(bearing)])) == pytest.approx(1, abs=1e-6)
+
+
+def test_a_wall_end_whose_peak_a_nearer_post_hides_is_still_a_weak_edge():
+    e = Echoes(seed=9)
+    e.plane(0.0, 1.0)
+    e.plane(math.radians(-100.0), 1.3)
+    # The wall's free end (diffraction, 0.2 of a mirror) at bearing atan2(0.8, 1) = 38.7°, 1.28 m, answers
+    # within 10° of it; a thin post (gain 0.3) at 0.6 m and 25° answers first from 6° to 44°, so the end's
+    # region is its flank 44°–48.7°, past its hidden peak.
+    e.vertical_line(0.6 * math.cos(math.radians(25.0)), 0.6 * math.sin(math.radians(25.0)), gain=0.3)
+    e.vertical_line(1.0, 0.8, gain=0.2)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    far = [f for f in result.edges if abs(f.depth - math.hypot(1.0, 0.8)) < 0.02]
+    assert len(far) == 1, [(s.offset, s.bearing_source) for s in result.surfaces]
+    wall = next(s for s in result.surfaces if abs(s.offset - 1.0) < 0.01)
+    assert far[0].surfaces == (wall.label,) and "weak" in far[0].reasons[0]
+    assert np.linalg.norm(far[0].point[1:] - [1.0, 0.8]) < 0.05
+    assert sorted(round(s.offset, 1) for s in result.surfaces) == [1.0, 1.3]
+
+
+def test_the_beam_curvature_and_a_hidden_peak_come_back_from_a_gaussian_flank():
+    width, peak, centre = 0.26, 0.4, 0.1
+    g = np.linspace(-0.3, 0.5, 41)
+    a = peak * np.exp(-(((g - centre) / width) ** 2))  # log A = log peak − (γ − β)²/w²: k = 1/w²
+    assert log_amplitude_curvature(g, a) == pytest.approx(1 / width**2, rel=0.02)
+    flank = g > centre + 0.15  # the peak is 0.15 rad before the region
+    got = extrapolated_peak(g[flank], a[flank], 1 / width**2, before=math.radians(40.0), after=0.0)
+    assert got == pytest.approx(peak, rel=1e-6)
+    # Where the region's echo faded on that side, its peak cannot lie there.
+    assert extrapolated_peak(g[flank], a[flank], 1 / width**2, before=0.0, after=0.0) is None
 
 
 def test_unexplained_readings_are_counted_with_their_cause():
@@ -212,3 +310,21 @@ def test_every_wall_of_a_simulated_sweep_is_found_and_none_claims_good_while_wro
     features = {c: sum(r.found[c] for r in records) for c in ("corner", "edge")}
     right = {c: sum(r.right[c] for r in records) for c in ("corner", "edge")}
     print(f"{family}: corners {right['corner']}/{features['corner']}, edges {right['edge']}/{features['edge']} right")
+
+
+@pytest.mark.slow
+def test_with_a_box_in_front_each_wall_is_estimated_from_its_own_echoes_or_flagged():
+    from lelsonar.sim.world_geometry import build_model
+    from lelsonar.sim.worlds import draw_world
+    from lelsonar.tools.bench_surfaces import run_scan
+
+    model = build_model(draw_world("boxes", 0))
+    walls = [p for pose in range(min(2, len(model.world.poses))) for p in run_scan("boxes", 0, pose, model).planes]
+    walls = [p for p in walls if p.wall]
+    assert walls
+    for p in walls:
+        # The box is its own segment: the wall's surface holds the wall's echoes, not the box's.
+        assert p.own_share > 0.5, f"element {p.element}: {100 * p.own_share:.0f} % of its readings are its own"
+        assert (p.quality == "good" and p.within_oracle) or p.flagged, (
+            f"element {p.element} {p.quality}: {100 * p.error:.2f} cm against its oracle's {100 * p.oracle:.2f} cm"
+        )

@@ -23,7 +23,13 @@ and per plane:
   bearing error shows as much as an offset error);
 * **oracle**: least squares (:func:`~lelsonar.reconstruct.estimate.fit.constant_depth_ls`)
   on the surface's own true echoes, started at the truth, with the same error;
-* **failure claiming good**: verdict good while the error is > 2 cm and > 3× the oracle's.
+* **failure claiming good**: verdict good while the error is > 2 cm and > 3× the oracle's;
+* **clutter** (the room's walls, not the boxes' faces): good and within 3× the oracle (or one range's σ),
+  or flagged not good with reasons; and the share of each wall's readings that are its own echoes.
+
+``--first-seed 10`` runs held-out worlds.  A second table runs the L families' scans
+(:mod:`lelsonar.sim.scenes`, the paper mount) through the extractor with the joint corner
+model off and on (``--l-seeds``): the walls' trace errors side by side, in the same run.
 """
 
 from __future__ import annotations
@@ -31,16 +37,22 @@ from __future__ import annotations
 import argparse
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceSet, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceOptions, SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
+from lelsonar.sim.scenes import FAMILIES as L_FAMILIES
+from lelsonar.sim.scenes import simulate_family_scene
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
 from lelsonar.sim.world_render import WorldScan, pose_frame, simulate_world_scan
 from lelsonar.sim.worlds import WORLD_FAMILIES, draw_world
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 #: The class each element kind should be extracted as.
 TRUE_CLASS = {
@@ -66,6 +78,15 @@ class PlaneRecord:
     oracle: float  # m
     angle: float  # rad
     n_true_echoes: int
+    wall: bool = False  # a wall of the room (not a box's face)
+    own_share: float = float("nan")  # the surface's readings that are this element's own echoes
+    flagged: bool = False  # not good, with its reasons
+    range_noise: float = 0.0  # m, σ of one range (the receiver's timing noise): errors under it are noise
+
+    @property
+    def within_oracle(self) -> bool:
+        """Within 3× its oracle, or within one range's σ (the clutter criterion: estimated from its own echoes)."""
+        return self.error <= max(3 * self.oracle, self.range_noise)
 
 
 @dataclass(frozen=True)
@@ -132,6 +153,14 @@ def _element_kind(model: WorldModel, k: int, scan: WorldScan, steps: np.ndarray)
     return TRUE_CLASS[model.elements[k].kind]
 
 
+def _own_share(scan: WorldScan, steps: np.ndarray, element: int) -> float:
+    """Of the readings in the surface's steps, the share that are the element's own (non-diffuse) echoes."""
+    ok = np.isfinite(scan.distance[steps])
+    own = ok & (scan.echo_index[steps] == element) & (scan.echo_source[steps] != EchoSource.DIFFUSE)
+    n_ok = int(np.count_nonzero(ok))
+    return int(np.count_nonzero(own)) / max(n_ok, 1)
+
+
 def oracle_error(scan: WorldScan, element: int) -> float:
     """LS on the element's own true echoes, started at the truth: its trace error, m."""
     n_true, h_true = true_plane(scan, element)
@@ -171,9 +200,22 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             n_true, h_true = true_plane(scan, k)
             err = trace_error(surf.normal, surf.offset, n_true, h_true)
             ang = math.acos(min(1.0, abs(float(surf.normal @ n_true))))
+            label = model.surfaces[model.elements[k].surfaces[0]].label
             planes.append(
                 PlaneRecord(
-                    family, seed, scan.pose_index, k, surf.quality, err, oracle_error(scan, k), ang, int(counts[k])
+                    family,
+                    seed,
+                    scan.pose_index,
+                    k,
+                    surf.quality,
+                    err,
+                    oracle_error(scan, k),
+                    ang,
+                    int(counts[k]),
+                    wall=label.startswith("wall"),
+                    own_share=_own_share(scan, steps, k),
+                    flagged=surf.quality != "good" and bool(surf.reasons),
+                    range_noise=scan.rig.receiver.tof_jitter,
                 )
             )
     found = {c: 0 for c in classes}
@@ -187,18 +229,74 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     return ScanRecord(planes, seen, found, right, false, extracted, share, false_good)
 
 
-def run_scan(family: str, seed: int, pose: int, model: WorldModel) -> ScanRecord:
+def run_scan(family: str, seed: int, pose: int, model: WorldModel, options: SurfaceOptions | None = None) -> ScanRecord:
     """Simulate, extract and score one sweep."""
     scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp, options=options)
     return score_scan(family, scan, result, seed=seed)
+
+
+def l_scan_errors(family: str, seed: int) -> dict[bool, list[tuple[float, str]]]:
+    """The L scan's two walls as surfaces, with the joint corner model off (False) and on (True).
+
+    Each true wall is matched to the surface whose steps' echoes are mostly that wall's; its trace error (m)
+    and verdict, or nothing when no surface holds it.
+    """
+    fs = simulate_family_scene(family, seed)
+    sc = fs.scan
+    amp = echo_amplitude(sc.waveforms, sc.sample_rate, sc.t0, sc.tof)
+    out: dict[bool, list[tuple[float, str]]] = {}
+    for joint in (False, True):
+        res = extract_surfaces(
+            sc.gamma_measured, sc.distance, sc.geometry, amplitude=amp, options=SurfaceOptions(joint_corners=joint)
+        )
+        found = []
+        for plane, src in zip(sc.truth.planes[:2], (EchoSource.PLANE_A, EchoSource.PLANE_B), strict=True):
+            mine = [s for s in res.surfaces if np.mean(sc.truth.echo_source[s.steps] == src) > 0.5]
+            errs = [(trace_error(s.normal, s.offset, plane.normal, plane.offset), s.quality) for s in mine]
+            if errs:
+                found.append(min(errs))
+        out[joint] = found
+    return out
+
+
+def _l_scan_table(seeds: int, console: Console) -> None:
+    from rich.table import Table
+
+    table = Table(title=f"L scan (paper mount), the surfaces' two walls, joint corner model off → on ({seeds} seeds)")
+    for col in ("family", "walls found", "err med cm", "err p95 cm", "err max cm", "good-but-failed (> 2 cm)"):
+        table.add_column(col, justify="right")
+    for family in L_FAMILIES:
+        runs = [l_scan_errors(family, seed) for seed in range(seeds)]
+        cells = []
+        for joint in (False, True):
+            errs = [100 * e for r in runs for e, _q in r[joint]]
+            bad = sum(1 for r in runs for e, q in r[joint] if q == "good" and e > 0.02)
+            cells.append((len(errs), _pct(errs, 50), _pct(errs, 95), max(errs, default=float("nan")), bad))
+        off, on = cells
+        table.add_row(
+            family,
+            f"{off[0]} → {on[0]} of {2 * seeds}",
+            f"{off[1]:.2f} → {on[1]:.2f}",
+            f"{off[2]:.2f} → {on[2]:.2f}",
+            f"{off[3]:.2f} → {on[3]:.2f}",
+            f"{off[4]} → {on[4]}",
+        )
+    console.print(table)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--worlds", default="all", help="comma-separated world families, or all")
-    parser.add_argument("--seeds", type=int, default=3, help="worlds per family (seeds 0..N-1)")
+    parser.add_argument("--seeds", type=int, default=3, help="worlds per family (seeds F..F+N-1)")
+    parser.add_argument("--first-seed", type=int, default=0, help="F: the first world seed (held-out worlds: 10)")
     parser.add_argument("--max-poses", type=int, default=2, help="sweeps per world (its first poses)")
+    parser.add_argument(
+        "--l-seeds", type=int, default=3, help="L scans per L family for the joint corner model's A/B (0: none)"
+    )
+    parser.add_argument(
+        "--no-joint-corners", action="store_true", help="fit each wall alone (the A/B of the joint corner model)"
+    )
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -212,14 +310,16 @@ def run(args: argparse.Namespace) -> int:
     from lelsonar.tools.bench import machine, progress
 
     families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
-    jobs = [(f, s) for f in families for s in range(args.seeds)]
+    jobs = [(f, s) for f in families for s in range(args.first_seed, args.first_seed + args.seeds)]
     records: dict[str, list[ScanRecord]] = {f: [] for f in families}
+    options = SurfaceOptions(joint_corners=not args.no_joint_corners)
     for family, seed in progress(jobs, "surfaces"):
         model = build_model(draw_world(family, seed))
         for pose in range(min(args.max_poses, len(model.world.poses))):
-            records[family].append(run_scan(family, seed, pose, model))
+            records[family].append(run_scan(family, seed, pose, model, options))
     console = Console(width=200)
-    table = Table(title=f"surfaces per family ({args.seeds} worlds each, ≤ {args.max_poses} sweeps) — {machine()}")
+    seeds = f"seeds {args.first_seed}–{args.first_seed + args.seeds - 1}"
+    table = Table(title=f"surfaces per family ({seeds}, ≤ {args.max_poses} sweeps each) — {machine()}")
     for col in (
         "family",
         "planes found/seen",
@@ -235,9 +335,12 @@ def run(args: argparse.Namespace) -> int:
         "edges found/seen (right)",
         "false corners/edges",
         "unexplained",
+        "walls good ≤3× oracle / flagged / neither",
+        "walls' own echoes med",
     ):
         table.add_column(col, justify="right")
     bad_total = 0
+    neither: list[tuple[str, PlaneRecord]] = []
     for family in families:
         recs = records[family]
         planes = [p for r in recs for p in r.planes]
@@ -246,6 +349,10 @@ def run(args: argparse.Namespace) -> int:
         ratio = float(np.median(err) / max(np.median(orc), 1e-9)) if planes else float("nan")
         failed_good = sum(1 for p in planes if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle)
         bad_total += failed_good
+        # Clutter: each wall of the room (not a box's face) good and within 3× its oracle, or flagged.
+        walls = [p for p in planes if p.wall]
+        unclean = [p for p in walls if not ((p.quality == "good" and p.within_oracle) or p.flagged)]
+        neither.extend((family, p) for p in unclean)
 
         def tot(attr: str, cls: str, recs: list[ScanRecord] = recs) -> int:
             return sum(getattr(r, attr)[cls] for r in recs)
@@ -265,8 +372,13 @@ def run(args: argparse.Namespace) -> int:
             f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')})",
             f"{tot('false', 'corner')}/{tot('false', 'edge')}",
             f"{100 * float(np.mean([r.unexplained_share for r in recs])):.0f} %",
+            f"{sum(p.quality == 'good' and p.within_oracle for p in walls)} / {sum(p.flagged for p in walls)} / "
+            f"{len(unclean)}",
+            f"{100 * _pct([p.own_share for p in walls], 50):.0f} %",
         )
     console.print(table)
+    if args.l_seeds > 0:
+        _l_scan_table(args.l_seeds, console)
     for family in families:
         for p in (p for r in records[family] for p in r.planes):
             if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle:
@@ -274,9 +386,17 @@ def run(args: argparse.Namespace) -> int:
                     f"failure claiming good: {family} seed {p.seed} pose {p.pose} element {p.element}: "
                     f"{100 * p.error:.1f} cm (oracle {100 * p.oracle:.1f} cm), {math.degrees(p.angle):.1f}°"
                 )
+    for family, p in neither:
+        console.print(
+            f"wall good but over 3× its oracle and the range noise: {family} seed {p.seed} pose {p.pose} "
+            f"element {p.element}: "
+            f"{100 * p.error:.2f} cm (oracle {100 * p.oracle:.2f} cm), own echoes {100 * p.own_share:.0f} %"
+        )
     console.print(
         "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
         "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
-        "and > 3× oracle; (right): claimed with the right class."
+        "and > 3× oracle; (right): claimed with the right class; walls: the room's walls (not boxes' faces), good "
+        "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
+        "steps' readings that are its own."
     )
     return 1 if bad_total else 0

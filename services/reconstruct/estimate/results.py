@@ -426,13 +426,15 @@ class EdgeLine:
         object.__setattr__(self, "angle", float(self.angle))
 
     @classmethod
-    def _owned(
+    def from_owned(
         cls, point: np.ndarray, direction: np.ndarray, angle: float, point_stderr: float, direction_stderr: float
     ) -> EdgeLine:
         """Wrap fields valid by construction whose arrays nothing else holds (what ``corner_edge`` builds).
 
-        As :meth:`PlaneFit._owned`: the checks of ``__init__`` hold already and the arrays are made
-        read-only in place (the fit's hot path; ``__init__`` stays the boundary for everyone else).
+        The caller guarantees the checks of ``__init__``: a finite ``point``, a unit ``direction`` and an
+        ``angle`` in [0, π], as fresh float64 arrays of shape (3,) that it hands over.  The arrays are made
+        read-only in place rather than copied and checked again (the fit's hot path; ``__init__`` stays
+        the boundary for everyone else).
         """
         obj = object.__new__(cls)
         for a in (point, direction):

@@ -105,7 +105,7 @@ def corner_edge(
     )
     direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
     # (edge_line's fresh arrays: a finite point and a unit direction of two valid planes, an angle in [0, π])
-    return EdgeLine._owned(point, direction, angle, point_se, direction_se)
+    return EdgeLine.from_owned(point, direction, angle, point_se, direction_se)
 
 
 #: The quality limits the corner model's own findings use (frozen: one instance serves every scan).

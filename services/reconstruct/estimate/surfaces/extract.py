@@ -11,16 +11,25 @@ Per region of constant depth (:mod:`.regions`):
 * **depth** ``ρ`` from the ranges with the bearing fixed (the mirror condition
   ``n · p_c + d = h``), **tilt** from the differential ranges along the capsule
   stack.
-* **class** by physics:
+* **class** by physics (the tests are in :mod:`.evidence`):
 
+  - one line in a plane, across the fan, explaining every range (the double
+    bounce of a wall with the floor or ceiling): a **corner** of that wall, an
+    **edge** (its free top or bottom) if its echo is weak;
   - ranges curved along the stack as ``1/(2ρ)``: a line or point *across* the
     stack (the image of the array is not a straight array), so not a plane;
-  - a region whose point lies on the trace of two other planes, at the range
-    their intersection predicts for the double bounce: a **concave corner**;
-  - on one other plane's trace (off that plane's own foot): that plane's end,
-    a **corner** if its echo is as strong as a mirror's, an **edge** if weak;
-  - an echo much weaker than a mirror's at its range (diffraction): an **edge**;
+  - at the range and bearing of two planes' intersection (the double bounce):
+    a **concave corner**;
+  - on one other plane's trace (off that plane's own foot, or deeper than it):
+    that plane's end, a **corner** if its echo is as strong as that plane's own
+    mirror echo, an **edge** if weak;
+  - an echo much weaker than the sweep's strongest at its range (diffraction):
+    an **edge**; a region cut before its peak is weak only if the upper
+    estimate of its peak (its flank, extrapolated with the sweep's own beam
+    curvature) is;
   - anything else: a **plane**.
+
+Walls joined at concave corners are fitted with them (:mod:`.joint`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
@@ -31,23 +40,30 @@ be poorly placed in bearing.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
-from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, assess_plane
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
-from lelsonar.reconstruct.estimate.surfaces.regions import (
-    PLATEAU,
-    Region,
-    bearing_from_amplitude,
-    capsule_x,
-    find_regions,
-    stack_fit,
+from lelsonar.reconstruct.estimate.surfaces.evidence import (
+    Measured,
+    across_stack,
+    feature_point,
+    measure_region,
+    mirror_normalised,
+    pair_corner,
+    pair_stderr,
+    plane_end,
+    stack_dihedral,
+    unit_normal,
+    wrap,
 )
+from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
+from lelsonar.reconstruct.estimate.surfaces.regions import extrapolated_peak, find_regions, log_amplitude_curvature
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD"]
@@ -56,145 +72,23 @@ __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfac
 METHOD = "rcd"
 
 
-@dataclass(frozen=True, eq=False)
-class _Measured:
-    """A region with what its echoes say, before its class is decided."""
-
-    region: Region
-    bearing: float
-    bearing_stderr: float
-    bearing_source: str
-    findings: tuple[tuple[str, str], ...]
-    depth: float
-    tilt: float
-    tilt_stderr: float
-    curvature: float
-    curvature_stderr: float
-    stack_slope: float
-    strength: float  # peak amplitude over a mirror's at this depth (NaN: unknown)
-    peak: float
-    peak_inside: bool  # the region holds its amplitude peak
-    exact: bool  # its peak is inside and not clipped (else its strength is only a lower bound)
-    span: tuple[float, float]  # γ of the region's first and last steps, rad
-    step: float  # the sweep's step, rad
-
-
-def _direction(bearing: float, tilt: float = 0.0) -> np.ndarray:
-    c = math.cos(tilt)
-    return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
-
-
-def _measure(
-    region: Region,
+def _fit_surface(
+    label: str,
+    m: Measured,
     gamma: np.ndarray,
     distance: np.ndarray,
-    amplitude: np.ndarray | None,
     geometry: ArrayGeometry,
     opts: SurfaceOptions,
-) -> _Measured:
-    g = gamma[region.steps]
-    step = float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
-    quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
-    findings: list[tuple[str, str]] = []
-    cut = region.cut_before or region.cut_after
-    mid = 0.5 * (float(g[0]) + float(g[-1]))
-    peak_fit = None
-    peak = float("nan")
-    clipped: bool | None = None
-    if amplitude is not None:
-        a = amplitude[region.rows, region.capsules]
-        per_step = np.full(region.steps.size, np.nan)
-        pos = np.searchsorted(region.steps, region.rows)
-        for k in range(region.steps.size):
-            v = a[pos == k]
-            v = v[np.isfinite(v)]
-            if v.size:
-                per_step[k] = float(np.median(v))
-        peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
-        clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
-        peak_fit = bearing_from_amplitude(g, per_step)
-    if not cut:
-        # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
-        # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing
-        # into the same window).
-        bearing, sb, source = mid, quant, "region centre"
-    elif peak_fit is not None:
-        bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
-        # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
-        # window bend (and a receiver's clipping flattens): usable, not good.
-        findings.append(
-            (
-                DEGRADED,
-                "bearing from the amplitude peak alone: the region of constant depth is cut "
-                "(a nearer echo or the sweep's end), so its centre is not the wall's",
-            )
-        )
-    else:
-        bearing, source = mid, "undetermined"
-        sb = 0.5 * (float(g[-1]) - float(g[0])) + step
-        side = "both sides" if region.cut_before and region.cut_after else "one side"
-        findings.append(
-            (
-                UNRELIABLE,
-                f"bearing not determined: the region of constant depth is cut on {side} "
-                "(a nearer echo or the sweep's end) and no amplitude peak is in it",
-            )
-        )
-    caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
-    d = distance[region.rows, region.capsules]
-    x = capsule_x(geometry)[region.capsules]
-    lin, lin_cov, _ = stack_fit(x, region.rows, d, curved=False)
-    quad, quad_cov, _ = stack_fit(x, region.rows, d, curved=True)
-    slope = float(lin[0])
-    tilt = math.asin(max(-1.0, min(1.0, -slope))) if math.isfinite(slope) else 0.0
-    tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")
-    n = _direction(bearing, tilt)
-    depth = float(np.median(d + caps @ n))
-    strength = float("nan")
-    if math.isfinite(peak):
-        strength = peak * 2 * depth * 10 ** (opts.absorption_db_per_m * 2 * depth / 20)  # mirror-normalised
-    return _Measured(
-        region=region,
-        bearing=bearing,
-        bearing_stderr=sb,
-        bearing_source=source,
-        findings=tuple(findings),
-        depth=depth,
-        tilt=tilt,
-        tilt_stderr=tilt_se,
-        curvature=float(quad[1]),
-        curvature_stderr=math.sqrt(float(quad_cov[1, 1])) if math.isfinite(quad[1]) else float("nan"),
-        stack_slope=slope,
-        strength=strength,
-        peak=peak,
-        peak_inside=not cut or peak_fit is not None,
-        exact=(not cut or peak_fit is not None) and clipped is False,
-        span=(float(g[0]), float(g[-1])),
-        step=step,
-    )
-
-
-def _across_stack(m: _Measured, opts: SurfaceOptions) -> bool:
-    """Ranges curved along the stack as a line or point across it (``c ≈ 1/(2ρ)``), not as a plane (``c = 0``)."""
-    c, sc = m.curvature, m.curvature_stderr
-    if not (math.isfinite(c) and math.isfinite(sc) and sc > 0):
-        return False
-    expected = 1.0 / (2.0 * m.depth)
-    return c > opts.curvature_sigmas * sc and abs(c - expected) < max(0.5 * expected, 3 * sc)
-
-
-def _point(m: _Measured) -> np.ndarray:
-    return m.depth * _direction(m.bearing)
-
-
-def _fit_surface(
-    label: str, m: _Measured, gamma: np.ndarray, distance: np.ndarray, geometry: ArrayGeometry, opts: SurfaceOptions
+    joint: JointWall | None = None,
 ) -> Surface | None:
+    """A region's plane; ``joint``: its wall as the joint corner model fitted it (bearing, tilt, offset, σ)."""
     r = m.region
     caps = geometry.capsule_positions(gamma[r.rows])[np.arange(r.rows.size), r.capsules]
     d = distance[r.rows, r.capsules]
     beam = np.stack([np.zeros(r.rows.size), np.cos(gamma[r.rows]), np.sin(gamma[r.rows])], axis=1)
-    n = _direction(m.bearing, m.tilt)
+    if joint is not None:
+        return _joint_surface(label, m, joint, caps, beam, d, gamma, opts)
+    n = unit_normal(m.bearing, m.tilt)
     h_i = d + caps @ n
     h = float(np.median(h_i))
     resid = h_i - h
@@ -240,10 +134,115 @@ def _fit_surface(
     )
 
 
+def _joint_surface(
+    label: str,
+    m: Measured,
+    joint: JointWall,
+    caps: np.ndarray,
+    beam: np.ndarray,
+    d: np.ndarray,
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> Surface | None:
+    n = unit_normal(joint.bearing, joint.tilt)
+    cov = joint.covariance
+    data = plane_data_of(caps[:, None, :], beam, d[:, None], m.region.rows, "a", n)
+    fit = make_plane_fit(
+        data,
+        n / joint.offset,
+        method=METHOD,
+        inlier_mask=np.ones(data.n, dtype=bool),
+        diagnostics=SolverDiagnostics(
+            solver=METHOD, notes=(f"bearing: {m.bearing_source}", "joint corner model: tied to its corners")
+        ),
+        model="constant-depth",
+        stderr=(math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)), math.sqrt(max(cov[2, 2], 0.0))),
+    )
+    if not isinstance(fit, PlaneFit):
+        return None
+    fit = assess_plane(fit, gamma, findings=m.findings, limits=opts.limits)
+    return Surface(
+        label=label,
+        plane=fit,
+        bearing=joint.bearing,
+        tilt=joint.tilt,
+        covariance=cov.copy(),
+        bearing_source=m.bearing_source,
+        steps=m.region.steps.copy(),
+        n_echoes=m.region.n_echoes,
+    )
+
+
+def _scatter(residuals: np.ndarray) -> float:
+    """A robust σ of residuals (1.4826 MAD), the standard deviation where the MAD is 0, m."""
+    if residuals.size < 2:
+        return float("nan")
+    mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+    return mad if mad > 0 else float(np.std(residuals, ddof=1))
+
+
+def _joint_fit(
+    pairs: list[tuple[int, list[int]]], measured: list[Measured], opts: SurfaceOptions
+) -> tuple[dict[int, JointWall], dict[int, str]]:
+    """The walls joined at concave corners, fitted with their corners (:func:`.joint.joint_walls`).
+
+    Returns the joint walls by region, and the regions whose beam-pattern bearing the corners dispute (more
+    than 3 σ apart): those keep their own fit, and say so.
+    """
+    walls = sorted({j for _, ties in pairs for j in ties[:2]})
+    if not pairs or len(walls) < 2:
+        return {}, {}
+    index = {j: k for k, j in enumerate(walls)}
+    evidence = []
+    for j in walls:
+        mj = measured[j]
+        sigma = _scatter(mj.ranges + mj.positions @ unit_normal(mj.bearing, mj.tilt))
+        if not (math.isfinite(sigma) and sigma > 0):
+            return {}, {}
+        evidence.append(WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.bearing_stderr, mj.tilt, mj.depth, sigma))
+    corners = []
+    for i, ties in pairs:
+        mi = measured[i]
+        a, b = evidence[index[ties[0]]], evidence[index[ties[1]]]
+        x = np.linalg.solve(
+            np.stack([unit_normal(a.bearing)[1:], unit_normal(b.bearing)[1:]]), np.array([a.offset, b.offset])
+        )
+        # The corner's scatter about the double bounce the walls predict: the capsules' distances to X.
+        predicted = np.linalg.norm(mi.positions[:, 1:] - x[None, :], axis=1)
+        sigma = _scatter(mi.ranges - predicted)
+        if not (math.isfinite(sigma) and sigma > 0):
+            continue
+        corners.append(CornerEvidence(mi.positions, mi.ranges, (index[ties[0]], index[ties[1]]), sigma))
+    fitted = joint_walls(evidence, corners)
+    if fitted is None:
+        return {}, {}
+    out: dict[int, JointWall] = {}
+    disputed: dict[int, str] = {}
+    for j, jw in zip(walls, fitted, strict=True):
+        mj = measured[j]
+        gap = abs(wrap(jw.bearing - mj.bearing))
+        if gap > 3 * mj.bearing_stderr:
+            disputed[j] = (
+                f"its corners' double bounce puts its bearing {math.degrees(gap):.1f}° from the beam pattern's "
+                f"(σ {math.degrees(mj.bearing_stderr):.1f}°): fitted on its own echoes"
+            )
+        else:
+            out[j] = jw
+    return out, disputed
+
+
 def _feature(
-    kind: str, label: str, m: _Measured, direction: np.ndarray, surfaces: tuple[str, ...], reasons: list[str]
+    kind: str,
+    label: str,
+    m: Measured,
+    direction: np.ndarray,
+    surfaces: tuple[str, ...],
+    reasons: list[str],
+    *,
+    tilted: bool = False,
 ) -> Feature:
-    b = _direction(m.bearing)
+    """``tilted``: a line across the stack, which lies off the fan by the region's tilt (its point there)."""
+    b = unit_normal(m.bearing, m.tilt if tilted else 0.0)
     across = np.cross(direction, b)
     nrm = float(np.linalg.norm(across))
     across = across / nrm if nrm > 1e-9 else np.zeros(3)
@@ -253,7 +252,7 @@ def _feature(
     return Feature(
         kind=kind,
         label=label,
-        point=_point(m),
+        point=m.depth * b,
         direction=direction,
         covariance=cov,
         bearing=m.bearing,
@@ -300,67 +299,126 @@ def extract_surfaces(
     if amp is not None and amp.shape != d.shape:
         raise ConfigError(f"amplitude must have the shape of distance {d.shape}, got {amp.shape}")
     regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
-    measured = [_measure(r, g, d, amp, geometry, opts) for r in regions]
+    measured = [measure_region(r, g, d, amp, geometry, opts) for r in regions]
 
-    # The mirror amplitude at unit range: the median over the regions (most are mirrors, and an edge's is
-    # weaker by an order of magnitude, so it does not pull the median).
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
     # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
     # far below it diffracts.  A median would not do: in a cluttered sweep most regions may be edges.
     strengths = [m.strength for m in measured if math.isfinite(m.strength)]
     mirror = max(strengths) if len(strengths) >= 2 else float("nan")
+    # The beam's curvature in log amplitude, from this sweep's own regions with an unclipped peak: what puts the peak
+    # of a region cut before its peak (an upper estimate of its strength, see extrapolated_peak).
+    ks = [
+        k
+        for m in measured
+        if m.exact
+        for k in [log_amplitude_curvature(g[m.region.steps], m.step_amplitude)]
+        if k is not None
+    ]
+    beam_k = float(np.median(ks)) if ks else float("nan")
 
-    def weak(m: _Measured) -> bool:
-        return (
-            m.peak_inside
-            and math.isfinite(mirror)
-            and math.isfinite(m.strength)
-            and m.strength < opts.weak_echo * mirror
+    def upper_strength(m: Measured) -> float:
+        """The region's strength if its peak is inside it, else an upper estimate of it (NaN: none)."""
+        if m.peak_inside:
+            return m.strength
+        if not math.isfinite(beam_k):
+            return float("nan")
+        peak = extrapolated_peak(
+            g[m.region.steps],
+            m.step_amplitude,
+            beam_k,
+            before=opts.beyond_cut if m.region.cut_before else 0.0,
+            after=opts.beyond_cut if m.region.cut_after else 0.0,
         )
+        return float("nan") if peak is None else mirror_normalised(peak, m.depth, opts)
 
-    def strong(m: _Measured) -> bool:
-        return math.isfinite(mirror) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * mirror
+    def weak(m: Measured, ref: float = mirror) -> bool:
+        top = upper_strength(m)
+        return math.isfinite(ref) and math.isfinite(top) and top < opts.weak_echo * ref
 
-    across = [_across_stack(m, opts) for m in measured]
+    def strong(m: Measured, ref: float = mirror) -> bool:
+        # The observed peak is a lower bound of the region's.
+        return math.isfinite(ref) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * ref
+
+    across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
     # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
     determined = [i for i in candidates if measured[i].bearing_source != "undetermined" and not weak(measured[i])]
 
     def on_traces(i: int, pool: list[int]) -> list[int]:
-        p = _point(measured[i])
+        p = feature_point(measured[i])
         out = []
         for j in pool:
             if j == i:
                 continue
             mj = measured[j]
-            if abs(_wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
+            if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
                 continue
-            nj = _direction(mj.bearing)
+            nj = unit_normal(mj.bearing)
             tol = opts.on_trace + 3 * mj.depth * abs(math.sin(measured[i].bearing - mj.bearing)) * mj.bearing_stderr
             if abs(float(nj @ p) - mj.depth) <= tol:
                 out.append(j)
         return out
 
-    # A region on another's trace is that one's end or corner; once those are set aside, the ties are
-    # counted again against the planes alone (a corner's own trace is no wall).
-    ends = {i for i in determined if on_traces(i, determined)}
+    def others(i: int, pool: list[int]) -> list[int]:
+        return [j for j in pool if j != i]
+
+    # A region on another's trace, at two planes' double bounce, or at one plane's double bounce with a surface
+    # across the stack is an end or a corner; once those are set aside, the ties are counted again against the
+    # planes alone (a corner's own trace is no wall).
+    ends = {
+        i
+        for i in determined
+        if on_traces(i, determined)
+        or pair_corner(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
+        or stack_dihedral(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
+    }
     planes = [i for i in determined if i not in ends]
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
+    across_lines: set[int] = set()
     for i, m in enumerate(measured):
+        pool = others(i, planes)
+        # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
+        # alone, which says only that the line runs across the stack.
+        low = stack_dihedral(m, [measured[j] for j in pool], opts)
+        if low is not None:
+            j, z, text = low
+            pj = measured[pool[j]]
+            # The line's point: the plane's foot, off the fan by z; its depth, the distance to it.
+            foot = pj.depth * unit_normal(pj.bearing) + np.array([z, 0.0, 0.0])
+            tilt = math.atan2(z, pj.depth)
+            measured[i] = m = replace(
+                m, bearing=pj.bearing, bearing_stderr=pj.bearing_stderr, depth=float(np.linalg.norm(foot)), tilt=tilt
+            )
+            # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
+            # diffracts, the wall's free top or bottom edge.
+            if weak(m):
+                kinds[i] = ("edge", [text.replace("double bounce", "line"), "with a weak (diffracted) echo"], [pool[j]])
+            else:
+                kinds[i] = ("corner", [text], [pool[j]])
+            across_lines.add(i)
+            continue
         if across[i]:
             text = (
                 f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
                 f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
             )
             kinds[i] = ("edge" if weak(m) else "corner", [text], [])
+            across_lines.add(i)
             continue
-        if m.bearing_source == "undetermined":
-            placed = _place_between(m, [measured[j] for j in planes], opts)
+        pair = pair_corner(m, [measured[j] for j in pool], opts)
+        if pair is not None:
+            which, bearing = pair
+            ties = [pool[j] for j in which]
+            measured[i] = m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured))
+        elif m.bearing_source == "undetermined":
+            placed = plane_end(m, [measured[j] for j in pool], opts)
             if placed is None:
-                continue
-            which, bearing = placed
-            ties = [planes[j] for j in which]
-            measured[i] = m = replace(m, bearing=bearing, bearing_stderr=_pair_stderr(m, which, planes, measured))
+                ties = []
+            else:
+                which, bearing = placed
+                ties = [pool[j] for j in which]
+                measured[i] = m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured))
         else:
             ties = on_traces(i, planes)
         if len(ties) >= 2:
@@ -370,18 +428,34 @@ def extract_surfaces(
                 ties[:2],
             )
         elif len(ties) == 1:
-            if weak(m):
-                kinds[i] = ("edge", ["on a plane's trace off its foot, with a weak (diffracted) echo"], ties)
-            elif strong(m):
-                kinds[i] = ("corner", ["on a plane's trace off its foot, with a mirror-strong echo"], ties)
+            # A plane's end against that plane's own mirror echo (same material, a like range), measured where
+            # its peak is clean; else against the sweep's strongest.
+            mj = measured[ties[0]]
+            ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
+            of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
+            if weak(m, ref):
+                text = f"on a plane's trace off its foot, with a weak (diffracted) echo: under {of}"
+                kinds[i] = ("edge", [f"{text} × {opts.weak_echo:.2f}"], ties)
+            elif strong(m, ref):
+                kinds[i] = ("corner", [f"on a plane's trace off its foot, with an echo as strong as {of}"], ties)
             else:
                 kinds[i] = ("edge", ["on a plane's trace off its foot (its end); echo strength unknown"], ties)
         elif weak(m):
             kinds[i] = (
                 "edge",
-                [f"echo {100 * m.strength / mirror:.0f} % of the sweep's strongest at its range: diffraction"],
+                [
+                    f"echo at most {100 * upper_strength(m) / mirror:.0f} % of the sweep's strongest at its range: "
+                    "diffraction"
+                ],
                 [],
             )
+
+    # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
+    pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
+    pairs = [(i, ties) for i, ties in pairs if i not in across_lines]
+    joint, disputed = _joint_fit(pairs, measured, opts) if opts.joint_corners else ({}, {})
+    for j, text in disputed.items():
+        measured[j] = replace(measured[j], findings=(*measured[j].findings, (DEGRADED, text)))
 
     surfaces: list[Surface] = []
     label_of: dict[int, str] = {}
@@ -389,7 +463,7 @@ def extract_surfaces(
     for i, m in enumerate(measured):
         if i in kinds:
             continue
-        s = _fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts)
+        s = _fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts, joint.get(i))
         if s is None:
             failed += m.region.n_echoes
             continue
@@ -400,17 +474,17 @@ def extract_surfaces(
     for i, (kind, reasons, ties) in sorted(kinds.items()):
         m = measured[i]
         tied = tuple(label_of[j] for j in ties if j in label_of)
-        if across[i]:
-            direction = np.cross(np.array([1.0, 0.0, 0.0]), _direction(m.bearing))
+        if i in across_lines:
+            direction = np.cross(np.array([1.0, 0.0, 0.0]), unit_normal(m.bearing))
         elif len(ties) >= 2:
-            direction = np.cross(_direction(measured[ties[0]].bearing), _direction(measured[ties[1]].bearing))
+            direction = np.cross(unit_normal(measured[ties[0]].bearing), unit_normal(measured[ties[1]].bearing))
         else:
             direction = np.array([1.0, 0.0, 0.0])  # along the stack: a line the fan crosses
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction
         out = corners if kind == "corner" else edges
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons))
+        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=i in across_lines))
 
     valid = np.isfinite(d)
     in_region = np.zeros_like(valid)
@@ -434,64 +508,6 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
-
-
-def _in_span(bearing: float, m: _Measured, margin: float, beyond_cut: float) -> bool:
-    """``bearing`` within the region's span of γ; on a cut side the target may lie up to ``beyond_cut`` past it."""
-    g0, g1 = m.span
-    lo = g0 - margin - (beyond_cut if m.region.cut_before else 0.0)
-    hi = g1 + margin + (beyond_cut if m.region.cut_after else 0.0)
-    return lo <= bearing <= hi
-
-
-def _place_between(m: _Measured, planes: list[_Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
-    """Where a region whose own bearing is not determined sits, if the planes say.
-
-    A concave corner's echo comes from the intersection of its two walls: at the double-bounce range
-    ``|X|`` and the bearing of ``X``.  A wall's end lies on its trace at the region's depth: at
-    ``β_j ± acos(h_j/ρ)``.  Either must fall within the region's span of γ.
-
-    Returns
-    -------
-    (indices into ``planes``, bearing) or None.
-    """
-    margin = m.step
-    best: tuple[float, list[int], float] | None = None
-    for a in range(len(planes)):
-        for b in range(a + 1, len(planes)):
-            na, nb = _direction(planes[a].bearing)[1:], _direction(planes[b].bearing)[1:]
-            mat = np.stack([na, nb])
-            if abs(float(np.linalg.det(mat))) < 0.2:  # nearly parallel: no corner
-                continue
-            x = np.linalg.solve(mat, np.array([planes[a].depth, planes[b].depth]))
-            rho = float(np.hypot(*x))
-            bearing = math.atan2(float(x[1]), float(x[0]))
-            miss = abs(rho - m.depth)
-            if (
-                miss <= opts.on_trace
-                and _in_span(bearing, m, margin, opts.beyond_cut)
-                and (best is None or miss < best[0])
-            ):
-                best = (miss, [a, b], bearing)
-    if best is not None:
-        return best[1], best[2]
-    for j, pj in enumerate(planes):
-        if pj.depth >= m.depth:
-            continue
-        half = math.acos(pj.depth / m.depth)
-        for bearing in (pj.bearing - half, pj.bearing + half):
-            if half > opts.foot_separation and _in_span(_wrap(bearing), m, margin, opts.beyond_cut):
-                return [j], _wrap(bearing)
-    return None
-
-
-def _pair_stderr(m: _Measured, which: list[int], planes: list[int], measured: list[_Measured]) -> float:
-    """A placed region's bearing σ: the planes' bearing σ, at least one step's quantisation."""
-    return max(math.sqrt(sum(measured[planes[j]].bearing_stderr ** 2 for j in which)), m.step / math.sqrt(24.0))
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def good_surfaces(result: SurfaceSet) -> tuple[Surface, ...]:

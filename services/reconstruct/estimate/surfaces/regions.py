@@ -359,3 +359,80 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
 def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
     """Each capsule's position along the stack (the rotation axis), m."""
     return np.asarray(geometry.capsules_in_array_frame()[:, 0], dtype=np.float64)
+
+
+def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float | None:
+    """The beam pattern's curvature in ``log A`` across γ, from a region whose peak is inside it.
+
+    Every echo of a rotating transceiver, a mirror's, a corner's or an edge's,
+    follows ``D(γ − β)²`` across γ; in ``log`` its top is close to a parabola
+    ``log A ≈ P − k (γ − β)²``.  A sweep's uncut regions give ``k`` for that
+    sweep's own capsules (no beam model assumed).
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+
+    Returns
+    -------
+    ``k`` (1/rad², > 0), or None when the top of the amplitudes is no parabola opening down.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 5:
+        return None
+    g, a = g[ok], a[ok]
+    top = a >= 0.5 * a.max()
+    if np.count_nonzero(top) < 5 or np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3:
+        return None  # too few samples on the top, or a clipped plateau
+    u = g[top] - float(np.mean(g[top]))
+    m = np.stack([np.ones_like(u), u, u * u], axis=1)
+    if np.linalg.matrix_rank(m) < 3:
+        return None
+    coef, *_ = np.linalg.lstsq(m, np.log(a[top]), rcond=None)
+    return float(-coef[2]) if coef[2] < 0 else None
+
+
+def extrapolated_peak(
+    gamma: np.ndarray, amplitude: np.ndarray, curvature: float, *, before: float, after: float
+) -> float | None:
+    """The peak amplitude of a region whose peak lies past a cut end, from the flank it shows.
+
+    With the sweep's beam curvature ``k`` fixed, ``log A + k u² = P − k v² + 2 k v u``
+    is a line in ``u``: its slope puts the vertex ``v``, and ``P`` follows.
+    On the flank the piston pattern falls faster than its parabola, so the
+    slope overstates how far the peak is and ``P`` overstates the peak: an
+    upper estimate, safe to call an echo weak by, never strong.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    curvature : float
+        ``k`` of :func:`log_amplitude_curvature`, 1/rad².
+    before, after : float
+        rad: how far before the first and after the last step the vertex may lie (0 on a side the
+        region's echo faded on: its peak is not there).
+
+    Returns
+    -------
+    The peak amplitude, or None when the vertex falls outside that reach or too few steps have echoes.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 3 or not curvature > 0:
+        return None
+    g, a = g[ok], a[ok]
+    g0 = float(np.mean(g))
+    u = g - g0
+    y = np.log(a) + curvature * u * u
+    slope, icpt = np.polyfit(u, y, 1)
+    v = float(slope) / (2 * curvature)
+    lo, hi = float(u.min()) - before, float(u.max()) + after
+    if not lo <= v <= hi:
+        return None
+    peak = math.exp(float(icpt) + curvature * v * v)
+    return max(peak, float(a.max()))

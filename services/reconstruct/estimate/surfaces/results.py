@@ -37,6 +37,8 @@ class SurfaceOptions:
         The stack's curvature must stand this many σ above 0 to call a line across the stack.
     beyond_cut : float
         rad: how far past a cut end of its region a target may lie (about the beam's half-width).
+    joint_corners : bool
+        Fit the walls that meet at concave corners together with their corners (the joint corner model).
     limits : QualityLimits
     """
 
@@ -49,6 +51,7 @@ class SurfaceOptions:
     absorption_db_per_m: float = 1.3
     curvature_sigmas: float = 4.0
     beyond_cut: float = math.radians(40.0)
+    joint_corners: bool = True
     limits: QualityLimits = field(default_factory=QualityLimits)
 
     def __post_init__(self) -> None:

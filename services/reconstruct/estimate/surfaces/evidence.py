@@ -1,0 +1,311 @@
+"""What one region of constant depth says, and the physical tests that tell a plane, a corner and an edge apart.
+
+* :func:`measure_region`: bearing (beam pattern), depth, tilt and curvature along the capsule stack,
+  echo strength over a mirror's;
+* :func:`pair_corner`: the double bounce of two planes (range ``|X|`` of their intersection);
+* :func:`stack_dihedral`: the double bounce of a plane with a surface across the fan (a floor or a
+  ceiling), where the range and the stack slope must agree;
+* :func:`plane_end`: a region on one plane's trace, off its foot: that plane's end.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
+from lelsonar.reconstruct.estimate.surfaces.regions import (
+    PLATEAU,
+    Region,
+    bearing_from_amplitude,
+    capsule_x,
+    stack_fit,
+)
+from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
+
+__all__ = [
+    "Measured",
+    "across_stack",
+    "unit_normal",
+    "feature_point",
+    "in_span",
+    "measure_region",
+    "mirror_normalised",
+    "pair_corner",
+    "pair_stderr",
+    "plane_end",
+    "stack_dihedral",
+    "wrap",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class Measured:
+    """A region with what its echoes say, before its class is decided."""
+
+    region: Region
+    bearing: float
+    bearing_stderr: float
+    bearing_source: str
+    findings: tuple[tuple[str, str], ...]
+    depth: float
+    depth_stderr: float
+    tilt: float
+    tilt_stderr: float
+    curvature: float
+    curvature_stderr: float
+    stack_slope: float
+    strength: float  # peak amplitude over a mirror's at this depth (NaN: unknown)
+    peak: float
+    peak_inside: bool  # the region holds its amplitude peak
+    exact: bool  # its peak is inside and not clipped (else its strength is only a lower bound)
+    span: tuple[float, float]  # γ of the region's first and last steps, rad
+    step: float  # the sweep's step, rad
+    step_amplitude: np.ndarray  # each step's median echo amplitude, V (NaN: none or no amplitudes)
+    positions: np.ndarray  # (N, 3) each reading's capsule position, m
+    ranges: np.ndarray  # (N,) each reading's range, m
+    stack_sigma: float  # residual σ of the ranges along the stack about a free slope per region, m
+
+
+def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
+    c = math.cos(tilt)
+    return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
+
+
+def measure_region(
+    region: Region,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> Measured:
+    g = gamma[region.steps]
+    step = float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+    quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
+    findings: list[tuple[str, str]] = []
+    cut = region.cut_before or region.cut_after
+    mid = 0.5 * (float(g[0]) + float(g[-1]))
+    peak_fit = None
+    peak = float("nan")
+    clipped: bool | None = None
+    per_step = np.full(region.steps.size, np.nan)
+    if amplitude is not None:
+        a = amplitude[region.rows, region.capsules]
+        pos = np.searchsorted(region.steps, region.rows)
+        for k in range(region.steps.size):
+            v = a[pos == k]
+            v = v[np.isfinite(v)]
+            if v.size:
+                per_step[k] = float(np.median(v))
+        peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
+        clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
+        peak_fit = bearing_from_amplitude(g, per_step)
+    if not cut:
+        # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
+        # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing
+        # into the same window).
+        bearing, sb, source = mid, quant, "region centre"
+    elif peak_fit is not None:
+        bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
+        # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
+        # window bend (and a receiver's clipping flattens): usable, not good.
+        findings.append(
+            (
+                DEGRADED,
+                "bearing from the amplitude peak alone: the region of constant depth is cut "
+                "(a nearer echo or the sweep's end), so its centre is not the wall's",
+            )
+        )
+    else:
+        bearing, source = mid, "undetermined"
+        sb = 0.5 * (float(g[-1]) - float(g[0])) + step
+        side = "both sides" if region.cut_before and region.cut_after else "one side"
+        findings.append(
+            (
+                UNRELIABLE,
+                f"bearing not determined: the region of constant depth is cut on {side} "
+                "(a nearer echo or the sweep's end) and no amplitude peak is in it",
+            )
+        )
+    caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
+    d = distance[region.rows, region.capsules]
+    x = capsule_x(geometry)[region.capsules]
+    lin, lin_cov, lin_sigma = stack_fit(x, region.rows, d, curved=False)
+    quad, quad_cov, _ = stack_fit(x, region.rows, d, curved=True)
+    slope = float(lin[0])
+    tilt = math.asin(max(-1.0, min(1.0, -slope))) if math.isfinite(slope) else 0.0
+    tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")
+    n = unit_normal(bearing, tilt)
+    h_i = d + caps @ n
+    depth = float(np.median(h_i))
+    # The median's standard error (1.25 σ/√N), with one capsule per step counted once per step.
+    depth_se = 1.2533 * float(np.std(h_i)) / math.sqrt(max(region.steps.size, 1)) if h_i.size > 1 else float("nan")
+    strength = mirror_normalised(peak, depth, opts)
+    return Measured(
+        region=region,
+        bearing=bearing,
+        bearing_stderr=sb,
+        bearing_source=source,
+        findings=tuple(findings),
+        depth=depth,
+        depth_stderr=depth_se,
+        tilt=tilt,
+        tilt_stderr=tilt_se,
+        curvature=float(quad[1]),
+        curvature_stderr=math.sqrt(float(quad_cov[1, 1])) if math.isfinite(quad[1]) else float("nan"),
+        stack_slope=slope,
+        strength=strength,
+        peak=peak,
+        peak_inside=not cut or peak_fit is not None,
+        exact=(not cut or peak_fit is not None) and clipped is False,
+        span=(float(g[0]), float(g[-1])),
+        step=step,
+        step_amplitude=per_step,
+        positions=caps,
+        ranges=d,
+        stack_sigma=lin_sigma,
+    )
+
+
+def mirror_normalised(amplitude: float, depth: float, opts: SurfaceOptions) -> float:
+    """An echo amplitude over a mirror's spreading and absorption at ``depth``: ``A · 2ρ · 10^(α·2ρ/20)``."""
+    return amplitude * 2 * depth * 10 ** (opts.absorption_db_per_m * 2 * depth / 20)
+
+
+def across_stack(m: Measured, opts: SurfaceOptions) -> bool:
+    """Ranges curved along the stack as a line or point across it (``c ≈ 1/(2ρ)``), not as a plane (``c = 0``)."""
+    c, sc = m.curvature, m.curvature_stderr
+    if not (math.isfinite(c) and math.isfinite(sc) and sc > 0):
+        return False
+    expected = 1.0 / (2.0 * m.depth)
+    return c > opts.curvature_sigmas * sc and abs(c - expected) < max(0.5 * expected, 3 * sc)
+
+
+def feature_point(m: Measured) -> np.ndarray:
+    return m.depth * unit_normal(m.bearing)
+
+
+def in_span(bearing: float, m: Measured, margin: float, beyond_cut: float) -> bool:
+    """``bearing`` within the region's span of γ; on a cut side the target may lie up to ``beyond_cut`` past it."""
+    g0, g1 = m.span
+    lo = g0 - margin - (beyond_cut if m.region.cut_before else 0.0)
+    hi = g1 + margin + (beyond_cut if m.region.cut_after else 0.0)
+    return lo <= bearing <= hi
+
+
+def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
+    """Two planes whose double bounce this region is: a concave corner.
+
+    A corner's echo comes from the intersection ``X`` of its two walls, at the double-bounce range
+    ``|X|`` (the retro-reflection in the plane normal to the edge) and the bearing of ``X``, which must
+    fall within the region's span of γ (past a cut end, within ``beyond_cut``).
+
+    Returns
+    -------
+    (indices into ``planes``, bearing of ``X``), the closest in range, or None.
+    """
+    best: tuple[float, list[int], float] | None = None
+    for a in range(len(planes)):
+        for b in range(a + 1, len(planes)):
+            na, nb = unit_normal(planes[a].bearing)[1:], unit_normal(planes[b].bearing)[1:]
+            mat = np.stack([na, nb])
+            if abs(float(np.linalg.det(mat))) < 0.2:  # nearly parallel: no corner
+                continue
+            x = np.linalg.solve(mat, np.array([planes[a].depth, planes[b].depth]))
+            rho = float(np.hypot(*x))
+            bearing = math.atan2(float(x[1]), float(x[0]))
+            miss = abs(rho - m.depth)
+            if (
+                miss <= opts.on_trace
+                and in_span(bearing, m, m.step, opts.beyond_cut)
+                and (best is None or miss < best[0])
+            ):
+                best = (miss, [a, b], bearing)
+    return None if best is None else (best[1], best[2])
+
+
+def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
+    """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
+
+    The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ.
+    Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
+    plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.
+
+    Returns
+    -------
+    ([index into ``planes``], bearing) or None.
+    """
+    for j, pj in enumerate(planes):
+        if pj.depth >= m.depth:
+            continue
+        half = math.acos(pj.depth / m.depth)
+        if half <= opts.foot_separation and m.depth - pj.depth <= opts.range_tolerance:
+            continue
+        for bearing in (pj.bearing - half, pj.bearing + half):
+            if in_span(wrap(bearing), m, m.step, opts.beyond_cut):
+                return [j], wrap(bearing)
+    return None
+
+
+def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[int, float, str] | None:
+    """A plane whose concave corner with a surface across the stack (a floor, a ceiling) this region is.
+
+    That corner is a line in the plane, across the stack at ``x = z``: its echo retro-reflects in the plane
+    normal to the line, so each reading's range is the capsule's distance to it,
+    ``√((h − n·p)² + (x_p − z)²)``, with the plane's own ``n`` and ``h``.  One unknown, ``z``, must then
+    explain every reading of the region as well as a free slope per region does (within twice its
+    residual σ), with ``z`` off the fan by more than 3 σ (else it is the plane's own echo).  The plane's
+    bearing must lie within a beam's half-width (``beyond_cut``) of the region.
+
+    Returns
+    -------
+    (index into ``planes``, ``z`` in m, the evidence) or None.
+    """
+    s, se, sigma = m.stack_slope, m.tilt_stderr, m.stack_sigma
+    if not (math.isfinite(s) and math.isfinite(se) and se > 0 and abs(s) > opts.curvature_sigmas * se):
+        return None
+    if not (math.isfinite(sigma) and sigma > 0 and abs(s) < 1):
+        return None
+    x, d = m.positions[:, 0], m.ranges
+    for j, pj in enumerate(planes):
+        # The wall's own nearer echo masks the line's wherever both answer, whether or not the ranges differ
+        # enough to mark the region cut: the foot may lie a beam's half-width past either end.
+        if not (m.span[0] - opts.beyond_cut <= pj.bearing <= m.span[1] + opts.beyond_cut and m.depth > pj.depth):
+            continue
+        a = pj.depth - m.positions @ unit_normal(pj.bearing)
+        z = -s * m.depth  # the slope's own guess, then Gauss-Newton on the one unknown
+        for _ in range(8):
+            r = np.sqrt(a * a + (x - z) ** 2)
+            jac = (z - x) / r
+            den = float(jac @ jac)
+            if not den > 0:
+                break
+            z -= float(jac @ (r - d)) / den
+        r = np.sqrt(a * a + (x - z) ** 2)
+        rms = math.sqrt(float(np.mean((d - r) ** 2)))
+        den = float(((z - x) / r) @ ((z - x) / r))
+        z_se = sigma / math.sqrt(den) if den > 0 else float("inf")
+        if rms <= 2 * sigma and abs(z) > 3 * z_se:
+            return (
+                j,
+                z,
+                (
+                    f"the double bounce of the plane at {pj.depth:.2f} m with a surface across the fan {z:+.2f} m "
+                    f"along the stack: one line explains the ranges to {1000 * rms:.1f} mm rms "
+                    f"(a free slope: {1000 * sigma:.1f} mm)"
+                ),
+            )
+    return None
+
+
+def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list[Measured]) -> float:
+    """A placed region's bearing σ: the planes' bearing σ, at least one step's quantisation."""
+    return max(math.sqrt(sum(measured[planes[j]].bearing_stderr ** 2 for j in which)), m.step / math.sqrt(24.0))
+
+
+def wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
