@@ -1,4 +1,4 @@
-"""The regions of constant depth: the compiled splitter against a plain-Python reference of the same rule.
+"""The regions of constant depth and their steps' medians: compiled and vectorised, against plain references.
 
 The reference below is the rule written out step by step, kept here (and only here) as the independent
 statement of what :func:`~lelsonar.reconstruct.estimate.surfaces.regions.find_regions` computes; the two
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from lelsonar.errors import ConfigError
+from lelsonar.reconstruct.estimate.surfaces.evidence import step_medians
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
@@ -168,3 +169,20 @@ def test_bad_arguments_are_config_errors():
         find_regions(np.zeros((5, 4)), max_gap=-1)
     with pytest.raises(ConfigError):
         find_regions(np.zeros((5, 4)), min_steps=0)
+
+
+def test_step_medians_are_each_steps_median(world_sweeps):
+    """Each step's median over its readings' finite values, as ``np.median`` of them, bit for bit."""
+    rng = np.random.default_rng(11)
+    for d in world_sweeps:
+        values = np.round(rng.uniform(0.0, 2.0, d.shape), int(rng.choice([2, 12])))  # ties and even counts
+        values[rng.random(d.shape) < 0.3] = np.nan
+        values[rng.random(d.shape) < 0.02] = np.inf
+        for region in find_regions(d, tolerance=0.04, min_steps=1):
+            got = step_medians(region, values)
+            v = values[region.rows, region.capsules]
+            pos = np.searchsorted(region.steps, region.rows)
+            for k in range(region.steps.size):
+                mine = v[(pos == k) & np.isfinite(v)]
+                want = float(np.median(mine)) if mine.size else float("nan")
+                assert np.float64(got[k]).tobytes() == np.float64(want).tobytes()
