@@ -22,7 +22,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     Region,
     bearing_from_amplitude,
     capsule_x,
-    stack_fit,
+    stack_fits,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -34,6 +34,7 @@ __all__ = [
     "in_span",
     "measure_region",
     "step_medians",
+    "sweep_step",
     "mirror_normalised",
     "pair_corner",
     "pair_stderr",
@@ -101,6 +102,11 @@ def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
     return np.where(count % 2 == 1, upper, (lower + upper) / 2)
 
 
+def sweep_step(gamma: np.ndarray) -> float:
+    """The sweep's step, rad: the median ``|Δγ|`` (1° for a single step)."""
+    return float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+
+
 def measure_region(
     region: Region,
     gamma: np.ndarray,
@@ -108,9 +114,12 @@ def measure_region(
     amplitude: np.ndarray | None,
     geometry: ArrayGeometry,
     opts: SurfaceOptions,
+    *,
+    step: float | None = None,
 ) -> Measured:
+    """What a region's echoes say; ``step`` is :func:`sweep_step` of ``gamma`` (computed when not given)."""
     g = gamma[region.steps]
-    step = float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+    step = sweep_step(gamma) if step is None else step
     quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
     findings: list[tuple[str, str]] = []
     cut = region.cut_before or region.cut_after
@@ -154,8 +163,7 @@ def measure_region(
     caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
     d = distance[region.rows, region.capsules]
     x = capsule_x(geometry)[region.capsules]
-    lin, lin_cov, lin_sigma = stack_fit(x, region.rows, d, curved=False)
-    quad, quad_cov, _ = stack_fit(x, region.rows, d, curved=True)
+    (lin, lin_cov, lin_sigma), (quad, quad_cov, _) = stack_fits(x, region.rows, d)
     slope = float(lin[0])
     tilt = math.asin(max(-1.0, min(1.0, -slope))) if math.isfinite(slope) else 0.0
     tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")

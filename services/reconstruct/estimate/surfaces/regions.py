@@ -24,7 +24,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["Region", "find_regions", "stack_fit", "bearing_from_amplitude", "PLATEAU"]
+__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "PLATEAU"]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
@@ -253,8 +253,8 @@ def _cut(rs: np.ndarray, end: int, direction: int, ref: float, tolerance: float,
     return False
 
 
-def stack_fit(x: np.ndarray, rows: np.ndarray, d: np.ndarray, *, curved: bool) -> tuple[np.ndarray, np.ndarray, float]:
-    """Ranges along the capsule stack: ``d = a_s + b·x (+ c·x²)`` with one intercept per step.
+def stack_fits(x: np.ndarray, rows: np.ndarray, d: np.ndarray) -> tuple[StackFit, StackFit]:
+    """Ranges along the capsule stack: ``d = a_s + b·x`` and ``d = a_s + b·x + c·x²``, one intercept per step.
 
     The slope ``b = −n_x`` of a plane (its tilt along the stack); the curvature
     ``c ≈ 1/(2ρ)`` of a line or point across the stack and 0 for a plane.
@@ -267,23 +267,30 @@ def stack_fit(x: np.ndarray, rows: np.ndarray, d: np.ndarray, *, curved: bool) -
         Each reading's step (the intercepts' grouping).
     d : (N,) array
         Ranges, m.
-    curved : bool
-        Fit ``c`` too.
 
     Returns
     -------
-    coefficients (b[, c]), their covariance, residual σ (m); NaN when the
-    readings do not constrain them (a single capsule per step).
+    The straight fit and the curved one, each its coefficients ((b,) and (b, c)), their covariance and
+    residual σ (m); NaN when the readings do not constrain them (a single capsule per step).
     """
-    k = 2 if curved else 1
     _, group = np.unique(rows, return_inverse=True)
-    cols = [x, x * x][:k]
-    a = np.stack(cols, axis=1)
     # Within-step demeaning removes the per-step intercepts exactly.
     counts = np.bincount(group)
-    am = a - (np.stack([np.bincount(group, weights=c) for c in cols], axis=1) / counts[:, None])[group]
+    cols = np.stack([x, x * x], axis=1)
+    means = np.stack([np.bincount(group, weights=x), np.bincount(group, weights=x * x)], axis=1) / counts[:, None]
+    am = cols - means[group]
     dm = d - (np.bincount(group, weights=d) / counts)[group]
-    dof = d.size - counts.size - k
+    straight = np.ascontiguousarray(am[:, :1])  # contiguous: BLAS's summation, not a strided loop's
+    return _demeaned_fit(straight, dm, counts.size), _demeaned_fit(am, dm, counts.size)
+
+
+#: A least-squares fit's coefficients, their covariance and the residual σ.
+StackFit = tuple[np.ndarray, np.ndarray, float]
+
+
+def _demeaned_fit(am: np.ndarray, dm: np.ndarray, n_groups: int) -> StackFit:
+    k = am.shape[1]
+    dof = dm.size - n_groups - k
     if dof < 1:
         return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
     ata = am.T @ am
