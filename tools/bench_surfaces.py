@@ -25,7 +25,9 @@ and per plane:
   on the surface's own true echoes, started at the truth, with the same error;
 * **failure claiming good**: verdict good while the error is > 2 cm and > 3× the oracle's;
 * **clutter** (the room's walls, not the boxes' faces): good and within 3× the oracle (or one range's σ),
-  or flagged not good with reasons; and the share of each wall's readings that are its own echoes.
+  or flagged not good with reasons; and the share of each wall's readings that are its own echoes;
+* **extract CPU ms/sweep**: the extraction's own CPU time on each sweep (the median of a few runs, serial),
+  median and p95 over the family's sweeps.
 
 ``--first-seed 10`` runs held-out worlds.  A second table runs the L families' scans
 (:mod:`lelsonar.sim.scenes`, the paper mount) through the extractor with the joint corner
@@ -36,7 +38,8 @@ from __future__ import annotations
 
 import argparse
 import math
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -61,6 +64,8 @@ TRUE_CLASS = {
     ElementKind.TRIHEDRAL: "corner",
     ElementKind.EDGE: "edge",
 }
+#: Extractions timed per sweep (the median is its time; the first call of a process also loads the kernels).
+TIMING_REPEATS = 3
 #: Half the length of wall trace the error is measured over, m.
 TRACE_HALF = 0.5
 
@@ -101,6 +106,7 @@ class ScanRecord:
     extracted: dict[str, int]
     unexplained_share: float
     false_good: int  # extracted planes claiming good whose echoes are no surface's mirror
+    extract_s: float = float("nan")  # the extraction's CPU time on this sweep, s (median of TIMING_REPEATS)
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -233,8 +239,12 @@ def run_scan(family: str, seed: int, pose: int, model: WorldModel, options: Surf
     """Simulate, extract and score one sweep."""
     scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp, options=options)
-    return score_scan(family, scan, result, seed=seed)
+    times = []
+    for _ in range(TIMING_REPEATS):
+        t0 = time.process_time()  # CPU time: the host's other work does not count
+        result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp, options=options)
+        times.append(time.process_time() - t0)
+    return replace(score_scan(family, scan, result, seed=seed), extract_s=float(np.median(times)))
 
 
 def l_scan_errors(family: str, seed: int) -> dict[bool, list[tuple[float, str]]]:
@@ -337,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
         "unexplained",
         "walls good ≤3× oracle / flagged / neither",
         "walls' own echoes med",
+        "extract CPU ms/sweep med (p95)",
     ):
         table.add_column(col, justify="right")
     bad_total = 0
@@ -375,6 +386,7 @@ def run(args: argparse.Namespace) -> int:
             f"{sum(p.quality == 'good' and p.within_oracle for p in walls)} / {sum(p.flagged for p in walls)} / "
             f"{len(unclean)}",
             f"{100 * _pct([p.own_share for p in walls], 50):.0f} %",
+            f"{1e3 * _pct([r.extract_s for r in recs], 50):.2f} ({1e3 * _pct([r.extract_s for r in recs], 95):.2f})",
         )
     console.print(table)
     if args.l_seeds > 0:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import importlib
+import importlib.machinery
 import importlib.util
 import logging
 import os
@@ -55,6 +56,7 @@ KERNEL_MODULES = (
     "lelsonar.reconstruct.estimate.quality",
     "lelsonar.reconstruct.estimate.robust",
     "lelsonar.reconstruct.estimate.split",
+    "lelsonar.reconstruct.estimate.surfaces.regions",
     "lelsonar.reconstruct.stream.candidates",
     "lelsonar.reconstruct.stream.fastwire",
     "lelsonar.reconstruct.stream.step_features",
@@ -90,8 +92,12 @@ def _cache_dir() -> Path | None:
 
 
 def module_source(name: str) -> Path:
-    """The source file of a module, found without importing it (its parent packages are imported)."""
-    spec = importlib.util.find_spec(name)
+    """The source file of a module, found without importing it or its own package (whose ``__init__`` may
+    import kernels of this list while this module is still loading); the packages above those are imported."""
+    package, _, _ = name.rpartition(".")
+    outer = importlib.util.find_spec(package) if package else None
+    where = None if outer is None else outer.submodule_search_locations
+    spec = importlib.machinery.PathFinder.find_spec(name, where) if where is not None else None
     if spec is None or spec.origin is None:
         raise ImportError(f"{name}: no source file; KERNEL_MODULES names a module that does not exist")
     return Path(spec.origin)

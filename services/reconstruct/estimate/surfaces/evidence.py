@@ -22,7 +22,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     Region,
     bearing_from_amplitude,
     capsule_x,
-    stack_fit,
+    stack_fits,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -33,6 +33,8 @@ __all__ = [
     "feature_point",
     "in_span",
     "measure_region",
+    "step_medians",
+    "sweep_step",
     "mirror_normalised",
     "pair_corner",
     "pair_stderr",
@@ -75,6 +77,36 @@ def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
     return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
 
 
+def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
+    """Each of the region's steps' median over its readings' finite values (NaN: none), as ``np.median``.
+
+    Parameters
+    ----------
+    region : Region
+    values : (n_steps, n_capsules) array
+        A value per reading of the sweep (NaN or infinite: none).
+
+    Returns
+    -------
+    (k,) array over ``region.steps``.
+    """
+    table = np.full((region.steps.size, values.shape[1]), np.nan)
+    v = values[region.rows, region.capsules]
+    table[np.searchsorted(region.steps, region.rows), region.capsules] = np.where(np.isfinite(v), v, np.nan)
+    table.sort(axis=1)  # NaN last: each row's first `count` values are its finite ones, in order
+    count = np.count_nonzero(np.isfinite(table), axis=1)
+    row = np.arange(table.shape[0])
+    upper = table[row, count // 2]
+    lower = table[row, np.maximum(count - 1, 0) // 2]
+    # The middle value of an odd count, the mean of the middle two of an even one (NaN for none).
+    return np.where(count % 2 == 1, upper, (lower + upper) / 2)
+
+
+def sweep_step(gamma: np.ndarray) -> float:
+    """The sweep's step, rad: the median ``|Δγ|`` (1° for a single step)."""
+    return float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+
+
 def measure_region(
     region: Region,
     gamma: np.ndarray,
@@ -82,9 +114,12 @@ def measure_region(
     amplitude: np.ndarray | None,
     geometry: ArrayGeometry,
     opts: SurfaceOptions,
+    *,
+    step: float | None = None,
 ) -> Measured:
+    """What a region's echoes say; ``step`` is :func:`sweep_step` of ``gamma`` (computed when not given)."""
     g = gamma[region.steps]
-    step = float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+    step = sweep_step(gamma) if step is None else step
     quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
     findings: list[tuple[str, str]] = []
     cut = region.cut_before or region.cut_after
@@ -94,13 +129,7 @@ def measure_region(
     clipped: bool | None = None
     per_step = np.full(region.steps.size, np.nan)
     if amplitude is not None:
-        a = amplitude[region.rows, region.capsules]
-        pos = np.searchsorted(region.steps, region.rows)
-        for k in range(region.steps.size):
-            v = a[pos == k]
-            v = v[np.isfinite(v)]
-            if v.size:
-                per_step[k] = float(np.median(v))
+        per_step = step_medians(region, amplitude)
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
@@ -134,8 +163,7 @@ def measure_region(
     caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
     d = distance[region.rows, region.capsules]
     x = capsule_x(geometry)[region.capsules]
-    lin, lin_cov, lin_sigma = stack_fit(x, region.rows, d, curved=False)
-    quad, quad_cov, _ = stack_fit(x, region.rows, d, curved=True)
+    (lin, lin_cov, lin_sigma), (quad, quad_cov, _) = stack_fits(x, region.rows, d)
     slope = float(lin[0])
     tilt = math.asin(max(-1.0, min(1.0, -slope))) if math.isfinite(slope) else 0.0
     tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")

@@ -59,6 +59,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_stderr,
     plane_end,
     stack_dihedral,
+    sweep_step,
     unit_normal,
     wrap,
 )
@@ -299,7 +300,8 @@ def extract_surfaces(
     if amp is not None and amp.shape != d.shape:
         raise ConfigError(f"amplitude must have the shape of distance {d.shape}, got {amp.shape}")
     regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
-    measured = [measure_region(r, g, d, amp, geometry, opts) for r in regions]
+    step = sweep_step(g)
+    measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
     # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo

@@ -16,15 +16,15 @@ Pure functions: no I/O, no state.
 from __future__ import annotations
 
 import math
-import statistics
 from dataclasses import dataclass
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.signal.compiled import kernel
 
-__all__ = ["Region", "find_regions", "stack_fit", "bearing_from_amplitude", "PLATEAU"]
+__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "PLATEAU"]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
@@ -56,29 +56,29 @@ class Region:
         return int(self.rows.size)
 
 
-def _step_range(distance: np.ndarray) -> np.ndarray:
-    """Median range of each step over its capsules (NaN: no echo)."""
-    d = np.asarray(distance, dtype=np.float64)
-    out = np.full(d.shape[0], np.nan)
-    have = np.isfinite(d).any(axis=1)
-    if have.any():
-        out[have] = np.nanmedian(d[have], axis=1)
-    return out
-
-
 def find_regions(
     distance: np.ndarray, *, tolerance: float = 0.015, max_gap: int = 2, min_steps: int = 3
 ) -> list[Region]:
     """Split a sweep into regions of constant depth.
+
+    A step joins the current run while its ranges stay steady: the median over
+    its capsules of each capsule's distance from that capsule's median over the
+    run (capsule by capsule where both have echoes, so a capsule that loses its
+    echo at the edge of the beam does not move the others; else the step's
+    median range against the run's).  A capsule's reading belongs to a region
+    when it is within twice the tolerance of that capsule's median over the
+    region: a tilt or a line across the stack spreads the four ranges steadily
+    (by several cm for a line below the stack), another target in one capsule's
+    beam does not.
 
     Parameters
     ----------
     distance : (n_steps, n_capsules) array
         Ranges, m (NaN: no echo), steps in sweep order.
     tolerance : float
-        A step joins the current run while its median range is within this of
-        the run's median, m (the range noise plus the radial offset's
-        ``r·(1 − cos Δγ)`` over a beam width).
+        A step joins the current run while it is within this of the run, m (the
+        range noise plus the radial offset's ``r·(1 − cos Δγ)`` over a beam
+        width).
     max_gap : int
         Steps without an echo a run may bridge.
     min_steps : int
@@ -93,88 +93,168 @@ def find_regions(
         raise ConfigError(f"distance must be (n_steps, n_capsules), got shape {d.shape}")
     if not (tolerance > 0 and max_gap >= 0 and min_steps >= 1):
         raise ConfigError("find_regions: tolerance > 0, max_gap >= 0 and min_steps >= 1")
-    rs = _step_range(d)
-    n, m = d.shape
-    runs: list[list[int]] = []
-    run: list[int] = []
-    seen: list[list[float]] = [[] for _ in range(m)]  # each capsule's ranges in the run
-    gap = 0
-    for s in range(n):
-        if not math.isfinite(rs[s]):
-            gap += 1
-            if run and gap > max_gap:
-                runs.append(run)
-                run = []
-            continue
-        if not (run and _steady(d[s], rs[s], seen, rs[run]) <= tolerance):
-            if run:
-                runs.append(run)
-            run = []
-            seen = [[] for _ in range(m)]
-        run.append(s)
-        for c in range(m):
-            if math.isfinite(d[s, c]):
-                seen[c].append(float(d[s, c]))
-        gap = 0
-    if run:
-        runs.append(run)
+    label, keep, cut = _regions(np.ascontiguousarray(d), float(tolerance), int(max_gap), int(min_steps))
     out = []
-    for r in runs:
-        if len(r) < min_steps:
-            continue
-        steps = np.asarray(r, dtype=np.intp)
-        ref = float(np.median(rs[steps]))
-        block = d[steps]
-        # A capsule's reading joins when it is within twice the tolerance of that capsule's median over the
-        # region: a tilt or a line across the stack spreads the four ranges steadily (by several cm for a line
-        # below the stack), another target in one capsule's beam does not.
-        keep = np.isfinite(block) & (np.abs(block - _capsule_medians(block)) <= 2 * tolerance)
-        rows, caps = np.nonzero(keep)
-        first, last = int(steps[0]), int(steps[-1])
+    # Each region's steps are contiguous in the label order (a run is closed before the next one opens).
+    labelled = np.flatnonzero(label >= 0)
+    bounds = np.flatnonzero(np.diff(label[labelled])) + 1
+    for k, steps in enumerate(np.split(labelled, bounds) if labelled.size else []):
+        rows, caps = np.nonzero(keep[steps])
         out.append(
             Region(
-                steps=steps,
-                rows=steps[rows],
+                steps=steps.astype(np.intp),
+                rows=steps[rows].astype(np.intp),
                 capsules=caps.astype(np.intp),
-                cut_before=_cut(rs, first, -1, ref, tolerance, max_gap),
-                cut_after=_cut(rs, last, +1, ref, tolerance, max_gap),
+                cut_before=bool(cut[k, 0]),
+                cut_after=bool(cut[k, 1]),
             )
         )
     return out
 
 
-def _steady(row: np.ndarray, step_range: float, seen: list[list[float]], run_ranges: np.ndarray) -> float:
-    """How far a step is from the run: capsule by capsule where both have echoes (a capsule that loses its
-    echo at the edge of the beam does not move the others), else by the steps' medians, m."""
-    # (statistics.median: these lists are short, and NumPy's call costs more than the sort)
-    devs = [abs(float(row[c]) - statistics.median(v)) for c, v in enumerate(seen) if v and math.isfinite(row[c])]
-    if devs:
-        return statistics.median(devs)
-    return abs(float(step_range) - float(np.median(run_ranges)))
+@kernel
+def _median_sorted(v: np.ndarray, n: int) -> float:
+    """Median of the first ``n`` values of a sorted array, as ``np.median`` (the mean of the middle two)."""
+    h = n // 2
+    if n % 2:
+        return v[h]
+    return (v[h - 1] + v[h]) / 2
 
 
-def _capsule_medians(block: np.ndarray) -> np.ndarray:
-    out = np.full(block.shape[1], np.nan)
-    have = np.isfinite(block).any(axis=0)
-    if have.any():
-        out[have] = np.nanmedian(block[:, have], axis=0)
-    return out
+@kernel
+def _insert_sorted(v: np.ndarray, n: int, x: float) -> None:
+    """Insert ``x`` into the sorted first ``n`` values of ``v`` (which has room)."""
+    i = n
+    while i > 0 and v[i - 1] > x:
+        v[i] = v[i - 1]
+        i -= 1
+    v[i] = x
 
 
+@kernel
+def _nan_median(values: np.ndarray) -> float:
+    """Median of the values that are not NaN (NaN if none), as ``np.nanmedian``."""
+    buf = np.empty(values.shape[0])
+    n = 0
+    for x in values:
+        if not np.isnan(x):
+            _insert_sorted(buf, n, x)
+            n += 1
+    return _median_sorted(buf, n) if n else np.nan
+
+
+@kernel
+def _regions(
+    d: np.ndarray, tolerance: float, max_gap: int, min_steps: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`find_regions`' arithmetic: each step's region (−1: none), each reading's membership, the cuts.
+
+    Returns
+    -------
+    label : (n_steps,) int array
+        The step's region, numbered in sweep order; −1 for a step in none.
+    keep : (n_steps, n_capsules) bool array
+        The readings of the regions' steps that belong to their region.
+    cut : (n_regions, 2) bool array
+        Whether each region is cut before and after.
+    """
+    n, m = d.shape
+    rs = np.empty(n)  # each step's median range over its capsules (NaN: no echo)
+    for s in range(n):
+        rs[s] = _nan_median(d[s])
+    run = np.full(n, -1, dtype=np.int64)
+    seen = np.empty((m, n))  # each capsule's ranges in the run, sorted
+    n_seen = np.zeros(m, dtype=np.int64)
+    run_ranges = np.empty(n)  # the run's steps' ranges, sorted
+    devs = np.empty(m)
+    n_run = 0
+    current = -1
+    gap = 0
+    for s in range(n):
+        if not np.isfinite(rs[s]):
+            gap += 1
+            if n_run and gap > max_gap:
+                n_run = 0
+            continue
+        joins = False
+        if n_run:
+            k = 0
+            for c in range(m):
+                if n_seen[c] and np.isfinite(d[s, c]):
+                    _insert_sorted(devs, k, abs(d[s, c] - _median_sorted(seen[c], n_seen[c])))
+                    k += 1
+            steady = _median_sorted(devs, k) if k else abs(rs[s] - _median_sorted(run_ranges, n_run))
+            joins = steady <= tolerance
+        if not joins:
+            current += 1
+            n_run = 0
+            n_seen[:] = 0
+        run[s] = current
+        _insert_sorted(run_ranges, n_run, rs[s])
+        n_run += 1
+        for c in range(m):
+            if np.isfinite(d[s, c]):
+                _insert_sorted(seen[c], n_seen[c], d[s, c])
+                n_seen[c] += 1
+        gap = 0
+    # Runs shorter than a region are dropped; the others are renumbered.
+    n_runs = current + 1
+    first = np.full(n_runs, n, dtype=np.int64)
+    last = np.full(n_runs, -1, dtype=np.int64)
+    size = np.zeros(n_runs, dtype=np.int64)
+    for s in range(n):
+        r = run[s]
+        if r >= 0:
+            first[r] = min(first[r], s)
+            last[r] = max(last[r], s)
+            size[r] += 1
+    label = np.full(n, -1, dtype=np.int64)
+    keep = np.zeros((n, m), dtype=np.bool_)
+    cut = np.zeros((n_runs, 2), dtype=np.bool_)
+    n_regions = 0
+    block = np.empty(n)
+    for r in range(n_runs):
+        if size[r] < min_steps:
+            continue
+        k = 0
+        for s in range(first[r], last[r] + 1):
+            if run[s] == r:
+                label[s] = n_regions
+                _insert_sorted(block, k, rs[s])
+                k += 1
+        ref = _median_sorted(block, k)
+        for c in range(m):
+            k = 0
+            for s in range(first[r], last[r] + 1):
+                if run[s] == r:
+                    block[k] = d[s, c]
+                    k += 1
+            med = _nan_median(block[:k])
+            for s in range(first[r], last[r] + 1):
+                if run[s] == r and np.isfinite(d[s, c]) and abs(d[s, c] - med) <= 2 * tolerance:
+                    keep[s, c] = True
+        cut[n_regions, 0] = _cut(rs, first[r], -1, ref, tolerance, max_gap)
+        cut[n_regions, 1] = _cut(rs, last[r], 1, ref, tolerance, max_gap)
+        n_regions += 1
+    return label, keep, cut[:n_regions]
+
+
+@kernel
 def _cut(rs: np.ndarray, end: int, direction: int, ref: float, tolerance: float, max_gap: int) -> bool:
     """Whether a run's end is a cut: the sweep's end, or a nearer echo within ``max_gap + 2`` steps (a step
     between two targets may hold a little of both, and belong to neither)."""
-    if not 0 <= end + direction < rs.size:
+    n = rs.shape[0]
+    if not 0 <= end + direction < n:
         return True
     for k in range(1, max_gap + 3):
         s = end + direction * k
-        if 0 <= s < rs.size and math.isfinite(rs[s]) and rs[s] < ref - tolerance:
+        if 0 <= s < n and np.isfinite(rs[s]) and rs[s] < ref - tolerance:
             return True
     return False
 
 
-def stack_fit(x: np.ndarray, rows: np.ndarray, d: np.ndarray, *, curved: bool) -> tuple[np.ndarray, np.ndarray, float]:
-    """Ranges along the capsule stack: ``d = a_s + b·x (+ c·x²)`` with one intercept per step.
+def stack_fits(x: np.ndarray, rows: np.ndarray, d: np.ndarray) -> tuple[StackFit, StackFit]:
+    """Ranges along the capsule stack: ``d = a_s + b·x`` and ``d = a_s + b·x + c·x²``, one intercept per step.
 
     The slope ``b = −n_x`` of a plane (its tilt along the stack); the curvature
     ``c ≈ 1/(2ρ)`` of a line or point across the stack and 0 for a plane.
@@ -187,23 +267,30 @@ def stack_fit(x: np.ndarray, rows: np.ndarray, d: np.ndarray, *, curved: bool) -
         Each reading's step (the intercepts' grouping).
     d : (N,) array
         Ranges, m.
-    curved : bool
-        Fit ``c`` too.
 
     Returns
     -------
-    coefficients (b[, c]), their covariance, residual σ (m); NaN when the
-    readings do not constrain them (a single capsule per step).
+    The straight fit and the curved one, each its coefficients ((b,) and (b, c)), their covariance and
+    residual σ (m); NaN when the readings do not constrain them (a single capsule per step).
     """
-    k = 2 if curved else 1
     _, group = np.unique(rows, return_inverse=True)
-    cols = [x, x * x][:k]
-    a = np.stack(cols, axis=1)
     # Within-step demeaning removes the per-step intercepts exactly.
     counts = np.bincount(group)
-    am = a - (np.stack([np.bincount(group, weights=c) for c in cols], axis=1) / counts[:, None])[group]
+    cols = np.stack([x, x * x], axis=1)
+    means = np.stack([np.bincount(group, weights=x), np.bincount(group, weights=x * x)], axis=1) / counts[:, None]
+    am = cols - means[group]
     dm = d - (np.bincount(group, weights=d) / counts)[group]
-    dof = d.size - counts.size - k
+    straight = np.ascontiguousarray(am[:, :1])  # contiguous: BLAS's summation, not a strided loop's
+    return _demeaned_fit(straight, dm, counts.size), _demeaned_fit(am, dm, counts.size)
+
+
+#: A least-squares fit's coefficients, their covariance and the residual σ.
+StackFit = tuple[np.ndarray, np.ndarray, float]
+
+
+def _demeaned_fit(am: np.ndarray, dm: np.ndarray, n_groups: int) -> StackFit:
+    k = am.shape[1]
+    dof = dm.size - n_groups - k
     if dof < 1:
         return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
     ata = am.T @ am
