@@ -1,5 +1,6 @@
 """``lelsonar bench estimators``: accuracy and speed of every reconstruction method on simulated scans.
 
+``--provisional`` times the provisional refits (:mod:`lelsonar.tools.bench_provisional`);
 ``--families`` runs the seeded scene families instead
 (:mod:`lelsonar.tools.bench_families`); ``--stress`` runs scenes and rigs
 outside those families through ``reconstruct --source FILE.mcap --json``
@@ -86,10 +87,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--timing-repeats", type=int, default=50)
     parser.add_argument("--json", metavar="PATH", help="also write every per-plane number as JSON")
     from lelsonar.tools.bench_families import add_family_arguments
+    from lelsonar.tools.bench_provisional import add_provisional_arguments
     from lelsonar.tools.bench_stress import add_stress_arguments
 
     add_family_arguments(parser)
     add_stress_arguments(parser)
+    add_provisional_arguments(parser)
 
 
 def _scene_config(name: str) -> Any:
@@ -331,6 +334,10 @@ def run(args: argparse.Namespace) -> int:
 
     With ``--families``, run :func:`lelsonar.tools.bench_families.run_families` instead of the presets.
     """
+    if getattr(args, "provisional", False):
+        from lelsonar.tools.bench_provisional import run_provisional
+
+        return run_provisional(args)
     if getattr(args, "families", None):
         from lelsonar.tools.bench_families import run_families
 
