@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from lelsonar.cli.executor import ExecutorConfig, run_each
+from lelsonar.cli.executor import ExecutorConfig, Outcome, run_each, worker_loads
 from lelsonar.cli.main import COMMAND_MODULES, main
 from lelsonar.log import recording
 
@@ -126,7 +126,15 @@ def test_batch_on_a_local_ray_head_gives_the_same_bytes(archive, tmp_path):
 
 def test_batch_info_writes_info_json_per_file(archive, tmp_path, capsys):
     out = tmp_path / "info"
-    assert main(["batch", "info", *map(str, archive), "--out", str(out), "--workers", "1"]) == 0
+    timings = tmp_path / "timings.json"
+    assert (
+        main(["batch", "info", *map(str, archive), "--out", str(out), "--workers", "1", "--timings", str(timings)]) == 0
+    )
+    t = json.loads(timings.read_text())
+    assert t["engine"] == "inline" and [w["items"] for w in t["per_worker"]] == [len(archive)]
+    assert t["per_worker"][0]["worker"].endswith(f":{os.getpid()}")  # in this process
+    assert 0 < t["per_worker"][0]["busy"] <= t["wall_s"]
+    assert t["cpu_all_s"] >= t["cpu_this_process_s"] > 0
     for path in archive:
         capsys.readouterr()
         assert main(["info", "--json", str(path.resolve())]) == 0
@@ -136,7 +144,8 @@ def test_batch_info_writes_info_json_per_file(archive, tmp_path, capsys):
 
 def test_batch_errors_are_one_line(tmp_path, capsys, monkeypatch):
     assert main(["batch", "reconstruct", str(tmp_path / "nothing-*.mcap"), "--out", str(tmp_path)]) == 2
-    assert capsys.readouterr().err.strip().count("\n") == 0
+    err = capsys.readouterr().err
+    assert err.strip().count("\n") == 0 and err.startswith("lelsonar batch: ")  # the command, not the job
     some = tmp_path / "x.mcap"
     some.write_bytes(b"")
     if "lelsonar.cli.map" not in COMMAND_MODULES:  # batch runs `map` where the command exists
@@ -164,3 +173,21 @@ def test_executor_reports_a_failure_and_a_dead_worker_and_runs_the_rest():
     assert {i: o.value for i, o in got.items() if o.ok} == {i: i * i for i in range(8) if i not in (3, 5)}
     assert got[3].error == "ValueError: three is not welcome"
     assert "died" in got[5].error
+    # Each item that ran says in which worker process: never this one.
+    ran = [o for i, o in got.items() if i != 5]
+    assert all(o.worker and not o.worker.endswith(f":{os.getpid()}") for o in ran)
+    assert all(o.seconds >= 0 and o.cpu >= 0 and o.process_cpu >= o.cpu for o in ran)
+
+
+def test_worker_loads_sum_each_workers_items():
+    since = 1000.0
+    outcomes = [
+        Outcome(value=1, worker="h:1", started=1001.0, seconds=2.0, cpu=1.5, process_cpu=3.0),
+        Outcome(value=2, worker="h:2", started=1000.5, seconds=1.0, cpu=0.5, process_cpu=0.6),
+        Outcome(error="E: x", worker="h:1", started=1003.0, seconds=0.5, cpu=0.5, process_cpu=3.5),
+        Outcome(error="the worker process died"),  # no worker to charge it to
+    ]
+    one, two = worker_loads(outcomes, since)
+    assert (one.worker, one.items, one.busy, one.cpu, one.process_cpu) == ("h:1", 2, 2.5, 2.0, 3.5)
+    assert (one.first_start, one.last_end) == (1.0, 3.5)
+    assert (two.worker, two.items, two.first_start, two.last_end) == ("h:2", 1, 0.5, 1.5)

@@ -193,7 +193,8 @@ def _deferred_scans(now):
     return service, scans
 
 
-def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeypatch):
+@pytest.mark.parametrize("catch_up", ["tick", "catch_up"])
+def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeypatch, catch_up):
     now = [0.0]
     service, scans = _deferred_scans(now)
     for sid in "bc":
@@ -213,11 +214,32 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
         return real(scan, p)
 
     monkeypatch.setattr(service, "_provisional", slow_refit)
-    first = service.tick()
+    later = service.tick if catch_up == "tick" else service.catch_up
+    first = later()
     assert sorted(refit) == ["b", "c"] and len(first) == 2  # the two oldest; the budget ran out before a
     assert service.has_deferred
-    second = service.tick()
+    second = later()
     assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
+
+
+def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():
+    now = [1000.0]  # a monotonic clock: far from 0
+    service, scans = _deferred_scans(now)
+    messages = scans["a"][1:110]
+    assert feed_busy(service, messages) == []  # its corner confirmed meanwhile, but no refit inline
+    assert service.has_deferred
+    (caught_up,) = service.tick()
+    assert not wire.is_terminal(caught_up) and caught_up.last_step == messages[-1].step
+    # Without a backlog the same scan gets its provisional estimates on the way.
+    alone, _ = _deferred_scans(now)
+    assert [e for e in feed(alone, messages) if not wire.is_terminal(e)]
+
+
+def feed_busy(service: ReconstructionService, messages) -> list[codec.Reconstruction]:
+    out = []
+    for m in messages:
+        out += service.handle(type_name(m), m.SerializeToString(), busy=True)
+    return out
 
 
 def test_a_busy_service_sheds_stale_provisional_refits_and_counts_them():

@@ -9,14 +9,14 @@ Processes, all ``python -m lelsonar ...`` children started and always reaped her
   :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`, the default
   :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`, provisional
   estimates on), plus a probe that timestamps what they process;
-- one publisher process with N scanners: each has the acquisition service's
-  :class:`~lelsonar.acquire.scan_loop.ScanOutput` (a served
-  :class:`~lelsonar.acquire.log_server.ScanLog`, a
-  :class:`~lelsonar.acquire.log_server.LogServer`, a ``ScanPublisher`` with
-  congestion control BLOCK), and puts real simulated ``Sample`` payloads
-  (:mod:`lelsonar.sim`, built once) at ``--rate`` Hz per scanner, the
-  scanners' phases spread over the period.  Each ``acquisition_time_ns`` is the
-  wall clock just before its put;
+- ``--publishers`` processes (default one per 25 scanners) sharing the N scanners
+  (:mod:`lelsonar.tools.bench_fleet_publisher`): each scanner has a served
+  :class:`~lelsonar.acquire.log_server.ScanLog` and its
+  :class:`~lelsonar.acquire.log_server.LogServer`, and puts real simulated ``Sample``
+  payloads (:mod:`lelsonar.sim`, encoded once, a header joined per put) at ``--rate`` Hz
+  with congestion control BLOCK, the scanners' phases spread over the period, on one
+  schedule for all the processes.  Each ``acquisition_time_ns`` is the wall clock just
+  before its put;
 - this process: subscribes to ``<prefix>/*/planes`` and counts terminal
   estimates per scan (duplicates, incomplete).
 
@@ -26,7 +26,10 @@ time from the first put to the last processed), p50/p99 put → processed
 named by its ``last_step``), incomplete / duplicated / missing finals, CPU per
 worker (user + system over its wall time), CPU of each process while busy (a worker from its first
 live sample to its last, read at most every 10 ms, the publisher over its puts, the router
-meanwhile), and how far the publisher fell behind its schedule.  The offered rate is scanners ×
+meanwhile), how far the publishers fell behind their schedule (a run where they fell behind on
+their own is invalid: the offered rate was not offered; behind because BLOCK held their puts, the
+workers did not keep up), and each worker's CPU per sample inside ``handle``, inside ``tick`` and
+outside them, with the provisional refits' cost by the steps the scan held.  The offered rate is scanners ×
 ``--rate``: a run shows whether the workers keep up with it, not how far beyond it they could go;
 ``--capacity`` finds that (:mod:`lelsonar.tools.bench_fleet_capacity`).  ``--failover`` (default on
 with W ≥ 2) runs the same again and SIGKILLs one worker in the middle of the first scans: every
@@ -50,11 +53,11 @@ from pathlib import Path
 from typing import Any
 
 from lelsonar.tools.bench_fleet_capacity import CAPACITY_LADDER, run_capacity
+from lelsonar.tools.bench_fleet_publisher import GO, READY, RESULT, check_encoding, combine, parts, publisher_main
 
 PREFIX = "lelsonar"
 GROUP = "fleet"
-_READY = "FLEET-READY "
-_RESULT = "FLEET-RESULT "
+_READY, _RESULT = READY, RESULT
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -98,8 +101,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"not hold (no N given: {' '.join(str(n) for n in CAPACITY_LADDER)})",
     )
     parser.add_argument("--markdown", type=Path, default=None, help="also write the tables to this Markdown file")
+    parser.add_argument(
+        "--publishers",
+        type=int,
+        default=0,
+        help="publisher processes the scanners are spread over (default: one per 25 scanners)",
+    )
     # Internal: the child processes.
     parser.add_argument("--role", choices=("worker", "publisher"), help=argparse.SUPPRESS)
+    parser.add_argument("--part", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--parts", type=int, default=1, help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
     parser.add_argument("--member", help=argparse.SUPPRESS)
 
@@ -110,6 +121,7 @@ def command_line(args: argparse.Namespace) -> str:
         f"--scans {args.scans}"
         + (f" --steps {args.steps}" if args.steps else "")
         + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
+        + (f" --publishers {args.publishers}" if args.publishers > 0 else "")
         + f" --preset {args.preset} --failover {args.failover}"
         + (" --no-provisional" if args.no_provisional else "")
         + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
@@ -121,6 +133,30 @@ def _settings(endpoint: str):
     from lelsonar.net.transport import ZenohSettings
 
     return ZenohSettings(mode="client", connect=(endpoint,))
+
+
+def _thread_cpu() -> dict[int, tuple[str, float]]:
+    """CPU (user + system, s) of each thread of this process so far, by native id, with its OS name."""
+    out: dict[int, tuple[str, float]] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in Path("/proc/self/task").glob("*"):
+        try:
+            fields = (task / "stat").read_text().rpartition(")")[2].split()
+            out[int(task.name)] = ((task / "comm").read_text().strip(), (int(fields[11]) + int(fields[12])) / tick)
+        except (OSError, ValueError, IndexError):
+            continue
+    return out
+
+
+def _by_thread(before: dict[int, tuple[str, float]], after: dict[int, tuple[str, float]]) -> dict[str, float]:
+    """CPU s between two :func:`_thread_cpu` readings, by thread: Python's by their names, the others (Zenoh's
+    runtime) by their OS names without a trailing number."""
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, float] = {}
+    for tid, (comm, cpu) in after.items():
+        name = names.get(tid) or comm.rstrip("0123456789-_") or comm
+        out[name] = out.get(name, 0.0) + cpu - before.get(tid, (comm, 0.0))[1]
+    return {k: round(v, 3) for k, v in sorted(out.items(), key=lambda kv: -kv[1]) if v > 0}
 
 
 def _pct(values: list[float], q: float) -> float | None:
@@ -166,9 +202,28 @@ def worker_main(args: argparse.Namespace) -> int:
     # (monotonic, process CPU of all threads) when the first live sample was handled, and at the latest read.
     busy_cpu: list[tuple[float, float]] = []
 
+    # CPU of the worker's thread inside handle and inside tick (s), and each provisional refit's:
+    # (steps the scan held, µs of the call that made it, shared among the refits of that call).
+    thread_cpu = {"handle": 0.0, "tick": 0.0}
+    refits: list[tuple[int, float]] = []
+
+    def timed(name: str, fn):
+        def call(*a, **kw):
+            c0 = time.thread_time()
+            out = fn(*a, **kw)
+            spent = time.thread_time() - c0
+            thread_cpu[name] += spent
+            provisional = [m for m in out if not wire.is_terminal(m)]
+            for m in provisional:
+                refits.append((int(m.last_step) + 1, spent * 1e6 / len(provisional)))
+            return out
+
+        return call
+
     def probe(service: ReconstructionService) -> None:
-        """Timestamp each live sample the service handles (put → processed)."""
-        accept, handle = service.ingest.accept, service.handle
+        """Timestamp each live sample the service handles (put → processed); time handle and tick."""
+        accept, handle = service.ingest.accept, timed("handle", service.handle)
+        service.tick = timed("tick", service.tick)  # type: ignore[method-assign]
 
         def probe_accept(type_name, payload, **kw):
             events = accept(type_name, payload, **kw)
@@ -206,7 +261,9 @@ def worker_main(args: argparse.Namespace) -> int:
                 token = session.liveliness().declare_token(f"{PREFIX}/{args.member}/alive/bench-worker")
                 group.wait_members(args.workers, 60)
                 print(_READY + json.dumps({"members": len(group.members)}), flush=True)
+                threads0 = _thread_cpu()
                 stop.wait()
+                threads = _by_thread(threads0, _thread_cpu())
                 token.undeclare()
             server.close()
             gstats = group.stats_dict()
@@ -226,6 +283,9 @@ def worker_main(args: argparse.Namespace) -> int:
                 "wall_s": wall,
                 "busy_cpu_s": busy_cpu[-1][1] - busy_cpu[0][1] if len(busy_cpu) == 2 else None,
                 "busy_wall_s": busy_cpu[-1][0] - busy_cpu[0][0] if len(busy_cpu) == 2 else None,
+                "thread_cpu_s": thread_cpu,
+                "threads_cpu_s": threads,
+                "refits": refits,
                 "service": {
                     **service.stats_dict(),
                     "recovery": {**service.stats_dict()["recovery"], **live.recovery_stats},
@@ -236,111 +296,6 @@ def worker_main(args: argparse.Namespace) -> int:
         ),
         flush=True,
     )
-    return 0
-
-
-# --- the publisher ---------------------------------------------------------------------------
-def publisher_main(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    from lelsonar import codec
-    from lelsonar.acquire import messages
-    from lelsonar.acquire.backends import SimScanner
-    from lelsonar.acquire.log_server import LogServer, ScanLog
-    from lelsonar.acquire.scan_loop import ScanOutput, ScanPublisher, gamma_schedule
-    from lelsonar.keys import ScannerKeys
-    from lelsonar.net.transport import open_session
-    from lelsonar.sim import preset
-    from lelsonar.sim.calibrate import default_energy_model
-
-    sim = preset(args.preset)
-    if args.steps:
-        sim = dataclasses.replace(sim, steps=args.steps)
-    scanner = SimScanner(sim, 0)
-    schedule = gamma_schedule(sim.gamma_start, sim.gamma_stop, sim.steps)
-    shots = [scanner.measure(step, float(g)) for step, g in enumerate(schedule)]
-    samples = [
-        messages.sample("s", 1, step, float(g), shot, scanner.info)
-        for step, (g, shot) in enumerate(zip(schedule, shots))
-    ]
-    em = default_energy_model()
-    names = [f"scanner{i:03d}" for i in range(args.scanners)]
-    n, period = len(names), 1.0 / args.rate
-    lag: list[float] = []
-    with open_session(_settings(args.endpoint)) as session:
-        outputs = {}
-        servers = []
-        for sid in names:
-            keys = ScannerKeys(PREFIX, sid)
-            log = ScanLog(max_scans=2, keep_for=600.0)  # the scan in progress and the one before
-            servers.append(LogServer(session, keys, log).__enter__())
-            outputs[sid] = ScanOutput(publisher=ScanPublisher(session, keys), scan_log=log)
-        # Nothing before the workers' subscriptions are known here (a put before them would be lost).
-        probe = session.declare_publisher(ScannerKeys(PREFIX, names[-1]).sample)
-        deadline = time.monotonic() + 60
-        # zenoh's stub types matching_status as bool; it is a MatchingStatus.
-        while not probe.matching_status.matching and time.monotonic() < deadline:  # type: ignore[attr-defined]
-            time.sleep(0.01)
-        probe.undeclare()
-        print(_READY + "{}", flush=True)
-        t0, cpu0 = time.monotonic(), time.process_time()
-        tick = 0
-        base = time.time_ns() // 1_000_000
-        for k in range(args.scans):
-            scan_id = base + k
-            # One tick per message of a scan (start, samples, end); scanner i at phase i / (n · rate).
-            for j in range(len(samples) + 2):
-                for i, sid in enumerate(names):
-                    due = t0 + (tick + i / n) * period
-                    delay = due - time.monotonic()
-                    if delay > 0:
-                        time.sleep(delay)
-                    lag.append(max(0.0, time.monotonic() - due))
-                    msg: codec.ScanStart | codec.Sample | codec.ScanEnd
-                    if j == 0:
-                        msg = messages.scan_start(sid, scan_id, time.time_ns(), scanner.info, schedule, em)
-                    elif j <= len(samples):
-                        sample = samples[j - 1]
-                        sample.scanner_id, sample.scan_id = sid, scan_id
-                        sample.acquisition_time_ns = time.time_ns()
-                        msg = sample
-                    else:
-                        msg = messages.scan_end(
-                            sid,
-                            scan_id,
-                            time.time_ns(),
-                            complete=True,
-                            reason="",
-                            steps_planned=len(schedule),
-                            samples_sent=len(schedule),
-                            echoes_missing=0,
-                        )
-                    outputs[sid].emit(msg)
-                tick += 1
-        wall, cpu = time.monotonic() - t0, time.process_time() - cpu0
-        print(
-            _RESULT
-            + json.dumps(
-                {
-                    "schedule_s": tick * period,
-                    "wall_s": wall,
-                    "cpu_s": cpu,
-                    "lag_p50": _pct(lag, 50),
-                    "lag_p99": _pct(lag, 99),
-                    "lag_max": max(lag),
-                    "puts": len(lag),
-                    "publish_failures": sum(o.publish_failures for o in outputs.values()),
-                }
-            ),
-            flush=True,
-        )
-        # Keep serving the logs until told to stop (recovery after a failover needs them).
-        sys.stdin.read()
-        for s in servers:
-            s.close()
-        for o in outputs.values():
-            if o.publisher is not None:
-                o.publisher.close()
     return 0
 
 
@@ -437,10 +392,25 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                     if _read_tagged(w, _READY, 90) is None:
                         raise SystemExit("bench fleet: a worker did not come up")
                 time.sleep(0.6)  # the group's settle time (0.5 s): every member takes part in the first scans
-                publisher = _child(bench + ["--role", "publisher", "--endpoint", endpoint], stdin=subprocess.PIPE)
-                procs.append(publisher)
-                if _read_tagged(publisher, _READY, 120) is None:
-                    raise SystemExit("bench fleet: the publisher did not come up")
+                n_pub = parts(args.scanners, args.publishers)
+                publishers = [
+                    _child(
+                        bench
+                        + ["--role", "publisher", "--endpoint", endpoint, "--part", str(i), "--parts", str(n_pub)],
+                        stdin=subprocess.PIPE,
+                    )
+                    for i in range(n_pub)
+                ]
+                procs += publishers
+                for p in publishers:
+                    if _read_tagged(p, _READY, 120) is None:
+                        raise SystemExit("bench fleet: a publisher did not come up")
+                # One schedule for every publisher: a start just ahead, and the scans' ids.
+                go = f"{GO}{time.time() + 0.2} {time.time_ns() // 1_000_000}\n"
+                for p in publishers:
+                    assert p.stdin is not None  # started with stdin=PIPE
+                    p.stdin.write(go)
+                    p.stdin.flush()
                 t_start, router_cpu0 = time.monotonic(), _proc_cpu_s(router.pid)
                 killed = None
                 if kill_one:
@@ -448,7 +418,8 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                     time.sleep(steps / 2 / args.rate)  # mid-way through the first scans
                     workers[0].send_signal(signal.SIGKILL)
                     killed = "w0"
-                pub = _read_tagged(publisher, _RESULT, args.scans * (args.steps or 184) / args.rate * 20 + 120)
+                wait_s = args.scans * ((args.steps or 184) + 2) / args.rate * 20 + 120
+                pub = combine([_read_tagged(p, _RESULT, wait_s) for p in publishers], n_pub)
                 router_cpu1, router_wall = _proc_cpu_s(router.pid), time.monotonic() - t_start
                 expected = args.scanners * args.scans
                 deadline = time.monotonic() + args.timeout
@@ -464,8 +435,9 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                         w.send_signal(signal.SIGTERM)
                         reports.append(_read_tagged(w, _RESULT, 60))
                 sub.undeclare()
-                assert publisher.stdin is not None  # started with stdin=PIPE
-                publisher.stdin.close()
+                for p in publishers:
+                    assert p.stdin is not None  # started with stdin=PIPE
+                    p.stdin.close()
         finally:
             for p in procs:
                 if p.poll() is None:
@@ -511,13 +483,58 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in finished},
         "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in finished},
         "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in finished},
+        "shed": {r["member"]: r["service"].get("provisionals_shed", 0) for r in finished},
         "statuses": dict(Counter(statuses)),
         "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
         "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
         "worker_errors": {r["member"]: r["errors"] for r in finished},
         "publisher": pub,
+        "cpu_per_sample_us": {r["member"]: cpu_per_sample(r) for r in finished},
+        "threads_cpu_s": {r["member"]: r.get("threads_cpu_s", {}) for r in finished},
+        "refit_us": refit_cost([x for r in finished for x in r["refits"]], args.steps or 184),
         "elapsed_s": time.monotonic() - t_start,
     }
+
+
+def cpu_per_sample(report: dict) -> dict[str, float] | None:
+    """A worker's CPU per live sample, µs: all its threads over the window it was busy ("total"), its
+    processing thread inside ``handle`` and inside ``tick``, and the rest ("outside": Zenoh's receive, the
+    channel, the doorbell, the group's filter, the planes server)."""
+    n, total = report["samples"], report.get("busy_cpu_s")
+    if not n or total is None:
+        return None
+    inside = report["thread_cpu_s"]
+    out = {"total": total * 1e6 / n, "handle": inside["handle"] * 1e6 / n, "tick": inside["tick"] * 1e6 / n}
+    out["outside"] = out["total"] - out["handle"] - out["tick"]
+    return out
+
+
+#: A worker's CPU per sample: all its threads, inside handle, inside tick, the rest.
+CPU_PARTS = ("total", "handle", "tick", "outside")
+
+#: Provisional refits' cost is shown by the quarter of the scan its steps reach.
+REFIT_BINS = 4
+
+
+def refit_cost(refits: list[tuple[int, float]], steps: int) -> dict[str, float | None]:
+    """Median µs of CPU per provisional refit (the call that made it), by the quarter of the scan held then:
+    flat when a refit costs O(new samples), rising when it costs O(steps so far)."""
+    out: dict[str, float | None] = {}
+    for b in range(REFIT_BINS):
+        lo, hi = b * steps // REFIT_BINS + 1, (b + 1) * steps // REFIT_BINS
+        cost = [us for held, us in refits if lo <= held <= hi]
+        out[f"{lo}-{hi}"] = statistics.median(cost) if cost else None
+    return out
+
+
+def _behind(pub: dict | None) -> str:
+    """What the publishers' schedule says of a run: nothing (kept), held back by BLOCK, or invalid."""
+    pub = pub or {}
+    if pub.get("kept_up"):
+        return ""
+    if pub.get("held_back"):
+        return f" behind: held back inside put {pub['blocked_s']:.1f} s (BLOCK: the workers did not keep up)"
+    return " BEHIND on their own: run invalid"
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -539,10 +556,24 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     procs = sorted({m for r in runs for m in r["busy_cpu"]})
     out["busy_cpu"] = {m: med([r["busy_cpu"].get(m) for r in runs]) for m in procs}
     pubs = [r["publisher"] for r in runs if r["publisher"]]
-    out["publisher"] = {k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {})}
+    out["publisher"] = {
+        k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {}) if k not in ("kept_up", "held_back", "valid")
+    }
+    if pubs:
+        for flag in ("kept_up", "held_back", "valid"):
+            out["publisher"][flag] = len(pubs) == len(runs) and all(p[flag] for p in pubs)
+    out["cpu_per_sample_us"] = {
+        m: {k: med([(r["cpu_per_sample_us"].get(m) or {}).get(k) for r in runs]) for k in CPU_PARTS} for m in members
+    }
+    out["threads_cpu_s"] = {
+        m: {k: med([r["threads_cpu_s"].get(m, {}).get(k) for r in runs]) for k in runs[0]["threads_cpu_s"].get(m, {})}
+        for m in members
+    }
+    bins = runs[0]["refit_us"]
+    out["refit_us"] = {b: med([r["refit_us"].get(b) for r in runs]) for b in bins}
     out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
     out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
-    for key in ("recovered", "dropped_other_member"):
+    for key in ("recovered", "dropped_other_member", "shed"):
         out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
     return out
 
@@ -551,7 +582,8 @@ def run(args: argparse.Namespace) -> int:
     if args.role == "worker":
         return worker_main(args)
     if args.role == "publisher":
-        return publisher_main(args)
+        return publisher_main(args, PREFIX, _settings(args.endpoint))
+    check_encoding(args.preset)
     if args.capacity is not None:
         return run_capacity(args, run_case, summarise, command_line)
     from rich.console import Console
@@ -631,7 +663,28 @@ def run(args: argparse.Namespace) -> int:
             "publisher lag p50 / p99 / max, s",
             lambda r: f"{pub(r, 'lag_p50'):.2f} / {pub(r, 'lag_p99'):.2f} / {pub(r, 'lag_max'):.2f}",
         ),
-        ("publishing took / schedule, s", lambda r: f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f}"),
+        (
+            "publishing took / schedule, s",
+            lambda r: (
+                f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f} ({pub(r, 'processes'):.0f} processes)"
+                + _behind(r["publisher"])
+            ),
+        ),
+        (
+            "worker CPU µs/sample: all / handle / tick / outside",
+            lambda r: "; ".join(
+                f"{m} " + " / ".join("—" if v[k] is None else f"{v[k]:.0f}" for k in CPU_PARTS)
+                for m, v in r["cpu_per_sample_us"].items()
+            ),
+        ),
+        (
+            "provisional refit µs by steps held",
+            lambda r: " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items()),
+        ),
+        (
+            "provisionals shed",
+            lambda r: f"{sum(r['shed'].values()):g}",
+        ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
     table_rows = [(name, *(fn(r) for r in results)) for name, fn in rows]
@@ -658,6 +711,11 @@ def run(args: argparse.Namespace) -> int:
             f"{r['dropped_other_member']}",
             highlight=False,
         )
+        for m, threads in r["threads_cpu_s"].items():
+            console.print(
+                f"{r['case']}: {m}'s CPU by thread, s: " + ", ".join(f"{k} {v:.2f}" for k, v in threads.items()),
+                highlight=False,
+            )
     load = os.getloadavg()
     console.print(
         f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2 cores shared with other work "
@@ -668,7 +726,14 @@ def run(args: argparse.Namespace) -> int:
         args.json.write_text(
             json.dumps({"command": command_line(args), "machine": machine(), "cases": results}, indent=1)
         )
-    bad = any(r["incomplete_finals"] or r["duplicated_finals"] for r in results)
+    behind = [r["case"] for r in results if not (r["publisher"] or {}).get("valid")]
+    if behind:
+        console.print(
+            f"[red]invalid[/]: the publishers fell behind their schedule ({', '.join(behind)}): the offered rate "
+            "was not offered, so these figures are of the publishers, not the reconstructors; rerun with more "
+            "--publishers or on a quieter host"
+        )
+    bad = any(r["incomplete_finals"] or r["duplicated_finals"] for r in results) or bool(behind)
     return 1 if bad else 0
 
 

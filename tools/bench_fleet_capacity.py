@@ -8,9 +8,12 @@ the last) and every scan gets exactly one complete final.  The capacity is the l
 holds, reported with its p99 put → provisional estimate published; the table also shows that
 p99 at every rung (50 and 100 scanners among them by default), against ``TARGET_P99_MS``.
 
-A rung whose publisher could not keep its own schedule (one process puts every scanner's
-samples) is marked, with the rate it did put: there the offered rate was not offered, and the
-capacity found is a lower bound.
+The scanners are spread over publisher processes (:mod:`lelsonar.tools.bench_fleet_publisher`); a
+rung whose publishers could not keep their own schedule is invalid, not "does not hold": there the
+offered rate was not offered (publishers held back inside their puts by congestion control BLOCK
+are the worker's doing: that rung is valid, and does not hold).  The ladder stops at an invalid
+rung, and the capacity found (the rungs below) is a lower bound.  Each rung also shows the
+worker's CPU per sample, inside ``handle`` and ``tick`` and outside them.
 """
 
 from __future__ import annotations
@@ -29,9 +32,6 @@ HOLD_SHARE = 0.98
 TARGET_SCANNERS = 100
 TARGET_P99_MS = 50.0
 
-#: The publisher kept its schedule when publishing took at most this share over it.
-PUBLISHER_SLACK = 1.05
-
 HEADERS = (
     "scanners",
     "offered samples/s",
@@ -43,6 +43,7 @@ HEADERS = (
     "finals complete",
     "publisher took / schedule s",
     "worker CPU busy",
+    "µs/sample all / handle / tick / outside",
     "holds",
 )
 
@@ -57,15 +58,17 @@ def rung(args: argparse.Namespace, scanners: int, run_case: Callable, summarise:
     res["scanners"] = scanners
     res["offered"] = offered
     res["share"] = res["handled_per_s"] / offered if offered else 0.0
-    res["publisher_kept_up"] = bool(pub) and pub["wall_s"] <= PUBLISHER_SLACK * pub["schedule_s"]
-    # Samples actually put per second (ScanStart and ScanEnd are 2 of each scanner's puts per scan).
-    res["put_rate"] = (pub["puts"] - 2 * scanners * args.scans) / pub["wall_s"] if pub.get("wall_s") else 0.0
+    res["publisher_kept_up"] = bool(pub.get("kept_up"))
+    # Publishers held back by BLOCK (the worker's back-pressure) make a valid rung that does not hold.
+    res["valid"] = bool(pub.get("valid"))
+    # Samples actually put per second.
+    res["put_rate"] = pub["samples"] / pub["wall_s"] if pub.get("wall_s") else 0.0
     res["complete"] = (
         res["scans_with_final"] == res["expected_finals"]
         and not res["incomplete_finals"]
         and not res["duplicated_finals"]
     )
-    res["holds"] = res["share"] >= HOLD_SHARE and res["complete"]
+    res["holds"] = res["publisher_kept_up"] and res["share"] >= HOLD_SHARE and res["complete"]
     return res
 
 
@@ -76,9 +79,16 @@ def _ms(d: dict) -> str:
 def row(res: dict) -> tuple[str, ...]:
     pub = res["publisher"] or {}
     busy = [v for m, v in res["busy_cpu"].items() if m.startswith("w") and v is not None]
-    verdict = "yes" if res["holds"] else "no"
-    if not res["publisher_kept_up"]:
-        verdict += " (publisher behind its schedule)"
+    verdict = (
+        "yes"
+        if res["holds"]
+        else "no"
+        if res["publisher_kept_up"]
+        else "no (publishers held back by BLOCK)"
+        if res["valid"]
+        else "invalid: publishers behind"
+    )
+    cpu = [v for v in res["cpu_per_sample_us"].values() if v and v.get("total") is not None]
     return (
         str(res["scanners"]),
         f"{res['offered']:.0f}",
@@ -90,6 +100,7 @@ def row(res: dict) -> tuple[str, ...]:
         f"{res['scans_with_final']} / {res['expected_finals']}" + ("" if res["complete"] else " (!)"),
         f"{pub.get('wall_s', float('nan')):.1f} / {pub.get('schedule_s', float('nan')):.1f}",
         " ".join(f"{100 * v:.0f}%" for v in busy),
+        " ".join(" / ".join(f"{v[k]:.0f}" for k in ("total", "handle", "tick", "outside")) for v in cpu),
         verdict,
     )
 
@@ -110,6 +121,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
         console.print(f"capacity: {n} scanners × {args.rate:g} Hz …", highlight=False)
         res = rung(args, n, run_case, summarise)
         results.append(res)
+        if not res["valid"]:
+            break  # a higher rate would not be offered either
         if not res["holds"] and n >= TARGET_SCANNERS:
             break  # past what one reconstructor keeps up with (the target's rungs are measured whatever)
     held = []
@@ -134,14 +147,22 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
             else f"capacity: below {ladder[0]} scanners"
         )
         + (
-            "; a lower bound: the publisher fell behind its schedule first"
-            if results and not results[-1]["holds"] and not results[-1]["publisher_kept_up"]
+            "; a lower bound: the publishers fell behind their schedule at the next rung (invalid)"
+            if results and not results[-1]["holds"] and not results[-1]["valid"]
             else ""
         )
         + ("; every rung held" if results and results[-1]["holds"] else ""),
         "p99 put→provisional: "
         + ", ".join(f"{r['scanners']} scanners {_ms(r['provisional_ms']).split(' / ')[1]} ms" for r in results)
         + f" (target ≤ {TARGET_P99_MS:.0f} ms at {TARGET_SCANNERS})",
+        "provisional refit µs (median, the call that made it) by steps held: "
+        + "; ".join(
+            f"{r['scanners']} scanners "
+            + " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items())
+            for r in results
+        ),
+        "provisionals shed (under a backlog): "
+        + ", ".join(f"{r['scanners']} scanners {sum(r['shed'].values()):g}" for r in results),
         f"command: {command_line(args)}",
         f"machine: {machine()}; load average before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after "
         f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f} (2 cores shared with other work: figures are of this run)",
@@ -149,8 +170,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
     table = Table(title=title)
     for i, h in enumerate(HEADERS):
         table.add_column(h, justify="left" if i in (0, len(HEADERS) - 1) else "right")
-    for row in rows:
-        table.add_row(*row)
+    for cells in rows:
+        table.add_row(*cells)
     console.print(table)
     for note in notes:
         console.print(note, highlight=False)

@@ -10,16 +10,22 @@ files write the same index.
 A file is done, and skipped by the next run, when its index line matches the input (size, mtime, hash),
 the command and flags, and the output on disk still has the recorded hash.  A file that fails is
 reported, counted and retried next time; it never stops the batch.
+
+Everything per file happens in its worker: hashing the input, checking the previous run's output, running
+the command.  This process only hands the files out, writes the index and shows the progress, so the
+workers, not it, set the pace.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import glob
 import io
 import json
 import os
+import resource
 import shutil
 import sys
 import time
@@ -28,7 +34,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from lelsonar.cli.executor import add_executor_arguments, config_from_args, run_each
+from lelsonar.cli.executor import (
+    ExecutorConfig,
+    Outcome,
+    WorkerLoad,
+    add_executor_arguments,
+    config_from_args,
+    helpers_cpu,
+    run_each,
+    tree_cpu,
+    worker_loads,
+)
 from lelsonar.cli.main import COMMAND_MODULES, main
 from lelsonar.errors import ConfigError
 
@@ -36,6 +52,17 @@ INDEX = "index.jsonl"
 #: Fields of a `reconstruct --json` line that say when and how fast this run computed it, not what it
 #: computed: left out of the batch's output, which must not depend on the run.
 RUN_FIELDS = ("stamp_ns", "timings")
+#: What a worker imports to run any command on a file, loaded once by a local pool before it forks its
+#: workers.  Nothing that starts threads at import (a Rerun or Ray runtime): a forked worker would lack them.
+WORKER_MODULES = (
+    *COMMAND_MODULES,
+    "lelsonar.log.recording",
+    "lelsonar.reconstruct.stream.observers",
+    "lelsonar.reconstruct.stream.service",
+    "lelsonar.reconstruct.stream.sources",
+    "lelsonar.view.present",
+    "xxhash",
+)
 #: Exit codes of `lelsonar batch`.
 EXIT_OK, EXIT_SOME_FAILED = 0, 1
 
@@ -78,10 +105,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "worker, with a progress bar, a summary table, and an index that makes the batch resumable.",
         epilog=EPILOG,
     )
-    p.add_argument("command", choices=sorted(JOBS), help="the command to run on each file")
+    # Stored as `job`: `command` is the subcommand's own name (`batch`), which errors and --config use.
+    p.add_argument("job", metavar="command", choices=sorted(JOBS), help="the command to run on each file")
     p.add_argument("inputs", nargs="+", metavar="FILES_OR_GLOBS", help="recordings, or quoted globs ('a/*.mcap')")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="where the outputs and the index go")
     p.add_argument("--force", action="store_true", help="redo every file, even one whose output is complete")
+    p.add_argument(
+        "--timings",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write where the time went as JSON: the wall time, the CPU time of this process and its "
+        "workers, and each worker's items, busy and CPU time and start-up",
+    )
     add_executor_arguments(p)
     add_method_arguments(
         p.add_argument_group("estimation (reconstruct, review, export)"),
@@ -143,6 +179,23 @@ def command_argv(command: str, source: Path, output: Path, flags: list[str]) -> 
     if command == "map":
         return ["map", "--source", str(source), "--json", *flags]
     return [command, str(source), "-o", str(output), *flags]
+
+
+def process_input(
+    command: str, source: str, out_dir: str, key: dict[str, Any], previous: dict[str, Any] | None
+) -> dict[str, Any]:
+    """One input's index line: the input fingerprinted, skipped when ``previous`` records it complete, else
+    run by :func:`process_file`.
+
+    ``key`` holds the input's name, the command, its flags and the output's name; the line adds the
+    input's fingerprint and the run's fields.  Everything per file happens here, in the worker: hashing
+    the input and checking the output take no time from the process that hands the files out.
+    """
+    key = {**key, **_prefixed(fingerprint(Path(source)))}
+    if previous is not None and is_complete(previous, key, Path(out_dir)):
+        return {**previous, "skipped": True}
+    result = process_file(command, source, str(Path(out_dir) / key["output"]), key["flags"])
+    return {**key, **result}
 
 
 def process_file(command: str, source: str, output: str, flags: list[str]) -> dict[str, Any]:
@@ -258,9 +311,9 @@ def run_batch(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    job = JOBS[args.command]
+    job = JOBS[args.job]
     if job.module not in COMMAND_MODULES:
-        raise ConfigError(f"`lelsonar {args.command}` does not exist in this version; batch runs it where it does")
+        raise ConfigError(f"`lelsonar {args.job}` does not exist in this version; batch runs it where it does")
     config = config_from_args(args)
     inputs = expand_inputs(args.inputs)
     names = relative_names(inputs)
@@ -275,56 +328,68 @@ def run_batch(args: argparse.Namespace) -> int:
     # Bound to this stderr: a command running in this process (--workers 1) has its own redirected.
     console = Console(file=sys.stderr)
     console = console if console.is_terminal else Console(file=sys.stderr, width=120)
-    lines: dict[str, dict[str, Any]] = {}
-    todo: list[tuple[str, dict[str, Any], Path]] = []
-    for path, name in zip(inputs, names):
-        key = {"input": str(name), "command": args.command, "flags": flags, **_prefixed(fingerprint(path))}
+    keys = []
+    for name in names:
         output = name.with_name(name.name.removesuffix(".mcap") + job.suffix)
-        key["output"] = str(output)
-        if is_complete(previous.get(str(name)), key, out_dir):
-            lines[str(name)] = {**previous[str(name)], "skipped": True}
-        else:
-            todo.append((str(path), key, output))
-
-    items = [(args.command, src, str(out_dir / output), flags) for src, _key, output in todo]
+        keys.append({"input": str(name), "command": args.job, "flags": flags, "output": str(output)})
+    items = [(args.job, str(path), str(out_dir), key, previous.get(key["input"])) for path, key in zip(inputs, keys)]
+    lines: dict[str, dict[str, Any]] = {}
     times: dict[str, float] = {}
-    started = time.perf_counter()
+    outcomes: list[Outcome] = []
+    started, since, cpu_start = time.perf_counter(), time.time(), time.process_time()
     with (
         open(index_path, "a") as log,
         Progress(
-            TextColumn(f"batch {args.command}"),
+            TextColumn(f"batch {args.job}"),
             BarColumn(),
             MofNCompleteColumn(),
             TextColumn("{task.fields[failed]} failed"),
             TimeElapsedColumn(),
             console=console,
             transient=True,
+            refresh_per_second=2,  # its thread renders the bar: kept light beside the workers
         ) as bar,
     ):
         task = bar.add_task("files", total=len(items), failed=0)
         failed = 0
-        for i, outcome in run_each(process_file, items, config):
-            _src, key, _output = todo[i]
+        for i, outcome in run_each(process_input, items, config, preload=WORKER_MODULES):
+            outcomes.append(outcome)
+            key = keys[i]
             if outcome.ok:
-                times[key["input"]] = outcome.value.pop("seconds")
-                line = {**key, **outcome.value}
+                line = outcome.value
+                if not line.get("skipped"):
+                    times[key["input"]] = line.pop("seconds")
             else:
-                line = {**key, "rc": None, "output_hash": None, "error": outcome.error, **count_results("", "")}
+                line = {**key, **_prefixed(_fingerprint_or_none(inputs[i]))}
+                line.update(rc=None, output_hash=None, error=outcome.error, **count_results("", ""))
             lines[key["input"]] = line
-            log.write(json.dumps(line, sort_keys=True) + "\n")  # kept as it comes: a killed batch resumes
-            log.flush()
-            if line["rc"] != 0:
+            if not line.get("skipped"):
+                log.write(json.dumps(line, sort_keys=True) + "\n")  # kept as it comes: a killed batch resumes
+                log.flush()
+            if line["rc"] != 0 and not line.get("skipped"):
                 failed += 1
             bar.update(task, advance=1, failed=failed)
     wall = time.perf_counter() - started
+    cpu_end = time.process_time()
     ordered = [lines[k] for k in sorted(lines)]
     # The lines of inputs outside this run stay: a batch over part of an archive keeps the rest resumable.
     index = {**recorded, **lines}
     tmp = index_path.with_name(INDEX + ".partial")
     tmp.write_text("".join(json.dumps(_clean(index[k]), sort_keys=True) + "\n" for k in sorted(index)))
     os.replace(tmp, index_path)
-    _print_summary(console, args.command, ordered, times, wall, config)
+    loads = worker_loads(outcomes, since)
+    _print_summary(console, args.job, ordered, times, wall, config)
+    _print_workers(console, loads, wall, config)
+    if args.timings is not None:
+        write_timings(args.timings, wall, config, loads, (cpu_start, cpu_end))
     return EXIT_OK if all(line["rc"] == 0 for line in ordered) else EXIT_SOME_FAILED
+
+
+def _fingerprint_or_none(path: Path) -> dict[str, Any]:
+    try:
+        return fingerprint(path)
+    except OSError:
+        return {"size": None, "mtime_ns": None, "hash": None}
 
 
 def _prefixed(fp: dict[str, Any]) -> dict[str, Any]:
@@ -373,3 +438,47 @@ def _print_summary(console, command: str, lines: list[dict[str, Any]], times, wa
         f"{n_skipped} done before; {wall:.1f} s {where}",
         highlight=False,
     )
+
+
+def _print_workers(console, loads: list[WorkerLoad], wall: float, config: ExecutorConfig) -> None:
+    """One line: how busy the workers were, how long the slowest took to start, and the CPU time spent
+    (on this machine: Ray's workers are not this process's children)."""
+    if not loads or wall <= 0:
+        return
+    busy = sum(load.busy for load in loads) / (wall * len(loads))
+    start = max(load.first_start for load in loads)
+    cpu = "" if config.engine == "ray" else f"; CPU {tree_cpu():.1f} s in all"
+    console.print(
+        f"{len(loads)} worker{'s' if len(loads) > 1 else ''} busy {busy:.0%} of the time, the last one's first "
+        f"file after {start:.1f} s{cpu}",
+        highlight=False,
+    )
+
+
+def write_timings(
+    path: Path, wall: float, config: ExecutorConfig, loads: list[WorkerLoad], loop_cpu: tuple[float, float]
+) -> None:
+    """The run's timings as JSON (see ``--timings``): never part of the index, which must not vary.
+
+    ``loop_cpu`` is this process's CPU time when the first file was handed out and when the last came back.
+    The document splits this process's CPU into before the files (its start-up), while they ran (handing
+    them out and collecting their results; files that ran in this process excluded) and after (the index,
+    the summary); ``cpu_helpers_s`` is the fork server's and the resource tracker's own.
+    """
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    this = own.ru_utime + own.ru_stime
+    inline = sum(load.cpu for load in loads) if config.engine == "inline" else 0.0
+    start, end = loop_cpu
+    doc = {
+        "engine": config.engine,
+        "workers": config.worker_count,
+        "wall_s": wall,
+        "cpu_this_process_s": this,
+        "cpu_before_files_s": start,
+        "cpu_hand_out_s": max(0.0, end - start - inline),
+        "cpu_after_files_s": max(0.0, this - end),
+        "cpu_helpers_s": helpers_cpu(),
+        "cpu_all_s": tree_cpu(),
+        "per_worker": [dataclasses.asdict(load) for load in loads],
+    }
+    path.write_text(json.dumps(doc, indent=1) + "\n")

@@ -217,6 +217,10 @@ class ScanAssembly(WriterChecks):
         self._rows = (per_capsule, per_step, time_ns, received, recovered)  # what the kernel writes a step into
         self._grow_timing(n, self._timing_windows.shape[2])
 
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        """What :func:`~lelsonar.reconstruct.stream.step_features.place_step` writes a step into."""
+        return (*self._rows, self._timing_windows, self._candidate_windows)
+
     def _grow_timing(self, n: int, width: int) -> None:
         """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
         windows = np.zeros((n, self._k, width), np.float32)
@@ -231,6 +235,16 @@ class ScanAssembly(WriterChecks):
         timing[:had], timed[:had] = self._echo_timing, self._timed
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
         self._candidate_windows = candidates
+
+    @property
+    def newest_ns(self) -> int:
+        """The acquisition time of the latest step placed (else of the highest step received; 0: none), without
+        unpacking its waveforms (:attr:`latest` does, for display)."""
+        view = self._latest
+        if view is not None:
+            return int(self.time_ns[view.step if isinstance(view, StepView) else view[0]])
+        steps = np.flatnonzero(self.received)
+        return int(self.time_ns[steps[-1]]) if len(steps) else 0
 
     @property
     def latest(self) -> StepView | None:
@@ -288,9 +302,7 @@ class ScanAssembly(WriterChecks):
             step,
             time_ns,
             origin == "recovered",
-            *self._rows,
-            self._timing_windows,
-            self._candidate_windows,
+            self._arrays(),
         )
         if status == UNREAD:
             return None
@@ -417,9 +429,7 @@ class ScanAssembly(WriterChecks):
             limits is None,
             sample.acquisition_time_ns,
             origin == "recovered",
-            *self._rows,
-            self._timing_windows,
-            self._candidate_windows,
+            self._arrays(),
         )
         return self._placed(status, m, step, waveforms, layout, ranges, one_clock, waveforms)
 

@@ -329,23 +329,7 @@ def read_sample(payload, ids, values, waveforms):
 
 
 @kernel
-def place_wire(
-    payload,
-    ids,
-    values,
-    waveforms,
-    scan,
-    step,
-    time_ns,
-    recovered,
-    per_capsule,
-    per_step,
-    acquired_ns,
-    received,
-    recovered_mask,
-    timing_windows,
-    candidate_windows,
-):
+def place_wire(payload, ids, values, waveforms, scan, step, time_ns, recovered, arrays):
     """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample`, into
     ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it could not be
     read that way (nothing placed)."""
@@ -353,24 +337,9 @@ def place_wire(
     if carried < 0:
         return UNREAD, 0
     k = ids.size
-    status = place_step(
-        waveforms,
-        values,
-        scan,
-        k if carried == k else 0,
-        step,
-        False,
-        time_ns,
-        recovered,
-        per_capsule,
-        per_step,
-        acquired_ns,
-        received,
-        recovered_mask,
-        timing_windows,
-        candidate_windows,
-    )
-    return status, carried
+    return place_step(
+        waveforms, values, scan, k if carried == k else 0, step, False, time_ns, recovered, arrays
+    ), carried
 
 
 @kernel

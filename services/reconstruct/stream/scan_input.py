@@ -31,10 +31,6 @@ def scan_input(scan: ScanAssembly, *, provisional: bool = False) -> ScanInput:
     steps, gamma, distance, ratio = scan.arrays()
     n_schedule = int(scan.start.steps)
     if provisional:
-        if scan.latest is not None:
-            newest_ns = int(scan.latest.time_ns)
-        else:
-            newest_ns = int(scan.time_ns[steps[-1]]) if len(steps) else 0
         return ScanInput(
             scan.geometry,
             scan.energy_model,
@@ -42,7 +38,7 @@ def scan_input(scan: ScanAssembly, *, provisional: bool = False) -> ScanInput:
             gamma,
             distance,
             ratio=ratio,
-            newest_ns=newest_ns,
+            newest_ns=scan.newest_ns,
             n_schedule=n_schedule,
         )
     distance = scan.walk_free(distance)  # a writer whose ranges walk with the echoes' amplitude: re-timed

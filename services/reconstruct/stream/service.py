@@ -106,7 +106,9 @@ class RecoveryState:
 class Partial(ProvisionalState):
     """The state of one scan in progress: the provisional estimate's, and the stream's."""
 
-    estimated_at: float = 0.0  # clock of the last provisional estimate (a backlog defers the next)
+    #: Clock of the last provisional estimate, or of the scan's first message: under a backlog the next refit
+    #: (the corner's confirmation, the costliest, among them) waits up to ``max_provisional_delay`` after it.
+    estimated_at: float = 0.0
     #: A provisional refit waited for a backlog (tick() catches up).
     deferred: bool = False
     last_activity: float = 0.0
@@ -255,6 +257,12 @@ class ReconstructionService:
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
         return out
 
+    def catch_up(self) -> list[codec.Reconstruction]:
+        """Only the provisional refits that waited for a backlog that has drained, within
+        ``provisional_budget``: no walk over every open scan, which :meth:`tick` makes, so a source may call
+        this after every payload and :meth:`tick` less often."""
+        return self._catch_up_provisionals(False)
+
     def _catch_up_provisionals(self, busy: bool) -> list[codec.Reconstruction]:
         """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
 
@@ -285,7 +293,7 @@ class ReconstructionService:
 
     @property
     def has_deferred(self) -> bool:
-        """Whether a provisional refit waits for :meth:`tick` (it waited for a backlog that has drained)."""
+        """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
         return bool(self._deferred)
 
     def finish(self) -> list[codec.Reconstruction]:
@@ -335,6 +343,7 @@ class ReconstructionService:
                 "refused": s.recovery_refused,
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
+            "provisionals_shed": s.provisionals_shed,
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
@@ -464,7 +473,7 @@ class ReconstructionService:
         scan = event.scan
         p = self._partials.get(scan.key)
         if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
-            p = self._partials[scan.key] = Partial()
+            p = self._partials[scan.key] = Partial(estimated_at=self._clock())
         p.last_activity = self._clock()
         if event.kind == "start":
             if self._observer:
@@ -527,6 +536,8 @@ class ReconstructionService:
         if scan.n_received - p.steps_at_fit < self.config.refit_every:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
         had_corner = p.critical is not None
+        if had_corner and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9:
+            return []  # within the per-scan rate limit: no estimate, and no input built to learn that
         est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p)
         if not had_corner and p.critical is not None:
             self._event(

@@ -421,12 +421,13 @@ class LiveSource:
                 waiting = len(pending) + len(self._queue)
                 self._apply(item, waiting)
             now = time.monotonic()
-            # tick() visits every open scan: once per tick_s, and as soon as the queue drains if a
-            # provisional refit waited for the backlog (not after every payload: with many open scans a tick
-            # costs a fair share of what a payload does).
-            if now - last_tick >= self._tick_s or (self._service.has_deferred and not waiting):
+            # tick() visits every open scan: once per tick_s (with many open scans a tick costs a fair share
+            # of what a payload does); what waited for the backlog is caught up as soon as the queue drains.
+            if now - last_tick >= self._tick_s:
                 last_tick = now
                 self._guarded(self._service.tick, busy=waiting > 0)
+            elif self._service.has_deferred and not waiting:
+                self._guarded(self._service.catch_up)
 
     def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
         if item is not None:

@@ -77,13 +77,7 @@ def place_step(
     checked,
     time_ns,
     recovered,
-    per_capsule,
-    per_step,
-    acquired_ns,
-    received,
-    recovered_mask,
-    timing_windows,
-    candidate_windows,
+    arrays,
 ):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
     sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
@@ -116,6 +110,8 @@ def place_step(
         the screen does not clear, is ``UNCHECKED`` (for the caller to validate it, naming the culprit).
     time_ns, recovered : int, bool
         The sample's acquisition time and origin (the acquirer's log).
+    arrays : tuple
+        The scan's arrays a step is written into, in this order:
     per_capsule, per_step : (7, steps, k), (5, steps) float64 arrays
         The scan's blocks (:data:`PER_CAPSULE`, :data:`PER_STEP`).
     acquired_ns, received, recovered_mask : (steps,) arrays
@@ -135,6 +131,7 @@ def place_step(
         a range anyway, plus ``CANDIDATES`` if a candidate echo's window was found but not kept
         (``candidate_windows`` not allocated yet).
     """
+    per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows = arrays
     k, n = waveforms.shape
     clocks, readings, energies = values[: 2 * k], values[2 * k + 5 : 5 * k + 5], values[5 * k + 5 : 5 * k + 5 + m]
     if not checked:
