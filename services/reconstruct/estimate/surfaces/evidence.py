@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -32,11 +32,13 @@ __all__ = [
     "unit_normal",
     "feature_point",
     "in_span",
+    "masked_end",
     "measure_region",
     "mirror_normalised",
     "pair_corner",
     "pair_stderr",
     "plane_end",
+    "plane_line",
     "stack_dihedral",
     "wrap",
 ]
@@ -62,6 +64,7 @@ class Measured:
     peak: float
     peak_inside: bool  # the region holds its amplitude peak
     exact: bool  # its peak is inside and not clipped (else its strength is only a lower bound)
+    clipped: bool  # the receiver clipped its peak (its strength is only a lower bound)
     span: tuple[float, float]  # γ of the region's first and last steps, rad
     step: float  # the sweep's step, rad
     step_amplitude: np.ndarray  # each step's median echo amplitude, V (NaN: none or no amplitudes)
@@ -75,6 +78,30 @@ def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
     return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
 
 
+def masked_end(region: Region, distance: np.ndarray, direction: int, tolerance: float, max_gap: int) -> bool:
+    """Whether a nearer echo in any one capsule's beam, just past the region's end, masks it there.
+
+    The receiver keeps each capsule's first echo: a nearer target seen by only some capsules (an edge beside
+    the stack) ends the region in those capsules first, and the steps' median range may not show it.  Each
+    capsule is compared with its own median over the region (a tilt spreads the capsules' ranges steadily).
+    """
+    block = distance[region.steps]
+    ref = np.full(block.shape[1], np.nan)
+    have = np.isfinite(block).any(axis=0)
+    ref[have] = np.nanmedian(block[:, have], axis=0)
+    ref[~have] = np.nanmedian(block)
+    end = int(region.steps[0] if direction < 0 else region.steps[-1])
+    for k in range(1, max_gap + 3):
+        s = end + direction * k
+        if not 0 <= s < distance.shape[0]:
+            break
+        row = distance[s]
+        ok = np.isfinite(row)
+        if np.any(row[ok] < ref[ok] - tolerance):
+            return True
+    return False
+
+
 def measure_region(
     region: Region,
     gamma: np.ndarray,
@@ -83,6 +110,12 @@ def measure_region(
     geometry: ArrayGeometry,
     opts: SurfaceOptions,
 ) -> Measured:
+    masked = (
+        masked_end(region, distance, -1, opts.range_tolerance, opts.max_gap),
+        masked_end(region, distance, +1, opts.range_tolerance, opts.max_gap),
+    )
+    if (masked[0] and not region.cut_before) or (masked[1] and not region.cut_after):
+        region = replace(region, cut_before=region.cut_before or masked[0], cut_after=region.cut_after or masked[1])
     g = gamma[region.steps]
     step = float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
     quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
@@ -162,6 +195,7 @@ def measure_region(
         peak=peak,
         peak_inside=not cut or peak_fit is not None,
         exact=(not cut or peak_fit is not None) and clipped is False,
+        clipped=clipped is True,
         span=(float(g[0]), float(g[-1])),
         step=step,
         step_amplitude=per_step,
@@ -197,12 +231,30 @@ def in_span(bearing: float, m: Measured, margin: float, beyond_cut: float) -> bo
     return lo <= bearing <= hi
 
 
+def plane_line(a: Measured, b: Measured) -> tuple[np.ndarray, np.ndarray] | None:
+    """The line where two planes meet, with their tilts: its point nearest the array and its direction.
+
+    Returns None for planes nearly parallel (no corner): ``|n_a × n_b| < 0.2``.
+    """
+    na, nb = unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt)
+    direction = np.cross(na, nb)
+    size = float(np.linalg.norm(direction))
+    if size < 0.2:
+        return None
+    # The least-norm solution of n_a·X = h_a, n_b·X = h_b is the line's point nearest the origin.
+    mat = np.stack([na, nb])
+    x = mat.T @ np.linalg.solve(mat @ mat.T, np.array([a.depth, b.depth]))
+    return x, direction / size
+
+
 def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
     """Two planes whose double bounce this region is: a concave corner.
 
-    A corner's echo comes from the intersection ``X`` of its two walls, at the double-bounce range
-    ``|X|`` (the retro-reflection in the plane normal to the edge) and the bearing of ``X``, which must
-    fall within the region's span of γ (past a cut end, within ``beyond_cut``).
+    A corner's echo comes from the line ``X`` where its two walls meet, at the double-bounce range
+    ``|X|`` (the retro-reflection in the plane normal to the edge; ``X`` its point nearest the array)
+    and the bearing of ``X`` in the fan, which must fall within the region's span of γ (past a cut
+    end, within ``beyond_cut``).  The planes' tilts place the line: a wall the fan meets off square
+    leans it out of the fan.
 
     Returns
     -------
@@ -211,13 +263,12 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     best: tuple[float, list[int], float] | None = None
     for a in range(len(planes)):
         for b in range(a + 1, len(planes)):
-            na, nb = unit_normal(planes[a].bearing)[1:], unit_normal(planes[b].bearing)[1:]
-            mat = np.stack([na, nb])
-            if abs(float(np.linalg.det(mat))) < 0.2:  # nearly parallel: no corner
+            line = plane_line(planes[a], planes[b])
+            if line is None:
                 continue
-            x = np.linalg.solve(mat, np.array([planes[a].depth, planes[b].depth]))
-            rho = float(np.hypot(*x))
-            bearing = math.atan2(float(x[1]), float(x[0]))
+            x = line[0]
+            rho = float(np.linalg.norm(x))
+            bearing = math.atan2(float(x[2]), float(x[1]))
             miss = abs(rho - m.depth)
             if (
                 miss <= opts.on_trace
@@ -240,10 +291,12 @@ def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tupl
     ([index into ``planes``], bearing) or None.
     """
     for j, pj in enumerate(planes):
-        if pj.depth >= m.depth:
+        # The plane's trace in the fan: a tilted plane crosses it at h / cos(tilt).
+        h = pj.depth / math.cos(pj.tilt)
+        if h >= m.depth:
             continue
-        half = math.acos(pj.depth / m.depth)
-        if half <= opts.foot_separation and m.depth - pj.depth <= opts.range_tolerance:
+        half = math.acos(h / m.depth)
+        if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
         for bearing in (pj.bearing - half, pj.bearing + half):
             if in_span(wrap(bearing), m, m.step, opts.beyond_cut):

@@ -58,6 +58,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_corner,
     pair_stderr,
     plane_end,
+    plane_line,
     stack_dihedral,
     unit_normal,
     wrap,
@@ -203,12 +204,12 @@ def _joint_fit(
     corners = []
     for i, ties in pairs:
         mi = measured[i]
-        a, b = evidence[index[ties[0]]], evidence[index[ties[1]]]
-        x = np.linalg.solve(
-            np.stack([unit_normal(a.bearing)[1:], unit_normal(b.bearing)[1:]]), np.array([a.offset, b.offset])
-        )
-        # The corner's scatter about the double bounce the walls predict: the capsules' distances to X.
-        predicted = np.linalg.norm(mi.positions[:, 1:] - x[None, :], axis=1)
+        line = plane_line(measured[ties[0]], measured[ties[1]])
+        if line is None:
+            continue
+        # The corner's scatter about the double bounce the walls predict: the capsules' distances to their line.
+        rel = mi.positions - line[0][None, :]
+        predicted = np.linalg.norm(rel - (rel @ line[1])[:, None] * line[1][None, :], axis=1)
         sigma = _scatter(mi.ranges - predicted)
         if not (math.isfinite(sigma) and sigma > 0):
             continue
@@ -319,6 +320,8 @@ def extract_surfaces(
 
     def upper_strength(m: Measured) -> float:
         """The region's strength if its peak is inside it, else an upper estimate of it (NaN: none)."""
+        if m.peak_inside and m.clipped:
+            return float("nan")  # a clipped peak is only a lower bound of its echo: no upper estimate
         if m.peak_inside:
             return m.strength
         if not math.isfinite(beam_k):
@@ -354,7 +357,7 @@ def extract_surfaces(
             mj = measured[j]
             if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
                 continue
-            nj = unit_normal(mj.bearing)
+            nj = unit_normal(mj.bearing, mj.tilt)
             tol = opts.on_trace + 3 * mj.depth * abs(math.sin(measured[i].bearing - mj.bearing)) * mj.bearing_stderr
             if abs(float(nj @ p) - mj.depth) <= tol:
                 out.append(j)
@@ -477,7 +480,8 @@ def extract_surfaces(
         if i in across_lines:
             direction = np.cross(np.array([1.0, 0.0, 0.0]), unit_normal(m.bearing))
         elif len(ties) >= 2:
-            direction = np.cross(unit_normal(measured[ties[0]].bearing), unit_normal(measured[ties[1]].bearing))
+            a, b = measured[ties[0]], measured[ties[1]]
+            direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
         else:
             direction = np.array([1.0, 0.0, 0.0])  # along the stack: a line the fan crosses
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
