@@ -41,9 +41,9 @@ POSE_CLEARANCE = 0.35
 PAPER_YAW = math.radians(12.0)
 #: Paper mount: the farthest wall a pose may face, m (within the waveform window with room to spare).
 PAPER_REACH = 3.0
-#: Paper mount: the sweep's ends, drawn in these ranges, degrees: well past −90° and 90°, so the regions of the
-#: floor and the ceiling, as wide as the beam, are whole.
-PAPER_SWEEP = ((-140.0, -125.0), (125.0, 140.0))
+#: Paper mount: the sweep's ends, drawn in these ranges, degrees: 35° to 60° past −90° and 90°, so a floor and a
+#: ceiling close below and above (their regions as wide as the beam there) are whole in some sweeps, cut in others.
+PAPER_SWEEP = ((-149.5, -125.0), (125.0, 149.5))
 #: Paper mount: the shots' spacing, degrees (the paper mount's default sweep of 120° in 184 steps).
 PAPER_STEP = 120.0 / 184
 

@@ -59,6 +59,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_stderr,
     plane_end,
     plane_line,
+    split_dihedral,
     stack_dihedral,
     unit_normal,
     wrap,
@@ -301,6 +302,12 @@ def extract_surfaces(
         raise ConfigError(f"amplitude must have the shape of distance {d.shape}, got {amp.shape}")
     regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
     measured = [measure_region(r, g, d, amp, geometry, opts) for r in regions]
+    # A plane's region that runs on into its corner with a nearer plane: split where the steps tell them apart.
+    split: list[Measured] = []
+    for i in range(len(measured)):
+        split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
+    measured = split
+    regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
     # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
