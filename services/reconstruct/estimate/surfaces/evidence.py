@@ -32,7 +32,7 @@ __all__ = [
     "unit_normal",
     "feature_point",
     "in_span",
-    "masked_end",
+    "masked_ends",
     "measure_region",
     "mirror_normalised",
     "pair_corner",
@@ -79,28 +79,27 @@ def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
     return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
 
 
-def masked_end(region: Region, distance: np.ndarray, direction: int, tolerance: float, max_gap: int) -> bool:
-    """Whether a nearer echo in any one capsule's beam, just past the region's end, masks it there.
+def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap: int) -> tuple[bool, bool]:
+    """Whether a nearer echo in any one capsule's beam, just before and just after the region, masks it there.
 
     The receiver keeps each capsule's first echo: a nearer target seen by only some capsules (an edge beside
     the stack) ends the region in those capsules first, and the steps' median range may not show it.  Each
     capsule is compared with its own median over the region (a tilt spreads the capsules' ranges steadily).
     """
     block = distance[region.steps]
-    ref = np.full(block.shape[1], np.nan)
-    have = np.isfinite(block).any(axis=0)
-    ref[have] = np.nanmedian(block[:, have], axis=0)
-    ref[~have] = np.nanmedian(block)
-    end = int(region.steps[0] if direction < 0 else region.steps[-1])
-    for k in range(1, max_gap + 3):
-        s = end + direction * k
-        if not 0 <= s < distance.shape[0]:
-            break
-        row = distance[s]
-        ok = np.isfinite(row)
-        if np.any(row[ok] < ref[ok] - tolerance):
-            return True
-    return False
+    # Each capsule's median (NaNs sort last); a capsule without an echo in the region takes the others'.
+    count = np.count_nonzero(np.isfinite(block), axis=0)
+    srt = np.sort(block, axis=0)
+    cols = np.arange(block.shape[1])
+    have = count > 0
+    ref = 0.5 * (srt[np.maximum(count - 1, 0) // 2, cols] + srt[count // 2 - (count == 0), cols])
+    ref[~have] = float(np.median(ref[have]))
+    reach = max_gap + 2
+    first, last = int(region.steps[0]), int(region.steps[-1])
+    before = distance[max(first - reach, 0) : first]
+    after = distance[last + 1 : last + 1 + reach]
+    with np.errstate(invalid="ignore"):
+        return bool(np.any(before < ref - tolerance)), bool(np.any(after < ref - tolerance))
 
 
 def measure_region(
@@ -111,10 +110,7 @@ def measure_region(
     geometry: ArrayGeometry,
     opts: SurfaceOptions,
 ) -> Measured:
-    masked = (
-        masked_end(region, distance, -1, opts.range_tolerance, opts.max_gap),
-        masked_end(region, distance, +1, opts.range_tolerance, opts.max_gap),
-    )
+    masked = masked_ends(region, distance, opts.range_tolerance, opts.max_gap)
     if (masked[0] and not region.cut_before) or (masked[1] and not region.cut_after):
         region = replace(region, cut_before=region.cut_before or masked[0], cut_after=region.cut_after or masked[1])
     g = gamma[region.steps]
@@ -372,8 +368,9 @@ def _subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: b
     )
 
 
-def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> int | None:
-    """The length of the block of steps at the start that lies deeper than the rest, if significant.
+def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
+    """The block of steps at the start that lies deeper than the rest, if significant: (length, depth
+    difference m, its standard error m).
 
     The split that best separates two levels (the largest t of their difference); it must be deeper by
     more than ``curvature_sigmas`` of its standard error and by no more than twice the range tolerance
@@ -398,7 +395,9 @@ def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> int | None:
             best = (t, b)
     if best is None or best[0] < opts.curvature_sigmas:
         return None
-    return best[1]
+    b = best[1]
+    head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
+    return b, float(np.mean(head) - np.mean(tail)), float(np.mean(head) - np.mean(tail)) / best[0]
 
 
 def split_dihedral(
@@ -419,7 +418,8 @@ def split_dihedral(
     Each step's depth along the plane's normal tells the two apart (the corner's steps lie deeper, as
     one block on the line's side, by a level the steps' own scatter resolves): the region splits into
     the plane's (whole: it is nearer, nothing masks it) and the corner's (cut on the plane's side).
-    The line's place is only the trigger: a plane's bearing biased by the corner's steps moves it.
+    The line's place is the trigger (a plane's bearing biased by the corner's steps moves it), and the
+    confirmation: with the plane placed on its own steps, the block lies deeper by ``|X| − h``.
 
     Returns
     -------
@@ -427,7 +427,8 @@ def split_dihedral(
     plane's corner runs into it or its steps do not resolve it.
     """
     m = measured[i]
-    if m.bearing_source == "undetermined":
+    # Only a whole region: the corner's echoes lengthen it; a cut one has no span to be lengthened.
+    if m.region.cut_before or m.region.cut_after:
         return None
     r = m.region
     n = unit_normal(m.bearing, m.tilt)
@@ -448,9 +449,10 @@ def split_dihedral(
         own = m.ranges + m.positions @ n
         pos = np.searchsorted(r.steps, r.rows)
         hs = np.array([float(np.median(own[pos == k])) if np.any(pos == k) else np.nan for k in range(r.steps.size)])
-        block = _deeper_block(hs[::-1] if after else hs, opts)
-        if block is None:
+        found = _deeper_block(hs[::-1] if after else hs, opts)
+        if found is None:
             return None
+        block, step, step_se = found
         if after:
             plane_steps, corner_steps = r.steps[: r.steps.size - block], r.steps[r.steps.size - block :]
             plane_r = _subregion(r, plane_steps, r.cut_before, False)
@@ -459,5 +461,13 @@ def split_dihedral(
             corner_steps, plane_steps = r.steps[:block], r.steps[block:]
             plane_r = _subregion(r, plane_steps, False, r.cut_after)
             corner_r = _subregion(r, corner_steps, r.cut_before, True)
-        return [measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r)]
+        plane_m, corner_m = (measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r))
+        # The block must lie where the line of the plane so placed puts it: deeper by |X| − h.
+        line = plane_line(plane_m, mj)
+        if line is None:
+            return None
+        expected = float(np.linalg.norm(line[0])) - plane_m.depth
+        if abs(step - expected) > 3 * step_se + 0.25 * expected:
+            return None
+        return [plane_m, corner_m]
     return None

@@ -65,7 +65,12 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
-from lelsonar.reconstruct.estimate.surfaces.regions import extrapolated_peak, find_regions, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.regions import (
+    PLATEAU,
+    extrapolated_peak,
+    find_regions,
+    log_amplitude_curvature,
+)
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD"]
@@ -325,9 +330,13 @@ def extract_surfaces(
     ]
     beam_k = float(np.median(ks)) if ks else float("nan")
 
+    # The receiver clips at one level, its full scale: the sweep's largest peak.  A plateau well under it is the
+    # amplitude's quantisation on a weak echo, whose peak stands.
+    full_scale = max((m.peak for m in measured if math.isfinite(m.peak)), default=float("nan"))
+
     def upper_strength(m: Measured) -> float:
         """The region's strength if its peak is inside it, else an upper estimate of it (NaN: none)."""
-        if m.peak_inside and m.clipped:
+        if m.peak_inside and m.clipped and m.peak >= (1.0 - PLATEAU) * full_scale:
             return float("nan")  # a clipped peak is only a lower bound of its echo: no upper estimate
         if m.peak_inside:
             return m.strength
