@@ -267,7 +267,7 @@ def test_reconstruct_json_lists_the_wall_and_the_floor_a_vertical_fan_saw(tmp_pa
     )
     assert acq.returncode == 0, acq.stderr
     world = tomllib.loads(PAPER_ROOM.read_text())
-    (path,) = sorted(tmp_path.glob("scan-*.mcap"))
+    (path,) = sorted(tmp_path.glob("scan*.mcap"))
     start = next(m for m in recording.read_messages(path) if isinstance(m, codec.ScanStart))
     seen = _planes_ahead(start, world)
     assert {name for name, *_ in seen} >= {"floor", "ceiling"} and len(seen) == 3, [s[0] for s in seen]
