@@ -368,7 +368,16 @@ def _kind_table(records: dict[str, list[ScanRecord]], mount: str, console: Conso
     recs = [r for rs in records.values() for r in rs]
     planes = [p for r in recs for p in r.planes]
     table = Table(title=f"surfaces per kind ({mount} mount, every family)")
-    for col in ("kind", "found/seen", "err med cm", "err p95 cm", "oracle med cm", "med/oracle", "good", "good-but-failed"):
+    for col in (
+        "kind",
+        "found/seen",
+        "err med cm",
+        "err p95 cm",
+        "oracle med cm",
+        "med/oracle",
+        "good",
+        "good-but-failed",
+    ):
         table.add_column(col, justify="right")
     for kind in ("wall", "box", "floor", "ceiling"):
         seen = sum((r.seen_kind or {}).get(kind, 0) for r in recs)
@@ -401,9 +410,7 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
 
     families = tuple(records)
     seeds = f"seeds {args.first_seed}–{args.first_seed + args.seeds - 1}"
-    table = Table(
-        title=f"surfaces per family ({mount} mount, {seeds}, ≤ {args.max_poses} sweeps each) — {machine()}"
-    )
+    table = Table(title=f"surfaces per family ({mount} mount, {seeds}, ≤ {args.max_poses} sweeps each) — {machine()}")
     for col in (
         "family",
         "planes found/seen",
@@ -471,8 +478,8 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
                 )
     for family, p in neither:
         console.print(
-            f"wall good but over 3× its oracle and the range noise ({mount} mount): {family} seed {p.seed} pose {p.pose} "
-            f"element {p.element}: "
+            f"wall good but over 3× its oracle and the range noise ({mount} mount): {family} seed {p.seed} "
+            f"pose {p.pose} element {p.element}: "
             f"{100 * p.error:.2f} cm (oracle {100 * p.oracle:.2f} cm), own echoes {100 * p.own_share:.0f} %"
         )
     return bad_total

@@ -139,7 +139,9 @@ def _blocked(p, foot, walls, own) -> bool:
     """Another wall stands between p and the foot on its own wall."""
     own_a, own_b = tuple(own[0]), tuple(own[1])
     return any(
-        _crosses(p, tuple(foot), a, b) for a, b in walls if (tuple(map(float, a)), tuple(map(float, b))) != (own_a, own_b)
+        _crosses(p, tuple(foot), a, b)
+        for a, b in walls
+        if (tuple(map(float, a)), tuple(map(float, b))) != (own_a, own_b)
     )
 
 

@@ -386,9 +386,10 @@ def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float,
         if head.size < 2 or tail.size < 2:
             continue
         diff = float(np.mean(head) - np.mean(tail))
-        pooled = math.sqrt((float(np.sum((head - head.mean()) ** 2)) + float(np.sum((tail - tail.mean()) ** 2))) / (
-            head.size + tail.size - 2
-        ))
+        pooled = math.sqrt(
+            (float(np.sum((head - head.mean()) ** 2)) + float(np.sum((tail - tail.mean()) ** 2)))
+            / (head.size + tail.size - 2)
+        )
         se = pooled * math.sqrt(1 / head.size + 1 / tail.size)
         t = diff / se if se > 0 else 0.0
         if 0 < diff <= 2 * opts.range_tolerance and (best is None or t > best[0]):
