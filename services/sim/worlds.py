@@ -168,7 +168,7 @@ def _face_walls(rng, poses, walls) -> list:
             out.append((x, y, h))
             continue
         _, toward = feet[int(rng.integers(len(feet)))]
-        out.append((x, y, toward + float(rng.uniform(-PAPER_YAW, PAPER_YAW))))
+        out.append((x, y, math.remainder(toward + float(rng.uniform(-PAPER_YAW, PAPER_YAW)), 2 * math.pi)))
     return out
 
 
