@@ -189,3 +189,60 @@ def test_a_scan_start_s_pose_places_the_scan():
     np.testing.assert_allclose(pose.covariance, np.diag([4e-4, 9e-4, 2.5e-3]))
     _, origin, note = scan_pose(make_scan_start())
     assert (origin.x, origin.y) == (0.0, 0.0) and "no pose" in note
+
+
+WORLD = """
+[world]
+name = "two-pose room"
+[room]
+ceiling = 2.5
+[[wall]]
+from = [0.0, 0.0]
+to = [3.0, 0.0]
+[[wall]]
+from = [3.0, 0.0]
+to = [3.0, 2.5]
+[[wall]]
+from = [3.0, 2.5]
+to = [0.0, 2.5]
+[[wall]]
+from = [0.0, 2.5]
+to = [0.0, 0.0]
+[scanner]
+mount = "fan"
+height = 0.3
+[odometry]
+seed = 3
+[[pose]]
+x = 1.0
+y = 1.0
+heading = 20.0
+[[pose]]
+x = 2.0
+y = 1.4
+heading = 110.0
+"""
+
+
+@pytest.mark.slow
+def test_map_json_of_recordings_made_by_acquire_sim_world_puts_the_walls_on_the_true_ones(tmp_path, capsys):
+    world = tmp_path / "room.toml"
+    world.write_text(WORLD)
+    out = tmp_path / "rec"
+    assert main(["acquire", "--device", "sim", "--world", str(world), "--out", str(out), "--no-zenoh"]) == 0
+    capsys.readouterr()
+    assert main(["map", "--source", *sorted(str(p) for p in out.glob("*.mcap")), "--json"]) == 0
+    m = json.loads(capsys.readouterr().out)
+    assert {"walls", "corners", "edges", "poses"} <= set(m) and len(m["poses"]) == 2
+    truths = [(1, 0.0), (0, 3.0), (1, 2.5), (0, 0.0)]  # the true walls: coordinate `axis` = c (y = 0, x = 3 …)
+    good = [w for w in m["walls"] if w["quality"] == "good"]
+    assert good
+    for w in m["walls"]:
+        assert {"normal", "offset", "extent", "quality", "normal_stderr", "offset_stderr"} <= set(w)
+    for w in good:
+        n = (w["normal"]["x"], w["normal"]["y"])
+        for p in w["extent"]:
+            # Each corner of a good wall's patch lies on a true wall, facing it, within 2 cm.
+            xy = (p["x"], p["y"])
+            d = min(abs(xy[axis] - c) for axis, c in truths if abs(n[axis]) > 0.99)
+            assert d < 0.02, (w, p)

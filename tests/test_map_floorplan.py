@@ -80,3 +80,88 @@ def test_plan_config_is_checked():
         fp.PlanConfig(resolution=0.0)
     with pytest.raises(ConfigError, match="unknown_cost"):
         fp.PlanConfig(unknown_cost=0.5)
+
+
+def _wall(wid, theta, rho, pieces, quality="good"):
+    from lelsonar.map.result import FusedWall
+
+    return FusedWall(
+        id=wid,
+        line=np.array([theta, rho]),
+        covariance=np.diag([1e-6, 1e-6]),
+        interval=(pieces[0][0], pieces[-1][1]),
+        pieces=tuple(pieces),
+        z_range=(0.3, 0.3),
+        quality=quality,
+        reasons=(),
+        scans=(1,),
+        good_observations=1,
+        flagged_observations=0,
+    )
+
+
+def _feature(x, y, kind="concave", vertical=True):
+    from lelsonar.map.result import FusedFeature
+
+    return FusedFeature(
+        point=np.array([x, y, 0.3]),
+        direction=np.array([0.0, 0.0, 1.0]) if vertical else np.array([1.0, 0.0, 0.0]),
+        kind=kind,
+        point_stderr=0.005,
+        source="observed",
+        observations=1,
+    )
+
+
+def test_a_wall_seen_at_its_foot_likely_runs_on_to_the_corner_or_edge_that_ends_it():
+    from lelsonar.map.result import FusedMap
+
+    # The wall y = 2 (normal +y, its foot at the origin's x), seen only over x ∈ [0.9, 1.0] and [2.0, 2.1].
+    wall = _wall(0, np.pi / 2, 2.0, [(-1.0, -0.9), (-2.1, -2.0)])  # along (−sin θ, cos θ) = (−1, 0)
+    flagged = _wall(1, 0.0, 5.0, [(0.0, 0.05)], quality="unreliable")
+    features = (
+        _feature(0.0, 2.0),  # a concave corner where the wall meets another at x = 0
+        _feature(3.0, 2.0, kind="edge"),  # the wall's free end at x = 3
+        _feature(0.95, 2.0),  # on the piece itself: its own echo read as a corner
+        _feature(-5.0, 2.0),  # beyond reach
+        _feature(2.5, 2.0, vertical=False),  # the wall's foot on the floor: ends nothing along it
+    )
+    m = FusedMap(walls=(wall, flagged), features=features, poses=())
+    cfg = fp.PlanConfig(likely_wall_reach=2.0, likely_wall_span=0.5)
+    segments = {tuple(sorted(round(float(v), 6) for v in s[:, 0])) for s in fp.likely_walls(m, cfg)}
+    # Between the pieces, from the right piece to the edge at x = 3, from the left one to the corner at x = 0.
+    assert segments == {(1.0, 2.0), (2.1, 3.0), (0.0, 0.9)}
+
+
+def test_a_route_goes_round_where_a_wall_likely_runs_rather_than_through_it():
+    from lelsonar.map.result import FusedMap, FusedPose
+
+    # A wall x = 1 seen at y ∈ [−0.02, 0.02] only, ended by corners at y = ±1.5; the robot at the origin.
+    wall = _wall(0, 0.0, 1.0, [(-0.02, 0.02)])
+    corners = (_feature(1.0, -1.5), _feature(1.0, 1.5))
+    pose = FusedPose(scan_id=1, x=0.0, y=0.0, z=0.3, heading=0.0, covariance=np.eye(3) * 1e-6, odometry=(0.0, 0.0, 0.0))
+    m = FusedMap(walls=(wall,), features=corners, poses=(pose,))
+    cfg = fp.PlanConfig(robot_radius=0.15, margin=2.5)
+    path = fp.route(m, (0.0, 0.0), (2.0, 0.0), cfg)
+    assert path is not None
+    line = LineString(path)
+    # It passes the wall's line x = 1 beyond the corners, not through the stretch between them.
+    crossing = line.intersection(LineString([(1.0, -10.0), (1.0, 10.0)]))
+    assert abs(crossing.coords[0][1]) > 1.5 + cfg.robot_radius
+
+
+def test_the_map_read_back_from_its_message_plans_as_the_library_does():
+    from lelsonar.map.wire import map_from_message, map_message
+
+    m = _fused(room(), 2)
+    back = map_from_message(map_message(m, "s1"))
+    assert len(back.walls) == len(m.walls) and len(back.poses) == len(m.poses)
+    for a, b in zip(m.walls, back.walls):
+        np.testing.assert_allclose(b.line, a.line, atol=1e-12)
+        np.testing.assert_allclose(b.covariance, a.covariance, atol=1e-15)
+        np.testing.assert_allclose(b.pieces, a.pieces, atol=1e-9)
+        assert (b.quality, b.scans) == (a.quality, a.scans)
+    assert len(back.views) == len(m.views) and back.view_scans == m.view_scans
+    assert fp.free_space(back).symmetric_difference(fp.free_space(m)).area < 1e-9
+    start = (m.poses[0].x, m.poses[0].y)
+    assert fp.route(back, start) == fp.route(m, start)

@@ -25,7 +25,7 @@ from lelsonar.v1 import reconstruction_pb2
 from .conftest import simulated_messages
 
 STEPS = 184  # the paper-test1 schedule: enough for a corner and both planes
-#: What the recorder writes for each step (one chunk), and once per scan.
+#: What the recorder writes for each step (the Sample's chunk, then its views'), and once per scan.
 PER_STEP = (
     "/lelsonar/sample",
     "/tf",
@@ -39,16 +39,20 @@ PER_SCAN = ("/lelsonar/scan_start", "/tf_capsules", "/lelsonar/array", "/lelsona
 
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory) -> tuple[Path, list, list[tuple[int, int]]]:
-    """A full recorded scan, its messages, and (start, end) of each sample step's bytes in the file."""
+    """A full recorded scan, its messages, and (start, end) of each Sample's chunk in the file."""
     path = tmp_path_factory.mktemp("cli") / "scan.mcap"
     msgs = simulated_messages()
-    spans = []
     with recording.McapRecorder(path, metadata={"device": "sim"}) as rec:
         for msg in msgs:
-            before = path.stat().st_size
             rec.write(msg)
-            if isinstance(msg, codec.Sample):
-                spans.append((before, path.stat().st_size))
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    (sample_channel,) = (cid for cid, ch in summary.channels.items() if ch.topic == "/lelsonar/sample")
+    spans = sorted(
+        (c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
+        for c in summary.chunk_indexes
+        if sample_channel in c.message_index_offsets
+    )
     assert len(spans) == STEPS
     return path, msgs, spans
 
@@ -260,7 +264,7 @@ def test_reconstruct_source_on_a_bit_flip_warns_once_and_estimates(scan, tmp_pat
     assert rc == 0 and "Traceback" not in err
     assert len(warnings(err)) == 1
     assert re.fullmatch(
-        rf"warning: {re.escape(str(target))} is damaged: 1 chunk \({len(PER_STEP)} messages\) "
+        rf"warning: {re.escape(str(target))} is damaged: 1 chunk \(1 message\) "
         rf"unreadable after "
         rf"byte {scan[2][120][0]}; {STEPS - 1} samples salvaged",
         warnings(err)[0],
@@ -280,8 +284,9 @@ def test_review_of_a_cut_file_warns_once_and_writes_the_rrd(scan, tmp_path, caps
 def test_recover_cli_writes_what_survived_of_a_bit_flip(scan, tmp_path, capsys):
     target = flipped(scan, tmp_path, step=7)
     rc, _out, err = run(capsys, "recover", target, "-o", tmp_path / "fixed.mcap")
-    # Every step's chunk but step 7's, plus ScanStart with its two viewer channels and ScanEnd.
-    total = len(PER_STEP) * (STEPS - 1) + len(PER_SCAN)
+    # Every step's messages but step 7's Sample (its views are a chunk of their own), plus ScanStart with its
+    # two viewer channels and ScanEnd.
+    total = len(PER_STEP) * STEPS - 1 + len(PER_SCAN)
     assert rc == 0 and err.startswith(f"recovered {total} messages ({STEPS - 1} samples)")
     with open(tmp_path / "fixed.mcap", "rb") as f:
         steps = sorted(
@@ -318,7 +323,7 @@ def test_info_names_the_missing_step_and_the_damage(scan, tmp_path, capsys):
     assert s["missing_steps"] == [42] and s["steps_received"] == STEPS - 1 and s["status"] == "complete"
     (d,) = info["damage"]
     assert d["kind"] == "chunk" and d["offset"] == scan[2][42][0] and d["exact"]
-    assert d["by_topic"] == {t: 1 for t in PER_STEP}
+    assert d["by_topic"] == {"/lelsonar/sample": 1}
     lost = {c["topic"]: c["lost"] for c in info["channels"]}
     assert lost["/lelsonar/sample"] == 1 and lost["/lelsonar/scan_end"] == 0
 

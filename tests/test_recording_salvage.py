@@ -147,16 +147,37 @@ def test_a_flipped_bit_costs_at_most_the_chunk_it_falls_in(original, data):
         assert (got - others) in (Counter(), hit[0])
 
 
+def _chunks_holding(chunks, topic: str) -> list:
+    return [c for c in chunks if any(t == topic for t, _time, _data in c[2])]
+
+
 def test_flipped_bit_in_a_sample_chunk_is_reported_with_its_exact_count(original):
     raw, chunks, every = original
-    start, end, msgs = chunks[len(chunks) // 2]
+    with_samples = _chunks_holding(chunks, recording.TOPICS[codec.Sample])
+    start, end, msgs = with_samples[len(with_samples) // 2]
+    assert sum(msgs.values()) == 1  # the Sample alone
     damaged = bytearray(raw)
     damaged[(start + end) // 2] ^= 0x10
     got, (s, warning) = salvaged(bytes(damaged))
     assert got == every - msgs
     assert warning == (
-        f"warning: {s.path} is damaged: 1 chunk ({sum(msgs.values())} messages) unreadable after "
-        f"byte {start}; {STEPS - 1} samples salvaged"
+        f"warning: {s.path} is damaged: 1 chunk (1 message) unreadable after byte {start}; {STEPS - 1} samples salvaged"
+    )
+
+
+def test_each_contract_message_is_a_chunk_of_its_own_and_a_damaged_view_chunk_costs_no_step(original):
+    raw, chunks, every = original
+    contract = set(recording.TOPICS.values())
+    mixed = [c for c in chunks if {t for t, *_ in c[2]} & contract and len(c[2]) > 1]
+    assert not mixed, "a contract message shares its chunk"
+    views = [c for c in chunks if not {t for t, *_ in c[2]} & contract]
+    start, end, msgs = views[len(views) // 2]
+    damaged = bytearray(raw)
+    damaged[(start + end) // 2] ^= 0x10
+    got, (s, _warning) = salvaged(bytes(damaged))
+    assert got == every - msgs and len(s.damage) == 1
+    assert sorted(m for m in got.elements() if m[0] in contract) == sorted(
+        m for m in every.elements() if m[0] in contract
     )
 
 

@@ -17,7 +17,7 @@ from rerun.chunk import RrdReader
 from shapely.geometry import LineString
 
 from lelsonar.bridge import ros2
-from lelsonar.bridge.ros2_map import TOPIC_GRID, TOPIC_WALLS, fused_from_message, map_ros_messages
+from lelsonar.bridge.ros2_map import TOPIC_GRID, TOPIC_WALLS, map_ros_messages
 from lelsonar.cli.main import main
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import MapScene, wall_entity_id
@@ -25,7 +25,7 @@ from lelsonar.draw.palette import quality_color
 from lelsonar.map import floorplan as fp
 from lelsonar.map.fusion import WallMapper
 from lelsonar.map.synthetic import NoiseModel, observe_world, room
-from lelsonar.map.wire import map_message
+from lelsonar.map.wire import map_from_message, map_message
 from lelsonar.view.rerun_layout import make_recording
 from lelsonar.view.rerun_map import log_map
 
@@ -101,7 +101,7 @@ def test_the_wall_markers_are_as_thick_as_each_wall_s_two_sigma_band_and_coloure
 def test_a_map_message_rebuilds_the_walls_and_path_of_its_map_and_frees_only_the_way(room_maps):
     _, steps = room_maps
     m = steps[-1]
-    back = fused_from_message(map_message(m, "s", stamp_ns=1))
+    back = map_from_message(map_message(m, "s", stamp_ns=1))
     assert [w.id for w in back.walls] == [w.id for w in m.walls]
     for a, w in zip(back.walls, m.walls):
         for sa, sw in zip(a.piece_segments, w.piece_segments):
@@ -278,7 +278,7 @@ def test_the_live_ros2_bridge_republishes_each_map_as_rmw_zenoh_grid_and_markers
     assert att is not None and len(att) == 33
     grid = ros2.deserialize(payload, ros2.OCCUPANCY_GRID)
     # The Map carries no free-space views: its grid has the walls of the fused map, cell for cell.
-    want = fp.occupancy_grid(fused_from_message(msg))
+    want = fp.occupancy_grid(map_from_message(msg))
     assert (grid.info.width, grid.info.height) == (want.width, want.height)
     data = np.asarray(grid.data, dtype=np.int8).reshape(want.height, want.width)
     assert np.array_equal(data, want.data)

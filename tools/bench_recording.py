@@ -1,7 +1,7 @@
 """``lelsonar bench recording``: what durable recording costs.
 
 The acquisition recorder hands every step to the OS before the step is
-published: one MCAP chunk per step (Sample, /tf and points), flushed.  This
+published: one MCAP chunk per step (the Sample; its /tf and points are the next), flushed.  This
 bench writes the same simulated scan, messages built beforehand, through
 :class:`lelsonar.log.recording.McapRecorder` with
 

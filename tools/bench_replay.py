@@ -11,7 +11,8 @@ Modes:
 
 * ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
   ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
-  (the kernels loaded first), estimation included: its time is mostly the finals';
+  (the kernels loaded first), estimation included (where the host has an idle core, the next
+  chunks decompressed on other threads while the service estimates);
 * ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
   (the reading alone);
 * ``floor`` — ``mcap.reader.make_reader(f).iter_messages(topics=…, log_time_order=True)`` and a

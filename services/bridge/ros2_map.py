@@ -6,17 +6,14 @@ saw free space, unknown elsewhere.  The markers are :func:`lelsonar.map.floorpla
 observed piece of each wall, as thick as its offset's ± 2σ, in its verdict's colour, plus a sphere of ± 2σ
 at each corner and edge and the corrected path against the odometry's.
 
-From a ``Map`` message (a mapper's recording, the live bridge) the map is rebuilt with
-:func:`fused_from_message`.  The message carries no free space (only the walls, features and poses), so
-the grid drawn from it marks free only the robot's own way between its poses: the rest of what the scans
-saw stays unknown, never free by guess.  ``lelsonar map --ros2-bag`` draws from the fusion itself, with
-the whole free space.
+From a ``Map`` message (a mapper's recording, the live bridge) the map is read back with
+:func:`lelsonar.map.wire.map_from_message`, its free-space views included, so the grid is the one the
+mapper's own fusion draws.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import shutil
 from collections import Counter
 from collections.abc import Callable, Iterator
@@ -26,15 +23,15 @@ import numpy as np
 import zenoh
 from google.protobuf.message import DecodeError
 
-from lelsonar import codec
 from lelsonar.bridge import ros2
 from lelsonar.bridge.ros2_markers import CUBE, DELETEALL, LINE_STRIP, SPHERE, TEXT_VIEW_FACING, verdict_rgb
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.errors import InvalidMessageError, LelsonarError, RecordingError
 from lelsonar.log.recording import open_recording
 from lelsonar.map import floorplan
-from lelsonar.map.result import FusedFeature, FusedMap, FusedPose, FusedWall
+from lelsonar.map.result import FusedMap
 from lelsonar.map.service import map_key
+from lelsonar.map.wire import map_from_message
 from lelsonar.v1 import map_pb2
 
 TOPIC_GRID = ros2.TOPIC_MAP_GRID
@@ -52,7 +49,7 @@ _log = logging.getLogger("lelsonar.bridge.map")
 
 
 def decode_map(data: bytes) -> map_pb2.Map:
-    """A ``Map`` from its wire bytes, checked: its contract version and its walls' and poses' shapes.
+    """A ``Map`` from its wire bytes, checked: its contract version and every field the floor plan reads.
 
     Raises
     ------
@@ -65,19 +62,7 @@ def decode_map(data: bytes) -> map_pb2.Map:
         raise InvalidMessageError(f"not a lelsonar.v1.Map: {exc}") from None
     if msg.schema_version != 1:
         raise InvalidMessageError(f"a Map of contract version {msg.schema_version}; this reader knows version 1")
-    for w in msg.walls:
-        if len(w.covariance) not in (0, 4) or len(w.pieces) % 2:
-            raise InvalidMessageError(
-                f"map wall {w.id}: a covariance of {len(w.covariance)} terms (4 expected) "
-                f"or an odd number of piece ends ({len(w.pieces)})"
-            )
-        values = [w.normal.x, w.normal.y, w.offset, w.offset_stderr, w.normal_stderr, *w.covariance]
-        values += [v for p in (*w.pieces, *w.extent) for v in (p.x, p.y, p.z)]
-        if not all(math.isfinite(v) for v in values) or abs(math.hypot(w.normal.x, w.normal.y) - 1.0) > 1e-6:
-            raise InvalidMessageError(f"map wall {w.id}: a non-finite number or a normal that is not a unit vector")
-    for p in msg.poses:
-        if len(p.covariance) not in (0, 9):
-            raise InvalidMessageError(f"map pose of scan {p.scan_id}: {len(p.covariance)} covariance terms, not 9")
+    map_from_message(msg)  # every field checked as the floor plan reads it
     return msg
 
 
@@ -119,70 +104,6 @@ def export_map_rosbag2(
         shutil.rmtree(out, ignore_errors=True)
         raise
     return dict(sink.counts)
-
-
-def _xyz(v) -> np.ndarray:
-    return np.array([v.x, v.y, v.z], dtype=float)
-
-
-def fused_from_message(msg: map_pb2.Map) -> FusedMap:
-    """The map a ``Map`` message carries, as the floor plan takes it (no free-space views: see the module)."""
-    walls = []
-    for w in msg.walls:
-        theta = math.atan2(w.normal.y, w.normal.x)
-        line = np.array([theta, w.offset])
-        tangent = np.array([-math.sin(theta), math.cos(theta)])
-        cov = (
-            np.asarray(w.covariance, dtype=float).reshape(2, 2)
-            if len(w.covariance) == 4
-            else np.diag([w.normal_stderr**2, w.offset_stderr**2])
-        )
-        ends = [_xyz(p) for p in w.pieces] or [_xyz(p) for p in w.extent][:2]
-        along = [float(np.dot(p[:2], tangent)) for p in ends]
-        pieces = tuple((along[i], along[i + 1]) for i in range(0, len(along) - 1, 2))
-        z = [p.z for p in w.extent] or [0.0]
-        walls.append(
-            FusedWall(
-                id=w.id,
-                line=line,
-                covariance=cov,
-                interval=(min(along), max(along)) if along else (0.0, 0.0),
-                pieces=pieces,
-                z_range=(float(min(z)), float(max(z))),
-                quality=codec.QUALITY_NAME.get(w.quality, "unreliable") or "unreliable",
-                reasons=tuple(w.quality_reasons),
-                scans=tuple(w.scan_ids),
-                good_observations=w.good_observations,
-                flagged_observations=w.flagged_observations,
-            )
-        )
-    features = tuple(
-        FusedFeature(
-            point=_xyz(f.point),
-            direction=_xyz(f.direction),
-            kind=f.kind,
-            point_stderr=f.point_stderr,
-            source="walls" if f.wall_ids else "observed",
-            observations=f.observations,
-            walls=tuple(f.wall_ids),
-        )
-        for f in (*msg.corners, *msg.edges)
-    )
-    poses = tuple(
-        FusedPose(
-            scan_id=p.scan_id,
-            x=p.position.x,
-            y=p.position.y,
-            z=p.position.z,
-            heading=p.heading,
-            covariance=np.asarray(p.covariance, dtype=float).reshape(3, 3)
-            if len(p.covariance) == 9
-            else np.zeros((3, 3)),
-            odometry=(p.odometry.x, p.odometry.y, p.odometry.z),
-        )
-        for p in msg.poses
-    )
-    return FusedMap(walls=tuple(walls), features=features, poses=poses, notes=tuple(msg.notes))
 
 
 def grid_message(b: ros2.Builder, grid: floorplan.Grid, t_ns: int, frame: str = MAP_FRAME) -> object:
@@ -287,7 +208,7 @@ class MapRos2:
 
     def __call__(self, msg: map_pb2.Map, t_ns: int | None = None) -> None:
         t = int(msg.stamp_ns if t_ns is None else t_ns)
-        for out in map_ros_messages(self._b, fused_from_message(msg), t, self._plan):
+        for out in map_ros_messages(self._b, map_from_message(msg), t, self._plan):
             self._emit(out)
 
 

@@ -52,7 +52,7 @@ class Job:
 
 JOBS: dict[str, Job] = {
     "reconstruct": Job(".jsonl", ("--method", "--compare"), True, "lelsonar.cli.reconstruct"),
-    "review": Job(".rrd", ("--method", "--compare"), False, "lelsonar.cli.reconstruct"),
+    "review": Job(".rrd", ("--method", "--compare"), False, "lelsonar.cli.review"),
     "info": Job(".json", (), True, "lelsonar.cli.recordings"),
     "export": Job(".rosbag2", ("--method", "--compare"), False, "lelsonar.cli.bridge"),
     "map": Job(".json", ("--method",), True, "lelsonar.cli.map"),  # one map per recording

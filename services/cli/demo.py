@@ -45,6 +45,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="emulated devices through the real drivers (default), or the simulator directly",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the simulated acoustics (default: 0)")
+    p.add_argument(
+        "--world",
+        metavar="FILE|NAME",
+        help="tour a world instead (a world file, or an example's name: maze): the map grows scan by scan and "
+        "the planner prints the route out",
+    )
+    p.add_argument(
+        "--robot-radius", type=float, default=0.15, metavar="M", help="with --world: the route keeps this from walls"
+    )
     add_overwrite_argument(p)
     p.add_argument(
         "--secure",
@@ -63,6 +72,10 @@ def _free_tcp_port() -> int:
 
 
 def run_demo(args: argparse.Namespace) -> int:
+    if args.world is not None:
+        from lelsonar.cli.demo_maze import run_maze_demo
+
+        return run_maze_demo(args)
 
     from lelsonar.cli.paths import output_dir, output_file
     from lelsonar.cli.warm_up import ensure_compiled

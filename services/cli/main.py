@@ -22,6 +22,8 @@ COMMAND_MODULES = (
     "lelsonar.cli.simulate",
     "lelsonar.cli.emulate",
     "lelsonar.cli.reconstruct",
+    "lelsonar.cli.review",
+    "lelsonar.cli.planner",
     "lelsonar.cli.recordings",
     "lelsonar.cli.map",
     "lelsonar.cli.batch",

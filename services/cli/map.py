@@ -16,10 +16,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "map",
         help="fuse the walls of several scans (recordings) into one map",
-        description="Replay each recording through the reconstruction, take each scan's planes of record as "
-        "wall observations at the scan's pose (ScanStart; the origin where a recording has none), fuse them "
-        "across scans (GTSAM factor graph) and print the map: walls with σ and verdict, corners, edges, "
-        "corrected poses (world frame, m and rad).",
+        description="Replay each recording through the reconstruction, take each scan's surfaces, corners and "
+        "edges (its two planes of record where the reconstruction extracted no surfaces) as observations at the "
+        "scan's pose (ScanStart; the origin where a recording has none), fuse them across scans (GTSAM factor "
+        "graph) and print the map: walls with σ and verdict, corners, edges, corrected poses (world frame, m "
+        "and rad).",
     )
     p.add_argument(
         "--source",

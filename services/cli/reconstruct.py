@@ -1,4 +1,5 @@
-"""`lelsonar reconstruct`, `lelsonar review` and `lelsonar planner`."""
+"""`lelsonar reconstruct`: live from Zenoh or replayed from a recording; the flags the commands that
+reconstruct share."""
 
 from __future__ import annotations
 
@@ -100,55 +101,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="a joining member takes part in scans starting S s after it joined; members' clocks must "
         "agree within S (default: 2)",
     )
-    _add_estimator_arguments(p, scan_timeout=True)
+    add_estimator_arguments(p, scan_timeout=True)
     _add_rerun_arguments(p)
     _add_foxglove_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
     p.set_defaults(run=run_reconstruct)
-
-    p = sub.add_parser(
-        "review",
-        help="reconstruct a recording offline into a Rerun .rrd with the default layout",
-        description="Replay a recording through the reconstruction, step by step as it was acquired, into a "
-        "Rerun recording (.rrd) with the default layout; print the final planes on stdout.",
-    )
-    p.add_argument("source", type=Path, metavar="FILE.mcap", help="the recording to review")
-    p.add_argument(
-        "-o", "--output", type=Path, metavar="FILE.rrd", help="the Rerun recording to write (default: FILE.rrd)"
-    )
-    p.add_argument(
-        "--screenshot",
-        type=Path,
-        metavar="FILE.png",
-        help="also draw the final step (points, final planes, R) with matplotlib into an image, from the data "
-        "the .rrd gets (the README's docs/review.png is made so)",
-    )
-    add_truth_preset_argument(p, "draw the true planes of a simulator preset")
-    add_overwrite_argument(p)
-    _add_estimator_arguments(p, scan_timeout=False)
-    p.set_defaults(run=run_review)
-
-    p = sub.add_parser("planner", help="an example remote consumer: print plane estimates as they arrive")
-    p.add_argument("--scanner", default="*", help="only this scanner id (default: all)")
-    p.add_argument("--json", action="store_true", help="JSON lines instead of tables")
-    p.add_argument(
-        "--until-final",
-        type=int,
-        default=0,
-        metavar="N",
-        help="exit after N final estimates (default: run until Ctrl-C)",
-    )
-    p.add_argument(
-        "--timeout",
-        type=float,
-        default=0.0,
-        metavar="S",
-        help="give up after S seconds without a final estimate (default: never)",
-    )
-    add_zenoh_arguments(p, default_mode="client")
-    add_secure_argument(p)
-    p.set_defaults(run=run_planner)
 
 
 def add_truth_preset_argument(p, text: str) -> None:
@@ -190,7 +148,7 @@ def compared_methods(args: argparse.Namespace) -> tuple[str, ...]:
     return tuple(m for m in names if m != args.method)
 
 
-def _add_estimator_arguments(p: argparse.ArgumentParser, *, scan_timeout: bool) -> None:
+def add_estimator_arguments(p: argparse.ArgumentParser, *, scan_timeout: bool) -> None:
     g = p.add_argument_group("estimation")
     add_method_arguments(g, "also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
     if not scan_timeout:  # offline, a scan ends with its recording
@@ -263,7 +221,7 @@ def _foxglove_observer(args: argparse.Namespace, stack: ExitStack, console):
     return observer
 
 
-def _config(args: argparse.Namespace, *, provisional: bool = True):
+def service_config(args: argparse.Namespace, *, provisional: bool = True):
     from lelsonar.reconstruct.stream.config import ReconstructConfig
 
     compare = compared_methods(args)
@@ -292,7 +250,7 @@ def _group_config(args: argparse.Namespace):
     return GroupConfig(group=args.group, settle=args.group_settle, **extra)
 
 
-def _zenoh_settings(args: argparse.Namespace, role: str, prefix: str):
+def zenoh_settings(args: argparse.Namespace, role: str, prefix: str):
     """The session settings from the flags, switched to mutual TLS as ``role`` with --secure."""
     from lelsonar.net.transport import zenoh_settings_from_args
 
@@ -304,7 +262,7 @@ def _zenoh_settings(args: argparse.Namespace, role: str, prefix: str):
     return secure_settings(settings, args.secure, role, prefix)
 
 
-def _stop_on_signals() -> threading.Event:
+def stop_on_signals() -> threading.Event:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -329,7 +287,7 @@ def _rerun_observer(args: argparse.Namespace, stack: ExitStack, application_id: 
     )
 
 
-def _open_source(path: Path):
+def open_source(path: Path):
     """The recording to replay, opened tolerantly (its messages are read by the replay, chunk by chunk).
 
     Raises the typed :class:`~lelsonar.errors.RecordingError` subclasses (one line, exit 2) for a missing path,
@@ -341,7 +299,7 @@ def _open_source(path: Path):
     return open_recording(input_file(path)).require_scans()
 
 
-def _replayed(source) -> None:
+def report_replay(source) -> None:
     """After the replay: one warning line on stderr if the file was damaged or unfinished; an error if no scan
     message was readable after all."""
     source.require_scans()
@@ -363,7 +321,8 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
     check_outputs(args)
     # A batch replay needs no provisional estimates: the finals are computed from scratch anyway.
-    config = _config(args, provisional=args.source is None or args.publish or bool(args.rrd) or bool(args.foxglove))
+    provisional = args.source is None or args.publish or bool(args.rrd) or bool(args.foxglove)
+    config = service_config(args, provisional=provisional)
     console = present.console(stderr=True)  # what the command says about itself
     tables = present.console()  # the estimates, on stdout
     finals = threading.Event()
@@ -383,7 +342,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if args.until_scans and n_final >= args.until_scans:
                 finals.set()
 
-    source = _open_source(args.source) if args.source is not None else None
+    source = open_source(args.source) if args.source is not None else None
     group_config = _group_config(args)
     from lelsonar.cli.warm_up import ensure_compiled, exercise_kernels
 
@@ -404,7 +363,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
         session = group = None
         if args.source is None or args.publish:
-            session = stack.enter_context(open_session(_zenoh_settings(args, "reconstruct", keys.prefix)))
+            session = stack.enter_context(open_session(zenoh_settings(args, "reconstruct", keys.prefix)))
             if group_config is not None and args.source is None:
                 from lelsonar.reconstruct.stream.group import GroupMembership
 
@@ -422,7 +381,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             stack.callback(server.close)
             publish_to.insert(0, server.publish)
         if source is not None:
-            stop = _stop_on_signals() if fox is not None else None
+            stop = stop_on_signals() if fox is not None else None
             if fox is not None and args.foxglove_wait > 0:
                 from lelsonar.draw.visual import TOPIC_PLANES
 
@@ -438,7 +397,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             if session is not None:
                 stack.callback(session.liveliness().declare_token(keys.alive("reconstruct")).undeclare)
             n = replay_mcap(source, service)
-            _replayed(source)
+            report_replay(source)
             if recorder:
                 for msg in service.finals.values():
                     recorder.write(msg)
@@ -466,7 +425,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
             return 0
         if session is None:
             raise InternalError("a live reconstruction opens its Zenoh session first")
-        stop = _stop_on_signals()
+        stop = stop_on_signals()
         console.print(f"reconstruct: listening on {keys.sample} and {keys.scan}; estimates on {keys.planes}")
         from lelsonar.reconstruct.stream.recovery import RecoveryConfig
 
@@ -517,155 +476,3 @@ def _print_stats(console, stats: dict, as_json: bool, json) -> None:
     )
     if as_json:  # on stderr: stdout carries only estimates, one per line
         print(json.dumps({"stats": stats}, sort_keys=True, separators=(",", ":")), file=sys.stderr, flush=True)
-
-
-def run_review(args: argparse.Namespace) -> int:
-    from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from lelsonar.cli.paths import output_file
-    from lelsonar.errors import ConfigError
-    from lelsonar.log.recording import read_metadata, truth_world
-    from lelsonar.reconstruct.stream.observers import combine
-    from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
-    from lelsonar.view import present
-    from lelsonar.view.rerun_observer import open_rerun
-
-    source = _open_source(args.source)
-    out = output_file(args.output or args.source.with_suffix(".rrd"), overwrite=args.overwrite, what="review file")
-    shot = None
-    if args.screenshot is not None:
-        from lelsonar.view.snapshot import SnapshotObserver, check_image_path
-
-        shot = SnapshotObserver(main_method=args.method, truth_preset=args.truth_preset)
-        check_image_path(output_file(args.screenshot, overwrite=args.overwrite, what="screenshot"))
-    files = [Path(f).resolve() for f in (args.source, out, args.screenshot) if f is not None]
-    if len(set(files)) < len(files):
-        raise ConfigError("the recording, the review file and the screenshot must be three different files")
-    total = source.expected_payloads()
-    console = present.console(stderr=True)
-    from lelsonar.cli.warm_up import ensure_compiled
-
-    ensure_compiled(console)
-    world = truth_world(read_metadata(source).get("lelsonar.config"))  # a simulated world, drawn as truth
-    with (
-        open_rerun(
-            rrd=out,
-            application_id="lelsonar",
-            truth_preset=args.truth_preset,
-            main_method=args.method,
-            truth_world=world,
-        ) as observer,
-        Progress(
-            TextColumn("review"),
-            BarColumn(),
-            TextColumn("{task.completed}/{task.total} messages"),
-            TimeRemainingColumn(),
-            console=console,
-            transient=True,
-        ) as progress,
-    ):
-        task = progress.add_task("replay", total=total)
-        service = ReconstructionService(_config(args), observer=combine(observer, shot))
-        replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
-    _replayed(source)
-    tables = present.console()
-    for msg in service.finals.values():
-        tables.print(present.planes_table(msg))
-        surfaces = present.surfaces_table(msg)
-        if surfaces is not None:
-            tables.print(surfaces)
-    console.print(f"wrote {out} — open it with: rerun {out}", highlight=False)
-    if shot is not None:
-        console.print(f"wrote {shot.save(args.screenshot)}", highlight=False)
-    return 0 if service.finals else 1
-
-
-def run_planner(args: argparse.Namespace) -> int:
-    from collections import Counter
-
-    import zenoh
-
-    from lelsonar.errors import LelsonarError
-    from lelsonar.keys import ScannerKeys
-    from lelsonar.net.transport import open_session
-    from lelsonar.reconstruct.estimate import wire
-    from lelsonar.view import present
-
-    keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)
-    settings = _zenoh_settings(args, "planner", keys.prefix)
-    console = present.console()
-    stop = _stop_on_signals()
-    done = threading.Event()
-    finals = 0
-    lock = threading.Lock()
-
-    rejected: Counter[str] = Counter()
-
-    def show(key: str, payload: bytes, origin: str) -> None:
-        nonlocal finals
-        try:
-            msg = wire.decode_estimate(key, payload, keys.prefix)
-        except LelsonarError as exc:
-            with lock:
-                rejected[type(exc).__name__] += 1
-            print(
-                f"planner: rejected an estimate ({type(exc).__name__}, {rejected[type(exc).__name__]} so far): {exc}",
-                file=sys.stderr,
-                flush=True,
-            )
-            return
-        with lock:
-            if args.json:
-                print(present.to_json(msg), flush=True)
-            else:
-                console.print(
-                    present.planes_table(msg, title=None)
-                    if wire.status_name(msg) != "provisional"
-                    else f"{origin}: {msg.scanner_id} scan {msg.scan_id} provisional, "
-                    f"{msg.samples_used} samples, {len(msg.planes)} planes"
-                )
-                surfaces = present.surfaces_table(msg)
-                if surfaces is not None:
-                    console.print(surfaces)
-            if wire.is_terminal(msg):
-                finals += 1
-                if args.until_final and finals >= args.until_final:
-                    done.set()
-
-    with open_session(settings) as session:
-        sub = session.declare_subscriber(keys.planes, zenoh.handlers.FifoChannel(256))
-        token = session.liveliness().declare_token(keys.alive("planner"))
-
-        def drain() -> None:
-            try:
-                for s in sub:
-                    show(str(s.key_expr), s.payload.to_bytes(), "update")
-            except zenoh.ZError:
-                pass
-
-        worker = threading.Thread(target=drain, daemon=True)
-        worker.start()
-        print(
-            f"planner: listening on {keys.planes} ({settings.describe()}); Ctrl-C to stop", file=sys.stderr, flush=True
-        )
-        for reply in session.get(keys.planes, timeout=2.0):  # the latest, if any, on start
-            if reply.ok is not None:
-                show(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), "latest")
-        if args.timeout:
-            timer = threading.Timer(args.timeout, stop.set)
-            timer.daemon = True
-            timer.start()
-        while not (stop.is_set() or done.is_set()):
-            stop.wait(0.2)
-        sub.undeclare()  # ends the drain loop: its channel closes
-        token.undeclare()
-        # A daemon thread still inside Zenoh's native recv when the interpreter exits is cancelled
-        # mid-unwind and aborts the process ("FATAL: exception not rethrown"): let it finish first.
-        worker.join(timeout=5.0)
-    if rejected:
-        print(f"planner: rejected estimates: {dict(rejected)}", file=sys.stderr)
-    if args.until_final and not done.is_set():
-        print(f"planner: no final estimate within {args.timeout:.0f} s", file=sys.stderr)
-        return 1
-    return 0

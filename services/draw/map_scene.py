@@ -7,7 +7,7 @@ In the ``map`` frame:
 * corners and edges: a line along their direction and a sphere of ± 2σ at their point;
 * the path: the corrected poses as a line with an arrow per pose and its ± 2σ ellipse, and the odometry's
   path before fusion as a grey line;
-* the free space where the caller knows it (the ``Map`` message does not carry it): its outline, filled.
+* the free space the caller gives (:func:`lelsonar.map.floorplan.free_space`): its outline, filled.
 
 One :class:`MapScene` per output: each update replaces what the last one drew and deletes the walls that
 are gone (merged or split), so the scene grows scan by scan as the map does.

@@ -7,8 +7,8 @@ instead:
 
 * a chunk is kept only if it decompresses and its CRC (``uncompressed_crc``)
   matches, so a flipped bit never yields a wrong message — it costs the chunk
-  it falls in, which is one step of a lelsonar recording (one chunk per step,
-  see :class:`lelsonar.log.recording.McapRecorder`);
+  it falls in, which is one step of a lelsonar recording (a chunk per contract
+  message, then one for its views: see :class:`lelsonar.log.recording.McapRecorder`);
 * after a damaged record it resynchronises on the next chunk whose CRC
   matches, so one bad chunk does not hide the rest of the file;
 * what it skipped is reported as :class:`Damage` with the byte range and the
@@ -20,8 +20,8 @@ intact, from the summary section too, so a damaged first chunk does not orphan
 the messages of later ones.  Nothing here knows about lelsonar's topics.
 
 Reading holds one chunk at a time, whatever the file's length: :func:`open_mcap`
-walks the records' framing once (no decompression, except the first chunk of
-each channel, to learn its definition) and :meth:`McapSource.read` then
+walks the records' framing once (:mod:`lelsonar.log.walk`: no decompression,
+except the first chunk of each channel, to learn its definition) and :meth:`McapSource.read` then
 decompresses and checks the chunks one by one, yielding their messages in log-time
 order through a merge bounded by the chunks that overlap in time (as the indexed
 reader does with its chunk index).  A chunk whose message index says it holds
@@ -33,25 +33,19 @@ from __future__ import annotations
 
 import heapq
 import mmap
-import os
-import stat
 import struct
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
-from lelsonar.errors import NotMcapError, RecordingError, RecordingNotFoundError
+from lelsonar.errors import NotMcapError
 from lelsonar.log.records import (
     CHUNK_HEAD,
     MAGIC,
-    MAX_CHUNK_BYTES,
     MESSAGE_HEAD,
     OP_CHANNEL,
-    OP_CHUNK,
-    OP_FOOTER,
     OP_MESSAGE,
-    OP_MESSAGE_INDEX,
     OP_SCHEMA,
-    RECORD_HEAD,
     BadRecord,
     ChannelInfo,
     Cursor,
@@ -60,22 +54,17 @@ from lelsonar.log.records import (
     Salvage,
     SchemaInfo,
     Unit,
-    chunk_frame,
     chunk_raw,
-    chunk_records,
-    looks_like_chunk,
-    lost_region,
-    message_index_count,
+    inner_records,
     parse_channel,
     parse_schema,
     read_summary,
-    resync,
-    summary_start,
-    top_level_record,
 )
+from lelsonar.log.walk import RELEASE_EVERY, check_recording_path, magic_ok, open_bytes, walk
 
 __all__ = [
     "ChannelInfo",
+    "check_recording_path",
     "Damage",
     "McapSource",
     "RawMessage",
@@ -85,84 +74,6 @@ __all__ = [
     "open_mcap",
     "salvage",
 ]
-
-
-# --- the walk -------------------------------------------------------------------------------------
-def open_bytes(path: Path | str):
-    """Map a file for reading; typed errors for a missing path, a directory or an empty file.
-
-    Returns
-    -------
-    (mmap.mmap or bytes, int)
-        The contents and the size.
-
-    Raises
-    ------
-    RecordingNotFoundError
-        The path does not exist or is a directory.
-    NotMcapError
-        The file is empty.
-    RecordingError
-        The file cannot be opened (permissions).
-    """
-    path = Path(path)
-    check_recording_path(path)
-    try:
-        with open(path, "rb") as f:
-            size = os.fstat(f.fileno()).st_size
-            if size == 0:
-                raise NotMcapError(f"{path} is empty, not a readable MCAP file")
-            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ), size
-    except FileNotFoundError:
-        raise RecordingNotFoundError(f"no recording at {path}; check the path") from None
-    except PermissionError:
-        raise RecordingError(f"cannot read {path}: permission denied") from None
-    except OSError as exc:
-        raise RecordingError(f"cannot read {path}: {exc.strerror or exc}") from None
-
-
-def check_recording_path(path: Path | str) -> None:
-    """Refuse, before opening it, a path that cannot be a recording.
-
-    Raises
-    ------
-    RecordingNotFoundError
-        A directory.
-    RecordingError
-        A named pipe, a device or a socket (opening a pipe waits for a writer; a device never ends).
-    """
-    path = Path(path)
-    if path.is_dir():
-        raise RecordingNotFoundError(f"{path} is a directory, not an MCAP recording; give the .mcap file inside it")
-    kind = _not_regular(path)
-    if kind:
-        raise RecordingError(f"{path} is {kind}, not a regular file; give a recorded .mcap file")
-
-
-def _not_regular(path: Path) -> str | None:
-    """What ``path`` is when it is not a regular file (``"a named pipe"`` …); None for a regular file or none."""
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        return None  # missing or unreadable: open() says which
-    if stat.S_ISREG(mode):
-        return None
-    for test, kind in (
-        (stat.S_ISFIFO, "a named pipe"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISSOCK, "a socket"),
-    ):
-        if test(mode):
-            return kind
-    return "a special file"
-
-
-def _magic_ok(head: bytes) -> bool:
-    """The leading magic, allowing two flipped bits (a damaged header is damage, not a foreign file)."""
-    if len(head) < len(MAGIC):
-        return False
-    return sum(bin(a ^ b).count("1") for a, b in zip(head, MAGIC, strict=False)) <= 2
 
 
 def salvage(path: Path | str) -> Salvage:
@@ -217,6 +128,7 @@ class McapSource:
         *,
         verify_all: bool = True,
         ordered: bool = True,
+        decompress_threads: int = 0,
     ) -> Iterator[RawMessage]:
         """Yield the intact messages, chunk by chunk, in log-time order (file order breaks ties).
 
@@ -230,6 +142,9 @@ class McapSource:
             counted from that index.
         ordered : bool
             False: file order, with no merge.
+        decompress_threads : int
+            Threads that decompress and check the next chunks while this one is walked (zstd releases
+            the GIL); 0: each chunk is decompressed when it is reached.  What is yielded is the same.
 
         Holds the chunks whose time ranges overlap the message being yielded, not the file:
         chunks are merged by the message start time their header records, as the indexed
@@ -239,7 +154,7 @@ class McapSource:
         out.start_read()
         buf, size = open_bytes(out.path)
         try:
-            yield from _Read(self, buf, size, want, verify_all).messages(ordered)
+            yield from _Read(self, buf, size, want, verify_all, decompress_threads).messages(ordered)
         finally:
             if isinstance(buf, mmap.mmap):
                 buf.close()
@@ -248,12 +163,21 @@ class McapSource:
 class _Read:
     """One pass over the units of a source: decompress, check, count, yield."""
 
-    #: Drop the file pages behind the read from the process every this many bytes (they stay in the page
-    #: cache): a mapped file's touched pages count in the resident set until unmapped.
-    RELEASE_EVERY = 16 * 1024 * 1024
+    #: Uncompressed bytes of the chunks decompressed ahead of the one being walked, at most (a bound
+    #: on memory whatever the file's length, and room enough for a scan's final estimate to overlap).
+    AHEAD_BYTES = 16 * 1024 * 1024
+    #: About this many uncompressed bytes per job: a thread hand-over per small chunk would cost a good
+    #: part of what decompressing it does.
+    JOB_BYTES = 1024 * 1024
 
-    def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool) -> None:
+    def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool, threads: int = 0) -> None:
         self.source, self.buf, self.size = source, buf, size
+        self.threads = threads
+        self.pool: ThreadPoolExecutor | None = None
+        #: Chunks being decompressed ahead, by offset: (job, place in the job, uncompressed bytes).
+        self.inflight: dict[int, tuple[Future[list[bytes | Exception]], int, int]] = {}
+        self.inflight_bytes = 0
+        self.next_ahead = 0  # the first unit not yet considered for decompressing ahead
         self.out = source.account
         self.want = want
         self.verify_all = verify_all
@@ -286,21 +210,70 @@ class _Read:
 
     def release(self, upto: int) -> None:
         buf = self.buf
-        if not isinstance(buf, mmap.mmap) or upto - self.released < self.RELEASE_EVERY:
+        if not isinstance(buf, mmap.mmap) or upto - self.released < RELEASE_EVERY:
             return
         end = upto - upto % mmap.PAGESIZE
         if end > self.released:
             buf.madvise(mmap.MADV_DONTNEED, self.released, end - self.released)
             self.released = end
 
-    def messages(self, ordered: bool) -> Iterator[RawMessage]:
-        units = self.source.units
-        if not ordered:
-            for unit in units:
-                yield from self.unit_messages(unit)
-                self.release(unit.offset)
-            self.done()
+    def ahead(self, i: int) -> None:
+        """Keep the chunks of the units after ``i`` being decompressed, up to AHEAD_BYTES of them.
+
+        A chunk the read turns out to skip (its channels learnt meanwhile) costs its decompression only.
+        """
+        if self.pool is None:
             return
+        units, buf = self.source.units, self.buf
+        j = max(self.next_ahead, i + 1)
+        while j < len(units) and self.inflight_bytes < self.AHEAD_BYTES:
+            job: list[tuple[Unit, int]] = []
+            nbytes = 0
+            while j < len(units) and nbytes < self.JOB_BYTES:
+                u = units[j]
+                j += 1
+                if u.chunk and not self.skippable(u):
+                    usize = CHUNK_HEAD.unpack_from(buf, u.offset + 9)[2]  # checked by the walk
+                    job.append((u, usize))
+                    nbytes += usize
+            if job:
+                done = self.pool.submit(decompress_chunks, buf, [(u.offset + 9, u.length) for u, _ in job])
+                for k, (u, usize) in enumerate(job):
+                    self.inflight[u.offset] = (done, k, usize)
+                self.inflight_bytes += nbytes
+        self.next_ahead = j
+
+    def take_raw(self, unit: Unit) -> bytes:
+        """One chunk's content decompressed and checked: decompressed ahead, or now."""
+        pending = self.inflight.pop(unit.offset, None)
+        if pending is None:
+            return chunk_raw(self.buf, unit.offset + 9, unit.length)
+        done, k, usize = pending
+        self.inflight_bytes -= usize
+        raw = done.result()[k]
+        if isinstance(raw, Exception):
+            raise raw
+        return raw
+
+    def messages(self, ordered: bool) -> Iterator[RawMessage]:
+        if self.threads > 0:
+            self.pool = ThreadPoolExecutor(self.threads, thread_name_prefix="mcap-decompress")
+        try:
+            yield from self.in_order() if ordered else self.in_file_order()
+        finally:
+            if self.pool is not None:
+                self.pool.shutdown(wait=True, cancel_futures=True)  # before the file's map is closed
+                self.inflight.clear()
+
+    def in_file_order(self) -> Iterator[RawMessage]:
+        for i, unit in enumerate(self.source.units):
+            self.ahead(i)
+            yield from self.unit_messages(unit)
+            self.release(unit.offset)
+        self.done()
+
+    def in_order(self) -> Iterator[RawMessage]:
+        units = self.source.units
         # later[i]: the earliest message any unit from i on may hold; what is older can be yielded.
         later = [0] * (len(units) + 1)
         later[-1] = 1 << 64
@@ -310,6 +283,7 @@ class _Read:
         seq = 0
         push, pop = heapq.heappush, heapq.heappop
         for i, unit in enumerate(units):
+            self.ahead(i)
             for m in self.unit_messages(unit):
                 push(heap, (m.log_time, seq, m))
                 seq += 1
@@ -338,6 +312,9 @@ class _Read:
             body = unit.offset + 9 + MESSAGE_HEAD.size
             return [RawMessage(cid, seq, t_log, t_pub, bytes(buf[body : unit.offset + 9 + unit.length]), unit.offset)]
         if self.skippable(unit):
+            pending = self.inflight.pop(unit.offset, None)
+            if pending is not None:  # decompressed ahead before its channels were known: not needed
+                self.inflight_bytes -= pending[2]
             for cid, n in unit.index or ():
                 self.count(cid, n, unit.start, unit.end)
             return []
@@ -357,31 +334,17 @@ class _Read:
 
     def parse_chunk(self, unit: Unit) -> tuple[list[RawMessage], dict[int, int], int, int]:
         """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere."""
-        raw = chunk_raw(self.buf, unit.offset + 9, unit.length)
-        size = len(raw)
+        raw = self.take_raw(unit)
         out = self.out
         found: list[RawMessage] = []
         counts: dict[int, int] = {}
         schemas: list[SchemaInfo] = []
         channels: list[ChannelInfo] = []
         t0, t1 = 1 << 64, 0
-        unpack_head, unpack_message, message_head = (
-            RECORD_HEAD.unpack_from,
-            MESSAGE_HEAD.unpack_from,
-            MESSAGE_HEAD.size,
-        )
+        unpack_message, message_head = MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
         known, wanted = out.channels, self.wanted
-        pos = 0
-        while pos < size:
-            if pos + 9 > size:
-                raise BadRecord("field of 9 bytes runs past the record")
-            op, n = unpack_head(raw, pos)
-            body, stop = pos + 9, pos + 9 + n
-            if stop > size:
-                raise BadRecord("record inside the chunk runs past it")
+        for op, body, stop in inner_records(raw):
             if op == OP_MESSAGE:
-                if n < message_head:
-                    raise BadRecord(f"field of {message_head} bytes runs past the record")
                 cid, seq, t_log, t_pub = unpack_message(raw, body)
                 counts[cid] = counts.get(cid, 0) + 1
                 if t_log < t0:
@@ -397,7 +360,6 @@ class _Read:
                 schemas.append(parse_schema(Cursor(raw, body, stop)))
             elif op == OP_CHANNEL:
                 channels.append(parse_channel(Cursor(raw, body, stop)))
-            pos = stop
         for s in schemas:
             out.schemas.setdefault(s.id, s)
         for ch in channels:
@@ -433,6 +395,17 @@ class _Read:
         self.out.damage.append(Damage(unit.offset, nbytes, "chunk", reason, None, est))
 
 
+def decompress_chunks(buf, places: list[tuple[int, int]]) -> list[bytes | Exception]:
+    """Each chunk record's content at (start, length) of ``buf``, decompressed and checked, or why not."""
+    out: list[bytes | Exception] = []
+    for start, length in places:
+        try:
+            out.append(chunk_raw(buf, start, length))
+        except (BadRecord, struct.error) as exc:
+            out.append(exc)
+    return out
+
+
 def open_mcap(path: Path | str) -> McapSource:
     """Open an MCAP file, finished or not, damaged or not: its framing walked, nothing decompressed yet.
 
@@ -449,167 +422,16 @@ def open_mcap(path: Path | str) -> McapSource:
     path = Path(path)
     buf, size = open_bytes(path)
     try:
-        if not _magic_ok(bytes(buf[:8])):
+        if not magic_ok(bytes(buf[:8])):
             head = bytes(buf[:16])
             raise NotMcapError(f"{path} is not a readable MCAP file (it starts with {head!r}, not the MCAP magic)")
         out = Salvage(path, size)
         if bytes(buf[:8]) != MAGIC:
             out.damage.append(Damage(0, 8, "header", "the leading magic has flipped bits", 0))
         read_summary(buf, size, out)
-        units = _Walk(buf, size, out).run()
+        units = walk(buf, size, out)
         out.framing_damage = list(out.damage)
         return McapSource(out, units)
     finally:
         if isinstance(buf, mmap.mmap):
             buf.close()
-
-
-class _Walk:
-    """The opening walk over the records' framing: units to read, top-level records, damage to the framing."""
-
-    def __init__(self, buf, size: int, out: Salvage) -> None:
-        self.buf, self.size, self.out = buf, size, out
-        self.good_bytes = self.good_messages = self.good_raw = 0
-        self.summary_start = out.summary_start = summary_start(buf, size)
-        self.units: list[Unit] = []
-        self.indexes: dict[tuple[tuple[int, int], ...], tuple[tuple[int, int], ...]] = {}  # shared, not repeated
-        self.learnt: set[int] = set()  # channels whose first chunk was tried
-        self.released = 0
-
-    def estimate(self, nbytes: int) -> int:
-        return round(nbytes * self.good_messages / self.good_bytes) if self.good_bytes else 0
-
-    def take_chunk(self, pos: int, length: int) -> Unit:
-        t0, t1, usize, _crc = CHUNK_HEAD.unpack_from(self.buf, pos + 9)
-        unit = Unit(pos, length, t0, t1, True)
-        self.units.append(unit)
-        self.good_bytes += 9 + length
-        self.good_raw += usize
-        return unit
-
-    def take_index(self, unit: Unit, entries: dict[int, int], stop: int) -> None:
-        """The message index after a chunk: what the chunk holds, per channel."""
-        unit.stop = stop
-        if not entries:
-            return
-        key = tuple(sorted(entries.items()))
-        unit.index = self.indexes.setdefault(key, key)
-        n = sum(entries.values())
-        self.good_messages += n
-        counts = self.out.indexed_counts
-        for cid, k in key:
-            counts[cid] = counts.get(cid, 0) + k
-        if n == 0 and unit.start == unit.end == 0:
-            unit.start = 1 << 64  # no message: it holds nothing back
-        unknown = [cid for cid, _k in key if cid not in self.out.channels and cid not in self.learnt]
-        if unknown:
-            # The first chunk of a channel holds its definition: read it now, so a read can choose channels.
-            self.learnt.update(unknown)
-            try:
-                records, _usize = chunk_records(self.buf, unit.offset + 9, unit.length)
-            except (BadRecord, struct.error):
-                return  # damaged: the read says so
-            for _op, rec in records:
-                if isinstance(rec, SchemaInfo):
-                    self.out.schemas.setdefault(rec.id, rec)
-                elif isinstance(rec, ChannelInfo):
-                    self.out.channels.setdefault(rec.id, rec)
-
-    def damaged(self, pos: int, reason: str) -> int | None:
-        """Record damage starting at ``pos``; return where reading resumes (the next intact chunk), or None."""
-        buf, size, out = self.buf, self.size, self.out
-        if self.summary_start is not None and pos >= self.summary_start:
-            # In the summary section: no message can be lost here, and read_summary reads it via the footer.
-            out.damage.append(Damage(pos, size - pos, "summary", f"summary section unreadable at byte {pos}", 0))
-            return None
-        nxt = resync(buf, size, pos + 1)
-        if nxt is not None:
-            out.damage.append(lost_region(buf, pos, nxt, reason, self.estimate(nxt - pos)))
-            return nxt
-        if out.data_end_seen:
-            out.damage.append(Damage(pos, size - pos, "summary", f"summary section unreadable at byte {pos}", 0))
-            return None
-        op = RECORD_HEAD.unpack_from(buf, pos)[0] if pos + 9 <= size else 0
-        est = max(1, self.estimate(size - pos)) if self.good_bytes else 0
-        if op == OP_CHUNK and pos + 9 + CHUNK_HEAD.size <= size and self.good_raw:
-            usize = CHUNK_HEAD.unpack_from(buf, pos + 9)[2]
-            if usize <= MAX_CHUNK_BYTES:
-                est = max(1, round(usize * self.good_messages / self.good_raw))
-        out.damage.append(Damage(pos, size - pos, "tail", reason, None, est))
-        return None
-
-    def run(self) -> list[Unit]:
-        buf, size, out = self.buf, self.size, self.out
-        pos = len(MAGIC)
-        chunk: Unit | None = None  # the chunk whose message index records may follow
-        entries: dict[int, int] = {}
-        while pos < size:
-            if pos + 9 > size:
-                self.damaged(pos, "the file ends inside a record header")
-                break
-            op, length = RECORD_HEAD.unpack_from(buf, pos)
-            body = pos + 9
-            if chunk is not None and (op != OP_MESSAGE_INDEX or body + length > size):
-                self.take_index(chunk, entries, pos)
-                chunk, entries = None, {}
-            if body + length > size:
-                nxt = self.damaged(
-                    pos,
-                    "the file ends inside a record (cut, or the writer was killed)"
-                    if op == OP_CHUNK
-                    else f"record runs past the end of the file (opcode {op:#04x}, length {length})",
-                )
-            elif op == OP_CHUNK:
-                try:
-                    chunk_frame(buf, body, length)
-                except (BadRecord, struct.error) as exc:
-                    nxt = self.damaged(pos, str(exc))
-                else:
-                    chunk = self.take_chunk(pos, length)
-                    nxt = body + length
-            elif op == OP_MESSAGE_INDEX and chunk is not None:
-                try:
-                    cid, n = message_index_count(buf, body, length)
-                except (BadRecord, struct.error) as exc:
-                    self.take_index(chunk, {}, pos)
-                    chunk, entries = None, {}
-                    nxt = self.damaged(pos, f"record with opcode {op:#04x}: {exc}")
-                else:
-                    entries[cid] = entries.get(cid, 0) + n
-                    nxt = body + length
-            elif looks_like_chunk(buf, body, length):
-                try:
-                    chunk_records(buf, body, length)  # rare: worth proving before calling it intact
-                except (BadRecord, struct.error) as exc:
-                    nxt = self.damaged(pos, str(exc))
-                else:
-                    out.damage.append(
-                        Damage(
-                            pos,
-                            1,
-                            "record",
-                            f"opcode at byte {pos} damaged ({op:#04x}); the chunk behind it is intact",
-                            0,
-                        )
-                    )
-                    chunk = self.take_chunk(pos, length)
-                    nxt = body + length
-            else:
-                try:
-                    top_level_record(buf, op, pos, body, length, out, self.units)
-                except (BadRecord, struct.error) as exc:
-                    nxt = self.damaged(pos, f"record with opcode {op:#04x}: {exc}")
-                else:
-                    if op == OP_FOOTER:
-                        break
-                    nxt = body + length
-            if nxt is None:
-                break
-            pos = nxt
-            if isinstance(buf, mmap.mmap) and pos - self.released >= _Read.RELEASE_EVERY:
-                end = pos - pos % mmap.PAGESIZE
-                buf.madvise(mmap.MADV_DONTNEED, self.released, end - self.released)
-                self.released = end
-        if chunk is not None:
-            self.take_index(chunk, entries, min(pos, size))
-        return self.units

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -313,13 +314,14 @@ def chunk_raw(buf, start: int, length: int) -> bytes:
     return raw
 
 
-def chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
-    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
-    raw = chunk_raw(buf, start, length)
+def inner_records(raw) -> Iterator[tuple[int, int, int]]:
+    """(opcode, start, stop of its content) of each record inside a decompressed chunk, in order.
+
+    Raises BadRecord where a record runs past the chunk, or a message record is shorter than its header.
+    """
     size = len(raw)
-    records: list[tuple[int, object]] = []
+    unpack_head, message_head = RECORD_HEAD.unpack_from, MESSAGE_HEAD.size
     pos = 0
-    unpack_head, unpack_message, message_head = RECORD_HEAD.unpack_from, MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
     while pos < size:
         if pos + 9 > size:
             raise BadRecord("field of 9 bytes runs past the record")
@@ -327,16 +329,25 @@ def chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]
         body, stop = pos + 9, pos + 9 + n
         if stop > size:
             raise BadRecord("record inside the chunk runs past it")
+        if op == OP_MESSAGE and n < message_head:
+            raise BadRecord(f"field of {message_head} bytes runs past the record")
+        yield op, body, stop
+        pos = stop
+
+
+def chunk_records(buf, start: int, length: int) -> tuple[list[tuple[int, object]], int]:
+    """Parse and verify one chunk record's content; return its inner records and its uncompressed size."""
+    raw = chunk_raw(buf, start, length)
+    records: list[tuple[int, object]] = []
+    unpack_message, message_head = MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
+    for op, body, stop in inner_records(raw):
         if op == OP_MESSAGE:
-            if n < message_head:
-                raise BadRecord(f"field of {message_head} bytes runs past the record")
             records.append((op, (*unpack_message(raw, body), raw[body + message_head : stop])))
         elif op == OP_SCHEMA:
             records.append((op, parse_schema(Cursor(raw, body, stop))))
         elif op == OP_CHANNEL:
             records.append((op, parse_channel(Cursor(raw, body, stop))))
-        pos = stop
-    return records, size
+    return records, len(raw)
 
 
 def message_index_count(buf, start: int, length: int) -> tuple[int, int]:
@@ -412,13 +423,8 @@ def top_level_record(buf, op: int, pos: int, body: int, length: int, out: Salvag
         message_index_count(buf, body, length)
         c.pos = c.end
     elif op == OP_CHUNK_INDEX:
-        c.take(32)
-        n = c.u32()
-        if n % 10:
-            raise BadRecord("chunk index offsets are not whole entries")
-        c.take(n + 8)
-        c.string()
-        c.take(16)
+        check_chunk_index(buf, body, length)  # one per chunk in the summary: checked without a Cursor
+        c.pos = c.end
     elif op == OP_ATTACHMENT:
         t_log, t_create = c.u64(), c.u64()
         name, media = c.string(), c.string()
@@ -457,6 +463,29 @@ def top_level_record(buf, op: int, pos: int, body: int, length: int, out: Salvag
         raise BadRecord(f"unknown opcode {op:#04x}")
     if c.pos != c.end:
         raise BadRecord(f"{length - (c.pos - body)} bytes left over in the record")
+
+
+def check_chunk_index(buf, body: int, length: int) -> None:
+    """A chunk index record's layout: times and place (32 bytes), offsets, index length, compression, sizes."""
+    end = body + length
+    if body + 36 > end:
+        raise BadRecord(f"field of 36 bytes runs past the record of {length}")
+    n = U32.unpack_from(buf, body + 32)[0]
+    if n % 10:
+        raise BadRecord("chunk index offsets are not whole entries")
+    at = body + 36 + n + 8
+    if at + 4 > end:
+        raise BadRecord(f"field of {n + 12} bytes runs past the record")
+    cl = U32.unpack_from(buf, at)[0]
+    stop = at + 4 + cl + 16
+    if stop > end:
+        raise BadRecord(f"field of {cl + 16} bytes runs past the record")
+    if stop != end:
+        raise BadRecord(f"{end - stop} bytes left over in the record")
+    try:
+        str(buf[at + 4 : at + 4 + cl], "utf-8")
+    except UnicodeDecodeError as exc:
+        raise BadRecord(f"string is not UTF-8: {exc}") from None
 
 
 def read_summary(buf, size: int, out: Salvage) -> None:

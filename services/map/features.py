@@ -60,21 +60,37 @@ def wall_corners(walls: list[FusedWall], reach: float) -> list[FusedFeature]:
         at_end = np.minimum(np.abs(s_k - lo[k]), np.abs(s_k - hi[k])) <= reach
         along.append((inside, at_end))
     ok = along[0][0] & along[1][0] & (along[0][1] | along[1][1])
+    i, j, px, py, sin_ij = i[ok], j[ok], px[ok], py[ok], sin_ij[ok]
+    if len(i) == 0:
+        return []
+    # The crossing's covariance, first order (line_intersection's Jacobian, all pairs at once): A⁻¹ has columns
+    # (sin θ_b, −cos θ_b) / s and (−sin θ_a, cos θ_a) / s with s = sin(θ_b − θ_a).
+    ta, tb = theta[i], theta[j]
+    inv0 = np.stack([np.sin(tb), -np.cos(tb)], axis=1) / sin_ij[:, None]
+    inv1 = np.stack([-np.sin(ta), np.cos(ta)], axis=1) / sin_ij[:, None]
+    da = -(-np.sin(ta) * px + np.cos(ta) * py)
+    db = -(-np.sin(tb) * px + np.cos(tb) * py)
+    jac = np.stack([inv0 * da[:, None], inv0, inv1 * db[:, None], inv1], axis=2)  # (k, 2, 4)
+    covs = np.array([w.covariance for w in walls])
+    block = np.zeros((len(i), 4, 4))
+    block[:, :2, :2] = covs[i]
+    block[:, 2:, 2:] = covs[j]
+    cov = jac @ block @ jac.transpose(0, 2, 1)
+    sigma = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0.0, None))
+    middles = np.array([w.segment.mean(axis=0) for w in walls])
+    normals = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    concave = np.einsum("kj,kj->k", middles[i] - np.stack([px, py], axis=1), normals[j]) < 0.0
     out: list[FusedFeature] = []
-    for ia, ib in zip(i[ok].tolist(), j[ok].tolist()):
+    for k, (ia, ib) in enumerate(zip(i.tolist(), j.tolist())):
         a, b = walls[ia], walls[ib]
-        p, jac = line_intersection(a.line, b.line)
-        middle = a.segment.mean(axis=0)
-        kind = "concave" if float((middle - p) @ b.normal[:2]) < 0.0 else "convex"
-        cov = jac @ np.block([[a.covariance, np.zeros((2, 2))], [np.zeros((2, 2)), b.covariance]]) @ jac.T
         z_lo, z_hi = max(a.z_range[0], b.z_range[0]), min(a.z_range[1], b.z_range[1])
         z = 0.5 * (z_lo + z_hi) if z_lo <= z_hi else 0.5 * (a.z_range[0] + b.z_range[0])
         out.append(
             FusedFeature(
-                point=np.array([p[0], p[1], z]),
+                point=np.array([px[k], py[k], z]),
                 direction=np.array([0.0, 0.0, 1.0]),
-                kind=kind,
-                point_stderr=math.sqrt(max(float(np.linalg.eigvalsh(cov).max()), 0.0)),
+                kind="concave" if concave[k] else "convex",
+                point_stderr=float(sigma[k]),
                 source="walls",
                 observations=a.good_observations + b.good_observations,
                 walls=(a.id, b.id),

@@ -17,10 +17,14 @@ from shapely.geometry import LineString, MultiLineString, Point, Polygon, mappin
 from shapely.ops import unary_union
 
 from lelsonar.errors import ConfigError
+from lelsonar.map.lines import foot, segment, tangent
 from lelsonar.map.result import FusedMap
 
 #: Colours of the verdicts (RGBA, 0..1) for the wall markers.
 QUALITY_COLOURS = {"good": (0.2, 0.8, 0.3, 1.0), "degraded": (1.0, 0.7, 0.1, 1.0), "unreliable": (0.9, 0.2, 0.2, 1.0)}
+
+#: A corner or edge within this of a wall's observed piece, m, is not where the wall ends (see :func:`likely_walls`).
+ON_PIECE = 0.1
 
 #: OccupancyGrid cell values.
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
@@ -41,17 +45,29 @@ class PlanConfig:
         (the way out of a maze leads through space not yet seen; a wall not yet seen may stand there).
     margin : float
         The grid reaches this beyond the walls (room to leave the map), m.
+    likely_wall_cost : float
+        A move through unseen space where a wall likely runs (:func:`likely_walls`) costs this many times a
+        move through seen free space: passable, where nothing else is, but never the easy way out.
+    likely_wall_reach : float
+        How far, m, a wall's end piece is taken to continue towards a corner or an edge on its line.
+    likely_wall_span : float
+        How far, m, it is taken to continue where no corner or edge is in reach.
     """
 
     robot_radius: float = 0.15
     resolution: float = 0.05
     unknown_cost: float = 10.0
     margin: float = 1.0
+    likely_wall_cost: float = 100.0
+    likely_wall_reach: float = 2.0
+    likely_wall_span: float = 0.5
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.unknown_cost) and self.unknown_cost >= 1):
             raise ConfigError(f"plan unknown_cost must be ≥ 1, got {self.unknown_cost!r}")
-        for name in ("robot_radius", "margin"):
+        if not (math.isfinite(self.likely_wall_cost) and self.likely_wall_cost >= self.unknown_cost):
+            raise ConfigError(f"plan likely_wall_cost must be ≥ unknown_cost, got {self.likely_wall_cost!r}")
+        for name in ("robot_radius", "margin", "likely_wall_reach", "likely_wall_span"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"plan {name} must be ≥ 0 m, got {v!r}")
@@ -157,6 +173,48 @@ class Grid:
         }
 
 
+def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
+    """Unseen stretches (n, 2, 2) where a wall likely runs.
+
+    Sonar sees a wall only near the foot of its perpendicular: a wall's pieces are centimetres long, and the
+    space between them, or up to where the wall ends, stays unseen.  A wall usually goes on there (a doorway
+    may not), so for each wall of good or degraded verdict (an unreliable one may be no wall at all):
+
+    * between its observed pieces;
+    * from each end piece along its line to the nearest corner or edge of the map on that line (where it
+      meets another wall, or ends), at most ``likely_wall_reach`` away; without one, ``likely_wall_span``.
+    """
+    cfg = config or PlanConfig()
+    out: list[np.ndarray] = []
+    # Vertical ones only: a wall's foot on the floor is a corner too, but it ends nothing along the wall.
+    features = [f for f in (*m.corners, *m.edges) if abs(float(f.direction[2])) >= math.cos(math.radians(30.0))]
+    for w in m.walls:
+        if w.quality == "unreliable":
+            continue
+        pieces = sorted(w.pieces)
+        for (_, hi), (lo, _) in zip(pieces, pieces[1:]):
+            if lo > hi:
+                out.append(segment(w.line, (hi, lo)))
+        n, t = w.normal[:2], tangent(float(w.line[0]))
+        lo, hi = pieces[0][0], pieces[-1][1]
+        ahead, behind = [], []
+        for f in features:
+            across = abs(float(n @ f.point[:2]) - w.offset)
+            if across > 0.05 + 3.0 * math.hypot(f.point_stderr, w.offset_stderr):
+                continue
+            s_f = float((f.point[:2] - foot(w.line)) @ t)
+            # A feature on the observed piece itself is the piece's own echo read as a corner: it ends nothing.
+            if hi + ON_PIECE < s_f <= hi + cfg.likely_wall_reach:
+                ahead.append(s_f)
+            elif lo - cfg.likely_wall_reach <= s_f < lo - ON_PIECE:
+                behind.append(s_f)
+        end = min(ahead) if ahead else hi + cfg.likely_wall_span
+        start = max(behind) if behind else lo - cfg.likely_wall_span
+        out.append(segment(w.line, (hi, end)))
+        out.append(segment(w.line, (start, lo)))
+    return np.array(out).reshape(-1, 2, 2)
+
+
 def _distance_to_segments(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
     """The distance from each point to the nearest segment ``(n, 2, 2)``."""
     best = np.full(x.shape, np.inf)
@@ -227,7 +285,8 @@ def route(
 ) -> list[tuple[float, float]] | None:
     """The shortest route over the grid from ``start`` to ``goal``, or out of the map when ``goal`` is None.
 
-    A move costs its length, times ``unknown_cost`` through space no scan saw free.
+    A move costs its length, times ``unknown_cost`` through space no scan saw free, and times
+    ``likely_wall_cost`` across where a wall likely runs unseen (:func:`likely_walls`).
     A cell is open when its centre is farther than the robot's radius plus half a cell's diagonal from
     every wall, so the straight moves between open cells keep the radius.  Moves go to the 8 neighbours.
     "Out of the map" is any open cell on the grid's border (the grid reaches ``margin`` beyond the walls).
@@ -245,6 +304,10 @@ def route(
     open_ = _distance_to_segments(x, y, segments) > clearance if len(segments) else np.ones(x.shape, bool)
     rows, cols = open_.shape
     cost = np.where(grid.data == FREE, 1.0, cfg.unknown_cost)
+    likely = likely_walls(m, cfg)
+    if len(likely):
+        near = _distance_to_segments(x, y, likely) <= clearance
+        cost = np.where(near & (grid.data != FREE), cfg.likely_wall_cost, cost)
 
     def index(r: int, c: int) -> int:
         return r * cols + c
@@ -288,6 +351,23 @@ def unseen_length(m: FusedMap, path: list[tuple[float, float]], config: PlanConf
     if len(path) < 2:
         return 0.0
     return float(LineString(path).difference(free_space(m, config)).length)
+
+
+def frontier(
+    m: FusedMap, path: list[tuple[float, float]], config: PlanConfig | None = None
+) -> tuple[float, float] | None:
+    """Where a route first leaves the free space the scans saw (the frontier to explore), or None when it never
+    does."""
+    if len(path) < 2:
+        return None
+    line = LineString(path)
+    outside = line.difference(free_space(m, config))
+    if outside.is_empty or outside.length <= 1e-9:
+        return None
+    pieces = list(getattr(outside, "geoms", [outside]))
+    first = min(pieces, key=lambda g: line.project(Point(g.coords[0])))
+    x, y = first.coords[0]
+    return float(x), float(y)
 
 
 def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, float]]:

@@ -6,106 +6,55 @@
 
 * **Association.**  Each good wall observation is compared with every wall of the map through the
   predicted pose: the Mahalanobis distance of the innovation on ``(θ, ρ)`` (pose, wall and observation
-  covariances), gated at ``gate_chi2``, and the gap between the observed stretch and the wall's.  The
-  nearest wall within the gate takes it; no two observations of one scan go to one wall.
-* **Verdicts carry over.**  Only good observations enter the graph, so only good evidence moves the poses
-  and the walls.  Degraded and unreliable observations are attached to a fused wall they agree with, or
-  kept as walls of their own with their own verdict: a wall seen once and flagged stays flagged.
-  An observation that overlaps a wall and lies near it but outside the gate is another wall, and both
-  are marked as disagreeing: never averaged into a wall that does not exist.
+  covariances), gated at ``gate_chi2`` (and, where configured, the gap between the observed stretch and the
+  wall's).  The nearest wall within the gate takes it; no two observations of one scan go to one wall.
+* **Verdicts carry over.**  Only good observations open walls in the graph and make a wall good.  Degraded
+  and unreliable observations are attached to a fused wall they agree with (there they tie their pose to
+  it with their own σ and Huber's loss: a wall whose bearing a scan could not pin still places the robot in
+  range), or kept as walls of their own with their own verdict: a wall seen once and flagged stays
+  flagged.  An observation that overlaps a wall and lies near it but outside the gate is another wall, and
+  both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good evidence
+  that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and says so.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
-import gtsam
 import numpy as np
 
-from lelsonar.errors import ConfigError, InvalidMessageError, LelsonarError
+from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
+from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
 from lelsonar.map.features import fuse_features, wall_corners
 from lelsonar.map.lines import (
     interval_on_line,
     line_in_world,
     mahalanobis2,
     measurement_jacobians,
+    pose_between,
+    pose_compose,
+    pose_inverse_adjoint,
     world_jacobians,
     wrap,
 )
 from lelsonar.map.observation import QUALITIES, FeatureObservation, ScanObservation, WallObservation
+from lelsonar.map.placement import (
+    line_distance2,
+    observation_views,
+    observed_points,
+    sensor_points_to_world,
+    wall_placement_sigma,
+    world_pose_covariance,
+)
 from lelsonar.map.result import FusedMap, FusedPose, FusedWall
 
-#: χ² with 2 degrees of freedom at 0.999.
-CHI2_2_999 = 13.8155
+__all__ = ["CHI2_2_999", "FusionConfig", "MapUpdateError", "WallMapper", "wall_placement_sigma"]
 
-
-class MapUpdateError(LelsonarError):
-    """The factor graph could not take a scan (an ill-posed system): the map takes no more scans, and what it
-    had before is the last map published."""
-
-
-@dataclass(frozen=True)
-class FusionConfig:
-    """How walls are associated and fused.
-
-    Parameters
-    ----------
-    gate_chi2 : float
-        Largest Mahalanobis distance² of an observation from a wall it joins (χ²₂; 13.8 is p = 0.999).
-    max_gap : float
-        Largest gap, m, between an observation's stretch and a wall's along the wall for it to join.  Sonar
-        sees a wall only near the foot of its perpendicular, so scans from different places see different
-        stretches of one wall: the gap is generous, and the wall keeps its observed pieces apart (``join_gap``).
-    join_gap : float
-        A wall's observed stretches closer than this, m, are one piece of the floor plan; farther apart, the
-        space between stays unknown (an opening the scans did not see closed).
-    conflict_distance, conflict_angle : float
-        An observation outside the gate of a wall it overlaps, but nearer than these (m, rad), is the same
-        surface seen in disagreement: it becomes its own wall and both are marked.  Farther, it is another
-        surface (a box in front of a wall).
-    first_pose_sigma : (float, float, float)
-        σ of the first pose's prior ``(x, y, heading)`` where the source gives no covariance.
-    default_step_sigma : (float, float, float)
-        σ of an odometry step where the source gives no covariance at all.
-    step_sigma_floor : (float, float, float)
-        Smallest σ of an odometry step (a source that reports none or a constant one).
-    corner_reach : float
-        Two walls make a corner where their lines cross within this distance of both stretches, m.
-    relinearize_threshold : float
-        ISAM2 relinearizes a variable whose update exceeds this (m or rad).
-    relinearize_skip : int
-        ISAM2 looks for variables to relinearize every this many updates.
-    polish : bool
-        A map as read (:meth:`WallMapper.snapshot`) is first converged by Levenberg–Marquardt over the whole
-        graph; off, it is ISAM2's estimate (cheaper to read after every scan on a large map).
-    """
-
-    gate_chi2: float = CHI2_2_999
-    max_gap: float = 2.0
-    join_gap: float = 0.3
-    conflict_distance: float = 0.15
-    conflict_angle: float = math.radians(10.0)
-    first_pose_sigma: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
-    default_step_sigma: tuple[float, float, float] = (0.05, 0.05, math.radians(2.0))
-    step_sigma_floor: tuple[float, float, float] = (1e-3, 1e-3, 1e-3)
-    corner_reach: float = 0.3
-    relinearize_threshold: float = 0.1
-    relinearize_skip: int = 10
-    polish: bool = True
-
-    def __post_init__(self) -> None:
-        for name in ("gate_chi2", "max_gap", "join_gap", "conflict_distance", "conflict_angle", "corner_reach"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"map {name} must be a finite number ≥ 0, got {v!r}")
-        if not (isinstance(self.relinearize_skip, int) and self.relinearize_skip >= 1):
-            raise ConfigError(f"map relinearize_skip must be an integer ≥ 1, got {self.relinearize_skip!r}")
-        for name in ("first_pose_sigma", "default_step_sigma", "step_sigma_floor"):
-            v = getattr(self, name)
-            if len(v) != 3 or not all(math.isfinite(x) and x > 0 for x in v):
-                raise ConfigError(f"map {name} must be three σ > 0 (m, m, rad), got {v!r}")
+#: A wall is redone for a read when its line or a pose that saw it moved more than this (m or rad): ISAM2 itself
+#: stops carrying an update further where it changes a variable by less (its wildfire threshold).
+READ_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -131,21 +80,12 @@ class _Track:
     interval: tuple[float, float] = (0.0, 0.0)
 
 
-def _pose2(v: np.ndarray) -> gtsam.Pose2:
-    return gtsam.Pose2(float(v[0]), float(v[1]), float(v[2]))
-
-
-def _sensor_points_to_world(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return points[:, :2] @ np.array([[c, s], [-s, c]]) + pose[:2]
-
-
 class WallMapper:
     """The incremental wall map (see the module docstring)."""
 
     def __init__(self, config: FusionConfig | None = None) -> None:
         self.config = config or FusionConfig()
-        self._isam = graph.isam2(self.config.relinearize_threshold, self.config.relinearize_skip)
+        self._graph = graph.MapGraph(self.config.relinearize_threshold, self.config.relinearize_skip)
         self._origin = np.zeros(2)  # world position of the local frame's origin (the first pose)
         self._odometry: list[np.ndarray] = []  # (x, y, ψ) world, per scan
         self._odometry_cov: list[np.ndarray | None] = []
@@ -153,6 +93,7 @@ class WallMapper:
         self._heights: list[float] = []
         self._poses: list[np.ndarray] = []  # current estimate, local
         self._pose_cov: np.ndarray = np.eye(3)  # marginal of the newest pose (body frame)
+        self._pose_covs: list[np.ndarray] = []  # each pose's marginal when it was the newest (body frame)
         self._graph_tracks: list[_Track] = []
         self._isam_walls = 0  # graph walls already in ISAM2 (the newer ones arrived with the scan being added)
         self._flagged_tracks: list[_Track] = []
@@ -161,6 +102,7 @@ class WallMapper:
         self._features: list[tuple[int, int, FeatureObservation]] = []  # (scan_id, pose index, FeatureObservation)
         self.notes: list[str] = []
         self._failed: str | None = None
+        self._read_cache: dict[int, tuple] = {}  # wall id → what its last unpolished read took and gave
 
     # ------------------------------------------------------------------ properties
     @property
@@ -184,8 +126,6 @@ class WallMapper:
                 self.notes.append(note)
         k = len(self._poses)
         odo = scan.pose.vector
-        factors = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
         if k == 0:
             self._origin = odo[:2].copy()
             predicted = np.array([0.0, 0.0, odo[2]])
@@ -193,17 +133,17 @@ class WallMapper:
                 cov = np.array(scan.pose.covariance)
             else:
                 cov = np.diag(np.square(self.config.first_pose_sigma))
-            factors.add(graph.prior_factor(0, _pose2(predicted), cov))
+            self._graph.add_prior(0, predicted, cov)
             pose_cov = cov
         else:
-            step = _pose2(self._odometry[-1]).between(_pose2(odo))
+            step = pose_between(self._odometry[-1], odo)
             q = self._step_covariance(scan)
-            predicted = graph.pose_vector(_pose2(self._poses[-1]).compose(step))
-            factors.add(graph.odometry_factor(k - 1, k, step, q))
-            ad = step.inverse().AdjointMap()
+            predicted = pose_compose(self._poses[-1], step)
+            self._graph.add_odometry(k - 1, k, step, q)
+            ad = pose_inverse_adjoint(step)
             pose_cov = ad @ self._pose_cov @ ad.T + q
             self._step = (ad, q)
-        values.insert(graph.pose_key(k), _pose2(predicted))
+        self._graph.add_pose(k, predicted)
         self._odometry.append(odo)
         self._odometry_cov.append(None if scan.pose.covariance is None else np.array(scan.pose.covariance))
         self._scan_ids.append(scan.scan_id)
@@ -215,26 +155,26 @@ class WallMapper:
         for obs in sorted(scan.walls, key=lambda w: QUALITIES.index(w.quality)):
             seen = _Seen(scan.scan_id, k, obs)
             if obs.quality == "good":
-                track = self._associate_good(seen, predicted, pose_cov, used, factors, values)
+                track = self._associate_good(seen, predicted, pose_cov, used)
                 touched.append(track)
             else:
                 self._associate_flagged(seen, predicted, pose_cov)
         self._features.extend((scan.scan_id, k, f) for f in scan.features)
 
         try:
-            self._isam.update(factors, values)
+            self._graph.update()
         except RuntimeError as exc:  # GTSAM's indeterminate or ill-conditioned system
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             self._failed = f"scan {scan.scan_id} made the graph unsolvable ({first})"
             raise MapUpdateError(self._failed) from None
         self._isam_walls = len(self._graph_tracks)
-        estimate = self._isam.calculateEstimate()
-        self._poses = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(k + 1)]
+        self._poses = [self._graph.pose(i) for i in range(k + 1)]
         for t in self._graph_tracks:
-            t.line = np.asarray(estimate.atPoint2(graph.wall_key(t.index)), float)
-        self._pose_cov = self._isam.marginalCovariance(graph.pose_key(k))
+            t.line = self._graph.wall(t.index)
+        self._pose_cov = self._graph.pose_marginal(k)
+        self._pose_covs.append(self._pose_cov)
         for t in touched:
-            t.covariance = self._isam.marginalCovariance(graph.wall_key(t.index))
+            t.covariance = self._graph.wall_marginal(t.index)
             t.interval = self._interval(t, t.seen)
 
     def _step_covariance(self, scan: ScanObservation) -> np.ndarray:
@@ -246,7 +186,11 @@ class WallMapper:
             previous_cov = np.zeros((3, 3))  # the first pose gave none: the odometry starts there, exact
         if scan.pose.covariance is not None and previous_cov is not None:
             return graph.step_covariance_from_poses(
-                self._odometry[-1], previous_cov, scan.pose.covariance, np.asarray(cfg.step_sigma_floor)
+                self._odometry[-1],
+                scan.pose.vector,
+                previous_cov,
+                scan.pose.covariance,
+                np.asarray(cfg.step_sigma_floor),
             )
         note = (
             "odometry gave no covariance: each step taken as σ = "
@@ -308,12 +252,10 @@ class WallMapper:
         pose: np.ndarray,
         pose_cov: np.ndarray,
         used: set[int],
-        factors: gtsam.NonlinearFactorGraph,
-        values: gtsam.Values,
     ) -> _Track:
         obs = seen.obs
         measured = obs.line
-        points = _sensor_points_to_world(pose, obs.extent)
+        points = sensor_points_to_world(pose, obs.extent)
         d2, gap, nu = self._gate(self._graph_tracks, measured, obs.covariance, pose, pose_cov, points)
         ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
         for i in np.flatnonzero(ok):
@@ -328,15 +270,17 @@ class WallMapper:
             track = _Track(id=self._new_id(), index=index, seen=[])
             track.line = line_in_world(pose, measured)
             j_pose, j_obs = world_jacobians(pose, measured)
-            track.covariance = j_pose @ _world_pose_cov(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
+            track.covariance = (
+                j_pose @ world_pose_covariance(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
+            )
             track.interval = self._interval_from_points(track.line, points)
-            values.insert(graph.wall_key(index), track.line.copy())
+            self._graph.add_wall(index, track.line)
             self._mark_conflicts(track, d2, gap, nu)
             self._graph_tracks.append(track)
             self._adopt_flagged(track)
         track.seen.append(seen)
         used.add(track.id)
-        factors.add(graph.wall_factor(seen.pose_index, track.index, measured, obs.covariance))
+        self._graph.add_observation(seen.pose_index, track.index, measured, obs.covariance)
         return track
 
     def _refine(
@@ -352,12 +296,10 @@ class WallMapper:
         if self._step is None:
             return
         ad, q = self._step
-        prev = graph.pose_key(len(self._poses) - 2)
+        prev = len(self._poses) - 2
         for i in np.flatnonzero(candidates):
             track = self._graph_tracks[i]
-            key = graph.wall_key(track.index)
-            joint = self._isam.jointMarginalCovariance(gtsam.KeyVector([prev, key]))
-            p_pp, p_pw, p_ww = joint.at(prev, prev), joint.at(prev, key), joint.at(key, key)
+            p_pp, p_pw, p_ww = self._graph.pose_wall_joint(prev, track.index)
             cov = np.block([[ad @ p_pp @ ad.T + q, ad @ p_pw], [(ad @ p_pw).T, p_ww]])
             h_pose, h_line = measurement_jacobians(pose, track.line)
             h = np.hstack([h_pose, h_line])
@@ -382,7 +324,7 @@ class WallMapper:
 
     def _associate_flagged(self, seen: _Seen, pose: np.ndarray, pose_cov: np.ndarray) -> None:
         obs = seen.obs
-        points = _sensor_points_to_world(pose, obs.extent)
+        points = sensor_points_to_world(pose, obs.extent)
         for tracks in (self._graph_tracks, self._flagged_tracks):
             d2, gap, nu = self._gate(tracks, obs.line, obs.covariance, pose, pose_cov, points)
             ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
@@ -391,12 +333,15 @@ class WallMapper:
                 self._refine(d2, ok, nu, pose, obs.covariance)
                 ok &= d2 < self.config.gate_chi2
             if ok.any():
-                tracks[int(np.argmin(np.where(ok, d2, np.inf)))].flagged.append(seen)
+                track = tracks[int(np.argmin(np.where(ok, d2, np.inf)))]
+                track.flagged.append(seen)
+                if tracks is self._graph_tracks:
+                    self._constrain(track, seen)
                 return
         track = _Track(id=self._new_id(), index=-1, seen=[], flagged=[seen])
         track.line = line_in_world(pose, obs.line)
         j_pose, j_obs = world_jacobians(pose, obs.line)
-        track.covariance = j_pose @ _world_pose_cov(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
+        track.covariance = j_pose @ world_pose_covariance(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
         track.interval = self._interval_from_points(track.line, points)
         self._flagged_tracks.append(track)
 
@@ -404,7 +349,7 @@ class WallMapper:
         """Flagged walls that agree with a new wall of good evidence become its flagged observations."""
         keep = []
         for f in self._flagged_tracks:
-            d2 = _line_distance2(f.line, f.covariance, track.line, track.covariance)
+            d2 = line_distance2(f.line, f.covariance, track.line, track.covariance)
             gap = (
                 max(f.interval[0] - track.interval[1], track.interval[0] - f.interval[1])
                 if abs(wrap(f.line[0] - track.line[0])) < math.pi / 2
@@ -412,9 +357,16 @@ class WallMapper:
             )
             if d2 < self.config.gate_chi2 and gap <= self.config.max_gap:
                 track.flagged.extend(f.flagged)
+                for seen in f.flagged:
+                    self._constrain(track, seen)
             else:
                 keep.append(f)
         self._flagged_tracks = keep
+
+    def _constrain(self, track: _Track, seen: _Seen) -> None:
+        """A flagged observation attached to a wall of the graph ties its pose to it (``flagged_constrain``)."""
+        if seen.obs.quality in self.config.flagged_constrain:
+            self._graph.add_observation(seen.pose_index, track.index, seen.obs.line, seen.obs.covariance, robust=True)
 
     def _new_id(self) -> int:
         self._next_id += 1
@@ -426,41 +378,91 @@ class WallMapper:
 
     def _interval(self, track: _Track, seen: list[_Seen]) -> tuple[float, float]:
         """The hull of the observations' stretches, through the current poses, on the wall's current line."""
-        pts = np.concatenate([_sensor_points_to_world(self._poses[s.pose_index], s.obs.extent) for s in seen])
+        pts = np.concatenate([sensor_points_to_world(self._poses[s.pose_index], s.obs.extent) for s in seen])
         return self._interval_from_points(track.line, pts)
 
     # ------------------------------------------------------------------ the map
-    def snapshot(self) -> FusedMap:
-        """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses."""
+    def snapshot(self, polished: bool | None = None) -> FusedMap:
+        """The map now, world frame: walls with GTSAM marginals and verdicts, corners, edges, poses.
+
+        ``polished`` (default: the config's ``polish``): converged over the whole graph with its marginals;
+        otherwise ISAM2's estimate with each marginal as last computed (cheap enough after every scan)."""
         if self._failed is not None:
             raise MapUpdateError(f"no map: {self._failed}")
         if not self._poses:
             return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
-        factors = self._isam.getFactorsUnsafe()
-        estimate = self._isam.calculateEstimate()
-        if self.config.polish:
-            estimate = graph.polish(factors, estimate)
-        marginals = gtsam.Marginals(factors, estimate)
-        poses_local = [graph.pose_vector(estimate.atPose2(graph.pose_key(i))) for i in range(len(self._poses))]
-        pose_covs = [marginals.marginalCovariance(graph.pose_key(i)) for i in range(len(self._poses))]
+        use_polish = self.config.polish if polished is None else polished
+        if use_polish:
+            solution = self._graph.solve(polished=True)
+            poses_local = [solution.pose(i) for i in range(len(self._poses))]
+            pose_covs = [solution.pose_marginal(i) for i in range(len(self._poses))]
+            lines = {t.index: solution.wall(t.index) for t in self._graph_tracks}
+            covs = {t.index: solution.wall_marginal(t.index) for t in self._graph_tracks}
+        else:
+            # ISAM2's estimate as the last update left it, and each marginal as it was last computed (the newest
+            # pose's, the walls a scan touched): new evidence only narrows a marginal, so an older one is the
+            # wider, and no marginal of the whole graph is recomputed for a read.
+            poses_local = list(self._poses)
+            pose_covs = list(self._pose_covs)
+            lines = {t.index: t.line for t in self._graph_tracks}
+            covs = {t.index: t.covariance for t in self._graph_tracks}
         by_id = {t.id: t for t in self._graph_tracks}
+        world_local = np.array(poses_local)
+        origin = np.array([self._origin[0], self._origin[1], 0.0])
+        # Unpolished reads after every scan redo only the walls whose inputs moved: a wall's line or σ, the poses
+        # that saw it, its observations or its disagreements (ISAM2 leaves most of a large map untouched).
+        reuse = not use_polish
+        fresh: dict[int, tuple] = {}
         walls: list[FusedWall] = []
-        for t in self._graph_tracks:
-            line = np.asarray(estimate.atPoint2(graph.wall_key(t.index)), float)
-            cov = marginals.marginalCovariance(graph.wall_key(t.index))
-            walls.append(self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id)))
-        for t in self._flagged_tracks:
-            first = t.flagged[0]
-            pose = poses_local[first.pose_index]
-            line = line_in_world(pose, first.obs.line)
-            j_pose, j_obs = world_jacobians(pose, first.obs.line)
-            cov = j_pose @ _world_pose_cov(pose, pose_covs[first.pose_index]) @ j_pose.T
-            cov = cov + j_obs @ first.obs.covariance @ j_obs.T
-            best = min(QUALITIES.index(s.obs.quality) for s in t.flagged)
-            reasons = tuple(f"scan {s.scan_id}: {r}" for s in t.flagged for r in s.obs.reasons) or (
-                f"seen only {QUALITIES[best]}",
-            )
-            walls.append(self._fused(t, line, cov, poses_local, (QUALITIES[best], reasons)))
+        views: list[np.ndarray] = []
+        view_scans: list[int] = []
+        for t in self._graph_tracks + self._flagged_tracks:
+            everything = t.seen + t.flagged
+            ref = world_local[[s.pose_index for s in everything]]
+            if t.index >= 0:
+                line, cov = lines[t.index], covs[t.index]
+                key = (
+                    len(t.seen),
+                    len(t.flagged),
+                    tuple(sorted((o, len(by_id[o].seen) if o in by_id else 0) for o in t.conflicts)),
+                )
+            else:
+                first = t.flagged[0]
+                pose = poses_local[first.pose_index]
+                line = line_in_world(pose, first.obs.line)
+                j_pose, j_obs = world_jacobians(pose, first.obs.line)
+                cov = j_pose @ world_pose_covariance(pose, pose_covs[first.pose_index]) @ j_pose.T
+                cov = cov + j_obs @ first.obs.covariance @ j_obs.T
+                key = (0, len(t.flagged), ())
+            hit = self._read_cache.get(t.id) if reuse else None
+            if (
+                hit is not None
+                and hit[0] == key
+                and float(np.abs(hit[1] - ref).max()) <= READ_TOLERANCE
+                and float(np.abs(hit[2] - line).max()) <= READ_TOLERANCE
+                and float(np.abs(hit[3] - cov).max()) <= 1e-6 * float(np.abs(cov).max())
+            ):
+                wall, its_views = hit[4], hit[5]
+            else:
+                if t.index >= 0:
+                    wall = self._placed(
+                        self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id))
+                    )
+                else:
+                    best = min(QUALITIES.index(s.obs.quality) for s in t.flagged)
+                    reasons = tuple(f"scan {s.scan_id}: {r}" for s in t.flagged for r in s.obs.reasons) or (
+                        f"seen only {QUALITIES[best]}",
+                    )
+                    wall = self._fused(t, line, cov, poses_local, (QUALITIES[best], reasons))
+                its_views = observation_views(
+                    [s.obs.extent for s in everything], [float(s.obs.line[0]) for s in everything], ref + origin
+                )
+            fresh[t.id] = (key, ref, np.array(line), np.array(cov), wall, its_views)
+            walls.append(wall)
+            views.extend(its_views)
+            view_scans.extend(s.scan_id for s in everything)
+        if reuse:
+            self._read_cache = fresh
         walls.sort(key=lambda w: w.id)
         poses = tuple(
             FusedPose(
@@ -469,45 +471,61 @@ class WallMapper:
                 y=float(p[1] + self._origin[1]),
                 z=self._heights[i],
                 heading=wrap(float(p[2])),
-                covariance=_world_pose_cov(p, pose_covs[i]),
+                covariance=world_pose_covariance(p, pose_covs[i]),
                 odometry=tuple(float(v) for v in self._odometry[i]),  # type: ignore[arg-type]
             )
             for i, p in enumerate(poses_local)
         )
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
-        features = wall_corners(walls, self.config.corner_reach) + fuse_features(observed)
+        # Corners where walls of good evidence meet: a flagged wall's line may be degrees off, and its crossings
+        # with others land anywhere.
+        placed = [w for w in walls if w.good_observations > 0]
+        features = wall_corners(placed, self.config.corner_reach) + fuse_features(observed)
         return FusedMap(
             walls=tuple(walls),
             features=tuple(features),
             poses=poses,
             notes=tuple(self.notes),
-            views=tuple(self._views(world_poses)),
+            views=tuple(views),
+            view_scans=tuple(view_scans),
         )
 
-    def _views(self, world_poses: list[np.ndarray]) -> list[np.ndarray]:
-        """Each observation's echo paths: the triangle (or fan) from its scanner to its patch, world frame."""
-        out = []
-        for t in self._graph_tracks + self._flagged_tracks:
-            for s in t.seen + t.flagged:
-                pose = world_poses[s.pose_index]
-                patch = _sensor_points_to_world(pose, s.obs.extent)
-                # The patch's two ends along the wall, and the scanner: the region the echoes crossed.
-                along = patch @ np.array([-math.sin(pose[2] + s.obs.line[0]), math.cos(pose[2] + s.obs.line[0])])
-                ends = patch[[int(np.argmin(along)), int(np.argmax(along))]]
-                out.append(np.array([pose[:2], ends[0], ends[1]]))
-        return out
+    def _placed(self, wall: FusedWall) -> FusedWall:
+        """A good wall the map places less well than ``good_tolerance`` (3σ over its stretch) is degraded."""
+        if wall.quality != "good":
+            return wall
+        sigma = wall_placement_sigma(wall)
+        if 3.0 * sigma <= self.config.good_tolerance:
+            return wall
+        reason = (
+            f"placed to ±{100 * sigma:.1f} cm (1σ) over its stretch in the map's frame, more than "
+            f"{100 * self.config.good_tolerance / 3:.2g} cm: the poses that saw it are that uncertain"
+        )
+        return replace(wall, quality="degraded", reasons=wall.reasons + (reason,))
 
     def _verdict(
         self, t: _Track, line: np.ndarray, poses: list[np.ndarray], by_id: dict[int, _Track]
     ) -> tuple[str, tuple[str, ...]]:
         """A wall of good evidence stays good unless its observations disagree with it or with each other."""
         reasons = []
-        for s in t.seen:
-            e = graph.wall_error(s.obs.line, poses[s.pose_index], line)
-            d2 = float(e @ np.linalg.solve(s.obs.covariance, e))
-            if d2 > self.config.gate_chi2:
-                reasons.append(f"scan {s.scan_id}'s observation is {math.sqrt(d2):.1f}σ from the fused wall")
+        if t.seen:
+            # Each observation's residual against the fused wall, all at once (graph.wall_error's model).
+            p = np.array([poses[s.pose_index] for s in t.seen])
+            z = np.array([s.obs.line for s in t.seen])
+            c = np.array([s.obs.covariance for s in t.seen])
+            theta, rho = float(line[0]), float(line[1])
+            e = np.stack(
+                [
+                    np.remainder(theta - p[:, 2] - z[:, 0] + np.pi, 2 * np.pi) - np.pi,
+                    rho - (math.cos(theta) * p[:, 0] + math.sin(theta) * p[:, 1]) - z[:, 1],
+                ],
+                axis=1,
+            )
+            d2 = np.einsum("ni,ni->n", e, np.linalg.solve(c, e[..., None])[..., 0])
+            for s, v in zip(t.seen, d2.tolist()):
+                if v > self.config.gate_chi2:
+                    reasons.append(f"scan {s.scan_id}'s observation is {math.sqrt(v):.1f}σ from the fused wall")
         for other_id, what in sorted(t.conflicts.items()):
             other = by_id.get(other_id)
             n_other = len(other.seen) if other is not None else 0
@@ -524,10 +542,14 @@ class WallMapper:
         verdict: tuple[str, tuple[str, ...]],
     ) -> FusedWall:
         everything = t.seen + t.flagged
-        spans = sorted(
-            self._interval_from_points(line_local, _sensor_points_to_world(poses[s.pose_index], s.obs.extent))
-            for s in everything
+        pts, starts = observed_points(
+            [s.obs.extent for s in everything], [s.pose_index for s in everything], np.asarray(poses)
         )
+        theta_l = float(line_local[0])
+        along = (pts - float(line_local[1]) * np.array([math.cos(theta_l), math.sin(theta_l)])) @ np.array(
+            [-math.sin(theta_l), math.cos(theta_l)]
+        )
+        spans = sorted(zip(np.minimum.reduceat(along, starts).tolist(), np.maximum.reduceat(along, starts).tolist()))
         pieces = [list(spans[0])]
         for lo, hi in spans[1:]:
             if lo - pieces[-1][1] <= self.config.join_gap:
@@ -554,16 +576,3 @@ class WallMapper:
             good_observations=len(t.seen),
             flagged_observations=len(t.flagged),
         )
-
-
-def _world_pose_cov(pose: np.ndarray, body_cov: np.ndarray) -> np.ndarray:
-    """A Pose2 marginal (body-frame tangent) turned to world axes ``(x, y, ψ)``."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r @ body_cov @ r.T
-
-
-def _line_distance2(a: np.ndarray, ca: np.ndarray, b: np.ndarray, cb: np.ndarray) -> float:
-    """Mahalanobis d² between two wall lines of the same frame (independent errors)."""
-    d = np.array([wrap(float(a[0] - b[0])), float(a[1] - b[1])])
-    return float(d @ np.linalg.solve(ca + cb, d))

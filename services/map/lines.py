@@ -108,3 +108,29 @@ def segment(line: np.ndarray, interval: tuple[float, float]) -> np.ndarray:
 def mahalanobis2(residual: np.ndarray, covariance: np.ndarray) -> float:
     """``rᵀ C⁻¹ r`` (a χ² with ``len(r)`` degrees of freedom when ``r ~ N(0, C)``)."""
     return float(residual @ np.linalg.solve(covariance, residual))
+
+
+def _rot(psi: float) -> np.ndarray:
+    c, s = math.cos(psi), math.sin(psi)
+    return np.array([[c, -s], [s, c]])
+
+
+def pose_compose(a: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """``a ⊕ u``: the pose ``u`` (given in ``a``'s body frame) in ``a``'s frame; as GTSAM's ``Pose2.compose``."""
+    t = np.asarray(a[:2], float) + _rot(float(a[2])) @ np.asarray(u[:2], float)
+    return np.array([t[0], t[1], wrap(float(a[2]) + float(u[2]))])
+
+
+def pose_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a⁻¹ ⊕ b``: the motion from ``a`` to ``b`` in ``a``'s body frame; as GTSAM's ``Pose2.between``."""
+    t = _rot(float(a[2])).T @ (np.asarray(b[:2], float) - np.asarray(a[:2], float))
+    return np.array([t[0], t[1], wrap(float(b[2]) - float(a[2]))])
+
+
+def pose_inverse_adjoint(u: np.ndarray) -> np.ndarray:
+    """The adjoint (3, 3) of ``u⁻¹`` on the tangent ``(δx, δy, δψ)``: carries a covariance of the pose before a
+    motion ``u`` into the body frame after it (GTSAM's ``Pose2.inverse().AdjointMap()``)."""
+    psi = float(u[2])
+    t = -(_rot(psi).T @ np.asarray(u[:2], float))
+    r = _rot(-psi)
+    return np.array([[r[0, 0], r[0, 1], t[1]], [r[1, 0], r[1, 1], -t[0]], [0.0, 0.0, 1.0]])

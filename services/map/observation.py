@@ -200,8 +200,8 @@ class ScanObservation:
     features : tuple of FeatureObservation
         Corners and edges the scan saw.
     step_covariance : (3, 3) array or None
-        Covariance of the motion since the previous scan, in the previous pose's body frame
-        ``(δx, δy, δψ)``.  None: derived from the growth of the poses' covariances.
+        Covariance of the motion since the previous scan ``(δx, δy, δψ)``, in this pose's body frame (the
+        tangent of the relative pose).  None: derived from the poses' covariances.
     notes : tuple of str
         What the source could not give (e.g. no pose recorded), carried into the map's notes.
     """

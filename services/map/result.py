@@ -130,6 +130,8 @@ class FusedMap:
     #: Where the scans saw free space: for each wall observation, the polygon (k, 2) from its scanner to
     #: the patch the echoes came from, world frame.
     views: tuple[np.ndarray, ...] = field(default=())
+    #: The scan of each view.
+    view_scans: tuple[int, ...] = field(default=())
 
     @property
     def corners(self) -> tuple[FusedFeature, ...]:

@@ -68,8 +68,16 @@ class MapPose(_message.Message):
     odometry: _common_pb2.Vector3
     def __init__(self, scan_id: _Optional[int] = ..., position: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ..., heading: _Optional[float] = ..., covariance: _Optional[_Iterable[float]] = ..., odometry: _Optional[_Union[_common_pb2.Vector3, _Mapping]] = ...) -> None: ...
 
+class MapView(_message.Message):
+    __slots__ = ("scan_id", "polygon")
+    SCAN_ID_FIELD_NUMBER: _ClassVar[int]
+    POLYGON_FIELD_NUMBER: _ClassVar[int]
+    scan_id: int
+    polygon: _containers.RepeatedCompositeFieldContainer[_common_pb2.Vector3]
+    def __init__(self, scan_id: _Optional[int] = ..., polygon: _Optional[_Iterable[_Union[_common_pb2.Vector3, _Mapping]]] = ...) -> None: ...
+
 class Map(_message.Message):
-    __slots__ = ("schema_version", "scanner_id", "stamp_ns", "scans", "walls", "corners", "edges", "poses", "notes")
+    __slots__ = ("schema_version", "scanner_id", "stamp_ns", "scans", "walls", "corners", "edges", "poses", "notes", "views")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     SCANNER_ID_FIELD_NUMBER: _ClassVar[int]
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
@@ -79,6 +87,7 @@ class Map(_message.Message):
     EDGES_FIELD_NUMBER: _ClassVar[int]
     POSES_FIELD_NUMBER: _ClassVar[int]
     NOTES_FIELD_NUMBER: _ClassVar[int]
+    VIEWS_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     scanner_id: str
     stamp_ns: int
@@ -88,4 +97,5 @@ class Map(_message.Message):
     edges: _containers.RepeatedCompositeFieldContainer[MapFeature]
     poses: _containers.RepeatedCompositeFieldContainer[MapPose]
     notes: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., stamp_ns: _Optional[int] = ..., scans: _Optional[int] = ..., walls: _Optional[_Iterable[_Union[MapWall, _Mapping]]] = ..., corners: _Optional[_Iterable[_Union[MapFeature, _Mapping]]] = ..., edges: _Optional[_Iterable[_Union[MapFeature, _Mapping]]] = ..., poses: _Optional[_Iterable[_Union[MapPose, _Mapping]]] = ..., notes: _Optional[_Iterable[str]] = ...) -> None: ...
+    views: _containers.RepeatedCompositeFieldContainer[MapView]
+    def __init__(self, schema_version: _Optional[int] = ..., scanner_id: _Optional[str] = ..., stamp_ns: _Optional[int] = ..., scans: _Optional[int] = ..., walls: _Optional[_Iterable[_Union[MapWall, _Mapping]]] = ..., corners: _Optional[_Iterable[_Union[MapFeature, _Mapping]]] = ..., edges: _Optional[_Iterable[_Union[MapFeature, _Mapping]]] = ..., poses: _Optional[_Iterable[_Union[MapPose, _Mapping]]] = ..., notes: _Optional[_Iterable[str]] = ..., views: _Optional[_Iterable[_Union[MapView, _Mapping]]] = ...) -> None: ...

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import threading
 import time
 from collections import Counter, OrderedDict, deque
@@ -118,17 +119,36 @@ def _item_bytes(item) -> int:
     return 0
 
 
+#: The contract messages a replay feeds the service: a scan's, not the estimates a file may also hold.
+REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
+
+
+def decompress_threads() -> int:
+    """Threads to decompress a replayed file ahead of the service: the cores the host's load leaves idle, up to two.
+
+    The load average counts the replay itself.  On a busy host a decompressing thread finds no core
+    to run on: it would only compete with the service for the one it has, and slow the replay.
+    """
+    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
+    return max(0, min(2, round(idle)))
+
+
 def replay_mcap(
     path: Path | str, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
+    Where the host has an idle core, the next chunks of the file are decompressed and checked on
+    other threads while the service handles a payload (:func:`decompress_threads`,
+    :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
+    the estimation.  The payloads are handled in the file's order, on the caller's thread, and the
+    estimates are the same either way.
+
     Returns the number of payloads read.
     """
     n = 0
-    for rec in iter_payloads(path):
-        if rec.type_name == codec.Reconstruction.DESCRIPTOR.full_name:
-            continue  # earlier outputs in the file are not inputs
+    # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
+    for rec in iter_payloads(path, REPLAYED, decompress_threads=decompress_threads()):
         service.handle(rec.type_name, rec.payload)
         n += 1
         if on_payload is not None:

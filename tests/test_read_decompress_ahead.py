@@ -1,0 +1,143 @@
+"""Chunks decompressed ahead on threads, and a replay that reads only the chunks it feeds the service.
+
+A read with chunks decompressed ahead must yield, count and find damaged what a read decompressing each
+chunk when it reaches it does; a replay must give the estimates the same service gives when fed the
+file's payloads one by one.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+
+from lelsonar import codec
+from lelsonar.errors import RecordingNotFoundError
+from lelsonar.log import recording
+from lelsonar.reconstruct.stream import sources
+from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.service import ReconstructionService
+from lelsonar.reconstruct.stream.sources import REPLAYED, replay_mcap
+
+from .conftest import simulated_messages
+
+
+# --- the replay ---------------------------------------------------------------------------------------------
+def _comparable(msg: codec.Reconstruction) -> bytes:
+    m = codec.Reconstruction()
+    m.CopyFrom(msg)
+    m.ClearField("stamp_ns")
+    m.ClearField("timings")
+    return m.SerializeToString()
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """Two scans of one scanner, and an estimate recorded in the file as `reconstruct --record` does."""
+    path = tmp_path_factory.mktemp("ahead") / "two.mcap"
+    first = simulated_messages(scan_id=1)
+    with recording.McapRecorder(path) as rec:
+        for msg in first:
+            rec.write(msg)
+        service = ReconstructionService(ReconstructConfig(provisional=False))
+        for msg in first:
+            for est in service.handle(msg.DESCRIPTOR.full_name, msg.SerializeToString()):
+                rec.write(est)
+        assert service.stats.finals == 1
+        for msg in simulated_messages(scan_id=2, seed=1):
+            rec.write(msg)
+    return path
+
+
+@pytest.mark.parametrize("threads", [0, 1, 2])
+def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, threads, monkeypatch):
+    monkeypatch.setattr(sources, "decompress_threads", lambda: threads)  # whatever the host's load
+    one_by_one = ReconstructionService(ReconstructConfig(provisional=False))
+    fed = 0
+    for rec in recording.iter_payloads(recorded):
+        if rec.type_name != codec.Reconstruction.DESCRIPTOR.full_name:
+            one_by_one.handle(rec.type_name, rec.payload)
+            fed += 1
+    one_by_one.finish()
+    replayed = ReconstructionService(ReconstructConfig(provisional=False))
+    assert replay_mcap(recorded, replayed) == fed
+    assert len(replayed.finals) == 2
+    assert [_comparable(m) for m in replayed.finals.values()] == [_comparable(m) for m in one_by_one.finals.values()]
+
+
+def test_a_replay_does_not_decompress_the_estimates_or_the_views(recorded):
+    rec = recording.open_recording(recorded)
+    got = list(rec.payloads(REPLAYED))
+    assert {p.type_name for p in got} == {cls.DESCRIPTOR.full_name for cls in REPLAYED}
+    s = rec.salvage
+    # A chunk per contract message: only the replayed ones were decompressed.
+    assert s.chunks_read == len(got)
+    (estimates,) = (cid for cid, ch in s.channels.items() if ch.topic == recording.TOPICS[codec.Reconstruction])
+    assert s.counts[estimates] == 1  # still counted, from the chunk's message index
+    assert rec.damage_warning() is None
+
+
+def test_a_replay_of_a_missing_file_raises_the_readers_error(tmp_path):
+    with pytest.raises(RecordingNotFoundError, match="no recording at"):
+        replay_mcap(tmp_path / "missing.mcap", ReconstructionService())
+
+
+# --- chunks decompressed ahead -----------------------------------------------------------------------------
+def _mcap(path, chunks: int, per_chunk: int = 3) -> None:
+    """``chunks`` chunks of ``per_chunk`` messages of ~180 kB: decompressed ahead in jobs, past the bound on bytes."""
+    from mcap.writer import CompressionType
+    from mcap.writer import Writer as McapWriter
+
+    with open(path, "wb") as f:
+        w = McapWriter(f, compression=CompressionType.ZSTD)
+        w.start(profile="", library="test")
+        schema = w.register_schema("raw", "", b"")
+        ids = {t: w.register_channel(t, "raw", schema) for t in ("/a", "/b")}
+        for k in range(chunks):
+            topic = "/a" if k % 3 else "/b"
+            for i in range(per_chunk):
+                t = 10 * k + i
+                w.add_message(ids[topic], log_time=t, data=f"{topic}@{t}".encode() * 30_000, publish_time=t)
+            w.flush()
+        w.finish()
+
+
+def _read(path, threads: int, want=None):
+    from lelsonar.log.reader import open_mcap
+
+    source = open_mcap(path)
+    got = [(m.channel_id, m.log_time, m.data) for m in source.read(want, verify_all=False, decompress_threads=threads)]
+    s = source.account
+    return got, s.damage, s.counts, s.chunks_read
+
+
+@pytest.mark.parametrize("flip", [None, 9, 51])  # chunks of /b (every third)
+@pytest.mark.parametrize("only_b", [False, True])
+def test_chunks_decompressed_ahead_read_as_chunks_decompressed_in_turn(tmp_path, flip, only_b):
+    path = tmp_path / "many.mcap"
+    _mcap(path, 60)
+    if flip is not None:
+        from mcap.reader import make_reader
+
+        with open(path, "rb") as f:
+            chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+        hit = chunks[flip]
+        data = bytearray(path.read_bytes())
+        data[hit.chunk_start_offset + hit.chunk_length // 2] ^= 0x20
+        path.write_bytes(bytes(data))
+    want = (lambda ch, _schema: ch.topic == "/b") if only_b else None
+    in_turn = _read(path, 0, want)
+    assert in_turn[0], "nothing read"
+    assert (flip is None) == (not in_turn[1])
+    assert _read(path, 1, want) == _read(path, 2, want) == in_turn
+
+
+def test_a_read_left_early_stops_its_decompressing_threads(tmp_path):
+    from lelsonar.log.reader import open_mcap
+
+    path = tmp_path / "many.mcap"
+    _mcap(path, 60)
+    messages = open_mcap(path).read(decompress_threads=2)
+    assert next(messages).log_time == 0
+    messages.close()
+    assert not any(th.name.startswith("mcap-decompress") for th in threading.enumerate())
