@@ -255,9 +255,13 @@ def test_the_live_ros2_bridge_republishes_each_map_as_rmw_zenoh_grid_and_markers
         got.append((s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment is not None else None))
         seen.set()
 
+    walls_key = f"0/lelsonar/map/walls/{rz.dds_type_name(ros2.MARKERS)}/{ros2.type_hash(ros2.MARKERS)}"
+    walls_seen = threading.Event()
+
     sock = tmp_path / "z.sock"
     with open_session(hermetic_settings(sock, listen=True)) as robot:
         robot.declare_subscriber(key, on_grid)
+        robot.declare_subscriber(walls_key, lambda _s: walls_seen.set())
         with (
             rz.open_ros_session(hermetic_settings(sock, listen=False)) as bridge_session,
             rz.RmwZenohNode(bridge_session, name="lelsonar_bridge") as node,
@@ -271,13 +275,14 @@ def test_the_live_ros2_bridge_republishes_each_map_as_rmw_zenoh_grid_and_markers
             mapper.put(b"not a map")  # counted and logged, and the subscription goes on
             mapper.put(msg.SerializeToString())
             assert seen.wait(30), "no OccupancyGrid arrived"
+            assert walls_seen.wait(30), "no MarkerArray arrived"  # published after the grid
             assert set(node.publishers) == {"/map", "/lelsonar/map/walls"}
             assert node.publishers["/map"].key == key
             assert sub.errors == {"InvalidMessageError": 1} and sub.received == 1
     payload, att = got[0]
     assert att is not None and len(att) == 33
     grid = ros2.deserialize(payload, ros2.OCCUPANCY_GRID)
-    # The Map carries no free-space views: its grid has the walls of the fused map, cell for cell.
+    # The grid drawn from the Map is the fused map's, cell for cell.
     want = fp.occupancy_grid(map_from_message(msg))
     assert (grid.info.width, grid.info.height) == (want.width, want.height)
     data = np.asarray(grid.data, dtype=np.int8).reshape(want.height, want.width)
