@@ -20,6 +20,7 @@ from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
     Region,
+    amplitude_jump,
     bearing_from_amplitude,
     capsule_x,
     stack_fits,
@@ -133,7 +134,15 @@ def measure_region(
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
-    if not cut:
+    # Two echoes at one range, one taking over from the other inside the region: its ends are not both the
+    # beam pattern's, so its centre is no bearing either.
+    jump = amplitude_jump(g, per_step) if amplitude is not None and not cut else None
+    if jump is not None:
+        mixed = (
+            f"the echo amplitude jumps ×{math.exp(jump[1]):.1f} at γ {math.degrees(jump[0]):.1f}°, more than one "
+            "beam pattern allows: two echoes at one range, so the region's centre is not the wall's"
+        )
+    if not cut and jump is None:
         # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
         # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing
         # into the same window).
@@ -145,21 +154,25 @@ def measure_region(
         findings.append(
             (
                 DEGRADED,
-                "bearing from the amplitude peak alone: the region of constant depth is cut "
-                "(a nearer echo or the sweep's end), so its centre is not the wall's",
+                "bearing from the amplitude peak alone: "
+                + (
+                    mixed
+                    if jump is not None
+                    else "the region of constant depth is cut (a nearer echo or the sweep's end), so its centre "
+                    "is not the wall's"
+                ),
             )
         )
     else:
         bearing, source = mid, "undetermined"
         sb = 0.5 * (float(g[-1]) - float(g[0])) + step
         side = "both sides" if region.cut_before and region.cut_after else "one side"
-        findings.append(
-            (
-                UNRELIABLE,
-                f"bearing not determined: the region of constant depth is cut on {side} "
-                "(a nearer echo or the sweep's end) and no amplitude peak is in it",
-            )
+        why = (
+            mixed
+            if jump is not None
+            else f"the region of constant depth is cut on {side} (a nearer echo or the sweep's end)"
         )
+        findings.append((UNRELIABLE, f"bearing not determined: {why}, and no amplitude peak is in it"))
     caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
     d = distance[region.rows, region.capsules]
     x = capsule_x(geometry)[region.capsules]
@@ -188,8 +201,8 @@ def measure_region(
         stack_slope=slope,
         strength=strength,
         peak=peak,
-        peak_inside=not cut or peak_fit is not None,
-        exact=(not cut or peak_fit is not None) and clipped is False,
+        peak_inside=(not cut and jump is None) or peak_fit is not None,
+        exact=((not cut and jump is None) or peak_fit is not None) and clipped is False,
         span=(float(g[0]), float(g[-1])),
         step=step,
         step_amplitude=per_step,

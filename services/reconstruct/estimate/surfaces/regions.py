@@ -24,7 +24,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "PLATEAU"]
+__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "amplitude_jump", "PLATEAU"]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
@@ -443,3 +443,56 @@ def extrapolated_peak(
         return None
     peak = math.exp(float(icpt) + curvature * v * v)
     return max(peak, float(a.max()))
+
+
+def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, float] | None:
+    """Where a region's echo amplitude jumps between two steps more than one beam pattern can: two echoes.
+
+    One target's echo follows ``D(γ − β)²`` across γ, in ``log`` a parabola
+    ``log A = P − k (γ − β)²`` opening down.  Over a region of span ``L`` whose
+    amplitudes range over ``R = log(A_max / A_min)``, such a parabola changes by
+    at most ``4 R |Δγ| / L`` between two steps ``Δγ`` apart (its slope is
+    largest at the end farthest from its vertex, ``2 R / max(u, L − u) ≤ 4 R / L``).
+    A larger jump, beyond the steps' own amplitude noise (``sigmas`` σ of the
+    difference, σ from the second differences' median absolute deviation),
+    means the region holds two echoes at one range, one taking over from the
+    other: a weak edge's diffraction beside a strong mirror whose foot leaves
+    its face, say.  Its ends are then not both the beam pattern's, so its
+    centre is no bearing.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    sigmas : float
+        How many σ of the amplitude noise a jump must exceed the bound by.
+
+    The bound is the parabola's; a piston's flank falls faster than its
+    parabola, at most twice as steep down to 35 dB under its peak, so the
+    bound is doubled: ``8 R |Δγ| / L``.
+
+    Returns
+    -------
+    (γ midway between the two steps, the jump ``|Δ log A|``) of the largest such jump, or None.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 6:
+        return None
+    g, la = g[ok], np.log(a[ok])
+    order = np.argsort(g)
+    g, la = g[order], la[order]
+    span = float(g[-1] - g[0])
+    if not span > 0:
+        return None
+    second = np.diff(la, 2)
+    # Second differences of white noise have variance 6 σ².
+    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    steps = np.abs(np.diff(la))
+    bound = 8.0 * float(la.max() - la.min()) * np.abs(np.diff(g)) / span + sigmas * math.sqrt(2.0) * sigma
+    over = steps - bound
+    k = int(np.argmax(over))
+    if not over[k] > 0:
+        return None
+    return 0.5 * float(g[k] + g[k + 1]), float(steps[k])
