@@ -445,20 +445,23 @@ def extrapolated_peak(
     return max(peak, float(a.max()))
 
 
-def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, float] | None:
-    """Where a region's echo amplitude jumps between two steps more than one beam pattern can: two echoes.
+def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, int] | None:
+    """Where one echo takes over from another inside a region: an amplitude step no beam pattern makes.
 
     One target's echo follows ``D(γ − β)²`` across γ, in ``log`` a parabola
     ``log A = P − k (γ − β)²`` opening down.  Over a region of span ``L`` whose
     amplitudes range over ``R = log(A_max / A_min)``, such a parabola changes by
     at most ``4 R |Δγ| / L`` between two steps ``Δγ`` apart (its slope is
     largest at the end farthest from its vertex, ``2 R / max(u, L − u) ≤ 4 R / L``).
-    A larger jump, beyond the steps' own amplitude noise (``sigmas`` σ of the
-    difference, σ from the second differences' median absolute deviation),
-    means the region holds two echoes at one range, one taking over from the
-    other: a weak edge's diffraction beside a strong mirror whose foot leaves
-    its face, say.  Its ends are then not both the beam pattern's, so its
-    centre is no bearing.
+    A piston's flank falls faster than its parabola, at most twice as steep
+    down to 35 dB under its peak, so the bound is doubled: ``8 R |Δγ| / L``.
+
+    A jump beyond it (and beyond ``sigmas`` σ of the steps' amplitude noise, σ
+    from the second differences' median absolute deviation) that persists,
+    the two-step changes across it (from the step before it, and to the step
+    after next) beyond their bound the same way, is one echo taking over from another at the same range: a weak
+    edge's diffraction beside a strong mirror whose foot leaves its face, say.
+    One step out of line is not (a ringing echo bends one step's amplitude).
 
     Parameters
     ----------
@@ -467,13 +470,10 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
     sigmas : float
         How many σ of the amplitude noise a jump must exceed the bound by.
 
-    The bound is the parabola's; a piston's flank falls faster than its
-    parabola, at most twice as steep down to 35 dB under its peak, so the
-    bound is doubled: ``8 R |Δγ| / L``.
-
     Returns
     -------
-    (γ midway between the two steps, the jump ``|Δ log A|``) of the largest such jump, or None.
+    (γ midway between the two steps of the largest such jump, how many of the region's steps with an
+    amplitude lie on its shorter side), or None.
     """
     g = np.asarray(gamma, dtype=np.float64)
     a = np.asarray(amplitude, dtype=np.float64)
@@ -489,10 +489,22 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
     second = np.diff(la, 2)
     # Second differences of white noise have variance 6 σ².
     sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
-    steps = np.abs(np.diff(la))
-    bound = 8.0 * float(la.max() - la.min()) * np.abs(np.diff(g)) / span + sigmas * math.sqrt(2.0) * sigma
-    over = steps - bound
-    k = int(np.argmax(over))
-    if not over[k] > 0:
+    slope = 8.0 * float(la.max() - la.min()) / span
+    noise = sigmas * math.sqrt(2.0) * sigma
+
+    def beyond(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """How far the change from step i to step j exceeds one beam pattern's, signed as the change (0: not)."""
+        change = la[j] - la[i]
+        excess = np.abs(change) - (slope * (g[j] - g[i]) + noise)
+        return np.where(excess > 0, np.sign(change) * excess, 0.0)
+
+    # Jump k lies between steps k and k + 1; it persists if k − 1 to k + 1 and k to k + 2 jump the same way.
+    k = np.arange(1, g.size - 2)
+    one = beyond(k, k + 1)
+    before, after = beyond(k - 1, k + 1), beyond(k, k + 2)
+    persists = ((one > 0) & (before > 0) & (after > 0)) | ((one < 0) & (before < 0) & (after < 0))
+    one = np.abs(one)
+    if not persists.any():
         return None
-    return 0.5 * float(g[k] + g[k + 1]), float(steps[k])
+    j = int(k[persists][int(np.argmax(one[persists]))])
+    return 0.5 * float(g[j] + g[j + 1]), min(j + 1, g.size - j - 1)
