@@ -52,3 +52,34 @@ def test_a_maze_s_poses_walk_out_through_its_exit_without_crossing_a_wall():
 def test_an_unknown_family_is_a_one_line_error():
     with pytest.raises(ConfigError, match="unknown world family 'cave'"):
         draw_world("cave", 0)
+
+
+@pytest.mark.parametrize("family", WORLD_FAMILIES)
+def test_the_paper_mount_sees_the_same_world_facing_a_wall_with_the_floor_and_ceiling_in_its_sweep(family):
+    for seed in range(3):
+        fan, paper = draw_world(family, seed), draw_world(family, seed, mount="paper")
+        assert draw_world(family, seed, mount="fan") == fan
+        assert paper.scanner.mount == "paper" and fan.scanner.mount == "fan"
+        assert (paper.walls, paper.boxes, paper.room) == (fan.walls, fan.boxes, fan.room)
+        assert [(p.x, p.y) for p in paper.poses] == [(p.x, p.y) for p in fan.poses]
+        assert paper.scanner.height == fan.scanner.height
+        # Past straight down and straight up: the floor's and the ceiling's feet are in the sweep.
+        assert paper.scanner.sweep_start < -math.pi / 2 and paper.scanner.sweep_stop > math.pi / 2
+        # Each pose faces a wall (the foot of its perpendicular on it, within 3 m) at most 12° off square.
+        for p in paper.poses:
+            ahead = (math.cos(p.heading), math.sin(p.heading))
+            faced = False
+            for w in paper.walls:
+                d = np.subtract(w.end, w.start)
+                t = float(np.dot(np.subtract((p.x, p.y), w.start), d) / np.dot(d, d))
+                foot = np.add(w.start, t * d)
+                to = foot - (p.x, p.y)
+                dist = float(np.hypot(*to))
+                if 0 < t < 1 and dist <= 3.0:
+                    faced |= float(np.dot(to / dist, ahead)) >= math.cos(math.radians(12.0)) - 1e-9
+            assert faced, (family, seed, p)
+
+
+def test_an_unknown_mount_is_a_one_line_error():
+    with pytest.raises(ConfigError, match="unknown scanner mount 'side'"):
+        draw_world("room", 0, mount="side")

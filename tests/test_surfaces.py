@@ -37,9 +37,9 @@ def _unit(bearing: float, tilt: float = 0.0) -> np.ndarray:
 class Echoes:
     """A sweep built by hand: per step and capsule, the first detected echo of the targets added."""
 
-    def __init__(self, seed: int = 0) -> None:
-        self.caps = GEOMETRY.capsule_positions(GAMMA)  # (n, 4, 3)
-        self.beam = np.stack([np.zeros_like(GAMMA), np.cos(GAMMA), np.sin(GAMMA)], axis=1)
+    def __init__(self, seed: int = 0, gamma: np.ndarray = GAMMA) -> None:
+        self.caps = GEOMETRY.capsule_positions(gamma)  # (n, 4, 3)
+        self.beam = np.stack([np.zeros_like(gamma), np.cos(gamma), np.sin(gamma)], axis=1)
         self.range = np.full(self.caps.shape[:2], np.nan)
         self.amp = np.full(self.caps.shape[:2], np.nan)
         self.rng = np.random.default_rng(seed)
@@ -153,6 +153,49 @@ def test_walls_joined_at_a_corner_are_fitted_with_it_and_their_sigma_stays_hones
     assert np.all(np.sqrt(np.mean(scores**2, axis=0)) < 1.4), np.sqrt(np.mean(scores**2, axis=0))
     assert np.all(np.abs(scores) < 4.0)
     assert np.median(sd_bearing[True]) < np.median(sd_bearing[False])
+
+
+#: The paper's mount: a vertical fan from well past straight down (the floor) to well past straight up, 0.65° a step.
+GAMMA_PAPER = np.linspace(math.radians(-135.0), math.radians(135.0), 416)
+
+
+def _line_distance(point: np.ndarray, on: np.ndarray, direction: np.ndarray) -> float:
+    rel = point - on
+    return float(np.linalg.norm(rel - (rel @ direction) * direction))
+
+
+def test_a_vertical_fan_finds_the_wall_ahead_the_floor_and_their_corner_within_their_sigma():
+    # The paper's mount, 0.3 m above the floor, facing a wall 1.2 m ahead 5° off square (the wall's normal leaves
+    # the fan by 5°: a tilt along the capsule stack, which the capsules' differential ranges measure).  In the
+    # array frame the floor is the plane of bearing −90°, and the wall and the floor meet on a line whose double
+    # bounce every capsule hears at its distance to the line.
+    yaw = math.radians(5.0)
+    wall, floor = (0.0, 1.2, yaw), (-math.pi / 2, 0.3, 0.0)
+    e = Echoes(seed=21, gamma=GAMMA_PAPER)
+    for bearing, offset, tilt in (wall, floor):
+        e.plane(bearing, offset, tilt)
+    n = np.stack([_unit(wall[0], wall[2]), _unit(floor[0], floor[2])])
+    on = np.linalg.pinv(n) @ np.array([wall[1], floor[1]])  # a point of both planes
+    direction = np.cross(n[0], n[1])
+    direction /= np.linalg.norm(direction)
+    e.across_line(on, direction, gain=1.5)  # a concave corner's double bounce: stronger than a mirror
+    result = extract_surfaces(GAMMA_PAPER, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 2, [(s.bearing, s.offset) for s in result.surfaces]
+    labels = {}
+    for name, (bearing, offset, tilt) in (("wall", wall), ("floor", floor)):
+        (s,) = [s for s in result.surfaces if abs(s.offset - offset) < 0.05]
+        sd = np.sqrt(np.diag(s.covariance))
+        assert abs(s.bearing - bearing) <= 3 * sd[0], (name, s.bearing, sd[0])
+        assert abs(s.tilt - tilt) <= 3 * sd[1], (name, s.tilt, sd[1])
+        assert abs(s.offset - offset) <= 3 * sd[2], (name, s.offset, sd[2])
+        assert s.quality == "good", (name, s.reasons)
+        labels[name] = s.label
+    assert len(result.corners) == 1 and not result.edges
+    c = result.corners[0]
+    assert set(c.surfaces) == set(labels.values())
+    # At the double bounce: on the wall-floor line, within the corner's own σ across the beam.
+    assert _line_distance(c.point, on, direction) <= 3 * math.sqrt(float(np.max(np.linalg.eigvalsh(c.covariance))))
+    assert abs(float(c.direction @ direction)) == pytest.approx(1.0, abs=1e-3)
 
 
 def test_a_wall_end_diffracts_weakly_and_is_an_edge():

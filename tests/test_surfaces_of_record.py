@@ -211,3 +211,87 @@ def test_reconstruct_json_lists_every_wall_a_room_sweep_saw(tmp_path):
         for s in surfaces:
             if s["quality"] == "good":
                 assert any(within(s, wall) for wall in seen), f"{path.name}: {s['label']} claims good, matches no wall"
+
+
+PAPER_ROOM = Path(__file__).resolve().parent / "data" / "paper_mount_room.toml"
+
+
+def _planes_ahead(start: codec.ScanStart, world: dict) -> list[tuple[str, np.ndarray, float, float, float]]:
+    """The paper-mount world's floor, ceiling and the walls the vertical fan faces, in the scan's array
+    frame, those whose perpendicular's foot lies in the sweep and (for a wall) on the wall: (name, normal
+    towards the plane, offset m, σ of its direction from the pose rad, σ of the offset from the pose m)."""
+    pose = start.pose
+    rot = _rotation(pose.orientation)
+    origin = np.array([pose.position.x, pose.position.y, pose.position.z])
+    cov = np.array(pose.covariance).reshape(6, 6) if len(pose.covariance) else np.zeros((6, 6))
+    sd_turn = math.sqrt(float(np.max(np.diag(cov)[3:])))
+    lo, hi = sorted((start.gamma_start, start.gamma_stop))
+    out = []
+    room = world["room"]
+    planes: list[tuple[str, np.ndarray, np.ndarray, object]] = [
+        ("floor", np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, room["floor"]]), None)
+    ]
+    if "ceiling" in room:
+        planes.append(("ceiling", np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, room["ceiling"]]), None))
+    for w in world["wall"]:
+        a, b = np.array([*w["from"], 0.0]), np.array([*w["to"], 0.0])
+        along = (b - a) / np.linalg.norm(b - a)
+        planes.append((f"{w['from']}→{w['to']}", np.array([-along[1], along[0], 0.0]), a, (a, b, along)))
+    for name, n, p, seg in planes:
+        h = float(n @ (p - origin))
+        if h < 0:
+            n, h = -n, -h
+        if seg is not None:
+            a, b, along = seg
+            if not 0.0 <= float(along @ (origin + h * n - a)) <= float(np.linalg.norm(b - a)):
+                continue
+        na = rot.T @ n
+        bearing = math.atan2(na[2], na[1])
+        # The fan crosses the plane's foot only if its normal leaves the fan by less than the beam's reach.
+        if lo <= bearing <= hi and abs(na[0]) < math.sin(math.radians(20.0)):
+            out.append((name, na, h, sd_turn, math.sqrt(float(n @ cov[:3, :3] @ n))))
+    return out
+
+
+@pytest.mark.slow
+def test_reconstruct_json_lists_the_wall_and_the_floor_a_vertical_fan_saw(tmp_path):
+    """``acquire --device sim --world`` a paper-mount room, then ``reconstruct --source --json``: the wall
+    the robot faces (6° off square: a tilt along the capsule stack), the floor and the ceiling are surfaces
+    within 3σ of the world file's, and a surface that claims good is one of them."""
+    run = [sys.executable, "-m", "lelsonar"]
+    acq = subprocess.run(
+        [*run, "acquire", "--device", "sim", "--world", str(PAPER_ROOM), "--no-zenoh", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert acq.returncode == 0, acq.stderr
+    world = tomllib.loads(PAPER_ROOM.read_text())
+    (path,) = sorted(tmp_path.glob("scan*.mcap"))
+    start = next(m for m in recording.read_messages(path) if isinstance(m, codec.ScanStart))
+    seen = _planes_ahead(start, world)
+    assert {name for name, *_ in seen} >= {"floor", "ceiling"} and len(seen) == 3, [s[0] for s in seen]
+    out = subprocess.run(
+        [*run, "reconstruct", "--source", str(path), "--json"], capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr
+    (estimate,) = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
+    surfaces = estimate["surfaces"]
+
+    def within(s: dict, plane) -> bool:
+        _, na, h, sd_pose, sh_pose = plane
+        normal = np.array([s["plane"]["normal"][k] for k in "xyz"])
+        cov = np.array(s["covariance"]).reshape(3, 3)
+        db = (s["bearing"] - math.atan2(na[2], na[1]) + math.pi) % (2 * math.pi) - math.pi
+        return (
+            float(normal @ na) > 0
+            and abs(db) <= GATE * math.hypot(math.sqrt(cov[0, 0]), sd_pose)
+            and abs(s["tilt"] - math.asin(na[0])) <= GATE * math.hypot(math.sqrt(cov[1, 1]), sd_pose)
+            and abs(s["plane"]["offset"] - h) <= GATE * math.hypot(math.sqrt(cov[2, 2]), sh_pose)
+        )
+
+    for plane in seen:
+        assert any(within(s, plane) for s in surfaces), f"{plane[0]} not among the surfaces: {surfaces}"
+    for s in surfaces:
+        if s["quality"] == "good":
+            assert any(within(s, plane) for plane in seen), f"{s['label']} claims good, matches no plane"

@@ -50,6 +50,7 @@ from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.scenes import FAMILIES as L_FAMILIES
 from lelsonar.sim.scenes import simulate_family_scene
+from lelsonar.sim.world import MOUNTS
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
 from lelsonar.sim.world_render import WorldScan, pose_frame, simulate_world_scan
 from lelsonar.sim.worlds import WORLD_FAMILIES, draw_world
@@ -84,6 +85,7 @@ class PlaneRecord:
     angle: float  # rad
     n_true_echoes: int
     wall: bool = False  # a wall of the room (not a box's face)
+    kind: str = "wall"  # the true surface's kind: wall, box, floor or ceiling
     own_share: float = float("nan")  # the surface's readings that are this element's own echoes
     flagged: bool = False  # not good, with its reasons
     range_noise: float = 0.0  # m, σ of one range (the receiver's timing noise): errors under it are noise
@@ -107,6 +109,8 @@ class ScanRecord:
     unexplained_share: float
     false_good: int  # extracted planes claiming good whose echoes are no surface's mirror
     extract_s: float = float("nan")  # the extraction's CPU time on this sweep, s (median of TIMING_REPEATS)
+    seen_kind: dict[str, int] | None = None  # surface kind -> mirrors seen
+    found_kind: dict[str, int] | None = None  # surface kind -> of those, claimed as a plane
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -206,7 +210,8 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             n_true, h_true = true_plane(scan, k)
             err = trace_error(surf.normal, surf.offset, n_true, h_true)
             ang = math.acos(min(1.0, abs(float(surf.normal @ n_true))))
-            label = model.surfaces[model.elements[k].surfaces[0]].label
+            true_surface = model.surfaces[model.elements[k].surfaces[0]]
+            label = true_surface.label
             planes.append(
                 PlaneRecord(
                     family,
@@ -222,6 +227,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
                     own_share=_own_share(scan, steps, k),
                     flagged=surf.quality != "good" and bool(surf.reasons),
                     range_noise=scan.rig.receiver.tof_jitter,
+                    kind=true_surface.kind,
                 )
             )
     found = {c: 0 for c in classes}
@@ -231,8 +237,17 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
         if k in claimed:
             found[c] += 1
             right[c] += int(c in claimed[k])
+    seen_kind: dict[str, int] = {}
+    found_kind: dict[str, int] = {}
+    for k in seen_el:
+        if model.elements[k].kind == ElementKind.MIRROR:
+            kind = model.surfaces[model.elements[k].surfaces[0]].kind
+            seen_kind[kind] = seen_kind.get(kind, 0) + 1
+            found_kind[kind] = found_kind.get(kind, 0) + int("plane" in claimed.get(k, set()))
     share = result.n_unexplained / max(result.n_echoes, 1)
-    return ScanRecord(planes, seen, found, right, false, extracted, share, false_good)
+    return ScanRecord(
+        planes, seen, found, right, false, extracted, share, false_good, seen_kind=seen_kind, found_kind=found_kind
+    )
 
 
 def run_scan(family: str, seed: int, pose: int, model: WorldModel, options: SurfaceOptions | None = None) -> ScanRecord:
@@ -307,6 +322,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-joint-corners", action="store_true", help="fit each wall alone (the A/B of the joint corner model)"
     )
+    parser.add_argument(
+        "--mount",
+        choices=(*MOUNTS, "both"),
+        default="fan",
+        help="the scanner's mount in the worlds: fan (horizontal), paper (vertical: a wall, the floor, the ceiling)",
+    )
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -315,21 +336,93 @@ def _pct(values: list[float], q: float) -> float:
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.table import Table
-
-    from lelsonar.tools.bench import machine, progress
 
     families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
-    jobs = [(f, s) for f in families for s in range(args.first_seed, args.first_seed + args.seeds)]
-    records: dict[str, list[ScanRecord]] = {f: [] for f in families}
+    mounts = MOUNTS if args.mount == "both" else (args.mount,)
     options = SurfaceOptions(joint_corners=not args.no_joint_corners)
-    for family, seed in progress(jobs, "surfaces"):
-        model = build_model(draw_world(family, seed))
-        for pose in range(min(args.max_poses, len(model.world.poses))):
-            records[family].append(run_scan(family, seed, pose, model, options))
     console = Console(width=200)
+    bad_total = 0
+    for mount in mounts:
+        records = run_mount(families, mount, args.first_seed, args.seeds, args.max_poses, options)
+        bad_total += _family_table(records, mount, args, console)
+        _kind_table(records, mount, console)
+    if args.l_seeds > 0:
+        _l_scan_table(args.l_seeds, console)
+    console.print(
+        "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
+        "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
+        "and > 3× oracle; (right): claimed with the right class; walls: the room's walls (not boxes' faces), good "
+        "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
+        "steps' readings that are its own."
+    )
+    return 1 if bad_total else 0
+
+
+def run_mount(
+    families: tuple[str, ...], mount: str, first_seed: int, seeds: int, max_poses: int, options: SurfaceOptions
+) -> dict[str, list[ScanRecord]]:
+    """Every family's worlds seen with one scanner mount: the scored sweeps per family."""
+    from lelsonar.tools.bench import progress
+
+    jobs = [(f, s) for f in families for s in range(first_seed, first_seed + seeds)]
+    records: dict[str, list[ScanRecord]] = {f: [] for f in families}
+    for family, seed in progress(jobs, f"surfaces ({mount} mount)"):
+        model = build_model(draw_world(family, seed, mount=mount))
+        for pose in range(min(max_poses, len(model.world.poses))):
+            records[family].append(run_scan(family, seed, pose, model, options))
+    return records
+
+
+def _kind_table(records: dict[str, list[ScanRecord]], mount: str, console: Console) -> None:
+    """Per kind of true surface (wall, box face, floor, ceiling), over every family."""
+    from rich.table import Table
+
+    recs = [r for rs in records.values() for r in rs]
+    planes = [p for r in recs for p in r.planes]
+    table = Table(title=f"surfaces per kind ({mount} mount, every family)")
+    for col in (
+        "kind",
+        "found/seen",
+        "err med cm",
+        "err p95 cm",
+        "oracle med cm",
+        "med/oracle",
+        "good",
+        "good-but-failed",
+    ):
+        table.add_column(col, justify="right")
+    for kind in ("wall", "box", "floor", "ceiling"):
+        seen = sum((r.seen_kind or {}).get(kind, 0) for r in recs)
+        found = sum((r.found_kind or {}).get(kind, 0) for r in recs)
+        mine = [p for p in planes if p.kind == kind]
+        if not seen and not mine:
+            continue
+        err = [100 * p.error for p in mine]
+        orc = [100 * p.oracle for p in mine]
+        ratio = float(np.median(err) / max(np.median(orc), 1e-9)) if mine else float("nan")
+        failed = sum(1 for p in mine if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle)
+        table.add_row(
+            kind,
+            f"{found}/{seen}",
+            f"{_pct(err, 50):.2f}",
+            f"{_pct(err, 95):.2f}",
+            f"{_pct(orc, 50):.2f}",
+            f"{ratio:.2f}",
+            f"{sum(p.quality == 'good' for p in mine)}/{len(mine)}",
+            str(failed),
+        )
+    console.print(table)
+
+
+def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argparse.Namespace, console: Console) -> int:
+    """The per-family table and its failures; returns the failures that claimed good."""
+    from rich.table import Table
+
+    from lelsonar.tools.bench import machine
+
+    families = tuple(records)
     seeds = f"seeds {args.first_seed}–{args.first_seed + args.seeds - 1}"
-    table = Table(title=f"surfaces per family ({seeds}, ≤ {args.max_poses} sweeps each) — {machine()}")
+    table = Table(title=f"surfaces per family ({mount} mount, {seeds}, ≤ {args.max_poses} sweeps each) — {machine()}")
     for col in (
         "family",
         "planes found/seen",
@@ -389,26 +482,18 @@ def run(args: argparse.Namespace) -> int:
             f"{1e3 * _pct([r.extract_s for r in recs], 50):.2f} ({1e3 * _pct([r.extract_s for r in recs], 95):.2f})",
         )
     console.print(table)
-    if args.l_seeds > 0:
-        _l_scan_table(args.l_seeds, console)
     for family in families:
         for p in (p for r in records[family] for p in r.planes):
             if p.quality == "good" and p.error > 0.02 and p.error > 3 * p.oracle:
                 console.print(
-                    f"failure claiming good: {family} seed {p.seed} pose {p.pose} element {p.element}: "
+                    f"failure claiming good ({mount} mount): {family} seed {p.seed} pose {p.pose} element {p.element} "
+                    f"({p.kind}): "
                     f"{100 * p.error:.1f} cm (oracle {100 * p.oracle:.1f} cm), {math.degrees(p.angle):.1f}°"
                 )
     for family, p in neither:
         console.print(
-            f"wall good but over 3× its oracle and the range noise: {family} seed {p.seed} pose {p.pose} "
-            f"element {p.element}: "
+            f"wall good but over 3× its oracle and the range noise ({mount} mount): {family} seed {p.seed} "
+            f"pose {p.pose} element {p.element}: "
             f"{100 * p.error:.2f} cm (oracle {100 * p.oracle:.2f} cm), own echoes {100 * p.own_share:.0f} %"
         )
-    console.print(
-        "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
-        "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
-        "and > 3× oracle; (right): claimed with the right class; walls: the room's walls (not boxes' faces), good "
-        "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
-        "steps' readings that are its own."
-    )
-    return 1 if bad_total else 0
+    return bad_total

@@ -17,6 +17,9 @@ family         what is drawn
 =============  =================================================================
 
 Every world has the fan mount at 0.2–0.5 m and the default odometry noise, seeded by the draw.
+``draw_world(family, seed, mount="paper")`` is the same world seen by the paper's mount (a vertical
+fan): each pose turns to face a wall whose foot of the perpendicular it sees, off square by up to
+±12°, and the sweep reaches past straight down and straight up (the floor and the ceiling).
 """
 
 from __future__ import annotations
@@ -28,12 +31,21 @@ from collections import deque
 import numpy as np
 
 from lelsonar.errors import ConfigError
-from lelsonar.sim.world import World, parse_world
+from lelsonar.sim.world import MOUNTS, World, parse_world
 
 #: World families, in the order benchmarks report them.
 WORLD_FAMILIES: tuple[str, ...] = ("room", "l_room", "corridor", "maze", "boxes")
 #: A drawn pose is at least this far from every wall and box, m.
 POSE_CLEARANCE = 0.35
+#: Paper mount: the most a pose's heading is off square to the wall it faces, rad.
+PAPER_YAW = math.radians(12.0)
+#: Paper mount: the farthest wall a pose may face, m (within the waveform window with room to spare).
+PAPER_REACH = 3.0
+#: Paper mount: the sweep's ends, drawn in these ranges, degrees: 35° to 60° past −90° and 90°, so a floor and a
+#: ceiling close below and above (their regions as wide as the beam there) are whole in some sweeps, cut in others.
+PAPER_SWEEP = ((-149.5, -125.0), (125.0, 149.5))
+#: Paper mount: the shots' spacing, degrees (the paper mount's default sweep of 120° in 184 steps).
+PAPER_STEP = 120.0 / 184
 
 
 def world_rng(family: str, seed: int) -> np.random.Generator:
@@ -43,12 +55,24 @@ def world_rng(family: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(b"world:" + family.encode())])
 
 
-def draw_world(family: str, seed: int) -> World:
-    """World ``seed`` of ``family``: the same pair always gives the same world."""
+def draw_world(family: str, seed: int, mount: str = "fan") -> World:
+    """World ``seed`` of ``family``: the same pair always gives the same world.
+
+    ``mount = "paper"``: the same walls, boxes and pose positions seen by a vertical fan (its
+    headings and sweep drawn from their own stream, so the fan worlds stay as they are).
+    """
     if family not in WORLD_FAMILIES:
         raise ConfigError(f"unknown world family {family!r}; choose from {', '.join(WORLD_FAMILIES)}")
+    if mount not in MOUNTS:
+        raise ConfigError(f"unknown scanner mount {mount!r}; choose from {', '.join(MOUNTS)}")
     rng = world_rng(family, seed)
     walls, boxes, poses, ceiling = _DRAW[family](rng)
+    scanner: dict = {"mount": mount}
+    if mount == "paper":
+        prng = np.random.default_rng([int(seed), zlib.crc32(b"mount:paper:" + family.encode())])
+        poses = _face_walls(prng, poses, walls)
+        sweep = [float(prng.uniform(*PAPER_SWEEP[0])), float(prng.uniform(*PAPER_SWEEP[1]))]
+        scanner |= {"sweep": sweep, "steps": round((sweep[1] - sweep[0]) / PAPER_STEP)}
     turn = float(rng.uniform(-math.pi, math.pi))
     shift = rng.uniform(-3.0, 3.0, size=2)
     c, s = math.cos(turn), math.sin(turn)
@@ -61,7 +85,7 @@ def draw_world(family: str, seed: int) -> World:
         "room": {"floor": 0.0, "ceiling": ceiling},
         "wall": [{"from": move(a), "to": move(b)} for a, b in walls],
         "box": [{"center": move(b["center"]), "size": b["size"], "yaw": math.degrees(b["yaw"] + turn)} for b in boxes],
-        "scanner": {"mount": "fan", "height": float(rng.uniform(0.2, 0.5))},
+        "scanner": scanner | {"height": float(rng.uniform(0.2, 0.5))},
         "pose": [
             {"x": q[0], "y": q[1], "heading": math.degrees(h + turn)} for (x, y, h) in poses for q in [move((x, y))]
         ],
@@ -100,6 +124,52 @@ def _poses_in(rng, inside, walls, boxes, count, bounds) -> list:
             if len(out) == count:
                 return out
     raise ConfigError("could not place the poses of a drawn world (a bug in the family's bounds)")
+
+
+def _crosses(p, q, a, b) -> bool:
+    """Segments p–q and a–b cross (strictly)."""
+
+    def side(u, v, w) -> float:
+        return (v[0] - u[0]) * (w[1] - u[1]) - (v[1] - u[1]) * (w[0] - u[0])
+
+    return side(p, q, a) * side(p, q, b) < 0 and side(a, b, p) * side(a, b, q) < 0
+
+
+def _blocked(p, foot, walls, own) -> bool:
+    """Another wall stands between p and the foot on its own wall."""
+    own_a, own_b = tuple(own[0]), tuple(own[1])
+    return any(
+        _crosses(p, tuple(foot), a, b)
+        for a, b in walls
+        if (tuple(map(float, a)), tuple(map(float, b))) != (own_a, own_b)
+    )
+
+
+def _face_walls(rng, poses, walls) -> list:
+    """Each pose turned to face a wall: the foot of its perpendicular on the wall and within reach.
+
+    The heading is off square by up to ±PAPER_YAW (a robot is never exactly square), so the wall's
+    normal leaves the fan by that much and the capsules along the axis see it as a tilt.
+    """
+    out = []
+    for x, y, h in poses:
+        feet = []
+        for a, b in walls:
+            a, b = np.asarray(a, float), np.asarray(b, float)
+            d = b - a
+            t = float((np.array([x, y]) - a) @ d / (d @ d))
+            foot = a + t * d
+            dist = float(np.hypot(*(foot - (x, y))))
+            # Not at the wall's very end (its edge would answer with the wall) and within reach.
+            margin = 0.3 / float(np.sqrt(d @ d))
+            if margin < t < 1 - margin and dist <= PAPER_REACH and not _blocked((x, y), foot, walls, (a, b)):
+                feet.append((dist, math.atan2(foot[1] - y, foot[0] - x)))
+        if not feet:
+            out.append((x, y, h))
+            continue
+        _, toward = feet[int(rng.integers(len(feet)))]
+        out.append((x, y, math.remainder(toward + float(rng.uniform(-PAPER_YAW, PAPER_YAW)), 2 * math.pi)))
+    return out
 
 
 # ---------------------------------------------------------------------------- families

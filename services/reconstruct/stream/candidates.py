@@ -95,8 +95,9 @@ class NoiseTriggers(ScanState):
             distance = self.distance[steps]
             listened = 2.0 * distance[kept] / self.sound_speed
             echo = np.isfinite(distance)  # a reading without its window is not tested: taken as an echo
+            rows, capsules = np.nonzero(kept)  # one gather of the kept windows, not a copy of every step's
             echo[kept], _, sigma = echoes_over_noise(
-                self._timing_windows[steps][kept], self._timing_rate, at[kept], listened, FLOOR_TIME
+                self._timing_windows[steps[rows], capsules], self._timing_rate, at[kept], listened, FLOOR_TIME
             )
             # A weak echo beside a neighbour's stays: within the range one echo window spans.
             reach = 0.5 * self.sound_speed * (ECHO_PEAK_WINDOW[1] - ECHO_PEAK_WINDOW[0])

@@ -83,7 +83,9 @@ class RangeRepair(NoiseTriggers):
         kept = np.isfinite(at)
         if kept.any():
             timing = np.full((*at.shape, 3), np.nan)
-            timing[kept] = np.stack(echo_onsets(self._timing_windows[todo][kept], self._timing_rate, at[kept]), axis=-1)
+            rows, capsules = np.nonzero(kept)
+            windows = self._timing_windows[todo[rows], capsules]
+            timing[kept] = np.stack(echo_onsets(windows, self._timing_rate, at[kept]), axis=-1)
             self._echo_timing[todo] = timing
         self._timed[todo] = True
 
@@ -152,7 +154,8 @@ class RangeRepair(NoiseTriggers):
         rows = noise & np.isfinite(at)
         if np.count_nonzero(rows) >= RANGE_CHECK_MIN and self.sound_speed:
             rate = self._timing_rate
-            windows = self._candidate_windows[steps][rows]
+            picked, capsules = np.nonzero(rows)  # one gather of these windows, not a copy of every step's
+            windows = self._candidate_windows[steps[picked], capsules]
             at, start = at[rows], start[rows]
             # The noise over these windows' own floors: the time-of-flight windows' may lie in the transmitter's
             # ring-down, where a board that fires on the noise as soon as its blanking ends puts them.

@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,6 +33,7 @@ __all__ = [
     "unit_normal",
     "feature_point",
     "in_span",
+    "masked_ends",
     "measure_region",
     "step_medians",
     "sweep_step",
@@ -40,6 +41,8 @@ __all__ = [
     "pair_corner",
     "pair_stderr",
     "plane_end",
+    "plane_line",
+    "split_dihedral",
     "stack_dihedral",
     "wrap",
 ]
@@ -65,6 +68,7 @@ class Measured:
     peak: float
     peak_inside: bool  # the region holds its amplitude peak
     exact: bool  # its peak is inside and not clipped (else its strength is only a lower bound)
+    clipped: bool  # the receiver clipped its peak (its strength is only a lower bound)
     span: tuple[float, float]  # γ of the region's first and last steps, rad
     step: float  # the sweep's step, rad
     step_amplitude: np.ndarray  # each step's median echo amplitude, V (NaN: none or no amplitudes)
@@ -108,6 +112,29 @@ def sweep_step(gamma: np.ndarray) -> float:
     return float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
 
 
+def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap: int) -> tuple[bool, bool]:
+    """Whether a nearer echo in any one capsule's beam, just before and just after the region, masks it there.
+
+    The receiver keeps each capsule's first echo: a nearer target seen by only some capsules (an edge beside
+    the stack) ends the region in those capsules first, and the steps' median range may not show it.  Each
+    capsule is compared with its own median over the region (a tilt spreads the capsules' ranges steadily).
+    """
+    block = distance[region.steps]
+    # Each capsule's median (NaNs sort last); a capsule without an echo in the region takes the others'.
+    count = np.count_nonzero(np.isfinite(block), axis=0)
+    srt = np.sort(block, axis=0)
+    cols = np.arange(block.shape[1])
+    have = count > 0
+    ref = 0.5 * (srt[np.maximum(count - 1, 0) // 2, cols] + srt[count // 2 - (count == 0), cols])
+    ref[~have] = float(np.median(ref[have]))
+    reach = max_gap + 2
+    first, last = int(region.steps[0]), int(region.steps[-1])
+    before = distance[max(first - reach, 0) : first]
+    after = distance[last + 1 : last + 1 + reach]
+    with np.errstate(invalid="ignore"):
+        return bool(np.any(before < ref - tolerance)), bool(np.any(after < ref - tolerance))
+
+
 def measure_region(
     region: Region,
     gamma: np.ndarray,
@@ -119,6 +146,9 @@ def measure_region(
     step: float | None = None,
 ) -> Measured:
     """What a region's echoes say; ``step`` is :func:`sweep_step` of ``gamma`` (computed when not given)."""
+    masked = masked_ends(region, distance, opts.range_tolerance, opts.max_gap)
+    if (masked[0] and not region.cut_before) or (masked[1] and not region.cut_after):
+        region = replace(region, cut_before=region.cut_before or masked[0], cut_after=region.cut_after or masked[1])
     g = gamma[region.steps]
     step = sweep_step(gamma) if step is None else step
     quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
@@ -203,6 +233,7 @@ def measure_region(
         peak=peak,
         peak_inside=centred or peak_fit is not None,
         exact=(centred or peak_fit is not None) and clipped is False,
+        clipped=clipped is True,
         span=(float(g[0]), float(g[-1])),
         step=step,
         step_amplitude=per_step,
@@ -238,12 +269,30 @@ def in_span(bearing: float, m: Measured, margin: float, beyond_cut: float) -> bo
     return lo <= bearing <= hi
 
 
+def plane_line(a: Measured, b: Measured) -> tuple[np.ndarray, np.ndarray] | None:
+    """The line where two planes meet, with their tilts: its point nearest the array and its direction.
+
+    Returns None for planes nearly parallel (no corner): ``|n_a × n_b| < 0.2``.
+    """
+    na, nb = unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt)
+    direction = np.cross(na, nb)
+    size = float(np.linalg.norm(direction))
+    if size < 0.2:
+        return None
+    # The least-norm solution of n_a·X = h_a, n_b·X = h_b is the line's point nearest the origin.
+    mat = np.stack([na, nb])
+    x = mat.T @ np.linalg.solve(mat @ mat.T, np.array([a.depth, b.depth]))
+    return x, direction / size
+
+
 def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
     """Two planes whose double bounce this region is: a concave corner.
 
-    A corner's echo comes from the intersection ``X`` of its two walls, at the double-bounce range
-    ``|X|`` (the retro-reflection in the plane normal to the edge) and the bearing of ``X``, which must
-    fall within the region's span of γ (past a cut end, within ``beyond_cut``).
+    A corner's echo comes from the line ``X`` where its two walls meet, at the double-bounce range
+    ``|X|`` (the retro-reflection in the plane normal to the edge; ``X`` its point nearest the array)
+    and the bearing of ``X`` in the fan, which must fall within the region's span of γ (past a cut
+    end, within ``beyond_cut``).  The planes' tilts place the line: a wall the fan meets off square
+    leans it out of the fan.
 
     Returns
     -------
@@ -252,13 +301,12 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     best: tuple[float, list[int], float] | None = None
     for a in range(len(planes)):
         for b in range(a + 1, len(planes)):
-            na, nb = unit_normal(planes[a].bearing)[1:], unit_normal(planes[b].bearing)[1:]
-            mat = np.stack([na, nb])
-            if abs(float(np.linalg.det(mat))) < 0.2:  # nearly parallel: no corner
+            line = plane_line(planes[a], planes[b])
+            if line is None:
                 continue
-            x = np.linalg.solve(mat, np.array([planes[a].depth, planes[b].depth]))
-            rho = float(np.hypot(*x))
-            bearing = math.atan2(float(x[1]), float(x[0]))
+            x = line[0]
+            rho = float(np.linalg.norm(x))
+            bearing = math.atan2(float(x[2]), float(x[1]))
             miss = abs(rho - m.depth)
             if (
                 miss <= opts.on_trace
@@ -281,10 +329,12 @@ def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tupl
     ([index into ``planes``], bearing) or None.
     """
     for j, pj in enumerate(planes):
-        if pj.depth >= m.depth:
+        # The plane's trace in the fan: a tilted plane crosses it at h / cos(tilt).
+        h = pj.depth / math.cos(pj.tilt)
+        if h >= m.depth:
             continue
-        half = math.acos(pj.depth / m.depth)
-        if half <= opts.foot_separation and m.depth - pj.depth <= opts.range_tolerance:
+        half = math.acos(h / m.depth)
+        if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
         for bearing in (pj.bearing - half, pj.bearing + half):
             if in_span(wrap(bearing), m, m.step, opts.beyond_cut):
@@ -350,3 +400,116 @@ def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list
 
 def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
+    keep = np.isin(region.rows, steps)
+    return Region(
+        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
+    )
+
+
+def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
+    """The block of steps at the start that lies deeper than the rest, if significant: (length, depth
+    difference m, its standard error m).
+
+    The split that best separates two levels (the largest t of their difference); it must be deeper by
+    more than ``curvature_sigmas`` of its standard error and by no more than twice the range tolerance
+    (farther, the corner's echoes would have made their own region), each side ``min_steps`` long.
+    """
+    ok = np.isfinite(depths)
+    k = depths.size
+    if np.count_nonzero(ok) < 2 * opts.min_steps:
+        return None
+    best: tuple[float, int] | None = None
+    for b in range(opts.min_steps, k - opts.min_steps + 1):
+        head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
+        if head.size < 2 or tail.size < 2:
+            continue
+        diff = float(np.mean(head) - np.mean(tail))
+        pooled = math.sqrt(
+            (float(np.sum((head - head.mean()) ** 2)) + float(np.sum((tail - tail.mean()) ** 2)))
+            / (head.size + tail.size - 2)
+        )
+        se = pooled * math.sqrt(1 / head.size + 1 / tail.size)
+        t = diff / se if se > 0 else 0.0
+        if 0 < diff <= 2 * opts.range_tolerance and (best is None or t > best[0]):
+            best = (t, b)
+    if best is None or best[0] < opts.curvature_sigmas:
+        return None
+    b = best[1]
+    head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
+    return b, float(np.mean(head) - np.mean(tail)), float(np.mean(head) - np.mean(tail)) / best[0]
+
+
+def split_dihedral(
+    i: int,
+    measured: list[Measured],
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> list[Measured] | None:
+    """A plane's region that runs on into the double bounce of its corner with a nearer plane.
+
+    Where a plane meets a nearer one (a wall and the floor close below the array), the line they share
+    lies barely deeper than the plane: ``|X| − h = h'²/(2h)`` for a wall ``h`` away and a floor ``h'``
+    below.  Both answer within the range tolerance, so the region holds the plane's echoes and, past
+    them on the line's side, the corner's: its span is no longer symmetric about the plane's foot.
+    Each step's depth along the plane's normal tells the two apart (the corner's steps lie deeper, as
+    one block on the line's side, by a level the steps' own scatter resolves): the region splits into
+    the plane's (whole: it is nearer, nothing masks it) and the corner's (cut on the plane's side).
+    The line's place is the trigger (a plane's bearing biased by the corner's steps moves it), and the
+    confirmation: with the plane placed on its own steps, the block lies deeper by ``|X| − h``.
+
+    Returns
+    -------
+    The region's replacement, the plane's and the corner's measured regions, or None if no nearer
+    plane's corner runs into it or its steps do not resolve it.
+    """
+    m = measured[i]
+    # Only a whole region: the corner's echoes lengthen it; a cut one has no span to be lengthened.
+    if m.region.cut_before or m.region.cut_after:
+        return None
+    r = m.region
+    n = unit_normal(m.bearing, m.tilt)
+    for j, mj in enumerate(measured):
+        if j == i or mj.bearing_source == "undetermined" or abs(wrap(m.bearing - mj.bearing)) < opts.foot_separation:
+            continue
+        line = plane_line(m, mj)
+        if line is None:
+            continue
+        x = line[0]
+        rho = float(np.linalg.norm(x))
+        toward = math.atan2(float(x[2]), float(x[1]))
+        half = 0.5 * (m.span[1] - m.span[0])
+        if not (0.0 <= rho - m.depth <= 2 * opts.range_tolerance and abs(wrap(toward - m.bearing)) <= half):
+            continue
+        after = wrap(toward - m.bearing) > 0
+        # Each step's depth along the plane's normal: the corner's steps lie deeper, as one block on its side.
+        own = m.ranges + m.positions @ n
+        pos = np.searchsorted(r.steps, r.rows)
+        hs = np.array([float(np.median(own[pos == k])) if np.any(pos == k) else np.nan for k in range(r.steps.size)])
+        found = _deeper_block(hs[::-1] if after else hs, opts)
+        if found is None:
+            return None
+        block, step, step_se = found
+        if after:
+            plane_steps, corner_steps = r.steps[: r.steps.size - block], r.steps[r.steps.size - block :]
+            plane_r = _subregion(r, plane_steps, r.cut_before, False)
+            corner_r = _subregion(r, corner_steps, True, r.cut_after)
+        else:
+            corner_steps, plane_steps = r.steps[:block], r.steps[block:]
+            plane_r = _subregion(r, plane_steps, False, r.cut_after)
+            corner_r = _subregion(r, corner_steps, r.cut_before, True)
+        plane_m, corner_m = (measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r))
+        # The block must lie where the line of the plane so placed puts it: deeper by |X| − h.
+        line = plane_line(plane_m, mj)
+        if line is None:
+            return None
+        expected = float(np.linalg.norm(line[0])) - plane_m.depth
+        if abs(step - expected) > 3 * step_se + 0.25 * expected:
+            return None
+        return [plane_m, corner_m]
+    return None

@@ -58,13 +58,20 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_corner,
     pair_stderr,
     plane_end,
+    plane_line,
+    split_dihedral,
     stack_dihedral,
     sweep_step,
     unit_normal,
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
-from lelsonar.reconstruct.estimate.surfaces.regions import extrapolated_peak, find_regions, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.regions import (
+    PLATEAU,
+    extrapolated_peak,
+    find_regions,
+    log_amplitude_curvature,
+)
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD"]
@@ -204,12 +211,12 @@ def _joint_fit(
     corners = []
     for i, ties in pairs:
         mi = measured[i]
-        a, b = evidence[index[ties[0]]], evidence[index[ties[1]]]
-        x = np.linalg.solve(
-            np.stack([unit_normal(a.bearing)[1:], unit_normal(b.bearing)[1:]]), np.array([a.offset, b.offset])
-        )
-        # The corner's scatter about the double bounce the walls predict: the capsules' distances to X.
-        predicted = np.linalg.norm(mi.positions[:, 1:] - x[None, :], axis=1)
+        line = plane_line(measured[ties[0]], measured[ties[1]])
+        if line is None:
+            continue
+        # The corner's scatter about the double bounce the walls predict: the capsules' distances to their line.
+        rel = mi.positions - line[0][None, :]
+        predicted = np.linalg.norm(rel - (rel @ line[1])[:, None] * line[1][None, :], axis=1)
         sigma = _scatter(mi.ranges - predicted)
         if not (math.isfinite(sigma) and sigma > 0):
             continue
@@ -302,6 +309,12 @@ def extract_surfaces(
     regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
+    # A plane's region that runs on into its corner with a nearer plane: split where the steps tell them apart.
+    split: list[Measured] = []
+    for i in range(len(measured)):
+        split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
+    measured = split
+    regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
     # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
@@ -319,8 +332,14 @@ def extract_surfaces(
     ]
     beam_k = float(np.median(ks)) if ks else float("nan")
 
+    # The receiver clips at one level, its full scale: the sweep's largest peak.  A plateau well under it is the
+    # amplitude's quantisation on a weak echo, whose peak stands.
+    full_scale = max((m.peak for m in measured if math.isfinite(m.peak)), default=float("nan"))
+
     def upper_strength(m: Measured) -> float:
         """The region's strength if its peak is inside it, else an upper estimate of it (NaN: none)."""
+        if m.peak_inside and m.clipped and m.peak >= (1.0 - PLATEAU) * full_scale:
+            return float("nan")  # a clipped peak is only a lower bound of its echo: no upper estimate
         if m.peak_inside:
             return m.strength
         if not math.isfinite(beam_k):
@@ -356,7 +375,7 @@ def extract_surfaces(
             mj = measured[j]
             if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
                 continue
-            nj = unit_normal(mj.bearing)
+            nj = unit_normal(mj.bearing, mj.tilt)
             tol = opts.on_trace + 3 * mj.depth * abs(math.sin(measured[i].bearing - mj.bearing)) * mj.bearing_stderr
             if abs(float(nj @ p) - mj.depth) <= tol:
                 out.append(j)
@@ -479,7 +498,8 @@ def extract_surfaces(
         if i in across_lines:
             direction = np.cross(np.array([1.0, 0.0, 0.0]), unit_normal(m.bearing))
         elif len(ties) >= 2:
-            direction = np.cross(unit_normal(measured[ties[0]].bearing), unit_normal(measured[ties[1]].bearing))
+            a, b = measured[ties[0]], measured[ties[1]]
+            direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
         else:
             direction = np.array([1.0, 0.0, 0.0])  # along the stack: a line the fan crosses
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
