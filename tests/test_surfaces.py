@@ -12,7 +12,13 @@ from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.regions import extrapolated_peak, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.regions import amplitude_jump, extrapolated_peak, log_amplitude_curvature
+from lelsonar.signal.energy import echo_amplitude
+from lelsonar.sim.acoustics import piston_directivity
+from lelsonar.sim.world_geometry import ElementKind, build_model
+from lelsonar.sim.world_render import simulate_world_scan, world_rig
+from lelsonar.sim.worlds import draw_world
+from lelsonar.tools.bench_surfaces import trace_error, true_plane
 from lelsonar.view import present
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
@@ -274,6 +280,45 @@ def test_a_wall_end_whose_peak_a_nearer_post_hides_is_still_a_weak_edge():
     assert sorted(round(s.offset, 1) for s in result.surfaces) == [1.0, 1.3]
 
 
+def test_a_mirror_whose_foot_leaves_its_face_beside_an_edge_at_its_range_does_not_claim_the_regions_centre():
+    # A box face seen with its foot at the face's end: over part of the sweep the capsule's own foot is off the
+    # face and only the end's weak diffraction answers, at the mirror's range; the region of constant depth
+    # spans both echoes, and its centre is not the face's bearing.
+    e = Echoes(seed=3)
+    bearing, offset = math.radians(20.0), 1.5
+    e.plane(bearing, offset)
+    off_face = GAMMA < bearing + math.radians(10.0)
+    e.range[off_face] = np.nan
+    e.amp[off_face] = np.nan
+    e.vertical_line(offset * math.cos(bearing), offset * math.sin(bearing), gain=0.3)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    s = next(s for s in result.surfaces if abs(s.offset - offset) < 0.05)
+    off = abs(s.bearing - bearing)
+    assert off > 3 * math.radians(1.0) or s.quality != "good"  # the centre is degrees off: it must not be claimed
+    assert s.quality != "good", (math.degrees(off), s.reasons)
+    assert any("two echoes at one range" in r for r in s.reasons)
+
+
+def test_one_beam_pattern_never_jumps_and_two_spliced_do_where_they_meet():
+    step = math.radians(1.0)
+    rng = np.random.default_rng(7)
+    # A piston's two-way pattern down to 35 dB under its peak, centred and cut on one side, with 5 % noise.
+    for ka, lo, hi in ((3.0, -1.0, 1.0), (3.0, -0.2, 1.0), (2.0, -1.0, 1.0)):
+        psi = np.arange(-1.2, 1.2, step)
+        d2 = piston_directivity(psi, ka) ** 2
+        keep = (d2 >= math.exp(-4.0)) & (psi >= lo) & (psi <= hi)
+        a = d2[keep] * np.exp(rng.normal(0.0, 0.05, np.count_nonzero(keep)))
+        assert amplitude_jump(psi[keep], a) is None
+    # A weak flat echo that a strong one, past its peak, takes over from: the jump is where they meet.
+    g = np.arange(0.0, 40.0) * step
+    weak = 0.06 * np.exp(-(((g - 0.2) / 0.4) ** 2))
+    strong = np.exp(-(((g - 0.3) / 0.26) ** 2))
+    a = np.where(g < 0.4, weak, strong) * np.exp(rng.normal(0.0, 0.05, g.size))
+    got = amplitude_jump(g, a)
+    assert got is not None
+    assert abs(got[0] - 0.4) < step
+
+
 def test_the_beam_curvature_and_a_hidden_peak_come_back_from_a_gaussian_flank():
     width, peak, centre = 0.26, 0.4, 0.1
     g = np.linspace(-0.3, 0.5, 41)
@@ -371,3 +416,23 @@ def test_with_a_box_in_front_each_wall_is_estimated_from_its_own_echoes_or_flagg
         assert (p.quality == "good" and p.within_oracle) or p.flagged, (
             f"element {p.element} {p.quality}: {100 * p.error:.2f} cm against its oracle's {100 * p.oracle:.2f} cm"
         )
+
+
+def test_a_box_face_whose_foot_is_at_its_end_in_a_toured_world_is_not_claimed_good():
+    # The boxes world of seed 4, its first pose as the tour sweeps it: a box face's foot sits at the face's end,
+    # and the face's mirror echo and its end's diffraction make one region of constant depth.
+    world = draw_world("boxes", 4)
+    scan = simulate_world_scan(build_model(world), 0, rig=world_rig(world), seed=np.random.default_rng([4, 0]))
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    mirrors = [k for k, el in enumerate(scan.model.elements) if el.kind == ElementKind.MIRROR]
+    faced = 0
+    for s in result.surfaces:
+        # Its nearest true plane, by the largest distance over that plane's trace.
+        err, k = min((trace_error(s.normal, s.offset, *true_plane(scan, k)), k) for k in mirrors)
+        if s.quality == "good":
+            assert err < 0.02, (s.label, k, err, s.bearing_source)
+        if scan.model.surfaces[scan.model.elements[k].surfaces[0]].label == "box4.side2":
+            faced += 1
+            assert s.quality != "good" and any("two echoes at one range" in r for r in s.reasons), s.reasons
+    assert faced == 1

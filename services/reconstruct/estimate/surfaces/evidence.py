@@ -20,6 +20,7 @@ from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
     Region,
+    amplitude_jump,
     bearing_from_amplitude,
     capsule_x,
     stack_fits,
@@ -163,11 +164,23 @@ def measure_region(
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
-    if not cut:
+    # Two echoes at one range, one taking over from the other inside the region: its ends are not both one
+    # beam pattern's.  The shorter side may be the other echo's, so the centre may be off by half its extent:
+    # a σ that says so while it stays within the verdict's bound, no centre bearing beyond it.
+    jump = amplitude_jump(g, per_step) if amplitude is not None and not cut else None
+    shift = 0.0 if jump is None else 0.5 * jump[1] * step
+    mixed = ""
+    if jump is not None:
+        mixed = (
+            f"the echo amplitude steps at γ {math.degrees(jump[0]):.1f}° as no one beam pattern does: two echoes "
+            f"at one range, {jump[1]} steps of the region may be the other's, so its centre is not the wall's"
+        )
+    centred = not cut and shift <= opts.limits.max_normal_stderr
+    if centred:
         # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
         # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing
         # into the same window).
-        bearing, sb, source = mid, quant, "region centre"
+        bearing, sb, source = mid, math.hypot(quant, shift), "region centre"
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
         # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
@@ -175,21 +188,21 @@ def measure_region(
         findings.append(
             (
                 DEGRADED,
-                "bearing from the amplitude peak alone: the region of constant depth is cut "
-                "(a nearer echo or the sweep's end), so its centre is not the wall's",
+                "bearing from the amplitude peak alone: "
+                + (
+                    mixed
+                    if mixed
+                    else "the region of constant depth is cut (a nearer echo or the sweep's end), so its centre "
+                    "is not the wall's"
+                ),
             )
         )
     else:
         bearing, source = mid, "undetermined"
         sb = 0.5 * (float(g[-1]) - float(g[0])) + step
         side = "both sides" if region.cut_before and region.cut_after else "one side"
-        findings.append(
-            (
-                UNRELIABLE,
-                f"bearing not determined: the region of constant depth is cut on {side} "
-                "(a nearer echo or the sweep's end) and no amplitude peak is in it",
-            )
-        )
+        why = mixed if mixed else f"the region of constant depth is cut on {side} (a nearer echo or the sweep's end)"
+        findings.append((UNRELIABLE, f"bearing not determined: {why}, and no amplitude peak is in it"))
     caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
     d = distance[region.rows, region.capsules]
     x = capsule_x(geometry)[region.capsules]
@@ -218,8 +231,8 @@ def measure_region(
         stack_slope=slope,
         strength=strength,
         peak=peak,
-        peak_inside=not cut or peak_fit is not None,
-        exact=(not cut or peak_fit is not None) and clipped is False,
+        peak_inside=centred or peak_fit is not None,
+        exact=(centred or peak_fit is not None) and clipped is False,
         clipped=clipped is True,
         span=(float(g[0]), float(g[-1])),
         step=step,

@@ -24,7 +24,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "PLATEAU"]
+__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "amplitude_jump", "PLATEAU"]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
@@ -443,3 +443,68 @@ def extrapolated_peak(
         return None
     peak = math.exp(float(icpt) + curvature * v * v)
     return max(peak, float(a.max()))
+
+
+def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, int] | None:
+    """Where one echo takes over from another inside a region: an amplitude step no beam pattern makes.
+
+    One target's echo follows ``D(γ − β)²`` across γ, in ``log`` a parabola
+    ``log A = P − k (γ − β)²`` opening down.  Over a region of span ``L`` whose
+    amplitudes range over ``R = log(A_max / A_min)``, such a parabola changes by
+    at most ``4 R |Δγ| / L`` between two steps ``Δγ`` apart (its slope is
+    largest at the end farthest from its vertex, ``2 R / max(u, L − u) ≤ 4 R / L``).
+    A piston's flank falls faster than its parabola, at most twice as steep
+    down to 35 dB under its peak, so the bound is doubled: ``8 R |Δγ| / L``.
+
+    A jump beyond it (and beyond ``sigmas`` σ of the steps' amplitude noise, σ
+    from the second differences' median absolute deviation) that persists,
+    the two-step changes across it (from the step before it, and to the step
+    after next) beyond their bound the same way, is one echo taking over from another at the same range: a weak
+    edge's diffraction beside a strong mirror whose foot leaves its face, say.
+    One step out of line is not (a ringing echo bends one step's amplitude).
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    sigmas : float
+        How many σ of the amplitude noise a jump must exceed the bound by.
+
+    Returns
+    -------
+    (γ midway between the two steps of the largest such jump, how many of the region's steps with an
+    amplitude lie on its shorter side), or None.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 6:
+        return None
+    g, la = g[ok], np.log(a[ok])
+    order = np.argsort(g)
+    g, la = g[order], la[order]
+    span = float(g[-1] - g[0])
+    if not span > 0:
+        return None
+    second = np.diff(la, 2)
+    # Second differences of white noise have variance 6 σ².
+    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    slope = 8.0 * float(la.max() - la.min()) / span
+    noise = sigmas * math.sqrt(2.0) * sigma
+
+    def beyond(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """How far the change from step i to step j exceeds one beam pattern's, signed as the change (0: not)."""
+        change = la[j] - la[i]
+        excess = np.abs(change) - (slope * (g[j] - g[i]) + noise)
+        return np.where(excess > 0, np.sign(change) * excess, 0.0)
+
+    # Jump k lies between steps k and k + 1; it persists if k − 1 to k + 1 and k to k + 2 jump the same way.
+    k = np.arange(1, g.size - 2)
+    one = beyond(k, k + 1)
+    before, after = beyond(k - 1, k + 1), beyond(k, k + 2)
+    persists = ((one > 0) & (before > 0) & (after > 0)) | ((one < 0) & (before < 0) & (after < 0))
+    one = np.abs(one)
+    if not persists.any():
+        return None
+    j = int(k[persists][int(np.argmax(one[persists]))])
+    return 0.5 * float(g[j] + g[j + 1]), min(j + 1, g.size - j - 1)
