@@ -110,21 +110,27 @@ def _wall(plane, to_level: np.ndarray) -> WallObservation | None:
         if np.all(np.isfinite(full)) and np.linalg.eigvalsh(full).min() > 0:
             cov = full
     cov = cov + np.diag(MIN_VARIANCE)
+    return _wall_observation(plane, n, 0.5 * (cov + cov.T), to_level, plane.label)
+
+
+def _wall_observation(plane, normal: np.ndarray, cov: np.ndarray, to_level: np.ndarray, label: str) -> WallObservation:
+    """A plane message as a wall: its patch levelled (its foot at ``offset`` along ``normal`` without one), and
+    its verdict (none given: degraded, saying so)."""
     patch = np.array([to_level @ _vec(p) for p in plane.patch]).reshape(-1, 3)
     if len(patch) == 0:
-        patch = (plane.offset * n)[None, :]
+        patch = (plane.offset * normal)[None, :]
     quality = codec.QUALITY_NAME.get(plane.quality, "unassessed")
     reasons = tuple(plane.quality_reasons)
     if quality == "unassessed":
         quality, reasons = "degraded", reasons + ("the reconstruction gave no verdict",)
     return WallObservation(
-        normal=n,
+        normal=normal,
         offset=float(plane.offset),
-        covariance=0.5 * (cov + cov.T),
+        covariance=cov,
         extent=patch,
         quality=quality,
         reasons=reasons,
-        label=plane.label,
+        label=label,
     )
 
 
@@ -178,22 +184,7 @@ def _surface_wall(item, to_level: np.ndarray) -> WallObservation | None:
     # Level the normal: the wall is vertical, its trace is at the range the mirror gave.
     h = math.hypot(float(n[0]), float(n[1]))
     vertical = np.array([n[0] / h, n[1] / h, 0.0])
-    patch = np.array([to_level @ _vec(p) for p in plane.patch]).reshape(-1, 3)
-    if len(patch) == 0:
-        patch = (plane.offset * vertical)[None, :]
-    quality = codec.QUALITY_NAME.get(plane.quality, "unassessed")
-    reasons = tuple(plane.quality_reasons)
-    if quality == "unassessed":
-        quality, reasons = "degraded", reasons + ("the reconstruction gave no verdict",)
-    return WallObservation(
-        normal=vertical,
-        offset=float(plane.offset),
-        covariance=cov,
-        extent=patch,
-        quality=quality,
-        reasons=reasons,
-        label=item.label or plane.label,
-    )
+    return _wall_observation(plane, vertical, cov, to_level, item.label or plane.label)
 
 
 def _feature(f, kind: str, to_level: np.ndarray) -> FeatureObservation | None:
