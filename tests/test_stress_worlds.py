@@ -57,3 +57,12 @@ def test_a_stress_world_is_scored_without_a_crash() -> None:
     score = score_world("boxes_turned", 0, "fan", draw_stress_world("boxes_turned", 0), max_poses=1)
     assert set(score.counts) == set(COUNTS)
     assert score.counts["sweeps"] == 1 and score.counts["crash"] == 0, score.failures
+
+
+def test_an_l_plane_its_own_surface_contradicts_is_not_good() -> None:
+    """Acute room, seed 1, fan mount, first pose: the L model lands plane a on a wall's range with a normal 65° off
+    (a wall's bearing from ranges alone is ill-posed); the surface of the same echoes, its bearing from the beam
+    pattern, says so, and the plane is degraded with that reason instead of claiming good."""
+    score = score_world("acute", 1, "fan", draw_stress_world("acute", 1), max_poses=1)
+    assert score.counts["crash"] == 0, score.failures
+    assert score.counts["L good-but-wrong"] == 0, score.failures
