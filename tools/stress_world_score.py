@@ -199,7 +199,9 @@ def _score_features(score: WorldScore, scan: WorldScan, surfaces, where: str) ->
         el = scan.model.elements[k]
         p = rot @ f.point + tr
         if el.kind == ElementKind.TRIHEDRAL:
-            off = p - el.p0
+            # A vertex: its distance from the feature's line.
+            u = rot @ f.direction
+            off = (el.p0 - p) - ((el.p0 - p) @ u) * u
         else:
             d = el.p1 - el.p0
             d = d / max(float(np.linalg.norm(d)), 1e-12)
