@@ -208,7 +208,7 @@ def oracle_message(scan: WorldScan, scan_id: int, scanner_id: str = "sim") -> co
     return msg
 
 
-def _faces(model: WorldModel) -> list[tuple[int, np.ndarray, np.ndarray, float]]:
+def vertical_faces(model: WorldModel) -> list[tuple[int, np.ndarray, np.ndarray, float]]:
     """Vertical faces of the world: (surface index, centre xy, normal xy, half length)."""
     out = []
     for i, s in enumerate(model.surfaces):
@@ -270,7 +270,7 @@ def tour(family: str, seed: int, method: str = "lel") -> TourResult:
     config = FusionConfig()
     fused, updates = fuse(observed, config)
     fused_oracle, _ = fuse(oracle, config)
-    faces = _faces(run.model)
+    faces = vertical_faces(run.model)
     out = TourResult(family, seed, updates=updates)
     out.walls = [score_wall(w, faces) for w in fused.walls]
     out.oracle_walls = [score_wall(w, faces) for w in fused_oracle.walls]
