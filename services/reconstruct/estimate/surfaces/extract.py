@@ -71,6 +71,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     extrapolated_peak,
     find_regions,
     log_amplitude_curvature,
+    peak_at_bearing,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
 
@@ -78,6 +79,8 @@ __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfac
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
+#: The reason a feature carries when its echoes cannot settle corner against edge (its kind is then a placeholder).
+UNSETTLED = "kind not settled: its echo's strength is unknown (its peak lies outside the sweep or under a nearer echo)"
 
 
 def _fit_surface(
@@ -376,7 +379,10 @@ def extract_surfaces(
             if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
                 continue
             nj = unit_normal(mj.bearing, mj.tilt)
-            tol = opts.on_trace + 3 * mj.depth * abs(math.sin(measured[i].bearing - mj.bearing)) * mj.bearing_stderr
+            # n_j · p moves with either bearing by ρ·sin(β_i − β_j) per rad: 3 σ of both.
+            mi = measured[i]
+            sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
+            tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
             if abs(float(nj @ p) - mj.depth) <= tol:
                 out.append(j)
         return out
@@ -454,13 +460,30 @@ def extract_surfaces(
             mj = measured[ties[0]]
             ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
             of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
+            # Where the region holds neither its peak nor a flank that settles it, the trace's bearing does:
+            # the beam pattern from there back to each step gives the peak (see peak_at_bearing).
+            at = peak_at_bearing(g[m.region.steps], m.step_amplitude, m.bearing, beam_k)
+            traced = float("nan") if at is None else mirror_normalised(at[0], m.depth, opts)
+            near_top = at is not None and at[1] <= math.log(2.0)
             if weak(m, ref):
                 text = f"on a plane's trace off its foot, with a weak (diffracted) echo: under {of}"
                 kinds[i] = ("edge", [f"{text} × {opts.weak_echo:.2f}"], ties)
             elif strong(m, ref):
                 kinds[i] = ("corner", [f"on a plane's trace off its foot, with an echo as strong as {of}"], ties)
+            elif math.isfinite(ref) and traced >= opts.weak_echo * ref:
+                text = (
+                    f"on a plane's trace off its foot, with an echo as strong as {of} once the beam pattern is "
+                    f"taken back to the bearing the trace puts it at ({100 * traced / ref:.0f} %)"
+                )
+                kinds[i] = ("corner", [text], ties)
+            elif math.isfinite(ref) and near_top:
+                text = (
+                    f"on a plane's trace off its foot, with a weak (diffracted) echo at the bearing the trace puts "
+                    f"it at: {100 * traced / ref:.0f} % of {of}"
+                )
+                kinds[i] = ("edge", [text], ties)
             else:
-                kinds[i] = ("edge", ["on a plane's trace off its foot (its end); echo strength unknown"], ties)
+                kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
         elif weak(m):
             kinds[i] = (
                 "edge",
