@@ -436,3 +436,56 @@ def test_a_box_face_whose_foot_is_at_its_end_in_a_toured_world_is_not_claimed_go
             faced += 1
             assert s.quality != "good" and any("two echoes at one range" in r for r in s.reasons), s.reasons
     assert faced == 1
+
+
+def test_a_wall_end_whose_peak_lies_past_the_sweep_is_weighed_at_the_bearing_its_trace_puts_it():
+    e = Echoes(seed=11)
+    e.plane(math.radians(-120.0), 0.7)
+    # A corner as strong as the wall's mirror (gain 1) where the wall meets an unseen one, on its trace 48° off
+    # its foot: at bearing −168°, 18° past the sweep's start.  Its region shows only the flank, at most 23 % of
+    # its peak: a lower bound alone cannot call it strong, the upper estimate cannot call it weak.
+    rho = 0.7 / math.cos(math.radians(48.0))
+    end = rho * np.array([math.cos(math.radians(-168.0)), math.sin(math.radians(-168.0))])
+    e.vertical_line(float(end[0]), float(end[1]), gain=1.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and len(result.corners) == 1 and not result.edges
+    corner = result.corners[0]
+    assert corner.settled and "the bearing the trace puts it at" in corner.reasons[0], corner.reasons
+    assert corner.surfaces == (result.surfaces[0].label,)
+    assert abs(math.degrees(corner.bearing) + 168.0) < 1.0
+    # A Gaussian beam is its own parabola: the peak comes back within the amplitudes' own scatter.
+    share = float(corner.reasons[0].rsplit("(", 1)[1].split(" %")[0])
+    assert 80 <= share <= 125, share
+
+
+def test_the_double_bounce_of_a_floor_and_the_wall_behind_past_the_sweeps_end_is_a_corner():
+    # The paper mount in the corridor of seed 3, its second pose: the sweep starts 40° past straight down, where
+    # the floor meets the wall behind; only the flank of that corner's echo is in the sweep.
+    model = build_model(draw_world("corridor", 3, mount="paper"))
+    scan = simulate_world_scan(model, 1, seed=3 * 1000 + 1)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    k = next(k for k, el in enumerate(model.elements) if el.label == "wall3|floor")
+    holders = [f for f in (*result.corners, *result.edges) if np.mean(scan.echo_index[f.steps] == k) > 0.5]
+    assert [f.kind for f in holders] == ["corner"], [(f.kind, f.reasons) for f in holders]
+
+
+def test_a_corner_whose_amplitude_peak_is_a_few_sigma_off_still_lies_on_its_wall_trace():
+    # The fan mount in the corridor of seed 9, its first pose: the two corners with the end wall behind, each
+    # cut on both sides, take their bearing from an amplitude peak 3° from the truth; the wall behind is seen
+    # only in fragments, so each corner ties to one wall, whose trace it lies on within both bearings' σ.
+    model = build_model(draw_world("corridor", 9))
+    scan = simulate_world_scan(model, 0, seed=9 * 1000)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    corners = [
+        k
+        for k, el in enumerate(model.elements)
+        if el.kind == ElementKind.DIHEDRAL and el.label[:11] in ("wall1|wall2", "wall2|wall4")
+    ]
+    assert len(corners) == 2
+    for k in corners:
+        holders = [("plane", s.steps) for s in result.surfaces] + [(f.kind, f.steps) for f in result.corners]
+        holders += [(f.kind, f.steps) for f in result.edges]
+        kinds = [kind for kind, steps in holders if np.mean(scan.echo_index[steps] == k) > 0.5]
+        assert kinds == ["corner"], (model.elements[k].label, kinds)

@@ -73,14 +73,12 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     log_amplitude_curvature,
     peak_at_bearing,
 )
-from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
+from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
-#: The reason a feature carries when its echoes cannot settle corner against edge (its kind is then a placeholder).
-UNSETTLED = "kind not settled: its echo's strength is unknown (its peak lies outside the sweep or under a nearer echo)"
 
 
 def _fit_surface(
