@@ -450,7 +450,7 @@ def test_a_wall_end_whose_peak_lies_past_the_sweep_is_weighed_at_the_bearing_its
     result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
     assert len(result.surfaces) == 1 and len(result.corners) == 1 and not result.edges
     corner = result.corners[0]
-    assert corner.settled and "the bearing the trace puts it at" in corner.reasons[0], corner.reasons
+    assert corner.settled and "taken back there" in corner.reasons[0], corner.reasons
     assert corner.surfaces == (result.surfaces[0].label,)
     assert abs(math.degrees(corner.bearing) + 168.0) < 1.0
     # A Gaussian beam is its own parabola: the peak comes back within the amplitudes' own scatter.
@@ -489,3 +489,40 @@ def test_a_corner_whose_amplitude_peak_is_a_few_sigma_off_still_lies_on_its_wall
         holders += [(f.kind, f.steps) for f in result.edges]
         kinds = [kind for kind, steps in holders if np.mean(scan.echo_index[steps] == k) > 0.5]
         assert kinds == ["corner"], (model.elements[k].label, kinds)
+
+
+def test_a_wall_foot_on_the_floor_below_a_horizontal_fan_splits_off_the_walls_flanks_by_their_stack_slope():
+    e = Echoes(seed=12)
+    e.plane(0.0, 4.0)
+    # The wall meets the floor 0.24 m below the stack's middle: the double bounce lies behind the wall by
+    # z²/(2h) = 7 mm at most, within the range tolerance, at the wall's own bearing, and (a retro-reflector,
+    # twice as bright) outlasts the wall's mirror by a few steps on either side of its region.
+    e.across_line(np.array([-0.24, 4.0, 0.0]), np.array([0.0, 0.0, 1.0]), gain=2.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and not result.edges
+    wall = result.surfaces[0]
+    assert abs(wall.offset - 4.0) < 3 * wall.plane.offset_stderr + 0.002 and abs(wall.bearing) < 3 * math.sqrt(
+        wall.covariance[0, 0]
+    )
+    assert len(result.corners) == 2, [c.reasons for c in result.corners]
+    for c in result.corners:
+        assert c.surfaces == (wall.label,) and "double bounce" in c.reasons[0], c.reasons
+        # The line's point: the wall's foot, 0.24 m down the stack.
+        assert np.linalg.norm(c.point - np.array([-0.24, 4.0, 0.0])) < 0.05, c.point
+    # The flanks are the wall's region's two ends, one on either side of its foot.
+    sides = sorted(float(np.median(GAMMA[c.steps])) for c in result.corners)
+    assert sides[0] < GAMMA[wall.steps].min() and sides[1] > GAMMA[wall.steps].max()
+
+
+def test_a_walls_foot_on_the_floor_in_a_simulated_room_is_a_corner_at_both_flanks():
+    # The fan mount in the room of seed 13, its second pose: the wall 4.3 m away meets the floor 0.24 m below
+    # the stack's middle; that corner's echoes hold both ends of the wall's region.
+    model = build_model(draw_world("room", 13))
+    scan = simulate_world_scan(model, 1, seed=13 * 1000 + 1)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    k = next(k for k, el in enumerate(model.elements) if el.label == "wall3|floor")
+    holders = [("plane", s.steps) for s in result.surfaces] + [(f.kind, f.steps) for f in result.corners]
+    holders += [(f.kind, f.steps) for f in result.edges]
+    kinds = [kind for kind, steps in holders if np.mean(scan.echo_index[steps] == k) > 0.5]
+    assert kinds == ["corner", "corner"], kinds

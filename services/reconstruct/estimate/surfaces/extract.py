@@ -60,6 +60,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     plane_end,
     plane_line,
     split_dihedral,
+    split_flanks,
     stack_dihedral,
     sweep_step,
     unit_normal,
@@ -315,6 +316,8 @@ def extract_surfaces(
     for i in range(len(measured)):
         split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
     measured = split
+    # A region whose ends slope along the stack as its middle does not: the flanks are another target's.
+    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
     regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
@@ -361,6 +364,40 @@ def extract_surfaces(
     def strong(m: Measured, ref: float = mirror) -> bool:
         # The observed peak is a lower bound of the region's.
         return math.isfinite(ref) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * ref
+
+    def end_strength(m: Measured, mj: Measured, *, confirmed: bool = False) -> tuple[str, str]:
+        """Whether a plane's end (or its line across the fan) echoes weakly, strongly or unknown, and why.
+
+        Against the plane's own mirror echo (same material, a like range) where its peak is clean, else the
+        sweep's strongest.  In order: the region's own peak is a lower bound (strong); where a step lies on
+        the beam's top, the beam pattern taken back from its steps to the bearing the geometry puts it at (see
+        peak_at_bearing) is close to the peak (strong or weak); the upper estimate from its flank's own slope
+        (weak); that beam pattern taken back from farther out, a lower bound (strong).  ``confirmed``: the
+        readings themselves confirm the bearing (one line explains every range), so that lower bound comes
+        before the flank's slope, whose few steps' noise can put its vertex anywhere.
+        """
+        ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
+        of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
+        if not math.isfinite(ref):
+            return "unknown", ""
+        if strong(m, ref):
+            return "strong", f"with an echo as strong as {of}"
+        at = peak_at_bearing(g[m.region.steps], m.step_amplitude, m.bearing, beam_k)
+        traced = float("nan") if at is None else mirror_normalised(at[0], m.depth, opts)
+        share = f"{100 * traced / ref:.0f} % of {of} at the bearing the geometry puts it at"
+        strong_there = f"with an echo as strong as {of} once the beam pattern is taken back there ({share})"
+        if confirmed and traced >= opts.weak_echo * ref:
+            return "strong", strong_there
+        if at is not None and at[1] <= math.log(2.0):
+            # A step on the beam's top: the estimate is close to the peak either way.
+            if traced >= opts.weak_echo * ref:
+                return "strong", strong_there
+            return "weak", f"with a weak (diffracted) echo: {share}"
+        if weak(m, ref):
+            return "weak", f"with a weak (diffracted) echo: under {of} × {opts.weak_echo:.2f}"
+        if traced >= opts.weak_echo * ref:
+            return "strong", strong_there
+        return "unknown", ""
 
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
@@ -417,10 +454,11 @@ def extract_surfaces(
             )
             # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
             # diffracts, the wall's free top or bottom edge.
-            if weak(m):
-                kinds[i] = ("edge", [text.replace("double bounce", "line"), "with a weak (diffracted) echo"], [pool[j]])
+            verdict, why = end_strength(m, pj, confirmed=True)
+            if verdict == "weak":
+                kinds[i] = ("edge", [text.replace("double bounce", "line"), why], [pool[j]])
             else:
-                kinds[i] = ("corner", [text], [pool[j]])
+                kinds[i] = ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]])
             across_lines.add(i)
             continue
         if across[i]:
@@ -453,33 +491,11 @@ def extract_surfaces(
                 ties[:2],
             )
         elif len(ties) == 1:
-            # A plane's end against that plane's own mirror echo (same material, a like range), measured where
-            # its peak is clean; else against the sweep's strongest.
-            mj = measured[ties[0]]
-            ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
-            of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
-            # Where the region holds neither its peak nor a flank that settles it, the trace's bearing does:
-            # the beam pattern from there back to each step gives the peak (see peak_at_bearing).
-            at = peak_at_bearing(g[m.region.steps], m.step_amplitude, m.bearing, beam_k)
-            traced = float("nan") if at is None else mirror_normalised(at[0], m.depth, opts)
-            near_top = at is not None and at[1] <= math.log(2.0)
-            if weak(m, ref):
-                text = f"on a plane's trace off its foot, with a weak (diffracted) echo: under {of}"
-                kinds[i] = ("edge", [f"{text} × {opts.weak_echo:.2f}"], ties)
-            elif strong(m, ref):
-                kinds[i] = ("corner", [f"on a plane's trace off its foot, with an echo as strong as {of}"], ties)
-            elif math.isfinite(ref) and traced >= opts.weak_echo * ref:
-                text = (
-                    f"on a plane's trace off its foot, with an echo as strong as {of} once the beam pattern is "
-                    f"taken back to the bearing the trace puts it at ({100 * traced / ref:.0f} %)"
-                )
-                kinds[i] = ("corner", [text], ties)
-            elif math.isfinite(ref) and near_top:
-                text = (
-                    f"on a plane's trace off its foot, with a weak (diffracted) echo at the bearing the trace puts "
-                    f"it at: {100 * traced / ref:.0f} % of {of}"
-                )
-                kinds[i] = ("edge", [text], ties)
+            verdict, why = end_strength(m, measured[ties[0]])
+            if verdict == "weak":
+                kinds[i] = ("edge", [f"on a plane's trace off its foot, {why}"], ties)
+            elif verdict == "strong":
+                kinds[i] = ("corner", [f"on a plane's trace off its foot, {why}"], ties)
             else:
                 kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
         elif weak(m):
