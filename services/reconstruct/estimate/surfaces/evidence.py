@@ -24,6 +24,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     capsule_x,
     stack_fits,
+    subregion,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -43,8 +44,6 @@ __all__ = [
     "plane_end",
     "plane_line",
     "split_dihedral",
-    "split_flanks",
-    "step_slopes",
     "stack_dihedral",
     "wrap",
 ]
@@ -404,13 +403,6 @@ def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-def _subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
-    keep = np.isin(region.rows, steps)
-    return Region(
-        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
-    )
-
-
 def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
     """The block of steps at the start that lies deeper than the rest, if significant: (length, depth
     difference m, its standard error m).
@@ -499,12 +491,12 @@ def split_dihedral(
         block, step, step_se = found
         if after:
             plane_steps, corner_steps = r.steps[: r.steps.size - block], r.steps[r.steps.size - block :]
-            plane_r = _subregion(r, plane_steps, r.cut_before, False)
-            corner_r = _subregion(r, corner_steps, True, r.cut_after)
+            plane_r = subregion(r, plane_steps, r.cut_before, False)
+            corner_r = subregion(r, corner_steps, True, r.cut_after)
         else:
             corner_steps, plane_steps = r.steps[:block], r.steps[block:]
-            plane_r = _subregion(r, plane_steps, False, r.cut_after)
-            corner_r = _subregion(r, corner_steps, r.cut_before, True)
+            plane_r = subregion(r, plane_steps, False, r.cut_after)
+            corner_r = subregion(r, corner_steps, r.cut_before, True)
         plane_m, corner_m = (measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r))
         # The block must lie where the line of the plane so placed puts it: deeper by |X| − h.
         line = plane_line(plane_m, mj)
@@ -515,120 +507,3 @@ def split_dihedral(
             return None
         return [plane_m, corner_m]
     return None
-
-
-def step_slopes(m: Measured) -> tuple[np.ndarray, np.ndarray]:
-    """Each of the region's steps' slope of range along the capsule stack, ``∂d/∂x``, and its σ.
-
-    A plane gives every step its one slope, ``−n_x`` (its tilt); a line across the stack (a wall's foot on
-    the floor, a box's top edge) a slope that follows the capsules' offset from it.  The σ is the range
-    noise (pooled over the steps' residuals about their own lines, so whatever target a step holds) over
-    ``√Σ(x − x̄)²`` of that step's capsules.
-
-    Returns
-    -------
-    slopes, sigmas : (k,) arrays over ``region.steps`` (NaN under two capsules, or without residual dof).
-    """
-    r = m.region
-    k = r.steps.size
-    pos = np.searchsorted(r.steps, r.rows)
-    x, d = m.positions[:, 0], m.ranges
-    n = np.bincount(pos, minlength=k).astype(float)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mx = np.bincount(pos, weights=x, minlength=k) / n
-        md = np.bincount(pos, weights=d, minlength=k) / n
-        sxx = np.bincount(pos, weights=(x - mx[pos]) ** 2, minlength=k)
-        sxd = np.bincount(pos, weights=(x - mx[pos]) * (d - md[pos]), minlength=k)
-        slopes = np.where((n >= 2) & (sxx > 0), sxd / sxx, np.nan)
-        resid = d - md[pos] - np.nan_to_num(slopes[pos]) * (x - mx[pos])
-    dof = float(np.sum(np.maximum(n - 2, 0)))
-    if not dof > 0:
-        return slopes, np.full(k, np.nan)
-    noise = math.sqrt(float(np.sum(np.where(n[pos] > 2, resid * resid, 0.0))) / dof)
-    with np.errstate(divide="ignore"):
-        return slopes, np.where(np.isfinite(slopes), noise / np.sqrt(sxx), np.nan)
-
-
-def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
-    """The run of steps at the start whose slopes stand off the rest together: its length, 0 for none.
-
-    ``z``: each step's deviation from the region's slope in its own σ (NaN: none).  The run is the one of
-    largest ``t = Σ z / √n`` (``n`` its steps with a slope), which must exceed ``sigmas``, with at least
-    ``min_steps`` slopes in it and twice that left after it.
-    """
-    ok = np.isfinite(z)
-    zs = np.cumsum(np.where(ok, z, 0.0))
-    ns = np.cumsum(ok)
-    left = ns[-1] - ns
-    best, length = 0.0, 0
-    for b in range(z.size):
-        if ns[b] < min_steps or not ok[b]:
-            continue
-        if left[b] < 2 * min_steps:
-            break
-        t = abs(float(zs[b])) / math.sqrt(float(ns[b]))
-        if t > best:
-            best, length = t, b + 1
-    return length if best > sigmas else 0
-
-
-def split_flanks(
-    m: Measured,
-    gamma: np.ndarray,
-    distance: np.ndarray,
-    amplitude: np.ndarray | None,
-    geometry: ArrayGeometry,
-    opts: SurfaceOptions,
-) -> list[Measured] | None:
-    """A plane's region whose end steps slope along the stack as its middle's do not: another target there.
-
-    Where a wall meets the floor below a horizontal fan, the corner's double bounce lies behind the wall by
-    ``z²/(2h)`` only (``z`` the array's height, ``h`` the wall's depth): within the range tolerance, and at
-    the wall's own bearing.  Where the beam turns off the wall, the corner (brighter: two reflections of a
-    retro-reflector against one mirror) stays over the receiver's threshold a few steps longer than the wall,
-    so the region's ends are the corner's.  The capsule stack tells them apart: the wall's ranges take its one
-    slope at every step, the corner's the slope of the capsules' distances to a line off the stack's middle.
-    Each end's run of steps whose slopes stand off the region's median slope together by more than
-    ``curvature_sigmas`` of their σ (:func:`step_slopes`, ``Σz/√n``), ``min_steps`` long, splits off, cut on
-    the middle's side.  The
-    middle keeps the whole region's bearing when that came from its centre: the flanks' target shares it (a
-    line's nearest point lies at the wall's foot), so the span stays symmetric about the foot.
-
-    Returns
-    -------
-    The region's replacement (the flanks and the middle, in sweep order), or None.
-    """
-    r = m.region
-    if r.steps.size < 3 * opts.min_steps:
-        return None
-    slopes, sigmas = step_slopes(m)
-    ok = np.isfinite(slopes) & np.isfinite(sigmas) & (sigmas > 0)
-    if np.count_nonzero(ok) < 3 * opts.min_steps:
-        return None
-    ref = float(np.median(slopes[ok]))
-    z = np.where(ok, (slopes - ref) / np.where(ok, sigmas, 1.0), np.nan)
-    head = _flank(z, opts.min_steps, opts.curvature_sigmas)
-    tail = _flank(z[::-1], opts.min_steps, opts.curvature_sigmas)
-    if not (head or tail) or np.count_nonzero(ok[head : r.steps.size - tail]) < opts.min_steps:
-        return None
-    middle = _subregion(r, r.steps[head : r.steps.size - tail], r.cut_before, r.cut_after)
-    centre = measure_region(middle, gamma, distance, amplitude, geometry, opts, step=m.step)
-    if m.bearing_source == "region centre":
-        h_i = centre.ranges + centre.positions @ unit_normal(m.bearing, centre.tilt)
-        centre = replace(
-            centre,
-            bearing=m.bearing,
-            bearing_stderr=m.bearing_stderr,
-            bearing_source=m.bearing_source,
-            findings=m.findings,
-            depth=float(np.median(h_i)),
-        )
-    out: list[Region | None] = []
-    if head:
-        out.append(_subregion(r, r.steps[:head], r.cut_before, True))
-    out.append(None)
-    if tail:
-        out.append(_subregion(r, r.steps[r.steps.size - tail :], True, r.cut_after))
-    return [
-        centre if s is None else measure_region(s, gamma, distance, amplitude, geometry, opts, step=m.step) for s in out
-    ]

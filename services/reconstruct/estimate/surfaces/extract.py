@@ -60,12 +60,12 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     plane_end,
     plane_line,
     split_dihedral,
-    split_flanks,
     stack_dihedral,
     sweep_step,
     unit_normal,
     wrap,
 )
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_flanks
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,

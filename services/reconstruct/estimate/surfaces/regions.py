@@ -31,6 +31,7 @@ __all__ = [
     "bearing_from_amplitude",
     "amplitude_jump",
     "peak_at_bearing",
+    "subregion",
     "PLATEAU",
 ]
 
@@ -118,6 +119,14 @@ def find_regions(
             )
         )
     return out
+
+
+def subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
+    """The part of ``region`` over ``steps`` (its readings there), with the cut flags given."""
+    keep = np.isin(region.rows, steps)
+    return Region(
+        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
+    )
 
 
 @kernel
