@@ -8,8 +8,8 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.estimate.surfaces.evidence import Measured, measure_region, unit_normal
-from lelsonar.reconstruct.estimate.surfaces.regions import Region, subregion
+from lelsonar.reconstruct.estimate.surfaces.evidence import Measured, measure_region, stack_dihedral, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.regions import subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = ["split_flanks", "step_slopes"]
@@ -88,7 +88,8 @@ def split_flanks(
     slope at every step, the corner's the slope of the capsules' distances to a line off the stack's middle.
     Each end's run of steps whose slopes stand off the region's median slope together by more than
     ``curvature_sigmas`` of their σ (:func:`step_slopes`, ``Σz/√n``), ``min_steps`` long, splits off, cut on
-    the middle's side.  The
+    the middle's side, where the middle's own double bounce with a surface across the fan explains its
+    ranges (:func:`~.evidence.stack_dihedral`); else it stays the plane's.  The
     middle keeps the whole region's bearing when that came from its centre: the flanks' target shares it (a
     line's nearest point lies at the wall's foot), so the span stays symmetric about the foot.
 
@@ -109,11 +110,14 @@ def split_flanks(
     tail = _flank(z[::-1], opts.min_steps, opts.curvature_sigmas)
     if not (head or tail) or np.count_nonzero(ok[head : r.steps.size - tail]) < opts.min_steps:
         return None
-    middle = subregion(r, r.steps[head : r.steps.size - tail], r.cut_before, r.cut_after)
-    centre = measure_region(middle, gamma, distance, amplitude, geometry, opts, step=m.step)
-    if m.bearing_source == "region centre":
+
+    def middle_of(head: int, tail: int) -> Measured:
+        middle = subregion(r, r.steps[head : r.steps.size - tail], r.cut_before, r.cut_after)
+        centre = measure_region(middle, gamma, distance, amplitude, geometry, opts, step=m.step)
+        if m.bearing_source != "region centre":
+            return centre
         h_i = centre.ranges + centre.positions @ unit_normal(m.bearing, centre.tilt)
-        centre = replace(
+        return replace(
             centre,
             bearing=m.bearing,
             bearing_stderr=m.bearing_stderr,
@@ -121,12 +125,30 @@ def split_flanks(
             findings=m.findings,
             depth=float(np.median(h_i)),
         )
-    out: list[Region | None] = []
+
+    centre = middle_of(head, tail)
+    # A flank stays split only where the middle's own double bounce with a surface across the fan explains it.
+    first = last = None
     if head:
-        out.append(subregion(r, r.steps[:head], r.cut_before, True))
-    out.append(None)
+        first = measure_region(
+            subregion(r, r.steps[:head], r.cut_before, True), gamma, distance, amplitude, geometry, opts, step=m.step
+        )
+        if stack_dihedral(first, [centre], opts) is None:
+            first, head = None, 0
     if tail:
-        out.append(subregion(r, r.steps[r.steps.size - tail :], True, r.cut_after))
-    return [
-        centre if s is None else measure_region(s, gamma, distance, amplitude, geometry, opts, step=m.step) for s in out
-    ]
+        last = measure_region(
+            subregion(r, r.steps[r.steps.size - tail :], True, r.cut_after),
+            gamma,
+            distance,
+            amplitude,
+            geometry,
+            opts,
+            step=m.step,
+        )
+        if stack_dihedral(last, [centre], opts) is None:
+            last, tail = None, 0
+    if first is None and last is None:
+        return None
+    if first is None or last is None:
+        centre = middle_of(head, tail)
+    return [x for x in (first, centre, last) if x is not None]
