@@ -118,6 +118,7 @@ class ScanRecord:
     good_planes: int = 0  # extracted planes claiming good
     good_off_every: int = 0  # of those, off every true mirror of the world by > 2 cm (false good)
     good_off_details: tuple[str, ...] = ()  # one line per such plane
+    missed: tuple[str, ...] = ()  # one line per mirror seen but claimed by no plane
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -179,9 +180,14 @@ def nearest_mirror(scan: WorldScan, surf: Surface) -> tuple[int, float]:
     return best
 
 
-def _majority(scan: WorldScan, steps: np.ndarray) -> tuple[int, int]:
-    idx = scan.echo_index[steps].ravel()
-    ok = np.isfinite(scan.distance[steps].ravel()) & (idx >= 0)
+def _majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
+    """The element most of an item's readings are (its own readings if it has them, else its steps')."""
+    if surf is not None and surf.rows is not None and surf.capsules is not None:
+        idx = scan.echo_index[surf.rows, surf.capsules]
+        ok = np.isfinite(scan.distance[surf.rows, surf.capsules]) & (idx >= 0)
+    else:
+        idx = scan.echo_index[steps].ravel()
+        ok = np.isfinite(scan.distance[steps].ravel()) & (idx >= 0)
     if not ok.any():
         return -1, 0
     vals, counts = np.unique(idx[ok], return_counts=True)
@@ -203,10 +209,13 @@ def _element_kind(model: WorldModel, k: int, scan: WorldScan, steps: np.ndarray)
     return TRUE_CLASS[model.elements[k].kind]
 
 
-def _own_share(scan: WorldScan, steps: np.ndarray, element: int) -> float:
-    """Of the readings in the surface's steps, the share that are the element's own (non-diffuse) echoes."""
-    ok = np.isfinite(scan.distance[steps])
-    own = ok & (scan.echo_index[steps] == element) & (scan.echo_source[steps] != EchoSource.DIFFUSE)
+def _own_share(scan: WorldScan, steps: np.ndarray, element: int, surf: Surface | None = None) -> float:
+    """Of the surface's readings (else those in its steps), the share that are the element's own echoes."""
+    at: tuple[np.ndarray, ...] = (steps,)
+    if surf is not None and surf.rows is not None and surf.capsules is not None:
+        at = (surf.rows, surf.capsules)
+    ok = np.isfinite(scan.distance[at])
+    own = ok & (scan.echo_index[at] == element) & (scan.echo_source[at] != EchoSource.DIFFUSE)
     n_ok = int(np.count_nonzero(ok))
     return int(np.count_nonzero(own)) / max(n_ok, 1)
 
@@ -241,7 +250,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
     items += [("corner", f.steps, None) for f in result.corners] + [("edge", f.steps, None) for f in result.edges]
     for cls, steps, surf in items:
-        k, _ = _majority(scan, steps)
+        k, _ = _majority(scan, steps, surf)
         truth = _element_kind(model, k, scan, steps)
         if truth is None or truth != cls:
             false[cls] += 1
@@ -276,7 +285,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
                     ang,
                     int(counts[k]),
                     wall=label.startswith("wall"),
-                    own_share=_own_share(scan, steps, k),
+                    own_share=_own_share(scan, steps, k, surf),
                     flagged=surf.quality != "good" and bool(surf.reasons),
                     range_noise=scan.rig.receiver.tof_jitter,
                     kind=true_surface.kind,
@@ -300,6 +309,13 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             kind = model.surfaces[model.elements[k].surfaces[0]].kind
             seen_kind[kind] = seen_kind.get(kind, 0) + 1
             found_kind[kind] = found_kind.get(kind, 0) + int("plane" in claimed.get(k, set()))
+    missed = tuple(
+        f"{family} seed {seed} pose {scan.pose_index} element {k} "
+        f"({model.surfaces[model.elements[k].surfaces[0]].kind}, {int(counts[k])} echoes): "
+        + (f"claimed as {', '.join(sorted(claimed[k]))}" if k in claimed else "in no item's majority")
+        for k in sorted(seen_el)
+        if model.elements[k].kind == ElementKind.MIRROR and "plane" not in claimed.get(k, set())
+    )
     share = result.n_unexplained / max(result.n_echoes, 1)
     return ScanRecord(
         planes,
@@ -315,6 +331,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
         good_planes=good_planes,
         good_off_every=len(off_every),
         good_off_details=tuple(off_every),
+        missed=missed,
     )
 
 
@@ -614,6 +631,8 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
     for family in families:
         for line in (line for r in records[family] for line in r.good_off_details):
             console.print(f"good plane off every true mirror ({mount} mount): {line}")
+        for line in (line for r in records[family] for line in r.missed):
+            console.print(f"plane seen but not found ({mount} mount): {line}")
     for family, p in neither:
         console.print(
             f"wall good but over 3× its oracle and the range noise ({mount} mount): {family} seed {p.seed} "
