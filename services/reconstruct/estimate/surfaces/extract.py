@@ -62,6 +62,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     split_dihedral,
     stack_dihedral,
     sweep_step,
+    trim_ends,
     unit_normal,
     wrap,
 )
@@ -69,6 +70,7 @@ from lelsonar.reconstruct.estimate.surfaces.flanks import split_flanks
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
+    capsule_x,
     extrapolated_peak,
     find_regions,
     log_amplitude_curvature,
@@ -141,6 +143,8 @@ def _fit_surface(
         bearing_source=m.bearing_source,
         steps=r.steps.copy(),
         n_echoes=r.n_echoes,
+        rows=r.rows.copy(),
+        capsules=r.capsules.copy(),
     )
 
 
@@ -180,6 +184,8 @@ def _joint_surface(
         bearing_source=m.bearing_source,
         steps=m.region.steps.copy(),
         n_echoes=m.region.n_echoes,
+        rows=m.region.rows.copy(),
+        capsules=m.region.capsules.copy(),
     )
 
 
@@ -308,16 +314,27 @@ def extract_surfaces(
     amp = None if amplitude is None else np.asarray(amplitude, dtype=np.float64)
     if amp is not None and amp.shape != d.shape:
         raise ConfigError(f"amplitude must have the shape of distance {d.shape}, got {amp.shape}")
-    regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
+    # One target's ranges differ between two capsules by no more than their distance apart.
+    x = capsule_x(geometry)
+    spread = float(x.max() - x.min()) + opts.range_tolerance
+    regions = find_regions(
+        d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+    )
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
+    # A region whose ends are its plane's double bounce with a surface across the fan, split off both at once (the
+    # plane keeps the whole region's centre, its foot); then any end that still slopes off the plane's.
+    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
+    # A plane's region whose end steps are a line across the stack at a like range: its core and those ends.
+    trimmed: list[Measured] = []
+    for i in range(len(measured)):
+        trimmed.extend(trim_ends(i, measured, g, d, amp, geometry, opts) or [measured[i]])
+    measured = trimmed
     # A plane's region that runs on into its corner with a nearer plane: split where the steps tell them apart.
     split: list[Measured] = []
     for i in range(len(measured)):
         split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
     measured = split
-    # A region whose ends slope along the stack as its middle does not: the flanks are another target's.
-    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
     regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is

@@ -66,7 +66,12 @@ class Region:
 
 
 def find_regions(
-    distance: np.ndarray, *, tolerance: float = 0.015, max_gap: int = 2, min_steps: int = 3
+    distance: np.ndarray,
+    *,
+    tolerance: float = 0.015,
+    max_gap: int = 2,
+    min_steps: int = 3,
+    max_spread: float = math.inf,
 ) -> list[Region]:
     """Split a sweep into regions of constant depth.
 
@@ -92,6 +97,11 @@ def find_regions(
         Steps without an echo a run may bridge.
     min_steps : int
         Shorter runs are not regions (their echoes stay unexplained).
+    max_spread : float
+        m: a reading farther than this from its step's median over the region's readings is not the
+        region's.  One target's ranges differ between two capsules by at most their distance apart
+        (the triangle inequality), so the stack's length plus the tolerance bounds them: a capsule
+        whose median sits past it sees another target through most of the region.
 
     Returns
     -------
@@ -109,6 +119,17 @@ def find_regions(
     bounds = np.flatnonzero(np.diff(label[labelled])) + 1
     for k, steps in enumerate(np.split(labelled, bounds) if labelled.size else []):
         rows, caps = np.nonzero(keep[steps])
+        if math.isfinite(max_spread) and rows.size:
+            block = np.where(keep[steps], d[steps], np.nan)
+            with np.errstate(all="ignore"):
+                med = np.nanmedian(block, axis=1)
+            near = np.abs(block[rows, caps] - med[rows]) <= max_spread
+            rows, caps = rows[near], caps[near]
+            held = np.unique(rows)
+            if held.size < min_steps:
+                continue
+            # Renumber the rows over the steps that still hold a reading.
+            steps, rows = steps[held], np.searchsorted(held, rows)
         out.append(
             Region(
                 steps=steps.astype(np.intp),
