@@ -62,19 +62,23 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     split_dihedral,
     stack_dihedral,
     sweep_step,
+    trim_ends,
     unit_normal,
     wrap,
 )
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_flanks
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
+    capsule_x,
     extrapolated_peak,
     find_regions,
     log_amplitude_curvature,
+    peak_at_bearing,
 )
-from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
+from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
@@ -139,6 +143,8 @@ def _fit_surface(
         bearing_source=m.bearing_source,
         steps=r.steps.copy(),
         n_echoes=r.n_echoes,
+        rows=r.rows.copy(),
+        capsules=r.capsules.copy(),
     )
 
 
@@ -178,6 +184,8 @@ def _joint_surface(
         bearing_source=m.bearing_source,
         steps=m.region.steps.copy(),
         n_echoes=m.region.n_echoes,
+        rows=m.region.rows.copy(),
+        capsules=m.region.capsules.copy(),
     )
 
 
@@ -306,9 +314,22 @@ def extract_surfaces(
     amp = None if amplitude is None else np.asarray(amplitude, dtype=np.float64)
     if amp is not None and amp.shape != d.shape:
         raise ConfigError(f"amplitude must have the shape of distance {d.shape}, got {amp.shape}")
-    regions = find_regions(d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps)
+    # One target's ranges differ between two capsules by no more than their distance apart.
+    x = capsule_x(geometry)
+    spread = float(x.max() - x.min()) + opts.range_tolerance
+    regions = find_regions(
+        d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+    )
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
+    # A region whose ends are its plane's double bounce with a surface across the fan, split off both at once (the
+    # plane keeps the whole region's centre, its foot); then any end that still slopes off the plane's.
+    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
+    # A plane's region whose end steps are a line across the stack at a like range: its core and those ends.
+    trimmed: list[Measured] = []
+    for i in range(len(measured)):
+        trimmed.extend(trim_ends(i, measured, g, d, amp, geometry, opts) or [measured[i]])
+    measured = trimmed
     # A plane's region that runs on into its corner with a nearer plane: split where the steps tell them apart.
     split: list[Measured] = []
     for i in range(len(measured)):
@@ -361,6 +382,40 @@ def extract_surfaces(
         # The observed peak is a lower bound of the region's.
         return math.isfinite(ref) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * ref
 
+    def end_strength(m: Measured, mj: Measured, *, confirmed: bool = False) -> tuple[str, str]:
+        """Whether a plane's end (or its line across the fan) echoes weakly, strongly or unknown, and why.
+
+        Against the plane's own mirror echo (same material, a like range) where its peak is clean, else the
+        sweep's strongest.  In order: the region's own peak is a lower bound (strong); where a step lies on
+        the beam's top, the beam pattern taken back from its steps to the bearing the geometry puts it at (see
+        peak_at_bearing) is close to the peak (strong or weak); the upper estimate from its flank's own slope
+        (weak); that beam pattern taken back from farther out, a lower bound (strong).  ``confirmed``: the
+        readings themselves confirm the bearing (one line explains every range), so that lower bound comes
+        before the flank's slope, whose few steps' noise can put its vertex anywhere.
+        """
+        ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
+        of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
+        if not math.isfinite(ref):
+            return "unknown", ""
+        if strong(m, ref):
+            return "strong", f"with an echo as strong as {of}"
+        at = peak_at_bearing(g[m.region.steps], m.step_amplitude, m.bearing, beam_k)
+        traced = float("nan") if at is None else mirror_normalised(at[0], m.depth, opts)
+        share = f"{100 * traced / ref:.0f} % of {of} at the bearing the geometry puts it at"
+        strong_there = f"with an echo as strong as {of} once the beam pattern is taken back there ({share})"
+        if confirmed and traced >= opts.weak_echo * ref:
+            return "strong", strong_there
+        if at is not None and at[1] <= math.log(2.0):
+            # A step on the beam's top: the estimate is close to the peak either way.
+            if traced >= opts.weak_echo * ref:
+                return "strong", strong_there
+            return "weak", f"with a weak (diffracted) echo: {share}"
+        if weak(m, ref):
+            return "weak", f"with a weak (diffracted) echo: under {of} × {opts.weak_echo:.2f}"
+        if traced >= opts.weak_echo * ref:
+            return "strong", strong_there
+        return "unknown", ""
+
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
     # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
@@ -376,7 +431,10 @@ def extract_surfaces(
             if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
                 continue
             nj = unit_normal(mj.bearing, mj.tilt)
-            tol = opts.on_trace + 3 * mj.depth * abs(math.sin(measured[i].bearing - mj.bearing)) * mj.bearing_stderr
+            # n_j · p moves with either bearing by ρ·sin(β_i − β_j) per rad: 3 σ of both.
+            mi = measured[i]
+            sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
+            tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
             if abs(float(nj @ p) - mj.depth) <= tol:
                 out.append(j)
         return out
@@ -413,10 +471,11 @@ def extract_surfaces(
             )
             # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
             # diffracts, the wall's free top or bottom edge.
-            if weak(m):
-                kinds[i] = ("edge", [text.replace("double bounce", "line"), "with a weak (diffracted) echo"], [pool[j]])
+            verdict, why = end_strength(m, pj, confirmed=True)
+            if verdict == "weak":
+                kinds[i] = ("edge", [text.replace("double bounce", "line"), why], [pool[j]])
             else:
-                kinds[i] = ("corner", [text], [pool[j]])
+                kinds[i] = ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]])
             across_lines.add(i)
             continue
         if across[i]:
@@ -449,18 +508,13 @@ def extract_surfaces(
                 ties[:2],
             )
         elif len(ties) == 1:
-            # A plane's end against that plane's own mirror echo (same material, a like range), measured where
-            # its peak is clean; else against the sweep's strongest.
-            mj = measured[ties[0]]
-            ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
-            of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
-            if weak(m, ref):
-                text = f"on a plane's trace off its foot, with a weak (diffracted) echo: under {of}"
-                kinds[i] = ("edge", [f"{text} × {opts.weak_echo:.2f}"], ties)
-            elif strong(m, ref):
-                kinds[i] = ("corner", [f"on a plane's trace off its foot, with an echo as strong as {of}"], ties)
+            verdict, why = end_strength(m, measured[ties[0]])
+            if verdict == "weak":
+                kinds[i] = ("edge", [f"on a plane's trace off its foot, {why}"], ties)
+            elif verdict == "strong":
+                kinds[i] = ("corner", [f"on a plane's trace off its foot, {why}"], ties)
             else:
-                kinds[i] = ("edge", ["on a plane's trace off its foot (its end); echo strength unknown"], ties)
+                kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
         elif weak(m):
             kinds[i] = (
                 "edge",

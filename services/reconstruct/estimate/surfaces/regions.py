@@ -24,7 +24,16 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "amplitude_jump", "PLATEAU"]
+__all__ = [
+    "Region",
+    "find_regions",
+    "stack_fits",
+    "bearing_from_amplitude",
+    "amplitude_jump",
+    "peak_at_bearing",
+    "subregion",
+    "PLATEAU",
+]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
@@ -57,7 +66,12 @@ class Region:
 
 
 def find_regions(
-    distance: np.ndarray, *, tolerance: float = 0.015, max_gap: int = 2, min_steps: int = 3
+    distance: np.ndarray,
+    *,
+    tolerance: float = 0.015,
+    max_gap: int = 2,
+    min_steps: int = 3,
+    max_spread: float = math.inf,
 ) -> list[Region]:
     """Split a sweep into regions of constant depth.
 
@@ -83,6 +97,11 @@ def find_regions(
         Steps without an echo a run may bridge.
     min_steps : int
         Shorter runs are not regions (their echoes stay unexplained).
+    max_spread : float
+        m: a reading farther than this from its step's median over the region's readings is not the
+        region's.  One target's ranges differ between two capsules by at most their distance apart
+        (the triangle inequality), so the stack's length plus the tolerance bounds them: a capsule
+        whose median sits past it sees another target through most of the region.
 
     Returns
     -------
@@ -100,6 +119,17 @@ def find_regions(
     bounds = np.flatnonzero(np.diff(label[labelled])) + 1
     for k, steps in enumerate(np.split(labelled, bounds) if labelled.size else []):
         rows, caps = np.nonzero(keep[steps])
+        if math.isfinite(max_spread) and rows.size:
+            block = np.where(keep[steps], d[steps], np.nan)
+            with np.errstate(all="ignore"):
+                med = np.nanmedian(block, axis=1)
+            near = np.abs(block[rows, caps] - med[rows]) <= max_spread
+            rows, caps = rows[near], caps[near]
+            held = np.unique(rows)
+            if held.size < min_steps:
+                continue
+            # Renumber the rows over the steps that still hold a reading.
+            steps, rows = steps[held], np.searchsorted(held, rows)
         out.append(
             Region(
                 steps=steps.astype(np.intp),
@@ -110,6 +140,14 @@ def find_regions(
             )
         )
     return out
+
+
+def subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
+    """The part of ``region`` over ``steps`` (its readings there), with the cut flags given."""
+    keep = np.isin(region.rows, steps)
+    return Region(
+        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
+    )
 
 
 @kernel
@@ -443,6 +481,46 @@ def extrapolated_peak(
         return None
     peak = math.exp(float(icpt) + curvature * v * v)
     return max(peak, float(a.max()))
+
+
+def peak_at_bearing(
+    gamma: np.ndarray, amplitude: np.ndarray, bearing: float, curvature: float
+) -> tuple[float, float] | None:
+    """The peak amplitude of an echo whose bearing is known from elsewhere, from the flank a region shows.
+
+    Every echo of a rotating transceiver follows the beam ``D(γ − β)²``, in
+    ``log`` close to ``P − k (γ − β)²`` (:func:`log_amplitude_curvature`).  With
+    ``β`` placed by the geometry (a plane's trace), each step gives the peak,
+    ``A(γ) · exp(k (γ − β)²)``, and their median is the estimate.  The piston
+    falls at least as fast as its parabola off the top (within a few % of it
+    over a wide main lobe, much faster on a narrow one's far flank), so the
+    estimate does not overstate the peak by more than that: safe to call an
+    echo strong by.  It is close to the peak (safe to call an echo weak by)
+    only where some step lies within the top the curvature was fitted over
+    (``k (γ − β)² ≤ log 2``).
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    bearing : float
+        The echo's bearing, rad.
+    curvature : float
+        ``k`` of :func:`log_amplitude_curvature`, 1/rad².
+
+    Returns
+    -------
+    (peak amplitude, ``k`` times the nearest step's squared offset from ``bearing``), or None when no step
+    has an amplitude or the curvature is not positive.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if not ok.any() or not curvature > 0:
+        return None
+    off = np.angle(np.exp(1j * (g[ok] - bearing)))  # wrapped to (−π, π]
+    peaks = a[ok] * np.exp(curvature * off * off)
+    return float(np.median(peaks)), float(curvature * np.min(off * off))
 
 
 def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, int] | None:

@@ -11,7 +11,10 @@ from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.quality import QualityLimits
 from lelsonar.reconstruct.estimate.results import PlaneFit
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "UNSETTLED"]
+
+#: In a feature's reasons when its echoes cannot settle corner against edge (its kind is then only a placeholder).
+UNSETTLED = "kind not settled: its echo's strength is unknown (its peak lies outside the sweep or under a nearer echo)"
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,9 @@ class Surface:
         ``"amplitude peak"``, ``"region centre"`` or ``"undetermined"``.
     steps : (k,) int array
     n_echoes : int
+    rows, capsules : (n_echoes,) int arrays, optional
+        Its readings: step and capsule of each (a region seen by some capsules only shares its steps
+        with a nearer target's in the others).
     """
 
     label: str
@@ -90,6 +96,8 @@ class Surface:
     bearing_source: str
     steps: np.ndarray
     n_echoes: int
+    rows: np.ndarray | None = None
+    capsules: np.ndarray | None = None
 
     @property
     def normal(self) -> np.ndarray:
@@ -143,6 +151,11 @@ class Feature:
     reasons: tuple[str, ...]
     steps: np.ndarray
     n_echoes: int
+
+    @property
+    def settled(self) -> bool:
+        """Whether its evidence settles its kind (else ``kind`` is a placeholder and a reason says so)."""
+        return not any(UNSETTLED in r for r in self.reasons)
 
 
 @dataclass(frozen=True, eq=False)
