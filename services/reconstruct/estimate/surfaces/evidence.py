@@ -45,6 +45,7 @@ __all__ = [
     "plane_line",
     "split_dihedral",
     "stack_dihedral",
+    "stack_or_pair",
     "trim_ends",
     "wrap",
 ]
@@ -398,6 +399,54 @@ def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) ->
                 ),
             )
     return None
+
+
+def stack_or_pair(
+    m: Measured, planes: list[Measured], low: tuple[int, float, str], pair: tuple[list[int], float]
+) -> tuple[str, str]:
+    """Which double bounce a region is when both :func:`stack_dihedral` and :func:`pair_corner` explain it.
+
+    A plane turned about the fan's normal (a wall's yaw in the vertical fan) slopes its corner with a plane
+    in the fan (the floor) along the stack as a line across the fan, off it by about the second plane's
+    distance, does: over a short stack both give one linear slope.  The pair's line has no free parameter:
+    its own slope along the stack, from the two planes' normals, must agree with the region's within 3 σ
+    of both (the region's slope, the planes' tilts).  The line across the fan answers at the plane's foot,
+    the pair's at the bearing of their intersection: a determined bearing within 3 σ of one and not of the
+    other settles it.  The pair's planes were both seen, the surface across the fan only inferred: where
+    the evidence agrees with both, the pair is taken, and said to be unsettled.
+
+    Returns
+    -------
+    ``"pair"`` or ``"stack"``, and a reason to add when the choice is not settled (empty when it is).
+    """
+    a, b = planes[pair[0][0]], planes[pair[0][1]]
+    line = plane_line(a, b)
+    if line is None:
+        return "stack", ""
+    rel = m.positions - line[0][None, :]
+    predicted = np.linalg.norm(rel - (rel @ line[1])[:, None] * line[1][None, :], axis=1)
+    x = m.positions[:, 0] - float(np.mean(m.positions[:, 0]))
+    sxx = float(x @ x)
+    if not sxx > 0:
+        return "stack", ""
+    slope = float(x @ (predicted - predicted.mean())) / sxx
+    tilt_se = math.hypot(
+        a.tilt_stderr if math.isfinite(a.tilt_stderr) else 1.0, b.tilt_stderr if math.isfinite(b.tilt_stderr) else 1.0
+    )
+    if abs(slope - m.stack_slope) > 3 * math.hypot(m.tilt_stderr, tilt_se):
+        return "stack", ""
+    if m.bearing_source != "undetermined":
+        reach = 3 * math.hypot(m.bearing_stderr, m.step)
+        at_pair = abs(wrap(m.bearing - pair[1])) <= reach
+        at_foot = abs(wrap(m.bearing - planes[low[0]].bearing)) <= reach
+        if at_foot and not at_pair:
+            return "stack", ""
+        if at_pair and not at_foot:
+            return "pair", ""
+    return "pair", (
+        "also explained as the plane's double bounce with an unseen surface across the fan: "
+        "the ranges and the bearing do not settle which"
+    )
 
 
 def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list[Measured]) -> float:

@@ -61,6 +61,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     plane_line,
     split_dihedral,
     stack_dihedral,
+    stack_or_pair,
     sweep_step,
     trim_ends,
     unit_normal,
@@ -455,11 +456,20 @@ def extract_surfaces(
     planes = [i for i in determined if i not in ends]
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
     across_lines: set[int] = set()
+    leaning: set[int] = set()
     for i, m in enumerate(measured):
         pool = others(i, planes)
         # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
         # alone, which says only that the line runs across the stack.
-        low = stack_dihedral(m, [measured[j] for j in pool], opts)
+        near = [measured[j] for j in pool]
+        low = stack_dihedral(m, near, opts)
+        pair = pair_corner(m, near, opts)
+        unsettled = ""
+        if low is not None and pair is not None:
+            # A plane's yaw slopes its corner with a plane in the fan as a line across the fan would.
+            chosen, unsettled = stack_or_pair(m, near, low, pair)
+            if chosen == "pair":
+                low = None
         if low is not None:
             j, z, text = low
             pj = measured[pool[j]]
@@ -486,11 +496,17 @@ def extract_surfaces(
             kinds[i] = ("edge" if weak(m) else "corner", [text], [])
             across_lines.add(i)
             continue
-        pair = pair_corner(m, [measured[j] for j in pool], opts)
         if pair is not None:
             which, bearing = pair
             ties = [pool[j] for j in which]
-            measured[i] = m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured))
+            # The two planes' line leans off the fan with their tilts: its echo comes from its point nearest the
+            # array, off the fan by that lean, at the region's range.
+            line = plane_line(measured[ties[0]], measured[ties[1]])
+            lean = 0.0 if line is None else math.asin(max(-1.0, min(1.0, float(line[0][0] / np.linalg.norm(line[0])))))
+            measured[i] = m = replace(
+                m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
+            )
+            leaning.add(i)
         elif m.bearing_source == "undetermined":
             placed = plane_end(m, [measured[j] for j in pool], opts)
             if placed is None:
@@ -504,7 +520,8 @@ def extract_surfaces(
         if len(ties) >= 2:
             kinds[i] = (
                 "corner",
-                ["at the double-bounce range of the two planes it joins (their intersection)"],
+                ["at the double-bounce range of the two planes it joins (their intersection)"]
+                + ([unsettled] if unsettled else []),
                 ties[:2],
             )
         elif len(ties) == 1:
@@ -560,7 +577,8 @@ def extract_surfaces(
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction
         out = corners if kind == "corner" else edges
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=i in across_lines))
+        tilted = i in across_lines or i in leaning
+        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=tilted))
 
     valid = np.isfinite(d)
     in_region = np.zeros_like(valid)
