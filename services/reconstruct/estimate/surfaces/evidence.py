@@ -31,6 +31,7 @@ from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 __all__ = [
     "Measured",
     "across_stack",
+    "beyond_reach",
     "unit_normal",
     "feature_point",
     "in_span",
@@ -325,12 +326,61 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     return None if best is None else (best[1], best[2])
 
 
-def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
+def _apart(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    return a[1] < b[0] or b[1] < a[0]
+
+
+def beyond_reach(m: Measured, bearing: float, pj: Measured, seen: list[Measured], opts: SurfaceOptions) -> str:
+    """Why plane ``pj`` cannot reach ``bearing`` along its trace, where region ``m`` would be its end ("": nothing
+    the sweep saw says so).
+
+    A mirror answers only at its foot; how far it runs along its trace shows only in what lies between its
+    region and ``m`` (every other region apart from both):
+
+    * one whose bearing is determined, deeper than the trace's range there (``h / cos(β_k − β_j)``) by
+      more than ``on_trace``, would be hidden behind the plane had it run on: the plane ends before it;
+    * one on the trace nearer the foot (at its determined bearing, or, undetermined, at the bearing its
+      depth puts it on the trace, within its span) is the plane's own end: the plane ends there.
+
+    A line across the stack at the plane's foot (its corner with a surface across the fan) is no end along
+    the fan and is passed over.
+    """
+    delta = wrap(bearing - pj.bearing)
+    h = pj.depth / math.cos(pj.tilt)
+    for k in seen:
+        if k is m or k is pj or not (_apart(k.span, m.span) and _apart(k.span, pj.span)):
+            continue
+        if k.bearing_source != "undetermined":
+            dk = wrap(k.bearing - pj.bearing)
+            if dk * delta <= 0 or abs(dk) >= abs(delta) or abs(dk) >= 0.5 * math.pi:
+                continue
+            trace = h / math.cos(dk)
+            if k.depth > trace + opts.on_trace:
+                return (
+                    f"a target {k.depth:.2f} m away at γ {math.degrees(k.bearing):.1f}° lies behind its trace "
+                    f"({trace:.2f} m): the plane ends before it"
+                )
+            on = abs(k.depth - trace) <= opts.on_trace
+        else:
+            if k.depth <= h:
+                continue
+            dk = math.copysign(math.acos(h / k.depth), delta)
+            on = abs(dk) < abs(delta) - m.step and in_span(wrap(pj.bearing + dk), k, k.step, opts.beyond_cut)
+        if on and not across_stack(k, opts) and stack_dihedral(k, [pj], opts) is None:
+            at = math.degrees(wrap(pj.bearing + dk))
+            return f"another target on its trace at γ {at:.1f}°, nearer its foot, is its end"
+    return ""
+
+
+def plane_end(
+    m: Measured, planes: list[Measured], opts: SurfaceOptions, seen: list[Measured] | None = None
+) -> tuple[list[int], float] | None:
     """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
 
     The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ.
     Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
-    plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.
+    plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
+    region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).
 
     Returns
     -------
@@ -345,7 +395,9 @@ def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tupl
         if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
         for bearing in (pj.bearing - half, pj.bearing + half):
-            if in_span(wrap(bearing), m, m.step, opts.beyond_cut):
+            if in_span(wrap(bearing), m, m.step, opts.beyond_cut) and not (
+                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts)
+            ):
                 return [j], wrap(bearing)
     return None
 

@@ -52,6 +52,7 @@ from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     Measured,
     across_stack,
+    beyond_reach,
     feature_point,
     measure_region,
     mirror_normalised,
@@ -436,7 +437,7 @@ def extract_surfaces(
             mi = measured[i]
             sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
             tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
-            if abs(float(nj @ p) - mj.depth) <= tol:
+            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, measured, opts):
                 out.append(j)
         return out
 
@@ -508,7 +509,7 @@ def extract_surfaces(
             )
             leaning.add(i)
         elif m.bearing_source == "undetermined":
-            placed = plane_end(m, [measured[j] for j in pool], opts)
+            placed = plane_end(m, [measured[j] for j in pool], opts, measured)
             if placed is None:
                 ties = []
             else:
