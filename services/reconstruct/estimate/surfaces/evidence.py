@@ -42,6 +42,7 @@ __all__ = [
     "mirror_normalised",
     "pair_corner",
     "pair_stderr",
+    "end_stderr",
     "plane_end",
     "plane_line",
     "split_dihedral",
@@ -504,6 +505,23 @@ def stack_or_pair(
 def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list[Measured]) -> float:
     """A placed region's bearing σ: the planes' bearing σ, at least one step's quantisation."""
     return max(math.sqrt(sum(measured[planes[j]].bearing_stderr ** 2 for j in which)), m.step / math.sqrt(24.0))
+
+
+def end_stderr(m: Measured, pj: Measured, bearing: float) -> float:
+    """The bearing σ of a plane's end placed on its trace at ``bearing`` from the two depths (:func:`plane_end`).
+
+    The end lies at ``β_j ± acos(h/ρ)``: besides the plane's bearing σ, the depths' own σ move it by
+    ``σ_h / (ρ sin δ)`` and ``h σ_ρ / (ρ² sin δ)`` (``δ`` its angle off the foot), which grow without bound
+    toward the foot, where the trace runs along the range; at least one step's quantisation.
+    """
+    sin_d = abs(math.sin(wrap(bearing - pj.bearing)))
+    if not sin_d > 0:
+        return math.pi
+    sh = pj.depth_stderr if math.isfinite(pj.depth_stderr) else 0.0
+    sr = m.depth_stderr if math.isfinite(m.depth_stderr) else 0.0
+    rho = m.depth
+    spread = math.hypot(sh / (rho * sin_d), pj.depth * sr / (rho * rho * sin_d))
+    return min(math.pi, math.hypot(math.hypot(pj.bearing_stderr, spread), m.step / math.sqrt(24.0)))
 
 
 def wrap(a: float) -> float:

@@ -53,6 +53,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     Measured,
     across_stack,
     beyond_reach,
+    end_stderr,
     feature_point,
     measure_region,
     mirror_normalised,
@@ -265,7 +266,7 @@ def _feature(
     nrm = float(np.linalg.norm(across))
     across = across / nrm if nrm > 1e-9 else np.zeros(3)
     # Along the beam: the depth's scatter; across it: the bearing's, at this depth.
-    sd = 0.003 + 0.5 * (m.depth * 0.0)  # range noise floor
+    sd = max(0.003, m.depth_stderr) if math.isfinite(m.depth_stderr) else 0.003  # at least the range noise floor
     cov = sd**2 * np.outer(b, b) + (m.depth * m.bearing_stderr) ** 2 * np.outer(across, across)
     return Feature(
         kind=kind,
@@ -515,7 +516,7 @@ def extract_surfaces(
             else:
                 which, bearing = placed
                 ties = [pool[j] for j in which]
-                measured[i] = m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured))
+                measured[i] = m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
         else:
             ties = on_traces(i, planes)
         if len(ties) >= 2:
