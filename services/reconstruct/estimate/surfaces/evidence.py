@@ -461,9 +461,10 @@ def stack_or_pair(
 
     A plane turned about the fan's normal (a wall's yaw in the vertical fan) slopes its corner with a plane
     in the fan (the floor) along the stack as a line across the fan, off it by about the second plane's
-    distance, does: over a short stack both give one linear slope.  The pair's line has no free parameter:
-    its own slope along the stack, from the two planes' normals, must agree with the region's within 3 σ
-    of both (the region's slope, the planes' tilts).  The line across the fan answers at the plane's foot,
+    distance, does: over a short stack both give one linear slope.  The pair's line has no free parameter
+    but its range, which the planes' depths shift as a whole: its ranges' shape along the stack must explain
+    the readings to twice a free slope's residual σ, the bar the line across the fan passes with its one
+    unknown.  The line across the fan answers at the plane's foot,
     the pair's at the bearing of their intersection: a determined bearing within 3 σ of one and not of the
     other settles it.  The pair's planes were both seen, the surface across the fan only inferred: where
     the evidence agrees with both, the pair is taken, and said to be unsettled.
@@ -478,15 +479,10 @@ def stack_or_pair(
         return "stack", ""
     rel = m.positions - line[0][None, :]
     predicted = np.linalg.norm(rel - (rel @ line[1])[:, None] * line[1][None, :], axis=1)
-    x = m.positions[:, 0] - float(np.mean(m.positions[:, 0]))
-    sxx = float(x @ x)
-    if not sxx > 0:
-        return "stack", ""
-    slope = float(x @ (predicted - predicted.mean())) / sxx
-    tilt_se = math.hypot(
-        a.tilt_stderr if math.isfinite(a.tilt_stderr) else 1.0, b.tilt_stderr if math.isfinite(b.tilt_stderr) else 1.0
-    )
-    if abs(slope - m.stack_slope) > 3 * math.hypot(m.tilt_stderr, tilt_se):
+    # The planes' depths shift the line's range as a whole (pair_corner bounds that): its shape along the
+    # stack must explain the ranges as well as the line across the fan must, within twice a free slope's σ.
+    resid = m.ranges - predicted
+    if not float(np.sqrt(np.mean((resid - resid.mean()) ** 2))) <= 2 * m.stack_sigma:
         return "stack", ""
     if m.bearing_source != "undetermined":
         reach = 3 * math.hypot(m.bearing_stderr, m.step)
