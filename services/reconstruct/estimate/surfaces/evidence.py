@@ -327,16 +327,12 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     return None if best is None else (best[1], best[2])
 
 
-def _apart(a: tuple[float, float], b: tuple[float, float]) -> bool:
-    return a[1] < b[0] or b[1] < a[0]
-
-
 def beyond_reach(m: Measured, bearing: float, pj: Measured, seen: list[Measured], opts: SurfaceOptions) -> str:
     """Why plane ``pj`` cannot reach ``bearing`` along its trace, where region ``m`` would be its end ("": nothing
     the sweep saw says so).
 
     A mirror answers only at its foot; how far it runs along its trace shows only in what lies between its
-    region and ``m`` (every other region apart from both):
+    region and ``m`` (every other region whose span lies between theirs in the sweep):
 
     * one whose bearing is determined, deeper than the trace's range there (``h / cos(β_k − β_j)``) by
       more than ``on_trace``, would be hidden behind the plane had it run on: the plane ends before it;
@@ -348,8 +344,13 @@ def beyond_reach(m: Measured, bearing: float, pj: Measured, seen: list[Measured]
     """
     delta = wrap(bearing - pj.bearing)
     h = pj.depth / math.cos(pj.tilt)
+    # Between, in the sweep: past the plane's region on m's side, and before m's.
+    if delta > 0:
+        lo, hi = pj.span[1], m.span[0] if m.span[0] > pj.span[1] else math.inf
+    else:
+        lo, hi = m.span[1] if m.span[1] < pj.span[0] else -math.inf, pj.span[0]
     for k in seen:
-        if k is m or k is pj or not (_apart(k.span, m.span) and _apart(k.span, pj.span)):
+        if k is m or k is pj or not (lo < k.span[0] and k.span[1] < hi):
             continue
         if k.bearing_source != "undetermined":
             dk = wrap(k.bearing - pj.bearing)
