@@ -140,7 +140,7 @@ def scans_of(path: Path, method: str) -> list:
             start = codec.decode(rec.payload, codec.ScanStart)
             starts[(start.scanner_id, start.scan_id)] = start
     service = ReconstructionService(ReconstructConfig(method=method, compare_methods=(), provisional=False))
-    replay_mcap(source, service)  # type: ignore[arg-type]  # a Recording reads as its path does
+    replay_mcap(source, service)
     out = []
     for m in service.finals.values():
         its_start = starts.get((m.scanner_id, m.scan_id))

@@ -62,6 +62,11 @@ class ReconstructConfig:
     max_scanners : int
         Scanners whose latest estimate is kept (a `get` on planes answers from it).
     limits : DecodeLimits
+    final_workers : int or None
+        Worker processes a source (live or a replay) estimates the finals in, off the thread that handles
+        the samples (:class:`~lelsonar.reconstruct.stream.finals.FinalPool`); 0 estimates them on that
+        thread.  None: one per core beyond the first, at most two (none on one core); a replay of a
+        single scan uses none.
     """
 
     method: str = DEFAULT_METHOD
@@ -83,6 +88,7 @@ class ReconstructConfig:
     max_pending: int = 4096
     max_scanners: int = 256
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+    final_workers: int | None = None
 
     def __post_init__(self) -> None:
         for name in (self.method, *self.compare_methods):
@@ -98,6 +104,8 @@ class ReconstructConfig:
             raise ConfigError("recovery_attempts must be >= 0, recovery_interval and recovery_after > 0 s")
         if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
             raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
+        if self.final_workers is not None and self.final_workers < 0:
+            raise ConfigError(f"final_workers must be >= 0 (0: on the stream's thread), got {self.final_workers}")
 
     def record_options(self) -> RecordOptions:
         """How this service's scans are reconstructed (:func:`reconstruct_scan`)."""
@@ -130,5 +138,13 @@ class ServiceStats:
     provisionals_shed: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
+    #: Finals estimated in a pool's workers, workers lost (killed, crashed), finals run again after a loss.
+    finals_in_workers: int = 0
+    final_workers_lost: int = 0
+    finals_rerun: int = 0
+    #: Finals whose estimate raised (logged with the traceback; nothing published for the scan).
+    final_errors: int = 0
+    #: Finals on their way when their source stopped on an error (logged).
+    finals_dropped: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
     evicted: Counter = field(default_factory=Counter)

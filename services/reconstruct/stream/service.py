@@ -58,9 +58,11 @@ from lelsonar.reconstruct.estimate.record import (
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
+from lelsonar.reconstruct.stream.finals import Done, FinalPool, estimate_final, received
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
+from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 _log = logging.getLogger(__name__)
@@ -119,6 +121,21 @@ class Partial(ProvisionalState):
     settle_at: float | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class _Final:
+    """A final on its way: what its message needs beside the estimate, known when the scan was closed."""
+
+    scan: ScanAssembly
+    partial: Partial
+    status: str
+    missing: np.ndarray
+    accounting: ScanAccounting
+    findings: tuple[tuple[str, str], ...]
+    revision: int
+    #: The scanner's newest estimate when the scan was closed: a newer one (its next scan's) stays the newest.
+    latest: codec.Reconstruction | None
+
+
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
@@ -161,6 +178,11 @@ class ReconstructionService:
         #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
         self._reopened: dict[ScanKey, int] = {}
         self.stats = ServiceStats()
+        #: Where finals are estimated: None here; a source lends its worker pool (:meth:`use_pool`).
+        self._pool: FinalPool | None = None
+        self._dispatched: dict[int, _Final] = {}  # by the pool's ticket
+        self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
+        self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
 
     # --- input ---------------------------------------------------------------------------
     def handle(
@@ -188,8 +210,12 @@ class ReconstructionService:
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
+            in_flight = {f.scan.key for f in self._dispatched.values()}
             for key in late:
-                self._reopen(key)
+                if key in in_flight:
+                    self._late.add(key)  # re-opened, if its verdict asks for it, once the final is made
+                else:
+                    self._reopen(key)
         fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
         for key in fresh:
             if key in self.ingest.pending and key not in self._pending_since:
@@ -197,7 +223,7 @@ class ReconstructionService:
                 # ask the log for the ScanStart and the steps before.
                 self._pending_since[key] = (now, RecoveryState())
                 self._ask_for_start(key, now)
-        return out
+        return out + self.collect()
 
     def tick(self, *, busy: bool = False) -> list[codec.Reconstruction]:
         """Catch up on deferred provisional estimates; ask the log for what scans lack; finalise
@@ -222,13 +248,13 @@ class ReconstructionService:
                 missing = scan.missing_steps()
                 if not len(missing):
                     if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
-                        out.append(self._finalise(scan, p, "final"))
+                        self._finalise(scan, p, "final")
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
                 elif self._can_ask(r, now, key):
                     self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
                 elif self._exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
-                    out.append(self._finalise(scan, p, "incomplete"))
+                    self._finalise(scan, p, "incomplete")
             elif not busy:
                 silent = now - p.last_activity
                 if silent >= cfg.recovery_after and self._can_ask(r, now, key):
@@ -244,7 +270,7 @@ class ReconstructionService:
                         f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
                     )
                     self.stats.timeouts += 1
-                    out.append(self._finalise(scan, p, "final_timeout"))
+                    self._finalise(scan, p, "final_timeout")
         for key, (since, r) in list(self._pending_since.items()):
             if key not in self.ingest.pending:
                 del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
@@ -255,7 +281,7 @@ class ReconstructionService:
                 del self._pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
-        return out
+        return out + self.collect()
 
     def catch_up(self) -> list[codec.Reconstruction]:
         """Only the provisional refits that waited for a backlog that has drained, within
@@ -297,8 +323,8 @@ class ReconstructionService:
         return bool(self._deferred)
 
     def finish(self) -> list[codec.Reconstruction]:
-        """End of input (a replay reached the end of its file): finalise every open scan now."""
-        out = []
+        """End of input (a replay reached the end of its file): finalise every open scan now, and wait for
+        every final on its way."""
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is not None:
@@ -308,7 +334,7 @@ class ReconstructionService:
                     self.stats.timeouts += 1
                 else:
                     status = "final" if scan.complete else "incomplete"
-                out.append(self._finalise(scan, p, status))
+                self._finalise(scan, p, status)
         for key, held in self.ingest.pending.items():
             # No ScanStart, no array geometry or schedule: nothing can be estimated, and saying so is the result.
             self.stats.without_start += 1
@@ -317,7 +343,43 @@ class ReconstructionService:
                 f"scan {key}: {len(held)} messages but never its ScanStart (which carries the "
                 "array geometry and the schedule); not reconstructed",
             )
+        return self.collect(wait=True)
+
+    # --- where finals are estimated -------------------------------------------------------
+    def use_pool(self, pool: FinalPool | None, *, drain: bool = True) -> list[codec.Reconstruction]:
+        """Estimate the finals in ``pool``'s workers from now on (None: on the caller's thread).
+
+        The finals on their way in the pool used so far are waited for and returned (published, as every
+        final is) with ``drain``; without it (the source is failing) they are dropped, logged and counted.
+        """
+        out = self.collect(wait=True) if drain else []
+        if self._dispatched:
+            dropped = sorted(f.scan.key for f in self._dispatched.values())
+            self.stats.finals_dropped += len(dropped)
+            self._event("ERROR", f"{len(dropped)} finals dropped unmade as their source stopped: scans {dropped}")
+            self._dispatched.clear()
+            self._late.clear()
+        if self._pool is not None and self._pool is not pool:
+            ps, st = self._pool.stats, self.stats
+            st.finals_in_workers += ps.pooled
+            st.final_workers_lost += ps.workers_lost
+            st.finals_rerun += ps.rerun
+        self._pool = pool
         return out
+
+    def collect(self, *, wait: bool = False) -> list[codec.Reconstruction]:
+        """The finals made since the last call, in the order their scans were closed; ``wait`` for those still
+        on their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
+        if self._pool is not None and self._dispatched:
+            for done in self._pool.drain() if wait else self._pool.ready():
+                self._complete(self._dispatched.pop(done.ticket), done)
+        out, self._completed = self._completed, []
+        return out
+
+    @property
+    def finals_on_their_way(self) -> int:
+        """Finals dispatched to the pool and not yet made."""
+        return len(self._dispatched)
 
     def stats_dict(self) -> dict:
         """Everything counted so far, for the exit line and ``--json``."""
@@ -344,6 +406,13 @@ class ReconstructionService:
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
             "provisionals_shed": s.provisionals_shed,
+            "finals_pool": {
+                "in_workers": s.finals_in_workers + (self._pool.stats.pooled if self._pool is not None else 0),
+                "workers_lost": s.final_workers_lost + (self._pool.stats.workers_lost if self._pool is not None else 0),
+                "rerun": s.finals_rerun + (self._pool.stats.rerun if self._pool is not None else 0),
+                "errors": s.final_errors,
+                "dropped": s.finals_dropped,
+            },
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
@@ -494,7 +563,8 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
-                return [self._finalise(scan, p, "final")]
+                self._finalise(scan, p, "final")
+                return []
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
             # before samples that follow it: what is still missing at the end is said by the terminal estimate.
@@ -522,7 +592,8 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
-            return [self._finalise(scan, p, "final")]
+            self._finalise(scan, p, "final")
+            return []
         if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
             p.deferred = True  # tick() catches up
             self._deferred.add(scan.key)
@@ -554,7 +625,8 @@ class ReconstructionService:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
 
-    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> codec.Reconstruction:
+    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
+        """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
         missing = scan.missing_steps()
         if status == "final" and len(missing):
             status = "incomplete"  # never FINAL with steps missing
@@ -571,20 +643,52 @@ class ReconstructionService:
             missing=len(missing),
             conflicts=scan.conflicts,
         )
-        est = reconstruct_scan(scan_input(scan), self._options)
         # What the stream knows of the scan beyond its data: a sweep stopped early, copies that conflicted.
         findings: tuple[tuple[str, str], ...] = ()
         if end is not None and aborted:
             findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
         if scan.conflicts:
             findings += ((DEGRADED, conflict_reason(scan, self.recover is not None)),)
-        est = with_findings(est, findings)
+        final = _Final(
+            scan,
+            p,
+            status,
+            missing,
+            acc,
+            findings,
+            self._reopened.pop(scan.key, 0),
+            self.latest.get(scan.start.scanner_id),
+        )
+        inp = scan_input(scan)
+        # The scan is done: forget its state; a straggler is then rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
+        if self._pool is None:
+            self._complete(final, Done(0, reconstruct_scan(inp, self._options)))
+        else:
+            # The points behind each plane come back only for an observer, which draws them.
+            ticket = self._pool.submit(estimate_final, inp, self._options, self._observer is not None)
+            self._dispatched[ticket] = final
+
+    def _complete(self, final: _Final, done: Done) -> None:
+        """Publish a final whose estimate is made (or say why it could not be)."""
+        scan, status, missing, acc = final.scan, final.status, final.missing, final.accounting
+        if done.error is not None:
+            self.stats.final_errors += 1
+            self._event(
+                "ERROR",
+                f"scan {scan.key}: its final estimate failed ({type(done.error).__name__}: {done.error}); "
+                f"nothing published for it\n{done.trace}",
+            )
+            return
+        est = with_findings(received(done.value), final.findings)
         msg = wire.estimate_message(
             est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
         )
-        if end is not None and aborted:
+        end = scan.end
+        if end is not None and status == "aborted":
             msg.aborted_reason = end.reason or "aborted"
-        msg.revision = self._reopened.pop(scan.key, 0)
+        msg.revision = final.revision
         # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
         for note in est.notes:
             self._event("WARNING", f"scan {scan.key}: {note}")
@@ -625,16 +729,19 @@ class ReconstructionService:
             + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""),
         )
         if self._observer:
-            self._observer.estimate(scan, msg, est.as_published(), p)
-        self._emit(msg)
-        # The scan is done: forget its state; a straggler is then rejected as late.
-        self._partials.pop(scan.key, None)
-        self.ingest.close(scan.key)
-        return msg
+            self._observer.estimate(scan, msg, est.as_published(), final.partial)
+        now_latest = self.latest.get(msg.scanner_id)
+        self._emit(msg, newest=now_latest is None or now_latest is final.latest)
+        self._completed.append(msg)
+        if scan.key in self._late:
+            self._late.discard(scan.key)
+            self._reopen(scan.key)  # steps came while it was being estimated
 
-    def _emit(self, msg: codec.Reconstruction) -> codec.Reconstruction:
-        self.latest.pop(msg.scanner_id, None)  # most recently updated last
-        self.latest[msg.scanner_id] = msg
+    def _emit(self, msg: codec.Reconstruction, *, newest: bool = True) -> codec.Reconstruction:
+        """Publish ``msg``; it becomes its scanner's latest unless a later scan's (``newest`` False) already is."""
+        if newest:
+            self.latest.pop(msg.scanner_id, None)  # most recently updated last
+            self.latest[msg.scanner_id] = msg
         while len(self.latest) > self.config.max_scanners:
             self.latest.pop(next(iter(self.latest)))
             self.stats.evicted["latest estimate of a scanner forgotten (max_scanners)"] += 1

@@ -26,7 +26,8 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
-from lelsonar.log.recording import McapRecorder, iter_payloads
+from lelsonar.log.recording import McapRecorder, Recording, open_recording
+from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -134,27 +135,56 @@ def decompress_threads() -> int:
 
 
 def replay_mcap(
-    path: Path | str, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
+    path: Path | str | Recording, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
     Where the host has an idle core, the next chunks of the file are decompressed and checked on
     other threads while the service handles a payload (:func:`decompress_threads`,
     :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
-    the estimation.  The payloads are handled in the file's order, on the caller's thread, and the
+    the estimation.  The finals are estimated in worker processes while the file is read
+    (:func:`replay_workers`, :class:`~lelsonar.reconstruct.stream.finals.FinalPool`), and handed back in
+    the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
     estimates are the same either way.
 
     Returns the number of payloads read.
     """
+    rec = open_recording(path)
     n = 0
-    # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
-    for rec in iter_payloads(path, REPLAYED, decompress_threads=decompress_threads()):
-        service.handle(rec.type_name, rec.payload)
-        n += 1
-        if on_payload is not None:
-            on_payload(rec.log_time_ns)
-    service.finish()
+    workers = replay_workers(service.config.final_workers, scans_in(rec))
+    pool = FinalPool(workers) if workers else None
+    try:
+        service.use_pool(pool)
+        # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
+        for r in rec.payloads(REPLAYED, decompress_threads=decompress_threads()):
+            service.handle(r.type_name, r.payload)
+            n += 1
+            if on_payload is not None:
+                on_payload(r.log_time_ns)
+        service.finish()  # (waits for every final)
+    finally:
+        if pool is not None:
+            service.use_pool(None, drain=False)  # after finish(), none is left; on an error, they are dropped (logged)
+            pool.close(wait=None)  # each worker exits on its own: the replay does not wait for it
+    if not isinstance(path, Recording) and (line := rec.damage_warning()):
+        _log.warning("%s", line.removeprefix("warning: "))
     return n
+
+
+def replay_workers(configured: int | None, scans: int | None) -> int:
+    """Worker processes for a replay's finals: ``configured`` (None: :func:`auto_workers`), but none for a
+    file of one scan, whose final can overlap nothing (a pool's start would only add to it)."""
+    workers = auto_workers() if configured is None else configured
+    return 0 if scans is not None and scans < 2 else workers
+
+
+def scans_in(rec: Recording) -> int | None:
+    """Scans a recording holds, from its summary or its chunks' indexes (None when neither says)."""
+    s = rec.salvage
+    counts = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+    starts = [cid for cid, cls in rec.contract_channels().items() if cls is codec.ScanStart]
+    n = max([counts.get(cid, 0) for cid in starts] + [len(rec.start_copies())])
+    return n if n or counts else None
 
 
 class PlanesServer:
