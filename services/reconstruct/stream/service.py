@@ -40,7 +40,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -49,16 +49,15 @@ from lelsonar import codec
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.quality import DEGRADED
-from lelsonar.reconstruct.estimate.record import (
-    ProvisionalState,
-    provisional_method,
-    reconstruct_scan,
-    with_findings,
-)
+from lelsonar.reconstruct.estimate.record import provisional_method, reconstruct_scan, with_findings
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
+from lelsonar.reconstruct.stream.log_requests import LogRequests
+from lelsonar.reconstruct.stream.partial import Partial, RecoveryState
+from lelsonar.reconstruct.stream.provisionals import ProvisionalSchedule
+from lelsonar.reconstruct.stream.reasons import conflict_reason, partial_sweep_reason, ranges_text
 from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
@@ -92,33 +91,6 @@ class Observer(Protocol):
     def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
 
 
-@dataclass
-class RecoveryState:
-    """Requests made to the acquirer's log for one scan."""
-
-    attempts: int = 0  # since the last progress
-    last_at: float | None = None  # clock of the last request
-    mark: int = -1  # steps held at the last request (more now = progress)
-    requests: int = 0  # in all
-
-
-@dataclass
-class Partial(ProvisionalState):
-    """The state of one scan in progress: the provisional estimate's, and the stream's."""
-
-    #: Clock of the last provisional estimate, or of the scan's first message: under a backlog the next refit
-    #: (the corner's confirmation, the costliest, among them) waits up to ``max_provisional_delay`` after it.
-    estimated_at: float = 0.0
-    #: A provisional refit waited for a backlog (tick() catches up).
-    deferred: bool = False
-    last_activity: float = 0.0
-    ended_at: float | None = None
-    recovery: RecoveryState = field(default_factory=RecoveryState)
-    #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
-    settling: frozenset = frozenset()
-    settle_at: float | None = None
-
-
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
@@ -136,19 +108,12 @@ class ReconstructionService:
         self._publish = publish
         self._observer = observer
         self._clock = clock
-        #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
-        self.recover = recover
-        #: When to ask again and when to give up (a live source lets it ask on while the log may answer).
-        self.recovery_policy = RecoveryPolicy(
-            config.recovery_attempts,
-            config.recovery_interval,
-            max(config.recovery_interval, RecoveryPolicy.max_interval),
-        )
+        self.stats = ServiceStats()
+        self._requests = LogRequests(config, self.stats, self._event)
+        self._requests.recover = recover
         self._partials: dict[ScanKey, Partial] = {}
-        # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
-        self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
-        self._deferred: set[ScanKey] = set()
+        self._schedule = ProvisionalSchedule(config, self.stats, clock)
         #: How finals are reconstructed; provisional estimates are the cheaper variant of the same.
         self._options = config.record_options()
         self._provisional_options = replace(self._options, provisional=True)
@@ -160,7 +125,24 @@ class ReconstructionService:
         self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
         #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
         self._reopened: dict[ScanKey, int] = {}
-        self.stats = ServiceStats()
+
+    @property
+    def recover(self) -> Callable[[RecoveryRequest], bool] | None:
+        """Asks the acquirer's log for what a scan lacks; returns False when the request was refused."""
+        return self._requests.recover
+
+    @recover.setter
+    def recover(self, recover: Callable[[RecoveryRequest], bool] | None) -> None:
+        self._requests.recover = recover
+
+    @property
+    def recovery_policy(self) -> RecoveryPolicy:
+        """When to ask again and when to give up (a live source lets it ask on while the log may answer)."""
+        return self._requests.policy
+
+    @recovery_policy.setter
+    def recovery_policy(self, policy: RecoveryPolicy) -> None:
+        self._requests.policy = policy
 
     # --- input ---------------------------------------------------------------------------
     def handle(
@@ -192,11 +174,11 @@ class ReconstructionService:
                 self._reopen(key)
         fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
         for key in fresh:
-            if key in self.ingest.pending and key not in self._pending_since:
+            if key in self.ingest.pending and key not in self._requests.pending_since:
                 # A scan met in the middle (this reconstructor started late, or its ScanStart was lost):
                 # ask the log for the ScanStart and the steps before.
-                self._pending_since[key] = (now, RecoveryState())
-                self._ask_for_start(key, now)
+                self._requests.pending_since[key] = (now, RecoveryState())
+                self._requests.ask_for_start(key, now, self.ingest.pending.get(key, []))
         return out
 
     def tick(self, *, busy: bool = False) -> list[codec.Reconstruction]:
@@ -216,43 +198,45 @@ class ReconstructionService:
                 del self._partials[key]
                 continue
             r = p.recovery
-            self._note_progress(r, scan.n_received)
-            self._settle(scan, p, now)
+            self._requests.note_progress(r, scan.n_received)
+            self._requests.settle(scan, p, now)
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                    if not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
                         out.append(self._finalise(scan, p, "final"))
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
-                elif self._can_ask(r, now, key):
-                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
-                elif self._exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
+                elif self._requests.can_ask(r, now, key):
+                    self._requests.ask(
+                        r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received
+                    )
+                elif self._requests.exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
                     out.append(self._finalise(scan, p, "incomplete"))
             elif not busy:
                 silent = now - p.last_activity
-                if silent >= cfg.recovery_after and self._can_ask(r, now, key):
-                    self._ask(
+                if silent >= cfg.recovery_after and self._requests.can_ask(r, now, key):
+                    self._requests.ask(
                         r,
                         RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()), want_end=True),
                         now,
                         scan.n_received,
                     )
-                elif silent >= cfg.scan_timeout and self._exhausted(r, now, key):
+                elif silent >= cfg.scan_timeout and self._requests.exhausted(r, now, key):
                     self._event(
                         "WARNING",
                         f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
                     )
                     self.stats.timeouts += 1
                     out.append(self._finalise(scan, p, "final_timeout"))
-        for key, (since, r) in list(self._pending_since.items()):
+        for key, (since, r) in list(self._requests.pending_since.items()):
             if key not in self.ingest.pending:
-                del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
-            elif self._can_ask(r, now, key):
-                self._ask_for_start(key, now)
-            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now, key):
+                del self._requests.pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
+            elif self._requests.can_ask(r, now, key):
+                self._requests.ask_for_start(key, now, self.ingest.pending.get(key, []))
+            elif not busy and now - since >= cfg.scan_timeout and self._requests.exhausted(r, now, key):
                 # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
-                del self._pending_since[key]
+                del self._requests.pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
         return out
@@ -269,32 +253,12 @@ class ReconstructionService:
         Those left wait for the next tick; under a backlog (``busy``) one deferred for over twice
         ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
         """
-        cfg = self.config
-        out: list[codec.Reconstruction] = []
-        waiting = sorted(
-            (p.estimated_at, key, p) for key in self._deferred if (p := self._partials.get(key)) is not None
-        )
-        self._deferred.clear()
-        start = self._clock()
-        for n, (estimated_at, key, p) in enumerate(waiting):
-            scan = self.ingest.scans.get(key)
-            if scan is None or not p.deferred:
-                continue
-            if self._clock() - start >= cfg.provisional_budget:
-                self._deferred.update(k for _, k, _ in waiting[n:])
-                break
-            p.deferred = False
-            if busy and start - estimated_at >= 2 * cfg.max_provisional_delay:
-                self.stats.provisionals_shed += 1
-                p.estimated_at = start  # the next deferral waits a full delay again
-                continue
-            out += self._provisional(scan, p)
-        return out
+        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional)
 
     @property
     def has_deferred(self) -> bool:
         """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
-        return bool(self._deferred)
+        return bool(self._schedule)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now."""
@@ -350,15 +314,9 @@ class ReconstructionService:
         }
 
     # --- recovery ------------------------------------------------------------------------
-    def _note_progress(self, r: RecoveryState, held: int) -> None:
-        if r.mark >= 0 and held > r.mark:
-            r.attempts, r.mark = 0, held  # new steps came: the budget starts again
-
-    def _can_ask(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
-        return self.recover is not None and self.recovery_policy.can_ask(r.attempts, r.last_at, now, key)
-
-    def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
-        return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
+    def still_wanted(self, request: RecoveryRequest) -> bool:
+        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
+        return (request.scanner_id, request.scan_id) not in self.ingest.closed
 
     def _reopen(self, key: ScanKey) -> None:
         """Steps came for a scan finalised without them: ask the acquirer's log for the whole scan, to publish
@@ -383,90 +341,7 @@ class ReconstructionService:
             f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
             f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
         )
-        self._request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
-
-    def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
-        """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
-        if scan.unsettled and self.recover is not None and p.settling != scan.unsettled:
-            p.settling, p.settle_at = frozenset(scan.unsettled), now
-            self._event(
-                "WARNING",
-                f"scan {scan.key}: {scan.conflicts} conflicting copies of steps {_ranges_text(sorted(p.settling))}; "
-                "asking the acquirer's log which is right",
-            )
-            self._request(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling))))
-
-    def _request(self, request: RecoveryRequest) -> None:
-        """One request outside a scan's attempts (counted; a refusal or a failure counted as refused)."""
-        self.stats.recovery_requests += 1
-        try:
-            ok = self.recover is not None and self.recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is a refused one, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
-
-    def _settling(self, scan: ScanAssembly, p: Partial, now: float) -> bool:
-        """Whether the final waits for the log to settle conflicting copies (live, for up to ``scan_timeout``)."""
-        if not scan.unsettled or self.recover is None:
-            return False
-        if p.settle_at is None:
-            self._settle(scan, p, now)
-        return p.settle_at is not None and now - p.settle_at < self.config.scan_timeout
-
-    def still_wanted(self, request: RecoveryRequest) -> bool:
-        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
-        return (request.scanner_id, request.scan_id) not in self.ingest.closed
-
-    def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
-        if self.recover is None:
-            raise InternalError("a recovery request was made by a service given no recover callback")
-        recover = self.recover
-        r.attempts += 1
-        r.requests += 1
-        r.last_at, r.mark = now, held
-        self.stats.recovery_requests += 1
-        what = ", ".join(
-            x
-            for x in (
-                f"{len(request.steps)} steps" if request.steps else "",
-                "ScanStart" if request.want_start else "",
-                "ScanEnd" if request.want_end else "",
-            )
-            if x
-        )
-        self._event(
-            "INFO",
-            f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
-            f"{what} (attempt {r.attempts}"
-            + (
-                f"/{self.config.recovery_attempts})"
-                if r.attempts <= self.config.recovery_attempts
-                else f", past {self.config.recovery_attempts}: its log may still answer)"
-            ),
-        )
-        try:
-            ok = recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
-
-    def _ask_for_start(self, key: ScanKey, now: float) -> None:
-        """A scan met in the middle: ask for its ScanStart and the steps before what is held
-        (all the steps its ScanEnd counts, when the ScanEnd is what is held)."""
-        _, r = self._pending_since[key]
-        held = self.ingest.pending.get(key, [])
-        self._note_progress(r, len(held))
-        if not held or not self._can_ask(r, now, key):
-            return
-        have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
-        ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
-        upto = int(ends[0].samples_sent) if ends else max(have) + 1
-        wanted = tuple(s for s in range(upto) if s not in have)
-        self._ask(r, RecoveryRequest(*key, steps=wanted, want_start=True), now, len(held))
+        self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
     def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
@@ -493,7 +368,7 @@ class ReconstructionService:
                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                 end.end_time_ns,
             )
-            if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
+            if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
                 return [self._finalise(scan, p, "final")]
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -501,11 +376,11 @@ class ReconstructionService:
             self._event(
                 "WARNING" if self.recover is not None else "INFO",
                 f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
-                f"missing so far: {_ranges_text(missing)}",
+                f"missing so far: {ranges_text(missing)}",
                 end.end_time_ns,
             )
-            if self._can_ask(p.recovery, p.ended_at, scan.key):
-                self._ask(
+            if self._requests.can_ask(p.recovery, p.ended_at, scan.key):
+                self._requests.ask(
                     p.recovery,
                     RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
                     p.ended_at,
@@ -521,12 +396,10 @@ class ReconstructionService:
                 float(scan.expected_energy[step]),
                 float(scan.ratio[step]),
             )
-        if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
+        if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
             return [self._finalise(scan, p, "final")]
-        if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
-            p.deferred = True  # tick() catches up
-            self._deferred.add(scan.key)
-            return []  # the backlog's later samples will be in the next refit
+        if self._schedule.defer(scan.key, p, busy):
+            return []  # tick() catches up; the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
@@ -622,7 +495,7 @@ class ReconstructionService:
         self._event(
             "INFO" if not missing.size else "WARNING",
             f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
-            + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""),
+            + (f"; missing steps {ranges_text(missing)}{hint}" if missing.size else ""),
         )
         if self._observer:
             self._observer.estimate(scan, msg, est.as_published(), p)
@@ -647,41 +520,3 @@ class ReconstructionService:
         getattr(_log, level.lower(), _log.info)(text)
         if self._observer:
             self._observer.event(level, text, time_ns)
-
-
-def partial_sweep_reason(end: codec.ScanEnd, planned: int) -> str:
-    """A plane's reason when its sweep stopped early: how far it went, and why it stopped."""
-    why = f" ({end.reason})" if end.reason else ""
-    return (
-        f"partial sweep: the scan was aborted after {end.samples_sent} of {planned} steps{why}; "
-        "a wall may extend beyond what was swept"
-    )
-
-
-def conflict_reason(scan: ScanAssembly, live: bool) -> str:
-    """A plane's reason when steps of its scan came twice with different content."""
-    if not scan.unsettled:
-        kept = f"the acquirer's log settled them ({scan.replaced} held copies replaced by the log's)"
-    elif live:
-        kept = (
-            f"the acquirer's log did not settle steps {_ranges_text(sorted(scan.unsettled))}: the first copy was used"
-        )
-    else:
-        kept = (
-            "without the acquirer's log (a replay, or recovery off) nothing can tell which is right: "
-            "the first copy was used"
-        )
-    copies = "1 copy of a held step" if scan.conflicts == 1 else f"{scan.conflicts} copies of held steps"
-    return f"{copies} differed from the one held (a forged or replayed step?); {kept}"
-
-
-def _ranges_text(steps) -> str:
-    """``3-7, 12, 40-41`` for a sorted array of steps (at most 20 runs shown)."""
-    runs: list[list[int]] = []
-    for s in (int(x) for x in steps):
-        if runs and s == runs[-1][1] + 1:
-            runs[-1][1] = s
-        else:
-            runs.append([s, s])
-    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:20])
-    return text + (f", … ({len(runs) - 20} more runs)" if len(runs) > 20 else "")
