@@ -123,13 +123,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def command_line(args: argparse.Namespace) -> str:
+    # --capacity sets the scanners, one worker and no failover itself: only what it reads is shown.
+    ladder = args.capacity is not None
     return (
-        f"lelsonar bench fleet --scanners {args.scanners} --workers {args.workers} --rate {args.rate:g} "
-        f"--scans {args.scans}"
+        "lelsonar bench fleet "
+        + ("" if ladder else f"--scanners {args.scanners} --workers {args.workers} ")
+        + f"--rate {args.rate:g} --scans {args.scans}"
         + (f" --steps {args.steps}" if args.steps else "")
         + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
         + (f" --publishers {args.publishers}" if args.publishers > 0 else "")
-        + f" --preset {args.preset} --failover {args.failover}"
+        + f" --preset {args.preset}"
+        + ("" if ladder else f" --failover {args.failover}")
         + (" --no-provisional" if args.no_provisional else "")
         + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
         + (" --capacity" if args.capacity == [] else "")
