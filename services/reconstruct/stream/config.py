@@ -9,6 +9,8 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.record import RecordOptions
+from lelsonar.reconstruct.stream.finals import PoolStats
+from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 
 
 @dataclass(frozen=True)
@@ -148,3 +150,29 @@ class ServiceStats:
     finals_dropped: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
     evicted: Counter = field(default_factory=Counter)
+
+    def add_final(self, acc: ScanAccounting, status: str) -> None:
+        """Count one terminal estimate and its scan's accounting."""
+        self.finals += 1
+        self.incomplete += status == "incomplete"
+        self.published += acc.published
+        self.received_live += acc.received_live
+        self.recovered += acc.recovered
+        self.duplicates += acc.duplicates
+        self.missing += acc.missing
+
+    def add_pool(self, pool: PoolStats) -> None:
+        """Add what a final pool the service is done with counted."""
+        self.finals_in_workers += pool.pooled
+        self.final_workers_lost += pool.workers_lost
+        self.finals_rerun += pool.rerun
+
+    def pool_dict(self, current: PoolStats | None) -> dict[str, int]:
+        """The finals' estimation, for ``stats_dict``: with ``current``, the pool in use, counted so far."""
+        return {
+            "in_workers": self.finals_in_workers + (current.pooled if current else 0),
+            "workers_lost": self.final_workers_lost + (current.workers_lost if current else 0),
+            "rerun": self.finals_rerun + (current.rerun if current else 0),
+            "errors": self.final_errors,
+            "dropped": self.finals_dropped,
+        }

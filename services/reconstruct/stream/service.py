@@ -40,7 +40,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -48,22 +48,19 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.quality import DEGRADED
-from lelsonar.reconstruct.estimate.record import (
-    ProvisionalState,
-    provisional_method,
-    reconstruct_scan,
-    with_findings,
-)
+from lelsonar.reconstruct.estimate.record import provisional_method, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
+from lelsonar.reconstruct.stream.final_jobs import FinalJob, accounting_event, close_final, final_message
 from lelsonar.reconstruct.stream.finals import Done, FinalPool, estimate_final, received
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
+from lelsonar.reconstruct.stream.log_requests import LogRequests
+from lelsonar.reconstruct.stream.partial import Partial, RecoveryState
+from lelsonar.reconstruct.stream.provisionals import ProvisionalSchedule
+from lelsonar.reconstruct.stream.reasons import ranges_text
 from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
-from lelsonar.v1.reconstruction_pb2 import ScanAccounting
-from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 _log = logging.getLogger(__name__)
 
@@ -94,48 +91,6 @@ class Observer(Protocol):
     def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
 
 
-@dataclass
-class RecoveryState:
-    """Requests made to the acquirer's log for one scan."""
-
-    attempts: int = 0  # since the last progress
-    last_at: float | None = None  # clock of the last request
-    mark: int = -1  # steps held at the last request (more now = progress)
-    requests: int = 0  # in all
-
-
-@dataclass
-class Partial(ProvisionalState):
-    """The state of one scan in progress: the provisional estimate's, and the stream's."""
-
-    #: Clock of the last provisional estimate, or of the scan's first message: under a backlog the next refit
-    #: (the corner's confirmation, the costliest, among them) waits up to ``max_provisional_delay`` after it.
-    estimated_at: float = 0.0
-    #: A provisional refit waited for a backlog (tick() catches up).
-    deferred: bool = False
-    last_activity: float = 0.0
-    ended_at: float | None = None
-    recovery: RecoveryState = field(default_factory=RecoveryState)
-    #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
-    settling: frozenset = frozenset()
-    settle_at: float | None = None
-
-
-@dataclass(frozen=True, eq=False)
-class _Final:
-    """A final on its way: what its message needs beside the estimate, known when the scan was closed."""
-
-    scan: ScanAssembly
-    partial: Partial
-    status: str
-    missing: np.ndarray
-    accounting: ScanAccounting
-    findings: tuple[tuple[str, str], ...]
-    revision: int
-    #: The scanner's newest estimate when the scan was closed: a newer one (its next scan's) stays the newest.
-    latest: codec.Reconstruction | None
-
-
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
@@ -153,19 +108,12 @@ class ReconstructionService:
         self._publish = publish
         self._observer = observer
         self._clock = clock
-        #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
-        self.recover = recover
-        #: When to ask again and when to give up (a live source lets it ask on while the log may answer).
-        self.recovery_policy = RecoveryPolicy(
-            config.recovery_attempts,
-            config.recovery_interval,
-            max(config.recovery_interval, RecoveryPolicy.max_interval),
-        )
+        self.stats = ServiceStats()
+        self._requests = LogRequests(config, self.stats, self._event)
+        self._requests.recover = recover
         self._partials: dict[ScanKey, Partial] = {}
-        # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
-        self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
-        self._deferred: set[ScanKey] = set()
+        self._schedule = ProvisionalSchedule(config, self.stats, clock)
         #: How finals are reconstructed; provisional estimates are the cheaper variant of the same.
         self._options = config.record_options()
         self._provisional_options = replace(self._options, provisional=True)
@@ -177,12 +125,29 @@ class ReconstructionService:
         self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
         #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
         self._reopened: dict[ScanKey, int] = {}
-        self.stats = ServiceStats()
         #: Where finals are estimated: None here; a source lends its worker pool (:meth:`use_pool`).
         self._pool: FinalPool | None = None
-        self._dispatched: dict[int, _Final] = {}  # by the pool's ticket
+        self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
         self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
         self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
+
+    @property
+    def recover(self) -> Callable[[RecoveryRequest], bool] | None:
+        """Asks the acquirer's log for what a scan lacks; returns False when the request was refused."""
+        return self._requests.recover
+
+    @recover.setter
+    def recover(self, recover: Callable[[RecoveryRequest], bool] | None) -> None:
+        self._requests.recover = recover
+
+    @property
+    def recovery_policy(self) -> RecoveryPolicy:
+        """When to ask again and when to give up (a live source lets it ask on while the log may answer)."""
+        return self._requests.policy
+
+    @recovery_policy.setter
+    def recovery_policy(self, policy: RecoveryPolicy) -> None:
+        self._requests.policy = policy
 
     # --- input ---------------------------------------------------------------------------
     def handle(
@@ -210,19 +175,19 @@ class ReconstructionService:
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
-            in_flight = {f.scan.key for f in self._dispatched.values()}
+            in_flight = {job.scan.key for job in self._dispatched.values()}
             for key in late:
                 if key in in_flight:
-                    self._late.add(key)  # re-opened, if its verdict asks for it, once the final is made
+                    self._late.add(key)  # re-opened, if its verdict asks for it, once its final is made
                 else:
                     self._reopen(key)
         fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
         for key in fresh:
-            if key in self.ingest.pending and key not in self._pending_since:
+            if key in self.ingest.pending and key not in self._requests.pending_since:
                 # A scan met in the middle (this reconstructor started late, or its ScanStart was lost):
                 # ask the log for the ScanStart and the steps before.
-                self._pending_since[key] = (now, RecoveryState())
-                self._ask_for_start(key, now)
+                self._requests.pending_since[key] = (now, RecoveryState())
+                self._requests.ask_for_start(key, now, self.ingest.pending.get(key, []))
         return out + self.collect()
 
     def tick(self, *, busy: bool = False) -> list[codec.Reconstruction]:
@@ -242,43 +207,45 @@ class ReconstructionService:
                 del self._partials[key]
                 continue
             r = p.recovery
-            self._note_progress(r, scan.n_received)
-            self._settle(scan, p, now)
+            self._requests.note_progress(r, scan.n_received)
+            self._requests.settle(scan, p, now)
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                    if not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
                         self._finalise(scan, p, "final")
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
-                elif self._can_ask(r, now, key):
-                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
-                elif self._exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
+                elif self._requests.can_ask(r, now, key):
+                    self._requests.ask(
+                        r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received
+                    )
+                elif self._requests.exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
                     self._finalise(scan, p, "incomplete")
             elif not busy:
                 silent = now - p.last_activity
-                if silent >= cfg.recovery_after and self._can_ask(r, now, key):
-                    self._ask(
+                if silent >= cfg.recovery_after and self._requests.can_ask(r, now, key):
+                    self._requests.ask(
                         r,
                         RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()), want_end=True),
                         now,
                         scan.n_received,
                     )
-                elif silent >= cfg.scan_timeout and self._exhausted(r, now, key):
+                elif silent >= cfg.scan_timeout and self._requests.exhausted(r, now, key):
                     self._event(
                         "WARNING",
                         f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
                     )
                     self.stats.timeouts += 1
                     self._finalise(scan, p, "final_timeout")
-        for key, (since, r) in list(self._pending_since.items()):
+        for key, (since, r) in list(self._requests.pending_since.items()):
             if key not in self.ingest.pending:
-                del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
-            elif self._can_ask(r, now, key):
-                self._ask_for_start(key, now)
-            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now, key):
+                del self._requests.pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
+            elif self._requests.can_ask(r, now, key):
+                self._requests.ask_for_start(key, now, self.ingest.pending.get(key, []))
+            elif not busy and now - since >= cfg.scan_timeout and self._requests.exhausted(r, now, key):
                 # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
-                del self._pending_since[key]
+                del self._requests.pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
         return out + self.collect()
@@ -295,32 +262,12 @@ class ReconstructionService:
         Those left wait for the next tick; under a backlog (``busy``) one deferred for over twice
         ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
         """
-        cfg = self.config
-        out: list[codec.Reconstruction] = []
-        waiting = sorted(
-            (p.estimated_at, key, p) for key in self._deferred if (p := self._partials.get(key)) is not None
-        )
-        self._deferred.clear()
-        start = self._clock()
-        for n, (estimated_at, key, p) in enumerate(waiting):
-            scan = self.ingest.scans.get(key)
-            if scan is None or not p.deferred:
-                continue
-            if self._clock() - start >= cfg.provisional_budget:
-                self._deferred.update(k for _, k, _ in waiting[n:])
-                break
-            p.deferred = False
-            if busy and start - estimated_at >= 2 * cfg.max_provisional_delay:
-                self.stats.provisionals_shed += 1
-                p.estimated_at = start  # the next deferral waits a full delay again
-                continue
-            out += self._provisional(scan, p)
-        return out
+        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional)
 
     @property
     def has_deferred(self) -> bool:
         """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
-        return bool(self._deferred)
+        return bool(self._schedule)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now, and wait for
@@ -354,32 +301,24 @@ class ReconstructionService:
         """
         out = self.collect(wait=True) if drain else []
         if self._dispatched:
-            dropped = sorted(f.scan.key for f in self._dispatched.values())
+            dropped = sorted(job.scan.key for job in self._dispatched.values())
             self.stats.finals_dropped += len(dropped)
             self._event("ERROR", f"{len(dropped)} finals dropped unmade as their source stopped: scans {dropped}")
             self._dispatched.clear()
             self._late.clear()
         if self._pool is not None and self._pool is not pool:
-            ps, st = self._pool.stats, self.stats
-            st.finals_in_workers += ps.pooled
-            st.final_workers_lost += ps.workers_lost
-            st.finals_rerun += ps.rerun
+            self.stats.add_pool(self._pool.stats)
         self._pool = pool
         return out
 
     def collect(self, *, wait: bool = False) -> list[codec.Reconstruction]:
-        """The finals made since the last call, in the order their scans were closed; ``wait`` for those still
-        on their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
+        """The finals made since the last call, in the order their scans were closed; ``wait`` for those on
+        their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
         if self._pool is not None and self._dispatched:
             for done in self._pool.drain() if wait else self._pool.ready():
                 self._complete(self._dispatched.pop(done.ticket), done)
         out, self._completed = self._completed, []
         return out
-
-    @property
-    def finals_on_their_way(self) -> int:
-        """Finals dispatched to the pool and not yet made."""
-        return len(self._dispatched)
 
     def stats_dict(self) -> dict:
         """Everything counted so far, for the exit line and ``--json``."""
@@ -406,28 +345,16 @@ class ReconstructionService:
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
             "provisionals_shed": s.provisionals_shed,
-            "finals_pool": {
-                "in_workers": s.finals_in_workers + (self._pool.stats.pooled if self._pool is not None else 0),
-                "workers_lost": s.final_workers_lost + (self._pool.stats.workers_lost if self._pool is not None else 0),
-                "rerun": s.finals_rerun + (self._pool.stats.rerun if self._pool is not None else 0),
-                "errors": s.final_errors,
-                "dropped": s.finals_dropped,
-            },
+            "finals_pool": s.pool_dict(self._pool.stats if self._pool is not None else None),
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
         }
 
     # --- recovery ------------------------------------------------------------------------
-    def _note_progress(self, r: RecoveryState, held: int) -> None:
-        if r.mark >= 0 and held > r.mark:
-            r.attempts, r.mark = 0, held  # new steps came: the budget starts again
-
-    def _can_ask(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
-        return self.recover is not None and self.recovery_policy.can_ask(r.attempts, r.last_at, now, key)
-
-    def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
-        return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
+    def still_wanted(self, request: RecoveryRequest) -> bool:
+        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
+        return (request.scanner_id, request.scan_id) not in self.ingest.closed
 
     def _reopen(self, key: ScanKey) -> None:
         """Steps came for a scan finalised without them: ask the acquirer's log for the whole scan, to publish
@@ -452,90 +379,7 @@ class ReconstructionService:
             f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
             f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
         )
-        self._request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
-
-    def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
-        """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
-        if scan.unsettled and self.recover is not None and p.settling != scan.unsettled:
-            p.settling, p.settle_at = frozenset(scan.unsettled), now
-            self._event(
-                "WARNING",
-                f"scan {scan.key}: {scan.conflicts} conflicting copies of steps {_ranges_text(sorted(p.settling))}; "
-                "asking the acquirer's log which is right",
-            )
-            self._request(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling))))
-
-    def _request(self, request: RecoveryRequest) -> None:
-        """One request outside a scan's attempts (counted; a refusal or a failure counted as refused)."""
-        self.stats.recovery_requests += 1
-        try:
-            ok = self.recover is not None and self.recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is a refused one, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
-
-    def _settling(self, scan: ScanAssembly, p: Partial, now: float) -> bool:
-        """Whether the final waits for the log to settle conflicting copies (live, for up to ``scan_timeout``)."""
-        if not scan.unsettled or self.recover is None:
-            return False
-        if p.settle_at is None:
-            self._settle(scan, p, now)
-        return p.settle_at is not None and now - p.settle_at < self.config.scan_timeout
-
-    def still_wanted(self, request: RecoveryRequest) -> bool:
-        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
-        return (request.scanner_id, request.scan_id) not in self.ingest.closed
-
-    def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
-        if self.recover is None:
-            raise InternalError("a recovery request was made by a service given no recover callback")
-        recover = self.recover
-        r.attempts += 1
-        r.requests += 1
-        r.last_at, r.mark = now, held
-        self.stats.recovery_requests += 1
-        what = ", ".join(
-            x
-            for x in (
-                f"{len(request.steps)} steps" if request.steps else "",
-                "ScanStart" if request.want_start else "",
-                "ScanEnd" if request.want_end else "",
-            )
-            if x
-        )
-        self._event(
-            "INFO",
-            f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
-            f"{what} (attempt {r.attempts}"
-            + (
-                f"/{self.config.recovery_attempts})"
-                if r.attempts <= self.config.recovery_attempts
-                else f", past {self.config.recovery_attempts}: its log may still answer)"
-            ),
-        )
-        try:
-            ok = recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
-
-    def _ask_for_start(self, key: ScanKey, now: float) -> None:
-        """A scan met in the middle: ask for its ScanStart and the steps before what is held
-        (all the steps its ScanEnd counts, when the ScanEnd is what is held)."""
-        _, r = self._pending_since[key]
-        held = self.ingest.pending.get(key, [])
-        self._note_progress(r, len(held))
-        if not held or not self._can_ask(r, now, key):
-            return
-        have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
-        ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
-        upto = int(ends[0].samples_sent) if ends else max(have) + 1
-        wanted = tuple(s for s in range(upto) if s not in have)
-        self._ask(r, RecoveryRequest(*key, steps=wanted, want_start=True), now, len(held))
+        self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
     def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
@@ -562,7 +406,7 @@ class ReconstructionService:
                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                 end.end_time_ns,
             )
-            if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
+            if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
                 self._finalise(scan, p, "final")
                 return []
             missing = scan.missing_steps()
@@ -571,11 +415,11 @@ class ReconstructionService:
             self._event(
                 "WARNING" if self.recover is not None else "INFO",
                 f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
-                f"missing so far: {_ranges_text(missing)}",
+                f"missing so far: {ranges_text(missing)}",
                 end.end_time_ns,
             )
-            if self._can_ask(p.recovery, p.ended_at, scan.key):
-                self._ask(
+            if self._requests.can_ask(p.recovery, p.ended_at, scan.key):
+                self._requests.ask(
                     p.recovery,
                     RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
                     p.ended_at,
@@ -591,13 +435,11 @@ class ReconstructionService:
                 float(scan.expected_energy[step]),
                 float(scan.ratio[step]),
             )
-        if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
+        if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
             self._finalise(scan, p, "final")
             return []
-        if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
-            p.deferred = True  # tick() catches up
-            self._deferred.add(scan.key)
-            return []  # the backlog's later samples will be in the next refit
+        if self._schedule.defer(scan.key, p, busy):
+            return []  # tick() catches up; the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
@@ -627,52 +469,26 @@ class ReconstructionService:
 
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
         """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
-        missing = scan.missing_steps()
-        if status == "final" and len(missing):
-            status = "incomplete"  # never FINAL with steps missing
-        end = scan.end
-        aborted = end is not None and end.status == SCAN_STATUS_ABORTED
-        if aborted and status in ("final", "incomplete"):
-            status = "aborted"  # a sweep stopped early is never FINAL (its missing_steps still listed)
-        acc = wire.accounting_message(
-            published=int(scan.end.samples_sent) if scan.end is not None else 0,
-            received_live=scan.n_received - scan.n_recovered,
-            recovered=scan.n_recovered,
-            duplicates=scan.duplicates,
-            rejected=dict(scan.rejected),
-            missing=len(missing),
-            conflicts=scan.conflicts,
-        )
-        # What the stream knows of the scan beyond its data: a sweep stopped early, copies that conflicted.
-        findings: tuple[tuple[str, str], ...] = ()
-        if end is not None and aborted:
-            findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
-        if scan.conflicts:
-            findings += ((DEGRADED, conflict_reason(scan, self.recover is not None)),)
-        final = _Final(
+        job, inp = close_final(
             scan,
             p,
             status,
-            missing,
-            acc,
-            findings,
-            self._reopened.pop(scan.key, 0),
-            self.latest.get(scan.start.scanner_id),
+            live=self.recover is not None,
+            revision=self._reopened.pop(scan.key, 0),
+            latest=self.latest.get(scan.start.scanner_id),
         )
-        inp = scan_input(scan)
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)
         self.ingest.close(scan.key)
         if self._pool is None:
-            self._complete(final, Done(0, reconstruct_scan(inp, self._options)))
+            self._complete(job, Done(0, reconstruct_scan(inp, self._options)))
         else:
-            # The points behind each plane come back only for an observer, which draws them.
-            ticket = self._pool.submit(estimate_final, inp, self._options, self._observer is not None)
-            self._dispatched[ticket] = final
+            # The points behind each plane travel back only for an observer, which draws them.
+            self._dispatched[self._pool.submit(estimate_final, inp, self._options, self._observer is not None)] = job
 
-    def _complete(self, final: _Final, done: Done) -> None:
+    def _complete(self, job: FinalJob, done: Done) -> None:
         """Publish a final whose estimate is made (or say why it could not be)."""
-        scan, status, missing, acc = final.scan, final.status, final.missing, final.accounting
+        scan, status = job.scan, job.status
         if done.error is not None:
             self.stats.final_errors += 1
             self._event(
@@ -681,14 +497,7 @@ class ReconstructionService:
                 f"nothing published for it\n{done.trace}",
             )
             return
-        est = with_findings(received(done.value), final.findings)
-        msg = wire.estimate_message(
-            est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
-        )
-        end = scan.end
-        if end is not None and status == "aborted":
-            msg.aborted_reason = end.reason or "aborted"
-        msg.revision = final.revision
+        msg, est = final_message(job, received(done.value))
         # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
         for note in est.notes:
             self._event("WARNING", f"scan {scan.key}: {note}")
@@ -696,14 +505,7 @@ class ReconstructionService:
         while len(self.finals) > self.config.keep_finals:
             self.finals.pop(next(iter(self.finals)))
             self.stats.evicted["final kept for lookup forgotten (keep_finals)"] += 1
-        st = self.stats
-        st.finals += 1
-        st.incomplete += status == "incomplete"
-        st.published += acc.published
-        st.received_live += acc.received_live
-        st.recovered += acc.recovered
-        st.duplicates += acc.duplicates
-        st.missing += acc.missing
+        self.stats.add_final(job.accounting, status)
         summary = "; ".join(
             f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
             f"h={pl.offset * 100:.1f} cm"
@@ -715,30 +517,18 @@ class ReconstructionService:
             f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
             + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""),
         )
-        hint = ""
-        if missing.size and status == "incomplete":
-            hint = (
-                "; the acquirer's log did not supply them (is acquire serving it? raise acquire "
-                "--serve-log-for or reconstruct --recovery-attempts)"
-                if self.recover is not None
-                else "; nothing could recover them here (a replay, or live with --recovery-attempts 0)"
-            )
-        self._event(
-            "INFO" if not missing.size else "WARNING",
-            f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
-            + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""),
-        )
+        self._event("INFO" if not job.missing.size else "WARNING", accounting_event(job, self.recover is not None))
         if self._observer:
-            self._observer.estimate(scan, msg, est.as_published(), final.partial)
-        now_latest = self.latest.get(msg.scanner_id)
-        self._emit(msg, newest=now_latest is None or now_latest is final.latest)
+            self._observer.estimate(scan, msg, est.as_published(), job.partial)
+        newest = self.latest.get(msg.scanner_id)
+        self._emit(msg, newest=newest is None or newest is job.latest)
         self._completed.append(msg)
         if scan.key in self._late:
             self._late.discard(scan.key)
             self._reopen(scan.key)  # steps came while it was being estimated
 
     def _emit(self, msg: codec.Reconstruction, *, newest: bool = True) -> codec.Reconstruction:
-        """Publish ``msg``; it becomes its scanner's latest unless a later scan's (``newest`` False) already is."""
+        """Publish ``msg``; it becomes its scanner's latest unless a later scan's (``newest`` False) is."""
         if newest:
             self.latest.pop(msg.scanner_id, None)  # most recently updated last
             self.latest[msg.scanner_id] = msg
@@ -754,41 +544,3 @@ class ReconstructionService:
         getattr(_log, level.lower(), _log.info)(text)
         if self._observer:
             self._observer.event(level, text, time_ns)
-
-
-def partial_sweep_reason(end: codec.ScanEnd, planned: int) -> str:
-    """A plane's reason when its sweep stopped early: how far it went, and why it stopped."""
-    why = f" ({end.reason})" if end.reason else ""
-    return (
-        f"partial sweep: the scan was aborted after {end.samples_sent} of {planned} steps{why}; "
-        "a wall may extend beyond what was swept"
-    )
-
-
-def conflict_reason(scan: ScanAssembly, live: bool) -> str:
-    """A plane's reason when steps of its scan came twice with different content."""
-    if not scan.unsettled:
-        kept = f"the acquirer's log settled them ({scan.replaced} held copies replaced by the log's)"
-    elif live:
-        kept = (
-            f"the acquirer's log did not settle steps {_ranges_text(sorted(scan.unsettled))}: the first copy was used"
-        )
-    else:
-        kept = (
-            "without the acquirer's log (a replay, or recovery off) nothing can tell which is right: "
-            "the first copy was used"
-        )
-    copies = "1 copy of a held step" if scan.conflicts == 1 else f"{scan.conflicts} copies of held steps"
-    return f"{copies} differed from the one held (a forged or replayed step?); {kept}"
-
-
-def _ranges_text(steps) -> str:
-    """``3-7, 12, 40-41`` for a sorted array of steps (at most 20 runs shown)."""
-    runs: list[list[int]] = []
-    for s in (int(x) for x in steps):
-        if runs and s == runs[-1][1] + 1:
-            runs[-1][1] = s
-        else:
-            runs.append([s, s])
-    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:20])
-    return text + (f", … ({len(runs) - 20} more runs)" if len(runs) > 20 else "")
