@@ -38,8 +38,9 @@ class FinalJob:
     #: What the stream knows of the scan beyond its data (a sweep stopped early, copies that conflicted).
     findings: tuple[tuple[str, str], ...]
     revision: int
-    #: The scanner's newest estimate when the scan was closed: a newer one (its next scan's) stays the newest.
-    latest: codec.Reconstruction | None
+    #: Its place among the service's estimates, taken when the scan was closed: an estimate of the scanner's
+    #: next scan published while this one was being made stays the scanner's latest.
+    rank: int
 
 
 def close_final(
@@ -49,7 +50,7 @@ def close_final(
     *,
     live: bool,
     revision: int,
-    latest: codec.Reconstruction | None,
+    rank: int,
 ) -> tuple[FinalJob, ScanInput]:
     """The final's job and the input its estimate reads (:func:`scan_input`), for a scan being closed.
 
@@ -77,7 +78,7 @@ def close_final(
         findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
     if scan.conflicts:
         findings += ((DEGRADED, conflict_reason(scan, live)),)
-    return FinalJob(scan, p, status, missing, acc, findings, revision, latest), scan_input(scan)
+    return FinalJob(scan, p, status, missing, acc, findings, revision, rank), scan_input(scan)
 
 
 def final_message(job: FinalJob, estimate: ScanEstimate) -> tuple[codec.Reconstruction, ScanEstimate]:

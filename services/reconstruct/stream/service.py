@@ -37,6 +37,7 @@ Gaps and when a final may be published:
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections.abc import Callable
@@ -121,6 +122,8 @@ class ReconstructionService:
         self.provisional_method = provisional_method(config.method)
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
+        self._latest_rank: dict[str, int] = {}  # the rank (order of making) of each scanner's latest
+        self._ranks = itertools.count()
         #: Final estimates, per scan, in the order they were made.
         self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
         #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
@@ -311,6 +314,11 @@ class ReconstructionService:
         self._pool = pool
         return out
 
+    @property
+    def finals_on_their_way(self) -> int:
+        """Finals dispatched to the pool and not yet handed back."""
+        return len(self._dispatched)
+
     def collect(self, *, wait: bool = False) -> list[codec.Reconstruction]:
         """The finals made since the last call, in the order their scans were closed; ``wait`` for those on
         their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
@@ -475,7 +483,7 @@ class ReconstructionService:
             status,
             live=self.recover is not None,
             revision=self._reopened.pop(scan.key, 0),
-            latest=self.latest.get(scan.start.scanner_id),
+            rank=next(self._ranks),
         )
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)
@@ -520,20 +528,23 @@ class ReconstructionService:
         self._event("INFO" if not job.missing.size else "WARNING", accounting_event(job, self.recover is not None))
         if self._observer:
             self._observer.estimate(scan, msg, est.as_published(), job.partial)
-        newest = self.latest.get(msg.scanner_id)
-        self._emit(msg, newest=newest is None or newest is job.latest)
+        self._emit(msg, job.rank)
         self._completed.append(msg)
         if scan.key in self._late:
             self._late.discard(scan.key)
             self._reopen(scan.key)  # steps came while it was being estimated
 
-    def _emit(self, msg: codec.Reconstruction, *, newest: bool = True) -> codec.Reconstruction:
-        """Publish ``msg``; it becomes its scanner's latest unless a later scan's (``newest`` False) is."""
-        if newest:
+    def _emit(self, msg: codec.Reconstruction, rank: int | None = None) -> codec.Reconstruction:
+        """Publish ``msg``; it becomes its scanner's latest unless one made after it (``rank``: when it was
+        made, by default now) already is: a final made in the pool while the scanner's next scan went on."""
+        rank = next(self._ranks) if rank is None else rank
+        if rank >= self._latest_rank.get(msg.scanner_id, -1):
             self.latest.pop(msg.scanner_id, None)  # most recently updated last
             self.latest[msg.scanner_id] = msg
+            self._latest_rank[msg.scanner_id] = rank
         while len(self.latest) > self.config.max_scanners:
-            self.latest.pop(next(iter(self.latest)))
+            self._latest_rank.pop(gone := next(iter(self.latest)), None)
+            self.latest.pop(gone)
             self.stats.evicted["latest estimate of a scanner forgotten (max_scanners)"] += 1
         self.stats.estimates += 1
         if self._publish is not None:

@@ -35,6 +35,7 @@ from lelsonar.reconstruct.stream.service import ReconstructionService
 _log = logging.getLogger(__name__)
 
 _STOP = ("", b"", "")  # queue sentinel
+_FINALS = ("", b"", "finals")  # queue item: finals came back from the pool
 _MAX_PARSED_KEYS = 4096
 #: The leaves of the keys a live source takes (``<prefix>/<scanner>/<leaf>``).
 LIVE_LEAVES = ("sample", "scan")
@@ -278,6 +279,12 @@ class LiveSource:
     ``fifo_capacity`` payloads in the channel, as many in the FIFO, and the worker's
     batch (``PayloadFifo.batch``) of each.
 
+    The finals are estimated in worker processes (``final_workers`` of the service's config;
+    :class:`~lelsonar.reconstruct.stream.finals.FinalPool`), so a scan's end does not hold every other
+    scanner's samples: the pool wakes the processing thread when one comes back, which publishes it as
+    the inline estimate would have been; those still on their way when the source closes are waited
+    for and published.
+
     With ``recovery`` (the default), the service asks the acquirer's log for
     what a scan lacks (:class:`~lelsonar.reconstruct.stream.recovery.LogRecoveryClient`).
     An exception of any type while processing is logged with its traceback,
@@ -326,6 +333,11 @@ class LiveSource:
         self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
+        #: Where the finals are estimated, off this source's thread (None: on it).
+        workers = service.config.final_workers
+        self._workers = auto_workers() if workers is None else workers
+        self._pool: FinalPool | None = None
+        self._finals_called = threading.Event()  # a _FINALS item waits in the FIFO
 
     @property
     def recovery_stats(self) -> dict[str, int]:
@@ -341,6 +353,9 @@ class LiveSource:
             self._service.recovery_policy = dataclasses.replace(
                 self._service.recovery_policy, log_may_answer=self._recovery.may_answer
             )
+        if self._workers:
+            self._pool = FinalPool(self._workers, on_ready=self._finals_ready)
+            self._service.use_pool(self._pool)
         self._thread.start()
         self._doorbell.start()
         return self
@@ -359,6 +374,19 @@ class LiveSource:
             pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
         self._doorbell.join(timeout=5)
+        if self._pool is not None:
+            try:
+                for msg in self._service.use_pool(None):  # the finals on their way: published before the source ends
+                    self._record_estimate(msg)
+            finally:
+                self._pool.close()
+
+    def _finals_ready(self) -> None:
+        """The pool's hook (its thread): wake the processing thread, once per wait, to publish what came back."""
+        if not self._finals_called.is_set():
+            self._finals_called.set()
+            if not self._queue.put_nowait(_FINALS):
+                self._finals_called.clear()  # full: the worker is busy, and collects after each payload anyway
 
     def _received(self, sample: zenoh.Sample) -> tuple[str, zenoh.ZBytes, str, str] | None:
         """A live sample as a work item, or None if it is not this worker's (or not a sample or scan event)."""
@@ -442,6 +470,10 @@ class LiveSource:
                 item = pending.popleft()
                 if item is _STOP:
                     return
+                if item is _FINALS:
+                    self._finals_called.clear()
+                    self._guarded(self._service.collect)
+                    item = None
                 if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
                     reading = True
                     item = self._received(item)
