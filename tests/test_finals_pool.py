@@ -54,12 +54,7 @@ def pool():
 
 
 def wait_ready(pool: FinalPool, workers: int) -> None:
-    """Until ``workers`` workers said they are ready (on_ready is called for each)."""
-    done = threading.Event()
-    pool.on_ready = done.set
-    while pool.ready_workers < workers:
-        done.wait(30)
-        done.clear()
+    assert pool.wait_ready(120) and pool.ready_workers >= workers
 
 
 def test_results_come_back_in_submission_order_whichever_worker_finishes_first(pool):
@@ -69,7 +64,7 @@ def test_results_come_back_in_submission_order_whichever_worker_finishes_first(p
     out = pool.drain()
     assert [d.ticket for d in out] == tickets
     assert [d.value for d in out] == [i * i for i in range(len(rounds))]
-    assert pool.stats.pooled == len(rounds) and pool.stats.inline == 0
+    assert pool.stats.pooled >= 1 and pool.stats.pooled + pool.stats.inline == len(rounds)
 
 
 def test_without_a_ready_worker_the_caller_computes_and_order_holds():
@@ -103,8 +98,14 @@ def test_a_killed_worker_s_job_runs_again_and_is_counted(pool, tmp_path):
 
 def test_a_job_that_kills_every_worker_ends_in_the_caller_never_lost(pool):
     wait_ready(pool, 2)
+    woke = threading.Event()
+    pool.on_ready = woke.set  # results, deaths and new workers wake the caller
     pool.submit(die_in_worker, os.getpid(), 11)
-    out = pool.drain()
+    out = pool.ready()
+    while not out:  # ready() never runs a job a worker may still take: only one two workers died on
+        woke.wait(30)
+        woke.clear()
+        out = pool.ready()
     assert [d.value for d in out] == [11]
     assert pool.stats.workers_lost == 2 and pool.stats.inline == 1
 
@@ -119,7 +120,7 @@ def test_a_worker_killed_from_outside_mid_job_loses_nothing(pool):
     assert pool.stats.workers_lost == 1 and pool.stats.rerun == 1
 
 
-def test_submit_blocks_at_capacity_so_what_waits_stays_bounded():
+def test_past_capacity_the_caller_runs_the_job_so_what_waits_stays_bounded():
     with FinalPool(1, capacity=2) as pool:
         wait_ready(pool, 1)
         most = 0
@@ -128,6 +129,7 @@ def test_submit_blocks_at_capacity_so_what_waits_stays_bounded():
             most = max(most, pool.unfinished)
         assert most <= 2
         assert [d.value for d in pool.drain()] == [i * i for i in range(8)]
+        assert pool.stats.inline + pool.stats.pooled == 8
 
 
 def test_workers_ignore_ctrl_c_and_close_ends_them():

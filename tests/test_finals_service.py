@@ -7,7 +7,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import signal
-import threading
 
 import numpy as np
 import pytest
@@ -90,11 +89,8 @@ def differences(a, b, path: str = ""):
 
 
 def ready_pool(workers: int) -> FinalPool:
-    woke = threading.Event()
-    pool = FinalPool(workers, on_ready=woke.set)
-    while pool.ready_workers < workers:
-        woke.wait(60)
-        woke.clear()
+    pool = FinalPool(workers)
+    assert pool.wait_ready(120), "the final workers did not start"
     return pool
 
 
@@ -122,7 +118,8 @@ def test_finals_from_workers_are_the_inline_ones_bit_for_bit_in_scan_order(scans
     assert pooled[2].aborted_reason == "stopped" and any(
         "partial sweep" in r for p in pooled[2].planes for r in p.quality_reasons
     )
-    assert service.stats_dict()["finals_pool"]["in_workers"] == 3 and service.stats.finals == 3
+    # (a final no worker has taken when the input ends is estimated by the caller, which would otherwise wait)
+    assert service.stats_dict()["finals_pool"]["in_workers"] >= 1 and service.stats.finals == 3
     # The observer gets each method's reconstruction, points and all, as the inline estimate gives them.
     for a, b in zip(inline_points.results, pooled_points.results, strict=True):
         assert a.keys() == b.keys()

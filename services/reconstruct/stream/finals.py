@@ -12,8 +12,9 @@ stream for that long (live: every scanner's samples wait; a replay: the reading 
   keep their bits), on the same machine code (the kernels' disk cache): the result is the one the
   caller would have computed.  Where no worker is ready yet (the pool is starting) or none is left,
   the caller computes the job itself.
-- **Bounded**: at most ``capacity`` jobs wait or run; :meth:`FinalPool.submit` blocks past that (the
-  stream slows down to the estimation's pace instead of holding every scan).  Results done but behind
+- **Bounded**: at most ``capacity`` jobs wait or run; past that :meth:`FinalPool.submit` runs the job in
+  the caller (the stream slows down to the estimation's pace instead of holding every scan), and
+  :meth:`FinalPool.drain` runs what no worker has taken yet instead of waiting.  Results done but behind
   an older one still running are held too: at most ``capacity`` more.
 - **A worker that dies** (killed, a crash in native code): its job runs again on a new worker, and if
   that one dies too, in the caller.  Never lost, never silent: logged and counted
@@ -216,25 +217,33 @@ class FinalPool:
         with self._s.lock:
             return sum(w.ready for w in self._s.workers)
 
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        """Wait until every worker is ready (the fork server's first start loads the kernels: seconds); False
+        if ``timeout`` s passed first, or the pool gave up on workers."""
+        s = self._s
+        with self._changed:
+            self._changed.wait_for(lambda: s.gave_up or sum(w.ready for w in s.workers) >= self.workers, timeout)
+            return not s.gave_up and sum(w.ready for w in s.workers) >= self.workers
+
     def submit(self, fn: Callable[..., Any], *args: Any) -> int:
-        """Queue ``fn(*args)``; return its ticket.  Runs it here when no worker is ready; blocks while
-        ``capacity`` jobs wait or run."""
+        """Queue ``fn(*args)``; return its ticket.  Runs it here when no worker is ready, or when ``capacity``
+        jobs already wait or run (the caller then does a job's work instead of waiting for a worker's)."""
         ticket = self._next_ticket
         self._next_ticket += 1
         self.stats.submitted += 1
-        job: _Job | None = _Job(ticket, fn, args)
+        job = _Job(ticket, fn, args)
         s = self._s
         with self._changed:
-            if self.workers and not s.gave_up and any(w.ready for w in s.workers):
-                while self._unfinished() >= self.capacity and not s.gave_up and s.workers:
-                    if s.orphans:
-                        break
-                    self._changed.wait(1.0)  # a result, a death or a start (the timeout only guards a lost wake)
-                if not s.gave_up and any(w.ready for w in s.workers):
-                    s.queue.append(job)
-                    self._feed()
-                    job = None
-        if job is not None:
+            queued = (
+                self.workers > 0
+                and not s.gave_up
+                and any(w.ready for w in s.workers)
+                and self._unfinished() < self.capacity
+            )
+            if queued:
+                s.queue.append(job)
+                self._feed()
+        if not queued:
             self._run_here(job)
         self._run_orphans()
         return ticket
@@ -255,13 +264,15 @@ class FinalPool:
                 return out
             s = self._s
             with self._changed:
-                stranded = []
+                here = []
                 if s.queue and (s.gave_up or not any(w.ready and w.process.is_alive() for w in s.workers)):
-                    stranded = list(s.queue)  # no worker to run what waits (all died, a new one not ready): here
+                    here = list(s.queue)  # no worker to run what waits (all died, a new one not ready): here
                     s.queue.clear()
+                elif s.queue:
+                    here = [s.queue.pop()]  # the newest job no worker has taken: here, instead of waiting
                 elif self._next_out not in s.done and not s.orphans:
                     self._changed.wait(1.0)  # a result or a death (the timeout only guards a lost wake)
-            for job in stranded:
+            for job in here:
                 self._run_here(job)
 
     def close(self, wait: float | None = 5.0) -> None:
@@ -470,6 +481,7 @@ class FinalPool:
                     s.orphans.append(job)
                 else:
                     s.queue.appendleft(job)
+                    self._feed()  # an idle worker takes it at once
             _log.error(
                 "a final worker (pid %s) died with exit code %s%s; %s",
                 w.process.pid,

@@ -173,10 +173,15 @@ def replay_mcap(
 
 
 def replay_workers(configured: int | None, scans: int | None) -> int:
-    """Worker processes for a replay's finals: ``configured`` (None: :func:`auto_workers`), but none for a
-    file of one scan, whose final can overlap nothing (a pool's start would only add to it)."""
-    workers = auto_workers() if configured is None else configured
-    return 0 if scans is not None and scans < 2 else workers
+    """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
+    load leaves cores idle (as :func:`decompress_threads`: a worker that finds no core only competes with
+    the reading); none for a file of one scan, whose final can overlap nothing."""
+    if scans is not None and scans < 2:
+        return 0
+    if configured is not None:
+        return configured
+    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
+    return max(0, min(auto_workers(), round(idle)))
 
 
 def scans_in(rec: Recording) -> int | None:
