@@ -421,6 +421,7 @@ def measure_replay(args: argparse.Namespace) -> Replay:
 
 def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[tuple], list[bool]]:
     from lelsonar.reconstruct.stream.finals import auto_workers
+    from lelsonar.reconstruct.stream.sources import replay_workers
 
     n, sec = rep.samples, rep.seconds
     replay_rate, floor_c = n / sec["replay"], n / sec["floor"]
@@ -444,8 +445,9 @@ def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[t
             f"{n / sec['inline'] / floor_c:.2f}×",
             "—",
             "",
-            f"--jobs 0: each final estimated where the file is read; (c) estimates them in {auto_workers()} "
-            "worker process(es) while the reading goes on",
+            "--jobs 0: each final estimated where the file is read; (c) estimates them in worker processes "
+            f"while the reading goes on ({replay_workers(None, args.scans)} now: up to {auto_workers()}, as the "
+            "host's load leaves cores idle)",
         ),
         (
             "(c′) replay with provisional estimates (diagnostic)",
