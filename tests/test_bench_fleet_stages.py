@@ -10,7 +10,7 @@ def test_interleaved_scans_come_in_acquisition_order_each_scanner_in_step_order(
     payloads = interleaved("paper-test1", scanners=3, scans=2, rate=50.0, steps=12)
     assert len(payloads) == 3 * 2 * (12 + 2)
     times, steps = [], {}
-    for name, payload in payloads:
+    for _, name, payload in payloads:
         if name.endswith("Sample"):
             m = codec.Sample.FromString(payload)
             times.append(m.acquisition_time_ns)
@@ -33,3 +33,16 @@ def test_every_call_is_in_one_stage_and_each_scan_gets_its_final():
     s = summary(result, scanners, 50.0)
     assert set(s["us_per_sample"]) == set(STAGES) and all(v >= 0 for v in s["us_per_sample"].values())
     assert s["total_us"] == sum(s["us_per_sample"].values()) and s["budget_us"] == 1e6 / (scanners * 50.0)
+
+
+def test_the_queue_model_handles_every_payload_on_its_virtual_clock():
+    from lelsonar.tools.bench_fleet_stages import OUTSIDE_US, queue_model
+
+    payloads = interleaved("paper-test1", scanners=2, scans=1, rate=50.0)
+    samples = sum(name.endswith("Sample") for _, name, _ in payloads)
+    r = queue_model(payloads, finals_elsewhere=True)
+    assert r["finals"] == 2 and len(r["processed_s"]) == samples
+    # Every sample waits at least the receive path's charge, and nothing is handled before it arrives.
+    assert min(r["processed_s"]) >= OUTSIDE_US * 1e-6
+    assert r["provisional_s"] and min(r["provisional_s"]) >= 0
+    assert 0 < r["busy"] < 1  # two scanners leave the worker idle most of the time

@@ -30,14 +30,21 @@ from collections import defaultdict
 from collections.abc import Callable
 from typing import Any
 
+#: The scan clock's origin (ns): a payload's time in :func:`interleaved` is its acquisition time less this.
+T0 = 1_700_000_000_000_000_000
+#: µs of the live worker's own CPU per sample outside ``handle`` (the Zenoh receive, the channel, the doorbell),
+#: as ``bench fleet`` measures it at 100 scanners: the queue model charges it to every payload.
+OUTSIDE_US = 50.0
+
 #: A handle call longer than this holds the stream past the latency target's share: counted.
 STALL_MS = 20.0
 
 STAGES = ("ingest", "provisional update", "provisional exact fits", "final")
 
 
-def interleaved(preset: str, scanners: int, scans: int, rate: float, steps: int = 0) -> list[tuple[str, bytes]]:
-    """(type name, payload) of ``scanners`` × ``scans`` scans in acquisition order, at ``rate`` Hz each."""
+def interleaved(preset: str, scanners: int, scans: int, rate: float, steps: int = 0) -> list[tuple[float, str, bytes]]:
+    """(s from the first message, type name, payload) of ``scanners`` × ``scans`` scans in acquisition order, at
+    ``rate`` Hz each."""
     from lelsonar.tools.bench_ingest_live import build_scan
 
     start, samples, end = build_scan(preset)
@@ -45,7 +52,7 @@ def interleaved(preset: str, scanners: int, scans: int, rate: float, steps: int 
         samples = samples[:steps]
         end.samples_sent = len(samples)
     period = int(round(1e9 / rate))
-    t0 = 1_700_000_000_000_000_000
+    t0 = T0
     events: list[tuple[int, int, str, bytes]] = []
     for s in range(scanners):
         sid = f"s{s:03d}"
@@ -61,10 +68,10 @@ def interleaved(preset: str, scanners: int, scans: int, rate: float, steps: int 
             end.scanner_id, end.scan_id, end.end_time_ns = sid, k + 1, base + (len(samples) + 1) * period + 1
             events.append((end.end_time_ns, 2, end.DESCRIPTOR.full_name, end.SerializeToString()))
     events.sort(key=lambda e: (e[0], e[1]))
-    return [(name, payload) for _, _, name, payload in events]
+    return [((t - t0) * 1e-9, name, payload) for t, _, name, payload in events]
 
 
-def measure(payloads: list[tuple[str, bytes]], *, provisional: bool = True) -> dict[str, Any]:
+def measure(payloads: list[tuple[float, str, bytes]], *, provisional: bool = True) -> dict[str, Any]:
     """Run the payloads through a fresh service; each handle call's thread CPU by stage (s), and the
     provisional refits' (steps held, µs)."""
     from lelsonar.reconstruct.estimate import incremental, wire
@@ -88,7 +95,7 @@ def measure(payloads: list[tuple[str, bytes]], *, provisional: bool = True) -> d
     clock = time.thread_time
     incremental.fit_plane = timed_fit
     try:
-        for type_name, payload in payloads:
+        for _, type_name, payload in payloads:
             exact[0] = 0.0
             c = clock()
             out = service.handle(type_name, payload)
@@ -105,6 +112,122 @@ def measure(payloads: list[tuple[str, bytes]], *, provisional: bool = True) -> d
     finally:
         incremental.fit_plane = fit_plane
     return {"calls": dict(calls), "refits": refits, "samples": samples, "finals": service.stats.finals}
+
+
+def queue_model(
+    payloads: list[tuple[float, str, bytes]],
+    *,
+    finals_elsewhere: bool,
+    outside_us: float = OUTSIDE_US,
+    tick_s: float = 0.1,
+    provisional: bool = True,
+) -> dict[str, Any]:
+    """One live worker with a core of its own, fed each payload at its acquisition time.
+
+    The worker's loop is :class:`~lelsonar.reconstruct.stream.sources.LiveSource`'s: take the oldest waiting
+    payload and handle it (``busy`` while more wait), ``tick`` every ``tick_s``, ``catch_up`` when nothing waits.
+    Each call takes the thread CPU it measures here, plus ``outside_us`` a payload, on a virtual clock the
+    service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
+    :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
+    worker nothing (run by other processes).  Returns put → processed and put → provisional latencies (s), the
+    worker's busy share, and the provisional refits shed.
+    """
+    from collections import deque
+
+    from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream import service as service_module
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+
+    now = [0.0]
+    final_cpu = [0.0]
+    reconstruct_scan, scan_input = service_module.reconstruct_scan, service_module.scan_input
+
+    # The bench's probes of the finals (their input, range repair included, and their reconstruction), not a
+    # change of them.
+    def timed_reconstruct(scan, options, *rest):
+        if options.provisional:
+            return reconstruct_scan(scan, options, *rest)
+        c = time.thread_time()
+        try:
+            return reconstruct_scan(scan, options, *rest)
+        finally:
+            final_cpu[0] += time.thread_time() - c
+
+    def timed_input(scan, *, provisional=False):
+        if provisional:
+            return scan_input(scan, provisional=True)
+        c = time.thread_time()
+        try:
+            return scan_input(scan)
+        finally:
+            final_cpu[0] += time.thread_time() - c
+
+    started: list[float] = []  # thread CPU at the start of the call under way: the clock runs inside a call too
+
+    def clock() -> float:
+        return now[0] + (time.thread_time() - started[0] if started else 0.0)
+
+    service = ReconstructionService(ReconstructConfig(provisional=provisional), clock=clock)
+    processed: list[float] = []
+    provisionals: list[float] = []
+    busy_s = 0.0
+
+    def run(step: Callable[..., list], *args, **kwargs) -> None:
+        nonlocal busy_s
+        final_cpu[0] = 0.0
+        c = time.thread_time()
+        started[:] = [c]
+        try:
+            out = step(*args, **kwargs)
+        finally:
+            started.clear()
+        spent = time.thread_time() - c - (final_cpu[0] if finals_elsewhere else 0.0)
+        now[0] += spent
+        busy_s += spent
+        for m in out:
+            scan = service.ingest.scans.get((m.scanner_id, m.scan_id))
+            if not wire.is_terminal(m) and scan is not None:
+                provisionals.append(now[0] - (int(scan.time_ns[m.last_step]) - T0) * 1e-9)
+
+    waiting: deque = deque()
+    i, n, last_tick = 0, len(payloads), 0.0
+
+    def arrive() -> None:
+        nonlocal i
+        while i < n and payloads[i][0] <= now[0]:
+            waiting.append(payloads[i])
+            i += 1
+
+    service_module.reconstruct_scan, service_module.scan_input = timed_reconstruct, timed_input  # type: ignore[assignment]
+    try:
+        while i < n or waiting:
+            if not waiting:
+                now[0] = max(now[0], payloads[i][0])  # idle until the next payload
+            arrive()
+            t, type_name, payload = waiting.popleft()
+            now[0] += outside_us * 1e-6
+            busy_s += outside_us * 1e-6
+            arrive()
+            run(service.handle, type_name, payload, busy=bool(waiting))
+            if type_name.endswith("Sample"):
+                processed.append(now[0] - t)
+            arrive()
+            if now[0] - last_tick >= tick_s:
+                last_tick = now[0]
+                run(service.tick, busy=bool(waiting))
+            elif service.has_deferred and not waiting:
+                run(service.catch_up)
+    finally:
+        service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
+    span = now[0] - payloads[0][0] if payloads else 0.0
+    return {
+        "processed_s": processed,
+        "provisional_s": provisionals,
+        "busy": busy_s / span if span > 0 else 0.0,
+        "shed": service.stats.provisionals_shed,
+        "finals": service.stats.finals,
+    }
 
 
 def summary(result: dict[str, Any], scanners: int, rate: float) -> dict[str, Any]:
@@ -161,7 +284,7 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
     console = Console()
     exercise_kernels()
     payloads = interleaved(args.preset, args.scanners, args.scans, args.rate, args.steps)
-    steps = sum(1 for name, _ in payloads if name.endswith("Sample")) // (args.scanners * args.scans)
+    steps = sum(1 for _, name, _ in payloads if name.endswith("Sample")) // (args.scanners * args.scans)
     load = os.getloadavg()
     runs = [measure(payloads, provisional=not args.no_provisional) for _ in range(args.repeat)]
     sums = [summary(r, args.scanners, args.rate) for r in runs]
@@ -221,6 +344,29 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
         " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in cost.items()),
     )
     console.print(facts)
+    model = Table(
+        title=f"queue model: one worker on a core of its own, fed at the scan clock, {OUTSIDE_US:g} µs a payload "
+        "outside handle (medians)"
+    )
+    for col in ("finals", "busy", "put→processed p50 / p99 ms", "put→provisional p50 / p99 ms", "shed"):
+        model.add_column(col, justify="left" if col == "finals" else "right")
+    for elsewhere in (False, True):
+        queued = [
+            queue_model(payloads, finals_elsewhere=elsewhere, provisional=not args.no_provisional)
+            for _ in range(args.repeat)
+        ]
+
+        def ms(key: str, q: float, queued=queued) -> str:
+            return f"{statistics.median(1e3 * _quantile(r[key], q) for r in queued):.1f}"
+
+        model.add_row(
+            "elsewhere (input and reconstruction)" if elsewhere else "inline",
+            f"{statistics.median(r['busy'] for r in queued):.2f}",
+            f"{ms('processed_s', 0.5)} / {ms('processed_s', 0.99)}",
+            f"{ms('provisional_s', 0.5)} / {ms('provisional_s', 0.99)}",
+            f"{statistics.median(r['shed'] for r in queued):.0f}",
+        )
+    console.print(model)
     load = os.getloadavg()
     console.print(
         f"load average after: {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}; finals "

@@ -40,12 +40,13 @@ class ReconstructConfig:
         Publish provisional estimates while a scan arrives (off for a batch replay,
         whose finals do not depend on them).
     max_provisional_delay : float
-        s; under a backlog, a scan still gets a provisional estimate this often.
+        s; while a backlog waits, every provisional refit waits for it (the samples come first); one whose
+        scan has had no estimate for over twice this is shed (``ServiceStats.provisionals_shed``) when
+        a tick still finds a backlog, and the scan's next refit covers it.
     provisional_budget : float
-        s of deferred provisional refits one :meth:`ReconstructionService.tick` runs, oldest estimate
-        first; the rest wait for the next tick, so catching up never holds the stream for long.
-        While a backlog waits, a refit deferred over twice ``max_provisional_delay`` is shed
-        (``ServiceStats.provisionals_shed``): samples come first, and the scan's next refit covers it.
+        s of deferred provisional refits one :meth:`ReconstructionService.tick` or
+        :meth:`ReconstructionService.catch_up` runs, oldest estimate first; the rest wait for the next
+        call, so catching up never holds the stream for long.
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float

@@ -22,8 +22,8 @@ class RecoveryState:
 class Partial(ProvisionalState):
     """The state of one scan in progress: the provisional estimate's, and the stream's."""
 
-    #: Clock of the last provisional estimate, or of the scan's first message: under a backlog the next refit
-    #: (the corner's confirmation, the costliest, among them) waits up to ``max_provisional_delay`` after it.
+    #: Clock of the last provisional estimate, or of the scan's first message: deferred refits are caught up
+    #: oldest first, and one whose scan has waited over twice ``max_provisional_delay`` is shed under a backlog.
     estimated_at: float = 0.0
     #: A provisional refit waited for a backlog (tick() catches up).
     deferred: bool = False

@@ -1,10 +1,13 @@
 """When a scan's provisional refit runs while a backlog waits: deferred, caught up within a budget, or shed.
 
-A refit that would hold samples waiting behind it is deferred (at most ``max_provisional_delay`` after the
-scan's last estimate); :meth:`ProvisionalSchedule.catch_up` runs the deferred ones oldest estimate first, for
-at most ``provisional_budget`` of the service's clock, leaving the rest for the next call; under a backlog a
-refit deferred for over twice ``max_provisional_delay`` is shed and counted: samples come first, and the
-scan's next refit covers the samples it would have.
+A refit that would hold samples waiting behind it is deferred: with many scanners a backlog builds where their
+scans reach the same costly refit together (the corner's confirmation, plane b's exact fits, when the scans
+run in step), and samples that wait behind those refits are late for every scan.
+:meth:`ProvisionalSchedule.catch_up` runs the deferred ones oldest estimate first, for at most
+``provisional_budget`` of the service's clock, leaving the rest for the next call (the source calls it when
+the backlog has drained, and on every tick); a tick that still finds a backlog sheds, and counts, the refit
+of a scan that has had no estimate for over twice ``max_provisional_delay``: the scan's next refit covers the
+samples it would have.
 """
 
 from __future__ import annotations
@@ -35,8 +38,8 @@ class ProvisionalSchedule:
         return bool(self._deferred)
 
     def defer(self, key: ScanKey, p: Partial, busy: bool) -> bool:
-        """Whether the scan's refit waits (a backlog waits and its last estimate is recent enough)."""
-        if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
+        """Whether the scan's refit waits (it does whenever a backlog waits)."""
+        if busy:
             p.deferred = True
             self._deferred.add(key)
             return True

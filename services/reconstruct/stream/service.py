@@ -11,8 +11,9 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
 2. every ``refit_every`` steps the provisional variant runs: it confirms the corner (R at its maximum
    well above the scan's typical R, enough steps after it), then re-estimates plane b in O(new
    samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
-   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) only every
-   ``max_provisional_delay``, so a burst costs one refit, not one per sample;
+   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) it waits too
+   (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
+   one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains;
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
    terminal.
@@ -165,7 +166,7 @@ class ReconstructionService:
         """Apply one payload; return the estimates it produced (also published).
 
         ``busy``: more payloads are already waiting, so a provisional refit can wait
-        for them (see ``max_provisional_delay``); :meth:`tick` catches up.
+        for them; :meth:`catch_up` and :meth:`tick` catch up.
         ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
         ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
         """
