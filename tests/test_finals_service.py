@@ -90,7 +90,7 @@ def differences(a, b, path: str = ""):
 
 def ready_pool(workers: int) -> FinalPool:
     pool = FinalPool(workers)
-    assert pool.wait_ready(120), "the final workers did not start"
+    assert pool.wait_ready(600), "the final workers did not start"
     return pool
 
 
