@@ -137,8 +137,9 @@ def add_jobs_argument(g) -> None:
         type=int,
         default=None,
         metavar="N",
-        help="worker processes that estimate the finals while the stream goes on (default: one per core beyond "
-        "the first, at most 2; 0 estimates them in this process)",
+        help="worker processes that estimate the finals while the stream goes on (default: live, one per core "
+        "beyond the first, at most 2; a replay, as many of those as the load leaves idle, none for a file of "
+        "under 50 scans; 0 estimates them in this process)",
     )
 
 

@@ -68,8 +68,9 @@ class ReconstructConfig:
     final_workers : int or None
         Worker processes a source (live or a replay) estimates the finals in, off the thread that handles
         the samples (:class:`~lelsonar.reconstruct.stream.finals.FinalPool`); 0 estimates them on that
-        thread.  None: one per core beyond the first, at most two (none on one core); a replay of a
-        single scan uses none.
+        thread.  None: one per core beyond the first, at most two (none on one core); a replay uses
+        what the host's load leaves idle, and none for a short file while the workers' fork server has
+        not started yet (:func:`~lelsonar.reconstruct.stream.sources.replay_workers`).
     """
 
     method: str = DEFAULT_METHOD

@@ -47,7 +47,7 @@ from typing import Any
 from lelsonar.errors import ConfigError, InternalError
 from lelsonar.reconstruct.estimate.record import RecordOptions, ScanEstimate, ScanInput, reconstruct_scan
 
-__all__ = ["Done", "FinalPool", "PoolStats", "auto_workers", "estimate_final", "received"]
+__all__ = ["Done", "FinalPool", "PoolStats", "auto_workers", "estimate_final", "received", "workers_warm"]
 
 _log = logging.getLogger(__name__)
 
@@ -56,6 +56,14 @@ PRELOAD = ("lelsonar.reconstruct.stream.finals", "lelsonar.reconstruct.stream.fi
 _READY = "ready"
 #: Worker starts that fail one after another before the pool gives up on workers (the caller then computes).
 _MAX_FAILED_STARTS = 3
+#: Set once a worker of this process has been ready: the fork server has loaded the kernels, so a new
+#: pool's workers start in a fraction of a second rather than seconds.
+_WARM = threading.Event()
+
+
+def workers_warm() -> bool:
+    """Whether a final worker of this process has started already (a new pool then starts at once)."""
+    return _WARM.is_set()
 
 
 def auto_workers(cpus: int | None = None) -> int:
@@ -445,6 +453,7 @@ class FinalPool:
         with self._changed:
             if message == _READY:
                 w.ready = True
+                _WARM.set()
                 self._s.failed_starts = 0
                 self._feed()
                 self._changed.notify_all()
@@ -546,7 +555,10 @@ def _context(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
     """The fork server (``preload`` imported once) where the platform has one, else spawn; never fork.
 
     The server is one per process; the first caller's preload holds for the others.  It starts with
-    Ctrl-C ignored (inherited), so a Ctrl-C while it imports prints no traceback of its own.
+    Ctrl-C ignored (inherited), so a Ctrl-C while it imports prints no traceback of its own, and without
+    the command's stdout and stderr: it outlives the command by its imports when the command ends first,
+    and a reader of the command's output must see its end when the command ends (the workers report
+    through their pipes; the caller logs what they could not).
     """
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return multiprocessing.get_context("spawn")
@@ -554,9 +566,19 @@ def _context(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
     context.set_forkserver_preload(list(preload))
     if threading.current_thread() is threading.main_thread():
         handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        kept = []
+        for fd in (1, 2):
+            try:
+                if os.get_inheritable(fd):
+                    os.set_inheritable(fd, False)  # closed in the server as it starts (exec)
+                    kept.append(fd)
+            except OSError:
+                pass  # not open
         try:
             multiprocessing.forkserver.ensure_running()  # returns without waiting for its imports
         finally:
+            for fd in kept:
+                os.set_inheritable(fd, True)
             signal.signal(signal.SIGINT, handler)
     return context
 

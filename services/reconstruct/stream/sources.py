@@ -27,7 +27,7 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
 from lelsonar.log.recording import McapRecorder, Recording, open_recording
-from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
+from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers, workers_warm
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -172,14 +172,22 @@ def replay_mcap(
     return n
 
 
+#: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
+#: imports the estimate and loads its kernels first (seconds), and a shorter replay ends before it is ready.
+COLD_START_SCANS = 50
+
+
 def replay_workers(configured: int | None, scans: int | None) -> int:
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
     load leaves cores idle (as :func:`decompress_threads`: a worker that finds no core only competes with
-    the reading); none for a file of one scan, whose final can overlap nothing."""
+    the reading).  None for a file of one scan, whose final can overlap nothing, nor by default for a file
+    of fewer than :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
     if scans is not None and scans < 2:
         return 0
     if configured is not None:
         return configured
+    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
+        return 0
     idle = (os.cpu_count() or 1) - os.getloadavg()[0]
     return max(0, min(auto_workers(), round(idle)))
 
