@@ -131,9 +131,9 @@ def test_a_wall_seen_at_its_foot_likely_runs_on_to_the_corner_or_edge_that_ends_
     segments = {tuple(sorted(round(float(v), 6) for v in s[:, 0])) for s in fp.likely_walls(m, cfg)}
     # From the right piece to the edge at x = 3, from the left one to the corner at x = 0.
     assert segments == {(2.1, 3.0), (0.0, 0.9)}
-    # Between the pieces: closed, as no scan saw through it.
+    # Between the pieces, and on to the corner and the edge: closed, as no scan saw through them.
     gaps = {tuple(sorted(round(float(v), 6) for v in s[:, 0])) for s in fp.closed_gaps(m, cfg)}
-    assert gaps == {(1.0, 2.0)}
+    assert gaps == {(1.0, 2.0), (2.1, 3.0), (0.0, 0.9)}
 
 
 def test_a_gap_between_pieces_is_closed_to_a_route_unless_a_scan_saw_through_it():

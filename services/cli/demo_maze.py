@@ -260,8 +260,8 @@ def _why_no_route(fused, begin, plan) -> str:
 
     if floorplan.route(fused, begin, None, plan, through_closed_gaps=True) is not None:
         return (
-            "every way out crosses a gap between the pieces of a wall that no scan saw through "
-            "(the tour never looked through the exit)"
+            "every way out crosses a wall where no scan saw through it: between two pieces the scans saw, or on "
+            "to the corner that ends it (the tour saw no exit; a longer one might)"
         )
     return f"every way out is closed by a wall piece the robot cannot pass {plan.robot_radius:g} m from"
 

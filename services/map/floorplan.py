@@ -199,30 +199,35 @@ class Grid:
         }
 
 
-def closed_gaps(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
-    """Gaps (n, 2, 2) between the observed pieces of one wall that no scan saw through: closed to a route.
+def _unseen_through(m: FusedMap, cfg: PlanConfig, stretches: list[np.ndarray]) -> np.ndarray:
+    """The stretches (n, 2, 2) that the space seen free does not cross."""
+    if not stretches:
+        return np.zeros((0, 2, 2))
+    space = _seen(m, cfg)
+    return np.array([s for s in stretches if not space.intersects(LineString(s))]).reshape(-1, 2, 2)
 
-    Scans saw the wall on both sides of such a gap and its hull (the wall's ``extent``) spans it; an opening
-    there was never seen open, so a route never takes it.  A gap the space seen free crosses (an echo's path
-    through it to a surface beyond, or the robot's own way) is an opening the scans saw: not closed, though
-    no more than that stretch is seen free.  Unreliable walls close nothing (one may be no wall at all).
+
+def closed_gaps(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
+    """Stretches (n, 2, 2) of a wall's line that no scan saw but a route never crosses.
+
+    * A gap between two observed pieces of one wall: scans saw the wall on both sides and its hull (the
+      wall's ``extent``) spans it; an opening there was never seen open.
+    * The stretch from an end piece to the corner or edge of the map that ends the wall on its line
+      (:func:`likely_walls`): the corner says the wall runs on to it.
+
+    One that the space seen free crosses (an echo's path through it to a wall beyond, or the robot's own way)
+    is an opening the scans saw: not closed, though no more than that is seen free.  Unreliable walls close
+    nothing (one may be no wall at all).
     """
     cfg = config or PlanConfig()
-    space = None
-    out: list[np.ndarray] = []
+    stretches: list[np.ndarray] = []
     for w in m.walls:
         if w.quality == "unreliable":
             continue
         pieces = sorted(w.pieces)
-        for (_, hi), (lo, _) in zip(pieces, pieces[1:]):
-            if lo <= hi:
-                continue
-            gap = segment(w.line, (hi, lo))
-            if space is None:
-                space = _seen(m, cfg)
-            if not space.intersects(LineString(gap)):
-                out.append(gap)
-    return np.array(out).reshape(-1, 2, 2)
+        stretches += [segment(w.line, (hi, lo)) for (_, hi), (lo, _) in zip(pieces, pieces[1:]) if lo > hi]
+    stretches += [s for s, ended in _continuations(m, cfg) if ended]
+    return _unseen_through(m, cfg, stretches)
 
 
 def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
@@ -233,10 +238,14 @@ def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
     each wall of good or degraded verdict (an unreliable one may be no wall at all): from each end piece
     along its line to the nearest corner or edge of the map on that line (where it meets another wall, or
     ends), at most ``likely_wall_reach`` away; without one, ``likely_wall_span``.  The gaps between its
-    pieces are :func:`closed_gaps`.
+    pieces, and the stretches that reach a corner or an edge, are also :func:`closed_gaps`.
     """
-    cfg = config or PlanConfig()
-    out: list[np.ndarray] = []
+    return np.array([s for s, _ in _continuations(m, config or PlanConfig())]).reshape(-1, 2, 2)
+
+
+def _continuations(m: FusedMap, cfg: PlanConfig) -> list[tuple[np.ndarray, bool]]:
+    """:func:`likely_walls`' stretches, each with whether a corner or an edge ends it."""
+    out: list[tuple[np.ndarray, bool]] = []
     # Vertical ones only: a wall's foot on the floor is a corner too, but it ends nothing along the wall.
     features = [f for f in (*m.corners, *m.edges) if abs(float(f.direction[2])) >= math.cos(math.radians(30.0))]
     for w in m.walls:
@@ -258,9 +267,9 @@ def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
                 behind.append(s_f)
         end = min(ahead) if ahead else hi + cfg.likely_wall_span
         start = max(behind) if behind else lo - cfg.likely_wall_span
-        out.append(segment(w.line, (hi, end)))
-        out.append(segment(w.line, (start, lo)))
-    return np.array(out).reshape(-1, 2, 2)
+        out.append((segment(w.line, (hi, end)), bool(ahead)))
+        out.append((segment(w.line, (start, lo)), bool(behind)))
+    return out
 
 
 def _distance_to_segments(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
