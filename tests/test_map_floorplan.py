@@ -192,3 +192,17 @@ def test_the_map_read_back_from_its_message_plans_as_the_library_does():
     assert fp.free_space(back).symmetric_difference(fp.free_space(m)).area < 1e-9
     start = (m.poses[0].x, m.poses[0].y)
     assert fp.route(back, start) == fp.route(m, start)
+
+
+def test_an_echo_path_to_an_unreliable_wall_is_no_evidence_of_free_space():
+    from lelsonar.map.result import FusedMap
+
+    # The robot at the origin; a good wall x = 1 seen at its foot; an "echo" read as a wall at x = 3 behind it.
+    near = _wall(0, 0.0, 1.0, [(-0.02, 0.02)])
+    ghost = _wall(1, 0.0, 3.0, [(-0.02, 0.02)], quality="unreliable")
+    to_near = np.array([[0.0, 0.0], [1.0, -0.02], [1.0, 0.02]])
+    to_ghost = np.array([[0.0, 0.0], [3.0, -0.02], [3.0, 0.02]])
+    m = FusedMap(walls=(near, ghost), features=(), poses=(), views=(to_near, to_ghost), view_scans=(1, 1))
+    assert [v.tolist() for v in fp.trusted_views(m)] == [to_near.tolist()]
+    space = fp.free_space(m)
+    assert space.contains(Point(0.5, 0.0)) and not space.intersects(Point(2.0, 0.0))

@@ -100,7 +100,7 @@ def _tour(run, console, on_map) -> map_pb2.Map | str:
     from lelsonar.net.transport import hermetic_settings, open_session
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
     from lelsonar.sim import default_energy_model
-    from lelsonar.v1 import map_pb2
+    from lelsonar.v1 import map_pb2, reconstruction_pb2
 
     stops = len(run.world.poses)
     energy_model = default_energy_model()
@@ -144,7 +144,7 @@ def _tour(run, console, on_map) -> map_pb2.Map | str:
                     except queue.Empty:
                         return f"the mapper published no map for scan {index + 1} ({dict(mapper.errors)})"
                     on_map(grown)
-                    good = sum(1 for w in grown.walls if w.quality == 1)  # PLANE_QUALITY_GOOD
+                    good = sum(1 for w in grown.walls if w.quality == reconstruction_pb2.PLANE_QUALITY_GOOD)
                     bar.update(
                         task,
                         advance=1,
