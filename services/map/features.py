@@ -37,6 +37,10 @@ def line_intersection(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndar
 #: meeting the floor or the ceiling, a box's top) are not.
 MAX_FEATURE_TILT = math.radians(30.0)
 
+#: A scan's corner or edge that no two walls meet at is published only when this many scans saw it (one scan's
+#: double bounce or diffraction can be a ghost of several echoes).
+MIN_FEATURE_SCANS = 2
+
 #: A wall's observed stretch reaches a crossing when it ends within 3σ of the crossing's point along it, or
 #: within this, m (the end of a sonar patch is where the echoes stopped, known to about a beam step).
 MEET_FLOOR = 0.05
@@ -68,29 +72,37 @@ def _reach(pieces: tuple[tuple[float, float], ...], s: float, tolerance: float) 
 def wall_corners(
     walls: list[FusedWall], reach: float, observed: Sequence[FusedFeature] = ()
 ) -> tuple[list[FusedFeature], list[FusedFeature]]:
-    """Vertical corners where two fused walls' observed stretches meet, and the observed features left over.
+    """Vertical corners where two fused walls meet, and the observed features no corner took.
 
-    Two walls at least :data:`MIN_CORNER_ANGLE` apart make a corner at their lines' crossing ``p`` when each
-    wall's observed pieces reach ``p`` within 3σ of ``p`` along it (at least :data:`MEET_FLOOR`); or, where a
-    scan's own vertical corner or edge (``observed``) lies within 3σ of ``p`` (at least :data:`MEET_FLOOR`),
-    within ``reach`` (sonar sees a wall only near the foot of its perpendicular, the corner's own echo sees
-    the corner).  A wall whose pieces pass through ``p`` meets the other there in a T.
+    Two walls at least :data:`MIN_CORNER_ANGLE` apart meet at their lines' crossing ``p`` (σ from both walls'
+    covariances, first order) when
 
-    The kind comes from the sides the walls leave the crossing on: the normals point away from the free
-    space that saw them, so at a concave corner each wall runs off on the side of the other opposite that
-    one's normal, at a convex one on its side; walls that run off on opposite sides cross, and make no corner.
+    * each wall's observed pieces reach ``p`` within 3σ of ``p`` along it (at least :data:`MEET_FLOOR`); or
+    * a scan's own vertical corner (a double bounce) or edge (diffraction) of that kind, ``observed``, lies
+      within 3σ of ``p`` (σ of both; at least :data:`MEET_FLOOR`, at most ``reach``).  Sonar sees a wall only
+      near the foot of its perpendicular, so the pieces seldom reach a corner; the corner's own echo sees it.
+
+    Where neither holds the lines' crossing is no corner: two walls' lines cross in many places where the
+    walls do not meet (an opening, a wall that ends before the other).
+
+    The kind comes from the sides the walls run off the crossing on: the normals point away from the free space
+    that saw them, so at a concave corner each wall runs off on the side of the other opposite that one's
+    normal, at a convex one on its side.  A wall whose pieces pass through ``p`` (a T) leaves the kind to the
+    other; walls that run off on opposite sides cross, and make no corner.
 
     Returns
     -------
     corners : list of FusedFeature
-        Source ``walls``; ``observations`` counts both walls' good observations and the observed features that
+        Source ``walls``; ``observations`` counts both walls' good observations and the scans' features that
         vouch for it.
     rest : list of FusedFeature
-        The ``observed`` features no wall corner took.
+        The vertical ``observed`` features no wall corner took and :data:`MIN_FEATURE_SCANS` scans saw (the
+        others, and a wall meeting the floor or the ceiling, no corner of a floor plan, are left out).
     """
+    feats = [f for f in observed if abs(float(f.direction[2])) >= math.cos(MAX_FEATURE_TILT)]
     n = len(walls)
     if n < 2:
-        return [], list(observed)
+        return [], [f for f in feats if len(f.scans) >= MIN_FEATURE_SCANS]
     theta = np.array([w.line[0] for w in walls])
     rho = np.array([w.line[1] for w in walls])
     lo = np.array([w.interval[0] for w in walls])
@@ -99,14 +111,20 @@ def wall_corners(
     sin_ij = np.sin(theta[j] - theta[i])
     keep = np.abs(sin_ij) >= math.sin(MIN_CORNER_ANGLE)
     i, j, sin_ij = i[keep], j[keep], sin_ij[keep]
-    # Where the lines cross (Cramer's rule on the two normals); the pairs whose hulls come within reach of it.
+    # Where the lines cross (Cramer's rule on the two normals); the pairs whose stretches come within reach of it
+    # or that have a scan's feature within reach.
     px = (rho[i] * np.sin(theta[j]) - rho[j] * np.sin(theta[i])) / sin_ij
     py = (rho[j] * np.cos(theta[i]) - rho[i] * np.cos(theta[j])) / sin_ij
     s_i, s_j = _along(theta[i], px, py), _along(theta[j], px, py)
     ok = (s_i >= lo[i] - reach) & (s_i <= hi[i] + reach) & (s_j >= lo[j] - reach) & (s_j <= hi[j] + reach)
+    fpts = np.array([f.point[:2] for f in feats]).reshape(-1, 2)
+    fsig = np.array([f.point_stderr for f in feats])
+    if len(fpts):
+        dist = np.hypot(px[:, None] - fpts[None, :, 0], py[:, None] - fpts[None, :, 1])
+        ok |= dist.min(axis=1) <= reach
     i, j, px, py, sin_ij, s_i, s_j = i[ok], j[ok], px[ok], py[ok], sin_ij[ok], s_i[ok], s_j[ok]
     if len(i) == 0:
-        return [], list(observed)
+        return [], [f for f in feats if len(f.scans) >= MIN_FEATURE_SCANS]
     # The crossing's covariance, first order (line_intersection's Jacobian, all pairs at once): A⁻¹ has columns
     # (sin θ_b, −cos θ_b) / s and (−sin θ_a, cos θ_a) / s with s = sin(θ_b − θ_a).
     ta, tb = theta[i], theta[j]
@@ -121,16 +139,12 @@ def wall_corners(
     block[:, 2:, 2:] = covs[j]
     cov = jac @ block @ jac.transpose(0, 2, 1)
     tangents = np.stack([-np.sin(theta), np.cos(theta)], axis=1)
-    # σ of the crossing along each wall.
+    # σ of the crossing along each wall, and its largest.
     sig_i = np.sqrt(np.clip(np.einsum("kj,kjl,kl->k", tangents[i], cov, tangents[i]), 0.0, None))
     sig_j = np.sqrt(np.clip(np.einsum("kj,kjl,kl->k", tangents[j], cov, tangents[j]), 0.0, None))
     sigma = np.sqrt(np.clip(np.linalg.eigvalsh(cov)[:, -1], 0.0, None))
     normals = np.stack([np.cos(theta), np.sin(theta)], axis=1)
-    feats = [f for f in observed if abs(float(f.direction[2])) >= math.cos(MAX_FEATURE_TILT)]
-    fpts = np.array([f.point[:2] for f in feats]).reshape(-1, 2)
-    fsig = np.array([f.point_stderr for f in feats])
-    taken: set[int] = set()
-    out: list[FusedFeature] = []
+    candidates = []
     for k, (ia, ib) in enumerate(zip(i.tolist(), j.tolist())):
         a, b = walls[ia], walls[ib]
         meet_a = max(3.0 * float(sig_i[k]), MEET_FLOOR)
@@ -144,15 +158,18 @@ def wall_corners(
         if len(sides) != 1:
             continue  # they cross, or both pass through
         kind = "concave" if sides == {-1.0} else "convex"
-        p = np.array([px[k], py[k]])
-        near = []
+        near: list[int] = []
         if len(fpts):
-            d = np.hypot(*(fpts - p).T)
-            gate = np.maximum(3.0 * np.hypot(fsig, sigma[k]), MEET_FLOOR)
+            d = np.hypot(*(fpts - np.array([px[k], py[k]])).T)
+            gate = np.minimum(np.maximum(3.0 * np.hypot(fsig, sigma[k]), MEET_FLOOR), reach)
             near = [m for m in np.flatnonzero(d <= gate).tolist() if _kind_agrees(feats[m].kind, kind)]
-        if not ((gap_a <= meet_a and gap_b <= meet_b) or (near and gap_a <= reach and gap_b <= reach)):
+        if not (near or (gap_a <= meet_a and gap_b <= meet_b)):
             continue
-        taken.update(near)
+        candidates.append((k, ia, ib, kind, near))
+    taken = {m for *_, near in candidates for m in near}
+    out: list[FusedFeature] = []
+    for k, ia, ib, kind, near in candidates:
+        a, b = walls[ia], walls[ib]
         z_lo, z_hi = max(a.z_range[0], b.z_range[0]), min(a.z_range[1], b.z_range[1])
         z = 0.5 * (z_lo + z_hi) if z_lo <= z_hi else 0.5 * (a.z_range[0] + b.z_range[0])
         out.append(
@@ -166,8 +183,7 @@ def wall_corners(
                 walls=(a.id, b.id),
             )
         )
-    rest = [f for m, f in enumerate(feats) if m not in taken]
-    return out, rest
+    return out, [f for m, f in enumerate(feats) if m not in taken and len(f.scans) >= MIN_FEATURE_SCANS]
 
 
 def _kind_agrees(observed: str, kind: str) -> bool:
@@ -194,7 +210,7 @@ def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservatio
     to the first one's foot, and its σ that of a mean.
     """
     clusters: list[dict] = []
-    for _sid, pose, height, f in observed:
+    for sid, pose, height, f in observed:
         p, d = _to_world(pose, height, f)
         for c in clusters:
             if c["kind"] != f.kind or abs(float(d @ c["direction"])) < math.cos(math.radians(10.0)):
@@ -205,6 +221,7 @@ def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservatio
             if float(np.linalg.norm(across)) <= gate:
                 c["points"].append(c["anchor"] + across)
                 c["stderrs"].append(f.point_stderr)
+                c["scans"].append(sid)
                 break
         else:
             clusters.append(
@@ -215,6 +232,7 @@ def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservatio
                     "stderr": f.point_stderr,
                     "points": [p],
                     "stderrs": [f.point_stderr],
+                    "scans": [sid],
                 }
             )
     return [
@@ -225,6 +243,7 @@ def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservatio
             point_stderr=math.sqrt(sum(s * s for s in c["stderrs"])) / len(c["stderrs"]),
             source="observed",
             observations=len(c["points"]),
+            scans=tuple(dict.fromkeys(c["scans"])),
         )
         for c in clusters
     ]

@@ -108,6 +108,7 @@ class FusedFeature:
     source: str  # "walls" (where two fused walls meet) or "observed" (from the scans' own corners and edges)
     observations: int
     walls: tuple[int, ...] = ()
+    scans: tuple[int, ...] = ()  # the scans whose own corners or edges it holds
 
 
 @dataclass(frozen=True, eq=False)
