@@ -8,14 +8,15 @@
   predicted pose: the Mahalanobis distance of the innovation on ``(θ, ρ)`` (pose, wall and observation
   covariances), gated at ``gate_chi2`` (and, where configured, the gap between the observed stretch and the
   wall's).  The nearest wall within the gate takes it; no two observations of one scan go to one wall.
-* **Verdicts carry over.**  Only good observations open walls in the graph and make a wall good.  Degraded
-  and unreliable observations are attached to a fused wall they agree with (there they tie their pose to
-  it with their own σ and Huber's loss: a wall whose bearing a scan could not pin still places the robot in
-  range), or kept as walls of their own with their own verdict: a wall seen once and flagged stays
-  flagged.  A flagged wall seen from two scans enters the graph the same way (robustly, with its
-  observations' own σ), so it corrects the poses no good wall links, and stays flagged.  An observation that overlaps a wall and lies near it but outside the gate is another wall, and
-  both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good evidence
-  that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and says so.
+* **Verdicts carry over.**  Only good observations make a wall good.  Degraded and unreliable observations
+  are attached to a fused wall they agree with (there they tie their pose to it with their own σ and
+  Huber's loss: a wall whose bearing a scan could not pin still places the robot in range), or kept as
+  walls of their own with their own verdict: a wall seen once and flagged stays flagged.  A flagged wall
+  seen from two scans enters the graph the same way, so it corrects the poses no good wall links, and
+  stays flagged.  An observation that overlaps a wall and lies near it but outside the gate is another
+  wall, and both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good
+  evidence that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and
+  says so.
 """
 
 from __future__ import annotations
