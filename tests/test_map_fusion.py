@@ -351,7 +351,7 @@ def test_a_flagged_wall_seen_from_two_scans_corrects_the_pose_no_good_wall_place
 
 def _corner_scans(features_at: dict[int, list]) -> list[ScanObservation]:
     """Two walls of an L (x = 0 and y = 0, seen from x, y < 0: normals +x and +y) seen from two poses, each
-    stretch over a metre from the corner at the origin; ``features_at[k]``: scan k's own corner observations (world points)."""
+    stretch over a metre from the corner at the origin; ``features_at[k]``: scan k's own corners (world points)."""
     cov = np.diag([math.radians(0.2) ** 2, 0.002**2])
     poses = [np.array([-1.5, -1.5, 0.0]), np.array([-1.6, -1.4, 0.0])]
     scans = []
