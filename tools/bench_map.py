@@ -235,7 +235,7 @@ def _row(family: str, which: str, results: list) -> list[str]:
     n_corners = len(corners)
     on_truth = sum(r.corners_true for r in results)
     kind_ok = sum(r.corners_kind for r in results)
-    seen = sum(r.corners_seen for r in results)
+    corners_seen = sum(r.corners_seen for r in results)
     found = sum(r.corners_found for r in results)
     fused = np.array([p for r in results for p in r.pose_fused]).reshape(-1, 2)
     odo = np.array([p for r in results for p in r.pose_odometry]).reshape(-1, 2)
@@ -264,7 +264,7 @@ def _row(family: str, which: str, results: list) -> list[str]:
         ratio,
         f"{bad} / {unmatched}",
         pair(corners, ".1f"),
-        f"{on_truth}/{n_corners} ({kind_ok}) / {found}/{seen}",
+        f"{on_truth}/{n_corners} ({kind_ok}) / {found}/{corners_seen}",
         f"{100 * _pct(fused[:, 0], 50):.1f} / {100 * _pct(odo[:, 0], 50):.1f}" if len(fused) else "–",
         f"{math.degrees(_pct(fused[:, 1], 50)):.2f} / {math.degrees(_pct(odo[:, 1], 50)):.2f}" if len(fused) else "–",
         f"{_pct(upd, 50):.1f}",
