@@ -83,7 +83,8 @@ def wall_corners(
       near the foot of its perpendicular, so the pieces seldom reach a corner; the corner's own echo sees it.
 
     Where neither holds the lines' crossing is no corner: two walls' lines cross in many places where the
-    walls do not meet (an opening, a wall that ends before the other).
+    walls do not meet (an opening, a wall that ends before the other).  Nor is a crossing the map places
+    worse than ``reach`` at 3σ (walls whose poses are that uncertain).
 
     The kind comes from the sides the walls run off the crossing on: the normals point away from the free space
     that saw them, so at a concave corner each wall runs off on the side of the other opposite that one's
@@ -96,7 +97,7 @@ def wall_corners(
         Source ``walls``; ``observations`` counts both walls' good observations and the scans' features that
         vouch for it.
     rest : list of FusedFeature
-        The vertical ``observed`` features no wall corner took and :data:`MIN_FEATURE_SCANS` scans saw (the
+        The vertical ``observed`` features no two walls explain and :data:`MIN_FEATURE_SCANS` scans saw (the
         others, and a wall meeting the floor or the ceiling, no corner of a floor plan, are left out).
     """
     feats = [f for f in observed if abs(float(f.direction[2])) >= math.cos(MAX_FEATURE_TILT)]
@@ -165,10 +166,14 @@ def wall_corners(
             near = [m for m in np.flatnonzero(d <= gate).tolist() if _kind_agrees(feats[m].kind, kind)]
         if not (near or (gap_a <= meet_a and gap_b <= meet_b)):
             continue
-        candidates.append((k, ia, ib, kind, near))
-    taken = {m for *_, near in candidates for m in near}
+        # Placed too loosely it is no corner of the map, and the scans' features it explains are none either
+        # (they went through the same poses).
+        candidates.append((k, ia, ib, kind, near, 3.0 * float(sigma[k]) <= reach))
+    taken = {m for *_, near, _ in candidates for m in near}
     out: list[FusedFeature] = []
-    for k, ia, ib, kind, near in candidates:
+    for k, ia, ib, kind, near, placed in candidates:
+        if not placed:
+            continue
         a, b = walls[ia], walls[ib]
         z_lo, z_hi = max(a.z_range[0], b.z_range[0]), min(a.z_range[1], b.z_range[1])
         z = 0.5 * (z_lo + z_hi) if z_lo <= z_hi else 0.5 * (a.z_range[0] + b.z_range[0])
