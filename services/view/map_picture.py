@@ -17,7 +17,13 @@ import shapely
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import wall_pieces
 from lelsonar.draw.palette import QUALITY_COLORS, quality_color
-from lelsonar.v1 import map_pb2
+from lelsonar.v1 import map_pb2, reconstruction_pb2
+
+#: Opacity and drawing order of a wall by verdict (wire value): good, degraded, unreliable.
+_WALL_ALPHA: dict[int, tuple[float, float]] = {
+    reconstruction_pb2.PLANE_QUALITY_GOOD: (0.95, 3.2),
+    reconstruction_pb2.PLANE_QUALITY_DEGRADED: (0.6, 3.1),
+}
 
 
 def _rgb(c) -> tuple[float, float, float]:
@@ -52,14 +58,17 @@ def save_map_picture(
     for w in (world or {}).get("walls", []):
         (x0, y0), (x1, y1) = w["from"], w["to"]
         ax.plot([x0, x1], [y0, y1], color=(0.45, 0.45, 0.45), lw=0.8, ls="--", zorder=1)
-    for w in msg.walls:
+    # The walls a planner may trust stand out; flagged ones (lone echoes, often a corner's or a wall end's) are
+    # drawn fainter beneath them, at their full σ.
+    for w in sorted(msg.walls, key=lambda w: -int(w.quality)):
         sigma = w.offset_stderr if math.isfinite(w.offset_stderr) else 0.0
         n = np.array([w.normal.x, w.normal.y])
+        alpha, z = _WALL_ALPHA.get(int(w.quality), (0.35, 2.0))
         for a, b in wall_pieces(w):
             band = SIGMA_BAND * sigma * n
             corners = np.array([a[:2] - band, b[:2] - band, b[:2] + band, a[:2] + band])
             color = _rgb(quality_color(w.quality))
-            ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=0.9, zorder=3))
+            ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=alpha, zorder=z))
     for items, color, marker in ((msg.corners, (1.0, 0.31, 0.78), "o"), (msg.edges, (0.0, 0.7, 0.85), "s")):
         if len(items):
             ax.scatter(
