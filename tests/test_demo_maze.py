@@ -79,3 +79,44 @@ def test_demo_finds_the_way_out_of_a_drawn_maze_and_draws_it(capsys, tmp_path):
     assert math.dist(route[0], (world.poses[0].x, world.poses[0].y)) < 0.05
     assert (tmp_path / "maze-1.rrd").stat().st_size > 0 and (tmp_path / "maze-1.png").stat().st_size > 0
     assert "rerun " + str(tmp_path / "maze-1.rrd") in " ".join(out.split())
+
+
+def test_the_planner_gets_the_map_and_prints_the_route_out_of_it(tmp_path, capsys):
+    """``planner --map`` against a mapper's map on Zenoh (a synthetic maze fused by the library): the route it
+    prints keeps the robot's radius from the map's walls, crosses no true wall and ends beyond them."""
+    import numpy as np
+
+    from lelsonar.cli.main import main
+    from lelsonar.map.fusion import WallMapper
+    from lelsonar.map.synthetic import NoiseModel, maze, observe_world
+    from lelsonar.map.wire import map_message
+    from lelsonar.net.transport import hermetic_settings, open_session
+
+    world = maze(5, np.random.default_rng(4))
+    scans, _, _ = observe_world(world, NoiseModel(), np.random.default_rng(4))
+    mapper = WallMapper()
+    for s in scans:
+        mapper.add_scan(s)
+    fused = mapper.snapshot()
+    payload = map_message(fused, "rover").SerializeToString()
+    sock = tmp_path / "z.sock"
+    with open_session(hermetic_settings(sock, listen=True)) as session:
+        queryable = session.declare_queryable("lelsonar/map", lambda q: q.reply("lelsonar/map", payload))
+        start = f"{fused.poses[0].x},{fused.poses[0].y}"
+        argv = ["planner", "--map", "--mode", "client", "--connect", f"unixsock-stream/{sock}", "--timeout", "30"]
+        assert main([*argv, "--start", start]) == 0
+        queryable.undeclare()
+    out = " ".join(capsys.readouterr().out.split())
+    assert "walls of good evidence" in out
+    text = out[out.index("route out") : out.index("it runs")]
+    route = [(float(x), float(y)) for x, y in re.findall(r"\((-?\d+\.\d+), (-?\d+\.\d+)\)", text.split(": ", 1)[1])]
+    line = LineString(route)
+    # It keeps the radius from every wall piece of the map (printed to the cm) and crosses no true wall; a true
+    # wall's end beyond the stretch the scans saw of it is not in the map.
+    from lelsonar.map.floorplan import wall_segments
+
+    for piece in wall_segments(fused):
+        assert line.distance(piece) > 0.15 - 0.01
+    for seg in world.segments:
+        assert not line.intersects(LineString(seg))
+    assert route[-1][0] > world.segments[:, :, 0].max()

@@ -157,32 +157,10 @@ def _tour(run, console, on_map) -> map_pb2.Map | str:
             return map_pb2.Map.FromString(replies[0].payload.to_bytes())
 
 
-def _walls_table(fused):
-    """The walls of good evidence: verdict, σ, how many scans, how much of them was seen, and why not good."""
-    from rich.table import Table
-
-    table = Table(title="walls of good evidence", title_justify="left", show_edge=False, pad_edge=False)
-    for col in ("wall", "verdict", "offset ± σ", "scans", "seen", "why not good"):
-        table.add_column(col, justify="right" if col in ("wall", "scans", "seen") else "left")
-    for w in fused.walls:
-        if w.good_observations == 0:
-            continue
-        seen = sum(hi - lo for lo, hi in w.pieces)
-        why = "; ".join(w.reasons) if w.quality != "good" else ""
-        table.add_row(
-            str(w.id),
-            w.quality,
-            f"{w.offset:.3f} ± {100 * w.offset_stderr:.1f} cm",
-            str(len(w.scans)),
-            f"{seen:.2f} m",
-            why,
-        )
-    return table
-
-
 def run_maze_demo(args: argparse.Namespace) -> int:
     from lelsonar.acquire.world_scans import world_json
     from lelsonar.cli.maze_tour import load_tour_world, tour_run
+    from lelsonar.cli.route_report import print_map, print_route
     from lelsonar.map import floorplan
     from lelsonar.map.service import map_key
     from lelsonar.map.wire import map_from_message
@@ -222,76 +200,16 @@ def run_maze_demo(args: argparse.Namespace) -> int:
             return 1
         fused = map_from_message(latest)
         space = floorplan.free_space(fused, plan)
-        evidence = [w for w in fused.walls if w.good_observations > 0]
-        flagged = len(fused.walls) - len(evidence)
-        console.print(
-            f"the planner got the map on {map_key(PREFIX)}: {len(evidence)} walls of good evidence "
-            f"({sum(w.quality == 'good' for w in evidence)} good), {flagged} seen only flagged, "
-            f"{len(fused.corners)} corners, {len(fused.poses)} poses",
-            highlight=False,
-        )
-        console.print(_walls_table(fused))
-        if flagged:
-            console.print(
-                f"{flagged} walls were seen only flagged (echoes whose bearing no sweep pinned: corners, wall ends): "
-                "they are obstacles to the route all the same",
-                highlight=False,
-            )
-        for note in fused.notes:
-            console.print(f"note: {note}", highlight=False)
+        print_map(console, fused, map_key(PREFIX))
         begin = (fused.poses[0].x, fused.poses[0].y)
         path = floorplan.route(fused, begin, None, plan)
         log_map(rec, latest, free_space=space, route=path)
-        title = f"{world.name}: {len(evidence)} walls of good evidence, {len(fused.poses)} scans"
+        evidence = sum(1 for w in fused.walls if w.good_observations > 0)
+        title = f"{world.name}: {evidence} walls of good evidence, {len(fused.poses)} scans"
         closed = floorplan.closed_gaps(fused, plan)
         save_map_picture(png, latest, free_space=space, route=path, world=truth, title=title, closed=closed)
         elapsed = time.monotonic() - t0
-        if path is None:
-            why = _why_no_route(fused, begin, plan)
-            console.print(f"[red]no route out of the map from ({begin[0]:.2f}, {begin[1]:.2f}): {why}")
-        else:
-            _print_route(console, fused, path, plan)
+        print_route(console, fused, begin, path, plan)
     console.print(f"the map growing, the truth and the route: rerun {rrd}; the final map: {png}", highlight=False)
     console.print(f"done in {elapsed:.1f} s", highlight=False)
     return 0 if path is not None else 1
-
-
-def _why_no_route(fused, begin, plan) -> str:
-    from lelsonar.map import floorplan
-
-    if floorplan.route(fused, begin, None, plan, through_closed_gaps=True) is not None:
-        return (
-            "every way out crosses a wall where no scan saw through it: between two pieces the scans saw, or on "
-            "to the corner that ends it (the tour saw no exit; a longer one might)"
-        )
-    return f"every way out is closed by a wall piece the robot cannot pass {plan.robot_radius:g} m from"
-
-
-def _print_route(console, fused, path, plan) -> None:
-    from shapely.geometry import LineString, Point
-
-    from lelsonar.map import floorplan
-
-    summary = floorplan.summarise_route(fused, path, plan)
-    console.print(
-        f"route out (robot radius {plan.robot_radius:g} m, {summary.length:.2f} m): "
-        + " → ".join(f"({x:.2f}, {y:.2f})" for x, y in path),
-        highlight=False,
-    )
-    beside = ", ".join(f"{n} {q}" for q, n in summary.beside.items() if n)
-    console.print(
-        f"it runs {summary.length - summary.unseen:.2f} m through space the scans saw free and "
-        f"{summary.unseen:.2f} m through space no scan saw; it passes {summary.clearance:.2f} m from the nearest "
-        f"wall piece (wall {summary.nearest_wall}); the walls beside it: {beside or 'none'}",
-        highlight=False,
-    )
-    if summary.frontier is None:
-        console.print("the exit is seen: the route ends in free space the scans saw", highlight=False)
-    else:
-        fx, fy = summary.frontier
-        beyond = LineString(path).length - LineString(path).project(Point(fx, fy))
-        console.print(
-            f"the exit is not seen yet: the last {beyond:.2f} m of the route, from ({fx:.2f}, {fy:.2f}), run "
-            "through space no scan saw free; the rover would explore that frontier first",
-            highlight=False,
-        )

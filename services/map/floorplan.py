@@ -29,6 +29,9 @@ ON_PIECE = 0.1
 #: A view ends on a wall when the middle of its far side is this near one of the wall's pieces, m.
 VIEW_ON_WALL = 0.05
 
+#: The space seen free crosses a wall's stretch when it reaches this far beyond it on both sides, m.
+THROUGH = 0.1
+
 #: OccupancyGrid cell values.
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
 
@@ -200,11 +203,21 @@ class Grid:
 
 
 def _unseen_through(m: FusedMap, cfg: PlanConfig, stretches: list[np.ndarray]) -> np.ndarray:
-    """The stretches (n, 2, 2) that the space seen free does not cross."""
+    """The stretches (n, 2, 2) that the space seen free does not cross.
+
+    Crossing means reaching :data:`THROUGH` beyond the stretch on both sides: an echo's path that ends on the
+    wall itself touches its line but saw nothing beyond it.
+    """
     if not stretches:
         return np.zeros((0, 2, 2))
     space = _seen(m, cfg)
-    return np.array([s for s in stretches if not space.intersects(LineString(s))]).reshape(-1, 2, 2)
+    out = []
+    for s in stretches:
+        d = s[1] - s[0]
+        n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-12)
+        if not all(space.intersects(LineString(s + side * THROUGH * n)) for side in (1.0, -1.0)):
+            out.append(s)
+    return np.array(out).reshape(-1, 2, 2)
 
 
 def closed_gaps(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
