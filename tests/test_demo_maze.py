@@ -29,8 +29,12 @@ def _corridor_world(poses: list[tuple[float, float, float]]) -> World:
 def test_the_tour_stops_every_spacing_along_each_drive_heading_the_way_it_drives():
     world = _corridor_world([(0.5, 0.75, 90.0), (3.5, 0.75, 0.0), (3.5, 0.75, 180.0)])
     stops = tour_poses(world, 0.5)
-    # 3 m at most 0.5 m apart: 5 stops between the first two waypoints; none between two at one place.
-    assert len(stops) == 3 + 5
+    # First the start turned about; 3 m at most 0.5 m apart: 5 stops between the first two waypoints; none
+    # between two at one place.
+    assert len(stops) == 1 + 3 + 5
+    back = stops[0]
+    assert (back.x, back.y) == (0.5, 0.75) and back.heading == pytest.approx(-math.pi / 2)
+    stops = stops[1:]
     assert stops[0] == world.poses[0] and stops[6] == world.poses[1] and stops[-1] == world.poses[2]
     xs = [p.x for p in stops[:7]]
     assert all(b - a == pytest.approx(0.5) for a, b in zip(xs, xs[1:]))

@@ -62,7 +62,9 @@ def tour_poses(world: World, spacing: float) -> tuple[Pose2, ...]:
 
     A stop is evenly spaced on the drive and heads along it.  One nearer a wall or box than a drawn world's
     poses may be (:data:`~lelsonar.sim.worlds.POSE_CLEARANCE`) is left out: the rover drives past there without
-    stopping.  ``spacing`` 0: the waypoints alone.
+    stopping.  The tour begins with a sweep turned about at the first waypoint: a sweep leaves the directions
+    behind the rover unseen, and nothing else looks back at where it starts.  ``spacing`` 0: the waypoints
+    alone.
     """
     if not (math.isfinite(spacing) and spacing >= 0):
         raise ConfigError(f"--scan-every must be a distance ≥ 0 m, got {spacing!r}")
@@ -72,7 +74,8 @@ def tour_poses(world: World, spacing: float) -> tuple[Pose2, ...]:
     obstacles = unary_union(
         [LineString([w.start, w.end]) for w in world.walls] + [Polygon(b.footprint()) for b in world.boxes]
     )
-    out = [poses[0]]
+    first = poses[0]
+    out = [Pose2(first.x, first.y, math.remainder(first.heading + math.pi, 2 * math.pi)), first]
     for a, b in zip(poses, poses[1:]):
         d = math.hypot(b.x - a.x, b.y - a.y)
         n = math.ceil(d / spacing - 1e-9)

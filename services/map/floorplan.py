@@ -8,7 +8,7 @@ Every wall is an obstacle here, flagged ones included: a wall the map cannot vou
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import networkx as nx
 import numpy as np
@@ -202,15 +202,16 @@ class Grid:
         }
 
 
-def _unseen_through(m: FusedMap, cfg: PlanConfig, stretches: list[np.ndarray]) -> np.ndarray:
-    """The stretches (n, 2, 2) that the space seen free does not cross.
+def _unseen_through(m: FusedMap, cfg: PlanConfig, stretches: list[np.ndarray], *, views: bool) -> np.ndarray:
+    """The stretches (n, 2, 2) that the space seen free (``views`` False: the robot's own way alone) does not
+    cross.
 
     Crossing means reaching :data:`THROUGH` beyond the stretch on both sides: an echo's path that ends on the
     wall itself touches its line but saw nothing beyond it.
     """
     if not stretches:
         return np.zeros((0, 2, 2))
-    space = _seen(m, cfg)
+    space = _seen(m, cfg) if views else _seen(replace(m, views=(), view_scans=()), cfg)
     out = []
     for s in stretches:
         d = s[1] - s[0]
@@ -228,19 +229,23 @@ def closed_gaps(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
     * The stretch from an end piece to the corner or edge of the map that ends the wall on its line
       (:func:`likely_walls`): the corner says the wall runs on to it.
 
-    One that the space seen free crosses (an echo's path through it to a wall beyond, or the robot's own way)
-    is an opening the scans saw: not closed, though no more than that is seen free.  Only walls of good
+    A gap that the space seen free crosses (an echo's path through it to a wall beyond, or the robot's own
+    way) is an opening the scans saw: not closed, though no more than that is seen free.  A stretch on to a
+    corner is opened by the robot's own way alone: an echo's path is drawn from the scanner to the ends of the
+    patch it came from, and a patch read longer than its wall reaches past the corner.  Only walls of good
     evidence close anything: a flagged wall's line may be degrees off, or be no wall at all.
     """
     cfg = config or PlanConfig()
-    stretches: list[np.ndarray] = []
+    gaps: list[np.ndarray] = []
     for w in m.walls:
         if w.quality == "unreliable" or w.good_observations == 0:
             continue
         pieces = sorted(w.pieces)
-        stretches += [segment(w.line, (hi, lo)) for (_, hi), (lo, _) in zip(pieces, pieces[1:]) if lo > hi]
-    stretches += [s for s, ended, w in _continuations(m, cfg) if ended and w.good_observations > 0]
-    return _unseen_through(m, cfg, stretches)
+        gaps += [segment(w.line, (hi, lo)) for (_, hi), (lo, _) in zip(pieces, pieces[1:]) if lo > hi]
+    ends = [s for s, ended, w in _continuations(m, cfg) if ended and w.good_observations > 0]
+    return np.concatenate(
+        [_unseen_through(m, cfg, gaps, views=True), _unseen_through(m, cfg, ends, views=False)]
+    ).reshape(-1, 2, 2)
 
 
 def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
