@@ -124,3 +124,16 @@ def test_the_planner_gets_the_map_and_prints_the_route_out_of_it(tmp_path, capsy
     for seg in world.segments:
         assert not line.intersects(LineString(seg))
     assert route[-1][0] > world.segments[:, :, 0].max()
+
+
+@pytest.mark.slow
+def test_demo_says_why_when_a_maze_has_no_way_out(capsys, tmp_path):
+    """The example maze with its exit walled up: no route is printed, but one line says why, and the exit code
+    says it failed."""
+    from lelsonar.cli.main import main
+
+    assert main(["demo", "--world", "maze_closed", "--out", str(tmp_path)]) == 1
+    out = " ".join(capsys.readouterr().out.split())
+    assert "route out (" not in out
+    assert "no route out of the map from (0.75, 0.75): every way out" in out
+    assert (tmp_path / "maze_closed.png").stat().st_size > 0

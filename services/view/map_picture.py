@@ -100,7 +100,7 @@ def save_map_picture(
         Line2D([], [], color=(1.0, 0.31, 0.78), marker="o", ls="none", label="corner"),
     ]
     if closed is not None and len(closed):
-        legend.append(Line2D([], [], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", label="unseen, closed to a route"))
+        legend.append(Line2D([], [], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", label="unseen, closed"))
     if free_space is not None:
         legend.append(Line2D([], [], color=(0.75, 0.87, 1.0), lw=6, label="seen free"))
     if route:
