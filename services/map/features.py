@@ -191,6 +191,18 @@ def wall_corners(
     return out, [f for m, f in enumerate(feats) if m not in taken and len(f.scans) >= MIN_FEATURE_SCANS]
 
 
+def horizontal_corners(observed: Sequence[FusedFeature]) -> list[FusedFeature]:
+    """The scans' corners that are no corner of the floor plan: a wall meeting the floor or the ceiling (a line
+    more than :data:`MAX_FEATURE_TILT` from the vertical), those :data:`MIN_FEATURE_SCANS` scans saw."""
+    return [
+        f
+        for f in observed
+        if abs(float(f.direction[2])) < math.cos(MAX_FEATURE_TILT)
+        and f.kind != "edge"
+        and len(f.scans) >= MIN_FEATURE_SCANS
+    ]
+
+
 def _kind_agrees(observed: str, kind: str) -> bool:
     """A scan's concave corner vouches for a concave wall corner; its convex corner or edge for a convex one."""
     return observed == kind or (observed == "edge" and kind == "convex")

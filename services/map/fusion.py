@@ -29,7 +29,7 @@ import numpy as np
 from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
-from lelsonar.map.features import fuse_features, wall_corners
+from lelsonar.map.features import fuse_features, horizontal_corners, wall_corners
 from lelsonar.map.lines import (
     interval_on_line,
     line_in_world,
@@ -525,15 +525,16 @@ class WallMapper:
         # Corners where walls of good evidence meet: a flagged wall's line may be degrees off, and its crossings
         # with others land anywhere.
         placed = [w for w in walls if w.good_observations > 0]
-        corners, rest = wall_corners(placed, self.config.corner_reach, fuse_features(observed))
-        features = corners + rest
+        seen_features = fuse_features(observed)
+        corners, rest = wall_corners(placed, self.config.corner_reach, seen_features)
         return FusedMap(
             walls=tuple(walls),
-            features=tuple(features),
+            features=tuple(corners + rest),
             poses=poses,
             notes=tuple(self.notes),
             views=tuple(views),
             view_scans=tuple(view_scans),
+            horizontal=tuple(horizontal_corners(seen_features)),
         )
 
     def _placed(self, wall: FusedWall) -> FusedWall:
