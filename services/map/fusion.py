@@ -29,7 +29,7 @@ import numpy as np
 from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
-from lelsonar.map.features import fuse_features, horizontal_corners, wall_corners
+from lelsonar.map.features import fuse_features, horizontal_corners, placement_sigma, wall_corners
 from lelsonar.map.lines import (
     interval_on_line,
     line_in_world,
@@ -522,10 +522,11 @@ class WallMapper:
         )
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
+        placed_by = [placement_sigma(poses[k].covariance, float(np.hypot(*f.point[:2]))) for _, k, f in self._features]
         # Corners where walls of good evidence meet: a flagged wall's line may be degrees off, and its crossings
         # with others land anywhere.
         placed = [w for w in walls if w.good_observations > 0]
-        seen_features = fuse_features(observed)
+        seen_features = fuse_features(observed, placed_by)
         corners, rest = wall_corners(placed, self.config.corner_reach, seen_features)
         return FusedMap(
             walls=tuple(walls),
