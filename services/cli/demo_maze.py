@@ -243,7 +243,8 @@ def run_maze_demo(args: argparse.Namespace) -> int:
         path = floorplan.route(fused, begin, None, plan)
         log_map(rec, latest, free_space=space, route=path)
         title = f"{world.name}: {len(evidence)} walls of good evidence, {len(fused.poses)} scans"
-        save_map_picture(png, latest, free_space=space, route=path, world=truth, title=title)
+        closed = floorplan.closed_gaps(fused, plan)
+        save_map_picture(png, latest, free_space=space, route=path, world=truth, title=title, closed=closed)
         elapsed = time.monotonic() - t0
         if path is None:
             why = _why_no_route(fused, begin, plan)

@@ -18,7 +18,7 @@ from shapely.ops import unary_union
 
 from lelsonar.errors import ConfigError
 from lelsonar.map.lines import foot, segment, tangent
-from lelsonar.map.result import FusedMap
+from lelsonar.map.result import FusedMap, FusedWall
 
 #: Colours of the verdicts (RGBA, 0..1) for the wall markers.
 QUALITY_COLOURS = {"good": (0.2, 0.8, 0.3, 1.0), "degraded": (1.0, 0.7, 0.1, 1.0), "unreliable": (0.9, 0.2, 0.2, 1.0)}
@@ -216,17 +216,17 @@ def closed_gaps(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
       (:func:`likely_walls`): the corner says the wall runs on to it.
 
     One that the space seen free crosses (an echo's path through it to a wall beyond, or the robot's own way)
-    is an opening the scans saw: not closed, though no more than that is seen free.  Unreliable walls close
-    nothing (one may be no wall at all).
+    is an opening the scans saw: not closed, though no more than that is seen free.  Only walls of good
+    evidence close anything: a flagged wall's line may be degrees off, or be no wall at all.
     """
     cfg = config or PlanConfig()
     stretches: list[np.ndarray] = []
     for w in m.walls:
-        if w.quality == "unreliable":
+        if w.quality == "unreliable" or w.good_observations == 0:
             continue
         pieces = sorted(w.pieces)
         stretches += [segment(w.line, (hi, lo)) for (_, hi), (lo, _) in zip(pieces, pieces[1:]) if lo > hi]
-    stretches += [s for s, ended in _continuations(m, cfg) if ended]
+    stretches += [s for s, ended, w in _continuations(m, cfg) if ended and w.good_observations > 0]
     return _unseen_through(m, cfg, stretches)
 
 
@@ -240,12 +240,12 @@ def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
     ends), at most ``likely_wall_reach`` away; without one, ``likely_wall_span``.  The gaps between its
     pieces, and the stretches that reach a corner or an edge, are also :func:`closed_gaps`.
     """
-    return np.array([s for s, _ in _continuations(m, config or PlanConfig())]).reshape(-1, 2, 2)
+    return np.array([s for s, _, _ in _continuations(m, config or PlanConfig())]).reshape(-1, 2, 2)
 
 
-def _continuations(m: FusedMap, cfg: PlanConfig) -> list[tuple[np.ndarray, bool]]:
-    """:func:`likely_walls`' stretches, each with whether a corner or an edge ends it."""
-    out: list[tuple[np.ndarray, bool]] = []
+def _continuations(m: FusedMap, cfg: PlanConfig) -> list[tuple[np.ndarray, bool, FusedWall]]:
+    """:func:`likely_walls`' stretches, each with whether a corner or an edge ends it, and its wall."""
+    out: list[tuple[np.ndarray, bool, FusedWall]] = []
     # Vertical ones only: a wall's foot on the floor is a corner too, but it ends nothing along the wall.
     features = [f for f in (*m.corners, *m.edges) if abs(float(f.direction[2])) >= math.cos(math.radians(30.0))]
     for w in m.walls:
@@ -267,8 +267,8 @@ def _continuations(m: FusedMap, cfg: PlanConfig) -> list[tuple[np.ndarray, bool]
                 behind.append(s_f)
         end = min(ahead) if ahead else hi + cfg.likely_wall_span
         start = max(behind) if behind else lo - cfg.likely_wall_span
-        out.append((segment(w.line, (hi, end)), bool(ahead)))
-        out.append((segment(w.line, (start, lo)), bool(behind)))
+        out.append((segment(w.line, (hi, end)), bool(ahead), w))
+        out.append((segment(w.line, (start, lo)), bool(behind), w))
     return out
 
 

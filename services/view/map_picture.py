@@ -38,8 +38,13 @@ def save_map_picture(
     route: list[tuple[float, float]] | None = None,
     world: dict | None = None,
     title: str = "",
+    closed: np.ndarray | None = None,
 ) -> Path:
-    """Draw the map and write it to ``path`` (png, pdf or svg); returns the path."""
+    """Draw the map and write it to ``path`` (png, pdf or svg); returns the path.
+
+    ``closed``: stretches (n, 2, 2) of walls' lines that no scan saw but a route never crosses (the floor
+    plan's ``closed_gaps``), drawn as thin dotted lines.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -69,6 +74,8 @@ def save_map_picture(
             corners = np.array([a[:2] - band, b[:2] - band, b[:2] + band, a[:2] + band])
             color = _rgb(quality_color(w.quality))
             ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=alpha, zorder=z))
+    for a, b in closed if closed is not None else ():
+        ax.plot([a[0], b[0]], [a[1], b[1]], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", zorder=2.5)
     for items, color, marker in ((msg.corners, (1.0, 0.31, 0.78), "o"), (msg.edges, (0.0, 0.7, 0.85), "s")):
         if len(items):
             ax.scatter(
@@ -92,6 +99,8 @@ def save_map_picture(
         Line2D([], [], color=(0.55, 0.55, 0.55), lw=1, marker=".", label="odometry"),
         Line2D([], [], color=(1.0, 0.31, 0.78), marker="o", ls="none", label="corner"),
     ]
+    if closed is not None and len(closed):
+        legend.append(Line2D([], [], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", label="unseen, closed to a route"))
     if free_space is not None:
         legend.append(Line2D([], [], color=(0.75, 0.87, 1.0), lw=6, label="seen free"))
     if route:
