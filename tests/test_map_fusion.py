@@ -4,6 +4,7 @@ observation states (seeded), and the measurement model's Jacobians against finit
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -412,3 +413,14 @@ def test_a_wall_seen_in_pieces_is_one_json_wall_a_piece_none_spanning_the_openin
         xs = [p["x"] for p in w["extent"]]
         assert min(xs) == pytest.approx(lo, abs=0.02) and max(xs) == pytest.approx(hi, abs=0.02)
         assert w["scans"] == [scan] and len(w["pieces"]) == 2
+
+
+def test_a_wall_meeting_the_floor_is_no_corner_of_the_floor_plan():
+    scans = _corner_scans({})
+    foot = [  # each scan sees the wall x = 0 meet the floor: a line along y at z = 0
+        FeatureObservation(point=[-p.pose.x, 0.0, -0.3], direction=[0.0, 1.0, 0.0], point_stderr=0.01) for p in scans
+    ]
+    m = _map_of([replace(s, features=(f,)) for s, f in zip(scans, foot)])
+    assert m.corners == ()
+    [line] = m.horizontal
+    assert line.kind == "concave" and abs(line.direction[2]) < 1e-9 and line.scans == (1, 2)

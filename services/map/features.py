@@ -97,13 +97,14 @@ def wall_corners(
         Source ``walls``; ``observations`` counts both walls' good observations and the scans' features that
         vouch for it.
     rest : list of FusedFeature
-        The vertical ``observed`` features no two walls explain and :data:`MIN_FEATURE_SCANS` scans saw (the
-        others, and a wall meeting the floor or the ceiling, no corner of a floor plan, are left out).
+        The vertical ``observed`` features no two walls explain, that :data:`MIN_FEATURE_SCANS` scans saw and
+        the map places within ``reach`` at 3σ (the others, and a wall meeting the floor or the ceiling, no
+        corner of a floor plan, are left out).
     """
     feats = [f for f in observed if abs(float(f.direction[2])) >= math.cos(MAX_FEATURE_TILT)]
     n = len(walls)
     if n < 2:
-        return [], [f for f in feats if len(f.scans) >= MIN_FEATURE_SCANS]
+        return [], [f for f in feats if _lone(f, reach)]
     theta = np.array([w.line[0] for w in walls])
     rho = np.array([w.line[1] for w in walls])
     lo = np.array([w.interval[0] for w in walls])
@@ -125,7 +126,7 @@ def wall_corners(
         ok |= dist.min(axis=1) <= reach
     i, j, px, py, sin_ij, s_i, s_j = i[ok], j[ok], px[ok], py[ok], sin_ij[ok], s_i[ok], s_j[ok]
     if len(i) == 0:
-        return [], [f for f in feats if len(f.scans) >= MIN_FEATURE_SCANS]
+        return [], [f for f in feats if _lone(f, reach)]
     # The crossing's covariance, first order (line_intersection's Jacobian, all pairs at once): A⁻¹ has columns
     # (sin θ_b, −cos θ_b) / s and (−sin θ_a, cos θ_a) / s with s = sin(θ_b − θ_a).
     ta, tb = theta[i], theta[j]
@@ -188,7 +189,24 @@ def wall_corners(
                 walls=(a.id, b.id),
             )
         )
-    return out, [f for m, f in enumerate(feats) if m not in taken and len(f.scans) >= MIN_FEATURE_SCANS]
+    return out, [f for m, f in enumerate(feats) if m not in taken and _lone(f, reach)]
+
+
+def horizontal_corners(observed: Sequence[FusedFeature]) -> list[FusedFeature]:
+    """The scans' corners that are no corner of the floor plan: a wall meeting the floor or the ceiling (a line
+    more than :data:`MAX_FEATURE_TILT` from the vertical), those :data:`MIN_FEATURE_SCANS` scans saw."""
+    return [
+        f
+        for f in observed
+        if abs(float(f.direction[2])) < math.cos(MAX_FEATURE_TILT)
+        and f.kind != "edge"
+        and len(f.scans) >= MIN_FEATURE_SCANS
+    ]
+
+
+def _lone(f: FusedFeature, reach: float) -> bool:
+    """Whether a scan's feature no two walls explain is published: seen by enough scans, placed within reach."""
+    return len(f.scans) >= MIN_FEATURE_SCANS and 3.0 * f.point_stderr <= reach
 
 
 def _kind_agrees(observed: str, kind: str) -> bool:
@@ -202,31 +220,51 @@ def _to_world(pose: np.ndarray, height: float, f: FeatureObservation) -> tuple[n
     return rot @ f.point + np.array([pose[0], pose[1], height]), rot @ f.direction
 
 
-def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservation]]) -> list[FusedFeature]:
+def placement_sigma(pose_covariance: np.ndarray, reach: float) -> float:
+    """σ (m) a pose's uncertainty gives a point ``reach`` m from it: its position's largest σ and its heading's
+    σ times the lever arm, first order.
+
+    Parameters
+    ----------
+    pose_covariance : (3, 3) array
+        Over ``(x, y, ψ)``, world axes.
+    """
+    xy = float(np.linalg.eigvalsh(np.asarray(pose_covariance)[:2, :2])[-1])
+    return math.sqrt(max(xy, 0.0) + reach * reach * max(float(pose_covariance[2, 2]), 0.0))
+
+
+def fuse_features(
+    observed: list[tuple[int, np.ndarray, float, FeatureObservation]], pose_sigmas: Sequence[float] | None = None
+) -> list[FusedFeature]:
     """The scans' own corners and edges in the world frame, one per physical feature.
 
     Parameters
     ----------
     observed : list of (scan_id, pose, height, feature)
         Each feature with its scan's corrected world pose ``(x, y, ψ)`` and height.
+    pose_sigmas : sequence of float, optional
+        σ (m) each feature's pose gives its point in the world (:func:`placement_sigma`); none: exact poses.
 
     Features of one kind whose lines are parallel within 10° and pass within 3σ (at least
     :data:`MIN_FEATURE_GATE`) of each other are one; its point is the mean of theirs, slid along the line
-    to the first one's foot, and its σ that of a mean.
+    to the first one's foot, and its σ that of a mean of the scans' own errors, with the smallest of the poses'
+    (the poses are placed by one map: their errors do not average out).
     """
     clusters: list[dict] = []
-    for sid, pose, height, f in observed:
+    for k, (sid, pose, height, f) in enumerate(observed):
         p, d = _to_world(pose, height, f)
+        placed = 0.0 if pose_sigmas is None else float(pose_sigmas[k])
         for c in clusters:
             if c["kind"] != f.kind or abs(float(d @ c["direction"])) < math.cos(math.radians(10.0)):
                 continue
             off = p - c["anchor"]
             across = off - (off @ c["direction"]) * c["direction"]
-            gate = max(3.0 * math.hypot(f.point_stderr, c["stderr"]), MIN_FEATURE_GATE)
+            gate = max(3.0 * math.hypot(f.point_stderr, c["stderr"], placed, c["placed"]), MIN_FEATURE_GATE)
             if float(np.linalg.norm(across)) <= gate:
                 c["points"].append(c["anchor"] + across)
                 c["stderrs"].append(f.point_stderr)
                 c["scans"].append(sid)
+                c["placed"] = min(c["placed"], placed)
                 break
         else:
             clusters.append(
@@ -238,6 +276,7 @@ def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservatio
                     "points": [p],
                     "stderrs": [f.point_stderr],
                     "scans": [sid],
+                    "placed": placed,
                 }
             )
     return [
@@ -245,7 +284,7 @@ def fuse_features(observed: list[tuple[int, np.ndarray, float, FeatureObservatio
             point=np.mean(c["points"], axis=0),
             direction=c["direction"],
             kind=c["kind"],
-            point_stderr=math.sqrt(sum(s * s for s in c["stderrs"])) / len(c["stderrs"]),
+            point_stderr=math.hypot(math.sqrt(sum(s * s for s in c["stderrs"])) / len(c["stderrs"]), c["placed"]),
             source="observed",
             observations=len(c["points"]),
             scans=tuple(dict.fromkeys(c["scans"])),

@@ -29,7 +29,7 @@ import numpy as np
 from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
-from lelsonar.map.features import fuse_features, wall_corners
+from lelsonar.map.features import fuse_features, horizontal_corners, placement_sigma, wall_corners
 from lelsonar.map.lines import (
     interval_on_line,
     line_in_world,
@@ -522,18 +522,20 @@ class WallMapper:
         )
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
+        placed_by = [placement_sigma(poses[k].covariance, float(np.hypot(*f.point[:2]))) for _, k, f in self._features]
         # Corners where walls of good evidence meet: a flagged wall's line may be degrees off, and its crossings
         # with others land anywhere.
         placed = [w for w in walls if w.good_observations > 0]
-        corners, rest = wall_corners(placed, self.config.corner_reach, fuse_features(observed))
-        features = corners + rest
+        seen_features = fuse_features(observed, placed_by)
+        corners, rest = wall_corners(placed, self.config.corner_reach, seen_features)
         return FusedMap(
             walls=tuple(walls),
-            features=tuple(features),
+            features=tuple(corners + rest),
             poses=poses,
             notes=tuple(self.notes),
             views=tuple(views),
             view_scans=tuple(view_scans),
+            horizontal=tuple(horizontal_corners(seen_features)),
         )
 
     def _placed(self, wall: FusedWall) -> FusedWall:

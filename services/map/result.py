@@ -4,6 +4,9 @@
 ``offset``, ``extent``, ``quality``, ``normal_stderr``, ``offset_stderr``), ``corners`` (``point``,
 ``direction``, ``kind``), ``edges`` (``point``, ``direction``) and ``poses`` (``scan_id``, ``x``, ``y``,
 ``z``, ``heading``) are an interface: keep them.  SI units (m, rad).
+
+``corners`` and ``edges`` are those of the floor plan (vertical lines: where walls meet, or a wall ends);
+where a wall meets the floor or the ceiling is a line across the plan, listed apart (``horizontal_corners``).
 """
 
 from __future__ import annotations
@@ -137,6 +140,9 @@ class FusedMap:
     views: tuple[np.ndarray, ...] = field(default=())
     #: The scan of each view.
     view_scans: tuple[int, ...] = field(default=())
+    #: Corners that are lines across the floor plan, not corners of it: where a wall meets the floor or the
+    #: ceiling (seen by two scans).
+    horizontal: tuple[FusedFeature, ...] = field(default=())
 
     @property
     def corners(self) -> tuple[FusedFeature, ...]:
@@ -217,6 +223,7 @@ def map_to_dict(m: FusedMap) -> dict:
         "walls": walls,
         "corners": [feature(f, True) for f in m.corners],
         "edges": [feature(f, False) for f in m.edges],
+        "horizontal_corners": [feature(f, True) for f in m.horizontal],
         "poses": poses,
         "notes": list(m.notes),
     }
