@@ -497,7 +497,9 @@ def trim_ends(
     region within the range tolerance and move the region's centre off the plane's foot.  The steps at
     either end whose own slope differs from the plane's (the median over the region's middle half) by more than
     ``curvature_sigmas`` of its standard error ``σ/√Σ(x − x̄)²`` (``σ`` one range's, from the spread of
-    the steps' slopes, 1.4826 MAD) are not the plane's.  As they lie deeper than the plane, its echo ended there on its
+    the steps' slopes, 1.4826 MAD) are not the plane's, nor are those whose mean depth along the plane's
+    normal lies deeper than the middle half's by more than that many σ of a step's mean.  As they lie deeper
+    than the plane, its echo ended there on its
     own (the plane keeps its ends uncut); a nearer block would have masked it (a cut).
 
     Returns
@@ -527,6 +529,16 @@ def trim_ends(
     sigma = robust if robust > 0 else sigma
     with np.errstate(divide="ignore", invalid="ignore"):
         off = finite & (np.abs(slopes - core) > opts.curvature_sigmas * sigma / np.sqrt(sxx))
+    # The line lies deeper than the plane's foot (|X| ≥ h): a step whose mean depth along the plane's normal
+    # sits deeper than the middle half's by more than its own noise is not the plane's, whatever its slope.
+    pos = np.searchsorted(r.steps, r.rows)
+    own = m.ranges + m.positions @ unit_normal(m.bearing, m.tilt)
+    count = np.bincount(pos, minlength=k)
+    depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
+    level = float(np.median(depth[middle]))
+    spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
+    if spread > 0:
+        off |= finite & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
 
     def block(order: np.ndarray) -> int:
         """How many steps from that end up to the last departing one before the first that agrees (a step
@@ -543,9 +555,6 @@ def trim_ends(
     tail = block(np.arange(k - 1, head - 1, -1))
     if head + tail == 0 or 2 * (k - head - tail) < k or k - head - tail < opts.min_steps:
         return None
-    n = unit_normal(m.bearing, m.tilt)
-    own = m.ranges + m.positions @ n
-    pos = np.searchsorted(r.steps, r.rows)
     core_sel = (pos >= head) & (pos < k - tail)
     level = float(np.median(own[core_sel]))
     noise = 3 * sigma
