@@ -464,18 +464,14 @@ def step_slopes(region: Region, distance: np.ndarray, x: np.ndarray) -> tuple[np
     """
     pos = np.searchsorted(region.steps, region.rows)
     k = region.steps.size
-    slopes = np.full(k, np.nan)
-    sxx = np.zeros(k)
-    for j in range(k):
-        sel = pos == j
-        if np.count_nonzero(sel) < 3:
-            continue
-        xs = x[region.capsules[sel]]
-        ds = distance[region.rows[sel], region.capsules[sel]]
-        xm = xs - xs.mean()
-        sxx[j] = float(xm @ xm)
-        if sxx[j] > 0:
-            slopes[j] = float(xm @ (ds - ds.mean())) / sxx[j]
+    xs = x[region.capsules]
+    ds = distance[region.rows, region.capsules]
+    n = np.bincount(pos, minlength=k).astype(np.float64)
+    sx, sd = np.bincount(pos, xs, minlength=k), np.bincount(pos, ds, minlength=k)
+    sxx_raw, sxd = np.bincount(pos, xs * xs, minlength=k), np.bincount(pos, xs * ds, minlength=k)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sxx = np.where(n >= 3, sxx_raw - sx * sx / n, 0.0)
+        slopes = np.where((n >= 3) & (sxx > 0), (sxd - sx * sd / n) / sxx, np.nan)
     return slopes, sxx
 
 
