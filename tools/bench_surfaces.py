@@ -89,6 +89,10 @@ class PlaneRecord:
     own_share: float = float("nan")  # the surface's readings that are this element's own echoes
     flagged: bool = False  # not good, with its reasons
     range_noise: float = 0.0  # m, σ of one range (the receiver's timing noise): errors under it are noise
+    mount: str = "fan"
+    bearing_z: float = float("nan")  # (fitted − true bearing) / the claimed bearing σ
+    offset_z: float = float("nan")  # (fitted − true offset) / the claimed offset σ
+    bearing_error: float = float("nan")  # rad, fitted − true bearing
 
     @property
     def within_oracle(self) -> bool:
@@ -111,6 +115,10 @@ class ScanRecord:
     extract_s: float = float("nan")  # the extraction's CPU time on this sweep, s (median of TIMING_REPEATS)
     seen_kind: dict[str, int] | None = None  # surface kind -> mirrors seen
     found_kind: dict[str, int] | None = None  # surface kind -> of those, claimed as a plane
+    good_planes: int = 0  # extracted planes claiming good
+    good_off_every: int = 0  # of those, off every true mirror of the world by > 2 cm (false good)
+    good_off_details: tuple[str, ...] = ()  # one line per such plane
+    missed: tuple[str, ...] = ()  # one line per mirror seen but claimed by no plane
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -139,9 +147,47 @@ def trace_error(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: f
     return float(np.max(np.abs(pts @ normal - offset)))
 
 
-def _majority(scan: WorldScan, steps: np.ndarray) -> tuple[int, int]:
-    idx = scan.echo_index[steps].ravel()
-    ok = np.isfinite(scan.distance[steps].ravel()) & (idx >= 0)
+def bearing_tilt(normal: np.ndarray) -> tuple[float, float]:
+    """A normal's bearing in the fan and tilt along the stack, rad (the surfaces' convention)."""
+    return math.atan2(float(normal[2]), float(normal[1])), math.asin(max(-1.0, min(1.0, float(normal[0]))))
+
+
+def sigma_scores(surf: Surface, n_true: np.ndarray, h_true: float) -> tuple[float, float, float]:
+    """How far the surface's bearing and offset are from the truth in its own claimed σ, and the bearing error.
+
+    Returns
+    -------
+    (bearing error / σ_bearing, offset error / σ_offset, bearing error rad); NaN where the σ is not positive.
+    """
+    b_true, _ = bearing_tilt(n_true)
+    db = (surf.bearing - b_true + math.pi) % (2 * math.pi) - math.pi
+    dh = surf.offset - h_true
+    sb = math.sqrt(max(float(surf.covariance[0, 0]), 0.0))
+    sh = math.sqrt(max(float(surf.covariance[2, 2]), 0.0))
+    return (db / sb if sb > 0 else float("nan")), (dh / sh if sh > 0 else float("nan")), db
+
+
+def nearest_mirror(scan: WorldScan, surf: Surface) -> tuple[int, float]:
+    """The world's true mirror nearest the fitted plane (smallest trace error), whatever its echoes: (element, m)."""
+    best = (-1, float("inf"))
+    for k, el in enumerate(scan.model.elements):
+        if el.kind != ElementKind.MIRROR:
+            continue
+        n_true, h_true = true_plane(scan, k)
+        err = trace_error(surf.normal, surf.offset, n_true, h_true)
+        if err < best[1]:
+            best = (k, err)
+    return best
+
+
+def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
+    """The element most of an item's readings are (its own readings if it has them, else its steps')."""
+    if surf is not None and surf.rows is not None and surf.capsules is not None:
+        idx = scan.echo_index[surf.rows, surf.capsules]
+        ok = np.isfinite(scan.distance[surf.rows, surf.capsules]) & (idx >= 0)
+    else:
+        idx = scan.echo_index[steps].ravel()
+        ok = np.isfinite(scan.distance[steps].ravel()) & (idx >= 0)
     if not ok.any():
         return -1, 0
     vals, counts = np.unique(idx[ok], return_counts=True)
@@ -163,10 +209,13 @@ def _element_kind(model: WorldModel, k: int, scan: WorldScan, steps: np.ndarray)
     return TRUE_CLASS[model.elements[k].kind]
 
 
-def _own_share(scan: WorldScan, steps: np.ndarray, element: int) -> float:
-    """Of the readings in the surface's steps, the share that are the element's own (non-diffuse) echoes."""
-    ok = np.isfinite(scan.distance[steps])
-    own = ok & (scan.echo_index[steps] == element) & (scan.echo_source[steps] != EchoSource.DIFFUSE)
+def _own_share(scan: WorldScan, steps: np.ndarray, element: int, surf: Surface | None = None) -> float:
+    """Of the surface's readings (else those in its steps), the share that are the element's own echoes."""
+    at: tuple[np.ndarray, ...] = (steps,)
+    if surf is not None and surf.rows is not None and surf.capsules is not None:
+        at = (surf.rows, surf.capsules)
+    ok = np.isfinite(scan.distance[at])
+    own = ok & (scan.echo_index[at] == element) & (scan.echo_source[at] != EchoSource.DIFFUSE)
     n_ok = int(np.count_nonzero(ok))
     return int(np.count_nonzero(own)) / max(n_ok, 1)
 
@@ -196,22 +245,34 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     extracted = {"plane": len(result.surfaces), "corner": len(result.corners), "edge": len(result.edges)}
     planes: list[PlaneRecord] = []
     false_good = 0
+    good_planes = 0
+    off_every: list[str] = []
     items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
     items += [("corner", f.steps, None) for f in result.corners] + [("edge", f.steps, None) for f in result.edges]
     for cls, steps, surf in items:
-        k, _ = _majority(scan, steps)
+        k, _ = majority(scan, steps, surf)
         truth = _element_kind(model, k, scan, steps)
         if truth is None or truth != cls:
             false[cls] += 1
             false_good += int(surf is not None and surf.quality == "good")
         if truth is not None:
             claimed.setdefault(k, set()).add(cls)
+        if surf is not None and surf.quality == "good":
+            # Every good plane against the nearest true mirror of the world, not only its echoes' majority.
+            good_planes += 1
+            near, near_err = nearest_mirror(scan, surf)
+            if near_err > 0.02:
+                off_every.append(
+                    f"{family} seed {seed} pose {scan.pose_index} {surf.label}: {100 * near_err:.1f} cm from the "
+                    f"nearest true mirror (element {near}), majority element {k}"
+                )
         if surf is not None and truth == "plane":
             n_true, h_true = true_plane(scan, k)
             err = trace_error(surf.normal, surf.offset, n_true, h_true)
             ang = math.acos(min(1.0, abs(float(surf.normal @ n_true))))
             true_surface = model.surfaces[model.elements[k].surfaces[0]]
             label = true_surface.label
+            bz, hz, db = sigma_scores(surf, n_true, h_true)
             planes.append(
                 PlaneRecord(
                     family,
@@ -224,10 +285,14 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
                     ang,
                     int(counts[k]),
                     wall=label.startswith("wall"),
-                    own_share=_own_share(scan, steps, k),
+                    own_share=_own_share(scan, steps, k, surf),
                     flagged=surf.quality != "good" and bool(surf.reasons),
                     range_noise=scan.rig.receiver.tof_jitter,
                     kind=true_surface.kind,
+                    mount=scan.rig.mount,
+                    bearing_z=bz,
+                    offset_z=hz,
+                    bearing_error=db,
                 )
             )
     found = {c: 0 for c in classes}
@@ -244,9 +309,29 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             kind = model.surfaces[model.elements[k].surfaces[0]].kind
             seen_kind[kind] = seen_kind.get(kind, 0) + 1
             found_kind[kind] = found_kind.get(kind, 0) + int("plane" in claimed.get(k, set()))
+    missed = tuple(
+        f"{family} seed {seed} pose {scan.pose_index} element {k} "
+        f"({model.surfaces[model.elements[k].surfaces[0]].kind}, {int(counts[k])} echoes): "
+        + (f"claimed as {', '.join(sorted(claimed[k]))}" if k in claimed else "in no item's majority")
+        for k in sorted(seen_el)
+        if model.elements[k].kind == ElementKind.MIRROR and "plane" not in claimed.get(k, set())
+    )
     share = result.n_unexplained / max(result.n_echoes, 1)
     return ScanRecord(
-        planes, seen, found, right, false, extracted, share, false_good, seen_kind=seen_kind, found_kind=found_kind
+        planes,
+        seen,
+        found,
+        right,
+        false,
+        extracted,
+        share,
+        false_good,
+        seen_kind=seen_kind,
+        found_kind=found_kind,
+        good_planes=good_planes,
+        good_off_every=len(off_every),
+        good_off_details=tuple(off_every),
+        missed=missed,
     )
 
 
@@ -346,6 +431,7 @@ def run(args: argparse.Namespace) -> int:
         records = run_mount(families, mount, args.first_seed, args.seeds, args.max_poses, options)
         bad_total += _family_table(records, mount, args, console)
         _kind_table(records, mount, console)
+        _sigma_table(records, mount, console)
     if args.l_seeds > 0:
         _l_scan_table(args.l_seeds, console)
     console.print(
@@ -414,6 +500,56 @@ def _kind_table(records: dict[str, list[ScanRecord]], mount: str, console: Conso
     console.print(table)
 
 
+def coverage(z: list[float]) -> tuple[float, float, float]:
+    """The shares of scores within 1, 2 and 3 (a Gaussian's: 68.3, 95.4, 99.7 %)."""
+    a = np.abs(np.asarray([v for v in z if math.isfinite(v)]))
+    if not a.size:
+        return float("nan"), float("nan"), float("nan")
+    return tuple(float(np.mean(a <= k)) for k in (1.0, 2.0, 3.0))  # type: ignore[return-value]
+
+
+def _sigma_table(records: dict[str, list[ScanRecord]], mount: str, console: Console) -> None:
+    """The honesty of the good planes' σ: the share of bearing and offset errors within 1, 2, 3 claimed σ."""
+    from rich.table import Table
+
+    planes = [p for rs in records.values() for r in rs for p in r.planes if p.quality == "good"]
+    table = Table(title=f"good planes' σ against the truth ({mount} mount; a Gaussian: 68 / 95 / 99.7 %)")
+    for col in (
+        "kind",
+        "good",
+        "bearing ≤1/2/3σ %",
+        "bearing > 3σ",
+        "max |Δβ| > 3σ °",
+        "offset ≤1/2/3σ %",
+        "offset > 3σ",
+    ):
+        table.add_column(col, justify="right")
+    for kind in ("all", "wall", "box", "floor", "ceiling"):
+        mine = [p for p in planes if kind in ("all", p.kind)]
+        if not mine:
+            continue
+        bz = [p.bearing_z for p in mine]
+        hz = [p.offset_z for p in mine]
+        b_out = [p for p in mine if math.isfinite(p.bearing_z) and abs(p.bearing_z) > 3]
+        h_out = sum(1 for v in hz if math.isfinite(v) and abs(v) > 3)
+        table.add_row(
+            kind,
+            str(len(mine)),
+            "/".join(f"{100 * v:.0f}" for v in coverage(bz)),
+            str(len(b_out)),
+            f"{max((abs(math.degrees(p.bearing_error)) for p in b_out), default=0.0):.2f}",
+            "/".join(f"{100 * v:.0f}" for v in coverage(hz)),
+            str(h_out),
+        )
+    console.print(table)
+    for p in (p for p in planes if math.isfinite(p.bearing_z) and abs(p.bearing_z) > 3):
+        console.print(
+            f"good plane > 3σ in bearing ({mount} mount): {p.family} seed {p.seed} pose {p.pose} element "
+            f"{p.element} ({p.kind}): Δβ {math.degrees(p.bearing_error):+.2f}° = {p.bearing_z:+.1f}σ, "
+            f"err {100 * p.error:.2f} cm"
+        )
+
+
 def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argparse.Namespace, console: Console) -> int:
     """The per-family table and its failures; returns the failures that claimed good."""
     from rich.table import Table
@@ -434,6 +570,7 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
         "good",
         "good-but-failed",
         "false planes (good)",
+        "good off every true mirror > 2 cm",
         "corners found/seen (right)",
         "edges found/seen (right)",
         "false corners/edges",
@@ -472,6 +609,7 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
             f"{sum(p.quality == 'good' for p in planes)}/{len(planes)}",
             str(failed_good),
             f"{tot('false', 'plane')} ({sum(r.false_good for r in recs)} good)",
+            f"{sum(r.good_off_every for r in recs)}/{sum(r.good_planes for r in recs)}",
             f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')})",
             f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')})",
             f"{tot('false', 'corner')}/{tot('false', 'edge')}",
@@ -490,6 +628,11 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
                     f"({p.kind}): "
                     f"{100 * p.error:.1f} cm (oracle {100 * p.oracle:.1f} cm), {math.degrees(p.angle):.1f}°"
                 )
+    for family in families:
+        for line in (line for r in records[family] for line in r.good_off_details):
+            console.print(f"good plane off every true mirror ({mount} mount): {line}")
+        for line in (line for r in records[family] for line in r.missed):
+            console.print(f"plane seen but not found ({mount} mount): {line}")
     for family, p in neither:
         console.print(
             f"wall good but over 3× its oracle and the range noise ({mount} mount): {family} seed {p.seed} "

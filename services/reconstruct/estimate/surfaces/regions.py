@@ -57,7 +57,12 @@ class Region:
 
 
 def find_regions(
-    distance: np.ndarray, *, tolerance: float = 0.015, max_gap: int = 2, min_steps: int = 3
+    distance: np.ndarray,
+    *,
+    tolerance: float = 0.015,
+    max_gap: int = 2,
+    min_steps: int = 3,
+    max_spread: float = math.inf,
 ) -> list[Region]:
     """Split a sweep into regions of constant depth.
 
@@ -83,6 +88,11 @@ def find_regions(
         Steps without an echo a run may bridge.
     min_steps : int
         Shorter runs are not regions (their echoes stay unexplained).
+    max_spread : float
+        m: a reading farther than this from its step's median over the region's readings is not the
+        region's.  One target's ranges differ between two capsules by at most their distance apart
+        (the triangle inequality), so the stack's length plus the tolerance bounds them: a capsule
+        whose median sits past it sees another target through most of the region.
 
     Returns
     -------
@@ -100,6 +110,17 @@ def find_regions(
     bounds = np.flatnonzero(np.diff(label[labelled])) + 1
     for k, steps in enumerate(np.split(labelled, bounds) if labelled.size else []):
         rows, caps = np.nonzero(keep[steps])
+        if math.isfinite(max_spread) and rows.size:
+            block = np.where(keep[steps], d[steps], np.nan)
+            with np.errstate(all="ignore"):
+                med = np.nanmedian(block, axis=1)
+            near = np.abs(block[rows, caps] - med[rows]) <= max_spread
+            rows, caps = rows[near], caps[near]
+            held = np.unique(rows)
+            if held.size < min_steps:
+                continue
+            # Renumber the rows over the steps that still hold a reading.
+            steps, rows = steps[held], np.searchsorted(held, rows)
         out.append(
             Region(
                 steps=steps.astype(np.intp),
@@ -368,7 +389,7 @@ def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
     return np.asarray(geometry.capsules_in_array_frame()[:, 0], dtype=np.float64)
 
 
-def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float | None:
+def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau: bool = False) -> float | None:
     """The beam pattern's curvature in ``log A`` across γ, from a region whose peak is inside it.
 
     Every echo of a rotating transceiver, a mirror's, a corner's or an edge's,
@@ -380,6 +401,9 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float |
     ----------
     gamma, amplitude : (k,) arrays
         Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    plateau : bool
+        Fit a top whose largest values are equal too (a flat top under the receiver's full scale is the
+        amplitude's quantisation, or a wide echo), rather than say nothing.
 
     Returns
     -------
@@ -392,7 +416,7 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float |
         return None
     g, a = g[ok], a[ok]
     top = a >= 0.5 * a.max()
-    if np.count_nonzero(top) < 5 or np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3:
+    if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
         return None  # too few samples on the top, or a clipped plateau
     u = g[top] - float(np.mean(g[top]))
     m = np.stack([np.ones_like(u), u, u * u], axis=1)

@@ -80,6 +80,9 @@ class Surface:
         ``"amplitude peak"``, ``"region centre"`` or ``"undetermined"``.
     steps : (k,) int array
     n_echoes : int
+    rows, capsules : (n_echoes,) int arrays, optional
+        Its readings: step and capsule of each (a region seen by some capsules only shares its steps
+        with a nearer target's in the others).
     """
 
     label: str
@@ -90,6 +93,8 @@ class Surface:
     bearing_source: str
     steps: np.ndarray
     n_echoes: int
+    rows: np.ndarray | None = None
+    capsules: np.ndarray | None = None
 
     @property
     def normal(self) -> np.ndarray:
