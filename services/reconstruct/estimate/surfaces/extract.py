@@ -11,6 +11,10 @@ Per region of constant depth (:mod:`.regions`):
 * **depth** ``ρ`` from the ranges with the bearing fixed (the mirror condition
   ``n · p_c + d = h``), **tilt** from the differential ranges along the capsule
   stack.
+* **flanks**: a region whose end steps slope along the capsule stack as its
+  middle does not, where the middle plane's double bounce with a surface across
+  the fan explains them (a wall's foot on the floor below a horizontal fan),
+  splits into the plane and those ends (:mod:`.flanks`).
 * **class** by physics (the tests are in :mod:`.evidence`):
 
   - one line in a plane, across the fan, explaining every range (the double
@@ -22,7 +26,10 @@ Per region of constant depth (:mod:`.regions`):
     a **concave corner**;
   - on one other plane's trace (off that plane's own foot, or deeper than it):
     that plane's end, a **corner** if its echo is as strong as that plane's own
-    mirror echo, an **edge** if weak;
+    mirror echo, an **edge** if weak; where the region holds only a flank of
+    its echo, the beam pattern taken back to the bearing the geometry puts it
+    at weighs it, and an end whose strength no evidence settles says so
+    (:data:`~.results.UNSETTLED`, ``Feature.settled``);
   - an echo much weaker than the sweep's strongest at its range (diffraction):
     an **edge**; a region cut before its peak is weak only if the upper
     estimate of its peak (its flank, extrapolated with the sweep's own beam
