@@ -27,6 +27,10 @@ BENCHES = {
     "fleet": ("lelsonar.tools.bench_fleet", "N scanners, W reconstructors in one group: rate, latency, failover"),
     "map": ("lelsonar.tools.bench_map", "map update time per scan vs map size, walls vs truth, poses vs odometry"),
     "batch": ("lelsonar.tools.bench_batch", "lelsonar batch over an archive: N workers against 1"),
+    "stress-worlds": (
+        "lelsonar.tools.bench_stress_worlds",
+        "surfaces and the map on worlds outside the families: good-but-wrong claims and crashes",
+    ),
 }
 
 

@@ -52,6 +52,7 @@ from lelsonar.reconstruct.estimate.results import (
     ScanReconstruction,
 )
 from lelsonar.reconstruct.estimate.split import critical_step
+from lelsonar.reconstruct.estimate.surface_check import surface_finding
 from lelsonar.reconstruct.estimate.surfaces import SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import EnergyModel
 
@@ -377,18 +378,21 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
             ).planes
         }
     findings = tuple((level, text) for level, text in scan.writer_problems if level is not None)
+    t0 = time.perf_counter()
+    extracted = extract_surfaces(scan.gamma, scan.distance, scan.geometry, amplitude=scan.echo_amplitude)
+    surfaces = _unobserved(extracted, steps, max(scan.n_schedule, int(steps[-1]) + 1 if len(steps) else 0))
+    extract_s = time.perf_counter() - t0
+    # Each L plane against the surface of its own echoes, whose bearing is the beam pattern's (before the
+    # compared methods are checked against the planes of record).
+    record = tuple(
+        add_findings(pl, surface_finding(pl, data, surfaces))
+        for pl, data in zip(main.planes, (main.data_a, main.data_b), strict=True)
+    )
     compared = tuple((method, results[method].planes) for method in options.compare_methods)
-    planes = _verdicts(main.planes, compared, findings=findings, without=without)
+    planes = _verdicts(record, compared, findings=findings, without=without)
     notes = tuple(text for _, text in scan.writer_problems)
     crit = int(steps[main.critical_step]) if main.critical_step is not None else None
     t = main.timings
-    t0 = time.perf_counter()
-    surfaces = _unobserved(
-        extract_surfaces(scan.gamma, scan.distance, scan.geometry, amplitude=scan.echo_amplitude),
-        steps,
-        max(scan.n_schedule, int(steps[-1]) + 1 if len(steps) else 0),
-    )
-    extract_s = time.perf_counter() - t0
     return ScanEstimate(
         method=options.method,
         compare_methods=options.compare_methods,
