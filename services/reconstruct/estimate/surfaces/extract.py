@@ -359,6 +359,9 @@ def extract_surfaces(
         if k is not None
     ]
     beam_k = float(np.median(ks)) if ks else float("nan")
+    # The flattest top one echo shows in this sweep (3 σ of its regions' spread under their median, robust):
+    # flatter, a second echo widens it.
+    beam_low = beam_k - 3 * 1.4826 * float(np.median(np.abs(np.asarray(ks) - beam_k))) if len(ks) >= 3 else beam_k
 
     # The receiver clips at one level, its full scale: the sweep's largest peak.  A plateau well under it is the
     # amplitude's quantisation on a weak echo, whose peak stands.
@@ -532,6 +535,16 @@ def extract_surfaces(
                 [],
             )
 
+    # A plane's bearing from its amplitude peak alone: another echo summing into its flank moves the peak as
+    # much as it widens the top (:func:`summed_width_stderr`), which the parabola's residuals do not show.
+    for i, m in enumerate(measured):
+        if i in kinds or m.bearing_source != "amplitude peak" or m.peak >= (1.0 - PLATEAU) * full_scale:
+            continue  # (a clipped top: its plateau's centre, whose width is no beam's)
+        c = log_amplitude_curvature(g[m.region.steps], m.step_amplitude, plateau=True)
+        extra = summed_width_stderr(c, beam_k, beam_low)
+        if extra > 0:
+            measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
+
     # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
     pairs = [(i, ties) for i, ties in pairs if i not in across_lines]
@@ -591,6 +604,33 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
+
+
+def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:
+    """How far another echo summing into a region's flank may have moved its amplitude peak, rad.
+
+    One target's echo follows the beam, in ``log`` a parabola of curvature ``k``: a spread ``s² = 1/(2k)``
+    across γ.  A second echo of weight ``w`` (the weaker, ``w ≤ ½``) ``δ`` away widens the sum to about
+    ``s² + w(1 − w)δ²`` and moves its peak by about ``wδ``, whose square is at most that excess.  So
+    ``√(1/(2c) − 1/(2k))``, with ``c`` the region's own curvature and ``k`` the sweep's (its regions with a
+    clean peak), bounds the shift; 0 when the top is no flatter than one echo's can be (``c ≥ flattest``).
+
+    Parameters
+    ----------
+    curvature : float or None
+        The region's ``c`` (1/rad², :func:`~.regions.log_amplitude_curvature`); None: unknown.
+    beam : float
+        The sweep's ``k`` (1/rad²); NaN: unknown.
+    flattest : float
+        The smallest curvature one echo shows in the sweep (its regions' spread), 1/rad².
+
+    Returns
+    -------
+    The bound, rad (0 when either curvature is unknown or the top is no flatter than one echo's).
+    """
+    if curvature is None or not (curvature > 0 and beam > 0) or curvature >= flattest:
+        return 0.0
+    return math.sqrt(max(0.0, 1.0 / (2.0 * curvature) - 1.0 / (2.0 * beam)))
 
 
 def good_surfaces(result: SurfaceSet) -> tuple[Surface, ...]:
