@@ -436,3 +436,93 @@ def test_a_box_face_whose_foot_is_at_its_end_in_a_toured_world_is_not_claimed_go
             faced += 1
             assert s.quality != "good" and any("two echoes at one range" in r for r in s.reasons), s.reasons
     assert faced == 1
+
+
+def test_a_wall_end_whose_peak_lies_past_the_sweep_is_weighed_at_the_bearing_its_trace_puts_it():
+    e = Echoes(seed=11)
+    e.plane(math.radians(-120.0), 0.7)
+    # A corner as strong as the wall's mirror (gain 1) where the wall meets an unseen one, on its trace 48° off
+    # its foot: at bearing −168°, 18° past the sweep's start.  Its region shows only the flank, at most 23 % of
+    # its peak: a lower bound alone cannot call it strong, the upper estimate cannot call it weak.
+    rho = 0.7 / math.cos(math.radians(48.0))
+    end = rho * np.array([math.cos(math.radians(-168.0)), math.sin(math.radians(-168.0))])
+    e.vertical_line(float(end[0]), float(end[1]), gain=1.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and len(result.corners) == 1 and not result.edges
+    corner = result.corners[0]
+    assert corner.settled and "taken back there" in corner.reasons[0], corner.reasons
+    assert corner.surfaces == (result.surfaces[0].label,)
+    assert abs(math.degrees(corner.bearing) + 168.0) < 1.0
+    # A Gaussian beam is its own parabola: the peak comes back within the amplitudes' own scatter.
+    share = float(corner.reasons[0].rsplit("(", 1)[1].split(" %")[0])
+    assert 80 <= share <= 125, share
+
+
+def test_the_double_bounce_of_a_floor_and_the_wall_behind_past_the_sweeps_end_is_a_corner():
+    # The paper mount in the corridor of seed 3, its second pose: the sweep starts 40° past straight down, where
+    # the floor meets the wall behind; only the flank of that corner's echo is in the sweep.
+    model = build_model(draw_world("corridor", 3, mount="paper"))
+    scan = simulate_world_scan(model, 1, seed=3 * 1000 + 1)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    k = next(k for k, el in enumerate(model.elements) if el.label == "wall3|floor")
+    holders = [f for f in (*result.corners, *result.edges) if np.mean(scan.echo_index[f.steps] == k) > 0.5]
+    assert [f.kind for f in holders] == ["corner"], [(f.kind, f.reasons) for f in holders]
+
+
+def test_a_corner_whose_amplitude_peak_is_a_few_sigma_off_still_lies_on_its_wall_trace():
+    # The fan mount in the corridor of seed 9, its first pose: the two corners with the end wall behind, each
+    # cut on both sides, take their bearing from an amplitude peak 3° from the truth; the wall behind is seen
+    # only in fragments, so each corner ties to one wall, whose trace it lies on within both bearings' σ.
+    model = build_model(draw_world("corridor", 9))
+    scan = simulate_world_scan(model, 0, seed=9 * 1000)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    corners = [
+        k
+        for k, el in enumerate(model.elements)
+        if el.kind == ElementKind.DIHEDRAL and el.label[:11] in ("wall1|wall2", "wall2|wall4")
+    ]
+    assert len(corners) == 2
+    for k in corners:
+        holders = [("plane", s.steps) for s in result.surfaces] + [(f.kind, f.steps) for f in result.corners]
+        holders += [(f.kind, f.steps) for f in result.edges]
+        kinds = [kind for kind, steps in holders if np.mean(scan.echo_index[steps] == k) > 0.5]
+        assert kinds == ["corner"], (model.elements[k].label, kinds)
+
+
+def test_a_wall_foot_on_the_floor_below_a_horizontal_fan_splits_off_the_walls_flanks_by_their_stack_slope():
+    e = Echoes(seed=12)
+    e.plane(0.0, 4.0)
+    # The wall meets the floor 0.24 m below the stack's middle: the double bounce lies behind the wall by
+    # z²/(2h) = 7 mm at most, within the range tolerance, at the wall's own bearing, and (a retro-reflector,
+    # twice as bright) outlasts the wall's mirror by a few steps on either side of its region.
+    e.across_line(np.array([-0.24, 4.0, 0.0]), np.array([0.0, 0.0, 1.0]), gain=2.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 1 and not result.edges
+    wall = result.surfaces[0]
+    assert abs(wall.offset - 4.0) < 3 * wall.plane.offset_stderr + 0.002 and abs(wall.bearing) < 3 * math.sqrt(
+        wall.covariance[0, 0]
+    )
+    assert len(result.corners) == 2, [c.reasons for c in result.corners]
+    for c in result.corners:
+        assert c.surfaces == (wall.label,) and "double bounce" in c.reasons[0], c.reasons
+        # The line's point: the wall's foot, 0.24 m down the stack.
+        assert np.linalg.norm(c.point - np.array([-0.24, 4.0, 0.0])) < 0.05, c.point
+    # The flanks are the wall's region's two ends, one on either side of its foot.
+    sides = sorted(float(np.median(GAMMA[c.steps])) for c in result.corners)
+    assert sides[0] < GAMMA[wall.steps].min() and sides[1] > GAMMA[wall.steps].max()
+
+
+def test_a_walls_foot_on_the_floor_in_a_simulated_room_is_a_corner_at_both_flanks():
+    # The fan mount in the room of seed 13, its second pose: the wall 4.3 m away meets the floor 0.24 m below
+    # the stack's middle; that corner's echoes hold both ends of the wall's region.
+    model = build_model(draw_world("room", 13))
+    scan = simulate_world_scan(model, 1, seed=13 * 1000 + 1)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    k = next(k for k, el in enumerate(model.elements) if el.label == "wall3|floor")
+    holders = [("plane", s.steps) for s in result.surfaces] + [(f.kind, f.steps) for f in result.corners]
+    holders += [(f.kind, f.steps) for f in result.edges]
+    kinds = [kind for kind, steps in holders if np.mean(scan.echo_index[steps] == k) > 0.5]
+    assert kinds == ["corner", "corner"], kinds

@@ -11,10 +11,14 @@ Per class (plane, corner, edge):
 
 * **found / seen** (recall): truth elements with at least ``--min-echoes``
   readings that some extracted item of any class claims (its majority element);
-* **classified right**: of those claimed, the share whose class matches
-  (mirror → plane, dihedral or trihedral → corner, edge → edge);
+* **classified right**: of those, the ones every claim of which has the right class
+  (mirror → plane, dihedral or trihedral → corner, edge → edge): one wrong claim beside a
+  right one makes it wrong;
+* **unknown**: of those, the ones claimed only by features that say their kind is not
+  settled (with or beside claims of the right class): neither right nor wrong;
 * **false**: extracted items whose majority reading is no element of that class
-  (noise, a diffuse echo or another class);
+  (noise, a diffuse echo or another class); a feature whose kind is not settled claims
+  no class, so it is never false;
 
 and per plane:
 
@@ -65,6 +69,8 @@ TRUE_CLASS = {
     ElementKind.TRIHEDRAL: "corner",
     ElementKind.EDGE: "edge",
 }
+#: What the bench calls a feature whose kind its evidence does not settle.
+UNKNOWN = "unknown"
 #: Extractions timed per sweep (the median is its time; the first call of a process also loads the kernels).
 TIMING_REPEATS = 3
 #: Half the length of wall trace the error is measured over, m.
@@ -107,7 +113,7 @@ class ScanRecord:
     planes: list[PlaneRecord]
     seen: dict[str, int]  # class -> truth elements seen
     found: dict[str, int]  # class -> of those, claimed by an item of any class
-    right: dict[str, int]  # class -> of those, claimed with the right class
+    right: dict[str, int]  # class -> of those, claimed only with the right class
     false: dict[str, int]  # class -> extracted items of that class with another majority
     extracted: dict[str, int]
     unexplained_share: float
@@ -119,6 +125,7 @@ class ScanRecord:
     good_off_every: int = 0  # of those, off every true mirror of the world by > 2 cm (false good)
     good_off_details: tuple[str, ...] = ()  # one line per such plane
     missed: tuple[str, ...] = ()  # one line per mirror seen but claimed by no plane
+    unknown: dict[str, int] | None = None  # class -> of those found, claimed only as right or kind not settled
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -248,11 +255,11 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     good_planes = 0
     off_every: list[str] = []
     items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
-    items += [("corner", f.steps, None) for f in result.corners] + [("edge", f.steps, None) for f in result.edges]
+    items += [(f.kind if f.settled else UNKNOWN, f.steps, None) for f in (*result.corners, *result.edges)]
     for cls, steps, surf in items:
         k, _ = majority(scan, steps, surf)
         truth = _element_kind(model, k, scan, steps)
-        if truth is None or truth != cls:
+        if cls != UNKNOWN and (truth is None or truth != cls):
             false[cls] += 1
             false_good += int(surf is not None and surf.quality == "good")
         if truth is not None:
@@ -297,11 +304,13 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             )
     found = {c: 0 for c in classes}
     right = {c: 0 for c in classes}
+    unknown = {c: 0 for c in classes}
     for k in seen_el:
         c = TRUE_CLASS[model.elements[k].kind]
         if k in claimed:
             found[c] += 1
-            right[c] += int(c in claimed[k])
+            right[c] += int(claimed[k] == {c})
+            unknown[c] += int(UNKNOWN in claimed[k] and claimed[k] <= {c, UNKNOWN})
     seen_kind: dict[str, int] = {}
     found_kind: dict[str, int] = {}
     for k in seen_el:
@@ -332,6 +341,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
         good_off_every=len(off_every),
         good_off_details=tuple(off_every),
         missed=missed,
+        unknown=unknown,
     )
 
 
@@ -437,7 +447,8 @@ def run(args: argparse.Namespace) -> int:
     console.print(
         "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
         "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
-        "and > 3× oracle; (right): claimed with the right class; walls: the room's walls (not boxes' faces), good "
+        "and > 3× oracle; (right, unknown): claimed only with the right class, or only as a feature whose kind is not "
+        "settled; walls: the room's walls (not boxes' faces), good "
         "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
         "steps' readings that are its own."
     )
@@ -571,8 +582,8 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
         "good-but-failed",
         "false planes (good)",
         "good off every true mirror > 2 cm",
-        "corners found/seen (right)",
-        "edges found/seen (right)",
+        "corners found/seen (right, unknown)",
+        "edges found/seen (right, unknown)",
         "false corners/edges",
         "unexplained",
         "walls good ≤3× oracle / flagged / neither",
@@ -610,8 +621,8 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
             str(failed_good),
             f"{tot('false', 'plane')} ({sum(r.false_good for r in recs)} good)",
             f"{sum(r.good_off_every for r in recs)}/{sum(r.good_planes for r in recs)}",
-            f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')})",
-            f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')})",
+            f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')}, {tot('unknown', 'corner')})",
+            f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')}, {tot('unknown', 'edge')})",
             f"{tot('false', 'corner')}/{tot('false', 'edge')}",
             f"{100 * float(np.mean([r.unexplained_share for r in recs])):.0f} %",
             f"{sum(p.quality == 'good' and p.within_oracle for p in walls)} / {sum(p.flagged for p in walls)} / "

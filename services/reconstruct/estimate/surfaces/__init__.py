@@ -2,6 +2,7 @@
 
 from lelsonar.reconstruct.estimate.surfaces.extract import (
     METHOD,
+    UNSETTLED,
     Feature,
     Surface,
     SurfaceOptions,
@@ -9,4 +10,4 @@ from lelsonar.reconstruct.estimate.surfaces.extract import (
     extract_surfaces,
 )
 
-__all__ = ["METHOD", "Feature", "Surface", "SurfaceOptions", "SurfaceSet", "extract_surfaces"]
+__all__ = ["METHOD", "UNSETTLED", "Feature", "Surface", "SurfaceOptions", "SurfaceSet", "extract_surfaces"]

@@ -24,6 +24,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     capsule_x,
     stack_fits,
+    subregion,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -408,13 +409,6 @@ def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
-def _subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
-    keep = np.isin(region.rows, steps)
-    return Region(
-        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
-    )
-
-
 def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
     """The block of steps at the start that lies deeper than the rest, if significant: (length, depth
     difference m, its standard error m).
@@ -560,11 +554,11 @@ def trim_ends(
 
     cut_before = r.cut_before or (head > 0 and nearer(pos < head))
     cut_after = r.cut_after or (tail > 0 and nearer(pos >= k - tail))
-    parts = [_subregion(r, r.steps[head : k - tail], cut_before, cut_after)]
+    parts = [subregion(r, r.steps[head : k - tail], cut_before, cut_after)]
     if head >= opts.min_steps:
-        parts.insert(0, _subregion(r, r.steps[:head], r.cut_before, True))
+        parts.insert(0, subregion(r, r.steps[:head], r.cut_before, True))
     if tail >= opts.min_steps:
-        parts.append(_subregion(r, r.steps[k - tail :], True, r.cut_after))
+        parts.append(subregion(r, r.steps[k - tail :], True, r.cut_after))
     return [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
 
 
@@ -623,12 +617,12 @@ def split_dihedral(
         block, step, step_se = found
         if after:
             plane_steps, corner_steps = r.steps[: r.steps.size - block], r.steps[r.steps.size - block :]
-            plane_r = _subregion(r, plane_steps, r.cut_before, False)
-            corner_r = _subregion(r, corner_steps, True, r.cut_after)
+            plane_r = subregion(r, plane_steps, r.cut_before, False)
+            corner_r = subregion(r, corner_steps, True, r.cut_after)
         else:
             corner_steps, plane_steps = r.steps[:block], r.steps[block:]
-            plane_r = _subregion(r, plane_steps, False, r.cut_after)
-            corner_r = _subregion(r, corner_steps, r.cut_before, True)
+            plane_r = subregion(r, plane_steps, False, r.cut_after)
+            corner_r = subregion(r, corner_steps, r.cut_before, True)
         plane_m, corner_m = (measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r))
         # The block must lie where the line of the plane so placed puts it: deeper by |X| − h.
         line = plane_line(plane_m, mj)

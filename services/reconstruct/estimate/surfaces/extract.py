@@ -11,6 +11,10 @@ Per region of constant depth (:mod:`.regions`):
 * **depth** ``ρ`` from the ranges with the bearing fixed (the mirror condition
   ``n · p_c + d = h``), **tilt** from the differential ranges along the capsule
   stack.
+* **flanks**: a region whose end steps slope along the capsule stack as its
+  middle does not, where the middle plane's double bounce with a surface across
+  the fan explains them (a wall's foot on the floor below a horizontal fan),
+  splits into the plane and those ends (:mod:`.flanks`).
 * **class** by physics (the tests are in :mod:`.evidence`):
 
   - one line in a plane, across the fan, explaining every range (the double
@@ -22,7 +26,10 @@ Per region of constant depth (:mod:`.regions`):
     a **concave corner**;
   - on one other plane's trace (off that plane's own foot, or deeper than it):
     that plane's end, a **corner** if its echo is as strong as that plane's own
-    mirror echo, an **edge** if weak;
+    mirror echo, an **edge** if weak; where the region holds only a flank of
+    its echo, the beam pattern taken back to the bearing the geometry puts it
+    at weighs it, and an end whose strength no evidence settles says so
+    (:data:`~.results.UNSETTLED`, ``Feature.settled``);
   - an echo much weaker than the sweep's strongest at its range (diffraction):
     an **edge**; a region cut before its peak is weak only if the upper
     estimate of its peak (its flank, extrapolated with the sweep's own beam
@@ -66,6 +73,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     unit_normal,
     wrap,
 )
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_flanks
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
@@ -73,10 +81,11 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     extrapolated_peak,
     find_regions,
     log_amplitude_curvature,
+    peak_at_bearing,
 )
-from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions, SurfaceSet
+from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
@@ -320,6 +329,9 @@ def extract_surfaces(
     )
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
+    # A region whose ends are its plane's double bounce with a surface across the fan, split off both at once (the
+    # plane keeps the whole region's centre, its foot); then any end that still slopes off the plane's.
+    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
     # A plane's region whose end steps are a line across the stack at a like range: its core and those ends.
     trimmed: list[Measured] = []
     for i in range(len(measured)):
@@ -380,6 +392,40 @@ def extract_surfaces(
         # The observed peak is a lower bound of the region's.
         return math.isfinite(ref) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * ref
 
+    def end_strength(m: Measured, mj: Measured, *, confirmed: bool = False) -> tuple[str, str]:
+        """Whether a plane's end (or its line across the fan) echoes weakly, strongly or unknown, and why.
+
+        Against the plane's own mirror echo (same material, a like range) where its peak is clean, else the
+        sweep's strongest.  In order: the region's own peak is a lower bound (strong); where a step lies on
+        the beam's top, the beam pattern taken back from its steps to the bearing the geometry puts it at (see
+        peak_at_bearing) is close to the peak (strong or weak); the upper estimate from its flank's own slope
+        (weak); that beam pattern taken back from farther out, a lower bound (strong).  ``confirmed``: the
+        readings themselves confirm the bearing (one line explains every range), so that lower bound comes
+        before the flank's slope, whose few steps' noise can put its vertex anywhere.
+        """
+        ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
+        of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
+        if not math.isfinite(ref):
+            return "unknown", ""
+        if strong(m, ref):
+            return "strong", f"with an echo as strong as {of}"
+        at = peak_at_bearing(g[m.region.steps], m.step_amplitude, m.bearing, beam_k)
+        traced = float("nan") if at is None else mirror_normalised(at[0], m.depth, opts)
+        share = f"{100 * traced / ref:.0f} % of {of} at the bearing the geometry puts it at"
+        strong_there = f"with an echo as strong as {of} once the beam pattern is taken back there ({share})"
+        if confirmed and traced >= opts.weak_echo * ref:
+            return "strong", strong_there
+        if at is not None and at[1] <= math.log(2.0):
+            # A step on the beam's top: the estimate is close to the peak either way.
+            if traced >= opts.weak_echo * ref:
+                return "strong", strong_there
+            return "weak", f"with a weak (diffracted) echo: {share}"
+        if weak(m, ref):
+            return "weak", f"with a weak (diffracted) echo: under {of} × {opts.weak_echo:.2f}"
+        if traced >= opts.weak_echo * ref:
+            return "strong", strong_there
+        return "unknown", ""
+
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
     # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
@@ -395,7 +441,10 @@ def extract_surfaces(
             if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
                 continue
             nj = unit_normal(mj.bearing, mj.tilt)
-            tol = opts.on_trace + 3 * mj.depth * abs(math.sin(measured[i].bearing - mj.bearing)) * mj.bearing_stderr
+            # n_j · p moves with either bearing by ρ·sin(β_i − β_j) per rad: 3 σ of both.
+            mi = measured[i]
+            sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
+            tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
             if abs(float(nj @ p) - mj.depth) <= tol:
                 out.append(j)
         return out
@@ -432,10 +481,11 @@ def extract_surfaces(
             )
             # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
             # diffracts, the wall's free top or bottom edge.
-            if weak(m):
-                kinds[i] = ("edge", [text.replace("double bounce", "line"), "with a weak (diffracted) echo"], [pool[j]])
+            verdict, why = end_strength(m, pj, confirmed=True)
+            if verdict == "weak":
+                kinds[i] = ("edge", [text.replace("double bounce", "line"), why], [pool[j]])
             else:
-                kinds[i] = ("corner", [text], [pool[j]])
+                kinds[i] = ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]])
             across_lines.add(i)
             continue
         if across[i]:
@@ -468,18 +518,13 @@ def extract_surfaces(
                 ties[:2],
             )
         elif len(ties) == 1:
-            # A plane's end against that plane's own mirror echo (same material, a like range), measured where
-            # its peak is clean; else against the sweep's strongest.
-            mj = measured[ties[0]]
-            ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
-            of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
-            if weak(m, ref):
-                text = f"on a plane's trace off its foot, with a weak (diffracted) echo: under {of}"
-                kinds[i] = ("edge", [f"{text} × {opts.weak_echo:.2f}"], ties)
-            elif strong(m, ref):
-                kinds[i] = ("corner", [f"on a plane's trace off its foot, with an echo as strong as {of}"], ties)
+            verdict, why = end_strength(m, measured[ties[0]])
+            if verdict == "weak":
+                kinds[i] = ("edge", [f"on a plane's trace off its foot, {why}"], ties)
+            elif verdict == "strong":
+                kinds[i] = ("corner", [f"on a plane's trace off its foot, {why}"], ties)
             else:
-                kinds[i] = ("edge", ["on a plane's trace off its foot (its end); echo strength unknown"], ties)
+                kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
         elif weak(m):
             kinds[i] = (
                 "edge",

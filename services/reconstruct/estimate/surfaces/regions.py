@@ -24,7 +24,16 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["Region", "find_regions", "stack_fits", "bearing_from_amplitude", "amplitude_jump", "PLATEAU"]
+__all__ = [
+    "Region",
+    "find_regions",
+    "stack_fits",
+    "bearing_from_amplitude",
+    "amplitude_jump",
+    "peak_at_bearing",
+    "subregion",
+    "PLATEAU",
+]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
@@ -131,6 +140,14 @@ def find_regions(
             )
         )
     return out
+
+
+def subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
+    """The part of ``region`` over ``steps`` (its readings there), with the cut flags given."""
+    keep = np.isin(region.rows, steps)
+    return Region(
+        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
+    )
 
 
 @kernel
@@ -467,6 +484,46 @@ def extrapolated_peak(
         return None
     peak = math.exp(float(icpt) + curvature * v * v)
     return max(peak, float(a.max()))
+
+
+def peak_at_bearing(
+    gamma: np.ndarray, amplitude: np.ndarray, bearing: float, curvature: float
+) -> tuple[float, float] | None:
+    """The peak amplitude of an echo whose bearing is known from elsewhere, from the flank a region shows.
+
+    Every echo of a rotating transceiver follows the beam ``D(γ − β)²``, in
+    ``log`` close to ``P − k (γ − β)²`` (:func:`log_amplitude_curvature`).  With
+    ``β`` placed by the geometry (a plane's trace), each step gives the peak,
+    ``A(γ) · exp(k (γ − β)²)``, and their median is the estimate.  The piston
+    falls at least as fast as its parabola off the top (within a few % of it
+    over a wide main lobe, much faster on a narrow one's far flank), so the
+    estimate does not overstate the peak by more than that: safe to call an
+    echo strong by.  It is close to the peak (safe to call an echo weak by)
+    only where some step lies within the top the curvature was fitted over
+    (``k (γ − β)² ≤ log 2``).
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    bearing : float
+        The echo's bearing, rad.
+    curvature : float
+        ``k`` of :func:`log_amplitude_curvature`, 1/rad².
+
+    Returns
+    -------
+    (peak amplitude, ``k`` times the nearest step's squared offset from ``bearing``), or None when no step
+    has an amplitude or the curvature is not positive.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if not ok.any() or not curvature > 0:
+        return None
+    off = np.angle(np.exp(1j * (g[ok] - bearing)))  # wrapped to (−π, π]
+    peaks = a[ok] * np.exp(curvature * off * off)
+    return float(np.median(peaks)), float(curvature * np.min(off * off))
 
 
 def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, int] | None:

@@ -11,7 +11,10 @@ from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.quality import QualityLimits
 from lelsonar.reconstruct.estimate.results import PlaneFit
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "UNSETTLED"]
+
+#: In a feature's reasons when its echoes cannot settle corner against edge (its kind is then only a placeholder).
+UNSETTLED = "kind not settled: its echo's strength is unknown (its peak lies outside the sweep or under a nearer echo)"
 
 
 @dataclass(frozen=True)
@@ -148,6 +151,11 @@ class Feature:
     reasons: tuple[str, ...]
     steps: np.ndarray
     n_echoes: int
+
+    @property
+    def settled(self) -> bool:
+        """Whether its evidence settles its kind (else ``kind`` is a placeholder and a reason says so)."""
+        return not any(UNSETTLED in r for r in self.reasons)
 
 
 @dataclass(frozen=True, eq=False)
