@@ -10,7 +10,7 @@ import pytest
 from lelsonar import codec
 from lelsonar.errors import NonFiniteValueError
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
-from lelsonar.reconstruct.stream.fastwire import read_sample
+from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected
 from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, dc_levels, settle_step
 from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range, total_energy
@@ -240,10 +240,11 @@ def test_the_limits_hold_on_a_scans_fast_path(scan):
         for m in samples[:4]:
             assert routed.add(m)
         payload, time_ns = sample.SerializeToString(), sample.acquisition_time_ns
-        assert routed.add_payload(payload, sample.step, time_ns, "live", limits) is None
+        body = sample_header(payload)[-1]
+        assert routed.add_payload(payload, body, sample.step, time_ns, "live", limits) is None
         assert routed.add(sample, limits=limits) is None
         assert routed.n_received == 4 and not routed.received[4:].any()
-        assert routed.add_payload(payload, sample.step, time_ns, "live", codec.DEFAULT_LIMITS)
+        assert routed.add_payload(payload, body, sample.step, time_ns, "live", codec.DEFAULT_LIMITS)
         assert routed.received[sample.step]
 
 
@@ -328,7 +329,8 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
             values[: 2 * k] = [w0.sample_rate, w0.t0] * k
             values[2 * k :] = rng.standard_normal(4 * k + 5)  # a previous sample's readings, to be overwritten
             waveforms = np.full((k, n), np.nan, np.float32)
-            carried = read_sample(payload, ids, values, waveforms)
+            header = sample_header(payload)
+            carried = -1 if header is None else read_sample(payload, header[-1], ids, values, waveforms)
             ranges, layout, data = codec.sample_readings(m.sensors)
             if i < len(plain):  # plainly encoded: read exactly when on the layout
                 assert (carried >= 0) == (layout == fast_layout), i
@@ -336,6 +338,7 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
                 counts["left"] += 1
                 continue
             counts["read"] += 1
+            assert header[:5] == (m.schema_version, m.scanner_id, m.scan_id, m.step, m.acquisition_time_ns)
             assert layout == fast_layout
             e = m.sensor_energy[:]
             assert carried == len(e)

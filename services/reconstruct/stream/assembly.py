@@ -264,10 +264,11 @@ class ScanAssembly(WriterChecks):
         return view
 
     def add_payload(
-        self, payload: bytes, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
+        self, payload: bytes, body: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
     ) -> bool | None:
         """Place a sample straight from its ``payload`` (:mod:`~lelsonar.reconstruct.stream.fastwire`, the
-        header already read: its ``step`` and ``acquisition_time_ns``), never parsed; its body's checks under
+        header already read: its ``step`` and ``acquisition_time_ns``, and where its ``body`` starts), never
+        parsed; its body's checks under
         ``limits`` are made in the pass that places it (:func:`~lelsonar.reconstruct.stream.step_features.
         place_step`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
         clocks: the contract's checks of them passed).  Anything this does not clear — no layout yet, a
@@ -295,6 +296,7 @@ class ScanAssembly(WriterChecks):
             self._allocate(min(self._steps, max(2 * len(received), step + 1)))
         status, carried = place_wire(
             payload,
+            body,
             self._ids,
             self._values,
             self._waves,

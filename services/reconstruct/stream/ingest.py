@@ -233,13 +233,13 @@ class Ingest:
         header = sample_header(payload)
         if header is None or header[0] != SCHEMA_VERSION:
             return None
-        _, scanner, scan_id, step, time_ns = header
+        _, scanner, scan_id, step, time_ns, body = header
         scan = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
         if scan is None or (key_scanner is not None and scanner != key_scanner):
             return None
         mismatches = scan.energy_mismatches
         try:
-            placed = scan.add_payload(payload, step, time_ns, origin, self.limits)
+            placed = scan.add_payload(payload, body, step, time_ns, origin, self.limits)
         except DecodeError as exc:
             return self._refused(scan, step, exc)
         if placed is None:
