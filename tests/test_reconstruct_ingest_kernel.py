@@ -68,6 +68,23 @@ def test_dc_levels_are_numpys_mean_bit_for_bit(n, kind):
     np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
 
 
+@pytest.mark.parametrize("k", [1, 2, 3, 5, 6, 9])
+def test_dc_levels_of_rows_summed_exactly_and_in_order_side_by_side_are_numpys(k):
+    """Rows that cannot be summed exactly are summed in order four at a time: any count of them, among rows that
+    can, each its own mean."""
+    rng = np.random.default_rng(k)
+    n = 3500
+    exact = rng.random(k) < 0.5
+    w = np.where(
+        exact[:, None],
+        np.round(rng.standard_normal((k, n)) * 500) * (3.3 / 4096),
+        rng.standard_normal((k, n)) + rng.standard_normal(k)[:, None],
+    ).astype(np.float32)
+    got = np.full(k, -1.0)
+    dc_levels(w, got)
+    np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
+
+
 @pytest.mark.parametrize("k", range(1, 17))
 def test_a_steps_energy_ratio_is_numpys_bit_for_bit(k):
     """E^γ, E0(d_m) and R of each step as it is placed (settle_step) are total_energy's and energy_ratio's

@@ -333,14 +333,35 @@ def read_sample(payload, body, ids, values, waveforms):
 
 
 @kernel
-def place_wire(payload, body, ids, values, waveforms, scan, step, time_ns, recovered, arrays):
+def place_wire(
+    payload,
+    body,
+    ids,
+    values,
+    waveforms,
+    scan,
+    step,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
     """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample` from ``body``
     on, into ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it
-    could not be read that way (nothing placed)."""
+    could not be read that way, or its step is already held (nothing placed).  The scan's arrays come one by one
+    (place_step's ``arrays``): a tuple of arrays costs the call more to hand over."""
+    if received[step]:
+        return UNREAD, 0
     carried = read_sample(payload, body, ids, values, waveforms)
     if carried < 0:
         return UNREAD, 0
     k = ids.size
+    arrays = (per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows)
     return place_step(
         waveforms, values, scan, k if carried == k else 0, step, False, time_ns, recovered, arrays
     ), carried
