@@ -450,7 +450,7 @@ class ScanAssembly(WriterChecks):
             limits is None,
             sample.acquisition_time_ns,
             origin == "recovered",
-            self._arrays(),
+            *self._arrays(),
         )
         return self._placed(status, m, step, waveforms, layout, ranges, one_clock, waveforms)
 

@@ -219,8 +219,14 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
             if wire_type != _LENGTH or seen & (1 << field):
                 return False
             d0, d1 = _wire_length(buf, i, b)
-            if d0 < 0:
+            if d0 < 0 or d1 - d0 != 4 * n:
                 return False
+            # Copied as it is met, so that the fields after it are read from the cache lines the copy streamed
+            # in, not fetched ahead of it.  A loop over the bytes: one vectorised copy (a slice assignment checks
+            # for overlap and copies twice).
+            src, dst = buf[d0:d1], row.view(np.uint8)
+            for j in range(d1 - d0):
+                dst[j] = src[j]
             i = d1
         else:
             i = _wire_skip(buf, i, b, wire_type)
@@ -229,13 +235,7 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
             continue
         seen |= 1 << field
     # The layout's clock to the bit (stricter than ==, which the fast path's clocks, finite, need no more of).
-    if not (encoding == _FLOAT32 and count == n and d1 - d0 == 4 * n and rate == bits[clock] and t0 == bits[clock + 1]):
-        return False
-    # A loop over the bytes: one vectorised copy (a slice assignment checks for overlap and copies twice).
-    src, dst = buf[d0:d1], row.view(np.uint8)
-    for j in range(d1 - d0):
-        dst[j] = src[j]
-    return True
+    return (d0 >= 0 or n == 0) and encoding == _FLOAT32 and count == n and rate == bits[clock] and t0 == bits[clock + 1]
 
 
 @kernel
@@ -353,17 +353,30 @@ def place_wire(
 ):
     """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample` from ``body``
     on, into ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it
-    could not be read that way, or its step is already held (nothing placed).  The scan's arrays come one by one
-    (place_step's ``arrays``): a tuple of arrays costs the call more to hand over."""
+    could not be read that way, or its step is already held (nothing placed).  The scan's arrays come one by one,
+    as :func:`place_step` takes them: a tuple of arrays costs a call more to hand over."""
     if received[step]:
         return UNREAD, 0
     carried = read_sample(payload, body, ids, values, waveforms)
     if carried < 0:
         return UNREAD, 0
     k = ids.size
-    arrays = (per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows)
     return place_step(
-        waveforms, values, scan, k if carried == k else 0, step, False, time_ns, recovered, arrays
+        waveforms,
+        values,
+        scan,
+        k if carried == k else 0,
+        step,
+        False,
+        time_ns,
+        recovered,
+        per_capsule,
+        per_step,
+        acquired_ns,
+        received,
+        recovered_mask,
+        timing_windows,
+        candidate_windows,
     ), carried
 
 

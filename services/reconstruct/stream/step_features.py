@@ -77,7 +77,13 @@ def place_step(
     checked,
     time_ns,
     recovered,
-    arrays,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
 ):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
     sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
@@ -110,9 +116,7 @@ def place_step(
         the screen does not clear, is ``UNCHECKED`` (for the caller to validate it, naming the culprit).
     time_ns, recovered : int, bool
         The sample's acquisition time and origin (the acquirer's log).
-    arrays : tuple
-        The scan's arrays a step is written into, in this order:
-    per_capsule, per_step : (7, steps, k), (5, steps) float64 arrays
+    per_capsule, per_step : (9, steps, k), (5, steps) float64 arrays
         The scan's blocks (:data:`PER_CAPSULE`, :data:`PER_STEP`).
     acquired_ns, received, recovered_mask : (steps,) arrays
         The scan's ``time_ns``, ``received``, ``recovered_mask``.
@@ -131,7 +135,6 @@ def place_step(
         a range anyway, plus ``CANDIDATES`` if a candidate echo's window was found but not kept
         (``candidate_windows`` not allocated yet).
     """
-    per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows = arrays
     k, n = waveforms.shape
     # Where the readings and the carried energies start in ``values`` (indexed, not sliced: a slice of an array
     # costs an atomic reference count, and the pass makes dozens).
