@@ -221,3 +221,19 @@ class Collect:
 
     def log(self, level: str, text: str) -> None:
         pass
+
+
+@pytest.fixture(scope="session")
+def two_scans(tmp_path_factory):
+    """Two simulated paper scans (scan ids 1 and 2), each recorded to its own MCAP file: read them, never write."""
+    from lelsonar.log import recording
+
+    d = tmp_path_factory.mktemp("two_scans")
+    paths = []
+    for i in (1, 2):
+        path = d / f"scan{i}.mcap"
+        with recording.McapRecorder(path) as rec:
+            for m in simulated_messages("paper-test1", seed=i, scan_id=i):
+                rec.write(m)
+        paths.append(path)
+    return paths

@@ -17,19 +17,6 @@ from lelsonar.v1 import reconstruction_pb2 as pb
 from tests.conftest import scene_truth, simulated_messages
 
 
-@pytest.fixture(scope="module")
-def two_scans(tmp_path_factory):
-    d = tmp_path_factory.mktemp("map")
-    paths = []
-    for i in (1, 2):
-        path = d / f"scan{i}.mcap"
-        with recording.McapRecorder(path) as rec:
-            for m in simulated_messages("paper-test1", seed=i, scan_id=i):
-                rec.write(m)
-        paths.append(path)
-    return paths
-
-
 def test_map_json_has_the_public_keys_and_the_wall_of_the_scene(two_scans, capsys, tmp_path):
     geo = tmp_path / "plan.geojson"
     assert main(["map", "--source", *map(str, two_scans), "--json", "--geojson", str(geo)]) == 0

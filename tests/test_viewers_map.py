@@ -186,22 +186,6 @@ def test_map_writes_every_viewer_output_and_refuses_to_overwrite(two_scans, tmp_
     assert main([*args, "--rrd", str(rrd), "--overwrite"]) == 0
 
 
-@pytest.fixture(scope="module")
-def two_scans(tmp_path_factory):
-    from lelsonar.log import recording
-    from tests.conftest import simulated_messages
-
-    d = tmp_path_factory.mktemp("mapviews")
-    paths = []
-    for i in (1, 2):
-        path = d / f"scan{i}.mcap"
-        with recording.McapRecorder(path) as rec:
-            for m in simulated_messages("paper-test1", seed=i, scan_id=i):
-                rec.write(m)
-        paths.append(path)
-    return paths
-
-
 def test_the_live_foxglove_map_view_serves_each_map_as_a_scene(room_maps):
     import json
     import struct

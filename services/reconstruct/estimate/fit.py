@@ -420,8 +420,8 @@ def make_plane_fit(
             FailureReason.DEGENERATE_GEOMETRY, f"{method}: the inliers do not constrain the plane", data.label, data.n
         )
     # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
-    # PlaneFit._owned); the mask is copied, since the caller may hold (and later change) it.
-    fit = PlaneFit._owned(
+    # PlaneFit.from_owned); the mask is copied, since the caller may hold (and later change) it.
+    fit = PlaneFit.from_owned(
         label=data.label,
         method=method,
         normal=n,

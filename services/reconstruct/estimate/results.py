@@ -223,7 +223,7 @@ class PlaneFit:
                 check(self)
 
     @classmethod
-    def _owned(
+    def from_owned(
         cls,
         label: str,
         method: str,
