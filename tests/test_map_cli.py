@@ -35,7 +35,10 @@ def test_map_json_has_the_public_keys_and_the_wall_of_the_scene(two_scans, capsy
     assert math.acos(min(1.0, float(n @ normal))) < 4 * wall["normal_stderr"] + math.radians(0.5)
     assert abs(wall["offset"] - offset) < 4 * wall["offset_stderr"] + 0.005
     assert any("no pose" in note for note in out["notes"])
-    assert out["corners"] and out["corners"][0]["kind"] == "concave"
+    # The L's edge is where the wall meets the ceiling: a line across the floor plan, not a corner of it.
+    assert out["corners"] == []
+    [corner] = out["horizontal_corners"]
+    assert corner["kind"] == "concave" and abs(corner["direction"]["z"]) < 0.5 and corner["observations"] == 2
     assert json.loads(geo.read_text())["type"] == "FeatureCollection"
 
 

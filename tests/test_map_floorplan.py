@@ -129,8 +129,35 @@ def test_a_wall_seen_at_its_foot_likely_runs_on_to_the_corner_or_edge_that_ends_
     m = FusedMap(walls=(wall, flagged), features=features, poses=())
     cfg = fp.PlanConfig(likely_wall_reach=2.0, likely_wall_span=0.5)
     segments = {tuple(sorted(round(float(v), 6) for v in s[:, 0])) for s in fp.likely_walls(m, cfg)}
-    # Between the pieces, from the right piece to the edge at x = 3, from the left one to the corner at x = 0.
-    assert segments == {(1.0, 2.0), (2.1, 3.0), (0.0, 0.9)}
+    # From the right piece to the edge at x = 3, from the left one to the corner at x = 0.
+    assert segments == {(2.1, 3.0), (0.0, 0.9)}
+    # Between the pieces, and on to the corner and the edge: closed, as no scan saw through them.
+    gaps = {tuple(sorted(round(float(v), 6) for v in s[:, 0])) for s in fp.closed_gaps(m, cfg)}
+    assert gaps == {(1.0, 2.0), (2.1, 3.0), (0.0, 0.9)}
+
+
+def test_a_gap_between_pieces_is_closed_to_a_route_unless_a_scan_saw_through_it():
+    from lelsonar.map.result import FusedMap, FusedPose
+
+    # The wall x = 1 seen at y ∈ [−1.5, −0.5] and [0.5, 1.5]: a 1 m gap, the robot at the origin, the goal beyond.
+    wall = _wall(0, 0.0, 1.0, [(-1.5, -0.5), (0.5, 1.5)])
+    pose = FusedPose(scan_id=1, x=0.0, y=0.0, z=0.3, heading=0.0, covariance=np.eye(3) * 1e-6, odometry=(0.0, 0.0, 0.0))
+    cfg = fp.PlanConfig(robot_radius=0.15, margin=1.0, likely_wall_span=0.0)
+    unseen = FusedMap(walls=(wall,), features=(), poses=(pose,))
+    assert len(fp.closed_gaps(unseen, cfg)) == 1
+    path = fp.route(unseen, (0.0, 0.0), (2.0, 0.0), cfg)
+    assert path is not None
+    crossing = LineString(path).intersection(LineString([(1.0, -10.0), (1.0, 10.0)]))
+    assert abs(crossing.coords[0][1]) > 1.5 + cfg.robot_radius  # round the wall's ends, not through the gap
+    # An echo's path through the gap to a wall beyond (x = 3): the scans saw the gap open.
+    beyond = _wall(1, 0.0, 3.0, [(-0.02, 0.02)])
+    view = np.array([[0.0, 0.0], [3.0, -0.02], [3.0, 0.02]])
+    seen = FusedMap(walls=(wall, beyond), features=(), poses=(pose,), views=(view,), view_scans=(1,))
+    assert len(fp.closed_gaps(seen, cfg)) == 0
+    path = fp.route(seen, (0.0, 0.0), (2.0, 0.0), cfg)
+    assert path is not None
+    crossing = LineString(path).intersection(LineString([(1.0, -10.0), (1.0, 10.0)]))
+    assert abs(crossing.coords[0][1]) < 0.5 - cfg.robot_radius
 
 
 def test_a_route_goes_round_where_a_wall_likely_runs_rather_than_through_it():
@@ -165,3 +192,17 @@ def test_the_map_read_back_from_its_message_plans_as_the_library_does():
     assert fp.free_space(back).symmetric_difference(fp.free_space(m)).area < 1e-9
     start = (m.poses[0].x, m.poses[0].y)
     assert fp.route(back, start) == fp.route(m, start)
+
+
+def test_an_echo_path_to_an_unreliable_wall_is_no_evidence_of_free_space():
+    from lelsonar.map.result import FusedMap
+
+    # The robot at the origin; a good wall x = 1 seen at its foot; an "echo" read as a wall at x = 3 behind it.
+    near = _wall(0, 0.0, 1.0, [(-0.02, 0.02)])
+    ghost = _wall(1, 0.0, 3.0, [(-0.02, 0.02)], quality="unreliable")
+    to_near = np.array([[0.0, 0.0], [1.0, -0.02], [1.0, 0.02]])
+    to_ghost = np.array([[0.0, 0.0], [3.0, -0.02], [3.0, 0.02]])
+    m = FusedMap(walls=(near, ghost), features=(), poses=(), views=(to_near, to_ghost), view_scans=(1, 1))
+    assert [v.tolist() for v in fp.trusted_views(m)] == [to_near.tolist()]
+    space = fp.free_space(m)
+    assert space.contains(Point(0.5, 0.0)) and not space.intersects(Point(2.0, 0.0))

@@ -4,6 +4,7 @@ observation states (seeded), and the measurement model's Jacobians against finit
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -13,7 +14,8 @@ from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.fusion import FusionConfig, MapUpdateError, WallMapper
 from lelsonar.map.lines import line_in_sensor, line_in_world, measurement_jacobians, world_jacobians, wrap
-from lelsonar.map.observation import Pose2D, ScanObservation, WallObservation
+from lelsonar.map.observation import FeatureObservation, Pose2D, ScanObservation, WallObservation
+from lelsonar.map.result import map_to_dict
 from lelsonar.map.synthetic import NoiseModel, World, maze, observe_world, room
 
 
@@ -299,3 +301,126 @@ def test_a_graph_that_cannot_be_solved_stops_the_map_with_one_typed_error(monkey
         mapper.add_scan(scans[2])
     with pytest.raises(MapUpdateError, match="no map"):
         mapper.snapshot()
+
+
+# --------------------------------------------------------------------------- flagged walls, corners, pieces
+def _observe(pose, theta, rho, patch_xy, cov, quality="good", rng=None):
+    """A wall ``cos θ x + sin θ y = ρ`` (world) seen from the true ``pose``, its patch the world points
+    ``patch_xy``, reported with covariance ``cov`` (noise drawn from it when ``rng`` is given)."""
+    x, y, psi = pose
+    z = np.array([math.remainder(theta - psi, 2 * math.pi), rho - (math.cos(theta) * x + math.sin(theta) * y)])
+    if rng is not None:
+        z = z + rng.multivariate_normal(np.zeros(2), cov)
+    c, s = math.cos(psi), math.sin(psi)
+    local = (np.asarray(patch_xy, float) - [x, y]) @ np.array([[c, -s], [s, c]])
+    return WallObservation(
+        normal=[math.cos(z[0]), math.sin(z[0]), 0.0],
+        offset=float(z[1]),
+        covariance=cov,
+        extent=np.column_stack([local, np.zeros(len(local))]),
+        quality=quality,
+        reasons=() if quality == "good" else ("synthetic: flagged",),
+    )
+
+
+def test_a_flagged_wall_seen_from_two_scans_corrects_the_pose_no_good_wall_places():
+    # Two poses along a corridor wall (y = 2, good from both); the wall ahead (x = 4) is seen from both only
+    # flagged: its bearing is poor, its range sharp.  The odometry's step along x is 12 cm off (σ 10 cm): only
+    # the flagged wall can place the second pose along the corridor.
+    rng = np.random.default_rng(11)
+    truth = [np.array([0.0, 0.0, 0.0]), np.array([1.5, 0.0, 0.0])]
+    odometry = [truth[0], truth[1] + [0.12, 0.0, 0.0]]
+    good_cov = np.diag([math.radians(0.2) ** 2, 0.002**2])
+    flagged_cov = np.diag([math.radians(8.0) ** 2, 0.002**2])
+    step_cov = np.diag([0.10**2, 0.01**2, math.radians(0.5) ** 2])
+    mapper = WallMapper()
+    for k, (t, o) in enumerate(zip(truth, odometry)):
+        walls = (
+            _observe(t, math.pi / 2, 2.0, [[t[0] - 0.5, 2.0], [t[0] + 0.5, 2.0]], good_cov, rng=rng),
+            _observe(t, 0.0, 4.0, [[4.0, -0.3], [4.0, 0.3]], flagged_cov, "degraded", rng=rng),
+        )
+        mapper.add_scan(
+            ScanObservation(scan_id=k + 1, pose=Pose2D(*o), walls=walls, step_covariance=None if k == 0 else step_cov)
+        )
+    m = mapper.snapshot()
+    ahead = [w for w in m.walls if abs(wrap(w.line[0])) < 0.5]
+    assert len(ahead) == 1 and ahead[0].quality == "degraded" and ahead[0].good_observations == 0
+    fused = m.poses[1]
+    error = math.hypot(fused.x - truth[1][0], fused.y - truth[1][1])
+    assert error < 4 * math.sqrt(fused.covariance[0, 0] + fused.covariance[1, 1]) and error < 0.12 / 3
+
+
+def _corner_scans(features_at: dict[int, list]) -> list[ScanObservation]:
+    """Two walls of an L (x = 0 and y = 0, seen from x, y < 0: normals +x and +y) seen from two poses, each
+    stretch over a metre from the corner at the origin; ``features_at[k]``: scan k's own corners (world points)."""
+    cov = np.diag([math.radians(0.2) ** 2, 0.002**2])
+    poses = [np.array([-1.5, -1.5, 0.0]), np.array([-1.6, -1.4, 0.0])]
+    scans = []
+    for k, pose in enumerate(poses):
+        walls = (
+            _observe(pose, 0.0, 0.0, [[0.0, -1.6], [0.0, -1.2]], cov),
+            _observe(pose, math.pi / 2, 0.0, [[-1.6, 0.0], [-1.2, 0.0]], cov),
+        )
+        feats = tuple(
+            FeatureObservation(point=[p[0] - pose[0], p[1] - pose[1], 0.3], direction=[0, 0, 1], point_stderr=0.01)
+            for p in features_at.get(k, [])
+        )
+        scans.append(ScanObservation(scan_id=k + 1, pose=Pose2D(*pose), walls=walls, features=feats))
+    return scans
+
+
+def _map_of(scans):
+    mapper = WallMapper()
+    for s in scans:
+        mapper.add_scan(s)
+    return mapper.snapshot()
+
+
+def test_walls_whose_stretches_stop_short_make_a_corner_only_where_a_scan_saw_one():
+    assert _map_of(_corner_scans({})).corners == ()  # their lines cross, nothing says they meet there
+    seen = _map_of(_corner_scans({0: [(0.004, -0.003)]}))
+    assert len(seen.corners) == 1
+    corner = seen.corners[0]
+    assert corner.source == "walls" and corner.kind == "concave"
+    assert math.hypot(*corner.point[:2]) < max(4 * corner.point_stderr, 0.01)
+
+
+def test_a_scan_s_lone_corner_is_published_only_when_another_scan_saw_it_too():
+    far = (-3.0, 1.0)  # no two walls meet there
+    assert _map_of(_corner_scans({0: [far]})).corners == ()
+    both = _map_of(_corner_scans({0: [far], 1: [far]})).corners
+    assert len(both) == 1 and both[0].source == "observed" and both[0].scans == (1, 2)
+
+
+def test_a_wall_seen_in_pieces_is_one_json_wall_a_piece_none_spanning_the_opening():
+    # One wall (y = 2) seen from two poses 3 m apart: two stretches with 2 m of unseen wall between.
+    cov = np.diag([math.radians(0.2) ** 2, 0.002**2])
+    scans = [
+        ScanObservation(
+            scan_id=k + 1,
+            pose=Pose2D(x, 0.0, 0.0),
+            walls=(_observe((x, 0.0, 0.0), math.pi / 2, 2.0, [[x - 0.5, 2.0], [x + 0.5, 2.0]], cov),),
+            step_covariance=None if k == 0 else np.diag([1e-4, 1e-4, 1e-6]),
+        )
+        for k, x in enumerate((0.0, 3.0))
+    ]
+    out = map_to_dict(_map_of(scans))
+    assert len(out["walls"]) == 2
+    assert len({w["wall_id"] for w in out["walls"]}) == 1 and len({w["id"] for w in out["walls"]}) == 2
+    for w, (lo, hi), scan in zip(
+        sorted(out["walls"], key=lambda w: w["extent"][0]["x"]), ((-0.5, 0.5), (2.5, 3.5)), (1, 2)
+    ):
+        xs = [p["x"] for p in w["extent"]]
+        assert min(xs) == pytest.approx(lo, abs=0.02) and max(xs) == pytest.approx(hi, abs=0.02)
+        assert w["scans"] == [scan] and len(w["pieces"]) == 2
+
+
+def test_a_wall_meeting_the_floor_is_no_corner_of_the_floor_plan():
+    scans = _corner_scans({})
+    foot = [  # each scan sees the wall x = 0 meet the floor: a line along y at z = 0
+        FeatureObservation(point=[-p.pose.x, 0.0, -0.3], direction=[0.0, 1.0, 0.0], point_stderr=0.01) for p in scans
+    ]
+    m = _map_of([replace(s, features=(f,)) for s, f in zip(scans, foot)])
+    assert m.corners == ()
+    [line] = m.horizontal
+    assert line.kind == "concave" and abs(line.direction[2]) < 1e-9 and line.scans == (1, 2)

@@ -124,7 +124,7 @@ def test_a_room_toured_through_the_simulator_and_the_extractor_is_mapped_within_
 
 
 @pytest.mark.slow
-def test_demo_world_maze_prints_a_route_out_that_crosses_no_true_wall(capsys):
+def test_demo_world_maze_prints_a_route_out_that_crosses_no_true_wall(capsys, tmp_path):
     import re
 
     from shapely.geometry import LineString
@@ -132,7 +132,7 @@ def test_demo_world_maze_prints_a_route_out_that_crosses_no_true_wall(capsys):
     from lelsonar.cli.main import main
     from lelsonar.sim.world import load_world
 
-    assert main(["demo", "--world", "maze"]) == 0
+    assert main(["demo", "--world", "maze", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     text = " ".join(out[out.index("route out") : out.index("the exit")].split())
     route = [(float(x), float(y)) for x, y in re.findall(r"\((-?\d+\.\d+), (-?\d+\.\d+)\)", text.split(": ", 1)[1])]

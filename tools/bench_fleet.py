@@ -54,6 +54,7 @@ from typing import Any
 
 from lelsonar.tools.bench_fleet_capacity import CAPACITY_LADDER, run_capacity
 from lelsonar.tools.bench_fleet_publisher import GO, READY, RESULT, check_encoding, combine, parts, publisher_main
+from lelsonar.tools.bench_fleet_stages import STALL_MS, run_stages
 
 PREFIX = "lelsonar"
 GROUP = "fleet"
@@ -100,6 +101,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="find one reconstructor's capacity instead: N scanners × --rate for each N, rising, until one does "
         f"not hold (no N given: {' '.join(str(n) for n in CAPACITY_LADDER)})",
     )
+    parser.add_argument(
+        "--stages",
+        action="store_true",
+        help="where one reconstructor's time goes instead: --scanners × --scans scans through one service in "
+        "this process, without Zenoh, CPU per sample by stage (ingest, provisional update, exact fits, final)",
+    )
     parser.add_argument("--markdown", type=Path, default=None, help="also write the tables to this Markdown file")
     parser.add_argument(
         "--publishers",
@@ -116,13 +123,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def command_line(args: argparse.Namespace) -> str:
+    # --capacity sets the scanners, one worker and no failover itself: only what it reads is shown.
+    ladder = args.capacity is not None
     return (
-        f"lelsonar bench fleet --scanners {args.scanners} --workers {args.workers} --rate {args.rate:g} "
-        f"--scans {args.scans}"
+        "lelsonar bench fleet "
+        + ("" if ladder else f"--scanners {args.scanners} --workers {args.workers} ")
+        + f"--rate {args.rate:g} --scans {args.scans}"
         + (f" --steps {args.steps}" if args.steps else "")
         + (f" --repeat {args.repeat}" if args.repeat > 1 else "")
         + (f" --publishers {args.publishers}" if args.publishers > 0 else "")
-        + f" --preset {args.preset} --failover {args.failover}"
+        + f" --preset {args.preset}"
+        + ("" if ladder else f" --failover {args.failover}")
         + (" --no-provisional" if args.no_provisional else "")
         + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
         + (" --capacity" if args.capacity == [] else "")
@@ -205,6 +216,9 @@ def worker_main(args: argparse.Namespace) -> int:
     # CPU of the worker's thread inside handle and inside tick (s), and each provisional refit's:
     # (steps the scan held, µs of the call that made it, shared among the refits of that call).
     thread_cpu = {"handle": 0.0, "tick": 0.0}
+    # The longest call of each (s of thread CPU), and the calls over STALL_MS: no sample is handled meanwhile.
+    longest = {"handle": 0.0, "tick": 0.0}
+    stalls = {"handle": 0, "tick": 0}
     refits: list[tuple[int, float]] = []
 
     def timed(name: str, fn):
@@ -213,6 +227,8 @@ def worker_main(args: argparse.Namespace) -> int:
             out = fn(*a, **kw)
             spent = time.thread_time() - c0
             thread_cpu[name] += spent
+            longest[name] = max(longest[name], spent)
+            stalls[name] += spent * 1e3 > STALL_MS
             provisional = [m for m in out if not wire.is_terminal(m)]
             for m in provisional:
                 refits.append((int(m.last_step) + 1, spent * 1e6 / len(provisional)))
@@ -284,6 +300,8 @@ def worker_main(args: argparse.Namespace) -> int:
                 "busy_cpu_s": busy_cpu[-1][1] - busy_cpu[0][1] if len(busy_cpu) == 2 else None,
                 "busy_wall_s": busy_cpu[-1][0] - busy_cpu[0][0] if len(busy_cpu) == 2 else None,
                 "thread_cpu_s": thread_cpu,
+                "longest_call_ms": {k: 1e3 * v for k, v in longest.items()},
+                "stalls": stalls,
                 "threads_cpu_s": threads,
                 "refits": refits,
                 "service": {
@@ -491,6 +509,9 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
         "publisher": pub,
         "cpu_per_sample_us": {r["member"]: cpu_per_sample(r) for r in finished},
         "threads_cpu_s": {r["member"]: r.get("threads_cpu_s", {}) for r in finished},
+        # The worst over the workers: the longest handle and tick, and the calls over STALL_MS.
+        "longest_ms": {k: max((r["longest_call_ms"][k] for r in finished), default=None) for k in ("handle", "tick")},
+        "stalls": {k: sum(r["stalls"][k] for r in finished) for k in ("handle", "tick")},
         "refit_us": refit_cost([x for r in finished for x in r["refits"]], args.steps or 184),
         "elapsed_s": time.monotonic() - t_start,
     }
@@ -571,6 +592,11 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     }
     bins = runs[0]["refit_us"]
     out["refit_us"] = {b: med([r["refit_us"].get(b) for r in runs]) for b in bins}
+    out["longest_ms"] = {
+        k: max((r["longest_ms"][k] for r in runs if r["longest_ms"][k] is not None), default=None)
+        for k in ("handle", "tick")
+    }
+    out["stalls"] = {k: sum(r["stalls"][k] for r in runs) for k in ("handle", "tick")}
     out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
     out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
     for key in ("recovered", "dropped_other_member", "shed"):
@@ -584,6 +610,8 @@ def run(args: argparse.Namespace) -> int:
     if args.role == "publisher":
         return publisher_main(args, PREFIX, _settings(args.endpoint))
     check_encoding(args.preset)
+    if args.stages:
+        return run_stages(args, refit_cost)
     if args.capacity is not None:
         return run_capacity(args, run_case, summarise, command_line)
     from rich.console import Console
@@ -680,6 +708,13 @@ def run(args: argparse.Namespace) -> int:
         (
             "provisional refit µs by steps held",
             lambda r: " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items()),
+        ),
+        (
+            f"longest handle / tick, ms CPU (calls over {STALL_MS:g} ms)",
+            lambda r: " / ".join(
+                "—" if r["longest_ms"][k] is None else f"{r['longest_ms'][k]:.1f} ({r['stalls'][k]})"
+                for k in ("handle", "tick")
+            ),
         ),
         (
             "provisionals shed",

@@ -161,6 +161,15 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
             + " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items())
             for r in results
         ),
+        "longest handle / tick, ms CPU (calls over 20 ms): "
+        + ", ".join(
+            f"{r['scanners']} scanners "
+            + " / ".join(
+                "—" if r["longest_ms"][k] is None else f"{r['longest_ms'][k]:.0f} ({r['stalls'][k]})"
+                for k in ("handle", "tick")
+            )
+            for r in results
+        ),
         "provisionals shed (under a backlog): "
         + ", ".join(f"{r['scanners']} scanners {sum(r['shed'].values()):g}" for r in results),
         f"command: {command_line(args)}",

@@ -389,17 +389,22 @@ class Replay:
 
 def measure_replay(args: argparse.Namespace) -> Replay:
     """(c): one recorded file; the replay, its diagnostics and its floor, interleaved, one run of each per round."""
+    from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
+
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-replay-") as tmp:
         path = Path(tmp) / "replay.mcap"
         n_replay = record_scans(path, args.preset, args.scans)
         time_replay(path, 1)  # warm-up
+        with FinalPool(auto_workers()) as pool:  # the fork server's start (its imports, the kernels): once a process
+            pool.wait_ready(120)
         # (c) is what `lelsonar reconstruct --source FILE.mcap` runs: finals only, no provisional estimates.
         # Interleaved, so a neighbour's load hits the result and its floor alike.
-        rounds: dict[str, list[float]] = {"replay": [], "prov": [], "ingest": [], "read": [], "floor": []}
+        rounds: dict[str, list[float]] = {"replay": [], "inline": [], "prov": [], "ingest": [], "read": [], "floor": []}
         finals = 0
         for _ in range(args.replay_runs):
             t, finals = time_replay(path, 1, provisional=False)
             rounds["replay"].append(t)
+            rounds["inline"].append(time_replay(path, 1, provisional=False, final_workers=0)[0])
             rounds["prov"].append(time_replay(path, 1)[0])
             rounds["ingest"].append(time_ingest_only(path, 1))
             rounds["read"].append(time_read_upb(path, 1))
@@ -415,6 +420,9 @@ def measure_replay(args: argparse.Namespace) -> Replay:
 
 
 def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[tuple], list[bool]]:
+    from lelsonar.reconstruct.stream.finals import auto_workers
+    from lelsonar.reconstruct.stream.sources import replay_workers
+
     n, sec = rep.samples, rep.seconds
     replay_rate, floor_c = n / sec["replay"], n / sec["floor"]
     ok_replay = replay_rate >= TARGET_REPLAY and replay_rate >= TARGET_REPLAY_RATIO * floor_c
@@ -429,6 +437,17 @@ def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[t
             f"{n} samples, {args.scans} scans, {rep.size_mb:.1f} MB zstd; median of {args.replay_runs}; "
             f"{rep.finals} finals ({', '.join((defaults.method, *defaults.compare_methods))}); no provisional "
             "estimates, which the finals do not depend on",
+        ),
+        (
+            "(c⁰) replay, the finals in the replaying process (diagnostic)",
+            f"{n / sec['inline']:,.0f} samples/s",
+            "",
+            f"{n / sec['inline'] / floor_c:.2f}×",
+            "—",
+            "",
+            "--jobs 0: each final estimated where the file is read; (c) estimates them in worker processes "
+            f"while the reading goes on ({replay_workers(None, args.scans)} now: up to {auto_workers()}, as the "
+            "host's load leaves cores idle)",
         ),
         (
             "(c′) replay with provisional estimates (diagnostic)",

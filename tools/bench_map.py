@@ -232,6 +232,11 @@ def _row(family: str, which: str, results: list) -> list[str]:
     o_ang = [math.degrees(w.angle) for w in oracle]
     o_off = [100 * w.offset for w in oracle]
     corners = [100 * c for r in results for c in r.corners]
+    n_corners = len(corners)
+    on_truth = sum(r.corners_true for r in results)
+    kind_ok = sum(r.corners_kind for r in results)
+    corners_seen = sum(r.corners_seen for r in results)
+    found = sum(r.corners_found for r in results)
     fused = np.array([p for r in results for p in r.pose_fused]).reshape(-1, 2)
     odo = np.array([p for r in results for p in r.pose_odometry]).reshape(-1, 2)
     upd = [1e3 * c for r in results for _, c in r.updates]
@@ -259,6 +264,7 @@ def _row(family: str, which: str, results: list) -> list[str]:
         ratio,
         f"{bad} / {unmatched}",
         pair(corners, ".1f"),
+        f"{on_truth}/{n_corners} ({kind_ok}) / {found}/{corners_seen}",
         f"{100 * _pct(fused[:, 0], 50):.1f} / {100 * _pct(odo[:, 0], 50):.1f}" if len(fused) else "–",
         f"{math.degrees(_pct(fused[:, 1], 50)):.2f} / {math.degrees(_pct(odo[:, 1], 50)):.2f}" if len(fused) else "–",
         f"{_pct(upd, 50):.1f}",
@@ -306,6 +312,7 @@ def run_worlds(args: argparse.Namespace) -> int:
         "p95 / oracle's (n, ρ)",
         "false good / good on no face",
         "corner cm med/p95",
+        "corners on truth (kind) / found",
         "pose cm fused/odom",
         "heading ° fused/odom",
         "update ms",
@@ -333,7 +340,10 @@ def run_worlds(args: argparse.Namespace) -> int:
     console.print(
         "walls seen in ≥ 2 scans and lying on a true face; offset: the true face's distance from the middle of the "
         "fused stretch; oracle: the same fusion fed LS on each mirror's true echoes; false good: good while its "
-        "stretch is > 2 cm and > 3× the oracle map's off the true face; pose: median error after the first pose; "
+        "stretch is > 2 cm and > 3× the oracle map's off the true face; corner cm: each map corner to the nearest true "
+        "vertical junction; on truth: map corners within 10 cm of one (of its kind), found: of the true corners whose "
+        "two faces the map holds as good walls, those with a map corner within 10 cm; pose: median error after the "
+        "first pose; "
         "update: CPU ms a scan.",
         highlight=False,
     )

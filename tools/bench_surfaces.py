@@ -187,7 +187,7 @@ def nearest_mirror(scan: WorldScan, surf: Surface) -> tuple[int, float]:
     return best
 
 
-def _majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
+def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
     """The element most of an item's readings are (its own readings if it has them, else its steps')."""
     if surf is not None and surf.rows is not None and surf.capsules is not None:
         idx = scan.echo_index[surf.rows, surf.capsules]
@@ -257,7 +257,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
     items += [(f.kind if f.settled else UNKNOWN, f.steps, None) for f in (*result.corners, *result.edges)]
     for cls, steps, surf in items:
-        k, _ = _majority(scan, steps, surf)
+        k, _ = majority(scan, steps, surf)
         truth = _element_kind(model, k, scan, steps)
         if cls != UNKNOWN and (truth is None or truth != cls):
             false[cls] += 1

@@ -45,6 +45,8 @@ from lelsonar.sim.worlds import draw_world
 from lelsonar.tools.bench_surfaces import true_plane
 from lelsonar.v1 import reconstruction_pb2 as pb
 
+#: A map corner is on a true corner within this distance, m.
+CORNER_MATCH = 0.10
 #: A fused wall lies on a true face within this angle (rad) and distance (m) of it.
 MATCH_ANGLE = math.radians(15.0)
 MATCH_DISTANCE = 0.25
@@ -79,6 +81,10 @@ class TourResult:
     walls: list[WallScore] = field(default_factory=list)
     oracle_walls: list[WallScore] = field(default_factory=list)
     corners: list[float] = field(default_factory=list)  # m, fused corner to the nearest true one
+    corners_true: int = 0  # map corners within CORNER_MATCH of a true vertical junction
+    corners_kind: int = 0  # … of a kind that one has there
+    corners_seen: int = 0  # true corners whose two faces the map holds as walls of good evidence
+    corners_found: int = 0  # … with a map corner within CORNER_MATCH
     pose_fused: list[tuple[float, float]] = field(default_factory=list)  # (m, rad) per pose after the first
     pose_odometry: list[tuple[float, float]] = field(default_factory=list)
     updates: list[tuple[int, float]] = field(default_factory=list)  # (walls in the map before, CPU s)
@@ -236,6 +242,37 @@ def score_wall(wall: FusedWall, faces) -> WallScore:
     return WallScore(face, len(wall.scans), wall.quality, angle, dist, trace, wall.normal_stderr, wall.offset_stderr)
 
 
+def true_junctions(model: WorldModel) -> list[tuple[np.ndarray, str, tuple[int, ...]]]:
+    """Plan-view vertical junctions of the world: (point, ``concave`` | ``convex`` | ``edge``, faces)."""
+    out = []
+    for el in model.elements:
+        if el.kind in (ElementKind.DIHEDRAL, ElementKind.EDGE) and abs(float(el.p1[2] - el.p0[2])) > 1e-6:
+            kind = "concave" if el.kind == ElementKind.DIHEDRAL else ("convex" if len(el.surfaces) == 2 else "edge")
+            out.append((np.asarray(el.p0[:2], float), kind, tuple(el.surfaces)))
+    return out
+
+
+def score_corners(out: TourResult, fused: FusedMap, scores: list[WallScore], model: WorldModel) -> None:
+    """The map's corners against the world's vertical junctions: how many lie on one (and of its kind), and how
+    many of the corners whose two faces the map holds as good walls it found."""
+    truth = true_junctions(model)
+    if not truth:
+        return
+    points = np.array([t[0] for t in truth])
+    for f in fused.corners:
+        d = np.hypot(*(points - f.point[:2]).T)
+        if float(d.min()) <= CORNER_MATCH:
+            out.corners_true += 1
+            near = [truth[k][1] for k in np.flatnonzero(d <= CORNER_MATCH)]
+            out.corners_kind += f.kind in near or (f.kind == "convex" and "edge" in near)
+    good_faces = {s.face for s, w in zip(scores, fused.walls) if s.face >= 0 and w.good_observations > 0}
+    found = np.array([f.point[:2] for f in fused.corners]).reshape(-1, 2)
+    for xy, kind, faces in truth:
+        if kind != "edge" and set(faces) <= good_faces:
+            out.corners_seen += 1
+            out.corners_found += bool(len(found)) and float(np.hypot(*(found - xy).T).min()) <= CORNER_MATCH
+
+
 def true_corners(model: WorldModel) -> np.ndarray:
     """Plan-view points where two true faces at least 30° apart meet (k, 2)."""
     pts = []
@@ -273,6 +310,7 @@ def tour(family: str, seed: int, method: str = "lel") -> TourResult:
     faces = vertical_faces(run.model)
     out = TourResult(family, seed, updates=updates)
     out.walls = [score_wall(w, faces) for w in fused.walls]
+    score_corners(out, fused, out.walls, run.model)
     out.oracle_walls = [score_wall(w, faces) for w in fused_oracle.walls]
     out.unmatched_good = sum(1 for s in out.walls if s.face < 0 and s.quality == "good")
     corners = true_corners(run.model)

@@ -171,14 +171,18 @@ def fingerprint(path: Path) -> dict[str, Any]:
 
 
 def command_argv(command: str, source: Path, output: Path, flags: list[str]) -> list[str]:
-    """The ``lelsonar`` argv that processes one file, as a user would type it."""
+    """The ``lelsonar`` argv that processes one file, as a user would type it.
+
+    A file's finals are estimated in its own process (``--jobs 0``): the batch already spreads the files over
+    the cores, and a pool of final workers per file would only compete with them.
+    """
     if command == "reconstruct":
-        return ["reconstruct", "--source", str(source), "--json", *flags]
+        return ["reconstruct", "--source", str(source), "--json", "--jobs", "0", *flags]
     if command == "info":
         return ["info", "--json", str(source), *flags]
     if command == "map":
-        return ["map", "--source", str(source), "--json", *flags]
-    return [command, str(source), "-o", str(output), *flags]
+        return ["map", "--source", str(source), "--json", "--jobs", "0", *flags]
+    return [command, str(source), "-o", str(output), "--jobs", "0", *flags]
 
 
 def process_input(

@@ -70,10 +70,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
-    from lelsonar.cli.reconstruct import add_method_arguments, add_truth_preset_argument
+    from lelsonar.cli.reconstruct import add_jobs_argument, add_method_arguments, add_truth_preset_argument
 
     g = p.add_argument_group("estimation and drawing")
     add_method_arguments(g, "also draw these methods' planes (default: ls; '' for none)")
+    add_jobs_argument(g)
     add_truth_preset_argument(
         g,
         "draw the true planes of this simulator preset (default: the recording's own preset when its device "
@@ -94,10 +95,15 @@ def _add_ros_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _service_config(args: argparse.Namespace, *, provisional: bool):
-    from lelsonar.cli.reconstruct import compared_methods
+    from lelsonar.cli.reconstruct import compared_methods, final_workers
     from lelsonar.reconstruct.stream.config import ReconstructConfig
 
-    return ReconstructConfig(method=args.method, compare_methods=compared_methods(args), provisional=provisional)
+    return ReconstructConfig(
+        method=args.method,
+        compare_methods=compared_methods(args),
+        provisional=provisional,
+        final_workers=final_workers(args),
+    )
 
 
 def _truth(args: argparse.Namespace, source: Path | None):

@@ -48,11 +48,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--world",
         metavar="FILE|NAME",
-        help="tour a world instead (a world file, or an example's name: maze): the map grows scan by scan and "
-        "the planner prints the route out",
+        help="tour a world instead (a world file, an example's name: maze, or FAMILY:SEED: maze:3): the map grows "
+        "scan by scan, the planner prints the route out, and OUT/<world>.rrd and .png show them",
     )
     p.add_argument(
         "--robot-radius", type=float, default=0.15, metavar="M", help="with --world: the route keeps this from walls"
+    )
+    p.add_argument(
+        "--scan-every",
+        type=float,
+        default=0.5,
+        metavar="M",
+        help="with --world: the rover scans every M metres on its way between the world's poses (0: at the poses "
+        "alone; default: 0.5)",
     )
     add_overwrite_argument(p)
     p.add_argument(

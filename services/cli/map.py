@@ -11,6 +11,7 @@ from pathlib import Path
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.cli.map_views import add_mapper_view_arguments, add_view_arguments
+    from lelsonar.cli.reconstruct import add_jobs_argument
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS
 
     p = sub.add_parser(
@@ -52,6 +53,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=sorted(METHODS),
         help=f"estimator of record (default: {DEFAULT_METHOD})",
     )
+    add_jobs_argument(p)
     _add_fusion_arguments(p)
     add_view_arguments(p)
     p.set_defaults(run=run_map_with_views)
@@ -118,7 +120,7 @@ def _goal(text: str | None) -> tuple[float, float] | None:
     return x, y
 
 
-def scans_of(path: Path, method: str) -> list:
+def scans_of(path: Path, method: str, jobs: int | None = None) -> list:
     """Each final scan of one recording: ``(start time ns, scanner id, the map's observation)``.
 
     The recording is replayed through the reconstruction (as ``reconstruct --source`` does) and each
@@ -139,8 +141,9 @@ def scans_of(path: Path, method: str) -> list:
         if rec.type_name == codec.ScanStart.DESCRIPTOR.full_name:
             start = codec.decode(rec.payload, codec.ScanStart)
             starts[(start.scanner_id, start.scan_id)] = start
-    service = ReconstructionService(ReconstructConfig(method=method, compare_methods=(), provisional=False))
-    replay_mcap(source, service)  # type: ignore[arg-type]  # a Recording reads as its path does
+    config = ReconstructConfig(method=method, compare_methods=(), provisional=False, final_workers=jobs)
+    service = ReconstructionService(config)
+    replay_mcap(source, service)
     out = []
     for m in service.finals.values():
         its_start = starts.get((m.scanner_id, m.scan_id))
@@ -150,6 +153,7 @@ def scans_of(path: Path, method: str) -> list:
 
 
 def run_map(args: argparse.Namespace) -> int:
+    from lelsonar.cli.reconstruct import final_workers
     from lelsonar.errors import ConfigError, InvalidMessageError
     from lelsonar.map import floorplan
     from lelsonar.map.fusion import WallMapper
@@ -162,7 +166,7 @@ def run_map(args: argparse.Namespace) -> int:
     found: list = []
     where: dict[int, Path] = {}
     for path in args.source:
-        for t, scanner, scan in scans_of(path, args.method):
+        for t, scanner, scan in scans_of(path, args.method, final_workers(args)):
             if args.scanner is not None and scanner != args.scanner:
                 continue
             if scan.scan_id in where:

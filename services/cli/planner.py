@@ -1,4 +1,5 @@
-"""`lelsonar planner`: an example remote consumer that prints plane estimates as they arrive."""
+"""`lelsonar planner`: an example remote consumer that prints plane estimates as they arrive, or, with
+``--map``, gets the mapper's map and prints the route out of it."""
 
 from __future__ import annotations
 
@@ -30,12 +31,94 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="give up after S seconds without a final estimate (default: never)",
     )
+    p.add_argument(
+        "--map",
+        action="store_true",
+        help="get the map on <prefix>/map (the mapper's) instead, print its walls and the route out of it, and exit",
+    )
+    p.add_argument(
+        "--robot-radius", type=float, default=0.15, metavar="M", help="with --map: the route keeps this from walls"
+    )
+    p.add_argument(
+        "--start",
+        metavar="X,Y",
+        help="with --map: route from here, m in the map's frame (default: the map's latest pose, where the robot is)",
+    )
     add_zenoh_arguments(p, default_mode="client")
     add_secure_argument(p)
     p.set_defaults(run=run_planner)
 
 
+def _start(text: str | None, fused) -> tuple[float, float]:
+    from lelsonar.errors import ConfigError
+
+    if text is None:
+        if not fused.poses:
+            raise ConfigError("the map has no poses: give --start X,Y")
+        return fused.poses[-1].x, fused.poses[-1].y
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--start takes X,Y in metres, as 1.5,0.75; got {text!r}") from None
+    return x, y
+
+
+def run_map_planner(args: argparse.Namespace) -> int:
+    """``planner --map``: the latest map (a ``get``, or the next one published), its walls and the route out."""
+    import queue
+
+    from google.protobuf.message import DecodeError
+
+    from lelsonar.cli.route_report import print_map, print_route
+    from lelsonar.errors import InvalidMessageError
+    from lelsonar.map import floorplan
+    from lelsonar.map.service import map_key
+    from lelsonar.map.wire import map_from_message
+    from lelsonar.net.transport import open_session
+    from lelsonar.v1 import map_pb2
+    from lelsonar.view import present
+
+    prefix = args.prefix or "lelsonar"
+    key = map_key(prefix)
+    plan = floorplan.PlanConfig(robot_radius=args.robot_radius)
+    settings = zenoh_settings(args, "planner", prefix)
+    console = present.console()
+    stop = stop_on_signals()
+    got: queue.Queue[bytes] = queue.Queue()
+    with open_session(settings) as session:
+        sub = session.declare_subscriber(key, lambda sample: got.put(sample.payload.to_bytes()))
+        print(f"planner: waiting for the map on {key} ({settings.describe()}); Ctrl-C to stop", file=sys.stderr)
+        for reply in session.get(key, timeout=2.0):
+            if reply.ok is not None:
+                got.put(reply.ok.payload.to_bytes())
+        if args.timeout:
+            timer = threading.Timer(args.timeout, stop.set)
+            timer.daemon = True
+            timer.start()
+        payload = None
+        while payload is None and not stop.is_set():
+            try:
+                payload = got.get(timeout=0.2)
+            except queue.Empty:
+                continue
+        sub.undeclare()
+    if payload is None:
+        print(f"planner: no map on {key}" + (f" within {args.timeout:.0f} s" if args.timeout else ""), file=sys.stderr)
+        return 1
+    try:
+        fused = map_from_message(map_pb2.Map.FromString(payload))
+    except DecodeError as exc:
+        raise InvalidMessageError(f"the map on {key} is not a lelsonar.v1.Map: {exc}") from None
+    print_map(console, fused, key)
+    begin = _start(args.start, fused)
+    path = floorplan.route(fused, begin, None, plan)
+    print_route(console, fused, begin, path, plan)
+    return 0 if path is not None else 1
+
+
 def run_planner(args: argparse.Namespace) -> int:
+    if args.map:
+        return run_map_planner(args)
     from collections import Counter
 
     import zenoh

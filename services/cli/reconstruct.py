@@ -130,6 +130,35 @@ def add_method_arguments(g, compare_help: str) -> None:
     g.add_argument("--compare", default="ls", metavar="M1,M2", help=compare_help)
 
 
+def add_jobs_argument(g) -> None:
+    """``--jobs N``: worker processes for the finals, for every command that replays or listens."""
+    g.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="worker processes that estimate the finals while the stream goes on (default: live, one per core "
+        "beyond the first, at most 2; a replay, as many of those as the load leaves idle, none for a file of "
+        "under 50 scans; 0 estimates them in this process)",
+    )
+
+
+def final_workers(args: argparse.Namespace) -> int | None:
+    """The ``--jobs`` of a command (None: the default).
+
+    Raises
+    ------
+    ConfigError
+        A negative count.
+    """
+    from lelsonar.errors import ConfigError
+
+    jobs = getattr(args, "jobs", None)
+    if jobs is not None and jobs < 0:
+        raise ConfigError(f"--jobs must be >= 0 (0: the finals in this process), not {jobs}")
+    return jobs
+
+
 def compared_methods(args: argparse.Namespace) -> tuple[str, ...]:
     """The ``--compare`` list, without the method of record.
 
@@ -151,6 +180,7 @@ def compared_methods(args: argparse.Namespace) -> tuple[str, ...]:
 def add_estimator_arguments(p: argparse.ArgumentParser, *, scan_timeout: bool) -> None:
     g = p.add_argument_group("estimation")
     add_method_arguments(g, "also run these at the end of each scan, e.g. ls,paper (default: ls; '' for none)")
+    add_jobs_argument(g)
     if not scan_timeout:  # offline, a scan ends with its recording
         return
     g.add_argument(
@@ -232,7 +262,13 @@ def service_config(args: argparse.Namespace, *, provisional: bool = True):
     }
     if getattr(args, "scan_timeout", None) is not None:
         recovery["scan_timeout"] = args.scan_timeout
-    return ReconstructConfig(method=args.method, compare_methods=compare, provisional=provisional, **recovery)
+    return ReconstructConfig(
+        method=args.method,
+        compare_methods=compare,
+        provisional=provisional,
+        final_workers=final_workers(args),
+        **recovery,
+    )
 
 
 def _group_config(args: argparse.Namespace):

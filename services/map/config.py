@@ -43,7 +43,9 @@ class FusionConfig:
     step_sigma_floor : (float, float, float)
         Smallest σ of an odometry step (a source that reports none or a constant one).
     corner_reach : float
-        Two walls make a corner where their lines cross within this distance of both stretches, m.
+        The farthest, m, a scan's own corner may lie from two walls' crossing to vouch that they meet there;
+        a corner (of two walls, or a scan's own) the map places worse than this at 3σ is none
+        (:func:`lelsonar.map.features.wall_corners`).
     good_tolerance : float
         A wall of good evidence is good only if the map places its whole observed stretch within this, m, at
         3σ (its marginal in the map's frame, the poses' uncertainty included); else it is degraded, and says

@@ -8,7 +8,7 @@ Every wall is an obstacle here, flagged ones included: a wall the map cannot vou
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import networkx as nx
 import numpy as np
@@ -18,13 +18,19 @@ from shapely.ops import unary_union
 
 from lelsonar.errors import ConfigError
 from lelsonar.map.lines import foot, segment, tangent
-from lelsonar.map.result import FusedMap
+from lelsonar.map.result import FusedMap, FusedWall
 
 #: Colours of the verdicts (RGBA, 0..1) for the wall markers.
 QUALITY_COLOURS = {"good": (0.2, 0.8, 0.3, 1.0), "degraded": (1.0, 0.7, 0.1, 1.0), "unreliable": (0.9, 0.2, 0.2, 1.0)}
 
 #: A corner or edge within this of a wall's observed piece, m, is not where the wall ends (see :func:`likely_walls`).
 ON_PIECE = 0.1
+
+#: A view ends on a wall when the middle of its far side is this near one of the wall's pieces, m.
+VIEW_ON_WALL = 0.05
+
+#: The space seen free crosses a wall's stretch when it reaches this far beyond it on both sides, m.
+THROUGH = 0.1
 
 #: OccupancyGrid cell values.
 UNKNOWN, FREE, OCCUPIED = -1, 0, 100
@@ -84,23 +90,46 @@ def _segment_array(m: FusedMap) -> np.ndarray:
     return np.array([s for w in m.walls for s in w.piece_segments]).reshape(-1, 2, 2)
 
 
-def free_space(m: FusedMap, config: PlanConfig | None = None) -> Polygon | shapely.MultiPolygon:
-    """The space the scans saw free: each echo's path from the scanner to the patch it came from (the
-    map's ``views``), and the robot's own way between consecutive poses, less the walls.
+def trusted_views(m: FusedMap) -> list[np.ndarray]:
+    """The views (echo paths) that end on a piece of a wall of good or degraded verdict.
 
-    Nothing else is taken as free: a wall the scans never saw leaves unknown space, not free space.  Not
-    shrunk by the robot: see :func:`reachable`.
+    An unreliable wall may be no wall at all: an echo that came back off two walls (a corner) or round a
+    wall's end reads as a wall farther than any, and its straight path from the scanner crosses the walls
+    between.  Its view is no evidence of free space.
     """
-    cfg = config or PlanConfig()
-    parts = [Polygon(v) for v in m.views if len(v) >= 3]
+    segments = np.array([s for w in m.walls if w.quality != "unreliable" for s in w.piece_segments]).reshape(-1, 2, 2)
+    if not len(segments) or not m.views:
+        return []
+    keep = [v for v in m.views if len(v) >= 3]
+    if not keep:
+        return []
+    ends = np.array([np.asarray(v)[1:].mean(axis=0) for v in keep])
+    near = _distance_to_segments(ends[:, 0], ends[:, 1], segments) <= VIEW_ON_WALL
+    return [v for v, ok in zip(keep, near.tolist()) if ok]
+
+
+def _seen(m: FusedMap, cfg: PlanConfig):
+    """The union of the trusted views and the robot's own way (see :func:`free_space`), walls not taken out."""
+    parts = [Polygon(v) for v in trusted_views(m)]
     xy = [(p.x, p.y) for p in m.poses]
     if len(xy) == 1:
         parts.append(Point(xy[0]).buffer(cfg.robot_radius))
     elif xy:
         parts.append(LineString(xy).buffer(cfg.robot_radius))
-    seen = unary_union([p.buffer(0) for p in parts]) if parts else Polygon()
+    return unary_union([p.buffer(0) for p in parts]) if parts else Polygon()
+
+
+def free_space(m: FusedMap, config: PlanConfig | None = None) -> Polygon | shapely.MultiPolygon:
+    """The space the scans saw free: each echo's path from the scanner to the patch it came from on a wall
+    that is not unreliable (:func:`trusted_views`), and the robot's own way between consecutive poses, less
+    the walls.
+
+    Nothing else is taken as free: a wall the scans never saw leaves unknown space, not free space.  Not
+    shrunk by the robot: see :func:`reachable`.
+    """
+    cfg = config or PlanConfig()
     walls = unary_union(wall_segments(m)).buffer(cfg.resolution / 2) if m.walls else Polygon()
-    return seen.difference(walls)
+    return _seen(m, cfg).difference(walls)
 
 
 def reachable(m: FusedMap, config: PlanConfig | None = None):
@@ -173,28 +202,74 @@ class Grid:
         }
 
 
-def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
-    """Unseen stretches (n, 2, 2) where a wall likely runs.
+def _unseen_through(m: FusedMap, cfg: PlanConfig, stretches: list[np.ndarray], *, views: bool) -> np.ndarray:
+    """The stretches (n, 2, 2) that the space seen free (``views`` False: the robot's own way alone) does not
+    cross.
 
-    Sonar sees a wall only near the foot of its perpendicular: a wall's pieces are centimetres long, and the
-    space between them, or up to where the wall ends, stays unseen.  A wall usually goes on there (a doorway
-    may not), so for each wall of good or degraded verdict (an unreliable one may be no wall at all):
+    Crossing means reaching :data:`THROUGH` beyond the stretch on both sides: an echo's path that ends on the
+    wall itself touches its line but saw nothing beyond it.
+    """
+    if not stretches:
+        return np.zeros((0, 2, 2))
+    space = _seen(m, cfg) if views else _seen(replace(m, views=(), view_scans=()), cfg)
+    out = []
+    for s in stretches:
+        d = s[1] - s[0]
+        n = np.array([-d[1], d[0]]) / max(float(np.hypot(*d)), 1e-12)
+        if not all(space.intersects(LineString(s + side * THROUGH * n)) for side in (1.0, -1.0)):
+            out.append(s)
+    return np.array(out).reshape(-1, 2, 2)
 
-    * between its observed pieces;
-    * from each end piece along its line to the nearest corner or edge of the map on that line (where it
-      meets another wall, or ends), at most ``likely_wall_reach`` away; without one, ``likely_wall_span``.
+
+def closed_gaps(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
+    """Stretches (n, 2, 2) of a wall's line that no scan saw but a route never crosses.
+
+    * A gap between two observed pieces of one wall: scans saw the wall on both sides and its hull (the
+      wall's ``extent``) spans it; an opening there was never seen open.
+    * The stretch from an end piece to the corner or edge of the map that ends the wall on its line
+      (:func:`likely_walls`): the corner says the wall runs on to it.
+
+    A gap that the space seen free crosses (an echo's path through it to a wall beyond, or the robot's own
+    way) is an opening the scans saw: not closed, though no more than that is seen free.  A stretch on to a
+    corner is opened by the robot's own way alone: an echo's path is drawn from the scanner to the ends of the
+    patch it came from, and a patch read longer than its wall reaches past the corner.  Only walls of good
+    evidence close anything: a flagged wall's line may be degrees off, or be no wall at all.
     """
     cfg = config or PlanConfig()
-    out: list[np.ndarray] = []
+    gaps: list[np.ndarray] = []
+    for w in m.walls:
+        if w.quality == "unreliable" or w.good_observations == 0:
+            continue
+        pieces = sorted(w.pieces)
+        gaps += [segment(w.line, (hi, lo)) for (_, hi), (lo, _) in zip(pieces, pieces[1:]) if lo > hi]
+    ends = [s for s, ended, w in _continuations(m, cfg) if ended and w.good_observations > 0]
+    return np.concatenate(
+        [_unseen_through(m, cfg, gaps, views=True), _unseen_through(m, cfg, ends, views=False)]
+    ).reshape(-1, 2, 2)
+
+
+def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
+    """Unseen stretches (n, 2, 2) where a wall likely runs on beyond its observed pieces.
+
+    Sonar sees a wall only near the foot of its perpendicular: a wall's pieces are centimetres long, and the
+    space up to where the wall ends stays unseen.  A wall usually goes on there (a doorway may not), so for
+    each wall of good or degraded verdict (an unreliable one may be no wall at all): from each end piece
+    along its line to the nearest corner or edge of the map on that line (where it meets another wall, or
+    ends), at most ``likely_wall_reach`` away; without one, ``likely_wall_span``.  The gaps between its
+    pieces, and the stretches that reach a corner or an edge, are also :func:`closed_gaps`.
+    """
+    return np.array([s for s, _, _ in _continuations(m, config or PlanConfig())]).reshape(-1, 2, 2)
+
+
+def _continuations(m: FusedMap, cfg: PlanConfig) -> list[tuple[np.ndarray, bool, FusedWall]]:
+    """:func:`likely_walls`' stretches, each with whether a corner or an edge ends it, and its wall."""
+    out: list[tuple[np.ndarray, bool, FusedWall]] = []
     # Vertical ones only: a wall's foot on the floor is a corner too, but it ends nothing along the wall.
     features = [f for f in (*m.corners, *m.edges) if abs(float(f.direction[2])) >= math.cos(math.radians(30.0))]
     for w in m.walls:
         if w.quality == "unreliable":
             continue
         pieces = sorted(w.pieces)
-        for (_, hi), (lo, _) in zip(pieces, pieces[1:]):
-            if lo > hi:
-                out.append(segment(w.line, (hi, lo)))
         n, t = w.normal[:2], tangent(float(w.line[0]))
         lo, hi = pieces[0][0], pieces[-1][1]
         ahead, behind = [], []
@@ -210,9 +285,9 @@ def likely_walls(m: FusedMap, config: PlanConfig | None = None) -> np.ndarray:
                 behind.append(s_f)
         end = min(ahead) if ahead else hi + cfg.likely_wall_span
         start = max(behind) if behind else lo - cfg.likely_wall_span
-        out.append(segment(w.line, (hi, end)))
-        out.append(segment(w.line, (start, lo)))
-    return np.array(out).reshape(-1, 2, 2)
+        out.append((segment(w.line, (hi, end)), bool(ahead), w))
+        out.append((segment(w.line, (start, lo)), bool(behind), w))
+    return out
 
 
 def _distance_to_segments(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -281,15 +356,23 @@ def wall_markers(m: FusedMap, frame_id: str = "map", thickness_sigmas: float = 2
 
 
 def route(
-    m: FusedMap, start: tuple[float, float], goal: tuple[float, float] | None = None, config: PlanConfig | None = None
+    m: FusedMap,
+    start: tuple[float, float],
+    goal: tuple[float, float] | None = None,
+    config: PlanConfig | None = None,
+    *,
+    through_closed_gaps: bool = False,
 ) -> list[tuple[float, float]] | None:
     """The shortest route over the grid from ``start`` to ``goal``, or out of the map when ``goal`` is None.
 
     A move costs its length, times ``unknown_cost`` through space no scan saw free, and times
-    ``likely_wall_cost`` across where a wall likely runs unseen (:func:`likely_walls`).
+    ``likely_wall_cost`` across where a wall likely runs on unseen (:func:`likely_walls`).
     A cell is open when its centre is farther than the robot's radius plus half a cell's diagonal from
-    every wall, so the straight moves between open cells keep the radius.  Moves go to the 8 neighbours.
-    "Out of the map" is any open cell on the grid's border (the grid reaches ``margin`` beyond the walls).
+    every observed piece of every wall, whatever its verdict, and from every gap between the pieces of one
+    wall that no scan saw through (:func:`closed_gaps`; ``through_closed_gaps`` opens them, to tell why
+    there is no route), so the straight moves between open cells keep the radius.  Moves go to the 8
+    neighbours.  "Out of the map" is any open cell on the grid's border (the grid reaches ``margin`` beyond
+    the walls).
 
     Returns
     -------
@@ -300,6 +383,8 @@ def route(
     grid = occupancy_grid(m, cfg)
     x, y = grid.centres()
     segments = _segment_array(m)
+    if not through_closed_gaps:
+        segments = np.concatenate([segments, closed_gaps(m, cfg)])
     clearance = cfg.robot_radius + cfg.resolution * math.sqrt(2) / 2
     open_ = _distance_to_segments(x, y, segments) > clearance if len(segments) else np.ones(x.shape, bool)
     rows, cols = open_.shape
@@ -356,17 +441,22 @@ def unseen_length(m: FusedMap, path: list[tuple[float, float]], config: PlanConf
 def frontier(
     m: FusedMap, path: list[tuple[float, float]], config: PlanConfig | None = None
 ) -> tuple[float, float] | None:
-    """Where a route first leaves the free space the scans saw (the frontier to explore), or None when it never
-    does."""
+    """Where a route leaves the free space the scans saw for the last time (the frontier to explore), or None
+    when it ends inside it.
+
+    Shorter stretches outside it before that (a corner cut between two echo paths) are in :func:`unseen_length`.
+    """
     if len(path) < 2:
         return None
     line = LineString(path)
     outside = line.difference(free_space(m, config))
     if outside.is_empty or outside.length <= 1e-9:
         return None
-    pieces = list(getattr(outside, "geoms", [outside]))
-    first = min(pieces, key=lambda g: line.project(Point(g.coords[0])))
-    x, y = first.coords[0]
+    pieces = [g for g in getattr(outside, "geoms", [outside]) if g.length > 1e-9]
+    last = max(pieces, key=lambda g: line.project(Point(g.coords[0])))
+    if line.length - line.project(Point(last.coords[-1])) > 1e-6:
+        return None  # back inside the space seen free at its end
+    x, y = last.coords[0]
     return float(x), float(y)
 
 
@@ -380,3 +470,56 @@ def _turning_points(points: list[tuple[float, float]]) -> list[tuple[float, floa
             out.append(b)
     out.append(points[-1])
     return out
+
+
+@dataclass(frozen=True)
+class RouteSummary:
+    """What a route runs through and what it relies on.
+
+    Attributes
+    ----------
+    length : float
+        m.
+    unseen : float
+        How much of it (m) runs through space no scan saw free (:func:`unseen_length`).
+    frontier : (float, float) or None
+        Where it first leaves the space seen free (:func:`frontier`).
+    clearance : float
+        Its closest approach to an observed wall piece, m (infinite with no wall).
+    nearest_wall : int
+        The id of that wall (−1 with none).
+    beside : dict of str to int
+        The walls with a piece within ``reach`` of it, by verdict: the walls it relies on.
+    """
+
+    length: float
+    unseen: float
+    frontier: tuple[float, float] | None
+    clearance: float
+    nearest_wall: int
+    beside: dict[str, int]
+
+
+def summarise_route(
+    m: FusedMap, path: list[tuple[float, float]], config: PlanConfig | None = None, reach: float = 0.5
+) -> RouteSummary:
+    """The route's length, how much of it runs through unseen space, and the walls beside it (see
+    :class:`RouteSummary`)."""
+    cfg = config or PlanConfig()
+    line = LineString(path) if len(path) >= 2 else Point(path[0])
+    clearance, nearest = math.inf, -1
+    beside = {q: 0 for q in QUALITY_COLOURS}
+    for w in m.walls:
+        d = min(line.distance(LineString(s)) for s in w.piece_segments)
+        if d < clearance:
+            clearance, nearest = d, w.id
+        if d <= reach:
+            beside[w.quality] += 1
+    return RouteSummary(
+        length=float(line.length),
+        unseen=unseen_length(m, path, cfg),
+        frontier=frontier(m, path, cfg),
+        clearance=float(clearance),
+        nearest_wall=nearest,
+        beside=beside,
+    )

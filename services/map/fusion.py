@@ -8,13 +8,15 @@
   predicted pose: the Mahalanobis distance of the innovation on ``(θ, ρ)`` (pose, wall and observation
   covariances), gated at ``gate_chi2`` (and, where configured, the gap between the observed stretch and the
   wall's).  The nearest wall within the gate takes it; no two observations of one scan go to one wall.
-* **Verdicts carry over.**  Only good observations open walls in the graph and make a wall good.  Degraded
-  and unreliable observations are attached to a fused wall they agree with (there they tie their pose to
-  it with their own σ and Huber's loss: a wall whose bearing a scan could not pin still places the robot in
-  range), or kept as walls of their own with their own verdict: a wall seen once and flagged stays
-  flagged.  An observation that overlaps a wall and lies near it but outside the gate is another wall, and
-  both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good evidence
-  that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and says so.
+* **Verdicts carry over.**  Only good observations make a wall good.  Degraded and unreliable observations
+  are attached to a fused wall they agree with (there they tie their pose to it with their own σ and
+  Huber's loss: a wall whose bearing a scan could not pin still places the robot in range), or kept as
+  walls of their own with their own verdict: a wall seen once and flagged stays flagged.  A flagged wall
+  seen from two scans enters the graph the same way, so it corrects the poses no good wall links, and
+  stays flagged.  An observation that overlaps a wall and lies near it but outside the gate is another
+  wall, and both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good
+  evidence that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and
+  says so.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
-from lelsonar.map.features import fuse_features, wall_corners
+from lelsonar.map.features import fuse_features, horizontal_corners, placement_sigma, wall_corners
 from lelsonar.map.lines import (
     interval_on_line,
     line_in_world,
@@ -78,6 +80,15 @@ class _Track:
     line: np.ndarray = field(default_factory=lambda: np.zeros(2))  # local frame
     covariance: np.ndarray = field(default_factory=lambda: np.eye(2))
     interval: tuple[float, float] = (0.0, 0.0)
+
+
+def _precision_rank(obs: WallObservation) -> tuple[int, float]:
+    """How an observation ranks to place a flagged wall: the better verdict, then the smaller σ of its bearing."""
+    return QUALITIES.index(obs.quality), float(obs.covariance[0, 0])
+
+
+def _best(seen: list[_Seen]) -> _Seen:
+    return min(seen, key=lambda s: _precision_rank(s.obs))
 
 
 class WallMapper:
@@ -158,7 +169,9 @@ class WallMapper:
                 track = self._associate_good(seen, predicted, pose_cov, used)
                 touched.append(track)
             else:
-                self._associate_flagged(seen, predicted, pose_cov)
+                promoted = self._associate_flagged(seen, predicted, pose_cov)
+                if promoted is not None:
+                    touched.append(promoted)
         self._features.extend((scan.scan_id, k, f) for f in scan.features)
 
         try:
@@ -175,7 +188,7 @@ class WallMapper:
         self._pose_covs.append(self._pose_cov)
         for t in touched:
             t.covariance = self._graph.wall_marginal(t.index)
-            t.interval = self._interval(t, t.seen)
+            t.interval = self._interval(t, t.seen or t.flagged)
 
     def _step_covariance(self, scan: ScanObservation) -> np.ndarray:
         cfg = self.config
@@ -322,7 +335,10 @@ class WallMapper:
             track.conflicts[other.id] = what
             other.conflicts[track.id] = what
 
-    def _associate_flagged(self, seen: _Seen, pose: np.ndarray, pose_cov: np.ndarray) -> None:
+    def _associate_flagged(self, seen: _Seen, pose: np.ndarray, pose_cov: np.ndarray) -> _Track | None:
+        """Attach a flagged observation to the wall it agrees with, or keep it as a flagged wall of its own; the
+        flagged wall it joins enters the graph once it has been seen from two scans (:meth:`_promote`), and is
+        returned then."""
         obs = seen.obs
         points = sensor_points_to_world(pose, obs.extent)
         for tracks in (self._graph_tracks, self._flagged_tracks):
@@ -337,13 +353,41 @@ class WallMapper:
                 track.flagged.append(seen)
                 if tracks is self._graph_tracks:
                     self._constrain(track, seen)
-                return
+                    return None
+                if _precision_rank(obs) < _precision_rank(_best(track.flagged[:-1]).obs):
+                    self._place_flagged(track, pose, pose_cov, obs, points)
+                return self._promote(track)
         track = _Track(id=self._new_id(), index=-1, seen=[], flagged=[seen])
+        self._place_flagged(track, pose, pose_cov, obs, points)
+        self._flagged_tracks.append(track)
+        return None
+
+    @staticmethod
+    def _place_flagged(
+        track: _Track, pose: np.ndarray, pose_cov: np.ndarray, obs: WallObservation, points: np.ndarray
+    ) -> None:
+        """A flagged wall outside the graph takes the line of its most precise observation, through its pose."""
         track.line = line_in_world(pose, obs.line)
         j_pose, j_obs = world_jacobians(pose, obs.line)
         track.covariance = j_pose @ world_pose_covariance(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
-        track.interval = self._interval_from_points(track.line, points)
-        self._flagged_tracks.append(track)
+        track.interval = interval_on_line(track.line, points)
+
+    def _promote(self, track: _Track) -> _Track | None:
+        """A flagged wall seen from two scans enters the graph: its observations tie their poses to it (robustly,
+        with their own σ: a wall whose bearing the scans could not pin still places the robots in range), and
+        poses seen by no wall of good evidence are corrected.  It stays flagged: only good evidence makes a wall
+        good."""
+        constraining = [s for s in track.flagged if s.obs.quality in self.config.flagged_constrain]
+        if len({s.scan_id for s in constraining}) < 2:
+            return None
+        self._flagged_tracks.remove(track)
+        track.index = len(self._graph_tracks)
+        self._graph.add_wall(track.index, track.line)
+        for s in constraining:
+            self._graph.add_observation(s.pose_index, track.index, s.obs.line, s.obs.covariance, robust=True)
+        self._graph_tracks.append(track)
+        self._adopt_flagged(track)
+        return track
 
     def _adopt_flagged(self, track: _Track) -> None:
         """Flagged walls that agree with a new wall of good evidence become its flagged observations."""
@@ -427,7 +471,7 @@ class WallMapper:
                     tuple(sorted((o, len(by_id[o].seen) if o in by_id else 0) for o in t.conflicts)),
                 )
             else:
-                first = t.flagged[0]
+                first = _best(t.flagged)
                 pose = poses_local[first.pose_index]
                 line = line_in_world(pose, first.obs.line)
                 j_pose, j_obs = world_jacobians(pose, first.obs.line)
@@ -444,7 +488,7 @@ class WallMapper:
             ):
                 wall, its_views = hit[4], hit[5]
             else:
-                if t.index >= 0:
+                if t.seen:
                     wall = self._placed(
                         self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id))
                     )
@@ -478,17 +522,20 @@ class WallMapper:
         )
         world_poses = [np.array([p.x, p.y, p.heading]) for p in poses]
         observed = [(sid, world_poses[k], self._heights[k], f) for sid, k, f in self._features]
+        placed_by = [placement_sigma(poses[k].covariance, float(np.hypot(*f.point[:2]))) for _, k, f in self._features]
         # Corners where walls of good evidence meet: a flagged wall's line may be degrees off, and its crossings
         # with others land anywhere.
         placed = [w for w in walls if w.good_observations > 0]
-        features = wall_corners(placed, self.config.corner_reach) + fuse_features(observed)
+        seen_features = fuse_features(observed, placed_by)
+        corners, rest = wall_corners(placed, self.config.corner_reach, seen_features)
         return FusedMap(
             walls=tuple(walls),
-            features=tuple(features),
+            features=tuple(corners + rest),
             poses=poses,
             notes=tuple(self.notes),
             views=tuple(views),
             view_scans=tuple(view_scans),
+            horizontal=tuple(horizontal_corners(seen_features)),
         )
 
     def _placed(self, wall: FusedWall) -> FusedWall:
@@ -549,13 +596,22 @@ class WallMapper:
         along = (pts - float(line_local[1]) * np.array([math.cos(theta_l), math.sin(theta_l)])) @ np.array(
             [-math.sin(theta_l), math.cos(theta_l)]
         )
-        spans = sorted(zip(np.minimum.reduceat(along, starts).tolist(), np.maximum.reduceat(along, starts).tolist()))
-        pieces = [list(spans[0])]
-        for lo, hi in spans[1:]:
+        spans = sorted(
+            zip(
+                np.minimum.reduceat(along, starts).tolist(),
+                np.maximum.reduceat(along, starts).tolist(),
+                (s.scan_id for s in everything),
+            )
+        )
+        pieces = [[spans[0][0], spans[0][1]]]
+        piece_scans = [[spans[0][2]]]
+        for lo, hi, scan_id in spans[1:]:
             if lo - pieces[-1][1] <= self.config.join_gap:
                 pieces[-1][1] = max(pieces[-1][1], hi)
+                piece_scans[-1].append(scan_id)
             else:
                 pieces.append([lo, hi])
+                piece_scans.append([scan_id])
         zs = np.concatenate([s.obs.extent[:, 2] + self._heights[s.pose_index] for s in everything])
         # Local → world: ρ_w = ρ_l + n(θ)·o, so dρ_w/dθ = −sin θ o_x + cos θ o_y.
         theta = wrap(float(line_local[0]))
@@ -575,4 +631,5 @@ class WallMapper:
             scans=tuple(dict.fromkeys(s.scan_id for s in everything)),
             good_observations=len(t.seen),
             flagged_observations=len(t.flagged),
+            piece_scans=tuple(tuple(dict.fromkeys(ids)) for ids in piece_scans),
         )

@@ -4,6 +4,9 @@
 ``offset``, ``extent``, ``quality``, ``normal_stderr``, ``offset_stderr``), ``corners`` (``point``,
 ``direction``, ``kind``), ``edges`` (``point``, ``direction``) and ``poses`` (``scan_id``, ``x``, ``y``,
 ``z``, ``heading``) are an interface: keep them.  SI units (m, rad).
+
+``corners`` and ``edges`` are those of the floor plan (vertical lines: where walls meet, or a wall ends);
+where a wall meets the floor or the ceiling is a line across the plan, listed apart (``horizontal_corners``).
 """
 
 from __future__ import annotations
@@ -44,6 +47,8 @@ class FusedWall:
         The scans that saw it (good observations first).
     good_observations, flagged_observations : int
         How many observations of each kind it holds.
+    piece_scans : tuple of tuple of int
+        The scans that saw each piece (empty when not known, as for a map received without them).
     """
 
     id: int
@@ -57,6 +62,7 @@ class FusedWall:
     scans: tuple[int, ...]
     good_observations: int
     flagged_observations: int
+    piece_scans: tuple[tuple[int, ...], ...] = ()
 
     @property
     def normal(self) -> np.ndarray:
@@ -84,9 +90,10 @@ class FusedWall:
         """End points (2, 2) of each observed piece on the floor plane."""
         return [segment(self.line, p) for p in self.pieces]
 
-    def extent(self) -> np.ndarray:
-        """The observed patch's corners (k, 3): a rectangle, or the two end points when no height was seen."""
-        (x0, y0), (x1, y1) = self.segment
+    def extent(self, piece: int | None = None) -> np.ndarray:
+        """The observed patch's corners (k, 3): a rectangle, or the two end points when no height was seen; of
+        the whole observed stretch, or of one of its ``pieces``."""
+        (x0, y0), (x1, y1) = self.segment if piece is None else self.piece_segments[piece]
         lo, hi = self.z_range
         if hi - lo < 1e-9:
             return np.array([[x0, y0, lo], [x1, y1, lo]])
@@ -104,6 +111,7 @@ class FusedFeature:
     source: str  # "walls" (where two fused walls meet) or "observed" (from the scans' own corners and edges)
     observations: int
     walls: tuple[int, ...] = ()
+    scans: tuple[int, ...] = ()  # the scans whose own corners or edges it holds
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,6 +140,9 @@ class FusedMap:
     views: tuple[np.ndarray, ...] = field(default=())
     #: The scan of each view.
     view_scans: tuple[int, ...] = field(default=())
+    #: Corners that are lines across the floor plan, not corners of it: where a wall meets the floor or the
+    #: ceiling (seen by two scans).
+    horizontal: tuple[FusedFeature, ...] = field(default=())
 
     @property
     def corners(self) -> tuple[FusedFeature, ...]:
@@ -146,24 +157,46 @@ def _xyz(v) -> dict[str, float]:
     return {"x": float(v[0]), "y": float(v[1]), "z": float(v[2])}
 
 
+def _wall_entries(w: FusedWall, first_id: int) -> list[dict]:
+    """One JSON wall for each observed piece of ``w``: its ``extent`` covers that piece only (never the opening
+    or the unseen stretch between two pieces); the pieces of one line share ``wall_id``, the line, its σ and
+    its verdict."""
+    pieces = [[_xyz((*p, w.z_range[0])) for p in seg] for seg in w.piece_segments]
+    out = []
+    for k in range(len(w.pieces)):
+        scans = w.piece_scans[k] if len(w.piece_scans) == len(w.pieces) else w.scans
+        out.append(
+            {
+                "id": first_id + k,
+                "wall_id": w.id,
+                "piece": k,
+                "normal": _xyz(w.normal),
+                "offset": w.offset,
+                "extent": [_xyz(p) for p in w.extent(k)],
+                "quality": w.quality,
+                "normal_stderr": w.normal_stderr,
+                "offset_stderr": w.offset_stderr,
+                "reasons": list(w.reasons),
+                "scans": list(scans),
+                "wall_scans": list(w.scans),
+                "observations": {"good": w.good_observations, "flagged": w.flagged_observations},
+                "pieces": pieces,
+            }
+        )
+    return out
+
+
 def map_to_dict(m: FusedMap) -> dict:
-    """The public JSON object of the map (see the module docstring for the keys that are an interface)."""
-    walls = [
-        {
-            "id": w.id,
-            "normal": _xyz(w.normal),
-            "offset": w.offset,
-            "extent": [_xyz(p) for p in w.extent()],
-            "quality": w.quality,
-            "normal_stderr": w.normal_stderr,
-            "offset_stderr": w.offset_stderr,
-            "reasons": list(w.reasons),
-            "scans": list(w.scans),
-            "observations": {"good": w.good_observations, "flagged": w.flagged_observations},
-            "pieces": [[_xyz((*p, w.z_range[0])) for p in seg] for seg in w.piece_segments],
-        }
-        for w in m.walls
-    ]
+    """The public JSON object of the map (see the module docstring for the keys that are an interface).
+
+    A wall whose observed stretch has gaps (:attr:`FusedWall.pieces`) is one entry a piece: a planner takes each
+    entry's ``extent`` as an obstacle, and a wall's extent spanning an opening would close it.  The entries of
+    one fused wall share ``wall_id`` (and list every piece of the line in ``pieces``); ``id`` is unique in the
+    map; ``scans`` are the scans that saw that piece, ``wall_scans`` those that saw the line.
+    """
+    walls: list[dict] = []
+    for w in m.walls:
+        walls.extend(_wall_entries(w, len(walls)))
 
     def feature(f: FusedFeature, with_kind: bool) -> dict:
         out: dict = {"point": _xyz(f.point), "direction": _xyz(f.direction)}
@@ -190,6 +223,7 @@ def map_to_dict(m: FusedMap) -> dict:
         "walls": walls,
         "corners": [feature(f, True) for f in m.corners],
         "edges": [feature(f, False) for f in m.edges],
+        "horizontal_corners": [feature(f, True) for f in m.horizontal],
         "poses": poses,
         "notes": list(m.notes),
     }

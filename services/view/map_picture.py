@@ -17,7 +17,13 @@ import shapely
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import wall_pieces
 from lelsonar.draw.palette import QUALITY_COLORS, quality_color
-from lelsonar.v1 import map_pb2
+from lelsonar.v1 import map_pb2, reconstruction_pb2
+
+#: Opacity and drawing order of a wall by verdict (wire value): good, degraded, unreliable.
+_WALL_ALPHA: dict[int, tuple[float, float]] = {
+    reconstruction_pb2.PLANE_QUALITY_GOOD: (0.95, 3.2),
+    reconstruction_pb2.PLANE_QUALITY_DEGRADED: (0.6, 3.1),
+}
 
 
 def _rgb(c) -> tuple[float, float, float]:
@@ -32,8 +38,13 @@ def save_map_picture(
     route: list[tuple[float, float]] | None = None,
     world: dict | None = None,
     title: str = "",
+    closed: np.ndarray | None = None,
 ) -> Path:
-    """Draw the map and write it to ``path`` (png, pdf or svg); returns the path."""
+    """Draw the map and write it to ``path`` (png, pdf or svg); returns the path.
+
+    ``closed``: stretches (n, 2, 2) of walls' lines that no scan saw but a route never crosses (the floor
+    plan's ``closed_gaps``), drawn as thin dotted lines.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -52,14 +63,19 @@ def save_map_picture(
     for w in (world or {}).get("walls", []):
         (x0, y0), (x1, y1) = w["from"], w["to"]
         ax.plot([x0, x1], [y0, y1], color=(0.45, 0.45, 0.45), lw=0.8, ls="--", zorder=1)
-    for w in msg.walls:
+    # The walls a planner may trust stand out; flagged ones (lone echoes, often a corner's or a wall end's) are
+    # drawn fainter beneath them, at their full σ.
+    for w in sorted(msg.walls, key=lambda w: -int(w.quality)):
         sigma = w.offset_stderr if math.isfinite(w.offset_stderr) else 0.0
         n = np.array([w.normal.x, w.normal.y])
+        alpha, z = _WALL_ALPHA.get(int(w.quality), (0.35, 2.0))
         for a, b in wall_pieces(w):
             band = SIGMA_BAND * sigma * n
             corners = np.array([a[:2] - band, b[:2] - band, b[:2] + band, a[:2] + band])
             color = _rgb(quality_color(w.quality))
-            ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=0.9, zorder=3))
+            ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=alpha, zorder=z))
+    for a, b in closed if closed is not None else ():
+        ax.plot([a[0], b[0]], [a[1], b[1]], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", zorder=2.5)
     for items, color, marker in ((msg.corners, (1.0, 0.31, 0.78), "o"), (msg.edges, (0.0, 0.7, 0.85), "s")):
         if len(items):
             ax.scatter(
@@ -83,6 +99,8 @@ def save_map_picture(
         Line2D([], [], color=(0.55, 0.55, 0.55), lw=1, marker=".", label="odometry"),
         Line2D([], [], color=(1.0, 0.31, 0.78), marker="o", ls="none", label="corner"),
     ]
+    if closed is not None and len(closed):
+        legend.append(Line2D([], [], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", label="unseen, closed"))
     if free_space is not None:
         legend.append(Line2D([], [], color=(0.75, 0.87, 1.0), lw=6, label="seen free"))
     if route:

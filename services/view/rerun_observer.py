@@ -21,7 +21,7 @@ from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.reconstruct.estimate.results import PlaneFit, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
-from lelsonar.reconstruct.stream.service import Partial
+from lelsonar.reconstruct.stream.partial import Partial
 from lelsonar.sim import preset
 from lelsonar.sim.scan import true_planes
 from lelsonar.view.rerun_log import (

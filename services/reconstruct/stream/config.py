@@ -9,6 +9,8 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.record import RecordOptions
+from lelsonar.reconstruct.stream.finals import PoolStats
+from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 
 
 @dataclass(frozen=True)
@@ -38,12 +40,13 @@ class ReconstructConfig:
         Publish provisional estimates while a scan arrives (off for a batch replay,
         whose finals do not depend on them).
     max_provisional_delay : float
-        s; under a backlog, a scan still gets a provisional estimate this often.
+        s; while a backlog waits, every provisional refit waits for it (the samples come first); one whose
+        scan has had no estimate for over twice this is shed (``ServiceStats.provisionals_shed``) when
+        a tick still finds a backlog, and the scan's next refit covers it.
     provisional_budget : float
-        s of deferred provisional refits one :meth:`ReconstructionService.tick` runs, oldest estimate
-        first; the rest wait for the next tick, so catching up never holds the stream for long.
-        While a backlog waits, a refit deferred over twice ``max_provisional_delay`` is shed
-        (``ServiceStats.provisionals_shed``): samples come first, and the scan's next refit covers it.
+        s of deferred provisional refits one :meth:`ReconstructionService.tick` or
+        :meth:`ReconstructionService.catch_up` runs, oldest estimate first; the rest wait for the next
+        call, so catching up never holds the stream for long.
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -62,6 +65,12 @@ class ReconstructConfig:
     max_scanners : int
         Scanners whose latest estimate is kept (a `get` on planes answers from it).
     limits : DecodeLimits
+    final_workers : int or None
+        Worker processes a source (live or a replay) estimates the finals in, off the thread that handles
+        the samples (:class:`~lelsonar.reconstruct.stream.finals.FinalPool`); 0 estimates them on that
+        thread.  None: one per core beyond the first, at most two (none on one core); a replay uses
+        what the host's load leaves idle, and none for a short file while the workers' fork server has
+        not started yet (:func:`~lelsonar.reconstruct.stream.sources.replay_workers`).
     """
 
     method: str = DEFAULT_METHOD
@@ -83,6 +92,7 @@ class ReconstructConfig:
     max_pending: int = 4096
     max_scanners: int = 256
     limits: codec.DecodeLimits = codec.DEFAULT_LIMITS
+    final_workers: int | None = None
 
     def __post_init__(self) -> None:
         for name in (self.method, *self.compare_methods):
@@ -98,6 +108,8 @@ class ReconstructConfig:
             raise ConfigError("recovery_attempts must be >= 0, recovery_interval and recovery_after > 0 s")
         if min(self.max_scans, self.max_pending, self.max_scanners, self.keep_finals) < 1:
             raise ConfigError("max_scans, max_pending, max_scanners and keep_finals must be >= 1")
+        if self.final_workers is not None and self.final_workers < 0:
+            raise ConfigError(f"final_workers must be >= 0 (0: on the stream's thread), got {self.final_workers}")
 
     def record_options(self) -> RecordOptions:
         """How this service's scans are reconstructed (:func:`reconstruct_scan`)."""
@@ -130,5 +142,39 @@ class ServiceStats:
     provisionals_shed: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
+    #: Finals estimated in a pool's workers, workers lost (killed, crashed), finals run again after a loss.
+    finals_in_workers: int = 0
+    final_workers_lost: int = 0
+    finals_rerun: int = 0
+    #: Finals whose estimate raised (logged with the traceback; nothing published for the scan).
+    final_errors: int = 0
+    #: Finals on their way when their source stopped on an error (logged).
+    finals_dropped: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
     evicted: Counter = field(default_factory=Counter)
+
+    def add_final(self, acc: ScanAccounting, status: str) -> None:
+        """Count one terminal estimate and its scan's accounting."""
+        self.finals += 1
+        self.incomplete += status == "incomplete"
+        self.published += acc.published
+        self.received_live += acc.received_live
+        self.recovered += acc.recovered
+        self.duplicates += acc.duplicates
+        self.missing += acc.missing
+
+    def add_pool(self, pool: PoolStats) -> None:
+        """Add what a final pool the service is done with counted."""
+        self.finals_in_workers += pool.pooled
+        self.final_workers_lost += pool.workers_lost
+        self.finals_rerun += pool.rerun
+
+    def pool_dict(self, current: PoolStats | None) -> dict[str, int]:
+        """The finals' estimation, for ``stats_dict``: with ``current``, the pool in use, counted so far."""
+        return {
+            "in_workers": self.finals_in_workers + (current.pooled if current else 0),
+            "workers_lost": self.final_workers_lost + (current.workers_lost if current else 0),
+            "rerun": self.finals_rerun + (current.rerun if current else 0),
+            "errors": self.final_errors,
+            "dropped": self.finals_dropped,
+        }

@@ -11,8 +11,9 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
 2. every ``refit_every`` steps the provisional variant runs: it confirms the corner (R at its maximum
    well above the scan's typical R, enough steps after it), then re-estimates plane b in O(new
    samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
-   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) only every
-   ``max_provisional_delay``, so a burst costs one refit, not one per sample;
+   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) it waits too
+   (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
+   one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains;
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
    terminal.
@@ -37,10 +38,11 @@ Gaps and when a final may be published:
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Protocol
 
 import numpy as np
@@ -48,20 +50,19 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
-from lelsonar.reconstruct.estimate.quality import DEGRADED
-from lelsonar.reconstruct.estimate.record import (
-    ProvisionalState,
-    provisional_method,
-    reconstruct_scan,
-    with_findings,
-)
+from lelsonar.reconstruct.estimate.record import provisional_method, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
+from lelsonar.reconstruct.stream.final_jobs import FinalJob, accounting_event, close_final, final_message
+from lelsonar.reconstruct.stream.finals import Done, FinalPool, estimate_final, received
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
+from lelsonar.reconstruct.stream.log_requests import LogRequests
+from lelsonar.reconstruct.stream.partial import Partial, RecoveryState
+from lelsonar.reconstruct.stream.provisionals import ProvisionalSchedule
+from lelsonar.reconstruct.stream.reasons import ranges_text
 from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
-from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 _log = logging.getLogger(__name__)
 
@@ -92,33 +93,6 @@ class Observer(Protocol):
     def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
 
 
-@dataclass
-class RecoveryState:
-    """Requests made to the acquirer's log for one scan."""
-
-    attempts: int = 0  # since the last progress
-    last_at: float | None = None  # clock of the last request
-    mark: int = -1  # steps held at the last request (more now = progress)
-    requests: int = 0  # in all
-
-
-@dataclass
-class Partial(ProvisionalState):
-    """The state of one scan in progress: the provisional estimate's, and the stream's."""
-
-    #: Clock of the last provisional estimate, or of the scan's first message: under a backlog the next refit
-    #: (the corner's confirmation, the costliest, among them) waits up to ``max_provisional_delay`` after it.
-    estimated_at: float = 0.0
-    #: A provisional refit waited for a backlog (tick() catches up).
-    deferred: bool = False
-    last_activity: float = 0.0
-    ended_at: float | None = None
-    recovery: RecoveryState = field(default_factory=RecoveryState)
-    #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
-    settling: frozenset = frozenset()
-    settle_at: float | None = None
-
-
 class ReconstructionService:
     """Turns a stream of contract payloads into Reconstruction messages."""
 
@@ -136,19 +110,12 @@ class ReconstructionService:
         self._publish = publish
         self._observer = observer
         self._clock = clock
-        #: Asks the acquirer's log for what a scan lacks; returns False when the request was refused.
-        self.recover = recover
-        #: When to ask again and when to give up (a live source lets it ask on while the log may answer).
-        self.recovery_policy = RecoveryPolicy(
-            config.recovery_attempts,
-            config.recovery_interval,
-            max(config.recovery_interval, RecoveryPolicy.max_interval),
-        )
+        self.stats = ServiceStats()
+        self._requests = LogRequests(config, self.stats, self._event)
+        self._requests.recover = recover
         self._partials: dict[ScanKey, Partial] = {}
-        # Samples held while their ScanStart is missing: since when, and the requests for the ScanStart.
-        self._pending_since: dict[ScanKey, tuple[float, RecoveryState]] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
-        self._deferred: set[ScanKey] = set()
+        self._schedule = ProvisionalSchedule(config, self.stats, clock)
         #: How finals are reconstructed; provisional estimates are the cheaper variant of the same.
         self._options = config.record_options()
         self._provisional_options = replace(self._options, provisional=True)
@@ -156,11 +123,35 @@ class ReconstructionService:
         self.provisional_method = provisional_method(config.method)
         #: The newest estimate per scanner (what a `get` on the planes key returns).
         self.latest: dict[str, codec.Reconstruction] = {}
+        self._latest_rank: dict[str, int] = {}  # the rank (order of making) of each scanner's latest
+        self._ranks = itertools.count()
         #: Final estimates, per scan, in the order they were made.
         self.finals: dict[ScanKey, codec.Reconstruction] = {}  # the newest keep_finals
         #: Scans re-opened after a FINAL_TIMEOUT or INCOMPLETE verdict, and the revision their next final takes.
         self._reopened: dict[ScanKey, int] = {}
-        self.stats = ServiceStats()
+        #: Where finals are estimated: None here; a source lends its worker pool (:meth:`use_pool`).
+        self._pool: FinalPool | None = None
+        self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
+        self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
+        self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
+
+    @property
+    def recover(self) -> Callable[[RecoveryRequest], bool] | None:
+        """Asks the acquirer's log for what a scan lacks; returns False when the request was refused."""
+        return self._requests.recover
+
+    @recover.setter
+    def recover(self, recover: Callable[[RecoveryRequest], bool] | None) -> None:
+        self._requests.recover = recover
+
+    @property
+    def recovery_policy(self) -> RecoveryPolicy:
+        """When to ask again and when to give up (a live source lets it ask on while the log may answer)."""
+        return self._requests.policy
+
+    @recovery_policy.setter
+    def recovery_policy(self, policy: RecoveryPolicy) -> None:
+        self._requests.policy = policy
 
     # --- input ---------------------------------------------------------------------------
     def handle(
@@ -175,7 +166,7 @@ class ReconstructionService:
         """Apply one payload; return the estimates it produced (also published).
 
         ``busy``: more payloads are already waiting, so a provisional refit can wait
-        for them (see ``max_provisional_delay``); :meth:`tick` catches up.
+        for them; :meth:`catch_up` and :meth:`tick` catch up.
         ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
         ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
         """
@@ -188,16 +179,20 @@ class ReconstructionService:
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
+            in_flight = {job.scan.key for job in self._dispatched.values()}
             for key in late:
-                self._reopen(key)
+                if key in in_flight:
+                    self._late.add(key)  # re-opened, if its verdict asks for it, once its final is made
+                else:
+                    self._reopen(key)
         fresh, self.ingest.newly_pending = self.ingest.newly_pending, []
         for key in fresh:
-            if key in self.ingest.pending and key not in self._pending_since:
+            if key in self.ingest.pending and key not in self._requests.pending_since:
                 # A scan met in the middle (this reconstructor started late, or its ScanStart was lost):
                 # ask the log for the ScanStart and the steps before.
-                self._pending_since[key] = (now, RecoveryState())
-                self._ask_for_start(key, now)
-        return out
+                self._requests.pending_since[key] = (now, RecoveryState())
+                self._requests.ask_for_start(key, now, self.ingest.pending.get(key, []))
+        return out + self.collect()
 
     def tick(self, *, busy: bool = False) -> list[codec.Reconstruction]:
         """Catch up on deferred provisional estimates; ask the log for what scans lack; finalise
@@ -216,46 +211,48 @@ class ReconstructionService:
                 del self._partials[key]
                 continue
             r = p.recovery
-            self._note_progress(r, scan.n_received)
-            self._settle(scan, p, now)
+            self._requests.note_progress(r, scan.n_received)
+            self._requests.settle(scan, p, now)
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if not self._settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
-                        out.append(self._finalise(scan, p, "final"))
+                    if not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                        self._finalise(scan, p, "final")
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
-                elif self._can_ask(r, now, key):
-                    self._ask(r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received)
-                elif self._exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
-                    out.append(self._finalise(scan, p, "incomplete"))
+                elif self._requests.can_ask(r, now, key):
+                    self._requests.ask(
+                        r, RecoveryRequest(*key, steps=tuple(int(s) for s in missing)), now, scan.n_received
+                    )
+                elif self._requests.exhausted(r, now, key) and now - p.ended_at >= cfg.end_grace:
+                    self._finalise(scan, p, "incomplete")
             elif not busy:
                 silent = now - p.last_activity
-                if silent >= cfg.recovery_after and self._can_ask(r, now, key):
-                    self._ask(
+                if silent >= cfg.recovery_after and self._requests.can_ask(r, now, key):
+                    self._requests.ask(
                         r,
                         RecoveryRequest(*key, steps=tuple(int(s) for s in scan.missing_steps()), want_end=True),
                         now,
                         scan.n_received,
                     )
-                elif silent >= cfg.scan_timeout and self._exhausted(r, now, key):
+                elif silent >= cfg.scan_timeout and self._requests.exhausted(r, now, key):
                     self._event(
                         "WARNING",
                         f"scan {key} silent for {silent:.1f} s without a ScanEnd; finalising it as FINAL_TIMEOUT",
                     )
                     self.stats.timeouts += 1
-                    out.append(self._finalise(scan, p, "final_timeout"))
-        for key, (since, r) in list(self._pending_since.items()):
+                    self._finalise(scan, p, "final_timeout")
+        for key, (since, r) in list(self._requests.pending_since.items()):
             if key not in self.ingest.pending:
-                del self._pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
-            elif self._can_ask(r, now, key):
-                self._ask_for_start(key, now)
-            elif not busy and now - since >= cfg.scan_timeout and self._exhausted(r, now, key):
+                del self._requests.pending_since[key]  # its ScanStart came (or the bound dropped the samples, counted)
+            elif self._requests.can_ask(r, now, key):
+                self._requests.ask_for_start(key, now, self.ingest.pending.get(key, []))
+            elif not busy and now - since >= cfg.scan_timeout and self._requests.exhausted(r, now, key):
                 # Samples whose ScanStart never came are dropped, and counted, after the same timeout.
-                del self._pending_since[key]
+                del self._requests.pending_since[key]
                 for rej in self.ingest.drop_pending(key):
                     self._event("WARNING", f"rejected input ({rej.error}): {rej.detail}")
-        return out
+        return out + self.collect()
 
     def catch_up(self) -> list[codec.Reconstruction]:
         """Only the provisional refits that waited for a backlog that has drained, within
@@ -269,36 +266,16 @@ class ReconstructionService:
         Those left wait for the next tick; under a backlog (``busy``) one deferred for over twice
         ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
         """
-        cfg = self.config
-        out: list[codec.Reconstruction] = []
-        waiting = sorted(
-            (p.estimated_at, key, p) for key in self._deferred if (p := self._partials.get(key)) is not None
-        )
-        self._deferred.clear()
-        start = self._clock()
-        for n, (estimated_at, key, p) in enumerate(waiting):
-            scan = self.ingest.scans.get(key)
-            if scan is None or not p.deferred:
-                continue
-            if self._clock() - start >= cfg.provisional_budget:
-                self._deferred.update(k for _, k, _ in waiting[n:])
-                break
-            p.deferred = False
-            if busy and start - estimated_at >= 2 * cfg.max_provisional_delay:
-                self.stats.provisionals_shed += 1
-                p.estimated_at = start  # the next deferral waits a full delay again
-                continue
-            out += self._provisional(scan, p)
-        return out
+        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional)
 
     @property
     def has_deferred(self) -> bool:
         """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
-        return bool(self._deferred)
+        return bool(self._schedule)
 
     def finish(self) -> list[codec.Reconstruction]:
-        """End of input (a replay reached the end of its file): finalise every open scan now."""
-        out = []
+        """End of input (a replay reached the end of its file): finalise every open scan now, and wait for
+        every final on its way."""
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is not None:
@@ -308,7 +285,7 @@ class ReconstructionService:
                     self.stats.timeouts += 1
                 else:
                     status = "final" if scan.complete else "incomplete"
-                out.append(self._finalise(scan, p, status))
+                self._finalise(scan, p, status)
         for key, held in self.ingest.pending.items():
             # No ScanStart, no array geometry or schedule: nothing can be estimated, and saying so is the result.
             self.stats.without_start += 1
@@ -317,6 +294,39 @@ class ReconstructionService:
                 f"scan {key}: {len(held)} messages but never its ScanStart (which carries the "
                 "array geometry and the schedule); not reconstructed",
             )
+        return self.collect(wait=True)
+
+    # --- where finals are estimated -------------------------------------------------------
+    def use_pool(self, pool: FinalPool | None, *, drain: bool = True) -> list[codec.Reconstruction]:
+        """Estimate the finals in ``pool``'s workers from now on (None: on the caller's thread).
+
+        The finals on their way in the pool used so far are waited for and returned (published, as every
+        final is) with ``drain``; without it (the source is failing) they are dropped, logged and counted.
+        """
+        out = self.collect(wait=True) if drain else []
+        if self._dispatched:
+            dropped = sorted(job.scan.key for job in self._dispatched.values())
+            self.stats.finals_dropped += len(dropped)
+            self._event("ERROR", f"{len(dropped)} finals dropped unmade as their source stopped: scans {dropped}")
+            self._dispatched.clear()
+            self._late.clear()
+        if self._pool is not None and self._pool is not pool:
+            self.stats.add_pool(self._pool.stats)
+        self._pool = pool
+        return out
+
+    @property
+    def finals_on_their_way(self) -> int:
+        """Finals dispatched to the pool and not yet handed back."""
+        return len(self._dispatched)
+
+    def collect(self, *, wait: bool = False) -> list[codec.Reconstruction]:
+        """The finals made since the last call, in the order their scans were closed; ``wait`` for those on
+        their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
+        if self._pool is not None and self._dispatched:
+            for done in self._pool.drain() if wait else self._pool.ready():
+                self._complete(self._dispatched.pop(done.ticket), done)
+        out, self._completed = self._completed, []
         return out
 
     def stats_dict(self) -> dict:
@@ -344,21 +354,16 @@ class ReconstructionService:
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
             "provisionals_shed": s.provisionals_shed,
+            "finals_pool": s.pool_dict(self._pool.stats if self._pool is not None else None),
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
             "scans_without_start": s.without_start,
         }
 
     # --- recovery ------------------------------------------------------------------------
-    def _note_progress(self, r: RecoveryState, held: int) -> None:
-        if r.mark >= 0 and held > r.mark:
-            r.attempts, r.mark = 0, held  # new steps came: the budget starts again
-
-    def _can_ask(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
-        return self.recover is not None and self.recovery_policy.can_ask(r.attempts, r.last_at, now, key)
-
-    def _exhausted(self, r: RecoveryState, now: float, key: ScanKey) -> bool:
-        return self.recover is None or self.recovery_policy.exhausted(r.attempts, r.last_at, now, key)
+    def still_wanted(self, request: RecoveryRequest) -> bool:
+        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
+        return (request.scanner_id, request.scan_id) not in self.ingest.closed
 
     def _reopen(self, key: ScanKey) -> None:
         """Steps came for a scan finalised without them: ask the acquirer's log for the whole scan, to publish
@@ -383,90 +388,7 @@ class ReconstructionService:
             f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
             f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
         )
-        self._request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
-
-    def _settle(self, scan: ScanAssembly, p: Partial, now: float) -> None:
-        """Ask the acquirer's log for the steps that arrived twice with different content (its copy wins)."""
-        if scan.unsettled and self.recover is not None and p.settling != scan.unsettled:
-            p.settling, p.settle_at = frozenset(scan.unsettled), now
-            self._event(
-                "WARNING",
-                f"scan {scan.key}: {scan.conflicts} conflicting copies of steps {_ranges_text(sorted(p.settling))}; "
-                "asking the acquirer's log which is right",
-            )
-            self._request(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling))))
-
-    def _request(self, request: RecoveryRequest) -> None:
-        """One request outside a scan's attempts (counted; a refusal or a failure counted as refused)."""
-        self.stats.recovery_requests += 1
-        try:
-            ok = self.recover is not None and self.recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is a refused one, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
-
-    def _settling(self, scan: ScanAssembly, p: Partial, now: float) -> bool:
-        """Whether the final waits for the log to settle conflicting copies (live, for up to ``scan_timeout``)."""
-        if not scan.unsettled or self.recover is None:
-            return False
-        if p.settle_at is None:
-            self._settle(scan, p, now)
-        return p.settle_at is not None and now - p.settle_at < self.config.scan_timeout
-
-    def still_wanted(self, request: RecoveryRequest) -> bool:
-        """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
-        return (request.scanner_id, request.scan_id) not in self.ingest.closed
-
-    def _ask(self, r: RecoveryState, request: RecoveryRequest, now: float, held: int) -> None:
-        if self.recover is None:
-            raise InternalError("a recovery request was made by a service given no recover callback")
-        recover = self.recover
-        r.attempts += 1
-        r.requests += 1
-        r.last_at, r.mark = now, held
-        self.stats.recovery_requests += 1
-        what = ", ".join(
-            x
-            for x in (
-                f"{len(request.steps)} steps" if request.steps else "",
-                "ScanStart" if request.want_start else "",
-                "ScanEnd" if request.want_end else "",
-            )
-            if x
-        )
-        self._event(
-            "INFO",
-            f"scan ({request.scanner_id}, {request.scan_id}): asking the acquirer's log for "
-            f"{what} (attempt {r.attempts}"
-            + (
-                f"/{self.config.recovery_attempts})"
-                if r.attempts <= self.config.recovery_attempts
-                else f", past {self.config.recovery_attempts}: its log may still answer)"
-            ),
-        )
-        try:
-            ok = recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
-
-    def _ask_for_start(self, key: ScanKey, now: float) -> None:
-        """A scan met in the middle: ask for its ScanStart and the steps before what is held
-        (all the steps its ScanEnd counts, when the ScanEnd is what is held)."""
-        _, r = self._pending_since[key]
-        held = self.ingest.pending.get(key, [])
-        self._note_progress(r, len(held))
-        if not held or not self._can_ask(r, now, key):
-            return
-        have = {m.step for m, _ in held if isinstance(m, codec.Sample)}
-        ends = [m for m, _ in held if isinstance(m, codec.ScanEnd)]
-        upto = int(ends[0].samples_sent) if ends else max(have) + 1
-        wanted = tuple(s for s in range(upto) if s not in have)
-        self._ask(r, RecoveryRequest(*key, steps=wanted, want_start=True), now, len(held))
+        self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
     def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
@@ -493,19 +415,20 @@ class ReconstructionService:
                 f"{': ' + end.reason if end.reason else ''}), {end.samples_sent} samples",
                 end.end_time_ns,
             )
-            if scan.complete and not self._settling(scan, p, p.ended_at):  # (just set: a float)
-                return [self._finalise(scan, p, "final")]
+            if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
+                self._finalise(scan, p, "final")
+                return []
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
             # before samples that follow it: what is still missing at the end is said by the terminal estimate.
             self._event(
                 "WARNING" if self.recover is not None else "INFO",
                 f"scan {scan.key} ended with {len(missing)} of {end.samples_sent} steps "
-                f"missing so far: {_ranges_text(missing)}",
+                f"missing so far: {ranges_text(missing)}",
                 end.end_time_ns,
             )
-            if self._can_ask(p.recovery, p.ended_at, scan.key):
-                self._ask(
+            if self._requests.can_ask(p.recovery, p.ended_at, scan.key):
+                self._requests.ask(
                     p.recovery,
                     RecoveryRequest(*scan.key, steps=tuple(int(s) for s in missing)),
                     p.ended_at,
@@ -521,12 +444,11 @@ class ReconstructionService:
                 float(scan.expected_energy[step]),
                 float(scan.ratio[step]),
             )
-        if p.ended_at is not None and scan.complete and not self._settling(scan, p, self._clock()):
-            return [self._finalise(scan, p, "final")]
-        if busy and self._clock() - p.estimated_at < self.config.max_provisional_delay:
-            p.deferred = True  # tick() catches up
-            self._deferred.add(scan.key)
-            return []  # the backlog's later samples will be in the next refit
+        if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
+            self._finalise(scan, p, "final")
+            return []
+        if self._schedule.defer(scan.key, p, busy):
+            return []  # tick() catches up; the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
     def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
@@ -554,37 +476,37 @@ class ReconstructionService:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
 
-    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> codec.Reconstruction:
-        missing = scan.missing_steps()
-        if status == "final" and len(missing):
-            status = "incomplete"  # never FINAL with steps missing
-        end = scan.end
-        aborted = end is not None and end.status == SCAN_STATUS_ABORTED
-        if aborted and status in ("final", "incomplete"):
-            status = "aborted"  # a sweep stopped early is never FINAL (its missing_steps still listed)
-        acc = wire.accounting_message(
-            published=int(scan.end.samples_sent) if scan.end is not None else 0,
-            received_live=scan.n_received - scan.n_recovered,
-            recovered=scan.n_recovered,
-            duplicates=scan.duplicates,
-            rejected=dict(scan.rejected),
-            missing=len(missing),
-            conflicts=scan.conflicts,
+    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
+        """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
+        job, inp = close_final(
+            scan,
+            p,
+            status,
+            live=self.recover is not None,
+            revision=self._reopened.pop(scan.key, 0),
+            rank=next(self._ranks),
         )
-        est = reconstruct_scan(scan_input(scan), self._options)
-        # What the stream knows of the scan beyond its data: a sweep stopped early, copies that conflicted.
-        findings: tuple[tuple[str, str], ...] = ()
-        if end is not None and aborted:
-            findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
-        if scan.conflicts:
-            findings += ((DEGRADED, conflict_reason(scan, self.recover is not None)),)
-        est = with_findings(est, findings)
-        msg = wire.estimate_message(
-            est, scan.start.scanner_id, scan.start.scan_id, status=status, missing_steps=missing, accounting=acc
-        )
-        if end is not None and aborted:
-            msg.aborted_reason = end.reason or "aborted"
-        msg.revision = self._reopened.pop(scan.key, 0)
+        # The scan is done: forget its state; a straggler is then rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
+        if self._pool is None:
+            self._complete(job, Done(0, reconstruct_scan(inp, self._options)))
+        else:
+            # The points behind each plane travel back only for an observer, which draws them.
+            self._dispatched[self._pool.submit(estimate_final, inp, self._options, self._observer is not None)] = job
+
+    def _complete(self, job: FinalJob, done: Done) -> None:
+        """Publish a final whose estimate is made (or say why it could not be)."""
+        scan, status = job.scan, job.status
+        if done.error is not None:
+            self.stats.final_errors += 1
+            self._event(
+                "ERROR",
+                f"scan {scan.key}: its final estimate failed ({type(done.error).__name__}: {done.error}); "
+                f"nothing published for it\n{done.trace}",
+            )
+            return
+        msg, est = final_message(job, received(done.value))
         # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
         for note in est.notes:
             self._event("WARNING", f"scan {scan.key}: {note}")
@@ -592,14 +514,7 @@ class ReconstructionService:
         while len(self.finals) > self.config.keep_finals:
             self.finals.pop(next(iter(self.finals)))
             self.stats.evicted["final kept for lookup forgotten (keep_finals)"] += 1
-        st = self.stats
-        st.finals += 1
-        st.incomplete += status == "incomplete"
-        st.published += acc.published
-        st.received_live += acc.received_live
-        st.recovered += acc.recovered
-        st.duplicates += acc.duplicates
-        st.missing += acc.missing
+        self.stats.add_final(job.accounting, status)
         summary = "; ".join(
             f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
             f"h={pl.offset * 100:.1f} cm"
@@ -611,32 +526,26 @@ class ReconstructionService:
             f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
             + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""),
         )
-        hint = ""
-        if missing.size and status == "incomplete":
-            hint = (
-                "; the acquirer's log did not supply them (is acquire serving it? raise acquire "
-                "--serve-log-for or reconstruct --recovery-attempts)"
-                if self.recover is not None
-                else "; nothing could recover them here (a replay, or live with --recovery-attempts 0)"
-            )
-        self._event(
-            "INFO" if not missing.size else "WARNING",
-            f"scan {scan.key} accounting: {wire.accounting_text(acc)}"
-            + (f"; missing steps {_ranges_text(missing)}{hint}" if missing.size else ""),
-        )
+        self._event("INFO" if not job.missing.size else "WARNING", accounting_event(job, self.recover is not None))
         if self._observer:
-            self._observer.estimate(scan, msg, est.as_published(), p)
-        self._emit(msg)
-        # The scan is done: forget its state; a straggler is then rejected as late.
-        self._partials.pop(scan.key, None)
-        self.ingest.close(scan.key)
-        return msg
+            self._observer.estimate(scan, msg, est.as_published(), job.partial)
+        self._emit(msg, job.rank)
+        self._completed.append(msg)
+        if scan.key in self._late:
+            self._late.discard(scan.key)
+            self._reopen(scan.key)  # steps came while it was being estimated
 
-    def _emit(self, msg: codec.Reconstruction) -> codec.Reconstruction:
-        self.latest.pop(msg.scanner_id, None)  # most recently updated last
-        self.latest[msg.scanner_id] = msg
+    def _emit(self, msg: codec.Reconstruction, rank: int | None = None) -> codec.Reconstruction:
+        """Publish ``msg``; it becomes its scanner's latest unless one made after it (``rank``: when it was
+        made, by default now) already is: a final made in the pool while the scanner's next scan went on."""
+        rank = next(self._ranks) if rank is None else rank
+        if rank >= self._latest_rank.get(msg.scanner_id, -1):
+            self.latest.pop(msg.scanner_id, None)  # most recently updated last
+            self.latest[msg.scanner_id] = msg
+            self._latest_rank[msg.scanner_id] = rank
         while len(self.latest) > self.config.max_scanners:
-            self.latest.pop(next(iter(self.latest)))
+            self._latest_rank.pop(gone := next(iter(self.latest)), None)
+            self.latest.pop(gone)
             self.stats.evicted["latest estimate of a scanner forgotten (max_scanners)"] += 1
         self.stats.estimates += 1
         if self._publish is not None:
@@ -647,41 +556,3 @@ class ReconstructionService:
         getattr(_log, level.lower(), _log.info)(text)
         if self._observer:
             self._observer.event(level, text, time_ns)
-
-
-def partial_sweep_reason(end: codec.ScanEnd, planned: int) -> str:
-    """A plane's reason when its sweep stopped early: how far it went, and why it stopped."""
-    why = f" ({end.reason})" if end.reason else ""
-    return (
-        f"partial sweep: the scan was aborted after {end.samples_sent} of {planned} steps{why}; "
-        "a wall may extend beyond what was swept"
-    )
-
-
-def conflict_reason(scan: ScanAssembly, live: bool) -> str:
-    """A plane's reason when steps of its scan came twice with different content."""
-    if not scan.unsettled:
-        kept = f"the acquirer's log settled them ({scan.replaced} held copies replaced by the log's)"
-    elif live:
-        kept = (
-            f"the acquirer's log did not settle steps {_ranges_text(sorted(scan.unsettled))}: the first copy was used"
-        )
-    else:
-        kept = (
-            "without the acquirer's log (a replay, or recovery off) nothing can tell which is right: "
-            "the first copy was used"
-        )
-    copies = "1 copy of a held step" if scan.conflicts == 1 else f"{scan.conflicts} copies of held steps"
-    return f"{copies} differed from the one held (a forged or replayed step?); {kept}"
-
-
-def _ranges_text(steps) -> str:
-    """``3-7, 12, 40-41`` for a sorted array of steps (at most 20 runs shown)."""
-    runs: list[list[int]] = []
-    for s in (int(x) for x in steps):
-        if runs and s == runs[-1][1] + 1:
-            runs[-1][1] = s
-        else:
-            runs.append([s, s])
-    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs[:20])
-    return text + (f", … ({len(runs) - 20} more runs)" if len(runs) > 20 else "")

@@ -26,7 +26,8 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
-from lelsonar.log.recording import McapRecorder, iter_payloads
+from lelsonar.log.recording import McapRecorder, Recording, open_recording
+from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers, workers_warm
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -34,6 +35,7 @@ from lelsonar.reconstruct.stream.service import ReconstructionService
 _log = logging.getLogger(__name__)
 
 _STOP = ("", b"", "")  # queue sentinel
+_FINALS = ("", b"", "finals")  # queue item: finals came back from the pool
 _MAX_PARSED_KEYS = 4096
 #: The leaves of the keys a live source takes (``<prefix>/<scanner>/<leaf>``).
 LIVE_LEAVES = ("sample", "scan")
@@ -134,27 +136,69 @@ def decompress_threads() -> int:
 
 
 def replay_mcap(
-    path: Path | str, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
+    path: Path | str | Recording, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
     Where the host has an idle core, the next chunks of the file are decompressed and checked on
     other threads while the service handles a payload (:func:`decompress_threads`,
     :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
-    the estimation.  The payloads are handled in the file's order, on the caller's thread, and the
+    the estimation.  The finals are estimated in worker processes while the file is read
+    (:func:`replay_workers`, :class:`~lelsonar.reconstruct.stream.finals.FinalPool`), and handed back in
+    the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
     estimates are the same either way.
 
     Returns the number of payloads read.
     """
+    rec = open_recording(path)
     n = 0
-    # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
-    for rec in iter_payloads(path, REPLAYED, decompress_threads=decompress_threads()):
-        service.handle(rec.type_name, rec.payload)
-        n += 1
-        if on_payload is not None:
-            on_payload(rec.log_time_ns)
-    service.finish()
+    workers = replay_workers(service.config.final_workers, scans_in(rec))
+    pool = FinalPool(workers) if workers else None
+    try:
+        service.use_pool(pool)
+        # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
+        for r in rec.payloads(REPLAYED, decompress_threads=decompress_threads()):
+            service.handle(r.type_name, r.payload)
+            n += 1
+            if on_payload is not None:
+                on_payload(r.log_time_ns)
+        service.finish()  # (waits for every final)
+    finally:
+        if pool is not None:
+            service.use_pool(None, drain=False)  # after finish(), none is left; on an error, they are dropped (logged)
+            pool.close(wait=None)  # each worker exits on its own: the replay does not wait for it
+    if not isinstance(path, Recording) and (line := rec.damage_warning()):
+        _log.warning("%s", line.removeprefix("warning: "))
     return n
+
+
+#: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
+#: imports the estimate and loads its kernels first (seconds), and a shorter replay ends before it is ready.
+COLD_START_SCANS = 50
+
+
+def replay_workers(configured: int | None, scans: int | None) -> int:
+    """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
+    load leaves cores idle (as :func:`decompress_threads`: a worker that finds no core only competes with
+    the reading).  None for a file of one scan, whose final can overlap nothing, nor by default for a file
+    of fewer than :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
+    if scans is not None and scans < 2:
+        return 0
+    if configured is not None:
+        return configured
+    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
+        return 0
+    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
+    return max(0, min(auto_workers(), round(idle)))
+
+
+def scans_in(rec: Recording) -> int | None:
+    """Scans a recording holds, from its summary or its chunks' indexes (None when neither says)."""
+    s = rec.salvage
+    counts = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+    starts = [cid for cid, cls in rec.contract_channels().items() if cls is codec.ScanStart]
+    n = max([counts.get(cid, 0) for cid in starts] + [len(rec.start_copies())])
+    return n if n or counts else None
 
 
 class PlanesServer:
@@ -248,6 +292,12 @@ class LiveSource:
     ``fifo_capacity`` payloads in the channel, as many in the FIFO, and the worker's
     batch (``PayloadFifo.batch``) of each.
 
+    The finals are estimated in worker processes (``final_workers`` of the service's config;
+    :class:`~lelsonar.reconstruct.stream.finals.FinalPool`), so a scan's end does not hold every other
+    scanner's samples: the pool wakes the processing thread when one comes back, which publishes it as
+    the inline estimate would have been; those still on their way when the source closes are waited
+    for and published.
+
     With ``recovery`` (the default), the service asks the acquirer's log for
     what a scan lacks (:class:`~lelsonar.reconstruct.stream.recovery.LogRecoveryClient`).
     An exception of any type while processing is logged with its traceback,
@@ -296,6 +346,11 @@ class LiveSource:
         self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
+        #: Where the finals are estimated, off this source's thread (None: on it).
+        workers = service.config.final_workers
+        self._workers = auto_workers() if workers is None else workers
+        self._pool: FinalPool | None = None
+        self._finals_called = threading.Event()  # a _FINALS item waits in the FIFO
 
     @property
     def recovery_stats(self) -> dict[str, int]:
@@ -311,6 +366,9 @@ class LiveSource:
             self._service.recovery_policy = dataclasses.replace(
                 self._service.recovery_policy, log_may_answer=self._recovery.may_answer
             )
+        if self._workers:
+            self._pool = FinalPool(self._workers, on_ready=self._finals_ready)
+            self._service.use_pool(self._pool)
         self._thread.start()
         self._doorbell.start()
         return self
@@ -329,6 +387,19 @@ class LiveSource:
             pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
         self._doorbell.join(timeout=5)
+        if self._pool is not None:
+            try:
+                for msg in self._service.use_pool(None):  # the finals on their way: published before the source ends
+                    self._record_estimate(msg)
+            finally:
+                self._pool.close()
+
+    def _finals_ready(self) -> None:
+        """The pool's hook (its thread): wake the processing thread, once per wait, to publish what came back."""
+        if not self._finals_called.is_set():
+            self._finals_called.set()
+            if not self._queue.put_nowait(_FINALS):
+                self._finals_called.clear()  # full: the worker is busy, and collects after each payload anyway
 
     def _received(self, sample: zenoh.Sample) -> tuple[str, zenoh.ZBytes, str, str] | None:
         """A live sample as a work item, or None if it is not this worker's (or not a sample or scan event)."""
@@ -412,6 +483,10 @@ class LiveSource:
                 item = pending.popleft()
                 if item is _STOP:
                     return
+                if item is _FINALS:
+                    self._finals_called.clear()
+                    self._guarded(self._service.collect)
+                    item = None
                 if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
                     reading = True
                     item = self._received(item)

@@ -574,18 +574,14 @@ def step_slopes(region: Region, distance: np.ndarray, x: np.ndarray) -> tuple[np
     """
     pos = np.searchsorted(region.steps, region.rows)
     k = region.steps.size
-    slopes = np.full(k, np.nan)
-    sxx = np.zeros(k)
-    for j in range(k):
-        sel = pos == j
-        if np.count_nonzero(sel) < 3:
-            continue
-        xs = x[region.capsules[sel]]
-        ds = distance[region.rows[sel], region.capsules[sel]]
-        xm = xs - xs.mean()
-        sxx[j] = float(xm @ xm)
-        if sxx[j] > 0:
-            slopes[j] = float(xm @ (ds - ds.mean())) / sxx[j]
+    xs = x[region.capsules]
+    ds = distance[region.rows, region.capsules]
+    n = np.bincount(pos, minlength=k).astype(np.float64)
+    sx, sd = np.bincount(pos, xs, minlength=k), np.bincount(pos, ds, minlength=k)
+    sxx_raw, sxd = np.bincount(pos, xs * xs, minlength=k), np.bincount(pos, xs * ds, minlength=k)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sxx = np.where(n >= 3, sxx_raw - sx * sx / n, 0.0)
+        slopes = np.where((n >= 3) & (sxx > 0), (sxd - sx * sd / n) / sxx, np.nan)
     return slopes, sxx
 
 
@@ -607,7 +603,9 @@ def trim_ends(
     region within the range tolerance and move the region's centre off the plane's foot.  The steps at
     either end whose own slope differs from the plane's (the median over the region's middle half) by more than
     ``curvature_sigmas`` of its standard error ``σ/√Σ(x − x̄)²`` (``σ`` one range's, from the spread of
-    the steps' slopes, 1.4826 MAD) are not the plane's.  As they lie deeper than the plane, its echo ended there on its
+    the steps' slopes, 1.4826 MAD) are not the plane's, nor are those whose mean depth along the plane's
+    normal lies deeper than the middle half's by more than that many σ of a step's mean.  As they lie deeper
+    than the plane, its echo ended there on its
     own (the plane keeps its ends uncut); a nearer block would have masked it (a cut).
 
     Returns
@@ -637,6 +635,16 @@ def trim_ends(
     sigma = robust if robust > 0 else sigma
     with np.errstate(divide="ignore", invalid="ignore"):
         off = finite & (np.abs(slopes - core) > opts.curvature_sigmas * sigma / np.sqrt(sxx))
+    # The line lies deeper than the plane's foot (|X| ≥ h): a step whose mean depth along the plane's normal
+    # sits deeper than the middle half's by more than its own noise is not the plane's, whatever its slope.
+    pos = np.searchsorted(r.steps, r.rows)
+    own = m.ranges + m.positions @ unit_normal(m.bearing, m.tilt)
+    count = np.bincount(pos, minlength=k)
+    depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
+    level = float(np.median(depth[middle]))
+    spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
+    if spread > 0:
+        off |= finite & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
 
     def block(order: np.ndarray) -> int:
         """How many steps from that end up to the last departing one before the first that agrees (a step
@@ -653,9 +661,6 @@ def trim_ends(
     tail = block(np.arange(k - 1, head - 1, -1))
     if head + tail == 0 or 2 * (k - head - tail) < k or k - head - tail < opts.min_steps:
         return None
-    n = unit_normal(m.bearing, m.tilt)
-    own = m.ranges + m.positions @ n
-    pos = np.searchsorted(r.steps, r.rows)
     core_sel = (pos >= head) & (pos < k - tail)
     level = float(np.median(own[core_sel]))
     noise = 3 * sigma

@@ -11,6 +11,10 @@ Per region of constant depth (:mod:`.regions`):
 * **depth** ``ρ`` from the ranges with the bearing fixed (the mirror condition
   ``n · p_c + d = h``), **tilt** from the differential ranges along the capsule
   stack.
+* **flanks**: a region whose end steps slope along the capsule stack as its
+  middle does not, where the middle plane's double bounce with a surface across
+  the fan explains them (a wall's foot on the floor below a horizontal fan),
+  splits into the plane and those ends (:mod:`.flanks`).
 * **class** by physics (the tests are in :mod:`.evidence`):
 
   - one line in a plane, across the fan, explaining every range (the double
@@ -22,7 +26,10 @@ Per region of constant depth (:mod:`.regions`):
     a **concave corner**;
   - on one other plane's trace (off that plane's own foot, or deeper than it):
     that plane's end, a **corner** if its echo is as strong as that plane's own
-    mirror echo, an **edge** if weak;
+    mirror echo, an **edge** if weak; where the region holds only a flank of
+    its echo, the beam pattern taken back to the bearing the geometry puts it
+    at weighs it, and an end whose strength no evidence settles says so
+    (:data:`~.results.UNSETTLED`, ``Feature.settled``);
   - an echo much weaker than the sweep's strongest at its range (diffraction):
     an **edge**; a region cut before its peak is weak only if the upper
     estimate of its peak (its flank, extrapolated with the sweep's own beam
@@ -355,6 +362,9 @@ def extract_surfaces(
         if k is not None
     ]
     beam_k = float(np.median(ks)) if ks else float("nan")
+    # The flattest top one echo shows in this sweep (3 σ of its regions' spread under their median, robust):
+    # flatter, a second echo widens it.
+    beam_low = beam_k - 3 * 1.4826 * float(np.median(np.abs(np.asarray(ks) - beam_k))) if len(ks) >= 3 else beam_k
 
     # The receiver clips at one level, its full scale: the sweep's largest peak.  A plateau well under it is the
     # amplitude's quantisation on a weak echo, whose peak stands.
@@ -544,6 +554,16 @@ def extract_surfaces(
                 [],
             )
 
+    # A plane's bearing from its amplitude peak alone: another echo summing into its flank moves the peak as
+    # much as it widens the top (:func:`summed_width_stderr`), which the parabola's residuals do not show.
+    for i, m in enumerate(measured):
+        if i in kinds or m.bearing_source != "amplitude peak" or m.peak >= (1.0 - PLATEAU) * full_scale:
+            continue  # (a clipped top: its plateau's centre, whose width is no beam's)
+        c = log_amplitude_curvature(g[m.region.steps], m.step_amplitude, plateau=True)
+        extra = summed_width_stderr(c, beam_k, beam_low)
+        if extra > 0:
+            measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
+
     # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
     pairs = [(i, ties) for i, ties in pairs if i not in across_lines]
@@ -604,6 +624,33 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
+
+
+def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:
+    """How far another echo summing into a region's flank may have moved its amplitude peak, rad.
+
+    One target's echo follows the beam, in ``log`` a parabola of curvature ``k``: a spread ``s² = 1/(2k)``
+    across γ.  A second echo of weight ``w`` (the weaker, ``w ≤ ½``) ``δ`` away widens the sum to about
+    ``s² + w(1 − w)δ²`` and moves its peak by about ``wδ``, whose square is at most that excess.  So
+    ``√(1/(2c) − 1/(2k))``, with ``c`` the region's own curvature and ``k`` the sweep's (its regions with a
+    clean peak), bounds the shift; 0 when the top is no flatter than one echo's can be (``c ≥ flattest``).
+
+    Parameters
+    ----------
+    curvature : float or None
+        The region's ``c`` (1/rad², :func:`~.regions.log_amplitude_curvature`); None: unknown.
+    beam : float
+        The sweep's ``k`` (1/rad²); NaN: unknown.
+    flattest : float
+        The smallest curvature one echo shows in the sweep (its regions' spread), 1/rad².
+
+    Returns
+    -------
+    The bound, rad (0 when either curvature is unknown or the top is no flatter than one echo's).
+    """
+    if curvature is None or not (curvature > 0 and beam > 0) or curvature >= flattest:
+        return 0.0
+    return math.sqrt(max(0.0, 1.0 / (2.0 * curvature) - 1.0 / (2.0 * beam)))
 
 
 def good_surfaces(result: SurfaceSet) -> tuple[Surface, ...]:

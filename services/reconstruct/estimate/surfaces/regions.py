@@ -406,7 +406,7 @@ def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
     return np.asarray(geometry.capsules_in_array_frame()[:, 0], dtype=np.float64)
 
 
-def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float | None:
+def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau: bool = False) -> float | None:
     """The beam pattern's curvature in ``log A`` across γ, from a region whose peak is inside it.
 
     Every echo of a rotating transceiver, a mirror's, a corner's or an edge's,
@@ -418,6 +418,9 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float |
     ----------
     gamma, amplitude : (k,) arrays
         Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    plateau : bool
+        Fit a top whose largest values are equal too (a flat top under the receiver's full scale is the
+        amplitude's quantisation, or a wide echo), rather than say nothing.
 
     Returns
     -------
@@ -430,7 +433,7 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray) -> float |
         return None
     g, a = g[ok], a[ok]
     top = a >= 0.5 * a.max()
-    if np.count_nonzero(top) < 5 or np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3:
+    if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
         return None  # too few samples on the top, or a clipped plateau
     u = g[top] - float(np.mean(g[top]))
     m = np.stack([np.ones_like(u), u, u * u], axis=1)

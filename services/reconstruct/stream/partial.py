@@ -1,0 +1,35 @@
+"""What the live service keeps per scan in progress besides its assembly: the provisional estimate's state,
+the stream's clocks, and the requests made to the acquirer's log for it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from lelsonar.reconstruct.estimate.record import ProvisionalState
+
+
+@dataclass
+class RecoveryState:
+    """Requests made to the acquirer's log for one scan."""
+
+    attempts: int = 0  # since the last progress
+    last_at: float | None = None  # clock of the last request
+    mark: int = -1  # steps held at the last request (more now = progress)
+    requests: int = 0  # in all
+
+
+@dataclass
+class Partial(ProvisionalState):
+    """The state of one scan in progress: the provisional estimate's, and the stream's."""
+
+    #: Clock of the last provisional estimate, or of the scan's first message: deferred refits are caught up
+    #: oldest first, and one whose scan has waited over twice ``max_provisional_delay`` is shed under a backlog.
+    estimated_at: float = 0.0
+    #: A provisional refit waited for a backlog (tick() catches up).
+    deferred: bool = False
+    last_activity: float = 0.0
+    ended_at: float | None = None
+    recovery: RecoveryState = field(default_factory=RecoveryState)
+    #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
+    settling: frozenset = frozenset()
+    settle_at: float | None = None

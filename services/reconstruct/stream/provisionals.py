@@ -1,0 +1,78 @@
+"""When a scan's provisional refit runs while a backlog waits: deferred, caught up within a budget, or shed.
+
+A refit that would hold samples waiting behind it is deferred: with many scanners a backlog builds where their
+scans reach the same costly refit together (the corner's confirmation, plane b's exact fits, when the scans
+run in step), and samples that wait behind those refits are late for every scan.
+:meth:`ProvisionalSchedule.catch_up` runs the deferred ones oldest estimate first, for at most
+``provisional_budget`` of the service's clock, leaving the rest for the next call (the source calls it when
+the backlog has drained, and on every tick); a tick that still finds a backlog sheds, and counts, the refit
+of a scan that has had no estimate for over twice ``max_provisional_delay``: the scan's next refit covers the
+samples it would have.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+from lelsonar import codec
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
+from lelsonar.reconstruct.stream.ingest import ScanKey
+from lelsonar.reconstruct.stream.partial import Partial
+
+#: Runs one scan's provisional refit; returns the estimates it published.
+Refit = Callable[[ScanAssembly, Partial], list[codec.Reconstruction]]
+
+
+class ProvisionalSchedule:
+    """The scans whose provisional refit waits for a backlog, and the catching up on them."""
+
+    def __init__(self, config: ReconstructConfig, stats: ServiceStats, clock: Callable[[], float]) -> None:
+        self.config = config
+        self.stats = stats
+        self._clock = clock
+        self._deferred: set[ScanKey] = set()
+
+    def __bool__(self) -> bool:
+        """Whether a refit waits."""
+        return bool(self._deferred)
+
+    def defer(self, key: ScanKey, p: Partial, busy: bool) -> bool:
+        """Whether the scan's refit waits (it does whenever a backlog waits)."""
+        if busy:
+            p.deferred = True
+            self._deferred.add(key)
+            return True
+        return False
+
+    def catch_up(
+        self,
+        partials: Mapping[ScanKey, Partial],
+        scans: Mapping[ScanKey, ScanAssembly],
+        busy: bool,
+        refit: Refit,
+    ) -> list[codec.Reconstruction]:
+        """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
+
+        Those left wait for the next call; under a backlog (``busy``) one deferred for over twice
+        ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
+        """
+        cfg = self.config
+        out: list[codec.Reconstruction] = []
+        waiting = sorted((p.estimated_at, key, p) for key in self._deferred if (p := partials.get(key)) is not None)
+        self._deferred.clear()
+        start = self._clock()
+        for n, (estimated_at, key, p) in enumerate(waiting):
+            scan = scans.get(key)
+            if scan is None or not p.deferred:
+                continue
+            if self._clock() - start >= cfg.provisional_budget:
+                self._deferred.update(k for _, k, _ in waiting[n:])
+                break
+            p.deferred = False
+            if busy and start - estimated_at >= 2 * cfg.max_provisional_delay:
+                self.stats.provisionals_shed += 1
+                p.estimated_at = start  # the next deferral waits a full delay again
+                continue
+            out += refit(scan, p)
+        return out
