@@ -327,7 +327,9 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     return None if best is None else (best[1], best[2])
 
 
-def beyond_reach(m: Measured, bearing: float, pj: Measured, seen: list[Measured], opts: SurfaceOptions) -> str:
+def beyond_reach(
+    m: Measured, bearing: float, pj: Measured, seen: list[Measured], opts: SurfaceOptions, *, placed: bool = False
+) -> str:
     """Why plane ``pj`` cannot reach ``bearing`` along its trace, where region ``m`` would be its end ("": nothing
     the sweep saw says so).
 
@@ -336,8 +338,10 @@ def beyond_reach(m: Measured, bearing: float, pj: Measured, seen: list[Measured]
 
     * one whose bearing is determined, deeper than the trace's range there (``h / cos(β_k − β_j)``) by
       more than ``on_trace``, would be hidden behind the plane had it run on: the plane ends before it;
-    * one on the trace nearer the foot (at its determined bearing, or, undetermined, at the bearing its
-      depth puts it on the trace, within its span) is the plane's own end: the plane ends there.
+    * where ``placed`` (``m``'s bearing is the trace's alone, its own undetermined), one on the trace
+      nearer the foot (at its determined bearing, or, undetermined, at the bearing its depth puts it on
+      the trace, within its span) is the plane's own end: the plane ends there.  A region whose own
+      bearing puts it on the trace is evidence of its own and is not set aside for it.
 
     A line across the stack at the plane's foot (its corner with a surface across the fan) is no end along
     the fan and is passed over.
@@ -362,9 +366,9 @@ def beyond_reach(m: Measured, bearing: float, pj: Measured, seen: list[Measured]
                     f"a target {k.depth:.2f} m away at γ {math.degrees(k.bearing):.1f}° lies behind its trace "
                     f"({trace:.2f} m): the plane ends before it"
                 )
-            on = abs(k.depth - trace) <= opts.on_trace
+            on = placed and abs(k.depth - trace) <= opts.on_trace
         else:
-            if k.depth <= h:
+            if not placed or k.depth <= h:
                 continue
             dk = math.copysign(math.acos(h / k.depth), delta)
             on = abs(dk) < abs(delta) - m.step and in_span(wrap(pj.bearing + dk), k, k.step, opts.beyond_cut)
@@ -398,7 +402,7 @@ def plane_end(
             continue
         for bearing in (pj.bearing - half, pj.bearing + half):
             if in_span(wrap(bearing), m, m.step, opts.beyond_cut) and not (
-                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts)
+                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts, placed=True)
             ):
                 return [j], wrap(bearing)
     return None
