@@ -43,6 +43,7 @@ __all__ = [
     "pair_corner",
     "pair_stderr",
     "end_stderr",
+    "reach_stderr",
     "plane_end",
     "plane_line",
     "split_dihedral",
@@ -523,6 +524,19 @@ def end_stderr(m: Measured, pj: Measured, bearing: float) -> float:
     rho = m.depth
     spread = math.hypot(sh / (rho * sin_d), pj.depth * sr / (rho * rho * sin_d))
     return min(math.pi, math.hypot(math.hypot(pj.bearing_stderr, spread), m.step / math.sqrt(24.0)))
+
+
+def reach_stderr(m: Measured, opts: SurfaceOptions) -> float:
+    """The bearing σ of a cut region placed at its span's centre with nothing else to place it.
+
+    Its target lies within the span, or past a cut end by up to ``beyond_cut`` (a nearer echo hides its
+    peak): uniform over that reach, the centre misses it by the reach's own σ (``width/√12``) and by its
+    offset from the reach's middle.
+    """
+    lo = m.span[0] - (opts.beyond_cut if m.region.cut_before else 0.0)
+    hi = m.span[1] + (opts.beyond_cut if m.region.cut_after else 0.0)
+    bias = 0.5 * (lo + hi) - m.bearing
+    return max(m.bearing_stderr, math.sqrt(bias * bias + (hi - lo) ** 2 / 12.0))
 
 
 def wrap(a: float) -> float:

@@ -68,6 +68,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_stderr,
     plane_end,
     plane_line,
+    reach_stderr,
     split_dihedral,
     stack_dihedral,
     stack_or_pair,
@@ -545,6 +546,8 @@ def extract_surfaces(
             else:
                 kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
         elif weak(m):
+            if m.bearing_source == "undetermined":
+                measured[i] = m = replace(m, bearing_stderr=reach_stderr(m, opts))
             kinds[i] = (
                 "edge",
                 [
