@@ -45,7 +45,6 @@ __all__ = [
     "plane_line",
     "split_dihedral",
     "stack_dihedral",
-    "trim_ends",
     "wrap",
 ]
 
@@ -440,126 +439,6 @@ def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float,
     b = best[1]
     head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
     return b, float(np.mean(head) - np.mean(tail)), float(np.mean(head) - np.mean(tail)) / best[0]
-
-
-def step_slopes(region: Region, distance: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each of the region's steps' own slope of range along the capsule stack, and its ``Σ(x − x̄)²``.
-
-    Parameters
-    ----------
-    region : Region
-    distance : (n_steps, n_capsules) array
-    x : (n_capsules,) array
-        The capsules' positions along the stack, m.
-
-    Returns
-    -------
-    (k,) slopes (NaN for a step with fewer than three readings in the region) and (k,) ``Σ(x − x̄)²``, m².
-    """
-    pos = np.searchsorted(region.steps, region.rows)
-    k = region.steps.size
-    xs = x[region.capsules]
-    ds = distance[region.rows, region.capsules]
-    n = np.bincount(pos, minlength=k).astype(np.float64)
-    sx, sd = np.bincount(pos, xs, minlength=k), np.bincount(pos, ds, minlength=k)
-    sxx_raw, sxd = np.bincount(pos, xs * xs, minlength=k), np.bincount(pos, xs * ds, minlength=k)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        sxx = np.where(n >= 3, sxx_raw - sx * sx / n, 0.0)
-        slopes = np.where((n >= 3) & (sxx > 0), (sxd - sx * sd / n) / sxx, np.nan)
-    return slopes, sxx
-
-
-def trim_ends(
-    i: int,
-    measured: list[Measured],
-    gamma: np.ndarray,
-    distance: np.ndarray,
-    amplitude: np.ndarray | None,
-    geometry: ArrayGeometry,
-    opts: SurfaceOptions,
-) -> list[Measured] | None:
-    """A plane's whole region whose end steps hold another target's echo at a like range: its core and ends.
-
-    A plane's ranges along the stack share one slope (``−n_x``) at every step.  A line across the stack
-    at a like range (the plane's own corner with a floor or a ceiling off the fan, whose double bounce
-    answers wider than the plane's mirror echo, just deeper) spreads the four ranges by
-    ``(x − z)/ρ`` instead: at the region's ends, where the plane's echo has faded, its steps join the
-    region within the range tolerance and move the region's centre off the plane's foot.  The steps at
-    either end whose own slope differs from the plane's (the median over the region's middle half) by more than
-    ``curvature_sigmas`` of its standard error ``σ/√Σ(x − x̄)²`` (``σ`` one range's, from the spread of
-    the steps' slopes, 1.4826 MAD) are not the plane's, nor are those whose mean depth along the plane's
-    normal lies deeper than the middle half's by more than that many σ of a step's mean.  As they lie deeper
-    than the plane, its echo ended there on its
-    own (the plane keeps its ends uncut); a nearer block would have masked it (a cut).
-
-    Returns
-    -------
-    The plane's core and each end block of at least ``min_steps`` steps (cut on the core's side), in
-    sweep order; None when no end step departs, or the core would keep fewer than half the region's steps.
-    """
-    m = measured[i]
-    r = m.region
-    sigma = m.stack_sigma
-    if r.cut_before or r.cut_after or not (math.isfinite(sigma) and sigma > 0):
-        return None
-    slopes, sxx = step_slopes(r, distance, capsule_x(geometry))
-    finite = np.isfinite(slopes)
-    if np.count_nonzero(finite) < 2 * opts.min_steps:
-        return None
-    # The plane's slope and the range σ from the steps of the region's middle half, where its own echo is
-    # strongest (robust, 1.4826 MAD): another target's steps sit at the ends and must not set them.
-    k = r.steps.size
-    middle = np.zeros(k, dtype=bool)
-    middle[k // 4 : k - k // 4] = True
-    middle &= finite
-    if np.count_nonzero(middle) < opts.min_steps:
-        return None
-    core = float(np.median(slopes[middle]))
-    robust = 1.4826 * float(np.median(np.abs((slopes[middle] - core) * np.sqrt(sxx[middle]))))
-    sigma = robust if robust > 0 else sigma
-    with np.errstate(divide="ignore", invalid="ignore"):
-        off = finite & (np.abs(slopes - core) > opts.curvature_sigmas * sigma / np.sqrt(sxx))
-    # The line lies deeper than the plane's foot (|X| ≥ h): a step whose mean depth along the plane's normal
-    # sits deeper than the middle half's by more than its own noise is not the plane's, whatever its slope.
-    pos = np.searchsorted(r.steps, r.rows)
-    own = m.ranges + m.positions @ unit_normal(m.bearing, m.tilt)
-    count = np.bincount(pos, minlength=k)
-    depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
-    level = float(np.median(depth[middle]))
-    spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
-    if spread > 0:
-        off |= finite & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
-
-    def block(order: np.ndarray) -> int:
-        """How many steps from that end up to the last departing one before the first that agrees (a step
-        with too few readings for a slope goes with its neighbours)."""
-        n_off = 0
-        for j, s in enumerate(order):
-            if finite[s] and not off[s]:
-                break
-            if finite[s]:
-                n_off = j + 1
-        return n_off
-
-    head = block(np.arange(k))
-    tail = block(np.arange(k - 1, head - 1, -1))
-    if head + tail == 0 or 2 * (k - head - tail) < k or k - head - tail < opts.min_steps:
-        return None
-    core_sel = (pos >= head) & (pos < k - tail)
-    level = float(np.median(own[core_sel]))
-    noise = 3 * sigma
-
-    def nearer(sel: np.ndarray) -> bool:
-        return bool(np.any(sel)) and float(np.median(own[sel])) < level - noise
-
-    cut_before = r.cut_before or (head > 0 and nearer(pos < head))
-    cut_after = r.cut_after or (tail > 0 and nearer(pos >= k - tail))
-    parts = [subregion(r, r.steps[head : k - tail], cut_before, cut_after)]
-    if head >= opts.min_steps:
-        parts.insert(0, subregion(r, r.steps[:head], r.cut_before, True))
-    if tail >= opts.min_steps:
-        parts.append(subregion(r, r.steps[k - tail :], True, r.cut_after))
-    return [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
 
 
 def split_dihedral(

@@ -69,11 +69,10 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     split_dihedral,
     stack_dihedral,
     sweep_step,
-    trim_ends,
     unit_normal,
     wrap,
 )
-from lelsonar.reconstruct.estimate.surfaces.flanks import split_flanks
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
@@ -329,14 +328,9 @@ def extract_surfaces(
     )
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
-    # A region whose ends are its plane's double bounce with a surface across the fan, split off both at once (the
-    # plane keeps the whole region's centre, its foot); then any end that still slopes off the plane's.
-    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
-    # A plane's region whose end steps are a line across the stack at a like range: its core and those ends.
-    trimmed: list[Measured] = []
-    for i in range(len(measured)):
-        trimmed.extend(trim_ends(i, measured, g, d, amp, geometry, opts) or [measured[i]])
-    measured = trimmed
+    # A region whose ends hold another target along the stack (its plane's double bounce with a surface across
+    # the fan, a line across the stack at a like range): its plane's middle and those ends.
+    measured = [piece for m in measured for piece in split_ends(m, g, d, amp, geometry, opts)]
     # A plane's region that runs on into its corner with a nearer plane: split where the steps tell them apart.
     split: list[Measured] = []
     for i in range(len(measured)):
