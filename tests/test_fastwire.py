@@ -17,7 +17,10 @@ from hypothesis import strategies as st
 
 from lelsonar import codec
 from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
+from lelsonar.reconstruct.stream.ingest import Ingest
 from lelsonar.v1 import scan_pb2
+
+from .conftest import simulated_messages
 
 FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
 SETTINGS = settings(max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
@@ -99,16 +102,15 @@ def _check(payload: bytes, ids: list[int], n: int, rate: float, t0: float) -> No
     header = sample_header(payload)
     if header is None:
         return  # left to the parser: the ingest reads a body only after its header (its scanner id UTF-8)
-    if truth is not None:
-        assert header == (truth.schema_version, truth.scanner_id, truth.scan_id, truth.step, truth.acquisition_time_ns)
     k = len(ids)
     values = np.zeros(6 * k + 5)
     values[: 2 * k] = [rate, t0] * k
     waves = np.zeros((k, n), np.float32)
-    carried = read_sample(payload, np.array(ids, np.int64), values, waves)
+    carried = read_sample(payload, header[-1], np.array(ids, np.int64), values, waves)
     if carried < 0:
-        return
+        return  # the header alone routes, and nothing is placed on it: the body's walk decides
     assert truth is not None, "read a payload the parser refuses"
+    assert header[:5] == (truth.schema_version, truth.scanner_id, truth.scan_id, truth.step, truth.acquisition_time_ns)
     sensors = list(truth.sensors)
     assert [s.capsule_id for s in sensors] == ids
     for s in sensors:
@@ -144,9 +146,10 @@ def test_valid_messages_are_read_as_the_parser_reads_them(drawn, unknown: bool, 
     k = len(ids)
     values = np.zeros(6 * k + 5)
     values[: 2 * k] = [rate, t0] * k
-    read = read_sample(payload, np.array(ids, np.int64), values, np.zeros((k, n), np.float32))
+    header = sample_header(payload)
+    assert header is not None
+    read = read_sample(payload, header[-1], np.array(ids, np.int64), values, np.zeros((k, n), np.float32))
     assert (read >= 0) == on_layout
-    assert sample_header(payload) is not None
 
 
 @SETTINGS
@@ -173,3 +176,29 @@ def test_cut_spliced_or_repeated_fields_are_read_as_the_parser_reads_them_or_lef
     else:  # a field sent again at the end: the parser keeps the last (or merges), the fast path leaves it
         payload += codec.Sample(step=b, gamma_measured=float(a), scanner_id="x").SerializeToString()
     _check(payload, ids, n, rate, t0)
+
+
+def test_a_header_field_after_the_body_leaves_the_payload_to_the_parser():
+    """The header is read up to the first other field; one sent again after the body (the parser keeps the
+    last) is the body's walk's refusal, and the ingest then places the sample where the parser puts it."""
+    start, *samples, _ = simulated_messages()
+    ingest = Ingest()
+    name = codec.Sample.DESCRIPTOR.full_name
+    for m in (start, samples[0], samples[1]):
+        ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
+    sample = samples[2]
+    moved = samples[5].step
+    payload = sample.SerializeToString() + codec.Sample(step=moved).SerializeToString()
+    header = sample_header(payload)
+    assert header is not None and header[3] == sample.step  # the first step: what the header routes on
+    k = len(sample.sensors)
+    n = sample.sensors[0].waveform.sample_count
+    values = np.zeros(6 * k + 5)
+    w = sample.sensors[0].waveform
+    values[: 2 * k] = [w.sample_rate, w.t0] * k
+    ids = np.array(sorted(s.capsule_id for s in sample.sensors), np.int64)
+    assert read_sample(payload, header[-1], ids, values, np.zeros((k, n), np.float32)) == -1
+    (event,) = ingest.accept(name, payload)
+    assert event.kind == "sample" and event.step == moved == codec.Sample.FromString(payload).step
+    scan = event.scan
+    assert scan.received[moved] and not scan.received[sample.step]

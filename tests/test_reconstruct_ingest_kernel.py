@@ -10,7 +10,7 @@ import pytest
 from lelsonar import codec
 from lelsonar.errors import NonFiniteValueError
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
-from lelsonar.reconstruct.stream.fastwire import read_sample
+from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected
 from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, dc_levels, settle_step
 from lelsonar.signal.energy import EnergyModel, energy_ratio, median_range, total_energy
@@ -64,6 +64,23 @@ def test_dc_levels_are_numpys_mean_bit_for_bit(n, kind):
         rng.standard_normal((4, n)) * 1e30,
     ][kind].astype(np.float32)
     got = np.zeros(4)
+    dc_levels(w, got)
+    np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 5, 6, 9])
+def test_dc_levels_of_rows_summed_exactly_and_in_order_side_by_side_are_numpys(k):
+    """Rows that cannot be summed exactly are summed in order four at a time: any count of them, among rows that
+    can, each its own mean."""
+    rng = np.random.default_rng(k)
+    n = 3500
+    exact = rng.random(k) < 0.5
+    w = np.where(
+        exact[:, None],
+        np.round(rng.standard_normal((k, n)) * 500) * (3.3 / 4096),
+        rng.standard_normal((k, n)) + rng.standard_normal(k)[:, None],
+    ).astype(np.float32)
+    got = np.full(k, -1.0)
     dc_levels(w, got)
     np.testing.assert_array_equal(got, np.abs(w.mean(axis=-1, dtype=np.float64)))
 
@@ -240,10 +257,11 @@ def test_the_limits_hold_on_a_scans_fast_path(scan):
         for m in samples[:4]:
             assert routed.add(m)
         payload, time_ns = sample.SerializeToString(), sample.acquisition_time_ns
-        assert routed.add_payload(payload, sample.step, time_ns, "live", limits) is None
+        body = sample_header(payload)[-1]
+        assert routed.add_payload(payload, body, sample.step, time_ns, "live", limits) is None
         assert routed.add(sample, limits=limits) is None
         assert routed.n_received == 4 and not routed.received[4:].any()
-        assert routed.add_payload(payload, sample.step, time_ns, "live", codec.DEFAULT_LIMITS)
+        assert routed.add_payload(payload, body, sample.step, time_ns, "live", codec.DEFAULT_LIMITS)
         assert routed.received[sample.step]
 
 
@@ -328,7 +346,8 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
             values[: 2 * k] = [w0.sample_rate, w0.t0] * k
             values[2 * k :] = rng.standard_normal(4 * k + 5)  # a previous sample's readings, to be overwritten
             waveforms = np.full((k, n), np.nan, np.float32)
-            carried = read_sample(payload, ids, values, waveforms)
+            header = sample_header(payload)
+            carried = -1 if header is None else read_sample(payload, header[-1], ids, values, waveforms)
             ranges, layout, data = codec.sample_readings(m.sensors)
             if i < len(plain):  # plainly encoded: read exactly when on the layout
                 assert (carried >= 0) == (layout == fast_layout), i
@@ -336,6 +355,7 @@ def test_a_payload_is_read_bit_for_bit_as_the_parser_reads_it_or_left_to_the_par
                 counts["left"] += 1
                 continue
             counts["read"] += 1
+            assert header[:5] == (m.schema_version, m.scanner_id, m.scan_id, m.step, m.acquisition_time_ns)
             assert layout == fast_layout
             e = m.sensor_energy[:]
             assert carried == len(e)

@@ -164,6 +164,7 @@ class ScanAssembly(WriterChecks):
         # the kernel's buffer of numbers (place_step's ``values``): the layout's clocks, then each sample's
         # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
         self._layout: list | None = None
+        self._limits_cleared: codec.DecodeLimits | None = None  # the limits the layout and schedule are within
         self._buffer = bytearray(8 * (6 * self._k + 5))
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
@@ -264,10 +265,11 @@ class ScanAssembly(WriterChecks):
         return view
 
     def add_payload(
-        self, payload: bytes, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
+        self, payload: bytes, body: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
     ) -> bool | None:
         """Place a sample straight from its ``payload`` (:mod:`~lelsonar.reconstruct.stream.fastwire`, the
-        header already read: its ``step`` and ``acquisition_time_ns``), never parsed; its body's checks under
+        header already read: its ``step`` and ``acquisition_time_ns``, and where its ``body`` starts), never
+        parsed; its body's checks under
         ``limits`` are made in the pass that places it (:func:`~lelsonar.reconstruct.stream.step_features.
         place_step`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
         clocks: the contract's checks of them passed).  Anything this does not clear — no layout yet, a
@@ -280,21 +282,21 @@ class ScanAssembly(WriterChecks):
         InvalidMessageError
             A range that needs a speed of sound the scan does not state.
         """
-        received = self.received
         known = self._layout
-        if (
-            known is None
-            or step >= self._steps
-            or (step < len(received) and received[step])
-            or not (
-                step < limits.max_steps and self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples
-            )
-        ):
+        if known is None or step >= self._steps:
             return None
-        if step >= len(received):
-            self._allocate(min(self._steps, max(2 * len(received), step + 1)))
+        if limits is not self._limits_cleared and not self._clears(limits):
+            # A schedule beyond the limits (its ScanStart validated under others): each step checked against them.
+            if not (
+                step < limits.max_steps and self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples
+            ):
+                return None
+        if step >= len(self.received):
+            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
+        # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
         status, carried = place_wire(
             payload,
+            body,
             self._ids,
             self._values,
             self._waves,
@@ -302,11 +304,30 @@ class ScanAssembly(WriterChecks):
             step,
             time_ns,
             origin == "recovered",
-            self._arrays(),
+            *self._rows,
+            self._timing_windows,
+            self._candidate_windows,
         )
+        if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
+            self._latest = (step, payload, known[1], known[2], known[3])
+            return True
         if status == UNREAD:
             return None
         return self._placed(status, carried, step, self._waves, known, None, True, payload)
+
+    def _clears(self, limits: codec.DecodeLimits) -> bool:
+        """Whether every step of the scan's schedule, its capsules and its layout's waveform length are within
+        ``limits`` (which a ScanStart validated under other limits does not bound); if so, they are remembered as
+        cleared for the samples that follow."""
+        if not (
+            self._steps <= limits.max_steps
+            and self._k <= limits.max_sensors
+            and self._layout is not None
+            and self._layout[1] <= limits.max_waveform_samples
+        ):
+            return False
+        self._limits_cleared = limits
+        return True
 
     def add(
         self,
@@ -429,7 +450,7 @@ class ScanAssembly(WriterChecks):
             limits is None,
             sample.acquisition_time_ns,
             origin == "recovered",
-            self._arrays(),
+            *self._arrays(),
         )
         return self._placed(status, m, step, waveforms, layout, ranges, one_clock, waveforms)
 
@@ -527,6 +548,7 @@ class ScanAssembly(WriterChecks):
             return False
         self._values[: 2 * k] = [rate, t0] * k
         self._layout = layout
+        self._limits_cleared = None
         if self._waves.shape[1] != n:
             self._waves = np.empty((k, n), np.float32)
         return True

@@ -3,8 +3,10 @@
 The acquisition service's samples all have one layout (the capsules in the ScanStart's order, float32
 waveforms of one length on one clock).  For a scan whose layout is known, a sample's header
 (:func:`read_header`) and body (:func:`read_sample`) are read from the protobuf wire format in compiled code,
-bit for bit what the parser gives, and the payload is parsed once.  Only a payload plainly encoded (each field
-once, with its own wire type, no groups, canonical field numbers) on that layout is read; anything else,
+bit for bit what the parser gives, and the payload is parsed once.  The two walk the top level in turn: the
+header is the fields before the first other one, the body the rest, so that routing a sample touches only
+its first cache line.  Only a payload plainly encoded (each field once, with its own wire type, no groups,
+canonical field numbers, the header first) on that layout is read; anything else,
 however valid, is left to :func:`lelsonar.codec.parse` (the readers say so, nothing else).  A differential
 test holds the readers to ``protobuf`` on valid messages of every shape and on mutated bytes.
 
@@ -217,8 +219,14 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
             if wire_type != _LENGTH or seen & (1 << field):
                 return False
             d0, d1 = _wire_length(buf, i, b)
-            if d0 < 0:
+            if d0 < 0 or d1 - d0 != 4 * n:
                 return False
+            # Copied as it is met, so that the fields after it are read from the cache lines the copy streamed
+            # in, not fetched ahead of it.  A loop over the bytes: one vectorised copy (a slice assignment checks
+            # for overlap and copies twice).
+            src, dst = buf[d0:d1], row.view(np.uint8)
+            for j in range(d1 - d0):
+                dst[j] = src[j]
             i = d1
         else:
             i = _wire_skip(buf, i, b, wire_type)
@@ -227,27 +235,23 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
             continue
         seen |= 1 << field
     # The layout's clock to the bit (stricter than ==, which the fast path's clocks, finite, need no more of).
-    if not (encoding == _FLOAT32 and count == n and d1 - d0 == 4 * n and rate == bits[clock] and t0 == bits[clock + 1]):
-        return False
-    # A loop over the bytes: one vectorised copy (a slice assignment checks for overlap and copies twice).
-    src, dst = buf[d0:d1], row.view(np.uint8)
-    for j in range(d1 - d0):
-        dst[j] = src[j]
-    return True
+    return (d0 >= 0 or n == 0) and encoding == _FLOAT32 and count == n and rate == bits[clock] and t0 == bits[clock + 1]
 
 
 @kernel
-def read_sample(payload, ids, values, waveforms):
-    """What a ``Sample``'s payload holds that :func:`place_step` reads, straight from the protobuf wire format:
-    γ measured and commanded, the motor's load, voltage and temperature and each reading's ``echo_valid,
-    distance, time_of_flight`` into ``values`` (where :func:`place_step` reads them; a field absent is 0, as
-    the parser gives it), the first k carried energies after them, and each waveform's samples into
-    ``waveforms`` — bit for bit what the parsed message's fields hold.
+def read_sample(payload, body, ids, values, waveforms):
+    """What a ``Sample``'s payload holds that :func:`place_step` reads, straight from the protobuf wire format
+    from ``payload[body]`` on (the first field after its header, :func:`read_header`): γ measured and
+    commanded, the motor's load, voltage and temperature and each reading's ``echo_valid, distance,
+    time_of_flight`` into ``values`` (where :func:`place_step` reads them; a field absent is 0, as the parser
+    gives it), the first k carried energies after them, and each waveform's samples into ``waveforms`` — bit
+    for bit what the parsed message's fields hold.
 
-    Only a payload plainly encoded (each field read here once, with its own wire type, no groups) on the fast
-    path's layout (the k readings in the order of the capsule ``ids``, float32 waveforms of
-    ``waveforms.shape[1]`` samples each on the clocks in ``values[:2k]``, to the bit) is read; anything else,
-    however valid, is left to the parsed message (-1; ``values`` and ``waveforms`` then partly written).
+    Only a payload plainly encoded (each field read here once, with its own wire type, no groups, no header
+    field after ``body``: the header read before it is then the parser's) on the fast path's layout (the k
+    readings in the order of the capsule ``ids``, float32 waveforms of ``waveforms.shape[1]`` samples each on
+    the clocks in ``values[:2k]``, to the bit) is read; anything else, however valid, is left to the parsed
+    message (-1; ``values`` and ``waveforms`` then partly written).
 
     Returns
     -------
@@ -261,10 +265,10 @@ def read_sample(payload, ids, values, waveforms):
     for j in range(head, head + 5):
         bits[j] = 0
     sensors = carried = seen = 0
-    i, end = 0, buf.size
+    i, end = body, buf.size
     while i < end:
         field, wire_type, i = _wire_tag(buf, i, end)
-        if i < 0:
+        if i < 0 or field <= _SAMPLE_TIME:  # (a header field again: the parser keeps the last one)
             return -1
         if field == _SAMPLE_SENSORS:
             if wire_type != _LENGTH or sensors == k:
@@ -321,7 +325,7 @@ def read_sample(payload, ids, values, waveforms):
                         return -1
             i = b
             seen |= 1 << field
-        else:  # the header (read by the parser), or a field this build does not know
+        else:  # a field this build does not know
             i = _wire_skip(buf, i, end, wire_type)
             if i < 0:
                 return -1
@@ -329,27 +333,64 @@ def read_sample(payload, ids, values, waveforms):
 
 
 @kernel
-def place_wire(payload, ids, values, waveforms, scan, step, time_ns, recovered, arrays):
-    """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample`, into
-    ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it could not be
-    read that way (nothing placed)."""
-    carried = read_sample(payload, ids, values, waveforms)
+def place_wire(
+    payload,
+    body,
+    ids,
+    values,
+    waveforms,
+    scan,
+    step,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
+    """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample` from ``body``
+    on, into ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it
+    could not be read that way, or its step is already held (nothing placed).  The scan's arrays come one by one,
+    as :func:`place_step` takes them: a tuple of arrays costs a call more to hand over."""
+    if received[step]:
+        return UNREAD, 0
+    carried = read_sample(payload, body, ids, values, waveforms)
     if carried < 0:
         return UNREAD, 0
     k = ids.size
     return place_step(
-        waveforms, values, scan, k if carried == k else 0, step, False, time_ns, recovered, arrays
+        waveforms,
+        values,
+        scan,
+        k if carried == k else 0,
+        step,
+        False,
+        time_ns,
+        recovered,
+        per_capsule,
+        per_step,
+        acquired_ns,
+        received,
+        recovered_mask,
+        timing_windows,
+        candidate_windows,
     ), carried
 
 
 @kernel
 def read_header(payload):
     """A ``Sample``'s header straight from its payload: whether it was read, ``schema_version``, the bounds
-    (start, end) of ``scanner_id``'s bytes, ``scan_id``, ``step`` and ``acquisition_time_ns``'s 64 bits.
+    (start, end) of ``scanner_id``'s bytes, ``scan_id``, ``step``, ``acquisition_time_ns``'s 64 bits, and where
+    its body starts (the first field after the header, for :func:`read_sample`).
 
-    Read only if each header field appears at most once with its own wire type, ``schema_version`` and
-    ``step`` fit their 32 bits and every top-level tag is one the parser accepts; the body's fields are
-    skipped (:func:`read_sample` reads them).  A field absent is 0, as the parser gives it.
+    The header is the fields before the first field of another number: read only if each appears there at most
+    once with its own wire type, its tags are ones the parser accepts and ``schema_version`` and ``step`` fit
+    their 32 bits.  A field absent is 0, as the parser gives it.  Nothing after the header is touched (the
+    body's fields lie in cache lines of their own): whether a header field comes again, as the parser would
+    read it, is :func:`read_sample`'s refusal.
     """
     buf = np.frombuffer(payload, dtype=np.uint8)
     version = scan_id = step = time = np.uint64(0)
@@ -357,47 +398,46 @@ def read_header(payload):
     seen = 0
     i, end = 0, buf.size
     while i < end:
-        field, wire_type, i = _wire_tag(buf, i, end)
+        field, wire_type, after = _wire_tag(buf, i, end)
+        if after < 0:
+            return False, version, a, b, scan_id, step, time, i
+        if field > _SAMPLE_TIME:
+            break
+        i = after
+        if seen & (1 << field):
+            return False, version, a, b, scan_id, step, time, i
+        seen |= 1 << field
+        if field == _SAMPLE_SCANNER:
+            if wire_type != _LENGTH:
+                return False, version, a, b, scan_id, step, time, i
+            a, b = _wire_length(buf, i, end)
+            if a < 0:
+                return False, version, a, b, scan_id, step, time, i
+            i = b
+            continue
+        if wire_type != _VARINT:
+            return False, version, a, b, scan_id, step, time, i
+        v, i = _wire_varint(buf, i, end)
         if i < 0:
-            return False, version, a, b, scan_id, step, time
-        if field <= _SAMPLE_TIME:
-            if seen & (1 << field):
-                return False, version, a, b, scan_id, step, time
-            seen |= 1 << field
-            if field == _SAMPLE_SCANNER:
-                if wire_type != _LENGTH:
-                    return False, version, a, b, scan_id, step, time
-                a, b = _wire_length(buf, i, end)
-                if a < 0:
-                    return False, version, a, b, scan_id, step, time
-                i = b
-                continue
-            if wire_type != _VARINT:
-                return False, version, a, b, scan_id, step, time
-            v, i = _wire_varint(buf, i, end)
-            if i < 0:
-                return False, version, a, b, scan_id, step, time
-            if field == _SAMPLE_VERSION:
-                version = v
-            elif field == _SAMPLE_SCAN:
-                scan_id = v
-            elif field == _SAMPLE_STEP:
-                step = v
-            else:
-                time = v
+            return False, version, a, b, scan_id, step, time, i
+        if field == _SAMPLE_VERSION:
+            version = v
+        elif field == _SAMPLE_SCAN:
+            scan_id = v
+        elif field == _SAMPLE_STEP:
+            step = v
         else:
-            i = _wire_skip(buf, i, end, wire_type)
-            if i < 0:
-                return False, version, a, b, scan_id, step, time
+            time = v
     ok = version < np.uint64(1 << 32) and step < np.uint64(1 << 32)
-    return ok, version, a, b, scan_id, step, time
+    return ok, version, a, b, scan_id, step, time, i
 
 
-def sample_header(payload: bytes) -> tuple[int, str, int, int, int] | None:
-    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns)`` of a ``Sample``'s payload, as the
-    parser reads them (:func:`read_header`); None where the fast path leaves the payload to the parser (not
-    plainly encoded, or a ``scanner_id`` that is not UTF-8)."""
-    ok, version, a, b, scan_id, step, time = read_header(payload)
+def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int] | None:
+    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns, body)`` of a ``Sample``'s payload
+    (:func:`read_header`; ``body``: where :func:`read_sample` reads on), as the parser reads them if
+    :func:`read_sample` reads the body; None where the fast path leaves the payload to the parser (not plainly
+    encoded, or a ``scanner_id`` that is not UTF-8)."""
+    ok, version, a, b, scan_id, step, time, body = read_header(payload)
     if not ok:
         return None
     try:
@@ -405,4 +445,4 @@ def sample_header(payload: bytes) -> tuple[int, str, int, int, int] | None:
     except UnicodeDecodeError:
         return None
     t = int(time)
-    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t
+    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t, int(body)

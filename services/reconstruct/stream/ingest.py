@@ -59,6 +59,7 @@ class Accepted(NamedTuple):
 
 #: Accepted((kind, scan, step)) without the named tuple's Python-level __new__ (a third of its cost).
 _accepted = functools.partial(tuple.__new__, Accepted)
+_MESSAGE_TYPES, _SAMPLE = codec.MESSAGE_TYPES, codec.Sample
 
 
 @dataclass
@@ -114,10 +115,8 @@ class Ingest:
         """
         message: codec.WireMessage
         try:
-            cls = codec.MESSAGE_TYPES.get(type_name)
-            if cls is None or cls is codec.Reconstruction:
-                raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
-            if cls is codec.Sample:
+            cls = _MESSAGE_TYPES.get(type_name)
+            if cls is _SAMPLE:
                 if type(payload) is not bytes and len(payload) <= self.limits.max_payload_bytes:
                     payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the fast path or the parser reads it
                 placed = self._add_payload(payload, origin, key_scanner) if self.fast_path else None
@@ -130,6 +129,8 @@ class Ingest:
                     # here first, as decoding does, if that does not clear it).
                     return [self._add(scan, message, origin, self.limits)]
                 codec.validate_body(message, self.limits)
+            elif cls is None or cls is codec.Reconstruction:
+                raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
             else:
                 message = codec.decode(payload, cls, self.limits)
             if key_scanner is not None and message.scanner_id != key_scanner:
@@ -233,13 +234,13 @@ class Ingest:
         header = sample_header(payload)
         if header is None or header[0] != SCHEMA_VERSION:
             return None
-        _, scanner, scan_id, step, time_ns = header
+        _, scanner, scan_id, step, time_ns, body = header
         scan = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
         if scan is None or (key_scanner is not None and scanner != key_scanner):
             return None
         mismatches = scan.energy_mismatches
         try:
-            placed = scan.add_payload(payload, step, time_ns, origin, self.limits)
+            placed = scan.add_payload(payload, body, step, time_ns, origin, self.limits)
         except DecodeError as exc:
             return self._refused(scan, step, exc)
         if placed is None:

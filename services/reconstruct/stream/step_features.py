@@ -77,7 +77,13 @@ def place_step(
     checked,
     time_ns,
     recovered,
-    arrays,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
 ):
     """Everything one step's readings and waveforms give, in one pass while they are in the cache: unless the
     sample was validated, the checks of the contract on its readings (:func:`lelsonar.codec.validate_body`'s
@@ -110,9 +116,7 @@ def place_step(
         the screen does not clear, is ``UNCHECKED`` (for the caller to validate it, naming the culprit).
     time_ns, recovered : int, bool
         The sample's acquisition time and origin (the acquirer's log).
-    arrays : tuple
-        The scan's arrays a step is written into, in this order:
-    per_capsule, per_step : (7, steps, k), (5, steps) float64 arrays
+    per_capsule, per_step : (9, steps, k), (5, steps) float64 arrays
         The scan's blocks (:data:`PER_CAPSULE`, :data:`PER_STEP`).
     acquired_ns, received, recovered_mask : (steps,) arrays
         The scan's ``time_ns``, ``received``, ``recovered_mask``.
@@ -131,9 +135,10 @@ def place_step(
         a range anyway, plus ``CANDIDATES`` if a candidate echo's window was found but not kept
         (``candidate_windows`` not allocated yet).
     """
-    per_capsule, per_step, acquired_ns, received, recovered_mask, timing_windows, candidate_windows = arrays
     k, n = waveforms.shape
-    clocks, readings, energies = values[: 2 * k], values[2 * k + 5 : 5 * k + 5], values[5 * k + 5 : 5 * k + 5 + m]
+    # Where the readings and the carried energies start in ``values`` (indexed, not sliced: a slice of an array
+    # costs an atomic reference count, and the pass makes dozens).
+    r0, e0 = 2 * k + 5, 5 * k + 5
     if not checked:
         # codec._validate_sample's screen (a sum is finite only if each term is), refusing nothing it clears.
         if not math.isfinite(
@@ -141,34 +146,34 @@ def place_step(
         ):
             return UNCHECKED
         for i in range(k):
-            d, t = readings[3 * i + 1], readings[3 * i + 2]
-            if readings[3 * i] != 0.0 and not (math.isfinite(t + d) and 0.0 < d < MAX_RANGE_M and t > 0.0):
+            d, t = values[r0 + 3 * i + 1], values[r0 + 3 * i + 2]
+            if values[r0 + 3 * i] != 0.0 and not (math.isfinite(t + d) and 0.0 < d < MAX_RANGE_M and t > 0.0):
                 return UNCHECKED
     agreed = m == k
     for i in range(k):
-        squares = np.dot(waveforms[i], waveforms[i])  # float32, as energy_agrees' bound assumes
+        row = waveforms[i]
+        squares = np.dot(row, row)  # float32, as energy_agrees' bound assumes
         if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
             if not checked:
                 return UNCHECKED
             agreed = False
         elif agreed:
-            agreed = energy_agrees(energies[i], float(squares), n, clocks[2 * i])
+            agreed = energy_agrees(values[e0 + i], float(squares), n, values[2 * i])
     c, timing_rate = scan[0], scan[1]
     for i in range(k):
-        if readings[3 * i] != 0.0 and not (readings[3 * i + 1] > 0.0 and readings[3 * i + 2] > 0.0) and not c == c:
+        at = r0 + 3 * i
+        if values[at] != 0.0 and not (values[at + 1] > 0.0 and values[at + 2] > 0.0) and not c == c:
             return NO_SOUND_SPEED
-    distance, sensor_energy, echo_amplitude = per_capsule[0], per_capsule[1], per_capsule[2]
-    pre_echo_peak, dc_level, range_tof_ratio, timing_at = per_capsule[3], per_capsule[4], per_capsule[5], per_capsule[6]
-    candidate_at, candidate_start = per_capsule[7], per_capsule[8]
     width = timing_windows.shape[2]
+    kept = candidate_windows.shape[2] == width
     sampled = step % RISE_STRIDE == 0
     unflagged = 0
     unkept = False
     for i in range(k):
-        d, t = readings[3 * i + 1], readings[3 * i + 2]
-        rate, t0 = clocks[2 * i], clocks[2 * i + 1]
+        d, t = values[r0 + 3 * i + 1], values[r0 + 3 * i + 2]
+        rate, t0 = values[2 * i], values[2 * i + 1]
         ratio = np.nan
-        if readings[3 * i] != 0.0:  # echo_valid
+        if values[r0 + 3 * i] != 0.0:  # echo_valid
             if not (d > 0.0 and t > 0.0):
                 if d > 0.0:
                     t = 2.0 * d / c
@@ -180,34 +185,38 @@ def place_step(
             if d > 0.0:  # NaN compares false: only a positive range counts
                 unflagged += 1
             d = t = np.nan
-        distance[step, i] = d
+        per_capsule[0, step, i] = d  # distance
         if agreed:
-            sensor_energy[step, i] = energies[i]
+            per_capsule[1, step, i] = values[e0 + i]  # sensor_energy
         row = waveforms[i]
-        echo_amplitude[step, i] = window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
+        per_capsule[2, step, i] = window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
         if width > 0 and rate == timing_rate and t > 0.0:  # NaN compares false: no echo, nothing to time
             a = int(round((t + TIMING_WINDOW[0] - t0) * rate))
             if a >= 0 and a + width <= n:
-                timing_windows[step, i, :] = row[a : a + width]
-                timing_at[step, i] = t - (t0 + a / rate)
+                for j in range(width):  # (a loop: a slice assignment checks for overlap first)
+                    timing_windows[step, i, j] = row[a + j]
+                per_capsule[6, step, i] = t - (t0 + a / rate)  # _timing_at
                 b = candidate_echo(row, a, width, rate)
                 if b >= 0:
                     c0 = (
                         b + a - width // 2
                     )  # the crossing in the middle of its window, as the time of flight in its own
                     if c0 + width <= n:
-                        if candidate_windows.shape[2] == width:
-                            candidate_windows[step, i, :] = row[c0 : c0 + width]
+                        if kept:
+                            for j in range(width):
+                                candidate_windows[step, i, j] = row[c0 + j]
                         else:
                             unkept = True
-                        candidate_at[step, i] = (b + a - c0) / rate
-                        candidate_start[step, i] = t0 + c0 / rate
+                        per_capsule[7, step, i] = (b + a - c0) / rate  # _candidate_at
+                        per_capsule[8, step, i] = t0 + c0 / rate  # _candidate_start
         if sampled:
-            range_tof_ratio[step, i] = ratio
+            per_capsule[5, step, i] = ratio  # range_tof_ratio
             if n > 0:
-                pre_echo_peak[step, i] = window_peak(row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1])
+                per_capsule[3, step, i] = window_peak(  # pre_echo_peak
+                    row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1]
+                )
     if sampled and n > 0:
-        dc_levels(waveforms, dc_level[step])
+        dc_levels(waveforms, per_capsule[4, step])
     per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
     if agreed:
         settle_step(per_capsule, per_step, step, scan)
@@ -265,11 +274,42 @@ def dc_levels(waveforms, out):
     bits = 0
     while (1 << bits) < n:
         bits += 1
+    inexact_rows = 0
     for i in range(k):
         row = waveforms[i]
         s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
         total, inexact = _scaled_sum(row, 2.0**s)
-        out[i] = _dc_level_in_order(row) if inexact else abs(float(total) * 2.0**-s / n)
+        if inexact:
+            inexact_rows += 1
+            out[i] = np.nan  # summed in order below
+        else:
+            out[i] = abs(float(total) * 2.0**-s / n)
+    if inexact_rows:
+        _dc_levels_in_order(waveforms, out)
+
+
+@kernel
+def _dc_levels_in_order(waveforms, out):
+    """:func:`dc_levels` of the rows whose ``out`` is NaN, each summed in float64 in order, four rows side by
+    side: the additions of a row wait on one another, those of four rows do not."""
+    k, n = waveforms.shape
+    rows = np.empty(k, np.int64)
+    count = 0
+    for i in range(k):
+        if out[i] != out[i]:
+            rows[count] = i
+            count += 1
+    for g in range(0, count, 4):
+        # A group of fewer than four repeats its last row (its sums computed twice, written once).
+        a, b = rows[g], rows[min(g + 1, count - 1)]
+        c, d = rows[min(g + 2, count - 1)], rows[min(g + 3, count - 1)]
+        ta = tb = tc = td = 0.0
+        for j in range(n):
+            ta += float(waveforms[a, j])
+            tb += float(waveforms[b, j])
+            tc += float(waveforms[c, j])
+            td += float(waveforms[d, j])
+        out[a], out[b], out[c], out[d] = abs(ta / n), abs(tb / n), abs(tc / n), abs(td / n)
 
 
 @kernel
@@ -293,12 +333,3 @@ def _scaled_sum(row, scale):
         total += whole
         inexact |= np.int64(np.float64(whole) != y)
     return total, inexact != 0
-
-
-@kernel
-def _dc_level_in_order(row):
-    """|mean| of a float32 waveform summed in float64 in order (:func:`dc_levels` where it cannot be exact)."""
-    total = 0.0
-    for v in row:
-        total += float(v)
-    return abs(total / row.size)
