@@ -24,7 +24,6 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     capsule_x,
     stack_fits,
-    subregion,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -43,7 +42,6 @@ __all__ = [
     "pair_stderr",
     "plane_end",
     "plane_line",
-    "split_dihedral",
     "stack_dihedral",
     "wrap",
 ]
@@ -406,109 +404,3 @@ def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list
 
 def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
-    """The block of steps at the start that lies deeper than the rest, if significant: (length, depth
-    difference m, its standard error m).
-
-    The split that best separates two levels (the largest t of their difference); it must be deeper by
-    more than ``curvature_sigmas`` of its standard error and by no more than twice the range tolerance
-    (farther, the corner's echoes would have made their own region), each side ``min_steps`` long.
-    """
-    ok = np.isfinite(depths)
-    k = depths.size
-    if np.count_nonzero(ok) < 2 * opts.min_steps:
-        return None
-    best: tuple[float, int] | None = None
-    for b in range(opts.min_steps, k - opts.min_steps + 1):
-        head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
-        if head.size < 2 or tail.size < 2:
-            continue
-        diff = float(np.mean(head) - np.mean(tail))
-        pooled = math.sqrt(
-            (float(np.sum((head - head.mean()) ** 2)) + float(np.sum((tail - tail.mean()) ** 2)))
-            / (head.size + tail.size - 2)
-        )
-        se = pooled * math.sqrt(1 / head.size + 1 / tail.size)
-        t = diff / se if se > 0 else 0.0
-        if 0 < diff <= 2 * opts.range_tolerance and (best is None or t > best[0]):
-            best = (t, b)
-    if best is None or best[0] < opts.curvature_sigmas:
-        return None
-    b = best[1]
-    head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
-    return b, float(np.mean(head) - np.mean(tail)), float(np.mean(head) - np.mean(tail)) / best[0]
-
-
-def split_dihedral(
-    i: int,
-    measured: list[Measured],
-    gamma: np.ndarray,
-    distance: np.ndarray,
-    amplitude: np.ndarray | None,
-    geometry: ArrayGeometry,
-    opts: SurfaceOptions,
-) -> list[Measured] | None:
-    """A plane's region that runs on into the double bounce of its corner with a nearer plane.
-
-    Where a plane meets a nearer one (a wall and the floor close below the array), the line they share
-    lies barely deeper than the plane: ``|X| − h = h'²/(2h)`` for a wall ``h`` away and a floor ``h'``
-    below.  Both answer within the range tolerance, so the region holds the plane's echoes and, past
-    them on the line's side, the corner's: its span is no longer symmetric about the plane's foot.
-    Each step's depth along the plane's normal tells the two apart (the corner's steps lie deeper, as
-    one block on the line's side, by a level the steps' own scatter resolves): the region splits into
-    the plane's (whole: it is nearer, nothing masks it) and the corner's (cut on the plane's side).
-    The line's place is the trigger (a plane's bearing biased by the corner's steps moves it), and the
-    confirmation: with the plane placed on its own steps, the block lies deeper by ``|X| − h``.
-
-    Returns
-    -------
-    The region's replacement, the plane's and the corner's measured regions, or None if no nearer
-    plane's corner runs into it or its steps do not resolve it.
-    """
-    m = measured[i]
-    # Only a whole region: the corner's echoes lengthen it; a cut one has no span to be lengthened.
-    if m.region.cut_before or m.region.cut_after:
-        return None
-    r = m.region
-    n = unit_normal(m.bearing, m.tilt)
-    for j, mj in enumerate(measured):
-        if j == i or mj.bearing_source == "undetermined" or abs(wrap(m.bearing - mj.bearing)) < opts.foot_separation:
-            continue
-        line = plane_line(m, mj)
-        if line is None:
-            continue
-        x = line[0]
-        rho = float(np.linalg.norm(x))
-        toward = math.atan2(float(x[2]), float(x[1]))
-        half = 0.5 * (m.span[1] - m.span[0])
-        if not (0.0 <= rho - m.depth <= 2 * opts.range_tolerance and abs(wrap(toward - m.bearing)) <= half):
-            continue
-        after = wrap(toward - m.bearing) > 0
-        # Each step's depth along the plane's normal: the corner's steps lie deeper, as one block on its side.
-        own = m.ranges + m.positions @ n
-        pos = np.searchsorted(r.steps, r.rows)
-        hs = np.array([float(np.median(own[pos == k])) if np.any(pos == k) else np.nan for k in range(r.steps.size)])
-        found = _deeper_block(hs[::-1] if after else hs, opts)
-        if found is None:
-            return None
-        block, step, step_se = found
-        if after:
-            plane_steps, corner_steps = r.steps[: r.steps.size - block], r.steps[r.steps.size - block :]
-            plane_r = subregion(r, plane_steps, r.cut_before, False)
-            corner_r = subregion(r, corner_steps, True, r.cut_after)
-        else:
-            corner_steps, plane_steps = r.steps[:block], r.steps[block:]
-            plane_r = subregion(r, plane_steps, False, r.cut_after)
-            corner_r = subregion(r, corner_steps, r.cut_before, True)
-        plane_m, corner_m = (measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r))
-        # The block must lie where the line of the plane so placed puts it: deeper by |X| − h.
-        line = plane_line(plane_m, mj)
-        if line is None:
-            return None
-        expected = float(np.linalg.norm(line[0])) - plane_m.depth
-        if abs(step - expected) > 3 * step_se + 0.25 * expected:
-            return None
-        return [plane_m, corner_m]
-    return None

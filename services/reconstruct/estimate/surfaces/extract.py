@@ -66,13 +66,12 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_stderr,
     plane_end,
     plane_line,
-    split_dihedral,
     stack_dihedral,
     sweep_step,
     unit_normal,
     wrap,
 )
-from lelsonar.reconstruct.estimate.surfaces.flanks import split_ends
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
