@@ -36,7 +36,7 @@ Per region of constant depth (:mod:`.regions`):
     curvature) is;
   - anything else: a **plane**.
 
-Walls joined at concave corners are fitted with them (:mod:`.joint`).
+Each plane is fitted on its own echoes, walls joined at concave corners with them (:mod:`.fitting`, :mod:`.joint`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
