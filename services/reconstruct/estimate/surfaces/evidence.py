@@ -30,6 +30,7 @@ from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 __all__ = [
     "Measured",
     "across_stack",
+    "beyond_reach",
     "unit_normal",
     "feature_point",
     "in_span",
@@ -40,9 +41,12 @@ __all__ = [
     "mirror_normalised",
     "pair_corner",
     "pair_stderr",
+    "end_stderr",
+    "reach_stderr",
     "plane_end",
     "plane_line",
     "stack_dihedral",
+    "stack_or_pair",
     "wrap",
 ]
 
@@ -321,12 +325,66 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     return None if best is None else (best[1], best[2])
 
 
-def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:
+def beyond_reach(
+    m: Measured, bearing: float, pj: Measured, seen: list[Measured], opts: SurfaceOptions, *, placed: bool = False
+) -> str:
+    """Why plane ``pj`` cannot reach ``bearing`` along its trace, where region ``m`` would be its end ("": nothing
+    the sweep saw says so).
+
+    A mirror answers only at its foot; how far it runs along its trace shows only in what lies between its
+    region and ``m`` (every other region whose span lies between theirs in the sweep):
+
+    * one whose bearing is determined, deeper than the trace's range there (``h / cos(β_k − β_j)``) by
+      more than ``on_trace``, would be hidden behind the plane had it run on: the plane ends before it;
+    * where ``placed`` (``m``'s bearing is the trace's alone, its own undetermined), one on the trace
+      nearer the foot (at its determined bearing, or, undetermined, at the bearing its depth puts it on
+      the trace, within its span) is the plane's own end: the plane ends there.  A region whose own
+      bearing puts it on the trace is evidence of its own and is not set aside for it.
+
+    A line across the stack at the plane's foot (its corner with a surface across the fan) is no end along
+    the fan and is passed over.
+    """
+    delta = wrap(bearing - pj.bearing)
+    h = pj.depth / math.cos(pj.tilt)
+    # Between, in the sweep: past the plane's region on m's side, and before m's.
+    if delta > 0:
+        lo, hi = pj.span[1], m.span[0] if m.span[0] > pj.span[1] else math.inf
+    else:
+        lo, hi = m.span[1] if m.span[1] < pj.span[0] else -math.inf, pj.span[0]
+    for k in seen:
+        if k is m or k is pj or not (lo < k.span[0] and k.span[1] < hi):
+            continue
+        if k.bearing_source != "undetermined":
+            dk = wrap(k.bearing - pj.bearing)
+            if dk * delta <= 0 or abs(dk) >= abs(delta) or abs(dk) >= 0.5 * math.pi:
+                continue
+            trace = h / math.cos(dk)
+            if k.depth > trace + opts.on_trace:
+                return (
+                    f"a target {k.depth:.2f} m away at γ {math.degrees(k.bearing):.1f}° lies behind its trace "
+                    f"({trace:.2f} m): the plane ends before it"
+                )
+            on = placed and abs(k.depth - trace) <= opts.on_trace
+        else:
+            if not placed or k.depth <= h:
+                continue
+            dk = math.copysign(math.acos(h / k.depth), delta)
+            on = abs(dk) < abs(delta) - m.step and in_span(wrap(pj.bearing + dk), k, k.step, opts.beyond_cut)
+        if on and not across_stack(k, opts) and stack_dihedral(k, [pj], opts) is None:
+            at = math.degrees(wrap(pj.bearing + dk))
+            return f"another target on its trace at γ {at:.1f}°, nearer its foot, is its end"
+    return ""
+
+
+def plane_end(
+    m: Measured, planes: list[Measured], opts: SurfaceOptions, seen: list[Measured] | None = None
+) -> tuple[list[int], float] | None:
     """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
 
     The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ.
     Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
-    plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.
+    plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
+    region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).
 
     Returns
     -------
@@ -341,7 +399,9 @@ def plane_end(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tupl
         if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
         for bearing in (pj.bearing - half, pj.bearing + half):
-            if in_span(wrap(bearing), m, m.step, opts.beyond_cut):
+            if in_span(wrap(bearing), m, m.step, opts.beyond_cut) and not (
+                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts, placed=True)
+            ):
                 return [j], wrap(bearing)
     return None
 
@@ -397,9 +457,83 @@ def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) ->
     return None
 
 
+def stack_or_pair(
+    m: Measured, planes: list[Measured], low: tuple[int, float, str], pair: tuple[list[int], float]
+) -> tuple[str, str]:
+    """Which double bounce a region is when both :func:`stack_dihedral` and :func:`pair_corner` explain it.
+
+    A plane turned about the fan's normal (a wall's yaw in the vertical fan) slopes its corner with a plane
+    in the fan (the floor) along the stack as a line across the fan, off it by about the second plane's
+    distance, does: over a short stack both give one linear slope.  The pair's line has no free parameter
+    but its range, which the planes' depths shift as a whole: its ranges' shape along the stack must explain
+    the readings to twice a free slope's residual σ, the bar the line across the fan passes with its one
+    unknown.  The line across the fan answers at the plane's foot,
+    the pair's at the bearing of their intersection: a determined bearing within 3 σ of one and not of the
+    other settles it.  The pair's planes were both seen, the surface across the fan only inferred: where
+    the evidence agrees with both, the pair is taken, and said to be unsettled.
+
+    Returns
+    -------
+    ``"pair"`` or ``"stack"``, and a reason to add when the choice is not settled (empty when it is).
+    """
+    a, b = planes[pair[0][0]], planes[pair[0][1]]
+    line = plane_line(a, b)
+    if line is None:
+        return "stack", ""
+    rel = m.positions - line[0][None, :]
+    predicted = np.linalg.norm(rel - (rel @ line[1])[:, None] * line[1][None, :], axis=1)
+    # The planes' depths shift the line's range as a whole (pair_corner bounds that): its shape along the
+    # stack must explain the ranges as well as the line across the fan must, within twice a free slope's σ.
+    resid = m.ranges - predicted
+    if not float(np.sqrt(np.mean((resid - resid.mean()) ** 2))) <= 2 * m.stack_sigma:
+        return "stack", ""
+    if m.bearing_source != "undetermined":
+        reach = 3 * math.hypot(m.bearing_stderr, m.step)
+        at_pair = abs(wrap(m.bearing - pair[1])) <= reach
+        at_foot = abs(wrap(m.bearing - planes[low[0]].bearing)) <= reach
+        if at_foot and not at_pair:
+            return "stack", ""
+        if at_pair and not at_foot:
+            return "pair", ""
+    return "pair", (
+        "also explained as the plane's double bounce with an unseen surface across the fan: "
+        "the ranges and the bearing do not settle which"
+    )
+
+
 def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list[Measured]) -> float:
     """A placed region's bearing σ: the planes' bearing σ, at least one step's quantisation."""
     return max(math.sqrt(sum(measured[planes[j]].bearing_stderr ** 2 for j in which)), m.step / math.sqrt(24.0))
+
+
+def end_stderr(m: Measured, pj: Measured, bearing: float) -> float:
+    """The bearing σ of a plane's end placed on its trace at ``bearing`` from the two depths (:func:`plane_end`).
+
+    The end lies at ``β_j ± acos(h/ρ)``: besides the plane's bearing σ, the depths' own σ move it by
+    ``σ_h / (ρ sin δ)`` and ``h σ_ρ / (ρ² sin δ)`` (``δ`` its angle off the foot), which grow without bound
+    toward the foot, where the trace runs along the range; at least one step's quantisation.
+    """
+    sin_d = abs(math.sin(wrap(bearing - pj.bearing)))
+    if not sin_d > 0:
+        return math.pi
+    sh = pj.depth_stderr if math.isfinite(pj.depth_stderr) else 0.0
+    sr = m.depth_stderr if math.isfinite(m.depth_stderr) else 0.0
+    rho = m.depth
+    spread = math.hypot(sh / (rho * sin_d), pj.depth * sr / (rho * rho * sin_d))
+    return min(math.pi, math.hypot(math.hypot(pj.bearing_stderr, spread), m.step / math.sqrt(24.0)))
+
+
+def reach_stderr(m: Measured, opts: SurfaceOptions) -> float:
+    """The bearing σ of a cut region placed at its span's centre with nothing else to place it.
+
+    Its target lies within the span, or past a cut end by up to ``beyond_cut`` (a nearer echo hides its
+    peak): uniform over that reach, the centre misses it by the reach's own σ (``width/√12``) and by its
+    offset from the reach's middle.
+    """
+    lo = m.span[0] - (opts.beyond_cut if m.region.cut_before else 0.0)
+    hi = m.span[1] + (opts.beyond_cut if m.region.cut_after else 0.0)
+    bias = 0.5 * (lo + hi) - m.bearing
+    return max(m.bearing_stderr, math.sqrt(bias * bias + (hi - lo) ** 2 / 12.0))
 
 
 def wrap(a: float) -> float:

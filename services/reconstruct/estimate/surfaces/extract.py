@@ -57,13 +57,18 @@ from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     Measured,
     across_stack,
+    beyond_reach,
+    end_stderr,
     feature_point,
     measure_region,
     mirror_normalised,
     pair_corner,
     pair_stderr,
     plane_end,
+    plane_line,
+    reach_stderr,
     stack_dihedral,
+    stack_or_pair,
     sweep_step,
     unit_normal,
     wrap,
@@ -99,7 +104,7 @@ def _feature(
     nrm = float(np.linalg.norm(across))
     across = across / nrm if nrm > 1e-9 else np.zeros(3)
     # Along the beam: the depth's scatter; across it: the bearing's, at this depth.
-    sd = 0.003 + 0.5 * (m.depth * 0.0)  # range noise floor
+    sd = max(0.003, m.depth_stderr) if math.isfinite(m.depth_stderr) else 0.003  # at least the range noise floor
     cov = sd**2 * np.outer(b, b) + (m.depth * m.bearing_stderr) ** 2 * np.outer(across, across)
     return Feature(
         kind=kind,
@@ -269,7 +274,7 @@ def extract_surfaces(
             mi = measured[i]
             sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
             tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
-            if abs(float(nj @ p) - mj.depth) <= tol:
+            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, measured, opts):
                 out.append(j)
         return out
 
@@ -289,11 +294,20 @@ def extract_surfaces(
     planes = [i for i in determined if i not in ends]
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
     across_lines: set[int] = set()
+    leaning: set[int] = set()
     for i, m in enumerate(measured):
         pool = others(i, planes)
         # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
         # alone, which says only that the line runs across the stack.
-        low = stack_dihedral(m, [measured[j] for j in pool], opts)
+        near = [measured[j] for j in pool]
+        low = stack_dihedral(m, near, opts)
+        pair = pair_corner(m, near, opts)
+        unsettled = ""
+        if low is not None and pair is not None:
+            # A plane's yaw slopes its corner with a plane in the fan as a line across the fan would.
+            chosen, unsettled = stack_or_pair(m, near, low, pair)
+            if chosen == "pair":
+                low = None
         if low is not None:
             j, z, text = low
             pj = measured[pool[j]]
@@ -320,25 +334,32 @@ def extract_surfaces(
             kinds[i] = ("edge" if weak(m) else "corner", [text], [])
             across_lines.add(i)
             continue
-        pair = pair_corner(m, [measured[j] for j in pool], opts)
         if pair is not None:
             which, bearing = pair
             ties = [pool[j] for j in which]
-            measured[i] = m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured))
+            # The two planes' line leans off the fan with their tilts: its echo comes from its point nearest the
+            # array, off the fan by that lean, at the region's range.
+            line = plane_line(measured[ties[0]], measured[ties[1]])
+            lean = 0.0 if line is None else math.asin(max(-1.0, min(1.0, float(line[0][0] / np.linalg.norm(line[0])))))
+            measured[i] = m = replace(
+                m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
+            )
+            leaning.add(i)
         elif m.bearing_source == "undetermined":
-            placed = plane_end(m, [measured[j] for j in pool], opts)
+            placed = plane_end(m, [measured[j] for j in pool], opts, measured)
             if placed is None:
                 ties = []
             else:
                 which, bearing = placed
                 ties = [pool[j] for j in which]
-                measured[i] = m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured))
+                measured[i] = m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
         else:
             ties = on_traces(i, planes)
         if len(ties) >= 2:
             kinds[i] = (
                 "corner",
-                ["at the double-bounce range of the two planes it joins (their intersection)"],
+                ["at the double-bounce range of the two planes it joins (their intersection)"]
+                + ([unsettled] if unsettled else []),
                 ties[:2],
             )
         elif len(ties) == 1:
@@ -350,6 +371,8 @@ def extract_surfaces(
             else:
                 kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
         elif weak(m):
+            if m.bearing_source == "undetermined":
+                measured[i] = m = replace(m, bearing_stderr=reach_stderr(m, opts))
             kinds[i] = (
                 "edge",
                 [
@@ -404,7 +427,8 @@ def extract_surfaces(
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction
         out = corners if kind == "corner" else edges
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=i in across_lines))
+        tilted = i in across_lines or i in leaning
+        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=tilted))
 
     valid = np.isfinite(d)
     in_region = np.zeros_like(valid)
