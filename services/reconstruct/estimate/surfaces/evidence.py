@@ -25,6 +25,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     capsule_x,
     stack_fits,
     subregion,
+    unfaded_ends,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -177,7 +178,22 @@ def measure_region(
             f"the echo amplitude steps at γ {math.degrees(jump[0]):.1f}° as no one beam pattern does: two echoes "
             f"at one range, {jump[1]} steps of the region may be the other's, so its centre is not the wall's"
         )
-    centred = not cut and shift <= opts.limits.max_normal_stderr
+    # An end the echo stops at while still strong is where its mirror ends, not where the beam fades it.
+    unfaded = unfaded_ends(g, per_step) if amplitude is not None and not cut and jump is None else None
+    unfaded = unfaded or (False, False)
+    # Its consequence, a centre off the beam pattern's peak, must show beyond both σ before the centre is doubted
+    # (without a peak in the region nothing vouches for the centre).
+    stops = any(unfaded)
+    if stops and peak_fit is not None:
+        ends_se = math.hypot(step, step) / math.sqrt(48.0)
+        stops = abs(peak_fit[0] - mid) > 3.0 * math.hypot(peak_fit[1], quant, ends_se)
+    if stops:
+        at = float(g[0]) if unfaded[0] else float(g[-1])
+        mixed = (
+            f"the echo stops at γ {math.degrees(at):.1f}° stronger than at its other end, as no beam pattern "
+            "fades it: its mirror ends there, so the region's centre is not the wall's"
+        )
+    centred = not cut and not stops and shift <= opts.limits.max_normal_stderr
     if centred:
         # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
         # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing
