@@ -111,11 +111,11 @@ def test_init_writes_private_keys_0600_signed_by_the_ca_and_never_overwrites(tmp
     d = tmp_path / "certs"
     created = secure.init(d, ["scanner1"], hosts=["robot7.local", "10.0.0.7"])
     keys = [p for p in created if p.suffix == ".key"]
-    assert sorted(p.stem for p in keys) == ["acquire-scanner1", "ca", "planner", "reconstruct", "router"]
+    assert sorted(p.stem for p in keys) == ["acquire-scanner1", "ca", "mapper", "planner", "reconstruct", "router"]
     for key in keys:
         assert stat.S_IMODE(key.stat().st_mode) == 0o600, key
     ca = x509.load_pem_x509_certificate((d / "ca.pem").read_bytes())
-    for role in ("router", "reconstruct", "planner", "acquire-scanner1"):
+    for role in ("router", "reconstruct", "planner", "mapper", "acquire-scanner1"):
         cert = x509.load_pem_x509_certificate((d / f"{role}.pem").read_bytes())
         cert.verify_directly_issued_by(ca)
         assert secure.common_name(cert) == role
@@ -192,7 +192,13 @@ def test_secure_config_prints_json5_that_any_zenoh_client_can_join_with(certs, r
     assert main(["secure", "config", str(certs), "--role", "router"]) == 0
     acl = json.loads(capsys.readouterr().out)["access_control"]
     assert acl["enabled"] and acl["default_permission"] == "deny"
-    assert {s["id"] for s in acl["subjects"]} == {"reconstruct", "planner", "acquire-scanner1", "acquire-scanner2"}
+    assert {s["id"] for s in acl["subjects"]} == {
+        "reconstruct",
+        "planner",
+        "mapper",
+        "acquire-scanner1",
+        "acquire-scanner2",
+    }
 
 
 # --- access control ----------------------------------------------------------------------
@@ -466,3 +472,42 @@ def test_reconstruct_group_members_see_each_other_and_a_planner_cannot_join_or_m
                 )
                 assert b._published_elsewhere("scanner3", 1) and not b._published_elsewhere("scanner3", 2)
                 assert not list(rogue.get(finals_key("lelsonar", "g") + "?scanner=scanner3;scan=1", timeout=2.0))
+
+
+def test_only_the_mapper_publishes_the_map_and_a_planner_gets_it(certs, router):
+    from lelsonar.map.service import map_key
+    from lelsonar.v1 import map_pb2
+
+    key = map_key("lelsonar")
+    legit, forged = map_pb2.Map(scanner_id="scanner1"), map_pb2.Map(scanner_id="forged")
+    with (
+        open_session(client(certs, router, secure.MAPPER)) as mapper,
+        open_session(client(certs, router, secure.PLANNER)) as planner,
+        open_session(client(certs, router, secure.PLANNER)) as rogue,
+        open_session(client(certs, router, secure.acquire_role("scanner1"))) as acquire1,
+        open_session(client(certs, router, secure.RECONSTRUCT)) as recon,
+    ):
+        estimates = Inbox()  # the mapper reads the reconstructor's estimates
+        mapper.declare_subscriber(KEYS1.planes, estimates)
+        planes = recon.declare_publisher(KEYS1.planes)
+        wait_matching(planes)
+        planes.put(estimate().SerializeToString())
+        assert codec.decode(estimates.next().payload.to_bytes(), codec.Reconstruction).scanner_id == "scanner1"
+
+        inbox = Inbox()
+        planner.declare_subscriber(key, inbox)
+        queryable = mapper.declare_queryable(key, lambda query: query.reply(key, legit.SerializeToString()))
+        pub = mapper.declare_publisher(key)
+        wait_matching(pub)
+
+        rogue.put(key, forged.SerializeToString())
+        acquire1.put(key, forged.SerializeToString())
+        # A get goes through the router after the forged puts; its answer proves they were routed (or dropped),
+        # and that a planner may ask the mapper for the latest map.
+        replies = [r.ok.payload.to_bytes() for r in rogue.get(key, timeout=5) if r.ok is not None]
+        assert replies == [legit.SerializeToString()]
+        pub.put(legit.SerializeToString())
+
+        assert map_pb2.Map.FromString(inbox.next().payload.to_bytes()).scanner_id == "scanner1"
+        assert inbox.empty()
+        queryable.undeclare()

@@ -279,9 +279,9 @@ def run_mapper(args: argparse.Namespace) -> int:
     prefix = ScannerKeys(args.prefix or "lelsonar", scanner).prefix
     settings = zenoh_settings_from_args(args)
     if getattr(args, "secure", None) is not None:
-        from lelsonar.net.secure import secure_settings
+        from lelsonar.net.secure import MAPPER, secure_settings
 
-        settings = secure_settings(settings, args.secure, "mapper", prefix)
+        settings = secure_settings(settings, args.secure, MAPPER, prefix)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())

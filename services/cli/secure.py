@@ -25,9 +25,9 @@ deployment secure:
 
   lelsonar secure init pki --scanner scanner1 --host robot7.local
   lelsonar router --secure pki --listen tls/0.0.0.0:7447
-  lelsonar acquire --secure pki --connect tls/robot7.local:7447   (reconstruct, planner likewise)
+  lelsonar acquire --secure pki --connect tls/robot7.local:7447   (reconstruct, planner, mapper likewise)
 
-Roles: router, reconstruct, planner, acquire-<scanner id>. Private keys are 0600
+Roles: router, reconstruct, planner, mapper, acquire-<scanner id>. Private keys are 0600
 and never overwritten but by `lelsonar secure rotate`. Keep ca.key off the robots.
 """
 
@@ -71,7 +71,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(run=_run_add_scanner)
     q = ss.add_parser("rotate", help="replace a role's key and certificate (same CA, same common name)")
     q.add_argument("dir", type=Path)
-    q.add_argument("role", help="router, reconstruct, planner or acquire-<scanner id>")
+    q.add_argument("role", help="router, reconstruct, planner, mapper or acquire-<scanner id>")
     q.add_argument(
         "--host",
         action="append",
@@ -82,7 +82,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     q.set_defaults(run=_run_rotate)
     q = ss.add_parser("config", help="print the Zenoh JSON5 config of a role")
     q.add_argument("dir", type=Path)
-    q.add_argument("--role", required=True, help="router, reconstruct, planner or acquire-<scanner id>")
+    q.add_argument("--role", required=True, help="router, reconstruct, planner, mapper or acquire-<scanner id>")
     q.add_argument(
         "--connect", "-e", action="append", metavar="ENDPOINT", help="router endpoint (default: tls/127.0.0.1:7447)"
     )

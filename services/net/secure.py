@@ -41,7 +41,7 @@ from lelsonar.errors import SecurityError
 from lelsonar.keys import DEFAULT_PREFIX, validate_identifier, validate_prefix
 from lelsonar.net.transport import DEFAULT_ENDPOINT, ZenohSettings
 
-ROUTER, RECONSTRUCT, PLANNER = "router", "reconstruct", "planner"
+ROUTER, RECONSTRUCT, PLANNER, MAPPER = "router", "reconstruct", "planner", "mapper"
 ACQUIRE_PREFIX = "acquire-"
 DEFAULT_HOSTS = ("localhost", "127.0.0.1")
 DEFAULT_DAYS = 365
@@ -56,12 +56,14 @@ def acquire_role(scanner_id: str) -> str:
 
 
 def validate_role(role: str) -> str:
-    if role in (ROUTER, RECONSTRUCT, PLANNER):
+    if role in (ROUTER, RECONSTRUCT, PLANNER, MAPPER):
         return role
     if role.startswith(ACQUIRE_PREFIX):
         acquire_role(role[len(ACQUIRE_PREFIX) :])
         return role
-    raise SecurityError(f"unknown role {role!r}; roles are router, reconstruct, planner and acquire-<scanner id>")
+    raise SecurityError(
+        f"unknown role {role!r}; roles are router, reconstruct, planner, mapper and acquire-<scanner id>"
+    )
 
 
 # --- the directory of certificates ----------------------------------------------------
@@ -234,7 +236,7 @@ def _issue(
 def init(
     path: Path | str, scanners: Iterable[str], *, hosts: Iterable[str] = (), days: int = DEFAULT_DAYS
 ) -> list[Path]:
-    """Create a CA and the certificates of the router, reconstruct, planner and one acquire per scanner.
+    """Create a CA and the certificates of the router, reconstruct, planner, mapper and one acquire per scanner.
 
     The router's certificate names ``localhost``, ``127.0.0.1`` and ``hosts`` (what remote clients dial).
 
@@ -253,7 +255,7 @@ def init(
             f"{d.path} already holds a CA; add scanners with `lelsonar secure add-scanner "
             f"{d.path} ID`, or init into a new directory to start over (nothing was overwritten)"
         )
-    roles = (ROUTER, RECONSTRUCT, PLANNER, *(acquire_role(s) for s in scanners))
+    roles = (ROUTER, RECONSTRUCT, PLANNER, MAPPER, *(acquire_role(s) for s in scanners))
     if taken := [str(p) for r in roles for p in (d.cert(r), d.key(r)) if p.exists()]:
         raise SecurityError(
             f"{', '.join(taken)} already exist without a CA here; init into a new directory (nothing was overwritten)"
@@ -428,13 +430,23 @@ def role_rules(role: str, prefix: str = DEFAULT_PREFIX) -> list[dict]:
                 "planner-watch", "ingress", ["declare_liveliness_subscriber", "liveliness_query"], [f"{p}/*/alive/**"]
             ),
             _rule("planner-see-tokens", "egress", ["liveliness_token"], [f"{p}/*/alive/**"]),
+            _rule("planner-map", "ingress", ["declare_subscriber", "query"], [f"{p}/map"]),
+            _rule("planner-map-receive", "egress", ["put", "reply", "declare_queryable"], [f"{p}/map"]),
+        ]
+    if role == MAPPER:
+        return [
+            # The scans' poses and the estimates, as a planner reads the estimates.
+            _rule("mapper-subscribe", "ingress", ["declare_subscriber", "query"], [f"{p}/*/scan", f"{p}/*/planes"]),
+            _rule("mapper-receive", "egress", ["put", "reply", "declare_queryable"], [f"{p}/*/scan", f"{p}/*/planes"]),
+            _rule("mapper-publish", "ingress", ["put", "declare_queryable", "reply"], [f"{p}/map"]),
+            _rule("mapper-map-queries", "egress", ["query", "declare_subscriber"], [f"{p}/map"]),
         ]
     return []  # the router itself sends nothing of its own
 
 
 def access_control(scanners: Iterable[str], prefix: str = DEFAULT_PREFIX) -> dict:
     """The router's ``access_control`` section: deny by default, one subject and policy per role."""
-    roles = [RECONSTRUCT, PLANNER, *(acquire_role(s) for s in sorted(set(scanners)))]
+    roles = [RECONSTRUCT, PLANNER, MAPPER, *(acquire_role(s) for s in sorted(set(scanners)))]
     rules, subjects, policies = [], [], []
     for role in roles:
         mine = role_rules(role, prefix)
