@@ -36,7 +36,7 @@ Per region of constant depth (:mod:`.regions`):
     curvature) is;
   - anything else: a **plane**.
 
-Walls joined at concave corners are fitted with them (:mod:`.joint`).
+Each plane is fitted on its own echoes, walls joined at concave corners with them (:mod:`.fitting`, :mod:`.joint`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
@@ -53,9 +53,7 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
-from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, assess_plane
-from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     Measured,
     across_stack,
@@ -65,16 +63,13 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     pair_corner,
     pair_stderr,
     plane_end,
-    plane_line,
-    split_dihedral,
     stack_dihedral,
     sweep_step,
-    trim_ends,
     unit_normal,
     wrap,
 )
-from lelsonar.reconstruct.estimate.surfaces.flanks import split_flanks
-from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
+from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
     capsule_x,
@@ -86,172 +81,6 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
 from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
-
-#: The method name the surfaces' plane fits carry.
-METHOD = "rcd"
-
-
-def _fit_surface(
-    label: str,
-    m: Measured,
-    gamma: np.ndarray,
-    distance: np.ndarray,
-    geometry: ArrayGeometry,
-    opts: SurfaceOptions,
-    joint: JointWall | None = None,
-) -> Surface | None:
-    """A region's plane; ``joint``: its wall as the joint corner model fitted it (bearing, tilt, offset, σ)."""
-    r = m.region
-    caps = geometry.capsule_positions(gamma[r.rows])[np.arange(r.rows.size), r.capsules]
-    d = distance[r.rows, r.capsules]
-    beam = np.stack([np.zeros(r.rows.size), np.cos(gamma[r.rows]), np.sin(gamma[r.rows])], axis=1)
-    if joint is not None:
-        return _joint_surface(label, m, joint, caps, beam, d, gamma, opts)
-    n = unit_normal(m.bearing, m.tilt)
-    h_i = d + caps @ n
-    h = float(np.median(h_i))
-    resid = h_i - h
-    sigma = float(np.std(resid, ddof=1)) if resid.size > 1 else float("nan")
-    # How h moves with the bearing and the tilt (the capsules' own offsets along n), for the covariance.
-    dn_db = np.array([0.0, -math.cos(m.tilt) * math.sin(m.bearing), math.cos(m.tilt) * math.cos(m.bearing)])
-    dn_dt = np.array(
-        [math.cos(m.tilt), -math.sin(m.tilt) * math.cos(m.bearing), -math.sin(m.tilt) * math.sin(m.bearing)]
-    )
-    jac = np.array([float(np.mean(caps @ dn_db)), float(np.mean(caps @ dn_dt))])
-    tilt_var = m.tilt_stderr**2 if math.isfinite(m.tilt_stderr) else (math.pi / 2) ** 2
-    ang = np.diag([m.bearing_stderr**2, tilt_var])
-    var_h = (sigma**2 / max(r.rows.size, 1) if math.isfinite(sigma) else 0.0) + float(jac @ ang @ jac)
-    cov = np.zeros((3, 3))
-    cov[:2, :2] = ang
-    cov[2, :2] = cov[:2, 2] = ang @ jac
-    cov[2, 2] = var_h
-    findings = list(m.findings)
-    if not math.isfinite(m.tilt_stderr):
-        findings.append((DEGRADED, "tilt not determined: one capsule per step"))
-    data = plane_data_of(caps[:, None, :], beam, d[:, None], r.rows, "a", n)
-    fit = make_plane_fit(
-        data,
-        n / h,
-        method=METHOD,
-        inlier_mask=np.ones(data.n, dtype=bool),
-        diagnostics=SolverDiagnostics(solver=METHOD, notes=(f"bearing: {m.bearing_source}",)),
-        model="constant-depth",
-        stderr=(math.sqrt(m.bearing_stderr**2 + tilt_var), math.sqrt(var_h)),
-    )
-    if not isinstance(fit, PlaneFit):
-        return None
-    fit = assess_plane(fit, gamma, findings=tuple(findings), limits=opts.limits)
-    return Surface(
-        label=label,
-        plane=fit,
-        bearing=m.bearing,
-        tilt=m.tilt,
-        covariance=cov,
-        bearing_source=m.bearing_source,
-        steps=r.steps.copy(),
-        n_echoes=r.n_echoes,
-        rows=r.rows.copy(),
-        capsules=r.capsules.copy(),
-    )
-
-
-def _joint_surface(
-    label: str,
-    m: Measured,
-    joint: JointWall,
-    caps: np.ndarray,
-    beam: np.ndarray,
-    d: np.ndarray,
-    gamma: np.ndarray,
-    opts: SurfaceOptions,
-) -> Surface | None:
-    n = unit_normal(joint.bearing, joint.tilt)
-    cov = joint.covariance
-    data = plane_data_of(caps[:, None, :], beam, d[:, None], m.region.rows, "a", n)
-    fit = make_plane_fit(
-        data,
-        n / joint.offset,
-        method=METHOD,
-        inlier_mask=np.ones(data.n, dtype=bool),
-        diagnostics=SolverDiagnostics(
-            solver=METHOD, notes=(f"bearing: {m.bearing_source}", "joint corner model: tied to its corners")
-        ),
-        model="constant-depth",
-        stderr=(math.sqrt(max(cov[0, 0] + cov[1, 1], 0.0)), math.sqrt(max(cov[2, 2], 0.0))),
-    )
-    if not isinstance(fit, PlaneFit):
-        return None
-    fit = assess_plane(fit, gamma, findings=m.findings, limits=opts.limits)
-    return Surface(
-        label=label,
-        plane=fit,
-        bearing=joint.bearing,
-        tilt=joint.tilt,
-        covariance=cov.copy(),
-        bearing_source=m.bearing_source,
-        steps=m.region.steps.copy(),
-        n_echoes=m.region.n_echoes,
-        rows=m.region.rows.copy(),
-        capsules=m.region.capsules.copy(),
-    )
-
-
-def _scatter(residuals: np.ndarray) -> float:
-    """A robust σ of residuals (1.4826 MAD), the standard deviation where the MAD is 0, m."""
-    if residuals.size < 2:
-        return float("nan")
-    mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
-    return mad if mad > 0 else float(np.std(residuals, ddof=1))
-
-
-def _joint_fit(
-    pairs: list[tuple[int, list[int]]], measured: list[Measured], opts: SurfaceOptions
-) -> tuple[dict[int, JointWall], dict[int, str]]:
-    """The walls joined at concave corners, fitted with their corners (:func:`.joint.joint_walls`).
-
-    Returns the joint walls by region, and the regions whose beam-pattern bearing the corners dispute (more
-    than 3 σ apart): those keep their own fit, and say so.
-    """
-    walls = sorted({j for _, ties in pairs for j in ties[:2]})
-    if not pairs or len(walls) < 2:
-        return {}, {}
-    index = {j: k for k, j in enumerate(walls)}
-    evidence = []
-    for j in walls:
-        mj = measured[j]
-        sigma = _scatter(mj.ranges + mj.positions @ unit_normal(mj.bearing, mj.tilt))
-        if not (math.isfinite(sigma) and sigma > 0):
-            return {}, {}
-        evidence.append(WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.bearing_stderr, mj.tilt, mj.depth, sigma))
-    corners = []
-    for i, ties in pairs:
-        mi = measured[i]
-        line = plane_line(measured[ties[0]], measured[ties[1]])
-        if line is None:
-            continue
-        # The corner's scatter about the double bounce the walls predict: the capsules' distances to their line.
-        rel = mi.positions - line[0][None, :]
-        predicted = np.linalg.norm(rel - (rel @ line[1])[:, None] * line[1][None, :], axis=1)
-        sigma = _scatter(mi.ranges - predicted)
-        if not (math.isfinite(sigma) and sigma > 0):
-            continue
-        corners.append(CornerEvidence(mi.positions, mi.ranges, (index[ties[0]], index[ties[1]]), sigma))
-    fitted = joint_walls(evidence, corners)
-    if fitted is None:
-        return {}, {}
-    out: dict[int, JointWall] = {}
-    disputed: dict[int, str] = {}
-    for j, jw in zip(walls, fitted, strict=True):
-        mj = measured[j]
-        gap = abs(wrap(jw.bearing - mj.bearing))
-        if gap > 3 * mj.bearing_stderr:
-            disputed[j] = (
-                f"its corners' double bounce puts its bearing {math.degrees(gap):.1f}° from the beam pattern's "
-                f"(σ {math.degrees(mj.bearing_stderr):.1f}°): fitted on its own echoes"
-            )
-        else:
-            out[j] = jw
-    return out, disputed
 
 
 def _feature(
@@ -329,14 +158,9 @@ def extract_surfaces(
     )
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
-    # A region whose ends are its plane's double bounce with a surface across the fan, split off both at once (the
-    # plane keeps the whole region's centre, its foot); then any end that still slopes off the plane's.
-    measured = [piece for m in measured for piece in (split_flanks(m, g, d, amp, geometry, opts) or [m])]
-    # A plane's region whose end steps are a line across the stack at a like range: its core and those ends.
-    trimmed: list[Measured] = []
-    for i in range(len(measured)):
-        trimmed.extend(trim_ends(i, measured, g, d, amp, geometry, opts) or [measured[i]])
-    measured = trimmed
+    # A region whose ends hold another target along the stack (its plane's double bounce with a surface across
+    # the fan, a line across the stack at a like range): its plane's middle and those ends.
+    measured = [piece for m in measured for piece in split_ends(m, g, d, amp, geometry, opts)]
     # A plane's region that runs on into its corner with a nearer plane: split where the steps tell them apart.
     split: list[Measured] = []
     for i in range(len(measured)):
@@ -548,7 +372,7 @@ def extract_surfaces(
     # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
     pairs = [(i, ties) for i, ties in pairs if i not in across_lines]
-    joint, disputed = _joint_fit(pairs, measured, opts) if opts.joint_corners else ({}, {})
+    joint, disputed = joint_fit(pairs, measured, opts) if opts.joint_corners else ({}, {})
     for j, text in disputed.items():
         measured[j] = replace(measured[j], findings=(*measured[j].findings, (DEGRADED, text)))
 
@@ -558,7 +382,7 @@ def extract_surfaces(
     for i, m in enumerate(measured):
         if i in kinds:
             continue
-        s = _fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts, joint.get(i))
+        s = fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts, joint.get(i))
         if s is None:
             failed += m.region.n_echoes
             continue

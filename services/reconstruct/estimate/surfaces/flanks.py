@@ -1,4 +1,10 @@
-"""A region of constant depth that holds two targets at its ends: its flanks, told apart along the stack."""
+"""A region of constant depth whose end steps hold another target at a like range, told apart.
+
+* :func:`split_flanks`: both ends the middle's double bounce with a surface across the fan explains;
+* :func:`trim_ends`: ends whose slope along the stack, or depth, is not the middle's plane's;
+* :func:`split_ends`: the two for one region, in that order;
+* :func:`split_dihedral`: an end block that is the double bounce of the plane with a nearer plane.
+"""
 
 from __future__ import annotations
 
@@ -8,24 +14,38 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.estimate.surfaces.evidence import Measured, measure_region, stack_dihedral, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.evidence import (
+    Measured,
+    measure_region,
+    plane_line,
+    stack_dihedral,
+    unit_normal,
+    wrap,
+)
 from lelsonar.reconstruct.estimate.surfaces.regions import subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
-__all__ = ["split_flanks", "step_slopes"]
+__all__ = ["split_dihedral", "split_ends", "split_flanks", "step_slopes", "trim_ends"]
 
 
-def step_slopes(m: Measured) -> tuple[np.ndarray, np.ndarray]:
-    """Each of the region's steps' slope of range along the capsule stack, ``∂d/∂x``, and its σ.
+def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each of the region's steps' slope of range along the capsule stack, ``∂d/∂x``, its σ and ``Σ(x − x̄)²``.
 
     A plane gives every step its one slope, ``−n_x`` (its tilt); a line across the stack (a wall's foot on
     the floor, a box's top edge) a slope that follows the capsules' offset from it.  The σ is the range
     noise (pooled over the steps' residuals about their own lines, so whatever target a step holds) over
     ``√Σ(x − x̄)²`` of that step's capsules.
 
+    Parameters
+    ----------
+    m : Measured
+    min_readings : int
+        The fewest readings a step needs for a slope (two give a line, three a residual too).
+
     Returns
     -------
-    slopes, sigmas : (k,) arrays over ``region.steps`` (NaN under two capsules, or without residual dof).
+    slopes, sigmas, sxx : (k,) arrays over ``region.steps``: the slopes and their σ (NaN under
+    ``min_readings`` readings, σ NaN without residual dof anywhere), and each step's ``Σ(x − x̄)²``, m².
     """
     r = m.region
     k = r.steps.size
@@ -37,14 +57,14 @@ def step_slopes(m: Measured) -> tuple[np.ndarray, np.ndarray]:
         md = np.bincount(pos, weights=d, minlength=k) / n
         sxx = np.bincount(pos, weights=(x - mx[pos]) ** 2, minlength=k)
         sxd = np.bincount(pos, weights=(x - mx[pos]) * (d - md[pos]), minlength=k)
-        slopes = np.where((n >= 2) & (sxx > 0), sxd / sxx, np.nan)
+        slopes = np.where((n >= max(min_readings, 2)) & (sxx > 0), sxd / sxx, np.nan)
         resid = d - md[pos] - np.nan_to_num(slopes[pos]) * (x - mx[pos])
     dof = float(np.sum(np.maximum(n - 2, 0)))
     if not dof > 0:
-        return slopes, np.full(k, np.nan)
+        return slopes, np.full(k, np.nan), sxx
     noise = math.sqrt(float(np.sum(np.where(n[pos] > 2, resid * resid, 0.0))) / dof)
     with np.errstate(divide="ignore"):
-        return slopes, np.where(np.isfinite(slopes), noise / np.sqrt(sxx), np.nan)
+        return slopes, np.where(np.isfinite(slopes), noise / np.sqrt(sxx), np.nan), sxx
 
 
 def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
@@ -100,7 +120,7 @@ def split_flanks(
     r = m.region
     if r.steps.size < 3 * opts.min_steps:
         return None
-    slopes, sigmas = step_slopes(m)
+    slopes, sigmas, _ = step_slopes(m)
     ok = np.isfinite(slopes) & np.isfinite(sigmas) & (sigmas > 0)
     if np.count_nonzero(ok) < 3 * opts.min_steps:
         return None
@@ -152,3 +172,222 @@ def split_flanks(
     if first is None or last is None:
         centre = middle_of(head, tail)
     return [x for x in (first, centre, last) if x is not None]
+
+
+def trim_ends(
+    m: Measured,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> list[Measured] | None:
+    """A plane's whole region whose end steps hold another target's echo at a like range: its core and ends.
+
+    A plane's ranges along the stack share one slope (``−n_x``) at every step.  A line across the stack
+    at a like range (the plane's own corner with a floor or a ceiling off the fan, whose double bounce
+    answers wider than the plane's mirror echo, just deeper) spreads the four ranges by
+    ``(x − z)/ρ`` instead: at the region's ends, where the plane's echo has faded, its steps join the
+    region within the range tolerance and move the region's centre off the plane's foot.  The steps at
+    either end whose own slope differs from the plane's (the median over the region's middle half) by more than
+    ``curvature_sigmas`` of its standard error ``σ/√Σ(x − x̄)²`` (``σ`` one range's, from the spread of
+    the steps' slopes, 1.4826 MAD) are not the plane's, nor are those whose mean depth along the plane's
+    normal lies deeper than the middle half's by more than that many σ of a step's mean.  As they lie deeper
+    than the plane, its echo ended there on its
+    own (the plane keeps its ends uncut); a nearer block would have masked it (a cut).
+
+    Returns
+    -------
+    The plane's core and each end block of at least ``min_steps`` steps (cut on the core's side), in
+    sweep order; None when no end step departs, or the core would keep fewer than half the region's steps.
+    """
+    r = m.region
+    sigma = m.stack_sigma
+    if r.cut_before or r.cut_after or not (math.isfinite(sigma) and sigma > 0):
+        return None
+    slopes, _, sxx = step_slopes(m, min_readings=3)
+    finite = np.isfinite(slopes)
+    if np.count_nonzero(finite) < 2 * opts.min_steps:
+        return None
+    # The plane's slope and the range σ from the steps of the region's middle half, where its own echo is
+    # strongest (robust, 1.4826 MAD): another target's steps sit at the ends and must not set them.
+    k = r.steps.size
+    middle = np.zeros(k, dtype=bool)
+    middle[k // 4 : k - k // 4] = True
+    middle &= finite
+    if np.count_nonzero(middle) < opts.min_steps:
+        return None
+    core = float(np.median(slopes[middle]))
+    robust = 1.4826 * float(np.median(np.abs((slopes[middle] - core) * np.sqrt(sxx[middle]))))
+    sigma = robust if robust > 0 else sigma
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off = finite & (np.abs(slopes - core) > opts.curvature_sigmas * sigma / np.sqrt(sxx))
+    # The line lies deeper than the plane's foot (|X| ≥ h): a step whose mean depth along the plane's normal
+    # sits deeper than the middle half's by more than its own noise is not the plane's, whatever its slope.
+    pos = np.searchsorted(r.steps, r.rows)
+    own = m.ranges + m.positions @ unit_normal(m.bearing, m.tilt)
+    count = np.bincount(pos, minlength=k)
+    depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
+    level = float(np.median(depth[middle]))
+    spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
+    if spread > 0:
+        off |= finite & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
+
+    def block(order: np.ndarray) -> int:
+        """How many steps from that end up to the last departing one before the first that agrees (a step
+        with too few readings for a slope goes with its neighbours)."""
+        n_off = 0
+        for j, s in enumerate(order):
+            if finite[s] and not off[s]:
+                break
+            if finite[s]:
+                n_off = j + 1
+        return n_off
+
+    head = block(np.arange(k))
+    tail = block(np.arange(k - 1, head - 1, -1))
+    if head + tail == 0 or 2 * (k - head - tail) < k or k - head - tail < opts.min_steps:
+        return None
+    core_sel = (pos >= head) & (pos < k - tail)
+    level = float(np.median(own[core_sel]))
+    noise = 3 * sigma
+
+    def nearer(sel: np.ndarray) -> bool:
+        return bool(np.any(sel)) and float(np.median(own[sel])) < level - noise
+
+    cut_before = r.cut_before or (head > 0 and nearer(pos < head))
+    cut_after = r.cut_after or (tail > 0 and nearer(pos >= k - tail))
+    parts = [subregion(r, r.steps[head : k - tail], cut_before, cut_after)]
+    if head >= opts.min_steps:
+        parts.insert(0, subregion(r, r.steps[:head], r.cut_before, True))
+    if tail >= opts.min_steps:
+        parts.append(subregion(r, r.steps[k - tail :], True, r.cut_after))
+    return [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
+
+
+def split_ends(
+    m: Measured,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> list[Measured]:
+    """A region's end steps that hold another target along the stack, told apart: the region's replacement.
+
+    First its flanks the middle's double bounce with a surface across the fan explains
+    (:func:`split_flanks`, both ends at once), then, on each piece, the ends that still slope off or lie
+    deeper than the plane's middle (:func:`trim_ends`).
+
+    Returns
+    -------
+    The region's pieces in sweep order (``[m]`` when nothing splits off).
+    """
+    pieces = split_flanks(m, gamma, distance, amplitude, geometry, opts) or [m]
+    return [t for p in pieces for t in (trim_ends(p, gamma, distance, amplitude, geometry, opts) or [p])]
+
+
+def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
+    """The block of steps at the start that lies deeper than the rest, if significant: (length, depth
+    difference m, its standard error m).
+
+    The split that best separates two levels (the largest t of their difference); it must be deeper by
+    more than ``curvature_sigmas`` of its standard error and by no more than twice the range tolerance
+    (farther, the corner's echoes would have made their own region), each side ``min_steps`` long.
+    """
+    ok = np.isfinite(depths)
+    k = depths.size
+    if np.count_nonzero(ok) < 2 * opts.min_steps:
+        return None
+    best: tuple[float, int] | None = None
+    for b in range(opts.min_steps, k - opts.min_steps + 1):
+        head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
+        if head.size < 2 or tail.size < 2:
+            continue
+        diff = float(np.mean(head) - np.mean(tail))
+        pooled = math.sqrt(
+            (float(np.sum((head - head.mean()) ** 2)) + float(np.sum((tail - tail.mean()) ** 2)))
+            / (head.size + tail.size - 2)
+        )
+        se = pooled * math.sqrt(1 / head.size + 1 / tail.size)
+        t = diff / se if se > 0 else 0.0
+        if 0 < diff <= 2 * opts.range_tolerance and (best is None or t > best[0]):
+            best = (t, b)
+    if best is None or best[0] < opts.curvature_sigmas:
+        return None
+    b = best[1]
+    head, tail = depths[:b][ok[:b]], depths[b:][ok[b:]]
+    return b, float(np.mean(head) - np.mean(tail)), float(np.mean(head) - np.mean(tail)) / best[0]
+
+
+def split_dihedral(
+    i: int,
+    measured: list[Measured],
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> list[Measured] | None:
+    """A plane's region that runs on into the double bounce of its corner with a nearer plane.
+
+    Where a plane meets a nearer one (a wall and the floor close below the array), the line they share
+    lies barely deeper than the plane: ``|X| − h = h'²/(2h)`` for a wall ``h`` away and a floor ``h'``
+    below.  Both answer within the range tolerance, so the region holds the plane's echoes and, past
+    them on the line's side, the corner's: its span is no longer symmetric about the plane's foot.
+    Each step's depth along the plane's normal tells the two apart (the corner's steps lie deeper, as
+    one block on the line's side, by a level the steps' own scatter resolves): the region splits into
+    the plane's (whole: it is nearer, nothing masks it) and the corner's (cut on the plane's side).
+    The line's place is the trigger (a plane's bearing biased by the corner's steps moves it), and the
+    confirmation: with the plane placed on its own steps, the block lies deeper by ``|X| − h``.
+
+    Returns
+    -------
+    The region's replacement, the plane's and the corner's measured regions, or None if no nearer
+    plane's corner runs into it or its steps do not resolve it.
+    """
+    m = measured[i]
+    # Only a whole region: the corner's echoes lengthen it; a cut one has no span to be lengthened.
+    if m.region.cut_before or m.region.cut_after:
+        return None
+    r = m.region
+    n = unit_normal(m.bearing, m.tilt)
+    for j, mj in enumerate(measured):
+        if j == i or mj.bearing_source == "undetermined" or abs(wrap(m.bearing - mj.bearing)) < opts.foot_separation:
+            continue
+        line = plane_line(m, mj)
+        if line is None:
+            continue
+        x = line[0]
+        rho = float(np.linalg.norm(x))
+        toward = math.atan2(float(x[2]), float(x[1]))
+        half = 0.5 * (m.span[1] - m.span[0])
+        if not (0.0 <= rho - m.depth <= 2 * opts.range_tolerance and abs(wrap(toward - m.bearing)) <= half):
+            continue
+        after = wrap(toward - m.bearing) > 0
+        # Each step's depth along the plane's normal: the corner's steps lie deeper, as one block on its side.
+        own = m.ranges + m.positions @ n
+        pos = np.searchsorted(r.steps, r.rows)
+        hs = np.array([float(np.median(own[pos == k])) if np.any(pos == k) else np.nan for k in range(r.steps.size)])
+        found = _deeper_block(hs[::-1] if after else hs, opts)
+        if found is None:
+            return None
+        block, step, step_se = found
+        if after:
+            plane_steps, corner_steps = r.steps[: r.steps.size - block], r.steps[r.steps.size - block :]
+            plane_r = subregion(r, plane_steps, r.cut_before, False)
+            corner_r = subregion(r, corner_steps, True, r.cut_after)
+        else:
+            corner_steps, plane_steps = r.steps[:block], r.steps[block:]
+            plane_r = subregion(r, plane_steps, False, r.cut_after)
+            corner_r = subregion(r, corner_steps, r.cut_before, True)
+        plane_m, corner_m = (measure_region(s, gamma, distance, amplitude, geometry, opts) for s in (plane_r, corner_r))
+        # The block must lie where the line of the plane so placed puts it: deeper by |X| − h.
+        line = plane_line(plane_m, mj)
+        if line is None:
+            return None
+        expected = float(np.linalg.norm(line[0])) - plane_m.depth
+        if abs(step - expected) > 3 * step_se + 0.25 * expected:
+            return None
+        return [plane_m, corner_m]
+    return None
