@@ -24,6 +24,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     capsule_x,
     stack_fits,
+    unfaded_ends,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -138,6 +139,24 @@ def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap:
         return bool(np.any(before < ref - tolerance)), bool(np.any(after < ref - tolerance))
 
 
+def _handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], opts: SurfaceOptions) -> bool:
+    """Whether another echo at a like range answers just past a flagged end: the echoes sum there, so the end's
+    amplitude says nothing of where the region's own echo fades.  Like: within twice the range tolerance of the
+    region's median range, the band a reading of the region's own target stays in."""
+    spread = 2 * opts.range_tolerance
+    with np.errstate(all="ignore"):
+        ref = float(np.nanmedian(distance[region.rows, region.capsules]))
+    reach = opts.max_gap + 2
+    first, last = int(region.steps[0]), int(region.steps[-1])
+    past = []
+    if ends[0]:
+        past.append(distance[max(first - reach, 0) : first])
+    if ends[1]:
+        past.append(distance[last + 1 : last + 1 + reach])
+    with np.errstate(invalid="ignore"):
+        return any(bool(np.any(np.abs(block - ref) <= spread)) for block in past)
+
+
 def measure_region(
     region: Region,
     gamma: np.ndarray,
@@ -178,7 +197,22 @@ def measure_region(
             f"the echo amplitude steps at γ {math.degrees(jump[0]):.1f}° as no one beam pattern does: two echoes "
             f"at one range, {jump[1]} steps of the region may be the other's, so its centre is not the wall's"
         )
-    centred = not cut and shift <= opts.limits.max_normal_stderr
+    # An end the echo stops at while still strong is where its mirror ends, not where the beam fades it.
+    unfaded = unfaded_ends(g, per_step) if amplitude is not None and not cut and jump is None else None
+    unfaded = unfaded or (False, False)
+    # Its consequence, a centre off the beam pattern's peak, must show beyond both σ before the centre is doubted
+    # (without a peak in the region nothing vouches for the centre).
+    stops = any(unfaded) and not _handed_over(region, distance, unfaded, opts)
+    if stops and peak_fit is not None:
+        ends_se = math.hypot(step, step) / math.sqrt(48.0)
+        stops = abs(peak_fit[0] - mid) > 3.0 * math.hypot(peak_fit[1], quant, ends_se)
+    if stops:
+        at = float(g[0]) if unfaded[0] else float(g[-1])
+        mixed = (
+            f"the echo stops at γ {math.degrees(at):.1f}° stronger than at its other end, as no beam pattern "
+            "fades it: its mirror ends there, so the region's centre is not the wall's"
+        )
+    centred = not cut and not stops and shift <= opts.limits.max_normal_stderr
     if centred:
         # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
         # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing

@@ -30,6 +30,7 @@ __all__ = [
     "stack_fits",
     "bearing_from_amplitude",
     "amplitude_jump",
+    "unfaded_ends",
     "peak_at_bearing",
     "subregion",
     "PLATEAU",
@@ -589,3 +590,47 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
         return None
     j = int(k[persists][int(np.argmax(one[persists]))])
     return 0.5 * float(g[j] + g[j + 1]), min(j + 1, g.size - j - 1)
+
+
+def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[bool, bool] | None:
+    """Which ends of a region the echo stops at while still strong: not where the beam pattern fades it.
+
+    A region at one range ends on each side where ``D(γ − β)²`` falls under
+    the receiver's threshold, the same threshold on both sides (one range), so
+    its two end amplitudes are equal up to where each crossing falls within
+    its step: at most the beam's change over one step at the end.  With the
+    region's amplitudes spanning ``R = log(A_max / A_min)`` over a span ``L``,
+    that change is at most ``8 R Δγ / L`` (the parabola's end slope ``4 R / L``,
+    doubled for a piston's flank, as in :func:`amplitude_jump`).  An end whose
+    amplitude exceeds the other's by more than that (and by ``sigmas`` σ of
+    the amplitude noise) is not a fade: the echo stops there because its
+    mirror does (the foot leaves the wall where the wall ends), and the
+    region's centre is not the wall's bearing.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none), in sweep order.
+    sigmas : float
+        How many σ of the amplitude noise the difference must exceed the bound by.
+
+    Returns
+    -------
+    (the first end is not a fade, the last end is not a fade), or None when too few steps have an amplitude.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 5:
+        return None
+    g, la = g[ok], np.log(a[ok])
+    span = abs(float(g[-1] - g[0]))
+    if not span > 0:
+        return None
+    step = float(np.median(np.abs(np.diff(g))))
+    second = np.diff(la, 2)
+    # Second differences of white noise have variance 6 σ²; a difference of two steps has variance 2 σ².
+    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    bound = 8.0 * float(la.max() - la.min()) / span * step + sigmas * math.sqrt(2.0) * sigma
+    diff = float(la[0] - la[-1])
+    return diff > bound, -diff > bound
