@@ -213,6 +213,9 @@ def _timed_service_class():
             self.sample_latency_ns: list[int] = []  # per sample: handle returned − put
             self.estimate_latency: list[tuple[str, int]] = []
             self.busy: dict[str, list[float]] = {}  # bucket → handle durations, s
+            # Each scan's ScanEnd time, kept from its arrival: a final made in a worker process is published
+            # after the ingest has let its scan go.
+            self.end_ns: dict[tuple[str, int], int] = {}
             self._finals_made = False
 
         def handle(self, type_name, payload, **kwargs):
@@ -226,6 +229,8 @@ def _timed_service_class():
             bucket = "final" if self._finals_made else ("provisional" if out else kind)
             self.busy.setdefault(bucket, []).append(dt)
             for ev in self.ingest.last_events:
+                if isinstance(ev, Accepted) and ev.kind == "end" and ev.scan.end is not None:
+                    self.end_ns[(ev.scan.start.scanner_id, ev.scan.start.scan_id)] = ev.scan.end.end_time_ns
                 if isinstance(ev, Accepted) and ev.kind == "sample":
                     self.done_mono.append(now_mono)
                     self.sample_latency_ns.append(now_ns - int(ev.scan.time_ns[ev.step]))
@@ -249,7 +254,7 @@ def _timed_service_class():
                 name = "provisional"
             else:
                 self._finals_made = True
-                ref = scan.end.end_time_ns if scan is not None and scan.end is not None else None
+                ref = self.end_ns.pop((msg.scanner_id, msg.scan_id), None)
                 name = "final"
             if ref is not None:
                 self.estimate_latency.append((name, now - ref))
