@@ -60,9 +60,9 @@ def test_a_stress_world_is_scored_without_a_crash() -> None:
 
 
 def test_an_l_plane_its_own_surface_contradicts_is_not_good() -> None:
-    """Acute room, seed 1, fan mount, first pose: the L model lands plane a on a wall's range with a normal 65° off
-    (a wall's bearing from ranges alone is ill-posed); the surface of the same echoes, its bearing from the beam
-    pattern, says so, and the plane is degraded with that reason instead of claiming good."""
+    """Acute room, seed 1, fan mount, first pose: the L model can land plane a on a wall's range with its normal far
+    off (a wall's bearing from ranges alone is ill-posed); the surface of the same echoes, its bearing from the beam
+    pattern, says so, and the plane is degraded with that reason."""
     score = score_world("acute", 1, "fan", draw_stress_world("acute", 1), max_poses=1)
     assert score.counts["crash"] == 0, score.failures
     assert score.counts["L good-but-wrong"] == 0, score.failures

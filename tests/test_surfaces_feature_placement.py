@@ -60,8 +60,8 @@ def _line_offset(scan, f) -> tuple[int, float]:
 def test_a_room_corner_past_a_box_faces_end_is_not_placed_on_the_faces_extended_trace():
     # A cluttered room (stress class clutter, seed 0, fan mount), its third pose: a box face 0.8 m away whose
     # edges the sweep hears on its trace, and beyond them, behind, room corners and edges whose regions are
-    # cut by the box.  The face's trace extended runs within a few cm of a room corner 2 m off: placed there
-    # it claimed a 6 mm σ.  The face ends at its edges; nothing past them is its end.
+    # cut by the box.  The face's trace extended runs within a few cm of a room corner 2 m off, which a
+    # trace alone would call the face's end.  The face ends at its edges; nothing past them is its end.
     world = draw_stress_world("clutter", 0, "fan")
     scan = sweep(world_run(world, 0), 2)
     surfaces = estimate_of(scan).surfaces
