@@ -63,6 +63,22 @@ def make_sample(
     return s
 
 
+class QuietObserver:
+    """A reconstruction service observer that ignores everything: a test's observer overrides what it watches."""
+
+    def scan_started(self, scan) -> None:
+        pass
+
+    def step(self, *args) -> None:
+        pass
+
+    def estimate(self, scan, message, results, partial) -> None:
+        pass
+
+    def event(self, level: str, text: str, time_ns: int | None = None) -> None:
+        pass
+
+
 @pytest.fixture
 def zenoh_socket(tmp_path):
     """A unix-socket path private to this test (no TCP port, no multicast)."""

@@ -19,7 +19,7 @@ from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
-from .conftest import simulated_messages, type_name
+from .conftest import QuietObserver, simulated_messages, type_name
 
 STEPS = 90
 
@@ -43,20 +43,11 @@ def estimate_only(msg: codec.Reconstruction) -> bytes:
     return m.SerializeToString()
 
 
-class Points:
+class Points(QuietObserver):
     """An observer keeping what a terminal estimate hands it: the planes' points travel back for it."""
 
     def __init__(self) -> None:
         self.results: list[dict] = []
-
-    def scan_started(self, scan) -> None:
-        pass
-
-    def step(self, *args) -> None:
-        pass
-
-    def event(self, *args) -> None:
-        pass
 
     def estimate(self, scan, message, results, partial) -> None:
         if results is not None:

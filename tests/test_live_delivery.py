@@ -17,7 +17,7 @@ from lelsonar.reconstruct.stream.recovery import RecoveryConfig
 from lelsonar.reconstruct.stream.scan_input import scan_input
 from lelsonar.reconstruct.stream.service import ReconstructionService
 
-from .conftest import simulated_messages, type_name
+from .conftest import QuietObserver, simulated_messages, type_name
 from .live_rig import Rig, renamed
 
 STEPS = 120
@@ -37,20 +37,11 @@ def replayed_final(messages, observer=None) -> codec.Reconstruction:
     return final
 
 
-class FinalInput:
+class FinalInput(QuietObserver):
     """An observer keeping the :class:`ScanInput` each final estimate was made from."""
 
     def __init__(self) -> None:
         self.inputs: list[ScanInput] = []
-
-    def scan_started(self, scan) -> None:
-        pass
-
-    def step(self, *args) -> None:
-        pass
-
-    def event(self, *args) -> None:
-        pass
 
     def estimate(self, scan, message, results, partial) -> None:
         if results is not None:  # a terminal estimate, before the service forgets its scan

@@ -33,7 +33,7 @@ from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
 from lelsonar.v1 import reconstruction_pb2
 
-from .conftest import make_sample, make_scan_start, type_name
+from .conftest import QuietObserver, make_sample, make_scan_start, type_name
 
 KEYS1, KEYS2 = ScannerKeys("lelsonar", "scanner1"), ScannerKeys("lelsonar", "scanner2")
 
@@ -316,13 +316,9 @@ def test_live_reconstruct_rejects_a_scan_forged_under_another_key_without_securi
     events: list[str] = []
     rejected, started = threading.Event(), threading.Event()
 
-    class Watch:
+    class Watch(QuietObserver):
         def scan_started(self, scan) -> None:
             started.set()
-
-        def step(self, *a) -> None: ...
-
-        def estimate(self, *a) -> None: ...
 
         def event(self, level: str, text: str, time_ns=None) -> None:
             events.append(text)
