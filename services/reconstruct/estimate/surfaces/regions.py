@@ -568,10 +568,7 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
     span = float(g[-1] - g[0])
     if not span > 0:
         return None
-    second = np.diff(la, 2)
-    # Second differences of white noise have variance 6 σ².
-    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
-    slope = 8.0 * float(la.max() - la.min()) / span
+    slope, sigma = _beam_slope_and_noise(la, span)
     noise = sigmas * math.sqrt(2.0) * sigma
 
     def beyond(i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -590,6 +587,19 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
         return None
     j = int(k[persists][int(np.argmax(one[persists]))])
     return 0.5 * float(g[j] + g[j + 1]), min(j + 1, g.size - j - 1)
+
+
+def _beam_slope_and_noise(la: np.ndarray, span: float) -> tuple[float, float]:
+    """The steepest change of log amplitude one beam pattern can make over a region (per rad) and the log
+    amplitudes' noise σ, for :func:`amplitude_jump` and :func:`unfaded_ends`.
+
+    ``la``: the region's log amplitudes in γ order; ``span``: its γ extent, rad.  The slope bound is
+    ``8 Δ/span`` (``Δ`` the region's range of log amplitude); the σ is robust (1.4826 MAD) from the second
+    differences, whose variance is 6 σ² for white noise.
+    """
+    second = np.diff(la, 2)
+    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    return 8.0 * float(la.max() - la.min()) / span, sigma
 
 
 def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[bool, bool] | None:
@@ -628,9 +638,8 @@ def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.
     if not span > 0:
         return None
     step = float(np.median(np.abs(np.diff(g))))
-    second = np.diff(la, 2)
-    # Second differences of white noise have variance 6 σ²; a difference of two steps has variance 2 σ².
-    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
-    bound = 8.0 * float(la.max() - la.min()) / span * step + sigmas * math.sqrt(2.0) * sigma
+    slope, sigma = _beam_slope_and_noise(la, span)
+    # A difference of two steps' log amplitudes has variance 2 σ².
+    bound = slope * step + sigmas * math.sqrt(2.0) * sigma
     diff = float(la[0] - la[-1])
     return diff > bound, -diff > bound
