@@ -210,18 +210,26 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
             service.handle(type_name(m), m.SerializeToString(), busy=True)
     refit, real = [], service._provisional
 
-    def slow_refit(scan, p):  # each refit takes 60 % of the budget on the service's clock
-        refit.append(scan.key[0])
+    def slow_refit(scan, p, **kw):  # each refit takes 60 % of the budget on the service's clock
+        refit.append((scan.key[0], kw.get("fits_wait", False)))
         now[0] += 0.6 * service.config.provisional_budget
-        return real(scan, p)
+        return real(scan, p, **kw)
 
     monkeypatch.setattr(service, "_provisional", slow_refit)
     later = service.tick if catch_up == "tick" else service.catch_up
-    first = later()
-    assert sorted(refit) == ["b", "c"] and len(first) == 2  # the two oldest; the budget ran out before a
+    # The two oldest refits, without their exact fits: b's and c's corners are confirmed, and their plane a's
+    # first fit waits (no estimate to give yet); the budget ran out before a's refit.
+    assert later() == [] and refit == [("b", True), ("c", True)]
     assert service.has_deferred
+    # a's refit publishes at once; then the fits that wait, oldest scan first, as far as the budget goes.
     second = later()
-    assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
+    assert refit[2:] == [("a", True), ("b", False)] and [e.scanner_id for e in second] == ["a", "b"]
+    assert service.has_deferred
+    third = later()
+    assert refit[4:] == [("c", False)] and [e.scanner_id for e in third] == ["c"] and not service.has_deferred
+    # Each estimate caught up on names the newest step its scan holds.
+    for e in (*second, *third):
+        assert e.last_step == scans[e.scanner_id][109].step
 
 
 def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():

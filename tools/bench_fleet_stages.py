@@ -135,6 +135,7 @@ def queue_model(
     from collections import deque
 
     from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream import final_jobs
     from lelsonar.reconstruct.stream import service as service_module
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -142,15 +143,16 @@ def queue_model(
     now = [0.0]
     final_cpu = [0.0]
     reconstruct_scan, scan_input = service_module.reconstruct_scan, service_module.scan_input
+    final_input = final_jobs.scan_input
 
     # The bench's probes of the finals (their input, range repair included, and their reconstruction), not a
     # change of them.
-    def timed_reconstruct(scan, options, *rest):
+    def timed_reconstruct(scan, options, *rest, **kw):
         if options.provisional:
-            return reconstruct_scan(scan, options, *rest)
+            return reconstruct_scan(scan, options, *rest, **kw)
         c = time.thread_time()
         try:
-            return reconstruct_scan(scan, options, *rest)
+            return reconstruct_scan(scan, options, *rest, **kw)
         finally:
             final_cpu[0] += time.thread_time() - c
 
@@ -200,6 +202,7 @@ def queue_model(
             i += 1
 
     service_module.reconstruct_scan, service_module.scan_input = timed_reconstruct, timed_input  # type: ignore[assignment]
+    final_jobs.scan_input = timed_input  # (a final's input is made where its scan closes)
     try:
         while i < n or waiting:
             if not waiting:
@@ -220,6 +223,7 @@ def queue_model(
                 run(service.catch_up)
     finally:
         service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
+        final_jobs.scan_input = final_input
     span = now[0] - payloads[0][0] if payloads else 0.0
     return {
         "processed_s": processed,

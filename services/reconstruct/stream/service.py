@@ -451,16 +451,22 @@ class ReconstructionService:
             return []  # tick() catches up; the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
-    def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
-        """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`)."""
+    def _provisional(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = False) -> list[codec.Reconstruction]:
+        """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`), and the
+        exact fits that waited (``fits_wait``: they wait on, and the estimate keeps the planes it has)."""
         if not self.config.provisional or scan.key in self._reopened:
             return []  # (a re-opened scan already had its verdict: only its new final is published)
-        if scan.n_received - p.steps_at_fit < self.config.refit_every:
+        fits = not fits_wait and p.fits_wanted  # a fit that waited runs whatever the refit's gates
+        if scan.n_received - p.steps_at_fit < self.config.refit_every and not fits:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
         had_corner = p.critical is not None
-        if had_corner and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9:
+        if (
+            had_corner
+            and not fits
+            and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9
+        ):
             return []  # within the per-scan rate limit: no estimate, and no input built to learn that
-        est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p)
+        est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p, fits_wait=fits_wait)
         if not had_corner and p.critical is not None:
             self._event(
                 "INFO",
