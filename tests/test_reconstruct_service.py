@@ -232,6 +232,42 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
         assert e.last_step == scans[e.scanner_id][109].step
 
 
+def test_a_scan_completed_under_a_backlog_gets_its_final_once_it_drains_and_the_same_final():
+    now = [0.0]
+    messages = simulated_messages("paper-test1", seed=3, scanner_id="a")
+    busy = ReconstructionService(ReconstructConfig(provisional=False), clock=lambda: now[0])
+    for m in messages:
+        assert busy.handle(type_name(m), m.SerializeToString(), busy=True) == []  # the samples come first
+    assert busy.has_deferred and not busy.finals
+    # A straggling copy of a step while its final waits: a duplicate, no second final.
+    again = messages[-2]
+    assert busy.handle(type_name(again), again.SerializeToString(), busy=True) == []
+    (final,) = busy.catch_up()
+    assert wire.status_name(final) == "final" and not busy.has_deferred
+    alone = ReconstructionService(ReconstructConfig(provisional=False))
+    (expected,) = [e for m in messages for e in alone.handle(type_name(m), m.SerializeToString())]
+    assert final.planes == expected.planes and final.corner_edge == expected.corner_edge
+    assert final.surfaces == expected.surfaces and final.failures == expected.failures
+    assert final.accounting.duplicates == expected.accounting.duplicates + 1
+
+
+def test_a_final_that_waited_stays_behind_its_scanners_newer_estimate():
+    now = [0.0]
+    first = simulated_messages("paper-test1", seed=3, scanner_id="a")
+    second = simulated_messages("paper-test1", seed=4, scanner_id="a", scan_id=2)
+    service = ReconstructionService(ReconstructConfig(provisional_period=0), clock=lambda: now[0])
+    for m in first:
+        service.handle(type_name(m), m.SerializeToString(), busy=True)
+    newer = []
+    for m in second[:120]:  # the next scan's estimates, made while the first one's final waits
+        newer += service.handle(type_name(m), m.SerializeToString())
+    assert newer and all(e.scan_id == 2 for e in newer)
+    (final,) = [e for e in service.catch_up() if wire.is_terminal(e)]
+    assert final.scan_id == 1 and service.finals[("a", 1)] is final
+    # Ranked when its scan completed: the scanner's latest is still the newer scan's estimate.
+    assert service.latest["a"].scan_id == 2
+
+
 def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():
     now = [1000.0]  # a monotonic clock: far from 0
     service, scans = _deferred_scans(now)

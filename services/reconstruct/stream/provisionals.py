@@ -62,16 +62,18 @@ class ProvisionalSchedule:
         scans: Mapping[ScanKey, ScanAssembly],
         busy: bool,
         refit: Refit,
+        start: float | None = None,
     ) -> list[codec.Reconstruction]:
         """Run the deferred provisional refits without their exact fits, oldest estimate first, then the exact
-        fits that wait, oldest first, for at most ``provisional_budget`` in all.
+        fits that wait, oldest first, for at most ``provisional_budget`` in all (from ``start`` on the service's
+        clock: by default now).
 
         Those left wait for the next call; under a backlog (``busy``) a refit deferred for over twice
         ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
         """
         cfg = self.config
         out: list[codec.Reconstruction] = []
-        start = self._clock()
+        start = self._clock() if start is None else start
         waiting = sorted((p.estimated_at, key, p) for key in self._deferred if (p := partials.get(key)) is not None)
         self._deferred.clear()
         for n, (estimated_at, key, p) in enumerate(waiting):

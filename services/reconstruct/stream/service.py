@@ -134,6 +134,9 @@ class ReconstructionService:
         self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
         self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
         self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
+        #: Complete scans whose final waits for a backlog to drain (their input is made from the whole scan),
+        #: with their rank, taken when they completed.
+        self._closing: dict[ScanKey, int] = {}
 
     @property
     def recover(self) -> Callable[[RecoveryRequest], bool] | None:
@@ -204,7 +207,7 @@ class ReconstructionService:
         """
         now = self._clock()
         cfg = self.config
-        out = self._catch_up_provisionals(busy)
+        out = self._catch_up(busy)
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
@@ -216,7 +219,9 @@ class ReconstructionService:
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                    if key in self._closing:
+                        pass  # its final waits for the backlog (_catch_up makes it, within the budget)
+                    elif not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
                         self._finalise(scan, p, "final")
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
@@ -258,20 +263,31 @@ class ReconstructionService:
         """Only the provisional refits that waited for a backlog that has drained, within
         ``provisional_budget``: no walk over every open scan, which :meth:`tick` makes, so a source may call
         this after every payload and :meth:`tick` less often."""
-        return self._catch_up_provisionals(False)
+        return self._catch_up(False) + self.collect()
 
-    def _catch_up_provisionals(self, busy: bool) -> list[codec.Reconstruction]:
-        """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
+    def _catch_up(self, busy: bool) -> list[codec.Reconstruction]:
+        """Close the scans whose final waited for a backlog, then run the deferred provisional refits, oldest
+        estimate first, for at most ``provisional_budget`` in all.
 
-        Those left wait for the next tick; under a backlog (``busy``) one deferred for over twice
-        ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
+        Those left wait for the next call; under a backlog (``busy``) a refit deferred for over twice
+        ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples
+        (:class:`~lelsonar.reconstruct.stream.provisionals.ProvisionalSchedule`).  A final is never shed.
         """
-        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional)
+        start = self._clock()
+        for key in list(self._closing):
+            if self._clock() - start >= self.config.provisional_budget:
+                return []
+            scan, p = self.ingest.scans.get(key), self._partials.get(key)
+            if scan is None or p is None:
+                self._closing.pop(key)  # (forgotten by the bounded scan table, counted there)
+            else:
+                self._finalise(scan, p, "final")
+        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional, start)
 
     @property
     def has_deferred(self) -> bool:
         """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
-        return bool(self._schedule)
+        return bool(self._schedule or self._closing)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now, and wait for
@@ -416,7 +432,7 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
-                self._finalise(scan, p, "final")
+                self._close(scan, p, busy)
                 return []
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -445,7 +461,7 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
-            self._finalise(scan, p, "final")
+            self._close(scan, p, busy)
             return []
         if self._schedule.defer(scan.key, p, busy):
             return []  # tick() catches up; the backlog's later samples will be in the next refit
@@ -482,15 +498,24 @@ class ReconstructionService:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
 
+    def _close(self, scan: ScanAssembly, p: Partial, busy: bool) -> None:
+        """A complete scan's final: made now, or while a backlog waits (``busy``) once it drains: making its
+        input reads the whole scan, and the samples come first.  Its rank is taken now."""
+        if busy:
+            self._closing.setdefault(scan.key, next(self._ranks))
+        else:
+            self._finalise(scan, p, "final")
+
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
         """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
+        rank = self._closing.pop(scan.key, None)
         job, inp = close_final(
             scan,
             p,
             status,
             live=self.recover is not None,
             revision=self._reopened.pop(scan.key, 0),
-            rank=next(self._ranks),
+            rank=next(self._ranks) if rank is None else rank,
         )
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)
