@@ -131,8 +131,9 @@ def queue_model(
     service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
     :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
     worker nothing (run by other processes); without ``input_elsewhere`` the input is made on the worker as
-    :func:`~lelsonar.reconstruct.stream.final_jobs.close_final` makes it where the scan closes.  Returns put → processed and put → provisional latencies (s), the
-    worker's busy share, and the provisional refits shed.
+    :func:`~lelsonar.reconstruct.stream.final_jobs.close_final` makes it where the scan closes.  Once the
+    last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
+    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed.
     """
     from collections import deque
 
@@ -224,6 +225,8 @@ def queue_model(
                 run(service.tick, busy=bool(waiting))
             elif service.has_deferred and not waiting:
                 run(service.catch_up)
+        while service.has_deferred:  # idle after the last payload: what waits is caught up
+            run(service.catch_up)
     finally:
         service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
         final_jobs.scan_input = final_input
