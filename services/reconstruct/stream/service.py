@@ -13,10 +13,12 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
    samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
    estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) it waits too
    (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
-   one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains;
+   one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains, each
+   published at once in O(new samples) and the exact fits they need made after them;
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
-   terminal.
+   terminal; a scan completed while a backlog waits is closed once it drains, within the same budget (its
+   input reads the whole scan, and the samples come first).
 
 Gaps and when a final may be published:
 
