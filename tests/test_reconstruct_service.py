@@ -10,6 +10,7 @@ import pytest
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.finals import Done, PoolStats
 from lelsonar.reconstruct.stream.service import ReconstructionService
 
 from .conftest import assert_matches_the_scene, simulated_messages, type_name
@@ -266,6 +267,55 @@ def test_a_final_that_waited_stays_behind_its_scanners_newer_estimate():
     assert final.scan_id == 1 and service.finals[("a", 1)] is final
     # Ranked when its scan completed: the scanner's latest is still the newer scan's estimate.
     assert service.latest["a"].scan_id == 2
+
+
+class _HeldPool:
+    """A final pool of one worker and no queue, whose jobs finish when the test says."""
+
+    workers = capacity = 1
+
+    def __init__(self):
+        self.stats, self.jobs, self.done, self.tickets = PoolStats(), [], [], 0
+
+    @property
+    def unfinished(self):
+        return len(self.jobs)
+
+    def submit(self, fn, *args):
+        self.tickets += 1
+        self.jobs.append((self.tickets - 1, fn, args))
+        return self.tickets - 1
+
+    def finish_one(self):
+        ticket, fn, args = self.jobs.pop(0)
+        self.done.append(Done(ticket, fn(*args)))
+
+    def ready(self):
+        out, self.done = self.done, []
+        return out
+
+    def drain(self):
+        while self.jobs:
+            self.finish_one()
+        return self.ready()
+
+
+def test_finals_that_waited_for_a_backlog_wait_for_room_in_the_pool_too():
+    now = [0.0]
+    service = ReconstructionService(ReconstructConfig(provisional=False), clock=lambda: now[0])
+    pool = _HeldPool()
+    service.use_pool(pool)  # type: ignore[arg-type]
+    for sid in "ab":
+        for m in simulated_messages("paper-test1", seed=3, scanner_id=sid):
+            service.handle(type_name(m), m.SerializeToString(), busy=True)
+    assert service.catch_up() == [] and len(pool.jobs) == 1  # a's final in the pool; b's waits for room
+    assert service.has_deferred and service.catch_up() == [] and len(pool.jobs) == 1
+    pool.finish_one()
+    (a,) = service.catch_up()  # a's final comes back, and b's goes to the pool
+    assert (a.scanner_id, wire.status_name(a)) == ("a", "final") and len(pool.jobs) == 1
+    assert not service.has_deferred
+    (b,) = service.finish()
+    assert (b.scanner_id, wire.status_name(b)) == ("b", "final") and pool.stats.inline == 0
 
 
 def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():

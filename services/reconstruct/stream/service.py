@@ -277,14 +277,19 @@ class ReconstructionService:
         """
         start = self._clock()
         for key in list(self._closing):
-            if self._clock() - start >= self.config.provisional_budget:
-                return []
+            if self._clock() - start >= self.config.provisional_budget or self._pool_full():
+                break  # (a full pool would make the final here, on the samples' thread: it waits for room)
             scan, p = self.ingest.scans.get(key), self._partials.get(key)
             if scan is None or p is None:
                 self._closing.pop(key)  # (forgotten by the bounded scan table, counted there)
             else:
                 self._finalise(scan, p, "final")
         return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional, start)
+
+    def _pool_full(self) -> bool:
+        """Whether the pool's workers are all taken and its queue full (a final submitted now would run here)."""
+        pool = self._pool
+        return pool is not None and pool.workers > 0 and pool.unfinished >= pool.capacity
 
     @property
     def has_deferred(self) -> bool:
