@@ -136,9 +136,9 @@ class ReconstructionService:
         self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
         self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
         self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
-        #: Complete scans whose final waits for a backlog to drain (their input is made from the whole scan),
-        #: with their rank, taken when they completed.
-        self._closing: dict[ScanKey, int] = {}
+        #: Scans closed complete whose final waits for a backlog to drain (its input reads the whole scan), with
+        #: their rank, taken when they were closed.
+        self._closing: dict[ScanKey, tuple[int, ScanAssembly, Partial]] = {}
 
     @property
     def recover(self) -> Callable[[RecoveryRequest], bool] | None:
@@ -184,7 +184,7 @@ class ReconstructionService:
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
-            in_flight = {job.scan.key for job in self._dispatched.values()}
+            in_flight = {job.scan.key for job in self._dispatched.values()} | self._closing.keys()
             for key in late:
                 if key in in_flight:
                     self._late.add(key)  # re-opened, if its verdict asks for it, once its final is made
@@ -221,9 +221,7 @@ class ReconstructionService:
             if p.ended_at is not None:
                 missing = scan.missing_steps()
                 if not len(missing):
-                    if key in self._closing:
-                        pass  # its final waits for the backlog (_catch_up makes it, within the budget)
-                    elif not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
+                    if not self._requests.settling(scan, p, now):  # (conflicting copies wait for the log's, bounded)
                         self._finalise(scan, p, "final")
                 elif busy:
                     pass  # the replies to the last request may be in the backlog: no new attempt, no verdict yet
@@ -276,14 +274,10 @@ class ReconstructionService:
         (:class:`~lelsonar.reconstruct.stream.provisionals.ProvisionalSchedule`).  A final is never shed.
         """
         start = self._clock()
-        for key in list(self._closing):
+        for _, scan, p in list(self._closing.values()):
             if self._clock() - start >= self.config.provisional_budget or self._pool_full():
                 break  # (a full pool would make the final here, on the samples' thread: it waits for room)
-            scan, p = self.ingest.scans.get(key), self._partials.get(key)
-            if scan is None or p is None:
-                self._closing.pop(key)  # (forgotten by the bounded scan table, counted there)
-            else:
-                self._finalise(scan, p, "final")
+            self._finalise(scan, p, "final")
         return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional, start)
 
     def _pool_full(self) -> bool:
@@ -299,6 +293,8 @@ class ReconstructionService:
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now, and wait for
         every final on its way."""
+        for _, closed, waited in list(self._closing.values()):
+            self._finalise(closed, waited, "final")  # (closed complete while a backlog waited)
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is not None:
@@ -508,14 +504,19 @@ class ReconstructionService:
     def _close(self, scan: ScanAssembly, p: Partial, busy: bool) -> None:
         """A complete scan's final: made now, or while a backlog waits (``busy``) once it drains: making its
         input reads the whole scan, and the samples come first.  Its rank is taken now."""
-        if busy:
-            self._closing.setdefault(scan.key, next(self._ranks))
-        else:
+        if not busy:
             self._finalise(scan, p, "final")
+            return
+        # Closed now, as a final made now closes it: a straggler is rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
+        self._closing[scan.key] = (next(self._ranks), scan, p)
+        while len(self._closing) > self.config.max_scans:
+            self._finalise(*next(iter(self._closing.values()))[1:], "final")  # bounded: the oldest is made now
 
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
         """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
-        rank = self._closing.pop(scan.key, None)
+        rank = self._closing.pop(scan.key, (None,))[0]
         job, inp = close_final(
             scan,
             p,
