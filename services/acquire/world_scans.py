@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lelsonar import codec
+from lelsonar import poses
 from lelsonar.acquire.scanner import ScannerInfo, StepMeasurement
 from lelsonar.acquire.simulated import simulated_step
 from lelsonar.geometry import array_pose, quaternion_from_matrix
@@ -33,7 +33,7 @@ ODOM_FRAME = "odom"
 class WorldReplay:
     """One simulated sweep as a :class:`~lelsonar.acquire.scanner.Scanner`: step ``k`` returns shot ``k``."""
 
-    def __init__(self, scan: WorldScan, pose: codec.PoseWithCovariance) -> None:
+    def __init__(self, scan: WorldScan, pose: poses.PoseWithCovariance) -> None:
         self.scan = scan
         self.info = ScannerInfo(
             device="sim",
@@ -85,11 +85,11 @@ class WorldRun:
     def schedule(self) -> np.ndarray:
         return self.rig.gamma_commanded()
 
-    def pose_message(self, index: int) -> codec.PoseWithCovariance:
+    def pose_message(self, index: int) -> poses.PoseWithCovariance:
         """The array frame at pose ``index`` as the odometry has it, in ``odom``, with its covariance."""
         o = self.odometry[index]
         rot, trans = array_pose(o.x, o.y, o.heading, self.rig.mount, self.rig.height)
-        return codec.pose_message(ODOM_FRAME, trans, quaternion_from_matrix(rot), array_covariance(o.covariance))
+        return poses.pose_message(ODOM_FRAME, trans, quaternion_from_matrix(rot), array_covariance(o.covariance))
 
     def scanner(self, index: int) -> WorldReplay:
         """The sweep at pose ``index`` (simulated now; seeded by the run's seed and the pose)."""
