@@ -88,7 +88,7 @@ class WorldRun:
     def pose_message(self, index: int) -> poses.PoseWithCovariance:
         """The array frame at pose ``index`` as the odometry has it, in ``odom``, with its covariance."""
         o = self.odometry[index]
-        rot, trans = array_pose(o.x, o.y, o.heading, self.rig.mount, self.rig.height)
+        rot, trans = array_pose(o.x, o.y, o.heading, self.rig.mount, self.rig.height, self.rig.tilt)
         return poses.pose_message(ODOM_FRAME, trans, quaternion_from_matrix(rot), array_covariance(o.covariance))
 
     def scanner(self, index: int) -> WorldReplay:
@@ -134,7 +134,19 @@ def world_json(world: World) -> dict:
         "mount": world.scanner.mount,
         "scanner_height": world.scanner.height,
         "poses": [{"x": p.x, "y": p.y, "heading": p.heading} for p in world.poses],
-    }
+    } | _optional_scanner_keys(world)
+
+
+def _optional_scanner_keys(world: World) -> dict:
+    """The mount's tilt and the capsules' beam width (rad) where the world sets them: a world without them
+    describes itself as before."""
+    sc = world.scanner
+    out: dict = {}
+    if sc.tilt != 0.0:
+        out["scanner_tilt"] = sc.tilt
+    if sc.beam_width is not None:
+        out["beam_width"] = sc.beam_width
+    return out
 
 
 def world_from_json(text: str) -> dict:
