@@ -510,9 +510,8 @@ def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState, f
     if p.plane_a is None:
         return None  # plane a's first fit waits: nothing to give yet
     t0 = time.perf_counter()
-    plane_b = None
+    plane_b = None  # A fit that waited runs first, whatever the rate limit: the next estimate has it.
     if p.inc_b is not None and p.inc_b.fit_wanted and not fits_wait:
-        # A fit that waited runs first, whatever the rate limit: the next estimate has it.
         p.plane_b = plane_b = _plane_b(p, gamma, distance, steps, False)
     if 0 < scan.newest_ns - p.provisional_ns < options.provisional_period * 1e9:
         return None  # the per-scan rate limit (scan time)
@@ -521,14 +520,8 @@ def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState, f
         p.inc_b = IncrementalPlane(scan.geometry, "b", AXIS_Z, method, options.fit, n_schedule)
     if plane_b is None:
         plane_b = _plane_b(p, gamma, distance, steps, fits_wait)
-    if plane_b is None:  # (its first fit waits)
-        plane_b = FitFailure(
-            FailureReason.DEGENERATE_GEOMETRY,
-            "provisional: its first fit waits for the samples the stream holds",
-            "b",
-            p.inc_b.n,
-        )
-    p.plane_b = plane_b
+    why = "provisional: its first fit waits for the samples the stream holds"
+    p.plane_b = plane_b if plane_b is not None else FitFailure(FailureReason.DEGENERATE_GEOMETRY, why, "b", p.inc_b.n)
     p.steps_at_fit = len(steps)
     p.plane_a, p.plane_b = _verdicts((p.plane_a, p.plane_b), (), gamma=np.asarray(scan.gamma))
     fit_s = time.perf_counter() - t0
