@@ -45,7 +45,8 @@ from types import MappingProxyType
 from typing import Any
 
 from lelsonar.errors import ConfigError, InternalError
-from lelsonar.reconstruct.estimate.record import RecordOptions, ScanEstimate, ScanInput, reconstruct_scan
+from lelsonar.reconstruct.estimate.record import RecordOptions, ScanEstimate, reconstruct_scan
+from lelsonar.reconstruct.stream.scan_input import ClosedScan, scan_input
 
 __all__ = ["Done", "FinalPool", "PoolStats", "auto_workers", "estimate_final", "received", "workers_warm"]
 
@@ -77,14 +78,16 @@ def auto_workers(cpus: int | None = None) -> int:
     return max(0, min(2, n - 1))
 
 
-def estimate_final(scan: ScanInput, options: RecordOptions, with_points: bool) -> ScanEstimate:
-    """A scan's final estimate of record (:func:`reconstruct_scan`), ready to be sent back from a worker.
+def estimate_final(scan: ClosedScan, options: RecordOptions, with_points: bool) -> ScanEstimate:
+    """A closed scan's final estimate of record (:func:`reconstruct_scan` of its repaired ranges,
+    :func:`~lelsonar.reconstruct.stream.scan_input.scan_input`), ready to be sent back from a worker.
 
+    The whole final runs here, the range repair included: in a worker, none of it holds the stream.
     ``with_points``: keep each method's reconstruction (the points behind each plane, for a viewer);
     without it only what the message is built from comes back.  Pass the result through :func:`received`
     on the caller's side.
     """
-    est = reconstruct_scan(scan, options)
+    est = reconstruct_scan(scan_input(scan), options)
     # A mapping proxy does not pickle: a plain dict travels, received() makes it read-only again.
     return replace(est, results=dict(est.results) if with_points else {})
 
