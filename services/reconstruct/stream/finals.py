@@ -25,7 +25,9 @@ stream for that long (live: every scanner's samples wait; a replay: the reading 
   (:meth:`FinalPool.close`); a worker whose caller died sees its pipe close and exits.
 
 Results come back through one collector thread, which also feeds the next job to a freed worker at
-once, so the workers never wait for the caller.
+once, so the workers never wait for the caller.  It also sends every job (pickling a job and writing it
+through a worker's pipe waits for that worker to read it): the caller only hands a job to a worker, and
+goes on.
 """
 
 from __future__ import annotations
@@ -141,6 +143,8 @@ class _Worker:
     conn: multiprocessing.connection.Connection
     ready: bool = False
     job: _Job | None = None
+    #: Held while writing to ``conn`` (the collector sends the jobs, close() the stop).
+    sending: threading.Lock = field(default_factory=threading.Lock)
 
 
 @dataclass
@@ -149,6 +153,7 @@ class _State:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     queue: deque = field(default_factory=deque)  # _Job waiting for a worker
+    outbox: deque = field(default_factory=deque)  # (_Worker, _Job) given to a worker, for the collector to send
     orphans: deque = field(default_factory=deque)  # _Job whose workers died twice: the caller runs them
     workers: list = field(default_factory=list)  # _Worker
     done: dict = field(default_factory=dict)  # ticket -> Done, not yet handed back
@@ -356,20 +361,42 @@ class FinalPool:
         self._changed.notify_all()
 
     def _feed(self) -> None:
-        """(lock held) Send waiting jobs to idle ready workers."""
+        """(lock held) Give waiting jobs to idle ready workers; the collector sends them (:meth:`_send_given`)."""
         s = self._s
+        given = False
         for w in s.workers:
             if not s.queue:
-                return
+                break
             if w.ready and w.job is None:
-                job = s.queue.popleft()
-                try:
+                w.job = job = s.queue.popleft()
+                s.outbox.append((w, job))
+                given = True
+        if given and not s.closing and threading.current_thread() is not self._thread:
+            # (the pipe is open until the pool is closing, which is set under the lock held here)
+            os.write(self._wake_w, b"j")
+
+    def _send_given(self) -> None:
+        """(collector) Send the jobs given to workers, outside the lock: a worker reads a job as it is written,
+        and the caller meanwhile goes on (its results, the next job)."""
+        s = self._s
+        while True:
+            with self._changed:
+                if not s.outbox:
+                    return
+                w, job = s.outbox.popleft()
+                if w.job is not job or w not in s.workers or s.closing:
+                    continue  # its worker died meanwhile (the job waits again) or the pool is closing
+            try:
+                with w.sending:
                     w.conn.send((job.ticket, job.fn, job.args))
-                except (OSError, ValueError):  # the worker died: its sentinel says so, the job waits again
-                    s.queue.appendleft(job)
-                    w.ready = False
-                    continue
-                w.job = job
+            except (OSError, ValueError):  # the worker died: its sentinel says so, the job waits again
+                with self._changed:
+                    if w.job is job:
+                        w.job = None
+                        w.ready = False
+                        s.queue.appendleft(job)
+                        self._feed()
+                        self._changed.notify_all()  # (drain() runs it here if no worker is left)
 
     # --- the collector thread --------------------------------------------------------------
     def _collect(self) -> None:
@@ -393,6 +420,7 @@ class FinalPool:
                         self._receive(w)
                     elif w is not None and w.process.exitcode is not None:
                         self._lost(w)
+                    self._send_given()
         except Exception:  # noqa: BLE001 - the pool must not die silently: the caller computes from here on
             _log.exception("the final pool's collector failed; finals are computed in the caller from now on")
             with self._changed:
@@ -544,7 +572,8 @@ def _shutdown(s: _State, wake_w: int, changed: threading.Condition) -> None:
         changed.notify_all()
     for w in workers:
         try:
-            w.conn.send(None)
+            with w.sending:
+                w.conn.send(None)
         except (OSError, ValueError):
             pass  # already gone
     try:
