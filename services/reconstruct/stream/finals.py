@@ -266,6 +266,10 @@ class FinalPool:
 
     def ready(self) -> list[Done]:
         """The results done so far that follow the last one handed back, in submission order; never waits."""
+        s = self._s
+        if not s.orphans and self._next_out not in s.done:
+            # (read without the lock, as the caller asks after every sample: what comes meanwhile is taken next)
+            return []
         self._run_orphans()
         return self._take()
 
@@ -389,14 +393,9 @@ class FinalPool:
             try:
                 with w.sending:
                     w.conn.send((job.ticket, job.fn, job.args))
-            except (OSError, ValueError):  # the worker died: its sentinel says so, the job waits again
+            except (OSError, ValueError):  # the worker died: its sentinel says so (_lost runs its job again)
                 with self._changed:
-                    if w.job is job:
-                        w.job = None
-                        w.ready = False
-                        s.queue.appendleft(job)
-                        self._feed()
-                        self._changed.notify_all()  # (drain() runs it here if no worker is left)
+                    w.ready = False
 
     # --- the collector thread --------------------------------------------------------------
     def _collect(self) -> None:
