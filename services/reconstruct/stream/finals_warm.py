@@ -44,6 +44,8 @@ def load_kernels() -> None:
     at = scan.tof[rows, capsules] - (scan.t0 + first / rate)
     onset, peak, edge = echo_onsets(windows, rate, at)
     typical = typical_edges(edge)
+    # The repair reads the edges as a (steps, capsules) view of its (steps, capsules, 3) timings: a strided array.
+    typical_edges(np.moveaxis(np.stack([onset, peak, edge], axis=-1)[:, None], -1, 0)[2])
     range_walk(np.where(typical, -0.5 * 343.0 * onset, np.nan), peak, halves=True)
     _, _, sigma = echoes_over_noise(windows, rate, at, 2.0 * at, FLOOR_TIME)
     echo_onsets(windows, rate, at, level=noise_level(sigma, 2.0 * at, rate))
