@@ -517,7 +517,7 @@ class ReconstructionService:
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
         """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
         rank = self._closing.pop(scan.key, (None,))[0]
-        job, inp = close_final(
+        job, closed = close_final(
             scan,
             p,
             status,
@@ -529,10 +529,11 @@ class ReconstructionService:
         self._partials.pop(scan.key, None)
         self.ingest.close(scan.key)
         if self._pool is None:
-            self._complete(job, Done(0, reconstruct_scan(inp, self._options)))
+            self._complete(job, Done(0, reconstruct_scan(scan_input(closed), self._options)))
         else:
-            # The points behind each plane travel back only for an observer, which draws them.
-            self._dispatched[self._pool.submit(estimate_final, inp, self._options, self._observer is not None)] = job
+            # The whole final, its range repair included, in the pool; the points behind each plane travel
+            # back only for an observer, which draws them.
+            self._dispatched[self._pool.submit(estimate_final, closed, self._options, self._observer is not None)] = job
 
     def _complete(self, job: FinalJob, done: Done) -> None:
         """Publish a final whose estimate is made (or say why it could not be)."""
