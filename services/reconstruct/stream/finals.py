@@ -59,6 +59,9 @@ PRELOAD = ("lelsonar.reconstruct.stream.finals", "lelsonar.reconstruct.stream.fi
 _READY = "ready"
 #: Worker starts that fail one after another before the pool gives up on workers (the caller then computes).
 _MAX_FAILED_STARTS = 3
+#: How much less CPU a worker gets than its caller when they contend for a core: the caller handles the
+#: samples, and a final that waits costs no sample its latency.
+WORKER_NICENESS = 5
 #: Set once a worker of this process has been ready: the fork server has loaded the kernels, so a new
 #: pool's workers start in a fraction of a second rather than seconds.
 _WARM = threading.Event()
@@ -625,6 +628,10 @@ def _worker_main(conn: multiprocessing.connection.Connection) -> None:
     """A worker: run each job it is sent and send back its :class:`Done`, until told to stop (None) or its
     caller is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's: it ends the workers
+    try:
+        os.nice(WORKER_NICENESS)
+    except OSError:
+        pass  # (a platform without priorities: the worker runs at its caller's)
     try:
         conn.send(_READY)
         while True:
