@@ -75,6 +75,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
 from lelsonar.reconstruct.estimate.surfaces.flanks import split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
     capsule_x,
@@ -95,23 +96,20 @@ def _feature(
     direction: np.ndarray,
     surfaces: tuple[str, ...],
     reasons: list[str],
-    *,
-    tilted: bool = False,
+    opts: SurfaceOptions,
+    placed: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Feature:
-    """``tilted``: a line across the stack, which lies off the fan by the region's tilt (its point there)."""
-    b = unit_normal(m.bearing, m.tilt if tilted else 0.0)
-    across = np.cross(direction, b)
-    nrm = float(np.linalg.norm(across))
-    across = across / nrm if nrm > 1e-9 else np.zeros(3)
-    # Along the beam: the depth's scatter; across it: the bearing's, at this depth.
-    sd = max(0.003, m.depth_stderr) if math.isfinite(m.depth_stderr) else 0.003  # at least the range noise floor
-    cov = sd**2 * np.outer(b, b) + (m.depth * m.bearing_stderr) ** 2 * np.outer(across, across)
+    """``placed``: the point and its covariance where the planes it joins put it; else its own echo's point,
+    off the fan by its stack slope's tilt (with one capsule, anywhere within the beam's half-width)."""
+    if placed is None:
+        tilt_se = m.tilt_stderr if math.isfinite(m.tilt_stderr) else opts.beyond_cut / math.sqrt(3.0)
+        placed = echo_point(m.depth, m.depth_stderr, m.bearing, m.bearing_stderr, m.tilt, tilt_se)
     return Feature(
         kind=kind,
         label=label,
-        point=m.depth * b,
+        point=placed[0],
         direction=direction,
-        covariance=cov,
+        covariance=placed[1],
         bearing=m.bearing,
         depth=m.depth,
         surfaces=surfaces,
@@ -294,7 +292,6 @@ def extract_surfaces(
     planes = [i for i in determined if i not in ends]
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
     across_lines: set[int] = set()
-    leaning: set[int] = set()
     for i, m in enumerate(measured):
         pool = others(i, planes)
         # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
@@ -344,7 +341,6 @@ def extract_surfaces(
             measured[i] = m = replace(
                 m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
             )
-            leaning.add(i)
         elif m.bearing_source == "undetermined":
             placed = plane_end(m, [measured[j] for j in pool], opts, measured)
             if placed is None:
@@ -401,6 +397,7 @@ def extract_surfaces(
 
     surfaces: list[Surface] = []
     label_of: dict[int, str] = {}
+    surface_of: dict[int, Surface] = {}
     failed = 0
     for i, m in enumerate(measured):
         if i in kinds:
@@ -410,25 +407,62 @@ def extract_surfaces(
             failed += m.region.n_echoes
             continue
         label_of[i] = s.label
+        surface_of[i] = s
         surfaces.append(s)
+
+    def pair_placement(ia: int, ib: int, m: Measured) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """A pair corner's line from its two fitted planes: its nearest point, that point's covariance (the
+        planes' full covariance through the intersection) and its direction."""
+        sa, sb = surface_of.get(ia), surface_of.get(ib)
+        if sa is None or sb is None:
+            return None
+        params = np.array([sa.bearing, sa.tilt, sa.offset, sb.bearing, sb.tilt, sb.offset])
+        ja, jb = joint.get(ia), joint.get(ib)
+        tied = ja is not None and jb is not None and ja.full is not None
+        if ja is not None and jb is not None and ja.full is not None:
+            idx = [3 * ja.index + k for k in range(3)] + [3 * jb.index + k for k in range(3)]
+            cov6 = ja.full[np.ix_(idx, idx)]
+        else:
+            cov6 = np.zeros((6, 6))
+            cov6[:3, :3], cov6[3:, 3:] = sa.covariance, sb.covariance
+        line = pair_line_point(params, cov6)
+        if line is None:
+            return None
+        point, cov = line
+        if not tied:
+            # The walls fitted apart: the corner's own double-bounce range is a measurement they did not use.
+            point, cov = with_range(point, cov, m.depth, m.depth_stderr)
+        return point, cov, line_direction(params)
+
     corners: list[Feature] = []
     edges: list[Feature] = []
+    stack_axis = np.array([1.0, 0.0, 0.0])
     for i, (kind, reasons, ties) in sorted(kinds.items()):
         m = measured[i]
         tied = tuple(label_of[j] for j in ties if j in label_of)
+        located: tuple[np.ndarray, np.ndarray] | None = None
         if i in across_lines:
-            direction = np.cross(np.array([1.0, 0.0, 0.0]), unit_normal(m.bearing))
+            direction = np.cross(stack_axis, unit_normal(m.bearing))
         elif len(ties) >= 2:
-            a, b = measured[ties[0]], measured[ties[1]]
-            direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
+            pair_line = pair_placement(ties[0], ties[1], m)
+            if pair_line is not None:
+                located, direction = (pair_line[0], pair_line[1]), pair_line[2]
+            else:
+                a, b = measured[ties[0]], measured[ties[1]]
+                direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
+        elif len(ties) == 1:
+            # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
+            pj = measured[ties[0]]
+            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
+            if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
+                direction = stack_axis
         else:
-            direction = np.array([1.0, 0.0, 0.0])  # along the stack: a line the fan crosses
+            direction = stack_axis  # along the stack: a line the fan crosses
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction
         out = corners if kind == "corner" else edges
-        tilted = i in across_lines or i in leaning
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=tilted))
+        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, opts, located))
 
     valid = np.isfinite(d)
     in_region = np.zeros_like(valid)
