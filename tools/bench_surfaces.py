@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceOptions, SurfaceSet, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import Feature, Surface, SurfaceOptions, SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.scenes import FAMILIES as L_FAMILIES
@@ -187,7 +187,7 @@ def nearest_mirror(scan: WorldScan, surf: Surface) -> tuple[int, float]:
     return best
 
 
-def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
+def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | Feature | None = None) -> tuple[int, int]:
     """The element most of an item's readings are (its own readings if it has them, else its steps')."""
     if surf is not None and surf.rows is not None and surf.capsules is not None:
         idx = scan.echo_index[surf.rows, surf.capsules]
@@ -254,10 +254,12 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     false_good = 0
     good_planes = 0
     off_every: list[str] = []
-    items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
-    items += [(f.kind if f.settled else UNKNOWN, f.steps, None) for f in (*result.corners, *result.edges)]
-    for cls, steps, surf in items:
-        k, _ = majority(scan, steps, surf)
+    items: list[tuple[str, np.ndarray, Surface | None, Feature | None]] = [
+        ("plane", s.steps, s, None) for s in result.surfaces
+    ]
+    items += [(f.kind if f.settled else UNKNOWN, f.steps, None, f) for f in (*result.corners, *result.edges)]
+    for cls, steps, surf, feature in items:
+        k, _ = majority(scan, steps, surf if surf is not None else feature)
         truth = _element_kind(model, k, scan, steps)
         if cls != UNKNOWN and (truth is None or truth != cls):
             false[cls] += 1

@@ -127,11 +127,13 @@ def _wrap_half(a: float) -> float:
     return (a + math.pi / 2) % math.pi - math.pi / 2
 
 
-def _majority(scan: WorldScan, steps: np.ndarray) -> int:
-    idx = scan.echo_index[steps].ravel()
-    ok = (
-        np.isfinite(scan.distance[steps].ravel()) & (idx >= 0) & (scan.echo_source[steps].ravel() != EchoSource.DIFFUSE)
-    )
+def _majority(
+    scan: WorldScan, steps: np.ndarray, rows: np.ndarray | None = None, capsules: np.ndarray | None = None
+) -> int:
+    """The element most of an item's readings are (its own readings where it has them, else its steps')."""
+    at: tuple[np.ndarray, ...] = (steps,) if rows is None or capsules is None else (rows, capsules)
+    idx = scan.echo_index[at].ravel()
+    ok = np.isfinite(scan.distance[at].ravel()) & (idx >= 0) & (scan.echo_source[at].ravel() != EchoSource.DIFFUSE)
     if not ok.any():
         return -1
     vals, counts = np.unique(idx[ok], return_counts=True)
@@ -192,7 +194,7 @@ def _score_features(score: WorldScore, scan: WorldScan, surfaces, where: str) ->
     rot, tr = pose_frame(scan.rig, scan.pose)
     classes = {"corner": (ElementKind.DIHEDRAL, ElementKind.TRIHEDRAL), "edge": (ElementKind.EDGE,)}
     for f in (*surfaces.corners, *surfaces.edges):
-        k = _majority(scan, f.steps)
+        k = _majority(scan, f.steps, f.rows, f.capsules)
         if k < 0 or scan.model.elements[k].kind not in classes[f.kind]:
             continue
         score.counts["features"] += 1

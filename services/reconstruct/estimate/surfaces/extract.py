@@ -78,6 +78,7 @@ from lelsonar.reconstruct.estimate.surfaces.flanks import split_dihedral, split_
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
+    Region,
     capsule_x,
     extrapolated_peak,
     find_regions,
@@ -116,6 +117,8 @@ def _feature(
         reasons=tuple(reasons),
         steps=m.region.steps.copy(),
         n_echoes=m.region.n_echoes,
+        rows=m.region.rows.copy(),
+        capsules=m.region.capsules.copy(),
     )
 
 
@@ -169,6 +172,18 @@ def extract_surfaces(
     for i in range(len(measured)):
         split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
     measured = split
+    # A target heard by part of the stack only, nearer than what its steps' other capsules hear (an edge off
+    # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
+    # its readings are off their step's range, so a second pass over the readings no region holds finds it.
+    partial = set()
+    for r in _partial_regions(d, [m.region for m in measured], opts, spread):
+        partial.add(len(measured))
+        pm = measure_region(r, g, d, amp, geometry, opts, step=step)
+        # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the
+        # target's curved ranges: its tilt is known only to the beam's half-width.
+        reach = opts.beyond_cut / math.sqrt(3.0)
+        tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
+        measured.append(replace(pm, tilt_stderr=tilt_se))
     regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
@@ -256,7 +271,12 @@ def extract_surfaces(
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
     # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
-    determined = [i for i in candidates if measured[i].bearing_source != "undetermined" and not weak(measured[i])]
+    # (A target only part of the stack hears is no mirror: every capsule hears a mirror's foot alike.)
+    determined = [
+        i
+        for i in candidates
+        if measured[i].bearing_source != "undetermined" and not weak(measured[i]) and i not in partial
+    ]
 
     def on_traces(i: int, pool: list[int]) -> list[int]:
         p = feature_point(measured[i])
@@ -399,8 +419,12 @@ def extract_surfaces(
     label_of: dict[int, str] = {}
     surface_of: dict[int, Surface] = {}
     failed = 0
+    unsorted = 0
     for i, m in enumerate(measured):
         if i in kinds:
+            continue
+        if i in partial:
+            unsorted += m.region.n_echoes
             continue
         s = fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts, joint.get(i))
         if s is None:
@@ -479,6 +503,8 @@ def extract_surfaces(
     }
     if failed:
         unexplained["in regions no plane fits"] = failed
+    if unsorted:
+        unexplained["heard by part of the capsule stack only, neither corner nor edge"] = unsorted
     return SurfaceSet(
         surfaces=tuple(surfaces),
         corners=tuple(corners),
@@ -486,6 +512,24 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
+
+
+def _partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spread: float) -> list[Region]:
+    """Regions among the readings no region holds, nearer than their steps' held readings by more than the
+    range tolerance (a first-echo receiver: a capsule that hears a nearer target hears it first)."""
+    mask = np.zeros(d.shape, dtype=bool)
+    for r in held:
+        mask[r.rows, r.capsules] = True
+    rest = np.where(mask, np.nan, d)
+    out = []
+    for r in find_regions(
+        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+    ):
+        own = float(np.median(d[r.rows, r.capsules]))
+        others = d[r.steps][mask[r.steps]]
+        if others.size and own < float(np.median(others)) - opts.range_tolerance:
+            out.append(r)
+    return out
 
 
 def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:

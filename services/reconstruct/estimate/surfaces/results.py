@@ -138,6 +138,9 @@ class Feature:
         The evidence for its class.
     steps : (k,) int array
     n_echoes : int
+    rows, capsules : (n_echoes,) int arrays, optional
+        Its readings: step and capsule of each (a target only part of the stack hears shares its steps
+        with a farther one's in the other capsules).
     """
 
     kind: str
@@ -151,6 +154,8 @@ class Feature:
     reasons: tuple[str, ...]
     steps: np.ndarray
     n_echoes: int
+    rows: np.ndarray | None = None
+    capsules: np.ndarray | None = None
 
     @property
     def settled(self) -> bool:
