@@ -140,3 +140,11 @@ def test_a_ceiling_corner_behind_the_foot_is_placed_on_the_side_of_its_own_steps
     for f in mine:
         dist, sigma = _off_line(scan, model, f, 71)
         assert dist <= max(3 * sigma, 0.02)
+
+
+def test_a_target_part_of_the_stack_hears_does_not_end_a_walls_trace_before_its_corner():
+    # L room world 25, pose 0, vertical fan: an edge off the fan, heard by part of the stack, lies between the
+    # wall's foot and the wall's corner (element 16) along its trace; the corner is still the wall's end.
+    scan, model, mine = _world_feature("l_room", 25, 0, 16, "paper")
+    assert model.elements[16].kind == ElementKind.DIHEDRAL
+    assert mine and all(f.kind == "corner" and f.settled for f in mine)

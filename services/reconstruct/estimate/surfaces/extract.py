@@ -278,6 +278,11 @@ def extract_surfaces(
         if measured[i].bearing_source != "undetermined" and not weak(measured[i]) and i not in partial
     ]
 
+    def in_fan() -> list[Measured]:
+        """The regions every capsule hears: a target part of the stack hears lies off the fan, so it says
+        nothing of how far a plane runs along its trace in the fan."""
+        return [x for k, x in enumerate(measured) if k not in partial]
+
     def on_traces(i: int, pool: list[int]) -> list[int]:
         p = feature_point(measured[i])
         out = []
@@ -292,7 +297,7 @@ def extract_surfaces(
             mi = measured[i]
             sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
             tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
-            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, measured, opts):
+            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, in_fan(), opts):
                 out.append(j)
         return out
 
@@ -362,7 +367,7 @@ def extract_surfaces(
                 m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
             )
         elif m.bearing_source == "undetermined":
-            placed = plane_end(m, [measured[j] for j in pool], opts, measured)
+            placed = plane_end(m, [measured[j] for j in pool], opts, in_fan())
             if placed is None:
                 ties = []
             else:
