@@ -148,3 +148,13 @@ def test_a_target_part_of_the_stack_hears_does_not_end_a_walls_trace_before_its_
     scan, model, mine = _world_feature("l_room", 25, 0, 16, "paper")
     assert model.elements[16].kind == ElementKind.DIHEDRAL
     assert mine and all(f.kind == "corner" and f.settled for f in mine)
+
+
+def test_two_edges_side_by_side_at_one_range_are_two_edges():
+    # Corridor world 8, pose 1, horizontal fan: a thin wall's two vertical ends (elements 27 and 26) answer
+    # at one range on adjacent steps; the amplitude steps where one's beam pattern hands over to the other's.
+    scan, model, first = _world_feature("corridor", 8, 1, 27, "fan")
+    _, _, second = _world_feature("corridor", 8, 1, 26, "fan")
+    assert model.elements[27].kind == model.elements[26].kind == ElementKind.EDGE
+    assert first and second and all(f.kind == "edge" for f in (*first, *second))
+    assert not {f.label for f in first} & {f.label for f in second}

@@ -79,11 +79,13 @@ from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_di
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
     Region,
+    amplitude_jump,
     capsule_x,
     extrapolated_peak,
     find_regions,
     log_amplitude_curvature,
     peak_at_bearing,
+    subregion,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
 
@@ -267,6 +269,28 @@ def extract_surfaces(
         if traced >= opts.weak_echo * ref:
             return "strong", strong_there
         return "unknown", ""
+
+    # Two diffracting targets at one range side by side (a thin wall's two ends, a box's two edges) make one
+    # region whose amplitude steps where one beam pattern hands over to the other: two edges, not one.
+    for i in range(len(measured)):
+        m = measured[i]
+        # (Part of the stack hears a target off the fan on fewer steps in its farther capsules: its steps'
+        # medians step where those capsules join, which is no second target.)
+        if i in partial or not weak(m) or m.region.cut_before or m.region.cut_after:
+            continue
+        jump = amplitude_jump(g[m.region.steps], m.step_amplitude)
+        if jump is None:
+            continue
+        k = int(np.searchsorted(g[m.region.steps], jump[0])) if g[-1] > g[0] else 0
+        if not opts.min_steps <= k <= m.region.steps.size - opts.min_steps:
+            continue
+        pieces = [
+            subregion(m.region, m.region.steps[:k], cut_before=False, cut_after=True),
+            subregion(m.region, m.region.steps[k:], cut_before=True, cut_after=False),
+        ]
+        first, second = (measure_region(r, g, d, amp, geometry, opts, step=step) for r in pieces)
+        measured[i] = first
+        measured.append(second)
 
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
