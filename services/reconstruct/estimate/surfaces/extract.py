@@ -36,7 +36,13 @@ Per region of constant depth (:mod:`.regions`):
     curvature) is;
   - anything else: a **plane**.
 
+A target only part of the capsule stack hears, nearer than what the rest hear at its steps (an edge off the
+fan), is found among the readings no region holds; it is a corner or an edge, never a plane.  A weak region
+whose amplitude steps as no one beam pattern does holds two diffracting targets at one range: two edges.
+
 Each plane is fitted on its own echoes, walls joined at concave corners with them (:mod:`.fitting`, :mod:`.joint`).
+A corner or an edge lies where its echo comes from, off the fan by its stack slope's tilt; a concave corner
+of two fitted planes on their line, with their covariance (:mod:`.placement`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
@@ -74,11 +80,10 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flanks import split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
-    Region,
     amplitude_jump,
     capsule_x,
     extrapolated_peak,
@@ -178,7 +183,7 @@ def extract_surfaces(
     # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
     # its readings are off their step's range, so a second pass over the readings no region holds finds it.
     partial = set()
-    for r in _partial_regions(d, [m.region for m in measured], opts, spread):
+    for r in partial_regions(d, [m.region for m in measured], opts, spread):
         partial.add(len(measured))
         pm = measure_region(r, g, d, amp, geometry, opts, step=step)
         # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the
@@ -541,24 +546,6 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
-
-
-def _partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spread: float) -> list[Region]:
-    """Regions among the readings no region holds, nearer than their steps' held readings by more than the
-    range tolerance (a first-echo receiver: a capsule that hears a nearer target hears it first)."""
-    mask = np.zeros(d.shape, dtype=bool)
-    for r in held:
-        mask[r.rows, r.capsules] = True
-    rest = np.where(mask, np.nan, d)
-    out = []
-    for r in find_regions(
-        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
-    ):
-        own = float(np.median(d[r.rows, r.capsules]))
-        others = d[r.steps][mask[r.steps]]
-        if others.size and own < float(np.median(others)) - opts.range_tolerance:
-            out.append(r)
-    return out
 
 
 def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:
