@@ -10,6 +10,7 @@ import pytest
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, pair_line_point, with_range
+from lelsonar.reconstruct.estimate.surfaces.results import OFF_FAN
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, build_model
@@ -74,7 +75,7 @@ def test_an_echo_point_lies_off_the_fan_by_its_tilt_with_each_sigma_on_its_own_a
     assert float(e_t @ cov @ e_t) / float(e_t @ e_t) == pytest.approx((2.0 * 0.05) ** 2, rel=1e-5)
 
 
-def test_an_edge_only_the_nearest_capsule_hears_beside_a_farther_wall_is_found_as_an_edge():
+def test_an_edge_only_the_nearest_capsule_hears_beside_a_farther_wall_is_found_and_says_its_kind_is_open():
     # A wall 2.5 m ahead, every capsule hears it; a vertical edge 0.6 m away and 0.3 m along the stack, weak
     # (diffraction), is over the threshold only in the capsule nearest it, which hears it first.
     e = Echoes(seed=5)
@@ -85,9 +86,12 @@ def test_an_edge_only_the_nearest_capsule_hears_beside_a_farther_wall_is_found_a
     near = np.nanmin(ranges, axis=0) < 1.0
     assert near.sum() == 1  # the premise: one capsule of the stack hears the edge
     result = extract_surfaces(GAMMA, ranges, GEOMETRY, amplitude=e.amp)
-    edges = [f for f in result.edges if f.depth < 1.0]
-    assert len(edges) == 1 and not [f for f in result.corners if f.depth < 1.0]
-    f = edges[0]
+    found = [f for f in (*result.edges, *result.corners) if f.depth < 1.0]
+    assert len(found) == 1
+    f = found[0]
+    # Off the fan on the beam's flank, its amplitude is only a lower bound of its peak: strength cannot say
+    # corner or edge.
+    assert not f.settled and any(OFF_FAN in r for r in f.reasons)
     assert f.capsules is not None and set(f.capsules.tolist()) == {int(np.flatnonzero(near)[0])}
     # Its point is off the true line by no more than 3 σ in that direction (one capsule: no tilt of its own).
     off = f.point - np.array([x0, 0.6, 0.0])
@@ -119,14 +123,14 @@ def _off_line(scan, model, f, element: int) -> tuple[float, float]:
     return dist, math.sqrt(float(r @ f.covariance @ r))
 
 
-def test_a_box_top_edge_in_a_vertical_fan_heard_by_part_of_the_stack_is_an_edge():
+def test_a_box_top_edge_in_a_vertical_fan_heard_by_part_of_the_stack_is_found_within_its_sigma():
     # Boxes world 7, pose 0, vertical fan: the box's top edge (element 111) answers two capsules only, the
-    # wall behind it the others.
+    # wall behind it the others.  Found, placed within its σ, and its kind left open (never a wrong one).
     scan, model, mine = _world_feature("boxes", 7, 0, 111, "paper")
     assert model.elements[111].kind == ElementKind.EDGE
     ok = np.isfinite(scan.distance) & (scan.echo_index == 111) & (scan.echo_source != EchoSource.DIFFUSE)
     assert ok.sum(axis=1).max() < scan.distance.shape[1]  # the premise: never the whole stack
-    assert mine and all(f.kind == "edge" and f.settled for f in mine)
+    assert mine and all((f.kind == "edge" or not f.settled) and f.capsules is not None for f in mine)
     for f in mine:
         dist, sigma = _off_line(scan, model, f, 111)
         assert dist <= max(3 * sigma, 0.02)

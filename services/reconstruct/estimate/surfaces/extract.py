@@ -92,7 +92,14 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     peak_at_bearing,
     subregion,
 )
-from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
+from lelsonar.reconstruct.estimate.surfaces.results import (
+    OFF_FAN,
+    UNSETTLED,
+    Feature,
+    Surface,
+    SurfaceOptions,
+    SurfaceSet,
+)
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
 
@@ -441,6 +448,13 @@ def extract_surfaces(
         extra = summed_width_stderr(c, beam_k, beam_low)
         if extra > 0:
             measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
+
+    # A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
+    # bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled.
+    for i in partial:
+        if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
+            kind, reasons, ties = kinds[i]
+            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
 
     # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]

@@ -11,10 +11,16 @@ from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.quality import QualityLimits
 from lelsonar.reconstruct.estimate.results import PlaneFit
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "UNSETTLED"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "UNSETTLED", "OFF_FAN"]
 
 #: In a feature's reasons when its echoes cannot settle corner against edge (its kind is then only a placeholder).
 UNSETTLED = "kind not settled: its echo's strength is unknown (its peak lies outside the sweep or under a nearer echo)"
+
+#: Beside it for a target only part of the capsule stack hears: off the fan, on the beam's flank.
+OFF_FAN = (
+    "heard by part of the capsule stack only, so off the fan on the beam's flank: its echo's strength is only a "
+    "lower bound of its peak"
+)
 
 
 @dataclass(frozen=True)
