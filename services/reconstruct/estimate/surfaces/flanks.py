@@ -422,6 +422,23 @@ def partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spr
     ):
         own = float(np.median(d[r.rows, r.capsules]))
         others = d[r.steps][mask[r.steps]]
-        if others.size and own < float(np.median(others)) - opts.range_tolerance:
+        if (
+            others.size
+            and own < float(np.median(others)) - opts.range_tolerance
+            and not _flank_of(r, own, held, d, opts)
+        ):
             out.append(r)
     return out
+
+
+def _flank_of(r: Region, own: float, held: list[Region], d: np.ndarray, opts: SurfaceOptions) -> bool:
+    """Whether a region the whole stack hears, at ``r``'s range (within twice the range tolerance) and on
+    overlapping or adjacent steps (within ``max_gap``), is the same target: ``r`` is its flank, where only
+    part of the stack still hears it."""
+    lo, hi = int(r.steps[0]), int(r.steps[-1])
+    for h in held:
+        if int(h.steps[0]) > hi + opts.max_gap + 1 or int(h.steps[-1]) < lo - opts.max_gap - 1:
+            continue
+        if abs(float(np.median(d[h.rows, h.capsules])) - own) <= 2 * opts.range_tolerance:
+            return True
+    return False
