@@ -109,9 +109,12 @@ def split_flanks(
     Each end's run of steps whose slopes stand off the region's median slope together by more than
     ``curvature_sigmas`` of their σ (:func:`step_slopes`, ``Σz/√n``), ``min_steps`` long, splits off, cut on
     the middle's side, where the middle's own double bounce with a surface across the fan explains its
-    ranges (:func:`~.evidence.stack_dihedral`); else it stays the plane's.  The
+    ranges (:func:`~.evidence.stack_dihedral`); else it stays the plane's.  With both flanks split, the
     middle keeps the whole region's bearing when that came from its centre: the flanks' target shares it (a
-    line's nearest point lies at the wall's foot), so the span stays symmetric about the foot.
+    line's nearest point lies at the wall's foot), so the span stays symmetric about the foot.  With one, the
+    other side's flank is not in the region (its echoes made a region of their own), so the whole span is
+    lopsided by the split flank's width and the middle's own centre (where the wall's nearer echo gives way
+    on both sides) is the bearing.
 
     Returns
     -------
@@ -134,7 +137,7 @@ def split_flanks(
     def middle_of(head: int, tail: int) -> Measured:
         middle = subregion(r, r.steps[head : r.steps.size - tail], r.cut_before, r.cut_after)
         centre = measure_region(middle, gamma, distance, amplitude, geometry, opts, step=m.step)
-        if m.bearing_source != "region centre":
+        if m.bearing_source != "region centre" or not (head and tail):
             return centre
         h_i = centre.ranges + centre.positions @ unit_normal(m.bearing, centre.tilt)
         return replace(
