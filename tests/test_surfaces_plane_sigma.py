@@ -2,6 +2,8 @@
 
 * a region that holds its wall's double bounce with the floor past one end only (the other side's made a
   region of its own) is lopsided: the wall's bearing is the centre of its own steps, not of the region;
+* a plane whose end steps were trimmed off as another target's may have faded anywhere over them: its
+  centre puts that end in their middle, and its σ spans them.
 """
 
 from __future__ import annotations
@@ -11,8 +13,10 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
+from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.evidence import measure_region
+from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
+from lelsonar.reconstruct.estimate.surfaces.regions import find_regions, subregion
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
@@ -67,5 +71,42 @@ def test_in_a_simulated_corridor_a_one_sided_floor_corner_flank_does_not_move_th
     result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
     checked = _bearing_z(scan, result.surfaces)
     assert checked
+    for label, error, sd in checked:
+        assert abs(error) <= 3 * sd, f"{label}: {math.degrees(error):.2f}° with σ {math.degrees(sd):.2f}°"
+
+
+@pytest.mark.parametrize(("seed", "trimmed"), [(31, 2), (32, 3), (33, 4)])
+def test_a_plane_trimmed_at_one_end_centres_that_end_over_the_trimmed_steps_and_widens_its_sigma(seed, trimmed):
+    bearing, offset = math.radians(25.0), 2.0
+    e = Echoes(seed=seed)
+    e.plane(bearing, offset)
+    d = e.ranges()
+    (region,) = find_regions(d)
+    steps = region.steps
+    core = subregion(region, steps[: steps.size - trimmed], False, False)
+    m = measure_region(core, GAMMA, d, e.amp, GEOMETRY, SurfaceOptions())
+    assert m.bearing_source == "region centre"
+    # Taken alone, the core's centre is half the trimmed span off, many times its own σ.
+    assert abs(m.bearing - bearing) > 3 * m.bearing_stderr
+    t = trimmed_centre(m, GAMMA, (None, int(steps[-1])))
+    step = float(GAMMA[1] - GAMMA[0])
+    last = int(steps[-1 - trimmed])
+    assert t.bearing == pytest.approx(0.5 * (GAMMA[steps[0]] + 0.5 * (GAMMA[last] + GAMMA[steps[-1]])))
+    # One end over its gap (step²/12), the other over the trimmed span and the gap past it.
+    var = (step**2 / 12 + ((trimmed * step) ** 2 + step**2) / 12) / 4
+    assert t.bearing_stderr == pytest.approx(math.sqrt(var))
+    assert abs(t.bearing - bearing) <= 3 * t.bearing_stderr
+    assert trimmed_centre(m, GAMMA, (None, None)) is m
+
+
+@pytest.mark.slow
+def test_in_a_simulated_box_room_walls_trimmed_at_one_end_keep_their_bearing_within_sigma():
+    # The boxes world of seed 16, its first pose (fan mount): two walls' regions end on a step of their corner
+    # with the floor whose echo sums with the wall's; trimmed, each core is lopsided by that step.
+    scan = simulate_world_scan(build_model(draw_world("boxes", 16)), 0, seed=16 * 1000)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    checked = _bearing_z(scan, result.surfaces)
+    assert len(checked) >= 2
     for label, error, sd in checked:
         assert abs(error) <= 3 * sd, f"{label}: {math.degrees(error):.2f}° with σ {math.degrees(sd):.2f}°"

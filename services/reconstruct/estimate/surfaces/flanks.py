@@ -25,7 +25,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 from lelsonar.reconstruct.estimate.surfaces.regions import subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
-__all__ = ["split_dihedral", "split_ends", "split_flanks", "step_slopes", "trim_ends"]
+__all__ = ["split_dihedral", "split_ends", "split_flanks", "step_slopes", "trim_ends", "trimmed_centre"]
 
 
 def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -265,7 +265,57 @@ def trim_ends(
         parts.insert(0, subregion(r, r.steps[:head], r.cut_before, True))
     if tail >= opts.min_steps:
         parts.append(subregion(r, r.steps[k - tail :], True, r.cut_after))
-    return [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
+    out = [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
+    at = 1 if head >= opts.min_steps else 0
+    outer = (int(r.steps[0]) if head else None, int(r.steps[-1]) if tail else None)
+    out[at] = trimmed_centre(out[at], gamma, outer)
+    return out
+
+
+def trimmed_centre(core: Measured, gamma: np.ndarray, outer: tuple[int | None, int | None]) -> Measured:
+    """The centre bearing of a plane's core whose end steps were trimmed off as another target's.
+
+    A centred region's ends are where the beam pattern fades its echo, each within the gap to the next step
+    out (variance ``gap²/12`` each, ``(gap_a² + gap_b²)/48`` for their mean).  A trimmed end's step held a
+    like-range echo whose slope or depth is not the plane's: the plane's own echo may have summed into it
+    (it moves the range and the slope) or not, so its fade lies anywhere from the core's end step to the
+    trimmed block's outer step, and past it within that step's gap: uniform over that span, the end is its
+    middle, with variance ``(w² + gap²)/12`` (``w`` the block's span from the core's end).  Only the bearing
+    of a core centred on its own span changes (and its depth, taken along the new normal).
+
+    Parameters
+    ----------
+    core : Measured
+        The trimmed region's core.
+    gamma : (n_steps,) array
+        The sweep's γ, rad.
+    outer : (first, last)
+        The outermost trimmed step before and after the core (None: that end was not trimmed).
+    """
+    if core.bearing_source != "region centre" or outer == (None, None):
+        return core
+    steps = core.region.steps
+    n = gamma.size
+
+    def gap(step: int, outward: int) -> float:
+        nxt = step + outward
+        return abs(float(gamma[nxt] - gamma[step])) if 0 <= nxt < n else core.step
+
+    ends, base = [], 0.0
+    for step, trimmed, outward in ((int(steps[0]), outer[0], -1), (int(steps[-1]), outer[1], 1)):
+        g_out = gap(step, outward)
+        base += g_out * g_out / 48.0
+        if trimmed is None:
+            ends.append((float(gamma[step]), g_out * g_out / 12.0))
+        else:
+            w = abs(float(gamma[trimmed] - gamma[step]))
+            g_far = gap(trimmed, outward)
+            ends.append((0.5 * float(gamma[step] + gamma[trimmed]), (w * w + g_far * g_far) / 12.0))
+    bearing = 0.5 * (ends[0][0] + ends[1][0])
+    # The ends' share of the core's σ replaced; whatever else it holds (a jump's shift) kept.
+    var = max(core.bearing_stderr**2 - base, 0.0) + 0.25 * (ends[0][1] + ends[1][1])
+    h_i = core.ranges + core.positions @ unit_normal(bearing, core.tilt)
+    return replace(core, bearing=bearing, bearing_stderr=math.sqrt(var), depth=float(np.median(h_i)))
 
 
 def split_ends(
