@@ -267,21 +267,22 @@ def trim_ends(
         parts.append(subregion(r, r.steps[k - tail :], True, r.cut_after))
     out = [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
     at = 1 if head >= opts.min_steps else 0
-    outer = (int(r.steps[0]) if head else None, int(r.steps[-1]) if tail else None)
-    out[at] = trimmed_centre(out[at], gamma, outer)
+    nearest = (int(r.steps[head - 1]) if head else None, int(r.steps[k - tail]) if tail else None)
+    out[at] = trimmed_centre(out[at], gamma, nearest)
     return out
 
 
-def trimmed_centre(core: Measured, gamma: np.ndarray, outer: tuple[int | None, int | None]) -> Measured:
+def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None, int | None]) -> Measured:
     """The centre bearing of a plane's core whose end steps were trimmed off as another target's.
 
     A centred region's ends are where the beam pattern fades its echo, each within the gap to the next step
-    out (variance ``gap²/12`` each, ``(gap_a² + gap_b²)/48`` for their mean).  A trimmed end's step held a
-    like-range echo whose slope or depth is not the plane's: the plane's own echo may have summed into it
-    (it moves the range and the slope) or not, so its fade lies anywhere from the core's end step to the
-    trimmed block's outer step, and past it within that step's gap: uniform over that span, the end is its
-    middle, with variance ``(w² + gap²)/12`` (``w`` the block's span from the core's end).  Only the bearing
-    of a core centred on its own span changes (and its depth, taken along the new normal).
+    out (variance ``gap²/12`` each, ``(gap_a² + gap_b²)/48`` for their mean).  The trimmed step next to the
+    core held a like-range echo (the plane's corner with a surface across the fan, a few mm deeper) whose
+    slope or depth is not the plane's: where the plane's fading echo sums into it, it moves that step's ranges
+    and slope, so the plane's own echo may have faded there or one gap past it.  Farther out the other
+    target's echo stands alone.  Uniform over that span (``w``, from the core's end to that step, plus the
+    gap past it), the end is the middle of the core's end and that step, with variance ``(w + gap)²/12``.
+    Only the bearing of a core centred on its own span changes (and its depth, along the new normal).
 
     Parameters
     ----------
@@ -289,10 +290,10 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, outer: tuple[int | None, i
         The trimmed region's core.
     gamma : (n_steps,) array
         The sweep's γ, rad.
-    outer : (first, last)
-        The outermost trimmed step before and after the core (None: that end was not trimmed).
+    nearest : (before, after)
+        The trimmed step next to the core before and after it (None: that end was not trimmed).
     """
-    if core.bearing_source != "region centre" or outer == (None, None):
+    if core.bearing_source != "region centre" or nearest == (None, None):
         return core
     steps = core.region.steps
     n = gamma.size
@@ -302,15 +303,14 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, outer: tuple[int | None, i
         return abs(float(gamma[nxt] - gamma[step])) if 0 <= nxt < n else core.step
 
     ends, base = [], 0.0
-    for step, trimmed, outward in ((int(steps[0]), outer[0], -1), (int(steps[-1]), outer[1], 1)):
+    for step, trimmed, outward in ((int(steps[0]), nearest[0], -1), (int(steps[-1]), nearest[1], 1)):
         g_out = gap(step, outward)
         base += g_out * g_out / 48.0
         if trimmed is None:
             ends.append((float(gamma[step]), g_out * g_out / 12.0))
         else:
-            w = abs(float(gamma[trimmed] - gamma[step]))
-            g_far = gap(trimmed, outward)
-            ends.append((0.5 * float(gamma[step] + gamma[trimmed]), (w * w + g_far * g_far) / 12.0))
+            span = abs(float(gamma[trimmed] - gamma[step])) + gap(trimmed, outward)
+            ends.append((0.5 * float(gamma[step] + gamma[trimmed]), span * span / 12.0))
     bearing = 0.5 * (ends[0][0] + ends[1][0])
     # The ends' share of the core's σ replaced; whatever else it holds (a jump's shift) kept.
     var = max(core.bearing_stderr**2 - base, 0.0) + 0.25 * (ends[0][1] + ends[1][1])
