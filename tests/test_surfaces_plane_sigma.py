@@ -2,6 +2,7 @@
 
 * a region that holds its wall's double bounce with the floor past one end only (the other side's made a
   region of its own) is lopsided: the wall's bearing is the centre of its own steps, not of the region;
+* a centred region's bearing weighs its centre with its beam pattern's peak where the two agree;
 * a plane whose end steps were trimmed off as another target's may have faded on the one next to its core
   (its echo summed into it): its centre puts that end between them, and its σ spans them.
 """
@@ -16,7 +17,7 @@ import pytest
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import measure_region
 from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
-from lelsonar.reconstruct.estimate.surfaces.regions import find_regions, subregion
+from lelsonar.reconstruct.estimate.surfaces.regions import bearing_from_amplitude, find_regions, subregion
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
@@ -85,7 +86,7 @@ def test_a_plane_trimmed_at_one_end_puts_that_end_between_its_core_and_the_trimm
     steps = region.steps
     # The plane's last step trimmed off (its echo summed with another's there).
     core = subregion(region, steps[:-1], False, False)
-    m = measure_region(core, GAMMA, d, e.amp, GEOMETRY, SurfaceOptions())
+    m = measure_region(core, GAMMA, d, None, GEOMETRY, SurfaceOptions())
     assert m.bearing_source == "region centre"
     t = trimmed_centre(m, GAMMA, (None, int(steps[-1])))
     step = float(GAMMA[1] - GAMMA[0])
@@ -109,3 +110,26 @@ def test_in_a_simulated_box_room_walls_trimmed_at_one_end_keep_their_bearing_wit
     assert len(checked) >= 2
     for label, error, sd in checked:
         assert abs(error) <= 3 * sd, f"{label}: {math.degrees(error):.2f}° with σ {math.degrees(sd):.2f}°"
+
+
+@pytest.mark.parametrize(("seed", "bearing_deg"), [(41, 15.0), (42, -50.0), (43, 95.0)])
+def test_a_centred_regions_bearing_weighs_its_centre_and_its_beam_patterns_peak(seed, bearing_deg):
+    bearing, offset = math.radians(bearing_deg), 2.5
+    e = Echoes(seed=seed)
+    e.plane(bearing, offset)
+    d = e.ranges()
+    (region,) = find_regions(d)
+    opts = SurfaceOptions()
+    centre = measure_region(region, GAMMA, d, None, GEOMETRY, opts)
+    both = measure_region(region, GAMMA, d, e.amp, GEOMETRY, opts)
+    assert centre.bearing_source == both.bearing_source == "region centre"
+    g = GAMMA[region.steps]
+    peak, peak_sd = bearing_from_amplitude(g, both.step_amplitude)
+    # The peak's σ as an amplitude peak's alone: its fit's and one step's quantisation.
+    step = float(GAMMA[1] - GAMMA[0])
+    peak_sd = math.hypot(peak_sd, step / math.sqrt(24.0))
+    wc, wp = centre.bearing_stderr**-2, peak_sd**-2
+    assert both.bearing == pytest.approx((wc * centre.bearing + wp * peak) / (wc + wp))
+    assert both.bearing_stderr == pytest.approx((wc + wp) ** -0.5)
+    assert both.bearing_stderr < centre.bearing_stderr
+    assert abs(both.bearing - bearing) <= 3 * both.bearing_stderr

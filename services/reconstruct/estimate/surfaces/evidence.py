@@ -223,6 +223,13 @@ def measure_region(
         after = abs(float(gamma[last + 1] - gamma[last])) if last + 1 < gamma.size else step
         ends = math.sqrt((before * before + after * after) / 48.0)
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
+        # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
+        # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
+        # 3 σ of their difference, each weighs by its inverse variance.
+        peak_sb = math.hypot(peak_fit[1], quant) if peak_fit is not None else math.inf
+        if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
+            wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
+            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
         # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
