@@ -1,4 +1,4 @@
-"""Issue 12 §3: the emulated links run at their rates, and the pipelined loop moves the servo under the
+"""The emulated links run at their rates, and the pipelined loop moves the servo under the
 frame's transfer, never during an acoustic window, and measures what the sequential loop measures.
 
 Timing is checked as ratios and orders of events on the devices' own timelines, never against a
