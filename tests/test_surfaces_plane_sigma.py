@@ -4,7 +4,8 @@
   region of its own) is lopsided: the wall's bearing is the centre of its own steps, not of the region;
 * a centred region's bearing weighs its centre with its beam pattern's peak where the two agree;
 * a plane whose end steps were trimmed off as another target's may have faded on the one next to its core
-  (its echo summed into it): its centre puts that end between them, and its σ spans them.
+  (its echo summed into it): its centre puts that end between them, and its σ spans them; an end step with
+  too few readings for a slope is trimmed by its depth alone.
 """
 
 from __future__ import annotations
@@ -133,3 +134,22 @@ def test_a_centred_regions_bearing_weighs_its_centre_and_its_beam_patterns_peak(
     assert both.bearing_stderr == pytest.approx((wc + wp) ** -0.5)
     assert both.bearing_stderr < centre.bearing_stderr
     assert abs(both.bearing - bearing) <= 3 * both.bearing_stderr
+
+
+def test_a_deeper_end_step_in_one_or_two_capsules_is_trimmed_by_its_depth_alone():
+    bearing, offset = math.radians(-40.0), 2.0
+    e = Echoes(seed=51)
+    e.plane(bearing, offset)
+    d = e.ranges()
+    own = np.flatnonzero(np.isfinite(d).any(axis=1))
+    # A corner's echo 1 cm deeper in the two lower capsules just before the wall's first step, and in the
+    # lowest one a step earlier (the beam's edge): no slope to judge those steps by, only their depth.
+    wall_range = float(np.nanmedian(d[own[:5]]))
+    d[own[0] - 1, :2] = wall_range + 0.010 + np.array([0.0, 0.004])
+    d[own[0] - 2, 0] = wall_range + 0.012
+    (region,) = [r for r in find_regions(d) if np.isin(own, r.steps).all()]
+    assert region.steps[0] == own[0] - 2  # the premise: the two steps join the wall's region
+    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=e.amp)
+    (wall,) = [s for s in result.surfaces if abs(s.offset - offset) < 0.01]
+    assert wall.steps[0] == own[0]
+    assert abs(wall.bearing - bearing) <= 3 * math.sqrt(wall.covariance[0, 0])

@@ -195,7 +195,8 @@ def trim_ends(
     either end whose own slope differs from the plane's (the median over the region's middle half) by more than
     ``curvature_sigmas`` of its standard error ``σ/√Σ(x − x̄)²`` (``σ`` one range's, from the spread of
     the steps' slopes, 1.4826 MAD) are not the plane's, nor are those whose mean depth along the plane's
-    normal lies deeper than the middle half's by more than that many σ of a step's mean.  As they lie deeper
+    normal lies deeper than the middle half's by more than that many σ of a step's mean (with
+    or without readings enough for a slope).  As they lie deeper
     than the plane, its echo ended there on its
     own (the plane keeps its ends uncut); a nearer block would have masked it (a cut).
 
@@ -233,17 +234,22 @@ def trim_ends(
     depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
     level = float(np.median(depth[middle]))
     spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
+    # Depth needs no slope: an end step with too few readings for one (a corner's echo in one or two capsules
+    # at the beam's edge) is judged by its depth alone.
+    judged = finite.copy()
     if spread > 0:
-        off |= finite & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
+        deep = (count > 0) & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
+        off |= deep
+        judged |= deep
 
     def block(order: np.ndarray) -> int:
         """How many steps from that end up to the last departing one before the first that agrees (a step
-        with too few readings for a slope goes with its neighbours)."""
+        with too few readings to be judged goes with its neighbours)."""
         n_off = 0
         for j, s in enumerate(order):
-            if finite[s] and not off[s]:
+            if judged[s] and not off[s]:
                 break
-            if finite[s]:
+            if judged[s]:
                 n_off = j + 1
         return n_off
 
