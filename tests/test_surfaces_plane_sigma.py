@@ -3,6 +3,7 @@
 * a region that holds its wall's double bounce with the floor past one end only (the other side's made a
   region of its own) is lopsided: the wall's bearing is the centre of its own steps, not of the region;
 * a centred region's bearing weighs its centre with its beam pattern's peak where the two agree;
+* amplitude noise moves where a region's echo crosses the threshold: the centre's σ holds it;
 * a plane whose end steps were trimmed off as another target's may have faded on the one next to its core
   (its echo summed into it): its centre puts that end between them, and its σ spans them; an end step with
   too few readings for a slope is trimmed by its depth alone.
@@ -18,13 +19,18 @@ import pytest
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import measure_region
 from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
-from lelsonar.reconstruct.estimate.surfaces.regions import bearing_from_amplitude, find_regions, subregion
+from lelsonar.reconstruct.estimate.surfaces.regions import (
+    bearing_from_amplitude,
+    end_crossing_stderr,
+    find_regions,
+    subregion,
+)
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
 from lelsonar.tools.bench_surfaces import majority, true_plane
-from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
+from tests.test_surfaces import GAMMA, GEOMETRY, THRESHOLD, Echoes
 
 
 def _bearing_z(scan, surfaces) -> list[tuple[str, float, float]]:
@@ -153,3 +159,50 @@ def test_a_deeper_end_step_in_one_or_two_capsules_is_trimmed_by_its_depth_alone(
     (wall,) = [s for s in result.surfaces if abs(s.offset - offset) < 0.01]
     assert wall.steps[0] == own[0]
     assert abs(wall.bearing - bearing) <= 3 * math.sqrt(wall.covariance[0, 0])
+
+
+def test_noise_free_amplitudes_move_no_threshold_crossing():
+    e = Echoes(seed=61)
+    e.plane(math.radians(10.0), 2.0)
+    (region,) = find_regions(e.ranges())
+    per_step = np.nanmedian(e.amp[region.steps], axis=1)
+    step = float(GAMMA[1] - GAMMA[0])
+    assert max(end_crossing_stderr(GAMMA[region.steps], per_step)) < 0.05 * step
+
+
+def test_the_threshold_crossings_wander_as_the_noise_over_the_beams_log_slope_says():
+    # A beam exp(−(γ/B)²) over a threshold, its log amplitude noisy by 0.2: where the first and last steps over
+    # the threshold fall, over many draws, against the σ the rule gives from each draw's own steps.
+    gamma = np.radians(np.arange(-60.0, 60.0, 0.88))
+    beam = 1.0 * np.exp(-((gamma / math.radians(15.0)) ** 2))
+    rng = np.random.default_rng(71)
+    firsts, lasts, claimed = [], [], []
+    for _ in range(300):
+        amp = beam * np.exp(0.2 * rng.standard_normal(gamma.size))
+        over = np.flatnonzero(amp > 0.2)
+        steps = np.arange(over[0], over[-1] + 1)
+        firsts.append(gamma[steps[0]])
+        lasts.append(gamma[steps[-1]])
+        claimed.append(end_crossing_stderr(gamma[steps], amp[steps]))
+    rule = np.median(np.asarray(claimed), axis=0)
+    seen = np.array([np.std(firsts), np.std(lasts)])
+    # An upper bound (several noisy steps near the threshold: the first over it wanders less), within 2×.
+    assert np.all(rule >= seen) and np.all(rule < 2.0 * seen), (np.degrees(rule), np.degrees(seen))
+
+
+def test_with_noisy_amplitudes_the_centres_sigma_covers_where_the_threshold_crossings_fall():
+    # Each echo's amplitude 20 % off at random (log-normal): its threshold crossings wander by steps.
+    bearing, offset, inside = math.radians(35.0), 2.0, 0
+    runs = 40
+    for seed in range(runs):
+        e = Echoes(seed=100 + seed)
+        e.plane(bearing, offset)
+        rng = np.random.default_rng(seed)
+        amp = e.amp * np.exp(0.2 * rng.standard_normal(e.amp.shape))
+        heard = amp > THRESHOLD
+        d = np.where(heard, e.ranges(), np.nan)
+        result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=np.where(heard, amp, np.nan))
+        (wall,) = [s for s in result.surfaces if abs(s.offset - offset) < 0.01]
+        inside += abs(wall.bearing - bearing) <= 3 * math.sqrt(wall.covariance[0, 0])
+    # A Gaussian's 99.7 % within 3 σ: at most a few of 40 outside.
+    assert inside >= runs - 3, f"{inside} of {runs} within 3 σ"

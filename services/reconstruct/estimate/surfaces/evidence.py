@@ -23,6 +23,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     amplitude_jump,
     bearing_from_amplitude,
     capsule_x,
+    end_crossing_stderr,
     stack_fits,
     unfaded_ends,
 )
@@ -222,6 +223,10 @@ def measure_region(
         before = abs(float(gamma[first] - gamma[first - 1])) if first > 0 else step
         after = abs(float(gamma[last + 1] - gamma[last])) if last + 1 < gamma.size else step
         ends = math.sqrt((before * before + after * after) / 48.0)
+        # The amplitude noise moves each end's threshold crossing too (the beam's log slope there over it).
+        if amplitude is not None:
+            jitter = end_crossing_stderr(g, per_step)
+            ends = math.sqrt(ends * ends + (jitter[0] ** 2 + jitter[1] ** 2) / 4.0)
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
         # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
         # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
