@@ -652,9 +652,9 @@ def end_crossing_stderr(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float
     A region ends where ``D(γ − β)²`` falls under the threshold.  A noise of σ in ``log A`` moves that
     crossing by ``σ / |∂ log A/∂γ|`` at the end (the beam's log slope there, from a line through the end's
     own steps): an upper bound, as the first of several noisy steps near the threshold to pass it wanders
-    less than one crossing would.  The σ is robust (1.4826 MAD of the second differences, whose variance is 6 σ² for white
-    noise, as :func:`amplitude_jump` has it); noise-free amplitudes move nothing.  An end whose slope is not
-    resolved (flat, clipped) is anywhere in the region: the span's ``1/√12``.
+    less than one crossing would.  The σ is robust (1.4826 MAD of the second differences, whose variance
+    is 6 σ² for white noise, as :func:`amplitude_jump` has it); noise-free amplitudes move nothing.  An end
+    whose slope is not resolved (flat, clipped) is anywhere in the region: the span's ``1/√12``.
 
     Parameters
     ----------
