@@ -118,6 +118,7 @@ def queue_model(
     payloads: list[tuple[float, str, bytes]],
     *,
     finals_elsewhere: bool,
+    input_elsewhere: bool = True,
     outside_us: float = OUTSIDE_US,
     tick_s: float = 0.1,
     provisional: bool = True,
@@ -129,12 +130,15 @@ def queue_model(
     Each call takes the thread CPU it measures here, plus ``outside_us`` a payload, on a virtual clock the
     service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
     :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
-    worker nothing (run by other processes).  Returns put → processed and put → provisional latencies (s), the
-    worker's busy share, and the provisional refits shed.
+    worker nothing (run by other processes); without ``input_elsewhere`` the input is made on the worker as
+    :func:`~lelsonar.reconstruct.stream.final_jobs.close_final` makes it where the scan closes.  Once the
+    last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
+    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed.
     """
     from collections import deque
 
     from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream import final_jobs
     from lelsonar.reconstruct.stream import service as service_module
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -142,15 +146,16 @@ def queue_model(
     now = [0.0]
     final_cpu = [0.0]
     reconstruct_scan, scan_input = service_module.reconstruct_scan, service_module.scan_input
+    final_input = final_jobs.scan_input
 
     # The bench's probes of the finals (their input, range repair included, and their reconstruction), not a
     # change of them.
-    def timed_reconstruct(scan, options, *rest):
+    def timed_reconstruct(scan, options, *rest, **kw):
         if options.provisional:
-            return reconstruct_scan(scan, options, *rest)
+            return reconstruct_scan(scan, options, *rest, **kw)
         c = time.thread_time()
         try:
-            return reconstruct_scan(scan, options, *rest)
+            return reconstruct_scan(scan, options, *rest, **kw)
         finally:
             final_cpu[0] += time.thread_time() - c
 
@@ -200,6 +205,8 @@ def queue_model(
             i += 1
 
     service_module.reconstruct_scan, service_module.scan_input = timed_reconstruct, timed_input  # type: ignore[assignment]
+    if input_elsewhere:
+        final_jobs.scan_input = timed_input  # (a final's input is made where its scan closes)
     try:
         while i < n or waiting:
             if not waiting:
@@ -218,8 +225,11 @@ def queue_model(
                 run(service.tick, busy=bool(waiting))
             elif service.has_deferred and not waiting:
                 run(service.catch_up)
+        while service.has_deferred:  # idle after the last payload: what waits is caught up
+            run(service.catch_up)
     finally:
         service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
+        final_jobs.scan_input = final_input
     span = now[0] - payloads[0][0] if payloads else 0.0
     return {
         "processed_s": processed,
@@ -350,9 +360,14 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
     )
     for col in ("finals", "busy", "put→processed p50 / p99 ms", "put→provisional p50 / p99 ms", "shed"):
         model.add_column(col, justify="left" if col == "finals" else "right")
-    for elsewhere in (False, True):
+    for elsewhere, input_elsewhere in ((False, False), (True, False), (True, True)):
         queued = [
-            queue_model(payloads, finals_elsewhere=elsewhere, provisional=not args.no_provisional)
+            queue_model(
+                payloads,
+                finals_elsewhere=elsewhere,
+                input_elsewhere=input_elsewhere,
+                provisional=not args.no_provisional,
+            )
             for _ in range(args.repeat)
         ]
 
@@ -360,7 +375,9 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
             return f"{statistics.median(1e3 * _quantile(r[key], q) for r in queued):.1f}"
 
         model.add_row(
-            "elsewhere (input and reconstruction)" if elsewhere else "inline",
+            ("elsewhere (input and reconstruction)" if input_elsewhere else "reconstruction elsewhere, input here")
+            if elsewhere
+            else "inline",
             f"{statistics.median(r['busy'] for r in queued):.2f}",
             f"{ms('processed_s', 0.5)} / {ms('processed_s', 0.99)}",
             f"{ms('provisional_s', 0.5)} / {ms('provisional_s', 0.99)}",
