@@ -7,7 +7,7 @@ fuses the tour, beside the oracle map (:mod:`lelsonar.tools.map_worlds`).  What 
 estimate:
 
 * **surface good-but-failed**: a surface claiming good whose trace error is > 2 cm and > 3× its oracle's
-  (least squares on its own true echoes, :func:`lelsonar.tools.bench_surfaces.oracle_error`);
+  (what its own true echoes allow, :func:`lelsonar.tools.surface_oracle.oracle_error`);
 * **false good**: a good surface whose readings are no surface's mirror echoes;
 * **bearing > 3σ**: a good surface whose bearing is off by more than three times its own σ and more than
   :data:`BEARING_FLOOR` (the σ's shape, a wall placed well in range but not in bearing);
@@ -42,7 +42,7 @@ from lelsonar.sim.world import World
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import WorldScan, world_rig
 from lelsonar.tools.bench_map import false_good
-from lelsonar.tools.bench_surfaces import feature_offset, oracle_error, score_scan, trace_error, true_plane
+from lelsonar.tools.bench_surfaces import feature_offset, score_scan
 from lelsonar.tools.map_worlds import (
     ENERGY_MODEL,
     TourResult,
@@ -53,6 +53,7 @@ from lelsonar.tools.map_worlds import (
     sweep,
     vertical_faces,
 )
+from lelsonar.tools.surface_oracle import oracle_error, trace_error, true_plane
 
 #: A claim is wrong only past this (m), and past 3× its oracle.
 ERROR_FLOOR = 0.02
@@ -142,7 +143,8 @@ def _majority(
 
 def _score_sweep(score: WorldScore, scan: WorldScan, estimate, pose: int) -> None:
     surfaces = estimate.surfaces
-    rec = score_scan(score.cls, scan, surfaces, seed=score.seed, min_echoes=MIN_ECHOES)
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    rec = score_scan(score.cls, scan, surfaces, seed=score.seed, min_echoes=MIN_ECHOES, amplitude=amplitude)
     where = f"pose {pose}"
     for p in rec.planes:
         if p.quality == "good" and p.error > ERROR_FLOOR and p.error > 3 * p.oracle:
@@ -179,7 +181,7 @@ def _score_sweep(score: WorldScore, scan: WorldScan, estimate, pose: int) -> Non
         for k in seen:
             n_true, h_true = true_plane(scan, k)
             err = trace_error(plane.normal, plane.offset, n_true, h_true)
-            if err <= max(ERROR_FLOOR, 3 * oracle_error(scan, k)):
+            if err <= max(ERROR_FLOOR, 3 * oracle_error(scan, k, amplitude).error):
                 best = 0.0
                 break
             best = min(best, err)

@@ -23,6 +23,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     amplitude_jump,
     bearing_from_amplitude,
     capsule_x,
+    end_crossing_stderr,
     stack_fits,
     unfaded_ends,
 )
@@ -222,7 +223,18 @@ def measure_region(
         before = abs(float(gamma[first] - gamma[first - 1])) if first > 0 else step
         after = abs(float(gamma[last + 1] - gamma[last])) if last + 1 < gamma.size else step
         ends = math.sqrt((before * before + after * after) / 48.0)
+        # The amplitude noise moves each end's threshold crossing too (the beam's log slope there over it).
+        if amplitude is not None:
+            jitter = end_crossing_stderr(g, per_step)
+            ends = math.sqrt(ends * ends + (jitter[0] ** 2 + jitter[1] ** 2) / 4.0)
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
+        # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
+        # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
+        # 3 σ of their difference, each weighs by its inverse variance.
+        peak_sb = math.hypot(peak_fit[1], quant) if peak_fit is not None else math.inf
+        if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
+            wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
+            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
         # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same

@@ -2,9 +2,10 @@
 
 Per region of constant depth (:mod:`.regions`):
 
-* **bearing** from the beam pattern: the peak of the echo amplitudes across γ
-  (:func:`~.regions.bearing_from_amplitude`), else the region's centre when it
-  is not cut; a cut region without an amplitude peak leaves the bearing
+* **bearing** from the beam pattern: the region's centre when it is not cut,
+  weighed with the peak of the echo amplitudes across γ
+  (:func:`~.regions.bearing_from_amplitude`) where the two agree, else that
+  peak alone; a cut region without an amplitude peak leaves the bearing
   undetermined, and says so.  A range-only fit of a wall seen near the foot of
   its perpendicular is ill-posed in bearing (the capsules differ across the
   beam only by the radial offset), so the bearing never comes from it.

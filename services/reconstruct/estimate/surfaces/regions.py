@@ -31,6 +31,7 @@ __all__ = [
     "bearing_from_amplitude",
     "amplitude_jump",
     "unfaded_ends",
+    "end_crossing_stderr",
     "peak_at_bearing",
     "subregion",
     "PLATEAU",
@@ -643,3 +644,40 @@ def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.
     bound = slope * step + sigmas * math.sqrt(2.0) * sigma
     diff = float(la[0] - la[-1])
     return diff > bound, -diff > bound
+
+
+def end_crossing_stderr(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float]:
+    """How far the amplitude noise moves where a region's echo crosses the receiver's threshold, at each end.
+
+    A region ends where ``D(γ − β)²`` falls under the threshold.  A noise of σ in ``log A`` moves that
+    crossing by ``σ / |∂ log A/∂γ|`` at the end (the beam's log slope there, from a line through the end's
+    own steps): an upper bound, as the first of several noisy steps near the threshold to pass it wanders
+    less than one crossing would.  The σ is robust (1.4826 MAD of the second differences, whose variance
+    is 6 σ² for white noise, as :func:`amplitude_jump` has it); noise-free amplitudes move nothing.  An end
+    whose slope is not resolved (flat, clipped) is anywhere in the region: the span's ``1/√12``.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none), in sweep order.
+
+    Returns
+    -------
+    (σ at the first end, σ at the last end), rad; (0, 0) when too few steps have an amplitude.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 6:
+        return 0.0, 0.0
+    g, la = g[ok], np.log(a[ok])
+    span = abs(float(g[-1] - g[0]))
+    _, sigma = _beam_slope_and_noise(la, span) if span > 0 else (0.0, 0.0)
+    if not sigma > 0:
+        return 0.0, 0.0
+    m = max(3, g.size // 6)
+    out = []
+    for sel in (slice(0, m), slice(g.size - m, g.size)):
+        slope = float(np.polyfit(g[sel], la[sel], 1)[0])
+        out.append(min(sigma / abs(slope), span / math.sqrt(12.0)) if slope != 0 else span / math.sqrt(12.0))
+    return out[0], out[1]
