@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
@@ -43,6 +44,7 @@ __all__ = [
     "pair_corner",
     "pair_stderr",
     "end_stderr",
+    "handed_over",
     "reach_stderr",
     "plane_end",
     "plane_line",
@@ -139,10 +141,13 @@ def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap:
         return bool(np.any(before < ref - tolerance)), bool(np.any(after < ref - tolerance))
 
 
-def _handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], opts: SurfaceOptions) -> bool:
+def handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], opts: SurfaceOptions) -> bool:
     """Whether another echo at a like range answers just past a flagged end: the echoes sum there, so the end's
-    amplitude says nothing of where the region's own echo fades.  Like: within twice the range tolerance of the
-    region's median range, the band a reading of the region's own target stays in."""
+    amplitude says nothing of where the region's own echo fades.  Like: nearer by no more than twice the range
+    tolerance (the band a reading of the region's own target stays in), or farther by no more than that plus
+    the amplitude window's reach in range (:data:`~lelsonar.reconstruct.estimate.corner.wall.ECHO_WINDOW_RANGE`):
+    a later echo that rises inside the window the amplitude is read in adds to the region's own there, though
+    the first echo alone sets the range."""
     spread = 2 * opts.range_tolerance
     with np.errstate(all="ignore"):
         ref = float(np.nanmedian(distance[region.rows, region.capsules]))
@@ -154,7 +159,9 @@ def _handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], 
     if ends[1]:
         past.append(distance[last + 1 : last + 1 + reach])
     with np.errstate(invalid="ignore"):
-        return any(bool(np.any(np.abs(block - ref) <= spread)) for block in past)
+        return any(
+            bool(np.any((block - ref >= -spread) & (block - ref <= spread + ECHO_WINDOW_RANGE))) for block in past
+        )
 
 
 def measure_region(
@@ -202,7 +209,7 @@ def measure_region(
     unfaded = unfaded or (False, False)
     # Its consequence, a centre off the beam pattern's peak, must show beyond both σ before the centre is doubted
     # (without a peak in the region nothing vouches for the centre).
-    stops = any(unfaded) and not _handed_over(region, distance, unfaded, opts)
+    stops = any(unfaded) and not handed_over(region, distance, unfaded, opts)
     if stops and peak_fit is not None:
         ends_se = math.hypot(step, step) / math.sqrt(48.0)
         stops = abs(peak_fit[0] - mid) > 3.0 * math.hypot(peak_fit[1], quant, ends_se)
