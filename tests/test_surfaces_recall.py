@@ -2,10 +2,15 @@
 
 * an end whose amplitude a later echo inside the amplitude window lifts is no end of the mirror: the
   window's reach in range, not the range tolerance, bounds the echoes that sum into it;
+* a target's echo is strongest at its own bearing: a region weaker at a bearing inside it than elsewhere
+  (beyond one beam pattern's change over a step and the amplitude noise) holds no target there, so no
+  plane's end is placed there;
 * seeded worlds: walls whose echoes were taken for another item's are found as planes.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import pytest
@@ -13,8 +18,9 @@ import pytest
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import handed_over
-from lelsonar.reconstruct.estimate.surfaces.regions import Region
+from lelsonar.reconstruct.estimate.surfaces.regions import Region, weaker_at
 from lelsonar.signal.energy import echo_amplitude
+from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
@@ -65,3 +71,40 @@ def test_the_wall_ahead_of_a_vertical_fan_is_a_plane_though_its_corner_with_the_
     # end, inside the amplitude window, so that end is strong though the beam fades the mirror there; the
     # region's centre stays the wall's bearing and the wall is no end of the floor.
     assert _missed("paper", family, seed, pose) == ()
+
+
+KA = 7.0  # a 40 kHz capsule of a few mm: main lobe ±33°
+STEP = math.radians(1.0)
+
+
+def _flank(beta: float, lo: float, hi: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Steps' γ from ``lo`` to ``hi`` (rad) and a mirror's amplitudes at ``beta``, 2 % log-normal noise."""
+    gamma = np.arange(lo, hi + 0.5 * STEP, STEP)
+    amp = piston_directivity(gamma - beta, KA) ** 2 * np.exp(0.02 * rng.standard_normal(gamma.size))
+    return gamma, amp
+
+
+def test_a_region_is_never_weaker_at_its_own_targets_bearing():
+    rng = np.random.default_rng(21)
+    for _ in range(200):
+        beta = rng.uniform(-0.3, 0.3)
+        # Cut anywhere around its target, on either side.
+        lo, hi = beta - rng.uniform(0.05, 0.5), beta + rng.uniform(0.05, 0.5)
+        g, a = _flank(beta, lo, hi, rng)
+        assert not weaker_at(g, a, beta)
+
+
+def test_a_region_cut_before_its_peak_is_weaker_inside_it_than_at_its_cut_end():
+    rng = np.random.default_rng(22)
+    # The target 10° before the region's first step: the region is its flank, rising toward the cut end.
+    g, a = _flank(math.radians(-10.0), 0.0, math.radians(30.0), rng)
+    assert weaker_at(g, a, math.radians(20.0))
+    assert not weaker_at(g, a, math.radians(0.4))  # within a step of the strongest end
+    assert not weaker_at(g, a, math.radians(-3.0))  # past the span: the test says nothing there
+
+
+@pytest.mark.parametrize(("family", "seed", "pose"), [("l_room", 9, 0), ("boxes", 2, 1)])
+def test_a_wall_cut_by_a_nearer_echo_is_no_end_placed_where_its_echo_is_weaker(family, seed, pose):
+    # The fan mount: a wall's region cut on one side holds its foot, or its flank; the trace of a plane
+    # crosses its depth inside it where its echo is far under its strongest step, so it is no end there.
+    assert _missed("fan", family, seed, pose) == ()

@@ -26,6 +26,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     capsule_x,
     stack_fits,
     unfaded_ends,
+    weaker_at,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -418,14 +419,20 @@ def beyond_reach(
 
 
 def plane_end(
-    m: Measured, planes: list[Measured], opts: SurfaceOptions, seen: list[Measured] | None = None
+    m: Measured,
+    planes: list[Measured],
+    opts: SurfaceOptions,
+    seen: list[Measured] | None = None,
+    gamma: np.ndarray | None = None,
 ) -> tuple[list[int], float] | None:
     """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
 
     The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ.
     Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
     plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
-    region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).
+    region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).  With ``gamma`` (the
+    sweep's), no bearing inside the region where its own echo is weaker than elsewhere in it
+    (:func:`~.regions.weaker_at`): a target there would be its region's strongest echo.
 
     Returns
     -------
@@ -440,8 +447,10 @@ def plane_end(
         if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
         for bearing in (pj.bearing - half, pj.bearing + half):
-            if in_span(wrap(bearing), m, m.step, opts.beyond_cut) and not (
-                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts, placed=True)
+            if (
+                in_span(wrap(bearing), m, m.step, opts.beyond_cut)
+                and not (seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts, placed=True))
+                and not (gamma is not None and weaker_at(gamma[m.region.steps], m.step_amplitude, wrap(bearing)))
             ):
                 return [j], wrap(bearing)
     return None

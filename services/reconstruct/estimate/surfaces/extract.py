@@ -346,7 +346,7 @@ def extract_surfaces(
             )
             leaning.add(i)
         elif m.bearing_source == "undetermined":
-            placed = plane_end(m, [measured[j] for j in pool], opts, measured)
+            placed = plane_end(m, [measured[j] for j in pool], opts, measured, g)
             if placed is None:
                 ties = []
             else:
