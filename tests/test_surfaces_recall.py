@@ -5,6 +5,8 @@
 * a target's echo is strongest at its own bearing: a region weaker at a bearing inside it than elsewhere
   (beyond one beam pattern's change over a step and the amplitude noise) holds no target there, so no
   plane's end is placed there;
+* two regions without a bearing on one plane's trace cannot both be its end: the nearer is a wall whose
+  corner with the plane the deeper one is, where some bearing it leaves open puts that corner there;
 * seeded worlds: walls whose echoes were taken for another item's are found as planes.
 """
 
@@ -17,7 +19,7 @@ import pytest
 
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.evidence import handed_over
+from lelsonar.reconstruct.estimate.surfaces.evidence import Measured, handed_over, unseen_corner
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, weaker_at
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
@@ -107,4 +109,63 @@ def test_a_region_cut_before_its_peak_is_weaker_inside_it_than_at_its_cut_end():
 def test_a_wall_cut_by_a_nearer_echo_is_no_end_placed_where_its_echo_is_weaker(family, seed, pose):
     # The fan mount: a wall's region cut on one side holds its foot, or its flank; the trace of a plane
     # crosses its depth inside it where its echo is far under its strongest step, so it is no end there.
+    assert _missed("fan", family, seed, pose) == ()
+
+
+def _measured(bearing: float, depth: float, span: tuple[float, float], cut: tuple[bool, bool]) -> Measured:
+    """What a region says, as far as the placement tests read it (angles in degrees)."""
+    steps = np.arange(3)
+    region = Region(steps=steps, rows=steps, capsules=np.zeros(3, dtype=np.intp), cut_before=cut[0], cut_after=cut[1])
+    nan = float("nan")
+    return Measured(
+        region=region,
+        bearing=math.radians(bearing),
+        bearing_stderr=0.003,
+        bearing_source="undetermined" if any(cut) else "region centre",
+        findings=(),
+        depth=depth,
+        depth_stderr=0.001,
+        tilt=0.0,
+        tilt_stderr=0.001,
+        curvature=0.0,
+        curvature_stderr=nan,
+        stack_slope=0.0,
+        strength=nan,
+        peak=nan,
+        peak_inside=False,
+        exact=False,
+        clipped=False,
+        span=(math.radians(span[0]), math.radians(span[1])),
+        step=STEP,
+        step_amplitude=np.full(3, np.nan),
+        positions=np.zeros((3, 3)),
+        ranges=np.full(3, depth),
+        stack_sigma=0.002,
+    )
+
+
+def test_a_wall_past_the_sweeps_start_and_its_corner_with_a_seen_wall_explain_two_regions_together():
+    # Plane j seen at its foot (−80°, 0.65 m); a wall at right angles 2.85 m away, its foot at −170°, past the
+    # sweep's start at −150°: its flank is a region at 2.85 m cut by the sweep's start, and their corner, at
+    # √(0.65² + 2.85²) = 2.923 m and −157.2°, a region cut by that nearer one.
+    j = _measured(-80.0, 0.65, (-117.0, -43.0), (False, False))
+    wall = _measured(-147.0, 2.85, (-150.0, -145.0), (True, False))
+    corner = _measured(-136.0, 2.923, (-142.0, -131.0), (True, False))
+    opts = SurfaceOptions()
+    beta = unseen_corner(wall, corner, j, opts)
+    assert beta is not None
+    # The bearing that puts the corner at its depth is the wall's, within what 3 cm of depth allows.
+    assert abs(math.degrees(beta) + 170.0) < 3.0, math.degrees(beta)
+    # Not the other way round: a wall at the corner's depth meets j deeper still.
+    assert unseen_corner(corner, wall, j, opts) is None
+    # A deeper region out of the corner's reach (faded, not cut, short of it) is no corner of that wall.
+    far = _measured(-100.0, 2.923, (-104.0, -96.0), (False, False))
+    assert unseen_corner(wall, far, j, opts) is None
+
+
+@pytest.mark.parametrize(("family", "seed", "pose"), [("room", 8, 0), ("l_room", 5, 1)])
+def test_a_wall_past_the_sweeps_start_beside_its_corner_is_a_plane_not_the_end_of_another(family, seed, pose):
+    # The fan mount: a wall's foot lies past the sweep's start, its flank a region cut there; beside it, its
+    # corner with a wall seen at its foot, masked on that side by the wall's nearer mirror.  Both fit the seen
+    # wall's trace; the nearer is the wall, the deeper its corner.
     assert _missed("fan", family, seed, pose) == ()

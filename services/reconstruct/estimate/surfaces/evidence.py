@@ -51,6 +51,7 @@ __all__ = [
     "plane_line",
     "stack_dihedral",
     "stack_or_pair",
+    "unseen_corner",
     "wrap",
 ]
 
@@ -454,6 +455,57 @@ def plane_end(
             ):
                 return [j], wrap(bearing)
     return None
+
+
+def unseen_corner(mi: Measured, mk: Measured, pj: Measured, opts: SurfaceOptions) -> float | None:
+    """A bearing for the plane of region ``mi`` (its own left open) whose concave corner with plane ``pj`` is
+    region ``mk``: the two regions' echoes explained together, ``mi`` a wall's mirror and ``mk`` its corner.
+
+    A mirror answers at its foot, at its depth ``h_i``; two walls meet on the line where ``n_i·X = h_i`` and
+    ``n_j·X = h_j`` (its range ``|X|``, the double bounce of :func:`pair_corner`).  For a concave corner seen
+    from inside, ``X`` lies between the two feet in the fan.  Where some bearing ``β_i`` within ``mi``'s reach
+    (its span, past a cut end by up to ``beyond_cut``) puts that line at ``mk``'s depth (within ``on_trace``) and
+    at a bearing within ``mk``'s reach, both regions are explained by one wall and its corner with ``pj``.  The
+    wall's foot lies past ``mi``'s cut end away from ``mk``, and ``mk`` is cut on ``mi``'s side: the wall's nearer
+    mirror masks its corner where both answer.
+
+    Returns
+    -------
+    That ``β_i`` (the one nearest ``mi``'s span), rad, or None.
+    """
+    # The wall's foot lies past mi's cut end on the side away from mk (a foot inside its region would show as
+    # its amplitude peak or its centre): mk beside it, masked there by the wall's nearer mirror.
+    if mk.span[0] > mi.span[1] and mi.region.cut_before and mk.region.cut_before:
+        lo, hi = mi.span[0] - opts.beyond_cut, mi.span[0] - mi.step
+    elif mk.span[1] < mi.span[0] and mi.region.cut_after and mk.region.cut_after:
+        lo, hi = mi.span[1] + mi.step, mi.span[1] + opts.beyond_cut
+    else:
+        return None
+    beta = np.arange(lo, hi + 0.5 * mi.step, mi.step)
+    if not beta.size:
+        return None
+    ti = beta - pj.bearing
+    sin_t = np.sin(ti)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # X in the fan from n_i·X = h_i, n_j·X = h_j (unit normals at β_i and β_j), in the frame of β_j.
+        along_j = np.full(beta.size, pj.depth)
+        across = (mi.depth - pj.depth * np.cos(ti)) / sin_t
+        rho = np.hypot(along_j, across)
+        bearing_x = pj.bearing + np.arctan2(across, along_j)
+    # Between the feet (a concave corner seen from inside), at mk's depth and within its reach.
+    t_w = np.angle(np.exp(1j * ti))
+    off_x = np.angle(np.exp(1j * (bearing_x - pj.bearing)))
+    between = (np.sign(off_x) == np.sign(t_w)) & (np.abs(off_x) < np.abs(t_w))
+    lo_k = mk.span[0] - mk.step - (opts.beyond_cut if mk.region.cut_before else 0.0)
+    hi_k = mk.span[1] + mk.step + (opts.beyond_cut if mk.region.cut_after else 0.0)
+    at_x = np.angle(np.exp(1j * bearing_x))
+    ok = np.isfinite(rho) & (np.abs(sin_t) > 0.2) & between & (np.abs(rho - mk.depth) <= opts.on_trace)
+    ok &= (at_x >= lo_k) & (at_x <= hi_k)
+    if not ok.any():
+        return None
+    centre = 0.5 * (mi.span[0] + mi.span[1])
+    cand = beta[ok]
+    return wrap(float(cand[int(np.argmin(np.abs(cand - centre)))]))
 
 
 def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[int, float, str] | None:
