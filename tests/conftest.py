@@ -147,7 +147,7 @@ def cpu_hog():
     """Every core this process may use saturated by another process, for this test only.
 
     One busy-looping Python process per core (bounded to 120 s on its own), started before the
-    test body and killed when it ends.  Device timing must hold on a loaded host (issue 10 §5).
+    test body and killed when it ends.  Device timing must hold on a loaded host.
     """
     procs = [
         subprocess.Popen([sys.executable, "-c", _HOG.format(limit=120)], stdout=subprocess.PIPE, text=True)

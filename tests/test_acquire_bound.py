@@ -1,4 +1,4 @@
-"""The physical bound of a scan (issue 12 §3): travel, windows and every byte on both links, by hand.
+"""The physical bound of a scan: travel, windows and every byte on both links, by hand.
 
 The sizes are written out from the protocols (design §6 for the AX-12, ``schemas/SENSOR_BOARD.md``
 for the board) and checked against the codecs that put those bytes on the wire.
@@ -82,7 +82,7 @@ def test_bound_of_the_paper_scan_on_usb_full_speed():
         pipelined=False,
     )
     assert sequential.total_s == pytest.approx(sum(moves) + 4 * (fire + window + acq), rel=1e-12)
-    # The frame takes longer than the window it carries (issue 12's measurement).
+    # The frame takes longer than the window it carries.
     assert acq > window
 
 

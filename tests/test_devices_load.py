@@ -1,5 +1,5 @@
 """Device timing on a loaded host: the emulated rig and the real drivers with every core saturated
-by other processes (issue 10 §5).  The emulators are threads of this process, so a busy host starves
+by other processes.  The emulators are threads of this process, so a busy host starves
 them: their replies come late, and the drivers must wait them out rather than give up or take a late
 reply for the next one."""
 

@@ -65,10 +65,10 @@ def test_no_labels_of_past_work(path: Path) -> None:
 
 
 def test_no_issue_or_session_labels_in_the_package() -> None:
-    """Comments say why, not which piece of work wrote them: the package, its schemas and tools name no issue."""
+    """Comments say why, not which piece of work wrote them: the package, its schemas, tools and tests name no issue."""
     hits = [
         f"{path.relative_to(ROOT)}:{n}"
-        for folder in ("schemas", "services", "tools")
+        for folder in ("schemas", "services", "tools", "tests")
         for path in sorted((ROOT / folder).rglob("*"))
         if path.suffix in {".py", ".proto", ".md", ".toml"} and not path.name.endswith("_pb2.py")
         for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)

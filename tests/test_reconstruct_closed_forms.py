@@ -1,4 +1,4 @@
-"""Closed forms and fused paths of the default fit against independent references (issue 12's default-fit row).
+"""Closed forms and fused paths of the default fit against independent references.
 
 Each replaced a NumPy/LAPACK call on the fit's hot path; each must give what that call gives: the
 scanner's frames exactly, the standard errors to 1e-12 relative on well-conditioned cases.

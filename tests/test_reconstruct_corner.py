@@ -45,7 +45,7 @@ from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, Pla
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
 from lelsonar.sim import EchoSource, Scene, calibrate_simulator, piston_directivity, preset, simulate_scan
 
-#: One wall echo within a 2 cm patch error is what the benchmark calls a success (issue 9).
+#: One wall echo within a 2 cm patch error is what the benchmark calls a success.
 PATCH_LIMIT = 0.02
 #: Standard errors: a calibrated estimate is within 5 of them but once in ~10⁵.
 Z_LIMIT = 5.0
@@ -192,7 +192,7 @@ def test_joint_gauss_newton_lands_on_the_least_squares_minimum() -> None:
     assert 0.5 * sigma / np.sqrt(pts.n) < np.sqrt(cov[2, 2]) < 20 * sigma / np.sqrt(model.count(ECHO_WALL_A))
 
 
-# Scenes the paper never scanned, each a failure class of the energy-split estimators (issue 9).
+# Scenes the paper never scanned, each a failure class of the energy-split estimators.
 HARD_SCENES = {
     "far walls, energy peak off the corner": dict(distance_a=2.2, distance_b=1.68),
     "near walls, corner at 55°": dict(distance_a=0.7, distance_b=1.0),

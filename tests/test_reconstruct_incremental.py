@@ -1,5 +1,5 @@
 """Provisional estimates: O(new samples), warm-started, the guard only when the trust check fails,
-rate-limited per scan in scan time (issue 12 §2)."""
+rate-limited per scan in scan time."""
 
 from __future__ import annotations
 

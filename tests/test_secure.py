@@ -1,4 +1,4 @@
-"""Mutual TLS and per-role access control (issue 11), on loopback with keys generated in tmp_path.
+"""Mutual TLS and per-role access control, on loopback with keys generated in tmp_path.
 
 Every negative is paired with a positive in the same test, on the same router, so
 a test that proves "nothing is delivered" fails when the setup delivers nothing

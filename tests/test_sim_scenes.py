@@ -1,4 +1,4 @@
-"""Scene families (issue 9 §1): every draw valid, as specified, deterministic per seed."""
+"""Scene families: every draw valid, as specified, deterministic per seed."""
 
 from __future__ import annotations
 
