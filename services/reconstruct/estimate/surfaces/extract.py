@@ -78,6 +78,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     stack_or_pair,
     sweep_step,
     unit_normal,
+    unseen_corner,
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
@@ -352,6 +353,9 @@ def extract_surfaces(
         or stack_dihedral(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
     }
     planes = [i for i in determined if i not in ends]
+    walls_of_corners = _walls_of_unseen_corners(measured, planes, across, partial, g, opts)
+    for i, text in walls_of_corners.items():
+        measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
     across_lines: set[int] = set()
     for i, m in enumerate(measured):
@@ -404,7 +408,7 @@ def extract_surfaces(
                 m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
             )
         elif m.bearing_source == "undetermined":
-            placed = plane_end(m, [measured[j] for j in pool], opts, in_fan())
+            placed = None if i in walls_of_corners else plane_end(m, [measured[j] for j in pool], opts, in_fan(), g)
             if placed is None:
                 ties = []
             else:
@@ -561,6 +565,50 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
+
+
+def _walls_of_unseen_corners(
+    measured: list[Measured],
+    planes: list[int],
+    across: list[bool],
+    partial: set[int],
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> dict[int, str]:
+    """Regions without a bearing that are a wall's own mirror, its corner with a plane the deeper region beside it.
+
+    Where two such regions fit one plane's trace on one side, both cannot be its end (a mirror answers at its
+    foot only, so a point of the trace short of its end echoes nothing).  The nearer one is a wall's mirror
+    when a bearing it leaves open makes that wall's corner with the plane the deeper one
+    (:func:`~.evidence.unseen_corner`): one wall and its corner explain both.  Returns those regions, each with
+    the finding that says so.  A target only ``partial`` capsules hear is no mirror, and says nothing of a
+    plane's trace in the fan.
+    """
+    open_ = [
+        i for i, m in enumerate(measured) if m.bearing_source == "undetermined" and not across[i] and i not in partial
+    ]
+    in_fan = [m for i, m in enumerate(measured) if i not in partial]
+    out: dict[int, str] = {}
+    for k in open_:
+        mk = measured[k]
+        for j in planes:
+            pj = measured[j]
+            if plane_end(mk, [pj], opts, in_fan, gamma) is None:
+                continue
+            for i in open_:
+                mi = measured[i]
+                if i == k or i in out or not mi.depth < mk.depth - opts.range_tolerance:
+                    continue
+                # Beside each other in the sweep: nothing between their spans.
+                lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
+                if any(lo < o.span[0] and o.span[1] < hi for o in measured):
+                    continue
+                if unseen_corner(mi, mk, pj, opts) is not None:
+                    out[i] = (
+                        f"a wall at {mi.depth:.2f} m whose corner with the plane at {pj.depth:.2f} m is the echo "
+                        f"{mk.depth:.2f} m away beside it: not that plane's end"
+                    )
+    return out
 
 
 def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:

@@ -33,6 +33,7 @@ __all__ = [
     "unfaded_ends",
     "end_crossing_stderr",
     "peak_at_bearing",
+    "weaker_at",
     "subregion",
     "PLATEAU",
 ]
@@ -526,6 +527,48 @@ def peak_at_bearing(
     off = np.angle(np.exp(1j * (g[ok] - bearing)))  # wrapped to (−π, π]
     peaks = a[ok] * np.exp(curvature * off * off)
     return float(np.median(peaks)), float(curvature * np.min(off * off))
+
+
+def weaker_at(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, sigmas: float = 3.0) -> bool:
+    """Whether a region's echo is weaker at ``bearing``, inside its span, than elsewhere in it beyond what one
+    beam pattern and the amplitude noise allow: a target there would be the strongest echo of its own region.
+
+    One target's echo follows ``D(γ − β)²``, largest at ``γ = β``: every step's amplitude is at most the
+    peak, and the steps on either side of ``β`` are within the beam's change over one step of it (at most
+    ``8 R Δγ / L`` in ``log``, as :func:`amplitude_jump` bounds it, ``R`` the region's range of log amplitude
+    over its span ``L``).  The region's largest amplitude above the larger of the two steps around
+    ``β`` by more than that and ``sigmas`` σ of a two-step difference of the amplitude noise contradicts a
+    target at ``β``.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    bearing : float
+        rad.
+    sigmas : float
+
+    Returns
+    -------
+    True where the amplitudes contradict a target at ``bearing``; False where they do not, where ``bearing``
+    lies outside the steps' span, or where too few steps have an amplitude to say.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 5:
+        return False
+    g, la = g[ok], np.log(a[ok])
+    order = np.argsort(g)
+    g, la = g[order], la[order]
+    if not g[0] < bearing < g[-1]:
+        return False
+    span = float(g[-1] - g[0])
+    slope, sigma = _beam_slope_and_noise(la, span)
+    i = int(np.searchsorted(g, bearing))
+    there = max(float(la[i - 1]), float(la[i]))
+    step = float(g[i] - g[i - 1])
+    return float(la.max()) - there > slope * step + sigmas * math.sqrt(2.0) * sigma
 
 
 def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, int] | None:
