@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceOptions, SurfaceSet, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import Feature, Surface, SurfaceOptions, SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.scenes import FAMILIES as L_FAMILIES
@@ -126,6 +126,7 @@ class ScanRecord:
     good_off_details: tuple[str, ...] = ()  # one line per such plane
     missed: tuple[str, ...] = ()  # one line per mirror seen but claimed by no plane
     unknown: dict[str, int] | None = None  # class -> of those found, claimed only as right or kind not settled
+    features: tuple[tuple[str, float, float], ...] = ()  # (kind, m off its true line, its σ there) per right feature
 
 
 def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
@@ -187,7 +188,27 @@ def nearest_mirror(scan: WorldScan, surf: Surface) -> tuple[int, float]:
     return best
 
 
-def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
+def feature_offset(scan: WorldScan, f: Feature, element: int) -> tuple[float, float]:
+    """How far a feature's point lies from its element's true line (a vertex: from the feature's line through
+    it), m, and the feature's σ in that direction (0 distance: σ 0)."""
+    rot, tr = pose_frame(scan.rig, scan.pose)
+    el = scan.model.elements[element]
+    p = rot @ f.point + tr
+    if el.kind == ElementKind.TRIHEDRAL:
+        u = rot @ f.direction
+        off = (el.p0 - p) - ((el.p0 - p) @ u) * u
+    else:
+        d = el.p1 - el.p0
+        d = d / max(float(np.linalg.norm(d)), 1e-12)
+        off = (p - el.p0) - ((p - el.p0) @ d) * d
+    dist = float(np.linalg.norm(off))
+    if not dist > 0:
+        return 0.0, 0.0
+    r = rot.T @ (off / dist)
+    return dist, math.sqrt(max(float(r @ f.covariance @ r), 0.0))
+
+
+def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | Feature | None = None) -> tuple[int, int]:
     """The element most of an item's readings are (its own readings if it has them, else its steps')."""
     if surf is not None and surf.rows is not None and surf.capsules is not None:
         idx = scan.echo_index[surf.rows, surf.capsules]
@@ -254,16 +275,21 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     false_good = 0
     good_planes = 0
     off_every: list[str] = []
-    items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
-    items += [(f.kind if f.settled else UNKNOWN, f.steps, None) for f in (*result.corners, *result.edges)]
-    for cls, steps, surf in items:
-        k, _ = majority(scan, steps, surf)
+    placed: list[tuple[str, float, float]] = []
+    items: list[tuple[str, np.ndarray, Surface | None, Feature | None]] = [
+        ("plane", s.steps, s, None) for s in result.surfaces
+    ]
+    items += [(f.kind if f.settled else UNKNOWN, f.steps, None, f) for f in (*result.corners, *result.edges)]
+    for cls, steps, surf, feature in items:
+        k, _ = majority(scan, steps, surf if surf is not None else feature)
         truth = _element_kind(model, k, scan, steps)
         if cls != UNKNOWN and (truth is None or truth != cls):
             false[cls] += 1
             false_good += int(surf is not None and surf.quality == "good")
         if truth is not None:
             claimed.setdefault(k, set()).add(cls)
+        if feature is not None and truth == feature.kind:
+            placed.append((feature.kind, *feature_offset(scan, feature, k)))
         if surf is not None and surf.quality == "good":
             # Every good plane against the nearest true mirror of the world, not only its echoes' majority.
             good_planes += 1
@@ -342,6 +368,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
         good_off_details=tuple(off_every),
         missed=missed,
         unknown=unknown,
+        features=tuple(placed),
     )
 
 
@@ -442,6 +469,7 @@ def run(args: argparse.Namespace) -> int:
         bad_total += _family_table(records, mount, args, console)
         _kind_table(records, mount, console)
         _sigma_table(records, mount, console)
+        _feature_sigma_table(records, mount, console)
     if args.l_seeds > 0:
         _l_scan_table(args.l_seeds, console)
     console.print(
@@ -559,6 +587,32 @@ def _sigma_table(records: dict[str, list[ScanRecord]], mount: str, console: Cons
             f"{p.element} ({p.kind}): Δβ {math.degrees(p.bearing_error):+.2f}° = {p.bearing_z:+.1f}σ, "
             f"err {100 * p.error:.2f} cm"
         )
+
+
+def _feature_sigma_table(records: dict[str, list[ScanRecord]], mount: str, console: Console) -> None:
+    """The honesty of the features' σ: each right-kind feature's distance from its true line over its σ there."""
+    from rich.table import Table
+
+    placed = [f for rs in records.values() for r in rs for f in r.features]
+    table = Table(title=f"corners' and edges' σ against the truth ({mount} mount; a Gaussian: 68 / 95 / 99.7 %)")
+    for col in ("kind", "features", "≤1/2/3σ %", "> 3σ", "> 3σ and > 2 cm", "off med cm", "σ med cm"):
+        table.add_column(col, justify="right")
+    for kind in ("corner", "edge"):
+        mine = [(d, s) for k, d, s in placed if k == kind]
+        if not mine:
+            continue
+        z = [d / s if s > 0 else (0.0 if d == 0 else math.inf) for d, s in mine]
+        out = [(d, s) for (d, s), v in zip(mine, z, strict=True) if v > 3]
+        table.add_row(
+            kind,
+            str(len(mine)),
+            "/".join(f"{100 * v:.0f}" for v in coverage(z)),
+            str(len(out)),
+            str(sum(d > 0.02 for d, _s in out)),
+            f"{100 * _pct([d for d, _s in mine], 50):.2f}",
+            f"{100 * _pct([s for _d, s in mine], 50):.2f}",
+        )
+    console.print(table)
 
 
 def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argparse.Namespace, console: Console) -> int:

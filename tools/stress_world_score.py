@@ -40,9 +40,9 @@ from lelsonar.sim.odometry import simulate_odometry
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world import World
 from lelsonar.sim.world_geometry import ElementKind, build_model
-from lelsonar.sim.world_render import WorldScan, pose_frame, world_rig
+from lelsonar.sim.world_render import WorldScan, world_rig
 from lelsonar.tools.bench_map import false_good
-from lelsonar.tools.bench_surfaces import oracle_error, score_scan, trace_error, true_plane
+from lelsonar.tools.bench_surfaces import feature_offset, oracle_error, score_scan, trace_error, true_plane
 from lelsonar.tools.map_worlds import (
     ENERGY_MODEL,
     TourResult,
@@ -127,11 +127,13 @@ def _wrap_half(a: float) -> float:
     return (a + math.pi / 2) % math.pi - math.pi / 2
 
 
-def _majority(scan: WorldScan, steps: np.ndarray) -> int:
-    idx = scan.echo_index[steps].ravel()
-    ok = (
-        np.isfinite(scan.distance[steps].ravel()) & (idx >= 0) & (scan.echo_source[steps].ravel() != EchoSource.DIFFUSE)
-    )
+def _majority(
+    scan: WorldScan, steps: np.ndarray, rows: np.ndarray | None = None, capsules: np.ndarray | None = None
+) -> int:
+    """The element most of an item's readings are (its own readings where it has them, else its steps')."""
+    at: tuple[np.ndarray, ...] = (steps,) if rows is None or capsules is None else (rows, capsules)
+    idx = scan.echo_index[at].ravel()
+    ok = np.isfinite(scan.distance[at].ravel()) & (idx >= 0) & (scan.echo_source[at].ravel() != EchoSource.DIFFUSE)
     if not ok.any():
         return -1
     vals, counts = np.unique(idx[ok], return_counts=True)
@@ -189,29 +191,14 @@ def _score_sweep(score: WorldScore, scan: WorldScan, estimate, pose: int) -> Non
 
 
 def _score_features(score: WorldScore, scan: WorldScan, surfaces, where: str) -> None:
-    rot, tr = pose_frame(scan.rig, scan.pose)
     classes = {"corner": (ElementKind.DIHEDRAL, ElementKind.TRIHEDRAL), "edge": (ElementKind.EDGE,)}
     for f in (*surfaces.corners, *surfaces.edges):
-        k = _majority(scan, f.steps)
+        k = _majority(scan, f.steps, f.rows, f.capsules)
         if k < 0 or scan.model.elements[k].kind not in classes[f.kind]:
             continue
         score.counts["features"] += 1
-        el = scan.model.elements[k]
-        p = rot @ f.point + tr
-        if el.kind == ElementKind.TRIHEDRAL:
-            # A vertex: its distance from the feature's line.
-            u = rot @ f.direction
-            off = (el.p0 - p) - ((el.p0 - p) @ u) * u
-        else:
-            d = el.p1 - el.p0
-            d = d / max(float(np.linalg.norm(d)), 1e-12)
-            off = (p - el.p0) - ((p - el.p0) @ d) * d
-        dist = float(np.linalg.norm(off))
-        if dist <= ERROR_FLOOR:
-            continue
-        r = rot.T @ (off / dist)
-        sigma = math.sqrt(max(float(r @ f.covariance @ r), 0.0))
-        if dist > 3 * sigma:
+        dist, sigma = feature_offset(scan, f, k)
+        if dist > ERROR_FLOOR and dist > 3 * sigma:
             score.fail(
                 "feature > 3σ",
                 f"{where} {f.kind} {f.label} element {k}: {100 * dist:.1f} cm off, σ {100 * sigma:.1f} cm",

@@ -432,12 +432,20 @@ def plane_end(
         half = math.acos(h / m.depth)
         if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
-        for bearing in (pj.bearing - half, pj.bearing + half):
-            if in_span(wrap(bearing), m, m.step, opts.beyond_cut) and not (
-                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts, placed=True)
+        # Either side of the foot may fall within the reach past a cut end: the side nearer the region's own
+        # steps first (its echo is heard there, the other side only through the beam's far flank).
+        sides = sorted((wrap(pj.bearing - half), wrap(pj.bearing + half)), key=lambda b: _off_span(b, m))
+        for bearing in sides:
+            if in_span(bearing, m, m.step, opts.beyond_cut) and not (
+                seen is not None and beyond_reach(m, bearing, pj, seen, opts, placed=True)
             ):
-                return [j], wrap(bearing)
+                return [j], bearing
     return None
+
+
+def _off_span(bearing: float, m: Measured) -> float:
+    """How far ``bearing`` lies outside the region's span of γ (0 inside), rad."""
+    return max(0.0, m.span[0] - bearing, bearing - m.span[1])
 
 
 def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[int, float, str] | None:

@@ -3,7 +3,8 @@
 * :func:`split_flanks`: both ends the middle's double bounce with a surface across the fan explains;
 * :func:`trim_ends`: ends whose slope along the stack, or depth, is not the middle's plane's;
 * :func:`split_ends`: the two for one region, in that order;
-* :func:`split_dihedral`: an end block that is the double bounce of the plane with a nearer plane.
+* :func:`split_dihedral`: an end block that is the double bounce of the plane with a nearer plane;
+* :func:`partial_regions`: a target part of the stack hears, among the readings no region holds.
 """
 
 from __future__ import annotations
@@ -22,10 +23,10 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     unit_normal,
     wrap,
 )
-from lelsonar.reconstruct.estimate.surfaces.regions import subregion
+from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
-__all__ = ["split_dihedral", "split_ends", "split_flanks", "step_slopes", "trim_ends"]
+__all__ = ["partial_regions", "split_dihedral", "split_ends", "split_flanks", "step_slopes", "trim_ends"]
 
 
 def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -391,3 +392,53 @@ def split_dihedral(
             return None
         return [plane_m, corner_m]
     return None
+
+
+def partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spread: float) -> list[Region]:
+    """Regions among the readings no region holds, nearer than their steps' held readings by more than the
+    range tolerance (a first-echo receiver: a capsule that hears a nearer target hears it first).
+
+    Parameters
+    ----------
+    d : (n_steps, n_capsules) array
+        The sweep's ranges, m.
+    held : list of Region
+        The regions found so far.
+    opts : SurfaceOptions
+    spread : float
+        m: as :func:`~.regions.find_regions`' ``max_spread``.
+
+    Returns
+    -------
+    list of Region, in sweep order.
+    """
+    mask = np.zeros(d.shape, dtype=bool)
+    for r in held:
+        mask[r.rows, r.capsules] = True
+    rest = np.where(mask, np.nan, d)
+    out = []
+    for r in find_regions(
+        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+    ):
+        own = float(np.median(d[r.rows, r.capsules]))
+        others = d[r.steps][mask[r.steps]]
+        if (
+            others.size
+            and own < float(np.median(others)) - opts.range_tolerance
+            and not _flank_of(r, own, held, d, opts)
+        ):
+            out.append(r)
+    return out
+
+
+def _flank_of(r: Region, own: float, held: list[Region], d: np.ndarray, opts: SurfaceOptions) -> bool:
+    """Whether a region the whole stack hears, at ``r``'s range (within twice the range tolerance) and on
+    overlapping or adjacent steps (within ``max_gap``), is the same target: ``r`` is its flank, where only
+    part of the stack still hears it."""
+    lo, hi = int(r.steps[0]), int(r.steps[-1])
+    for h in held:
+        if int(h.steps[0]) > hi + opts.max_gap + 1 or int(h.steps[-1]) < lo - opts.max_gap - 1:
+            continue
+        if abs(float(np.median(d[h.rows, h.capsules])) - own) <= 2 * opts.range_tolerance:
+            return True
+    return False
