@@ -66,3 +66,18 @@ def test_an_l_plane_its_own_surface_contradicts_is_not_good() -> None:
     score = score_world("acute", 1, "fan", draw_stress_world("acute", 1), max_poses=1)
     assert score.counts["crash"] == 0, score.failures
     assert score.counts["L good-but-wrong"] == 0, score.failures
+
+
+def test_the_beam_and_tilt_classes_leave_the_default_rig() -> None:
+    """``beam``: the echo beam 20–60° wide on a level mount; ``tilt``: the mount ±10° off level, the default beam."""
+    widths, tilts = [], []
+    for seed in range(4):
+        for mount in MOUNTS:
+            beam = draw_stress_world("beam", seed, mount).scanner
+            tilt = draw_stress_world("tilt", seed, mount).scanner
+            assert beam.tilt == 0.0 and beam.beam_width is not None
+            assert tilt.beam_width is None
+            widths.append(math.degrees(beam.beam_width))
+            tilts.append(math.degrees(tilt.tilt))
+    assert all(20.0 <= w <= 60.0 for w in widths) and max(widths) - min(widths) > 10.0
+    assert all(-10.0 <= t <= 10.0 for t in tilts) and min(tilts) < 0.0 < max(tilts)

@@ -25,6 +25,8 @@ class             what is drawn
                   diffuse share, floor and ceiling reflectivity, no ceiling half the time
 ``reflect``       each wall and box its own reflectivity 0.1–1
 ``odometry``      translation and rotation noise 0–10 %, heading noise and drift up to 3°/m
+``beam``          a rectangle with a box, the capsules' echo beam 20–60° wide (−6 dB full angle), level
+``tilt``          a rectangle with a box, the mount tilted −10…+10° about the robot's lateral axis
 ``rig``           steps 60–600, a partial sweep, radial offset 0–10 cm, max range 2–8 m
 ``mixed``         a polygon room with boxes and thin walls, the rig, air and odometry drawn too
 ================  ==============================================================
@@ -65,6 +67,8 @@ STRESS_CLASSES: tuple[str, ...] = (
     "acoustics",
     "reflect",
     "odometry",
+    "beam",
+    "tilt",
     "rig",
     "mixed",
 )
@@ -332,6 +336,20 @@ def _odometry(rng):
     return dr
 
 
+def _beam(rng):
+    dr = _Draft(rng, _rect(rng))
+    dr.random_box(0.3, 0.9)
+    dr.scanner["beam_width"] = float(rng.uniform(20.0, 60.0))
+    return dr
+
+
+def _tilt(rng):
+    dr = _Draft(rng, _rect(rng))
+    dr.random_box(0.3, 0.9)
+    dr.scanner["tilt"] = float(rng.uniform(-10.0, 10.0))
+    return dr
+
+
 def _rig(rng):
     dr = _Draft(rng, _rect(rng))
     dr.random_box(0.3, 0.9)
@@ -380,6 +398,8 @@ _DRAW: dict[str, Callable[[np.random.Generator], _Draft]] = {
     "acoustics": _acoustics,
     "reflect": _reflect,
     "odometry": _odometry,
+    "beam": _beam,
+    "tilt": _tilt,
     "rig": _rig,
     "mixed": _mixed,
 }
