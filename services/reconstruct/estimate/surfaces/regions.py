@@ -96,8 +96,8 @@ def find_regions(
         Ranges, m (NaN: no echo), steps in sweep order.
     tolerance : float
         A step joins the current run while it is within this of the run, m (the
-        range noise plus the radial offset's ``r·(1 − cos Δγ)`` over a beam
-        width).
+        range noise plus the radial offset's ``r·(1 − cos Δγ)`` over a narrow
+        beam; a wider run's drift is taken off with ``gamma``).
     max_gap : int
         Steps without an echo a run may bridge.
     min_steps : int
