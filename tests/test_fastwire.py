@@ -16,7 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lelsonar import codec
-from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
+from lelsonar.reconstruct.stream import assembly
+from lelsonar.reconstruct.stream.fastwire import UNREAD, read_sample, sample_header
 from lelsonar.reconstruct.stream.ingest import Ingest
 from lelsonar.v1 import scan_pb2
 
@@ -202,3 +203,39 @@ def test_a_header_field_after_the_body_leaves_the_payload_to_the_parser():
     assert event.kind == "sample" and event.step == moved == codec.Sample.FromString(payload).step
     scan = event.scan
     assert scan.received[moved] and not scan.received[sample.step]
+
+
+def test_waveforms_read_where_they_lie_at_every_alignment_are_the_parsed_ones(monkeypatch):
+    """The fast path reads each waveform where it lies in the payload, whatever its bytes' alignment (an unknown
+    field of 0–3 bytes after the header shifts them): the scan's arrays are bit for bit those of the same
+    payloads parsed by upb and placed from the messages."""
+    start, *samples, end = simulated_messages()
+    payloads = []
+    for i, m in enumerate(samples):
+        payload = m.SerializeToString()
+        body = sample_header(payload)[-1]
+        payloads.append(payload[:body] + _unknown_field(15, bytes(i % 4)) + payload[body:])
+    data_at = {payloads[i].find(m.sensors[0].waveform.data) % 4 for i, m in enumerate(samples)}
+    assert data_at == {0, 1, 2, 3}
+    read_in_place = []
+    place_wire = assembly.place_wire
+    monkeypatch.setattr(assembly, "place_wire", lambda *a: read_in_place.append(place_wire(*a)) or read_in_place[-1])
+    scans = []
+    for fast in (True, False):
+        ingest = Ingest(fast_path=fast)
+        ingest.accept(start.DESCRIPTOR.full_name, start.SerializeToString())
+        for payload in payloads:
+            (event,) = ingest.accept(codec.Sample.DESCRIPTOR.full_name, payload)
+            assert event.kind == "sample"
+        assert not ingest.rejected
+        (scan,) = ingest.scans.values()
+        scans.append(scan)
+    read, parsed = scans
+    assert len(read_in_place) == len(samples) - 1  # all but the first
+    assert UNREAD not in [status for status, _ in read_in_place]
+    for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    for name in ("gamma", "step_energy", "expected_energy", "ratio", "time_ns", "received"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    assert read._timing_windows.tobytes() == parsed._timing_windows.tobytes()
+    np.testing.assert_array_equal(read.latest.waveforms, parsed.latest.waveforms)

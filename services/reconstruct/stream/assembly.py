@@ -169,8 +169,8 @@ class ScanAssembly(WriterChecks):
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
         self._pack_readings_energies = struct.Struct(f"<{5 + 4 * self._k}d")
-        # Where fastwire.place_wire copies a sample's waveforms ((k, n) float32 V, n the layout's).
-        self._waves = np.zeros((self._k, 0), np.float32)
+        # Where fastwire.place_wire finds each waveform's samples in a sample's payload (read there, never copied).
+        self._starts = np.zeros(self._k, np.int64)
         # Each reading's waveform around its time of flight (echo_timing.TIMING_WINDOW), kept to re-time the
         # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
         # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
@@ -299,7 +299,8 @@ class ScanAssembly(WriterChecks):
             body,
             self._ids,
             self._values,
-            self._waves,
+            known[1],
+            self._starts,
             self._scan,
             step,
             time_ns,
@@ -313,7 +314,7 @@ class ScanAssembly(WriterChecks):
             return True
         if status == UNREAD:
             return None
-        return self._placed(status, carried, step, self._waves, known, None, True, payload)
+        return self._placed(status, carried, step, payload, known, None, True, payload)
 
     def _clears(self, limits: codec.DecodeLimits) -> bool:
         """Whether every step of the scan's schedule, its capsules and its layout's waveform length are within
@@ -486,7 +487,7 @@ class ScanAssembly(WriterChecks):
         status: int,
         carried: int,
         step: int,
-        waveforms: np.ndarray,
+        waveforms: np.ndarray | bytes,
         layout: list,
         ranges: list | None,
         one_clock: bool,
@@ -495,11 +496,14 @@ class ScanAssembly(WriterChecks):
         """What a step's placement (:func:`~lelsonar.reconstruct.stream.step_features.place_step`'s ``status``)
         leaves to do, rarely anything: a refusal, energies to recompute (``carried``: how many the sample
         carries), ranges without an echo to count; the step is then the latest (``latest``: its waveforms, or
-        the payload to read them from).  ``layout``, ``ranges``: the sample's in the order of the capsules
-        (``ranges`` None: read from the kernel's buffer, where the fast path put them)."""
+        the payload to read them from).  ``waveforms``: the (k, n) float32 array, or the payload they lie in (on
+        the fast path's layout), parsed only if they are needed.  ``layout``, ``ranges``: the sample's in the order
+        of the capsules (``ranges`` None: read from the kernel's buffer, where the fast path put them)."""
+        if isinstance(waveforms, bytes) and status >= 0 and (status & CANDIDATES or not status & AGREED):
+            waveforms = _waveforms([s.waveform for s in codec.parse(waveforms, codec.Sample).sensors], layout[1])
         if status > 0 and status & CANDIDATES:
             status &= ~CANDIDATES
-            self._keep_candidates(step, waveforms, layout)
+            self._keep_candidates(step, np.asarray(waveforms), layout)
         if status != AGREED:
             if status == UNCHECKED:
                 return None
@@ -508,16 +512,17 @@ class ScanAssembly(WriterChecks):
                     ranges = self._values[2 * self._k + 5 : 5 * self._k + 5].tolist()
                 self._no_sound_speed(step, ranges, layout)
             if not status & AGREED:
+                waves = np.asarray(waveforms)
                 self.sensor_energy[step] = (
-                    waveform_energy(waveforms, layout[2])
+                    waveform_energy(waves, layout[2])
                     if one_clock
-                    else [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::6])]
+                    else [waveform_energy(wv, r) for wv, r in zip(waves, layout[2::6])]
                 )
                 settle_step(self._per_capsule, self._per_step, step, self._scan)  # of these energies
                 if carried:
                     self._energy_mismatch(step)
             self.unflagged_ranges += status >> 1
-        self._latest = (step, latest, waveforms.shape[1], layout[2], layout[3])  # (the lowest id's clock)
+        self._latest = (step, latest, layout[1], layout[2], layout[3])  # (the lowest id's clock)
         return True
 
     def _keep_candidates(self, step: int, waveforms: np.ndarray, layout: list) -> None:
@@ -549,8 +554,6 @@ class ScanAssembly(WriterChecks):
         self._values[: 2 * k] = [rate, t0] * k
         self._layout = layout
         self._limits_cleared = None
-        if self._waves.shape[1] != n:
-            self._waves = np.empty((k, n), np.float32)
         return True
 
     def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:
