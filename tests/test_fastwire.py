@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from lelsonar import codec
 from lelsonar.reconstruct.stream import assembly
 from lelsonar.reconstruct.stream.fastwire import UNREAD, read_sample, sample_header
-from lelsonar.reconstruct.stream.ingest import Ingest
+from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -232,10 +232,40 @@ def test_waveforms_read_where_they_lie_at_every_alignment_are_the_parsed_ones(mo
         scans.append(scan)
     read, parsed = scans
     assert len(read_in_place) == len(samples) - 1  # all but the first
-    assert UNREAD not in [status for status, _ in read_in_place]
+    assert UNREAD not in [status for status, _, _ in read_in_place]
     for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio"):
         assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
     for name in ("gamma", "step_energy", "expected_energy", "ratio", "time_ns", "received"):
         assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
     assert read._timing_windows.tobytes() == parsed._timing_windows.tobytes()
     np.testing.assert_array_equal(read.latest.waveforms, parsed.latest.waveforms)
+
+
+def test_a_payload_that_starts_as_the_last_one_but_routes_elsewhere_is_left_to_the_parser():
+    """The bytes that routed a key's last sample route the next one that starts with them, unless it names its
+    scan again after them (the parser keeps the last value): that one goes where the parser puts it.  A scan
+    closed routes nothing more: its samples are late."""
+    start, *samples, _ = simulated_messages()
+    other = codec.ScanStart.FromString(start.SerializeToString())
+    other.scan_id = start.scan_id + 1
+    name = codec.Sample.DESCRIPTOR.full_name
+    ingest = Ingest()
+    for m in (start, other):
+        ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString(), key_scanner="s1")
+    for m in samples[:3]:
+        (event,) = ingest.accept(name, m.SerializeToString(), key_scanner="s1")
+        assert event.kind == "sample" and event.scan.start.scan_id == start.scan_id
+    again = codec.Sample(scan_id=other.scan_id).SerializeToString()
+    routed = sample_header(samples[0].SerializeToString())[-2]
+    assert routed
+    third, fourth = samples[3].SerializeToString(), samples[4].SerializeToString()
+    for moved in (third + again, fourth[:routed] + again + fourth[routed:]):
+        assert moved[:routed] == samples[0].SerializeToString()[:routed]
+        truth = codec.Sample.FromString(moved)
+        assert truth.scan_id == other.scan_id
+        (event,) = ingest.accept(name, moved, key_scanner="s1")
+        assert event.kind == "sample" and event.scan.start.scan_id == other.scan_id
+        assert event.step == truth.step and event.scan.received[truth.step]
+    ingest.close(("s1", start.scan_id))
+    (event,) = ingest.accept(name, samples[5].SerializeToString(), key_scanner="s1")
+    assert isinstance(event, Rejected) and event.error == "LateMessage"

@@ -51,7 +51,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.stream.fastwire import UNREAD, place_wire
+from lelsonar.reconstruct.stream.fastwire import GROW, place_wire
 from lelsonar.reconstruct.stream.scan_start import energy_model_of, scan_geometry, speed_of_sound
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
@@ -265,17 +265,17 @@ class ScanAssembly(WriterChecks):
         return view
 
     def add_payload(
-        self, payload: bytes, body: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
-    ) -> bool | None:
-        """Place a sample straight from its ``payload`` (:mod:`~lelsonar.reconstruct.stream.fastwire`, the
-        header already read: its ``step`` and ``acquisition_time_ns``, and where its ``body`` starts), never
-        parsed; its body's checks under
+        self, payload: bytes, at: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
+    ) -> int:
+        """Place a sample straight from its ``payload`` (:mod:`~lelsonar.reconstruct.stream.fastwire`), never
+        parsed: its header read up to ``at`` (``step`` and ``acquisition_time_ns`` if they came before it, else
+        0, as the parser gives a field absent), the rest of it and its body from there; its body's checks under
         ``limits`` are made in the pass that places it (:func:`~lelsonar.reconstruct.stream.step_features.
-        place_step`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
-        clocks: the contract's checks of them passed).  Anything this does not clear — no layout yet, a
-        payload not plainly encoded on it, a refused check, a duplicate or a step outside the schedule —
-        returns None with nothing written: the caller then parses the payload and places the message
-        (:meth:`add`), so that the decoding refuses before the scan does.
+        place_rows`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
+        clocks: the contract's checks of them passed).  Returns the step placed, or -1: anything this does not
+        clear — no layout yet, a payload not plainly encoded on it, a refused check, a duplicate or a step
+        outside the schedule — is left with nothing written: the caller then parses the payload and places the
+        message (:meth:`add`), so that the decoding refuses before the scan does.
 
         Raises
         ------
@@ -283,38 +283,57 @@ class ScanAssembly(WriterChecks):
             A range that needs a speed of sound the scan does not state.
         """
         known = self._layout
-        if known is None or step >= self._steps:
-            return None
-        if limits is not self._limits_cleared and not self._clears(limits):
+        if known is None:
+            return -1
+        if limits is self._limits_cleared or self._clears(limits):
+            bound = self._steps
+        elif self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples:
             # A schedule beyond the limits (its ScanStart validated under others): each step checked against them.
-            if not (
-                step < limits.max_steps and self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples
-            ):
-                return None
-        if step >= len(self.received):
-            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
+            bound = min(self._steps, limits.max_steps)
+        else:
+            return -1
+        recovered = origin == "recovered"
         # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-        status, carried = place_wire(
+        status, carried, step = place_wire(
             payload,
-            body,
+            at,
+            step,
+            time_ns,
+            bound,
             self._ids,
             self._values,
             known[1],
             self._starts,
             self._scan,
-            step,
-            time_ns,
-            origin == "recovered",
+            recovered,
             *self._rows,
             self._timing_windows,
             self._candidate_windows,
         )
+        if status == GROW:
+            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
+            status, carried, step = place_wire(
+                payload,
+                at,
+                step,
+                time_ns,
+                bound,
+                self._ids,
+                self._values,
+                known[1],
+                self._starts,
+                self._scan,
+                recovered,
+                *self._rows,
+                self._timing_windows,
+                self._candidate_windows,
+            )
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
-            return True
-        if status == UNREAD:
-            return None
-        return self._placed(status, carried, step, payload, known, None, True, payload)
+            return step
+        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED; GROW cannot come twice)
+            return -1
+        return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
 
     def _clears(self, limits: codec.DecodeLimits) -> bool:
         """Whether every step of the scan's schedule, its capsules and its layout's waveform length are within

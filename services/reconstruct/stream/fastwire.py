@@ -77,8 +77,9 @@ for _message, _fields in (
         )
 del _message, _fields
 _VARINT, _FIXED64, _LENGTH, _FIXED32 = 0, 1, 2, 5
-#: :func:`place_wire`'s: a payload not read (not plainly encoded, or not the fast path's layout), nothing written.
-UNREAD = -3
+#: :func:`place_wire`'s: a payload not read (not plainly encoded, or not the fast path's layout), nothing written;
+#: the scan's arrays to grow to its step first, nothing written.
+UNREAD, GROW = -3, -4
 _ONE = 0x3FF0000000000000  # 1.0's bits
 
 
@@ -355,14 +356,15 @@ def read_body(buf, body, ids, values, n, starts):
 @kernel
 def place_wire(
     payload,
-    body,
+    at,
+    step,
+    time_ns,
+    bound,
     ids,
     values,
     n,
     starts,
     scan,
-    step,
-    time_ns,
     recovered,
     per_capsule,
     per_step,
@@ -372,44 +374,77 @@ def place_wire(
     timing_windows,
     candidate_windows,
 ):
-    """:func:`place_rows` of a sample not validated, read from its ``payload`` (:func:`read_body` from ``body``
-    on, into ``values``, and where its waveforms of ``n`` samples lie into ``starts``: they are read there, never
-    copied), and how many energies the sample carries; ``(UNREAD, 0)`` if it could not be read that way, or its
-    step is already held (nothing placed).  The scan's arrays come one by one, as :func:`place_rows` takes them:
-    a tuple of arrays costs a call more to hand over."""
-    if received[step]:
-        return UNREAD, 0
+    """:func:`place_rows` of a sample not validated, read from its ``payload``, and how many energies the sample
+    carries and its step: ``(status, carried, step)``; ``(UNREAD, 0, step)`` if it could not be read that way, its
+    step is already held or not below ``bound`` (nothing placed), ``(GROW, 0, step)`` if the scan's arrays do not
+    reach its step yet (nothing placed: grown, it is placed by the next call).
+
+    From ``at`` on, the rest of its header (:func:`read_header`): ``step`` and ``acquisition_time_ns`` (else
+    ``step`` and ``time_ns``, those read before ``at``), each at most once, no field that routes it again (the
+    fields before ``at`` did); then its body (:func:`read_body`, into ``values``, and where its waveforms of ``n``
+    samples lie into ``starts``: they are read there, never copied).  The scan's arrays come one by one, as
+    :func:`place_rows` takes them: a tuple of arrays costs a call more to hand over."""
     buf = np.frombuffer(payload, dtype=np.uint8)
+    end = buf.size
+    seen = 0
+    body = at
+    while body < end:
+        field, wire_type, after = _wire_tag(buf, body, end)
+        if after < 0 or field < _SAMPLE_STEP:
+            return UNREAD, 0, step
+        if field > _SAMPLE_TIME:
+            break
+        if wire_type != _VARINT or seen & (1 << field):
+            return UNREAD, 0, step
+        seen |= 1 << field
+        v, body = _wire_varint(buf, after, end)
+        if body < 0:
+            return UNREAD, 0, step
+        if field == _SAMPLE_STEP:
+            if v >= np.uint64(1 << 32):
+                return UNREAD, 0, step
+            step = np.int64(v)
+        else:
+            time_ns = np.int64(v)  # (two's complement: the parser's int64)
+    if step >= bound or (step < received.size and received[step]):
+        return UNREAD, 0, step
+    if step >= received.size:
+        return GROW, 0, step
     carried = read_body(buf, body, ids, values, n, starts)
     if carried < 0:
-        return UNREAD, 0
+        return UNREAD, 0, step
     k = ids.size
-    return place_rows(
-        buf,
-        starts,
-        n,
-        values,
-        scan,
-        k if carried == k else 0,
+    return (
+        place_rows(
+            buf,
+            starts,
+            n,
+            values,
+            scan,
+            k if carried == k else 0,
+            step,
+            False,
+            time_ns,
+            recovered,
+            per_capsule,
+            per_step,
+            acquired_ns,
+            received,
+            recovered_mask,
+            timing_windows,
+            candidate_windows,
+        ),
+        carried,
         step,
-        False,
-        time_ns,
-        recovered,
-        per_capsule,
-        per_step,
-        acquired_ns,
-        received,
-        recovered_mask,
-        timing_windows,
-        candidate_windows,
-    ), carried
+    )
 
 
 @kernel
 def read_header(payload):
     """A ``Sample``'s header straight from its payload: whether it was read, ``schema_version``, the bounds
     (start, end) of ``scanner_id``'s bytes, ``scan_id``, ``step``, ``acquisition_time_ns``'s 64 bits, and where
-    its body starts (the first field after the header, for :func:`read_body`).
+    its body starts (the first field after the header, for :func:`read_body`), and where the fields that route
+    it (``schema_version``, ``scanner_id``, ``scan_id``) end if they come first (0: not so).
 
     The header is the fields before the first field of another number: read only if each appears there at most
     once with its own wire type, its tags are ones the parser accepts and ``schema_version`` and ``step`` fit
@@ -421,30 +456,35 @@ def read_header(payload):
     version = scan_id = step = time = np.uint64(0)
     a = b = 0
     seen = 0
+    routed = -1
     i, end = 0, buf.size
     while i < end:
         field, wire_type, after = _wire_tag(buf, i, end)
         if after < 0:
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         if field > _SAMPLE_TIME:
             break
+        if field >= _SAMPLE_STEP:
+            routed = i if routed < 0 else routed
+        elif routed >= 0:
+            routed = 0  # a routing field after the others: no prefix routes it
         i = after
         if seen & (1 << field):
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         seen |= 1 << field
         if field == _SAMPLE_SCANNER:
             if wire_type != _LENGTH:
-                return False, version, a, b, scan_id, step, time, i
+                return False, version, a, b, scan_id, step, time, i, 0
             a, b = _wire_length(buf, i, end)
             if a < 0:
-                return False, version, a, b, scan_id, step, time, i
+                return False, version, a, b, scan_id, step, time, i, 0
             i = b
             continue
         if wire_type != _VARINT:
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         v, i = _wire_varint(buf, i, end)
         if i < 0:
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         if field == _SAMPLE_VERSION:
             version = v
         elif field == _SAMPLE_SCAN:
@@ -454,15 +494,16 @@ def read_header(payload):
         else:
             time = v
     ok = version < np.uint64(1 << 32) and step < np.uint64(1 << 32)
-    return ok, version, a, b, scan_id, step, time, i
+    return ok, version, a, b, scan_id, step, time, i, i if routed < 0 else routed
 
 
-def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int] | None:
-    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns, body)`` of a ``Sample``'s payload
-    (:func:`read_header`; ``body``: where :func:`read_body` reads on), as the parser reads them if
-    :func:`read_body` reads the body; None where the fast path leaves the payload to the parser (not plainly
-    encoded, or a ``scanner_id`` that is not UTF-8)."""
-    ok, version, a, b, scan_id, step, time, body = read_header(payload)
+def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int, int] | None:
+    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns, routed, body)`` of a ``Sample``'s
+    payload (:func:`read_header`; ``routed``: where the fields that route it end if they come first, else 0;
+    ``body``: where :func:`read_body` reads on), as the parser reads them if :func:`read_body` reads the body;
+    None where the fast path leaves the payload to the parser (not plainly encoded, or a ``scanner_id`` that is
+    not UTF-8)."""
+    ok, version, a, b, scan_id, step, time, body, routed = read_header(payload)
     if not ok:
         return None
     try:
@@ -470,4 +511,4 @@ def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int] | None:
     except UnicodeDecodeError:
         return None
     t = int(time)
-    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t, int(body)
+    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t, routed, int(body)
