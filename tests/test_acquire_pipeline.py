@@ -19,8 +19,9 @@ from lelsonar.acquire.backends import open_scanner
 from lelsonar.acquire.config import AcquireConfig
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices import sensor_frame as sf
+from lelsonar.acquire.devices.dynamixel import DynamixelMotor
 from lelsonar.acquire.devices.link import AX12_BUS, SENSOR_BOARD_USB, Link
-from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
+from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SensorBoardProtocolError, SerialSensorBoard
 from lelsonar.acquire.emulate.ax12_emulator import AX12Emulator, AX12EmulatorConfig
 from lelsonar.acquire.emulate.pty_link import PtyDevice

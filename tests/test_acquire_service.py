@@ -118,7 +118,8 @@ def test_the_servo_status_byte_reaches_every_sample(tmp_path, pipeline):
 
     from lelsonar.acquire.backends import DeviceScanner, sim_info
     from lelsonar.acquire.devices.ax12 import ErrorBit
-    from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
+    from lelsonar.acquire.devices.dynamixel import DynamixelMotor
+    from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, MotorConfig
     from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
     from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
     from lelsonar.acquire.emulate.rig import emulated_rig

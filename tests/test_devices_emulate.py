@@ -18,7 +18,8 @@ import pytest
 
 from lelsonar.acquire.devices import ax12
 from lelsonar.acquire.devices import sensor_frame as sf
-from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, DynamixelMotor, MotorConfig
+from lelsonar.acquire.devices.dynamixel import DynamixelMotor
+from lelsonar.acquire.devices.motor import EMULATED_STALE_GUARD_S, MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.emulate.ax12_emulator import AX12EmulatorConfig
 from lelsonar.acquire.emulate.sensor_board_emulator import echo_shot_source, sim_shot_source

@@ -8,9 +8,9 @@ import time
 import pytest
 
 from lelsonar.acquire.devices import ax12
+from lelsonar.acquire.devices.dynamixel import DynamixelMotor
 from lelsonar.acquire.devices.motor import (
     AngleLimitError,
-    DynamixelMotor,
     GammaOutOfRangeError,
     InputVoltageError,
     Motor,

@@ -25,8 +25,8 @@ XS = (-0.12, -0.04, 0.04, 0.12)  # capsules along the rotation axis
 H = 0.3  # axis height
 
 
-def _world(walls, boxes=(), *, mount="fan", ceiling=None, pose=(0.0, 0.0, 0.0), extra=""):
-    data: dict = {"room": {"floor": 0.0}, "scanner": {"mount": mount, "height": H}}
+def _world(walls, boxes=(), *, mount="fan", ceiling=None, pose=(0.0, 0.0, 0.0), scanner=None):
+    data: dict = {"room": {"floor": 0.0}, "scanner": {"mount": mount, "height": H} | (scanner or {})}
     if ceiling is not None:
         data["room"]["ceiling"] = ceiling
     data["wall"] = [{"from": list(a), "to": list(b)} for a, b in walls]
@@ -72,6 +72,71 @@ def test_a_wall_echoes_from_the_mirror_image_of_each_capsule():
         # The normal is off the boresight by γ: amplitude D(γ)²·absorption/(2r).
         np.testing.assert_allclose(table.amplitude[0, :, k], _mirror_amplitude(rig, expected, abs(g)), rtol=1e-12)
         assert (table.source[0, :, k] == EchoSource.PLANE_OTHER).all()
+
+
+@pytest.mark.parametrize("tilt_deg", [15.0, -25.0])
+def test_a_tilted_scanner_s_capsules_see_a_wall_at_their_own_leaned_ranges(tilt_deg, tmp_path):
+    # The mount turned by τ about the robot's lateral axis: the vertical axis leans to (−sin τ, 0, cos τ) and the
+    # γ beam runs along (cos γ cos τ, sin γ, cos γ sin τ).  Capsule i sits at H·z + x_i·axis + R·beam, so its
+    # perpendicular distance to the wall x = D is D + x_i sin τ − R cos γ cos τ, seen cos ψ = cos γ cos τ off
+    # the wall's normal.
+    d = 2.0
+    tau = math.radians(tilt_deg)
+    world = _world([((d, -5.0), (d, 5.0))], scanner={"tilt": tilt_deg})
+    for gamma in (0.0, 25.0):
+        model, rig, table = _table(world, gamma)
+        k = _slot(model, ElementKind.MIRROR, "wall1")
+        g = math.radians(gamma)
+        expected = np.array([d + x * math.sin(tau) - R * math.cos(g) * math.cos(tau) for x in XS])
+        np.testing.assert_allclose(table.range[0, :, k], expected, atol=1e-12)
+        psi = math.acos(math.cos(g) * math.cos(tau))
+        np.testing.assert_allclose(table.amplitude[0, :, k], _mirror_amplitude(rig, expected, psi), rtol=1e-12)
+    # The pose a scan announces is the tilted array's: its γ = 0 beam raised by τ.
+    path = tmp_path / "tilted.toml"
+    path.write_text(
+        f"[scanner]\nheight = {H}\ntilt = {tilt_deg}\n[[wall]]\nfrom = [{d}, -5.0]\nto = [{d}, 5.0]\n"
+        "[[pose]]\nx = 0.0\ny = 0.0\n[odometry]\ntranslation_noise = 0.0\nrotation_noise = 0.0\n"
+        "heading_noise = 0.0\n"
+    )
+    from lelsonar.acquire.world_scans import prepare_world
+    from lelsonar.geometry import matrix_from_quaternion
+
+    o = prepare_world(path).pose_message(0).orientation
+    beam = matrix_from_quaternion((o.x, o.y, o.z, o.w)) @ np.array([0.0, 1.0, 0.0])
+    np.testing.assert_allclose(beam, [math.cos(tau), 0.0, math.sin(tau)], atol=1e-12)
+
+
+@pytest.mark.parametrize("width_deg", [20.0, 60.0])
+def test_the_capsules_beam_width_is_where_a_wall_s_echo_halves(width_deg):
+    from scipy.optimize import brentq
+    from scipy.special import j1, jn_zeros
+
+    # A level fan facing the wall x = 2: at γ the beam is γ off the normal and the mirror range is 2 − R cos γ.
+    # With the beam width W, the echo at γ = W/2 is half the face-on one once its longer path is undone; past
+    # the piston's first null (ka sin γ = j₁,₁ with ka from W) there is no mirror echo.
+    world = _world([((2.0, -5.0), (2.0, 5.0))], scanner={"beam_width": width_deg})
+    half = math.radians(width_deg) / 2
+    alpha = world_rig(world).acoustics.absorption_db_per_m
+
+    def echo(gamma):
+        model, _rig, table = _table(world, math.degrees(gamma))
+        k = _slot(model, ElementKind.MIRROR, "wall1")
+        return table.range[0, 0, k], table.amplitude[0, 0, k]
+
+    r0, a0 = echo(0.0)
+    r1, a1 = echo(half)
+    assert (r0, r1) == pytest.approx((2.0 - R, 2.0 - R * math.cos(half)), abs=1e-12)
+    path = (r1 / r0) * 10 ** (alpha * 2 * (r1 - r0) / 20)  # spreading 1/(2r) and absorption over 2r
+    assert a1 * path / a0 == pytest.approx(0.5, rel=1e-9)
+    x_half = brentq(lambda x: 2 * j1(x) / x - 1 / math.sqrt(2), 0.5, 3.0, xtol=1e-15)
+    ka = x_half / math.sin(half)
+    if ka > jn_zeros(1, 1)[0]:
+        null = math.asin(jn_zeros(1, 1)[0] / ka)
+        assert np.isfinite(echo(null - math.radians(0.5))[0])
+        assert np.isnan(echo(null + math.radians(0.5))[0])
+    # Without the key, the simulator's own capsule.
+    level = world_rig(_world([((2.0, -5.0), (2.0, 5.0))]))
+    assert level.acoustics.capsule_radius == 0.007 and level.tilt == 0.0
 
 
 def test_a_wall_outside_the_main_lobe_gives_no_mirror_echo():
@@ -207,6 +272,14 @@ def test_a_world_file_error_names_the_key_and_the_fix():
         parse_world({"wall": [{"from": [0, 0], "to": [4, 0]}], "pose": [{"x": 1, "y": 0.02}]})
     with pytest.raises(ConfigError, match=r"no \[\[pose\]\]"):
         parse_world({"wall": [{"from": [0, 0], "to": [4, 0]}]})
+    with pytest.raises(ConfigError, match=r"\[scanner\] 'tilt' must be in \[-45, 45\], got 60; write tilt = -10.0"):
+        _world([((2.0, -5.0), (2.0, 5.0))], scanner={"tilt": 60})
+    with pytest.raises(
+        ConfigError, match=r"\[scanner\] 'beam_width' must be in \[6, 170\], got 2; write beam_width = 40"
+    ):
+        _world([((2.0, -5.0), (2.0, 5.0))], scanner={"beam_width": 2})
+    with pytest.raises(ConfigError, match=r"'beam_width' must be a finite number"):
+        _world([((2.0, -5.0), (2.0, 5.0))], scanner={"beam_width": "wide"})
 
 
 def test_the_example_worlds_load_and_scan(tmp_path):

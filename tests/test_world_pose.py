@@ -11,7 +11,7 @@ from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.reader import make_reader
 
-from lelsonar import codec
+from lelsonar import codec, poses
 from lelsonar.cli.main import main as lelsonar_main
 from lelsonar.errors import DecodeError, InvalidMessageError, NonFiniteValueError
 from lelsonar.geometry import matrix_from_quaternion
@@ -59,10 +59,10 @@ heading = 0.0
 """
 
 
-def _pose(**kw) -> codec.PoseWithCovariance:
+def _pose(**kw) -> poses.PoseWithCovariance:
     args = {"frame_id": "odom", "position": (1.0, 2.0, 0.3), "orientation": (0.0, 0.0, 0.0, 1.0)}
     args.update(kw)
-    return codec.pose_message(args["frame_id"], args["position"], args["orientation"], args.get("covariance"))
+    return poses.pose_message(args["frame_id"], args["position"], args["orientation"], args.get("covariance"))
 
 
 def test_a_pose_is_validated_when_decoded():
@@ -70,7 +70,7 @@ def test_a_pose_is_validated_when_decoded():
     start = simulated_messages(steps=4)[0]
     start.pose.CopyFrom(_pose(covariance=cov))
     back = codec.decode(start.SerializeToString(), codec.ScanStart)
-    got = codec.scan_pose(back)
+    got = poses.scan_pose(back)
     assert got.known and got.frame_id == "odom"
     np.testing.assert_array_equal(got.position, [1.0, 2.0, 0.3])
     np.testing.assert_array_equal(got.covariance, cov)
@@ -109,7 +109,7 @@ def test_a_pose_is_validated_when_decoded():
 def test_a_scan_without_a_pose_reads_as_the_origin_and_says_so():
     start = simulated_messages(steps=4)[0]
     assert not start.HasField("pose")
-    got = codec.scan_pose(start)
+    got = poses.scan_pose(start)
     assert not got.known and got.covariance is None
     np.testing.assert_array_equal(got.position, [0.0, 0.0, 0.0])
     assert "no pose" in got.note
@@ -189,7 +189,7 @@ def test_acquire_world_records_one_scan_per_pose_with_its_pose_on_scan_start_and
         assert {("map", "odom"), ("odom", "base_link"), ("base_link", "world"), ("world", "array")} <= frames
         # The chain map → odom → base_link → world is the ScanStart's pose.
         rot, trans = _compose([t for t in tfs if t.child_frame_id != "array"], "map", "world")
-        p = codec.scan_pose(starts[0])
+        p = poses.scan_pose(starts[0])
         np.testing.assert_allclose(trans, p.position, atol=1e-9)
         np.testing.assert_allclose(rot, matrix_from_quaternion(p.orientation), atol=1e-9)
         # The fan mount: the array's x (the rotation axis) is vertical and its γ = 0 beam along the heading.
@@ -241,7 +241,7 @@ def test_acquire_world_errors_are_one_line(tmp_path, capsys):
 def _odometry(scanner_id="scanner1", yaw=math.pi / 2, cov=None) -> bytes:
     msg = codec.Odometry(schema_version=1, scanner_id=scanner_id, time_ns=1)
     msg.pose.CopyFrom(
-        codec.pose_message("odom", (1.0, 2.0, 0.0), (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), cov)
+        poses.pose_message("odom", (1.0, 2.0, 0.0), (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)), cov)
     )
     return msg.SerializeToString()
 
@@ -261,7 +261,7 @@ def test_a_robot_s_odometry_becomes_the_array_s_pose_through_the_mount():
     assert follower.offer(_odometry(cov=cov), 1_000_000_000)
     pose, why = follower.pose_for_scan("fan", 0.3, now_ns=1_500_000_000)
     assert why == ""
-    got = codec.scan_pose(codec.ScanStart(pose=pose))
+    got = poses.scan_pose(codec.ScanStart(pose=pose))
     np.testing.assert_allclose(got.position, [1.0, 2.0, 0.3], atol=1e-12)
     rot = matrix_from_quaternion(got.orientation)
     # Fan: the rotation axis up, the γ = 0 beam along the base's heading (+y), γ = 90° to its left (−x).

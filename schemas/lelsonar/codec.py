@@ -9,7 +9,6 @@ raises a :class:`~lelsonar.errors.DecodeError` subclass that says what was wrong
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -19,6 +18,7 @@ from google.protobuf.message import DecodeError as _ProtobufDecodeError
 from google.protobuf.message import Message
 
 from lelsonar import SCHEMA_VERSION
+from lelsonar.checks import finite, finite_vector
 from lelsonar.errors import (
     ConfigError,
     DecodeError,
@@ -30,6 +30,7 @@ from lelsonar.errors import (
     TruncatedDataError,
 )
 from lelsonar.keys import validate_identifier
+from lelsonar.poses import validate_pose
 from lelsonar.v1 import reconstruction_pb2, scan_pb2
 
 ScanStart = scan_pb2.ScanStart
@@ -193,12 +194,12 @@ def _check_waveform(w: Waveform, limits: DecodeLimits, where: str, *, samples: b
         raise TruncatedDataError(
             f"{where} declares {w.sample_count} samples ({w.sample_count * size} bytes) but carries {len(w.data)} bytes"
         )
-    _finite(where + ".sample_rate", w.sample_rate)
-    _finite(where + ".t0", w.t0)
+    finite(where + ".sample_rate", w.sample_rate)
+    finite(where + ".t0", w.t0)
     if w.sample_rate <= 0:
         raise InvalidMessageError(f"{where}.sample_rate must be positive, got {w.sample_rate}")
     if w.encoding == scan_pb2.WAVEFORM_ENCODING_INT16_LE:
-        _finite(where + ".scale", w.scale)
+        finite(where + ".scale", w.scale)
         if w.scale < 0:
             raise InvalidMessageError(
                 f"{where}.scale must be positive for int16 data (or 0: unset, counts), got {w.scale}"
@@ -258,7 +259,7 @@ def validate_body(message: Message, limits: DecodeLimits = DEFAULT_LIMITS) -> No
     _VALIDATORS[type(_top_level(message))](message, limits)
 
 
-def check_samples_finite(m: Sample) -> None:
+def check_samplesfinite(m: Sample) -> None:
     """The check of every float32 sample of a ``Sample`` for NaN and infinity (part of :func:`validate`).
 
     Raises
@@ -333,23 +334,14 @@ def _validate_header(any_message: Message) -> None:
         raise InvalidMessageError(f"{name}: {exc}") from None
 
 
-def _finite(where: str, *values: float) -> None:
-    if not all(math.isfinite(v) for v in values):
-        raise NonFiniteValueError(f"{where} must be finite, got {values if len(values) > 1 else values[0]}")
-
-
-def _vector(where: str, v) -> None:
-    _finite(where, v.x, v.y, v.z)
-
-
 def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
     if not 1 <= len(m.capsules) <= limits.max_sensors:
         raise InvalidMessageError(f"ScanStart lists {len(m.capsules)} capsules; expected 1 to {limits.max_sensors}")
     for i, c in enumerate(m.capsules):
-        _vector(f"ScanStart.capsules[{i}].position", c.position)
-        _vector(f"ScanStart.capsules[{i}].boresight", c.boresight)
-    _vector("ScanStart.rotation_axis", m.rotation_axis)
-    _finite(
+        finite_vector(f"ScanStart.capsules[{i}].position", c.position)
+        finite_vector(f"ScanStart.capsules[{i}].boresight", c.boresight)
+    finite_vector("ScanStart.rotation_axis", m.rotation_axis)
+    finite(
         "ScanStart schedule and acoustics",
         m.radial_offset,
         m.gamma_start,
@@ -374,114 +366,12 @@ def _validate_scan_start(m: ScanStart, limits: DecodeLimits) -> None:
     if len(set(ids)) != len(ids):
         raise InvalidMessageError(f"ScanStart lists capsule ids {ids}; each capsule needs its own id")
     e = m.energy_model
-    _finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
+    finite("ScanStart.energy_model", e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
     if m.HasField("pose"):
         validate_pose("ScanStart.pose", m.pose)
 
 
-# --- poses (ScanStart.pose, Odometry) ------------------------------------------------------------
 Odometry = scan_pb2.Odometry
-PoseWithCovariance = scan_pb2.PoseWithCovariance
-
-#: A pose's quaternion may be off unit norm by this much (float32 round trips, hand-typed poses).
-QUATERNION_NORM_TOLERANCE = 1e-3
-#: The frame a scan without a pose is taken to be in.
-DEFAULT_POSE_FRAME = "odom"
-_FRAME_ID = re.compile(r"[A-Za-z0-9_.\-]{1,64}")
-
-
-def validate_pose(where: str, pose: PoseWithCovariance) -> None:
-    """Check a pose: a bounded frame id, a finite position, a unit quaternion, a symmetric PSD covariance.
-
-    Raises
-    ------
-    DecodeError
-        A subclass naming the field and what was wrong.
-    """
-    if not _FRAME_ID.fullmatch(pose.frame_id):
-        raise InvalidMessageError(
-            f"{where}.frame_id {pose.frame_id[:80]!r} must be 1 to 64 of [A-Za-z0-9_.-] (e.g. 'odom' or 'map')"
-        )
-    _vector(f"{where}.position", pose.position)
-    q = pose.orientation
-    _finite(f"{where}.orientation", q.x, q.y, q.z, q.w)
-    norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
-    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
-        raise InvalidMessageError(f"{where}.orientation has norm {norm:.6g}; a rotation needs a unit quaternion")
-    n = len(pose.covariance)
-    if n == 0:
-        return
-    if n != 36:
-        raise InvalidMessageError(f"{where}.covariance holds {n} numbers; expected 36 (6 x 6, row-major) or none")
-    cov = np.asarray(pose.covariance, dtype=float).reshape(6, 6)
-    if not np.all(np.isfinite(cov)):
-        raise NonFiniteValueError(f"{where}.covariance must be finite")
-    scale = max(float(np.max(np.abs(cov))), 1e-300)
-    if np.max(np.abs(cov - cov.T)) > 1e-9 * scale:
-        raise InvalidMessageError(f"{where}.covariance is not symmetric")
-    if np.min(np.diag(cov)) < 0 or np.min(np.linalg.eigvalsh(cov)) < -1e-9 * scale:
-        raise InvalidMessageError(f"{where}.covariance is not positive semi-definite (a negative variance)")
-
-
-@dataclass(frozen=True)
-class ScanPose:
-    """The pose a scan announces, or the origin for a scan that carries none.
-
-    Attributes
-    ----------
-    frame_id : str
-    position : (3,) array, m
-    orientation : (x, y, z, w)
-    covariance : (6, 6) array or None
-        None when the scan gave none.
-    known : bool
-        False: the scan carried no pose and this is the origin of :data:`DEFAULT_POSE_FRAME`.
-    note : str
-        Empty, or why the pose is the origin.
-    """
-
-    frame_id: str
-    position: np.ndarray
-    orientation: tuple[float, float, float, float]
-    covariance: np.ndarray | None
-    known: bool
-    note: str = ""
-
-
-def scan_pose(start: ScanStart) -> ScanPose:
-    """The array frame's pose of a (validated) ``ScanStart``; the origin, with a note, when it has none."""
-    if not start.HasField("pose"):
-        return ScanPose(
-            DEFAULT_POSE_FRAME,
-            np.zeros(3),
-            (0.0, 0.0, 0.0, 1.0),
-            None,
-            False,
-            "the scan carries no pose (recorded before scans did): taken as the origin",
-        )
-    p = start.pose
-    q = np.array([p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w])
-    q /= np.linalg.norm(q)
-    cov = np.asarray(p.covariance, dtype=float).reshape(6, 6) if len(p.covariance) == 36 else None
-    return ScanPose(
-        p.frame_id,
-        np.array([p.position.x, p.position.y, p.position.z]),
-        (float(q[0]), float(q[1]), float(q[2]), float(q[3])),
-        cov,
-        True,
-    )
-
-
-def pose_message(frame_id: str, position, orientation, covariance: np.ndarray | None = None) -> PoseWithCovariance:
-    """A validated ``PoseWithCovariance``: ``orientation`` (x, y, z, w), ``covariance`` 6 × 6 or None."""
-    msg = PoseWithCovariance(frame_id=frame_id)
-    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in position)
-    o = msg.orientation
-    o.x, o.y, o.z, o.w = (float(v) for v in orientation)
-    if covariance is not None:
-        msg.covariance.extend(float(v) for v in np.asarray(covariance, dtype=float).reshape(36))
-    validate_pose("pose", msg)
-    return msg
 
 
 def _validate_odometry(m: Odometry, limits: DecodeLimits) -> None:
@@ -502,8 +392,8 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
         raise InvalidMessageError(f"Sample.step {m.step} exceeds the limit of {limits.max_steps}")
     motor = m.motor
     if not math.isfinite(m.gamma_commanded + m.gamma_measured + motor.load + motor.voltage + motor.temperature):
-        _finite("Sample.gamma_commanded/gamma_measured", m.gamma_commanded, m.gamma_measured)
-        _finite("Sample.motor", motor.load, motor.voltage, motor.temperature)
+        finite("Sample.gamma_commanded/gamma_measured", m.gamma_commanded, m.gamma_measured)
+        finite("Sample.motor", motor.load, motor.voltage, motor.temperature)
     float32 = []
     max_samples = limits.max_waveform_samples
     for i, s in enumerate(sensors):
@@ -530,14 +420,14 @@ def _validate_sample(m: Sample, limits: DecodeLimits) -> None:
             float32.append(data)
     # Every float32 sample of the message in one pass; the culprit is looked for only on failure.
     if float32:
-        check_joined_finite(m, b"".join(float32))
+        check_joinedfinite(m, b"".join(float32))
 
 
-def check_joined_finite(m: Sample, joined: bytes) -> None:
+def check_joinedfinite(m: Sample, joined: bytes) -> None:
     """:func:`check_samples_finite` of a ``Sample`` whose float32 samples are ``joined``: in one pass, the
     culprit looked for only on failure."""
     if not np.isfinite(np.frombuffer(joined, dtype="<f4")).all():
-        check_samples_finite(m)
+        check_samplesfinite(m)
 
 
 def _check_sensor(i: int, s, limits: DecodeLimits) -> None:
@@ -549,7 +439,7 @@ def _check_sensor(i: int, s, limits: DecodeLimits) -> None:
     converts one into the other with the scan's speed of sound); an unset field (0) is the other's to fill.
     """
     if s.echo_valid:
-        _finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
+        finite(f"Sample.sensors[{i}].time_of_flight/distance", s.time_of_flight, s.distance)
         d, t = s.distance, s.time_of_flight
         if not (0.0 <= d < MAX_RANGE_M and t >= 0.0 and (d > 0.0 or t > 0.0)):
             raise InvalidMessageError(
@@ -571,15 +461,15 @@ def _validate_scan_end(m: ScanEnd, limits: DecodeLimits) -> None:
 
 
 def _validate_reconstruction(m: Reconstruction, limits: DecodeLimits) -> None:
-    _finite("Reconstruction.critical_angle", m.critical_angle)
+    finite("Reconstruction.critical_angle", m.critical_angle)
     if len(m.planes) > limits.max_planes:
         raise InvalidMessageError(f"Reconstruction carries {len(m.planes)} planes; at most {limits.max_planes}")
     if len(m.failures) > limits.max_reasons:
         raise InvalidMessageError(f"Reconstruction carries {len(m.failures)} failures; at most {limits.max_reasons}")
     for i, p in enumerate(m.planes):
         where = f"Reconstruction.planes[{i}]"
-        _vector(f"{where}.normal", p.normal)
-        _finite(f"{where}.offset/sigma/lel_cost", p.offset, p.sigma, p.sigma_relative, p.lel_cost)
+        finite_vector(f"{where}.normal", p.normal)
+        finite(f"{where}.offset/sigma/lel_cost", p.offset, p.sigma, p.sigma_relative, p.lel_cost)
         if abs(math.hypot(p.normal.x, p.normal.y, p.normal.z) - 1.0) > 1e-6:
             raise InvalidMessageError(f"{where}.normal is not a unit vector")
         if len(p.theta_covariance) not in (0, 9):
@@ -603,11 +493,11 @@ def _validate_surfaces(m: Reconstruction, limits: DecodeLimits) -> None:
     for i, s in enumerate(m.surfaces):
         where = f"Reconstruction.surfaces[{i}]"
         p = s.plane
-        _vector(f"{where}.plane.normal", p.normal)
-        _finite(f"{where}.plane.offset/sigma", p.offset, p.sigma, p.offset_stderr, p.normal_stderr)
+        finite_vector(f"{where}.plane.normal", p.normal)
+        finite(f"{where}.plane.offset/sigma", p.offset, p.sigma, p.offset_stderr, p.normal_stderr)
         if abs(math.hypot(p.normal.x, p.normal.y, p.normal.z) - 1.0) > 1e-6:
             raise InvalidMessageError(f"{where}.plane.normal is not a unit vector")
-        _finite(f"{where}.bearing/tilt", s.bearing, s.tilt)
+        finite(f"{where}.bearing/tilt", s.bearing, s.tilt)
         if len(s.covariance) != 9 or not all(math.isfinite(v) for v in s.covariance):
             raise InvalidMessageError(f"{where}.covariance must hold 9 finite numbers (bearing, tilt, offset)")
         if len(p.quality_reasons) > limits.max_reasons:
@@ -615,8 +505,8 @@ def _validate_surfaces(m: Reconstruction, limits: DecodeLimits) -> None:
     for name, items in (("corners", m.corners), ("edges", m.edges)):
         for i, f in enumerate(items):
             where = f"Reconstruction.{name}[{i}]"
-            _vector(f"{where}.line.point", f.line.point)
-            _vector(f"{where}.line.direction", f.line.direction)
+            finite_vector(f"{where}.line.point", f.line.point)
+            finite_vector(f"{where}.line.direction", f.line.direction)
             d = f.line.direction
             if abs(math.hypot(d.x, d.y, d.z) - 1.0) > 1e-6:
                 raise InvalidMessageError(f"{where}.line.direction is not a unit vector")

@@ -227,8 +227,18 @@ def matrix_from_quaternion(q) -> np.ndarray:
     )
 
 
-def array_pose(x: float, y: float, heading: float, mount: str, height: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pose of the array frame (γ = 0) in a world frame, for a robot at floor point (x, y) with ``heading``.
+def tilt_rotation(tilt: float) -> np.ndarray:
+    """Rotation of a mount tilted by ``tilt`` (rad) about the robot's lateral axis (base y), 3×3: the robot's
+    ahead (base x) turns up by ``tilt`` (down for a negative tilt), its up (base z) leans back."""
+    c, s = np.cos(tilt), np.sin(tilt)
+    return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
+
+
+def array_pose(
+    x: float, y: float, heading: float, mount: str, height: float, tilt: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pose of the array frame (γ = 0) in a world frame, for a robot at floor point (x, y) with ``heading``,
+    the mount tilted by ``tilt`` (rad, :func:`tilt_rotation`) about the robot's lateral axis.
 
     Returns
     -------
@@ -237,7 +247,9 @@ def array_pose(x: float, y: float, heading: float, mount: str, height: float) ->
     translation : (3,) array
         The array frame's origin (on the rotation axis, ``height`` above the floor), m.
     """
-    return rotation_z(heading) @ mount_rotation(mount), np.array([x, y, height], dtype=float)
+    if tilt == 0.0:
+        return rotation_z(heading) @ mount_rotation(mount), np.array([x, y, height], dtype=float)
+    return rotation_z(heading) @ tilt_rotation(tilt) @ mount_rotation(mount), np.array([x, y, height], dtype=float)
 
 
 def beam_heading(orientation) -> float:

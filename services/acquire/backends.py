@@ -10,9 +10,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from lelsonar.acquire.devices.dynamixel import DynamixelMotor
 from lelsonar.acquire.devices.motor import (
     EMULATED_STALE_GUARD_S,
-    DynamixelMotor,
     Motor,
     MotorConfig,
     MotorError,

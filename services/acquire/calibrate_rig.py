@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lelsonar.acquire.devices.motor import DynamixelMotor, MotorConfig
+from lelsonar.acquire.devices.dynamixel import DynamixelMotor
+from lelsonar.acquire.devices.motor import MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
 from lelsonar.acquire.rig import Rig, load_rig, rig_links, write_energy_model
 from lelsonar.errors import ConfigError

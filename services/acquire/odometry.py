@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from lelsonar import codec
+from lelsonar import codec, poses
 from lelsonar.errors import DecodeError
 from lelsonar.geometry import matrix_from_quaternion, mount_rotation, quaternion_from_matrix
 from lelsonar.keys import ScannerKeys
@@ -29,7 +29,7 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def array_pose(base: codec.PoseWithCovariance, mount: str, height: float) -> codec.PoseWithCovariance:
+def array_pose(base: poses.PoseWithCovariance, mount: str, height: float) -> poses.PoseWithCovariance:
     """The array frame (γ = 0) of a base pose: ``R_a = R_b·M``, ``t_a = t_b + R_b·(0, 0, height)``.
 
     The covariance (rotation errors as small rotations about the parent's axes) goes through the
@@ -55,7 +55,7 @@ def array_pose(base: codec.PoseWithCovariance, mount: str, height: float) -> cod
         jac[:3, 3:] = -_skew(lever)
         c = jac @ np.asarray(base.covariance, dtype=float).reshape(6, 6) @ jac.T
         cov = 0.5 * (c + c.T)
-    return codec.pose_message(base.frame_id, t_b + lever, quaternion_from_matrix(rot_a), cov)
+    return poses.pose_message(base.frame_id, t_b + lever, quaternion_from_matrix(rot_a), cov)
 
 
 class OdometryFollower:
@@ -103,7 +103,7 @@ class OdometryFollower:
 
     def pose_for_scan(
         self, mount: str, height: float, now_ns: int | None = None
-    ) -> tuple[codec.PoseWithCovariance | None, str]:
+    ) -> tuple[poses.PoseWithCovariance | None, str]:
         """The array's pose for a scan starting now, or None and why not."""
         now = time.time_ns() if now_ns is None else now_ns
         with self._lock:

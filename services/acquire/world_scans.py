@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lelsonar import codec
+from lelsonar import poses
 from lelsonar.acquire.scanner import ScannerInfo, StepMeasurement
 from lelsonar.acquire.simulated import simulated_step
 from lelsonar.geometry import array_pose, quaternion_from_matrix
@@ -33,7 +33,7 @@ ODOM_FRAME = "odom"
 class WorldReplay:
     """One simulated sweep as a :class:`~lelsonar.acquire.scanner.Scanner`: step ``k`` returns shot ``k``."""
 
-    def __init__(self, scan: WorldScan, pose: codec.PoseWithCovariance) -> None:
+    def __init__(self, scan: WorldScan, pose: poses.PoseWithCovariance) -> None:
         self.scan = scan
         self.info = ScannerInfo(
             device="sim",
@@ -85,11 +85,11 @@ class WorldRun:
     def schedule(self) -> np.ndarray:
         return self.rig.gamma_commanded()
 
-    def pose_message(self, index: int) -> codec.PoseWithCovariance:
+    def pose_message(self, index: int) -> poses.PoseWithCovariance:
         """The array frame at pose ``index`` as the odometry has it, in ``odom``, with its covariance."""
         o = self.odometry[index]
-        rot, trans = array_pose(o.x, o.y, o.heading, self.rig.mount, self.rig.height)
-        return codec.pose_message(ODOM_FRAME, trans, quaternion_from_matrix(rot), array_covariance(o.covariance))
+        rot, trans = array_pose(o.x, o.y, o.heading, self.rig.mount, self.rig.height, self.rig.tilt)
+        return poses.pose_message(ODOM_FRAME, trans, quaternion_from_matrix(rot), array_covariance(o.covariance))
 
     def scanner(self, index: int) -> WorldReplay:
         """The sweep at pose ``index`` (simulated now; seeded by the run's seed and the pose)."""
@@ -134,7 +134,19 @@ def world_json(world: World) -> dict:
         "mount": world.scanner.mount,
         "scanner_height": world.scanner.height,
         "poses": [{"x": p.x, "y": p.y, "heading": p.heading} for p in world.poses],
-    }
+    } | _optional_scanner_keys(world)
+
+
+def _optional_scanner_keys(world: World) -> dict:
+    """The mount's tilt and the capsules' beam width (rad) where the world sets them: a world without them
+    describes itself as before."""
+    sc = world.scanner
+    out: dict = {}
+    if sc.tilt != 0.0:
+        out["scanner_tilt"] = sc.tilt
+    if sc.beam_width is not None:
+        out["beam_width"] = sc.beam_width
+    return out
 
 
 def world_from_json(text: str) -> dict:

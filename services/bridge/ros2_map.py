@@ -21,17 +21,16 @@ from pathlib import Path
 
 import numpy as np
 import zenoh
-from google.protobuf.message import DecodeError
 
 from lelsonar.bridge import ros2
 from lelsonar.bridge.ros2_markers import CUBE, DELETEALL, LINE_STRIP, SPHERE, TEXT_VIEW_FACING, verdict_rgb
 from lelsonar.draw.estimates import SIGMA_BAND
-from lelsonar.errors import InvalidMessageError, LelsonarError, RecordingError
+from lelsonar.errors import LelsonarError, RecordingError
 from lelsonar.log.recording import open_recording
 from lelsonar.map import floorplan
 from lelsonar.map.result import FusedMap
 from lelsonar.map.service import map_key
-from lelsonar.map.wire import map_from_message
+from lelsonar.map.wire import decode_map, map_from_message
 from lelsonar.v1 import map_pb2
 
 TOPIC_GRID = ros2.TOPIC_MAP_GRID
@@ -46,24 +45,6 @@ _ODOMETRY_RGB = (0.6, 0.6, 0.6)
 
 MAP_SCHEMA = map_pb2.Map.DESCRIPTOR.full_name
 _log = logging.getLogger("lelsonar.bridge.map")
-
-
-def decode_map(data: bytes) -> map_pb2.Map:
-    """A ``Map`` from its wire bytes, checked: its contract version and every field the floor plan reads.
-
-    Raises
-    ------
-    InvalidMessageError
-        Not a ``lelsonar.v1.Map`` of version 1, or a wall or pose whose numbers cannot be drawn.
-    """
-    try:
-        msg = map_pb2.Map.FromString(data)
-    except DecodeError as exc:
-        raise InvalidMessageError(f"not a lelsonar.v1.Map: {exc}") from None
-    if msg.schema_version != 1:
-        raise InvalidMessageError(f"a Map of contract version {msg.schema_version}; this reader knows version 1")
-    map_from_message(msg)  # every field checked as the floor plan reads it
-    return msg
 
 
 def _is_map(channel, schema) -> bool:

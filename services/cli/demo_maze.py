@@ -97,10 +97,11 @@ def _tour(run, console, on_map) -> map_pb2.Map | str:
     from lelsonar.acquire import messages
     from lelsonar.keys import ScannerKeys
     from lelsonar.map.service import MapperService, ZenohMapper, map_key
+    from lelsonar.map.wire import decode_map
     from lelsonar.net.transport import hermetic_settings, open_session
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
     from lelsonar.sim import default_energy_model
-    from lelsonar.v1 import map_pb2, reconstruction_pb2
+    from lelsonar.v1 import reconstruction_pb2
 
     stops = len(run.world.poses)
     energy_model = default_energy_model()
@@ -154,7 +155,7 @@ def _tour(run, console, on_map) -> map_pb2.Map | str:
             replies = [r.ok for r in querier.get() if r.ok is not None]
             if not replies:
                 return "the planner's get on the map returned nothing"
-            return map_pb2.Map.FromString(replies[0].payload.to_bytes())
+            return decode_map(replies[0].payload.to_bytes())
 
 
 def run_maze_demo(args: argparse.Namespace) -> int:

@@ -67,15 +67,12 @@ def run_map_planner(args: argparse.Namespace) -> int:
     """``planner --map``: the latest map (a ``get``, or the next one published), its walls and the route out."""
     import queue
 
-    from google.protobuf.message import DecodeError
-
     from lelsonar.cli.route_report import print_map, print_route
-    from lelsonar.errors import InvalidMessageError
+    from lelsonar.errors import DecodeError
     from lelsonar.map import floorplan
     from lelsonar.map.service import map_key
-    from lelsonar.map.wire import map_from_message
+    from lelsonar.map.wire import decode_map, map_from_message
     from lelsonar.net.transport import open_session
-    from lelsonar.v1 import map_pb2
     from lelsonar.view import present
 
     prefix = args.prefix or "lelsonar"
@@ -106,9 +103,9 @@ def run_map_planner(args: argparse.Namespace) -> int:
         print(f"planner: no map on {key}" + (f" within {args.timeout:.0f} s" if args.timeout else ""), file=sys.stderr)
         return 1
     try:
-        fused = map_from_message(map_pb2.Map.FromString(payload))
+        fused = map_from_message(decode_map(payload))
     except DecodeError as exc:
-        raise InvalidMessageError(f"the map on {key} is not a lelsonar.v1.Map: {exc}") from None
+        raise type(exc)(f"the map on {key}: {exc}") from None
     print_map(console, fused, key)
     begin = _start(args.start, fused)
     path = floorplan.route(fused, begin, None, plan)

@@ -57,7 +57,7 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 
-from lelsonar import codec
+from lelsonar import codec, poses
 from lelsonar.draw.estimates import (
     TOPIC_PLANES,
     TOPIC_TRUTH,
@@ -139,7 +139,7 @@ def pose_transforms(start: codec.ScanStart, t_ns: int) -> list[FrameTransform]:
     """
     if not start.HasField("pose"):
         return []
-    pose = codec.scan_pose(start)
+    pose = poses.scan_pose(start)
     out = []
     if pose.frame_id != MAP_FRAME:
         out.append(frame_transform(MAP_FRAME, pose.frame_id, t_ns))

@@ -9,7 +9,7 @@ from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-from lelsonar import codec
+from lelsonar import codec, poses
 from lelsonar.draw.primitives import MAP_FRAME, cube, entity, rgba
 from lelsonar.geometry import beam_heading
 
@@ -67,7 +67,7 @@ def pose_scene(start: codec.ScanStart, t_ns: int) -> SceneUpdate | None:
     """Where the scan was, as its pose says: an arrow along the γ = 0 beam in the pose's frame; None without one."""
     if not start.HasField("pose"):
         return None
-    pose = codec.scan_pose(start)
+    pose = poses.scan_pose(start)
     out = SceneUpdate()
     ent = entity(pose.frame_id, f"{start.scanner_id}/{start.scan_id}/pose", t_ns)
     heading = beam_heading(pose.orientation)

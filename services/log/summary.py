@@ -14,7 +14,7 @@ from pathlib import Path
 from google.protobuf.descriptor import EnumDescriptor
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
-from lelsonar import codec
+from lelsonar import codec, poses
 from lelsonar.errors import DecodeError
 from lelsonar.geometry import beam_heading
 from lelsonar.log.reader import Damage
@@ -318,11 +318,11 @@ def _pose_dict(start: codec.ScanStart) -> dict:
     note = ""
     if start.HasField("pose"):
         try:
-            codec.validate_pose("ScanStart.pose", start.pose)
+            poses.validate_pose("ScanStart.pose", start.pose)
         except DecodeError as exc:
             note = f"invalid pose, taken as the origin: {exc}"
             start = codec.ScanStart()
-    pose = codec.scan_pose(start)
+    pose = poses.scan_pose(start)
     return {
         "frame_id": pose.frame_id,
         "x": float(pose.position[0]),

@@ -2,7 +2,8 @@
 
 * :mod:`~lelsonar.map.observation`: what the map takes in, one scan at a time (pose, walls, corners, edges).
 * :mod:`~lelsonar.map.fusion`: :class:`~lelsonar.map.fusion.WallMapper`, data association and the factor
-  graph (GTSAM, ISAM2), verdicts that carry over.
+  graph (GTSAM, ISAM2), verdicts that carry over; :mod:`~lelsonar.map.tracks`: the walls while the map
+  grows and the association gate; :mod:`~lelsonar.map.fused_walls`: a wall read out (verdict, pieces).
 * :mod:`~lelsonar.map.result`: the fused map and its public JSON.
 * :mod:`~lelsonar.map.floorplan`: segments, free space (shapely, GeoJSON), an occupancy grid, wall
   markers, and a route (networkx) that keeps the robot's radius from every wall.

@@ -22,7 +22,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,6 +29,7 @@ from lelsonar.errors import InvalidMessageError
 from lelsonar.map import graph
 from lelsonar.map.config import CHI2_2_999, FusionConfig, MapUpdateError
 from lelsonar.map.features import fuse_features, horizontal_corners, placement_sigma, wall_corners
+from lelsonar.map.fused_walls import checked_placement, fused_wall, wall_verdict
 from lelsonar.map.lines import (
     interval_on_line,
     line_in_world,
@@ -45,50 +45,18 @@ from lelsonar.map.observation import QUALITIES, FeatureObservation, ScanObservat
 from lelsonar.map.placement import (
     line_distance2,
     observation_views,
-    observed_points,
     sensor_points_to_world,
     wall_placement_sigma,
     world_pose_covariance,
 )
 from lelsonar.map.result import FusedMap, FusedPose, FusedWall
+from lelsonar.map.tracks import Seen, Track, best_seen, gate, precision_rank
 
 __all__ = ["CHI2_2_999", "FusionConfig", "MapUpdateError", "WallMapper", "wall_placement_sigma"]
 
 #: A wall is redone for a read when its line or a pose that saw it moved more than this (m or rad): ISAM2 itself
 #: stops carrying an update further where it changes a variable by less (its wildfire threshold).
 READ_TOLERANCE = 1e-3
-
-
-@dataclass
-class _Seen:
-    """One observation of a wall: which scan, its pose's index, the observation."""
-
-    scan_id: int
-    pose_index: int
-    obs: WallObservation
-
-
-@dataclass
-class _Track:
-    """A wall of the map while it grows.  ``index`` ≥ 0: in the graph (good evidence); −1: flagged only."""
-
-    id: int
-    index: int
-    seen: list[_Seen]
-    flagged: list[_Seen] = field(default_factory=list)
-    conflicts: dict[int, str] = field(default_factory=dict)  # other wall id → what differs
-    line: np.ndarray = field(default_factory=lambda: np.zeros(2))  # local frame
-    covariance: np.ndarray = field(default_factory=lambda: np.eye(2))
-    interval: tuple[float, float] = (0.0, 0.0)
-
-
-def _precision_rank(obs: WallObservation) -> tuple[int, float]:
-    """How an observation ranks to place a flagged wall: the better verdict, then the smaller σ of its bearing."""
-    return QUALITIES.index(obs.quality), float(obs.covariance[0, 0])
-
-
-def _best(seen: list[_Seen]) -> _Seen:
-    return min(seen, key=lambda s: _precision_rank(s.obs))
 
 
 class WallMapper:
@@ -105,9 +73,9 @@ class WallMapper:
         self._poses: list[np.ndarray] = []  # current estimate, local
         self._pose_cov: np.ndarray = np.eye(3)  # marginal of the newest pose (body frame)
         self._pose_covs: list[np.ndarray] = []  # each pose's marginal when it was the newest (body frame)
-        self._graph_tracks: list[_Track] = []
+        self._graph_tracks: list[Track] = []
         self._isam_walls = 0  # graph walls already in ISAM2 (the newer ones arrived with the scan being added)
-        self._flagged_tracks: list[_Track] = []
+        self._flagged_tracks: list[Track] = []
         self._next_id = 0
         self._step: tuple[np.ndarray, np.ndarray] | None = None  # (Ad(u⁻¹), Q) of the scan being added
         self._features: list[tuple[int, int, FeatureObservation]] = []  # (scan_id, pose index, FeatureObservation)
@@ -161,10 +129,10 @@ class WallMapper:
         self._heights.append(scan.pose.z)
         self._poses.append(predicted)
 
-        touched: list[_Track] = []
+        touched: list[Track] = []
         used: set[int] = set()
         for obs in sorted(scan.walls, key=lambda w: QUALITIES.index(w.quality)):
-            seen = _Seen(scan.scan_id, k, obs)
+            seen = Seen(scan.scan_id, k, obs)
             if obs.quality == "good":
                 track = self._associate_good(seen, predicted, pose_cov, used)
                 touched.append(track)
@@ -214,62 +182,17 @@ class WallMapper:
         return np.diag(np.square(cfg.default_step_sigma))
 
     # ------------------------------------------------------------------ association
-    def _gate(
-        self,
-        tracks: list[_Track],
-        measured: np.ndarray,
-        meas_cov: np.ndarray,
-        pose: np.ndarray,
-        pose_cov: np.ndarray,
-        points: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Mahalanobis d², the gap between stretches (m), and the innovation, of one observation to each track.
-
-        The innovation is taken in the sensor frame: ``ν = h(pose, wall) − z`` with
-        ``S = H_p P H_pᵀ + H_l C H_lᵀ + R`` (the pose's, the wall's and the observation's covariances).
-        """
-        n = len(tracks)
-        if n == 0:
-            return np.zeros(0), np.zeros(0), np.zeros((0, 2))
-        lines = np.array([t.line for t in tracks])
-        covs = np.array([t.covariance for t in tracks])
-        x, y, psi = pose
-        theta = lines[:, 0]
-        c, s = np.cos(theta), np.sin(theta)
-        a = theta - psi
-        nu = np.empty((n, 2))
-        nu[:, 0] = np.remainder(a - measured[0] + np.pi, 2 * np.pi) - np.pi
-        nu[:, 1] = lines[:, 1] - (c * x + s * y) - measured[1]
-        h_pose = np.zeros((n, 2, 3))
-        h_pose[:, 0, 2] = -1.0
-        h_pose[:, 1, 0] = -np.cos(a)
-        h_pose[:, 1, 1] = -np.sin(a)
-        h_line = np.zeros((n, 2, 2))
-        h_line[:, 0, 0] = 1.0
-        h_line[:, 1, 0] = x * s - y * c
-        h_line[:, 1, 1] = 1.0
-        big_s = h_pose @ pose_cov @ h_pose.transpose(0, 2, 1) + h_line @ covs @ h_line.transpose(0, 2, 1) + meas_cov
-        d2 = np.einsum("ni,ni->n", nu, np.linalg.solve(big_s, nu[..., None])[..., 0])
-        # The observed stretch on each wall's line, against the wall's own stretch.
-        tangents = np.stack([-s, c], axis=1)
-        feet = lines[:, 1:2] * np.stack([c, s], axis=1)
-        along = np.einsum("nkj,nj->nk", points[None, :, :] - feet[:, None, :], tangents)
-        lo, hi = along.min(axis=1), along.max(axis=1)
-        intervals = np.array([t.interval for t in tracks])
-        gap = np.maximum(lo - intervals[:, 1], intervals[:, 0] - hi)
-        return d2, gap, nu
-
     def _associate_good(
         self,
-        seen: _Seen,
+        seen: Seen,
         pose: np.ndarray,
         pose_cov: np.ndarray,
         used: set[int],
-    ) -> _Track:
+    ) -> Track:
         obs = seen.obs
         measured = obs.line
         points = sensor_points_to_world(pose, obs.extent)
-        d2, gap, nu = self._gate(self._graph_tracks, measured, obs.covariance, pose, pose_cov, points)
+        d2, gap, nu = gate(self._graph_tracks, measured, obs.covariance, pose, pose_cov, points)
         ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
         for i in np.flatnonzero(ok):
             if self._graph_tracks[i].id in used:
@@ -280,7 +203,7 @@ class WallMapper:
             track = self._graph_tracks[int(np.argmin(np.where(ok, d2, np.inf)))]
         else:
             index = len(self._graph_tracks)
-            track = _Track(id=self._new_id(), index=index, seen=[])
+            track = Track(id=self._new_id(), index=index, seen=[])
             track.line = line_in_world(pose, measured)
             j_pose, j_obs = world_jacobians(pose, measured)
             track.covariance = (
@@ -318,7 +241,7 @@ class WallMapper:
             h = np.hstack([h_pose, h_line])
             d2[i] = mahalanobis2(nu[i], h @ cov @ h.T + meas_cov)
 
-    def _mark_conflicts(self, track: _Track, d2: np.ndarray, gap: np.ndarray, nu: np.ndarray) -> None:
+    def _mark_conflicts(self, track: Track, d2: np.ndarray, gap: np.ndarray, nu: np.ndarray) -> None:
         """Walls the new one overlaps and lies near, outside their gate: the same surface, disagreeing."""
         cfg = self.config
         near = (
@@ -335,14 +258,14 @@ class WallMapper:
             track.conflicts[other.id] = what
             other.conflicts[track.id] = what
 
-    def _associate_flagged(self, seen: _Seen, pose: np.ndarray, pose_cov: np.ndarray) -> _Track | None:
+    def _associate_flagged(self, seen: Seen, pose: np.ndarray, pose_cov: np.ndarray) -> Track | None:
         """Attach a flagged observation to the wall it agrees with, or keep it as a flagged wall of its own; the
         flagged wall it joins enters the graph once it has been seen from two scans (:meth:`_promote`), and is
         returned then."""
         obs = seen.obs
         points = sensor_points_to_world(pose, obs.extent)
         for tracks in (self._graph_tracks, self._flagged_tracks):
-            d2, gap, nu = self._gate(tracks, obs.line, obs.covariance, pose, pose_cov, points)
+            d2, gap, nu = gate(tracks, obs.line, obs.covariance, pose, pose_cov, points)
             ok = (d2 < self.config.gate_chi2) & (gap <= self.config.max_gap)
             if tracks is self._graph_tracks:
                 ok &= np.array([t.index < self._isam_walls for t in tracks], bool)
@@ -354,17 +277,17 @@ class WallMapper:
                 if tracks is self._graph_tracks:
                     self._constrain(track, seen)
                     return None
-                if _precision_rank(obs) < _precision_rank(_best(track.flagged[:-1]).obs):
+                if precision_rank(obs) < precision_rank(best_seen(track.flagged[:-1]).obs):
                     self._place_flagged(track, pose, pose_cov, obs, points)
                 return self._promote(track)
-        track = _Track(id=self._new_id(), index=-1, seen=[], flagged=[seen])
+        track = Track(id=self._new_id(), index=-1, seen=[], flagged=[seen])
         self._place_flagged(track, pose, pose_cov, obs, points)
         self._flagged_tracks.append(track)
         return None
 
     @staticmethod
     def _place_flagged(
-        track: _Track, pose: np.ndarray, pose_cov: np.ndarray, obs: WallObservation, points: np.ndarray
+        track: Track, pose: np.ndarray, pose_cov: np.ndarray, obs: WallObservation, points: np.ndarray
     ) -> None:
         """A flagged wall outside the graph takes the line of its most precise observation, through its pose."""
         track.line = line_in_world(pose, obs.line)
@@ -372,7 +295,7 @@ class WallMapper:
         track.covariance = j_pose @ world_pose_covariance(pose, pose_cov) @ j_pose.T + j_obs @ obs.covariance @ j_obs.T
         track.interval = interval_on_line(track.line, points)
 
-    def _promote(self, track: _Track) -> _Track | None:
+    def _promote(self, track: Track) -> Track | None:
         """A flagged wall seen from two scans enters the graph: its observations tie their poses to it (robustly,
         with their own σ: a wall whose bearing the scans could not pin still places the robots in range), and
         poses seen by no wall of good evidence are corrected.  It stays flagged: only good evidence makes a wall
@@ -389,7 +312,7 @@ class WallMapper:
         self._adopt_flagged(track)
         return track
 
-    def _adopt_flagged(self, track: _Track) -> None:
+    def _adopt_flagged(self, track: Track) -> None:
         """Flagged walls that agree with a new wall of good evidence become its flagged observations."""
         keep = []
         for f in self._flagged_tracks:
@@ -407,7 +330,7 @@ class WallMapper:
                 keep.append(f)
         self._flagged_tracks = keep
 
-    def _constrain(self, track: _Track, seen: _Seen) -> None:
+    def _constrain(self, track: Track, seen: Seen) -> None:
         """A flagged observation attached to a wall of the graph ties its pose to it (``flagged_constrain``)."""
         if seen.obs.quality in self.config.flagged_constrain:
             self._graph.add_observation(seen.pose_index, track.index, seen.obs.line, seen.obs.covariance, robust=True)
@@ -420,7 +343,7 @@ class WallMapper:
     def _interval_from_points(line: np.ndarray, points: np.ndarray) -> tuple[float, float]:
         return interval_on_line(line, points)
 
-    def _interval(self, track: _Track, seen: list[_Seen]) -> tuple[float, float]:
+    def _interval(self, track: Track, seen: list[Seen]) -> tuple[float, float]:
         """The hull of the observations' stretches, through the current poses, on the wall's current line."""
         pts = np.concatenate([sensor_points_to_world(self._poses[s.pose_index], s.obs.extent) for s in seen])
         return self._interval_from_points(track.line, pts)
@@ -435,7 +358,8 @@ class WallMapper:
             raise MapUpdateError(f"no map: {self._failed}")
         if not self._poses:
             return FusedMap(walls=(), features=(), poses=(), notes=tuple(self.notes))
-        use_polish = self.config.polish if polished is None else polished
+        cfg = self.config
+        use_polish = cfg.polish if polished is None else polished
         if use_polish:
             solution = self._graph.solve(polished=True)
             poses_local = [solution.pose(i) for i in range(len(self._poses))]
@@ -471,7 +395,7 @@ class WallMapper:
                     tuple(sorted((o, len(by_id[o].seen) if o in by_id else 0) for o in t.conflicts)),
                 )
             else:
-                first = _best(t.flagged)
+                first = best_seen(t.flagged)
                 pose = poses_local[first.pose_index]
                 line = line_in_world(pose, first.obs.line)
                 j_pose, j_obs = world_jacobians(pose, first.obs.line)
@@ -489,15 +413,19 @@ class WallMapper:
                 wall, its_views = hit[4], hit[5]
             else:
                 if t.seen:
-                    wall = self._placed(
-                        self._fused(t, line, cov, poses_local, self._verdict(t, line, poses_local, by_id))
+                    verdict = wall_verdict(t, line, poses_local, by_id, cfg.gate_chi2)
+                    wall = checked_placement(
+                        fused_wall(t, line, cov, poses_local, verdict, self._heights, self._origin, cfg.join_gap),
+                        cfg.good_tolerance,
                     )
                 else:
                     best = min(QUALITIES.index(s.obs.quality) for s in t.flagged)
                     reasons = tuple(f"scan {s.scan_id}: {r}" for s in t.flagged for r in s.obs.reasons) or (
                         f"seen only {QUALITIES[best]}",
                     )
-                    wall = self._fused(t, line, cov, poses_local, (QUALITIES[best], reasons))
+                    wall = fused_wall(
+                        t, line, cov, poses_local, (QUALITIES[best], reasons), self._heights, self._origin, cfg.join_gap
+                    )
                 its_views = observation_views(
                     [s.obs.extent for s in everything], [float(s.obs.line[0]) for s in everything], ref + origin
                 )
@@ -536,100 +464,4 @@ class WallMapper:
             views=tuple(views),
             view_scans=tuple(view_scans),
             horizontal=tuple(horizontal_corners(seen_features)),
-        )
-
-    def _placed(self, wall: FusedWall) -> FusedWall:
-        """A good wall the map places less well than ``good_tolerance`` (3σ over its stretch) is degraded."""
-        if wall.quality != "good":
-            return wall
-        sigma = wall_placement_sigma(wall)
-        if 3.0 * sigma <= self.config.good_tolerance:
-            return wall
-        reason = (
-            f"placed to ±{100 * sigma:.1f} cm (1σ) over its stretch in the map's frame, more than "
-            f"{100 * self.config.good_tolerance / 3:.2g} cm: the poses that saw it are that uncertain"
-        )
-        return replace(wall, quality="degraded", reasons=wall.reasons + (reason,))
-
-    def _verdict(
-        self, t: _Track, line: np.ndarray, poses: list[np.ndarray], by_id: dict[int, _Track]
-    ) -> tuple[str, tuple[str, ...]]:
-        """A wall of good evidence stays good unless its observations disagree with it or with each other."""
-        reasons = []
-        if t.seen:
-            # Each observation's residual against the fused wall, all at once (graph.wall_error's model).
-            p = np.array([poses[s.pose_index] for s in t.seen])
-            z = np.array([s.obs.line for s in t.seen])
-            c = np.array([s.obs.covariance for s in t.seen])
-            theta, rho = float(line[0]), float(line[1])
-            e = np.stack(
-                [
-                    np.remainder(theta - p[:, 2] - z[:, 0] + np.pi, 2 * np.pi) - np.pi,
-                    rho - (math.cos(theta) * p[:, 0] + math.sin(theta) * p[:, 1]) - z[:, 1],
-                ],
-                axis=1,
-            )
-            d2 = np.einsum("ni,ni->n", e, np.linalg.solve(c, e[..., None])[..., 0])
-            for s, v in zip(t.seen, d2.tolist()):
-                if v > self.config.gate_chi2:
-                    reasons.append(f"scan {s.scan_id}'s observation is {math.sqrt(v):.1f}σ from the fused wall")
-        for other_id, what in sorted(t.conflicts.items()):
-            other = by_id.get(other_id)
-            n_other = len(other.seen) if other is not None else 0
-            if not (len(t.seen) >= 2 and len(t.seen) > n_other):
-                reasons.append(f"disagrees with wall {other_id} on the same surface: {what}; kept apart, not averaged")
-        return ("good" if not reasons else "degraded"), tuple(reasons)
-
-    def _fused(
-        self,
-        t: _Track,
-        line_local: np.ndarray,
-        cov_local: np.ndarray,
-        poses: list[np.ndarray],
-        verdict: tuple[str, tuple[str, ...]],
-    ) -> FusedWall:
-        everything = t.seen + t.flagged
-        pts, starts = observed_points(
-            [s.obs.extent for s in everything], [s.pose_index for s in everything], np.asarray(poses)
-        )
-        theta_l = float(line_local[0])
-        along = (pts - float(line_local[1]) * np.array([math.cos(theta_l), math.sin(theta_l)])) @ np.array(
-            [-math.sin(theta_l), math.cos(theta_l)]
-        )
-        spans = sorted(
-            zip(
-                np.minimum.reduceat(along, starts).tolist(),
-                np.maximum.reduceat(along, starts).tolist(),
-                (s.scan_id for s in everything),
-            )
-        )
-        pieces = [[spans[0][0], spans[0][1]]]
-        piece_scans = [[spans[0][2]]]
-        for lo, hi, scan_id in spans[1:]:
-            if lo - pieces[-1][1] <= self.config.join_gap:
-                pieces[-1][1] = max(pieces[-1][1], hi)
-                piece_scans[-1].append(scan_id)
-            else:
-                pieces.append([lo, hi])
-                piece_scans.append([scan_id])
-        zs = np.concatenate([s.obs.extent[:, 2] + self._heights[s.pose_index] for s in everything])
-        # Local → world: ρ_w = ρ_l + n(θ)·o, so dρ_w/dθ = −sin θ o_x + cos θ o_y.
-        theta = wrap(float(line_local[0]))
-        ox, oy = self._origin
-        b = -math.sin(theta) * ox + math.cos(theta) * oy
-        j = np.array([[1.0, 0.0], [b, 1.0]])
-        line_world = np.array([theta, line_local[1] + math.cos(theta) * ox + math.sin(theta) * oy])
-        return FusedWall(
-            id=t.id,
-            line=line_world,
-            covariance=j @ cov_local @ j.T,
-            interval=(pieces[0][0] + b, max(p[1] for p in pieces) + b),
-            pieces=tuple((lo + b, hi + b) for lo, hi in pieces),
-            z_range=(float(zs.min()), float(zs.max())),
-            quality=verdict[0],
-            reasons=verdict[1],
-            scans=tuple(dict.fromkeys(s.scan_id for s in everything)),
-            good_observations=len(t.seen),
-            flagged_observations=len(t.flagged),
-            piece_scans=tuple(tuple(dict.fromkeys(ids)) for ids in piece_scans),
         )

@@ -44,6 +44,8 @@ ZERO_CELSIUS_K = 273.15
 
 #: First zero of J1: the first null of the piston pattern is at ``ka·sinθ = 3.8317``.
 J1_FIRST_ZERO = 3.831705970207512
+#: ``2·J1(x)/x = 1/√2`` here: a piston's echo (``D²``) is half its face-on amplitude at ``ka·sinθ = 1.6163``.
+PISTON_HALF_ECHO_X = 1.616339948310703
 
 
 def sound_speed(temperature: float | np.ndarray) -> float | np.ndarray:
@@ -79,6 +81,27 @@ def piston_directivity(theta: np.ndarray, ka: float) -> np.ndarray:
     # 2·J1(x)/x → 1 as x → 0; avoid 0/0 without a warning.
     safe = np.where(small, 1.0, x)
     return np.where(small, 1.0, 2.0 * j1(safe) / safe)
+
+
+def capsule_radius_for_beam_width(beam_width: float, speed: float, frequency: float) -> float:
+    """The piston radius whose echo beam is ``beam_width`` wide: the full angle at which a mirror's echo, which
+    a transceiver sees through ``D²`` (:func:`piston_directivity`), falls to half its face-on amplitude (−6 dB).
+
+    ``D(θ)² = 1/2`` at ``ka·sin θ = x½`` (:data:`PISTON_HALF_ECHO_X`), so ``a = x½ / (k·sin(beam_width/2))``,
+    ``k = 2πf/c``.
+
+    Parameters
+    ----------
+    beam_width : float
+        Full angle, rad, in (0, π).
+    speed : float
+        Speed of sound, m/s.
+    frequency : float
+        Carrier, Hz.
+    """
+    if not 0.0 < beam_width < math.pi:
+        raise ConfigError(f"beam_width must be in (0°, 180°), got {math.degrees(beam_width):g}°")
+    return PISTON_HALF_ECHO_X / (2.0 * math.pi * frequency / speed * math.sin(beam_width / 2.0))
 
 
 def absorption_factor(path: np.ndarray, alpha_db_per_m: float) -> np.ndarray:

@@ -124,6 +124,13 @@ class ScannerMount:
         Capsule faces from the rotation axis, m.
     max_range : float
         Farthest echo the waveform window holds, m.
+    tilt : float
+        rad: the mount turned about the robot's lateral axis, the γ = 0 beam raised above ahead by this much
+        (negative: looking down); 0 for a level mount.
+    beam_width : float or None
+        rad: the capsules' echo beam, the full angle at which a mirror's echo falls to half its face-on
+        amplitude (:func:`lelsonar.sim.acoustics.capsule_radius_for_beam_width`); None for the simulator's
+        capsule.
     """
 
     mount: str = "fan"
@@ -133,6 +140,8 @@ class ScannerMount:
     steps: int = 300
     radial_offset: float = 0.03
     max_range: float = 4.0
+    tilt: float = 0.0
+    beam_width: float | None = None
 
 
 @dataclass(frozen=True)
@@ -444,7 +453,7 @@ def parse_world(data: dict, where: str = "world") -> World:
 
 def _parse_scanner(where: str, values: object, room: Room) -> ScannerMount:
     t = _Table(where, "[scanner]", values)
-    t.check_keys(("mount", "height", "sweep", "steps", "radial_offset", "max_range"))
+    t.check_keys(("mount", "height", "sweep", "steps", "radial_offset", "max_range", "tilt", "beam_width"))
     mount = t.string("mount", "fan", choices=MOUNTS)
     default_sweep = (-AX12_HALF_RANGE_DEG, AX12_HALF_RANGE_DEG) if mount == "fan" else (-10.0, 110.0)
     sweep = t.pair("sweep", required=False, example="sweep = [-149.0, 149.0]") or default_sweep
@@ -455,8 +464,19 @@ def _parse_scanner(where: str, values: object, room: Room) -> ScannerMount:
         )
     steps = t.integer("steps", 300 if mount == "fan" else 184, lo=2, hi=4096)
     height = t.number("height", 0.3, lo=0.0, hi=100.0, example="height = 0.3")
-    # The fan stacks the capsules along the vertical axis; the paper's mount swings them around it.
-    reach = 1.5 * CAPSULE_PITCH_M if mount == "fan" else 0.1
+    radial_offset = t.number("radial_offset", 0.03, lo=0.0, hi=0.4)
+    tilt = math.radians(t.number("tilt", 0.0, lo=-45.0, hi=45.0, example="tilt = -10.0"))
+    beam_width = (
+        math.radians(t.number("beam_width", None, lo=6.0, hi=170.0, example="beam_width = 40.0"))
+        if "beam_width" in t.values
+        else None
+    )
+    # The fan stacks the capsules along the vertical axis (a tilt leans the stack and lifts the faces); the
+    # paper's mount swings them around it.
+    if mount == "fan":
+        reach = 1.5 * CAPSULE_PITCH_M * math.cos(tilt) + radial_offset * abs(math.sin(tilt))
+    else:
+        reach = 0.1
     if height - reach <= 0.0 or (room.ceiling is not None and room.floor + height + reach >= room.ceiling):
         raise ConfigError(
             f"{where}: [scanner] 'height' {height:g} m puts capsules outside the room "
@@ -468,8 +488,10 @@ def _parse_scanner(where: str, values: object, room: Room) -> ScannerMount:
         sweep_start=math.radians(sweep[0]),
         sweep_stop=math.radians(sweep[1]),
         steps=steps,
-        radial_offset=t.number("radial_offset", 0.03, lo=0.0, hi=0.4),
+        radial_offset=radial_offset,
         max_range=t.number("max_range", 4.0, lo=0.2, hi=20.0, example="max_range = 4.0"),
+        tilt=tilt,
+        beam_width=beam_width,
     )
 
 

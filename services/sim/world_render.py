@@ -42,7 +42,14 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, array_pose, boresight
-from lelsonar.sim.acoustics import Acoustics, Receiver, absorption_factor, piston_directivity, sound_speed
+from lelsonar.sim.acoustics import (
+    Acoustics,
+    Receiver,
+    absorption_factor,
+    capsule_radius_for_beam_width,
+    piston_directivity,
+    sound_speed,
+)
 from lelsonar.sim.config import Servo
 from lelsonar.sim.scan import EchoSource, EchoTable, shots_from_echoes
 from lelsonar.sim.world import Pose2, World
@@ -88,6 +95,8 @@ class WorldRig:
         Diffraction echo relative to a mirror at the same range.
     trihedral_gain : float
         Triple bounce relative to a mirror at the same range.
+    tilt : float
+        rad, the mount turned about the robot's lateral axis (:func:`lelsonar.geometry.tilt_rotation`).
     """
 
     mount: str
@@ -105,6 +114,7 @@ class WorldRig:
     servo: Servo = field(default_factory=Servo)
     edge_gain: float = 0.2
     trihedral_gain: float = 1.5
+    tilt: float = 0.0
 
     @property
     def sound_speed(self) -> float:
@@ -120,14 +130,16 @@ def world_rig(world: World, *, receiver: Receiver | None = None, steps: int | No
     """The rig a world file describes (``[scanner]``, ``[acoustics]``); the receiver is the simulator's default."""
     sc, wa = world.scanner, world.acoustics
     base = Acoustics()
+    c = float(sound_speed(wa.temperature))
     acoustics = Acoustics(
-        capsule_radius=base.capsule_radius,
+        capsule_radius=base.capsule_radius
+        if sc.beam_width is None
+        else capsule_radius_for_beam_width(sc.beam_width, c, base.frequency),
         absorption_db_per_m=base.absorption_db_per_m if wa.absorption_db_per_m is None else wa.absorption_db_per_m,
         corner_gain=base.corner_gain if wa.corner_gain is None else wa.corner_gain,
         diffuse_coefficient=base.diffuse_coefficient if wa.diffuse_coefficient is None else wa.diffuse_coefficient,
     )
     receiver = receiver or Receiver()
-    c = float(sound_speed(wa.temperature))
     fs = 200_000.0
     t_end = 2.0 * sc.max_range / c + _ENVELOPE_SPAN * receiver.envelope_time
     window = int(math.ceil(t_end * fs / 100.0) * 100)
@@ -146,12 +158,13 @@ def world_rig(world: World, *, receiver: Receiver | None = None, steps: int | No
         receiver=receiver,
         edge_gain=wa.edge_gain,
         trihedral_gain=acoustics.corner_gain if wa.trihedral_gain is None else wa.trihedral_gain,
+        tilt=sc.tilt,
     )
 
 
 def pose_frame(rig: WorldRig, pose: Pose2) -> tuple[np.ndarray, np.ndarray]:
     """world ← array (γ = 0) rotation and translation of the scanner at ``pose``."""
-    return array_pose(pose.x, pose.y, pose.heading, rig.mount, rig.height)
+    return array_pose(pose.x, pose.y, pose.heading, rig.mount, rig.height, rig.tilt)
 
 
 # ---------------------------------------------------------------------------- geometry helpers

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from lelsonar import codec
+from lelsonar import codec, poses
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import beam_heading
 from lelsonar.reconstruct.estimate import fit as F
@@ -79,7 +79,7 @@ class RerunObserver:
             log_world_truth(self.rec, self.world)
             self.world = None
         if s.HasField("pose"):
-            pose = codec.scan_pose(s)
+            pose = poses.scan_pose(s)
             log_scan_pose(
                 self.rec, s.scanner_id, s.scan_id, pose.position, beam_heading(pose.orientation), pose.frame_id
             )

@@ -26,7 +26,7 @@ from lelsonar.v1 import common_pb2 as lelsonar_dot_v1_dot_common__pb2
 from lelsonar.v1 import reconstruction_pb2 as lelsonar_dot_v1_dot_reconstruction__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x15lelsonar/v1/map.proto\x12\x0blelsonar.v1\x1a\x18lelsonar/v1/common.proto\x1a lelsonar/v1/reconstruction.proto\"\xe9\x02\n\x07MapWall\x12\n\n\x02id\x18\x01 \x01(\r\x12$\n\x06normal\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0e\n\x06offset\x18\x03 \x01(\x01\x12$\n\x06\x65xtent\x18\x04 \x03(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x12\n\ncovariance\x18\x05 \x03(\x01\x12\x15\n\rnormal_stderr\x18\x06 \x01(\x01\x12\x15\n\roffset_stderr\x18\x07 \x01(\x01\x12*\n\x07quality\x18\x08 \x01(\x0e\x32\x19.lelsonar.v1.PlaneQuality\x12\x17\n\x0fquality_reasons\x18\t \x03(\t\x12\x10\n\x08scan_ids\x18\n \x03(\x04\x12\x19\n\x11good_observations\x18\x0b \x01(\r\x12\x1c\n\x14\x66lagged_observations\x18\x0c \x01(\r\x12$\n\x06pieces\x18\r \x03(\x0b\x32\x14.lelsonar.v1.Vector3\"\xa6\x01\n\nMapFeature\x12#\n\x05point\x18\x01 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\'\n\tdirection\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0c\n\x04kind\x18\x03 \x01(\t\x12\x14\n\x0cpoint_stderr\x18\x04 \x01(\x01\x12\x14\n\x0cobservations\x18\x05 \x01(\r\x12\x10\n\x08wall_ids\x18\x06 \x03(\r\"\x8f\x01\n\x07MapPose\x12\x0f\n\x07scan_id\x18\x01 \x01(\x04\x12&\n\x08position\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0f\n\x07heading\x18\x03 \x01(\x01\x12\x12\n\ncovariance\x18\x04 \x03(\x01\x12&\n\x08odometry\x18\x05 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\"A\n\x07MapView\x12\x0f\n\x07scan_id\x18\x01 \x01(\x04\x12%\n\x07polygon\x18\x02 \x03(\x0b\x32\x14.lelsonar.v1.Vector3\"\xa2\x02\n\x03Map\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x10\n\x08stamp_ns\x18\x03 \x01(\x03\x12\r\n\x05scans\x18\x04 \x01(\r\x12#\n\x05walls\x18\x05 \x03(\x0b\x32\x14.lelsonar.v1.MapWall\x12(\n\x07\x63orners\x18\x06 \x03(\x0b\x32\x17.lelsonar.v1.MapFeature\x12&\n\x05\x65\x64ges\x18\x07 \x03(\x0b\x32\x17.lelsonar.v1.MapFeature\x12#\n\x05poses\x18\x08 \x03(\x0b\x32\x14.lelsonar.v1.MapPose\x12\r\n\x05notes\x18\t \x03(\t\x12#\n\x05views\x18\n \x03(\x0b\x32\x14.lelsonar.v1.MapViewb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x15lelsonar/v1/map.proto\x12\x0blelsonar.v1\x1a\x18lelsonar/v1/common.proto\x1a lelsonar/v1/reconstruction.proto\"\x9a\x03\n\x07MapWall\x12\n\n\x02id\x18\x01 \x01(\r\x12$\n\x06normal\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0e\n\x06offset\x18\x03 \x01(\x01\x12$\n\x06\x65xtent\x18\x04 \x03(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x12\n\ncovariance\x18\x05 \x03(\x01\x12\x15\n\rnormal_stderr\x18\x06 \x01(\x01\x12\x15\n\roffset_stderr\x18\x07 \x01(\x01\x12*\n\x07quality\x18\x08 \x01(\x0e\x32\x19.lelsonar.v1.PlaneQuality\x12\x17\n\x0fquality_reasons\x18\t \x03(\t\x12\x10\n\x08scan_ids\x18\n \x03(\x04\x12\x19\n\x11good_observations\x18\x0b \x01(\r\x12\x1c\n\x14\x66lagged_observations\x18\x0c \x01(\r\x12$\n\x06pieces\x18\r \x03(\x0b\x32\x14.lelsonar.v1.Vector3\x12/\n\x0bpiece_scans\x18\x0e \x03(\x0b\x32\x1a.lelsonar.v1.MapPieceScans\"!\n\rMapPieceScans\x12\x10\n\x08scan_ids\x18\x01 \x03(\x04\"\xc8\x01\n\nMapFeature\x12#\n\x05point\x18\x01 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\'\n\tdirection\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0c\n\x04kind\x18\x03 \x01(\t\x12\x14\n\x0cpoint_stderr\x18\x04 \x01(\x01\x12\x14\n\x0cobservations\x18\x05 \x01(\r\x12\x10\n\x08wall_ids\x18\x06 \x03(\r\x12\x0e\n\x06source\x18\x07 \x01(\t\x12\x10\n\x08scan_ids\x18\x08 \x03(\x04\"\x8f\x01\n\x07MapPose\x12\x0f\n\x07scan_id\x18\x01 \x01(\x04\x12&\n\x08position\x18\x02 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\x12\x0f\n\x07heading\x18\x03 \x01(\x01\x12\x12\n\ncovariance\x18\x04 \x03(\x01\x12&\n\x08odometry\x18\x05 \x01(\x0b\x32\x14.lelsonar.v1.Vector3\"A\n\x07MapView\x12\x0f\n\x07scan_id\x18\x01 \x01(\x04\x12%\n\x07polygon\x18\x02 \x03(\x0b\x32\x14.lelsonar.v1.Vector3\"\xd7\x02\n\x03Map\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x12\n\nscanner_id\x18\x02 \x01(\t\x12\x10\n\x08stamp_ns\x18\x03 \x01(\x03\x12\r\n\x05scans\x18\x04 \x01(\r\x12#\n\x05walls\x18\x05 \x03(\x0b\x32\x14.lelsonar.v1.MapWall\x12(\n\x07\x63orners\x18\x06 \x03(\x0b\x32\x17.lelsonar.v1.MapFeature\x12&\n\x05\x65\x64ges\x18\x07 \x03(\x0b\x32\x17.lelsonar.v1.MapFeature\x12#\n\x05poses\x18\x08 \x03(\x0b\x32\x14.lelsonar.v1.MapPose\x12\r\n\x05notes\x18\t \x03(\t\x12#\n\x05views\x18\n \x03(\x0b\x32\x14.lelsonar.v1.MapView\x12\x33\n\x12horizontal_corners\x18\x0b \x03(\x0b\x32\x17.lelsonar.v1.MapFeatureb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -34,13 +34,15 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'lelsonar.v1.map_pb2', _glob
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_MAPWALL']._serialized_start=99
-  _globals['_MAPWALL']._serialized_end=460
-  _globals['_MAPFEATURE']._serialized_start=463
-  _globals['_MAPFEATURE']._serialized_end=629
-  _globals['_MAPPOSE']._serialized_start=632
-  _globals['_MAPPOSE']._serialized_end=775
-  _globals['_MAPVIEW']._serialized_start=777
-  _globals['_MAPVIEW']._serialized_end=842
-  _globals['_MAP']._serialized_start=845
-  _globals['_MAP']._serialized_end=1135
+  _globals['_MAPWALL']._serialized_end=509
+  _globals['_MAPPIECESCANS']._serialized_start=511
+  _globals['_MAPPIECESCANS']._serialized_end=544
+  _globals['_MAPFEATURE']._serialized_start=547
+  _globals['_MAPFEATURE']._serialized_end=747
+  _globals['_MAPPOSE']._serialized_start=750
+  _globals['_MAPPOSE']._serialized_end=893
+  _globals['_MAPVIEW']._serialized_start=895
+  _globals['_MAPVIEW']._serialized_end=960
+  _globals['_MAP']._serialized_start=963
+  _globals['_MAP']._serialized_end=1306
 # @@protoc_insertion_point(module_scope)

@@ -1,6 +1,6 @@
 """The Dynamixel AX-12(A) as data: control table, error bits, units, speed model.
 
-Nothing here talks to a port.  The driver (:mod:`lelsonar.acquire.devices.motor`)
+Nothing here talks to a port.  The driver (:mod:`lelsonar.acquire.devices.dynamixel`)
 and the emulator (:mod:`lelsonar.acquire.emulate.ax12_emulator`) both read this
 table, so they cannot drift apart.
 
