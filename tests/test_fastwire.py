@@ -17,8 +17,10 @@ from hypothesis import strategies as st
 
 from lelsonar import codec
 from lelsonar.reconstruct.stream import assembly
-from lelsonar.reconstruct.stream.fastwire import UNREAD, read_sample, sample_header
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.fastwire import GROW, UNREAD, read_sample, sample_header
 from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
+from lelsonar.reconstruct.stream.step_features import AGREED
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -269,3 +271,28 @@ def test_a_payload_that_starts_as_the_last_one_but_routes_elsewhere_is_left_to_t
     ingest.close(("s1", start.scan_id))
     (event,) = ingest.accept(name, samples[5].SerializeToString(), key_scanner="s1")
     assert isinstance(event, Rejected) and event.error == "LateMessage"
+
+
+def test_a_step_beyond_the_rows_held_grows_the_scan_and_is_read_from_its_payload(monkeypatch):
+    """The scan's arrays grow with the highest step that arrives: a sample read from its payload whose step lies
+    beyond them has them grown first, then is placed where the parser puts it, as the same sample parsed."""
+    start, *samples, _ = simulated_messages()
+    start.steps = 3 * ScanAssembly.INITIAL_ROWS
+    far = codec.Sample.FromString(samples[2].SerializeToString())
+    far.step = start.steps - 1
+    read_in_place = []
+    place_wire = assembly.place_wire
+    monkeypatch.setattr(assembly, "place_wire", lambda *a: read_in_place.append(place_wire(*a)) or read_in_place[-1])
+    scans = []
+    for fast in (True, False):
+        ingest = Ingest(fast_path=fast)
+        for m in (start, samples[0], samples[1], far):
+            (event,) = ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
+            assert not isinstance(event, Rejected)
+        (scan,) = ingest.scans.values()
+        assert scan.received[far.step] and len(scan.received) == start.steps
+        scans.append(scan)
+    assert [status for status, _, _ in read_in_place] == [AGREED, GROW, AGREED]
+    read, parsed = scans
+    for name in ("distance", "sensor_energy", "echo_amplitude", "dc_level", "gamma", "ratio", "time_ns", "received"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name

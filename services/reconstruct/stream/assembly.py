@@ -293,25 +293,8 @@ class ScanAssembly(WriterChecks):
         else:
             return -1
         recovered = origin == "recovered"
-        # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-        status, carried, step = place_wire(
-            payload,
-            at,
-            step,
-            time_ns,
-            bound,
-            self._ids,
-            self._values,
-            known[1],
-            self._starts,
-            self._scan,
-            recovered,
-            *self._rows,
-            self._timing_windows,
-            self._candidate_windows,
-        )
-        if status == GROW:
-            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
+        for _ in range(2):  # a second time once the arrays reach its step (GROW)
+            # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
             status, carried, step = place_wire(
                 payload,
                 at,
@@ -328,10 +311,13 @@ class ScanAssembly(WriterChecks):
                 self._timing_windows,
                 self._candidate_windows,
             )
+            if status != GROW:
+                break
+            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
             return step
-        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED; GROW cannot come twice)
+        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED; GROW does not come twice)
             return -1
         return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
 
