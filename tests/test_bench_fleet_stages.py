@@ -46,3 +46,16 @@ def test_the_queue_model_handles_every_payload_on_its_virtual_clock():
     assert min(r["processed_s"]) >= OUTSIDE_US * 1e-6
     assert r["provisional_s"] and min(r["provisional_s"]) >= 0
     assert 0 < r["busy"] < 1  # two scanners leave the worker idle most of the time
+
+
+def test_the_capacity_table_puts_the_share_shed_and_the_rate_published_beside_the_p99():
+    from lelsonar.tools.bench_fleet_capacity import provisional_rate
+
+    # 2 runs (median 3000 published), 100 scanners over a 6 s schedule, 1000 shed of the 4000 refits due.
+    res = {
+        "runs": [{"provisional_ms": {"n": 2000}}, {"provisional_ms": {"n": 4000}}],
+        "shed": {"w0": 1000},
+        "publisher": {"schedule_s": 6.0},
+        "scanners": 100,
+    }
+    assert provisional_rate(res) == (5.0, 0.25)

@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
+from lelsonar.reconstruct.stream.finals import WORKER_NICENESS, FinalPool, auto_workers
 
 
 def spin(value: int, rounds: int) -> int:
@@ -143,6 +143,13 @@ def test_workers_ignore_ctrl_c_and_close_ends_them():
     pool.close()
     with pytest.raises(ProcessLookupError):
         os.kill(pid, 0)  # reaped: gone
+
+
+def test_workers_yield_the_core_to_their_caller(pool):
+    wait_ready(pool, 1)
+    pool.submit(os.nice, 0)
+    (niceness,) = [d.value for d in pool.drain() if d.error is None]
+    assert pool.stats.pooled == 1 and niceness == min(19, os.nice(0) + WORKER_NICENESS)
 
 
 def test_auto_workers_leaves_the_caller_its_core():

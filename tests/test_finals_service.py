@@ -19,6 +19,7 @@ from lelsonar.reconstruct.stream.service import ReconstructionService
 from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
+from . import foreign_scenes as fs
 from .conftest import QuietObserver, simulated_messages, type_name
 
 STEPS = 90
@@ -117,6 +118,34 @@ def test_finals_from_workers_are_the_inline_ones_bit_for_bit_in_scan_order(scans
         for method in a:
             assert not list(differences(a[method], b[method])), method
     assert service.latest["a"].scan_id == 2  # the scanner's newest estimate is its last scan's
+
+
+def test_a_final_whose_ranges_are_repaired_in_a_worker_is_the_inline_one_bit_for_bit():
+    """The range repair runs in the worker with the rest of the final, on the closed scan sent there: two
+    foreign boards whose ranges it changes (a comparator whose crossing walks with the echoes' amplitude, and
+    one that fires on the noise before 3 echoes in 10) give the finals the stream's thread gives."""
+    walking = fs.simulate(fs.ForeignRig(seed=3, steps=150))
+    walking.energy_model = fs.energy_model(walking.rig)
+    noisy = fs.simulate(fs.ForeignRig(seed=3, steps=150, noise=0.007))
+    messages = [
+        *fs.messages(walking, scanner="walking", scan_id=1),
+        *fs.messages(noisy, fs.Conventions(energy_model=False), scanner="noisy", scan_id=2),
+    ]
+    inline = feed(ReconstructionService(ReconstructConfig(provisional=False)), messages)
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    pool = ready_pool(2)
+    try:
+        service.use_pool(pool)
+        pooled = feed(service, messages)
+        service.use_pool(None)
+    finally:
+        pool.close()
+    assert service.stats_dict()["finals_pool"]["in_workers"] == 2  # (each scan's final taken by an idle worker)
+    assert [estimate_only(m) for m in pooled] == [estimate_only(m) for m in inline]
+    # The repair changed both scans' ranges (their planes say so): the workers made it, not skipped it.
+    walked, fired = ({r for p in m.planes for r in p.quality_reasons} for m in pooled)
+    assert any("re-timed" in r for r in walked), walked
+    assert any("comparator fired on noise" in r for r in fired), fired
 
 
 def test_a_worker_killed_as_a_final_is_estimated_loses_nothing(scans):

@@ -121,6 +121,55 @@ def test_a_failed_trust_check_falls_back_to_an_exact_fit(scan_messages):
     assert inc.stats.trust_failures == 1 and inc.stats.exact == 2
 
 
+def test_an_exact_fit_that_waits_is_the_one_it_would_have_been_on_the_same_points(scan_messages):
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    _feed(service, scan_messages[:-1])
+    (scan,) = service.ingest.scans.values()
+    steps = np.flatnonzero(scan.received)
+    face_on = steps[np.sin(scan.gamma[steps]) >= np.cos(FitOptions().beam_half_angle)]
+    now = IncrementalPlane(scan.geometry, "b", AXIS_Z, "adaptive", FitOptions(), scan.start.steps)
+    waits = IncrementalPlane(scan.geometry, "b", AXIS_Z, "adaptive", FitOptions(), scan.start.steps)
+    now.update(scan.gamma, scan.distance, face_on[:16])
+    assert now.stats.exact == 1
+    # The first fit waits: no estimate yet, and steps added meanwhile wait uncomputed, with no fit.
+    assert waits.update(scan.gamma, scan.distance, face_on[:10], exact=False) is None
+    assert waits.fit_wanted and waits.stats.exact == 0
+    computed = waits.n
+    assert waits.update(scan.gamma, scan.distance, face_on[10:16], exact=False) is None
+    assert waits.stats.exact == 0 and waits.stats.fits_waited == 2 and waits.n == computed
+    # Then it runs on every step so far: the fit made at once on the same steps, bit for bit.
+    fitted = waits.update(scan.gamma, scan.distance, face_on[:0])
+    assert not waits.fit_wanted and waits.stats.exact == 1 and waits.n == now.n
+    assert isinstance(fitted, PlaneFit) and isinstance(now.plane, PlaneFit)
+    assert np.array_equal(fitted.normal, now.plane.normal) and fitted.offset == now.plane.offset
+    # A later fit that waits keeps the estimate it has meanwhile.
+    bad = scan.distance.copy()
+    bad[face_on[16:21]] += 0.30  # no new point fits: the trust check fails, an exact fit is due
+    assert waits.update(scan.gamma, bad, face_on[16:21], exact=False) is fitted and waits.fit_wanted
+
+
+def test_under_a_constant_backlog_catching_up_publishes_every_scan_with_its_newest_step(scan_messages):
+    now = [0.0]
+    busy = ReconstructionService(ReconstructConfig(provisional_period=0), clock=lambda: now[0])
+    caught: list = []
+    for m in scan_messages[:-1]:
+        busy.handle(type_name(m), m.SerializeToString(), busy=True)
+        if isinstance(m, codec.Sample) and m.step % 8 == 7:
+            caught += busy.catch_up()  # the backlog drains every 8 steps
+            now[0] += 1.0
+    (p,) = busy._partials.values()
+    # Every estimate names the newest step the scan held when it was made; the exact fits ran, caught up.
+    assert caught and all(e.last_step % 8 == 7 for e in caught)
+    assert p.inc_a.stats.exact == 1 and p.inc_b.stats.exact >= 1 and isinstance(p.inc_b.plane, PlaneFit)
+    assert not busy.has_deferred
+    # Plane b late in the scan: the estimate made without any backlog, to the fit's noise.
+    alone = ReconstructionService(ReconstructConfig(provisional_period=0))
+    _feed(alone, scan_messages[:-1])
+    (q,) = alone._partials.values()
+    assert isinstance(q.inc_b.plane, PlaneFit)
+    assert np.degrees(np.arccos(np.clip(p.inc_b.plane.normal @ q.inc_b.plane.normal, -1, 1))) < 0.3
+
+
 def test_provisional_estimates_are_rate_limited_in_scan_time(scan_messages):
     every_20ms = _provisional(_feed(ReconstructionService(), _restamped(scan_messages, 20_000_000)))
     every_5ms = _provisional(_feed(ReconstructionService(), _restamped(scan_messages, 5_000_000)))

@@ -10,6 +10,7 @@ import pytest
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.finals import Done, PoolStats
 from lelsonar.reconstruct.stream.service import ReconstructionService
 
 from .conftest import assert_matches_the_scene, simulated_messages, type_name
@@ -210,18 +211,112 @@ def test_catching_up_on_deferred_refits_stops_at_its_budget_oldest_first(monkeyp
             service.handle(type_name(m), m.SerializeToString(), busy=True)
     refit, real = [], service._provisional
 
-    def slow_refit(scan, p):  # each refit takes 60 % of the budget on the service's clock
-        refit.append(scan.key[0])
+    def slow_refit(scan, p, **kw):  # each refit takes 60 % of the budget on the service's clock
+        refit.append((scan.key[0], kw.get("fits_wait", False)))
         now[0] += 0.6 * service.config.provisional_budget
-        return real(scan, p)
+        return real(scan, p, **kw)
 
     monkeypatch.setattr(service, "_provisional", slow_refit)
     later = service.tick if catch_up == "tick" else service.catch_up
-    first = later()
-    assert sorted(refit) == ["b", "c"] and len(first) == 2  # the two oldest; the budget ran out before a
+    # The two oldest refits, without their exact fits: b's and c's corners are confirmed, and their plane a's
+    # first fit waits (no estimate to give yet); the budget ran out before a's refit.
+    assert later() == [] and refit == [("b", True), ("c", True)]
     assert service.has_deferred
+    # a's refit publishes at once; then the fits that wait, oldest scan first, as far as the budget goes.
     second = later()
-    assert refit[2:] == ["a"] and [e.scanner_id for e in second] == ["a"] and not service.has_deferred
+    assert refit[2:] == [("a", True), ("b", False)] and [e.scanner_id for e in second] == ["a", "b"]
+    assert service.has_deferred
+    third = later()
+    assert refit[4:] == [("c", False)] and [e.scanner_id for e in third] == ["c"] and not service.has_deferred
+    # Each estimate caught up on names the newest step its scan holds.
+    for e in (*second, *third):
+        assert e.last_step == scans[e.scanner_id][109].step
+
+
+def test_a_scan_completed_under_a_backlog_gets_its_final_once_it_drains_and_the_same_final():
+    now = [0.0]
+    messages = simulated_messages("paper-test1", seed=3, scanner_id="a")
+    busy = ReconstructionService(ReconstructConfig(provisional=False), clock=lambda: now[0])
+    for m in messages:
+        assert busy.handle(type_name(m), m.SerializeToString(), busy=True) == []  # the samples come first
+    assert busy.has_deferred and not busy.finals
+    # A straggling copy of a step while its final waits: late, as after any final (no second final).
+    again = messages[-2]
+    assert busy.handle(type_name(again), again.SerializeToString(), busy=True) == []
+    assert busy.ingest.rejected["LateMessage"] == 1
+    (final,) = busy.catch_up()
+    assert wire.status_name(final) == "final" and not busy.has_deferred
+    alone = ReconstructionService(ReconstructConfig(provisional=False))
+    (expected,) = [e for m in messages for e in alone.handle(type_name(m), m.SerializeToString())]
+    assert final.planes == expected.planes and final.corner_edge == expected.corner_edge
+    assert final.surfaces == expected.surfaces and final.failures == expected.failures
+    assert final.accounting == expected.accounting
+
+
+def test_a_final_that_waited_stays_behind_its_scanners_newer_estimate():
+    now = [0.0]
+    first = simulated_messages("paper-test1", seed=3, scanner_id="a")
+    second = simulated_messages("paper-test1", seed=4, scanner_id="a", scan_id=2)
+    service = ReconstructionService(ReconstructConfig(provisional_period=0), clock=lambda: now[0])
+    for m in first:
+        service.handle(type_name(m), m.SerializeToString(), busy=True)
+    newer = []
+    for m in second[:120]:  # the next scan's estimates, made while the first one's final waits
+        newer += service.handle(type_name(m), m.SerializeToString())
+    assert newer and all(e.scan_id == 2 for e in newer)
+    (final,) = [e for e in service.catch_up() if wire.is_terminal(e)]
+    assert final.scan_id == 1 and service.finals[("a", 1)] is final
+    # Ranked when its scan completed: the scanner's latest is still the newer scan's estimate.
+    assert service.latest["a"].scan_id == 2
+
+
+class _HeldPool:
+    """A final pool of one worker and no queue, whose jobs finish when the test says."""
+
+    workers = capacity = 1
+
+    def __init__(self):
+        self.stats, self.jobs, self.done, self.tickets = PoolStats(), [], [], 0
+
+    @property
+    def unfinished(self):
+        return len(self.jobs)
+
+    def submit(self, fn, *args):
+        self.tickets += 1
+        self.jobs.append((self.tickets - 1, fn, args))
+        return self.tickets - 1
+
+    def finish_one(self):
+        ticket, fn, args = self.jobs.pop(0)
+        self.done.append(Done(ticket, fn(*args)))
+
+    def ready(self):
+        out, self.done = self.done, []
+        return out
+
+    def drain(self):
+        while self.jobs:
+            self.finish_one()
+        return self.ready()
+
+
+def test_finals_that_waited_for_a_backlog_wait_for_room_in_the_pool_too():
+    now = [0.0]
+    service = ReconstructionService(ReconstructConfig(provisional=False), clock=lambda: now[0])
+    pool = _HeldPool()
+    service.use_pool(pool)  # type: ignore[arg-type]
+    for sid in "ab":
+        for m in simulated_messages("paper-test1", seed=3, scanner_id=sid):
+            service.handle(type_name(m), m.SerializeToString(), busy=True)
+    assert service.catch_up() == [] and len(pool.jobs) == 1  # a's final in the pool; b's waits for room
+    assert service.has_deferred and service.catch_up() == [] and len(pool.jobs) == 1
+    pool.finish_one()
+    (a,) = service.catch_up()  # a's final comes back, and b's goes to the pool
+    assert (a.scanner_id, wire.status_name(a)) == ("a", "final") and len(pool.jobs) == 1
+    assert not service.has_deferred
+    (b,) = service.finish()
+    assert (b.scanner_id, wire.status_name(b)) == ("b", "final") and pool.stats.inline == 0
 
 
 def test_a_new_scan_under_a_backlog_defers_its_first_refits_too():

@@ -21,7 +21,10 @@ from __future__ import annotations
 import argparse
 import copy
 import os
+import statistics
 from collections.abc import Callable
+
+from lelsonar.reconstruct.stream.config import ReconstructConfig
 
 #: Scanner counts tried by ``--capacity`` with no N given.
 CAPACITY_LADDER = (10, 25, 50, 75, 100, 150)
@@ -70,6 +73,18 @@ def rung(args: argparse.Namespace, scanners: int, run_case: Callable, summarise:
     )
     res["holds"] = res["publisher_kept_up"] and res["share"] >= HOLD_SHARE and res["complete"]
     return res
+
+
+def provisional_rate(res: dict) -> tuple[float, float]:
+    """Provisional estimates published a second per scanner over the publishers' schedule, and the share of
+    the refits due that were shed (shed / (shed + published)): the p99 stands beside both, so a p99 bought by
+    shedding shows."""
+    runs = res.get("runs") or []
+    published = statistics.median(r["provisional_ms"]["n"] for r in runs) if runs else 0
+    shed = sum(res["shed"].values())
+    schedule = (res["publisher"] or {}).get("schedule_s") or float("nan")
+    rate = published / res["scanners"] / schedule if res["scanners"] else float("nan")
+    return rate, shed / (shed + published) if shed + published else 0.0
 
 
 def _ms(d: dict) -> str:
@@ -170,8 +185,13 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
             )
             for r in results
         ),
-        "provisionals shed (under a backlog): "
-        + ", ".join(f"{r['scanners']} scanners {sum(r['shed'].values()):g}" for r in results),
+        "provisionals shed (under a backlog), and published a second per scanner (at most "
+        f"{1 / ReconstructConfig().provisional_period:g}): "
+        + ", ".join(
+            f"{r['scanners']} scanners {sum(r['shed'].values()):g} shed "
+            f"({100 * provisional_rate(r)[1]:.0f} % of those due), {provisional_rate(r)[0]:.1f}/s published"
+            for r in results
+        ),
         f"command: {command_line(args)}",
         f"machine: {machine()}; load average before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, after "
         f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f} (2 cores shared with other work: figures are of this run)",

@@ -129,8 +129,9 @@ def queue_model(
     Each call takes the thread CPU it measures here, plus ``outside_us`` a payload, on a virtual clock the
     service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
     :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
-    worker nothing (run by other processes).  Returns put → processed and put → provisional latencies (s), the
-    worker's busy share, and the provisional refits shed.
+    worker nothing (run by the final pool's processes, which get the closed scan).  Once the
+    last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
+    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed.
     """
     from collections import deque
 
@@ -145,12 +146,12 @@ def queue_model(
 
     # The bench's probes of the finals (their input, range repair included, and their reconstruction), not a
     # change of them.
-    def timed_reconstruct(scan, options, *rest):
+    def timed_reconstruct(scan, options, *rest, **kw):
         if options.provisional:
-            return reconstruct_scan(scan, options, *rest)
+            return reconstruct_scan(scan, options, *rest, **kw)
         c = time.thread_time()
         try:
-            return reconstruct_scan(scan, options, *rest)
+            return reconstruct_scan(scan, options, *rest, **kw)
         finally:
             final_cpu[0] += time.thread_time() - c
 
@@ -218,6 +219,8 @@ def queue_model(
                 run(service.tick, busy=bool(waiting))
             elif service.has_deferred and not waiting:
                 run(service.catch_up)
+        while service.has_deferred:  # idle after the last payload: what waits is caught up
+            run(service.catch_up)
     finally:
         service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
     span = now[0] - payloads[0][0] if payloads else 0.0
@@ -352,7 +355,11 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
         model.add_column(col, justify="left" if col == "finals" else "right")
     for elsewhere in (False, True):
         queued = [
-            queue_model(payloads, finals_elsewhere=elsewhere, provisional=not args.no_provisional)
+            queue_model(
+                payloads,
+                finals_elsewhere=elsewhere,
+                provisional=not args.no_provisional,
+            )
             for _ in range(args.repeat)
         ]
 

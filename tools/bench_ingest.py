@@ -43,7 +43,9 @@ Three measurements, side by side in one run and one table:
     ``mcap``'s reader + a upb parse of the contract messages of the same file
     (same run).  Diagnostic rows bracket it: the replay with provisional
     estimates, reading + decoding + assembling alone, and the tolerant reader +
-    upb alone (the floor's own work).
+    upb alone (the floor's own work).  The replay of ONE file of 1, 10 and 100
+    scans merged by ``mcap``'s own writer, with its peak memory, is
+    ``lelsonar bench recording``'s second table.
 
 Processes: the consumer listens on a private unix socket
 (``unixsock-stream/<tmpdir>/z.sock``, a peer); the publisher connects to it as

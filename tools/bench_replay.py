@@ -12,7 +12,12 @@ Modes:
 * ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
   ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
   (the kernels loaded first), estimation included (where the host has an idle core, the next
-  chunks decompressed on other threads while the service estimates);
+  chunks decompressed on other threads while the service estimates; the finals in worker
+  processes as :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
+* ``warm`` — the same replay in a process whose final workers have started before (their fork
+  server's imports and kernels loaded before the clock, as in a live reconstructor or a process
+  that replayed a file already): the finals in workers from the first scan, where the host's load
+  leaves a core idle;
 * ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
   (the reading alone);
 * ``floor`` — ``mcap.reader.make_reader(f).iter_messages(topics=…, log_time_order=True)`` and a
@@ -75,19 +80,38 @@ def time_read(path: Path) -> tuple[float, int]:
 
 def time_replay(path: Path) -> tuple[float, int]:
     """(seconds, finals) of replay_mcap through a service without provisional estimates."""
+    return _replay(path, warm=False)
+
+
+def time_replay_warm(path: Path) -> tuple[float, int]:
+    """(seconds, finals) of :func:`time_replay` with the final workers' fork server ready before the clock."""
+    return _replay(path, warm=True)
+
+
+#: The replay child's finals estimated in worker processes (reported beside its seconds).
+_POOLED: list[int] = []
+
+
+def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 
+    if warm:
+        with FinalPool(max(auto_workers(), 1)) as pool:  # the fork server's imports and kernels: once a process
+            pool.wait_ready(600)
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
     service = ReconstructionService(ReconstructConfig(provisional=False))
     t = time.perf_counter()
     replay_mcap(path, service)
-    return time.perf_counter() - t, service.stats.finals
+    seconds = time.perf_counter() - t
+    _POOLED.append(int(service.stats_dict().get("finals_pool", {}).get("in_workers", 0)))
+    return seconds, service.stats.finals
 
 
-_MODES = {"floor": time_floor, "read": time_read, "replay": time_replay}
+_MODES = {"floor": time_floor, "read": time_read, "replay": time_replay, "warm": time_replay_warm}
 
 
 def child(mode: str, path: Path) -> dict:
@@ -165,6 +189,7 @@ def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[
             for mode, results in got.items():
                 row[f"{mode}_s"] = statistics.median(r["seconds"] for r in results)
                 row[f"{mode}_rss"] = max(r["rss_mib"] for r in results)
+                row[f"{mode}_pooled"] = min(r.get("pooled", 0) for r in results)
             rows.append(row)
             path.unlink()
     return rows
@@ -176,7 +201,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("path", type=Path)
     args = parser.parse_args(argv)
     seconds, samples = _MODES[args.child](args.path)
-    print(json.dumps({"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib()}), flush=True)
+    out = {"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib()}
+    if _POOLED:
+        out["pooled"] = _POOLED[-1]
+    print(json.dumps(out), flush=True)
     return 0
 
 

@@ -25,8 +25,11 @@ and per plane:
 * **error**: the largest distance between the fitted and the true plane over the
   true wall's trace 0.5 m either side of the foot of the perpendicular, cm (a
   bearing error shows as much as an offset error);
-* **oracle**: least squares (:func:`~lelsonar.reconstruct.estimate.fit.constant_depth_ls`)
-  on the surface's own true echoes, started at the truth, with the same error;
+* **oracle**: what the surface's own true echoes allow a fit that knows which readings they are but not
+  where the surface is (:mod:`lelsonar.tools.surface_oracle`): least squares on their ranges from their
+  own beams' direction, with the beam pattern's bearing of their amplitudes weighed in where the two agree;
+  the same error.  The ranges' least squares alone (``range LS``) is shown beside it: seen near its foot, a
+  wall's ranges barely fix its bearing, so that fit's error is mostly chance;
 * **failure claiming good**: verdict good while the error is > 2 cm and > 3× the oracle's;
 * **clutter** (the room's walls, not the boxes' faces): good and within 3× the oracle (or one range's σ),
   or flagged not good with reasons; and the share of each wall's readings that are its own echoes;
@@ -48,8 +51,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces import Surface, SurfaceOptions, SurfaceSet, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import Feature, Surface, SurfaceOptions, SurfaceSet, extract_surfaces
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.scenes import FAMILIES as L_FAMILIES
@@ -58,6 +60,7 @@ from lelsonar.sim.world import MOUNTS
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
 from lelsonar.sim.world_render import WorldScan, pose_frame, simulate_world_scan
 from lelsonar.sim.worlds import WORLD_FAMILIES, draw_world
+from lelsonar.tools.surface_oracle import bearing_tilt, oracle_error, trace_error, true_plane
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -73,8 +76,6 @@ TRUE_CLASS = {
 UNKNOWN = "unknown"
 #: Extractions timed per sweep (the median is its time; the first call of a process also loads the kernels).
 TIMING_REPEATS = 3
-#: Half the length of wall trace the error is measured over, m.
-TRACE_HALF = 0.5
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,7 @@ class PlaneRecord:
     bearing_z: float = float("nan")  # (fitted − true bearing) / the claimed bearing σ
     offset_z: float = float("nan")  # (fitted − true offset) / the claimed offset σ
     bearing_error: float = float("nan")  # rad, fitted − true bearing
+    range_ls: float = float("nan")  # m, the ranges' least squares alone on the true echoes (for reading)
 
     @property
     def within_oracle(self) -> bool:
@@ -126,37 +128,7 @@ class ScanRecord:
     good_off_details: tuple[str, ...] = ()  # one line per such plane
     missed: tuple[str, ...] = ()  # one line per mirror seen but claimed by no plane
     unknown: dict[str, int] | None = None  # class -> of those found, claimed only as right or kind not settled
-
-
-def true_plane(scan: WorldScan, element: int) -> tuple[np.ndarray, float]:
-    """The mirror element's plane in the array frame, normal pointing away from the scanner."""
-    model = scan.model
-    surf = model.surfaces[model.elements[element].surfaces[0]]
-    rot, tr = pose_frame(scan.rig, scan.pose)
-    n = rot.T @ surf.normal
-    h = float(surf.normal @ (surf.center - tr))
-    if h < 0:
-        n, h = -n, -h
-    return n, h
-
-
-def trace_error(normal: np.ndarray, offset: float, n_true: np.ndarray, h_true: float) -> float:
-    """Largest distance of the fitted plane from the true one over the true trace ±TRACE_HALF of the foot, m.
-
-    The trace runs in the fan (perpendicular to the stack x and to the normal).
-    """
-    foot = h_true * n_true
-    along = np.cross(np.array([1.0, 0.0, 0.0]), n_true)
-    nrm = float(np.linalg.norm(along))
-    along = along / nrm if nrm > 1e-9 else np.array([0.0, 1.0, 0.0])
-    pts = foot[None, :] + np.array([-TRACE_HALF, 0.0, TRACE_HALF])[:, None] * along[None, :]
-    # Distance from each true point to the fitted plane, plus the true plane's distance from the fit's foot.
-    return float(np.max(np.abs(pts @ normal - offset)))
-
-
-def bearing_tilt(normal: np.ndarray) -> tuple[float, float]:
-    """A normal's bearing in the fan and tilt along the stack, rad (the surfaces' convention)."""
-    return math.atan2(float(normal[2]), float(normal[1])), math.asin(max(-1.0, min(1.0, float(normal[0]))))
+    features: tuple[tuple[str, float, float], ...] = ()  # (kind, m off its true line, its σ there) per right feature
 
 
 def sigma_scores(surf: Surface, n_true: np.ndarray, h_true: float) -> tuple[float, float, float]:
@@ -187,7 +159,27 @@ def nearest_mirror(scan: WorldScan, surf: Surface) -> tuple[int, float]:
     return best
 
 
-def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | None = None) -> tuple[int, int]:
+def feature_offset(scan: WorldScan, f: Feature, element: int) -> tuple[float, float]:
+    """How far a feature's point lies from its element's true line (a vertex: from the feature's line through
+    it), m, and the feature's σ in that direction (0 distance: σ 0)."""
+    rot, tr = pose_frame(scan.rig, scan.pose)
+    el = scan.model.elements[element]
+    p = rot @ f.point + tr
+    if el.kind == ElementKind.TRIHEDRAL:
+        u = rot @ f.direction
+        off = (el.p0 - p) - ((el.p0 - p) @ u) * u
+    else:
+        d = el.p1 - el.p0
+        d = d / max(float(np.linalg.norm(d)), 1e-12)
+        off = (p - el.p0) - ((p - el.p0) @ d) * d
+    dist = float(np.linalg.norm(off))
+    if not dist > 0:
+        return 0.0, 0.0
+    r = rot.T @ (off / dist)
+    return dist, math.sqrt(max(float(r @ f.covariance @ r), 0.0))
+
+
+def majority(scan: WorldScan, steps: np.ndarray, surf: Surface | Feature | None = None) -> tuple[int, int]:
     """The element most of an item's readings are (its own readings if it has them, else its steps')."""
     if surf is not None and surf.rows is not None and surf.capsules is not None:
         idx = scan.echo_index[surf.rows, surf.capsules]
@@ -227,18 +219,16 @@ def _own_share(scan: WorldScan, steps: np.ndarray, element: int, surf: Surface |
     return int(np.count_nonzero(own)) / max(n_ok, 1)
 
 
-def oracle_error(scan: WorldScan, element: int) -> float:
-    """LS on the element's own true echoes, started at the truth: its trace error, m."""
-    n_true, h_true = true_plane(scan, element)
-    mask = (scan.echo_index == element) & (scan.echo_source != EchoSource.DIFFUSE) & np.isfinite(scan.distance)
-    rows, caps = np.nonzero(mask)
-    p = scan.geometry.capsule_positions(scan.gamma_measured[rows])[np.arange(rows.size), caps]
-    n, h, _ = constant_depth_ls(p, scan.distance[rows, caps], n_true, h_true)
-    return trace_error(n, h, n_true, h_true)
-
-
-def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 0, min_echoes: int = 20) -> ScanRecord:
-    """Match the extracted items to the truth of one sweep."""
+def score_scan(
+    family: str,
+    scan: WorldScan,
+    result: SurfaceSet,
+    *,
+    seed: int = 0,
+    min_echoes: int = 20,
+    amplitude: np.ndarray | None = None,
+) -> ScanRecord:
+    """Match the extracted items to the truth of one sweep; ``amplitude``: the echoes' (the oracle's beam bearing)."""
     model = scan.model
     valid = np.isfinite(scan.distance) & (scan.echo_source != EchoSource.DIFFUSE)
     counts = np.bincount(scan.echo_index[valid & (scan.echo_index >= 0)].ravel(), minlength=len(model.elements))
@@ -254,16 +244,21 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
     false_good = 0
     good_planes = 0
     off_every: list[str] = []
-    items: list[tuple[str, np.ndarray, Surface | None]] = [("plane", s.steps, s) for s in result.surfaces]
-    items += [(f.kind if f.settled else UNKNOWN, f.steps, None) for f in (*result.corners, *result.edges)]
-    for cls, steps, surf in items:
-        k, _ = majority(scan, steps, surf)
+    placed: list[tuple[str, float, float]] = []
+    items: list[tuple[str, np.ndarray, Surface | None, Feature | None]] = [
+        ("plane", s.steps, s, None) for s in result.surfaces
+    ]
+    items += [(f.kind if f.settled else UNKNOWN, f.steps, None, f) for f in (*result.corners, *result.edges)]
+    for cls, steps, surf, feature in items:
+        k, _ = majority(scan, steps, surf if surf is not None else feature)
         truth = _element_kind(model, k, scan, steps)
         if cls != UNKNOWN and (truth is None or truth != cls):
             false[cls] += 1
             false_good += int(surf is not None and surf.quality == "good")
         if truth is not None:
             claimed.setdefault(k, set()).add(cls)
+        if feature is not None and truth == feature.kind:
+            placed.append((feature.kind, *feature_offset(scan, feature, k)))
         if surf is not None and surf.quality == "good":
             # Every good plane against the nearest true mirror of the world, not only its echoes' majority.
             good_planes += 1
@@ -280,6 +275,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
             true_surface = model.surfaces[model.elements[k].surfaces[0]]
             label = true_surface.label
             bz, hz, db = sigma_scores(surf, n_true, h_true)
+            oracle = oracle_error(scan, k, amplitude)
             planes.append(
                 PlaneRecord(
                     family,
@@ -288,7 +284,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
                     k,
                     surf.quality,
                     err,
-                    oracle_error(scan, k),
+                    oracle.error,
                     ang,
                     int(counts[k]),
                     wall=label.startswith("wall"),
@@ -300,6 +296,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
                     bearing_z=bz,
                     offset_z=hz,
                     bearing_error=db,
+                    range_ls=oracle.range_ls,
                 )
             )
     found = {c: 0 for c in classes}
@@ -342,6 +339,7 @@ def score_scan(family: str, scan: WorldScan, result: SurfaceSet, *, seed: int = 
         good_off_details=tuple(off_every),
         missed=missed,
         unknown=unknown,
+        features=tuple(placed),
     )
 
 
@@ -354,7 +352,7 @@ def run_scan(family: str, seed: int, pose: int, model: WorldModel, options: Surf
         t0 = time.process_time()  # CPU time: the host's other work does not count
         result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp, options=options)
         times.append(time.process_time() - t0)
-    return replace(score_scan(family, scan, result, seed=seed), extract_s=float(np.median(times)))
+    return replace(score_scan(family, scan, result, seed=seed, amplitude=amp), extract_s=float(np.median(times)))
 
 
 def l_scan_errors(family: str, seed: int) -> dict[bool, list[tuple[float, str]]]:
@@ -442,11 +440,13 @@ def run(args: argparse.Namespace) -> int:
         bad_total += _family_table(records, mount, args, console)
         _kind_table(records, mount, console)
         _sigma_table(records, mount, console)
+        _feature_sigma_table(records, mount, console)
     if args.l_seeds > 0:
         _l_scan_table(args.l_seeds, console)
     console.print(
         "err: largest distance between the fitted and true plane over ±0.5 m of the true wall's trace; "
-        "oracle: LS on the surface's true echoes started at the truth; good-but-failed: good while err > 2 cm "
+        "oracle: LS on the surface's true echoes from their own beams with their beam pattern's bearing (range LS: the "
+        "ranges' LS alone); good-but-failed: good while err > 2 cm "
         "and > 3× oracle; (right, unknown): claimed only with the right class, or only as a feature whose kind is not "
         "settled; walls: the room's walls (not boxes' faces), good "
         "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
@@ -484,6 +484,7 @@ def _kind_table(records: dict[str, list[ScanRecord]], mount: str, console: Conso
         "err p95 cm",
         "oracle med cm",
         "med/oracle",
+        "range LS med cm",
         "good",
         "good-but-failed",
     ):
@@ -505,6 +506,7 @@ def _kind_table(records: dict[str, list[ScanRecord]], mount: str, console: Conso
             f"{_pct(err, 95):.2f}",
             f"{_pct(orc, 50):.2f}",
             f"{ratio:.2f}",
+            f"{_pct([100 * p.range_ls for p in mine], 50):.2f}",
             f"{sum(p.quality == 'good' for p in mine)}/{len(mine)}",
             str(failed),
         )
@@ -559,6 +561,32 @@ def _sigma_table(records: dict[str, list[ScanRecord]], mount: str, console: Cons
             f"{p.element} ({p.kind}): Δβ {math.degrees(p.bearing_error):+.2f}° = {p.bearing_z:+.1f}σ, "
             f"err {100 * p.error:.2f} cm"
         )
+
+
+def _feature_sigma_table(records: dict[str, list[ScanRecord]], mount: str, console: Console) -> None:
+    """The honesty of the features' σ: each right-kind feature's distance from its true line over its σ there."""
+    from rich.table import Table
+
+    placed = [f for rs in records.values() for r in rs for f in r.features]
+    table = Table(title=f"corners' and edges' σ against the truth ({mount} mount; a Gaussian: 68 / 95 / 99.7 %)")
+    for col in ("kind", "features", "≤1/2/3σ %", "> 3σ", "> 3σ and > 2 cm", "off med cm", "σ med cm"):
+        table.add_column(col, justify="right")
+    for kind in ("corner", "edge"):
+        mine = [(d, s) for k, d, s in placed if k == kind]
+        if not mine:
+            continue
+        z = [d / s if s > 0 else (0.0 if d == 0 else math.inf) for d, s in mine]
+        out = [(d, s) for (d, s), v in zip(mine, z, strict=True) if v > 3]
+        table.add_row(
+            kind,
+            str(len(mine)),
+            "/".join(f"{100 * v:.0f}" for v in coverage(z)),
+            str(len(out)),
+            str(sum(d > 0.02 for d, _s in out)),
+            f"{100 * _pct([d for d, _s in mine], 50):.2f}",
+            f"{100 * _pct([s for _d, s in mine], 50):.2f}",
+        )
+    console.print(table)
 
 
 def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argparse.Namespace, console: Console) -> int:

@@ -7,7 +7,7 @@ fuses the tour, beside the oracle map (:mod:`lelsonar.tools.map_worlds`).  What 
 estimate:
 
 * **surface good-but-failed**: a surface claiming good whose trace error is > 2 cm and > 3× its oracle's
-  (least squares on its own true echoes, :func:`lelsonar.tools.bench_surfaces.oracle_error`);
+  (what its own true echoes allow, :func:`lelsonar.tools.surface_oracle.oracle_error`);
 * **false good**: a good surface whose readings are no surface's mirror echoes;
 * **bearing > 3σ**: a good surface whose bearing is off by more than three times its own σ and more than
   :data:`BEARING_FLOOR` (the σ's shape, a wall placed well in range but not in bearing);
@@ -40,9 +40,9 @@ from lelsonar.sim.odometry import simulate_odometry
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world import World
 from lelsonar.sim.world_geometry import ElementKind, build_model
-from lelsonar.sim.world_render import WorldScan, pose_frame, world_rig
+from lelsonar.sim.world_render import WorldScan, world_rig
 from lelsonar.tools.bench_map import false_good
-from lelsonar.tools.bench_surfaces import oracle_error, score_scan, trace_error, true_plane
+from lelsonar.tools.bench_surfaces import feature_offset, score_scan
 from lelsonar.tools.map_worlds import (
     ENERGY_MODEL,
     TourResult,
@@ -53,6 +53,7 @@ from lelsonar.tools.map_worlds import (
     sweep,
     vertical_faces,
 )
+from lelsonar.tools.surface_oracle import oracle_error, trace_error, true_plane
 
 #: A claim is wrong only past this (m), and past 3× its oracle.
 ERROR_FLOOR = 0.02
@@ -127,11 +128,13 @@ def _wrap_half(a: float) -> float:
     return (a + math.pi / 2) % math.pi - math.pi / 2
 
 
-def _majority(scan: WorldScan, steps: np.ndarray) -> int:
-    idx = scan.echo_index[steps].ravel()
-    ok = (
-        np.isfinite(scan.distance[steps].ravel()) & (idx >= 0) & (scan.echo_source[steps].ravel() != EchoSource.DIFFUSE)
-    )
+def _majority(
+    scan: WorldScan, steps: np.ndarray, rows: np.ndarray | None = None, capsules: np.ndarray | None = None
+) -> int:
+    """The element most of an item's readings are (its own readings where it has them, else its steps')."""
+    at: tuple[np.ndarray, ...] = (steps,) if rows is None or capsules is None else (rows, capsules)
+    idx = scan.echo_index[at].ravel()
+    ok = np.isfinite(scan.distance[at].ravel()) & (idx >= 0) & (scan.echo_source[at].ravel() != EchoSource.DIFFUSE)
     if not ok.any():
         return -1
     vals, counts = np.unique(idx[ok], return_counts=True)
@@ -140,7 +143,8 @@ def _majority(scan: WorldScan, steps: np.ndarray) -> int:
 
 def _score_sweep(score: WorldScore, scan: WorldScan, estimate, pose: int) -> None:
     surfaces = estimate.surfaces
-    rec = score_scan(score.cls, scan, surfaces, seed=score.seed, min_echoes=MIN_ECHOES)
+    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    rec = score_scan(score.cls, scan, surfaces, seed=score.seed, min_echoes=MIN_ECHOES, amplitude=amplitude)
     where = f"pose {pose}"
     for p in rec.planes:
         if p.quality == "good" and p.error > ERROR_FLOOR and p.error > 3 * p.oracle:
@@ -177,7 +181,7 @@ def _score_sweep(score: WorldScore, scan: WorldScan, estimate, pose: int) -> Non
         for k in seen:
             n_true, h_true = true_plane(scan, k)
             err = trace_error(plane.normal, plane.offset, n_true, h_true)
-            if err <= max(ERROR_FLOOR, 3 * oracle_error(scan, k)):
+            if err <= max(ERROR_FLOOR, 3 * oracle_error(scan, k, amplitude).error):
                 best = 0.0
                 break
             best = min(best, err)
@@ -189,29 +193,14 @@ def _score_sweep(score: WorldScore, scan: WorldScan, estimate, pose: int) -> Non
 
 
 def _score_features(score: WorldScore, scan: WorldScan, surfaces, where: str) -> None:
-    rot, tr = pose_frame(scan.rig, scan.pose)
     classes = {"corner": (ElementKind.DIHEDRAL, ElementKind.TRIHEDRAL), "edge": (ElementKind.EDGE,)}
     for f in (*surfaces.corners, *surfaces.edges):
-        k = _majority(scan, f.steps)
+        k = _majority(scan, f.steps, f.rows, f.capsules)
         if k < 0 or scan.model.elements[k].kind not in classes[f.kind]:
             continue
         score.counts["features"] += 1
-        el = scan.model.elements[k]
-        p = rot @ f.point + tr
-        if el.kind == ElementKind.TRIHEDRAL:
-            # A vertex: its distance from the feature's line.
-            u = rot @ f.direction
-            off = (el.p0 - p) - ((el.p0 - p) @ u) * u
-        else:
-            d = el.p1 - el.p0
-            d = d / max(float(np.linalg.norm(d)), 1e-12)
-            off = (p - el.p0) - ((p - el.p0) @ d) * d
-        dist = float(np.linalg.norm(off))
-        if dist <= ERROR_FLOOR:
-            continue
-        r = rot.T @ (off / dist)
-        sigma = math.sqrt(max(float(r @ f.covariance @ r), 0.0))
-        if dist > 3 * sigma:
+        dist, sigma = feature_offset(scan, f, k)
+        if dist > ERROR_FLOOR and dist > 3 * sigma:
             score.fail(
                 "feature > 3σ",
                 f"{where} {f.kind} {f.label} element {k}: {100 * dist:.1f} cm off, σ {100 * sigma:.1f} cm",

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, replace
+from typing import Literal, overload
 
 import numpy as np
 
@@ -123,6 +124,7 @@ class IncrementalStats:
     waited: int = 0  # re-estimates that kept the last plane, waiting for more points after an untrusted fit
     not_facing: int = 0  # re-estimates skipped: no beam has faced the wall yet (a typed failure, no fit)
     refreshes: int = 0  # doublings handled by re-classifying every point, without an exact fit
+    fits_waited: int = 0  # re-estimates that kept the last plane while a due exact fit waited (update's exact)
 
 
 class IncrementalPlane:
@@ -176,6 +178,8 @@ class IncrementalPlane:
         self._facing = -1.0  # the largest beam · axis so far
         self._seed_fraction = 1.0  # inliers / points at the last exact fit
         self.plane: PlaneResult | None = None
+        #: An exact fit is due but waits for an update with ``exact`` (:meth:`update`).
+        self.fit_wanted = False
         #: The points behind :attr:`plane` (for observers that draw them).
         self.last_data: F.PlaneData | None = None
         self.stats = IncrementalStats()
@@ -219,8 +223,25 @@ class IncrementalPlane:
         )
 
     # --- the estimate -----------------------------------------------------------------------
-    def update(self, gamma: np.ndarray, distance: np.ndarray, new_steps: np.ndarray) -> PlaneResult:
-        """Add the points of ``new_steps`` (received, not added before) and re-estimate."""
+    @overload
+    def update(
+        self, gamma: np.ndarray, distance: np.ndarray, new_steps: np.ndarray, *, exact: Literal[True] = ...
+    ) -> PlaneResult: ...
+
+    @overload
+    def update(
+        self, gamma: np.ndarray, distance: np.ndarray, new_steps: np.ndarray, *, exact: bool
+    ) -> PlaneResult | None: ...
+
+    def update(
+        self, gamma: np.ndarray, distance: np.ndarray, new_steps: np.ndarray, *, exact: bool = True
+    ) -> PlaneResult | None:
+        """Add the points of ``new_steps`` (received, not added before) and re-estimate.
+
+        ``exact`` False: an exact fit this update needs is not run but waits (:attr:`fit_wanted`), and the
+        estimate kept meanwhile is returned (None before any); the points added meanwhile wait uncomputed.
+        The next update with ``exact`` runs it on every point so far, as this one would have on fewer.
+        """
         self.stats.calls += 1
         t0 = time.perf_counter()
         o = self.options
@@ -235,6 +256,12 @@ class IncrementalPlane:
             self._face_on += int(np.sum(echoes[cos_axis >= np.cos(o.beam_half_angle)]))
             self._pending.append(new_steps)
             self._pending_echoes += int(np.sum(echoes))
+        if self.fit_wanted:
+            if not exact:
+                self.stats.fits_waited += 1
+                return self.plane
+            self._materialise(gamma, distance)
+            return self._exact(t0)
         echoes = self.n + self._pending_echoes  # an upper bound on the points (a few beams are too oblique)
         if self._facing < np.cos(o.beam_half_angle + FACING_MARGIN):
             # The points wait (uncomputed) for a beam to face the wall: nothing to fit yet.
@@ -271,6 +298,11 @@ class IncrementalPlane:
             self.stats.trust_failures += 1
         elif self._waiting(self.n):
             return self._last()
+        if not exact:
+            # The fit waits; its update's sums (a failed trust check's included) are rebuilt by it.
+            self.fit_wanted = True
+            self.stats.fits_waited += 1
+            return self.plane
         return self._exact(t0)
 
     def _last(self) -> PlaneResult:
@@ -408,6 +440,7 @@ class IncrementalPlane:
         return ""
 
     def _exact(self, t0: float) -> PlaneResult:
+        self.fit_wanted = False
         data = self.last_data = self.data()
         warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
         # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test

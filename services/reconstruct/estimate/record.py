@@ -212,6 +212,11 @@ class ProvisionalState:
     inc_a: IncrementalPlane | None = None
     inc_b: IncrementalPlane | None = None
 
+    @property
+    def fits_wanted(self) -> bool:
+        """An exact fit of a plane is due and waits for a call without ``fits_wait``."""
+        return any(inc is not None and inc.fit_wanted for inc in (self.inc_a, self.inc_b))
+
 
 @dataclass(frozen=True, eq=False)
 class ScanEstimate:
@@ -290,11 +295,13 @@ def reconstruct_scan(scan: ScanInput, options: RecordOptions = ..., state: None 
 
 
 @overload
-def reconstruct_scan(scan: ScanInput, options: RecordOptions, state: ProvisionalState) -> ScanEstimate | None: ...
+def reconstruct_scan(
+    scan: ScanInput, options: RecordOptions, state: ProvisionalState, *, fits_wait: bool = False
+) -> ScanEstimate | None: ...
 
 
 def reconstruct_scan(
-    scan: ScanInput, options: RecordOptions = _FINAL, state: ProvisionalState | None = None
+    scan: ScanInput, options: RecordOptions = _FINAL, state: ProvisionalState | None = None, *, fits_wait: bool = False
 ) -> ScanEstimate | None:
     """The estimate of record of ``scan`` (paper §4-5); see the module's docstring for the final.
 
@@ -312,7 +319,10 @@ def reconstruct_scan(
       ``"corner"`` runs only on the whole scan), warm-started and in O(new points)
       (:class:`~lelsonar.reconstruct.estimate.incremental.IncrementalPlane`), not from scratch;
     - skips the compared methods and their cross-checks, the recovered echoes' check and the writer's
-      findings, and reads the ranges as received (``scan`` is not repaired).
+      findings, and reads the ranges as received (``scan`` is not repaired);
+    - with ``fits_wait`` (the stream has samples waiting), runs no exact fit: a plane whose exact fit is due
+      keeps its last estimate (:attr:`ProvisionalState.fits_wanted`), and none is given while plane a's
+      first fit waits; the next call without ``fits_wait`` runs them on every step so far, first of all.
 
     Why skipping is safe: a provisional estimate is never a scan's answer.  It says PROVISIONAL, and
     every scan ends in exactly one terminal estimate (final, incomplete or final timeout) made from
@@ -329,6 +339,8 @@ def reconstruct_scan(
     options : RecordOptions
     state : ProvisionalState
         Required with ``options.provisional`` (updated in place); unused otherwise.
+    fits_wait : bool
+        Provisional: the exact fits due wait for a call without it (see above).
 
     Raises
     ------
@@ -338,7 +350,7 @@ def reconstruct_scan(
     if options.provisional:
         if state is None:
             raise ConfigError("a provisional reconstruction needs the scan's ProvisionalState")
-        return _provisional(scan, options, state)
+        return _provisional(scan, options, state, fits_wait)
     return _final(scan, options)
 
 
@@ -466,7 +478,7 @@ def _unobserved(surfaces: SurfaceSet, steps: np.ndarray, n_schedule: int) -> Sur
     return replace(surfaces, surfaces=tuple(out))
 
 
-def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState) -> ScanEstimate | None:
+def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState, fits_wait: bool) -> ScanEstimate | None:
     """Confirm the corner, then (re)fit plane b on the steps new since the last estimate."""
     steps = np.asarray(scan.steps)
     if not len(steps):
@@ -490,20 +502,27 @@ def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState) -
             return None
         p.critical = int(steps[peak])
         p.inc_a = IncrementalPlane(scan.geometry, "a", AXIS_Y, method, options.fit, n_schedule)
-        p.plane_a = p.inc_a.update(gamma, distance, steps[steps < p.critical])
+        p.plane_a = p.inc_a.update(gamma, distance, steps[steps < p.critical], exact=not fits_wait)
         p.data_a = p.inc_a.last_data
+    elif p.inc_a is not None and p.inc_a.fit_wanted and not fits_wait:
+        p.plane_a = p.inc_a.update(gamma, distance, steps[:0])  # its fit waited (plane a takes no later steps)
+        p.data_a = p.inc_a.last_data
+    if p.plane_a is None:
+        return None  # plane a's first fit waits: nothing to give yet
+    t0 = time.perf_counter()
+    plane_b = None  # A fit that waited runs first, whatever the rate limit: the next estimate has it.
+    if p.inc_b is not None and p.inc_b.fit_wanted and not fits_wait:
+        p.plane_b = plane_b = _plane_b(p, gamma, distance, steps, False)
     if 0 < scan.newest_ns - p.provisional_ns < options.provisional_period * 1e9:
         return None  # the per-scan rate limit (scan time)
     p.provisional_ns = max(p.provisional_ns, scan.newest_ns)
-    t0 = time.perf_counter()
     if p.inc_b is None:
         p.inc_b = IncrementalPlane(scan.geometry, "b", AXIS_Z, method, options.fit, n_schedule)
-    new = steps[~p.inc_b.included[steps]]
-    # Plane b: the new steps after the corner, in O(new points) unless the trust check fails.
-    p.plane_b = p.inc_b.update(gamma, distance, new[new > p.critical])
-    p.data_b = p.inc_b.last_data
+    if plane_b is None:
+        plane_b = _plane_b(p, gamma, distance, steps, fits_wait)
+    why = "provisional: its first fit waits for the samples the stream holds"
+    p.plane_b = plane_b if plane_b is not None else FitFailure(FailureReason.DEGENERATE_GEOMETRY, why, "b", p.inc_b.n)
     p.steps_at_fit = len(steps)
-    assert p.plane_a is not None and p.plane_b is not None  # (set at the corner's confirmation and above)
     p.plane_a, p.plane_b = _verdicts((p.plane_a, p.plane_b), (), gamma=np.asarray(scan.gamma))
     fit_s = time.perf_counter() - t0
     return ScanEstimate(
@@ -518,6 +537,18 @@ def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState) -
         edge=corner_edge(p.plane_a, p.plane_b),
         timings=(0.0, fit_s, fit_s),
     )
+
+
+def _plane_b(
+    p: ProvisionalState, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray, fits_wait: bool
+) -> PlaneResult | None:
+    """Plane b with the received steps after the corner it has not taken yet, in O(new points) unless the trust
+    check fails (an exact fit then, or with ``fits_wait`` the last estimate while it waits)."""
+    assert p.inc_b is not None and p.critical is not None  # (made at the corner's confirmation)
+    new = steps[~p.inc_b.included[steps]]
+    plane = p.inc_b.update(gamma, distance, new[new > p.critical], exact=not fits_wait)
+    p.data_b = p.inc_b.last_data
+    return plane
 
 
 def _verdicts(

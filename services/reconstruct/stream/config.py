@@ -44,9 +44,10 @@ class ReconstructConfig:
         scan has had no estimate for over twice this is shed (``ServiceStats.provisionals_shed``) when
         a tick still finds a backlog, and the scan's next refit covers it.
     provisional_budget : float
-        s of deferred provisional refits one :meth:`ReconstructionService.tick` or
-        :meth:`ReconstructionService.catch_up` runs, oldest estimate first; the rest wait for the next
-        call, so catching up never holds the stream for long.
+        s of work that waited for a backlog one :meth:`ReconstructionService.tick` or
+        :meth:`ReconstructionService.catch_up` runs: the finals of scans completed meanwhile, then the
+        deferred provisional refits (oldest estimate first, without their exact fits), then those exact
+        fits; the rest wait for the next call, so catching up never holds the stream for long.
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float

@@ -15,11 +15,11 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.quality import DEGRADED
-from lelsonar.reconstruct.estimate.record import ScanEstimate, ScanInput, with_findings
+from lelsonar.reconstruct.estimate.record import ScanEstimate, with_findings
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
 from lelsonar.reconstruct.stream.partial import Partial
 from lelsonar.reconstruct.stream.reasons import conflict_reason, partial_sweep_reason, ranges_text
-from lelsonar.reconstruct.stream.scan_input import scan_input
+from lelsonar.reconstruct.stream.scan_input import ClosedScan
 from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
@@ -51,8 +51,10 @@ def close_final(
     live: bool,
     revision: int,
     rank: int,
-) -> tuple[FinalJob, ScanInput]:
-    """The final's job and the input its estimate reads (:func:`scan_input`), for a scan being closed.
+) -> tuple[FinalJob, ClosedScan]:
+    """The final's job and the closed scan its estimate reads (through
+    :func:`~lelsonar.reconstruct.stream.scan_input.scan_input`, where the estimate is made), for a scan being
+    closed.
 
     ``status`` is the verdict asked for; it becomes "incomplete" with steps missing and "aborted" for a
     sweep stopped early (never FINAL).  ``live``: the acquirer's log could settle conflicting copies.
@@ -78,7 +80,7 @@ def close_final(
         findings += ((DEGRADED, partial_sweep_reason(end, int(scan.start.steps))),)
     if scan.conflicts:
         findings += ((DEGRADED, conflict_reason(scan, live)),)
-    return FinalJob(scan, p, status, missing, acc, findings, revision, rank), scan_input(scan)
+    return FinalJob(scan, p, status, missing, acc, findings, revision, rank), ClosedScan(scan)
 
 
 def final_message(job: FinalJob, estimate: ScanEstimate) -> tuple[codec.Reconstruction, ScanEstimate]:

@@ -25,7 +25,9 @@ stream for that long (live: every scanner's samples wait; a replay: the reading 
   (:meth:`FinalPool.close`); a worker whose caller died sees its pipe close and exits.
 
 Results come back through one collector thread, which also feeds the next job to a freed worker at
-once, so the workers never wait for the caller.
+once, so the workers never wait for the caller.  It also sends every job (pickling a job and writing it
+through a worker's pipe waits for that worker to read it): the caller only hands a job to a worker, and
+goes on.
 """
 
 from __future__ import annotations
@@ -45,7 +47,8 @@ from types import MappingProxyType
 from typing import Any
 
 from lelsonar.errors import ConfigError, InternalError
-from lelsonar.reconstruct.estimate.record import RecordOptions, ScanEstimate, ScanInput, reconstruct_scan
+from lelsonar.reconstruct.estimate.record import RecordOptions, ScanEstimate, reconstruct_scan
+from lelsonar.reconstruct.stream.scan_input import ClosedScan, scan_input
 
 __all__ = ["Done", "FinalPool", "PoolStats", "auto_workers", "estimate_final", "received", "workers_warm"]
 
@@ -56,6 +59,9 @@ PRELOAD = ("lelsonar.reconstruct.stream.finals", "lelsonar.reconstruct.stream.fi
 _READY = "ready"
 #: Worker starts that fail one after another before the pool gives up on workers (the caller then computes).
 _MAX_FAILED_STARTS = 3
+#: How much less CPU a worker gets than its caller when they contend for a core: the caller handles the
+#: samples, and a final that waits costs no sample its latency.
+WORKER_NICENESS = 5
 #: Set once a worker of this process has been ready: the fork server has loaded the kernels, so a new
 #: pool's workers start in a fraction of a second rather than seconds.
 _WARM = threading.Event()
@@ -77,14 +83,16 @@ def auto_workers(cpus: int | None = None) -> int:
     return max(0, min(2, n - 1))
 
 
-def estimate_final(scan: ScanInput, options: RecordOptions, with_points: bool) -> ScanEstimate:
-    """A scan's final estimate of record (:func:`reconstruct_scan`), ready to be sent back from a worker.
+def estimate_final(scan: ClosedScan, options: RecordOptions, with_points: bool) -> ScanEstimate:
+    """A closed scan's final estimate of record (:func:`reconstruct_scan` of its repaired ranges,
+    :func:`~lelsonar.reconstruct.stream.scan_input.scan_input`), ready to be sent back from a worker.
 
+    The whole final runs here, the range repair included: in a worker, none of it holds the stream.
     ``with_points``: keep each method's reconstruction (the points behind each plane, for a viewer);
     without it only what the message is built from comes back.  Pass the result through :func:`received`
     on the caller's side.
     """
-    est = reconstruct_scan(scan, options)
+    est = reconstruct_scan(scan_input(scan), options)
     # A mapping proxy does not pickle: a plain dict travels, received() makes it read-only again.
     return replace(est, results=dict(est.results) if with_points else {})
 
@@ -138,6 +146,8 @@ class _Worker:
     conn: multiprocessing.connection.Connection
     ready: bool = False
     job: _Job | None = None
+    #: Held while writing to ``conn`` (the collector sends the jobs, close() the stop).
+    sending: threading.Lock = field(default_factory=threading.Lock)
 
 
 @dataclass
@@ -146,6 +156,7 @@ class _State:
 
     lock: threading.Lock = field(default_factory=threading.Lock)
     queue: deque = field(default_factory=deque)  # _Job waiting for a worker
+    outbox: deque = field(default_factory=deque)  # (_Worker, _Job) given to a worker, for the collector to send
     orphans: deque = field(default_factory=deque)  # _Job whose workers died twice: the caller runs them
     workers: list = field(default_factory=list)  # _Worker
     done: dict = field(default_factory=dict)  # ticket -> Done, not yet handed back
@@ -258,6 +269,10 @@ class FinalPool:
 
     def ready(self) -> list[Done]:
         """The results done so far that follow the last one handed back, in submission order; never waits."""
+        s = self._s
+        if not s.orphans and self._next_out not in s.done:
+            # (read without the lock, as the caller asks after every sample: what comes meanwhile is taken next)
+            return []
         self._run_orphans()
         return self._take()
 
@@ -353,20 +368,37 @@ class FinalPool:
         self._changed.notify_all()
 
     def _feed(self) -> None:
-        """(lock held) Send waiting jobs to idle ready workers."""
+        """(lock held) Give waiting jobs to idle ready workers; the collector sends them (:meth:`_send_given`)."""
         s = self._s
+        given = False
         for w in s.workers:
             if not s.queue:
-                return
+                break
             if w.ready and w.job is None:
-                job = s.queue.popleft()
-                try:
+                w.job = job = s.queue.popleft()
+                s.outbox.append((w, job))
+                given = True
+        if given and not s.closing and threading.current_thread() is not self._thread:
+            # (the pipe is open until the pool is closing, which is set under the lock held here)
+            os.write(self._wake_w, b"j")
+
+    def _send_given(self) -> None:
+        """(collector) Send the jobs given to workers, outside the lock: a worker reads a job as it is written,
+        and the caller meanwhile goes on (its results, the next job)."""
+        s = self._s
+        while True:
+            with self._changed:
+                if not s.outbox:
+                    return
+                w, job = s.outbox.popleft()
+                if w.job is not job or w not in s.workers or s.closing:
+                    continue  # its worker died meanwhile (the job waits again) or the pool is closing
+            try:
+                with w.sending:
                     w.conn.send((job.ticket, job.fn, job.args))
-                except (OSError, ValueError):  # the worker died: its sentinel says so, the job waits again
-                    s.queue.appendleft(job)
+            except (OSError, ValueError):  # the worker died: its sentinel says so (_lost runs its job again)
+                with self._changed:
                     w.ready = False
-                    continue
-                w.job = job
 
     # --- the collector thread --------------------------------------------------------------
     def _collect(self) -> None:
@@ -390,6 +422,7 @@ class FinalPool:
                         self._receive(w)
                     elif w is not None and w.process.exitcode is not None:
                         self._lost(w)
+                    self._send_given()
         except Exception:  # noqa: BLE001 - the pool must not die silently: the caller computes from here on
             _log.exception("the final pool's collector failed; finals are computed in the caller from now on")
             with self._changed:
@@ -541,7 +574,8 @@ def _shutdown(s: _State, wake_w: int, changed: threading.Condition) -> None:
         changed.notify_all()
     for w in workers:
         try:
-            w.conn.send(None)
+            with w.sending:
+                w.conn.send(None)
         except (OSError, ValueError):
             pass  # already gone
     try:
@@ -594,6 +628,10 @@ def _worker_main(conn: multiprocessing.connection.Connection) -> None:
     """A worker: run each job it is sent and send back its :class:`Done`, until told to stop (None) or its
     caller is gone."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's: it ends the workers
+    try:
+        os.nice(WORKER_NICENESS)
+    except OSError:
+        pass  # (a platform without priorities: the worker runs at its caller's)
     try:
         conn.send(_READY)
         while True:

@@ -8,11 +8,17 @@ run in step), and samples that wait behind those refits are late for every scan.
 the backlog has drained, and on every tick); a tick that still finds a backlog sheds, and counts, the refit
 of a scan that has had no estimate for over twice ``max_provisional_delay``: the scan's next refit covers the
 samples it would have.
+
+A caught-up refit runs no exact fit (the costly part, milliseconds against the update's tenths): it publishes
+at once what the planes give in O(new samples), and a plane whose exact fit is due keeps its last estimate
+(a scan whose plane a waits for its first fit has none to give yet).  Those fits run after the refits, oldest
+scan first, with what the budget leaves; the next estimate of their scan has them.  A fit is never shed.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from typing import Protocol
 
 from lelsonar import codec
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
@@ -20,8 +26,12 @@ from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
 from lelsonar.reconstruct.stream.ingest import ScanKey
 from lelsonar.reconstruct.stream.partial import Partial
 
-#: Runs one scan's provisional refit; returns the estimates it published.
-Refit = Callable[[ScanAssembly, Partial], list[codec.Reconstruction]]
+
+class Refit(Protocol):
+    """Runs one scan's provisional refit (``fits_wait``: without its exact fits); returns the estimates it
+    published."""
+
+    def __call__(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = ...) -> list[codec.Reconstruction]: ...
 
 
 class ProvisionalSchedule:
@@ -32,10 +42,11 @@ class ProvisionalSchedule:
         self.stats = stats
         self._clock = clock
         self._deferred: set[ScanKey] = set()
+        self._fits: set[ScanKey] = set()  # scans whose exact fit waits
 
     def __bool__(self) -> bool:
-        """Whether a refit waits."""
-        return bool(self._deferred)
+        """Whether a refit or an exact fit waits."""
+        return bool(self._deferred or self._fits)
 
     def defer(self, key: ScanKey, p: Partial, busy: bool) -> bool:
         """Whether the scan's refit waits (it does whenever a backlog waits)."""
@@ -51,28 +62,43 @@ class ProvisionalSchedule:
         scans: Mapping[ScanKey, ScanAssembly],
         busy: bool,
         refit: Refit,
+        start: float | None = None,
     ) -> list[codec.Reconstruction]:
-        """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
+        """Run the deferred provisional refits without their exact fits, oldest estimate first, then the exact
+        fits that wait, oldest first, for at most ``provisional_budget`` in all (from ``start`` on the service's
+        clock: by default now).
 
-        Those left wait for the next call; under a backlog (``busy``) one deferred for over twice
+        Those left wait for the next call; under a backlog (``busy``) a refit deferred for over twice
         ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
         """
         cfg = self.config
         out: list[codec.Reconstruction] = []
+        start = self._clock() if start is None else start
         waiting = sorted((p.estimated_at, key, p) for key in self._deferred if (p := partials.get(key)) is not None)
         self._deferred.clear()
-        start = self._clock()
         for n, (estimated_at, key, p) in enumerate(waiting):
             scan = scans.get(key)
             if scan is None or not p.deferred:
                 continue
             if self._clock() - start >= cfg.provisional_budget:
                 self._deferred.update(k for _, k, _ in waiting[n:])
-                break
+                return out
             p.deferred = False
             if busy and start - estimated_at >= 2 * cfg.max_provisional_delay:
                 self.stats.provisionals_shed += 1
                 p.estimated_at = start  # the next deferral waits a full delay again
-                continue
+            else:
+                out += refit(scan, p, fits_wait=True)
+            if p.fits_wanted:
+                self._fits.add(key)
+        fits = sorted((p.estimated_at, key, p) for key in self._fits if (p := partials.get(key)) is not None)
+        self._fits.clear()
+        for n, (_, key, p) in enumerate(fits):
+            scan = scans.get(key)
+            if scan is None or not p.fits_wanted:
+                continue  # (gone, or its fit ran in a refit meanwhile)
+            if self._clock() - start >= cfg.provisional_budget:
+                self._fits.update(k for _, k, _ in fits[n:])
+                break
             out += refit(scan, p)
         return out

@@ -13,10 +13,12 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
    samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
    estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) it waits too
    (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
-   one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains;
+   one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains, each
+   published at once in O(new samples) and the exact fits they need made after them;
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
-   terminal.
+   terminal; a scan completed while a backlog waits is closed once it drains, within the same budget (its
+   input reads the whole scan, and the samples come first).
 
 Gaps and when a final may be published:
 
@@ -134,6 +136,9 @@ class ReconstructionService:
         self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
         self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
         self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
+        #: Scans closed complete whose final waits for a backlog to drain (its input reads the whole scan), with
+        #: their rank, taken when they were closed.
+        self._closing: dict[ScanKey, tuple[int, ScanAssembly, Partial]] = {}
 
     @property
     def recover(self) -> Callable[[RecoveryRequest], bool] | None:
@@ -179,7 +184,7 @@ class ReconstructionService:
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
-            in_flight = {job.scan.key for job in self._dispatched.values()}
+            in_flight = {job.scan.key for job in self._dispatched.values()} | self._closing.keys()
             for key in late:
                 if key in in_flight:
                     self._late.add(key)  # re-opened, if its verdict asks for it, once its final is made
@@ -204,7 +209,7 @@ class ReconstructionService:
         """
         now = self._clock()
         cfg = self.config
-        out = self._catch_up_provisionals(busy)
+        out = self._catch_up(busy)
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is None:  # forgotten by the bounded scan table (counted in ingest.evicted)
@@ -258,24 +263,38 @@ class ReconstructionService:
         """Only the provisional refits that waited for a backlog that has drained, within
         ``provisional_budget``: no walk over every open scan, which :meth:`tick` makes, so a source may call
         this after every payload and :meth:`tick` less often."""
-        return self._catch_up_provisionals(False)
+        return self._catch_up(False) + self.collect()
 
-    def _catch_up_provisionals(self, busy: bool) -> list[codec.Reconstruction]:
-        """Run the deferred provisional refits, oldest estimate first, for at most ``provisional_budget``.
+    def _catch_up(self, busy: bool) -> list[codec.Reconstruction]:
+        """Close the scans whose final waited for a backlog, then run the deferred provisional refits, oldest
+        estimate first, for at most ``provisional_budget`` in all.
 
-        Those left wait for the next tick; under a backlog (``busy``) one deferred for over twice
-        ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
+        Those left wait for the next call; under a backlog (``busy``) a refit deferred for over twice
+        ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples
+        (:class:`~lelsonar.reconstruct.stream.provisionals.ProvisionalSchedule`).  A final is never shed.
         """
-        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional)
+        start = self._clock()
+        for _, scan, p in list(self._closing.values()):
+            if self._clock() - start >= self.config.provisional_budget or self._pool_full():
+                break  # (a full pool would make the final here, on the samples' thread: it waits for room)
+            self._finalise(scan, p, "final")
+        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional, start)
+
+    def _pool_full(self) -> bool:
+        """Whether the pool's workers are all taken and its queue full (a final submitted now would run here)."""
+        pool = self._pool
+        return pool is not None and pool.workers > 0 and pool.unfinished >= pool.capacity
 
     @property
     def has_deferred(self) -> bool:
         """Whether a provisional refit or a final waits for :meth:`tick` (they waited for a backlog)."""
-        return bool(self._schedule)
+        return bool(self._schedule or self._closing)
 
     def finish(self) -> list[codec.Reconstruction]:
         """End of input (a replay reached the end of its file): finalise every open scan now, and wait for
         every final on its way."""
+        for _, closed, waited in list(self._closing.values()):
+            self._finalise(closed, waited, "final")  # (closed complete while a backlog waited)
         for key, p in list(self._partials.items()):
             scan = self.ingest.scans.get(key)
             if scan is not None:
@@ -416,7 +435,7 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
-                self._finalise(scan, p, "final")
+                self._close(scan, p, busy)
                 return []
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -445,22 +464,28 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
-            self._finalise(scan, p, "final")
+            self._close(scan, p, busy)
             return []
         if self._schedule.defer(scan.key, p, busy):
             return []  # tick() catches up; the backlog's later samples will be in the next refit
         return self._provisional(scan, p)
 
-    def _provisional(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
-        """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`)."""
+    def _provisional(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = False) -> list[codec.Reconstruction]:
+        """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`), and the
+        exact fits that waited (``fits_wait``: they wait on, and the estimate keeps the planes it has)."""
         if not self.config.provisional or scan.key in self._reopened:
             return []  # (a re-opened scan already had its verdict: only its new final is published)
-        if scan.n_received - p.steps_at_fit < self.config.refit_every:
+        fits = not fits_wait and p.fits_wanted  # a fit that waited runs whatever the refit's gates
+        if scan.n_received - p.steps_at_fit < self.config.refit_every and not fits:
             return []  # cheap: no array work per sample between refits, nor between looks for the corner
         had_corner = p.critical is not None
-        if had_corner and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9:
+        if (
+            had_corner
+            and not fits
+            and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9
+        ):
             return []  # within the per-scan rate limit: no estimate, and no input built to learn that
-        est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p)
+        est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p, fits_wait=fits_wait)
         if not had_corner and p.critical is not None:
             self._event(
                 "INFO",
@@ -476,24 +501,39 @@ class ReconstructionService:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
 
+    def _close(self, scan: ScanAssembly, p: Partial, busy: bool) -> None:
+        """A complete scan's final: made now, or while a backlog waits (``busy``) once it drains: making its
+        input reads the whole scan, and the samples come first.  Its rank is taken now."""
+        if not busy:
+            self._finalise(scan, p, "final")
+            return
+        # Closed now, as a final made now closes it: a straggler is rejected as late.
+        self._partials.pop(scan.key, None)
+        self.ingest.close(scan.key)
+        self._closing[scan.key] = (next(self._ranks), scan, p)
+        while len(self._closing) > self.config.max_scans:
+            self._finalise(*next(iter(self._closing.values()))[1:], "final")  # bounded: the oldest is made now
+
     def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
         """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
-        job, inp = close_final(
+        rank = self._closing.pop(scan.key, (None,))[0]
+        job, closed = close_final(
             scan,
             p,
             status,
             live=self.recover is not None,
             revision=self._reopened.pop(scan.key, 0),
-            rank=next(self._ranks),
+            rank=next(self._ranks) if rank is None else rank,
         )
         # The scan is done: forget its state; a straggler is then rejected as late.
         self._partials.pop(scan.key, None)
         self.ingest.close(scan.key)
         if self._pool is None:
-            self._complete(job, Done(0, reconstruct_scan(inp, self._options)))
+            self._complete(job, Done(0, reconstruct_scan(scan_input(closed), self._options)))
         else:
-            # The points behind each plane travel back only for an observer, which draws them.
-            self._dispatched[self._pool.submit(estimate_final, inp, self._options, self._observer is not None)] = job
+            # The whole final, its range repair included, in the pool; the points behind each plane travel
+            # back only for an observer, which draws them.
+            self._dispatched[self._pool.submit(estimate_final, closed, self._options, self._observer is not None)] = job
 
     def _complete(self, job: FinalJob, done: Done) -> None:
         """Publish a final whose estimate is made (or say why it could not be)."""

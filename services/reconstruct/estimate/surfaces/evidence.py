@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
@@ -23,8 +24,10 @@ from lelsonar.reconstruct.estimate.surfaces.regions import (
     amplitude_jump,
     bearing_from_amplitude,
     capsule_x,
+    end_crossing_stderr,
     stack_fits,
     unfaded_ends,
+    weaker_at,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -43,11 +46,13 @@ __all__ = [
     "pair_corner",
     "pair_stderr",
     "end_stderr",
+    "handed_over",
     "reach_stderr",
     "plane_end",
     "plane_line",
     "stack_dihedral",
     "stack_or_pair",
+    "unseen_corner",
     "wrap",
 ]
 
@@ -139,10 +144,13 @@ def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap:
         return bool(np.any(before < ref - tolerance)), bool(np.any(after < ref - tolerance))
 
 
-def _handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], opts: SurfaceOptions) -> bool:
+def handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], opts: SurfaceOptions) -> bool:
     """Whether another echo at a like range answers just past a flagged end: the echoes sum there, so the end's
-    amplitude says nothing of where the region's own echo fades.  Like: within twice the range tolerance of the
-    region's median range, the band a reading of the region's own target stays in."""
+    amplitude says nothing of where the region's own echo fades.  Like: nearer by no more than twice the range
+    tolerance (the band a reading of the region's own target stays in), or farther by no more than that plus
+    the amplitude window's reach in range (:data:`~lelsonar.reconstruct.estimate.corner.wall.ECHO_WINDOW_RANGE`):
+    a later echo that rises inside the window the amplitude is read in adds to the region's own there, though
+    the first echo alone sets the range."""
     spread = 2 * opts.range_tolerance
     with np.errstate(all="ignore"):
         ref = float(np.nanmedian(distance[region.rows, region.capsules]))
@@ -154,7 +162,9 @@ def _handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], 
     if ends[1]:
         past.append(distance[last + 1 : last + 1 + reach])
     with np.errstate(invalid="ignore"):
-        return any(bool(np.any(np.abs(block - ref) <= spread)) for block in past)
+        return any(
+            bool(np.any((block - ref >= -spread) & (block - ref <= spread + ECHO_WINDOW_RANGE))) for block in past
+        )
 
 
 def measure_region(
@@ -202,7 +212,7 @@ def measure_region(
     unfaded = unfaded or (False, False)
     # Its consequence, a centre off the beam pattern's peak, must show beyond both σ before the centre is doubted
     # (without a peak in the region nothing vouches for the centre).
-    stops = any(unfaded) and not _handed_over(region, distance, unfaded, opts)
+    stops = any(unfaded) and not handed_over(region, distance, unfaded, opts)
     if stops and peak_fit is not None:
         ends_se = math.hypot(step, step) / math.sqrt(48.0)
         stops = abs(peak_fit[0] - mid) > 3.0 * math.hypot(peak_fit[1], quant, ends_se)
@@ -222,7 +232,18 @@ def measure_region(
         before = abs(float(gamma[first] - gamma[first - 1])) if first > 0 else step
         after = abs(float(gamma[last + 1] - gamma[last])) if last + 1 < gamma.size else step
         ends = math.sqrt((before * before + after * after) / 48.0)
+        # The amplitude noise moves each end's threshold crossing too (the beam's log slope there over it).
+        if amplitude is not None:
+            jitter = end_crossing_stderr(g, per_step)
+            ends = math.sqrt(ends * ends + (jitter[0] ** 2 + jitter[1] ** 2) / 4.0)
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
+        # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
+        # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
+        # 3 σ of their difference, each weighs by its inverse variance.
+        peak_sb = math.hypot(peak_fit[1], quant) if peak_fit is not None else math.inf
+        if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
+            wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
+            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
         # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
@@ -411,14 +432,20 @@ def beyond_reach(
 
 
 def plane_end(
-    m: Measured, planes: list[Measured], opts: SurfaceOptions, seen: list[Measured] | None = None
+    m: Measured,
+    planes: list[Measured],
+    opts: SurfaceOptions,
+    seen: list[Measured] | None = None,
+    gamma: np.ndarray | None = None,
 ) -> tuple[list[int], float] | None:
     """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
 
     The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ.
     Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
     plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
-    region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).
+    region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).  With ``gamma`` (the
+    sweep's), no bearing inside the region where its own echo is weaker than elsewhere in it
+    (:func:`~.regions.weaker_at`): a target there would be its region's strongest echo.
 
     Returns
     -------
@@ -432,12 +459,73 @@ def plane_end(
         half = math.acos(h / m.depth)
         if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
-        for bearing in (pj.bearing - half, pj.bearing + half):
-            if in_span(wrap(bearing), m, m.step, opts.beyond_cut) and not (
-                seen is not None and beyond_reach(m, wrap(bearing), pj, seen, opts, placed=True)
+        # Either side of the foot may fall within the reach past a cut end: the side nearer the region's own
+        # steps first (its echo is heard there, the other side only through the beam's far flank).
+        sides = sorted((wrap(pj.bearing - half), wrap(pj.bearing + half)), key=lambda b: _off_span(b, m))
+        for bearing in sides:
+            if (
+                in_span(bearing, m, m.step, opts.beyond_cut)
+                and not (seen is not None and beyond_reach(m, bearing, pj, seen, opts, placed=True))
+                and not (gamma is not None and weaker_at(gamma[m.region.steps], m.step_amplitude, bearing))
             ):
-                return [j], wrap(bearing)
+                return [j], bearing
     return None
+
+
+def _off_span(bearing: float, m: Measured) -> float:
+    """How far ``bearing`` lies outside the region's span of γ (0 inside), rad."""
+    return max(0.0, m.span[0] - bearing, bearing - m.span[1])
+
+
+def unseen_corner(mi: Measured, mk: Measured, pj: Measured, opts: SurfaceOptions) -> float | None:
+    """A bearing for the plane of region ``mi`` (its own left open) whose concave corner with plane ``pj`` is
+    region ``mk``: the two regions' echoes explained together, ``mi`` a wall's mirror and ``mk`` its corner.
+
+    A mirror answers at its foot, at its depth ``h_i``; two walls meet on the line where ``n_i·X = h_i`` and
+    ``n_j·X = h_j`` (its range ``|X|``, the double bounce of :func:`pair_corner`).  For a concave corner seen
+    from inside, ``X`` lies between the two feet in the fan.  Where some bearing ``β_i`` within ``mi``'s reach
+    (its span, past a cut end by up to ``beyond_cut``) puts that line at ``mk``'s depth (within ``on_trace``) and
+    at a bearing within ``mk``'s reach, both regions are explained by one wall and its corner with ``pj``.  The
+    wall's foot lies past ``mi``'s cut end away from ``mk``, and ``mk`` is cut on ``mi``'s side: the wall's nearer
+    mirror masks its corner where both answer.
+
+    Returns
+    -------
+    That ``β_i`` (the one nearest ``mi``'s span), rad, or None.
+    """
+    # The wall's foot lies past mi's cut end on the side away from mk (a foot inside its region would show as
+    # its amplitude peak or its centre): mk beside it, masked there by the wall's nearer mirror.
+    if mk.span[0] > mi.span[1] and mi.region.cut_before and mk.region.cut_before:
+        lo, hi = mi.span[0] - opts.beyond_cut, mi.span[0] - mi.step
+    elif mk.span[1] < mi.span[0] and mi.region.cut_after and mk.region.cut_after:
+        lo, hi = mi.span[1] + mi.step, mi.span[1] + opts.beyond_cut
+    else:
+        return None
+    beta = np.arange(lo, hi + 0.5 * mi.step, mi.step)
+    if not beta.size:
+        return None
+    ti = beta - pj.bearing
+    sin_t = np.sin(ti)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # X in the fan from n_i·X = h_i, n_j·X = h_j (unit normals at β_i and β_j), in the frame of β_j.
+        along_j = np.full(beta.size, pj.depth)
+        across = (mi.depth - pj.depth * np.cos(ti)) / sin_t
+        rho = np.hypot(along_j, across)
+        bearing_x = pj.bearing + np.arctan2(across, along_j)
+    # Between the feet (a concave corner seen from inside), at mk's depth and within its reach.
+    t_w = np.angle(np.exp(1j * ti))
+    off_x = np.angle(np.exp(1j * (bearing_x - pj.bearing)))
+    between = (np.sign(off_x) == np.sign(t_w)) & (np.abs(off_x) < np.abs(t_w))
+    lo_k = mk.span[0] - mk.step - (opts.beyond_cut if mk.region.cut_before else 0.0)
+    hi_k = mk.span[1] + mk.step + (opts.beyond_cut if mk.region.cut_after else 0.0)
+    at_x = np.angle(np.exp(1j * bearing_x))
+    ok = np.isfinite(rho) & (np.abs(sin_t) > 0.2) & between & (np.abs(rho - mk.depth) <= opts.on_trace)
+    ok &= (at_x >= lo_k) & (at_x <= hi_k)
+    if not ok.any():
+        return None
+    centre = 0.5 * (mi.span[0] + mi.span[1])
+    cand = beta[ok]
+    return wrap(float(cand[int(np.argmin(np.abs(cand - centre)))]))
 
 
 def stack_dihedral(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[int, float, str] | None:

@@ -2,9 +2,10 @@
 
 Per region of constant depth (:mod:`.regions`):
 
-* **bearing** from the beam pattern: the peak of the echo amplitudes across γ
-  (:func:`~.regions.bearing_from_amplitude`), else the region's centre when it
-  is not cut; a cut region without an amplitude peak leaves the bearing
+* **bearing** from the beam pattern: the region's centre when it is not cut,
+  weighed with the peak of the echo amplitudes across γ
+  (:func:`~.regions.bearing_from_amplitude`) where the two agree, else that
+  peak alone; a cut region without an amplitude peak leaves the bearing
   undetermined, and says so.  A range-only fit of a wall seen near the foot of
   its perpendicular is ill-posed in bearing (the capsules differ across the
   beam only by the radial offset), so the bearing never comes from it.
@@ -36,7 +37,13 @@ Per region of constant depth (:mod:`.regions`):
     curvature) is;
   - anything else: a **plane**.
 
+A target only part of the capsule stack hears, nearer than what the rest hear at its steps (an edge off the
+fan), is found among the readings no region holds; it is a corner or an edge, never a plane.  A weak region
+whose amplitude steps as no one beam pattern does holds two diffracting targets at one range: two edges.
+
 Each plane is fitted on its own echoes, walls joined at concave corners with them (:mod:`.fitting`, :mod:`.joint`).
+A corner or an edge lies where its echo comes from, off the fan by its stack slope's tilt; a concave corner
+of two fitted planes on their line, with their covariance (:mod:`.placement`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
@@ -71,19 +78,30 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     stack_or_pair,
     sweep_step,
     unit_normal,
+    unseen_corner,
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flanks import split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
+    amplitude_jump,
     capsule_x,
     extrapolated_peak,
     find_regions,
     log_amplitude_curvature,
     peak_at_bearing,
+    subregion,
 )
-from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions, SurfaceSet
+from lelsonar.reconstruct.estimate.surfaces.results import (
+    OFF_FAN,
+    UNSETTLED,
+    Feature,
+    Surface,
+    SurfaceOptions,
+    SurfaceSet,
+)
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
 
@@ -95,29 +113,28 @@ def _feature(
     direction: np.ndarray,
     surfaces: tuple[str, ...],
     reasons: list[str],
-    *,
-    tilted: bool = False,
+    opts: SurfaceOptions,
+    placed: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Feature:
-    """``tilted``: a line across the stack, which lies off the fan by the region's tilt (its point there)."""
-    b = unit_normal(m.bearing, m.tilt if tilted else 0.0)
-    across = np.cross(direction, b)
-    nrm = float(np.linalg.norm(across))
-    across = across / nrm if nrm > 1e-9 else np.zeros(3)
-    # Along the beam: the depth's scatter; across it: the bearing's, at this depth.
-    sd = max(0.003, m.depth_stderr) if math.isfinite(m.depth_stderr) else 0.003  # at least the range noise floor
-    cov = sd**2 * np.outer(b, b) + (m.depth * m.bearing_stderr) ** 2 * np.outer(across, across)
+    """``placed``: the point and its covariance where the planes it joins put it; else its own echo's point,
+    off the fan by its stack slope's tilt (with one capsule, anywhere within the beam's half-width)."""
+    if placed is None:
+        tilt_se = m.tilt_stderr if math.isfinite(m.tilt_stderr) else opts.beyond_cut / math.sqrt(3.0)
+        placed = echo_point(m.depth, m.depth_stderr, m.bearing, m.bearing_stderr, m.tilt, tilt_se)
     return Feature(
         kind=kind,
         label=label,
-        point=m.depth * b,
+        point=placed[0],
         direction=direction,
-        covariance=cov,
+        covariance=placed[1],
         bearing=m.bearing,
         depth=m.depth,
         surfaces=surfaces,
         reasons=tuple(reasons),
         steps=m.region.steps.copy(),
         n_echoes=m.region.n_echoes,
+        rows=m.region.rows.copy(),
+        capsules=m.region.capsules.copy(),
     )
 
 
@@ -171,6 +188,18 @@ def extract_surfaces(
     for i in range(len(measured)):
         split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
     measured = split
+    # A target heard by part of the stack only, nearer than what its steps' other capsules hear (an edge off
+    # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
+    # its readings are off their step's range, so a second pass over the readings no region holds finds it.
+    partial = set()
+    for r in partial_regions(d, [m.region for m in measured], opts, spread):
+        partial.add(len(measured))
+        pm = measure_region(r, g, d, amp, geometry, opts, step=step)
+        # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the
+        # target's curved ranges: its tilt is known only to the beam's half-width.
+        reach = opts.beyond_cut / math.sqrt(3.0)
+        tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
+        measured.append(replace(pm, tilt_stderr=tilt_se))
     regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
@@ -255,10 +284,42 @@ def extract_surfaces(
             return "strong", strong_there
         return "unknown", ""
 
+    # Two diffracting targets at one range side by side (a thin wall's two ends, a box's two edges) make one
+    # region whose amplitude steps where one beam pattern hands over to the other: two edges, not one.
+    for i in range(len(measured)):
+        m = measured[i]
+        # (Part of the stack hears a target off the fan on fewer steps in its farther capsules: its steps'
+        # medians step where those capsules join, which is no second target.)
+        if i in partial or not weak(m) or m.region.cut_before or m.region.cut_after:
+            continue
+        jump = amplitude_jump(g[m.region.steps], m.step_amplitude)
+        if jump is None:
+            continue
+        k = int(np.searchsorted(g[m.region.steps], jump[0])) if g[-1] > g[0] else 0
+        if not opts.min_steps <= k <= m.region.steps.size - opts.min_steps:
+            continue
+        pieces = [
+            subregion(m.region, m.region.steps[:k], cut_before=False, cut_after=True),
+            subregion(m.region, m.region.steps[k:], cut_before=True, cut_after=False),
+        ]
+        first, second = (measure_region(r, g, d, amp, geometry, opts, step=step) for r in pieces)
+        measured[i] = first
+        measured.append(second)
+
     across = [across_stack(m, opts) for m in measured]
     candidates = [i for i, m in enumerate(measured) if not across[i]]
     # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
-    determined = [i for i in candidates if measured[i].bearing_source != "undetermined" and not weak(measured[i])]
+    # (A target only part of the stack hears is no mirror: every capsule hears a mirror's foot alike.)
+    determined = [
+        i
+        for i in candidates
+        if measured[i].bearing_source != "undetermined" and not weak(measured[i]) and i not in partial
+    ]
+
+    def in_fan() -> list[Measured]:
+        """The regions every capsule hears: a target part of the stack hears lies off the fan, so it says
+        nothing of how far a plane runs along its trace in the fan."""
+        return [x for k, x in enumerate(measured) if k not in partial]
 
     def on_traces(i: int, pool: list[int]) -> list[int]:
         p = feature_point(measured[i])
@@ -274,7 +335,7 @@ def extract_surfaces(
             mi = measured[i]
             sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
             tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
-            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, measured, opts):
+            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, in_fan(), opts):
                 out.append(j)
         return out
 
@@ -292,9 +353,11 @@ def extract_surfaces(
         or stack_dihedral(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
     }
     planes = [i for i in determined if i not in ends]
+    walls_of_corners = _walls_of_unseen_corners(measured, planes, across, partial, g, opts)
+    for i, text in walls_of_corners.items():
+        measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
     across_lines: set[int] = set()
-    leaning: set[int] = set()
     for i, m in enumerate(measured):
         pool = others(i, planes)
         # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
@@ -344,9 +407,8 @@ def extract_surfaces(
             measured[i] = m = replace(
                 m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
             )
-            leaning.add(i)
         elif m.bearing_source == "undetermined":
-            placed = plane_end(m, [measured[j] for j in pool], opts, measured)
+            placed = None if i in walls_of_corners else plane_end(m, [measured[j] for j in pool], opts, in_fan(), g)
             if placed is None:
                 ties = []
             else:
@@ -392,6 +454,13 @@ def extract_surfaces(
         if extra > 0:
             measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
 
+    # A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
+    # bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled.
+    for i in partial:
+        if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
+            kind, reasons, ties = kinds[i]
+            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
+
     # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
     pairs = [(i, ties) for i, ties in pairs if i not in across_lines]
@@ -401,34 +470,76 @@ def extract_surfaces(
 
     surfaces: list[Surface] = []
     label_of: dict[int, str] = {}
+    surface_of: dict[int, Surface] = {}
     failed = 0
+    unsorted = 0
     for i, m in enumerate(measured):
         if i in kinds:
+            continue
+        if i in partial:
+            unsorted += m.region.n_echoes
             continue
         s = fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts, joint.get(i))
         if s is None:
             failed += m.region.n_echoes
             continue
         label_of[i] = s.label
+        surface_of[i] = s
         surfaces.append(s)
+
+    def pair_placement(ia: int, ib: int, m: Measured) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """A pair corner's line from its two fitted planes: its nearest point, that point's covariance (the
+        planes' full covariance through the intersection) and its direction."""
+        sa, sb = surface_of.get(ia), surface_of.get(ib)
+        if sa is None or sb is None:
+            return None
+        params = np.array([sa.bearing, sa.tilt, sa.offset, sb.bearing, sb.tilt, sb.offset])
+        ja, jb = joint.get(ia), joint.get(ib)
+        tied = ja is not None and jb is not None and ja.full is not None
+        if ja is not None and jb is not None and ja.full is not None:
+            idx = [3 * ja.index + k for k in range(3)] + [3 * jb.index + k for k in range(3)]
+            cov6 = ja.full[np.ix_(idx, idx)]
+        else:
+            cov6 = np.zeros((6, 6))
+            cov6[:3, :3], cov6[3:, 3:] = sa.covariance, sb.covariance
+        line = pair_line_point(params, cov6)
+        if line is None:
+            return None
+        point, cov = line
+        if not tied:
+            # The walls fitted apart: the corner's own double-bounce range is a measurement they did not use.
+            point, cov = with_range(point, cov, m.depth, m.depth_stderr)
+        return point, cov, line_direction(params)
+
     corners: list[Feature] = []
     edges: list[Feature] = []
+    stack_axis = np.array([1.0, 0.0, 0.0])
     for i, (kind, reasons, ties) in sorted(kinds.items()):
         m = measured[i]
         tied = tuple(label_of[j] for j in ties if j in label_of)
+        located: tuple[np.ndarray, np.ndarray] | None = None
         if i in across_lines:
-            direction = np.cross(np.array([1.0, 0.0, 0.0]), unit_normal(m.bearing))
+            direction = np.cross(stack_axis, unit_normal(m.bearing))
         elif len(ties) >= 2:
-            a, b = measured[ties[0]], measured[ties[1]]
-            direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
+            pair_line = pair_placement(ties[0], ties[1], m)
+            if pair_line is not None:
+                located, direction = (pair_line[0], pair_line[1]), pair_line[2]
+            else:
+                a, b = measured[ties[0]], measured[ties[1]]
+                direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
+        elif len(ties) == 1:
+            # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
+            pj = measured[ties[0]]
+            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
+            if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
+                direction = stack_axis
         else:
-            direction = np.array([1.0, 0.0, 0.0])  # along the stack: a line the fan crosses
+            direction = stack_axis  # along the stack: a line the fan crosses
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction
         out = corners if kind == "corner" else edges
-        tilted = i in across_lines or i in leaning
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, tilted=tilted))
+        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, opts, located))
 
     valid = np.isfinite(d)
     in_region = np.zeros_like(valid)
@@ -445,6 +556,8 @@ def extract_surfaces(
     }
     if failed:
         unexplained["in regions no plane fits"] = failed
+    if unsorted:
+        unexplained["heard by part of the capsule stack only, neither corner nor edge"] = unsorted
     return SurfaceSet(
         surfaces=tuple(surfaces),
         corners=tuple(corners),
@@ -452,6 +565,50 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
+
+
+def _walls_of_unseen_corners(
+    measured: list[Measured],
+    planes: list[int],
+    across: list[bool],
+    partial: set[int],
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> dict[int, str]:
+    """Regions without a bearing that are a wall's own mirror, its corner with a plane the deeper region beside it.
+
+    Where two such regions fit one plane's trace on one side, both cannot be its end (a mirror answers at its
+    foot only, so a point of the trace short of its end echoes nothing).  The nearer one is a wall's mirror
+    when a bearing it leaves open makes that wall's corner with the plane the deeper one
+    (:func:`~.evidence.unseen_corner`): one wall and its corner explain both.  Returns those regions, each with
+    the finding that says so.  A target only ``partial`` capsules hear is no mirror, and says nothing of a
+    plane's trace in the fan.
+    """
+    open_ = [
+        i for i, m in enumerate(measured) if m.bearing_source == "undetermined" and not across[i] and i not in partial
+    ]
+    in_fan = [m for i, m in enumerate(measured) if i not in partial]
+    out: dict[int, str] = {}
+    for k in open_:
+        mk = measured[k]
+        for j in planes:
+            pj = measured[j]
+            if plane_end(mk, [pj], opts, in_fan, gamma) is None:
+                continue
+            for i in open_:
+                mi = measured[i]
+                if i == k or i in out or not mi.depth < mk.depth - opts.range_tolerance:
+                    continue
+                # Beside each other in the sweep: nothing between their spans.
+                lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
+                if any(lo < o.span[0] and o.span[1] < hi for o in measured):
+                    continue
+                if unseen_corner(mi, mk, pj, opts) is not None:
+                    out[i] = (
+                        f"a wall at {mi.depth:.2f} m whose corner with the plane at {pj.depth:.2f} m is the echo "
+                        f"{mk.depth:.2f} m away beside it: not that plane's end"
+                    )
+    return out
 
 
 def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:

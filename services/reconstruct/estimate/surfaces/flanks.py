@@ -3,7 +3,8 @@
 * :func:`split_flanks`: both ends the middle's double bounce with a surface across the fan explains;
 * :func:`trim_ends`: ends whose slope along the stack, or depth, is not the middle's plane's;
 * :func:`split_ends`: the two for one region, in that order;
-* :func:`split_dihedral`: an end block that is the double bounce of the plane with a nearer plane.
+* :func:`split_dihedral`: an end block that is the double bounce of the plane with a nearer plane;
+* :func:`partial_regions`: a target part of the stack hears, among the readings no region holds.
 """
 
 from __future__ import annotations
@@ -22,10 +23,18 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     unit_normal,
     wrap,
 )
-from lelsonar.reconstruct.estimate.surfaces.regions import subregion
+from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
-__all__ = ["split_dihedral", "split_ends", "split_flanks", "step_slopes", "trim_ends"]
+__all__ = [
+    "partial_regions",
+    "split_dihedral",
+    "split_ends",
+    "split_flanks",
+    "step_slopes",
+    "trim_ends",
+    "trimmed_centre",
+]
 
 
 def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -109,9 +118,12 @@ def split_flanks(
     Each end's run of steps whose slopes stand off the region's median slope together by more than
     ``curvature_sigmas`` of their σ (:func:`step_slopes`, ``Σz/√n``), ``min_steps`` long, splits off, cut on
     the middle's side, where the middle's own double bounce with a surface across the fan explains its
-    ranges (:func:`~.evidence.stack_dihedral`); else it stays the plane's.  The
+    ranges (:func:`~.evidence.stack_dihedral`); else it stays the plane's.  With both flanks split, the
     middle keeps the whole region's bearing when that came from its centre: the flanks' target shares it (a
-    line's nearest point lies at the wall's foot), so the span stays symmetric about the foot.
+    line's nearest point lies at the wall's foot), so the span stays symmetric about the foot.  With one, the
+    other side's flank is not in the region (its echoes made a region of their own), so the whole span is
+    lopsided by the split flank's width and the middle's own centre (where the wall's nearer echo gives way
+    on both sides) is the bearing.
 
     Returns
     -------
@@ -134,7 +146,7 @@ def split_flanks(
     def middle_of(head: int, tail: int) -> Measured:
         middle = subregion(r, r.steps[head : r.steps.size - tail], r.cut_before, r.cut_after)
         centre = measure_region(middle, gamma, distance, amplitude, geometry, opts, step=m.step)
-        if m.bearing_source != "region centre":
+        if m.bearing_source != "region centre" or not (head and tail):
             return centre
         h_i = centre.ranges + centre.positions @ unit_normal(m.bearing, centre.tilt)
         return replace(
@@ -192,7 +204,8 @@ def trim_ends(
     either end whose own slope differs from the plane's (the median over the region's middle half) by more than
     ``curvature_sigmas`` of its standard error ``σ/√Σ(x − x̄)²`` (``σ`` one range's, from the spread of
     the steps' slopes, 1.4826 MAD) are not the plane's, nor are those whose mean depth along the plane's
-    normal lies deeper than the middle half's by more than that many σ of a step's mean.  As they lie deeper
+    normal lies deeper than the middle half's by more than that many σ of a step's mean (with
+    or without readings enough for a slope).  As they lie deeper
     than the plane, its echo ended there on its
     own (the plane keeps its ends uncut); a nearer block would have masked it (a cut).
 
@@ -230,17 +243,22 @@ def trim_ends(
     depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
     level = float(np.median(depth[middle]))
     spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
+    # Depth needs no slope: an end step with too few readings for one (a corner's echo in one or two capsules
+    # at the beam's edge) is judged by its depth alone.
+    judged = finite.copy()
     if spread > 0:
-        off |= finite & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
+        deep = (count > 0) & (depth - level > opts.curvature_sigmas * spread / np.sqrt(np.maximum(count, 1)))
+        off |= deep
+        judged |= deep
 
     def block(order: np.ndarray) -> int:
         """How many steps from that end up to the last departing one before the first that agrees (a step
-        with too few readings for a slope goes with its neighbours)."""
+        with too few readings to be judged goes with its neighbours)."""
         n_off = 0
         for j, s in enumerate(order):
-            if finite[s] and not off[s]:
+            if judged[s] and not off[s]:
                 break
-            if finite[s]:
+            if judged[s]:
                 n_off = j + 1
         return n_off
 
@@ -262,7 +280,57 @@ def trim_ends(
         parts.insert(0, subregion(r, r.steps[:head], r.cut_before, True))
     if tail >= opts.min_steps:
         parts.append(subregion(r, r.steps[k - tail :], True, r.cut_after))
-    return [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
+    out = [measure_region(p, gamma, distance, amplitude, geometry, opts) for p in parts]
+    at = 1 if head >= opts.min_steps else 0
+    nearest = (int(r.steps[head - 1]) if head else None, int(r.steps[k - tail]) if tail else None)
+    out[at] = trimmed_centre(out[at], gamma, nearest)
+    return out
+
+
+def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None, int | None]) -> Measured:
+    """The centre bearing of a plane's core whose end steps were trimmed off as another target's.
+
+    A centred region's ends are where the beam pattern fades its echo, each within the gap to the next step
+    out (variance ``gap²/12`` each, ``(gap_a² + gap_b²)/48`` for their mean).  The trimmed step next to the
+    core held a like-range echo (the plane's corner with a surface across the fan, a few mm deeper) whose
+    slope or depth is not the plane's: where the plane's fading echo sums into it, it moves that step's ranges
+    and slope, so the plane's own echo may have faded there or one gap past it.  Farther out the other
+    target's echo stands alone.  Uniform over that span (``w``, from the core's end to that step, plus the
+    gap past it), the end is the middle of the core's end and that step, with variance ``(w + gap)²/12``.
+    Only the bearing of a core centred on its own span changes (and its depth, along the new normal).
+
+    Parameters
+    ----------
+    core : Measured
+        The trimmed region's core.
+    gamma : (n_steps,) array
+        The sweep's γ, rad.
+    nearest : (before, after)
+        The trimmed step next to the core before and after it (None: that end was not trimmed).
+    """
+    if core.bearing_source != "region centre" or nearest == (None, None):
+        return core
+    steps = core.region.steps
+    n = gamma.size
+
+    def gap(step: int, outward: int) -> float:
+        nxt = step + outward
+        return abs(float(gamma[nxt] - gamma[step])) if 0 <= nxt < n else core.step
+
+    ends, base = [], 0.0
+    for step, trimmed, outward in ((int(steps[0]), nearest[0], -1), (int(steps[-1]), nearest[1], 1)):
+        g_out = gap(step, outward)
+        base += g_out * g_out / 48.0
+        if trimmed is None:
+            ends.append((float(gamma[step]), g_out * g_out / 12.0))
+        else:
+            span = abs(float(gamma[trimmed] - gamma[step])) + gap(trimmed, outward)
+            ends.append((0.5 * float(gamma[step] + gamma[trimmed]), span * span / 12.0))
+    bearing = 0.5 * (ends[0][0] + ends[1][0])
+    # The ends' share of the core's σ replaced; whatever else it holds (a jump's shift) kept.
+    var = max(core.bearing_stderr**2 - base, 0.0) + 0.25 * (ends[0][1] + ends[1][1])
+    h_i = core.ranges + core.positions @ unit_normal(bearing, core.tilt)
+    return replace(core, bearing=bearing, bearing_stderr=math.sqrt(var), depth=float(np.median(h_i)))
 
 
 def split_ends(
@@ -391,3 +459,53 @@ def split_dihedral(
             return None
         return [plane_m, corner_m]
     return None
+
+
+def partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spread: float) -> list[Region]:
+    """Regions among the readings no region holds, nearer than their steps' held readings by more than the
+    range tolerance (a first-echo receiver: a capsule that hears a nearer target hears it first).
+
+    Parameters
+    ----------
+    d : (n_steps, n_capsules) array
+        The sweep's ranges, m.
+    held : list of Region
+        The regions found so far.
+    opts : SurfaceOptions
+    spread : float
+        m: as :func:`~.regions.find_regions`' ``max_spread``.
+
+    Returns
+    -------
+    list of Region, in sweep order.
+    """
+    mask = np.zeros(d.shape, dtype=bool)
+    for r in held:
+        mask[r.rows, r.capsules] = True
+    rest = np.where(mask, np.nan, d)
+    out = []
+    for r in find_regions(
+        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+    ):
+        own = float(np.median(d[r.rows, r.capsules]))
+        others = d[r.steps][mask[r.steps]]
+        if (
+            others.size
+            and own < float(np.median(others)) - opts.range_tolerance
+            and not _flank_of(r, own, held, d, opts)
+        ):
+            out.append(r)
+    return out
+
+
+def _flank_of(r: Region, own: float, held: list[Region], d: np.ndarray, opts: SurfaceOptions) -> bool:
+    """Whether a region the whole stack hears, at ``r``'s range (within twice the range tolerance) and on
+    overlapping or adjacent steps (within ``max_gap``), is the same target: ``r`` is its flank, where only
+    part of the stack still hears it."""
+    lo, hi = int(r.steps[0]), int(r.steps[-1])
+    for h in held:
+        if int(h.steps[0]) > hi + opts.max_gap + 1 or int(h.steps[-1]) < lo - opts.max_gap - 1:
+            continue
+        if abs(float(np.median(d[h.rows, h.capsules])) - own) <= 2 * opts.range_tolerance:
+            return True
+    return False

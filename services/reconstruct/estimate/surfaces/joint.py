@@ -67,12 +67,18 @@ class CornerEvidence:
 
 @dataclass(frozen=True)
 class JointWall:
-    """A wall of the joint fit: bearing, tilt (rad), offset (m) and their (3, 3) covariance."""
+    """A wall of the joint fit: bearing, tilt (rad), offset (m) and their (3, 3) covariance.
+
+    ``index`` is its place in the fit and ``full`` the fit's whole covariance (3 rows per wall, in order):
+    the corners tie the walls, so two walls' parameters are correlated.
+    """
 
     bearing: float
     tilt: float
     offset: float
     covariance: np.ndarray
+    index: int = 0
+    full: np.ndarray | None = None
 
 
 def _normal(bearing: float, tilt: float) -> np.ndarray:
@@ -139,6 +145,8 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
             float(fit.x[3 * k + 1]),
             float(fit.x[3 * k + 2]),
             cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3],
+            k,
+            cov,
         )
         for k in range(len(walls))
     ]

@@ -31,7 +31,9 @@ __all__ = [
     "bearing_from_amplitude",
     "amplitude_jump",
     "unfaded_ends",
+    "end_crossing_stderr",
     "peak_at_bearing",
+    "weaker_at",
     "subregion",
     "PLATEAU",
 ]
@@ -527,6 +529,48 @@ def peak_at_bearing(
     return float(np.median(peaks)), float(curvature * np.min(off * off))
 
 
+def weaker_at(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, sigmas: float = 3.0) -> bool:
+    """Whether a region's echo is weaker at ``bearing``, inside its span, than elsewhere in it beyond what one
+    beam pattern and the amplitude noise allow: a target there would be the strongest echo of its own region.
+
+    One target's echo follows ``D(γ − β)²``, largest at ``γ = β``: every step's amplitude is at most the
+    peak, and the steps on either side of ``β`` are within the beam's change over one step of it (at most
+    ``8 R Δγ / L`` in ``log``, as :func:`amplitude_jump` bounds it, ``R`` the region's range of log amplitude
+    over its span ``L``).  The region's largest amplitude above the larger of the two steps around
+    ``β`` by more than that and ``sigmas`` σ of a two-step difference of the amplitude noise contradicts a
+    target at ``β``.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none).
+    bearing : float
+        rad.
+    sigmas : float
+
+    Returns
+    -------
+    True where the amplitudes contradict a target at ``bearing``; False where they do not, where ``bearing``
+    lies outside the steps' span, or where too few steps have an amplitude to say.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 5:
+        return False
+    g, la = g[ok], np.log(a[ok])
+    order = np.argsort(g)
+    g, la = g[order], la[order]
+    if not g[0] < bearing < g[-1]:
+        return False
+    span = float(g[-1] - g[0])
+    slope, sigma = _beam_slope_and_noise(la, span)
+    i = int(np.searchsorted(g, bearing))
+    there = max(float(la[i - 1]), float(la[i]))
+    step = float(g[i] - g[i - 1])
+    return float(la.max()) - there > slope * step + sigmas * math.sqrt(2.0) * sigma
+
+
 def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[float, int] | None:
     """Where one echo takes over from another inside a region: an amplitude step no beam pattern makes.
 
@@ -643,3 +687,40 @@ def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.
     bound = slope * step + sigmas * math.sqrt(2.0) * sigma
     diff = float(la[0] - la[-1])
     return diff > bound, -diff > bound
+
+
+def end_crossing_stderr(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float]:
+    """How far the amplitude noise moves where a region's echo crosses the receiver's threshold, at each end.
+
+    A region ends where ``D(γ − β)²`` falls under the threshold.  A noise of σ in ``log A`` moves that
+    crossing by ``σ / |∂ log A/∂γ|`` at the end (the beam's log slope there, from a line through the end's
+    own steps): an upper bound, as the first of several noisy steps near the threshold to pass it wanders
+    less than one crossing would.  The σ is robust (1.4826 MAD of the second differences, whose variance
+    is 6 σ² for white noise, as :func:`amplitude_jump` has it); noise-free amplitudes move nothing.  An end
+    whose slope is not resolved (flat, clipped) is anywhere in the region: the span's ``1/√12``.
+
+    Parameters
+    ----------
+    gamma, amplitude : (k,) arrays
+        Steps' γ (rad) and each step's echo amplitude (NaN: none), in sweep order.
+
+    Returns
+    -------
+    (σ at the first end, σ at the last end), rad; (0, 0) when too few steps have an amplitude.
+    """
+    g = np.asarray(gamma, dtype=np.float64)
+    a = np.asarray(amplitude, dtype=np.float64)
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 6:
+        return 0.0, 0.0
+    g, la = g[ok], np.log(a[ok])
+    span = abs(float(g[-1] - g[0]))
+    _, sigma = _beam_slope_and_noise(la, span) if span > 0 else (0.0, 0.0)
+    if not sigma > 0:
+        return 0.0, 0.0
+    m = max(3, g.size // 6)
+    out = []
+    for sel in (slice(0, m), slice(g.size - m, g.size)):
+        slope = float(np.polyfit(g[sel], la[sel], 1)[0])
+        out.append(min(sigma / abs(slope), span / math.sqrt(12.0)) if slope != 0 else span / math.sqrt(12.0))
+    return out[0], out[1]

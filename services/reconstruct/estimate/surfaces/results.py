@@ -11,10 +11,16 @@ from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.quality import QualityLimits
 from lelsonar.reconstruct.estimate.results import PlaneFit
 
-__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "UNSETTLED"]
+__all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "UNSETTLED", "OFF_FAN"]
 
 #: In a feature's reasons when its echoes cannot settle corner against edge (its kind is then only a placeholder).
 UNSETTLED = "kind not settled: its echo's strength is unknown (its peak lies outside the sweep or under a nearer echo)"
+
+#: Beside it for a target only part of the capsule stack hears: off the fan, on the beam's flank.
+OFF_FAN = (
+    "heard by part of the capsule stack only, so off the fan on the beam's flank: its echo's strength is only a "
+    "lower bound of its peak"
+)
 
 
 @dataclass(frozen=True)
@@ -138,6 +144,9 @@ class Feature:
         The evidence for its class.
     steps : (k,) int array
     n_echoes : int
+    rows, capsules : (n_echoes,) int arrays, optional
+        Its readings: step and capsule of each (a target only part of the stack hears shares its steps
+        with a farther one's in the other capsules).
     """
 
     kind: str
@@ -151,6 +160,8 @@ class Feature:
     reasons: tuple[str, ...]
     steps: np.ndarray
     n_echoes: int
+    rows: np.ndarray | None = None
+    capsules: np.ndarray | None = None
 
     @property
     def settled(self) -> bool:

@@ -1,0 +1,127 @@
+"""Where a concave corner or a convex edge lies, and the covariance of that point.
+
+* :func:`echo_point`: a region's echo point from its own readings.  The range's gradient along the
+  capsule stack is the x component of the unit vector from the echo's point to the array, whatever the
+  target (a plane's foot, a line's nearest point, a double bounce's edge), so the stack slope's tilt puts
+  the point off the fan; the covariance has the depth's σ along the ray, the bearing's across it in the
+  fan and the tilt's across the fan.
+* :func:`pair_line_point`: two planes' intersection, its point nearest the array, with the planes' full
+  covariance (bearing, tilt and offset of each) carried through the intersection's Jacobian.
+* :func:`with_range`: that point conditioned on the corner's own double-bounce range ``|X|`` (one
+  linear-Gaussian update), where the planes' fit did not use it already.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lelsonar.reconstruct.estimate.surfaces.evidence import unit_normal
+
+__all__ = ["echo_point", "pair_line_point", "with_range", "line_direction", "RANGE_FLOOR"]
+
+#: m: a feature's depth σ is at least the range noise's (1–3 mm of one reading, its bias with temperature).
+RANGE_FLOOR = 0.003
+
+
+def echo_point(
+    depth: float, depth_stderr: float, bearing: float, bearing_stderr: float, tilt: float, tilt_stderr: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A region's echo point ``ρ·u(β, t)`` and its covariance, m².
+
+    Parameters
+    ----------
+    depth, depth_stderr : float
+        ``ρ`` and its σ, m (σ NaN or under :data:`RANGE_FLOOR`: that floor).
+    bearing, bearing_stderr : float
+        ``β`` in the fan and its σ, rad.
+    tilt, tilt_stderr : float
+        ``t`` off the fan (along the stack) and its σ, rad.
+
+    Returns
+    -------
+    point : (3,) array
+    covariance : (3, 3) array
+        ``σ_ρ² u uᵀ + (ρ cos t σ_β)² e_β e_βᵀ + (ρ σ_t)² e_t e_tᵀ``, with ``e_β``, ``e_t`` the unit
+        derivatives of ``u`` (the three are orthonormal).
+    """
+    u = unit_normal(bearing, tilt)
+    ct, st = math.cos(tilt), math.sin(tilt)
+    cb, sb = math.cos(bearing), math.sin(bearing)
+    e_b = np.array([0.0, -sb, cb])
+    e_t = np.array([ct, -st * cb, -st * sb])
+    sd = max(RANGE_FLOOR, depth_stderr) if math.isfinite(depth_stderr) else RANGE_FLOOR
+    cov = (
+        sd**2 * np.outer(u, u)
+        + (depth * ct * bearing_stderr) ** 2 * np.outer(e_b, e_b)
+        + (depth * tilt_stderr) ** 2 * np.outer(e_t, e_t)
+    )
+    return depth * u, cov
+
+
+def _line_point(params: np.ndarray) -> np.ndarray:
+    """The least-norm point of ``n_a·X = h_a``, ``n_b·X = h_b``; ``params`` = (β_a, t_a, h_a, β_b, t_b, h_b)."""
+    mat = np.stack([unit_normal(params[0], params[1]), unit_normal(params[3], params[4])])
+    return mat.T @ np.linalg.solve(mat @ mat.T, np.array([params[2], params[5]]))
+
+
+def line_direction(params: np.ndarray) -> np.ndarray:
+    """The unit direction ``n_a × n_b`` of two planes' line; ``params`` as :func:`pair_line_point`'s."""
+    d = np.cross(unit_normal(params[0], params[1]), unit_normal(params[3], params[4]))
+    return d / max(float(np.linalg.norm(d)), 1e-12)
+
+
+def pair_line_point(params: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Two planes' line: its point nearest the array and that point's covariance, ``J Σ Jᵀ``.
+
+    Parameters
+    ----------
+    params : (6,) array
+        Bearing, tilt (rad) and offset (m) of each plane.
+    covariance : (6, 6) array
+        Their joint covariance (block-diagonal for planes fitted apart).
+
+    Returns
+    -------
+    (point, covariance) or None when the planes are nearly parallel (``|n_a × n_b| < 0.2``).  The
+    Jacobian is taken by central differences, each step far below its parameter's σ and far above
+    rounding.
+    """
+    p = np.asarray(params, dtype=np.float64)
+    size = float(np.linalg.norm(np.cross(unit_normal(p[0], p[1]), unit_normal(p[3], p[4]))))
+    if size < 0.2 or not np.all(np.isfinite(p)):
+        return None
+    x = _line_point(p)
+    jac = np.empty((3, 6))
+    for k in range(6):
+        h = 1e-6 * (1.0 if k % 3 != 2 else max(abs(p[k]), 1.0))
+        dp = np.zeros(6)
+        dp[k] = h
+        jac[:, k] = (_line_point(p + dp) - _line_point(p - dp)) / (2 * h)
+    cov = jac @ np.asarray(covariance, dtype=np.float64) @ jac.T
+    return x, 0.5 * (cov + cov.T)
+
+
+def with_range(
+    point: np.ndarray, covariance: np.ndarray, depth: float, depth_stderr: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A point conditioned on a measured range to it, ``|X| = ρ ± σ_ρ`` (one Kalman update, linearised at X).
+
+    A concave corner's double bounce comes back from its edge's point nearest the array: its range is
+    ``|X|``, a measurement the planes' line does not use when the walls are fitted apart.
+
+    Returns
+    -------
+    (point, covariance)
+    """
+    norm = float(np.linalg.norm(point))
+    sd = max(RANGE_FLOOR, depth_stderr) if math.isfinite(depth_stderr) else RANGE_FLOOR
+    if not norm > 0:
+        return point, covariance
+    h = point / norm
+    s = float(h @ covariance @ h) + sd * sd
+    gain = covariance @ h / s
+    new_point = point + gain * (depth - norm)
+    new_cov = covariance - np.outer(gain, h @ covariance)
+    return new_point, 0.5 * (new_cov + new_cov.T)
