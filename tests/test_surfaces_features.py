@@ -16,7 +16,7 @@ from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import pose_frame, simulate_world_scan
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import majority
+from lelsonar.tools.surface_scores import majority
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
 
 

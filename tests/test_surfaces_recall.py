@@ -26,7 +26,7 @@ from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import score_scan
+from lelsonar.tools.surface_scores import score_scan
 
 RANGE = 1.8
 
