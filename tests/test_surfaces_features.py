@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.evidence import unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.results import OFF_FAN
 from lelsonar.signal.energy import echo_amplitude

@@ -62,13 +62,10 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
-    Measured,
     across_stack,
     beyond_reach,
     end_stderr,
     feature_point,
-    measure_region,
-    mirror_normalised,
     pair_corner,
     pair_stderr,
     plane_end,
@@ -76,13 +73,18 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     reach_stderr,
     stack_dihedral,
     stack_or_pair,
-    sweep_step,
-    unit_normal,
     unseen_corner,
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
 from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.measurement import (
+    Measured,
+    measure_region,
+    mirror_normalised,
+    sweep_step,
+    unit_normal,
+)
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
