@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.extract import summed_width_stderr
+from lelsonar.reconstruct.estimate.surfaces.measurement import summed_width_stderr
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     capsule_x,

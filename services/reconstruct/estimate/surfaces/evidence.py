@@ -5,7 +5,9 @@ Each test reads :class:`~lelsonar.reconstruct.estimate.surfaces.measurement.Meas
 * :func:`pair_corner`: the double bounce of two planes (range ``|X|`` of their intersection);
 * :func:`stack_dihedral`: the double bounce of a plane with a surface across the fan (a floor or a
   ceiling), where the range and the stack slope must agree;
-* :func:`plane_end`: a region on one plane's trace, off its foot: that plane's end.
+* :func:`plane_end`: a region on one plane's trace, off its foot: that plane's end;
+* :func:`walls_of_unseen_corners`: two regions on one plane's trace explained by a wall and its corner
+  with that plane, not by the plane's end.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ __all__ = [
     "stack_dihedral",
     "stack_or_pair",
     "unseen_corner",
+    "walls_of_unseen_corners",
     "wrap",
 ]
 
@@ -385,3 +388,47 @@ def reach_stderr(m: Measured, opts: SurfaceOptions) -> float:
 
 def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def walls_of_unseen_corners(
+    measured: list[Measured],
+    planes: list[int],
+    across: list[bool],
+    partial: set[int],
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> dict[int, str]:
+    """Regions without a bearing that are a wall's own mirror, its corner with a plane the deeper region beside it.
+
+    Where two such regions fit one plane's trace on one side, both cannot be its end (a mirror answers at its
+    foot only, so a point of the trace short of its end echoes nothing).  The nearer one is a wall's mirror
+    when a bearing it leaves open makes that wall's corner with the plane the deeper one
+    (:func:`unseen_corner`): one wall and its corner explain both.  Returns those regions, each with
+    the finding that says so.  A target only ``partial`` capsules hear is no mirror, and says nothing of a
+    plane's trace in the fan.
+    """
+    open_ = [
+        i for i, m in enumerate(measured) if m.bearing_source == "undetermined" and not across[i] and i not in partial
+    ]
+    in_fan = [m for i, m in enumerate(measured) if i not in partial]
+    out: dict[int, str] = {}
+    for k in open_:
+        mk = measured[k]
+        for j in planes:
+            pj = measured[j]
+            if plane_end(mk, [pj], opts, in_fan, gamma) is None:
+                continue
+            for i in open_:
+                mi = measured[i]
+                if i == k or i in out or not mi.depth < mk.depth - opts.range_tolerance:
+                    continue
+                # Beside each other in the sweep: nothing between their spans.
+                lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
+                if any(lo < o.span[0] and o.span[1] < hi for o in measured):
+                    continue
+                if unseen_corner(mi, mk, pj, opts) is not None:
+                    out[i] = (
+                        f"a wall at {mi.depth:.2f} m whose corner with the plane at {pj.depth:.2f} m is the echo "
+                        f"{mk.depth:.2f} m away beside it: not that plane's end"
+                    )
+    return out

@@ -34,6 +34,7 @@ __all__ = [
     "measure_region",
     "mirror_normalised",
     "step_medians",
+    "summed_width_stderr",
     "sweep_step",
     "unit_normal",
 ]
@@ -291,3 +292,30 @@ def measure_region(
 def mirror_normalised(amplitude: float, depth: float, opts: SurfaceOptions) -> float:
     """An echo amplitude over a mirror's spreading and absorption at ``depth``: ``A · 2ρ · 10^(α·2ρ/20)``."""
     return amplitude * 2 * depth * 10 ** (opts.absorption_db_per_m * 2 * depth / 20)
+
+
+def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:
+    """How far another echo summing into a region's flank may have moved its amplitude peak, rad.
+
+    One target's echo follows the beam, in ``log`` a parabola of curvature ``k``: a spread ``s² = 1/(2k)``
+    across γ.  A second echo of weight ``w`` (the weaker, ``w ≤ ½``) ``δ`` away widens the sum to about
+    ``s² + w(1 − w)δ²`` and moves its peak by about ``wδ``, whose square is at most that excess.  So
+    ``√(1/(2c) − 1/(2k))``, with ``c`` the region's own curvature and ``k`` the sweep's (its regions with a
+    clean peak), bounds the shift; 0 when the top is no flatter than one echo's can be (``c ≥ flattest``).
+
+    Parameters
+    ----------
+    curvature : float or None
+        The region's ``c`` (1/rad², :func:`~.regions.log_amplitude_curvature`); None: unknown.
+    beam : float
+        The sweep's ``k`` (1/rad²); NaN: unknown.
+    flattest : float
+        The smallest curvature one echo shows in the sweep (its regions' spread), 1/rad².
+
+    Returns
+    -------
+    The bound, rad (0 when either curvature is unknown or the top is no flatter than one echo's).
+    """
+    if curvature is None or not (curvature > 0 and beam > 0) or curvature >= flattest:
+        return 0.0
+    return math.sqrt(max(0.0, 1.0 / (2.0 * curvature) - 1.0 / (2.0 * beam)))
