@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.evidence import measure_region
 from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
+from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     end_crossing_stderr,

@@ -19,11 +19,12 @@ from lelsonar.reconstruct.estimate.surfaces.regions import unfaded_ends
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_render import WorldScan
-from lelsonar.tools.bench_surfaces import majority, true_plane
 from lelsonar.tools.map_worlds import sweep, world_run
 from lelsonar.tools.stress_world_score import estimate_of
 from lelsonar.tools.stress_world_score import world_run as stress_run
 from lelsonar.tools.stress_worlds import draw_stress_world
+from lelsonar.tools.surface_oracle import true_plane
+from lelsonar.tools.surface_scores import majority
 
 KA = 7.0  # a 40 kHz capsule of a few mm: main lobe ±33°
 THRESHOLD = 0.08  # of the on-axis echo, D² at the region's ends
