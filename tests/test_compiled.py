@@ -34,3 +34,20 @@ def test_a_new_process_loads_the_kernels_the_warm_up_compiled():
     assert found, second
     n_kernels, compiled, loaded = map(int, found.groups())
     assert n_kernels > 0 and compiled == 0 and loaded > 0, second
+
+
+def test_float32_at_reads_the_samples_at_every_byte_offset():
+    """A protobuf field's bytes lie at any address: the unaligned view reads them as NumPy does."""
+    import numpy as np
+
+    from lelsonar.signal.compiled import float32_at, kernel
+
+    @kernel
+    def read(payload, start, n):
+        row = float32_at(np.frombuffer(payload, dtype=np.uint8), start, n)
+        return row.copy()
+
+    values = np.random.default_rng(3).standard_normal(37).astype(np.float32)
+    for offset in range(4):
+        payload = bytes(offset) + values.tobytes() + bytes(3)
+        np.testing.assert_array_equal(read(payload, offset, values.size), values)

@@ -16,8 +16,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from lelsonar import codec
-from lelsonar.reconstruct.stream.fastwire import read_sample, sample_header
-from lelsonar.reconstruct.stream.ingest import Ingest
+from lelsonar.reconstruct.stream import assembly
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
+from lelsonar.reconstruct.stream.fastwire import GROW, UNREAD, read_sample, sample_header
+from lelsonar.reconstruct.stream.ingest import Ingest, Rejected
+from lelsonar.reconstruct.stream.step_features import AGREED
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages
@@ -202,3 +205,94 @@ def test_a_header_field_after_the_body_leaves_the_payload_to_the_parser():
     assert event.kind == "sample" and event.step == moved == codec.Sample.FromString(payload).step
     scan = event.scan
     assert scan.received[moved] and not scan.received[sample.step]
+
+
+def test_waveforms_read_where_they_lie_at_every_alignment_are_the_parsed_ones(monkeypatch):
+    """The fast path reads each waveform where it lies in the payload, whatever its bytes' alignment (an unknown
+    field of 0–3 bytes after the header shifts them): the scan's arrays are bit for bit those of the same
+    payloads parsed by upb and placed from the messages."""
+    start, *samples, end = simulated_messages()
+    payloads = []
+    for i, m in enumerate(samples):
+        payload = m.SerializeToString()
+        body = sample_header(payload)[-1]
+        payloads.append(payload[:body] + _unknown_field(15, bytes(i % 4)) + payload[body:])
+    data_at = {payloads[i].find(m.sensors[0].waveform.data) % 4 for i, m in enumerate(samples)}
+    assert data_at == {0, 1, 2, 3}
+    read_in_place = []
+    place_wire = assembly.place_wire
+    monkeypatch.setattr(assembly, "place_wire", lambda *a: read_in_place.append(place_wire(*a)) or read_in_place[-1])
+    scans = []
+    for fast in (True, False):
+        ingest = Ingest(fast_path=fast)
+        ingest.accept(start.DESCRIPTOR.full_name, start.SerializeToString())
+        for payload in payloads:
+            (event,) = ingest.accept(codec.Sample.DESCRIPTOR.full_name, payload)
+            assert event.kind == "sample"
+        assert not ingest.rejected
+        (scan,) = ingest.scans.values()
+        scans.append(scan)
+    read, parsed = scans
+    assert len(read_in_place) == len(samples) - 1  # all but the first
+    assert UNREAD not in [status for status, _, _ in read_in_place]
+    for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    for name in ("gamma", "step_energy", "expected_energy", "ratio", "time_ns", "received"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    assert read._timing_windows.tobytes() == parsed._timing_windows.tobytes()
+    np.testing.assert_array_equal(read.latest.waveforms, parsed.latest.waveforms)
+
+
+def test_a_payload_that_starts_as_the_last_one_but_routes_elsewhere_is_left_to_the_parser():
+    """The bytes that routed a key's last sample route the next one that starts with them, unless it names its
+    scan again after them (the parser keeps the last value): that one goes where the parser puts it.  A scan
+    closed routes nothing more: its samples are late."""
+    start, *samples, _ = simulated_messages()
+    other = codec.ScanStart.FromString(start.SerializeToString())
+    other.scan_id = start.scan_id + 1
+    name = codec.Sample.DESCRIPTOR.full_name
+    ingest = Ingest()
+    for m in (start, other):
+        ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString(), key_scanner="s1")
+    for m in samples[:3]:
+        (event,) = ingest.accept(name, m.SerializeToString(), key_scanner="s1")
+        assert event.kind == "sample" and event.scan.start.scan_id == start.scan_id
+    again = codec.Sample(scan_id=other.scan_id).SerializeToString()
+    routed = sample_header(samples[0].SerializeToString())[-2]
+    assert routed
+    third, fourth = samples[3].SerializeToString(), samples[4].SerializeToString()
+    for moved in (third + again, fourth[:routed] + again + fourth[routed:]):
+        assert moved[:routed] == samples[0].SerializeToString()[:routed]
+        truth = codec.Sample.FromString(moved)
+        assert truth.scan_id == other.scan_id
+        (event,) = ingest.accept(name, moved, key_scanner="s1")
+        assert event.kind == "sample" and event.scan.start.scan_id == other.scan_id
+        assert event.step == truth.step and event.scan.received[truth.step]
+    ingest.close(("s1", start.scan_id))
+    (event,) = ingest.accept(name, samples[5].SerializeToString(), key_scanner="s1")
+    assert isinstance(event, Rejected) and event.error == "LateMessage"
+
+
+def test_a_step_beyond_the_rows_held_grows_the_scan_and_is_read_from_its_payload(monkeypatch):
+    """The scan's arrays grow with the highest step that arrives: a sample read from its payload whose step lies
+    beyond them has them grown first, then is placed where the parser puts it, as the same sample parsed."""
+    start, *samples, _ = simulated_messages()
+    start.steps = 3 * ScanAssembly.INITIAL_ROWS
+    far = codec.Sample.FromString(samples[2].SerializeToString())
+    far.step = start.steps - 1
+    read_in_place = []
+    place_wire = assembly.place_wire
+    monkeypatch.setattr(assembly, "place_wire", lambda *a: read_in_place.append(place_wire(*a)) or read_in_place[-1])
+    scans = []
+    for fast in (True, False):
+        ingest = Ingest(fast_path=fast)
+        for m in (start, samples[0], samples[1], far):
+            (event,) = ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
+            assert not isinstance(event, Rejected)
+        (scan,) = ingest.scans.values()
+        assert scan.received[far.step] and len(scan.received) == start.steps
+        scans.append(scan)
+    assert [status for status, _, _ in read_in_place] == [AGREED, GROW, AGREED]
+    read, parsed = scans
+    for name in ("distance", "sensor_energy", "echo_amplitude", "dc_level", "gamma", "ratio", "time_ns", "received"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name

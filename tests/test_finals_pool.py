@@ -9,7 +9,8 @@ import threading
 
 import pytest
 
-from lelsonar.reconstruct.stream.finals import WORKER_NICENESS, FinalPool, auto_workers
+from lelsonar.reconstruct.stream.final_pool import WORKER_NICENESS, FinalPool
+from lelsonar.reconstruct.stream.finals import auto_workers
 
 
 def spin(value: int, rounds: int) -> int:

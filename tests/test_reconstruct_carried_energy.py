@@ -225,7 +225,7 @@ def test_the_ingest_stage_reads_samples_from_their_payloads_to_the_values_of_the
     for m in scan:
         ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
     (routed,) = ingest.scans.values()
-    assert len(read) == len(scan) - 3 and UNREAD not in [status for status, _ in read]  # all but the first
+    assert len(read) == len(scan) - 3 and UNREAD not in [status for status, _, _ in read]  # all but the first
     alone = _assemble(_copy(scan))
     for name in (
         "distance",

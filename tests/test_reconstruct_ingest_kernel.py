@@ -242,7 +242,7 @@ def test_a_sample_on_a_scans_fast_path_is_refused_as_decoding_refuses_it(scan, f
 def test_the_limits_hold_on_a_scans_fast_path(scan):
     """A sample not validated is placed only within the limits it is checked against (the steps, the capsules,
     the waveform's length), which a ScanStart validated under other limits does not bound: otherwise it is left
-    to the caller to validate (None), and nothing of it is placed."""
+    to the caller to validate (-1 from add_payload, None from add), and nothing of it is placed."""
     start, samples = scan[0], scan[1:-1]
     sample = samples[4]
     n, k = sample.sensors[0].waveform.sample_count, len(sample.sensors)
@@ -258,10 +258,10 @@ def test_the_limits_hold_on_a_scans_fast_path(scan):
             assert routed.add(m)
         payload, time_ns = sample.SerializeToString(), sample.acquisition_time_ns
         body = sample_header(payload)[-1]
-        assert routed.add_payload(payload, body, sample.step, time_ns, "live", limits) is None
+        assert routed.add_payload(payload, body, sample.step, time_ns, "live", limits) == -1
         assert routed.add(sample, limits=limits) is None
         assert routed.n_received == 4 and not routed.received[4:].any()
-        assert routed.add_payload(payload, body, sample.step, time_ns, "live", codec.DEFAULT_LIMITS)
+        assert routed.add_payload(payload, body, sample.step, time_ns, "live", codec.DEFAULT_LIMITS) == sample.step
         assert routed.received[sample.step]
 
 

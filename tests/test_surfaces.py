@@ -18,7 +18,7 @@ from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import simulate_world_scan, world_rig
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import trace_error, true_plane
+from lelsonar.tools.surface_oracle import trace_error, true_plane
 from lelsonar.view import present
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
@@ -385,7 +385,7 @@ def test_the_surfaces_travel_in_the_reconstruction_and_its_json():
 def test_every_wall_of_a_simulated_sweep_is_found_and_none_claims_good_while_wrong(family):
     from lelsonar.sim.world_geometry import build_model
     from lelsonar.sim.worlds import draw_world
-    from lelsonar.tools.bench_surfaces import run_scan
+    from lelsonar.tools.surface_scores import run_scan
 
     model = build_model(draw_world(family, 0))
     records = [run_scan(family, 0, pose, model) for pose in range(min(2, len(model.world.poses)))]
@@ -406,7 +406,7 @@ def test_every_wall_of_a_simulated_sweep_is_found_and_none_claims_good_while_wro
 def test_with_a_box_in_front_each_wall_is_estimated_from_its_own_echoes_or_flagged():
     from lelsonar.sim.world_geometry import build_model
     from lelsonar.sim.worlds import draw_world
-    from lelsonar.tools.bench_surfaces import run_scan
+    from lelsonar.tools.surface_scores import run_scan
 
     model = build_model(draw_world("boxes", 0))
     walls = [p for pose in range(min(2, len(model.world.poses))) for p in run_scan("boxes", 0, pose, model).planes]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.evidence import unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.results import OFF_FAN
 from lelsonar.signal.energy import echo_amplitude
@@ -16,7 +16,7 @@ from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import pose_frame, simulate_world_scan
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import majority
+from lelsonar.tools.surface_scores import majority
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
 
 

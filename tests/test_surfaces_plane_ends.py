@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.extract import summed_width_stderr
+from lelsonar.reconstruct.estimate.surfaces.measurement import summed_width_stderr
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     capsule_x,
@@ -27,7 +27,8 @@ from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import majority, true_plane
+from lelsonar.tools.surface_oracle import true_plane
+from lelsonar.tools.surface_scores import majority
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes, _unit
 
 

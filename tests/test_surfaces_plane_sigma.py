@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.evidence import measure_region
 from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
+from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     bearing_from_amplitude,
     end_crossing_stderr,
@@ -29,21 +29,8 @@ from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import majority, true_plane
 from tests.test_surfaces import GAMMA, GEOMETRY, THRESHOLD, Echoes
-
-
-def _bearing_z(scan, surfaces) -> list[tuple[str, float, float]]:
-    """Each good surface's bearing error against its majority element's truth: (label, error rad, σ rad)."""
-    out = []
-    for s in surfaces:
-        if s.quality != "good":
-            continue
-        k, _ = majority(scan, s.steps, s)
-        n_true, _h = true_plane(scan, k)
-        error = math.remainder(s.bearing - math.atan2(n_true[2], n_true[1]), 2 * math.pi)
-        out.append((s.label, error, math.sqrt(s.covariance[0, 0])))
-    return out
+from tests.test_surfaces_wall_end import bearing_errors
 
 
 def test_a_wall_whose_floor_corner_flanks_its_region_on_one_side_only_takes_its_own_steps_centre():
@@ -70,19 +57,6 @@ def test_a_wall_whose_floor_corner_flanks_its_region_on_one_side_only_takes_its_
     assert abs(wall.bearing - bearing) <= 3 * sd, (math.degrees(wall.bearing - bearing), math.degrees(sd))
 
 
-@pytest.mark.slow
-def test_in_a_simulated_corridor_a_one_sided_floor_corner_flank_does_not_move_the_walls_bearing():
-    # The corridor world of seed 11, its second pose (fan mount): the wall 4.2 m away meets the floor; that
-    # corner's echoes join the wall's region on one side only (four steps), the other side's stay apart.
-    scan = simulate_world_scan(build_model(draw_world("corridor", 11)), 1, seed=11 * 1000 + 1)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    checked = _bearing_z(scan, result.surfaces)
-    assert checked
-    for label, error, sd in checked:
-        assert abs(error) <= 3 * sd, f"{label}: {math.degrees(error):.2f}° with σ {math.degrees(sd):.2f}°"
-
-
 @pytest.mark.parametrize(("seed", "bearing_deg"), [(31, 25.0), (32, -70.0), (33, 110.0)])
 def test_a_plane_trimmed_at_one_end_puts_that_end_between_its_core_and_the_trimmed_step(seed, bearing_deg):
     bearing, offset = math.radians(bearing_deg), 2.0
@@ -107,14 +81,25 @@ def test_a_plane_trimmed_at_one_end_puts_that_end_between_its_core_and_the_trimm
 
 
 @pytest.mark.slow
-def test_in_a_simulated_box_room_walls_trimmed_at_one_end_keep_their_bearing_within_sigma():
-    # The boxes world of seed 16, its first pose (fan mount): two walls' regions end on a step of their corner
-    # with the floor whose echo sums with the wall's; trimmed, each core is lopsided by that step.
-    scan = simulate_world_scan(build_model(draw_world("boxes", 16)), 0, seed=16 * 1000)
+@pytest.mark.parametrize(
+    ("family", "seed", "pose", "at_least"),
+    [
+        # The wall 4.2 m away meets the floor; that corner's echoes join the wall's region on one side only
+        # (four steps), the other side's stay apart.
+        ("corridor", 11, 1, 1),
+        # Two walls' regions end on a step of their corner with the floor whose echo sums with the wall's;
+        # trimmed, each core is lopsided by that step.
+        ("boxes", 16, 0, 2),
+    ],
+)
+def test_in_simulated_worlds_walls_flanked_or_trimmed_on_one_side_keep_their_bearing_within_sigma(
+    family, seed, pose, at_least
+):
+    scan = simulate_world_scan(build_model(draw_world(family, seed)), pose, seed=seed * 1000 + pose)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    checked = _bearing_z(scan, result.surfaces)
-    assert len(checked) >= 2
+    checked = bearing_errors(scan, result.surfaces)
+    assert len(checked) >= at_least
     for label, error, sd in checked:
         assert abs(error) <= 3 * sd, f"{label}: {math.degrees(error):.2f}° with σ {math.degrees(sd):.2f}°"
 

@@ -19,14 +19,15 @@ import pytest
 
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.evidence import Measured, handed_over, unseen_corner
+from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, handed_over
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, weaker_at
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import score_scan
+from lelsonar.tools.surface_scores import score_scan
 
 RANGE = 1.8
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.estimate.surfaces.evidence import step_medians
+from lelsonar.reconstruct.estimate.surfaces.measurement import step_medians
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan

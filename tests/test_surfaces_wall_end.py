@@ -19,11 +19,12 @@ from lelsonar.reconstruct.estimate.surfaces.regions import unfaded_ends
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_render import WorldScan
-from lelsonar.tools.bench_surfaces import majority, true_plane
 from lelsonar.tools.map_worlds import sweep, world_run
 from lelsonar.tools.stress_world_score import estimate_of
 from lelsonar.tools.stress_world_score import world_run as stress_run
 from lelsonar.tools.stress_worlds import draw_stress_world
+from lelsonar.tools.surface_oracle import true_plane
+from lelsonar.tools.surface_scores import majority
 
 KA = 7.0  # a 40 kHz capsule of a few mm: main lobe ±33°
 THRESHOLD = 0.08  # of the on-axis echo, D² at the region's ends
@@ -59,7 +60,7 @@ def test_a_region_its_wall_cuts_short_is_flagged_on_the_cut_side(cut):
     assert unfaded_ends(g[keep][::-1], a[keep][::-1]) == (False, True)
 
 
-def _bearing_errors(scan: WorldScan, surfaces) -> list[tuple[str, float, float]]:
+def bearing_errors(scan: WorldScan, surfaces) -> list[tuple[str, float, float]]:
     """Each good surface's bearing error from its majority mirror and its σ, rad."""
     out = []
     for s in surfaces:
@@ -79,7 +80,7 @@ def test_an_obtuse_walls_region_cut_at_its_foot_is_not_a_good_plane_at_its_centr
     world = draw_stress_world("obtuse", 2, "fan")
     scan = sweep(stress_run(world, 2), 0)
     surfaces = estimate_of(scan).surfaces.surfaces
-    for label, error, sd in _bearing_errors(scan, surfaces):
+    for label, error, sd in bearing_errors(scan, surfaces):
         assert abs(error) <= max(3 * sd, math.radians(0.5)), f"{label}: {math.degrees(error):.2f}°"
 
 
@@ -90,5 +91,5 @@ def test_boxes_faces_that_end_inside_the_beam_are_not_good_planes_off_their_face
         scan = sweep(run, index)
         amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
         result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-        for label, error, sd in _bearing_errors(scan, result.surfaces):
+        for label, error, sd in bearing_errors(scan, result.surfaces):
             assert abs(error) <= max(3 * sd, math.radians(0.5)), f"sweep {index} {label}: {math.degrees(error):.2f}°"

@@ -391,7 +391,8 @@ class Replay:
 
 def measure_replay(args: argparse.Namespace) -> Replay:
     """(c): one recorded file; the replay, its diagnostics and its floor, interleaved, one run of each per round."""
-    from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
+    from lelsonar.reconstruct.stream.final_pool import FinalPool
+    from lelsonar.reconstruct.stream.finals import auto_workers
 
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-replay-") as tmp:
         path = Path(tmp) / "replay.mcap"

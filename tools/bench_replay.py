@@ -95,7 +95,8 @@ _POOLED: list[int] = []
 def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.reconstruct.stream.config import ReconstructConfig
-    from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers
+    from lelsonar.reconstruct.stream.final_pool import FinalPool
+    from lelsonar.reconstruct.stream.finals import auto_workers
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
 

@@ -42,7 +42,7 @@ from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
 from lelsonar.sim.world_render import WorldScan, simulate_world_scan, world_rig
 from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.bench_surfaces import true_plane
+from lelsonar.tools.surface_oracle import true_plane
 from lelsonar.v1 import reconstruction_pb2 as pb
 
 #: A map corner is on a true corner within this distance, m.

@@ -42,7 +42,6 @@ from lelsonar.sim.world import World
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import WorldScan, world_rig
 from lelsonar.tools.bench_map import false_good
-from lelsonar.tools.bench_surfaces import feature_offset, score_scan
 from lelsonar.tools.map_worlds import (
     ENERGY_MODEL,
     TourResult,
@@ -54,6 +53,7 @@ from lelsonar.tools.map_worlds import (
     vertical_faces,
 )
 from lelsonar.tools.surface_oracle import oracle_error, trace_error, true_plane
+from lelsonar.tools.surface_scores import feature_offset, score_scan
 
 #: A claim is wrong only past this (m), and past 3× its oracle.
 ERROR_FLOOR = 0.02

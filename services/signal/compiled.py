@@ -17,6 +17,9 @@ Settings, and why:
 - ``error_model="numpy"``: division by zero gives inf/NaN as NumPy does, not an exception.
 - no ``fastmath``: results stay IEEE, so a kernel agrees with the equivalent NumPy to rounding.
 - Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
+
+:func:`float32_at` is the one compiler-level helper here: a float32 view of bytes at any offset (a protobuf
+field's), typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it.
 """
 
 from __future__ import annotations
@@ -32,6 +35,10 @@ from pathlib import Path
 from typing import TypeVar
 
 import numba
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
+from numba.np.arrayobj import make_array, populate_array
 
 F = TypeVar("F", bound=Callable[..., object])
 
@@ -71,6 +78,7 @@ def _cache_dir() -> Path | None:
     """
     here = Path(__file__).resolve().parent
     digest = hashlib.blake2b(numba.__version__.encode(), digest_size=8)
+    digest.update(Path(__file__).read_bytes())  # (the helpers below are compiled into the kernels that use them)
     for name in KERNEL_MODULES:
         digest.update(module_source(name).read_bytes())
     user_cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "lelsonar"
@@ -132,3 +140,37 @@ def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
             }
         )
     return found
+
+
+@intrinsic
+def float32_at(typingctx, buf, start, count):
+    """A read-only float32 view of ``count`` values at byte ``start`` of the 1-d uint8 array ``buf`` (which it
+    keeps alive), typed unaligned: its loads make no assumption on the address, which a protobuf field's bytes
+    lie at any of (a view by ``.view`` would be typed aligned, and reading it at such an address undefined).
+
+    The caller bounds ``start`` and ``count`` (``start + 4·count ≤ buf.size``): nothing is checked here."""
+    if not (isinstance(buf, types.Array) and buf.ndim == 1 and buf.dtype == types.uint8):
+        return None
+    if not (isinstance(start, types.Integer) and isinstance(count, types.Integer)):
+        return None
+    view = types.Array(types.float32, 1, "C", readonly=True, aligned=False)
+
+    def codegen(context, builder, sig, args):
+        source = make_array(sig.args[0])(context, builder, value=args[0])
+        first = context.cast(builder, args[1], sig.args[1], types.intp)
+        n = context.cast(builder, args[2], sig.args[2], types.intp)
+        out = make_array(sig.return_type)(context, builder)
+        itemsize = context.get_constant(types.intp, 4)
+        populate_array(
+            out,
+            data=builder.bitcast(builder.gep(source.data, [first]), out.data.type),
+            shape=cgutils.pack_array(builder, [n]),
+            strides=cgutils.pack_array(builder, [itemsize]),
+            itemsize=itemsize,
+            meminfo=source.meminfo,
+            parent=source.parent,
+        )
+        context.nrt.incref(builder, sig.args[0], args[0])  # the view holds a reference to the buffer
+        return out._getvalue()
+
+    return view(buf, start, count), codegen

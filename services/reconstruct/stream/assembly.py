@@ -51,7 +51,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.stream.fastwire import UNREAD, place_wire
+from lelsonar.reconstruct.stream.fastwire import GROW, place_wire
 from lelsonar.reconstruct.stream.scan_start import energy_model_of, scan_geometry, speed_of_sound
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
@@ -169,8 +169,8 @@ class ScanAssembly(WriterChecks):
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
         self._pack_readings_energies = struct.Struct(f"<{5 + 4 * self._k}d")
-        # Where fastwire.place_wire copies a sample's waveforms ((k, n) float32 V, n the layout's).
-        self._waves = np.zeros((self._k, 0), np.float32)
+        # Where fastwire.place_wire finds each waveform's samples in a sample's payload (read there, never copied).
+        self._starts = np.zeros(self._k, np.int64)
         # Each reading's waveform around its time of flight (echo_timing.TIMING_WINDOW), kept to re-time the
         # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
         # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
@@ -265,17 +265,17 @@ class ScanAssembly(WriterChecks):
         return view
 
     def add_payload(
-        self, payload: bytes, body: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
-    ) -> bool | None:
-        """Place a sample straight from its ``payload`` (:mod:`~lelsonar.reconstruct.stream.fastwire`, the
-        header already read: its ``step`` and ``acquisition_time_ns``, and where its ``body`` starts), never
-        parsed; its body's checks under
+        self, payload: bytes, at: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
+    ) -> int:
+        """Place a sample straight from its ``payload`` (:mod:`~lelsonar.reconstruct.stream.fastwire`), never
+        parsed: its header read up to ``at`` (``step`` and ``acquisition_time_ns`` if they came before it, else
+        0, as the parser gives a field absent), the rest of it and its body from there; its body's checks under
         ``limits`` are made in the pass that places it (:func:`~lelsonar.reconstruct.stream.step_features.
-        place_step`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
-        clocks: the contract's checks of them passed).  Anything this does not clear — no layout yet, a
-        payload not plainly encoded on it, a refused check, a duplicate or a step outside the schedule —
-        returns None with nothing written: the caller then parses the payload and places the message
-        (:meth:`add`), so that the decoding refuses before the scan does.
+        place_rows`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
+        clocks: the contract's checks of them passed).  Returns the step placed, or -1: anything this does not
+        clear — no layout yet, a payload not plainly encoded on it, a refused check, a duplicate or a step
+        outside the schedule — is left with nothing written: the caller then parses the payload and places the
+        message (:meth:`add`), so that the decoding refuses before the scan does.
 
         Raises
         ------
@@ -283,37 +283,43 @@ class ScanAssembly(WriterChecks):
             A range that needs a speed of sound the scan does not state.
         """
         known = self._layout
-        if known is None or step >= self._steps:
-            return None
-        if limits is not self._limits_cleared and not self._clears(limits):
+        if known is None:
+            return -1
+        if limits is self._limits_cleared or self._clears(limits):
+            bound = self._steps
+        elif self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples:
             # A schedule beyond the limits (its ScanStart validated under others): each step checked against them.
-            if not (
-                step < limits.max_steps and self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples
-            ):
-                return None
-        if step >= len(self.received):
+            bound = min(self._steps, limits.max_steps)
+        else:
+            return -1
+        recovered = origin == "recovered"
+        for _ in range(2):  # a second time once the arrays reach its step (GROW)
+            # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
+            status, carried, step = place_wire(
+                payload,
+                at,
+                step,
+                time_ns,
+                bound,
+                self._ids,
+                self._values,
+                known[1],
+                self._starts,
+                self._scan,
+                recovered,
+                *self._rows,
+                self._timing_windows,
+                self._candidate_windows,
+            )
+            if status != GROW:
+                break
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
-        # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-        status, carried = place_wire(
-            payload,
-            body,
-            self._ids,
-            self._values,
-            self._waves,
-            self._scan,
-            step,
-            time_ns,
-            origin == "recovered",
-            *self._rows,
-            self._timing_windows,
-            self._candidate_windows,
-        )
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
-            return True
-        if status == UNREAD:
-            return None
-        return self._placed(status, carried, step, self._waves, known, None, True, payload)
+            return step
+        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED; GROW does not come twice)
+            return -1
+        return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
 
     def _clears(self, limits: codec.DecodeLimits) -> bool:
         """Whether every step of the scan's schedule, its capsules and its layout's waveform length are within
@@ -486,7 +492,7 @@ class ScanAssembly(WriterChecks):
         status: int,
         carried: int,
         step: int,
-        waveforms: np.ndarray,
+        waveforms: np.ndarray | bytes,
         layout: list,
         ranges: list | None,
         one_clock: bool,
@@ -495,11 +501,14 @@ class ScanAssembly(WriterChecks):
         """What a step's placement (:func:`~lelsonar.reconstruct.stream.step_features.place_step`'s ``status``)
         leaves to do, rarely anything: a refusal, energies to recompute (``carried``: how many the sample
         carries), ranges without an echo to count; the step is then the latest (``latest``: its waveforms, or
-        the payload to read them from).  ``layout``, ``ranges``: the sample's in the order of the capsules
-        (``ranges`` None: read from the kernel's buffer, where the fast path put them)."""
+        the payload to read them from).  ``waveforms``: the (k, n) float32 array, or the payload they lie in (on
+        the fast path's layout), parsed only if they are needed.  ``layout``, ``ranges``: the sample's in the order
+        of the capsules (``ranges`` None: read from the kernel's buffer, where the fast path put them)."""
+        if isinstance(waveforms, bytes) and status >= 0 and (status & CANDIDATES or not status & AGREED):
+            waveforms = _waveforms([s.waveform for s in codec.parse(waveforms, codec.Sample).sensors], layout[1])
         if status > 0 and status & CANDIDATES:
             status &= ~CANDIDATES
-            self._keep_candidates(step, waveforms, layout)
+            self._keep_candidates(step, np.asarray(waveforms), layout)
         if status != AGREED:
             if status == UNCHECKED:
                 return None
@@ -508,16 +517,17 @@ class ScanAssembly(WriterChecks):
                     ranges = self._values[2 * self._k + 5 : 5 * self._k + 5].tolist()
                 self._no_sound_speed(step, ranges, layout)
             if not status & AGREED:
+                waves = np.asarray(waveforms)
                 self.sensor_energy[step] = (
-                    waveform_energy(waveforms, layout[2])
+                    waveform_energy(waves, layout[2])
                     if one_clock
-                    else [waveform_energy(wv, r) for wv, r in zip(waveforms, layout[2::6])]
+                    else [waveform_energy(wv, r) for wv, r in zip(waves, layout[2::6])]
                 )
                 settle_step(self._per_capsule, self._per_step, step, self._scan)  # of these energies
                 if carried:
                     self._energy_mismatch(step)
             self.unflagged_ranges += status >> 1
-        self._latest = (step, latest, waveforms.shape[1], layout[2], layout[3])  # (the lowest id's clock)
+        self._latest = (step, latest, layout[1], layout[2], layout[3])  # (the lowest id's clock)
         return True
 
     def _keep_candidates(self, step: int, waveforms: np.ndarray, layout: list) -> None:
@@ -549,8 +559,6 @@ class ScanAssembly(WriterChecks):
         self._values[: 2 * k] = [rate, t0] * k
         self._layout = layout
         self._limits_cleared = None
-        if self._waves.shape[1] != n:
-            self._waves = np.empty((k, n), np.float32)
         return True
 
     def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:

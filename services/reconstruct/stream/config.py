@@ -9,7 +9,7 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.record import RecordOptions
-from lelsonar.reconstruct.stream.finals import PoolStats
+from lelsonar.reconstruct.stream.final_pool import PoolStats
 from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 
 
@@ -68,7 +68,7 @@ class ReconstructConfig:
     limits : DecodeLimits
     final_workers : int or None
         Worker processes a source (live or a replay) estimates the finals in, off the thread that handles
-        the samples (:class:`~lelsonar.reconstruct.stream.finals.FinalPool`); 0 estimates them on that
+        the samples (:class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`); 0 estimates them on that
         thread.  None: one per core beyond the first, at most two (none on one core); a replay uses
         what the host's load leaves idle, and none for a short file while the workers' fork server has
         not started yet (:func:`~lelsonar.reconstruct.stream.sources.replay_workers`).

@@ -2,10 +2,11 @@
 
 The acquisition service's samples all have one layout (the capsules in the ScanStart's order, float32
 waveforms of one length on one clock).  For a scan whose layout is known, a sample's header
-(:func:`read_header`) and body (:func:`read_sample`) are read from the protobuf wire format in compiled code,
+(:func:`read_header`) and body (:func:`read_body`) are read from the protobuf wire format in compiled code,
 bit for bit what the parser gives, and the payload is parsed once.  The two walk the top level in turn: the
 header is the fields before the first other one, the body the rest, so that routing a sample touches only
-its first cache line.  Only a payload plainly encoded (each field once, with its own wire type, no groups,
+its first cache line.  The waveforms are read where they lie in the payload, never copied.  Only a payload
+plainly encoded (each field once, with its own wire type, no groups,
 canonical field numbers, the header first) on that layout is read; anything else,
 however valid, is left to :func:`lelsonar.codec.parse` (the readers say so, nothing else).  A differential
 test holds the readers to ``protobuf`` on valid messages of every shape and on mutated bytes.
@@ -20,8 +21,8 @@ import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.stream.step_features import place_step
-from lelsonar.signal.compiled import kernel
+from lelsonar.reconstruct.stream.step_features import place_rows
+from lelsonar.signal.compiled import float32_at, kernel
 from lelsonar.v1 import scan_pb2
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
@@ -76,8 +77,9 @@ for _message, _fields in (
         )
 del _message, _fields
 _VARINT, _FIXED64, _LENGTH, _FIXED32 = 0, 1, 2, 5
-#: :func:`place_wire`'s: a payload not read (not plainly encoded, or not the fast path's layout), nothing written.
-UNREAD = -3
+#: :func:`place_wire`'s: a payload not read (not plainly encoded, or not the fast path's layout), nothing written;
+#: the scan's arrays to grow to its step first, nothing written.
+UNREAD, GROW = -3, -4
 _ONE = 0x3FF0000000000000  # 1.0's bits
 
 
@@ -140,13 +142,12 @@ def _wire_skip(buf, i, end, wire_type):
 
 
 @kernel
-def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
-    """One ``SensorReading`` (``buf[i:end]``) of :func:`read_sample`: its ``echo_valid, distance,
-    time_of_flight`` into ``bits[at:at + 3]`` (1.0 or 0.0, and the doubles' bits) and its waveform's samples into
-    ``row``; False (``row`` and ``bits`` then partly written) unless the reading is plainly encoded and on the
-    fast path's layout: ``capsule_id``, a float32 waveform of ``row.size`` samples on the clock whose bits are
+def _read_reading(buf, i, end, capsule_id, bits, at, clock, n):
+    """One ``SensorReading`` (``buf[i:end]``) of :func:`read_body`: its ``echo_valid, distance,
+    time_of_flight`` into ``bits[at:at + 3]`` (1.0 or 0.0, and the doubles' bits), and where its waveform's
+    samples start in ``buf``; -1 (``bits`` then partly written) unless the reading is plainly encoded and on the
+    fast path's layout: ``capsule_id``, a float32 waveform of ``n`` samples on the clock whose bits are
     ``bits[clock:clock + 2]`` (rate, t0)."""
-    n = row.size
     bits[at] = 0
     bits[at + 1] = 0
     bits[at + 2] = 0
@@ -156,37 +157,37 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
     while i < end:
         field, wire_type, i = _wire_tag(buf, i, end)
         if i < 0:
-            return False
+            return -1
         if field == _READING_CAPSULE or field == _READING_VALID:
             if wire_type != _VARINT or seen & (1 << field):
-                return False
+                return -1
             v, i = _wire_varint(buf, i, end)
             if i < 0:
-                return False
+                return -1
             if field == _READING_CAPSULE:
                 capsule = v
             else:
                 valid = v
         elif field == _READING_TOF or field == _READING_DISTANCE:
             if wire_type != _FIXED64 or seen & (1 << field) or i + 8 > end:
-                return False
+                return -1
             bits[at + 2 if field == _READING_TOF else at + 1] = _wire_fixed64(buf, i)
             i += 8
         elif field == _READING_WAVEFORM:
             if wire_type != _LENGTH or seen & (1 << field):
-                return False
+                return -1
             a, b = _wire_length(buf, i, end)
             if a < 0:
-                return False
+                return -1
             i = b
         else:  # a field this build does not know: skipped, as the parser keeps it aside
             i = _wire_skip(buf, i, end, wire_type)
             if i < 0:
-                return False
+                return -1
             continue
         seen |= 1 << field
     if capsule != capsule_id or a < 0:
-        return False
+        return -1
     if valid != 0:  # (a bool is any varint but 0)
         bits[at] = _ONE
     encoding = count = rate = t0 = np.uint64(0)
@@ -196,20 +197,20 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
     while i < b:
         field, wire_type, i = _wire_tag(buf, i, b)
         if i < 0:
-            return False
+            return -1
         if field == _WAVE_ENCODING or field == _WAVE_COUNT:
             if wire_type != _VARINT or seen & (1 << field):
-                return False
+                return -1
             v, i = _wire_varint(buf, i, b)
             if i < 0:
-                return False
+                return -1
             if field == _WAVE_ENCODING:
                 encoding = v
             else:
                 count = v
         elif field == _WAVE_RATE or field == _WAVE_T0:
             if wire_type != _FIXED64 or seen & (1 << field) or i + 8 > b:
-                return False
+                return -1
             if field == _WAVE_RATE:
                 rate = _wire_fixed64(buf, i)
             else:
@@ -217,48 +218,66 @@ def _read_reading(buf, i, end, capsule_id, bits, at, clock, row):
             i += 8
         elif field == _WAVE_DATA:
             if wire_type != _LENGTH or seen & (1 << field):
-                return False
+                return -1
             d0, d1 = _wire_length(buf, i, b)
             if d0 < 0 or d1 - d0 != 4 * n:
-                return False
-            # Copied as it is met, so that the fields after it are read from the cache lines the copy streamed
-            # in, not fetched ahead of it.  A loop over the bytes: one vectorised copy (a slice assignment checks
-            # for overlap and copies twice).
-            src, dst = buf[d0:d1], row.view(np.uint8)
-            for j in range(d1 - d0):
-                dst[j] = src[j]
+                return -1
             i = d1
         else:
             i = _wire_skip(buf, i, b, wire_type)
             if i < 0:
-                return False
+                return -1
             continue
         seen |= 1 << field
     # The layout's clock to the bit (stricter than ==, which the fast path's clocks, finite, need no more of).
-    return (d0 >= 0 or n == 0) and encoding == _FLOAT32 and count == n and rate == bits[clock] and t0 == bits[clock + 1]
+    if (d0 >= 0 or n == 0) and encoding == _FLOAT32 and count == n and rate == bits[clock] and t0 == bits[clock + 1]:
+        return max(d0, 0)
+    return -1
 
 
 @kernel
 def read_sample(payload, body, ids, values, waveforms):
-    """What a ``Sample``'s payload holds that :func:`place_step` reads, straight from the protobuf wire format
-    from ``payload[body]`` on (the first field after its header, :func:`read_header`): γ measured and
-    commanded, the motor's load, voltage and temperature and each reading's ``echo_valid, distance,
-    time_of_flight`` into ``values`` (where :func:`place_step` reads them; a field absent is 0, as the parser
-    gives it), the first k carried energies after them, and each waveform's samples into ``waveforms`` — bit
-    for bit what the parsed message's fields hold.
+    """:func:`read_body` of a ``Sample``'s ``payload``, its waveforms' samples copied into ``waveforms``
+    ((k, n) float32): bit for bit what the parsed message's fields hold.
+
+    Returns
+    -------
+    int
+        How many energies the sample carries (≥ 0), or -1: not read (``values`` and ``waveforms`` then partly
+        written).
+    """
+    buf = np.frombuffer(payload, dtype=np.uint8)
+    k, n = waveforms.shape
+    starts = np.empty(k, np.int64)
+    carried = read_body(buf, body, ids, values, n, starts)
+    if carried >= 0:
+        for i in range(k):
+            row = float32_at(buf, starts[i], n)
+            for j in range(n):
+                waveforms[i, j] = row[j]
+    return carried
+
+
+@kernel
+def read_body(buf, body, ids, values, n, starts):
+    """What a ``Sample``'s payload (the bytes ``buf``) holds that :func:`place_rows` reads, straight from the
+    protobuf wire format from ``buf[body]`` on (the first field after its header, :func:`read_header`): γ
+    measured and commanded, the motor's load, voltage and temperature and each reading's ``echo_valid, distance,
+    time_of_flight`` into ``values`` (where :func:`place_rows` reads them; a field absent is 0, as the parser
+    gives it), the first k carried energies after them, and where each waveform's samples start in ``buf`` into
+    ``starts`` (its data field's bytes, read where they lie: :func:`~lelsonar.signal.compiled.float32_at`).
 
     Only a payload plainly encoded (each field read here once, with its own wire type, no groups, no header
     field after ``body``: the header read before it is then the parser's) on the fast path's layout (the k
-    readings in the order of the capsule ``ids``, float32 waveforms of ``waveforms.shape[1]`` samples each on
-    the clocks in ``values[:2k]``, to the bit) is read; anything else, however valid, is left to the parsed
-    message (-1; ``values`` and ``waveforms`` then partly written).
+    readings in the order of the capsule ``ids``, float32 waveforms of ``n`` samples each on the clocks in
+    ``values[:2k]``, to the bit) is read; anything else, however valid, is left to the parsed message (-1;
+    ``values`` and ``starts`` then partly written).
 
     Returns
     -------
     int
         How many energies the sample carries (≥ 0), or -1: not read.
     """
-    buf = np.frombuffer(payload, dtype=np.uint8)
     bits = values.view(np.uint64)
     k = ids.size
     head, readings, energies = 2 * k, 2 * k + 5, 5 * k + 5
@@ -274,10 +293,12 @@ def read_sample(payload, body, ids, values, waveforms):
             if wire_type != _LENGTH or sensors == k:
                 return -1
             a, b = _wire_length(buf, i, end)
-            if a < 0 or not _read_reading(
-                buf, a, b, np.uint64(ids[sensors]), bits, readings + 3 * sensors, 2 * sensors, waveforms[sensors]
-            ):
+            if a < 0:
                 return -1
+            start = _read_reading(buf, a, b, np.uint64(ids[sensors]), bits, readings + 3 * sensors, 2 * sensors, n)
+            if start < 0:
+                return -1
+            starts[sensors] = start
             sensors += 1
             i = b
         elif field == _SAMPLE_ENERGY:  # a repeated double: packed runs, or one at a time
@@ -335,13 +356,15 @@ def read_sample(payload, body, ids, values, waveforms):
 @kernel
 def place_wire(
     payload,
-    body,
-    ids,
-    values,
-    waveforms,
-    scan,
+    at,
     step,
     time_ns,
+    bound,
+    ids,
+    values,
+    n,
+    starts,
+    scan,
     recovered,
     per_capsule,
     per_step,
@@ -351,75 +374,117 @@ def place_wire(
     timing_windows,
     candidate_windows,
 ):
-    """:func:`place_step` of a sample not validated, read from its ``payload`` (:func:`read_sample` from ``body``
-    on, into ``values`` and ``waveforms``), and how many energies the sample carries; ``(UNREAD, 0)`` if it
-    could not be read that way, or its step is already held (nothing placed).  The scan's arrays come one by one,
-    as :func:`place_step` takes them: a tuple of arrays costs a call more to hand over."""
-    if received[step]:
-        return UNREAD, 0
-    carried = read_sample(payload, body, ids, values, waveforms)
+    """:func:`place_rows` of a sample not validated, read from its ``payload``, and how many energies the sample
+    carries and its step: ``(status, carried, step)``; ``(UNREAD, 0, step)`` if it could not be read that way, its
+    step is already held or not below ``bound`` (nothing placed), ``(GROW, 0, step)`` if the scan's arrays do not
+    reach its step yet (nothing placed: grown, it is placed by the next call).
+
+    From ``at`` on, the rest of its header (:func:`read_header`): ``step`` and ``acquisition_time_ns`` (else
+    ``step`` and ``time_ns``, those read before ``at``), each at most once, no field that routes it again (the
+    fields before ``at`` did); then its body (:func:`read_body`, into ``values``, and where its waveforms of ``n``
+    samples lie into ``starts``: they are read there, never copied).  The scan's arrays come one by one, as
+    :func:`place_rows` takes them: a tuple of arrays costs a call more to hand over."""
+    buf = np.frombuffer(payload, dtype=np.uint8)
+    end = buf.size
+    seen = 0
+    body = at
+    while body < end:
+        field, wire_type, after = _wire_tag(buf, body, end)
+        if after < 0 or field < _SAMPLE_STEP:
+            return UNREAD, 0, step
+        if field > _SAMPLE_TIME:
+            break
+        if wire_type != _VARINT or seen & (1 << field):
+            return UNREAD, 0, step
+        seen |= 1 << field
+        v, body = _wire_varint(buf, after, end)
+        if body < 0:
+            return UNREAD, 0, step
+        if field == _SAMPLE_STEP:
+            if v >= np.uint64(1 << 32):
+                return UNREAD, 0, step
+            step = np.int64(v)
+        else:
+            time_ns = np.int64(v)  # (two's complement: the parser's int64)
+    if step >= bound or (step < received.size and received[step]):
+        return UNREAD, 0, step
+    if step >= received.size:
+        return GROW, 0, step
+    carried = read_body(buf, body, ids, values, n, starts)
     if carried < 0:
-        return UNREAD, 0
+        return UNREAD, 0, step
     k = ids.size
-    return place_step(
-        waveforms,
-        values,
-        scan,
-        k if carried == k else 0,
+    return (
+        place_rows(
+            buf,
+            starts,
+            n,
+            values,
+            scan,
+            k if carried == k else 0,
+            step,
+            False,
+            time_ns,
+            recovered,
+            per_capsule,
+            per_step,
+            acquired_ns,
+            received,
+            recovered_mask,
+            timing_windows,
+            candidate_windows,
+        ),
+        carried,
         step,
-        False,
-        time_ns,
-        recovered,
-        per_capsule,
-        per_step,
-        acquired_ns,
-        received,
-        recovered_mask,
-        timing_windows,
-        candidate_windows,
-    ), carried
+    )
 
 
 @kernel
 def read_header(payload):
     """A ``Sample``'s header straight from its payload: whether it was read, ``schema_version``, the bounds
     (start, end) of ``scanner_id``'s bytes, ``scan_id``, ``step``, ``acquisition_time_ns``'s 64 bits, and where
-    its body starts (the first field after the header, for :func:`read_sample`).
+    its body starts (the first field after the header, for :func:`read_body`), and where the fields that route
+    it (``schema_version``, ``scanner_id``, ``scan_id``) end if they come first (0: not so).
 
     The header is the fields before the first field of another number: read only if each appears there at most
     once with its own wire type, its tags are ones the parser accepts and ``schema_version`` and ``step`` fit
     their 32 bits.  A field absent is 0, as the parser gives it.  Nothing after the header is touched (the
     body's fields lie in cache lines of their own): whether a header field comes again, as the parser would
-    read it, is :func:`read_sample`'s refusal.
+    read it, is :func:`read_body`'s refusal.
     """
     buf = np.frombuffer(payload, dtype=np.uint8)
     version = scan_id = step = time = np.uint64(0)
     a = b = 0
     seen = 0
+    routed = -1
     i, end = 0, buf.size
     while i < end:
         field, wire_type, after = _wire_tag(buf, i, end)
         if after < 0:
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         if field > _SAMPLE_TIME:
             break
+        if field >= _SAMPLE_STEP:
+            routed = i if routed < 0 else routed
+        elif routed >= 0:
+            routed = 0  # a routing field after the others: no prefix routes it
         i = after
         if seen & (1 << field):
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         seen |= 1 << field
         if field == _SAMPLE_SCANNER:
             if wire_type != _LENGTH:
-                return False, version, a, b, scan_id, step, time, i
+                return False, version, a, b, scan_id, step, time, i, 0
             a, b = _wire_length(buf, i, end)
             if a < 0:
-                return False, version, a, b, scan_id, step, time, i
+                return False, version, a, b, scan_id, step, time, i, 0
             i = b
             continue
         if wire_type != _VARINT:
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         v, i = _wire_varint(buf, i, end)
         if i < 0:
-            return False, version, a, b, scan_id, step, time, i
+            return False, version, a, b, scan_id, step, time, i, 0
         if field == _SAMPLE_VERSION:
             version = v
         elif field == _SAMPLE_SCAN:
@@ -429,15 +494,16 @@ def read_header(payload):
         else:
             time = v
     ok = version < np.uint64(1 << 32) and step < np.uint64(1 << 32)
-    return ok, version, a, b, scan_id, step, time, i
+    return ok, version, a, b, scan_id, step, time, i, i if routed < 0 else routed
 
 
-def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int] | None:
-    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns, body)`` of a ``Sample``'s payload
-    (:func:`read_header`; ``body``: where :func:`read_sample` reads on), as the parser reads them if
-    :func:`read_sample` reads the body; None where the fast path leaves the payload to the parser (not plainly
-    encoded, or a ``scanner_id`` that is not UTF-8)."""
-    ok, version, a, b, scan_id, step, time, body = read_header(payload)
+def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int, int] | None:
+    """``(schema_version, scanner_id, scan_id, step, acquisition_time_ns, routed, body)`` of a ``Sample``'s
+    payload (:func:`read_header`; ``routed``: where the fields that route it end if they come first, else 0;
+    ``body``: where :func:`read_body` reads on), as the parser reads them if :func:`read_body` reads the body;
+    None where the fast path leaves the payload to the parser (not plainly encoded, or a ``scanner_id`` that is
+    not UTF-8)."""
+    ok, version, a, b, scan_id, step, time, body, routed = read_header(payload)
     if not ok:
         return None
     try:
@@ -445,4 +511,4 @@ def sample_header(payload: bytes) -> tuple[int, str, int, int, int, int] | None:
     except UnicodeDecodeError:
         return None
     t = int(time)
-    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t, int(body)
+    return int(version), scanner, int(scan_id), int(step), t - (1 << 64) if t >= 1 << 63 else t, routed, int(body)

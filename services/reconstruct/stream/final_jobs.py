@@ -1,7 +1,7 @@
 """A scan's final on its way: what its message needs beside the estimate, fixed when the scan is closed.
 
 The service closes a scan and hands its input to the estimation (on its own thread, or in a
-:class:`~lelsonar.reconstruct.stream.finals.FinalPool`); :func:`final_message` then builds the terminal
+:class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`); :func:`final_message` then builds the terminal
 message from the estimate and the :class:`FinalJob`, whenever and wherever the estimate was made: the same
 message either way.
 """

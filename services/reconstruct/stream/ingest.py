@@ -100,6 +100,9 @@ class Ingest:
     #: where it has the scan's layout; False parses every payload (the baseline `lelsonar bench ingest` shows).
     fast_path: bool = True
     _held: int = 0
+    #: By the key a sample came on (None: no key), the bytes that routed the last one read from its payload and
+    #: its scan (open: forgotten as it closes; at most two entries an open scan, its scanner's key and none).
+    _routes: dict[str | None, tuple[bytes, ScanAssembly]] = field(default_factory=dict)
 
     @property
     def n_pending(self) -> int:
@@ -182,7 +185,7 @@ class Ingest:
 
     def close(self, key: ScanKey) -> None:
         """The scan is finalised: drop its data; later messages for it are rejected as late."""
-        self.scans.pop(key, None)
+        self._forget_routes(self.scans.pop(key, None))
         self._held -= len(self.pending.pop(key, []))
         self.closed[key] = None
         while len(self.closed) > self.max_closed:
@@ -208,6 +211,7 @@ class Ingest:
         self.scans[key] = scan
         while len(self.scans) > self.max_scans:
             old, dropped = self.scans.popitem(last=False)
+            self._forget_routes(dropped)
             self.evicted["open scan forgotten (max_scans)"] += 1
             _log.warning(
                 "forgetting scan %s with %d samples: more than %d scans open (counted in evicted)",
@@ -228,26 +232,39 @@ class Ingest:
 
     def _add_payload(self, payload: bytes, origin: str, key_scanner: str | None) -> Accepted | Rejected | None:
         """A ``Sample``'s payload placed in its open scan straight from its bytes, never parsed
-        (:meth:`ScanAssembly.add_payload`); None where the fast path leaves it to the parser (nothing done)."""
+        (:meth:`ScanAssembly.add_payload`); None where the fast path leaves it to the parser (nothing done).
+
+        A payload that starts with the bytes that routed the last one of its key (``schema_version``,
+        ``scanner_id``, ``scan_id``, each once, before the rest: the same fields, which the rest may not repeat)
+        goes to the same scan without its header read in Python."""
         if len(payload) > self.limits.max_payload_bytes:
             return None
-        header = sample_header(payload)
-        if header is None or header[0] != SCHEMA_VERSION:
-            return None
-        _, scanner, scan_id, step, time_ns, body = header
-        scan = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
-        if scan is None or (key_scanner is not None and scanner != key_scanner):
-            return None
+        route = self._routes.get(key_scanner)
+        if route is not None and payload.startswith(route[0]):
+            prefix, scan = route
+            at, step, time_ns = len(prefix), 0, 0
+        else:
+            header = sample_header(payload)
+            if header is None or header[0] != SCHEMA_VERSION:
+                return None
+            _, scanner, scan_id, step, time_ns, routed, at = header
+            found = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
+            if found is None or (key_scanner is not None and scanner != key_scanner):
+                return None
+            scan = found
+            if routed:
+                self._routes[key_scanner] = (payload[:routed], scan)
         mismatches = scan.energy_mismatches
         try:
-            placed = scan.add_payload(payload, body, step, time_ns, origin, self.limits)
+            placed = scan.add_payload(payload, at, step, time_ns, origin, self.limits)
         except DecodeError as exc:
-            return self._refused(scan, step, exc)
-        if placed is None:
+            header = sample_header(payload)
+            return self._refused(scan, -1 if header is None else header[3], exc)
+        if placed < 0:
             return None
         self.energy_mismatches += scan.energy_mismatches - mismatches
         self.accepted += 1
-        return _accepted(("sample", scan, step))
+        return _accepted(("sample", scan, placed))
 
     def _add(
         self,
@@ -299,6 +316,12 @@ class Ingest:
             old = next(iter(self.pending))
             out += self.drop_pending(old)
         return out
+
+    def _forget_routes(self, scan: ScanAssembly | None) -> None:
+        """No payload is routed to ``scan`` (closed, or forgotten) by the bytes that routed it."""
+        if scan is not None:
+            for key in [key for key, (_, routed) in self._routes.items() if routed is scan]:
+                del self._routes[key]
 
     def _reject(self, error: str, detail: str) -> Rejected:
         self.rejected[error] += 1

@@ -27,7 +27,8 @@ from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
 from lelsonar.log.recording import McapRecorder, Recording, open_recording
-from lelsonar.reconstruct.stream.finals import FinalPool, auto_workers, workers_warm
+from lelsonar.reconstruct.stream.final_pool import FinalPool, workers_warm
+from lelsonar.reconstruct.stream.finals import auto_workers
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
 from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -144,7 +145,7 @@ def replay_mcap(
     other threads while the service handles a payload (:func:`decompress_threads`,
     :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
     the estimation.  The finals are estimated in worker processes while the file is read
-    (:func:`replay_workers`, :class:`~lelsonar.reconstruct.stream.finals.FinalPool`), and handed back in
+    (:func:`replay_workers`, :class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`), and handed back in
     the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
     estimates are the same either way.
 
@@ -293,7 +294,7 @@ class LiveSource:
     batch (``PayloadFifo.batch``) of each.
 
     The finals are estimated in worker processes (``final_workers`` of the service's config;
-    :class:`~lelsonar.reconstruct.stream.finals.FinalPool`), so a scan's end does not hold every other
+    :class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`), so a scan's end does not hold every other
     scanner's samples: the pool wakes the processing thread when one comes back, which publishes it as
     the inline estimate would have been; those still on their way when the source closes are waited
     for and published.

@@ -20,7 +20,7 @@ import numpy as np
 
 from lelsonar.codec import MAX_RANGE_M
 from lelsonar.reconstruct.stream.candidates import candidate_echo
-from lelsonar.signal.compiled import kernel
+from lelsonar.signal.compiled import float32_at, kernel
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import (
     ECHO_PEAK_WINDOW,
@@ -103,6 +103,8 @@ def place_step(
     ----------
     waveforms : (k, n) float32 array
         The k waveforms (V), in the order of the scan's capsules (k: the scan's, ``per_capsule.shape[2]``).
+        (:func:`place_rows` reads them where they lie instead: the bytes ``buf``, each waveform's ``n`` samples
+        from ``buf[starts[i]]`` on.)
     values : (≥ 6·k + 5,) float64 array
         Each waveform's sample rate (Hz) and t0 (s); γ measured and commanded (rad); the motor's load,
         voltage and temperature; each reading's ``echo_valid, distance, time_of_flight`` (same order); the
@@ -136,6 +138,53 @@ def place_step(
         (``candidate_windows`` not allocated yet).
     """
     k, n = waveforms.shape
+    starts = np.arange(k) * (4 * n)
+    return place_rows(
+        waveforms.reshape(k * n).view(np.uint8),
+        starts,
+        n,
+        values,
+        scan,
+        m,
+        step,
+        checked,
+        time_ns,
+        recovered,
+        per_capsule,
+        per_step,
+        acquired_ns,
+        received,
+        recovered_mask,
+        timing_windows,
+        candidate_windows,
+    )
+
+
+@kernel
+def place_rows(
+    buf,
+    starts,
+    n,
+    values,
+    scan,
+    m,
+    step,
+    checked,
+    time_ns,
+    recovered,
+    per_capsule,
+    per_step,
+    acquired_ns,
+    received,
+    recovered_mask,
+    timing_windows,
+    candidate_windows,
+):
+    """:func:`place_step` of the k waveforms of ``n`` samples that lie in the bytes ``buf`` (1-d uint8), the i-th
+    from byte ``starts[i]`` on: read there (:func:`~lelsonar.signal.compiled.float32_at`), each in one pass while
+    it is in the cache."""
+
+    k = starts.size
     # Where the readings and the carried energies start in ``values`` (indexed, not sliced: a slice of an array
     # costs an atomic reference count, and the pass makes dozens).
     r0, e0 = 2 * k + 5, 5 * k + 5
@@ -151,7 +200,7 @@ def place_step(
                 return UNCHECKED
     agreed = m == k
     for i in range(k):
-        row = waveforms[i]
+        row = float32_at(buf, starts[i], n)
         squares = np.dot(row, row)  # float32, as energy_agrees' bound assumes
         if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
             if not checked:
@@ -188,7 +237,7 @@ def place_step(
         per_capsule[0, step, i] = d  # distance
         if agreed:
             per_capsule[1, step, i] = values[e0 + i]  # sensor_energy
-        row = waveforms[i]
+        row = float32_at(buf, starts[i], n)
         per_capsule[2, step, i] = window_peak(row, rate, t0, t, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
         if width > 0 and rate == timing_rate and t > 0.0:  # NaN compares false: no echo, nothing to time
             a = int(round((t + TIMING_WINDOW[0] - t0) * rate))
@@ -216,7 +265,7 @@ def place_step(
                     row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1]
                 )
     if sampled and n > 0:
-        dc_levels(waveforms, per_capsule[4, step])
+        dc_levels_at(buf, starts, n, per_capsule[4, step])
     per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
     if agreed:
         settle_step(per_capsule, per_step, step, scan)
@@ -259,7 +308,15 @@ def window_peak(row, rate, t0, round_trip, lo, hi):
 
 @kernel
 def dc_levels(waveforms, out):
-    """|mean| of each float32 waveform (row), V, into ``out``, bit for bit what ``np.mean(..., axis=-1,
+    """|mean| of each float32 waveform (row), V, into ``out``: :func:`dc_levels_at` of the rows."""
+    k, n = waveforms.shape
+    dc_levels_at(waveforms.reshape(k * n).view(np.uint8), np.arange(k) * (4 * n), n, out)
+
+
+@kernel
+def dc_levels_at(buf, starts, n, out):
+    """|mean| of each float32 waveform of ``n`` samples in the bytes ``buf``, the i-th from byte ``starts[i]`` on
+    (read there: :func:`~lelsonar.signal.compiled.float32_at`), V, into ``out``, bit for bit what ``np.mean(...,
     dtype=np.float64)`` gives: that sums the samples in float64 in order (through its cast, not pairwise).
 
     In-order float64 additions cannot run side by side without changing the rounding, so they are done
@@ -268,7 +325,7 @@ def dc_levels(waveforms, out):
     in-order float64 additions was exact too — the same number.  A waveform whose samples do not all fit
     (a dynamic range beyond ~2^40 at ``n`` samples) is summed in order.
     """
-    k, n = waveforms.shape
+    k = starts.size
     if n == 0:
         return
     bits = 0
@@ -276,7 +333,7 @@ def dc_levels(waveforms, out):
         bits += 1
     inexact_rows = 0
     for i in range(k):
-        row = waveforms[i]
+        row = float32_at(buf, starts[i], n)
         s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
         total, inexact = _scaled_sum(row, 2.0**s)
         if inexact:
@@ -285,14 +342,14 @@ def dc_levels(waveforms, out):
         else:
             out[i] = abs(float(total) * 2.0**-s / n)
     if inexact_rows:
-        _dc_levels_in_order(waveforms, out)
+        _dc_levels_in_order(buf, starts, n, out)
 
 
 @kernel
-def _dc_levels_in_order(waveforms, out):
-    """:func:`dc_levels` of the rows whose ``out`` is NaN, each summed in float64 in order, four rows side by
+def _dc_levels_in_order(buf, starts, n, out):
+    """:func:`dc_levels_at` of the rows whose ``out`` is NaN, each summed in float64 in order, four rows side by
     side: the additions of a row wait on one another, those of four rows do not."""
-    k, n = waveforms.shape
+    k = starts.size
     rows = np.empty(k, np.int64)
     count = 0
     for i in range(k):
@@ -303,12 +360,14 @@ def _dc_levels_in_order(waveforms, out):
         # A group of fewer than four repeats its last row (its sums computed twice, written once).
         a, b = rows[g], rows[min(g + 1, count - 1)]
         c, d = rows[min(g + 2, count - 1)], rows[min(g + 3, count - 1)]
+        ra, rb = float32_at(buf, starts[a], n), float32_at(buf, starts[b], n)
+        rc, rd = float32_at(buf, starts[c], n), float32_at(buf, starts[d], n)
         ta = tb = tc = td = 0.0
         for j in range(n):
-            ta += float(waveforms[a, j])
-            tb += float(waveforms[b, j])
-            tc += float(waveforms[c, j])
-            td += float(waveforms[d, j])
+            ta += float(ra[j])
+            tb += float(rb[j])
+            tc += float(rc[j])
+            td += float(rd[j])
         out[a], out[b], out[c], out[d] = abs(ta / n), abs(tb / n), abs(tc / n), abs(td / n)
 
 

@@ -1,314 +1,42 @@
-"""What one region of constant depth says, and the physical tests that tell a plane, a corner and an edge apart.
+"""The physical tests that tell a plane, a corner and an edge apart, on measured regions.
 
-* :func:`measure_region`: bearing (beam pattern), depth, tilt and curvature along the capsule stack,
-  echo strength over a mirror's;
+Each test reads :class:`~lelsonar.reconstruct.estimate.surfaces.measurement.Measured` regions:
+
 * :func:`pair_corner`: the double bounce of two planes (range ``|X|`` of their intersection);
 * :func:`stack_dihedral`: the double bounce of a plane with a surface across the fan (a floor or a
   ceiling), where the range and the stack slope must agree;
-* :func:`plane_end`: a region on one plane's trace, off its foot: that plane's end.
+* :func:`plane_end`: a region on one plane's trace, off its foot: that plane's end;
+* :func:`walls_of_unseen_corners`: two regions on one plane's trace explained by a wall and its corner
+  with that plane, not by the plane's end.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
 
 import numpy as np
 
-from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
-from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
-from lelsonar.reconstruct.estimate.surfaces.regions import (
-    PLATEAU,
-    Region,
-    amplitude_jump,
-    bearing_from_amplitude,
-    capsule_x,
-    end_crossing_stderr,
-    stack_fits,
-    unfaded_ends,
-    weaker_at,
-)
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.regions import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
-    "Measured",
     "across_stack",
     "beyond_reach",
-    "unit_normal",
     "feature_point",
     "in_span",
-    "masked_ends",
-    "measure_region",
-    "step_medians",
-    "sweep_step",
-    "mirror_normalised",
     "pair_corner",
     "pair_stderr",
     "end_stderr",
-    "handed_over",
     "reach_stderr",
     "plane_end",
     "plane_line",
     "stack_dihedral",
     "stack_or_pair",
     "unseen_corner",
+    "walls_of_unseen_corners",
     "wrap",
 ]
-
-
-@dataclass(frozen=True, eq=False)
-class Measured:
-    """A region with what its echoes say, before its class is decided."""
-
-    region: Region
-    bearing: float
-    bearing_stderr: float
-    bearing_source: str
-    findings: tuple[tuple[str, str], ...]
-    depth: float
-    depth_stderr: float
-    tilt: float
-    tilt_stderr: float
-    curvature: float
-    curvature_stderr: float
-    stack_slope: float
-    strength: float  # peak amplitude over a mirror's at this depth (NaN: unknown)
-    peak: float
-    peak_inside: bool  # the region holds its amplitude peak
-    exact: bool  # its peak is inside and not clipped (else its strength is only a lower bound)
-    clipped: bool  # the receiver clipped its peak (its strength is only a lower bound)
-    span: tuple[float, float]  # γ of the region's first and last steps, rad
-    step: float  # the sweep's step, rad
-    step_amplitude: np.ndarray  # each step's median echo amplitude, V (NaN: none or no amplitudes)
-    positions: np.ndarray  # (N, 3) each reading's capsule position, m
-    ranges: np.ndarray  # (N,) each reading's range, m
-    stack_sigma: float  # residual σ of the ranges along the stack about a free slope per region, m
-
-
-def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
-    c = math.cos(tilt)
-    return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
-
-
-def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
-    """Each of the region's steps' median over its readings' finite values (NaN: none), as ``np.median``.
-
-    Parameters
-    ----------
-    region : Region
-    values : (n_steps, n_capsules) array
-        A value per reading of the sweep (NaN or infinite: none).
-
-    Returns
-    -------
-    (k,) array over ``region.steps``.
-    """
-    table = np.full((region.steps.size, values.shape[1]), np.nan)
-    v = values[region.rows, region.capsules]
-    table[np.searchsorted(region.steps, region.rows), region.capsules] = np.where(np.isfinite(v), v, np.nan)
-    table.sort(axis=1)  # NaN last: each row's first `count` values are its finite ones, in order
-    count = np.count_nonzero(np.isfinite(table), axis=1)
-    row = np.arange(table.shape[0])
-    upper = table[row, count // 2]
-    lower = table[row, np.maximum(count - 1, 0) // 2]
-    # The middle value of an odd count, the mean of the middle two of an even one (NaN for none).
-    return np.where(count % 2 == 1, upper, (lower + upper) / 2)
-
-
-def sweep_step(gamma: np.ndarray) -> float:
-    """The sweep's step, rad: the median ``|Δγ|`` (1° for a single step)."""
-    return float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
-
-
-def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap: int) -> tuple[bool, bool]:
-    """Whether a nearer echo in any one capsule's beam, just before and just after the region, masks it there.
-
-    The receiver keeps each capsule's first echo: a nearer target seen by only some capsules (an edge beside
-    the stack) ends the region in those capsules first, and the steps' median range may not show it.  Each
-    capsule is compared with its own median over the region (a tilt spreads the capsules' ranges steadily).
-    """
-    block = distance[region.steps]
-    # Each capsule's median (NaNs sort last); a capsule without an echo in the region takes the others'.
-    count = np.count_nonzero(np.isfinite(block), axis=0)
-    srt = np.sort(block, axis=0)
-    cols = np.arange(block.shape[1])
-    have = count > 0
-    ref = 0.5 * (srt[np.maximum(count - 1, 0) // 2, cols] + srt[count // 2 - (count == 0), cols])
-    ref[~have] = float(np.median(ref[have]))
-    reach = max_gap + 2
-    first, last = int(region.steps[0]), int(region.steps[-1])
-    before = distance[max(first - reach, 0) : first]
-    after = distance[last + 1 : last + 1 + reach]
-    with np.errstate(invalid="ignore"):
-        return bool(np.any(before < ref - tolerance)), bool(np.any(after < ref - tolerance))
-
-
-def handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], opts: SurfaceOptions) -> bool:
-    """Whether another echo at a like range answers just past a flagged end: the echoes sum there, so the end's
-    amplitude says nothing of where the region's own echo fades.  Like: nearer by no more than twice the range
-    tolerance (the band a reading of the region's own target stays in), or farther by no more than that plus
-    the amplitude window's reach in range (:data:`~lelsonar.reconstruct.estimate.corner.wall.ECHO_WINDOW_RANGE`):
-    a later echo that rises inside the window the amplitude is read in adds to the region's own there, though
-    the first echo alone sets the range."""
-    spread = 2 * opts.range_tolerance
-    with np.errstate(all="ignore"):
-        ref = float(np.nanmedian(distance[region.rows, region.capsules]))
-    reach = opts.max_gap + 2
-    first, last = int(region.steps[0]), int(region.steps[-1])
-    past = []
-    if ends[0]:
-        past.append(distance[max(first - reach, 0) : first])
-    if ends[1]:
-        past.append(distance[last + 1 : last + 1 + reach])
-    with np.errstate(invalid="ignore"):
-        return any(
-            bool(np.any((block - ref >= -spread) & (block - ref <= spread + ECHO_WINDOW_RANGE))) for block in past
-        )
-
-
-def measure_region(
-    region: Region,
-    gamma: np.ndarray,
-    distance: np.ndarray,
-    amplitude: np.ndarray | None,
-    geometry: ArrayGeometry,
-    opts: SurfaceOptions,
-    *,
-    step: float | None = None,
-) -> Measured:
-    """What a region's echoes say; ``step`` is :func:`sweep_step` of ``gamma`` (computed when not given)."""
-    masked = masked_ends(region, distance, opts.range_tolerance, opts.max_gap)
-    if (masked[0] and not region.cut_before) or (masked[1] and not region.cut_after):
-        region = replace(region, cut_before=region.cut_before or masked[0], cut_after=region.cut_after or masked[1])
-    g = gamma[region.steps]
-    step = sweep_step(gamma) if step is None else step
-    quant = step / math.sqrt(24.0)  # each end of the region uniform within a step
-    findings: list[tuple[str, str]] = []
-    cut = region.cut_before or region.cut_after
-    mid = 0.5 * (float(g[0]) + float(g[-1]))
-    peak_fit = None
-    peak = float("nan")
-    clipped: bool | None = None
-    per_step = np.full(region.steps.size, np.nan)
-    if amplitude is not None:
-        per_step = step_medians(region, amplitude)
-        peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
-        clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
-        peak_fit = bearing_from_amplitude(g, per_step)
-    # Two echoes at one range, one taking over from the other inside the region: its ends are not both one
-    # beam pattern's.  The shorter side may be the other echo's, so the centre may be off by half its extent:
-    # a σ that says so while it stays within the verdict's bound, no centre bearing beyond it.
-    jump = amplitude_jump(g, per_step) if amplitude is not None and not cut else None
-    shift = 0.0 if jump is None else 0.5 * jump[1] * step
-    mixed = ""
-    if jump is not None:
-        mixed = (
-            f"the echo amplitude steps at γ {math.degrees(jump[0]):.1f}° as no one beam pattern does: two echoes "
-            f"at one range, {jump[1]} steps of the region may be the other's, so its centre is not the wall's"
-        )
-    # An end the echo stops at while still strong is where its mirror ends, not where the beam fades it.
-    unfaded = unfaded_ends(g, per_step) if amplitude is not None and not cut and jump is None else None
-    unfaded = unfaded or (False, False)
-    # Its consequence, a centre off the beam pattern's peak, must show beyond both σ before the centre is doubted
-    # (without a peak in the region nothing vouches for the centre).
-    stops = any(unfaded) and not handed_over(region, distance, unfaded, opts)
-    if stops and peak_fit is not None:
-        ends_se = math.hypot(step, step) / math.sqrt(48.0)
-        stops = abs(peak_fit[0] - mid) > 3.0 * math.hypot(peak_fit[1], quant, ends_se)
-    if stops:
-        at = float(g[0]) if unfaded[0] else float(g[-1])
-        mixed = (
-            f"the echo stops at γ {math.degrees(at):.1f}° stronger than at its other end, as no beam pattern "
-            "fades it: its mirror ends there, so the region's centre is not the wall's"
-        )
-    centred = not cut and not stops and shift <= opts.limits.max_normal_stderr
-    if centred:
-        # The region's ends are where the beam pattern falls under the threshold on either side: symmetric
-        # about the target, so the centre is its bearing (the amplitudes can be bent by a later echo ringing
-        # into the same window).  Each end's crossing is uniform over the gap to the next step out, which a
-        # servo's quantised positions make uneven: the centre's variance is (gap_before² + gap_after²)/48.
-        first, last = int(region.steps[0]), int(region.steps[-1])
-        before = abs(float(gamma[first] - gamma[first - 1])) if first > 0 else step
-        after = abs(float(gamma[last + 1] - gamma[last])) if last + 1 < gamma.size else step
-        ends = math.sqrt((before * before + after * after) / 48.0)
-        # The amplitude noise moves each end's threshold crossing too (the beam's log slope there over it).
-        if amplitude is not None:
-            jitter = end_crossing_stderr(g, per_step)
-            ends = math.sqrt(ends * ends + (jitter[0] ** 2 + jitter[1] ** 2) / 4.0)
-        bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
-        # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
-        # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
-        # 3 σ of their difference, each weighs by its inverse variance.
-        peak_sb = math.hypot(peak_fit[1], quant) if peak_fit is not None else math.inf
-        if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
-            wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
-            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
-    elif peak_fit is not None:
-        bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
-        # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
-        # window bend (and a receiver's clipping flattens): usable, not good.
-        findings.append(
-            (
-                DEGRADED,
-                "bearing from the amplitude peak alone: "
-                + (
-                    mixed
-                    if mixed
-                    else "the region of constant depth is cut (a nearer echo or the sweep's end), so its centre "
-                    "is not the wall's"
-                ),
-            )
-        )
-    else:
-        bearing, source = mid, "undetermined"
-        sb = 0.5 * (float(g[-1]) - float(g[0])) + step
-        side = "both sides" if region.cut_before and region.cut_after else "one side"
-        why = mixed if mixed else f"the region of constant depth is cut on {side} (a nearer echo or the sweep's end)"
-        findings.append((UNRELIABLE, f"bearing not determined: {why}, and no amplitude peak is in it"))
-    caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
-    d = distance[region.rows, region.capsules]
-    x = capsule_x(geometry)[region.capsules]
-    (lin, lin_cov, lin_sigma), (quad, quad_cov, _) = stack_fits(x, region.rows, d)
-    slope = float(lin[0])
-    tilt = math.asin(max(-1.0, min(1.0, -slope))) if math.isfinite(slope) else 0.0
-    tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")
-    n = unit_normal(bearing, tilt)
-    h_i = d + caps @ n
-    depth = float(np.median(h_i))
-    # The median's standard error (1.25 σ/√N), with one capsule per step counted once per step.
-    depth_se = 1.2533 * float(np.std(h_i)) / math.sqrt(max(region.steps.size, 1)) if h_i.size > 1 else float("nan")
-    strength = mirror_normalised(peak, depth, opts)
-    return Measured(
-        region=region,
-        bearing=bearing,
-        bearing_stderr=sb,
-        bearing_source=source,
-        findings=tuple(findings),
-        depth=depth,
-        depth_stderr=depth_se,
-        tilt=tilt,
-        tilt_stderr=tilt_se,
-        curvature=float(quad[1]),
-        curvature_stderr=math.sqrt(float(quad_cov[1, 1])) if math.isfinite(quad[1]) else float("nan"),
-        stack_slope=slope,
-        strength=strength,
-        peak=peak,
-        peak_inside=centred or peak_fit is not None,
-        exact=(centred or peak_fit is not None) and clipped is False,
-        clipped=clipped is True,
-        span=(float(g[0]), float(g[-1])),
-        step=step,
-        step_amplitude=per_step,
-        positions=caps,
-        ranges=d,
-        stack_sigma=lin_sigma,
-    )
-
-
-def mirror_normalised(amplitude: float, depth: float, opts: SurfaceOptions) -> float:
-    """An echo amplitude over a mirror's spreading and absorption at ``depth``: ``A · 2ρ · 10^(α·2ρ/20)``."""
-    return amplitude * 2 * depth * 10 ** (opts.absorption_db_per_m * 2 * depth / 20)
 
 
 def across_stack(m: Measured, opts: SurfaceOptions) -> bool:
@@ -660,3 +388,47 @@ def reach_stderr(m: Measured, opts: SurfaceOptions) -> float:
 
 def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def walls_of_unseen_corners(
+    measured: list[Measured],
+    planes: list[int],
+    across: list[bool],
+    partial: set[int],
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> dict[int, str]:
+    """Regions without a bearing that are a wall's own mirror, its corner with a plane the deeper region beside it.
+
+    Where two such regions fit one plane's trace on one side, both cannot be its end (a mirror answers at its
+    foot only, so a point of the trace short of its end echoes nothing).  The nearer one is a wall's mirror
+    when a bearing it leaves open makes that wall's corner with the plane the deeper one
+    (:func:`unseen_corner`): one wall and its corner explain both.  Returns those regions, each with
+    the finding that says so.  A target only ``partial`` capsules hear is no mirror, and says nothing of a
+    plane's trace in the fan.
+    """
+    open_ = [
+        i for i, m in enumerate(measured) if m.bearing_source == "undetermined" and not across[i] and i not in partial
+    ]
+    in_fan = [m for i, m in enumerate(measured) if i not in partial]
+    out: dict[int, str] = {}
+    for k in open_:
+        mk = measured[k]
+        for j in planes:
+            pj = measured[j]
+            if plane_end(mk, [pj], opts, in_fan, gamma) is None:
+                continue
+            for i in open_:
+                mi = measured[i]
+                if i == k or i in out or not mi.depth < mk.depth - opts.range_tolerance:
+                    continue
+                # Beside each other in the sweep: nothing between their spans.
+                lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
+                if any(lo < o.span[0] and o.span[1] < hi for o in measured):
+                    continue
+                if unseen_corner(mi, mk, pj, opts) is not None:
+                    out[i] = (
+                        f"a wall at {mi.depth:.2f} m whose corner with the plane at {pj.depth:.2f} m is the echo "
+                        f"{mk.depth:.2f} m away beside it: not that plane's end"
+                    )
+    return out

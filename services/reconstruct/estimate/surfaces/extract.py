@@ -62,13 +62,10 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
-    Measured,
     across_stack,
     beyond_reach,
     end_stderr,
     feature_point,
-    measure_region,
-    mirror_normalised,
     pair_corner,
     pair_stderr,
     plane_end,
@@ -76,13 +73,19 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     reach_stderr,
     stack_dihedral,
     stack_or_pair,
-    sweep_step,
-    unit_normal,
-    unseen_corner,
+    walls_of_unseen_corners,
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
 from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.measurement import (
+    Measured,
+    measure_region,
+    mirror_normalised,
+    summed_width_stderr,
+    sweep_step,
+    unit_normal,
+)
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.regions import (
     PLATEAU,
@@ -359,7 +362,7 @@ def extract_surfaces(
         or stack_dihedral(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
     }
     planes = [i for i in determined if i not in ends]
-    walls_of_corners = _walls_of_unseen_corners(measured, planes, across, partial, g, opts)
+    walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, g, opts)
     for i, text in walls_of_corners.items():
         measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
     kinds: dict[int, tuple[str, list[str], list[int]]] = {}
@@ -571,77 +574,6 @@ def extract_surfaces(
         n_echoes=n_valid,
         unexplained=unexplained,
     )
-
-
-def _walls_of_unseen_corners(
-    measured: list[Measured],
-    planes: list[int],
-    across: list[bool],
-    partial: set[int],
-    gamma: np.ndarray,
-    opts: SurfaceOptions,
-) -> dict[int, str]:
-    """Regions without a bearing that are a wall's own mirror, its corner with a plane the deeper region beside it.
-
-    Where two such regions fit one plane's trace on one side, both cannot be its end (a mirror answers at its
-    foot only, so a point of the trace short of its end echoes nothing).  The nearer one is a wall's mirror
-    when a bearing it leaves open makes that wall's corner with the plane the deeper one
-    (:func:`~.evidence.unseen_corner`): one wall and its corner explain both.  Returns those regions, each with
-    the finding that says so.  A target only ``partial`` capsules hear is no mirror, and says nothing of a
-    plane's trace in the fan.
-    """
-    open_ = [
-        i for i, m in enumerate(measured) if m.bearing_source == "undetermined" and not across[i] and i not in partial
-    ]
-    in_fan = [m for i, m in enumerate(measured) if i not in partial]
-    out: dict[int, str] = {}
-    for k in open_:
-        mk = measured[k]
-        for j in planes:
-            pj = measured[j]
-            if plane_end(mk, [pj], opts, in_fan, gamma) is None:
-                continue
-            for i in open_:
-                mi = measured[i]
-                if i == k or i in out or not mi.depth < mk.depth - opts.range_tolerance:
-                    continue
-                # Beside each other in the sweep: nothing between their spans.
-                lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
-                if any(lo < o.span[0] and o.span[1] < hi for o in measured):
-                    continue
-                if unseen_corner(mi, mk, pj, opts) is not None:
-                    out[i] = (
-                        f"a wall at {mi.depth:.2f} m whose corner with the plane at {pj.depth:.2f} m is the echo "
-                        f"{mk.depth:.2f} m away beside it: not that plane's end"
-                    )
-    return out
-
-
-def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -> float:
-    """How far another echo summing into a region's flank may have moved its amplitude peak, rad.
-
-    One target's echo follows the beam, in ``log`` a parabola of curvature ``k``: a spread ``s² = 1/(2k)``
-    across γ.  A second echo of weight ``w`` (the weaker, ``w ≤ ½``) ``δ`` away widens the sum to about
-    ``s² + w(1 − w)δ²`` and moves its peak by about ``wδ``, whose square is at most that excess.  So
-    ``√(1/(2c) − 1/(2k))``, with ``c`` the region's own curvature and ``k`` the sweep's (its regions with a
-    clean peak), bounds the shift; 0 when the top is no flatter than one echo's can be (``c ≥ flattest``).
-
-    Parameters
-    ----------
-    curvature : float or None
-        The region's ``c`` (1/rad², :func:`~.regions.log_amplitude_curvature`); None: unknown.
-    beam : float
-        The sweep's ``k`` (1/rad²); NaN: unknown.
-    flattest : float
-        The smallest curvature one echo shows in the sweep (its regions' spread), 1/rad².
-
-    Returns
-    -------
-    The bound, rad (0 when either curvature is unknown or the top is no flatter than one echo's).
-    """
-    if curvature is None or not (curvature > 0 and beam > 0) or curvature >= flattest:
-        return 0.0
-    return math.sqrt(max(0.0, 1.0 / (2.0 * curvature) - 1.0 / (2.0 * beam)))
 
 
 def good_surfaces(result: SurfaceSet) -> tuple[Surface, ...]:

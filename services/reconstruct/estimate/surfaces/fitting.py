@@ -10,8 +10,9 @@ from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
 from lelsonar.reconstruct.estimate.quality import DEGRADED, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
-from lelsonar.reconstruct.estimate.surfaces.evidence import Measured, plane_line, unit_normal, wrap
+from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import Surface, SurfaceOptions
 
 __all__ = ["METHOD", "fit_surface", "joint_fit"]

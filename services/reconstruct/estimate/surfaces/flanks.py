@@ -15,14 +15,8 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.estimate.surfaces.evidence import (
-    Measured,
-    measure_region,
-    plane_line,
-    stack_dihedral,
-    unit_normal,
-    wrap,
-)
+from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 

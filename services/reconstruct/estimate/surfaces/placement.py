@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.surfaces.evidence import unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 
 __all__ = ["echo_point", "pair_line_point", "with_range", "line_direction", "RANGE_FLOOR"]
 
