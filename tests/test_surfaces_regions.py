@@ -20,6 +20,8 @@ from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import WORLD_FAMILIES, draw_world
+from lelsonar.tools.stress_world_score import score_world
+from lelsonar.tools.stress_worlds import draw_stress_world
 
 
 def _reference(
@@ -186,3 +188,57 @@ def test_step_medians_are_each_steps_median(world_sweeps):
                 mine = v[(pos == k) & np.isfinite(v)]
                 want = float(np.median(mine)) if mine.size else float("nan")
                 assert np.float64(got[k]).tobytes() == np.float64(want).tobytes()
+
+
+def _wide_wall(rng: np.random.Generator, *, far_after: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A wall 0.385 m from the axis at bearing 13.8°, heard from −68.6° to 96.7° (a 58° beam), its ranges
+    ``ρ − r·cos(γ − β)`` (r = 3 cm) plus 2 mm of noise; past ``far_after`` (rad) a target at another depth."""
+    gamma = np.arange(math.radians(-100.0), math.radians(130.0), math.radians(0.879))
+    rho, beta, r = 0.385, math.radians(13.8), 0.03
+    d = rho - r * np.cos(gamma - beta)[:, None] + rng.normal(0.0, 0.002, (gamma.size, 4))
+    d[(gamma < math.radians(-68.6)) | (gamma > math.radians(96.7))] = np.nan  # the echo fades there
+    if far_after is not None:
+        d[gamma > far_after] += 0.04
+    return gamma, d
+
+
+def test_a_wide_walls_drift_with_the_radial_offset_is_one_region():
+    """The radial offset drifts a wide beam's wall by ``r·(1 − cos Δγ)``, more than the tolerance from the run's
+    median; with the sweep's γ and the offset the run is one region, both ends faded (not cut)."""
+    gamma, d = _wide_wall(np.random.default_rng(26))
+    assert len(find_regions(d)) > 1  # the drift alone splits it
+    regions = find_regions(d, gamma=gamma, radial_offset=0.03)
+    assert len(regions) == 1
+    (region,) = regions
+    heard = np.flatnonzero(np.isfinite(d).any(axis=1))
+    assert region.steps.tolist() == heard.tolist()
+    assert region.n_echoes == np.count_nonzero(np.isfinite(d))
+    assert not region.cut_before and not region.cut_after
+
+
+def test_a_target_at_another_depth_past_the_drift_still_cuts():
+    """4 cm deeper past 87.6°: not the wall's drift, two regions."""
+    gamma, d = _wide_wall(np.random.default_rng(26), far_after=math.radians(87.6))
+    regions = find_regions(d, gamma=gamma, radial_offset=0.03)
+    assert len(regions) >= 2
+    assert all(
+        not (gamma[r.steps] > math.radians(87.6)).any() or (gamma[r.steps] > math.radians(87.6)).all() for r in regions
+    )
+
+
+def test_no_drift_join_without_gamma_or_offset():
+    gamma, d = _wide_wall(np.random.default_rng(26))
+    plain = _as_tuples(find_regions(d))
+    assert _as_tuples(find_regions(d, gamma=gamma, radial_offset=0.0)) == plain
+    with pytest.raises(ConfigError):
+        find_regions(d, gamma=gamma[:-1], radial_offset=0.03)
+
+
+@pytest.mark.slow
+def test_a_wide_beams_wall_is_not_good_off_its_bearing():
+    """Stress world ``beam`` seed 0, fan mount, first pose: a 58° beam hears a wall 0.385 m away over 165°;
+    its region is the whole run, not its drift-split part whose centre is 4.7° off the wall's bearing."""
+    score = score_world("beam", 0, "fan", draw_stress_world("beam", 0, "fan"), max_poses=1)
+    assert score.counts["crash"] == 0, score.failures
+    assert score.counts["surface good-but-failed"] == 0, score.failures
+    assert score.counts["bearing > 3σ"] == 0, score.failures

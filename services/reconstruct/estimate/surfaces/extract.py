@@ -179,7 +179,13 @@ def extract_surfaces(
     x = capsule_x(geometry)
     spread = float(x.max() - x.min()) + opts.range_tolerance
     regions = find_regions(
-        d, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+        d,
+        tolerance=opts.range_tolerance,
+        max_gap=opts.max_gap,
+        min_steps=opts.min_steps,
+        max_spread=spread,
+        gamma=g,
+        radial_offset=geometry.radial_offset,
     )
     step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]

@@ -75,6 +75,8 @@ def find_regions(
     max_gap: int = 2,
     min_steps: int = 3,
     max_spread: float = math.inf,
+    gamma: np.ndarray | None = None,
+    radial_offset: float = 0.0,
 ) -> list[Region]:
     """Split a sweep into regions of constant depth.
 
@@ -94,8 +96,8 @@ def find_regions(
         Ranges, m (NaN: no echo), steps in sweep order.
     tolerance : float
         A step joins the current run while it is within this of the run, m (the
-        range noise plus the radial offset's ``r·(1 − cos Δγ)`` over a beam
-        width).
+        range noise plus the radial offset's ``r·(1 − cos Δγ)`` over a narrow
+        beam; a wider run's drift is taken off with ``gamma``).
     max_gap : int
         Steps without an echo a run may bridge.
     min_steps : int
@@ -105,6 +107,11 @@ def find_regions(
         region's.  One target's ranges differ between two capsules by at most their distance apart
         (the triangle inequality), so the stack's length plus the tolerance bounds them: a capsule
         whose median sits past it sees another target through most of the region.
+    gamma : (n_steps,) array, optional
+        Each step's rotation, rad: with ``radial_offset``, two neighbouring runs whose ranges are one target's
+        drift (:func:`_drift_joins`) are one region.
+    radial_offset : float
+        The capsules' distance from the rotation axis, m (``r`` of ``d ≈ ρ − r·cos(γ − β)``).
 
     Returns
     -------
@@ -116,6 +123,11 @@ def find_regions(
     if not (tolerance > 0 and max_gap >= 0 and min_steps >= 1):
         raise ConfigError("find_regions: tolerance > 0, max_gap >= 0 and min_steps >= 1")
     label, keep, cut = _regions(np.ascontiguousarray(d), float(tolerance), int(max_gap), int(min_steps))
+    if gamma is not None and radial_offset > 0:
+        g = np.asarray(gamma, dtype=np.float64)
+        if g.shape != (d.shape[0],):
+            raise ConfigError(f"gamma must have shape ({d.shape[0]},), got {g.shape}")
+        label, keep, cut = _drift_joins(d, g, float(radial_offset), label, keep, cut, float(tolerance), int(max_gap))
     out = []
     # Each region's steps are contiguous in the label order (a run is closed before the next one opens).
     labelled = np.flatnonzero(label >= 0)
@@ -143,6 +155,103 @@ def find_regions(
             )
         )
     return out
+
+
+def _drift_joins(
+    d: np.ndarray,
+    gamma: np.ndarray,
+    radial_offset: float,
+    label: np.ndarray,
+    keep: np.ndarray,
+    cut: np.ndarray,
+    tolerance: float,
+    max_gap: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Join neighbouring runs that are one target's echo, split only by the radial offset's drift.
+
+    The capsules turn ``r`` off the axis, so one target's range follows ``d ≈ ρ − r·cos(γ − β)`` over its
+    run: a run wide enough drifts by more than the tolerance from its own median, ``r·(1 − cos Δγ)``, and
+    is split where the echo carries on.  Two neighbouring runs are one when neither is cut at the seam (no
+    nearer echo took over), no echo lies between them, and with the drift taken off at the bearing that
+    makes the joined ranges steadiest, every step of both is within the tolerance of their median: one
+    depth ρ.  A target at another depth stays apart by more than the tolerance once the drift is off.
+
+    Parameters
+    ----------
+    d : (n_steps, n_capsules) array
+        Ranges, m (NaN: no echo).
+    gamma : (n_steps,) array
+        Steps' rotation, rad.
+    radial_offset : float
+        ``r``, m.
+    label, keep, cut
+        :func:`_regions`' output.
+    tolerance : float
+        m, as :func:`find_regions`.
+    max_gap : int
+        Steps without an echo the seam may bridge.
+
+    Returns
+    -------
+    ``label``, ``keep``, ``cut`` with the joined runs as one region (renumbered in sweep order).
+    """
+    n_regions = cut.shape[0]
+    if n_regions < 2:
+        return label, keep, cut
+    label, keep, cut = label.copy(), keep.copy(), cut.copy()
+    with np.errstate(all="ignore"):
+        any_echo = np.isfinite(d).any(axis=1)
+    spans = [np.flatnonzero(label == k) for k in range(n_regions)]
+    merged: list[list[int]] = [[0]]
+    for k in range(1, n_regions):
+        prev = merged[-1]
+        a, b = np.concatenate([spans[i] for i in prev]), spans[k]
+        between = np.arange(int(a[-1]) + 1, int(b[0]))
+        if (
+            not cut[prev[-1], 1]
+            and not cut[k, 0]
+            and between.size <= max_gap
+            and not any_echo[between].any()
+            and _one_depth(d, gamma, radial_offset, keep, np.concatenate([a, b]), tolerance) is not None
+        ):
+            prev.append(k)
+        else:
+            merged.append([k])
+    if len(merged) == n_regions:
+        return label, keep, cut
+    out_cut = np.zeros((len(merged), 2), dtype=np.bool_)
+    for j, group in enumerate(merged):
+        steps = np.concatenate([spans[i] for i in group])
+        label[steps] = j
+        out_cut[j] = cut[group[0], 0], cut[group[-1], 1]
+        if len(group) > 1:
+            beta = _one_depth(d, gamma, radial_offset, keep, steps, tolerance)
+            # A capsule's reading is the region's within twice the tolerance of its median, drift taken off.
+            flat = d[steps] + radial_offset * np.cos(gamma[steps] - beta)[:, None]
+            with np.errstate(all="ignore"):
+                med = np.nanmedian(flat, axis=0)
+                keep[steps] = np.isfinite(flat) & (np.abs(flat - med) <= 2 * tolerance)
+    return label, keep, out_cut
+
+
+def _one_depth(
+    d: np.ndarray, gamma: np.ndarray, radial_offset: float, keep: np.ndarray, steps: np.ndarray, tolerance: float
+) -> float | None:
+    """The bearing β (one of the steps' γ) at which the steps' held ranges, plus ``r·cos(γ − β)``, are all
+    within ``tolerance`` of their median (each step's median over its held capsules), the steadiest such;
+    None when no β makes them one depth."""
+    block = np.where(keep[steps], d[steps], np.nan)
+    with np.errstate(all="ignore"):
+        rs = np.nanmedian(block, axis=1)
+    ok = np.isfinite(rs)
+    g, rs = gamma[steps][ok], rs[ok]
+    if g.size < 2:
+        return None
+    # Rows: candidate β; columns: the steps' ranges with that β's drift taken off.
+    flat = rs[None, :] + radial_offset * np.cos(g[None, :] - g[:, None])
+    worst = np.max(np.abs(flat - np.median(flat, axis=1, keepdims=True)), axis=1)
+    best = int(np.argmin(worst))
+    return float(g[best]) if worst[best] <= tolerance else None
 
 
 def subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bool) -> Region:
