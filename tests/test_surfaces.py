@@ -12,7 +12,11 @@ from lelsonar.errors import InvalidMessageError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.regions import amplitude_jump, extrapolated_peak, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
+    amplitude_jump,
+    extrapolated_peak,
+    log_amplitude_curvature,
+)
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import ElementKind, build_model

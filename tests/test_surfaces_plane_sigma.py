@@ -17,14 +17,10 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude, end_crossing_stderr
 from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
 from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
-from lelsonar.reconstruct.estimate.surfaces.regions import (
-    bearing_from_amplitude,
-    end_crossing_stderr,
-    find_regions,
-    subregion,
-)
+from lelsonar.reconstruct.estimate.surfaces.regions import find_regions, subregion
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan

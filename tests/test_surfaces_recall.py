@@ -19,9 +19,10 @@ import pytest
 
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, handed_over
-from lelsonar.reconstruct.estimate.surfaces.regions import Region, weaker_at
+from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model

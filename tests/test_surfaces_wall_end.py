@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.regions import unfaded_ends
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import unfaded_ends
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_render import WorldScan

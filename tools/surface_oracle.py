@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.reconstruct.estimate.constant_depth import constant_depth_ls
-from lelsonar.reconstruct.estimate.surfaces.regions import bearing_from_amplitude
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world_render import WorldScan, pose_frame
 

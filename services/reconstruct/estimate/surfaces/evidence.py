@@ -16,8 +16,8 @@ import math
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
-from lelsonar.reconstruct.estimate.surfaces.regions import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
@@ -173,7 +173,7 @@ def plane_end(
     plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
     region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).  With ``gamma`` (the
     sweep's), no bearing inside the region where its own echo is weaker than elsewhere in it
-    (:func:`~.regions.weaker_at`): a target there would be its region's strongest echo.
+    (:func:`~.beam_pattern.weaker_at`): a target there would be its region's strongest echo.
 
     Returns
     -------

@@ -4,7 +4,7 @@ Per region of constant depth (:mod:`.regions`):
 
 * **bearing** from the beam pattern: the region's centre when it is not cut,
   weighed with the peak of the echo amplitudes across γ
-  (:func:`~.regions.bearing_from_amplitude`) where the two agree, else that
+  (:func:`~.beam_pattern.bearing_from_amplitude`) where the two agree, else that
   peak alone; a cut region without an amplitude peak leaves the bearing
   undetermined, and says so.  A range-only fit of a wall seen near the foot of
   its perpendicular is ill-posed in bearing (the capsules differ across the
@@ -61,6 +61,13 @@ import numpy as np
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
+    PLATEAU,
+    amplitude_jump,
+    extrapolated_peak,
+    log_amplitude_curvature,
+    peak_at_bearing,
+)
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     across_stack,
     beyond_reach,
@@ -87,16 +94,7 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import (
     unit_normal,
 )
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
-from lelsonar.reconstruct.estimate.surfaces.regions import (
-    PLATEAU,
-    amplitude_jump,
-    capsule_x,
-    extrapolated_peak,
-    find_regions,
-    log_amplitude_curvature,
-    peak_at_bearing,
-    subregion,
-)
+from lelsonar.reconstruct.estimate.surfaces.regions import capsule_x, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,
     UNSETTLED,

@@ -15,16 +15,14 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
-from lelsonar.reconstruct.estimate.surfaces.regions import (
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     PLATEAU,
-    Region,
     amplitude_jump,
     bearing_from_amplitude,
-    capsule_x,
     end_crossing_stderr,
-    stack_fits,
     unfaded_ends,
 )
+from lelsonar.reconstruct.estimate.surfaces.regions import Region, capsule_x, stack_fits
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
@@ -306,7 +304,7 @@ def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -
     Parameters
     ----------
     curvature : float or None
-        The region's ``c`` (1/rad², :func:`~.regions.log_amplitude_curvature`); None: unknown.
+        The region's ``c`` (1/rad², :func:`~.beam_pattern.log_amplitude_curvature`); None: unknown.
     beam : float
         The sweep's ``k`` (1/rad²); NaN: unknown.
     flattest : float
