@@ -9,8 +9,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import platform
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import TypeVar
+
+from lelsonar.cli.warm_up import ensure_compiled
 
 T = TypeVar("T")
 
@@ -80,9 +82,20 @@ def register(sub: argparse._SubParsersAction) -> None:
             continue  # a benchmark not written yet
         q = names.add_parser(name, help=summary, description=summary)
         mod.add_arguments(q)
-        q.set_defaults(run=mod.run)
+        q.set_defaults(run=_compiled_first(mod.run))
     q = names.add_parser("all", help="every benchmark with its defaults")
-    q.set_defaults(run=run_all)
+    q.set_defaults(run=_compiled_first(run_all))
+
+
+def _compiled_first(run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``run`` once the numeric kernels are compiled (with a progress bar if the cache is cold): a bench's
+    children would otherwise each compile them, and time out waiting for one another."""
+
+    def compiled_then_run(args: argparse.Namespace) -> int:
+        ensure_compiled()
+        return run(args)
+
+    return compiled_then_run
 
 
 def run_all(args: argparse.Namespace) -> int:
