@@ -67,7 +67,7 @@ class LogRequests:
             self.request(RecoveryRequest(*scan.key, steps=tuple(sorted(p.settling))))
 
     def request(self, request: RecoveryRequest) -> None:
-        """One request outside a scan's attempts (counted; a refusal or a failure counted as refused)."""
+        """One request to the acquirer's log (counted; a refusal or a failure counted as refused)."""
         self.stats.recovery_requests += 1
         try:
             ok = self.recover is not None and self.recover(request)
@@ -89,11 +89,9 @@ class LogRequests:
         """One attempt of a scan's budget (``held``: the steps it holds now, to tell progress later)."""
         if self.recover is None:
             raise InternalError("a recovery request was made by a service given no recover callback")
-        recover = self.recover
         r.attempts += 1
         r.requests += 1
         r.last_at, r.mark = now, held
-        self.stats.recovery_requests += 1
         what = ", ".join(
             x
             for x in (
@@ -113,13 +111,7 @@ class LogRequests:
                 else f", past {self.config.recovery_attempts}: its log may still answer)"
             ),
         )
-        try:
-            ok = recover(request)
-        except Exception:  # noqa: BLE001 - a failed request is one refused attempt, not a dead service
-            _log.exception("recovery request failed; counted as refused")
-            ok = False
-        if not ok:
-            self.stats.recovery_refused += 1
+        self.request(request)
 
     def ask_for_start(self, key: ScanKey, now: float, held: list) -> None:
         """A scan met in the middle: ask for its ScanStart and the steps before what is held
