@@ -237,7 +237,8 @@ def test_no_drift_join_without_gamma_or_offset():
 @pytest.mark.slow
 def test_a_wide_beams_wall_is_not_good_off_its_bearing():
     """Stress world ``beam`` seed 0, fan mount, first pose: a 58° beam hears a wall 0.385 m away over 165°;
-    its region is the whole run, not its drift-split part whose centre is 4.7° off the wall's bearing."""
+    its region is the whole run, centred on the wall's bearing (a part the radial offset's drift split off
+    would be centred degrees away from it)."""
     score = score_world("beam", 0, "fan", draw_stress_world("beam", 0, "fan"), max_poses=1)
     assert score.counts["crash"] == 0, score.failures
     assert score.counts["surface good-but-failed"] == 0, score.failures

@@ -30,7 +30,7 @@ __all__ = ["FinalJob", "close_final", "final_message", "accounting_event"]
 class FinalJob:
     """What a final's message needs beside its estimate."""
 
-    scan: ScanAssembly  # (for the observer; no longer in the ingest's table)
+    scan: ScanAssembly  # (for the observer: the ingest has let the closed scan go)
     partial: Partial
     status: str
     missing: np.ndarray
