@@ -207,6 +207,14 @@ def test_a_header_field_after_the_body_leaves_the_payload_to_the_parser():
     assert scan.received[moved] and not scan.received[sample.step]
 
 
+def placed_from_payloads(monkeypatch) -> list:
+    """What each call of the assembly's fast path returns, in order (its status, carried energies, step)."""
+    calls: list = []
+    place_wire = assembly.place_wire
+    monkeypatch.setattr(assembly, "place_wire", lambda *a: calls.append(place_wire(*a)) or calls[-1])
+    return calls
+
+
 def test_waveforms_read_where_they_lie_at_every_alignment_are_the_parsed_ones(monkeypatch):
     """The fast path reads each waveform where it lies in the payload, whatever its bytes' alignment (an unknown
     field of 0–3 bytes after the header shifts them): the scan's arrays are bit for bit those of the same
@@ -219,9 +227,7 @@ def test_waveforms_read_where_they_lie_at_every_alignment_are_the_parsed_ones(mo
         payloads.append(payload[:body] + _unknown_field(15, bytes(i % 4)) + payload[body:])
     data_at = {payloads[i].find(m.sensors[0].waveform.data) % 4 for i, m in enumerate(samples)}
     assert data_at == {0, 1, 2, 3}
-    read_in_place = []
-    place_wire = assembly.place_wire
-    monkeypatch.setattr(assembly, "place_wire", lambda *a: read_in_place.append(place_wire(*a)) or read_in_place[-1])
+    read_in_place = placed_from_payloads(monkeypatch)
     scans = []
     for fast in (True, False):
         ingest = Ingest(fast_path=fast)
@@ -280,9 +286,7 @@ def test_a_step_beyond_the_rows_held_grows_the_scan_and_is_read_from_its_payload
     start.steps = 3 * ScanAssembly.INITIAL_ROWS
     far = codec.Sample.FromString(samples[2].SerializeToString())
     far.step = start.steps - 1
-    read_in_place = []
-    place_wire = assembly.place_wire
-    monkeypatch.setattr(assembly, "place_wire", lambda *a: read_in_place.append(place_wire(*a)) or read_in_place[-1])
+    read_in_place = placed_from_payloads(monkeypatch)
     scans = []
     for fast in (True, False):
         ingest = Ingest(fast_path=fast)
