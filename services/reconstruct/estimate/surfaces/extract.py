@@ -84,7 +84,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
     measure_region,
@@ -207,6 +207,9 @@ def extract_surfaces(
         reach = opts.beyond_cut / math.sqrt(3.0)
         tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
         measured.append(replace(pm, tilt_stderr=tilt_se))
+    # A target part of the stack hears past a nearer one the other capsules hear first: a region of the fan.
+    for r in masked_regions(d, [m.region for m in measured], opts, spread):
+        measured.append(measure_region(r, g, d, amp, geometry, opts, step=step))
     regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
