@@ -422,7 +422,10 @@ def make_plane_fit(
     if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
         if stderr is None or theta_covariance is None or not np.all(np.isfinite(theta_covariance)):
             return FitFailure(
-                FailureReason.DEGENERATE_GEOMETRY, f"{method}: the inliers do not constrain the plane", data.label, data.n
+                FailureReason.DEGENERATE_GEOMETRY,
+                f"{method}: the inliers do not constrain the plane",
+                data.label,
+                data.n,
             )
         # The caller's error model stands in for the points' own covariance: the rest is the points' as ever.
         e = ordered

@@ -86,9 +86,7 @@ def fit_surface(
     )
 
 
-def theta_covariance(
-    n: np.ndarray, h: float, dn_db: np.ndarray, dn_dt: np.ndarray, cov: np.ndarray
-) -> np.ndarray:
+def theta_covariance(n: np.ndarray, h: float, dn_db: np.ndarray, dn_dt: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """The covariance of ``θ = n/h`` (eq. 1) from that of (bearing, tilt, offset), to first order.
 
     Where the capsule stack does not constrain the tilt (one capsule per step), the ranges alone leave ``θ``
