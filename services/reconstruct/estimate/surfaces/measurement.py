@@ -220,11 +220,9 @@ def measure_region(
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
         # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
         # fall: where the two agree within 3 σ of their difference, each weighs by its inverse variance.  The
-        # vertex is fitted over the top's steps (where the beam is within 6 dB of its peak): each step's γ is
-        # known to within its quantisation, uniform over a step at most, which averages over those steps; the
-        # step's whole quantisation is where an end's threshold crossing falls, not where a fitted vertex lies.
-        n_top = int(np.count_nonzero(per_step >= 0.5 * peak)) if math.isfinite(peak) else 0
-        peak_sb = math.hypot(peak_fit[1], step / math.sqrt(12.0 * max(n_top, 1))) if peak_fit is not None else math.inf
+        # vertex is fitted over the top's measured γ, so its own σ is the fit's: the quantisation of a step is
+        # where an end's threshold crossing falls, not where a vertex between measured steps lies.
+        peak_sb = peak_fit[1] if peak_fit is not None else math.inf
         if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
             wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
             bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
