@@ -219,10 +219,9 @@ def measure_region(
             ends = math.sqrt(ends * ends + (jitter[0] ** 2 + jitter[1] ** 2) / 4.0)
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
         # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
-        # fall: where the two agree within 3 σ of their difference, each weighs by its inverse variance.  The
-        # vertex is fitted over the top's measured γ, so its own σ is the fit's: the quantisation of a step is
-        # where an end's threshold crossing falls, not where a vertex between measured steps lies.
-        peak_sb = peak_fit[1] if peak_fit is not None else math.inf
+        # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
+        # 3 σ of their difference, each weighs by its inverse variance.
+        peak_sb = math.hypot(peak_fit[1], quant) if peak_fit is not None else math.inf
         if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
             wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
             bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
