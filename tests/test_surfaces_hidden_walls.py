@@ -139,3 +139,34 @@ def test_a_wall_past_a_box_or_at_the_sweeps_start_is_found_and_flagged(family, s
     walls = [p for p in record.planes if p.element == element]
     assert walls
     assert all(p.flagged for p in walls)
+
+
+def test_a_far_walls_echo_summed_with_its_floor_corner_is_no_reference_a_nearer_wall_is_weak_against():
+    # A wall 4 m away meets the floor 0.24 m below the stack: the double bounce answers 7 mm behind the mirror,
+    # inside the amplitude window, so where both answer the amplitude read is their sum (here 3.4× the
+    # mirror's alone).  A second wall 1.2 m away, a mirror of the same strength, is no diffraction.
+    wall = Echoes(seed=12)
+    wall.plane(0.0, 4.0)
+    e = Echoes(seed=12)
+    e.plane(0.0, 4.0)
+    e.across_line(np.array([-0.24, 4.0, 0.0]), np.array([0.0, 0.0, 1.0]), gain=2.0)
+    summed = np.isfinite(wall.range) & (e.range == wall.range)  # the mirror's readings, its corner behind them
+    e.amp[summed] *= 3.4
+    e.plane(math.pi / 2, 1.2)
+    # (The synthetic echoes spread as 1/(2r) without absorption.)
+    opts = SurfaceOptions(absorption_db_per_m=0.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp, options=opts)
+    near = [s for s in result.surfaces if abs(s.offset - 1.2) < 0.05]
+    assert len(near) == 1, ([s.offset for s in result.surfaces], [f.reasons for f in result.edges])
+    assert not any(abs(f.depth - 1.2) < 0.05 for f in result.edges)
+
+
+@pytest.mark.parametrize(("family", "seed", "pose", "element"), [("l_room", 0, 2, 2)])
+def test_a_wall_whose_echo_a_far_walls_summed_echo_outshines_is_a_plane(family, seed, pose, element):
+    model = build_model(draw_world(family, seed, mount="fan"))
+    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    record = score_scan(family, scan, result, seed=seed, amplitude=amp)
+    assert not any(f" element {element} " in line for line in record.missed)
+    assert [p.element for p in record.planes].count(element) == 1
