@@ -13,12 +13,14 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import extrapolated_peak
+from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
 from lelsonar.reconstruct.estimate.surfaces.fitting import theta_covariance
 from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions
 from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
@@ -29,6 +31,7 @@ from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
 from lelsonar.tools.surface_scores import score_scan
 from tests.test_surfaces import GAMMA, GEOMETRY, RANGE_NOISE, Echoes
+from tests.test_surfaces_recall import _measured
 
 WALL_BEARING, WALL_OFFSET = 0.0, 2.5
 BOX_RANGE = 1.0
@@ -170,3 +173,43 @@ def test_a_wall_whose_echo_a_far_walls_summed_echo_outshines_is_a_plane(family, 
     record = score_scan(family, scan, result, seed=seed, amplitude=amp)
     assert not any(f" element {element} " in line for line in record.missed)
     assert [p.element for p in record.planes].count(element) == 1
+
+
+@pytest.mark.parametrize(
+    ("family", "seed", "pose", "element"),
+    [
+        ("maze", 1, 0, 2),  # cut by a nearer edge; its corner with a near wall answers beside it in the window
+        ("l_room", 0, 2, 1),  # at the sweep's start; its flank's amplitude summed with another echo
+    ],
+)
+def test_a_wall_beside_its_own_corner_with_a_seen_plane_is_a_plane_not_that_planes_end(family, seed, pose, element):
+    # The region's own bearing put it on the seen plane's trace, but the deeper region beside it is the corner
+    # of a wall at its depth with that plane: one wall and its corner explain both.  Its bearing rests on an
+    # amplitude the corner's echo sums into, so its σ is the region's reach: flagged, never good.
+    model = build_model(draw_world(family, seed, mount="fan"))
+    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    record = score_scan(family, scan, result, seed=seed, amplitude=amp)
+    assert not any(f" element {element} " in line for line in record.missed)
+    walls = [p for p in record.planes if p.element == element]
+    assert walls and all(p.flagged for p in walls)
+
+
+def test_a_wall_with_a_bearing_of_its_own_beside_its_corner_is_sought_over_its_whole_reach():
+    # Plane j at its foot (90°, 0.564 m); a wall at right angles 2.819 m away, its foot at 0°, its region
+    # (−2.6° to 24.6°) cut before by a nearer target, its amplitude peak pulled to 9.3° by the corner's echo;
+    # their corner at √(0.564² + 2.819²) = 2.875 m and 11.3°, a region cut by the nearer wall.
+    j = _measured(90.0, 0.564, (60.0, 120.0), (False, False))
+    wall = replace(_measured(9.3, 2.819, (-2.6, 24.6), (True, False)), bearing_source="amplitude peak")
+    corner = _measured(11.3, 2.875, (27.0, 37.0), (True, False))
+    opts = SurfaceOptions()
+    # The foot lies inside the region: not past its cut end, where a bearing left open is sought.
+    assert unseen_corner(wall, corner, j, opts) is None
+    beta = unseen_corner(wall, corner, j, opts, own=True)
+    assert beta is not None
+    assert abs(math.degrees(beta)) < 4.0, math.degrees(beta)  # within what 3 cm of the corner's depth allows
+    # A deeper region whose echo faded on the wall's side (nothing nearer masked it there) is no corner the
+    # wall's mirror hides.
+    faded = _measured(11.3, 2.875, (27.0, 37.0), (False, False))
+    assert unseen_corner(wall, faded, j, opts, own=True) is None

@@ -331,7 +331,12 @@ def _classify(
     planes = _planes(measured, partial, across, scale, opts)
     walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, sweep.gamma, opts)
     for i, text in walls_of_corners.items():
-        measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
+        m = measured[i]
+        if m.bearing_source == "amplitude peak":
+            # Its corner's echo answers beside it inside the amplitude window and sums into its flank: the peak
+            # may sit anywhere the region allows its foot.
+            m = replace(m, bearing_stderr=reach_stderr(m, opts))
+        measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
     kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
     for i in range(len(measured)):
@@ -431,7 +436,7 @@ def _ties(
             ties = [pool[j] for j in which]
             m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
     else:
-        ties = _on_traces(i, planes, measured, partial, opts)
+        ties = [] if wall_of_corner else _on_traces(i, planes, measured, partial, opts)
     return m, ties
 
 
