@@ -347,6 +347,8 @@ class LiveSource:
         self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
+        #: Samples the doorbell handed over (each one woke an idle worker).
+        self.rings = 0
         #: Where the finals are estimated, off this source's thread (None: on it).
         workers = service.config.final_workers
         self._workers = auto_workers() if workers is None else workers
@@ -490,6 +492,7 @@ class LiveSource:
                     item = None
                 if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
                     reading = True
+                    self.rings += 1
                     item = self._received(item)
                 if not pending:
                     self._pull(pending, reading)  # so that `waiting` says whether more came in
