@@ -28,6 +28,7 @@ import statistics
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 #: The scan clock's origin (ns): a payload's time in :func:`interleaved` is its acquisition time less this.
@@ -121,6 +122,7 @@ def queue_model(
     outside_us: float = OUTSIDE_US,
     tick_s: float = 0.1,
     provisional: bool = True,
+    deadline: bool = True,
 ) -> dict[str, Any]:
     """One live worker with a core of its own, fed each payload at its acquisition time.
 
@@ -131,7 +133,9 @@ def queue_model(
     :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
     worker nothing (run by the final pool's processes, which get the closed scan).  Once the
     last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
-    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed.
+    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed
+    (under a backlog, or stale: the service's wall clock is the virtual one; ``deadline`` False: no
+    ``provisional_deadline``, as a replay).
     """
     from collections import deque
 
@@ -169,7 +173,9 @@ def queue_model(
     def clock() -> float:
         return now[0] + (time.thread_time() - started[0] if started else 0.0)
 
-    service = ReconstructionService(ReconstructConfig(provisional=provisional), clock=clock)
+    config = ReconstructConfig(provisional=provisional)
+    service = ReconstructionService(config if deadline else replace(config, provisional_deadline=0.0), clock=clock)
+    service.wall_ns = lambda: T0 + int(clock() * 1e9)  # the payloads' acquisition times are T0 + their time
     processed: list[float] = []
     provisionals: list[float] = []
     busy_s = 0.0
@@ -228,7 +234,8 @@ def queue_model(
         "processed_s": processed,
         "provisional_s": provisionals,
         "busy": busy_s / span if span > 0 else 0.0,
-        "shed": service.stats.provisionals_shed,
+        "shed": service.stats.provisionals_shed + service.stats.provisionals_stale,
+        "stale": service.stats.provisionals_stale,
         "finals": service.stats.finals,
     }
 
@@ -351,14 +358,22 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
         title=f"queue model: one worker on a core of its own, fed at the scan clock, {OUTSIDE_US:g} µs a payload "
         "outside handle (medians)"
     )
-    for col in ("finals", "busy", "put→processed p50 / p99 ms", "put→provisional p50 / p99 ms", "shed"):
+    for col in (
+        "finals",
+        "busy",
+        "put→processed p50 / p99 ms",
+        "put→provisional p50 / p99 ms",
+        "published",
+        "shed (of which stale)",
+    ):
         model.add_column(col, justify="left" if col == "finals" else "right")
-    for elsewhere in (False, True):
+    for elsewhere, deadline in ((False, True), (True, True), (True, False)):
         queued = [
             queue_model(
                 payloads,
                 finals_elsewhere=elsewhere,
                 provisional=not args.no_provisional,
+                deadline=deadline,
             )
             for _ in range(args.repeat)
         ]
@@ -367,11 +382,13 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
             return f"{statistics.median(1e3 * _quantile(r[key], q) for r in queued):.1f}"
 
         model.add_row(
-            "elsewhere (input and reconstruction)" if elsewhere else "inline",
+            ("elsewhere (input and reconstruction)" if elsewhere else "inline")
+            + ("" if deadline else ", no provisional_deadline"),
             f"{statistics.median(r['busy'] for r in queued):.2f}",
             f"{ms('processed_s', 0.5)} / {ms('processed_s', 0.99)}",
             f"{ms('provisional_s', 0.5)} / {ms('provisional_s', 0.99)}",
-            f"{statistics.median(r['shed'] for r in queued):.0f}",
+            f"{statistics.median(len(r['provisional_s']) for r in queued):.0f}",
+            f"{statistics.median(r['shed'] for r in queued):.0f} ({statistics.median(r['stale'] for r in queued):.0f})",
         )
     console.print(model)
     load = os.getloadavg()

@@ -43,6 +43,13 @@ class ReconstructConfig:
         s; while a backlog waits, every provisional refit waits for it (the samples come first); one whose
         scan has had no estimate for over twice this is shed (``ServiceStats.provisionals_shed``) when
         a tick still finds a backlog, and the scan's next refit covers it.
+    provisional_deadline : float
+        s a live sample may have waited, beyond the quickest of its scan's samples (the transit and the
+        offset of the scanner's clock to this host's), when the provisional estimate it ends is due: an
+        older one is stale, and is shed (``ServiceStats.provisionals_stale``) rather than published late;
+        the scan's next refit on a fresh sample covers it.  Applies where the service is given a wall
+        clock (:attr:`ReconstructionService.wall_ns`: a live source), never to a replay.  The exact fits
+        due run anyway (a fit is never shed).  0 disables it.
     provisional_budget : float
         s of work that waited for a backlog one :meth:`ReconstructionService.tick` or
         :meth:`ReconstructionService.catch_up` runs: the finals of scans completed meanwhile, then the
@@ -82,6 +89,7 @@ class ReconstructConfig:
     confirm_ratio: float = 1.5
     provisional: bool = True
     max_provisional_delay: float = 0.25
+    provisional_deadline: float = 0.04
     provisional_budget: float = 0.01
     keep_finals: int = 1024
     scan_timeout: float = 10.0
@@ -103,6 +111,8 @@ class ReconstructConfig:
             raise ConfigError("refit_every and confirm_steps must be >= 1")
         if not self.provisional_period >= 0:
             raise ConfigError("provisional_period must be >= 0 s")
+        if not self.provisional_deadline >= 0:
+            raise ConfigError(f"provisional_deadline must be >= 0 s (0: off), got {self.provisional_deadline}")
         if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
             raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
         if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
@@ -141,6 +151,8 @@ class ServiceStats:
     recovery_refused: int = 0
     #: Deferred provisional refits dropped under a backlog (the final is never shed).
     provisionals_shed: int = 0
+    #: Provisional estimates due on a live sample that had waited past ``provisional_deadline``: not published.
+    provisionals_stale: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
     #: Finals estimated in a pool's workers, workers lost (killed, crashed), finals run again after a loss.

@@ -116,6 +116,9 @@ class ReconstructionService:
         self.stats = ServiceStats()
         self._requests = LogRequests(config, self.stats, self._event)
         self._requests.recover = recover
+        #: The wall clock (ns) a live source gives, to tell a provisional estimate due on a sample that waited
+        #: too long (``provisional_deadline``); None: no estimate is stale (a replay's times are the file's).
+        self.wall_ns: Callable[[], int] | None = None
         self._partials: dict[ScanKey, Partial] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
         self._schedule = ProvisionalSchedule(config, self.stats, clock)
@@ -181,7 +184,7 @@ class ReconstructionService:
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue
-            out += self._on_accepted(event, busy)
+            out += self._on_accepted(event, busy, live=origin == "live")
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
@@ -374,6 +377,7 @@ class ReconstructionService:
                 "replies_after_verdict": self.ingest.recovered_after_close,
             },
             "provisionals_shed": s.provisionals_shed,
+            "provisionals_stale": s.provisionals_stale,
             "finals_pool": s.pool_dict(self._pool.stats if self._pool is not None else None),
             "open_scans": len(self.ingest.scans),
             "pending_samples": self.ingest.n_pending,
@@ -411,7 +415,7 @@ class ReconstructionService:
         self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
-    def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
+    def _on_accepted(self, event: Accepted, busy: bool, *, live: bool) -> list[codec.Reconstruction]:
         scan = event.scan
         p = self._partials.get(scan.key)
         if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
@@ -456,6 +460,10 @@ class ReconstructionService:
                 )
             return []
         step = event.step
+        if live and self.wall_ns is not None and step is not None:
+            lag = self.wall_ns() - int(scan.time_ns[step])
+            if p.transit_floor_ns is None or lag < p.transit_floor_ns:
+                p.transit_floor_ns = lag
         if self._observer and scan.latest is not None and scan.latest.step == step:
             self._observer.step(
                 scan,
@@ -486,6 +494,11 @@ class ReconstructionService:
             and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9
         ):
             return []  # within the per-scan rate limit: no estimate, and no input built to learn that
+        stale = self._stale(scan, p)
+        if stale and not fits:
+            self.stats.provisionals_stale += had_corner  # (before its corner, a scan has no estimate to give)
+            return []  # the next refit on a fresh sample covers these steps
+        rate_mark = p.provisional_ns
         est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p, fits_wait=fits_wait)
         if not had_corner and p.critical is not None:
             self._event(
@@ -496,11 +509,23 @@ class ReconstructionService:
             )
         if est is None:
             return []
+        if stale:  # its exact fits are made (the next estimate has them); its estimate would be late
+            self.stats.provisionals_stale += 1
+            p.provisional_ns = rate_mark  # not published: the next fresh sample's estimate is not held back
+            return []
         p.estimated_at = self._clock()
         msg = wire.estimate_message(est, scan.start.scanner_id, scan.start.scan_id)
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
+
+    def _stale(self, scan: ScanAssembly, p: Partial) -> bool:
+        """Whether the scan's newest sample waited over ``provisional_deadline`` beyond the quickest of its
+        scan's (the transit and the clocks' offset): its provisional estimate would be published late."""
+        deadline = self.config.provisional_deadline
+        if self.wall_ns is None or not deadline or p.transit_floor_ns is None:
+            return False
+        return self.wall_ns() - scan.newest_ns - p.transit_floor_ns > deadline * 1e9
 
     def _close(self, scan: ScanAssembly, p: Partial, busy: bool) -> None:
         """A complete scan's final: made now, or while a backlog waits (``busy``) once it drains: making its

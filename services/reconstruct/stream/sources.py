@@ -369,6 +369,8 @@ class LiveSource:
             self._service.recovery_policy = dataclasses.replace(
                 self._service.recovery_policy, log_may_answer=self._recovery.may_answer
             )
+        # Live, a provisional estimate due on a sample that waited too long is stale (a replay's never is).
+        self._service.wall_ns = time.time_ns
         if self._workers:
             self._pool = FinalPool(self._workers, on_ready=self._finals_ready)
             self._service.use_pool(self._pool)
@@ -390,6 +392,7 @@ class LiveSource:
             pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
         self._doorbell.join(timeout=5)
+        self._service.wall_ns = None
         if self._pool is not None:
             try:
                 for msg in self._service.use_pool(None):  # the finals on their way: published before the source ends
@@ -513,12 +516,17 @@ class LiveSource:
             self._guarded(self._handle, *item, busy=waiting > 0)
 
     def _handle(
-        self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *, busy: bool
+        self,
+        encoding: str,
+        payload: bytes | zenoh.ZBytes,
+        origin: str,
+        key_scanner: str | None,
+        *,
+        busy: bool,
     ) -> list[codec.Reconstruction]:
         if not isinstance(payload, bytes) and len(payload) <= self._service.config.limits.max_payload_bytes:
             payload = payload.to_bytes()  # a live payload's ZBytes, copied once (a larger one is refused uncopied)
         media, _, type_name = encoding.partition(";")
-        # With more payloads waiting (busy), a provisional refit waits for them too.
         return self._service.handle(
             type_name if media == "application/protobuf" else encoding,
             cast(bytes, payload),  # or a ZBytes over the decode limit: ingest refuses it by its length, uncopied

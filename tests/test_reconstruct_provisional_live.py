@@ -1,0 +1,83 @@
+"""Provisional estimates on a live stream: stale ones shed."""
+
+from __future__ import annotations
+
+import pytest
+
+from lelsonar import codec
+from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.service import ReconstructionService
+
+from .conftest import simulated_messages, type_name
+
+TRANSIT_NS = 2_000_000  # a sample's transit to the service when nothing holds it
+
+
+@pytest.fixture(scope="module")
+def scan_messages():
+    return simulated_messages("paper-test1", seed=3)
+
+
+def comparable(msg: codec.Reconstruction) -> codec.Reconstruction:
+    """The estimate without its wall-clock fields."""
+    m = codec.Reconstruction()
+    m.CopyFrom(msg)
+    m.ClearField("stamp_ns")
+    m.ClearField("timings")
+    return m
+
+
+def provisional(estimates) -> list[codec.Reconstruction]:
+    return [e for e in estimates if not wire.is_terminal(e)]
+
+
+def live_feed(service: ReconstructionService, messages, delay_ns) -> list[list[codec.Reconstruction]]:
+    """Each message handled at its acquisition time + the transit + ``delay_ns(step)``, on the service's wall
+    clock; the estimates of each."""
+    wall = [0]
+    service.wall_ns = lambda: wall[0]
+    out = []
+    for m in messages:
+        if isinstance(m, codec.Sample):
+            wall[0] = m.acquisition_time_ns + TRANSIT_NS + delay_ns(m.step)
+        out.append(service.handle(type_name(m), m.SerializeToString()))
+    return out
+
+
+def test_a_provisional_due_on_a_sample_that_waited_too_long_is_shed_and_counted(scan_messages):
+    config = ReconstructConfig(provisional_period=0)
+    late = range(120, 140)  # these steps waited in transit past the deadline
+    waited = int(3 * config.provisional_deadline * 1e9)
+    live = ReconstructionService(config)
+    per_message = live_feed(live, scan_messages, lambda step: waited if step in late else 0)
+    steps = [m.step if isinstance(m, codec.Sample) else None for m in scan_messages]
+    published_late = [e for s, out in zip(steps, per_message) if s in late for e in provisional(out)]
+    assert published_late == []
+    assert live.stats.provisionals_stale >= len(late) // config.refit_every - 1
+    assert live.stats_dict()["provisionals_stale"] == live.stats.provisionals_stale
+    # Fresh again: estimates follow at once, with every step so far.
+    after = [e for s, out in zip(steps, per_message) if s is not None and s >= late.stop for e in provisional(out)]
+    assert after and after[0].last_step < late.stop + config.refit_every
+    # Without the wall clock (a replay) the same stream publishes them all; the final is the same.
+    replay = ReconstructionService(config)
+    replayed = [replay.handle(type_name(m), m.SerializeToString()) for m in scan_messages]
+    assert [e for s, out in zip(steps, replayed) if s in late for e in provisional(out)]
+    assert replay.stats.provisionals_stale == 0
+    (final_live,) = [e for out in per_message for e in out if wire.is_terminal(e)]
+    (final_replay,) = [e for out in replayed for e in out if wire.is_terminal(e)]
+    assert comparable(final_live) == comparable(final_replay)
+
+
+def test_a_scanner_clock_offset_is_not_a_delay(scan_messages):
+    """Staleness is what a sample waited beyond its scan's quickest, not the scanner's clock against ours."""
+    config = ReconstructConfig(provisional_period=0)
+    live = ReconstructionService(config)
+    offset = 5_000_000_000  # the scanner's clock 5 s behind this host's
+    per_message = live_feed(live, scan_messages, lambda step: offset)
+    replay = ReconstructionService(config)
+    replayed = [replay.handle(type_name(m), m.SerializeToString()) for m in scan_messages]
+    assert live.stats.provisionals_stale == 0
+    assert [comparable(e) for out in per_message for e in provisional(out)] == [
+        comparable(e) for out in replayed for e in provisional(out)
+    ]
