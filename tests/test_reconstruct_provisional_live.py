@@ -1,4 +1,4 @@
-"""Provisional estimates on a live stream: stale ones shed."""
+"""Provisional estimates on a live stream: stale ones shed, and refits behind a short backlog run at once."""
 
 from __future__ import annotations
 
@@ -81,3 +81,31 @@ def test_a_scanner_clock_offset_is_not_a_delay(scan_messages):
     assert [comparable(e) for out in per_message for e in provisional(out)] == [
         comparable(e) for out in replayed for e in provisional(out)
     ]
+
+
+def test_behind_a_short_backlog_a_refit_runs_at_once_and_its_exact_fits_wait(scan_messages):
+    now = [0.0]
+    config = ReconstructConfig(provisional_period=0)
+    service = ReconstructionService(config, clock=lambda: now[0])
+    alone = ReconstructionService(config)
+    inline, caught_up, plain = [], [], []
+    for k, m in enumerate(scan_messages):
+        payload = m.SerializeToString()
+        plain += alone.handle(type_name(m), payload)
+        drained = k % 8 == 7  # payloads wait behind the others: the backlog drains every 8
+        out = service.handle(type_name(m), payload, fits_wait=not drained)
+        if isinstance(m, codec.Sample):
+            # Estimated at once, of the sample just handled: not deferred to the next drain.
+            assert all(e.last_step == m.step for e in provisional(out))
+        inline += out
+        if drained:
+            caught_up += service.catch_up()  # the exact fits that waited
+    assert service.stats.provisionals_shed == 0
+    # As many estimates as without a backlog, but those waiting for plane a's first exact fit (up to a drain:
+    # 8 payloads, 2 refits).
+    assert len(provisional(inline)) >= len(provisional(plain)) - 8 // config.refit_every
+    while service.has_deferred:
+        caught_up += service.catch_up()
+    (final,) = [e for e in inline + caught_up if wire.is_terminal(e)]
+    (final_plain,) = [e for e in plain if wire.is_terminal(e)]
+    assert comparable(final) == comparable(final_plain)

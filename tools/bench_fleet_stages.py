@@ -127,7 +127,8 @@ def queue_model(
     """One live worker with a core of its own, fed each payload at its acquisition time.
 
     The worker's loop is :class:`~lelsonar.reconstruct.stream.sources.LiveSource`'s: take the oldest waiting
-    payload and handle it (``busy`` while more wait), ``tick`` every ``tick_s``, ``catch_up`` when nothing waits.
+    payload and handle it (``fits_wait`` while more wait, ``busy`` past ``provisional_backlog``), ``tick`` every
+    ``tick_s``, ``catch_up`` when nothing waits.
     Each call takes the thread CPU it measures here, plus ``outside_us`` a payload, on a virtual clock the
     service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
     :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
@@ -216,7 +217,13 @@ def queue_model(
             now[0] += outside_us * 1e-6
             busy_s += outside_us * 1e-6
             arrive()
-            run(service.handle, type_name, payload, busy=bool(waiting))
+            run(
+                service.handle,
+                type_name,
+                payload,
+                busy=len(waiting) > service.config.provisional_backlog,
+                fits_wait=bool(waiting),
+            )
             if type_name.endswith("Sample"):
                 processed.append(now[0] - t)
             arrive()

@@ -50,11 +50,18 @@ class ReconstructConfig:
         the scan's next refit on a fresh sample covers it.  Applies where the service is given a wall
         clock (:attr:`ReconstructionService.wall_ns`: a live source), never to a replay.  The exact fits
         due run anyway (a fit is never shed).  0 disables it.
+    provisional_backlog : int
+        Payloads waiting behind a sample that a live source still calls a short backlog: the sample's
+        provisional refit runs at once, without its exact fits, which wait for the backlog to drain
+        (``handle(..., fits_wait=True)``); behind a longer one the refit waits too (``busy``).  A refit
+        deferred waits for the backlog to drain, and that wait is its estimate's latency, while the update
+        run at once holds the samples behind it a fraction of a millisecond.
     provisional_budget : float
         s of work that waited for a backlog one :meth:`ReconstructionService.tick` or
         :meth:`ReconstructionService.catch_up` runs: the finals of scans completed meanwhile, then the
         deferred provisional refits (oldest estimate first, without their exact fits), then those exact
-        fits; the rest wait for the next call, so catching up never holds the stream for long.
+        fits; the rest wait for the next call, so catching up never holds the stream for long (at least one
+        runs a call: the default is about one exact fit).
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -90,7 +97,8 @@ class ReconstructConfig:
     provisional: bool = True
     max_provisional_delay: float = 0.25
     provisional_deadline: float = 0.04
-    provisional_budget: float = 0.01
+    provisional_backlog: int = 32
+    provisional_budget: float = 0.003
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
@@ -107,6 +115,8 @@ class ReconstructConfig:
         for name in (self.method, *self.compare_methods):
             if name not in METHODS:
                 raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
+        if self.provisional_backlog < 0:
+            raise ConfigError(f"provisional_backlog must be >= 0 payloads, got {self.provisional_backlog}")
         if self.refit_every < 1 or self.confirm_steps < 1:
             raise ConfigError("refit_every and confirm_steps must be >= 1")
         if not self.provisional_period >= 0:

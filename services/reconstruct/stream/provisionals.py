@@ -1,8 +1,10 @@
 """When a scan's provisional refit runs while a backlog waits: deferred, caught up within a budget, or shed.
 
-A refit that would hold samples waiting behind it is deferred: with many scanners a backlog builds where their
-scans reach the same costly refit together (the corner's confirmation, plane b's exact fits, when the scans
-run in step), and samples that wait behind those refits are late for every scan.
+A refit behind a long backlog is deferred: with many scanners a backlog builds where their scans reach the
+same costly refit together (the corner's confirmation, plane b's exact fits, when the scans run in step), and
+samples that wait behind those refits are late for every scan.  Behind a short backlog the refit runs at once
+without its exact fits, which wait (:meth:`ProvisionalSchedule.fits_later`): its update costs the samples
+behind it a fraction of a millisecond, where deferring it would cost its estimate the backlog's drain.
 :meth:`ProvisionalSchedule.catch_up` runs the deferred ones oldest estimate first, for at most
 ``provisional_budget`` of the service's clock, leaving the rest for the next call (the source calls it when
 the backlog has drained, and on every tick); a tick that still finds a backlog sheds, and counts, the refit
@@ -55,6 +57,10 @@ class ProvisionalSchedule:
             self._deferred.add(key)
             return True
         return False
+
+    def fits_later(self, key: ScanKey) -> None:
+        """The scan's refit ran without its exact fits (payloads waited): they run when the backlog drains."""
+        self._fits.add(key)
 
     def catch_up(
         self,

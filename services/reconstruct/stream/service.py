@@ -11,10 +11,12 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
 2. every ``refit_every`` steps the provisional variant runs: it confirms the corner (R at its maximum
    well above the scan's typical R, enough steps after it), then re-estimates plane b in O(new
    samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
-   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) it waits too
+   estimates a second per scan) — behind a short backlog (``handle(..., fits_wait=True)``) it runs at once
+   and only its exact fits wait for the backlog; behind a long one (``busy=True``) it waits too
    (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
    one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains, each
-   published at once in O(new samples) and the exact fits they need made after them;
+   published at once in O(new samples) and the exact fits they need made after them; live, one due on a
+   sample that waited past ``provisional_deadline`` is not published (stale);
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
    terminal; a scan completed while a backlog waits is closed once it drains, within the same budget (its
@@ -169,13 +171,18 @@ class ReconstructionService:
         payload: bytes,
         *,
         busy: bool = False,
+        fits_wait: bool | None = None,
         origin: str = "live",
         key_scanner: str | None = None,
     ) -> list[codec.Reconstruction]:
         """Apply one payload; return the estimates it produced (also published).
 
-        ``busy``: more payloads are already waiting, so a provisional refit can wait
-        for them; :meth:`catch_up` and :meth:`tick` catch up.
+        ``busy``: a backlog waits, so a provisional refit can wait for it; :meth:`catch_up` and
+        :meth:`tick` catch up.
+        ``fits_wait`` (default: ``busy``): payloads wait, so a refit runs now without its exact fits
+        (milliseconds each), which wait for them: the source says a backlog is short this way, where the
+        refit's update (a fraction of a millisecond) holds the samples behind it less than deferring it
+        would hold its estimate; a scan completed meanwhile is closed once they are in, as under ``busy``.
         ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
         ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
         """
@@ -184,7 +191,7 @@ class ReconstructionService:
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue
-            out += self._on_accepted(event, busy, live=origin == "live")
+            out += self._on_accepted(event, busy, busy if fits_wait is None else fits_wait, live=origin == "live")
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
@@ -415,7 +422,7 @@ class ReconstructionService:
         self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
-    def _on_accepted(self, event: Accepted, busy: bool, *, live: bool) -> list[codec.Reconstruction]:
+    def _on_accepted(self, event: Accepted, busy: bool, fits_wait: bool, *, live: bool) -> list[codec.Reconstruction]:
         scan = event.scan
         p = self._partials.get(scan.key)
         if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
@@ -440,7 +447,7 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
-                self._close(scan, p, busy)
+                self._close(scan, p, fits_wait)
                 return []
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -473,11 +480,16 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
-            self._close(scan, p, busy)
+            self._close(scan, p, fits_wait)
             return []
         if self._schedule.defer(scan.key, p, busy):
             return []  # tick() catches up; the backlog's later samples will be in the next refit
-        return self._provisional(scan, p)
+        if not fits_wait:
+            return self._provisional(scan, p)
+        out = self._provisional(scan, p, fits_wait=True)
+        if p.fits_wanted:
+            self._schedule.fits_later(scan.key)  # run once the payloads waiting are in
+        return out
 
     def _provisional(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = False) -> list[codec.Reconstruction]:
         """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`), and the

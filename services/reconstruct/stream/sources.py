@@ -513,7 +513,10 @@ class LiveSource:
 
     def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
         if item is not None:
-            self._guarded(self._handle, *item, busy=waiting > 0)
+            # Behind a short backlog a provisional refit runs now, its exact fits wait; behind a long one it waits.
+            self._guarded(
+                self._handle, *item, busy=waiting > self._service.config.provisional_backlog, fits_wait=waiting > 0
+            )
 
     def _handle(
         self,
@@ -523,6 +526,7 @@ class LiveSource:
         key_scanner: str | None,
         *,
         busy: bool,
+        fits_wait: bool,
     ) -> list[codec.Reconstruction]:
         if not isinstance(payload, bytes) and len(payload) <= self._service.config.limits.max_payload_bytes:
             payload = payload.to_bytes()  # a live payload's ZBytes, copied once (a larger one is refused uncopied)
@@ -531,6 +535,7 @@ class LiveSource:
             type_name if media == "application/protobuf" else encoding,
             cast(bytes, payload),  # or a ZBytes over the decode limit: ingest refuses it by its length, uncopied
             busy=busy,
+            fits_wait=fits_wait,
             origin=origin,
             key_scanner=key_scanner,
         )
