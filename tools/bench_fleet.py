@@ -79,6 +79,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-provisional", action="store_true", help="workers publish finals only")
     parser.add_argument(
+        "--service",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a field of the workers' ReconstructConfig (repeatable; e.g. provisional_backlog=0 for an A/B)",
+    )
+    parser.add_argument(
         "--timeout",
         type=float,
         default=180.0,
@@ -135,6 +142,7 @@ def command_line(args: argparse.Namespace) -> str:
         + f" --preset {args.preset}"
         + ("" if ladder else f" --failover {args.failover}")
         + (" --no-provisional" if args.no_provisional else "")
+        + "".join(f" --service {s}" for s in args.service)
         + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
         + (" --capacity" if args.capacity == [] else "")
     )
@@ -185,22 +193,26 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
     from lelsonar.reconstruct.estimate import wire
 
     procs: list[subprocess.Popen] = []
-    bench = [
-        "bench",
-        "fleet",
-        "--scanners",
-        str(args.scanners),
-        "--workers",
-        str(args.workers),
-        "--rate",
-        str(args.rate),
-        "--scans",
-        str(args.scans),
-        "--steps",
-        str(args.steps),
-        "--preset",
-        args.preset,
-    ] + (["--no-provisional"] if args.no_provisional else [])
+    bench = (
+        [
+            "bench",
+            "fleet",
+            "--scanners",
+            str(args.scanners),
+            "--workers",
+            str(args.workers),
+            "--rate",
+            str(args.rate),
+            "--scans",
+            str(args.scans),
+            "--steps",
+            str(args.steps),
+            "--preset",
+            args.preset,
+        ]
+        + (["--no-provisional"] if args.no_provisional else [])
+        + [f"--service={s}" for s in args.service]
+    )
     finals: dict[tuple[str, int], list[str]] = {}
     lock = threading.Lock()
     got = threading.Condition(lock)

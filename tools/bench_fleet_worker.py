@@ -37,6 +37,22 @@ def client_settings(endpoint: str):
     return ZenohSettings(mode="client", connect=(endpoint,))
 
 
+def service_config(fields: list[str], **given):
+    """The workers' :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`: its defaults, ``given``, and
+    each ``FIELD=VALUE`` of ``--service`` (a number or a word, as the field's default is)."""
+    from dataclasses import fields as dataclass_fields
+
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+
+    kinds = {f.name: type(f.default) for f in dataclass_fields(ReconstructConfig)}
+    for item in fields:
+        name, _, value = item.partition("=")
+        if name not in kinds or kinds[name] not in (int, float, bool, str):
+            raise SystemExit(f"bench fleet: --service {item}: not a number or word field of ReconstructConfig")
+        given[name] = value.lower() in ("1", "true", "yes") if kinds[name] is bool else kinds[name](value)
+    return ReconstructConfig(**given)
+
+
 def _thread_cpu() -> dict[int, tuple[str, float]]:
     """CPU (user + system, s) of each thread of this process so far, by native id, with its OS name."""
     out: dict[int, tuple[str, float]] = {}
@@ -68,7 +84,6 @@ def worker_main(args: argparse.Namespace) -> int:
     from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import open_session
     from lelsonar.reconstruct.estimate import wire
-    from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership
     from lelsonar.reconstruct.stream.ingest import Accepted
     from lelsonar.reconstruct.stream.recovery import RecoveryConfig
@@ -153,7 +168,7 @@ def worker_main(args: argparse.Namespace) -> int:
     with open_session(client_settings(args.endpoint)) as session:
         with GroupMembership(session, PREFIX, GroupConfig(GROUP, args.member, settle=0.5)) as group:
             service = ReconstructionService(
-                ReconstructConfig(provisional=not args.no_provisional), publish=group.fenced(publish)
+                service_config(args.service, provisional=not args.no_provisional), publish=group.fenced(publish)
             )
             probe(service)
             server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
