@@ -508,8 +508,12 @@ class ReconstructionService:
             return []  # within the per-scan rate limit: no estimate, and no input built to learn that
         stale = self._stale(scan, p)
         if stale and not fits:
-            self.stats.provisionals_stale += had_corner  # (before its corner, a scan has no estimate to give)
-            return []  # the next refit on a fresh sample covers these steps
+            # Counted once a refit_every steps, as the estimates it stands for (before its corner, a scan has
+            # none to give); the next refit on a fresh sample covers these steps.
+            if had_corner and scan.n_received - max(p.steps_at_fit, p.stale_at) >= self.config.refit_every:
+                self.stats.provisionals_stale += 1
+                p.stale_at = scan.n_received
+            return []
         rate_mark = p.provisional_ns
         est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p, fits_wait=fits_wait)
         if not had_corner and p.critical is not None:
