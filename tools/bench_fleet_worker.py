@@ -44,12 +44,16 @@ def service_config(fields: list[str], **given):
 
     from lelsonar.reconstruct.stream.config import ReconstructConfig
 
-    kinds = {f.name: type(f.default) for f in dataclass_fields(ReconstructConfig)}
+    defaults = {f.name: f.default for f in dataclass_fields(ReconstructConfig)}
     for item in fields:
         name, _, value = item.partition("=")
-        if name not in kinds or kinds[name] not in (int, float, bool, str):
+        default = defaults.get(name)
+        if isinstance(default, bool):
+            given[name] = value.lower() in ("1", "true", "yes")
+        elif isinstance(default, (int, float, str)):
+            given[name] = type(default)(value)
+        else:
             raise SystemExit(f"bench fleet: --service {item}: not a number or word field of ReconstructConfig")
-        given[name] = value.lower() in ("1", "true", "yes") if kinds[name] is bool else kinds[name](value)
     return ReconstructConfig(**given)
 
 
