@@ -10,6 +10,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.record import RecordOptions
 from lelsonar.reconstruct.stream.final_pool import PoolStats
+from lelsonar.reconstruct.stream.ingest import Ingest
 from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 
 
@@ -191,6 +192,37 @@ class ServiceStats:
         self.finals_in_workers += pool.pooled
         self.final_workers_lost += pool.workers_lost
         self.finals_rerun += pool.rerun
+
+    def as_dict(self, ingest: Ingest, pool: PoolStats | None) -> dict:
+        """Everything counted so far, with what ``ingest`` counted and the pool in use (``stats_dict``)."""
+        return {
+            "estimates": self.estimates,
+            "finals": self.finals,
+            "final_timeouts": self.timeouts,
+            "incomplete": self.incomplete,
+            "samples": {
+                "published": self.published,
+                "received_live": self.received_live,
+                "recovered": self.recovered,
+                "duplicates": self.duplicates,
+                "missing": self.missing,
+                # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
+                "energy_mismatches": ingest.energy_mismatches,
+            },
+            "rejected": dict(ingest.rejected),
+            "evicted": dict(ingest.evicted + self.evicted),
+            "recovery": {
+                "requests": self.recovery_requests,
+                "refused": self.recovery_refused,
+                "replies_after_verdict": ingest.recovered_after_close,
+            },
+            "provisionals_shed": self.provisionals_shed,
+            "provisionals_stale": self.provisionals_stale,
+            "finals_pool": self.pool_dict(pool),
+            "open_scans": len(ingest.scans),
+            "pending_samples": ingest.n_pending,
+            "scans_without_start": self.without_start,
+        }
 
     def pool_dict(self, current: PoolStats | None) -> dict[str, int]:
         """The finals' estimation, for ``stats_dict``: with ``current``, the pool in use, counted so far."""

@@ -118,9 +118,6 @@ class ReconstructionService:
         self.stats = ServiceStats()
         self._requests = LogRequests(config, self.stats, self._event)
         self._requests.recover = recover
-        #: The wall clock (ns) a live source gives, to tell a provisional estimate due on a sample that waited
-        #: too long (``provisional_deadline``); None: no estimate is stale (a replay's times are the file's).
-        self.wall_ns: Callable[[], int] | None = None
         self._partials: dict[ScanKey, Partial] = {}
         # Scans whose provisional refit waited for a backlog (tick() catches up on them).
         self._schedule = ProvisionalSchedule(config, self.stats, clock)
@@ -145,6 +142,16 @@ class ReconstructionService:
         #: Scans closed complete whose final waits for a backlog to drain (its input reads the whole scan), with
         #: their rank, taken when they were closed.
         self._closing: dict[ScanKey, tuple[int, ScanAssembly, Partial]] = {}
+
+    @property
+    def wall_ns(self) -> Callable[[], int] | None:
+        """The wall clock (ns) a live source gives, to tell a provisional estimate due on a sample that waited
+        too long (``provisional_deadline``); None: no estimate is stale (a replay's times are the file's)."""
+        return self._schedule.wall_ns
+
+    @wall_ns.setter
+    def wall_ns(self, clock: Callable[[], int] | None) -> None:
+        self._schedule.wall_ns = clock
 
     @property
     def recover(self) -> Callable[[RecoveryRequest], bool] | None:
@@ -361,35 +368,7 @@ class ReconstructionService:
 
     def stats_dict(self) -> dict:
         """Everything counted so far, for the exit line and ``--json``."""
-        s = self.stats
-        return {
-            "estimates": s.estimates,
-            "finals": s.finals,
-            "final_timeouts": s.timeouts,
-            "incomplete": s.incomplete,
-            "samples": {
-                "published": s.published,
-                "received_live": s.received_live,
-                "recovered": s.recovered,
-                "duplicates": s.duplicates,
-                "missing": s.missing,
-                # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
-                "energy_mismatches": self.ingest.energy_mismatches,
-            },
-            "rejected": dict(self.ingest.rejected),
-            "evicted": dict(self.ingest.evicted + s.evicted),
-            "recovery": {
-                "requests": s.recovery_requests,
-                "refused": s.recovery_refused,
-                "replies_after_verdict": self.ingest.recovered_after_close,
-            },
-            "provisionals_shed": s.provisionals_shed,
-            "provisionals_stale": s.provisionals_stale,
-            "finals_pool": s.pool_dict(self._pool.stats if self._pool is not None else None),
-            "open_scans": len(self.ingest.scans),
-            "pending_samples": self.ingest.n_pending,
-            "scans_without_start": s.without_start,
-        }
+        return self.stats.as_dict(self.ingest, self._pool.stats if self._pool is not None else None)
 
     # --- recovery ------------------------------------------------------------------------
     def still_wanted(self, request: RecoveryRequest) -> bool:
@@ -467,10 +446,8 @@ class ReconstructionService:
                 )
             return []
         step = event.step
-        if live and self.wall_ns is not None and step is not None:
-            lag = self.wall_ns() - int(scan.time_ns[step])
-            if p.transit_floor_ns is None or lag < p.transit_floor_ns:
-                p.transit_floor_ns = lag
+        if live and step is not None:
+            self._schedule.arrived(scan, step, p)
         if self._observer and scan.latest is not None and scan.latest.step == step:
             self._observer.step(
                 scan,
@@ -506,7 +483,7 @@ class ReconstructionService:
             and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9
         ):
             return []  # within the per-scan rate limit: no estimate, and no input built to learn that
-        stale = self._stale(scan, p)
+        stale = self._schedule.stale(scan, p)
         if stale and not fits:
             # Counted once a refit_every steps, as the estimates it stands for (before its corner, a scan has
             # none to give); the next refit on a fresh sample covers these steps.
@@ -534,14 +511,6 @@ class ReconstructionService:
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
-
-    def _stale(self, scan: ScanAssembly, p: Partial) -> bool:
-        """Whether the scan's newest sample waited over ``provisional_deadline`` beyond the quickest of its
-        scan's (the transit and the clocks' offset): its provisional estimate would be published late."""
-        deadline = self.config.provisional_deadline
-        if self.wall_ns is None or not deadline or p.transit_floor_ns is None:
-            return False
-        return self.wall_ns() - scan.newest_ns - p.transit_floor_ns > deadline * 1e9
 
     def _close(self, scan: ScanAssembly, p: Partial, busy: bool) -> None:
         """A complete scan's final: made now, or while a backlog waits (``busy``) once it drains: making its
