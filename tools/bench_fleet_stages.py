@@ -42,6 +42,19 @@ STALL_MS = 20.0
 
 STAGES = ("ingest", "provisional update", "provisional exact fits", "final")
 
+#: The queue model's rows: finals elsewhere or not, and the service's config fields set otherwise (A/B of the
+#: provisional policy: no staleness deadline; refits deferred behind any backlog, caught up 10 ms at a time).
+MODEL_CASES: tuple[tuple[bool, str, dict[str, Any]], ...] = (
+    (False, "", {}),
+    (True, "", {}),
+    (True, ", no provisional_deadline", {"provisional_deadline": 0.0}),
+    (
+        True,
+        ", refits deferred behind any backlog, 10 ms catch-up",
+        {"provisional_backlog": 0, "provisional_budget": 0.01},
+    ),
+)
+
 
 def interleaved(preset: str, scanners: int, scans: int, rate: float, steps: int = 0) -> list[tuple[float, str, bytes]]:
     """(s from the first message, type name, payload) of ``scanners`` × ``scans`` scans in acquisition order, at
@@ -122,7 +135,7 @@ def queue_model(
     outside_us: float = OUTSIDE_US,
     tick_s: float = 0.1,
     provisional: bool = True,
-    deadline: bool = True,
+    fields: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One live worker with a core of its own, fed each payload at its acquisition time.
 
@@ -135,8 +148,8 @@ def queue_model(
     worker nothing (run by the final pool's processes, which get the closed scan).  Once the
     last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
     processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed
-    (under a backlog, or stale: the service's wall clock is the virtual one; ``deadline`` False: no
-    ``provisional_deadline``, as a replay).
+    (under a backlog, or stale: the service's wall clock is the virtual one).  ``fields``: fields of the
+    default :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig` to set otherwise (an A/B of a policy).
     """
     from collections import deque
 
@@ -175,7 +188,7 @@ def queue_model(
         return now[0] + (time.thread_time() - started[0] if started else 0.0)
 
     config = ReconstructConfig(provisional=provisional)
-    service = ReconstructionService(config if deadline else replace(config, provisional_deadline=0.0), clock=clock)
+    service = ReconstructionService(replace(config, **(fields or {})), clock=clock)
     service.wall_ns = lambda: T0 + int(clock() * 1e9)  # the payloads' acquisition times are T0 + their time
     processed: list[float] = []
     provisionals: list[float] = []
@@ -374,14 +387,9 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
         "shed (of which stale)",
     ):
         model.add_column(col, justify="left" if col == "finals" else "right")
-    for elsewhere, deadline in ((False, True), (True, True), (True, False)):
+    for elsewhere, label, fields in MODEL_CASES:
         queued = [
-            queue_model(
-                payloads,
-                finals_elsewhere=elsewhere,
-                provisional=not args.no_provisional,
-                deadline=deadline,
-            )
+            queue_model(payloads, finals_elsewhere=elsewhere, provisional=not args.no_provisional, fields=fields)
             for _ in range(args.repeat)
         ]
 
@@ -389,8 +397,7 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
             return f"{statistics.median(1e3 * _quantile(r[key], q) for r in queued):.1f}"
 
         model.add_row(
-            ("elsewhere (input and reconstruction)" if elsewhere else "inline")
-            + ("" if deadline else ", no provisional_deadline"),
+            ("elsewhere (input and reconstruction)" if elsewhere else "inline") + label,
             f"{statistics.median(r['busy'] for r in queued):.2f}",
             f"{ms('processed_s', 0.5)} / {ms('processed_s', 0.99)}",
             f"{ms('provisional_s', 0.5)} / {ms('provisional_s', 0.99)}",
