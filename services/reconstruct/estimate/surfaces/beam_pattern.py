@@ -129,7 +129,7 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
 
 
 def extrapolated_peak(
-    gamma: np.ndarray, amplitude: np.ndarray, curvature: float, *, before: float, after: float
+    gamma: np.ndarray, amplitude: np.ndarray, curvature: float, *, before: float, after: float, sigmas: float = 3.0
 ) -> float | None:
     """The peak amplitude of a region whose peak lies past a cut end, from the flank it shows.
 
@@ -137,7 +137,11 @@ def extrapolated_peak(
     is a line in ``u``: its slope puts the vertex ``v``, and ``P`` follows.
     On the flank the piston pattern falls faster than its parabola, so the
     slope overstates how far the peak is and ``P`` overstates the peak: an
-    upper estimate, safe to call an echo weak by, never strong.
+    upper estimate, safe to call an echo weak by, never strong.  A few steps'
+    amplitude noise moves the slope, and ``P`` grows as ``k v²`` with the
+    vertex's distance: the estimate is the largest ``P`` over the vertices
+    within ``sigmas`` σ of the line's fit (its residuals' σ through the slope
+    and the level), inside the reach; with too few steps for a residual, none.
 
     Parameters
     ----------
@@ -167,7 +171,15 @@ def extrapolated_peak(
     lo, hi = float(u.min()) - before, float(u.max()) + after
     if not lo <= v <= hi:
         return None
-    peak = math.exp(float(icpt) + curvature * v * v)
+    # The line's own σ (u is centred: slope and level are independent), from its residuals.
+    res = y - (float(slope) * u + float(icpt))
+    s2 = float(res @ res) / (u.size - 2)
+    suu = float(u @ u)
+    if not suu > 0:
+        return None
+    dv = sigmas * math.sqrt(s2 / suu) / (2 * curvature)
+    far = max(abs(max(lo, v - dv)), abs(min(hi, v + dv)))
+    peak = math.exp(float(icpt) + sigmas * math.sqrt(s2 / u.size) + curvature * far * far)
     return max(peak, float(a.max()))
 
 

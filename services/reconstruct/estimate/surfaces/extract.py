@@ -80,7 +80,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 )
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
@@ -227,6 +227,9 @@ def _measured_regions(sweep: _Sweep) -> tuple[list[Measured], set[int]]:
         reach = opts.beyond_cut / math.sqrt(3.0)
         tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
         measured.append(replace(pm, tilt_stderr=tilt_se))
+    # A target part of the stack hears past a nearer one the other capsules hear first: a region of the fan.
+    for r in masked_regions(d, [m.region for m in measured], opts, sweep.spread):
+        measured.append(measure_region(r, g, d, amp, geometry, opts, step=step))
     return measured, partial
 
 
@@ -328,7 +331,12 @@ def _classify(
     planes = _planes(measured, partial, across, scale, opts)
     walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, sweep.gamma, opts)
     for i, text in walls_of_corners.items():
-        measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
+        m = measured[i]
+        if m.bearing_source == "amplitude peak":
+            # Its corner's echo answers beside it inside the amplitude window and sums into its flank: the peak
+            # may sit anywhere the region allows its foot.
+            m = replace(m, bearing_stderr=reach_stderr(m, opts))
+        measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
     kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
     for i in range(len(measured)):
@@ -428,7 +436,7 @@ def _ties(
             ties = [pool[j] for j in which]
             m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
     else:
-        ties = _on_traces(i, planes, measured, partial, opts)
+        ties = [] if wall_of_corner else _on_traces(i, planes, measured, partial, opts)
     return m, ties
 
 

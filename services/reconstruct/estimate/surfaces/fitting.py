@@ -67,6 +67,7 @@ def fit_surface(
         diagnostics=SolverDiagnostics(solver=METHOD, notes=(f"bearing: {m.bearing_source}",)),
         model="constant-depth",
         stderr=(math.sqrt(m.bearing_stderr**2 + tilt_var), math.sqrt(var_h)),
+        theta_covariance=None if math.isfinite(m.tilt_stderr) else theta_covariance(n, h, dn_db, dn_dt, cov),
     )
     if not isinstance(fit, PlaneFit):
         return None
@@ -83,6 +84,32 @@ def fit_surface(
         rows=r.rows.copy(),
         capsules=r.capsules.copy(),
     )
+
+
+def theta_covariance(n: np.ndarray, h: float, dn_db: np.ndarray, dn_dt: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The covariance of ``θ = n/h`` (eq. 1) from that of (bearing, tilt, offset), to first order.
+
+    Where the capsule stack does not constrain the tilt (one capsule per step), the ranges alone leave ``θ``
+    undetermined along it; the surface's own error model (the tilt unknown to ±π/2) still bounds it.
+
+    Parameters
+    ----------
+    n : (3,) array
+        The unit normal at (bearing, tilt).
+    h : float
+        The offset, m.
+    dn_db, dn_dt : (3,) arrays
+        ``∂n/∂β`` and ``∂n/∂t``.
+    cov : (3, 3) array
+        Over (bearing rad, tilt rad, offset m).
+
+    Returns
+    -------
+    (3, 3) array, 1/m².
+    """
+    jac = np.stack([dn_db / h, dn_dt / h, -n / (h * h)], axis=1)
+    out = jac @ cov @ jac.T
+    return 0.5 * (out + out.T)
 
 
 def _joint_surface(
