@@ -63,6 +63,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     across_stack,
     beyond_reach,
@@ -157,7 +158,7 @@ def extract_surfaces(
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, kinds, across_lines, surface_of, joint, opts)
     return SurfaceSet(
-        surfaces=tuple(surfaces),
+        surfaces=tuple(confirm_surfaces(surfaces, [*corners, *edges])),
         corners=tuple(corners),
         edges=tuple(edges),
         n_echoes=int(np.count_nonzero(np.isfinite(sweep.distance))),

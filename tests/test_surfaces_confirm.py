@@ -1,0 +1,58 @@
+"""A plane claims good only where the sweep confirms it a plane and its σ places its trace within 2 cm.
+
+Analytic sweeps built by hand (:class:`tests.test_surfaces.Echoes`): a lone retro-reflecting corner, an edge as
+strong as a wall, a wall alone and two walls with their corner; the accuracy bound from the σ by hand.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
+from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.confirm import ACCURACY, LONE, TRACE_REACH, confirm_surfaces, trace_stderr
+from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
+
+
+@pytest.mark.parametrize("gain", [1.0, 1.5])
+def test_a_lone_vertical_corner_or_strong_edge_is_never_a_good_plane(gain):
+    # A vertical line in the fan (a concave corner's double bounce, or an edge as strong as a wall): one range
+    # over the beam's width, amplitudes of the beam pattern, as a wall facing the array would give.
+    e = Echoes(seed=11)
+    e.vertical_line(1.2, 0.9, gain=gain)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert all(s.quality != GOOD for s in result.surfaces)
+    assert all(LONE in s.reasons for s in result.surfaces if s.own_quality == GOOD)
+
+
+def test_walls_that_share_a_corner_confirm_each_other_and_stay_good():
+    e = Echoes(seed=3)
+    e.plane(0.0, 1.0)
+    e.plane(math.pi / 2, 1.5)
+    e.vertical_line(1.0, 1.5, gain=1.5)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert len(result.surfaces) == 2
+    assert all(s.quality == GOOD and s.own_quality == GOOD for s in result.surfaces)
+    assert {label for c in result.corners for label in c.surfaces} == {s.label for s in result.surfaces}
+
+
+def test_a_surface_whose_sigma_does_not_place_its_trace_within_the_accuracy_is_degraded():
+    e = Echoes(seed=3)
+    e.plane(0.0, 1.0)
+    e.plane(math.pi / 2, 1.5)
+    e.vertical_line(1.0, 1.5, gain=1.5)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    s = result.surfaces[0]
+    # By hand: the trace 0.5 m from the foot moves by 0.5 tan σ_n, beside the offset's σ.
+    sh = s.plane.offset_stderr
+    edge = math.atan(math.sqrt((0.5 * ACCURACY) ** 2 - sh * sh) / TRACE_REACH)
+    wide = s.plane.replace_scalars(normal_stderr=1.05 * edge)
+    narrow = s.plane.replace_scalars(normal_stderr=0.95 * edge)
+    assert trace_stderr(replace(s, plane=wide)) > 0.5 * ACCURACY
+    out = confirm_surfaces([replace(s, plane=p) for p in (wide, narrow)], list(result.corners))
+    assert out[0].quality == DEGRADED and "2 σ" in out[0].reasons[-1]
+    assert out[1].quality == GOOD
+    assert all(o.own_quality == GOOD for o in out)
