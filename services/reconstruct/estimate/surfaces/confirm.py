@@ -8,9 +8,11 @@ Two tests on top of each plane's own verdict (:func:`~lelsonar.reconstruct.estim
   pattern's amplitudes across γ.  A point-like reflector at range ``ρ`` differs from a mirror at depth ``ρ`` only
   by ``r² sin²(γ − β)/(2ρ)`` in the capsules' radial offset ``r`` (a fraction of a millimetre), and a corner
   retro-reflects as strongly as a wall, an edge as strongly as its gain makes it.  A plane is confirmed only by
-  what a lone reflector cannot give: a feature the sweep ties to it (its end on its trace, its concave corner
-  with another plane at their double-bounce range, its double bounce with a surface across the fan).  Without
-  one it is degraded, and says why.
+  what a lone reflector cannot give: a feature the sweep ties to it by a test (its end found on its trace at
+  its own bearing, its concave corner with another plane at their double-bounce range, its double bounce with
+  a surface across the fan).  A target whose bearing nothing determined, set on the trace where its depth
+  crosses it, confirms nothing: a box's far edges lie on the trace of its near edge taken for a plane.
+  Without a confirmation the plane is degraded, and says why.
 * **accuracy**.  A good surface is placed within :data:`ACCURACY` over :data:`TRACE_REACH` either side of its
   foot at two σ: ``2 √(σ_h² + (L σ_n)²) ≤ ACCURACY`` with ``σ_n`` its normal's σ (bearing and tilt) and ``σ_h``
   its offset's.  A wall well placed in range can be poorly placed in bearing; past that bound it is degraded.
@@ -28,7 +30,7 @@ from dataclasses import replace
 
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, add_findings
 from lelsonar.reconstruct.estimate.results import PlaneFit
-from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface
+from lelsonar.reconstruct.estimate.surfaces.results import Surface
 
 __all__ = ["ACCURACY", "TRACE_REACH", "LONE", "confirm_surfaces", "trace_stderr"]
 
@@ -61,7 +63,7 @@ def trace_stderr(surface: Surface, reach: float = TRACE_REACH) -> float:
     return math.hypot(sh, reach * math.tan(min(sn, 0.5 * math.pi - 1e-9)))
 
 
-def confirm_surfaces(surfaces: list[Surface], features: list[Feature]) -> list[Surface]:
+def confirm_surfaces(surfaces: list[Surface], confirmed: set[str]) -> list[Surface]:
     """Each surface, degraded where the sweep does not confirm it a plane or its σ does not place its trace
     within :data:`ACCURACY` (see the module).
 
@@ -69,19 +71,21 @@ def confirm_surfaces(surfaces: list[Surface], features: list[Feature]) -> list[S
     ----------
     surfaces : list of Surface
         The sweep's planes with their own verdicts.
-    features : list of Feature
-        The sweep's corners and edges; ``Feature.surfaces`` names the planes each ties.
+    confirmed : set of str
+        Labels of the planes a feature of the sweep ties by a test a lone reflector does not pass: its own
+        bearing found on the plane's trace, a double-bounce range, a line along the stack explaining the
+        ranges.  A region whose bearing nothing determined, set on a plane's trace where its depth crosses it,
+        is placed there, not found there: it confirms nothing.
 
     Returns
     -------
     The surfaces in order, each with ``fit_quality`` set to its own verdict.
     """
-    tied = {label for f in features for label in f.surfaces}
     out = []
     for s in surfaces:
         own = s.quality
         findings: list[tuple[str, str]] = []
-        if own == GOOD and s.label not in tied:
+        if own == GOOD and s.label not in confirmed:
             findings.append((DEGRADED, LONE))
         se = trace_stderr(s)
         if own == GOOD and 2.0 * se > ACCURACY:
