@@ -531,7 +531,7 @@ def _confirmed(
 ) -> set[str]:
     """Labels of the planes a feature ties by a test: all but an end placed on one plane's trace because its own
     bearing is undetermined (:func:`~.confirm.confirm_surfaces`)."""
-    out = set()
+    out: set[str] = set()
     for i, (_kind, _reasons, ties) in kinds.items():
         placed = len(ties) == 1 and i not in across_lines and measured[i].bearing_source == "undetermined"
         if not placed:
