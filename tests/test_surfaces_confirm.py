@@ -2,7 +2,8 @@
 
 Analytic sweeps built by hand (:class:`tests.test_surfaces.Echoes`): a lone retro-reflecting corner, an edge as
 strong as a wall, a wall alone and two walls with their corner; the accuracy bound from the σ by hand; the
-capsules' own beam-pattern peaks with one echo and with a second summed in.
+capsules' own beam-pattern peaks with one echo and with a second summed in; seeded stress worlds (strong box
+edges, a wide beam) against the simulator's truth.
 """
 
 from __future__ import annotations
@@ -17,6 +18,13 @@ from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import capsule_peak_spread
 from lelsonar.reconstruct.estimate.surfaces.confirm import ACCURACY, LONE, TRACE_REACH, confirm_surfaces, trace_stderr
+from lelsonar.signal.energy import echo_amplitude
+from lelsonar.sim.world_geometry import ElementKind
+from lelsonar.tools.map_worlds import sweep
+from lelsonar.tools.stress_world_score import world_run
+from lelsonar.tools.stress_worlds import draw_stress_world
+from lelsonar.tools.surface_oracle import true_plane
+from lelsonar.tools.surface_scores import majority
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
 
 
@@ -78,3 +86,40 @@ def test_capsules_peaks_agree_on_one_echo_and_spread_where_a_second_sums_in_with
     assert spread > 5 * alone and spread < math.radians(12.0) / 3.0
     # Fewer than two capsules with a peak: nothing to compare.
     assert capsule_peak_spread(gamma, one[:, :1]) == 0.0
+
+
+def _stress_sweep(cls: str, seed: int, pose: int):
+    world = draw_stress_world(cls, seed, "fan")
+    scan = sweep(world_run(world, seed), pose)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    return scan, extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+
+
+def test_a_box_edge_as_strong_as_a_wall_is_no_good_plane_though_its_far_edges_sit_on_its_trace():
+    # Seeded: a box whose edges diffract as strongly as a wall; its near edge's region looks like a wall facing
+    # the array, and its two far edges, their bearings undetermined, are set on that "wall's" trace.
+    scan, result = _stress_sweep("strong_edges", 5, 2)
+    for s in result.surfaces:
+        k, _ = majority(scan, s.steps, s)
+        if s.quality == GOOD:
+            assert k >= 0 and scan.model.elements[k].kind == ElementKind.MIRROR, (s.label, s.reasons)
+    edge_planes = [
+        s for s in result.surfaces if scan.model.elements[majority(scan, s.steps, s)[0]].kind == ElementKind.EDGE
+    ]
+    assert edge_planes and all(LONE in s.reasons for s in edge_planes if s.own_quality == GOOD)
+
+
+def test_a_peak_bearing_an_echo_summed_into_moves_each_capsules_own_way_says_so_in_its_sigma():
+    # Seeded: a wide beam (about 52°), a wall's region cut by a nearer echo, its bearing from the amplitude peak,
+    # which a second echo in the window pulls by several degrees, differently in each capsule.
+    scan, result = _stress_sweep("beam", 6, 0)
+    checked = 0
+    for s in result.surfaces:
+        k, _ = majority(scan, s.steps, s)
+        if s.bearing_source != "amplitude peak" or scan.model.elements[k].kind != ElementKind.MIRROR:
+            continue
+        n_true, _ = true_plane(scan, k)
+        err = abs((s.bearing - math.atan2(n_true[2], n_true[1]) + math.pi / 2) % math.pi - math.pi / 2)
+        assert err <= 3 * math.sqrt(s.covariance[0, 0]), (s.label, math.degrees(err))
+        checked += 1
+    assert checked >= 1
