@@ -63,6 +63,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     across_stack,
     beyond_reach,
@@ -157,7 +158,7 @@ def extract_surfaces(
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, kinds, across_lines, surface_of, joint, opts)
     return SurfaceSet(
-        surfaces=tuple(surfaces),
+        surfaces=tuple(confirm_surfaces(surfaces, _confirmed(measured, kinds, across_lines, surface_of))),
         corners=tuple(corners),
         edges=tuple(edges),
         n_echoes=int(np.count_nonzero(np.isfinite(sweep.distance))),
@@ -531,6 +532,19 @@ def _fit_planes(
         surface_of[i] = s
         surfaces.append(s)
     return surfaces, surface_of, failed, unsorted
+
+
+def _confirmed(
+    measured: list[Measured], kinds: dict[int, Kind], across_lines: set[int], surface_of: dict[int, Surface]
+) -> set[str]:
+    """Labels of the planes a feature ties by a test: all but an end placed on one plane's trace because its own
+    bearing is undetermined (:func:`~.confirm.confirm_surfaces`)."""
+    out: set[str] = set()
+    for i, (_kind, _reasons, ties) in kinds.items():
+        placed = len(ties) == 1 and i not in across_lines and measured[i].bearing_source == "undetermined"
+        if not placed:
+            out.update(surface_of[j].label for j in ties if j in surface_of)
+    return out
 
 
 def _unexplained(sweep: _Sweep, regions: list[Region], failed: int, unsorted: int) -> dict[str, int]:

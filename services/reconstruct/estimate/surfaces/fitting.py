@@ -49,7 +49,7 @@ def fit_surface(
     )
     jac = np.array([float(np.mean(caps @ dn_db)), float(np.mean(caps @ dn_dt))])
     tilt_var = m.tilt_stderr**2 if math.isfinite(m.tilt_stderr) else (math.pi / 2) ** 2
-    ang = np.diag([m.bearing_stderr**2, tilt_var])
+    ang = np.diag([m.surface_bearing_stderr**2, tilt_var])
     var_h = (sigma**2 / max(r.rows.size, 1) if math.isfinite(sigma) else 0.0) + float(jac @ ang @ jac)
     cov = np.zeros((3, 3))
     cov[:2, :2] = ang
@@ -66,7 +66,7 @@ def fit_surface(
         inlier_mask=np.ones(data.n, dtype=bool),
         diagnostics=SolverDiagnostics(solver=METHOD, notes=(f"bearing: {m.bearing_source}",)),
         model="constant-depth",
-        stderr=(math.sqrt(m.bearing_stderr**2 + tilt_var), math.sqrt(var_h)),
+        stderr=(math.sqrt(m.surface_bearing_stderr**2 + tilt_var), math.sqrt(var_h)),
         theta_covariance=None if math.isfinite(m.tilt_stderr) else theta_covariance(n, h, dn_db, dn_dt, cov),
     )
     if not isinstance(fit, PlaneFit):
@@ -179,7 +179,9 @@ def joint_fit(
         sigma = _scatter(mj.ranges + mj.positions @ unit_normal(mj.bearing, mj.tilt))
         if not (math.isfinite(sigma) and sigma > 0):
             return {}, {}
-        evidence.append(WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.bearing_stderr, mj.tilt, mj.depth, sigma))
+        evidence.append(
+            WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.surface_bearing_stderr, mj.tilt, mj.depth, sigma)
+        )
     corners = []
     for i, ties in pairs:
         mi = measured[i]
@@ -201,10 +203,10 @@ def joint_fit(
     for j, jw in zip(walls, fitted, strict=True):
         mj = measured[j]
         gap = abs(wrap(jw.bearing - mj.bearing))
-        if gap > 3 * mj.bearing_stderr:
+        if gap > 3 * mj.surface_bearing_stderr:
             disputed[j] = (
                 f"its corners' double bounce puts its bearing {math.degrees(gap):.1f}° from the beam pattern's "
-                f"(σ {math.degrees(mj.bearing_stderr):.1f}°): fitted on its own echoes"
+                f"(σ {math.degrees(mj.surface_bearing_stderr):.1f}°): fitted on its own echoes"
             )
         else:
             out[j] = jw
