@@ -56,12 +56,12 @@ def time_floor(path: Path) -> tuple[float, int]:
 
     types = codec.MESSAGE_TYPES
     samples = 0
-    t = time.perf_counter()
+    cpu, t = time.process_time(), time.perf_counter()
     with open(path, "rb") as f:
         for schema, _channel, message in make_reader(f).iter_messages(topics=CONTRACT_TOPICS, log_time_order=True):
             msg = types[schema.name if schema is not None else ""].FromString(message.data)
             samples += isinstance(msg, codec.Sample)
-    return time.perf_counter() - t, samples
+    return _timed(t, cpu), samples
 
 
 def time_read(path: Path) -> tuple[float, int]:
@@ -71,11 +71,11 @@ def time_read(path: Path) -> tuple[float, int]:
 
     types = codec.MESSAGE_TYPES
     samples = 0
-    t = time.perf_counter()
+    cpu, t = time.process_time(), time.perf_counter()
     for rec in iter_payloads(path):
         msg = types[rec.type_name].FromString(rec.payload)
         samples += isinstance(msg, codec.Sample)
-    return time.perf_counter() - t, samples
+    return _timed(t, cpu), samples
 
 
 def time_replay(path: Path) -> tuple[float, int]:
@@ -90,6 +90,14 @@ def time_replay_warm(path: Path) -> tuple[float, int]:
 
 #: The replay child's finals estimated in worker processes (reported beside its seconds).
 _POOLED: list[int] = []
+#: The child's CPU seconds (every thread of the process, not its workers) over the timed section.
+_CPU: list[float] = []
+
+
+def _timed(t: float, cpu: float) -> float:
+    """Wall seconds since ``t``; the CPU seconds since ``cpu`` go to :data:`_CPU`."""
+    _CPU.append(time.process_time() - cpu)
+    return time.perf_counter() - t
 
 
 def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
@@ -105,9 +113,9 @@ def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
             pool.wait_ready(600)
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
     service = ReconstructionService(ReconstructConfig(provisional=False))
-    t = time.perf_counter()
+    cpu, t = time.process_time(), time.perf_counter()
     replay_mcap(path, service)
-    seconds = time.perf_counter() - t
+    seconds = _timed(t, cpu)
     _POOLED.append(int(service.stats_dict().get("finals_pool", {}).get("in_workers", 0)))
     return seconds, service.stats.finals
 
@@ -202,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("path", type=Path)
     args = parser.parse_args(argv)
     seconds, samples = _MODES[args.child](args.path)
-    out = {"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib()}
+    out = {"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib(), "cpu_s": _CPU[-1]}
     if _POOLED:
         out["pooled"] = _POOLED[-1]
     print(json.dumps(out), flush=True)
