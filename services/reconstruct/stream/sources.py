@@ -126,14 +126,17 @@ def _item_bytes(item) -> int:
 REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
 
 
-def decompress_threads() -> int:
-    """Threads to decompress a replayed file ahead of the service: the cores the host's load leaves idle, up to two.
+def decompress_threads(cpus: int | None = None) -> int:
+    """Threads to decompress a replayed file ahead of the service: one per core beyond the caller's, up to two.
 
-    The load average counts the replay itself.  On a busy host a decompressing thread finds no core
-    to run on: it would only compete with the service for the one it has, and slow the replay.
+    Not gated on the host's load: the reading thread decompresses itself whatever chunk no thread has
+    started yet (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that finds no core holds the
+    read up by at most the one job it has started, while one that finds an idle core halves the reading's
+    largest cost.  (A load average also lags the host by a minute: a replay right after a busy one would
+    get none.)
     """
-    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
-    return max(0, min(2, round(idle)))
+    n = cpus if cpus is not None else (os.cpu_count() or 1)
+    return max(0, min(2, n - 1))
 
 
 def replay_mcap(
@@ -141,7 +144,7 @@ def replay_mcap(
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
-    Where the host has an idle core, the next chunks of the file are decompressed and checked on
+    On a host of several cores, the next chunks of the file are decompressed and checked on
     other threads while the service handles a payload (:func:`decompress_threads`,
     :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
     the estimation.  The finals are estimated in worker processes while the file is read
@@ -180,9 +183,9 @@ COLD_START_SCANS = 50
 
 def replay_workers(configured: int | None, scans: int | None) -> int:
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
-    load leaves cores idle (as :func:`decompress_threads`: a worker that finds no core only competes with
-    the reading).  None for a file of one scan, whose final can overlap nothing, nor by default for a file
-    of fewer than :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
+    load leaves cores idle (a worker that finds no core only competes with the reading).  None for a file of
+    one scan, whose final can overlap nothing, nor by default for a file of fewer than
+    :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
     if scans is not None and scans < 2:
         return 0
     if configured is not None:
