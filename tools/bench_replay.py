@@ -7,19 +7,27 @@ by ``mcap``'s own writer (1 MiB chunks that mix channels).  Each measurement run
 child process (``python -m lelsonar.tools.bench_replay --child MODE FILE``), which reports its
 peak resident set (``VmHWM``): replay's memory must not grow with the file.
 
+Each child also reports the CPU seconds of its timed section (every thread of the process; not the
+final workers').  The CPU of ``read``, ``ingest`` and ``inline`` against ``floor``'s says where a
+replay's time goes: the reading, the ingest stage and the finals.
+
 Modes:
 
 * ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
   ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
-  (the kernels loaded first), estimation included (where the host has an idle core, the next
-  chunks decompressed on other threads while the service estimates; the finals in worker
-  processes as :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
+  (the kernels loaded first), estimation included (on a host of several cores, the next chunks
+  decompressed on other threads while the service estimates; the finals in worker processes as
+  :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
 * ``warm`` — the same replay in a process whose final workers have started before (their fork
   server's imports and kernels loaded before the clock, as in a live reconstructor or a process
   that replayed a file already): the finals in workers from the first scan, where the host's load
   leaves a core idle;
 * ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
   (the reading alone);
+* ``ingest`` — the reading and :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` (decode, validate,
+  assemble): the replay without its estimation;
+* ``inline`` — ``replay`` with every final estimated in the replaying process (``final_workers=0``): its CPU
+  seconds are the whole replay's work, where ``replay`` and ``warm`` do part of it in worker processes;
 * ``floor`` — ``mcap.reader.make_reader(f).iter_messages(topics=…, log_time_order=True)`` and a
   upb parse (``FromString``) of each contract message: the reading any program can do.
 """
@@ -100,7 +108,31 @@ def _timed(t: float, cpu: float) -> float:
     return time.perf_counter() - t
 
 
-def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
+def time_ingest(path: Path) -> tuple[float, int]:
+    """(seconds, samples) of the reading and the ingest stage (decode, validate, assemble): no estimation."""
+    from lelsonar import codec
+    from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.log.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
+    from lelsonar.reconstruct.stream.sources import REPLAYED
+
+    exercise_kernels()  # as the replay children: the kernels loaded before the clock
+    ingest = Ingest()
+    sample = codec.Sample.DESCRIPTOR.full_name
+    samples = 0
+    cpu, t = time.process_time(), time.perf_counter()
+    for rec in iter_payloads(path, REPLAYED):
+        ingest.accept(rec.type_name, rec.payload)
+        samples += rec.type_name == sample
+    return _timed(t, cpu), samples
+
+
+def time_inline(path: Path) -> tuple[float, int]:
+    """(seconds, finals) of :func:`time_replay` with every final estimated in the replaying process."""
+    return _replay(path, warm=False, workers=0)
+
+
+def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.final_pool import FinalPool
@@ -112,7 +144,7 @@ def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
         with FinalPool(max(auto_workers(), 1)) as pool:  # the fork server's imports and kernels: once a process
             pool.wait_ready(600)
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
-    service = ReconstructionService(ReconstructConfig(provisional=False))
+    service = ReconstructionService(ReconstructConfig(provisional=False, final_workers=workers))
     cpu, t = time.process_time(), time.perf_counter()
     replay_mcap(path, service)
     seconds = _timed(t, cpu)
@@ -120,7 +152,14 @@ def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
     return seconds, service.stats.finals
 
 
-_MODES = {"floor": time_floor, "read": time_read, "replay": time_replay, "warm": time_replay_warm}
+_MODES = {
+    "floor": time_floor,
+    "read": time_read,
+    "ingest": time_ingest,
+    "inline": time_inline,
+    "replay": time_replay,
+    "warm": time_replay_warm,
+}
 
 
 def child(mode: str, path: Path) -> dict:
@@ -197,6 +236,7 @@ def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[
             row = {"scans": n, "samples": samples, "mb": path.stat().st_size / 1e6}
             for mode, results in got.items():
                 row[f"{mode}_s"] = statistics.median(r["seconds"] for r in results)
+                row[f"{mode}_cpu"] = statistics.median(r["cpu_s"] for r in results)
                 row[f"{mode}_rss"] = max(r["rss_mib"] for r in results)
                 row[f"{mode}_pooled"] = min(r.get("pooled", 0) for r in results)
             rows.append(row)
