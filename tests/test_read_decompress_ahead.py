@@ -167,3 +167,15 @@ def test_a_read_waiting_for_a_stalled_thread_decompresses_later_chunks_itself(tm
     monkeypatch.setattr(reader, "decompress_chunks", decompress)
     assert _read(path, 1) == in_turn
     assert len(by_reader) >= 3
+
+
+@pytest.mark.parametrize(
+    ("cpus", "runnable", "threads"),
+    [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)],
+)
+def test_a_replay_decompresses_ahead_on_the_cores_no_task_runs_on(cpus, runnable, threads):
+    assert sources.decompress_threads(cpus, runnable) == threads
+
+
+def test_the_tasks_running_now_count_the_caller():
+    assert sources.runnable_tasks() >= 1

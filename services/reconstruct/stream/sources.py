@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import threading
 import time
@@ -126,17 +127,29 @@ def _item_bytes(item) -> int:
 REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
 
 
-def decompress_threads(cpus: int | None = None) -> int:
-    """Threads to decompress a replayed file ahead of the service: one per core beyond the caller's, up to two.
+def decompress_threads(cpus: int | None = None, runnable: int | None = None) -> int:
+    """Threads to decompress a replayed file ahead of the service: the cores no task is running on now, up to two.
 
-    Not gated on the host's load: the reading thread decompresses itself whatever chunk no thread has
-    started yet (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that finds no core holds the
-    read up by at most the one job it has started, while one that finds an idle core halves the reading's
-    largest cost.  (A load average also lags the host by a minute: a replay right after a busy one would
-    get none.)
+    ``runnable`` (default: the host's tasks running or ready to run now, this one included, from
+    ``/proc/loadavg``; the load average instead where there is none).  Not the load average where the
+    kernel gives the tasks of the moment: it lags the host by a minute, and a replay right after a busy one
+    would get no thread.  The reading thread decompresses itself whatever chunk no thread has started yet
+    (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that loses its core to a neighbour holds the
+    read up by at most the one job it has started.
     """
     n = cpus if cpus is not None else (os.cpu_count() or 1)
-    return max(0, min(2, n - 1))
+    busy = runnable if runnable is not None else runnable_tasks()
+    return max(0, min(2, n - busy))
+
+
+def runnable_tasks() -> int:
+    """Tasks running or ready to run on the host now, the caller's included (``/proc/loadavg``'s fourth field);
+    the 1-minute load average, rounded up, where that is not readable."""
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].partition("/")[0])
+    except (OSError, ValueError, IndexError):
+        return math.ceil(os.getloadavg()[0])
 
 
 def replay_mcap(
