@@ -303,7 +303,7 @@ def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str,
     import os
 
     cores = os.cpu_count() or 1
-    headers = (
+    headers: tuple[str, ...] = (
         "scans in one file",
         "floor",
         "read",
@@ -312,7 +312,7 @@ def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str,
         "replay's work × floor's",
         f"best on {cores} cores: one scan / many",
     )
-    out = []
+    out: list[tuple[str, ...]] = []
     for r in rows:
         n = r["scans"]
         floor, read = r["floor_cpu"] / n, r["read_cpu"] / n
