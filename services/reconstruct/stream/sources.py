@@ -363,6 +363,8 @@ class LiveSource:
         self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
+        #: Samples the doorbell handed over (each one woke an idle worker).
+        self.rings = 0
         #: Where the finals are estimated, off this source's thread (None: on it).
         workers = service.config.final_workers
         self._workers = auto_workers() if workers is None else workers
@@ -383,6 +385,8 @@ class LiveSource:
             self._service.recovery_policy = dataclasses.replace(
                 self._service.recovery_policy, log_may_answer=self._recovery.may_answer
             )
+        # Live, a provisional estimate due on a sample that waited too long is stale (a replay's never is).
+        self._service.wall_ns = time.time_ns
         if self._workers:
             self._pool = FinalPool(self._workers, on_ready=self._finals_ready)
             self._service.use_pool(self._pool)
@@ -404,6 +408,7 @@ class LiveSource:
             pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
         self._doorbell.join(timeout=5)
+        self._service.wall_ns = None
         if self._pool is not None:
             try:
                 for msg in self._service.use_pool(None):  # the finals on their way: published before the source ends
@@ -506,6 +511,7 @@ class LiveSource:
                     item = None
                 if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
                     reading = True
+                    self.rings += 1
                     item = self._received(item)
                 if not pending:
                     self._pull(pending, reading)  # so that `waiting` says whether more came in
@@ -523,19 +529,29 @@ class LiveSource:
 
     def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
         if item is not None:
-            self._guarded(self._handle, *item, busy=waiting > 0)
+            # Behind a short backlog a provisional refit runs now, its exact fits wait; behind a long one it waits.
+            self._guarded(
+                self._handle, *item, busy=waiting > self._service.config.provisional_backlog, fits_wait=waiting > 0
+            )
 
     def _handle(
-        self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *, busy: bool
+        self,
+        encoding: str,
+        payload: bytes | zenoh.ZBytes,
+        origin: str,
+        key_scanner: str | None,
+        *,
+        busy: bool,
+        fits_wait: bool,
     ) -> list[codec.Reconstruction]:
         if not isinstance(payload, bytes) and len(payload) <= self._service.config.limits.max_payload_bytes:
             payload = payload.to_bytes()  # a live payload's ZBytes, copied once (a larger one is refused uncopied)
         media, _, type_name = encoding.partition(";")
-        # With more payloads waiting (busy), a provisional refit waits for them too.
         return self._service.handle(
             type_name if media == "application/protobuf" else encoding,
             cast(bytes, payload),  # or a ZBytes over the decode limit: ingest refuses it by its length, uncopied
             busy=busy,
+            fits_wait=fits_wait,
             origin=origin,
             key_scanner=key_scanner,
         )
