@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import threading
 import time
@@ -126,14 +127,29 @@ def _item_bytes(item) -> int:
 REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
 
 
-def decompress_threads() -> int:
-    """Threads to decompress a replayed file ahead of the service: the cores the host's load leaves idle, up to two.
+def decompress_threads(cpus: int | None = None, runnable: int | None = None) -> int:
+    """Threads to decompress a replayed file ahead of the service: the cores no task is running on now, up to two.
 
-    The load average counts the replay itself.  On a busy host a decompressing thread finds no core
-    to run on: it would only compete with the service for the one it has, and slow the replay.
+    ``runnable`` (default: the host's tasks running or ready to run now, this one included, from
+    ``/proc/loadavg``; the load average instead where there is none).  Not the load average where the
+    kernel gives the tasks of the moment: it lags the host by a minute, and a replay right after a busy one
+    would get no thread.  The reading thread decompresses itself whatever chunk no thread has started yet
+    (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that loses its core to a neighbour holds the
+    read up by at most the one job it has started.
     """
-    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
-    return max(0, min(2, round(idle)))
+    n = cpus if cpus is not None else (os.cpu_count() or 1)
+    busy = runnable if runnable is not None else runnable_tasks()
+    return max(0, min(2, n - busy))
+
+
+def runnable_tasks() -> int:
+    """Tasks running or ready to run on the host now, the caller's included (``/proc/loadavg``'s fourth field);
+    the 1-minute load average, rounded up, where that is not readable."""
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].partition("/")[0])
+    except (OSError, ValueError, IndexError):
+        return math.ceil(os.getloadavg()[0])
 
 
 def replay_mcap(
@@ -141,7 +157,7 @@ def replay_mcap(
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
-    Where the host has an idle core, the next chunks of the file are decompressed and checked on
+    On a host of several cores, the next chunks of the file are decompressed and checked on
     other threads while the service handles a payload (:func:`decompress_threads`,
     :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
     the estimation.  The finals are estimated in worker processes while the file is read
@@ -180,9 +196,9 @@ COLD_START_SCANS = 50
 
 def replay_workers(configured: int | None, scans: int | None) -> int:
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
-    load leaves cores idle (as :func:`decompress_threads`: a worker that finds no core only competes with
-    the reading).  None for a file of one scan, whose final can overlap nothing, nor by default for a file
-    of fewer than :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
+    load leaves cores idle (a worker that finds no core only competes with the reading).  None for a file of
+    one scan, whose final can overlap nothing, nor by default for a file of fewer than
+    :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
     if scans is not None and scans < 2:
         return 0
     if configured is not None:
