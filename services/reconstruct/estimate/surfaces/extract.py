@@ -147,7 +147,7 @@ def extract_surfaces(
     opts = options or SurfaceOptions()
     sweep = _sweep(gamma, distance, amplitude, geometry, opts)
     measured, partial = _measured_regions(sweep)
-    regions = [m.region for m in measured]
+    regions = [m.region for m in measured]  # what they hold: the rest of the readings is unexplained
     scale = echo_scale(measured, sweep.gamma, opts)
     _split_two_edges(measured, partial, scale, sweep)
     kinds, across_lines = _classify(measured, partial, scale, sweep)
