@@ -9,7 +9,8 @@ import threading
 
 import pytest
 
-from lelsonar.reconstruct.stream.final_pool import WORKER_NICENESS, FinalPool
+from lelsonar.reconstruct.stream.final_pool import FinalPool
+from lelsonar.reconstruct.stream.final_worker import WORKER_NICENESS
 from lelsonar.reconstruct.stream.finals import auto_workers
 
 

@@ -10,7 +10,8 @@ import pytest
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.config import ReconstructConfig
-from lelsonar.reconstruct.stream.final_pool import Done, PoolStats
+from lelsonar.reconstruct.stream.final_pool import PoolStats
+from lelsonar.reconstruct.stream.final_worker import Done
 from lelsonar.reconstruct.stream.service import ReconstructionService
 
 from .conftest import assert_matches_the_scene, simulated_messages, type_name

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import warnings
 
 import numpy as np
 import pytest
@@ -243,3 +244,22 @@ def test_a_wide_beams_wall_is_not_good_off_its_bearing():
     assert score.counts["crash"] == 0, score.failures
     assert score.counts["surface good-but-failed"] == 0, score.failures
     assert score.counts["bearing > 3σ"] == 0, score.failures
+
+
+def test_a_step_that_holds_none_of_its_regions_readings_is_no_step_of_it():
+    """A step joins its run near the capsules' medians as they stand then: step 0 (capsules 2 and 3 at 1.000 m)
+    opens the run, and the run settles at 0.960 m.  Against the whole run's medians step 0 holds no reading of
+    the region (4 cm off, over twice the tolerance): with a spread bound it is no step of the region, quietly
+    (no median of nothing); without one the rule keeps it, as the reference says."""
+    d = np.full((12, 4), 0.960)
+    d[0] = [np.nan, np.nan, 1.000, 1.000]
+    d[1] = [0.960, 0.960, 0.988, 0.988]
+    d[2, 2:] = 0.975
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        (region,) = find_regions(d, max_spread=0.255)
+    assert region.steps.tolist() == list(range(1, 12))
+    assert np.unique(region.rows).tolist() == region.steps.tolist()  # every step holds one of its readings
+    assert (d[region.rows, region.capsules] < 0.99).all()
+    assert _as_tuples(find_regions(d)) == _reference(d)
+    assert _reference(d)[0][0][0] == 0

@@ -4,7 +4,8 @@ walls on ``/lelsonar/map/walls``, what RViz and Nav2 users expect.
 The grid is :func:`lelsonar.map.floorplan.occupancy_grid`: occupied where a wall runs, free where the scans
 saw free space, unknown elsewhere.  The markers are :func:`lelsonar.map.floorplan.wall_markers`: a box per
 observed piece of each wall, as thick as its offset's ± 2σ, in its verdict's colour, plus a sphere of ± 2σ
-at each corner and edge and the corrected path against the odometry's.
+at each corner and edge (the horizontal corners, where a wall meets the floor or the ceiling, apart) and the
+corrected path against the odometry's.
 
 From a ``Map`` message (a mapper's recording, the live bridge) the map is read back with
 :func:`lelsonar.map.wire.map_from_message`, its free-space views included, so the grid is the one the
@@ -25,6 +26,7 @@ import zenoh
 from lelsonar.bridge import ros2
 from lelsonar.bridge.ros2_markers import CUBE, DELETEALL, LINE_STRIP, SPHERE, TEXT_VIEW_FACING, verdict_rgb
 from lelsonar.draw.estimates import SIGMA_BAND
+from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR
 from lelsonar.errors import LelsonarError, RecordingError
 from lelsonar.log.recording import open_recording
 from lelsonar.map import floorplan
@@ -41,6 +43,11 @@ _CORNER_RGB = (1.0, 0.31, 0.78)
 _EDGE_RGB = (0.0, 0.86, 1.0)
 _PATH_RGB = (1.0, 0.78, 0.0)
 _ODOMETRY_RGB = (0.6, 0.6, 0.6)
+_HORIZONTAL_RGB = (
+    HORIZONTAL_CORNER_COLOR[0] / 255,
+    HORIZONTAL_CORNER_COLOR[1] / 255,
+    HORIZONTAL_CORNER_COLOR[2] / 255,
+)
 
 
 MAP_SCHEMA = map_pb2.Map.DESCRIPTOR.full_name
@@ -146,10 +153,13 @@ def wall_marker_array(b: ros2.Builder, m: FusedMap, t_ns: int, frame: str = MAP_
                 text=d["text"],
             )
         )
-    for i, f in enumerate(m.features):
+    features = [
+        ("edges", _EDGE_RGB, k, f) if f.kind == "edge" else ("corners", _CORNER_RGB, k, f)
+        for k, f in enumerate(m.features)
+    ]
+    features += [("horizontal_corners", _HORIZONTAL_RGB, k, f) for k, f in enumerate(m.horizontal)]
+    for ns, rgb, i, f in features:
         size = max(4.0 * f.point_stderr, 0.03)  # ± 2σ
-        rgb = _EDGE_RGB if f.kind == "edge" else _CORNER_RGB
-        ns = "edges" if f.kind == "edge" else "corners"
         markers.append(
             b.marker(t_ns, frame, ns, i, SPHERE, rgb=rgb, alpha=0.7, scale=(size, size, size), position=f.point)
         )

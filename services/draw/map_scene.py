@@ -4,7 +4,8 @@ In the ``map`` frame:
 
 * each wall, one entity: a box per observed piece, as thick as its offset's ± 2σ (at least 1 cm) and as
   tall as it was seen, in its verdict's colour, with a label naming it, its σ and its verdict;
-* corners and edges: a line along their direction and a sphere of ± 2σ at their point;
+* corners, edges and horizontal corners (where a wall meets the floor or the ceiling): a line along their
+  direction and a sphere of ± 2σ at their point;
 * the path: the corrected poses as a line with an arrow per pose and its ± 2σ ellipse, and the odometry's
   path before fusion as a grey line;
 * the free space the caller gives (:func:`lelsonar.map.floorplan.free_space`): its outline, filled.
@@ -29,7 +30,7 @@ from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.TriangleListPrimitive_pb2 import TriangleListPrimitive
 
 from lelsonar.draw.estimates import SIGMA_BAND
-from lelsonar.draw.palette import QUALITY_NAME, quality_color
+from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR, QUALITY_NAME, quality_color
 from lelsonar.draw.primitives import MAP_FRAME, cube, entity, point3, rgba, set_position, vec3
 from lelsonar.v1 import map_pb2
 
@@ -118,7 +119,11 @@ def _wall_entity(msg: map_pb2.Map, w: map_pb2.MapWall, t_ns: int) -> SceneEntity
 
 def _features_entity(msg: map_pb2.Map, t_ns: int) -> SceneEntity:
     ent = entity(MAP_FRAME, f"{msg.scanner_id}/map/features", t_ns)
-    for kind, rgb, items in (("corner", _CORNER_RGB, msg.corners), ("edge", _EDGE_RGB, msg.edges)):
+    for kind, rgb, items in (
+        ("corner", _CORNER_RGB, msg.corners),
+        ("edge", _EDGE_RGB, msg.edges),
+        ("horizontal corner", HORIZONTAL_CORNER_COLOR, msg.horizontal_corners),
+    ):
         for f in items:
             p, d = vec3(f.point), vec3(f.direction)
             if not np.isfinite(p).all():

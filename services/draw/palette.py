@@ -11,6 +11,7 @@ import zlib
 from lelsonar.codec import QUALITY, QUALITY_NAME
 
 __all__ = [
+    "HORIZONTAL_CORNER_COLOR",
     "METHOD_COLORS",
     "QUALITY",
     "QUALITY_NAME",
@@ -36,6 +37,8 @@ QUALITY_COLORS: dict[str, tuple[int, int, int]] = {
     "unreliable": (230, 30, 30),
 }
 UNASSESSED_COLOR = (150, 150, 150)
+#: A map's line where a wall meets the floor or the ceiling (violet: apart from the plan's corners and edges).
+HORIZONTAL_CORNER_COLOR = (170, 110, 255)
 
 
 def method_color(method: str) -> tuple[int, int, int]:

@@ -1,9 +1,10 @@
 """``lelsonar map --source … --screenshot OUT.png``: the final map as a still image (matplotlib), from above.
 
 Drawn from the ``Map`` message, as the other viewers draw it: the free space the scans saw (light blue),
-each wall as a band as wide as its offset's ± 2σ (at least a hairline) in its verdict's colour, corners and
-edges, the corrected path against the odometry's, the planner's route, and the simulated world's true walls
-(grey, thin) where the recording carries them.  ``docs/map.png`` is made with it.
+each wall as a band as wide as its offset's ± 2σ (at least a hairline) in its verdict's colour, corners,
+edges and horizontal corners (where a wall meets the floor or the ceiling), the corrected path against the
+odometry's, the planner's route, and the simulated world's true walls (grey, thin) where the recording
+carries them.  ``docs/map.png`` is made with it.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import shapely
 
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import wall_pieces
-from lelsonar.draw.palette import QUALITY_COLORS, quality_color
+from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR, QUALITY_COLORS, quality_color
 from lelsonar.v1 import map_pb2, reconstruction_pb2
 
 #: Opacity and drawing order of a wall by verdict (wire value): good, degraded, unreliable.
@@ -76,7 +77,11 @@ def save_map_picture(
             ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=alpha, zorder=z))
     for a, b in closed if closed is not None else ():
         ax.plot([a[0], b[0]], [a[1], b[1]], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", zorder=2.5)
-    for items, color, marker in ((msg.corners, (1.0, 0.31, 0.78), "o"), (msg.edges, (0.0, 0.7, 0.85), "s")):
+    for items, color, marker in (
+        (msg.corners, (1.0, 0.31, 0.78), "o"),
+        (msg.edges, (0.0, 0.7, 0.85), "s"),
+        (msg.horizontal_corners, _rgb(HORIZONTAL_CORNER_COLOR), "^"),
+    ):
         if len(items):
             ax.scatter(
                 [f.point.x for f in items], [f.point.y for f in items], s=18, color=color, marker=marker, zorder=4
@@ -99,6 +104,10 @@ def save_map_picture(
         Line2D([], [], color=(0.55, 0.55, 0.55), lw=1, marker=".", label="odometry"),
         Line2D([], [], color=(1.0, 0.31, 0.78), marker="o", ls="none", label="corner"),
     ]
+    if len(msg.horizontal_corners):
+        legend.append(
+            Line2D([], [], color=_rgb(HORIZONTAL_CORNER_COLOR), marker="^", ls="none", label="wall on floor/ceiling")
+        )
     if closed is not None and len(closed):
         legend.append(Line2D([], [], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", label="unseen, closed"))
     if free_space is not None:

@@ -5,6 +5,7 @@ Under ``<root>/map/fused`` (the world's truth, where known, is under ``<root>/ma
     walls/{id}         LineStrips3D on the floor, one strip per observed piece, as wide as the offset's ± 2σ,
                        in the verdict's colour, labelled with σ and verdict
     corners, edges     Points3D, radius 2σ of the point
+    horizontal_corners Points3D, radius 2σ of the point: where a wall meets the floor or the ceiling
     path/corrected     LineStrips3D through the corrected poses, and path/poses (Arrows3D, the headings)
     path/odometry      LineStrips3D through the odometry's poses, before fusion
     free_space         Mesh3D (filled) and free_space/outline (LineStrips3D), where the caller knows it
@@ -25,7 +26,7 @@ import shapely
 
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import wall_pieces
-from lelsonar.draw.palette import QUALITY_NAME, quality_color
+from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR, QUALITY_NAME, quality_color
 from lelsonar.v1 import map_pb2
 from lelsonar.view.rerun_layout import join_path
 
@@ -79,7 +80,11 @@ def log_map(
                 show_labels=True,
             ),
         )
-    for name, rgb, items in (("corners", _CORNER_RGB, msg.corners), ("edges", _EDGE_RGB, msg.edges)):
+    for name, rgb, items in (
+        ("corners", _CORNER_RGB, msg.corners),
+        ("edges", _EDGE_RGB, msg.edges),
+        ("horizontal_corners", HORIZONTAL_CORNER_COLOR, msg.horizontal_corners),
+    ):
         pts = [(f.point.x, f.point.y, 0.0) for f in items]
         if pts:
             rec.log(

@@ -19,9 +19,8 @@ waits).  A :class:`FinalPool` runs it in worker processes instead, while the str
 - **A worker that dies** (killed, a crash in native code): its job runs again on a new worker, and if
   that one dies too, in the caller.  Never lost, never silent: logged and counted
   (:class:`PoolStats`).
-- **Processes**: workers come from a fork server (a fresh single-threaded process that imported the
-  estimate's modules once; spawn where there is none), never from a fork of the caller, which may hold
-  a Zenoh session and its threads.  Workers ignore Ctrl-C: the caller ends them
+- **Processes**: workers come from a fork server, never from a fork of the caller, and speak through
+  their pipes (:mod:`.final_worker`).  Workers ignore Ctrl-C: the caller ends them
   (:meth:`FinalPool.close`); a worker whose caller died sees its pipe close and exits.
 
 Results come back through one collector thread, which also feeds the next job to a freed worker at
@@ -37,33 +36,21 @@ import multiprocessing
 import multiprocessing.connection
 import multiprocessing.forkserver
 import os
-import signal
 import threading
-import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from lelsonar.errors import ConfigError, InternalError
+from lelsonar.reconstruct.stream.final_worker import PRELOAD, READY, Done, run_job, worker_context, worker_main
 
-__all__ = ["Done", "FinalPool", "PoolStats", "workers_warm"]
+__all__ = ["FinalPool", "PoolStats", "workers_warm"]
 
 _log = logging.getLogger(__name__)
 
-#: The modules a worker needs, imported once by the fork server (not once per worker): the worker's loop,
-#: the final it runs, and the kernels that final loads.
-PRELOAD = (
-    "lelsonar.reconstruct.stream.final_pool",
-    "lelsonar.reconstruct.stream.finals",
-    "lelsonar.reconstruct.stream.finals_warm",
-)
-_READY = "ready"
 #: Worker starts that fail one after another before the pool gives up on workers (the caller then computes).
 _MAX_FAILED_STARTS = 3
-#: How much less CPU a worker gets than its caller when they contend for a core: the caller handles the
-#: samples, and a final that waits costs no sample its latency.
-WORKER_NICENESS = 5
 #: Set once a worker of this process has been ready: the fork server has loaded the kernels, so a new
 #: pool's workers start in a fraction of a second rather than seconds.
 _WARM = threading.Event()
@@ -72,16 +59,6 @@ _WARM = threading.Event()
 def workers_warm() -> bool:
     """Whether a final worker of this process has started already (a new pool then starts at once)."""
     return _WARM.is_set()
-
-
-@dataclass(frozen=True)
-class Done:
-    """One job's outcome: ``value``, or the ``error`` it raised (with the worker's ``trace``)."""
-
-    ticket: int
-    value: Any = None
-    error: BaseException | None = None
-    trace: str = ""
 
 
 @dataclass
@@ -178,7 +155,7 @@ class FinalPool:
         self._thread: threading.Thread | None = None
         self._wake_r = self._wake_w = -1
         if workers:
-            self._context = _context(preload)
+            self._context = worker_context(preload)
             self._wake_r, self._wake_w = os.pipe()
             self._thread = threading.Thread(target=self._collect, name="final-pool", daemon=True)
             self._thread.start()
@@ -318,7 +295,7 @@ class FinalPool:
 
     def _run_here(self, job: _Job) -> None:
         self.stats.inline += 1
-        result = _call(job.ticket, job.fn, job.args)
+        result = run_job(job.ticket, job.fn, job.args)
         with self._changed:
             self._record(result)
 
@@ -417,7 +394,7 @@ class FinalPool:
         s = self._s
         parent, child = multiprocessing.Pipe()
         process = self._context.Process(  # type: ignore[attr-defined]  # every concrete context has Process
-            target=_worker_main, args=(child,), name="lelsonar-final", daemon=True
+            target=worker_main, args=(child,), name="lelsonar-final", daemon=True
         )
         with self._changed:
             if s.closing:
@@ -454,7 +431,7 @@ class FinalPool:
                 self._lost(w)
             return
         with self._changed:
-            if message == _READY:
+            if message == READY:
                 w.ready = True
                 _WARM.set()
                 self._s.failed_starts = 0
@@ -553,65 +530,3 @@ def _shutdown(s: _State, wake_w: int, changed: threading.Condition) -> None:
         os.close(wake_w)
     except OSError:
         pass
-
-
-def _context(preload: Sequence[str]) -> multiprocessing.context.BaseContext:
-    """The fork server (``preload`` imported once) where the platform has one, else spawn; never fork.
-
-    The server is one per process; the first caller's preload holds for the others.  It starts with
-    Ctrl-C ignored (inherited), so a Ctrl-C while it imports prints no traceback of its own, and without
-    the command's stdout and stderr: it outlives the command by its imports when the command ends first,
-    and a reader of the command's output must see its end when the command ends (the workers report
-    through their pipes; the caller logs what they could not).
-    """
-    if "forkserver" not in multiprocessing.get_all_start_methods():
-        return multiprocessing.get_context("spawn")
-    context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(list(preload))
-    if threading.current_thread() is threading.main_thread():
-        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
-        kept = []
-        for fd in (1, 2):
-            try:
-                if os.get_inheritable(fd):
-                    os.set_inheritable(fd, False)  # closed in the server as it starts (exec)
-                    kept.append(fd)
-            except OSError:
-                pass  # not open
-        try:
-            multiprocessing.forkserver.ensure_running()  # returns without waiting for its imports
-        finally:
-            for fd in kept:
-                os.set_inheritable(fd, True)
-            signal.signal(signal.SIGINT, handler)
-    return context
-
-
-def _call(ticket: int, fn: Callable[..., Any], args: tuple) -> Done:
-    try:
-        return Done(ticket, fn(*args))
-    except Exception as exc:  # noqa: BLE001 - handed back with its job, raised or reported by the caller
-        return Done(ticket, error=exc, trace=traceback.format_exc())
-
-
-def _worker_main(conn: multiprocessing.connection.Connection) -> None:
-    """A worker: run each job it is sent and send back its :class:`Done`, until told to stop (None) or its
-    caller is gone."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's: it ends the workers
-    try:
-        os.nice(WORKER_NICENESS)
-    except OSError:
-        pass  # (a platform without priorities: the worker runs at its caller's)
-    try:
-        conn.send(_READY)
-        while True:
-            job = conn.recv()
-            if job is None:
-                return
-            result = _call(*job)
-            try:
-                conn.send(result)
-            except Exception as exc:  # noqa: BLE001 - an unpicklable result or error is reported, not lost
-                conn.send(Done(result.ticket, error=InternalError(f"a final's result could not be sent back: {exc}")))
-    except (EOFError, OSError, KeyboardInterrupt):
-        return  # the caller is gone

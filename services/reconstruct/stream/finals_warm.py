@@ -2,7 +2,7 @@
 
 A fresh process loads each compiled kernel from the disk cache on its first call, which costs far more
 than the final itself.  The fork server imports this module before it forks any worker
-(:data:`~lelsonar.reconstruct.stream.final_pool.PRELOAD`), and importing it estimates one small simulated
+(:data:`~lelsonar.reconstruct.stream.final_worker.PRELOAD`), and importing it estimates one small simulated
 scan the way a final does, and runs the range repair's kernels on its waveforms' windows: every worker
 is forked with the kernels loaded.  A failure here only costs
 the workers that loading (logged); it never stops the server.

@@ -59,7 +59,8 @@ from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
 from lelsonar.reconstruct.stream.final_jobs import FinalJob, accounting_event, close_final, final_message
-from lelsonar.reconstruct.stream.final_pool import Done, FinalPool
+from lelsonar.reconstruct.stream.final_pool import FinalPool
+from lelsonar.reconstruct.stream.final_worker import Done
 from lelsonar.reconstruct.stream.finals import estimate_final, received
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.log_requests import LogRequests

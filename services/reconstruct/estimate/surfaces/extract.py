@@ -148,7 +148,7 @@ def extract_surfaces(
     opts = options or SurfaceOptions()
     sweep = _sweep(gamma, distance, amplitude, geometry, opts)
     measured, partial = _measured_regions(sweep)
-    regions = [m.region for m in measured]
+    regions = [m.region for m in measured]  # what they hold: the rest of the readings is unexplained
     scale = echo_scale(measured, sweep.gamma, opts)
     _split_two_edges(measured, partial, scale, sweep)
     kinds, across_lines = _classify(measured, partial, scale, sweep)
@@ -220,7 +220,8 @@ def _measured_regions(sweep: _Sweep) -> tuple[list[Measured], set[int]]:
     # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
     # its readings are off their step's range, so a second pass over the readings no region holds finds it.
     partial = set()
-    for r in partial_regions(d, [m.region for m in measured], opts, sweep.spread):
+    held = [m.region for m in measured]
+    for r in partial_regions(d, held, opts, sweep.spread, gamma=g, radial_offset=geometry.radial_offset):
         partial.add(len(measured))
         pm = measure_region(r, g, d, amp, geometry, opts, step=step)
         # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the

@@ -457,9 +457,21 @@ def split_dihedral(
     return None
 
 
-def partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spread: float) -> list[Region]:
+def partial_regions(
+    d: np.ndarray,
+    held: list[Region],
+    opts: SurfaceOptions,
+    spread: float,
+    *,
+    gamma: np.ndarray | None = None,
+    radial_offset: float = 0.0,
+) -> list[Region]:
     """Regions among the readings no region holds, nearer than their steps' held readings by more than the
     range tolerance (a first-echo receiver: a capsule that hears a nearer target hears it first).
+
+    Every capsule turns ``r`` off the axis, so a target part of the stack hears drifts along its run by
+    ``r·(1 − cos Δγ)`` as one the whole stack hears: with ``gamma`` and ``radial_offset`` the runs that drift
+    split are one region again (:func:`~.regions.find_regions`).
 
     Parameters
     ----------
@@ -470,6 +482,10 @@ def partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spr
     opts : SurfaceOptions
     spread : float
         m: as :func:`~.regions.find_regions`' ``max_spread``.
+    gamma : (n_steps,) array, optional
+        Each step's rotation, rad.
+    radial_offset : float
+        The capsules' distance from the rotation axis, m.
 
     Returns
     -------
@@ -481,7 +497,13 @@ def partial_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spr
     rest = np.where(mask, np.nan, d)
     out = []
     for r in find_regions(
-        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+        rest,
+        tolerance=opts.range_tolerance,
+        max_gap=opts.max_gap,
+        min_steps=opts.min_steps,
+        max_spread=spread,
+        gamma=gamma,
+        radial_offset=radial_offset,
     ):
         own = float(np.median(d[r.rows, r.capsules]))
         others = d[r.steps][mask[r.steps]]

@@ -125,16 +125,20 @@ def find_regions(
     for k, steps in enumerate(np.split(labelled, bounds) if labelled.size else []):
         rows, caps = np.nonzero(keep[steps])
         if math.isfinite(max_spread) and rows.size:
+            # A step joins its run near the capsules' medians as they stand then, and a reading is the region's
+            # near their medians over the whole run: where the range moves along the run by more than that (a
+            # wide run's radial-offset drift, ranges on another scale, another target's echo opening the run),
+            # a step at one of its ends holds none of the region's readings.  It is no step of the region:
+            # only the steps that hold one have a median.
+            steps, rows = _holding(steps, rows)
             block = np.where(keep[steps], d[steps], np.nan)
-            with np.errstate(all="ignore"):
+            with np.errstate(invalid="ignore"):  # an infinite reading against an infinite median
                 med = np.nanmedian(block, axis=1)
-            near = np.abs(block[rows, caps] - med[rows]) <= max_spread
+                near = np.abs(block[rows, caps] - med[rows]) <= max_spread
             rows, caps = rows[near], caps[near]
-            held = np.unique(rows)
-            if held.size < min_steps:
+            steps, rows = _holding(steps, rows)
+            if steps.size < min_steps:
                 continue
-            # Renumber the rows over the steps that still hold a reading.
-            steps, rows = steps[held], np.searchsorted(held, rows)
         out.append(
             Region(
                 steps=steps.astype(np.intp),
@@ -145,6 +149,12 @@ def find_regions(
             )
         )
     return out
+
+
+def _holding(steps: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The steps that hold a reading (``rows``: each reading's index into ``steps``), the rows renumbered."""
+    held = np.unique(rows)
+    return steps[held], np.searchsorted(held, rows)
 
 
 def _drift_joins(
@@ -218,8 +228,11 @@ def _drift_joins(
             beta = _one_depth(d, gamma, radial_offset, keep, steps, tolerance)
             # A capsule's reading is the region's within twice the tolerance of its median, drift taken off.
             flat = d[steps] + radial_offset * np.cos(gamma[steps] - beta)[:, None]
-            with np.errstate(all="ignore"):
-                med = np.nanmedian(flat, axis=0)
+            # (A capsule that hears nothing over the joined steps has no median, and no reading to keep.)
+            heard = np.isfinite(flat).any(axis=0)
+            med = np.full(flat.shape[1], np.nan)
+            with np.errstate(invalid="ignore"):  # an infinite reading against an infinite median
+                med[heard] = np.nanmedian(flat[:, heard], axis=0)
                 keep[steps] = np.isfinite(flat) & (np.abs(flat - med) <= 2 * tolerance)
     return label, keep, out_cut
 
@@ -230,11 +243,13 @@ def _one_depth(
     """The bearing β (one of the steps' γ) at which the steps' held ranges, plus ``r·cos(γ − β)``, are all
     within ``tolerance`` of their median (each step's median over its held capsules), the steadiest such;
     None when no β makes them one depth."""
-    block = np.where(keep[steps], d[steps], np.nan)
-    with np.errstate(all="ignore"):
+    # Each step's median over its held capsules; a step at a drifting run's end may hold none (see find_regions).
+    held = keep[steps].any(axis=1)
+    block = np.where(keep[steps][held], d[steps][held], np.nan)
+    with np.errstate(invalid="ignore"):  # an infinite reading
         rs = np.nanmedian(block, axis=1)
     ok = np.isfinite(rs)
-    g, rs = gamma[steps][ok], rs[ok]
+    g, rs = gamma[steps][held][ok], rs[ok]
     if g.size < 2:
         return None
     # Rows: candidate β; columns: the steps' ranges with that β's drift taken off.
