@@ -73,6 +73,8 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     beyond_reach,
     end_stderr,
     feature_point,
+    off_fan_tilt,
+    off_fan_weak,
     pair_corner,
     pair_stderr,
     plane_end,
@@ -80,6 +82,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     reach_stderr,
     stack_dihedral,
     stack_or_pair,
+    taken_back,
     walls_of_unseen_corners,
     wrap,
 )
@@ -198,15 +201,12 @@ def extract_surfaces(
     # A target heard by part of the stack only, nearer than what its steps' other capsules hear (an edge off
     # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
     # its readings are off their step's range, so a second pass over the readings no region holds finds it.
-    partial = set()
+    partial: dict[int, float] = {}  # index -> its stack slope's own σ
     for r in partial_regions(d, [m.region for m in measured], opts, spread):
-        partial.add(len(measured))
-        pm = measure_region(r, g, d, amp, geometry, opts, step=step)
-        # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the
-        # target's curved ranges: its tilt is known only to the beam's half-width.
-        reach = opts.beyond_cut / math.sqrt(3.0)
-        tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
-        measured.append(replace(pm, tilt_stderr=tilt_se))
+        partial[len(measured)] = (pm := measure_region(r, g, d, amp, geometry, opts, step=step)).tilt_stderr
+        # Heard on the beam's flank: its slope is that at the middle of the capsules heard, not the stack's.
+        tilt, tilt_se = off_fan_tilt(pm, pm.tilt_stderr, opts)
+        measured.append(replace(pm, tilt=tilt, tilt_stderr=tilt_se))
     regions = [m.region for m in measured]
 
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
@@ -466,7 +466,14 @@ def extract_surfaces(
     for i in partial:
         if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
             kind, reasons, ties = kinds[i]
-            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
+            # Its slope along the stack says how far off the fan it lies: taken back there, still weak.
+            back = None if amp is None else taken_back(measured[i], amp, partial[i], beam_k, opts)
+            weak_there = "" if back is None else off_fan_weak(upper_strength(back[0]), mirror, back[1], opts)
+            kinds[i] = (
+                ("edge", [*reasons, weak_there], ties)
+                if weak_there
+                else (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
+            )
 
     # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
