@@ -7,20 +7,17 @@ Each test reads :class:`~lelsonar.reconstruct.estimate.surfaces.measurement.Meas
   ceiling), where the range and the stack slope must agree;
 * :func:`plane_end`: a region on one plane's trace, off its foot: that plane's end;
 * :func:`walls_of_unseen_corners`: two regions on one plane's trace explained by a wall and its corner
-  with that plane, not by the plane's end;
-* :func:`off_fan_weak`: a target part of the stack hears, off the fan on the beam's flank, weak once its
-  echo is taken back to the beam's axis at the angle its ranges' slope along the stack puts it at.
+  with that plane, not by the plane's end.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import piston_power, weaker_at
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, step_medians, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import weaker_at
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
@@ -28,10 +25,6 @@ __all__ = [
     "beyond_reach",
     "feature_point",
     "in_span",
-    "off_fan_sines",
-    "off_fan_tilt",
-    "off_fan_weak",
-    "taken_back",
     "pair_corner",
     "pair_stderr",
     "end_stderr",
@@ -439,134 +432,3 @@ def walls_of_unseen_corners(
                         f"{mk.depth:.2f} m away beside it: not that plane's end"
                     )
     return out
-
-
-def off_fan_sines(m: Measured, slope_stderr: float) -> tuple[np.ndarray, float] | None:
-    """How far off the fan a target part of the stack hears lies, seen from each of its readings' capsules:
-    ``sin ψ`` per reading and its σ.
-
-    Whatever the target (a plane's foot, a line's or a point's nearest point), the range's slope along the
-    stack at capsule ``c`` is ``∂d/∂x = (x_c − x_0)/d_c = −sin ψ_c``, the angle off the fan of the echo's
-    direction from that capsule (Kleeman & Kuc: the receivers' differential ranges).  The slope fitted over
-    the steps' capsule pairs is that at the middle ``x_m`` of the capsules heard (exact for two, a point's
-    ranges being a parabola in ``x`` to second order); from there ``sin ψ`` moves by ``(1 − sin²ψ)/ρ`` per m
-    along the stack.  With three or more capsules the fitted slope may sit anywhere between them: a quarter
-    of that change over the capsules' extent is added to its σ.
-
-    Parameters
-    ----------
-    m : Measured
-        The region: its readings' capsule positions, its stack slope and depth.
-    slope_stderr : float
-        σ of the stack slope (its fit's own; NaN: the slope is not determined).
-
-    Returns
-    -------
-    (``sin ψ`` per reading of the region, its σ), or None when fewer than two capsules hear the target or the
-    slope is not determined.
-    """
-    s, se = m.stack_slope, slope_stderr
-    if not (math.isfinite(s) and math.isfinite(se) and se > 0 and m.depth > 0):
-        return None
-    x = m.positions[:, 0]
-    lo, hi = float(x.min()), float(x.max())
-    heard = np.unique(x).size
-    if heard < 2:
-        return None
-    turn = (1.0 - s * s) / m.depth  # d(sin ψ)/dx
-    sigma = se if heard == 2 else math.hypot(se, 0.25 * turn * (hi - lo))
-    return -s - (x - 0.5 * (lo + hi)) * turn, sigma
-
-
-def off_fan_tilt(m: Measured, slope_stderr: float, opts: SurfaceOptions) -> tuple[float, float]:
-    """The tilt off the fan, seen from the array's centre, of a target part of the stack hears, and its σ.
-
-    The stack slope is that at the middle ``x_m`` of the capsules heard (:func:`off_fan_sines`), not at the
-    array's centre: a point ``x_0`` across the stack is at ``sin t = (x_0 − x_m)/ρ`` from there and
-    ``x_0/ρ`` from the centre, so the centre's ``sin t`` is the slope's plus ``x_m (1 − sin²)/ρ``.  With one
-    capsule (or no slope) the target lies anywhere within the beam's half-width (``beyond_cut``): the tilt
-    stays the region's, its σ that reach's uniform one.
-
-    Returns
-    -------
-    (tilt rad, σ rad)
-    """
-    reach = opts.beyond_cut / math.sqrt(3.0)
-    sines = off_fan_sines(m, slope_stderr)
-    if sines is None:
-        se = slope_stderr
-        return m.tilt, (math.hypot(se, reach) if math.isfinite(se) else reach)
-    s, sigma = m.stack_slope, sines[1]
-    x = m.positions[:, 0]
-    mid = 0.5 * float(x.min() + x.max())
-    sin_t = max(-1.0, min(1.0, -s + mid * (1.0 - s * s) / m.depth))
-    return math.asin(sin_t), sigma / max(math.sqrt(1.0 - sin_t * sin_t), 1e-3)
-
-
-def taken_back(
-    m: Measured, amplitude: np.ndarray, slope_stderr: float, beam_k: float, opts: SurfaceOptions
-) -> tuple[Measured, float] | None:
-    """A target part of the stack hears, its echo taken back from off the fan to the beam's axis.
-
-    On the beam's flank each capsule hears the target at ``D(ψ_c)²`` of its peak (:func:`off_fan_sines` gives
-    ``ψ_c``): each reading's amplitude over that, with ``ψ_c`` 3 σ farther off the fan, overstates the peak
-    (the piston, :func:`~.beam_pattern.piston_power`), so the region's strength from them is an upper estimate
-    of its echo's in the fan, safe to call an echo weak by.
-
-    Parameters
-    ----------
-    m : Measured
-    amplitude : (n_steps, n_capsules) array
-        The sweep's echo amplitudes, V.
-    slope_stderr : float
-        σ of the region's stack slope (its fit's own).
-    beam_k : float
-        The sweep's beam curvature in ``log A`` across γ, 1/rad².
-    opts : SurfaceOptions
-
-    Returns
-    -------
-    (the region with its amplitudes taken back, the largest angle off the fan used, rad), or None when
-    fewer than two capsules hear it, the slope is not determined or some capsule may lie past the first null.
-    """
-    sines = off_fan_sines(m, slope_stderr)
-    if sines is None:
-        return None
-    far = np.minimum(1.0, np.abs(sines[0]) + 3 * sines[1])
-    power = np.array([piston_power(math.asin(float(v)), beam_k) for v in far])
-    if not np.all(power > 0):
-        return None
-    r = m.region
-    table = np.full(amplitude.shape, np.nan)
-    table[r.rows, r.capsules] = amplitude[r.rows, r.capsules] / power
-    per_step = step_medians(r, table)
-    if not np.isfinite(per_step).any():
-        return None
-    peak = float(np.nanmax(per_step))
-    back = replace(m, step_amplitude=per_step, peak=peak, strength=mirror_normalised(peak, m.depth, opts))
-    return back, math.asin(float(far.max()))
-
-
-def off_fan_weak(top: float, ref: float, psi: float, opts: SurfaceOptions) -> str:
-    """Why a target part of the stack hears diffracts, its echo taken back from off the fan (:func:`taken_back`),
-    or "" where it could be as strong as a mirror's.
-
-    A diffracting edge's echo is a small share of a mirror's at its range, a concave corner's as strong as
-    one (``weak_echo``): an upper estimate of the echo's peak under that share is an edge's.
-
-    Parameters
-    ----------
-    top : float
-        The taken-back region's strength, an upper estimate (mirror-normalised; NaN: unknown).
-    ref : float
-        The sweep's strongest mirror-normalised echo (a mirror's or a corner's).
-    psi : float
-        The largest angle off the fan the echo was taken back from, rad.
-    opts : SurfaceOptions
-    """
-    if not (math.isfinite(top) and math.isfinite(ref) and ref > 0 and top < opts.weak_echo * ref):
-        return ""
-    return (
-        f"echo at most {100 * top / ref:.0f} % of the sweep's strongest once taken back from up to "
-        f"{math.degrees(psi):.0f}° off the fan (its ranges' slope along the stack, 3 σ out): diffraction"
-    )
