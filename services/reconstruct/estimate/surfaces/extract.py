@@ -84,6 +84,7 @@ from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
+    across_stack_measured,
     measure_region,
     summed_width_stderr,
     sweep_step,
@@ -383,6 +384,7 @@ def _region_kind(
             return m, ("edge", [text.replace("double bounce", "line"), why], [pool[j]]), True
         return m, ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]]), True
     if across:
+        m = across_stack_measured(m)
         text = (
             f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
             f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
