@@ -169,8 +169,8 @@ def plane_end(
 ) -> tuple[list[int], float] | None:
     """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
 
-    The end lies on the trace at the region's depth in the fan (:func:`in_fan_range`), at ``β_j ± acos(h_j/ρ)``,
-    within the region's span of γ.
+    The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ;
+    it is placed at the region's range in the fan (:func:`in_fan_range`) on that side.
     Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
     plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
     region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).  With ``gamma`` (the
@@ -184,12 +184,14 @@ def plane_end(
     for j, pj in enumerate(planes):
         # The plane's trace in the fan: a tilted plane crosses it at h / cos(tilt).
         h = pj.depth / math.cos(pj.tilt)
+        if h >= m.depth:
+            continue
+        half = math.acos(h / m.depth)
+        if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
+            continue
+        # Where on the trace: at the region's range in the fan (its target off the fan by its tilt).
         rho = in_fan_range(m)[0]
-        if h >= rho:
-            continue
-        half = math.acos(h / rho)
-        if half <= opts.foot_separation and rho - h <= opts.range_tolerance:
-            continue
+        there = math.acos(h / rho) if rho > h else 0.0
         # Either side of the foot may fall within the reach past a cut end: the side nearer the region's own
         # steps first (its echo is heard there, the other side only through the beam's far flank).
         sides = sorted((wrap(pj.bearing - half), wrap(pj.bearing + half)), key=lambda b: _off_span(b, m))
@@ -199,7 +201,7 @@ def plane_end(
                 and not (seen is not None and beyond_reach(m, bearing, pj, seen, opts, placed=True))
                 and not (gamma is not None and weaker_at(gamma[m.region.steps], m.step_amplitude, bearing))
             ):
-                return [j], bearing
+                return [j], wrap(pj.bearing + math.copysign(there, wrap(bearing - pj.bearing)))
     return None
 
 
