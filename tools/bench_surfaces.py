@@ -10,7 +10,10 @@ reading (``echo_index``) and the true pose.
 Per class (plane, corner, edge):
 
 * **found / seen** (recall): truth elements with at least ``--min-echoes``
-  readings that some extracted item of any class claims (its majority element);
+  readings that some extracted item of any class claims (its majority element); a corner or
+  an edge is seen when at least two capsules hear it (``+one capsule`` counts those one capsule
+  alone hears: one receiver's ranges say nothing of where the target lies across the stack, so
+  nothing of how far off the beam's axis it is nor how strong its echo is);
 * **classified right**: of those, the ones every claim of which has the right class
   (mirror → plane, dihedral or trihedral → corner, edge → edge): one wrong claim beside a
   right one makes it wrong;
@@ -129,7 +132,8 @@ def run(args: argparse.Namespace) -> int:
         "oracle: LS on the surface's true echoes from their own beams with their beam pattern's bearing (range LS: the "
         "ranges' LS alone); good-but-failed: good while err > 2 cm "
         "and > 3× oracle; (right, unknown): claimed only with the right class, or only as a feature whose kind is not "
-        "settled; walls: the room's walls (not boxes' faces), good "
+        "settled; +one capsule: corners/edges with enough echoes that one capsule alone hears (not in seen: one "
+        "receiver cannot tell their kind); walls: the room's walls (not boxes' faces), good "
         "within 3× their oracle (or one range's σ), or flagged not good with reasons; own echoes: share of a wall's "
         "steps' readings that are its own."
     )
@@ -291,8 +295,8 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
         "good-but-failed",
         "false planes (good)",
         "good off every true mirror > 2 cm",
-        "corners found/seen (right, unknown)",
-        "edges found/seen (right, unknown)",
+        "corners found/seen (right, unknown) +one capsule",
+        "edges found/seen (right, unknown) +one capsule",
         "false corners/edges",
         "unexplained",
         "walls good ≤3× oracle / flagged / neither",
@@ -318,6 +322,9 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
         def tot(attr: str, cls: str, recs: list[ScanRecord] = recs) -> int:
             return sum(getattr(r, attr)[cls] for r in recs)
 
+        def lone(cls: str, recs: list[ScanRecord] = recs) -> int:
+            return sum((r.one_capsule or {}).get(cls, 0) for r in recs)
+
         table.add_row(
             family,
             f"{tot('found', 'plane')}/{tot('seen', 'plane')}",
@@ -330,8 +337,10 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
             str(failed_good),
             f"{tot('false', 'plane')} ({sum(r.false_good for r in recs)} good)",
             f"{sum(r.good_off_every for r in recs)}/{sum(r.good_planes for r in recs)}",
-            f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')}, {tot('unknown', 'corner')})",
-            f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')}, {tot('unknown', 'edge')})",
+            f"{tot('found', 'corner')}/{tot('seen', 'corner')} ({tot('right', 'corner')}, {tot('unknown', 'corner')})"
+            f" +{lone('corner')}",
+            f"{tot('found', 'edge')}/{tot('seen', 'edge')} ({tot('right', 'edge')}, {tot('unknown', 'edge')})"
+            f" +{lone('edge')}",
             f"{tot('false', 'corner')}/{tot('false', 'edge')}",
             f"{100 * float(np.mean([r.unexplained_share for r in recs])):.0f} %",
             f"{sum(p.quality == 'good' and p.within_oracle for p in walls)} / {sum(p.flagged for p in walls)} / "

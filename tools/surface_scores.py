@@ -33,6 +33,11 @@ TRUE_CLASS = {
 }
 #: What the bench calls a feature whose kind its evidence does not settle.
 UNKNOWN = "unknown"
+#: A corner or an edge is seen (its kind can be told) when at least this many capsules each hear it on
+#: ``MIN_STEPS_PER_CAPSULE`` steps: one receiver's ranges say nothing of where it lies across the stack, so
+#: nothing of how far off its beam's axis it is, nor how strong its echo is (Kleeman & Kuc need two).
+MIN_CAPSULES = 2
+MIN_STEPS_PER_CAPSULE = 3
 #: Extractions timed per sweep (the median is its time; the first call of a process also loads the kernels).
 TIMING_REPEATS = 3
 
@@ -87,6 +92,7 @@ class ScanRecord:
     good_off_details: tuple[str, ...] = ()  # one line per such plane
     missed: tuple[str, ...] = ()  # one line per mirror seen but claimed by no plane
     unknown: dict[str, int] | None = None  # class -> of those found, claimed only as right or kind not settled
+    one_capsule: dict[str, int] | None = None  # class -> corners/edges with enough echoes but heard by one capsule
     features: tuple[tuple[str, float, float], ...] = ()  # (kind, m off its true line, its σ there) per right feature
 
 
@@ -191,7 +197,17 @@ def score_scan(
     model = scan.model
     valid = np.isfinite(scan.distance) & (scan.echo_source != EchoSource.DIFFUSE)
     counts = np.bincount(scan.echo_index[valid & (scan.echo_index >= 0)].ravel(), minlength=len(model.elements))
-    seen_el = {k for k in range(len(model.elements)) if counts[k] >= min_echoes}
+    # Capsules that hear each element on enough steps.
+    own = valid & (scan.echo_index >= 0)
+    per_capsule = np.zeros((len(model.elements), scan.distance.shape[1]), dtype=np.int64)
+    np.add.at(per_capsule, (scan.echo_index[own], np.nonzero(own)[1]), 1)
+    capsules = np.count_nonzero(per_capsule >= MIN_STEPS_PER_CAPSULE, axis=1)
+    enough = {k for k in range(len(model.elements)) if counts[k] >= min_echoes}
+    lone = {k for k in enough if model.elements[k].kind != ElementKind.MIRROR and capsules[k] < MIN_CAPSULES}
+    seen_el = enough - lone
+    one_capsule = {c: 0 for c in ("plane", "corner", "edge")}
+    for k in lone:
+        one_capsule[TRUE_CLASS[model.elements[k].kind]] += 1
     classes = ("plane", "corner", "edge")
     seen = {c: 0 for c in classes}
     for k in seen_el:
@@ -298,6 +314,7 @@ def score_scan(
         good_off_details=tuple(off_every),
         missed=missed,
         unknown=unknown,
+        one_capsule=one_capsule,
         features=tuple(placed),
     )
 

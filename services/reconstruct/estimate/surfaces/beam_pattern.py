@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.special import j1
 
 __all__ = [
     "PLATEAU",
@@ -24,6 +25,7 @@ __all__ = [
     "amplitude_jump",
     "unfaded_ends",
     "end_crossing_stderr",
+    "piston_power",
     "capsule_peak_spread",
 ]
 
@@ -419,6 +421,39 @@ def end_crossing_stderr(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float
         slope = float(np.polyfit(g[sel], la[sel], 1)[0])
         out.append(min(sigma / abs(slope), span / math.sqrt(12.0)) if slope != 0 else span / math.sqrt(12.0))
     return out[0], out[1]
+
+
+#: ``ka·sinψ`` at the piston's first null (the first zero of ``J1``).
+FIRST_NULL = 3.8317
+
+
+def piston_power(psi: float, curvature: float) -> float:
+    """A piston transceiver's two-way beam pattern ``D(ψ)²``, ``D = 2·J1(ka·sinψ)/(ka·sinψ)``.
+
+    ``ka`` comes from the sweep's own beam curvature ``k`` (:func:`log_amplitude_curvature`): near the
+    axis ``log D² ≈ −(ka)²ψ²/4``, so ``ka = 2√k``.  Off the top the piston falls faster than that
+    parabola, so taking an echo back to the axis with it does not understate the echo's peak.
+
+    Parameters
+    ----------
+    psi : float
+        Angle off the beam's axis, rad.
+    curvature : float
+        ``k``, 1/rad².
+
+    Returns
+    -------
+    ``D(ψ)²`` in (0, 1]; 0 at or past the first null (nothing there says how strong the echo is), NaN when
+    ``k`` is not positive.
+    """
+    if not curvature > 0:
+        return float("nan")
+    x = 2.0 * math.sqrt(curvature) * abs(math.sin(psi))
+    if x >= FIRST_NULL:
+        return 0.0
+    if x < 1e-9:
+        return 1.0
+    return float((2.0 * j1(x) / x) ** 2)
 
 
 def capsule_peak_spread(gamma: np.ndarray, amplitude: np.ndarray) -> float:

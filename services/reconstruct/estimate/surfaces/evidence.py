@@ -24,6 +24,7 @@ __all__ = [
     "across_stack",
     "beyond_reach",
     "feature_point",
+    "in_fan_range",
     "in_span",
     "pair_corner",
     "pair_stderr",
@@ -168,7 +169,8 @@ def plane_end(
 ) -> tuple[list[int], float] | None:
     """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
 
-    The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ.
+    The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ;
+    it is placed at the region's range in the fan (:func:`in_fan_range`) on that side.
     Off the foot by less than ``foot_separation`` it is still no part of the plane when it is deeper than the
     plane by more than ``range_tolerance``: a mirror's echoes all lie at its one depth.  With ``seen`` (every
     region of the sweep), no bearing the plane cannot reach (:func:`beyond_reach`).  With ``gamma`` (the
@@ -187,6 +189,9 @@ def plane_end(
         half = math.acos(h / m.depth)
         if half <= opts.foot_separation and m.depth - h <= opts.range_tolerance:
             continue
+        # Where on the trace: at the region's range in the fan (its target off the fan by its tilt).
+        rho = in_fan_range(m)[0]
+        there = math.acos(h / rho) if rho > h else 0.0
         # Either side of the foot may fall within the reach past a cut end: the side nearer the region's own
         # steps first (its echo is heard there, the other side only through the beam's far flank).
         sides = sorted((wrap(pj.bearing - half), wrap(pj.bearing + half)), key=lambda b: _off_span(b, m))
@@ -196,7 +201,7 @@ def plane_end(
                 and not (seen is not None and beyond_reach(m, bearing, pj, seen, opts, placed=True))
                 and not (gamma is not None and weaker_at(gamma[m.region.steps], m.step_amplitude, bearing))
             ):
-                return [j], bearing
+                return [j], wrap(pj.bearing + math.copysign(there, wrap(bearing - pj.bearing)))
     return None
 
 
@@ -366,6 +371,16 @@ def pair_stderr(m: Measured, which: list[int], planes: list[int], measured: list
     return max(math.sqrt(sum(measured[planes[j]].bearing_stderr ** 2 for j in which)), m.step / math.sqrt(24.0))
 
 
+def in_fan_range(m: Measured) -> tuple[float, float]:
+    """A region's range in the fan, ``ρ cos t`` (its target off the fan by its tilt ``t``, the stack slope's),
+    and its σ: a plane's trace lies in the fan, so an end on it is there at that range, not at ``ρ``."""
+    sr = m.depth_stderr if math.isfinite(m.depth_stderr) else 0.0
+    if not (math.isfinite(m.tilt) and math.isfinite(m.tilt_stderr)):
+        return m.depth, sr
+    c, s = math.cos(m.tilt), math.sin(m.tilt)
+    return m.depth * c, math.hypot(sr * c, m.depth * s * m.tilt_stderr)
+
+
 def end_stderr(m: Measured, pj: Measured, bearing: float) -> float:
     """The bearing σ of a plane's end placed on its trace at ``bearing`` from the two depths (:func:`plane_end`).
 
@@ -377,8 +392,7 @@ def end_stderr(m: Measured, pj: Measured, bearing: float) -> float:
     if not sin_d > 0:
         return math.pi
     sh = pj.depth_stderr if math.isfinite(pj.depth_stderr) else 0.0
-    sr = m.depth_stderr if math.isfinite(m.depth_stderr) else 0.0
-    rho = m.depth
+    rho, sr = in_fan_range(m)
     spread = math.hypot(sh / (rho * sin_d), pj.depth * sr / (rho * rho * sin_d))
     return min(math.pi, math.hypot(math.hypot(pj.bearing_stderr, spread), m.step / math.sqrt(24.0)))
 

@@ -85,11 +85,13 @@ from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partia
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
+    across_stack_measured,
     measure_region,
     summed_width_stderr,
     sweep_step,
     unit_normal,
 )
+from lelsonar.reconstruct.estimate.surfaces.off_fan import off_fan_tilt, off_fan_weak, taken_back
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, capsule_x, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,
@@ -153,7 +155,7 @@ def extract_surfaces(
     _split_two_edges(measured, partial, scale, sweep)
     kinds, across_lines = _classify(measured, partial, scale, sweep)
     _widen_summed_bearings(measured, kinds, scale)
-    _unsettle_off_fan(kinds, partial, across_lines)
+    _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, kinds, across_lines, surface_of, joint, opts)
@@ -224,11 +226,9 @@ def _measured_regions(sweep: _Sweep) -> tuple[list[Measured], set[int]]:
     for r in partial_regions(d, held, opts, sweep.spread, gamma=g, radial_offset=geometry.radial_offset):
         partial.add(len(measured))
         pm = measure_region(r, g, d, amp, geometry, opts, step=step)
-        # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the
-        # target's curved ranges: its tilt is known only to the beam's half-width.
-        reach = opts.beyond_cut / math.sqrt(3.0)
-        tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
-        measured.append(replace(pm, tilt_stderr=tilt_se))
+        # Heard on the beam's flank: its slope is that at the middle of the capsules heard, not the stack's.
+        tilt, tilt_se = off_fan_tilt(pm, opts)
+        measured.append(replace(pm, tilt=tilt, tilt_stderr=tilt_se))
     # A target part of the stack hears past a nearer one the other capsules hear first: a region of the fan.
     for r in masked_regions(d, [m.region for m in measured], opts, sweep.spread):
         measured.append(measure_region(r, g, d, amp, geometry, opts, step=step))
@@ -394,6 +394,7 @@ def _region_kind(
             return m, ("edge", [text.replace("double bounce", "line"), why], [pool[j]]), True
         return m, ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]]), True
     if across:
+        m = across_stack_measured(m)
         text = (
             f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
             f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
@@ -487,13 +488,27 @@ def _widen_summed_bearings(measured: list[Measured], kinds: dict[int, Kind], sca
             measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
 
 
-def _unsettle_off_fan(kinds: dict[int, Kind], partial: set[int], across_lines: set[int]) -> None:
+def _unsettle_off_fan(
+    kinds: dict[int, Kind],
+    partial: set[int],
+    across_lines: set[int],
+    measured: list[Measured],
+    scale: EchoScale,
+    sweep: _Sweep,
+) -> None:
     """A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
-    bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled."""
+    bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled,
+    unless its echo, taken back from as far off the fan as its ranges' slope along the stack allows, is still a
+    diffraction's (an edge)."""
     for i in partial:
         if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
             kind, reasons, ties = kinds[i]
-            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
+            amp = sweep.amplitude
+            back = None if amp is None else taken_back(measured[i], amp, scale.beam_k, sweep.opts)
+            weak = (
+                "" if back is None else off_fan_weak(scale.upper_strength(back[0]), scale.mirror, back[1], sweep.opts)
+            )
+            kinds[i] = ("edge", [*reasons, weak], ties) if weak else (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
 
 
 def _joint_corners(

@@ -28,6 +28,7 @@ from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
     "Measured",
+    "across_stack_measured",
     "handed_over",
     "masked_ends",
     "measure_region",
@@ -342,3 +343,57 @@ def summed_width_stderr(curvature: float | None, beam: float, flattest: float) -
     if curvature is None or not (curvature > 0 and beam > 0) or curvature >= flattest:
         return 0.0
     return math.sqrt(max(0.0, 1.0 / (2.0 * curvature) - 1.0 / (2.0 * beam)))
+
+
+def across_stack_measured(m: Measured) -> Measured:
+    """A region whose ranges curve along the stack (a line across it, or a point), placed by its exact ranges.
+
+    A line across the stack (its direction in the fan's plane, at ``x_0`` along the stack and ``h`` from the
+    rotation axis in the fan, its normal there at the region's bearing ``β``) is at
+    ``d = √((h − p·n)² + (x − x_0)²)`` from a capsule at ``p`` (``x`` along the stack, ``p·n`` its radial offset
+    toward the line): a parabola in ``x`` only to second order, whose third-order term a straight or a
+    quadratic fit of the ranges over unevenly heard capsules turns into a slope.  Gauss-Newton on ``(h, x_0)``
+    from the straight fit's guess; their covariance from the residuals.  The point ``x_0·e_x + h·n`` gives the
+    depth ``√(h² + x_0²)`` and the tilt ``atan2(x_0, h)``.
+
+    Returns
+    -------
+    The region with that depth, tilt and their σ (unchanged when fewer than two capsules hear it or the fit
+    does not converge).
+    """
+    x = m.positions[:, 0]
+    if np.unique(x).size < 2 or m.ranges.size < 4:
+        return m
+    radial = m.positions @ unit_normal(m.bearing)
+    h, x0 = m.depth * math.cos(m.tilt), m.depth * math.sin(m.tilt)
+    cov = None
+    for _ in range(10):
+        a = h - radial
+        dist = np.hypot(a, x - x0)
+        if not np.all(dist > 0):
+            return m
+        jac = np.stack([a / dist, (x0 - x) / dist], axis=1)
+        res = m.ranges - dist
+        jtj = jac.T @ jac
+        if np.linalg.cond(jtj) > 1e12:
+            return m
+        step = np.linalg.solve(jtj, jac.T @ res)
+        h, x0 = h + float(step[0]), x0 + float(step[1])
+        if abs(float(step[0])) + abs(float(step[1])) < 1e-9:
+            break
+    else:
+        return m
+    a = h - radial
+    dist = np.hypot(a, x - x0)
+    res = m.ranges - dist
+    jac = np.stack([a / dist, (x0 - x) / dist], axis=1)
+    s2 = float(res @ res) / max(res.size - 2, 1)
+    cov = s2 * np.linalg.inv(jac.T @ jac)
+    depth = math.hypot(h, x0)
+    # σ along the ray and across it (the tilt): the covariance of (h, x0) rotated by the tilt.
+    tilt = math.atan2(x0, h)
+    along = np.array([math.cos(tilt), math.sin(tilt)])
+    across = np.array([-math.sin(tilt), math.cos(tilt)])
+    depth_se = math.sqrt(max(float(along @ cov @ along), 0.0))
+    tilt_se = math.sqrt(max(float(across @ cov @ across), 0.0)) / depth
+    return replace(m, tilt=tilt, tilt_stderr=tilt_se, depth=depth, depth_stderr=depth_se)
