@@ -300,3 +300,47 @@ def test_a_step_beyond_the_rows_held_grows_the_scan_and_is_read_from_its_payload
     read, parsed = scans
     for name in ("distance", "sensor_energy", "echo_amplitude", "dc_level", "gamma", "ratio", "time_ns", "received"):
         assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+
+
+def test_the_arguments_kept_for_a_scan_follow_its_arrays_and_limits(monkeypatch):
+    """The fast path keeps a scan's arguments while its arrays and limits stay: as the arrays grow (a few rows at
+    first), by the fast path or by the parser's (a sample that sends its step twice, at each row count, and the
+    step before it after it), and under limits of another object partway (equal, and then a schedule beyond them),
+    every sample is still read from its payload into the scan's current arrays, bit for bit those of the payloads
+    parsed."""
+    monkeypatch.setattr(ScanAssembly, "INITIAL_ROWS", 3)
+    start, *samples, _ = simulated_messages()
+    samples = [m for m in samples if m.step < start.steps - 1]  # (within the last limits' schedule)
+    twice = {3, 6, 12, 24, 48}  # row counts reached by the parser (a step field sent twice); 96 by the fast path
+    # The step before each comes after it, into the grown arrays (where the arguments of before would lose it).
+    samples.sort(key=lambda m: m.step + 1.5 if m.step + 1 in twice else m.step)
+    payloads = []
+    for m in samples:
+        payload = m.SerializeToString()
+        if m.step in twice:
+            routed = sample_header(payload)[-2]
+            payload = payload[:routed] + codec.Sample(step=m.step).SerializeToString() + payload[routed:]
+        payloads.append(payload)
+    read_in_place = placed_from_payloads(monkeypatch)
+    scans = []
+    for fast in (True, False):
+        ingest = Ingest(fast_path=fast)
+        ingest.accept(start.DESCRIPTOR.full_name, start.SerializeToString())
+        for i, payload in enumerate(payloads):
+            if i == len(samples) // 3:
+                ingest.limits = codec.DecodeLimits(**vars(codec.DEFAULT_LIMITS))  # equal, another object
+            if i == 2 * len(samples) // 3:  # a schedule beyond the limits: each step checked against them
+                ingest.limits = codec.DecodeLimits(**{**vars(codec.DEFAULT_LIMITS), "max_steps": start.steps - 1})
+            (event,) = ingest.accept(codec.Sample.DESCRIPTOR.full_name, payload)
+            assert event.kind == "sample", event
+        assert not ingest.rejected
+        (scan,) = ingest.scans.values()
+        scans.append(scan)
+    read, parsed = scans
+    assert len(read.received) > 3 * ScanAssembly.INITIAL_ROWS  # grown, more than once
+    statuses = [status for status, _, _ in read_in_place]
+    assert statuses.count(GROW) >= 1 and statuses.count(UNREAD) == len(twice)
+    assert len(statuses) - statuses.count(GROW) == len(samples) - 1  # all but the first, once each
+    for name in ("distance", "sensor_energy", "echo_amplitude", "dc_level", "gamma", "ratio", "time_ns", "received"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    assert read._timing_windows.tobytes() == parsed._timing_windows.tobytes()

@@ -103,7 +103,8 @@ def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, byt
 #: The ingest stage's floor, printed beside its ratio.
 STAGE_FLOOR = (
     "plain upb parse (FromString) of the same payloads, no validation; upb copies each waveform's bytes into its "
-    "arena (python protobuf does not alias the input), so the floor reads and writes every payload once"
+    "arena (python protobuf does not alias the input), so the floor reads and writes every payload once; "
+    "(a′) and the floor in thread CPU time"
 )
 
 
@@ -111,7 +112,8 @@ def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[fl
     """Samples/s of (floor) a plain upb parse, ``cls.FromString``, and of (stage)
     :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` — decode, validate, route, assemble: everything the
     service does before estimation — over the same payloads (whole scans, ScanStart to ScanEnd), in this
-    process, one run of each per round (medians of ``runs``)."""
+    process, one run of each per round (medians of ``runs``); this thread's CPU time, so that a neighbour's load
+    on a shared host slows neither side."""
     from lelsonar import codec
     from lelsonar.reconstruct.stream.ingest import Ingest
 
@@ -120,15 +122,15 @@ def ingest_stage_vs_floor(preset_name: str, runs: int, n: int = 400) -> tuple[fl
     samples = sum(1 for name, _ in payloads if name == codec.Sample.DESCRIPTOR.full_name)
     floor, stage = [], []
     for _ in range(runs):
-        t = time.perf_counter()
+        t = time.thread_time()
         for parse, b in parsers:
             parse(b)
-        floor.append(samples / (time.perf_counter() - t))
+        floor.append(samples / (time.thread_time() - t))
         ingest = Ingest()
-        t = time.perf_counter()
+        t = time.thread_time()
         for name, b in payloads:
             ingest.accept(name, b)
-        stage.append(samples / (time.perf_counter() - t))
+        stage.append(samples / (time.thread_time() - t))
         if ingest.rejected or ingest.accepted != len(payloads):
             raise RuntimeError(f"the ingest stage refused bench payloads: {dict(ingest.rejected)}")
     return statistics.median(floor), statistics.median(stage)
@@ -140,7 +142,7 @@ def decoding_paths(preset_name: str, runs: int, n: int = 400) -> dict[str, float
     the ingest stage as it runs (:class:`~lelsonar.reconstruct.stream.ingest.Ingest`: a Sample of an open
     scan read straight from its payload, :mod:`~lelsonar.reconstruct.stream.fastwire`), ``parsed`` the stage
     without that (``Ingest(fast_path=False)``: every payload parsed by upb, the sample placed from the
-    message)."""
+    message).  This thread's CPU time, as :func:`ingest_stage_vs_floor`."""
     from lelsonar import codec
     from lelsonar.reconstruct.stream.ingest import Ingest
 
@@ -149,16 +151,16 @@ def decoding_paths(preset_name: str, runs: int, n: int = 400) -> dict[str, float
     samples = sum(1 for cls in classes if cls is codec.Sample)
     times: dict[str, list[float]] = {"parse": [], "fast": [], "parsed": []}
     for _ in range(runs):
-        t = time.perf_counter()
+        t = time.thread_time()
         for cls, (_, b) in zip(classes, payloads):
             cls().ParseFromString(b)
-        times["parse"].append(time.perf_counter() - t)
+        times["parse"].append(time.thread_time() - t)
         for name, fast in (("fast", True), ("parsed", False)):
             ingest = Ingest(fast_path=fast)
-            t = time.perf_counter()
+            t = time.thread_time()
             for type_name, b in payloads:
                 ingest.accept(type_name, b)
-            times[name].append(time.perf_counter() - t)
+            times[name].append(time.thread_time() - t)
             if ingest.rejected or ingest.accepted != len(payloads):
                 raise RuntimeError(f"the ingest stage refused bench payloads: {dict(ingest.rejected)}")
     return {name: 1e6 * statistics.median(v) / samples for name, v in times.items()}

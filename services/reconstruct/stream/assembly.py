@@ -165,6 +165,7 @@ class ScanAssembly(WriterChecks):
         # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
         self._layout: list | None = None
         self._limits_cleared: codec.DecodeLimits | None = None  # the limits the layout and schedule are within
+        self._wire: tuple | None = None  # place_wire's arguments for those limits (:meth:`_wire_for`)
         self._buffer = bytearray(8 * (6 * self._k + 5))
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
@@ -236,6 +237,7 @@ class ScanAssembly(WriterChecks):
         timing[:had], timed[:had] = self._echo_timing, self._timed
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
         self._candidate_windows = candidates
+        self._wire = None  # (its arrays changed)
 
     @property
     def newest_ns(self) -> int:
@@ -285,41 +287,47 @@ class ScanAssembly(WriterChecks):
         known = self._layout
         if known is None:
             return -1
-        if limits is self._limits_cleared or self._clears(limits):
-            bound = self._steps
-        elif self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples:
-            # A schedule beyond the limits (its ScanStart validated under others): each step checked against them.
-            bound = min(self._steps, limits.max_steps)
-        else:
-            return -1
+        wire = self._wire if limits is self._limits_cleared else None
+        if wire is None:
+            wire = self._wire_for(limits)
+            if wire is None:
+                return -1
         recovered = origin == "recovered"
         for _ in range(2):  # a second time once the arrays reach its step (GROW)
             # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-            status, carried, step = place_wire(
-                payload,
-                at,
-                step,
-                time_ns,
-                bound,
-                self._ids,
-                self._values,
-                known[1],
-                self._starts,
-                self._scan,
-                recovered,
-                *self._rows,
-                self._timing_windows,
-                self._candidate_windows,
-            )
+            status, carried, step = place_wire(payload, at, step, time_ns, recovered, *wire)
             if status != GROW:
                 break
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
+            wire = self._wire_for(limits)  # (the same limits: never None here)
+            if wire is None:
+                return -1
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
             return step
         if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED; GROW does not come twice)
             return -1
         return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
+
+    def _wire_for(self, limits: codec.DecodeLimits) -> tuple | None:
+        """The arguments of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under
+        ``limits`` (its steps' bound, the layout and the scan's arrays); kept while the scan's limits and arrays
+        stay (a call hands over one tuple); None: no layout yet, or one beyond ``limits``."""
+        known = self._layout
+        if known is None:
+            return None
+        cleared = limits is self._limits_cleared or self._clears(limits)
+        if cleared:
+            bound = self._steps
+        elif self._k <= limits.max_sensors and known[1] <= limits.max_waveform_samples:
+            # A schedule beyond the limits (its ScanStart validated under others): each step checked against them.
+            bound = min(self._steps, limits.max_steps)
+        else:
+            return None
+        wire = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
+        if cleared:
+            self._wire = wire
+        return wire
 
     def _clears(self, limits: codec.DecodeLimits) -> bool:
         """Whether every step of the scan's schedule, its capsules and its layout's waveform length are within
@@ -536,6 +544,7 @@ class ScanAssembly(WriterChecks):
         clock), where the pass found them (``_candidate_start``)."""
         width = self._timing_windows.shape[2]
         self._candidate_windows = np.zeros((len(self.received), self._k, width), np.float32)
+        self._wire = None
         for i in np.flatnonzero(np.isfinite(self._candidate_at[step])):
             c0 = int(round((self._candidate_start[step, i] - layout[6 * i + 3]) * self._timing_rate))
             self._candidate_windows[step, i] = waveforms[i, c0 : c0 + width]
@@ -559,6 +568,7 @@ class ScanAssembly(WriterChecks):
         self._values[: 2 * k] = [rate, t0] * k
         self._layout = layout
         self._limits_cleared = None
+        self._wire = None
         return True
 
     def _no_sound_speed(self, step: int, ranges: list, layout: list) -> None:

@@ -359,13 +359,13 @@ def place_wire(
     at,
     step,
     time_ns,
+    recovered,
     bound,
     ids,
     values,
     n,
     starts,
     scan,
-    recovered,
     per_capsule,
     per_step,
     acquired_ns,
@@ -382,8 +382,9 @@ def place_wire(
     From ``at`` on, the rest of its header (:func:`read_header`): ``step`` and ``acquisition_time_ns`` (else
     ``step`` and ``time_ns``, those read before ``at``), each at most once, no field that routes it again (the
     fields before ``at`` did); then its body (:func:`read_body`, into ``values``, and where its waveforms of ``n``
-    samples lie into ``starts``: they are read there, never copied).  The scan's arrays come one by one, as
-    :func:`place_rows` takes them: a tuple of arrays costs a call more to hand over."""
+    samples lie into ``starts``: they are read there, never copied).  The sample's own arguments come first
+    (``recovered``: its origin), then the scan's, one by one as :func:`place_rows` takes them (a tuple of arrays
+    costs a call more to hand over), which the caller keeps in one tuple while they stay the same."""
     buf = np.frombuffer(payload, dtype=np.uint8)
     end = buf.size
     seen = 0

@@ -237,7 +237,8 @@ class Ingest:
         A payload that starts with the bytes that routed the last one of its key (``schema_version``,
         ``scanner_id``, ``scan_id``, each once, before the rest: the same fields, which the rest may not repeat)
         goes to the same scan without its header read in Python."""
-        if len(payload) > self.limits.max_payload_bytes:
+        limits = self.limits
+        if len(payload) > limits.max_payload_bytes:
             return None
         route = self._routes.get(key_scanner)
         if route is not None and payload.startswith(route[0]):
@@ -256,7 +257,7 @@ class Ingest:
                 self._routes[key_scanner] = (payload[:routed], scan)
         mismatches = scan.energy_mismatches
         try:
-            placed = scan.add_payload(payload, at, step, time_ns, origin, self.limits)
+            placed = scan.add_payload(payload, at, step, time_ns, origin, limits)
         except DecodeError as exc:
             header = sample_header(payload)
             return self._refused(scan, -1 if header is None else header[3], exc)
