@@ -16,7 +16,8 @@ Per region of constant depth (:mod:`.regions`):
   middle does not, where the middle plane's double bounce with a surface across
   the fan explains them (a wall's foot on the floor below a horizontal fan),
   splits into the plane and those ends (:mod:`.flanks`).
-* **class** by physics (the tests are in :mod:`.evidence`):
+* **class** by physics (the tests are in :mod:`.evidence`, the echo's strength against the sweep's own
+  references in :mod:`.strength`):
 
   - one line in a plane, across the fan, explaining every range (the double
     bounce of a wall with the floor or ceiling): a **corner** of that wall, an
@@ -43,7 +44,7 @@ whose amplitude steps as no one beam pattern does holds two diffracting targets 
 
 Each plane is fitted on its own echoes, walls joined at concave corners with them (:mod:`.fitting`, :mod:`.joint`).
 A corner or an edge lies where its echo comes from, off the fan by its stack slope's tilt; a concave corner
-of two fitted planes on their line, with their covariance (:mod:`.placement`).
+of two fitted planes on their line, with their covariance (:mod:`.features`, :mod:`.placement`).
 
 The planes' verdicts go through :func:`~lelsonar.reconstruct.estimate.quality.assess_plane`
 with the extractor's own findings (bearing undetermined or disputed, region cut).
@@ -54,20 +55,14 @@ be poorly placed in bearing.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
-    PLATEAU,
-    amplitude_jump,
-    extrapolated_peak,
-    log_amplitude_curvature,
-    peak_at_bearing,
-)
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump, log_amplitude_curvature
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     across_stack,
     beyond_reach,
@@ -83,18 +78,18 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     walls_of_unseen_corners,
     wrap,
 )
+from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
 from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
     measure_region,
-    mirror_normalised,
     summed_width_stderr,
     sweep_step,
     unit_normal,
 )
-from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
-from lelsonar.reconstruct.estimate.surfaces.regions import capsule_x, find_regions, subregion
+from lelsonar.reconstruct.estimate.surfaces.regions import Region, capsule_x, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,
     UNSETTLED,
@@ -103,40 +98,24 @@ from lelsonar.reconstruct.estimate.surfaces.results import (
     SurfaceOptions,
     SurfaceSet,
 )
+from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale, echo_scale
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]
 
 
-def _feature(
-    kind: str,
-    label: str,
-    m: Measured,
-    direction: np.ndarray,
-    surfaces: tuple[str, ...],
-    reasons: list[str],
-    opts: SurfaceOptions,
-    placed: tuple[np.ndarray, np.ndarray] | None = None,
-) -> Feature:
-    """``placed``: the point and its covariance where the planes it joins put it; else its own echo's point,
-    off the fan by its stack slope's tilt (with one capsule, anywhere within the beam's half-width)."""
-    if placed is None:
-        tilt_se = m.tilt_stderr if math.isfinite(m.tilt_stderr) else opts.beyond_cut / math.sqrt(3.0)
-        placed = echo_point(m.depth, m.depth_stderr, m.bearing, m.bearing_stderr, m.tilt, tilt_se)
-    return Feature(
-        kind=kind,
-        label=label,
-        point=placed[0],
-        direction=direction,
-        covariance=placed[1],
-        bearing=m.bearing,
-        depth=m.depth,
-        surfaces=surfaces,
-        reasons=tuple(reasons),
-        steps=m.region.steps.copy(),
-        n_echoes=m.region.n_echoes,
-        rows=m.region.rows.copy(),
-        capsules=m.region.capsules.copy(),
-    )
+@dataclass(frozen=True, eq=False)
+class _Sweep:
+    """One sweep's validated readings and what every stage reads of them."""
+
+    gamma: np.ndarray
+    distance: np.ndarray
+    amplitude: np.ndarray | None
+    geometry: ArrayGeometry
+    opts: SurfaceOptions
+    #: rad: the sweep's step (:func:`~.measurement.sweep_step`).
+    step: float
+    #: m: how far one target's ranges differ between two capsules at most, their distance apart.
+    spread: float
 
 
 def extract_surfaces(
@@ -166,6 +145,34 @@ def extract_surfaces(
     SurfaceSet
     """
     opts = options or SurfaceOptions()
+    sweep = _sweep(gamma, distance, amplitude, geometry, opts)
+    measured, partial = _measured_regions(sweep)
+    regions = [m.region for m in measured]
+    scale = echo_scale(measured, sweep.gamma, opts)
+    _split_two_edges(measured, partial, scale, sweep)
+    kinds, across_lines = _classify(measured, partial, scale, sweep)
+    _widen_summed_bearings(measured, kinds, scale)
+    _unsettle_off_fan(kinds, partial, across_lines)
+    joint = _joint_corners(measured, kinds, across_lines, opts)
+    surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
+    corners, edges = place_features(measured, kinds, across_lines, surface_of, joint, opts)
+    return SurfaceSet(
+        surfaces=tuple(surfaces),
+        corners=tuple(corners),
+        edges=tuple(edges),
+        n_echoes=int(np.count_nonzero(np.isfinite(sweep.distance))),
+        unexplained=_unexplained(sweep, regions, failed, unsorted),
+    )
+
+
+def _sweep(
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> _Sweep:
+    """The readings as float arrays, their shapes checked against the array's capsules."""
     g = np.asarray(gamma, dtype=np.float64)
     d = np.asarray(distance, dtype=np.float64)
     if d.shape != (g.size, geometry.n_capsules):
@@ -176,16 +183,29 @@ def extract_surfaces(
     # One target's ranges differ between two capsules by no more than their distance apart.
     x = capsule_x(geometry)
     spread = float(x.max() - x.min()) + opts.range_tolerance
+    return _Sweep(g, d, amp, geometry, opts, step=sweep_step(g), spread=spread)
+
+
+def _measured_regions(sweep: _Sweep) -> tuple[list[Measured], set[int]]:
+    """The sweep's regions of constant depth, measured and split where they hold more than one target, and the
+    indices of those heard by part of the capsule stack only."""
+    g, d, amp, geometry, opts, step = (
+        sweep.gamma,
+        sweep.distance,
+        sweep.amplitude,
+        sweep.geometry,
+        sweep.opts,
+        sweep.step,
+    )
     regions = find_regions(
         d,
         tolerance=opts.range_tolerance,
         max_gap=opts.max_gap,
         min_steps=opts.min_steps,
-        max_spread=spread,
+        max_spread=sweep.spread,
         gamma=g,
         radial_offset=geometry.radial_offset,
     )
-    step = sweep_step(g)
     measured = [measure_region(r, g, d, amp, geometry, opts, step=step) for r in regions]
     # A region whose ends hold another target along the stack (its plane's double bounce with a surface across
     # the fan, a line across the stack at a like range): its plane's middle and those ends.
@@ -199,7 +219,7 @@ def extract_surfaces(
     # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
     # its readings are off their step's range, so a second pass over the readings no region holds finds it.
     partial = set()
-    for r in partial_regions(d, [m.region for m in measured], opts, spread):
+    for r in partial_regions(d, [m.region for m in measured], opts, sweep.spread):
         partial.add(len(measured))
         pm = measure_region(r, g, d, amp, geometry, opts, step=step)
         # Heard on the beam's flank only, where a straight slope over part of the stack is a biased fit of the
@@ -207,97 +227,19 @@ def extract_surfaces(
         reach = opts.beyond_cut / math.sqrt(3.0)
         tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
         measured.append(replace(pm, tilt_stderr=tilt_se))
-    regions = [m.region for m in measured]
+    return measured, partial
 
-    # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
-    # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
-    # far below it diffracts.  A median would not do: in a cluttered sweep most regions may be edges.
-    strengths = [m.strength for m in measured if math.isfinite(m.strength)]
-    mirror = max(strengths) if len(strengths) >= 2 else float("nan")
-    # The beam's curvature in log amplitude, from this sweep's own regions with an unclipped peak: what puts the peak
-    # of a region cut before its peak (an upper estimate of its strength, see extrapolated_peak).
-    ks = [
-        k
-        for m in measured
-        if m.exact
-        for k in [log_amplitude_curvature(g[m.region.steps], m.step_amplitude)]
-        if k is not None
-    ]
-    beam_k = float(np.median(ks)) if ks else float("nan")
-    # The flattest top one echo shows in this sweep (3 σ of its regions' spread under their median, robust):
-    # flatter, a second echo widens it.
-    beam_low = beam_k - 3 * 1.4826 * float(np.median(np.abs(np.asarray(ks) - beam_k))) if len(ks) >= 3 else beam_k
 
-    # The receiver clips at one level, its full scale: the sweep's largest peak.  A plateau well under it is the
-    # amplitude's quantisation on a weak echo, whose peak stands.
-    full_scale = max((m.peak for m in measured if math.isfinite(m.peak)), default=float("nan"))
-
-    def upper_strength(m: Measured) -> float:
-        """The region's strength if its peak is inside it, else an upper estimate of it (NaN: none)."""
-        if m.peak_inside and m.clipped and m.peak >= (1.0 - PLATEAU) * full_scale:
-            return float("nan")  # a clipped peak is only a lower bound of its echo: no upper estimate
-        if m.peak_inside:
-            return m.strength
-        if not math.isfinite(beam_k):
-            return float("nan")
-        peak = extrapolated_peak(
-            g[m.region.steps],
-            m.step_amplitude,
-            beam_k,
-            before=opts.beyond_cut if m.region.cut_before else 0.0,
-            after=opts.beyond_cut if m.region.cut_after else 0.0,
-        )
-        return float("nan") if peak is None else mirror_normalised(peak, m.depth, opts)
-
-    def weak(m: Measured, ref: float = mirror) -> bool:
-        top = upper_strength(m)
-        return math.isfinite(ref) and math.isfinite(top) and top < opts.weak_echo * ref
-
-    def strong(m: Measured, ref: float = mirror) -> bool:
-        # The observed peak is a lower bound of the region's.
-        return math.isfinite(ref) and math.isfinite(m.strength) and m.strength >= opts.weak_echo * ref
-
-    def end_strength(m: Measured, mj: Measured, *, confirmed: bool = False) -> tuple[str, str]:
-        """Whether a plane's end (or its line across the fan) echoes weakly, strongly or unknown, and why.
-
-        Against the plane's own mirror echo (same material, a like range) where its peak is clean, else the
-        sweep's strongest.  In order: the region's own peak is a lower bound (strong); where a step lies on
-        the beam's top, the beam pattern taken back from its steps to the bearing the geometry puts it at (see
-        peak_at_bearing) is close to the peak (strong or weak); the upper estimate from its flank's own slope
-        (weak); that beam pattern taken back from farther out, a lower bound (strong).  ``confirmed``: the
-        readings themselves confirm the bearing (one line explains every range), so that lower bound comes
-        before the flank's slope, whose few steps' noise can put its vertex anywhere.
-        """
-        ref = mj.strength if mj.exact and math.isfinite(mj.strength) else mirror
-        of = "its plane's mirror echo" if ref is not mirror else "the sweep's strongest"
-        if not math.isfinite(ref):
-            return "unknown", ""
-        if strong(m, ref):
-            return "strong", f"with an echo as strong as {of}"
-        at = peak_at_bearing(g[m.region.steps], m.step_amplitude, m.bearing, beam_k)
-        traced = float("nan") if at is None else mirror_normalised(at[0], m.depth, opts)
-        share = f"{100 * traced / ref:.0f} % of {of} at the bearing the geometry puts it at"
-        strong_there = f"with an echo as strong as {of} once the beam pattern is taken back there ({share})"
-        if confirmed and traced >= opts.weak_echo * ref:
-            return "strong", strong_there
-        if at is not None and at[1] <= math.log(2.0):
-            # A step on the beam's top: the estimate is close to the peak either way.
-            if traced >= opts.weak_echo * ref:
-                return "strong", strong_there
-            return "weak", f"with a weak (diffracted) echo: {share}"
-        if weak(m, ref):
-            return "weak", f"with a weak (diffracted) echo: under {of} × {opts.weak_echo:.2f}"
-        if traced >= opts.weak_echo * ref:
-            return "strong", strong_there
-        return "unknown", ""
-
-    # Two diffracting targets at one range side by side (a thin wall's two ends, a box's two edges) make one
-    # region whose amplitude steps where one beam pattern hands over to the other: two edges, not one.
+def _split_two_edges(measured: list[Measured], partial: set[int], scale: EchoScale, sweep: _Sweep) -> None:
+    """Two diffracting targets at one range side by side (a thin wall's two ends, a box's two edges) make one
+    region whose amplitude steps where one beam pattern hands over to the other: two edges, not one.  The first
+    replaces the region in ``measured``, the second is appended."""
+    g, opts = sweep.gamma, sweep.opts
     for i in range(len(measured)):
         m = measured[i]
         # (Part of the stack hears a target off the fan on fewer steps in its farther capsules: its steps'
         # medians step where those capsules join, which is no second target.)
-        if i in partial or not weak(m) or m.region.cut_before or m.region.cut_after:
+        if i in partial or not scale.weak(m) or m.region.cut_before or m.region.cut_after:
             continue
         jump = amplitude_jump(g[m.region.steps], m.step_amplitude)
         if jump is None:
@@ -309,174 +251,260 @@ def extract_surfaces(
             subregion(m.region, m.region.steps[:k], cut_before=False, cut_after=True),
             subregion(m.region, m.region.steps[k:], cut_before=True, cut_after=False),
         ]
-        first, second = (measure_region(r, g, d, amp, geometry, opts, step=step) for r in pieces)
+        first, second = (
+            measure_region(r, g, sweep.distance, sweep.amplitude, sweep.geometry, opts, step=sweep.step) for r in pieces
+        )
         measured[i] = first
         measured.append(second)
 
-    across = [across_stack(m, opts) for m in measured]
+
+def _in_fan(measured: list[Measured], partial: set[int]) -> list[Measured]:
+    """The regions every capsule hears: a target part of the stack hears lies off the fan, so it says
+    nothing of how far a plane runs along its trace in the fan."""
+    return [x for k, x in enumerate(measured) if k not in partial]
+
+
+def _on_traces(i: int, pool: list[int], measured: list[Measured], partial: set[int], opts: SurfaceOptions) -> list[int]:
+    """The regions of ``pool`` on whose plane's trace region ``i`` lies, off that plane's own foot, within its reach."""
+    p = feature_point(measured[i])
+    out = []
+    for j in pool:
+        if j == i:
+            continue
+        mj = measured[j]
+        if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
+            continue
+        nj = unit_normal(mj.bearing, mj.tilt)
+        # n_j · p moves with either bearing by ρ·sin(β_i − β_j) per rad: 3 σ of both.
+        mi = measured[i]
+        sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
+        tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
+        if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(
+            mi, mi.bearing, mj, _in_fan(measured, partial), opts
+        ):
+            out.append(j)
+    return out
+
+
+def _others(i: int, pool: list[int]) -> list[int]:
+    return [j for j in pool if j != i]
+
+
+def _planes(
+    measured: list[Measured], partial: set[int], across: list[bool], scale: EchoScale, opts: SurfaceOptions
+) -> list[int]:
+    """The regions that hold a plane's traces: a determined bearing, no diffraction's echo, and no end or corner
+    of the others."""
     candidates = [i for i, m in enumerate(measured) if not across[i]]
     # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
     # (A target only part of the stack hears is no mirror: every capsule hears a mirror's foot alike.)
     determined = [
         i
         for i in candidates
-        if measured[i].bearing_source != "undetermined" and not weak(measured[i]) and i not in partial
+        if measured[i].bearing_source != "undetermined" and not scale.weak(measured[i]) and i not in partial
     ]
-
-    def in_fan() -> list[Measured]:
-        """The regions every capsule hears: a target part of the stack hears lies off the fan, so it says
-        nothing of how far a plane runs along its trace in the fan."""
-        return [x for k, x in enumerate(measured) if k not in partial]
-
-    def on_traces(i: int, pool: list[int]) -> list[int]:
-        p = feature_point(measured[i])
-        out = []
-        for j in pool:
-            if j == i:
-                continue
-            mj = measured[j]
-            if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
-                continue
-            nj = unit_normal(mj.bearing, mj.tilt)
-            # n_j · p moves with either bearing by ρ·sin(β_i − β_j) per rad: 3 σ of both.
-            mi = measured[i]
-            sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
-            tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
-            if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(mi, mi.bearing, mj, in_fan(), opts):
-                out.append(j)
-        return out
-
-    def others(i: int, pool: list[int]) -> list[int]:
-        return [j for j in pool if j != i]
-
     # A region on another's trace, at two planes' double bounce, or at one plane's double bounce with a surface
     # across the stack is an end or a corner; once those are set aside, the ties are counted again against the
     # planes alone (a corner's own trace is no wall).
     ends = {
         i
         for i in determined
-        if on_traces(i, determined)
-        or pair_corner(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
-        or stack_dihedral(measured[i], [measured[j] for j in others(i, determined)], opts) is not None
+        if _on_traces(i, determined, measured, partial, opts)
+        or pair_corner(measured[i], [measured[j] for j in _others(i, determined)], opts) is not None
+        or stack_dihedral(measured[i], [measured[j] for j in _others(i, determined)], opts) is not None
     }
-    planes = [i for i in determined if i not in ends]
-    walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, g, opts)
+    return [i for i in determined if i not in ends]
+
+
+def _classify(
+    measured: list[Measured], partial: set[int], scale: EchoScale, sweep: _Sweep
+) -> tuple[dict[int, Kind], set[int]]:
+    """The kind of every region that is no plane, and which of them are lines across the fan.
+
+    Each region's entry of ``measured`` takes the bearing, depth and tilt its classification places it at.
+    """
+    opts = sweep.opts
+    across = [across_stack(m, opts) for m in measured]
+    planes = _planes(measured, partial, across, scale, opts)
+    walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, sweep.gamma, opts)
     for i, text in walls_of_corners.items():
         measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
-    kinds: dict[int, tuple[str, list[str], list[int]]] = {}
+    kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
-    for i, m in enumerate(measured):
-        pool = others(i, planes)
-        # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
-        # alone, which says only that the line runs across the stack.
-        near = [measured[j] for j in pool]
-        low = stack_dihedral(m, near, opts)
-        pair = pair_corner(m, near, opts)
-        unsettled = ""
-        if low is not None and pair is not None:
-            # A plane's yaw slopes its corner with a plane in the fan as a line across the fan would.
-            chosen, unsettled = stack_or_pair(m, near, low, pair)
-            if chosen == "pair":
-                low = None
-        if low is not None:
-            j, z, text = low
-            pj = measured[pool[j]]
-            # The line's point: the plane's foot, off the fan by z; its depth, the distance to it.
-            foot = pj.depth * unit_normal(pj.bearing) + np.array([z, 0.0, 0.0])
-            tilt = math.atan2(z, pj.depth)
-            measured[i] = m = replace(
-                m, bearing=pj.bearing, bearing_stderr=pj.bearing_stderr, depth=float(np.linalg.norm(foot)), tilt=tilt
-            )
-            # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
-            # diffracts, the wall's free top or bottom edge.
-            verdict, why = end_strength(m, pj, confirmed=True)
-            if verdict == "weak":
-                kinds[i] = ("edge", [text.replace("double bounce", "line"), why], [pool[j]])
-            else:
-                kinds[i] = ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]])
+    for i in range(len(measured)):
+        m, kind, across_line = _region_kind(
+            i, measured, planes, across[i], partial, i in walls_of_corners, scale, sweep
+        )
+        measured[i] = m
+        if kind is not None:
+            kinds[i] = kind
+        if across_line:
             across_lines.add(i)
-            continue
-        if across[i]:
-            text = (
-                f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
-                f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
-            )
-            kinds[i] = ("edge" if weak(m) else "corner", [text], [])
-            across_lines.add(i)
-            continue
-        if pair is not None:
-            which, bearing = pair
-            ties = [pool[j] for j in which]
-            # The two planes' line leans off the fan with their tilts: its echo comes from its point nearest the
-            # array, off the fan by that lean, at the region's range.
-            line = plane_line(measured[ties[0]], measured[ties[1]])
-            lean = 0.0 if line is None else math.asin(max(-1.0, min(1.0, float(line[0][0] / np.linalg.norm(line[0])))))
-            measured[i] = m = replace(
-                m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean
-            )
-        elif m.bearing_source == "undetermined":
-            placed = None if i in walls_of_corners else plane_end(m, [measured[j] for j in pool], opts, in_fan(), g)
-            if placed is None:
-                ties = []
-            else:
-                which, bearing = placed
-                ties = [pool[j] for j in which]
-                measured[i] = m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
-        else:
-            ties = on_traces(i, planes)
-        if len(ties) >= 2:
-            kinds[i] = (
-                "corner",
-                ["at the double-bounce range of the two planes it joins (their intersection)"]
-                + ([unsettled] if unsettled else []),
-                ties[:2],
-            )
-        elif len(ties) == 1:
-            verdict, why = end_strength(m, measured[ties[0]])
-            if verdict == "weak":
-                kinds[i] = ("edge", [f"on a plane's trace off its foot, {why}"], ties)
-            elif verdict == "strong":
-                kinds[i] = ("corner", [f"on a plane's trace off its foot, {why}"], ties)
-            else:
-                kinds[i] = ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
-        elif weak(m):
-            if m.bearing_source == "undetermined":
-                measured[i] = m = replace(m, bearing_stderr=reach_stderr(m, opts))
-            kinds[i] = (
-                "edge",
-                [
-                    f"echo at most {100 * upper_strength(m) / mirror:.0f} % of the sweep's strongest at its range: "
-                    "diffraction"
-                ],
-                [],
-            )
+    return kinds, across_lines
 
-    # A plane's bearing from its amplitude peak alone: another echo summing into its flank moves the peak as
-    # much as it widens the top (:func:`summed_width_stderr`), which the parabola's residuals do not show.
+
+def _region_kind(
+    i: int,
+    measured: list[Measured],
+    planes: list[int],
+    across: bool,
+    partial: set[int],
+    wall_of_corner: bool,
+    scale: EchoScale,
+    sweep: _Sweep,
+) -> tuple[Measured, Kind | None, bool]:
+    """Region ``i`` placed as its kind says, its kind (None: a plane) and whether it is a line across the fan."""
+    opts = sweep.opts
+    m = measured[i]
+    pool = _others(i, planes)
+    # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
+    # alone, which says only that the line runs across the stack.
+    near = [measured[j] for j in pool]
+    low = stack_dihedral(m, near, opts)
+    pair = pair_corner(m, near, opts)
+    unsettled = ""
+    if low is not None and pair is not None:
+        # A plane's yaw slopes its corner with a plane in the fan as a line across the fan would.
+        chosen, unsettled = stack_or_pair(m, near, low, pair)
+        if chosen == "pair":
+            low = None
+    if low is not None:
+        j, z, text = low
+        pj = measured[pool[j]]
+        # The line's point: the plane's foot, off the fan by z; its depth, the distance to it.
+        foot = pj.depth * unit_normal(pj.bearing) + np.array([z, 0.0, 0.0])
+        tilt = math.atan2(z, pj.depth)
+        m = replace(
+            m, bearing=pj.bearing, bearing_stderr=pj.bearing_stderr, depth=float(np.linalg.norm(foot)), tilt=tilt
+        )
+        # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
+        # diffracts, the wall's free top or bottom edge.
+        verdict, why = scale.end_strength(m, pj, confirmed=True)
+        if verdict == "weak":
+            return m, ("edge", [text.replace("double bounce", "line"), why], [pool[j]]), True
+        return m, ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]]), True
+    if across:
+        text = (
+            f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
+            f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
+        )
+        return m, ("edge" if scale.weak(m) else "corner", [text], []), True
+    m, ties = _ties(i, m, pool, pair, measured, planes, partial, wall_of_corner, sweep)
+    m, kind = _kind_from_ties(m, ties, unsettled, measured, scale)
+    return m, kind, False
+
+
+def _ties(
+    i: int,
+    m: Measured,
+    pool: list[int],
+    pair: tuple[list[int], float] | None,
+    measured: list[Measured],
+    planes: list[int],
+    partial: set[int],
+    wall_of_corner: bool,
+    sweep: _Sweep,
+) -> tuple[Measured, list[int]]:
+    """The planes region ``i`` ties to (two: their double bounce; one: its end) and the region placed there."""
+    opts = sweep.opts
+    if pair is not None:
+        which, bearing = pair
+        ties = [pool[j] for j in which]
+        # The two planes' line leans off the fan with their tilts: its echo comes from its point nearest the
+        # array, off the fan by that lean, at the region's range.
+        line = plane_line(measured[ties[0]], measured[ties[1]])
+        lean = 0.0 if line is None else math.asin(max(-1.0, min(1.0, float(line[0][0] / np.linalg.norm(line[0])))))
+        m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean)
+    elif m.bearing_source == "undetermined":
+        placed = (
+            None
+            if wall_of_corner
+            else plane_end(m, [measured[j] for j in pool], opts, _in_fan(measured, partial), sweep.gamma)
+        )
+        if placed is None:
+            ties = []
+        else:
+            which, bearing = placed
+            ties = [pool[j] for j in which]
+            m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
+    else:
+        ties = _on_traces(i, planes, measured, partial, opts)
+    return m, ties
+
+
+def _kind_from_ties(
+    m: Measured, ties: list[int], unsettled: str, measured: list[Measured], scale: EchoScale
+) -> tuple[Measured, Kind | None]:
+    """A region's kind from the planes it ties to and its echo's strength (None: a plane)."""
+    if len(ties) >= 2:
+        return m, (
+            "corner",
+            ["at the double-bounce range of the two planes it joins (their intersection)"]
+            + ([unsettled] if unsettled else []),
+            ties[:2],
+        )
+    if len(ties) == 1:
+        verdict, why = scale.end_strength(m, measured[ties[0]])
+        if verdict == "weak":
+            return m, ("edge", [f"on a plane's trace off its foot, {why}"], ties)
+        if verdict == "strong":
+            return m, ("corner", [f"on a plane's trace off its foot, {why}"], ties)
+        return m, ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
+    if scale.weak(m):
+        if m.bearing_source == "undetermined":
+            m = replace(m, bearing_stderr=reach_stderr(m, scale.opts))
+        return m, (
+            "edge",
+            [
+                f"echo at most {100 * scale.upper_strength(m) / scale.mirror:.0f} % of the sweep's strongest at its "
+                "range: diffraction"
+            ],
+            [],
+        )
+    return m, None
+
+
+def _widen_summed_bearings(measured: list[Measured], kinds: dict[int, Kind], scale: EchoScale) -> None:
+    """A plane's bearing from its amplitude peak alone: another echo summing into its flank moves the peak as
+    much as it widens the top (:func:`summed_width_stderr`), which the parabola's residuals do not show."""
+    g = scale.gamma
     for i, m in enumerate(measured):
-        if i in kinds or m.bearing_source != "amplitude peak" or m.peak >= (1.0 - PLATEAU) * full_scale:
+        if i in kinds or m.bearing_source != "amplitude peak" or m.peak >= (1.0 - PLATEAU) * scale.full_scale:
             continue  # (a clipped top: its plateau's centre, whose width is no beam's)
         c = log_amplitude_curvature(g[m.region.steps], m.step_amplitude, plateau=True)
-        extra = summed_width_stderr(c, beam_k, beam_low)
+        extra = summed_width_stderr(c, scale.beam_k, scale.beam_low)
         if extra > 0:
             measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
 
-    # A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
-    # bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled.
+
+def _unsettle_off_fan(kinds: dict[int, Kind], partial: set[int], across_lines: set[int]) -> None:
+    """A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
+    bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled."""
     for i in partial:
         if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
             kind, reasons, ties = kinds[i]
             kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
 
-    # The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.
+
+def _joint_corners(
+    measured: list[Measured], kinds: dict[int, Kind], across_lines: set[int], opts: SurfaceOptions
+) -> dict[int, JointWall]:
+    """The joint corner model: walls that meet at a concave corner (two ties, in the fan) fitted with it.  A wall
+    the corners dispute takes that finding."""
     pairs = [(i, ties) for i, (kind, _r, ties) in kinds.items() if kind == "corner" and len(ties) >= 2]
     pairs = [(i, ties) for i, ties in pairs if i not in across_lines]
     joint, disputed = joint_fit(pairs, measured, opts) if opts.joint_corners else ({}, {})
     for j, text in disputed.items():
         measured[j] = replace(measured[j], findings=(*measured[j].findings, (DEGRADED, text)))
+    return joint
 
+
+def _fit_planes(
+    measured: list[Measured], kinds: dict[int, Kind], partial: set[int], joint: dict[int, JointWall], sweep: _Sweep
+) -> tuple[list[Surface], dict[int, Surface], int, int]:
+    """Every plane fitted on its own echoes; the fitted surface of each region; the echoes of regions no plane
+    fits; the echoes of regions part of the stack hears that are neither corner nor edge."""
     surfaces: list[Surface] = []
-    label_of: dict[int, str] = {}
     surface_of: dict[int, Surface] = {}
     failed = 0
     unsorted = 0
@@ -486,75 +514,25 @@ def extract_surfaces(
         if i in partial:
             unsorted += m.region.n_echoes
             continue
-        s = fit_surface(f"s{len(surfaces) + 1}", m, g, d, geometry, opts, joint.get(i))
+        s = fit_surface(
+            f"s{len(surfaces) + 1}", m, sweep.gamma, sweep.distance, sweep.geometry, sweep.opts, joint.get(i)
+        )
         if s is None:
             failed += m.region.n_echoes
             continue
-        label_of[i] = s.label
         surface_of[i] = s
         surfaces.append(s)
+    return surfaces, surface_of, failed, unsorted
 
-    def pair_placement(ia: int, ib: int, m: Measured) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-        """A pair corner's line from its two fitted planes: its nearest point, that point's covariance (the
-        planes' full covariance through the intersection) and its direction."""
-        sa, sb = surface_of.get(ia), surface_of.get(ib)
-        if sa is None or sb is None:
-            return None
-        params = np.array([sa.bearing, sa.tilt, sa.offset, sb.bearing, sb.tilt, sb.offset])
-        ja, jb = joint.get(ia), joint.get(ib)
-        tied = ja is not None and jb is not None and ja.full is not None
-        if ja is not None and jb is not None and ja.full is not None:
-            idx = [3 * ja.index + k for k in range(3)] + [3 * jb.index + k for k in range(3)]
-            cov6 = ja.full[np.ix_(idx, idx)]
-        else:
-            cov6 = np.zeros((6, 6))
-            cov6[:3, :3], cov6[3:, 3:] = sa.covariance, sb.covariance
-        line = pair_line_point(params, cov6)
-        if line is None:
-            return None
-        point, cov = line
-        if not tied:
-            # The walls fitted apart: the corner's own double-bounce range is a measurement they did not use.
-            point, cov = with_range(point, cov, m.depth, m.depth_stderr)
-        return point, cov, line_direction(params)
 
-    corners: list[Feature] = []
-    edges: list[Feature] = []
-    stack_axis = np.array([1.0, 0.0, 0.0])
-    for i, (kind, reasons, ties) in sorted(kinds.items()):
-        m = measured[i]
-        tied = tuple(label_of[j] for j in ties if j in label_of)
-        located: tuple[np.ndarray, np.ndarray] | None = None
-        if i in across_lines:
-            direction = np.cross(stack_axis, unit_normal(m.bearing))
-        elif len(ties) >= 2:
-            pair_line = pair_placement(ties[0], ties[1], m)
-            if pair_line is not None:
-                located, direction = (pair_line[0], pair_line[1]), pair_line[2]
-            else:
-                a, b = measured[ties[0]], measured[ties[1]]
-                direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
-        elif len(ties) == 1:
-            # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
-            pj = measured[ties[0]]
-            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
-            if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
-                direction = stack_axis
-        else:
-            direction = stack_axis  # along the stack: a line the fan crosses
-        direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
-        if direction[int(np.argmax(np.abs(direction)))] < 0:
-            direction = -direction
-        out = corners if kind == "corner" else edges
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, opts, located))
-
-    valid = np.isfinite(d)
+def _unexplained(sweep: _Sweep, regions: list[Region], failed: int, unsorted: int) -> dict[str, int]:
+    """The readings no surface explains, counted by why."""
+    valid = np.isfinite(sweep.distance)
     in_region = np.zeros_like(valid)
-    in_run = np.zeros(g.size, dtype=bool)
+    in_run = np.zeros(sweep.gamma.size, dtype=bool)
     for r in regions:
         in_region[r.rows, r.capsules] = True
         in_run[r.steps] = True
-    n_valid = int(np.count_nonzero(valid))
     off_step = int(np.count_nonzero(valid & ~in_region & in_run[:, None]))
     short = int(np.count_nonzero(valid & ~in_run[:, None]))
     unexplained = {
@@ -565,13 +543,7 @@ def extract_surfaces(
         unexplained["in regions no plane fits"] = failed
     if unsorted:
         unexplained["heard by part of the capsule stack only, neither corner nor edge"] = unsorted
-    return SurfaceSet(
-        surfaces=tuple(surfaces),
-        corners=tuple(corners),
-        edges=tuple(edges),
-        n_echoes=n_valid,
-        unexplained=unexplained,
-    )
+    return unexplained
 
 
 def good_surfaces(result: SurfaceSet) -> tuple[Surface, ...]:
