@@ -141,3 +141,41 @@ def test_a_read_left_early_stops_its_decompressing_threads(tmp_path):
     assert next(messages).log_time == 0
     messages.close()
     assert not any(th.name.startswith("mcap-decompress") for th in threading.enumerate())
+
+
+def test_a_read_waiting_for_a_stalled_thread_decompresses_later_chunks_itself(tmp_path, monkeypatch):
+    """A thread that finds no core (here: held until the reader has done three jobs) does not stall the read."""
+    from lelsonar.log import reader
+
+    path = tmp_path / "many.mcap"
+    _mcap(path, 60, per_chunk=6)  # chunks of ~1 MB: a job each
+    reading = threading.get_ident()
+    by_reader: list[int] = []
+    stalled = threading.Event()
+    real = reader.decompress_chunks
+
+    def decompress(buf, places):
+        if threading.get_ident() == reading:
+            by_reader.append(len(places))
+            if len(by_reader) == 3:
+                stalled.set()
+        else:
+            assert stalled.wait(60), "the reader waited for the stalled thread instead of decompressing"
+        return real(buf, places)
+
+    in_turn = _read(path, 0)
+    monkeypatch.setattr(reader, "decompress_chunks", decompress)
+    assert _read(path, 1) == in_turn
+    assert len(by_reader) >= 3
+
+
+@pytest.mark.parametrize(
+    ("cpus", "runnable", "threads"),
+    [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)],
+)
+def test_a_replay_decompresses_ahead_on_the_cores_no_task_runs_on(cpus, runnable, threads):
+    assert sources.decompress_threads(cpus, runnable) == threads
+
+
+def test_the_tasks_running_now_count_the_caller():
+    assert sources.runnable_tasks() >= 1

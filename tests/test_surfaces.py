@@ -17,6 +17,7 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     extrapolated_peak,
     log_amplitude_curvature,
 )
+from lelsonar.reconstruct.estimate.surfaces.confirm import LONE
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import ElementKind, build_model
@@ -80,7 +81,7 @@ class Echoes:
         return self.range + self.rng.normal(0.0, RANGE_NOISE, self.range.shape)
 
 
-def test_a_plane_is_one_good_surface_with_its_bearing_from_the_region_of_constant_depth():
+def test_a_lone_plane_is_good_on_its_own_echoes_and_says_nothing_else_confirms_it_a_plane():
     e = Echoes(seed=1)
     bearing, offset, tilt = math.radians(23.0), 1.2, math.radians(2.0)
     e.plane(bearing, offset, tilt)
@@ -91,7 +92,9 @@ def test_a_plane_is_one_good_surface_with_its_bearing_from_the_region_of_constan
     assert abs(s.bearing - bearing) < 4 * sd[0] + 1e-9
     assert abs(s.tilt - tilt) < 4 * sd[1]
     assert abs(s.offset - offset) < 4 * sd[2]
-    assert s.quality == "good", s.reasons
+    # Its own echoes make it a good plane; alone in the sweep, a corner's or an edge's echo would look the same.
+    assert s.own_quality == "good"
+    assert s.quality == "degraded" and s.reasons == (LONE,), s.reasons
     assert s.bearing_source == "region centre"
     # The σ has its true shape: the offset is known to a few mm, the bearing to the region's quantisation.
     assert sd[2] < 0.003 and sd[0] < math.radians(1.0)

@@ -29,7 +29,7 @@ worker (user + system over its wall time), CPU of each process while busy (a wor
 live sample to its last, read at most every 10 ms, the publisher over its puts, the router
 meanwhile), how far the publishers fell behind their schedule (a run where they fell behind on
 their own is invalid: the offered rate was not offered; behind because BLOCK held their puts, the
-workers did not keep up), and each worker's CPU per sample inside ``handle``, inside ``tick`` and
+workers did not keep up), and each worker's CPU per sample inside ``handle``, ``tick`` and ``catch_up`` and
 outside them, with the provisional refits' cost by the steps the scan held.  The offered rate is scanners ×
 ``--rate``: a run shows whether the workers keep up with it, not how far beyond it they could go;
 ``--capacity`` finds that (:mod:`lelsonar.tools.bench_fleet_capacity`).  ``--failover`` (default on
@@ -43,20 +43,20 @@ import argparse
 import json
 import os
 import signal
-import statistics
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
 from lelsonar.tools.bench_fleet_capacity import CAPACITY_LADDER, run_capacity
 from lelsonar.tools.bench_fleet_publisher import GO, READY, RESULT, check_encoding, combine, parts, publisher_main
+from lelsonar.tools.bench_fleet_results import CPU_PARTS, case_result, refit_cost, summarise
+from lelsonar.tools.bench_fleet_results import behind as behind_text
 from lelsonar.tools.bench_fleet_stages import STALL_MS, run_stages
-from lelsonar.tools.bench_fleet_worker import PREFIX, client_settings, worker_main
+from lelsonar.tools.bench_fleet_worker import PREFIX, TIMED_CALLS, client_settings, worker_main
 
 _READY, _RESULT = READY, RESULT
 
@@ -78,6 +78,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "only: that case alone)",
     )
     parser.add_argument("--no-provisional", action="store_true", help="workers publish finals only")
+    parser.add_argument(
+        "--service",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="a field of the workers' ReconstructConfig (repeatable; e.g. provisional_backlog=0 for an A/B)",
+    )
     parser.add_argument(
         "--timeout",
         type=float,
@@ -135,16 +142,10 @@ def command_line(args: argparse.Namespace) -> str:
         + f" --preset {args.preset}"
         + ("" if ladder else f" --failover {args.failover}")
         + (" --no-provisional" if args.no_provisional else "")
+        + "".join(f" --service {s}" for s in args.service)
         + (f" --capacity {' '.join(str(n) for n in args.capacity)}" if args.capacity else "")
         + (" --capacity" if args.capacity == [] else "")
     )
-
-
-def _pct(values: list[float], q: float) -> float | None:
-    if not values:
-        return None
-    v = sorted(values)
-    return v[min(len(v) - 1, int(round(q / 100 * (len(v) - 1))))]
 
 
 # --- the orchestration -----------------------------------------------------------------------
@@ -192,22 +193,26 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
     from lelsonar.reconstruct.estimate import wire
 
     procs: list[subprocess.Popen] = []
-    bench = [
-        "bench",
-        "fleet",
-        "--scanners",
-        str(args.scanners),
-        "--workers",
-        str(args.workers),
-        "--rate",
-        str(args.rate),
-        "--scans",
-        str(args.scans),
-        "--steps",
-        str(args.steps),
-        "--preset",
-        args.preset,
-    ] + (["--no-provisional"] if args.no_provisional else [])
+    bench = (
+        [
+            "bench",
+            "fleet",
+            "--scanners",
+            str(args.scanners),
+            "--workers",
+            str(args.workers),
+            "--rate",
+            str(args.rate),
+            "--scans",
+            str(args.scans),
+            "--steps",
+            str(args.steps),
+            "--preset",
+            args.preset,
+        ]
+        + (["--no-provisional"] if args.no_provisional else [])
+        + [f"--service={s}" for s in args.service]
+    )
     finals: dict[tuple[str, int], list[str]] = {}
     lock = threading.Lock()
     got = threading.Condition(lock)
@@ -291,147 +296,16 @@ def run_case(args: argparse.Namespace, *, kill_one: bool, progress=None) -> dict
                 if p.poll() is None:
                     p.kill()
                 p.wait()
-    finished: list[dict] = [r for r in reports if r is not None]
-    processed = [x / 1e6 for r in finished for x in r["processed_ns"]]
-    provisional = [x / 1e6 for r in finished for x in r["provisional_ns"]]
-    firsts = [r["first"] for r in finished if r["first"] is not None]
-    lasts = [r["last"] for r in finished if r["last"] is not None]
-    samples = sum(r["samples"] for r in finished)
-    statuses = [s for v in finals.values() for s in v]
-    return {
-        "kill_one": killed,
-        "expected_finals": expected,
-        "scans_with_final": len(finals),
-        "duplicated_finals": sum(len(v) - 1 for v in finals.values()),
-        "incomplete_finals": sum(1 for s in statuses if not s.startswith("final:") or not s.endswith(":0"))
-        + (expected - len(finals)),
-        "handled_per_s": (samples - 1) / (max(lasts) - min(firsts))
-        if len(firsts) and max(lasts) > min(firsts)
-        else 0.0,
-        "samples_processed": samples,
-        "processed_ms": {"p50": _pct(processed, 50), "p99": _pct(processed, 99)},
-        "provisional_ms": {"p50": _pct(provisional, 50), "p99": _pct(provisional, 99), "n": len(provisional)},
-        "cpu_per_worker": {r["member"]: r["cpu_s"] / r["wall_s"] for r in finished},
-        # Over the window each was busy: a worker from its first live sample handled to its last (read at
-        # most every 10 ms), the
-        # publisher over its puts, the router over the publisher's puts.
-        "busy_cpu": {
-            **{
-                r["member"]: r["busy_cpu_s"] / r["busy_wall_s"]
-                for r in finished
-                if r.get("busy_cpu_s") is not None and r["busy_wall_s"] > 0
-            },
-            **({"publisher": pub["cpu_s"] / pub["wall_s"]} if pub and pub.get("wall_s") else {}),
-            **(
-                {"router": (router_cpu1 - router_cpu0) / router_wall}
-                if router_cpu0 is not None and router_cpu1 is not None and router_wall > 0
-                else {}
-            ),
-        },
-        "adopted": {r["member"]: r["group"].get("scans adopted", 0) for r in finished},
-        "dropped_other_member": {r["member"]: r["group"].get("dropped: other member", 0) for r in finished},
-        "recovered": {r["member"]: r["service"]["samples"]["recovered"] for r in finished},
-        "shed": {r["member"]: r["service"].get("provisionals_shed", 0) for r in finished},
-        "statuses": dict(Counter(statuses)),
-        "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
-        "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
-        "worker_errors": {r["member"]: r["errors"] for r in finished},
-        "publisher": pub,
-        "cpu_per_sample_us": {r["member"]: cpu_per_sample(r) for r in finished},
-        "threads_cpu_s": {r["member"]: r.get("threads_cpu_s", {}) for r in finished},
-        # The worst over the workers: the longest handle and tick, and the calls over STALL_MS.
-        "longest_ms": {k: max((r["longest_call_ms"][k] for r in finished), default=None) for k in ("handle", "tick")},
-        "stalls": {k: sum(r["stalls"][k] for r in finished) for k in ("handle", "tick")},
-        "refit_us": refit_cost([x for r in finished for x in r["refits"]], args.steps or 184),
-        "elapsed_s": time.monotonic() - t_start,
-    }
-
-
-def cpu_per_sample(report: dict) -> dict[str, float] | None:
-    """A worker's CPU per live sample, µs: all its threads over the window it was busy ("total"), its
-    processing thread inside ``handle`` and inside ``tick``, and the rest ("outside": Zenoh's receive, the
-    channel, the doorbell, the group's filter, the planes server)."""
-    n, total = report["samples"], report.get("busy_cpu_s")
-    if not n or total is None:
-        return None
-    inside = report["thread_cpu_s"]
-    out = {"total": total * 1e6 / n, "handle": inside["handle"] * 1e6 / n, "tick": inside["tick"] * 1e6 / n}
-    out["outside"] = out["total"] - out["handle"] - out["tick"]
-    return out
-
-
-#: A worker's CPU per sample: all its threads, inside handle, inside tick, the rest.
-CPU_PARTS = ("total", "handle", "tick", "outside")
-
-#: Provisional refits' cost is shown by the quarter of the scan its steps reach.
-REFIT_BINS = 4
-
-
-def refit_cost(refits: list[tuple[int, float]], steps: int) -> dict[str, float | None]:
-    """Median µs of CPU per provisional refit (the call that made it), by the quarter of the scan held then:
-    flat when a refit costs O(new samples), rising when it costs O(steps so far)."""
-    out: dict[str, float | None] = {}
-    for b in range(REFIT_BINS):
-        lo, hi = b * steps // REFIT_BINS + 1, (b + 1) * steps // REFIT_BINS
-        cost = [us for held, us in refits if lo <= held <= hi]
-        out[f"{lo}-{hi}"] = statistics.median(cost) if cost else None
-    return out
-
-
-def _behind(pub: dict | None) -> str:
-    """What the publishers' schedule says of a run: nothing (kept), held back by BLOCK, or invalid."""
-    pub = pub or {}
-    if pub.get("kept_up"):
-        return ""
-    if pub.get("held_back"):
-        return f" behind: held back inside put {pub['blocked_s']:.1f} s (BLOCK: the workers did not keep up)"
-    return " BEHIND on their own: run invalid"
-
-
-def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
-    """One case over its runs: medians of the figures, sums of the failures (every run kept in "runs")."""
-
-    def med(values):
-        values = [v for v in values if v is not None]
-        return statistics.median(values) if values else None
-
-    out: dict[str, Any] = {"runs": runs, "kill_one": runs[0]["kill_one"], "expected_finals": runs[0]["expected_finals"]}
-    out["handled_per_s"] = med([r["handled_per_s"] for r in runs])
-    for key in ("processed_ms", "provisional_ms"):
-        out[key] = {q: med([r[key][q] for r in runs]) for q in ("p50", "p99")}
-    out["scans_with_final"] = min(r["scans_with_final"] for r in runs)
-    out["incomplete_finals"] = sum(r["incomplete_finals"] for r in runs)
-    out["duplicated_finals"] = sum(r["duplicated_finals"] for r in runs)
-    members = sorted({m for r in runs for m in r["cpu_per_worker"]})
-    out["cpu_per_worker"] = {m: med([r["cpu_per_worker"].get(m) for r in runs]) for m in members}
-    procs = sorted({m for r in runs for m in r["busy_cpu"]})
-    out["busy_cpu"] = {m: med([r["busy_cpu"].get(m) for r in runs]) for m in procs}
-    pubs = [r["publisher"] for r in runs if r["publisher"]]
-    out["publisher"] = {
-        k: med([p[k] for p in pubs]) for k in (pubs[0] if pubs else {}) if k not in ("kept_up", "held_back", "valid")
-    }
-    if pubs:
-        for flag in ("kept_up", "held_back", "valid"):
-            out["publisher"][flag] = len(pubs) == len(runs) and all(p[flag] for p in pubs)
-    out["cpu_per_sample_us"] = {
-        m: {k: med([(r["cpu_per_sample_us"].get(m) or {}).get(k) for r in runs]) for k in CPU_PARTS} for m in members
-    }
-    out["threads_cpu_s"] = {
-        m: {k: med([r["threads_cpu_s"].get(m, {}).get(k) for r in runs]) for k in runs[0]["threads_cpu_s"].get(m, {})}
-        for m in members
-    }
-    bins = runs[0]["refit_us"]
-    out["refit_us"] = {b: med([r["refit_us"].get(b) for r in runs]) for b in bins}
-    out["longest_ms"] = {
-        k: max((r["longest_ms"][k] for r in runs if r["longest_ms"][k] is not None), default=None)
-        for k in ("handle", "tick")
-    }
-    out["stalls"] = {k: sum(r["stalls"][k] for r in runs) for k in ("handle", "tick")}
-    out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
-    out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
-    for key in ("recovered", "dropped_other_member", "shed"):
-        out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
-    return out
+    return case_result(
+        reports,
+        finals,
+        pub,
+        expected=expected,
+        killed=killed,
+        router_cpu=(router_cpu0, router_cpu1, router_wall),
+        steps=args.steps or 184,
+        t_start=t_start,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -525,11 +399,11 @@ def run(args: argparse.Namespace) -> int:
             "publishing took / schedule, s",
             lambda r: (
                 f"{pub(r, 'wall_s'):.1f} / {pub(r, 'schedule_s'):.1f} ({pub(r, 'processes'):.0f} processes)"
-                + _behind(r["publisher"])
+                + behind_text(r["publisher"])
             ),
         ),
         (
-            "worker CPU µs/sample: all / handle / tick / outside",
+            "worker CPU µs/sample: all / handle / tick / catch_up / outside",
             lambda r: "; ".join(
                 f"{m} " + " / ".join("—" if v[k] is None else f"{v[k]:.0f}" for k in CPU_PARTS)
                 for m, v in r["cpu_per_sample_us"].items()
@@ -540,15 +414,19 @@ def run(args: argparse.Namespace) -> int:
             lambda r: " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items()),
         ),
         (
-            f"longest handle / tick, ms CPU (calls over {STALL_MS:g} ms)",
+            f"longest handle / tick / catch_up, ms CPU (calls over {STALL_MS:g} ms)",
             lambda r: " / ".join(
                 "—" if r["longest_ms"][k] is None else f"{r['longest_ms'][k]:.1f} ({r['stalls'][k]})"
-                for k in ("handle", "tick")
+                for k in TIMED_CALLS
             ),
         ),
         (
-            "provisionals shed",
-            lambda r: f"{sum(r['shed'].values()):g}",
+            "samples that woke an idle worker (doorbell)",
+            lambda r: "—" if r["doorbell_per_sample"] is None else f"{100 * r['doorbell_per_sample']:.0f} %",
+        ),
+        (
+            "provisionals shed (of which stale)",
+            lambda r: f"{sum(r['shed'].values()):g} ({sum(r['stale'].values()):g})",
         ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]

@@ -13,7 +13,7 @@ rung whose publishers could not keep their own schedule is invalid, not "does no
 offered rate was not offered (publishers held back inside their puts by congestion control BLOCK
 are the worker's doing: that rung is valid, and does not hold).  The ladder stops at an invalid
 rung, and the capacity found (the rungs below) is a lower bound.  Each rung also shows the
-worker's CPU per sample, inside ``handle`` and ``tick`` and outside them.
+worker's CPU per sample, inside ``handle``, ``tick`` and ``catch_up`` and outside them.
 """
 
 from __future__ import annotations
@@ -25,6 +25,8 @@ import statistics
 from collections.abc import Callable
 
 from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.tools.bench_fleet_results import CPU_PARTS
+from lelsonar.tools.bench_fleet_worker import TIMED_CALLS
 
 #: Scanner counts tried by ``--capacity`` with no N given.
 CAPACITY_LADDER = (10, 25, 50, 75, 100, 150)
@@ -46,7 +48,7 @@ HEADERS = (
     "finals complete",
     "publisher took / schedule s",
     "worker CPU busy",
-    "µs/sample all / handle / tick / outside",
+    "µs/sample all / handle / tick / catch_up / outside",
     "holds",
 )
 
@@ -115,7 +117,7 @@ def row(res: dict) -> tuple[str, ...]:
         f"{res['scans_with_final']} / {res['expected_finals']}" + ("" if res["complete"] else " (!)"),
         f"{pub.get('wall_s', float('nan')):.1f} / {pub.get('schedule_s', float('nan')):.1f}",
         " ".join(f"{100 * v:.0f}%" for v in busy),
-        " ".join(" / ".join(f"{v[k]:.0f}" for k in ("total", "handle", "tick", "outside")) for v in cpu),
+        " ".join(" / ".join(f"{v[k]:.0f}" for k in CPU_PARTS) for v in cpu),
         verdict,
     )
 
@@ -176,19 +178,25 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
             + " ".join(f"{b}: {'—' if v is None else f'{v:.0f}'}" for b, v in r["refit_us"].items())
             for r in results
         ),
-        "longest handle / tick, ms CPU (calls over 20 ms): "
+        "longest handle / tick / catch_up, ms CPU (calls over 20 ms): "
         + ", ".join(
             f"{r['scanners']} scanners "
             + " / ".join(
                 "—" if r["longest_ms"][k] is None else f"{r['longest_ms'][k]:.0f} ({r['stalls'][k]})"
-                for k in ("handle", "tick")
+                for k in TIMED_CALLS
             )
+            for r in results
+        ),
+        "samples that woke an idle worker (the doorbell: two threads' wake-up each): "
+        + ", ".join(
+            f"{r['scanners']} scanners "
+            + ("—" if r.get("doorbell_per_sample") is None else f"{100 * r['doorbell_per_sample']:.0f} %")
             for r in results
         ),
         "provisionals shed (under a backlog), and published a second per scanner (at most "
         f"{1 / ReconstructConfig().provisional_period:g}): "
         + ", ".join(
-            f"{r['scanners']} scanners {sum(r['shed'].values()):g} shed "
+            f"{r['scanners']} scanners {sum(r['shed'].values()):g} shed ({sum(r['stale'].values()):g} stale) "
             f"({100 * provisional_rate(r)[1]:.0f} % of those due), {provisional_rate(r)[0]:.1f}/s published"
             for r in results
         ),

@@ -28,6 +28,7 @@ import statistics
 import time
 from collections import defaultdict
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 #: The scan clock's origin (ns): a payload's time in :func:`interleaved` is its acquisition time less this.
@@ -40,6 +41,19 @@ OUTSIDE_US = 50.0
 STALL_MS = 20.0
 
 STAGES = ("ingest", "provisional update", "provisional exact fits", "final")
+
+#: The queue model's rows: finals elsewhere or not, and the service's config fields set otherwise (A/B of the
+#: provisional policy: no staleness deadline; refits deferred behind any backlog, caught up 10 ms at a time).
+MODEL_CASES: tuple[tuple[bool, str, dict[str, Any]], ...] = (
+    (False, "", {}),
+    (True, "", {}),
+    (True, ", no provisional_deadline", {"provisional_deadline": 0.0}),
+    (
+        True,
+        ", refits deferred behind any backlog, 10 ms catch-up",
+        {"provisional_backlog": 0, "provisional_budget": 0.01},
+    ),
+)
 
 
 def interleaved(preset: str, scanners: int, scans: int, rate: float, steps: int = 0) -> list[tuple[float, str, bytes]]:
@@ -121,17 +135,21 @@ def queue_model(
     outside_us: float = OUTSIDE_US,
     tick_s: float = 0.1,
     provisional: bool = True,
+    fields: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """One live worker with a core of its own, fed each payload at its acquisition time.
 
     The worker's loop is :class:`~lelsonar.reconstruct.stream.sources.LiveSource`'s: take the oldest waiting
-    payload and handle it (``busy`` while more wait), ``tick`` every ``tick_s``, ``catch_up`` when nothing waits.
+    payload and handle it (``fits_wait`` while more wait, ``busy`` past ``provisional_backlog``), ``tick`` every
+    ``tick_s``, ``catch_up`` when nothing waits.
     Each call takes the thread CPU it measures here, plus ``outside_us`` a payload, on a virtual clock the
     service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
     :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
     worker nothing (run by the final pool's processes, which get the closed scan).  Once the
     last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
-    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed.
+    processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed
+    (under a backlog, or stale: the service's wall clock is the virtual one).  ``fields``: fields of the
+    default :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig` to set otherwise (an A/B of a policy).
     """
     from collections import deque
 
@@ -169,7 +187,9 @@ def queue_model(
     def clock() -> float:
         return now[0] + (time.thread_time() - started[0] if started else 0.0)
 
-    service = ReconstructionService(ReconstructConfig(provisional=provisional), clock=clock)
+    config = ReconstructConfig(provisional=provisional)
+    service = ReconstructionService(replace(config, **(fields or {})), clock=clock)
+    service.wall_ns = lambda: T0 + int(clock() * 1e9)  # the payloads' acquisition times are T0 + their time
     processed: list[float] = []
     provisionals: list[float] = []
     busy_s = 0.0
@@ -210,7 +230,13 @@ def queue_model(
             now[0] += outside_us * 1e-6
             busy_s += outside_us * 1e-6
             arrive()
-            run(service.handle, type_name, payload, busy=bool(waiting))
+            run(
+                service.handle,
+                type_name,
+                payload,
+                busy=len(waiting) > service.config.provisional_backlog,
+                fits_wait=bool(waiting),
+            )
             if type_name.endswith("Sample"):
                 processed.append(now[0] - t)
             arrive()
@@ -228,7 +254,8 @@ def queue_model(
         "processed_s": processed,
         "provisional_s": provisionals,
         "busy": busy_s / span if span > 0 else 0.0,
-        "shed": service.stats.provisionals_shed,
+        "shed": service.stats.provisionals_shed + service.stats.provisionals_stale,
+        "stale": service.stats.provisionals_stale,
         "finals": service.stats.finals,
     }
 
@@ -351,15 +378,18 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
         title=f"queue model: one worker on a core of its own, fed at the scan clock, {OUTSIDE_US:g} µs a payload "
         "outside handle (medians)"
     )
-    for col in ("finals", "busy", "put→processed p50 / p99 ms", "put→provisional p50 / p99 ms", "shed"):
+    for col in (
+        "finals",
+        "busy",
+        "put→processed p50 / p99 ms",
+        "put→provisional p50 / p99 ms",
+        "published",
+        "shed (of which stale)",
+    ):
         model.add_column(col, justify="left" if col == "finals" else "right")
-    for elsewhere in (False, True):
+    for elsewhere, label, fields in MODEL_CASES:
         queued = [
-            queue_model(
-                payloads,
-                finals_elsewhere=elsewhere,
-                provisional=not args.no_provisional,
-            )
+            queue_model(payloads, finals_elsewhere=elsewhere, provisional=not args.no_provisional, fields=fields)
             for _ in range(args.repeat)
         ]
 
@@ -367,11 +397,12 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
             return f"{statistics.median(1e3 * _quantile(r[key], q) for r in queued):.1f}"
 
         model.add_row(
-            "elsewhere (input and reconstruction)" if elsewhere else "inline",
+            ("elsewhere (input and reconstruction)" if elsewhere else "inline") + label,
             f"{statistics.median(r['busy'] for r in queued):.2f}",
             f"{ms('processed_s', 0.5)} / {ms('processed_s', 0.99)}",
             f"{ms('provisional_s', 0.5)} / {ms('provisional_s', 0.99)}",
-            f"{statistics.median(r['shed'] for r in queued):.0f}",
+            f"{statistics.median(len(r['provisional_s']) for r in queued):.0f}",
+            f"{statistics.median(r['shed'] for r in queued):.0f} ({statistics.median(r['stale'] for r in queued):.0f})",
         )
     console.print(model)
     load = os.getloadavg()

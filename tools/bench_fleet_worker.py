@@ -5,8 +5,8 @@ Wired as ``lelsonar reconstruct --group fleet`` wires itself
 :class:`~lelsonar.reconstruct.stream.sources.LiveSource`,
 :class:`~lelsonar.reconstruct.stream.sources.PlanesServer`, the default
 :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`), plus a probe that timestamps each live
-sample it processes and times ``handle`` and ``tick``; its report goes to :mod:`lelsonar.tools.bench_fleet`
-as tagged JSON on stdout.
+sample it processes and times ``handle``, ``tick`` and ``catch_up``; its report goes to
+:mod:`lelsonar.tools.bench_fleet` as tagged JSON on stdout.
 """
 
 from __future__ import annotations
@@ -22,17 +22,39 @@ from pathlib import Path
 from lelsonar.tools.bench_fleet_publisher import READY, RESULT
 from lelsonar.tools.bench_fleet_stages import STALL_MS
 
-__all__ = ["PREFIX", "client_settings", "worker_main"]
+__all__ = ["PREFIX", "TIMED_CALLS", "client_settings", "worker_main"]
 
 PREFIX = "lelsonar"
 GROUP = "fleet"
 _READY, _RESULT = READY, RESULT
+#: The service's calls the probe times on the processing thread (CPU, the longest, the stalls).
+TIMED_CALLS = ("handle", "tick", "catch_up")
 
 
 def client_settings(endpoint: str):
     from lelsonar.net.transport import ZenohSettings
 
     return ZenohSettings(mode="client", connect=(endpoint,))
+
+
+def service_config(fields: list[str], **given):
+    """The workers' :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig`: its defaults, ``given``, and
+    each ``FIELD=VALUE`` of ``--service`` (a number or a word, as the field's default is)."""
+    from dataclasses import fields as dataclass_fields
+
+    from lelsonar.reconstruct.stream.config import ReconstructConfig
+
+    defaults = {f.name: f.default for f in dataclass_fields(ReconstructConfig)}
+    for item in fields:
+        name, _, value = item.partition("=")
+        default = defaults.get(name)
+        if isinstance(default, bool):
+            given[name] = value.lower() in ("1", "true", "yes")
+        elif isinstance(default, (int, float, str)):
+            given[name] = type(default)(value)
+        else:
+            raise SystemExit(f"bench fleet: --service {item}: not a number or word field of ReconstructConfig")
+    return ReconstructConfig(**given)
 
 
 def _thread_cpu() -> dict[int, tuple[str, float]]:
@@ -66,7 +88,6 @@ def worker_main(args: argparse.Namespace) -> int:
     from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import open_session
     from lelsonar.reconstruct.estimate import wire
-    from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.group import GroupConfig, GroupMembership
     from lelsonar.reconstruct.stream.ingest import Accepted
     from lelsonar.reconstruct.stream.recovery import RecoveryConfig
@@ -96,10 +117,10 @@ def worker_main(args: argparse.Namespace) -> int:
 
     # CPU of the worker's thread inside handle and inside tick (s), and each provisional refit's:
     # (steps the scan held, µs of the call that made it, shared among the refits of that call).
-    thread_cpu = {"handle": 0.0, "tick": 0.0}
+    thread_cpu = dict.fromkeys(TIMED_CALLS, 0.0)
     # The longest call of each (s of thread CPU), and the calls over STALL_MS: no sample is handled meanwhile.
-    longest = {"handle": 0.0, "tick": 0.0}
-    stalls = {"handle": 0, "tick": 0}
+    longest = dict.fromkeys(TIMED_CALLS, 0.0)
+    stalls = dict.fromkeys(TIMED_CALLS, 0)
     refits: list[tuple[int, float]] = []
 
     def timed(name: str, fn):
@@ -121,6 +142,8 @@ def worker_main(args: argparse.Namespace) -> int:
         """Timestamp each live sample the service handles (put → processed); time handle and tick."""
         accept, handle = service.ingest.accept, timed("handle", service.handle)
         service.tick = timed("tick", service.tick)  # type: ignore[method-assign]
+        # What waited for a backlog, run once it drains: on the processing thread too, not "outside" the service.
+        service.catch_up = timed("catch_up", service.catch_up)  # type: ignore[method-assign]
 
         def probe_accept(type_name, payload, **kw):
             events = accept(type_name, payload, **kw)
@@ -149,7 +172,7 @@ def worker_main(args: argparse.Namespace) -> int:
     with open_session(client_settings(args.endpoint)) as session:
         with GroupMembership(session, PREFIX, GroupConfig(GROUP, args.member, settle=0.5)) as group:
             service = ReconstructionService(
-                ReconstructConfig(provisional=not args.no_provisional), publish=group.fenced(publish)
+                service_config(args.service, provisional=not args.no_provisional), publish=group.fenced(publish)
             )
             probe(service)
             server = PlanesServer(session, keys, service.latest, answers_for=group.answers_for)
@@ -191,6 +214,7 @@ def worker_main(args: argparse.Namespace) -> int:
                 },
                 "group": gstats,
                 "errors": dict(live.error_types),
+                "doorbell_rings": live.rings,
             }
         ),
         flush=True,

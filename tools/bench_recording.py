@@ -288,7 +288,59 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
         f"{host_line(busy)}",
     ]
     _print(console, title, headers, table_rows, notes)
-    return bench_markdown.table(title, headers, table_rows, notes), ok
+    work_title, work_headers, work_rows, work_notes = replay_work(rows)
+    _print(console, work_title, work_headers, work_rows, work_notes)
+    return (
+        bench_markdown.table(title, headers, table_rows, notes)
+        + "\n"
+        + bench_markdown.table(work_title, work_headers, work_rows, work_notes)
+    ), ok
+
+
+def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str, ...]], list[str]]:
+    """Where a replay's time goes: the CPU per scan of the floor, the reading, the ingest stage and the finals,
+    from the same children as the speed rows, and the best a replay of that work can do on this host's cores."""
+    import os
+
+    cores = os.cpu_count() or 1
+    headers: tuple[str, ...] = (
+        "scans in one file",
+        "floor",
+        "read",
+        "ingest stage",
+        "finals",
+        "replay's work × floor's",
+        f"best on {cores} cores: one scan / many",
+    )
+    out: list[tuple[str, ...]] = []
+    for r in rows:
+        n = r["scans"]
+        floor, read = r["floor_cpu"] / n, r["read_cpu"] / n
+        ingest = max(r["ingest_cpu"] / n - read, 0.0)
+        finals = max(r["inline_cpu"] / n - r["ingest_cpu"] / n, 0.0)
+        work = read + ingest + finals
+        # One scan: its final reads the whole scan, so it starts when the reading ends; many: all of it shared.
+        one = floor / ((read + ingest) / cores + finals) if work else float("nan")
+        many = cores * floor / work if work else float("nan")
+        out.append(
+            (
+                str(n),
+                f"{1e3 * floor:.1f}",
+                f"{1e3 * read:.1f}",
+                f"{1e3 * ingest:.1f}",
+                f"{1e3 * finals:.1f}",
+                f"{work / floor:.2f}×",
+                f"{one:.2f}× / {many:.2f}×",
+            )
+        )
+    notes = [
+        "CPU ms per scan of each child's timed section (every thread of the replaying process), medians: "
+        "floor = python mcap + upb; read = the tolerant reader + upb; ingest stage = decode, validate, assemble "
+        "(ingest child − read); finals = the replay with every final in the process (inline child − ingest child)",
+        "best: the replay's work spread over the cores with nothing lost; a scan's final starts when its last "
+        "sample is read, so a file of one scan overlaps only its reading",
+    ]
+    return "where a replay's time goes (CPU per scan)", headers, out, notes
 
 
 def _filesystem(path: Path) -> str:

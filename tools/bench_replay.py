@@ -7,19 +7,27 @@ by ``mcap``'s own writer (1 MiB chunks that mix channels).  Each measurement run
 child process (``python -m lelsonar.tools.bench_replay --child MODE FILE``), which reports its
 peak resident set (``VmHWM``): replay's memory must not grow with the file.
 
+Each child also reports the CPU seconds of its timed section (every thread of the process; not the
+final workers').  The CPU of ``read``, ``ingest`` and ``inline`` against ``floor``'s says where a
+replay's time goes: the reading, the ingest stage and the finals.
+
 Modes:
 
 * ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
   ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
-  (the kernels loaded first), estimation included (where the host has an idle core, the next
-  chunks decompressed on other threads while the service estimates; the finals in worker
-  processes as :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
+  (the kernels loaded first), estimation included (on a host of several cores, the next chunks
+  decompressed on other threads while the service estimates; the finals in worker processes as
+  :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
 * ``warm`` — the same replay in a process whose final workers have started before (their fork
   server's imports and kernels loaded before the clock, as in a live reconstructor or a process
   that replayed a file already): the finals in workers from the first scan, where the host's load
   leaves a core idle;
 * ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
   (the reading alone);
+* ``ingest`` — the reading and :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` (decode, validate,
+  assemble): the replay without its estimation;
+* ``inline`` — ``replay`` with every final estimated in the replaying process (``final_workers=0``): its CPU
+  seconds are the whole replay's work, where ``replay`` and ``warm`` do part of it in worker processes;
 * ``floor`` — ``mcap.reader.make_reader(f).iter_messages(topics=…, log_time_order=True)`` and a
   upb parse (``FromString``) of each contract message: the reading any program can do.
 """
@@ -56,12 +64,12 @@ def time_floor(path: Path) -> tuple[float, int]:
 
     types = codec.MESSAGE_TYPES
     samples = 0
-    t = time.perf_counter()
+    cpu, t = time.process_time(), time.perf_counter()
     with open(path, "rb") as f:
         for schema, _channel, message in make_reader(f).iter_messages(topics=CONTRACT_TOPICS, log_time_order=True):
             msg = types[schema.name if schema is not None else ""].FromString(message.data)
             samples += isinstance(msg, codec.Sample)
-    return time.perf_counter() - t, samples
+    return _timed(t, cpu), samples
 
 
 def time_read(path: Path) -> tuple[float, int]:
@@ -71,11 +79,11 @@ def time_read(path: Path) -> tuple[float, int]:
 
     types = codec.MESSAGE_TYPES
     samples = 0
-    t = time.perf_counter()
+    cpu, t = time.process_time(), time.perf_counter()
     for rec in iter_payloads(path):
         msg = types[rec.type_name].FromString(rec.payload)
         samples += isinstance(msg, codec.Sample)
-    return time.perf_counter() - t, samples
+    return _timed(t, cpu), samples
 
 
 def time_replay(path: Path) -> tuple[float, int]:
@@ -90,9 +98,41 @@ def time_replay_warm(path: Path) -> tuple[float, int]:
 
 #: The replay child's finals estimated in worker processes (reported beside its seconds).
 _POOLED: list[int] = []
+#: The child's CPU seconds (every thread of the process, not its workers) over the timed section.
+_CPU: list[float] = []
 
 
-def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
+def _timed(t: float, cpu: float) -> float:
+    """Wall seconds since ``t``; the CPU seconds since ``cpu`` go to :data:`_CPU`."""
+    _CPU.append(time.process_time() - cpu)
+    return time.perf_counter() - t
+
+
+def time_ingest(path: Path) -> tuple[float, int]:
+    """(seconds, samples) of the reading and the ingest stage (decode, validate, assemble): no estimation."""
+    from lelsonar import codec
+    from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.log.recording import iter_payloads
+    from lelsonar.reconstruct.stream.ingest import Ingest
+    from lelsonar.reconstruct.stream.sources import REPLAYED
+
+    exercise_kernels()  # as the replay children: the kernels loaded before the clock
+    ingest = Ingest()
+    sample = codec.Sample.DESCRIPTOR.full_name
+    samples = 0
+    cpu, t = time.process_time(), time.perf_counter()
+    for rec in iter_payloads(path, REPLAYED):
+        ingest.accept(rec.type_name, rec.payload)
+        samples += rec.type_name == sample
+    return _timed(t, cpu), samples
+
+
+def time_inline(path: Path) -> tuple[float, int]:
+    """(seconds, finals) of :func:`time_replay` with every final estimated in the replaying process."""
+    return _replay(path, warm=False, workers=0)
+
+
+def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.final_pool import FinalPool
@@ -104,15 +144,22 @@ def _replay(path: Path, *, warm: bool) -> tuple[float, int]:
         with FinalPool(max(auto_workers(), 1)) as pool:  # the fork server's imports and kernels: once a process
             pool.wait_ready(600)
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
-    service = ReconstructionService(ReconstructConfig(provisional=False))
-    t = time.perf_counter()
+    service = ReconstructionService(ReconstructConfig(provisional=False, final_workers=workers))
+    cpu, t = time.process_time(), time.perf_counter()
     replay_mcap(path, service)
-    seconds = time.perf_counter() - t
+    seconds = _timed(t, cpu)
     _POOLED.append(int(service.stats_dict().get("finals_pool", {}).get("in_workers", 0)))
     return seconds, service.stats.finals
 
 
-_MODES = {"floor": time_floor, "read": time_read, "replay": time_replay, "warm": time_replay_warm}
+_MODES = {
+    "floor": time_floor,
+    "read": time_read,
+    "ingest": time_ingest,
+    "inline": time_inline,
+    "replay": time_replay,
+    "warm": time_replay_warm,
+}
 
 
 def child(mode: str, path: Path) -> dict:
@@ -189,6 +236,7 @@ def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[
             row = {"scans": n, "samples": samples, "mb": path.stat().st_size / 1e6}
             for mode, results in got.items():
                 row[f"{mode}_s"] = statistics.median(r["seconds"] for r in results)
+                row[f"{mode}_cpu"] = statistics.median(r["cpu_s"] for r in results)
                 row[f"{mode}_rss"] = max(r["rss_mib"] for r in results)
                 row[f"{mode}_pooled"] = min(r.get("pooled", 0) for r in results)
             rows.append(row)
@@ -202,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("path", type=Path)
     args = parser.parse_args(argv)
     seconds, samples = _MODES[args.child](args.path)
-    out = {"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib()}
+    out = {"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib(), "cpu_s": _CPU[-1]}
     if _POOLED:
         out["pooled"] = _POOLED[-1]
     print(json.dumps(out), flush=True)

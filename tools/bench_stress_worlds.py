@@ -51,6 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--cli", type=int, default=2, help="worlds run through acquire → reconstruct → map as subprocesses"
     )
     parser.add_argument("--show", type=int, default=40, help="failure lines to print (default: %(default)s)")
+    parser.add_argument(
+        "--amplitude-noise",
+        type=float,
+        default=0.0,
+        help="the receiver's relative echo amplitude noise in the in-process tours (world files do not carry it)",
+    )
 
 
 def _cli(args: list[str], cwd: Path) -> tuple[int, str, str]:
@@ -194,7 +200,7 @@ def run(args: argparse.Namespace) -> int:
             ws.fail("crash", f"draw: {exc}")
             scores.append(ws)
             continue
-        scores.append(score_world(cls, seed, mount, world, args.max_poses))
+        scores.append(score_world(cls, seed, mount, world, args.max_poses, amplitude_noise=args.amplitude_noise))
     cli_jobs = jobs[:: max(1, len(jobs) // max(args.cli, 1))][: args.cli] if args.cli > 0 else []
     with tempfile.TemporaryDirectory(prefix="lelsonar-stress-") as tmp:
         for cls, seed, mount in progress(cli_jobs, "through the CLI"):
@@ -202,8 +208,9 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console(width=220)
     table = Table(
-        title=f"stress worlds ({', '.join(mounts)}; seeds {args.first_seed}–{args.first_seed + args.seeds - 1}) "
-        f"— {machine()}"
+        title=f"stress worlds ({', '.join(mounts)}; seeds {args.first_seed}–{args.first_seed + args.seeds - 1}"
+        + (f"; amplitude noise {100 * args.amplitude_noise:g} %" if args.amplitude_noise else "")
+        + f") — {machine()}"
     )
     table.add_column("class")
     for col in COUNTS:

@@ -36,6 +36,7 @@ from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import PlaneFit
 from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.sim.acoustics import Receiver
 from lelsonar.sim.odometry import simulate_odometry
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world import World
@@ -94,13 +95,15 @@ class WorldScore:
         self.failures.append(f"{self.cls} seed {self.seed} {self.mount}: {key}: {line}")
 
 
-def world_run(world: World, seed: int) -> WorldRun:
-    """The acquirer's set-up of a world: model, rig and the sim's odometry of the tour."""
+def world_run(world: World, seed: int, amplitude_noise: float = 0.0) -> WorldRun:
+    """The acquirer's set-up of a world: model, rig and the sim's odometry of the tour; ``amplitude_noise``: the
+    receiver's relative echo amplitude noise (the simulator's default receiver otherwise)."""
+    receiver = Receiver(amplitude_noise=amplitude_noise) if amplitude_noise else None
     return WorldRun(
         path=Path(world.name),
         world=world,
         model=build_model(world),
-        rig=world_rig(world),
+        rig=world_rig(world, receiver=receiver),
         odometry=simulate_odometry(world.poses, world.odometry),
         seed=int(seed),
     )
@@ -207,11 +210,14 @@ def _score_features(score: WorldScore, scan: WorldScan, surfaces, where: str) ->
             )
 
 
-def score_world(cls: str, seed: int, mount: str, world: World, max_poses: int = 0) -> WorldScore:
-    """Tour ``world``, reconstruct each sweep as of record, map the tour, and score everything."""
+def score_world(
+    cls: str, seed: int, mount: str, world: World, max_poses: int = 0, *, amplitude_noise: float = 0.0
+) -> WorldScore:
+    """Tour ``world``, reconstruct each sweep as of record, map the tour, and score everything
+    (``amplitude_noise``: as :func:`world_run`)."""
     score = WorldScore(cls, seed, mount)
     try:
-        run = world_run(world, seed)
+        run = world_run(world, seed, amplitude_noise)
     except Exception as exc:  # a valid world file must never fail: any exception is a bug to count
         score.fail("crash", f"set-up: {_short(exc)}")
         return score

@@ -24,6 +24,8 @@ class             what is drawn
 ``acoustics``     temperature −10–40 °C, absorption 0–4 dB/m, corner, edge and triple-bounce gains,
                   diffuse share, floor and ceiling reflectivity, no ceiling half the time
 ``reflect``       each wall and box its own reflectivity 0.1–1
+``strong_edges``  2–4 boxes at any yaw whose edges diffract 0.5–1× a mirror (a corner's gain 0.5–2.5):
+                  a lone edge or corner then echoes as a wall does
 ``odometry``      translation and rotation noise 0–10 %, heading noise and drift up to 3°/m
 ``beam``          a rectangle with a box, the capsules' echo beam 20–60° wide (−6 dB full angle), level
 ``tilt``          a rectangle with a box, the mount tilted −10…+10° about the robot's lateral axis
@@ -66,6 +68,7 @@ STRESS_CLASSES: tuple[str, ...] = (
     "heights",
     "acoustics",
     "reflect",
+    "strong_edges",
     "odometry",
     "beam",
     "tilt",
@@ -324,6 +327,12 @@ def _reflect(rng):
     return dr
 
 
+def _strong_edges(rng):
+    dr = _boxes(0.3, 1.0, (2, 5))(rng)
+    dr.acoustics = {"edge_gain": float(rng.uniform(0.5, 1.0)), "corner_gain": float(rng.uniform(0.5, 2.5))}
+    return dr
+
+
 def _odometry(rng):
     dr = _Draft(rng, _rect(rng))
     dr.n_poses = int(rng.integers(3, 6))
@@ -397,6 +406,7 @@ _DRAW: dict[str, Callable[[np.random.Generator], _Draft]] = {
     "heights": _heights,
     "acoustics": _acoustics,
     "reflect": _reflect,
+    "strong_edges": _strong_edges,
     "odometry": _odometry,
     "beam": _beam,
     "tilt": _tilt,

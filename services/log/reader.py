@@ -34,8 +34,10 @@ from __future__ import annotations
 import heapq
 import mmap
 import struct
+import threading
+from collections import deque
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from lelsonar.errors import NotMcapError
@@ -46,6 +48,7 @@ from lelsonar.log.records import (
     OP_CHANNEL,
     OP_MESSAGE,
     OP_SCHEMA,
+    RECORD_HEAD,
     BadRecord,
     ChannelInfo,
     Cursor,
@@ -55,7 +58,6 @@ from lelsonar.log.records import (
     SchemaInfo,
     Unit,
     chunk_raw,
-    inner_records,
     parse_channel,
     parse_schema,
     read_summary,
@@ -144,7 +146,9 @@ class McapSource:
             False: file order, with no merge.
         decompress_threads : int
             Threads that decompress and check the next chunks while this one is walked (zstd releases
-            the GIL); 0: each chunk is decompressed when it is reached.  What is yielded is the same.
+            the GIL); 0: each chunk is decompressed when it is reached.  A read that reaches a chunk
+            still being decompressed decompresses a later one itself meanwhile.  What is yielded is the
+            same.
 
         Holds the chunks whose time ranges overlap the message being yielded, not the file:
         chunks are merged by the message start time their header records, as the indexed
@@ -175,7 +179,8 @@ class _Read:
         self.threads = threads
         self.pool: ThreadPoolExecutor | None = None
         #: Chunks being decompressed ahead, by offset: (job, place in the job, uncompressed bytes).
-        self.inflight: dict[int, tuple[Future[list[bytes | Exception]], int, int]] = {}
+        self.inflight: dict[int, tuple[_Job, int, int]] = {}
+        self.jobs: deque[_Job] = deque()  # the jobs ahead, in the file's order (the done ones dropped lazily)
         self.inflight_bytes = 0
         self.next_ahead = 0  # the first unit not yet considered for decompressing ahead
         self.out = source.account
@@ -224,7 +229,9 @@ class _Read:
         """
         if self.pool is None:
             return
-        units, buf = self.source.units, self.buf
+        units, buf, jobs = self.source.units, self.buf, self.jobs
+        while jobs and jobs[0].finished.is_set():
+            jobs.popleft()
         j = max(self.next_ahead, i + 1)
         while j < len(units) and self.inflight_bytes < self.AHEAD_BYTES:
             job: list[tuple[Unit, int]] = []
@@ -237,20 +244,34 @@ class _Read:
                     job.append((u, usize))
                     nbytes += usize
             if job:
-                done = self.pool.submit(decompress_chunks, buf, [(u.offset + 9, u.length) for u, _ in job])
+                work = _Job(buf, [(u.offset + 9, u.length) for u, _ in job])
+                self.pool.submit(work.run)
+                self.jobs.append(work)
                 for k, (u, usize) in enumerate(job):
-                    self.inflight[u.offset] = (done, k, usize)
+                    self.inflight[u.offset] = (work, k, usize)
                 self.inflight_bytes += nbytes
         self.next_ahead = j
 
     def take_raw(self, unit: Unit) -> bytes:
-        """One chunk's content decompressed and checked: decompressed ahead, or now."""
+        """One chunk's content decompressed and checked: decompressed ahead, or now.
+
+        While its job is still being decompressed by a thread, this thread decompresses the next job no
+        thread has started (the two then share the cores instead of one waiting for the other).
+        """
         pending = self.inflight.pop(unit.offset, None)
         if pending is None:
             return chunk_raw(self.buf, unit.offset + 9, unit.length)
-        done, k, usize = pending
+        work, k, usize = pending
         self.inflight_bytes -= usize
-        raw = done.result()[k]
+        if not work.run():
+            jobs = self.jobs
+            while not work.finished.is_set():
+                while jobs and jobs[0].claimed.locked() and jobs[0] is not work:
+                    jobs.popleft()  # started by now: taken by a thread, or done
+                later = next((j for j in jobs if not j.claimed.locked()), None)
+                if later is None or not later.run():
+                    work.finished.wait()
+        raw = work.results[k]
         if isinstance(raw, Exception):
             raise raw
         return raw
@@ -264,6 +285,7 @@ class _Read:
             if self.pool is not None:
                 self.pool.shutdown(wait=True, cancel_futures=True)  # before the file's map is closed
                 self.inflight.clear()
+                self.jobs.clear()
 
     def in_file_order(self) -> Iterator[RawMessage]:
         for i, unit in enumerate(self.source.units):
@@ -333,7 +355,11 @@ class _Read:
         return found
 
     def parse_chunk(self, unit: Unit) -> tuple[list[RawMessage], dict[int, int], int, int]:
-        """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere."""
+        """Decompress, check and walk one chunk; nothing is kept from a chunk that fails anywhere.
+
+        The records are walked as :func:`~lelsonar.log.records.inner_records` walks them (the same checks,
+        the same errors), inline: a chunk holds a few records per step, and the walk is per record.
+        """
         raw = self.take_raw(unit)
         out = self.out
         found: list[RawMessage] = []
@@ -341,10 +367,22 @@ class _Read:
         schemas: list[SchemaInfo] = []
         channels: list[ChannelInfo] = []
         t0, t1 = 1 << 64, 0
-        unpack_message, message_head = MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
+        unpack_head, unpack_message, message_head = RECORD_HEAD.unpack_from, MESSAGE_HEAD.unpack_from, MESSAGE_HEAD.size
         known, wanted = out.channels, self.wanted
-        for op, body, stop in inner_records(raw):
+        offset = unit.offset
+        size = len(raw)
+        pos = 0
+        while pos < size:
+            if pos + 9 > size:
+                raise BadRecord("field of 9 bytes runs past the record")
+            op, n = unpack_head(raw, pos)
+            body = pos + 9
+            pos = body + n
+            if pos > size:
+                raise BadRecord("record inside the chunk runs past it")
             if op == OP_MESSAGE:
+                if n < message_head:
+                    raise BadRecord(f"field of {message_head} bytes runs past the record")
                 cid, seq, t_log, t_pub = unpack_message(raw, body)
                 counts[cid] = counts.get(cid, 0) + 1
                 if t_log < t0:
@@ -355,11 +393,11 @@ class _Read:
                 if hit is None:
                     hit = self.is_wanted(cid) if cid in known or not channels else self.decide(cid, channels, schemas)
                 if hit:
-                    found.append(RawMessage(cid, seq, t_log, t_pub, raw[body + message_head : stop], unit.offset))
+                    found.append(RawMessage(cid, seq, t_log, t_pub, raw[body + message_head : pos], offset))
             elif op == OP_SCHEMA:
-                schemas.append(parse_schema(Cursor(raw, body, stop)))
+                schemas.append(parse_schema(Cursor(raw, body, pos)))
             elif op == OP_CHANNEL:
-                channels.append(parse_channel(Cursor(raw, body, stop)))
+                channels.append(parse_channel(Cursor(raw, body, pos)))
         for s in schemas:
             out.schemas.setdefault(s.id, s)
         for ch in channels:
@@ -393,6 +431,31 @@ class _Read:
         nbytes = unit.stop - unit.offset
         est = round(nbytes * self.good_messages / self.good_bytes) if self.good_bytes else 0
         self.out.damage.append(Damage(unit.offset, nbytes, "chunk", reason, None, est))
+
+
+class _Job:
+    """Chunks decompressed together, by whichever thread claims the job first: a decompressing thread, or
+    the reading thread when it gets there first."""
+
+    __slots__ = ("buf", "places", "claimed", "finished", "results")
+
+    def __init__(self, buf, places: list[tuple[int, int]]) -> None:
+        self.buf, self.places = buf, places
+        self.claimed = threading.Lock()  # taken once, never released: the claim
+        self.finished = threading.Event()
+        self.results: list[bytes | Exception] = []
+
+    def run(self) -> bool:
+        """Decompress the chunks here, unless another thread has claimed them; whether this one did."""
+        if not self.claimed.acquire(blocking=False):
+            return False
+        try:
+            self.results = decompress_chunks(self.buf, self.places)
+        except Exception as exc:  # noqa: BLE001 - not damage (decompress_chunks returns that): the reader raises it
+            self.results = [exc] * len(self.places)
+        finally:
+            self.finished.set()
+        return True
 
 
 def decompress_chunks(buf, places: list[tuple[int, int]]) -> list[bytes | Exception]:

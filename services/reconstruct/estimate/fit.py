@@ -371,6 +371,7 @@ def make_plane_fit(
     diagnostics: SolverDiagnostics,
     model: str = "paper",
     stderr: tuple[float, float] | None = None,
+    theta_covariance: np.ndarray | None = None,
 ) -> PlaneFit | FitFailure:
     """Assemble a :class:`PlaneFit` for ``θ`` (eq. 1) on ``data``.
 
@@ -391,6 +392,9 @@ def make_plane_fit(
         Standard errors of the normal (rad) and offset (m) to report instead of
         the covariance's (a caller's own error model), validated as
         :meth:`PlaneFit.replace_scalars` validates them.
+    theta_covariance : (3, 3) array, optional
+        With ``stderr``: the covariance of ``θ`` from the caller's own error model, reported where the points
+        alone do not constrain ``θ`` (one capsule per step leaves the tilt to a prior); unused where they do.
 
     Returns
     -------
@@ -416,9 +420,21 @@ def make_plane_fit(
         t, x, np.zeros(data.n) if shift is None else shift, mask, shift is not None
     )
     if not (math.isfinite(se_n) and math.isfinite(se_h)):  # (floats: math's test, not a ufunc's)
-        return FitFailure(
-            FailureReason.DEGENERATE_GEOMETRY, f"{method}: the inliers do not constrain the plane", data.label, data.n
-        )
+        if stderr is None or theta_covariance is None or not np.all(np.isfinite(theta_covariance)):
+            return FitFailure(
+                FailureReason.DEGENERATE_GEOMETRY,
+                f"{method}: the inliers do not constrain the plane",
+                data.label,
+                data.n,
+            )
+        # The caller's error model stands in for the points' own covariance: the rest is the points' as ever.
+        e = ordered
+        ordered = np.sort(e)
+        cov = 0.5 * (theta_covariance + theta_covariance.T)
+        xi, si, ei = x[mask], (np.zeros(data.n) if shift is None else shift)[mask], e[mask]
+        sigma_relative, sigma = MAD_K * mad_of(ei), MAD_K * mad_of(ei / nt)
+        patch = observed_patch_of(n, 1.0 / nt, xi + si[:, None] * n if shift is not None else xi)
+        entropy = residual_entropy(e) if data.n >= 2 else 0.0
     # Every array is fresh and every check of PlaneFit's constructor holds by construction (see
     # PlaneFit.from_owned); the mask is copied, since the caller may hold (and later change) it.
     fit = PlaneFit.from_owned(

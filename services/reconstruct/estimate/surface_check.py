@@ -48,7 +48,8 @@ def surface_finding(
 
     Returns
     -------
-    ``((DEGRADED, reason),)`` when a good surface holding most of the plane's inlier steps has a normal
+    ``((DEGRADED, reason),)`` when a surface good on its own echoes (``Surface.own_quality``) holding most
+    of the plane's inlier steps has a normal
     more than ``3 √(σ_L² + σ_s²)`` and more than ``max_normal_stderr`` from the plane's; else ``()``.
     """
     if not isinstance(plane, PlaneFit) or plane.quality != GOOD or data is None or not surfaces.surfaces:
@@ -58,7 +59,9 @@ def surface_finding(
     if steps.size == 0:
         return ()
     best = max(surfaces.surfaces, key=lambda s: float(np.isin(steps, s.steps).mean()))
-    if best.quality != GOOD or float(np.isin(steps, best.steps).mean()) < OWN_SHARE:
+    # What the surface's own echoes say of its plane: a lone region the sweep does not confirm a plane still
+    # measures the bearing of the echoes the L plane holds.
+    if best.own_quality != GOOD or float(np.isin(steps, best.steps).mean()) < OWN_SHARE:
         return ()
     angle = math.acos(min(1.0, abs(float(best.normal @ plane.normal))))
     sigma = math.hypot(plane.normal_stderr, math.sqrt(max(float(best.covariance[0, 0] + best.covariance[1, 1]), 0.0)))

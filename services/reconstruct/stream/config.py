@@ -10,6 +10,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, FitOptions
 from lelsonar.reconstruct.estimate.record import RecordOptions
 from lelsonar.reconstruct.stream.final_pool import PoolStats
+from lelsonar.reconstruct.stream.ingest import Ingest
 from lelsonar.v1.reconstruction_pb2 import ScanAccounting
 
 
@@ -43,11 +44,25 @@ class ReconstructConfig:
         s; while a backlog waits, every provisional refit waits for it (the samples come first); one whose
         scan has had no estimate for over twice this is shed (``ServiceStats.provisionals_shed``) when
         a tick still finds a backlog, and the scan's next refit covers it.
+    provisional_deadline : float
+        s a live sample may have waited, beyond the quickest of its scan's samples (the transit and the
+        offset of the scanner's clock to this host's), when the provisional estimate it ends is due: an
+        older one is stale, and is shed (``ServiceStats.provisionals_stale``) rather than published late;
+        the scan's next refit on a fresh sample covers it.  Applies where the service is given a wall
+        clock (:attr:`ReconstructionService.wall_ns`: a live source), never to a replay.  The exact fits
+        due run anyway (a fit is never shed).  0 disables it.
+    provisional_backlog : int
+        Payloads waiting behind a sample that a live source still calls a short backlog: the sample's
+        provisional refit runs at once, without its exact fits, which wait for the backlog to drain
+        (``handle(..., fits_wait=True)``); behind a longer one the refit waits too (``busy``).  A refit
+        deferred waits for the backlog to drain, and that wait is its estimate's latency, while the update
+        run at once holds the samples behind it a fraction of a millisecond.
     provisional_budget : float
         s of work that waited for a backlog one :meth:`ReconstructionService.tick` or
         :meth:`ReconstructionService.catch_up` runs: the finals of scans completed meanwhile, then the
         deferred provisional refits (oldest estimate first, without their exact fits), then those exact
-        fits; the rest wait for the next call, so catching up never holds the stream for long.
+        fits; the rest wait for the next call, so catching up never holds the stream for long (at least one
+        runs a call: the default is about one exact fit).
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -82,7 +97,9 @@ class ReconstructConfig:
     confirm_ratio: float = 1.5
     provisional: bool = True
     max_provisional_delay: float = 0.25
-    provisional_budget: float = 0.01
+    provisional_deadline: float = 0.04
+    provisional_backlog: int = 32
+    provisional_budget: float = 0.003
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
@@ -99,10 +116,14 @@ class ReconstructConfig:
         for name in (self.method, *self.compare_methods):
             if name not in METHODS:
                 raise ConfigError(f"unknown method {name!r}; choose from {', '.join(sorted(METHODS))}")
+        if self.provisional_backlog < 0:
+            raise ConfigError(f"provisional_backlog must be >= 0 payloads, got {self.provisional_backlog}")
         if self.refit_every < 1 or self.confirm_steps < 1:
             raise ConfigError("refit_every and confirm_steps must be >= 1")
         if not self.provisional_period >= 0:
             raise ConfigError("provisional_period must be >= 0 s")
+        if not self.provisional_deadline >= 0:
+            raise ConfigError(f"provisional_deadline must be >= 0 s (0: off), got {self.provisional_deadline}")
         if not (self.scan_timeout > 0 and self.end_grace >= 0 and self.confirm_ratio >= 1):
             raise ConfigError("scan_timeout must be > 0 s, end_grace >= 0 s and confirm_ratio >= 1")
         if self.recovery_attempts < 0 or not (self.recovery_interval > 0 and self.recovery_after > 0):
@@ -141,6 +162,8 @@ class ServiceStats:
     recovery_refused: int = 0
     #: Deferred provisional refits dropped under a backlog (the final is never shed).
     provisionals_shed: int = 0
+    #: Provisional estimates due on a live sample that had waited past ``provisional_deadline``: not published.
+    provisionals_stale: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
     #: Finals estimated in a pool's workers, workers lost (killed, crashed), finals run again after a loss.
@@ -169,6 +192,37 @@ class ServiceStats:
         self.finals_in_workers += pool.pooled
         self.final_workers_lost += pool.workers_lost
         self.finals_rerun += pool.rerun
+
+    def as_dict(self, ingest: Ingest, pool: PoolStats | None) -> dict:
+        """Everything counted so far, with what ``ingest`` counted and the pool in use (``stats_dict``)."""
+        return {
+            "estimates": self.estimates,
+            "finals": self.finals,
+            "final_timeouts": self.timeouts,
+            "incomplete": self.incomplete,
+            "samples": {
+                "published": self.published,
+                "received_live": self.received_live,
+                "recovered": self.recovered,
+                "duplicates": self.duplicates,
+                "missing": self.missing,
+                # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
+                "energy_mismatches": ingest.energy_mismatches,
+            },
+            "rejected": dict(ingest.rejected),
+            "evicted": dict(ingest.evicted + self.evicted),
+            "recovery": {
+                "requests": self.recovery_requests,
+                "refused": self.recovery_refused,
+                "replies_after_verdict": ingest.recovered_after_close,
+            },
+            "provisionals_shed": self.provisionals_shed,
+            "provisionals_stale": self.provisionals_stale,
+            "finals_pool": self.pool_dict(pool),
+            "open_scans": len(ingest.scans),
+            "pending_samples": ingest.n_pending,
+            "scans_without_start": self.without_start,
+        }
 
     def pool_dict(self, current: PoolStats | None) -> dict[str, int]:
         """The finals' estimation, for ``stats_dict``: with ``current``, the pool in use, counted so far."""

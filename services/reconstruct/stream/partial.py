@@ -28,6 +28,11 @@ class Partial(ProvisionalState):
     #: A provisional refit waited for a backlog (tick() catches up).
     deferred: bool = False
     last_activity: float = 0.0
+    #: ns: the least (wall clock at handling − acquisition time) over the scan's live samples: their transit
+    #: and the two clocks' offset; what a sample waited beyond it is its delay (None: no live sample yet).
+    transit_floor_ns: int | None = None
+    #: Steps held when a stale provisional estimate was last counted (one is counted a ``refit_every`` steps).
+    stale_at: int = 0
     ended_at: float | None = None
     recovery: RecoveryState = field(default_factory=RecoveryState)
     #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).

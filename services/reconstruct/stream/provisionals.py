@@ -1,8 +1,12 @@
 """When a scan's provisional refit runs while a backlog waits: deferred, caught up within a budget, or shed.
 
-A refit that would hold samples waiting behind it is deferred: with many scanners a backlog builds where their
-scans reach the same costly refit together (the corner's confirmation, plane b's exact fits, when the scans
-run in step), and samples that wait behind those refits are late for every scan.
+A refit behind a long backlog is deferred: with many scanners a backlog builds where their scans reach the
+same costly refit together (the corner's confirmation, plane b's exact fits, when the scans run in step), and
+samples that wait behind those refits are late for every scan.  Behind a short backlog the refit runs at once
+without its exact fits, which wait (:meth:`ProvisionalSchedule.fits_later`): its update costs the samples
+behind it a fraction of a millisecond, where deferring it would cost its estimate the backlog's drain.
+Live, a refit due on a sample that waited over ``provisional_deadline`` beyond its scan's quickest is stale
+(:meth:`ProvisionalSchedule.stale`): not published, and counted.
 :meth:`ProvisionalSchedule.catch_up` runs the deferred ones oldest estimate first, for at most
 ``provisional_budget`` of the service's clock, leaving the rest for the next call (the source calls it when
 the backlog has drained, and on every tick); a tick that still finds a backlog sheds, and counts, the refit
@@ -43,6 +47,8 @@ class ProvisionalSchedule:
         self._clock = clock
         self._deferred: set[ScanKey] = set()
         self._fits: set[ScanKey] = set()  # scans whose exact fit waits
+        #: The wall clock (ns) a live source gives (None: no estimate is stale, as in a replay).
+        self.wall_ns: Callable[[], int] | None = None
 
     def __bool__(self) -> bool:
         """Whether a refit or an exact fit waits."""
@@ -55,6 +61,25 @@ class ProvisionalSchedule:
             self._deferred.add(key)
             return True
         return False
+
+    def arrived(self, scan: ScanAssembly, step: int, p: Partial) -> None:
+        """A live sample was handled: keep its scan's transit floor (the least wall clock − acquisition time)."""
+        if self.wall_ns is not None:
+            lag = self.wall_ns() - int(scan.time_ns[step])
+            if p.transit_floor_ns is None or lag < p.transit_floor_ns:
+                p.transit_floor_ns = lag
+
+    def stale(self, scan: ScanAssembly, p: Partial) -> bool:
+        """Whether the scan's newest sample waited over ``provisional_deadline`` beyond the quickest of its
+        scan's (the transit and the clocks' offset): its provisional estimate would be published late."""
+        deadline = self.config.provisional_deadline
+        if self.wall_ns is None or not deadline or p.transit_floor_ns is None:
+            return False
+        return self.wall_ns() - scan.newest_ns - p.transit_floor_ns > deadline * 1e9
+
+    def fits_later(self, key: ScanKey) -> None:
+        """The scan's refit ran without its exact fits (payloads waited): they run when the backlog drains."""
+        self._fits.add(key)
 
     def catch_up(
         self,

@@ -11,10 +11,12 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
 2. every ``refit_every`` steps the provisional variant runs: it confirms the corner (R at its maximum
    well above the scan's typical R, enough steps after it), then re-estimates plane b in O(new
    samples), at most once per ``provisional_period`` of scan time (default 0.08 s: ≤ 12.5 provisional
-   estimates a second per scan) — and while a backlog waits (``handle(..., busy=True)``) it waits too
+   estimates a second per scan) — behind a short backlog (``handle(..., fits_wait=True)``) it runs at once
+   and only its exact fits wait for the backlog; behind a long one (``busy=True``) it waits too
    (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
    one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains, each
-   published at once in O(new samples) and the exact fits they need made after them;
+   published at once in O(new samples) and the exact fits they need made after them; live, one due on a
+   sample that waited past ``provisional_deadline`` is not published (stale);
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
    terminal; a scan completed while a backlog waits is closed once it drains, within the same budget (its
@@ -142,6 +144,16 @@ class ReconstructionService:
         self._closing: dict[ScanKey, tuple[int, ScanAssembly, Partial]] = {}
 
     @property
+    def wall_ns(self) -> Callable[[], int] | None:
+        """The wall clock (ns) a live source gives, to tell a provisional estimate due on a sample that waited
+        too long (``provisional_deadline``); None: no estimate is stale (a replay's times are the file's)."""
+        return self._schedule.wall_ns
+
+    @wall_ns.setter
+    def wall_ns(self, clock: Callable[[], int] | None) -> None:
+        self._schedule.wall_ns = clock
+
+    @property
     def recover(self) -> Callable[[RecoveryRequest], bool] | None:
         """Asks the acquirer's log for what a scan lacks; returns False when the request was refused."""
         return self._requests.recover
@@ -166,13 +178,18 @@ class ReconstructionService:
         payload: bytes,
         *,
         busy: bool = False,
+        fits_wait: bool | None = None,
         origin: str = "live",
         key_scanner: str | None = None,
     ) -> list[codec.Reconstruction]:
         """Apply one payload; return the estimates it produced (also published).
 
-        ``busy``: more payloads are already waiting, so a provisional refit can wait
-        for them; :meth:`catch_up` and :meth:`tick` catch up.
+        ``busy``: a backlog waits, so a provisional refit can wait for it; :meth:`catch_up` and
+        :meth:`tick` catch up.
+        ``fits_wait`` (default: ``busy``): payloads wait, so a refit runs now without its exact fits
+        (milliseconds each), which wait for them: the source says a backlog is short this way, where the
+        refit's update (a fraction of a millisecond) holds the samples behind it less than deferring it
+        would hold its estimate; a scan completed meanwhile is closed once they are in, as under ``busy``.
         ``origin``: "live" (the stream) or "recovered" (the acquirer's log).
         ``key_scanner``: the scanner id of the key it came on; the payload must claim the same.
         """
@@ -181,7 +198,7 @@ class ReconstructionService:
             if isinstance(event, Rejected):
                 self._event("WARNING", f"rejected input ({event.error}): {event.detail}")
                 continue
-            out += self._on_accepted(event, busy)
+            out += self._on_accepted(event, busy, busy if fits_wait is None else fits_wait, live=origin == "live")
         now = self._clock()
         if self.ingest.late:
             late, self.ingest.late = self.ingest.late, []
@@ -351,34 +368,7 @@ class ReconstructionService:
 
     def stats_dict(self) -> dict:
         """Everything counted so far, for the exit line and ``--json``."""
-        s = self.stats
-        return {
-            "estimates": s.estimates,
-            "finals": s.finals,
-            "final_timeouts": s.timeouts,
-            "incomplete": s.incomplete,
-            "samples": {
-                "published": s.published,
-                "received_live": s.received_live,
-                "recovered": s.recovered,
-                "duplicates": s.duplicates,
-                "missing": s.missing,
-                # carried Sample.sensor_energy that disagreed with the waveforms (recomputed, not lost)
-                "energy_mismatches": self.ingest.energy_mismatches,
-            },
-            "rejected": dict(self.ingest.rejected),
-            "evicted": dict(self.ingest.evicted + s.evicted),
-            "recovery": {
-                "requests": s.recovery_requests,
-                "refused": s.recovery_refused,
-                "replies_after_verdict": self.ingest.recovered_after_close,
-            },
-            "provisionals_shed": s.provisionals_shed,
-            "finals_pool": s.pool_dict(self._pool.stats if self._pool is not None else None),
-            "open_scans": len(self.ingest.scans),
-            "pending_samples": self.ingest.n_pending,
-            "scans_without_start": s.without_start,
-        }
+        return self.stats.as_dict(self.ingest, self._pool.stats if self._pool is not None else None)
 
     # --- recovery ------------------------------------------------------------------------
     def still_wanted(self, request: RecoveryRequest) -> bool:
@@ -411,7 +401,7 @@ class ReconstructionService:
         self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
-    def _on_accepted(self, event: Accepted, busy: bool) -> list[codec.Reconstruction]:
+    def _on_accepted(self, event: Accepted, busy: bool, fits_wait: bool, *, live: bool) -> list[codec.Reconstruction]:
         scan = event.scan
         p = self._partials.get(scan.key)
         if p is None:  # not setdefault: a Partial built per sample to be thrown away costs more than the lookup
@@ -436,7 +426,7 @@ class ReconstructionService:
                 end.end_time_ns,
             )
             if scan.complete and not self._requests.settling(scan, p, p.ended_at):  # (just set: a float)
-                self._close(scan, p, busy)
+                self._close(scan, p, fits_wait)
                 return []
             missing = scan.missing_steps()
             # Live, a gap at ScanEnd is news.  In a file, another writer's log times may put the ScanEnd
@@ -456,6 +446,8 @@ class ReconstructionService:
                 )
             return []
         step = event.step
+        if live and step is not None:
+            self._schedule.arrived(scan, step, p)
         if self._observer and scan.latest is not None and scan.latest.step == step:
             self._observer.step(
                 scan,
@@ -465,11 +457,16 @@ class ReconstructionService:
                 float(scan.ratio[step]),
             )
         if p.ended_at is not None and scan.complete and not self._requests.settling(scan, p, self._clock()):
-            self._close(scan, p, busy)
+            self._close(scan, p, fits_wait)
             return []
         if self._schedule.defer(scan.key, p, busy):
             return []  # tick() catches up; the backlog's later samples will be in the next refit
-        return self._provisional(scan, p)
+        if not fits_wait:
+            return self._provisional(scan, p)
+        out = self._provisional(scan, p, fits_wait=True)
+        if p.fits_wanted:
+            self._schedule.fits_later(scan.key)  # run once the payloads waiting are in
+        return out
 
     def _provisional(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = False) -> list[codec.Reconstruction]:
         """The provisional estimate of record, every ``refit_every`` steps (:func:`reconstruct_scan`), and the
@@ -486,6 +483,15 @@ class ReconstructionService:
             and 0 < scan.newest_ns - p.provisional_ns < self._provisional_options.provisional_period * 1e9
         ):
             return []  # within the per-scan rate limit: no estimate, and no input built to learn that
+        stale = self._schedule.stale(scan, p)
+        if stale and not fits:
+            # Counted once a refit_every steps, as the estimates it stands for (before its corner, a scan has
+            # none to give); the next refit on a fresh sample covers these steps.
+            if had_corner and scan.n_received - max(p.steps_at_fit, p.stale_at) >= self.config.refit_every:
+                self.stats.provisionals_stale += 1
+                p.stale_at = scan.n_received
+            return []
+        rate_mark = p.provisional_ns
         est = reconstruct_scan(scan_input(scan, provisional=True), self._provisional_options, p, fits_wait=fits_wait)
         if not had_corner and p.critical is not None:
             self._event(
@@ -495,6 +501,10 @@ class ReconstructionService:
                 int(scan.time_ns[p.critical]),
             )
         if est is None:
+            return []
+        if stale:  # its exact fits are made (the next estimate has them); its estimate would be late
+            self.stats.provisionals_stale += 1
+            p.provisional_ns = rate_mark  # not published: the next fresh sample's estimate is not held back
             return []
         p.estimated_at = self._clock()
         msg = wire.estimate_message(est, scan.start.scanner_id, scan.start.scan_id)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import threading
 import time
@@ -126,14 +127,29 @@ def _item_bytes(item) -> int:
 REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
 
 
-def decompress_threads() -> int:
-    """Threads to decompress a replayed file ahead of the service: the cores the host's load leaves idle, up to two.
+def decompress_threads(cpus: int | None = None, runnable: int | None = None) -> int:
+    """Threads to decompress a replayed file ahead of the service: the cores no task is running on now, up to two.
 
-    The load average counts the replay itself.  On a busy host a decompressing thread finds no core
-    to run on: it would only compete with the service for the one it has, and slow the replay.
+    ``runnable`` (default: the host's tasks running or ready to run now, this one included, from
+    ``/proc/loadavg``; the load average instead where there is none).  Not the load average where the
+    kernel gives the tasks of the moment: it lags the host by a minute, and a replay right after a busy one
+    would get no thread.  The reading thread decompresses itself whatever chunk no thread has started yet
+    (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that loses its core to a neighbour holds the
+    read up by at most the one job it has started.
     """
-    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
-    return max(0, min(2, round(idle)))
+    n = cpus if cpus is not None else (os.cpu_count() or 1)
+    busy = runnable if runnable is not None else runnable_tasks()
+    return max(0, min(2, n - busy))
+
+
+def runnable_tasks() -> int:
+    """Tasks running or ready to run on the host now, the caller's included (``/proc/loadavg``'s fourth field);
+    the 1-minute load average, rounded up, where that is not readable."""
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].partition("/")[0])
+    except (OSError, ValueError, IndexError):
+        return math.ceil(os.getloadavg()[0])
 
 
 def replay_mcap(
@@ -141,7 +157,7 @@ def replay_mcap(
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
-    Where the host has an idle core, the next chunks of the file are decompressed and checked on
+    On a host of several cores, the next chunks of the file are decompressed and checked on
     other threads while the service handles a payload (:func:`decompress_threads`,
     :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
     the estimation.  The finals are estimated in worker processes while the file is read
@@ -180,9 +196,9 @@ COLD_START_SCANS = 50
 
 def replay_workers(configured: int | None, scans: int | None) -> int:
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
-    load leaves cores idle (as :func:`decompress_threads`: a worker that finds no core only competes with
-    the reading).  None for a file of one scan, whose final can overlap nothing, nor by default for a file
-    of fewer than :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
+    load leaves cores idle (a worker that finds no core only competes with the reading).  None for a file of
+    one scan, whose final can overlap nothing, nor by default for a file of fewer than
+    :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
     if scans is not None and scans < 2:
         return 0
     if configured is not None:
@@ -347,6 +363,8 @@ class LiveSource:
         self._doorbell = threading.Thread(target=self._ring, name="reconstruct-doorbell", daemon=True)
         self.errors = 0
         self.error_types: Counter[str] = Counter()
+        #: Samples the doorbell handed over (each one woke an idle worker).
+        self.rings = 0
         #: Where the finals are estimated, off this source's thread (None: on it).
         workers = service.config.final_workers
         self._workers = auto_workers() if workers is None else workers
@@ -367,6 +385,8 @@ class LiveSource:
             self._service.recovery_policy = dataclasses.replace(
                 self._service.recovery_policy, log_may_answer=self._recovery.may_answer
             )
+        # Live, a provisional estimate due on a sample that waited too long is stale (a replay's never is).
+        self._service.wall_ns = time.time_ns
         if self._workers:
             self._pool = FinalPool(self._workers, on_ready=self._finals_ready)
             self._service.use_pool(self._pool)
@@ -388,6 +408,7 @@ class LiveSource:
             pass  # full: the processing thread sees the stop flag within one payload
         self._thread.join(timeout=5)
         self._doorbell.join(timeout=5)
+        self._service.wall_ns = None
         if self._pool is not None:
             try:
                 for msg in self._service.use_pool(None):  # the finals on their way: published before the source ends
@@ -490,6 +511,7 @@ class LiveSource:
                     item = None
                 if isinstance(item, zenoh.Sample):  # the doorbell's: it has stopped reading the channel
                     reading = True
+                    self.rings += 1
                     item = self._received(item)
                 if not pending:
                     self._pull(pending, reading)  # so that `waiting` says whether more came in
@@ -507,19 +529,29 @@ class LiveSource:
 
     def _apply(self, item: tuple[str, bytes | zenoh.ZBytes, str, str | None] | None, waiting: int) -> None:
         if item is not None:
-            self._guarded(self._handle, *item, busy=waiting > 0)
+            # Behind a short backlog a provisional refit runs now, its exact fits wait; behind a long one it waits.
+            self._guarded(
+                self._handle, *item, busy=waiting > self._service.config.provisional_backlog, fits_wait=waiting > 0
+            )
 
     def _handle(
-        self, encoding: str, payload: bytes | zenoh.ZBytes, origin: str, key_scanner: str | None, *, busy: bool
+        self,
+        encoding: str,
+        payload: bytes | zenoh.ZBytes,
+        origin: str,
+        key_scanner: str | None,
+        *,
+        busy: bool,
+        fits_wait: bool,
     ) -> list[codec.Reconstruction]:
         if not isinstance(payload, bytes) and len(payload) <= self._service.config.limits.max_payload_bytes:
             payload = payload.to_bytes()  # a live payload's ZBytes, copied once (a larger one is refused uncopied)
         media, _, type_name = encoding.partition(";")
-        # With more payloads waiting (busy), a provisional refit waits for them too.
         return self._service.handle(
             type_name if media == "application/protobuf" else encoding,
             cast(bytes, payload),  # or a ZBytes over the decode limit: ingest refuses it by its length, uncopied
             busy=busy,
+            fits_wait=fits_wait,
             origin=origin,
             key_scanner=key_scanner,
         )

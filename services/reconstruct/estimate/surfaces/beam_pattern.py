@@ -24,6 +24,7 @@ __all__ = [
     "amplitude_jump",
     "unfaded_ends",
     "end_crossing_stderr",
+    "capsule_peak_spread",
 ]
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
@@ -129,7 +130,7 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
 
 
 def extrapolated_peak(
-    gamma: np.ndarray, amplitude: np.ndarray, curvature: float, *, before: float, after: float
+    gamma: np.ndarray, amplitude: np.ndarray, curvature: float, *, before: float, after: float, sigmas: float = 3.0
 ) -> float | None:
     """The peak amplitude of a region whose peak lies past a cut end, from the flank it shows.
 
@@ -137,7 +138,11 @@ def extrapolated_peak(
     is a line in ``u``: its slope puts the vertex ``v``, and ``P`` follows.
     On the flank the piston pattern falls faster than its parabola, so the
     slope overstates how far the peak is and ``P`` overstates the peak: an
-    upper estimate, safe to call an echo weak by, never strong.
+    upper estimate, safe to call an echo weak by, never strong.  A few steps'
+    amplitude noise moves the slope, and ``P`` grows as ``k v²`` with the
+    vertex's distance: the estimate is the largest ``P`` over the vertices
+    within ``sigmas`` σ of the line's fit (its residuals' σ through the slope
+    and the level), inside the reach; with too few steps for a residual, none.
 
     Parameters
     ----------
@@ -167,7 +172,15 @@ def extrapolated_peak(
     lo, hi = float(u.min()) - before, float(u.max()) + after
     if not lo <= v <= hi:
         return None
-    peak = math.exp(float(icpt) + curvature * v * v)
+    # The line's own σ (u is centred: slope and level are independent), from its residuals.
+    res = y - (float(slope) * u + float(icpt))
+    s2 = float(res @ res) / (u.size - 2)
+    suu = float(u @ u)
+    if not suu > 0:
+        return None
+    dv = sigmas * math.sqrt(s2 / suu) / (2 * curvature)
+    far = max(abs(max(lo, v - dv)), abs(min(hi, v + dv)))
+    peak = math.exp(float(icpt) + sigmas * math.sqrt(s2 / u.size) + curvature * far * far)
     return max(peak, float(a.max()))
 
 
@@ -406,3 +419,30 @@ def end_crossing_stderr(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float
         slope = float(np.polyfit(g[sel], la[sel], 1)[0])
         out.append(min(sigma / abs(slope), span / math.sqrt(12.0)) if slope != 0 else span / math.sqrt(12.0))
     return out[0], out[1]
+
+
+def capsule_peak_spread(gamma: np.ndarray, amplitude: np.ndarray) -> float:
+    """How far the capsules' own beam-pattern peaks disagree: the bearing's share of echoes summed into one.
+
+    One target's echo reaches every capsule with the same beam pattern ``D(γ − β)²`` (the capsules' beams are
+    parallel; their ranges differ by centimetres, their spreading by a few %), so each capsule's own peak
+    (:func:`bearing_from_amplitude` on its amplitudes alone) is the same β up to its noise.  A second echo
+    summing into the amplitude window (a double bounce at a like range) adds with a phase that differs from
+    capsule to capsule, since their paths differ by wavelengths: each capsule's peak moves its own way.  The
+    spread of their peaks (sample standard deviation) is then the size of that shift, which their median
+    does not average away and which the parabola's residuals of the step medians do not show.
+
+    Parameters
+    ----------
+    gamma : (k,) array
+        Steps' γ, rad.
+    amplitude : (k, n_capsules) array
+        Each step's echo amplitude per capsule, V (NaN: none).
+
+    Returns
+    -------
+    The spread, rad (0 with fewer than two capsules that show a peak).
+    """
+    a = np.asarray(amplitude, dtype=np.float64)
+    peaks = [p[0] for c in range(a.shape[1]) for p in [bearing_from_amplitude(gamma, a[:, c])] if p is not None]
+    return float(np.std(peaks, ddof=1)) if len(peaks) >= 2 else 0.0

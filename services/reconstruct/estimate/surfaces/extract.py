@@ -63,6 +63,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump, log_amplitude_curvature
+from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import (
     across_stack,
     beyond_reach,
@@ -80,7 +81,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 )
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flanks import partial_regions, split_dihedral, split_ends
+from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
@@ -157,7 +158,7 @@ def extract_surfaces(
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, kinds, across_lines, surface_of, joint, opts)
     return SurfaceSet(
-        surfaces=tuple(surfaces),
+        surfaces=tuple(confirm_surfaces(surfaces, _confirmed(measured, kinds, across_lines, surface_of))),
         corners=tuple(corners),
         edges=tuple(edges),
         n_echoes=int(np.count_nonzero(np.isfinite(sweep.distance))),
@@ -227,6 +228,9 @@ def _measured_regions(sweep: _Sweep) -> tuple[list[Measured], set[int]]:
         reach = opts.beyond_cut / math.sqrt(3.0)
         tilt_se = math.hypot(pm.tilt_stderr, reach) if math.isfinite(pm.tilt_stderr) else reach
         measured.append(replace(pm, tilt_stderr=tilt_se))
+    # A target part of the stack hears past a nearer one the other capsules hear first: a region of the fan.
+    for r in masked_regions(d, [m.region for m in measured], opts, sweep.spread):
+        measured.append(measure_region(r, g, d, amp, geometry, opts, step=step))
     return measured, partial
 
 
@@ -328,7 +332,12 @@ def _classify(
     planes = _planes(measured, partial, across, scale, opts)
     walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, sweep.gamma, opts)
     for i, text in walls_of_corners.items():
-        measured[i] = replace(measured[i], findings=(*measured[i].findings, (DEGRADED, text)))
+        m = measured[i]
+        if m.bearing_source == "amplitude peak":
+            # Its corner's echo answers beside it inside the amplitude window and sums into its flank: the peak
+            # may sit anywhere the region allows its foot.
+            m = replace(m, bearing_stderr=reach_stderr(m, opts))
+        measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
     kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
     for i in range(len(measured)):
@@ -428,7 +437,7 @@ def _ties(
             ties = [pool[j] for j in which]
             m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
     else:
-        ties = _on_traces(i, planes, measured, partial, opts)
+        ties = [] if wall_of_corner else _on_traces(i, planes, measured, partial, opts)
     return m, ties
 
 
@@ -523,6 +532,19 @@ def _fit_planes(
         surface_of[i] = s
         surfaces.append(s)
     return surfaces, surface_of, failed, unsorted
+
+
+def _confirmed(
+    measured: list[Measured], kinds: dict[int, Kind], across_lines: set[int], surface_of: dict[int, Surface]
+) -> set[str]:
+    """Labels of the planes a feature ties by a test: all but an end placed on one plane's trace because its own
+    bearing is undetermined (:func:`~.confirm.confirm_surfaces`)."""
+    out: set[str] = set()
+    for i, (_kind, _reasons, ties) in kinds.items():
+        placed = len(ties) == 1 and i not in across_lines and measured[i].bearing_source == "undetermined"
+        if not placed:
+            out.update(surface_of[j].label for j in ties if j in surface_of)
+    return out
 
 
 def _unexplained(sweep: _Sweep, regions: list[Region], failed: int, unsorted: int) -> dict[str, int]:

@@ -49,7 +49,7 @@ def fit_surface(
     )
     jac = np.array([float(np.mean(caps @ dn_db)), float(np.mean(caps @ dn_dt))])
     tilt_var = m.tilt_stderr**2 if math.isfinite(m.tilt_stderr) else (math.pi / 2) ** 2
-    ang = np.diag([m.bearing_stderr**2, tilt_var])
+    ang = np.diag([m.surface_bearing_stderr**2, tilt_var])
     var_h = (sigma**2 / max(r.rows.size, 1) if math.isfinite(sigma) else 0.0) + float(jac @ ang @ jac)
     cov = np.zeros((3, 3))
     cov[:2, :2] = ang
@@ -66,7 +66,8 @@ def fit_surface(
         inlier_mask=np.ones(data.n, dtype=bool),
         diagnostics=SolverDiagnostics(solver=METHOD, notes=(f"bearing: {m.bearing_source}",)),
         model="constant-depth",
-        stderr=(math.sqrt(m.bearing_stderr**2 + tilt_var), math.sqrt(var_h)),
+        stderr=(math.sqrt(m.surface_bearing_stderr**2 + tilt_var), math.sqrt(var_h)),
+        theta_covariance=None if math.isfinite(m.tilt_stderr) else theta_covariance(n, h, dn_db, dn_dt, cov),
     )
     if not isinstance(fit, PlaneFit):
         return None
@@ -83,6 +84,32 @@ def fit_surface(
         rows=r.rows.copy(),
         capsules=r.capsules.copy(),
     )
+
+
+def theta_covariance(n: np.ndarray, h: float, dn_db: np.ndarray, dn_dt: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The covariance of ``θ = n/h`` (eq. 1) from that of (bearing, tilt, offset), to first order.
+
+    Where the capsule stack does not constrain the tilt (one capsule per step), the ranges alone leave ``θ``
+    undetermined along it; the surface's own error model (the tilt unknown to ±π/2) still bounds it.
+
+    Parameters
+    ----------
+    n : (3,) array
+        The unit normal at (bearing, tilt).
+    h : float
+        The offset, m.
+    dn_db, dn_dt : (3,) arrays
+        ``∂n/∂β`` and ``∂n/∂t``.
+    cov : (3, 3) array
+        Over (bearing rad, tilt rad, offset m).
+
+    Returns
+    -------
+    (3, 3) array, 1/m².
+    """
+    jac = np.stack([dn_db / h, dn_dt / h, -n / (h * h)], axis=1)
+    out = jac @ cov @ jac.T
+    return 0.5 * (out + out.T)
 
 
 def _joint_surface(
@@ -152,7 +179,9 @@ def joint_fit(
         sigma = _scatter(mj.ranges + mj.positions @ unit_normal(mj.bearing, mj.tilt))
         if not (math.isfinite(sigma) and sigma > 0):
             return {}, {}
-        evidence.append(WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.bearing_stderr, mj.tilt, mj.depth, sigma))
+        evidence.append(
+            WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.surface_bearing_stderr, mj.tilt, mj.depth, sigma)
+        )
     corners = []
     for i, ties in pairs:
         mi = measured[i]
@@ -174,10 +203,10 @@ def joint_fit(
     for j, jw in zip(walls, fitted, strict=True):
         mj = measured[j]
         gap = abs(wrap(jw.bearing - mj.bearing))
-        if gap > 3 * mj.bearing_stderr:
+        if gap > 3 * mj.surface_bearing_stderr:
             disputed[j] = (
                 f"its corners' double bounce puts its bearing {math.degrees(gap):.1f}° from the beam pattern's "
-                f"(σ {math.degrees(mj.bearing_stderr):.1f}°): fitted on its own echoes"
+                f"(σ {math.degrees(mj.surface_bearing_stderr):.1f}°): fitted on its own echoes"
             )
         else:
             out[j] = jw

@@ -4,7 +4,8 @@
 * :func:`trim_ends`: ends whose slope along the stack, or depth, is not the middle's plane's;
 * :func:`split_ends`: the two for one region, in that order;
 * :func:`split_dihedral`: an end block that is the double bounce of the plane with a nearer plane;
-* :func:`partial_regions`: a target part of the stack hears, among the readings no region holds.
+* :func:`partial_regions`: a target part of the stack hears, among the readings no region holds;
+* :func:`masked_regions`: a target part of the stack hears past a nearer one the rest hear first.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions,
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
+    "masked_regions",
     "partial_regions",
     "split_dihedral",
     "split_ends",
@@ -503,3 +505,47 @@ def _flank_of(r: Region, own: float, held: list[Region], d: np.ndarray, opts: Su
         if abs(float(np.median(d[h.rows, h.capsules])) - own) <= 2 * opts.range_tolerance:
             return True
     return False
+
+
+def masked_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spread: float) -> list[Region]:
+    """Regions among the readings no region holds, farther than a nearer target every other capsule hears at
+    each of their steps (a wall past a box whose top only some capsules' beams clear).
+
+    The receiver keeps each capsule's first echo: a capsule that hears a nearer target never reports a farther
+    one, so a farther target's silence in those capsules says nothing of where it lies.  Where, at each of the
+    region's steps, every capsule without a reading of the region holds a nearer reading of some region
+    (nearer by more than the range tolerance), the target is heard as far as the first-echo receiver lets
+    it be: a region of the fan like any other, classified on its own evidence (with one capsule per step its
+    tilt is not determined, and its fit says so).
+
+    Parameters
+    ----------
+    d : (n_steps, n_capsules) array
+        The sweep's ranges, m.
+    held : list of Region
+        The regions found so far (those part of the stack hears included).
+    opts : SurfaceOptions
+    spread : float
+        m: as :func:`~.regions.find_regions`' ``max_spread``.
+
+    Returns
+    -------
+    list of Region, in sweep order.
+    """
+    mask = np.zeros(d.shape, dtype=bool)
+    for r in held:
+        mask[r.rows, r.capsules] = True
+    rest = np.where(mask, np.nan, d)
+    out = []
+    for r in find_regions(
+        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
+    ):
+        own = float(np.median(d[r.rows, r.capsules]))
+        mine = np.zeros((r.steps.size, d.shape[1]), dtype=bool)
+        mine[np.searchsorted(r.steps, r.rows), r.capsules] = True
+        block = np.where(mask[r.steps], d[r.steps], np.nan)
+        with np.errstate(invalid="ignore"):
+            nearer = block < own - opts.range_tolerance
+        if np.all(mine | nearer):
+            out.append(r)
+    return out

@@ -19,6 +19,7 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     PLATEAU,
     amplitude_jump,
     bearing_from_amplitude,
+    capsule_peak_spread,
     end_crossing_stderr,
     unfaded_ends,
 )
@@ -32,6 +33,7 @@ __all__ = [
     "measure_region",
     "mirror_normalised",
     "step_medians",
+    "step_table",
     "summed_width_stderr",
     "sweep_step",
     "unit_normal",
@@ -65,11 +67,28 @@ class Measured:
     positions: np.ndarray  # (N, 3) each reading's capsule position, m
     ranges: np.ndarray  # (N,) each reading's range, m
     stack_sigma: float  # residual σ of the ranges along the stack about a free slope per region, m
+    # rad: how far an echo summed into the amplitude window may have moved the bearing, the capsules' own peaks'
+    # spread times the peak's share of the bearing; part of the surface's σ, not of the tests that classify it
+    summed_spread: float = 0.0
+
+    @property
+    def surface_bearing_stderr(self) -> float:
+        """The bearing's σ a surface of this region reports: ``bearing_stderr`` and ``summed_spread``, rad."""
+        return math.hypot(self.bearing_stderr, self.summed_spread)
 
 
 def unit_normal(bearing: float, tilt: float = 0.0) -> np.ndarray:
     c = math.cos(tilt)
     return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
+
+
+def step_table(region: Region, values: np.ndarray) -> np.ndarray:
+    """The region's readings' values by step and capsule: ``(len(region.steps), n_capsules)``, NaN where the
+    capsule has no reading of the region at that step (or its value is not finite)."""
+    table = np.full((region.steps.size, values.shape[1]), np.nan)
+    v = values[region.rows, region.capsules]
+    table[np.searchsorted(region.steps, region.rows), region.capsules] = np.where(np.isfinite(v), v, np.nan)
+    return table
 
 
 def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
@@ -85,9 +104,7 @@ def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
     -------
     (k,) array over ``region.steps``.
     """
-    table = np.full((region.steps.size, values.shape[1]), np.nan)
-    v = values[region.rows, region.capsules]
-    table[np.searchsorted(region.steps, region.rows), region.capsules] = np.where(np.isfinite(v), v, np.nan)
+    table = step_table(region, values)
     table.sort(axis=1)  # NaN last: each row's first `count` values are its finite ones, in order
     count = np.count_nonzero(np.isfinite(table), axis=1)
     row = np.arange(table.shape[0])
@@ -169,6 +186,8 @@ def measure_region(
     cut = region.cut_before or region.cut_after
     mid = 0.5 * (float(g[0]) + float(g[-1]))
     peak_fit = None
+    spread = 0.0  # rad: how far the capsules' own peaks disagree (capsule_peak_spread)
+    peak_weight = 0.0  # the amplitude peak's share of the bearing
     peak = float("nan")
     clipped: bool | None = None
     per_step = np.full(region.steps.size, np.nan)
@@ -177,6 +196,9 @@ def measure_region(
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
+        if peak_fit is not None:
+            # Another echo summing into the window moves each capsule's peak its own way.
+            spread = capsule_peak_spread(g, step_table(region, amplitude))
     # Two echoes at one range, one taking over from the other inside the region: its ends are not both one
     # beam pattern's.  The shorter side may be the other echo's, so the centre may be off by half its extent:
     # a σ that says so while it stays within the verdict's bound, no centre bearing beyond it.
@@ -230,8 +252,10 @@ def measure_region(
         if clipped is False and peak_fit is not None and apart <= 3.0:
             wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
             bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), max(1.0, apart) / math.sqrt(wc + wp)
+            peak_weight = wp / (wc + wp)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
+        peak_weight = 1.0
         # The peak of a cut region rests on the amplitudes alone, which other echoes ringing into the same
         # window bend (and a receiver's clipping flattens): usable, not good.
         findings.append(
@@ -289,6 +313,7 @@ def measure_region(
         positions=caps,
         ranges=d,
         stack_sigma=lin_sigma,
+        summed_spread=peak_weight * spread,
     )
 
 

@@ -92,6 +92,9 @@ class Surface:
     rows, capsules : (n_echoes,) int arrays, optional
         Its readings: step and capsule of each (a region seen by some capsules only shares its steps
         with a nearer target's in the others).
+    fit_quality : str
+        The verdict its own echoes give its plane, before the sweep is asked to confirm it a plane
+        (:mod:`~lelsonar.reconstruct.estimate.surfaces.confirm`); empty: the same as ``quality``.
     """
 
     label: str
@@ -104,6 +107,7 @@ class Surface:
     n_echoes: int
     rows: np.ndarray | None = None
     capsules: np.ndarray | None = None
+    fit_quality: str = ""
 
     @property
     def normal(self) -> np.ndarray:
@@ -120,6 +124,11 @@ class Surface:
     @property
     def reasons(self) -> tuple[str, ...]:
         return tuple(self.plane.quality_reasons)
+
+    @property
+    def own_quality(self) -> str:
+        """The verdict of its plane on its own echoes (``fit_quality``, else ``quality``)."""
+        return self.fit_quality or self.quality
 
 
 @dataclass(frozen=True, eq=False)

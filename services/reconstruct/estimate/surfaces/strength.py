@@ -14,12 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     PLATEAU,
     extrapolated_peak,
     log_amplitude_curvature,
     peak_at_bearing,
 )
+from lelsonar.reconstruct.estimate.surfaces.evidence import stack_dihedral
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
@@ -136,9 +138,12 @@ def echo_scale(measured: list[Measured], gamma: np.ndarray, opts: SurfaceOptions
     g = gamma
     # The strongest echo of the sweep, range-corrected, is a mirror's or a corner's (a clipped or cut one's is
     # a lower bound of its own, so the largest is still no edge's unless the sweep saw only edges); an echo
-    # far below it diffracts.  A median would not do: in a cluttered sweep most regions may be edges.
+    # far below it diffracts.  A median would not do: in a cluttered sweep most regions may be edges.  A
+    # plane whose double bounce with a surface across the fan answers beside it inside the amplitude window
+    # holds both echoes' sum in its amplitude, no one echo's: it is the reference only if nothing else is.
     strengths = [m.strength for m in measured if math.isfinite(m.strength)]
-    mirror = max(strengths) if len(strengths) >= 2 else float("nan")
+    own = [m.strength for m in measured if math.isfinite(m.strength) and not summed_echo(m, measured, opts)]
+    mirror = (max(own) if own else max(strengths)) if len(strengths) >= 2 else float("nan")
     # The beam's curvature in log amplitude, from this sweep's own regions with an unclipped peak: what puts the peak
     # of a region cut before its peak (an upper estimate of its strength, see extrapolated_peak).
     ks = [
@@ -157,3 +162,24 @@ def echo_scale(measured: list[Measured], gamma: np.ndarray, opts: SurfaceOptions
     # amplitude's quantisation on a weak echo, whose peak stands.
     full_scale = max((m.peak for m in measured if math.isfinite(m.peak)), default=float("nan"))
     return EchoScale(gamma=g, opts=opts, mirror=mirror, beam_k=beam_k, beam_low=beam_low, full_scale=full_scale)
+
+
+def summed_echo(m: Measured, measured: list[Measured], opts: SurfaceOptions) -> bool:
+    """Whether the region's amplitude sums its own echo with its double bounce with a surface across the fan.
+
+    A wall's corner with the floor below a horizontal fan answers ``z²/(2h)`` behind the wall's mirror (``z``
+    the array's height, ``h`` the wall's depth): inside the amplitude window
+    (:data:`~lelsonar.reconstruct.estimate.corner.wall.ECHO_WINDOW_RANGE`) beyond a metre or so, and nearly
+    on the beam's axis far away, where it is as strong as a mirror.  The region beside ``m`` (within the
+    steps a run may bridge) that is that double bounce (:func:`~.evidence.stack_dihedral`), deeper by no more
+    than the window's reach, shows it.
+    """
+    reach = (opts.max_gap + 2) * m.step
+    for k in measured:
+        if k is m or not 0.0 < k.depth - m.depth <= ECHO_WINDOW_RANGE:
+            continue
+        if k.span[0] > m.span[1] + reach or k.span[1] < m.span[0] - reach:
+            continue
+        if stack_dihedral(k, [m], opts) is not None:
+            return True
+    return False
