@@ -3,6 +3,7 @@
 * a region that holds its wall's double bounce with the floor past one end only (the other side's made a
   region of its own) is lopsided: the wall's bearing is the centre of its own steps, not of the region;
 * a centred region's bearing weighs its centre with its beam pattern's peak where the two agree;
+* the beam pattern's peak wanders as its own fit's σ says, wherever the sweep's steps fall;
 * amplitude noise moves where a region's echo crosses the threshold: the centre's σ holds it;
 * a plane whose end steps were trimmed off as another target's may have faded on the one next to its core
   (its echo summed into it): its centre puts that end between them, and its σ spans them; an end step with
@@ -15,6 +16,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import special
 
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude, end_crossing_stderr
@@ -113,14 +115,47 @@ def test_a_centred_regions_bearing_weighs_its_centre_and_its_beam_patterns_peak(
     assert centre.bearing_source == both.bearing_source == "region centre"
     g = GAMMA[region.steps]
     peak, peak_sd = bearing_from_amplitude(g, both.step_amplitude)
-    # The peak's σ as an amplitude peak's alone: its fit's and one step's quantisation.
-    step = float(GAMMA[1] - GAMMA[0])
-    peak_sd = math.hypot(peak_sd, step / math.sqrt(24.0))
+    # The peak's σ is its parabola fit's; two that differ by more than their σ say scale it (the Birge ratio).
+    apart = abs(peak - centre.bearing) / math.hypot(peak_sd, centre.bearing_stderr)
     wc, wp = centre.bearing_stderr**-2, peak_sd**-2
     assert both.bearing == pytest.approx((wc * centre.bearing + wp * peak) / (wc + wp))
-    assert both.bearing_stderr == pytest.approx((wc + wp) ** -0.5)
+    assert both.bearing_stderr == pytest.approx(max(1.0, apart) * (wc + wp) ** -0.5)
     assert both.bearing_stderr < centre.bearing_stderr
     assert abs(both.bearing - bearing) <= 3 * both.bearing_stderr
+
+
+def _piston_beam(psi: np.ndarray, ka: float = 6.6) -> np.ndarray:
+    """A transceiver's two-way piston directivity ``D(ψ)²``, ``D = 2 J1(ka sin ψ)/(ka sin ψ)``."""
+    x = ka * np.sin(psi)
+    x = np.where(np.abs(x) < 1e-9, 1e-9, x)
+    return (2 * special.j1(x) / x) ** 2
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.02])
+def test_the_beam_patterns_peak_wanders_as_its_fit_says_wherever_the_steps_fall(noise):
+    # A piston's D² over 1° steps whose grid falls anywhere against the target, its log amplitude noisy:
+    # the vertex's error against its own fit's σ, with no quantisation of the steps in it.
+    step = math.radians(1.0)
+    rng = np.random.default_rng(81)
+    errors, sds = [], []
+    for _ in range(300):
+        target = rng.uniform(-step, step)
+        g = np.arange(-40.0, 40.5, 1.0) * step + rng.uniform(0.0, step)
+        clean = _piston_beam(g - target)
+        heard = clean > 0.05
+        fit = bearing_from_amplitude(g[heard], clean[heard] * np.exp(noise * rng.standard_normal(heard.sum())))
+        assert fit is not None
+        errors.append(fit[0] - target)
+        sds.append(fit[1])
+    err, sd = np.abs(np.asarray(errors)), np.asarray(sds)
+    if noise > 0:
+        # A Gaussian's 95 / 99.7 % within 2 / 3 σ (a few of 300 either way).
+        assert np.mean(err <= 2 * sd) >= 0.92 and np.mean(err <= 3 * sd) >= 0.98
+    else:
+        # Without noise, a tenth of one step's quantisation (step/√24) at most: where the steps fall does not
+        # move the vertex, and its fit's residuals (the beam's departure from a parabola) cover what does.
+        assert float(np.max(err)) < 0.1 * step / math.sqrt(24.0)
+        assert np.all(err <= 3 * sd)
 
 
 def test_a_deeper_end_step_in_one_or_two_capsules_is_trimmed_by_its_depth_alone():

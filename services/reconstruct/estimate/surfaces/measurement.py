@@ -242,12 +242,17 @@ def measure_region(
             ends = math.sqrt(ends * ends + (jitter[0] ** 2 + jitter[1] ** 2) / 4.0)
         bearing, sb, source = mid, math.hypot(ends, shift), "region centre"
         # The beam pattern's peak is a second measurement of the same bearing, independent of where the ends
-        # fall (its σ, as an amplitude peak's alone, holds the steps' quantisation): where the two agree within
-        # 3 σ of their difference, each weighs by its inverse variance.
-        peak_sb = math.hypot(peak_fit[1], quant) if peak_fit is not None else math.inf
-        if clipped is False and peak_fit is not None and abs(peak_fit[0] - mid) <= 3.0 * math.hypot(peak_sb, sb):
+        # fall: where the two agree within 3 σ of their difference, each weighs by its inverse variance.  The
+        # peak is a parabola's vertex through every step's amplitude at its measured γ, so the step size enters
+        # its σ only through the fit's residuals; the ends' quantisation is the centre's alone.
+        # Two measurements that differ by more than their σ say (another echo summed into the amplitudes bends
+        # the peak smoothly, which the parabola's residuals do not show) scale the weighted σ by their
+        # difference in σ of it (the Birge ratio, at least 1).
+        peak_sb = peak_fit[1] if peak_fit is not None else math.inf
+        apart = abs(peak_fit[0] - mid) / math.hypot(peak_sb, sb) if peak_fit is not None else math.inf
+        if clipped is False and peak_fit is not None and apart <= 3.0:
             wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
-            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), 1.0 / math.sqrt(wc + wp)
+            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), max(1.0, apart) / math.sqrt(wc + wp)
             peak_weight = wp / (wc + wp)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
