@@ -59,9 +59,9 @@ class FusionConfig:
         graph; off, it is ISAM2's estimate (cheaper to read after every scan on a large map).
     flagged_constrain : tuple of str
         Flagged observations of these verdicts, once they agree with a wall of good evidence (within its
-        gate), tie their pose to it in the graph with their own covariance and Huber's loss: a wall whose
-        bearing the scan could not pin still places the robot in range.  They never open a wall of the
-        graph nor make one good.
+        gate), tie their pose to it in the graph with their own covariance and Huber's loss: a degraded
+        wall still places the robot.  They never open a wall of the graph nor make one good.  An
+        ``unreliable`` observation's own σ is what its verdict disowns, so by default it ties no pose.
     """
 
     gate_chi2: float = CHI2_2_999
@@ -77,7 +77,7 @@ class FusionConfig:
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 10
     polish: bool = True
-    flagged_constrain: tuple[str, ...] = ("degraded", "unreliable")
+    flagged_constrain: tuple[str, ...] = ("degraded",)
 
     def __post_init__(self) -> None:
         for name in (
