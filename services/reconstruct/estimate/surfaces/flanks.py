@@ -491,20 +491,9 @@ def partial_regions(
     -------
     list of Region, in sweep order.
     """
-    mask = np.zeros(d.shape, dtype=bool)
-    for r in held:
-        mask[r.rows, r.capsules] = True
-    rest = np.where(mask, np.nan, d)
+    mask, found = _unheld_regions(d, held, opts, spread, gamma=gamma, radial_offset=radial_offset)
     out = []
-    for r in find_regions(
-        rest,
-        tolerance=opts.range_tolerance,
-        max_gap=opts.max_gap,
-        min_steps=opts.min_steps,
-        max_spread=spread,
-        gamma=gamma,
-        radial_offset=radial_offset,
-    ):
+    for r in found:
         own = float(np.median(d[r.rows, r.capsules]))
         others = d[r.steps][mask[r.steps]]
         if (
@@ -514,6 +503,31 @@ def partial_regions(
         ):
             out.append(r)
     return out
+
+
+def _unheld_regions(
+    d: np.ndarray,
+    held: list[Region],
+    opts: SurfaceOptions,
+    spread: float,
+    *,
+    gamma: np.ndarray | None = None,
+    radial_offset: float = 0.0,
+) -> tuple[np.ndarray, list[Region]]:
+    """The readings ``held`` holds (a mask of ``d``'s shape), and the regions among the others."""
+    mask = np.zeros(d.shape, dtype=bool)
+    for r in held:
+        mask[r.rows, r.capsules] = True
+    found = find_regions(
+        np.where(mask, np.nan, d),
+        tolerance=opts.range_tolerance,
+        max_gap=opts.max_gap,
+        min_steps=opts.min_steps,
+        max_spread=spread,
+        gamma=gamma,
+        radial_offset=radial_offset,
+    )
+    return mask, found
 
 
 def _flank_of(r: Region, own: float, held: list[Region], d: np.ndarray, opts: SurfaceOptions) -> bool:
@@ -554,14 +568,9 @@ def masked_regions(d: np.ndarray, held: list[Region], opts: SurfaceOptions, spre
     -------
     list of Region, in sweep order.
     """
-    mask = np.zeros(d.shape, dtype=bool)
-    for r in held:
-        mask[r.rows, r.capsules] = True
-    rest = np.where(mask, np.nan, d)
+    mask, found = _unheld_regions(d, held, opts, spread)
     out = []
-    for r in find_regions(
-        rest, tolerance=opts.range_tolerance, max_gap=opts.max_gap, min_steps=opts.min_steps, max_spread=spread
-    ):
+    for r in found:
         own = float(np.median(d[r.rows, r.capsules]))
         mine = np.zeros((r.steps.size, d.shape[1]), dtype=bool)
         mine[np.searchsorted(r.steps, r.rows), r.capsules] = True
