@@ -179,3 +179,16 @@ def test_a_replay_decompresses_ahead_on_the_cores_no_task_runs_on(cpus, runnable
 
 def test_the_tasks_running_now_count_the_caller():
     assert sources.runnable_tasks() >= 1
+
+
+@pytest.mark.parametrize(
+    ("cpus", "runnable", "workers"),
+    [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (4, 4, 0), (1, 1, 0)],
+)
+def test_a_long_replays_final_workers_take_the_cores_no_other_task_runs_on(cpus, runnable, workers):
+    assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+
+
+def test_a_replay_of_one_scan_or_with_workers_set_asks_no_load():
+    assert sources.replay_workers(None, 1, cpus=8, runnable=1) == 0
+    assert sources.replay_workers(3, 100, cpus=2, runnable=40) == 3

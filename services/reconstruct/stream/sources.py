@@ -194,10 +194,13 @@ def replay_mcap(
 COLD_START_SCANS = 50
 
 
-def replay_workers(configured: int | None, scans: int | None) -> int:
-    """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the host's
-    load leaves cores idle (a worker that finds no core only competes with the reading).  None for a file of
-    one scan, whose final can overlap nothing, nor by default for a file of fewer than
+def replay_workers(
+    configured: int | None, scans: int | None, *, cpus: int | None = None, runnable: int | None = None
+) -> int:
+    """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the tasks
+    running now leave cores idle (``runnable`` as :func:`decompress_threads`': the caller's thread is one of
+    them, and its core is the reading's; a worker that finds no core only competes with the reading).
+    None for a file of one scan, whose final can overlap nothing, nor by default for a file of fewer than
     :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
     if scans is not None and scans < 2:
         return 0
@@ -205,8 +208,9 @@ def replay_workers(configured: int | None, scans: int | None) -> int:
         return configured
     if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
         return 0
-    idle = (os.cpu_count() or 1) - os.getloadavg()[0]
-    return max(0, min(auto_workers(), round(idle)))
+    n = cpus if cpus is not None else (os.cpu_count() or 1)
+    busy = runnable if runnable is not None else runnable_tasks()
+    return max(0, min(auto_workers(n), n - busy))
 
 
 def scans_in(rec: Recording) -> int | None:
