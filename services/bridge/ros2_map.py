@@ -26,7 +26,7 @@ import zenoh
 from lelsonar.bridge import ros2
 from lelsonar.bridge.ros2_markers import CUBE, DELETEALL, LINE_STRIP, SPHERE, TEXT_VIEW_FACING, verdict_rgb
 from lelsonar.draw.estimates import SIGMA_BAND
-from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR
+from lelsonar.draw.palette import CONCAVE_CORNER_COLOR, CONVEX_EDGE_COLOR, HORIZONTAL_CORNER_COLOR, unit_rgb
 from lelsonar.errors import LelsonarError, RecordingError
 from lelsonar.log.recording import open_recording
 from lelsonar.map import floorplan
@@ -39,15 +39,11 @@ TOPIC_GRID = ros2.TOPIC_MAP_GRID
 TOPIC_WALLS = ros2.TOPIC_MAP_WALLS
 MAP_FRAME = "map"
 
-_CORNER_RGB = (1.0, 0.31, 0.78)
-_EDGE_RGB = (0.0, 0.86, 1.0)
+_CORNER_RGB = unit_rgb(CONCAVE_CORNER_COLOR)
+_EDGE_RGB = unit_rgb(CONVEX_EDGE_COLOR)
 _PATH_RGB = (1.0, 0.78, 0.0)
 _ODOMETRY_RGB = (0.6, 0.6, 0.6)
-_HORIZONTAL_RGB = (
-    HORIZONTAL_CORNER_COLOR[0] / 255,
-    HORIZONTAL_CORNER_COLOR[1] / 255,
-    HORIZONTAL_CORNER_COLOR[2] / 255,
-)
+_HORIZONTAL_RGB = unit_rgb(HORIZONTAL_CORNER_COLOR)
 
 
 MAP_SCHEMA = map_pb2.Map.DESCRIPTOR.full_name

@@ -17,15 +17,15 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.codec import QUALITY_NAME
 from lelsonar.draw.estimates import SIGMA_BAND, surface_bearing_sigma, surface_offset_sigma
-from lelsonar.draw.palette import method_color, quality_color
+from lelsonar.draw.palette import CONCAVE_CORNER_COLOR, CONVEX_EDGE_COLOR, method_color, quality_color, unit_rgb
 
 # visualization_msgs/Marker types and actions
 ARROW, CUBE, SPHERE, LINE_STRIP, LINE_LIST, TEXT_VIEW_FACING, TRIANGLE_LIST, DELETEALL = 0, 1, 2, 4, 5, 9, 11, 3
 
 _TRUTH_RGB = (0.6, 0.6, 0.6)
 _EDGE_RGB = (1.0, 0.1, 0.1)
-_CORNER_RGB = (1.0, 0.31, 0.78)
-_CONVEX_RGB = (0.0, 0.86, 1.0)
+_CORNER_RGB = unit_rgb(CONCAVE_CORNER_COLOR)
+_CONVEX_RGB = unit_rgb(CONVEX_EDGE_COLOR)
 _TEXT_RGB = (0.85, 0.85, 0.85)
 
 

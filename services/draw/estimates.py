@@ -20,7 +20,7 @@ from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.TriangleListPrimitive_pb2 import TriangleListPrimitive
 
 from lelsonar import codec
-from lelsonar.draw.palette import QUALITY_NAME, method_color, quality_color
+from lelsonar.draw.palette import CONCAVE_CORNER_COLOR, CONVEX_EDGE_COLOR, QUALITY_NAME, method_color, quality_color
 from lelsonar.draw.primitives import WORLD_FRAME, entity, point3, quat_x_to, rgba, set_position, vec3
 from lelsonar.v1 import reconstruction_pb2
 
@@ -31,8 +31,6 @@ _PATCH_ALPHA = 0.45
 _SURFACE_ALPHA = 0.3
 _NORMAL_LENGTH = 0.25  # m
 _EDGE_RGB = (255, 255, 255)
-_CORNER_RGB = (255, 80, 200)  # concave corners
-_CONVEX_RGB = (0, 220, 255)  # convex edges
 _FEATURE_HALF_LENGTH = 0.25  # m
 _UNEXPLAINED_RGB = (200, 200, 200)
 #: The σ band drawn around a surface: its patch shifted by ± this many σ of its offset along its normal.
@@ -261,7 +259,7 @@ def _feature_entity(
     point, direction = vec3(f.line.point), vec3(f.line.direction)
     if not np.all(np.isfinite(point)):
         return None
-    rgb = _CORNER_RGB if kind == "corner" else _CONVEX_RGB
+    rgb = CONCAVE_CORNER_COLOR if kind == "corner" else CONVEX_EDGE_COLOR
     ent = entity(WORLD_FRAME, feature_entity_id(msg.scanner_id, msg.scan_id, f.label), t_ns)
     for k, v in (
         ("kind", kind),

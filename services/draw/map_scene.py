@@ -30,14 +30,18 @@ from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.TriangleListPrimitive_pb2 import TriangleListPrimitive
 
 from lelsonar.draw.estimates import SIGMA_BAND
-from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR, QUALITY_NAME, quality_color
+from lelsonar.draw.palette import (
+    CONCAVE_CORNER_COLOR,
+    CONVEX_EDGE_COLOR,
+    HORIZONTAL_CORNER_COLOR,
+    QUALITY_NAME,
+    quality_color,
+)
 from lelsonar.draw.primitives import MAP_FRAME, cube, entity, point3, rgba, set_position, vec3
 from lelsonar.v1 import map_pb2
 
 TOPIC_MAP_SCENE = "/lelsonar/map/scene"
 
-_CORNER_RGB = (255, 80, 200)
-_EDGE_RGB = (0, 220, 255)
 _PATH_RGB = (255, 200, 0)
 _ODOMETRY_RGB = (150, 150, 150)
 _FREE_RGB = (90, 170, 255)
@@ -120,8 +124,8 @@ def _wall_entity(msg: map_pb2.Map, w: map_pb2.MapWall, t_ns: int) -> SceneEntity
 def _features_entity(msg: map_pb2.Map, t_ns: int) -> SceneEntity:
     ent = entity(MAP_FRAME, f"{msg.scanner_id}/map/features", t_ns)
     for kind, rgb, items in (
-        ("corner", _CORNER_RGB, msg.corners),
-        ("edge", _EDGE_RGB, msg.edges),
+        ("corner", CONCAVE_CORNER_COLOR, msg.corners),
+        ("edge", CONVEX_EDGE_COLOR, msg.edges),
         ("horizontal corner", HORIZONTAL_CORNER_COLOR, msg.horizontal_corners),
     ):
         for f in items:

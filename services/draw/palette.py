@@ -11,6 +11,8 @@ import zlib
 from lelsonar.codec import QUALITY, QUALITY_NAME
 
 __all__ = [
+    "CONCAVE_CORNER_COLOR",
+    "CONVEX_EDGE_COLOR",
     "HORIZONTAL_CORNER_COLOR",
     "METHOD_COLORS",
     "QUALITY",
@@ -19,6 +21,7 @@ __all__ = [
     "UNASSESSED_COLOR",
     "method_color",
     "quality_color",
+    "unit_rgb",
 ]
 
 METHOD_COLORS: dict[str, tuple[int, int, int]] = {
@@ -37,6 +40,9 @@ QUALITY_COLORS: dict[str, tuple[int, int, int]] = {
     "unreliable": (230, 30, 30),
 }
 UNASSESSED_COLOR = (150, 150, 150)
+#: A concave corner (pink) and a convex edge (cyan), in a scan and in a map.
+CONCAVE_CORNER_COLOR = (255, 80, 200)
+CONVEX_EDGE_COLOR = (0, 220, 255)
 #: A map's line where a wall meets the floor or the ceiling (violet: apart from the plan's corners and edges).
 HORIZONTAL_CORNER_COLOR = (170, 110, 255)
 
@@ -50,3 +56,8 @@ def quality_color(quality: str | int) -> tuple[int, int, int]:
     """The colour of a verdict, by name (``"good"``, …) or wire value; grey when not assessed or unknown."""
     name = QUALITY_NAME.get(quality, "") if isinstance(quality, int) else quality
     return QUALITY_COLORS.get(name, UNASSESSED_COLOR)
+
+
+def unit_rgb(rgb: tuple[int, int, int]) -> tuple[float, float, float]:
+    """A palette colour for viewers that take RGB in 0–1."""
+    return rgb[0] / 255, rgb[1] / 255, rgb[2] / 255

@@ -17,7 +17,14 @@ import shapely
 
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import wall_pieces
-from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR, QUALITY_COLORS, quality_color
+from lelsonar.draw.palette import (
+    CONCAVE_CORNER_COLOR,
+    CONVEX_EDGE_COLOR,
+    HORIZONTAL_CORNER_COLOR,
+    QUALITY_COLORS,
+    quality_color,
+    unit_rgb,
+)
 from lelsonar.v1 import map_pb2, reconstruction_pb2
 
 #: Opacity and drawing order of a wall by verdict (wire value): good, degraded, unreliable.
@@ -25,10 +32,6 @@ _WALL_ALPHA: dict[int, tuple[float, float]] = {
     reconstruction_pb2.PLANE_QUALITY_GOOD: (0.95, 3.2),
     reconstruction_pb2.PLANE_QUALITY_DEGRADED: (0.6, 3.1),
 }
-
-
-def _rgb(c) -> tuple[float, float, float]:
-    return c[0] / 255, c[1] / 255, c[2] / 255
 
 
 def save_map_picture(
@@ -73,14 +76,14 @@ def save_map_picture(
         for a, b in wall_pieces(w):
             band = SIGMA_BAND * sigma * n
             corners = np.array([a[:2] - band, b[:2] - band, b[:2] + band, a[:2] + band])
-            color = _rgb(quality_color(w.quality))
+            color = unit_rgb(quality_color(w.quality))
             ax.add_patch(Patch(corners, closed=True, fc=color, ec=color, lw=1.2, alpha=alpha, zorder=z))
     for a, b in closed if closed is not None else ():
         ax.plot([a[0], b[0]], [a[1], b[1]], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", zorder=2.5)
     for items, color, marker in (
-        (msg.corners, (1.0, 0.31, 0.78), "o"),
-        (msg.edges, (0.0, 0.7, 0.85), "s"),
-        (msg.horizontal_corners, _rgb(HORIZONTAL_CORNER_COLOR), "^"),
+        (msg.corners, unit_rgb(CONCAVE_CORNER_COLOR), "o"),
+        (msg.edges, unit_rgb(CONVEX_EDGE_COLOR), "s"),
+        (msg.horizontal_corners, unit_rgb(HORIZONTAL_CORNER_COLOR), "^"),
     ):
         if len(items):
             ax.scatter(
@@ -96,17 +99,19 @@ def save_map_picture(
         ax.plot(r[:, 0], r[:, 1], color=(0.1, 0.1, 0.1), lw=2, zorder=7)
         ax.plot(*r[-1], marker="*", color=(0.1, 0.1, 0.1), ms=12, zorder=7)
     legend = [
-        Line2D([], [], color=_rgb(QUALITY_COLORS[q]), lw=4, label=f"wall {q} (± 2σ)")
+        Line2D([], [], color=unit_rgb(QUALITY_COLORS[q]), lw=4, label=f"wall {q} (± 2σ)")
         for q in ("good", "degraded", "unreliable")
     ]
     legend += [
         Line2D([], [], color=(0.9, 0.65, 0.0), lw=1.6, marker="o", ms=3, label="path after fusion"),
         Line2D([], [], color=(0.55, 0.55, 0.55), lw=1, marker=".", label="odometry"),
-        Line2D([], [], color=(1.0, 0.31, 0.78), marker="o", ls="none", label="corner"),
+        Line2D([], [], color=unit_rgb(CONCAVE_CORNER_COLOR), marker="o", ls="none", label="corner"),
     ]
     if len(msg.horizontal_corners):
         legend.append(
-            Line2D([], [], color=_rgb(HORIZONTAL_CORNER_COLOR), marker="^", ls="none", label="wall on floor/ceiling")
+            Line2D(
+                [], [], color=unit_rgb(HORIZONTAL_CORNER_COLOR), marker="^", ls="none", label="wall on floor/ceiling"
+            )
         )
     if closed is not None and len(closed):
         legend.append(Line2D([], [], color=(0.15, 0.15, 0.15), lw=0.9, ls=":", label="unseen, closed"))

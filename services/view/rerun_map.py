@@ -26,15 +26,19 @@ import shapely
 
 from lelsonar.draw.estimates import SIGMA_BAND
 from lelsonar.draw.map_scene import wall_pieces
-from lelsonar.draw.palette import HORIZONTAL_CORNER_COLOR, QUALITY_NAME, quality_color
+from lelsonar.draw.palette import (
+    CONCAVE_CORNER_COLOR,
+    CONVEX_EDGE_COLOR,
+    HORIZONTAL_CORNER_COLOR,
+    QUALITY_NAME,
+    quality_color,
+)
 from lelsonar.v1 import map_pb2
 from lelsonar.view.rerun_layout import join_path
 
 #: The sequence timeline of the map: how many scans it holds.
 SCANS_TIMELINE = "scans"
 
-_CORNER_RGB = (255, 80, 200)
-_EDGE_RGB = (0, 220, 255)
 _PATH_RGB = (255, 200, 0)
 _ODOMETRY_RGB = (150, 150, 150)
 _FREE_RGB = (90, 170, 255)
@@ -81,8 +85,8 @@ def log_map(
             ),
         )
     for name, rgb, items in (
-        ("corners", _CORNER_RGB, msg.corners),
-        ("edges", _EDGE_RGB, msg.edges),
+        ("corners", CONCAVE_CORNER_COLOR, msg.corners),
+        ("edges", CONVEX_EDGE_COLOR, msg.edges),
         ("horizontal_corners", HORIZONTAL_CORNER_COLOR, msg.horizontal_corners),
     ):
         pts = [(f.point.x, f.point.y, 0.0) for f in items]

@@ -22,10 +22,8 @@ import rerun as rr
 
 from lelsonar import codec
 from lelsonar.draw.estimates import SIGMA_BAND, surface_bearing_sigma, surface_offset_sigma
-from lelsonar.draw.palette import QUALITY_NAME, quality_color
+from lelsonar.draw.palette import CONCAVE_CORNER_COLOR, CONVEX_EDGE_COLOR, QUALITY_NAME, quality_color
 
-_CORNER_RGB = (255, 80, 200)
-_EDGE_RGB = (0, 220, 255)
 _NORMAL_LENGTH = 0.2  # m
 _FEATURE_HALF_LENGTH = 0.25  # m
 _SURFACE_ALPHA = 90  # 0–255: see-through, so the points behind show
@@ -87,7 +85,7 @@ def log_surfaces(rec: rr.RecordingStream, scan_path: str, msg: codec.Reconstruct
             ),
         )
         drawn += 1
-    for group, rgb, items in (("corners", _CORNER_RGB, msg.corners), ("edges", _EDGE_RGB, msg.edges)):
+    for group, rgb, items in (("corners", CONCAVE_CORNER_COLOR, msg.corners), ("edges", CONVEX_EDGE_COLOR, msg.edges)):
         for f in items:
             point, direction = _vec(f.line.point), _vec(f.line.direction)
             if not np.isfinite(point).all():
