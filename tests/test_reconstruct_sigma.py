@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.corner.pitch import amplitude_pitch, window_bias_stderr
-from lelsonar.sim import piston_directivity
+from lelsonar.signal.directivity import piston_directivity
 
 #: The capsule's ka at 40 kHz (8 mm radius), as the simulator's receivers.
 KA = 2 * math.pi * 40_000 / 343.2 * 0.008

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from lelsonar.errors import ConfigError
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.sim import Scene, SimConfig, echo_table
-from lelsonar.sim.acoustics import Receiver, piston_directivity
+from lelsonar.sim.acoustics import Receiver
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.world import parse_world
 from lelsonar.sim.world_geometry import ElementKind, build_model

@@ -18,8 +18,8 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     log_amplitude_curvature,
 )
 from lelsonar.reconstruct.estimate.surfaces.confirm import LONE
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import simulate_world_scan, world_rig
 from lelsonar.sim.worlds import draw_world

@@ -11,7 +11,7 @@ import pytest
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import piston_power
 from lelsonar.reconstruct.estimate.surfaces.results import OFF_FAN
-from lelsonar.sim.acoustics import piston_directivity
+from lelsonar.signal.directivity import piston_directivity
 
 from .test_surfaces import GAMMA, GEOMETRY, Echoes
 

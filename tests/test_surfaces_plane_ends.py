@@ -18,8 +18,8 @@ from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude, log_amplitude_curvature
 from lelsonar.reconstruct.estimate.surfaces.measurement import summed_width_stderr
 from lelsonar.reconstruct.estimate.surfaces.regions import capsule_x, find_regions
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world

@@ -23,8 +23,8 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, handed_over
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world

@@ -16,8 +16,8 @@ import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import unfaded_ends
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.acoustics import piston_directivity
 from lelsonar.sim.world_render import WorldScan
 from lelsonar.tools.map_worlds import sweep, world_run
 from lelsonar.tools.stress_world_score import estimate_of

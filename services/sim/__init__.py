@@ -8,7 +8,8 @@ ground truth kept next to each sample.
 >>> scan = simulate_scan(preset("paper-test1"), seed=0)
 """
 
-from lelsonar.sim.acoustics import Acoustics, Receiver, piston_directivity, sound_speed
+from lelsonar.signal.directivity import piston_directivity
+from lelsonar.sim.acoustics import Acoustics, Receiver, sound_speed
 from lelsonar.sim.calibrate import (
     PAPER_CALIBRATION_DISTANCES,
     CalibrationResult,

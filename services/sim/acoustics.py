@@ -35,7 +35,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import j1, lambertw
+from scipy.special import lambertw
 
 from lelsonar.errors import ConfigError
 
@@ -64,28 +64,10 @@ def sound_speed(temperature: float | np.ndarray) -> float | np.ndarray:
     return 331.3 * np.sqrt(np.asarray(temperature, dtype=float) / ZERO_CELSIUS_K)
 
 
-def piston_directivity(theta: np.ndarray, ka: float) -> np.ndarray:
-    """One-way directivity of a baffled circular piston, ``D(θ) = 2·J1(x)/x``, ``x = ka·sinθ``.
-
-    A transceiver sees ``D²`` (transmit and receive).  ``D(0) = 1``.
-
-    Parameters
-    ----------
-    theta : array
-        Off-axis angle, rad.
-    ka : float
-        Wavenumber times piston radius.
-    """
-    x = ka * np.sin(np.asarray(theta, dtype=float))
-    small = np.abs(x) < 1e-6
-    # 2·J1(x)/x → 1 as x → 0; avoid 0/0 without a warning.
-    safe = np.where(small, 1.0, x)
-    return np.where(small, 1.0, 2.0 * j1(safe) / safe)
-
-
 def capsule_radius_for_beam_width(beam_width: float, speed: float, frequency: float) -> float:
     """The piston radius whose echo beam is ``beam_width`` wide: the full angle at which a mirror's echo, which
-    a transceiver sees through ``D²`` (:func:`piston_directivity`), falls to half its face-on amplitude (−6 dB).
+    a transceiver sees through ``D²`` (:func:`~lelsonar.signal.directivity.piston_directivity`), falls to half
+    its face-on amplitude (−6 dB).
 
     ``D(θ)² = 1/2`` at ``ka·sin θ = x½`` (:data:`PISTON_HALF_ECHO_X`), so ``a = x½ / (k·sin(beam_width/2))``,
     ``k = 2πf/c``.

@@ -34,8 +34,9 @@ import numpy as np
 from scipy.special import ndtri
 
 from lelsonar.geometry import ArrayGeometry, beam_points, boresight
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import total_energy, waveform_energy
-from lelsonar.sim.acoustics import absorption_factor, comparator_delay, echo_envelope, piston_directivity
+from lelsonar.sim.acoustics import absorption_factor, comparator_delay, echo_envelope
 from lelsonar.sim.config import Rig, SimConfig
 
 #: The receiver envelope is cut after this many rise times (its value is then < 10⁻⁴).

@@ -42,12 +42,12 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry, array_pose, boresight
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.sim.acoustics import (
     Acoustics,
     Receiver,
     absorption_factor,
     capsule_radius_for_beam_width,
-    piston_directivity,
     sound_speed,
 )
 from lelsonar.sim.config import Servo

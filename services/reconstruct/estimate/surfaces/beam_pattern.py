@@ -13,7 +13,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import j1
+
+from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
     "PLATEAU",
@@ -423,10 +424,6 @@ def end_crossing_stderr(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float
     return out[0], out[1]
 
 
-#: ``ka·sinψ`` at the piston's first null (the first zero of ``J1``).
-FIRST_NULL = 3.8317
-
-
 def piston_power(psi: float, curvature: float) -> float:
     """A piston transceiver's two-way beam pattern ``D(ψ)²``, ``D = 2·J1(ka·sinψ)/(ka·sinψ)``.
 
@@ -448,12 +445,10 @@ def piston_power(psi: float, curvature: float) -> float:
     """
     if not curvature > 0:
         return float("nan")
-    x = 2.0 * math.sqrt(curvature) * abs(math.sin(psi))
-    if x >= FIRST_NULL:
+    ka = 2.0 * math.sqrt(curvature)
+    if ka * abs(math.sin(psi)) >= PISTON_FIRST_NULL:
         return 0.0
-    if x < 1e-9:
-        return 1.0
-    return float((2.0 * j1(x) / x) ** 2)
+    return float(piston_directivity(np.array(psi), ka) ** 2)
 
 
 def capsule_peak_spread(gamma: np.ndarray, amplitude: np.ndarray) -> float:
