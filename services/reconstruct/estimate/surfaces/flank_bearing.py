@@ -45,6 +45,8 @@ FLANK_SOURCE = "beam flank"
 MIN_PROFILE_STEPS = 8
 #: Fewest steps with an amplitude a flank needs (two parameters, and their residuals).
 MIN_FLANK_STEPS = 4
+#: How far under its peak a profile is fitted, in log amplitude: 20 dB, clear of the first null and sidelobe.
+MAIN_LOBE_TOP = math.log(10.0)
 #: A profile's residual σ over its amplitude noise beyond which the piston does not describe the beam.
 MODEL_MISFIT = 3.0
 
@@ -90,7 +92,8 @@ def _noise(la: np.ndarray) -> float:
 def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: float) -> tuple[float, float] | None:
     """``ka`` of the piston whose two-way pattern ``A = P·D(γ − β)²`` fits one whole echo profile, and its σ.
 
-    Least squares in ``log A`` over ``(log P, β, ka)``, from the region's bearing and a first ``ka``.
+    Least squares in ``log A`` over ``(log P, β, ka)``, from the region's bearing and a first ``ka``, over the
+    steps within 20 dB of the region's peak (:data:`MAIN_LOBE_TOP`).
 
     Parameters
     ----------
@@ -107,6 +110,10 @@ def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: fl
     exceed the amplitudes' own noise by more than :data:`MODEL_MISFIT` (no piston).
     """
     g, la = _log_profile(gamma, amplitude)
+    # The main lobe's top, within 20 dB of the peak: a strong near echo stays over the receiver's threshold
+    # into the nulls and the first sidelobe (35 dB down, two-way), where no smooth lobe describes it.
+    top = la >= float(la.max()) - MAIN_LOBE_TOP if g.size else np.zeros(0, dtype=bool)
+    g, la = g[top], la[top]
     if g.size < MIN_PROFILE_STEPS or not ka0 > 0:
         return None
 
@@ -133,8 +140,9 @@ def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: fl
 
 def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarray, ka0: float) -> SweepBeam | None:
     """The sweep's piston ``ka``, from its planes' regions that hold their echo's peak and the profile about it:
-    their bearing their centre or their peak, unclipped, one beam pattern (no amplitude jump).  A mirror's echo
-    follows the beam alone; a corner's or an edge's adds its own change with the angle, so only planes are passed.
+    their bearing their centre or their peak (a clipped top left out), one beam pattern (no amplitude jump).
+    A mirror's echo follows the beam alone; a corner's or an edge's adds its own change with the angle, so only
+    planes are passed.
 
     Each region's steps' median profile gives its ``ka``; each capsule's own profile gives one too.  Another echo
     summed into the amplitude window (a wall's double bounce with the floor, a few mm deeper) bends a profile
@@ -160,7 +168,7 @@ def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarra
     """
     kas, ses, capsules = [], [], []
     for m in measured:
-        if m.bearing_source not in ("region centre", "amplitude peak") or m.clipped or not m.exact:
+        if m.bearing_source not in ("region centre", "amplitude peak"):
             continue
         g = gamma[m.region.steps]
         if amplitude_jump(g, m.step_amplitude) is not None:
@@ -191,6 +199,7 @@ def bearing_from_flank(
     *,
     before: float,
     after: float,
+    model_check: bool = True,
 ) -> tuple[float, float] | None:
     """The bearing of an echo whose region shows one flank of its beam pattern: the piston ``A = P·D(γ − β)²``
     with the sweep's ``ka``, fitted over ``(log P, β)`` in ``log A``.
@@ -207,12 +216,16 @@ def bearing_from_flank(
     before, after : float
         rad: how far before the first and after the last step the peak may lie (0 on a side the region's echo
         faded on, where its peak is not).
+    model_check : bool
+        Refuse a flank whose residuals exceed its noise (off for one capsule's flank, whose bend is what the
+        capsules' spread measures).
 
     Returns
     -------
-    (β, σ) in rad, or None when too few steps have an amplitude, the fitted peak does not lie past an end it
-    may lie past (within that reach), a step falls outside the main lobe, or the residuals exceed the
-    amplitudes' own noise by more than :data:`MODEL_MISFIT` (another echo bends the flank).
+    (β, σ) in rad, or None when too few steps have an amplitude, the fitted peak lies neither past an end it
+    may lie past (within that reach) nor in the half of the span by that end, a step falls outside the main
+    lobe, or the residuals exceed the amplitudes' own noise by more than :data:`MODEL_MISFIT` (another echo
+    bends the flank).
     """
     g, la = _log_profile(gamma, amplitude)
     if g.size < MIN_FLANK_STEPS or not (before > 0 or after > 0):
@@ -245,13 +258,16 @@ def bearing_from_flank(
     _, b, resid, jac = best
     if np.any(beam.ka * np.abs(np.sin(g - b)) >= PISTON_FIRST_NULL):
         return None
-    # Past the end it may lie past, within the reach (a peak inside the span is the peak fit's to find).
-    if not ((g[0] - before <= b <= g[0] + step and before > 0) or (g[-1] - step <= b <= g[-1] + after and after > 0)):
+    # On the half of the span by an end it may lie past, or past that end within the reach: the far half's end
+    # faded, so the peak is not there (a peak too near a cut end for the peak fit's samples on both sides
+    # still shapes the flank).
+    mid = 0.5 * float(g[0] + g[-1])
+    if not ((before > 0 and g[0] - before <= b <= mid) or (after > 0 and mid <= b <= g[-1] + after)):
         return None
     s2 = float(resid @ resid) / max(g.size - 2, 1)
     # Residuals beyond the amplitudes' own noise: no one piston's flank (another echo bends it), no bearing.
     noise = _noise(la)
-    if math.isfinite(noise) and noise > 0 and math.sqrt(s2) > MODEL_MISFIT * noise:
+    if model_check and math.isfinite(noise) and noise > 0 and math.sqrt(s2) > MODEL_MISFIT * noise:
         return None
     cov = s2 * np.linalg.pinv(jac.T @ jac)
     se = math.sqrt(max(float(cov[1, 1]), 0.0))
@@ -361,9 +377,13 @@ def flank_measured(
     Returns
     -------
     The region with that bearing, its σ, source :data:`FLANK_SOURCE` and its findings (unchanged when the flank
-    gives none).
+    gives none, or when part of the capsule stack hears the region on most of its steps).
     """
     if m.bearing_source != "undetermined" or beam is None:
+        return m
+    # A face part of the stack hears ends within the stack's height: its edge, at a like range, answers in the
+    # same amplitude window on every step and bends the whole flank alike in the capsules that hear the face.
+    if np.median(np.bincount(np.searchsorted(m.region.steps, m.region.rows))) < amplitude.shape[1]:
         return m
     g = gamma[m.region.steps]
     reach = (beyond_cut if m.region.cut_before else 0.0, beyond_cut if m.region.cut_after else 0.0)
@@ -374,7 +394,7 @@ def flank_measured(
     own = [
         f[0]
         for c in range(table.shape[1])
-        for f in [bearing_from_flank(g, table[:, c], beam, before=reach[0], after=reach[1])]
+        for f in [bearing_from_flank(g, table[:, c], beam, before=reach[0], after=reach[1], model_check=False)]
         if f is not None
     ]
     spread = float(np.std(own, ddof=1)) if len(own) >= 2 else 0.0
