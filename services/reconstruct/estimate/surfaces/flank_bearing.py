@@ -45,6 +45,8 @@ FLANK_SOURCE = "beam flank"
 MIN_PROFILE_STEPS = 8
 #: Fewest steps with an amplitude a flank needs (two parameters, and their residuals).
 MIN_FLANK_STEPS = 4
+#: Fewest second differences a robust noise estimate takes.
+MIN_NOISE_DIFFERENCES = 5
 #: How far under its peak a profile is fitted, in log amplitude: 20 dB, clear of the first null and sidelobe.
 MAIN_LOBE_TOP = math.log(10.0)
 #: A profile's residual σ over its amplitude noise beyond which the piston does not describe the beam.
@@ -82,9 +84,11 @@ def _log_piston(u: np.ndarray, ka: float) -> np.ndarray:
 
 
 def _noise(la: np.ndarray) -> float:
-    """The log amplitudes' noise σ, robust, from second differences (variance 6 σ² for white noise)."""
+    """The log amplitudes' noise σ, robust, from second differences (variance 6 σ² for white noise); NaN from
+    fewer than :data:`MIN_NOISE_DIFFERENCES` of them (the median absolute deviation of a few is near 0 by
+    chance)."""
     second = np.diff(la, 2)
-    if second.size < 2:
+    if second.size < MIN_NOISE_DIFFERENCES:
         return float("nan")
     return 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
 
