@@ -6,7 +6,9 @@
   slipped carrier cycle does not move it;
 * in a sweep, a wall past the sweep's end is placed by its flank (usable, not good); without a region whose
   whole profile calibrates the beam it stays undetermined and says so;
-* seeded worlds: the walls behind a maze's scanner, seen only past both ends of the sweep, within their σ.
+* a region whose amplitude hands over from one target to another at one range splits there;
+* seeded worlds: the walls behind a maze's scanner, seen only past both ends of the sweep, within their σ; a
+  box's face beside its own edge at one range, found and placed.
 """
 
 from __future__ import annotations
@@ -25,6 +27,10 @@ from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     piston_fit,
     range_bearing,
 )
+from lelsonar.reconstruct.estimate.surfaces.flanks import split_jump
+from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
+from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
+from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model
@@ -147,3 +153,41 @@ def test_the_walls_behind_a_mazes_scanner_are_placed_by_their_flanks_within_thei
         assert abs(db) <= 3 * math.sqrt(s.covariance[0, 0]), math.degrees(db)
         assert trace_error(s.normal, s.offset, n_true, h_true) < 0.02
         assert s.quality != "good"
+
+
+def test_a_region_whose_amplitude_hands_over_from_an_edge_to_a_face_at_one_range_splits_there():
+    rng = np.random.default_rng(12)
+    d = np.full((GAMMA.size, 4), np.nan)
+    a = np.full((GAMMA.size, 4), np.nan)
+    edge, face = np.arange(100, 120), np.arange(120, 140)
+    d[edge] = 1.5 + rng.normal(0.0, RANGE_NOISE, (edge.size, 4))
+    d[face] = 1.5 + rng.normal(0.0, RANGE_NOISE, (face.size, 4))
+    # A weak diffraction about its own bearing, then a face's strong mirror echo falling off past its foot (the
+    # foot leaves the face where the edge is): one range, two beam patterns.
+    a[edge] = (0.08 * piston_directivity(GAMMA[edge] - GAMMA[110], KA) ** 2)[:, None] * np.ones(4)
+    a[face] = (1.2 * piston_directivity(GAMMA[face] - GAMMA[112], KA) ** 2)[:, None] * np.ones(4)
+    opts = SurfaceOptions()
+    (region,) = find_regions(d)
+    m = measure_region(region, GAMMA, d, a, GEOMETRY, opts)
+    first, second = split_jump(m, GAMMA, d, a, GEOMETRY, opts)
+    assert np.array_equal(first.region.steps, edge) and np.array_equal(second.region.steps, face)
+    assert first.region.cut_after and second.region.cut_before
+    assert not first.region.cut_before and not second.region.cut_after
+    # One beam pattern throughout: nothing to split.
+    a[edge] = (1.2 * piston_directivity(GAMMA[edge] - GAMMA[112], KA) ** 2)[:, None] * np.ones(4)
+    m = measure_region(region, GAMMA, d, a, GEOMETRY, opts)
+    assert split_jump(m, GAMMA, d, a, GEOMETRY, opts) is None
+
+
+@pytest.mark.slow
+def test_a_box_face_beside_its_own_edge_at_one_range_is_found_and_placed_by_its_flank():
+    model = build_model(draw_world("boxes", 4, mount="fan"))
+    scan = simulate_world_scan(model, 0, seed=4000)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    face = 20  # a box's face whose convex edge answers at its range just before it in the sweep
+    (s,) = [s for s in result.surfaces if np.mean(scan.echo_index[s.rows, s.capsules] == face) > 0.5]
+    n_true, h_true = true_plane(scan, face)
+    db = (s.bearing - bearing_tilt(n_true)[0] + math.pi) % (2 * math.pi) - math.pi
+    assert abs(db) <= 3 * math.sqrt(s.covariance[0, 0]), math.degrees(db)
+    assert trace_error(s.normal, s.offset, n_true, h_true) < 0.02

@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import amplitude_jump
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
@@ -27,6 +28,7 @@ __all__ = [
     "split_dihedral",
     "split_ends",
     "split_flanks",
+    "split_jump",
     "step_slopes",
     "trim_ends",
     "trimmed_centre",
@@ -339,7 +341,8 @@ def split_ends(
 ) -> list[Measured]:
     """A region's end steps that hold another target along the stack, told apart: the region's replacement.
 
-    First its flanks the middle's double bounce with a surface across the fan explains
+    A region whose amplitude hands over from one target to another splits there (:func:`split_jump`); else first
+    its flanks the middle's double bounce with a surface across the fan explains
     (:func:`split_flanks`, both ends at once), then, on each piece, the ends that still slope off or lie
     deeper than the plane's middle (:func:`trim_ends`).
 
@@ -347,8 +350,42 @@ def split_ends(
     -------
     The region's pieces in sweep order (``[m]`` when nothing splits off).
     """
+    handed = split_jump(m, gamma, distance, amplitude, geometry, opts)
+    if handed is not None:
+        return handed
     pieces = split_flanks(m, gamma, distance, amplitude, geometry, opts) or [m]
     return [t for p in pieces for t in (trim_ends(p, gamma, distance, amplitude, geometry, opts) or [p])]
+
+
+def split_jump(
+    m: Measured,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> list[Measured] | None:
+    """A region whose echo amplitude steps as no one beam pattern does: two targets at one range, one taking
+    over from the other (:func:`~.beam_pattern.amplitude_jump`), such as a box's face and its own convex edge
+    beyond the face's end.  Split at the jump, each piece cut on the jump's side (the other target's echo ends
+    it there), when each keeps ``min_steps``.
+
+    Returns
+    -------
+    The two pieces in sweep order, or None (no jump, a cut region, or a piece too short).
+    """
+    r = m.region
+    if amplitude is None or r.cut_before or r.cut_after:
+        return None
+    g = gamma[r.steps]
+    jump = amplitude_jump(g, m.step_amplitude)
+    if jump is None:
+        return None
+    k = int(np.searchsorted(g, jump[0])) if g[-1] > g[0] else 0
+    if not opts.min_steps <= k <= r.steps.size - opts.min_steps:
+        return None
+    pieces = (subregion(r, r.steps[:k], False, True), subregion(r, r.steps[k:], True, False))
+    return [measure_region(p, gamma, distance, amplitude, geometry, opts, step=m.step) for p in pieces]
 
 
 def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
