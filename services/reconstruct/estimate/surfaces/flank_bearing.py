@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import special
 from scipy.optimize import least_squares
 
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
@@ -83,6 +84,17 @@ def _log_piston(u: np.ndarray, ka: float) -> np.ndarray:
         return 2.0 * np.log(np.abs(piston_directivity(u, ka)))
 
 
+def _log_piston_slopes(u: np.ndarray, ka: float) -> tuple[np.ndarray, np.ndarray]:
+    """``∂ log D(u)² / ∂u`` and ``/ ∂ka``: with ``x = ka·sin u``, ``d log(2J1(x)/x)/dx = J0(x)/J1(x) − 2/x``
+    (``−x/4`` as ``x → 0``)."""
+    x = ka * np.sin(u)
+    small = np.abs(x) < 1e-6
+    safe = np.where(small, 1.0, x)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dx = np.where(small, -x / 4.0, special.j0(safe) / special.j1(safe) - 2.0 / safe)
+    return 2.0 * dx * ka * np.cos(u), 2.0 * dx * np.sin(u)
+
+
 def _noise(la: np.ndarray) -> float:
     """The log amplitudes' noise σ, robust, from second differences (variance 6 σ² for white noise); NaN from
     fewer than :data:`MIN_NOISE_DIFFERENCES` of them (the median absolute deviation of a few is near 0 by
@@ -124,10 +136,14 @@ def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: fl
     def res(p: np.ndarray) -> np.ndarray:
         return p[0] + _log_piston(g - p[1], p[2]) - la
 
+    def jacobian(p: np.ndarray) -> np.ndarray:
+        du, dka = _log_piston_slopes(g - p[1], p[2])
+        return np.stack([np.ones_like(g), -du, dka], axis=1)
+
     start = np.array([float(la.max()), bearing, ka0])
     if not np.all(np.isfinite(res(start))):
         return None
-    fit = least_squares(res, start, method="lm")
+    fit = least_squares(res, start, jac=jacobian, method="lm")
     if not fit.success or not np.all(np.isfinite(fit.fun)):
         return None
     c, b, ka = (float(v) for v in fit.x)
@@ -204,6 +220,7 @@ def bearing_from_flank(
     before: float,
     after: float,
     model_check: bool = True,
+    bearing_only: bool = False,
 ) -> tuple[float, float] | None:
     """The bearing of an echo whose region shows one flank of its beam pattern: the piston ``A = P·D(γ − β)²``
     with the sweep's ``ka``, fitted over ``(log P, β)`` in ``log A``.
@@ -223,6 +240,8 @@ def bearing_from_flank(
     model_check : bool
         Refuse a flank whose residuals exceed its noise (off for one capsule's flank, whose bend is what the
         capsules' spread measures).
+    bearing_only : bool
+        Return the bearing with a NaN σ (one capsule's flank, of which only the spread is wanted).
 
     Returns
     -------
@@ -240,10 +259,13 @@ def bearing_from_flank(
         def res(p: np.ndarray) -> np.ndarray:
             return p[0] + _log_piston(g - p[1], ka) - la
 
+        def jacobian(p: np.ndarray) -> np.ndarray:
+            return np.stack([np.ones_like(g), -_log_piston_slopes(g - p[1], ka)[0]], axis=1)
+
         start = np.array([float(la.max()), b0])
         if not np.all(np.isfinite(res(start))):
             return None
-        out = least_squares(res, start, method="lm")
+        out = least_squares(res, start, jac=jacobian, method="lm")
         if not out.success or not np.all(np.isfinite(out.fun)):
             return None
         return float(out.x[0]), float(out.x[1]), out.fun, out.jac
@@ -273,24 +295,20 @@ def bearing_from_flank(
     noise = _noise(la)
     if model_check and math.isfinite(noise) and noise > 0 and math.sqrt(s2) > MODEL_MISFIT * noise:
         return None
+    if bearing_only:
+        return b, float("nan")
     cov = s2 * np.linalg.pinv(jac.T @ jac)
     se = math.sqrt(max(float(cov[1, 1]), 0.0))
     # A step that is another target's (at the region's end, where two echoes at one range hand over) or that
     # another echo bent pulls the flank as its residual alone does not show: the jackknife over the steps
     # (each left out in turn) measures how far any one of them moves β.
+    # (Each left out to first order: the fit's change is (JᵀJ)⁻¹ J_k r_k / (1 − h_kk), h the hat matrix's.)
     if g.size > MIN_FLANK_STEPS:
-        loo = []
-        for k in range(g.size):
-            keep = np.arange(g.size) != k
-            gk, lk = g[keep], la[keep]
-            out = least_squares(
-                lambda p, gk=gk, lk=lk: p[0] + _log_piston(gk - p[1], beam.ka) - lk, np.array([best[0], b]), method="lm"
-            )
-            if out.success and np.all(np.isfinite(out.fun)):
-                loo.append(float(out.x[1]))
-        if len(loo) == g.size:
-            jack = np.asarray(loo)
-            se = max(se, math.sqrt((g.size - 1) / g.size * float(np.sum((jack - jack.mean()) ** 2))))
+        inv = np.linalg.pinv(jac.T @ jac)
+        lever = np.einsum("ij,jk,ik->i", jac, inv, jac)
+        if np.all(lever < 1.0 - 1e-9):
+            moved_b = (jac @ inv)[:, 1] * resid / (1.0 - lever)
+            se = max(se, math.sqrt((g.size - 1) / g.size * float(np.sum((moved_b - moved_b.mean()) ** 2))))
     # β's change with ka, over ka's σ (a secant over ±σ, the larger side).
     moved = 0.0
     for sign in (-1.0, 1.0):
@@ -398,7 +416,11 @@ def flank_measured(
     own = [
         f[0]
         for c in range(table.shape[1])
-        for f in [bearing_from_flank(g, table[:, c], beam, before=reach[0], after=reach[1], model_check=False)]
+        for f in [
+            bearing_from_flank(
+                g, table[:, c], beam, before=reach[0], after=reach[1], model_check=False, bearing_only=True
+            )
+        ]
         if f is not None
     ]
     spread = float(np.std(own, ddof=1)) if len(own) >= 2 else 0.0

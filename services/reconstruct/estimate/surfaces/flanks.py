@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.quality import DEGRADED
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import amplitude_jump
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
@@ -341,20 +342,21 @@ def split_ends(
 ) -> list[Measured]:
     """A region's end steps that hold another target along the stack, told apart: the region's replacement.
 
-    A region whose amplitude hands over from one target to another splits there (:func:`split_jump`); else first
-    its flanks the middle's double bounce with a surface across the fan explains
+    First its flanks the middle's double bounce with a surface across the fan explains
     (:func:`split_flanks`, both ends at once), then, on each piece, the ends that still slope off or lie
     deeper than the plane's middle (:func:`trim_ends`).
+
+    A region neither splits where its amplitude hands over from one target to another (:func:`split_jump`).
 
     Returns
     -------
     The region's pieces in sweep order (``[m]`` when nothing splits off).
     """
-    handed = split_jump(m, gamma, distance, amplitude, geometry, opts)
-    if handed is not None:
-        return handed
     pieces = split_flanks(m, gamma, distance, amplitude, geometry, opts) or [m]
-    return [t for p in pieces for t in (trim_ends(p, gamma, distance, amplitude, geometry, opts) or [p])]
+    out = [t for p in pieces for t in (trim_ends(p, gamma, distance, amplitude, geometry, opts) or [p])]
+    if len(out) == 1:
+        out = split_jump(m, gamma, distance, amplitude, geometry, opts) or out
+    return out
 
 
 def split_jump(
@@ -385,7 +387,13 @@ def split_jump(
     if not opts.min_steps <= k <= r.steps.size - opts.min_steps:
         return None
     pieces = (subregion(r, r.steps[:k], False, True), subregion(r, r.steps[k:], True, False))
-    return [measure_region(p, gamma, distance, amplitude, geometry, opts, step=m.step) for p in pieces]
+    why = (
+        DEGRADED,
+        f"two echoes at one range: the echo amplitude steps at γ {math.degrees(jump[0]):.1f}° as no one beam "
+        "pattern does, so the region is split there and each part is cut where the other's echo takes over",
+    )
+    out = [measure_region(p, gamma, distance, amplitude, geometry, opts, step=m.step) for p in pieces]
+    return [replace(x, findings=(*x.findings, why)) for x in out]
 
 
 def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
