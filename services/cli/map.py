@@ -162,7 +162,7 @@ def run_map(args: argparse.Namespace) -> int:
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
     config = _fusion_config(args)
-    views = getattr(args, "map_views", None)  # the viewer outputs, opened by run_map_with_views
+    views = getattr(args, "map_views", None)  # the viewer outputs (run_map_with_views), opened below
     found: list = []
     where: dict[int, Path] = {}
     for path in args.source:
@@ -183,6 +183,8 @@ def run_map(args: argparse.Namespace) -> int:
     if not scans:
         print("lelsonar map: no final scan in the recordings", file=sys.stderr)
         return 1
+    if views is not None:
+        views.open()
     mapper = WallMapper(config)
     for scan in scans:
         mapper.add_scan(scan)
@@ -209,7 +211,8 @@ def run_map(args: argparse.Namespace) -> int:
 
 
 def run_map_with_views(args: argparse.Namespace) -> int:
-    """`lelsonar map` with its viewer outputs checked and opened before the replay and finished on any exit."""
+    """`lelsonar map` with its viewer outputs checked before the replay, opened once it gave scans to draw,
+    and finished on any exit."""
     from lelsonar.cli.map_views import MapViews, wants_views
     from lelsonar.map.floorplan import PlanConfig
 
