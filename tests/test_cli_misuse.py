@@ -302,6 +302,16 @@ def test_misuse_is_one_line_and_exit_2(family, files, capsys):
     assert (files / "exists.rrd").read_bytes() == b""
 
 
+def test_a_config_file_fills_range_checked_flags_as_the_command_line_does(tmp_path):
+    from lelsonar.cli.config_file import parse_args
+
+    cfg = tmp_path / "planner.toml"
+    cfg.write_text("[planner]\nuntil_final = 2\ntimeout = 1.5\n")
+    args = parse_args(build_parser(), ["planner", "--config", str(cfg)])
+    assert (args.until_final, args.timeout) == (2, 1.5)
+    assert parse_args(build_parser(), ["planner", "--config", str(cfg), "--timeout", "3"]).timeout == 3.0
+
+
 def test_a_service_with_no_router_says_which_to_start(capsys):
     """The live commands dial a router by default: without one, one line names the endpoint and the fix."""
     code = main(["planner", "--connect", "tcp/127.0.0.1:9"])

@@ -114,7 +114,7 @@ def _convert_one(action: argparse.Action, value: Any, where: str) -> Any:
         value = float(value)
     elif action.type in (int, float) and not isinstance(value, action.type):
         raise ConfigError(f"{where} must be of type {action.type.__name__}, got {value!r}")
-    elif callable(action.type) and not isinstance(value, str):
+    elif callable(action.type) and action.type not in (int, float) and not isinstance(value, str):
         raise ConfigError(f"{where} must be a number or a string, got {value!r}")
     if action.choices is not None and value not in action.choices:
         raise ConfigError(f"{where} must be one of {', '.join(map(str, action.choices))}, got {value!r}")
