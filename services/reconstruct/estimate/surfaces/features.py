@@ -4,7 +4,8 @@ A concave corner of two fitted planes lies on their line, with their covariance 
 own echoes admit that line (:func:`pair_denied`): else where its own echo comes from.  Any other corner or edge
 lies where its own echo comes from, off the fan by its stack slope's tilt.  An end set on one plane's trace at its
 range because its own bearing is undetermined has no bearing of its own: the trace picks one of the bearings its
-region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stderr`).  Its direction: along the
+region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stderr`); one with a bearing of its own
+weighs it with the trace's, its σ grown where the two disagree.  Its direction: along the
 two planes' line, along its one plane across the ray to it (that plane's end), across the fan for a line across
 the stack, else along the stack.
 """
@@ -17,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
-from lelsonar.reconstruct.estimate.surfaces.evidence import reach_stderr
+from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
@@ -175,6 +176,44 @@ def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale:
     return ""
 
 
+def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
+    """An end with a bearing of its own, on plane ``pj``'s trace: its bearing and the trace's where it crosses the
+    region's range, at the target's own offset along the stack (:func:`~.evidence.end_stderr`), two measurements
+    of one bearing, weighed by their
+    σ; where they disagree past those σ (χ² over 1), the σ grows as √χ², as a fit's whose rows scatter more than
+    their σ: one of them is off by what neither says.
+
+    Returns
+    -------
+    The region at that bearing and its σ, and the reason to add ("" where the trace does not reach its range).
+    """
+    # The plane where it crosses the target's own offset along the stack, x₀ = ρ sin t: n·X = h there puts its
+    # trace (h − x₀ sin t_j) / cos t_j from the stack's axis.
+    x0 = m.depth * math.sin(m.tilt) if math.isfinite(m.tilt) else 0.0
+    h = (pj.depth - x0 * math.sin(pj.tilt)) / math.cos(pj.tilt)
+    rho = in_fan_range(m)[0]
+    if not rho > h:
+        return m, ""
+    half = math.acos(h / rho)
+    # The side of the foot the region's own bearing is on.
+    trace = wrap(pj.bearing + math.copysign(half, wrap(m.bearing - pj.bearing)))
+    st = end_stderr(m, pj, trace)
+    so = m.surface_bearing_stderr
+    if not (so > 0 and st > 0 and math.isfinite(so) and math.isfinite(st)):
+        return m, ""
+    gap = wrap(trace - m.bearing)
+    w_o, w_t = 1.0 / (so * so), 1.0 / (st * st)
+    bearing = wrap(m.bearing + w_t * gap / (w_o + w_t))
+    chi2 = gap * gap / (so * so + st * st)
+    se = math.sqrt(max(1.0, chi2) / (w_o + w_t))
+    why = (
+        f"its bearing weighs its own ({math.degrees(m.bearing):.1f}° ± {math.degrees(so):.1f}°) with its plane's "
+        f"trace's at its range ({math.degrees(trace):.1f}° ± {math.degrees(st):.1f}°)"
+        + (f", its σ grown ×{math.sqrt(chi2):.1f} by their disagreement" if chi2 > 1 else "")
+    )
+    return replace(m, bearing=bearing, bearing_stderr=se, summed_spread=0.0), why
+
+
 def place_features(
     measured: list[Measured],
     own: list[Measured],
@@ -241,12 +280,15 @@ def place_features(
         elif len(ties) == 1:
             # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
             pj = measured[ties[0]]
-            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
-            if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
-                direction = stack_axis
             if m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
                 reasons = [*reasons, TRACE_ONLY]
+            else:
+                m, why = _with_trace(m, pj)
+                reasons = [*reasons, why] if why else reasons
+            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
+            if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
+                direction = stack_axis
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
             if m.bearing_source == "undetermined":
