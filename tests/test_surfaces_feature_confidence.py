@@ -14,7 +14,10 @@ import pytest
 from lelsonar.reconstruct.estimate.surfaces import Feature, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.features import MIXED, NOT_THEIR_LINE, TRACE_ONLY
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
-from lelsonar.sim.world_geometry import ElementKind
+from lelsonar.signal.energy import echo_amplitude
+from lelsonar.sim.world_geometry import ElementKind, build_model
+from lelsonar.sim.world_render import simulate_world_scan
+from lelsonar.sim.worlds import draw_world
 from lelsonar.tools.map_worlds import sweep
 from lelsonar.tools.stress_world_score import estimate_of, world_run
 from lelsonar.tools.stress_worlds import draw_stress_world
@@ -128,6 +131,8 @@ def _stress_feature(
         (("mixed", 0, "fan", 1, 40), ElementKind.TRIHEDRAL, ""),
         # An edge whose readings mix with a wall's slope along the stack as no target within the beam does.
         (("boxes_large", 1, "fan", 0, 46), ElementKind.EDGE, ""),
+        # A room corner whose region's amplitude top a wall's nearer echo cuts, 2° off its wall's trace.
+        (("heights", 1, "fan", 0, 22), ElementKind.DIHEDRAL, "its bearing weighs its own"),
     ],
 )
 def test_a_stress_worlds_feature_lies_within_three_sigma_of_its_line(case, kind, rule):
@@ -138,3 +143,19 @@ def test_a_stress_worlds_feature_lies_within_three_sigma_of_its_line(case, kind,
         assert dist <= max(3 * sigma, 0.02), (f.label, dist, sigma, f.reasons)
         if rule and dist > 0.02:
             assert any(rule in r for r in f.reasons)
+
+
+def test_a_corridors_end_corner_weighs_its_own_bearing_with_its_walls_trace():
+    # Corridor world 9, pose 0, horizontal fan: the corner of the corridor's end wall (element 10) is heard only
+    # past the side wall's nearer echo, its amplitude's top cut there, 3° off its bearing with a σ of 0.6°; the
+    # side wall's trace crosses its range at its bearing.  Weighed together, their disagreement grows the σ.
+    model = build_model(draw_world("corridor", 9, mount="fan"))
+    scan = simulate_world_scan(model, 0, seed=9 * 1000)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    mine = [f for f in result.corners if majority(scan, f.steps, f)[0] == 10]
+    assert mine and model.elements[10].kind == ElementKind.DIHEDRAL
+    for f in mine:
+        assert any("its bearing weighs its own" in r for r in f.reasons)
+        dist, sigma = feature_offset(scan, f, 10)
+        assert dist <= max(3 * sigma, 0.02)
