@@ -6,11 +6,14 @@ feature was placed far off its line with a σ of millimetres.
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
 import pytest
 
+from lelsonar import codec
+from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.surfaces import Feature, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.features import MIXED, NOT_THEIR_LINE, TRACE_ONLY
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
@@ -22,6 +25,7 @@ from lelsonar.tools.map_worlds import sweep
 from lelsonar.tools.stress_world_score import estimate_of, world_run
 from lelsonar.tools.stress_worlds import draw_stress_world
 from lelsonar.tools.surface_scores import feature_offset, majority
+from lelsonar.view import present
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
 
 
@@ -62,6 +66,22 @@ def test_a_corner_at_two_planes_range_off_their_line_is_not_placed_on_it():
     assert dist <= 3 * sigma
     # Their line's point, where it would have been set, is 60 cm off the echo's line.
     assert np.linalg.norm(c.point - [0.0, 1.0, 1.5]) > 0.3
+
+
+def test_the_planners_table_and_the_json_show_why_a_corner_is_not_on_their_line():
+    e = Echoes(seed=7)
+    e.plane(0.0, 1.0)
+    e.plane(math.pi / 2, 1.5)
+    b = math.atan2(1.5, 1.0)
+    r_fan = math.sqrt(1.5**2 + 1.0 - 0.36)
+    e.across_line(
+        np.array([0.6, r_fan * math.cos(b), r_fan * math.sin(b)]), np.array([0.0, -math.sin(b), math.cos(b)]), 1.5
+    )
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    msg = wire.add_surfaces(codec.Reconstruction(scanner_id="t", scan_id=1), result)
+    caption = str(present.surfaces_table(msg).caption)
+    assert f"* c1: {NOT_THEIR_LINE}" in caption
+    assert any(NOT_THEIR_LINE in r for r in json.loads(present.to_json(msg))["corners"][0]["reasons"])
 
 
 def test_the_corner_two_planes_meet_at_is_still_placed_on_their_line():

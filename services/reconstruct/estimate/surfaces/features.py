@@ -25,7 +25,16 @@ from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_di
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 
-__all__ = ["Kind", "place_features", "pair_denied", "DOUBLE_BOUNCE_HEADROOM", "TRACE_ONLY", "NOT_THEIR_LINE", "MIXED"]
+__all__ = [
+    "Kind",
+    "place_features",
+    "pair_denied",
+    "DOUBLE_BOUNCE_HEADROOM",
+    "TRACE_ONLY",
+    "NOT_THEIR_LINE",
+    "MIXED",
+    "PLACEMENT_CAVEATS",
+]
 
 #: A classified region: its kind ("corner" or "edge"), why, and the regions (indices) it ties to.
 Kind = tuple[str, list[str], list[int]]
@@ -50,6 +59,10 @@ MIXED = (
     "the {tol:.0f} mm one target's region holds to, so it holds more than one target; where its own echo puts "
     "it, its bearing anywhere its region's reach allows"
 )
+
+#: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
+#: with: a reader shows them beside its σ.
+PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0])
 
 
 def _feature(
