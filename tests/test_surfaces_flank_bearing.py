@@ -26,8 +26,8 @@ from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     bearing_from_flank,
     piston_fit,
     range_bearing,
+    split_jump,
 )
-from lelsonar.reconstruct.estimate.surfaces.flanks import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
 from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions

@@ -13,6 +13,9 @@ a peak to give its bearing.  Two measurements remain, each with its own σ:
   this is a weak measurement (the capsules move across the beam only by ``r``), never a bearing on its own
   when the flank gives one; weighed with it by their variances (Birge-scaled where they disagree).
 
+A region whose amplitude hands over from one target to another at one range (a box's face and its own edge)
+holds one flank of each: :func:`split_jump` cuts it there.
+
 Pure functions: no I/O, no state.
 """
 
@@ -25,9 +28,12 @@ import numpy as np
 from scipy import special
 from scipy.optimize import least_squares
 
+from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, step_table, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, step_table, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.regions import subregion
+from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -37,6 +43,7 @@ __all__ = [
     "flank_measured",
     "piston_fit",
     "range_bearing",
+    "split_jump",
     "sweep_beam",
 ]
 
@@ -456,3 +463,40 @@ def flank_measured(
         depth=depth,
         depth_stderr=depth_se,
     )
+
+
+def split_jump(
+    m: Measured,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+) -> list[Measured] | None:
+    """A region whose echo amplitude steps as no one beam pattern does: two targets at one range, one taking
+    over from the other (:func:`~.beam_pattern.amplitude_jump`), such as a box's face and its own convex edge
+    beyond the face's end.  Split at the jump, each piece cut on the jump's side (the other target's echo ends
+    it there), when each keeps ``min_steps``.
+
+    Returns
+    -------
+    The two pieces in sweep order, or None (no jump, a cut region, or a piece too short).
+    """
+    r = m.region
+    if amplitude is None or r.cut_before or r.cut_after:
+        return None
+    g = gamma[r.steps]
+    jump = amplitude_jump(g, m.step_amplitude)
+    if jump is None:
+        return None
+    k = int(np.searchsorted(g, jump[0])) if g[-1] > g[0] else 0
+    if not opts.min_steps <= k <= r.steps.size - opts.min_steps:
+        return None
+    pieces = (subregion(r, r.steps[:k], False, True), subregion(r, r.steps[k:], True, False))
+    why = (
+        DEGRADED,
+        f"two echoes at one range: the echo amplitude steps at γ {math.degrees(jump[0]):.1f}° as no one beam "
+        "pattern does, so the region is split there and each part is cut where the other's echo takes over",
+    )
+    out = [measure_region(p, gamma, distance, amplitude, geometry, opts, step=m.step) for p in pieces]
+    return [replace(x, findings=(*x.findings, why)) for x in out]
