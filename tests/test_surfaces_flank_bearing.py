@@ -8,7 +8,7 @@
   whole profile calibrates the beam it stays undetermined and says so;
 * a region whose amplitude hands over from one target to another at one range splits there;
 * seeded worlds: the walls behind a maze's scanner, seen only past both ends of the sweep, within their σ; a
-  box's face beside its own edge at one range, found and placed.
+  box's face beside its own edge at one range, found, and flagged with why.
 """
 
 from __future__ import annotations
@@ -121,6 +121,7 @@ def test_the_ranges_hold_a_mirrors_bearing_as_their_sigma_says_and_a_slipped_cyc
 
 
 def test_a_wall_past_the_sweeps_end_is_placed_by_its_flank_usable_not_good():
+    # (Past the sweep's own end nothing else answers beside the flank; a nearer echo that cuts a region would.)
     behind = (math.radians(172.0), 0.7, 2.5)  # its foot 22° past the sweep's end
     ahead = (math.radians(10.0), 1.4, 2.5)  # seen whole: the beam's ka
     d, a = _piston_echoes([behind, ahead], seed=7)
@@ -180,14 +181,14 @@ def test_a_region_whose_amplitude_hands_over_from_an_edge_to_a_face_at_one_range
 
 
 @pytest.mark.slow
-def test_a_box_face_beside_its_own_edge_at_one_range_is_found_and_placed_by_its_flank():
+def test_a_box_face_beside_its_own_edge_at_one_range_is_found_and_says_why_it_is_not_placed():
     model = build_model(draw_world("boxes", 4, mount="fan"))
     scan = simulate_world_scan(model, 0, seed=4000)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
     face = 20  # a box's face whose convex edge answers at its range just before it in the sweep
     (s,) = [s for s in result.surfaces if np.mean(scan.echo_index[s.rows, s.capsules] == face) > 0.5]
-    n_true, h_true = true_plane(scan, face)
-    db = (s.bearing - bearing_tilt(n_true)[0] + math.pi) % (2 * math.pi) - math.pi
-    assert abs(db) <= 3 * math.sqrt(s.covariance[0, 0]), math.degrees(db)
-    assert trace_error(s.normal, s.offset, n_true, h_true) < 0.02
+    # Cut where its edge's echo takes over, inside the sweep: that echo bends its flank, so no flank bearing.
+    assert s.quality == "unreliable"
+    assert any("two echoes at one range" in r for r in s.reasons)
+    assert any("bearing not determined" in r for r in s.reasons)

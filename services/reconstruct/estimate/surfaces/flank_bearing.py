@@ -1,7 +1,8 @@
 """A wall's bearing where its region of constant depth holds only one flank of its echo: its foot lies past a cut end.
 
-A region cut by the sweep's end or by a nearer echo, with no amplitude peak inside it, has neither a centre nor
-a peak to give its bearing.  Two measurements remain, each with its own σ:
+A region cut by the sweep's end, with no amplitude peak inside it, has neither a centre nor a peak to give its
+bearing (one cut by a nearer echo keeps it undetermined: that echo answers beside it in the amplitude window
+and bends its flank where they meet).  Two measurements remain, each with its own σ:
 
 * **the beam pattern's flank**: every echo of a rotating transceiver follows ``D(γ − β)²`` across γ, so the
   shape of the flank it shows (not only its level) places the peak it does not show.  The piston's ``ka`` comes
@@ -394,7 +395,7 @@ def flank_measured(
 ) -> Measured:
     """A plane's region whose bearing its centre and peak leave undetermined, placed by its flank and ranges.
 
-    The flank's bearing (:func:`bearing_from_flank`, its peak past a cut end by up to ``beyond_cut``) and the
+    The flank's bearing (:func:`bearing_from_flank`, its peak past the sweep's own end by up to ``beyond_cut``) and the
     ranges' (:func:`range_bearing`, started there) weigh by their inverse variances, the σ scaled by their
     difference in σ of it where that exceeds 1 (the Birge ratio).  Another echo summed into the amplitude window
     bends the flank smoothly, which the fit's residuals do not show, and bends each capsule's flank its own way
@@ -415,7 +416,13 @@ def flank_measured(
     if np.median(np.bincount(np.searchsorted(m.region.steps, m.region.rows))) < amplitude.shape[1]:
         return m
     g = gamma[m.region.steps]
-    reach = (beyond_cut if m.region.cut_before else 0.0, beyond_cut if m.region.cut_after else 0.0)
+    # Only past the sweep's own ends: a nearer echo that cuts a region answers beside it in the same amplitude
+    # window where they meet and bends the flank there; past the sweep's end nothing else answers.
+    first, last = int(m.region.steps[0]), int(m.region.steps[-1])
+    reach = (
+        beyond_cut if m.region.cut_before and first == 0 else 0.0,
+        beyond_cut if m.region.cut_after and last == gamma.size - 1 else 0.0,
+    )
     flank = bearing_from_flank(g, m.step_amplitude, beam, before=reach[0], after=reach[1])
     if flank is None:
         return m
