@@ -154,6 +154,7 @@ def queue_model(
     from collections import deque
 
     from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream import outputs as outputs_module
     from lelsonar.reconstruct.stream import service as service_module
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.service import ReconstructionService
@@ -220,7 +221,9 @@ def queue_model(
             waiting.append(payloads[i])
             i += 1
 
-    service_module.reconstruct_scan, service_module.scan_input = timed_reconstruct, timed_input  # type: ignore[assignment]
+    # The provisional refits' calls are the service's, the finals' are its outputs' (both probed).
+    for module in (service_module, outputs_module):
+        module.reconstruct_scan, module.scan_input = timed_reconstruct, timed_input  # type: ignore[assignment]
     try:
         while i < n or waiting:
             if not waiting:
@@ -248,7 +251,8 @@ def queue_model(
         while service.has_deferred:  # idle after the last payload: what waits is caught up
             run(service.catch_up)
     finally:
-        service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
+        for module in (service_module, outputs_module):
+            module.reconstruct_scan, module.scan_input = reconstruct_scan, scan_input
     span = now[0] - payloads[0][0] if payloads else 0.0
     return {
         "processed_s": processed,
