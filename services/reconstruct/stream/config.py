@@ -63,6 +63,13 @@ class ReconstructConfig:
         deferred provisional refits (oldest estimate first, without their exact fits), then those exact
         fits; the rest wait for the next call, so catching up never holds the stream for long (at least one
         runs a call: the default is about one exact fit).
+    fits_in_pool : bool
+        Live, with a final pool (``final_workers``), a provisional plane's exact fit (the provisional method
+        from scratch: milliseconds, where an update takes tenths) runs in the pool's workers while the samples
+        go on: its plane keeps its estimate until the result is back (none is given while plane a's first fit
+        is away), and the next estimate of its scan has it.  When the pool is full the fit waits for room.
+        Off, or without a pool, or in a replay, the fits run on the samples' thread
+        (``provisional_backlog``, ``provisional_budget``).
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -100,6 +107,7 @@ class ReconstructConfig:
     provisional_deadline: float = 0.04
     provisional_backlog: int = 32
     provisional_budget: float = 0.003
+    fits_in_pool: bool = True
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
@@ -174,6 +182,10 @@ class ServiceStats:
     final_errors: int = 0
     #: Finals on their way when their source stopped on an error (logged).
     finals_dropped: int = 0
+    #: Provisional exact fits run in a pool's workers, and those that raised there (logged; the plane's
+    #: estimate says its fit failed).
+    fits_in_workers: int = 0
+    fit_errors: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
     evicted: Counter = field(default_factory=Counter)
 
@@ -217,6 +229,7 @@ class ServiceStats:
                 "replies_after_verdict": ingest.recovered_after_close,
             },
             "provisionals_shed": self.provisionals_shed,
+            "provisional_fits": {"in_workers": self.fits_in_workers, "errors": self.fit_errors},
             "provisionals_stale": self.provisionals_stale,
             "finals_pool": self.pool_dict(pool),
             "open_scans": len(ingest.scans),

@@ -15,8 +15,9 @@ from typing import Protocol
 
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
 from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
-from lelsonar.reconstruct.estimate.results import ScanReconstruction
+from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneResult, ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
 from lelsonar.reconstruct.stream.final_jobs import FinalJob, accounting_event, close_final, final_message
@@ -26,6 +27,7 @@ from lelsonar.reconstruct.stream.finals import estimate_final, received
 from lelsonar.reconstruct.stream.ingest import Ingest, ScanKey
 from lelsonar.reconstruct.stream.log_requests import LogRequests
 from lelsonar.reconstruct.stream.partial import Partial
+from lelsonar.reconstruct.stream.provisionals import ProvisionalSchedule
 from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
 
@@ -83,6 +85,9 @@ class ServiceOutputs:
     #: Where finals are estimated: None here; a source lends its worker pool (:meth:`use_pool`).
     _pool: FinalPool | None
     _dispatched: dict[int, FinalJob]  # by the pool's ticket
+    #: Provisional exact fits in the pool, by its ticket: their scan and plane.
+    _fits_away: dict[int, tuple[ScanKey, IncrementalPlane]]
+    _schedule: ProvisionalSchedule
     _late: set[ScanKey]  # closed scans whose final is on its way and that got steps meanwhile
     _completed: list[codec.Reconstruction]  # finals made since handle() or tick() last returned
     #: Scans closed complete whose final waits for a backlog to drain (its input reads the whole scan), with
@@ -121,6 +126,10 @@ class ServiceOutputs:
             self._event("ERROR", f"{len(dropped)} finals dropped unmade as their source stopped: scans {dropped}")
             self._dispatched.clear()
             self._late.clear()
+        for key, inc in self._fits_away.values():  # (due again: made here, or in the next pool)
+            inc.fit_lost()
+            self._schedule.fits_later(key)
+        self._fits_away.clear()
         if self._pool is not None and self._pool is not pool:
             self.stats.add_pool(self._pool.stats)
         self._pool = pool
@@ -134,9 +143,13 @@ class ServiceOutputs:
     def collect(self, *, wait: bool = False) -> list[codec.Reconstruction]:
         """The finals made since the last call, in the order their scans were closed; ``wait`` for those on
         their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
-        if self._pool is not None and self._dispatched:
+        if self._pool is not None and (self._dispatched or self._fits_away):
             for done in self._pool.drain() if wait else self._pool.ready():
-                self._complete(self._dispatched.pop(done.ticket), done)
+                away = self._fits_away.pop(done.ticket, None)
+                if away is not None:
+                    self._fitted(*away, done)
+                else:
+                    self._complete(self._dispatched.pop(done.ticket), done)
         out, self._completed = self._completed, []
         return out
 
@@ -204,6 +217,30 @@ class ServiceOutputs:
             # The whole final, its range repair included, in the pool; the points behind each plane travel
             # back only for an observer, which draws them.
             self._dispatched[self._pool.submit(estimate_final, closed, self._options, self._observer is not None)] = job
+
+    def _fitted(self, key: ScanKey, inc: IncrementalPlane, done: Done) -> None:
+        """A provisional exact fit came back from the pool: its plane's estimate from now on (dropped if its
+        scan was closed meanwhile: the final does not use it)."""
+        fit: PlaneResult
+        if done.error is not None:
+            self.stats.fit_errors += 1
+            self._event(
+                "ERROR",
+                f"scan {key}: the provisional exact fit of plane {inc.label} failed in a worker "
+                f"({type(done.error).__name__}: {done.error})\n{done.trace}",
+            )
+            fit = FitFailure(
+                FailureReason.DEGENERATE_GEOMETRY,
+                f"provisional: its exact fit failed ({type(done.error).__name__}: {done.error})",
+                inc.label,
+                inc.n,
+            )
+        else:
+            self.stats.fits_in_workers += 1
+            fit = done.value
+        p = self._partials.get(key)
+        if p is not None:
+            p.fitted(inc, fit)
 
     def _complete(self, job: FinalJob, done: Done) -> None:
         """Publish a final whose estimate is made (or say why it could not be)."""

@@ -52,6 +52,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.incremental import IncrementalPlane, exact_fit
 from lelsonar.reconstruct.estimate.record import provisional_method, reconstruct_scan
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
@@ -108,6 +109,7 @@ class ReconstructionService(ServiceOutputs):
         #: Where finals are estimated: None here; a source lends its worker pool (:meth:`use_pool`).
         self._pool: FinalPool | None = None
         self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
+        self._fits_away: dict[int, tuple[ScanKey, IncrementalPlane]] = {}  # provisional exact fits, by ticket
         self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
         self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
         #: Scans closed complete whose final waits for a backlog to drain (its input reads the whole scan), with
@@ -249,7 +251,31 @@ class ReconstructionService(ServiceOutputs):
             if self._clock() - start >= self.config.provisional_budget or self._pool_full():
                 break  # (a full pool would make the final here, on the samples' thread: it waits for room)
             self._finalise(scan, p, "final")
-        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional, start)
+        return self._schedule.catch_up(
+            self._partials, self.ingest.scans, busy, self._provisional, start, run_fits=self._due_fits
+        )
+
+    def _fits_elsewhere(self) -> bool:
+        """Whether provisional exact fits run in the pool's workers (``fits_in_pool``: live, with a pool)."""
+        pool = self._pool
+        return self.config.fits_in_pool and pool is not None and pool.workers > 0 and self.wall_ns is not None
+
+    def _send_fits(self, scan: ScanAssembly, p: Partial) -> None:
+        """Hand the scan's exact fits due to the pool while it has room; those left wait for :meth:`catch_up`."""
+        pool = self._pool
+        if pool is not None and self._fits_elsewhere() and not self._pool_full():
+            for inc, job in p.take_fits():
+                self._fits_away[pool.submit(exact_fit, job)] = (scan.key, inc)
+        if p.fits_wanted:
+            self._schedule.fits_later(scan.key)
+
+    def _due_fits(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
+        """The exact fits that waited for a backlog: to the pool (live, with one), else made here, with the
+        estimate they give."""
+        if self._fits_elsewhere():
+            self._send_fits(scan, p)
+            return []
+        return self._provisional(scan, p)
 
     def _pool_full(self) -> bool:
         """Whether the pool's workers are all taken and its queue full (a final submitted now would run here)."""
@@ -352,11 +378,11 @@ class ReconstructionService(ServiceOutputs):
             return []
         if self._schedule.defer(scan.key, p, busy):
             return []  # tick() catches up; the backlog's later samples will be in the next refit
-        if not fits_wait:
+        if not fits_wait and not self._fits_elsewhere():
             return self._provisional(scan, p)
         out = self._provisional(scan, p, fits_wait=True)
         if p.fits_wanted:
-            self._schedule.fits_later(scan.key)  # run once the payloads waiting are in
+            self._send_fits(scan, p)  # to the pool, or made once the payloads waiting are in
         return out
 
     def _provisional(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = False) -> list[codec.Reconstruction]:
