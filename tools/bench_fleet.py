@@ -428,6 +428,10 @@ def run(args: argparse.Namespace) -> int:
             "provisionals shed (of which stale)",
             lambda r: f"{sum(r['shed'].values()):g} ({sum(r['stale'].values()):g})",
         ),
+        (
+            "provisional exact fits run in the final pool's workers",
+            lambda r: f"{sum(r.get('fits_in_workers', {}).values()):g}",
+        ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
     table_rows = [(name, *(fn(r) for r in results)) for name, fn in rows]

@@ -197,7 +197,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
         f"{1 / ReconstructConfig().provisional_period:g}): "
         + ", ".join(
             f"{r['scanners']} scanners {sum(r['shed'].values()):g} shed ({sum(r['stale'].values()):g} stale) "
-            f"({100 * provisional_rate(r)[1]:.0f} % of those due), {provisional_rate(r)[0]:.1f}/s published"
+            f"({100 * provisional_rate(r)[1]:.0f} % of those due), {provisional_rate(r)[0]:.1f}/s published, "
+            f"{sum(r.get('fits_in_workers', {}).values()):g} exact fits in the final pool's workers"
             for r in results
         ),
         f"command: {command_line(args)}",
