@@ -224,7 +224,7 @@ def queue_model(
     started: list[float] = []  # thread CPU at the start of the call under way: the clock runs inside a call too
 
     def clock() -> float:
-        inside = time.thread_time() - started[0] - pool.cpu if started and pool is not None else 0.0
+        inside = time.thread_time() - started[0] - (pool.cpu if pool is not None else 0.0) if started else 0.0
         return now[0] + inside
 
     config = replace(ReconstructConfig(provisional=provisional), **(fields or {}))
