@@ -123,7 +123,7 @@ def test_live_with_a_pool_the_exact_fits_run_there_and_the_stream_publishes_mean
     # Every exact fit ran in the pool, none on the stream's thread.
     fits = p.inc_a.stats.exact + p.inc_b.stats.exact
     assert fits >= 2 and p.inc_a.stats.fits_away + p.inc_b.stats.fits_away == fits
-    assert service.stats.fits_in_workers == fits == pool.names.count("exact_fit")
+    assert service.stats.fits_from_pool == fits == pool.names.count("exact_fit")
     assert isinstance(p.inc_b.plane, PlaneFit)
     # The final is the one a service without a pool makes, bit for bit.
     service.handle(type_name(scan_messages[-1]), scan_messages[-1].SerializeToString())

@@ -429,8 +429,8 @@ def run(args: argparse.Namespace) -> int:
             lambda r: f"{sum(r['shed'].values()):g} ({sum(r['stale'].values()):g})",
         ),
         (
-            "provisional exact fits run in the final pool's workers",
-            lambda r: f"{sum(r.get('fits_in_workers', {}).values()):g}",
+            "provisional exact fits made in the final pool",
+            lambda r: f"{sum(r.get('fits_from_pool', {}).values()):g}",
         ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]

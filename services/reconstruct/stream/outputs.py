@@ -236,7 +236,7 @@ class ServiceOutputs:
                 inc.n,
             )
         else:
-            self.stats.fits_in_workers += 1
+            self.stats.fits_from_pool += 1
             fit = done.value
         p = self._partials.get(key)
         if p is not None:
