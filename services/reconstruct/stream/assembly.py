@@ -44,6 +44,7 @@ import logging
 import math
 import struct
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,6 +65,7 @@ from lelsonar.reconstruct.stream.step_features import (
     settle_step,
 )
 from lelsonar.reconstruct.stream.writer_checks import WriterChecks
+from lelsonar.signal.compiled import compiled_for
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import EnergyModel, waveform_energy
 from lelsonar.v1 import scan_pb2
@@ -166,6 +168,9 @@ class ScanAssembly(WriterChecks):
         self._layout: list | None = None
         self._limits_cleared: codec.DecodeLimits | None = None  # the limits the layout and schedule are within
         self._wire: tuple | None = None  # place_wire's arguments for those limits (:meth:`_wire_for`)
+        # place_wire's machine code for a payload and those arguments' types (compiled_for: without the look-up of
+        # a dozen arrays' types a call), once a call has shown them; place_wire itself until then.
+        self._place: Callable = place_wire
         self._buffer = bytearray(8 * (6 * self._k + 5))
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
@@ -237,7 +242,7 @@ class ScanAssembly(WriterChecks):
         timing[:had], timed[:had] = self._echo_timing, self._timed
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
         self._candidate_windows = candidates
-        self._wire = None  # (its arrays changed)
+        self._wire, self._place = None, place_wire  # (its arrays changed)
 
     @property
     def newest_ns(self) -> int:
@@ -293,15 +298,21 @@ class ScanAssembly(WriterChecks):
             if wire is None:
                 return -1
         recovered = origin == "recovered"
-        for _ in range(2):  # a second time once the arrays reach its step (GROW)
-            # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-            status, carried, step = place_wire(payload, at, step, time_ns, recovered, *wire)
-            if status != GROW:
-                break
-            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
+        # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
+        if type(payload) is bytes:
+            place = self._place
+            status, carried, placed = place(payload, at, step, time_ns, recovered, *wire)
+            if place is place_wire:
+                self._place = compiled_for(place_wire, (payload, at, step, time_ns, recovered, *wire)) or place_wire
+        else:
+            status, carried, placed = place_wire(payload, at, step, time_ns, recovered, *wire)
+        if status == GROW:  # placed once the arrays reach its step
+            self._allocate(min(self._steps, max(2 * len(self.received), placed + 1)))
             wire = self._wire_for(limits)  # (the same limits: never None here)
             if wire is None:
                 return -1
+            status, carried, placed = place_wire(payload, at, step, time_ns, recovered, *wire)
+        step = placed
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
             return step
@@ -326,7 +337,7 @@ class ScanAssembly(WriterChecks):
             return None
         wire = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
         if cleared:
-            self._wire = wire
+            self._wire, self._place = wire, place_wire
         return wire
 
     def _clears(self, limits: codec.DecodeLimits) -> bool:
