@@ -51,25 +51,3 @@ def test_float32_at_reads_the_samples_at_every_byte_offset():
     for offset in range(4):
         payload = bytes(offset) + values.tobytes() + bytes(3)
         np.testing.assert_array_equal(read(payload, offset, values.size), values)
-
-
-def test_the_machine_code_for_a_calls_types_is_the_kernels_own():
-    """compiled_for gives the kernel's code for exactly the types it was called with, and nothing for others."""
-    import numpy as np
-
-    from lelsonar.signal.compiled import compiled_for, kernel
-
-    @kernel
-    def scaled(values, factor, out):
-        for i in range(values.size):
-            out[i] = values[i] * factor
-        return values.size
-
-    values, out = np.arange(5.0), np.zeros(5)
-    assert compiled_for(scaled, (values, 2.0, out)) is None  # not compiled for them yet
-    assert scaled(values, 2.0, out) == 5
-    direct = compiled_for(scaled, (values, 3.0, out))
-    assert direct is not None and direct(values, 3.0, out) == 5
-    np.testing.assert_array_equal(out, values * 3.0)
-    assert compiled_for(scaled, (values.astype(np.float32), 3.0, out)) is None
-    assert compiled_for(scaled, (values, 3, out)) is None  # an int is another type

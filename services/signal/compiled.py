@@ -140,20 +140,6 @@ def summing_kernel(func: F) -> F:
     return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})(func)  # type: ignore[return-value]
 
 
-def compiled_for(dispatcher: Callable, args: tuple) -> Callable | None:
-    """The machine code a :func:`kernel` runs for arguments of exactly the types of ``args``, compiled or loaded
-    already (by a call with such arguments), as a Python callable that skips the kernel's look-up of each
-    argument's type: a call with a dozen arrays spends more in that look-up than a short kernel runs.  None if
-    there is no such code (or this Numba keeps it elsewhere): call the kernel itself.
-
-    Only for calls whose arguments have those types, each: it converts them as the types say, unchecked."""
-    try:
-        compiled = getattr(dispatcher, "overloads", {})[tuple(numba.typeof(a) for a in args)]
-    except (KeyError, ValueError, TypeError):
-        return None
-    return getattr(compiled, "entry_point", None)
-
-
 def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
     """Every kernel of :data:`KERNEL_MODULES`, by qualified name (imports those modules)."""
     found = {}

@@ -58,7 +58,6 @@ from lelsonar.reconstruct.stream.step_features import (
     place_step,
     settle_step,
 )
-from lelsonar.signal.compiled import compiled_for
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import waveform_energy
 from lelsonar.v1 import scan_pb2
@@ -128,21 +127,15 @@ class ScanAssembly(ScanArrays):
             if wire is None:
                 return -1
         recovered = origin == "recovered"
-        # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-        place = self._place
-        if place is not None and type(payload) is bytes:
-            status, carried, placed = place(payload, at, step, time_ns, recovered, *wire)
-        else:
-            status, carried, placed = place_wire(payload, at, step, time_ns, recovered, *wire)
-            if place is None and type(payload) is bytes:  # (the types this call showed; none: the kernel itself)
-                self._place = compiled_for(place_wire, (payload, at, step, time_ns, recovered, *wire)) or place_wire
-        if status == GROW:  # placed once the arrays reach its step
-            self._allocate(min(self._steps, max(2 * len(self.received), placed + 1)))
+        for _ in range(2):  # a second time once the arrays reach its step (GROW)
+            # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
+            status, carried, step = place_wire(payload, at, step, time_ns, recovered, *wire)
+            if status != GROW:
+                break
+            self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
             wire = self._wire_for(limits)  # (the same limits: never None here)
             if wire is None:
                 return -1
-            status, carried, placed = place_wire(payload, at, step, time_ns, recovered, *wire)
-        step = placed
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
             return step
@@ -167,7 +160,7 @@ class ScanAssembly(ScanArrays):
             return None
         wire = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
         if cleared:
-            self._wire, self._place = wire, None
+            self._wire = wire
         return wire
 
     def _clears(self, limits: codec.DecodeLimits) -> bool:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -120,9 +119,6 @@ class ScanArrays(WriterChecks):
         self._recovered: tuple[int, tuple] | None = None  # (steps received, recovered_echoes()) when last asked
         self._recovery_sigma = math.nan  # V, the noise σ over the recovered echoes' windows
         self._wire: tuple | None = None  # place_wire's arguments (ScanAssembly._wire_for), dropped as the arrays grow
-        # place_wire's machine code for a payload and those arguments' types (compiled_for: a call without the look-up
-        # of a dozen arrays' types), once a call has shown them (None: not yet; place_wire itself: none found).
-        self._place: Callable | None = None
         # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
@@ -171,7 +167,7 @@ class ScanArrays(WriterChecks):
         timing[:had], timed[:had] = self._echo_timing, self._timed
         self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
         self._candidate_windows = candidates
-        self._wire = self._place = None  # (its arrays changed)
+        self._wire = None  # (its arrays changed)
 
     @property
     def newest_ns(self) -> int:
