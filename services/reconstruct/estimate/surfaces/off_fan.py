@@ -183,10 +183,9 @@ def separate_targets(
     """The regions with each target part of the stack hears apart, and the indices of those targets.
 
     * A region of a run whose capsules hear two targets at ranges apart by more than the stack's length
-      (:attr:`~.regions.Region.part`), heard by no more capsules than the other target: the nearer one leaves the
-      regions, and the pass over the readings no region holds takes it up with every capsule's readings of it (a
-      target off the fan beside the stack); the farther one, heard past it, is a target part of the stack hears.
-      Heard by more capsules than the other, it is a region of the fan.
+      (:attr:`~.regions.Region.part`) is the nearer one's, heard by no more capsules than the farther one: it
+      leaves the regions, and the pass over the readings no region holds takes it up with every capsule's
+      readings of it (a target off the fan beside the stack).  Else it is a region of the fan.
     * A region whose range profile along the stack bends as no one target's does (:func:`~.regions.stack_profile`:
       two targets at one range on either side of the stack, two jambs of a doorway) splits into the capsules
       that hear each (:func:`~.regions.two_targets`), each a target part of the stack hears.  Where no two
@@ -197,14 +196,10 @@ def separate_targets(
     out: list[Measured] = []
     partial: set[int] = set()
     for m in measured:
-        side = _minority_side(m, distance, opts) if m.region.part else ""
-        if side == "nearer":
+        if m.region.part and _nearer_minority(m, distance, opts):
             continue
         targets = split_stack(m, gamma, distance, amplitude, geometry, opts, step)
         if targets is None:
-            if side == "farther":
-                partial.add(len(out))
-                m = _off_fan(m, opts)
             out.append(m)
             continue
         for t in targets:
@@ -274,9 +269,10 @@ def _off_fan(m: Measured, opts: SurfaceOptions) -> Measured:
     return replace(m, tilt=tilt, tilt_stderr=tilt_se)
 
 
-def _minority_side(m: Measured, distance: np.ndarray, opts: SurfaceOptions) -> str:
-    """Whether the region's target is heard by no more capsules than its steps' others at its median step, and if
-    so, on which side of what they hear: "nearer" or "farther" by more than the range tolerance ("" otherwise)."""
+def _nearer_minority(m: Measured, distance: np.ndarray, opts: SurfaceOptions) -> bool:
+    """Whether the region's target is nearer, by more than the range tolerance, than what its steps' other
+    capsules hear, and heard by no more capsules than they are at its median step (a first-echo receiver hears
+    the nearer target first, so the rest hear another one)."""
     r = m.region
     mine = np.zeros((r.steps.size, distance.shape[1]), dtype=bool)
     mine[np.searchsorted(r.steps, r.rows), r.capsules] = True
@@ -284,8 +280,5 @@ def _minority_side(m: Measured, distance: np.ndarray, opts: SurfaceOptions) -> s
     rest = ~mine & np.isfinite(block)
     others = block[rest]
     if not others.size or float(np.median(mine.sum(axis=1) - rest.sum(axis=1))) > 0:
-        return ""
-    own, theirs = float(np.median(m.ranges)), float(np.median(others))
-    if own < theirs - opts.range_tolerance:
-        return "nearer"
-    return "farther" if own > theirs + opts.range_tolerance else ""
+        return False
+    return float(np.median(m.ranges)) < float(np.median(others)) - opts.range_tolerance
