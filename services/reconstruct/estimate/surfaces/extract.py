@@ -81,6 +81,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 )
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import flank_measured, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
@@ -164,6 +165,7 @@ def extract_surfaces(
     _widen_summed_bearings(measured, kinds, scale)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
+    _flank_bearings(measured, kinds, partial, scale, sweep)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale)
     return SurfaceSet(
@@ -531,6 +533,24 @@ def _joint_corners(
     for j, text in disputed.items():
         measured[j] = replace(measured[j], findings=(*measured[j].findings, (DEGRADED, text)))
     return joint
+
+
+def _flank_bearings(
+    measured: list[Measured], kinds: dict[int, Kind], partial: set[int], scale: EchoScale, sweep: _Sweep
+) -> None:
+    """The planes whose bearing neither centre nor peak determines, placed by their beam pattern's flank with
+    the sweep's own piston (:mod:`.flank_bearing`); classification is done, so nothing ties to them anew."""
+    todo = [
+        i for i, m in enumerate(measured) if i not in kinds and i not in partial and m.bearing_source == "undetermined"
+    ]
+    if not todo or sweep.amplitude is None or not scale.beam_k > 0:
+        return
+    # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
+    # bounce or an edge's diffraction adds its own change with the angle: only the planes calibrate the beam.
+    planes = [m for i, m in enumerate(measured) if i not in kinds and i not in partial]
+    beam = sweep_beam(planes, sweep.gamma, sweep.amplitude, 2.0 * math.sqrt(scale.beam_k))
+    for i in todo:
+        measured[i] = flank_measured(measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut)
 
 
 def _fit_planes(

@@ -17,6 +17,7 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
@@ -343,12 +344,17 @@ def split_ends(
     (:func:`split_flanks`, both ends at once), then, on each piece, the ends that still slope off or lie
     deeper than the plane's middle (:func:`trim_ends`).
 
+    A region neither splits where its amplitude hands over from one target to another (:func:`split_jump`).
+
     Returns
     -------
     The region's pieces in sweep order (``[m]`` when nothing splits off).
     """
     pieces = split_flanks(m, gamma, distance, amplitude, geometry, opts) or [m]
-    return [t for p in pieces for t in (trim_ends(p, gamma, distance, amplitude, geometry, opts) or [p])]
+    out = [t for p in pieces for t in (trim_ends(p, gamma, distance, amplitude, geometry, opts) or [p])]
+    if len(out) == 1:
+        out = split_jump(m, gamma, distance, amplitude, geometry, opts) or out
+    return out
 
 
 def _deeper_block(depths: np.ndarray, opts: SurfaceOptions) -> tuple[int, float, float] | None:
