@@ -81,7 +81,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 )
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import flank_measured, sweep_beam
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import flank_measured, flank_reach, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
@@ -540,10 +540,17 @@ def _flank_bearings(
 ) -> None:
     """The planes whose bearing neither centre nor peak determines, placed by their beam pattern's flank with
     the sweep's own piston (:mod:`.flank_bearing`); classification is done, so nothing ties to them anew."""
+    if sweep.amplitude is None or not scale.beam_k > 0:
+        return
+    n_steps, n_capsules = sweep.amplitude.shape
     todo = [
-        i for i, m in enumerate(measured) if i not in kinds and i not in partial and m.bearing_source == "undetermined"
+        i
+        for i, m in enumerate(measured)
+        if i not in kinds
+        and i not in partial
+        and flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut) != (0.0, 0.0)
     ]
-    if not todo or sweep.amplitude is None or not scale.beam_k > 0:
+    if not todo:
         return
     # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
     # bounce or an edge's diffraction adds its own change with the angle: only the planes calibrate the beam.

@@ -390,6 +390,26 @@ def range_bearing(
     return (b + math.pi) % (2 * math.pi) - math.pi, math.sqrt(max(s2 * float(inv[0, 0]), 0.0))
 
 
+def flank_reach(m: Measured, n_steps: int, n_capsules: int, beyond_cut: float) -> tuple[float, float]:
+    """How far past the sweep's first and last step (rad) the peak of an undetermined plane's region may lie:
+    ``beyond_cut`` on a side the sweep's own end cuts, else 0; (0, 0) when its flank cannot place it.
+
+    Only past the sweep's own ends: a nearer echo that cuts a region answers beside it in the same amplitude
+    window where they meet and bends the flank there; past the sweep's end nothing else answers.  A face part of
+    the stack hears ends within the stack's height: its edge, at a like range, answers in the same amplitude
+    window on every step and bends the whole flank alike in the capsules that hear the face.
+    """
+    if m.bearing_source != "undetermined":
+        return 0.0, 0.0
+    if np.median(np.bincount(np.searchsorted(m.region.steps, m.region.rows))) < n_capsules:
+        return 0.0, 0.0
+    first, last = int(m.region.steps[0]), int(m.region.steps[-1])
+    return (
+        beyond_cut if m.region.cut_before and first == 0 else 0.0,
+        beyond_cut if m.region.cut_after and last == n_steps - 1 else 0.0,
+    )
+
+
 def flank_measured(
     m: Measured, gamma: np.ndarray, amplitude: np.ndarray, beam: SweepBeam | None, beyond_cut: float
 ) -> Measured:
@@ -409,20 +429,10 @@ def flank_measured(
     The region with that bearing, its σ, source :data:`FLANK_SOURCE` and its findings (unchanged when the flank
     gives none, or when part of the capsule stack hears the region on most of its steps).
     """
-    if m.bearing_source != "undetermined" or beam is None:
-        return m
-    # A face part of the stack hears ends within the stack's height: its edge, at a like range, answers in the
-    # same amplitude window on every step and bends the whole flank alike in the capsules that hear the face.
-    if np.median(np.bincount(np.searchsorted(m.region.steps, m.region.rows))) < amplitude.shape[1]:
+    reach = flank_reach(m, gamma.size, amplitude.shape[1], beyond_cut)
+    if beam is None or reach == (0.0, 0.0):
         return m
     g = gamma[m.region.steps]
-    # Only past the sweep's own ends: a nearer echo that cuts a region answers beside it in the same amplitude
-    # window where they meet and bends the flank there; past the sweep's end nothing else answers.
-    first, last = int(m.region.steps[0]), int(m.region.steps[-1])
-    reach = (
-        beyond_cut if m.region.cut_before and first == 0 else 0.0,
-        beyond_cut if m.region.cut_after and last == gamma.size - 1 else 0.0,
-    )
     flank = bearing_from_flank(g, m.step_amplitude, beam, before=reach[0], after=reach[1])
     if flank is None:
         return m
