@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.robust import fast_median
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
+_EPS = float(np.finfo(np.float64).eps)
 
 
 def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float] | None:
@@ -62,24 +64,25 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     g, a = g[order], a[order]
     # A receiver that clips flattens the top: the plateau's centre is the peak when both of its ends are
     # inside the region (an unclipped echo on either side), and nothing can be said when one is not.
-    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * a.max())
+    top_value = a.max()
+    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * top_value)
     if flat.size >= 3:
         if flat[0] == 0 or flat[-1] == a.size - 1:
             return None
-        step = float(np.median(np.diff(g)))
+        step = fast_median(np.diff(g))
         width = float(g[flat[-1]]) - float(g[flat[0]])
         return 0.5 * (float(g[flat[0]]) + float(g[flat[-1]])), math.hypot(step, width / flat.size) / math.sqrt(12.0)
-    top = a >= 0.5 * a.max()
+    top = a >= 0.5 * top_value
     if np.count_nonzero(top) < 5:
         return None
     gt, la = g[top], np.log(a[top])
-    g0 = float(np.mean(gt))
+    g0 = float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
     u = gt - g0
-    m = np.stack([np.ones_like(u), u, u * u], axis=1)
-    if np.linalg.matrix_rank(m) < 3:
+    m = _quadratic_design(u)
+    if _rank(m) < 3:
         return None
-    coef, *_ = np.linalg.lstsq(m, la, rcond=None)
-    c0, b, c = (float(v) for v in coef)
+    coef = np.linalg.lstsq(m, la, rcond=None)[0]
+    c0, b, c = coef.tolist()
     if not c < 0:
         return None
     vertex = -b / (2 * c)
@@ -88,11 +91,35 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
         return None
     res = la - m @ coef
     dof = max(u.size - 3, 1)
-    cov = float(res @ res) / dof * np.linalg.pinv(m.T @ m)
+    cov = float(res @ res) / dof * _pinv(m.T @ m)
     # Delta method on −b/(2c).
     jac = np.array([0.0, -1 / (2 * c), b / (2 * c * c)])
     var = float(jac @ cov @ jac)
     return g0 + vertex, math.sqrt(max(var, 0.0))
+
+
+def _quadratic_design(u: np.ndarray) -> np.ndarray:
+    """The columns ``1, u, u²`` (as ``np.stack([np.ones_like(u), u, u * u], axis=1)`` makes them)."""
+    m = np.empty((u.size, 3))
+    m[:, 0] = 1.0
+    m[:, 1] = u
+    m[:, 2] = u * u
+    return m
+
+
+def _rank(m: np.ndarray) -> int:
+    """``np.linalg.matrix_rank`` of a 2-D array: its singular values over ``max(shape)·eps`` of the largest."""
+    s = np.linalg.svd(m, compute_uv=False)
+    return int(np.count_nonzero(s > float(s.max()) * (max(m.shape) * _EPS)))
+
+
+def _pinv(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.pinv`` of a real 2-D array (its default cut-off), the same numbers: its SVD and products."""
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    large = s > 1e-15 * s.max()
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    return np.matmul(np.transpose(vt), np.multiply(s[..., np.newaxis], np.transpose(u)))
 
 
 def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau: bool = False) -> float | None:

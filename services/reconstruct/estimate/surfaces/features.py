@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.normals import cross3
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
@@ -119,18 +120,18 @@ def place_features(
         tied = tuple(surface_of[j].label for j in ties if j in surface_of)
         located: tuple[np.ndarray, np.ndarray] | None = None
         if i in across_lines:
-            direction = np.cross(stack_axis, unit_normal(m.bearing))
+            direction = cross3(stack_axis, unit_normal(m.bearing))
         elif len(ties) >= 2:
             pair_line = _pair_placement(ties[0], ties[1], m, surface_of, joint)
             if pair_line is not None:
                 located, direction = (pair_line[0], pair_line[1]), pair_line[2]
             else:
                 a, b = measured[ties[0]], measured[ties[1]]
-                direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
+                direction = cross3(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
         elif len(ties) == 1:
             # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
             pj = measured[ties[0]]
-            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
+            direction = cross3(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
             if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
                 direction = stack_axis
         else:

@@ -187,7 +187,6 @@ def measure_region(
     cut = region.cut_before or region.cut_after
     mid = 0.5 * (float(g[0]) + float(g[-1]))
     peak_fit = None
-    spread = 0.0  # rad: how far the capsules' own peaks disagree (capsule_peak_spread)
     peak_weight = 0.0  # the amplitude peak's share of the bearing
     peak = float("nan")
     clipped: bool | None = None
@@ -197,9 +196,6 @@ def measure_region(
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
-        if peak_fit is not None:
-            # Another echo summing into the window moves each capsule's peak its own way.
-            spread = capsule_peak_spread(g, step_table(region, amplitude))
     # Two echoes at one range, one taking over from the other inside the region: its ends are not both one
     # beam pattern's.  The shorter side may be the other echo's, so the centre may be off by half its extent:
     # a σ that says so while it stays within the verdict's bound, no centre bearing beyond it.
@@ -290,6 +286,11 @@ def measure_region(
     # The median's standard error (1.25 σ/√N), with one capsule per step counted once per step.
     depth_se = 1.2533 * float(np.std(h_i)) / math.sqrt(max(region.steps.size, 1)) if h_i.size > 1 else float("nan")
     strength = mirror_normalised(peak, depth, opts)
+    # rad: how far the capsules' own peaks disagree (another echo summing into the window moves each capsule's
+    # peak its own way), through the peak's share of the bearing: none, no spread (at finite γ, a finite one).
+    spread = 0.0
+    if peak_fit is not None and amplitude is not None and (peak_weight or not np.isfinite(g).all()):
+        spread = capsule_peak_spread(g, step_table(region, amplitude))
     return Measured(
         region=region,
         bearing=bearing,
