@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.robust import fast_median
+from lelsonar.reconstruct.estimate.robust import fast_median, median
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -251,7 +251,7 @@ def peak_at_bearing(
         return None
     off = np.angle(np.exp(1j * (g[ok] - bearing)))  # wrapped to (−π, π]
     peaks = a[ok] * np.exp(curvature * off * off)
-    return float(np.median(peaks)), float(curvature * np.min(off * off))
+    return fast_median(peaks), float(curvature * np.min(off * off))
 
 
 def weaker_at(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, sigmas: float = 3.0) -> bool:
@@ -367,7 +367,7 @@ def _beam_slope_and_noise(la: np.ndarray, span: float) -> tuple[float, float]:
     differences, whose variance is 6 σ² for white noise.
     """
     second = np.diff(la, 2)
-    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    sigma = 1.4826 * median(np.abs(second - median(second))) / math.sqrt(6.0)
     return 8.0 * float(la.max() - la.min()) / span, sigma
 
 
@@ -406,7 +406,7 @@ def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.
     span = abs(float(g[-1] - g[0]))
     if not span > 0:
         return None
-    step = float(np.median(np.abs(np.diff(g))))
+    step = fast_median(np.abs(np.diff(g)))
     slope, sigma = _beam_slope_and_noise(la, span)
     # A difference of two steps' log amplitudes has variance 2 σ².
     bound = slope * step + sigmas * math.sqrt(2.0) * sigma

@@ -15,6 +15,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     PLATEAU,
     amplitude_jump,
@@ -117,7 +118,7 @@ def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
 
 def sweep_step(gamma: np.ndarray) -> float:
     """The sweep's step, rad: the median ``|Δγ|`` (1° for a single step)."""
-    return float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+    return median(np.abs(np.diff(gamma))) if gamma.size > 1 else math.radians(1.0)
 
 
 def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap: int) -> tuple[bool, bool]:
@@ -134,7 +135,7 @@ def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap:
     cols = np.arange(block.shape[1])
     have = count > 0
     ref = 0.5 * (srt[np.maximum(count - 1, 0) // 2, cols] + srt[count // 2 - (count == 0), cols])
-    ref[~have] = float(np.median(ref[have]))
+    ref[~have] = median(ref[have])
     reach = max_gap + 2
     first, last = int(region.steps[0]), int(region.steps[-1])
     before = distance[max(first - reach, 0) : first]
@@ -282,7 +283,7 @@ def measure_region(
     tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")
     n = unit_normal(bearing, tilt)
     h_i = d + caps @ n
-    depth = float(np.median(h_i))
+    depth = median(h_i)
     # The median's standard error (1.25 σ/√N), with one capsule per step counted once per step.
     depth_se = 1.2533 * float(np.std(h_i)) / math.sqrt(max(region.steps.size, 1)) if h_i.size > 1 else float("nan")
     strength = mirror_normalised(peak, depth, opts)
