@@ -79,9 +79,9 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     g0 = float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
     u = gt - g0
     m = _quadratic_design(u)
-    if _rank(m) < 3:
+    coef = _lstsq_full_rank(m, la)
+    if coef is None:
         return None
-    coef = np.linalg.lstsq(m, la, rcond=None)[0]
     c0, b, c = coef.tolist()
     if not c < 0:
         return None
@@ -105,6 +105,19 @@ def _quadratic_design(u: np.ndarray) -> np.ndarray:
     m[:, 1] = u
     m[:, 2] = u * u
     return m
+
+
+def _lstsq_full_rank(m: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """``np.linalg.lstsq(m, y)``'s solution, None where ``m`` is rank-deficient by ``np.linalg.matrix_rank``.
+
+    The rank is asked only where lstsq's own singular values leave it in doubt: both decompositions are
+    backward stable (each singular value within a small multiple of eps·σ_max of the exact one), so a smallest
+    over 1e-8 of the largest is full rank by either, far above matrix_rank's max(shape)·eps cut-off.
+    """
+    coef, _, _, sv = np.linalg.lstsq(m, y, rcond=None)
+    if not float(sv.min()) > 1e-8 * float(sv.max()) and _rank(m) < m.shape[1]:
+        return None
+    return coef
 
 
 def _rank(m: np.ndarray) -> int:
@@ -151,11 +164,11 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
     top = a >= 0.5 * a.max()
     if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
         return None  # too few samples on the top, or a clipped plateau
-    u = g[top] - float(np.mean(g[top]))
-    m = np.stack([np.ones_like(u), u, u * u], axis=1)
-    if np.linalg.matrix_rank(m) < 3:
+    gt = g[top]
+    u = gt - float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
+    coef = _lstsq_full_rank(_quadratic_design(u), np.log(a[top]))
+    if coef is None:
         return None
-    coef, *_ = np.linalg.lstsq(m, np.log(a[top]), rcond=None)
     return float(-coef[2]) if coef[2] < 0 else None
 
 

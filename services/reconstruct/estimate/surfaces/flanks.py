@@ -80,17 +80,18 @@ def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
     largest ``t = Σ z / √n`` (``n`` its steps with a slope), which must exceed ``sigmas``, with at least
     ``min_steps`` slopes in it and twice that left after it.
     """
-    ok = np.isfinite(z)
-    zs = np.cumsum(np.where(ok, z, 0.0))
-    ns = np.cumsum(ok)
-    left = ns[-1] - ns
+    finite = np.isfinite(z)
+    # (Python numbers for the loop: the same values, without a NumPy scalar per step.)
+    zs = np.cumsum(np.where(finite, z, 0.0)).tolist()
+    counts = np.cumsum(finite)
+    ns, left, ok = counts.tolist(), (counts[-1] - counts).tolist(), finite.tolist()
     best, length = 0.0, 0
     for b in range(z.size):
         if ns[b] < min_steps or not ok[b]:
             continue
         if left[b] < 2 * min_steps:
             break
-        t = abs(float(zs[b])) / math.sqrt(float(ns[b]))
+        t = abs(zs[b]) / math.sqrt(float(ns[b]))
         if t > best:
             best, length = t, b + 1
     return length if best > sigmas else 0

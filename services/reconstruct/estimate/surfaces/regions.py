@@ -461,7 +461,9 @@ def _demeaned_fit(am: np.ndarray, dm: np.ndarray, n_groups: int) -> StackFit:
     if dof < 1:
         return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
     ata = am.T @ am
-    if np.linalg.cond(ata) > 1e10:
+    # One coefficient: the condition number of a finite 1×1 is 1, or inf for 0 (np.linalg.cond's, without an SVD).
+    single = k == 1 and math.isfinite(float(ata[0, 0]))
+    if (float(ata[0, 0]) == 0.0) if single else np.linalg.cond(ata) > 1e10:
         return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
     coef = np.linalg.solve(ata, am.T @ dm)
     res = dm - am @ coef
