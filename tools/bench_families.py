@@ -97,10 +97,8 @@ from lelsonar.tools.family_scan import (
     open3d_plane,
     plane_row,
     scene_truth,
-    serial_scan_times,
-    speed_summary,
-    speed_vs_open3d,
 )
+from lelsonar.tools.family_speed import serial_scan_times, speed_summary, speed_vs_open3d
 
 #: The measures and the scene runner are re-exported: the tests and the stress sweep import them from here.
 __all__ = [

@@ -1,5 +1,5 @@
-"""One scene of the scene-family bench: draw, simulate, reconstruct with every method, score against the truth;
-and the speed of the default method against Open3D.
+"""One scene of the scene-family bench: draw, simulate, reconstruct with every method, score against the truth
+(the speed of the methods: :mod:`lelsonar.tools.family_speed`).
 
 Definitions: :mod:`lelsonar.tools.bench_families`.
 """
@@ -20,7 +20,6 @@ from lelsonar.tools.family_metrics import (
     failure_flags,
     is_failure,
     ls_plane,
-    percentile,
     plane_errors,
     quality_name,
     z_score,
@@ -60,82 +59,6 @@ def open3d_anchor(points: np.ndarray) -> Estimate | None:
         return None
     normal, h, se_n, se_h, n_in = fit
     return Estimate(normal, h, se_n, se_h, time.perf_counter() - t0, extra={"n_points": len(points), "n_inliers": n_in})
-
-
-def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "paper") -> dict[str, Any]:
-    """The default fit per plane against Open3D ``segment_plane`` + LS refit on the same points, ms.
-
-    One scene of ``family``, in this process.  Each repeat runs, back to back, the default
-    method's :func:`lelsonar.reconstruct.estimate.record.reconstruct_scan` (with the echoes' amplitudes, as
-    the service runs it; both planes, so per plane is half the scan) and Open3D with its default
-    early stop and with all 1000 iterations (the deterministic anchor of the accuracy rows) on
-    the two corrected subsets at the default method's critical step (the anchor's points).
-    Interleaving puts the same load of a shared host on all three; the medians over ``repeats``
-    (after one warm-up) are reported, and their ratios.
-
-    Returns
-    -------
-    dict with ``default_ms``, ``open3d_ms`` (early stop), ``open3d_1000_ms`` (per plane),
-    ``ratio`` and ``ratio_1000`` (default over Open3D), ``repeats`` and ``points`` (a, b);
-    the Open3D fields are NaN if a subset has too few points.
-    """
-    from lelsonar.reconstruct.estimate import fit as F
-    from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-    from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
-    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
-    from lelsonar.sim.scenes import simulate_family_scene
-
-    fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
-    scan, model = fs.scan, fs.energy_model
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
-    )
-    record = RecordOptions(method=DEFAULT_METHOD)
-
-    def default() -> Any:
-        return reconstruct_scan(given, record)
-
-    split = _split(scan, default().critical_step)
-    subsets = (
-        [
-            F.plane_data(scan.geometry, scan.gamma_measured, scan.distance, split[label], label, axis).points
-            for label, axis in (("a", AXIS_Y), ("b", AXIS_Z))
-        ]
-        if split
-        else []
-    )
-    usable = len(subsets) == 2 and all(len(p) >= 8 for p in subsets)
-    t_def, t_o3d, t_1000 = [], [], []
-    for k in range(repeats + 1):
-        t0 = time.perf_counter()
-        default()
-        t1 = time.perf_counter()
-        if usable:
-            for pts in subsets:
-                open3d_plane(pts, early_stop=True)
-            t2 = time.perf_counter()
-            for pts in subsets:
-                open3d_plane(pts)
-            t3 = time.perf_counter()
-        if k:  # the first round warms caches up
-            t_def.append((t1 - t0) / 2)
-            if usable:
-                t_o3d.append((t2 - t1) / len(subsets))
-                t_1000.append((t3 - t2) / len(subsets))
-    med = {
-        name: 1e3 * float(np.median(ts)) if ts else float("nan")
-        for name, ts in (("default_ms", t_def), ("open3d_ms", t_o3d), ("open3d_1000_ms", t_1000))
-    }
-    return {
-        **med,
-        "ratio": med["default_ms"] / med["open3d_ms"],
-        "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
-        "repeats": repeats,
-        "points": [len(p) for p in subsets],
-    }
 
 
 def _subset_sources(scan: Any, steps: np.ndarray, label: str) -> np.ndarray:
@@ -519,7 +442,7 @@ def family_scan(
             continue
         rec, dt, quality_service = run
         crits[method] = rec.critical_step
-        split = _split(scan, rec.critical_step)
+        split = critical_split(scan, rec.critical_step)
         edge = _edge_fields(rec.edge, truth)
         for label, res in (("a", rec.plane_a), ("b", rec.plane_b)):
             fitted = hasattr(res, "normal") and hasattr(res, "offset")
@@ -530,7 +453,7 @@ def family_scan(
             rows.append({**row, **edge, "quality_service": quality_service.get(label)})
 
     default_crit = crits.get(DEFAULT_METHOD, next(iter(crits.values()), None))
-    split = _split(scan, default_crit) if anchor else {}
+    split = critical_split(scan, default_crit) if anchor else {}
     if split:
         from lelsonar.reconstruct.estimate import fit as F
         from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
@@ -563,7 +486,7 @@ def family_scan(
     return scene, rows
 
 
-def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
+def critical_split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
     """The pipeline's subsets at ``crit`` ({} if the split cannot be made or imported)."""
     try:
         from lelsonar.reconstruct.estimate.split import split_subsets
@@ -574,50 +497,3 @@ def _split(scan: Any, crit: int | None) -> dict[str, np.ndarray]:
     except Exception:  # noqa: BLE001 — diagnostics and the anchor only; the estimators may move
         return {}
     return {"a": np.asarray(s.steps_a), "b": np.asarray(s.steps_b)}
-
-
-def serial_scan_times(
-    family: str, seed: int, methods: list[str], repeats: int, calibration: str = "paper"
-) -> dict[str, float]:
-    """Best wall time of ``reconstruct_scan`` per method on one scene of ``family``, ms, run serially.
-
-    The worker times of the accuracy runs share the cores with each other (and
-    with anything else on the host); these are the numbers to hold against a
-    time budget.  Each method runs once to warm up, then ``repeats`` times
-    (fewer once a method has taken 1 s); the minimum is the least disturbed by
-    other load on a shared host.
-    """
-    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
-    from lelsonar.signal.energy import waveform_energy
-    from lelsonar.sim.scenes import simulate_family_scene
-
-    fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
-    scan, model = fs.scan, fs.energy_model
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    given = ScanInput.of_scan(scan.gamma_measured, scan.distance, energy, scan.geometry, model)
-    out = {}
-    for method in methods:
-        ts: list[float] = []
-        for _ in range(repeats + 1):
-            t0 = time.perf_counter()
-            try:
-                reconstruct_scan(given, RecordOptions(method=method))
-            except Exception:  # noqa: BLE001 — reported by the accuracy run
-                break
-            ts.append(time.perf_counter() - t0)
-            if len(ts) >= 3 and sum(ts) > 1.0:  # a slow method (paper) gets two measured runs
-                break
-        out[method] = 1e3 * float(np.min(ts[1:])) if len(ts) > 1 else float("nan")
-    return out
-
-
-def speed_summary(per_family: list[dict[str, Any]]) -> dict[str, Any]:
-    """Medians over families of :func:`speed_vs_open3d`'s times, and the ratios of those medians."""
-    med = {k: percentile([v[k] for v in per_family], 50) for k in ("default_ms", "open3d_ms", "open3d_1000_ms")}
-    return {
-        **med,
-        "ratio": med["default_ms"] / med["open3d_ms"],
-        "ratio_1000": med["default_ms"] / med["open3d_1000_ms"],
-        "repeats": per_family[0]["repeats"] if per_family else 0,
-        "points": [],
-    }

@@ -23,7 +23,9 @@ int16 data, a clock per capsule) is put in capsule order first (the general
 path), to the same values.
 
 What the scan's arrays say is read by the classes :class:`ScanAssembly` is built
-on, one job each: :class:`~lelsonar.reconstruct.stream.scan_state.ScanState`
+on, one job each: :class:`~lelsonar.reconstruct.stream.scan_arrays.ScanArrays`
+(the arrays, allocated and grown, and the latest step for display),
+:class:`~lelsonar.reconstruct.stream.scan_state.ScanState`
 (which steps arrived, the arrays of record),
 :class:`~lelsonar.reconstruct.stream.candidates.NoiseTriggers` (readings that are
 the noise a board fired on), :class:`~lelsonar.reconstruct.stream.range_repair.RangeRepair`
@@ -31,9 +33,7 @@ the noise a board fired on), :class:`~lelsonar.reconstruct.stream.range_repair.R
 :class:`~lelsonar.reconstruct.stream.writer_checks.WriterChecks` (what the writer
 stated otherwise than the contract).
 
-The per-step arrays grow with the highest step that actually arrived (doubling,
-capped at ``ScanStart.steps``): a ScanStart claiming many steps costs nothing
-until its samples come.  The assembly knows which steps it lacks
+The assembly knows which steps it lacks
 (:meth:`ScanAssembly.missing_steps`) and where each step came from (the live
 stream or the acquirer's log), for the per-scan accounting.
 """
@@ -43,109 +43,37 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from collections import Counter
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
-from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.stream.fastwire import GROW, place_wire
-from lelsonar.reconstruct.stream.scan_start import energy_model_of, scan_geometry, speed_of_sound
+from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, StepView, stacked_waveforms
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
     CANDIDATES,
     NO_SOUND_SPEED,
-    PER_CAPSULE,
-    PER_STEP,
     UNCHECKED,
     place_step,
     settle_step,
 )
-from lelsonar.reconstruct.stream.writer_checks import WriterChecks
 from lelsonar.signal.echo_timing import TIMING_WINDOW
-from lelsonar.signal.energy import EnergyModel, waveform_energy
+from lelsonar.signal.energy import waveform_energy
 from lelsonar.v1 import scan_pb2
+
+__all__ = ["ScanAssembly", "StepView"]
 
 _log = logging.getLogger(__name__)
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
 
 
-@dataclass
-class StepView:
-    """The latest step as it arrived, for display."""
-
-    step: int
-    time_ns: int
-    gamma: float
-    distance: np.ndarray  # (k,) m, NaN = no echo
-    waveforms: np.ndarray  # (k, n) V
-    sample_rate: float
-    t0: float
-
-
-@dataclass
-class ScanAssembly(WriterChecks):
-    """Everything known about one (scanner, scan)."""
-
-    start: codec.ScanStart
-    geometry: ArrayGeometry = field(init=False)
-    energy_model: EnergyModel = field(init=False)
-    energy_model_problem: str | None = field(init=False)  # why E0 is the uncalibrated one, if it is
-    gamma: np.ndarray = field(init=False)  # (steps,) rad, NaN until received
-    gamma_commanded: np.ndarray = field(init=False)  # (steps,) rad, NaN until received
-    sound_speed: float | None = field(init=False)  # m/s, None: neither stated nor a temperature to derive it
-    #: Readings marked echo_valid = false that carry a range anyway (a writer that never sets the flag).
-    unflagged_ranges: int = 0
-    distance: np.ndarray = field(init=False)  # (steps, k) m, NaN = no echo / not received
-    sensor_energy: np.ndarray = field(init=False)  # (steps, k) V²·s, eq. (10) of each waveform; 0: not received
-    #: (steps, k) V, peak of the first echo alone (:func:`~lelsonar.signal.energy.echo_amplitude`); NaN: none.
-    echo_amplitude: np.ndarray = field(init=False)
-    #: (steps, k) V, peak just before the first echo (``PRE_ECHO_WINDOW``), on every :data:`RISE_STRIDE`-th
-    #: step; NaN: none, or not a checked step.
-    pre_echo_peak: np.ndarray = field(init=False)
-    step_energy: np.ndarray = field(init=False)  # (steps,) E^γ, eq. (11)
-    expected_energy: np.ndarray = field(init=False)  # (steps,) E0(d_m), eq. (12); 0 without a valid range
-    ratio: np.ndarray = field(init=False)  # (steps,) R = E^γ / E0(d_m) (§4); 0 without a valid range
-    dc_level: np.ndarray = field(init=False)  # (steps, k) V, |mean| of each waveform (a receiver's offset)
-    #: (steps, k) distance / (c·tof/2) where the reading gave both (NaN elsewhere): 1 when they agree.
-    range_tof_ratio: np.ndarray = field(init=False)
-    time_ns: np.ndarray = field(init=False)  # (steps,)
-    received: np.ndarray = field(init=False)  # (steps,) bool
-    recovered_mask: np.ndarray = field(init=False)  # (steps,) bool: the step came from the acquirer's log
-    end: codec.ScanEnd | None = None
-    duplicates: int = 0
-    #: Copies of a held step whose content differed from the held one (a forgery, a replayed step of another
-    #: run, a broken writer): counted apart from identical resends, and settled by the acquirer's log.
-    conflicts: int = 0
-    #: Steps with a conflicting copy that no copy from the acquirer's log has settled yet.
-    unsettled: set = field(default_factory=set)
-    #: Held steps the acquirer's log replaced (its copy differed from the one held).
-    replaced: int = 0
-    #: Messages of this scan that were refused, by reason (the wire's ScanAccounting.rejected).
-    rejected: Counter = field(default_factory=Counter)
-    #: Steps whose carried ``Sample.sensor_energy`` disagreed with their waveforms (or was not plausible:
-    #: not one finite, non-negative value per capsule); their energies were recomputed.
-    energy_mismatches: int = 0
-
-    #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
-    INITIAL_ROWS = 256
+class ScanAssembly(ScanArrays):
+    """One scan, assembled from its samples in whatever order they arrive."""
 
     def __post_init__(self) -> None:
-        self.geometry = scan_geometry(self.start)
-        self._k = self.geometry.n_capsules
-        self._steps = int(self.start.steps)
-        # Capsules are matched by the ids the ScanStart gave them (0..k-1 from our writer, any unique ids from
-        # another); row i of the arrays is the i-th id in ascending order, as the geometry's capsule i.
-        self._capsule_ids = sorted(c.capsule_id for c in self.start.capsules)
-        self._ids = np.array(self._capsule_ids, dtype=np.int64)
-        self.sound_speed = speed_of_sound(self.start)
-        e = self.start.energy_model
-        self.energy_model, self.energy_model_problem = energy_model_of(
-            e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range
-        )
+        super().__post_init__()
         # The kernel's constants of the scan (place_step's ``scan``): the speed of sound (NaN for none: the
         # ranges then need both fields), the timing windows' rate (NaN until the first waveforms), E0's model.
         model = self.energy_model
@@ -165,106 +93,12 @@ class ScanAssembly(WriterChecks):
         # readings and energies, packed straight from the decoded lists (cheaper than a new array a sample).
         self._layout: list | None = None
         self._limits_cleared: codec.DecodeLimits | None = None  # the limits the layout and schedule are within
-        self._wire: tuple | None = None  # place_wire's arguments for those limits (:meth:`_wire_for`)
         self._buffer = bytearray(8 * (6 * self._k + 5))
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
         self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
         self._pack_readings_energies = struct.Struct(f"<{5 + 4 * self._k}d")
         # Where fastwire.place_wire finds each waveform's samples in a sample's payload (read there, never copied).
         self._starts = np.zeros(self._k, np.int64)
-        # Each reading's waveform around its time of flight (echo_timing.TIMING_WINDOW), kept to re-time the
-        # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
-        # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
-        self._timing_rate = math.nan
-        self._timing_windows = np.zeros((0, self._k, 0), np.float32)
-        # A reading that may be the noise a board fired on (:func:`candidate_echo`): its waveform around the
-        # first echo after its time of flight, the same width (the echo recovered at the final if the reading
-        # proves to be noise, :meth:`recovered_echoes`).
-        self._candidate_windows = np.zeros((0, self._k, 0), np.float32)
-        # (steps, k, 3) each echo re-timed (echo_timing.echo_onsets): onset − tof (s), peak (V), edge (s); and
-        # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first).
-        self._echo_timing = np.zeros((0, self._k, 3))
-        self._timed = np.zeros(0, bool)
-        self._walk_tested: tuple[int, tuple] | None = None  # (steps received, range_walk()) when last asked
-        self._noise_tested: tuple[int, tuple] | None = None  # (steps received, noise_triggers()) when last asked
-        self._recovered: tuple[int, tuple] | None = None  # (steps received, recovered_echoes()) when last asked
-        self._recovery_sigma = math.nan  # V, the noise σ over the recovered echoes' windows
-        # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
-        self._latest: StepView | tuple | None = None
-        self._allocate(min(self.start.steps, self.INITIAL_ROWS))
-
-    def _allocate(self, n: int) -> None:
-        """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty).
-
-        The (steps, k) arrays are the planes of one block, and the (steps,) float arrays the rows of another:
-        two allocations instead of eleven, and one array each for the kernel to write a step into.
-        """
-        k = self._k
-        per_capsule = np.full((len(PER_CAPSULE), n, k), np.nan)
-        per_capsule[PER_CAPSULE.index("sensor_energy")] = 0.0
-        per_step = np.full((len(PER_STEP), n), np.nan)
-        per_step[PER_STEP.index("step_energy") :] = 0.0
-        time_ns, received, recovered = np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
-        if hasattr(self, "_per_capsule"):
-            had = self._per_capsule.shape[1]
-            per_capsule[:, :had] = self._per_capsule
-            per_step[:, :had] = self._per_step
-            time_ns[:had], received[:had], recovered[:had] = self.time_ns, self.received, self.recovered_mask
-        self._per_capsule, self._per_step = per_capsule, per_step
-        for name, plane in zip(PER_CAPSULE, per_capsule):
-            setattr(self, name, plane)
-        for name, row in zip(PER_STEP, per_step):
-            setattr(self, name, row)
-        self.time_ns, self.received, self.recovered_mask = time_ns, received, recovered
-        self._rows = (per_capsule, per_step, time_ns, received, recovered)  # what the kernel writes a step into
-        self._grow_timing(n, self._timing_windows.shape[2])
-
-    def _arrays(self) -> tuple[np.ndarray, ...]:
-        """What :func:`~lelsonar.reconstruct.stream.step_features.place_step` writes a step into."""
-        return (*self._rows, self._timing_windows, self._candidate_windows)
-
-    def _grow_timing(self, n: int, width: int) -> None:
-        """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
-        windows = np.zeros((n, self._k, width), np.float32)
-        # (The candidates' only once one was found, :meth:`_keep_candidates`.)
-        kept = self._candidate_windows.shape[2] if width == self._timing_windows.shape[2] else 0
-        candidates = np.zeros((n, self._k, kept), np.float32)
-        timing, timed = np.full((n, self._k, 3), np.nan), np.zeros(n, bool)
-        had = len(self._timed)
-        if width == self._timing_windows.shape[2]:
-            windows[:had] = self._timing_windows
-            candidates[:had] = self._candidate_windows
-        timing[:had], timed[:had] = self._echo_timing, self._timed
-        self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
-        self._candidate_windows = candidates
-        self._wire = None  # (its arrays changed)
-
-    @property
-    def newest_ns(self) -> int:
-        """The acquisition time of the latest step placed (else of the highest step received; 0: none), without
-        unpacking its waveforms (:attr:`latest` does, for display)."""
-        view = self._latest
-        if view is not None:
-            return int(self.time_ns[view.step if isinstance(view, StepView) else view[0]])
-        steps = np.flatnonzero(self.received)
-        return int(self.time_ns[steps[-1]]) if len(steps) else 0
-
-    @property
-    def latest(self) -> StepView | None:
-        """The latest step placed, for display (its waveforms unpacked when first read)."""
-        view = self._latest
-        if view is None or isinstance(view, StepView):
-            return view
-        step, held, n, rate, t0 = view
-        # (k, n) float32, or the payload its waveforms were read from (on the fast path's layout: its sensors in
-        # the order of the capsules), parsed only for display
-        if not isinstance(held, np.ndarray):
-            held = _waveforms([s.waveform for s in codec.parse(held, codec.Sample).sensors], n)
-        waveforms = held
-        self._latest = view = StepView(
-            step, int(self.time_ns[step]), float(self.gamma[step]), self.distance[step].copy(), waveforms, rate, t0
-        )
-        return view
 
     def add_payload(
         self, payload: bytes, at: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
@@ -431,7 +265,7 @@ class ScanAssembly(WriterChecks):
         else:
             sensors, in_order = self._in_capsule_order(sample, carried if m == k else None)
             ranges, layout, data = codec.sample_readings(sensors)
-            joined = np.ascontiguousarray(_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
+            joined = np.ascontiguousarray(stacked_waveforms([s.waveform for s in sensors], n), dtype="<f4").tobytes()
             clocks = [v for i in range(k) for v in layout[6 * i + 2 : 6 * i + 4]]  # (rate, t0) of each
             one_clock = clocks == [layout[2], layout[3]] * k
             carried_list = [] if in_order is None else in_order
@@ -513,7 +347,7 @@ class ScanAssembly(WriterChecks):
         the fast path's layout), parsed only if they are needed.  ``layout``, ``ranges``: the sample's in the order
         of the capsules (``ranges`` None: read from the kernel's buffer, where the fast path put them)."""
         if isinstance(waveforms, bytes) and status >= 0 and (status & CANDIDATES or not status & AGREED):
-            waveforms = _waveforms([s.waveform for s in codec.parse(waveforms, codec.Sample).sensors], layout[1])
+            waveforms = stacked_waveforms([s.waveform for s in codec.parse(waveforms, codec.Sample).sensors], layout[1])
         if status > 0 and status & CANDIDATES:
             status &= ~CANDIDATES
             self._keep_candidates(step, np.asarray(waveforms), layout)
@@ -610,10 +444,3 @@ class ScanAssembly(WriterChecks):
         if len(counts) > 1:
             raise InvalidMessageError(f"sample {sample.step} has waveforms of different lengths {sorted(counts)}")
         return sensors, carried
-
-
-def _waveforms(waves: list, n: int) -> np.ndarray:
-    """(k, n) float32 V of ``k`` validated ``Waveform``s of ``n`` samples each, in order."""
-    if all(w.encoding == _FLOAT32 for w in waves):
-        return np.frombuffer(b"".join([w.data for w in waves]), dtype="<f4").reshape(len(waves), n)
-    return np.stack([codec.unpack_waveform(w, validated=True) for w in waves])

@@ -21,9 +21,9 @@ from lelsonar.signal.energy import EnergyModel
 class ScanState:
     """The state of one (scanner, scan) and its read-only accessors.
 
-    The public arrays are documented on :class:`~lelsonar.reconstruct.stream.assembly.ScanAssembly`, which
-    allocates and fills them; the private ones are the kept waveform windows and the caches of the
-    scan-wide checks.
+    The public arrays are documented on :class:`~lelsonar.reconstruct.stream.scan_arrays.ScanArrays`, which
+    allocates them (:class:`~lelsonar.reconstruct.stream.assembly.ScanAssembly` fills them); the private ones
+    are the kept waveform windows and the caches of the scan-wide checks.
     """
 
     start: codec.ScanStart
