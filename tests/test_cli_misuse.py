@@ -47,120 +47,278 @@ def files(tmp_path_factory):
     (d / "exists.rrd").write_bytes(b"")
     (d / "misspelt.toml").write_text('[reconstuct]\nmethod = "ls"\n')
     (d / "wrong-type.toml").write_text("[planner]\ntimeout = [1, 2]\n")
+    (d / "negative.toml").write_text("[planner]\nuntil_final = -1\n")
     return d
 
 
-def _cases(d: Path) -> list[tuple[str, list[str], str]]:
-    """(command, argv, a word the error line must hold); every one exits 2."""
-    scan, fifo, dirp, text = str(d / "scan.mcap"), str(d / "fifo"), str(d / "dir"), str(d / "text.txt")
+#: The command families, each with its own table of misuses.
+FAMILIES = {
+    "recordings": ("review", "info", "recover", "export", "batch", "map"),
+    "live": ("acquire", "reconstruct", "planner", "router", "mapper", "emulate", "ros2-bridge", "demo"),
+    "setup": ("simulate", "calibrate", "secure", "schemas", "version", "warm-up", "bench"),
+}
+
+
+def _common_cases(d: Path, commands: tuple[str, ...]) -> list[tuple[str, list[str], str]]:
+    """A flag no command has, and --config pointing at nothing useful, for each of ``commands``."""
+    scan, fifo, dirp = str(d / "scan.mcap"), str(d / "fifo"), str(d / "dir")
     missing = str(d / "missing.mcap")
+    positional = {"review": [scan], "recover": [scan, "-o", str(d / "r.mcap")], "info": [scan]}
+    positional |= {"export": [scan, "-o", str(d / "bag")], "secure": ["init", str(d / "pki"), "--scanner", "s1"]}
+    positional |= {"bench": ["sim"], "map": ["--source", scan], "mapper": ["--scanner", "s1"]}
+    positional |= {"batch": ["info", scan, "--out", str(d / "batch")]}
     cases: list[tuple[str, list[str], str]] = []
-    for command in COMMANDS:  # a flag no command has, and --config pointing at nothing useful
-        positional = {"review": [scan], "recover": [scan, "-o", str(d / "r.mcap")], "info": [scan]}
-        positional |= {"export": [scan, "-o", str(d / "bag")], "secure": ["init", str(d / "pki"), "--scanner", "s1"]}
-        positional |= {"bench": ["sim"], "map": ["--source", scan], "mapper": ["--scanner", "s1"]}
-        positional |= {"batch": ["info", scan, "--out", str(d / "batch")]}
+    for command in commands:
         extra = positional.get(command, [])
         cases.append((command, [command, *extra, "--no-such-flag"], "unrecognized arguments"))
-        if command not in ("bench",):
-            for config, word in (
-                (missing, "no config file"),
-                (dirp, "directory"),
-                (fifo, "not a regular file"),
-                (str(d / "misspelt.toml"), "did you mean [reconstruct]"),
-            ):
-                # `secure` takes --config before its action
-                argv = (
-                    [command, "--config", config, *extra]
-                    if command == "secure"
-                    else [command, *extra, "--config", config]
-                )
-                cases.append((command, argv, word))
-    cases += [
-        # values
-        ("acquire", ["acquire", "--steps", "1", "--no-zenoh", "--out", str(d / "a")], "steps"),
+        if command == "bench":
+            continue
+        for config, word in (
+            (missing, "no config file"),
+            (dirp, "directory"),
+            (fifo, "not a regular file"),
+            (str(d / "misspelt.toml"), "did you mean [reconstruct]"),
+        ):
+            # `secure` takes --config before its action
+            first = command == "secure"
+            argv = [command, "--config", config, *extra] if first else [command, *extra, "--config", config]
+            cases.append((command, argv, word))
+    return cases
+
+
+def _recordings_cases(d: Path) -> list[tuple[str, list[str], str]]:
+    """review, info, recover, export, batch, map: inputs (missing, a directory, a named pipe, not a recording),
+    outputs (a directory, an existing file, a folder that cannot be made, the input itself) and values."""
+    scan, fifo, dirp, text = str(d / "scan.mcap"), str(d / "fifo"), str(d / "dir"), str(d / "text.txt")
+    missing, exists, bag, batch = str(d / "missing.mcap"), str(d / "exists.rrd"), str(d / "bag"), str(d / "batch")
+    return [
+        ("review", ["review", scan, "--method", "nope"], "invalid choice"),
+        ("review", ["review", scan, "--compare", "nope"], "nope"),
+        ("review", ["review", missing], "missing.mcap"),
+        ("review", ["review", dirp], "directory"),
+        ("review", ["review", fifo], "not a regular file"),
+        ("review", ["review", text], "text.txt"),
+        ("review", ["review", scan, "-o", dirp], "directory"),
+        ("review", ["review", scan, "-o", exists], "--overwrite"),
+        ("review", ["review", scan, "-o", f"{NOWHERE}.rrd"], "cannot make"),
+        ("review", ["review", scan, "-o", scan], "--overwrite"),
+        ("review", ["review", scan, "--screenshot", dirp], "directory"),
+        ("info", ["info", missing], "missing.mcap"),
+        ("info", ["info", fifo], "not a regular file"),
+        ("info", ["info", dirp], "directory"),
+        ("info", ["info", text], "text.txt"),
+        ("info", ["info", scan, missing], "missing.mcap"),
+        ("recover", [*["recover", scan, "-o", str(d / "r.mcap")], "--compression", "rar"], "invalid choice"),
+        ("recover", ["recover", fifo, "-o", str(d / "r.mcap")], "not a regular file"),
+        ("recover", ["recover", missing, "-o", str(d / "r.mcap")], "missing.mcap"),
+        ("recover", ["recover", dirp, "-o", str(d / "r.mcap")], "directory"),
+        ("recover", ["recover", text, "-o", str(d / "r.mcap")], "text.txt"),
+        ("recover", ["recover", scan, "-o", dirp], "directory"),
+        ("recover", ["recover", scan, "-o", exists], "--overwrite"),
+        ("recover", ["recover", scan, "-o", f"{NOWHERE}.mcap"], "cannot make"),
+        ("recover", ["recover", scan, "-o", scan, "--overwrite"], "another name"),
+        ("export", ["export", scan, "-o", bag, "--distro", "kinetic"], "invalid choice"),
+        ("export", ["export", scan, "-o", bag, "--format", "csv"], "invalid choice"),
+        ("export", ["export", scan, "-o", bag, "--fov-deg", "-5"], "field of view"),
+        ("export", ["export", scan, "-o", bag, "--jobs", "-1"], "--jobs"),
+        ("export", ["export", fifo, "-o", bag], "not a regular file"),
+        ("export", ["export", missing, "-o", bag], "missing.mcap"),
+        ("export", ["export", text, "-o", bag], "text.txt"),
+        ("export", ["export", scan, "-o", dirp], "--overwrite"),
+        ("export", ["export", scan, "-o", dirp, "--overwrite"], "not a rosbag2"),
+        ("batch", ["batch", "nope", scan, "--out", batch], "invalid choice"),
+        ("batch", ["batch", "info", missing, "--out", batch], "names no file"),
+        ("batch", ["batch", "info", str(d / "nowhere" / "*.mcap"), "--out", batch], "names no file"),
+        ("batch", ["batch", "info", scan, "--out", text], "not a folder"),
+        ("batch", ["batch", "info", scan, "--out", NOWHERE], "cannot make"),
+        ("batch", ["batch", "info", scan, "--out", batch, "--workers", "0"], "--workers"),
+        ("batch", ["batch", "info", scan, "--out", batch, "--workers", "many"], "invalid int"),
+        ("batch", ["batch", "info", scan, "--out", batch, "--timings", dirp], "directory"),
+        ("batch", ["batch", "reconstruct", scan, "--out", batch, "--compare", "ls,nope"], "nope"),
+        ("map", ["map", "--source", missing], "missing.mcap"),
+        ("map", ["map", "--source", dirp], "directory"),
+        ("map", ["map", "--source", fifo], "not a regular file"),
+        ("map", ["map", "--source", text], "text.txt"),
+        ("map", ["map", "--source", scan, "--goal", "1"], "--goal"),
+        ("map", ["map", "--source", scan, "--robot-radius", "-1"], "robot_radius"),
+        ("map", ["map", "--source", scan, "--resolution", "0"], "resolution"),
+        ("map", ["map", "--source", scan, "--gate", "-3"], "gate"),
+        ("map", ["map", "--source", scan, "--jobs", "-1"], "--jobs"),
+        ("map", ["map", "--source", scan, "--scanner", "bad/id"], "scanner id"),
+        ("map", ["map", "--source", scan, "--scanner", "s9"], "no scan of scanner s9"),
+        ("map", ["map", "--source", scan, "--geojson", dirp], "directory"),
+        ("map", ["map", "--source", scan, "--geojson", exists], "--overwrite"),
+        ("map", ["map", "--source", scan, "--grid", f"{NOWHERE}.json"], "cannot make"),
+        ("map", ["map", "--source", scan, "--rrd", exists], "--overwrite"),
+        ("map", ["map", "--source", scan, "--rrd", scan, "--overwrite"], "differ"),
+        ("map", ["map", "--source", scan, "--screenshot", str(d / "x.xyz")], ".png"),
+        ("map", ["map", "--source", scan, "--ros2-bag", text], "--overwrite"),
+    ]
+
+
+def _live_cases(d: Path) -> list[tuple[str, list[str], str]]:
+    """acquire, reconstruct, planner, router, mapper, emulate, ros2-bridge, demo: values, names and the files
+    they write, refused before any Zenoh session opens (none is up here)."""
+    scan, fifo, dirp, text = str(d / "scan.mcap"), str(d / "fifo"), str(d / "dir"), str(d / "text.txt")
+    missing, exists = str(d / "missing.mcap"), str(d / "exists.rrd")
+    acquire = ["acquire", "--no-zenoh", "--out", str(d / "a")]
+    replay = ["reconstruct", "--source", scan]
+    return [
+        ("acquire", [*acquire, "--steps", "1"], "steps"),
         ("acquire", ["acquire", "--steps", "many"], "invalid int"),
         ("acquire", ["acquire", "--device", "nope"], "invalid choice"),
-        ("simulate", ["simulate", "--preset", "nope"], "invalid choice"),
-        ("simulate", ["simulate", "--plot", str(d / "x.xyz")], ".png"),
-        ("calibrate", ["calibrate", "--distances", "far"], "invalid float"),
-        ("calibrate", ["calibrate", "--device", "serial"], "--config"),
-        ("emulate", ["emulate", "--source", "nope"], "invalid choice"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--truth-preset", "nope"], "invalid choice"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--compare", "ls,nope"], "nope"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--foxglove", "notaport"], "--foxglove"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--serve", "99999"], "--serve"),
+        ("acquire", [*acquire, "--seed", "-1"], "--seed"),
+        ("acquire", [*acquire, "--scans", "0"], "scans"),
+        ("acquire", [*acquire, "--serve-log-for", "-1"], "serve_log_for"),
+        ("acquire", ["acquire", "--no-zenoh", "--out", text], "not a folder"),
+        ("acquire", ["acquire", "--no-zenoh", "--out", str(d), "--mcap-name", "scan.mcap"], "--overwrite"),
+        ("acquire", ["acquire", "--no-zenoh", "--out", NOWHERE], "cannot make"),
+        ("reconstruct", [*replay, "--truth-preset", "nope"], "invalid choice"),
+        ("reconstruct", [*replay, "--compare", "ls,nope"], "nope"),
+        ("reconstruct", [*replay, "--foxglove", "notaport"], "--foxglove"),
+        ("reconstruct", [*replay, "--serve", "99999"], "--serve"),
+        ("reconstruct", [*replay, "--until-scans", "-1"], "--until-scans"),
+        ("reconstruct", [*replay, "--foxglove", "0", "--foxglove-wait", "-5"], "--foxglove-wait"),
+        ("reconstruct", [*replay, "--jobs", "-1"], "--jobs"),
+        ("reconstruct", [*replay, "--scan-timeout", "-1"], "scan_timeout"),
         ("reconstruct", ["reconstruct", "--member-id", "x"], "--group"),
-        ("review", ["review", scan, "--method", "nope"], "invalid choice"),
-        ("planner", ["planner", "--timeout", "soon"], "invalid float"),
-        ("planner", ["planner", "--config", str(d / "wrong-type.toml")], "timeout"),
-        ("router", ["router", "--listen", "nonsense"], "nonsense"),
-        ("recover", [*["recover", scan, "-o", str(d / "r.mcap")], "--compression", "rar"], "invalid choice"),
-        ("export", ["export", scan, "-o", str(d / "bag"), "--distro", "kinetic"], "invalid choice"),
-        ("ros2-bridge", ["ros2-bridge", "--source", scan, "--domain-id", "999"], "DOMAIN"),
-        ("demo", ["demo", "--preset", "nope"], "invalid choice"),
-        ("bench", ["bench", "nope"], "invalid choice"),
-        ("schemas", ["schemas", "--prefix", "bad prefix"], "prefix"),
-        ("secure", ["secure", "nope"], "invalid choice"),
-        ("version", ["version", "extra"], "unrecognized arguments"),
-        ("warm-up", ["warm-up", "now"], "unrecognized arguments"),
-        # inputs: missing, a directory, a named pipe (it would block the reader), not a recording
         ("reconstruct", ["reconstruct", "--source", missing], "missing.mcap"),
         ("reconstruct", ["reconstruct", "--source", dirp], "directory"),
         ("reconstruct", ["reconstruct", "--source", fifo], "not a regular file"),
         ("reconstruct", ["reconstruct", "--source", text], "text.txt"),
-        ("review", ["review", missing], "missing.mcap"),
-        ("review", ["review", dirp], "directory"),
-        ("review", ["review", fifo], "not a regular file"),
-        ("info", ["info", fifo], "not a regular file"),
-        ("info", ["info", dirp], "directory"),
-        ("recover", ["recover", fifo, "-o", str(d / "r.mcap")], "not a regular file"),
-        ("recover", ["recover", missing, "-o", str(d / "r.mcap")], "missing.mcap"),
-        ("export", ["export", fifo, "-o", str(d / "bag")], "not a regular file"),
+        ("reconstruct", [*replay, "--rrd", dirp], "directory"),
+        ("reconstruct", [*replay, "--record", dirp], "directory"),
+        ("reconstruct", [*replay, "--record", scan, "--overwrite"], "differ"),
+        ("reconstruct", [*replay, "--rrd", exists], "--overwrite"),
+        ("reconstruct", [*replay, "--rrd", f"{NOWHERE}.rrd"], "cannot make"),
+        ("planner", ["planner", "--timeout", "soon"], "duration"),
+        ("planner", ["planner", "--timeout", "-1"], "--timeout"),
+        ("planner", ["planner", "--until-final", "-1"], "--until-final"),
+        ("planner", ["planner", "--prefix", "bad prefix"], "prefix"),
+        ("planner", ["planner", "--config", str(d / "wrong-type.toml")], "timeout"),
+        ("planner", ["planner", "--config", str(d / "negative.toml")], "until_final"),
+        ("router", ["router", "--listen", "nonsense"], "nonsense"),
+        ("mapper", ["mapper", "--scanner", "bad/id"], "scanner id"),
+        ("mapper", ["mapper", "--scanner", "s1", "--until-scans", "-1"], "--until-scans"),
+        ("mapper", ["mapper", "--scanner", "s1", "--record", exists], "--overwrite"),
+        ("mapper", ["mapper", "--scanner", "s1", "--record", dirp], "directory"),
+        ("mapper", ["mapper", "--scanner", "s1", "--foxglove", "notaport"], "--foxglove"),
+        ("mapper", ["mapper", "--scanner", "s1", "--gate", "-1"], "gate"),
+        ("emulate", ["emulate", "--source", "nope"], "invalid choice"),
+        ("emulate", ["emulate", "--seed", "-1"], "--seed"),
+        ("ros2-bridge", ["ros2-bridge", "--source", scan, "--domain-id", "999"], "DOMAIN"),
+        ("ros2-bridge", ["ros2-bridge", "--source", scan, "--until-scans", "-1"], "--until-scans"),
         ("ros2-bridge", ["ros2-bridge", "--source", dirp], "directory"),
-        ("calibrate", ["calibrate", "--device", "serial", "--config", fifo], "not a regular file"),
-        # outputs: a directory, an existing file (never replaced without --overwrite), a folder that cannot be
-        # made, the input itself
-        ("review", ["review", scan, "-o", dirp], "directory"),
-        ("review", ["review", scan, "-o", str(d / "exists.rrd")], "--overwrite"),
-        ("review", ["review", scan, "-o", f"{NOWHERE}.rrd"], "cannot make"),
-        ("review", ["review", scan, "-o", scan], "--overwrite"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--rrd", dirp], "directory"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--record", dirp], "directory"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--record", scan, "--overwrite"], "differ"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--rrd", str(d / "exists.rrd")], "--overwrite"),
-        ("reconstruct", ["reconstruct", "--source", scan, "--rrd", f"{NOWHERE}.rrd"], "cannot make"),
+        ("ros2-bridge", ["ros2-bridge", "--source", missing], "missing.mcap"),
+        ("demo", ["demo", "--preset", "nope"], "invalid choice"),
+        ("demo", ["demo", "--device", "serial"], "invalid choice"),
+        ("demo", ["demo", "--seed", "-1"], "--seed"),
+        ("demo", ["demo", "--out", text], "not a folder"),
+        ("demo", ["demo", "--secure", text], "cannot make"),
+        ("demo", ["demo", "--world", "nope"], "--world"),
+        ("demo", ["demo", "--world", "maze:x"], "FAMILY:SEED"),
+        ("demo", ["demo", "--world", text], "TOML"),
+        ("demo", ["demo", "--world", "maze", "--robot-radius", "-1"], "robot_radius"),
+        ("demo", ["demo", "--world", "maze", "--scan-every", "-1"], "--scan-every"),
+    ]
+
+
+def _setup_cases(d: Path) -> list[tuple[str, list[str], str]]:
+    """simulate, calibrate, secure, schemas, version, warm-up, bench: values, names and paths, refused before
+    any work (a benchmark's flags before its runs)."""
+    scan, dirp, text = str(d / "scan.mcap"), str(d / "dir"), str(d / "text.txt")
+    return [
+        ("simulate", ["simulate", "--preset", "nope"], "invalid choice"),
+        ("simulate", ["simulate", "--family", "nope"], "invalid choice"),
+        ("simulate", ["simulate", "--seed", "-1"], "--seed"),
+        ("simulate", ["simulate", "--plot", str(d / "x.xyz")], ".png"),
         ("simulate", ["simulate", "--mcap", dirp], "directory"),
         ("simulate", ["simulate", "--mcap", scan], "--overwrite"),
         ("simulate", ["simulate", "--mcap", f"{NOWHERE}.mcap"], "cannot make"),
-        ("recover", ["recover", scan, "-o", dirp], "directory"),
-        ("recover", ["recover", scan, "-o", scan, "--overwrite"], "another name"),
-        ("export", ["export", scan, "-o", dirp], "--overwrite"),
-        ("export", ["export", scan, "-o", dirp, "--overwrite"], "not a rosbag2"),
-        ("acquire", ["acquire", "--no-zenoh", "--out", text], "not a folder"),
-        ("acquire", ["acquire", "--no-zenoh", "--out", str(d), "--mcap-name", "scan.mcap"], "--overwrite"),
-        ("acquire", ["acquire", "--no-zenoh", "--out", NOWHERE], "cannot make"),
-        ("demo", ["demo", "--out", text], "not a folder"),
+        ("calibrate", ["calibrate", "--distances", "far"], "invalid float"),
+        ("calibrate", ["calibrate", "--distances", "-1"], "positive"),
+        ("calibrate", ["calibrate", "--seed", "-1"], "--seed"),
+        ("calibrate", ["calibrate", "--device", "serial"], "--config"),
+        ("calibrate", ["calibrate", "--device", "serial", "--config", str(d / "fifo")], "not a regular file"),
+        ("secure", ["secure", "nope"], "invalid choice"),
+        ("secure", ["secure", "init", text, "--scanner", "s1"], "cannot make"),
+        ("secure", ["secure", "init", f"{NOWHERE}/pki", "--scanner", "s1"], "cannot make"),
+        ("secure", ["secure", "init", str(d / "pki2"), "--scanner", "bad/id"], "scanner id"),
+        ("secure", ["secure", "add-scanner", dirp, "s2"], "no CA"),
+        ("secure", ["secure", "rotate", dirp, "router"], "nothing to rotate"),
+        ("secure", ["secure", "rotate", dirp], "required"),
+        ("secure", ["secure", "config", dirp, "--role", "nope"], "unknown role"),
+        ("schemas", ["schemas", "--prefix", "bad prefix"], "prefix"),
+        ("version", ["version", "extra"], "unrecognized arguments"),
+        ("warm-up", ["warm-up", "now"], "unrecognized arguments"),
+        ("warm-up", ["warm-up", "--in-process", "now"], "unrecognized arguments"),
+        ("bench", ["bench", "nope"], "invalid choice"),
+        ("bench", ["bench", "all", "--runs", "1"], "unrecognized arguments"),
+        ("bench", ["bench", "sim", "--runs", "0"], "--runs"),
+        ("bench", ["bench", "sim", "--preset", "nope"], "preset"),
+        ("bench", ["bench", "estimators", "--seeds", "0"], "--seeds"),
+        ("bench", ["bench", "estimators", "--families", "nope"], "family"),
+        ("bench", ["bench", "estimators", "--json", dirp], "directory"),
+        ("bench", ["bench", "acquire", "--steps", "0"], "steps"),
+        ("bench", ["bench", "ingest", "--scans", "0"], "--scans"),
+        ("bench", ["bench", "recording", "--dir", text], "not a folder"),
+        ("bench", ["bench", "surfaces", "--worlds", "nope"], "world family"),
+        ("bench", ["bench", "fleet", "--scanners", "0"], "--scanners"),
+        ("bench", ["bench", "fleet", "--service", "nope=1"], "nope"),
+        ("bench", ["bench", "map", "--worlds", "nope"], "world family"),
+        ("bench", ["bench", "batch", "--files", "0"], "--files"),
+        ("bench", ["bench", "stress-worlds", "--classes", "nope"], "stress class"),
     ]
-    return cases
 
 
-def test_every_command_is_in_the_table(files):
-    assert {command for command, _argv, _word in _cases(files)} == set(COMMANDS)
+_TABLES = {"recordings": _recordings_cases, "live": _live_cases, "setup": _setup_cases}
 
 
-def test_misuse_is_one_line_and_exit_2(files, capsys):
+def _cases(d: Path, family: str) -> list[tuple[str, list[str], str]]:
+    """(command, argv, a word the error line must hold) of one family; every one exits 2."""
+    return _common_cases(d, FAMILIES[family]) + _TABLES[family](d)
+
+
+def test_every_command_is_in_a_table(files):
+    assert sorted(c for commands in FAMILIES.values() for c in commands) == COMMANDS
+    for family, commands in FAMILIES.items():
+        assert {command for command, _argv, _word in _TABLES[family](files)} == set(commands)
+
+
+@pytest.mark.parametrize("family", sorted(FAMILIES))
+def test_misuse_is_one_line_and_exit_2(family, files, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # commands' default outputs (out/…) must not meet a developer's own
     failures = []
-    for command, argv, word in _cases(files):
+    for command, argv, word in _cases(files, family):
         code = main(argv)
         err = capsys.readouterr().err
         one_line = err.count("\n") == 1 and err.endswith("\n")
         named = err.startswith(("lelsonar: error:", f"lelsonar {command}: error:", f"lelsonar {command} "))
-        if not (code == 2 and one_line and named and word in err and "Traceback" not in err):
+        clean = "Traceback" not in err and ".rs:" not in err  # nor a Rust source location from a library
+        if not (code == 2 and one_line and named and word in err and clean):
             failures.append(f"lelsonar {' '.join(argv)}: exit {code}, wanted 2 and {word!r}; stderr {err!r}")
     assert not failures, "\n".join(failures)
-    assert not (files / "r.mcap").exists() and not (files / "bag").exists()  # nothing half-written
-    assert (files / "exists.rrd").read_bytes() == b""  # nothing replaced
+    # nothing half-written, nothing replaced
+    assert not any((files / name).exists() for name in ("r.mcap", "bag", "batch", "a", "pki2", "x.xyz"))
+    assert (files / "exists.rrd").read_bytes() == b""
+
+
+def test_a_config_file_fills_range_checked_flags_as_the_command_line_does(tmp_path):
+    from lelsonar.cli.config_file import parse_args
+
+    cfg = tmp_path / "planner.toml"
+    cfg.write_text("[planner]\nuntil_final = 2\ntimeout = 1.5\n")
+    args = parse_args(build_parser(), ["planner", "--config", str(cfg)])
+    assert (args.until_final, args.timeout) == (2, 1.5)
+    assert parse_args(build_parser(), ["planner", "--config", str(cfg), "--timeout", "3"]).timeout == 3.0
+
+
+def test_a_service_with_no_router_says_which_to_start(capsys):
+    """The live commands dial a router by default: without one, one line names the endpoint and the fix."""
+    code = main(["planner", "--connect", "tcp/127.0.0.1:9"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "tcp/127.0.0.1:9" in err and "lelsonar router" in err
+    assert ".rs:" not in err
 
 
 def test_exit_codes_are_documented_in_the_help(capsys):
@@ -407,20 +565,21 @@ def test_exit_stats_count_the_samples_of_a_scan_stopped_mid_way():
 
 @pytest.mark.slow
 def test_a_cold_kernel_cache_is_announced_and_compiled_in_a_child(monkeypatch, capsys):
-    """The first run says it compiles before it starts, and compiles in a child process, which Ctrl-C ends
-    at once (Numba's compiler would hold it in this one)."""
+    """Warm-up on a cold cache says it compiles before it starts, compiles in a child process, which Ctrl-C
+    ends at once (Numba's compiler would hold it in this one), and says where the time went."""
     import lelsonar.cli.warm_up as warm_up
 
     calls = []
     real = warm_up.compile_in_child
 
-    def counted(console):
-        calls.append(True)
-        return real(console)
+    def counted(console, notice):
+        calls.append(notice)
+        return real(console, notice)
 
     monkeypatch.setattr(warm_up, "cache_is_cold", lambda: not calls)
     monkeypatch.setattr(warm_up, "compile_in_child", counted)
     assert main(["warm-up"]) == 0
-    err = capsys.readouterr().err
-    assert calls == [True] and "first run of this build: compiling the numeric kernels" in err
-    assert err.index("first run") < err.index("warm-up:")
+    err = " ".join(capsys.readouterr().err.split())
+    assert calls == [warm_up.WARM_UP_NOTICE] and warm_up.WARM_UP_NOTICE in err
+    assert err.index(warm_up.WARM_UP_NOTICE) < err.index("warm-up:")
+    assert "compiled in" in err and "in a child process" in err

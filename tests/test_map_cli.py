@@ -150,6 +150,21 @@ def test_the_scans_are_fused_in_the_order_they_started_and_one_robot_at_a_time(t
     assert [p["scan_id"] for p in json.loads(capsys.readouterr().out)["poses"]] == [5]
 
 
+def test_a_refused_map_leaves_no_output_to_refuse_the_next_run(two_scans, capsys, tmp_path):
+    other = tmp_path / "other_robot.mcap"
+    with recording.McapRecorder(other) as rec:
+        for m in simulated_messages("paper-test1", seed=3, scanner_id="s2", scan_id=5):
+            rec.write(m)
+    outputs = {"--rrd": tmp_path / "m.rrd", "--mcap": tmp_path / "m.mcap", "--ros2-bag": tmp_path / "bag"}
+    outputs["--screenshot"] = tmp_path / "m.png"
+    flags = [str(a) for item in outputs.items() for a in item]
+    assert main(["map", "--source", str(two_scans[0]), str(other), *flags]) == 2  # two robots: one is needed
+    assert "--scanner" in capsys.readouterr().err
+    assert not any(p.exists() for p in outputs.values())
+    assert main(["map", "--source", str(two_scans[0]), str(other), "--scanner", "s2", *flags]) == 0
+    assert all(p.exists() for p in outputs.values())
+
+
 def test_a_scan_start_s_pose_places_the_scan():
     from scipy.spatial.transform import Rotation
 

@@ -71,15 +71,10 @@ def progress(items: Iterable[T], label: str, total: int | None = None) -> Iterat
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
-        "bench", help="run a benchmark (sim, estimators, acquire, ingest, recording, fleet, batch, or all)"
-    )
+    p = sub.add_parser("bench", help=f"run a benchmark ({', '.join(BENCHES)}, or all)")
     names = p.add_subparsers(dest="bench", required=True, metavar="NAME")
     for name, (module, summary) in BENCHES.items():
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError:
-            continue  # a benchmark not written yet
+        mod = importlib.import_module(module)
         q = names.add_parser(name, help=summary, description=summary)
         mod.add_arguments(q)
         q.set_defaults(run=_compiled_first(mod.run))
@@ -101,10 +96,7 @@ def _compiled_first(run: Callable[[argparse.Namespace], int]) -> Callable[[argpa
 def run_all(args: argparse.Namespace) -> int:
     status = 0
     for name, (module, _summary) in BENCHES.items():  # each benchmark shows its own progress
-        try:
-            mod = importlib.import_module(module)
-        except ModuleNotFoundError:
-            continue
+        mod = importlib.import_module(module)
         parser = argparse.ArgumentParser(prog=f"lelsonar bench {name}")
         mod.add_arguments(parser)
         print(f"\n=== lelsonar bench {name} ===", flush=True)

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from lelsonar.cli.executor import RAY_AUTO
+from lelsonar.cli.values import positive_count
 from lelsonar.tools.bench import machine
 
 #: Speedup floor per worker: N workers must reach this share of N×.
@@ -35,11 +36,13 @@ EFFICIENCY_FLOOR = 0.85
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--files", type=int, default=480, help="recordings in the archive (default 480)")
-    parser.add_argument("--distinct", type=int, default=8, help="distinct simulated scans among them (default 8)")
+    parser.add_argument("--files", type=positive_count, default=480, help="recordings in the archive (default 480)")
+    parser.add_argument(
+        "--distinct", type=positive_count, default=8, help="distinct simulated scans among them (default 8)"
+    )
     parser.add_argument("--preset", default="paper-test1", help="simulator preset of every scan (default paper-test1)")
-    parser.add_argument("--workers", type=int, default=2, help="workers of the parallel runs (default 2)")
-    parser.add_argument("--repeats", type=int, default=3, help="runs of each configuration (default 3)")
+    parser.add_argument("--workers", type=positive_count, default=2, help="workers of the parallel runs (default 2)")
+    parser.add_argument("--repeats", type=positive_count, default=3, help="runs of each configuration (default 3)")
     parser.add_argument(
         "--ray", nargs="?", const=RAY_AUTO, default=None, metavar="ADDRESS", help="also time the batch on Ray"
     )

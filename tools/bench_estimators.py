@@ -56,6 +56,8 @@ from typing import Any
 import numpy as np
 
 from lelsonar.cli.executor import add_ray_argument, config_from_args, map_values
+from lelsonar.cli.paths import output_file
+from lelsonar.cli.values import count, positive_count
 from lelsonar.tools.bench import machine, progress
 
 DEFAULT_SCENES = ("paper-test1", "paper-test2", "tilted", "tilted-roll5", "tilted-b8")
@@ -63,8 +65,8 @@ DEFAULT_SCENES = ("paper-test1", "paper-test2", "tilted", "tilted-roll5", "tilte
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Flags of ``lelsonar bench estimators``."""
-    parser.add_argument("--seeds", type=int, default=50, help="seeds per scene (default 50)")
-    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--seeds", type=positive_count, default=50, help="seeds per scene (default 50)")
+    parser.add_argument("--first-seed", type=count, default=0)
     parser.add_argument(
         "--scenes",
         nargs="+",
@@ -82,9 +84,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--skip-slow", action="store_true", help="skip the Nelder-Mead methods (paper, lel-nm) and the H check"
     )
-    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes for accuracy runs")
+    parser.add_argument(
+        "--jobs", type=positive_count, default=os.cpu_count() or 1, help="worker processes for accuracy runs"
+    )
     add_ray_argument(parser)
-    parser.add_argument("--timing-repeats", type=int, default=50)
+    parser.add_argument("--timing-repeats", type=positive_count, default=50)
     parser.add_argument("--json", metavar="PATH", help="also write every per-plane number as JSON")
     from lelsonar.tools.bench_families import add_family_arguments
     from lelsonar.tools.bench_provisional import add_provisional_arguments
@@ -334,6 +338,8 @@ def run(args: argparse.Namespace) -> int:
 
     With ``--families``, run :func:`lelsonar.tools.bench_families.run_families` instead of the presets.
     """
+    if args.json:  # checked before the runs, not after them
+        output_file(args.json, overwrite=True, what="--json file")
     if getattr(args, "provisional", False):
         from lelsonar.tools.bench_provisional import run_provisional
 

@@ -51,12 +51,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from lelsonar.errors import ConfigError
 from lelsonar.tools.bench_fleet_capacity import CAPACITY_LADDER, run_capacity
 from lelsonar.tools.bench_fleet_publisher import GO, READY, RESULT, check_encoding, combine, parts, publisher_main
 from lelsonar.tools.bench_fleet_results import CPU_PARTS, case_result, refit_cost, summarise
 from lelsonar.tools.bench_fleet_results import behind as behind_text
 from lelsonar.tools.bench_fleet_stages import STALL_MS, run_stages
-from lelsonar.tools.bench_fleet_worker import PREFIX, TIMED_CALLS, client_settings, worker_main
+from lelsonar.tools.bench_fleet_worker import PREFIX, TIMED_CALLS, client_settings, service_config, worker_main
 
 _READY, _RESULT = READY, RESULT
 
@@ -314,6 +315,7 @@ def run(args: argparse.Namespace) -> int:
     if args.role == "publisher":
         return publisher_main(args, PREFIX, client_settings(args.endpoint))
     check_encoding(args.preset)
+    service_config(args.service)  # a field or value the workers would refuse, refused here
     if args.stages:
         return run_stages(args, refit_cost)
     if args.capacity is not None:
@@ -325,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
     from lelsonar.tools.bench import machine
 
     if args.scanners < 1 or args.workers < 1 or not args.rate > 0 or args.scans < 1 or args.repeat < 1:
-        raise SystemExit("bench fleet: --scanners, --workers, --scans and --repeat must be >= 1 and --rate > 0")
+        raise ConfigError("--scanners, --workers, --scans and --repeat must be >= 1 and --rate > 0")
     cases = ([] if args.failover == "only" else [False]) + (
         [True] if args.failover in ("on", "only") or (args.failover == "auto" and args.workers >= 2) else []
     )

@@ -31,6 +31,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
+from lelsonar.errors import ConfigError
+
 #: The scan clock's origin (ns): a payload's time in :func:`interleaved` is its acquisition time less this.
 T0 = 1_700_000_000_000_000_000
 #: µs of the live worker's own CPU per sample outside ``handle`` (the Zenoh receive, the channel, the doorbell),
@@ -310,7 +312,7 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
     from lelsonar.tools.bench import machine
 
     if args.scanners < 1 or args.scans < 1 or args.repeat < 1 or not args.rate > 0:
-        raise SystemExit("bench fleet --stages: --scanners, --scans and --repeat must be >= 1 and --rate > 0")
+        raise ConfigError("--stages: --scanners, --scans and --repeat must be >= 1 and --rate > 0")
     console = Console()
     exercise_kernels()
     payloads = interleaved(args.preset, args.scanners, args.scans, args.rate, args.steps)

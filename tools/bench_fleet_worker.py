@@ -19,6 +19,7 @@ import threading
 import time
 from pathlib import Path
 
+from lelsonar.errors import ConfigError
 from lelsonar.tools.bench_fleet_publisher import READY, RESULT
 from lelsonar.tools.bench_fleet_stages import STALL_MS
 
@@ -51,9 +52,12 @@ def service_config(fields: list[str], **given):
         if isinstance(default, bool):
             given[name] = value.lower() in ("1", "true", "yes")
         elif isinstance(default, (int, float, str)):
-            given[name] = type(default)(value)
+            try:
+                given[name] = type(default)(value)
+            except ValueError:
+                raise ConfigError(f"--service {item}: {name} takes a number ({type(default).__name__})") from None
         else:
-            raise SystemExit(f"bench fleet: --service {item}: not a number or word field of ReconstructConfig")
+            raise ConfigError(f"--service {item}: not a number or word field of ReconstructConfig")
     return ReconstructConfig(**given)
 
 

@@ -278,14 +278,11 @@ def run_worlds(args: argparse.Namespace) -> int:
 
     from lelsonar.cli.executor import config_from_args, map_values
     from lelsonar.errors import ConfigError
-    from lelsonar.sim.worlds import WORLD_FAMILIES
+    from lelsonar.sim.worlds import world_families
     from lelsonar.tools.bench import machine, progress
     from lelsonar.tools.map_worlds import tour
 
-    families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
-    unknown = [f for f in families if f not in WORLD_FAMILIES]
-    if unknown:
-        raise ConfigError(f"unknown world family {unknown[0]!r}; choose from {', '.join(WORLD_FAMILIES)} or all")
+    families = world_families(args.worlds)
     if args.seeds < 0 or args.holdout < 0 or args.seeds + args.holdout < 1:
         raise ConfigError("--seeds and --holdout must be ≥ 0, and at least one world")
     sets = [("dev", range(args.seeds)), ("held-out", range(HOLDOUT_BASE, HOLDOUT_BASE + args.holdout))]

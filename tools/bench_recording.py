@@ -32,6 +32,7 @@ import time
 from pathlib import Path
 
 from lelsonar import codec
+from lelsonar.cli.paths import output_dir
 from lelsonar.tools import bench_markdown
 
 #: Each row: its label and the McapRecorder options it measures.
@@ -150,6 +151,8 @@ def run(args: argparse.Namespace) -> int:
     from lelsonar.tools.bench import machine
     from lelsonar.tools.bench_acquire import host_busy, host_line
 
+    if args.dir is not None:
+        output_dir(args.dir, what="--dir")
     console = Console(width=max(Console().width, 160))
     busy = host_busy()
     msgs = scan_messages(args.preset, args.steps, args.seed)

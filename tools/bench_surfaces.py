@@ -56,7 +56,7 @@ from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions
 from lelsonar.sim.scenes import FAMILIES as L_FAMILIES
 from lelsonar.sim.world import MOUNTS
 from lelsonar.sim.world_geometry import build_model
-from lelsonar.sim.worlds import WORLD_FAMILIES, draw_world
+from lelsonar.sim.worlds import draw_world, world_families
 from lelsonar.tools.surface_scores import PlaneRecord, ScanRecord, l_scan_errors, run_scan
 
 if TYPE_CHECKING:
@@ -114,7 +114,7 @@ def _pct(values: list[float], q: float) -> float:
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    families = WORLD_FAMILIES if args.worlds == "all" else tuple(f.strip() for f in args.worlds.split(","))
+    families = world_families(args.worlds)
     mounts = MOUNTS if args.mount == "both" else (args.mount,)
     options = SurfaceOptions(joint_corners=not args.no_joint_corners)
     console = Console(width=200)

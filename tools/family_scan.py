@@ -85,19 +85,14 @@ _WARM: set[str] = set()
 
 def _warm_up(methods: list[str]) -> None:
     """Run each method once per process on a paper scan, so first-call costs (imports, caches) stay out of the times."""
-    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
+    from lelsonar.reconstruct.estimate.waveform_input import scan_input_of_waveforms
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     todo = [m for m in methods if m not in _WARM]
     if not todo:
         return
-    scan = simulate_scan(preset("paper-test1"), seed=12345)
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), echo_amplitude=amplitude
-    )
+    given = scan_input_of_waveforms(simulate_scan(preset("paper-test1"), seed=12345), default_energy_model())
     for m in todo:
         try:
             reconstruct_scan(given, RecordOptions(method=m))
@@ -400,17 +395,13 @@ def family_scan(
     """
     _warm_up(methods)
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
-    from lelsonar.reconstruct.estimate.record import ScanInput
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.waveform_input import scan_input_of_waveforms
     from lelsonar.sim import EchoSource
     from lelsonar.sim.scenes import simulate_family_scene
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
     draw, scan, model = fs.draw, fs.scan, fs.energy_model
     cfg = draw.config
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    # The first echoes' own amplitudes, as the reconstruction service computes them from each Sample.
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     truth = scene_truth(scan)
     counts = np.bincount(scan.truth.echo_source.ravel().astype(int), minlength=len(EchoSource))
     scene = {
@@ -428,10 +419,7 @@ def family_scan(
     rows: list[dict[str, Any]] = []
 
     crits: dict[str, int | None] = {}
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
-    )
-    runs = _reconstruct_all(given, methods, DEFAULT_METHOD)
+    runs = _reconstruct_all(scan_input_of_waveforms(scan, model), methods, DEFAULT_METHOD)
     for method in methods:
         run = runs[method]
         if isinstance(run, str):

@@ -35,17 +35,13 @@ def speed_vs_open3d(family: str, seed: int, repeats: int, calibration: str = "pa
     from lelsonar.reconstruct.estimate import fit as F
     from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
     from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
-    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
+    from lelsonar.reconstruct.estimate.waveform_input import scan_input_of_waveforms
     from lelsonar.sim.scenes import simulate_family_scene
 
     fs = simulate_family_scene(family, seed, wide_calibration=calibration == "wide")
-    scan, model = fs.scan, fs.energy_model
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, model, echo_amplitude=amplitude
-    )
+    scan = fs.scan
+    given = scan_input_of_waveforms(scan, fs.energy_model)
     record = RecordOptions(method=DEFAULT_METHOD)
 
     def default() -> Any:

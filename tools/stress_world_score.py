@@ -33,9 +33,10 @@ from lelsonar.map.from_reconstruction import scan_from_reconstruction
 from lelsonar.map.fusion import FusionConfig
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
-from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
+from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import PlaneFit
-from lelsonar.signal.energy import echo_amplitude, waveform_energy
+from lelsonar.reconstruct.estimate.waveform_input import scan_input_of_waveforms
+from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.acoustics import Receiver
 from lelsonar.sim.odometry import simulate_odometry
 from lelsonar.sim.scan import EchoSource
@@ -111,12 +112,7 @@ def world_run(world: World, seed: int, amplitude_noise: float = 0.0) -> WorldRun
 
 def estimate_of(scan: WorldScan):
     """The sweep's final estimate of record (the L planes and every surface, corner and edge)."""
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, ENERGY_MODEL, echo_amplitude=amplitude
-    )
-    return reconstruct_scan(given, RecordOptions())
+    return reconstruct_scan(scan_input_of_waveforms(scan, ENERGY_MODEL), RecordOptions())
 
 
 def _seen_mirrors(scan: WorldScan) -> list[int]:

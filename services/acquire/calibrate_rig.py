@@ -22,20 +22,14 @@ import numpy as np
 from lelsonar.acquire.devices.dynamixel import DynamixelMotor
 from lelsonar.acquire.devices.motor import MotorConfig
 from lelsonar.acquire.devices.sensor_board import SensorBoardConfig, SerialSensorBoard
-from lelsonar.acquire.rig import Rig, load_rig, rig_links, write_energy_model
+from lelsonar.acquire.rig import REQUIRED_FOR_SERIAL, Rig, load_rig, rig_links, write_energy_model
 from lelsonar.errors import ConfigError
 from lelsonar.signal.energy import EnergyModel, fit_energy_model, total_energy, waveform_energy
 
-#: Keys the calibration needs from the rig file (no φ, no schedule: it measures the one and needs not the other).
-REQUIRED_FOR_CALIBRATION = (
-    "servo.port",
-    "servo.zero_raw",
-    "servo.gamma_min_deg",
-    "servo.gamma_max_deg",
-    "sensor_board.port",
-    "sensor_board.sample_rate",
-    "sensor_board.window_samples",
-    "air.temperature_c or air.sound_speed",
+#: Keys the calibration needs from the rig file: a scan's, but φ (it measures it), the schedule and the array's
+#: geometry (it shoots face-on at set distances).
+REQUIRED_FOR_CALIBRATION = tuple(
+    need for need in REQUIRED_FOR_SERIAL if need.partition(".")[0] not in ("energy_model", "schedule", "array")
 )
 
 

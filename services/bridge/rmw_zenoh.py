@@ -52,7 +52,7 @@ import zenoh.ext
 
 from lelsonar.bridge import ros2
 from lelsonar.errors import ConfigError
-from lelsonar.net.transport import TransportError, ZenohSettings
+from lelsonar.net.transport import TransportError, ZenohSettings, zenoh_reason
 
 ADMIN_SPACE = "@ros2_lv"
 RMW_ZENOH_DEFAULT_DEPTH = 42
@@ -79,7 +79,7 @@ def open_ros_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
         session = zenoh.open(cfg)
     except zenoh.ZError as exc:
         raise TransportError(
-            f"cannot open a Zenoh {settings.mode} session: {exc}; is the robot's router "
+            f"cannot open a Zenoh {settings.mode} session: {zenoh_reason(exc)}; is the robot's router "
             f"(ros2 run rmw_zenoh_cpp rmw_zenohd) listening on {', '.join(settings.connect or ('its config file',))}?"
         ) from None
     try:

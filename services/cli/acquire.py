@@ -9,6 +9,7 @@ import threading
 import tomllib
 from pathlib import Path
 
+from lelsonar.cli.values import count
 from lelsonar.errors import ConfigError
 
 #: TOML keys (table [acquire]) and the flags that override them; angles in degrees, lengths in m.
@@ -95,7 +96,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-zenoh", action="store_true", help="do not publish (record only)")
     p.add_argument("--scans", type=int, help="number of scans (default: 1)")
     p.add_argument("--interval", type=float, metavar="S", help="seconds between scans (default: 0)")
-    p.add_argument("--seed", type=int, help="seed of the simulated acoustics (default: 0)")
+    p.add_argument("--seed", type=count, help="seed of the simulated acoustics (default: 0)")
     p.add_argument(
         "--int16",
         dest="waveform_int16",

@@ -46,6 +46,8 @@ from lelsonar.cli.executor import (
     worker_loads,
 )
 from lelsonar.cli.main import COMMAND_MODULES, main
+from lelsonar.cli.paths import output_dir, output_file
+from lelsonar.cli.reconstruct import compared_methods
 from lelsonar.errors import ConfigError
 
 INDEX = "index.jsonl"
@@ -323,8 +325,11 @@ def run_batch(args: argparse.Namespace) -> int:
     names = relative_names(inputs)
     values = {"--method": args.method, "--compare": args.compare}
     flags = [part for flag in job.method_flags for part in (flag, values[flag])]
-    out_dir: Path = args.out
-    out_dir.mkdir(parents=True, exist_ok=True)
+    if "--compare" in job.method_flags:
+        compared_methods(args)  # a name that is no method fails here, not in every file's worker
+    if args.timings is not None:  # a file of each run, replaced by the next
+        output_file(args.timings, overwrite=True, what="--timings file")
+    out_dir = output_dir(args.out, what="--out")
     index_path = out_dir / INDEX
     recorded = read_index(index_path)
     previous = {} if args.force else recorded

@@ -9,6 +9,8 @@ import threading
 from contextlib import ExitStack
 from pathlib import Path
 
+from lelsonar.cli.values import count
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.cli.paths import add_overwrite_argument
@@ -55,7 +57,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--until-scans",
-        type=int,
+        type=count,
         default=0,
         metavar="N",
         help="live: exit after N final estimates (default: run until Ctrl-C)",

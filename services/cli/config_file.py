@@ -102,15 +102,20 @@ def _convert_one(action: argparse.Action, value: Any, where: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{where} must be a string, got {value!r}")
         value = str(value)
+    number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if callable(action.type) and action.type not in (int, float) and number:
+        value = str(value)  # a range-checked type (lelsonar.cli.values) reads the number's text, as on the line
     if isinstance(value, str) and callable(action.type):
         try:
             value = action.type(value)
-        except (TypeError, ValueError) as exc:
+        except (TypeError, ValueError, argparse.ArgumentTypeError) as exc:
             raise ConfigError(f"{where}: {exc}") from None
     elif action.type is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     elif action.type in (int, float) and not isinstance(value, action.type):
         raise ConfigError(f"{where} must be of type {action.type.__name__}, got {value!r}")
+    elif callable(action.type) and action.type not in (int, float) and not isinstance(value, str):
+        raise ConfigError(f"{where} must be a number or a string, got {value!r}")
     if action.choices is not None and value not in action.choices:
         raise ConfigError(f"{where} must be one of {', '.join(map(str, action.choices))}, got {value!r}")
     return value

@@ -23,6 +23,8 @@ import threading
 import time
 from pathlib import Path
 
+from lelsonar.cli.values import count
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.cli.paths import add_overwrite_argument
@@ -44,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=("emulated", "sim"),
         help="emulated devices through the real drivers (default), or the simulator directly",
     )
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulated acoustics (default: 0)")
+    p.add_argument("--seed", type=count, default=0, help="seed of the simulated acoustics (default: 0)")
     p.add_argument(
         "--world",
         metavar="FILE|NAME",
@@ -168,7 +170,9 @@ def run_demo(args: argparse.Namespace) -> int:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.DEVNULL,
             )
-            if not ready.wait(60):
+            with console.status("waiting for reconstruct and planner to listen (each loads its kernels first)…"):
+                up = ready.wait(60)
+            if not up:
                 console.print(f"[red]reconstruct and planner did not come up (seen: {sorted(seen)})")
                 return 1
             acquire = spawn(

@@ -49,14 +49,10 @@ def sweep_reconstruction(scan, scanner_id: str, scan_id: int, energy_model):
     the sweep (:func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` on its ranges, energies and echo
     amplitudes, as the reconstructor computes it)."""
     from lelsonar.reconstruct.estimate import wire
-    from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
-    from lelsonar.signal.energy import echo_amplitude, waveform_energy
+    from lelsonar.reconstruct.estimate.record import RecordOptions, reconstruct_scan
+    from lelsonar.reconstruct.estimate.waveform_input import scan_input_of_waveforms
 
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, energy_model, echo_amplitude=amplitude
-    )
+    given = scan_input_of_waveforms(scan, energy_model)
     msg = wire.estimate_message(reconstruct_scan(given, RecordOptions()), scanner_id, scan_id, status="final")
     msg.stamp_ns = time.time_ns()
     return msg

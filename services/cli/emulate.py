@@ -26,6 +26,7 @@ from lelsonar.acquire.emulate.sensor_board_emulator import (
     echo_shot_source,
     sim_shot_source,
 )
+from lelsonar.cli.values import count
 from lelsonar.errors import ConfigError
 
 
@@ -44,7 +45,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--preset", default="paper-test1", help="simulator preset (default: %(default)s)")
     p.add_argument("--echo-distance", type=float, default=1.0, metavar="M", help="wall range for --source echo")
-    p.add_argument("--seed", type=int, default=0, help="seed of the simulator and the fault generators")
+    p.add_argument("--seed", type=count, default=0, help="seed of the simulator and the fault generators")
     p.add_argument("--motor-id", type=int, default=1, metavar="ID", help="the AX-12's bus id (default: 1)")
     p.add_argument("--return-delay", type=int, default=0, help="Return Delay Time, 2 µs units (datasheet default 250)")
     p.add_argument("--zero-raw", type=int, default=ax12.CENTER_RAW, help="raw position of γ = 0")

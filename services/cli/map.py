@@ -8,6 +8,8 @@ import math
 import sys
 from pathlib import Path
 
+from lelsonar.cli.values import count
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     from lelsonar.cli.map_views import add_mapper_view_arguments, add_view_arguments
@@ -58,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_view_arguments(p)
     p.set_defaults(run=run_map_with_views)
 
+    from lelsonar.cli.paths import add_overwrite_argument
     from lelsonar.cli.secure import add_secure_argument
     from lelsonar.net.transport import add_zenoh_arguments
 
@@ -76,7 +79,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         help=f"estimator of record (default: {DEFAULT_METHOD})",
     )
     p.add_argument("--record", type=Path, metavar="FILE.mcap", help="record every map to an MCAP file")
-    p.add_argument("--until-scans", type=int, default=0, metavar="N", help="exit after N scans are mapped")
+    add_overwrite_argument(p)
+    p.add_argument("--until-scans", type=count, default=0, metavar="N", help="exit after N scans are mapped")
     p.add_argument("--json", action="store_true", help="print each map as one JSON line (as map --json)")
     _add_fusion_arguments(p)
     add_zenoh_arguments(p, default_mode="client")
@@ -155,6 +159,7 @@ def scans_of(path: Path, method: str, jobs: int | None = None) -> list:
 def run_map(args: argparse.Namespace) -> int:
     from lelsonar.cli.reconstruct import final_workers
     from lelsonar.errors import ConfigError, InvalidMessageError
+    from lelsonar.keys import validate_identifier
     from lelsonar.map import floorplan
     from lelsonar.map.fusion import WallMapper
     from lelsonar.map.result import map_to_dict
@@ -162,12 +167,17 @@ def run_map(args: argparse.Namespace) -> int:
     goal = _goal(args.goal)
     plan = floorplan.PlanConfig(robot_radius=args.robot_radius, resolution=args.resolution)
     config = _fusion_config(args)
-    views = getattr(args, "map_views", None)  # the viewer outputs, opened by run_map_with_views
+    if args.scanner is not None:
+        validate_identifier(args.scanner)
+    _check_plan_outputs(args)
+    views = getattr(args, "map_views", None)  # the viewer outputs (run_map_with_views), opened below
     found: list = []
     where: dict[int, Path] = {}
+    others: set[str] = set()  # the scanners --scanner left out
     for path in args.source:
         for t, scanner, scan in scans_of(path, args.method, final_workers(args)):
             if args.scanner is not None and scanner != args.scanner:
+                others.add(scanner)
                 continue
             if scan.scan_id in where:
                 raise InvalidMessageError(
@@ -180,9 +190,15 @@ def run_map(args: argparse.Namespace) -> int:
         raise ConfigError(f"the recordings hold the scans of {', '.join(scanners)}: choose one robot with --scanner")
     # The robot's path is the order its scans started in, whatever the order of the files.
     scans = [f[3] for f in sorted(found, key=lambda f: (f[0], f[1]))]
+    if not scans and others:
+        raise ConfigError(
+            f"the recordings hold no scan of scanner {args.scanner}: they hold {', '.join(sorted(others))}"
+        )
     if not scans:
         print("lelsonar map: no final scan in the recordings", file=sys.stderr)
         return 1
+    if views is not None:
+        views.open()
     mapper = WallMapper(config)
     for scan in scans:
         mapper.add_scan(scan)
@@ -208,8 +224,29 @@ def run_map(args: argparse.Namespace) -> int:
     return 0 if not args.route or out["route"] is not None else 1
 
 
+def _check_plan_outputs(args: argparse.Namespace) -> None:
+    """``--geojson`` and ``--grid`` checked before the replay: new files (unless ``--overwrite``), not the
+    recordings.
+
+    Raises
+    ------
+    ConfigError
+        An output exists (without ``--overwrite``), is a directory, cannot be made, or is a recording read.
+    """
+    from lelsonar.cli.paths import output_file
+    from lelsonar.errors import ConfigError
+
+    sources = {Path(s).resolve() for s in args.source}
+    for flag, path in (("--geojson", args.geojson), ("--grid", args.grid)):
+        if path is not None:
+            output_file(path, overwrite=args.overwrite, what=f"{flag} file")
+            if Path(path).resolve() in sources:
+                raise ConfigError("the recordings and the output files must differ")
+
+
 def run_map_with_views(args: argparse.Namespace) -> int:
-    """`lelsonar map` with its viewer outputs checked and opened before the replay and finished on any exit."""
+    """`lelsonar map` with its viewer outputs checked before the replay, opened once it gave scans to draw,
+    and finished on any exit."""
     from lelsonar.cli.map_views import MapViews, wants_views
     from lelsonar.map.floorplan import PlanConfig
 
@@ -271,11 +308,14 @@ def run_mapper(args: argparse.Namespace) -> int:
     from google.protobuf.json_format import MessageToDict
 
     from lelsonar.cli.map_views import mapper_views
+    from lelsonar.cli.paths import output_file
     from lelsonar.keys import ScannerKeys, validate_identifier
     from lelsonar.map.service import MapperService, ZenohMapper, map_key
     from lelsonar.net.transport import open_session, zenoh_settings_from_args
 
     scanner = validate_identifier(args.scanner)
+    if args.record is not None:
+        output_file(args.record, overwrite=args.overwrite, what="--record file")
     prefix = ScannerKeys(args.prefix or "lelsonar", scanner).prefix
     settings = zenoh_settings_from_args(args)
     if getattr(args, "secure", None) is not None:

@@ -42,7 +42,8 @@ def wants_views(args: argparse.Namespace) -> bool:
 
 
 class MapViews:
-    """The open viewer outputs of one `map` run: :meth:`add` each step's map, :meth:`finish` with the last."""
+    """The viewer outputs of one `map` run, checked when made: :meth:`open` them, :meth:`add` each step's map,
+    :meth:`finish` with the last."""
 
     def __init__(self, args: argparse.Namespace, plan) -> None:
         from contextlib import ExitStack
@@ -75,13 +76,19 @@ class MapViews:
         self._mcap: Any = None  # (mcap Writer, MapScene)
         self._bag: Any = None  # (BagSink, Builder)
         self._t = 0
+        self._paths = (args.rrd, args.mcap, args.ros2_bag)
+
+    def open(self) -> None:
+        """Create the files, once the recordings have given a map to draw: a run refused after the checks
+        (several robots, no final scan) leaves no file behind to refuse the next run."""
+        rrd, mcap, bag = self._paths
         try:
-            if args.rrd is not None:
-                self._open_rrd(args.rrd)
-            if args.mcap is not None:
-                self._open_mcap(args.mcap)
-            if args.ros2_bag is not None:
-                self._open_bag(args.ros2_bag)
+            if rrd is not None:
+                self._open_rrd(rrd)
+            if mcap is not None:
+                self._open_mcap(mcap)
+            if bag is not None:
+                self._open_bag(bag)
         except BaseException:
             self._stack.close()
             raise

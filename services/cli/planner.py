@@ -8,6 +8,7 @@ import sys
 import threading
 
 from lelsonar.cli.reconstruct import stop_on_signals, zenoh_settings
+from lelsonar.cli.values import count, seconds
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -19,14 +20,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="JSON lines instead of tables")
     p.add_argument(
         "--until-final",
-        type=int,
+        type=count,
         default=0,
         metavar="N",
         help="exit after N final estimates (default: run until Ctrl-C)",
     )
     p.add_argument(
         "--timeout",
-        type=float,
+        type=seconds,
         default=0.0,
         metavar="S",
         help="give up after S seconds without a final estimate (default: never)",

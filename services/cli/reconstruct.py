@@ -13,6 +13,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from lelsonar import codec
+from lelsonar.cli.values import count, seconds
 from lelsonar.errors import InternalError
 
 _log = logging.getLogger("lelsonar.reconstruct")
@@ -46,7 +47,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--until-scans",
-        type=int,
+        type=count,
         default=0,
         metavar="N",
         help="live: exit after N final estimates (default: run until Ctrl-C)",
@@ -215,7 +216,7 @@ def _add_foxglove_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--foxglove-wait",
-        type=float,
+        type=seconds,
         default=0.0,
         metavar="S",
         help="with --source: wait up to S s for a Foxglove client to subscribe before replaying, "

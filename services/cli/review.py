@@ -63,6 +63,7 @@ def run_review(args: argparse.Namespace) -> int:
     files = [Path(f).resolve() for f in (args.source, out, args.screenshot) if f is not None]
     if len(set(files)) < len(files):
         raise ConfigError("the recording, the review file and the screenshot must be three different files")
+    config = service_config(args)  # its flags refused before the review file is made
     total = source.expected_payloads()
     console = present.console(stderr=True)
     from lelsonar.cli.warm_up import ensure_compiled
@@ -87,7 +88,7 @@ def run_review(args: argparse.Namespace) -> int:
         ) as progress,
     ):
         task = progress.add_task("replay", total=total)
-        service = ReconstructionService(service_config(args), observer=combine(observer, shot))
+        service = ReconstructionService(config, observer=combine(observer, shot))
         replay_mcap(source, service, on_payload=lambda _t: progress.advance(task))
     report_replay(source)
     tables = present.console()

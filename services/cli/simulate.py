@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lelsonar.cli.values import count
 from lelsonar.errors import ConfigError
 
 #: The figure formats ``--plot`` writes, by suffix.
@@ -36,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=FAMILIES,
         help="draw the scene from a benchmark scene family instead of a preset (with --seed)",
     )
-    p.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bytes")
+    p.add_argument("--seed", type=count, default=0, help="random seed; the same seed gives the same bytes")
     p.add_argument(
         "--mcap",
         metavar="OUT.mcap",
@@ -61,7 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=preset_names(),
         help="simulator configuration to calibrate (default: %(default)s)",
     )
-    c.add_argument("--seed", type=int, default=0, help="random seed of the simulated shots")
+    c.add_argument("--seed", type=count, default=0, help="random seed of the simulated shots")
     c.add_argument(
         "--distances", type=float, nargs="+", metavar="M", help="wall distances in m (default: six from 0.9 to 1.8)"
     )

@@ -67,8 +67,10 @@ def run_warm_up(args: argparse.Namespace) -> int:
 
     console = present.console(stderr=True)
     t0 = time.perf_counter()
+    in_child = None  # s spent compiling in a child process
     if not args.in_process and cache_is_cold():
-        compile_in_child(console)
+        compile_in_child(console, WARM_UP_NOTICE)
+        in_child = time.perf_counter() - t0
     with console.status("loading the numeric kernels…"):
         exercise_kernels()
     found = kernels()
@@ -76,10 +78,14 @@ def run_warm_up(args: argparse.Namespace) -> int:
     # kernels is compiled into them and has none), so variants outnumber kernels.
     compiled = sum(sum(k.stats.cache_misses.values()) for k in found.values())
     loaded = sum(sum(k.stats.cache_hits.values()) for k in found.values())
+    done = (
+        f"compiled in {in_child:.1f} s (in a child process), then {loaded} variants loaded from the cache"
+        if in_child is not None
+        else f"{compiled} variants compiled now and {loaded} loaded from the cache"
+    )
     console.print(
-        f"warm-up: {len(found)} kernels ready: {compiled} variants compiled now and {loaded} loaded from the "
-        f"cache (a variant per argument types a kernel is called with), in {time.perf_counter() - t0:.1f} s; "
-        f"cache {cache_dir() or 'of Numba'}",
+        f"warm-up: {len(found)} kernels ready: {done} (a variant per argument types a kernel is called with), "
+        f"in {time.perf_counter() - t0:.1f} s; cache {cache_dir() or 'of Numba'}",
         highlight=False,
     )
     return 0
@@ -93,7 +99,16 @@ def cache_is_cold() -> bool:
     return where is not None and not any(where.rglob("*.nbi"))
 
 
-def compile_in_child(console) -> None:
+#: What a command that computes says before it compiles a cold cache.
+FIRST_RUN_NOTICE = (
+    "first run of this build: compiling the numeric kernels once (about 40 s on 2 idle cores; Ctrl-C stops, "
+    "`lelsonar warm-up` does it ahead)"
+)
+#: What `lelsonar warm-up` says before it compiles a cold cache.
+WARM_UP_NOTICE = "compiling the numeric kernels of this build once (about 40 s on 2 idle cores; Ctrl-C stops)"
+
+
+def compile_in_child(console, notice: str = FIRST_RUN_NOTICE) -> None:
     """Compile every kernel in a child process, with a progress bar; Ctrl-C ends it at once.
 
     Numba's compiler holds the interpreter for seconds at a time, which would hold a Ctrl-C as long;
@@ -112,11 +127,7 @@ def compile_in_child(console) -> None:
 
     where = cache_dir()
     total = len(kernels())
-    console.print(
-        "first run of this build: compiling the numeric kernels once (about 40 s on 2 cores; Ctrl-C stops, "
-        "`lelsonar warm-up` does it ahead)",
-        highlight=False,
-    )
+    console.print(notice, highlight=False)
     child = subprocess.Popen(
         [sys.executable, "-m", "lelsonar", "warm-up", "--in-process"],
         stdin=subprocess.DEVNULL,

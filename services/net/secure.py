@@ -243,7 +243,7 @@ def init(
     Raises
     ------
     SecurityError
-        If the directory already holds a CA: nothing is overwritten.
+        If the directory already holds a CA (nothing is overwritten), or cannot be made.
     """
 
     d = SecureDir(Path(path))
@@ -260,7 +260,10 @@ def init(
         raise SecurityError(
             f"{', '.join(taken)} already exist without a CA here; init into a new directory (nothing was overwritten)"
         )
-    d.path.mkdir(parents=True, exist_ok=True, mode=0o700)
+    try:
+        d.path.mkdir(parents=True, exist_ok=True, mode=0o700)
+    except OSError as exc:  # a file in the way, a folder that cannot be made
+        raise SecurityError(f"cannot make the directory {d.path}: {exc.strerror}; give a new directory") from None
     key = _new_key()
     now = dt.datetime.now(dt.UTC)
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "lelsonar CA")])

@@ -52,6 +52,11 @@ class TransportError(LelsonarError):
     """A Zenoh session could not be opened or used."""
 
 
+def zenoh_reason(exc: Exception) -> str:
+    """Zenoh's message without the Rust source location it ends with (`` at /…/orchestrator.rs:447.``)."""
+    return re.sub(r"\s+at \S+\.rs:\d+\.?$", "", str(exc).strip())
+
+
 @dataclass(frozen=True)
 class ZenohSettings:
     """How a process joins the Zenoh network.
@@ -166,7 +171,7 @@ def open_session(settings: ZenohSettings) -> Iterator[zenoh.Session]:
                 f"; is `lelsonar router --secure DIR` listening on {dialled}, with the same "
                 "CA as this process's certificate, and does its certificate name the host you dial?"
             )
-        raise TransportError(f"cannot open a Zenoh {settings.mode} session: {exc}{hint}") from None
+        raise TransportError(f"cannot open a Zenoh {settings.mode} session: {zenoh_reason(exc)}{hint}") from None
     try:
         yield session
     finally:

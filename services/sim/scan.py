@@ -379,8 +379,8 @@ _NORMAL_TABLE = ndtri((np.arange(2**16) + 0.5) / 2**16).astype(np.float32)
 def _gaussian_noise(rng: np.random.Generator, shape: tuple[int, int], std: float) -> np.ndarray:
     """White Gaussian noise, float32, by inverse-CDF lookup of 16-bit uniforms.
 
-    Several times faster than ``standard_normal`` over a scan's 2.6 M samples,
-    where the noise is most of a scan's time.  The 16-bit
+    Cheaper than ``standard_normal`` over a scan's 2.6 M samples, where the
+    noise is most of a scan's time.  The 16-bit
     quantisation of the probability cuts the tails at ±4.3σ; the ADC rounds far
     coarser than the table's steps.
     """
@@ -427,7 +427,7 @@ def digitised_waveforms(cfg: Rig, echoes: EchoTable, rng: np.random.Generator) -
         if sel.size == 0:
             continue
         # Time since arrival of every sample of the burst; float32 is exact enough
-        # (u < 2 ms, phase error < 1e-4 rad) and twice as fast for exp and sin.
+        # (u < 2 ms, phase error < 1e-4 rad) and cheaper for exp and sin.
         u = ((first / fs + t0 - tau)[:, None] + offsets / fs).astype(np.float32)
         phase = np.where(src[sel, k] == EchoSource.DIFFUSE, diffuse_phase[sel], 0.0).astype(np.float32)
         burst = echo_envelope(u, np.float32(rec.envelope_time))

@@ -55,6 +55,21 @@ def world_rng(family: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(b"world:" + family.encode())])
 
 
+def world_families(spec: str) -> tuple[str, ...]:
+    """The families ``spec`` names: ``all``, or names separated by commas.
+
+    Raises
+    ------
+    ConfigError
+        A name that is no family.
+    """
+    families = WORLD_FAMILIES if spec == "all" else tuple(f.strip() for f in spec.split(","))
+    unknown = [f for f in families if f not in WORLD_FAMILIES]
+    if unknown:
+        raise ConfigError(f"unknown world family {unknown[0]!r}; choose from {', '.join(WORLD_FAMILIES)} or all")
+    return families
+
+
 def draw_world(family: str, seed: int, mount: str = "fan") -> World:
     """World ``seed`` of ``family``: the same pair always gives the same world.
 

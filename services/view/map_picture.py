@@ -107,6 +107,8 @@ def save_map_picture(
         Line2D([], [], color=(0.55, 0.55, 0.55), lw=1, marker=".", label="odometry"),
         Line2D([], [], color=unit_rgb(CONCAVE_CORNER_COLOR), marker="o", ls="none", label="corner"),
     ]
+    if len(msg.edges):
+        legend.append(Line2D([], [], color=unit_rgb(CONVEX_EDGE_COLOR), marker="s", ls="none", label="convex edge"))
     if len(msg.horizontal_corners):
         legend.append(
             Line2D(
@@ -130,6 +132,6 @@ def save_map_picture(
     ax.grid(True, lw=0.3, alpha=0.5)
     fig.tight_layout()
     out = Path(path)
-    fig.savefig(out)
+    fig.savefig(out, bbox_inches="tight")  # the legend stands outside the axes
     plt.close(fig)
     return out

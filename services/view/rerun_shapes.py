@@ -74,7 +74,7 @@ def min_max_envelope(w: np.ndarray, bin_: int) -> np.ndarray:
     """(k, n) → (k, 2·(n // bin_)): each bin's min then max.
 
     Element-wise passes over the bin's columns: numpy's ``min(axis=-1)`` over a
-    short last axis is about 7× slower, and this runs at every step.
+    short last axis costs far more, and this runs at every step.
     """
     k, n = w.shape
     binned = w[:, : (n // bin_) * bin_].reshape(k, n // bin_, bin_)

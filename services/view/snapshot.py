@@ -137,7 +137,7 @@ class SnapshotObserver:
         ax_r.set_xlabel("step")
         ax_r.set_ylabel(r"$R = E^\gamma / E_0(d_m)$, no unit")
         ax_r.legend(loc="upper left", fontsize="small")
-        fig.suptitle(f"{s.title}: {s.status}, final planes ({self.main_method} opaque)")
+        fig.suptitle(f"{s.title}: {s.status}; {self.main_method}'s planes opaque, the compared ones see-through")
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=100)
         return path

@@ -507,7 +507,7 @@ def lel_fit_fast(
       closed-form Hessian, about 10–20 iterations on 300 points;
     * ``"bfgs"`` / ``"l-bfgs-b"``: SciPy's quasi-Newton solvers with the
       closed-form gradient (:func:`entropy_and_gradient`); same minima, but
-      SciPy's per-call overhead makes them several times slower.
+      SciPy's per-call overhead makes them dearer.
 
     The start with the least ``H`` wins.  On 500 simulated plane subsets
     (``lelsonar bench estimators``) θ_LS alone ended above the six-start

@@ -28,7 +28,7 @@ def fast_median(x: np.ndarray) -> float:
     for i in range(n):
         if np.isnan(x[i]):
             return np.nan
-    # The order statistics by selection (a partition about the middle), not a full sort: a few times faster.
+    # The order statistics by selection (a partition about the middle), not a full sort: cheaper.
     k = n // 2
     p = np.partition(x, k)
     if n % 2:

@@ -14,10 +14,11 @@ import logging
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.record import ScanInput, reconstruct_scan
+from lelsonar.reconstruct.estimate.record import reconstruct_scan
+from lelsonar.reconstruct.estimate.waveform_input import scan_input_of_waveforms
 from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.signal.echo_timing import FLOOR_TIME, TIMING_WINDOW, echo_onsets, range_walk, typical_edges
-from lelsonar.signal.energy import echo_amplitude, echoes_over_noise, noise_level, waveform_energy
+from lelsonar.signal.energy import echo_amplitude, echoes_over_noise, noise_level
 from lelsonar.sim import default_energy_model, preset, simulate_scan
 
 _log = logging.getLogger(__name__)
@@ -26,12 +27,7 @@ _log = logging.getLogger(__name__)
 def load_kernels() -> None:
     """One final estimate (the default method of record and its compared methods) of a simulated scan."""
     scan = simulate_scan(preset("paper-test1"), seed=0)
-    energy = waveform_energy(scan.waveforms, scan.sample_rate)
-    amplitude = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    given = ScanInput.of_scan(
-        scan.gamma_measured, scan.distance, energy, scan.geometry, default_energy_model(), echo_amplitude=amplitude
-    )
-    reconstruct_scan(given, ReconstructConfig().record_options())
+    reconstruct_scan(scan_input_of_waveforms(scan, default_energy_model()), ReconstructConfig().record_options())
     # The range repair (a final's first step, :mod:`~lelsonar.reconstruct.stream.range_repair`): its kernels on
     # each reading's float32 window around its time of flight, as the assembly keeps them.
     rate = float(scan.sample_rate)

@@ -153,12 +153,13 @@ def extract_surfaces(
     regions = [m.region for m in measured]  # what they hold: the rest of the readings is unexplained
     scale = echo_scale(measured, sweep.gamma, opts)
     _split_two_edges(measured, partial, scale, sweep)
+    own = list(measured)  # each region as its own echoes measured it, before its kind places it
     kinds, across_lines = _classify(measured, partial, scale, sweep)
     _widen_summed_bearings(measured, kinds, scale)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
-    corners, edges = place_features(measured, kinds, across_lines, surface_of, joint, opts)
+    corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale)
     return SurfaceSet(
         surfaces=tuple(confirm_surfaces(surfaces, _confirmed(measured, kinds, across_lines, surface_of))),
         corners=tuple(corners),

@@ -1,7 +1,11 @@
 """Corners and edges as features: each where its planes or its own echo put it, along its line.
 
-A concave corner of two fitted planes lies on their line, with their covariance (:mod:`.placement`); any other
-corner or edge where its own echo comes from, off the fan by its stack slope's tilt.  Its direction: along the
+A concave corner of two fitted planes lies on their line, with their covariance (:mod:`.placement`), where its
+own echoes admit that line (:func:`pair_denied`): else where its own echo comes from.  Any other corner or edge
+lies where its own echo comes from, off the fan by its stack slope's tilt.  An end set on one plane's trace at its
+range because its own bearing is undetermined has no bearing of its own: the trace picks one of the bearings its
+region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stderr`); one with a bearing of its own
+weighs it with the trace's, its σ grown where the two disagree.  Its direction: along the
 two planes' line, along its one plane across the ray to it (that plane's end), across the fan for a line across
 the stack, else along the stack.
 """
@@ -9,19 +13,57 @@ the stack, else along the stack.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from lelsonar.reconstruct.estimate.normals import cross3
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
+from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 
-__all__ = ["Kind", "place_features"]
+__all__ = [
+    "Kind",
+    "place_features",
+    "pair_denied",
+    "DOUBLE_BOUNCE_HEADROOM",
+    "TRACE_ONLY",
+    "NOT_THEIR_LINE",
+    "MIXED",
+    "PLACEMENT_CAVEATS",
+]
 
 #: A classified region: its kind ("corner" or "edge"), why, and the regions (indices) it ties to.
 Kind = tuple[str, list[str], list[int]]
+
+#: A double bounce travels as far as a mirror's echo at the corner's range and is that mirror's times the two
+#: walls' reflectivities, so no stronger than the sweep's strongest mirror; one amplitude window may sum it with
+#: another echo of like strength, at most doubling it.  Past this many times the sweep's strongest echo it is not.
+DOUBLE_BOUNCE_HEADROOM = 2.0
+
+#: In the reasons of an end set on a plane's trace because its own bearing is undetermined.
+TRACE_ONLY = (
+    "bearing not its own: set where its plane's trace reaches its range, one of the bearings its region's reach "
+    "allows; its σ spans that reach"
+)
+
+#: In the reasons of a corner at two planes' double-bounce range whose own echoes deny their line.
+NOT_THEIR_LINE = "not placed on the line of the two planes at its range"
+
+#: In the reasons of a line across the fan whose readings scatter past a region's steadiness.
+MIXED = (
+    "not placed on that line: its ranges scatter {sigma:.0f} mm about a free slope along the stack, more than "
+    "the {tol:.0f} mm one target's region holds to, so it holds more than one target; where its own echo puts "
+    "it, its bearing anywhere its region's reach allows"
+)
+
+#: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
+#: with: a reader shows them beside its σ.
+PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0])
 
 
 def _feature(
@@ -35,10 +77,16 @@ def _feature(
     placed: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Feature:
     """``placed``: the point and its covariance where the planes it joins put it; else its own echo's point,
-    off the fan by its stack slope's tilt (with one capsule, anywhere within the beam's half-width)."""
+    off the fan by its stack slope's tilt (with one capsule, anywhere within the beam's half-width; a slope no
+    target within the beam gives, past ``beyond_cut`` off the fan, says nothing of where it lies: in the fan,
+    anywhere within that half-width)."""
     if placed is None:
-        tilt_se = m.tilt_stderr if math.isfinite(m.tilt_stderr) else opts.beyond_cut / math.sqrt(3.0)
-        placed = echo_point(m.depth, m.depth_stderr, m.bearing, m.bearing_stderr, m.tilt, tilt_se)
+        tilt, tilt_se = m.tilt, m.tilt_stderr
+        if not abs(tilt) <= opts.beyond_cut:
+            tilt, tilt_se = 0.0, float("nan")
+        if not math.isfinite(tilt_se):
+            tilt_se = opts.beyond_cut / math.sqrt(3.0)
+        placed = echo_point(m.depth, m.depth_stderr, m.bearing, m.surface_bearing_stderr, tilt, tilt_se)
     return Feature(
         kind=kind,
         label=label,
@@ -83,13 +131,111 @@ def _pair_placement(
     return point, cov, line_direction(params)
 
 
+def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale: EchoScale) -> str:
+    """Why a region's own echoes deny that it is the double bounce of a line through ``point`` ("": they do not).
+
+    Two planes meeting at the region's range say nothing of whether its echo comes from their line: another
+    corner or edge at that range echoes the same.  What the region measured itself must admit the line's point:
+
+    * **tilt**: the ranges' slope along the capsule stack is the x component of the unit vector from the echo's
+      point to the array, whatever the target (:mod:`.placement`); the line's point leans off the fan by
+      ``asin(X_x/|X|)``.  Apart by more than 3 σ of both (the region's slope fit; the line's lean through the
+      planes' covariance), the echo comes from elsewhere.
+    * **strength**: with the line's bearing outside the region's span, the region hears it on the beam's
+      flank only; its echo taken back there through the beam pattern (:func:`~.beam_pattern.peak_at_bearing`,
+      a lower bound of the peak) is a double bounce's only up to :data:`DOUBLE_BOUNCE_HEADROOM` times the
+      sweep's strongest echo.
+
+    Parameters
+    ----------
+    own : Measured
+        The region as its own echoes measured it (before its kind placed it).
+    point, covariance : (3,) and (3, 3) arrays
+        The line's point nearest the array and its covariance, m, m².
+    scale : EchoScale
+        The sweep's echo references.
+
+    Returns
+    -------
+    The reason, or "".
+    """
+    rho = float(np.linalg.norm(point))
+    if not rho > 0:
+        return ""
+    u = point / rho
+    lean = math.asin(max(-1.0, min(1.0, float(u[0]))))
+    bearing = math.atan2(float(u[2]), float(u[1]))
+    if math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and own.tilt_stderr > 0:
+        ct, st = math.cos(lean), math.sin(lean)
+        e_t = np.array([ct, -st * math.cos(bearing), -st * math.sin(bearing)])
+        lean_se = math.sqrt(max(float(e_t @ covariance @ e_t), 0.0)) / rho
+        se = math.hypot(own.tilt_stderr, lean_se)
+        if abs(own.tilt - lean) > 3 * se:
+            return (
+                f"{NOT_THEIR_LINE}: its ranges slope along the capsule stack as a target "
+                f"{math.degrees(own.tilt):+.1f}° off the fan, their line's point {math.degrees(lean):+.1f}° "
+                f"(3 σ: {math.degrees(3 * se):.1f}°)"
+            )
+    g0, g1 = own.span
+    outside = bearing < g0 - own.step or bearing > g1 + own.step
+    if outside and math.isfinite(scale.mirror) and math.isfinite(scale.beam_k):
+        at = peak_at_bearing(scale.gamma[own.region.steps], own.step_amplitude, bearing, scale.beam_k)
+        traced = float("nan") if at is None else mirror_normalised(at[0], own.depth, scale.opts)
+        if traced > DOUBLE_BOUNCE_HEADROOM * scale.mirror:
+            return (
+                f"{NOT_THEIR_LINE}: heard at γ {math.degrees(g0):.1f}…{math.degrees(g1):.1f}°, its echo taken back "
+                f"to their line at {math.degrees(bearing):.1f}° would be {traced / scale.mirror:.1f}× the sweep's "
+                "strongest, more than a double bounce gives"
+            )
+    return ""
+
+
+def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
+    """An end with a bearing of its own, on plane ``pj``'s trace: its bearing and the trace's where it crosses the
+    region's range, at the target's own offset along the stack (:func:`~.evidence.end_stderr`), two measurements
+    of one bearing, weighed by their
+    σ; where they disagree past those σ (χ² over 1), the σ grows as √χ², as a fit's whose rows scatter more than
+    their σ: one of them is off by what neither says.
+
+    Returns
+    -------
+    The region at that bearing and its σ, and the reason to add ("" where the trace does not reach its range).
+    """
+    # The plane where it crosses the target's own offset along the stack, x₀ = ρ sin t: n·X = h there puts its
+    # trace (h − x₀ sin t_j) / cos t_j from the stack's axis.
+    x0 = m.depth * math.sin(m.tilt) if math.isfinite(m.tilt) else 0.0
+    h = (pj.depth - x0 * math.sin(pj.tilt)) / math.cos(pj.tilt)
+    rho = in_fan_range(m)[0]
+    if not rho > h:
+        return m, ""
+    half = math.acos(h / rho)
+    # The side of the foot the region's own bearing is on.
+    trace = wrap(pj.bearing + math.copysign(half, wrap(m.bearing - pj.bearing)))
+    st = end_stderr(m, pj, trace)
+    so = m.surface_bearing_stderr
+    if not (so > 0 and st > 0 and math.isfinite(so) and math.isfinite(st)):
+        return m, ""
+    gap = wrap(trace - m.bearing)
+    w_o, w_t = 1.0 / (so * so), 1.0 / (st * st)
+    bearing = wrap(m.bearing + w_t * gap / (w_o + w_t))
+    chi2 = gap * gap / (so * so + st * st)
+    se = math.sqrt(max(1.0, chi2) / (w_o + w_t))
+    why = (
+        f"its bearing weighs its own ({math.degrees(m.bearing):.1f}° ± {math.degrees(so):.1f}°) with its plane's "
+        f"trace's at its range ({math.degrees(trace):.1f}° ± {math.degrees(st):.1f}°)"
+        + (f", its σ grown ×{math.sqrt(chi2):.1f} by their disagreement" if chi2 > 1 else "")
+    )
+    return replace(m, bearing=bearing, bearing_stderr=se, summed_spread=0.0), why
+
+
 def place_features(
     measured: list[Measured],
+    own: list[Measured],
     kinds: dict[int, Kind],
     across_lines: set[int],
     surface_of: dict[int, Surface],
     joint: dict[int, JointWall],
-    opts: SurfaceOptions,
+    scale: EchoScale,
 ) -> tuple[list[Feature], list[Feature]]:
     """The corners and the edges, each where its planes or its own echo put it, along its line.
 
@@ -97,6 +243,8 @@ def place_features(
     ----------
     measured : list of Measured
         Every region of the sweep, placed as its kind says.
+    own : list of Measured
+        The same regions as their own echoes measured them, before their kinds placed them.
     kinds : dict
         The kind of each region that is no plane, by index into ``measured``.
     across_lines : set of int
@@ -105,13 +253,15 @@ def place_features(
         The fitted plane of each region that is one.
     joint : dict
         Each wall fitted with its concave corners (:func:`~.fitting.joint_fit`).
-    opts : SurfaceOptions
+    scale : EchoScale
+        The sweep's echo references (and the extractor's options).
 
     Returns
     -------
     corners, edges : list of Feature
         Labelled ``c1, c2, …`` and ``e1, e2, …`` in region order.
     """
+    opts = scale.opts
     corners: list[Feature] = []
     edges: list[Feature] = []
     stack_axis = np.array([1.0, 0.0, 0.0])
@@ -119,11 +269,24 @@ def place_features(
         m = measured[i]
         tied = tuple(surface_of[j].label for j in ties if j in surface_of)
         located: tuple[np.ndarray, np.ndarray] | None = None
-        if i in across_lines:
+        if i in across_lines and ties and own[i].stack_sigma > opts.range_tolerance:
+            # The double bounce with a surface across the fan explains the ranges no better than a free slope
+            # whose residuals scatter past a region's own steadiness: its readings hold more than one target.
+            m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts), tilt_stderr=float("nan"))
+            reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
+            tied, direction = (), stack_axis
+        elif i in across_lines:
             direction = cross3(stack_axis, unit_normal(m.bearing))
+            if not ties and m.bearing_source == "undetermined":
+                m = replace(m, bearing_stderr=reach_stderr(m, opts))
         elif len(ties) >= 2:
             pair_line = _pair_placement(ties[0], ties[1], m, surface_of, joint)
-            if pair_line is not None:
+            denied = "" if pair_line is None else pair_denied(own[i], pair_line[0], pair_line[1], scale)
+            if denied:
+                # Where its own echo comes from: its bearing anywhere its region's reach allows.
+                m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
+                reasons, tied, direction = [*reasons, denied], (), stack_axis
+            elif pair_line is not None:
                 located, direction = (pair_line[0], pair_line[1]), pair_line[2]
             else:
                 a, b = measured[ties[0]], measured[ties[1]]
@@ -131,11 +294,19 @@ def place_features(
         elif len(ties) == 1:
             # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
             pj = measured[ties[0]]
+            if m.bearing_source == "undetermined":
+                m = replace(m, bearing_stderr=reach_stderr(m, opts))
+                reasons = [*reasons, TRACE_ONLY]
+            else:
+                m, why = _with_trace(m, pj)
+                reasons = [*reasons, why] if why else reasons
             direction = cross3(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
             if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
                 direction = stack_axis
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
+            if m.bearing_source == "undetermined":
+                m = replace(m, bearing_stderr=reach_stderr(m, opts))
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction

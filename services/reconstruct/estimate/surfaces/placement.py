@@ -3,8 +3,8 @@
 * :func:`echo_point`: a region's echo point from its own readings.  The range's gradient along the
   capsule stack is the x component of the unit vector from the echo's point to the array, whatever the
   target (a plane's foot, a line's nearest point, a double bounce's edge), so the stack slope's tilt puts
-  the point off the fan; the covariance has the depth's σ along the ray, the bearing's across it in the
-  fan and the tilt's across the fan.
+  the point off the fan; the covariance has the depth's σ along the ray (with the arc's sagitta where the
+  direction is unsure), the bearing's across it in the fan and the tilt's across the fan.
 * :func:`pair_line_point`: two planes' intersection, its point nearest the array, with the planes' full
   covariance (bearing, tilt and offset of each) carried through the intersection's Jacobian.
 * :func:`with_range`: that point conditioned on the corner's own double-bounce range ``|X|`` (one
@@ -20,7 +20,7 @@ import numpy as np
 from lelsonar.reconstruct.estimate.normals import cross3
 from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 
-__all__ = ["echo_point", "pair_line_point", "with_range", "line_direction", "RANGE_FLOOR"]
+__all__ = ["echo_point", "arc_moments", "pair_line_point", "with_range", "line_direction", "RANGE_FLOOR"]
 
 #: m: a feature's depth σ is at least the range noise's (1–3 mm of one reading, its bias with temperature).
 RANGE_FLOOR = 0.003
@@ -44,21 +44,60 @@ def echo_point(
     -------
     point : (3,) array
     covariance : (3, 3) array
-        ``σ_ρ² u uᵀ + (ρ cos t σ_β)² e_β e_βᵀ + (ρ σ_t)² e_t e_tᵀ``, with ``e_β``, ``e_t`` the unit
-        derivatives of ``u`` (the three are orthonormal).
+        The second moment about the point of ``(ρ + ε) u(β + δ_β, t + δ_t)`` with Gaussian ``ε, δ_β, δ_t``:
+        ``σ_ρ² u uᵀ + (ρ c σ_β)² e_β e_βᵀ + (ρ σ_t)² e_t e_tᵀ`` to first order, each ``σ²`` there
+        ``E sin²δ`` (``e_β``, ``e_t`` the unit
+        derivatives of ``u``; the three are orthonormal), with ``c² = E cos²(t + δ_t)`` (a bearing moves a
+        target far off the fan little, unless its tilt is unsure), and the arcs' sagittas: the target lies on
+        the sphere ``|X| = ρ``, so a bearing off by ``δ_β`` puts it ``ρ c (1 − cos δ_β)`` nearer the stack
+        axis (along ``r``, the radial in the fan) and a tilt off by ``δ_t`` ``ρ (1 − cos δ_t)`` nearer the
+        array (along ``u``), each of zero first-order mean, with moments :func:`arc_moments`.  Where the
+        direction is sure these vanish; where it is unsure by a region's reach they place the target on its arc,
+        not on the tangent plane.
     """
     u = unit_normal(bearing, tilt)
     ct, st = math.cos(tilt), math.sin(tilt)
     cb, sb = math.cos(bearing), math.sin(bearing)
     e_b = np.array([0.0, -sb, cb])
     e_t = np.array([ct, -st * cb, -st * sb])
+    radial = np.array([0.0, cb, sb])
     sd = max(RANGE_FLOOR, depth_stderr) if math.isfinite(depth_stderr) else RANGE_FLOOR
+    st_se = tilt_stderr if math.isfinite(tilt_stderr) else 0.0
+    sb_se = bearing_stderr if math.isfinite(bearing_stderr) else 0.0
+    # E cos²(t + δ) for Gaussian δ: (1 + cos 2t · e^(−2σ²)) / 2.
+    c = math.sqrt(max(0.0, 0.5 * (1.0 + math.cos(2.0 * tilt) * math.exp(-2.0 * st_se * st_se))))
+    mean_b, second_b = arc_moments(sb_se)
+    mean_t, second_t = arc_moments(st_se)
+    sag = (
+        (depth * c) ** 2 * second_b * np.outer(radial, radial)
+        + depth**2 * second_t * np.outer(u, u)
+        + depth**2 * c * mean_b * mean_t * (np.outer(radial, u) + np.outer(u, radial))
+    )
+    # Across the ray the target moves by ρ sin δ: E sin²δ = (1 − e^(−2σ²)) / 2, σ² while σ is small.
     cov = (
         sd**2 * np.outer(u, u)
-        + (depth * ct * bearing_stderr) ** 2 * np.outer(e_b, e_b)
-        + (depth * tilt_stderr) ** 2 * np.outer(e_t, e_t)
+        + (depth * c) ** 2 * _mean_sin2(sb_se) * np.outer(e_b, e_b)
+        + depth**2 * _mean_sin2(st_se) * np.outer(e_t, e_t)
+        + sag
     )
-    return depth * u, cov
+    return depth * u, 0.5 * (cov + cov.T)
+
+
+def _mean_sin2(sigma: float) -> float:
+    return -0.5 * math.expm1(-2.0 * sigma * sigma)
+
+
+def arc_moments(sigma: float) -> tuple[float, float]:
+    """``E(1 − cos δ)`` and ``E(1 − cos δ)²`` for ``δ`` Gaussian of σ ``sigma`` (rad): the sagitta of an arc of
+    unit radius a direction off by ``δ`` lands on, its mean and second moment.
+
+    ``E cos δ = e^(−σ²/2)`` and ``Var cos δ = (1 − e^(−σ²))²/2``, so the mean is ``1 − e^(−σ²/2)`` and the
+    second moment the mean squared plus that variance: ``3σ⁴/4`` for small σ, ``3/2`` for a direction unknown.
+    """
+    s2 = sigma * sigma
+    mean = -math.expm1(-0.5 * s2)
+    var = 0.5 * math.expm1(-s2) ** 2
+    return mean, mean * mean + var
 
 
 def _line_point(params: np.ndarray) -> np.ndarray:
