@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from lelsonar import codec
 from lelsonar.tools.bench_fleet_stages import STAGES, interleaved, measure, summary
 
@@ -46,6 +48,29 @@ def test_the_queue_model_handles_every_payload_on_its_virtual_clock():
     assert min(r["processed_s"]) >= OUTSIDE_US * 1e-6
     assert r["provisional_s"] and min(r["provisional_s"]) >= 0
     assert 0 < r["busy"] < 1  # two scanners leave the worker idle most of the time
+
+
+def test_the_queue_model_clock_runs_inside_a_call_with_or_without_a_pool(monkeypatch):
+    from lelsonar.reconstruct.stream.service import ReconstructionService
+    from lelsonar.tools.bench_fleet_stages import queue_model
+
+    payloads = interleaved("paper-test1", scanners=1, scans=1, rate=50.0)
+    seen: list[float] = []
+    tick = ReconstructionService.tick
+
+    def spinning_tick(self, **kw):  # what the service's clock says across a call that spends CPU
+        t0 = self._clock()
+        c = time.thread_time()
+        while time.thread_time() - c < 0.002:
+            pass
+        seen.append(self._clock() - t0)
+        return tick(self, **kw)
+
+    monkeypatch.setattr(ReconstructionService, "tick", spinning_tick)
+    for elsewhere in (False, True):
+        seen.clear()
+        queue_model(payloads, finals_elsewhere=elsewhere)
+        assert seen and min(seen) >= 0.0015
 
 
 def test_the_capacity_table_puts_the_share_shed_and_the_rate_published_beside_the_p99():

@@ -430,6 +430,10 @@ def run(args: argparse.Namespace) -> int:
             "provisionals shed (of which stale)",
             lambda r: f"{sum(r['shed'].values()):g} ({sum(r['stale'].values()):g})",
         ),
+        (
+            "provisional exact fits made in the final pool",
+            lambda r: f"{sum(r.get('fits_from_pool', {}).values()):g}",
+        ),
         ("scans adopted (failover)", lambda r: f"{sum(r['adopted'].values()):g}"),
     ]
     table_rows = [(name, *(fn(r) for r in results)) for name, fn in rows]

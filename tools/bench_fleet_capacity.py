@@ -197,7 +197,8 @@ def run_capacity(args: argparse.Namespace, run_case: Callable, summarise: Callab
         f"{1 / ReconstructConfig().provisional_period:g}): "
         + ", ".join(
             f"{r['scanners']} scanners {sum(r['shed'].values()):g} shed ({sum(r['stale'].values()):g} stale) "
-            f"({100 * provisional_rate(r)[1]:.0f} % of those due), {provisional_rate(r)[0]:.1f}/s published"
+            f"({100 * provisional_rate(r)[1]:.0f} % of those due), {provisional_rate(r)[0]:.1f}/s published, "
+            f"{sum(r.get('fits_from_pool', {}).values()):g} exact fits made in the final pool"
             for r in results
         ),
         f"command: {command_line(args)}",

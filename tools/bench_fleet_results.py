@@ -85,6 +85,8 @@ def case_result(
             for r in finished
         },
         "stale": {r["member"]: r["service"].get("provisionals_stale", 0) for r in finished},
+        # Provisional exact fits that came back from the final pool (the rest ran on the samples' thread).
+        "fits_from_pool": {r["member"]: r["service"].get("provisional_fits", {}).get("from_pool", 0) for r in finished},
         "statuses": dict(Counter(statuses)),
         "recovery": {r["member"]: r["service"]["recovery"] for r in finished},
         "rejected": {r["member"]: r["service"]["rejected"] for r in finished},
@@ -182,6 +184,6 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
     out["stalls"] = {k: sum(r["stalls"][k] for r in runs) for k in TIMED_CALLS}
     out["adopted"] = {m: med([r["adopted"].get(m, 0) for r in runs]) for m in members}
     out["statuses"] = dict(sum((Counter(r["statuses"]) for r in runs), Counter()))
-    for key in ("recovered", "dropped_other_member", "shed", "stale"):
+    for key in ("recovered", "dropped_other_member", "shed", "stale", "fits_from_pool"):
         out[key] = {m: med([r[key].get(m, 0) for r in runs]) for m in members}
     return out

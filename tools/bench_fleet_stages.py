@@ -23,10 +23,11 @@ without the finals (run elsewhere), and without the provisional exact fits too. 
 from __future__ import annotations
 
 import argparse
+import itertools
 import os
 import statistics
 import time
-from collections import defaultdict
+from collections import defaultdict, deque
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -45,10 +46,12 @@ STALL_MS = 20.0
 STAGES = ("ingest", "provisional update", "provisional exact fits", "final")
 
 #: The queue model's rows: finals elsewhere or not, and the service's config fields set otherwise (A/B of the
-#: provisional policy: no staleness deadline; refits deferred behind any backlog, caught up 10 ms at a time).
+#: provisional policy: the exact fits on the samples' thread; no staleness deadline; refits deferred behind any
+#: backlog, caught up 10 ms at a time).
 MODEL_CASES: tuple[tuple[bool, str, dict[str, Any]], ...] = (
     (False, "", {}),
     (True, "", {}),
+    (True, ", exact fits on the samples' thread", {"fits_in_pool": False}),
     (True, ", no provisional_deadline", {"provisional_deadline": 0.0}),
     (
         True,
@@ -130,6 +133,67 @@ def measure(payloads: list[tuple[float, str, bytes]], *, provisional: bool = Tru
     return {"calls": dict(calls), "refits": refits, "samples": samples, "finals": service.stats.finals}
 
 
+class ModelPool:
+    """The final pool of the queue model: one worker process of its own core, running its jobs in order.
+
+    A job runs at :meth:`submit`, on this thread (its thread CPU is the pool's, :attr:`cpu`, not the model
+    worker's), and its result is handed back (:meth:`ready`) once the virtual clock passes the job's end: the
+    end of the job before it, or its submission, plus its CPU.  The service sees a pool of one worker whose
+    room is ``capacity`` jobs, as :class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`'s.
+    """
+
+    workers = 1
+
+    def __init__(self, clock: Callable[[], float], capacity: int) -> None:
+        from lelsonar.reconstruct.stream.final_pool import PoolStats
+
+        self.capacity = capacity
+        self.stats = PoolStats()
+        self.cpu = 0.0  # CPU of the jobs run inside the model worker's call under way (reset by the model)
+        self._clock = clock
+        self._free_at = 0.0
+        self._held: deque = deque()  # (end, Done), in submission order
+        self._tickets = itertools.count()
+
+    @property
+    def unfinished(self) -> int:
+        now = self._clock()
+        return sum(1 for end, _ in self._held if end > now)
+
+    def due(self) -> bool:
+        """Whether a result is back (the live worker is woken for it)."""
+        return bool(self._held) and self._held[0][0] <= self._clock()
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> int:
+        from lelsonar.reconstruct.stream.final_worker import Done
+
+        ticket = next(self._tickets)
+        at = self._clock()
+        c = time.thread_time()
+        try:
+            done = Done(ticket, fn(*args))
+        except Exception as exc:  # noqa: BLE001 - handed back with the job, as a worker does
+            done = Done(ticket, error=exc)
+        spent = time.thread_time() - c
+        self.cpu += spent
+        self._free_at = max(at, self._free_at) + spent
+        self._held.append((self._free_at, done))
+        self.stats.submitted += 1
+        self.stats.pooled += 1
+        return ticket
+
+    def ready(self) -> list:
+        out = []
+        while self.due():
+            out.append(self._held.popleft()[1])
+        return out
+
+    def drain(self) -> list:
+        out = [done for _, done in self._held]
+        self._held.clear()
+        return out
+
+
 def queue_model(
     payloads: list[tuple[float, str, bytes]],
     *,
@@ -143,69 +207,48 @@ def queue_model(
 
     The worker's loop is :class:`~lelsonar.reconstruct.stream.sources.LiveSource`'s: take the oldest waiting
     payload and handle it (``fits_wait`` while more wait, ``busy`` past ``provisional_backlog``), ``tick`` every
-    ``tick_s``, ``catch_up`` when nothing waits.
+    ``tick_s``, ``catch_up`` when nothing waits, ``collect`` when the pool has results back.
     Each call takes the thread CPU it measures here, plus ``outside_us`` a payload, on a virtual clock the
-    service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: a final's
-    :func:`~lelsonar.reconstruct.estimate.record.reconstruct_scan` and its input (the range repair) cost the
-    worker nothing (run by the final pool's processes, which get the closed scan).  Once the
+    service reads too (its deferrals, budgets and rate limits run on it).  ``finals_elsewhere``: the service
+    has a final pool (:class:`ModelPool`: a worker process on a core of its own) for its finals (their input,
+    range repair included, and their reconstruction) and, with ``fits_in_pool``, its provisional exact fits;
+    what runs there costs the worker nothing, and comes back when the pool's worker is done with it.  Once the
     last payload is handled the worker catches up on what waits, as an idle live worker does.  Returns put →
     processed and put → provisional latencies (s), the worker's busy share, and the provisional refits shed
     (under a backlog, or stale: the service's wall clock is the virtual one).  ``fields``: fields of the
     default :class:`~lelsonar.reconstruct.stream.config.ReconstructConfig` to set otherwise (an A/B of a policy).
     """
-    from collections import deque
-
     from lelsonar.reconstruct.estimate import wire
-    from lelsonar.reconstruct.stream import service as service_module
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.service import ReconstructionService
 
     now = [0.0]
-    final_cpu = [0.0]
-    reconstruct_scan, scan_input = service_module.reconstruct_scan, service_module.scan_input
-
-    # The bench's probes of the finals (their input, range repair included, and their reconstruction), not a
-    # change of them.
-    def timed_reconstruct(scan, options, *rest, **kw):
-        if options.provisional:
-            return reconstruct_scan(scan, options, *rest, **kw)
-        c = time.thread_time()
-        try:
-            return reconstruct_scan(scan, options, *rest, **kw)
-        finally:
-            final_cpu[0] += time.thread_time() - c
-
-    def timed_input(scan, *, provisional=False):
-        if provisional:
-            return scan_input(scan, provisional=True)
-        c = time.thread_time()
-        try:
-            return scan_input(scan)
-        finally:
-            final_cpu[0] += time.thread_time() - c
-
     started: list[float] = []  # thread CPU at the start of the call under way: the clock runs inside a call too
 
     def clock() -> float:
-        return now[0] + (time.thread_time() - started[0] if started else 0.0)
+        inside = time.thread_time() - started[0] - (pool.cpu if pool is not None else 0.0) if started else 0.0
+        return now[0] + inside
 
-    config = ReconstructConfig(provisional=provisional)
-    service = ReconstructionService(replace(config, **(fields or {})), clock=clock)
+    config = replace(ReconstructConfig(provisional=provisional), **(fields or {}))
+    pool = ModelPool(clock, 2 * ModelPool.workers + 2 + config.max_scans) if finals_elsewhere else None
+    service = ReconstructionService(config, clock=clock)
     service.wall_ns = lambda: T0 + int(clock() * 1e9)  # the payloads' acquisition times are T0 + their time
+    service.use_pool(pool)  # type: ignore[arg-type]
     processed: list[float] = []
     provisionals: list[float] = []
     busy_s = 0.0
 
     def run(step: Callable[..., list], *args, **kwargs) -> None:
         nonlocal busy_s
-        final_cpu[0] = 0.0
+        if pool is not None:
+            pool.cpu = 0.0
         c = time.thread_time()
         started[:] = [c]
         try:
             out = step(*args, **kwargs)
         finally:
             started.clear()
-        spent = time.thread_time() - c - (final_cpu[0] if finals_elsewhere else 0.0)
+        spent = time.thread_time() - c - (pool.cpu if pool is not None else 0.0)
         now[0] += spent
         busy_s += spent
         for m in out:
@@ -222,35 +265,34 @@ def queue_model(
             waiting.append(payloads[i])
             i += 1
 
-    service_module.reconstruct_scan, service_module.scan_input = timed_reconstruct, timed_input  # type: ignore[assignment]
-    try:
-        while i < n or waiting:
-            if not waiting:
-                now[0] = max(now[0], payloads[i][0])  # idle until the next payload
-            arrive()
-            t, type_name, payload = waiting.popleft()
-            now[0] += outside_us * 1e-6
-            busy_s += outside_us * 1e-6
-            arrive()
-            run(
-                service.handle,
-                type_name,
-                payload,
-                busy=len(waiting) > service.config.provisional_backlog,
-                fits_wait=bool(waiting),
-            )
-            if type_name.endswith("Sample"):
-                processed.append(now[0] - t)
-            arrive()
-            if now[0] - last_tick >= tick_s:
-                last_tick = now[0]
-                run(service.tick, busy=bool(waiting))
-            elif service.has_deferred and not waiting:
-                run(service.catch_up)
-        while service.has_deferred:  # idle after the last payload: what waits is caught up
+    while i < n or waiting:
+        if not waiting:
+            now[0] = max(now[0], payloads[i][0])  # idle until the next payload
+        arrive()
+        if pool is not None and pool.due():
+            run(service.collect)  # the pool woke the worker: its results are taken between payloads
+        t, type_name, payload = waiting.popleft()
+        now[0] += outside_us * 1e-6
+        busy_s += outside_us * 1e-6
+        arrive()
+        run(
+            service.handle,
+            type_name,
+            payload,
+            busy=len(waiting) > service.config.provisional_backlog,
+            fits_wait=bool(waiting),
+        )
+        if type_name.endswith("Sample"):
+            processed.append(now[0] - t)
+        arrive()
+        if now[0] - last_tick >= tick_s:
+            last_tick = now[0]
+            run(service.tick, busy=bool(waiting))
+        elif service.has_deferred and not waiting:
             run(service.catch_up)
-    finally:
-        service_module.reconstruct_scan, service_module.scan_input = reconstruct_scan, scan_input
+    while service.has_deferred:  # idle after the last payload: what waits is caught up
+        run(service.catch_up)
+    run(service.collect, wait=True)
     span = now[0] - payloads[0][0] if payloads else 0.0
     return {
         "processed_s": processed,
@@ -399,7 +441,7 @@ def run_stages(args: argparse.Namespace, refit_cost: Callable[[list, int], dict]
             return f"{statistics.median(1e3 * _quantile(r[key], q) for r in queued):.1f}"
 
         model.add_row(
-            ("elsewhere (input and reconstruction)" if elsewhere else "inline") + label,
+            ("in a pool of one worker (input and reconstruction)" if elsewhere else "inline") + label,
             f"{statistics.median(r['busy'] for r in queued):.2f}",
             f"{ms('processed_s', 0.5)} / {ms('processed_s', 0.99)}",
             f"{ms('provisional_s', 0.5)} / {ms('provisional_s', 0.99)}",

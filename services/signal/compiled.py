@@ -15,11 +15,15 @@ Settings, and why:
   calling another module's kernel would otherwise keep stale machine code after that module changed.
 - ``nogil=True``: a kernel releases the GIL, so the live source's threads keep receiving.
 - ``error_model="numpy"``: division by zero gives inf/NaN as NumPy does, not an exception.
-- no ``fastmath``: results stay IEEE, so a kernel agrees with the equivalent NumPy to rounding.
+- no ``fastmath``: results stay IEEE, so a kernel agrees with the equivalent NumPy to rounding.  The one
+  exception, :func:`summing_kernel`, is for sums whose every order of addition gives the same number (or whose
+  bound holds for any order): it lets LLVM reassociate their additions, which is what lets a sum run in vector
+  lanes, and nothing else (NaN, infinities and signed zeros stay IEEE).
 - Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
 
-:func:`float32_at` is the one compiler-level helper here: a float32 view of bytes at any offset (a protobuf
-field's), typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it.
+The compiler-level helpers here: :func:`float32_at`, a float32 view of bytes at any offset (a protobuf field's),
+typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it; and
+:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import numba
+from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -48,6 +53,7 @@ log = logging.getLogger(__name__)
 KERNEL_MODULES = (
     "lelsonar.signal.echo_timing",
     "lelsonar.signal.energy",
+    "lelsonar.signal.extrema",
     "lelsonar.signal.summation",
     "lelsonar.reconstruct.estimate.corner.edge",
     "lelsonar.reconstruct.estimate.corner.model",
@@ -127,6 +133,13 @@ def kernel(func: F) -> F:
     return numba.njit(cache=True, nogil=True, error_model="numpy")(func)  # type: ignore[return-value]
 
 
+def summing_kernel(func: F) -> F:
+    """:func:`kernel` for a loop of sums that give the same result in any order of addition — an exact sum, or one
+    checked against a bound that holds for every order: its additions may be reassociated (several partial sums
+    side by side, in vector lanes).  Nothing else of ``fastmath``: a NaN or an infinity propagates as in IEEE."""
+    return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})(func)  # type: ignore[return-value]
+
+
 def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
     """Every kernel of :data:`KERNEL_MODULES`, by qualified name (imports those modules)."""
     found = {}
@@ -174,3 +187,28 @@ def float32_at(typingctx, buf, start, count):
         return out._getvalue()
 
     return view(buf, start, count), codegen
+
+
+@intrinsic
+def prefetch(typingctx, buf, at):
+    """Ask the processor to bring the cache line of byte ``at`` of the 1-d uint8 array ``buf`` closer (LLVM's
+    ``llvm.prefetch``, a read): a hint, which changes no value and never faults, so that loads whose addresses
+    depend on one another (a protobuf walk from one field's length to the next field) wait for memory once,
+    not once each.  Nothing is checked: an address outside ``buf`` is only a useless hint."""
+    if not (isinstance(buf, types.Array) and buf.ndim == 1 and buf.dtype == types.uint8):
+        return None
+    if not isinstance(at, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        source = make_array(sig.args[0])(context, builder, value=args[0])
+        index = context.cast(builder, args[1], sig.args[1], types.intp)
+        address = builder.bitcast(builder.gep(source.data, [index]), ir.IntType(8).as_pointer())
+        i32 = ir.IntType(32)
+        hint = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [address.type, i32, i32, i32]), "llvm.prefetch.p0i8"
+        )
+        builder.call(hint, [address, i32(0), i32(3), i32(1)])  # a read, kept in every cache level, of data
+        return context.get_dummy_value()
+
+    return types.none(buf, at), codegen

@@ -80,7 +80,16 @@ from lelsonar.reconstruct.estimate.results import (
     SolverDiagnostics,
 )
 
-__all__ = ["IncrementalPlane", "IncrementalStats", "FACING_MARGIN", "RETRY_GROWTH", "RANSAC_MISS", "ransac_iterations"]
+__all__ = [
+    "ExactFit",
+    "IncrementalPlane",
+    "IncrementalStats",
+    "FACING_MARGIN",
+    "RETRY_GROWTH",
+    "RANSAC_MISS",
+    "exact_fit",
+    "ransac_iterations",
+]
 
 #: rad.  No exact fit is tried before some beam of the plane's points has come within
 #: ``FitOptions.beam_half_angle`` + this margin of the plane's nominal normal (its correction axis):
@@ -111,6 +120,23 @@ def ransac_iterations(inlier_share: float, miss: float) -> int:
     return max(1, int(np.ceil(np.log(miss) / np.log1p(-(inlier_share**3)))))
 
 
+@dataclass(frozen=True, eq=False)
+class ExactFit:
+    """An exact fit of a provisional plane, as :meth:`IncrementalPlane.take_fit` hands it out: what
+    :func:`exact_fit` needs, picklable (a final pool's worker may run it)."""
+
+    data: F.PlaneData
+    method: str
+    warm_start: np.ndarray | None
+    options: FitOptions
+
+
+def exact_fit(job: ExactFit) -> PlaneResult:
+    """The provisional method from scratch on a plane's points, warm-started from its last estimate (what
+    :meth:`IncrementalPlane.fitted` takes)."""
+    return fit_plane(job.data, job.method, warm_start=job.warm_start, options=job.options)
+
+
 @dataclass
 class IncrementalStats:
     """How the provisional estimates of one plane were made."""
@@ -125,6 +151,7 @@ class IncrementalStats:
     not_facing: int = 0  # re-estimates skipped: no beam has faced the wall yet (a typed failure, no fit)
     refreshes: int = 0  # doublings handled by re-classifying every point, without an exact fit
     fits_waited: int = 0  # re-estimates that kept the last plane while a due exact fit waited (update's exact)
+    fits_away: int = 0  # exact fits handed out (take_fit) to run elsewhere
 
 
 class IncrementalPlane:
@@ -178,8 +205,10 @@ class IncrementalPlane:
         self._facing = -1.0  # the largest beam · axis so far
         self._seed_fraction = 1.0  # inliers / points at the last exact fit
         self.plane: PlaneResult | None = None
-        #: An exact fit is due but waits for an update with ``exact`` (:meth:`update`).
+        #: An exact fit is due but waits for an update with ``exact`` (:meth:`update`), or to be handed out.
         self.fit_wanted = False
+        #: An exact fit was handed out (:meth:`take_fit`) and its result is not back (:meth:`fitted`).
+        self.fit_away = False
         #: The points behind :attr:`plane` (for observers that draw them).
         self.last_data: F.PlaneData | None = None
         self.stats = IncrementalStats()
@@ -256,6 +285,9 @@ class IncrementalPlane:
             self._face_on += int(np.sum(echoes[cos_axis >= np.cos(o.beam_half_angle)]))
             self._pending.append(new_steps)
             self._pending_echoes += int(np.sum(echoes))
+        if self.fit_away:
+            self.stats.fits_waited += 1
+            return self.plane  # its points wait uncomputed for the fit's result, as for a fit that waits
         if self.fit_wanted:
             if not exact:
                 self.stats.fits_waited += 1
@@ -439,6 +471,18 @@ class IncrementalPlane:
                 return f"only {k} of {data.n} points within {100 * o.inlier_tolerance:.0f} cm of it"
         return ""
 
+    def take_fit(self) -> ExactFit:
+        """Hand out the exact fit that is due (:attr:`fit_wanted`), to run elsewhere (:func:`exact_fit`) on the
+        points computed so far; :meth:`fitted` takes its result.  Meanwhile the estimate stays, and the steps
+        added wait uncomputed, as they do for a fit that waits."""
+        if not self.fit_wanted or self.fit_away:
+            raise InternalError(f"plane {self.label}: an exact fit was taken while none was due")
+        self.fit_wanted, self.fit_away = False, True
+        self.stats.fits_away += 1
+        data = self.last_data = self.data()
+        warm = self.plane.theta if isinstance(self.plane, PlaneFit) else None
+        return ExactFit(data, self.method, warm, self._fit_options)
+
     def _exact(self, t0: float) -> PlaneResult:
         self.fit_wanted = False
         data = self.last_data = self.data()
@@ -446,7 +490,23 @@ class IncrementalPlane:
         # The guard's RANSAC runs inside the fit only when its least-H minimum fails the guard's own test
         # (mirror-consistent, min_inlier_fraction of the points within inlier_tolerance): the fast LEL is
         # not run twice.  What the guard returns it has vetted.
-        fit = fit_plane(data, self.method, warm_start=warm, options=self._fit_options)
+        return self._apply(fit_plane(data, self.method, warm_start=warm, options=self._fit_options), data)
+
+    def fit_lost(self) -> None:
+        """The exact fit handed out will not come back (its worker pool went): it is due again."""
+        if self.fit_away:
+            self.fit_away, self.fit_wanted = False, True
+
+    def fitted(self, fit: PlaneResult) -> PlaneResult:
+        """Take the result of the exact fit handed out by :meth:`take_fit` (made on the points then computed,
+        which are all the points computed now); returns the plane estimate."""
+        if not self.fit_away or self.last_data is None:
+            raise InternalError(f"plane {self.label}: an exact fit's result came while none was away")
+        self.fit_away = False
+        return self._apply(fit, self.last_data)
+
+    def _apply(self, fit: PlaneResult, data: F.PlaneData) -> PlaneResult:
+        """An exact fit's result on ``data`` (every point computed): trusted or not, and the sums it seeds."""
         self.stats.exact += 1
         if _guard_ran(fit):
             self.stats.guarded += 1

@@ -39,7 +39,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate import fit as F
 from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
-from lelsonar.reconstruct.estimate.incremental import IncrementalPlane
+from lelsonar.reconstruct.estimate.incremental import ExactFit, IncrementalPlane
 from lelsonar.reconstruct.estimate.options import FitOptions
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, corner_edge, reconstruct
 from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings, assess_plane, cross_check, recovery_finding
@@ -214,8 +214,26 @@ class ProvisionalState:
 
     @property
     def fits_wanted(self) -> bool:
-        """An exact fit of a plane is due and waits for a call without ``fits_wait``."""
+        """An exact fit of a plane is due and waits for a call without ``fits_wait`` (or to be handed out)."""
         return any(inc is not None and inc.fit_wanted for inc in (self.inc_a, self.inc_b))
+
+    def take_fits(self) -> list[tuple[IncrementalPlane, ExactFit]]:
+        """Hand out the exact fits due (:meth:`IncrementalPlane.take_fit`), to run elsewhere
+        (:func:`~lelsonar.reconstruct.estimate.incremental.exact_fit`); :meth:`fitted` takes each result.
+        Meanwhile each plane keeps its estimate, as with ``fits_wait`` (none is given while plane a's first fit
+        is away)."""
+        return [(inc, inc.take_fit()) for inc in (self.inc_a, self.inc_b) if inc is not None and inc.fit_wanted]
+
+    def fitted(self, inc: IncrementalPlane, fit: PlaneResult) -> bool:
+        """Take the result of ``inc``'s exact fit handed out by :meth:`take_fits`: the plane's estimate from
+        now on (the next estimate of the scan has it).  False if ``inc`` is not one of this scan's planes."""
+        if inc is self.inc_a:
+            self.plane_a, self.data_a = inc.fitted(fit), inc.last_data
+        elif inc is self.inc_b:
+            self.plane_b, self.data_b = inc.fitted(fit), inc.last_data
+        else:
+            return False
+        return True
 
 
 @dataclass(frozen=True, eq=False)

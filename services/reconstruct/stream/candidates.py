@@ -19,6 +19,7 @@ from lelsonar.reconstruct.stream.scan_state import ScanState
 from lelsonar.signal.compiled import kernel
 from lelsonar.signal.echo_timing import FLOOR_TIME
 from lelsonar.signal.energy import ECHO_PEAK_WINDOW, echoes_over_noise, ranges_backed, window_samples
+from lelsonar.signal.extrema import extent
 
 #: Fewest readings a scan-wide check of the ranges against the waveforms or the speed of sound rests on.
 RANGE_CHECK_MIN = 16
@@ -54,12 +55,8 @@ def candidate_echo(row, a, width, rate):
     span = window_samples(rate, ECHO_PEAK_WINDOW[0], ECHO_PEAK_WINDOW[1])
     if mid - span < a or mid + span > n:
         return -1
-    lo_b = hi_b = row[mid - span]
-    for j in range(mid - span, mid):
-        lo_b, hi_b = min(lo_b, row[j]), max(hi_b, row[j])
-    lo_a = hi_a = row[mid]
-    for j in range(mid, mid + span):
-        lo_a, hi_a = min(lo_a, row[j]), max(hi_a, row[j])
+    lo_b, hi_b = extent(row, mid - span, mid)
+    lo_a, hi_a = extent(row, mid, mid + span)
     if hi_a - lo_a >= CANDIDATE_RISE * (hi_b - lo_b):
         return -1  # an echo rises at the time of flight
     total = 0.0

@@ -63,6 +63,13 @@ class ReconstructConfig:
         deferred provisional refits (oldest estimate first, without their exact fits), then those exact
         fits; the rest wait for the next call, so catching up never holds the stream for long (at least one
         runs a call: the default is about one exact fit).
+    fits_in_pool : bool
+        Live, with a final pool (``final_workers``), a provisional plane's exact fit (the provisional method
+        from scratch: milliseconds, where an update takes tenths) runs in the pool's workers while the samples
+        go on: its plane keeps its estimate until the result is back (none is given while plane a's first fit
+        is away), and the next estimate of its scan has it.  When the pool is full the fit waits for room.
+        Off, or without a pool, or in a replay, the fits run on the samples' thread
+        (``provisional_backlog``, ``provisional_budget``).
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
     end_grace : float
@@ -100,6 +107,7 @@ class ReconstructConfig:
     provisional_deadline: float = 0.04
     provisional_backlog: int = 32
     provisional_budget: float = 0.003
+    fits_in_pool: bool = True
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0
@@ -166,7 +174,8 @@ class ServiceStats:
     provisionals_stale: int = 0
     #: Scans that ended (input over) without their ScanStart ever arriving: not reconstructed.
     without_start: int = 0
-    #: Finals estimated in a pool's workers, workers lost (killed, crashed), finals run again after a loss.
+    #: Jobs run in a pool's workers (the finals, and live the provisional exact fits: ``fits_from_pool``),
+    #: workers lost (killed, crashed), jobs run again after a loss.
     finals_in_workers: int = 0
     final_workers_lost: int = 0
     finals_rerun: int = 0
@@ -174,6 +183,11 @@ class ServiceStats:
     final_errors: int = 0
     #: Finals on their way when their source stopped on an error (logged).
     finals_dropped: int = 0
+    #: Provisional exact fits whose result came back from a pool (run by its workers, or by the pool in the
+    #: caller when no worker was ready), and those that raised there (logged; the plane's estimate says its fit
+    #: failed).
+    fits_from_pool: int = 0
+    fit_errors: int = 0
     #: What a bound pushed out of the service's own tables, by reason.
     evicted: Counter = field(default_factory=Counter)
 
@@ -217,6 +231,7 @@ class ServiceStats:
                 "replies_after_verdict": ingest.recovered_after_close,
             },
             "provisionals_shed": self.provisionals_shed,
+            "provisional_fits": {"from_pool": self.fits_from_pool, "errors": self.fit_errors},
             "provisionals_stale": self.provisionals_stale,
             "finals_pool": self.pool_dict(pool),
             "open_scans": len(ingest.scans),
@@ -225,7 +240,8 @@ class ServiceStats:
         }
 
     def pool_dict(self, current: PoolStats | None) -> dict[str, int]:
-        """The finals' estimation, for ``stats_dict``: with ``current``, the pool in use, counted so far."""
+        """The final pool's work, for ``stats_dict``: with ``current``, the pool in use, counted so far (its jobs
+        are the finals, and live the provisional exact fits)."""
         return {
             "in_workers": self.finals_in_workers + (current.pooled if current else 0),
             "workers_lost": self.final_workers_lost + (current.workers_lost if current else 0),

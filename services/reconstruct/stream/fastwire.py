@@ -22,7 +22,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError
 from lelsonar.reconstruct.stream.step_features import place_rows
-from lelsonar.signal.compiled import float32_at, kernel
+from lelsonar.signal.compiled import float32_at, kernel, prefetch
 from lelsonar.v1 import scan_pb2
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
@@ -281,6 +281,13 @@ def read_body(buf, body, ids, values, n, starts):
     bits = values.view(np.uint64)
     k = ids.size
     head, readings, energies = 2 * k, 2 * k + 5, 5 * k + 5
+    # The fields around each waveform's samples — its reading's and its own before them, its clock after them —
+    # are where the last sample of the layout had them, most likely: fetched together, not one after the other as
+    # the walk finds each from the length before it.
+    for j in range(starts.size):
+        prefetch(buf, min(max(starts[j] - 64, 0), buf.size - 1))
+        prefetch(buf, min(max(starts[j], 0), buf.size - 1))
+        prefetch(buf, min(max(starts[j] + 4 * n, 0), buf.size - 1))
     for j in range(head, head + 5):
         bits[j] = 0
     sensors = carried = seen = 0

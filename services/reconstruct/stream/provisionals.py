@@ -88,6 +88,8 @@ class ProvisionalSchedule:
         busy: bool,
         refit: Refit,
         start: float | None = None,
+        *,
+        run_fits: Callable[[ScanAssembly, Partial], list[codec.Reconstruction]] | None = None,
     ) -> list[codec.Reconstruction]:
         """Run the deferred provisional refits without their exact fits, oldest estimate first, then the exact
         fits that wait, oldest first, for at most ``provisional_budget`` in all (from ``start`` on the service's
@@ -95,6 +97,8 @@ class ProvisionalSchedule:
 
         Those left wait for the next call; under a backlog (``busy``) a refit deferred for over twice
         ``max_provisional_delay`` is shed and counted instead: its scan's next refit covers its samples.
+        ``run_fits`` runs a scan's exact fits that wait (default: ``refit`` without ``fits_wait``); it may hand them
+        elsewhere.
         """
         cfg = self.config
         out: list[codec.Reconstruction] = []
@@ -125,5 +129,5 @@ class ProvisionalSchedule:
             if self._clock() - start >= cfg.provisional_budget:
                 self._fits.update(k for _, k, _ in fits[n:])
                 break
-            out += refit(scan, p)
+            out += run_fits(scan, p) if run_fits is not None else refit(scan, p)
         return out

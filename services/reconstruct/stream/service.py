@@ -16,7 +16,9 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
    (:mod:`~lelsonar.reconstruct.stream.provisionals`): the samples come first, a burst costs one refit, not
    one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains, each
    published at once in O(new samples) and the exact fits they need made after them; live, one due on a
-   sample that waited past ``provisional_deadline`` is not published (stale);
+   sample that waited past ``provisional_deadline`` is not published (stale); live with a final pool
+   (``fits_in_pool``), the exact fits run in its workers instead, and their plane keeps its estimate until
+   the result is back (:meth:`ReconstructionService.collect` takes it);
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
    terminal; a scan completed while a backlog waits is closed once it drains, within the same budget (its
@@ -43,63 +45,34 @@ Gaps and when a final may be published:
 from __future__ import annotations
 
 import itertools
-import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Protocol
 
 import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate import wire
+from lelsonar.reconstruct.estimate.incremental import IncrementalPlane, exact_fit
 from lelsonar.reconstruct.estimate.record import provisional_method, reconstruct_scan
-from lelsonar.reconstruct.estimate.results import ScanReconstruction
-from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.assembly import ScanAssembly
 from lelsonar.reconstruct.stream.config import ReconstructConfig, ServiceStats
-from lelsonar.reconstruct.stream.final_jobs import FinalJob, accounting_event, close_final, final_message
+from lelsonar.reconstruct.stream.final_jobs import FinalJob
 from lelsonar.reconstruct.stream.final_pool import FinalPool
-from lelsonar.reconstruct.stream.final_worker import Done
-from lelsonar.reconstruct.stream.finals import estimate_final, received
 from lelsonar.reconstruct.stream.ingest import Accepted, Ingest, Rejected, ScanKey
 from lelsonar.reconstruct.stream.log_requests import LogRequests
+from lelsonar.reconstruct.stream.outputs import MAX_REVISIONS, Observer, ServiceOutputs
 from lelsonar.reconstruct.stream.partial import Partial, RecoveryState
 from lelsonar.reconstruct.stream.provisionals import ProvisionalSchedule
 from lelsonar.reconstruct.stream.reasons import ranges_text
-from lelsonar.reconstruct.stream.recovery import RecoveryPolicy, RecoveryRequest
+from lelsonar.reconstruct.stream.recovery import RecoveryRequest
 from lelsonar.reconstruct.stream.scan_input import scan_input
 
-_log = logging.getLogger(__name__)
-
-#: Times a scan may be re-finalised after a FINAL_TIMEOUT or INCOMPLETE verdict (late steps from its log).
-MAX_REVISIONS = 3
+__all__ = ["MAX_REVISIONS", "Observer", "ReconstructionService"]
 
 
-class Observer(Protocol):
-    """Receives what the service sees and decides (e.g. the Rerun logger).
-
-    ``estimate`` gets the message, and for a terminal one each method's reconstruction with its planes
-    as published (:meth:`~lelsonar.reconstruct.estimate.record.ScanEstimate.as_published`; None for a
-    provisional one, whose planes and points are the ``partial``'s).
-    """
-
-    def scan_started(self, scan: ScanAssembly) -> None: ...
-
-    def step(self, scan: ScanAssembly, view: StepView, energy: float, expected: float, ratio: float) -> None: ...
-
-    def estimate(
-        self,
-        scan: ScanAssembly,
-        message: codec.Reconstruction,
-        results: dict[str, ScanReconstruction] | None,
-        partial: Partial,
-    ) -> None: ...
-
-    def event(self, level: str, text: str, time_ns: int | None = None) -> None: ...
-
-
-class ReconstructionService:
+class ReconstructionService(ServiceOutputs):
     """Turns a stream of contract payloads into Reconstruction messages."""
 
     def __init__(
@@ -138,6 +111,7 @@ class ReconstructionService:
         #: Where finals are estimated: None here; a source lends its worker pool (:meth:`use_pool`).
         self._pool: FinalPool | None = None
         self._dispatched: dict[int, FinalJob] = {}  # by the pool's ticket
+        self._fits_away: dict[int, tuple[ScanKey, IncrementalPlane]] = {}  # provisional exact fits, by ticket
         self._late: set[ScanKey] = set()  # closed scans whose final is on its way and that got steps meanwhile
         self._completed: list[codec.Reconstruction] = []  # finals made since handle() or tick() last returned
         #: Scans closed complete whose final waits for a backlog to drain (its input reads the whole scan), with
@@ -153,24 +127,6 @@ class ReconstructionService:
     @wall_ns.setter
     def wall_ns(self, clock: Callable[[], int] | None) -> None:
         self._schedule.wall_ns = clock
-
-    @property
-    def recover(self) -> Callable[[RecoveryRequest], bool] | None:
-        """Asks the acquirer's log for what a scan lacks; returns False when the request was refused."""
-        return self._requests.recover
-
-    @recover.setter
-    def recover(self, recover: Callable[[RecoveryRequest], bool] | None) -> None:
-        self._requests.recover = recover
-
-    @property
-    def recovery_policy(self) -> RecoveryPolicy:
-        """When to ask again and when to give up (a live source lets it ask on while the log may answer)."""
-        return self._requests.policy
-
-    @recovery_policy.setter
-    def recovery_policy(self, policy: RecoveryPolicy) -> None:
-        self._requests.policy = policy
 
     # --- input ---------------------------------------------------------------------------
     def handle(
@@ -297,7 +253,31 @@ class ReconstructionService:
             if self._clock() - start >= self.config.provisional_budget or self._pool_full():
                 break  # (a full pool would make the final here, on the samples' thread: it waits for room)
             self._finalise(scan, p, "final")
-        return self._schedule.catch_up(self._partials, self.ingest.scans, busy, self._provisional, start)
+        return self._schedule.catch_up(
+            self._partials, self.ingest.scans, busy, self._provisional, start, run_fits=self._due_fits
+        )
+
+    def _fits_elsewhere(self) -> bool:
+        """Whether provisional exact fits run in the pool's workers (``fits_in_pool``: live, with a pool)."""
+        pool = self._pool
+        return self.config.fits_in_pool and pool is not None and pool.workers > 0 and self.wall_ns is not None
+
+    def _send_fits(self, scan: ScanAssembly, p: Partial) -> None:
+        """Hand the scan's exact fits due to the pool while it has room; those left wait for :meth:`catch_up`."""
+        pool = self._pool
+        if pool is not None and self._fits_elsewhere() and not self._pool_full():
+            for inc, job in p.take_fits():
+                self._fits_away[pool.submit(exact_fit, job)] = (scan.key, inc)
+        if p.fits_wanted:
+            self._schedule.fits_later(scan.key)
+
+    def _due_fits(self, scan: ScanAssembly, p: Partial) -> list[codec.Reconstruction]:
+        """The exact fits that waited for a backlog: to the pool (live, with one), else made here, with the
+        estimate they give."""
+        if self._fits_elsewhere():
+            self._send_fits(scan, p)
+            return []
+        return self._provisional(scan, p)
 
     def _pool_full(self) -> bool:
         """Whether the pool's workers are all taken and its queue full (a final submitted now would run here)."""
@@ -334,72 +314,10 @@ class ReconstructionService:
             )
         return self.collect(wait=True)
 
-    # --- where finals are estimated -------------------------------------------------------
-    def use_pool(self, pool: FinalPool | None, *, drain: bool = True) -> list[codec.Reconstruction]:
-        """Estimate the finals in ``pool``'s workers from now on (None: on the caller's thread).
-
-        The finals on their way in the pool used so far are waited for and returned (published, as every
-        final is) with ``drain``; without it (the source is failing) they are dropped, logged and counted.
-        """
-        out = self.collect(wait=True) if drain else []
-        if self._dispatched:
-            dropped = sorted(job.scan.key for job in self._dispatched.values())
-            self.stats.finals_dropped += len(dropped)
-            self._event("ERROR", f"{len(dropped)} finals dropped unmade as their source stopped: scans {dropped}")
-            self._dispatched.clear()
-            self._late.clear()
-        if self._pool is not None and self._pool is not pool:
-            self.stats.add_pool(self._pool.stats)
-        self._pool = pool
-        return out
-
-    @property
-    def finals_on_their_way(self) -> int:
-        """Finals dispatched to the pool and not yet handed back."""
-        return len(self._dispatched)
-
-    def collect(self, *, wait: bool = False) -> list[codec.Reconstruction]:
-        """The finals made since the last call, in the order their scans were closed; ``wait`` for those on
-        their way in the pool.  (:meth:`handle`, :meth:`tick` and :meth:`finish` return them too.)"""
-        if self._pool is not None and self._dispatched:
-            for done in self._pool.drain() if wait else self._pool.ready():
-                self._complete(self._dispatched.pop(done.ticket), done)
-        out, self._completed = self._completed, []
-        return out
-
-    def stats_dict(self) -> dict:
-        """Everything counted so far, for the exit line and ``--json``."""
-        return self.stats.as_dict(self.ingest, self._pool.stats if self._pool is not None else None)
-
     # --- recovery ------------------------------------------------------------------------
     def still_wanted(self, request: RecoveryRequest) -> bool:
         """Whether a request still matters (its scan has no verdict yet); safe from another thread."""
         return (request.scanner_id, request.scan_id) not in self.ingest.closed
-
-    def _reopen(self, key: ScanKey) -> None:
-        """Steps came for a scan finalised without them: ask the acquirer's log for the whole scan, to publish
-        it again complete, with a higher revision (at most ``MAX_REVISIONS``)."""
-        old = self.finals.get(key)
-        if (
-            old is None
-            or self.recover is None
-            or key in self._reopened
-            or wire.status_name(old) not in ("final_timeout", "incomplete")
-            or old.revision >= MAX_REVISIONS
-        ):
-            return
-        self._reopened[key] = old.revision + 1
-        while len(self._reopened) > self.config.max_scans:
-            self._reopened.pop(next(iter(self._reopened)))
-            self.stats.evicted["re-opened scan forgotten (max_scans)"] += 1
-        self.ingest.closed.pop(key, None)
-        steps = int(old.samples_used) + len(old.missing_steps)  # the schedule
-        self._event(
-            "WARNING",
-            f"scan {key}: steps came after its {wire.status_name(old).replace('_', ' ')} verdict; asking the "
-            f"acquirer's log for the whole scan, to publish revision {old.revision + 1}",
-        )
-        self._requests.request(RecoveryRequest(*key, steps=tuple(range(steps)), want_start=True, want_end=True))
 
     # --- the incremental estimate ---------------------------------------------------------
     def _on_accepted(self, event: Accepted, busy: bool, fits_wait: bool, *, live: bool) -> list[codec.Reconstruction]:
@@ -462,11 +380,11 @@ class ReconstructionService:
             return []
         if self._schedule.defer(scan.key, p, busy):
             return []  # tick() catches up; the backlog's later samples will be in the next refit
-        if not fits_wait:
+        if not fits_wait and not self._fits_elsewhere():
             return self._provisional(scan, p)
         out = self._provisional(scan, p, fits_wait=True)
         if p.fits_wanted:
-            self._schedule.fits_later(scan.key)  # run once the payloads waiting are in
+            self._send_fits(scan, p)  # to the pool, or made once the payloads waiting are in
         return out
 
     def _provisional(self, scan: ScanAssembly, p: Partial, *, fits_wait: bool = False) -> list[codec.Reconstruction]:
@@ -512,99 +430,3 @@ class ReconstructionService:
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]
-
-    def _close(self, scan: ScanAssembly, p: Partial, busy: bool) -> None:
-        """A complete scan's final: made now, or while a backlog waits (``busy``) once it drains: making its
-        input reads the whole scan, and the samples come first.  Its rank is taken now."""
-        if not busy:
-            self._finalise(scan, p, "final")
-            return
-        # Closed now, as a final made now closes it: a straggler is rejected as late.
-        self._partials.pop(scan.key, None)
-        self.ingest.close(scan.key)
-        self._closing[scan.key] = (next(self._ranks), scan, p)
-        while len(self._closing) > self.config.max_scans:
-            self._finalise(*next(iter(self._closing.values()))[1:], "final")  # bounded: the oldest is made now
-
-    def _finalise(self, scan: ScanAssembly, p: Partial, status: str) -> None:
-        """Close the scan and estimate its final: here, or in the pool (:meth:`collect` hands it back)."""
-        rank = self._closing.pop(scan.key, (None,))[0]
-        job, closed = close_final(
-            scan,
-            p,
-            status,
-            live=self.recover is not None,
-            revision=self._reopened.pop(scan.key, 0),
-            rank=next(self._ranks) if rank is None else rank,
-        )
-        # The scan is done: forget its state; a straggler is then rejected as late.
-        self._partials.pop(scan.key, None)
-        self.ingest.close(scan.key)
-        if self._pool is None:
-            self._complete(job, Done(0, reconstruct_scan(scan_input(closed), self._options)))
-        else:
-            # The whole final, its range repair included, in the pool; the points behind each plane travel
-            # back only for an observer, which draws them.
-            self._dispatched[self._pool.submit(estimate_final, closed, self._options, self._observer is not None)] = job
-
-    def _complete(self, job: FinalJob, done: Done) -> None:
-        """Publish a final whose estimate is made (or say why it could not be)."""
-        scan, status = job.scan, job.status
-        if done.error is not None:
-            self.stats.final_errors += 1
-            self._event(
-                "ERROR",
-                f"scan {scan.key}: its final estimate failed ({type(done.error).__name__}: {done.error}); "
-                f"nothing published for it\n{done.trace}",
-            )
-            return
-        msg, est = final_message(job, received(done.value))
-        # What the writer left unset: a warning (and where no plane came, a failure of the estimate).
-        for note in est.notes:
-            self._event("WARNING", f"scan {scan.key}: {note}")
-        self.finals[scan.key] = msg
-        while len(self.finals) > self.config.keep_finals:
-            self.finals.pop(next(iter(self.finals)))
-            self.stats.evicted["final kept for lookup forgotten (keep_finals)"] += 1
-        self.stats.add_final(job.accounting, status)
-        summary = "; ".join(
-            f"{pl.method} {pl.label}: n=({pl.normal.x:+.3f},{pl.normal.y:+.3f},{pl.normal.z:+.3f}) "
-            f"h={pl.offset * 100:.1f} cm"
-            for pl in msg.planes
-            if pl.method == self.config.method
-        )
-        self._event(
-            "INFO" if not msg.failures else "WARNING",
-            f"scan {scan.key} {status.replace('_', ' ')}: {summary or 'no plane'}"
-            + (f"; failures: {'; '.join(msg.failures)}" if msg.failures else ""),
-        )
-        self._event("INFO" if not job.missing.size else "WARNING", accounting_event(job, self.recover is not None))
-        if self._observer:
-            self._observer.estimate(scan, msg, est.as_published(), job.partial)
-        self._emit(msg, job.rank)
-        self._completed.append(msg)
-        if scan.key in self._late:
-            self._late.discard(scan.key)
-            self._reopen(scan.key)  # steps came while it was being estimated
-
-    def _emit(self, msg: codec.Reconstruction, rank: int | None = None) -> codec.Reconstruction:
-        """Publish ``msg``; it becomes its scanner's latest unless one made after it (``rank``: when it was
-        made, by default now) already is: a final made in the pool while the scanner's next scan went on."""
-        rank = next(self._ranks) if rank is None else rank
-        if rank >= self._latest_rank.get(msg.scanner_id, -1):
-            self.latest.pop(msg.scanner_id, None)  # most recently updated last
-            self.latest[msg.scanner_id] = msg
-            self._latest_rank[msg.scanner_id] = rank
-        while len(self.latest) > self.config.max_scanners:
-            self._latest_rank.pop(gone := next(iter(self.latest)), None)
-            self.latest.pop(gone)
-            self.stats.evicted["latest estimate of a scanner forgotten (max_scanners)"] += 1
-        self.stats.estimates += 1
-        if self._publish is not None:
-            self._publish(msg)
-        return msg
-
-    def _event(self, level: str, text: str, time_ns: int | None = None) -> None:
-        getattr(_log, level.lower(), _log.info)(text)
-        if self._observer:
-            self._observer.event(level, text, time_ns)

@@ -392,7 +392,10 @@ class LiveSource:
         # Live, a provisional estimate due on a sample that waited too long is stale (a replay's never is).
         self._service.wall_ns = time.time_ns
         if self._workers:
-            self._pool = FinalPool(self._workers, on_ready=self._finals_ready)
+            # Room for a job per scan the service holds, beside the pool's own: the provisional exact fits of
+            # scanners in step come due together, and one that finds no room waits for a tick.
+            capacity = 2 * self._workers + 2 + self._service.config.max_scans
+            self._pool = FinalPool(self._workers, capacity=capacity, on_ready=self._finals_ready)
             self._service.use_pool(self._pool)
         self._thread.start()
         self._doorbell.start()

@@ -3,7 +3,7 @@
 A sample's readings and waveforms are worked on once, as it is placed, while its samples are in the cache
 (:func:`place_step`): the contract's checks of a sample not validated yet (its samples finite among them),
 the carried eq. (10) energies checked against the waveforms in float32
-(:func:`~lelsonar.signal.energy.energy_agrees`, one dot product a waveform) instead of integrated again in
+(:func:`~lelsonar.signal.energy.energy_agrees`, one sum of squares a waveform) instead of integrated again in
 float64, each reading's range and round trip, the first echo's peak
 (:func:`~lelsonar.signal.energy.echo_amplitude`'s window) and, on every :data:`RISE_STRIDE`-th step, the peak
 just before it and the DC level (for the writer checks), each waveform around its time of flight (and around
@@ -20,7 +20,7 @@ import numpy as np
 
 from lelsonar.codec import MAX_RANGE_M
 from lelsonar.reconstruct.stream.candidates import candidate_echo
-from lelsonar.signal.compiled import float32_at, kernel
+from lelsonar.signal.compiled import float32_at, kernel, summing_kernel
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import (
     ECHO_PEAK_WINDOW,
@@ -30,6 +30,7 @@ from lelsonar.signal.energy import (
     step_energy_ratio,
     window_samples,
 )
+from lelsonar.signal.extrema import largest_magnitude
 
 #: The ranges are checked (against the waveforms, against the time of flight) on every this-many-th step by
 #: index: each check is a median over the scan, and a quarter of a 184-step scan's readings is 184 of them.
@@ -199,9 +200,17 @@ def place_rows(
             if values[r0 + 3 * i] != 0.0 and not (math.isfinite(t + d) and 0.0 < d < MAX_RANGE_M and t > 0.0):
                 return UNCHECKED
     agreed = m == k
+    sampled = step % RISE_STRIDE == 0
+    # A sampled step's DC levels come from the same read of each waveform (:func:`row_sums`), kept here until
+    # nothing is refused (NaN: the waveform's sum was not exact, summed again below).
+    levels = np.empty(k if sampled and n > 0 else 0)
     for i in range(k):
         row = float32_at(buf, starts[i], n)
-        squares = np.dot(row, row)  # float32, as energy_agrees' bound assumes
+        if levels.size:
+            squares, total, top, low = row_sums(row)
+            levels[i] = exact_mean(total, top, low, n)
+        else:
+            squares = sum_of_squares(row)
         if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
             if not checked:
                 return UNCHECKED
@@ -215,7 +224,6 @@ def place_rows(
             return NO_SOUND_SPEED
     width = timing_windows.shape[2]
     kept = candidate_windows.shape[2] == width
-    sampled = step % RISE_STRIDE == 0
     unflagged = 0
     unkept = False
     for i in range(k):
@@ -264,8 +272,10 @@ def place_rows(
                 per_capsule[3, step, i] = window_peak(  # pre_echo_peak
                     row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1]
                 )
-    if sampled and n > 0:
-        dc_levels_at(buf, starts, n, per_capsule[4, step])
+    if levels.size:
+        dc = per_capsule[4, step]
+        dc[:] = levels
+        _inexact_dc_levels(buf, starts, n, dc)
     per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
     if agreed:
         settle_step(per_capsule, per_step, step, scan)
@@ -298,12 +308,7 @@ def window_peak(row, rate, t0, round_trip, lo, hi):
     a = echo_window_start(n, rate, t0, round_trip, lo)
     if a < 0:
         return np.nan
-    peak = abs(row[a])
-    for j in range(a + 1, min(a + window_samples(rate, lo, hi), n)):
-        v = abs(row[j])
-        if v > peak:
-            peak = v
-    return float(peak)
+    return largest_magnitude(row, a, min(a + window_samples(rate, lo, hi), n))
 
 
 @kernel
@@ -319,12 +324,78 @@ def dc_levels_at(buf, starts, n, out):
     (read there: :func:`~lelsonar.signal.compiled.float32_at`), V, into ``out``, bit for bit what ``np.mean(...,
     dtype=np.float64)`` gives: that sums the samples in float64 in order (through its cast, not pairwise).
 
-    In-order float64 additions cannot run side by side without changing the rounding, so they are done
-    exactly instead where they can be: scaled by 2^s so that each sample is an integer and all of them
-    together stay below 2^52, the samples add up in int64 (side by side), and every partial sum of the
-    in-order float64 additions was exact too — the same number.  A waveform whose samples do not all fit
-    (a dynamic range beyond ~2^40 at ``n`` samples) is summed in order.
+    In-order float64 additions cannot run side by side without changing the rounding, so they are done exactly
+    instead where they can be, where every order gives the same number: in any order where the samples' binades
+    are few enough (:func:`exact_mean`), else scaled to integers that add up exactly (:func:`_inexact_dc_levels`);
+    only a waveform that fits neither is summed in order.
     """
+    if n == 0:
+        return
+    for i in range(starts.size):
+        _, total, top, low = row_sums(float32_at(buf, starts[i], n))
+        out[i] = exact_mean(total, top, low, n)
+    _inexact_dc_levels(buf, starts, n, out)
+
+
+@summing_kernel
+def sum_of_squares(row):
+    """The float32 sum of the float32 ``row``'s squares, its terms added in any order (vector lanes): the bound of
+    :func:`~lelsonar.signal.energy.energy_agrees` holds for every order, and a NaN or infinite sample makes it
+    NaN or infinite in every order."""
+    total = np.float32(0.0)
+    for j in range(row.size):
+        total += row[j] * row[j]
+    return total
+
+
+@summing_kernel
+def row_sums(row):
+    """One read of the float32 ``row``: :func:`sum_of_squares`, the float64 sum of its samples in any order (exact,
+    the in-order sum, where :func:`exact_mean` says so), and the largest and the smallest nonzero magnitude's bit
+    pattern shifted left once (the sign shifted out: ``top``; ``low``, that less one: 2^32 − 1 if none)."""
+    patterns = row.view(np.uint32)
+    squares = np.float32(0.0)
+    total = 0.0
+    top = np.uint32(0)
+    low = np.uint32(0xFFFFFFFF)
+    for j in range(row.size):
+        x = row[j]
+        squares += x * x
+        total += x
+        v = np.uint32(patterns[j] << np.uint32(1))
+        top = max(top, v)
+        low = min(low, np.uint32(v - np.uint32(1)))  # (zero wraps round to the largest)
+    return squares, total, top, low
+
+
+@kernel
+def exact_mean(total, top, low, n):
+    """|total / n|, ``total`` the float64 sum of ``n`` float32 samples in any order whose largest and smallest
+    nonzero magnitudes are ``top`` and ``low`` (:func:`row_sums`), if that sum is exact (then it is the in-order
+    one, and this is ``np.mean``'s to the bit); NaN otherwise (and for no samples).
+
+    Every sample is a multiple of the smallest one's unit in the last place, 2^(e_min − 150) (e: the biased
+    exponent, 1 for a subnormal), and below 2^(e_max − 126); so is every partial sum of n < 2^b of them, below
+    2^(b + e_max − 126).  All are exact in float64's 53 bits if e_max − e_min ≤ 29 − b: each addition then
+    rounds nothing, whatever the order.  (A NaN or an infinity, e_max 255, is left to the in-order sum.)"""
+    if n == 0:
+        return np.nan
+    e_max = np.int64(top >> np.uint32(24))
+    e_min = max((np.int64(low) + 1) >> 24, 1)  # (256 for none: no sample but zeros, an exact sum of 0)
+    b = 0
+    while (1 << b) < n:
+        b += 1
+    if e_max < 255 and e_max - e_min <= 29 - b:
+        return abs(total / n)
+    return np.nan
+
+
+@kernel
+def _inexact_dc_levels(buf, starts, n, out):
+    """:func:`dc_levels_at` of the rows whose ``out`` is NaN (not summed exactly in any order): scaled by 2^s so
+    that each sample is an integer and all of them together stay below 2^52, the samples add up in int64 (side by
+    side), and every partial sum of the in-order float64 additions was exact too — the same number.  A waveform
+    whose samples do not all fit (a dynamic range beyond ~2^40 at ``n`` samples) is summed in order."""
     k = starts.size
     if n == 0:
         return
@@ -333,12 +404,13 @@ def dc_levels_at(buf, starts, n, out):
         bits += 1
     inexact_rows = 0
     for i in range(k):
+        if out[i] == out[i]:
+            continue
         row = float32_at(buf, starts[i], n)
         s = 52 - bits - ((_largest_bits(row) >> 23) - 126)  # |sample| < 2^(exponent + 1): n of them < 2^52 after 2^s
         total, inexact = _scaled_sum(row, 2.0**s)
         if inexact:
-            inexact_rows += 1
-            out[i] = np.nan  # summed in order below
+            inexact_rows += 1  # left NaN: summed in order below
         else:
             out[i] = abs(float(total) * 2.0**-s / n)
     if inexact_rows:

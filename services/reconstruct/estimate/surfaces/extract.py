@@ -91,7 +91,13 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import (
     sweep_step,
     unit_normal,
 )
-from lelsonar.reconstruct.estimate.surfaces.off_fan import off_fan_tilt, off_fan_weak, taken_back
+from lelsonar.reconstruct.estimate.surfaces.off_fan import (
+    off_fan_tilt,
+    off_fan_weak,
+    separate_targets,
+    split_stack,
+    taken_back,
+)
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, capsule_x, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,
@@ -218,18 +224,20 @@ def _measured_regions(sweep: _Sweep) -> tuple[list[Measured], set[int]]:
     split: list[Measured] = []
     for i in range(len(measured)):
         split.extend(split_dihedral(i, measured, g, d, amp, geometry, opts) or [measured[i]])
-    measured = split
+    # Targets part of the stack hears inside a region: two at ranges apart (a run split by range), or two at one
+    # range on either side of the stack (their profile along it bends as no one target's does).
+    measured, partial = separate_targets(split, g, d, amp, geometry, opts, step)
     # A target heard by part of the stack only, nearer than what its steps' other capsules hear (an edge off
     # the fan beside the stack: its weak echo crosses the receiver's threshold in the capsules nearest it):
     # its readings are off their step's range, so a second pass over the readings no region holds finds it.
-    partial = set()
     held = [m.region for m in measured]
     for r in partial_regions(d, held, opts, sweep.spread, gamma=g, radial_offset=geometry.radial_offset):
-        partial.add(len(measured))
         pm = measure_region(r, g, d, amp, geometry, opts, step=step)
         # Heard on the beam's flank: its slope is that at the middle of the capsules heard, not the stack's.
         tilt, tilt_se = off_fan_tilt(pm, opts)
-        measured.append(replace(pm, tilt=tilt, tilt_stderr=tilt_se))
+        for piece in split_stack(pm, g, d, amp, geometry, opts, step) or [replace(pm, tilt=tilt, tilt_stderr=tilt_se)]:
+            partial.add(len(measured))
+            measured.append(piece)
     # A target part of the stack hears past a nearer one the other capsules hear first: a region of the fan.
     for r in masked_regions(d, [m.region for m in measured], opts, sweep.spread):
         measured.append(measure_region(r, g, d, amp, geometry, opts, step=step))

@@ -17,12 +17,25 @@ from dataclasses import replace
 
 import numpy as np
 
+from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.quality import UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import piston_power
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, step_medians
-from lelsonar.reconstruct.estimate.surfaces.regions import stack_fits
+from lelsonar.reconstruct.estimate.surfaces.measurement import (
+    Measured,
+    measure_region,
+    mirror_normalised,
+    step_medians,
+)
+from lelsonar.reconstruct.estimate.surfaces.regions import (
+    capsule_subregion,
+    capsule_x,
+    stack_fits,
+    stack_profile,
+    two_targets,
+)
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
-__all__ = ["off_fan_sines", "off_fan_tilt", "taken_back", "off_fan_weak"]
+__all__ = ["off_fan_sines", "off_fan_tilt", "taken_back", "off_fan_weak", "separate_targets", "split_stack"]
 
 
 def _middle(m: Measured) -> tuple[float, float, float] | None:
@@ -156,3 +169,116 @@ def off_fan_weak(top: float, ref: float, psi: float, opts: SurfaceOptions) -> st
         f"echo at most {100 * top / ref:.0f} % of the sweep's strongest once taken back from up to "
         f"{math.degrees(psi):.0f}° off the fan (its ranges' slope along the stack, 3 σ out): diffraction"
     )
+
+
+def separate_targets(
+    measured: list[Measured],
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+    step: float,
+) -> tuple[list[Measured], set[int]]:
+    """The regions with each target part of the stack hears apart, and the indices of those targets.
+
+    * A region of a run whose capsules hear two targets at ranges apart by more than the stack's length
+      (:attr:`~.regions.Region.part`) is the nearer one's, heard by no more capsules than the farther one: it
+      leaves the regions, and the pass over the readings no region holds takes it up with every capsule's
+      readings of it (a target off the fan beside the stack).  Else it is a region of the fan.
+    * A region whose range profile along the stack bends as no one target's does (:func:`~.regions.stack_profile`:
+      two targets at one range on either side of the stack, two jambs of a doorway) splits into the capsules
+      that hear each (:func:`~.regions.two_targets`), each a target part of the stack hears.  Where no two
+      convex sides explain it, its tilt is anywhere within the beam's half-width and its verdict says why.
+
+    Each target part of the stack hears is tilted off the fan as its capsules' slope says (:func:`off_fan_tilt`).
+    """
+    out: list[Measured] = []
+    partial: set[int] = set()
+    for m in measured:
+        if m.region.part and _nearer_minority(m, distance, opts):
+            continue
+        targets = split_stack(m, gamma, distance, amplitude, geometry, opts, step)
+        if targets is None:
+            out.append(m)
+            continue
+        for t in targets:
+            if t is not m:
+                partial.add(len(out))
+            out.append(t)
+    return out, partial
+
+
+def split_stack(
+    m: Measured,
+    gamma: np.ndarray,
+    distance: np.ndarray,
+    amplitude: np.ndarray | None,
+    geometry: ArrayGeometry,
+    opts: SurfaceOptions,
+    step: float,
+) -> list[Measured] | None:
+    """A region that holds two targets along the stack (:func:`~.regions.two_targets`) as the targets part of the
+    stack hears, each tilted off the fan as its capsules' slope says; None when it holds one.
+
+    Where no two targets explain it, the region itself, its tilt anywhere within the beam's half-width and its
+    verdict saying why.
+    """
+    r = m.region
+    x = capsule_x(geometry)
+    profile = stack_profile(x, r.rows, r.capsules, m.ranges)
+    if profile is None:
+        heard = np.unique(r.capsules)
+        heard = heard[np.argsort(x[heard], kind="stable")]
+        profile = (heard, np.zeros(0), np.zeros(0))
+    split = two_targets(profile, _apart(m, profile[0], x, distance, opts), opts.curvature_sigmas)
+    if split is None:
+        return None
+    if isinstance(split, str):
+        reach = opts.beyond_cut / math.sqrt(3.0)
+        return [replace(m, tilt_stderr=reach, findings=(*m.findings, (UNRELIABLE, f"two targets: {split}")))]
+    out = []
+    for side in split:
+        sub = capsule_subregion(r, side)
+        if sub.steps.size >= opts.min_steps:
+            out.append(_off_fan(measure_region(sub, gamma, distance, amplitude, geometry, opts, step=step), opts))
+    return out
+
+
+def _apart(m: Measured, heard: np.ndarray, x: np.ndarray, distance: np.ndarray, opts: SurfaceOptions) -> np.ndarray:
+    """Per two neighbours of ``heard`` (stack order), whether a capsule between them that the region does not hold
+    hears something farther than the region's range at most of its steps (and nothing nearer)."""
+    r = m.region
+    own = float(np.median(m.ranges))
+    block = distance[r.steps]
+    out = np.zeros(max(heard.size - 1, 0), dtype=bool)
+    for j in range(heard.size - 1):
+        lo, hi = sorted((float(x[heard[j]]), float(x[heard[j + 1]])))
+        for c in np.flatnonzero((x > lo) & (x < hi)):
+            v = block[:, c]
+            with np.errstate(invalid="ignore"):
+                farther = np.count_nonzero(v > own + opts.range_tolerance)
+                nearer = np.count_nonzero(v < own - opts.range_tolerance)
+            out[j] |= nearer == 0 and 2 * farther > v.size
+    return out
+
+
+def _off_fan(m: Measured, opts: SurfaceOptions) -> Measured:
+    """A target part of the stack hears, tilted as its capsules' slope says (:func:`off_fan_tilt`)."""
+    tilt, tilt_se = off_fan_tilt(m, opts)
+    return replace(m, tilt=tilt, tilt_stderr=tilt_se)
+
+
+def _nearer_minority(m: Measured, distance: np.ndarray, opts: SurfaceOptions) -> bool:
+    """Whether the region's target is nearer, by more than the range tolerance, than what its steps' other
+    capsules hear, and heard by no more capsules than they are at its median step (a first-echo receiver hears
+    the nearer target first, so the rest hear another one)."""
+    r = m.region
+    mine = np.zeros((r.steps.size, distance.shape[1]), dtype=bool)
+    mine[np.searchsorted(r.steps, r.rows), r.capsules] = True
+    block = distance[r.steps]
+    rest = ~mine & np.isfinite(block)
+    others = block[rest]
+    if not others.size or float(np.median(mine.sum(axis=1) - rest.sum(axis=1))) > 0:
+        return False
+    return float(np.median(m.ranges)) < float(np.median(others)) - opts.range_tolerance

@@ -28,7 +28,11 @@ __all__ = [
     "Region",
     "find_regions",
     "stack_fits",
+    "stack_profile",
     "subregion",
+    "two_targets",
+    "StackProfile",
+    "capsule_subregion",
 ]
 
 
@@ -45,6 +49,9 @@ class Region:
     cut_before, cut_after : bool
         The region ends on that side not because its echo faded but because a
         nearer echo took over or the sweep ended: its centre is not its bearing.
+    part : bool
+        The region's run held two targets at ranges apart by more than the stack's length, each heard by
+        part of the capsules: this is one of them (:func:`find_regions`).
     """
 
     steps: np.ndarray
@@ -52,6 +59,7 @@ class Region:
     capsules: np.ndarray
     cut_before: bool
     cut_after: bool
+    part: bool = False
 
     @property
     def n_echoes(self) -> int:
@@ -122,33 +130,81 @@ def find_regions(
     # Each region's steps are contiguous in the label order (a run is closed before the next one opens).
     labelled = np.flatnonzero(label >= 0)
     bounds = np.flatnonzero(np.diff(label[labelled])) + 1
-    for k, steps in enumerate(np.split(labelled, bounds) if labelled.size else []):
-        rows, caps = np.nonzero(keep[steps])
-        if math.isfinite(max_spread) and rows.size:
-            # A step joins its run near the capsules' medians as they stand then, and a reading is the region's
-            # near their medians over the whole run: where the range moves along the run by more than that (a
-            # wide run's radial-offset drift, ranges on another scale, another target's echo opening the run),
-            # a step at one of its ends holds none of the region's readings.  It is no step of the region:
-            # only the steps that hold one have a median.
-            steps, rows = _holding(steps, rows)
-            block = np.where(keep[steps], d[steps], np.nan)
-            with np.errstate(invalid="ignore"):  # an infinite reading against an infinite median
-                med = _row_nan_medians(block)
-                near = np.abs(block[rows, caps] - med[rows]) <= max_spread
-            rows, caps = rows[near], caps[near]
-            steps, rows = _holding(steps, rows)
-            if steps.size < min_steps:
-                continue
-        out.append(
-            Region(
-                steps=steps.astype(np.intp),
-                rows=steps[rows].astype(np.intp),
-                capsules=caps.astype(np.intp),
-                cut_before=bool(cut[k, 0]),
-                cut_after=bool(cut[k, 1]),
-            )
+    for k, run in enumerate(np.split(labelled, bounds) if labelled.size else []):
+        rows_all, caps_all = np.nonzero(keep[run])
+        groups = (
+            _range_groups(d[run][rows_all, caps_all], caps_all, max_spread) if math.isfinite(max_spread) else [None]
         )
+        for group in groups:
+            steps, rows, caps = run, rows_all, caps_all
+            if group is not None:
+                rows, caps = _group_readings(d[run], keep[run], rows_all, caps_all, group, max_spread)
+            if math.isfinite(max_spread) and rows.size:
+                # A step joins its run near the capsules' medians as they stand then, and a reading is the region's
+                # near their medians over the whole run: where the range moves along the run by more than that (a
+                # wide run's radial-offset drift, ranges on another scale, another target's echo opening the run),
+                # a step at one of its ends holds none of the region's readings.  It is no step of the region:
+                # only the steps that hold one have a median.
+                steps, rows = _holding(steps, rows)
+                block = np.full((steps.size, d.shape[1]), np.nan)
+                block[rows, caps] = d[steps[rows], caps]
+                with np.errstate(invalid="ignore"):  # an infinite reading against an infinite median
+                    med = _row_nan_medians(block)
+                    near = np.abs(block[rows, caps] - med[rows]) <= max_spread
+                rows, caps = rows[near], caps[near]
+                steps, rows = _holding(steps, rows)
+                if steps.size < min_steps:
+                    continue
+            out.append(
+                Region(
+                    steps=steps.astype(np.intp),
+                    rows=steps[rows].astype(np.intp),
+                    capsules=caps.astype(np.intp),
+                    cut_before=bool(cut[k, 0]),
+                    cut_after=bool(cut[k, 1]),
+                    part=len(groups) > 1,
+                )
+            )
     return out
+
+
+def _range_groups(d: np.ndarray, caps: np.ndarray, max_spread: float) -> list[np.ndarray | None]:
+    """The run's capsules grouped by the target they hear: ``[None]`` (one group, all of them) unless their
+    medians over the run fall apart by more than ``max_spread``.
+
+    One target's ranges differ between two capsules by at most their distance apart (the triangle inequality),
+    so capsules whose medians lie farther apart than the stack's length hear two targets through the run (a
+    nearer one some capsules' beams hold, a farther one past it in the others).  Their step medians fall
+    between the two, so each group is a region of its own, heard by part of the stack.
+    """
+    heard = np.unique(caps)
+    if heard.size < 2:
+        return [None]
+    med = np.array([np.median(d[caps == c]) for c in heard])
+    if not np.all(np.isfinite(med)):
+        return [None]
+    order = np.argsort(med)
+    cuts = np.flatnonzero(np.diff(med[order]) > max_spread) + 1
+    if not cuts.size:
+        return [None]
+    return [np.sort(heard[g]) for g in np.split(order, cuts)]
+
+
+def _group_readings(
+    d: np.ndarray, keep: np.ndarray, rows: np.ndarray, caps: np.ndarray, group: np.ndarray, max_spread: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """One range group's readings over a run (``d``, ``keep``: the run's steps; ``rows``, ``caps``: its kept
+    readings): the group's capsules' kept readings, and any capsule's reading the run did not keep (its capsule
+    hears the other target through most of the run) within ``max_spread`` of the group's step median."""
+    mine = np.isin(caps, group)
+    table = np.full(d.shape, np.nan)
+    table[rows[mine], caps[mine]] = d[rows[mine], caps[mine]]
+    with np.errstate(invalid="ignore"):
+        med = _row_nan_medians(np.where(np.isnan(table).all(axis=1, keepdims=True), np.inf, table))
+        stray = ~keep & np.isfinite(d) & (np.abs(d - med[:, None]) <= max_spread)
+    out = np.isfinite(table) | stray
+    r, c = np.nonzero(out)
+    return r, c
 
 
 def _holding(steps: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -266,7 +322,27 @@ def subregion(region: Region, steps: np.ndarray, cut_before: bool, cut_after: bo
     """The part of ``region`` over ``steps`` (its readings there), with the cut flags given."""
     keep = np.isin(region.rows, steps)
     return Region(
-        steps=steps, rows=region.rows[keep], capsules=region.capsules[keep], cut_before=cut_before, cut_after=cut_after
+        steps=steps,
+        rows=region.rows[keep],
+        capsules=region.capsules[keep],
+        cut_before=cut_before,
+        cut_after=cut_after,
+        part=region.part,
+    )
+
+
+def capsule_subregion(region: Region, capsules: np.ndarray) -> Region:
+    """The part of ``region`` its ``capsules`` hear: their readings, on the steps that hold one (cuts as the
+    region's)."""
+    keep = np.isin(region.capsules, capsules)
+    rows = region.rows[keep]
+    return Region(
+        steps=np.unique(rows),
+        rows=rows,
+        capsules=region.capsules[keep],
+        cut_before=region.cut_before,
+        cut_after=region.cut_after,
+        part=True,
     )
 
 
@@ -469,6 +545,143 @@ def _demeaned_fit(am: np.ndarray, dm: np.ndarray, n_groups: int) -> StackFit:
     res = dm - am @ coef
     s2 = float(res @ res) / dof
     return coef, s2 * np.linalg.inv(ata), math.sqrt(s2)
+
+
+def stack_profile(x: np.ndarray, rows: np.ndarray, capsules: np.ndarray, d: np.ndarray) -> StackProfile | None:
+    """Each capsule's range less the steps' own, ``d = a_s + p_c``: the region's range profile along the stack.
+
+    Whatever one target is, its range along the stack ``d(x)`` is convex: straight for a plane (its mirror image
+    of the array is a straight array), ``√(ρ⊥² + (x − x₀)²)`` for a line or a point across the stack, whose
+    second derivative ``ρ⊥²/d³`` lies in ``[0, 1/d]``.  A first-echo receiver hears the nearer of two targets
+    in each capsule, the lower envelope of two convex profiles: it bends the other way where one hands over to
+    the other.  So each inner capsule's divided second difference of ``p`` (exact for a parabola) with its σ
+    says whether one target can have made the profile.
+
+    Parameters
+    ----------
+    x : (n_capsules,) array
+        Each capsule's position along the stack, m.
+    rows, capsules : (N,) int arrays
+        Each reading's step and capsule.
+    d : (N,) array
+        Ranges, m.
+
+    Returns
+    -------
+    The capsules heard (in ``x`` order), each inner one's second difference (1/m) and its σ; None when fewer
+    than three capsules are heard or the residuals leave no degree of freedom.
+    """
+    heard = np.unique(capsules)
+    heard = heard[np.argsort(x[heard], kind="stable")]
+    if heard.size < 3 or not np.all(np.isfinite(d)):
+        return None
+    _, group = np.unique(rows, return_inverse=True)
+    n_groups = int(group.max()) + 1
+    dof = d.size - n_groups - (heard.size - 1)
+    if dof < 1:
+        return None
+    # One indicator column per capsule but the first, demeaned within each step: the steps' intercepts drop out
+    # exactly (as in stack_fits).
+    lookup = np.zeros(int(heard.max()) + 1, dtype=np.intp)
+    lookup[heard] = np.arange(heard.size)
+    which = lookup[capsules]  # each reading's capsule's place in x order
+    cols = (which[:, None] == np.arange(1, heard.size)[None, :]).astype(np.float64)
+    counts = np.bincount(group)
+    means = np.stack([np.bincount(group, weights=c) for c in cols.T], axis=1) / counts[:, None]
+    am = cols - means[group]
+    dm = d - (np.bincount(group, weights=d) / counts)[group]
+    ata = am.T @ am
+    if np.linalg.cond(ata) > 1e10:
+        return None
+    coef = np.linalg.solve(ata, am.T @ dm)
+    res = dm - am @ coef
+    s2 = float(res @ res) / dof
+    cov = np.zeros((heard.size, heard.size))
+    cov[1:, 1:] = s2 * np.linalg.inv(ata)
+    p = np.concatenate([[0.0], coef])
+    xs = x[heard]
+    second = np.empty(heard.size - 2)
+    sigma = np.empty(heard.size - 2)
+    for j in range(1, heard.size - 1):
+        a, b, c = float(xs[j - 1]), float(xs[j]), float(xs[j + 1])
+        w = np.zeros(heard.size)
+        w[j - 1], w[j], w[j + 1] = 2 / ((b - a) * (c - a)), -2 / ((b - a) * (c - b)), 2 / ((c - a) * (c - b))
+        second[j - 1] = float(w @ p)
+        sigma[j - 1] = math.sqrt(max(float(w @ cov @ w), 0.0))
+    return heard, second, sigma
+
+
+#: The capsules heard in stack order, each inner one's second difference of the range profile (1/m), its σ.
+StackProfile = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def two_targets(profile: StackProfile, apart: np.ndarray, sigmas: float) -> tuple[np.ndarray, np.ndarray] | str | None:
+    """Whether a region holds two targets along the stack, and which capsules hear each.
+
+    Two tests, from what one target can do to a first-echo receiver (Kleeman & Kuc: the receivers' differential
+    ranges tell targets apart):
+
+    * **a capsule between**: a capsule between two that hear one target is no farther from it than the farther
+      of the two (the range is convex along the stack) and no farther off its beam's axis (the capsules' beams are
+      parallel, ``cos ψ = h/d``), so it hears that target at least as early and as strongly.  One that hears only
+      something farther there (``apart``) parts two targets.
+    * **the profile bends the other way**: one target's range profile is convex (:func:`stack_profile`): every
+      inner second difference at least ``−sigmas`` σ.  Where one is not, the capsule there (the most concave, in
+      σ) is where the nearer target hands over to the other: the capsules on either side of it hear one target
+      each, and it hears one of the two.
+
+    Each side must be convex on its own; where both sides can take the capsule at the bend, nothing says which
+    target it heard and it goes to neither.
+
+    Parameters
+    ----------
+    profile : StackProfile
+        The capsules the region holds in stack order and their inner second differences with σ (empty with
+        fewer than three capsules).
+    apart : (len(heard) − 1,) bool array
+        Whether a capsule between each two neighbours of ``heard`` hears only something farther at their steps.
+    sigmas : float
+        How many σ a second difference must fall under 0 to bend as no one target does.
+
+    Returns
+    -------
+    None: one target.  Else the two sides' capsules, or a reason when no split into two convex sides exists (more
+    than two targets, or a profile no split explains).
+    """
+    heard, second, sigma = profile
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = np.where(sigma > 0, second / sigma, np.where(second < 0, -np.inf, 0.0))
+
+    def convex_without(skip: set[int]) -> bool:
+        """Every inner second difference but those at ``skip`` (indices into heard) within ``sigmas`` of convex."""
+        return all(z[j - 1] >= -sigmas for j in range(1, heard.size - 1) if j not in skip)
+
+    gaps = np.flatnonzero(apart)
+    if gaps.size > 1:
+        return f"{gaps.size} capsules between those that hear it hear only something farther: more than two targets"
+    if gaps.size == 1:
+        # The right side starts at heard[k]; the second differences across the gap are no one target's.
+        k = int(gaps[0]) + 1
+        if convex_without({k - 1, k}):
+            return heard[:k], heard[k:]
+        return "a capsule between those that hear it hears only something farther, and no two convex sides explain it"
+    if not np.any(z < -sigmas):
+        return None
+    apex = int(np.argmin(z)) + 1  # index into heard
+    # The apex with the left side: the sides' ends at the apex and the capsule after it have no second difference
+    # of their own; with the right side: the capsule before it and the apex.
+    left = convex_without({apex, apex + 1})
+    right = convex_without({apex - 1, apex})
+    if left and right:
+        return heard[:apex], heard[apex + 1 :]
+    if left:
+        return heard[: apex + 1], heard[apex + 1 :]
+    if right:
+        return heard[:apex], heard[apex:]
+    return (
+        f"its ranges along the capsule stack bend as no one target's and no two do (second difference "
+        f"{second[apex - 1]:.2f}/m = {z[apex - 1]:.1f} σ at capsule {int(heard[apex])})"
+    )
 
 
 def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
