@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.signal.compiled import kernel
 
-__all__ = ["MAD_K", "fast_median", "mad", "mad_of", "mad_sigma", "prefilter_mask"]
+__all__ = ["MAD_K", "fast_median", "mad", "mad_of", "mad_sigma", "median", "prefilter_mask"]
 
 #: The constant of eq. (22): σ = k·MAD for normally distributed errors.
 MAD_K = 1.4826
@@ -36,6 +38,11 @@ def fast_median(x: np.ndarray) -> float:
         if p[i] > below:
             below = p[i]
     return (below + p[k]) / 2.0
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median`` of a 1-D float array, bit for bit (:func:`fast_median`); NaN for an empty one."""
+    return fast_median(x) if x.size else math.nan
 
 
 def mad(e: np.ndarray) -> float:

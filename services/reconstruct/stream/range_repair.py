@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.robust import fast_median, median
 from lelsonar.reconstruct.stream.candidates import RANGE_CHECK_MIN, NoiseTriggers
 from lelsonar.reconstruct.stream.step_features import RISE_STRIDE
 from lelsonar.signal.echo_timing import (
@@ -109,8 +110,7 @@ class RangeRepair(NoiseTriggers):
         checked = np.isfinite(rise)
         with_echo = checked & ~self.noise_triggers()[0]
         whole, echoes = (
-            float(np.median(rise[m])) if np.count_nonzero(m) >= RANGE_CHECK_MIN else math.nan
-            for m in (checked, with_echo)
+            fast_median(rise[m]) if np.count_nonzero(m) >= RANGE_CHECK_MIN else math.nan for m in (checked, with_echo)
         )
         return whole, echoes
 
@@ -169,7 +169,7 @@ class RangeRepair(NoiseTriggers):
             if timed.any():
                 # The strongest quarter's crossing of the noise's level, as a board set near it times them.
                 strong = timed & (envelope >= np.percentile(envelope[timed], 75.0))
-                level_zero = float(np.median(crossing[strong] - onset[strong]))
+                level_zero = median(crossing[strong] - onset[strong])
             # An echo clipped at its peak (no fraction of it to time) is strong: its crossing, less that zero.
             cf = np.where(timed, onset, np.where(echo & np.isfinite(crossing), crossing - level_zero, np.nan))
             walk = self.range_walk()[0] if self.ranges_match_waveforms() else None

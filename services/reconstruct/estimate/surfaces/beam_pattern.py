@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.robust import fast_median, median
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -32,6 +33,7 @@ __all__ = [
 
 #: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
 PLATEAU = 0.001
+_EPS = float(np.finfo(np.float64).eps)
 
 
 def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float] | None:
@@ -62,24 +64,25 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     g, a = g[order], a[order]
     # A receiver that clips flattens the top: the plateau's centre is the peak when both of its ends are
     # inside the region (an unclipped echo on either side), and nothing can be said when one is not.
-    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * a.max())
+    top_value = a.max()
+    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * top_value)
     if flat.size >= 3:
         if flat[0] == 0 or flat[-1] == a.size - 1:
             return None
-        step = float(np.median(np.diff(g)))
+        step = fast_median(np.diff(g))
         width = float(g[flat[-1]]) - float(g[flat[0]])
         return 0.5 * (float(g[flat[0]]) + float(g[flat[-1]])), math.hypot(step, width / flat.size) / math.sqrt(12.0)
-    top = a >= 0.5 * a.max()
+    top = a >= 0.5 * top_value
     if np.count_nonzero(top) < 5:
         return None
     gt, la = g[top], np.log(a[top])
-    g0 = float(np.mean(gt))
+    g0 = float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
     u = gt - g0
-    m = np.stack([np.ones_like(u), u, u * u], axis=1)
-    if np.linalg.matrix_rank(m) < 3:
+    m = _quadratic_design(u)
+    coef = _lstsq_full_rank(m, la)
+    if coef is None:
         return None
-    coef, *_ = np.linalg.lstsq(m, la, rcond=None)
-    c0, b, c = (float(v) for v in coef)
+    c0, b, c = coef.tolist()
     if not c < 0:
         return None
     vertex = -b / (2 * c)
@@ -88,11 +91,48 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
         return None
     res = la - m @ coef
     dof = max(u.size - 3, 1)
-    cov = float(res @ res) / dof * np.linalg.pinv(m.T @ m)
+    cov = float(res @ res) / dof * _pinv(m.T @ m)
     # Delta method on −b/(2c).
     jac = np.array([0.0, -1 / (2 * c), b / (2 * c * c)])
     var = float(jac @ cov @ jac)
     return g0 + vertex, math.sqrt(max(var, 0.0))
+
+
+def _quadratic_design(u: np.ndarray) -> np.ndarray:
+    """The columns ``1, u, u²`` (as ``np.stack([np.ones_like(u), u, u * u], axis=1)`` makes them)."""
+    m = np.empty((u.size, 3))
+    m[:, 0] = 1.0
+    m[:, 1] = u
+    m[:, 2] = u * u
+    return m
+
+
+def _lstsq_full_rank(m: np.ndarray, y: np.ndarray) -> np.ndarray | None:
+    """``np.linalg.lstsq(m, y)``'s solution, None where ``m`` is rank-deficient by ``np.linalg.matrix_rank``.
+
+    The rank is asked only where lstsq's own singular values leave it in doubt: both decompositions are
+    backward stable (each singular value within a small multiple of eps·σ_max of the exact one), so a smallest
+    over 1e-8 of the largest is full rank by either, far above matrix_rank's max(shape)·eps cut-off.
+    """
+    coef, _, _, sv = np.linalg.lstsq(m, y, rcond=None)
+    if not float(sv.min()) > 1e-8 * float(sv.max()) and _rank(m) < m.shape[1]:
+        return None
+    return coef
+
+
+def _rank(m: np.ndarray) -> int:
+    """``np.linalg.matrix_rank`` of a 2-D array: its singular values over ``max(shape)·eps`` of the largest."""
+    s = np.linalg.svd(m, compute_uv=False)
+    return int(np.count_nonzero(s > float(s.max()) * (max(m.shape) * _EPS)))
+
+
+def _pinv(a: np.ndarray) -> np.ndarray:
+    """``np.linalg.pinv`` of a real 2-D array (its default cut-off), the same numbers: its SVD and products."""
+    u, s, vt = np.linalg.svd(a, full_matrices=False)
+    large = s > 1e-15 * s.max()
+    s = np.divide(1, s, where=large, out=s)
+    s[~large] = 0
+    return np.matmul(np.transpose(vt), np.multiply(s[..., np.newaxis], np.transpose(u)))
 
 
 def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau: bool = False) -> float | None:
@@ -124,11 +164,11 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
     top = a >= 0.5 * a.max()
     if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
         return None  # too few samples on the top, or a clipped plateau
-    u = g[top] - float(np.mean(g[top]))
-    m = np.stack([np.ones_like(u), u, u * u], axis=1)
-    if np.linalg.matrix_rank(m) < 3:
+    gt = g[top]
+    u = gt - float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
+    coef = _lstsq_full_rank(_quadratic_design(u), np.log(a[top]))
+    if coef is None:
         return None
-    coef, *_ = np.linalg.lstsq(m, np.log(a[top]), rcond=None)
     return float(-coef[2]) if coef[2] < 0 else None
 
 
@@ -224,7 +264,7 @@ def peak_at_bearing(
         return None
     off = np.angle(np.exp(1j * (g[ok] - bearing)))  # wrapped to (−π, π]
     peaks = a[ok] * np.exp(curvature * off * off)
-    return float(np.median(peaks)), float(curvature * np.min(off * off))
+    return fast_median(peaks), float(curvature * np.min(off * off))
 
 
 def weaker_at(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, sigmas: float = 3.0) -> bool:
@@ -340,7 +380,7 @@ def _beam_slope_and_noise(la: np.ndarray, span: float) -> tuple[float, float]:
     differences, whose variance is 6 σ² for white noise.
     """
     second = np.diff(la, 2)
-    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    sigma = 1.4826 * median(np.abs(second - median(second))) / math.sqrt(6.0)
     return 8.0 * float(la.max() - la.min()) / span, sigma
 
 
@@ -379,7 +419,7 @@ def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.
     span = abs(float(g[-1] - g[0]))
     if not span > 0:
         return None
-    step = float(np.median(np.abs(np.diff(g))))
+    step = fast_median(np.abs(np.diff(g)))
     slope, sigma = _beam_slope_and_noise(la, span)
     # A difference of two steps' log amplitudes has variance 2 σ².
     bound = slope * step + sigmas * math.sqrt(2.0) * sigma

@@ -12,10 +12,13 @@ Each test reads :class:`~lelsonar.reconstruct.estimate.surfaces.measurement.Meas
 
 from __future__ import annotations
 
+import functools
 import math
+import struct
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.normals import cross3
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
@@ -62,19 +65,34 @@ def in_span(bearing: float, m: Measured, margin: float, beyond_cut: float) -> bo
 
 
 def plane_line(a: Measured, b: Measured) -> tuple[np.ndarray, np.ndarray] | None:
-    """The line where two planes meet, with their tilts: its point nearest the array and its direction.
+    """The line where two planes meet, with their tilts: its point nearest the array and its direction
+    (read-only arrays).
 
     Returns None for planes nearly parallel (no corner): ``|n_a × n_b| < 0.2``.
     """
-    na, nb = unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt)
-    direction = np.cross(na, nb)
+    # The classification asks for the same pairs of planes over and over: the line is a function of the six
+    # numbers alone, remembered by their bits (so -0.0 and 0.0 stay apart).
+    return _plane_line(_LINE_KEY.pack(a.bearing, a.tilt, a.depth, b.bearing, b.tilt, b.depth))
+
+
+_LINE_KEY = struct.Struct("<6d")
+
+
+@functools.lru_cache(maxsize=4096)
+def _plane_line(key: bytes) -> tuple[np.ndarray, np.ndarray] | None:
+    bearing_a, tilt_a, depth_a, bearing_b, tilt_b, depth_b = _LINE_KEY.unpack(key)
+    na, nb = unit_normal(bearing_a, tilt_a), unit_normal(bearing_b, tilt_b)
+    direction = cross3(na, nb)
     size = float(np.linalg.norm(direction))
     if size < 0.2:
         return None
     # The least-norm solution of n_a·X = h_a, n_b·X = h_b is the line's point nearest the origin.
     mat = np.stack([na, nb])
-    x = mat.T @ np.linalg.solve(mat @ mat.T, np.array([a.depth, b.depth]))
-    return x, direction / size
+    x = mat.T @ np.linalg.solve(mat @ mat.T, np.array([depth_a, depth_b]))
+    unit = direction / size
+    x.flags.writeable = False
+    unit.flags.writeable = False
+    return x, unit
 
 
 def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tuple[list[int], float] | None:

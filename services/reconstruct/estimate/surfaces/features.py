@@ -17,6 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.normals import cross3
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
@@ -275,7 +276,7 @@ def place_features(
             reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
             tied, direction = (), stack_axis
         elif i in across_lines:
-            direction = np.cross(stack_axis, unit_normal(m.bearing))
+            direction = cross3(stack_axis, unit_normal(m.bearing))
             if not ties and m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         elif len(ties) >= 2:
@@ -289,7 +290,7 @@ def place_features(
                 located, direction = (pair_line[0], pair_line[1]), pair_line[2]
             else:
                 a, b = measured[ties[0]], measured[ties[1]]
-                direction = np.cross(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
+                direction = cross3(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
         elif len(ties) == 1:
             # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
             pj = measured[ties[0]]
@@ -299,7 +300,7 @@ def place_features(
             else:
                 m, why = _with_trace(m, pj)
                 reasons = [*reasons, why] if why else reasons
-            direction = np.cross(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
+            direction = cross3(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
             if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
                 direction = stack_axis
         else:

@@ -10,6 +10,7 @@ from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
 from lelsonar.reconstruct.estimate.quality import DEGRADED, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
@@ -39,7 +40,7 @@ def fit_surface(
         return _joint_surface(label, m, joint, caps, beam, d, gamma, opts)
     n = unit_normal(m.bearing, m.tilt)
     h_i = d + caps @ n
-    h = float(np.median(h_i))
+    h = median(h_i)
     resid = h_i - h
     sigma = float(np.std(resid, ddof=1)) if resid.size > 1 else float("nan")
     # How h moves with the bearing and the tilt (the capsules' own offsets along n), for the covariance.
@@ -157,7 +158,7 @@ def _scatter(residuals: np.ndarray) -> float:
     """A robust σ of residuals (1.4826 MAD), the standard deviation where the MAD is 0, m."""
     if residuals.size < 2:
         return float("nan")
-    mad = 1.4826 * float(np.median(np.abs(residuals - np.median(residuals))))
+    mad = 1.4826 * median(np.abs(residuals - median(residuals)))
     return mad if mad > 0 else float(np.std(residuals, ddof=1))
 
 

@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
@@ -80,17 +81,18 @@ def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
     largest ``t = Σ z / √n`` (``n`` its steps with a slope), which must exceed ``sigmas``, with at least
     ``min_steps`` slopes in it and twice that left after it.
     """
-    ok = np.isfinite(z)
-    zs = np.cumsum(np.where(ok, z, 0.0))
-    ns = np.cumsum(ok)
-    left = ns[-1] - ns
+    finite = np.isfinite(z)
+    # (Python numbers for the loop: the same values, without a NumPy scalar per step.)
+    zs = np.cumsum(np.where(finite, z, 0.0)).tolist()
+    counts = np.cumsum(finite)
+    ns, left, ok = counts.tolist(), (counts[-1] - counts).tolist(), finite.tolist()
     best, length = 0.0, 0
     for b in range(z.size):
         if ns[b] < min_steps or not ok[b]:
             continue
         if left[b] < 2 * min_steps:
             break
-        t = abs(float(zs[b])) / math.sqrt(float(ns[b]))
+        t = abs(zs[b]) / math.sqrt(float(ns[b]))
         if t > best:
             best, length = t, b + 1
     return length if best > sigmas else 0
@@ -133,7 +135,7 @@ def split_flanks(
     ok = np.isfinite(slopes) & np.isfinite(sigmas) & (sigmas > 0)
     if np.count_nonzero(ok) < 3 * opts.min_steps:
         return None
-    ref = float(np.median(slopes[ok]))
+    ref = median(slopes[ok])
     z = np.where(ok, (slopes - ref) / np.where(ok, sigmas, 1.0), np.nan)
     head = _flank(z, opts.min_steps, opts.curvature_sigmas)
     tail = _flank(z[::-1], opts.min_steps, opts.curvature_sigmas)
@@ -152,7 +154,7 @@ def split_flanks(
             bearing_stderr=m.bearing_stderr,
             bearing_source=m.bearing_source,
             findings=m.findings,
-            depth=float(np.median(h_i)),
+            depth=median(h_i),
         )
 
     centre = middle_of(head, tail)
@@ -227,8 +229,8 @@ def trim_ends(
     middle &= finite
     if np.count_nonzero(middle) < opts.min_steps:
         return None
-    core = float(np.median(slopes[middle]))
-    robust = 1.4826 * float(np.median(np.abs((slopes[middle] - core) * np.sqrt(sxx[middle]))))
+    core = median(slopes[middle])
+    robust = 1.4826 * median(np.abs((slopes[middle] - core) * np.sqrt(sxx[middle])))
     sigma = robust if robust > 0 else sigma
     with np.errstate(divide="ignore", invalid="ignore"):
         off = finite & (np.abs(slopes - core) > opts.curvature_sigmas * sigma / np.sqrt(sxx))
@@ -238,8 +240,8 @@ def trim_ends(
     own = m.ranges + m.positions @ unit_normal(m.bearing, m.tilt)
     count = np.bincount(pos, minlength=k)
     depth = np.bincount(pos, weights=own, minlength=k) / np.maximum(count, 1)
-    level = float(np.median(depth[middle]))
-    spread = 1.4826 * float(np.median(np.abs(depth[middle] - level) * np.sqrt(count[middle])))
+    level = median(depth[middle])
+    spread = 1.4826 * median(np.abs(depth[middle] - level) * np.sqrt(count[middle]))
     # Depth needs no slope: an end step with too few readings for one (a corner's echo in one or two capsules
     # at the beam's edge) is judged by its depth alone.
     judged = finite.copy()
@@ -264,11 +266,11 @@ def trim_ends(
     if head + tail == 0 or 2 * (k - head - tail) < k or k - head - tail < opts.min_steps:
         return None
     core_sel = (pos >= head) & (pos < k - tail)
-    level = float(np.median(own[core_sel]))
+    level = median(own[core_sel])
     noise = 3 * sigma
 
     def nearer(sel: np.ndarray) -> bool:
-        return bool(np.any(sel)) and float(np.median(own[sel])) < level - noise
+        return bool(np.any(sel)) and median(own[sel]) < level - noise
 
     cut_before = r.cut_before or (head > 0 and nearer(pos < head))
     cut_after = r.cut_after or (tail > 0 and nearer(pos >= k - tail))
@@ -327,7 +329,7 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     # The ends' share of the core's σ replaced; whatever else it holds (a jump's shift) kept.
     var = max(core.bearing_stderr**2 - base, 0.0) + 0.25 * (ends[0][1] + ends[1][1])
     h_i = core.ranges + core.positions @ unit_normal(bearing, core.tilt)
-    return replace(core, bearing=bearing, bearing_stderr=math.sqrt(var), depth=float(np.median(h_i)))
+    return replace(core, bearing=bearing, bearing_stderr=math.sqrt(var), depth=median(h_i))
 
 
 def split_ends(
@@ -438,7 +440,7 @@ def split_dihedral(
         # Each step's depth along the plane's normal: the corner's steps lie deeper, as one block on its side.
         own = m.ranges + m.positions @ n
         pos = np.searchsorted(r.steps, r.rows)
-        hs = np.array([float(np.median(own[pos == k])) if np.any(pos == k) else np.nan for k in range(r.steps.size)])
+        hs = np.array([median(own[pos == k]) if np.any(pos == k) else np.nan for k in range(r.steps.size)])
         found = _deeper_block(hs[::-1] if after else hs, opts)
         if found is None:
             return None

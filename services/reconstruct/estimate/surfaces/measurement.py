@@ -15,6 +15,7 @@ import numpy as np
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     PLATEAU,
     amplitude_jump,
@@ -117,7 +118,7 @@ def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
 
 def sweep_step(gamma: np.ndarray) -> float:
     """The sweep's step, rad: the median ``|Δγ|`` (1° for a single step)."""
-    return float(np.median(np.abs(np.diff(gamma)))) if gamma.size > 1 else math.radians(1.0)
+    return median(np.abs(np.diff(gamma))) if gamma.size > 1 else math.radians(1.0)
 
 
 def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap: int) -> tuple[bool, bool]:
@@ -134,7 +135,7 @@ def masked_ends(region: Region, distance: np.ndarray, tolerance: float, max_gap:
     cols = np.arange(block.shape[1])
     have = count > 0
     ref = 0.5 * (srt[np.maximum(count - 1, 0) // 2, cols] + srt[count // 2 - (count == 0), cols])
-    ref[~have] = float(np.median(ref[have]))
+    ref[~have] = median(ref[have])
     reach = max_gap + 2
     first, last = int(region.steps[0]), int(region.steps[-1])
     before = distance[max(first - reach, 0) : first]
@@ -187,7 +188,6 @@ def measure_region(
     cut = region.cut_before or region.cut_after
     mid = 0.5 * (float(g[0]) + float(g[-1]))
     peak_fit = None
-    spread = 0.0  # rad: how far the capsules' own peaks disagree (capsule_peak_spread)
     peak_weight = 0.0  # the amplitude peak's share of the bearing
     peak = float("nan")
     clipped: bool | None = None
@@ -197,9 +197,6 @@ def measure_region(
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
-        if peak_fit is not None:
-            # Another echo summing into the window moves each capsule's peak its own way.
-            spread = capsule_peak_spread(g, step_table(region, amplitude))
     # Two echoes at one range, one taking over from the other inside the region: its ends are not both one
     # beam pattern's.  The shorter side may be the other echo's, so the centre may be off by half its extent:
     # a σ that says so while it stays within the verdict's bound, no centre bearing beyond it.
@@ -286,10 +283,15 @@ def measure_region(
     tilt_se = math.sqrt(float(lin_cov[0, 0])) if math.isfinite(slope) else float("nan")
     n = unit_normal(bearing, tilt)
     h_i = d + caps @ n
-    depth = float(np.median(h_i))
+    depth = median(h_i)
     # The median's standard error (1.25 σ/√N), with one capsule per step counted once per step.
     depth_se = 1.2533 * float(np.std(h_i)) / math.sqrt(max(region.steps.size, 1)) if h_i.size > 1 else float("nan")
     strength = mirror_normalised(peak, depth, opts)
+    # rad: how far the capsules' own peaks disagree (another echo summing into the window moves each capsule's
+    # peak its own way), through the peak's share of the bearing: none, no spread (at finite γ, a finite one).
+    spread = 0.0
+    if peak_fit is not None and amplitude is not None and (peak_weight or not np.isfinite(g).all()):
+        spread = capsule_peak_spread(g, step_table(region, amplitude))
     return Measured(
         region=region,
         bearing=bearing,

@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from lelsonar.reconstruct.estimate.normals import cross3
 from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 
 __all__ = ["echo_point", "arc_moments", "pair_line_point", "with_range", "line_direction", "RANGE_FLOOR"]
@@ -107,7 +108,7 @@ def _line_point(params: np.ndarray) -> np.ndarray:
 
 def line_direction(params: np.ndarray) -> np.ndarray:
     """The unit direction ``n_a × n_b`` of two planes' line; ``params`` as :func:`pair_line_point`'s."""
-    d = np.cross(unit_normal(params[0], params[1]), unit_normal(params[3], params[4]))
+    d = cross3(unit_normal(params[0], params[1]), unit_normal(params[3], params[4]))
     return d / max(float(np.linalg.norm(d)), 1e-12)
 
 
@@ -128,7 +129,7 @@ def pair_line_point(params: np.ndarray, covariance: np.ndarray) -> tuple[np.ndar
     rounding.
     """
     p = np.asarray(params, dtype=np.float64)
-    size = float(np.linalg.norm(np.cross(unit_normal(p[0], p[1]), unit_normal(p[3], p[4]))))
+    size = float(np.linalg.norm(cross3(unit_normal(p[0], p[1]), unit_normal(p[3], p[4]))))
     if size < 0.2 or not np.all(np.isfinite(p)):
         return None
     x = _line_point(p)

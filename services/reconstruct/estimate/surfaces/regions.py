@@ -149,7 +149,7 @@ def find_regions(
                 block = np.full((steps.size, d.shape[1]), np.nan)
                 block[rows, caps] = d[steps[rows], caps]
                 with np.errstate(invalid="ignore"):  # an infinite reading against an infinite median
-                    med = np.nanmedian(block, axis=1)
+                    med = _row_nan_medians(block)
                     near = np.abs(block[rows, caps] - med[rows]) <= max_spread
                 rows, caps = rows[near], caps[near]
                 steps, rows = _holding(steps, rows)
@@ -200,7 +200,7 @@ def _group_readings(
     table = np.full(d.shape, np.nan)
     table[rows[mine], caps[mine]] = d[rows[mine], caps[mine]]
     with np.errstate(invalid="ignore"):
-        med = np.nanmedian(np.where(np.isnan(table).all(axis=1, keepdims=True), np.inf, table), axis=1)
+        med = _row_nan_medians(np.where(np.isnan(table).all(axis=1, keepdims=True), np.inf, table))
         stray = ~keep & np.isfinite(d) & (np.abs(d - med[:, None]) <= max_spread)
     out = np.isfinite(table) | stray
     r, c = np.nonzero(out)
@@ -209,8 +209,11 @@ def _group_readings(
 
 def _holding(steps: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The steps that hold a reading (``rows``: each reading's index into ``steps``), the rows renumbered."""
-    held = np.unique(rows)
-    return steps[held], np.searchsorted(held, rows)
+    present = np.zeros(steps.size, dtype=np.bool_)
+    present[rows] = True
+    # Each held step's rank among the held ones (np.unique and searchsorted's numbers, without a sort).
+    rank = np.cumsum(present, dtype=np.intp) - 1
+    return steps[present], rank[rows]
 
 
 def _drift_joins(
@@ -288,7 +291,7 @@ def _drift_joins(
             heard = np.isfinite(flat).any(axis=0)
             med = np.full(flat.shape[1], np.nan)
             with np.errstate(invalid="ignore"):  # an infinite reading against an infinite median
-                med[heard] = np.nanmedian(flat[:, heard], axis=0)
+                med[heard] = _row_nan_medians(np.ascontiguousarray(flat[:, heard].T))
                 keep[steps] = np.isfinite(flat) & (np.abs(flat - med) <= 2 * tolerance)
     return label, keep, out_cut
 
@@ -303,7 +306,7 @@ def _one_depth(
     held = keep[steps].any(axis=1)
     block = np.where(keep[steps][held], d[steps][held], np.nan)
     with np.errstate(invalid="ignore"):  # an infinite reading
-        rs = np.nanmedian(block, axis=1)
+        rs = _row_nan_medians(block)
     ok = np.isfinite(rs)
     g, rs = gamma[steps][held][ok], rs[ok]
     if g.size < 2:
@@ -372,6 +375,15 @@ def _nan_median(values: np.ndarray) -> float:
             _insert_sorted(buf, n, x)
             n += 1
     return _median_sorted(buf, n) if n else np.nan
+
+
+@kernel
+def _row_nan_medians(block: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(block, axis=1)`` of a 2-D array, the same numbers, without its masked-array path."""
+    out = np.empty(block.shape[0])
+    for i in range(block.shape[0]):
+        out[i] = _nan_median(block[i])
+    return out
 
 
 @kernel
@@ -525,7 +537,9 @@ def _demeaned_fit(am: np.ndarray, dm: np.ndarray, n_groups: int) -> StackFit:
     if dof < 1:
         return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
     ata = am.T @ am
-    if np.linalg.cond(ata) > 1e10:
+    # One coefficient: the condition number of a finite 1×1 is 1, or inf for 0 (np.linalg.cond's, without an SVD).
+    single = k == 1 and math.isfinite(float(ata[0, 0]))
+    if (float(ata[0, 0]) == 0.0) if single else np.linalg.cond(ata) > 1e10:
         return np.full(k, np.nan), np.full((k, k), np.nan), float("nan")
     coef = np.linalg.solve(ata, am.T @ dm)
     res = dm - am @ coef
