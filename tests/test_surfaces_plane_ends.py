@@ -17,7 +17,8 @@ import pytest
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude, log_amplitude_curvature
 from lelsonar.reconstruct.estimate.surfaces.measurement import summed_width_stderr
-from lelsonar.reconstruct.estimate.surfaces.regions import capsule_x, find_regions
+from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
+from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x
 from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import build_model

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.regions import capsule_x, find_regions, stack_profile, two_targets
+from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
+from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_profile, two_targets
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world import parse_world
 from lelsonar.sim.world_geometry import ElementKind, build_model

@@ -99,7 +99,7 @@ from lelsonar.reconstruct.estimate.surfaces.off_fan import (
     split_stack,
     taken_back,
 )
-from lelsonar.reconstruct.estimate.surfaces.regions import Region, capsule_x, find_regions, subregion
+from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,
     UNSETTLED,
@@ -108,6 +108,7 @@ from lelsonar.reconstruct.estimate.surfaces.results import (
     SurfaceOptions,
     SurfaceSet,
 )
+from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale, echo_scale
 
 __all__ = ["SurfaceOptions", "Surface", "Feature", "SurfaceSet", "extract_surfaces", "METHOD", "UNSETTLED"]

@@ -24,8 +24,9 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     end_crossing_stderr,
     unfaded_ends,
 )
-from lelsonar.reconstruct.estimate.surfaces.regions import Region, capsule_x, stack_fits
+from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits
 
 __all__ = [
     "Measured",

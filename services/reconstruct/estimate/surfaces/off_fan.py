@@ -26,14 +26,9 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import (
     mirror_normalised,
     step_medians,
 )
-from lelsonar.reconstruct.estimate.surfaces.regions import (
-    capsule_subregion,
-    capsule_x,
-    stack_fits,
-    stack_profile,
-    two_targets,
-)
+from lelsonar.reconstruct.estimate.surfaces.regions import capsule_subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits, stack_profile, two_targets
 
 __all__ = ["off_fan_sines", "off_fan_tilt", "taken_back", "off_fan_weak", "separate_targets", "split_stack"]
 
@@ -59,7 +54,7 @@ def off_fan_sines(m: Measured) -> tuple[np.ndarray, float] | None:
     """How far off the fan a target part of the stack hears lies, seen from each of its readings' capsules:
     ``sin ψ`` per reading and its σ.
 
-    The slope fitted over the steps' capsule pairs (:func:`~.regions.stack_fits`) is that at the middle ``x_m``
+    The slope fitted over the steps' capsule pairs (:func:`~.stack.stack_fits`) is that at the middle ``x_m``
     of the capsules heard (exact for two: a point's ranges are a parabola in ``x`` to second order); from there
     ``sin ψ`` moves by ``(1 − sin²ψ)/ρ`` per m along the stack.  With three or more capsules the fitted slope may
     sit anywhere between them: a quarter of that change over the capsules' extent is added to its σ.
@@ -186,9 +181,9 @@ def separate_targets(
       (:attr:`~.regions.Region.part`) is the nearer one's, heard by no more capsules than the farther one: it
       leaves the regions, and the pass over the readings no region holds takes it up with every capsule's
       readings of it (a target off the fan beside the stack).  Else it is a region of the fan.
-    * A region whose range profile along the stack bends as no one target's does (:func:`~.regions.stack_profile`:
+    * A region whose range profile along the stack bends as no one target's does (:func:`~.stack.stack_profile`:
       two targets at one range on either side of the stack, two jambs of a doorway) splits into the capsules
-      that hear each (:func:`~.regions.two_targets`), each a target part of the stack hears.  Where no two
+      that hear each (:func:`~.stack.two_targets`), each a target part of the stack hears.  Where no two
       convex sides explain it, its tilt is anywhere within the beam's half-width and its verdict says why.
 
     Each target part of the stack hears is tilted off the fan as its capsules' slope says (:func:`off_fan_tilt`).
@@ -218,7 +213,7 @@ def split_stack(
     opts: SurfaceOptions,
     step: float,
 ) -> list[Measured] | None:
-    """A region that holds two targets along the stack (:func:`~.regions.two_targets`) as the targets part of the
+    """A region that holds two targets along the stack (:func:`~.stack.two_targets`) as the targets part of the
     stack hears, each tilted off the fan as its capsules' slope says; None when it holds one.
 
     Where no two targets explain it, the region itself, its tilt anywhere within the beam's half-width and its
