@@ -71,7 +71,7 @@ def _estimate_only(msg: codec.Reconstruction) -> bytes:
 
 def _live(pool) -> ReconstructionService:
     # No staleness (the test's clock is not the scan's), no rate limit: every refit is due.
-    service = ReconstructionService(ReconstructConfig(provisional_period=0, provisional_deadline=0))
+    service = ReconstructionService(ReconstructConfig(provisional_period=0, provisional_deadline=0, fits_in_pool=True))
     service.wall_ns = lambda: 0  # a live source's
     service.use_pool(pool)
     return service

@@ -68,7 +68,8 @@ class ReconstructConfig:
         from scratch: milliseconds, where an update takes tenths) runs in the pool's workers while the samples
         go on: its plane keeps its estimate until the result is back (none is given while plane a's first fit
         is away), and the next estimate of its scan has it.  When the pool is full the fit waits for room.
-        Off, or without a pool, or in a replay, the fits run on the samples' thread
+        Off by default, as handing them out can hold the samples' thread (``lelsonar bench ingest``, row (b1)
+        shows it). Off, or without a pool, or in a replay, the fits run on the samples' thread
         (``provisional_backlog``, ``provisional_budget``).
     scan_timeout : float
         s of silence after which an open scan is finalised (marked FINAL_TIMEOUT).
@@ -107,7 +108,7 @@ class ReconstructConfig:
     provisional_deadline: float = 0.04
     provisional_backlog: int = 32
     provisional_budget: float = 0.003
-    fits_in_pool: bool = True
+    fits_in_pool: bool = False
     keep_finals: int = 1024
     scan_timeout: float = 10.0
     end_grace: float = 1.0

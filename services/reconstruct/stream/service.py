@@ -17,7 +17,7 @@ record (paper §4–5); this module decides when a scan is estimated and with wh
    one per sample, and the refits are caught up within ``provisional_budget`` when the backlog drains, each
    published at once in O(new samples) and the exact fits they need made after them; live, one due on a
    sample that waited past ``provisional_deadline`` is not published (stale); live with a final pool
-   (``fits_in_pool``), the exact fits run in its workers instead, and their plane keeps its estimate until
+   and ``fits_in_pool`` on, the exact fits run in its workers instead, and their plane keeps its estimate until
    the result is back (:meth:`ReconstructionService.collect` takes it);
 3. at ``ScanEnd`` (once its samples are in) or after ``scan_timeout`` of silence, the final runs on the
    whole scan from scratch, with the method of record and the compared methods, and is published as
