@@ -33,6 +33,7 @@ from lelsonar.map.observation import (
     ScanObservation,
     WallObservation,
 )
+from lelsonar.reconstruct.estimate.surfaces.features import PLACEMENT_CAVEATS
 
 #: Smallest variance given to an observation's (θ, ρ), so a plane that claims none still has a σ (rad², m²).
 MIN_VARIANCE = (1e-10, 1e-10)
@@ -188,6 +189,9 @@ def _surface_wall(item, to_level: np.ndarray) -> WallObservation | None:
 
 
 def _feature(f, kind: str, to_level: np.ndarray) -> FeatureObservation | None:
+    # A corner or an edge its sweep did not place on its own line (its reasons say so) ties no walls and ends none.
+    if any(r.startswith(PLACEMENT_CAVEATS) for r in f.reasons):
+        return None
     d = to_level @ _vec(f.line.direction)
     if not np.linalg.norm(d) > 0:
         return None
