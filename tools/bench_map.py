@@ -82,14 +82,11 @@ def run_timing(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from lelsonar.errors import ConfigError
     from lelsonar.map.fusion import FusionConfig, WallMapper
     from lelsonar.map.lines import pose_between, wrap
     from lelsonar.map.synthetic import NoiseModel, maze, observe_world, true_corners, truth_of
     from lelsonar.tools.bench import machine, progress
 
-    if args.cells < 2 or args.timing_seeds < 1:
-        raise ConfigError("--cells must be ≥ 2 and --timing-seeds ≥ 1")
     # (walls in the map before the update, wall-clock s, CPU s of this process): on a shared host the CPU
     # time is the update's own cost, the wall-clock time adds the other processes' share of the cores.
     updates: list[tuple[int, float, float, float]] = []  # … and the CPU s of reading the map after it
@@ -348,6 +345,10 @@ def run_worlds(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from lelsonar.errors import ConfigError
+
+    if args.cells < 2 or args.timing_seeds < 1:  # refused before the worlds' run, not after it
+        raise ConfigError("--cells must be ≥ 2 and --timing-seeds ≥ 1")
     rc = 0
     if args.worlds != "none":
         rc |= run_worlds(args)
