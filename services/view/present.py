@@ -12,7 +12,7 @@ from rich.table import Table
 
 from lelsonar import codec
 from lelsonar.codec import QUALITY, QUALITY_NAME
-from lelsonar.reconstruct.estimate.surfaces.features import PLACEMENT_CAVEATS
+from lelsonar.reconstruct.estimate.surfaces.features import placement_caveats
 from lelsonar.reconstruct.estimate.wire import STATUS, accounting_text, status_name
 
 
@@ -222,7 +222,7 @@ def surfaces_table(msg: codec.Reconstruction) -> Table | None:
     ]
     # A corner or an edge placed without a bearing of its own, or off the line its class names, says so beside its σ.
     for f in (*msg.corners, *msg.edges):
-        caveats = [r for r in f.reasons if any(r.startswith(c) for c in PLACEMENT_CAVEATS)]
+        caveats = placement_caveats(f.reasons)
         if caveats:
             caption.append(f"* {f.label}: {'; '.join(caveats)}")
     n = max(msg.surface_echo_count, 1)

@@ -13,6 +13,7 @@ the stack, else along the stack.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import replace
 
 import numpy as np
@@ -35,6 +36,7 @@ __all__ = [
     "NOT_THEIR_LINE",
     "MIXED",
     "PLACEMENT_CAVEATS",
+    "placement_caveats",
 ]
 
 #: A classified region: its kind ("corner" or "edge"), why, and the regions (indices) it ties to.
@@ -64,6 +66,11 @@ MIXED = (
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
 #: with: a reader shows them beside its σ.
 PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0])
+
+
+def placement_caveats(reasons: Iterable[str]) -> list[str]:
+    """The reasons (a :class:`Feature`'s, or its wire message's) that say it is not placed on its own line."""
+    return [r for r in reasons if r.startswith(PLACEMENT_CAVEATS)]
 
 
 def _feature(
