@@ -131,6 +131,15 @@ def simulated_messages(
     return out
 
 
+def estimate_only(msg: codec.Reconstruction) -> bytes:
+    """An estimate's bytes without what the clock stamps on it (its time, its timings): what must match bit for bit."""
+    m = codec.Reconstruction()
+    m.CopyFrom(msg)
+    for f in ("stamp_ns", "timings"):
+        m.ClearField(f)
+    return m.SerializeToString()
+
+
 def type_name(message) -> str:
     return message.DESCRIPTOR.full_name
 

@@ -20,7 +20,7 @@ from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 from . import foreign_scenes as fs
-from .conftest import QuietObserver, simulated_messages, type_name
+from .conftest import QuietObserver, estimate_only, simulated_messages, type_name
 
 STEPS = 90
 
@@ -34,14 +34,6 @@ def scans():
     end = c[-1]
     end.status, end.samples_sent, end.reason = SCAN_STATUS_ABORTED, 60, "stopped"
     return [*a, *b, *c[:61], end]
-
-
-def estimate_only(msg: codec.Reconstruction) -> bytes:
-    m = codec.Reconstruction()
-    m.CopyFrom(msg)
-    for f in ("stamp_ns", "timings"):
-        m.ClearField(f)
-    return m.SerializeToString()
 
 
 class Points(QuietObserver):

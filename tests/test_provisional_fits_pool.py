@@ -17,7 +17,7 @@ from lelsonar.reconstruct.stream.final_pool import PoolStats
 from lelsonar.reconstruct.stream.final_worker import Done
 from lelsonar.reconstruct.stream.service import ReconstructionService
 
-from .conftest import simulated_messages, type_name
+from .conftest import estimate_only, simulated_messages, type_name
 
 
 @pytest.fixture(scope="module")
@@ -59,14 +59,6 @@ class HeldPool:
     def drain(self) -> list[Done]:
         self.release()
         return self.ready()
-
-
-def _estimate_only(msg: codec.Reconstruction) -> bytes:
-    m = codec.Reconstruction()
-    m.CopyFrom(msg)
-    for f in ("stamp_ns", "timings"):
-        m.ClearField(f)
-    return m.SerializeToString()
 
 
 def _live(pool) -> ReconstructionService:
@@ -133,7 +125,7 @@ def test_live_with_a_pool_the_exact_fits_run_there_and_the_stream_publishes_mean
     for m in scan_messages:
         out += alone.handle(type_name(m), m.SerializeToString())
     (expected,) = [e for e in out if wire.is_terminal(e)]
-    assert _estimate_only(final) == _estimate_only(expected)
+    assert estimate_only(final) == estimate_only(expected)
 
 
 def test_fits_away_when_the_pool_goes_are_due_again_and_made_here(scan_messages):

@@ -124,6 +124,15 @@ def test_a_noisy_flanks_upper_peak_estimate_is_rarely_under_the_true_peak():
     assert under / draws <= 0.01
 
 
+def _scored_fan_sweep(family: str, seed: int, pose: int):
+    """A world's sweep from one pose on the fan mount, its surfaces extracted and scored against the truth."""
+    model = build_model(draw_world(family, seed, mount="fan"))
+    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
+    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    return score_scan(family, scan, result, seed=seed, amplitude=amp)
+
+
 @pytest.mark.parametrize(
     ("family", "seed", "pose", "element"),
     [
@@ -133,11 +142,7 @@ def test_a_noisy_flanks_upper_peak_estimate_is_rarely_under_the_true_peak():
     ],
 )
 def test_a_wall_past_a_box_or_at_the_sweeps_start_is_found_and_flagged(family, seed, pose, element):
-    model = build_model(draw_world(family, seed, mount="fan"))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    record = score_scan(family, scan, result, seed=seed, amplitude=amp)
+    record = _scored_fan_sweep(family, seed, pose)
     assert record.missed == ()
     walls = [p for p in record.planes if p.element == element]
     assert walls
@@ -166,11 +171,7 @@ def test_a_far_walls_echo_summed_with_its_floor_corner_is_no_reference_a_nearer_
 
 @pytest.mark.parametrize(("family", "seed", "pose", "element"), [("l_room", 0, 2, 2)])
 def test_a_wall_whose_echo_a_far_walls_summed_echo_outshines_is_a_plane(family, seed, pose, element):
-    model = build_model(draw_world(family, seed, mount="fan"))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    record = score_scan(family, scan, result, seed=seed, amplitude=amp)
+    record = _scored_fan_sweep(family, seed, pose)
     assert not any(f" element {element} " in line for line in record.missed)
     assert [p.element for p in record.planes].count(element) == 1
 
@@ -186,11 +187,7 @@ def test_a_wall_beside_its_own_corner_with_a_seen_plane_is_a_plane_not_that_plan
     # The region's own bearing put it on the seen plane's trace, but the deeper region beside it is the corner
     # of a wall at its depth with that plane: one wall and its corner explain both.  Its bearing rests on an
     # amplitude the corner's echo sums into, so its σ is the region's reach: flagged, never good.
-    model = build_model(draw_world(family, seed, mount="fan"))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
-    record = score_scan(family, scan, result, seed=seed, amplitude=amp)
+    record = _scored_fan_sweep(family, seed, pose)
     assert not any(f" element {element} " in line for line in record.missed)
     walls = [p for p in record.planes if p.element == element]
     assert walls and all(p.flagged for p in walls)
