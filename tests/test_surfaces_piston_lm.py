@@ -14,9 +14,11 @@ import math
 
 import numpy as np
 import pytest
+from scipy import special
 from scipy.optimize import least_squares
 
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import Profiles, log_piston_terms, piston_fit, piston_lm
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import piston_fit
+from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, bessel_j01, log_piston_point, piston_lm
 from lelsonar.signal.directivity import piston_directivity
 
 KA = 5.13  # a 7 mm piston at 40 kHz
@@ -91,6 +93,20 @@ def test_rows_of_different_lengths_fitted_together_give_what_each_gives_alone():
         assert together.ok[i] and alone.ok[0]
         assert abs(together.bearing[i] - alone.bearing[0]) <= 1e-9 * math.sqrt(cov[1, 1])
         assert abs(together.ka[i] - alone.ka[0]) <= 1e-9 * math.sqrt(cov[2, 2])
+
+
+def test_j0_and_j1_are_scipys_over_and_past_the_main_lobe():
+    for x in np.concatenate([np.linspace(-30.0, 30.0, 601), [1e-9, 3.8317059702075125, 11.999, 12.0, 12.001]]):
+        j0, j1 = bessel_j01(float(x))
+        assert abs(j0 - special.j0(x)) <= 1e-11 and abs(j1 - special.j1(x)) <= 1e-11, x
+    for x in np.linspace(0.0, 3.9, 40):  # the main lobe: to rounding
+        j0, j1 = bessel_j01(float(x))
+        assert abs(j0 - special.j0(x)) <= 1e-15 and abs(j1 - special.j1(x)) <= 1e-15, x
+
+
+def log_piston_terms(u: np.ndarray, ka: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    out = np.array([log_piston_point(float(v), ka) for v in u])
+    return out[:, 0], out[:, 1], out[:, 2]
 
 
 def test_the_log_pattern_and_its_slopes_are_the_directivitys():

@@ -26,28 +26,24 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import special
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, step_table, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, piston_lm
 from lelsonar.reconstruct.estimate.surfaces.regions import subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.signal.directivity import PISTON_FIRST_NULL
 
 __all__ = [
     "FLANK_SOURCE",
-    "PistonFit",
-    "Profiles",
     "SweepBeam",
     "bearing_from_flank",
     "flank_bearings",
     "flank_measured",
-    "log_piston_terms",
     "piston_fit",
     "piston_fits",
-    "piston_lm",
     "range_bearing",
     "split_jump",
     "sweep_beam",
@@ -59,21 +55,10 @@ FLANK_SOURCE = "beam flank"
 MIN_PROFILE_STEPS = 8
 #: Fewest steps with an amplitude a flank needs (two parameters, and their residuals).
 MIN_FLANK_STEPS = 4
-#: Fewest second differences a robust noise estimate takes.
-MIN_NOISE_DIFFERENCES = 5
 #: How far under its peak a profile is fitted, in log amplitude: 20 dB, clear of the first null and sidelobe.
 MAIN_LOBE_TOP = math.log(10.0)
 #: A profile's residual σ over its amplitude noise beyond which the piston does not describe the beam.
 MODEL_MISFIT = 3.0
-#: Levenberg–Marquardt (:func:`piston_lm`): most steps, the parameters' relative change and the cost's relative
-#: decrease a fit stops under (MINPACK's defaults, as SciPy's ``least_squares`` has them: the cost then lies
-#: within about 1e-8 of its minimum, the parameters within 1e-4·√dof of their σ), and its damping's start
-#: and ceiling (a row whose damping reaches it cannot lower its cost: it is at its minimum to rounding).
-MAX_ITERATIONS = 100
-XTOL = 1e-8
-FTOL = 1e-8
-LM_START = 1e-3
-LM_CEILING = 1e16
 
 
 @dataclass(frozen=True)
@@ -110,205 +95,6 @@ def _main_lobe_top(g: np.ndarray, la: np.ndarray) -> tuple[np.ndarray, np.ndarra
     return g[top], la[top]
 
 
-def log_piston_terms(u: np.ndarray, ka: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A piston's two-way pattern in log, ``log D(u)²`` (``-inf`` at its nulls), and its slopes ``∂/∂u`` and
-    ``∂/∂ka``, from one evaluation of ``J0`` and ``J1``.
-
-    With ``x = ka·sin u`` and ``D = 2·J1(x)/x``: ``d log D/dx = J0(x)/J1(x) − 2/x`` (``−x/4`` as ``x → 0``),
-    so ``∂ log D²/∂u = 2 (d log D/dx) ka cos u`` and ``∂ log D²/∂ka = 2 (d log D/dx) sin u``.
-
-    Parameters
-    ----------
-    u : array
-        Angles off the beam's axis, rad.
-    ka : float or array broadcasting with ``u``
-        The piston's wavenumber times radius.
-
-    Returns
-    -------
-    (log D², ∂/∂u, ∂/∂ka), each of ``u``'s broadcast shape.
-    """
-    s = np.sin(u)
-    x = ka * s
-    small = np.abs(x) < 1e-6
-    safe = np.where(small, 1.0, x)
-    j1 = special.j1(safe)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_d = np.where(small, 0.0, 2.0 * np.log(np.abs(2.0 * j1 / safe)))
-        dx = np.where(small, -x / 4.0, special.j0(safe) / j1 - 2.0 / safe)
-    return log_d, 2.0 * dx * ka * np.cos(u), 2.0 * dx * s
-
-
-@dataclass(frozen=True)
-class Profiles:
-    """Echo profiles of different lengths packed left-aligned into rows, for one vectorised fit of them all.
-
-    ``g`` and ``la``: (R, K) γ (rad) and ``log A``; ``w``: (R, K) which entries hold a step (the rest repeat the
-    row's first γ, so that every entry evaluates finite, and are left out of every sum); ``n``: (R,) steps per
-    row.
-    """
-
-    g: np.ndarray
-    la: np.ndarray
-    w: np.ndarray
-    n: np.ndarray
-
-    @staticmethod
-    def pack(profiles: list[tuple[np.ndarray, np.ndarray]]) -> Profiles:
-        """Rows from ``(γ, log A)`` pairs, each in γ order."""
-        n = np.array([p[0].size for p in profiles], dtype=np.intp)
-        k = max(int(n.max(initial=0)), 1)
-        w = np.arange(k) < n[:, None]
-        g = np.zeros(w.shape)
-        la = np.zeros(w.shape)
-        if w.any():
-            g[w] = np.concatenate([p[0] for p in profiles])
-            la[w] = np.concatenate([p[1] for p in profiles])
-        return Profiles(np.where(w, g, g[:, :1]), la, w, n)
-
-    def noise(self) -> np.ndarray:
-        """Each row's log amplitude noise σ, as :func:`_noise` gives it (NaN from too few second differences)."""
-        if self.g.shape[1] < 3:
-            return np.full(self.n.shape, np.nan)
-        la = self.la
-        second = la[:, 2:] - 2.0 * la[:, 1:-1] + la[:, :-2]
-        m = np.maximum(self.n - 2, 0)
-        second = np.where(np.arange(second.shape[1]) < m[:, None], second, np.nan)
-        centre = _row_median(second, m)
-        spread = _row_median(np.abs(second - centre[:, None]), m)
-        return np.where(m >= MIN_NOISE_DIFFERENCES, 1.4826 * spread / math.sqrt(6.0), np.nan)
-
-
-def _row_median(x: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """Each row's median of its first ``m`` entries (NaN after them), as :func:`np.median` takes it."""
-    s = np.sort(x, axis=1)
-    rows = np.arange(x.shape[0])
-    lo, hi = np.maximum((m - 1) // 2, 0), np.maximum(m // 2, 0)
-    return np.where(m > 0, (s[rows, lo] + s[rows, hi]) / 2.0, np.nan)
-
-
-def _noise(la: np.ndarray) -> float:
-    """The log amplitudes' noise σ, robust, from second differences (variance 6 σ² for white noise); NaN from
-    fewer than :data:`MIN_NOISE_DIFFERENCES` of them (the median absolute deviation of a few is near 0 by
-    chance)."""
-    second = np.diff(la, 2)
-    if second.size < MIN_NOISE_DIFFERENCES:
-        return float("nan")
-    return 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
-
-
-@dataclass(frozen=True)
-class PistonFit:
-    """Each row's fit of :func:`piston_lm`: ``β``, ``ka``, whether it converged, and at the solution the
-    residuals (R, K; 0 off the row's steps), their Jacobian (R, K, 2 or 3: over the level, β[, ka]) and their
-    sum of squares."""
-
-    bearing: np.ndarray
-    ka: np.ndarray
-    ok: np.ndarray
-    residual: np.ndarray
-    jacobian: np.ndarray
-    cost: np.ndarray
-
-
-def _terms(p: Profiles, x: np.ndarray, ka: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The residuals of :func:`piston_lm` at parameters ``x`` (R, 2 or 3: level, β[, ka]; ``ka`` fixed per row
-    where given), their Jacobian (R, K, 2 or 3) and their sums of squares (``inf`` where not finite)."""
-    k = x[:, 2] if ka is None else ka
-    log_d, du, dk = log_piston_terms(p.g - x[:, 1:2], k[:, None])
-    w = p.w
-    with np.errstate(invalid="ignore"):
-        r = np.where(w, x[:, :1] + log_d - p.la, 0.0)
-        cost = (r * r).sum(axis=1)
-    cols = [w.astype(np.float64), np.where(w, -du, 0.0)]
-    if ka is None:
-        cols.append(np.where(w, dk, 0.0))
-    return r, np.stack(cols, axis=2), np.where(np.isfinite(cost), cost, np.inf)
-
-
-def _solve_small(a: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Each row's solution of ``a x = rhs`` (a: (R, n, n), n 2 or 3, by its adjugate; NaN where singular)."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if a.shape[1] == 2:
-            det = a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]
-            x0 = a[:, 1, 1] * rhs[:, 0] - a[:, 0, 1] * rhs[:, 1]
-            x1 = a[:, 0, 0] * rhs[:, 1] - a[:, 1, 0] * rhs[:, 0]
-            return np.stack([x0, x1], axis=1) / det[:, None]
-        c0, c1, c2 = np.cross(a[:, 1], a[:, 2]), np.cross(a[:, 2], a[:, 0]), np.cross(a[:, 0], a[:, 1])
-        det = np.einsum("ij,ij->i", a[:, 0], c0)
-        adj = np.stack([c0, c1, c2], axis=1)  # rows of the inverse of a symmetric a, times det
-        return np.einsum("ijk,ik->ij", adj, rhs) / det[:, None]
-
-
-def piston_lm(
-    p: Profiles, bearing: np.ndarray, ka: np.ndarray, *, free_ka: bool, max_iter: int = MAX_ITERATIONS
-) -> PistonFit:
-    """Levenberg–Marquardt fits of the piston ``log A = log P + log D(γ − β; ka)²`` to each row of ``p``: over
-    ``(log P, β, ka)`` (``free_ka``) or ``(log P, β)`` with each row's ``ka`` fixed; every row at once.
-
-    Each row starts at its largest ``log A``, its ``β`` and its ``ka``.  Steps solve
-    ``(JᵀJ + λ diag JᵀJ) δ = −Jᵀr`` per row (2×2 or 3×3, closed form), from λ = 1e-3 (nearly Gauss–Newton); λ
-    follows Nielsen's rule (Madsen, Nielsen & Tingleff, *Methods for non-linear least squares problems*, 2004):
-    on a step that lowers the cost it shrinks by as much as the linear model predicted that decrease well, on
-    one that does not (or that reaches a null of the pattern, where ``log D²`` is not finite) it grows by a
-    factor that doubles with each failure in a row.  A row stops where its step falls under
-    :data:`XTOL` of its parameters or its cost's relative decrease under :data:`FTOL`: far inside any σ the
-    fit gives.
-
-    Parameters
-    ----------
-    p : Profiles
-    bearing, ka : (R,) arrays
-        Each row's start (``ka`` fixed unless ``free_ka``).
-    free_ka : bool
-    max_iter : int
-
-    Returns
-    -------
-    PistonFit; ``ok`` False where the start is not finite, a step is not, or the row has not converged.
-    """
-    b = np.asarray(bearing, dtype=np.float64)
-    k = np.asarray(ka, dtype=np.float64)
-    level = np.where(p.w, p.la, -np.inf).max(axis=1, initial=-np.inf)
-    x = np.stack([level, b, k], axis=1) if free_ka else np.stack([level, b], axis=1)
-    fixed = None if free_ka else k
-    r, jac, cost = _terms(p, x, fixed)
-    ok = np.isfinite(cost) & (p.n > 0)
-    active = ok.copy()
-    lam = np.full(b.shape, LM_START)
-    grow = np.full(b.shape, 2.0)
-    for _ in range(max_iter):
-        a = np.einsum("rki,rkj->rij", jac, jac)
-        grad = np.einsum("rki,rk->ri", jac, r)
-        scale = lam[:, None] * np.einsum("rii->ri", a)
-        step = -_solve_small(a + scale[:, :, None] * np.eye(x.shape[1]), grad)
-        bad = active & ~np.all(np.isfinite(step), axis=1)
-        ok &= ~bad
-        active &= ~bad
-        active &= ~np.all(np.abs(step) <= XTOL * (np.abs(x) + XTOL), axis=1)
-        if not active.any():
-            break
-        nx = np.where(active[:, None], x + step, x)
-        nr, njac, ncost = _terms(p, nx, fixed)
-        # The gain ratio: the cost's decrease over the linear model's, −2δᵀJᵀr − δᵀJᵀJδ = δᵀ(λ·diag δ − Jᵀr).
-        predicted = np.einsum("ri,ri->r", step, scale * step - grad)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            gain = (cost - ncost) / predicted
-        better = active & (ncost <= cost)
-        small = better & (cost - ncost <= FTOL * cost)
-        x = np.where(better[:, None], nx, x)
-        r, jac = np.where(better[:, None], nr, r), np.where(better[:, None, None], njac, jac)
-        cost = np.where(better, ncost, cost)
-        # Nielsen's rule: λ shrinks by as much as the linear model predicted the step well, and grows by a doubling
-        # factor on a step that failed.
-        fit_well = np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(np.nan_to_num(gain), 0.0, 1.0) - 1.0) ** 3)
-        lam = np.where(better, lam * fit_well, np.where(active, lam * grow, lam))
-        grow = np.where(better, 2.0, np.where(active, 2.0 * grow, grow))
-        active &= ~small & (lam < LM_CEILING)
-    ok &= ~active
-    return PistonFit(x[:, 1], x[:, 2] if free_ka else k.copy(), ok, r, jac, cost)
-
-
 def piston_fits(
     profiles: list[tuple[np.ndarray, np.ndarray]], bearing: np.ndarray, ka0: np.ndarray
 ) -> list[tuple[float, float] | None]:
@@ -326,8 +112,10 @@ def piston_fits(
     noise = p.noise()
     with np.errstate(invalid="ignore"):
         misfit = np.isfinite(noise) & (noise > 0) & (np.sqrt(s2) > MODEL_MISFIT * noise)
+    # ka's variance: the last diagonal entry of (JᵀJ)⁻¹, its cofactor over its determinant, at the residuals' scale.
     a = np.einsum("rki,rkj->rij", fit.jacobian, fit.jacobian)
-    var = s2 * _solve_small(a, np.broadcast_to(np.eye(3)[2], (a.shape[0], 3)))[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        var = s2 * (a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]) / np.linalg.det(a)
     for j, i in enumerate(rows):
         if fit.ok[j] and fit.ka[j] > 0 and inside[j] and not misfit[j] and np.isfinite(var[j]):
             out[i] = float(fit.ka[j]), math.sqrt(max(float(var[j]), 0.0))
@@ -494,7 +282,7 @@ def flank_bearings(
         return out
     # β's change with ka, over ka's σ (a secant over ±σ, the larger side): each wanted row refitted twice.
     pick = [j for _i, j, _b, _se in wanted for _ in (0, 1)]
-    sub = Profiles(p.g[pick], p.la[pick], p.w[pick], p.n[pick])
+    sub = p.rows(pick)
     kas = np.tile([beam.ka - beam.ka_stderr, beam.ka + beam.ka_stderr], len(wanted))
     other = piston_lm(sub, b[pick], kas, free_ka=False)
     for w, (i, _j, bj, se) in enumerate(wanted):
