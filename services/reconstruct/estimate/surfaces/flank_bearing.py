@@ -100,10 +100,11 @@ def piston_fits(
 ) -> list[tuple[float, float] | None]:
     """:func:`piston_fit` of several profiles (each its ``_log_profile``), fitted together."""
     out: list[tuple[float, float] | None] = [None] * len(profiles)
-    rows = [i for i, (g, _la) in enumerate(profiles) if g.size >= MIN_PROFILE_STEPS and ka0[i] > 0]
+    tops = [_main_lobe_top(*profile) for profile in profiles]
+    rows = [i for i, (g, _la) in enumerate(tops) if g.size >= MIN_PROFILE_STEPS and ka0[i] > 0]
     if not rows:
         return out
-    p = Profiles.pack([_main_lobe_top(*profiles[i]) for i in rows])
+    p = Profiles.pack([tops[i] for i in rows])
     fit = piston_lm(
         p, np.asarray(bearing, dtype=np.float64)[rows], np.asarray(ka0, dtype=np.float64)[rows], free_ka=True
     )
