@@ -17,6 +17,9 @@ and bends its flank where they meet).  Two measurements remain, each with its ow
 A region whose amplitude hands over from one target to another at one range (a box's face and its own edge)
 holds one flank of each: :func:`split_jump` cuts it there.
 
+The piston fits themselves are :func:`~.piston.piston_lm`'s: every profile of a sweep's planes, or of one
+region and its capsules, in one compiled Levenberg–Marquardt call.
+
 Pure functions: no I/O, no state.
 """
 
@@ -98,7 +101,19 @@ def _main_lobe_top(g: np.ndarray, la: np.ndarray) -> tuple[np.ndarray, np.ndarra
 def piston_fits(
     profiles: list[tuple[np.ndarray, np.ndarray]], bearing: np.ndarray, ka0: np.ndarray
 ) -> list[tuple[float, float] | None]:
-    """:func:`piston_fit` of several profiles (each its ``_log_profile``), fitted together."""
+    """:func:`piston_fit` of several profiles, fitted together (:func:`~.piston.piston_lm`).
+
+    Parameters
+    ----------
+    profiles : list of (γ, log A)
+        Each profile's unclipped steps in γ order (``_log_profile``).
+    bearing, ka0 : (R,) arrays
+        Each profile's start.
+
+    Returns
+    -------
+    Per profile, ``(ka, σ)`` or None, as :func:`piston_fit` gives them.
+    """
     out: list[tuple[float, float] | None] = [None] * len(profiles)
     tops = [_main_lobe_top(*profile) for profile in profiles]
     rows = [i for i, (g, _la) in enumerate(tops) if g.size >= MIN_PROFILE_STEPS and ka0[i] > 0]
@@ -219,8 +234,23 @@ def flank_bearings(
     model_check: list[bool],
     bearing_only: list[bool],
 ) -> list[tuple[float, float] | None]:
-    """:func:`bearing_from_flank` of several profiles of one region (each its ``_log_profile``), fitted
-    together: each row's flank, then the ``ka ± σ`` refits of the rows that want a σ, started at their β."""
+    """:func:`bearing_from_flank` of several profiles of one region, fitted together (:func:`~.piston.piston_lm`):
+    each profile's flank, then the ``ka ± σ`` refits of those that want a σ, started at their β.
+
+    Parameters
+    ----------
+    profiles : list of (γ, log A)
+        Each profile's unclipped steps in γ order (``_log_profile``).
+    beam : SweepBeam
+    before, after : float
+        As :func:`bearing_from_flank`'s.
+    model_check, bearing_only : list of bool
+        Per profile, as :func:`bearing_from_flank`'s.
+
+    Returns
+    -------
+    Per profile, ``(β, σ)`` or None, as :func:`bearing_from_flank` gives them.
+    """
     out: list[tuple[float, float] | None] = [None] * len(profiles)
     if not (before > 0 or after > 0):
         return out
