@@ -190,7 +190,8 @@ def replay_mcap(
 
 
 #: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
-#: imports the estimate and loads its kernels first (seconds), and a shorter replay ends before it is ready.
+#: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
+#: ready.
 COLD_START_SCANS = 50
 
 
@@ -200,17 +201,26 @@ def replay_workers(
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the tasks
     running now leave cores idle (``runnable`` as :func:`decompress_threads`': the caller's thread is one of
     them, and its core is the reading's; a worker that finds no core only competes with the reading).
-    None for a file of one scan, whose final can overlap nothing, nor by default for a file of fewer than
-    :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
+    None for a file of one scan, whose final can overlap nothing.
+
+    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans,
+    and one core fewer: the fork server's start (its imports, its kernels) takes a core's worth of CPU
+    for seconds, and until a worker is ready the caller estimates every final itself while the file is
+    decompressed ahead on the idle cores (:func:`decompress_threads`).  Where that leaves no core (two: the
+    reading's and the decompression's), the finals stay in the caller: a worker would be ready only after
+    competing for the decompression's core for much of the replay, and then share it.
+    """
     if scans is not None and scans < 2:
         return 0
     if configured is not None:
         return configured
-    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
-        return 0
     n = cpus if cpus is not None else (os.cpu_count() or 1)
     busy = runnable if runnable is not None else runnable_tasks()
-    return max(0, min(auto_workers(n), n - busy))
+    if workers_warm():
+        return max(0, min(auto_workers(n), n - busy))
+    if scans is None or scans < COLD_START_SCANS:
+        return 0
+    return max(0, min(auto_workers(n), n - busy - 1))
 
 
 def scans_in(rec: Recording) -> int | None:
