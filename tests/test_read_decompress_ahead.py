@@ -200,6 +200,12 @@ def test_a_cold_start_leaves_the_decompression_its_core(monkeypatch, cpus, runna
     assert sources.replay_workers(None, sources.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable) == 0
 
 
+@pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
+def test_a_long_file_starts_workers_cold_on_every_idle_core(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(sources, "workers_warm", lambda: False)
+    assert sources.replay_workers(None, sources.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
+
+
 def test_a_replay_of_one_scan_or_with_workers_set_asks_no_load():
     assert sources.replay_workers(None, 1, cpus=8, runnable=1) == 0
     assert sources.replay_workers(3, 100, cpus=2, runnable=40) == 3

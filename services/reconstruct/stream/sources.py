@@ -193,6 +193,9 @@ def replay_mcap(
 #: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
 #: ready.
 COLD_START_SCANS = 50
+#: Scans a replay must hold to start them on the core its decompression takes: the fork server's start then
+#: slows the reading until a worker is ready, which a worker repays only over a long file.
+COLD_START_SHARED_SCANS = 500
 
 
 def replay_workers(
@@ -204,11 +207,11 @@ def replay_workers(
     None for a file of one scan, whose final can overlap nothing.
 
     In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans,
-    and one core fewer: the fork server's start (its imports, its kernels) takes a core's worth of CPU
-    for seconds, and until a worker is ready the caller estimates every final itself while the file is
-    decompressed ahead on the idle cores (:func:`decompress_threads`).  Where that leaves no core (two: the
-    reading's and the decompression's), the finals stay in the caller: a worker would be ready only after
-    competing for the decompression's core for much of the replay, and then share it.
+    and one core fewer below :data:`COLD_START_SHARED_SCANS`: the fork server's start (its imports, its
+    kernels) takes a core for seconds, and until a worker is ready the caller estimates every final itself
+    while the file is decompressed ahead on the idle cores (:func:`decompress_threads`).  On two cores (the
+    reading's and the decompression's) the finals of such a file stay in the caller: a worker would be ready
+    only after competing with the decompression for much of the replay, and then share its core.
     """
     if scans is not None and scans < 2:
         return 0
@@ -216,11 +219,12 @@ def replay_workers(
         return configured
     n = cpus if cpus is not None else (os.cpu_count() or 1)
     busy = runnable if runnable is not None else runnable_tasks()
-    if workers_warm():
-        return max(0, min(auto_workers(n), n - busy))
-    if scans is None or scans < COLD_START_SCANS:
-        return 0
-    return max(0, min(auto_workers(n), n - busy - 1))
+    if not workers_warm():
+        if scans is None or scans < COLD_START_SCANS:
+            return 0
+        if scans < COLD_START_SHARED_SCANS:
+            busy += 1  # the decompression's core
+    return max(0, min(auto_workers(n), n - busy))
 
 
 def scans_in(rec: Recording) -> int | None:
