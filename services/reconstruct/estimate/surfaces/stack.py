@@ -210,4 +210,4 @@ def two_targets(profile: StackProfile, apart: np.ndarray, sigmas: float) -> tupl
 
 def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
     """Each capsule's position along the stack (the rotation axis), m."""
-    return np.asarray(geometry.capsules_in_array_frame()[:, 0], dtype=np.float64)
+    return np.array(geometry.capsule_x, dtype=np.float64)  # (capsules_in_array_frame's first column)
