@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import leastsq
 
 from lelsonar.reconstruct.estimate.corner.model import ECHO_EDGE
 from lelsonar.reconstruct.estimate.corner.solver import joint_residuals_of, labelled_order
@@ -167,21 +167,36 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
     start = rows(x0)
     if start.size <= x0.size or not np.all(np.isfinite(start)):
         return None  # fewer rows than unknowns, or a wall's σ or a start not finite
-    fit = least_squares(rows, x0, jac=forward_differences, method="lm", x_scale=np.tile([1e-2, 1e-2, 1e-3], len(walls)))
-    if not fit.success or not np.all(np.isfinite(fit.x)):
+    # MINPACK's lmder as least_squares(method="lm") calls it (its tolerances, evaluations and diag = 1/x_scale),
+    # without the wrapper's bookkeeping.
+    n_par = x0.size
+    x, _, info, _, status = leastsq(
+        rows,
+        x0,
+        Dfun=forward_differences,
+        full_output=True,
+        ftol=1e-8,
+        xtol=1e-8,
+        gtol=1e-8,
+        maxfev=100 * n_par,
+        factor=100.0,
+        diag=1 / np.tile([1e-2, 1e-2, 1e-3], len(walls)),
+    )
+    if status not in (1, 2, 3, 4) or not np.all(np.isfinite(x)):
         return None
-    jac = np.asarray(fit.jac)
+    jac = forward_differences(x)
     jtj = jac.T @ jac
     if np.linalg.cond(jtj) > 1e12:
         return None
-    dof = max(fit.fun.size - x0.size, 1)
-    chi2 = float(fit.fun @ fit.fun) / dof
+    fun = info["fvec"]
+    dof = max(fun.size - n_par, 1)
+    chi2 = float(fun @ fun) / dof
     cov = np.linalg.inv(jtj) * max(1.0, chi2)
     return [
         JointWall(
-            float(fit.x[3 * k]),
-            float(fit.x[3 * k + 1]),
-            float(fit.x[3 * k + 2]),
+            float(x[3 * k]),
+            float(x[3 * k + 1]),
+            float(x[3 * k + 2]),
             cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3],
             k,
             cov,
