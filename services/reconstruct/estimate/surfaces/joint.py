@@ -131,25 +131,30 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
     def wall(x: np.ndarray, k: int) -> tuple[np.ndarray, float]:
         return _normal(x[3 * k], x[3 * k + 1]), float(x[3 * k + 2])
 
-    def block(x: np.ndarray, j: int) -> np.ndarray:
+    def block(ws: list[tuple[np.ndarray, float]], x: np.ndarray, j: int) -> np.ndarray:
+        """Block ``j``'s rows at ``x``, whose walls (normal, offset) are ``ws``."""
         if j < n_walls:
-            n, h = wall(x, j)
+            n, h = ws[j]
             return (positions[j] @ n + ranges[j] - h) / walls[j].sigma  # mirror_residuals
         if j < n_walls + len(corners):
             c = corners[j - n_walls]
-            (na, ha), (nb, hb) = wall(x, c.walls[0]), wall(x, c.walls[1])
+            (na, ha), (nb, hb) = ws[c.walls[0]], ws[c.walls[1]]
             return joint_residuals_of(*corner_rows[j - n_walls], na, ha, nb, hb) / c.sigma  # joint_residuals
         return np.array([(x[3 * k] - b) / se for k, (b, se) in enumerate(bearings)])
 
-    last: list[tuple[bytes, np.ndarray]] = []
+    last: list[tuple[bytes, np.ndarray, list[tuple[np.ndarray, float]]]] = []
+
+    def evaluate(x: np.ndarray) -> tuple[np.ndarray, list[tuple[np.ndarray, float]]]:
+        ws = [wall(x, k) for k in range(n_walls)]
+        f = np.concatenate([block(ws, x, j) for j in range(len(sizes))])
+        last[:] = [(x.tobytes(), f.copy(), ws)]
+        return f, ws
 
     def rows(x: np.ndarray) -> np.ndarray:
-        f = np.concatenate([block(x, j) for j in range(len(sizes))])
-        last[:] = [(x.tobytes(), f.copy())]
-        return f
+        return evaluate(x)[0]
 
     def forward_differences(x: np.ndarray) -> np.ndarray:
-        f0 = last[0][1] if last and last[0][0] == x.tobytes() else rows(x)
+        f0, ws = (last[0][1], last[0][2]) if last and last[0][0] == x.tobytes() else evaluate(x)
         sign = (x >= 0).astype(float) * 2 - 1
         h = _REL_STEP * sign * np.maximum(1.0, np.abs(x))
         out = np.empty((x.size, f0.size))
@@ -157,9 +162,11 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
             x1 = np.copy(x)
             x1[i] = x[i] + h[i]
             dx = (x[i] + h[i]) - x[i]
+            ws1 = list(ws)
+            ws1[i // 3] = wall(x1, i // 3)
             df = f0 - f0
             for j in moved[i // 3]:
-                df[bounds[j] : bounds[j + 1]] = block(x1, j) - f0[bounds[j] : bounds[j + 1]]
+                df[bounds[j] : bounds[j + 1]] = block(ws1, x1, j) - f0[bounds[j] : bounds[j + 1]]
             out[i] = df / dx
         return out.T
 
