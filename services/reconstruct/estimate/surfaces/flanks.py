@@ -65,13 +65,23 @@ def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndar
         sxx = np.bincount(pos, weights=(x - mx[pos]) ** 2, minlength=k)
         sxd = np.bincount(pos, weights=(x - mx[pos]) * (d - md[pos]), minlength=k)
         slopes = np.where((n >= max(min_readings, 2)) & (sxx > 0), sxd / sxx, np.nan)
-        resid = d - md[pos] - np.nan_to_num(slopes[pos]) * (x - mx[pos])
+        resid = d - md[pos] - _nan_to_num(slopes[pos]) * (x - mx[pos])
     dof = float(np.sum(np.maximum(n - 2, 0)))
     if not dof > 0:
         return slopes, np.full(k, np.nan), sxx
     noise = math.sqrt(float(np.sum(np.where(n[pos] > 2, resid * resid, 0.0))) / dof)
     with np.errstate(divide="ignore"):
         return slopes, np.where(np.isfinite(slopes), noise / np.sqrt(sxx), np.nan), sxx
+
+
+#: The largest finite float64: where ``np.nan_to_num`` puts +inf.
+_FMAX = float(np.finfo(np.float64).max)
+
+
+def _nan_to_num(v: np.ndarray) -> np.ndarray:
+    """``np.nan_to_num`` of a float64 array (NaN to 0, ±inf to ±the largest float), the same numbers without its
+    dtype checks."""
+    return np.where(np.isnan(v), 0.0, np.where(np.isinf(v), np.copysign(_FMAX, v), v))
 
 
 def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
