@@ -92,20 +92,20 @@ def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
     ``min_steps`` slopes in it and twice that left after it.
     """
     finite = np.isfinite(z)
-    # (Python numbers for the loop: the same values, without a NumPy scalar per step.)
-    zs = np.cumsum(np.where(finite, z, 0.0)).tolist()
+    zs = np.cumsum(np.where(finite, z, 0.0))
     counts = np.cumsum(finite)
-    ns, left, ok = counts.tolist(), (counts[-1] - counts).tolist(), finite.tolist()
-    best, length = 0.0, 0
-    for b in range(z.size):
-        if ns[b] < min_steps or not ok[b]:
-            continue
-        if left[b] < 2 * min_steps:
-            break
-        t = abs(zs[b]) / math.sqrt(float(ns[b]))
-        if t > best:
-            best, length = t, b + 1
-    return length if best > sigmas else 0
+    # The runs that end at a step with a slope, at least min_steps of them, up to the first that leaves fewer
+    # than twice that after it.
+    ends = finite & (counts >= min_steps)
+    short = np.flatnonzero(ends & (counts[-1] - counts < 2 * min_steps))
+    if short.size:
+        ends[short[0] :] = False
+    at = np.flatnonzero(ends)
+    if not at.size:
+        return 0
+    t = np.abs(zs[at]) / np.sqrt(counts[at].astype(np.float64))
+    k = int(np.argmax(t))  # the first of the largest
+    return int(at[k]) + 1 if t[k] > 0.0 and t[k] > sigmas else 0
 
 
 def split_flanks(
