@@ -44,7 +44,10 @@ def exercise_kernels() -> None:
     (which would otherwise delay the first scan's samples).
     The service's own log is held back meanwhile: these scans are not the user's.
     """
+    import numpy as np
+
     from lelsonar.acquire.simulated import record_scan
+    from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, piston_lm
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.service import ReconstructionService
     from lelsonar.reconstruct.stream.sources import replay_mcap
@@ -57,6 +60,9 @@ def exercise_kernels() -> None:
             record_scan(simulate_scan(preset("paper-test1"), seed=0), path, default_energy_model())
             for provisional in (False, True):
                 replay_mcap(path, ReconstructionService(ReconstructConfig(provisional=provisional)))
+        # A fan sweep's beam-pattern fits run only where a wall lies past the sweep's end, which no L scan has.
+        g = np.linspace(-0.3, 0.3, 13)
+        piston_lm(Profiles.pack([(g, -7.0 * g * g)]), np.zeros(1), np.full(1, 5.3), free_ka=True)
     finally:
         logging.disable(logging.NOTSET)
 

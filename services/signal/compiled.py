@@ -69,6 +69,7 @@ KERNEL_MODULES = (
     "lelsonar.reconstruct.estimate.quality",
     "lelsonar.reconstruct.estimate.robust",
     "lelsonar.reconstruct.estimate.split",
+    "lelsonar.reconstruct.estimate.surfaces.piston",
     "lelsonar.reconstruct.estimate.surfaces.regions",
     "lelsonar.reconstruct.stream.candidates",
     "lelsonar.reconstruct.stream.fastwire",

@@ -17,6 +17,9 @@ and bends its flank where they meet).  Two measurements remain, each with its ow
 A region whose amplitude hands over from one target to another at one range (a box's face and its own edge)
 holds one flank of each: :func:`split_jump` cuts it there.
 
+The piston fits themselves are :func:`~.piston.piston_lm`'s: every profile of a sweep's planes, or of one
+region and its capsules, in one compiled Levenberg–Marquardt call.
+
 Pure functions: no I/O, no state.
 """
 
@@ -26,23 +29,24 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import special
-from scipy.optimize import least_squares
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, step_table, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, piston_lm
 from lelsonar.reconstruct.estimate.surfaces.regions import subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
-from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
+from lelsonar.signal.directivity import PISTON_FIRST_NULL
 
 __all__ = [
     "FLANK_SOURCE",
     "SweepBeam",
     "bearing_from_flank",
+    "flank_bearings",
     "flank_measured",
     "piston_fit",
+    "piston_fits",
     "range_bearing",
     "split_jump",
     "sweep_beam",
@@ -54,8 +58,6 @@ FLANK_SOURCE = "beam flank"
 MIN_PROFILE_STEPS = 8
 #: Fewest steps with an amplitude a flank needs (two parameters, and their residuals).
 MIN_FLANK_STEPS = 4
-#: Fewest second differences a robust noise estimate takes.
-MIN_NOISE_DIFFERENCES = 5
 #: How far under its peak a profile is fitted, in log amplitude: 20 dB, clear of the first null and sidelobe.
 MAIN_LOBE_TOP = math.log(10.0)
 #: A profile's residual σ over its amplitude noise beyond which the piston does not describe the beam.
@@ -86,38 +88,61 @@ def _log_profile(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[np.ndarray, 
     return g[order], la[order]
 
 
-def _log_piston(u: np.ndarray, ka: float) -> np.ndarray:
-    """``log D(u)²`` of a piston, ``-inf`` at its nulls."""
-    with np.errstate(divide="ignore"):
-        return 2.0 * np.log(np.abs(piston_directivity(u, ka)))
+def _main_lobe_top(g: np.ndarray, la: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A profile's steps within 20 dB of its peak (:data:`MAIN_LOBE_TOP`): a strong near echo stays over the
+    receiver's threshold into the nulls and the first sidelobe (35 dB down, two-way), where no smooth lobe
+    describes it."""
+    if not g.size:
+        return g, la
+    top = la >= float(la.max()) - MAIN_LOBE_TOP
+    return g[top], la[top]
 
 
-def _log_piston_slopes(u: np.ndarray, ka: float) -> tuple[np.ndarray, np.ndarray]:
-    """``∂ log D(u)² / ∂u`` and ``/ ∂ka``: with ``x = ka·sin u``, ``d log(2J1(x)/x)/dx = J0(x)/J1(x) − 2/x``
-    (``−x/4`` as ``x → 0``)."""
-    x = ka * np.sin(u)
-    small = np.abs(x) < 1e-6
-    safe = np.where(small, 1.0, x)
+def piston_fits(
+    profiles: list[tuple[np.ndarray, np.ndarray]], bearing: np.ndarray, ka0: np.ndarray
+) -> list[tuple[float, float] | None]:
+    """:func:`piston_fit` of several profiles, fitted together (:func:`~.piston.piston_lm`).
+
+    Parameters
+    ----------
+    profiles : list of (γ, log A)
+        Each profile's unclipped steps in γ order (``_log_profile``).
+    bearing, ka0 : (R,) arrays
+        Each profile's start.
+
+    Returns
+    -------
+    Per profile, ``(ka, σ)`` or None, as :func:`piston_fit` gives them.
+    """
+    out: list[tuple[float, float] | None] = [None] * len(profiles)
+    tops = [_main_lobe_top(*profile) for profile in profiles]
+    rows = [i for i, (g, _la) in enumerate(tops) if g.size >= MIN_PROFILE_STEPS and ka0[i] > 0]
+    if not rows:
+        return out
+    p = Profiles.pack([tops[i] for i in rows])
+    fit = piston_lm(
+        p, np.asarray(bearing, dtype=np.float64)[rows], np.asarray(ka0, dtype=np.float64)[rows], free_ka=True
+    )
+    inside = ~np.any(p.w & (fit.ka[:, None] * np.abs(np.sin(p.g - fit.bearing[:, None])) >= PISTON_FIRST_NULL), axis=1)
+    s2 = fit.cost / np.maximum(p.n - 3, 1)
+    noise = p.noise()
+    with np.errstate(invalid="ignore"):
+        misfit = np.isfinite(noise) & (noise > 0) & (np.sqrt(s2) > MODEL_MISFIT * noise)
+    # ka's variance: the last diagonal entry of (JᵀJ)⁻¹, its cofactor over its determinant, at the residuals' scale.
+    a = np.einsum("rki,rkj->rij", fit.jacobian, fit.jacobian)
     with np.errstate(divide="ignore", invalid="ignore"):
-        dx = np.where(small, -x / 4.0, special.j0(safe) / special.j1(safe) - 2.0 / safe)
-    return 2.0 * dx * ka * np.cos(u), 2.0 * dx * np.sin(u)
-
-
-def _noise(la: np.ndarray) -> float:
-    """The log amplitudes' noise σ, robust, from second differences (variance 6 σ² for white noise); NaN from
-    fewer than :data:`MIN_NOISE_DIFFERENCES` of them (the median absolute deviation of a few is near 0 by
-    chance)."""
-    second = np.diff(la, 2)
-    if second.size < MIN_NOISE_DIFFERENCES:
-        return float("nan")
-    return 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+        var = s2 * (a[:, 0, 0] * a[:, 1, 1] - a[:, 0, 1] * a[:, 1, 0]) / np.linalg.det(a)
+    for j, i in enumerate(rows):
+        if fit.ok[j] and fit.ka[j] > 0 and inside[j] and not misfit[j] and np.isfinite(var[j]):
+            out[i] = float(fit.ka[j]), math.sqrt(max(float(var[j]), 0.0))
+    return out
 
 
 def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: float) -> tuple[float, float] | None:
     """``ka`` of the piston whose two-way pattern ``A = P·D(γ − β)²`` fits one whole echo profile, and its σ.
 
-    Least squares in ``log A`` over ``(log P, β, ka)``, from the region's bearing and a first ``ka``, over the
-    steps within 20 dB of the region's peak (:data:`MAIN_LOBE_TOP`).
+    Least squares in ``log A`` over ``(log P, β, ka)`` (:func:`piston_lm`), from the region's bearing and a
+    first ``ka``, over the steps within 20 dB of the region's peak (:data:`MAIN_LOBE_TOP`).
 
     Parameters
     ----------
@@ -133,37 +158,7 @@ def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: fl
     (ka, σ), or None when too few steps have an amplitude, the fit leaves the main lobe, or its residuals
     exceed the amplitudes' own noise by more than :data:`MODEL_MISFIT` (no piston).
     """
-    g, la = _log_profile(gamma, amplitude)
-    # The main lobe's top, within 20 dB of the peak: a strong near echo stays over the receiver's threshold
-    # into the nulls and the first sidelobe (35 dB down, two-way), where no smooth lobe describes it.
-    top = la >= float(la.max()) - MAIN_LOBE_TOP if g.size else np.zeros(0, dtype=bool)
-    g, la = g[top], la[top]
-    if g.size < MIN_PROFILE_STEPS or not ka0 > 0:
-        return None
-
-    def res(p: np.ndarray) -> np.ndarray:
-        return p[0] + _log_piston(g - p[1], p[2]) - la
-
-    def jacobian(p: np.ndarray) -> np.ndarray:
-        du, dka = _log_piston_slopes(g - p[1], p[2])
-        return np.stack([np.ones_like(g), -du, dka], axis=1)
-
-    start = np.array([float(la.max()), bearing, ka0])
-    if not np.all(np.isfinite(res(start))):
-        return None
-    fit = least_squares(res, start, jac=jacobian, method="lm")
-    if not fit.success or not np.all(np.isfinite(fit.fun)):
-        return None
-    c, b, ka = (float(v) for v in fit.x)
-    if not ka > 0 or np.any(ka * np.abs(np.sin(g - b)) >= PISTON_FIRST_NULL):
-        return None
-    dof = g.size - 3
-    s2 = float(fit.fun @ fit.fun) / dof
-    noise = _noise(la)
-    if math.isfinite(noise) and noise > 0 and math.sqrt(s2) > MODEL_MISFIT * noise:
-        return None
-    cov = s2 * np.linalg.pinv(fit.jac.T @ fit.jac)
-    return ka, math.sqrt(max(float(cov[2, 2]), 0.0))
+    return piston_fits([_log_profile(gamma, amplitude)], np.array([bearing]), np.array([ka0]))[0]
 
 
 def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarray, ka0: float) -> SweepBeam | None:
@@ -172,10 +167,11 @@ def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarra
     A mirror's echo follows the beam alone; a corner's or an edge's adds its own change with the angle, so only
     planes are passed.
 
-    Each region's steps' median profile gives its ``ka``; each capsule's own profile gives one too.  Another echo
-    summed into the amplitude window (a wall's double bounce with the floor, a few mm deeper) bends a profile
-    smoothly, which its residuals do not show, and it adds with a phase that differs from capsule to capsule
-    (their paths differ by wavelengths): the capsules' ``ka`` spread by as much as the summing bends them.
+    Each region's steps' median profile gives its ``ka``; each capsule's own profile gives one too, started
+    from its region's.  Another echo summed into the amplitude window (a wall's double bounce with the floor,
+    a few mm deeper) bends a profile smoothly, which its residuals do not show, and it adds with a phase that
+    differs from capsule to capsule (their paths differ by wavelengths): the capsules' ``ka`` spread by as much
+    as the summing bends them.  The regions are fitted together (:func:`piston_fits`), then their capsules.
 
     Parameters
     ----------
@@ -194,30 +190,139 @@ def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarra
     region's capsules, not shrunk by their count: a bent profile is biased, not noisy), the regions' spread and
     the median of their own fits' σ.  None when no region gives one.
     """
-    kas, ses, capsules = [], [], []
-    for m in measured:
-        if m.bearing_source not in ("region centre", "amplitude peak"):
-            continue
-        g = gamma[m.region.steps]
-        if amplitude_jump(g, m.step_amplitude) is not None:
-            continue
-        fit = piston_fit(g, m.step_amplitude, m.bearing, ka0)
-        if fit is None:
-            continue
-        kas.append(fit[0])
-        ses.append(fit[1])
-        table = step_table(m.region, amplitude)
-        for c in range(table.shape[1]):
-            own = piston_fit(g, table[:, c], m.bearing, fit[0])
-            if own is not None:
-                capsules.append(own[0])
+    regions = [
+        m
+        for m in measured
+        if m.bearing_source in ("region centre", "amplitude peak")
+        and amplitude_jump(gamma[m.region.steps], m.step_amplitude) is None
+    ]
+    if not regions:
+        return None
+    steps = [gamma[m.region.steps] for m in regions]
+    fits = piston_fits(
+        [_log_profile(g, m.step_amplitude) for g, m in zip(steps, regions, strict=True)],
+        np.array([m.bearing for m in regions]),
+        np.full(len(regions), ka0),
+    )
+    kas = [f[0] for f in fits if f is not None]
+    ses = [f[1] for f in fits if f is not None]
     if not kas:
         return None
+    own, starts = [], []
+    for g, m, f in zip(steps, regions, fits, strict=True):
+        if f is None:
+            continue
+        table = step_table(m.region, amplitude)
+        for c in range(table.shape[1]):
+            own.append(_log_profile(g, table[:, c]))
+            starts.append((m.bearing, f[0]))
+    start = np.array(starts).reshape(-1, 2)
+    capsules = [f[0] for f in piston_fits(own, start[:, 0], start[:, 1]) if f is not None]
     spread = max(
         float(np.std(kas, ddof=1)) if len(kas) >= 2 else 0.0,
         float(np.std(capsules, ddof=1)) if len(capsules) >= 2 else 0.0,
     )
     return SweepBeam(ka=float(np.median(kas)), ka_stderr=max(spread, float(np.median(ses))), n_regions=len(kas))
+
+
+def flank_bearings(
+    profiles: list[tuple[np.ndarray, np.ndarray]],
+    beam: SweepBeam,
+    *,
+    before: float,
+    after: float,
+    model_check: list[bool],
+    bearing_only: list[bool],
+) -> list[tuple[float, float] | None]:
+    """:func:`bearing_from_flank` of several profiles of one region, fitted together (:func:`~.piston.piston_lm`):
+    each profile's flank, then the ``ka ± σ`` refits of those that want a σ, started at their β.
+
+    Parameters
+    ----------
+    profiles : list of (γ, log A)
+        Each profile's unclipped steps in γ order (``_log_profile``).
+    beam : SweepBeam
+    before, after : float
+        As :func:`bearing_from_flank`'s.
+    model_check, bearing_only : list of bool
+        Per profile, as :func:`bearing_from_flank`'s.
+
+    Returns
+    -------
+    Per profile, ``(β, σ)`` or None, as :func:`bearing_from_flank` gives them.
+    """
+    out: list[tuple[float, float] | None] = [None] * len(profiles)
+    if not (before > 0 or after > 0):
+        return out
+    rows, starts = [], []
+    for i, (g, la) in enumerate(profiles):
+        if g.size < MIN_FLANK_STEPS:
+            continue
+        step = float(np.median(np.diff(g))) if g.size > 1 else 0.0
+        # Start on the side the amplitudes rise toward, just past that end.
+        rising_first = la[0] > la[-1]
+        if rising_first and before > 0:
+            starts.append(float(g[0]) - min(before, 5 * step))
+        elif not rising_first and after > 0:
+            starts.append(float(g[-1]) + min(after, 5 * step))
+        else:
+            continue
+        rows.append(i)
+    if not rows:
+        return out
+    p = Profiles.pack([profiles[i] for i in rows])
+    fit = piston_lm(p, np.array(starts), np.full(len(rows), beam.ka), free_ka=False)
+    b = fit.bearing
+    inside = ~np.any(p.w & (beam.ka * np.abs(np.sin(p.g - b[:, None])) >= PISTON_FIRST_NULL), axis=1)
+    s2 = fit.cost / np.maximum(p.n - 2, 1)
+    noise = p.noise()
+    wanted = []
+    for j, i in enumerate(rows):
+        g = profiles[i][0]
+        # On the half of the span by an end it may lie past, or past that end within the reach: the far half's
+        # end faded, so the peak is not there (a peak too near a cut end for the peak fit's samples on both
+        # sides still shapes the flank).
+        mid = 0.5 * float(g[0] + g[-1])
+        bj = float(b[j])
+        if not (fit.ok[j] and inside[j]):
+            continue
+        if not ((before > 0 and g[0] - before <= bj <= mid) or (after > 0 and mid <= bj <= g[-1] + after)):
+            continue
+        # Residuals beyond the amplitudes' own noise: no one piston's flank (another echo bends it), no bearing.
+        if model_check[i] and math.isfinite(noise[j]) and noise[j] > 0 and math.sqrt(s2[j]) > MODEL_MISFIT * noise[j]:
+            continue
+        if bearing_only[i]:
+            out[i] = bj, float("nan")
+            continue
+        n = int(p.n[j])
+        jac = fit.jacobian[j, :n]
+        resid = fit.residual[j, :n]
+        inv = np.linalg.pinv(jac.T @ jac)
+        se = math.sqrt(max(float(s2[j] * inv[1, 1]), 0.0))
+        # A step that is another target's (at the region's end, where two echoes at one range hand over) or that
+        # another echo bent pulls the flank as its residual alone does not show: the jackknife over the steps
+        # (each left out in turn) measures how far any one of them moves β.
+        # (Each left out to first order: the fit's change is (JᵀJ)⁻¹ J_k r_k / (1 − h_kk), h the hat matrix's.)
+        if n > MIN_FLANK_STEPS:
+            lever = np.einsum("ij,jk,ik->i", jac, inv, jac)
+            if np.all(lever < 1.0 - 1e-9):
+                moved_b = (jac @ inv)[:, 1] * resid / (1.0 - lever)
+                se = max(se, math.sqrt((n - 1) / n * float(np.sum((moved_b - moved_b.mean()) ** 2))))
+        wanted.append((i, j, bj, se))
+    if not wanted:
+        return out
+    # β's change with ka, over ka's σ (a secant over ±σ, the larger side): each wanted row refitted twice.
+    pick = [j for _i, j, _b, _se in wanted for _ in (0, 1)]
+    sub = p.rows(pick)
+    kas = np.tile([beam.ka - beam.ka_stderr, beam.ka + beam.ka_stderr], len(wanted))
+    other = piston_lm(sub, b[pick], kas, free_ka=False)
+    for w, (i, _j, bj, se) in enumerate(wanted):
+        pair = slice(2 * w, 2 * w + 2)
+        if not np.all(other.ok[pair]):
+            continue
+        moved = float(np.max(np.abs(other.bearing[pair] - bj)))
+        out[i] = bj, math.hypot(se, moved)
+    return out
 
 
 def bearing_from_flank(
@@ -231,11 +336,12 @@ def bearing_from_flank(
     bearing_only: bool = False,
 ) -> tuple[float, float] | None:
     """The bearing of an echo whose region shows one flank of its beam pattern: the piston ``A = P·D(γ − β)²``
-    with the sweep's ``ka``, fitted over ``(log P, β)`` in ``log A``.
+    with the sweep's ``ka``, fitted over ``(log P, β)`` in ``log A`` (:func:`piston_lm`).
 
     The flank's slope and its bend together place the peak: on a piston, the log amplitude falls faster the
     farther off the axis, so one flank's shape says how far off it lies.  The σ is the fit's (its residuals'
-    scale) and the change of β with ``ka`` over ``ka``'s own σ, added in quadrature.
+    scale, or a first-order jackknife over the steps where one step moves β more) and the change of β with
+    ``ka`` over ``ka``'s own σ, added in quadrature.
 
     Parameters
     ----------
@@ -258,73 +364,14 @@ def bearing_from_flank(
     lobe, or the residuals exceed the amplitudes' own noise by more than :data:`MODEL_MISFIT` (another echo
     bends the flank).
     """
-    g, la = _log_profile(gamma, amplitude)
-    if g.size < MIN_FLANK_STEPS or not (before > 0 or after > 0):
-        return None
-    step = float(np.median(np.diff(g))) if g.size > 1 else 0.0
-
-    def fit(ka: float, b0: float) -> tuple[float, float, np.ndarray, np.ndarray] | None:
-        def res(p: np.ndarray) -> np.ndarray:
-            return p[0] + _log_piston(g - p[1], ka) - la
-
-        def jacobian(p: np.ndarray) -> np.ndarray:
-            return np.stack([np.ones_like(g), -_log_piston_slopes(g - p[1], ka)[0]], axis=1)
-
-        start = np.array([float(la.max()), b0])
-        if not np.all(np.isfinite(res(start))):
-            return None
-        out = least_squares(res, start, jac=jacobian, method="lm")
-        if not out.success or not np.all(np.isfinite(out.fun)):
-            return None
-        return float(out.x[0]), float(out.x[1]), out.fun, out.jac
-
-    # Start on the side the amplitudes rise toward, just past that end.
-    rising_first = la[0] > la[-1]
-    if rising_first and before > 0:
-        b0 = float(g[0]) - min(before, 5 * step)
-    elif not rising_first and after > 0:
-        b0 = float(g[-1]) + min(after, 5 * step)
-    else:
-        return None
-    best = fit(beam.ka, b0)
-    if best is None:
-        return None
-    _, b, resid, jac = best
-    if np.any(beam.ka * np.abs(np.sin(g - b)) >= PISTON_FIRST_NULL):
-        return None
-    # On the half of the span by an end it may lie past, or past that end within the reach: the far half's end
-    # faded, so the peak is not there (a peak too near a cut end for the peak fit's samples on both sides
-    # still shapes the flank).
-    mid = 0.5 * float(g[0] + g[-1])
-    if not ((before > 0 and g[0] - before <= b <= mid) or (after > 0 and mid <= b <= g[-1] + after)):
-        return None
-    s2 = float(resid @ resid) / max(g.size - 2, 1)
-    # Residuals beyond the amplitudes' own noise: no one piston's flank (another echo bends it), no bearing.
-    noise = _noise(la)
-    if model_check and math.isfinite(noise) and noise > 0 and math.sqrt(s2) > MODEL_MISFIT * noise:
-        return None
-    if bearing_only:
-        return b, float("nan")
-    cov = s2 * np.linalg.pinv(jac.T @ jac)
-    se = math.sqrt(max(float(cov[1, 1]), 0.0))
-    # A step that is another target's (at the region's end, where two echoes at one range hand over) or that
-    # another echo bent pulls the flank as its residual alone does not show: the jackknife over the steps
-    # (each left out in turn) measures how far any one of them moves β.
-    # (Each left out to first order: the fit's change is (JᵀJ)⁻¹ J_k r_k / (1 − h_kk), h the hat matrix's.)
-    if g.size > MIN_FLANK_STEPS:
-        inv = np.linalg.pinv(jac.T @ jac)
-        lever = np.einsum("ij,jk,ik->i", jac, inv, jac)
-        if np.all(lever < 1.0 - 1e-9):
-            moved_b = (jac @ inv)[:, 1] * resid / (1.0 - lever)
-            se = max(se, math.sqrt((g.size - 1) / g.size * float(np.sum((moved_b - moved_b.mean()) ** 2))))
-    # β's change with ka, over ka's σ (a secant over ±σ, the larger side).
-    moved = 0.0
-    for sign in (-1.0, 1.0):
-        other = fit(beam.ka + sign * beam.ka_stderr, b)
-        if other is None:
-            return None
-        moved = max(moved, abs(other[1] - b))
-    return b, math.hypot(se, moved)
+    return flank_bearings(
+        [_log_profile(gamma, amplitude)],
+        beam,
+        before=before,
+        after=after,
+        model_check=[model_check],
+        bearing_only=[bearing_only],
+    )[0]
 
 
 def range_bearing(
@@ -433,20 +480,22 @@ def flank_measured(
     if beam is None or reach == (0.0, 0.0):
         return m
     g = gamma[m.region.steps]
-    flank = bearing_from_flank(g, m.step_amplitude, beam, before=reach[0], after=reach[1])
+    table = step_table(m.region, amplitude)
+    profiles = [_log_profile(g, m.step_amplitude)] + [_log_profile(g, table[:, c]) for c in range(table.shape[1])]
+    # The region's median profile, then each capsule's (their bearings only, for their spread).
+    n = table.shape[1]
+    out = flank_bearings(
+        profiles,
+        beam,
+        before=reach[0],
+        after=reach[1],
+        model_check=[True] + [False] * n,
+        bearing_only=[False] + [True] * n,
+    )
+    flank = out[0]
     if flank is None:
         return m
-    table = step_table(m.region, amplitude)
-    own = [
-        f[0]
-        for c in range(table.shape[1])
-        for f in [
-            bearing_from_flank(
-                g, table[:, c], beam, before=reach[0], after=reach[1], model_check=False, bearing_only=True
-            )
-        ]
-        if f is not None
-    ]
+    own = [f[0] for f in out[1:] if f is not None]
     spread = float(np.std(own, ddof=1)) if len(own) >= 2 else 0.0
     flank = (flank[0], math.hypot(flank[1], spread))
     bearing, sb = flank
