@@ -212,3 +212,47 @@ def prefetch(typingctx, buf, at):
         return context.get_dummy_value()
 
     return types.none(buf, at), codegen
+
+
+@intrinsic
+def array_at(typingctx, address, shape, dtype):
+    """A C-contiguous array of ``shape`` (an int, or a tuple of ints) and ``dtype`` (a NumPy scalar type, e.g.
+    ``np.float64``) over the memory at ``address`` (an int: an array's ``.ctypes.data``), which it does not keep
+    alive: the caller holds that array for as long as the view is used, and ``shape`` within it.
+
+    An array handed to a kernel as its address costs the call an integer's conversion instead of an array's
+    (its type looked up and its buffer unpacked), which a kernel handed a dozen arrays a call pays a dozen times."""
+    if not isinstance(address, types.Integer) or not isinstance(dtype, types.NumberClass):
+        return None
+    if isinstance(shape, types.Integer):
+        ndim = 1
+    elif isinstance(shape, types.UniTuple) and isinstance(shape.dtype, types.Integer):
+        ndim = shape.count
+    else:
+        return None
+    array_type = types.Array(dtype.instance_type, ndim, "C")
+
+    def codegen(context, builder, sig, args):
+        if isinstance(sig.args[1], types.Integer):
+            dims = [context.cast(builder, args[1], sig.args[1], types.intp)]
+        else:
+            dims = [
+                context.cast(builder, v, sig.args[1].dtype, types.intp) for v in cgutils.unpack_tuple(builder, args[1])
+            ]
+        out = make_array(array_type)(context, builder)
+        itemsize = context.get_constant(types.intp, context.get_abi_sizeof(context.get_data_type(array_type.dtype)))
+        strides = [itemsize]
+        for d in reversed(dims[1:]):
+            strides.insert(0, builder.mul(strides[0], d))
+        pointer = context.cast(builder, args[0], sig.args[0], types.intp)
+        populate_array(
+            out,
+            data=builder.inttoptr(pointer, out.data.type),
+            shape=cgutils.pack_array(builder, dims),
+            strides=cgutils.pack_array(builder, strides),
+            itemsize=itemsize,
+            meminfo=None,
+        )
+        return out._getvalue()
+
+    return array_type(address, shape, dtype), codegen

@@ -48,7 +48,7 @@ import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
-from lelsonar.reconstruct.stream.fastwire import GROW, place_wire
+from lelsonar.reconstruct.stream.fastwire import GROW, place_wire, wire_arrays
 from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, StepView, stacked_waveforms
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
@@ -129,7 +129,7 @@ class ScanAssembly(ScanArrays):
         recovered = origin == "recovered"
         for _ in range(2):  # a second time once the arrays reach its step (GROW)
             # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-            status, carried, step = place_wire(payload, at, step, time_ns, recovered, *wire)
+            status, carried, step = place_wire(payload, at, step, time_ns, recovered, wire[0])
             if status != GROW:
                 break
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
@@ -144,9 +144,10 @@ class ScanAssembly(ScanArrays):
         return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
 
     def _wire_for(self, limits: codec.DecodeLimits) -> tuple | None:
-        """The arguments of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under
-        ``limits`` (its steps' bound, the layout and the scan's arrays); kept while the scan's limits and arrays
-        stay (a call hands over one tuple); None: no layout yet, or one beyond ``limits``."""
+        """The argument of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under
+        ``limits`` (:func:`~lelsonar.reconstruct.stream.fastwire.wire_arrays` of its steps' bound, the layout and
+        the scan's arrays) and those arrays, which it points into; kept while the scan's limits and arrays stay;
+        None: no layout yet, or one beyond ``limits``."""
         known = self._layout
         if known is None:
             return None
@@ -158,7 +159,8 @@ class ScanAssembly(ScanArrays):
             bound = min(self._steps, limits.max_steps)
         else:
             return None
-        wire = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
+        arrays = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
+        wire = (wire_arrays(*arrays), arrays)  # (the arrays kept with their addresses)
         if cleared:
             self._wire = wire
         return wire
