@@ -409,12 +409,33 @@ def wire_arrays(
         (candidate_windows, np.float32, (rows, k, kept)),
     )
     for i, (array, dtype, shape) in enumerate(expected):
-        if array.dtype != dtype or array.shape != shape or not (array.flags.c_contiguous and array.flags.writeable):
+        flags = array.flags
+        if array.dtype != dtype or array.shape != shape or not (flags.c_contiguous and flags.writeable):
             raise InternalError(
-                f"place_wire's array {i} is {array.dtype}{array.shape} (contiguous {array.flags.c_contiguous}, "
-                f"writeable {array.flags.writeable}); it reads {np.dtype(dtype)}{shape}, contiguous and writeable"
+                f"place_wire's array {i} is {array.dtype}{array.shape} (contiguous {flags.c_contiguous}, writeable "
+                f"{flags.writeable}); it reads {np.dtype(dtype)}{shape}, contiguous and writeable"
             )
-    return np.array([bound, n, k, rows, width, kept, *(a.ctypes.data for a, _, _ in expected)], np.int64)
+    out = np.empty(_ADDRESSES + len(expected), np.int64)
+    out[:_ADDRESSES] = bound, n, k, rows, width, kept
+    _addresses(out, *(a for a, _, _ in expected))
+    return out
+
+
+@kernel
+def _addresses(out, ids, values, starts, scan, per_capsule, per_step, acquired_ns, received, recovered, timing, candidates):
+    """Where each array's data lies, into ``out[_ADDRESSES:]`` in this order (one call, where ``.ctypes.data`` costs
+    a Python object an array)."""
+    out[_ADDRESSES] = ids.ctypes.data
+    out[_ADDRESSES + 1] = values.ctypes.data
+    out[_ADDRESSES + 2] = starts.ctypes.data
+    out[_ADDRESSES + 3] = scan.ctypes.data
+    out[_ADDRESSES + 4] = per_capsule.ctypes.data
+    out[_ADDRESSES + 5] = per_step.ctypes.data
+    out[_ADDRESSES + 6] = acquired_ns.ctypes.data
+    out[_ADDRESSES + 7] = received.ctypes.data
+    out[_ADDRESSES + 8] = recovered.ctypes.data
+    out[_ADDRESSES + 9] = timing.ctypes.data
+    out[_ADDRESSES + 10] = candidates.ctypes.data
 
 
 @kernel
