@@ -142,7 +142,8 @@ class ScanAssembly(ScanArrays):
         0, as the parser gives a field absent), the rest of it and its body from there; its body's checks under
         ``limits`` are made in the pass that places it (:func:`~lelsonar.reconstruct.stream.step_features.
         place_rows`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
-        clocks: the contract's checks of them passed).  Returns the step placed, or -1: anything this does not
+        clocks: the contract's checks of them passed), of this scan or, for its first, of the scanner's previous
+        one (:meth:`expect_layout`).  Returns the step placed, or -1: anything this does not
         clear — no layout yet, a payload not plainly encoded on it, a refused check, a duplicate or a step
         outside the schedule — is left with nothing written: the caller then parses the payload and places the
         message (:meth:`add`), so that the decoding refuses before the scan does.
@@ -154,7 +155,7 @@ class ScanAssembly(ScanArrays):
         """
         known = self._layout
         presumed = known is None
-        if presumed:  # the scan's first sample: on the scanner's previous layout, or parsed
+        if known is None:  # the scan's first sample: on the scanner's previous layout, or parsed
             known = self._presume()
             if known is None:
                 return -1

@@ -422,7 +422,9 @@ def wire_arrays(
 
 
 @kernel
-def _addresses(out, ids, values, starts, scan, per_capsule, per_step, acquired_ns, received, recovered, timing, candidates):
+def _addresses(
+    out, ids, values, starts, scan, per_capsule, per_step, acquired_ns, received, recovered, timing, candidates
+):
     """Where each array's data lies, into ``out[_ADDRESSES:]`` in this order (one call, where ``.ctypes.data`` costs
     a Python object an array)."""
     out[_ADDRESSES] = ids.ctypes.data
