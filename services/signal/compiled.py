@@ -256,3 +256,17 @@ def array_at(typingctx, address, shape, dtype):
         return out._getvalue()
 
     return array_type(address, shape, dtype), codegen
+
+
+@intrinsic
+def float32_from_bits(typingctx, pattern):
+    """The float32 number whose bit pattern is the low 32 bits of the integer ``pattern``, as a float: the bits
+    reinterpreted (one instruction, where building the number from its exponent and mantissa takes a libm call)."""
+    if not isinstance(pattern, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        bits = context.cast(builder, args[0], sig.args[0], types.uint32)
+        return builder.fpext(builder.bitcast(bits, ir.FloatType()), ir.DoubleType())
+
+    return types.float64(pattern), codegen
