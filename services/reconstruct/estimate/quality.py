@@ -12,12 +12,13 @@ through echoes of more than one surface.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.estimate.results import PlaneFit, PlaneResult
+from lelsonar.reconstruct.estimate.results import FailureReason, FitFailure, PlaneFit, PlaneResult
 from lelsonar.signal.compiled import kernel
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "unexplained_finding",
     "cross_check",
     "recovery_finding",
+    "published_verdicts",
     "GOOD",
     "DEGRADED",
     "UNRELIABLE",
@@ -328,3 +330,49 @@ def recovery_finding(
             "timings disagree",
         ),
     )
+
+
+def published_verdicts(
+    record: tuple[PlaneResult, ...],
+    compared: tuple[tuple[str, tuple[PlaneResult, ...]], ...],
+    *,
+    gamma: np.ndarray | None = None,
+    findings: tuple[tuple[str, str], ...] = (),
+    without: Mapping[str, PlaneResult] | None = None,
+) -> tuple[PlaneResult, ...]:
+    """Every published plane's verdict, applied here and nowhere else after the estimators.
+
+    - A plane of record no estimator judged (a provisional, incremental one) gets its own verdict
+      from the steps so far ``gamma`` (:func:`~lelsonar.reconstruct.estimate.quality.assess_plane`).
+    - Where echoes were recovered after the board's noise triggers (``without``: the same walls fitted
+      on the board's own readings), a plane of record they turn away from it is unreliable.
+    - The scan's writer findings lower every plane to their level and name themselves.
+    - A compared method's plane is checked against the plane of record of its wall (after the
+      recovered echoes' check): one that disagrees with a good plane of record, or that no good plane
+      of record can vouch for, is degraded (it may have locked onto the corner's echoes, which its own
+      residuals cannot show); one that failed is reported under its method's name, never dropped.
+
+    Returns the planes of record, then each compared method's, in order.
+    """
+    if gamma is not None:
+        record = tuple(assess_plane(pl, gamma) if isinstance(pl, PlaneFit) and not pl.quality else pl for pl in record)
+    by_label = {pl.label: pl for pl in record}
+    if without is not None:
+        by_label = {
+            label: add_findings(pl, recovery_finding(pl, without[label]) if label in without else ())
+            for label, pl in by_label.items()
+        }
+    planes: list[PlaneResult] = [add_findings(pl, findings) for pl in by_label.values()]
+    for method, pls in compared:
+        for pl in pls:
+            if isinstance(pl, PlaneFit):
+                reference = by_label.get(pl.label)
+                if reference is None:  # (every method labels its planes a and b: not expected)
+                    reference = FitFailure(FailureReason.TOO_FEW_POINTS, "no plane of record", pl.label)
+                checked: PlaneResult = cross_check(pl, reference)
+            elif pl.detail.startswith(f"{method}: "):
+                checked = pl  # (the estimator named itself)
+            else:
+                checked = FitFailure(pl.reason, f"{method}: {pl.detail}", pl.label, pl.n_points)
+            planes.append(add_findings(checked, findings))
+    return tuple(planes)

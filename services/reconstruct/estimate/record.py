@@ -14,9 +14,9 @@ Final (``options.provisional`` False), from scratch, on the whole scan:
    eq. 10-12, the split, the corrected points, eq. 9, and each plane's own verdict);
 2. where echoes after the board's noise triggers were recovered, the method of record runs once more
    on the board's own readings, and a plane the recovered echoes turn away from that fit is unreliable;
-3. the verdict (:func:`_verdicts`): the scan's writer findings on every plane, the recovered echoes'
-   check on the planes of record, and each compared plane cross-checked against the plane of record
-   of its wall;
+3. the verdict (:func:`~lelsonar.reconstruct.estimate.quality.published_verdicts`): the scan's writer
+   findings on every plane, the recovered echoes' check on the planes of record, and each compared plane
+   cross-checked against the plane of record of its wall;
 4. every surface of the sweep, beside the L's planes: the planes, concave corners and convex edges of
    its regions of constant depth (:func:`~lelsonar.reconstruct.estimate.surfaces.extract_surfaces`, on
    the same repaired ranges of record and their echoes' amplitudes), the writer findings on each
@@ -42,7 +42,7 @@ from lelsonar.reconstruct.estimate.correct import AXIS_Y, AXIS_Z
 from lelsonar.reconstruct.estimate.incremental import ExactFit, IncrementalPlane
 from lelsonar.reconstruct.estimate.options import FitOptions
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD, METHODS, corner_edge, reconstruct
-from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings, assess_plane, cross_check, recovery_finding
+from lelsonar.reconstruct.estimate.quality import DEGRADED, add_findings, published_verdicts
 from lelsonar.reconstruct.estimate.results import (
     EdgeLine,
     FailureReason,
@@ -419,7 +419,7 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
         for pl, data in zip(main.planes, (main.data_a, main.data_b), strict=True)
     )
     compared = tuple((method, results[method].planes) for method in options.compare_methods)
-    planes = _verdicts(record, compared, findings=findings, without=without)
+    planes = published_verdicts(record, compared, findings=findings, without=without)
     notes = tuple(text for _, text in scan.writer_problems)
     crit = int(steps[main.critical_step]) if main.critical_step is not None else None
     t = main.timings
@@ -541,7 +541,7 @@ def _provisional(scan: ScanInput, options: RecordOptions, p: ProvisionalState, f
     why = "provisional: its first fit waits for the samples the stream holds"
     p.plane_b = plane_b if plane_b is not None else FitFailure(FailureReason.DEGENERATE_GEOMETRY, why, "b", p.inc_b.n)
     p.steps_at_fit = len(steps)
-    p.plane_a, p.plane_b = _verdicts((p.plane_a, p.plane_b), (), gamma=np.asarray(scan.gamma))
+    p.plane_a, p.plane_b = published_verdicts((p.plane_a, p.plane_b), (), gamma=np.asarray(scan.gamma))
     fit_s = time.perf_counter() - t0
     return ScanEstimate(
         method=method,
@@ -567,49 +567,3 @@ def _plane_b(
     plane = p.inc_b.update(gamma, distance, new[new > p.critical], exact=not fits_wait)
     p.data_b = p.inc_b.last_data
     return plane
-
-
-def _verdicts(
-    record: tuple[PlaneResult, ...],
-    compared: tuple[tuple[str, tuple[PlaneResult, ...]], ...],
-    *,
-    gamma: np.ndarray | None = None,
-    findings: tuple[tuple[str, str], ...] = (),
-    without: Mapping[str, PlaneResult] | None = None,
-) -> tuple[PlaneResult, ...]:
-    """Every published plane's verdict, applied here and nowhere else after the estimators.
-
-    - A plane of record no estimator judged (a provisional, incremental one) gets its own verdict
-      from the steps so far ``gamma`` (:func:`~lelsonar.reconstruct.estimate.quality.assess_plane`).
-    - Where echoes were recovered after the board's noise triggers (``without``: the same walls fitted
-      on the board's own readings), a plane of record they turn away from it is unreliable.
-    - The scan's writer findings lower every plane to their level and name themselves.
-    - A compared method's plane is checked against the plane of record of its wall (after the
-      recovered echoes' check): one that disagrees with a good plane of record, or that no good plane
-      of record can vouch for, is degraded (it may have locked onto the corner's echoes, which its own
-      residuals cannot show); one that failed is reported under its method's name, never dropped.
-
-    Returns the planes of record, then each compared method's, in order.
-    """
-    if gamma is not None:
-        record = tuple(assess_plane(pl, gamma) if isinstance(pl, PlaneFit) and not pl.quality else pl for pl in record)
-    by_label = {pl.label: pl for pl in record}
-    if without is not None:
-        by_label = {
-            label: add_findings(pl, recovery_finding(pl, without[label]) if label in without else ())
-            for label, pl in by_label.items()
-        }
-    planes: list[PlaneResult] = [add_findings(pl, findings) for pl in by_label.values()]
-    for method, pls in compared:
-        for pl in pls:
-            if isinstance(pl, PlaneFit):
-                reference = by_label.get(pl.label)
-                if reference is None:  # (every method labels its planes a and b: not expected)
-                    reference = FitFailure(FailureReason.TOO_FEW_POINTS, "no plane of record", pl.label)
-                checked: PlaneResult = cross_check(pl, reference)
-            elif pl.detail.startswith(f"{method}: "):
-                checked = pl  # (the estimator named itself)
-            else:
-                checked = FitFailure(pl.reason, f"{method}: {pl.detail}", pl.label, pl.n_points)
-            planes.append(add_findings(checked, findings))
-    return tuple(planes)

@@ -1,0 +1,253 @@
+"""What each region of a sweep is: a plane, or a corner or an edge and the planes it ties to.
+
+A region is an end or a corner when it lies on another plane's trace, at two planes' double bounce, or at one
+plane's double bounce with a surface across the fan; a line across the capsule stack is no plane; an echo
+much weaker than the sweep's strongest at its range is a diffraction's (an edge); anything else is a plane.
+The tests are in :mod:`.evidence`, the echo's strength against the sweep's own references in :mod:`.strength`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from lelsonar.reconstruct.estimate.quality import DEGRADED
+from lelsonar.reconstruct.estimate.surfaces.evidence import (
+    across_stack,
+    beyond_reach,
+    end_stderr,
+    feature_point,
+    pair_corner,
+    pair_stderr,
+    plane_end,
+    plane_line,
+    reach_stderr,
+    stack_dihedral,
+    stack_or_pair,
+    walls_of_unseen_corners,
+    wrap,
+)
+from lelsonar.reconstruct.estimate.surfaces.features import Kind
+from lelsonar.reconstruct.estimate.surfaces.measurement import (
+    Measured,
+    across_stack_measured,
+    unit_normal,
+)
+from lelsonar.reconstruct.estimate.surfaces.results import (
+    UNSETTLED,
+    SurfaceOptions,
+)
+from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
+
+
+def _in_fan(measured: list[Measured], partial: set[int]) -> list[Measured]:
+    """The regions every capsule hears: a target part of the stack hears lies off the fan, so it says
+    nothing of how far a plane runs along its trace in the fan."""
+    return [x for k, x in enumerate(measured) if k not in partial]
+
+
+def _on_traces(i: int, pool: list[int], measured: list[Measured], partial: set[int], opts: SurfaceOptions) -> list[int]:
+    """The regions of ``pool`` on whose plane's trace region ``i`` lies, off that plane's own foot, within its reach."""
+    p = feature_point(measured[i])
+    out = []
+    for j in pool:
+        if j == i:
+            continue
+        mj = measured[j]
+        if abs(wrap(measured[i].bearing - mj.bearing)) < opts.foot_separation:
+            continue
+        nj = unit_normal(mj.bearing, mj.tilt)
+        # n_j · p moves with either bearing by ρ·sin(β_i − β_j) per rad: 3 σ of both.
+        mi = measured[i]
+        sb = math.hypot(mj.bearing_stderr, mi.bearing_stderr)
+        tol = opts.on_trace + 3 * mi.depth * abs(math.sin(mi.bearing - mj.bearing)) * sb
+        if abs(float(nj @ p) - mj.depth) <= tol and not beyond_reach(
+            mi, mi.bearing, mj, _in_fan(measured, partial), opts
+        ):
+            out.append(j)
+    return out
+
+
+def _others(i: int, pool: list[int]) -> list[int]:
+    return [j for j in pool if j != i]
+
+
+def _planes(
+    measured: list[Measured], partial: set[int], across: list[bool], scale: EchoScale, opts: SurfaceOptions
+) -> list[int]:
+    """The regions that hold a plane's traces: a determined bearing, no diffraction's echo, and no end or corner
+    of the others."""
+    candidates = [i for i, m in enumerate(measured) if not across[i]]
+    # Only planes whose bearing is determined, and whose echo is not a diffraction's, hold traces.
+    # (A target only part of the stack hears is no mirror: every capsule hears a mirror's foot alike.)
+    determined = [
+        i
+        for i in candidates
+        if measured[i].bearing_source != "undetermined" and not scale.weak(measured[i]) and i not in partial
+    ]
+    # A region on another's trace, at two planes' double bounce, or at one plane's double bounce with a surface
+    # across the stack is an end or a corner; once those are set aside, the ties are counted again against the
+    # planes alone (a corner's own trace is no wall).
+    ends = {
+        i
+        for i in determined
+        if _on_traces(i, determined, measured, partial, opts)
+        or pair_corner(measured[i], [measured[j] for j in _others(i, determined)], opts) is not None
+        or stack_dihedral(measured[i], [measured[j] for j in _others(i, determined)], opts) is not None
+    }
+    return [i for i in determined if i not in ends]
+
+
+def classify_regions(
+    measured: list[Measured], partial: set[int], scale: EchoScale, gamma: np.ndarray, opts: SurfaceOptions
+) -> tuple[dict[int, Kind], set[int]]:
+    """The kind of every region that is no plane, and which of them are lines across the fan.
+
+    Each region's entry of ``measured`` takes the bearing, depth and tilt its classification places it at.
+    """
+    across = [across_stack(m, opts) for m in measured]
+    planes = _planes(measured, partial, across, scale, opts)
+    walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, gamma, opts)
+    for i, text in walls_of_corners.items():
+        m = measured[i]
+        if m.bearing_source == "amplitude peak":
+            # Its corner's echo answers beside it inside the amplitude window and sums into its flank: the peak
+            # may sit anywhere the region allows its foot.
+            m = replace(m, bearing_stderr=reach_stderr(m, opts))
+        measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
+    kinds: dict[int, Kind] = {}
+    across_lines: set[int] = set()
+    for i in range(len(measured)):
+        m, kind, across_line = _region_kind(
+            i, measured, planes, across[i], partial, i in walls_of_corners, scale, gamma, opts
+        )
+        measured[i] = m
+        if kind is not None:
+            kinds[i] = kind
+        if across_line:
+            across_lines.add(i)
+    return kinds, across_lines
+
+
+def _region_kind(
+    i: int,
+    measured: list[Measured],
+    planes: list[int],
+    across: bool,
+    partial: set[int],
+    wall_of_corner: bool,
+    scale: EchoScale,
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> tuple[Measured, Kind | None, bool]:
+    """Region ``i`` placed as its kind says, its kind (None: a plane) and whether it is a line across the fan."""
+    m = measured[i]
+    pool = _others(i, planes)
+    # The double bounce with a floor or a ceiling ties the region to its wall: tried before the curvature
+    # alone, which says only that the line runs across the stack.
+    near = [measured[j] for j in pool]
+    low = stack_dihedral(m, near, opts)
+    pair = pair_corner(m, near, opts)
+    unsettled = ""
+    if low is not None and pair is not None:
+        # A plane's yaw slopes its corner with a plane in the fan as a line across the fan would.
+        chosen, unsettled = stack_or_pair(m, near, low, pair)
+        if chosen == "pair":
+            low = None
+    if low is not None:
+        j, z, text = low
+        pj = measured[pool[j]]
+        # The line's point: the plane's foot, off the fan by z; its depth, the distance to it.
+        foot = pj.depth * unit_normal(pj.bearing) + np.array([z, 0.0, 0.0])
+        tilt = math.atan2(z, pj.depth)
+        m = replace(
+            m, bearing=pj.bearing, bearing_stderr=pj.bearing_stderr, depth=float(np.linalg.norm(foot)), tilt=tilt
+        )
+        # On the wall's trace across the fan: a concave corner with the floor or ceiling, or, if its echo
+        # diffracts, the wall's free top or bottom edge.
+        verdict, why = scale.end_strength(m, pj, confirmed=True)
+        if verdict == "weak":
+            return m, ("edge", [text.replace("double bounce", "line"), why], [pool[j]]), True
+        return m, ("corner", [text, why] if verdict == "strong" else [text, UNSETTLED], [pool[j]]), True
+    if across:
+        m = across_stack_measured(m)
+        text = (
+            f"ranges curve along the capsule stack (c = {m.curvature:.2f}/m ≈ 1/(2ρ) = "
+            f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
+        )
+        return m, ("edge" if scale.weak(m) else "corner", [text], []), True
+    m, ties = _ties(i, m, pool, pair, measured, planes, partial, wall_of_corner, gamma, opts)
+    m, kind = _kind_from_ties(m, ties, unsettled, measured, scale)
+    return m, kind, False
+
+
+def _ties(
+    i: int,
+    m: Measured,
+    pool: list[int],
+    pair: tuple[list[int], float] | None,
+    measured: list[Measured],
+    planes: list[int],
+    partial: set[int],
+    wall_of_corner: bool,
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+) -> tuple[Measured, list[int]]:
+    """The planes region ``i`` ties to (two: their double bounce; one: its end) and the region placed there."""
+    if pair is not None:
+        which, bearing = pair
+        ties = [pool[j] for j in which]
+        # The two planes' line leans off the fan with their tilts: its echo comes from its point nearest the
+        # array, off the fan by that lean, at the region's range.
+        line = plane_line(measured[ties[0]], measured[ties[1]])
+        lean = 0.0 if line is None else math.asin(max(-1.0, min(1.0, float(line[0][0] / np.linalg.norm(line[0])))))
+        m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean)
+    elif m.bearing_source == "undetermined":
+        placed = (
+            None
+            if wall_of_corner
+            else plane_end(m, [measured[j] for j in pool], opts, _in_fan(measured, partial), gamma)
+        )
+        if placed is None:
+            ties = []
+        else:
+            which, bearing = placed
+            ties = [pool[j] for j in which]
+            m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
+    else:
+        ties = [] if wall_of_corner else _on_traces(i, planes, measured, partial, opts)
+    return m, ties
+
+
+def _kind_from_ties(
+    m: Measured, ties: list[int], unsettled: str, measured: list[Measured], scale: EchoScale
+) -> tuple[Measured, Kind | None]:
+    """A region's kind from the planes it ties to and its echo's strength (None: a plane)."""
+    if len(ties) >= 2:
+        return m, (
+            "corner",
+            ["at the double-bounce range of the two planes it joins (their intersection)"]
+            + ([unsettled] if unsettled else []),
+            ties[:2],
+        )
+    if len(ties) == 1:
+        verdict, why = scale.end_strength(m, measured[ties[0]])
+        if verdict == "weak":
+            return m, ("edge", [f"on a plane's trace off its foot, {why}"], ties)
+        if verdict == "strong":
+            return m, ("corner", [f"on a plane's trace off its foot, {why}"], ties)
+        return m, ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
+    if scale.weak(m):
+        if m.bearing_source == "undetermined":
+            m = replace(m, bearing_stderr=reach_stderr(m, scale.opts))
+        return m, (
+            "edge",
+            [
+                f"echo at most {100 * scale.upper_strength(m) / scale.mirror:.0f} % of the sweep's strongest at its "
+                "range: diffraction"
+            ],
+            [],
+        )
+    return m, None
