@@ -22,8 +22,10 @@ Settings, and why:
 - Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
 
 The compiler-level helpers here: :func:`float32_at`, a float32 view of bytes at any offset (a protobuf field's),
-typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it; and
-:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others.
+typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it;
+:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others; :func:`array_at`, an
+array handed to a kernel as its address (an integer's conversion where an array's costs a look-up of its type);
+and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.
 """
 
 from __future__ import annotations
