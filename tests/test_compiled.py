@@ -51,3 +51,62 @@ def test_float32_at_reads_the_samples_at_every_byte_offset():
     for offset in range(4):
         payload = bytes(offset) + values.tobytes() + bytes(3)
         np.testing.assert_array_equal(read(payload, offset, values.size), values)
+
+
+def test_array_at_is_the_array_whose_address_it_is_given():
+    """An array handed over as its address is read and written as the array itself, of any shape and type."""
+    import numpy as np
+
+    from lelsonar.signal.compiled import array_at, kernel
+
+    @kernel
+    def touch(cube_at, flags_at, empty_at, rows):
+        cube = array_at(cube_at, (2, rows, 4), np.float64)
+        flags = array_at(flags_at, rows, np.bool_)
+        empty = array_at(empty_at, (rows, 0), np.float32)
+        cube[1, rows - 1, 3] = -1.0
+        flags[rows - 1] = True
+        return cube.sum(), flags.sum(), empty.shape, cube[0, 1, 2]
+
+    cube = np.arange(2 * 3 * 4, dtype=np.float64).reshape(2, 3, 4)
+    flags, empty = np.zeros(3, bool), np.zeros((3, 0), np.float32)
+    total = cube.sum() - cube[1, 2, 3] - 1.0
+    assert touch(cube.ctypes.data, flags.ctypes.data, empty.ctypes.data, 3) == (total, 1, (3, 0), cube[0, 1, 2])
+    assert cube[1, 2, 3] == -1.0 and flags.tolist() == [False, False, True]
+
+
+def test_wire_arrays_gives_each_arrays_address_and_refuses_one_it_cannot_read_so():
+    """place_wire's arrays as their addresses: each one's, in order; an array of another type or shape, not
+    contiguous or read-only, is refused (the kernel would read it as contiguous and write it)."""
+    import numpy as np
+    import pytest
+
+    from lelsonar.errors import InternalError
+    from lelsonar.reconstruct.stream.fastwire import wire_arrays
+
+    k, rows = 4, 9
+    arrays = [
+        np.zeros(k, np.int64),
+        np.zeros(6 * k + 5),
+        np.zeros(k, np.int64),
+        np.zeros(7),
+        np.zeros((9, rows, k)),
+        np.zeros((5, rows)),
+        np.zeros(rows, np.int64),
+        np.zeros(rows, bool),
+        np.zeros(rows, bool),
+        np.zeros((rows, k, 20), np.float32),
+        np.zeros((rows, k, 0), np.float32),
+    ]
+
+    def call(replaced: dict[int, np.ndarray]) -> np.ndarray:
+        given = [replaced.get(i, a) for i, a in enumerate(arrays)]
+        return wire_arrays(rows, given[0], given[1], 35, *given[2:])
+
+    assert call({}).tolist() == [rows, 35, k, rows, 20, 0, *(a.ctypes.data for a in arrays)]
+    read_only = arrays[1].copy()
+    read_only.flags.writeable = False
+    strided = np.zeros((9, rows, 2 * k))[:, :, ::2]
+    for replaced in ({1: read_only}, {4: strided}, {6: arrays[6].astype(np.int32)}, {7: np.zeros(rows + 1, bool)}):
+        with pytest.raises(InternalError):
+            call(replaced)

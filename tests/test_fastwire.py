@@ -245,8 +245,18 @@ def test_waveforms_read_where_they_lie_at_every_alignment_are_the_parsed_ones(mo
         assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
     for name in ("gamma", "step_energy", "expected_energy", "ratio", "time_ns", "received"):
         assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
-    assert read._timing_windows.tobytes() == parsed._timing_windows.tobytes()
+    assert_same_windows(read, parsed)
     np.testing.assert_array_equal(read.latest.waveforms, parsed.latest.waveforms)
+
+
+def assert_same_windows(read: ScanAssembly, parsed: ScanAssembly) -> None:
+    """The timing windows the two scans hold are bit for bit the same: where each starts (``_timing_at``, NaN: none
+    kept), and each kept window (those the scan reads; a window not kept is never written, nor read)."""
+    assert read._timing_rate == parsed._timing_rate
+    assert read._timing_windows.shape == parsed._timing_windows.shape
+    assert read._timing_at.tobytes() == parsed._timing_at.tobytes()
+    kept = np.isfinite(parsed._timing_at)
+    assert read._timing_windows[kept].tobytes() == parsed._timing_windows[kept].tobytes()
 
 
 def test_a_payload_that_starts_as_the_last_one_but_routes_elsewhere_is_left_to_the_parser():
@@ -344,3 +354,86 @@ def test_the_arguments_kept_for_a_scan_follow_its_arrays_and_limits(monkeypatch)
     for name in ("distance", "sensor_energy", "echo_amplitude", "dc_level", "gamma", "ratio", "time_ns", "received"):
         assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
     assert read._timing_windows.tobytes() == parsed._timing_windows.tobytes()
+
+
+def _scan_pair(start, samples, **first_changes) -> list[tuple[str, bytes]]:
+    """Payloads of two scans of one scanner: ``start`` and ``samples``, then the same as the next scan, its first
+    sample with ``first_changes`` to each of its waveforms."""
+    out = [(start.DESCRIPTOR.full_name, start.SerializeToString())]
+    out += [(m.DESCRIPTOR.full_name, m.SerializeToString()) for m in samples]
+    start.scan_id += 1
+    out.append((start.DESCRIPTOR.full_name, start.SerializeToString()))
+    for i, m in enumerate(samples):
+        m = codec.Sample.FromString(m.SerializeToString())
+        m.scan_id = start.scan_id
+        if i == 0:
+            for name, value in first_changes.items():
+                for sensor in m.sensors:
+                    setattr(sensor.waveform, name, value)
+        out.append((m.DESCRIPTOR.full_name, m.SerializeToString()))
+    return out
+
+
+def _both_ways(payloads: list[tuple[str, bytes]]) -> tuple[ScanAssembly, ScanAssembly]:
+    """The second scan, of the payloads read on the fast path and of them parsed."""
+    scans = []
+    for fast in (True, False):
+        ingest = Ingest(fast_path=fast)
+        for name, payload in payloads:
+            (event,) = ingest.accept(name, payload)
+            assert not isinstance(event, Rejected), event
+        scans.append(list(ingest.scans.values())[1])
+    return scans[0], scans[1]
+
+
+def _assert_same_scan(read: ScanAssembly, parsed: ScanAssembly) -> None:
+    for name in ("distance", "sensor_energy", "echo_amplitude", "pre_echo_peak", "dc_level", "range_tof_ratio"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    for name in ("gamma", "step_energy", "expected_energy", "ratio", "time_ns", "received"):
+        assert getattr(read, name).tobytes() == getattr(parsed, name).tobytes(), name
+    assert read.layout == parsed.layout
+    assert_same_windows(read, parsed)
+
+
+def test_a_scans_first_sample_is_read_on_its_scanners_last_layout(monkeypatch):
+    """The first sample of a scanner's next scan is read straight from its payload on the layout its last scan's
+    showed (none parsed): the scan is bit for bit the one of the same payloads parsed."""
+    start, *samples, _ = simulated_messages(steps=24)
+    payloads = _scan_pair(start, samples)
+    read_in_place = placed_from_payloads(monkeypatch)
+    read, parsed = _both_ways(payloads)
+    statuses = [status for status, _, _ in read_in_place]
+    assert len(statuses) == 2 * len(samples) - 1 and UNREAD not in statuses  # all but the first scan's first
+    assert np.isfinite(read._timing_at).sum() > len(samples)  # windows kept, compared
+    _assert_same_scan(read, parsed)
+
+
+def test_a_first_sample_on_another_layout_is_parsed_as_in_a_new_scan(monkeypatch):
+    """A scanner's next scan whose first sample is not on its last layout (another clock) is as if no layout had
+    been expected: that sample is left to the parser (nothing written), which shows the scan its own
+    layout and timing windows' rate, and the scan is bit for bit the one of the same payloads parsed."""
+    start, *samples, _ = simulated_messages(steps=24)
+    rate = samples[0].sensors[0].waveform.sample_rate
+    for change in ({"sample_rate": 2 * rate}, {"t0": 1e-6}):
+        payloads = _scan_pair(codec.ScanStart.FromString(start.SerializeToString()), samples, **change)
+        read_in_place = placed_from_payloads(monkeypatch)
+        read, parsed = _both_ways(payloads)
+        statuses = [status for status, _, _ in read_in_place]
+        assert statuses[len(samples) - 1] == UNREAD  # the second scan's first sample: not on the layout expected
+        assert read._timing_rate == change.get("sample_rate", rate)  # the windows' rate: that sample's, as parsed
+        _assert_same_scan(read, parsed)
+
+
+def test_the_layouts_kept_for_next_scans_are_bounded_and_counted():
+    """The layout kept for each scanner's next scan: at most ``max_scans`` scanners, the least recent forgotten
+    first and counted (a scanner forgotten has its next scan's first sample parsed, nothing else lost)."""
+    start, *samples, _ = simulated_messages(steps=8)
+    ingest = Ingest(max_scans=2)
+    for scanner in ("a", "b", "c"):
+        for m in (start, samples[0]):
+            m = type(m).FromString(m.SerializeToString())
+            m.scanner_id = scanner
+            (event,) = ingest.accept(m.DESCRIPTOR.full_name, m.SerializeToString())
+            assert not isinstance(event, Rejected)
+    assert list(ingest._layouts) == ["b", "c"]
+    assert ingest.evicted["scanner layout forgotten (max_scans)"] == 1

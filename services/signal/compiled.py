@@ -22,8 +22,10 @@ Settings, and why:
 - Recursion is avoided: Numba has crashed loading a recursive kernel from its cache.
 
 The compiler-level helpers here: :func:`float32_at`, a float32 view of bytes at any offset (a protobuf field's),
-typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it; and
-:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others.
+typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it;
+:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others; :func:`array_at`, an
+array handed to a kernel as its address (an integer's conversion where an array's costs a look-up of its type);
+and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.
 """
 
 from __future__ import annotations
@@ -213,3 +215,61 @@ def prefetch(typingctx, buf, at):
         return context.get_dummy_value()
 
     return types.none(buf, at), codegen
+
+
+@intrinsic
+def array_at(typingctx, address, shape, dtype):
+    """A C-contiguous array of ``shape`` (an int, or a tuple of ints) and ``dtype`` (a NumPy scalar type, e.g.
+    ``np.float64``) over the memory at ``address`` (an int: an array's ``.ctypes.data``), which it does not keep
+    alive: the caller holds that array for as long as the view is used, and ``shape`` within it.
+
+    An array handed to a kernel as its address costs the call an integer's conversion instead of an array's
+    (its type looked up and its buffer unpacked), which a kernel handed a dozen arrays a call pays a dozen times."""
+    if not isinstance(address, types.Integer) or not isinstance(dtype, types.NumberClass):
+        return None
+    if isinstance(shape, types.Integer):
+        ndim = 1
+    elif isinstance(shape, types.UniTuple) and isinstance(shape.dtype, types.Integer):
+        ndim = shape.count
+    else:
+        return None
+    array_type = types.Array(dtype.instance_type, ndim, "C")
+
+    def codegen(context, builder, sig, args):
+        if isinstance(sig.args[1], types.Integer):
+            dims = [context.cast(builder, args[1], sig.args[1], types.intp)]
+        else:
+            dims = [
+                context.cast(builder, v, sig.args[1].dtype, types.intp) for v in cgutils.unpack_tuple(builder, args[1])
+            ]
+        out = make_array(array_type)(context, builder)
+        itemsize = context.get_constant(types.intp, context.get_abi_sizeof(context.get_data_type(array_type.dtype)))
+        strides = [itemsize]
+        for d in reversed(dims[1:]):
+            strides.insert(0, builder.mul(strides[0], d))
+        pointer = context.cast(builder, args[0], sig.args[0], types.intp)
+        populate_array(
+            out,
+            data=builder.inttoptr(pointer, out.data.type),
+            shape=cgutils.pack_array(builder, dims),
+            strides=cgutils.pack_array(builder, strides),
+            itemsize=itemsize,
+            meminfo=None,
+        )
+        return out._getvalue()
+
+    return array_type(address, shape, dtype), codegen
+
+
+@intrinsic
+def float32_from_bits(typingctx, pattern):
+    """The float32 number whose bit pattern is the low 32 bits of the integer ``pattern``, as a float: the bits
+    reinterpreted (one instruction, where building the number from its exponent and mantissa takes a libm call)."""
+    if not isinstance(pattern, types.Integer):
+        return None
+
+    def codegen(context, builder, sig, args):
+        bits = context.cast(builder, args[0], sig.args[0], types.uint32)
+        return builder.fpext(builder.bitcast(bits, ir.FloatType()), ir.DoubleType())
+
+    return types.float64(pattern), codegen

@@ -9,11 +9,9 @@ where one shows, the run is compared as floats, one sample at a time, as before.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from lelsonar.signal.compiled import kernel
+from lelsonar.signal.compiled import float32_from_bits, kernel
 
 #: +infinity's bit pattern shifted left once (the sign shifted out): a magnitude's pattern beyond it is a NaN's.
 _INF_MAGNITUDE = np.uint32(0xFF000000)
@@ -22,16 +20,7 @@ _INF_MAGNITUDE = np.uint32(0xFF000000)
 @kernel
 def float32_of_bits(pattern):
     """The float32 number whose bit pattern is ``pattern`` (an integer below 2^32, not a NaN's), as a float."""
-    bits = np.int64(pattern)
-    exponent = (bits >> 23) & 0xFF
-    mantissa = bits & 0x7FFFFF
-    if exponent == 255:
-        value = math.inf
-    elif exponent == 0:  # (subnormal, or zero)
-        value = math.ldexp(float(mantissa), -149)
-    else:
-        value = math.ldexp(float(mantissa | (1 << 23)), int(exponent) - 150)
-    return -value if bits >> 31 else value
+    return float32_from_bits(pattern)
 
 
 @kernel

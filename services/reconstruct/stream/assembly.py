@@ -48,7 +48,7 @@ import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
-from lelsonar.reconstruct.stream.fastwire import GROW, place_wire
+from lelsonar.reconstruct.stream.fastwire import GROW, UNREAD, place_wire, wire_arrays
 from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, StepView, stacked_waveforms
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
@@ -99,6 +99,40 @@ class ScanAssembly(ScanArrays):
         self._pack_readings_energies = struct.Struct(f"<{5 + 4 * self._k}d")
         # Where fastwire.place_wire finds each waveform's samples in a sample's payload (read there, never copied).
         self._starts = np.zeros(self._k, np.int64)
+        # The layout of the scanner's previous scan (:meth:`expect_layout`), tried on this scan's first sample.
+        self._expected: list | None = None
+
+    @property
+    def layout(self) -> list | None:
+        """The fast path's layout once a validated sample of this scan showed it (each reading's capsule id, samples,
+        rate, t0, encoding and bytes, in capsule order: :func:`~lelsonar.codec.sample_readings`); None: none yet."""
+        return self._layout
+
+    def expect_layout(self, layout: list | None) -> None:
+        """Try ``layout`` — the :attr:`layout` of the scanner's previous scan, validated there — on this scan's first
+        sample: read straight from its payload if it has that layout (:meth:`add_payload`), as every later one is.
+        Nothing changes until then; a first sample on another layout, or not read that way, leaves the scan as if
+        this had never been called (it is then parsed, and shows the scan its own layout)."""
+        self._expected = layout
+
+    def _presume(self) -> list | None:
+        """Set the expected layout up as a first sample on it does (:meth:`add`: the layout, the kernel's clocks,
+        the timing windows' rate); None (nothing set) if there is none, or it is not this scan's."""
+        layout = self._expected
+        if layout is None or self.received.any() or not self._one_layout(layout):
+            return None
+        rate = layout[2]
+        if layout[1] and rate > 0 and math.isfinite(rate):
+            self._timing_rate = self._scan[1] = float(rate)
+            self._grow_timing(len(self.received), max(int(round((TIMING_WINDOW[1] - TIMING_WINDOW[0]) * rate)), 1))
+        return layout
+
+    def _unpresume(self) -> None:
+        """Undo :meth:`_presume` (its first sample was not read on that layout): the scan as before it."""
+        self._layout = self._limits_cleared = self._wire = None
+        self._values[: 2 * self._k] = 0.0
+        self._timing_rate = self._scan[1] = math.nan
+        self._grow_timing(len(self.received), 0)
 
     def add_payload(
         self, payload: bytes, at: int, step: int, time_ns: int, origin: str, limits: codec.DecodeLimits
@@ -108,7 +142,8 @@ class ScanAssembly(ScanArrays):
         0, as the parser gives a field absent), the rest of it and its body from there; its body's checks under
         ``limits`` are made in the pass that places it (:func:`~lelsonar.reconstruct.stream.step_features.
         place_rows`).  Only on the layout of a sample validated before (the same ids, encodings, lengths and
-        clocks: the contract's checks of them passed).  Returns the step placed, or -1: anything this does not
+        clocks: the contract's checks of them passed), of this scan or, for its first, of the scanner's previous
+        one (:meth:`expect_layout`).  Returns the step placed, or -1: anything this does not
         clear — no layout yet, a payload not plainly encoded on it, a refused check, a duplicate or a step
         outside the schedule — is left with nothing written: the caller then parses the payload and places the
         message (:meth:`add`), so that the decoding refuses before the scan does.
@@ -119,34 +154,37 @@ class ScanAssembly(ScanArrays):
             A range that needs a speed of sound the scan does not state.
         """
         known = self._layout
-        if known is None:
-            return -1
+        presumed = known is None
+        if known is None:  # the scan's first sample: on the scanner's previous layout, or parsed
+            known = self._presume()
+            if known is None:
+                return -1
         wire = self._wire if limits is self._limits_cleared else None
         if wire is None:
             wire = self._wire_for(limits)
-            if wire is None:
-                return -1
         recovered = origin == "recovered"
-        for _ in range(2):  # a second time once the arrays reach its step (GROW)
+        status = UNREAD
+        while wire is not None:
             # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-            status, carried, step = place_wire(payload, at, step, time_ns, recovered, *wire)
+            status, carried, step = place_wire(payload, at, step, time_ns, recovered, wire[0])
             if status != GROW:
                 break
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
-            wire = self._wire_for(limits)  # (the same limits: never None here)
-            if wire is None:
-                return -1
+            wire = self._wire_for(limits)  # placed once the arrays reach its step (the same limits: not None)
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
             self._latest = (step, payload, known[1], known[2], known[3])
             return step
-        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED; GROW does not come twice)
+        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED)
+            if presumed:
+                self._unpresume()
             return -1
         return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
 
     def _wire_for(self, limits: codec.DecodeLimits) -> tuple | None:
-        """The arguments of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under
-        ``limits`` (its steps' bound, the layout and the scan's arrays); kept while the scan's limits and arrays
-        stay (a call hands over one tuple); None: no layout yet, or one beyond ``limits``."""
+        """The argument of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under
+        ``limits`` (:func:`~lelsonar.reconstruct.stream.fastwire.wire_arrays` of its steps' bound, the layout and
+        the scan's arrays) and those arrays, which it points into; kept while the scan's limits and arrays stay;
+        None: no layout yet, or one beyond ``limits``."""
         known = self._layout
         if known is None:
             return None
@@ -158,7 +196,8 @@ class ScanAssembly(ScanArrays):
             bound = min(self._steps, limits.max_steps)
         else:
             return None
-        wire = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
+        arrays = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
+        wire = (wire_arrays(*arrays), arrays)  # (the arrays kept with their addresses)
         if cleared:
             self._wire = wire
         return wire

@@ -20,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from lelsonar import codec
-from lelsonar.errors import ConfigError
-from lelsonar.reconstruct.stream.step_features import place_rows
-from lelsonar.signal.compiled import float32_at, kernel, prefetch
+from lelsonar.errors import ConfigError, InternalError
+from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, place_rows
+from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch
 from lelsonar.v1 import scan_pb2
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
@@ -360,38 +360,103 @@ def read_body(buf, body, ids, values, n, starts):
     return carried if sensors == k else -1
 
 
+#: :func:`place_wire`'s ``arrays``, by index: the sample's steps' bound, the waveforms' length ``n``, the capsules
+#: ``k``, the scan's rows, the timing and the candidate windows' widths, then the address of each array
+#: :func:`wire_arrays` names, in its order.
+_BOUND, _N, _K, _ROWS, _WIDTH, _KEPT, _ADDRESSES = 0, 1, 2, 3, 4, 5, 6
+_PER_CAPSULE, _PER_STEP = len(PER_CAPSULE), len(PER_STEP)
+
+
+def wire_arrays(
+    bound: int,
+    ids: np.ndarray,
+    values: np.ndarray,
+    n: int,
+    starts: np.ndarray,
+    scan: np.ndarray,
+    per_capsule: np.ndarray,
+    per_step: np.ndarray,
+    acquired_ns: np.ndarray,
+    received: np.ndarray,
+    recovered_mask: np.ndarray,
+    timing_windows: np.ndarray,
+    candidate_windows: np.ndarray,
+) -> np.ndarray:
+    """:func:`place_wire`'s ``arrays``: the numbers and the addresses of :func:`place_rows`'s arrays after a sample's
+    own (``ids``, ``values``, ``starts``, ``scan``: the layout's; the rest the scan's rows), one int64 array to hand
+    over instead of a dozen (each array an argument costs a call its type's look-up and its buffer's unpacking).
+
+    The addresses are valid while those arrays are: the caller keeps them with the result.
+
+    Raises
+    ------
+    InternalError
+        An array not of the shape, type or layout :func:`place_wire` reads it with.
+    """
+    k, rows, width = ids.size, received.size, timing_windows.shape[2]
+    kept = candidate_windows.shape[2]
+    expected = (
+        (ids, np.int64, (k,)),
+        (values, np.float64, (6 * k + 5,)),
+        (starts, np.int64, (k,)),
+        (scan, np.float64, (7,)),
+        (per_capsule, np.float64, (_PER_CAPSULE, rows, k)),
+        (per_step, np.float64, (_PER_STEP, rows)),
+        (acquired_ns, np.int64, (rows,)),
+        (received, np.bool_, (rows,)),
+        (recovered_mask, np.bool_, (rows,)),
+        (timing_windows, np.float32, (rows, k, width)),
+        (candidate_windows, np.float32, (rows, k, kept)),
+    )
+    for i, (array, dtype, shape) in enumerate(expected):
+        flags = array.flags
+        if array.dtype != dtype or array.shape != shape or not (flags.c_contiguous and flags.writeable):
+            raise InternalError(
+                f"place_wire's array {i} is {array.dtype}{array.shape} (contiguous {flags.c_contiguous}, writeable "
+                f"{flags.writeable}); it reads {np.dtype(dtype)}{shape}, contiguous and writeable"
+            )
+    out = np.empty(_ADDRESSES + len(expected), np.int64)
+    out[:_ADDRESSES] = bound, n, k, rows, width, kept
+    _addresses(out, *(a for a, _, _ in expected))
+    return out
+
+
 @kernel
-def place_wire(
-    payload,
-    at,
-    step,
-    time_ns,
-    recovered,
-    bound,
-    ids,
-    values,
-    n,
-    starts,
-    scan,
-    per_capsule,
-    per_step,
-    acquired_ns,
-    received,
-    recovered_mask,
-    timing_windows,
-    candidate_windows,
+def _addresses(
+    out, ids, values, starts, scan, per_capsule, per_step, acquired_ns, received, recovered, timing, candidates
 ):
+    """Where each array's data lies, into ``out[_ADDRESSES:]`` in this order (one call, where ``.ctypes.data`` costs
+    a Python object an array)."""
+    out[_ADDRESSES] = ids.ctypes.data
+    out[_ADDRESSES + 1] = values.ctypes.data
+    out[_ADDRESSES + 2] = starts.ctypes.data
+    out[_ADDRESSES + 3] = scan.ctypes.data
+    out[_ADDRESSES + 4] = per_capsule.ctypes.data
+    out[_ADDRESSES + 5] = per_step.ctypes.data
+    out[_ADDRESSES + 6] = acquired_ns.ctypes.data
+    out[_ADDRESSES + 7] = received.ctypes.data
+    out[_ADDRESSES + 8] = recovered.ctypes.data
+    out[_ADDRESSES + 9] = timing.ctypes.data
+    out[_ADDRESSES + 10] = candidates.ctypes.data
+
+
+@kernel
+def place_wire(payload, at, step, time_ns, recovered, arrays):
     """:func:`place_rows` of a sample not validated, read from its ``payload``, and how many energies the sample
     carries and its step: ``(status, carried, step)``; ``(UNREAD, 0, step)`` if it could not be read that way, its
-    step is already held or not below ``bound`` (nothing placed), ``(GROW, 0, step)`` if the scan's arrays do not
+    step is already held or not below the bound (nothing placed), ``(GROW, 0, step)`` if the scan's arrays do not
     reach its step yet (nothing placed: grown, it is placed by the next call).
 
     From ``at`` on, the rest of its header (:func:`read_header`): ``step`` and ``acquisition_time_ns`` (else
     ``step`` and ``time_ns``, those read before ``at``), each at most once, no field that routes it again (the
     fields before ``at`` did); then its body (:func:`read_body`, into ``values``, and where its waveforms of ``n``
     samples lie into ``starts``: they are read there, never copied).  The sample's own arguments come first
-    (``recovered``: its origin), then the scan's, one by one as :func:`place_rows` takes them (a tuple of arrays
-    costs a call more to hand over), which the caller keeps in one tuple while they stay the same."""
+    (``recovered``: its origin), then the scan's: ``arrays``, :func:`wire_arrays` of the arrays
+    :func:`place_rows` takes (its numbers, and where each array lies, read there with
+    :func:`~lelsonar.signal.compiled.array_at`)."""
+    bound, n, k, rows = arrays[_BOUND], arrays[_N], arrays[_K], arrays[_ROWS]
+    at_ = arrays[_ADDRESSES:]
+    received = array_at(at_[7], rows, np.bool_)
     buf = np.frombuffer(payload, dtype=np.uint8)
     end = buf.size
     seen = 0
@@ -414,33 +479,35 @@ def place_wire(
             step = np.int64(v)
         else:
             time_ns = np.int64(v)  # (two's complement: the parser's int64)
-    if step >= bound or (step < received.size and received[step]):
+    if step >= bound or (step < rows and received[step]):
         return UNREAD, 0, step
-    if step >= received.size:
+    if step >= rows:
         return GROW, 0, step
+    ids = array_at(at_[0], k, np.int64)
+    values = array_at(at_[1], 6 * k + 5, np.float64)
+    starts = array_at(at_[2], k, np.int64)
     carried = read_body(buf, body, ids, values, n, starts)
     if carried < 0:
         return UNREAD, 0, step
-    k = ids.size
     return (
         place_rows(
             buf,
             starts,
             n,
             values,
-            scan,
+            array_at(at_[3], 7, np.float64),
             k if carried == k else 0,
             step,
             False,
             time_ns,
             recovered,
-            per_capsule,
-            per_step,
-            acquired_ns,
+            array_at(at_[4], (_PER_CAPSULE, rows, k), np.float64),
+            array_at(at_[5], (_PER_STEP, rows), np.float64),
+            array_at(at_[6], rows, np.int64),
             received,
-            recovered_mask,
-            timing_windows,
-            candidate_windows,
+            array_at(at_[8], rows, np.bool_),
+            array_at(at_[9], (rows, k, arrays[_WIDTH]), np.float32),
+            array_at(at_[10], (rows, k, arrays[_KEPT]), np.float32),
         ),
         carried,
         step,

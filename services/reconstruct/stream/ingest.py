@@ -103,6 +103,9 @@ class Ingest:
     #: By the key a sample came on (None: no key), the bytes that routed the last one read from its payload and
     #: its scan (open: forgotten as it closes; at most two entries an open scan, its scanner's key and none).
     _routes: dict[str | None, tuple[bytes, ScanAssembly]] = field(default_factory=dict)
+    #: By scanner, the layout its last scan's samples showed (:attr:`ScanAssembly.layout`), for its next scan's first
+    #: sample (:meth:`ScanAssembly.expect_layout`); at most ``max_scans`` scanners, the least recent forgotten first.
+    _layouts: OrderedDict[str, list] = field(default_factory=OrderedDict)
 
     @property
     def n_pending(self) -> int:
@@ -209,6 +212,7 @@ class Ingest:
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, f"ScanStart {key}: {exc}")]
         self.scans[key] = scan
+        scan.expect_layout(self._layouts.get(key[0]))
         while len(self.scans) > self.max_scans:
             old, dropped = self.scans.popitem(last=False)
             self._forget_routes(dropped)
@@ -290,6 +294,7 @@ class Ingest:
                 return self._refused(scan, sample.step, exc)
         if not placed:
             return self._reject("DuplicateSample", f"step {sample.step} of scan {scan.key} arrived twice")
+        self._note_layout(scan)
         # Counted here, as they happen (the stats read one number, never the open scans a worker changes).
         self.energy_mismatches += scan.energy_mismatches - mismatches
         self.accepted += 1
@@ -317,6 +322,20 @@ class Ingest:
             old = next(iter(self.pending))
             out += self.drop_pending(old)
         return out
+
+    def _note_layout(self, scan: ScanAssembly) -> None:
+        """Keep the layout a parsed sample showed ``scan`` for its scanner's next scan (bounded, evictions counted)."""
+        layout = scan.layout
+        if layout is None:
+            return
+        scanner = scan.start.scanner_id
+        layouts = self._layouts
+        if layouts.get(scanner) is not layout:
+            layouts[scanner] = layout
+            layouts.move_to_end(scanner)
+            while len(layouts) > self.max_scans:
+                layouts.popitem(last=False)
+                self.evicted["scanner layout forgotten (max_scans)"] += 1
 
     def _forget_routes(self, scan: ScanAssembly | None) -> None:
         """No payload is routed to ``scan`` (closed, or forgotten) by the bytes that routed it."""

@@ -155,7 +155,9 @@ class ScanArrays(WriterChecks):
 
     def _grow_timing(self, n: int, width: int) -> None:
         """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
-        windows = np.zeros((n, self._k, width), np.float32)
+        # Not cleared: a window is read only where its step's ``_timing_at`` is finite, which the pass writes with it
+        # (clearing half a megabyte a scan costs more than all its reads of them).
+        windows = np.empty((n, self._k, width), np.float32)
         # (The candidates' only once one was found, :meth:`_keep_candidates`.)
         kept = self._candidate_windows.shape[2] if width == self._timing_windows.shape[2] else 0
         candidates = np.zeros((n, self._k, kept), np.float32)
