@@ -23,8 +23,15 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, unit_normal
-from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
+from lelsonar.reconstruct.estimate.surfaces.placement import (
+    RANGE_FLOOR,
+    echo_point,
+    line_direction,
+    pair_line_point,
+    with_range,
+)
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.stack import stack_tilt
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 
 __all__ = [
@@ -35,6 +42,7 @@ __all__ = [
     "TRACE_ONLY",
     "NOT_THEIR_LINE",
     "MIXED",
+    "STACK_MIXED",
     "PLACEMENT_CAVEATS",
     "placement_caveats",
 ]
@@ -61,6 +69,12 @@ MIXED = (
     "not placed on that line: its ranges scatter {sigma:.0f} mm about a free slope along the stack, more than "
     "the {tol:.0f} mm one target's region holds to, so it holds more than one target; where its own echo puts "
     "it, its bearing anywhere its region's reach allows"
+)
+
+#: In the reasons of a feature placed by its own echo whose ranges along the stack no one target explains.
+STACK_MIXED = (
+    "its ranges along the capsule stack scatter {sigma:.1f} mm about any one target's, more than one reading's "
+    "noise, with or without any one capsule: off the fan anywhere within the beam's half-width"
 )
 
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
@@ -109,6 +123,86 @@ def _feature(
         rows=m.region.rows.copy(),
         capsules=m.region.capsules.copy(),
     )
+
+
+def _own_tilt(m: Measured) -> tuple[Measured, str]:
+    """A target placed by its own echo, off the fan and at the range its squared ranges along the stack put it
+    (:func:`~.stack.stack_tilt`: any one target's, with the capsules that hear it); the reason to add ("": none).
+
+    Each kept reading's squared range less ``b x + κ x²`` is the squared range ``d₀²`` from its capsule's point
+    moved to the stack's centre, ``q``; the target ``X = ρ u`` is at ``|X − q| = d₀`` from there, so
+    ``ρ = q·u + √(d₀² − |q|² + (q·u)²)``, exact for a point, a line or a plane (where the mirror condition's
+    first order leaves ``x²/(2ρ)``).  Its offset along the stack ``−b/2`` gives ``sin t = −b/(2ρ)``.
+    """
+    r = m.region
+    if r.capsules.size == 0:
+        return m, ""
+    x = np.zeros(int(r.capsules.max()) + 1)
+    x[r.capsules] = m.positions[:, 0]
+    fit = stack_tilt(x, r.rows, r.capsules, m.ranges, m.depth, RANGE_FLOOR)
+    if fit is None:
+        return m, ""
+    b, kappa, b_se, kept, sigma, one = fit
+    if not one:
+        return replace(m, tilt_stderr=float("nan")), STACK_MIXED.format(sigma=1000 * sigma)
+    sel = np.isin(r.capsules, kept)
+    xs, d = m.positions[sel, 0], m.ranges[sel]
+    q = m.positions[sel].copy()
+    q[:, 0] = 0.0
+    rho = m.depth
+    for _ in range(2):
+        sin_t = -b / (2.0 * rho)
+        if not abs(sin_t) < 1.0:
+            return m, ""
+        u = unit_normal(m.bearing, math.asin(sin_t))
+        qu = q @ u
+        with np.errstate(invalid="ignore"):
+            each = qu + np.sqrt(d * d - b * xs - kappa * xs * xs - np.einsum("ij,ij->i", q, q) + qu * qu)
+        if not np.all(np.isfinite(each)):
+            return m, ""
+        rho = float(np.median(each))
+    sin_t = -b / (2.0 * rho)
+    if not (abs(sin_t) < 1.0 and math.isfinite(b_se)):
+        return m, ""
+    tilt = math.asin(sin_t)
+    n_steps = np.unique(r.rows[sel]).size
+    # The median's standard error (1.25 σ/√N), one capsule's readings per step counted once per step.
+    depth_se = 1.2533 * float(np.std(each)) / math.sqrt(max(n_steps, 1)) if each.size > 1 else m.depth_stderr
+    tilt_se = b_se / (2.0 * rho) / max(math.cos(tilt), 1e-3)
+    return replace(m, depth=rho, depth_stderr=depth_se, tilt=tilt, tilt_stderr=tilt_se), ""
+
+
+def _cut_peak(m: Measured) -> tuple[Measured, str]:
+    """A bearing from the amplitude peak of a region cut where its echo is still at its top: the top may go on
+    past the cut, so the peak lies anywhere from the fitted vertex to the cut end (uniform, beside its σ).
+
+    The cut end is at the top where its step's amplitude is within 3 σ of the region's largest, σ the steps'
+    own amplitude noise (successive differences' median absolute value over 0.6745·√2, Gaussian).
+
+    Returns
+    -------
+    The region with that σ, and the reason to add ("": its peak stands).
+    """
+    r, a = m.region, m.step_amplitude
+    if m.bearing_source != "amplitude peak" or not (r.cut_before or r.cut_after) or a.size < 3:
+        return m, ""
+    ok = a[np.isfinite(a)]
+    if ok.size < 3:
+        return m, ""
+    top = float(ok.max())
+    noise = float(np.median(np.abs(np.diff(ok)))) / (0.6745 * math.sqrt(2.0))
+    widest = 0.0
+    for cut, end, amp in ((r.cut_before, m.span[0], a[0]), (r.cut_after, m.span[1], a[-1])):
+        if cut and math.isfinite(float(amp)) and float(amp) >= top - 3.0 * noise:
+            widest = max(widest, abs(wrap(end - m.bearing)))
+    if not widest > 0:
+        return m, ""
+    se = math.hypot(m.bearing_stderr, widest / math.sqrt(3.0))
+    why = (
+        f"its amplitude peak is at a cut end's top: the peak may lie up to {math.degrees(widest):.1f}° from the "
+        "fitted vertex, toward the cut"
+    )
+    return replace(m, bearing_stderr=se), why
 
 
 def _pair_placement(
@@ -312,6 +406,9 @@ def place_features(
                 direction = stack_axis
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
+            m, why = _own_tilt(m)
+            m, cut = _cut_peak(m)
+            reasons = [*reasons, *(w for w in (why, cut) if w)]
             if m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
