@@ -172,6 +172,46 @@ def _own_tilt(m: Measured) -> tuple[Measured, str]:
     return replace(m, depth=rho, depth_stderr=depth_se, tilt=tilt, tilt_stderr=tilt_se), ""
 
 
+def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | None) -> tuple[Measured, str]:
+    """A plane's line with a surface across the fan, placed at the plane's foot off the fan (its
+    classification's), unless its own ranges along the stack deny that the line is square to the stack.
+
+    Square to the stack (a floor below a horizontal fan), the line's point nearest the array is the plane's foot
+    moved along the stack, and the ranges' slope along the stack (the unit vector's x component from that point,
+    whatever the target) says the same tilt.  A surface across the fan at another angle (a wall beside a
+    vertical fan) turns the line in the plane: its nearest point is off the foot, at the same range but nearer
+    the fan.  Apart by more than 3 σ of both, the point is where the region's own range and tilt meet the
+    plane's trace, on the side of the foot its echo is heard (the plane's mirror echo, nearer, hides the line's
+    around the foot: the line's emerges past the plane's region on its nearest point's side), with
+    :func:`~.evidence.end_stderr`'s σ.  Its bearing σ is at least the fitted plane's.
+
+    Returns
+    -------
+    The region so placed, and the reason to add ("": at the foot).
+    """
+    if fitted is not None:
+        fitted_se = math.sqrt(max(float(fitted.covariance[0, 0]), 0.0))
+        if fitted_se > m.bearing_stderr:
+            m = replace(m, bearing_stderr=fitted_se)
+    if not (math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and math.isfinite(m.tilt)):
+        return m, ""
+    se = math.hypot(own.tilt_stderr, m.tilt_stderr if math.isfinite(m.tilt_stderr) else 0.0)
+    if not abs(own.tilt - m.tilt) > 3.0 * se:
+        return m, ""
+    x0 = own.depth * math.sin(own.tilt)
+    h = (pj.depth - x0 * math.sin(pj.tilt)) / math.cos(pj.tilt)
+    rho = in_fan_range(own)[0]
+    half = math.acos(min(1.0, h / rho)) if rho > 0 else 0.0
+    trace = wrap(pj.bearing + math.copysign(half, wrap(own.bearing - pj.bearing)))
+    placed = replace(own, bearing=trace, bearing_stderr=m.bearing_stderr, summed_spread=0.0)
+    placed = replace(placed, bearing_stderr=max(end_stderr(placed, pj, trace), m.bearing_stderr))
+    return placed, (
+        f"its ranges slope along the capsule stack as a target {math.degrees(own.tilt):+.1f}° off the fan, not the "
+        f"{math.degrees(m.tilt):+.1f}° of a line square to the stack (3 σ: {math.degrees(3 * se):.1f}°): placed on "
+        f"its plane's trace at its own range and tilt, {math.degrees(trace):.1f}°"
+    )
+
+
 def _cut_peak(m: Measured) -> tuple[Measured, str]:
     """A bearing from the amplitude peak of a region cut where its echo is still at its top: the top may go on
     past the cut, so the peak lies anywhere from the fitted vertex to the cut end (uniform, beside its σ).
@@ -377,6 +417,9 @@ def place_features(
             reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
             tied, direction = (), stack_axis
         elif i in across_lines:
+            if ties:
+                m, why = _across_line(m, own[i], measured[ties[0]], surface_of.get(ties[0]))
+                reasons = [*reasons, why] if why else reasons
             direction = cross3(stack_axis, unit_normal(m.bearing))
             if not ties and m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))

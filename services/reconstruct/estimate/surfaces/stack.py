@@ -237,9 +237,7 @@ def _square_fit(x: np.ndarray, group: np.ndarray, y: np.ndarray, kappa: float | 
     return _demeaned_fit(am, ym, counts.size)
 
 
-def _tilt_of(
-    x: np.ndarray, rows: np.ndarray, d: np.ndarray, depth: float
-) -> tuple[float, float, float, float] | None:
+def _tilt_of(x: np.ndarray, rows: np.ndarray, d: np.ndarray, depth: float) -> tuple[float, float, float, float] | None:
     """``b``, ``κ``, ``b``'s σ and the residual σ in range (m) of one target's squared ranges along the stack."""
     _, group = np.unique(rows, return_inverse=True)
     y = d * d
@@ -276,9 +274,10 @@ def stack_tilt(
     the stack (every capsule's nearest point is the same), ``d² = a_s − 2 X_x x + x²``; for a plane of normal
     ``n``, ``d = h_s − n_x x``, so ``d² = a_s − 2 h n_x x + n_x² x²``; a line of direction ``u`` gives
     ``(1 − u_x²) x²``.  So ``d² = a_s + b x + κ x²`` with ``κ ∈ [0, 1]`` for any one target, and
-    ``sin t = −b/(2ρ)`` at the array's centre (``−b/2`` the target's offset along the stack): exact for a point, a line or a plane, where a straight fit of the
-    ranges turns a curved profile heard by uneven capsules into a slope.  With three capsules or more ``κ`` is
-    fitted; else (or out of its bounds) the slope lies anywhere between its two bounds' and its σ spans them.
+    ``sin t = −b/(2ρ)`` at the array's centre (``−b/2`` the target's offset along the stack): exact for a point,
+    a line or a plane, where a straight fit of the ranges turns a curved profile heard by uneven capsules into a
+    slope.  With three capsules or more ``κ`` is fitted (at its nearer bound when past one); with two, the slope
+    lies anywhere between its two bounds' and its σ spans them.
 
     One target's ranges about that fit scatter as one reading's noise.  Past it (the sample σ's 3 σ bound), some
     capsule hears another target (a first-echo receiver's capsule that does not hear this one reports the next):
