@@ -177,8 +177,8 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
     classification's), unless its own ranges along the stack deny that the line is square to the stack.
 
     Square to the stack (a floor below a horizontal fan), the line's point nearest the array is the plane's foot
-    moved along the stack, and the ranges' slope along the stack (the unit vector's x component from that point,
-    whatever the target) says the same tilt.  A surface across the fan at another angle (a wall beside a
+    moved along the stack, and the region's own squared ranges along the stack (:func:`_own_tilt`, any one
+    target's) say the same tilt.  A surface across the fan at another angle (a wall beside a
     vertical fan) turns the line in the plane: its nearest point is off the foot, at the same range but nearer
     the fan.  Apart by more than 3 σ of both, the point is where the region's own range and tilt meet the
     plane's trace, on the side of the foot its echo is heard (the plane's mirror echo, nearer, hides the line's
@@ -193,7 +193,8 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
         fitted_se = math.sqrt(max(float(fitted.covariance[0, 0]), 0.0))
         if fitted_se > m.bearing_stderr:
             m = replace(m, bearing_stderr=fitted_se)
-    if not (math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and math.isfinite(m.tilt)):
+    own, mixed = _own_tilt(own)
+    if mixed or not (math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and math.isfinite(m.tilt)):
         return m, ""
     se = math.hypot(own.tilt_stderr, m.tilt_stderr if math.isfinite(m.tilt_stderr) else 0.0)
     if not abs(own.tilt - m.tilt) > 3.0 * se:
