@@ -177,8 +177,6 @@ def test_a_stress_worlds_feature_lies_within_three_sigma_of_its_line(case, kind,
         (("heights", 1, "fan", 1, 57), ElementKind.EDGE, ""),
         # An edge at the sweep's end, its amplitude still at its top there: its peak may lie up to the cut.
         (("touching", 0, "fan", 1, 69), ElementKind.EDGE, "its amplitude peak is at a cut end's top"),
-        # An edge one capsule hears past a box the rest hear, on past where their target changes: its region is cut.
-        (("clutter", 1, "fan", 2, 99), ElementKind.EDGE, ""),
         # A wall's corner with a wall across a vertical fan that is not square to the stack: not at the foot.
         (("acute", 1, "paper", 2, 22), ElementKind.DIHEDRAL, "not the"),
         # A wall–floor corner on a wall whose fitted bearing is unsure by 2°: the corner is as unsure.

@@ -263,21 +263,3 @@ def test_a_step_that_holds_none_of_its_regions_readings_is_no_step_of_it():
     assert (d[region.rows, region.capsules] < 0.99).all()
     assert _as_tuples(find_regions(d)) == _reference(d)
     assert _reference(d)[0][0][0] == 0
-
-
-@pytest.mark.parametrize("heard_on", [True, False])
-def test_a_part_of_a_run_is_cut_where_its_capsules_hear_its_target_on_past_the_run(heard_on):
-    # Three capsules hear a box at 0.5 m over steps 10–40, then a wall at 1.15 m; the fourth hears an edge at
-    # 0.95 m from step 10, on past step 40 (or not).  The run ends where the three's target changes: the edge's
-    # part of it ends there only as a cut, since its capsule still hears it (its echo did not fade there).
-    rng = np.random.default_rng(5)
-    d = np.full((80, 4), np.nan)
-    d[10:41, :3] = 0.5
-    d[41:61, :3] = 1.15
-    d[10 : 61 if heard_on else 41, 3] = 0.95
-    d += 0.001 * rng.standard_normal(d.shape)
-    regions = find_regions(d, tolerance=0.015, max_gap=2, min_steps=3, max_spread=0.255)
-    (edge,) = [r for r in regions if r.part and set(r.capsules.tolist()) == {3} and r.steps[0] == 10]
-    assert edge.steps[-1] == 40
-    assert edge.cut_after is heard_on
-    assert not edge.cut_before

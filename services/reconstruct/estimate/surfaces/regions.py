@@ -148,40 +148,17 @@ def find_regions(
                 steps, rows = _holding(steps, rows)
                 if steps.size < min_steps:
                     continue
-            part = len(groups) > 1
-            before, after = bool(cut[k, 0]), bool(cut[k, 1])
-            if part and rows.size:
-                before = before or _heard_on(d, steps[rows], caps, int(steps[0]), -1, tolerance, max_gap)
-                after = after or _heard_on(d, steps[rows], caps, int(steps[-1]), 1, tolerance, max_gap)
             out.append(
                 Region(
                     steps=steps.astype(np.intp),
                     rows=steps[rows].astype(np.intp),
                     capsules=caps.astype(np.intp),
-                    cut_before=before,
-                    cut_after=after,
-                    part=part,
+                    cut_before=bool(cut[k, 0]),
+                    cut_after=bool(cut[k, 1]),
+                    part=len(groups) > 1,
                 )
             )
     return out
-
-
-def _heard_on(
-    d: np.ndarray, rows: np.ndarray, caps: np.ndarray, end: int, direction: int, tolerance: float, max_gap: int
-) -> bool:
-    """Whether a part of a run's capsules still hear its target past its end (within ``max_gap + 1`` steps):
-    its run ended where the other capsules' target changed, not where this one's echo faded, so the end is a cut.
-    """
-    own = float(np.median(d[rows, caps]))
-    heard = np.unique(caps)
-    for k in range(1, max_gap + 2):
-        s = end + direction * k
-        if not 0 <= s < d.shape[0]:
-            return False
-        with np.errstate(invalid="ignore"):
-            if np.any(np.abs(d[s, heard] - own) <= 2 * tolerance):
-                return True
-    return False
 
 
 def _range_groups(d: np.ndarray, caps: np.ndarray, max_spread: float) -> list[np.ndarray | None]:
