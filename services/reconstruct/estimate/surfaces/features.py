@@ -279,6 +279,10 @@ def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale:
     Two planes meeting at the region's range say nothing of whether its echo comes from their line: another
     corner or edge at that range echoes the same.  What the region measured itself must admit the line's point:
 
+    * **range**: a double bounce off their line comes back from its point nearest the array, ``|X|`` away: the
+      region's own depth apart from it by more than 3 σ of both (the depth's, at least one reading's noise; the
+      line's along the ray through the planes' covariance), and by more than one target's ranges scatter within a
+      region (``range_tolerance``), is another target's echo.
     * **tilt**: the ranges' slope along the capsule stack is the x component of the unit vector from the echo's
       point to the array, whatever the target (:mod:`.placement`); the line's point leans off the fan by
       ``asin(X_x/|X|)``.  Apart by more than 3 σ of both (the region's slope fit; the line's lean through the
@@ -305,6 +309,14 @@ def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale:
     if not rho > 0:
         return ""
     u = point / rho
+    own_se = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
+    range_se = math.hypot(own_se, math.sqrt(max(float(u @ covariance @ u), 0.0)))
+    bound = max(3 * range_se, scale.opts.range_tolerance)
+    if abs(own.depth - rho) > bound:
+        return (
+            f"{NOT_THEIR_LINE}: its echo comes from {own.depth:.3f} m, their line's point nearest the array is "
+            f"{rho:.3f} m away (more than {100 * bound:.1f} cm)"
+        )
     lean = math.asin(max(-1.0, min(1.0, float(u[0]))))
     bearing = math.atan2(float(u[2]), float(u[1]))
     if math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and own.tilt_stderr > 0:
