@@ -104,6 +104,20 @@ def test_the_incremental_plane_agrees_with_a_fit_from_scratch(scan_messages):
     assert abs(scratch.offset - inc.plane.offset) < 0.005
 
 
+def test_the_points_handed_out_are_read_only_views_that_later_points_leave_unchanged(scan_messages):
+    service = ReconstructionService(ReconstructConfig(provisional_period=0))
+    _feed(service, scan_messages[: len(scan_messages) * 3 // 4])
+    (p,) = service._partials.values()
+    inc = p.inc_b
+    data = inc.data()
+    before = data.points.copy()
+    assert data.n == inc.n and not data.points.flags.writeable and not data.step.flags.writeable
+    _feed(service, scan_messages[len(scan_messages) * 3 // 4 : -1])  # more points (the buffers may grow)
+    assert inc.n > data.n
+    np.testing.assert_array_equal(data.points, before)
+    np.testing.assert_array_equal(inc.data().points[: data.n], before)
+
+
 def test_a_failed_trust_check_falls_back_to_an_exact_fit(scan_messages):
     service = ReconstructionService(ReconstructConfig(provisional=False))
     _feed(service, scan_messages[:-1])

@@ -119,3 +119,41 @@ def test_no_corner_yet_leaves_the_critical_step_unset_and_an_edge_failure_is_rep
             edge=None,
             timings=(0.0, 0.0, 0.0),
         )
+
+
+def test_plane_messages_reuse_a_plane_objects_message_and_make_a_new_planes() -> None:
+    cache = wire.PlaneMessages()
+    a, b = tilted_fit("a"), tilted_fit("b")
+    first = cache.message(a)
+    assert cache.message(a) is first  # the same plane object: its message, made once
+    assert first == wire.plane_message(a)
+    other = tilted_fit("a", method="adaptive")  # a new plane of the same label: its own message
+    assert cache.message(other).method == "adaptive"
+    assert cache.message(b).label == "b"
+    msg = wire.reconstruction_message(
+        "s1",
+        3,
+        status="provisional",
+        last_step=9,
+        samples_used=10,
+        critical_step=4,
+        critical_angle=0.5,
+        planes=[other, b],
+        edge=None,
+        timings=(0.0, 0.0, 0.0),
+        plane_messages=cache,
+    )
+    plain = wire.reconstruction_message(
+        "s1",
+        3,
+        status="provisional",
+        last_step=9,
+        samples_used=10,
+        critical_step=4,
+        critical_angle=0.5,
+        planes=[other, b],
+        edge=None,
+        timings=(0.0, 0.0, 0.0),
+        stamp_ns=msg.stamp_ns,
+    )
+    assert msg == plain

@@ -46,12 +46,12 @@ STALL_MS = 20.0
 STAGES = ("ingest", "provisional update", "provisional exact fits", "final")
 
 #: The queue model's rows: finals elsewhere or not, and the service's config fields set otherwise (A/B of the
-#: provisional policy: the exact fits on the samples' thread; no staleness deadline; refits deferred behind any
-#: backlog, caught up 10 ms at a time).
+#: provisional policy against the default config: the exact fits in the pool; no staleness deadline; refits deferred
+#: behind any backlog, caught up 10 ms at a time).
 MODEL_CASES: tuple[tuple[bool, str, dict[str, Any]], ...] = (
     (False, "", {}),
     (True, "", {}),
-    (True, ", exact fits on the samples' thread", {"fits_in_pool": False}),
+    (True, ", exact fits in the pool (fits_in_pool)", {"fits_in_pool": True}),
     (True, ", no provisional_deadline", {"provisional_deadline": 0.0}),
     (
         True,

@@ -164,6 +164,26 @@ class PlaneData:
         object.__setattr__(obj, "label", label)
         return obj
 
+    @classmethod
+    def prefix(
+        cls,
+        label: str,
+        axis: np.ndarray,
+        n: int,
+        points: np.ndarray,
+        capsules: np.ndarray,
+        distance: np.ndarray,
+        beam: np.ndarray,
+        step: np.ndarray,
+    ) -> PlaneData:
+        """The first ``n`` rows of append-only buffers of valid points (rows written once, by
+        :func:`plane_data`'s output, and never again): read-only views, neither copied nor checked again.
+
+        What a plane growing point by point hands a fit or a message in O(1), where a copy would cost
+        O(points) on every estimate.
+        """
+        return cls._owned(label, axis, points[:n], capsules[:n], distance[:n], beam[:n], step[:n])
+
 
 def plane_data(
     geometry: ArrayGeometry, gamma: np.ndarray, distance: np.ndarray, steps: np.ndarray, label: str, axis: np.ndarray

@@ -245,11 +245,8 @@ class IncrementalPlane:
         return sl
 
     def data(self) -> F.PlaneData:
-        """The plane's points so far, in arrival order."""
-        n = self.n
-        return F.PlaneData(
-            self.label, self.axis, self._v[:n], self._pc[:n], self._d[:n], self._beam[:n], self._step[:n]
-        )
+        """The plane's points so far, in arrival order (read-only views: a point's row is written once)."""
+        return F.PlaneData.prefix(self.label, self.axis, self.n, self._v, self._pc, self._d, self._beam, self._step)
 
     # --- the estimate -----------------------------------------------------------------------
     @overload

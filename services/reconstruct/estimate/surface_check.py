@@ -58,10 +58,12 @@ def surface_finding(
     steps = data.step[plane.inlier_mask] if plane.inlier_mask.shape == data.step.shape else data.step
     if steps.size == 0:
         return ()
-    best = max(surfaces.surfaces, key=lambda s: float(np.isin(steps, s.steps).mean()))
+    shares = [_share(steps, s.steps) for s in surfaces.surfaces]
+    k = max(range(len(shares)), key=shares.__getitem__)  # (the first of the largest, as max() picks it)
+    best = surfaces.surfaces[k]
     # What the surface's own echoes say of its plane: a lone region the sweep does not confirm a plane still
     # measures the bearing of the echoes the L plane holds.
-    if best.own_quality != GOOD or float(np.isin(steps, best.steps).mean()) < OWN_SHARE:
+    if best.own_quality != GOOD or shares[k] < OWN_SHARE:
         return ()
     angle = math.acos(min(1.0, abs(float(best.normal @ plane.normal))))
     sigma = math.hypot(plane.normal_stderr, math.sqrt(max(float(best.covariance[0, 0] + best.covariance[1, 1]), 0.0)))
@@ -75,3 +77,12 @@ def surface_finding(
             "the L's two planes do not model",
         ),
     )
+
+
+def _share(steps: np.ndarray, held: np.ndarray) -> float:
+    """The share of ``steps`` (non-negative step indices) in ``held``: ``np.isin(steps, held).mean()``, the same
+    number (a count over a size), through a table of the held steps."""
+    size = int(steps.max()) + 1
+    table = np.zeros(size, dtype=np.bool_)
+    table[held[held < size]] = True
+    return np.count_nonzero(table[steps]) / steps.size

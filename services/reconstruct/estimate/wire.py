@@ -67,6 +67,27 @@ def plane_message(plane: PlaneFit) -> pb.PlaneEstimate:
     return msg
 
 
+class PlaneMessages:
+    """The message of each label's last plane, reused while the plane is the same object.
+
+    A scan's provisional estimates carry plane a unchanged from the corner on, and plane b unchanged while its
+    estimate is kept: a :class:`PlaneFit` is immutable, so its message is made once (it holds the plane, whose
+    identity cannot be reused meanwhile).
+    """
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[PlaneFit, pb.PlaneEstimate]] = {}
+
+    def message(self, plane: PlaneFit) -> pb.PlaneEstimate:
+        """``plane_message(plane)``, made once per plane object."""
+        last = self._last.get(plane.label)
+        if last is not None and last[0] is plane:
+            return last[1]
+        msg = plane_message(plane)
+        self._last[plane.label] = (plane, msg)
+        return msg
+
+
 def feature_message(feature: Feature) -> pb.FeatureEstimate:
     msg = pb.FeatureEstimate(
         label=feature.label,
@@ -121,11 +142,13 @@ def reconstruction_message(
     missing_steps: Iterable[int] = (),
     accounting: pb.ScanAccounting | None = None,
     surfaces: SurfaceSet | None = None,
+    plane_messages: PlaneMessages | None = None,
 ) -> codec.Reconstruction:
     """Build a validated-to-be ``Reconstruction``.
 
     ``critical_step`` is a step index of the scan's schedule (not of the
-    received subset); ``timings`` is (segmentation, fit, total) in s.
+    received subset); ``timings`` is (segmentation, fit, total) in s; ``plane_messages`` reuses the
+    messages of planes encoded before (the same scan's earlier estimates).
     """
     msg = pb.Reconstruction(
         schema_version=SCHEMA_VERSION,
@@ -141,7 +164,7 @@ def reconstruction_message(
         msg.critical_angle = float(critical_angle)
     for plane in planes:
         if isinstance(plane, PlaneFit):
-            msg.planes.append(plane_message(plane))
+            msg.planes.append(plane_message(plane) if plane_messages is None else plane_messages.message(plane))
         else:
             msg.failures.append(str(plane))
     if isinstance(edge, EdgeLine):
@@ -169,11 +192,13 @@ def estimate_message(
     missing_steps: Iterable[int] = (),
     accounting: pb.ScanAccounting | None = None,
     surfaces: SurfaceSet | None = None,
+    plane_messages: PlaneMessages | None = None,
 ) -> codec.Reconstruction:
     """The ``Reconstruction`` message of an estimate of record
     (:func:`lelsonar.reconstruct.estimate.record.reconstruct_scan`): its planes, edge and failures,
     then the failures beyond them (``estimate.failures``), and the sweep's surfaces (``surfaces``, by
-    default the estimate's own: a final's; a provisional estimate has none).
+    default the estimate's own: a final's; a provisional estimate has none); ``plane_messages`` reuses the
+    messages of planes its scan's earlier estimates carried.
 
     ``status`` is a terminal status for a final estimate (the stream decides which: final, incomplete,
     final_timeout), "provisional" for a provisional one.
@@ -194,6 +219,7 @@ def estimate_message(
         missing_steps=missing_steps,
         accounting=accounting,
         surfaces=surfaces if surfaces is not None else estimate.surfaces,
+        plane_messages=plane_messages,
     )
     msg.failures.extend(estimate.failures)
     return msg

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from lelsonar.reconstruct.estimate.record import ProvisionalState
+from lelsonar.reconstruct.estimate.wire import PlaneMessages
 
 
 @dataclass
@@ -38,3 +39,5 @@ class Partial(ProvisionalState):
     #: Conflicting steps last asked of the acquirer's log, and when (its copy decides which is right).
     settling: frozenset = frozenset()
     settle_at: float | None = None
+    #: The messages of the planes its provisional estimates carried (plane a's is made once).
+    plane_messages: PlaneMessages = field(default_factory=PlaneMessages)

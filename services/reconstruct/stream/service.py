@@ -426,7 +426,7 @@ class ReconstructionService(ServiceOutputs):
             p.provisional_ns = rate_mark  # not published: the next fresh sample's estimate is not held back
             return []
         p.estimated_at = self._clock()
-        msg = wire.estimate_message(est, scan.start.scanner_id, scan.start.scan_id)
+        msg = wire.estimate_message(est, scan.start.scanner_id, scan.start.scan_id, plane_messages=p.plane_messages)
         if self._observer:
             self._observer.estimate(scan, msg, None, p)
         return [self._emit(msg)]

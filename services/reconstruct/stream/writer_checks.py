@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.stream.candidates import RANGE_CHECK_MIN
 from lelsonar.reconstruct.stream.range_repair import NOISE_INDEPENDENT, RangeRepair
 from lelsonar.reconstruct.stream.scan_start import SOUND_SPEED_TOLERANCE, air_sound_speed
@@ -70,7 +71,8 @@ class WriterChecks(RangeRepair):
             else "; left out"
         )
         independence = self.noise_independence() if share > 0.5 else math.nan
-        if not self.ranges_match_waveforms() and independence > NOISE_INDEPENDENT:
+        match = self.ranges_match_waveforms()
+        if not match and independence > NOISE_INDEPENDENT:
             # (σ over the echoes' windows: the time-of-flight windows may lie in the transmitter's ring-down.)
             out.append(
                 (
@@ -83,7 +85,7 @@ class WriterChecks(RangeRepair):
                     "the strongest echoes' crossing of the noise's level, not the board's",
                 )
             )
-        elif not self.ranges_match_waveforms():
+        elif not match:
             whole, echoes = self.echo_rise()
             rise = echoes if math.isfinite(echoes) else whole
             # Most readings marking noise is a board whose comparator fires on it, or ranges in another
@@ -135,7 +137,7 @@ class WriterChecks(RangeRepair):
         ratio = self.range_tof_ratio[got]
         ratio = ratio[np.isfinite(ratio)]
         if ratio.size >= RANGE_CHECK_MIN:
-            off = float(np.median(ratio)) - 1.0
+            off = median(ratio) - 1.0
             if abs(off) > RANGE_TOF_TOLERANCE:
                 # The planes rest on the distance; which of the two fields is right the scan cannot tell (the
                 # waveforms place the time of flight, not the speed of sound).  A few % is a scale error of

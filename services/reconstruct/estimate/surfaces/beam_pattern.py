@@ -54,6 +54,12 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     -------
     (bearing, σ) in rad, or None when the amplitudes have no interior peak.
     """
+    return _peak_bearing(gamma, amplitude, True)
+
+
+def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -> tuple[float, float] | None:
+    """:func:`bearing_from_amplitude`; without ``with_stderr`` the vertex of a parabola's top comes with a NaN σ
+    (the covariance is the fit's dearest part, and a caller that reads the bearing alone skips it)."""
     g = np.asarray(gamma, dtype=np.float64)
     a = np.asarray(amplitude, dtype=np.float64)
     ok = np.isfinite(a) & (a > 0)
@@ -89,6 +95,8 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
     # The vertex must be held by the samples on both of its sides, not extrapolated past the region's end.
     if np.count_nonzero(u < vertex) < 2 or np.count_nonzero(u > vertex) < 2:
         return None
+    if not with_stderr:
+        return g0 + vertex, float("nan")
     res = la - m @ coef
     dof = max(u.size - 3, 1)
     cov = float(res @ res) / dof * _pinv(m.T @ m)
@@ -514,5 +522,5 @@ def capsule_peak_spread(gamma: np.ndarray, amplitude: np.ndarray) -> float:
     The spread, rad (0 with fewer than two capsules that show a peak).
     """
     a = np.asarray(amplitude, dtype=np.float64)
-    peaks = [p[0] for c in range(a.shape[1]) for p in [bearing_from_amplitude(gamma, a[:, c])] if p is not None]
+    peaks = [p[0] for c in range(a.shape[1]) for p in [_peak_bearing(gamma, a[:, c], False)] if p is not None]
     return float(np.std(peaks, ddof=1)) if len(peaks) >= 2 else 0.0

@@ -13,7 +13,7 @@ from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, reading_positions, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import Surface, SurfaceOptions
 
 __all__ = ["METHOD", "fit_surface", "joint_fit"]
@@ -33,7 +33,7 @@ def fit_surface(
 ) -> Surface | None:
     """A region's plane; ``joint``: its wall as the joint corner model fitted it (bearing, tilt, offset, σ)."""
     r = m.region
-    caps = geometry.capsule_positions(gamma[r.rows])[np.arange(r.rows.size), r.capsules]
+    caps = reading_positions(geometry, gamma, r.rows, r.capsules)
     d = distance[r.rows, r.capsules]
     beam = np.stack([np.zeros(r.rows.size), np.cos(gamma[r.rows]), np.sin(gamma[r.rows])], axis=1)
     if joint is not None:

@@ -65,13 +65,23 @@ def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndar
         sxx = np.bincount(pos, weights=(x - mx[pos]) ** 2, minlength=k)
         sxd = np.bincount(pos, weights=(x - mx[pos]) * (d - md[pos]), minlength=k)
         slopes = np.where((n >= max(min_readings, 2)) & (sxx > 0), sxd / sxx, np.nan)
-        resid = d - md[pos] - np.nan_to_num(slopes[pos]) * (x - mx[pos])
+        resid = d - md[pos] - _nan_to_num(slopes[pos]) * (x - mx[pos])
     dof = float(np.sum(np.maximum(n - 2, 0)))
     if not dof > 0:
         return slopes, np.full(k, np.nan), sxx
     noise = math.sqrt(float(np.sum(np.where(n[pos] > 2, resid * resid, 0.0))) / dof)
     with np.errstate(divide="ignore"):
         return slopes, np.where(np.isfinite(slopes), noise / np.sqrt(sxx), np.nan), sxx
+
+
+#: The largest finite float64: where ``np.nan_to_num`` puts +inf.
+_FMAX = float(np.finfo(np.float64).max)
+
+
+def _nan_to_num(v: np.ndarray) -> np.ndarray:
+    """``np.nan_to_num`` of a float64 array (NaN to 0, ±inf to ±the largest float), the same numbers without its
+    dtype checks."""
+    return np.where(np.isnan(v), 0.0, np.where(np.isinf(v), np.copysign(_FMAX, v), v))
 
 
 def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
@@ -82,20 +92,20 @@ def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
     ``min_steps`` slopes in it and twice that left after it.
     """
     finite = np.isfinite(z)
-    # (Python numbers for the loop: the same values, without a NumPy scalar per step.)
-    zs = np.cumsum(np.where(finite, z, 0.0)).tolist()
+    zs = np.cumsum(np.where(finite, z, 0.0))
     counts = np.cumsum(finite)
-    ns, left, ok = counts.tolist(), (counts[-1] - counts).tolist(), finite.tolist()
-    best, length = 0.0, 0
-    for b in range(z.size):
-        if ns[b] < min_steps or not ok[b]:
-            continue
-        if left[b] < 2 * min_steps:
-            break
-        t = abs(zs[b]) / math.sqrt(float(ns[b]))
-        if t > best:
-            best, length = t, b + 1
-    return length if best > sigmas else 0
+    # The runs that end at a step with a slope, at least min_steps of them, up to the first that leaves fewer
+    # than twice that after it.
+    ends = finite & (counts >= min_steps)
+    short = np.flatnonzero(ends & (counts[-1] - counts < 2 * min_steps))
+    if short.size:
+        ends[short[0] :] = False
+    at = np.flatnonzero(ends)
+    if not at.size:
+        return 0
+    t = np.abs(zs[at]) / np.sqrt(counts[at].astype(np.float64))
+    k = int(np.argmax(t))  # the first of the largest
+    return int(at[k]) + 1 if t[k] > 0.0 and t[k] > sigmas else 0
 
 
 def split_flanks(

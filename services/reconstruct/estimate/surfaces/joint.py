@@ -20,10 +20,10 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import leastsq
 
-from lelsonar.reconstruct.estimate.corner.model import ECHO_EDGE, ScanPoints, Wall, mirror_residuals
-from lelsonar.reconstruct.estimate.corner.solver import joint_residuals
+from lelsonar.reconstruct.estimate.corner.model import ECHO_EDGE
+from lelsonar.reconstruct.estimate.corner.solver import joint_residuals_of, labelled_order
 
 __all__ = ["WallEvidence", "CornerEvidence", "JointWall", "joint_walls"]
 
@@ -86,21 +86,16 @@ def _normal(bearing: float, tilt: float) -> np.ndarray:
     return np.array([math.sin(tilt), c * math.cos(bearing), c * math.sin(bearing)])
 
 
-def _points(positions: np.ndarray, ranges: np.ndarray) -> ScanPoints:
-    n = ranges.size
-    zeros = np.zeros(n)
-    return ScanPoints(
-        step=np.zeros(n, dtype=np.intp),
-        capsule_index=np.zeros(n, dtype=np.intp),
-        gamma=zeros,
-        capsule=np.ascontiguousarray(positions, dtype=np.float64),
-        distance=np.ascontiguousarray(ranges, dtype=np.float64),
-        beam=np.zeros((n, 3)),
-    )
+#: The relative step of the forward differences (scipy's ``'2-point'`` rule for float64).
+_REL_STEP = np.finfo(np.float64).eps ** 0.5
 
 
 def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> list[JointWall] | None:
     """Fit the walls and the corners that join them at once (see the module's rows).
+
+    The Jacobian is scipy's ``'2-point'`` forward difference (its steps, its quotients), with each step's
+    residuals computed only for the rows its parameter moves: a wall's parameters move its own rows, the
+    corners it joins and its bearing row; every other row's difference is the row's own, ``f − f``.
 
     Returns
     -------
@@ -109,41 +104,106 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
     """
     if not walls or not corners:
         return None
-    wall_pts = [_points(w.positions, w.ranges) for w in walls]
-    corner_pts = [_points(c.positions, c.ranges) for c in corners]
-    corner_labels = [np.full(c.ranges.size, ECHO_EDGE, dtype=np.intp) for c in corners]
+    n_walls = len(walls)
+    positions = [np.ascontiguousarray(w.positions, dtype=np.float64) for w in walls]
+    ranges = [np.ascontiguousarray(w.ranges, dtype=np.float64) for w in walls]
+    corner_rows = []
+    for c in corners:
+        labels = np.full(c.ranges.size, ECHO_EDGE, dtype=np.intp)
+        corner_rows.append(
+            (
+                np.ascontiguousarray(c.positions, dtype=np.float64),
+                np.ascontiguousarray(c.ranges, dtype=np.float64),
+                labelled_order(labels),
+                labels,
+            )
+        )
+    bearings = [(w.bearing, w.bearing_stderr) for w in walls]
+    # Row blocks, in the order of the rows: each wall's echoes, each corner's, the bearings.
+    sizes = [r.size for r in ranges] + [c.ranges.size for c in corners] + [n_walls]
+    bounds = np.concatenate(([0], np.cumsum(sizes))).tolist()
+    # The blocks each wall's parameters move.
+    moved = [
+        [k, *(n_walls + j for j, c in enumerate(corners) if k in c.walls), n_walls + len(corners)]
+        for k in range(n_walls)
+    ]
 
-    def unpack(x: np.ndarray) -> list[Wall]:
-        return [Wall(_normal(x[3 * k], x[3 * k + 1]), float(x[3 * k + 2])) for k in range(len(walls))]
+    def wall(x: np.ndarray, k: int) -> tuple[np.ndarray, float]:
+        return _normal(x[3 * k], x[3 * k + 1]), float(x[3 * k + 2])
+
+    def block(ws: list[tuple[np.ndarray, float]], x: np.ndarray, j: int) -> np.ndarray:
+        """Block ``j``'s rows at ``x``, whose walls (normal, offset) are ``ws``."""
+        if j < n_walls:
+            n, h = ws[j]
+            return (positions[j] @ n + ranges[j] - h) / walls[j].sigma  # mirror_residuals
+        if j < n_walls + len(corners):
+            c = corners[j - n_walls]
+            (na, ha), (nb, hb) = ws[c.walls[0]], ws[c.walls[1]]
+            return joint_residuals_of(*corner_rows[j - n_walls], na, ha, nb, hb) / c.sigma  # joint_residuals
+        return np.array([(x[3 * k] - b) / se for k, (b, se) in enumerate(bearings)])
+
+    last: list[tuple[bytes, np.ndarray, list[tuple[np.ndarray, float]]]] = []
+
+    def evaluate(x: np.ndarray) -> tuple[np.ndarray, list[tuple[np.ndarray, float]]]:
+        ws = [wall(x, k) for k in range(n_walls)]
+        f = np.concatenate([block(ws, x, j) for j in range(len(sizes))])
+        last[:] = [(x.tobytes(), f.copy(), ws)]
+        return f, ws
 
     def rows(x: np.ndarray) -> np.ndarray:
-        ws = unpack(x)
-        out = [mirror_residuals(ws[k], wall_pts[k]) / walls[k].sigma for k in range(len(walls))]
-        for c, pts, lab in zip(corners, corner_pts, corner_labels, strict=True):
-            a, b = c.walls
-            out.append(joint_residuals(ws[a], ws[b], pts, lab) / c.sigma)
-        out.append(np.array([(x[3 * k] - w.bearing) / w.bearing_stderr for k, w in enumerate(walls)]))
-        return np.concatenate(out)
+        return evaluate(x)[0]
+
+    def forward_differences(x: np.ndarray) -> np.ndarray:
+        f0, ws = (last[0][1], last[0][2]) if last and last[0][0] == x.tobytes() else evaluate(x)
+        sign = (x >= 0).astype(float) * 2 - 1
+        h = _REL_STEP * sign * np.maximum(1.0, np.abs(x))
+        out = np.empty((x.size, f0.size))
+        for i in range(x.size):
+            x1 = np.copy(x)
+            x1[i] = x[i] + h[i]
+            dx = (x[i] + h[i]) - x[i]
+            ws1 = list(ws)
+            ws1[i // 3] = wall(x1, i // 3)
+            df = f0 - f0
+            for j in moved[i // 3]:
+                df[bounds[j] : bounds[j + 1]] = block(ws1, x1, j) - f0[bounds[j] : bounds[j + 1]]
+            out[i] = df / dx
+        return out.T
 
     x0 = np.array([v for w in walls for v in (w.bearing, w.tilt, w.offset)], dtype=np.float64)
     start = rows(x0)
     if start.size <= x0.size or not np.all(np.isfinite(start)):
         return None  # fewer rows than unknowns, or a wall's σ or a start not finite
-    fit = least_squares(rows, x0, method="lm", x_scale=np.tile([1e-2, 1e-2, 1e-3], len(walls)))
-    if not fit.success or not np.all(np.isfinite(fit.x)):
+    # MINPACK's lmder as least_squares(method="lm") calls it (its tolerances, evaluations and diag = 1/x_scale),
+    # without the wrapper's bookkeeping.
+    n_par = x0.size
+    x, _, info, _, status = leastsq(
+        rows,
+        x0,
+        Dfun=forward_differences,
+        full_output=True,
+        ftol=1e-8,
+        xtol=1e-8,
+        gtol=1e-8,
+        maxfev=100 * n_par,
+        factor=100.0,
+        diag=1 / np.tile([1e-2, 1e-2, 1e-3], len(walls)),
+    )
+    if status not in (1, 2, 3, 4) or not np.all(np.isfinite(x)):
         return None
-    jac = np.asarray(fit.jac)
+    jac = forward_differences(x)
     jtj = jac.T @ jac
     if np.linalg.cond(jtj) > 1e12:
         return None
-    dof = max(fit.fun.size - x0.size, 1)
-    chi2 = float(fit.fun @ fit.fun) / dof
+    fun = info["fvec"]
+    dof = max(fun.size - n_par, 1)
+    chi2 = float(fun @ fun) / dof
     cov = np.linalg.inv(jtj) * max(1.0, chi2)
     return [
         JointWall(
-            float(fit.x[3 * k]),
-            float(fit.x[3 * k + 1]),
-            float(fit.x[3 * k + 2]),
+            float(x[3 * k]),
+            float(x[3 * k + 1]),
+            float(x[3 * k + 2]),
             cov[3 * k : 3 * k + 3, 3 * k : 3 * k + 3],
             k,
             cov,

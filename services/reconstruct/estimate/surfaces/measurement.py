@@ -35,6 +35,7 @@ __all__ = [
     "masked_ends",
     "measure_region",
     "mirror_normalised",
+    "reading_positions",
     "step_medians",
     "step_table",
     "summed_width_stderr",
@@ -107,7 +108,11 @@ def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
     -------
     (k,) array over ``region.steps``.
     """
-    table = step_table(region, values)
+    return _row_medians(step_table(region, values))
+
+
+def _row_medians(table: np.ndarray) -> np.ndarray:
+    """Each row's median over its finite values (NaN: none), as ``np.median``; sorts ``table`` in place."""
     table.sort(axis=1)  # NaN last: each row's first `count` values are its finite ones, in order
     count = np.count_nonzero(np.isfinite(table), axis=1)
     row = np.arange(table.shape[0])
@@ -115,6 +120,17 @@ def step_medians(region: Region, values: np.ndarray) -> np.ndarray:
     lower = table[row, np.maximum(count - 1, 0) // 2]
     # The middle value of an odd count, the mean of the middle two of an even one (NaN for none).
     return np.where(count % 2 == 1, upper, (lower + upper) / 2)
+
+
+def reading_positions(geometry: ArrayGeometry, gamma: np.ndarray, rows: np.ndarray, capsules: np.ndarray) -> np.ndarray:
+    """Each reading's capsule position (eq. 9), m: row ``capsules[i]`` of ``geometry.capsule_positions`` at
+    ``gamma[rows[i]]``, the same numbers without the other capsules' rows."""
+    g = np.asarray(gamma[rows], dtype=float)
+    out = np.empty((g.size, 3))
+    out[:, 0] = np.asarray(geometry.capsule_x, dtype=float)[capsules]
+    out[:, 1] = geometry.radial_offset * np.cos(g)
+    out[:, 2] = geometry.radial_offset * np.sin(g)
+    return out
 
 
 def sweep_step(gamma: np.ndarray) -> float:
@@ -194,7 +210,8 @@ def measure_region(
     clipped: bool | None = None
     per_step = np.full(region.steps.size, np.nan)
     if amplitude is not None:
-        per_step = step_medians(region, amplitude)
+        table = step_table(region, amplitude)
+        per_step = _row_medians(table.copy())
         peak = float(np.nanmax(per_step)) if np.isfinite(per_step).any() else float("nan")
         clipped = bool(np.count_nonzero(per_step >= (1.0 - PLATEAU) * peak) >= 3) if math.isfinite(peak) else None
         peak_fit = bearing_from_amplitude(g, per_step)
@@ -275,7 +292,7 @@ def measure_region(
         side = "both sides" if region.cut_before and region.cut_after else "one side"
         why = mixed if mixed else f"the region of constant depth is cut on {side} (a nearer echo or the sweep's end)"
         findings.append((UNRELIABLE, f"bearing not determined: {why}, and no amplitude peak is in it"))
-    caps = geometry.capsule_positions(gamma[region.rows])[np.arange(region.rows.size), region.capsules]
+    caps = reading_positions(geometry, gamma, region.rows, region.capsules)
     d = distance[region.rows, region.capsules]
     x = capsule_x(geometry)[region.capsules]
     (lin, lin_cov, lin_sigma), (quad, quad_cov, _) = stack_fits(x, region.rows, d)
@@ -292,7 +309,7 @@ def measure_region(
     # peak its own way), through the peak's share of the bearing: none, no spread (at finite γ, a finite one).
     spread = 0.0
     if peak_fit is not None and amplitude is not None and (peak_weight or not np.isfinite(g).all()):
-        spread = capsule_peak_spread(g, step_table(region, amplitude))
+        spread = capsule_peak_spread(g, table)
     return Measured(
         region=region,
         bearing=bearing,

@@ -19,6 +19,7 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import UNRELIABLE
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import piston_power
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
@@ -244,7 +245,7 @@ def _apart(m: Measured, heard: np.ndarray, x: np.ndarray, distance: np.ndarray, 
     """Per two neighbours of ``heard`` (stack order), whether a capsule between them that the region does not hold
     hears something farther than the region's range at most of its steps (and nothing nearer)."""
     r = m.region
-    own = float(np.median(m.ranges))
+    own = median(m.ranges)
     block = distance[r.steps]
     out = np.zeros(max(heard.size - 1, 0), dtype=bool)
     for j in range(heard.size - 1):

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.errors import ConfigError
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.signal.compiled import kernel
 
 __all__ = [
@@ -173,7 +174,7 @@ def _range_groups(d: np.ndarray, caps: np.ndarray, max_spread: float) -> list[np
     heard = np.unique(caps)
     if heard.size < 2:
         return [None]
-    med = np.array([np.median(d[caps == c]) for c in heard])
+    med = np.array([median(d[caps == c]) for c in heard])
     if not np.all(np.isfinite(med)):
         return [None]
     order = np.argsort(med)

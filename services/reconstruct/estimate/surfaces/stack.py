@@ -49,7 +49,7 @@ def stack_fits(x: np.ndarray, rows: np.ndarray, d: np.ndarray) -> tuple[StackFit
     The straight fit and the curved one, each its coefficients ((b,) and (b, c)), their covariance and
     residual σ (m); NaN when the readings do not constrain them (a single capsule per step).
     """
-    _, group = np.unique(rows, return_inverse=True)
+    group = _step_groups(rows)
     # Within-step demeaning removes the per-step intercepts exactly.
     counts = np.bincount(group)
     cols = np.stack([x, x * x], axis=1)
@@ -58,6 +58,18 @@ def stack_fits(x: np.ndarray, rows: np.ndarray, d: np.ndarray) -> tuple[StackFit
     dm = d - (np.bincount(group, weights=d) / counts)[group]
     straight = np.ascontiguousarray(am[:, :1])  # contiguous: BLAS's summation, not a strided loop's
     return _demeaned_fit(straight, dm, counts.size), _demeaned_fit(am, dm, counts.size)
+
+
+def _step_groups(rows: np.ndarray) -> np.ndarray:
+    """Each reading's step's rank among the steps (``np.unique(rows, return_inverse=True)[1]``), by runs where
+    the readings come in step order, as a region's do."""
+    r = np.asarray(rows)
+    if r.size and np.all(r[1:] >= r[:-1]):
+        group = np.empty(r.size, dtype=np.intp)
+        group[0] = 0
+        np.cumsum(r[1:] != r[:-1], out=group[1:])
+        return group
+    return np.unique(r, return_inverse=True)[1]
 
 
 #: A least-squares fit's coefficients, their covariance and the residual σ.
@@ -108,7 +120,7 @@ def stack_profile(x: np.ndarray, rows: np.ndarray, capsules: np.ndarray, d: np.n
     heard = heard[np.argsort(x[heard], kind="stable")]
     if heard.size < 3 or not np.all(np.isfinite(d)):
         return None
-    _, group = np.unique(rows, return_inverse=True)
+    group = _step_groups(rows)
     n_groups = int(group.max()) + 1
     dof = d.size - n_groups - (heard.size - 1)
     if dof < 1:
@@ -219,7 +231,7 @@ def two_targets(profile: StackProfile, apart: np.ndarray, sigmas: float) -> tupl
 
 def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
     """Each capsule's position along the stack (the rotation axis), m."""
-    return np.asarray(geometry.capsules_in_array_frame()[:, 0], dtype=np.float64)
+    return np.array(geometry.capsule_x, dtype=np.float64)  # (capsules_in_array_frame's first column)
 
 
 #: The slope ``b`` (m) and curvature ``κ`` of the squared ranges along the stack, ``b``'s σ, the capsules kept, the

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
+from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
     PLATEAU,
     extrapolated_peak,
@@ -153,10 +154,12 @@ def echo_scale(measured: list[Measured], gamma: np.ndarray, opts: SurfaceOptions
         for k in [log_amplitude_curvature(g[m.region.steps], m.step_amplitude)]
         if k is not None
     ]
-    beam_k = float(np.median(ks)) if ks else float("nan")
+    beam_k = median(np.asarray(ks, dtype=np.float64)) if ks else float("nan")
     # The flattest top one echo shows in this sweep (3 σ of its regions' spread under their median, robust):
     # flatter, a second echo widens it.
-    beam_low = beam_k - 3 * 1.4826 * float(np.median(np.abs(np.asarray(ks) - beam_k))) if len(ks) >= 3 else beam_k
+    beam_low = (
+        beam_k - 3 * 1.4826 * median(np.abs(np.asarray(ks, dtype=np.float64) - beam_k)) if len(ks) >= 3 else beam_k
+    )
 
     # The receiver clips at one level, its full scale: the sweep's largest peak.  A plateau well under it is the
     # amplitude's quantisation on a weak echo, whose peak stands.
