@@ -198,3 +198,16 @@ def test_two_edges_side_by_side_at_one_range_are_two_edges():
     assert model.elements[27].kind == model.elements[26].kind == ElementKind.EDGE
     assert first and second and all(f.kind == "edge" for f in (*first, *second))
     assert not {f.label for f in first} & {f.label for f in second}
+
+
+def test_a_corner_whose_range_is_not_its_planes_lines_is_placed_by_its_own_echo():
+    # Boxes world 8, pose 0, vertical fan: a wall split into two pieces a few degrees apart, their line 3.1 m off,
+    # and the box's corner (element 29) at 2.7 m at the range the classification tied to them.  A double bounce
+    # comes back from its line's nearest point: 37 cm apart, it is not theirs, and it says so.
+    scan, model, mine = _world_feature("boxes", 8, 0, 29, "paper")
+    assert model.elements[29].kind == ElementKind.DIHEDRAL
+    assert mine
+    for f in mine:
+        dist, sigma = _off_line(scan, model, f, 29)
+        assert dist <= max(3 * sigma, 0.02)
+    assert any(any("its echo comes from" in r for r in f.reasons) for f in mine)

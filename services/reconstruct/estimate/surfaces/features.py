@@ -23,8 +23,15 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, unit_normal
-from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, line_direction, pair_line_point, with_range
+from lelsonar.reconstruct.estimate.surfaces.placement import (
+    RANGE_FLOOR,
+    echo_point,
+    line_direction,
+    pair_line_point,
+    with_range,
+)
 from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.stack import stack_tilt
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 
 __all__ = [
@@ -35,6 +42,7 @@ __all__ = [
     "TRACE_ONLY",
     "NOT_THEIR_LINE",
     "MIXED",
+    "STACK_MIXED",
     "PLACEMENT_CAVEATS",
     "placement_caveats",
 ]
@@ -61,6 +69,12 @@ MIXED = (
     "not placed on that line: its ranges scatter {sigma:.0f} mm about a free slope along the stack, more than "
     "the {tol:.0f} mm one target's region holds to, so it holds more than one target; where its own echo puts "
     "it, its bearing anywhere its region's reach allows"
+)
+
+#: In the reasons of a feature placed by its own echo whose ranges along the stack no one target explains.
+STACK_MIXED = (
+    "its ranges along the capsule stack scatter {sigma:.1f} mm about any one target's, more than one reading's "
+    "noise, with or without any one capsule: off the fan anywhere within the beam's half-width"
 )
 
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
@@ -111,6 +125,127 @@ def _feature(
     )
 
 
+def _own_tilt(m: Measured) -> tuple[Measured, str]:
+    """A target placed by its own echo, off the fan and at the range its squared ranges along the stack put it
+    (:func:`~.stack.stack_tilt`: any one target's, with the capsules that hear it); the reason to add ("": none).
+
+    Each kept reading's squared range less ``b x + κ x²`` is the squared range ``d₀²`` from its capsule's point
+    moved to the stack's centre, ``q``; the target ``X = ρ u`` is at ``|X − q| = d₀`` from there, so
+    ``ρ = q·u + √(d₀² − |q|² + (q·u)²)``, exact for a point, a line or a plane (where the mirror condition's
+    first order leaves ``x²/(2ρ)``).  Its offset along the stack ``−b/2`` gives ``sin t = −b/(2ρ)``.
+    """
+    r = m.region
+    if r.capsules.size == 0:
+        return m, ""
+    x = np.zeros(int(r.capsules.max()) + 1)
+    x[r.capsules] = m.positions[:, 0]
+    fit = stack_tilt(x, r.rows, r.capsules, m.ranges, m.depth, RANGE_FLOOR)
+    if fit is None:
+        return m, ""
+    b, kappa, b_se, kept, sigma, one = fit
+    if not one:
+        return replace(m, tilt_stderr=float("nan")), STACK_MIXED.format(sigma=1000 * sigma)
+    sel = np.isin(r.capsules, kept)
+    xs, d = m.positions[sel, 0], m.ranges[sel]
+    q = m.positions[sel].copy()
+    q[:, 0] = 0.0
+    rho = m.depth
+    for _ in range(2):
+        sin_t = -b / (2.0 * rho)
+        if not abs(sin_t) < 1.0:
+            return m, ""
+        u = unit_normal(m.bearing, math.asin(sin_t))
+        qu = q @ u
+        with np.errstate(invalid="ignore"):
+            each = qu + np.sqrt(d * d - b * xs - kappa * xs * xs - np.einsum("ij,ij->i", q, q) + qu * qu)
+        if not np.all(np.isfinite(each)):
+            return m, ""
+        rho = float(np.median(each))
+    sin_t = -b / (2.0 * rho)
+    if not (abs(sin_t) < 1.0 and math.isfinite(b_se)):
+        return m, ""
+    tilt = math.asin(sin_t)
+    n_steps = np.unique(r.rows[sel]).size
+    # The median's standard error (1.25 σ/√N), one capsule's readings per step counted once per step.
+    depth_se = 1.2533 * float(np.std(each)) / math.sqrt(max(n_steps, 1)) if each.size > 1 else m.depth_stderr
+    tilt_se = b_se / (2.0 * rho) / max(math.cos(tilt), 1e-3)
+    return replace(m, depth=rho, depth_stderr=depth_se, tilt=tilt, tilt_stderr=tilt_se), ""
+
+
+def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | None) -> tuple[Measured, str]:
+    """A plane's line with a surface across the fan, placed at the plane's foot off the fan (its
+    classification's), unless its own ranges along the stack deny that the line is square to the stack.
+
+    Square to the stack (a floor below a horizontal fan), the line's point nearest the array is the plane's foot
+    moved along the stack, and the region's own squared ranges along the stack (:func:`_own_tilt`, any one
+    target's) say the same tilt.  A surface across the fan at another angle (a wall beside a
+    vertical fan) turns the line in the plane: its nearest point is off the foot, at the same range but nearer
+    the fan.  Apart by more than 3 σ of both, the point is where the region's own range and tilt meet the
+    plane's trace, on the side of the foot its echo is heard (the plane's mirror echo, nearer, hides the line's
+    around the foot: the line's emerges past the plane's region on its nearest point's side), with
+    :func:`~.evidence.end_stderr`'s σ.  Its bearing σ is at least the fitted plane's.
+
+    Returns
+    -------
+    The region so placed, and the reason to add ("": at the foot).
+    """
+    if fitted is not None:
+        fitted_se = math.sqrt(max(float(fitted.covariance[0, 0]), 0.0))
+        if fitted_se > m.bearing_stderr:
+            m = replace(m, bearing_stderr=fitted_se)
+    own, mixed = _own_tilt(own)
+    if mixed or not (math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and math.isfinite(m.tilt)):
+        return m, ""
+    se = math.hypot(own.tilt_stderr, m.tilt_stderr if math.isfinite(m.tilt_stderr) else 0.0)
+    if not abs(own.tilt - m.tilt) > 3.0 * se:
+        return m, ""
+    x0 = own.depth * math.sin(own.tilt)
+    h = (pj.depth - x0 * math.sin(pj.tilt)) / math.cos(pj.tilt)
+    rho = in_fan_range(own)[0]
+    half = math.acos(min(1.0, h / rho)) if rho > 0 else 0.0
+    trace = wrap(pj.bearing + math.copysign(half, wrap(own.bearing - pj.bearing)))
+    placed = replace(own, bearing=trace, bearing_stderr=m.bearing_stderr, summed_spread=0.0)
+    placed = replace(placed, bearing_stderr=max(end_stderr(placed, pj, trace), m.bearing_stderr))
+    return placed, (
+        f"its ranges slope along the capsule stack as a target {math.degrees(own.tilt):+.1f}° off the fan, not the "
+        f"{math.degrees(m.tilt):+.1f}° of a line square to the stack (3 σ: {math.degrees(3 * se):.1f}°): placed on "
+        f"its plane's trace at its own range and tilt, {math.degrees(trace):.1f}°"
+    )
+
+
+def _cut_peak(m: Measured) -> tuple[Measured, str]:
+    """A bearing from the amplitude peak of a region cut where its echo is still at its top: the top may go on
+    past the cut, so the peak lies anywhere from the fitted vertex to the cut end (uniform, beside its σ).
+
+    The cut end is at the top where its step's amplitude is within 3 σ of the region's largest, σ the steps'
+    own amplitude noise (successive differences' median absolute value over 0.6745·√2, Gaussian).
+
+    Returns
+    -------
+    The region with that σ, and the reason to add ("": its peak stands).
+    """
+    r, a = m.region, m.step_amplitude
+    if m.bearing_source != "amplitude peak" or not (r.cut_before or r.cut_after) or a.size < 3:
+        return m, ""
+    ok = a[np.isfinite(a)]
+    if ok.size < 3:
+        return m, ""
+    top = float(ok.max())
+    noise = float(np.median(np.abs(np.diff(ok)))) / (0.6745 * math.sqrt(2.0))
+    widest = 0.0
+    for cut, end, amp in ((r.cut_before, m.span[0], a[0]), (r.cut_after, m.span[1], a[-1])):
+        if cut and math.isfinite(float(amp)) and float(amp) >= top - 3.0 * noise:
+            widest = max(widest, abs(wrap(end - m.bearing)))
+    if not widest > 0:
+        return m, ""
+    se = math.hypot(m.bearing_stderr, widest / math.sqrt(3.0))
+    why = (
+        f"its amplitude peak is at a cut end's top: the peak may lie up to {math.degrees(widest):.1f}° from the "
+        "fitted vertex, toward the cut"
+    )
+    return replace(m, bearing_stderr=se), why
+
+
 def _pair_placement(
     ia: int, ib: int, m: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -144,6 +279,10 @@ def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale:
     Two planes meeting at the region's range say nothing of whether its echo comes from their line: another
     corner or edge at that range echoes the same.  What the region measured itself must admit the line's point:
 
+    * **range**: a double bounce off their line comes back from its point nearest the array, ``|X|`` away: the
+      region's own depth apart from it by more than 3 σ of both (the depth's, at least one reading's noise; the
+      line's along the ray through the planes' covariance), and by more than one target's ranges scatter within a
+      region (``range_tolerance``), is another target's echo.
     * **tilt**: the ranges' slope along the capsule stack is the x component of the unit vector from the echo's
       point to the array, whatever the target (:mod:`.placement`); the line's point leans off the fan by
       ``asin(X_x/|X|)``.  Apart by more than 3 σ of both (the region's slope fit; the line's lean through the
@@ -170,6 +309,14 @@ def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale:
     if not rho > 0:
         return ""
     u = point / rho
+    own_se = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
+    range_se = math.hypot(own_se, math.sqrt(max(float(u @ covariance @ u), 0.0)))
+    bound = max(3 * range_se, scale.opts.range_tolerance)
+    if abs(own.depth - rho) > bound:
+        return (
+            f"{NOT_THEIR_LINE}: its echo comes from {own.depth:.3f} m, their line's point nearest the array is "
+            f"{rho:.3f} m away (more than {100 * bound:.1f} cm)"
+        )
     lean = math.asin(max(-1.0, min(1.0, float(u[0]))))
     bearing = math.atan2(float(u[2]), float(u[1]))
     if math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and own.tilt_stderr > 0:
@@ -283,6 +430,9 @@ def place_features(
             reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
             tied, direction = (), stack_axis
         elif i in across_lines:
+            if ties:
+                m, why = _across_line(m, own[i], measured[ties[0]], surface_of.get(ties[0]))
+                reasons = [*reasons, why] if why else reasons
             direction = cross3(stack_axis, unit_normal(m.bearing))
             if not ties and m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
@@ -312,6 +462,9 @@ def place_features(
                 direction = stack_axis
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
+            m, why = _own_tilt(m)
+            m, cut = _cut_peak(m)
+            reasons = [*reasons, *(w for w in (why, cut) if w)]
             if m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)

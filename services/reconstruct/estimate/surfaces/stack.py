@@ -17,7 +17,16 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
 
-__all__ = ["StackFit", "StackProfile", "capsule_x", "stack_fits", "stack_profile", "two_targets"]
+__all__ = [
+    "StackFit",
+    "StackProfile",
+    "StackTilt",
+    "capsule_x",
+    "stack_fits",
+    "stack_profile",
+    "stack_tilt",
+    "two_targets",
+]
 
 
 def stack_fits(x: np.ndarray, rows: np.ndarray, d: np.ndarray) -> tuple[StackFit, StackFit]:
@@ -223,3 +232,117 @@ def two_targets(profile: StackProfile, apart: np.ndarray, sigmas: float) -> tupl
 def capsule_x(geometry: ArrayGeometry) -> np.ndarray:
     """Each capsule's position along the stack (the rotation axis), m."""
     return np.array(geometry.capsule_x, dtype=np.float64)  # (capsules_in_array_frame's first column)
+
+
+#: The slope ``b`` (m) and curvature ``κ`` of the squared ranges along the stack, ``b``'s σ, the capsules kept, the
+#: residual σ in range (m) about them and whether that σ is one reading's noise (one target).
+StackTilt = tuple[float, float, float, np.ndarray, float, bool]
+
+
+def _square_fit(x: np.ndarray, group: np.ndarray, y: np.ndarray, kappa: float | None) -> StackFit:
+    """``y = a_s + b·x + κ·x²`` with one intercept per step: κ free (None) or fixed; coefficients (b,) or (b, κ)."""
+    counts = np.bincount(group)
+    yk = y if kappa is None else y - kappa * x * x
+    cols = [x] if kappa is not None else [x, x * x]
+    am = np.stack([c - (np.bincount(group, weights=c) / counts)[group] for c in cols], axis=1)
+    ym = yk - (np.bincount(group, weights=yk) / counts)[group]
+    return _demeaned_fit(am, ym, counts.size)
+
+
+def _tilt_of(x: np.ndarray, rows: np.ndarray, d: np.ndarray, depth: float) -> tuple[float, float, float, float] | None:
+    """``b``, ``κ``, ``b``'s σ and the residual σ in range (m) of one target's squared ranges along the stack."""
+    _, group = np.unique(rows, return_inverse=True)
+    y = d * d
+    heard = np.unique(x).size
+    if heard >= 3:
+        coef, cov, s = _square_fit(x, group, y, None)
+        if np.all(np.isfinite(coef)):
+            kappa = float(coef[1])
+            if 0.0 <= kappa <= 1.0:
+                b, b_se = float(coef[0]), math.sqrt(max(float(cov[0, 0]), 0.0))
+            else:
+                # Past a bound no one target reaches: at that bound.
+                coef, cov, s = _square_fit(x, group, y, min(1.0, max(0.0, kappa)))
+                b, b_se = float(coef[0]), math.sqrt(max(float(cov[0, 0]), 0.0))
+            if math.isfinite(b) and math.isfinite(b_se):
+                return b, min(1.0, max(0.0, kappa)), b_se, s / (2.0 * depth)
+    # κ unknown: the slope anywhere between the two bounds' (uniform), beside their σ.
+    ends = [_square_fit(x, group, y, k) for k in (0.0, 1.0)]
+    if not all(np.all(np.isfinite(e[0])) for e in ends):
+        return None
+    b0, b1 = float(ends[0][0][0]), float(ends[1][0][0])
+    se = max(math.sqrt(max(float(e[1][0, 0]), 0.0)) for e in ends)
+    b, b_se, s = 0.5 * (b0 + b1), math.hypot(se, abs(b1 - b0) / math.sqrt(12.0)), min(ends[0][2], ends[1][2])
+    return b, 0.5, b_se, s / (2.0 * depth)
+
+
+def stack_tilt(
+    x: np.ndarray, rows: np.ndarray, capsules: np.ndarray, d: np.ndarray, depth: float, noise: float
+) -> StackTilt | None:
+    """How far off the fan one target lies, seen from the array's centre, from its squared ranges along the stack.
+
+    Whatever the target, a capsule at ``p_c = x_c·e_x + q`` (``q`` the radial offset, shared by the stack at a
+    step) is at ``d_c² = |X_c − p_c|²`` from the point ``X_c`` that echoes to it.  For a point, or a line across
+    the stack (every capsule's nearest point is the same), ``d² = a_s − 2 X_x x + x²``; for a plane of normal
+    ``n``, ``d = h_s − n_x x``, so ``d² = a_s − 2 h n_x x + n_x² x²``; a line of direction ``u`` gives
+    ``(1 − u_x²) x²``.  So ``d² = a_s + b x + κ x²`` with ``κ ∈ [0, 1]`` for any one target, and
+    ``sin t = −b/(2ρ)`` at the array's centre (``−b/2`` the target's offset along the stack): exact for a point,
+    a line or a plane, where a straight fit of the ranges turns a curved profile heard by uneven capsules into a
+    slope.  With three capsules or more ``κ`` is fitted (at its nearer bound when past one); with two, the slope
+    lies anywhere between its two bounds' and its σ spans them.
+
+    One target's ranges about that fit scatter as one reading's noise.  Past it (the sample σ's 3 σ bound), some
+    capsule hears another target (a first-echo receiver's capsule that does not hear this one reports the next):
+    the capsule whose readings leave the rest within the noise goes, where one does.
+
+    Parameters
+    ----------
+    x : (n_capsules,) array
+        Each capsule's position along the stack, m.
+    rows, capsules : (N,) int arrays
+        Each reading's step and capsule.
+    d : (N,) array
+        Ranges, m.
+    depth : float
+        The target's range ``ρ``, m.
+    noise : float
+        One reading's range σ, m.
+
+    Returns
+    -------
+    (``b``, ``κ`` (½ where unknown), ``b``'s σ, the capsules kept, the residual σ in range (m), whether it is
+    within the noise's bound);
+    None when fewer than two capsules hear it or their readings leave no degree of freedom.  Past that bound no
+    one target explains the readings, with or without any one capsule: every capsule is kept.
+    """
+    if not (depth > 0 and noise > 0) or not np.all(np.isfinite(d)):
+        return None
+    heard = np.unique(capsules)
+
+    def fit(keep: np.ndarray) -> tuple[float, float, float, float, int] | None:
+        sel = np.isin(capsules, keep)
+        if np.unique(x[capsules[sel]]).size < 2:
+            return None
+        out = _tilt_of(x[capsules[sel]], rows[sel], d[sel], depth)
+        if out is None or not all(math.isfinite(v) for v in out):
+            return None
+        dof = int(np.count_nonzero(sel)) - np.unique(rows[sel]).size - (2 if keep.size >= 3 else 1)
+        return (*out, max(dof, 1))
+
+    def within(f: tuple[float, float, float, float, int]) -> bool:
+        return f[3] <= noise * (1.0 + 3.0 / math.sqrt(2.0 * f[4]))
+
+    whole = fit(heard)
+    if whole is None:
+        return None
+    if within(whole) or heard.size < 3:
+        return *whole[:3], heard, whole[3], within(whole)
+    best: tuple[tuple[float, float, float, float, int], np.ndarray] | None = None
+    for c in heard:
+        keep = heard[heard != c]
+        f = fit(keep)
+        if f is not None and within(f) and (best is None or f[3] < best[0][3]):
+            best = (f, keep)
+    if best is None:
+        return *whole[:3], heard, whole[3], False
+    return *best[0][:3], best[1], best[0][3], True
