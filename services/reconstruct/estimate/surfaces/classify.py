@@ -4,6 +4,10 @@ A region is an end or a corner when it lies on another plane's trace, at two pla
 plane's double bounce with a surface across the fan; a line across the capsule stack is no plane; an echo
 much weaker than the sweep's strongest at its range is a diffraction's (an edge); anything else is a plane.
 The tests are in :mod:`.evidence`, the echo's strength against the sweep's own references in :mod:`.strength`.
+
+A region whose own bearing is undetermined and which only its depth puts on one plane's trace holds two
+hypotheses: that plane's end there, or a wall of its own whose foot lies past its cut end.  Its beam flank
+weighs them once the sweep's piston is known (:func:`end_or_wall`).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.features import Kind
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
     across_stack_measured,
@@ -40,6 +45,53 @@ from lelsonar.reconstruct.estimate.surfaces.results import (
     SurfaceOptions,
 )
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
+
+#: How many σ of their difference apart an end's bearing and its region's own flank bearing disprove the end.
+DISPUTE_SIGMAS = 3.0
+
+
+def end_tied_by_depth(i: int, kind: Kind, own: Measured, across_line: bool, partial: set[int]) -> bool:
+    """Whether region ``i`` is a plane's end placed on its trace by its depth alone (its own bearing undetermined)."""
+    return len(kind[2]) == 1 and not across_line and i not in partial and own.bearing_source == "undetermined"
+
+
+def end_or_wall(placed: Measured, flank: Measured, plane: Measured, scale: EchoScale) -> str:
+    """Why a region placed as a plane's end by its depth alone is a wall of its own ("": nothing says so).
+
+    An end of plane ``plane`` on its trace at the region's range lies at one bearing (``placed``); a wall's foot
+    lies where its own echo peaks.  Either echo follows the beam pattern across γ about its source (a mirror's
+    foot, a corner's retro-reflecting line, each at one range), so the flank the region shows places its
+    peak (``flank``: :func:`~.flank_bearing.flank_measured`, with its σ from the fit, the piston's ``ka`` and
+    the capsules' spread).  Farther from the end than :data:`DISPUTE_SIGMAS` σ of their difference, the echo
+    is not the end's: a wall.  A diffracting echo (weak against the plane's mirror) is no mirror's either way.
+
+    Parameters
+    ----------
+    placed : Measured
+        The region as its end placement put it (bearing and σ from :func:`~.evidence.plane_end`).
+    flank : Measured
+        The region placed by its flank (source :data:`~.flank_bearing.FLANK_SOURCE`; any other: no flank).
+    plane : Measured
+        The plane whose end it was placed as.
+    scale : EchoScale
+
+    Returns
+    -------
+    The finding that says so, or "".
+    """
+    if flank.bearing_source != FLANK_SOURCE:
+        return ""
+    if scale.end_strength(placed, plane)[0] == "weak":
+        return ""
+    gap = abs(wrap(flank.bearing - placed.bearing))
+    sigma = math.hypot(flank.bearing_stderr, placed.bearing_stderr)
+    if not gap > DISPUTE_SIGMAS * sigma:
+        return ""
+    return (
+        f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(placed.bearing):.1f}°, "
+        f"but its beam flank peaks at {math.degrees(flank.bearing):.1f}° ± {math.degrees(flank.bearing_stderr):.1f}°, "
+        f"{gap / sigma:.1f} σ away: a wall of its own"
+    )
 
 
 def _in_fan(measured: list[Measured], partial: set[int]) -> list[Measured]:
