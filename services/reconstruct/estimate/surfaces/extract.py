@@ -63,7 +63,7 @@ from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump, log_amplitude_curvature
-from lelsonar.reconstruct.estimate.surfaces.classify import classify_regions, end_or_wall, end_tied_by_depth
+from lelsonar.reconstruct.estimate.surfaces.classify import classify_regions
 from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
@@ -146,11 +146,11 @@ def extract_surfaces(
     scale = echo_scale(measured, sweep.gamma, opts)
     _split_two_edges(measured, partial, scale, sweep)
     own = list(measured)  # each region as its own echoes measured it, before its kind places it
-    kinds, across_lines = classify_regions(measured, partial, scale, sweep.gamma, sweep.opts)
+    kinds, across_lines = classify_regions(measured, partial, scale, sweep.gamma, sweep.opts, sweep.amplitude)
     _widen_summed_bearings(measured, kinds, scale)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
-    _flank_bearings(measured, own, kinds, partial, across_lines, scale, sweep)
+    _flank_bearings(measured, kinds, partial, scale, sweep)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale)
     return SurfaceSet(
@@ -309,32 +309,21 @@ def _joint_corners(
 
 
 def _flank_bearings(
-    measured: list[Measured],
-    own: list[Measured],
-    kinds: dict[int, Kind],
-    partial: set[int],
-    across_lines: set[int],
-    scale: EchoScale,
-    sweep: _Sweep,
+    measured: list[Measured], kinds: dict[int, Kind], partial: set[int], scale: EchoScale, sweep: _Sweep
 ) -> None:
     """The planes whose bearing neither centre nor peak determines, placed by their beam pattern's flank with
-    the sweep's own piston (:mod:`.flank_bearing`), and the ends their depth alone placed whose flank says they
-    are walls of their own (:func:`~.classify.end_or_wall`); classification is done, so nothing ties to them
-    anew."""
+    the sweep's own piston (:mod:`.flank_bearing`); classification is done, so nothing ties to them anew."""
     if sweep.amplitude is None or not scale.beam_k > 0:
         return
     n_steps, n_capsules = sweep.amplitude.shape
-
-    def placeable(m: Measured) -> bool:
-        return flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut) != (0.0, 0.0)
-
-    todo = [i for i, m in enumerate(measured) if i not in kinds and i not in partial and placeable(m)]
-    ends = [
+    todo = [
         i
-        for i, kind in kinds.items()
-        if end_tied_by_depth(i, kind, own[i], i in across_lines, partial) and placeable(own[i])
+        for i, m in enumerate(measured)
+        if i not in kinds
+        and i not in partial
+        and flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut) != (0.0, 0.0)
     ]
-    if not todo and not ends:
+    if not todo:
         return
     # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
     # bounce or an edge's diffraction adds its own change with the angle: only the planes calibrate the beam.
@@ -342,12 +331,6 @@ def _flank_bearings(
     beam = sweep_beam(planes, sweep.gamma, sweep.amplitude, 2.0 * math.sqrt(scale.beam_k))
     for i in todo:
         measured[i] = flank_measured(measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut)
-    for i in ends:
-        flank = flank_measured(own[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut)
-        why = end_or_wall(measured[i], flank, measured[kinds[i][2][0]], scale)
-        if why:
-            measured[i] = replace(flank, findings=(*flank.findings, (DEGRADED, why)))
-            del kinds[i]
 
 
 def _fit_planes(
