@@ -147,7 +147,7 @@ def _scan(family: str, seed: int, pose: int):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("family", "seed", "pose"), [("room", 24, 0), ("l_room", 27, 1), ("boxes", 29, 2)])
+@pytest.mark.parametrize(("family", "seed", "pose"), [("room", 24, 0), ("l_room", 27, 1), ("boxes", 26, 0)])
 def test_a_wall_past_the_sweeps_end_once_claimed_as_a_corner_is_found_within_its_sigma_not_good(family, seed, pose):
     scan, amp, result = _scan(family, seed, pose)
     record = score_scan(family, scan, result, seed=seed, amplitude=amp)

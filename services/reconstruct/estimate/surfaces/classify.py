@@ -78,6 +78,10 @@ class _Flanks:
         amp = self.amplitude
         if amp is None or not self.scale.beam_k > 0 or m.bearing_source != "undetermined":
             return None
+        # An echo from off the fan (its ranges slope along the stack) meets the beam at ψ² ≈ (γ − β)² + t²: its
+        # flank across γ is no in-fan piston's about its bearing, so it places nothing.
+        if not (math.isfinite(m.tilt_stderr) and abs(m.tilt) <= 3.0 * m.tilt_stderr):
+            return None
         n_steps, n_capsules = amp.shape
         strict = flank_reach(m, n_steps, n_capsules, self.opts.beyond_cut)
         reach = strict
@@ -112,9 +116,10 @@ def _end_by_flank(
     fit, the piston's ``ka`` and the capsules' spread (:func:`~.flank_bearing.flank_measured`).  A placement
     within :data:`DISPUTE_SIGMAS` σ of their difference agrees with it: the first placement if it does, else the
     nearest that does.  None agreeing, where the flank's peak may lie only past the sweep's own end (no nearer
-    echo bends it) and the echo is no diffraction's (weak against the plane's mirror), it is no end there: a
-    wall.  Otherwise the first placement stands, its σ at least its distance from the flank's peak (the evidence
-    does not settle where the end lies).
+    echo bends it), the echo is no diffraction's (weak against the plane's mirror) and the flank lies farther
+    from the first placement than a corner's aperture moves its peak as well, it is no end there: a wall.
+    Otherwise the first placement stands, its σ at least its distance from the flank's peak (the evidence does
+    not settle where the end lies).
     """
     first = placements[0]
     got = flanks.of(m)
@@ -133,13 +138,20 @@ def _end_by_flank(
     if gaps[best] <= DISPUTE_SIGMAS:
         return placements[best], 0.0
     plane = measured[pool[first[0][0]]]
-    placed = replace(m, bearing=first[1], bearing_stderr=end_stderr(m, plane, first[1]))
-    if not decisive or flanks.scale.end_strength(placed, plane)[0] == "weak":
-        return first, abs(wrap(flank.bearing - first[1]))
+    end_se = end_stderr(m, plane, first[1])
+    placed = replace(m, bearing=first[1], bearing_stderr=end_se)
+    # Were it the end, its echo a corner's, the flank would be no mirror's: a corner's retro-reflecting aperture
+    # changes with the view angle (for a right dihedral, d ln A/dφ ≈ 1), which on a beam of log curvature k moves
+    # the peak by 1/(2k).  The end is overruled only beyond that too.
+    aperture = 0.5 / flanks.scale.beam_k
+    gap = abs(wrap(flank.bearing - first[1]))
+    sigmas = gap / math.sqrt(flank.bearing_stderr**2 + end_se**2 + aperture**2)
+    if not decisive or sigmas <= DISPUTE_SIGMAS or flanks.scale.end_strength(placed, plane)[0] == "weak":
+        return first, gap
     why = (
         f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(first[1]):.1f}°, but its "
         f"beam flank peaks at {math.degrees(flank.bearing):.1f}° ± {math.degrees(flank.bearing_stderr):.1f}°, "
-        f"{gaps[0]:.1f} σ away (and from every other placement on a trace): a wall of its own"
+        f"{sigmas:.1f} σ away with a corner's aperture (and from every other placement on a trace): a wall of its own"
     )
     return replace(flank, findings=(*flank.findings, (DEGRADED, why)))
 
