@@ -185,8 +185,25 @@ def test_the_tasks_running_now_count_the_caller():
     ("cpus", "runnable", "workers"),
     [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (4, 4, 0), (1, 1, 0)],
 )
-def test_a_long_replays_final_workers_take_the_cores_no_other_task_runs_on(cpus, runnable, workers):
+def test_a_long_replays_final_workers_take_the_cores_no_other_task_runs_on(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(sources, "workers_warm", lambda: True)
     assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+
+
+@pytest.mark.parametrize(
+    ("cpus", "runnable", "workers"),
+    [(2, 1, 0), (2, 2, 0), (3, 1, 1), (4, 1, 2), (4, 2, 1), (4, 3, 0), (8, 1, 2), (1, 1, 0)],
+)
+def test_a_cold_start_leaves_the_decompression_its_core(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(sources, "workers_warm", lambda: False)
+    assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+    assert sources.replay_workers(None, sources.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable) == 0
+
+
+@pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
+def test_a_long_file_starts_workers_cold_on_every_idle_core(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(sources, "workers_warm", lambda: False)
+    assert sources.replay_workers(None, sources.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
 
 
 def test_a_replay_of_one_scan_or_with_workers_set_asks_no_load():

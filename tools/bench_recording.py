@@ -242,6 +242,7 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
         "read × floor",
         "replay × floor",
         "replay, workers up × floor",
+        "replay, finals inline × floor",
         "finals in workers (replay / up)",
         "peak RSS MiB replay / up / read / floor",
         "replay ≥ floor",
@@ -249,7 +250,9 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
     table_rows = []
     ok = True
     for r in rows:
-        floor, read, replay, warm = (r["samples"] / r[f"{m}_s"] for m in ("floor", "read", "replay", "warm"))
+        floor, read, replay, warm, inline = (
+            r["samples"] / r[f"{m}_s"] for m in ("floor", "read", "replay", "warm", "inline")
+        )
         ok &= read >= bench_replay.TARGET_RATIO * floor
         fast = replay >= bench_replay.TARGET_RATIO * floor
         ok &= fast
@@ -262,6 +265,7 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
                 f"{read / floor:.2f}×",
                 f"{replay / floor:.2f}×",
                 f"{warm / floor:.2f}×",
+                f"{inline / floor:.2f}×",
                 f"{r['replay_pooled']} / {r['warm_pooled']} of {r['scans']}",
                 f"{r['replay_rss']:.0f} / {r['warm_rss']:.0f} / {r['read_rss']:.0f} / {r['floor_rss']:.0f}",
                 "[green]PASS[/]" if fast else "[red]FAIL[/]",
@@ -279,11 +283,14 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
         f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
         "replay: replay_mcap through ReconstructionService(provisional=False), as `reconstruct --source`: "
         "reading, decoding, validation, assembly and the final estimates (in worker processes where "
-        "replay_workers starts them: not for a short file in a process that has none yet); target "
+        "replay_workers starts them: in a process that has none yet, not for a short file, nor on a host whose "
+        "cores the reading and its decompression take); target "
         f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
         "replay, workers up: the same in a process whose final workers' fork server was ready before the clock "
         "(a live reconstructor, a process that replayed a file already); workers as the host's load leaves "
         "cores idle",
+        "replay, finals inline: the same with every final estimated in the replaying process (--jobs 0), the "
+        "file decompressed ahead on the idle cores",
         "a file's last final starts when its reading ends: it adds one final to a replay whatever the workers",
         f"peak RSS: VmHWM of the replaying process (a final worker holds one scan); replay's at "
         f"{rows[-1]['scans'] if rows else '?'} scans is {growth:.2f}× its 1st file's (target ≤ {TARGET_RSS_GROWTH}×: "

@@ -36,9 +36,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -56,6 +58,44 @@ def peak_rss_mib() -> float:
     return float("nan")
 
 
+def _other_threads_ticks() -> int:
+    """CPU ticks used so far by this process's threads other than the caller's (from ``/proc/self/task``)."""
+    me = threading.get_native_id()
+    total = 0
+    for task in os.listdir("/proc/self/task"):
+        if int(task) == me:
+            continue
+        try:
+            with open(f"/proc/self/task/{task}/stat") as f:
+                fields = f.read().rpartition(")")[2].split()
+        except OSError:
+            continue  # ended meanwhile
+        total += int(fields[11]) + int(fields[12])
+    return total
+
+
+def settle(quiet_s: float = 0.05, limit_s: float = 2.0) -> None:
+    """Wait, before a child's clock starts, until the other threads of the process have stopped using CPU.
+
+    OpenBLAS's threads spin for a while after numpy is loaded; a child's CPU seconds count every thread, so a
+    child whose clock starts right after its imports (the floor, the read) would be charged that spin and a
+    replay child (whose kernels load first) would not.  Every child settles the same way.  Waits at most
+    ``limit_s``; a host without ``/proc`` does not wait.
+    """
+    if not os.path.isdir("/proc/self/task"):
+        return
+    wake = threading.Event()
+    deadline = time.monotonic() + limit_s
+    last, since = _other_threads_ticks(), time.monotonic()
+    while time.monotonic() < deadline:
+        wake.wait(0.01)
+        now = _other_threads_ticks()
+        if now != last:
+            last, since = now, time.monotonic()
+        elif time.monotonic() - since >= quiet_s:
+            return
+
+
 def time_floor(path: Path) -> tuple[float, int]:
     """(seconds, samples) of python mcap + upb reading the contract messages of ``path`` in log-time order."""
     from mcap.reader import make_reader
@@ -64,6 +104,7 @@ def time_floor(path: Path) -> tuple[float, int]:
 
     types = codec.MESSAGE_TYPES
     samples = 0
+    settle()
     cpu, t = time.process_time(), time.perf_counter()
     with open(path, "rb") as f:
         for schema, _channel, message in make_reader(f).iter_messages(topics=CONTRACT_TOPICS, log_time_order=True):
@@ -79,6 +120,7 @@ def time_read(path: Path) -> tuple[float, int]:
 
     types = codec.MESSAGE_TYPES
     samples = 0
+    settle()
     cpu, t = time.process_time(), time.perf_counter()
     for rec in iter_payloads(path):
         msg = types[rec.type_name].FromString(rec.payload)
@@ -120,6 +162,7 @@ def time_ingest(path: Path) -> tuple[float, int]:
     ingest = Ingest()
     sample = codec.Sample.DESCRIPTOR.full_name
     samples = 0
+    settle()
     cpu, t = time.process_time(), time.perf_counter()
     for rec in iter_payloads(path, REPLAYED):
         ingest.accept(rec.type_name, rec.payload)
@@ -145,6 +188,7 @@ def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[floa
             pool.wait_ready(600)
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
     service = ReconstructionService(ReconstructConfig(provisional=False, final_workers=workers))
+    settle()
     cpu, t = time.process_time(), time.perf_counter()
     replay_mcap(path, service)
     seconds = _timed(t, cpu)

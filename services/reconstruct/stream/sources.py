@@ -190,8 +190,12 @@ def replay_mcap(
 
 
 #: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
-#: imports the estimate and loads its kernels first (seconds), and a shorter replay ends before it is ready.
+#: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
+#: ready.
 COLD_START_SCANS = 50
+#: Scans a replay must hold to start them on the core its decompression takes: the fork server's start then
+#: slows the reading until a worker is ready, which a worker repays only over a long file.
+COLD_START_SHARED_SCANS = 500
 
 
 def replay_workers(
@@ -200,16 +204,26 @@ def replay_workers(
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the tasks
     running now leave cores idle (``runnable`` as :func:`decompress_threads`': the caller's thread is one of
     them, and its core is the reading's; a worker that finds no core only competes with the reading).
-    None for a file of one scan, whose final can overlap nothing, nor by default for a file of fewer than
-    :data:`COLD_START_SCANS` scans while this process has no worker started yet."""
+    None for a file of one scan, whose final can overlap nothing.
+
+    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans,
+    and one core fewer below :data:`COLD_START_SHARED_SCANS`: the fork server's start (its imports, its
+    kernels) takes a core for seconds, and until a worker is ready the caller estimates every final itself
+    while the file is decompressed ahead on the idle cores (:func:`decompress_threads`).  On two cores (the
+    reading's and the decompression's) the finals of such a file stay in the caller: a worker would be ready
+    only after competing with the decompression for much of the replay, and then share its core.
+    """
     if scans is not None and scans < 2:
         return 0
     if configured is not None:
         return configured
-    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
-        return 0
     n = cpus if cpus is not None else (os.cpu_count() or 1)
     busy = runnable if runnable is not None else runnable_tasks()
+    if not workers_warm():
+        if scans is None or scans < COLD_START_SCANS:
+            return 0
+        if scans < COLD_START_SHARED_SCANS:
+            busy += 1  # the decompression's core
     return max(0, min(auto_workers(n), n - busy))
 
 
