@@ -90,19 +90,22 @@ ON_TRACE = PLANE[1] / math.cos(PAST_START - PLANE[0])
 
 
 def test_a_wall_past_the_sweeps_start_at_a_depth_on_a_planes_trace_is_a_wall_placed_by_its_flank():
-    foot = math.radians(-158.0)  # 7° from the trace's point at its depth, 8° past the sweep's start
+    # Its foot 20° from the trace's point at its depth (farther than a corner's aperture moves a flank's peak,
+    # 1/(2k) ≈ 4° on this beam, by over 3 σ), 5° past the sweep's start.
+    foot, end = math.radians(-155.0), math.radians(-175.0)
+    depth = PLANE[1] / math.cos(end - PLANE[0])
     s = _Sweep(seed=3)
     s.wall(*PLANE)
-    s.wall(foot, ON_TRACE)
+    s.wall(foot, depth)
     d, a = s.readings()
     result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
-    (wall,) = [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.02]
+    (wall,) = [w for w in result.surfaces if abs(w.offset - depth) < 0.02]
     assert wall.bearing_source == FLANK_SOURCE
     # The premise: its depth alone put it on the plane's trace as its end; the flank says it is not.
     assert any("a wall of its own" in r for r in wall.reasons), wall.reasons
     assert abs(_wrap(wall.bearing - foot)) <= 3 * math.sqrt(wall.covariance[0, 0])
     assert wall.quality != "good"
-    assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - ON_TRACE) < 0.02]
+    assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - depth) < 0.02]
 
 
 def test_a_corner_past_the_sweeps_start_on_a_planes_trace_stays_that_planes_end():
