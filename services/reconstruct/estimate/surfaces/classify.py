@@ -4,6 +4,10 @@ A region is an end or a corner when it lies on another plane's trace, at two pla
 plane's double bounce with a surface across the fan; a line across the capsule stack is no plane; an echo
 much weaker than the sweep's strongest at its range is a diffraction's (an edge); anything else is a plane.
 The tests are in :mod:`.evidence`, the echo's strength against the sweep's own references in :mod:`.strength`.
+
+A region whose own bearing is undetermined and which only its depth puts on one plane's trace holds two
+hypotheses: that plane's end there, or a wall of its own whose foot lies past its cut end.  Its beam flank
+weighs them once the sweep's piston is known (:func:`end_or_wall`).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     feature_point,
     pair_corner,
     pair_stderr,
-    plane_end,
+    plane_ends,
     plane_line,
     reach_stderr,
     stack_dihedral,
@@ -30,6 +34,13 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     wrap,
 )
 from lelsonar.reconstruct.estimate.surfaces.features import Kind
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
+    FLANK_SOURCE,
+    SweepBeam,
+    flank_measured,
+    flank_reach,
+    sweep_beam,
+)
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
     across_stack_measured,
@@ -40,6 +51,109 @@ from lelsonar.reconstruct.estimate.surfaces.results import (
     SurfaceOptions,
 )
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
+
+#: How many σ of their difference apart an end's bearing and its region's own flank bearing disprove the end.
+DISPUTE_SIGMAS = 3.0
+
+
+class _Flanks:
+    """The beam flank of regions whose depth alone places them on a trace, with the sweep's piston fitted on its
+    planes once, when first needed (:mod:`.flank_bearing`)."""
+
+    def __init__(
+        self,
+        planes: list[Measured],
+        gamma: np.ndarray,
+        amplitude: np.ndarray | None,
+        scale: EchoScale,
+        opts: SurfaceOptions,
+    ) -> None:
+        self.planes, self.gamma, self.amplitude, self.scale, self.opts = planes, gamma, amplitude, scale, opts
+        self.beam: SweepBeam | None = None
+        self.fitted = False
+
+    def of(self, m: Measured) -> tuple[Measured, bool] | None:
+        """The region placed by its flank, and whether its peak may lie only past the sweep's own end (where
+        nothing else answers beside it to bend the flank); None: no flank places it."""
+        amp = self.amplitude
+        if amp is None or not self.scale.beam_k > 0 or m.bearing_source != "undetermined":
+            return None
+        # An echo from off the fan (its ranges slope along the stack) meets the beam at ψ² ≈ (γ − β)² + t²: its
+        # flank across γ is no in-fan piston's about its bearing, so it places nothing.
+        if not (math.isfinite(m.tilt_stderr) and abs(m.tilt) <= 3.0 * m.tilt_stderr):
+            return None
+        n_steps, n_capsules = amp.shape
+        strict = flank_reach(m, n_steps, n_capsules, self.opts.beyond_cut)
+        reach = strict
+        if strict == (0.0, 0.0):
+            # Cut by a nearer echo: that echo bends the flank where they meet, so the flank may choose between
+            # placements on traces but not overrule them all.
+            if np.median(np.bincount(np.searchsorted(m.region.steps, m.region.rows))) < n_capsules:
+                return None
+            cut = self.opts.beyond_cut
+            reach = (cut if m.region.cut_before else 0.0, cut if m.region.cut_after else 0.0)
+            if reach == (0.0, 0.0):
+                return None
+        if not self.fitted:
+            self.beam = sweep_beam(self.planes, self.gamma, amp, 2.0 * math.sqrt(self.scale.beam_k))
+            self.fitted = True
+        flank = flank_measured(m, self.gamma, amp, self.beam, self.opts.beyond_cut, reach=reach)
+        return (flank, strict != (0.0, 0.0)) if flank.bearing_source == FLANK_SOURCE else None
+
+
+def _end_by_flank(
+    m: Measured,
+    placements: list[tuple[list[int], float]],
+    pool: list[int],
+    measured: list[Measured],
+    flanks: _Flanks,
+) -> tuple[tuple[list[int], float], float] | Measured:
+    """Which placement on a trace a region whose depth alone places it is (its plane's end) and a floor of its
+    bearing σ, or the region as a wall of its own, placed by its flank.
+
+    Either echo follows the beam pattern across γ about its source (a mirror's foot, a corner's retro-reflecting
+    line, an end's edge, each at one range), so the flank the region shows places its peak, with its σ from the
+    fit, the piston's ``ka`` and the capsules' spread (:func:`~.flank_bearing.flank_measured`).  A placement
+    within :data:`DISPUTE_SIGMAS` σ of their difference agrees with it: the first placement if it does, else the
+    nearest that does.  None agreeing, where the flank's peak may lie only past the sweep's own end (no nearer
+    echo bends it), the echo is no diffraction's (weak against the plane's mirror) and the flank lies farther
+    from the first placement than a corner's aperture moves its peak as well, it is no end there: a wall.
+    Otherwise the first placement stands, its σ at least its distance from the flank's peak (the evidence does
+    not settle where the end lies).
+    """
+    first = placements[0]
+    got = flanks.of(m)
+    if got is None:
+        return first, 0.0
+    flank, decisive = got
+
+    def apart(p: tuple[list[int], float]) -> float:
+        se = end_stderr(m, measured[pool[p[0][0]]], p[1])
+        return abs(wrap(flank.bearing - p[1])) / math.hypot(flank.bearing_stderr, se)
+
+    gaps = [apart(p) for p in placements]
+    if gaps[0] <= DISPUTE_SIGMAS:
+        return first, 0.0
+    best = int(np.argmin(gaps))
+    if gaps[best] <= DISPUTE_SIGMAS:
+        return placements[best], 0.0
+    plane = measured[pool[first[0][0]]]
+    end_se = end_stderr(m, plane, first[1])
+    placed = replace(m, bearing=first[1], bearing_stderr=end_se)
+    # Were it the end, its echo a corner's, the flank would be no mirror's: a corner's retro-reflecting aperture
+    # changes with the view angle (for a right dihedral, d ln A/dφ ≈ 1), which on a beam of log curvature k moves
+    # the peak by 1/(2k).  The end is overruled only beyond that too.
+    aperture = 0.5 / flanks.scale.beam_k
+    gap = abs(wrap(flank.bearing - first[1]))
+    sigmas = gap / math.sqrt(flank.bearing_stderr**2 + end_se**2 + aperture**2)
+    if not decisive or sigmas <= DISPUTE_SIGMAS or flanks.scale.end_strength(placed, plane)[0] == "weak":
+        return first, gap
+    why = (
+        f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(first[1]):.1f}°, but its "
+        f"beam flank peaks at {math.degrees(flank.bearing):.1f}° ± {math.degrees(flank.bearing_stderr):.1f}°, "
+        f"{sigmas:.1f} σ away with a corner's aperture (and from every other placement on a trace): a wall of its own"
+    )
+    return replace(flank, findings=(*flank.findings, (DEGRADED, why)))
 
 
 def _in_fan(measured: list[Measured], partial: set[int]) -> list[Measured]:
@@ -101,11 +215,18 @@ def _planes(
 
 
 def classify_regions(
-    measured: list[Measured], partial: set[int], scale: EchoScale, gamma: np.ndarray, opts: SurfaceOptions
+    measured: list[Measured],
+    partial: set[int],
+    scale: EchoScale,
+    gamma: np.ndarray,
+    opts: SurfaceOptions,
+    amplitude: np.ndarray | None = None,
 ) -> tuple[dict[int, Kind], set[int]]:
     """The kind of every region that is no plane, and which of them are lines across the fan.
 
     Each region's entry of ``measured`` takes the bearing, depth and tilt its classification places it at.
+    With ``amplitude`` (the sweep's, ``(n_steps, n_capsules)``), a region whose depth alone places it on a trace
+    is weighed by its beam flank (:func:`_end_by_flank`).
     """
     across = [across_stack(m, opts) for m in measured]
     planes = _planes(measured, partial, across, scale, opts)
@@ -119,9 +240,10 @@ def classify_regions(
         measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
     kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
+    flanks = _Flanks([measured[j] for j in planes], gamma, amplitude, scale, opts)
     for i in range(len(measured)):
         m, kind, across_line = _region_kind(
-            i, measured, planes, across[i], partial, i in walls_of_corners, scale, gamma, opts
+            i, measured, planes, across[i], partial, i in walls_of_corners, scale, gamma, opts, flanks
         )
         measured[i] = m
         if kind is not None:
@@ -141,6 +263,7 @@ def _region_kind(
     scale: EchoScale,
     gamma: np.ndarray,
     opts: SurfaceOptions,
+    flanks: _Flanks,
 ) -> tuple[Measured, Kind | None, bool]:
     """Region ``i`` placed as its kind says, its kind (None: a plane) and whether it is a line across the fan."""
     m = measured[i]
@@ -178,7 +301,7 @@ def _region_kind(
             f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
         )
         return m, ("edge" if scale.weak(m) else "corner", [text], []), True
-    m, ties = _ties(i, m, pool, pair, measured, planes, partial, wall_of_corner, gamma, opts)
+    m, ties = _ties(i, m, pool, pair, measured, planes, partial, wall_of_corner, gamma, opts, flanks)
     m, kind = _kind_from_ties(m, ties, unsettled, measured, scale)
     return m, kind, False
 
@@ -194,6 +317,7 @@ def _ties(
     wall_of_corner: bool,
     gamma: np.ndarray,
     opts: SurfaceOptions,
+    flanks: _Flanks,
 ) -> tuple[Measured, list[int]]:
     """The planes region ``i`` ties to (two: their double bounce; one: its end) and the region placed there."""
     if pair is not None:
@@ -205,17 +329,19 @@ def _ties(
         lean = 0.0 if line is None else math.asin(max(-1.0, min(1.0, float(line[0][0] / np.linalg.norm(line[0])))))
         m = replace(m, bearing=bearing, bearing_stderr=pair_stderr(m, which, pool, measured), tilt=lean)
     elif m.bearing_source == "undetermined":
-        placed = (
-            None
+        placements = (
+            []
             if wall_of_corner
-            else plane_end(m, [measured[j] for j in pool], opts, _in_fan(measured, partial), gamma)
+            else list(plane_ends(m, [measured[j] for j in pool], opts, _in_fan(measured, partial), gamma))
         )
-        if placed is None:
+        placed = _end_by_flank(m, placements, pool, measured, flanks) if placements else None
+        if placed is None or isinstance(placed, Measured):
             ties = []
+            m = m if placed is None else placed
         else:
-            which, bearing = placed
+            (which, bearing), floor = placed
             ties = [pool[j] for j in which]
-            m = replace(m, bearing=bearing, bearing_stderr=end_stderr(m, measured[ties[0]], bearing))
+            m = replace(m, bearing=bearing, bearing_stderr=max(end_stderr(m, measured[ties[0]], bearing), floor))
     else:
         ties = [] if wall_of_corner else _on_traces(i, planes, measured, partial, opts)
     return m, ties

@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import math
 import struct
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -34,6 +35,7 @@ __all__ = [
     "end_stderr",
     "reach_stderr",
     "plane_end",
+    "plane_ends",
     "plane_line",
     "stack_dihedral",
     "stack_or_pair",
@@ -185,7 +187,19 @@ def plane_end(
     seen: list[Measured] | None = None,
     gamma: np.ndarray | None = None,
 ) -> tuple[list[int], float] | None:
-    """Where a region whose own bearing is not determined sits on one plane's trace: that plane's end.
+    """The first of :func:`plane_ends` (the planes in order, the side nearer the region's own steps first), or
+    None."""
+    return next(plane_ends(m, planes, opts, seen, gamma), None)
+
+
+def plane_ends(
+    m: Measured,
+    planes: list[Measured],
+    opts: SurfaceOptions,
+    seen: list[Measured] | None = None,
+    gamma: np.ndarray | None = None,
+) -> Iterator[tuple[list[int], float]]:
+    """Where a region whose own bearing is not determined may sit on a plane's trace: that plane's end.
 
     The end lies on the trace at the region's depth, at ``β_j ± acos(h_j/ρ)``, within the region's span of γ;
     it is placed at the region's range in the fan (:func:`in_fan_range`) on that side.
@@ -195,9 +209,10 @@ def plane_end(
     sweep's), no bearing inside the region where its own echo is weaker than elsewhere in it
     (:func:`~.beam_pattern.weaker_at`): a target there would be its region's strongest echo.
 
-    Returns
-    -------
-    ([index into ``planes``], bearing) or None.
+    Yields
+    ------
+    ([index into ``planes``], bearing), every placement the region allows: the planes in order, on each the
+    side nearer the region's own steps first.
     """
     for j, pj in enumerate(planes):
         # The plane's trace in the fan: a tilted plane crosses it at h / cos(tilt).
@@ -219,8 +234,7 @@ def plane_end(
                 and not (seen is not None and beyond_reach(m, bearing, pj, seen, opts, placed=True))
                 and not (gamma is not None and weaker_at(gamma[m.region.steps], m.step_amplitude, bearing))
             ):
-                return [j], wrap(pj.bearing + math.copysign(there, wrap(bearing - pj.bearing)))
-    return None
+                yield [j], wrap(pj.bearing + math.copysign(there, wrap(bearing - pj.bearing)))
 
 
 def _off_span(bearing: float, m: Measured) -> float:

@@ -458,7 +458,12 @@ def flank_reach(m: Measured, n_steps: int, n_capsules: int, beyond_cut: float) -
 
 
 def flank_measured(
-    m: Measured, gamma: np.ndarray, amplitude: np.ndarray, beam: SweepBeam | None, beyond_cut: float
+    m: Measured,
+    gamma: np.ndarray,
+    amplitude: np.ndarray,
+    beam: SweepBeam | None,
+    beyond_cut: float,
+    reach: tuple[float, float] | None = None,
 ) -> Measured:
     """A plane's region whose bearing its centre and peak leave undetermined, placed by its flank and ranges.
 
@@ -476,7 +481,8 @@ def flank_measured(
     The region with that bearing, its σ, source :data:`FLANK_SOURCE` and its findings (unchanged when the flank
     gives none, or when part of the capsule stack hears the region on most of its steps).
     """
-    reach = flank_reach(m, gamma.size, amplitude.shape[1], beyond_cut)
+    if reach is None:
+        reach = flank_reach(m, gamma.size, amplitude.shape[1], beyond_cut)
     if beam is None or reach == (0.0, 0.0):
         return m
     g = gamma[m.region.steps]
