@@ -19,7 +19,7 @@ import zenoh.ext
 from lelsonar import codec
 from lelsonar.bridge import rmw_zenoh as rz
 from lelsonar.bridge import ros2
-from lelsonar.errors import ConfigError
+from lelsonar.errors import ClosedError, ConfigError
 from lelsonar.log.recording import McapRecorder
 from lelsonar.net.transport import hermetic_settings, open_session
 
@@ -355,3 +355,36 @@ def test_publishers_are_declared_as_rmw_zenoh_declares_its_own():
             assert isinstance(options["sample_miss_detection"], zenoh.ext.MissDetectionConfig)
         else:
             assert not {"cache", "publisher_detection", "sample_miss_detection"} & set(options)
+
+
+def test_a_node_closed_while_a_thread_publishes_refuses_further_messages_with_one_typed_error(tmp_path):
+    """A subscription's callback may still be publishing as the bridge shuts down: the close waits for the put
+    in flight, and every later publish is a ClosedError, never Zenoh's "Already borrowed" or a re-declaration."""
+    b = ros2.Builder("jazzy")
+    message = ros2.RosMessage("/chatter", "std_msgs/msg/String", 0, b("std_msgs/msg/String", data="hello"))
+    sock = tmp_path / "z.sock"
+    published = threading.Event()
+    outcome: list[BaseException | None] = []
+
+    def publish_until_refused(node: rz.RmwZenohNode) -> None:
+        try:
+            while True:
+                node.publish(message)
+                published.set()
+        except BaseException as exc:  # noqa: BLE001 (what ended the loop is the test's subject)
+            outcome.append(exc)
+
+    with (
+        open_session(hermetic_settings(sock, listen=True)),
+        rz.open_ros_session(hermetic_settings(sock, listen=False)) as session,
+    ):
+        node = rz.RmwZenohNode(session, name="racer")
+        publisher = threading.Thread(target=publish_until_refused, args=(node,))
+        publisher.start()
+        assert published.wait(30), "the thread published nothing"
+        node.close()
+        publisher.join(30)
+        assert not publisher.is_alive()
+        assert len(outcome) == 1 and isinstance(outcome[0], ClosedError), repr(outcome)
+        assert node.publishers == {}
+        node.close()  # (a second close is a no-op)

@@ -81,6 +81,11 @@ class ScannerMismatchError(InvalidMessageError):
     """The scanner id in the Zenoh key differs from the scanner id in the payload (a forgery or a bug)."""
 
 
+class ClosedError(LelsonarError):
+    """A component was called after it was closed (a message arriving as a bridge shuts down): what it was
+    handed is not forwarded."""
+
+
 # --- lelsonar's own invariants -----------------------------------------------------
 class InternalError(LelsonarError):
     """lelsonar broke one of its own invariants: a bug to report (the message names it), not a fault of the

@@ -51,7 +51,7 @@ import zenoh
 import zenoh.ext
 
 from lelsonar.bridge import ros2
-from lelsonar.errors import ConfigError
+from lelsonar.errors import ClosedError, ConfigError
 from lelsonar.net.transport import TransportError, ZenohSettings, zenoh_reason
 
 ADMIN_SPACE = "@ros2_lv"
@@ -230,6 +230,7 @@ class RmwZenohNode:
         self.node_token_key = node_token(domain_id, self.zid, self.node_id, namespace, name)
         self._node_token = session.liveliness().declare_token(self.node_token_key)
         self._publishers: dict[str, _Publisher] = {}
+        self._closed = False
 
     def _take_id(self) -> int:
         n = self._next_id
@@ -239,6 +240,8 @@ class RmwZenohNode:
     def publisher(self, topic: str, msgtype: str) -> _Publisher:
         """The publisher of ``topic``, declared (key, token, cache) on first use."""
         with self._lock:
+            if self._closed:
+                raise ClosedError(f"the ROS 2 node {self.name} is closed: {topic} is published no more")
             pub = self._publishers.get(topic)
             if pub is not None:
                 if pub.msgtype != msgtype:
@@ -270,10 +273,13 @@ class RmwZenohNode:
         """Serialise and put one message (callable as a :class:`~lelsonar.bridge.ros2.Ros2View` sink)."""
         pub = self.publisher(message.topic, message.msgtype)
         payload = ros2.serialize(message.message, message.msgtype, self.distro)
+        # (Under the lock: a put while close() undeclares its publisher is refused by Zenoh.)
         with self._lock:
+            if self._closed:
+                raise ClosedError(f"the ROS 2 node {self.name} is closed: {message.topic} is published no more")
             seq = pub.seq
             pub.seq += 1
-        pub.zpub.put(payload, attachment=attachment(seq, time.time_ns(), pub.gid))
+            pub.zpub.put(payload, attachment=attachment(seq, time.time_ns(), pub.gid))
 
     @property
     def publishers(self) -> dict[str, _Publisher]:
@@ -281,6 +287,9 @@ class RmwZenohNode:
 
     def close(self) -> None:
         with self._lock:
+            if self._closed:
+                return
+            self._closed = True
             for pub in self._publishers.values():
                 pub.token.undeclare()
                 pub.zpub.undeclare()
