@@ -130,9 +130,7 @@ def test_plane_messages_reuse_a_plane_objects_message_and_make_a_new_planes() ->
     other = tilted_fit("a", method="adaptive")  # a new plane of the same label: its own message
     assert cache.message(other).method == "adaptive"
     assert cache.message(b).label == "b"
-    msg = wire.reconstruction_message(
-        "s1",
-        3,
+    estimate = dict(
         status="provisional",
         last_step=9,
         samples_used=10,
@@ -141,19 +139,7 @@ def test_plane_messages_reuse_a_plane_objects_message_and_make_a_new_planes() ->
         planes=[other, b],
         edge=None,
         timings=(0.0, 0.0, 0.0),
-        plane_messages=cache,
     )
-    plain = wire.reconstruction_message(
-        "s1",
-        3,
-        status="provisional",
-        last_step=9,
-        samples_used=10,
-        critical_step=4,
-        critical_angle=0.5,
-        planes=[other, b],
-        edge=None,
-        timings=(0.0, 0.0, 0.0),
-        stamp_ns=msg.stamp_ns,
-    )
+    msg = wire.reconstruction_message("s1", 3, plane_messages=cache, **estimate)
+    plain = wire.reconstruction_message("s1", 3, stamp_ns=msg.stamp_ns, **estimate)
     assert msg == plain
