@@ -251,7 +251,7 @@ def _square_fit(x: np.ndarray, group: np.ndarray, y: np.ndarray, kappa: float | 
 
 def _tilt_of(x: np.ndarray, rows: np.ndarray, d: np.ndarray, depth: float) -> tuple[float, float, float, float] | None:
     """``b``, ``κ``, ``b``'s σ and the residual σ in range (m) of one target's squared ranges along the stack."""
-    _, group = np.unique(rows, return_inverse=True)
+    group = _step_groups(rows)
     y = d * d
     heard = np.unique(x).size
     if heard >= 3:
