@@ -47,6 +47,7 @@ __all__ = [
     "CornerModel",
     "scan_points",
     "mirror_residuals",
+    "mirror_rows",
     "edge_line",
     "edge_range_terms",
     "echo_residuals",
@@ -186,7 +187,12 @@ def _valid_echoes(
 
 def mirror_residuals(wall: Wall, pts: ScanPoints) -> np.ndarray:
     """Residual of the mirror-echo condition ``n·p_c + d − h`` of every echo, m."""
-    return pts.capsule @ wall.normal + pts.distance - wall.offset
+    return mirror_rows(pts.capsule, pts.distance, wall.normal, wall.offset)
+
+
+def mirror_rows(capsule: np.ndarray, distance: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
+    """``n·p_c + d − h`` of each echo at capsule position ``capsule`` (N, 3) and range ``distance`` (N,), m."""
+    return capsule @ normal + distance - offset
 
 
 def edge_line(wall_a: Wall, wall_b: Wall, min_angle: float = np.deg2rad(20.0)) -> tuple[np.ndarray, np.ndarray] | None:

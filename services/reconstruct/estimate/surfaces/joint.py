@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import leastsq
 
-from lelsonar.reconstruct.estimate.corner.model import ECHO_EDGE
+from lelsonar.reconstruct.estimate.corner.model import ECHO_EDGE, mirror_rows
 from lelsonar.reconstruct.estimate.corner.solver import joint_residuals_of, labelled_order
 
 __all__ = ["WallEvidence", "CornerEvidence", "JointWall", "joint_walls"]
@@ -135,7 +135,7 @@ def joint_walls(walls: list[WallEvidence], corners: list[CornerEvidence]) -> lis
         """Block ``j``'s rows at ``x``, whose walls (normal, offset) are ``ws``."""
         if j < n_walls:
             n, h = ws[j]
-            return (positions[j] @ n + ranges[j] - h) / walls[j].sigma  # mirror_residuals
+            return mirror_rows(positions[j], ranges[j], n, h) / walls[j].sigma
         if j < n_walls + len(corners):
             c = corners[j - n_walls]
             (na, ha), (nb, hb) = ws[c.walls[0]], ws[c.walls[1]]
