@@ -53,6 +53,7 @@ __all__ = [
     "STACK_MIXED",
     "PLACEMENT_CAVEATS",
     "placement_caveats",
+    "kind_unsettled",
     "NOT_ITS_END",
     "ALIKE",
     "like_its_mirror",
@@ -84,6 +85,11 @@ STACK_MIXED = (
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
 #: with: a reader shows them beside its σ.
 PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE)
+
+
+def kind_unsettled(reasons: Iterable[str]) -> bool:
+    """Whether the reasons (a :class:`Feature`'s, or its wire message's) say its kind is not settled."""
+    return any(UNSETTLED in r for r in reasons)
 
 
 def placement_caveats(reasons: Iterable[str]) -> list[str]:
