@@ -7,7 +7,8 @@ range because its own bearing is undetermined has no bearing of its own: the tra
 region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stderr`); one with a bearing of its own
 weighs it with the trace's, its σ grown where the two disagree.  Its direction: along the
 two planes' line, along its one plane across the ray to it (that plane's end), across the fan for a line across
-the stack, else along the stack.
+the stack, else along the stack.  Where its own echoes deny what placed it (:mod:`.feature_kinds`), it lies where
+its own echo comes from, and its kind, which rested on that placement, is not settled.
 """
 
 from __future__ import annotations
