@@ -72,6 +72,7 @@ from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partia
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
+    clean_cuts,
     measure_region,
     summed_width_stderr,
     sweep_step,
@@ -146,7 +147,9 @@ def extract_surfaces(
     scale = echo_scale(measured, sweep.gamma, opts)
     _split_two_edges(measured, partial, scale, sweep)
     own = list(measured)  # each region as its own echoes measured it, before its kind places it
-    kinds, across_lines = classify_regions(measured, partial, scale, sweep.gamma, sweep.opts, sweep.amplitude)
+    kinds, across_lines = classify_regions(
+        measured, partial, scale, sweep.gamma, sweep.opts, sweep.amplitude, sweep.distance
+    )
     _widen_summed_bearings(measured, kinds, scale)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
@@ -316,13 +319,12 @@ def _flank_bearings(
     if sweep.amplitude is None or not scale.beam_k > 0:
         return
     n_steps, n_capsules = sweep.amplitude.shape
-    todo = [
-        i
+    reach = {
+        i: flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut, clean_cuts(m.region, sweep.distance, sweep.opts))
         for i, m in enumerate(measured)
-        if i not in kinds
-        and i not in partial
-        and flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut) != (0.0, 0.0)
-    ]
+        if i not in kinds and i not in partial and m.bearing_source == "undetermined"
+    }
+    todo = [i for i, r in reach.items() if r != (0.0, 0.0)]
     if not todo:
         return
     # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
@@ -330,7 +332,9 @@ def _flank_bearings(
     planes = [m for i, m in enumerate(measured) if i not in kinds and i not in partial]
     beam = sweep_beam(planes, sweep.gamma, sweep.amplitude, 2.0 * math.sqrt(scale.beam_k))
     for i in todo:
-        measured[i] = flank_measured(measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut)
+        measured[i] = flank_measured(
+            measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut, reach=reach[i]
+        )
 
 
 def _fit_planes(
