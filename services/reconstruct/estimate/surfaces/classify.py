@@ -174,9 +174,6 @@ def _end_by_flank(
     sigmas = gaps[0]
     if not decisive or flanks.scale.end_strength(placed, plane)[0] == "weak":
         return first, gap
-    # A wall's echo at its own foot is a mirror's: weak there, it diffracts (an edge whose planes are not seen).
-    if flanks.scale.end_strength(replace(m, bearing=flank.bearing), plane)[0] == "weak":
-        return first, gap
     why = (
         f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(first[1]):.1f}°, but its "
         f"beam flank peaks at {math.degrees(flank.bearing):.1f}° ± {math.degrees(flank.bearing_stderr):.1f}°, "

@@ -72,7 +72,6 @@ from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partia
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
-    clean_cuts,
     measure_region,
     summed_width_stderr,
     sweep_step,
@@ -319,12 +318,13 @@ def _flank_bearings(
     if sweep.amplitude is None or not scale.beam_k > 0:
         return
     n_steps, n_capsules = sweep.amplitude.shape
-    reach = {
-        i: flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut, clean_cuts(m.region, sweep.distance, sweep.opts))
+    todo = [
+        i
         for i, m in enumerate(measured)
-        if i not in kinds and i not in partial and m.bearing_source == "undetermined"
-    }
-    todo = [i for i, r in reach.items() if r != (0.0, 0.0)]
+        if i not in kinds
+        and i not in partial
+        and flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut) != (0.0, 0.0)
+    ]
     if not todo:
         return
     # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
@@ -332,9 +332,7 @@ def _flank_bearings(
     planes = [m for i, m in enumerate(measured) if i not in kinds and i not in partial]
     beam = sweep_beam(planes, sweep.gamma, sweep.amplitude, 2.0 * math.sqrt(scale.beam_k))
     for i in todo:
-        measured[i] = flank_measured(
-            measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut, reach=reach[i]
-        )
+        measured[i] = flank_measured(measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut)
 
 
 def _fit_planes(
