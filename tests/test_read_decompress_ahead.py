@@ -17,7 +17,7 @@ from lelsonar.log import recording
 from lelsonar.reconstruct.stream import sources
 from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import REPLAYED, replay_mcap
+from lelsonar.reconstruct.stream.sources import REPLAYED, ReplayPlan, replay_mcap
 
 from .conftest import simulated_messages
 
@@ -49,9 +49,8 @@ def recorded(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("threads", [0, 1, 2])
-def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, threads, monkeypatch):
-    monkeypatch.setattr(sources, "decompress_threads", lambda: threads)  # whatever the host's load
+@pytest.mark.parametrize(("workers", "threads"), [(0, 0), (0, 1), (0, 2), (1, 1)])
+def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, workers, threads):
     one_by_one = ReconstructionService(ReconstructConfig(provisional=False))
     fed = 0
     for rec in recording.iter_payloads(recorded):
@@ -60,9 +59,18 @@ def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, t
             fed += 1
     one_by_one.finish()
     replayed = ReconstructionService(ReconstructConfig(provisional=False))
-    assert replay_mcap(recorded, replayed) == fed
+    # The plan given, whatever the host's load.
+    assert replay_mcap(recorded, replayed, plan=ReplayPlan(workers, threads)) == fed
     assert len(replayed.finals) == 2
     assert [_comparable(m) for m in replayed.finals.values()] == [_comparable(m) for m in one_by_one.finals.values()]
+
+
+def test_a_replays_plan_is_its_workers_and_decompressing_threads_for_the_load_now(recorded, monkeypatch):
+    monkeypatch.setattr(sources, "decompress_threads", lambda: 1)
+    rec = recording.open_recording(recorded)
+    assert sources.replay_plan(rec, 3) == ReplayPlan(workers=3, decompress_threads=1)  # workers as configured
+    monkeypatch.setattr(sources, "replay_workers", lambda configured, scans: 7 if scans == 2 else -1)
+    assert sources.replay_plan(rec, None) == ReplayPlan(7, 1)  # the file's scans decide, as replay_workers says
 
 
 def test_a_replay_does_not_decompress_the_estimates_or_the_views(recorded):

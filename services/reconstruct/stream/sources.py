@@ -20,7 +20,7 @@ import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
 from pathlib import Path
-from typing import cast
+from typing import NamedTuple, cast
 
 import zenoh
 
@@ -152,8 +152,25 @@ def runnable_tasks() -> int:
         return math.ceil(os.getloadavg()[0])
 
 
+class ReplayPlan(NamedTuple):
+    """How a replay shares the host: worker processes for its finals, threads that decompress ahead."""
+
+    workers: int
+    decompress_threads: int
+
+
+def replay_plan(rec: Recording, configured_workers: int | None) -> ReplayPlan:
+    """The plan :func:`replay_mcap` follows by default: :func:`replay_workers` and :func:`decompress_threads`,
+    from the host's load now."""
+    return ReplayPlan(replay_workers(configured_workers, scans_in(rec)), decompress_threads())
+
+
 def replay_mcap(
-    path: Path | str | Recording, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
+    path: Path | str | Recording,
+    service: ReconstructionService,
+    on_payload: Callable[[int], None] | None = None,
+    *,
+    plan: ReplayPlan | None = None,
 ) -> int:
     """Feed a recording through the service in log-time order, then finalise open scans.
 
@@ -165,16 +182,19 @@ def replay_mcap(
     the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
     estimates are the same either way.
 
+    ``plan``: the workers and threads to use (default: :func:`replay_plan`'s, decided now).
+
     Returns the number of payloads read.
     """
     rec = open_recording(path)
     n = 0
-    workers = replay_workers(service.config.final_workers, scans_in(rec))
-    pool = FinalPool(workers) if workers else None
+    if plan is None:
+        plan = replay_plan(rec, service.config.final_workers)
+    pool = FinalPool(plan.workers) if plan.workers else None
     try:
         service.use_pool(pool)
         # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
-        for r in rec.payloads(REPLAYED, decompress_threads=decompress_threads()):
+        for r in rec.payloads(REPLAYED, decompress_threads=plan.decompress_threads):
             service.handle(r.type_name, r.payload)
             n += 1
             if on_payload is not None:
