@@ -191,11 +191,18 @@ def test_the_tasks_running_now_count_the_caller():
 
 @pytest.mark.parametrize(
     ("cpus", "runnable", "workers"),
-    [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (4, 4, 0), (1, 1, 0)],
+    [(2, 1, 0), (2, 2, 0), (2, 15, 0), (3, 1, 1), (4, 1, 2), (4, 3, 0), (8, 1, 2), (1, 1, 0)],
 )
-def test_a_long_replays_final_workers_take_the_cores_no_other_task_runs_on(monkeypatch, cpus, runnable, workers):
+def test_a_replays_final_workers_leave_the_decompression_its_core(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(sources, "workers_warm", lambda: True)  # workers ready at once: the core is still shared
+    for scans in (2, sources.COLD_START_SCANS, sources.COLD_START_SHARED_SCANS - 1, None):
+        assert sources.replay_workers(None, scans, cpus=cpus, runnable=runnable) == workers
+
+
+@pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
+def test_a_very_long_replays_final_workers_take_every_idle_core(monkeypatch, cpus, runnable, workers):
     monkeypatch.setattr(sources, "workers_warm", lambda: True)
-    assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+    assert sources.replay_workers(None, sources.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
 
 
 @pytest.mark.parametrize(

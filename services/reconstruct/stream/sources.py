@@ -213,8 +213,9 @@ def replay_mcap(
 #: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
 #: ready.
 COLD_START_SCANS = 50
-#: Scans a replay must hold to start them on the core its decompression takes: the fork server's start then
-#: slows the reading until a worker is ready, which a worker repays only over a long file.
+#: Scans a replay must hold to start its workers on the core its decompression takes: a worker there shares
+#: that core with the decompressing thread, which a worker repays (its fork server's start, a final pickled
+#: each way) only over a long file, if at all.
 COLD_START_SHARED_SCANS = 500
 
 
@@ -226,12 +227,14 @@ def replay_workers(
     them, and its core is the reading's; a worker that finds no core only competes with the reading).
     None for a file of one scan, whose final can overlap nothing.
 
-    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans,
-    and one core fewer below :data:`COLD_START_SHARED_SCANS`: the fork server's start (its imports, its
-    kernels) takes a core for seconds, and until a worker is ready the caller estimates every final itself
-    while the file is decompressed ahead on the idle cores (:func:`decompress_threads`).  On two cores (the
-    reading's and the decompression's) the finals of such a file stay in the caller: a worker would be ready
-    only after competing with the decompression for much of the replay, and then share its core.
+    Below :data:`COLD_START_SHARED_SCANS` scans, one core fewer: the decompression's
+    (:func:`decompress_threads`), whose thread would share it with a worker.  On two cores (the reading's and
+    the decompression's) the finals of such a file stay in the caller, while the file is decompressed ahead
+    on the other core: a worker there would run at a lower priority than the decompressing thread
+    (:data:`~lelsonar.reconstruct.stream.final_worker.WORKER_NICENESS`), fall behind, and leave the finals
+    queued at the end of the file to the caller, after its start and the pickling had taken their CPU.
+    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans:
+    the fork server's start (its imports, its kernels) takes a core for seconds.
     """
     if scans is not None and scans < 2:
         return 0
@@ -239,11 +242,10 @@ def replay_workers(
         return configured
     n = cpus if cpus is not None else (os.cpu_count() or 1)
     busy = runnable if runnable is not None else runnable_tasks()
-    if not workers_warm():
-        if scans is None or scans < COLD_START_SCANS:
-            return 0
-        if scans < COLD_START_SHARED_SCANS:
-            busy += 1  # the decompression's core
+    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
+        return 0
+    if scans is None or scans < COLD_START_SHARED_SCANS:
+        busy += 1  # the decompression's core
     return max(0, min(auto_workers(n), n - busy))
 
 
