@@ -14,10 +14,10 @@ import pytest
 from lelsonar import codec
 from lelsonar.errors import RecordingNotFoundError
 from lelsonar.log import recording
-from lelsonar.reconstruct.stream import sources
+from lelsonar.reconstruct.stream import replay
 from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.replay import REPLAYED, ReplayPlan, replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import REPLAYED, ReplayPlan, replay_mcap
 
 from .conftest import simulated_messages
 
@@ -66,11 +66,11 @@ def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, w
 
 
 def test_a_replays_plan_is_its_workers_and_decompressing_threads_for_the_load_now(recorded, monkeypatch):
-    monkeypatch.setattr(sources, "decompress_threads", lambda: 1)
+    monkeypatch.setattr(replay, "decompress_threads", lambda: 1)
     rec = recording.open_recording(recorded)
-    assert sources.replay_plan(rec, 3) == ReplayPlan(workers=3, decompress_threads=1)  # workers as configured
-    monkeypatch.setattr(sources, "replay_workers", lambda configured, scans: 7 if scans == 2 else -1)
-    assert sources.replay_plan(rec, None) == ReplayPlan(7, 1)  # the file's scans decide, as replay_workers says
+    assert replay.replay_plan(rec, 3) == ReplayPlan(workers=3, decompress_threads=1)  # workers as configured
+    monkeypatch.setattr(replay, "replay_workers", lambda configured, scans: 7 if scans == 2 else -1)
+    assert replay.replay_plan(rec, None) == ReplayPlan(7, 1)  # the file's scans decide, as replay_workers says
 
 
 def test_a_replay_does_not_decompress_the_estimates_or_the_views(recorded):
@@ -182,11 +182,11 @@ def test_a_read_waiting_for_a_stalled_thread_decompresses_later_chunks_itself(tm
     [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)],
 )
 def test_a_replay_decompresses_ahead_on_the_cores_no_task_runs_on(cpus, runnable, threads):
-    assert sources.decompress_threads(cpus, runnable) == threads
+    assert replay.decompress_threads(cpus, runnable) == threads
 
 
 def test_the_tasks_running_now_count_the_caller():
-    assert sources.runnable_tasks() >= 1
+    assert replay.runnable_tasks() >= 1
 
 
 @pytest.mark.parametrize(
@@ -194,15 +194,15 @@ def test_the_tasks_running_now_count_the_caller():
     [(2, 1, 0), (2, 2, 0), (2, 15, 0), (3, 1, 1), (4, 1, 2), (4, 3, 0), (8, 1, 2), (1, 1, 0)],
 )
 def test_a_replays_final_workers_leave_the_decompression_its_core(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: True)  # workers ready at once: the core is still shared
-    for scans in (2, sources.COLD_START_SCANS, sources.COLD_START_SHARED_SCANS - 1, None):
-        assert sources.replay_workers(None, scans, cpus=cpus, runnable=runnable) == workers
+    monkeypatch.setattr(replay, "workers_warm", lambda: True)  # workers ready at once: the core is still shared
+    for scans in (2, replay.COLD_START_SCANS, replay.COLD_START_SHARED_SCANS - 1, None):
+        assert replay.replay_workers(None, scans, cpus=cpus, runnable=runnable) == workers
 
 
 @pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
 def test_a_very_long_replays_final_workers_take_every_idle_core(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: True)
-    assert sources.replay_workers(None, sources.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
+    monkeypatch.setattr(replay, "workers_warm", lambda: True)
+    assert replay.replay_workers(None, replay.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
 
 
 @pytest.mark.parametrize(
@@ -210,17 +210,17 @@ def test_a_very_long_replays_final_workers_take_every_idle_core(monkeypatch, cpu
     [(2, 1, 0), (2, 2, 0), (3, 1, 1), (4, 1, 2), (4, 2, 1), (4, 3, 0), (8, 1, 2), (1, 1, 0)],
 )
 def test_a_cold_start_leaves_the_decompression_its_core(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: False)
-    assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
-    assert sources.replay_workers(None, sources.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable) == 0
+    monkeypatch.setattr(replay, "workers_warm", lambda: False)
+    assert replay.replay_workers(None, replay.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+    assert replay.replay_workers(None, replay.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable) == 0
 
 
 @pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
 def test_a_long_file_starts_workers_cold_on_every_idle_core(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: False)
-    assert sources.replay_workers(None, sources.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
+    monkeypatch.setattr(replay, "workers_warm", lambda: False)
+    assert replay.replay_workers(None, replay.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
 
 
 def test_a_replay_of_one_scan_or_with_workers_set_asks_no_load():
-    assert sources.replay_workers(None, 1, cpus=8, runnable=1) == 0
-    assert sources.replay_workers(3, 100, cpus=2, runnable=40) == 3
+    assert replay.replay_workers(None, 1, cpus=8, runnable=1) == 0
+    assert replay.replay_workers(3, 100, cpus=2, runnable=40) == 3

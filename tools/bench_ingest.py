@@ -37,7 +37,7 @@ Three measurements, side by side in one run and one table:
     p99 ≤ 50 ms for the first two.
 (c) **MCAP replay**: ``--scans`` scans recorded with
     :class:`~lelsonar.log.recording.McapRecorder` (zstd, /tf and points included),
-    replayed with :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
+    replayed with :func:`~lelsonar.reconstruct.stream.replay.replay_mcap` through a
     default ``ReconstructionService``; samples / wall time, median of
     ``--replay-runs``.  Target ≥ 3,000 samples/s and ≥ 1.0× the floor: python
     ``mcap``'s reader + a upb parse of the contract messages of the same file
@@ -433,7 +433,7 @@ def measure_replay(args: argparse.Namespace) -> Replay:
 
 def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[tuple], list[bool]]:
     from lelsonar.reconstruct.stream.finals import auto_workers
-    from lelsonar.reconstruct.stream.sources import replay_workers
+    from lelsonar.reconstruct.stream.replay import replay_workers
 
     n, sec = rep.samples, rep.seconds
     replay_rate, floor_c = n / sec["replay"], n / sec["floor"]

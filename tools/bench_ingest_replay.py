@@ -2,7 +2,7 @@
 
 * the ingest stage (:meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept`) against a plain upb parse
   (``FromString``) of the same payloads;
-* the replay (:func:`~lelsonar.reconstruct.stream.sources.replay_mcap`) against python ``mcap`` + upb reading
+* the replay (:func:`~lelsonar.reconstruct.stream.replay.replay_mcap`) against python ``mcap`` + upb reading
   the same file (:func:`lelsonar.tools.bench_replay.time_floor`);
 * a cProfile breakdown of one replay (``--profile``).
 """
@@ -42,7 +42,7 @@ def record_scans(path: Path, preset_name: str, scans: int) -> int:
 
 def time_replay(path: Path, runs: int, plans: list | None = None, **config) -> tuple[float, int]:
     """Median wall time of replay_mcap through a fresh service, and the finals of the last run; each run's
-    plan (:func:`~lelsonar.reconstruct.stream.sources.replay_plan`, decided as the replay decides it) is
+    plan (:func:`~lelsonar.reconstruct.stream.replay.replay_plan`, decided as the replay decides it) is
     appended to ``plans``.
 
     Each run starts once the workers of the last have exited and this process's threads are idle
@@ -51,8 +51,8 @@ def time_replay(path: Path, runs: int, plans: list | None = None, **config) -> t
     """
     from lelsonar.log.recording import open_recording
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.replay import replay_mcap, replay_plan
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap, replay_plan
     from lelsonar.tools.bench_replay import reap_workers, settle
 
     times, finals = [], 0
@@ -195,8 +195,8 @@ def profile_replay(path: Path, samples: int, console) -> None:
     from rich.table import Table
 
     from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     prof = cProfile.Profile()
     service = ReconstructionService()

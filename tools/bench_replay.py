@@ -13,11 +13,11 @@ replay's time goes: the reading, the ingest stage and the finals.
 
 Modes:
 
-* ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
+* ``replay`` — :func:`~lelsonar.reconstruct.stream.replay.replay_mcap` through a
   ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
   (the kernels loaded first), estimation included (on a host of several cores, the next chunks
   decompressed on other threads while the service estimates; the finals in worker processes as
-  :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
+  :func:`~lelsonar.reconstruct.stream.replay.replay_workers` decides);
 * ``warm`` — the same replay in a process whose final workers have started before (their fork
   server's imports and kernels loaded before the clock, as in a live reconstructor or a process
   that replayed a file already): the finals in workers from the first scan, where the host's load
@@ -203,7 +203,7 @@ def time_ingest(path: Path) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.log.recording import iter_payloads
     from lelsonar.reconstruct.stream.ingest import Ingest
-    from lelsonar.reconstruct.stream.sources import REPLAYED
+    from lelsonar.reconstruct.stream.replay import REPLAYED
 
     exercise_kernels()  # as the replay children: the kernels loaded before the clock
     ingest = Ingest()
@@ -228,8 +228,8 @@ def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[floa
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.final_pool import FinalPool
     from lelsonar.reconstruct.stream.finals import auto_workers
+    from lelsonar.reconstruct.stream.replay import replay_mcap, replay_plan
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap, replay_plan
 
     if warm:
         with FinalPool(max(auto_workers(), 1)) as pool:  # the fork server's imports and kernels: once a process

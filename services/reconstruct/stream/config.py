@@ -95,7 +95,7 @@ class ReconstructConfig:
         thread.  None: one per core beyond the first, at most two (none on one core); a replay uses
         what the host's load leaves idle but one core, the decompression's, for a file of fewer than a few
         hundred scans, and none for a short file while the workers' fork server has not started yet
-        (:func:`~lelsonar.reconstruct.stream.sources.replay_workers`).
+        (:func:`~lelsonar.reconstruct.stream.replay.replay_workers`).
     """
 
     method: str = DEFAULT_METHOD

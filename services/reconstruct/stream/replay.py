@@ -1,0 +1,159 @@
+"""Replaying a recording through the service: the file's payloads in log-time order, on the cores it finds.
+
+:func:`replay_mcap` feeds a recording's contract messages to the same :meth:`ReconstructionService.handle`
+a live source does (:mod:`lelsonar.reconstruct.stream.sources`), so a replay gives the estimates live data
+gave.  How it shares the host is its :class:`ReplayPlan` (:func:`replay_plan`): threads that decompress the
+file ahead (:func:`decompress_threads`) and worker processes for its finals (:func:`replay_workers`), as
+many as the tasks running now leave cores idle.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+from lelsonar import codec
+from lelsonar.log.recording import Recording, open_recording
+from lelsonar.reconstruct.stream.final_pool import FinalPool, workers_warm
+from lelsonar.reconstruct.stream.finals import auto_workers
+from lelsonar.reconstruct.stream.service import ReconstructionService
+
+_log = logging.getLogger(__name__)
+
+#: The contract messages a replay feeds the service: a scan's, not the estimates a file may also hold.
+REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
+
+
+def decompress_threads(cpus: int | None = None, runnable: int | None = None) -> int:
+    """Threads to decompress a replayed file ahead of the service: the cores no task is running on now, up to two.
+
+    ``runnable`` (default: the host's tasks running or ready to run now, this one included, from
+    ``/proc/loadavg``; the load average instead where there is none).  Not the load average where the
+    kernel gives the tasks of the moment: it lags the host by a minute, and a replay right after a busy one
+    would get no thread.  The reading thread decompresses itself whatever chunk no thread has started yet
+    (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that loses its core to a neighbour holds the
+    read up by at most the one job it has started.
+    """
+    n = cpus if cpus is not None else (os.cpu_count() or 1)
+    busy = runnable if runnable is not None else runnable_tasks()
+    return max(0, min(2, n - busy))
+
+
+def runnable_tasks() -> int:
+    """Tasks running or ready to run on the host now, the caller's included (``/proc/loadavg``'s fourth field);
+    the 1-minute load average, rounded up, where that is not readable."""
+    try:
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].partition("/")[0])
+    except (OSError, ValueError, IndexError):
+        return math.ceil(os.getloadavg()[0])
+
+
+class ReplayPlan(NamedTuple):
+    """How a replay shares the host: worker processes for its finals, threads that decompress ahead."""
+
+    workers: int
+    decompress_threads: int
+
+
+def replay_plan(rec: Recording, configured_workers: int | None) -> ReplayPlan:
+    """The plan :func:`replay_mcap` follows by default: :func:`replay_workers` and :func:`decompress_threads`,
+    from the host's load now."""
+    return ReplayPlan(replay_workers(configured_workers, scans_in(rec)), decompress_threads())
+
+
+def replay_mcap(
+    path: Path | str | Recording,
+    service: ReconstructionService,
+    on_payload: Callable[[int], None] | None = None,
+    *,
+    plan: ReplayPlan | None = None,
+) -> int:
+    """Feed a recording through the service in log-time order, then finalise open scans.
+
+    On a host of several cores, the next chunks of the file are decompressed and checked on
+    other threads while the service handles a payload (:func:`decompress_threads`,
+    :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
+    the estimation.  The finals are estimated in worker processes while the file is read
+    (:func:`replay_workers`, :class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`), and handed back in
+    the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
+    estimates are the same either way.
+
+    ``plan``: the workers and threads to use (default: :func:`replay_plan`'s, decided now).
+
+    Returns the number of payloads read.
+    """
+    rec = open_recording(path)
+    n = 0
+    if plan is None:
+        plan = replay_plan(rec, service.config.final_workers)
+    pool = FinalPool(plan.workers) if plan.workers else None
+    try:
+        service.use_pool(pool)
+        # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
+        for r in rec.payloads(REPLAYED, decompress_threads=plan.decompress_threads):
+            service.handle(r.type_name, r.payload)
+            n += 1
+            if on_payload is not None:
+                on_payload(r.log_time_ns)
+        service.finish()  # (waits for every final)
+    finally:
+        if pool is not None:
+            service.use_pool(None, drain=False)  # after finish(), none is left; on an error, they are dropped (logged)
+            pool.close(wait=None)  # each worker exits on its own: the replay does not wait for it
+    if not isinstance(path, Recording) and (line := rec.damage_warning()):
+        _log.warning("%s", line.removeprefix("warning: "))
+    return n
+
+
+#: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
+#: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
+#: ready.
+COLD_START_SCANS = 50
+#: Scans a replay must hold to start its workers on the core its decompression takes: a worker there shares
+#: that core with the decompressing thread, which a worker repays (its fork server's start, a final pickled
+#: each way) only over a long file, if at all.
+COLD_START_SHARED_SCANS = 500
+
+
+def replay_workers(
+    configured: int | None, scans: int | None, *, cpus: int | None = None, runnable: int | None = None
+) -> int:
+    """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the tasks
+    running now leave cores idle (``runnable`` as :func:`decompress_threads`': the caller's thread is one of
+    them, and its core is the reading's; a worker that finds no core only competes with the reading).
+    None for a file of one scan, whose final can overlap nothing.
+
+    Below :data:`COLD_START_SHARED_SCANS` scans, one core fewer: the decompression's
+    (:func:`decompress_threads`), whose thread would share it with a worker.  On two cores (the reading's and
+    the decompression's) the finals of such a file stay in the caller, while the file is decompressed ahead
+    on the other core: a worker there would run at a lower priority than the decompressing thread
+    (:data:`~lelsonar.reconstruct.stream.final_worker.WORKER_NICENESS`), fall behind, and leave the finals
+    queued at the end of the file to the caller, after its start and the pickling had taken their CPU.
+    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans:
+    the fork server's start (its imports, its kernels) takes a core for seconds.
+    """
+    if scans is not None and scans < 2:
+        return 0
+    if configured is not None:
+        return configured
+    n = cpus if cpus is not None else (os.cpu_count() or 1)
+    busy = runnable if runnable is not None else runnable_tasks()
+    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
+        return 0
+    if scans is None or scans < COLD_START_SHARED_SCANS:
+        busy += 1  # the decompression's core
+    return max(0, min(auto_workers(n), n - busy))
+
+
+def scans_in(rec: Recording) -> int | None:
+    """Scans a recording holds, from its summary or its chunks' indexes (None when neither says)."""
+    s = rec.salvage
+    counts = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
+    starts = [cid for cid, cls in rec.contract_channels().items() if cls is codec.ScanStart]
+    n = max([counts.get(cid, 0) for cid in starts] + [len(rec.start_copies())])
+    return n if n or counts else None
