@@ -142,6 +142,10 @@ def time_floor(path: Path, warm: bool = True) -> tuple[float, int]:
 
     ``warm``: one untimed pass first, as :func:`warm_heap` says.
     """
+    import mcap.reader  # noqa: F401 - imported before the clock, warm or not
+
+    from lelsonar import codec  # noqa: F401
+
     if warm:
         warm_heap(_floor_pass, path)
     settle()
@@ -153,6 +157,9 @@ def time_floor(path: Path, warm: bool = True) -> tuple[float, int]:
 def time_read(path: Path, warm: bool = True) -> tuple[float, int]:
     """(seconds, samples) of the tolerant reader and a upb parse of every contract payload (``warm``: as
     :func:`time_floor`)."""
+    import lelsonar.log.recording  # noqa: F401 - imported before the clock, warm or not
+    from lelsonar import codec  # noqa: F401
+
     if warm:
         warm_heap(_read_pass, path)
     settle()
