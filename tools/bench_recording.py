@@ -288,12 +288,12 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
         f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
         "replay: replay_mcap through ReconstructionService(provisional=False), as `reconstruct --source`: "
         "reading, decoding, validation, assembly and the final estimates (in worker processes where "
-        "replay_workers starts them: in a process that has none yet, not for a short file, nor on a host whose "
-        "cores the reading and its decompression take); target "
+        "replay_workers starts them: on the cores the reading and its decompression leave idle, and in a process "
+        "that has none yet not for a short file; the plans column says what each child had); target "
         f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
         "replay, workers up: the same in a process whose final workers' fork server was ready before the clock "
         "(a live reconstructor, a process that replayed a file already); workers as the host's load leaves "
-        "cores idle",
+        "cores idle, but the decompression's below a few hundred scans (on 2 cores: none, as replay)",
         "replay, finals inline: the same with every final estimated in the replaying process (--jobs 0), the "
         "file decompressed ahead on the idle cores",
         "a file's last final starts when its reading ends: it adds one final to a replay whatever the workers",

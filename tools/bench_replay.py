@@ -21,7 +21,7 @@ Modes:
 * ``warm`` — the same replay in a process whose final workers have started before (their fork
   server's imports and kernels loaded before the clock, as in a live reconstructor or a process
   that replayed a file already): the finals in workers from the first scan, where the host's load
-  leaves a core idle;
+  leaves a core idle beside the decompression's;
 * ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
   (the reading alone);
 * ``ingest`` — the reading and :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` (decode, validate,
