@@ -67,10 +67,29 @@ def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, w
 
 def test_a_replays_plan_is_its_workers_and_decompressing_threads_for_the_load_now(recorded, monkeypatch):
     monkeypatch.setattr(replay, "decompress_threads", lambda: 1)
+    monkeypatch.setattr(replay, "THREADED_CHUNK_BYTES", 0)  # whatever its chunks
     rec = recording.open_recording(recorded)
     assert replay.replay_plan(rec, 3) == ReplayPlan(workers=3, decompress_threads=1)  # workers as configured
-    monkeypatch.setattr(replay, "replay_workers", lambda configured, scans: 7 if scans == 2 else -1)
-    assert replay.replay_plan(rec, None) == ReplayPlan(7, 1)  # the file's scans decide, as replay_workers says
+    asked = []
+    monkeypatch.setattr(
+        replay, "replay_workers", lambda configured, scans, decompressing: asked.append(decompressing) or 7 * scans
+    )
+    assert replay.replay_plan(rec, None) == ReplayPlan(14, 1)  # the file's scans decide, as replay_workers says
+    assert asked == [True]
+
+
+def test_a_file_of_small_chunks_is_decompressed_by_the_reading_thread_alone(recorded, monkeypatch):
+    monkeypatch.setattr(replay, "decompress_threads", lambda: 2)
+    rec = recording.open_recording(recorded)
+    # A chunk per contract message, as acquire writes: the Samples' chunks are tens of kB.
+    size = replay.chunk_bytes(rec)
+    assert size is not None and size < replay.THREADED_CHUNK_BYTES
+    asked = []
+    monkeypatch.setattr(replay, "replay_workers", lambda configured, scans, decompressing: asked.append(decompressing))
+    assert replay.replay_plan(rec, None).decompress_threads == 0
+    assert asked == [False]  # the workers are told no thread decompresses
+    monkeypatch.setattr(replay, "THREADED_CHUNK_BYTES", size)
+    assert replay.replay_plan(rec, None).decompress_threads == 2
 
 
 def test_a_replay_does_not_decompress_the_estimates_or_the_views(recorded):
@@ -197,6 +216,20 @@ def test_a_replays_final_workers_leave_the_decompression_its_core(monkeypatch, c
     monkeypatch.setattr(replay, "workers_warm", lambda: True)  # workers ready at once: the core is still shared
     for scans in (2, replay.COLD_START_SCANS, replay.COLD_START_SHARED_SCANS - 1, None):
         assert replay.replay_workers(None, scans, cpus=cpus, runnable=runnable) == workers
+
+
+@pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
+@pytest.mark.parametrize("warm", [True, False])
+def test_without_threads_decompressing_a_long_replays_workers_take_every_idle_core(
+    monkeypatch, warm, cpus, runnable, workers
+):
+    monkeypatch.setattr(replay, "workers_warm", lambda: warm)
+    for scans in (replay.COLD_START_SCANS, replay.COLD_START_SHARED_SCANS - 1):
+        assert replay.replay_workers(None, scans, cpus=cpus, runnable=runnable, decompressing=False) == workers
+    # A short one: its finals stay in the caller, whose pool is ready or not.
+    assert (
+        replay.replay_workers(None, replay.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable, decompressing=False) == 0
+    )
 
 
 @pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])

@@ -60,10 +60,34 @@ class ReplayPlan(NamedTuple):
     decompress_threads: int
 
 
+#: The chunks a replay reads (their median record, compressed) must be at least this large for threads to
+#: decompress them ahead: a thread takes the GIL back after each chunk, and against a caller busy with Python
+#: (the ingest, the finals) each hand-over waits, so small chunks (``acquire``'s, a chunk per step) read slower
+#: with a thread than without.
+THREADED_CHUNK_BYTES = 64 * 1024
+
+
 def replay_plan(rec: Recording, configured_workers: int | None) -> ReplayPlan:
-    """The plan :func:`replay_mcap` follows by default: :func:`replay_workers` and :func:`decompress_threads`,
-    from the host's load now."""
-    return ReplayPlan(replay_workers(configured_workers, scans_in(rec)), decompress_threads())
+    """The plan :func:`replay_mcap` follows by default, from the host's load now: :func:`decompress_threads`
+    where the file's chunks are large enough (:data:`THREADED_CHUNK_BYTES`, :func:`chunk_bytes`), and
+    :func:`replay_workers`."""
+    size = chunk_bytes(rec)
+    threads = decompress_threads() if size is None or size >= THREADED_CHUNK_BYTES else 0
+    return ReplayPlan(replay_workers(configured_workers, scans_in(rec), decompressing=threads > 0), threads)
+
+
+def chunk_bytes(rec: Recording) -> int | None:
+    """The median length of the chunk records a replay reads (those whose index names a contract channel, or
+    that have none), compressed; None where the file has none, or was not opened from a file."""
+    if rec.source is None:
+        return None
+    contract = set(rec.contract_channels())
+    sizes = sorted(
+        u.length
+        for u in rec.source.units
+        if u.chunk and (u.index is None or any(cid in contract for cid, _n in u.index))
+    )
+    return sizes[len(sizes) // 2] if sizes else None
 
 
 def replay_mcap(
@@ -110,9 +134,10 @@ def replay_mcap(
     return n
 
 
-#: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
-#: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
-#: ready.
+#: Scans a replay must hold to start the final workers in a process that has none yet (their fork server
+#: imports the estimate and loads its kernels first: seconds of CPU, and a shorter replay ends before it is
+#: ready), or, with no thread decompressing, in any process (a worker's start and the pickling cost a short
+#: file more than its finals).
 COLD_START_SCANS = 50
 #: Scans a replay must hold to start its workers on the core its decompression takes: a worker there shares
 #: that core with the decompressing thread, which a worker repays (its fork server's start, a final pickled
@@ -121,21 +146,29 @@ COLD_START_SHARED_SCANS = 500
 
 
 def replay_workers(
-    configured: int | None, scans: int | None, *, cpus: int | None = None, runnable: int | None = None
+    configured: int | None,
+    scans: int | None,
+    *,
+    cpus: int | None = None,
+    runnable: int | None = None,
+    decompressing: bool = True,
 ) -> int:
     """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the tasks
     running now leave cores idle (``runnable`` as :func:`decompress_threads`': the caller's thread is one of
     them, and its core is the reading's; a worker that finds no core only competes with the reading).
     None for a file of one scan, whose final can overlap nothing.
 
-    Below :data:`COLD_START_SHARED_SCANS` scans, one core fewer: the decompression's
-    (:func:`decompress_threads`), whose thread would share it with a worker.  On two cores (the reading's and
-    the decompression's) the finals of such a file stay in the caller, while the file is decompressed ahead
-    on the other core: a worker there would run at a lower priority than the decompressing thread
+    ``decompressing`` (threads decompress the file ahead, :func:`replay_plan`): below
+    :data:`COLD_START_SHARED_SCANS` scans, one core fewer, the decompression's, whose thread would share it
+    with a worker.  On two cores (the reading's and the decompression's) the finals of such a file stay in
+    the caller while the file is decompressed ahead on the other core: a worker there would run at a lower
+    priority than the decompressing thread
     (:data:`~lelsonar.reconstruct.stream.final_worker.WORKER_NICENESS`), fall behind, and leave the finals
     queued at the end of the file to the caller, after its start and the pickling had taken their CPU.
-    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans:
-    the fork server's start (its imports, its kernels) takes a core for seconds.
+
+    None for a file of fewer than :data:`COLD_START_SCANS` scans in a process with no worker started yet
+    (the fork server's start, its imports and kernels, takes a core for seconds), nor, without threads
+    decompressing, in one with: a worker's start and the pickling cost a short file more than its finals.
     """
     if scans is not None and scans < 2:
         return 0
@@ -143,9 +176,9 @@ def replay_workers(
         return configured
     n = cpus if cpus is not None else (os.cpu_count() or 1)
     busy = runnable if runnable is not None else runnable_tasks()
-    if not workers_warm() and (scans is None or scans < COLD_START_SCANS):
+    if (not workers_warm() or not decompressing) and (scans is None or scans < COLD_START_SCANS):
         return 0
-    if scans is None or scans < COLD_START_SHARED_SCANS:
+    if decompressing and (scans is None or scans < COLD_START_SHARED_SCANS):
         busy += 1  # the decompression's core
     return max(0, min(auto_workers(n), n - busy))
 
