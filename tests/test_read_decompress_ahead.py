@@ -257,3 +257,16 @@ def test_a_long_file_starts_workers_cold_on_every_idle_core(monkeypatch, cpus, r
 def test_a_replay_of_one_scan_or_with_workers_set_asks_no_load():
     assert replay.replay_workers(None, 1, cpus=8, runnable=1) == 0
     assert replay.replay_workers(3, 100, cpus=2, runnable=40) == 3
+
+
+def test_a_replay_decompressing_ahead_restores_the_interpreters_switch_interval(recorded):
+    import sys
+
+    before = sys.getswitchinterval()
+    seen = []
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    replay_mcap(recorded, service, lambda _t: seen.append(sys.getswitchinterval()), plan=ReplayPlan(0, 1))
+    assert seen and max(seen) <= replay.DECOMPRESSING_SWITCH_S  # the threads get the GIL back promptly ...
+    assert sys.getswitchinterval() == before  # ... for the replay only
+    replay_mcap(recorded, ReconstructionService(ReconstructConfig(provisional=False)), plan=ReplayPlan(0, 0))
+    assert sys.getswitchinterval() == before  # (no thread: not changed)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -60,6 +61,10 @@ class ReplayPlan(NamedTuple):
     decompress_threads: int
 
 
+#: The interpreter's switch interval while threads decompress a replayed file, s: a thread back from a chunk's
+#: decompression waits this long at most for the GIL while the caller runs Python (the ingest, the finals);
+#: CPython's default (5 ms) is several chunks' decompression, lost to the read at every hand-over.
+DECOMPRESSING_SWITCH_S = 1e-4
 #: The chunks a replay reads (their median record, compressed) must be at least this large for threads to
 #: decompress them ahead: a thread takes the GIL back after each chunk, and against a caller busy with Python
 #: (the ingest, the finals) each hand-over waits, so small chunks (``acquire``'s, a chunk per step) read slower
@@ -107,7 +112,8 @@ def replay_mcap(
     the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
     estimates are the same either way.
 
-    ``plan``: the workers and threads to use (default: :func:`replay_plan`'s, decided now).
+    ``plan``: the workers and threads to use (default: :func:`replay_plan`'s, decided now).  While threads
+    decompress, the interpreter's switch interval is :data:`DECOMPRESSING_SWITCH_S` at most (restored after).
 
     Returns the number of payloads read.
     """
@@ -116,6 +122,9 @@ def replay_mcap(
     if plan is None:
         plan = replay_plan(rec, service.config.final_workers)
     pool = FinalPool(plan.workers) if plan.workers else None
+    switch = sys.getswitchinterval()
+    if plan.decompress_threads:
+        sys.setswitchinterval(min(switch, DECOMPRESSING_SWITCH_S))
     try:
         service.use_pool(pool)
         # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
@@ -126,6 +135,7 @@ def replay_mcap(
                 on_payload(r.log_time_ns)
         service.finish()  # (waits for every final)
     finally:
+        sys.setswitchinterval(switch)
         if pool is not None:
             service.use_pool(None, drain=False)  # after finish(), none is left; on an error, they are dropped (logged)
             pool.close(wait=None)  # each worker exits on its own: the replay does not wait for it
