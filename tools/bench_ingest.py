@@ -433,7 +433,6 @@ def measure_replay(args: argparse.Namespace) -> Replay:
 
 def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[tuple], list[bool]]:
     from lelsonar.reconstruct.stream.finals import auto_workers
-    from lelsonar.reconstruct.stream.replay import replay_workers
 
     n, sec = rep.samples, rep.seconds
     replay_rate, floor_c = n / sec["replay"], n / sec["floor"]
@@ -460,8 +459,8 @@ def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[t
             "—",
             "",
             "--jobs 0: each final estimated where the file is read; (c) estimates them in worker processes "
-            f"while the reading goes on ({replay_workers(None, args.scans)} now: up to {auto_workers()}, as the "
-            "host's load leaves cores idle)",
+            f"while the reading goes on where its plan starts any (up to {auto_workers()}, as the host's load "
+            "leaves cores idle, and none for a short file without threads decompressing: see its plans)",
         ),
         (
             "(c′) replay with provisional estimates (diagnostic)",
