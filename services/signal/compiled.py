@@ -160,9 +160,14 @@ def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
 
 @intrinsic
 def float32_at(typingctx, buf, start, count):
-    """A read-only float32 view of ``count`` values at byte ``start`` of the 1-d uint8 array ``buf`` (which it
-    keeps alive), typed unaligned: its loads make no assumption on the address, which a protobuf field's bytes
-    lie at any of (a view by ``.view`` would be typed aligned, and reading it at such an address undefined).
+    """A read-only float32 view of ``count`` values at byte ``start`` of the 1-d uint8 array ``buf``, typed
+    unaligned: its loads make no assumption on the address, which a protobuf field's bytes lie at any of (a view
+    by ``.view`` would be typed aligned, and reading it at such an address undefined).
+
+    The view does not keep ``buf`` alive (no reference counted, as :func:`array_at`): a view that holds one pays
+    an atomic increment and decrement each time the kernel copies it, which a pass over a sample's waveforms
+    does dozens of times.  So the view is used only inside the kernel call that holds ``buf`` (an argument, or
+    an array made from one) and is never returned from it.
 
     The caller bounds ``start`` and ``count`` (``start + 4·count ≤ buf.size``): nothing is checked here."""
     if not (isinstance(buf, types.Array) and buf.ndim == 1 and buf.dtype == types.uint8):
@@ -183,10 +188,8 @@ def float32_at(typingctx, buf, start, count):
             shape=cgutils.pack_array(builder, [n]),
             strides=cgutils.pack_array(builder, [itemsize]),
             itemsize=itemsize,
-            meminfo=source.meminfo,
-            parent=source.parent,
+            meminfo=None,
         )
-        context.nrt.incref(builder, sig.args[0], args[0])  # the view holds a reference to the buffer
         return out._getvalue()
 
     return view(buf, start, count), codegen
