@@ -100,9 +100,10 @@ class Ingest:
     #: where it has the scan's layout; False parses every payload (the baseline `lelsonar bench ingest` shows).
     fast_path: bool = True
     _held: int = 0
-    #: By the key a sample came on (None: no key), the bytes that routed the last one read from its payload and
-    #: its scan (open: forgotten as it closes; at most two entries an open scan, its scanner's key and none).
-    _routes: dict[str | None, tuple[bytes, ScanAssembly]] = field(default_factory=dict)
+    #: By the key a sample came on (None: no key), the bytes that routed the last one read from its payload, their
+    #: length and its scan (open: forgotten as it closes; at most two entries an open scan, its scanner's key and
+    #: none).
+    _routes: dict[str | None, tuple[bytes, int, ScanAssembly]] = field(default_factory=dict)
     #: By scanner, the layout its last scan's samples showed (:attr:`ScanAssembly.layout`), for its next scan's first
     #: sample (:meth:`ScanAssembly.expect_layout`); at most ``max_scans`` scanners, the least recent forgotten first.
     _layouts: OrderedDict[str, list] = field(default_factory=OrderedDict)
@@ -246,8 +247,8 @@ class Ingest:
             return None
         route = self._routes.get(key_scanner)
         if route is not None and payload.startswith(route[0]):
-            prefix, scan = route
-            at, step, time_ns = len(prefix), 0, 0
+            _, at, scan = route
+            step = time_ns = 0
         else:
             header = sample_header(payload)
             if header is None or header[0] != SCHEMA_VERSION:
@@ -258,7 +259,7 @@ class Ingest:
                 return None
             scan = found
             if routed:
-                self._routes[key_scanner] = (payload[:routed], scan)
+                self._routes[key_scanner] = (payload[:routed], routed, scan)
         mismatches = scan.energy_mismatches
         try:
             placed = scan.add_payload(payload, at, step, time_ns, origin, limits)
@@ -267,7 +268,8 @@ class Ingest:
             return self._refused(scan, -1 if header is None else header[3], exc)
         if placed < 0:
             return None
-        self.energy_mismatches += scan.energy_mismatches - mismatches
+        if scan.energy_mismatches != mismatches:
+            self.energy_mismatches += scan.energy_mismatches - mismatches
         self.accepted += 1
         return _accepted(("sample", scan, placed))
 
@@ -340,7 +342,7 @@ class Ingest:
     def _forget_routes(self, scan: ScanAssembly | None) -> None:
         """No payload is routed to ``scan`` (closed, or forgotten) by the bytes that routed it."""
         if scan is not None:
-            for key in [key for key, (_, routed) in self._routes.items() if routed is scan]:
+            for key in [key for key, (_, _, routed) in self._routes.items() if routed is scan]:
                 del self._routes[key]
 
     def _reject(self, error: str, detail: str) -> Rejected:
