@@ -22,7 +22,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InternalError
 from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, place_rows
-from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch
+from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch, unowned
 from lelsonar.v1 import scan_pb2
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
@@ -462,7 +462,7 @@ def place_wire(payload, at, step, time_ns, recovered, arrays):
     bound, n, k, rows = arrays[_BOUND], arrays[_N], arrays[_K], arrays[_ROWS]
     at_ = arrays[_ADDRESSES:]
     received = array_at(at_[7], rows, np.bool_)
-    buf = np.frombuffer(payload, dtype=np.uint8)
+    buf = unowned(np.frombuffer(payload, dtype=np.uint8))  # (handed on to every reader: the payload is held here)
     end = buf.size
     seen = 0
     body = at
