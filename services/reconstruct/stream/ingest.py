@@ -59,7 +59,7 @@ class Accepted(NamedTuple):
 
 #: Accepted((kind, scan, step)) without the named tuple's Python-level __new__ (a third of its cost).
 _accepted = functools.partial(tuple.__new__, Accepted)
-_MESSAGE_TYPES, _SAMPLE = codec.MESSAGE_TYPES, codec.Sample
+_MESSAGE_TYPES, _SAMPLE, _SCAN_START = codec.MESSAGE_TYPES, codec.Sample, codec.ScanStart
 
 
 @dataclass
@@ -107,6 +107,9 @@ class Ingest:
     #: By scanner, the layout its last scan's samples showed (:attr:`ScanAssembly.layout`), for its next scan's first
     #: sample (:meth:`ScanAssembly.expect_layout`); at most ``max_scans`` scanners, the least recent forgotten first.
     _layouts: OrderedDict[str, list] = field(default_factory=OrderedDict)
+    #: By scanner, the last ScanStart it sent that passed every check, and the limits they were made under
+    #: (:meth:`_decode_start`); at most ``max_scans`` scanners, the least recent forgotten first.
+    _starts: OrderedDict[str, tuple[codec.DecodeLimits, codec.ScanStart]] = field(default_factory=OrderedDict)
 
     @property
     def n_pending(self) -> int:
@@ -138,6 +141,8 @@ class Ingest:
                 codec.validate_body(message, self.limits)
             elif cls is None or cls is codec.Reconstruction:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
+            elif cls is _SCAN_START:
+                message = self._decode_start(payload)
             else:
                 message = codec.decode(payload, cls, self.limits)
             if key_scanner is not None and message.scanner_id != key_scanner:
@@ -234,6 +239,37 @@ class Ingest:
             else:  # the ScanEnd, now that its scan is known
                 events += self.apply(held, origin=origin)
         return events
+
+    def _decode_start(self, payload: bytes) -> codec.ScanStart:
+        """:func:`lelsonar.codec.decode` of a ``ScanStart``, the same checks and refusals: its header checked as it is
+        parsed (:func:`~lelsonar.codec.parse`), its body (:func:`~lelsonar.codec.validate_body`) unless it equals, but
+        for ``scan_id`` and ``start_time_ns`` (which no check reads), its scanner's last ScanStart that passed them
+        under the same limits: each check reads the message's fields alone, so equal fields pass as those did.  A
+        scanner sends the same description scan after scan; comparing it costs a tenth of checking it.
+
+        Raises
+        ------
+        DecodeError
+            A subclass that says what was wrong, as :func:`~lelsonar.codec.decode`.
+        """
+        limits = self.limits
+        message = codec.parse(payload, _SCAN_START, limits)
+        starts = self._starts
+        known = starts.get(message.scanner_id)
+        if known is not None and known[0] is limits:
+            passed = known[1]
+            passed.scan_id, passed.start_time_ns = message.scan_id, message.start_time_ns
+            if passed == message:
+                return message
+        codec.validate_body(message, limits)
+        passed = _SCAN_START()
+        passed.CopyFrom(message)  # (a copy of its own: the message goes to its scan)
+        starts[message.scanner_id] = (limits, passed)
+        starts.move_to_end(message.scanner_id)
+        while len(starts) > self.max_scans:
+            starts.popitem(last=False)
+            self.evicted["scanner start forgotten (max_scans)"] += 1
+        return message
 
     def _add_payload(self, payload: bytes, origin: str, key_scanner: str | None) -> Accepted | Rejected | None:
         """A ``Sample``'s payload placed in its open scan straight from its bytes, never parsed
