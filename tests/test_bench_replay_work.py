@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from lelsonar.tools import bench_recording
+from lelsonar.tools import bench_recording, bench_replay
 
 
 def test_the_work_table_splits_the_children_cpu_per_scan_and_bounds_the_replay(monkeypatch):
@@ -19,3 +19,30 @@ def test_the_work_table_splits_the_children_cpu_per_scan_and_bounds_the_replay(m
     one, many = (float(x.rstrip("×")) for x in best.split(" / "))
     assert one == pytest.approx(16 / (14 / 2 + 10), abs=0.005)  # the last final after the reading
     assert many == pytest.approx(2 * 16 / 24, abs=0.005)
+
+
+def test_a_short_file_is_replayed_by_more_children_so_every_median_stands_on_as_many_scans():
+    assert bench_replay.runs_for(1, 1) == bench_replay.SHORT_FILE_RUNS
+    assert bench_replay.runs_for(2, 1) == -(-bench_replay.SHORT_FILE_RUNS // 2)
+    assert bench_replay.runs_for(100, 1) == 1
+    assert bench_replay.runs_for(100, 5) == 5  # --rss-runs, where it asks for more
+
+
+def test_the_replays_plans_are_printed_most_common_first():
+    assert bench_replay.plans_text({(0, 0): 1, (0, 1): 8}) == "0 w + 1 t ×8, 0 w + 0 t ×1"
+
+
+def test_the_floor_and_the_read_children_warm_up_then_read_every_sample(tmp_path):
+    from lelsonar.log.recording import McapRecorder
+
+    from .conftest import simulated_messages
+
+    path = tmp_path / "one.mcap"
+    msgs = simulated_messages(steps=12)
+    with McapRecorder(path) as rec:
+        for m in msgs:
+            rec.write(m)
+    samples = len(msgs) - 2
+    for warm in (True, False):
+        assert bench_replay.time_floor(path, warm)[1] == samples
+        assert bench_replay.time_read(path, warm)[1] == samples

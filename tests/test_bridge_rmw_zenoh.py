@@ -169,8 +169,8 @@ def recording(tmp_path):
 def test_bridge_publishes_rmw_zenoh_samples_and_tokens(tmp_path, recording):
     """A replay through the bridge, seen from a plain Zenoh peer as rmw_zenoh would see it."""
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     path, source = recording
     samples = [m for m in source if isinstance(m, codec.Sample)]

@@ -29,8 +29,9 @@ from lelsonar.net.transport import MAX_MESSAGE_BYTES, ZenohSettings, open_sessio
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.recovery import LogPresence, RecoveryPolicy, RecoveryRequest
+from lelsonar.reconstruct.stream.replay import replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import PayloadFifo, replay_mcap
+from lelsonar.reconstruct.stream.sources import PayloadFifo
 from lelsonar.v1 import scan_pb2
 
 from .conftest import simulated_messages

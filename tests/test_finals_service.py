@@ -15,8 +15,8 @@ from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.final_pool import FinalPool
+from lelsonar.reconstruct.stream.replay import replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.v1.scan_pb2 import SCAN_STATUS_ABORTED
 
 from . import foreign_scenes as fs

@@ -22,8 +22,8 @@ from lelsonar.map.service import MAP_TOPIC, MapperService, ZenohMapper, map_key
 from lelsonar.net.transport import hermetic_settings, open_session
 from lelsonar.reconstruct.estimate.pipeline import DEFAULT_METHOD
 from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.replay import replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.v1 import map_pb2
 from tests.conftest import simulated_messages
 

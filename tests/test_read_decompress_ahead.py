@@ -14,10 +14,10 @@ import pytest
 from lelsonar import codec
 from lelsonar.errors import RecordingNotFoundError
 from lelsonar.log import recording
-from lelsonar.reconstruct.stream import sources
+from lelsonar.reconstruct.stream import replay
 from lelsonar.reconstruct.stream.config import ReconstructConfig
+from lelsonar.reconstruct.stream.replay import REPLAYED, ReplayPlan, replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import REPLAYED, replay_mcap
 
 from .conftest import simulated_messages
 
@@ -49,9 +49,8 @@ def recorded(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("threads", [0, 1, 2])
-def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, threads, monkeypatch):
-    monkeypatch.setattr(sources, "decompress_threads", lambda: threads)  # whatever the host's load
+@pytest.mark.parametrize(("workers", "threads"), [(0, 0), (0, 1), (0, 2), (1, 1)])
+def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, workers, threads):
     one_by_one = ReconstructionService(ReconstructConfig(provisional=False))
     fed = 0
     for rec in recording.iter_payloads(recorded):
@@ -60,9 +59,37 @@ def test_a_replay_gives_the_estimates_of_the_payloads_fed_one_by_one(recorded, t
             fed += 1
     one_by_one.finish()
     replayed = ReconstructionService(ReconstructConfig(provisional=False))
-    assert replay_mcap(recorded, replayed) == fed
+    # The plan given, whatever the host's load.
+    assert replay_mcap(recorded, replayed, plan=ReplayPlan(workers, threads)) == fed
     assert len(replayed.finals) == 2
     assert [_comparable(m) for m in replayed.finals.values()] == [_comparable(m) for m in one_by_one.finals.values()]
+
+
+def test_a_replays_plan_is_its_workers_and_decompressing_threads_for_the_load_now(recorded, monkeypatch):
+    monkeypatch.setattr(replay, "decompress_threads", lambda: 1)
+    monkeypatch.setattr(replay, "THREADED_CHUNK_BYTES", 0)  # whatever its chunks
+    rec = recording.open_recording(recorded)
+    assert replay.replay_plan(rec, 3) == ReplayPlan(workers=3, decompress_threads=1)  # workers as configured
+    asked = []
+    monkeypatch.setattr(
+        replay, "replay_workers", lambda configured, scans, decompressing: asked.append(decompressing) or 7 * scans
+    )
+    assert replay.replay_plan(rec, None) == ReplayPlan(14, 1)  # the file's scans decide, as replay_workers says
+    assert asked == [True]
+
+
+def test_a_file_of_small_chunks_is_decompressed_by_the_reading_thread_alone(recorded, monkeypatch):
+    monkeypatch.setattr(replay, "decompress_threads", lambda: 2)
+    rec = recording.open_recording(recorded)
+    # A chunk per contract message, as acquire writes: the Samples' chunks are tens of kB.
+    size = replay.chunk_bytes(rec)
+    assert size is not None and size < replay.THREADED_CHUNK_BYTES
+    asked = []
+    monkeypatch.setattr(replay, "replay_workers", lambda configured, scans, decompressing: asked.append(decompressing))
+    assert replay.replay_plan(rec, None).decompress_threads == 0
+    assert asked == [False]  # the workers are told no thread decompresses
+    monkeypatch.setattr(replay, "THREADED_CHUNK_BYTES", size)
+    assert replay.replay_plan(rec, None).decompress_threads == 2
 
 
 def test_a_replay_does_not_decompress_the_estimates_or_the_views(recorded):
@@ -174,20 +201,41 @@ def test_a_read_waiting_for_a_stalled_thread_decompresses_later_chunks_itself(tm
     [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)],
 )
 def test_a_replay_decompresses_ahead_on_the_cores_no_task_runs_on(cpus, runnable, threads):
-    assert sources.decompress_threads(cpus, runnable) == threads
+    assert replay.decompress_threads(cpus, runnable) == threads
 
 
 def test_the_tasks_running_now_count_the_caller():
-    assert sources.runnable_tasks() >= 1
+    assert replay.runnable_tasks() >= 1
 
 
 @pytest.mark.parametrize(
     ("cpus", "runnable", "workers"),
-    [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (4, 4, 0), (1, 1, 0)],
+    [(2, 1, 0), (2, 2, 0), (2, 15, 0), (3, 1, 1), (4, 1, 2), (4, 3, 0), (8, 1, 2), (1, 1, 0)],
 )
-def test_a_long_replays_final_workers_take_the_cores_no_other_task_runs_on(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: True)
-    assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+def test_a_replays_final_workers_leave_the_decompression_its_core(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(replay, "workers_warm", lambda: True)  # workers ready at once: the core is still shared
+    for scans in (2, replay.COLD_START_SCANS, replay.COLD_START_SHARED_SCANS - 1, None):
+        assert replay.replay_workers(None, scans, cpus=cpus, runnable=runnable) == workers
+
+
+@pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
+@pytest.mark.parametrize("warm", [True, False])
+def test_without_threads_decompressing_a_long_replays_workers_take_every_idle_core(
+    monkeypatch, warm, cpus, runnable, workers
+):
+    monkeypatch.setattr(replay, "workers_warm", lambda: warm)
+    for scans in (replay.COLD_START_SCANS, replay.COLD_START_SHARED_SCANS - 1):
+        assert replay.replay_workers(None, scans, cpus=cpus, runnable=runnable, decompressing=False) == workers
+    # A short one: its finals stay in the caller, whose pool is ready or not.
+    assert (
+        replay.replay_workers(None, replay.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable, decompressing=False) == 0
+    )
+
+
+@pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
+def test_a_very_long_replays_final_workers_take_every_idle_core(monkeypatch, cpus, runnable, workers):
+    monkeypatch.setattr(replay, "workers_warm", lambda: True)
+    assert replay.replay_workers(None, replay.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
 
 
 @pytest.mark.parametrize(
@@ -195,17 +243,30 @@ def test_a_long_replays_final_workers_take_the_cores_no_other_task_runs_on(monke
     [(2, 1, 0), (2, 2, 0), (3, 1, 1), (4, 1, 2), (4, 2, 1), (4, 3, 0), (8, 1, 2), (1, 1, 0)],
 )
 def test_a_cold_start_leaves_the_decompression_its_core(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: False)
-    assert sources.replay_workers(None, sources.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
-    assert sources.replay_workers(None, sources.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable) == 0
+    monkeypatch.setattr(replay, "workers_warm", lambda: False)
+    assert replay.replay_workers(None, replay.COLD_START_SCANS, cpus=cpus, runnable=runnable) == workers
+    assert replay.replay_workers(None, replay.COLD_START_SCANS - 1, cpus=cpus, runnable=runnable) == 0
 
 
 @pytest.mark.parametrize(("cpus", "runnable", "workers"), [(2, 1, 1), (2, 2, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)])
 def test_a_long_file_starts_workers_cold_on_every_idle_core(monkeypatch, cpus, runnable, workers):
-    monkeypatch.setattr(sources, "workers_warm", lambda: False)
-    assert sources.replay_workers(None, sources.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
+    monkeypatch.setattr(replay, "workers_warm", lambda: False)
+    assert replay.replay_workers(None, replay.COLD_START_SHARED_SCANS, cpus=cpus, runnable=runnable) == workers
 
 
 def test_a_replay_of_one_scan_or_with_workers_set_asks_no_load():
-    assert sources.replay_workers(None, 1, cpus=8, runnable=1) == 0
-    assert sources.replay_workers(3, 100, cpus=2, runnable=40) == 3
+    assert replay.replay_workers(None, 1, cpus=8, runnable=1) == 0
+    assert replay.replay_workers(3, 100, cpus=2, runnable=40) == 3
+
+
+def test_a_replay_decompressing_ahead_restores_the_interpreters_switch_interval(recorded):
+    import sys
+
+    before = sys.getswitchinterval()
+    seen = []
+    service = ReconstructionService(ReconstructConfig(provisional=False))
+    replay_mcap(recorded, service, lambda _t: seen.append(sys.getswitchinterval()), plan=ReplayPlan(0, 1))
+    assert seen and max(seen) <= replay.DECOMPRESSING_SWITCH_S  # the threads get the GIL back promptly ...
+    assert sys.getswitchinterval() == before  # ... for the replay only
+    replay_mcap(recorded, ReconstructionService(ReconstructConfig(provisional=False)), plan=ReplayPlan(0, 0))
+    assert sys.getswitchinterval() == before  # (no thread: not changed)

@@ -22,8 +22,8 @@ from lelsonar.reconstruct.stream import assembly
 from lelsonar.reconstruct.stream.assembly import ScanAssembly
 from lelsonar.reconstruct.stream.config import ReconstructConfig
 from lelsonar.reconstruct.stream.fastwire import UNREAD
+from lelsonar.reconstruct.stream.replay import replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.reconstruct.stream.step_features import RISE_STRIDE
 from lelsonar.signal.energy import waveform_energy_agrees
 

@@ -201,12 +201,10 @@ def test_a_wall_with_a_bearing_of_its_own_beside_its_corner_is_sought_over_its_w
     wall = replace(_measured(9.3, 2.819, (-2.6, 24.6), (True, False)), bearing_source="amplitude peak")
     corner = _measured(11.3, 2.875, (27.0, 37.0), (True, False))
     opts = SurfaceOptions()
-    # The foot lies inside the region: not past its cut end, where a bearing left open is sought.
-    assert unseen_corner(wall, corner, j, opts) is None
-    beta = unseen_corner(wall, corner, j, opts, own=True)
+    beta = unseen_corner(wall, corner, j, opts)
     assert beta is not None
     assert abs(math.degrees(beta)) < 4.0, math.degrees(beta)  # within what 3 cm of the corner's depth allows
     # A deeper region whose echo faded on the wall's side (nothing nearer masked it there) is no corner the
     # wall's mirror hides.
     faded = _measured(11.3, 2.875, (27.0, 37.0), (False, False))
-    assert unseen_corner(wall, faded, j, opts, own=True) is None
+    assert unseen_corner(wall, faded, j, opts) is None

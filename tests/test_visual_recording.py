@@ -261,8 +261,8 @@ def test_a_simulated_recording_carries_energy_ratio_and_truth(tmp_path):
     scan also carries its true planes."""
     from lelsonar.acquire.simulated import record_scan
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     path = tmp_path / "sim.mcap"

@@ -37,7 +37,7 @@ Three measurements, side by side in one run and one table:
     p99 ≤ 50 ms for the first two.
 (c) **MCAP replay**: ``--scans`` scans recorded with
     :class:`~lelsonar.log.recording.McapRecorder` (zstd, /tf and points included),
-    replayed with :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
+    replayed with :func:`~lelsonar.reconstruct.stream.replay.replay_mcap` through a
     default ``ReconstructionService``; samples / wall time, median of
     ``--replay-runs``.  Target ≥ 3,000 samples/s and ≥ 1.0× the floor: python
     ``mcap``'s reader + a upb parse of the contract messages of the same file
@@ -66,7 +66,8 @@ import argparse
 import statistics
 import tempfile
 import time
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from lelsonar.tools import bench_markdown
@@ -82,6 +83,7 @@ from lelsonar.tools.bench_ingest_replay import (
     time_read_upb,
     time_replay,
 )
+from lelsonar.tools.bench_replay import plans_text
 
 TARGET_RATE = 1000.0
 TARGET_P99_MS = 50.0
@@ -387,6 +389,10 @@ class Replay:
     size_mb: float
     seconds: dict[str, float]  # median wall time per row
     profile_stash: tuple[bytes, int] | None
+    #: Each round's replay ÷ floor samples/s, in round order (the spread of the median (c) prints).
+    ratios: list[float] = field(default_factory=list)
+    #: The (c) replays' plans: (final workers, decompressing threads) → rounds.
+    plans: dict[tuple[int, int], int] = field(default_factory=dict)
 
 
 def measure_replay(args: argparse.Namespace) -> Replay:
@@ -404,8 +410,9 @@ def measure_replay(args: argparse.Namespace) -> Replay:
         # Interleaved, so a neighbour's load hits the result and its floor alike.
         rounds: dict[str, list[float]] = {"replay": [], "inline": [], "prov": [], "ingest": [], "read": [], "floor": []}
         finals = 0
+        plans: list = []
         for _ in range(args.replay_runs):
-            t, finals = time_replay(path, 1, provisional=False)
+            t, finals = time_replay(path, 1, plans, provisional=False)
             rounds["replay"].append(t)
             rounds["inline"].append(time_replay(path, 1, provisional=False, final_workers=0)[0])
             rounds["prov"].append(time_replay(path, 1)[0])
@@ -419,12 +426,13 @@ def measure_replay(args: argparse.Namespace) -> Replay:
             path.stat().st_size / 1e6,
             {k: statistics.median(v) for k, v in rounds.items()},
             stash,
+            [f / r for r, f in zip(rounds["replay"], rounds["floor"], strict=True)],
+            dict(Counter((p.workers, p.decompress_threads) for p in plans)),
         )
 
 
 def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[tuple], list[bool]]:
     from lelsonar.reconstruct.stream.finals import auto_workers
-    from lelsonar.reconstruct.stream.sources import replay_workers
 
     n, sec = rep.samples, rep.seconds
     replay_rate, floor_c = n / sec["replay"], n / sec["floor"]
@@ -437,7 +445,9 @@ def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[t
             f"{replay_rate / floor_c:.2f}×",
             f"≥ {TARGET_REPLAY:,.0f} and ≥ {TARGET_REPLAY_RATIO}× floor",
             _verdict(ok_replay),
-            f"{n} samples, {args.scans} scans, {rep.size_mb:.1f} MB zstd; median of {args.replay_runs}; "
+            f"{n} samples, {args.scans} scans, {rep.size_mb:.1f} MB zstd; median of {args.replay_runs} "
+            f"(rounds {min(rep.ratios):.2f}–{max(rep.ratios):.2f}×; plans {plans_text(rep.plans)}: final workers "
+            "+ decompressing threads, as the host's load at each start decides them); "
             f"{rep.finals} finals ({', '.join((defaults.method, *defaults.compare_methods))}); no provisional "
             "estimates, which the finals do not depend on",
         ),
@@ -449,8 +459,8 @@ def replay_rows(args: argparse.Namespace, rep: Replay, defaults) -> tuple[list[t
             "—",
             "",
             "--jobs 0: each final estimated where the file is read; (c) estimates them in worker processes "
-            f"while the reading goes on ({replay_workers(None, args.scans)} now: up to {auto_workers()}, as the "
-            "host's load leaves cores idle)",
+            f"while the reading goes on where its plan starts any (up to {auto_workers()}, as the host's load "
+            "leaves cores idle, and none for a short file without threads decompressing: see its plans)",
         ),
         (
             "(c′) replay with provisional estimates (diagnostic)",

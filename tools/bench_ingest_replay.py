@@ -2,7 +2,7 @@
 
 * the ingest stage (:meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept`) against a plain upb parse
   (``FromString``) of the same payloads;
-* the replay (:func:`~lelsonar.reconstruct.stream.sources.replay_mcap`) against python ``mcap`` + upb reading
+* the replay (:func:`~lelsonar.reconstruct.stream.replay.replay_mcap`) against python ``mcap`` + upb reading
   the same file (:func:`lelsonar.tools.bench_replay.time_floor`);
 * a cProfile breakdown of one replay (``--profile``).
 """
@@ -40,19 +40,34 @@ def record_scans(path: Path, preset_name: str, scans: int) -> int:
     return n
 
 
-def time_replay(path: Path, runs: int, **config) -> tuple[float, int]:
-    """Median wall time of replay_mcap through a fresh service, and the finals of the last run."""
+def time_replay(path: Path, runs: int, plans: list | None = None, **config) -> tuple[float, int]:
+    """Median wall time of replay_mcap through a fresh service, and the finals of the last run; each run's
+    plan (:func:`~lelsonar.reconstruct.stream.replay.replay_plan`, decided as the replay decides it) is
+    appended to ``plans``.
+
+    Each run starts once the workers of the last have exited and this process's threads are idle
+    (:func:`~lelsonar.tools.bench_replay.reap_workers`, :func:`~lelsonar.tools.bench_replay.settle`): a worker
+    still exiting would take a core from the run, and make it decompress on fewer threads.
+    """
+    from lelsonar.log.recording import open_recording
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.replay import replay_mcap, replay_plan
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
+    from lelsonar.tools.bench_replay import reap_workers, settle
 
     times, finals = [], 0
     for _ in range(runs):
         service = ReconstructionService(ReconstructConfig(**config))
+        reap_workers()
+        settle()
         t = time.perf_counter()
-        replay_mcap(path, service)
+        rec = open_recording(path)
+        plan = replay_plan(rec, service.config.final_workers)
+        replay_mcap(rec, service, plan=plan)
         times.append(time.perf_counter() - t)
         finals = service.stats.finals
+        if plans is not None:
+            plans.append(plan)
     return statistics.median(times), finals
 
 
@@ -60,10 +75,13 @@ def time_ingest_only(path: Path, runs: int) -> float:
     """Median wall time to read, decode, validate and assemble the recording (no estimation)."""
     from lelsonar.log.recording import iter_payloads
     from lelsonar.reconstruct.stream.ingest import Ingest
+    from lelsonar.tools.bench_replay import reap_workers, settle
 
     times = []
     for _ in range(runs):
         ingest = Ingest()
+        reap_workers()
+        settle()
         t = time.perf_counter()
         for rec in iter_payloads(path):
             ingest.accept(rec.type_name, rec.payload)
@@ -73,16 +91,19 @@ def time_ingest_only(path: Path, runs: int) -> float:
 
 def time_read_upb(path: Path, runs: int) -> float:
     """Median wall time of the tolerant reader and a upb parse of every payload: the replay's reading alone."""
-    from lelsonar.tools.bench_replay import time_read
+    from lelsonar.tools.bench_replay import reap_workers, time_read
 
-    return statistics.median(time_read(path)[0] for _ in range(runs))
+    reap_workers()
+    return statistics.median(time_read(path, warm=False)[0] for _ in range(runs))  # (warm: the replays read it)
 
 
 def time_floor(path: Path, runs: int) -> float:
     """Median wall time of the replay's floor: python ``mcap`` + upb reading the same file's contract messages."""
+    from lelsonar.tools.bench_replay import reap_workers
     from lelsonar.tools.bench_replay import time_floor as floor
 
-    return statistics.median(floor(path)[0] for _ in range(runs))
+    reap_workers()
+    return statistics.median(floor(path, warm=False)[0] for _ in range(runs))  # (warm: the replays read it)
 
 
 def ingest_stage_payloads(preset_name: str, n: int = 400) -> list[tuple[str, bytes]]:
@@ -174,8 +195,8 @@ def profile_replay(path: Path, samples: int, console) -> None:
     from rich.table import Table
 
     from lelsonar.reconstruct.estimate.pipeline import reconstruct
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     prof = cProfile.Profile()
     service = ReconstructionService()

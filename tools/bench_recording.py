@@ -245,6 +245,7 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
         "replay, finals inline × floor",
         "finals in workers (replay / up)",
         "peak RSS MiB replay / up / read / floor",
+        "runs; replays' plans",
         "replay ≥ floor",
     )
     table_rows = []
@@ -268,27 +269,31 @@ def replay_memory(console, args: argparse.Namespace) -> tuple[str, bool]:
                 f"{inline / floor:.2f}×",
                 f"{r['replay_pooled']} / {r['warm_pooled']} of {r['scans']}",
                 f"{r['replay_rss']:.0f} / {r['warm_rss']:.0f} / {r['read_rss']:.0f} / {r['floor_rss']:.0f}",
+                f"{r['runs']}; {bench_replay.plans_text(r['plans'])}",
                 "[green]PASS[/]" if fast else "[red]FAIL[/]",
             )
         )
     growth = rows[-1]["replay_rss"] / rows[0]["replay_rss"] if rows else float("nan")
     flat = growth <= TARGET_RSS_GROWTH
     ok &= flat
-    title = (
-        f"replay of ONE file of N scans merged by mcap's own writer — medians of {args.rss_runs}, fresh process each"
-    )
+    title = "replay of ONE file of N scans merged by mcap's own writer — medians of the runs column, fresh process each"
     notes = [
         f"floor: {bench_replay.FLOOR}",
+        f"runs: --rss-runs, and more on a short file (at least {bench_replay.SHORT_FILE_RUNS} scans replayed a "
+        "mode); every child warms up before its clock: the replays load the kernels, the floor and the read "
+        "read the file once untimed (each then reads into a heap already mapped, the file in the page cache)",
+        "plans: each replay child's final workers (w) and decompressing threads (t), which the host's load at its "
+        "start decides (× the children that had it)",
         "read: lelsonar's tolerant reader (iter_payloads, every chunk's CRC checked) + upb FromString; target "
         f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
         "replay: replay_mcap through ReconstructionService(provisional=False), as `reconstruct --source`: "
         "reading, decoding, validation, assembly and the final estimates (in worker processes where "
-        "replay_workers starts them: in a process that has none yet, not for a short file, nor on a host whose "
-        "cores the reading and its decompression take); target "
+        "replay_workers starts them: on the cores the reading and its decompression leave idle, and in a process "
+        "that has none yet not for a short file; the plans column says what each child had); target "
         f"≥ {bench_replay.TARGET_RATIO:.1f}× floor",
         "replay, workers up: the same in a process whose final workers' fork server was ready before the clock "
         "(a live reconstructor, a process that replayed a file already); workers as the host's load leaves "
-        "cores idle",
+        "cores idle, but the decompression's below a few hundred scans (on 2 cores: none, as replay)",
         "replay, finals inline: the same with every final estimated in the replaying process (--jobs 0), the "
         "file decompressed ahead on the idle cores",
         "a file's last final starts when its reading ends: it adds one final to a replay whatever the workers",

@@ -13,15 +13,15 @@ replay's time goes: the reading, the ingest stage and the finals.
 
 Modes:
 
-* ``replay`` — :func:`~lelsonar.reconstruct.stream.sources.replay_mcap` through a
+* ``replay`` — :func:`~lelsonar.reconstruct.stream.replay.replay_mcap` through a
   ``ReconstructionService`` without provisional estimates, as ``reconstruct --source`` runs it
   (the kernels loaded first), estimation included (on a host of several cores, the next chunks
   decompressed on other threads while the service estimates; the finals in worker processes as
-  :func:`~lelsonar.reconstruct.stream.sources.replay_workers` decides);
+  :func:`~lelsonar.reconstruct.stream.replay.replay_workers` decides);
 * ``warm`` — the same replay in a process whose final workers have started before (their fork
   server's imports and kernels loaded before the clock, as in a live reconstructor or a process
   that replayed a file already): the finals in workers from the first scan, where the host's load
-  leaves a core idle;
+  leaves a core idle beside the decompression's;
 * ``read`` — :func:`~lelsonar.log.recording.iter_payloads` and a upb parse of each payload
   (the reading alone);
 * ``ingest`` — the reading and :meth:`~lelsonar.reconstruct.stream.ingest.Ingest.accept` (decode, validate,
@@ -42,10 +42,14 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 CONTRACT_TOPICS = ("/lelsonar/scan_start", "/lelsonar/sample", "/lelsonar/scan_end")
-FLOOR = "python mcap make_reader + upb FromString of the contract messages, same file, log-time order"
+FLOOR = (
+    "python mcap make_reader + upb FromString of the contract messages, same file, log-time order, warm (after a "
+    "pass over the file)"
+)
 TARGET_RATIO = 1.0
 
 
@@ -96,36 +100,84 @@ def settle(quiet_s: float = 0.05, limit_s: float = 2.0) -> None:
             return
 
 
-def time_floor(path: Path) -> tuple[float, int]:
-    """(seconds, samples) of python mcap + upb reading the contract messages of ``path`` in log-time order."""
+def _floor_pass(path: Path) -> int:
+    """Python mcap + upb over the contract messages of ``path`` in log-time order; the samples read."""
     from mcap.reader import make_reader
 
     from lelsonar import codec
 
     types = codec.MESSAGE_TYPES
     samples = 0
-    settle()
-    cpu, t = time.process_time(), time.perf_counter()
     with open(path, "rb") as f:
         for schema, _channel, message in make_reader(f).iter_messages(topics=CONTRACT_TOPICS, log_time_order=True):
             msg = types[schema.name if schema is not None else ""].FromString(message.data)
             samples += isinstance(msg, codec.Sample)
-    return _timed(t, cpu), samples
+    return samples
 
 
-def time_read(path: Path) -> tuple[float, int]:
-    """(seconds, samples) of the tolerant reader and a upb parse of every contract payload."""
+def _read_pass(path: Path) -> int:
+    """The tolerant reader and a upb parse of every contract payload of ``path``; the samples read."""
     from lelsonar import codec
     from lelsonar.log.recording import iter_payloads
 
     types = codec.MESSAGE_TYPES
     samples = 0
-    settle()
-    cpu, t = time.process_time(), time.perf_counter()
     for rec in iter_payloads(path):
         msg = types[rec.type_name].FromString(rec.payload)
         samples += isinstance(msg, codec.Sample)
+    return samples
+
+
+def reap_workers(timeout: float = 5.0) -> None:
+    """Wait until the final workers a replay of this process left exiting (each exits on its own once its pool
+    is closed) are gone, so that the next measurement does not share the cores with their exit."""
+    import multiprocessing
+
+    for p in multiprocessing.active_children():
+        p.join(timeout)
+
+
+def time_floor(path: Path, warm: bool = True) -> tuple[float, int]:
+    """(seconds, samples) of python mcap + upb reading the contract messages of ``path`` in log-time order.
+
+    ``warm``: one untimed pass first, as :func:`warm_heap` says.
+    """
+    import mcap.reader  # noqa: F401 - imported before the clock, warm or not
+
+    from lelsonar import codec  # noqa: F401
+
+    if warm:
+        warm_heap(_floor_pass, path)
+    settle()
+    cpu, t = time.process_time(), time.perf_counter()
+    samples = _floor_pass(path)
     return _timed(t, cpu), samples
+
+
+def time_read(path: Path, warm: bool = True) -> tuple[float, int]:
+    """(seconds, samples) of the tolerant reader and a upb parse of every contract payload (``warm``: as
+    :func:`time_floor`)."""
+    import lelsonar.log.recording  # noqa: F401 - imported before the clock, warm or not
+    from lelsonar import codec  # noqa: F401
+
+    if warm:
+        warm_heap(_read_pass, path)
+    settle()
+    cpu, t = time.process_time(), time.perf_counter()
+    samples = _read_pass(path)
+    return _timed(t, cpu), samples
+
+
+def warm_heap(reading: Callable[[Path], int], path: Path) -> None:
+    """One untimed pass of ``reading`` over ``path``: the warm-up of the floor and the read children.
+
+    A replay child loads the kernels before its clock (as ``reconstruct --source`` does), which leaves its
+    process a heap of freed memory: the chunks it decompresses land in pages already mapped.  A child that
+    starts reading cold maps fresh pages for them instead (a page fault each, a few ms of system time a
+    scan), which the replay is spared.  The pass gives every child a warm heap and the file's pages alike,
+    so that the ratios compare the readings, not the processes' histories.
+    """
+    reading(path)
 
 
 def time_replay(path: Path) -> tuple[float, int]:
@@ -142,6 +194,8 @@ def time_replay_warm(path: Path) -> tuple[float, int]:
 _POOLED: list[int] = []
 #: The child's CPU seconds (every thread of the process, not its workers) over the timed section.
 _CPU: list[float] = []
+#: The replay child's plan: its final workers and decompressing threads (the host's load decides them).
+_PLAN: list = []
 
 
 def _timed(t: float, cpu: float) -> float:
@@ -156,7 +210,7 @@ def time_ingest(path: Path) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
     from lelsonar.log.recording import iter_payloads
     from lelsonar.reconstruct.stream.ingest import Ingest
-    from lelsonar.reconstruct.stream.sources import REPLAYED
+    from lelsonar.reconstruct.stream.replay import REPLAYED
 
     exercise_kernels()  # as the replay children: the kernels loaded before the clock
     ingest = Ingest()
@@ -177,11 +231,12 @@ def time_inline(path: Path) -> tuple[float, int]:
 
 def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[float, int]:
     from lelsonar.cli.warm_up import exercise_kernels
+    from lelsonar.log.recording import open_recording
     from lelsonar.reconstruct.stream.config import ReconstructConfig
     from lelsonar.reconstruct.stream.final_pool import FinalPool
     from lelsonar.reconstruct.stream.finals import auto_workers
+    from lelsonar.reconstruct.stream.replay import replay_mcap, replay_plan
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     if warm:
         with FinalPool(max(auto_workers(), 1)) as pool:  # the fork server's imports and kernels: once a process
@@ -190,9 +245,12 @@ def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[floa
     service = ReconstructionService(ReconstructConfig(provisional=False, final_workers=workers))
     settle()
     cpu, t = time.process_time(), time.perf_counter()
-    replay_mcap(path, service)
+    rec = open_recording(path)
+    plan = replay_plan(rec, service.config.final_workers)  # as replay_mcap decides it, reported
+    replay_mcap(rec, service, plan=plan)
     seconds = _timed(t, cpu)
     _POOLED.append(int(service.stats_dict().get("finals_pool", {}).get("in_workers", 0)))
+    _PLAN.append(plan)
     return seconds, service.stats.finals
 
 
@@ -264,9 +322,21 @@ def merged_file(path: Path, scans: int, preset_name: str, seed: int = 0) -> int:
     return samples
 
 
+#: Runs of each mode on a file of one scan, at least: its replay takes tens of ms, a scheduling hiccup's size.
+SHORT_FILE_RUNS = 9
+
+
+def runs_for(scans: int, runs: int) -> int:
+    """Runs of each mode on a file of ``scans`` scans: ``runs``, and more for a short file, so that every row's
+    median stands on about as much replaying (:data:`SHORT_FILE_RUNS` scans' worth)."""
+    return max(runs, -(-SHORT_FILE_RUNS // max(scans, 1)))
+
+
 def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[dict]:
-    """Per file of N scans: size, samples, and (median over ``runs``) seconds and peak RSS of each mode."""
+    """Per file of N scans: size, samples, and (median over :func:`runs_for` runs) seconds and peak RSS of each
+    mode; ``runs`` and ``plans`` (the replay children's: final workers, decompressing threads → runs)."""
     import statistics
+    from collections import Counter
 
     rows = []
     with tempfile.TemporaryDirectory(prefix="lelsonar-bench-replay-") as tmp:
@@ -274,18 +344,27 @@ def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[
             path = Path(tmp) / f"merged-{n}.mcap"
             samples = merged_file(path, n, preset_name)
             got: dict[str, list[dict]] = {mode: [] for mode in _MODES}
-            for _ in range(runs):  # interleaved: a neighbour's load hits every mode alike
+            k = runs_for(n, runs)
+            for _ in range(k):  # interleaved: a neighbour's load hits every mode alike
                 for mode in _MODES:
                     got[mode].append(child(mode, path))
-            row = {"scans": n, "samples": samples, "mb": path.stat().st_size / 1e6}
+            row: dict = {"scans": n, "samples": samples, "mb": path.stat().st_size / 1e6, "runs": k}
             for mode, results in got.items():
                 row[f"{mode}_s"] = statistics.median(r["seconds"] for r in results)
                 row[f"{mode}_cpu"] = statistics.median(r["cpu_s"] for r in results)
                 row[f"{mode}_rss"] = max(r["rss_mib"] for r in results)
                 row[f"{mode}_pooled"] = min(r.get("pooled", 0) for r in results)
+            row["plans"] = Counter(
+                (r["workers"], r["threads"]) for mode in ("replay", "warm") for r in got[mode] if "threads" in r
+            )
             rows.append(row)
             path.unlink()
     return rows
+
+
+def plans_text(plans: dict[tuple[int, int], int]) -> str:
+    """The replay children's plans, e.g. ``0 w + 1 t ×8, 0 w + 0 t ×1`` (final workers + decompressing threads)."""
+    return ", ".join(f"{w} w + {t} t ×{k}" for (w, t), k in sorted(plans.items(), key=lambda kv: -kv[1]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -297,6 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     out = {"seconds": seconds, "samples": samples, "rss_mib": peak_rss_mib(), "cpu_s": _CPU[-1]}
     if _POOLED:
         out["pooled"] = _POOLED[-1]
+    if _PLAN:
+        out["workers"], out["threads"] = _PLAN[-1]
     print(json.dumps(out), flush=True)
     return 0
 

@@ -75,8 +75,8 @@ from lelsonar.log.reader import check_recording_path
 from lelsonar.reconstruct.estimate.pipeline import FitOptions
 from lelsonar.reconstruct.estimate.results import ScanReconstruction
 from lelsonar.reconstruct.stream.assembly import ScanAssembly, StepView
+from lelsonar.reconstruct.stream.replay import replay_mcap
 from lelsonar.reconstruct.stream.service import ReconstructionService
-from lelsonar.reconstruct.stream.sources import replay_mcap
 from lelsonar.view import present
 
 __all__ = [

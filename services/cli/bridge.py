@@ -226,8 +226,9 @@ def run_bridge(args: argparse.Namespace) -> int:
     from lelsonar.bridge.rmw_zenoh import RmwZenohNode, open_ros_session
     from lelsonar.keys import ScannerKeys
     from lelsonar.net.transport import zenoh_settings_from_args
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import LiveSource, replay_mcap
+    from lelsonar.reconstruct.stream.sources import LiveSource
 
     if args.source is not None:
         from lelsonar.cli.paths import input_file

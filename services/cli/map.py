@@ -134,8 +134,8 @@ def scans_of(path: Path, method: str, jobs: int | None = None) -> list:
     from lelsonar.log.recording import iter_payloads, open_recording
     from lelsonar.map.from_reconstruction import scan_from_reconstruction
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
 
     source = open_recording(path).require_scans()
     if (line := source.damage_warning()) is not None:

@@ -351,8 +351,9 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from lelsonar.log.recording import McapRecorder
     from lelsonar.net.transport import open_session
     from lelsonar.reconstruct.estimate import wire
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer, replay_mcap
+    from lelsonar.reconstruct.stream.sources import LiveSource, PlanesServer
     from lelsonar.view import present
 
     keys = ScannerKeys(args.prefix or "lelsonar", args.scanner)

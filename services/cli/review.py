@@ -47,8 +47,8 @@ def run_review(args: argparse.Namespace) -> int:
     from lelsonar.errors import ConfigError
     from lelsonar.log.recording import read_metadata, truth_world
     from lelsonar.reconstruct.stream.observers import combine
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.view import present
     from lelsonar.view.rerun_observer import open_rerun
 

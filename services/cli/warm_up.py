@@ -49,8 +49,8 @@ def exercise_kernels() -> None:
     from lelsonar.acquire.simulated import record_scan
     from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, piston_lm
     from lelsonar.reconstruct.stream.config import ReconstructConfig
+    from lelsonar.reconstruct.stream.replay import replay_mcap
     from lelsonar.reconstruct.stream.service import ReconstructionService
-    from lelsonar.reconstruct.stream.sources import replay_mcap
     from lelsonar.sim import default_energy_model, preset, simulate_scan
 
     logging.disable(logging.WARNING)  # at start-up, before any thread of ours logs

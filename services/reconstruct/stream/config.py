@@ -93,9 +93,9 @@ class ReconstructConfig:
         Worker processes a source (live or a replay) estimates the finals in, off the thread that handles
         the samples (:class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`); 0 estimates them on that
         thread.  None: one per core beyond the first, at most two (none on one core); a replay uses
-        what the host's load leaves idle, and while the workers' fork server has not started yet none for a
-        short file and one core fewer, the decompression's, for a file of fewer than a few hundred scans
-        (:func:`~lelsonar.reconstruct.stream.sources.replay_workers`).
+        what the host's load leaves idle but one core, the decompression's, for a file of fewer than a few
+        hundred scans, and none for a short file while the workers' fork server has not started yet
+        (:func:`~lelsonar.reconstruct.stream.replay.replay_workers`).
     """
 
     method: str = DEFAULT_METHOD

@@ -1,7 +1,7 @@
-"""Where payloads come from — a Zenoh subscription or an MCAP file — and where estimates go.
+"""Where live payloads come from — a Zenoh subscription — and where estimates go.
 
-Both sources hand (type name, payload bytes) to the same
-:meth:`ReconstructionService.handle`.  Live, one processing thread applies
+A live source and a replay (:mod:`lelsonar.reconstruct.stream.replay`) hand (type name, payload bytes) to
+the same :meth:`ReconstructionService.handle`.  Live, one processing thread applies
 every payload: it drains a bounded Zenoh FIFO channel of samples and scan
 events itself (no Python runs on Zenoh's receiving thread; a full channel
 blocks it, which back-pressures the publisher through congestion control
@@ -13,13 +13,10 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
-import os
 import threading
 import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
-from pathlib import Path
 from typing import cast
 
 import zenoh
@@ -27,8 +24,8 @@ import zenoh
 from lelsonar import codec
 from lelsonar.errors import ConfigError, LelsonarError
 from lelsonar.keys import ScannerKeys, validate_identifier
-from lelsonar.log.recording import McapRecorder, Recording, open_recording
-from lelsonar.reconstruct.stream.final_pool import FinalPool, workers_warm
+from lelsonar.log.recording import McapRecorder
+from lelsonar.reconstruct.stream.final_pool import FinalPool
 from lelsonar.reconstruct.stream.finals import auto_workers
 from lelsonar.reconstruct.stream.group import GroupMembership
 from lelsonar.reconstruct.stream.recovery import LogRecoveryClient, RecoveryConfig
@@ -121,119 +118,6 @@ def _item_bytes(item) -> int:
     if isinstance(item, zenoh.Sample):
         return len(item.payload)
     return 0
-
-
-#: The contract messages a replay feeds the service: a scan's, not the estimates a file may also hold.
-REPLAYED = (codec.ScanStart, codec.Sample, codec.ScanEnd)
-
-
-def decompress_threads(cpus: int | None = None, runnable: int | None = None) -> int:
-    """Threads to decompress a replayed file ahead of the service: the cores no task is running on now, up to two.
-
-    ``runnable`` (default: the host's tasks running or ready to run now, this one included, from
-    ``/proc/loadavg``; the load average instead where there is none).  Not the load average where the
-    kernel gives the tasks of the moment: it lags the host by a minute, and a replay right after a busy one
-    would get no thread.  The reading thread decompresses itself whatever chunk no thread has started yet
-    (:meth:`~lelsonar.log.reader.McapSource.read`), so a thread that loses its core to a neighbour holds the
-    read up by at most the one job it has started.
-    """
-    n = cpus if cpus is not None else (os.cpu_count() or 1)
-    busy = runnable if runnable is not None else runnable_tasks()
-    return max(0, min(2, n - busy))
-
-
-def runnable_tasks() -> int:
-    """Tasks running or ready to run on the host now, the caller's included (``/proc/loadavg``'s fourth field);
-    the 1-minute load average, rounded up, where that is not readable."""
-    try:
-        with open("/proc/loadavg") as f:
-            return int(f.read().split()[3].partition("/")[0])
-    except (OSError, ValueError, IndexError):
-        return math.ceil(os.getloadavg()[0])
-
-
-def replay_mcap(
-    path: Path | str | Recording, service: ReconstructionService, on_payload: Callable[[int], None] | None = None
-) -> int:
-    """Feed a recording through the service in log-time order, then finalise open scans.
-
-    On a host of several cores, the next chunks of the file are decompressed and checked on
-    other threads while the service handles a payload (:func:`decompress_threads`,
-    :meth:`~lelsonar.log.reader.McapSource.read`): decompression releases the GIL, so it overlaps
-    the estimation.  The finals are estimated in worker processes while the file is read
-    (:func:`replay_workers`, :class:`~lelsonar.reconstruct.stream.final_pool.FinalPool`), and handed back in
-    the file's order.  The payloads are handled in the file's order, on the caller's thread, and the
-    estimates are the same either way.
-
-    Returns the number of payloads read.
-    """
-    rec = open_recording(path)
-    n = 0
-    workers = replay_workers(service.config.final_workers, scans_in(rec))
-    pool = FinalPool(workers) if workers else None
-    try:
-        service.use_pool(pool)
-        # Earlier outputs in the file (Reconstruction) are not inputs: their chunks are not even decompressed.
-        for r in rec.payloads(REPLAYED, decompress_threads=decompress_threads()):
-            service.handle(r.type_name, r.payload)
-            n += 1
-            if on_payload is not None:
-                on_payload(r.log_time_ns)
-        service.finish()  # (waits for every final)
-    finally:
-        if pool is not None:
-            service.use_pool(None, drain=False)  # after finish(), none is left; on an error, they are dropped (logged)
-            pool.close(wait=None)  # each worker exits on its own: the replay does not wait for it
-    if not isinstance(path, Recording) and (line := rec.damage_warning()):
-        _log.warning("%s", line.removeprefix("warning: "))
-    return n
-
-
-#: Scans a replay must hold to start the final workers in a process that has none yet: their fork server
-#: imports the estimate and loads its kernels first (seconds of CPU), and a shorter replay ends before it is
-#: ready.
-COLD_START_SCANS = 50
-#: Scans a replay must hold to start them on the core its decompression takes: the fork server's start then
-#: slows the reading until a worker is ready, which a worker repays only over a long file.
-COLD_START_SHARED_SCANS = 500
-
-
-def replay_workers(
-    configured: int | None, scans: int | None, *, cpus: int | None = None, runnable: int | None = None
-) -> int:
-    """Worker processes for a replay's finals: ``configured``, else :func:`auto_workers` as far as the tasks
-    running now leave cores idle (``runnable`` as :func:`decompress_threads`': the caller's thread is one of
-    them, and its core is the reading's; a worker that finds no core only competes with the reading).
-    None for a file of one scan, whose final can overlap nothing.
-
-    In a process with no worker started yet, none for a file of fewer than :data:`COLD_START_SCANS` scans,
-    and one core fewer below :data:`COLD_START_SHARED_SCANS`: the fork server's start (its imports, its
-    kernels) takes a core for seconds, and until a worker is ready the caller estimates every final itself
-    while the file is decompressed ahead on the idle cores (:func:`decompress_threads`).  On two cores (the
-    reading's and the decompression's) the finals of such a file stay in the caller: a worker would be ready
-    only after competing with the decompression for much of the replay, and then share its core.
-    """
-    if scans is not None and scans < 2:
-        return 0
-    if configured is not None:
-        return configured
-    n = cpus if cpus is not None else (os.cpu_count() or 1)
-    busy = runnable if runnable is not None else runnable_tasks()
-    if not workers_warm():
-        if scans is None or scans < COLD_START_SCANS:
-            return 0
-        if scans < COLD_START_SHARED_SCANS:
-            busy += 1  # the decompression's core
-    return max(0, min(auto_workers(n), n - busy))
-
-
-def scans_in(rec: Recording) -> int | None:
-    """Scans a recording holds, from its summary or its chunks' indexes (None when neither says)."""
-    s = rec.salvage
-    counts = s.statistics_counts if s.statistics_counts is not None else s.indexed_counts
-    starts = [cid for cid, cls in rec.contract_channels().items() if cls is codec.ScanStart]
-    n = max([counts.get(cid, 0) for cid in starts] + [len(rec.start_copies())])
-    return n if n or counts else None
 
 
 class PlanesServer:

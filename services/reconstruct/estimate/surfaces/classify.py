@@ -23,6 +23,7 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
     beyond_reach,
     end_stderr,
     feature_point,
+    in_fan_range,
     pair_corner,
     pair_stderr,
     plane_ends,
@@ -37,13 +38,16 @@ from lelsonar.reconstruct.estimate.surfaces.features import Kind
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     FLANK_SOURCE,
     SweepBeam,
+    bearing_from_flank,
     flank_measured,
     flank_reach,
+    point_angles,
     sweep_beam,
 )
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
     across_stack_measured,
+    clean_cuts,
     unit_normal,
 )
 from lelsonar.reconstruct.estimate.surfaces.results import (
@@ -67,14 +71,18 @@ class _Flanks:
         amplitude: np.ndarray | None,
         scale: EchoScale,
         opts: SurfaceOptions,
+        distance: np.ndarray | None = None,
     ) -> None:
         self.planes, self.gamma, self.amplitude, self.scale, self.opts = planes, gamma, amplitude, scale, opts
+        self.distance = distance
         self.beam: SweepBeam | None = None
         self.fitted = False
 
-    def of(self, m: Measured) -> tuple[Measured, bool] | None:
-        """The region placed by its flank, and whether its peak may lie only past the sweep's own end (where
-        nothing else answers beside it to bend the flank); None: no flank places it."""
+    def of(self, m: Measured) -> tuple[Measured, bool, tuple[float, float]] | None:
+        """The region placed by its flank (a mirror's), whether its peak may lie past an end where nothing else
+        answers inside its amplitude window to bend the flank (the sweep's own end, or a cut by a much nearer
+        echo, :func:`~.measurement.clean_cuts`), and how far past each end it may lie; None: no flank places
+        it."""
         amp = self.amplitude
         if amp is None or not self.scale.beam_k > 0 or m.bearing_source != "undetermined":
             return None
@@ -83,11 +91,12 @@ class _Flanks:
         if not (math.isfinite(m.tilt_stderr) and abs(m.tilt) <= 3.0 * m.tilt_stderr):
             return None
         n_steps, n_capsules = amp.shape
-        strict = flank_reach(m, n_steps, n_capsules, self.opts.beyond_cut)
+        clean = (False, False) if self.distance is None else clean_cuts(m.region, self.distance, self.opts)
+        strict = flank_reach(m, n_steps, n_capsules, self.opts.beyond_cut, clean)
         reach = strict
         if strict == (0.0, 0.0):
-            # Cut by a nearer echo: that echo bends the flank where they meet, so the flank may choose between
-            # placements on traces but not overrule them all.
+            # Cut by an echo at a like range: that echo bends the flank where they meet, so the flank may choose
+            # between placements on traces but not overrule them all.
             if np.median(np.bincount(np.searchsorted(m.region.steps, m.region.rows))) < n_capsules:
                 return None
             cut = self.opts.beyond_cut
@@ -98,7 +107,23 @@ class _Flanks:
             self.beam = sweep_beam(self.planes, self.gamma, amp, 2.0 * math.sqrt(self.scale.beam_k))
             self.fitted = True
         flank = flank_measured(m, self.gamma, amp, self.beam, self.opts.beyond_cut, reach=reach)
-        return (flank, strict != (0.0, 0.0)) if flank.bearing_source == FLANK_SOURCE else None
+        return (flank, strict != (0.0, 0.0), reach) if flank.bearing_source == FLANK_SOURCE else None
+
+    def end_peak(self, m: Measured, bearing: float, reach: tuple[float, float]) -> float | None:
+        """Where the region's flank puts its peak were it an end at ``bearing``: a point at its range in the fan,
+        its flank fitted in that point's own angles off the axis (:func:`~.flank_bearing.point_angles`); None:
+        no flank there."""
+        if self.beam is None or self.amplitude is None:
+            return None
+        g = self.gamma[m.region.steps]
+        radial = float(np.median(np.hypot(m.positions[:, 1], m.positions[:, 2])))
+        rho = in_fan_range(m)[0]
+        if not rho > radial:
+            return None
+        fit = bearing_from_flank(
+            point_angles(g, bearing, rho, radial), m.step_amplitude, self.beam, before=reach[0], after=reach[1]
+        )
+        return None if fit is None else fit[0]
 
 
 def _end_by_flank(
@@ -115,9 +140,9 @@ def _end_by_flank(
     line, an end's edge, each at one range), so the flank the region shows places its peak, with its σ from the
     fit, the piston's ``ka`` and the capsules' spread (:func:`~.flank_bearing.flank_measured`).  A placement
     within :data:`DISPUTE_SIGMAS` σ of their difference agrees with it: the first placement if it does, else the
-    nearest that does.  None agreeing, where the flank's peak may lie only past the sweep's own end (no nearer
-    echo bends it), the echo is no diffraction's (weak against the plane's mirror) and the flank lies farther
-    from the first placement than a corner's aperture moves its peak as well, it is no end there: a wall.
+    nearest that does.  None agreeing, where the flank's peak may lie only past an end no other echo answers at
+    inside the amplitude window (the sweep's own, or a cut by a much nearer echo: nothing bends the flank there)
+    and the echo is no diffraction's (weak against the plane's mirror), it is no end there: a wall.
     Otherwise the first placement stands, its σ at least its distance from the flank's peak (the evidence does
     not settle where the end lies).
     """
@@ -125,11 +150,13 @@ def _end_by_flank(
     got = flanks.of(m)
     if got is None:
         return first, 0.0
-    flank, decisive = got
+    flank, decisive, reach = got
 
     def apart(p: tuple[list[int], float]) -> float:
+        # As an end there, its flank is a point's, not a mirror's: fitted in the point's own angles off the axis.
         se = end_stderr(m, measured[pool[p[0][0]]], p[1])
-        return abs(wrap(flank.bearing - p[1])) / math.hypot(flank.bearing_stderr, se)
+        peak = flanks.end_peak(m, p[1], reach)
+        return abs(wrap((flank.bearing if peak is None else peak) - p[1])) / math.hypot(flank.bearing_stderr, se)
 
     gaps = [apart(p) for p in placements]
     if gaps[0] <= DISPUTE_SIGMAS:
@@ -140,18 +167,17 @@ def _end_by_flank(
     plane = measured[pool[first[0][0]]]
     end_se = end_stderr(m, plane, first[1])
     placed = replace(m, bearing=first[1], bearing_stderr=end_se)
-    # Were it the end, its echo a corner's, the flank would be no mirror's: a corner's retro-reflecting aperture
-    # changes with the view angle (for a right dihedral, d ln A/dφ ≈ 1), which on a beam of log curvature k moves
-    # the peak by 1/(2k).  The end is overruled only beyond that too.
-    aperture = 0.5 / flanks.scale.beam_k
+    # Were it the end, its echo a corner's or an edge's, its flank would still be the beam's about the end's
+    # bearing: the array turns about its own axis, so the view of the end (its retro-reflecting aperture, its
+    # diffraction) changes across the sweep only by the capsules' parallax, the radial offset over the range.
     gap = abs(wrap(flank.bearing - first[1]))
-    sigmas = gap / math.sqrt(flank.bearing_stderr**2 + end_se**2 + aperture**2)
-    if not decisive or sigmas <= DISPUTE_SIGMAS or flanks.scale.end_strength(placed, plane)[0] == "weak":
+    sigmas = gaps[0]
+    if not decisive or flanks.scale.end_strength(placed, plane)[0] == "weak":
         return first, gap
     why = (
         f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(first[1]):.1f}°, but its "
         f"beam flank peaks at {math.degrees(flank.bearing):.1f}° ± {math.degrees(flank.bearing_stderr):.1f}°, "
-        f"{sigmas:.1f} σ away with a corner's aperture (and from every other placement on a trace): a wall of its own"
+        f"{sigmas:.1f} σ away (and from every other placement on a trace): a wall of its own"
     )
     return replace(flank, findings=(*flank.findings, (DEGRADED, why)))
 
@@ -221,12 +247,14 @@ def classify_regions(
     gamma: np.ndarray,
     opts: SurfaceOptions,
     amplitude: np.ndarray | None = None,
+    distance: np.ndarray | None = None,
 ) -> tuple[dict[int, Kind], set[int]]:
     """The kind of every region that is no plane, and which of them are lines across the fan.
 
     Each region's entry of ``measured`` takes the bearing, depth and tilt its classification places it at.
     With ``amplitude`` (the sweep's, ``(n_steps, n_capsules)``), a region whose depth alone places it on a trace
-    is weighed by its beam flank (:func:`_end_by_flank`).
+    is weighed by its beam flank (:func:`_end_by_flank`); with ``distance`` (the sweep's ranges), a flank past a
+    cut by a much nearer echo weighs as one past the sweep's end.
     """
     across = [across_stack(m, opts) for m in measured]
     planes = _planes(measured, partial, across, scale, opts)
@@ -240,7 +268,7 @@ def classify_regions(
         measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
     kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
-    flanks = _Flanks([measured[j] for j in planes], gamma, amplitude, scale, opts)
+    flanks = _Flanks([measured[j] for j in planes], gamma, amplitude, scale, opts, distance)
     for i in range(len(measured)):
         m, kind, across_line = _region_kind(
             i, measured, planes, across[i], partial, i in walls_of_corners, scale, gamma, opts, flanks

@@ -242,40 +242,32 @@ def _off_span(bearing: float, m: Measured) -> float:
     return max(0.0, m.span[0] - bearing, bearing - m.span[1])
 
 
-def unseen_corner(mi: Measured, mk: Measured, pj: Measured, opts: SurfaceOptions, *, own: bool = False) -> float | None:
-    """A bearing for the plane of region ``mi`` (its own left open) whose concave corner with plane ``pj`` is
-    region ``mk``: the two regions' echoes explained together, ``mi`` a wall's mirror and ``mk`` its corner.
+def unseen_corner(mi: Measured, mk: Measured, pj: Measured, opts: SurfaceOptions) -> float | None:
+    """A bearing for the plane of region ``mi`` whose concave corner with plane ``pj`` is region ``mk``: the two
+    regions' echoes explained together, ``mi`` a wall's mirror and ``mk`` its corner.
 
     A mirror answers at its foot, at its depth ``h_i``; two walls meet on the line where ``n_i·X = h_i`` and
     ``n_j·X = h_j`` (its range ``|X|``, the double bounce of :func:`pair_corner`).  For a concave corner seen
     from inside, ``X`` lies between the two feet in the fan.  Where some bearing ``β_i`` within ``mi``'s reach
-    (its span, past a cut end by up to ``beyond_cut``) puts that line at ``mk``'s depth (within ``on_trace``) and
-    at a bearing within ``mk``'s reach, both regions are explained by one wall and its corner with ``pj``.  The
-    wall's foot lies past ``mi``'s cut end away from ``mk``, and ``mk`` is cut on ``mi``'s side: the wall's nearer
-    mirror masks its corner where both answer.  ``own``: ``mi`` has a bearing of its own, but the wall's
-    foot is sought wherever a mirror's region allows it (its span, or past a cut end by up to ``beyond_cut``):
-    an amplitude peak says nothing for certain where the corner's echo, answering inside the amplitude
-    window beside the region, sums into it; ``mk`` beside it all the same.
+    puts that line at ``mk``'s depth (within ``on_trace``) and at a bearing within ``mk``'s reach, both regions
+    are explained by one wall and its corner with ``pj``; ``mk`` is cut on ``mi``'s side: the wall's nearer
+    mirror masks its corner where both answer.
+
+    ``mi``'s reach is its span, or past a cut end by up to ``beyond_cut``, whatever bearing it has of its own:
+    a bearing left open says nothing of where in its span the foot lies (a flank bent or cut short shows no
+    peak even near a cut end), and an amplitude peak says nothing for certain where the corner's echo,
+    answering inside the amplitude window beside the region, sums into it.  ``|X| = h_i / cos(β_X − β_i)``,
+    with ``β_X`` on ``pj``'s trace at ``mk``'s depth, fixes ``β_i`` to within what ``on_trace`` allows: the
+    reach tests it.
 
     Returns
     -------
     That ``β_i`` (the one nearest ``mi``'s span), rad, or None.
     """
-    # The wall's foot lies past mi's cut end on the side away from mk (a foot inside its region would show as
-    # its amplitude peak or its centre): mk beside it, masked there by the wall's nearer mirror.
-    if own:
-        if not (mk.span[0] > mi.span[1] and mk.region.cut_before) and not (
-            mk.span[1] < mi.span[0] and mk.region.cut_after
-        ):
-            return None
-        lo = mi.span[0] - (opts.beyond_cut if mi.region.cut_before else 0.0)
-        hi = mi.span[1] + (opts.beyond_cut if mi.region.cut_after else 0.0)
-    elif mk.span[0] > mi.span[1] and mi.region.cut_before and mk.region.cut_before:
-        lo, hi = mi.span[0] - opts.beyond_cut, mi.span[0] - mi.step
-    elif mk.span[1] < mi.span[0] and mi.region.cut_after and mk.region.cut_after:
-        lo, hi = mi.span[1] + mi.step, mi.span[1] + opts.beyond_cut
-    else:
+    if not (mk.span[0] > mi.span[1] and mk.region.cut_before) and not (mk.span[1] < mi.span[0] and mk.region.cut_after):
         return None
+    lo = mi.span[0] - (opts.beyond_cut if mi.region.cut_before else 0.0)
+    hi = mi.span[1] + (opts.beyond_cut if mi.region.cut_after else 0.0)
     beta = np.arange(lo, hi + 0.5 * mi.step, mi.step)
     if not beta.size:
         return None
@@ -458,10 +450,9 @@ def walls_of_unseen_corners(
 
     Where two such regions fit one plane's trace on one side, both cannot be its end (a mirror answers at its
     foot only, so a point of the trace short of its end echoes nothing).  The nearer one is a wall's mirror
-    when a bearing it leaves open makes that wall's corner with the plane the deeper one
-    (:func:`unseen_corner`): one wall and its corner explain both.  So too a nearer region whose own bearing
-    ties it to no two planes' double bounce, only to a plane's trace: where a bearing within 3 σ of its own
-    makes that wall's corner with the plane the deeper one, it is a wall.  Returns those regions, each with
+    when a bearing within its reach (its span, or past a cut end) makes that wall's corner with the plane the
+    deeper one (:func:`unseen_corner`): one wall and its corner explain both.  So too a nearer region whose own
+    bearing ties it to no two planes' double bounce, only to a plane's trace.  Returns those regions, each with
     the finding that says so.  A target only ``partial`` capsules hear is no mirror, and says nothing of a
     plane's trace in the fan.
     """
@@ -495,7 +486,7 @@ def walls_of_unseen_corners(
                 lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
                 if any(lo < o.span[0] and o.span[1] < hi for o in measured):
                     continue
-                if unseen_corner(mi, mk, pj, opts, own=i in placed) is not None:
+                if unseen_corner(mi, mk, pj, opts) is not None:
                     out[i] = (
                         f"a wall at {mi.depth:.2f} m whose corner with the plane at {pj.depth:.2f} m is the echo "
                         f"{mk.depth:.2f} m away beside it: not that plane's end"

@@ -146,7 +146,9 @@ def extract_surfaces(
     scale = echo_scale(measured, sweep.gamma, opts)
     _split_two_edges(measured, partial, scale, sweep)
     own = list(measured)  # each region as its own echoes measured it, before its kind places it
-    kinds, across_lines = classify_regions(measured, partial, scale, sweep.gamma, sweep.opts, sweep.amplitude)
+    kinds, across_lines = classify_regions(
+        measured, partial, scale, sweep.gamma, sweep.opts, sweep.amplitude, sweep.distance
+    )
     _widen_summed_bearings(measured, kinds, scale)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)

@@ -47,6 +47,7 @@ __all__ = [
     "flank_measured",
     "piston_fit",
     "piston_fits",
+    "point_angles",
     "range_bearing",
     "split_jump",
     "sweep_beam",
@@ -437,14 +438,45 @@ def range_bearing(
     return (b + math.pi) % (2 * math.pi) - math.pi, math.sqrt(max(s2 * float(inv[0, 0]), 0.0))
 
 
-def flank_reach(m: Measured, n_steps: int, n_capsules: int, beyond_cut: float) -> tuple[float, float]:
-    """How far past the sweep's first and last step (rad) the peak of an undetermined plane's region may lie:
-    ``beyond_cut`` on a side the sweep's own end cuts, else 0; (0, 0) when its flank cannot place it.
+def point_angles(gamma: np.ndarray, bearing: float, rho: float, radial_offset: float) -> np.ndarray:
+    """Each step's angle off the beam's axis of a point target (a line across the fan seen in it: a corner, an
+    edge), as ``γ' − β``: the γ at which a mirror's echo would be that far off the axis.
 
-    Only past the sweep's own ends: a nearer echo that cuts a region answers beside it in the same amplitude
-    window where they meet and bends the flank there; past the sweep's end nothing else answers.  A face part of
-    the stack hears ends within the stack's height: its edge, at a like range, answers in the same amplitude
-    window on every step and bends the whole flank alike in the capsules that hear the face.
+    A mirror's echo leaves along its normal whatever the capsule's place, so it is ``ψ = γ − β`` off the axis.
+    A point's leaves toward the point from the capsule, which sits ``r`` out along its own axis:
+    ``tan ψ = ρ sin(γ − β) / (ρ cos(γ − β) − r)``, steeper than a mirror's by about ``ρ / (ρ − r)``.  Fitted as
+    a mirror's, a point's flank a distance ``u`` off its peak puts the peak about ``2 (r/ρ) u`` too far out.
+
+    Parameters
+    ----------
+    gamma : (k,) array
+        Steps' γ, rad.
+    bearing, rho : float
+        The point's bearing (rad) and range in the fan (m).
+    radial_offset : float
+        The capsules' distance from the rotation axis, m.
+
+    Returns
+    -------
+    (k,) array, rad.
+    """
+    d = np.asarray(gamma, dtype=np.float64) - bearing
+    return bearing + np.arctan2(rho * np.sin(d), rho * np.cos(d) - radial_offset)
+
+
+def flank_reach(
+    m: Measured, n_steps: int, n_capsules: int, beyond_cut: float, clean: tuple[bool, bool] = (False, False)
+) -> tuple[float, float]:
+    """How far past its first and last step (rad) the peak of an undetermined plane's region may lie, its flank
+    its own echo's alone: ``beyond_cut`` on a side the sweep's own end cuts, or another echo cuts without
+    reaching into the region's amplitude window (``clean``, :func:`~.measurement.clean_cuts`), else 0; (0, 0)
+    when its flank cannot place it.
+
+    An echo at a like range that cuts a region answers beside it in the same amplitude window where they meet and
+    bends the flank there; past the sweep's end nothing else answers, and one much nearer answers wholly before
+    the window.  A face part of the stack hears ends within the stack's height: its edge, at a like range,
+    answers in the same amplitude window on every step and bends the whole flank alike in the capsules that hear
+    the face.
     """
     if m.bearing_source != "undetermined":
         return 0.0, 0.0
@@ -452,8 +484,8 @@ def flank_reach(m: Measured, n_steps: int, n_capsules: int, beyond_cut: float) -
         return 0.0, 0.0
     first, last = int(m.region.steps[0]), int(m.region.steps[-1])
     return (
-        beyond_cut if m.region.cut_before and first == 0 else 0.0,
-        beyond_cut if m.region.cut_after and last == n_steps - 1 else 0.0,
+        beyond_cut if m.region.cut_before and (first == 0 or clean[0]) else 0.0,
+        beyond_cut if m.region.cut_after and (last == n_steps - 1 or clean[1]) else 0.0,
     )
 
 

@@ -31,6 +31,7 @@ from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits
 __all__ = [
     "Measured",
     "across_stack_measured",
+    "clean_cuts",
     "handed_over",
     "masked_ends",
     "measure_region",
@@ -182,6 +183,33 @@ def handed_over(region: Region, distance: np.ndarray, ends: tuple[bool, bool], o
         return any(
             bool(np.any((block - ref >= -spread) & (block - ref <= spread + ECHO_WINDOW_RANGE))) for block in past
         )
+
+
+def clean_cuts(region: Region, distance: np.ndarray, opts: SurfaceOptions) -> tuple[bool, bool]:
+    """Which of the region's cut ends another echo cuts without reaching into its amplitude window there.
+
+    The region's amplitude is read in a window just past its own time of flight
+    (:data:`~lelsonar.reconstruct.estimate.corner.wall.ECHO_WINDOW_RANGE` of range): an echo that answers just
+    past a cut end within that reach of the region's range, nearer (its ring-out, about as long as the window
+    made to hold an echo's rise, still fills it) or farther (it rises inside it), sums into the region's last
+    steps there and bends its flank; one nearer by more answers wholly before the window, so the flank there is
+    the region's own echo alone, as past the sweep's end.  Like :func:`handed_over`, with the window's reach
+    on the nearer side too.
+
+    Returns
+    -------
+    (before, after): cut on that side, and no reading within the window's reach of the region's median range
+    among the steps a run may bridge past that end.
+    """
+    spread = 2 * opts.range_tolerance + ECHO_WINDOW_RANGE
+    with np.errstate(all="ignore"):
+        ref = float(np.nanmedian(distance[region.rows, region.capsules]))
+    reach = opts.max_gap + 2
+    first, last = int(region.steps[0]), int(region.steps[-1])
+    past = (distance[max(first - reach, 0) : first], distance[last + 1 : last + 1 + reach])
+    with np.errstate(invalid="ignore"):
+        like = [bool(np.any(np.abs(block - ref) <= spread)) for block in past]
+    return region.cut_before and not like[0], region.cut_after and not like[1]
 
 
 def measure_region(
