@@ -14,13 +14,20 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
+import pytest
+
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.classify import end_undecided
-from lelsonar.reconstruct.estimate.surfaces.features import kind_unsettled
+from lelsonar.reconstruct.estimate.surfaces.features import centre_off_peak, kind_unsettled
+from lelsonar.reconstruct.estimate.surfaces.regions import Region
+from lelsonar.signal.directivity import piston_directivity
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import ElementKind, build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
+from lelsonar.tools.stress_world_score import score_world
+from lelsonar.tools.stress_worlds import draw_stress_world
 from lelsonar.tools.surface_scores import majority, score_scan
 from tests.test_surfaces_recall import _measured
 
@@ -68,3 +75,43 @@ def test_a_wall_whose_flat_flank_agrees_with_a_planes_end_is_no_settled_corner()
     # The wall is claimed by a feature that says its kind is not settled, and by no settled one.
     assert on_mirrors
     assert not any(f.settled for f in on_mirrors)
+
+
+KA = 5.13  # a 7 mm piston at 40 kHz
+
+
+def _centred(peak_deg: float, lo_deg: float, hi_deg: float, sigma_deg: float):
+    """A region centred on its span, its amplitudes a mirror's two-way beam about ``peak_deg`` (1 % noise)."""
+    gamma = np.radians(np.arange(-120.0, 0.01, 1.0))
+    steps = np.flatnonzero((gamma >= math.radians(lo_deg) - 1e-9) & (gamma <= math.radians(hi_deg) + 1e-9))
+    g = gamma[steps]
+    noise = np.exp(0.01 * np.random.default_rng(3).standard_normal(g.size))
+    amp = piston_directivity(g - math.radians(peak_deg), KA) ** 2 * noise
+    m = _measured(0.5 * (lo_deg + hi_deg), 1.0, (lo_deg, hi_deg), (False, False))
+    region = Region(
+        steps=steps, rows=steps, capsules=np.zeros(steps.size, dtype=np.intp), cut_before=False, cut_after=False
+    )
+    m = replace(m, region=region, step_amplitude=amp, bearing_stderr=math.radians(sigma_deg), clipped=False)
+    return gamma, m
+
+
+def test_a_centre_its_own_amplitude_peak_disputes_has_a_sigma_that_covers_them():
+    # Heard from −95° to −59° (centre −77°), its echo peaking at −72°: one end left while still strong.
+    gamma, m = _centred(-72.0, -95.0, -59.0, 0.4)
+    placed, why = centre_off_peak(m, gamma)
+    assert why
+    assert placed.bearing == m.bearing
+    # The true bearing within 3 σ of the centre the region keeps.
+    assert abs(placed.bearing - math.radians(-72.0)) <= 3 * placed.bearing_stderr
+    # A centre its peak agrees with keeps its own σ.
+    gamma, m = _centred(-77.0, -95.0, -59.0, 0.4)
+    assert centre_off_peak(m, gamma) == (m, "")
+
+
+@pytest.mark.slow
+def test_a_one_capsule_edge_off_its_own_centre_claims_no_sigma_it_lacks():
+    # clutter stress world, seed 1, fan mount: on pose 2 an edge one capsule hears over 36°, its echo peaking 5°
+    # from its region's centre.
+    score = score_world("clutter", 1, "fan", draw_stress_world("clutter", 1, "fan"), max_poses=3)
+    assert score.counts["features"] > 0
+    assert not [line for line in score.failures if "feature > 3σ" in line or "crash" in line]
