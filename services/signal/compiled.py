@@ -73,6 +73,7 @@ KERNEL_MODULES = (
     "lelsonar.reconstruct.estimate.split",
     "lelsonar.reconstruct.estimate.surfaces.piston",
     "lelsonar.reconstruct.estimate.surfaces.regions",
+    "lelsonar.reconstruct.estimate.surfaces.slopes",
     "lelsonar.reconstruct.stream.candidates",
     "lelsonar.reconstruct.stream.fastwire",
     "lelsonar.reconstruct.stream.step_features",
