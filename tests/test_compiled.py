@@ -53,6 +53,25 @@ def test_float32_at_reads_the_samples_at_every_byte_offset():
         np.testing.assert_array_equal(read(payload, offset, values.size), values)
 
 
+def test_unowned_is_the_array_it_is_given():
+    """An array handed on without its reference count reads and writes the array itself, of any shape and type."""
+    import numpy as np
+
+    from lelsonar.signal.compiled import kernel, unowned
+
+    @kernel
+    def touch(payload, cube):
+        buf = unowned(np.frombuffer(payload, dtype=np.uint8))
+        view = unowned(cube)
+        view[1, 2] = -1.0
+        return int(buf[3]), buf.size, view.shape, view.sum()
+
+    cube = np.arange(12, dtype=np.float64).reshape(3, 4)
+    total = cube.sum() - cube[1, 2] - 1.0
+    assert touch(bytes(range(10)), cube) == (3, 10, (3, 4), total)
+    assert cube[1, 2] == -1.0
+
+
 def test_array_at_is_the_array_whose_address_it_is_given():
     """An array handed over as its address is read and written as the array itself, of any shape and type."""
     import numpy as np

@@ -426,7 +426,8 @@ def test_a_first_sample_on_another_layout_is_parsed_as_in_a_new_scan(monkeypatch
 
 def test_the_layouts_kept_for_next_scans_are_bounded_and_counted():
     """The layout kept for each scanner's next scan: at most ``max_scans`` scanners, the least recent forgotten
-    first and counted (a scanner forgotten has its next scan's first sample parsed, nothing else lost)."""
+    first and counted (a scanner forgotten has its next scan's first sample parsed, nothing else lost); the same for
+    its last valid ScanStart (its next one then checked in full)."""
     start, *samples, _ = simulated_messages(steps=8)
     ingest = Ingest(max_scans=2)
     for scanner in ("a", "b", "c"):
@@ -437,3 +438,6 @@ def test_the_layouts_kept_for_next_scans_are_bounded_and_counted():
             assert not isinstance(event, Rejected)
     assert list(ingest._layouts) == ["b", "c"]
     assert ingest.evicted["scanner layout forgotten (max_scans)"] == 1
+    # (and so the ScanStart each compares its next one with)
+    assert list(ingest._starts) == ["b", "c"]
+    assert ingest.evicted["scanner start forgotten (max_scans)"] == 1

@@ -12,6 +12,8 @@ from lelsonar import codec
 from lelsonar.geometry import array_pose
 from lelsonar.map.from_reconstruction import fan_direction, observation_at, planar_pose
 from lelsonar.map.lines import line_in_world
+from lelsonar.reconstruct.estimate.surfaces import UNSETTLED
+from lelsonar.reconstruct.estimate.surfaces.features import NOT_ITS_END
 from lelsonar.v1 import reconstruction_pb2 as pb
 
 
@@ -162,3 +164,21 @@ def test_an_l_plane_of_record_stands_for_a_surface_it_vouches_for_and_no_other()
     # s1 (degraded) is plane a's wall, which a vouches for; s2 is good on its own and b is not better.
     assert [(w.label, w.quality) for w in walls] == [("a", "good"), ("s2", "good")]
     assert walls[0].line[1] == pytest.approx(1.51)
+
+
+def test_a_corner_whose_kind_or_line_its_sweep_left_open_ties_nothing_in_the_map():
+    rot, _, pose = _placed(heading=0.0, xy=(0.0, 0.0))
+    msg = codec.Reconstruction(scanner_id="s1", scan_id=3)
+    _surface(msg, fan_direction(0.5, 0.0), 1.2, np.diag([1e-4, 1e-4, 1e-6]))
+    for label, why in (
+        ("c1", ""),
+        ("c2", f"{UNSETTLED}; its echo's source is not at its plane's end"),
+        ("c3", f"{NOT_ITS_END}: its echo fades toward where that plane's trace reaches its range"),
+    ):
+        corner = msg.corners.add(label=label)
+        corner.line.point.y, corner.line.direction.x, corner.line.point_stderr = 2.0, 1.0, 0.01
+        if why:
+            corner.reasons.append(why)
+    obs = observation_at(msg, rot, pose, "lel")
+    # Only the corner whose kind and line its sweep settled is a corner of the map.
+    assert len(obs.features) == 1 and obs.features[0].kind == "concave"

@@ -154,7 +154,11 @@ def test_every_message_of_a_thousand_scanners_is_accounted_for_within_the_bounds
     out = terminal(feed(service, ends))
     assert len(service.ingest.scans) == 0 and len(service.latest) == 8
     assert len(out) == 16  # the 16 scans the table held
-    assert service.ingest.evicted == {"open scan forgotten (max_scans)": n - 16}
+    # (and each scanner's last valid ScanStart, kept to compare its next one with)
+    assert service.ingest.evicted == {
+        "open scan forgotten (max_scans)": n - 16,
+        "scanner start forgotten (max_scans)": n - 16,
+    }
     # The ScanEnds of the forgotten scans wait for a ScanStart that never comes, then are counted.
     assert service.ingest.n_pending == n - 16 and not service.ingest.rejected
     clock.t = 5.0

@@ -388,3 +388,60 @@ def test_a_live_payload_is_read_as_the_same_bytes(scan):
         got.append(events[0].scan)
     for name in ("distance", "sensor_energy", "echo_amplitude", "gamma", "ratio", "time_ns", "received"):
         assert getattr(got[0], name).tobytes() == getattr(got[1], name).tobytes(), name
+
+
+def _start_faults(start) -> dict:
+    """ScanStarts of a second scan of ``start``'s scanner, each breaking one check of the contract."""
+
+    def changed(edit):
+        bad = type(start)()
+        bad.CopyFrom(start)
+        bad.scan_id, bad.start_time_ns = start.scan_id + 1, start.start_time_ns + 1
+        edit(bad)
+        return bad.SerializeToString()
+
+    def twin_ids(m):
+        m.capsules[1].capsule_id = m.capsules[0].capsule_id
+
+    return {
+        "sound speed": changed(lambda m: setattr(m, "sound_speed", 1000.0)),
+        "capsule position": changed(lambda m: setattr(m.capsules[2].position, "x", float("nan"))),
+        "steps": changed(lambda m: setattr(m, "steps", 0)),
+        "schema version": changed(lambda m: setattr(m, "schema_version", m.schema_version + 1)),
+        "energy model": changed(lambda m: setattr(m.energy_model, "phi0", float("inf"))),
+        "capsule ids": changed(twin_ids),
+    }
+
+
+@pytest.mark.parametrize("fault", list(_start_faults(simulated_messages("paper-test1", seed=7, steps=2)[0])))
+def test_a_scanners_next_scan_start_is_checked_as_decoding_checks_it(scan, fault):
+    """A scanner's ScanStart equal to its last valid one but for its scan and time passes as that one did;
+    one that breaks a check after it is refused with codec.decode's error and words, as it is by a fresh ingest;
+    a valid one that differs otherwise is accepted and is the one compared with next; and other limits are
+    checked again."""
+    start = scan[0]
+    payload = _start_faults(start)[fault]
+    with pytest.raises(codec.DecodeError) as truth:
+        codec.decode(payload, codec.ScanStart)
+    ingest = Ingest()
+    (ev,) = ingest.accept(_name(start), start.SerializeToString())
+    assert isinstance(ev, Accepted)
+    (ev,) = ingest.accept(_name(start), payload)
+    assert isinstance(ev, Rejected) and (ev.error, ev.detail) == (type(truth.value).__name__, str(truth.value))
+    assert ingest.rejected == {type(truth.value).__name__: 1}
+    (fresh,) = Ingest().accept(_name(start), payload)
+    assert (fresh.error, fresh.detail) == (ev.error, ev.detail)
+    for scan_id, sound_speed in ((start.scan_id + 2, start.sound_speed), (start.scan_id + 3, 300.0)):
+        next_start = type(start)()
+        next_start.CopyFrom(start)
+        next_start.scan_id, next_start.start_time_ns, next_start.sound_speed = scan_id, scan_id, sound_speed
+        (ev,) = ingest.accept(_name(start), next_start.SerializeToString())
+        assert isinstance(ev, Accepted) and ev.scan.start == next_start
+    ingest.limits = codec.DecodeLimits(max_sensors=len(start.capsules) - 1)
+    again = type(start)()
+    again.CopyFrom(next_start)
+    again.scan_id += 1
+    with pytest.raises(codec.DecodeError) as truth:
+        codec.decode(again.SerializeToString(), codec.ScanStart, ingest.limits)
+    (ev,) = ingest.accept(_name(start), again.SerializeToString())
+    assert isinstance(ev, Rejected) and (ev.error, ev.detail) == (type(truth.value).__name__, str(truth.value))

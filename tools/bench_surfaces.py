@@ -362,6 +362,8 @@ def _family_table(records: dict[str, list[ScanRecord]], mount: str, args: argpar
             console.print(f"good plane off every true mirror ({mount} mount): {line}")
         for line in (line for r in records[family] for line in r.missed):
             console.print(f"plane seen but not found ({mount} mount): {line}")
+        for line in (line for r in records[family] for line in r.false_features):
+            console.print(f"false feature ({mount} mount): {line}")
     for family, p in neither:
         console.print(
             f"wall good but over 3× its oracle and the range noise ({mount} mount): {family} seed {p.seed} "

@@ -94,6 +94,7 @@ class ScanRecord:
     unknown: dict[str, int] | None = None  # class -> of those found, claimed only as right or kind not settled
     one_capsule: dict[str, int] | None = None  # class -> corners/edges with enough echoes but heard by one capsule
     features: tuple[tuple[str, float, float], ...] = ()  # (kind, m off its true line, its σ there) per right feature
+    false_features: tuple[str, ...] = ()  # one line per corner or edge whose majority is another class: why it said so
 
 
 def sigma_scores(surf: Surface, n_true: np.ndarray, h_true: float) -> tuple[float, float, float]:
@@ -220,6 +221,7 @@ def score_scan(
     good_planes = 0
     off_every: list[str] = []
     placed: list[tuple[str, float, float]] = []
+    false_lines: list[str] = []
     items: list[tuple[str, np.ndarray, Surface | None, Feature | None]] = [
         ("plane", s.steps, s, None) for s in result.surfaces
     ]
@@ -230,6 +232,12 @@ def score_scan(
         if cls != UNKNOWN and (truth is None or truth != cls):
             false[cls] += 1
             false_good += int(surf is not None and surf.quality == "good")
+            if feature is not None:
+                why = feature.reasons[0] if feature.reasons else ""
+                false_lines.append(
+                    f"{family} seed {seed} pose {scan.pose_index} {feature.label}: {cls} on element {k} "
+                    f"({truth or 'no element'}), {feature.n_echoes} echoes: {why}"
+                )
         if truth is not None:
             claimed.setdefault(k, set()).add(cls)
         if feature is not None and truth == feature.kind:
@@ -316,6 +324,7 @@ def score_scan(
         unknown=unknown,
         one_capsule=one_capsule,
         features=tuple(placed),
+        false_features=tuple(false_lines),
     )
 
 

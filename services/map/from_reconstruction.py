@@ -33,7 +33,7 @@ from lelsonar.map.observation import (
     ScanObservation,
     WallObservation,
 )
-from lelsonar.reconstruct.estimate.surfaces.features import placement_caveats
+from lelsonar.reconstruct.estimate.surfaces.features import kind_unsettled, placement_caveats
 
 #: Smallest variance given to an observation's (θ, ρ), so a plane that claims none still has a σ (rad², m²).
 MIN_VARIANCE = (1e-10, 1e-10)
@@ -189,8 +189,9 @@ def _surface_wall(item, to_level: np.ndarray) -> WallObservation | None:
 
 
 def _feature(f, kind: str, to_level: np.ndarray) -> FeatureObservation | None:
-    # A corner or an edge its sweep did not place on its own line (its reasons say so) ties no walls and ends none.
-    if placement_caveats(f.reasons):
+    # A corner or an edge its sweep did not place on its own line, or whose kind it did not settle (its reasons say
+    # so), ties no walls and ends none.
+    if placement_caveats(f.reasons) or kind_unsettled(f.reasons):
         return None
     d = to_level @ _vec(f.line.direction)
     if not np.linalg.norm(d) > 0:

@@ -23,7 +23,8 @@ Settings, and why:
 
 The compiler-level helpers here: :func:`float32_at`, a float32 view of bytes at any offset (a protobuf field's),
 typed unaligned, so that a kernel reads a payload's waveform where it lies instead of copying it;
-:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others; :func:`array_at`, an
+:func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others; :func:`unowned`, an array
+handed on without its reference count; :func:`array_at`, an
 array handed to a kernel as its address (an integer's conversion where an array's costs a look-up of its type);
 and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.
 """
@@ -162,9 +163,14 @@ def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
 
 @intrinsic
 def float32_at(typingctx, buf, start, count):
-    """A read-only float32 view of ``count`` values at byte ``start`` of the 1-d uint8 array ``buf`` (which it
-    keeps alive), typed unaligned: its loads make no assumption on the address, which a protobuf field's bytes
-    lie at any of (a view by ``.view`` would be typed aligned, and reading it at such an address undefined).
+    """A read-only float32 view of ``count`` values at byte ``start`` of the 1-d uint8 array ``buf``, typed
+    unaligned: its loads make no assumption on the address, which a protobuf field's bytes lie at any of (a view
+    by ``.view`` would be typed aligned, and reading it at such an address undefined).
+
+    The view does not keep ``buf`` alive (no reference counted, as :func:`array_at`): a view that holds one pays
+    an atomic increment and decrement each time the kernel copies it, which a pass over a sample's waveforms
+    does dozens of times.  So the view is used only inside the kernel call that holds ``buf`` (an argument, or
+    an array made from one) and is never returned from it.
 
     The caller bounds ``start`` and ``count`` (``start + 4·count ≤ buf.size``): nothing is checked here."""
     if not (isinstance(buf, types.Array) and buf.ndim == 1 and buf.dtype == types.uint8):
@@ -185,10 +191,8 @@ def float32_at(typingctx, buf, start, count):
             shape=cgutils.pack_array(builder, [n]),
             strides=cgutils.pack_array(builder, [itemsize]),
             itemsize=itemsize,
-            meminfo=source.meminfo,
-            parent=source.parent,
+            meminfo=None,
         )
-        context.nrt.incref(builder, sig.args[0], args[0])  # the view holds a reference to the buffer
         return out._getvalue()
 
     return view(buf, start, count), codegen
@@ -217,6 +221,31 @@ def prefetch(typingctx, buf, at):
         return context.get_dummy_value()
 
     return types.none(buf, at), codegen
+
+
+@intrinsic
+def unowned(typingctx, array):
+    """``array`` itself (its data, shape and strides), not keeping its memory alive: as :func:`float32_at`, for an
+    array a kernel hands on many times (a payload's bytes, to the functions that read it), used only while the
+    kernel holds the array it came from, and never returned.  A counted array pays an atomic increment and
+    decrement each time it is handed on; this one pays nothing."""
+    if not isinstance(array, types.Array):
+        return None
+
+    def codegen(context, builder, sig, args):
+        source = make_array(sig.args[0])(context, builder, value=args[0])
+        out = make_array(sig.return_type)(context, builder)
+        populate_array(
+            out,
+            data=source.data,
+            shape=source.shape,
+            strides=source.strides,
+            itemsize=source.itemsize,
+            meminfo=None,
+        )
+        return out._getvalue()
+
+    return array(array), codegen
 
 
 @intrinsic

@@ -40,6 +40,7 @@ stream or the acquirer's log), for the per-scan accounting.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import struct
@@ -69,6 +70,13 @@ _log = logging.getLogger(__name__)
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
 
 
+@functools.lru_cache(maxsize=16)  # (k is bounded by DecodeLimits.max_sensors; a few sizes in practice)
+def _packers(k: int) -> tuple[struct.Struct, struct.Struct]:
+    """The packers of a sample's readings into the kernel's buffer of a scan of ``k`` capsules: γ, the motor and the
+    readings, without and with the carried energies (one each a scan's size, not one a scan)."""
+    return struct.Struct(f"<{5 + 3 * k}d"), struct.Struct(f"<{5 + 4 * k}d")
+
+
 class ScanAssembly(ScanArrays):
     """One scan, assembled from its samples in whatever order they arrive."""
 
@@ -95,8 +103,7 @@ class ScanAssembly(ScanArrays):
         self._limits_cleared: codec.DecodeLimits | None = None  # the limits the layout and schedule are within
         self._buffer = bytearray(8 * (6 * self._k + 5))
         self._values = np.frombuffer(self._buffer, dtype=np.float64)
-        self._pack_readings = struct.Struct(f"<{5 + 3 * self._k}d")
-        self._pack_readings_energies = struct.Struct(f"<{5 + 4 * self._k}d")
+        self._pack_readings, self._pack_readings_energies = _packers(self._k)
         # Where fastwire.place_wire finds each waveform's samples in a sample's payload (read there, never copied).
         self._starts = np.zeros(self._k, np.int64)
         # The layout of the scanner's previous scan (:meth:`expect_layout`), tried on this scan's first sample.
@@ -172,7 +179,7 @@ class ScanAssembly(ScanArrays):
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
             wire = self._wire_for(limits)  # placed once the arrays reach its step (the same limits: not None)
         if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
-            self._latest = (step, payload, known[1], known[2], known[3])
+            self._latest = (step, payload, known)
             return step
         if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED)
             if presumed:
@@ -408,7 +415,7 @@ class ScanAssembly(ScanArrays):
                 if carried:
                     self._energy_mismatch(step)
             self.unflagged_ranges += status >> 1
-        self._latest = (step, latest, layout[1], layout[2], layout[3])  # (the lowest id's clock)
+        self._latest = (step, latest, layout)
         return True
 
     def _keep_candidates(self, step: int, waveforms: np.ndarray, layout: list) -> None:

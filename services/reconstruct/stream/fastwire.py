@@ -22,7 +22,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InternalError
 from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, place_rows
-from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch
+from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch, unowned
 from lelsonar.v1 import scan_pb2
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
@@ -365,6 +365,7 @@ def read_body(buf, body, ids, values, n, starts):
 #: :func:`wire_arrays` names, in its order.
 _BOUND, _N, _K, _ROWS, _WIDTH, _KEPT, _ADDRESSES = 0, 1, 2, 3, 4, 5, 6
 _PER_CAPSULE, _PER_STEP = len(PER_CAPSULE), len(PER_STEP)
+_DT_INT64, _DT_FLOAT64, _DT_FLOAT32, _DT_BOOL = (np.dtype(t) for t in (np.int64, np.float64, np.float32, np.bool_))
 
 
 def wire_arrays(
@@ -396,21 +397,25 @@ def wire_arrays(
     k, rows, width = ids.size, received.size, timing_windows.shape[2]
     kept = candidate_windows.shape[2]
     expected = (
-        (ids, np.int64, (k,)),
-        (values, np.float64, (6 * k + 5,)),
-        (starts, np.int64, (k,)),
-        (scan, np.float64, (7,)),
-        (per_capsule, np.float64, (_PER_CAPSULE, rows, k)),
-        (per_step, np.float64, (_PER_STEP, rows)),
-        (acquired_ns, np.int64, (rows,)),
-        (received, np.bool_, (rows,)),
-        (recovered_mask, np.bool_, (rows,)),
-        (timing_windows, np.float32, (rows, k, width)),
-        (candidate_windows, np.float32, (rows, k, kept)),
+        (ids, _DT_INT64, (k,)),
+        (values, _DT_FLOAT64, (6 * k + 5,)),
+        (starts, _DT_INT64, (k,)),
+        (scan, _DT_FLOAT64, (7,)),
+        (per_capsule, _DT_FLOAT64, (_PER_CAPSULE, rows, k)),
+        (per_step, _DT_FLOAT64, (_PER_STEP, rows)),
+        (acquired_ns, _DT_INT64, (rows,)),
+        (received, _DT_BOOL, (rows,)),
+        (recovered_mask, _DT_BOOL, (rows,)),
+        (timing_windows, _DT_FLOAT32, (rows, k, width)),
+        (candidate_windows, _DT_FLOAT32, (rows, k, kept)),
     )
     for i, (array, dtype, shape) in enumerate(expected):
         flags = array.flags
-        if array.dtype != dtype or array.shape != shape or not (flags.c_contiguous and flags.writeable):
+        if (
+            (array.dtype is not dtype and array.dtype != dtype)
+            or array.shape != shape
+            or not (flags.c_contiguous and flags.writeable)
+        ):
             raise InternalError(
                 f"place_wire's array {i} is {array.dtype}{array.shape} (contiguous {flags.c_contiguous}, writeable "
                 f"{flags.writeable}); it reads {np.dtype(dtype)}{shape}, contiguous and writeable"
@@ -457,7 +462,7 @@ def place_wire(payload, at, step, time_ns, recovered, arrays):
     bound, n, k, rows = arrays[_BOUND], arrays[_N], arrays[_K], arrays[_ROWS]
     at_ = arrays[_ADDRESSES:]
     received = array_at(at_[7], rows, np.bool_)
-    buf = np.frombuffer(payload, dtype=np.uint8)
+    buf = unowned(np.frombuffer(payload, dtype=np.uint8))  # (handed on to every reader: the payload is held here)
     end = buf.size
     seen = 0
     body = at

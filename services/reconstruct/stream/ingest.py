@@ -59,7 +59,7 @@ class Accepted(NamedTuple):
 
 #: Accepted((kind, scan, step)) without the named tuple's Python-level __new__ (a third of its cost).
 _accepted = functools.partial(tuple.__new__, Accepted)
-_MESSAGE_TYPES, _SAMPLE = codec.MESSAGE_TYPES, codec.Sample
+_MESSAGE_TYPES, _SAMPLE, _SCAN_START = codec.MESSAGE_TYPES, codec.Sample, codec.ScanStart
 
 
 @dataclass
@@ -100,12 +100,16 @@ class Ingest:
     #: where it has the scan's layout; False parses every payload (the baseline `lelsonar bench ingest` shows).
     fast_path: bool = True
     _held: int = 0
-    #: By the key a sample came on (None: no key), the bytes that routed the last one read from its payload and
-    #: its scan (open: forgotten as it closes; at most two entries an open scan, its scanner's key and none).
-    _routes: dict[str | None, tuple[bytes, ScanAssembly]] = field(default_factory=dict)
+    #: By the key a sample came on (None: no key), the bytes that routed the last one read from its payload, their
+    #: length, its scan and (0, 0) for the step and time read after them (:meth:`_route`; open: forgotten as it
+    #: closes; at most two entries an open scan, its scanner's key and none).
+    _routes: dict[str | None, tuple[bytes, int, ScanAssembly, int, int]] = field(default_factory=dict)
     #: By scanner, the layout its last scan's samples showed (:attr:`ScanAssembly.layout`), for its next scan's first
     #: sample (:meth:`ScanAssembly.expect_layout`); at most ``max_scans`` scanners, the least recent forgotten first.
     _layouts: OrderedDict[str, list] = field(default_factory=OrderedDict)
+    #: By scanner, the last ScanStart it sent that passed every check, and the limits they were made under
+    #: (:meth:`_decode_start`); at most ``max_scans`` scanners, the least recent forgotten first.
+    _starts: OrderedDict[str, tuple[codec.DecodeLimits, codec.ScanStart]] = field(default_factory=OrderedDict)
 
     @property
     def n_pending(self) -> int:
@@ -123,20 +127,39 @@ class Ingest:
         try:
             cls = _MESSAGE_TYPES.get(type_name)
             if cls is _SAMPLE:
-                if type(payload) is not bytes and len(payload) <= self.limits.max_payload_bytes:
+                limits = self.limits
+                if type(payload) is not bytes and len(payload) <= limits.max_payload_bytes:
                     payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the fast path or the parser reads it
-                placed = self._add_payload(payload, origin, key_scanner) if self.fast_path else None
-                if placed is not None:
-                    return [placed]
-                message = codec.parse(payload, cls, self.limits)
-                scan = self.scans.get((message.scanner_id, message.scan_id))  # (an open scan is never a closed one)
-                if scan is not None and (key_scanner is None or message.scanner_id == key_scanner):
+                if self.fast_path and len(payload) <= limits.max_payload_bytes:
+                    # Placed in its open scan straight from its bytes, never parsed (ScanAssembly.add_payload), where
+                    # it is routed (:meth:`_route`); else left to the parser.  (Inline: every sample runs it.)
+                    route = self._routes.get(key_scanner)
+                    if route is None or not payload.startswith(route[0]):
+                        route = self._route(payload, key_scanner)
+                    if route is not None:
+                        _, at, scan, step, time_ns = route
+                        mismatches = scan.energy_mismatches
+                        try:
+                            placed = scan.add_payload(payload, at, step, time_ns, origin, limits)
+                        except DecodeError as exc:
+                            header = sample_header(payload)
+                            return [self._refused(scan, -1 if header is None else header[3], exc)]
+                        if placed >= 0:
+                            if scan.energy_mismatches != mismatches:
+                                self.energy_mismatches += scan.energy_mismatches - mismatches
+                            self.accepted += 1
+                            return [_accepted(("sample", scan, placed))]
+                message = codec.parse(payload, cls, limits)
+                opened = self.scans.get((message.scanner_id, message.scan_id))  # (an open scan is never a closed one)
+                if opened is not None and (key_scanner is None or message.scanner_id == key_scanner):
                     # Straight to its scan, which checks the body in the pass that places it (or has it checked
                     # here first, as decoding does, if that does not clear it).
-                    return [self._add(scan, message, origin, self.limits)]
+                    return [self._add(opened, message, origin, self.limits)]
                 codec.validate_body(message, self.limits)
             elif cls is None or cls is codec.Reconstruction:
                 raise InvalidMessageError(f"unexpected payload type {type_name[:80]!r}")
+            elif cls is _SCAN_START:
+                message = self._decode_start(payload)
             else:
                 message = codec.decode(payload, cls, self.limits)
             if key_scanner is not None and message.scanner_id != key_scanner:
@@ -234,42 +257,53 @@ class Ingest:
                 events += self.apply(held, origin=origin)
         return events
 
-    def _add_payload(self, payload: bytes, origin: str, key_scanner: str | None) -> Accepted | Rejected | None:
-        """A ``Sample``'s payload placed in its open scan straight from its bytes, never parsed
-        (:meth:`ScanAssembly.add_payload`); None where the fast path leaves it to the parser (nothing done).
+    def _decode_start(self, payload: bytes) -> codec.ScanStart:
+        """:func:`lelsonar.codec.decode` of a ``ScanStart``, the same checks and refusals: its header checked as it is
+        parsed (:func:`~lelsonar.codec.parse`), its body (:func:`~lelsonar.codec.validate_body`) unless it equals, but
+        for ``scan_id`` and ``start_time_ns`` (which no check reads), its scanner's last ScanStart that passed them
+        under the same limits: each check reads the message's fields alone, so equal fields pass as those did (a
+        scanner sends the same description scan after scan, and comparing two messages is one call into upb).
 
-        A payload that starts with the bytes that routed the last one of its key (``schema_version``,
-        ``scanner_id``, ``scan_id``, each once, before the rest: the same fields, which the rest may not repeat)
-        goes to the same scan without its header read in Python."""
+        Raises
+        ------
+        DecodeError
+            A subclass that says what was wrong, as :func:`~lelsonar.codec.decode`.
+        """
         limits = self.limits
-        if len(payload) > limits.max_payload_bytes:
+        message = codec.parse(payload, _SCAN_START, limits)
+        starts = self._starts
+        known = starts.get(message.scanner_id)
+        if known is not None and known[0] is limits:
+            passed = known[1]
+            passed.scan_id, passed.start_time_ns = message.scan_id, message.start_time_ns
+            if passed == message:
+                return message
+        codec.validate_body(message, limits)
+        passed = _SCAN_START()
+        passed.CopyFrom(message)  # (a copy of its own: the message goes to its scan)
+        starts[message.scanner_id] = (limits, passed)
+        starts.move_to_end(message.scanner_id)
+        while len(starts) > self.max_scans:
+            starts.popitem(last=False)
+            self.evicted["scanner start forgotten (max_scans)"] += 1
+        return message
+
+    def _route(self, payload: bytes, key_scanner: str | None) -> tuple[bytes, int, ScanAssembly, int, int] | None:
+        """Where a ``Sample``'s payload goes on the fast path: ``(prefix, at, scan, step, time_ns)``, its open scan and
+        its header read up to ``at`` (:meth:`ScanAssembly.add_payload`'s arguments); None where the fast path leaves
+        it to the parser.  If the fields that route it (``schema_version``, ``scanner_id``, ``scan_id``) come first,
+        each once, the bytes they span route the next payloads of its key that start with them (the same fields,
+        which the rest may not repeat) to the same scan, their headers not read in Python."""
+        header = sample_header(payload)
+        if header is None or header[0] != SCHEMA_VERSION:
             return None
-        route = self._routes.get(key_scanner)
-        if route is not None and payload.startswith(route[0]):
-            prefix, scan = route
-            at, step, time_ns = len(prefix), 0, 0
-        else:
-            header = sample_header(payload)
-            if header is None or header[0] != SCHEMA_VERSION:
-                return None
-            _, scanner, scan_id, step, time_ns, routed, at = header
-            found = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
-            if found is None or (key_scanner is not None and scanner != key_scanner):
-                return None
-            scan = found
-            if routed:
-                self._routes[key_scanner] = (payload[:routed], scan)
-        mismatches = scan.energy_mismatches
-        try:
-            placed = scan.add_payload(payload, at, step, time_ns, origin, limits)
-        except DecodeError as exc:
-            header = sample_header(payload)
-            return self._refused(scan, -1 if header is None else header[3], exc)
-        if placed < 0:
+        _, scanner, scan_id, step, time_ns, routed, at = header
+        scan = self.scans.get((scanner, scan_id))  # (an open scan: its scanner id was validated with its start)
+        if scan is None or (key_scanner is not None and scanner != key_scanner):
             return None
-        self.energy_mismatches += scan.energy_mismatches - mismatches
-        self.accepted += 1
-        return _accepted(("sample", scan, placed))
+        if routed:
+            self._routes[key_scanner] = (payload[:routed], routed, scan, 0, 0)
+        return b"", at, scan, step, time_ns
 
     def _add(
         self,
@@ -340,7 +374,7 @@ class Ingest:
     def _forget_routes(self, scan: ScanAssembly | None) -> None:
         """No payload is routed to ``scan`` (closed, or forgotten) by the bytes that routed it."""
         if scan is not None:
-            for key in [key for key, (_, routed) in self._routes.items() if routed is scan]:
+            for key in [key for key, route in self._routes.items() if route[2] is scan]:
                 del self._routes[key]
 
     def _reject(self, error: str, detail: str) -> Rejected:

@@ -28,6 +28,12 @@ from lelsonar.v1 import scan_pb2
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
 
 
+_SENSOR_ENERGY, _STEP_ENERGY = PER_CAPSULE.index("sensor_energy"), PER_STEP.index("step_energy")
+#: The windows of a scan that has none yet (no rows, no width): read only for their shape.
+_NO_WINDOWS = np.zeros((0, 0, 0), np.float32)
+_NO_WINDOWS.flags.writeable = False
+
+
 @dataclass
 class StepView:
     """The latest step as it arrived, for display."""
@@ -105,47 +111,54 @@ class ScanArrays(WriterChecks):
         # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
         # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).
         self._timing_rate = math.nan
-        self._timing_windows = np.zeros((0, self._k, 0), np.float32)
         # A reading that may be the noise a board fired on (:func:`candidate_echo`): its waveform around the
         # first echo after its time of flight, the same width (the echo recovered at the final if the reading
-        # proves to be noise, :meth:`recovered_echoes`).
-        self._candidate_windows = np.zeros((0, self._k, 0), np.float32)
+        # proves to be noise, :meth:`recovered_echoes`); both made by :meth:`_grow_timing`.
+        self._timing_windows = self._candidate_windows = _NO_WINDOWS
         # (steps, k, 3) each echo re-timed (echo_timing.echo_onsets): onset − tof (s), peak (V), edge (s); and
-        # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first).
-        self._echo_timing = np.zeros((0, self._k, 3))
-        self._timed = np.zeros(0, bool)
+        # which steps have been (re-timing is done only when the ranges are tested, RISE_STRIDE-th steps first):
+        # made by :meth:`_allocate`.
         self._walk_tested: tuple[int, tuple] | None = None  # (steps received, range_walk()) when last asked
         self._noise_tested: tuple[int, tuple] | None = None  # (steps received, noise_triggers()) when last asked
         self._recovered: tuple[int, tuple] | None = None  # (steps received, recovered_echoes()) when last asked
         self._recovery_sigma = math.nan  # V, the noise σ over the recovered echoes' windows
         self._wire: tuple | None = None  # place_wire's arguments (ScanAssembly._wire_for), dropped as the arrays grow
-        # The latest step placed: (step, (k, n) float32 bytes, n, sample rate, t0), made a StepView when read.
+        # The latest step placed: (step, its (k, n) float32 waveforms or the payload they lie in, its layout: each
+        # reading's capsule id, samples, rate, t0…), made a StepView when read.
         self._latest: StepView | tuple | None = None
         self._allocate(min(self.start.steps, self.INITIAL_ROWS))
 
     def _allocate(self, n: int) -> None:
         """Hold ``n`` rows, keeping what is there (rows of steps not received stay empty).
 
-        The (steps, k) arrays are the planes of one block, and the (steps,) float arrays the rows of another:
-        two allocations instead of eleven, and one array each for the kernel to write a step into.
+        The (steps, k) arrays are the planes of one block, and the (steps,) float arrays the rows of another,
+        one array each for the kernel to write a step into; those two and each echo's timing are views of one
+        allocation, as are the flags (received, recovered, timed): a scan's arrays cost five allocations.
         """
         k = self._k
-        per_capsule = np.full((len(PER_CAPSULE), n, k), np.nan)
-        per_capsule[PER_CAPSULE.index("sensor_energy")] = 0.0
-        per_step = np.full((len(PER_STEP), n), np.nan)
-        per_step[PER_STEP.index("step_energy") :] = 0.0
-        time_ns, received, recovered = np.zeros(n, np.int64), np.zeros(n, bool), np.zeros(n, bool)
-        if hasattr(self, "_per_capsule"):
+        planes, rows = len(PER_CAPSULE) * n * k, len(PER_STEP) * n
+        floats = np.full(planes + rows + 3 * n * k, np.nan)
+        per_capsule = floats[:planes].reshape(len(PER_CAPSULE), n, k)
+        per_step = floats[planes : planes + rows].reshape(len(PER_STEP), n)
+        timing = floats[planes + rows :].reshape(n, k, 3)
+        per_capsule[_SENSOR_ENERGY] = 0.0
+        per_step[_STEP_ENERGY:] = 0.0
+        time_ns, flags = np.zeros(n, np.int64), np.zeros((3, n), bool)
+        received, recovered, timed = flags
+        if "_per_capsule" in self.__dict__:  # (grown: what is there kept)
             had = self._per_capsule.shape[1]
             per_capsule[:, :had] = self._per_capsule
             per_step[:, :had] = self._per_step
+            timing[:had] = self._echo_timing
             time_ns[:had], received[:had], recovered[:had] = self.time_ns, self.received, self.recovered_mask
+            timed[:had] = self._timed
         self._per_capsule, self._per_step = per_capsule, per_step
         for name, plane in zip(PER_CAPSULE, per_capsule):
             setattr(self, name, plane)
         for name, row in zip(PER_STEP, per_step):
             setattr(self, name, row)
         self.time_ns, self.received, self.recovered_mask = time_ns, received, recovered
+        self._echo_timing, self._timed = timing, timed
         self._rows = (per_capsule, per_step, time_ns, received, recovered)  # what the kernel writes a step into
         self._grow_timing(n, self._timing_windows.shape[2])
 
@@ -154,21 +167,19 @@ class ScanArrays(WriterChecks):
         return (*self._rows, self._timing_windows, self._candidate_windows)
 
     def _grow_timing(self, n: int, width: int) -> None:
-        """Hold ``n`` rows of timing windows ``width`` samples wide, keeping what is there."""
+        """Hold ``n`` rows of timing windows ``width`` samples wide (and of candidate echoes' windows, if the scan
+        keeps them), keeping what is there at the same width."""
         # Not cleared: a window is read only where its step's ``_timing_at`` is finite, which the pass writes with it
         # (clearing half a megabyte a scan costs more than all its reads of them).
         windows = np.empty((n, self._k, width), np.float32)
+        same = width == self._timing_windows.shape[2]
         # (The candidates' only once one was found, :meth:`_keep_candidates`.)
-        kept = self._candidate_windows.shape[2] if width == self._timing_windows.shape[2] else 0
-        candidates = np.zeros((n, self._k, kept), np.float32)
-        timing, timed = np.full((n, self._k, 3), np.nan), np.zeros(n, bool)
-        had = len(self._timed)
-        if width == self._timing_windows.shape[2]:
-            windows[:had] = self._timing_windows
-            candidates[:had] = self._candidate_windows
-        timing[:had], timed[:had] = self._echo_timing, self._timed
-        self._timing_windows, self._echo_timing, self._timed = windows, timing, timed
-        self._candidate_windows = candidates
+        candidates = np.zeros((n, self._k, self._candidate_windows.shape[2] if same else 0), np.float32)
+        if same and width:
+            had = min(n, len(self._timing_windows))
+            windows[:had] = self._timing_windows[:had]
+            candidates[:had] = self._candidate_windows[:had]
+        self._timing_windows, self._candidate_windows = windows, candidates
         self._wire = None  # (its arrays changed)
 
     @property
@@ -187,7 +198,8 @@ class ScanArrays(WriterChecks):
         view = self._latest
         if view is None or isinstance(view, StepView):
             return view
-        step, held, n, rate, t0 = view
+        step, held, layout = view
+        n, rate, t0 = layout[1:4]  # (the lowest id's clock)
         # (k, n) float32, or the payload its waveforms were read from (on the fast path's layout: its sensors in
         # the order of the capsules), parsed only for display
         if not isinstance(held, np.ndarray):

@@ -201,18 +201,22 @@ def place_rows(
                 return UNCHECKED
     agreed = m == k
     sampled = step % RISE_STRIDE == 0
-    # A sampled step's DC levels come from the same read of each waveform (:func:`row_sums`), kept here until
-    # nothing is refused (NaN: the waveform's sum was not exact, summed again below).
-    levels = np.empty(k if sampled and n > 0 else 0)
+    # A sampled step's DC levels come from the same read of each waveform (:func:`row_sums`), written into its row
+    # (NaN: the waveform's sum was not exact, summed again below), which a refusal leaves NaN again, as it was (the
+    # step is not received).
+    levelled = sampled and n > 0
+    dc = per_capsule[4, step]
     for i in range(k):
         row = float32_at(buf, starts[i], n)
-        if levels.size:
+        if levelled:
             squares, total, top, low = row_sums(row)
-            levels[i] = exact_mean(total, top, low, n)
+            dc[i] = exact_mean(total, top, low, n)
         else:
             squares = sum_of_squares(row)
         if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
             if not checked:
+                if levelled:
+                    dc[:] = np.nan
                 return UNCHECKED
             agreed = False
         elif agreed:
@@ -221,6 +225,8 @@ def place_rows(
     for i in range(k):
         at = r0 + 3 * i
         if values[at] != 0.0 and not (values[at + 1] > 0.0 and values[at + 2] > 0.0) and not c == c:
+            if levelled:
+                dc[:] = np.nan
             return NO_SOUND_SPEED
     width = timing_windows.shape[2]
     kept = candidate_windows.shape[2] == width
@@ -272,9 +278,7 @@ def place_rows(
                 per_capsule[3, step, i] = window_peak(  # pre_echo_peak
                     row, rate, t0, t, PRE_ECHO_WINDOW[0], PRE_ECHO_WINDOW[1]
                 )
-    if levels.size:
-        dc = per_capsule[4, step]
-        dc[:] = levels
+    if levelled:
         _inexact_dc_levels(buf, starts, n, dc)
     per_step[0, step], per_step[1, step] = values[2 * k], values[2 * k + 1]  # γ measured, commanded
     if agreed:

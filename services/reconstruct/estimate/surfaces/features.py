@@ -7,7 +7,8 @@ range because its own bearing is undetermined has no bearing of its own: the tra
 region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stderr`); one with a bearing of its own
 weighs it with the trace's, its σ grown where the two disagree.  Its direction: along the
 two planes' line, along its one plane across the ray to it (that plane's end), across the fan for a line across
-the stack, else along the stack.
+the stack, else along the stack.  Where its own echoes deny what placed it (:mod:`.feature_kinds`), it lies where
+its own echo comes from, and its kind, which rested on that placement, is not settled.
 """
 
 from __future__ import annotations
@@ -19,10 +20,18 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.reconstruct.estimate.normals import cross3
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
+from lelsonar.reconstruct.estimate.surfaces.feature_kinds import (
+    ALIKE,
+    DOUBLE_BOUNCE_HEADROOM,
+    NOT_ITS_END,
+    NOT_THEIR_LINE,
+    falls_toward,
+    like_its_mirror,
+    pair_denied,
+)
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import (
     RANGE_FLOOR,
     echo_point,
@@ -30,7 +39,7 @@ from lelsonar.reconstruct.estimate.surfaces.placement import (
     pair_line_point,
     with_range,
 )
-from lelsonar.reconstruct.estimate.surfaces.results import Feature, Surface, SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.results import UNSETTLED, Feature, Surface, SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.stack import stack_tilt
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 
@@ -45,24 +54,21 @@ __all__ = [
     "STACK_MIXED",
     "PLACEMENT_CAVEATS",
     "placement_caveats",
+    "kind_unsettled",
+    "NOT_ITS_END",
+    "ALIKE",
+    "like_its_mirror",
+    "falls_toward",
 ]
 
 #: A classified region: its kind ("corner" or "edge"), why, and the regions (indices) it ties to.
 Kind = tuple[str, list[str], list[int]]
-
-#: A double bounce travels as far as a mirror's echo at the corner's range and is that mirror's times the two
-#: walls' reflectivities, so no stronger than the sweep's strongest mirror; one amplitude window may sum it with
-#: another echo of like strength, at most doubling it.  Past this many times the sweep's strongest echo it is not.
-DOUBLE_BOUNCE_HEADROOM = 2.0
 
 #: In the reasons of an end set on a plane's trace because its own bearing is undetermined.
 TRACE_ONLY = (
     "bearing not its own: set where its plane's trace reaches its range, one of the bearings its region's reach "
     "allows; its σ spans that reach"
 )
-
-#: In the reasons of a corner at two planes' double-bounce range whose own echoes deny their line.
-NOT_THEIR_LINE = "not placed on the line of the two planes at its range"
 
 #: In the reasons of a line across the fan whose readings scatter past a region's steadiness.
 MIXED = (
@@ -79,7 +85,12 @@ STACK_MIXED = (
 
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
 #: with: a reader shows them beside its σ.
-PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0])
+PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE)
+
+
+def kind_unsettled(reasons: Iterable[str]) -> bool:
+    """Whether the reasons (a :class:`Feature`'s, or its wire message's) say its kind is not settled."""
+    return any(UNSETTLED in r for r in reasons)
 
 
 def placement_caveats(reasons: Iterable[str]) -> list[str]:
@@ -273,77 +284,6 @@ def _pair_placement(
     return point, cov, line_direction(params)
 
 
-def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale: EchoScale) -> str:
-    """Why a region's own echoes deny that it is the double bounce of a line through ``point`` ("": they do not).
-
-    Two planes meeting at the region's range say nothing of whether its echo comes from their line: another
-    corner or edge at that range echoes the same.  What the region measured itself must admit the line's point:
-
-    * **range**: a double bounce off their line comes back from its point nearest the array, ``|X|`` away: the
-      region's own depth apart from it by more than 3 σ of both (the depth's, at least one reading's noise; the
-      line's along the ray through the planes' covariance), and by more than one target's ranges scatter within a
-      region (``range_tolerance``), is another target's echo.
-    * **tilt**: the ranges' slope along the capsule stack is the x component of the unit vector from the echo's
-      point to the array, whatever the target (:mod:`.placement`); the line's point leans off the fan by
-      ``asin(X_x/|X|)``.  Apart by more than 3 σ of both (the region's slope fit; the line's lean through the
-      planes' covariance), the echo comes from elsewhere.
-    * **strength**: with the line's bearing outside the region's span, the region hears it on the beam's
-      flank only; its echo taken back there through the beam pattern (:func:`~.beam_pattern.peak_at_bearing`,
-      a lower bound of the peak) is a double bounce's only up to :data:`DOUBLE_BOUNCE_HEADROOM` times the
-      sweep's strongest echo.
-
-    Parameters
-    ----------
-    own : Measured
-        The region as its own echoes measured it (before its kind placed it).
-    point, covariance : (3,) and (3, 3) arrays
-        The line's point nearest the array and its covariance, m, m².
-    scale : EchoScale
-        The sweep's echo references.
-
-    Returns
-    -------
-    The reason, or "".
-    """
-    rho = float(np.linalg.norm(point))
-    if not rho > 0:
-        return ""
-    u = point / rho
-    own_se = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
-    range_se = math.hypot(own_se, math.sqrt(max(float(u @ covariance @ u), 0.0)))
-    bound = max(3 * range_se, scale.opts.range_tolerance)
-    if abs(own.depth - rho) > bound:
-        return (
-            f"{NOT_THEIR_LINE}: its echo comes from {own.depth:.3f} m, their line's point nearest the array is "
-            f"{rho:.3f} m away (more than {100 * bound:.1f} cm)"
-        )
-    lean = math.asin(max(-1.0, min(1.0, float(u[0]))))
-    bearing = math.atan2(float(u[2]), float(u[1]))
-    if math.isfinite(own.tilt) and math.isfinite(own.tilt_stderr) and own.tilt_stderr > 0:
-        ct, st = math.cos(lean), math.sin(lean)
-        e_t = np.array([ct, -st * math.cos(bearing), -st * math.sin(bearing)])
-        lean_se = math.sqrt(max(float(e_t @ covariance @ e_t), 0.0)) / rho
-        se = math.hypot(own.tilt_stderr, lean_se)
-        if abs(own.tilt - lean) > 3 * se:
-            return (
-                f"{NOT_THEIR_LINE}: its ranges slope along the capsule stack as a target "
-                f"{math.degrees(own.tilt):+.1f}° off the fan, their line's point {math.degrees(lean):+.1f}° "
-                f"(3 σ: {math.degrees(3 * se):.1f}°)"
-            )
-    g0, g1 = own.span
-    outside = bearing < g0 - own.step or bearing > g1 + own.step
-    if outside and math.isfinite(scale.mirror) and math.isfinite(scale.beam_k):
-        at = peak_at_bearing(scale.gamma[own.region.steps], own.step_amplitude, bearing, scale.beam_k)
-        traced = float("nan") if at is None else mirror_normalised(at[0], own.depth, scale.opts)
-        if traced > DOUBLE_BOUNCE_HEADROOM * scale.mirror:
-            return (
-                f"{NOT_THEIR_LINE}: heard at γ {math.degrees(g0):.1f}…{math.degrees(g1):.1f}°, its echo taken back "
-                f"to their line at {math.degrees(bearing):.1f}° would be {traced / scale.mirror:.1f}× the sweep's "
-                "strongest, more than a double bounce gives"
-            )
-    return ""
-
-
 def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
     """An end with a bearing of its own, on plane ``pj``'s trace: its bearing and the trace's where it crosses the
     region's range, at the target's own offset along the stack (:func:`~.evidence.end_stderr`), two measurements
@@ -380,6 +320,29 @@ def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
         + (f", its σ grown ×{math.sqrt(chi2):.1f} by their disagreement" if chi2 > 1 else "")
     )
     return replace(m, bearing=bearing, bearing_stderr=se, summed_spread=0.0), why
+
+
+def _not_its_end(
+    own: Measured, bearing: float, fall: float, kind: str, reasons: list[str], scale: EchoScale
+) -> tuple[Measured, list[str], tuple[str, ...]]:
+    """An end set on a plane's trace whose echo fades toward that placement (:func:`falls_toward`): its echo
+    comes from elsewhere, so it ties no plane and lies where its own echo comes from, its bearing anywhere its
+    region's reach allows.  Its kind rested on its strength taken back to that placement or on being that
+    plane's end: it stands only for an echo weak wherever its peak lies (a diffraction's), else it is not
+    settled.
+
+    Returns
+    -------
+    The region so placed, its reasons and the planes it ties (none).
+    """
+    why = (
+        f"{NOT_ITS_END}: its echo fades by {fall:.2f} (log amplitude, past 3 σ of its noise) toward where that "
+        f"plane's trace reaches its range, {math.degrees(bearing):.1f}°, while one target's echo rises toward it"
+    )
+    out = [*reasons, why]
+    if not (kind == "edge" and scale.weak(own)):
+        out.append(f"{UNSETTLED}; its echo's source is not at its plane's end")
+    return replace(own, bearing_stderr=reach_stderr(own, scale.opts)), out, ()
 
 
 def place_features(
@@ -430,7 +393,11 @@ def place_features(
             reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
             tied, direction = (), stack_axis
         elif i in across_lines:
-            if ties:
+            alike = like_its_mirror(m, own[i], measured[ties[0]]) if ties else ""
+            if alike:
+                m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
+                reasons, tied = [*reasons, alike], ()
+            elif ties:
                 m, why = _across_line(m, own[i], measured[ties[0]], surface_of.get(ties[0]))
                 reasons = [*reasons, why] if why else reasons
             direction = cross3(stack_axis, unit_normal(m.bearing))
@@ -440,9 +407,11 @@ def place_features(
             pair_line = _pair_placement(ties[0], ties[1], m, surface_of, joint)
             denied = "" if pair_line is None else pair_denied(own[i], pair_line[0], pair_line[1], scale)
             if denied:
-                # Where its own echo comes from: its bearing anywhere its region's reach allows.
+                # Where its own echo comes from: its bearing anywhere its region's reach allows.  Its kind rested
+                # on being their double bounce: a strong echo elsewhere is a mirror's or another corner's.
                 m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
-                reasons, tied, direction = [*reasons, denied], (), stack_axis
+                reasons = [*reasons, denied, f"{UNSETTLED}; not their double bounce"]
+                tied, direction = (), stack_axis
             elif pair_line is not None:
                 located, direction = (pair_line[0], pair_line[1]), pair_line[2]
             else:
@@ -451,14 +420,19 @@ def place_features(
         elif len(ties) == 1:
             # A plane's end: a line in that plane, square to the ray to its nearest point (where it answers).
             pj = measured[ties[0]]
+            fall = 0.0
             if m.bearing_source == "undetermined":
+                fall = falls_toward(scale.gamma[own[i].region.steps], own[i].step_amplitude, m.bearing)
+            if fall > 0:
+                m, reasons, tied = _not_its_end(own[i], m.bearing, fall, kind, reasons, scale)
+            elif m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
                 reasons = [*reasons, TRACE_ONLY]
             else:
                 m, why = _with_trace(m, pj)
                 reasons = [*reasons, why] if why else reasons
             direction = cross3(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
-            if float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
+            if fall > 0 or float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
                 direction = stack_axis
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
