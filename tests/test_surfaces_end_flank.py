@@ -19,17 +19,14 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import SweepBeam, bearing_from_flank, point_angles
 from lelsonar.reconstruct.estimate.surfaces.measurement import clean_cuts
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.signal.directivity import piston_directivity
-from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.world_geometry import ElementKind, build_model
-from lelsonar.sim.world_render import simulate_world_scan
-from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.surface_scores import majority, score_scan
+from lelsonar.sim.world_geometry import ElementKind
+from lelsonar.tools.surface_scores import majority, score_scan, world_sweep
 from tests.test_surfaces_recall import _measured
 
 KA = 5.13  # a 7 mm piston at 40 kHz
@@ -110,10 +107,7 @@ def test_a_walls_foot_inside_its_cut_region_beside_its_unseen_corner_explains_bo
 
 
 def _sweep(mount: str, family: str, seed: int, pose: int):
-    model = build_model(draw_world(family, seed, mount=mount))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    _, scan, amp, result = world_sweep(family, seed, pose, mount)
     return scan, result, score_scan(family, scan, result, seed=seed, amplitude=amp)
 
 

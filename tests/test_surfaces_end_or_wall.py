@@ -21,12 +21,10 @@ from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
 from lelsonar.signal.directivity import piston_directivity
-from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.world_geometry import ElementKind, build_model
-from lelsonar.sim.world_render import pose_frame, simulate_world_scan
-from lelsonar.sim.worlds import draw_world
+from lelsonar.sim.world_geometry import ElementKind
+from lelsonar.sim.world_render import pose_frame
 from lelsonar.tools.surface_oracle import bearing_tilt, trace_error, true_plane
-from lelsonar.tools.surface_scores import majority, score_scan
+from lelsonar.tools.surface_scores import majority, score_scan, world_sweep
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
 GAMMA = np.linspace(math.radians(-149.7), math.radians(149.7), 300)
@@ -143,10 +141,8 @@ def test_of_two_placements_on_two_traces_the_one_the_flank_agrees_with_is_taken(
 
 
 def _scan(family: str, seed: int, pose: int):
-    model = build_model(draw_world(family, seed, mount="fan"))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    return scan, amp, extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    _, scan, amp, result = world_sweep(family, seed, pose)
+    return scan, amp, result
 
 
 @pytest.mark.slow

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.features import (
     ALIKE,
     NOT_ITS_END,
@@ -22,11 +22,8 @@ from lelsonar.reconstruct.estimate.surfaces.features import (
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
-from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.world_geometry import ElementKind, build_model
-from lelsonar.sim.world_render import simulate_world_scan
-from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.surface_scores import majority
+from lelsonar.sim.world_geometry import ElementKind
+from lelsonar.tools.surface_scores import majority, world_sweep
 
 #: The beam's curvature in log amplitude (1/rad²): a piston of ka ≈ 6.6, two-way.
 BEAM_K = 6.0
@@ -145,10 +142,7 @@ def test_a_double_bounce_with_a_surface_across_the_fan_is_told_from_its_planes_m
 
 
 def _features_of(mount: str, family: str, seed: int, pose: int, element: int):
-    model = build_model(draw_world(family, seed, mount=mount))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    model, scan, _, result = world_sweep(family, seed, pose, mount)
     mine = [f for f in (*result.corners, *result.edges) if majority(scan, f.steps, f)[0] == element]
     return model, mine
 

@@ -12,12 +12,10 @@ from lelsonar.reconstruct.estimate.surfaces.confirm import LONE
 from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 from lelsonar.reconstruct.estimate.surfaces.placement import echo_point, pair_line_point, with_range
 from lelsonar.reconstruct.estimate.surfaces.results import OFF_FAN
-from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
-from lelsonar.sim.world_geometry import ElementKind, build_model
-from lelsonar.sim.world_render import pose_frame, simulate_world_scan
-from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.surface_scores import majority
+from lelsonar.sim.world_geometry import ElementKind
+from lelsonar.sim.world_render import pose_frame
+from lelsonar.tools.surface_scores import majority, world_sweep
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
 
 
@@ -139,10 +137,7 @@ def test_an_edge_only_the_nearest_capsule_hears_beside_a_farther_wall_is_found_a
 
 
 def _world_feature(family: str, seed: int, pose: int, element: int, mount: str):
-    model = build_model(draw_world(family, seed, mount=mount))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    model, scan, _, result = world_sweep(family, seed, pose, mount)
     mine = [f for f in (*result.corners, *result.edges) if majority(scan, f.steps, f)[0] == element]
     return scan, model, mine
 

@@ -37,6 +37,7 @@ from lelsonar.sim.world_geometry import build_model
 from lelsonar.sim.world_render import simulate_world_scan
 from lelsonar.sim.worlds import draw_world
 from lelsonar.tools.surface_oracle import bearing_tilt, trace_error, true_plane
+from lelsonar.tools.surface_scores import world_sweep
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
 GAMMA = np.linspace(math.radians(-149.7), math.radians(149.7), 300)
@@ -140,10 +141,7 @@ def test_a_wall_past_the_sweeps_end_is_placed_by_its_flank_usable_not_good():
 @pytest.mark.slow
 @pytest.mark.parametrize(("seed", "pose"), [(2, 0), (8, 1)])
 def test_the_walls_behind_a_mazes_scanner_are_placed_by_their_flanks_within_their_sigma(seed, pose):
-    model = build_model(draw_world("maze", seed, mount="fan"))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    model, scan, amp, result = world_sweep("maze", seed, pose)
     flanked = [s for s in result.surfaces if s.bearing_source == FLANK_SOURCE]
     assert len(flanked) == 2  # past both ends of the sweep
     for s in flanked:

@@ -25,11 +25,7 @@ from lelsonar.reconstruct.estimate.surfaces.fitting import theta_covariance
 from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions
 from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
-from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.world_geometry import build_model
-from lelsonar.sim.world_render import simulate_world_scan
-from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.surface_scores import score_scan
+from lelsonar.tools.surface_scores import score_scan, world_sweep
 from tests.test_surfaces import GAMMA, GEOMETRY, RANGE_NOISE, Echoes
 from tests.test_surfaces_recall import _measured
 
@@ -126,10 +122,7 @@ def test_a_noisy_flanks_upper_peak_estimate_is_rarely_under_the_true_peak():
 
 def _scored_fan_sweep(family: str, seed: int, pose: int):
     """A world's sweep from one pose on the fan mount, its surfaces extracted and scored against the truth."""
-    model = build_model(draw_world(family, seed, mount="fan"))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    _, scan, amp, result = world_sweep(family, seed, pose)
     return score_scan(family, scan, result, seed=seed, amplitude=amp)
 
 

@@ -23,10 +23,7 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amp
 from lelsonar.reconstruct.estimate.surfaces.flanks import trimmed_centre
 from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
 from lelsonar.reconstruct.estimate.surfaces.regions import find_regions, subregion
-from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.world_geometry import build_model
-from lelsonar.sim.world_render import simulate_world_scan
-from lelsonar.sim.worlds import draw_world
+from lelsonar.tools.surface_scores import world_sweep
 from tests.test_surfaces import GAMMA, GEOMETRY, THRESHOLD, Echoes
 from tests.test_surfaces_wall_end import bearing_errors
 
@@ -93,9 +90,7 @@ def test_a_plane_trimmed_at_one_end_puts_that_end_between_its_core_and_the_trimm
 def test_in_simulated_worlds_walls_flanked_or_trimmed_on_one_side_keep_their_bearing_within_sigma(
     family, seed, pose, at_least
 ):
-    scan = simulate_world_scan(build_model(draw_world(family, seed)), pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    _, scan, _, result = world_sweep(family, seed, pose)
     checked = bearing_errors(scan, result.surfaces)
     assert len(checked) >= at_least
     for label, error, sd in checked:

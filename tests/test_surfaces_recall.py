@@ -18,17 +18,13 @@ import numpy as np
 import pytest
 
 from lelsonar.reconstruct.estimate.corner.wall import ECHO_WINDOW_RANGE
-from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import weaker_at
 from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, handed_over
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.signal.directivity import piston_directivity
-from lelsonar.signal.energy import echo_amplitude
-from lelsonar.sim.world_geometry import build_model
-from lelsonar.sim.world_render import simulate_world_scan
-from lelsonar.sim.worlds import draw_world
-from lelsonar.tools.surface_scores import score_scan
+from lelsonar.tools.surface_scores import score_scan, world_sweep
 
 RANGE = 1.8
 
@@ -62,10 +58,7 @@ def test_a_later_echo_inside_the_amplitude_window_sums_into_the_end_it_follows(g
 
 
 def _missed(mount: str, family: str, seed: int, pose: int) -> tuple[str, ...]:
-    model = build_model(draw_world(family, seed, mount=mount))
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
-    result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    _, scan, _, result = world_sweep(family, seed, pose, mount)
     return score_scan(family, scan, result, seed=seed).missed
 
 

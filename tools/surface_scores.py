@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -20,8 +21,9 @@ from lelsonar.reconstruct.estimate.surfaces import Feature, Surface, SurfaceOpti
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.scan import EchoSource
 from lelsonar.sim.scenes import simulate_family_scene
-from lelsonar.sim.world_geometry import ElementKind, WorldModel
+from lelsonar.sim.world_geometry import ElementKind, WorldModel, build_model
 from lelsonar.sim.world_render import WorldScan, pose_frame, simulate_world_scan
+from lelsonar.sim.worlds import draw_world
 from lelsonar.tools.surface_oracle import bearing_tilt, oracle_error, trace_error, true_plane
 
 #: The class each element kind should be extracted as.
@@ -328,10 +330,34 @@ def score_scan(
     )
 
 
+def simulated_sweep(model: WorldModel, seed: int, pose: int) -> tuple[WorldScan, np.ndarray]:
+    """World ``seed``'s sweep from its ``pose``-th pose (its noise seeded by both) and its echo amplitudes."""
+    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
+    return scan, echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+
+
+class WorldSweep(NamedTuple):
+    """One sweep of a family's world, its echo amplitudes and the surfaces extracted from it."""
+
+    model: WorldModel
+    scan: WorldScan
+    amplitude: np.ndarray
+    result: SurfaceSet
+
+
+def world_sweep(family: str, seed: int, pose: int, mount: str = "fan") -> WorldSweep:
+    """World ``seed`` of ``family`` on ``mount``, swept from its ``pose``-th pose (:func:`simulated_sweep`), and its
+    surfaces as the reconstruction extracts them."""
+    model = build_model(draw_world(family, seed, mount=mount))
+    scan, amp = simulated_sweep(model, seed, pose)
+    return WorldSweep(
+        model, scan, amp, extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
+    )
+
+
 def run_scan(family: str, seed: int, pose: int, model: WorldModel, options: SurfaceOptions | None = None) -> ScanRecord:
     """Simulate, extract and score one sweep."""
-    scan = simulate_world_scan(model, pose, seed=seed * 1000 + pose)
-    amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
+    scan, amp = simulated_sweep(model, seed, pose)
     times = []
     for _ in range(TIMING_REPEATS):
         t0 = time.process_time()  # CPU time: the host's other work does not count
