@@ -1,5 +1,5 @@
-"""The beam pattern's peak (:func:`bearing_from_amplitude`), its top found in one compiled pass where γ rises:
-the NumPy formulas' numbers to the bit.
+"""The beam pattern's peak (:func:`bearing_from_amplitude`) and curvature (:func:`log_amplitude_curvature`),
+their tops found in one compiled pass: the NumPy formulas' numbers to the bit.
 
 The reference here is the same steps in NumPy (finite positive amplitudes, sorted by γ, a clipped plateau's
 centre, else the parabola through the top half in ``log A`` by ``np.linalg.lstsq``, its σ by the delta method
@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, bearing_from_amplitude
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, bearing_from_amplitude, log_amplitude_curvature
 
 
 def _reference(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float] | None:
@@ -80,3 +80,31 @@ def test_peak_bearing_matches_numpy_bit_for_bit(case, seed):
     else:
         assert got is not None
         assert (float(got[0]).hex(), float(got[1]).hex()) == (float(want[0]).hex(), float(want[1]).hex())
+
+
+def _curvature_reference(gamma: np.ndarray, amplitude: np.ndarray, plateau: bool) -> float | None:
+    ok = np.isfinite(amplitude) & (amplitude > 0)
+    if np.count_nonzero(ok) < 5:
+        return None
+    g, a = gamma[ok], amplitude[ok]
+    top = a >= 0.5 * a.max()
+    if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
+        return None
+    gt = g[top]
+    u = gt - float(np.mean(gt))
+    coef = np.linalg.lstsq(np.stack([np.ones_like(u), u, u * u], axis=1), np.log(a[top]), rcond=None)[0]
+    return float(-coef[2]) if coef[2] < 0 else None
+
+
+@pytest.mark.parametrize("plateau", [False, True])
+@pytest.mark.parametrize("case", ["rising", "falling", "repeated", "gaps", "clipped", "clipped end"])
+@pytest.mark.parametrize("seed", range(4))
+def test_log_amplitude_curvature_matches_numpy_bit_for_bit(case, seed, plateau):
+    gamma, amplitude = _sweep(np.random.default_rng(seed), case)
+    got, want = (
+        log_amplitude_curvature(gamma, amplitude, plateau=plateau),
+        _curvature_reference(gamma, amplitude, plateau),
+    )
+    assert (got is None) == (want is None)
+    if want is not None:
+        assert float(got).hex() == float(want).hex()

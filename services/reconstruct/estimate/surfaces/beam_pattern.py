@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate.robust import fast_median, median
 from lelsonar.signal.compiled import kernel
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
@@ -192,6 +193,44 @@ def _rising_top(gamma: np.ndarray, amplitude: np.ndarray, plateau: float) -> _To
     return _TOP, g, 0, 0, gt, at
 
 
+@kernel
+def _top_in_order(
+    gamma: np.ndarray, amplitude: np.ndarray, plateau: float, allow_plateau: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`log_amplitude_curvature`'s top in the readings' order: the γ and amplitudes of the finite, positive
+    amplitudes over half the largest, at least five of them, and (unless ``allow_plateau``) fewer than three
+    within ``plateau`` of the largest; empty arrays otherwise."""
+    n = 0
+    top_value = 0.0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
+            if n == 0 or amplitude[i] > top_value:
+                top_value = amplitude[i]
+            n += 1
+    if n < 5:
+        return np.empty(0), np.empty(0)
+    half = 0.5 * top_value
+    at_flat = (1.0 - plateau) * top_value
+    n_top, n_flat = 0, 0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
+            if amplitude[i] >= half:
+                n_top += 1
+            if amplitude[i] >= at_flat:
+                n_flat += 1
+    if n_top < 5 or (not allow_plateau and n_flat >= 3):
+        return np.empty(0), np.empty(0)
+    gt = np.empty(n_top)
+    at = np.empty(n_top)
+    j = 0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0 and amplitude[i] >= half:
+            gt[j] = gamma[i]
+            at[j] = amplitude[i]
+            j += 1
+    return gt, at
+
+
 def _quadratic_design(u: np.ndarray) -> np.ndarray:
     """The columns ``1, u, u²`` (as ``np.stack([np.ones_like(u), u, u * u], axis=1)`` makes them)."""
     m = np.empty((u.size, 3))
@@ -249,18 +288,16 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
     -------
     ``k`` (1/rad², > 0), or None when the top of the amplitudes is no parabola opening down.
     """
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    ok = np.isfinite(a) & (a > 0)
-    if np.count_nonzero(ok) < 5:
+    g = np.ascontiguousarray(gamma, dtype=np.float64)
+    a = np.ascontiguousarray(amplitude, dtype=np.float64)
+    if g.ndim != 1 or g.shape != a.shape:
+        raise InternalError(f"one γ per amplitude: {g.shape} γ, {a.shape} amplitudes")
+    # Too few samples on the top, or (unless a plateau may be fitted) a clipped plateau: no curvature.
+    gt, at = _top_in_order(g, a, PLATEAU, plateau)
+    if gt.size == 0:
         return None
-    g, a = g[ok], a[ok]
-    top = a >= 0.5 * a.max()
-    if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
-        return None  # too few samples on the top, or a clipped plateau
-    gt = g[top]
     u = gt - float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
-    coef = _lstsq_full_rank(_quadratic_design(u), np.log(a[top]))
+    coef = _lstsq_full_rank(_quadratic_design(u), np.log(at))
     if coef is None:
         return None
     return float(-coef[2]) if coef[2] < 0 else None
