@@ -14,7 +14,9 @@ import math
 
 import numpy as np
 
+from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate.robust import fast_median, median
+from lelsonar.signal.compiled import kernel
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -60,28 +62,25 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
 def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -> tuple[float, float] | None:
     """:func:`bearing_from_amplitude`; without ``with_stderr`` the vertex of a parabola's top comes with a NaN σ
     (the covariance is the fit's dearest part, and a caller that reads the bearing alone skips it)."""
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    ok = np.isfinite(a) & (a > 0)
-    if np.count_nonzero(ok) < 5:
+    g = np.ascontiguousarray(gamma, dtype=np.float64)
+    a = np.ascontiguousarray(amplitude, dtype=np.float64)
+    # The readings in γ order, and the top's or the plateau's (one compiled pass where γ rises step by step, as a
+    # sweep's does; NumPy's argsort otherwise, whose order of equal γ the pass does not guess).
+    found = _rising_top(g, a, PLATEAU) if g.ndim == 1 and g.shape == a.shape else None
+    if found is None or found[0] == _UNSORTED:
+        found = _sorted_top(g, a)
+    kind, g, first, last, gt, at = found
+    if kind == _NONE:
         return None
-    g, a = g[ok], a[ok]
-    order = np.argsort(g)
-    g, a = g[order], a[order]
     # A receiver that clips flattens the top: the plateau's centre is the peak when both of its ends are
     # inside the region (an unclipped echo on either side), and nothing can be said when one is not.
-    top_value = a.max()
-    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * top_value)
-    if flat.size >= 3:
-        if flat[0] == 0 or flat[-1] == a.size - 1:
+    if kind == _PLATEAU:
+        if first == 0 or last == g.size - 1:
             return None
         step = fast_median(np.diff(g))
-        width = float(g[flat[-1]]) - float(g[flat[0]])
-        return 0.5 * (float(g[flat[0]]) + float(g[flat[-1]])), math.hypot(step, width / flat.size) / math.sqrt(12.0)
-    top = a >= 0.5 * top_value
-    if np.count_nonzero(top) < 5:
-        return None
-    gt, la = g[top], np.log(a[top])
+        width = float(g[last]) - float(g[first])
+        return 0.5 * (float(g[first]) + float(g[last])), math.hypot(step, width / gt.size) / math.sqrt(12.0)
+    la = np.log(at)
     g0 = float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
     u = gt - g0
     m = _quadratic_design(u)
@@ -104,6 +103,132 @@ def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -
     jac = np.array([0.0, -1 / (2 * c), b / (2 * c * c)])
     var = float(jac @ cov @ jac)
     return g0 + vertex, math.sqrt(max(var, 0.0))
+
+
+#: What :func:`_rising_top` and :func:`_sorted_top` found: too few readings or no top, a clipped plateau, a top
+#: (and, of :func:`_rising_top` alone, readings whose γ do not rise: left to :func:`_sorted_top`).
+_NONE, _PLATEAU, _TOP, _UNSORTED = 0, 1, 2, -1
+
+_Top = tuple[int, np.ndarray, int, int, np.ndarray, np.ndarray]
+
+
+def _sorted_top(gamma: np.ndarray, amplitude: np.ndarray) -> _Top:
+    """:func:`_peak_bearing`'s readings (finite, positive amplitudes) in γ order and what their top is: the kind,
+    the sorted γ, a plateau's first and last index and its γ (as ``gt``), or the top's γ and amplitudes (the
+    amplitudes within :data:`PLATEAU` of the largest, at least three: a plateau; else those over half of it,
+    at least five: the top)."""
+    ok = np.isfinite(amplitude) & (amplitude > 0)
+    if np.count_nonzero(ok) < 5:
+        return _NONE, gamma, 0, 0, gamma, amplitude
+    g, a = gamma[ok], amplitude[ok]
+    order = np.argsort(g)
+    g, a = g[order], a[order]
+    top_value = a.max()
+    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * top_value)
+    if flat.size >= 3:
+        return _PLATEAU, g, int(flat[0]), int(flat[-1]), g[flat], a[flat]
+    top = a >= 0.5 * top_value
+    if np.count_nonzero(top) < 5:
+        return _NONE, g, 0, 0, g, a
+    return _TOP, g, 0, 0, g[top], a[top]
+
+
+@kernel
+def _rising_top(gamma: np.ndarray, amplitude: np.ndarray, plateau: float) -> _Top:
+    """:func:`_sorted_top` in one pass where the readings' γ strictly rise (their order is γ's, argsort's
+    identity); of kind ``_UNSORTED`` where they do not (the caller sorts)."""
+    n = 0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
+            n += 1
+    g = np.empty(n)
+    a = np.empty(n)
+    j = 0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
+            g[j] = gamma[i]
+            a[j] = amplitude[i]
+            j += 1
+    if n < 5:
+        return _NONE, g, 0, 0, g, a
+    top_value = a[0]
+    for i in range(1, n):
+        if not g[i] > g[i - 1]:
+            return _UNSORTED, g, 0, 0, g, a
+        if a[i] > top_value:
+            top_value = a[i]
+    at_flat = (1.0 - plateau) * top_value
+    n_flat, first, last = 0, 0, 0
+    for i in range(n):
+        if a[i] >= at_flat:
+            if n_flat == 0:
+                first = i
+            last = i
+            n_flat += 1
+    if n_flat >= 3:
+        gf = np.empty(n_flat)
+        af = np.empty(n_flat)
+        j = 0
+        for i in range(first, last + 1):
+            if a[i] >= at_flat:
+                gf[j] = g[i]
+                af[j] = a[i]
+                j += 1
+        return _PLATEAU, g, first, last, gf, af
+    half = 0.5 * top_value
+    n_top = 0
+    for i in range(n):
+        if a[i] >= half:
+            n_top += 1
+    if n_top < 5:
+        return _NONE, g, 0, 0, g, a
+    gt = np.empty(n_top)
+    at = np.empty(n_top)
+    j = 0
+    for i in range(n):
+        if a[i] >= half:
+            gt[j] = g[i]
+            at[j] = a[i]
+            j += 1
+    return _TOP, g, 0, 0, gt, at
+
+
+@kernel
+def _top_in_order(
+    gamma: np.ndarray, amplitude: np.ndarray, plateau: float, allow_plateau: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`log_amplitude_curvature`'s top in the readings' order: the γ and amplitudes of the finite, positive
+    amplitudes over half the largest, at least five of them, and (unless ``allow_plateau``) fewer than three
+    within ``plateau`` of the largest; empty arrays otherwise."""
+    n = 0
+    top_value = 0.0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
+            if n == 0 or amplitude[i] > top_value:
+                top_value = amplitude[i]
+            n += 1
+    if n < 5:
+        return np.empty(0), np.empty(0)
+    half = 0.5 * top_value
+    at_flat = (1.0 - plateau) * top_value
+    n_top, n_flat = 0, 0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
+            if amplitude[i] >= half:
+                n_top += 1
+            if amplitude[i] >= at_flat:
+                n_flat += 1
+    if n_top < 5 or (not allow_plateau and n_flat >= 3):
+        return np.empty(0), np.empty(0)
+    gt = np.empty(n_top)
+    at = np.empty(n_top)
+    j = 0
+    for i in range(amplitude.size):
+        if np.isfinite(amplitude[i]) and amplitude[i] > 0 and amplitude[i] >= half:
+            gt[j] = gamma[i]
+            at[j] = amplitude[i]
+            j += 1
+    return gt, at
 
 
 def _quadratic_design(u: np.ndarray) -> np.ndarray:
@@ -163,18 +288,16 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
     -------
     ``k`` (1/rad², > 0), or None when the top of the amplitudes is no parabola opening down.
     """
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    ok = np.isfinite(a) & (a > 0)
-    if np.count_nonzero(ok) < 5:
+    g = np.ascontiguousarray(gamma, dtype=np.float64)
+    a = np.ascontiguousarray(amplitude, dtype=np.float64)
+    if g.ndim != 1 or g.shape != a.shape:
+        raise InternalError(f"one γ per amplitude: {g.shape} γ, {a.shape} amplitudes")
+    # Too few samples on the top, or (unless a plateau may be fitted) a clipped plateau: no curvature.
+    gt, at = _top_in_order(g, a, PLATEAU, plateau)
+    if gt.size == 0:
         return None
-    g, a = g[ok], a[ok]
-    top = a >= 0.5 * a.max()
-    if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
-        return None  # too few samples on the top, or a clipped plateau
-    gt = g[top]
     u = gt - float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
-    coef = _lstsq_full_rank(_quadratic_design(u), np.log(a[top]))
+    coef = _lstsq_full_rank(_quadratic_design(u), np.log(at))
     if coef is None:
         return None
     return float(-coef[2]) if coef[2] < 0 else None
