@@ -72,7 +72,7 @@ KERNEL_MODULES = (
     "lelsonar.reconstruct.estimate.quality",
     "lelsonar.reconstruct.estimate.robust",
     "lelsonar.reconstruct.estimate.split",
-    "lelsonar.reconstruct.estimate.surfaces.beam_pattern",
+    "lelsonar.reconstruct.estimate.surfaces.amplitude_top",
     "lelsonar.reconstruct.estimate.surfaces.piston",
     "lelsonar.reconstruct.estimate.surfaces.regions",
     "lelsonar.reconstruct.estimate.surfaces.slopes",

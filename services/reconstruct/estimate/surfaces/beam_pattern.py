@@ -16,7 +16,18 @@ import numpy as np
 
 from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate.robust import fast_median, median
-from lelsonar.signal.compiled import kernel
+from lelsonar.reconstruct.estimate.surfaces.amplitude_top import (
+    NO_TOP,
+    PLATEAU,
+    PLATEAU_TOP,
+    UNSORTED,
+    lstsq_full_rank,
+    pinv,
+    quadratic_design,
+    rising_top,
+    sorted_top,
+    top_in_order,
+)
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -32,10 +43,6 @@ __all__ = [
     "piston_power",
     "capsule_peak_spread",
 ]
-
-#: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
-PLATEAU = 0.001
-_EPS = float(np.finfo(np.float64).eps)
 
 
 def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float] | None:
@@ -66,15 +73,15 @@ def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -
     a = np.ascontiguousarray(amplitude, dtype=np.float64)
     # The readings in γ order, and the top's or the plateau's (one compiled pass where γ rises step by step, as a
     # sweep's does; NumPy's argsort otherwise, whose order of equal γ the pass does not guess).
-    found = _rising_top(g, a, PLATEAU) if g.ndim == 1 and g.shape == a.shape else None
-    if found is None or found[0] == _UNSORTED:
-        found = _sorted_top(g, a)
+    found = rising_top(g, a, PLATEAU) if g.ndim == 1 and g.shape == a.shape else None
+    if found is None or found[0] == UNSORTED:
+        found = sorted_top(g, a)
     kind, g, first, last, gt, at = found
-    if kind == _NONE:
+    if kind == NO_TOP:
         return None
     # A receiver that clips flattens the top: the plateau's centre is the peak when both of its ends are
     # inside the region (an unclipped echo on either side), and nothing can be said when one is not.
-    if kind == _PLATEAU:
+    if kind == PLATEAU_TOP:
         if first == 0 or last == g.size - 1:
             return None
         step = fast_median(np.diff(g))
@@ -83,8 +90,8 @@ def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -
     la = np.log(at)
     g0 = float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
     u = gt - g0
-    m = _quadratic_design(u)
-    coef = _lstsq_full_rank(m, la)
+    m = quadratic_design(u)
+    coef = lstsq_full_rank(m, la)
     if coef is None:
         return None
     c0, b, c = coef.tolist()
@@ -98,174 +105,11 @@ def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -
         return g0 + vertex, float("nan")
     res = la - m @ coef
     dof = max(u.size - 3, 1)
-    cov = float(res @ res) / dof * _pinv(m.T @ m)
+    cov = float(res @ res) / dof * pinv(m.T @ m)
     # Delta method on −b/(2c).
     jac = np.array([0.0, -1 / (2 * c), b / (2 * c * c)])
     var = float(jac @ cov @ jac)
     return g0 + vertex, math.sqrt(max(var, 0.0))
-
-
-#: What :func:`_rising_top` and :func:`_sorted_top` found: too few readings or no top, a clipped plateau, a top
-#: (and, of :func:`_rising_top` alone, readings whose γ do not rise: left to :func:`_sorted_top`).
-_NONE, _PLATEAU, _TOP, _UNSORTED = 0, 1, 2, -1
-
-_Top = tuple[int, np.ndarray, int, int, np.ndarray, np.ndarray]
-
-
-def _sorted_top(gamma: np.ndarray, amplitude: np.ndarray) -> _Top:
-    """:func:`_peak_bearing`'s readings (finite, positive amplitudes) in γ order and what their top is: the kind,
-    the sorted γ, a plateau's first and last index and its γ (as ``gt``), or the top's γ and amplitudes (the
-    amplitudes within :data:`PLATEAU` of the largest, at least three: a plateau; else those over half of it,
-    at least five: the top)."""
-    ok = np.isfinite(amplitude) & (amplitude > 0)
-    if np.count_nonzero(ok) < 5:
-        return _NONE, gamma, 0, 0, gamma, amplitude
-    g, a = gamma[ok], amplitude[ok]
-    order = np.argsort(g)
-    g, a = g[order], a[order]
-    top_value = a.max()
-    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * top_value)
-    if flat.size >= 3:
-        return _PLATEAU, g, int(flat[0]), int(flat[-1]), g[flat], a[flat]
-    top = a >= 0.5 * top_value
-    if np.count_nonzero(top) < 5:
-        return _NONE, g, 0, 0, g, a
-    return _TOP, g, 0, 0, g[top], a[top]
-
-
-@kernel
-def _rising_top(gamma: np.ndarray, amplitude: np.ndarray, plateau: float) -> _Top:
-    """:func:`_sorted_top` in one pass where the readings' γ strictly rise (their order is γ's, argsort's
-    identity); of kind ``_UNSORTED`` where they do not (the caller sorts)."""
-    n = 0
-    for i in range(amplitude.size):
-        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
-            n += 1
-    g = np.empty(n)
-    a = np.empty(n)
-    j = 0
-    for i in range(amplitude.size):
-        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
-            g[j] = gamma[i]
-            a[j] = amplitude[i]
-            j += 1
-    if n < 5:
-        return _NONE, g, 0, 0, g, a
-    top_value = a[0]
-    for i in range(1, n):
-        if not g[i] > g[i - 1]:
-            return _UNSORTED, g, 0, 0, g, a
-        if a[i] > top_value:
-            top_value = a[i]
-    at_flat = (1.0 - plateau) * top_value
-    n_flat, first, last = 0, 0, 0
-    for i in range(n):
-        if a[i] >= at_flat:
-            if n_flat == 0:
-                first = i
-            last = i
-            n_flat += 1
-    if n_flat >= 3:
-        gf = np.empty(n_flat)
-        af = np.empty(n_flat)
-        j = 0
-        for i in range(first, last + 1):
-            if a[i] >= at_flat:
-                gf[j] = g[i]
-                af[j] = a[i]
-                j += 1
-        return _PLATEAU, g, first, last, gf, af
-    half = 0.5 * top_value
-    n_top = 0
-    for i in range(n):
-        if a[i] >= half:
-            n_top += 1
-    if n_top < 5:
-        return _NONE, g, 0, 0, g, a
-    gt = np.empty(n_top)
-    at = np.empty(n_top)
-    j = 0
-    for i in range(n):
-        if a[i] >= half:
-            gt[j] = g[i]
-            at[j] = a[i]
-            j += 1
-    return _TOP, g, 0, 0, gt, at
-
-
-@kernel
-def _top_in_order(
-    gamma: np.ndarray, amplitude: np.ndarray, plateau: float, allow_plateau: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`log_amplitude_curvature`'s top in the readings' order: the γ and amplitudes of the finite, positive
-    amplitudes over half the largest, at least five of them, and (unless ``allow_plateau``) fewer than three
-    within ``plateau`` of the largest; empty arrays otherwise."""
-    n = 0
-    top_value = 0.0
-    for i in range(amplitude.size):
-        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
-            if n == 0 or amplitude[i] > top_value:
-                top_value = amplitude[i]
-            n += 1
-    if n < 5:
-        return np.empty(0), np.empty(0)
-    half = 0.5 * top_value
-    at_flat = (1.0 - plateau) * top_value
-    n_top, n_flat = 0, 0
-    for i in range(amplitude.size):
-        if np.isfinite(amplitude[i]) and amplitude[i] > 0:
-            if amplitude[i] >= half:
-                n_top += 1
-            if amplitude[i] >= at_flat:
-                n_flat += 1
-    if n_top < 5 or (not allow_plateau and n_flat >= 3):
-        return np.empty(0), np.empty(0)
-    gt = np.empty(n_top)
-    at = np.empty(n_top)
-    j = 0
-    for i in range(amplitude.size):
-        if np.isfinite(amplitude[i]) and amplitude[i] > 0 and amplitude[i] >= half:
-            gt[j] = gamma[i]
-            at[j] = amplitude[i]
-            j += 1
-    return gt, at
-
-
-def _quadratic_design(u: np.ndarray) -> np.ndarray:
-    """The columns ``1, u, u²`` (as ``np.stack([np.ones_like(u), u, u * u], axis=1)`` makes them)."""
-    m = np.empty((u.size, 3))
-    m[:, 0] = 1.0
-    m[:, 1] = u
-    m[:, 2] = u * u
-    return m
-
-
-def _lstsq_full_rank(m: np.ndarray, y: np.ndarray) -> np.ndarray | None:
-    """``np.linalg.lstsq(m, y)``'s solution, None where ``m`` is rank-deficient by ``np.linalg.matrix_rank``.
-
-    The rank is asked only where lstsq's own singular values leave it in doubt: both decompositions are
-    backward stable (each singular value within a small multiple of eps·σ_max of the exact one), so a smallest
-    over 1e-8 of the largest is full rank by either, far above matrix_rank's max(shape)·eps cut-off.
-    """
-    coef, _, _, sv = np.linalg.lstsq(m, y, rcond=None)
-    if not float(sv.min()) > 1e-8 * float(sv.max()) and _rank(m) < m.shape[1]:
-        return None
-    return coef
-
-
-def _rank(m: np.ndarray) -> int:
-    """``np.linalg.matrix_rank`` of a 2-D array: its singular values over ``max(shape)·eps`` of the largest."""
-    s = np.linalg.svd(m, compute_uv=False)
-    return int(np.count_nonzero(s > float(s.max()) * (max(m.shape) * _EPS)))
-
-
-def _pinv(a: np.ndarray) -> np.ndarray:
-    """``np.linalg.pinv`` of a real 2-D array (its default cut-off), the same numbers: its SVD and products."""
-    u, s, vt = np.linalg.svd(a, full_matrices=False)
-    large = s > 1e-15 * s.max()
-    s = np.divide(1, s, where=large, out=s)
-    s[~large] = 0
-    return np.matmul(np.transpose(vt), np.multiply(s[..., np.newaxis], np.transpose(u)))
 
 
 def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau: bool = False) -> float | None:
@@ -293,11 +137,11 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
     if g.ndim != 1 or g.shape != a.shape:
         raise InternalError(f"one γ per amplitude: {g.shape} γ, {a.shape} amplitudes")
     # Too few samples on the top, or (unless a plateau may be fitted) a clipped plateau: no curvature.
-    gt, at = _top_in_order(g, a, PLATEAU, plateau)
+    gt, at = top_in_order(g, a, PLATEAU, plateau)
     if gt.size == 0:
         return None
     u = gt - float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
-    coef = _lstsq_full_rank(_quadratic_design(u), np.log(at))
+    coef = lstsq_full_rank(quadratic_design(u), np.log(at))
     if coef is None:
         return None
     return float(-coef[2]) if coef[2] < 0 else None
