@@ -14,7 +14,20 @@ import math
 
 import numpy as np
 
+from lelsonar.errors import InternalError
 from lelsonar.reconstruct.estimate.robust import fast_median, median
+from lelsonar.reconstruct.estimate.surfaces.amplitude_top import (
+    NO_TOP,
+    PLATEAU,
+    PLATEAU_TOP,
+    UNSORTED,
+    lstsq_full_rank,
+    pinv,
+    quadratic_design,
+    rising_top,
+    sorted_top,
+    top_in_order,
+)
 from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
@@ -30,10 +43,6 @@ __all__ = [
     "piston_power",
     "capsule_peak_spread",
 ]
-
-#: Amplitudes within this share of the largest are the receiver clipping: a plateau, not a peak.
-PLATEAU = 0.001
-_EPS = float(np.finfo(np.float64).eps)
 
 
 def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[float, float] | None:
@@ -60,32 +69,29 @@ def bearing_from_amplitude(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[fl
 def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -> tuple[float, float] | None:
     """:func:`bearing_from_amplitude`; without ``with_stderr`` the vertex of a parabola's top comes with a NaN σ
     (the covariance is the fit's dearest part, and a caller that reads the bearing alone skips it)."""
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    ok = np.isfinite(a) & (a > 0)
-    if np.count_nonzero(ok) < 5:
+    g = np.ascontiguousarray(gamma, dtype=np.float64)
+    a = np.ascontiguousarray(amplitude, dtype=np.float64)
+    # The readings in γ order, and the top's or the plateau's (one compiled pass where γ rises step by step, as a
+    # sweep's does; NumPy's argsort otherwise, whose order of equal γ the pass does not guess).
+    found = rising_top(g, a, PLATEAU) if g.ndim == 1 and g.shape == a.shape else None
+    if found is None or found[0] == UNSORTED:
+        found = sorted_top(g, a)
+    kind, g, first, last, gt, at = found
+    if kind == NO_TOP:
         return None
-    g, a = g[ok], a[ok]
-    order = np.argsort(g)
-    g, a = g[order], a[order]
     # A receiver that clips flattens the top: the plateau's centre is the peak when both of its ends are
     # inside the region (an unclipped echo on either side), and nothing can be said when one is not.
-    top_value = a.max()
-    flat = np.flatnonzero(a >= (1.0 - PLATEAU) * top_value)
-    if flat.size >= 3:
-        if flat[0] == 0 or flat[-1] == a.size - 1:
+    if kind == PLATEAU_TOP:
+        if first == 0 or last == g.size - 1:
             return None
         step = fast_median(np.diff(g))
-        width = float(g[flat[-1]]) - float(g[flat[0]])
-        return 0.5 * (float(g[flat[0]]) + float(g[flat[-1]])), math.hypot(step, width / flat.size) / math.sqrt(12.0)
-    top = a >= 0.5 * top_value
-    if np.count_nonzero(top) < 5:
-        return None
-    gt, la = g[top], np.log(a[top])
+        width = float(g[last]) - float(g[first])
+        return 0.5 * (float(g[first]) + float(g[last])), math.hypot(step, width / gt.size) / math.sqrt(12.0)
+    la = np.log(at)
     g0 = float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
     u = gt - g0
-    m = _quadratic_design(u)
-    coef = _lstsq_full_rank(m, la)
+    m = quadratic_design(u)
+    coef = lstsq_full_rank(m, la)
     if coef is None:
         return None
     c0, b, c = coef.tolist()
@@ -99,48 +105,11 @@ def _peak_bearing(gamma: np.ndarray, amplitude: np.ndarray, with_stderr: bool) -
         return g0 + vertex, float("nan")
     res = la - m @ coef
     dof = max(u.size - 3, 1)
-    cov = float(res @ res) / dof * _pinv(m.T @ m)
+    cov = float(res @ res) / dof * pinv(m.T @ m)
     # Delta method on −b/(2c).
     jac = np.array([0.0, -1 / (2 * c), b / (2 * c * c)])
     var = float(jac @ cov @ jac)
     return g0 + vertex, math.sqrt(max(var, 0.0))
-
-
-def _quadratic_design(u: np.ndarray) -> np.ndarray:
-    """The columns ``1, u, u²`` (as ``np.stack([np.ones_like(u), u, u * u], axis=1)`` makes them)."""
-    m = np.empty((u.size, 3))
-    m[:, 0] = 1.0
-    m[:, 1] = u
-    m[:, 2] = u * u
-    return m
-
-
-def _lstsq_full_rank(m: np.ndarray, y: np.ndarray) -> np.ndarray | None:
-    """``np.linalg.lstsq(m, y)``'s solution, None where ``m`` is rank-deficient by ``np.linalg.matrix_rank``.
-
-    The rank is asked only where lstsq's own singular values leave it in doubt: both decompositions are
-    backward stable (each singular value within a small multiple of eps·σ_max of the exact one), so a smallest
-    over 1e-8 of the largest is full rank by either, far above matrix_rank's max(shape)·eps cut-off.
-    """
-    coef, _, _, sv = np.linalg.lstsq(m, y, rcond=None)
-    if not float(sv.min()) > 1e-8 * float(sv.max()) and _rank(m) < m.shape[1]:
-        return None
-    return coef
-
-
-def _rank(m: np.ndarray) -> int:
-    """``np.linalg.matrix_rank`` of a 2-D array: its singular values over ``max(shape)·eps`` of the largest."""
-    s = np.linalg.svd(m, compute_uv=False)
-    return int(np.count_nonzero(s > float(s.max()) * (max(m.shape) * _EPS)))
-
-
-def _pinv(a: np.ndarray) -> np.ndarray:
-    """``np.linalg.pinv`` of a real 2-D array (its default cut-off), the same numbers: its SVD and products."""
-    u, s, vt = np.linalg.svd(a, full_matrices=False)
-    large = s > 1e-15 * s.max()
-    s = np.divide(1, s, where=large, out=s)
-    s[~large] = 0
-    return np.matmul(np.transpose(vt), np.multiply(s[..., np.newaxis], np.transpose(u)))
 
 
 def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau: bool = False) -> float | None:
@@ -163,18 +132,16 @@ def log_amplitude_curvature(gamma: np.ndarray, amplitude: np.ndarray, *, plateau
     -------
     ``k`` (1/rad², > 0), or None when the top of the amplitudes is no parabola opening down.
     """
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    ok = np.isfinite(a) & (a > 0)
-    if np.count_nonzero(ok) < 5:
+    g = np.ascontiguousarray(gamma, dtype=np.float64)
+    a = np.ascontiguousarray(amplitude, dtype=np.float64)
+    if g.ndim != 1 or g.shape != a.shape:
+        raise InternalError(f"one γ per amplitude: {g.shape} γ, {a.shape} amplitudes")
+    # Too few samples on the top, or (unless a plateau may be fitted) a clipped plateau: no curvature.
+    gt, at = top_in_order(g, a, PLATEAU, plateau)
+    if gt.size == 0:
         return None
-    g, a = g[ok], a[ok]
-    top = a >= 0.5 * a.max()
-    if np.count_nonzero(top) < 5 or (not plateau and np.count_nonzero(a >= (1.0 - PLATEAU) * a.max()) >= 3):
-        return None  # too few samples on the top, or a clipped plateau
-    gt = g[top]
     u = gt - float(np.add.reduce(gt)) / gt.size  # np.mean's sum and division
-    coef = _lstsq_full_rank(_quadratic_design(u), np.log(a[top]))
+    coef = lstsq_full_rank(quadratic_design(u), np.log(at))
     if coef is None:
         return None
     return float(-coef[2]) if coef[2] < 0 else None

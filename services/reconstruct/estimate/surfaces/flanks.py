@@ -22,6 +22,7 @@ from lelsonar.reconstruct.estimate.surfaces.flank_bearing import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
+from lelsonar.reconstruct.estimate.surfaces.slopes import step_slopes
 
 __all__ = [
     "masked_regions",
@@ -29,59 +30,9 @@ __all__ = [
     "split_dihedral",
     "split_ends",
     "split_flanks",
-    "step_slopes",
     "trim_ends",
     "trimmed_centre",
 ]
-
-
-def step_slopes(m: Measured, min_readings: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each of the region's steps' slope of range along the capsule stack, ``∂d/∂x``, its σ and ``Σ(x − x̄)²``.
-
-    A plane gives every step its one slope, ``−n_x`` (its tilt); a line across the stack (a wall's foot on
-    the floor, a box's top edge) a slope that follows the capsules' offset from it.  The σ is the range
-    noise (pooled over the steps' residuals about their own lines, so whatever target a step holds) over
-    ``√Σ(x − x̄)²`` of that step's capsules.
-
-    Parameters
-    ----------
-    m : Measured
-    min_readings : int
-        The fewest readings a step needs for a slope (two give a line, three a residual too).
-
-    Returns
-    -------
-    slopes, sigmas, sxx : (k,) arrays over ``region.steps``: the slopes and their σ (NaN under
-    ``min_readings`` readings, σ NaN without residual dof anywhere), and each step's ``Σ(x − x̄)²``, m².
-    """
-    r = m.region
-    k = r.steps.size
-    pos = np.searchsorted(r.steps, r.rows)
-    x, d = m.positions[:, 0], m.ranges
-    n = np.bincount(pos, minlength=k).astype(float)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mx = np.bincount(pos, weights=x, minlength=k) / n
-        md = np.bincount(pos, weights=d, minlength=k) / n
-        sxx = np.bincount(pos, weights=(x - mx[pos]) ** 2, minlength=k)
-        sxd = np.bincount(pos, weights=(x - mx[pos]) * (d - md[pos]), minlength=k)
-        slopes = np.where((n >= max(min_readings, 2)) & (sxx > 0), sxd / sxx, np.nan)
-        resid = d - md[pos] - _nan_to_num(slopes[pos]) * (x - mx[pos])
-    dof = float(np.sum(np.maximum(n - 2, 0)))
-    if not dof > 0:
-        return slopes, np.full(k, np.nan), sxx
-    noise = math.sqrt(float(np.sum(np.where(n[pos] > 2, resid * resid, 0.0))) / dof)
-    with np.errstate(divide="ignore"):
-        return slopes, np.where(np.isfinite(slopes), noise / np.sqrt(sxx), np.nan), sxx
-
-
-#: The largest finite float64: where ``np.nan_to_num`` puts +inf.
-_FMAX = float(np.finfo(np.float64).max)
-
-
-def _nan_to_num(v: np.ndarray) -> np.ndarray:
-    """``np.nan_to_num`` of a float64 array (NaN to 0, ±inf to ±the largest float), the same numbers without its
-    dtype checks."""
-    return np.where(np.isnan(v), 0.0, np.where(np.isinf(v), np.copysign(_FMAX, v), v))
 
 
 def _flank(z: np.ndarray, min_steps: int, sigmas: float) -> int:
