@@ -132,24 +132,27 @@ def _end_by_flank(
     pool: list[int],
     measured: list[Measured],
     flanks: _Flanks,
-) -> tuple[tuple[list[int], float], float] | Measured:
-    """Which placement on a trace a region whose depth alone places it is (its plane's end) and a floor of its
-    bearing σ, or the region as a wall of its own, placed by its flank.
+) -> tuple[tuple[list[int], float], float, str] | Measured:
+    """Which placement on a trace a region whose depth alone places it is (its plane's end), a floor of its
+    bearing σ and why its kind is not settled ("": it is), or the region as a wall of its own, placed by its
+    flank.
 
     Either echo follows the beam pattern across γ about its source (a mirror's foot, a corner's retro-reflecting
     line, an end's edge, each at one range), so the flank the region shows places its peak, with its σ from the
     fit, the piston's ``ka`` and the capsules' spread (:func:`~.flank_bearing.flank_measured`).  A placement
     within :data:`DISPUTE_SIGMAS` σ of their difference agrees with it: the first placement if it does, else the
-    nearest that does.  None agreeing, where the flank's peak may lie only past an end no other echo answers at
-    inside the amplitude window (the sweep's own, or a cut by a much nearer echo: nothing bends the flank there)
-    and the echo is no diffraction's (weak against the plane's mirror), it is no end there: a wall.
+    nearest that does; where the flank agrees as well with a wall of its own whose foot lies past a cut end
+    (:func:`end_undecided`), the evidence does not settle which.  None agreeing, where the flank's peak may lie
+    only past an end no other echo answers at inside the amplitude window (the sweep's own, or a cut by a much
+    nearer echo: nothing bends the flank there) and the echo is no diffraction's (weak against the plane's
+    mirror), it is no end there: a wall.
     Otherwise the first placement stands, its σ at least its distance from the flank's peak (the evidence does
     not settle where the end lies).
     """
     first = placements[0]
     got = flanks.of(m)
     if got is None:
-        return first, 0.0
+        return first, 0.0, ""
     flank, decisive, reach = got
 
     def apart(p: tuple[list[int], float]) -> float:
@@ -159,11 +162,10 @@ def _end_by_flank(
         return abs(wrap((flank.bearing if peak is None else peak) - p[1])) / math.hypot(flank.bearing_stderr, se)
 
     gaps = [apart(p) for p in placements]
-    if gaps[0] <= DISPUTE_SIGMAS:
-        return first, 0.0
-    best = int(np.argmin(gaps))
+    best = 0 if gaps[0] <= DISPUTE_SIGMAS else int(np.argmin(gaps))
     if gaps[best] <= DISPUTE_SIGMAS:
-        return placements[best], 0.0
+        undecided = end_undecided(m, flank, reach, placements[best][1]) if decisive else ""
+        return placements[best], 0.0, undecided
     plane = measured[pool[first[0][0]]]
     end_se = end_stderr(m, plane, first[1])
     placed = replace(m, bearing=first[1], bearing_stderr=end_se)
@@ -173,13 +175,40 @@ def _end_by_flank(
     gap = abs(wrap(flank.bearing - first[1]))
     sigmas = gaps[0]
     if not decisive or flanks.scale.end_strength(placed, plane)[0] == "weak":
-        return first, gap
+        return first, gap, ""
     why = (
         f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(first[1]):.1f}°, but its "
         f"beam flank peaks at {math.degrees(flank.bearing):.1f}° ± {math.degrees(flank.bearing_stderr):.1f}°, "
         f"{sigmas:.1f} σ away (and from every other placement on a trace): a wall of its own"
     )
     return replace(flank, findings=(*flank.findings, (DEGRADED, why)))
+
+
+def end_undecided(m: Measured, flank: Measured, reach: tuple[float, float], bearing: float) -> str:
+    """Why a flank that agrees with an end at ``bearing`` cannot tell it from a wall of its own ("": it can).
+
+    The other hypothesis is a mirror whose foot lies past a cut end, within ``reach`` of it; its flank peaks at
+    that foot.  A flank whose σ exceeds the region's whole span is flat across it: it places its peak nowhere
+    in the region, so it agrees with an end inside it only as it would with anything near.  With its peak (a
+    mirror's, :func:`~.flank_bearing.flank_measured`) also within :data:`DISPUTE_SIGMAS` σ of the stretch
+    past a cut end, it agrees with that wall as well as with the end, and says nothing of which the region is.
+    """
+    g0, g1 = m.span
+    if not flank.bearing_stderr > g1 - g0:
+        return ""
+    room = []
+    if reach[0] > 0:
+        room.append(max(0.0, flank.bearing - g0) if flank.bearing >= g0 - reach[0] else g0 - reach[0] - flank.bearing)
+    if reach[1] > 0:
+        room.append(max(0.0, g1 - flank.bearing) if flank.bearing <= g1 + reach[1] else flank.bearing - g1 - reach[1])
+    sigma = flank.bearing_stderr
+    if not room or not (math.isfinite(sigma) and sigma > 0) or min(room) > DISPUTE_SIGMAS * sigma:
+        return ""
+    return (
+        f"{UNSETTLED}; its beam flank (peak {math.degrees(flank.bearing):.1f}° ± {math.degrees(sigma):.1f}°) agrees "
+        f"with its plane's end at γ {math.degrees(bearing):.1f}° and as well with a wall of its own whose foot lies "
+        f"past its cut end, {math.degrees(min(room)):.1f}° away: the evidence does not decide which"
+    )
 
 
 def _in_fan(measured: list[Measured], partial: set[int]) -> list[Measured]:
@@ -329,8 +358,8 @@ def _region_kind(
             f"{1 / (2 * m.depth):.2f}/m): a line across the stack, not a plane"
         )
         return m, ("edge" if scale.weak(m) else "corner", [text], []), True
-    m, ties = _ties(i, m, pool, pair, measured, planes, partial, wall_of_corner, gamma, opts, flanks)
-    m, kind = _kind_from_ties(m, ties, unsettled, measured, scale)
+    m, ties, undecided = _ties(i, m, pool, pair, measured, planes, partial, wall_of_corner, gamma, opts, flanks)
+    m, kind = _kind_from_ties(m, ties, unsettled or undecided, measured, scale)
     return m, kind, False
 
 
@@ -346,8 +375,10 @@ def _ties(
     gamma: np.ndarray,
     opts: SurfaceOptions,
     flanks: _Flanks,
-) -> tuple[Measured, list[int]]:
-    """The planes region ``i`` ties to (two: their double bounce; one: its end) and the region placed there."""
+) -> tuple[Measured, list[int], str]:
+    """The planes region ``i`` ties to (two: their double bounce; one: its end), the region placed there and why
+    its kind is not settled ("": it is)."""
+    undecided = ""
     if pair is not None:
         which, bearing = pair
         ties = [pool[j] for j in which]
@@ -367,12 +398,12 @@ def _ties(
             ties = []
             m = m if placed is None else placed
         else:
-            (which, bearing), floor = placed
+            (which, bearing), floor, undecided = placed
             ties = [pool[j] for j in which]
             m = replace(m, bearing=bearing, bearing_stderr=max(end_stderr(m, measured[ties[0]], bearing), floor))
     else:
         ties = [] if wall_of_corner else _on_traces(i, planes, measured, partial, opts)
-    return m, ties
+    return m, ties, undecided
 
 
 def _kind_from_ties(
@@ -389,9 +420,10 @@ def _kind_from_ties(
     if len(ties) == 1:
         verdict, why = scale.end_strength(m, measured[ties[0]])
         if verdict == "weak":
+            # A diffraction's weak echo is no wall's mirror: nothing else explains it.
             return m, ("edge", [f"on a plane's trace off its foot, {why}"], ties)
         if verdict == "strong":
-            return m, ("corner", [f"on a plane's trace off its foot, {why}"], ties)
+            return m, ("corner", [f"on a plane's trace off its foot, {why}"] + ([unsettled] if unsettled else []), ties)
         return m, ("edge", [f"on a plane's trace off its foot (its end); {UNSETTLED}"], ties)
     if scale.weak(m):
         if m.bearing_source == "undetermined":

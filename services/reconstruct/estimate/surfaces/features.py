@@ -20,6 +20,7 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.reconstruct.estimate.normals import cross3
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.feature_kinds import (
     ALIKE,
@@ -59,6 +60,7 @@ __all__ = [
     "ALIKE",
     "like_its_mirror",
     "falls_toward",
+    "centre_off_peak",
 ]
 
 #: A classified region: its kind ("corner" or "edge"), why, and the regions (indices) it ties to.
@@ -257,6 +259,31 @@ def _cut_peak(m: Measured) -> tuple[Measured, str]:
     return replace(m, bearing_stderr=se), why
 
 
+def centre_off_peak(m: Measured, gamma: np.ndarray) -> tuple[Measured, str]:
+    """A bearing from the region's centre that its own amplitude peak disputes: two measurements of one bearing
+    (the ends' threshold crossings, symmetric about the target; the beam pattern's vertex) apart by more than 3 σ
+    of their difference say one model does not hold (an end left while still strong, another echo at a like
+    range summing in), and nothing says which: the σ covers their difference.
+
+    Returns
+    -------
+    The region with that σ, and the reason to add ("": the centre stands).
+    """
+    if m.bearing_source != "region centre" or m.clipped:
+        return m, ""
+    peak = bearing_from_amplitude(gamma[m.region.steps], m.step_amplitude)
+    if peak is None:
+        return m, ""
+    gap = abs(wrap(peak[0] - m.bearing))
+    if not gap > 3.0 * math.hypot(peak[1], m.bearing_stderr):
+        return m, ""
+    why = (
+        f"its amplitude peak ({math.degrees(peak[0]):.1f}°) lies {math.degrees(gap):.1f}° from its region's centre, "
+        "beyond 3 σ of both: its bearing's σ covers their difference"
+    )
+    return replace(m, bearing_stderr=math.hypot(m.bearing_stderr, gap)), why
+
+
 def _pair_placement(
     ia: int, ib: int, m: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -438,7 +465,8 @@ def place_features(
             direction = stack_axis  # along the stack: a line the fan crosses
             m, why = _own_tilt(m)
             m, cut = _cut_peak(m)
-            reasons = [*reasons, *(w for w in (why, cut) if w)]
+            m, off = centre_off_peak(m, scale.gamma)
+            reasons = [*reasons, *(w for w in (why, cut, off) if w)]
             if m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
