@@ -138,46 +138,39 @@ def reap_workers(timeout: float = 5.0) -> None:
 
 
 def time_floor(path: Path, warm: bool = True) -> tuple[float, int]:
-    """(seconds, samples) of python mcap + upb reading the contract messages of ``path`` in log-time order.
-
-    ``warm``: one untimed pass first, as :func:`warm_heap` says.
-    """
+    """(seconds, samples) of python mcap + upb reading the contract messages of ``path`` in log-time order
+    (``warm``: as :func:`_timed_pass`)."""
     import mcap.reader  # noqa: F401 - imported before the clock, warm or not
 
     from lelsonar import codec  # noqa: F401
 
-    if warm:
-        warm_heap(_floor_pass, path)
-    settle()
-    cpu, t = time.process_time(), time.perf_counter()
-    samples = _floor_pass(path)
-    return _timed(t, cpu), samples
+    return _timed_pass(_floor_pass, path, warm)
 
 
 def time_read(path: Path, warm: bool = True) -> tuple[float, int]:
     """(seconds, samples) of the tolerant reader and a upb parse of every contract payload (``warm``: as
-    :func:`time_floor`)."""
+    :func:`_timed_pass`)."""
     import lelsonar.log.recording  # noqa: F401 - imported before the clock, warm or not
     from lelsonar import codec  # noqa: F401
 
-    if warm:
-        warm_heap(_read_pass, path)
-    settle()
-    cpu, t = time.process_time(), time.perf_counter()
-    samples = _read_pass(path)
-    return _timed(t, cpu), samples
+    return _timed_pass(_read_pass, path, warm)
 
 
-def warm_heap(reading: Callable[[Path], int], path: Path) -> None:
-    """One untimed pass of ``reading`` over ``path``: the warm-up of the floor and the read children.
+def _timed_pass(reading: Callable[[Path], int], path: Path, warm: bool) -> tuple[float, int]:
+    """(seconds, samples) of one timed pass of ``reading`` over ``path``; ``warm``: after one untimed pass.
 
     A replay child loads the kernels before its clock (as ``reconstruct --source`` does), which leaves its
     process a heap of freed memory: the chunks it decompresses land in pages already mapped.  A child that
     starts reading cold maps fresh pages for them instead (a page fault each, a few ms of system time a
-    scan), which the replay is spared.  The pass gives every child a warm heap and the file's pages alike,
-    so that the ratios compare the readings, not the processes' histories.
+    scan), which the replay is spared.  The untimed pass gives every child a warm heap and the file's pages
+    alike, so that the ratios compare the readings, not the processes' histories.
     """
-    reading(path)
+    if warm:
+        reading(path)
+    settle()
+    cpu, t = time.process_time(), time.perf_counter()
+    samples = reading(path)
+    return _timed(t, cpu), samples
 
 
 def time_replay(path: Path) -> tuple[float, int]:
