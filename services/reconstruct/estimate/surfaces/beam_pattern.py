@@ -42,6 +42,8 @@ __all__ = [
     "end_crossing_stderr",
     "piston_power",
     "capsule_peak_spread",
+    "log_echoes_in_order",
+    "log_amplitude_noise",
 ]
 
 
@@ -266,7 +268,7 @@ def weaker_at(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, sigma
     True where the amplitudes contradict a target at ``bearing``; False where they do not, where ``bearing``
     lies outside the steps' span, or where too few steps have an amplitude to say.
     """
-    g, la = _log_echoes_in_order(gamma, amplitude)
+    g, la = log_echoes_in_order(gamma, amplitude)
     if g.size < 5:
         return False
     if not g[0] < bearing < g[-1]:
@@ -309,7 +311,7 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
     (γ midway between the two steps of the largest such jump, how many of the region's steps with an
     amplitude lie on its shorter side), or None.
     """
-    g, la = _log_echoes_in_order(gamma, amplitude)
+    g, la = log_echoes_in_order(gamma, amplitude)
     if g.size < 6:
         return None
     span = float(g[-1] - g[0])
@@ -336,7 +338,7 @@ def amplitude_jump(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 
     return 0.5 * float(g[j] + g[j + 1]), min(j + 1, g.size - j - 1)
 
 
-def _log_echoes_in_order(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def log_echoes_in_order(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The steps with an echo, in γ order: their γ and ``log A``."""
     g = np.asarray(gamma, dtype=np.float64)
     a = np.asarray(amplitude, dtype=np.float64)
@@ -348,15 +350,20 @@ def _log_echoes_in_order(gamma: np.ndarray, amplitude: np.ndarray) -> tuple[np.n
 
 def _beam_slope_and_noise(la: np.ndarray, span: float) -> tuple[float, float]:
     """The steepest change of log amplitude one beam pattern can make over a region (per rad) and the log
-    amplitudes' noise σ, for :func:`amplitude_jump` and :func:`unfaded_ends`.
+    amplitudes' noise σ (:func:`log_amplitude_noise`), for :func:`amplitude_jump` and :func:`unfaded_ends`.
 
     ``la``: the region's log amplitudes in γ order; ``span``: its γ extent, rad.  The slope bound is
-    ``8 Δ/span`` (``Δ`` the region's range of log amplitude); the σ is robust (1.4826 MAD) from the second
-    differences, whose variance is 6 σ² for white noise.
+    ``8 Δ/span`` (``Δ`` the region's range of log amplitude).
     """
+    return 8.0 * float(la.max() - la.min()) / span, log_amplitude_noise(la)
+
+
+def log_amplitude_noise(la: np.ndarray) -> float:
+    """The noise σ of a region's log amplitudes in γ order: robust (1.4826 MAD) from their second differences,
+    whose variance is 6 σ² for white noise, so a beam pattern's parabola (a constant second difference) does not
+    count."""
     second = np.diff(la, 2)
-    sigma = 1.4826 * median(np.abs(second - median(second))) / math.sqrt(6.0)
-    return 8.0 * float(la.max() - la.min()) / span, sigma
+    return 1.4826 * median(np.abs(second - median(second))) / math.sqrt(6.0)
 
 
 def unfaded_ends(gamma: np.ndarray, amplitude: np.ndarray, *, sigmas: float = 3.0) -> tuple[bool, bool] | None:

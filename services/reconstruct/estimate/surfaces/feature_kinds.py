@@ -13,7 +13,11 @@ import math
 
 import numpy as np
 
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import peak_at_bearing
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
+    log_amplitude_noise,
+    log_echoes_in_order,
+    peak_at_bearing,
+)
 from lelsonar.reconstruct.estimate.surfaces.evidence import wrap
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, mirror_normalised
 from lelsonar.reconstruct.estimate.surfaces.placement import RANGE_FLOOR
@@ -54,8 +58,7 @@ def falls_toward(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, si
     aperture) stays the same across the sweep.  Over a span wholly on one side of ``β`` the echo therefore
     rises toward ``β``: its strongest step is the one nearest ``β`` up to the noise.  The span's largest log
     amplitude over the larger of its two steps nearest ``β`` by more than ``sigmas`` σ of a two-step difference
-    contradicts a target at ``β``; σ is the log amplitudes' own (1.4826 MAD of their second differences, whose
-    variance is 6 σ² for white noise, so a parabola's constant second difference does not count).
+    contradicts a target at ``β``; σ is the log amplitudes' own (:func:`~.beam_pattern.log_amplitude_noise`).
 
     Parameters
     ----------
@@ -70,20 +73,14 @@ def falls_toward(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, *, si
     The excess fall, log amplitude (0 where the echo does not fall toward ``bearing``, where ``bearing`` lies
     inside the span, or where fewer than 4 steps have an amplitude).
     """
-    g = np.asarray(gamma, dtype=np.float64)
-    a = np.asarray(amplitude, dtype=np.float64)
-    ok = np.isfinite(a) & (a > 0)
-    g, la = g[ok], np.log(a[ok])
+    g, la = log_echoes_in_order(gamma, amplitude)
     if g.size < 4:
         return 0.0
-    order = np.argsort(g)
-    g, la = g[order], la[order]
     centre = 0.5 * float(g[0] + g[-1])
     bearing = centre + wrap(bearing - centre)
     if g[0] <= bearing <= g[-1]:
         return 0.0
-    second = np.diff(la, 2)
-    sigma = 1.4826 * float(np.median(np.abs(second - np.median(second)))) / math.sqrt(6.0)
+    sigma = log_amplitude_noise(la)
     near = float(la[-2:].max()) if bearing > g[-1] else float(la[:2].max())
     excess = float(la.max()) - near - sigmas * math.sqrt(2.0) * sigma
     return max(excess, 0.0)
