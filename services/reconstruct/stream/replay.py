@@ -63,7 +63,7 @@ class ReplayPlan(NamedTuple):
 
 #: The interpreter's switch interval while threads decompress a replayed file, s: a thread back from a chunk's
 #: decompression waits this long at most for the GIL while the caller runs Python (the ingest, the finals);
-#: CPython's default (5 ms) is several chunks' decompression, lost to the read at every hand-over.
+#: CPython's default interval lasts several chunks' decompression, lost to the read at every hand-over.
 DECOMPRESSING_SWITCH_S = 1e-4
 #: The chunks a replay reads (their median record, compressed) must be at least this large for threads to
 #: decompress them ahead: a thread takes the GIL back after each chunk, and against a caller busy with Python
