@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -129,6 +130,25 @@ def test_corners_true_to_their_walls_tie_every_wall(seed):
     assert set(joint) == {0, 1, 2, 3}
 
 
+@pytest.mark.parametrize("off_deg", [-30.0, 30.0])
+def test_a_corner_whose_far_steps_could_not_hear_the_walls_line_ties_nothing(off_deg):
+    measured, pairs = _room(np.random.default_rng(7), biased=-1, bias=0.0)
+    reach = SurfaceOptions().beyond_cut
+    # The first corner's region moved off its line: its near end within the beam's reach, its far end past it.
+    c = measured[4]
+    near = c.bearing + math.radians(off_deg)
+    far = near + math.copysign(0.8 * reach, off_deg)
+    measured[4] = replace(c, span=(min(near, far), max(near, far)))
+    assert abs(near - c.bearing) < reach < abs(far - c.bearing)
+    joint, disputed = joint_fit(pairs, measured, SurfaceOptions())
+    assert not disputed
+    assert set(joint) == {1, 2, 3}  # wall 0 meets the others only at that corner
+    # Within reach of both ends, it ties them.
+    measured[4] = replace(c, span=(c.bearing - 0.5 * reach, c.bearing + 0.5 * reach))
+    joint, _ = joint_fit(pairs, measured, SurfaceOptions())
+    assert set(joint) == {0, 1, 2, 3}
+
+
 def test_a_centre_and_a_peak_that_agree_are_weighed_and_a_clipped_or_distant_peak_leaves_the_centre():
     c, sc = 0.30, math.radians(0.4)
     p, sp = 0.30 + math.radians(0.5), math.radians(0.1)
@@ -181,9 +201,13 @@ def _wall(family: str, seed: int, pose: int, element: int, mount: str = "fan"):
         # A wall trimmed so, tied at a corner to a wall whose own centre and peak agree: the joint fit, told only
         # the trimmed centre, spread the first wall's error over both.
         ("boxes", 24, 0, 1),
+        # In a corridor's middle: a corner of the far wall with the wall behind, tied to the far wall and the wall
+        # ahead (their line the same distance away, mirrored across the array, out of its steps' beams).
+        ("corridor", 34, 0, 3),
+        ("maze", 37, 2, 5),
     ],
 )
-def test_in_simulated_worlds_a_trimmed_wall_is_good_within_three_times_its_oracle(family, seed, pose, element):
+def test_in_simulated_worlds_a_wall_is_good_within_three_times_its_oracle(family, seed, pose, element):
     plane = _wall(family, seed, pose, element)
     assert plane.quality == "good"
     assert plane.within_oracle, f"{100 * plane.error:.2f} cm, oracle {100 * plane.oracle:.2f} cm"

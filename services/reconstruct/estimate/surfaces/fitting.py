@@ -175,7 +175,7 @@ def joint_fit(
     disputed: dict[int, str] = {}
     left = list(pairs)
     while True:
-        fitted = _joint_round(left, measured)
+        fitted = _joint_round(left, measured, opts.beyond_cut)
         if fitted is None:
             return {}, disputed
         out: dict[int, JointWall] = {}
@@ -196,9 +196,27 @@ def joint_fit(
         left = [(i, ties) for i, ties in left if not set(ties[:2]) & set(new)]
 
 
-def _joint_round(pairs: list[tuple[int, list[int]]], measured: list[Measured]) -> dict[int, JointWall] | None:
+def _heard(corner: Measured, a: Measured, b: Measured, reach: float) -> bool:
+    """Whether the line where planes ``a`` and ``b`` meet lies within ``reach`` of every step of the corner's region.
+
+    Each reading is an echo its step's beam heard, so its target lies within the beam's half-width of that step's
+    axis, both ends of the region included: a line past it from the far end is another corner at a like range
+    (the same two walls' mirror image across the array, in a corridor's middle).
+    """
+    line = plane_line(a, b)
+    if line is None:
+        return False
+    bearing = math.atan2(float(line[0][2]), float(line[0][1]))
+    return all(abs(wrap(bearing - end)) <= reach for end in corner.span)
+
+
+def _joint_round(
+    pairs: list[tuple[int, list[int]]], measured: list[Measured], reach: float
+) -> dict[int, JointWall] | None:
     """One joint fit of the walls ``pairs`` ties (:func:`.joint.joint_walls`), by region; None: nothing to fit, or
-    the fit failed."""
+    the fit failed.  ``reach``: rad, how far off a step's axis its beam hears a target (about the beam's
+    half-width): a corner ties its walls only where every step of its region could hear their line."""
+    pairs = [(i, ties) for i, ties in pairs if _heard(measured[i], measured[ties[0]], measured[ties[1]], reach)]
     walls = sorted({j for _, ties in pairs for j in ties[:2]})
     if not pairs or len(walls) < 2:
         return None
