@@ -258,7 +258,8 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     and slope, so the plane's own echo may have faded there or one gap past it.  Farther out the other
     target's echo stands alone.  Uniform over that span (``w``, from the core's end to that step, plus the
     gap past it), the end is the middle of the core's end and that step, with variance ``(w + gap)²/12``.
-    Only the bearing of a core centred on its own span changes (and its depth, along the new normal).
+    Only the bearing of a core centred on its own span changes (and its depth, along the new normal); that centre
+    is weighed with the core's own amplitude peak where the two agree (:func:`~.measurement.centre_with_peak`).
 
     Parameters
     ----------
