@@ -146,6 +146,17 @@ def summing_kernel(func: F) -> F:
     return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})(func)  # type: ignore[return-value]
 
 
+def entry_point(func: F, *examples: object) -> F:
+    """``func``'s machine code for arguments of the types of ``examples``, called without its dispatcher (compiled,
+    or loaded from the cache, if need be): the dispatcher resolves every argument's type on every call, a fixed
+    cost that a kernel called once a sample pays a sample.  The caller passes arguments of exactly those types
+    every time (nothing checks them; an object of the wrong kind is refused, a number converted); ``func`` itself
+    if it is not a kernel (a test's stand-in)."""
+    if not isinstance(func, numba.core.registry.CPUDispatcher):
+        return func
+    return func.compile(tuple(numba.typeof(x) for x in examples))  # type: ignore[return-value]
+
+
 def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:
     """Every kernel of :data:`KERNEL_MODULES`, by qualified name (imports those modules)."""
     found = {}

@@ -59,6 +59,7 @@ from lelsonar.reconstruct.stream.step_features import (
     place_step,
     settle_step,
 )
+from lelsonar.signal.compiled import entry_point
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import waveform_energy
 from lelsonar.v1 import scan_pb2
@@ -68,6 +69,14 @@ __all__ = ["ScanAssembly", "StepView"]
 _log = logging.getLogger(__name__)
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
+
+
+@functools.lru_cache(maxsize=4)
+def _placer(place):
+    """``place`` (:func:`~lelsonar.reconstruct.stream.fastwire.place_wire`) called without Numba's dispatcher, for
+    the arguments :meth:`ScanAssembly.add_payload` passes: a payload's ``bytes``, three ints, a bool and the
+    scan's int64 array (:func:`~lelsonar.signal.compiled.entry_point`)."""
+    return entry_point(place, b"", 0, 0, 0, False, np.zeros(1, np.int64))
 
 
 @functools.lru_cache(maxsize=16)  # (k is bounded by DecodeLimits.max_sensors; a few sizes in practice)
@@ -170,10 +179,12 @@ class ScanAssembly(ScanArrays):
         if wire is None:
             wire = self._wire_for(limits)
         recovered = origin == "recovered"
+        if type(payload) is not bytes:  # (the type the placer was compiled for)
+            payload = bytes(payload)
         status = UNREAD
         while wire is not None:
             # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-            status, carried, step = place_wire(payload, at, step, time_ns, recovered, wire[0])
+            status, carried, step = wire[2](payload, at, step, time_ns, recovered, wire[0])
             if status != GROW:
                 break
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
@@ -204,7 +215,7 @@ class ScanAssembly(ScanArrays):
         else:
             return None
         arrays = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
-        wire = (wire_arrays(*arrays), arrays)  # (the arrays kept with their addresses)
+        wire = (wire_arrays(*arrays), arrays, _placer(place_wire))  # (the arrays kept with their addresses)
         if cleared:
             self._wire = wire
         return wire
