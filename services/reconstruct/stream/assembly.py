@@ -169,34 +169,45 @@ class ScanAssembly(ScanArrays):
         InvalidMessageError
             A range that needs a speed of sound the scan does not state.
         """
-        known = self._layout
-        presumed = known is None
-        if known is None:  # the scan's first sample: on the scanner's previous layout, or parsed
-            known = self._presume()
-            if known is None:
-                return -1
-        wire = self._wire if limits is self._limits_cleared else None
-        if wire is None:
-            wire = self._wire_for(limits)
-        recovered = origin == "recovered"
         if type(payload) is not bytes:  # (the type the placer was compiled for)
             payload = bytes(payload)
-        status = UNREAD
-        while wire is not None:
+        wire = self._wire
+        presumed = False
+        if wire is None or limits is not self._limits_cleared:  # (the common case is neither)
+            if self._layout is None:  # the scan's first sample: on the scanner's previous layout, or parsed
+                if self._presume() is None:
+                    return -1
+                presumed = True
+            wire = self._wire if limits is self._limits_cleared else None
+            if wire is None:
+                wire = self._wire_for(limits)
+                if wire is None:
+                    return self._placed_payload(UNREAD, 0, step, payload, presumed)
+        recovered = origin == "recovered"
+        while True:
             # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
             status, carried, step = wire[2](payload, at, step, time_ns, recovered, wire[0])
+            if status == AGREED:  # what _placed leaves to do is to note the latest step
+                self._latest = (step, payload, self._layout)
+                return step
             if status != GROW:
-                break
+                return self._placed_payload(status, carried, step, payload, presumed)
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
             wire = self._wire_for(limits)  # placed once the arrays reach its step (the same limits: not None)
-        if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
-            self._latest = (step, payload, known)
+            if wire is None:
+                return self._placed_payload(UNREAD, 0, step, payload, presumed)
+
+    def _placed_payload(self, status: int, carried: int, step: int, payload: bytes, presumed: bool) -> int:
+        """:meth:`add_payload`'s result of the placement's ``status`` (:meth:`_placed`); ``presumed``: the layout was
+        presumed for this sample (:meth:`_presume`), undone if it was not read on it."""
+        if status == AGREED:  # what _placed leaves to do is to note the latest step
+            self._latest = (step, payload, self._layout)
             return step
         if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED)
             if presumed:
                 self._unpresume()
             return -1
-        return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
+        return step if self._placed(status, carried, step, payload, self._layout, None, True, payload) else -1
 
     def _wire_for(self, limits: codec.DecodeLimits) -> tuple | None:
         """The argument of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under

@@ -128,9 +128,10 @@ class Ingest:
             cls = _MESSAGE_TYPES.get(type_name)
             if cls is _SAMPLE:
                 limits = self.limits
-                if type(payload) is not bytes and len(payload) <= limits.max_payload_bytes:
+                small = len(payload) <= limits.max_payload_bytes
+                if small and type(payload) is not bytes:
                     payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the fast path or the parser reads it
-                if self.fast_path and len(payload) <= limits.max_payload_bytes:
+                if small and self.fast_path:
                     # Placed in its open scan straight from its bytes, never parsed (ScanAssembly.add_payload), where
                     # it is routed (:meth:`_route`); else left to the parser.  (Inline: every sample runs it.)
                     route = self._routes.get(key_scanner)
