@@ -50,7 +50,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
 from lelsonar.reconstruct.stream.fastwire import GROW, UNREAD, place_wire, wire_arrays
-from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, StepView, stacked_waveforms
+from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, ScanDescription, StepView, stacked_waveforms
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
     CANDIDATES,
@@ -89,8 +89,8 @@ def _packers(k: int) -> tuple[struct.Struct, struct.Struct]:
 class ScanAssembly(ScanArrays):
     """One scan, assembled from its samples in whatever order they arrive."""
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    def __post_init__(self, described: ScanDescription | None = None) -> None:
+        super().__post_init__(described)
         # The kernel's constants of the scan (place_step's ``scan``): the speed of sound (NaN for none: the
         # ranges then need both fields), the timing windows' rate (NaN until the first waveforms), E0's model.
         model = self.energy_model
