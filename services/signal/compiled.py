@@ -26,7 +26,8 @@ typed unaligned, so that a kernel reads a payload's waveform where it lies inste
 :func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others; :func:`unowned`, an array
 handed on without its reference count; :func:`array_at`, an
 array handed to a kernel as its address (an integer's conversion where an array's costs a look-up of its type);
-and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.
+and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.  :func:`entry_point` gives a
+kernel's machine code for one signature, to call without the dispatcher's per-call type resolution.
 """
 
 from __future__ import annotations

@@ -198,16 +198,14 @@ class ScanAssembly(ScanArrays):
                 return self._placed_payload(UNREAD, 0, step, payload, presumed)
 
     def _placed_payload(self, status: int, carried: int, step: int, payload: bytes, presumed: bool) -> int:
-        """:meth:`add_payload`'s result of the placement's ``status`` (:meth:`_placed`); ``presumed``: the layout was
-        presumed for this sample (:meth:`_presume`), undone if it was not read on it."""
-        if status == AGREED:  # what _placed leaves to do is to note the latest step
-            self._latest = (step, payload, self._layout)
-            return step
-        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED)
+        """:meth:`add_payload`'s result of a placement's ``status`` other than ``AGREED`` (:meth:`_placed`);
+        ``presumed``: the layout was presumed for this sample (:meth:`_presume`), undone if it was not read on it."""
+        known = self._layout
+        if known is None or (status < 0 and status != NO_SOUND_SPEED):  # (UNREAD, UNCHECKED; no layout: not read)
             if presumed:
                 self._unpresume()
             return -1
-        return step if self._placed(status, carried, step, payload, self._layout, None, True, payload) else -1
+        return step if self._placed(status, carried, step, payload, known, None, True, payload) else -1
 
     def _wire_for(self, limits: codec.DecodeLimits) -> tuple | None:
         """The argument of :func:`~lelsonar.reconstruct.stream.fastwire.place_wire` after a sample's own under
