@@ -196,6 +196,29 @@ def test_a_read_waiting_for_a_stalled_thread_decompresses_later_chunks_itself(tm
     assert len(by_reader) >= 3
 
 
+def test_a_read_leaves_the_chunks_a_thread_decompresses_to_it(tmp_path, monkeypatch):
+    """The reading thread waits for the job a thread is decompressing (it is not starved here: the wait has no
+    bound) instead of decompressing later chunks itself: every chunk but those it reaches first is the thread's."""
+    from lelsonar.log import reader
+
+    path = tmp_path / "many.mcap"
+    _mcap(path, 60, per_chunk=6)  # chunks of ~1 MB: a job each
+    reading = threading.get_ident()
+    by_reader: list[int] = []
+    real = reader.decompress_chunks
+
+    def decompress(buf, places):
+        if threading.get_ident() == reading:
+            by_reader.append(len(places))
+        return real(buf, places)
+
+    in_turn = _read(path, 0)
+    monkeypatch.setattr(reader, "decompress_chunks", decompress)
+    monkeypatch.setattr(reader._Read, "STARVED_BYTES_PER_S", 1.0)  # a thread is never taken for starved
+    assert _read(path, 1) == in_turn
+    assert by_reader == []  # (the first chunk, read before any job is submitted, is not a job)
+
+
 @pytest.mark.parametrize(
     ("cpus", "runnable", "threads"),
     [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)],
