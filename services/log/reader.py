@@ -176,7 +176,7 @@ class _Read:
     #: Uncompressed bytes a second under which a thread decompressing the chunk the read waits for has lost its
     #: core: the read waits for the thread that long at most (its job's bytes at this rate), then decompresses
     #: later chunks itself.  zstd runs at about 1 GB/s a core.
-    STARVED_BYTES_PER_S = 400e6
+    STARVED_BYTES_PER_S = 600e6
 
     def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool, threads: int = 0) -> None:
         self.source, self.buf, self.size = source, buf, size
