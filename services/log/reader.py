@@ -147,8 +147,8 @@ class McapSource:
         decompress_threads : int
             Threads that decompress and check the next chunks while this one is walked (zstd releases
             the GIL); 0: each chunk is decompressed when it is reached.  A read that reaches a chunk
-            still being decompressed decompresses a later one itself meanwhile.  What is yielded is the
-            same.
+            still being decompressed waits for it, and decompresses later ones itself only where its
+            thread has lost its core (:meth:`_Read.take_raw`).  What is yielded is the same.
 
         Holds the chunks whose time ranges overlap the message being yielded, not the file:
         chunks are merged by the message start time their header records, as the indexed
