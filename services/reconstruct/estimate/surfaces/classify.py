@@ -37,12 +37,10 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 from lelsonar.reconstruct.estimate.surfaces.features import Kind
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     FLANK_SOURCE,
-    SweepBeam,
     bearing_from_flank,
     flank_measured,
     flank_reach,
     point_angles,
-    sweep_beam,
 )
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
@@ -50,6 +48,7 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import (
     clean_cuts,
     unit_normal,
 )
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.results import (
     UNSETTLED,
     SurfaceOptions,
