@@ -136,7 +136,8 @@ def piston_fit(gamma: np.ndarray, amplitude: np.ndarray, bearing: float, ka0: fl
 
 def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarray, ka0: float) -> SweepBeam | None:
     """The sweep's piston ``ka``, from its planes' regions that hold their echo's peak and the profile about it:
-    their bearing their centre or their peak (a clipped top left out), one beam pattern (no amplitude jump).
+    their bearing their centre or their peak (a clipped top left out), one beam pattern (no amplitude jump, and
+    no end where another echo at a like range took over: it sums into the profile there).
     A mirror's echo follows the beam alone; a corner's or an edge's adds its own change with the angle, so only
     planes are passed.
 
@@ -167,6 +168,7 @@ def sweep_beam(measured: list[Measured], gamma: np.ndarray, amplitude: np.ndarra
         m
         for m in measured
         if m.bearing_source in ("region centre", "amplitude peak")
+        and not any(m.handed_over)
         and amplitude_jump(gamma[m.region.steps], m.step_amplitude) is None
     ]
     if not regions:
