@@ -19,7 +19,7 @@ from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.robust import median
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import split_jump
+from lelsonar.reconstruct.estimate.surfaces.jump_split import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, centre_with_peak, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions

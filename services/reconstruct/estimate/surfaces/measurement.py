@@ -76,6 +76,9 @@ class Measured:
     # rad: how far an echo summed into the amplitude window may have moved the bearing, the capsules' own peaks'
     # spread times the peak's share of the bearing; part of the surface's σ, not of the tests that classify it
     summed_spread: float = 0.0
+    # (before, after): an end where another target's echo at a like range takes over (an amplitude jump split the
+    # region there); that echo sums into the region's amplitude window there and bends its profile
+    handed_over: tuple[bool, bool] = (False, False)
 
     @property
     def surface_bearing_stderr(self) -> float:
