@@ -55,6 +55,7 @@ from lelsonar.reconstruct.estimate.estimators import fit_adaptive, run_estimator
 from lelsonar.reconstruct.estimate.options import FitOptions, ScanFit
 from lelsonar.reconstruct.estimate.quality import (
     DEGRADED,
+    GOOD,
     UNRELIABLE,
     QualityLimits,
     assess_beside_unexplained,
@@ -130,7 +131,7 @@ def joint_contradicted(other: WallFit, label: str, outside: bool) -> tuple[tuple
     if outside:
         why = f"it turns wall {label} beyond the tilt window"
     elif other.against_joint:
-        why = f"wall {label}'s echoes are strongest beyond its σ from it"
+        why = f"wall {label}'s echoes are strongest beyond the σ of its direction"
     else:
         return ()
     return (
@@ -332,15 +333,19 @@ def fit_corner(
         if not isinstance(fit.plane, PlaneFit):
             out.append(fit.plane)
             continue
+        assessed = assess_beside_unexplained(
+            fit.plane, g, unexplained, against, edge_echoes=n_edge, findings=findings, at=n_flags
+        )
+        # Said where it takes a good verdict away, as the sweep's other checks of a good plane are.
         # (walls[k] is wall a then b: the echo labels ECHO_WALL_A, ECHO_WALL_B index them)
         other_entry = walls[1 - k]
-        if fit.joint_direction and not isinstance(other_entry, FitFailure):
-            findings += joint_contradicted(other_entry[0], "ab"[1 - k], model.outside[1 - k])
-        out.append(
-            assess_beside_unexplained(
-                fit.plane, g, unexplained, against, edge_echoes=n_edge, findings=findings, at=n_flags
-            )
-        )
+        if assessed.quality == GOOD and fit.joint_direction and not isinstance(other_entry, FitFailure):
+            against_it = joint_contradicted(other_entry[0], "ab"[1 - k], model.outside[1 - k])
+            if against_it:
+                assessed = assess_beside_unexplained(
+                    fit.plane, g, unexplained, against, edge_echoes=n_edge, findings=findings + against_it, at=n_flags
+                )
+        out.append(assessed)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the
     # corrected points) place the edge's direction better than the joint fit's.
