@@ -121,7 +121,7 @@ def test_a_fan_sweeps_l_plane_on_a_thin_walls_end_is_not_good() -> None:
     plane, error, wrong = planes["b"]
     assert wrong and error > 1.0  # the truth: no wall there
     assert plane.quality == UNRELIABLE
-    assert any("edge" in r and "taken it for a wall" in r for r in plane.quality_reasons), plane.quality_reasons
+    assert any("edge" in r and "taken the edge for a wall" in r for r in plane.quality_reasons), plane.quality_reasons
 
 
 @pytest.mark.slow

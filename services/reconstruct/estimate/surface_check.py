@@ -103,24 +103,20 @@ def _unsupported(steps: np.ndarray, most: float, surfaces: SurfaceSet) -> tuple[
     if held and max(held) >= OWN_SHARE:
         j = max(range(len(held)), key=held.__getitem__)
         f = features[j]
-        what = (
-            "a concave corner's, whose double bounce"
-            if f.kind == "corner"
-            else "a convex edge's, whose diffracted echo"
-        )
+        what = "a concave corner's double bounce" if f.kind == "corner" else "a convex edge's diffracted echo"
         return (
             (
                 UNRELIABLE,
-                f"{100 * held[j]:.0f} % of its echoes are the sweep's {f.kind} {f.label}: {what} changes with the "
-                "rotation as a wall's does, and no plane of the sweep holds them, so the L model has taken it for "
-                "a wall",
+                f"{100 * held[j]:.0f} % of its echoes are the sweep's {f.kind} {f.label}, {what} that changes "
+                f"with the rotation as a wall's echo does; no plane of the sweep holds them, so the L model has "
+                f"taken the {f.kind} for a wall: read this scan's walls from its surfaces",
             ),
         )
     return (
         (
             DEGRADED,
             f"no plane of the sweep holds most of its echoes (at most {100 * most:.0f} %): nothing but the L "
-            "model says they are a wall's",
+            "model says they are a wall's; read this scan's walls from its surfaces",
         ),
     )
 

@@ -138,7 +138,7 @@ def joint_contradicted(other: WallFit, label: str, outside: bool) -> tuple[tuple
         (
             DEGRADED,
             f"its direction is the joint fit's, and {why}: the edge that ties the walls' directions may have "
-            "turned this one too",
+            "turned this one too; read the wall from the sweep's surfaces, whose bearing the beam pattern gives",
         ),
     )
 
