@@ -44,6 +44,7 @@ from lelsonar.reconstruct.estimate.corner.search import (
     roll_angle,
 )
 from lelsonar.reconstruct.estimate.corner.wall import (
+    WallFit,
     corner_wall,
     edge_in_echo_window,
     single_wall,
@@ -54,6 +55,7 @@ from lelsonar.reconstruct.estimate.estimators import fit_adaptive, run_estimator
 from lelsonar.reconstruct.estimate.options import FitOptions, ScanFit
 from lelsonar.reconstruct.estimate.quality import (
     DEGRADED,
+    GOOD,
     UNRELIABLE,
     QualityLimits,
     assess_beside_unexplained,
@@ -63,7 +65,7 @@ from lelsonar.reconstruct.estimate.results import EdgeLine, FailureReason, FitFa
 from lelsonar.reconstruct.estimate.split import critical_step, split_subsets
 from lelsonar.reconstruct.estimate.unexplained import echoes_against_walls
 
-__all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "walk_stderr", "fit_corner"]
+__all__ = ["corner_edge", "amplitude_pitch", "fixed_pitch_wall", "walk_stderr", "fit_corner", "joint_contradicted"]
 
 
 def corner_edge(
@@ -106,6 +108,39 @@ def corner_edge(
     direction_se = float(np.hypot(plane_a.normal_stderr, plane_b.normal_stderr) / s)
     # (edge_line's fresh arrays: a finite point and a unit direction of two valid planes, an angle in [0, π])
     return EdgeLine.from_owned(point, direction, angle, point_se, direction_se)
+
+
+def joint_contradicted(other: WallFit, label: str, outside: bool) -> tuple[tuple[str, str], ...]:
+    """The finding against a wall whose direction is the joint fit's where the other wall's own evidence
+    contradicts that fit (empty: it does not).
+
+    The joint model fits both walls with their edge, whose echoes tie the two directions together: the
+    other wall turned beyond its tilt window (``outside``), or its echoes' amplitudes putting its direction
+    beyond the joint fit's σ, shows a joint fit that is off, and a direction that rests on it alone may be
+    turned with it by as much.  Its σ, the joint fit's own, assumes that fit.
+
+    Parameters
+    ----------
+    other : WallFit
+        The other wall, as :func:`~lelsonar.reconstruct.estimate.corner.wall.corner_wall` refined it.
+    label : str
+        The other wall's label.
+    outside : bool
+        The joint fit turns the other wall beyond its tilt window.
+    """
+    if outside:
+        why = f"it turns wall {label} beyond the tilt window"
+    elif other.against_joint:
+        why = f"wall {label}'s echoes are strongest beyond the σ of its direction"
+    else:
+        return ()
+    return (
+        (
+            DEGRADED,
+            f"its direction is the joint fit's, and {why}: the edge that ties the walls' directions may have "
+            "turned this one too; read the wall from the sweep's surfaces, whose bearing the beam pattern gives",
+        ),
+    )
 
 
 #: The quality limits the corner model's own findings use (frozen: one instance serves every scan).
@@ -230,6 +265,9 @@ def fit_corner(
             walk.append((0.0, 0.0) if echo_amp is None else walk_stderr(model, pts, echo_amp))
         return walk[0][k]
 
+    # Each wall refined on its own echoes first, its verdict once both are known: a joint fit one wall's own
+    # evidence contradicts says something against the other wall's direction too.
+    walls: list[tuple[WallFit, tuple[tuple[str, str], ...], int] | FitFailure] = []
     for k, label, axis, wall in ((ECHO_WALL_A, "a", AXIS_Y, model.wall_a), (ECHO_WALL_B, "b", AXIS_Z, model.wall_b)):
         rows, amplitude = wall_echoes(model.labels, k, leaks, pts, echo_amp)
         # The wall's echoes one by one, in the scan's order (step, then capsule) as plane_data keeps them.
@@ -237,7 +275,7 @@ def fit_corner(
         datas.append(data)
         fail = F.check_points(data.points, label, opts.min_points)
         if fail is not None:
-            out.append(
+            walls.append(
                 FitFailure(
                     fail.reason,
                     f"corner: {rows[0].shape[0]} echoes of wall {label}; " + fail.detail,
@@ -286,13 +324,28 @@ def fit_corner(
                     "echoes the model explains: the corner cluster may have passed for the wall",
                 ),
             )
-        out.append(
-            assess_beside_unexplained(
-                fit, g, unexplained, against, edge_echoes=n_edge, findings=findings, at=len(flags)
-            )
-            if isinstance(fit, PlaneFit)
-            else fit
+        walls.append((fit, findings, len(flags)))
+    for k, entry in enumerate(walls):
+        if isinstance(entry, FitFailure):
+            out.append(entry)
+            continue
+        fit, findings, n_flags = entry
+        if not isinstance(fit.plane, PlaneFit):
+            out.append(fit.plane)
+            continue
+        assessed = assess_beside_unexplained(
+            fit.plane, g, unexplained, against, edge_echoes=n_edge, findings=findings, at=n_flags
         )
+        # Said where it takes a good verdict away, as the sweep's other checks of a good plane are.
+        # (walls[k] is wall a then b: the echo labels ECHO_WALL_A, ECHO_WALL_B index them)
+        other_entry = walls[1 - k]
+        if assessed.quality == GOOD and fit.joint_direction and not isinstance(other_entry, FitFailure):
+            against_it = joint_contradicted(other_entry[0], "ab"[1 - k], model.outside[1 - k])
+            if against_it:
+                assessed = assess_beside_unexplained(
+                    fit.plane, g, unexplained, against, edge_echoes=n_edge, findings=findings + against_it, at=n_flags
+                )
+        out.append(assessed)
     # The critical step: where the boresight points at the edge of the final planes.  A common roll
     # of both walls about x barely changes any range, so the final normals (amplitude peaks, or the
     # corrected points) place the edge's direction better than the joint fit's.

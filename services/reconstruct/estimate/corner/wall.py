@@ -5,6 +5,7 @@ alone where the model found one wall (:func:`single_wall`), and the echoes that 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -34,6 +35,23 @@ from lelsonar.signal.compiled import kernel
 from lelsonar.signal.energy import ECHO_PEAK_WINDOW
 
 
+class WallFit(NamedTuple):
+    """A wall of the joint model refined on its own echoes (:func:`corner_wall`).
+
+    Attributes
+    ----------
+    plane : PlaneFit or FitFailure
+    joint_direction : bool
+        Its direction is the joint fit's: neither its amplitudes nor the corrected points placed it.
+    against_joint : bool
+        Its echoes' amplitudes put its direction beyond what the joint fit's σ allows: the joint fit is off.
+    """
+
+    plane: PlaneResult
+    joint_direction: bool
+    against_joint: bool
+
+
 def corner_wall(
     data: F.PlaneData,
     wall: Wall,
@@ -48,8 +66,8 @@ def corner_wall(
     walk_se=lambda: 0.0,
     tie_suspect: bool = False,
     common_roll: float = 0.0,
-) -> PlaneResult:
-    """One wall of the joint model, refined on its own echoes.
+) -> WallFit:
+    """One wall of the joint model, refined on its own echoes (:class:`WallFit`).
 
     With the echoes' own amplitudes, the wall's direction in the rotation
     plane comes from where they are strongest (:func:`amplitude_pitch`) and
@@ -86,10 +104,15 @@ def corner_wall(
     ``tie_suspect``: the other wall's echoes may be the corner cluster's, so the edge that ties this wall's
     direction to it may be wrong; the joint wall then reports the standard errors of its own echoes at
     least (the joint covariance assumes the tie).
+
+    Besides the plane it says whether the plane's direction is the joint fit's and whether the wall's
+    amplitudes contradict the joint fit (:class:`WallFit`): the edge ties the two walls' joint directions
+    together, so a joint fit one wall contradicts may have turned the other wall too.
     """
     mask = np.ones(data.n, dtype=bool)
     se_joint, se_h_joint = wall_se
     fitted = None
+    against_joint = False
     if amplitude is not None and (pitch := amplitude_pitch(*amplitude[:3])) is not None:
         phi, phi_se = pitch
         fitted, se_n, se_h = fixed_pitch_wall(amplitude[3], amplitude[2], phi, phi_se, wall.normal)
@@ -97,6 +120,7 @@ def corner_wall(
         if not (math.isfinite(se_joint) and off <= opts.tilt_test_sigma * np.hypot(se_joint, se_n)):
             fitted = None
             if math.isfinite(se_joint):
+                against_joint = True
                 # The amplitudes are the only sensor of the wall's direction in the rotation plane that a
                 # common roll cannot fool; a joint fit they contradict has not found that direction.
                 flags.append(
@@ -113,7 +137,7 @@ def corner_wall(
                 "the wall's direction; yaw and offset from the ranges",
             ),
         )
-        return F.make_plane_fit(
+        pitched = F.make_plane_fit(
             data,
             fitted.normal / fitted.offset,
             method="corner",
@@ -122,6 +146,7 @@ def corner_wall(
             model="constant-depth",
             stderr=(se_n, se_h),
         )
+        return WallFit(pitched, False, False)
     if edge_is_walls:
         flags.append(
             "its direction rests on edge echoes that a wall explains as well: the corner edge that ties "
@@ -183,7 +208,7 @@ def corner_wall(
         # which the covariance of its own echoes alone (the direction through the capsules' few-cm radial
         # lever, eq. 9) leaves out, overstating it up to tens of degrees.
         fit = fit.replace_scalars(normal_stderr=se_n, offset_stderr=se_h)
-    return fit
+    return WallFit(fit, not agree, against_joint)
 
 
 def single_wall(
