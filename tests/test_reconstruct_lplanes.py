@@ -1,13 +1,9 @@
-"""The L's planes of record claim good only where the sweep's own evidence earns it.
-
-Two causes, each checked on its own: the L model takes a corner's or an edge's echoes for a wall (no plane of the
-sweep's SurfaceSet holds them), and a wall's direction rests on a joint fit the other wall's own evidence
-contradicts (the corner edge ties the two directions together).
+"""The L's planes of record claim good only where the sweep's own evidence earns it: a wall's direction that rests
+on a joint fit the other wall's own evidence contradicts (the corner edge ties the two directions together) is not
+good.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 import pytest
@@ -15,11 +11,9 @@ import pytest
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.corner.method import joint_contradicted
 from lelsonar.reconstruct.estimate.corner.wall import WallFit
-from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
 from lelsonar.reconstruct.estimate.record import RecordOptions, ScanInput, reconstruct_scan
 from lelsonar.reconstruct.estimate.results import PlaneFit
-from lelsonar.reconstruct.estimate.surface_check import surface_finding
-from lelsonar.reconstruct.estimate.surfaces import Feature, SurfaceSet
 from lelsonar.sim import default_energy_model
 
 from .synthetic import synthetic_corner_scan
@@ -33,52 +27,6 @@ def analytic_l():
     given = ScanInput.of_scan(scan.gamma, scan.distance, scan.sensor_energy, geometry, default_energy_model())
     est = reconstruct_scan(given, RecordOptions())
     return scan, est
-
-
-def _edge_holding(steps: np.ndarray) -> Feature:
-    return Feature(
-        kind="edge",
-        label="e1",
-        point=np.array([0.0, 1.0, 1.0]),
-        direction=np.array([1.0, 0.0, 0.0]),
-        covariance=np.eye(3) * 1e-4,
-        bearing=math.pi / 4,
-        depth=1.4,
-        surfaces=(),
-        reasons=(),
-        steps=np.unique(steps),
-        n_echoes=int(steps.size),
-    )
-
-
-def test_an_l_plane_a_plane_of_the_sweep_holds_stays_good(analytic_l) -> None:
-    """On the analytic L both walls are found by the extractor too: nothing is said against either plane."""
-    _, est = analytic_l
-    main = est.results[est.method]
-    for plane, data in zip(main.planes, (main.data_a, main.data_b), strict=True):
-        assert isinstance(plane, PlaneFit) and plane.quality == GOOD, plane
-        assert surface_finding(plane, data, est.surfaces) == ()
-
-
-def test_an_l_plane_on_a_features_echoes_is_unreliable(analytic_l) -> None:
-    """The same good plane b, where the sweep's surfaces put its echoes on an edge and no plane holds them: the L
-    model has taken the edge for a wall; where nothing of the sweep holds them, it is not good either."""
-    _, est = analytic_l
-    main = est.results[est.method]
-    plane, data = main.plane_b, main.data_b
-    assert isinstance(plane, PlaneFit) and plane.quality == GOOD
-    steps = data.step[plane.inlier_mask]
-    as_edge = SurfaceSet(surfaces=(), corners=(), edges=(_edge_holding(steps),), n_echoes=steps.size, unexplained={})
-    ((level, reason),) = surface_finding(plane, data, as_edge)
-    assert level == UNRELIABLE and "edge e1" in reason
-    nothing = SurfaceSet(surfaces=(), corners=(), edges=(), n_echoes=steps.size, unexplained={})
-    ((level, reason),) = surface_finding(plane, data, nothing)
-    assert level == DEGRADED and "no plane of the sweep" in reason
-    # A surface holding its echoes vouches for it again (the extractor's own plane b).
-    held = SurfaceSet(
-        surfaces=est.surfaces.surfaces, corners=(), edges=(_edge_holding(steps),), n_echoes=steps.size, unexplained={}
-    )
-    assert surface_finding(plane, data, held) == ()
 
 
 def test_a_contradicted_joint_fit_is_named_on_the_other_walls_joint_direction(analytic_l) -> None:
@@ -111,17 +59,6 @@ def _l_planes_against_truth(cls: str, seed: int, mount: str, pose: int):
         wrong = all(e > max(ERROR_FLOOR, 3 * o) for e, o in errors)
         out[plane.label] = (plane, min(e for e, _ in errors), wrong)
     return out
-
-
-@pytest.mark.slow
-def test_a_fan_sweeps_l_plane_on_a_thin_walls_end_is_not_good() -> None:
-    """Thin walls, seed 42, fan mount, second pose: the L model fits plane b to the diffracted echo of a thin wall's
-    free end (1.9 m from every wall seen); the extractor holds those echoes as an edge, so the plane is unreliable."""
-    planes = _l_planes_against_truth("thin", 42, "fan", 1)
-    plane, error, wrong = planes["b"]
-    assert wrong and error > 1.0  # the truth: no wall there
-    assert plane.quality == UNRELIABLE
-    assert any("edge" in r and "taken the edge for a wall" in r for r in plane.quality_reasons), plane.quality_reasons
 
 
 @pytest.mark.slow

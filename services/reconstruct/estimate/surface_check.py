@@ -1,4 +1,4 @@
-"""An L plane of record against the surfaces the same sweep extracts from the same echoes.
+"""An L plane of record against the surface the same sweep extracts from the same echoes.
 
 The L model (the paper's, §4) places each echo along its beam and fits the
 two walls it assumes, each near the normal its correction takes (``y`` for a,
@@ -11,16 +11,6 @@ pattern (the region's centre or its amplitude peak), independently of the L
 premise.  When the two disagree by more than both σ allow and by more than the
 verdict's own bound on a normal's σ, the plane's normal is not known within
 that bound: it is not good.
-
-The L model takes every band of steady echoes it labels a wall for a wall.  A
-convex edge (a box's or a thin wall's end) diffracts a point source's echo and
-a concave corner retro-reflects a double bounce: over their regions of
-constant depth both change with γ exactly as a wall's echo does (a range
-``ρ − r cos(γ − β)`` either way, ``r`` the capsules' radial offset), so the
-ranges cannot tell them from a wall.  The extractor tells them apart by what
-the ranges do not carry (the echo's strength, the walls a corner joins).
-Where no plane of the sweep holds most of the L plane's echoes, nothing but
-the L premise says they are a wall's: it is not good either.
 """
 
 from __future__ import annotations
@@ -30,7 +20,7 @@ import math
 import numpy as np
 
 from lelsonar.reconstruct.estimate.fit import PlaneData
-from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, QualityLimits
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, QualityLimits
 from lelsonar.reconstruct.estimate.results import PlaneFit, PlaneResult
 from lelsonar.reconstruct.estimate.surfaces import SurfaceSet
 
@@ -43,7 +33,7 @@ OWN_SHARE = 0.5
 def surface_finding(
     plane: PlaneResult, data: PlaneData | None, surfaces: SurfaceSet, limits: QualityLimits | None = None
 ) -> tuple[tuple[str, str], ...]:
-    """The finding against a good L ``plane`` that the sweep's own surfaces do not vouch for (empty: none).
+    """The finding that degrades a good L ``plane`` its own echoes' surface contradicts (empty: none).
 
     Parameters
     ----------
@@ -58,23 +48,17 @@ def surface_finding(
 
     Returns
     -------
-    On a good plane (empty otherwise, and where no finding applies):
-
-    - ``((UNRELIABLE, reason),)`` when no surface holds most (:data:`OWN_SHARE`) of the plane's inlier steps
-      and a corner or an edge of the sweep does: its echoes are that feature's, not a wall's;
-    - ``((DEGRADED, reason),)`` when nothing of the sweep holds most of them (no plane of the sweep vouches
-      for the wall), or when a surface good on its own echoes (``Surface.own_quality``) holding most of them
-      has a normal more than ``3 √(σ_L² + σ_s²)`` and more than ``max_normal_stderr`` from the plane's.
+    ``((DEGRADED, reason),)`` when a surface good on its own echoes (``Surface.own_quality``) holding most
+    of the plane's inlier steps has a normal
+    more than ``3 √(σ_L² + σ_s²)`` and more than ``max_normal_stderr`` from the plane's; else ``()``.
     """
-    if not isinstance(plane, PlaneFit) or plane.quality != GOOD or data is None:
+    if not isinstance(plane, PlaneFit) or plane.quality != GOOD or data is None or not surfaces.surfaces:
         return ()
     lim = limits or QualityLimits()
     steps = data.step[plane.inlier_mask] if plane.inlier_mask.shape == data.step.shape else data.step
     if steps.size == 0:
         return ()
     shares = [_share(steps, s.steps) for s in surfaces.surfaces]
-    if not shares or max(shares) < OWN_SHARE:
-        return _unsupported(steps, max(shares, default=0.0), surfaces)
     k = max(range(len(shares)), key=shares.__getitem__)  # (the first of the largest, as max() picks it)
     best = surfaces.surfaces[k]
     # What the surface's own echoes say of its plane: a lone region the sweep does not confirm a plane still
@@ -91,32 +75,6 @@ def surface_finding(
             f"the surface {best.label} of the same echoes, its bearing from the beam pattern ({best.bearing_source}), "
             f"puts the normal {math.degrees(angle):.1f}° from this plane's (σ {math.degrees(sigma):.1f}°): a wall "
             "the L's two planes do not model",
-        ),
-    )
-
-
-def _unsupported(steps: np.ndarray, most: float, surfaces: SurfaceSet) -> tuple[tuple[str, str], ...]:
-    """The finding against an L plane no surface of the sweep holds most of the inlier ``steps`` of (``most``:
-    the largest share any surface holds): the feature that holds them, or nothing."""
-    features = (*surfaces.corners, *surfaces.edges)
-    held = [_share(steps, f.steps) for f in features]
-    if held and max(held) >= OWN_SHARE:
-        j = max(range(len(held)), key=held.__getitem__)
-        f = features[j]
-        what = "a concave corner's double bounce" if f.kind == "corner" else "a convex edge's diffracted echo"
-        return (
-            (
-                UNRELIABLE,
-                f"{100 * held[j]:.0f} % of its echoes are the sweep's {f.kind} {f.label}, {what} that changes "
-                f"with the rotation as a wall's echo does; no plane of the sweep holds them, so the L model has "
-                f"taken the {f.kind} for a wall: read this scan's walls from its surfaces",
-            ),
-        )
-    return (
-        (
-            DEGRADED,
-            f"no plane of the sweep holds most of its echoes (at most {100 * most:.0f} %): nothing but the L "
-            "model says they are a wall's; read this scan's walls from its surfaces",
         ),
     )
 
