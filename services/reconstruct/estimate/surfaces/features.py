@@ -37,6 +37,7 @@ from lelsonar.reconstruct.estimate.surfaces.placement import (
     RANGE_FLOOR,
     echo_point,
     line_direction,
+    line_yaw_stderr,
     pair_line_point,
     with_range,
 )
@@ -79,6 +80,12 @@ MIXED = (
     "it, its bearing anywhere its region's reach allows"
 )
 
+#: In the reasons of a line across the fan placed at its plane's foot whose turn in the plane its tilt leaves open.
+YAW_OPEN = (
+    "at its plane's foot, its line's turn in the plane known only through its cosine (its range and tilt): "
+    "within their σ the line's point may lie {turn:.1f}° off the foot, in its bearing's σ"
+)
+
 #: In the reasons of a feature placed by its own echo whose ranges along the stack no one target explains.
 STACK_MIXED = (
     "its ranges along the capsule stack scatter {sigma:.1f} mm about any one target's, more than one reading's "
@@ -87,7 +94,7 @@ STACK_MIXED = (
 
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
 #: with: a reader shows them beside its σ.
-PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE)
+PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE, YAW_OPEN.split(",")[0])
 
 
 def kind_unsettled(reasons: Iterable[str]) -> bool:
@@ -196,11 +203,12 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
     the fan.  Apart by more than 3 σ of both, the point is where the region's own range and tilt meet the
     plane's trace, on the side of the foot its echo is heard (the plane's mirror echo, nearer, hides the line's
     around the foot: the line's emerges past the plane's region on its nearest point's side), with
-    :func:`~.evidence.end_stderr`'s σ.  Its bearing σ is at least the fitted plane's.
+    :func:`~.evidence.end_stderr`'s σ.  Its bearing σ is at least the fitted plane's; at the foot, it holds the
+    turn the tilt's σ leaves open (:func:`~.placement.line_yaw_stderr`).
 
     Returns
     -------
-    The region so placed, and the reason to add ("": at the foot).
+    The region so placed, and the reason to add ("": at the foot, square to the stack).
     """
     if fitted is not None:
         fitted_se = math.sqrt(max(float(fitted.covariance[0, 0]), 0.0))
@@ -211,7 +219,11 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
         return m, ""
     se = math.hypot(own.tilt_stderr, m.tilt_stderr if math.isfinite(m.tilt_stderr) else 0.0)
     if not abs(own.tilt - m.tilt) > 3.0 * se:
-        return m, ""
+        turn = line_yaw_stderr(own.depth, own.depth_stderr, own.tilt, own.tilt_stderr, pj.depth, pj.depth_stderr)
+        if not turn > 0:
+            return m, ""
+        m = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, turn))
+        return m, YAW_OPEN.format(turn=math.degrees(turn))
     x0 = own.depth * math.sin(own.tilt)
     h = (pj.depth - x0 * math.sin(pj.tilt)) / math.cos(pj.tilt)
     rho = in_fan_range(own)[0]
