@@ -33,6 +33,7 @@ from lelsonar.reconstruct.estimate.surfaces.feature_kinds import (
 )
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.own_bearing import continued_ends, peak_past_fade
 from lelsonar.reconstruct.estimate.surfaces.placement import (
     RANGE_FLOOR,
     echo_point,
@@ -476,10 +477,14 @@ def place_features(
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
             m, why = _own_tilt(m)
+            m, goes_on = continued_ends(m, own, opts.range_tolerance)
             m, cut = _cut_peak(m)
             m, off = centre_off_peak(m, scale.gamma)
-            reasons = [*reasons, *(w for w in (why, cut, off) if w)]
-            if m.bearing_source == "undetermined":
+            m, past = peak_past_fade(m, scale.gamma, scale.beam_k)
+            reasons = [*reasons, *(w for w in (why, goes_on, cut, off, past) if w)]
+            if m.bearing_source == "undetermined" or goes_on or past:
+                # A region split off the rest of its echo, or whose amplitudes sum another echo's, says only that
+                # its target lies within its reach.
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
         if direction[int(np.argmax(np.abs(direction)))] < 0:
