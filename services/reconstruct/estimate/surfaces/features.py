@@ -298,10 +298,17 @@ def centre_off_peak(m: Measured, gamma: np.ndarray) -> tuple[Measured, str]:
 
 
 def _pair_placement(
-    ia: int, ib: int, m: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    ia: int, ib: int, own: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, tuple[np.ndarray, np.ndarray]] | None:
     """A pair corner's line from its two fitted planes: its nearest point, that point's covariance (the
-    planes' full covariance through the intersection) and its direction."""
+    planes' full covariance through the intersection), its direction, the reason to add ("": none) and the
+    point with the covariance it is placed with.
+
+    The corner's own double-bounce range and the line's are two measurements of ``|X|``: apart by more than
+    their σ (χ² over 1), the planes' line misses the echo's source by what neither σ says (a plane's bearing
+    off by less than its verdict notices), and the point's covariance grows by χ², as a fit's whose rows
+    scatter past their σ; the tests of what its own echoes admit (:func:`pair_denied`) read the line's own.
+    """
     sa, sb = surface_of.get(ia), surface_of.get(ib)
     if sa is None or sb is None:
         return None
@@ -318,10 +325,25 @@ def _pair_placement(
     if line is None:
         return None
     point, cov = line
+    why = ""
+    grown = cov
+    rho = float(np.linalg.norm(point))
+    sd = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
+    if rho > 0 and math.isfinite(own.depth):
+        u = point / rho
+        chi2 = (own.depth - rho) ** 2 / (max(float(u @ cov @ u), 0.0) + sd * sd)
+        if chi2 > 1.0:
+            grown = cov * chi2
+            why = (
+                f"its own range ({own.depth:.3f} m) and their line's ({rho:.3f} m) differ by "
+                f"{1000 * abs(own.depth - rho):.1f} mm, {math.sqrt(chi2):.1f}× their σ: the line's σ grown by it"
+            )
+    placed = point, grown
     if not tied:
         # The walls fitted apart: the corner's own double-bounce range is a measurement they did not use.
-        point, cov = with_range(point, cov, m.depth, m.depth_stderr)
-    return point, cov, line_direction(params)
+        point, cov = with_range(point, cov, own.depth, own.depth_stderr)
+        placed = with_range(placed[0], placed[1], own.depth, own.depth_stderr)
+    return point, cov, line_direction(params), why, placed
 
 
 def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
@@ -444,7 +466,7 @@ def place_features(
             if not ties and m.bearing_source == "undetermined":
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         elif len(ties) >= 2:
-            pair_line = _pair_placement(ties[0], ties[1], m, surface_of, joint)
+            pair_line = _pair_placement(ties[0], ties[1], own[i], surface_of, joint)
             denied = "" if pair_line is None else pair_denied(own[i], pair_line[0], pair_line[1], scale)
             if denied:
                 # Where its own echo comes from: its bearing anywhere its region's reach allows.  Its kind rested
@@ -453,7 +475,8 @@ def place_features(
                 reasons = [*reasons, denied, f"{UNSETTLED}; not their double bounce"]
                 tied, direction = (), stack_axis
             elif pair_line is not None:
-                located, direction = (pair_line[0], pair_line[1]), pair_line[2]
+                located, direction = pair_line[4], pair_line[2]
+                reasons = [*reasons, pair_line[3]] if pair_line[3] else reasons
             else:
                 a, b = measured[ties[0]], measured[ties[1]]
                 direction = cross3(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
