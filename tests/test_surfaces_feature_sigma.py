@@ -95,6 +95,14 @@ def _beyond_3_sigma(cls: str, seed: int, mount: str, pose: int) -> list[tuple[st
         # both σ: the planes' bearings are off by what their σ does not say.
         ("touching", 42, "paper", 0),
         ("strong_edges", 40, "paper", 1),
+        # A plane's end whose capsules go on hearing its range past its first step (the whole stack there):
+        # its reach runs past that end too.
+        ("strong_edges", 43, "paper", 1),
+        # One capsule's edge echo, split off the rest of it where the other capsules start hearing a wall.
+        ("touching", 46, "fan", 1),
+        # A region denied its pair's line whose ranges scatter along the stack past one target's: its tilt is
+        # anywhere within the beam.
+        ("strong_edges", 45, "paper", 0),
     ],
 )
 def test_seeded_features_lie_within_3_sigma_of_their_lines(cls, seed, mount, pose):
@@ -197,3 +205,16 @@ def test_an_end_where_the_echo_goes_on_in_another_region_is_no_fade():
     # The same steps at another range: another target, the end stands.
     other = replace(rest, ranges=np.full(rows.size, 0.70))
     assert continued_ends(fragment, [fragment, other], 0.015) == (fragment, "")
+
+
+def test_the_sweeps_own_ranges_say_where_an_echo_goes_on_past_its_region():
+    # The same fragment, the rest of its echo in no region: capsule 3 hears 0.637 m on the step before it.
+    g = np.array([-45.7, -44.5, -43.7])
+    fragment = _region(g, np.full(3, 0.05), (False, False), capsules=np.full(3, 3, dtype=np.intp), first=104)
+    fragment = replace(fragment, ranges=np.full(3, 0.636))
+    distance = np.full((120, 4), 1.9)
+    distance[104:107, 3] = 0.636
+    assert continued_ends(fragment, [fragment], 0.015, distance) == (fragment, "")
+    distance[103, 3] = 0.637
+    placed, why = continued_ends(fragment, [fragment], 0.015, distance)
+    assert why.startswith(CONTINUED) and placed.region.cut_before and not placed.region.cut_after

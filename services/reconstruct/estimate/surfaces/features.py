@@ -421,6 +421,7 @@ def place_features(
     surface_of: dict[int, Surface],
     joint: dict[int, JointWall],
     scale: EchoScale,
+    distance: np.ndarray | None = None,
 ) -> tuple[list[Feature], list[Feature]]:
     """The corners and the edges, each where its planes or its own echo put it, along its line.
 
@@ -440,6 +441,9 @@ def place_features(
         Each wall fitted with its concave corners (:func:`~.fitting.joint_fit`).
     scale : EchoScale
         The sweep's echo references (and the extractor's options).
+    distance : (n_steps, n_capsules) array, optional
+        The sweep's ranges: where a region's capsules go on hearing its range past an end
+        (:func:`~.own_bearing.continued_ends`; without them, the other regions say).
 
     Returns
     -------
@@ -449,6 +453,12 @@ def place_features(
     opts = scale.opts
     corners: list[Feature] = []
     edges: list[Feature] = []
+
+    def reach(k: Measured, reasons: list[str]) -> tuple[Measured, list[str]]:
+        """``k`` with the bearing σ of its region's reach, an end its echo goes on past counted as cut."""
+        cont, why = continued_ends(k, own, opts.range_tolerance, distance)
+        return replace(k, bearing_stderr=reach_stderr(cont, opts)), [*reasons, why] if why else reasons
+
     stack_axis = np.array([1.0, 0.0, 0.0])
     for i, (kind, reasons, ties) in sorted(kinds.items()):
         m = measured[i]
@@ -457,20 +467,21 @@ def place_features(
         if i in across_lines and ties and own[i].stack_sigma > opts.range_tolerance:
             # The double bounce with a surface across the fan explains the ranges no better than a free slope
             # whose residuals scatter past a region's own steadiness: its readings hold more than one target.
-            m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts), tilt_stderr=float("nan"))
+            m, reasons = reach(own[i], reasons)
+            m = replace(m, tilt_stderr=float("nan"))
             reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
             tied, direction = (), stack_axis
         elif i in across_lines:
             alike = like_its_mirror(m, own[i], measured[ties[0]]) if ties else ""
             if alike:
-                m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
-                reasons, tied = [*reasons, alike], ()
+                m, reasons = reach(own[i], [*reasons, alike])
+                tied = ()
             elif ties:
                 m, why = _across_line(m, own[i], measured[ties[0]], surface_of.get(ties[0]))
                 reasons = [*reasons, why] if why else reasons
             direction = cross3(stack_axis, unit_normal(m.bearing))
             if not ties and m.bearing_source == "undetermined":
-                m = replace(m, bearing_stderr=reach_stderr(m, opts))
+                m, reasons = reach(m, reasons)
         elif len(ties) >= 2:
             pair_line = _pair_placement(ties[0], ties[1], own[i], surface_of, joint)
             denied = (
@@ -479,8 +490,9 @@ def place_features(
             if denied:
                 # Where its own echo comes from: its bearing anywhere its region's reach allows.  Its kind rested
                 # on being their double bounce: a strong echo elsewhere is a mirror's or another corner's.
-                m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
-                reasons = [*reasons, denied, f"{UNSETTLED}; not their double bounce"]
+                m, mixed = _own_tilt(own[i])
+                m, reasons = reach(m, [*reasons, denied, f"{UNSETTLED}; not their double bounce"])
+                reasons = [*reasons, mixed] if mixed else reasons
                 tied, direction = (), stack_axis
             elif pair_line is not None:
                 located, direction = pair_line[4], pair_line[2]
@@ -497,8 +509,7 @@ def place_features(
             if fall > 0:
                 m, reasons, tied = _not_its_end(own[i], m.bearing, fall, kind, reasons, scale)
             elif m.bearing_source == "undetermined":
-                m = replace(m, bearing_stderr=reach_stderr(m, opts))
-                reasons = [*reasons, TRACE_ONLY]
+                m, reasons = reach(m, [*reasons, TRACE_ONLY])
             else:
                 m, why = _with_trace(m, pj)
                 reasons = [*reasons, why] if why else reasons
@@ -508,7 +519,7 @@ def place_features(
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
             m, why = _own_tilt(m)
-            m, goes_on = continued_ends(m, own, opts.range_tolerance)
+            m, goes_on = continued_ends(m, own, opts.range_tolerance, distance)
             m, cut = _cut_peak(m)
             m, off = centre_off_peak(m, scale.gamma)
             m, past = peak_past_fade(m, scale.gamma, scale.beam_k)

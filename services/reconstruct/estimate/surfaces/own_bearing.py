@@ -1,8 +1,8 @@
 """What a corner or an edge placed by its own echo can claim of its bearing.
 
 * :func:`continued_ends`: an end of a region where the same capsules go on hearing the same range on the next
-  step is no fade of its echo: another region holds the rest of it, so that end says nothing of where its target
-  lies (as an end cut by a nearer echo).
+  step is no fade of its echo: the rest of it lies past the region, so that end says nothing of where its
+  target lies (as an end cut by a nearer echo).
 * :func:`peak_past_fade`: an amplitude peak farther from an end where the echo fades than one beam pattern's
   fall to that end's amplitude allows is not that echo's alone; its σ covers the difference.
 """
@@ -23,22 +23,26 @@ __all__ = ["CONTINUED", "continued_ends", "peak_past_fade"]
 CONTINUED = "its echo goes on past its region"
 
 
-def continued_ends(m: Measured, regions: list[Measured], tolerance: float) -> tuple[Measured, str]:
-    """The region with each end cut where its echo goes on in another region, and the reason to add ("": none).
+def continued_ends(
+    m: Measured, regions: list[Measured], tolerance: float, distance: np.ndarray | None = None
+) -> tuple[Measured, str]:
+    """The region with each end cut where its echo goes on past it, and the reason to add ("": none).
 
     A region's end is where its echo fades under the threshold, or where a nearer echo hides it (cut).  Where
-    another region holds a reading of one of its capsules on the step just past that end, within ``tolerance``
-    (one target's ranges' scatter) of that capsule's reading at the end, the echo has done neither: it goes on,
-    split off by what the other capsules hear.  That end is no fade, as a cut end is not.
+    one of its capsules hears, on the step just past that end, a range within ``tolerance`` (one target's
+    ranges' scatter) of its own reading at the end, the echo has done neither: it goes on, split off by what
+    the other capsules hear.  That end is no fade, as a cut end is not.
 
     Parameters
     ----------
     m : Measured
         The region as its own echoes measured it.
     regions : list of Measured
-        Every region of the sweep (``m`` among them).
+        Every region of the sweep (``m`` among them): what holds the readings past its ends, without ``distance``.
     tolerance : float
         m.
+    distance : (n_steps, n_capsules) array, optional
+        The sweep's ranges (NaN: none); read in place of ``regions`` where given.
 
     Returns
     -------
@@ -50,10 +54,13 @@ def continued_ends(m: Measured, regions: list[Measured], tolerance: float) -> tu
     first, last = int(r.steps[0]), int(r.steps[-1])
 
     def goes_on(end: int, past: int) -> bool:
-        """Whether another region holds a reading of a capsule at step ``past`` within ``tolerance`` of that
-        capsule's own reading at step ``end``."""
+        """Whether a capsule at step ``past`` hears a range within ``tolerance`` of its own reading at ``end``."""
         at_end = r.rows == end
         own = dict(zip(r.capsules[at_end].tolist(), m.ranges[at_end].tolist(), strict=True))
+        if distance is not None:
+            if not 0 <= past < distance.shape[0]:
+                return False
+            return any(abs(float(distance[past, c]) - d) <= tolerance for c, d in own.items())
         for k in regions:
             if k is m or k.region is r:
                 continue
@@ -69,7 +76,7 @@ def continued_ends(m: Measured, regions: list[Measured], tolerance: float) -> tu
         return m, ""
     region = replace(r, cut_before=r.cut_before or before, cut_after=r.cut_after or after)
     side = "both ends" if before and after else ("its first step" if before else "its last step")
-    why = f"{CONTINUED}: past {side} another region holds its capsules' readings at its range, so no fade ends it"
+    why = f"{CONTINUED}: past {side} its capsules go on hearing its range, so no fade ends it there"
     return replace(m, region=region), why
 
 
