@@ -17,10 +17,15 @@
   wall, and both are marked as disagreeing: never averaged into a wall that does not exist.  A wall of good
   evidence that the map places less well than ``good_tolerance`` (the poses' uncertainty) is degraded, and
   says so.
+* **A scan the solver refuses.**  Where GTSAM finds the system a scan's walls make indeterminate (an
+  observation whose covariance is too ill-conditioned for the solver, say), the map is rebuilt from the scans
+  before it and that scan enters with its pose and odometry only: its walls and features are left out, and a
+  note says so.  The map goes on; only a scan whose pose alone is refused stops it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -54,6 +59,15 @@ from lelsonar.map.tracks import Seen, Track, best_seen, gate, precision_rank
 
 __all__ = ["CHI2_2_999", "FusionConfig", "MapUpdateError", "WallMapper", "wall_placement_sigma"]
 
+
+class _Refused(Exception):
+    """GTSAM refused a scan's update (its message's first line in ``reason``); the mapper is rebuilt after it."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
 #: A wall is redone for a read when its line or a pose that saw it moved more than this (m or rad): ISAM2 itself
 #: stops carrying an update further where it changes a variable by less (its wildfire threshold).
 READ_TOLERANCE = 1e-3
@@ -82,6 +96,7 @@ class WallMapper:
         self.notes: list[str] = []
         self._failed: str | None = None
         self._read_cache: dict[int, tuple] = {}  # wall id → what its last unpolished read took and gave
+        self._fused: list[ScanObservation] = []  # each scan as it entered the map: what a rebuild replays
 
     # ------------------------------------------------------------------ properties
     @property
@@ -95,11 +110,41 @@ class WallMapper:
 
     # ------------------------------------------------------------------ update
     def add_scan(self, scan: ScanObservation) -> None:
-        """Fuse one scan: its pose, its odometry step, its walls and features (one ISAM2 update)."""
+        """Fuse one scan: its pose, its odometry step, its walls and features (one ISAM2 update).
+
+        A scan whose walls the solver refuses enters with its pose only, with a note (see the module docstring).
+
+        Raises
+        ------
+        MapUpdateError
+            The solver refused the scan's pose as well: the map takes no more scans.
+        """
         if self._failed is not None:
             raise MapUpdateError(f"the map takes no more scans: {self._failed}; start a new map")
         if scan.scan_id in self._scan_ids:
             raise InvalidMessageError(f"scan {scan.scan_id} is already in the map (scan ids must be unique)")
+        try:
+            self._fuse(scan)
+        except _Refused as refused:
+            self._rebuild_without_surfaces(scan, refused.reason)
+
+    def _rebuild_without_surfaces(self, scan: ScanObservation, reason: str) -> None:
+        """The map again from the scans before ``scan``, then ``scan``'s pose alone; the note says why."""
+        bare = dataclasses.replace(scan, walls=(), features=())
+        fresh = WallMapper(self.config)
+        try:
+            for s in (*self._fused, bare):
+                fresh._fuse(s)  # the same updates as before, in the same order, but the last
+        except _Refused as refused:
+            self._failed = f"scan {scan.scan_id} made the graph unsolvable ({refused.reason})"
+            raise MapUpdateError(self._failed) from None
+        self.__dict__.update(fresh.__dict__)
+        self.notes.append(
+            f"scan {scan.scan_id}: its walls ({len(scan.walls)}) and features ({len(scan.features)}) left out of the "
+            f"map, with them the solver refused the graph ({reason}); its pose is kept"
+        )
+
+    def _fuse(self, scan: ScanObservation) -> None:
         for note in scan.notes:
             if note not in self.notes:
                 self.notes.append(note)
@@ -146,8 +191,8 @@ class WallMapper:
             self._graph.update()
         except RuntimeError as exc:  # GTSAM's indeterminate or ill-conditioned system
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            self._failed = f"scan {scan.scan_id} made the graph unsolvable ({first})"
-            raise MapUpdateError(self._failed) from None
+            raise _Refused(first) from None
+        self._fused.append(scan)
         self._isam_walls = len(self._graph_tracks)
         self._poses = [self._graph.pose(i) for i in range(k + 1)]
         for t in self._graph_tracks:
