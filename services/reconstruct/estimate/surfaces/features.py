@@ -8,7 +8,10 @@ region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stde
 weighs it with the trace's, its σ grown where the two disagree.  Its direction: along the
 two planes' line, along its one plane across the ray to it (that plane's end), across the fan for a line across
 the stack, else along the stack.  Where its own echoes deny what placed it (:mod:`.feature_kinds`), it lies where
-its own echo comes from, and its kind, which rested on that placement, is not settled.
+its own echo comes from, and its kind, which rested on that placement, is not settled.  Its σ holds what its
+evidence leaves open: a pair corner's grows where its own range and its line's disagree past both σ; a line
+across the fan at its plane's foot takes the turn in the plane its tilt allows; a bearing of its own echo spans
+its region's reach where that echo goes on past an end or sums another's (:mod:`.own_bearing`).
 """
 
 from __future__ import annotations
