@@ -184,23 +184,3 @@ def test_a_leaning_walls_flank_is_not_its_double_bounce_with_the_floor():
     for f in mine:
         assert not (f.kind == "corner" and f.settled), f.reasons
         assert any(r.startswith(ALIKE) for r in f.reasons)
-
-
-@pytest.mark.parametrize("opening_deg", [96.0, 100.0])
-def test_a_corner_off_a_right_angle_answers_from_its_double_image_or_its_line_never_between(opening_deg):
-    # Two planes meeting at the opening α, their line's point 2.5 m away at 30°: the double bounce turns the
-    # capsule's image by 2α about the line, so it comes back from 2.5·sin α; diffracting, from 2.5 m.
-    sine = math.sin(math.radians(opening_deg))
-    b = math.radians(30.0)
-    point = 2.5 * np.array([0.0, math.cos(b), math.sin(b)])
-    cov = np.diag([1e-6, 1e-6, 1e-6])
-    for depth in (2.5 * sine, 2.5):
-        assert pair_denied(_measured(30.0, depth), point, cov, _scale(), sine=sine) == ""
-    # Read as a right corner, its double bounce is another target's echo once past a region's scatter.
-    if 2.5 * (1 - sine) > SurfaceOptions().range_tolerance:
-        why = pair_denied(_measured(30.0, 2.5 * sine), point, cov, _scale())
-        assert why.startswith(NOT_THEIR_LINE), why
-    # Halfway between the two, neither.
-    mid = 2.5 * (1 + sine) / 2
-    if 2.5 * (1 - sine) / 2 > SurfaceOptions().range_tolerance:
-        assert pair_denied(_measured(30.0, mid), point, cov, _scale(), sine=sine).startswith(NOT_THEIR_LINE)

@@ -113,21 +113,16 @@ def _across_ray(bearing: float) -> np.ndarray:
     return np.array([0.0, -math.sin(bearing), math.cos(bearing)])
 
 
-def pair_denied(
-    own: Measured, point: np.ndarray, covariance: np.ndarray, scale: EchoScale, *, sine: float = 1.0
-) -> str:
+def pair_denied(own: Measured, point: np.ndarray, covariance: np.ndarray, scale: EchoScale) -> str:
     """Why a region's own echoes deny that it is the double bounce of a line through ``point`` ("": they do not).
 
     Two planes meeting at the region's range say nothing of whether its echo comes from their line: another
     corner or edge at that range echoes the same.  What the region measured itself must admit the line's point:
 
-    * **range**: a double bounce off their line comes back from its point nearest the array, ``|X| sin α``
-      away (the capsule's double image turned by twice the opening ``α`` about the line, ``sine`` = ``|sin α|``,
-      1 for a right corner), or, diffracting, ``|X|`` (off a right angle the double bounce leaves the beam's
-      axis and the line may answer as an edge does): the region's own depth apart from the nearer of the two by
-      more than 3 σ of both (the depth's, at least one reading's noise; the line's along the ray through the
-      planes' covariance), and by more than one target's ranges scatter within a region
-      (``range_tolerance``), is another target's echo.
+    * **range**: a double bounce off their line comes back from its point nearest the array, ``|X|`` away: the
+      region's own depth apart from it by more than 3 σ of both (the depth's, at least one reading's noise; the
+      line's along the ray through the planes' covariance), and by more than one target's ranges scatter within a
+      region (``range_tolerance``), is another target's echo.
     * **tilt**: the ranges' slope along the capsule stack is the x component of the unit vector from the echo's
       point to the array, whatever the target (:mod:`.placement`); the line's point leans off the fan by
       ``asin(X_x/|X|)``.  Apart by more than 3 σ of both (the region's slope fit; the line's lean through the
@@ -150,8 +145,6 @@ def pair_denied(
         The line's point nearest the array and its covariance, m, m².
     scale : EchoScale
         The sweep's echo references.
-    sine : float
-        ``|sin α|`` of the planes' opening: ``|n_a × n_b|``.
 
     Returns
     -------
@@ -162,14 +155,12 @@ def pair_denied(
         return ""
     u = point / rho
     own_se = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
-    # Off a right angle the line may diffract instead, from |X| itself: the nearer of the two.
-    k = sine if abs(own.depth - sine * rho) < abs(own.depth - rho) else 1.0
-    range_se = math.hypot(own_se, k * math.sqrt(max(float(u @ covariance @ u), 0.0)))
+    range_se = math.hypot(own_se, math.sqrt(max(float(u @ covariance @ u), 0.0)))
     bound = max(3 * range_se, scale.opts.range_tolerance)
-    if abs(own.depth - k * rho) > bound:
+    if abs(own.depth - rho) > bound:
         return (
             f"{NOT_THEIR_LINE}: its echo comes from {own.depth:.3f} m, their line's point nearest the array is "
-            f"{rho:.3f} m away, its double bounce {sine * rho:.3f} m (more than {100 * bound:.1f} cm)"
+            f"{rho:.3f} m away (more than {100 * bound:.1f} cm)"
         )
     lean = math.asin(max(-1.0, min(1.0, float(u[0]))))
     bearing = math.atan2(float(u[2]), float(u[1]))

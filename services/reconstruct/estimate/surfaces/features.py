@@ -42,7 +42,6 @@ from lelsonar.reconstruct.estimate.surfaces.placement import (
     echo_point,
     line_direction,
     line_yaw_stderr,
-    opening_sine,
     pair_line_point,
     with_range,
 )
@@ -303,14 +302,12 @@ def centre_off_peak(m: Measured, gamma: np.ndarray) -> tuple[Measured, str]:
 
 def _pair_placement(
     ia: int, ib: int, own: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, tuple[np.ndarray, np.ndarray], float] | None:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, tuple[np.ndarray, np.ndarray]] | None:
     """A pair corner's line from its two fitted planes: its nearest point, that point's covariance (the
-    planes' full covariance through the intersection), its direction, the reason to add ("": none), the
-    point with the covariance it is placed with, and ``|sin α|``.
+    planes' full covariance through the intersection), its direction, the reason to add ("": none) and the
+    point with the covariance it is placed with.
 
-    The corner's double bounce comes back from ``|X| sin α`` (the capsule's double image turned by twice the
-    opening ``α`` about the line; ``|sin α| = |n_a × n_b|``, 1 for a right corner), or, diffracting, from
-    ``|X|``: its own range and the nearer of the two are two measurements of one range.  Apart by more than
+    The corner's own double-bounce range and the line's are two measurements of ``|X|``: apart by more than
     their σ (χ² over 1), the planes' line misses the echo's source by what neither σ says (a plane's bearing
     off by less than its verdict notices), and the point's covariance grows by χ², as a fit's whose rows
     scatter past their σ; the tests of what its own echoes admit (:func:`pair_denied`) read the line's own.
@@ -333,26 +330,23 @@ def _pair_placement(
     point, cov = line
     why = ""
     grown = cov
-    sine = opening_sine(params)
     rho = float(np.linalg.norm(point))
-    if abs(own.depth - rho) <= abs(own.depth - sine * rho):
-        sine = 1.0  # off a right angle the line may diffract instead, from |X| itself
     sd = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
     if rho > 0 and math.isfinite(own.depth):
         u = point / rho
-        chi2 = (own.depth - sine * rho) ** 2 / (sine * sine * max(float(u @ cov @ u), 0.0) + sd * sd)
+        chi2 = (own.depth - rho) ** 2 / (max(float(u @ cov @ u), 0.0) + sd * sd)
         if chi2 > 1.0:
             grown = cov * chi2
             why = (
-                f"its own range ({own.depth:.3f} m) and their line's double bounce ({sine * rho:.3f} m) differ by "
-                f"{1000 * abs(own.depth - sine * rho):.1f} mm, {math.sqrt(chi2):.1f}× their σ: the line's σ grown by it"
+                f"its own range ({own.depth:.3f} m) and their line's ({rho:.3f} m) differ by "
+                f"{1000 * abs(own.depth - rho):.1f} mm, {math.sqrt(chi2):.1f}× their σ: the line's σ grown by it"
             )
     placed = point, grown
     if not tied:
         # The walls fitted apart: the corner's own double-bounce range is a measurement they did not use.
-        point, cov = with_range(point, cov, own.depth / sine, sd / sine)
-        placed = with_range(placed[0], placed[1], own.depth / sine, sd / sine)
-    return point, cov, line_direction(params), why, placed, sine
+        point, cov = with_range(point, cov, own.depth, own.depth_stderr)
+        placed = with_range(placed[0], placed[1], own.depth, own.depth_stderr)
+    return point, cov, line_direction(params), why, placed
 
 
 def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
@@ -487,9 +481,7 @@ def place_features(
                 m, reasons = reach(m, reasons)
         elif len(ties) >= 2:
             pair_line = _pair_placement(ties[0], ties[1], own[i], surface_of, joint)
-            denied = (
-                "" if pair_line is None else pair_denied(own[i], pair_line[0], pair_line[1], scale, sine=pair_line[5])
-            )
+            denied = "" if pair_line is None else pair_denied(own[i], pair_line[0], pair_line[1], scale)
             if denied:
                 # Where its own echo comes from: its bearing anywhere its region's reach allows.  Its kind rested
                 # on being their double bounce: a strong echo elsewhere is a mirror's or another corner's.

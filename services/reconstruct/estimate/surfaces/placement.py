@@ -29,7 +29,6 @@ __all__ = [
     "with_range",
     "line_direction",
     "line_yaw_stderr",
-    "opening_sine",
     "RANGE_FLOOR",
 ]
 
@@ -121,13 +120,6 @@ def line_direction(params: np.ndarray) -> np.ndarray:
     """The unit direction ``n_a × n_b`` of two planes' line; ``params`` as :func:`pair_line_point`'s."""
     d = cross3(unit_normal(params[0], params[1]), unit_normal(params[3], params[4]))
     return d / max(float(np.linalg.norm(d)), 1e-12)
-
-
-def opening_sine(params: np.ndarray) -> float:
-    """``|sin α|`` of two planes' opening ``α``, ``|n_a × n_b|`` (1 at right angles); ``params`` as
-    :func:`pair_line_point`'s.  A concave corner's double bounce turns the capsule's image by ``2α`` about its
-    line, so it comes back from ``|X| |sin α|``, ``|X|`` the line's distance."""
-    return float(np.linalg.norm(cross3(unit_normal(params[0], params[1]), unit_normal(params[3], params[4]))))
 
 
 def pair_line_point(params: np.ndarray, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
