@@ -181,6 +181,8 @@ def _live_cases(d: Path) -> list[tuple[str, list[str], str]]:
         ("reconstruct", [*replay, "--foxglove", "0", "--foxglove-wait", "-5"], "--foxglove-wait"),
         ("reconstruct", [*replay, "--jobs", "-1"], "--jobs"),
         ("reconstruct", [*replay, "--scan-timeout", "-1"], "scan_timeout"),
+        ("reconstruct", [*replay, "--provisional-deadline", "-0.1"], "provisional_deadline"),
+        ("reconstruct", [*replay, "--provisional-deadline", "nan"], "provisional_deadline"),
         ("reconstruct", ["reconstruct", "--member-id", "x"], "--group"),
         ("reconstruct", ["reconstruct", "--source", missing], "missing.mcap"),
         ("reconstruct", ["reconstruct", "--source", dirp], "directory"),

@@ -129,3 +129,23 @@ def test_wire_arrays_gives_each_arrays_address_and_refuses_one_it_cannot_read_so
     for replaced in ({1: read_only}, {4: strided}, {6: arrays[6].astype(np.int32)}, {7: np.zeros(rows + 1, bool)}):
         with pytest.raises(InternalError):
             call(replaced)
+
+
+def test_an_entry_point_is_the_kernels_own_code_for_its_signature():
+    """Called without the dispatcher, a kernel gives what a call through it gives (the dispatcher's own overload
+    for its examples' types); a stand-in that is not a kernel is handed back as it is."""
+    import numpy as np
+
+    from lelsonar.signal.compiled import entry_point
+    from lelsonar.signal.extrema import extent
+
+    row = np.random.default_rng(3).standard_normal(50).astype(np.float32)
+    direct = entry_point(extent, row, 0, 1)
+    for a, b in ((0, 50), (7, 8), (13, 41)):
+        assert direct(row, a, b) == extent(row, a, b)
+    assert any(direct is compiled.entry_point for compiled in extent.overloads.values())
+
+    def stand_in(*args):
+        return args
+
+    assert entry_point(stand_in, 1, 2) is stand_in

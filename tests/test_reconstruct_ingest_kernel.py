@@ -413,6 +413,29 @@ def _start_faults(start) -> dict:
     }
 
 
+def test_the_scan_of_a_repeated_scan_start_is_made_as_from_a_fresh_one(scan):
+    """A scanner's ScanStarts equal but for their scan and time make scans that share what the first one's derived
+    (geometry, capsule ids, speed of sound, energy model): the values a scan made from the message alone has; a
+    ScanStart that differs otherwise derives its own."""
+    start = scan[0]
+    ingest = Ingest()
+    made = []
+    for scan_id, sound_speed in ((1, start.sound_speed), (2, start.sound_speed), (3, 300.0), (4, 300.0)):
+        m = type(start)()
+        m.CopyFrom(start)
+        m.scan_id, m.start_time_ns, m.sound_speed = scan_id, scan_id, sound_speed
+        (ev,) = ingest.accept(_name(start), m.SerializeToString())
+        assert isinstance(ev, Accepted) and ev.scan.start == m
+        fresh = ScanAssembly(m)
+        assert ev.scan.geometry == fresh.geometry and ev.scan.sound_speed == fresh.sound_speed
+        assert ev.scan.energy_model == fresh.energy_model
+        assert ev.scan.energy_model_problem == fresh.energy_model_problem
+        assert ev.scan._capsule_ids == fresh._capsule_ids and np.array_equal(ev.scan._ids, fresh._ids)
+        made.append(ev.scan)
+    assert made[1].description is made[0].description and made[3].description is made[2].description
+    assert made[2].sound_speed == 300.0 != made[0].sound_speed
+
+
 @pytest.mark.parametrize("fault", list(_start_faults(simulated_messages("paper-test1", seed=7, steps=2)[0])))
 def test_a_scanners_next_scan_start_is_checked_as_decoding_checks_it(scan, fault):
     """A scanner's ScanStart equal to its last valid one but for its scan and time passes as that one did;

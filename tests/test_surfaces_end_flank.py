@@ -21,8 +21,9 @@ import pytest
 
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.evidence import unseen_corner
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import SweepBeam, bearing_from_flank, point_angles
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import bearing_from_flank, point_angles
 from lelsonar.reconstruct.estimate.surfaces.measurement import clean_cuts
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.signal.directivity import piston_directivity
 from lelsonar.sim.world_geometry import ElementKind

@@ -20,15 +20,10 @@ import pytest
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
-    FLANK_SOURCE,
-    SweepBeam,
-    bearing_from_flank,
-    piston_fit,
-    range_bearing,
-    split_jump,
-)
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE, bearing_from_flank, range_bearing
+from lelsonar.reconstruct.estimate.surfaces.jump_split import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import measure_region
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, piston_fit
 from lelsonar.reconstruct.estimate.surfaces.regions import find_regions
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.signal.directivity import piston_directivity

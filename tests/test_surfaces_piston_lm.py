@@ -17,8 +17,8 @@ import pytest
 from scipy import special
 from scipy.optimize import least_squares
 
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import piston_fit
 from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, bessel_j01, log_piston_point, piston_lm
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import piston_fit
 from lelsonar.signal.directivity import piston_directivity
 
 KA = 5.13  # a 7 mm piston at 40 kHz

@@ -324,6 +324,7 @@ def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str,
         "read",
         "ingest stage",
         "finals",
+        "replaying thread",
         "replay's work × floor's",
         f"best on {cores} cores: one scan / many",
     )
@@ -334,6 +335,7 @@ def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str,
         ingest = max(r["ingest_cpu"] / n - read, 0.0)
         finals = max(r["inline_cpu"] / n - r["ingest_cpu"] / n, 0.0)
         work = read + ingest + finals
+        own = r.get("replay_thread_cpu", float("nan")) / n
         # One scan: its final reads the whole scan, so it starts when the reading ends; many: all of it shared.
         one = floor / ((read + ingest) / cores + finals) if work else float("nan")
         many = cores * floor / work if work else float("nan")
@@ -344,6 +346,7 @@ def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str,
                 f"{1e3 * read:.1f}",
                 f"{1e3 * ingest:.1f}",
                 f"{1e3 * finals:.1f}",
+                f"{1e3 * own:.1f}",
                 f"{work / floor:.2f}×",
                 f"{one:.2f}× / {many:.2f}×",
             )
@@ -351,7 +354,9 @@ def replay_work(rows: list[dict]) -> tuple[str, tuple[str, ...], list[tuple[str,
     notes = [
         "CPU ms per scan of each child's timed section (every thread of the replaying process), medians: "
         "floor = python mcap + upb; read = the tolerant reader + upb; ingest stage = decode, validate, assemble "
-        "(ingest child − read); finals = the replay with every final in the process (inline child − ingest child)",
+        "(ingest child − read); finals = the replay with every final in the process (inline child − ingest child); "
+        "replaying thread = the replay child's CPU on its replaying thread alone (the reading there, the service, "
+        "the finals it keeps): its wall clock cannot go under it, whatever the host",
         "best: the replay's work spread over the cores with nothing lost; a scan's final starts when its last "
         "sample is read, so a file of one scan overlaps only its reading",
     ]

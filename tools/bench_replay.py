@@ -9,7 +9,8 @@ peak resident set (``VmHWM``): replay's memory must not grow with the file.
 
 Each child also reports the CPU seconds of its timed section (every thread of the process; not the
 final workers').  The CPU of ``read``, ``ingest`` and ``inline`` against ``floor``'s says where a
-replay's time goes: the reading, the ingest stage and the finals.
+replay's time goes: the reading, the ingest stage and the finals.  A replay child also reports those of its
+replaying thread alone: what no other thread can take from it, under which its wall clock cannot go.
 
 Modes:
 
@@ -36,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import subprocess
 import sys
@@ -189,6 +191,9 @@ _POOLED: list[int] = []
 _CPU: list[float] = []
 #: The replay child's plan: its final workers and decompressing threads (the host's load decides them).
 _PLAN: list = []
+#: The replay child's CPU seconds on the replaying thread alone over the timed section: the part of its work no
+#: other thread can take, which its wall clock cannot go under whatever the host.
+_THREAD_CPU: list[float] = []
 
 
 def _timed(t: float, cpu: float) -> float:
@@ -237,10 +242,11 @@ def _replay(path: Path, *, warm: bool, workers: int | None = None) -> tuple[floa
     exercise_kernels()  # loaded from the cache before the clock starts, as a live reconstructor does
     service = ReconstructionService(ReconstructConfig(provisional=False, final_workers=workers))
     settle()
-    cpu, t = time.process_time(), time.perf_counter()
+    cpu, t, own = time.process_time(), time.perf_counter(), time.thread_time()
     rec = open_recording(path)
     plan = replay_plan(rec, service.config.final_workers)  # as replay_mcap decides it, reported
     replay_mcap(rec, service, plan=plan)
+    _THREAD_CPU.append(time.thread_time() - own)
     seconds = _timed(t, cpu)
     _POOLED.append(int(service.stats_dict().get("finals_pool", {}).get("in_workers", 0)))
     _PLAN.append(plan)
@@ -347,6 +353,7 @@ def memory_rows(scans_list: list[int], preset_name: str, runs: int = 1) -> list[
                 row[f"{mode}_cpu"] = statistics.median(r["cpu_s"] for r in results)
                 row[f"{mode}_rss"] = max(r["rss_mib"] for r in results)
                 row[f"{mode}_pooled"] = min(r.get("pooled", 0) for r in results)
+                row[f"{mode}_thread_cpu"] = statistics.median(r.get("thread_cpu_s", math.nan) for r in results)
             row["plans"] = Counter(
                 (r["workers"], r["threads"]) for mode in ("replay", "warm") for r in got[mode] if "threads" in r
             )
@@ -371,6 +378,8 @@ def main(argv: list[str] | None = None) -> int:
         out["pooled"] = _POOLED[-1]
     if _PLAN:
         out["workers"], out["threads"] = _PLAN[-1]
+    if _THREAD_CPU:
+        out["thread_cpu_s"] = _THREAD_CPU[-1]
     print(json.dumps(out), flush=True)
     return 0
 

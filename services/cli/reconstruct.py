@@ -191,6 +191,13 @@ def add_estimator_arguments(p: argparse.ArgumentParser, *, scan_timeout: bool) -
         metavar="S",
         help="finalise a scan after S seconds of silence without ScanEnd (default: 10)",
     )
+    g.add_argument(
+        "--provisional-deadline",
+        type=float,
+        metavar="S",
+        help="shed a provisional estimate as stale, not publish it late, when its newest sample waited over S "
+        "beyond its scan's quickest (default: 0.04; 0: publish every one, however late)",
+    )
 
 
 def _add_rerun_arguments(p: argparse.ArgumentParser) -> None:
@@ -256,19 +263,17 @@ def service_config(args: argparse.Namespace, *, provisional: bool = True):
     from lelsonar.reconstruct.stream.config import ReconstructConfig
 
     compare = compared_methods(args)
-    recovery = {
+    live = {  # the live service's settings that were given
         k: getattr(args, k)
-        for k in ("recovery_attempts", "recovery_interval", "recovery_after")
+        for k in ("recovery_attempts", "recovery_interval", "recovery_after", "scan_timeout", "provisional_deadline")
         if getattr(args, k, None) is not None
     }
-    if getattr(args, "scan_timeout", None) is not None:
-        recovery["scan_timeout"] = args.scan_timeout
     return ReconstructConfig(
         method=args.method,
         compare_methods=compare,
         provisional=provisional,
         final_workers=final_workers(args),
-        **recovery,
+        **live,
     )
 
 

@@ -14,6 +14,7 @@ import logging
 from collections.abc import Callable, Collection, Generator, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
@@ -47,11 +48,11 @@ RECORDED_TYPES: dict[str, type[Message]] = {
 }
 
 
-@dataclass(frozen=True)
-class RecordedPayload:
+class RecordedPayload(NamedTuple):
     """One contract message as stored: its type name and raw bytes, not yet decoded.
 
-    Replay decodes these through :func:`lelsonar.codec.decode`, the same path as live data.
+    Replay decodes these through :func:`lelsonar.codec.decode`, the same path as live data.  (A named tuple:
+    one is made per message replayed, and a frozen dataclass costs several times as much to make.)
     """
 
     log_time_ns: int

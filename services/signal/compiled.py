@@ -26,7 +26,8 @@ typed unaligned, so that a kernel reads a payload's waveform where it lies inste
 :func:`prefetch`, a hint to fetch the bytes a kernel reads next while it reads others; :func:`unowned`, an array
 handed on without its reference count; :func:`array_at`, an
 array handed to a kernel as its address (an integer's conversion where an array's costs a look-up of its type);
-and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.
+and :func:`float32_from_bits`, a float32 bit pattern reinterpreted as its number.  :func:`entry_point` gives a
+kernel's machine code for one signature, to call without the dispatcher's per-call type resolution.
 """
 
 from __future__ import annotations
@@ -144,6 +145,17 @@ def summing_kernel(func: F) -> F:
     checked against a bound that holds for every order: its additions may be reassociated (several partial sums
     side by side, in vector lanes).  Nothing else of ``fastmath``: a NaN or an infinity propagates as in IEEE."""
     return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})(func)  # type: ignore[return-value]
+
+
+def entry_point(func: F, *examples: object) -> F:
+    """``func``'s machine code for arguments of the types of ``examples``, called without its dispatcher (compiled,
+    or loaded from the cache, if need be): the dispatcher resolves every argument's type on every call, a fixed
+    cost that a kernel called once a sample pays a sample.  The caller passes arguments of exactly those types
+    every time (nothing checks them; an object of the wrong kind is refused, a number converted); ``func`` itself
+    if it is not a kernel (a test's stand-in)."""
+    if not isinstance(func, numba.core.registry.CPUDispatcher):
+        return func
+    return func.compile(tuple(numba.typeof(x) for x in examples))  # type: ignore[return-value]
 
 
 def kernels() -> dict[str, numba.core.registry.CPUDispatcher]:

@@ -27,14 +27,15 @@ def float32_of_bits(pattern):
 def largest_magnitude(row, a, b):
     """The largest |w| of the float32 ``row[a:b]`` (a < b) as a float: ``max(abs(w))`` taken one sample at a time
     from ``row[a]`` on (a NaN there is the result; a NaN after it is never larger)."""
-    patterns = row.view(np.uint32)
+    run = row[a:b]  # (indexed from 0: loads side by side, where an index that may be negative is gathered)
+    patterns = run.view(np.uint32)
     top = np.uint32(0)
-    for j in range(a, b):
+    for j in range(run.size):
         top = max(top, np.uint32(patterns[j] << np.uint32(1)))  # the magnitude's order
     if top > _INF_MAGNITUDE:  # a NaN
-        peak = abs(row[a])
-        for j in range(a + 1, b):
-            v = abs(row[j])
+        peak = abs(run[0])
+        for j in range(1, run.size):
+            v = abs(run[j])
             if v > peak:
                 peak = v
         return float(peak)
@@ -49,19 +50,20 @@ def extent(row, a, b):
 
     A pattern with its sign bit set is flipped whole, others get the sign bit: as unsigned integers, then, the
     patterns are in the numbers' order."""
-    patterns = row.view(np.uint32)
+    run = row[a:b]  # (indexed from 0, as in :func:`largest_magnitude`)
+    patterns = run.view(np.uint32)
     low = np.uint32(0xFFFFFFFF)
     high = np.uint32(0)
-    for j in range(a, b):
+    for j in range(run.size):
         p = patterns[j]
         key = np.uint32(p ^ (np.uint32(np.uint32(0) - (p >> np.uint32(31))) | np.uint32(0x80000000)))
         low = min(low, key)
         high = max(high, key)
     # -inf's key is 0x007FFFFF, +inf's 0xFF800000: a NaN's is below the one or above the other.
     if low < np.uint32(0x007FFFFF) or high > np.uint32(0xFF800000):
-        lo = hi = row[a]
-        for j in range(a, b):
-            lo, hi = min(lo, row[j]), max(hi, row[j])
+        lo = hi = run[0]
+        for j in range(run.size):
+            lo, hi = min(lo, run[j]), max(hi, run[j])
         return float(lo), float(hi)
     return float32_of_bits(_unkey(low)), float32_of_bits(_unkey(high))
 

@@ -50,7 +50,7 @@ import numpy as np
 from lelsonar import codec
 from lelsonar.errors import InvalidMessageError, LelsonarError
 from lelsonar.reconstruct.stream.fastwire import GROW, UNREAD, place_wire, wire_arrays
-from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, StepView, stacked_waveforms
+from lelsonar.reconstruct.stream.scan_arrays import ScanArrays, ScanDescription, StepView, stacked_waveforms
 from lelsonar.reconstruct.stream.step_features import (
     AGREED,
     CANDIDATES,
@@ -59,6 +59,7 @@ from lelsonar.reconstruct.stream.step_features import (
     place_step,
     settle_step,
 )
+from lelsonar.signal.compiled import entry_point
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import waveform_energy
 from lelsonar.v1 import scan_pb2
@@ -68,6 +69,14 @@ __all__ = ["ScanAssembly", "StepView"]
 _log = logging.getLogger(__name__)
 
 _FLOAT32 = scan_pb2.WAVEFORM_ENCODING_FLOAT32_LE
+
+
+@functools.lru_cache(maxsize=4)
+def _placer(place):
+    """``place`` (:func:`~lelsonar.reconstruct.stream.fastwire.place_wire`) called without Numba's dispatcher, for
+    the arguments :meth:`ScanAssembly.add_payload` passes: a payload's ``bytes``, three ints, a bool and the
+    scan's int64 array (:func:`~lelsonar.signal.compiled.entry_point`)."""
+    return entry_point(place, b"", 0, 0, 0, False, np.zeros(1, np.int64))
 
 
 @functools.lru_cache(maxsize=16)  # (k is bounded by DecodeLimits.max_sensors; a few sizes in practice)
@@ -80,8 +89,8 @@ def _packers(k: int) -> tuple[struct.Struct, struct.Struct]:
 class ScanAssembly(ScanArrays):
     """One scan, assembled from its samples in whatever order they arrive."""
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
+    def __post_init__(self, described: ScanDescription | None = None) -> None:
+        super().__post_init__(described)
         # The kernel's constants of the scan (place_step's ``scan``): the speed of sound (NaN for none: the
         # ranges then need both fields), the timing windows' rate (NaN until the first waveforms), E0's model.
         model = self.energy_model
@@ -160,28 +169,39 @@ class ScanAssembly(ScanArrays):
         InvalidMessageError
             A range that needs a speed of sound the scan does not state.
         """
-        known = self._layout
-        presumed = known is None
-        if known is None:  # the scan's first sample: on the scanner's previous layout, or parsed
-            known = self._presume()
-            if known is None:
-                return -1
-        wire = self._wire if limits is self._limits_cleared else None
-        if wire is None:
-            wire = self._wire_for(limits)
+        if type(payload) is not bytes:  # (the type the placer was compiled for)
+            payload = bytes(payload)
+        wire = self._wire
+        presumed = False
+        if wire is None or limits is not self._limits_cleared:  # (the common case is neither)
+            if self._layout is None:  # the scan's first sample: on the scanner's previous layout, or parsed
+                if self._presume() is None:
+                    return -1
+                presumed = True
+            wire = self._wire if limits is self._limits_cleared else None
+            if wire is None:
+                wire = self._wire_for(limits)
+                if wire is None:
+                    return self._placed_payload(UNREAD, 0, step, payload, presumed)
         recovered = origin == "recovered"
-        status = UNREAD
-        while wire is not None:
+        while True:
             # (A step already held is the kernel's refusal: the parser's path then counts the duplicate.)
-            status, carried, step = place_wire(payload, at, step, time_ns, recovered, wire[0])
+            status, carried, step = wire[2](payload, at, step, time_ns, recovered, wire[0])
+            if status == AGREED:  # what _placed leaves to do is to note the latest step
+                self._latest = (step, payload, self._layout)
+                return step
             if status != GROW:
-                break
+                return self._placed_payload(status, carried, step, payload, presumed)
             self._allocate(min(self._steps, max(2 * len(self.received), step + 1)))
             wire = self._wire_for(limits)  # placed once the arrays reach its step (the same limits: not None)
-        if status == AGREED:  # the common case: what _placed leaves to do is to note the latest step
-            self._latest = (step, payload, known)
-            return step
-        if status < 0 and status != NO_SOUND_SPEED:  # (UNREAD, UNCHECKED)
+            if wire is None:
+                return self._placed_payload(UNREAD, 0, step, payload, presumed)
+
+    def _placed_payload(self, status: int, carried: int, step: int, payload: bytes, presumed: bool) -> int:
+        """:meth:`add_payload`'s result of a placement's ``status`` other than ``AGREED`` (:meth:`_placed`);
+        ``presumed``: the layout was presumed for this sample (:meth:`_presume`), undone if it was not read on it."""
+        known = self._layout
+        if known is None or (status < 0 and status != NO_SOUND_SPEED):  # (UNREAD, UNCHECKED; no layout: not read)
             if presumed:
                 self._unpresume()
             return -1
@@ -204,7 +224,7 @@ class ScanAssembly(ScanArrays):
         else:
             return None
         arrays = (bound, self._ids, self._values, known[1], self._starts, self._scan, *self._arrays())
-        wire = (wire_arrays(*arrays), arrays)  # (the arrays kept with their addresses)
+        wire = (wire_arrays(*arrays), arrays, _placer(place_wire))  # (the arrays kept with their addresses)
         if cleared:
             self._wire = wire
         return wire

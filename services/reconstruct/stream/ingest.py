@@ -107,9 +107,13 @@ class Ingest:
     #: By scanner, the layout its last scan's samples showed (:attr:`ScanAssembly.layout`), for its next scan's first
     #: sample (:meth:`ScanAssembly.expect_layout`); at most ``max_scans`` scanners, the least recent forgotten first.
     _layouts: OrderedDict[str, list] = field(default_factory=OrderedDict)
-    #: By scanner, the last ScanStart it sent that passed every check, and the limits they were made under
-    #: (:meth:`_decode_start`); at most ``max_scans`` scanners, the least recent forgotten first.
-    _starts: OrderedDict[str, tuple[codec.DecodeLimits, codec.ScanStart]] = field(default_factory=OrderedDict)
+    #: By scanner, the last ScanStart it sent that passed every check, the limits they were made under
+    #: (:meth:`_decode_start`) and its scans' :class:`~lelsonar.reconstruct.stream.scan_arrays.ScanDescription` once
+    #: one was made; at most ``max_scans`` scanners, the least recent forgotten first.
+    _starts: OrderedDict[str, list] = field(default_factory=OrderedDict)
+    #: The ScanStart :meth:`_decode_start` passed last and its scanner's entry of ``_starts`` (whose ScanStart equals
+    #: it but for ``scan_id`` and ``start_time_ns``), for :meth:`_start` to make its scan from that description.
+    _passed: tuple[codec.ScanStart, list] | None = None
 
     @property
     def n_pending(self) -> int:
@@ -128,9 +132,10 @@ class Ingest:
             cls = _MESSAGE_TYPES.get(type_name)
             if cls is _SAMPLE:
                 limits = self.limits
-                if type(payload) is not bytes and len(payload) <= limits.max_payload_bytes:
+                small = len(payload) <= limits.max_payload_bytes
+                if small and type(payload) is not bytes:
                     payload = bytes(payload)  # (a zenoh.ZBytes) copied once: the fast path or the parser reads it
-                if self.fast_path and len(payload) <= limits.max_payload_bytes:
+                if small and self.fast_path:
                     # Placed in its open scan straight from its bytes, never parsed (ScanAssembly.add_payload), where
                     # it is routed (:meth:`_route`); else left to the parser.  (Inline: every sample runs it.)
                     route = self._routes.get(key_scanner)
@@ -228,12 +233,16 @@ class Ingest:
 
     # --- internals -------------------------------------------------------------------
     def _start(self, key: ScanKey, start: codec.ScanStart) -> list[Accepted | Rejected]:
+        passed, self._passed = self._passed, None
         if key in self.scans:
             return [self._reject("DuplicateScanStart", f"second ScanStart for scan {key} ignored")]
+        entry = passed[1] if passed is not None and passed[0] is start else None
         try:
-            scan = ScanAssembly(start)
+            scan = ScanAssembly(start, described=None if entry is None else entry[2])
         except LelsonarError as exc:
             return [self._reject(type(exc).__name__, f"ScanStart {key}: {exc}")]
+        if entry is not None:
+            entry[2] = scan.description
         self.scans[key] = scan
         scan.expect_layout(self._layouts.get(key[0]))
         while len(self.scans) > self.max_scans:
@@ -277,11 +286,13 @@ class Ingest:
             passed = known[1]
             passed.scan_id, passed.start_time_ns = message.scan_id, message.start_time_ns
             if passed == message:
+                self._passed = (message, known)
                 return message
         codec.validate_body(message, limits)
         passed = _SCAN_START()
         passed.CopyFrom(message)  # (a copy of its own: the message goes to its scan)
-        starts[message.scanner_id] = (limits, passed)
+        known = starts[message.scanner_id] = [limits, passed, None]
+        self._passed = (message, known)
         starts.move_to_end(message.scanner_id)
         while len(starts) > self.max_scans:
             starts.popitem(last=False)

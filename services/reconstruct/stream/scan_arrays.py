@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -32,6 +33,30 @@ _SENSOR_ENERGY, _STEP_ENERGY = PER_CAPSULE.index("sensor_energy"), PER_STEP.inde
 #: The windows of a scan that has none yet (no rows, no width): read only for their shape.
 _NO_WINDOWS = np.zeros((0, 0, 0), np.float32)
 _NO_WINDOWS.flags.writeable = False
+
+
+class ScanDescription(NamedTuple):
+    """What a ``ScanStart`` states of its scanner that a scan's arrays are made from (:attr:`ScanArrays.description`):
+    the same for every ``ScanStart`` equal to it but for ``scan_id`` and ``start_time_ns``, which none of it reads
+    (a scanner sends the same description scan after scan).  Read only, shared by the scans made from it."""
+
+    geometry: ArrayGeometry
+    capsule_ids: list  # the ScanStart's capsule ids, ascending: row i of the arrays is the i-th
+    ids: np.ndarray  # the same, int64
+    sound_speed: float | None
+    energy_model: EnergyModel
+    energy_model_problem: str | None
+
+
+def describe(start: codec.ScanStart) -> ScanDescription:
+    """The :class:`ScanDescription` of a validated ``ScanStart``."""
+    geometry = scan_geometry(start)
+    # Capsules are matched by the ids the ScanStart gave them (0..k-1 from our writer, any unique ids from
+    # another); row i of the arrays is the i-th id in ascending order, as the geometry's capsule i.
+    ids = sorted(c.capsule_id for c in start.capsules)
+    e = start.energy_model
+    model, problem = energy_model_of(e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range)
+    return ScanDescription(geometry, ids, np.array(ids, dtype=np.int64), speed_of_sound(start), model, problem)
 
 
 @dataclass
@@ -94,19 +119,18 @@ class ScanArrays(WriterChecks):
     #: Rows allocated at first; the arrays double as higher steps arrive, up to ScanStart.steps.
     INITIAL_ROWS = 256
 
-    def __post_init__(self) -> None:
-        self.geometry = scan_geometry(self.start)
+    #: What ``start`` states of its scanner, derived once for the scans of equal ScanStarts.
+    description: ScanDescription = field(init=False, repr=False)
+    #: The :attr:`description` of ``start`` if the caller has it (an equal ScanStart's scan's): not derived again.
+    described: InitVar[ScanDescription | None] = None
+
+    def __post_init__(self, described: ScanDescription | None = None) -> None:
+        self.description = described = describe(self.start) if described is None else described
+        self.geometry, self._capsule_ids, self._ids, self.sound_speed, self.energy_model, self.energy_model_problem = (
+            described
+        )
         self._k = self.geometry.n_capsules
         self._steps = int(self.start.steps)
-        # Capsules are matched by the ids the ScanStart gave them (0..k-1 from our writer, any unique ids from
-        # another); row i of the arrays is the i-th id in ascending order, as the geometry's capsule i.
-        self._capsule_ids = sorted(c.capsule_id for c in self.start.capsules)
-        self._ids = np.array(self._capsule_ids, dtype=np.int64)
-        self.sound_speed = speed_of_sound(self.start)
-        e = self.start.energy_model
-        self.energy_model, self.energy_model_problem = energy_model_of(
-            e.phi0, e.phi1, e.phi2, e.valid_min_range, e.valid_max_range
-        )
         # Each reading's waveform around its time of flight (echo_timing.TIMING_WINDOW), kept to re-time the
         # echoes if the scan's ranges walk with their amplitude (range_walk): (steps, k, width) float32 at the
         # rate of the first sample's first capsule (width 0 until then; a capsule on another clock is not kept).

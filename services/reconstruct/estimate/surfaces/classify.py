@@ -37,12 +37,10 @@ from lelsonar.reconstruct.estimate.surfaces.evidence import (
 from lelsonar.reconstruct.estimate.surfaces.features import Kind
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     FLANK_SOURCE,
-    SweepBeam,
     bearing_from_flank,
     flank_measured,
     flank_reach,
     point_angles,
-    sweep_beam,
 )
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
@@ -50,6 +48,7 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import (
     clean_cuts,
     unit_normal,
 )
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.results import (
     UNSETTLED,
     SurfaceOptions,
@@ -288,16 +287,22 @@ def classify_regions(
     across = [across_stack(m, opts) for m in measured]
     planes = _planes(measured, partial, across, scale, opts)
     walls_of_corners = walls_of_unseen_corners(measured, planes, across, partial, gamma, opts)
+    flanks = _Flanks([measured[j] for j in planes], gamma, amplitude, scale, opts, distance)
     for i, text in walls_of_corners.items():
         m = measured[i]
         if m.bearing_source == "amplitude peak":
             # Its corner's echo answers beside it inside the amplitude window and sums into its flank: the peak
             # may sit anywhere the region allows its foot.
             m = replace(m, bearing_stderr=reach_stderr(m, opts))
+        elif m.bearing_source == "undetermined":
+            # A wall's mirror, its foot past a cut end: placed by its flank where nothing else answers inside
+            # its amplitude window past that end (as a wall the end-or-wall test finds is).
+            got = flanks.of(m)
+            if got is not None and got[1]:
+                m = got[0]
         measured[i] = replace(m, findings=(*m.findings, (DEGRADED, text)))
     kinds: dict[int, Kind] = {}
     across_lines: set[int] = set()
-    flanks = _Flanks([measured[j] for j in planes], gamma, amplitude, scale, opts, distance)
     for i in range(len(measured)):
         m, kind, across_line = _region_kind(
             i, measured, planes, across[i], partial, i in walls_of_corners, scale, gamma, opts, flanks

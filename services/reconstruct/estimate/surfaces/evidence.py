@@ -438,6 +438,19 @@ def wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
 
+def on_the_way(o: Measured, mi: Measured, mk: Measured, opts: SurfaceOptions) -> bool:
+    """Whether region ``o``, between a wall's mirror ``mi`` and its corner ``mk`` in the sweep, may lie on that
+    wall's trace between its foot and the corner: its depth within theirs (``range_tolerance`` either side).
+
+    The wall's trace runs from its foot at ``h_i`` to the corner at ``|X|``, its range ``h_i / cos(β − β_i)``
+    growing monotonically between: whatever the wall holds there (its own line with a floor or a ceiling, a
+    mark on it) answers within those ranges.  A target nearer than the foot would hide the corner; one deeper
+    than the corner lies behind the wall.  (A plane's own foot between them is a wall of its own: the caller
+    sets those apart.)
+    """
+    return mi.depth - opts.range_tolerance <= o.depth <= mk.depth + opts.range_tolerance
+
+
 def walls_of_unseen_corners(
     measured: list[Measured],
     planes: list[int],
@@ -482,9 +495,13 @@ def walls_of_unseen_corners(
                 mi = measured[i]
                 if i == k or i in out or not mi.depth < mk.depth - opts.range_tolerance:
                     continue
-                # Beside each other in the sweep: nothing between their spans.
+                # Beside each other in the sweep: nothing between their spans but what may lie on the wall's trace
+                # between its foot and its corner (no plane's own foot: a line of the wall across the fan).
                 lo, hi = min(mi.span[1], mk.span[1]), max(mi.span[0], mk.span[0])
-                if any(lo < o.span[0] and o.span[1] < hi for o in measured):
+                if any(
+                    lo < o.span[0] and o.span[1] < hi and (n in planes or not on_the_way(o, mi, mk, opts))
+                    for n, o in enumerate(measured)
+                ):
                     continue
                 if unseen_corner(mi, mk, pj, opts) is not None:
                     out[i] = (

@@ -67,7 +67,7 @@ from lelsonar.reconstruct.estimate.surfaces.classify import classify_regions
 from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import flank_measured, flank_reach, sweep_beam
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import flank_measured, flank_reach
 from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
@@ -83,6 +83,7 @@ from lelsonar.reconstruct.estimate.surfaces.off_fan import (
     split_stack,
     taken_back,
 )
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,

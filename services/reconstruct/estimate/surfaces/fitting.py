@@ -168,18 +168,65 @@ def joint_fit(
     """The walls joined at concave corners, fitted with their corners (:func:`.joint.joint_walls`).
 
     Returns the joint walls by region, and the regions whose beam-pattern bearing the corners dispute (more
-    than 3 σ apart): those keep their own fit, and say so.
+    than 3 σ apart): those keep their own fit, and say so.  What pulled a disputed wall off its own bearing
+    pulled the walls tied to it too, so the rest are fitted again without it and the corners it joins, until
+    the corners dispute none of those left.
     """
+    disputed: dict[int, str] = {}
+    left = list(pairs)
+    while True:
+        fitted = _joint_round(left, measured, opts.beyond_cut)
+        if fitted is None:
+            return {}, disputed
+        out: dict[int, JointWall] = {}
+        new: dict[int, str] = {}
+        for j, jw in fitted.items():
+            mj = measured[j]
+            gap = abs(wrap(jw.bearing - mj.bearing))
+            if gap > 3 * mj.surface_bearing_stderr:
+                new[j] = (
+                    f"its corners' double bounce puts its bearing {math.degrees(gap):.1f}° from the beam pattern's "
+                    f"(σ {math.degrees(mj.surface_bearing_stderr):.1f}°): fitted on its own echoes"
+                )
+            else:
+                out[j] = jw
+        if not new:
+            return out, disputed
+        disputed.update(new)
+        left = [(i, ties) for i, ties in left if not set(ties[:2]) & set(new)]
+
+
+def _heard(corner: Measured, a: Measured, b: Measured, reach: float) -> bool:
+    """Whether the line where planes ``a`` and ``b`` meet lies within ``reach`` of every step of the corner's region.
+
+    Each reading is an echo its step's beam heard, so its target lies within the beam's half-width of that step's
+    axis, both ends of the region included: a line past it from the far end is another corner at a like range
+    (the same two walls' mirror image across the array, in a corridor's middle).
+    """
+    line = plane_line(a, b)
+    if line is None:
+        return False
+    bearing = math.atan2(float(line[0][2]), float(line[0][1]))
+    return all(abs(wrap(bearing - end)) <= reach for end in corner.span)
+
+
+def _joint_round(
+    pairs: list[tuple[int, list[int]]], measured: list[Measured], reach: float
+) -> dict[int, JointWall] | None:
+    """One joint fit of the walls ``pairs`` ties (:func:`.joint.joint_walls`), by region; None: nothing to fit, or
+    the fit failed.  ``reach``: rad, how far off a step's axis its beam hears a target (about the beam's
+    half-width): a corner ties its walls only where every step of its region could hear their line."""
+    pairs = [(i, ties) for i, ties in pairs if _heard(measured[i], measured[ties[0]], measured[ties[1]], reach)]
     walls = sorted({j for _, ties in pairs for j in ties[:2]})
     if not pairs or len(walls) < 2:
-        return {}, {}
+        return None
     index = {j: k for k, j in enumerate(walls)}
     evidence = []
     for j in walls:
         mj = measured[j]
         sigma = _scatter(mj.ranges + mj.positions @ unit_normal(mj.bearing, mj.tilt))
         if not (math.isfinite(sigma) and sigma > 0):
-            return {}, {}
+            return None
         evidence.append(
             WallEvidence(mj.positions, mj.ranges, mj.bearing, mj.surface_bearing_stderr, mj.tilt, mj.depth, sigma)
         )
@@ -198,17 +245,5 @@ def joint_fit(
         corners.append(CornerEvidence(mi.positions, mi.ranges, (index[ties[0]], index[ties[1]]), sigma))
     fitted = joint_walls(evidence, corners)
     if fitted is None:
-        return {}, {}
-    out: dict[int, JointWall] = {}
-    disputed: dict[int, str] = {}
-    for j, jw in zip(walls, fitted, strict=True):
-        mj = measured[j]
-        gap = abs(wrap(jw.bearing - mj.bearing))
-        if gap > 3 * mj.surface_bearing_stderr:
-            disputed[j] = (
-                f"its corners' double bounce puts its bearing {math.degrees(gap):.1f}° from the beam pattern's "
-                f"(σ {math.degrees(mj.surface_bearing_stderr):.1f}°): fitted on its own echoes"
-            )
-        else:
-            out[j] = jw
-    return out, disputed
+        return None
+    return dict(zip(walls, fitted, strict=True))

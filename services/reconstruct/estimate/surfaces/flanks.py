@@ -17,9 +17,10 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.robust import median
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import split_jump
-from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, measure_region, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.jump_split import split_jump
+from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, centre_with_peak, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.slopes import step_slopes
@@ -257,7 +258,8 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     and slope, so the plane's own echo may have faded there or one gap past it.  Farther out the other
     target's echo stands alone.  Uniform over that span (``w``, from the core's end to that step, plus the
     gap past it), the end is the middle of the core's end and that step, with variance ``(w + gap)²/12``.
-    Only the bearing of a core centred on its own span changes (and its depth, along the new normal).
+    Only the bearing of a core centred on its own span changes (and its depth, along the new normal); that centre
+    is weighed with the core's own amplitude peak where the two agree (:func:`~.measurement.centre_with_peak`).
 
     Parameters
     ----------
@@ -289,8 +291,12 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     bearing = 0.5 * (ends[0][0] + ends[1][0])
     # The ends' share of the core's σ replaced; whatever else it holds (a jump's shift) kept.
     var = max(core.bearing_stderr**2 - base, 0.0) + 0.25 * (ends[0][1] + ends[1][1])
+    # The trimmed ends' centre and the core's amplitude peak are two measurements of one bearing, as for any
+    # region: weighed together where they agree.
+    peak = bearing_from_amplitude(gamma[steps], core.step_amplitude)
+    bearing, sb, _ = centre_with_peak(bearing, math.sqrt(var), peak, not core.clipped)
     h_i = core.ranges + core.positions @ unit_normal(bearing, core.tilt)
-    return replace(core, bearing=bearing, bearing_stderr=math.sqrt(var), depth=median(h_i))
+    return replace(core, bearing=bearing, bearing_stderr=sb, depth=median(h_i))
 
 
 def split_ends(

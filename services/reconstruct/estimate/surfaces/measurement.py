@@ -31,6 +31,7 @@ from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits
 __all__ = [
     "Measured",
     "across_stack_measured",
+    "centre_with_peak",
     "clean_cuts",
     "handed_over",
     "masked_ends",
@@ -75,6 +76,9 @@ class Measured:
     # rad: how far an echo summed into the amplitude window may have moved the bearing, the capsules' own peaks'
     # spread times the peak's share of the bearing; part of the surface's σ, not of the tests that classify it
     summed_spread: float = 0.0
+    # (before, after): an end where another target's echo at a like range takes over (an amplitude jump split the
+    # region there); that echo sums into the region's amplitude window there and bends its profile
+    handed_over: tuple[bool, bool] = (False, False)
 
     @property
     def surface_bearing_stderr(self) -> float:
@@ -291,12 +295,7 @@ def measure_region(
         # Two measurements that differ by more than their σ say (another echo summed into the amplitudes bends
         # the peak smoothly, which the parabola's residuals do not show) scale the weighted σ by their
         # difference in σ of it (the Birge ratio, at least 1).
-        peak_sb = peak_fit[1] if peak_fit is not None else math.inf
-        apart = abs(peak_fit[0] - mid) / math.hypot(peak_sb, sb) if peak_fit is not None else math.inf
-        if clipped is False and peak_fit is not None and apart <= 3.0:
-            wc, wp = 1.0 / sb**2, 1.0 / peak_sb**2
-            bearing, sb = (wc * mid + wp * peak_fit[0]) / (wc + wp), max(1.0, apart) / math.sqrt(wc + wp)
-            peak_weight = wp / (wc + wp)
+        bearing, sb, peak_weight = centre_with_peak(mid, sb, peak_fit, clipped is False)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
         peak_weight = 1.0
@@ -364,6 +363,37 @@ def measure_region(
         stack_sigma=lin_sigma,
         summed_spread=peak_weight * spread,
     )
+
+
+def centre_with_peak(
+    centre: float, centre_stderr: float, peak: tuple[float, float] | None, unclipped: bool
+) -> tuple[float, float, float]:
+    """A region's centre bearing weighed with its amplitude peak where the two agree within 3 σ of their difference.
+
+    Two measurements of one bearing (the ends' threshold crossings; the beam pattern's vertex), each weighed by
+    its inverse variance; a difference larger than their σ say scales the weighted σ by it (the Birge ratio, at
+    least 1).  A clipped top's plateau, or a peak beyond 3 σ, leaves the centre alone.
+
+    Parameters
+    ----------
+    centre, centre_stderr : float
+        rad.
+    peak : (bearing, σ) or None
+        rad: :func:`~.beam_pattern.bearing_from_amplitude`.
+    unclipped : bool
+        The receiver did not clip the region's peak.
+
+    Returns
+    -------
+    (bearing, σ, the peak's share of the bearing), rad, rad, in [0, 1].
+    """
+    if not unclipped or peak is None:
+        return centre, centre_stderr, 0.0
+    apart = abs(peak[0] - centre) / math.hypot(peak[1], centre_stderr)
+    if not apart <= 3.0:
+        return centre, centre_stderr, 0.0
+    wc, wp = 1.0 / centre_stderr**2, 1.0 / peak[1] ** 2
+    return (wc * centre + wp * peak[0]) / (wc + wp), max(1.0, apart) / math.sqrt(wc + wp), wp / (wc + wp)
 
 
 def mirror_normalised(amplitude: float, depth: float, opts: SurfaceOptions) -> float:
