@@ -155,7 +155,7 @@ def extract_surfaces(
     joint = _joint_corners(measured, kinds, across_lines, opts)
     _flank_bearings(measured, kinds, partial, scale, sweep)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
-    corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale)
+    corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale, sweep.distance)
     return SurfaceSet(
         surfaces=tuple(confirm_surfaces(surfaces, _confirmed(measured, kinds, across_lines, surface_of))),
         corners=tuple(corners),

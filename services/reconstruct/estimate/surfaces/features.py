@@ -8,7 +8,10 @@ region's reach allows, and its σ spans that reach (:func:`~.evidence.reach_stde
 weighs it with the trace's, its σ grown where the two disagree.  Its direction: along the
 two planes' line, along its one plane across the ray to it (that plane's end), across the fan for a line across
 the stack, else along the stack.  Where its own echoes deny what placed it (:mod:`.feature_kinds`), it lies where
-its own echo comes from, and its kind, which rested on that placement, is not settled.
+its own echo comes from, and its kind, which rested on that placement, is not settled.  Its σ holds what its
+evidence leaves open: a pair corner's grows where its own range and its line's disagree past both σ; a line
+across the fan at its plane's foot takes the turn in the plane its tilt allows; a bearing of its own echo spans
+its region's reach where that echo goes on past an end or sums another's (:mod:`.own_bearing`).
 """
 
 from __future__ import annotations
@@ -33,10 +36,12 @@ from lelsonar.reconstruct.estimate.surfaces.feature_kinds import (
 )
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.own_bearing import continued_ends, peak_past_fade
 from lelsonar.reconstruct.estimate.surfaces.placement import (
     RANGE_FLOOR,
     echo_point,
     line_direction,
+    line_yaw_stderr,
     pair_line_point,
     with_range,
 )
@@ -79,6 +84,12 @@ MIXED = (
     "it, its bearing anywhere its region's reach allows"
 )
 
+#: In the reasons of a line across the fan placed at its plane's foot whose turn in the plane its tilt leaves open.
+YAW_OPEN = (
+    "at its plane's foot, its line's turn in the plane known only through its cosine (its range and tilt): "
+    "within their σ the line's point may lie {turn:.1f}° off the foot, in its bearing's σ"
+)
+
 #: In the reasons of a feature placed by its own echo whose ranges along the stack no one target explains.
 STACK_MIXED = (
     "its ranges along the capsule stack scatter {sigma:.1f} mm about any one target's, more than one reading's "
@@ -87,7 +98,7 @@ STACK_MIXED = (
 
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
 #: with: a reader shows them beside its σ.
-PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE)
+PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE, YAW_OPEN.split(",")[0])
 
 
 def kind_unsettled(reasons: Iterable[str]) -> bool:
@@ -196,11 +207,12 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
     the fan.  Apart by more than 3 σ of both, the point is where the region's own range and tilt meet the
     plane's trace, on the side of the foot its echo is heard (the plane's mirror echo, nearer, hides the line's
     around the foot: the line's emerges past the plane's region on its nearest point's side), with
-    :func:`~.evidence.end_stderr`'s σ.  Its bearing σ is at least the fitted plane's.
+    :func:`~.evidence.end_stderr`'s σ.  Its bearing σ is at least the fitted plane's; at the foot, it holds the
+    turn the tilt's σ leaves open (:func:`~.placement.line_yaw_stderr`).
 
     Returns
     -------
-    The region so placed, and the reason to add ("": at the foot).
+    The region so placed, and the reason to add ("": at the foot, square to the stack).
     """
     if fitted is not None:
         fitted_se = math.sqrt(max(float(fitted.covariance[0, 0]), 0.0))
@@ -211,7 +223,11 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
         return m, ""
     se = math.hypot(own.tilt_stderr, m.tilt_stderr if math.isfinite(m.tilt_stderr) else 0.0)
     if not abs(own.tilt - m.tilt) > 3.0 * se:
-        return m, ""
+        turn = line_yaw_stderr(own.depth, own.depth_stderr, own.tilt, own.tilt_stderr, pj.depth, pj.depth_stderr)
+        if not turn > 0:
+            return m, ""
+        m = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, turn))
+        return m, YAW_OPEN.format(turn=math.degrees(turn))
     x0 = own.depth * math.sin(own.tilt)
     h = (pj.depth - x0 * math.sin(pj.tilt)) / math.cos(pj.tilt)
     rho = in_fan_range(own)[0]
@@ -285,10 +301,17 @@ def centre_off_peak(m: Measured, gamma: np.ndarray) -> tuple[Measured, str]:
 
 
 def _pair_placement(
-    ia: int, ib: int, m: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    ia: int, ib: int, own: Measured, surface_of: dict[int, Surface], joint: dict[int, JointWall]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, str, tuple[np.ndarray, np.ndarray]] | None:
     """A pair corner's line from its two fitted planes: its nearest point, that point's covariance (the
-    planes' full covariance through the intersection) and its direction."""
+    planes' full covariance through the intersection), its direction, the reason to add ("": none) and the
+    point with the covariance it is placed with.
+
+    The corner's own double-bounce range and the line's are two measurements of ``|X|``: apart by more than
+    their σ (χ² over 1), the planes' line misses the echo's source by what neither σ says (a plane's bearing
+    off by less than its verdict notices), and the point's covariance grows by χ², as a fit's whose rows
+    scatter past their σ; the tests of what its own echoes admit (:func:`pair_denied`) read the line's own.
+    """
     sa, sb = surface_of.get(ia), surface_of.get(ib)
     if sa is None or sb is None:
         return None
@@ -305,10 +328,25 @@ def _pair_placement(
     if line is None:
         return None
     point, cov = line
+    why = ""
+    grown = cov
+    rho = float(np.linalg.norm(point))
+    sd = max(RANGE_FLOOR, own.depth_stderr) if math.isfinite(own.depth_stderr) else RANGE_FLOOR
+    if rho > 0 and math.isfinite(own.depth):
+        u = point / rho
+        chi2 = (own.depth - rho) ** 2 / (max(float(u @ cov @ u), 0.0) + sd * sd)
+        if chi2 > 1.0:
+            grown = cov * chi2
+            why = (
+                f"its own range ({own.depth:.3f} m) and their line's ({rho:.3f} m) differ by "
+                f"{1000 * abs(own.depth - rho):.1f} mm, {math.sqrt(chi2):.1f}× their σ: the line's σ grown by it"
+            )
+    placed = point, grown
     if not tied:
         # The walls fitted apart: the corner's own double-bounce range is a measurement they did not use.
-        point, cov = with_range(point, cov, m.depth, m.depth_stderr)
-    return point, cov, line_direction(params)
+        point, cov = with_range(point, cov, own.depth, own.depth_stderr)
+        placed = with_range(placed[0], placed[1], own.depth, own.depth_stderr)
+    return point, cov, line_direction(params), why, placed
 
 
 def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
@@ -380,6 +418,7 @@ def place_features(
     surface_of: dict[int, Surface],
     joint: dict[int, JointWall],
     scale: EchoScale,
+    distance: np.ndarray | None = None,
 ) -> tuple[list[Feature], list[Feature]]:
     """The corners and the edges, each where its planes or its own echo put it, along its line.
 
@@ -399,6 +438,9 @@ def place_features(
         Each wall fitted with its concave corners (:func:`~.fitting.joint_fit`).
     scale : EchoScale
         The sweep's echo references (and the extractor's options).
+    distance : (n_steps, n_capsules) array, optional
+        The sweep's ranges: where a region's capsules go on hearing its range past an end
+        (:func:`~.own_bearing.continued_ends`; without them, the other regions say).
 
     Returns
     -------
@@ -408,6 +450,12 @@ def place_features(
     opts = scale.opts
     corners: list[Feature] = []
     edges: list[Feature] = []
+
+    def reach(k: Measured, reasons: list[str]) -> tuple[Measured, list[str]]:
+        """``k`` with the bearing σ of its region's reach, an end its echo goes on past counted as cut."""
+        cont, why = continued_ends(k, own, opts.range_tolerance, distance)
+        return replace(k, bearing_stderr=reach_stderr(cont, opts)), [*reasons, why] if why else reasons
+
     stack_axis = np.array([1.0, 0.0, 0.0])
     for i, (kind, reasons, ties) in sorted(kinds.items()):
         m = measured[i]
@@ -416,31 +464,34 @@ def place_features(
         if i in across_lines and ties and own[i].stack_sigma > opts.range_tolerance:
             # The double bounce with a surface across the fan explains the ranges no better than a free slope
             # whose residuals scatter past a region's own steadiness: its readings hold more than one target.
-            m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts), tilt_stderr=float("nan"))
+            m, reasons = reach(own[i], reasons)
+            m = replace(m, tilt_stderr=float("nan"))
             reasons = [*reasons, MIXED.format(sigma=1000 * own[i].stack_sigma, tol=1000 * opts.range_tolerance)]
             tied, direction = (), stack_axis
         elif i in across_lines:
             alike = like_its_mirror(m, own[i], measured[ties[0]]) if ties else ""
             if alike:
-                m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
-                reasons, tied = [*reasons, alike], ()
+                m, reasons = reach(own[i], [*reasons, alike])
+                tied = ()
             elif ties:
                 m, why = _across_line(m, own[i], measured[ties[0]], surface_of.get(ties[0]))
                 reasons = [*reasons, why] if why else reasons
             direction = cross3(stack_axis, unit_normal(m.bearing))
             if not ties and m.bearing_source == "undetermined":
-                m = replace(m, bearing_stderr=reach_stderr(m, opts))
+                m, reasons = reach(m, reasons)
         elif len(ties) >= 2:
-            pair_line = _pair_placement(ties[0], ties[1], m, surface_of, joint)
+            pair_line = _pair_placement(ties[0], ties[1], own[i], surface_of, joint)
             denied = "" if pair_line is None else pair_denied(own[i], pair_line[0], pair_line[1], scale)
             if denied:
                 # Where its own echo comes from: its bearing anywhere its region's reach allows.  Its kind rested
                 # on being their double bounce: a strong echo elsewhere is a mirror's or another corner's.
-                m = replace(own[i], bearing_stderr=reach_stderr(own[i], opts))
-                reasons = [*reasons, denied, f"{UNSETTLED}; not their double bounce"]
+                m, mixed = _own_tilt(own[i])
+                m, reasons = reach(m, [*reasons, denied, f"{UNSETTLED}; not their double bounce"])
+                reasons = [*reasons, mixed] if mixed else reasons
                 tied, direction = (), stack_axis
             elif pair_line is not None:
-                located, direction = (pair_line[0], pair_line[1]), pair_line[2]
+                located, direction = pair_line[4], pair_line[2]
+                reasons = [*reasons, pair_line[3]] if pair_line[3] else reasons
             else:
                 a, b = measured[ties[0]], measured[ties[1]]
                 direction = cross3(unit_normal(a.bearing, a.tilt), unit_normal(b.bearing, b.tilt))
@@ -453,8 +504,7 @@ def place_features(
             if fall > 0:
                 m, reasons, tied = _not_its_end(own[i], m.bearing, fall, kind, reasons, scale)
             elif m.bearing_source == "undetermined":
-                m = replace(m, bearing_stderr=reach_stderr(m, opts))
-                reasons = [*reasons, TRACE_ONLY]
+                m, reasons = reach(m, [*reasons, TRACE_ONLY])
             else:
                 m, why = _with_trace(m, pj)
                 reasons = [*reasons, why] if why else reasons
@@ -464,10 +514,14 @@ def place_features(
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
             m, why = _own_tilt(m)
+            m, goes_on = continued_ends(m, own, opts.range_tolerance, distance)
             m, cut = _cut_peak(m)
             m, off = centre_off_peak(m, scale.gamma)
-            reasons = [*reasons, *(w for w in (why, cut, off) if w)]
-            if m.bearing_source == "undetermined":
+            m, past = peak_past_fade(m, scale.gamma, scale.beam_k)
+            reasons = [*reasons, *(w for w in (why, goes_on, cut, off, past) if w)]
+            if m.bearing_source == "undetermined" or goes_on or past:
+                # A region split off the rest of its echo, or whose amplitudes sum another echo's, says only that
+                # its target lies within its reach.
                 m = replace(m, bearing_stderr=reach_stderr(m, opts))
         direction = direction / max(float(np.linalg.norm(direction)), 1e-12)
         if direction[int(np.argmax(np.abs(direction)))] < 0:

@@ -9,6 +9,8 @@
   covariance (bearing, tilt and offset of each) carried through the intersection's Jacobian.
 * :func:`with_range`: that point conditioned on the corner's own double-bounce range ``|X|`` (one
   linear-Gaussian update), where the planes' fit did not use it already.
+* :func:`line_yaw_stderr`: how far a plane's line with a surface across the fan may lie from the plane's foot
+  in bearing, the line's turn in the plane being fixed only through its cosine by the echo's range and tilt.
 """
 
 from __future__ import annotations
@@ -20,7 +22,15 @@ import numpy as np
 from lelsonar.reconstruct.estimate.normals import cross3
 from lelsonar.reconstruct.estimate.surfaces.measurement import unit_normal
 
-__all__ = ["echo_point", "arc_moments", "pair_line_point", "with_range", "line_direction", "RANGE_FLOOR"]
+__all__ = [
+    "echo_point",
+    "arc_moments",
+    "pair_line_point",
+    "with_range",
+    "line_direction",
+    "line_yaw_stderr",
+    "RANGE_FLOOR",
+]
 
 #: m: a feature's depth σ is at least the range noise's (1–3 mm of one reading, its bias with temperature).
 RANGE_FLOOR = 0.003
@@ -165,3 +175,47 @@ def with_range(
     new_point = point + gain * (depth - norm)
     new_cov = covariance - np.outer(gain, h @ covariance)
     return new_point, 0.5 * (new_cov + new_cov.T)
+
+
+def line_yaw_stderr(
+    depth: float, depth_stderr: float, tilt: float, tilt_stderr: float, plane_depth: float, plane_stderr: float
+) -> float:
+    """The bearing σ of a plane's line with a surface across the fan placed at the plane's foot, rad (0: none).
+
+    A line in plane ``n·X = h`` at in-plane distance ``q`` from the foot ``h n``, turned by ``φ`` from square
+    to the capsule stack, has its point nearest the array at ``X = h n + q (cos φ x̂ − sin φ e)`` (``e`` the
+    plane's direction in the fan): range ``ρ² = h² + q²``, tilt ``sin t = q cos φ / ρ``, bearing off the foot
+    ``tan δ = q sin φ / h``.  The echo's range and tilt give ``q = √(ρ² − h²)`` and ``c = cos φ = ρ sin|t| / q``;
+    the foot takes ``φ = 0``.  Near square ``c`` is flat in ``φ``: a tilt within its σ of a square line's leaves
+    ``φ`` open to ``acos(c − σ_c)``, and the bearing off the foot to ``δ`` there.
+
+    Parameters
+    ----------
+    depth, depth_stderr : float
+        ``ρ`` and its σ, m: the echo's range (at least :data:`RANGE_FLOOR`).
+    tilt, tilt_stderr : float
+        ``t`` off the fan and its σ, rad.
+    plane_depth, plane_stderr : float
+        ``h`` and its σ, m.
+
+    Returns
+    -------
+    ``δ`` at ``cos φ = min(c, 1) − σ_c`` (``σ_c`` through ``t``, ``ρ`` and ``h`` to first order), rad; 0 where the
+    range does not reach past the plane or any input is not finite.
+    """
+    vals = (depth, tilt, tilt_stderr, plane_depth)
+    if not all(math.isfinite(v) for v in vals) or not depth > plane_depth > 0:
+        return 0.0
+    q = math.sqrt(depth * depth - plane_depth * plane_depth)
+    st = abs(math.sin(tilt))
+    c = depth * st / q
+    sr = max(RANGE_FLOOR, depth_stderr) if math.isfinite(depth_stderr) else RANGE_FLOOR
+    sh = max(RANGE_FLOOR, plane_stderr) if math.isfinite(plane_stderr) else RANGE_FLOOR
+    q3 = q**3
+    dc_dt = depth * math.cos(tilt) / q
+    dc_dr = -st * plane_depth**2 / q3
+    dc_dh = depth * st * plane_depth / q3
+    sc = math.sqrt((dc_dt * tilt_stderr) ** 2 + (dc_dr * sr) ** 2 + (dc_dh * sh) ** 2)
+    low = min(c, 1.0) - sc
+    sin_phi = 1.0 if low <= 0.0 else math.sqrt(max(0.0, 1.0 - low * low))
+    return math.atan2(q * sin_phi, plane_depth)
