@@ -196,36 +196,6 @@ def test_a_read_waiting_for_a_stalled_thread_decompresses_later_chunks_itself(tm
     assert len(by_reader) >= 3
 
 
-def test_a_read_leaves_the_chunks_a_thread_decompresses_to_it(tmp_path, monkeypatch):
-    """The reading thread waits for the job a thread is decompressing (not starved here: the wait has no bound)
-    instead of decompressing later chunks meanwhile: it decompresses only the chunk it reads, when no thread has
-    started it."""
-    from lelsonar.log import reader
-
-    path = tmp_path / "many.mcap"
-    _mcap(path, 60, per_chunk=6)  # chunks of ~1 MB: a job each
-    reading = threading.get_ident()
-    needed: list[int] = []  # the chunk the reading thread reads now
-    taken: list[tuple[int, int]] = []  # (chunk it read, chunk it decompressed)
-    real_take, real_decompress = reader._Read.take_raw, reader.decompress_chunks
-
-    def take_raw(self, unit):
-        needed.append(unit.offset + 9)
-        return real_take(self, unit)
-
-    def decompress(buf, places):
-        if threading.get_ident() == reading:
-            taken.extend((needed[-1], start) for start, _length in places)
-        return real_decompress(buf, places)
-
-    in_turn = _read(path, 0)
-    monkeypatch.setattr(reader._Read, "take_raw", take_raw)
-    monkeypatch.setattr(reader, "decompress_chunks", decompress)
-    monkeypatch.setattr(reader._Read, "STARVED_BYTES_PER_S", 1.0)  # a thread is never taken for starved
-    assert _read(path, 1) == in_turn
-    assert all(read == decompressed for read, decompressed in taken)
-
-
 @pytest.mark.parametrize(
     ("cpus", "runnable", "threads"),
     [(2, 1, 1), (2, 2, 0), (2, 15, 0), (4, 1, 2), (4, 3, 1), (1, 1, 0)],

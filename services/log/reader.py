@@ -147,8 +147,8 @@ class McapSource:
         decompress_threads : int
             Threads that decompress and check the next chunks while this one is walked (zstd releases
             the GIL); 0: each chunk is decompressed when it is reached.  A read that reaches a chunk
-            still being decompressed waits for it, and decompresses later ones itself only where its
-            thread has lost its core (:meth:`_Read.take_raw`).  What is yielded is the same.
+            still being decompressed decompresses a later one itself meanwhile.  What is yielded is the
+            same.
 
         Holds the chunks whose time ranges overlap the message being yielded, not the file:
         chunks are merged by the message start time their header records, as the indexed
@@ -173,10 +173,6 @@ class _Read:
     #: About this many uncompressed bytes per job: a thread hand-over per small chunk would cost a good
     #: part of what decompressing it does.
     JOB_BYTES = 1024 * 1024
-    #: Uncompressed bytes a second under which a thread decompressing the chunk the read waits for has lost its
-    #: core: the read waits for the thread that long at most (its job's bytes at this rate), then decompresses
-    #: later chunks itself.  zstd runs at about 1 GB/s a core.
-    STARVED_BYTES_PER_S = 600e6
 
     def __init__(self, source: McapSource, buf, size: int, want, verify_all: bool, threads: int = 0) -> None:
         self.source, self.buf, self.size = source, buf, size
@@ -248,7 +244,7 @@ class _Read:
                     job.append((u, usize))
                     nbytes += usize
             if job:
-                work = _Job(buf, [(u.offset + 9, u.length) for u, _ in job], nbytes)
+                work = _Job(buf, [(u.offset + 9, u.length) for u, _ in job])
                 self.pool.submit(work.run)
                 self.jobs.append(work)
                 for k, (u, usize) in enumerate(job):
@@ -259,19 +255,15 @@ class _Read:
     def take_raw(self, unit: Unit) -> bytes:
         """One chunk's content decompressed and checked: decompressed ahead, or now.
 
-        While its job is being decompressed by a thread, this thread waits for it, as long as a thread with
-        a core of its own takes (:data:`STARVED_BYTES_PER_S`), then decompresses the next jobs no thread has
-        started meanwhile.  Waiting first leaves the decompression to the thread, and the reading thread to
-        what only it can do (the messages, the service behind them): taking a later job as soon as its chunk
-        is not ready would have it decompress every other chunk, its own work waiting meanwhile.  A thread
-        that lost its core holds the read up no longer than that.
+        While its job is still being decompressed by a thread, this thread decompresses the next job no
+        thread has started (the two then share the cores instead of one waiting for the other).
         """
         pending = self.inflight.pop(unit.offset, None)
         if pending is None:
             return chunk_raw(self.buf, unit.offset + 9, unit.length)
         work, k, usize = pending
         self.inflight_bytes -= usize
-        if not work.run() and not work.finished.wait(work.nbytes / self.STARVED_BYTES_PER_S):
+        if not work.run():
             jobs = self.jobs
             while not work.finished.is_set():
                 while jobs and jobs[0].claimed.locked() and jobs[0] is not work:
@@ -445,10 +437,10 @@ class _Job:
     """Chunks decompressed together, by whichever thread claims the job first: a decompressing thread, or
     the reading thread when it gets there first."""
 
-    __slots__ = ("buf", "places", "nbytes", "claimed", "finished", "results")
+    __slots__ = ("buf", "places", "claimed", "finished", "results")
 
-    def __init__(self, buf, places: list[tuple[int, int]], nbytes: int) -> None:
-        self.buf, self.places, self.nbytes = buf, places, nbytes  # (nbytes: uncompressed)
+    def __init__(self, buf, places: list[tuple[int, int]]) -> None:
+        self.buf, self.places = buf, places
         self.claimed = threading.Lock()  # taken once, never released: the claim
         self.finished = threading.Event()
         self.results: list[bytes | Exception] = []
