@@ -24,6 +24,7 @@ from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 from lelsonar.sim.world_geometry import ElementKind
 from lelsonar.tools.surface_scores import majority, world_sweep
+from tests.measured_regions import hand_measured
 
 #: The beam's curvature in log amplitude (1/rad²): a piston of ka ≈ 6.6, two-way.
 BEAM_K = 6.0
@@ -64,30 +65,8 @@ def _measured(
     steps = np.arange(23)
     region = Region(steps=steps, rows=steps, capsules=np.zeros(23, dtype=np.intp), cut_before=cut[0], cut_after=cut[1])
     b = math.radians(bearing)
-    return Measured(
-        region=region,
-        bearing=b,
-        bearing_stderr=math.radians(0.5),
-        bearing_source=source,
-        findings=(),
-        depth=depth,
-        depth_stderr=0.001,
-        tilt=0.0,
-        tilt_stderr=math.radians(0.5),
-        curvature=0.0,
-        curvature_stderr=float("nan"),
-        stack_slope=0.0,
-        strength=float("nan"),
-        peak=float("nan"),
-        peak_inside=False,
-        exact=False,
-        clipped=False,
-        span=(b - 11 * STEP, b + 11 * STEP),
-        step=STEP,
-        step_amplitude=np.full(23, np.nan),
-        positions=np.zeros((23, 3)),
-        ranges=np.full(23, depth),
-        stack_sigma=0.002,
+    return hand_measured(
+        region, bearing=b, depth=depth, span=(b - 11 * STEP, b + 11 * STEP), step=STEP, bearing_source=source
     )
 
 

@@ -29,6 +29,7 @@ from lelsonar.tools.map_worlds import sweep
 from lelsonar.tools.stress_world_score import ERROR_FLOOR, _majority, estimate_of, world_run
 from lelsonar.tools.stress_worlds import draw_stress_world
 from lelsonar.tools.surface_scores import feature_offset
+from tests.measured_regions import hand_measured
 
 CLASSES = {"corner": (ElementKind.DIHEDRAL, ElementKind.TRIHEDRAL), "edge": (ElementKind.EDGE,)}
 
@@ -121,34 +122,24 @@ def _region(gamma_deg: np.ndarray, amplitude: np.ndarray, cut: tuple[bool, bool]
     region = Region(steps=steps, rows=steps, capsules=caps, cut_before=cut[0], cut_after=cut[1])
     g = np.radians(gamma_deg)
     peak = bearing_from_amplitude(g, amplitude)
-    nan = float("nan")
     fields = dict(
-        region=region,
-        bearing=peak[0] if peak else float(np.mean(g)),
         bearing_stderr=peak[1] if peak else 0.1,
         bearing_source="amplitude peak" if peak else "undetermined",
-        findings=(),
-        depth=1.5,
-        depth_stderr=0.001,
-        tilt=0.0,
         tilt_stderr=0.001,
-        curvature=0.0,
-        curvature_stderr=nan,
-        stack_slope=0.0,
-        strength=nan,
         peak=float(np.max(amplitude)),
         peak_inside=True,
         exact=True,
-        clipped=False,
-        span=(float(g[0]), float(g[-1])),
-        step=STEP,
         step_amplitude=amplitude,
-        positions=np.zeros((n, 3)),
-        ranges=np.full(n, 1.5),
-        stack_sigma=0.002,
     )
     fields.update(kw)
-    return Measured(**fields)
+    return hand_measured(
+        region,
+        bearing=peak[0] if peak else float(np.mean(g)),
+        depth=1.5,
+        span=(float(g[0]), float(g[-1])),
+        step=STEP,
+        **fields,
+    )
 
 
 def _beam(gamma_deg: np.ndarray, bearing_deg: float) -> np.ndarray:

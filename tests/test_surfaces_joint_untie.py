@@ -26,6 +26,7 @@ from lelsonar.tools.map_worlds import sweep
 from lelsonar.tools.stress_world_score import estimate_of, world_run
 from lelsonar.tools.stress_worlds import draw_stress_world
 from lelsonar.tools.surface_scores import score_scan, world_sweep
+from tests.measured_regions import hand_measured
 from tests.test_surfaces import GAMMA, GEOMETRY, Echoes
 
 RADIAL = 0.03
@@ -53,27 +54,15 @@ def _measured(positions: np.ndarray, ranges: np.ndarray, bearing: float, stderr:
         cut_before=False,
         cut_after=False,
     )
-    return Measured(
-        region=region,
+    return hand_measured(
+        region,
         bearing=bearing,
-        bearing_stderr=stderr,
-        bearing_source="region centre",
-        findings=(),
         depth=depth,
-        depth_stderr=NOISE / math.sqrt(n),
-        tilt=0.0,
-        tilt_stderr=math.radians(0.5),
-        curvature=0.0,
-        curvature_stderr=float("nan"),
-        stack_slope=0.0,
-        strength=float("nan"),
-        peak=float("nan"),
-        peak_inside=True,
-        exact=False,
-        clipped=False,
         span=(bearing - 0.1, bearing + 0.1),
         step=0.02,
-        step_amplitude=np.full(steps.size, np.nan),
+        bearing_stderr=stderr,
+        depth_stderr=NOISE / math.sqrt(n),
+        peak_inside=True,
         positions=positions,
         ranges=ranges,
         stack_sigma=NOISE,

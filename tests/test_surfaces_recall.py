@@ -25,6 +25,7 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, handed_
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.signal.directivity import piston_directivity
 from lelsonar.tools.surface_scores import score_scan, world_sweep
+from tests.measured_regions import hand_measured
 
 RANGE = 1.8
 
@@ -111,31 +112,15 @@ def _measured(bearing: float, depth: float, span: tuple[float, float], cut: tupl
     """What a region says, as far as the placement tests read it (angles in degrees)."""
     steps = np.arange(3)
     region = Region(steps=steps, rows=steps, capsules=np.zeros(3, dtype=np.intp), cut_before=cut[0], cut_after=cut[1])
-    nan = float("nan")
-    return Measured(
-        region=region,
+    return hand_measured(
+        region,
         bearing=math.radians(bearing),
-        bearing_stderr=0.003,
-        bearing_source="undetermined" if any(cut) else "region centre",
-        findings=(),
         depth=depth,
-        depth_stderr=0.001,
-        tilt=0.0,
-        tilt_stderr=0.001,
-        curvature=0.0,
-        curvature_stderr=nan,
-        stack_slope=0.0,
-        strength=nan,
-        peak=nan,
-        peak_inside=False,
-        exact=False,
-        clipped=False,
         span=(math.radians(span[0]), math.radians(span[1])),
         step=STEP,
-        step_amplitude=np.full(3, np.nan),
-        positions=np.zeros((3, 3)),
-        ranges=np.full(3, depth),
-        stack_sigma=0.002,
+        bearing_stderr=0.003,
+        bearing_source="undetermined" if any(cut) else "region centre",
+        tilt_stderr=0.001,
     )
 
 
