@@ -329,6 +329,10 @@ def test_a_scan_whose_walls_gtsam_refuses_enters_with_its_pose_only_and_a_note()
     later, _, _ = observe_world(world, NoiseModel(), np.random.default_rng(0))
     mapper.add_scan(replace(later[0], scan_id=3, pose=replace(later[0].pose, covariance=None)))
     assert mapper.scans == 3 and mapper.walls > 0
+    # A second refusal: its rebuild keeps the first one's note.
+    mapper.add_scan(replace(_ILL_CONDITIONED_TOUR[1], scan_id=4))
+    left_out = [n for n in mapper.snapshot().notes if "left out of the map" in n]
+    assert [n.split(":")[0] for n in left_out] == ["scan 2", "scan 4"]
 
 
 def test_a_scan_whose_pose_alone_gtsam_refuses_stops_the_map_with_one_typed_error(monkeypatch):

@@ -138,7 +138,9 @@ class WallMapper:
         except _Refused as refused:
             self._failed = f"scan {scan.scan_id} made the graph unsolvable ({refused.reason})"
             raise MapUpdateError(self._failed) from None
+        notes = self.notes  # (a rebuild does not say again what earlier ones left out)
         self.__dict__.update(fresh.__dict__)
+        self.notes = notes + [n for n in fresh.notes if n not in notes]
         self.notes.append(
             f"scan {scan.scan_id}: its walls ({len(scan.walls)}) and features ({len(scan.features)}) left out of the "
             f"map, with them the solver refused the graph ({reason}); its pose is kept"
