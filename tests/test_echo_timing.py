@@ -269,6 +269,12 @@ def test_the_timing_kernels_agree_with_array_code_on_a_crossing_board(threshold,
         for row, out in zip(env, smooth):
             et._moving_mean(row, 5, out)
         assert np.array_equal(smooth, uniform_filter1d(env, 5, axis=-1, mode="nearest"))
+        # The floor's medians are NumPy's, to the bit, whatever the count's parity (NaN in, NaN out).
+        ordered = np.empty(env.shape[1])
+        for m in (4, 7, 20, 21):
+            for row in env:
+                assert et._head_median(row, m, ordered) == np.median(row[:m])
+        assert np.isnan(et._head_median(np.array([1.0, np.nan, 2.0, 3.0]), 4, ordered))
         # The walk's statistics: order statistics exactly, the least-squares lines to rounding.
         onset, peak, _ = got
         offset = -C / 2 * onset

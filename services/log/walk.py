@@ -18,9 +18,11 @@ from pathlib import Path
 from lelsonar.errors import NotMcapError, RecordingError, RecordingNotFoundError
 from lelsonar.log.records import (
     CHUNK_HEAD,
+    INDEX_HEAD,
     MAGIC,
     MAX_CHUNK_BYTES,
     OP_CHUNK,
+    OP_CHUNK_INDEX,
     OP_FOOTER,
     OP_MESSAGE_INDEX,
     RECORD_HEAD,
@@ -30,6 +32,7 @@ from lelsonar.log.records import (
     Salvage,
     SchemaInfo,
     Unit,
+    check_chunk_index,
     chunk_frame,
     chunk_records,
     looks_like_chunk,
@@ -132,6 +135,9 @@ class _Walk:
         self.units: list[Unit] = []
         self.indexes: dict[tuple[tuple[int, int], ...], tuple[tuple[int, int], ...]] = {}  # shared, not repeated
         self.learnt: set[int] = set()  # channels whose first chunk was tried
+        #: Each distinct index by its entries in file order: a chunk per step repeats a few, each sorted and its
+        #: channels checked once.
+        self.keys: dict[tuple[tuple[int, int], ...], tuple[tuple[int, int], ...]] = {}
         self.released = 0
 
     def estimate(self, nbytes: int) -> int:
@@ -150,8 +156,13 @@ class _Walk:
         unit.stop = stop
         if not entries:
             return
-        key = tuple(sorted(entries.items()))
-        unit.index = self.indexes.setdefault(key, key)
+        in_order = tuple(entries.items())
+        key = self.keys.get(in_order)
+        seen = key is not None
+        if key is None:
+            ordered = tuple(sorted(in_order))
+            key = self.keys[in_order] = self.indexes.setdefault(ordered, ordered)
+        unit.index = key
         n = sum(entries.values())
         self.good_messages += n
         counts = self.out.indexed_counts
@@ -159,6 +170,8 @@ class _Walk:
             counts[cid] = counts.get(cid, 0) + k
         if n == 0 and unit.start == unit.end == 0:
             unit.start = 1 << 64  # no message: it holds nothing back
+        if seen:
+            return  # each of its channels is defined, or its first chunk was tried, already
         unknown = [cid for cid, _k in key if cid not in self.out.channels and cid not in self.learnt]
         if unknown:
             # The first chunk of a channel holds its definition: read it now, so a read can choose channels.
@@ -201,11 +214,14 @@ class _Walk:
         pos = len(MAGIC)
         chunk: Unit | None = None  # the chunk whose message index records may follow
         entries: dict[int, int] = {}
+        head, index_head = RECORD_HEAD.unpack_from, INDEX_HEAD.unpack_from
+        mapped = isinstance(buf, mmap.mmap)
+        summary = self.summary_start
         while pos < size:
             if pos + 9 > size:
                 self.damaged(pos, "the file ends inside a record header")
                 break
-            op, length = RECORD_HEAD.unpack_from(buf, pos)
+            op, length = head(buf, pos)
             body = pos + 9
             if chunk is not None and (op != OP_MESSAGE_INDEX or body + length > size):
                 self.take_index(chunk, entries, pos)
@@ -226,6 +242,12 @@ class _Walk:
                     chunk = self.take_chunk(pos, length)
                     nxt = body + length
             elif op == OP_MESSAGE_INDEX and chunk is not None:
+                if length >= 6 and (found := index_head(buf, body))[1] % 16 == 0 and 6 + found[1] == length:
+                    # (message_index_count's checks, inline: a few index records follow every chunk)
+                    cid = found[0]
+                    entries[cid] = entries.get(cid, 0) + found[1] // 16
+                    pos = body + length
+                    continue
                 try:
                     cid, n = message_index_count(buf, body, length)
                 except (BadRecord, struct.error) as exc:
@@ -235,7 +257,15 @@ class _Walk:
                 else:
                     entries[cid] = entries.get(cid, 0) + n
                     nxt = body + length
-            elif (self.summary_start is None or pos < self.summary_start) and looks_like_chunk(buf, body, length):
+            elif op == OP_CHUNK_INDEX and summary is not None and pos >= summary:
+                # top_level_record's check of a chunk index, without its cursor: one such record per chunk.
+                try:
+                    check_chunk_index(buf, body, length)
+                except (BadRecord, struct.error) as exc:
+                    nxt = self.damaged(pos, f"record with opcode {op:#04x}: {exc}")
+                else:
+                    nxt = body + length
+            elif (summary is None or pos < summary) and looks_like_chunk(buf, body, length):
                 try:
                     chunk_records(buf, body, length)  # rare: worth proving before calling it intact
                 except (BadRecord, struct.error) as exc:
@@ -264,7 +294,7 @@ class _Walk:
             if nxt is None:
                 break
             pos = nxt
-            if isinstance(buf, mmap.mmap) and pos - self.released >= RELEASE_EVERY:
+            if mapped and pos - self.released >= RELEASE_EVERY:
                 end = pos - pos % mmap.PAGESIZE
                 buf.madvise(mmap.MADV_DONTNEED, self.released, end - self.released)
                 self.released = end
