@@ -17,57 +17,13 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
-from lelsonar.signal.directivity import piston_directivity
 from lelsonar.sim.world_geometry import ElementKind
 from lelsonar.sim.world_render import pose_frame
 from lelsonar.tools.surface_oracle import bearing_tilt, trace_error, true_plane
 from lelsonar.tools.surface_scores import majority, score_scan, world_sweep
-
-GEOMETRY = ArrayGeometry(radial_offset=0.03)
-GAMMA = np.linspace(math.radians(-149.7), math.radians(149.7), 300)
-KA = 5.13  # a 7 mm piston at 40 kHz
-THRESHOLD = 0.05  # V
-RANGE_NOISE = 0.002  # m
-FIRST_NULL = 3.8317  # ka·sin ψ of the piston's first null
-
-
-class _Sweep:
-    """Mirrors and vertical lines (a fan mount's corners) seen through a piston ``D(ψ)²``: the first echo over the
-    threshold sets each reading; amplitudes log-normal about the beam, ranges Gaussian."""
-
-    def __init__(self, seed: int, amp_noise: float = 0.01) -> None:
-        self.rng = np.random.default_rng(seed)
-        self.caps = GEOMETRY.capsule_positions(GAMMA)
-        self.beam = np.stack([np.zeros_like(GAMMA), np.cos(GAMMA), np.sin(GAMMA)], axis=1)
-        self.range = np.full(self.caps.shape[:2], np.nan)
-        self.amp = np.full(self.caps.shape[:2], np.nan)
-        self.amp_noise = amp_noise
-
-    def _add(self, r: np.ndarray, toward: np.ndarray, gain: float) -> None:
-        psi = np.arccos(np.clip(np.einsum("nk,nmk->nm", self.beam, toward), -1.0, 1.0))
-        main = (psi < 0.5 * math.pi) & (KA * np.sin(psi) < FIRST_NULL)
-        a = gain * piston_directivity(psi, KA) ** 2 / (2 * r)
-        a = a * np.exp(self.amp_noise * self.rng.normal(size=a.shape))
-        first = main & (a > THRESHOLD) & (r > 0) & ~(self.range <= r)
-        self.range[first] = r[first]
-        self.amp[first] = a[first]
-
-    def wall(self, bearing: float, offset: float, gain: float = 2.5) -> None:
-        n = np.array([0.0, math.cos(bearing), math.sin(bearing)])
-        self._add(offset - self.caps @ n, np.broadcast_to(n, self.caps.shape), gain)
-
-    def corner(self, bearing: float, rho: float, gain: float = 2.5) -> None:
-        """A vertical line at ``rho`` in the fan: its echo retro-reflects from the point nearest each capsule."""
-        rel = rho * np.array([0.0, math.cos(bearing), math.sin(bearing)]) - self.caps
-        rel[..., 0] = 0.0
-        r = np.linalg.norm(rel, axis=-1)
-        self._add(r, rel / r[..., None], gain)
-
-    def readings(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.range + self.rng.normal(0.0, RANGE_NOISE, self.range.shape), self.amp
+from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep
 
 
 def _wrap(a: float) -> float:
@@ -92,7 +48,7 @@ def test_a_wall_past_the_sweeps_start_at_a_depth_on_a_planes_trace_is_a_wall_pla
     # 1/(2k) ≈ 4° on this beam, by over 3 σ), 5° past the sweep's start.
     foot, end = math.radians(-155.0), math.radians(-175.0)
     depth = PLANE[1] / math.cos(end - PLANE[0])
-    s = _Sweep(seed=3)
+    s = PistonSweep(seed=3)
     s.wall(*PLANE)
     s.wall(foot, depth)
     d, a = s.readings()
@@ -107,7 +63,7 @@ def test_a_wall_past_the_sweeps_start_at_a_depth_on_a_planes_trace_is_a_wall_pla
 
 
 def test_a_corner_past_the_sweeps_start_on_a_planes_trace_stays_that_planes_end():
-    s = _Sweep(seed=4)
+    s = PistonSweep(seed=4)
     s.wall(*PLANE)
     s.corner(PAST_START, ON_TRACE)
     d, a = s.readings()
@@ -128,7 +84,7 @@ def test_of_two_placements_on_two_traces_the_one_the_flank_agrees_with_is_taken(
     far_foot = math.radians(86.0)
     corner = math.radians(108.6)
     rho = 3.33 / math.cos(corner - far_foot)
-    s = _Sweep(seed=5)
+    s = PistonSweep(seed=5)
     s.wall(near_foot, 0.72)
     s.wall(far_foot, 3.33)
     s.corner(corner, rho, gain=3.0)

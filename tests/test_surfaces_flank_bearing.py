@@ -174,14 +174,18 @@ def test_a_region_whose_amplitude_hands_over_from_an_edge_to_a_face_at_one_range
 
 
 @pytest.mark.slow
-def test_a_box_face_beside_its_own_edge_at_one_range_is_found_and_says_why_it_is_not_placed():
+def test_a_box_face_beside_its_own_edge_at_one_range_is_placed_across_the_jump_within_its_sigma():
     model = build_model(draw_world("boxes", 4, mount="fan"))
     scan = simulate_world_scan(model, 0, seed=4000)
     amp = echo_amplitude(scan.waveforms, scan.sample_rate, scan.t0, scan.tof)
     result = extract_surfaces(scan.gamma_measured, scan.distance, scan.geometry, amplitude=amp)
     face = 20  # a box's face whose convex edge answers at its range just before it in the sweep
     (s,) = [s for s in result.surfaces if np.mean(scan.echo_index[s.rows, s.capsules] == face) > 0.5]
-    # Cut where its edge's echo takes over, inside the sweep: that echo bends its flank, so no flank bearing.
-    assert s.quality == "unreliable"
+    # Cut where its edge's echo takes over, inside the sweep: that echo bends its flank alone, but the two echoes
+    # share one bearing (the end lies at the face's foot), so one beam pattern across the jump places the face.
     assert any("two echoes at one range" in r for r in s.reasons)
-    assert any("bearing not determined" in r for r in s.reasons)
+    assert any("across the amplitude jump" in r for r in s.reasons)
+    assert s.quality != "good"
+    n_true, _h = true_plane(scan, face)
+    db = (s.bearing - bearing_tilt(n_true)[0] + math.pi) % (2 * math.pi) - math.pi
+    assert abs(db) <= 3 * math.sqrt(s.covariance[0, 0]), math.degrees(db)

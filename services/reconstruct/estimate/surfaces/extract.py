@@ -31,12 +31,16 @@ Per region of constant depth (:mod:`.regions`):
     mirror echo, an **edge** if weak; where the region holds only a flank of
     its echo, the beam pattern taken back to the bearing the geometry puts it
     at weighs it, and an end whose strength no evidence settles says so
-    (:data:`~.results.UNSETTLED`, ``Feature.settled``);
+    (:data:`~.results.UNSETTLED`, ``Feature.settled``); a strong end placed there by its depth alone is a
+    wall of its own where its own echo's flank, away from a cut another echo bends, peaks elsewhere;
   - an echo much weaker than the sweep's strongest at its range (diffraction):
     an **edge**; a region cut before its peak is weak only if the upper
     estimate of its peak (its flank, extrapolated with the sweep's own beam
     curvature) is;
   - anything else: a **plane**.
+
+A plane's region that hands over at an amplitude jump, at one range, to its face's end's weak echo is placed by
+one beam pattern across the jump (the end lies at the face's foot).
 
 A target only part of the capsule stack hears, nearer than what the rest hear at its steps (an edge off the
 fan), is found among the readings no region holds; it is a corner or an edge, never a plane.  A weak region
@@ -61,20 +65,29 @@ import numpy as np
 
 from lelsonar.errors import ConfigError
 from lelsonar.geometry import ArrayGeometry
-from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD
+from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE
 from lelsonar.reconstruct.estimate.surfaces.beam_pattern import PLATEAU, amplitude_jump, log_amplitude_curvature
-from lelsonar.reconstruct.estimate.surfaces.classify import classify_regions
+from lelsonar.reconstruct.estimate.surfaces.classify import DISPUTE_SIGMAS, classify_regions
 from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
+from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
 from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import flank_measured, flank_reach
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
+    FLANK_SOURCE,
+    across_jump_bearing,
+    end_refuted,
+    flank_measured,
+    flank_reach,
+)
 from lelsonar.reconstruct.estimate.surfaces.flanks import masked_regions, partial_regions, split_dihedral, split_ends
 from lelsonar.reconstruct.estimate.surfaces.joint import JointWall
 from lelsonar.reconstruct.estimate.surfaces.measurement import (
     Measured,
+    clean_cuts,
     measure_region,
     summed_width_stderr,
     sweep_step,
+    unit_normal,
 )
 from lelsonar.reconstruct.estimate.surfaces.off_fan import (
     off_fan_tilt,
@@ -83,7 +96,7 @@ from lelsonar.reconstruct.estimate.surfaces.off_fan import (
     split_stack,
     taken_back,
 )
-from lelsonar.reconstruct.estimate.surfaces.piston_beam import sweep_beam
+from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, log_profile, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import (
     OFF_FAN,
@@ -151,6 +164,7 @@ def extract_surfaces(
         measured, partial, scale, sweep.gamma, sweep.opts, sweep.amplitude, sweep.distance
     )
     _widen_summed_bearings(measured, kinds, scale)
+    _walls_not_ends(measured, own, kinds, across_lines, partial, scale, sweep)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
     _flank_bearings(measured, kinds, partial, scale, sweep)
@@ -275,6 +289,99 @@ def _widen_summed_bearings(measured: list[Measured], kinds: dict[int, Kind], sca
             measured[i] = replace(m, bearing_stderr=math.hypot(m.bearing_stderr, extra))
 
 
+def _walls_not_ends(
+    measured: list[Measured],
+    own: list[Measured],
+    kinds: dict[int, Kind],
+    across_lines: set[int],
+    partial: set[int],
+    scale: EchoScale,
+    sweep: _Sweep,
+) -> None:
+    """A region whose own bearing is undetermined and which only its depth puts on one plane's trace, as that
+    plane's end with an echo as strong as a mirror's (a concave corner), is as well a wall of its own whose foot
+    lies where its flank peaks: the corner takes the region only if its echo does not refute it.
+
+    Were it the end, its flank would peak at the end's bearing (:func:`~.flank_bearing.end_refuted`).  Another
+    echo at a like range past a cut end sums into the amplitude window where the two meet and bends the flank
+    there, so the steps a run may bridge at such an end are left out of both fits; what remains is the region's
+    own echo alone, and it must span the beam's ``1/√k`` to show the bend that places a peak.  Where it peaks
+    more than :data:`~.classify.DISPUTE_SIGMAS` σ of their difference from the end (and the mirror's flank fits
+    within its noise), the region is a wall of its own, placed by its flank (usable, never good: the beam's shape
+    carries its bearing).
+    """
+    amp = sweep.amplitude
+    if amp is None or not scale.beam_k > 0:
+        return
+    todo = [
+        i
+        for i, (kind, _reasons, ties) in kinds.items()
+        if kind == "corner"
+        and len(ties) == 1
+        and i not in across_lines
+        and i not in partial
+        and own[i].bearing_source == "undetermined"
+        and (own[i].region.cut_before or own[i].region.cut_after)
+        and _in_fan(own[i])
+    ]
+    if not todo:
+        return
+    planes = [m for i, m in enumerate(measured) if i not in kinds and i not in partial]
+    beam = sweep_beam(planes, sweep.gamma, amp, 2.0 * math.sqrt(scale.beam_k))
+    if beam is None:
+        return
+    opts = sweep.opts
+    for i in todo:
+        ties = kinds[i][2]
+        mine = _own_echo_alone(own[i], sweep)
+        # A flank shorter than the beam's 1/√k is nearly straight in log A: its bend, which places its peak, is
+        # less than one e-fold, within what an echo's own change with the angle (a corner's aperture) bends it.
+        if mine is None or mine.span[1] - mine.span[0] < 1.0 / math.sqrt(scale.beam_k):
+            continue
+        cut = (mine.region.cut_before, mine.region.cut_after)
+        reach = (opts.beyond_cut if cut[0] else 0.0, opts.beyond_cut if cut[1] else 0.0)
+        placed = measured[i]
+        end_se = end_stderr(own[i], measured[ties[0]], placed.bearing)
+        got = end_refuted(mine, sweep.gamma, beam, placed.bearing, end_se, in_fan_range(own[i])[0], reach)
+        if got is None or got[0] <= DISPUTE_SIGMAS:
+            continue
+        wall = flank_measured(mine, sweep.gamma, amp, beam, opts.beyond_cut, reach=reach)
+        if wall.bearing_source != FLANK_SOURCE:
+            continue
+        plane = measured[ties[0]]
+        why = (
+            f"on the trace of the plane at {plane.depth:.2f} m as its end at γ {math.degrees(placed.bearing):.1f}°, "
+            f"but its own echo's beam flank peaks at {math.degrees(got[1]):.1f}° ± {math.degrees(got[2]):.1f}°, "
+            f"{got[0]:.1f} σ from where that end's echo would: a wall of its own"
+        )
+        measured[i] = replace(wall, findings=(*wall.findings, (DEGRADED, why)))
+        del kinds[i]
+
+
+def _in_fan(m: Measured) -> bool:
+    """Its ranges along the capsule stack place its target in the fan (no slope past 3 σ): one off the fan meets
+    the beam at ``ψ² ≈ (γ − β)² + t²``, so its flank across γ is no in-fan piston's about its bearing."""
+    return math.isfinite(m.tilt_stderr) and abs(m.tilt) <= 3.0 * m.tilt_stderr
+
+
+def _own_echo_alone(m: Measured, sweep: _Sweep) -> Measured | None:
+    """The region without the steps a run may bridge at each cut end where another echo answers at a like range
+    (:func:`~.measurement.clean_cuts`): there that echo sums into its amplitude window; None when too few steps
+    remain for a flank."""
+    opts = sweep.opts
+    r = m.region
+    clean = clean_cuts(r, sweep.distance, opts)
+    trim = opts.max_gap + 2
+    first = trim if r.cut_before and not clean[0] else 0
+    last = r.steps.size - (trim if r.cut_after and not clean[1] else 0)
+    if last - first < 2 * opts.min_steps:
+        return None
+    if (first, last) == (0, r.steps.size):
+        return m
+    piece = subregion(r, r.steps[first:last], r.cut_before, r.cut_after)
+    return measure_region(piece, sweep.gamma, sweep.distance, sweep.amplitude, sweep.geometry, opts, step=sweep.step)
+
+
 def _unsettle_off_fan(
     kinds: dict[int, Kind],
     partial: set[int],
@@ -326,7 +433,15 @@ def _flank_bearings(
         and i not in partial
         and flank_reach(m, n_steps, n_capsules, sweep.opts.beyond_cut) != (0.0, 0.0)
     ]
-    if not todo:
+    # A plane's region that hands over at an amplitude jump to its face's end at one range.
+    ends = {
+        i: j
+        for i, m in enumerate(measured)
+        if i not in kinds and i not in partial and i not in todo and m.bearing_source == "undetermined"
+        for j in [_end_across_jump(i, measured, scale, sweep)]
+        if j is not None
+    }
+    if not todo and not ends:
         return
     # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
     # bounce or an edge's diffraction adds its own change with the angle: only the planes calibrate the beam.
@@ -334,6 +449,58 @@ def _flank_bearings(
     beam = sweep_beam(planes, sweep.gamma, sweep.amplitude, 2.0 * math.sqrt(scale.beam_k))
     for i in todo:
         measured[i] = flank_measured(measured[i], sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut)
+    if beam is not None:
+        for i, j in ends.items():
+            measured[i] = _across_jump(measured[i], measured[j], beam, sweep)
+
+
+def _end_across_jump(i: int, measured: list[Measured], scale: EchoScale, sweep: _Sweep) -> int | None:
+    """The region a plane's region hands over to at an amplitude jump (the next step on, at one range within
+    twice the range tolerance) when that echo is weak: its face's end diffracting."""
+    m = measured[i]
+    first, last = int(m.region.steps[0]), int(m.region.steps[-1])
+    for j, k in enumerate(measured):
+        if j == i or abs(k.depth - m.depth) > 2.0 * sweep.opts.range_tolerance or not scale.weak(k):
+            continue
+        after = m.handed_over[1] and k.handed_over[0] and int(k.region.steps[0]) == last + 1
+        before = m.handed_over[0] and k.handed_over[1] and int(k.region.steps[-1]) == first - 1
+        if after or before:
+            return j
+    return None
+
+
+def _across_jump(m: Measured, end: Measured, beam: SweepBeam, sweep: _Sweep) -> Measured:
+    """A plane's region placed by one piston across the amplitude jump to its face's end
+    (:func:`~.flank_bearing.across_jump_bearing`), or as it is when that fit gives nothing.
+
+    An end on the plane at range ``ρ`` lies ``δ = acos(h/ρ)`` off its foot; with the two depths equal within
+    their σ, ``ρ − h`` is at most their difference plus twice its σ, and the end anywhere up to that far off the
+    foot on either side: uniform, its σ ``δ/√3`` is part of the bearing's."""
+    g = sweep.gamma
+    profiles = [log_profile(g[x.region.steps], x.step_amplitude) for x in (m, end)]
+    lo = min(m.span[0], end.span[0])
+    hi = max(m.span[1], end.span[1])
+    fit = across_jump_bearing(profiles, beam, lo, hi)
+    if fit is None:
+        return m
+    gap = abs(end.depth - m.depth) + 2.0 * math.hypot(m.depth_stderr, end.depth_stderr)
+    off = math.acos(min(1.0, m.depth / (m.depth + gap))) if m.depth > 0 else math.pi
+    bearing, sb = fit[0], math.hypot(fit[1], off / math.sqrt(3.0))
+    h_i = m.ranges + m.positions @ unit_normal(bearing, m.tilt)
+    findings = tuple(f for f in m.findings if not (f[0] == UNRELIABLE and f[1].startswith("bearing not determined")))
+    why = (
+        f"bearing from one beam pattern across the amplitude jump to its face's end at one range "
+        f"({math.degrees(bearing):.1f}° ± {math.degrees(sb):.1f}°): the end's weak echo and the face's flank peak "
+        "at one bearing, the end at its foot within the depths' σ"
+    )
+    return replace(
+        m,
+        bearing=bearing,
+        bearing_stderr=sb,
+        bearing_source=FLANK_SOURCE,
+        depth=float(np.median(h_i)),
+        findings=(*findings, (DEGRADED, why)),
+    )
 
 
 def _fit_planes(

@@ -27,13 +27,16 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import log_amplitude_noise
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, step_table, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.piston import Profiles, piston_lm
 from lelsonar.reconstruct.estimate.surfaces.piston_beam import MODEL_MISFIT, SweepBeam, log_profile
-from lelsonar.signal.directivity import PISTON_FIRST_NULL
+from lelsonar.signal.directivity import PISTON_FIRST_NULL, piston_directivity
 
 __all__ = [
     "FLANK_SOURCE",
+    "across_jump_bearing",
+    "end_refuted",
     "bearing_from_flank",
     "flank_bearings",
     "flank_measured",
@@ -389,3 +392,135 @@ def flank_measured(
         depth=depth,
         depth_stderr=depth_se,
     )
+
+
+def end_refuted(
+    m: Measured,
+    gamma: np.ndarray,
+    beam: SweepBeam,
+    end_bearing: float,
+    end_se: float,
+    rho: float,
+    reach: tuple[float, float],
+) -> tuple[float, float, float] | None:
+    """Whether a region's own beam flank refutes an end placed at ``end_bearing``: how many σ of their difference
+    its flank's peak lies from where it peaks were it that end.
+
+    An end's echo (a concave corner's retro-reflection, an edge's diffraction) follows the beam pattern about the
+    end's bearing across the sweep: the array turns about its own axis, so the view of the end changes only by the
+    capsules' parallax (:func:`point_angles`).  Fitted in the point's own angles off the axis, its flank peaks at
+    the end's bearing; a mirror's flank, fitted in ``γ − β``, peaks at its foot.  Both fits are
+    :func:`bearing_from_flank`'s, with their residuals held to the amplitudes' noise: a flank another echo bends
+    past its noise refutes nothing.
+
+    Parameters
+    ----------
+    m : Measured
+        The region as its own echoes measured it (its steps' amplitudes, positions, range).
+    gamma : (n_steps,) array
+        The sweep's γ, rad.
+    beam : SweepBeam
+        The sweep's piston.
+    end_bearing, end_se : float
+        rad: where the end lies on its plane's trace and that placement's σ.
+    rho : float
+        m: the end's range in the fan.
+    reach : (float, float)
+        rad: how far past its first and last step the region's peak may lie.
+
+    Returns
+    -------
+    (σ apart, the flank's bearing as a mirror's, its σ), or None when either flank fit gives nothing.
+    """
+    g = gamma[m.region.steps]
+    mirror = bearing_from_flank(g, m.step_amplitude, beam, before=reach[0], after=reach[1])
+    if mirror is None or not (math.isfinite(mirror[1]) and mirror[1] > 0):
+        return None
+    radial = float(np.median(np.hypot(m.positions[:, 1], m.positions[:, 2])))
+    if not rho > radial:
+        return None
+    point = bearing_from_flank(
+        point_angles(g, end_bearing, rho, radial), m.step_amplitude, beam, before=reach[0], after=reach[1]
+    )
+    if point is None or not math.isfinite(point[1]):
+        return None
+    gap = abs((point[0] - end_bearing + math.pi) % (2 * math.pi) - math.pi)
+    return gap / math.hypot(point[1], end_se), mirror[0], mirror[1]
+
+
+#: rad: the grid :func:`across_jump_bearing` first scans its bearings on.
+JUMP_GRID = math.radians(0.25)
+
+
+def across_jump_bearing(
+    profiles: list[tuple[np.ndarray, np.ndarray]], beam: SweepBeam, lo: float, hi: float
+) -> tuple[float, float] | None:
+    """One bearing for the profiles of two echoes at one range whose amplitude hands over from one to the other:
+    the piston ``log A = log P_i + log D(γ − β)²`` with the sweep's ``ka``, one level per profile and one β.
+
+    A mirror whose foot lies where its face ends hands over there to the diffraction of that end, at one range:
+    an end on the plane at the plane's own depth lies at its foot (``cos δ = h/ρ``), so both echoes follow the
+    beam pattern about one bearing, each at its own strength.  The mirror's side alone is one flank whose peak
+    lies past its cut; the end's side alone is a weak echo; together their shapes place the one bearing.  The
+    fit is least squares over the bearings in ``[lo, hi]`` (a scan on :data:`JUMP_GRID`, then a parabola through
+    the best three), with the levels solved at each; its σ from the cost's curvature at the residuals' scale
+    (``σ² = 2 s² / S''``) and the change of β with ``ka`` over ``ka``'s own σ, in quadrature.
+
+    Parameters
+    ----------
+    profiles : list of (γ, log A)
+        Each echo's unclipped steps (``log_profile``).
+    beam : SweepBeam
+    lo, hi : float
+        rad: the bearings the fit may take (a peak its steps hold, not one past them).
+
+    Returns
+    -------
+    (β, σ) rad, or None: too few steps, the best bearing on the edge of ``[lo, hi]``, a step outside the main
+    lobe there, or residuals over :data:`~.piston_beam.MODEL_MISFIT` times the amplitudes' own noise (the two
+    do not share one bearing).
+    """
+    pieces = [(np.asarray(g, dtype=np.float64), np.asarray(la, dtype=np.float64)) for g, la in profiles]
+    if len(pieces) < 2 or any(g.size < MIN_FLANK_STEPS for g, _la in pieces) or not hi > lo:
+        return None
+    grid = np.arange(lo, hi + 0.5 * JUMP_GRID, JUMP_GRID)
+
+    def costs(bearings: np.ndarray, ka: float) -> np.ndarray:
+        total = np.zeros(bearings.size)
+        for g, la in pieces:
+            x = ka * np.sin(g[None, :] - bearings[:, None])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                model = 2.0 * np.log(np.abs(piston_directivity(g[None, :] - bearings[:, None], ka)))
+            r = la[None, :] - model
+            r = r - r.mean(axis=1, keepdims=True)  # each echo's own level
+            total += np.where(np.all(np.abs(x) < PISTON_FIRST_NULL, axis=1), np.sum(r * r, axis=1), np.inf)
+        return total
+
+    def best(ka: float) -> tuple[float, float, float] | None:
+        s = costs(grid, ka)
+        k = int(np.argmin(s))
+        if not (0 < k < grid.size - 1 and np.all(np.isfinite(s[k - 1 : k + 2]))):
+            return None
+        curv = (s[k + 1] - 2.0 * s[k] + s[k - 1]) / JUMP_GRID**2
+        if not curv > 0:
+            return None
+        b = float(grid[k]) - (s[k + 1] - s[k - 1]) / (2.0 * JUMP_GRID * curv)
+        return b, float(costs(np.array([b]), ka)[0]), curv
+
+    fit = best(beam.ka)
+    if fit is None:
+        return None
+    b, cost, curv = fit
+    n = sum(g.size for g, _la in pieces)
+    s2 = cost / max(n - 1 - len(pieces), 1)
+    noise = [log_amplitude_noise(la) for _g, la in pieces if la.size >= 5]
+    floor = max(noise, default=0.0)
+    if floor > 0 and math.sqrt(s2) > MODEL_MISFIT * floor:
+        return None
+    moved = 0.0
+    for ka in (beam.ka - beam.ka_stderr, beam.ka + beam.ka_stderr):
+        other = best(ka) if ka > 0 else None
+        if other is None:
+            return None
+        moved = max(moved, abs(other[0] - b))
+    return b, math.hypot(math.sqrt(2.0 * s2 / curv), moved)

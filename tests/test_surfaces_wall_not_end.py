@@ -1,0 +1,62 @@
+"""A strong region whose depth alone puts it on a nearer plane's trace, past a cut by that plane at a like range:
+that plane's end (a concave corner) only if its own echo's flank does not refute it.
+
+The nearer plane answers inside the region's amplitude window where the two meet, so the region's flank is not
+trusted there; its steps away from that cut are its own echo alone:
+
+* a wall whose foot lies 12° from where the plane's trace reaches its depth (just inside the cut) is a wall,
+  placed by its flank, not good, and no corner takes its echoes;
+* a corner at that point of the trace stays the plane's end: its flank agrees.
+"""
+
+from __future__ import annotations
+
+import math
+
+from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
+from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep
+
+#: The nearer plane (bearing, offset) and the bearing on its trace where it reaches the region's depth, inside
+#: its own region (its nearer echo masks the target from there on).
+PLANE = (math.radians(-60.0), 0.9)
+END = math.radians(-85.0)
+#: The trace's range there: within the amplitude window's reach of the plane's depth (a like range).
+ON_TRACE = PLANE[1] / math.cos(END - PLANE[0])
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def test_the_premise_the_region_is_cut_by_the_plane_at_a_like_range():
+    assert ON_TRACE - PLANE[1] < 0.1
+
+
+def test_a_wall_behind_a_nearer_plane_at_a_depth_on_its_trace_is_a_wall_not_its_end():
+    foot = END - math.radians(12.0)
+    s = PistonSweep(seed=11)
+    s.wall(*PLANE)
+    s.wall(foot, ON_TRACE)
+    d, a = s.readings()
+    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    walls = [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.02]
+    assert len(walls) == 1, [(c.label, c.reasons) for c in result.corners]
+    (wall,) = walls
+    assert wall.bearing_source == FLANK_SOURCE
+    assert any("a wall of its own" in r for r in wall.reasons), wall.reasons
+    assert abs(_wrap(wall.bearing - foot)) <= 3 * math.sqrt(wall.covariance[0, 0]), math.degrees(wall.bearing)
+    assert wall.quality != "good"
+    assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - ON_TRACE) < 0.02]
+
+
+def test_a_corner_where_the_nearer_planes_trace_reaches_its_depth_stays_that_planes_end():
+    s = PistonSweep(seed=12)
+    s.wall(*PLANE)
+    s.corner(END, ON_TRACE)
+    d, a = s.readings()
+    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    assert not [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.05]
+    (corner,) = [f for f in result.corners if abs(f.depth - ON_TRACE) < 0.02]
+    (plane,) = [w for w in result.surfaces if abs(w.offset - PLANE[1]) < 0.02]
+    assert corner.surfaces == (plane.label,)
