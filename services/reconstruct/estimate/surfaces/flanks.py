@@ -114,6 +114,7 @@ def split_flanks(
             centre,
             bearing=m.bearing,
             bearing_stderr=m.bearing_stderr,
+            summed_spread=m.summed_spread,
             bearing_source=m.bearing_source,
             findings=m.findings,
             depth=median(h_i),
@@ -259,7 +260,8 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     target's echo stands alone.  Uniform over that span (``w``, from the core's end to that step, plus the
     gap past it), the end is the middle of the core's end and that step, with variance ``(w + gap)²/12``.
     Only the bearing of a core centred on its own span changes (and its depth, along the new normal); that centre
-    is weighed with the core's own amplitude peak where the two agree (:func:`~.measurement.centre_with_peak`).
+    is weighed with the core's own amplitude peak where the two agree (:func:`~.measurement.centre_with_peak`),
+    and the surface's σ holds the capsules' own peaks' spread through the peak's share, as a whole region's.
 
     Parameters
     ----------
@@ -292,11 +294,12 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     # The ends' share of the core's σ replaced; whatever else it holds (a jump's shift) kept.
     var = max(core.bearing_stderr**2 - base, 0.0) + 0.25 * (ends[0][1] + ends[1][1])
     # The trimmed ends' centre and the core's amplitude peak are two measurements of one bearing, as for any
-    # region: weighed together where they agree.
+    # region: weighed together where they agree, the peak's share of the bearing bringing the capsules' own
+    # peaks' spread into the surface's σ (another echo summed into part of the stack bends the summed peak).
     peak = bearing_from_amplitude(gamma[steps], core.step_amplitude)
-    bearing, sb, _ = centre_with_peak(bearing, math.sqrt(var), peak, not core.clipped)
+    bearing, sb, weight = centre_with_peak(bearing, math.sqrt(var), peak, not core.clipped)
     h_i = core.ranges + core.positions @ unit_normal(bearing, core.tilt)
-    return replace(core, bearing=bearing, bearing_stderr=sb, depth=median(h_i))
+    return replace(core, bearing=bearing, bearing_stderr=sb, summed_spread=weight * core.peak_spread, depth=median(h_i))
 
 
 def split_ends(

@@ -76,6 +76,9 @@ class Measured:
     # rad: how far an echo summed into the amplitude window may have moved the bearing, the capsules' own peaks'
     # spread times the peak's share of the bearing; part of the surface's σ, not of the tests that classify it
     summed_spread: float = 0.0
+    # rad: the capsules' own amplitude peaks' spread (:func:`~.beam_pattern.capsule_peak_spread`) whatever the
+    # peak's share of the bearing (0: no peak or no amplitudes), for a bearing weighed with the peak anew
+    peak_spread: float = 0.0
     # (before, after): an end where another target's echo at a like range takes over (an amplitude jump split the
     # region there); that echo sums into the region's amplitude window there and bends its profile
     handed_over: tuple[bool, bool] = (False, False)
@@ -333,10 +336,8 @@ def measure_region(
     depth_se = 1.2533 * float(np.std(h_i)) / math.sqrt(max(region.steps.size, 1)) if h_i.size > 1 else float("nan")
     strength = mirror_normalised(peak, depth, opts)
     # rad: how far the capsules' own peaks disagree (another echo summing into the window moves each capsule's
-    # peak its own way), through the peak's share of the bearing: none, no spread (at finite γ, a finite one).
-    spread = 0.0
-    if peak_fit is not None and amplitude is not None and (peak_weight or not np.isfinite(g).all()):
-        spread = capsule_peak_spread(g, table)
+    # peak its own way), through the peak's share of the bearing.
+    spread = capsule_peak_spread(g, table) if peak_fit is not None and amplitude is not None else 0.0
     return Measured(
         region=region,
         bearing=bearing,
@@ -362,6 +363,7 @@ def measure_region(
         ranges=d,
         stack_sigma=lin_sigma,
         summed_spread=peak_weight * spread,
+        peak_spread=spread,
     )
 
 
