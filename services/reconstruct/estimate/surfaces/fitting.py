@@ -11,7 +11,7 @@ from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
 from lelsonar.reconstruct.estimate.quality import DEGRADED, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.robust import median
-from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, wrap
+from lelsonar.reconstruct.estimate.surfaces.evidence import heard_from_every_step, plane_line, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, reading_positions, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import Surface, SurfaceOptions
@@ -197,17 +197,12 @@ def joint_fit(
 
 
 def _heard(corner: Measured, a: Measured, b: Measured, reach: float) -> bool:
-    """Whether the line where planes ``a`` and ``b`` meet lies within ``reach`` of every step of the corner's region.
-
-    Each reading is an echo its step's beam heard, so its target lies within the beam's half-width of that step's
-    axis, both ends of the region included: a line past it from the far end is another corner at a like range
-    (the same two walls' mirror image across the array, in a corridor's middle).
-    """
+    """Whether the line where planes ``a`` and ``b`` meet lies within ``reach`` of every step of the corner's region
+    (:func:`~.evidence.heard_from_every_step`)."""
     line = plane_line(a, b)
     if line is None:
         return False
-    bearing = math.atan2(float(line[0][2]), float(line[0][1]))
-    return all(abs(wrap(bearing - end)) <= reach for end in corner.span)
+    return heard_from_every_step(math.atan2(float(line[0][2]), float(line[0][1])), corner, reach)
 
 
 def _joint_round(
