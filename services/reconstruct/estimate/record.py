@@ -14,7 +14,9 @@ Final (``options.provisional`` False), from scratch, on the whole scan:
    eq. 10-12, the split, the corrected points, eq. 9, and each plane's own verdict);
 2. where echoes after the board's noise triggers were recovered, the method of record runs once more
    on the board's own readings, and a plane the recovered echoes turn away from that fit is unreliable;
-3. the verdict (:func:`~lelsonar.reconstruct.estimate.quality.published_verdicts`): the scan's writer
+3. the verdict (:func:`~lelsonar.reconstruct.estimate.quality.published_verdicts`): the sweep's own
+   evidence on the planes of record (:func:`~lelsonar.reconstruct.estimate.surface_check.surface_finding`:
+   echoes as weak as a diffraction that the sweep's surfaces hold as an edge are no wall's), the scan's writer
    findings on every plane, the recovered echoes' check on the planes of record, and each compared plane
    cross-checked against the plane of record of its wall;
 4. every surface of the sweep, beside the L's planes: the planes, concave corners and convex edges of
@@ -412,10 +414,15 @@ def _final(scan: ScanInput, options: RecordOptions) -> ScanEstimate:
     extracted = extract_surfaces(scan.gamma, scan.distance, scan.geometry, amplitude=scan.echo_amplitude)
     surfaces = _unobserved(extracted, steps, max(scan.n_schedule, int(steps[-1]) + 1 if len(steps) else 0))
     extract_s = time.perf_counter() - t0
-    # Each L plane against the surface of its own echoes, whose bearing is the beam pattern's (before the
-    # compared methods are checked against the planes of record).
+    # Each L plane against the surface of its own echoes, whose bearing is the beam pattern's, and against an
+    # edge's diffraction (before the compared methods are checked against the planes of record).
     record = tuple(
-        add_findings(pl, surface_finding(pl, data, surfaces))
+        add_findings(
+            pl,
+            surface_finding(
+                pl, data, surfaces, gamma=scan.gamma, distance=scan.distance, amplitude=scan.echo_amplitude
+            ),
+        )
         for pl, data in zip(main.planes, (main.data_a, main.data_b), strict=True)
     )
     compared = tuple((method, results[method].planes) for method in options.compare_methods)
