@@ -15,7 +15,7 @@ import pytest
 from lelsonar import codec
 from lelsonar.reconstruct.estimate import wire
 from lelsonar.reconstruct.estimate.surfaces import Feature, extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.features import MIXED, NOT_THEIR_LINE, TRACE_ONLY
+from lelsonar.reconstruct.estimate.surfaces.features import MIXED, NOT_THEIR_LINE, OPENING_OPEN, TRACE_ONLY
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.signal.energy import echo_amplitude
 from lelsonar.sim.world_geometry import ElementKind, build_model
@@ -201,3 +201,28 @@ def test_a_corridors_end_corner_weighs_its_own_bearing_with_its_walls_trace():
         assert any("its bearing weighs its own" in r for r in f.reasons)
         dist, sigma = feature_offset(scan, f, 10)
         assert dist <= max(3 * sigma, 0.02)
+
+
+@pytest.mark.parametrize("opening_deg", [90.0, 100.0, 80.0])
+def test_a_corner_tied_to_one_wall_covers_the_opening_its_other_wall_makes(opening_deg):
+    # A wall y = 1.2 and a concave corner on its trace at 50°, its other wall absorbent (unseen): the double
+    # bounce turns the capsule's image by twice the opening α about the line, so it answers from |X| sin α, short
+    # of the line by 2.8 cm at 80° or 100°.  Placed on the wall's trace at that range, the corner's σ along the
+    # trace covers where the line is; at a right angle its own bearing agrees and it is placed on the line.
+    alpha = math.radians(opening_deg)
+    x_line = np.array([0.0, 1.2, 1.2 * math.tan(math.radians(50.0))])
+    e = Echoes(seed=11)
+    e.plane(0.0, 1.2)
+    # A line at sin α of the corner's distance, in its direction: its ranges are |X − p| sin α to 0.5 mm.
+    e.vertical_line(math.sin(alpha) * x_line[1], math.sin(alpha) * x_line[2], gain=1.0)
+    result = extract_surfaces(GAMMA, e.ranges(), GEOMETRY, amplitude=e.amp)
+    assert [round(s.offset, 2) for s in result.surfaces] == [1.2]
+    assert len(result.corners) == 1 and not result.edges
+    c = result.corners[0]
+    assert c.surfaces == (result.surfaces[0].label,)
+    dist, sigma = _off_line(c, x_line, np.array([1.0, 0.0, 0.0]))
+    assert dist <= 3 * sigma, (dist, sigma)
+    # Off a right angle its own bearing and its range disagree on the trace: it says what its σ spans.
+    assert any(r.startswith(OPENING_OPEN) for r in c.reasons) == (opening_deg != 90.0)
+    if opening_deg == 90.0:
+        assert dist < 0.01

@@ -29,6 +29,7 @@ __all__ = [
     "beyond_reach",
     "feature_point",
     "in_fan_range",
+    "heard_from_every_step",
     "in_span",
     "pair_corner",
     "pair_stderr",
@@ -59,11 +60,22 @@ def feature_point(m: Measured) -> np.ndarray:
 
 
 def in_span(bearing: float, m: Measured, margin: float, beyond_cut: float) -> bool:
-    """``bearing`` within the region's span of γ; on a cut side the target may lie up to ``beyond_cut`` past it."""
+    """``bearing`` within the region's span of γ; on a cut side the target may lie up to ``beyond_cut`` past it, and
+    no farther than that from the far end (:func:`heard_from_every_step`)."""
     g0, g1 = m.span
     lo = g0 - margin - (beyond_cut if m.region.cut_before else 0.0)
     hi = g1 + margin + (beyond_cut if m.region.cut_after else 0.0)
-    return lo <= bearing <= hi
+    return lo <= bearing <= hi and heard_from_every_step(bearing, m, beyond_cut)
+
+
+def heard_from_every_step(bearing: float, m: Measured, reach: float) -> bool:
+    """``bearing`` within ``reach`` of both ends of the region's span of γ.
+
+    Each reading is an echo its step's beam heard, so its target lies within the beam's half-width (``reach``) of
+    that step's axis, both ends of the region included: a target past it from the far end is another target at a
+    like range (the same two walls' mirror image across the array, in a corridor's middle).
+    """
+    return all(abs(wrap(bearing - end)) <= reach for end in m.span)
 
 
 def plane_line(a: Measured, b: Measured) -> tuple[np.ndarray, np.ndarray] | None:
@@ -103,8 +115,8 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
     A corner's echo comes from the line ``X`` where its two walls meet, at the double-bounce range
     ``|X|`` (the retro-reflection in the plane normal to the edge; ``X`` its point nearest the array)
     and the bearing of ``X`` in the fan, which must fall within the region's span of γ (past a cut
-    end, within ``beyond_cut``).  The planes' tilts place the line: a wall the fan meets off square
-    leans it out of the fan.
+    end, within ``beyond_cut``, and no farther than that from both its ends: :func:`in_span`).  The planes'
+    tilts place the line: a wall the fan meets off square leans it out of the fan.
 
     Returns
     -------

@@ -11,7 +11,9 @@ the stack, else along the stack.  Where its own echoes deny what placed it (:mod
 its own echo comes from, and its kind, which rested on that placement, is not settled.  Its σ holds what its
 evidence leaves open: a pair corner's grows where its own range and its line's disagree past both σ; a line
 across the fan at its plane's foot takes the turn in the plane its tilt allows; a bearing of its own echo spans
-its region's reach where that echo goes on past an end or sums another's (:mod:`.own_bearing`).
+its region's reach where that echo goes on past an end or sums another's (:mod:`.own_bearing`); a concave corner
+tied to one plane spans, along that plane's trace, how far past its range an opening off a right angle may put
+its line (:func:`~.placement.opening_spread`).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from lelsonar.reconstruct.estimate.surfaces.placement import (
     echo_point,
     line_direction,
     line_yaw_stderr,
+    opening_spread,
     pair_line_point,
     with_range,
 )
@@ -66,6 +69,7 @@ __all__ = [
     "like_its_mirror",
     "falls_toward",
     "centre_off_peak",
+    "OPENING_OPEN",
 ]
 
 #: A classified region: its kind ("corner" or "edge"), why, and the regions (indices) it ties to.
@@ -96,6 +100,9 @@ STACK_MIXED = (
     "noise, with or without any one capsule: off the fan anywhere within the beam's half-width"
 )
 
+#: In the reasons of a concave corner tied to one plane: the opening its other wall makes with it unknown.
+OPENING_OPEN = "one wall tied, the other not: the opening is unknown"
+
 #: What the reasons of a feature placed without evidence of its own bearing, or off the line its class names, start
 #: with: a reader shows them beside its σ.
 PLACEMENT_CAVEATS = (NOT_THEIR_LINE, TRACE_ONLY, MIXED.split(":")[0], NOT_ITS_END, ALIKE, YAW_OPEN.split(",")[0])
@@ -120,11 +127,13 @@ def _feature(
     reasons: list[str],
     opts: SurfaceOptions,
     placed: tuple[np.ndarray, np.ndarray] | None = None,
+    spread: np.ndarray | None = None,
 ) -> Feature:
     """``placed``: the point and its covariance where the planes it joins put it; else its own echo's point,
     off the fan by its stack slope's tilt (with one capsule, anywhere within the beam's half-width; a slope no
     target within the beam gives, past ``beyond_cut`` off the fan, says nothing of where it lies: in the fan,
-    anywhere within that half-width)."""
+    anywhere within that half-width).  ``spread``: a second moment about that point to add to its covariance
+    (where the line may lie past it, :func:`~.placement.opening_spread`)."""
     if placed is None:
         tilt, tilt_se = m.tilt, m.tilt_stderr
         if not abs(tilt) <= opts.beyond_cut:
@@ -132,6 +141,8 @@ def _feature(
         if not math.isfinite(tilt_se):
             tilt_se = opts.beyond_cut / math.sqrt(3.0)
         placed = echo_point(m.depth, m.depth_stderr, m.bearing, m.surface_bearing_stderr, tilt, tilt_se)
+    if spread is not None:
+        placed = placed[0], placed[1] + spread
     return Feature(
         kind=kind,
         label=label,
@@ -387,6 +398,35 @@ def _with_trace(m: Measured, pj: Measured) -> tuple[Measured, str]:
     return replace(m, bearing=bearing, bearing_stderr=se, summed_spread=0.0), why
 
 
+def _unseen_opening(m: Measured, own: Measured, pj: Measured, scale: EchoScale) -> tuple[np.ndarray | None, str]:
+    """A concave corner tied to plane ``pj`` alone: the other wall's opening with it is unknown, so its double
+    bounce's range puts its line only at or before where it lies along ``pj``'s trace
+    (:func:`~.placement.opening_spread`), as far as its own bearing (``own``'s, where determined, within 3 σ of
+    its and the plane's) allows.
+
+    Returns
+    -------
+    The second moment to add to its covariance (None: none) and the reason to add ("": none).
+    """
+    rho = in_fan_range(m)[0]
+    h = pj.depth / math.cos(pj.tilt)
+    off_foot = math.inf
+    se = math.hypot(own.surface_bearing_stderr, pj.bearing_stderr)
+    if own.bearing_source != "undetermined" and math.isfinite(se):
+        # 3 σ of both bearings: the foot's own moves where the trace lies.
+        off_foot = abs(wrap(own.bearing - pj.bearing)) + 3.0 * se
+    spread = opening_spread(rho, m.bearing, pj.bearing, h, scale.beam_k, scale.opts.weak_echo, off_foot)
+    reach = math.sqrt(3.0 * max(float(np.trace(spread)), 0.0))
+    if not reach > 0:
+        return None, ""
+    why = (
+        f"{OPENING_OPEN}: its double bounce's range puts its line no nearer, and up to {100 * reach:.1f} cm "
+        "farther along its plane's trace (off a right angle by as much as a corner's echo may be, within 3 σ of "
+        "its own bearing); its σ spans that"
+    )
+    return spread, why
+
+
 def _not_its_end(
     own: Measured, bearing: float, fall: float, kind: str, reasons: list[str], scale: EchoScale
 ) -> tuple[Measured, list[str], tuple[str, ...]]:
@@ -461,6 +501,7 @@ def place_features(
         m = measured[i]
         tied = tuple(surface_of[j].label for j in ties if j in surface_of)
         located: tuple[np.ndarray, np.ndarray] | None = None
+        spread: np.ndarray | None = None
         if i in across_lines and ties and own[i].stack_sigma > opts.range_tolerance:
             # The double bounce with a surface across the fan explains the ranges no better than a free slope
             # whose residuals scatter past a region's own steadiness: its readings hold more than one target.
@@ -511,6 +552,9 @@ def place_features(
             direction = cross3(unit_normal(pj.bearing, pj.tilt), unit_normal(m.bearing, m.tilt))
             if fall > 0 or float(np.linalg.norm(direction)) < math.sin(opts.foot_separation):
                 direction = stack_axis
+            if kind == "corner" and tied:
+                spread, why = _unseen_opening(m, own[i], pj, scale)
+                reasons = [*reasons, why] if why else reasons
         else:
             direction = stack_axis  # along the stack: a line the fan crosses
             m, why = _own_tilt(m)
@@ -527,5 +571,5 @@ def place_features(
         if direction[int(np.argmax(np.abs(direction)))] < 0:
             direction = -direction
         out = corners if kind == "corner" else edges
-        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, opts, located))
+        out.append(_feature(kind, f"{kind[0]}{len(out) + 1}", m, direction, tied, reasons, opts, located, spread))
     return corners, edges

@@ -11,12 +11,12 @@ from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
 from lelsonar.reconstruct.estimate.quality import DEGRADED, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.robust import median
-from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, wrap
+from lelsonar.reconstruct.estimate.surfaces.evidence import heard_from_every_step, plane_line, wrap
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, reading_positions, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import Surface, SurfaceOptions
 
-__all__ = ["METHOD", "fit_surface", "joint_fit"]
+__all__ = ["METHOD", "curved_as_a_line", "fit_surface", "joint_fit"]
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
@@ -59,6 +59,9 @@ def fit_surface(
     findings = list(m.findings)
     if not math.isfinite(m.tilt_stderr):
         findings.append((DEGRADED, "tilt not determined: one capsule per step"))
+    curved = curved_as_a_line(m)
+    if curved:
+        findings.append((DEGRADED, curved))
     data = plane_data_of(caps[:, None, :], beam, d[:, None], r.rows, "a", n)
     fit = make_plane_fit(
         data,
@@ -84,6 +87,28 @@ def fit_surface(
         n_echoes=r.n_echoes,
         rows=r.rows.copy(),
         capsules=r.capsules.copy(),
+    )
+
+
+def curved_as_a_line(m: Measured) -> str:
+    """Why a region's ranges along the capsule stack say it may be a line across the stack, not a plane ("": they
+    do not).
+
+    A plane's ranges are linear in the capsule's offset ``x`` along the stack (curvature ``c = 0``); a line across
+    the stack (a wall's junction with a floor or a ceiling) answers from its nearest point to each capsule,
+    ``√(ρ² + x²)``, curved by ``c = 1/(2ρ)``.  Far away the two differ by less than a region tells at the
+    classification's bar: where ``c`` lies beyond 3 σ of a plane's and within 3 σ of a line's, the evidence favours
+    the line, and a plane fitted to its echoes leans to its slope and stands off the wall by ``ρ t²`` in the fan.
+    """
+    c, sc = m.curvature, m.curvature_stderr
+    if not (math.isfinite(c) and math.isfinite(sc) and sc > 0 and m.depth > 0):
+        return ""
+    line = 1.0 / (2.0 * m.depth)
+    if not (c > 3.0 * sc and abs(c - line) <= 3.0 * sc):
+        return ""
+    return (
+        f"its ranges curve along the capsule stack (c = {c:.3f} ± {sc:.3f}/m), beyond 3 σ of a plane's straight "
+        f"profile and within 3 σ of a line across the stack's (1/(2ρ) = {line:.3f}/m): it may be a line there"
     )
 
 
@@ -139,7 +164,9 @@ def _joint_surface(
     )
     if not isinstance(fit, PlaneFit):
         return None
-    fit = assess_plane(fit, gamma, findings=m.findings, limits=opts.limits)
+    curved = curved_as_a_line(m)
+    findings = (*m.findings, (DEGRADED, curved)) if curved else m.findings
+    fit = assess_plane(fit, gamma, findings=findings, limits=opts.limits)
     return Surface(
         label=label,
         plane=fit,
@@ -197,17 +224,12 @@ def joint_fit(
 
 
 def _heard(corner: Measured, a: Measured, b: Measured, reach: float) -> bool:
-    """Whether the line where planes ``a`` and ``b`` meet lies within ``reach`` of every step of the corner's region.
-
-    Each reading is an echo its step's beam heard, so its target lies within the beam's half-width of that step's
-    axis, both ends of the region included: a line past it from the far end is another corner at a like range
-    (the same two walls' mirror image across the array, in a corridor's middle).
-    """
+    """Whether the line where planes ``a`` and ``b`` meet lies within ``reach`` of every step of the corner's region
+    (:func:`~.evidence.heard_from_every_step`)."""
     line = plane_line(a, b)
     if line is None:
         return False
-    bearing = math.atan2(float(line[0][2]), float(line[0][1]))
-    return all(abs(wrap(bearing - end)) <= reach for end in corner.span)
+    return heard_from_every_step(math.atan2(float(line[0][2]), float(line[0][1])), corner, reach)
 
 
 def _joint_round(

@@ -11,6 +11,8 @@
   linear-Gaussian update), where the planes' fit did not use it already.
 * :func:`line_yaw_stderr`: how far a plane's line with a surface across the fan may lie from the plane's foot
   in bearing, the line's turn in the plane being fixed only through its cosine by the echo's range and tilt.
+* :func:`opening_spread`: how far along a plane's trace a concave corner with an unseen wall may lie past
+  where its double bounce's range puts it, the opening unknown.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ __all__ = [
     "with_range",
     "line_direction",
     "line_yaw_stderr",
+    "opening_spread",
     "RANGE_FLOOR",
 ]
 
@@ -219,3 +222,62 @@ def line_yaw_stderr(
     low = min(c, 1.0) - sc
     sin_phi = 1.0 if low <= 0.0 else math.sqrt(max(0.0, 1.0 - low * low))
     return math.atan2(q * sin_phi, plane_depth)
+
+
+def opening_spread(
+    depth: float,
+    bearing: float,
+    plane_bearing: float,
+    plane_depth: float,
+    beam_k: float,
+    weak_echo: float,
+    off_foot: float = math.inf,
+) -> np.ndarray:
+    """The second moment of where a concave corner with an unseen wall lies along its plane's trace, past the
+    point its double bounce's range puts it at, its opening unknown, m².
+
+    Two walls meeting at opening ``α`` turn the capsule's image by ``2α`` about their line: the double bounce
+    comes back from ``ρ = |X| sin α`` (``|X|`` the line's distance), leaving and arriving ``δ = |α − 90°|`` either
+    side of the ray to the line, so the beam weighs it by ``D(δ)²``, ``exp(−k δ²)`` in log amplitude (``k`` the
+    beam's curvature across γ).  An echo called a corner's for being at least ``weak_echo`` of a mirror's may so
+    be a double bounce up to ``δ_max = √(ln(1/weak_echo)/k)`` off a right angle: the line lies at
+    ``ρ ≤ |X| ≤ ρ / cos δ_max``.  On the trace ``n·X = h`` (in the fan) that is
+    ``s = √(|X|² − h²)`` from the foot, so the corner lies past its placement by up to
+    ``Δs = √(ρ²/cos²δ_max − h²) − √(ρ² − h²)``, uniformly as far as anything says: second moment ``Δs²/3``
+    along the trace, away from the foot.  A bearing of the corner's own, ``off_foot`` at most from the foot
+    (3 σ past its measure and the foot's), stops the trace at ``s = h tan(off_foot)`` where that comes first.
+
+    Parameters
+    ----------
+    depth : float
+        ``ρ``, m: the region's range in the fan.
+    bearing : float
+        rad: where on the trace the corner is placed (its side of the foot).
+    plane_bearing, plane_depth : float
+        The plane's bearing (rad) and its trace's distance in the fan ``h``, m.
+    beam_k : float
+        ``k``, 1/rad² (not finite or not positive: ``δ_max`` a quarter turn, the line anywhere past ``ρ``).
+    weak_echo : float
+        The share of a mirror's echo under which an echo diffracts, in (0, 1).
+    off_foot : float
+        rad: how far from the foot the corner's own bearing allows it (inf: anywhere).
+
+    Returns
+    -------
+    (3, 3) array: ``(Δs²/3) t tᵀ``, ``t`` the trace's unit direction away from the foot (zeros where the
+    trace does not reach ``ρ``).
+    """
+    if not (math.isfinite(depth) and depth > plane_depth > 0):
+        return np.zeros((3, 3))
+    if math.isfinite(beam_k) and beam_k > 0:
+        delta = min(math.sqrt(math.log(1.0 / weak_echo) / beam_k), 0.25 * math.pi)
+    else:
+        delta = 0.25 * math.pi
+    far = depth / math.cos(delta)
+    s_far = math.sqrt(far * far - plane_depth * plane_depth)
+    if off_foot < 0.5 * math.pi:
+        s_far = min(s_far, plane_depth * math.tan(off_foot))
+    ds = max(0.0, s_far - math.sqrt(depth * depth - plane_depth * plane_depth))
+    side = 1.0 if math.sin(bearing - plane_bearing) >= 0 else -1.0
+    along = side * np.array([0.0, -math.sin(plane_bearing), math.cos(plane_bearing)])
+    return (ds * ds / 3.0) * np.outer(along, along)
