@@ -40,7 +40,8 @@ Per region of constant depth (:mod:`.regions`):
   - anything else: a **plane**.
 
 A plane's region that hands over at an amplitude jump, at one range, to its face's end's weak echo is placed by
-one beam pattern across the jump (the end lies at the face's foot).
+one beam pattern across the jump (the end lies at the face's foot); one another echo cuts at a like range is placed
+by its flank away from that cut, where its own echo is alone.
 
 A target only part of the capsule stack hears, nearer than what the rest hear at its steps (an edge off the
 fan), is found among the readings no region holds; it is a corner or an edge, never a plane.  A weak region
@@ -441,7 +442,19 @@ def _flank_bearings(
         for j in [_end_across_jump(i, measured, scale, sweep)]
         if j is not None
     }
-    if not todo and not ends:
+    # A plane's region cut by another echo at a like range, whose steps away from that cut are its own echo alone.
+    bent = [
+        i
+        for i, m in enumerate(measured)
+        if i not in kinds
+        and i not in partial
+        and i not in todo
+        and i not in ends
+        and m.bearing_source == "undetermined"
+        and (m.region.cut_before or m.region.cut_after)
+        and _in_fan(m)
+    ]
+    if not todo and not ends and not bent:
         return
     # A mirror's echo follows the beam alone (its range and spreading constant across its region); a corner's double
     # bounce or an edge's diffraction adds its own change with the angle: only the planes calibrate the beam.
@@ -452,6 +465,15 @@ def _flank_bearings(
     if beam is not None:
         for i, j in ends.items():
             measured[i] = _across_jump(measured[i], measured[j], beam, sweep)
+    for i in bent:
+        mine = _own_echo_alone(measured[i], sweep)
+        if mine is None or mine is measured[i] or mine.span[1] - mine.span[0] < 1.0 / math.sqrt(scale.beam_k):
+            continue
+        cut = (mine.region.cut_before, mine.region.cut_after)
+        reach = (sweep.opts.beyond_cut if cut[0] else 0.0, sweep.opts.beyond_cut if cut[1] else 0.0)
+        wall = flank_measured(mine, sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut, reach=reach)
+        if wall.bearing_source == FLANK_SOURCE:
+            measured[i] = wall
 
 
 def _end_across_jump(i: int, measured: list[Measured], scale: EchoScale, sweep: _Sweep) -> int | None:
