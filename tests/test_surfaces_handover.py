@@ -111,7 +111,7 @@ def test_a_box_face_ending_at_its_own_edge_past_a_nearer_edge_is_found_and_the_e
     record, result, scan = _fan_record("boxes", 7, 1)
     assert not any(" element 14 " in line for line in record.missed)  # the face
     edges = [f for f in result.edges if np.mean(scan.echo_index[f.rows, f.capsules] == 68) > 0.5]
-    assert edges  # its own edge, no longer inside the face's region
+    assert edges  # its own edge, a feature apart from the face's region
 
 
 def test_the_split_pieces_leave_a_far_walls_flank_its_beam_and_it_stays_a_plane_placed_by_it():
