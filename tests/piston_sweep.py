@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
 from lelsonar.signal.directivity import piston_directivity
 
 GEOMETRY = ArrayGeometry(radial_offset=0.03)
@@ -51,3 +52,19 @@ class PistonSweep:
 
     def readings(self) -> tuple[np.ndarray, np.ndarray]:
         return self.range + self.rng.normal(0.0, RANGE_NOISE, self.range.shape), self.amp
+
+
+def wrap(a: float) -> float:
+    """An angle in [−π, π)."""
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def assert_flank_placed_wall(result, depth: float, foot: float, reason: str) -> None:
+    """``result`` holds one surface at ``depth``: placed by its beam flank within 3 σ of ``foot``, a reason naming
+    ``reason``, not good, and no corner or edge takes its echoes."""
+    (wall,) = [w for w in result.surfaces if abs(w.offset - depth) < 0.02]
+    assert wall.bearing_source == FLANK_SOURCE
+    assert any(reason in r for r in wall.reasons), wall.reasons
+    assert abs(wrap(wall.bearing - foot)) <= 3 * math.sqrt(wall.covariance[0, 0]), math.degrees(wall.bearing)
+    assert wall.quality != "good"
+    assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - depth) < 0.02]

@@ -23,11 +23,7 @@ from lelsonar.sim.world_geometry import ElementKind
 from lelsonar.sim.world_render import pose_frame
 from lelsonar.tools.surface_oracle import bearing_tilt, trace_error, true_plane
 from lelsonar.tools.surface_scores import majority, score_scan, world_sweep
-from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
+from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall, wrap
 
 
 def _bearing_sigma(f) -> float:
@@ -53,13 +49,8 @@ def test_a_wall_past_the_sweeps_start_at_a_depth_on_a_planes_trace_is_a_wall_pla
     s.wall(foot, depth)
     d, a = s.readings()
     result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
-    (wall,) = [w for w in result.surfaces if abs(w.offset - depth) < 0.02]
-    assert wall.bearing_source == FLANK_SOURCE
     # The premise: its depth alone put it on the plane's trace as its end; the flank says it is not.
-    assert any("a wall of its own" in r for r in wall.reasons), wall.reasons
-    assert abs(_wrap(wall.bearing - foot)) <= 3 * math.sqrt(wall.covariance[0, 0])
-    assert wall.quality != "good"
-    assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - depth) < 0.02]
+    assert_flank_placed_wall(result, depth, foot, "a wall of its own")
 
 
 def test_a_corner_past_the_sweeps_start_on_a_planes_trace_stays_that_planes_end():
@@ -73,7 +64,7 @@ def test_a_corner_past_the_sweeps_start_on_a_planes_trace_stays_that_planes_end(
     (plane,) = [w for w in result.surfaces if abs(w.offset - PLANE[1]) < 0.02]
     assert corner.surfaces == (plane.label,)
     # Placed on the trace where the flank agrees: within 3 σ of its true bearing.
-    assert abs(_wrap(corner.bearing - PAST_START)) <= 3 * _bearing_sigma(corner), math.degrees(corner.bearing)
+    assert abs(wrap(corner.bearing - PAST_START)) <= 3 * _bearing_sigma(corner), math.degrees(corner.bearing)
 
 
 def test_of_two_placements_on_two_traces_the_one_the_flank_agrees_with_is_taken():
@@ -93,7 +84,7 @@ def test_of_two_placements_on_two_traces_the_one_the_flank_agrees_with_is_taken(
     (far,) = [w for w in result.surfaces if abs(w.offset - 3.33) < 0.02]
     (found,) = [f for f in result.corners if abs(f.depth - rho) < 0.02]
     assert found.surfaces == (far.label,)
-    assert abs(_wrap(found.bearing - corner)) <= 3 * _bearing_sigma(found), math.degrees(found.bearing)
+    assert abs(wrap(found.bearing - corner)) <= 3 * _bearing_sigma(found), math.degrees(found.bearing)
 
 
 def _scan(family: str, seed: int, pose: int):
@@ -120,7 +111,7 @@ def test_a_wall_past_the_sweeps_end_once_claimed_as_a_corner_is_found_within_its
         element, _ = majority(scan, s.steps, s)
         assert scan.model.elements[element].kind == ElementKind.MIRROR
         n_true, h_true = true_plane(scan, element)
-        db = _wrap(s.bearing - bearing_tilt(n_true)[0])
+        db = wrap(s.bearing - bearing_tilt(n_true)[0])
         assert abs(db) <= 3 * math.sqrt(s.covariance[0, 0]), math.degrees(db)
         assert trace_error(s.normal, s.offset, n_true, h_true) < 0.05
         assert s.quality != "good"
@@ -137,4 +128,4 @@ def test_a_corner_placed_on_the_wrong_planes_trace_is_placed_where_its_flank_agr
             continue
         p = rot.T @ (el.p0 - tr)
         truth = math.atan2(p[2], p[1])
-        assert abs(_wrap(f.bearing - truth)) <= 3 * _bearing_sigma(f), (f.label, math.degrees(f.bearing))
+        assert abs(wrap(f.bearing - truth)) <= 3 * _bearing_sigma(f), (f.label, math.degrees(f.bearing))

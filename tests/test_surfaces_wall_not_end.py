@@ -15,8 +15,7 @@ from __future__ import annotations
 import math
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
-from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep
+from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall
 
 #: The nearer plane (bearing, offset) and the bearing on its trace where it reaches the region's depth, inside
 #: its own region (its nearer echo masks the target from there on).
@@ -24,10 +23,6 @@ PLANE = (math.radians(-60.0), 0.9)
 END = math.radians(-85.0)
 #: The trace's range there: within the amplitude window's reach of the plane's depth (a like range).
 ON_TRACE = PLANE[1] / math.cos(END - PLANE[0])
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def test_the_premise_the_region_is_cut_by_the_plane_at_a_like_range():
@@ -43,12 +38,7 @@ def test_a_wall_behind_a_nearer_plane_at_a_depth_on_its_trace_is_a_wall_not_its_
     result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
     walls = [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.02]
     assert len(walls) == 1, [(c.label, c.reasons) for c in result.corners]
-    (wall,) = walls
-    assert wall.bearing_source == FLANK_SOURCE
-    assert any("flank" in r for r in wall.reasons), wall.reasons
-    assert abs(_wrap(wall.bearing - foot)) <= 3 * math.sqrt(wall.covariance[0, 0]), math.degrees(wall.bearing)
-    assert wall.quality != "good"
-    assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - ON_TRACE) < 0.02]
+    assert_flank_placed_wall(result, ON_TRACE, foot, "flank")
 
 
 def test_a_corner_where_the_nearer_planes_trace_reaches_its_depth_stays_that_planes_end():
