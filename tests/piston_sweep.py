@@ -68,3 +68,13 @@ def assert_flank_placed_wall(result, depth: float, foot: float, reason: str) -> 
     assert abs(wrap(wall.bearing - foot)) <= 3 * math.sqrt(wall.covariance[0, 0]), math.degrees(wall.bearing)
     assert wall.quality != "good"
     assert not [f for f in (*result.corners, *result.edges) if abs(f.depth - depth) < 0.02]
+
+
+def assert_plane_end(result, depth: float, plane_offset: float):
+    """``result`` holds no surface at ``depth`` but one corner there, the end of the plane at ``plane_offset``
+    alone; that corner."""
+    assert not [w for w in result.surfaces if abs(w.offset - depth) < 0.05]
+    (corner,) = [f for f in result.corners if abs(f.depth - depth) < 0.02]
+    (plane,) = [w for w in result.surfaces if abs(w.offset - plane_offset) < 0.02]
+    assert corner.surfaces == (plane.label,)
+    return corner

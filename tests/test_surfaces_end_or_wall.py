@@ -23,7 +23,7 @@ from lelsonar.sim.world_geometry import ElementKind
 from lelsonar.sim.world_render import pose_frame
 from lelsonar.tools.surface_oracle import bearing_tilt, trace_error, true_plane
 from lelsonar.tools.surface_scores import majority, score_scan, world_sweep
-from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall, wrap
+from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall, assert_plane_end, wrap
 
 
 def _bearing_sigma(f) -> float:
@@ -59,10 +59,7 @@ def test_a_corner_past_the_sweeps_start_on_a_planes_trace_stays_that_planes_end(
     s.corner(PAST_START, ON_TRACE)
     d, a = s.readings()
     result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
-    assert not [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.05]
-    (corner,) = [f for f in result.corners if abs(f.depth - ON_TRACE) < 0.02]
-    (plane,) = [w for w in result.surfaces if abs(w.offset - PLANE[1]) < 0.02]
-    assert corner.surfaces == (plane.label,)
+    corner = assert_plane_end(result, ON_TRACE, PLANE[1])
     # Placed on the trace where the flank agrees: within 3 σ of its true bearing.
     assert abs(wrap(corner.bearing - PAST_START)) <= 3 * _bearing_sigma(corner), math.degrees(corner.bearing)
 

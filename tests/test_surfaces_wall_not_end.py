@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 
 from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall
+from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall, assert_plane_end
 
 #: The nearer plane (bearing, offset) and the bearing on its trace where it reaches the region's depth, inside
 #: its own region (its nearer echo masks the target from there on).
@@ -47,7 +47,4 @@ def test_a_corner_where_the_nearer_planes_trace_reaches_its_depth_stays_that_pla
     s.corner(END, ON_TRACE)
     d, a = s.readings()
     result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
-    assert not [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.05]
-    (corner,) = [f for f in result.corners if abs(f.depth - ON_TRACE) < 0.02]
-    (plane,) = [w for w in result.surfaces if abs(w.offset - PLANE[1]) < 0.02]
-    assert corner.surfaces == (plane.label,)
+    assert_plane_end(result, ON_TRACE, PLANE[1])
