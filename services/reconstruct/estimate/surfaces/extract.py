@@ -334,13 +334,10 @@ def _walls_not_ends(
     opts = sweep.opts
     for i in todo:
         ties = kinds[i][2]
-        mine = _own_echo_alone(own[i], sweep)
-        # A flank shorter than the beam's 1/√k is nearly straight in log A: its bend, which places its peak, is
-        # less than one e-fold, within what an echo's own change with the angle (a corner's aperture) bends it.
-        if mine is None or mine.span[1] - mine.span[0] < 1.0 / math.sqrt(scale.beam_k):
+        alone = _own_flank(own[i], sweep, scale)
+        if alone is None:
             continue
-        cut = (mine.region.cut_before, mine.region.cut_after)
-        reach = (opts.beyond_cut if cut[0] else 0.0, opts.beyond_cut if cut[1] else 0.0)
+        mine, reach = alone
         placed = measured[i]
         end_se = end_stderr(own[i], measured[ties[0]], placed.bearing)
         got = end_refuted(mine, sweep.gamma, beam, placed.bearing, end_se, in_fan_range(own[i])[0], reach)
@@ -365,10 +362,10 @@ def _in_fan(m: Measured) -> bool:
     return math.isfinite(m.tilt_stderr) and abs(m.tilt) <= 3.0 * m.tilt_stderr
 
 
-def _own_echo_alone(m: Measured, sweep: _Sweep) -> Measured | None:
+def _own_flank(m: Measured, sweep: _Sweep, scale: EchoScale) -> tuple[Measured, tuple[float, float]] | None:
     """The region without the steps a run may bridge at each cut end where another echo answers at a like range
-    (:func:`~.measurement.clean_cuts`): there that echo sums into its amplitude window; None when too few steps
-    remain for a flank."""
+    (:func:`~.measurement.clean_cuts`): there that echo sums into its amplitude window (``m`` itself where nothing
+    is left out); and how far past each cut end its peak may lie.  None when too little remains for a flank."""
     opts = sweep.opts
     r = m.region
     clean = clean_cuts(r, sweep.distance, opts)
@@ -377,10 +374,16 @@ def _own_echo_alone(m: Measured, sweep: _Sweep) -> Measured | None:
     last = r.steps.size - (trim if r.cut_after and not clean[1] else 0)
     if last - first < 2 * opts.min_steps:
         return None
-    if (first, last) == (0, r.steps.size):
-        return m
-    piece = subregion(r, r.steps[first:last], r.cut_before, r.cut_after)
-    return measure_region(piece, sweep.gamma, sweep.distance, sweep.amplitude, sweep.geometry, opts, step=sweep.step)
+    piece = m
+    if (first, last) != (0, r.steps.size):
+        sub = subregion(r, r.steps[first:last], r.cut_before, r.cut_after)
+        piece = measure_region(sub, sweep.gamma, sweep.distance, sweep.amplitude, sweep.geometry, opts, step=sweep.step)
+    # A flank shorter than the beam's 1/√k is nearly straight in log A: its bend, which places its peak, is
+    # less than one e-fold, within what an echo's own change with the angle (a corner's aperture) bends it.
+    if piece.span[1] - piece.span[0] < 1.0 / math.sqrt(scale.beam_k):
+        return None
+    reach = (opts.beyond_cut if piece.region.cut_before else 0.0, opts.beyond_cut if piece.region.cut_after else 0.0)
+    return piece, reach
 
 
 def _unsettle_off_fan(
@@ -466,11 +469,10 @@ def _flank_bearings(
         for i, j in ends.items():
             measured[i] = _across_jump(measured[i], measured[j], beam, sweep)
     for i in bent:
-        mine = _own_echo_alone(measured[i], sweep)
-        if mine is None or mine is measured[i] or mine.span[1] - mine.span[0] < 1.0 / math.sqrt(scale.beam_k):
+        alone = _own_flank(measured[i], sweep, scale)
+        if alone is None or alone[0] is measured[i]:
             continue
-        cut = (mine.region.cut_before, mine.region.cut_after)
-        reach = (sweep.opts.beyond_cut if cut[0] else 0.0, sweep.opts.beyond_cut if cut[1] else 0.0)
+        mine, reach = alone
         wall = flank_measured(mine, sweep.gamma, sweep.amplitude, beam, sweep.opts.beyond_cut, reach=reach)
         if wall.bearing_source == FLANK_SOURCE:
             measured[i] = wall
