@@ -11,12 +11,17 @@ from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
 from lelsonar.reconstruct.estimate.quality import DEGRADED, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.robust import median
-from lelsonar.reconstruct.estimate.surfaces.evidence import heard_from_every_step, plane_line, wrap
+from lelsonar.reconstruct.estimate.surfaces.evidence import (
+    bend_of_one_target,
+    heard_from_every_step,
+    plane_line,
+    wrap,
+)
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, reading_positions, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.results import Surface, SurfaceOptions
 
-__all__ = ["METHOD", "curved_as_a_line", "fit_surface", "joint_fit"]
+__all__ = ["METHOD", "bent_as_two_targets", "curved_as_a_line", "fit_surface", "joint_fit"]
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
@@ -59,7 +64,7 @@ def fit_surface(
     findings = list(m.findings)
     if not math.isfinite(m.tilt_stderr):
         findings.append((DEGRADED, "tilt not determined: one capsule per step"))
-    curved = curved_as_a_line(m)
+    curved = curved_as_a_line(m) or bent_as_two_targets(m, opts.curvature_sigmas)
     if curved:
         findings.append((DEGRADED, curved))
     data = plane_data_of(caps[:, None, :], beam, d[:, None], r.rows, "a", n)
@@ -109,6 +114,22 @@ def curved_as_a_line(m: Measured) -> str:
     return (
         f"its ranges curve along the capsule stack (c = {c:.3f} ± {sc:.3f}/m), beyond 3 σ of a plane's straight "
         f"profile and within 3 σ of a line across the stack's (1/(2ρ) = {line:.3f}/m): it may be a line there"
+    )
+
+
+def bent_as_two_targets(m: Measured, sigmas: float) -> str:
+    """Why a plane's region holds more than its plane along the capsule stack ("": it does not).
+
+    A face that ends between the capsules is heard as a mirror by those whose foot falls on it and as its end's
+    edge by the rest (:func:`~.evidence.bend_of_one_target`): the region's slope along the stack, so the plane's
+    tilt, and its centre, so its bearing, mix the face with its end.
+    """
+    bend = bend_of_one_target(m)
+    if not bend > sigmas:
+        return ""
+    return (
+        f"its ranges bend along the capsule stack as no one target's ({bend:.1f} σ): a face that ends between the "
+        "capsules, those past its end hearing its edge, so its tilt and bearing mix the face with its end"
     )
 
 
@@ -164,7 +185,7 @@ def _joint_surface(
     )
     if not isinstance(fit, PlaneFit):
         return None
-    curved = curved_as_a_line(m)
+    curved = curved_as_a_line(m) or bent_as_two_targets(m, opts.curvature_sigmas)
     findings = (*m.findings, (DEGRADED, curved)) if curved else m.findings
     fit = assess_plane(fit, gamma, findings=findings, limits=opts.limits)
     return Surface(
