@@ -96,6 +96,7 @@ from lelsonar.reconstruct.estimate.surfaces.off_fan import (
     separate_targets,
     split_stack,
     taken_back,
+    weak_from_tilt,
 )
 from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, log_profile, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
@@ -397,7 +398,8 @@ def _unsettle_off_fan(
     """A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
     bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled,
     unless its echo, taken back from as far off the fan as its ranges' slope along the stack allows, is still a
-    diffraction's (an edge)."""
+    diffraction's (an edge).  So too a point or a line across the stack that every capsule hears and no plane ties
+    (a concave corner of three planes above or below the fan is heard on the beam's flank)."""
     for i in partial:
         if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
             kind, reasons, ties = kinds[i]
@@ -407,6 +409,14 @@ def _unsettle_off_fan(
                 "" if back is None else off_fan_weak(scale.upper_strength(back[0]), scale.mirror, back[1], sweep.opts)
             )
             kinds[i] = ("edge", [*reasons, weak], ties) if weak else (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
+    for i in across_lines - partial:
+        if i in kinds and kinds[i][0] == "edge" and not kinds[i][2]:
+            m = measured[i]
+            if weak_from_tilt(m, scale.upper_strength(m), scale.mirror, scale.beam_k, sweep.opts):
+                continue
+            kind, reasons, ties = kinds[i]
+            off = f"its ranges' slope along the stack puts it {math.degrees(m.tilt):+.0f}° off the fan: maybe a corner"
+            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {off}"], ties)
 
 
 def _joint_corners(
