@@ -72,7 +72,7 @@ from lelsonar.reconstruct.estimate.surfaces.classify import DISPUTE_SIGMAS, clas
 from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
-from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
+from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit, place_own_mirrors
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     FLANK_SOURCE,
     across_jump_bearing,
@@ -169,6 +169,7 @@ def extract_surfaces(
     _walls_not_ends(measured, own, kinds, across_lines, partial, scale, sweep)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
+    place_own_mirrors(measured, set(kinds) | partial, opts.beyond_cut)
     _flank_bearings(measured, kinds, partial, scale, sweep)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale, sweep.distance)
