@@ -142,7 +142,7 @@ def place_own_mirrors(measured: list[Measured], others: set[int], reach: float) 
     A mirror answers from its foot at its depth to every step whose beam reaches the foot (``reach``): a region
     past a nearer echo that cuts the plane's own, at that plane's depth and tilt (within 3 σ of both, the depth's at
     least the range noise's) and within reach of its foot, is that plane's echo, its foot where the plane's is (the
-    best placed of those that match).
+    best placed of those that match, and only better than the region's own span places it).
     """
     planes = [m for i, m in enumerate(measured) if i not in others and m.bearing_source != "undetermined"]
     for i, m in enumerate(measured):
@@ -155,6 +155,7 @@ def place_own_mirrors(measured: list[Measured], others: set[int], reach: float) 
             miss = abs(m.depth - p.depth) / depth_se
             if (
                 miss <= 3.0
+                and p.surface_bearing_stderr < m.bearing_stderr
                 and abs(m.tilt - p.tilt) <= 3.0 * tilt_se
                 and heard_from_every_step(p.bearing, m, reach)
                 and (best is None or p.surface_bearing_stderr < best[0])
