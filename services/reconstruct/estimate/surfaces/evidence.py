@@ -192,21 +192,9 @@ def pair_corner(m: Measured, planes: list[Measured], opts: SurfaceOptions) -> tu
                 miss <= opts.on_trace
                 and in_span(bearing, m, m.step, opts.beyond_cut)
                 and (best is None or miss < best[0])
-                and not _own_mirror(m, (planes[a], planes[b]), miss, opts.beyond_cut)
             ):
                 best = (miss, [a, b], bearing)
     return None if best is None else (best[1], best[2])
-
-
-def _own_mirror(m: Measured, planes: tuple[Measured, ...], miss: float, reach: float) -> bool:
-    """Whether one of ``planes`` explains region ``m`` as its own mirror better than their double bounce does.
-
-    A plane's mirror answers from its foot at its depth ``h`` to every step whose beam reaches that foot, so a
-    region at ``h`` within reach of the foot is that plane's echo.  Their line lies on both planes, no nearer the
-    array than either (``|X| ≥ h``): where it passes near one's foot its double bounce comes back at nearly that
-    plane's depth, and the region's own depth says which of the two it is, the one it misses less.
-    """
-    return any(abs(m.depth - p.depth) < miss and heard_from_every_step(p.bearing, m, reach) for p in planes)
 
 
 def beyond_reach(
