@@ -9,7 +9,13 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.stream.step_features import exact_mean, row_sums, sum_of_squares
+from lelsonar.reconstruct.stream.step_features import (
+    STREAM_CHUNK,
+    exact_mean,
+    row_sums,
+    streamed_sums,
+    sum_of_squares,
+)
 from lelsonar.signal.compiled import kernel
 from lelsonar.signal.extrema import extent, float32_of_bits, largest_magnitude
 
@@ -125,3 +131,33 @@ def test_a_sum_of_squares_in_any_order_is_within_the_bound_of_the_energy_check()
         exact = float((row.astype(np.float64) ** 2).sum())
         for squares in (sum_of_squares(row), row_sums(row)[0]):
             assert squares == pytest.approx(exact, rel=(n + 1) * 2.0**-24)
+
+
+@pytest.mark.parametrize("n", [0, 1, STREAM_CHUNK - 1, STREAM_CHUNK, STREAM_CHUNK + 1, 3500, 4097])
+def test_a_waveform_summed_in_chunks_as_its_bytes_stream_in_gives_the_sums_of_one_pass(n):
+    """Read in chunks where it lies in a payload (at any byte), a waveform gives :func:`row_sums`' extremes bit for
+    bit, its DC level exactly where one pass's is used, a sum of squares within the energy check's bound, and a
+    non-finite sum for a non-finite sample; unlevelled, the sum of squares alone."""
+    rng = np.random.default_rng(n + 1)
+    for offset in (0, 1, 3):
+        row = (rng.standard_normal(n) * 10.0 ** rng.uniform(-3, 3)).astype(np.float32)
+        if n > 2:
+            row[n // 2] = 0.0
+        buf = np.zeros(offset + 4 * n + 64, np.uint8)
+        buf[offset : offset + 4 * n] = row.view(np.uint8)
+        squares, total, top, low = streamed_sums(buf, offset, n, True)
+        whole = row_sums(row)
+        assert (int(top), int(low)) == (int(whole[2]), int(whole[3]))
+        mean = exact_mean(total, top, low, n)
+        assert _same(mean, exact_mean(*whole[1:], n))
+        if n and not math.isnan(mean):
+            assert mean == abs(row.mean(dtype=np.float64))
+        exact = float((row.astype(np.float64) ** 2).sum())
+        assert squares == pytest.approx(exact, rel=(n + 1) * 2.0**-24)
+        alone = streamed_sums(buf, offset, n, False)
+        assert alone[0] == pytest.approx(exact, rel=(n + 1) * 2.0**-24) and alone[1:] == (0.0, 0, 0xFFFFFFFF)
+        if n:
+            row[-1] = np.nan
+            buf[offset : offset + 4 * n] = row.view(np.uint8)
+            for levelled in (True, False):
+                assert not math.isfinite(streamed_sums(buf, offset, n, levelled)[0])

@@ -21,7 +21,7 @@ import numpy as np
 
 from lelsonar import codec
 from lelsonar.errors import ConfigError, InternalError
-from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, place_rows
+from lelsonar.reconstruct.stream.step_features import PER_CAPSULE, PER_STEP, STREAM_AHEAD, place_rows, prefetch_rows
 from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch, unowned
 from lelsonar.v1 import scan_pb2
 
@@ -288,6 +288,11 @@ def read_body(buf, body, ids, values, n, starts):
         prefetch(buf, min(max(starts[j] - 64, 0), buf.size - 1))
         prefetch(buf, min(max(starts[j], 0), buf.size - 1))
         prefetch(buf, min(max(starts[j] + 4 * n, 0), buf.size - 1))
+    # And the first waveform's first bytes: from there on the pass over the waveforms asks for the bytes ahead of
+    # it itself (:func:`~lelsonar.reconstruct.stream.step_features.streamed_sums`).
+    if starts.size:
+        for q in range(64, STREAM_AHEAD, 64):
+            prefetch(buf, min(max(starts[0] + q, 0), buf.size - 1))
     for j in range(head, head + 5):
         bits[j] = 0
     sensors = carried = seen = 0
@@ -488,6 +493,7 @@ def place_wire(payload, at, step, time_ns, recovered, arrays):
         return UNREAD, 0, step
     if step >= rows:
         return GROW, 0, step
+    prefetch_rows(at_[4], at_[5], at_[9], step, rows, k, arrays[_WIDTH])
     ids = array_at(at_[0], k, np.int64)
     values = array_at(at_[1], 6 * k + 5, np.float64)
     starts = array_at(at_[2], k, np.int64)

@@ -20,7 +20,7 @@ import numpy as np
 
 from lelsonar.codec import MAX_RANGE_M
 from lelsonar.reconstruct.stream.candidates import candidate_echo
-from lelsonar.signal.compiled import float32_at, kernel, summing_kernel
+from lelsonar.signal.compiled import array_at, float32_at, kernel, prefetch, summing_kernel
 from lelsonar.signal.echo_timing import TIMING_WINDOW
 from lelsonar.signal.energy import (
     ECHO_PEAK_WINDOW,
@@ -207,12 +207,9 @@ def place_rows(
     levelled = sampled and n > 0
     dc = per_capsule[4, step]
     for i in range(k):
-        row = float32_at(buf, starts[i], n)
+        squares, total, top, low = streamed_sums(buf, starts[i], n, levelled)
         if levelled:
-            squares, total, top, low = row_sums(row)
             dc[i] = exact_mean(total, top, low, n)
-        else:
-            squares = sum_of_squares(row)
         if not math.isfinite(squares):  # NaN or infinite samples (or float32 overflow)
             if not checked:
                 if levelled:
@@ -290,6 +287,27 @@ def place_rows(
 
 
 @kernel
+def prefetch_rows(per_capsule, per_step, timing_windows, step, rows, k, width):
+    """Ask for the lines of row ``step`` of a scan's blocks and timing windows (their addresses: the (9, rows, k) and
+    (5, rows) float64 blocks, the (rows, k, width) float32 windows), which :func:`place_rows` writes the step into:
+    they arrive while it reads the sample, where each store would otherwise wait for its line."""
+    capsules = array_at(per_capsule, len(PER_CAPSULE) * rows * k * 8, np.uint8)
+    for p in range(len(PER_CAPSULE)):
+        first = (p * rows + step) * k * 8
+        prefetch(capsules, first)
+        prefetch(capsules, first + k * 8 - 1)
+    steps = array_at(per_step, len(PER_STEP) * rows * 8, np.uint8)
+    for p in range(len(PER_STEP)):
+        prefetch(steps, (p * rows + step) * 8)
+    size = k * width * 4
+    if size > 0:
+        windows = array_at(timing_windows, rows * size, np.uint8)
+        for q in range(0, size, 64):
+            prefetch(windows, step * size + q)
+        prefetch(windows, step * size + size - 1)
+
+
+@kernel
 def settle_step(per_capsule, per_step, step, scan):
     """Row ``step``'s E^γ (eq. 11), E0(d_m) (eq. 12, where the step has a range) and R = E^γ / E0(d_m) (§4; 0
     without a range) into ``per_step``, from its ranges and eq. (10) energies in ``per_capsule``
@@ -339,6 +357,40 @@ def dc_levels_at(buf, starts, n, out):
         _, total, top, low = row_sums(float32_at(buf, starts[i], n))
         out[i] = exact_mean(total, top, low, n)
     _inexact_dc_levels(buf, starts, n, out)
+
+
+#: Samples of a waveform summed in one go by :func:`streamed_sums` (1 KB), and how far ahead of them, in bytes, the
+#: payload is asked for: the processor's own prefetch stops at each 4 KB page, so a pass left to it waits for
+#: memory at every page of a 56 KB sample.
+STREAM_CHUNK, STREAM_AHEAD = 256, 2048
+
+
+@kernel
+def streamed_sums(buf, start, n, levelled):
+    """:func:`sum_of_squares` (and, if ``levelled``, the rest of :func:`row_sums`; else 0, 0 and 2^32 − 1) of the
+    float32 waveform of ``n`` samples at byte ``start`` of ``buf``, read in chunks of :data:`STREAM_CHUNK` samples,
+    each while the bytes :data:`STREAM_AHEAD` after it are fetched.  The extremes are :func:`row_sums`' and the
+    sums are added up in another order: the float64 sum is the same wherever :func:`exact_mean` uses it, and the
+    sum of squares within the bound the energy check allows for any order."""
+    squares = np.float32(0.0)
+    total = 0.0
+    top = np.uint32(0)
+    low = np.uint32(0xFFFFFFFF)
+    last = buf.size - 1
+    for c in range(0, n, STREAM_CHUNK):
+        at = start + 4 * c
+        for q in range(0, 4 * STREAM_CHUNK, 64):
+            prefetch(buf, min(at + STREAM_AHEAD + q, last))
+        row = float32_at(buf, at, min(STREAM_CHUNK, n - c))
+        if levelled:
+            s, t, hi, lo = row_sums(row)
+            total += t
+            top = max(top, hi)
+            low = min(low, lo)
+        else:
+            s = sum_of_squares(row)
+        squares += s
+    return squares, total, top, low
 
 
 @summing_kernel
