@@ -234,7 +234,7 @@ def stack_curvature_finding(x: np.ndarray, steps: np.ndarray, ranges: np.ndarray
     A plane's ranges are linear in the capsule's offset ``x`` along the stack, ``d = a_s + b x`` at each step
     (``b = −n_x``, its tilt); a line crossing the stack (an edge, a corner's line) answers each capsule from its
     nearest point, ``√(ρ² + x²)``, so its ranges curve by up to ``c = 1/(2ρ)`` (Kleeman & Kuc's plane/edge test
-    across the receivers).  A curvature beyond the extractor's bar (``SurfaceOptions.curvature_sigmas`` σ, the σ
+    across the receivers).  A curvature above the extractor's bar (``SurfaceOptions.curvature_sigmas`` σ, the σ
     from the ranges' own scatter about the per-step fits) denies the plane, whichever premise placed it.
 
     Parameters
@@ -249,7 +249,7 @@ def stack_curvature_finding(x: np.ndarray, steps: np.ndarray, ranges: np.ndarray
     Returns
     -------
     ``((UNRELIABLE, reason),)`` when the curvature ``c``
-    (:func:`~lelsonar.reconstruct.estimate.surfaces.stack.stack_fits`) lies beyond ``curvature_sigmas`` σ of 0,
+    (:func:`~lelsonar.reconstruct.estimate.surfaces.stack.stack_fits`) lies above ``curvature_sigmas`` σ,
     measured on at least :data:`MIN_STEPS` steps with three capsules or more; else ``()``.
     """
     x = np.asarray(x, dtype=np.float64)
@@ -265,8 +265,8 @@ def stack_curvature_finding(x: np.ndarray, steps: np.ndarray, ranges: np.ndarray
     c = float(quad[1])
     sc = math.sqrt(float(cov[1, 1])) if math.isfinite(c) and float(cov[1, 1]) > 0 else float("nan")
     bar = SurfaceOptions().curvature_sigmas
-    if not (math.isfinite(c) and math.isfinite(sc)) or abs(c) <= bar * sc:
-        return ()
+    if not (math.isfinite(c) and math.isfinite(sc)) or c <= bar * sc:
+        return ()  # (a negative curvature is no one target's: two targets' lower envelope bends that way)
     line = 1.0 / (2.0 * float(np.median(r)))
     return (
         (
