@@ -15,10 +15,9 @@ depend on where the constant fraction falls, and tells the two boards apart.
 from __future__ import annotations
 
 import numpy as np
-from scipy import fft as sfft
 
 from lelsonar.reconstruct.estimate.robust import median
-from lelsonar.signal.echo_timing import FLOOR_TIME
+from lelsonar.signal.echo_timing import CARRIER, FLOOR_TIME, hilbert_transform
 
 __all__ = ["MIN_LEVEL_SHARE", "MIN_LEVEL_SIGMA", "envelope_at", "fires_up_the_edge"]
 
@@ -29,8 +28,6 @@ MIN_LEVEL_SIGMA = 8.0
 #: shows there only the envelope's mean over the carrier period it is smoothed on, ~1.5 % of the peak for a
 #: 0.15 ms rise; a comparator shows its threshold, several percent of the median echo's peak where it walks.
 MIN_LEVEL_SHARE = 0.03
-#: Carrier the envelope is smoothed over (one period); 40 kHz capsules (paper §3).
-_CARRIER = 40_000.0
 
 
 def envelope_at(windows: np.ndarray, sample_rate: float, at: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -62,14 +59,9 @@ def envelope_at(windows: np.ndarray, sample_rate: float, at: np.ndarray) -> tupl
     if n == 0 or width < 2 * head:
         return np.full(n, np.nan), np.full(n, np.nan)
     x = w - w[:, :head].mean(axis=-1, keepdims=True)
-    size = sfft.next_fast_len(2 * width, real=True)
-    spectrum = sfft.rfft(x, size, axis=-1)
-    spectrum[:, 0] = 0.0
-    if size % 2 == 0:
-        spectrum[:, -1] = 0.0
-    hilbert = sfft.irfft(spectrum * -1j, size, axis=-1)[:, :width]
+    hilbert = hilbert_transform(x)[:, :width]
     envelope = np.hypot(x, hilbert)
-    period = max(int(round(sample_rate / _CARRIER)), 1)
+    period = max(int(round(sample_rate / CARRIER)), 1)
     before = period // 2
     padded = np.pad(envelope, ((0, 0), (before, period - before - 1)), mode="edge")
     total = np.cumsum(np.pad(padded, ((0, 0), (1, 0))), axis=-1)
