@@ -16,7 +16,8 @@ Final (``options.provisional`` False), from scratch, on the whole scan:
    on the board's own readings, and a plane the recovered echoes turn away from that fit is unreliable;
 3. the verdict (:func:`~lelsonar.reconstruct.estimate.quality.published_verdicts`): the sweep's own
    evidence on the planes of record (:func:`~lelsonar.reconstruct.estimate.surface_check.surface_finding`:
-   echoes as weak as a diffraction that the sweep's surfaces hold as an edge are no wall's), the scan's writer
+   echoes as weak as a diffraction that the sweep's surfaces hold as an edge, ranges curved along the capsule
+   stack, or echoes whose region is not centred on the plane's foot are no wall's), the scan's writer
    findings on every plane, the recovered echoes' check on the planes of record, and each compared plane
    cross-checked against the plane of record of its wall;
 4. every surface of the sweep, beside the L's planes: the planes, concave corners and convex edges of

@@ -24,6 +24,18 @@ two independent readings of the same echoes (their amplitude, the extractor's
 regions) say the L model took an edge for a wall.  Neither alone does: a wall
 of low reflectivity is weak too, and the extractor can read a foreign rig's
 wall as an edge or as nothing.
+
+Two more readings of the plane's own echoes need no extractor.  Where the L
+premise, not the echoes, set the plane's normal, its fit lands on an edge's
+range with a wall's normal; the echoes still say what made them:
+
+* along the capsule stack a plane's ranges are straight (``d = a + b x``), while
+  an edge or a corner's line crossing the stack answers each capsule from its
+  nearest point, ``√(ρ² + x²)``, curved by ``1/(2ρ)`` (:func:`stack_curvature_finding`);
+* a mirror is heard about its foot as far on one side as on the other (its
+  region of constant depth is centred there), so echoes that stop short of the
+  foot on a side where nothing more is heard, yet reach farther on the other,
+  come from a target off the plane's normal (:func:`foot_off_centre_finding`).
 """
 
 from __future__ import annotations
@@ -37,11 +49,23 @@ from lelsonar.reconstruct.estimate.fit import PlaneData
 from lelsonar.reconstruct.estimate.quality import DEGRADED, GOOD, UNRELIABLE, QualityLimits
 from lelsonar.reconstruct.estimate.results import PlaneFit, PlaneResult
 from lelsonar.reconstruct.estimate.surfaces import SurfaceOptions, SurfaceSet
+from lelsonar.reconstruct.estimate.surfaces.stack import stack_fits
 
-__all__ = ["surface_finding", "diffraction_finding", "mirror_strength"]
+__all__ = [
+    "surface_finding",
+    "diffraction_finding",
+    "mirror_strength",
+    "stack_curvature_finding",
+    "foot_off_centre_finding",
+    "echo_capsules",
+]
 
 #: The share of a plane's inlier steps a surface must hold to be that plane's own echoes.
 OWN_SHARE = 0.5
+#: Steps with three capsules or more the stack's curvature needs; a region's span in steps, twice that.
+MIN_STEPS = 5
+#: Steps past an end of a plane's echoes that must hear nothing for the end to be open.
+OPEN_STEPS = 3
 
 
 def surface_finding(
@@ -73,8 +97,9 @@ def surface_finding(
 
     Returns
     -------
-    :func:`diffraction_finding`'s finding; else ``((DEGRADED, reason),)`` when a surface good on its own echoes
-    (``Surface.own_quality``) holding most of the plane's inlier steps has a normal more than
+    :func:`diffraction_finding`'s finding; else those of :func:`stack_curvature_finding` and
+    :func:`foot_off_centre_finding` (the plane's own echoes); else ``((DEGRADED, reason),)`` when a surface good on
+    its own echoes (``Surface.own_quality``) holding most of the plane's inlier steps has a normal more than
     ``3 √(σ_L² + σ_s²)`` and more than ``max_normal_stderr`` from the plane's; else ``()``.
     """
     if not isinstance(plane, PlaneFit) or plane.quality != GOOD or data is None:
@@ -83,11 +108,17 @@ def surface_finding(
     steps = data.step[plane.inlier_mask] if plane.inlier_mask.shape == data.step.shape else data.step
     if steps.size == 0:
         return ()
+    inlier = plane.inlier_mask if plane.inlier_mask.shape == data.step.shape else np.ones(data.n, dtype=bool)
+    ranges = data.distance[inlier]
     if gamma is not None and distance is not None and amplitude is not None:
-        inlier = plane.inlier_mask if plane.inlier_mask.shape == data.step.shape else np.ones(data.n, dtype=bool)
-        found = diffraction_finding(steps, data.distance[inlier], gamma, distance, amplitude, surfaces)
+        found = diffraction_finding(steps, ranges, gamma, distance, amplitude, surfaces)
         if found:
             return found
+    own = stack_curvature_finding(data.capsules[inlier, 0], steps, ranges)
+    if distance is not None:
+        own += foot_off_centre_finding(plane.normal, plane.normal_stderr, data.beam[inlier], steps, ranges, distance)
+    if own:
+        return own
     if not surfaces.surfaces:
         return ()
     shares = [_share(steps, s.steps) for s in surfaces.surfaces]
@@ -170,9 +201,7 @@ def diffraction_finding(
     held, edge = max(edges, key=lambda e: e[0], default=(0.0, None))
     if edge is None or held < OWN_SHARE:
         return ()
-    # Each of the plane's echoes in the scan: the capsule whose range it is (the plane's ranges are the scan's).
-    rows = d[steps]
-    capsule = np.argmin(np.abs(np.where(np.isfinite(rows), rows, np.inf) - ranges[:, None]), axis=1)
+    capsule = echo_capsules(steps, ranges, d)
     own = a[steps, capsule]
     # A clipped echo's amplitude is only a lower bound of its strength: nothing says such echoes are weak.
     clipped = clipped_echoes(a.ravel()).reshape(a.shape)
@@ -196,6 +225,161 @@ def diffraction_finding(
             "plane's: the L model has taken the edge for a wall; read this scan's walls from its surfaces",
         ),
     )
+
+
+def stack_curvature_finding(x: np.ndarray, steps: np.ndarray, ranges: np.ndarray) -> tuple[tuple[str, str], ...]:
+    """The finding against a plane whose ranges curve along the capsule stack as an edge's or a corner's (empty:
+    none).
+
+    A plane's ranges are linear in the capsule's offset ``x`` along the stack, ``d = a_s + b x`` at each step
+    (``b = −n_x``, its tilt); a line crossing the stack (an edge, a corner's line) answers each capsule from its
+    nearest point, ``√(ρ² + x²)``, so its ranges curve by up to ``c = 1/(2ρ)`` (Kleeman & Kuc's plane/edge test
+    across the receivers).  A curvature above the extractor's bar (``SurfaceOptions.curvature_sigmas`` σ, the σ
+    from the ranges' own scatter about the per-step fits) denies the plane, whichever premise placed it.
+
+    Parameters
+    ----------
+    x : (N,) array
+        Each echo's capsule offset along the stack, m.
+    steps : (N,) int array
+        Each echo's step.
+    ranges : (N,) array
+        Each echo's range, m.
+
+    Returns
+    -------
+    ``((UNRELIABLE, reason),)`` when the curvature ``c``
+    (:func:`~lelsonar.reconstruct.estimate.surfaces.stack.stack_fits`) lies above ``curvature_sigmas`` σ,
+    measured on at least :data:`MIN_STEPS` steps with three capsules or more; else ``()``.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    r = np.asarray(ranges, dtype=np.float64)
+    if x.size == 0 or np.ptp(x) <= 0:
+        return ()
+    order = np.argsort(steps, kind="stable")
+    rows = np.asarray(steps)[order]
+    held = np.unique(rows, return_counts=True)[1]
+    if np.count_nonzero(held >= 3) < MIN_STEPS:
+        return ()  # a curvature needs three capsules at a step
+    _, (quad, cov, _) = stack_fits(x[order], rows, r[order])
+    c = float(quad[1])
+    sc = math.sqrt(float(cov[1, 1])) if math.isfinite(c) and float(cov[1, 1]) > 0 else float("nan")
+    bar = SurfaceOptions().curvature_sigmas
+    if not (math.isfinite(c) and math.isfinite(sc)) or c <= bar * sc:
+        return ()  # (a negative curvature is no one target's: two targets' lower envelope bends that way)
+    line = 1.0 / (2.0 * float(np.median(r)))
+    return (
+        (
+            UNRELIABLE,
+            f"its ranges curve along the capsule stack (c = {c:.3f} ± {sc:.3f}/m, a line across it "
+            f"{line:.3f}/m), where a plane's are straight: an edge's or a corner's echo, not a wall's",
+        ),
+    )
+
+
+def foot_off_centre_finding(
+    normal: np.ndarray,
+    normal_stderr: float,
+    beam: np.ndarray,
+    steps: np.ndarray,
+    ranges: np.ndarray,
+    distance: np.ndarray,
+) -> tuple[tuple[str, str], ...]:
+    """The finding against a plane whose foot is not where its echoes' open end puts it (empty: none).
+
+    A mirror answers while the beam is within its reach ``w`` of the plane's foot on either side (the region of
+    constant depth, Leonard & Durrant-Whyte's RCD), so its echoes span ``[−w, w]`` about the foot in the scan
+    plane, less what another echo hides (a cut end).  An end after which the next :data:`OPEN_STEPS` steps hear
+    nothing at all is open: the beam's reach ends there.  Where the echoes reach farther on the other
+    side of the plane's foot than at an open end, by more than the normal's 3 σ and the ends' placement
+    (a step each, and a step for the detection's threshold), the foot lies off the centre of the echoes' region:
+    their target is off this plane's normal (an edge, or a wall at another bearing), which only the fit's
+    premise put there.
+
+    Parameters
+    ----------
+    normal : (3,) array
+        The plane's unit normal (``x`` along the rotation axis).
+    normal_stderr : float
+        Its σ, rad.
+    beam : (N, 3) array
+        Each echo's unit boresight.
+    steps, ranges : (N,) arrays
+        Each echo's step index into the scan, and range (m).
+    distance : (n_steps, n_capsules) array
+        The scan's ranges per step and capsule, m; NaN: none.
+
+    Returns
+    -------
+    ``((UNRELIABLE, reason),)`` as above, else ``()``.
+    """
+    d = np.asarray(distance, dtype=np.float64)
+    if d.ndim != 2 or steps.size == 0:
+        return ()
+    n = np.array(normal, dtype=np.float64)
+    n[0] = 0.0
+    b = np.array(beam, dtype=np.float64)
+    b[:, 0] = 0.0
+    nn, bn = float(np.linalg.norm(n)), np.linalg.norm(b, axis=1)
+    if nn <= 0 or np.any(bn <= 0):
+        return ()
+    n, b = n / nn, b / bn[:, None]
+    # Each echo's signed angle from the foot in the scan plane.
+    angle = np.arctan2(np.cross(b, n)[:, 0], b @ n)
+    # The region: the steps where the plane holds most of the step's echoes (where it holds a few, another target
+    # at a like range answers, a corner's beside an L's wall), in a run about the one nearest the foot, gaps of up
+    # to ``max_gap`` steps bridged (stray echoes past a gap are not the region's).
+    own, count = np.unique(steps, return_counts=True)
+    heard = np.count_nonzero(np.isfinite(d[own]), axis=1)
+    held = own[2 * count > heard]
+    if held.size == 0:
+        return ()
+    breaks = np.flatnonzero(np.diff(held) > SurfaceOptions().max_gap + 1)
+    near = int(np.searchsorted(held, steps[np.argmin(np.abs(angle))]))
+    run = np.searchsorted(breaks, min(near, held.size - 1))
+    first = int(held[breaks[run - 1] + 1]) if run > 0 else int(held[0])
+    last = int(held[breaks[run]]) if run < breaks.size else int(held[-1])
+    if last - first < 2 * MIN_STEPS:
+        return ()
+    # How far each end reaches past the foot on its own side (negative: it stops short of the foot), the sides
+    # told apart by the ends' own angles (the sweep may turn either way about the normal).
+    at_first, at_last = float(np.median(angle[steps == first])), float(np.median(angle[steps == last]))
+    side = 1.0 if at_first >= at_last else -1.0
+    reach_first, reach_last = side * at_first, -side * at_last
+    step = abs(at_first - at_last) / max(last - first, 1)
+
+    def open_end(end: int, way: int) -> bool:
+        beyond = end + way * np.arange(1, OPEN_STEPS + 1)
+        if beyond.min() < 0 or beyond.max() >= d.shape[0]:
+            return False  # the sweep's end: nothing says what lies past it
+        # Silent: a later echo there, even a farther one, may have masked the plane's weakening echo.
+        return not bool(np.any(np.isfinite(d[beyond])))
+
+    margin = 3.0 * normal_stderr + 3.0 * step
+    found = []
+    for reach_open, reach_other, end, way in ((reach_first, reach_last, first, -1), (reach_last, reach_first, last, 1)):
+        if reach_other > reach_open + margin and open_end(end, way):
+            found.append((reach_open, reach_other))
+    if not found:
+        return ()
+    reach_open, reach_other = found[0]
+    return (
+        (
+            UNRELIABLE,
+            f"its echoes end {math.degrees(abs(reach_open)):.0f}° {'past' if reach_open >= 0 else 'short of'} its "
+            "foot, with nothing heard past them, yet reach "
+            f"{math.degrees(reach_other):.0f}° past it on the other side (σ of the normal "
+            f"{math.degrees(normal_stderr):.1f}°): a mirror's are centred on its foot, so their target lies off "
+            "this plane's normal (an edge, another wall), which only the fit's premise put there",
+        ),
+    )
+
+
+def echo_capsules(steps: np.ndarray, ranges: np.ndarray, distance: np.ndarray) -> np.ndarray:
+    """Each of a plane's echoes' capsule in the scan: the one whose range at its step is the echo's (a plane's
+    ranges are the scan's)."""
+    rows = distance[steps]
+    return np.argmin(np.abs(np.where(np.isfinite(rows), rows, np.inf) - ranges[:, None]), axis=1)
 
 
 def _share(steps: np.ndarray, held: np.ndarray) -> float:
