@@ -38,7 +38,9 @@ __all__ = [
     "TIMING_WINDOW",
     "CONSTANT_FRACTION",
     "FLOOR_TIME",
+    "CARRIER",
     "echo_onsets",
+    "hilbert_transform",
     "typical_edges",
     "RangeWalk",
     "range_walk",
@@ -68,7 +70,7 @@ _EDGE_TOLERANCE = 0.2
 #: Share of its steepest rise under which a slowing rise marks the echo's own peak inside a merged hump.
 _KNEE = 0.3
 #: Carrier the envelope is smoothed over (one period); 40 kHz capsules (paper §3).
-_CARRIER = 40_000.0
+CARRIER = 40_000.0
 
 
 def echo_onsets(
@@ -125,17 +127,7 @@ def echo_onsets(
     if n == 0 or width < 2 * head:
         return np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
     x = (w - w[:, :head].mean(axis=-1, keepdims=True)).astype(np.float32)
-    # The analytic signal's modulus √(x² + H{x}²), the Hilbert transform H by two real FFTs (−j on the positive
-    # frequencies, DC and Nyquist dropped: scipy.signal.hilbert's).  Zero-padded to twice its length: the
-    # FFT's wrap-around would carry the echo's ringing tail at the window's end onto its start, a leak that
-    # follows the echo's timing in the samples (a sub-mm drift).
-    size = sfft.next_fast_len(2 * width, real=True)
-    spectrum = sfft.rfft(x, size, axis=-1)
-    spectrum[:, 0] = 0.0
-    if size % 2 == 0:
-        spectrum[:, -1] = 0.0
-    spectrum *= -1j
-    hilbert = sfft.irfft(spectrum, size, axis=-1)
+    hilbert = hilbert_transform(x)  # the analytic signal's modulus is √(x² + H{x}²)
     tof_at = np.asarray(tof_at, dtype=np.float64)
     half = max(int(round(_PEAK_HALF_WIDTH * sample_rate)), 1)
     start = np.round(tof_at * sample_rate).astype(np.int64) - half  # from 50 µs before the time of flight
@@ -148,11 +140,28 @@ def echo_onsets(
         start,
         float(sample_rate),
         head,
-        max(int(round(sample_rate / _CARRIER)), 1),
+        max(int(round(sample_rate / CARRIER)), 1),
         half,
         float(fraction),
         levels,
     )
+
+
+def hilbert_transform(x: np.ndarray) -> np.ndarray:
+    """The Hilbert transform H{x} of each row of ``x`` (N, W), by two real FFTs: −j on the positive frequencies,
+    DC and Nyquist dropped (scipy.signal.hilbert's).
+
+    Zero-padded to twice its length: the FFT's wrap-around would carry the echo's ringing tail at the window's
+    end onto its start, a leak that follows the echo's timing in the samples (a sub-mm drift).  The result has
+    the padded length; its first W samples are the rows'.
+    """
+    size = sfft.next_fast_len(2 * x.shape[-1], real=True)
+    spectrum = sfft.rfft(x, size, axis=-1)
+    spectrum[:, 0] = 0.0
+    if size % 2 == 0:
+        spectrum[:, -1] = 0.0
+    spectrum *= -1j
+    return sfft.irfft(spectrum, size, axis=-1)
 
 
 @kernel

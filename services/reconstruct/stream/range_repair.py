@@ -9,11 +9,13 @@ their waveforms' echoes begin (:meth:`RangeRepair.ranges_match_waveforms`).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from lelsonar.reconstruct.estimate.robust import fast_median, median
 from lelsonar.reconstruct.stream.candidates import RANGE_CHECK_MIN, NoiseTriggers
+from lelsonar.reconstruct.stream.comparator_level import envelope_at, fires_up_the_edge
 from lelsonar.reconstruct.stream.step_features import RISE_STRIDE
 from lelsonar.signal.echo_timing import (
     FLOOR_TIME,
@@ -44,7 +46,8 @@ class RangeRepair(NoiseTriggers):
 
     def range_walk(self) -> tuple[RangeWalk, np.ndarray, np.ndarray, np.ndarray]:
         """Whether the writer's ranges walk with the echoes' amplitude (:func:`~lelsonar.signal.echo_timing.
-        range_walk`, on the echoes of a typical shape), and each received step's offsets (writer's range −
+        range_walk`, on the echoes of a typical shape, where the writer's times lie up their rising edges as a
+        comparator's do: :meth:`_fires_up_the_edge`), and each received step's offsets (writer's range −
         re-timed, m; NaN: not timed), peaks (V; NaN: no echo found) and whether its shape is typical
         (:func:`~lelsonar.signal.echo_timing.typical_edges`)."""
         steps = np.flatnonzero(self.received)
@@ -73,8 +76,19 @@ class RangeRepair(NoiseTriggers):
         else:
             self._time_echoes(steps)
             found = test(steps, True)
+            if found[0].detected and not self._fires_up_the_edge(steps, found[3]):
+                found = (replace(found[0], detected=False), *found[1:])
         self._walk_tested = (len(steps), found)  # the final's ranges and its planes' reasons ask it in turn
         return found
+
+    def _fires_up_the_edge(self, steps: np.ndarray, typical: np.ndarray) -> bool:
+        """Whether the writer's times of the typical echoes of ``steps`` lie up their rising edges, as a threshold
+        comparator's do (:func:`~lelsonar.reconstruct.stream.comparator_level.fires_up_the_edge`): a walk the
+        constant-fraction times show on a board that times the onset is theirs, not the writer's."""
+        rows, capsules = np.nonzero(typical)
+        at = self._timing_at[steps[rows], capsules]
+        level, sigma = envelope_at(self._timing_windows[steps[rows], capsules], self._timing_rate, at)
+        return fires_up_the_edge(level, sigma, self._echo_timing[steps[rows], capsules, 1])
 
     def _time_echoes(self, steps: np.ndarray) -> None:
         """Re-time (:func:`~lelsonar.signal.echo_timing.echo_onsets`) the kept windows of ``steps`` not

@@ -26,6 +26,7 @@ from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 
 __all__ = [
     "across_stack",
+    "bend_of_one_target",
     "beyond_reach",
     "feature_point",
     "in_fan_range",
@@ -47,12 +48,67 @@ __all__ = [
 
 
 def across_stack(m: Measured, opts: SurfaceOptions) -> bool:
-    """Ranges curved along the stack as a line or point across it (``c ≈ 1/(2ρ)``), not as a plane (``c = 0``)."""
+    """Ranges curved along the stack as a line or point across it (``c ≈ 1/(2ρ)``), not as a plane (``c = 0``),
+    and bent as one target's (:func:`bend_of_one_target`)."""
     c, sc = m.curvature, m.curvature_stderr
     if not (math.isfinite(c) and math.isfinite(sc) and sc > 0):
         return False
     expected = 1.0 / (2.0 * m.depth)
-    return c > opts.curvature_sigmas * sc and abs(c - expected) < max(0.5 * expected, 3 * sc)
+    if not (c > opts.curvature_sigmas * sc and abs(c - expected) < max(0.5 * expected, 3 * sc)):
+        return False
+    return bend_of_one_target(m) <= opts.curvature_sigmas
+
+
+def bend_of_one_target(m: Measured) -> float:
+    """How far, in σ, a region's ranges along the capsule stack bend as no one target's do (0: as one's).
+
+    Whatever one target is, a capsule at ``x`` along the stack hears it at ``d² = a + b x + κ x²`` (:mod:`.stack`:
+    ``κ = n_x²`` for a plane, ``1 − u_x²`` for a line, 1 for a point), so its squared ranges bend alike at every
+    capsule.  A face that ends between the capsules does not: those whose foot falls on it hear its mirror, a
+    straight profile, and those past its end hear the end's edge, a hyperbola tangent to it, so the profile is
+    straight on one side and curved by ``1/ρ`` on the other; fitted with one curvature, it curves about half as a
+    line across the stack does.  The squared ranges' profile with a free offset per capsule against one
+    quadratic, both with one intercept per step, differ by more than that free profile's residual noise allows
+    where one target does not explain the readings: ``χ²`` over the ``n_capsules − 3`` constraints, as a normal
+    deviate (exact for one constraint, Wilson–Hilferty's beyond).
+
+    Returns
+    -------
+    The deviate, σ (0 where fewer than four capsules hear the region or the readings leave no freedom).
+    """
+    x = m.positions[:, 0]
+    xs = np.unique(x)
+    q = xs.size - 3
+    if q < 1 or not m.depth > 0:
+        return 0.0
+    group = np.unique(m.region.rows, return_inverse=True)[1]
+    counts = np.bincount(group)
+    dof = x.size - counts.size - (xs.size - 1)
+    if dof < 1:
+        return 0.0
+
+    def demeaned(v: np.ndarray) -> np.ndarray:
+        return v - (np.bincount(group, weights=v) / counts)[group]
+
+    # In metres (≈ the range itself): the constant scale leaves a quadratic in x a quadratic.
+    y = demeaned(m.ranges * m.ranges / (2.0 * m.depth))
+    which = np.searchsorted(xs, x)
+    free = np.stack([demeaned((which == k).astype(np.float64)) for k in range(1, xs.size)], axis=1)
+    one = np.stack([demeaned(x), demeaned(x * x)], axis=1)
+
+    def rss(cols: np.ndarray) -> float:
+        coef, *_ = np.linalg.lstsq(cols, y, rcond=None)
+        r = y - cols @ coef
+        return float(r @ r)
+
+    rss_free = rss(free)
+    if not rss_free > 0:
+        return 0.0
+    chi2 = max(rss(one) - rss_free, 0.0) / (rss_free / dof)
+    if q == 1:
+        return math.sqrt(chi2)
+    k = 2.0 / (9.0 * q)
+    return ((chi2 / q) ** (1.0 / 3.0) - (1.0 - k)) / math.sqrt(k)
 
 
 def feature_point(m: Measured) -> np.ndarray:

@@ -72,7 +72,7 @@ from lelsonar.reconstruct.estimate.surfaces.classify import DISPUTE_SIGMAS, clas
 from lelsonar.reconstruct.estimate.surfaces.confirm import confirm_surfaces
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range
 from lelsonar.reconstruct.estimate.surfaces.features import Kind, place_features
-from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit
+from lelsonar.reconstruct.estimate.surfaces.fitting import METHOD, fit_surface, joint_fit, place_own_mirrors
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import (
     FLANK_SOURCE,
     across_jump_bearing,
@@ -96,6 +96,7 @@ from lelsonar.reconstruct.estimate.surfaces.off_fan import (
     separate_targets,
     split_stack,
     taken_back,
+    weak_from_tilt,
 )
 from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, log_profile, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
@@ -168,6 +169,7 @@ def extract_surfaces(
     _walls_not_ends(measured, own, kinds, across_lines, partial, scale, sweep)
     _unsettle_off_fan(kinds, partial, across_lines, measured, scale, sweep)
     joint = _joint_corners(measured, kinds, across_lines, opts)
+    place_own_mirrors(measured, set(kinds) | partial, opts.beyond_cut)
     _flank_bearings(measured, kinds, partial, scale, sweep)
     surfaces, surface_of, failed, unsorted = _fit_planes(measured, kinds, partial, joint, sweep)
     corners, edges = place_features(measured, own, kinds, across_lines, surface_of, joint, scale, sweep.distance)
@@ -397,7 +399,8 @@ def _unsettle_off_fan(
     """A target part of the stack hears lies off the fan on the beam's flank: its echo's strength is only a lower
     bound of its peak, so where strength set its kind (not two planes' intersection), its kind is not settled,
     unless its echo, taken back from as far off the fan as its ranges' slope along the stack allows, is still a
-    diffraction's (an edge)."""
+    diffraction's (an edge).  So too a point or a line across the stack that every capsule hears and no plane ties
+    (a concave corner of three planes above or below the fan is heard on the beam's flank)."""
     for i in partial:
         if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
             kind, reasons, ties = kinds[i]
@@ -407,6 +410,14 @@ def _unsettle_off_fan(
                 "" if back is None else off_fan_weak(scale.upper_strength(back[0]), scale.mirror, back[1], sweep.opts)
             )
             kinds[i] = ("edge", [*reasons, weak], ties) if weak else (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
+    for i in across_lines - partial:
+        if i in kinds and kinds[i][0] == "edge" and not kinds[i][2]:
+            m = measured[i]
+            if weak_from_tilt(m, scale.upper_strength(m), scale.mirror, scale.beam_k, sweep.opts):
+                continue
+            kind, reasons, ties = kinds[i]
+            off = f"its ranges' slope along the stack puts it {math.degrees(m.tilt):+.0f}° off the fan: maybe a corner"
+            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {off}"], ties)
 
 
 def _joint_corners(

@@ -54,6 +54,7 @@ from lelsonar.reconstruct.estimate.surfaces.strength import EchoScale
 
 __all__ = [
     "Kind",
+    "cut_peak",
     "place_features",
     "pair_denied",
     "DOUBLE_BOUNCE_HEADROOM",
@@ -253,12 +254,16 @@ def _across_line(m: Measured, own: Measured, pj: Measured, fitted: Surface | Non
     )
 
 
-def _cut_peak(m: Measured) -> tuple[Measured, str]:
+def cut_peak(m: Measured, gamma: np.ndarray, beam_k: float) -> tuple[Measured, str]:
     """A bearing from the amplitude peak of a region cut where its echo is still at its top: the top may go on
-    past the cut, so the peak lies anywhere from the fitted vertex to the cut end (uniform, beside its σ).
+    past the cut, so the peak lies anywhere from the fitted vertex to past the cut end (uniform, beside its σ).
 
-    The cut end is at the top where its step's amplitude is within 3 σ of the region's largest, σ the steps'
-    own amplitude noise (successive differences' median absolute value over 0.6745·√2, Gaussian).
+    The cut end is at the top where its step's amplitude is within 3 σ of the region's largest (σ: successive
+    differences' median absolute value over 0.6745·√2).  How far past it, the echo's fall across the region says:
+    with the sweep's beam curvature ``k``, ``log A + k u² = P − k v² + 2 k v u`` is a line in ``u`` whose slope
+    puts the vertex ``v`` (:func:`~.beam_pattern.extrapolated_peak`); the piston falls faster than its parabola
+    off the top, so its fall is the parabola's from a vertex nearer the region: ``v`` 3 σ out (its residuals' σ
+    through the slope) is as far as the peak lies.
 
     Returns
     -------
@@ -272,18 +277,41 @@ def _cut_peak(m: Measured) -> tuple[Measured, str]:
         return m, ""
     top = float(ok.max())
     noise = float(np.median(np.abs(np.diff(ok)))) / (0.6745 * math.sqrt(2.0))
+    far = _known_curvature_vertex(gamma[r.steps], a, beam_k)
     widest = 0.0
     for cut, end, amp in ((r.cut_before, m.span[0], a[0]), (r.cut_after, m.span[1], a[-1])):
         if cut and math.isfinite(float(amp)) and float(amp) >= top - 3.0 * noise:
             widest = max(widest, abs(wrap(end - m.bearing)))
+            if far is not None:
+                bound = far[0] - far[1] if end == m.span[0] else far[0] + far[1]
+                if (bound < end) if end == m.span[0] else (bound > end):
+                    widest = max(widest, abs(wrap(bound - m.bearing)))
     if not widest > 0:
         return m, ""
     se = math.hypot(m.bearing_stderr, widest / math.sqrt(3.0))
     why = (
         f"its amplitude peak is at a cut end's top: the peak may lie up to {math.degrees(widest):.1f}° from the "
-        "fitted vertex, toward the cut"
+        "fitted vertex, toward the cut and past it as far as the beam's fall across the region allows"
     )
     return replace(m, bearing_stderr=se), why
+
+
+def _known_curvature_vertex(g: np.ndarray, a: np.ndarray, k: float) -> tuple[float, float] | None:
+    """The vertex of ``log A = P − k (γ − v)²``, ``k`` fixed, and 3 σ of it (rad); None: too few amplitudes."""
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 3 or not (math.isfinite(k) and k > 0):
+        return None
+    g, la = g[ok], np.log(a[ok])
+    g0 = float(np.mean(g))
+    u = g - g0
+    y = la + k * u * u
+    suu = float(u @ u)
+    if not suu > 0:
+        return None
+    slope = float(u @ (y - y.mean())) / suu
+    res = y - y.mean() - slope * u
+    s2 = float(res @ res) / max(u.size - 2, 1)
+    return g0 + slope / (2.0 * k), 3.0 * math.sqrt(s2 / suu) / (2.0 * k)
 
 
 def centre_off_peak(m: Measured, gamma: np.ndarray) -> tuple[Measured, str]:
@@ -559,7 +587,7 @@ def place_features(
             direction = stack_axis  # along the stack: a line the fan crosses
             m, why = _own_tilt(m)
             m, goes_on = continued_ends(m, own, opts.range_tolerance, distance)
-            m, cut = _cut_peak(m)
+            m, cut = cut_peak(m, scale.gamma, scale.beam_k)
             m, off = centre_off_peak(m, scale.gamma)
             m, past = peak_past_fade(m, scale.gamma, scale.beam_k)
             reasons = [*reasons, *(w for w in (why, goes_on, cut, off, past) if w)]

@@ -3,20 +3,27 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.fit import make_plane_fit, plane_data_of
-from lelsonar.reconstruct.estimate.quality import DEGRADED, assess_plane
+from lelsonar.reconstruct.estimate.quality import DEGRADED, UNRELIABLE, assess_plane
 from lelsonar.reconstruct.estimate.results import PlaneFit, SolverDiagnostics
 from lelsonar.reconstruct.estimate.robust import median
-from lelsonar.reconstruct.estimate.surfaces.evidence import heard_from_every_step, plane_line, wrap
+from lelsonar.reconstruct.estimate.surfaces.evidence import (
+    bend_of_one_target,
+    heard_from_every_step,
+    plane_line,
+    wrap,
+)
 from lelsonar.reconstruct.estimate.surfaces.joint import CornerEvidence, JointWall, WallEvidence, joint_walls
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, reading_positions, unit_normal
+from lelsonar.reconstruct.estimate.surfaces.placement import RANGE_FLOOR
 from lelsonar.reconstruct.estimate.surfaces.results import Surface, SurfaceOptions
 
-__all__ = ["METHOD", "curved_as_a_line", "fit_surface", "joint_fit"]
+__all__ = ["METHOD", "bent_as_two_targets", "curved_as_a_line", "fit_surface", "joint_fit", "place_own_mirrors"]
 
 #: The method name the surfaces' plane fits carry.
 METHOD = "rcd"
@@ -59,7 +66,7 @@ def fit_surface(
     findings = list(m.findings)
     if not math.isfinite(m.tilt_stderr):
         findings.append((DEGRADED, "tilt not determined: one capsule per step"))
-    curved = curved_as_a_line(m)
+    curved = curved_as_a_line(m) or bent_as_two_targets(m, opts.curvature_sigmas)
     if curved:
         findings.append((DEGRADED, curved))
     data = plane_data_of(caps[:, None, :], beam, d[:, None], r.rows, "a", n)
@@ -109,6 +116,69 @@ def curved_as_a_line(m: Measured) -> str:
     return (
         f"its ranges curve along the capsule stack (c = {c:.3f} ± {sc:.3f}/m), beyond 3 σ of a plane's straight "
         f"profile and within 3 σ of a line across the stack's (1/(2ρ) = {line:.3f}/m): it may be a line there"
+    )
+
+
+def bent_as_two_targets(m: Measured, sigmas: float) -> str:
+    """Why a plane's region holds more than its plane along the capsule stack ("": it does not).
+
+    A face that ends between the capsules is heard as a mirror by those whose foot falls on it and as its end's
+    edge by the rest (:func:`~.evidence.bend_of_one_target`): the region's slope along the stack, so the plane's
+    tilt, and its centre, so its bearing, mix the face with its end.
+    """
+    bend = bend_of_one_target(m)
+    if not bend > sigmas:
+        return ""
+    return (
+        f"its ranges bend along the capsule stack as no one target's ({bend:.1f} σ): a face that ends between the "
+        "capsules, those past its end hearing its edge, so its tilt and bearing mix the face with its end"
+    )
+
+
+def place_own_mirrors(measured: list[Measured], others: set[int], reach: float) -> None:
+    """Each plane's region without a bearing of its own that is another plane's own mirror, placed at that plane's
+    bearing (in ``measured``; ``others``: the regions that are no plane).
+
+    A mirror answers from its foot at its depth to every step whose beam reaches the foot (``reach``): a region
+    past a nearer echo that cuts the plane's own, at that plane's depth and tilt (within 3 σ of both, the depth's at
+    least the range noise's) and within reach of its foot, is that plane's echo, its foot where the plane's is (the
+    best placed of those that match, and only better than the region's own span places it).
+    """
+    planes = [m for i, m in enumerate(measured) if i not in others and m.bearing_source != "undetermined"]
+    for i, m in enumerate(measured):
+        if i in others or m.bearing_source != "undetermined":
+            continue
+        best: tuple[float, Measured] | None = None
+        for p in planes:
+            depth_se = max(math.hypot(m.depth_stderr, p.depth_stderr), RANGE_FLOOR)
+            tilt_se = math.hypot(m.tilt_stderr, p.tilt_stderr)
+            miss = abs(m.depth - p.depth) / depth_se
+            if (
+                miss <= 3.0
+                and p.surface_bearing_stderr < m.bearing_stderr
+                and abs(m.tilt - p.tilt) <= 3.0 * tilt_se
+                and heard_from_every_step(p.bearing, m, reach)
+                and (best is None or p.surface_bearing_stderr < best[0])
+            ):
+                best = (p.surface_bearing_stderr, p)
+        if best is not None:
+            measured[i] = _at_its_planes_foot(m, best[1])
+
+
+def _at_its_planes_foot(m: Measured, p: Measured) -> Measured:
+    n = unit_normal(p.bearing, m.tilt)
+    findings = tuple(f for f in m.findings if not (f[0] == UNRELIABLE and f[1].startswith("bearing not determined")))
+    why = (
+        f"bearing its plane's ({math.degrees(p.bearing):.1f}°): at that plane's depth and tilt within reach of its "
+        "foot, its own mirror past a nearer echo"
+    )
+    return replace(
+        m,
+        bearing=p.bearing,
+        bearing_stderr=p.bearing_stderr,
+        bearing_source=p.bearing_source,
+        depth=median(m.ranges + m.positions @ n),
+        findings=(*findings, (DEGRADED, why)),
     )
 
 
@@ -164,7 +234,7 @@ def _joint_surface(
     )
     if not isinstance(fit, PlaneFit):
         return None
-    curved = curved_as_a_line(m)
+    curved = curved_as_a_line(m) or bent_as_two_targets(m, opts.curvature_sigmas)
     findings = (*m.findings, (DEGRADED, curved)) if curved else m.findings
     fit = assess_plane(fit, gamma, findings=findings, limits=opts.limits)
     return Surface(

@@ -31,7 +31,15 @@ from lelsonar.reconstruct.estimate.surfaces.regions import capsule_subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits, stack_profile, two_targets
 
-__all__ = ["off_fan_sines", "off_fan_tilt", "taken_back", "off_fan_weak", "separate_targets", "split_stack"]
+__all__ = [
+    "off_fan_sines",
+    "off_fan_tilt",
+    "taken_back",
+    "off_fan_weak",
+    "separate_targets",
+    "split_stack",
+    "weak_from_tilt",
+]
 
 
 def _middle(m: Measured) -> tuple[float, float, float] | None:
@@ -165,6 +173,31 @@ def off_fan_weak(top: float, ref: float, psi: float, opts: SurfaceOptions) -> st
         f"echo at most {100 * top / ref:.0f} % of the sweep's strongest once taken back from up to "
         f"{math.degrees(psi):.0f}° off the fan (its ranges' slope along the stack, 3 σ out): diffraction"
     )
+
+
+def weak_from_tilt(m: Measured, top: float, ref: float, beam_k: float, opts: SurfaceOptions) -> bool:
+    """Whether a target every capsule hears diffracts once its echo is taken back from off the fan.
+
+    Its ranges' slope along the stack puts it ``t`` off the fan at the array's centre (:func:`~.stack.stack_tilt`'s
+    tilt, exact for a point or a line across the stack), where the beam heard it at ``D(ψ)²`` of its peak: its upper
+    estimate over the piston's power 3 σ farther out (:func:`~.beam_pattern.piston_power`, no understatement) still
+    under ``weak_echo`` of the sweep's strongest is a diffraction's.
+
+    Parameters
+    ----------
+    m : Measured
+    top : float
+        The region's strength, an upper estimate (mirror-normalised; NaN: unknown).
+    ref : float
+        The sweep's strongest mirror-normalised echo.
+    beam_k : float
+        The sweep's beam curvature in ``log A`` across γ, 1/rad².
+    opts : SurfaceOptions
+    """
+    if not math.isfinite(m.tilt_stderr):
+        return False
+    power = piston_power(abs(m.tilt) + 3.0 * m.tilt_stderr, beam_k)
+    return power > 0 and math.isfinite(top) and math.isfinite(ref) and top / power < opts.weak_echo * ref
 
 
 def separate_targets(
