@@ -17,13 +17,14 @@ import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
 from lelsonar.reconstruct.estimate.robust import median
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude, unfaded_ends
 from lelsonar.reconstruct.estimate.surfaces.evidence import plane_line, stack_dihedral, wrap
 from lelsonar.reconstruct.estimate.surfaces.jump_split import split_jump
 from lelsonar.reconstruct.estimate.surfaces.measurement import Measured, centre_with_peak, measure_region, unit_normal
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.slopes import step_slopes
+from lelsonar.reconstruct.estimate.surfaces.symmetry import flank_asymmetry
 
 __all__ = [
     "masked_regions",
@@ -261,7 +262,8 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     gap past it), the end is the middle of the core's end and that step, with variance ``(w + gap)²/12``.
     Only the bearing of a core centred on its own span changes (and its depth, along the new normal); that centre
     is weighed with the core's own amplitude peak where the two agree (:func:`~.measurement.centre_with_peak`),
-    and the surface's σ holds the capsules' own peaks' spread through the peak's share, as a whole region's.
+    and the surface's σ holds the capsules' own peaks' spread through the peak's share and how far the core's
+    flanks are from mirror images about that bearing (:func:`~.symmetry.flank_asymmetry`), as a whole region's.
 
     Parameters
     ----------
@@ -298,8 +300,12 @@ def trimmed_centre(core: Measured, gamma: np.ndarray, nearest: tuple[int | None,
     # peaks' spread into the surface's σ (another echo summed into part of the stack bends the summed peak).
     peak = bearing_from_amplitude(gamma[steps], core.step_amplitude)
     bearing, sb, weight = centre_with_peak(bearing, math.sqrt(var), peak, not core.clipped)
+    # The core's flanks must be mirror images about that bearing, where both ends fade alike, as a whole region's.
+    fades = not any(unfaded_ends(gamma[steps], core.step_amplitude) or (False, False))
+    asymmetry = flank_asymmetry(gamma[steps], core.step_amplitude, bearing, sb) if fades else 0.0
     h_i = core.ranges + core.positions @ unit_normal(bearing, core.tilt)
-    return replace(core, bearing=bearing, bearing_stderr=sb, summed_spread=weight * core.peak_spread, depth=median(h_i))
+    spread = math.hypot(weight * core.peak_spread, asymmetry)
+    return replace(core, bearing=bearing, bearing_stderr=sb, summed_spread=spread, depth=median(h_i))
 
 
 def split_ends(

@@ -27,6 +27,7 @@ from lelsonar.reconstruct.estimate.surfaces.beam_pattern import (
 from lelsonar.reconstruct.estimate.surfaces.regions import Region
 from lelsonar.reconstruct.estimate.surfaces.results import SurfaceOptions
 from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits
+from lelsonar.reconstruct.estimate.surfaces.symmetry import flank_asymmetry
 
 __all__ = [
     "Measured",
@@ -74,7 +75,9 @@ class Measured:
     ranges: np.ndarray  # (N,) each reading's range, m
     stack_sigma: float  # residual σ of the ranges along the stack about a free slope per region, m
     # rad: how far an echo summed into the amplitude window may have moved the bearing, the capsules' own peaks'
-    # spread times the peak's share of the bearing; part of the surface's σ, not of the tests that classify it
+    # spread times the peak's share of the bearing, and for a centred region how far its flanks are from mirror
+    # images about its bearing (:func:`~.symmetry.flank_asymmetry`); part of the surface's σ, not of the tests
+    # that classify it
     summed_spread: float = 0.0
     # rad: the capsules' own amplitude peaks' spread (:func:`~.beam_pattern.capsule_peak_spread`) whatever the
     # peak's share of the bearing (0: no peak or no amplitudes), for a bearing weighed with the peak anew
@@ -241,6 +244,7 @@ def measure_region(
     mid = 0.5 * (float(g[0]) + float(g[-1]))
     peak_fit = None
     peak_weight = 0.0  # the amplitude peak's share of the bearing
+    asymmetry = 0.0  # rad: how far the flanks' own midpoints put a centred region's bearing off
     peak = float("nan")
     clipped: bool | None = None
     per_step = np.full(region.steps.size, np.nan)
@@ -299,6 +303,12 @@ def measure_region(
         # the peak smoothly, which the parabola's residuals do not show) scale the weighted σ by their
         # difference in σ of it (the Birge ratio, at least 1).
         bearing, sb, peak_weight = centre_with_peak(mid, sb, peak_fit, clipped is False)
+        # Its two flanks must be one beam pattern's, mirror images about that bearing: where they are not (an end
+        # another target's echo at a like range sets), it is off by as much as their own axis and wander say.
+        # Only where both ends fade alike are they one level's crossings (an echo that stops strong, at its main
+        # lobe's null or its mirror's end, crosses no level there).
+        if amplitude is not None and not any(unfaded):
+            asymmetry = flank_asymmetry(g, per_step, bearing, sb)
     elif peak_fit is not None:
         bearing, sb, source = peak_fit[0], math.hypot(peak_fit[1], quant), "amplitude peak"
         peak_weight = 1.0
@@ -362,7 +372,7 @@ def measure_region(
         positions=caps,
         ranges=d,
         stack_sigma=lin_sigma,
-        summed_spread=peak_weight * spread,
+        summed_spread=math.hypot(peak_weight * spread, asymmetry),
         peak_spread=spread,
     )
 
