@@ -35,6 +35,7 @@ __all__ = [
     "bearing_from_amplitude",
     "log_amplitude_curvature",
     "extrapolated_peak",
+    "vertex_at_curvature",
     "peak_at_bearing",
     "weaker_at",
     "amplitude_jump",
@@ -202,6 +203,25 @@ def extrapolated_peak(
     far = max(abs(max(lo, v - dv)), abs(min(hi, v + dv)))
     peak = math.exp(float(icpt) + sigmas * math.sqrt(s2 / u.size) + curvature * far * far)
     return max(peak, float(a.max()))
+
+
+def vertex_at_curvature(g: np.ndarray, a: np.ndarray, k: float) -> tuple[float, float] | None:
+    """The vertex of ``log A = P − k (γ − v)²`` with the sweep's beam curvature ``k`` fixed (the line in ``u`` of
+    :func:`extrapolated_peak`), and 3 σ of it through its residuals (rad); None: too few amplitudes."""
+    ok = np.isfinite(a) & (a > 0)
+    if np.count_nonzero(ok) < 3 or not (math.isfinite(k) and k > 0):
+        return None
+    g, la = g[ok], np.log(a[ok])
+    g0 = float(np.mean(g))
+    u = g - g0
+    y = la + k * u * u
+    suu = float(u @ u)
+    if not suu > 0:
+        return None
+    slope = float(u @ (y - y.mean())) / suu
+    res = y - y.mean() - slope * u
+    s2 = float(res @ res) / max(u.size - 2, 1)
+    return g0 + slope / (2.0 * k), 3.0 * math.sqrt(s2 / suu) / (2.0 * k)
 
 
 def peak_at_bearing(

@@ -91,12 +91,12 @@ from lelsonar.reconstruct.estimate.surfaces.measurement import (
     unit_normal,
 )
 from lelsonar.reconstruct.estimate.surfaces.off_fan import (
+    off_fan_corner,
     off_fan_tilt,
     off_fan_weak,
     separate_targets,
     split_stack,
     taken_back,
-    weak_from_tilt,
 )
 from lelsonar.reconstruct.estimate.surfaces.piston_beam import SweepBeam, log_profile, sweep_beam
 from lelsonar.reconstruct.estimate.surfaces.regions import Region, find_regions, subregion
@@ -404,20 +404,16 @@ def _unsettle_off_fan(
     for i in partial:
         if i in kinds and len(kinds[i][2]) < 2 and i not in across_lines:
             kind, reasons, ties = kinds[i]
-            amp = sweep.amplitude
-            back = None if amp is None else taken_back(measured[i], amp, scale.beam_k, sweep.opts)
-            weak = (
-                "" if back is None else off_fan_weak(scale.upper_strength(back[0]), scale.mirror, back[1], sweep.opts)
-            )
+            amp, opts = sweep.amplitude, sweep.opts
+            back = None if amp is None else taken_back(measured[i], amp, scale.beam_k, opts)
+            weak = "" if back is None else off_fan_weak(scale.upper_strength(back[0]), scale.mirror, back[1], opts)
             kinds[i] = ("edge", [*reasons, weak], ties) if weak else (kind, [*reasons, f"{UNSETTLED}; {OFF_FAN}"], ties)
     for i in across_lines - partial:
         if i in kinds and kinds[i][0] == "edge" and not kinds[i][2]:
             m = measured[i]
-            if weak_from_tilt(m, scale.upper_strength(m), scale.mirror, scale.beam_k, sweep.opts):
-                continue
-            kind, reasons, ties = kinds[i]
-            off = f"its ranges' slope along the stack puts it {math.degrees(m.tilt):+.0f}° off the fan: maybe a corner"
-            kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {off}"], ties)
+            if off := off_fan_corner(m, scale.upper_strength(m), scale.mirror, scale.beam_k, sweep.opts):
+                kind, reasons, ties = kinds[i]
+                kinds[i] = (kind, [*reasons, f"{UNSETTLED}; {off}"], ties)
 
 
 def _joint_corners(

@@ -25,7 +25,7 @@ from dataclasses import replace
 import numpy as np
 
 from lelsonar.reconstruct.estimate.normals import cross3
-from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude
+from lelsonar.reconstruct.estimate.surfaces.beam_pattern import bearing_from_amplitude, vertex_at_curvature
 from lelsonar.reconstruct.estimate.surfaces.evidence import end_stderr, in_fan_range, reach_stderr, wrap
 from lelsonar.reconstruct.estimate.surfaces.feature_kinds import (
     ALIKE,
@@ -261,7 +261,7 @@ def cut_peak(m: Measured, gamma: np.ndarray, beam_k: float) -> tuple[Measured, s
     The cut end is at the top where its step's amplitude is within 3 σ of the region's largest (σ: successive
     differences' median absolute value over 0.6745·√2).  How far past it, the echo's fall across the region says:
     with the sweep's beam curvature ``k``, ``log A + k u² = P − k v² + 2 k v u`` is a line in ``u`` whose slope
-    puts the vertex ``v`` (:func:`~.beam_pattern.extrapolated_peak`); the piston falls faster than its parabola
+    puts the vertex ``v`` (:func:`~.beam_pattern.vertex_at_curvature`); the piston falls faster than its parabola
     off the top, so its fall is the parabola's from a vertex nearer the region: ``v`` 3 σ out (its residuals' σ
     through the slope) is as far as the peak lies.
 
@@ -277,7 +277,7 @@ def cut_peak(m: Measured, gamma: np.ndarray, beam_k: float) -> tuple[Measured, s
         return m, ""
     top = float(ok.max())
     noise = float(np.median(np.abs(np.diff(ok)))) / (0.6745 * math.sqrt(2.0))
-    far = _known_curvature_vertex(gamma[r.steps], a, beam_k)
+    far = vertex_at_curvature(gamma[r.steps], a, beam_k)
     widest = 0.0
     for cut, end, amp in ((r.cut_before, m.span[0], a[0]), (r.cut_after, m.span[1], a[-1])):
         if cut and math.isfinite(float(amp)) and float(amp) >= top - 3.0 * noise:
@@ -294,24 +294,6 @@ def cut_peak(m: Measured, gamma: np.ndarray, beam_k: float) -> tuple[Measured, s
         "fitted vertex, toward the cut and past it as far as the beam's fall across the region allows"
     )
     return replace(m, bearing_stderr=se), why
-
-
-def _known_curvature_vertex(g: np.ndarray, a: np.ndarray, k: float) -> tuple[float, float] | None:
-    """The vertex of ``log A = P − k (γ − v)²``, ``k`` fixed, and 3 σ of it (rad); None: too few amplitudes."""
-    ok = np.isfinite(a) & (a > 0)
-    if np.count_nonzero(ok) < 3 or not (math.isfinite(k) and k > 0):
-        return None
-    g, la = g[ok], np.log(a[ok])
-    g0 = float(np.mean(g))
-    u = g - g0
-    y = la + k * u * u
-    suu = float(u @ u)
-    if not suu > 0:
-        return None
-    slope = float(u @ (y - y.mean())) / suu
-    res = y - y.mean() - slope * u
-    s2 = float(res @ res) / max(u.size - 2, 1)
-    return g0 + slope / (2.0 * k), 3.0 * math.sqrt(s2 / suu) / (2.0 * k)
 
 
 def centre_off_peak(m: Measured, gamma: np.ndarray) -> tuple[Measured, str]:

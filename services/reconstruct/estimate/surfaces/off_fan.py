@@ -33,12 +33,12 @@ from lelsonar.reconstruct.estimate.surfaces.stack import capsule_x, stack_fits, 
 
 __all__ = [
     "off_fan_sines",
+    "off_fan_corner",
     "off_fan_tilt",
     "taken_back",
     "off_fan_weak",
     "separate_targets",
     "split_stack",
-    "weak_from_tilt",
 ]
 
 
@@ -175,8 +175,8 @@ def off_fan_weak(top: float, ref: float, psi: float, opts: SurfaceOptions) -> st
     )
 
 
-def weak_from_tilt(m: Measured, top: float, ref: float, beam_k: float, opts: SurfaceOptions) -> bool:
-    """Whether a target every capsule hears diffracts once its echo is taken back from off the fan.
+def off_fan_corner(m: Measured, top: float, ref: float, beam_k: float, opts: SurfaceOptions) -> str:
+    """Why a target every capsule hears may be a corner off the fan ("": its echo taken back is a diffraction's).
 
     Its ranges' slope along the stack puts it ``t`` off the fan at the array's centre (:func:`~.stack.stack_tilt`'s
     tilt, exact for a point or a line across the stack), where the beam heard it at ``D(ψ)²`` of its peak: its upper
@@ -194,10 +194,11 @@ def weak_from_tilt(m: Measured, top: float, ref: float, beam_k: float, opts: Sur
         The sweep's beam curvature in ``log A`` across γ, 1/rad².
     opts : SurfaceOptions
     """
-    if not math.isfinite(m.tilt_stderr):
-        return False
-    power = piston_power(abs(m.tilt) + 3.0 * m.tilt_stderr, beam_k)
-    return power > 0 and math.isfinite(top) and math.isfinite(ref) and top / power < opts.weak_echo * ref
+    if math.isfinite(m.tilt_stderr):
+        power = piston_power(abs(m.tilt) + 3.0 * m.tilt_stderr, beam_k)
+        if power > 0 and math.isfinite(top) and math.isfinite(ref) and top / power < opts.weak_echo * ref:
+            return ""
+    return f"its ranges' slope along the stack puts it {math.degrees(m.tilt):+.0f}° off the fan: maybe a corner"
 
 
 def separate_targets(
