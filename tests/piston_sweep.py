@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from lelsonar.geometry import ArrayGeometry
+from lelsonar.reconstruct.estimate.surfaces import SurfaceSet, extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
 from lelsonar.signal.directivity import piston_directivity
 
@@ -52,6 +53,11 @@ class PistonSweep:
 
     def readings(self) -> tuple[np.ndarray, np.ndarray]:
         return self.range + self.rng.normal(0.0, RANGE_NOISE, self.range.shape), self.amp
+
+    def surfaces(self) -> SurfaceSet:
+        """The surfaces the extractor finds in these :meth:`readings`."""
+        d, a = self.readings()
+        return extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
 
 
 def wrap(a: float) -> float:

@@ -17,13 +17,12 @@ import math
 import numpy as np
 import pytest
 
-from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
 from lelsonar.reconstruct.estimate.surfaces.flank_bearing import FLANK_SOURCE
 from lelsonar.sim.world_geometry import ElementKind
 from lelsonar.sim.world_render import pose_frame
 from lelsonar.tools.surface_oracle import bearing_tilt, trace_error, true_plane
 from lelsonar.tools.surface_scores import majority, score_scan, world_sweep
-from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall, assert_plane_end, wrap
+from tests.piston_sweep import PistonSweep, assert_flank_placed_wall, assert_plane_end, wrap
 
 
 def _bearing_sigma(f) -> float:
@@ -47,8 +46,7 @@ def test_a_wall_past_the_sweeps_start_at_a_depth_on_a_planes_trace_is_a_wall_pla
     s = PistonSweep(seed=3)
     s.wall(*PLANE)
     s.wall(foot, depth)
-    d, a = s.readings()
-    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    result = s.surfaces()
     # The premise: its depth alone put it on the plane's trace as its end; the flank says it is not.
     assert_flank_placed_wall(result, depth, foot, "a wall of its own")
 
@@ -57,8 +55,7 @@ def test_a_corner_past_the_sweeps_start_on_a_planes_trace_stays_that_planes_end(
     s = PistonSweep(seed=4)
     s.wall(*PLANE)
     s.corner(PAST_START, ON_TRACE)
-    d, a = s.readings()
-    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    result = s.surfaces()
     corner = assert_plane_end(result, ON_TRACE, PLANE[1])
     # Placed on the trace where the flank agrees: within 3 σ of its true bearing.
     assert abs(wrap(corner.bearing - PAST_START)) <= 3 * _bearing_sigma(corner), math.degrees(corner.bearing)
@@ -76,8 +73,7 @@ def test_of_two_placements_on_two_traces_the_one_the_flank_agrees_with_is_taken(
     s.wall(near_foot, 0.72)
     s.wall(far_foot, 3.33)
     s.corner(corner, rho, gain=3.0)
-    d, a = s.readings()
-    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    result = s.surfaces()
     (far,) = [w for w in result.surfaces if abs(w.offset - 3.33) < 0.02]
     (found,) = [f for f in result.corners if abs(f.depth - rho) < 0.02]
     assert found.surfaces == (far.label,)

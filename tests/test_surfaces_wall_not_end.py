@@ -14,8 +14,7 @@ from __future__ import annotations
 
 import math
 
-from lelsonar.reconstruct.estimate.surfaces import extract_surfaces
-from tests.piston_sweep import GAMMA, GEOMETRY, PistonSweep, assert_flank_placed_wall, assert_plane_end
+from tests.piston_sweep import PistonSweep, assert_flank_placed_wall, assert_plane_end
 
 #: The nearer plane (bearing, offset) and the bearing on its trace where it reaches the region's depth, inside
 #: its own region (its nearer echo masks the target from there on).
@@ -34,8 +33,7 @@ def test_a_wall_behind_a_nearer_plane_at_a_depth_on_its_trace_is_a_wall_not_its_
     s = PistonSweep(seed=11)
     s.wall(*PLANE)
     s.wall(foot, ON_TRACE)
-    d, a = s.readings()
-    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    result = s.surfaces()
     walls = [w for w in result.surfaces if abs(w.offset - ON_TRACE) < 0.02]
     assert len(walls) == 1, [(c.label, c.reasons) for c in result.corners]
     assert_flank_placed_wall(result, ON_TRACE, foot, "flank")
@@ -45,6 +43,5 @@ def test_a_corner_where_the_nearer_planes_trace_reaches_its_depth_stays_that_pla
     s = PistonSweep(seed=12)
     s.wall(*PLANE)
     s.corner(END, ON_TRACE)
-    d, a = s.readings()
-    result = extract_surfaces(GAMMA, d, GEOMETRY, amplitude=a)
+    result = s.surfaces()
     assert_plane_end(result, ON_TRACE, PLANE[1])
